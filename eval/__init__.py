@@ -1,0 +1,1 @@
+"""The evaluation job (``python -m eval``): synthetic data, the paper's tables, training demo."""

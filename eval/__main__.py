@@ -1,0 +1,46 @@
+"""``python -m eval SUBCOMMAND``: the evaluation job. Each subcommand lives in its own module of
+this package, exposing ``add_arguments(parser)`` and ``run(args) -> int``; it is imported only
+when chosen, so ``--help`` stays fast."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+SUBCOMMANDS: dict[str, tuple[str, str]] = {
+    # name: (module, one-line help)
+    "synth": ("eval.synth", "render a synthetic driving sequence with exact ground truth to disk"),
+    "train": ("eval.train", "train the test net unsupervised, without and with the freespace term"),
+    "tables": ("eval.tables", "the paper's fitting tables (CVC12-like, CARLA-like, real KITTI)"),
+    "noise": ("eval.noise", "noise robustness and pose estimation from noisy flow (plots)"),
+    "vflow": ("eval.vflow", "V-flow map, fitted curve and fitted F_v map of a flow (PNGs)"),
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m eval", description=__doc__.split("\n")[0])
+    sub = parser.add_subparsers(dest="command", metavar="SUBCOMMAND")
+    for name, (_, help_text) in SUBCOMMANDS.items():
+        sub.add_parser(name, help=help_text, add_help=False)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else list(argv)
+    if not argv or argv[0] not in SUBCOMMANDS:
+        parser = build_parser()
+        if argv and argv[0] not in ("-h", "--help"):
+            parser.error(f"unknown subcommand {argv[0]!r}; choose from {', '.join(SUBCOMMANDS)}")
+        parser.print_help()
+        return 0 if argv else 2
+    name = argv[0]
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    parser = argparse.ArgumentParser(prog=f"python -m eval {name}", description=SUBCOMMANDS[name][1])
+    module.add_arguments(parser)
+    args = parser.parse_args(argv[1:])
+    return int(module.run(args) or 0)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,139 @@
+"""One place for input validation: typed errors that name the argument and quote what came.
+
+Shape letters are bound across arguments: ``check_shape(flow, "flow", ("B", 2, "H", "W"), dims)``
+followed by ``check_shape(mask, "mask", ("B", 1, "H", "W"), dims)`` requires the same B, H, W.
+Value checks (finite, positive) look at tensor values and are skipped while ``torch.compile`` or
+``torch.export`` traces, where a data-dependent branch would break the graph.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Sequence
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "check_shape",
+    "check_float_tensor",
+    "check_finite",
+    "check_positive",
+    "check_size",
+    "as_batch_param",
+    "resolve_batch",
+    "tracing",
+]
+
+
+def tracing() -> bool:
+    """True while torch.compile / torch.export traces: skip value-dependent checks then."""
+    return torch.compiler.is_compiling()
+
+
+def _fmt_shape(shape: Sequence[object]) -> str:
+    inner = ", ".join(str(s) for s in shape)
+    return f"({inner},)" if len(shape) == 1 else f"({inner})"
+
+
+def check_float_tensor(x: object, name: str) -> Tensor:
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
+    if not x.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    return x
+
+
+def check_shape(
+    x: Tensor, name: str, pattern: Sequence[int | str], dims: dict[str, int] | None = None
+) -> dict[str, int]:
+    """Check ``x.shape`` against ``pattern`` (ints fixed, letters bound through ``dims``)."""
+    dims = {} if dims is None else dims
+    want = _fmt_shape(pattern)
+    if x.dim() != len(pattern):
+        raise ValueError(f"{name}: expected shape {want}, got {_fmt_shape(tuple(x.shape))}")
+    for size, p in zip(x.shape, pattern):
+        if isinstance(p, int):
+            if size != p:
+                raise ValueError(f"{name}: expected shape {want}, got {_fmt_shape(tuple(x.shape))}")
+        else:
+            bound = dims.get(p)
+            if bound is None:
+                dims[p] = int(size)
+            elif bound != size:
+                raise ValueError(
+                    f"{name}: expected shape {want} with {p}={bound} (from an earlier argument), "
+                    f"got {_fmt_shape(tuple(x.shape))}"
+                )
+    return dims
+
+
+def check_finite(x: Tensor, name: str) -> None:
+    if tracing():
+        return
+    if not bool(torch.isfinite(x).all()):
+        bad = x[~torch.isfinite(x)].flatten()[:3].tolist()
+        raise ValueError(f"{name}: expected finite values, got {bad} (NaN or inf)")
+
+
+def check_positive(x: Tensor, name: str) -> None:
+    if tracing():
+        return
+    if not bool((x > 0).all()):
+        bad = x[~(x > 0)].flatten()[:3].tolist()
+        raise ValueError(f"{name}: expected values > 0, got {bad}")
+
+
+def check_size(size: object, name: str = "size") -> tuple[int, int]:
+    """``size = (H, W)`` with positive integer sides."""
+    if isinstance(size, torch.Size):
+        size = tuple(size)
+    if not isinstance(size, (tuple, list)) or len(size) != 2:
+        raise TypeError(f"{name}: expected (H, W), got {size!r}")
+    out = []
+    for s in size:
+        if isinstance(s, bool) or not isinstance(s, numbers.Integral):
+            raise TypeError(f"{name}: expected integer sides (H, W), got {size!r}")
+        if s <= 0:
+            raise ValueError(f"{name}: expected positive sides (H, W), got {tuple(size)!r}")
+        out.append(int(s))
+    return out[0], out[1]
+
+
+def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
+                   device: torch.device | None = None) -> Tensor:
+    """A per-frame scalar as a 1-D tensor: a Python number -> (1,), a 0-d or (B,) tensor kept."""
+    if isinstance(x, Tensor):
+        if not x.is_floating_point():
+            raise TypeError(f"{name}: expected a float tensor or a Python number, got dtype {x.dtype}")
+        if x.dim() == 0:
+            x = x.reshape(1)
+        elif x.dim() != 1:
+            raise ValueError(f"{name}: expected a scalar or shape (B,), got {_fmt_shape(tuple(x.shape))}")
+        if dtype is not None or device is not None:
+            x = x.to(dtype=dtype or x.dtype, device=device or x.device)
+    elif isinstance(x, numbers.Real) and not isinstance(x, bool):
+        x = torch.tensor([float(x)], dtype=dtype or torch.get_default_dtype(), device=device)
+    else:
+        raise TypeError(f"{name}: expected a float, or a tensor of shape (B,), got {type(x).__name__}")
+    check_finite(x, name)
+    return x
+
+
+def resolve_batch(named: dict[str, int]) -> int:
+    """The common batch size of arguments whose sizes are 1 or B; raise on a mismatch."""
+    sizes = {n: b for n, b in named.items() if b != 1}
+    if len(set(sizes.values())) > 1:
+        listing = ", ".join(f"{n}={b}" for n, b in sizes.items())
+        raise ValueError(f"mismatched batch sizes: {listing} (each must be 1 or the same B)")
+    return next(iter(sizes.values()), 1)
+
+
+def result_dtype(*tensors: Tensor) -> torch.dtype:
+    """The float dtype to compute in: the promoted dtype, half precision lifted to float32."""
+    dt = tensors[0].dtype
+    for t in tensors[1:]:
+        dt = torch.promote_types(dt, t.dtype)
+    if dt in (torch.float16, torch.bfloat16):
+        dt = torch.float32
+    return dt

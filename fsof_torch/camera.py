@@ -1,0 +1,285 @@
+"""The camera: intrinsics and mounting (height above the road, roll, pitch), batched.
+
+Convention (DESIGN.md §2): pixel (u, v) with u right, v down, origin at the centre of the
+top-left pixel; vehicle frame x right, y down, z forward, the road is the plane y = h;
+``p_cam = R_roll @ R_pitch @ p_vehicle`` with
+
+    R_roll  = [[cos θ, sin θ, 0], [-sin θ, cos θ, 0], [0, 0, 1]]
+    R_pitch = [[1, 0, 0], [0, cos β, sin β], [0, -sin β, cos β]]   (β > 0: camera looks up)
+
+Angles in radians, heights in metres, focal lengths in pixels.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, fields
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ._check import (
+    as_batch_param,
+    check_finite,
+    check_positive,
+    check_shape,
+    resolve_batch,
+    result_dtype,
+    tracing,
+)
+
+__all__ = ["Camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration"]
+
+
+def roll_matrix(roll: Tensor) -> Tensor:
+    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians."""
+    c, s = torch.cos(roll), torch.sin(roll)
+    z, o = torch.zeros_like(roll), torch.ones_like(roll)
+    return torch.stack([c, s, z, -s, c, z, z, z, o], dim=-1).reshape(*roll.shape, 3, 3)
+
+
+def pitch_matrix(pitch: Tensor) -> Tensor:
+    """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up)."""
+    c, s = torch.cos(pitch), torch.sin(pitch)
+    z, o = torch.zeros_like(pitch), torch.ones_like(pitch)
+    return torch.stack([o, z, z, z, c, s, z, -s, c], dim=-1).reshape(*pitch.shape, 3, 3)
+
+
+def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
+    """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame."""
+    return roll_matrix(roll) @ pitch_matrix(pitch)
+
+
+@dataclass
+class Camera:
+    """Intrinsics and mounting of a road-facing camera, for B frames.
+
+    Args:
+        K: intrinsics (3, 3) or (B, 3, 3), pixels, at the resolution of the flow.
+        height: camera height above the road in metres, a float or (B,) tensor, > 0.
+        roll: roll θ about the optical axis in radians, a float or (B,).
+        pitch: pitch β in radians (an extension of the paper; 0 reproduces it), a float or (B,).
+
+    All four are stored as tensors of one float dtype and device (the promoted dtype of the
+    tensors given; Python floats follow it): ``K`` (B, 3, 3), the others (B,), with B the common
+    batch size (arguments of batch 1 are broadcast).
+
+    Example:
+        >>> cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), 1.65)
+        >>> cam.batch_size, cam.fx.tolist()
+        (1, [721.5])
+    """
+
+    K: Tensor
+    height: Tensor | float
+    roll: Tensor | float = 0.0
+    pitch: Tensor | float = 0.0
+
+    def __post_init__(self) -> None:
+        K = self.K
+        if not isinstance(K, Tensor):
+            raise TypeError(f"K: expected a torch.Tensor of shape (3, 3) or (B, 3, 3), got {type(K).__name__}")
+        if not K.is_floating_point():
+            raise TypeError(f"K: expected a floating-point tensor, got dtype {K.dtype}")
+        if K.dim() == 2:
+            K = K.unsqueeze(0)
+        check_shape(K, "K", ("B", 3, 3))
+        tensors = [K] + [t for t in (self.height, self.roll, self.pitch) if isinstance(t, Tensor)]
+        for name in ("height", "roll", "pitch"):
+            t = getattr(self, name)
+            if isinstance(t, Tensor) and not t.is_floating_point():
+                raise TypeError(f"{name}: expected a float tensor or a Python number, got dtype {t.dtype}")
+        dtype = result_dtype(*tensors)
+        device = K.device
+        K = K.to(dtype)
+        height = as_batch_param(self.height, "height", dtype, device)
+        roll = as_batch_param(self.roll, "roll", dtype, device)
+        pitch = as_batch_param(self.pitch, "pitch", dtype, device)
+        B = resolve_batch({"K": K.shape[0], "height": height.shape[0], "roll": roll.shape[0],
+                           "pitch": pitch.shape[0]})
+        check_finite(K, "K")
+        check_positive(height, "height")
+        if not tracing():
+            fx, fy = K[:, 0, 0], K[:, 1, 1]
+            if not bool(((fx > 0) & (fy > 0)).all()):
+                raise ValueError(f"K: expected focal lengths f_x, f_y > 0, got f_x={fx.tolist()}, f_y={fy.tolist()}")
+            lower = torch.stack([K[:, 1, 0], K[:, 2, 0], K[:, 2, 1]], dim=-1)
+            if not bool((lower == 0).all()) or not bool((K[:, 2, 2] == 1).all()):
+                raise ValueError(f"K: expected an upper-triangular intrinsic matrix with K[2, 2] = 1, got {K.tolist()}")
+        self.K = K.expand(B, 3, 3)
+        self.height = height.expand(B)
+        self.roll = roll.expand(B)
+        self.pitch = pitch.expand(B)
+
+    # -- derived quantities -------------------------------------------------------------
+    @property
+    def batch_size(self) -> int:
+        return self.K.shape[0]
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.K.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.K.device
+
+    @property
+    def fx(self) -> Tensor:
+        return self.K[:, 0, 0]
+
+    @property
+    def fy(self) -> Tensor:
+        return self.K[:, 1, 1]
+
+    @property
+    def cx(self) -> Tensor:
+        return self.K[:, 0, 2]
+
+    @property
+    def cy(self) -> Tensor:
+        return self.K[:, 1, 2]
+
+    def K_inv(self) -> Tensor:
+        """Analytic inverse of the upper-triangular K, (B, 3, 3)."""
+        K = self.K
+        fx, s, cx = K[:, 0, 0], K[:, 0, 1], K[:, 0, 2]
+        fy, cy = K[:, 1, 1], K[:, 1, 2]
+        z, o = torch.zeros_like(fx), torch.ones_like(fx)
+        rows = [1 / fx, -s / (fx * fy), (s * cy - cx * fy) / (fx * fy), z, 1 / fy, -cy / fy, z, z, o]
+        return torch.stack(rows, dim=-1).reshape(-1, 3, 3)
+
+    def mounting(self) -> Tensor:
+        """R_c (B, 3, 3): vehicle-frame vectors to camera-frame vectors."""
+        return mounting_matrix(self.roll, self.pitch)
+
+    def horizon_row(self, u: float | Tensor = None) -> Tensor:
+        """Row v of the horizon at column u (default: the principal point column), (B,).
+
+        Pixels strictly below this row (larger v) see the road in front of the camera.
+        """
+        A = self.mounting().transpose(-1, -2) @ self.K_inv()  # rows: vehicle-frame ray of p̃
+        u = self.cx if u is None else u
+        # ray_y = A[1,0] u + A[1,1] v + A[1,2] = 0
+        return -(A[:, 1, 0] * u + A[:, 1, 2]) / A[:, 1, 1]
+
+    # -- constructors and transforms ----------------------------------------------------
+    def to(self, *args, **kwargs) -> "Camera":
+        """A copy moved / cast like ``Tensor.to``."""
+        return Camera(self.K.to(*args, **kwargs), self.height.to(*args, **kwargs),
+                      self.roll.to(*args, **kwargs), self.pitch.to(*args, **kwargs))
+
+    def expand(self, batch_size: int) -> "Camera":
+        """The same camera for ``batch_size`` frames (from a batch of 1)."""
+        if self.batch_size not in (1, batch_size):
+            raise ValueError(f"batch_size: cannot expand a camera of batch {self.batch_size} to {batch_size}")
+        return Camera(self.K.expand(batch_size, 3, 3), self.height.expand(batch_size),
+                      self.roll.expand(batch_size), self.pitch.expand(batch_size))
+
+    def replace(self, **changes: Tensor | float) -> "Camera":
+        """A copy with some of ``K, height, roll, pitch`` replaced."""
+        values = {f.name: getattr(self, f.name) for f in fields(self)}
+        unknown = set(changes) - set(values)
+        if unknown:
+            raise TypeError(f"replace: unknown fields {sorted(unknown)}; expected K, height, roll, pitch")
+        values.update(changes)
+        return Camera(**values)
+
+    def scaled(self, sx: float, sy: float | None = None) -> "Camera":
+        """The camera for an image resized by ``sx`` horizontally and ``sy`` vertically.
+
+        Pixel centres map as ``u' + 0.5 = sx (u + 0.5)`` (the convention of
+        ``F.interpolate(..., align_corners=False)`` and ``cv2.resize``), so
+        ``f_x' = sx f_x`` and ``c_x' = sx (c_x + 0.5) - 0.5``; likewise for y.
+        """
+        sy = sx if sy is None else sy
+        for name, s in (("sx", sx), ("sy", sy)):
+            if not (float(s) > 0 and float(s) < float("inf")):
+                raise ValueError(f"{name}: expected a finite scale > 0, got {s!r}")
+        S = torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
+                         dtype=self.dtype, device=self.device)
+        return self.replace(K=S @ self.K)
+
+    @classmethod
+    def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,
+                        pitch: Tensor | float = 0.0) -> "Camera":
+        """From a rectified 3×4 projection matrix (KITTI ``P_rect_0N`` / ``P0``): K = P[:, :3]."""
+        if not isinstance(P, Tensor):
+            P = torch.as_tensor(P, dtype=torch.float64)
+        if P.shape[-2:] != (3, 4):
+            raise ValueError(f"P: expected shape (3, 4) or (B, 3, 4), got {tuple(P.shape)}")
+        return cls(P[..., :3].clone(), height, roll, pitch)
+
+    @classmethod
+    def from_kitti(cls, path: str | os.PathLike, cam: int = 2, height: float = 1.65,
+                   roll: float = 0.0, pitch: float = 0.0, dtype: torch.dtype = torch.float64) -> "Camera":
+        """From a KITTI calibration file: raw ``calib_cam_to_cam.txt`` (``P_rect_0{cam}``) or
+        odometry ``calib.txt`` (``P{cam}``). The height is not in the file (KITTI: about 1.65 m)."""
+        P = read_kitti_calibration(path, cam)
+        return cls.from_projection(torch.as_tensor(P, dtype=dtype), height, roll, pitch)
+
+
+def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tensor":
+    """The 3×4 rectified projection matrix of camera ``cam`` from a KITTI calibration file.
+
+    Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
+    (key ``P{cam}``, or unlabelled rows in order).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no calibration file at {str(path)!r}")
+    if not 0 <= int(cam) <= 3:
+        raise ValueError(f"cam: expected 0..3, got {cam!r}")
+    rows: dict[str, list[float]] = {}
+    unlabelled: list[list[float]] = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.strip()
+        if not line:
+            continue
+        key, sep, rest = line.partition(":")
+        try:
+            if sep:
+                key = key.strip()
+                try:
+                    rows[key] = [float(x) for x in rest.split()]
+                except ValueError:
+                    if key.startswith("P"):
+                        raise
+            else:
+                unlabelled.append([float(x) for x in line.split()])
+        except ValueError as err:
+            raise ValueError(f"path: line {n} of {str(path)!r} is not a calibration row: {line[:60]!r}") from err
+    for key in (f"P_rect_0{cam}", f"P{cam}"):
+        if key in rows:
+            values = rows[key]
+            break
+    else:
+        if cam < len(unlabelled):
+            values = unlabelled[cam]
+        else:
+            raise ValueError(f"path: {str(path)!r} has no P_rect_0{cam} or P{cam} row")
+    if len(values) != 12:
+        raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
+    return torch.tensor(values, dtype=torch.float64).reshape(3, 4)
+
+
+def _camera_flatten(cam: Camera):
+    return [cam.K, cam.height, cam.roll, cam.pitch], None
+
+
+def _camera_unflatten(values, _context) -> Camera:
+    return Camera(*values)
+
+
+try:  # let torch.compile / torch.export see a Camera as a container of tensors
+    torch.utils._pytree.register_pytree_node(
+        Camera, _camera_flatten, _camera_unflatten,
+        serialized_type_name="fsof_torch.camera.Camera",
+        flatten_with_keys_fn=lambda cam: (
+            [(torch.utils._pytree.GetAttrKey(k), getattr(cam, k)) for k in ("K", "height", "roll", "pitch")],
+            None,
+        ),
+    )
+except (ValueError, TypeError):  # pragma: no cover - already registered (module reloaded)
+    pass

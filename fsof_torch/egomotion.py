@@ -1,0 +1,126 @@
+"""Ego-motion in the paper's terms (x_d, z_d, yaw) from poses and from Ackermann kinematics.
+
+Convention (DESIGN.md §2): the vehicle frame of time t has x right, y down, z forward; the
+displacement model moves road points as ``p_v(t+1) = R_φ (p_v(t) - d)``, ``d = (x_d, 0, z_d)``.
+Camera poses follow KITTI: camera-to-world 4×4 matrices, camera x right, y down, z forward.
+The camera frame is the vehicle frame rotated by the mounting ``R_c = R_θ R_β`` (roll, pitch).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
+from .camera import Camera, mounting_matrix
+
+__all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose"]
+
+
+class EgoMotion(NamedTuple):
+    """Planar ego-motion of the displacement model, each (B,), and what the plane drops.
+
+    ``x_d``, ``z_d`` in metres, ``yaw`` in radians. ``y_d`` (metres, positive down) and
+    ``rotation_residual`` ((B, 3) axis-angle in radians, in the vehicle frame) are the
+    out-of-plane part of the pose that the model cannot represent: a bump, a pitch or roll of
+    the car body. Small values mean the model fits the pose.
+    """
+
+    x_d: Tensor
+    z_d: Tensor
+    yaw: Tensor
+    y_d: Tensor | None = None
+    rotation_residual: Tensor | None = None
+
+
+def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
+    """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)."""
+    P0, P1 = _as_4x4(pose0, "pose0"), _as_4x4(pose1, "pose1")
+    return torch.linalg.inv(P1) @ P0
+
+
+def _as_4x4(T: Tensor, name: str) -> Tensor:
+    if not isinstance(T, Tensor) or not T.is_floating_point():
+        raise TypeError(f"{name}: expected a float tensor of shape (B, 4, 4) or (B, 3, 4), got "
+                        f"{type(T).__name__ if not isinstance(T, Tensor) else T.dtype}")
+    if T.dim() == 2:
+        T = T.unsqueeze(0)
+    if T.dim() != 3 or T.shape[-1] != 4 or T.shape[-2] not in (3, 4):
+        raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
+    check_finite(T, name)
+    if T.shape[-2] == 3:
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 1, 4)
+        T = torch.cat([T, bottom], dim=-2)
+    return T
+
+
+def _axis_angle(R: Tensor) -> Tensor:
+    """Axis-angle vectors (B, 3) of rotation matrices (B, 3, 3) (angles below π)."""
+    w = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)
+    s = 0.5 * w.norm(dim=-1)
+    c = 0.5 * (R.diagonal(dim1=-2, dim2=-1).sum(-1) - 1)
+    angle = torch.atan2(s, c)
+    # angle / (2 sin angle), written to stay finite at angle -> 0
+    factor = torch.where(s > 1e-12, angle / (2 * s.clamp_min(1e-12)), torch.full_like(s, 0.5))
+    return w * factor.unsqueeze(-1)
+
+
+def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
+                         pose1: Tensor | None = None) -> EgoMotion:
+    """Project a relative camera pose onto the model's planar motion (x_d, z_d, yaw).
+
+    Args:
+        cam1_T_cam0: (B, 4, 4) or (B, 3, 4) transform of camera-t coordinates into camera-(t+1)
+            coordinates; or, with ``pose1`` given, the camera-to-world pose of frame t.
+        camera: supplies the mounting (roll, pitch) relating the camera to the vehicle frame;
+            without it the two frames coincide.
+        pose1: camera-to-world pose of frame t+1 (then ``cam1_T_cam0 = inverse(pose1) @ pose0``).
+
+    Returns:
+        :class:`EgoMotion` with x_d, z_d, yaw and the dropped remainder (y_d, rotation_residual).
+    """
+    T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else _as_4x4(cam1_T_cam0, "cam1_T_cam0")
+    R, t = T[:, :3, :3], T[:, :3, 3]
+    if camera is not None:
+        Rc = camera.mounting().to(T.dtype)
+        resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
+    else:
+        Rc = torch.eye(3, dtype=T.dtype, device=T.device).expand(1, 3, 3)
+    # p_c1 = R p_c0 + t and p_c1 = R_c R_φ R_cᵀ p_c0 - R_c R_φ d  =>  R_v = R_cᵀ R R_c ≈ R_φ, t_v = R_cᵀ t = -R_φ d
+    Rv = Rc.transpose(-1, -2) @ R @ Rc
+    tv = (Rc.transpose(-1, -2) @ t.unsqueeze(-1)).squeeze(-1)
+    yaw = torch.atan2(Rv[:, 2, 0] - Rv[:, 0, 2], Rv[:, 0, 0] + Rv[:, 2, 2])
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    # d = -R_φᵀ t_v
+    x_d = -(c * tv[:, 0] + s * tv[:, 2])
+    y_d = -tv[:, 1]
+    z_d = -(-s * tv[:, 0] + c * tv[:, 2])
+    z, o = torch.zeros_like(c), torch.ones_like(c)
+    R_phi = torch.stack([c, z, -s, z, o, z, s, z, c], dim=-1).reshape(-1, 3, 3)
+    residual = _axis_angle(Rv @ R_phi.transpose(-1, -2))
+    return EgoMotion(x_d, z_d, yaw, y_d, residual)
+
+
+def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
+                              wheelbase: Tensor | float, dt: Tensor | float) -> EgoMotion:
+    """Exact integration of the Ackermann model (no side slip) over ``dt`` seconds.
+
+    With curvature κ = tan δ_f / l and arc length s = v_r Δt the vehicle turns by φ = κ s and
+    moves along the arc to ``x_d = (1 - cos φ) / κ``, ``z_d = sin φ / κ``, written with ``sinc``
+    so that straight motion (κ = 0) is exact and gradients stay finite.
+    """
+    named = {"speed": speed, "steering": steering, "wheelbase": wheelbase, "dt": dt}
+    given = [as_batch_param(v, n) for n, v in named.items() if isinstance(v, Tensor)]
+    dtype = result_dtype(*given) if given else torch.get_default_dtype()
+    p = {n: as_batch_param(v, n, dtype) for n, v in named.items()}
+    resolve_batch({n: t.shape[0] for n, t in p.items()})
+    check_positive(p["wheelbase"], "wheelbase")
+    arc = p["speed"] * p["dt"]
+    yaw = arc * torch.tan(p["steering"]) / p["wheelbase"]
+    # (1 - cos φ) / φ = (φ / 2) sinc²(φ / 2π); sin φ / φ = sinc(φ / π) (torch.sinc is normalised)
+    x_d = arc * (yaw / 2) * torch.sinc(yaw / (2 * torch.pi)) ** 2
+    z_d = arc * torch.sinc(yaw / torch.pi)
+    zero = torch.zeros_like(yaw)
+    return EgoMotion(x_d, z_d, yaw, zero, torch.zeros(*yaw.shape, 3, dtype=yaw.dtype, device=yaw.device))

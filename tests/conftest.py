@@ -1,0 +1,39 @@
+"""Shared fixtures: dtypes with their tolerances, the shared real data folder, a KITTI-like camera."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
+def dtype(request) -> torch.dtype:
+    return request.param
+
+
+@pytest.fixture
+def device() -> torch.device:
+    return torch.device("cpu")
+
+
+def tolerance(dtype: torch.dtype) -> dict[str, float]:
+    """assert_close tolerances per dtype."""
+    return {torch.float32: dict(atol=1e-3, rtol=1e-4), torch.float64: dict(atol=1e-9, rtol=1e-9)}[dtype]
+
+
+@pytest.fixture
+def shared_data() -> Path:
+    """The folder of real KITTI samples beside the project; tests using it skip when absent."""
+    if not SHARED_DATA.is_dir():
+        pytest.skip(f"real data folder {SHARED_DATA} is absent")
+    return SHARED_DATA
+
+
+@pytest.fixture
+def kitti_K() -> torch.Tensor:
+    return torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]],
+                        dtype=torch.float64)
