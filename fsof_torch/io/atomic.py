@@ -1,0 +1,105 @@
+"""Atomic file writing: write to a temporary file in the target folder, then ``os.replace``.
+
+A crash (an exception, a killed process) while a file is written leaves the old file, or no file,
+at the target path: never half a file. Every writer of :mod:`fsof_torch.io` goes through
+:func:`atomic_path`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import math
+import numbers
+import os
+import tempfile
+from pathlib import Path
+from typing import Any, Iterator
+
+__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable"]
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+    """Yield a temporary path beside ``path``; on success rename it onto ``path``.
+
+    The temporary file lives in the same folder (so ``os.replace`` is a rename on one file
+    system) and keeps the suffix of ``path`` (so encoders that pick the format from the file
+    name, such as ``cv2.imwrite``, still work). If the body raises, the temporary file is removed
+    and the exception propagates; ``path`` is untouched.
+
+    Example:
+        >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
+        ...     tmp.write_text("hello")
+    """
+    path = Path(path)
+    folder = path.parent
+    if not folder.is_dir():
+        raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=folder)
+    os.close(fd)
+    tmp = Path(tmp_name)
+    try:
+        yield tmp
+        if not tmp.is_file() or tmp.stat().st_size == 0:
+            raise OSError(f"path: nothing was written for {str(path)!r}")
+        # flush to the disk before the rename, so that a power loss cannot leave an empty file
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+        raise
+
+
+def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
+    """Write ``data`` to ``path`` atomically; returns the path."""
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(data)
+    return Path(path)
+
+
+def write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically; returns the path."""
+    return write_bytes(path, text.encode("utf-8"))
+
+
+def to_jsonable(obj: Any) -> Any:
+    """``obj`` with tensors, NumPy arrays and scalars, paths and tuples made JSON-serialisable.
+
+    Non-finite floats (NaN, ±inf) become ``None`` (JSON ``null``): strict JSON has no NaN.
+    """
+    import numpy as np
+    import torch
+
+    if isinstance(obj, dict):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, torch.Tensor):
+        return to_jsonable(obj.detach().cpu().tolist())
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, os.PathLike):
+        return os.fspath(obj)
+    if isinstance(obj, torch.dtype):
+        return str(obj).replace("torch.", "")
+    if isinstance(obj, (str, bool)) or obj is None:
+        return obj
+    if isinstance(obj, numbers.Integral):
+        return int(obj)
+    if isinstance(obj, numbers.Real):
+        value = float(obj)
+        # strict JSON has no NaN / inf: write null rather than a file other readers reject
+        return value if math.isfinite(value) else None
+    raise TypeError(f"obj: cannot write a {type(obj).__name__} as JSON")
+
+
+def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
+    """Write ``obj`` as JSON atomically (tensors and arrays become nested lists, NaN/inf null);
+    returns the path."""
+    text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
+    return write_text(path, text + "\n")

@@ -1,0 +1,155 @@
+"""The paper's CARLA data layout (velocity-model experiments), as its official code reads it.
+
+One folder per run, named like ``t10_s0_r-5`` (``r``: the camera roll in degrees; the meaning of
+``t`` and ``s`` is not documented, :func:`parse_carla_run_name` returns them as numbers)::
+
+    t10_s0_r-5/
+        rgb/00000070.png            RGB frames, 640×480
+        optical_flow/00000070.tif   CARLA optical flow of the frame (see read_carla_flow)
+        optical_flow/00000070.png   a colour rendering of it (not read)
+        semantic/00000070.png       CARLA semantic segmentation in the CityScapes palette
+        poses.txt                   vehicle poses, one row per frame
+
+Assumptions, where the paper and its code say nothing (checked against the official scripts
+``carla.py`` / ``kitti.py`` of the authors' repository):
+
+- Flow TIFF: float32 in CARLA's normalised units, read by the official code as
+  ``np.reshape(np.array(Image.open(path)), (H, W, 2))`` then ``u = x · W``, ``v = -y · H``: we
+  accept a single-channel (H, 2W) image with x, y interleaved (what that reshape implies) or a
+  two-channel (H, W, 2) one. The paper calls these values instantaneous velocities (px/s).
+- Semantic PNG: road = RGB (128, 64, 128), road line = RGB (157, 234, 50) (CARLA's CityScapes
+  palette); both count as road.
+- Camera: fx = fy = W / (2 tan(FOV / 2)) with FOV 90°, principal point (W / 2, H / 2), height
+  2.4 m, wheelbase 2.7 m: the constants of the official code.
+- ``poses.txt``: its format is not published; :func:`fsof_torch.io.read_kitti_poses` reads rows
+  of 12 (KITTI 3×4) or 16 numbers, optionally after a frame index.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from .flo import _as_chw_flow
+from .images import read_image, read_image_array, write_image_array
+from .masks import mask_from_colors
+
+__all__ = [
+    "CARLA_ROAD_COLORS",
+    "CARLA_CAMERA_HEIGHT",
+    "CARLA_WHEELBASE",
+    "read_carla_flow",
+    "write_carla_flow",
+    "read_carla_road",
+    "carla_camera",
+    "parse_carla_run_name",
+    "CarlaRun",
+]
+
+CARLA_ROAD_COLORS = ((128, 64, 128), (157, 234, 50))
+CARLA_CAMERA_HEIGHT = 2.4
+CARLA_WHEELBASE = 2.7
+
+
+def read_carla_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
+    """A CARLA flow TIFF of the paper's layout as ``(flow (2, H, W) float32, valid (1, H, W) bool)``.
+
+    ``u = x · W``, ``v = -y · H`` from CARLA's normalised flow (the official code's conversion);
+    valid where finite.
+    """
+    array = read_image_array(path, what="CARLA float32 flow TIFF")
+    if array.dtype != np.float32:
+        raise ValueError(f"path: {str(path)!r} holds {array.dtype} values; a CARLA flow TIFF holds float32")
+    if array.ndim == 2:
+        if array.shape[1] % 2:
+            raise ValueError(f"path: {str(path)!r} is a single-channel {array.shape} image; a CARLA flow TIFF "
+                             f"interleaves x, y and so has an even width")
+        array = array.reshape(array.shape[0], array.shape[1] // 2, 2)
+    elif array.shape[2] != 2:
+        raise ValueError(f"path: {str(path)!r} has {array.shape[2]} channels; a CARLA flow TIFF has 2 (x, y)")
+    height, width = array.shape[:2]
+    flow = np.stack([array[:, :, 0] * width, -array[:, :, 1] * height]).astype(np.float32)
+    valid = np.isfinite(flow).all(axis=0)
+    flow[:, ~valid] = 0.0
+    return torch.from_numpy(flow), torch.from_numpy(valid).unsqueeze(0)
+
+
+def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
+    """Write a (2, H, W) flow as the paper's CARLA TIFF (single-channel float32 (H, 2W), x and y
+    interleaved, ``x = u / W``, ``y = -v / H``), atomically. For tests and synthetic runs."""
+    flow = _as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    _, height, width = flow.shape
+    xy = torch.stack([flow[0] / width, -flow[1] / height], dim=-1).numpy()
+    return write_image_array(path, np.ascontiguousarray(xy.reshape(height, 2 * width)))
+
+
+def read_carla_road(path: str | os.PathLike) -> Tensor:
+    """Road mask (1, H, W) bool from a CARLA semantic PNG: road or road-line pixels."""
+    return mask_from_colors(read_image(path), CARLA_ROAD_COLORS)
+
+
+def carla_camera(size: tuple[int, int], *, height: float = CARLA_CAMERA_HEIGHT, roll: float = 0.0,
+                 pitch: float = 0.0, fov_deg: float = 90.0, dtype: torch.dtype = torch.float64) -> Camera:
+    """The camera of the paper's CARLA runs for an image of ``size = (H, W)``: f = W / (2 tan(FOV/2)),
+    principal point (W/2, H/2) (as in the official code), height 2.4 m; roll in radians."""
+    h, w = int(size[0]), int(size[1])
+    f = w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    K = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    return Camera(K, height, roll, pitch)
+
+
+_RUN_FIELD = re.compile(r"([A-Za-z]+)(-?\d+(?:\.\d+)?)")
+
+
+def parse_carla_run_name(name: str) -> dict[str, float]:
+    """``"t10_s0_r-5"`` → ``{"t": 10.0, "s": 0.0, "r": -5.0, "roll": -5° in radians}``."""
+    fields = {}
+    for part in str(name).split("_"):
+        match = _RUN_FIELD.fullmatch(part)
+        if match:
+            fields[match.group(1)] = float(match.group(2))
+    if "r" in fields:
+        fields["roll"] = math.radians(fields["r"])
+    return fields
+
+
+class CarlaRun:
+    """One run folder of the paper's CARLA layout: frame names and the paths of each frame's files.
+
+    Example:
+        >>> run = CarlaRun("data/CARLA/t10_s0_r-5")           # doctest: +SKIP
+        >>> flow, valid = read_carla_flow(run.path("optical_flow", run.frames[0]))  # doctest: +SKIP
+    """
+
+    FOLDERS = {"rgb": ".png", "optical_flow": ".tif", "semantic": ".png"}
+
+    def __init__(self, root: str | os.PathLike):
+        self.root = Path(root)
+        if not (self.root / "rgb").is_dir():
+            raise FileNotFoundError(f"root: {str(self.root)!r} has no rgb/ folder (expected the paper's CARLA layout)")
+        self.frames = sorted(p.stem for p in (self.root / "rgb").glob("*.png"))
+        if not self.frames:
+            raise ValueError(f"root: {str(self.root / 'rgb')!r} holds no PNG frames")
+        self.params = parse_carla_run_name(self.root.name)
+
+    def path(self, kind: str, frame: str) -> Path:
+        if kind not in self.FOLDERS:
+            raise ValueError(f"kind: expected one of {sorted(self.FOLDERS)}, got {kind!r}")
+        return self.root / kind / f"{frame}{self.FOLDERS[kind]}"
+
+    @property
+    def poses_path(self) -> Path:
+        return self.root / "poses.txt"
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def __repr__(self) -> str:
+        return f"CarlaRun({str(self.root)!r}, frames={len(self.frames)})"

@@ -1,0 +1,75 @@
+"""Middlebury ``.flo`` optical flow files (float32 little-endian, magic 202021.25).
+
+Layout: the 4-byte magic ``202021.25`` (bytes ``PIEH``), the width and the height as int32, then
+H·W·2 float32 values, row by row, u and v interleaved. The reader checks the magic and that the
+file length is exactly 12 + 8·W·H bytes.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .atomic import atomic_path
+
+__all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
+
+FLO_MAGIC = 202021.25
+_HEADER = 12
+
+
+def read_flo(path: str | os.PathLike) -> Tensor:
+    """A Middlebury ``.flo`` file as a (2, H, W) float32 tensor in pixels (channel 0 = u).
+
+    Raises ValueError naming the path for a wrong magic number, a non-positive size or a file
+    whose length does not match the size in its header.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no file at {str(path)!r}")
+    data = path.read_bytes()
+    if len(data) < _HEADER:
+        raise ValueError(f"path: {str(path)!r} is too short for a .flo file ({len(data)} bytes, header needs 12)")
+    magic = np.frombuffer(data, dtype="<f4", count=1)[0]
+    if magic != np.float32(FLO_MAGIC):
+        raise ValueError(f"path: {str(path)!r} has the magic number {float(magic)!r} ({data[:4]!r}); "
+                         f"expected {FLO_MAGIC} (b'PIEH') for a .flo file")
+    width, height = (int(x) for x in np.frombuffer(data, dtype="<i4", count=2, offset=4))
+    if width <= 0 or height <= 0:
+        raise ValueError(f"path: {str(path)!r} declares a size of {width}x{height}; expected positive sides")
+    expected = _HEADER + 8 * width * height
+    if len(data) != expected:
+        raise ValueError(f"path: {str(path)!r} has {len(data)} bytes, but its header declares {width}x{height} "
+                         f"flow ({expected} bytes): truncated or not a .flo file")
+    flow = np.frombuffer(data, dtype="<f4", offset=_HEADER).reshape(height, width, 2)
+    return torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1)).astype(np.float32))
+
+
+def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
+    """Write a (2, H, W) flow in pixels to a Middlebury ``.flo`` file atomically (float32, exact)."""
+    flow = _as_chw_flow(flow, "flow")
+    _, height, width = flow.shape
+    array = flow.detach().cpu().to(torch.float32).numpy().transpose(1, 2, 0)
+    header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
+    path = Path(path)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        f.write(header)
+        f.write(np.ascontiguousarray(array, dtype="<f4").tobytes())
+    return path
+
+
+def _as_chw_flow(flow: Tensor | np.ndarray, name: str) -> Tensor:
+    """A flow as a (2, H, W) float tensor (from a tensor or array of that shape)."""
+    if isinstance(flow, np.ndarray):
+        flow = torch.from_numpy(flow)
+    if not isinstance(flow, Tensor):
+        raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
+    if not flow.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {flow.dtype}")
+    if flow.dim() != 3 or flow.shape[0] != 2 or flow.shape[1] == 0 or flow.shape[2] == 0:
+        raise ValueError(f"{name}: expected shape (2, H, W), got {tuple(flow.shape)}")
+    return flow

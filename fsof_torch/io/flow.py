@@ -1,0 +1,80 @@
+"""Flow files by extension: ``.png`` (KITTI 16-bit), ``.flo`` (Middlebury), ``.npy`` (NumPy)."""
+
+from __future__ import annotations
+
+import io
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .atomic import write_bytes
+from .flo import _as_chw_flow, read_flo, write_flo
+from .kitti import read_kitti_flow, write_kitti_flow
+
+__all__ = ["read_flow", "write_flow"]
+
+
+def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
+    """A flow file as ``(flow (2, H, W) float32 px, valid (1, H, W) bool)``, chosen by suffix.
+
+    ``.png``: KITTI flow PNG (valid from its B channel). ``.flo``: Middlebury; valid where the
+    flow is finite and below 1e9 in magnitude (Middlebury marks unknown flow with 1e10).
+    ``.npy``: an array (2, H, W) or (H, W, 2) (a 2 on both ends is read as (2, H, W)); valid
+    where finite. Non-valid pixels hold 0.
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return read_kitti_flow(path)
+    if suffix == ".flo":
+        flow = read_flo(path)
+    elif suffix == ".npy":
+        if not path.is_file():
+            raise FileNotFoundError(f"path: no file at {str(path)!r}")
+        try:
+            array = np.load(path, allow_pickle=False)
+        except ValueError as err:
+            raise ValueError(f"path: {str(path)!r} is not a readable .npy array: {err}") from err
+        if array.ndim != 3 or 2 not in (array.shape[0], array.shape[2]):
+            raise ValueError(f"path: {str(path)!r} holds an array of shape {array.shape}; expected (2, H, W) or (H, W, 2)")
+        if not np.issubdtype(array.dtype, np.floating):
+            raise ValueError(f"path: {str(path)!r} holds {array.dtype} values; expected floating-point flow")
+        if array.shape[0] != 2:
+            array = array.transpose(2, 0, 1)
+        flow = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+    else:
+        raise ValueError(f"path: unknown flow file suffix {path.suffix!r} in {str(path)!r}; expected .png, .flo or .npy")
+    valid = (torch.isfinite(flow) & (flow.abs() < 1e9)).all(dim=0, keepdim=True)
+    return torch.where(valid, flow, torch.zeros_like(flow)), valid
+
+
+def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor | np.ndarray | None = None) -> Path:
+    """Write a (2, H, W) flow, chosen by suffix, atomically.
+
+    ``.png``: KITTI (``valid`` kept, flow to 1/64 px). ``.flo`` and ``.npy``: float32, exact; a
+    given ``valid`` is stored by writing NaN at invalid pixels (``read_flow`` gives them back as
+    not valid).
+    """
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix == ".png":
+        return write_kitti_flow(path, flow, valid)
+    flow = _as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    if valid is not None:
+        if isinstance(valid, np.ndarray):
+            valid = torch.from_numpy(valid)
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            raise TypeError("valid: expected a bool tensor of shape (1, H, W)")
+        if tuple(valid.shape) not in ((1, *flow.shape[1:]), tuple(flow.shape[1:])):
+            raise ValueError(f"valid: expected shape (1, {flow.shape[1]}, {flow.shape[2]}) to match flow, got {tuple(valid.shape)}")
+        flow = torch.where(valid.reshape(1, *flow.shape[1:]).cpu(), flow, torch.full_like(flow, float("nan")))
+    if suffix == ".flo":
+        return write_flo(path, flow)
+    if suffix == ".npy":
+        buffer = io.BytesIO()
+        np.save(buffer, flow.numpy(), allow_pickle=False)
+        return write_bytes(path, buffer.getvalue())
+    raise ValueError(f"path: unknown flow file suffix {path.suffix!r} in {str(path)!r}; expected .png, .flo or .npy")

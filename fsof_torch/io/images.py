@@ -1,0 +1,123 @@
+"""Images on disk: checked decoding of PNG/JPEG files with OpenCV, RGB tensors, atomic writing.
+
+Convention: images are returned as (3, H, W) float32 RGB on the 0..255 scale (OpenCV's BGR order
+is undone here, once). PNG files are checked before decoding: the signature and the closing
+``IEND`` chunk must be there, so a truncated file raises instead of decoding to a partial image.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .atomic import atomic_path
+
+__all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its fixed CRC
+
+
+def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no file at {str(path)!r}")
+    return path, path.read_bytes()
+
+
+def read_image_array(path: str | os.PathLike, *, what: str = "image") -> np.ndarray:
+    """Decode an image file exactly as stored (``cv2.IMREAD_UNCHANGED``): (H, W) or (H, W, C)
+    uint8/uint16/float32, channels in OpenCV's BGR(A) order.
+
+    Raises ValueError naming the path for an empty, truncated or undecodable file. ``what`` says
+    in the message what the file was expected to be ("KITTI flow PNG", ...).
+    """
+    import cv2
+
+    path, data = _read_bytes(path)
+    if not data:
+        raise ValueError(f"path: {str(path)!r} is empty, expected a {what}")
+    if data.startswith(_PNG_SIGNATURE):
+        if data.rfind(_PNG_END) < 0:
+            raise ValueError(f"path: {str(path)!r} is a truncated PNG (no IEND chunk, {len(data)} bytes); "
+                             f"expected a complete {what}")
+    elif path.suffix.lower() == ".png":
+        raise ValueError(f"path: {str(path)!r} is not a PNG file (bad signature {data[:8]!r}); expected a {what}")
+    array = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    if array is None:
+        raise ValueError(f"path: OpenCV could not decode {str(path)!r} as a {what} (corrupt or unsupported file)")
+    return array
+
+
+def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
+    """Encode ``array`` (OpenCV layout: (H, W) or (H, W, C) in BGR(A) order) to ``path``
+    atomically; the format comes from the suffix (.png, .jpg, .tif, ...)."""
+    import cv2
+
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), array):
+            raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
+    return path
+
+
+def read_image(path: str | os.PathLike) -> Tensor:
+    """An image file as a (3, H, W) float32 RGB tensor on the 0..255 scale.
+
+    Grey images are repeated to three channels, an alpha channel is dropped, 16-bit images are
+    divided by 257 (65535 -> 255).
+    """
+    array = read_image_array(path, what="image")
+    if array.dtype == np.uint16:
+        array = array.astype(np.float32) / 257.0
+    elif array.dtype == np.uint8:
+        array = array.astype(np.float32)
+    else:
+        raise ValueError(f"path: {str(path)!r} holds {array.dtype} pixels; expected an 8- or 16-bit image")
+    if array.ndim == 2:
+        array = np.repeat(array[:, :, None], 3, axis=2)
+    elif array.shape[2] == 4:
+        array = array[:, :, :3]
+    elif array.shape[2] != 3:
+        raise ValueError(f"path: {str(path)!r} has {array.shape[2]} channels; expected 1, 3 or 4")
+    rgb = np.ascontiguousarray(array[:, :, ::-1].transpose(2, 0, 1))
+    return torch.from_numpy(rgb)
+
+
+def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
+    """Write an image atomically as 8-bit (PNG, JPEG, ... by suffix).
+
+    Args:
+        image: (3, H, W) RGB, or (1, H, W) / (H, W) grey, float on the 0..255 scale (rounded to
+            the nearest integer) or uint8. Values may exceed 0..255 by at most 0.5 (rounding).
+    """
+    if isinstance(image, np.ndarray):
+        image = torch.from_numpy(image)
+    if not isinstance(image, Tensor):
+        raise TypeError(f"image: expected a tensor of shape (3, H, W), (1, H, W) or (H, W), got {type(image).__name__}")
+    if image.dim() == 3 and image.shape[0] in (1, 3):
+        pass
+    elif image.dim() == 2:
+        image = image.unsqueeze(0)
+    else:
+        raise ValueError(f"image: expected shape (3, H, W), (1, H, W) or (H, W), got {tuple(image.shape)}")
+    image = image.detach().cpu()
+    if image.dtype == torch.uint8:
+        array = image.numpy()
+    else:
+        if image.dtype == torch.bool:
+            raise TypeError("image: expected a float or uint8 tensor, got dtype torch.bool (use write_road_mask)")
+        values = image.double()
+        if not bool(torch.isfinite(values).all()):
+            raise ValueError("image: expected finite values, got NaN or inf")
+        lo, hi = float(values.min()), float(values.max())
+        if lo < -0.5 or hi > 255.5:
+            raise ValueError(f"image: expected values on the 0..255 scale, got the range [{lo:.4g}, {hi:.4g}]")
+        array = values.round().clamp(0, 255).to(torch.uint8).numpy()
+    array = array.transpose(1, 2, 0)
+    array = array[:, :, 0] if array.shape[2] == 1 else array[:, :, ::-1]
+    return write_image_array(path, np.ascontiguousarray(array))

@@ -1,0 +1,193 @@
+"""KITTI formats: flow PNGs, odometry poses, calibration files.
+
+Flow PNG (DESIGN.md §8): 16-bit, 3 channels; in OpenCV's BGR order B = valid (0/1),
+G = v·64 + 2^15, R = u·64 + 2^15. Flow is stored to 1/64 px (rounded to the nearest step, so
+a round trip is exact to 1/128 px) in the range [-512, 512 - 1/64] px.
+
+Poses: one row per frame, the 12 numbers of the 3×4 camera-to-world matrix [R | t] row by row
+(KITTI odometry convention; ``cam1_T_cam0 = inv(P1) @ P0``).
+
+Calibration: reading lives in :func:`fsof_torch.camera.read_kitti_calibration` (re-exported
+here); :func:`write_kitti_calibration` writes a ``P_rect_02:``-style file that it reads back.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import read_kitti_calibration
+from .atomic import write_text
+from .flo import _as_chw_flow
+from .images import read_image_array, write_image_array
+
+__all__ = [
+    "read_kitti_flow",
+    "write_kitti_flow",
+    "read_kitti_poses",
+    "write_kitti_poses",
+    "read_kitti_calibration",
+    "write_kitti_calibration",
+    "KITTI_FLOW_SCALE",
+    "KITTI_FLOW_MAX",
+]
+
+KITTI_FLOW_SCALE = 64.0
+_OFFSET = 2.0 ** 15
+KITTI_FLOW_MAX = (65535 - _OFFSET) / KITTI_FLOW_SCALE  # 511.984375 px
+KITTI_FLOW_MIN = -_OFFSET / KITTI_FLOW_SCALE  # -512 px
+
+
+def read_kitti_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
+    """A KITTI flow PNG as ``(flow (2, H, W) float32 px, valid (1, H, W) bool)``.
+
+    Flow at invalid pixels is returned as 0. Raises ValueError naming the path for a truncated
+    PNG, an 8-bit PNG, or a PNG without exactly three channels.
+    """
+    array = read_image_array(path, what="KITTI flow PNG (16-bit, 3 channels)")
+    if array.dtype != np.uint16:
+        raise ValueError(f"path: {str(path)!r} is a {array.dtype} image ({8 * array.dtype.itemsize}-bit); "
+                         f"a KITTI flow PNG is 16-bit")
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels != 3:
+        raise ValueError(f"path: {str(path)!r} has {channels} channel(s); a KITTI flow PNG has 3 (valid, v, u)")
+    valid = array[:, :, 0] > 0
+    uv = (array[:, :, [2, 1]].astype(np.float32) - np.float32(_OFFSET)) / np.float32(KITTI_FLOW_SCALE)
+    uv[~valid] = 0.0
+    flow = torch.from_numpy(np.ascontiguousarray(uv.transpose(2, 0, 1)))
+    return flow, torch.from_numpy(valid).unsqueeze(0)
+
+
+def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor | np.ndarray | None = None) -> Path:
+    """Write a flow as a KITTI 16-bit PNG atomically.
+
+    Args:
+        flow: (2, H, W) float, pixels, channel 0 = u.
+        valid: (1, H, W) or (H, W) bool; default: every pixel with a finite flow.
+
+    Flow is rounded to 1/64 px. Valid pixels must lie in [-512, 511.98] px (else ValueError);
+    invalid pixels are written as 0 flow, whatever they held (NaN included).
+    """
+    flow = _as_chw_flow(flow, "flow").detach().cpu().double()
+    _, height, width = flow.shape
+    finite = torch.isfinite(flow).all(dim=0)
+    if valid is None:
+        valid_hw = finite
+    else:
+        if isinstance(valid, np.ndarray):
+            valid = torch.from_numpy(valid)
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            raise TypeError(f"valid: expected a bool tensor of shape (1, H, W), got "
+                            f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
+        if tuple(valid.shape) not in ((1, height, width), (height, width)):
+            raise ValueError(f"valid: expected shape (1, {height}, {width}) to match flow, got {tuple(valid.shape)}")
+        valid_hw = valid.detach().cpu().reshape(height, width)
+        if not bool(finite[valid_hw].all()):
+            raise ValueError("flow: expected finite values at valid pixels, got NaN or inf")
+    stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
+    if bool(valid_hw.any()):
+        lo, hi = float(stored.min()), float(stored.max())
+        if lo < KITTI_FLOW_MIN or hi > KITTI_FLOW_MAX:
+            raise ValueError(f"flow: a KITTI flow PNG holds [{KITTI_FLOW_MIN}, {KITTI_FLOW_MAX}] px, got the range "
+                             f"[{lo:.4g}, {hi:.4g}] at valid pixels")
+    coded = (stored * KITTI_FLOW_SCALE + _OFFSET).round().clamp(0, 65535).to(torch.int32).numpy().astype(np.uint16)
+    bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
+    return write_image_array(path, bgr)
+
+
+def read_kitti_poses(path: str | os.PathLike) -> Tensor:
+    """Poses of a KITTI odometry file as (N, 4, 4) float64 camera-to-world matrices.
+
+    Each non-empty line holds 12 numbers (the 3×4 [R | t] row by row). Also accepted, for other
+    data sets written in the same spirit: 16 numbers (the full 4×4, last row 0 0 0 1), or 13 / 17
+    numbers with a leading frame index (which is dropped). ``#`` starts a comment.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no poses file at {str(path)!r}")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        line = line.split("#", 1)[0].strip()
+        if not line:
+            continue
+        try:
+            values = [float(x) for x in line.replace(",", " ").split()]
+        except ValueError as err:
+            raise ValueError(f"path: line {n} of {str(path)!r} is not a row of numbers: {line[:60]!r}") from err
+        if len(values) in (13, 17):
+            values = values[1:]
+        if len(values) == 12:
+            values = values + [0.0, 0.0, 0.0, 1.0]
+        elif len(values) != 16:
+            raise ValueError(f"path: line {n} of {str(path)!r} has {len(values)} numbers; expected 12 (KITTI 3×4 pose)")
+        rows.append(values)
+    if not rows:
+        raise ValueError(f"path: {str(path)!r} holds no poses")
+    poses = torch.tensor(rows, dtype=torch.float64).reshape(-1, 4, 4)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    if not torch.allclose(poses[:, 3], bottom.expand(len(rows), 4), atol=1e-9):
+        raise ValueError(f"path: {str(path)!r} has 4×4 poses whose last row is not 0 0 0 1")
+    if not bool(torch.isfinite(poses).all()):
+        raise ValueError(f"path: {str(path)!r} holds non-finite pose values")
+    return poses
+
+
+def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Path:
+    """Write (N, 4, 4) or (N, 3, 4) camera-to-world poses in the KITTI odometry format, atomically
+    (12 numbers a row, ``%.12e``, so float64 values survive to about 1e-12 relative)."""
+    if isinstance(poses, np.ndarray):
+        poses = torch.from_numpy(poses)
+    if not isinstance(poses, Tensor) or not poses.is_floating_point():
+        raise TypeError(f"poses: expected a float tensor of shape (N, 4, 4), got "
+                        f"{poses.dtype if isinstance(poses, Tensor) else type(poses).__name__}")
+    if poses.dim() == 2 and poses.shape[-2:] in ((4, 4), (3, 4)):
+        poses = poses.unsqueeze(0)
+    if poses.dim() != 3 or tuple(poses.shape[-2:]) not in ((4, 4), (3, 4)):
+        raise ValueError(f"poses: expected shape (N, 4, 4) or (N, 3, 4), got {tuple(poses.shape)}")
+    if not bool(torch.isfinite(poses).all()):
+        raise ValueError("poses: expected finite values, got NaN or inf")
+    rows = poses[:, :3, :].detach().cpu().double().reshape(-1, 12).tolist()
+    text = "".join(" ".join(f"{x:.12e}" for x in row) + "\n" for row in rows)
+    return write_text(path, text)
+
+
+def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, cam: int = 2,
+                            style: str = "cam_to_cam") -> Path:
+    """Write a KITTI calibration file atomically with the rectified projection ``P = [K | 0]``.
+
+    Args:
+        K: (3, 3) or (3, 4) (a 3×4 projection is written as is).
+        cam: camera index of the row (``P_rect_0{cam}`` / ``P{cam}``).
+        style: ``"cam_to_cam"`` (raw ``calib_cam_to_cam.txt`` rows ``P_rect_0N:``) or
+            ``"odometry"`` (``calib.txt`` rows ``PN:``; rows P0..P{cam} are all written with this
+            projection, so files stay readable by tools that count rows).
+
+    :func:`fsof_torch.camera.read_kitti_calibration` reads the result back exactly (``%.12e``).
+    """
+    if isinstance(K, np.ndarray):
+        K = torch.from_numpy(K)
+    if not isinstance(K, Tensor) or not K.is_floating_point():
+        raise TypeError(f"K: expected a float tensor of shape (3, 3), got "
+                        f"{K.dtype if isinstance(K, Tensor) else type(K).__name__}")
+    if K.dim() == 3 and K.shape[0] == 1:
+        K = K[0]
+    if tuple(K.shape) == (3, 3):
+        P = torch.cat([K.double(), torch.zeros(3, 1, dtype=torch.float64, device=K.device)], dim=1)
+    elif tuple(K.shape) == (3, 4):
+        P = K.double()
+    else:
+        raise ValueError(f"K: expected shape (3, 3) or (3, 4), got {tuple(K.shape)}")
+    if not 0 <= int(cam) <= 3:
+        raise ValueError(f"cam: expected 0..3, got {cam!r}")
+    row = " ".join(f"{x:.12e}" for x in P.detach().cpu().reshape(-1).tolist())
+    if style == "cam_to_cam":
+        text = f"P_rect_0{cam}: {row}\n"
+    elif style == "odometry":
+        text = "".join(f"P{i}: {row}\n" for i in range(int(cam) + 1))
+    else:
+        raise ValueError(f"style: expected 'cam_to_cam' or 'odometry', got {style!r}")
+    return write_text(path, text)

@@ -1,0 +1,326 @@
+"""A KITTI-like folder layout for rendered synthetic sequences: writer and reader.
+
+One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and its two frames
+``{i:06d}_10`` (time t) and ``{i:06d}_11`` (time t+1), as in KITTI flow::
+
+    ROOT/
+        meta.json                  what wrote the folder: format, version, preset, seed, size, N,
+                                   and this file list; written last (a folder without it is
+                                   incomplete)
+        image_2/000000_10.png      frame t, 8-bit RGB (rendered 0..255 values rounded)
+        image_2/000000_11.png      frame t+1
+        flow_occ/000000_10.png     forward flow t -> t+1, KITTI 16-bit flow PNG (1/64 px); its
+                                   valid channel is the renderer's mask (occluded points and
+                                   points leaving the view are not valid)
+        flow_velocity/000000_10.flo  instantaneous flow in px/s (velocity model), Middlebury .flo,
+                                   float32, exact; NaN where not valid
+        road/000000_10.png         road (freespace) mask of frame t, 8-bit, 255 = road
+        semantic/000000_10.png     label map of frame t, 8-bit (16-bit if a label exceeds 255)
+        depth/000000_10.png        depth of frame t, KITTI depth PNG: uint16 = metres · 256,
+                                   0 = no depth (sky, or beyond 255.99 m)
+        calib/000000.txt           ``P_rect_02: K | 0`` (KITTI raw calibration style), the true
+                                   intrinsics of the pair
+        params/000000.json         the true camera (K, height, roll, pitch, in metres/radians) and
+                                   odometry (x_d, z_d, yaw) of the pair, its velocity (speed,
+                                   steering, wheelbase, dt) and camera-to-world poses pose1, pose2
+                                   (4×4) when rendered with them, preset, seed, size
+        poses.txt                  N + 1 rows, KITTI odometry format (camera-to-world 3×4):
+                                   row i is the camera of ``{i:06d}_10``, row i + 1 the camera of
+                                   ``{i:06d}_11``, so ``ego_motion_from_pose(P[i], camera,
+                                   pose1=P[i+1])`` gives back the pair's odometry. They are the
+                                   renderer's ``pose1``/``pose2`` (world = vehicle frame of frame
+                                   0) when every pair has them and consecutive pairs share a frame;
+                                   otherwise the chain of each pair's true relative motion
+                                   (world = camera of the first frame). meta.json says which.
+
+Optional parts of a pair (velocity flow, labels, depth, velocity) are written when the pair
+has them. Every file is written atomically.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any, Iterable, Mapping
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..camera import Camera
+from .atomic import write_json
+from .flo import read_flo, write_flo
+from .images import read_image, read_image_array, write_image, write_image_array
+from .kitti import read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
+from .masks import read_label_map, read_road_mask, write_label_map, write_road_mask
+
+__all__ = [
+    "SYNTHETIC_FORMAT",
+    "pair_name",
+    "relative_pose_from_odometry",
+    "write_synthetic_pair",
+    "write_synthetic_sequence",
+    "read_synthetic_pair",
+    "read_synthetic_params",
+    "synthetic_pair_indices",
+    "camera_from_params",
+    "write_depth_png",
+    "read_depth_png",
+]
+
+SYNTHETIC_FORMAT = "fsof-torch synthetic KITTI-like layout"
+_VERSION = 1
+_DEPTH_SCALE = 256.0
+
+FILES = {
+    "image_2/{name}_10.png": "frame t, 8-bit RGB",
+    "image_2/{name}_11.png": "frame t+1, 8-bit RGB",
+    "flow_occ/{name}_10.png": "forward flow t->t+1, KITTI 16-bit flow PNG",
+    "flow_velocity/{name}_10.flo": "instantaneous flow px/s, Middlebury .flo, NaN where not valid",
+    "road/{name}_10.png": "road mask, 255 = road",
+    "semantic/{name}_10.png": "label map",
+    "depth/{name}_10.png": "depth, uint16 = metres * 256, 0 = none",
+    "calib/{name}.txt": "P_rect_02: K | 0",
+    "params/{name}.json": "true camera, odometry, velocity",
+    "poses.txt": "N+1 camera-to-world poses (KITTI odometry format), chained",
+}
+
+
+def pair_name(index: int) -> str:
+    """``000123`` for pair 123."""
+    return f"{int(index):06d}"
+
+
+def _float(x: Any) -> float:
+    if isinstance(x, Tensor):
+        if x.numel() != 1:
+            raise ValueError(f"expected a single number, got a tensor of shape {tuple(x.shape)}")
+        return float(x.detach().reshape(()).item())
+    return float(x)
+
+
+def _camera_dict(camera: Camera) -> dict:
+    if camera.batch_size != 1:
+        raise ValueError(f"camera: expected a camera of batch 1 for one pair, got batch {camera.batch_size}")
+    return {"K": camera.K[0].detach().cpu().double().tolist(), "height": _float(camera.height),
+            "roll": _float(camera.roll), "pitch": _float(camera.pitch)}
+
+
+def camera_from_params(params: Mapping, dtype: torch.dtype = torch.float64) -> Camera:
+    """The Camera (batch 1) of a pair's ``params`` JSON (or its ``"camera"`` entry)."""
+    cam = params.get("camera", params)
+    return Camera(torch.tensor(cam["K"], dtype=dtype), float(cam["height"]), float(cam.get("roll", 0.0)),
+                  float(cam.get("pitch", 0.0)))
+
+
+def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: float) -> Tensor:
+    """``cam1_T_cam0`` (4, 4) float64 of the displacement model's motion for a mounted camera.
+
+    Vehicle frame: ``p_v1 = R_φ (p_v0 - d)``; camera frame ``p_c = R_c p_v``, hence
+    ``cam1_T_cam0 = [[R_c R_φ R_cᵀ, -R_c R_φ d], [0, 1]]`` (the inverse of what
+    :func:`fsof_torch.egomotion.ego_motion_from_pose` projects).
+    """
+    Rc = camera.to(device="cpu", dtype=torch.float64).mounting()[0].detach()
+    c, s = math.cos(yaw), math.sin(yaw)
+    R_phi = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
+    d = torch.tensor([x_d, 0.0, z_d], dtype=torch.float64)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = Rc @ R_phi @ Rc.T
+    T[:3, 3] = -(Rc @ R_phi @ d)
+    return T
+
+
+def write_depth_png(path: str | os.PathLike, depth: Tensor) -> Path:
+    """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none)."""
+    if not isinstance(depth, Tensor) or not depth.is_floating_point():
+        raise TypeError("depth: expected a float tensor of shape (1, H, W)")
+    d = depth.detach().cpu().double().reshape(depth.shape[-2:])
+    coded = torch.where(torch.isfinite(d) & (d > 0), (d * _DEPTH_SCALE).round(), torch.zeros_like(d))
+    coded = torch.where(coded > 65535, torch.zeros_like(coded), coded)
+    return write_image_array(path, coded.to(torch.int32).numpy().astype(np.uint16))
+
+
+def read_depth_png(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
+    """A KITTI depth PNG → ``(depth (1, H, W) float32 metres, valid (1, H, W) bool)``; 0 where not valid."""
+    array = read_image_array(path, what="depth PNG (16-bit, 1 channel)")
+    if array.dtype != np.uint16 or array.ndim != 2:
+        raise ValueError(f"path: {str(path)!r} is {array.dtype} with shape {array.shape}; a depth PNG is 16-bit, 1 channel")
+    valid = array > 0
+    return torch.from_numpy(array.astype(np.float32) / _DEPTH_SCALE).unsqueeze(0), torch.from_numpy(valid).unsqueeze(0)
+
+
+def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str, Any], *,
+                         extra: Mapping[str, Any] | None = None) -> dict[str, Path]:
+    """Write one rendered pair (the dict of :func:`fsof_torch.scene.render_pair`) into ``root``.
+
+    Required keys: ``image1``, ``image2`` (3, H, W) 0..255, ``flow`` (2, H, W), ``valid``
+    (1, H, W) bool, ``camera`` (batch 1), ``odometry`` (x_d, z_d, yaw). Optional: ``road``,
+    ``labels``, ``depth``, ``flow_velocity``, ``velocity``. ``extra`` goes into the params JSON
+    (preset, seed, ...). Returns the written paths by kind.
+    """
+    root = Path(root)
+    missing = [k for k in ("image1", "image2", "flow", "valid", "camera", "odometry") if k not in pair]
+    if missing:
+        raise ValueError(f"pair: missing keys {missing}; expected the dict of fsof_torch.scene.render_pair")
+    name = pair_name(index)
+    out: dict[str, Path] = {}
+
+    def target(folder: str, file: str) -> Path:
+        (root / folder).mkdir(parents=True, exist_ok=True)
+        return root / folder / file
+
+    out["image1"] = write_image(target("image_2", f"{name}_10.png"), pair["image1"])
+    out["image2"] = write_image(target("image_2", f"{name}_11.png"), pair["image2"])
+    out["flow"] = write_kitti_flow(target("flow_occ", f"{name}_10.png"), pair["flow"], pair["valid"])
+    if pair.get("flow_velocity") is not None:
+        out["flow_velocity"] = write_flo(target("flow_velocity", f"{name}_10.flo"),
+                                         torch.where(pair["valid"].cpu(), pair["flow_velocity"].detach().cpu().float(),
+                                                     torch.tensor(float("nan"))))
+    if pair.get("road") is not None:
+        out["road"] = write_road_mask(target("road", f"{name}_10.png"), pair["road"])
+    if pair.get("labels") is not None:
+        out["labels"] = write_label_map(target("semantic", f"{name}_10.png"), pair["labels"])
+    if pair.get("depth") is not None:
+        out["depth"] = write_depth_png(target("depth", f"{name}_10.png"), pair["depth"])
+    camera: Camera = pair["camera"]
+    out["calib"] = write_kitti_calibration(target("calib", f"{name}.txt"), camera.K[0].detach().cpu().double())
+    params = {
+        "index": int(index),
+        "name": name,
+        "size": list(pair["flow"].shape[-2:]),
+        "camera": _camera_dict(camera),
+        "odometry": {k: _float(pair["odometry"][k]) for k in ("x_d", "z_d", "yaw")},
+    }
+    if pair.get("velocity") is not None:
+        params["velocity"] = {k: _float(v) for k, v in pair["velocity"].items()}
+    for key in ("pose1", "pose2"):
+        if pair.get(key) is not None:
+            params[key] = pair[key].detach().cpu().double().reshape(4, 4).tolist()
+    if extra:
+        params.update(dict(extra))
+    out["params"] = write_json(target("params", f"{name}.json"), params)
+    return out
+
+
+def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[str, Any]], *,
+                             meta: Mapping[str, Any] | None = None, progress: bool = False,
+                             total: int | None = None) -> dict[str, Any]:
+    """Write rendered pairs 0, 1, ... into ``root`` (created), then ``poses.txt`` and ``meta.json``.
+
+    ``pairs`` may be a generator (rendering lazily, so that the progress bar, on stderr when
+    ``progress``, counts rendering too). Returns a summary: ``root``, ``num_pairs``, ``size``,
+    ``files`` (count per folder), ``bytes``.
+    """
+    from tqdm import tqdm
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    extra = dict(meta or {})
+    chained = [torch.eye(4, dtype=torch.float64)]
+    rendered: list[Tensor] | None = []
+    size = None
+    count = 0
+    iterator = tqdm(pairs, total=total, desc=f"synth {root.name}", unit="pair", disable=not progress)
+    for index, pair in enumerate(iterator):
+        write_synthetic_pair(root, index, pair, extra={k: v for k, v in extra.items() if k in ("preset", "seed")})
+        odo = pair["odometry"]
+        T = relative_pose_from_odometry(pair["camera"], _float(odo["x_d"]), _float(odo["z_d"]), _float(odo["yaw"]))
+        chained.append(chained[-1] @ torch.linalg.inv(T))
+        rendered = _extend_rendered_poses(rendered, pair)
+        size = list(pair["flow"].shape[-2:])
+        count += 1
+    if count == 0:
+        raise ValueError("pairs: got no pairs to write")
+    # the renderer's own poses when every pair has them and consecutive pairs share a frame;
+    # otherwise the chain of the pairs' relative motions (world = camera of the first frame)
+    poses = torch.stack(rendered) if rendered else torch.stack(chained)
+    write_kitti_poses(root / "poses.txt", poses)
+    extra["poses_world"] = "renderer (vehicle frame of frame 0)" if rendered else "camera of the first frame"
+    files = {folder: len(list((root / folder).glob("*"))) for folder in
+             ("image_2", "flow_occ", "flow_velocity", "road", "semantic", "depth", "calib", "params")
+             if (root / folder).is_dir()}
+    summary = {"format": SYNTHETIC_FORMAT, "version": _VERSION, "num_pairs": count, "size": size,
+               **extra, "files": files, "layout": FILES}
+    write_json(root / "meta.json", summary)
+    total_bytes = sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
+    return {"root": str(root), "num_pairs": count, "size": size, "files": files, "bytes": total_bytes}
+
+
+def _extend_rendered_poses(poses: list[Tensor] | None, pair: Mapping[str, Any]) -> list[Tensor] | None:
+    """Append a pair's ``pose1``/``pose2`` to a chain of camera-to-world poses; None once broken."""
+    if poses is None or pair.get("pose1") is None or pair.get("pose2") is None:
+        return None
+    p1 = pair["pose1"].detach().cpu().double().reshape(4, 4)
+    p2 = pair["pose2"].detach().cpu().double().reshape(4, 4)
+    if not poses:
+        return [p1, p2]
+    if not torch.allclose(poses[-1], p1, atol=1e-9, rtol=0):
+        return None
+    return poses + [p2]
+
+
+def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
+    """Indices of the pairs in a synthetic layout folder (from ``params/*.json``), sorted."""
+    root = Path(root)
+    if not (root / "params").is_dir():
+        raise FileNotFoundError(f"root: {str(root)!r} has no params/ folder (not a synthetic layout written by "
+                                f"write_synthetic_sequence / python -m eval synth)")
+    return sorted(int(p.stem) for p in (root / "params").glob("*.json") if p.stem.isdigit())
+
+
+def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
+    """The params JSON of pair ``index``."""
+    path = Path(root) / "params" / f"{pair_name(index)}.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"index: no params file {str(path)!r}")
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as err:
+        raise ValueError(f"path: {str(path)!r} is not valid JSON: {err}") from err
+
+
+def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dtype = torch.float32,
+                        ground_truth: bool = True) -> dict[str, Any]:
+    """Read pair ``index`` of a synthetic layout folder as the dict :func:`fsof_torch.scene.render_pair`
+    gives (keys where present on disk): ``image1``, ``image2`` (3, H, W) ``dtype`` 0..255,
+    ``flow`` (2, H, W) px, ``valid`` (1, H, W) bool, ``flow_velocity`` (2, H, W) px/s, ``road``
+    (1, H, W) bool, ``labels`` (H, W) int64, ``depth`` (1, H, W) m, ``camera`` (Camera, batch 1,
+    ``dtype``), ``odometry`` and ``velocity`` (dicts of floats), ``pose1``, ``pose2`` (4, 4) float64, plus ``index`` and ``name``.
+    ``ground_truth=False`` reads only the images and the camera.
+    """
+    root = Path(root)
+    name = pair_name(index)
+    params = read_synthetic_params(root, index)
+    sample: dict[str, Any] = {
+        "image1": read_image(root / "image_2" / f"{name}_10.png").to(dtype),
+        "image2": read_image(root / "image_2" / f"{name}_11.png").to(dtype),
+        "camera": camera_from_params(params, dtype),
+        "index": int(index),
+        "name": name,
+    }
+    if not ground_truth:
+        return sample
+    flow, valid = read_kitti_flow(root / "flow_occ" / f"{name}_10.png")
+    sample["flow"], sample["valid"] = flow.to(dtype), valid
+    path = root / "flow_velocity" / f"{name}_10.flo"
+    if path.is_file():
+        fv = read_flo(path)
+        sample["flow_velocity"] = torch.nan_to_num(fv, nan=0.0).to(dtype)
+    path = root / "road" / f"{name}_10.png"
+    if path.is_file():
+        sample["road"] = read_road_mask(path)
+    path = root / "semantic" / f"{name}_10.png"
+    if path.is_file():
+        sample["labels"] = read_label_map(path)
+    path = root / "depth" / f"{name}_10.png"
+    if path.is_file():
+        sample["depth"] = read_depth_png(path)[0].to(dtype)
+    sample["odometry"] = {k: float(params["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+    if "velocity" in params:
+        sample["velocity"] = {k: float(v) for k, v in params["velocity"].items()}
+    for key in ("pose1", "pose2"):
+        if key in params:
+            sample[key] = torch.tensor(params[key], dtype=torch.float64)
+    return sample

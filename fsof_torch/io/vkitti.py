@@ -1,0 +1,181 @@
+"""Virtual KITTI 2: flow PNGs, camera intrinsics and extrinsics, class segmentation.
+
+Flow PNG (``frames/forwardFlow/Camera_N/flow_XXXXX.png``): 16-bit, 3 channels; in OpenCV's BGR
+order B = 0 marks invalid flow (sky, ...), G and R hold v and u normalised by the image size:
+``R = (2^16 - 1) · (u / (W - 1) + 1) / 2`` and ``G = (2^16 - 1) · (v / (H - 1) + 1) / 2``, so
+``u = (2 R / (2^16 - 1) - 1) (W - 1)``. Resolution: 2 (W - 1) / 65535 px (0.038 px at W = 1242).
+
+Text ground truth (``vkitti_2.0.3_textgt/SceneXX/<variation>/``), one header line then rows:
+``intrinsic.txt``: ``frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]``;
+``extrinsic.txt``: ``frame cameraID`` then the 16 numbers of a 4×4 matrix row by row, which
+VKITTI documents as the world-to-camera transform (``camera_T_world``, camera x right, y down,
+z forward); :func:`vkitti2_camera_poses` inverts it into KITTI-style camera-to-world poses for
+:func:`fsof_torch.egomotion.ego_motion_from_pose`.
+``colors.txt``: ``Category r g b`` then one class a row (``Road 100 60 100``, ...); the class
+segmentation PNG (``classgt_XXXXX.png``) colours each pixel with its class colour.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .flo import _as_chw_flow
+from .images import read_image_array, write_image_array
+
+__all__ = [
+    "read_vkitti2_flow",
+    "write_vkitti2_flow",
+    "read_vkitti2_intrinsics",
+    "read_vkitti2_extrinsics",
+    "vkitti2_camera_poses",
+    "read_vkitti2_colors",
+    "read_vkitti2_classes",
+]
+
+_MAX16 = 2.0 ** 16 - 1.0
+
+
+def read_vkitti2_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
+    """A Virtual KITTI 2 flow PNG as ``(flow (2, H, W) float32 px, valid (1, H, W) bool)``.
+
+    Flow at invalid pixels (B = 0) is 0. Raises ValueError naming the path for a truncated,
+    8-bit or non-3-channel PNG.
+    """
+    array = read_image_array(path, what="Virtual KITTI 2 flow PNG (16-bit, 3 channels)")
+    if array.dtype != np.uint16:
+        raise ValueError(f"path: {str(path)!r} is a {array.dtype} image; a Virtual KITTI 2 flow PNG is 16-bit")
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels != 3:
+        raise ValueError(f"path: {str(path)!r} has {channels} channel(s); a Virtual KITTI 2 flow PNG has 3")
+    height, width = array.shape[:2]
+    valid = array[:, :, 0] > 0
+    # computed in float64 so that a round trip through write_vkitti2_flow is exact to one code step
+    norm = 2.0 / _MAX16 * array[:, :, [2, 1]].astype(np.float64) - 1.0
+    uv = norm * np.array([width - 1, height - 1], dtype=np.float64)
+    uv[~valid] = 0.0
+    flow = torch.from_numpy(np.ascontiguousarray(uv.transpose(2, 0, 1)).astype(np.float32))
+    return flow, torch.from_numpy(valid).unsqueeze(0)
+
+
+def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | None = None) -> Path:
+    """Write a (2, H, W) flow in the Virtual KITTI 2 PNG encoding, atomically.
+
+    ``valid`` (1, H, W) bool defaults to the finite pixels. Valid flow must lie within
+    ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding.
+    """
+    flow = _as_chw_flow(flow, "flow").detach().cpu().double()
+    _, height, width = flow.shape
+    finite = torch.isfinite(flow).all(dim=0)
+    valid_hw = finite if valid is None else valid.detach().cpu().reshape(height, width)
+    stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
+    scale = torch.tensor([width - 1, height - 1], dtype=torch.float64).clamp_min(1).view(2, 1, 1)
+    norm = stored / scale
+    if bool((norm.abs() > 1).any()):
+        raise ValueError(f"flow: the Virtual KITTI 2 encoding holds |u| <= {width - 1}, |v| <= {height - 1} px; "
+                         f"got a larger value at a valid pixel")
+    coded = ((norm + 1) / 2 * _MAX16).round().to(torch.int32).numpy().astype(np.uint16)
+    bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
+    return write_image_array(path, bgr)
+
+
+def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
+    rows = []
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts:
+            continue
+        if n == 1 and not _is_number(parts[0]):
+            continue  # the header line
+        if len(parts) != columns:
+            raise ValueError(f"path: line {n} of {str(path)!r} has {len(parts)} columns; a VKITTI2 {what} has {columns}")
+        try:
+            rows.append([float(x) for x in parts])
+        except ValueError as err:
+            raise ValueError(f"path: line {n} of {str(path)!r} is not a row of numbers: {line[:60]!r}") from err
+    if not rows:
+        raise ValueError(f"path: {str(path)!r} holds no rows")
+    return np.asarray(rows, dtype=np.float64)
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _select_camera(table: np.ndarray, camera: int, path) -> np.ndarray:
+    rows = table[table[:, 1] == camera]
+    if len(rows) == 0:
+        cams = sorted({int(c) for c in table[:, 1]})
+        raise ValueError(f"camera: {str(path)!r} has no rows for camera {camera}; it has cameras {cams}")
+    return rows[np.argsort(rows[:, 0], kind="stable")]
+
+
+def read_vkitti2_intrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
+    """``intrinsic.txt`` of one camera → ``(frames (N,) int64, K (N, 3, 3) float64)``, sorted by frame."""
+    rows = _select_camera(_read_table(path, 6, "intrinsic.txt"), camera, path)
+    K = np.zeros((len(rows), 3, 3))
+    K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], 1.0
+    return torch.from_numpy(rows[:, 0].astype(np.int64)), torch.from_numpy(K)
+
+
+def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
+    """``extrinsic.txt`` of one camera → ``(frames (N,) int64, camera_T_world (N, 4, 4) float64)``."""
+    rows = _select_camera(_read_table(path, 18, "extrinsic.txt"), camera, path)
+    T = rows[:, 2:].reshape(-1, 4, 4)
+    if not np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise ValueError(f"path: {str(path)!r} has extrinsic matrices whose last row is not 0 0 0 1")
+    return torch.from_numpy(rows[:, 0].astype(np.int64)), torch.from_numpy(T)
+
+
+def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
+    """Camera-to-world poses (N, 4, 4) (KITTI convention) from VKITTI2 world-to-camera extrinsics."""
+    return torch.linalg.inv(camera_T_world)
+
+
+def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
+    """``colors.txt`` → ``{class name: (r, g, b)}`` in file order."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
+    colors: dict[str, tuple[int, int, int]] = {}
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        parts = line.split()
+        if not parts or (n == 1 and parts[0] == "Category"):
+            continue
+        if len(parts) < 4:
+            raise ValueError(f"path: line {n} of {str(path)!r} is not 'Name r g b': {line[:60]!r}")
+        try:
+            rgb = tuple(int(x) for x in parts[-3:])
+        except ValueError as err:
+            raise ValueError(f"path: line {n} of {str(path)!r} is not 'Name r g b': {line[:60]!r}") from err
+        colors[" ".join(parts[:-3])] = rgb
+    if not colors:
+        raise ValueError(f"path: {str(path)!r} holds no classes")
+    return colors
+
+
+def read_vkitti2_classes(path: str | os.PathLike, colors: dict[str, tuple[int, int, int]]) -> Tensor:
+    """A class segmentation PNG → (H, W) int64 class indices in the order of ``colors`` (-1: no class).
+
+    ``labels == list(colors).index("Road")`` is the road mask.
+    """
+    array = read_image_array(path, what="Virtual KITTI 2 class segmentation PNG")
+    if array.ndim != 3 or array.shape[2] < 3 or array.dtype != np.uint8:
+        raise ValueError(f"path: {str(path)!r} is {array.dtype} with shape {array.shape}; expected an 8-bit colour PNG")
+    rgb = array[:, :, 2::-1].astype(np.int64)
+    code = (rgb[:, :, 0] << 16) | (rgb[:, :, 1] << 8) | rgb[:, :, 2]
+    labels = np.full(code.shape, -1, dtype=np.int64)
+    for index, (r, g, b) in enumerate(colors.values()):
+        labels[code == ((r << 16) | (g << 8) | b)] = index
+    return torch.from_numpy(labels)

@@ -1,0 +1,215 @@
+"""fsof_torch.datasets: pair datasets over the synthetic layout, KITTI layouts, the shared samples,
+CARLA runs; collate with DataLoader."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from fsof_torch.camera import Camera
+from fsof_torch.datasets import (
+    CarlaRunDataset,
+    KittiFlowDataset,
+    KittiOdometryDataset,
+    KittiSampleDataset,
+    SyntheticFlowDataset,
+    collate,
+    concat_cameras,
+)
+from fsof_torch.flow_model import displacement_flow
+from fsof_torch.io import (
+    write_carla_flow,
+    write_image,
+    write_kitti_calibration,
+    write_kitti_flow,
+    write_synthetic_sequence,
+)
+
+SIZE = (24, 40)
+
+
+def _plane_pair(i, size=SIZE):
+    h, w = size
+    camera = Camera(torch.tensor([[40.0, 0, 19.5], [0, 40.0, 6.0], [0, 0, 1]]), 1.6, 0.02, 0.0)
+    odo = {"x_d": 0.01 * i, "z_d": 0.8, "yaw": 0.002 * i}
+    flow, valid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size)
+    g = torch.Generator().manual_seed(i)
+    return {"image1": torch.rand(3, h, w, generator=g) * 255, "image2": torch.rand(3, h, w, generator=g) * 255,
+            "flow": flow[0], "valid": valid[0], "road": valid[0].clone(), "camera": camera, "odometry": odo}
+
+
+@pytest.fixture
+def synthetic_root(tmp_path):
+    pairs = [_plane_pair(i) for i in range(3)]
+    write_synthetic_sequence(tmp_path / "seq", pairs)
+    return tmp_path / "seq", pairs
+
+
+@pytest.fixture
+def kitti_root(tmp_path):
+    """A KITTI 2015-like training folder with the paper's semantic hand labels (road = red)."""
+    root = tmp_path / "kitti"
+    for sub in ("image_2", "flow_noc", "calib_cam_to_cam", "semantic"):
+        (root / sub).mkdir(parents=True)
+    K = torch.tensor([[50.0, 0, 20.0], [0, 50.0, 8.0], [0, 0, 1]], dtype=torch.float64)
+    for i in range(2):
+        name = f"{i:06d}"
+        write_image(root / "image_2" / f"{name}_10.png", torch.full((3, *SIZE), 10.0 * i))
+        write_image(root / "image_2" / f"{name}_11.png", torch.full((3, *SIZE), 20.0))
+        flow = torch.full((2, *SIZE), 1.25 * (i + 1))
+        valid = torch.zeros(1, *SIZE, dtype=torch.bool)
+        valid[:, 10:] = True
+        write_kitti_flow(root / "flow_noc" / f"{name}_10.png", flow, valid)
+        write_kitti_calibration(root / "calib_cam_to_cam" / f"{name}.txt", K)
+        sem = np.zeros((*SIZE, 3), np.uint8)
+        sem[15:, :, 2] = 255  # red in BGR
+        cv2.imwrite(str(root / "semantic" / f"{name}_10.png"), sem)
+    # an image without its partner is not a pair
+    write_image(root / "image_2" / "000009_10.png", torch.zeros(3, *SIZE))
+    return root, K
+
+
+class TestSynthetic:
+    def test_items(self, synthetic_root):
+        root, pairs = synthetic_root
+        ds = SyntheticFlowDataset(root)
+        assert len(ds) == 3
+        item = ds[1]
+        assert item["image1"].shape == (3, *SIZE) and item["image1"].dtype == torch.float32
+        assert torch.equal(item["valid"], pairs[1]["valid"])
+        m = item["valid"].expand(2, -1, -1)
+        assert float((item["flow"] - pairs[1]["flow"]).abs()[m].max()) <= 1 / 64
+        assert item["odometry"] == pytest.approx(pairs[1]["odometry"])
+        assert isinstance(item["camera"], Camera) and item["camera"].batch_size == 1
+        assert ds[-1]["index"] == 2
+
+    def test_dataloader_batches(self, synthetic_root):
+        root, _ = synthetic_root
+        batch = next(iter(DataLoader(SyntheticFlowDataset(root), batch_size=3, collate_fn=collate)))
+        assert batch["image1"].shape == (3, 3, *SIZE) and batch["flow"].shape == (3, 2, *SIZE)
+        assert batch["valid"].shape == (3, 1, *SIZE) and batch["valid"].dtype == torch.bool
+        assert batch["camera"].batch_size == 3
+        assert batch["odometry"]["z_d"].shape == (3,) and batch["odometry"]["x_d"].dtype == torch.float32
+        assert batch["index"] == [0, 1, 2] and batch["name"] == ["000000", "000001", "000002"]
+
+    def test_float64_and_no_ground_truth(self, synthetic_root):
+        root, _ = synthetic_root
+        item = SyntheticFlowDataset(root, dtype=torch.float64, ground_truth=False)[0]
+        assert "flow" not in item and item["image1"].dtype == torch.float64 and item["camera"].dtype == torch.float64
+
+
+class TestKittiLayout:
+    def test_items(self, kitti_root):
+        root, K = kitti_root
+        ds = KittiFlowDataset(root)
+        assert len(ds) == 2 and ds.names == ["000000", "000001"]
+        item = ds[1]
+        assert float(item["flow"][0, 12, 3]) == 2.5 and not bool(item["valid"][0, 0, 0])
+        torch.testing.assert_close(item["camera"].K[0].double(), K)
+        assert item["road"].shape == (1, *SIZE) and item["road"][0, 15:].all() and not item["road"][0, :15].any()
+        batch = collate([ds[0], ds[1]])
+        assert batch["flow"].shape == (2, 2, *SIZE) and batch["camera"].batch_size == 2
+
+    def test_occ_missing_and_K_override(self, kitti_root):
+        root, _ = kitti_root
+        for p in (root / "calib_cam_to_cam").iterdir():
+            p.unlink()
+        K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
+        item = KittiFlowDataset(root, flow="occ", K=K, camera_height=1.7)[0]
+        assert "flow" not in item and float(item["camera"].height) == pytest.approx(1.7)
+        assert "camera" not in KittiFlowDataset(root)[0]
+
+    def test_reads_the_synthetic_layout(self, synthetic_root):
+        root, pairs = synthetic_root
+        item = KittiFlowDataset(root, flow="occ")[0]
+        torch.testing.assert_close(item["camera"].K[0], pairs[0]["camera"].K[0])
+        assert torch.equal(item["road"], pairs[0]["road"])
+
+    def test_errors(self, tmp_path):
+        with pytest.raises(ValueError, match="flow: expected 'noc' or 'occ'"):
+            KittiFlowDataset(tmp_path, flow="all")
+        with pytest.raises(FileNotFoundError, match="no image_2/ folder"):
+            KittiFlowDataset(tmp_path)
+        (tmp_path / "image_2").mkdir()
+        with pytest.raises(ValueError, match="no NAME_10.png"):
+            KittiFlowDataset(tmp_path)
+
+
+class TestCarla:
+    def test_run(self, tmp_path):
+        run = tmp_path / "t10_s0_r-5"
+        for sub in ("rgb", "optical_flow", "semantic"):
+            (run / sub).mkdir(parents=True)
+        for k in range(3):
+            name = f"{k:08d}"
+            write_image(run / "rgb" / f"{name}.png", torch.full((3, 12, 16), 5.0 * k))
+            write_carla_flow(run / "optical_flow" / f"{name}.tif", torch.full((2, 12, 16), 3.0))
+            sem = np.zeros((12, 16, 3), np.uint8)
+            sem[6:] = (128, 64, 128)
+            cv2.imwrite(str(run / "semantic" / f"{name}.png"), sem)
+        ds = CarlaRunDataset(run)
+        assert len(ds) == 2
+        item = ds[1]
+        assert item["image2"].eq(10.0).all() and item["flow_velocity"].sub(3.0).abs().max() < 1e-5
+        assert float(item["camera"].roll) == pytest.approx(math.radians(-5))
+        assert int(item["road"].sum()) == 6 * 16
+
+
+class TestExceptions:
+    def test_collate_errors(self, synthetic_root):
+        root, _ = synthetic_root
+        ds = SyntheticFlowDataset(root)
+        a, b = ds[0], ds[1]
+        del b["road"]
+        with pytest.raises(ValueError, match=r"item 1 has different keys.*road"):
+            collate([a, b])
+        c = dict(ds[1])
+        c["image1"] = c["image1"][:, :10]
+        with pytest.raises(ValueError, match="'image1' has different shapes"):
+            collate([ds[0], c])
+        with pytest.raises(ValueError, match="non-empty"):
+            collate([])
+
+    def test_index_errors(self, synthetic_root):
+        ds = SyntheticFlowDataset(synthetic_root[0])
+        with pytest.raises(IndexError, match="out of range"):
+            ds[3]
+        with pytest.raises(TypeError, match="index: expected an int"):
+            ds["0"]
+
+    def test_concat_cameras(self):
+        a = Camera(torch.eye(3), 1.5)
+        b = Camera(torch.eye(3, dtype=torch.float64).expand(2, 3, 3), 1.6, 0.1)
+        c = concat_cameras([a, b])
+        assert c.batch_size == 3 and c.dtype == torch.float64 and c.roll.tolist() == [0.0, 0.1, 0.1]
+
+
+class TestShared:
+    def test_kitti15_sample(self, shared_data):
+        ds = KittiSampleDataset(shared_data / "kitti15_000000")
+        assert len(ds) == 1
+        item = ds[0]
+        assert item["image1"].shape == (3, 375, 1242) and item["flow"].shape == (2, 375, 1242)
+        assert abs(float(item["valid"].float().mean()) - 0.162) < 0.002
+        assert float(item["camera"].fx) == pytest.approx(721.5377) and float(item["camera"].height) == pytest.approx(1.65)
+        assert item["road"].shape == (1, 375, 1242) and 0.15 < float(item["road"].float().mean()) < 0.25
+        assert "odometry" not in item
+
+    def test_kitti_odometry_clip(self, shared_data):
+        ds = KittiOdometryDataset(shared_data / "kitti_odometry_straight")
+        assert len(ds) == 50
+        item = ds[0]
+        assert item["image1"].shape == (3, 370, 1226) and torch.equal(item["image1"][0], item["image1"][1])
+        assert float(item["camera"].fx) == pytest.approx(707.0912)
+        odo = item["odometry"]
+        assert 1.1 < odo["z_d"] < 1.3 and abs(odo["x_d"]) < 0.05 and abs(odo["yaw"]) < 0.01
+        assert abs(item["pose_residual"]["y_d"]) < 0.05 and item["cam1_T_cam0"].shape == (4, 4)
+        assert item["road"].shape == (1, 370, 1226) and item["road"].any()
+        batch = collate([ds[0], ds[10]])
+        assert batch["odometry"]["z_d"].shape == (2,) and batch["camera"].batch_size == 2
+        assert len(KittiOdometryDataset(shared_data / "kitti_odometry_straight", step=2)) == 49

@@ -1,0 +1,68 @@
+"""fsof_torch.io.flow: read_flow / write_flow dispatch by suffix (.png, .flo, .npy)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.io import read_flow, write_flow
+
+
+def _flow(h=6, w=9):
+    g = torch.Generator().manual_seed(1)
+    flow = torch.randn(2, h, w, generator=g) * 10
+    valid = torch.rand(1, h, w, generator=g) > 0.25
+    return flow, valid
+
+
+class TestSmoke:
+    @pytest.mark.parametrize("suffix", [".png", ".flo", ".npy"])
+    def test_round_trip_keeps_valid(self, tmp_path, suffix):
+        flow, valid = _flow()
+        write_flow(tmp_path / f"f{suffix}", flow, valid)
+        back, back_valid = read_flow(tmp_path / f"f{suffix}")
+        assert back.shape == (2, 6, 9) and back.dtype == torch.float32
+        assert torch.equal(back_valid, valid)
+        m = valid.expand(2, -1, -1)
+        tol = 1 / 128 if suffix == ".png" else 0.0
+        assert float((back - flow).abs()[m].max()) <= tol
+        assert back[~m].eq(0).all()
+
+    @pytest.mark.parametrize("suffix", [".flo", ".npy"])
+    def test_exact_without_valid(self, tmp_path, suffix):
+        flow, _ = _flow()
+        write_flow(tmp_path / f"f{suffix}", flow)
+        back, valid = read_flow(tmp_path / f"f{suffix}")
+        assert valid.all() and torch.equal(back, flow)
+
+    def test_npy_hwc_layout(self, tmp_path):
+        flow, _ = _flow(4, 5)
+        np.save(tmp_path / "hwc.npy", flow.numpy().transpose(1, 2, 0))
+        back, _ = read_flow(tmp_path / "hwc.npy")
+        assert torch.equal(back, flow)
+
+    def test_middlebury_unknown_marker(self, tmp_path):
+        flow, _ = _flow(3, 3)
+        flow[:, 0, 0] = 1e10
+        write_flow(tmp_path / "f.flo", flow)
+        _, valid = read_flow(tmp_path / "f.flo")
+        assert not bool(valid[0, 0, 0]) and int(valid.sum()) == 8
+
+
+class TestExceptions:
+    def test_unknown_suffix(self, tmp_path):
+        with pytest.raises(ValueError, match=r"suffix '\.txt'"):
+            read_flow(tmp_path / "f.txt")
+        with pytest.raises(ValueError, match=r"suffix '\.bmp'"):
+            write_flow(tmp_path / "f.bmp", torch.zeros(2, 2, 2))
+
+    def test_bad_npy(self, tmp_path):
+        np.save(tmp_path / "s.npy", np.zeros((3, 4, 5), np.float32))
+        np.save(tmp_path / "i.npy", np.zeros((2, 4, 5), np.int32))
+        with pytest.raises(ValueError, match=r"s\.npy.*shape"):
+            read_flow(tmp_path / "s.npy")
+        with pytest.raises(ValueError, match=r"i\.npy.*int32"):
+            read_flow(tmp_path / "i.npy")
+        with pytest.raises(FileNotFoundError):
+            read_flow(tmp_path / "none.npy")

@@ -1,0 +1,109 @@
+"""fsof_torch.io.images: checked decoding, RGB order, atomic writing with a failing encoder."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.io import read_image, read_image_array, write_image
+
+
+def _ramp(h=24, w=40):
+    g = torch.Generator().manual_seed(0)
+    return (torch.rand(3, h, w, generator=g) * 255).round()
+
+
+class TestSmoke:
+    def test_png_round_trip_exact(self, tmp_path):
+        image = _ramp()
+        write_image(tmp_path / "a.png", image)
+        back = read_image(tmp_path / "a.png")
+        assert back.dtype == torch.float32 and back.shape == (3, 24, 40)
+        torch.testing.assert_close(back, image)
+
+    def test_rgb_order_is_rgb(self, tmp_path):
+        bgr = np.zeros((4, 6, 3), np.uint8)
+        bgr[..., 2] = 200  # red in OpenCV's order
+        cv2.imwrite(str(tmp_path / "red.png"), bgr)
+        image = read_image(tmp_path / "red.png")
+        assert image[0].eq(200).all() and image[1:].eq(0).all()
+
+    def test_grey_repeated_and_16bit_scaled(self, tmp_path):
+        cv2.imwrite(str(tmp_path / "g.png"), np.full((5, 7), 100, np.uint8))
+        cv2.imwrite(str(tmp_path / "g16.png"), np.full((5, 7, 3), 65535, np.uint16))
+        assert read_image(tmp_path / "g.png").eq(100).all()
+        torch.testing.assert_close(read_image(tmp_path / "g16.png"), torch.full((3, 5, 7), 255.0))
+
+    def test_write_grey_and_uint8(self, tmp_path):
+        write_image(tmp_path / "g.png", torch.full((5, 7), 17.2))
+        write_image(tmp_path / "u.png", torch.full((1, 5, 7), 3, dtype=torch.uint8))
+        assert read_image_array(tmp_path / "g.png").shape == (5, 7)
+        assert read_image(tmp_path / "u.png").eq(3).all()
+        assert read_image(tmp_path / "g.png").eq(17).all()
+
+
+class TestExceptions:
+    def test_truncated_png(self, tmp_path):
+        write_image(tmp_path / "a.png", _ramp())
+        data = (tmp_path / "a.png").read_bytes()
+        (tmp_path / "t.png").write_bytes(data[: len(data) // 2])
+        with pytest.raises(ValueError, match=r"t\.png.*truncated PNG"):
+            read_image(tmp_path / "t.png")
+
+    def test_not_a_png_and_empty(self, tmp_path):
+        (tmp_path / "x.png").write_bytes(b"GIF89a....")
+        (tmp_path / "e.png").write_bytes(b"")
+        with pytest.raises(ValueError, match=r"x\.png.*not a PNG"):
+            read_image(tmp_path / "x.png")
+        with pytest.raises(ValueError, match=r"e\.png.*empty"):
+            read_image(tmp_path / "e.png")
+
+    def test_missing(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match="no file"):
+            read_image(tmp_path / "nope.png")
+
+    def test_write_checks(self, tmp_path):
+        with pytest.raises(ValueError, match=r"0\.\.255 scale"):
+            write_image(tmp_path / "a.png", torch.full((3, 4, 4), 300.0))
+        with pytest.raises(ValueError, match="expected shape"):
+            write_image(tmp_path / "a.png", torch.zeros(2, 4, 4))
+        with pytest.raises(TypeError, match="torch.bool"):
+            write_image(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.bool))
+
+    def test_encoder_failing_midway_leaves_no_file(self, tmp_path, monkeypatch):
+        write_image(tmp_path / "ref.png", _ramp())
+        good = (tmp_path / "ref.png").read_bytes()
+
+        def half_then_crash(filename, array, *args):
+            with open(filename, "wb") as f:
+                f.write(good[: len(good) // 2])
+            raise RuntimeError("encoder crashed")
+
+        write_image(tmp_path / "old.png", torch.zeros(3, 24, 40))
+        before = (tmp_path / "old.png").read_bytes()
+        monkeypatch.setattr(cv2, "imwrite", half_then_crash)
+        with pytest.raises(RuntimeError, match="encoder crashed"):
+            write_image(tmp_path / "new.png", _ramp())
+        with pytest.raises(RuntimeError, match="encoder crashed"):
+            write_image(tmp_path / "old.png", _ramp())
+        assert not (tmp_path / "new.png").exists()
+        assert (tmp_path / "old.png").read_bytes() == before
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["old.png", "ref.png"]
+
+
+class TestCardinality:
+    @pytest.mark.parametrize("size", [(1, 1), (7, 3), (3, 7)])
+    def test_sizes(self, tmp_path, size):
+        image = torch.full((3, *size), 9.0)
+        write_image(tmp_path / "a.png", image)
+        assert read_image(tmp_path / "a.png").shape == (3, *size)
+
+
+class TestShared:
+    def test_kitti_images(self, shared_data):
+        image = read_image(shared_data / "kitti15_000000" / "image_10.png")
+        assert image.shape == (3, 375, 1242) and 0 <= float(image.min()) and float(image.max()) <= 255
+        grey = read_image(shared_data / "kitti_odometry_straight" / "image_l" / "000000.png")
+        assert grey.shape == (3, 370, 1226) and torch.equal(grey[0], grey[2])

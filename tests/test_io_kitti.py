@@ -1,0 +1,183 @@
+"""fsof_torch.io.kitti: KITTI flow PNG (1/64 px), poses, calibration; checks; the shared sample."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fsof_torch.camera import Camera
+from fsof_torch.io import (
+    read_kitti_calibration,
+    read_kitti_flow,
+    read_kitti_poses,
+    write_kitti_calibration,
+    write_kitti_flow,
+    write_kitti_poses,
+)
+
+STEP = 1.0 / 64
+
+
+def _flow(h, w, seed=0, scale=40.0):
+    g = torch.Generator().manual_seed(seed)
+    flow = torch.randn(2, h, w, generator=g, dtype=torch.float64) * scale
+    valid = torch.rand(1, h, w, generator=g) > 0.3
+    return flow, valid
+
+
+class TestSmoke:
+    def test_round_trip_to_one_64th(self, tmp_path):
+        flow, valid = _flow(20, 33)
+        write_kitti_flow(tmp_path / "f.png", flow, valid)
+        back, back_valid = read_kitti_flow(tmp_path / "f.png")
+        assert back.dtype == torch.float32 and back.shape == (2, 20, 33) and back_valid.shape == (1, 20, 33)
+        assert torch.equal(back_valid, valid)
+        err = (back.double() - flow).abs()[valid.expand(2, -1, -1)]
+        assert float(err.max()) <= STEP / 2 + 1e-9
+        assert back[~valid.expand(2, -1, -1)].eq(0).all()
+
+    def test_values_on_the_grid_are_exact(self, tmp_path):
+        flow = torch.randint(-512 * 64, 512 * 64, (2, 7, 5)).double() / 64
+        write_kitti_flow(tmp_path / "f.png", flow)
+        back, valid = read_kitti_flow(tmp_path / "f.png")
+        assert valid.all() and torch.equal(back.double(), flow)
+
+    def test_default_valid_is_finite(self, tmp_path):
+        flow = torch.zeros(2, 3, 4)
+        flow[0, 1, 2] = float("nan")
+        write_kitti_flow(tmp_path / "f.png", flow)
+        _, valid = read_kitti_flow(tmp_path / "f.png")
+        assert int((~valid).sum()) == 1 and not bool(valid[0, 1, 2])
+
+
+class TestFeature:
+    def test_encoding_matches_design(self, tmp_path):
+        """DESIGN.md §8, checked on the raw channels: B = valid, G = v·64 + 2^15, R = u·64 + 2^15."""
+        flow = torch.tensor([[[1.5, -2.25]], [[-0.5, 100.0]]])
+        write_kitti_flow(tmp_path / "f.png", flow, torch.tensor([[[True, False]]]))
+        raw = cv2.imread(str(tmp_path / "f.png"), cv2.IMREAD_UNCHANGED)
+        assert raw.dtype == np.uint16 and raw.shape == (1, 2, 3)
+        assert raw[0, 0].tolist() == [1, int(-0.5 * 64 + 2**15), int(1.5 * 64 + 2**15)]
+        assert raw[0, 1, 0] == 0
+
+    @settings(max_examples=15, deadline=None)
+    @given(h=st.integers(1, 9), w=st.integers(1, 9), seed=st.integers(0, 10_000))
+    def test_round_trip_any(self, tmp_path_factory, h, w, seed):
+        path = tmp_path_factory.mktemp("k") / "f.png"
+        flow, valid = _flow(h, w, seed, scale=100.0)
+        flow = flow.clamp(-511, 511)
+        write_kitti_flow(path, flow, valid)
+        back, back_valid = read_kitti_flow(path)
+        assert torch.equal(back_valid, valid)
+        err = (back.double() - flow).abs()[valid.expand(2, -1, -1)]
+        assert err.numel() == 0 or float(err.max()) <= STEP / 2 + 1e-9
+
+    def test_poses_round_trip_and_relative_motion(self, tmp_path):
+        from fsof_torch.egomotion import ego_motion_from_pose
+
+        c, s = np.cos(0.01), np.sin(0.01)
+        P0 = torch.eye(4, dtype=torch.float64)
+        P1 = torch.tensor([[c, 0, s, 0.1], [0, 1, 0, 0], [-s, 0, c, 1.2], [0, 0, 0, 1]], dtype=torch.float64)
+        write_kitti_poses(tmp_path / "poses.txt", torch.stack([P0, P1]))
+        back = read_kitti_poses(tmp_path / "poses.txt")
+        assert back.shape == (2, 4, 4) and back.dtype == torch.float64
+        torch.testing.assert_close(back, torch.stack([P0, P1]), atol=1e-12, rtol=1e-11)
+        ego = ego_motion_from_pose(back[:1], pose1=back[1:])
+        assert abs(float(ego.z_d) - 1.2 * c - 0.1 * s) < 1e-3
+
+    def test_poses_other_row_forms(self, tmp_path):
+        T = torch.eye(4, dtype=torch.float64)
+        T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
+        twelve = " ".join(map(str, T[:3].reshape(-1).tolist()))
+        sixteen = " ".join(map(str, T.reshape(-1).tolist()))
+        (tmp_path / "p.txt").write_text(f"# comment\n{twelve}\n\n0 {twelve}\n{sixteen}\n7 {sixteen}\n")
+        back = read_kitti_poses(tmp_path / "p.txt")
+        assert back.shape == (4, 4, 4) and torch.equal(back, T.expand(4, 4, 4))
+
+    @pytest.mark.parametrize("style,cam", [("cam_to_cam", 2), ("odometry", 0), ("odometry", 2)])
+    def test_calibration_round_trip(self, tmp_path, kitti_K, style, cam):
+        write_kitti_calibration(tmp_path / "c.txt", kitti_K, cam=cam, style=style)
+        P = read_kitti_calibration(tmp_path / "c.txt", cam)
+        torch.testing.assert_close(P[:, :3], kitti_K, atol=1e-9, rtol=1e-12)
+        cam_obj = Camera.from_kitti(tmp_path / "c.txt", cam=cam)
+        torch.testing.assert_close(cam_obj.K[0], kitti_K, atol=1e-9, rtol=1e-12)
+
+
+class TestExceptions:
+    def test_truncated_png(self, tmp_path):
+        flow, valid = _flow(30, 40)
+        write_kitti_flow(tmp_path / "f.png", flow, valid)
+        data = (tmp_path / "f.png").read_bytes()
+        (tmp_path / "cut.png").write_bytes(data[: len(data) - 40])
+        with pytest.raises(ValueError, match=r"cut\.png.*truncated PNG"):
+            read_kitti_flow(tmp_path / "cut.png")
+
+    def test_8bit_png(self, tmp_path):
+        cv2.imwrite(str(tmp_path / "eight.png"), np.zeros((4, 4, 3), np.uint8))
+        with pytest.raises(ValueError, match=r"eight\.png.*uint8.*8-bit.*16-bit"):
+            read_kitti_flow(tmp_path / "eight.png")
+
+    @pytest.mark.parametrize("channels", [1, 4])
+    def test_channel_count(self, tmp_path, channels):
+        shape = (4, 4) if channels == 1 else (4, 4, channels)
+        cv2.imwrite(str(tmp_path / "c.png"), np.zeros(shape, np.uint16))
+        with pytest.raises(ValueError, match=rf"c\.png.*{channels} channel"):
+            read_kitti_flow(tmp_path / "c.png")
+
+    def test_write_checks(self, tmp_path):
+        with pytest.raises(ValueError, match="holds"):
+            write_kitti_flow(tmp_path / "f.png", torch.full((2, 2, 2), 600.0))
+        with pytest.raises(ValueError, match="valid: expected shape"):
+            write_kitti_flow(tmp_path / "f.png", torch.zeros(2, 2, 2), torch.ones(1, 3, 2, dtype=torch.bool))
+        with pytest.raises(TypeError, match="valid: expected a bool"):
+            write_kitti_flow(tmp_path / "f.png", torch.zeros(2, 2, 2), torch.ones(1, 2, 2))
+        nan = torch.full((2, 2, 2), float("nan"))
+        with pytest.raises(ValueError, match="finite values at valid pixels"):
+            write_kitti_flow(tmp_path / "f.png", nan, torch.ones(1, 2, 2, dtype=torch.bool))
+        assert not (tmp_path / "f.png").exists()
+
+    def test_out_of_range_invalid_pixels_are_fine(self, tmp_path):
+        flow = torch.full((2, 2, 2), 1e6)
+        write_kitti_flow(tmp_path / "f.png", flow, torch.zeros(1, 2, 2, dtype=torch.bool))
+        back, valid = read_kitti_flow(tmp_path / "f.png")
+        assert not valid.any() and back.eq(0).all()
+
+    def test_poses_errors(self, tmp_path):
+        (tmp_path / "bad.txt").write_text("1 2 3\n")
+        with pytest.raises(ValueError, match=r"line 1 .* 3 numbers"):
+            read_kitti_poses(tmp_path / "bad.txt")
+        (tmp_path / "word.txt").write_text("a b c\n")
+        with pytest.raises(ValueError, match="not a row of numbers"):
+            read_kitti_poses(tmp_path / "word.txt")
+        (tmp_path / "empty.txt").write_text("\n")
+        with pytest.raises(ValueError, match="holds no poses"):
+            read_kitti_poses(tmp_path / "empty.txt")
+        with pytest.raises(ValueError, match=r"expected shape \(N, 4, 4\)"):
+            write_kitti_poses(tmp_path / "p.txt", torch.zeros(2, 2, 4, dtype=torch.float64))
+        with pytest.raises(ValueError, match="style"):
+            write_kitti_calibration(tmp_path / "c.txt", torch.eye(3), style="raw")
+
+
+class TestShared:
+    def test_kitti15_sample_valid_fraction(self, shared_data):
+        """The shared KITTI 2015 pair: about 16.2% of pixels carry ground truth (measured 16.200%)."""
+        flow, valid = read_kitti_flow(shared_data / "kitti15_000000" / "flow_noc_10.png")
+        assert flow.shape == (2, 375, 1242) and valid.shape == (1, 375, 1242)
+        fraction = float(valid.float().mean())
+        assert abs(fraction - 0.162) < 0.002
+        moving = flow.norm(dim=0)[valid[0]]
+        assert float(moving.max()) < 300 and float(moving.median()) > 0.5
+
+    def test_odometry_poses_and_calibration(self, shared_data):
+        folder = shared_data / "kitti_odometry_straight"
+        poses = read_kitti_poses(folder / "poses.txt")
+        assert poses.shape[1:] == (4, 4) and len(poses) >= 50
+        assert torch.allclose(poses[0], torch.eye(4, dtype=torch.float64), atol=1e-9)
+        step = (poses[1:, :3, 3] - poses[:-1, :3, 3]).norm(dim=1)
+        assert 1.0 < float(step.mean()) < 1.4  # "about 1.2 m per frame"
+        P0 = read_kitti_calibration(folder / "calib.txt", 0)
+        assert abs(float(P0[0, 0]) - 707.0912) < 1e-6

@@ -1,0 +1,139 @@
+"""fsof_torch.io.layout: the synthetic KITTI-like layout, written and read back."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.egomotion import ego_motion_from_pose
+from fsof_torch.flow_model import displacement_flow
+from fsof_torch.io import (
+    read_depth_png,
+    read_kitti_calibration,
+    read_kitti_poses,
+    read_synthetic_pair,
+    relative_pose_from_odometry,
+    synthetic_pair_indices,
+    write_depth_png,
+    write_synthetic_pair,
+    write_synthetic_sequence,
+)
+
+
+def _pair(index=0, size=(24, 40), roll=0.03, pitch=-0.01, with_poses=False):
+    """A pair with the road-plane flow of the model (a stand-in for the renderer)."""
+    h, w = size
+    K = torch.tensor([[40.0, 0, (w - 1) / 2], [0, 40.0, 6.0], [0, 0, 1]], dtype=torch.float64)
+    camera = Camera(K, 1.6, roll, pitch)
+    odo = {"x_d": 0.02 * (index + 1), "z_d": 0.9, "yaw": 0.004 * (index + 1)}
+    flow, valid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size)
+    g = torch.Generator().manual_seed(index)
+    labels = torch.randint(0, 7, size, generator=g)
+    pair = {
+        "image1": torch.rand(3, h, w, generator=g) * 255, "image2": torch.rand(3, h, w, generator=g) * 255,
+        "flow": flow[0].float(), "valid": valid[0], "flow_velocity": flow[0].float() * 10,
+        "road": valid[0].clone(), "labels": labels, "depth": torch.rand(1, h, w, generator=g) * 80,
+        "camera": camera.to(torch.float32), "odometry": odo,
+        "velocity": {"speed": 9.0, "steering": 0.01, "wheelbase": 2.7, "dt": 0.1}, "index": index,
+    }
+    return pair
+
+
+class TestSmoke:
+    def test_pair_round_trip(self, tmp_path):
+        pair = _pair()
+        paths = write_synthetic_pair(tmp_path, 0, pair, extra={"preset": "test"})
+        assert {"image1", "image2", "flow", "flow_velocity", "road", "labels", "depth", "calib", "params"} <= set(paths)
+        assert (tmp_path / "image_2" / "000000_10.png").is_file() and (tmp_path / "flow_occ" / "000000_10.png").is_file()
+        back = read_synthetic_pair(tmp_path, 0)
+        assert torch.equal(back["valid"], pair["valid"])
+        m = pair["valid"].expand(2, -1, -1)
+        assert float((back["flow"] - pair["flow"]).abs()[m].max()) <= 1 / 128
+        assert float((back["image1"] - pair["image1"]).abs().max()) <= 0.5
+        assert torch.equal(back["road"], pair["road"]) and torch.equal(back["labels"], pair["labels"])
+        assert torch.equal(back["flow_velocity"][m], pair["flow_velocity"][m])
+        assert float((back["depth"] - pair["depth"]).abs().max()) <= 1 / 512 + 1e-6
+        torch.testing.assert_close(back["camera"].K, pair["camera"].K)
+        assert back["odometry"] == pair["odometry"] and back["velocity"] == pair["velocity"]
+        params = json.loads((tmp_path / "params" / "000000.json").read_text())
+        assert params["preset"] == "test" and params["size"] == [24, 40]
+        P = read_kitti_calibration(tmp_path / "calib" / "000000.txt", 2)
+        torch.testing.assert_close(P[:, :3], pair["camera"].K[0].double())
+
+    def test_ground_truth_false(self, tmp_path):
+        write_synthetic_pair(tmp_path, 3, _pair(3))
+        back = read_synthetic_pair(tmp_path, 3, ground_truth=False)
+        assert set(back) == {"image1", "image2", "camera", "index", "name"} and back["name"] == "000003"
+
+
+class TestFeature:
+    def test_poses_reproduce_odometry(self, tmp_path):
+        pairs = [_pair(i) for i in range(3)]
+        summary = write_synthetic_sequence(tmp_path, iter(pairs), meta={"preset": "test", "seed": 1})
+        assert summary["num_pairs"] == 3 and summary["size"] == [24, 40] and summary["files"]["image_2"] == 6
+        assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
+        poses = read_kitti_poses(tmp_path / "poses.txt")
+        assert poses.shape == (4, 4, 4)
+        for i, pair in enumerate(pairs):
+            ego = ego_motion_from_pose(poses[i:i + 1], pair["camera"].to(torch.float64), pose1=poses[i + 1:i + 2])
+            for key in ("x_d", "z_d", "yaw"):
+                assert float(getattr(ego, key)) == pytest.approx(pair["odometry"][key], abs=1e-9)
+        meta = json.loads((tmp_path / "meta.json").read_text())
+        assert meta["num_pairs"] == 3 and meta["preset"] == "test" and meta["poses_world"] == "camera of the first frame"
+
+    def test_renderer_poses_used_when_they_chain(self, tmp_path):
+        pairs = [_pair(i, roll=0.0, pitch=0.0) for i in range(2)]
+        chain = [torch.eye(4, dtype=torch.float64)]
+        for p in pairs:
+            T = relative_pose_from_odometry(p["camera"], **p["odometry"])
+            chain.append(chain[-1] @ torch.linalg.inv(T))
+        offset = torch.eye(4, dtype=torch.float64)
+        offset[:3, 3] = torch.tensor([5.0, 0.0, 2.0])
+        for i, p in enumerate(pairs):
+            p["pose1"], p["pose2"] = offset @ chain[i], offset @ chain[i + 1]
+        write_synthetic_sequence(tmp_path, pairs)
+        poses = read_kitti_poses(tmp_path / "poses.txt")
+        torch.testing.assert_close(poses, offset @ torch.stack(chain), atol=1e-10, rtol=1e-10)
+        torch.testing.assert_close(read_synthetic_pair(tmp_path, 1)["pose2"], pairs[1]["pose2"])
+
+    def test_relative_pose_inverts_ego_motion(self):
+        camera = Camera(torch.eye(3, dtype=torch.float64), 1.5, 0.1, -0.05)
+        T = relative_pose_from_odometry(camera, 0.3, 1.1, math.radians(4))
+        ego = ego_motion_from_pose(T.unsqueeze(0), camera)
+        assert float(ego.x_d) == pytest.approx(0.3) and float(ego.z_d) == pytest.approx(1.1)
+        assert float(ego.yaw) == pytest.approx(math.radians(4)) and abs(float(ego.y_d)) < 1e-12
+
+    def test_depth_png(self, tmp_path):
+        depth = torch.tensor([[[0.0, 1.5, 300.0, float("inf")]]])
+        write_depth_png(tmp_path / "d.png", depth)
+        back, valid = read_depth_png(tmp_path / "d.png")
+        assert valid.tolist() == [[[False, True, False, False]]] and float(back[0, 0, 1]) == 1.5
+
+
+class TestExceptions:
+    def test_missing_keys(self, tmp_path):
+        pair = _pair()
+        del pair["flow"]
+        with pytest.raises(ValueError, match=r"missing keys \['flow'\]"):
+            write_synthetic_pair(tmp_path, 0, pair)
+
+    def test_not_a_layout(self, tmp_path):
+        with pytest.raises(FileNotFoundError, match="no params/ folder"):
+            synthetic_pair_indices(tmp_path)
+        (tmp_path / "params").mkdir()
+        with pytest.raises(FileNotFoundError, match="no params file"):
+            read_synthetic_pair(tmp_path, 0)
+
+    def test_empty_sequence(self, tmp_path):
+        with pytest.raises(ValueError, match="no pairs"):
+            write_synthetic_sequence(tmp_path, [])
+
+    def test_batched_camera_rejected(self, tmp_path):
+        pair = _pair()
+        pair["camera"] = pair["camera"].expand(2)
+        with pytest.raises(ValueError, match="batch 1"):
+            write_synthetic_pair(tmp_path, 0, pair)

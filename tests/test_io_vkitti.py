@@ -1,0 +1,108 @@
+"""fsof_torch.io.vkitti: Virtual KITTI 2 flow PNG, intrinsics/extrinsics, class segmentation."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.egomotion import ego_motion_from_pose
+from fsof_torch.io import (
+    read_vkitti2_classes,
+    read_vkitti2_colors,
+    read_vkitti2_extrinsics,
+    read_vkitti2_flow,
+    read_vkitti2_intrinsics,
+    vkitti2_camera_poses,
+    write_vkitti2_flow,
+)
+
+
+def _flow(h=12, w=20):
+    g = torch.Generator().manual_seed(3)
+    flow = (torch.rand(2, h, w, generator=g, dtype=torch.float64) - 0.5) * torch.tensor([w - 1, h - 1.0]).view(2, 1, 1)
+    valid = torch.rand(1, h, w, generator=g) > 0.2
+    return flow, valid
+
+
+class TestFeature:
+    def test_decoding_matches_vkitti2_formula(self, tmp_path):
+        """Independent reference: the Virtual KITTI 2 README's decoder, on raw 16-bit channels."""
+        h, w = 5, 9
+        rng = np.random.default_rng(0)
+        bgr = rng.integers(0, 65536, (h, w, 3), dtype=np.uint16)
+        bgr[0, 0, 0] = 0  # one invalid pixel
+        cv2.imwrite(str(tmp_path / "flow_00000.png"), bgr)
+        ref = 2.0 / (2**16 - 1.0) * bgr[..., 2:0:-1].astype(np.float64) - 1
+        ref[..., 0] *= w - 1
+        ref[..., 1] *= h - 1
+        flow, valid = read_vkitti2_flow(tmp_path / "flow_00000.png")
+        assert flow.shape == (2, h, w) and not bool(valid[0, 0, 0]) and int(valid.sum()) == h * w - (bgr[..., 0] == 0).sum()
+        m = valid[0].numpy()
+        np.testing.assert_allclose(flow.numpy().transpose(1, 2, 0)[m], ref[m], atol=1e-4)
+        assert flow[:, 0, 0].eq(0).all()
+
+    def test_round_trip_to_code_step(self, tmp_path):
+        flow, valid = _flow()
+        write_vkitti2_flow(tmp_path / "f.png", flow, valid)
+        back, back_valid = read_vkitti2_flow(tmp_path / "f.png")
+        assert torch.equal(back_valid, valid)
+        step = torch.tensor([19.0, 11.0]).view(2, 1, 1) / 65535  # half of 2 (W-1) / 65535
+        err = (back.double() - flow).abs()
+        assert bool((err <= step + 1e-5)[valid.expand(2, -1, -1)].all())
+
+    def test_intrinsics_extrinsics_and_poses(self, tmp_path):
+        (tmp_path / "intrinsic.txt").write_text(
+            "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n"
+            "0 0 725.0087 725.0087 620.5 187\n0 1 725.0087 725.0087 620.5 187\n"
+            "1 0 725.0087 725.0087 620.5 187\n1 1 725.0087 725.0087 620.5 187\n")
+        # world-to-camera extrinsics: the camera moves 1 m forward (world z) between frames
+        rows = ["frame cameraID r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1"]
+        for frame in (0, 1):
+            for cam, tx in ((0, 0.0), (1, -0.532725)):
+                E = np.eye(4)
+                E[:3, 3] = [tx, 1.5, -1.0 * frame]
+                rows.append(f"{frame} {cam} " + " ".join(f"{x:g}" for x in E.reshape(-1)))
+        (tmp_path / "extrinsic.txt").write_text("\n".join(rows) + "\n")
+        frames, K = read_vkitti2_intrinsics(tmp_path / "intrinsic.txt", camera=0)
+        assert frames.tolist() == [0, 1] and K.shape == (2, 3, 3) and float(K[0, 0, 2]) == 620.5 and float(K[0, 2, 2]) == 1
+        frames, E = read_vkitti2_extrinsics(tmp_path / "extrinsic.txt", camera=0)
+        assert frames.tolist() == [0, 1] and E.shape == (2, 4, 4)
+        poses = vkitti2_camera_poses(E)
+        ego = ego_motion_from_pose(poses[:1], pose1=poses[1:])
+        torch.testing.assert_close(ego.z_d, torch.tensor([1.0], dtype=torch.float64))
+        torch.testing.assert_close(ego.x_d, torch.tensor([0.0], dtype=torch.float64))
+
+    def test_classes(self, tmp_path):
+        (tmp_path / "colors.txt").write_text("Category r g b\nTerrain 210 0 200\nSky 90 200 255\nRoad 100 60 100\n")
+        colors = read_vkitti2_colors(tmp_path / "colors.txt")
+        assert list(colors) == ["Terrain", "Sky", "Road"] and colors["Road"] == (100, 60, 100)
+        rgb = np.zeros((2, 3, 3), np.uint8)
+        rgb[0, :] = (90, 200, 255)
+        rgb[1, :2] = (100, 60, 100)
+        cv2.imwrite(str(tmp_path / "classgt_00000.png"), rgb[..., ::-1])
+        labels = read_vkitti2_classes(tmp_path / "classgt_00000.png", colors)
+        assert labels.tolist() == [[1, 1, 1], [2, 2, -1]]
+
+
+class TestExceptions:
+    def test_flow_file_checks(self, tmp_path):
+        cv2.imwrite(str(tmp_path / "eight.png"), np.zeros((3, 3, 3), np.uint8))
+        with pytest.raises(ValueError, match=r"eight\.png.*16-bit"):
+            read_vkitti2_flow(tmp_path / "eight.png")
+        cv2.imwrite(str(tmp_path / "one.png"), np.zeros((3, 3), np.uint16))
+        with pytest.raises(ValueError, match=r"one\.png.*1 channel"):
+            read_vkitti2_flow(tmp_path / "one.png")
+        with pytest.raises(ValueError, match="encoding holds"):
+            write_vkitti2_flow(tmp_path / "big.png", torch.full((2, 3, 3), 10.0))
+
+    def test_table_checks(self, tmp_path):
+        (tmp_path / "intrinsic.txt").write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 1 1 1\n")
+        with pytest.raises(ValueError, match="5 columns"):
+            read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")
+        (tmp_path / "i2.txt").write_text("0 1 1 1 1 1\n")
+        with pytest.raises(ValueError, match="no rows for camera 0"):
+            read_vkitti2_intrinsics(tmp_path / "i2.txt", camera=0)
+        with pytest.raises(FileNotFoundError):
+            read_vkitti2_extrinsics(tmp_path / "none.txt")
