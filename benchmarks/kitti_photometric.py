@@ -1,0 +1,84 @@
+"""Photometric error and end-point error on the shared KITTI 2015 pair 000000 (not a speed test).
+
+Prints, for no motion, the ground truth (flow_noc_10.png) and OpenCV DIS (PRESET_MEDIUM on grey
+images from cv2.cvtColor), the photometric error of each kind over several pixel sets, with
+pixel counts, and DIS's end-point error against the ground truth. The KITTI data is read from
+../shared/data (not part of the repository).
+
+Run: python benchmarks/kitti_photometric.py [--data ../shared/data/kitti15_000000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fsof_torch.metrics import flow_metrics
+from fsof_torch.photometric import photometric_error
+
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
+
+
+def read_pair(folder: Path):
+    import cv2
+
+    def rgb(name):
+        bgr = cv2.imread(str(folder / name), cv2.IMREAD_COLOR)
+        return torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float()[None]
+
+    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED)
+    valid = torch.from_numpy(raw[:, :, 0] > 0)[None, None]
+    u = (raw[:, :, 2].astype(np.float32) - 2 ** 15) / 64
+    v = (raw[:, :, 1].astype(np.float32) - 2 ** 15) / 64
+    flow = torch.from_numpy(np.stack([u, v]))[None] * valid
+    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
+    road = np.zeros(raw.shape[:2], np.uint8)
+    cv2.fillPoly(road, [np.array(poly, np.int32)], 1)
+    return rgb("image_10.png"), rgb("image_11.png"), flow, valid, torch.from_numpy(road > 0)[None, None]
+
+
+def dis_flow(folder: Path) -> torch.Tensor:
+    import cv2
+
+    g1 = cv2.cvtColor(cv2.imread(str(folder / "image_10.png")), cv2.COLOR_BGR2GRAY)
+    g2 = cv2.cvtColor(cv2.imread(str(folder / "image_11.png")), cv2.COLOR_BGR2GRAY)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    return torch.from_numpy(dis.calc(g1, g2, None)).permute(2, 0, 1)[None]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    i1, i2, gt, valid, road = read_pair(args.data)
+    flows = {"zero": torch.zeros_like(gt), "ground truth": gt, "DIS medium": dis_flow(args.data)}
+    H, W = valid.shape[-2:]
+    print(f"valid ground-truth pixels: {int(valid.sum())} of {H * W} ({float(valid.float().mean()):.2%}); "
+          f"road polygon: {int(road.sum())} px, of which valid: {int((road & valid).sum())}")
+    sets = {"all pixels": None, "valid": valid, "road": road, "road & valid": road & valid}
+    print(f"{'flow':>13} {'pixels':>13} {'l1 (0-255)':>11} {'ssim':>7} {'census':>7} {'l1 count':>8}")
+    for fname, flow in flows.items():
+        for sname, mask in sets.items():
+            if fname == "ground truth" and sname in ("all pixels", "road"):
+                continue   # the ground truth is defined on its valid pixels only
+            vals = []
+            for kind in ("l1", "ssim", "census"):
+                val, count = photometric_error(i1, i2, flow, mask, kind=kind, return_count=True)
+                vals.append(float(val))
+                if kind == "l1":
+                    n = int(count)
+            print(f"{fname:>13} {sname:>13} {vals[0]:>11.3f} {vals[1]:>7.4f} {vals[2]:>7.4f} {n:>8}")
+    for sname, mask in (("valid", None), ("road & valid", road)):
+        m = flow_metrics(flows["DIS medium"], gt, mask, valid)
+        print(f"DIS vs ground truth, {sname}: e_E {m['e_E']:.2f} px, e_A {m['e_A']:.4f} rad, "
+              f"e_U {m['e_U']:.2f}, e_V {m['e_V']:.2f}, Fl {m['Fl']:.2%}, n {m['n_pixels']}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

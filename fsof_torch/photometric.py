@@ -1,0 +1,212 @@
+"""Photometric error of a flow: how well the second image, warped back by the flow, matches the first.
+
+    error(p) = ρ( I_1(p), I_2(p + F(p)) ),   F the forward flow from I_1 to I_2 (pixels)
+
+Three kinds of ρ (DESIGN.md §6):
+
+- ``"l1"``: mean over channels of |I_1 − Î_1|, on the 0–255 scale whatever ``data_range`` the
+  images come in (the paper's table of RAFT/ARFlow photometric errors).
+- ``"ssim"``: the structural dissimilarity (1 − SSIM) / 2 in [0, 1], mean over channels, from
+  ``kornia.metrics.ssim`` (Gaussian window of σ = 1.5, ``window`` taps, reflect padding).
+- ``"census"``: the soft Hamming distance between census transforms of the grey images, as in
+  UFlow and ARFlow's ternary loss: per neighbour offset t = (I(q) − I(p)) / sqrt(0.81 + (I(q) −
+  I(p))²) on the 0–255 scale, then mean over the (2r+1)² offsets of d² / (0.1 + d²) with
+  d = t_1 − t_2. In [0, 1).
+
+Which pixels count. A pixel is valid when its sample point p + F(p) lies inside the second image
+(:func:`fsof_torch.warp.warp_backward`'s ``in_bounds``) and the caller's ``mask`` is True there.
+For ``"ssim"`` and ``"census"``, whose value at p looks at a window around p, the in-bounds map
+is first eroded by the window radius, so that no value mixes in the warp's padding (the image
+border itself is padded by reflection or replication, not dropped).
+
+Empty masks: a sample with no valid pixel gets the value 0.0 (never NaN) and a pixel count of 0;
+pass ``return_count=True`` to get the counts, which are the flag to check. Nothing divides by a
+zero count, so gradients stay finite as well.
+
+Photometric error can reward a wrong flow that matches brightness: where ground truth exists,
+report the end-point error (:mod:`fsof_torch.metrics`) beside it.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._check import check_float_tensor, check_shape, result_dtype, tracing
+from .warp import warp_backward
+
+__all__ = ["photometric_error", "photometric_error_map", "census_transform", "PhotometricError"]
+
+_KINDS = ("l1", "ssim", "census")
+
+
+def _check_range(image: Tensor, name: str, data_range: float) -> None:
+    """Values must lie in [0, data_range] up to 1% (catches 0-255 images passed as 0-1)."""
+    if tracing():
+        return
+    hi = float(image.detach().amax())
+    lo = float(image.detach().amin())
+    if hi > data_range * 1.01 or lo < -0.01 * data_range:
+        raise ValueError(
+            f"{name}: expected values in [0, data_range={data_range:g}], got values in "
+            f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
+
+
+def _grey(image: Tensor) -> Tensor:
+    """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB), the mean otherwise."""
+    if image.shape[1] == 3:
+        from kornia.color import rgb_to_grayscale
+
+        return rgb_to_grayscale(image)
+    return image.mean(dim=1, keepdim=True)
+
+
+def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.0) -> Tensor:
+    """Soft census transform (UFlow/ARFlow) of an image: one channel per neighbour offset.
+
+    Args:
+        image: (B, C, H, W) in [0, data_range]; C = 3 is converted to grey as RGB.
+        radius: neighbourhood radius r; the transform has (2r+1)² channels.
+        data_range: the images' range; intensities are compared on the 0-255 scale.
+
+    Returns:
+        (B, (2r+1)², H, W) in (-1, 1): t = δ / sqrt(0.81 + δ²), δ = I(q) - I(p) in grey levels.
+        The image border is replicated, so border offsets compare real pixels.
+    """
+    grey = _grey(image) * (255.0 / data_range)
+    k = 2 * radius + 1
+    # One-hot kernels pick each neighbour: the census as a single convolution.
+    eye = torch.eye(k * k, dtype=grey.dtype, device=grey.device).reshape(k * k, 1, k, k)
+    padded = F.pad(grey, (radius, radius, radius, radius), mode="replicate")
+    delta = F.conv2d(padded, eye) - grey
+    return delta / torch.sqrt(0.81 + delta * delta)
+
+
+def _erode(valid: Tensor, radius: int) -> Tensor:
+    """Keep a pixel only if its whole (2r+1)² window is valid (outside the image counts valid)."""
+    if radius == 0:
+        return valid
+    invalid = (~valid).to(torch.float32)
+    return F.max_pool2d(invalid, 2 * radius + 1, stride=1, padding=radius) == 0
+
+
+def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None,
+                          *, kind: str = "l1", data_range: float = 255.0, window: int = 7,
+                          census_radius: int = 3, align_corners: bool = True) -> tuple[Tensor, Tensor]:
+    """Per-pixel photometric error of ``flow`` and the pixels where it is defined.
+
+    Args:
+        image1: (B, C, H, W) frame t, values in [0, data_range].
+        image2: (B, C, H, W) frame t+1, same range.
+        flow: (B, 2, H, W) forward flow t -> t+1 in pixels (channel 0 = u).
+        mask: optional (B, 1, H, W) bool, the pixels to evaluate (e.g. the road).
+        kind: ``"l1"`` (grey levels, 0-255 scale), ``"ssim"`` ((1 - SSIM)/2) or ``"census"``.
+        data_range: the images' range (255.0 or 1.0). Values outside [0, 1.01 * data_range]
+            raise ValueError.
+        window: odd SSIM window size (taps of the σ = 1.5 Gaussian).
+        census_radius: census neighbourhood radius r ((2r+1)² offsets).
+        align_corners: passed to :func:`~fsof_torch.warp.warp_backward` (does not change results).
+
+    Returns:
+        error: (B, 1, H, W) in image1's promoted float dtype (at least float32), 0 where not valid.
+        valid: (B, 1, H, W) bool: sample point inside image2 (eroded by the window for ssim and
+            census) and inside ``mask``.
+    """
+    check_float_tensor(image1, "image1")
+    check_float_tensor(image2, "image2")
+    check_float_tensor(flow, "flow")
+    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
+    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
+    check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
+    if mask is not None:
+        if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+            got = mask.dtype if isinstance(mask, Tensor) else type(mask).__name__
+            raise TypeError(f"mask: expected a bool tensor, got {got}")
+        check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+    if kind not in _KINDS:
+        raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+    if not (isinstance(data_range, (int, float)) and not isinstance(data_range, bool) and data_range > 0):
+        raise ValueError(f"data_range: expected a positive number, got {data_range!r}")
+    if not isinstance(window, int) or window < 1 or window % 2 == 0:
+        raise ValueError(f"window: expected an odd positive int, got {window!r}")
+    if not isinstance(census_radius, int) or census_radius < 1:
+        raise ValueError(f"census_radius: expected a positive int, got {census_radius!r}")
+    _check_range(image1, "image1", data_range)
+    _check_range(image2, "image2", data_range)
+
+    work = result_dtype(image1, image2, flow)
+    with torch.autocast(device_type=image1.device.type, enabled=False):
+        im1 = image1.to(work)
+        warped, valid = warp_backward(image2.to(work), flow.to(work), align_corners=align_corners)
+        if kind == "l1":
+            error = (im1 - warped).abs().mean(dim=1, keepdim=True) * (255.0 / data_range)
+        elif kind == "ssim":
+            from kornia.metrics import ssim
+
+            # eps=0: kornia's default eps biases flat dark patches; c1, c2 > 0 keep it finite.
+            s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
+            error = ((1.0 - s) * 0.5).clamp(0.0, 1.0).mean(dim=1, keepdim=True)
+            valid = _erode(valid, window // 2)
+        else:
+            t1 = census_transform(im1, radius=census_radius, data_range=data_range)
+            t2 = census_transform(warped, radius=census_radius, data_range=data_range)
+            d2 = (t1 - t2) ** 2
+            error = (d2 / (0.1 + d2)).mean(dim=1, keepdim=True)
+            valid = _erode(valid, census_radius)
+        if mask is not None:
+            valid = valid & mask
+        error = torch.where(valid, error, torch.zeros_like(error))
+    return error, valid
+
+
+def photometric_error(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None,
+                      *, kind: str = "l1", data_range: float = 255.0, window: int = 7,
+                      census_radius: int = 3, align_corners: bool = True,
+                      return_count: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+    """Mean photometric error per sample over the valid pixels inside ``mask``.
+
+    Args: as :func:`photometric_error_map`, plus
+        return_count: also return the number of pixels each mean is over.
+
+    Returns:
+        error: (B,) float; for ``"l1"`` the mean absolute difference in grey levels (0-255
+            scale). A sample with no valid pixel gets 0.0, not NaN: check the count.
+        count: (B,) int64, only with ``return_count=True``.
+
+    Example:
+        >>> i1 = torch.full((1, 3, 8, 8), 100.0); i2 = torch.full((1, 3, 8, 8), 110.0)
+        >>> photometric_error(i1, i2, torch.zeros(1, 2, 8, 8)).tolist()
+        [10.0]
+    """
+    error, valid = photometric_error_map(image1, image2, flow, mask, kind=kind,
+                                         data_range=data_range, window=window,
+                                         census_radius=census_radius, align_corners=align_corners)
+    count = valid.flatten(1).sum(dim=1)
+    total = error.flatten(1).sum(dim=1)
+    mean = total / count.clamp(min=1).to(total.dtype)
+    return (mean, count) if return_count else mean
+
+
+class PhotometricError(nn.Module):
+    """``nn.Module`` twin of :func:`photometric_error`: ``forward(image1, image2, flow, mask=None)``."""
+
+    def __init__(self, *, kind: str = "l1", data_range: float = 255.0, window: int = 7,
+                 census_radius: int = 3, align_corners: bool = True) -> None:
+        super().__init__()
+        if kind not in _KINDS:
+            raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+        self.kind = kind
+        self.data_range = data_range
+        self.window = window
+        self.census_radius = census_radius
+        self.align_corners = align_corners
+
+    def forward(self, image1: Tensor, image2: Tensor, flow: Tensor,
+                mask: Tensor | None = None) -> Tensor:
+        return photometric_error(image1, image2, flow, mask, kind=self.kind,
+                                 data_range=self.data_range, window=self.window,
+                                 census_radius=self.census_radius, align_corners=self.align_corners)
+
+    def extra_repr(self) -> str:
+        return f"kind={self.kind!r}, data_range={self.data_range:g}"

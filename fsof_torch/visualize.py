@@ -1,0 +1,252 @@
+"""Pictures of flows, errors and masks, as uint8 tensors and as PNG files.
+
+- :func:`flow_to_color`: the Middlebury colour coding of Baker et al. (IJCV 2011; the 55-colour
+  wheel of ``flowToColor`` / ``flow_vis``): hue = direction, saturation = magnitude relative to
+  ``max_flow``; zero flow is white. At full saturation flow to the right is red (255, 0, 0),
+  down yellow (255, 229, 0), left light blue (0, 209, 255), up violet (88, 0, 255), as in the
+  Middlebury and KITTI figures.
+- :func:`error_to_color`: a scalar map (e.g. end-point or photometric error) through an OpenCV
+  colour map, from 0 to ``vmax``.
+- :func:`overlay_mask`: a mask blended in colour onto an image.
+
+The ``save_*_png`` functions write single images atomically (a temporary file in the same folder,
+then ``os.replace``). OpenCV is imported inside the functions that use it.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+from ._check import check_float_tensor, check_shape
+
+__all__ = [
+    "make_colorwheel",
+    "flow_to_color",
+    "error_to_color",
+    "overlay_mask",
+    "save_flow_png",
+    "save_error_png",
+    "save_overlay_png",
+]
+
+# Colour-wheel segment lengths of Baker et al.: chosen so that perceptually similar hues get
+# similar numbers of entries (red-yellow, yellow-green, green-cyan, cyan-blue, blue-magenta,
+# magenta-red).
+_WHEEL = (15, 6, 4, 11, 13, 6)
+
+
+def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> Tensor:
+    """The Middlebury colour wheel: (55, 3) RGB in 0..255."""
+    ry, yg, gc, cb, bm, mr = _WHEEL
+
+    def ramp(n: int) -> Tensor:
+        return torch.floor(255.0 * torch.arange(n, dtype=torch.float64) / n)
+
+    def full(n: int) -> Tensor:
+        return torch.full((n,), 255.0, dtype=torch.float64)
+
+    def zero(n: int) -> Tensor:
+        return torch.zeros(n, dtype=torch.float64)
+
+    segments = [
+        (full(ry), ramp(ry), zero(ry)),            # red -> yellow
+        (255 - ramp(yg), full(yg), zero(yg)),      # yellow -> green
+        (zero(gc), full(gc), ramp(gc)),            # green -> cyan
+        (zero(cb), 255 - ramp(cb), full(cb)),      # cyan -> blue
+        (ramp(bm), zero(bm), full(bm)),            # blue -> magenta
+        (full(mr), zero(mr), 255 - ramp(mr)),      # magenta -> red
+    ]
+    wheel = torch.cat([torch.stack(s, dim=1) for s in segments])
+    return wheel.to(dtype=dtype, device=device)
+
+
+def _as_batch(x: Tensor, name: str, channels: int | None) -> Tensor:
+    """Accept (C, H, W) or (B, C, H, W) (and (H, W) for one channel); return (B, C, H, W)."""
+    if x.dim() == 2 and channels == 1:
+        x = x[None, None]
+    elif x.dim() == 3:
+        x = x[None]
+    pattern = ("B", channels if channels is not None else "C", "H", "W")
+    check_shape(x, name, pattern)
+    return x
+
+
+def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
+                  valid: Tensor | None = None) -> Tensor:
+    """Middlebury colour coding of a flow field.
+
+    Args:
+        flow: (B, 2, H, W) or (2, H, W), pixels, channel 0 = u.
+        max_flow: the magnitude shown at full saturation: a float, a (B,) tensor, or None for
+            each sample's largest valid magnitude. Longer vectors are drawn darker (×0.75), as in
+            the reference code.
+        valid: optional (B, 1, H, W) bool; invalid (and non-finite) pixels are black.
+
+    Returns:
+        (B, 3, H, W) uint8 RGB (a batch dimension is added for a (2, H, W) input).
+    """
+    check_float_tensor(flow, "flow")
+    flow = _as_batch(flow, "flow", 2)
+    B, _, H, W = flow.shape
+    ok = torch.isfinite(flow).all(dim=1, keepdim=True)
+    if valid is not None:
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            got = getattr(valid, "dtype", type(valid).__name__)
+            raise TypeError(f"valid: expected a bool tensor, got {got}")
+        valid = _as_batch(valid, "valid", 1)
+        check_shape(valid, "valid", (B, 1, H, W))
+        ok = ok & valid
+    work = torch.float64 if flow.dtype == torch.float64 else torch.float32
+    f = torch.where(ok, flow.detach().to(work), torch.zeros((), dtype=work, device=flow.device))
+    u, v = f[:, 0:1], f[:, 1:2]
+    rad = torch.sqrt(u * u + v * v)
+    if max_flow is None:
+        scale = rad.flatten(1).amax(dim=1)
+    elif isinstance(max_flow, Tensor):
+        scale = max_flow.detach().to(work).reshape(-1).expand(B)
+    else:
+        if not float(max_flow) > 0:
+            raise ValueError(f"max_flow: expected a positive number, got {max_flow!r}")
+        scale = torch.full((B,), float(max_flow), dtype=work, device=flow.device)
+    # Same epsilon as the reference code, so that a zero flow is white, not NaN.
+    scale = (scale + 1e-5).view(B, 1, 1, 1)
+    u, v, rad = u / scale, v / scale, rad / scale
+
+    wheel = make_colorwheel(dtype=work, device=flow.device) / 255.0
+    n = wheel.shape[0]
+    angle = torch.atan2(-v, -u) / torch.pi                     # (-1, 1]
+    fk = (angle + 1.0) / 2.0 * (n - 1)
+    k0 = torch.floor(fk).long().clamp(0, n - 1)
+    k1 = torch.where(k0 + 1 == n, torch.zeros_like(k0), k0 + 1)
+    frac = (fk - k0.to(work))
+    col0 = wheel[k0.squeeze(1)].permute(0, 3, 1, 2)             # (B, 3, H, W)
+    col1 = wheel[k1.squeeze(1)].permute(0, 3, 1, 2)
+    col = (1 - frac) * col0 + frac * col1
+    col = torch.where(rad <= 1, 1 - rad * (1 - col), col * 0.75)
+    rgb = torch.floor(255.0 * col).clamp(0, 255).to(torch.uint8)
+    return torch.where(ok, rgb, torch.zeros_like(rgb))
+
+
+def _colormap_lut(colormap: str) -> Tensor:
+    """The 256 RGB entries of an OpenCV colour map: (256, 3) uint8."""
+    import cv2
+    import numpy as np
+
+    code = getattr(cv2, f"COLORMAP_{colormap.upper()}", None)
+    if code is None:
+        raise ValueError(f"colormap: expected an OpenCV colour map name such as 'inferno', got {colormap!r}")
+    ramp = np.arange(256, dtype=np.uint8).reshape(256, 1)
+    bgr = cv2.applyColorMap(ramp, code).reshape(256, 3)
+    return torch.from_numpy(np.ascontiguousarray(bgr[:, ::-1]))
+
+
+def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
+                   colormap: str = "inferno") -> Tensor:
+    """A scalar map in colour: 0 -> the map's first colour, ``vmax`` and above -> its last.
+
+    Args:
+        error: (B, 1, H, W), (1, H, W) or (H, W), any unit (px, grey levels).
+        vmax: the value shown at the top of the colour map (> 0), same unit.
+        valid: optional (B, 1, H, W) bool; invalid and non-finite pixels are black.
+        colormap: an OpenCV colour map name ("inferno", "jet", "turbo", "viridis", ...).
+
+    Returns:
+        (B, 3, H, W) uint8 RGB.
+    """
+    check_float_tensor(error, "error")
+    error = _as_batch(error, "error", 1)
+    if not float(vmax) > 0:
+        raise ValueError(f"vmax: expected a positive number, got {vmax!r}")
+    ok = torch.isfinite(error)
+    if valid is not None:
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            got = getattr(valid, "dtype", type(valid).__name__)
+            raise TypeError(f"valid: expected a bool tensor, got {got}")
+        valid = _as_batch(valid, "valid", 1)
+        check_shape(valid, "valid", tuple(error.shape))
+        ok = ok & valid
+    e = torch.where(ok, error.detach().float(), torch.zeros((), device=error.device))
+    index = torch.round(e.clamp(0, float(vmax)) / float(vmax) * 255.0).long()
+    lut = _colormap_lut(colormap).to(error.device)
+    rgb = lut[index.squeeze(1)].permute(0, 3, 1, 2)
+    return torch.where(ok, rgb, torch.zeros_like(rgb))
+
+
+def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (0, 255, 0),
+                 alpha: float = 0.5, data_range: float = 255.0) -> Tensor:
+    """Blend ``color`` into ``image`` where ``mask`` is True.
+
+    Args:
+        image: (B, C, H, W) or (C, H, W), C = 3 (RGB) or 1 (grey), values in [0, data_range].
+        mask: (B, 1, H, W) or (1, H, W) bool.
+        color: RGB 0..255. alpha: its weight inside the mask, in [0, 1].
+
+    Returns:
+        (B, 3, H, W) uint8 RGB: (1 - alpha) * image + alpha * color inside the mask, the image elsewhere.
+    """
+    check_float_tensor(image, "image")
+    image = _as_batch(image, "image", None)
+    if image.shape[1] not in (1, 3):
+        raise ValueError(f"image: expected 1 or 3 channels, got shape {tuple(image.shape)}")
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        raise TypeError(f"mask: expected a bool tensor, got {getattr(mask, 'dtype', type(mask).__name__)}")
+    mask = _as_batch(mask, "mask", 1)
+    B, _, H, W = image.shape
+    check_shape(mask, "mask", (B, 1, H, W))
+    if not 0.0 <= float(alpha) <= 1.0:
+        raise ValueError(f"alpha: expected a value in [0, 1], got {alpha!r}")
+    if len(color) != 3:
+        raise ValueError(f"color: expected an (R, G, B) triple, got {color!r}")
+    img = image.detach().float().expand(B, 3, H, W) * (255.0 / data_range)
+    c = torch.tensor([float(x) for x in color], device=image.device).view(1, 3, 1, 1)
+    out = torch.where(mask, (1 - alpha) * img + alpha * c, img)
+    return torch.round(out).clamp(0, 255).to(torch.uint8)
+
+
+def _write_png(path: str | os.PathLike, rgb: Tensor) -> Path:
+    """Write one (1, 3, H, W) or (3, H, W) uint8 RGB image as PNG, atomically."""
+    import cv2
+
+    from .io.atomic import write_bytes
+
+    if rgb.dim() == 4:
+        if rgb.shape[0] != 1:
+            raise ValueError(f"expected a single image (batch 1) to save, got batch {rgb.shape[0]}")
+        rgb = rgb[0]
+    bgr = rgb.permute(1, 2, 0).flip(-1).contiguous().cpu().numpy()
+    ok, data = cv2.imencode(".png", bgr)
+    if not ok:
+        raise OSError(f"path: OpenCV could not encode a PNG for {str(path)!r}")
+    return write_bytes(path, data.tobytes())
+
+
+def save_flow_png(path: str | os.PathLike, flow: Tensor, *, max_flow: float | None = None,
+                  valid: Tensor | None = None) -> Path:
+    """Save one flow ((2, H, W) or (1, 2, H, W), pixels) in Middlebury colours as an RGB PNG.
+
+    See :func:`flow_to_color` for ``max_flow`` and ``valid``. Returns the path.
+    """
+    return _write_png(path, flow_to_color(flow, max_flow, valid=valid))
+
+
+def save_error_png(path: str | os.PathLike, error_map: Tensor, vmax: float, *,
+                   valid: Tensor | None = None, colormap: str = "inferno") -> Path:
+    """Save one scalar map ((H, W), (1, H, W) or (1, 1, H, W)) through a colour map as PNG.
+
+    See :func:`error_to_color`. Returns the path.
+    """
+    return _write_png(path, error_to_color(error_map, vmax, valid=valid, colormap=colormap))
+
+
+def save_overlay_png(path: str | os.PathLike, image: Tensor, mask: Tensor, *,
+                     color: tuple[int, int, int] = (0, 255, 0), alpha: float = 0.5,
+                     data_range: float = 255.0) -> Path:
+    """Save one image ((C, H, W) or (1, C, H, W)) with ``mask`` blended in colour, as PNG.
+
+    See :func:`overlay_mask`. Returns the path.
+    """
+    return _write_png(path, overlay_mask(image, mask, color=color, alpha=alpha, data_range=data_range))

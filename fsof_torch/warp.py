@@ -1,0 +1,159 @@
+"""Backward warping of an image by a flow field: the one warp of the project (DESIGN.md §6).
+
+    warped(p) = image(p + flow(p)),   in_bounds(p) = p + flow(p) ∈ [0, W-1] × [0, H-1]
+
+Convention: pixel (u, v) with origin at the centre of the top-left pixel, u to the right, v down;
+flow (B, 2, H, W) in pixels, channel 0 = u, channel 1 = v. With the forward flow F_12 of a pair
+(I_1, I_2), ``warp_backward(I_2, F_12)`` reconstructs I_1 wherever the point stays visible.
+
+How the sampling is done, and why. kornia's ``remap`` normalises pixel maps with the
+corner-aligned (``align_corners=True``) convention whatever flag reaches ``grid_sample``, so a
+pixel map sampled with ``align_corners=False`` (kornia's default) is shifted by half a pixel
+(kornia issue #4504; measured here: an identity map changes the KITTI image 000000_10 by up to
+191 grey levels, 3.7 on average). This module therefore normalises the coordinates itself, in
+one place (:func:`normalize_coordinates`), with the same ``align_corners`` it passes to kornia.
+
+Even then, ``grid_sample`` un-normalises in floating point, and the round trip pixel -> [-1, 1]
+-> pixel is not exact in float32 (an identity map changed that image by up to 0.016 grey levels).
+So bilinear sampling is done as four nearest-neighbour taps at the integer corners (robust to
+that rounding) weighted by the fractional parts, which are exact: the identity flow returns the
+image bit for bit, whole-pixel shifts equal ``torch.roll`` on the interior, and the result does
+not depend on ``align_corners`` at all. The price: about 2-3x the time of a single bilinear
+kornia ``remap`` for forward + backward, more for a forward pass alone (one CPU thread;
+``python benchmarks/bench_warp.py`` prints the table).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from ._check import check_finite, check_float_tensor, check_shape, result_dtype
+
+__all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
+
+_MODES = ("bilinear", "nearest")
+_PADDING = ("zeros", "border")
+
+
+def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> Tensor:
+    """Pixel coordinates along one axis of ``size`` pixels -> grid_sample's [-1, 1] range.
+
+    ``align_corners=True``: -1 and 1 are the centres of the first and last pixel;
+    ``align_corners=False``: -1 and 1 are the outer edges of those pixels. Pass the same flag to
+    the sampler. A singleton axis maps its only pixel to 0 (the corner-aligned scale is
+    undefined there, and grid_sample then ignores the coordinate anyway).
+    """
+    if size == 1:
+        return coords * 2.0
+    if align_corners:
+        return coords * (2.0 / (size - 1)) - 1.0
+    return (coords * 2.0 + 1.0) / size - 1.0
+
+
+def _sample_nearest(image: Tensor, x: Tensor, y: Tensor, *, align_corners: bool,
+                    padding_mode: str) -> Tensor:
+    """image (B, C, H, W) at integer-valued pixel coordinates x, y (B, h, w) -> (B, C, h, w)."""
+    from kornia.geometry.transform import remap
+
+    H, W = image.shape[-2:]
+    return remap(image, normalize_coordinates(x, W, align_corners=align_corners),
+                 normalize_coordinates(y, H, align_corners=align_corners), mode="nearest",
+                 padding_mode=padding_mode, align_corners=align_corners, normalized_coordinates=True)
+
+
+def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
+                  mode: str = "bilinear", padding_mode: str = "zeros") -> tuple[Tensor, Tensor]:
+    """Sample ``image`` at ``p + flow(p)``: the second frame warped back onto the first.
+
+    Args:
+        image: (B, C, H, W) float, any range (the values are only interpolated).
+        flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down).
+        align_corners: the normalisation convention handed to kornia / ``grid_sample``; this
+            function normalises with the same flag, so both values give the same result.
+        mode: ``"bilinear"`` (differentiable in image and flow) or ``"nearest"`` (differentiable
+            in the image only; the flow gets no gradient).
+        padding_mode: what a tap outside the image reads: ``"zeros"`` or ``"border"``
+            (the nearest edge pixel). Affects only pixels that ``in_bounds`` marks invalid.
+
+    Returns:
+        warped: (B, C, H, W), dtype the promotion of image's and flow's dtypes. Sampling and
+            coordinates are computed in at least float32, also under ``torch.autocast``.
+        in_bounds: (B, 1, H, W) bool, True where the sample point ``p + flow(p)`` lies in
+            [0, W-1] × [0, H-1] (the closed range of pixel centres). Elsewhere ``warped`` is
+            finite but mixes in padding: mask it out.
+
+    Example:
+        >>> img = torch.arange(12.0).reshape(1, 1, 3, 4)
+        >>> flow = torch.zeros(1, 2, 3, 4); flow[:, 0] = 1.0   # sample one pixel to the right
+        >>> warped, ok = warp_backward(img, flow)
+        >>> warped[0, 0, 0].tolist(), ok[0, 0, 0].tolist()
+        ([1.0, 2.0, 3.0, 0.0], [True, True, True, False])
+    """
+    check_float_tensor(image, "image")
+    check_float_tensor(flow, "flow")
+    dims = check_shape(image, "image", ("B", "C", "H", "W"))
+    check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
+    if mode not in _MODES:
+        raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    if padding_mode not in _PADDING:
+        raise ValueError(f"padding_mode: expected one of {_PADDING}, got {padding_mode!r}")
+    if not isinstance(align_corners, bool):
+        raise TypeError(f"align_corners: expected a bool, got {type(align_corners).__name__}")
+    check_finite(flow, "flow")
+
+    out_dtype = torch.promote_types(image.dtype, flow.dtype)
+    work = result_dtype(image, flow)
+    B, _, H, W = image.shape
+    # Geometry in at least float32: a bfloat16 pixel coordinate is off by up to 4 px at u = 1000.
+    with torch.autocast(device_type=image.device.type, enabled=False):
+        img = image.to(work)
+        f = flow.to(work)
+        u = torch.arange(W, dtype=work, device=image.device).expand(H, W)
+        v = torch.arange(H, dtype=work, device=image.device).unsqueeze(1).expand(H, W)
+        x = u + f[:, 0]
+        y = v + f[:, 1]
+        in_bounds = ((x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)).unsqueeze(1)
+
+        if mode == "nearest":
+            warped = _sample_nearest(img, torch.round(x).detach(), torch.round(y).detach(),
+                                     align_corners=align_corners, padding_mode=padding_mode)
+        else:
+            x0 = torch.floor(x).detach()
+            y0 = torch.floor(y).detach()
+            fx = (x - x0).unsqueeze(1)  # exact in floating point, carries the flow's gradient
+            fy = (y - y0).unsqueeze(1)
+            # The four corners stacked along rows: one sampler call instead of four.
+            corner = torch.tensor([[0, 1, 0, 1], [0, 0, 1, 1]], dtype=work, device=image.device)
+            xs = (x0.unsqueeze(1) + corner[0].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
+            ys = (y0.unsqueeze(1) + corner[1].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
+            taps = _sample_nearest(img, xs, ys, align_corners=align_corners,
+                                   padding_mode=padding_mode)
+            t00, t10, t01, t11 = taps.split(H, dim=2)
+            # lerp returns its start exactly at weight 0 and its end at weight 1.
+            top = torch.lerp(t00, t10, fx)
+            bottom = torch.lerp(t01, t11, fx)
+            warped = torch.lerp(top, bottom, fy)
+    return warped.to(out_dtype), in_bounds
+
+
+class WarpBackward(nn.Module):
+    """``nn.Module`` twin of :func:`warp_backward`: ``forward(image, flow) -> (warped, in_bounds)``."""
+
+    def __init__(self, *, align_corners: bool = True, mode: str = "bilinear",
+                 padding_mode: str = "zeros") -> None:
+        super().__init__()
+        if mode not in _MODES:
+            raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+        if padding_mode not in _PADDING:
+            raise ValueError(f"padding_mode: expected one of {_PADDING}, got {padding_mode!r}")
+        self.align_corners = align_corners
+        self.mode = mode
+        self.padding_mode = padding_mode
+
+    def forward(self, image: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
+        return warp_backward(image, flow, align_corners=self.align_corners, mode=self.mode,
+                             padding_mode=self.padding_mode)
+
+    def extra_repr(self) -> str:
+        return f"align_corners={self.align_corners}, mode={self.mode!r}, padding_mode={self.padding_mode!r}"

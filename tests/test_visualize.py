@@ -1,0 +1,225 @@
+"""Tests of fsof_torch.visualize: flow colours, error maps, mask overlays and their PNG files."""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.visualize import (
+    error_to_color,
+    flow_to_color,
+    make_colorwheel,
+    overlay_mask,
+    save_error_png,
+    save_flow_png,
+    save_overlay_png,
+)
+
+
+def _reference_wheel():
+    """The colour wheel of the Middlebury reference code (flow_vis, Baker et al.), as numpy."""
+    RY, YG, GC, CB, BM, MR = 15, 6, 4, 11, 13, 6
+    wheel = np.zeros((RY + YG + GC + CB + BM + MR, 3))
+    col = 0
+    wheel[0:RY, 0] = 255
+    wheel[0:RY, 1] = np.floor(255 * np.arange(0, RY) / RY)
+    col += RY
+    wheel[col:col + YG, 0] = 255 - np.floor(255 * np.arange(0, YG) / YG)
+    wheel[col:col + YG, 1] = 255
+    col += YG
+    wheel[col:col + GC, 1] = 255
+    wheel[col:col + GC, 2] = np.floor(255 * np.arange(0, GC) / GC)
+    col += GC
+    wheel[col:col + CB, 1] = 255 - np.floor(255 * np.arange(CB) / CB)
+    wheel[col:col + CB, 2] = 255
+    col += CB
+    wheel[col:col + BM, 2] = 255
+    wheel[col:col + BM, 0] = np.floor(255 * np.arange(0, BM) / BM)
+    col += BM
+    wheel[col:col + MR, 2] = 255 - np.floor(255 * np.arange(MR) / MR)
+    wheel[col:col + MR, 0] = 255
+    return wheel
+
+
+def _reference_colors(u, v):
+    """flow_vis.flow_uv_to_colors after normalisation by the largest magnitude (+1e-5), RGB."""
+    rad_max = np.sqrt(u ** 2 + v ** 2).max()
+    u, v = u / (rad_max + 1e-5), v / (rad_max + 1e-5)
+    wheel = _reference_wheel()
+    ncols = wheel.shape[0]
+    rad = np.sqrt(u ** 2 + v ** 2)
+    a = np.arctan2(-v, -u) / np.pi
+    fk = (a + 1) / 2 * (ncols - 1)
+    k0 = np.floor(fk).astype(np.int32)
+    k1 = k0 + 1
+    k1[k1 == ncols] = 0
+    f = fk - k0
+    out = np.zeros(u.shape + (3,), np.uint8)
+    for i in range(3):
+        col0 = wheel[k0, i] / 255.0
+        col1 = wheel[k1, i] / 255.0
+        col = (1 - f) * col0 + f * col1
+        idx = rad <= 1
+        col[idx] = 1 - rad[idx] * (1 - col[idx])
+        col[~idx] = col[~idx] * 0.75
+        out[:, :, i] = np.floor(255 * col)
+    return out
+
+
+def _flow(B=1, H=20, W=30, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(B, 2, H, W, generator=g, dtype=torch.float64) * 4).to(dtype)
+
+
+# --- smoke -------------------------------------------------------------------------------------
+
+def test_smoke(dtype):
+    rgb = flow_to_color(_flow(dtype=dtype))
+    assert rgb.shape == (1, 3, 20, 30) and rgb.dtype == torch.uint8
+    err = error_to_color(_flow(dtype=dtype)[:, :1].abs(), 5.0)
+    assert err.shape == (1, 3, 20, 30) and err.dtype == torch.uint8
+    ov = overlay_mask(torch.full((1, 3, 20, 30), 100.0, dtype=dtype), torch.ones(1, 1, 20, 30, dtype=torch.bool))
+    assert ov.shape == (1, 3, 20, 30) and ov.dtype == torch.uint8
+
+
+def test_public_names():
+    import fsof_torch.visualize as mod
+
+    assert set(mod.__all__) >= {"flow_to_color", "error_to_color", "overlay_mask", "make_colorwheel",
+                                "save_flow_png", "save_error_png", "save_overlay_png"}
+
+
+# --- exceptions --------------------------------------------------------------------------------
+
+def test_exceptions():
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
+        flow_to_color(torch.zeros(1, 3, 4, 4))
+    with pytest.raises(ValueError, match="max_flow: expected a positive"):
+        flow_to_color(_flow(), -1.0)
+    with pytest.raises(TypeError, match="valid: expected a bool tensor"):
+        flow_to_color(_flow(), valid=torch.ones(1, 1, 20, 30))
+    with pytest.raises(ValueError, match="vmax: expected a positive"):
+        error_to_color(torch.zeros(4, 4), 0.0)
+    with pytest.raises(ValueError, match="colormap: expected an OpenCV colour map"):
+        error_to_color(torch.zeros(4, 4), 1.0, colormap="nope")
+    with pytest.raises(ValueError, match="mask: expected shape"):
+        overlay_mask(torch.zeros(3, 4, 4), torch.ones(1, 4, 5, dtype=torch.bool))
+    with pytest.raises(ValueError, match="alpha: expected a value in"):
+        overlay_mask(torch.zeros(3, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), alpha=2.0)
+
+
+def test_save_rejects_batches(tmp_path):
+    with pytest.raises(ValueError, match="expected a single image"):
+        save_flow_png(tmp_path / "f.png", _flow(B=2))
+    assert not list(tmp_path.iterdir())
+
+
+# --- cardinality -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 3])
+def test_cardinality(B):
+    flow = _flow(B=B, H=7, W=13)
+    rgb = flow_to_color(flow)
+    assert rgb.shape == (B, 3, 7, 13)
+    for b in range(B):   # each sample normalised by its own largest magnitude
+        assert torch.equal(flow_to_color(flow[b]), rgb[b:b + 1])
+    assert error_to_color(flow[:, :1], 3.0).shape == (B, 3, 7, 13)
+    assert overlay_mask(flow[:, :1].abs().clamp(max=255), flow[:, :1] > 0).shape == (B, 3, 7, 13)
+
+
+# --- feature -----------------------------------------------------------------------------------
+
+def test_colorwheel_matches_reference():
+    np.testing.assert_array_equal(make_colorwheel(dtype=torch.float64).numpy(), _reference_wheel())
+
+
+def test_flow_to_color_matches_reference():
+    flow = _flow(H=40, W=50, dtype=torch.float64)
+    got = flow_to_color(flow)[0].permute(1, 2, 0).numpy().astype(int)
+    want = _reference_colors(flow[0, 0].numpy(), flow[0, 1].numpy()).astype(int)
+    assert np.abs(got - want).max() == 0
+
+
+def test_flow_to_color_float32_within_one_level():
+    flow = _flow(H=40, W=50)
+    got = flow_to_color(flow)[0].permute(1, 2, 0).numpy().astype(int)
+    want = _reference_colors(flow[0, 0].double().numpy(), flow[0, 1].double().numpy()).astype(int)
+    assert np.abs(got - want).max() <= 1
+    assert (got == want).mean() > 0.99
+
+
+def test_directions_and_special_values():
+    dirs = torch.tensor([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]).T.reshape(1, 2, 1, 4)
+    rgb = flow_to_color(dirs)[0, :, 0].T.tolist()
+    assert rgb == [[255, 0, 0], [255, 229, 0], [0, 209, 255], [88, 0, 255]]
+    assert flow_to_color(torch.zeros(1, 2, 3, 3)).eq(255).all()     # no motion: white
+    valid = torch.ones(1, 1, 1, 4, dtype=torch.bool)
+    valid[..., 1] = False
+    dirs_nan = dirs.clone()
+    dirs_nan[0, 0, 0, 2] = float("nan")
+    out = flow_to_color(dirs_nan, valid=valid)
+    assert out[0, :, 0, 1].eq(0).all() and out[0, :, 0, 2].eq(0).all()     # invalid, NaN: black
+    assert out[0, :, 0, 0].tolist() == [255, 0, 0]
+
+
+def test_max_flow_saturation():
+    flow = torch.tensor([[2.0, 0.0]]).T.reshape(1, 2, 1, 1)
+    half = flow_to_color(flow, 4.0)[0, :, 0, 0].tolist()       # half saturated red
+    assert half == [255, 127, 127]
+    over = flow_to_color(flow, 1.0)[0, :, 0, 0].tolist()       # beyond max_flow: darkened
+    assert over == [191, 0, 0]
+
+
+def test_error_to_color_uses_colormap_ends():
+    import cv2
+
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(256, 1), cv2.COLORMAP_INFERNO)[:, 0, ::-1]
+    err = torch.tensor([[0.0, 5.0, 10.0, 50.0, float("nan")]])
+    rgb = error_to_color(err, 10.0)[0, :, 0].T.numpy()
+    np.testing.assert_array_equal(rgb[0], lut[0])
+    np.testing.assert_array_equal(rgb[1], lut[128])     # round(5 / 10 * 255) = 128
+    np.testing.assert_array_equal(rgb[2], lut[255])
+    np.testing.assert_array_equal(rgb[3], lut[255])     # clipped at vmax
+    np.testing.assert_array_equal(rgb[4], [0, 0, 0])    # non-finite: black
+
+
+def test_overlay_blends_inside_mask_only():
+    image = torch.full((3, 2, 2), 100.0)
+    mask = torch.tensor([[True, False], [False, False]])[None]
+    out = overlay_mask(image, mask, color=(0, 255, 0), alpha=0.5)
+    assert out[0, :, 0, 0].tolist() == [50, 178, 50]   # round(50 + 127.5) = 178 (half to even)
+    assert out[0, :, 1, 1].tolist() == [100, 100, 100]
+    grey01 = overlay_mask(torch.full((1, 2, 2), 0.4), mask, data_range=1.0, alpha=0.0)
+    assert grey01.eq(102).all()
+
+
+# --- files -------------------------------------------------------------------------------------
+
+def test_save_pngs_roundtrip(tmp_path):
+    import cv2
+
+    flow = _flow()
+    p = save_flow_png(tmp_path / "flow.png", flow[0])
+    back = cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1]
+    np.testing.assert_array_equal(back, flow_to_color(flow)[0].permute(1, 2, 0).numpy())
+
+    err = flow[:, :1].abs()
+    p = save_error_png(tmp_path / "err.png", err[0, 0], 5.0)
+    back = cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1]
+    np.testing.assert_array_equal(back, error_to_color(err, 5.0)[0].permute(1, 2, 0).numpy())
+
+    image = torch.rand(3, 20, 30, generator=torch.Generator().manual_seed(0)) * 255
+    mask = flow[0, :1] > 0
+    p = save_overlay_png(tmp_path / "ov.png", image, mask)
+    back = cv2.imread(str(p), cv2.IMREAD_COLOR)[:, :, ::-1]
+    np.testing.assert_array_equal(back, overlay_mask(image, mask)[0].permute(1, 2, 0).numpy())
+    # atomic writes leave no temporary files behind
+    assert sorted(os.listdir(tmp_path)) == ["err.png", "flow.png", "ov.png"]
+
+
+def test_save_into_missing_folder_fails_cleanly(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        save_flow_png(tmp_path / "missing" / "flow.png", _flow()[0])

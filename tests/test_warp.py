@@ -1,0 +1,272 @@
+"""Tests of fsof_torch.warp: the one backward warp of the project."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from fsof_torch.warp import WarpBackward, normalize_coordinates, warp_backward
+
+
+def _image(B=1, C=3, H=24, W=40, dtype=torch.float32, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(B, C, H, W, generator=g, dtype=torch.float64) * 255).to(dtype)
+
+
+def _flow(B=1, H=24, W=40, scale=3.0, dtype=torch.float32, seed=1):
+    g = torch.Generator().manual_seed(seed)
+    return (torch.randn(B, 2, H, W, generator=g, dtype=torch.float64) * scale).to(dtype)
+
+
+def _reference(image, flow):
+    """Independent bilinear reference: torch grid_sample in float64 on a corner-aligned grid."""
+    B, _, H, W = image.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
+                          indexing="ij")
+    x = u + flow[:, 0].double()
+    y = v + flow[:, 1].double()
+    grid = torch.stack([x * 2 / (W - 1) - 1, y * 2 / (H - 1) - 1], dim=-1)
+    return F.grid_sample(image.double(), grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+
+
+# --- smoke -------------------------------------------------------------------------------------
+
+def test_smoke(dtype):
+    image, flow = _image(dtype=dtype), _flow(dtype=dtype)
+    warped, in_bounds = warp_backward(image, flow)
+    assert warped.shape == image.shape and warped.dtype == dtype
+    assert in_bounds.shape == (1, 1, 24, 40) and in_bounds.dtype == torch.bool
+    assert torch.isfinite(warped).all()
+
+
+def test_public_names():
+    import fsof_torch.warp as mod
+
+    assert set(mod.__all__) >= {"warp_backward", "WarpBackward", "normalize_coordinates"}
+
+
+def test_module_twin():
+    image, flow = _image(), _flow()
+    module = WarpBackward(align_corners=False, mode="nearest")
+    got = module(image, flow)
+    want = warp_backward(image, flow, align_corners=False, mode="nearest")
+    assert torch.equal(got[0], want[0]) and torch.equal(got[1], want[1])
+    assert "nearest" in repr(module)
+
+
+def test_does_not_modify_inputs():
+    image, flow = _image(), _flow()
+    image0, flow0 = image.clone(), flow.clone()
+    warp_backward(image, flow)
+    assert torch.equal(image, image0) and torch.equal(flow, flow0)
+
+
+# --- exceptions --------------------------------------------------------------------------------
+
+def test_bad_flow_shape():
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
+        warp_backward(_image(), torch.zeros(1, 3, 24, 40))
+
+
+def test_size_mismatch():
+    with pytest.raises(ValueError, match=r"flow: expected shape .* with H=24"):
+        warp_backward(_image(), torch.zeros(1, 2, 25, 40))
+
+
+def test_batch_mismatch():
+    with pytest.raises(ValueError, match=r"flow: expected shape .* with B=2"):
+        warp_backward(_image(B=2), torch.zeros(3, 2, 24, 40))
+
+
+def test_integer_image_rejected():
+    with pytest.raises(TypeError, match="image: expected a floating-point tensor"):
+        warp_backward(torch.zeros(1, 3, 4, 4, dtype=torch.uint8), torch.zeros(1, 2, 4, 4))
+
+
+def test_bad_mode():
+    with pytest.raises(ValueError, match="mode: expected one of"):
+        warp_backward(_image(), _flow(), mode="bicubic")
+    with pytest.raises(ValueError, match="padding_mode: expected one of"):
+        warp_backward(_image(), _flow(), padding_mode="reflection")
+    with pytest.raises(ValueError, match="mode: expected one of"):
+        WarpBackward(mode="area")
+
+
+def test_nan_flow_rejected():
+    flow = _flow()
+    flow[0, 0, 3, 3] = float("nan")
+    with pytest.raises(ValueError, match="flow: expected finite values"):
+        warp_backward(_image(), flow)
+
+
+# --- cardinality -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("size", [(16, 40), (33, 17)])
+def test_cardinality(B, size):
+    H, W = size
+    image, flow = _image(B=B, C=2, H=H, W=W), _flow(B=B, H=H, W=W)
+    warped, in_bounds = warp_backward(image, flow)
+    assert warped.shape == (B, 2, H, W) and in_bounds.shape == (B, 1, H, W)
+    # each sample of the batch is warped on its own
+    for b in range(B):
+        one, ok = warp_backward(image[b:b + 1], flow[b:b + 1])
+        assert torch.equal(one, warped[b:b + 1]) and torch.equal(ok, in_bounds[b:b + 1])
+
+
+def test_singleton_axis():
+    image = _image(H=1, W=7)
+    warped, in_bounds = warp_backward(image, torch.zeros(1, 2, 1, 7))
+    assert torch.equal(warped, image) and in_bounds.all()
+
+
+# --- feature -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("align_corners", [True, False])
+@pytest.mark.parametrize("size", [(24, 40), (375, 1242)])
+def test_identity_is_exact(align_corners, size):
+    image = _image(C=1, H=size[0], W=size[1])
+    warped, in_bounds = warp_backward(image, torch.zeros(1, 2, *size), align_corners=align_corners)
+    assert torch.equal(warped, image)
+    assert in_bounds.all()
+
+
+@pytest.mark.parametrize("align_corners", [True, False])
+@pytest.mark.parametrize("shift", [(1, 0), (0, -2), (3, 2), (-5, 4)])
+def test_whole_pixel_shift_equals_roll(align_corners, shift, dtype):
+    du, dv = shift
+    H, W = 24, 40
+    image = _image(H=H, W=W, dtype=dtype)
+    flow = torch.zeros(1, 2, H, W, dtype=dtype)
+    flow[:, 0], flow[:, 1] = du, dv
+    warped, in_bounds = warp_backward(image, flow, align_corners=align_corners)
+    # warped(v, u) = image(v + dv, u + du)  <=>  roll by (-dv, -du)
+    rolled = torch.roll(image, shifts=(-dv, -du), dims=(2, 3))
+    interior = (slice(None), slice(None), slice(5, H - 5), slice(5, W - 5))
+    assert torch.equal(warped[interior], rolled[interior])
+    # exactly the pixels whose source is inside the image are valid
+    v, u = torch.meshgrid(torch.arange(H), torch.arange(W), indexing="ij")
+    expect = (u + du >= 0) & (u + du <= W - 1) & (v + dv >= 0) & (v + dv <= H - 1)
+    assert torch.equal(in_bounds[0, 0], expect)
+    assert torch.equal(warped[in_bounds.expand_as(warped)], rolled[in_bounds.expand_as(rolled)])
+
+
+def test_out_of_image_invalid():
+    H, W = 10, 12
+    flow = torch.zeros(1, 2, H, W)
+    flow[0, 0, 2, 3] = -3.01      # u = -0.01: just left of the first pixel centre
+    flow[0, 0, 4, 5] = 6.0        # u = 11 = W-1: on the last pixel centre, still valid
+    flow[0, 0, 4, 6] = 5.02       # u = 11.02
+    flow[0, 1, 7, 1] = -7.5       # v = -0.5
+    flow[0, 1, 8, 8] = 1.0        # v = 9 = H-1: valid
+    _, in_bounds = warp_backward(_image(H=H, W=W), flow)
+    invalid = {(2, 3), (4, 6), (7, 1)}
+    for (r, c) in [(2, 3), (4, 5), (4, 6), (7, 1), (8, 8)]:
+        assert bool(in_bounds[0, 0, r, c]) == ((r, c) not in invalid)
+    assert int((~in_bounds).sum()) == 3
+
+
+def test_matches_grid_sample_reference(dtype):
+    image, flow = _image(B=2, dtype=dtype), _flow(B=2, dtype=dtype)
+    warped, in_bounds = warp_backward(image, flow)
+    ref = _reference(image, flow).to(dtype)
+    tol = {torch.float32: 2e-3, torch.float64: 1e-9}[dtype]
+    torch.testing.assert_close(warped, ref, atol=tol, rtol=0)
+
+
+def test_align_corners_does_not_change_result():
+    image, flow = _image(B=2), _flow(B=2)
+    a = warp_backward(image, flow, align_corners=True)
+    b = warp_backward(image, flow, align_corners=False)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+
+def test_kornia_half_pixel_trap_is_real():
+    """Documents why warp.py normalises by itself: kornia's remap with pixel maps and its
+    default align_corners shifts an identity map by half a pixel (kornia #4504)."""
+    from kornia.geometry.transform import remap
+
+    image = _image(C=1)
+    v, u = torch.meshgrid(torch.arange(24.0), torch.arange(40.0), indexing="ij")
+    trap = remap(image, u[None], v[None])
+    assert (trap - image).abs().max() > 1.0
+    assert torch.equal(warp_backward(image, torch.zeros(1, 2, 24, 40))[0], image)
+
+
+def test_normalize_coordinates():
+    x = torch.tensor([0.0, 4.0, 9.0])
+    torch.testing.assert_close(normalize_coordinates(x, 10, align_corners=True),
+                               torch.tensor([-1.0, -1.0 + 8 / 9, 1.0]))
+    torch.testing.assert_close(normalize_coordinates(x, 10, align_corners=False),
+                               torch.tensor([-0.9, -0.1, 0.9]))
+
+
+def test_nearest_mode():
+    image, flow = _image(), _flow()
+    warped, in_bounds = warp_backward(image, flow, mode="nearest")
+    rounded = torch.round(flow)
+    ref = _reference(image, rounded).float()
+    assert torch.equal(warped[in_bounds.expand_as(warped)], ref[in_bounds.expand_as(ref)])
+
+
+def test_border_padding_only_changes_invalid_pixels():
+    image, flow = _image(), _flow(scale=8.0)
+    zeros, ok = warp_backward(image, flow)
+    border, ok2 = warp_backward(image, flow, padding_mode="border")
+    assert torch.equal(ok, ok2) and not ok.all()
+    m = ok.expand_as(zeros)
+    assert torch.equal(zeros[m], border[m])
+    assert not torch.equal(zeros[~m], border[~m])
+
+
+def test_autocast_bfloat16_keeps_geometry_float32():
+    H, W = 16, 300
+    image = _image(C=1, H=H, W=W)
+    flow = torch.zeros(1, 2, H, W)
+    flow[:, 0] = 0.25
+    with torch.autocast(device_type="cpu", dtype=torch.bfloat16):
+        warped, in_bounds = warp_backward(image, flow)
+        warped_bf, _ = warp_backward(image.bfloat16(), flow.bfloat16())
+    assert warped.dtype == torch.float32 and warped_bf.dtype == torch.bfloat16
+    ref = _reference(image, flow).float()
+    # a bfloat16 coordinate at u ~ 300 would be off by up to 1 px; float32 geometry is exact here
+    torch.testing.assert_close(warped, ref, atol=1e-3, rtol=0)
+    torch.testing.assert_close(warped_bf.float(), ref, atol=2.0, rtol=0.01)
+    assert in_bounds[..., : W - 1].all() and not in_bounds[..., W - 1].any()
+
+
+def test_autocast_backward_finite():
+    image = _image(C=1).requires_grad_()
+    flow = _flow().requires_grad_()
+    with torch.autocast(device_type="cpu", dtype=torch.bfloat16):
+        warped, ok = warp_backward(image, flow)
+        loss = (warped * ok).mean()
+    loss.backward()
+    assert torch.isfinite(image.grad).all() and torch.isfinite(flow.grad).all()
+
+
+# --- gradients ---------------------------------------------------------------------------------
+
+def test_gradcheck():
+    image = _image(B=2, C=2, H=5, W=6, dtype=torch.float64).div(255).requires_grad_()
+    # keep sample points off the integer lattice, where bilinear is not differentiable
+    flow = (_flow(B=2, H=5, W=6, scale=1.3, dtype=torch.float64) + 0.37).requires_grad_()
+    assert torch.autograd.gradcheck(lambda i, f: warp_backward(i, f)[0], (image, flow))
+
+
+def test_gradients_finite_out_of_bounds():
+    image = _image(C=1, dtype=torch.float64).requires_grad_()
+    flow = (_flow(scale=50.0, dtype=torch.float64)).requires_grad_()
+    warped, ok = warp_backward(image, flow)
+    assert not ok.all()
+    warped.sum().backward()
+    assert torch.isfinite(image.grad).all() and torch.isfinite(flow.grad).all()
+
+
+def test_nearest_has_zero_flow_gradient():
+    image = _image(C=1).requires_grad_()
+    flow = _flow().requires_grad_()
+    warp_backward(image, flow, mode="nearest")[0].sum().backward()
+    assert flow.grad is None or torch.count_nonzero(flow.grad) == 0
+    assert image.grad.abs().sum() > 0
