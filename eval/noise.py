@@ -1,0 +1,217 @@
+"""``python -m eval noise``: robustness of the model fit to flow noise, and pose estimation from
+noisy flow (the paper's Fig. "noise robustness" and Fig. "vehicle pose estimation").
+
+1. Noise robustness: Gaussian noise of standard deviation σ (pixels, each component) is added to
+   the ground-truth flow of CVC12-like renders (cvc-simple / cvc-complex × speed ×1 / ×4); the
+   displacement model is fitted inside the road mask; the fitted model flow is compared with the
+   clean ground truth (e_E, e_A) and with the noisy flow it was fitted to.
+2. Pose estimation (:func:`fsof_torch.pose.pose_estimation_experiment`): random displacement
+   and yaw on a virtual road plane, the pose recovered from the noisy model flow alone.
+
+Writes ``noise_robustness.png``, ``pose_errors.png``, ``pose_scatter.png`` and ``noise.json``.
+
+Example::
+
+    python -m eval noise --out runs/noise
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import torch
+
+DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
+DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", type=Path, default=Path("runs/noise"), metavar="DIR",
+                        help="output folder for the PNGs and noise.json (default runs/noise)")
+    parser.add_argument("--json", type=Path, nargs="?", const=None, default=None, metavar="PATH",
+                        help="write the JSON here instead of DIR/noise.json")
+    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                        help="render size of the CVC12-like scenes (default 375 1242; --quick: 96 320)")
+    parser.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
+                        help="noise levels for the fit-robustness curve, px")
+    parser.add_argument("--pose-sigmas", type=float, nargs="+", default=None, metavar="S",
+                        help="noise levels for the pose-estimation curves, px")
+    parser.add_argument("--pose-size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                        help="virtual image size of the pose experiment (default 375 1242; --quick: 120 400)")
+    parser.add_argument("--trials", type=int, default=None, metavar="N",
+                        help="random poses per noise level (default 32; --quick: 3)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scenes, the noise and the poses")
+    parser.add_argument("--quick", action="store_true", help="small and fast: one scenario, few σ, small images")
+    parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def noise_robustness(size, sigmas, scenarios, seed: int, bar=None) -> list[dict]:
+    """Fit errors versus σ; one row per (scenario, speed, σ)."""
+    from fsof_torch.fit import fit_displacement
+    from fsof_torch.metrics import flow_metrics
+    from fsof_torch.scene import render_pair
+
+    rows = []
+    gen = torch.Generator().manual_seed(seed)
+    for scenario, speed in scenarios:
+        pair = render_pair(f"cvc-{scenario}", 0, seed=seed, size=size, dtype=torch.float64, speed_factor=float(speed))
+        flow, valid, road = pair["flow"][None], pair["valid"][None], pair["road"][None]
+        mask = road & valid
+        camera = pair["camera"]
+        for sigma in sigmas:
+            noise = torch.randn(flow.shape, generator=gen, dtype=torch.float64)
+            noisy = flow + sigma * noise
+            # The fit's robust scale follows the noise (1 px floor: its default).
+            fit = fit_displacement(noisy, mask, camera, fit_roll=True, scale=max(1.0, 2.0 * sigma))
+            clean = flow_metrics(fit.flow, flow, mask=road, valid=valid & fit.valid)
+            observed = flow_metrics(fit.flow, noisy, mask=road, valid=valid & fit.valid)
+            rows.append({"scenario": scenario, "speed": f"x{speed}", "sigma": float(sigma),
+                         "e_E": clean["e_E"], "e_A": clean["e_A"], "e_E_vs_noisy": observed["e_E"],
+                         "e_A_vs_noisy": observed["e_A"], "z_d_abs_error_m": abs(float(fit.z_d[0]) - pair["odometry"]["z_d"]),
+                         "success": bool(fit.success.all()), "n_pixels": clean["n_pixels"]})
+            if bar is not None:
+                bar.update(1)
+    return rows
+
+
+def _plot_robustness(rows: list[dict], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    keys = sorted({(r["scenario"], r["speed"]) for r in rows})
+    for scenario, speed in keys:
+        sel = [r for r in rows if r["scenario"] == scenario and r["speed"] == speed]
+        s = [r["sigma"] for r in sel]
+        axes[0].plot(s, [r["e_E"] for r in sel], marker="o", label=f"{scenario} {speed}")
+        axes[1].plot(s, [r["e_A"] for r in sel], marker="o", label=f"{scenario} {speed}")
+    for ax, name in zip(axes, ("e_E of the fitted model vs clean GT (px)", "e_A vs clean GT (rad)")):
+        ax.set_xscale("symlog", linthresh=1 / 64)
+        ax.set_yscale("log")
+        ax.set_xlabel("noise σ (px)")
+        ax.set_title(name)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    s = res.sigmas.tolist()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    axes[0].plot(s, res.translation_error.tolist(), marker="o", label="‖d error‖")
+    axes[0].plot(s, res.x_error.tolist(), marker=".", label="|x_d error|")
+    axes[0].plot(s, res.z_error.tolist(), marker=".", label="|z_d error|")
+    axes[0].axhline(0.07, color="grey", linestyle="--", label="paper bound 0.07 m")
+    axes[0].set_ylabel("mean absolute error (m)")
+    axes[1].plot(s, res.yaw_error_deg.tolist(), marker="o", label="|yaw error|")
+    axes[1].axhline(0.3, color="grey", linestyle="--", label="paper bound 0.3°")
+    axes[1].set_ylabel("mean absolute error (deg)")
+    for ax in axes:
+        ax.set_xscale("symlog", linthresh=0.25)
+        ax.set_yscale("log")
+        ax.set_xlabel("noise σ (px)")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    fig.suptitle(f"pose from noisy flow ({res.settings['trials']} random poses per σ, "
+                 f"{int(res.num_pixels)} road pixels)")
+    fig.tight_layout()
+    fig.savefig(errors_path, dpi=110)
+    plt.close(fig)
+
+    # Per-trial errors against the size of the motion (the paper's "varying displacements, yaw").
+    true = res.true_pose
+    diff = res.estimated_pose - true.unsqueeze(0)
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    d = true[:, :2].norm(dim=-1)
+    yaw = torch.rad2deg(true[:, 2].abs())
+    for k, sigma in enumerate(s):
+        axes[0].scatter(d.tolist(), diff[k, :, :2].norm(dim=-1).tolist(), s=10, label=f"σ={sigma:g}")
+        axes[1].scatter(yaw.tolist(), torch.rad2deg(diff[k, :, 2].abs()).tolist(), s=10, label=f"σ={sigma:g}")
+    axes[0].set_xlabel("‖d‖ (m)")
+    axes[0].set_ylabel("‖d error‖ (m)")
+    axes[1].set_xlabel("|yaw| (deg)")
+    axes[1].set_ylabel("|yaw error| (deg)")
+    for ax in axes:
+        ax.set_yscale("log")
+        ax.grid(True, alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(scatter_path, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from fsof_torch.io import write_json
+    from fsof_torch.pose import pose_estimation_experiment
+
+    from .tables import format_table
+
+    quick = args.quick
+    size = tuple(args.size) if args.size is not None else ((96, 320) if quick else (375, 1242))
+    pose_size = tuple(args.pose_size) if args.pose_size is not None else ((120, 400) if quick else (375, 1242))
+    sigmas = args.sigmas or ([0.0, 1 / 32, 0.5, 2.0] if quick else list(DEFAULT_SIGMAS))
+    pose_sigmas = args.pose_sigmas or ([0.0, 1.0, 4.0] if quick else list(DEFAULT_POSE_SIGMAS))
+    trials = args.trials if args.trials is not None else (3 if quick else 32)
+    for name, values in (("--sigmas", sigmas), ("--pose-sigmas", pose_sigmas)):
+        if any(not (s >= 0) for s in values):
+            print(f"error: {name}: expected values >= 0, got {values}", file=sys.stderr)
+            return 2
+    if trials < 1:
+        print(f"error: --trials: expected at least 1, got {trials}", file=sys.stderr)
+        return 2
+    for name, sz in (("--size", size), ("--pose-size", pose_size)):
+        if min(sz) < 16:
+            print(f"error: {name}: expected H, W >= 16, got {list(sz)}", file=sys.stderr)
+            return 2
+    scenarios = [("complex", 1)] if quick else [("simple", 1), ("simple", 4), ("complex", 1), ("complex", 4)]
+
+    with tqdm(total=len(scenarios) * len(sigmas), desc="noise robustness", unit="fit",
+              disable=args.no_progress) as bar:
+        robust_rows = noise_robustness(size, sigmas, scenarios, args.seed, bar)
+    pose = pose_estimation_experiment(pose_sigmas, trials=trials, size=pose_size, seed=args.seed,
+                                      progress=not args.no_progress)
+
+    print("\nFit of the displacement model to noisy ground-truth flow (errors vs the clean GT)")
+    print(format_table(robust_rows, [("scenario", "scenario", "s"), ("speed", "speed", "s"), ("sigma", "σ px", ".4f"),
+                                     ("e_E", "e_E px", ".2e"), ("e_A", "e_A rad", ".2e"),
+                                     ("e_E_vs_noisy", "e_E vs noisy", ".3f"), ("z_d_abs_error_m", "|z_d err| m", ".2e"),
+                                     ("n_pixels", "pixels", "d")]))
+    pose_rows = pose.rows()
+    print(f"\nPose from noisy flow ({trials} random poses per σ, {int(pose.num_pixels)} road pixels, "
+          f"{pose_size[0]}x{pose_size[1]}); the paper (PSO): < 0.07 m, < 0.3°")
+    print(format_table(pose_rows, [("sigma", "σ px", ".2f"), ("translation_error_m", "‖d err‖ m", ".2e"),
+                                   ("x_error_m", "|x_d err| m", ".2e"), ("z_error_m", "|z_d err| m", ".2e"),
+                                   ("yaw_error_deg", "|yaw err| deg", ".2e"), ("success_rate", "success", ".2f")]))
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    files = {}
+    if not args.no_plots:
+        files["noise_robustness"] = args.out / "noise_robustness.png"
+        files["pose_errors"] = args.out / "pose_errors.png"
+        files["pose_scatter"] = args.out / "pose_scatter.png"
+        _plot_robustness(robust_rows, files["noise_robustness"])
+        _plot_pose(pose, files["pose_errors"], files["pose_scatter"])
+    result = {"settings": {"size": list(size), "pose_size": list(pose_size), "sigmas": sigmas,
+                           "pose_sigmas": pose_sigmas, "trials": trials, "seed": args.seed, "quick": bool(quick),
+                           "pose": pose.settings},
+              "noise_robustness": robust_rows, "pose": pose_rows,
+              "pose_trials": {"true": pose.true_pose, "estimated": pose.estimated_pose},
+              "files": {k: str(v) for k, v in files.items()}}
+    json_path = args.json if args.json is not None else args.out / "noise.json"
+    write_json(json_path, result)
+    print(f"\nwrote {json_path}" + "".join(f", {p}" for p in files.values()))
+    return 0

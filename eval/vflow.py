@@ -1,0 +1,252 @@
+"""``python -m eval vflow``: the V-flow map of a flow field, its fitted eq. 24 curve and the fitted
+F_v map (the paper's Fig. "optical flow modeling in the special case"), and, for a rendered
+preset, the freespace detected from the flow.
+
+Input: a synthetic preset (its ground-truth flow, road mask and camera) or a flow file
+(``.png`` KITTI, ``.flo``, ``.npy``) with an optional road mask file.
+
+Writes ``vflow_map.png`` (the row histogram of F_v with the per-row dominant values and the fitted
+curve), ``fv_observed.png``, ``fv_fitted.png``, ``fv_error.png`` (|observed - fitted| in the mask),
+``freespace.png`` (preset with the displacement model only) and ``vflow.json``.
+
+Example::
+
+    python -m eval vflow --preset cvc-complex --out runs/vflow
+    python -m eval vflow --flow ../shared/data/kitti15_000000/flow_noc_10.png \\
+        --mask ../shared/data/kitti15_000000/road.json --out runs/vflow_kitti
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from pathlib import Path
+
+import torch
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    src = parser.add_mutually_exclusive_group()
+    src.add_argument("--preset", default=None, help="render this scene preset (default cvc-complex)")
+    src.add_argument("--flow", type=Path, default=None, metavar="FILE", help="a flow file (.png KITTI, .flo, .npy)")
+    parser.add_argument("--mask", type=Path, default=None, metavar="FILE",
+                        help="road mask for --flow (PNG or polygon JSON); default: the flow's valid pixels")
+    parser.add_argument("--index", type=int, default=0, help="pair index of the preset (default 0)")
+    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+                        help="render size of the preset (default: the preset's)")
+    parser.add_argument("--model", choices=("displacement", "velocity"), default="displacement",
+                        help="curve of eq. 24 to fit; velocity uses the preset's px/s flow (default displacement)")
+    parser.add_argument("--road-only", action="store_true",
+                        help="preset: build the map from the road pixels only (default: all valid pixels, "
+                             "so obstacles show in the map and the fit must be robust to them)")
+    parser.add_argument("--bins", type=int, default=256, help="histogram bins (default 256)")
+    parser.add_argument("--statistic", choices=("peak", "median"), default="peak",
+                        help="per-row dominant flow (default peak)")
+    parser.add_argument("--inlier-threshold", type=float, default=0.5, metavar="PX",
+                        help="row residual below which a row is an inlier of the curve (default 0.5)")
+    parser.add_argument("--relative-threshold", type=float, default=0.05, metavar="FRAC",
+                        help="relative row threshold: max(PX, FRAC·|F_v|) (default 0.05)")
+    parser.add_argument("--out", type=Path, default=Path("runs/vflow"), metavar="DIR", help="output folder")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+                        help="write the JSON here instead of DIR/vflow.json")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: str) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    H = hist.shape[0]
+    fig, ax = plt.subplots(figsize=(6, 5))
+    lo, hi = float(edges[0]), float(edges[-1])
+    ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
+              extent=(lo, hi, H - 0.5, -0.5), interpolation="nearest")
+    rows = curve.row_support[0] > 0
+    v = torch.arange(H, dtype=torch.float64)
+    inl = curve.row_inliers[0]
+    ax.scatter(curve.row_value[0][rows & ~inl].double().numpy(), v[rows & ~inl].numpy(), s=6, c="cyan",
+               label="dominant F_v, outlier rows")
+    ax.scatter(curve.row_value[0][inl].double().numpy(), v[inl].numpy(), s=6, c="lime",
+               label="dominant F_v, inlier rows")
+    fitted = curve.fitted[0, 0, :, 0].double()
+    defined = curve.fitted_valid[0, 0, :, 0]
+    ax.plot(fitted[defined].numpy(), v[defined].numpy(), color="white", linewidth=1.5,
+            label=f"eq. 24 fit: a={float(curve.a[0]):.3e}, v0={float(curve.v0[0]):.2f}")
+    ax.set_xlim(lo, hi)
+    ax.set_xlabel(f"vertical flow F_v ({unit})")
+    ax.set_ylabel("image row v (px)")
+    ax.set_title("V-flow map (log count per row and bin)")
+    ax.legend(loc="lower right", fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, cmap: str,
+                vmin: float | None = None, vmax: float | None = None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    data = np.ma.masked_array(img.double().numpy(), mask=~valid.numpy())
+    H, W = img.shape
+    fig, ax = plt.subplots(figsize=(min(12.0, 2 + 8 * W / max(H, W)), min(8.0, 1.5 + 8 * H / max(H, W))))
+    im = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
+    fig.colorbar(im, ax=ax, fraction=0.03)
+    ax.set_title(title)
+    ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _plot_freespace(image: torch.Tensor, free: torch.Tensor, road: torch.Tensor, path: Path, iou: float) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rgb = (image.permute(1, 2, 0) / 255.0).clamp(0, 1).double()
+    overlay = rgb.clone()
+    green = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    red = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+    f = free[0].unsqueeze(-1)
+    missed = (road[0] & ~free[0]).unsqueeze(-1)
+    overlay = torch.where(f, 0.5 * overlay + 0.5 * green, overlay)
+    overlay = torch.where(missed, 0.5 * overlay + 0.5 * red, overlay)
+    H, W = free.shape[-2:]
+    fig, ax = plt.subplots(figsize=(10, 10 * H / W + 0.6))
+    ax.imshow(overlay.numpy())
+    ax.set_title(f"freespace from flow (green; red: road missed), IoU with the road {iou:.3f}")
+    ax.set_axis_off()
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from fsof_torch.io import write_json
+    from fsof_torch.vflow import detect_freespace, fit_vflow_curve, vflow_map
+
+    if args.bins < 2:
+        print(f"error: --bins: expected at least 2, got {args.bins}", file=sys.stderr)
+        return 2
+    if not (args.inlier_threshold >= 0 and args.relative_threshold >= 0):
+        print(f"error: --inlier-threshold/--relative-threshold: expected values >= 0, got "
+              f"{args.inlier_threshold}, {args.relative_threshold}", file=sys.stderr)
+        return 2
+    if args.size is not None and min(args.size) < 16:
+        print(f"error: --size: expected H, W >= 16, got {args.size}", file=sys.stderr)
+        return 2
+    steps = ["load", "V-flow map", "curve fit", "plots"]
+    preset = args.preset if args.flow is None else None
+    if args.flow is None and preset is None:
+        preset = "cvc-complex"
+    if preset is not None and args.model == "displacement":
+        steps.insert(3, "freespace")
+    bar = tqdm(total=len(steps), desc="vflow", unit="step", disable=args.no_progress)
+    info: dict = {}
+    pair = camera = road = None
+    if preset is not None:
+        from fsof_torch.scene import PRESETS, render_pair
+
+        if preset not in PRESETS:
+            print(f"error: --preset: unknown preset {preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
+            return 2
+        pair = render_pair(preset, args.index, seed=args.seed, size=tuple(args.size) if args.size else None,
+                           dtype=torch.float64)
+        key = "flow" if args.model == "displacement" else "flow_velocity"
+        flow, valid, road = pair[key][None], pair["valid"][None], pair["road"][None]
+        camera = pair["camera"]
+        mask = valid & road if args.road_only else valid
+        info["source"] = {"preset": preset, "index": args.index, "seed": args.seed, "odometry": pair["odometry"],
+                          "velocity": pair["velocity"], "size": list(flow.shape[-2:])}
+    else:
+        from fsof_torch.io import read_flow, read_road_mask
+
+        if not args.flow.is_file():
+            print(f"error: --flow: no file at {str(args.flow)!r}", file=sys.stderr)
+            return 2
+        flow, valid = read_flow(args.flow)
+        flow, valid = flow[None].double(), valid[None]
+        mask = valid
+        if args.mask is not None:
+            mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
+        info["source"] = {"flow": str(args.flow), "mask": str(args.mask) if args.mask else None,
+                          "size": list(flow.shape[-2:])}
+    bar.update(1)
+    unit = "px" if args.model == "displacement" else "px/s"
+    hist, edges = vflow_map(flow, mask, bins=args.bins)
+    bar.update(1)
+    curve = fit_vflow_curve(flow, mask, model=args.model, statistic=args.statistic, bins=args.bins,
+                            inlier_threshold=args.inlier_threshold, relative_threshold=args.relative_threshold)
+    bar.update(1)
+
+    fv = flow[:, 1:2]
+    in_fit = mask & curve.fitted_valid
+    err = (fv - curve.fitted).abs()
+    on_road = in_fit & road if road is not None else in_fit
+    info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
+                     "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
+                     "inlier_rows": int(curve.row_inliers[0].sum()), "used_rows": int((curve.row_support[0] > 0).sum()),
+                     "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
+                     "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,
+                     "mean_abs_fv_error_road": float(err[on_road].mean()) if on_road.any() else None,
+                     "unit": unit}
+    if camera is not None:
+        name = "z_d_m" if args.model == "displacement" else "speed_mps"
+        truth = pair["odometry"]["z_d"] if args.model == "displacement" else pair["velocity"]["speed"]
+        info["curve"][name] = float(curve.scale(camera)[0])
+        info["curve"][name + "_true"] = float(truth)
+        info["curve"]["horizon_row_true"] = float(camera.horizon_row()[0])
+    files = {"vflow_map": args.out / "vflow_map.png", "fv_observed": args.out / "fv_observed.png",
+             "fv_fitted": args.out / "fv_fitted.png", "fv_error": args.out / "fv_error.png"}
+    if "freespace" in steps:
+        free = detect_freespace(flow, camera, mask=valid, threshold=0.05, relative_threshold=0.02)
+        truth = road & valid
+        inter, union = float((free & truth).sum()), float((free | truth).sum())
+        info["freespace"] = {"iou": inter / max(union, 1.0), "pixels": int(free.sum()), "road_pixels": int(truth.sum()),
+                             "threshold_px": 0.05, "relative_threshold": 0.02}
+        files["freespace"] = args.out / "freespace.png"
+        bar.update(1)
+
+    args.out.mkdir(parents=True, exist_ok=True)
+    _plot_map(hist[0], edges, curve, files["vflow_map"], unit)
+    vmax = float(fv[mask].abs().max()) if mask.any() else 1.0
+    _plot_image(fv[0, 0], mask[0, 0], files["fv_observed"], f"observed F_v ({unit}) in the mask", "viridis", 0.0, vmax)
+    _plot_image(curve.fitted[0, 0], curve.fitted_valid[0, 0], files["fv_fitted"], f"fitted F_v ({unit})",
+                "viridis", 0.0, vmax)
+    _plot_image(err[0, 0], in_fit[0, 0], files["fv_error"], f"|observed - fitted F_v| ({unit})", "inferno", 0.0,
+                max(1.0, float(err[in_fit].quantile(0.95))) if in_fit.any() else 1.0)
+    if "freespace" in steps:
+        _plot_freespace(pair["image1"], free[0], truth[0], files["freespace"], info["freespace"]["iou"])
+    bar.update(1)
+    bar.close()
+
+    c = info["curve"]
+    print(f"\nV-flow curve ({args.model}): a = {c['a']:.6e} 1/{'px' if args.model == 'displacement' else '(px s)'}, "
+          f"v0 = {c['v0']:.3f} px, success {c['success']}, inlier rows {c['inlier_rows']}/{c['used_rows']}")
+    if camera is not None:
+        name = "z_d_m" if args.model == "displacement" else "speed_mps"
+        print(f"  {name}: fitted {c[name]:.4f}, true {c[name + '_true']:.4f}; horizon row: fitted {c['v0']:.3f}, "
+              f"true {c['horizon_row_true']:.3f}")
+    if c["mean_abs_fv_error_road"] is not None:
+        print(f"  mean |F_v - fitted| on the road: {c['mean_abs_fv_error_road']:.4f} {unit}"
+              f" (all mask pixels: {c['mean_abs_fv_error_mask']:.4f})")
+    if "freespace" in info:
+        print(f"  freespace IoU with the road: {info['freespace']['iou']:.4f}")
+    info["files"] = {k: str(v) for k, v in files.items()}
+    json_path = args.json if args.json is not None else args.out / "vflow.json"
+    write_json(json_path, info)
+    print(f"wrote {json_path}" + "".join(f", {p}" for p in files.values()))
+    if not math.isfinite(c["a"]):
+        return 1
+    return 0

@@ -1,0 +1,573 @@
+"""V-flow analysis: the row histogram of the vertical flow, its eq. 24 curve, freespace detection.
+
+The V-flow map is the optical-flow analogue of the V-disparity map: for every image row v, a
+histogram of the vertical flow F_v of the pixels of that row. For straight motion of a level
+camera (paper eq. 24) all road pixels of a row share one vertical flow,
+
+    displacement flow:  F_v(v) = z_d (v - v_0)² / (h f_y - z_d (v - v_0)) = a d² / (1 - a d),
+    velocity flow:      F_v(v) = v_r (v - v_0)² / (h f_y)                 = a d²,
+
+with d = v - v_0 and a = z_d / (h f_y) (displacement, 1/px) or a = v_r / (h f_y) (velocity,
+1/(px s)); so the road draws one curve in the V-flow map, while an obstacle (a surface at
+roughly constant depth) draws a flatter line off it. :func:`fit_vflow_curve` finds the curve
+robustly (RANSAC over rows, then iteratively reweighted Gauss–Newton), and
+:func:`detect_freespace` uses it as the seed of a full model fit
+(:func:`fsof_torch.fit.fit_displacement`) whose agreement with the flow, kept connected to the
+bottom of the image, is the freespace.
+
+Convention: flow (B, 2, H, W) in pixels (or px/s for velocity flow), channel 1 = v (down);
+rows are indexed by the pixel-centre coordinate v = 0 … H-1; masks (B, 1, H, W) bool.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from ._check import check_float_tensor, check_shape, result_dtype
+from .camera import Camera
+
+__all__ = [
+    "VFlowMap",
+    "VFlowCurve",
+    "FreespaceDetection",
+    "vflow_map",
+    "row_dominant_flow",
+    "vflow_curve_model",
+    "fit_vflow_curve",
+    "detect_freespace",
+]
+
+_MODELS = ("displacement", "velocity")
+
+
+class VFlowMap(NamedTuple):
+    """``histogram`` (B, H, bins): per row, the (mask-weighted) count of pixels whose vertical
+    flow falls in each bin; ``edges`` (bins + 1,): the bin edges in pixels (px/s for velocity
+    flow), shared by the batch; bin k holds ``edges[k] <= F_v < edges[k+1]`` (the last bin
+    also holds its upper edge)."""
+
+    histogram: Tensor
+    edges: Tensor
+
+
+def _check_flow_mask(flow: Tensor, mask: Tensor | None) -> tuple[dict[str, int], Tensor]:
+    """Validate ``flow`` (B,2,H,W) and ``mask`` (B,1,H,W) or None; return the usable pixels:
+    inside the mask and with a finite vertical flow (NaN flow is treated as missing)."""
+    check_float_tensor(flow, "flow")
+    dims = check_shape(flow, "flow", ("B", 2, "H", "W"))
+    if mask is None:
+        use = torch.ones_like(flow[:, 1:2], dtype=torch.bool)
+    else:
+        if not isinstance(mask, Tensor):
+            raise TypeError(f"mask: expected a bool tensor of shape (B, 1, H, W), got {type(mask).__name__}")
+        if mask.dtype != torch.bool:
+            raise TypeError(f"mask: expected dtype torch.bool, got {mask.dtype}")
+        check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+        use = mask
+    return dims, use & torch.isfinite(flow[:, 1:2])
+
+
+def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
+              max_flow: float | None = None, min_flow: float | None = None) -> VFlowMap:
+    """The V-flow map: per image row, a histogram of the vertical flow (the analogue of V-disparity).
+
+    Args:
+        flow: (B, 2, H, W) flow in pixels (or px/s); channel 1, the vertical flow, is used.
+        mask: (B, 1, H, W) bool, the pixels to count (default: all). Pixels with a non-finite
+            vertical flow are never counted.
+        bins: number of histogram bins (>= 2).
+        max_flow, min_flow: the histogram range in the flow's unit. Defaults: the largest vertical
+            flow in the mask over the whole batch, and min(0, the smallest one). Flows outside the
+            range are not counted.
+
+    Returns:
+        :class:`VFlowMap` ``(histogram (B, H, bins), edges (bins + 1,))``, histogram in the flow's
+        dtype (pixel counts).
+
+    Example:
+        >>> flow = torch.zeros(1, 2, 4, 5); flow[:, 1] = torch.arange(4.).reshape(4, 1)
+        >>> hist, edges = vflow_map(flow, bins=4, max_flow=4.0)
+        >>> hist[0].argmax(-1).tolist()
+        [0, 1, 2, 3]
+    """
+    dims, use = _check_flow_mask(flow, mask)
+    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 2:
+        raise ValueError(f"bins: expected an integer >= 2, got {bins!r}")
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    dtype = result_dtype(flow)
+    fv = flow[:, 1].to(dtype)
+    use = use[:, 0]
+    lo, hi = _histogram_range(fv, use, min_flow, max_flow)
+    steps = torch.arange(bins + 1, dtype=dtype, device=flow.device) / bins
+    edges = lo + (hi - lo) * steps
+    inside = use & (fv >= lo) & (fv <= hi)
+    safe = torch.where(inside, fv, lo)
+    idx = ((safe - lo) / (hi - lo) * bins).floor().long().clamp_(0, bins - 1)
+    rows = torch.arange(B * H, device=flow.device).reshape(B, H, 1)
+    flat = (rows * bins + idx).reshape(-1)
+    hist = torch.zeros(B * H * bins, dtype=dtype, device=flow.device)
+    hist.scatter_add_(0, flat, inside.to(dtype).reshape(-1))
+    return VFlowMap(hist.reshape(B, H, bins), edges)
+
+
+def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
+                     max_flow: float | None) -> tuple[Tensor, Tensor]:
+    """(lo, hi) as 0-d tensors; defaults from the data in the mask."""
+    for name, value in (("min_flow", min_flow), ("max_flow", max_flow)):
+        if value is not None and not (isinstance(value, (int, float)) and abs(float(value)) < float("inf")):
+            raise ValueError(f"{name}: expected a finite number or None, got {value!r}")
+    zero = fv.new_zeros(())
+    if max_flow is None:
+        hi = torch.where(use, fv, torch.full_like(fv, -float("inf"))).amax() if fv.numel() else zero
+        hi = torch.where(torch.isfinite(hi), hi, zero)
+    else:
+        hi = fv.new_tensor(float(max_flow))
+    if min_flow is None:
+        lo = torch.where(use, fv, torch.full_like(fv, float("inf"))).amin() if fv.numel() else zero
+        lo = torch.minimum(torch.where(torch.isfinite(lo), lo, zero), zero)
+    else:
+        lo = fv.new_tensor(float(min_flow))
+    if min_flow is not None and max_flow is not None and not float(max_flow) > float(min_flow):
+        raise ValueError(f"max_flow: expected > min_flow, got max_flow={max_flow!r}, min_flow={min_flow!r}")
+    # An empty or constant map still needs a non-empty range.
+    hi = torch.where(hi > lo, hi, lo + 1.0)
+    return lo, hi
+
+
+def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: str = "peak",
+                      bins: int = 128, max_flow: float | None = None,
+                      min_flow: float | None = None) -> tuple[Tensor, Tensor]:
+    """The dominant vertical flow of every row: the V-flow map's peak, or the row median.
+
+    ``statistic="peak"``: the histogram's highest bin, refined to the mean of the flows falling
+    in that bin and its two neighbours (so the value is not quantised to the bin width);
+    the support is the number of those pixels. ``statistic="median"``: the median of the row's
+    vertical flows in the mask; the support is the row's pixel count.
+
+    Returns:
+        ``value`` (B, H) in the flow's unit (0 where a row has no pixel) and ``support`` (B, H),
+        the number of pixels behind each value (0: no value).
+    """
+    if statistic not in ("peak", "median"):
+        raise ValueError(f"statistic: expected 'peak' or 'median', got {statistic!r}")
+    dims, use = _check_flow_mask(flow, mask)
+    dtype = result_dtype(flow)
+    fv = flow[:, 1].to(dtype)
+    use = use[:, 0]
+    if statistic == "median":
+        nan = torch.full_like(fv, float("nan"))
+        value = torch.nanmedian(torch.where(use, fv, nan), dim=-1).values
+        support = use.to(dtype).sum(-1)
+        return torch.where(support > 0, value, torch.zeros_like(value)), support
+    hist, edges = vflow_map(flow, use.unsqueeze(1), bins=bins, max_flow=max_flow, min_flow=min_flow)
+    peak = hist.argmax(-1, keepdim=True)  # (B, H, 1)
+    lo, hi = edges[0], edges[-1]
+    idx = ((fv - lo) / (hi - lo) * bins).floor().clamp(-1, bins)
+    idx = torch.where(torch.isfinite(idx), idx, torch.full_like(idx, -10.0))
+    near = use & (fv >= lo) & (fv <= hi) & ((idx - peak.to(dtype)).abs() <= 1)
+    support = near.to(dtype).sum(-1)
+    total = torch.where(near, fv, torch.zeros_like(fv)).sum(-1)
+    value = total / support.clamp_min(1)
+    return value, support
+
+
+def vflow_curve_model(v: Tensor, a: Tensor, v0: Tensor, model: str = "displacement") -> Tensor:
+    """The eq. 24 curve in the fitted parameterisation, broadcasting like tensor arithmetic.
+
+    ``displacement``: F_v = a d² / (1 - a d); ``velocity``: F_v = a d², with d = v - v0.
+    Where the curve is undefined (d <= 0: at or above the horizon; 1 - a d <= 0: the road point
+    passes behind the camera) the value is 0.
+    """
+    if model not in _MODELS:
+        raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
+    return _curve(v, a, v0, model)[0]
+
+
+def _curve(v: Tensor, a: Tensor, v0: Tensor, model: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Curve value, ∂/∂a, ∂/∂v0 and the definedness mask."""
+    d = v - v0
+    if model == "velocity":
+        ok = d > 0
+        f, da, dv0 = a * d * d, d * d, -2.0 * a * d
+    else:
+        q = 1.0 - a * d
+        ok = (d > 0) & (q > 0)
+        qs = torch.where(ok, q, torch.ones_like(q))
+        f = a * d * d / qs
+        da = d * d / (qs * qs)
+        dv0 = -a * d * (2.0 - a * d) / (qs * qs)
+    z = torch.zeros_like(f)
+    return torch.where(ok, f, z), torch.where(ok, da, z), torch.where(ok, dv0, z), ok
+
+
+@dataclass
+class VFlowCurve:
+    """The fitted eq. 24 curve of a batch of flows.
+
+    Attributes:
+        model: ``"displacement"`` or ``"velocity"``.
+        a: (B,) curvature parameter: z_d / (h f_y) in 1/px (displacement) or v_r / (h f_y) in
+            1/(px·s) (velocity).
+        v0: (B,) the row of the horizon in pixels (the curve's zero).
+        row_value: (B, H) the dominant vertical flow of each row that was fitted.
+        row_support: (B, H) the pixel count behind each row value (0: the row was unused).
+        row_inliers: (B, H) bool, rows that agree with the curve.
+        fitted: (B, 1, H, W) the fitted F_v map (the curve evaluated on every row; 0 where
+            undefined).
+        fitted_valid: (B, 1, H, W) bool, where the curve is defined (below v0).
+        residual: (B,) mean absolute row residual over the inlier rows (flow unit).
+        success: (B,) bool: finite parameters from enough inlier rows.
+    """
+
+    model: str
+    a: Tensor
+    v0: Tensor
+    row_value: Tensor
+    row_support: Tensor
+    row_inliers: Tensor
+    fitted: Tensor
+    fitted_valid: Tensor
+    residual: Tensor
+    success: Tensor
+
+    def scale(self, camera: Camera) -> Tensor:
+        """z_d in metres (displacement) or v_r in m/s (velocity) under the camera's h and f_y: a·h·f_y, (B,)."""
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+        return self.a * (camera.height * camera.fy).to(self.a)
+
+
+def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "displacement",
+                    statistic: str = "peak", bins: int = 256, max_flow: float | None = None,
+                    min_row_pixels: int = 3, inlier_threshold: float = 0.5,
+                    relative_threshold: float = 0.05, hypotheses: int = 256,
+                    iterations: int = 20, min_inlier_rows: int = 5, seed: int = 0) -> VFlowCurve:
+    """Robust fit of the eq. 24 curve to the per-row dominant vertical flow.
+
+    Each row contributes one value (:func:`row_dominant_flow`: the V-flow map's peak or the row
+    median). Obstacles and mask errors corrupt whole rows, so the fit is robust over rows:
+    RANSAC on 3-row samples of the curve's linearised form (displacement:
+    ``F = p1 (v² + F v) - p2 (2v + F) + p3``; velocity: ``F = p1 v² + p2 v + p3``; then a = p1,
+    v0 = p2/p1 resp. -p2/(2 p1)), scored by the support-weighted count of rows within
+    ``max(inlier_threshold, relative_threshold·|F|)`` of the exact curve, then damped
+    Gauss–Newton (float64) on (a, v0) with Tukey weights over the rows.
+
+    Args:
+        flow: (B, 2, H, W) displacement flow in pixels, or velocity flow in px/s.
+        mask: (B, 1, H, W) bool, the pixels to use (default all; non-finite flow is skipped).
+        model: ``"displacement"`` (rational curve) or ``"velocity"`` (quadratic).
+        statistic: ``"peak"`` or ``"median"`` (see :func:`row_dominant_flow`).
+        bins, max_flow: V-flow histogram options for ``statistic="peak"``.
+        min_row_pixels: rows with less support are not used.
+        inlier_threshold, relative_threshold: a row is an inlier when its residual is below
+            ``max(inlier_threshold, relative_threshold·|F|)`` (flow unit).
+        hypotheses: number of RANSAC samples per frame.
+        iterations: Gauss–Newton iterations.
+        min_inlier_rows: fewer inlier rows mark the frame as failed.
+        seed: seeds the RANSAC sampling (same call, same result).
+
+    Returns:
+        :class:`VFlowCurve`; frames that could not be fitted have ``success`` False and a = 0.
+
+    Example:
+        >>> from fsof_torch.flow_model import displacement_flow
+        >>> cam = Camera(torch.tensor([[300., 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64), 1.5)
+        >>> flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (64, 160))
+        >>> curve = fit_vflow_curve(flow, valid)
+        >>> round(float(curve.scale(cam)), 6), round(float(curve.v0), 6)
+        (1.0, 20.0)
+    """
+    if model not in _MODELS:
+        raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
+    for name, value, low in (("hypotheses", hypotheses, 1), ("iterations", iterations, 0),
+                             ("min_row_pixels", min_row_pixels, 1), ("min_inlier_rows", min_inlier_rows, 3)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
+        if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
+            raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    dims, _ = _check_flow_mask(flow, mask)
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    out_dtype = result_dtype(flow)
+    value, support = row_dominant_flow(flow, mask, statistic=statistic, bins=bins, max_flow=max_flow)
+    y = value.double()
+    n = support.double()
+    usable = n >= min_row_pixels
+    v = torch.arange(H, dtype=torch.float64, device=flow.device).expand(B, H)
+    thr = torch.clamp(relative_threshold * y.abs(), min=float(inlier_threshold))
+
+    a, v0 = _ransac_rows(v, y, n, usable, thr, model, hypotheses, seed)
+    inl = usable
+    for _ in range(2):  # refine, re-select the inliers, refine again
+        f = _curve(v, a.unsqueeze(-1), v0.unsqueeze(-1), model)[0]
+        inl = usable & ((y - f).abs() <= thr)
+        a, v0 = _gauss_newton_rows(v, y, inl, thr, a, v0, model, iterations)
+    f = _curve(v, a.unsqueeze(-1), v0.unsqueeze(-1), model)[0]
+    inl = usable & ((y - f).abs() <= thr)
+    n_inl = inl.sum(-1)
+    residual = torch.where(inl, (y - f).abs(), torch.zeros_like(y)).sum(-1) / n_inl.clamp_min(1)
+    success = (n_inl >= min_inlier_rows) & torch.isfinite(a) & torch.isfinite(v0)
+    a = torch.where(success, a, torch.zeros_like(a))
+    v0 = torch.where(success, v0, torch.zeros_like(v0))
+    fitted, _, _, ok = _curve(v, a.unsqueeze(-1), v0.unsqueeze(-1), model)
+    ok = ok & success.unsqueeze(-1)
+    fitted = fitted.to(out_dtype).reshape(B, 1, H, 1).expand(B, 1, H, W)
+    ok = ok.reshape(B, 1, H, 1).expand(B, 1, H, W)
+    return VFlowCurve(model=model, a=a.to(out_dtype), v0=v0.to(out_dtype), row_value=value,
+                      row_support=support, row_inliers=inl, fitted=fitted, fitted_valid=ok,
+                      residual=residual.to(out_dtype), success=success)
+
+
+def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, model: str,
+                 hypotheses: int, seed: int) -> tuple[Tensor, Tensor]:
+    """Best (a, v0) per frame over 3-row samples of the linearised curve, (B,) each."""
+    B, H = y.shape
+    gen = torch.Generator(device=y.device).manual_seed(int(seed))
+    prob = usable.double() + 1e-12  # an all-unusable frame still samples (and then fails)
+    idx = torch.multinomial(prob, 3 * hypotheses, replacement=True, generator=gen).reshape(B, hypotheses, 3)
+    vs, ys = v.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3), y.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3)
+    if model == "velocity":
+        A = torch.stack([vs * vs, vs, torch.ones_like(vs)], dim=-1)
+    else:
+        A = torch.stack([vs * vs + ys * vs, -(2 * vs + ys), torch.ones_like(vs)], dim=-1)
+    sol, info = torch.linalg.solve_ex(A, ys.unsqueeze(-1))
+    p = sol.squeeze(-1)
+    a = p[..., 0]
+    a_safe = torch.where(a != 0, a, torch.ones_like(a))
+    v0 = -p[..., 1] / (2 * a_safe) if model == "velocity" else p[..., 1] / a_safe
+    good = (info == 0) & torch.isfinite(a) & torch.isfinite(v0) & (a != 0)
+    f = _curve(v.unsqueeze(1), a.unsqueeze(-1), v0.unsqueeze(-1), model)[0]  # (B, S, H)
+    inl = usable.unsqueeze(1) & ((y.unsqueeze(1) - f).abs() <= thr.unsqueeze(1))
+    score = torch.where(inl, n.unsqueeze(1), torch.zeros_like(f)).sum(-1)
+    score = torch.where(good, score, torch.full_like(score, -1.0))
+    best = score.argmax(-1, keepdim=True)
+    a_best = a.gather(1, best).squeeze(1)
+    v0_best = v0.gather(1, best).squeeze(1)
+    zero = torch.zeros_like(a_best)
+    return torch.where(torch.isfinite(a_best), a_best, zero), torch.where(torch.isfinite(v0_best), v0_best, zero)
+
+
+def _gauss_newton_rows(v: Tensor, y: Tensor, rows: Tensor, thr: Tensor, a: Tensor, v0: Tensor,
+                       model: str, iterations: int) -> tuple[Tensor, Tensor]:
+    """Levenberg–Marquardt on (a, v0) with Tukey weights (scale ``2·thr``) over the given rows."""
+    lam = torch.full_like(a, 1e-3)
+
+    def cost_and_terms(a_, v0_):
+        f, da, dv0, _ = _curve(v, a_.unsqueeze(-1), v0_.unsqueeze(-1), model)
+        r = y - f
+        c = 2.0 * thr
+        u = (r / c).clamp(-1, 1)
+        w = torch.where(rows & (r.abs() < c), (1 - u * u) ** 2, torch.zeros_like(r))
+        rho = torch.where(rows, c * c / 6 * (1 - (1 - u * u) ** 3), torch.zeros_like(r))
+        return rho.sum(-1), r, w, da, dv0
+
+    cost, r, w, da, dv0 = cost_and_terms(a, v0)
+    for _ in range(iterations):
+        J = torch.stack([da, dv0], dim=-1)  # (B, H, 2)
+        JtW = J.transpose(1, 2) * w.unsqueeze(1)
+        N = JtW @ J
+        g = (JtW @ r.unsqueeze(-1)).squeeze(-1)
+        diag = torch.diagonal(N, dim1=-2, dim2=-1)
+        Nd = N + torch.diag_embed(lam.unsqueeze(-1) * diag + 1e-300)
+        step, info = torch.linalg.solve_ex(Nd, g.unsqueeze(-1))
+        step = torch.where((info == 0).unsqueeze(-1), step.squeeze(-1), torch.zeros_like(g))
+        step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
+        a_new, v0_new = a + step[:, 0], v0 + step[:, 1]
+        cost_new, r_new, w_new, da_new, dv0_new = cost_and_terms(a_new, v0_new)
+        better = cost_new <= cost
+        a, v0 = torch.where(better, a_new, a), torch.where(better, v0_new, v0)
+        cost = torch.where(better, cost_new, cost)
+        b = better.unsqueeze(-1)
+        r, w = torch.where(b, r_new, r), torch.where(b, w_new, w)
+        da, dv0 = torch.where(b, da_new, da), torch.where(b, dv0_new, dv0)
+        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-12, 1e12)
+    return a, v0
+
+
+# -- freespace detection -------------------------------------------------------------------------
+
+@dataclass
+class FreespaceDetection:
+    """Everything :func:`detect_freespace` computed on the way (``return_details=True``).
+
+    Attributes:
+        freespace: (B, 1, H, W) bool, the result.
+        agreement: (B, 1, H, W) bool, pixels whose flow agrees with the fitted model (before the
+            connectivity and hole filling).
+        seed: (B, 1, H, W) bool, the pixels on the V-flow curve that seeded the model fit.
+        curve: the :class:`VFlowCurve` of the seed.
+        fit: the ``FitResult`` of :func:`fsof_torch.fit.fit_displacement` on the seed.
+        success: (B,) bool, frames where both fits succeeded (the others get an empty freespace).
+    """
+
+    freespace: Tensor
+    agreement: Tensor
+    seed: Tensor
+    curve: VFlowCurve
+    fit: object
+    success: Tensor
+
+
+def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None,
+                     threshold: float = 0.25, relative_threshold: float = 0.03,
+                     seed_threshold: float = 1.0, seed_relative_threshold: float = 0.1,
+                     fit_roll: bool = True, fit_pitch: bool = False, bottom_rows: int = 1,
+                     close_kernel: int = 3, max_hole_fraction: float = 0.002,
+                     refits: int = 1, curve_options: dict | None = None,
+                     fit_options: dict | None = None, return_details: bool = False,
+                     ) -> Tensor | FreespaceDetection:
+    """Freespace: the pixels whose displacement flow agrees with the fitted road model.
+
+    Steps, per frame:
+
+    1. V-flow seed: :func:`fit_vflow_curve` (displacement model) on the flow in ``mask``; the seed
+       is the pixels whose vertical flow lies within ``max(seed_threshold,
+       seed_relative_threshold·|F_v|)`` of the curve.
+    2. Full model: :func:`fsof_torch.fit.fit_displacement` on the seed (x_d, z_d, yaw, and roll /
+       pitch if asked), which is robust to the seed's remaining outliers.
+    3. Agreement: ``‖F - F_model‖ <= max(threshold, relative_threshold·‖F_model‖)`` where the
+       model is defined; then ``refits`` times: refit on the agreeing pixels (started from the
+       previous fit) and test again.
+    4. Connectivity: keep the 8-connected components of the agreement that touch the lowest
+       ``bottom_rows`` rows holding a usable pixel (ground-truth validity often drops the last
+       rows, whose flow leaves the image) (OpenCV ``cv2.connectedComponents`` on the CPU: exact and fast,
+       where kornia's iterative ``connected_components`` needs as many passes as the longest
+       path); then a morphological closing with a ``close_kernel`` square (kornia; 0 or 1: none)
+       and filling of enclosed holes smaller than ``max_hole_fraction`` of the image.
+
+    Not differentiable (a segmentation). Frames whose fits fail get an empty freespace.
+    Limitation: the V-flow seed takes the dominant plane of each row; where a parallel plane
+    (pavement) covers more of the rows than the road does, the fit locks onto it.
+
+    Args:
+        flow: (B, 2, H, W) displacement flow in pixels (frame t to t+1).
+        camera: intrinsics and mounting at the flow's resolution (batch 1 or B); its roll and
+            pitch are the starting point of the model fit.
+        mask: (B, 1, H, W) bool, pixels that may be freespace (default all; non-finite flow never is).
+        threshold, relative_threshold: the agreement test of step 3 (pixels, fraction); set them
+            to the flow's noise: a parallel surface a few centimetres above the road (a pavement
+            behind a 12 cm kerb seen from 1.5 m) differs from the road's flow by ~8 %, so
+            ground-truth flow separates them with ``threshold=0.05, relative_threshold=0.02``,
+            while an estimated flow needs thresholds of its own error (0.5–1 px). ``threshold``
+            is also the robust scale of the model fit unless ``fit_options`` sets ``scale``.
+        seed_threshold, seed_relative_threshold: the seed test of step 1.
+        fit_roll, fit_pitch: passed to ``fit_displacement``.
+        bottom_rows: the number of lowest usable rows a component must touch to be kept.
+        close_kernel: side of the closing's structuring element in pixels.
+        max_hole_fraction: enclosed holes up to this fraction of H·W are filled.
+        refits: number of refits on the agreeing pixels (step 3).
+        curve_options: extra keyword arguments for :func:`fit_vflow_curve`.
+        fit_options: extra keyword arguments for ``fit_displacement`` (e.g. ``scale``, ``max_points``).
+        return_details: return a :class:`FreespaceDetection` instead of the mask alone.
+
+    Returns:
+        (B, 1, H, W) bool freespace, or a :class:`FreespaceDetection`.
+    """
+    from .fit import fit_displacement  # the fitting module imports nothing from here
+
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    dims, use = _check_flow_mask(flow, mask)
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    if camera.batch_size not in (1, B):
+        raise ValueError(f"camera: expected batch 1 or {B} (from flow), got {camera.batch_size}")
+    for name, value in (("threshold", threshold), ("relative_threshold", relative_threshold),
+                        ("seed_threshold", seed_threshold),
+                        ("seed_relative_threshold", seed_relative_threshold),
+                        ("max_hole_fraction", max_hole_fraction)):
+        if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
+            raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    for name, value, low in (("bottom_rows", bottom_rows, 1), ("close_kernel", close_kernel, 0),
+                             ("refits", refits, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+            raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    use = use & torch.isfinite(flow).all(dim=1, keepdim=True)
+    flow_safe = torch.where(use, flow, torch.zeros_like(flow))
+
+    curve = fit_vflow_curve(flow_safe, use, model="displacement", **(curve_options or {}))
+    fv = flow_safe[:, 1:2].to(curve.fitted.dtype)
+    seed_tol = torch.clamp(seed_relative_threshold * curve.fitted.abs(), min=float(seed_threshold))
+    seed = use & curve.fitted_valid & ((fv - curve.fitted).abs() <= seed_tol)
+
+    camera = camera.expand(B) if camera.batch_size != B else camera
+    # The fit's robust scale is the same statement about the flow's noise as the threshold.
+    fit_kw = dict(fit_roll=fit_roll, fit_pitch=fit_pitch, scale=max(float(threshold), 1e-3))
+    fit_kw.update(fit_options or {})
+    fit = fit_displacement(flow_safe, seed, camera, **fit_kw)
+    agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
+    for _ in range(refits):
+        # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
+        # tell them from road; refitting on the agreeing pixels removes their pull.
+        enough = agreement.flatten(1).sum(-1) >= 3
+        retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, seed)
+        fit = fit_displacement(flow_safe, retry, camera, init=fit, **fit_kw)
+        agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
+
+    freespace = _keep_bottom_connected(agreement, use, bottom_rows)
+    if close_kernel > 1:
+        import kornia
+
+        kernel = torch.ones(close_kernel, close_kernel, device=flow.device)
+        closed = kornia.morphology.closing(freespace.float(), kernel) > 0.5
+        # Closing must not grow freespace over the invalid (masked-out) pixels.
+        freespace = closed & use & fit.valid
+    if max_hole_fraction > 0:
+        freespace = _fill_small_holes(freespace, int(max_hole_fraction * H * W))
+    freespace = freespace & success.reshape(B, 1, 1, 1)
+    if return_details:
+        return FreespaceDetection(freespace=freespace, agreement=agreement, seed=seed,
+                                  curve=curve, fit=fit, success=success)
+    return freespace
+
+
+def _agreement(flow: Tensor, use: Tensor, fit, curve_success: Tensor, threshold: float,
+               relative_threshold: float) -> tuple[Tensor, Tensor]:
+    """Pixels whose flow is within max(threshold, relative·‖model‖) of the fitted model flow."""
+    B = flow.shape[0]
+    model_flow = fit.flow.to(flow.dtype)
+    err = (flow - model_flow).norm(dim=1, keepdim=True)
+    tol = torch.clamp(relative_threshold * model_flow.norm(dim=1, keepdim=True), min=float(threshold))
+    success = curve_success & fit.success.to(curve_success.device)
+    return use & fit.valid & (err <= tol) & success.reshape(B, 1, 1, 1), success
+
+
+def _keep_bottom_connected(mask: Tensor, use: Tensor, bottom_rows: int) -> Tensor:
+    """Components (8-connected) of a (B,1,H,W) bool mask touching the bottom rows of the usable
+    region ``use`` (OpenCV, CPU). Ground-truth validity often drops the last rows (their flow
+    leaves the image), so "bottom" is the lowest rows that hold a usable pixel."""
+    import cv2
+    import numpy as np
+
+    out = []
+    rows_used = use[:, 0].any(dim=-1).cpu().numpy()  # (B, H)
+    for m, rows in zip(mask[:, 0].cpu().numpy().astype(np.uint8), rows_used):
+        count, labels = cv2.connectedComponents(m, connectivity=8)
+        keep = np.zeros(count, dtype=bool)
+        last = int(np.flatnonzero(rows)[-1]) + 1 if rows.any() else m.shape[0]
+        keep[np.unique(labels[max(0, last - bottom_rows):last])] = True
+        keep[0] = False  # label 0 is the background
+        out.append(keep[labels])
+    return torch.from_numpy(np.stack(out)).unsqueeze(1).to(mask.device)
+
+
+def _fill_small_holes(mask: Tensor, max_area: int) -> Tensor:
+    """Fill the background components of a (B,1,H,W) bool mask that do not touch the image
+    border and have at most ``max_area`` pixels (4-connected background)."""
+    import cv2
+    import numpy as np
+
+    if max_area <= 0:
+        return mask
+    out = []
+    for m in mask[:, 0].cpu().numpy():
+        count, labels, stats, _ = cv2.connectedComponentsWithStats((~m).astype(np.uint8), connectivity=4)
+        border = np.unique(np.concatenate([labels[0], labels[-1], labels[:, 0], labels[:, -1]]))
+        fill = stats[:, cv2.CC_STAT_AREA] <= max_area
+        fill[border] = False
+        fill[0] = False  # label 0 is the foreground (freespace) itself
+        out.append(m | fill[labels])
+    return torch.from_numpy(np.stack(out)).unsqueeze(1).to(mask.device)

@@ -1,0 +1,37 @@
+"""Smoke test of ``python -m eval noise`` (in-process, tiny renders)."""
+
+from __future__ import annotations
+
+import json
+
+from eval.__main__ import main
+
+
+def test_noise_quick(tmp_path, capsys):
+    out = tmp_path / "noise"
+    rc = main(["noise", "--quick", "--size", "48", "160", "--pose-size", "60", "200", "--sigmas", "0", "0.5",
+               "--pose-sigmas", "0", "1", "--trials", "2", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    data = json.loads((out / "noise.json").read_text())
+    assert {"settings", "noise_robustness", "pose", "pose_trials", "files"} <= set(data)
+    assert [r["sigma"] for r in data["noise_robustness"]] == [0.0, 0.5]
+    assert data["noise_robustness"][0]["e_E"] < 1e-6
+    assert {"sigma", "translation_error_m", "yaw_error_deg"} <= set(data["pose"][0])
+    for name in ("noise_robustness.png", "pose_errors.png", "pose_scatter.png"):
+        assert (out / name).stat().st_size > 1000
+    assert "Pose from noisy flow" in capsys.readouterr().out
+
+
+def test_noise_json_path_no_plots(tmp_path):
+    path = tmp_path / "n.json"
+    rc = main(["noise", "--quick", "--size", "48", "160", "--pose-size", "60", "200", "--sigmas", "0.1",
+               "--pose-sigmas", "0.5", "--trials", "1", "--out", str(tmp_path / "o"), "--json", str(path),
+               "--no-plots", "--no-progress"])
+    assert rc == 0
+    data = json.loads(path.read_text())
+    assert data["files"] == {} and not list((tmp_path / "o").glob("*.png"))
+
+
+def test_noise_bad_arguments(tmp_path, capsys):
+    assert main(["noise", "--sigmas", "-1", "--out", str(tmp_path)]) == 2
+    assert "--sigmas" in capsys.readouterr().err

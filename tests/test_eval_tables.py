@@ -1,0 +1,57 @@
+"""Smoke tests of ``python -m eval tables`` (in-process, tiny renders)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from eval.__main__ import main
+from eval.tables import PAPER_CARLA, PAPER_CVC12, format_table, markdown_table
+
+
+def test_tables_quick(tmp_path, capsys):
+    out = tmp_path / "tables"
+    rc = main(["tables", "--quick", "--size", "48", "160", "--pairs", "1", "--no-kitti", "--out", str(out),
+               "--no-progress"])
+    assert rc == 0
+    data = json.loads((out / "tables.json").read_text())
+    assert set(data) == {"settings", "cvc12", "carla"}
+    assert len(data["cvc12"]) == 4 and len(data["carla"]) == 6
+    for row in data["cvc12"]:
+        assert {"scenario", "speed", "e_A", "e_E", "e_U", "e_V", "n_pixels", "paper_e_A", "paper_e_E"} <= set(row)
+        assert row["n_pixels"] > 0 and row["e_E"] < 0.01  # exact planes: the fit reproduces the flow
+    for row in data["carla"]:
+        assert {"direction", "roll_deg", "e_A", "e_E", "roll_abs_error_deg", "paper_e_E"} <= set(row)
+        assert row["roll_abs_error_deg"] < 0.01
+    assert (out / "tables.md").read_text().startswith("# Freespace model")
+    text = capsys.readouterr().out
+    assert "paper e_E" in text and "CVC12-like" in text and "CARLA-like" in text
+
+
+def test_tables_kitti_json_path(tmp_path, shared_data):
+    path = tmp_path / "k.json"
+    rc = main(["tables", "--only", "kitti", "--kitti", str(shared_data / "kitti15_000000"),
+               "--out", str(tmp_path / "o"), "--json", str(path), "--no-progress"])
+    assert rc == 0
+    data = json.loads(path.read_text())
+    assert [r["model"] for r in data["kitti"]] == ["paper model", "with pitch"]
+    paper, pitch = data["kitti"]
+    assert paper["e_E"] <= 0.40 and pitch["e_E"] <= paper["e_E"] + 1e-9
+    assert {"e_A", "e_U", "e_V", "n_pixels", "paper_straight"} <= set(paper)
+
+
+def test_tables_bad_arguments(tmp_path, capsys):
+    assert main(["tables", "--pairs", "0", "--out", str(tmp_path)]) == 2
+    assert "--pairs" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main(["tables", "--only", "nope"])
+
+
+def test_paper_figures_and_formatting():
+    assert PAPER_CVC12[("complex", 4)] == (0.030, 0.244)
+    assert PAPER_CARLA[("turning", -10)] == (0.037, 1.325)
+    rows = [{"a": "x", "b": 1.23456}, {"a": "yy", "b": None}]
+    cols = [("a", "name", "s"), ("b", "value", ".2f")]
+    assert format_table(rows, cols).splitlines()[2].split() == ["x", "1.23"]
+    assert markdown_table(rows, cols).splitlines()[3] == "| yy | - |"

@@ -1,0 +1,87 @@
+"""The pose-from-noisy-flow experiment."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.pose import PoseEstimationResult, default_pose_camera, pose_estimation_experiment
+
+SMALL = (120, 400)
+
+
+def test_smoke():
+    res = pose_estimation_experiment([0.0, 0.5], trials=3, size=SMALL)
+    assert isinstance(res, PoseEstimationResult)
+    assert res.translation_error.shape == (2,) and res.yaw_error_deg.shape == (2,)
+    assert res.true_pose.shape == (3, 3) and res.estimated_pose.shape == (2, 3, 3)
+    rows = res.rows()
+    assert [r["sigma"] for r in rows] == [0.0, 0.5]
+    assert set(rows[0]) == {"sigma", "translation_error_m", "x_error_m", "z_error_m", "yaw_error_deg", "success_rate"}
+    assert res.num_pixels > 1000 and res.settings["trials"] == 3
+
+
+def test_noise_free_is_exact():
+    res = pose_estimation_experiment([0.0], trials=4, size=SMALL, dtype=torch.float64)
+    assert float(res.translation_error[0]) < 1e-6
+    assert float(res.yaw_error_deg[0]) < 1e-5
+    assert float(res.success_rate[0]) == 1.0
+
+
+def test_sigma_one_pixel_meets_the_target():
+    """At σ = 1 px: mean absolute errors below 0.01 m and 0.05° (the paper: < 0.07 m, 0.3°)."""
+    res = pose_estimation_experiment([1.0], trials=8, size=(188, 621))
+    assert float(res.translation_error[0]) < 0.01
+    assert float(res.yaw_error_deg[0]) < 0.05
+    assert float(res.success_rate[0]) == 1.0
+
+
+def test_deterministic_and_seeded():
+    a = pose_estimation_experiment([1.0], trials=2, size=SMALL, seed=3)
+    b = pose_estimation_experiment([1.0], trials=2, size=SMALL, seed=3)
+    c = pose_estimation_experiment([1.0], trials=2, size=SMALL, seed=4)
+    assert torch.equal(a.estimated_pose, b.estimated_pose)
+    assert not torch.equal(a.true_pose, c.true_pose)
+
+
+def test_poses_in_range_and_error_grows_with_noise():
+    res = pose_estimation_experiment([0.5, 2.0], trials=4, size=SMALL, z_range=(1.0, 2.0),
+                                     x_range=(-0.1, 0.1), yaw_range_deg=(-2.0, 2.0))
+    true = res.true_pose
+    assert bool(((true[:, 0] >= -0.1) & (true[:, 0] <= 0.1)).all())
+    assert bool(((true[:, 1] >= 1.0) & (true[:, 1] <= 2.0)).all())
+    assert bool((true[:, 2].abs() <= math.radians(2.0)).all())
+    assert float(res.translation_error[1]) > float(res.translation_error[0])
+
+
+def test_custom_camera_and_box():
+    cam = Camera(torch.tensor([[300.0, 0, 200.0], [0, 300.0, 40.0], [0, 0, 1]]), 1.4, roll=0.02)
+    res = pose_estimation_experiment([0.0], trials=2, camera=cam, size=SMALL, box=(60, 120, 50, 350),
+                                     fit_roll=True)
+    assert res.num_pixels == 60 * 300
+    assert float(res.translation_error[0]) < 1e-4
+    assert res.settings["box"] == [60, 120, 50, 350]
+
+
+def test_default_camera_scales_kitti():
+    cam = default_pose_camera((188, 621))
+    assert cam.fx.item() == pytest.approx(721.5377 / 2)
+    assert cam.height.item() == pytest.approx(1.65)
+
+
+def test_errors():
+    with pytest.raises(ValueError, match="sigmas: expected a non-empty list"):
+        pose_estimation_experiment([], size=SMALL)
+    with pytest.raises(ValueError, match="sigmas: expected a non-empty list"):
+        pose_estimation_experiment([-1.0], size=SMALL)
+    with pytest.raises(ValueError, match="trials: expected an integer >= 1"):
+        pose_estimation_experiment([0.0], trials=0, size=SMALL)
+    with pytest.raises(ValueError, match="z_range: expected finite low <= high"):
+        pose_estimation_experiment([0.0], z_range=(2.0, 1.0), size=SMALL)
+    with pytest.raises(ValueError, match="box: expected 0 <= top < bottom"):
+        pose_estimation_experiment([0.0], box=(100, 50, 0, 10), size=SMALL)
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
+        pose_estimation_experiment([0.0], camera="kitti", size=SMALL)

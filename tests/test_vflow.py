@@ -1,0 +1,360 @@
+"""V-flow map, eq. 24 curve fit and freespace detection."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fsof_torch.camera import Camera
+from fsof_torch.flow_model import displacement_flow, velocity_flow, vflow_curve
+from fsof_torch.vflow import (
+    FreespaceDetection,
+    VFlowCurve,
+    detect_freespace,
+    fit_vflow_curve,
+    row_dominant_flow,
+    vflow_curve_model,
+    vflow_map,
+)
+
+SIZE = (64, 160)
+
+
+def _camera(dtype=torch.float64, B=1, **kw) -> Camera:
+    K = torch.tensor([[200.0, 0, 80.0], [0, 200.0, 18.0], [0, 0, 1]], dtype=dtype)
+    return Camera(K, 1.5, **kw).expand(B) if B > 1 else Camera(K, 1.5, **kw)
+
+
+def _straight(dtype=torch.float64, z_d=1.0, B=1, size=SIZE):
+    cam = _camera(dtype)
+    z = torch.as_tensor(z_d, dtype=dtype).reshape(-1).expand(B) if B > 1 else z_d
+    return cam, *displacement_flow(cam.expand(B) if B > 1 else cam, 0.0, z, 0.0, size)
+
+
+# -- vflow_map ------------------------------------------------------------------------------------
+
+class TestVFlowMap:
+    def test_smoke(self, dtype):
+        _, flow, valid = _straight(dtype)
+        hist, edges = vflow_map(flow, valid, bins=32)
+        assert hist.shape == (1, SIZE[0], 32) and hist.dtype == dtype
+        assert edges.shape == (33,) and edges.dtype == dtype
+        assert float(hist.sum()) == float(valid.sum())
+
+    def test_against_numpy_histogram(self):
+        g = torch.Generator().manual_seed(0)
+        flow = torch.randn(2, 2, 12, 17, generator=g, dtype=torch.float64) * 3
+        mask = torch.rand(2, 1, 12, 17, generator=g) > 0.3
+        hist, edges = vflow_map(flow, mask, bins=10, min_flow=-5.0, max_flow=5.0)
+        for b in range(2):
+            for r in range(12):
+                vals = flow[b, 1, r][mask[b, 0, r]].numpy()
+                ref, _ = np.histogram(vals, bins=10, range=(-5.0, 5.0))
+                np.testing.assert_array_equal(hist[b, r].numpy(), ref)
+        np.testing.assert_allclose(edges.numpy(), np.linspace(-5, 5, 11))
+
+    def test_default_range_covers_the_mask(self):
+        _, flow, valid = _straight()
+        hist, edges = vflow_map(flow, valid, bins=16)
+        assert float(edges[0]) == 0.0
+        assert float(edges[-1]) == pytest.approx(float(flow[:, 1][valid[:, 0]].max()))
+        assert float(hist.sum()) == float(valid.sum())
+
+    def test_nan_flow_is_skipped(self):
+        _, flow, valid = _straight()
+        flow = flow.clone()
+        flow[0, 1, 40, :10] = float("nan")
+        hist, _ = vflow_map(flow, valid)
+        assert torch.isfinite(hist).all()
+        assert float(hist[0, 40].sum()) == float(valid[0, 0, 40].sum()) - 10
+
+    @settings(max_examples=25, deadline=None)
+    @given(seed=st.integers(0, 10_000), bins=st.integers(2, 40), lo=st.floats(-5, 0), width=st.floats(0.1, 10))
+    def test_counts_every_in_range_pixel_once(self, seed, bins, lo, width):
+        g = torch.Generator().manual_seed(seed)
+        flow = torch.randn(2, 2, 7, 9, generator=g, dtype=torch.float64) * 4
+        mask = torch.rand(2, 1, 7, 9, generator=g) > 0.5
+        hist, edges = vflow_map(flow, mask, bins=bins, min_flow=lo, max_flow=lo + width)
+        fv = flow[:, 1:2]
+        inside = mask & (fv >= edges[0]) & (fv <= edges[-1])
+        torch.testing.assert_close(hist.sum(-1), inside[:, 0].sum(-1).double())
+        assert bool((hist >= 0).all())
+
+    @pytest.mark.parametrize("B", [1, 3])
+    def test_cardinality(self, B):
+        flow = torch.randn(B, 2, 20, 31)
+        hist, edges = vflow_map(flow, bins=8)
+        assert hist.shape == (B, 20, 8)
+        assert torch.all(hist.sum(-1) == 31)
+
+    def test_errors(self):
+        flow = torch.zeros(1, 2, 8, 9)
+        with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
+            vflow_map(torch.zeros(1, 3, 8, 9))
+        with pytest.raises(TypeError, match="flow: expected a floating-point tensor"):
+            vflow_map(torch.zeros(1, 2, 8, 9, dtype=torch.int64))
+        with pytest.raises(TypeError, match="mask: expected dtype torch.bool"):
+            vflow_map(flow, torch.ones(1, 1, 8, 9))
+        with pytest.raises(ValueError, match="mask: expected shape"):
+            vflow_map(flow, torch.ones(1, 1, 8, 8, dtype=torch.bool))
+        with pytest.raises(ValueError, match="bins: expected an integer >= 2"):
+            vflow_map(flow, bins=1)
+        with pytest.raises(ValueError, match="max_flow: expected > min_flow"):
+            vflow_map(flow, min_flow=2.0, max_flow=1.0)
+
+
+# -- per-row statistic --------------------------------------------------------------------------
+
+class TestRowDominant:
+    def test_peak_is_not_quantised(self):
+        _, flow, valid = _straight()
+        value, support = row_dominant_flow(flow, valid, bins=8)
+        rows = support[0] > 0
+        torch.testing.assert_close(value[0][rows], flow[0, 1, :, 80][rows], atol=1e-12, rtol=0)
+
+    def test_peak_ignores_a_minority_obstacle(self):
+        _, flow, valid = _straight()
+        flow = flow.clone()
+        flow[0, 1, 30:50, 10:60] = 0.3  # an obstacle over a third of these rows
+        value, _ = row_dominant_flow(flow, valid, bins=64)
+        _, clean, _ = _straight()
+        torch.testing.assert_close(value[0, 30:50], clean[0, 1, 30:50, 80], atol=1e-12, rtol=0)
+
+    def test_median(self):
+        flow = torch.zeros(1, 2, 3, 5, dtype=torch.float64)
+        flow[0, 1] = torch.tensor([[1.0, 2, 3, 4, 100], [5, 5, 5, 5, 5], [0, 0, 0, 0, 0]])
+        mask = torch.ones(1, 1, 3, 5, dtype=torch.bool)
+        mask[0, 0, 2] = False
+        value, support = row_dominant_flow(flow, mask, statistic="median")
+        assert value[0].tolist() == [3.0, 5.0, 0.0]
+        assert support[0].tolist() == [5.0, 5.0, 0.0]
+
+    def test_bad_statistic(self):
+        with pytest.raises(ValueError, match="statistic: expected 'peak' or 'median'"):
+            row_dominant_flow(torch.zeros(1, 2, 4, 4), statistic="mean")
+
+
+# -- curve fit -------------------------------------------------------------------------------------
+
+class TestFitVFlowCurve:
+    def test_curve_model_matches_flow_model(self):
+        v = torch.arange(64, dtype=torch.float64)
+        z_d, h, fy, cy = 1.3, 1.5, 200.0, 18.0
+        ref = vflow_curve(v, z_d, h, fy, cy)
+        ours = vflow_curve_model(v, torch.tensor(z_d / (h * fy), dtype=torch.float64), torch.tensor(cy, dtype=torch.float64))
+        torch.testing.assert_close(ours, ref, atol=1e-12, rtol=0)
+
+    @pytest.mark.parametrize("model", ["displacement", "velocity"])
+    def test_curve_gradcheck(self, model):
+        v = torch.linspace(20.0, 60.0, 9, dtype=torch.float64)
+        a = torch.tensor(0.004, dtype=torch.float64, requires_grad=True)
+        v0 = torch.tensor(18.5, dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(lambda a_, v0_: vflow_curve_model(v, a_, v0_, model), (a, v0))
+
+    @pytest.mark.parametrize("model", ["displacement", "velocity"])
+    def test_analytic_jacobian_of_the_fit(self, model):
+        """The Gauss–Newton Jacobian (private) against autograd."""
+        from fsof_torch.vflow import _curve
+
+        v = torch.linspace(20.0, 60.0, 9, dtype=torch.float64)
+        a = torch.tensor(0.004, dtype=torch.float64, requires_grad=True)
+        v0 = torch.tensor(18.5, dtype=torch.float64, requires_grad=True)
+        f, da, dv0, _ = _curve(v, a, v0, model)
+        for i in range(v.numel()):
+            ga, gv0 = torch.autograd.grad(f[i], (a, v0), retain_graph=True)
+            torch.testing.assert_close(da[i], ga, rtol=1e-12, atol=1e-15)
+            torch.testing.assert_close(dv0[i], gv0, rtol=1e-12, atol=1e-15)
+
+    @pytest.mark.parametrize("z_d", [0.4, 1.0, 2.5, -0.8])
+    def test_recovers_displacement_parameters(self, z_d):
+        cam, flow, valid = _straight(z_d=z_d)
+        curve = fit_vflow_curve(flow, valid)
+        assert isinstance(curve, VFlowCurve) and bool(curve.success)
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([z_d], dtype=torch.float64), atol=0, rtol=1e-6)
+        torch.testing.assert_close(curve.v0, cam.cy, atol=0, rtol=1e-6)
+        # The fitted F_v map is the eq. 24 curve on every road row.
+        torch.testing.assert_close(curve.fitted[valid[:, :1]], flow[:, 1:2][valid], atol=1e-8, rtol=0)
+
+    def test_recovers_velocity_parameters(self):
+        cam = _camera()
+        flow, valid = velocity_flow(cam, 12.0, 0.0, 2.7, SIZE)
+        curve = fit_vflow_curve(flow, valid, model="velocity")
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([12.0], dtype=torch.float64), atol=0, rtol=1e-6)
+        torch.testing.assert_close(curve.v0, cam.cy, atol=0, rtol=1e-6)
+
+    def test_float32(self):
+        cam, flow, valid = _straight(torch.float32)
+        curve = fit_vflow_curve(flow, valid)
+        assert curve.a.dtype == torch.float32 and curve.fitted.dtype == torch.float32
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([1.0]), atol=0, rtol=1e-4)
+
+    def test_robust_to_obstacle_rows(self):
+        """Obstacles fill whole rows (a wall ahead, cars side by side): those rows are outliers."""
+        cam, flow, valid = _straight(z_d=1.2)
+        flow = flow.clone()
+        # A fronto-parallel wall at the depth of row 30: flow radial with a constant scale.
+        dv = torch.arange(SIZE[0], dtype=torch.float64) - 18.0
+        scale = 1.2 / (1.5 * 200.0 / 12.0 - 1.2)
+        flow[0, 1, 20:30, :] = scale * dv[20:30].reshape(-1, 1)
+        g = torch.Generator().manual_seed(1)
+        flow[0, 1, 45:52, :] += 3.0 + torch.rand(7, 1, generator=g, dtype=torch.float64)  # other motions
+        # Noise-free flow: a tight threshold, else wall rows near the contact row pass as road.
+        curve = fit_vflow_curve(flow, valid, inlier_threshold=0.01)
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([1.2], dtype=torch.float64), atol=0, rtol=1e-6)
+        assert not curve.row_inliers[0, 45:52].any() and not curve.row_inliers[0, 20:28].any()
+        # The default threshold (0.5 px) still keeps the outliers' effect small.
+        curve = fit_vflow_curve(flow, valid)
+        assert abs(float(curve.scale(cam)) - 1.2) < 0.03
+
+    def test_noise(self):
+        cam, flow, valid = _straight(z_d=1.5)
+        g = torch.Generator().manual_seed(0)
+        noisy = flow + 0.2 * torch.randn(flow.shape, generator=g, dtype=torch.float64)
+        curve = fit_vflow_curve(noisy, valid, statistic="median")
+        assert abs(float(curve.scale(cam)) - 1.5) < 0.03
+        assert abs(float(curve.v0) - 18.0) < 0.5
+
+    @pytest.mark.parametrize("B", [1, 3])
+    def test_cardinality(self, B):
+        z = torch.tensor([0.5, 1.0, 2.0][:B], dtype=torch.float64)
+        cam = _camera(B=B)
+        zero = torch.zeros_like(z)
+        flow, valid = displacement_flow(cam, zero, z, zero, (48, 71))
+        curve = fit_vflow_curve(flow, valid)
+        assert curve.a.shape == (B,) and curve.fitted.shape == (B, 1, 48, 71)
+        assert curve.row_value.shape == (B, 48) and curve.success.all()
+        torch.testing.assert_close(curve.scale(cam), z, atol=0, rtol=1e-6)
+
+    def test_deterministic(self):
+        _, flow, valid = _straight()
+        flow = flow + 0.3 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+        a = fit_vflow_curve(flow, valid, seed=5)
+        b = fit_vflow_curve(flow, valid, seed=5)
+        assert torch.equal(a.a, b.a) and torch.equal(a.v0, b.v0)
+
+    def test_empty_mask_fails_cleanly(self):
+        _, flow, valid = _straight()
+        curve = fit_vflow_curve(flow, torch.zeros_like(valid))
+        assert not bool(curve.success)
+        assert torch.isfinite(curve.a).all() and torch.isfinite(curve.fitted).all()
+        assert not curve.fitted_valid.any()
+
+    def test_nan_flow_in_mask(self):
+        cam, flow, valid = _straight()
+        flow = flow.clone()
+        flow[0, :, 50, 3:9] = float("nan")
+        curve = fit_vflow_curve(flow, valid)
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([1.0], dtype=torch.float64), atol=0, rtol=1e-6)
+
+    def test_errors(self):
+        flow = torch.zeros(1, 2, 8, 9)
+        with pytest.raises(ValueError, match="model: expected one of"):
+            fit_vflow_curve(flow, model="affine")
+        with pytest.raises(ValueError, match="hypotheses: expected an integer >= 1"):
+            fit_vflow_curve(flow, hypotheses=0)
+        with pytest.raises(ValueError, match="inlier_threshold: expected a finite number"):
+            fit_vflow_curve(flow, inlier_threshold=float("nan"))
+        with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
+            fit_vflow_curve(flow).scale("camera")
+
+
+# -- freespace detection --------------------------------------------------------------------------
+
+def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
+    return float((a & b).sum()) / max(1.0, float((a | b).sum()))
+
+
+class TestDetectFreespace:
+    def _scene(self, B=1):
+        """Road flow of a turning motion with an obstacle standing on the road and a detached
+        island of road-like flow above the obstacle."""
+        cam = _camera(B=B, roll=0.01)
+        full = lambda x: torch.full((B,), x, dtype=torch.float64)  # noqa: E731
+        flow, valid = displacement_flow(cam, full(0.05), full(1.0), full(0.01), SIZE)
+        flow = flow.clone()
+        road = valid.clone()
+        # Obstacle: a fronto-parallel surface standing on row 40, columns 60..100.
+        v = torch.arange(SIZE[0], dtype=torch.float64).reshape(-1, 1)
+        u = torch.arange(SIZE[1], dtype=torch.float64).reshape(1, -1)
+        scale = 1.0 / (1.5 * 200.0 / (40 - 18.0) - 1.0)
+        flow[:, 0, 20:41, 60:100] = (scale * (u - 80.0)).expand(SIZE)[20:41, 60:100]
+        flow[:, 1, 20:41, 60:100] = (scale * (v - 18.0)).expand(SIZE)[20:41, 60:100]
+        road[:, :, 20:41, 60:100] = False
+        return cam, flow, valid, road
+
+    def test_separates_obstacle(self):
+        cam, flow, valid, road = self._scene()
+        free = detect_freespace(flow, cam)
+        assert free.shape == (1, 1, *SIZE) and free.dtype == torch.bool
+        # Where the obstacle touches the road the two flows agree: judge the upper part only.
+        assert not free[:, :, 20:36, 60:100].any()
+        assert _iou(free, road) > 0.95
+
+    def test_keeps_only_bottom_connected(self):
+        cam, flow, valid, road = self._scene()
+        flow = flow.clone()
+        # Surround a patch of road by a ring of foreign flow: the patch is cut off from the bottom.
+        flow[:, :, 44:60, 5:8] += 5.0
+        flow[:, :, 44:60, 30:33] += 5.0
+        flow[:, :, 44:47, 5:33] += 5.0
+        flow[:, :, 57:60, 5:33] += 5.0
+        free = detect_freespace(flow, cam, max_hole_fraction=0.0, close_kernel=0)
+        assert not free[:, :, 47:57, 8:30].any()
+        assert free[:, :, 62:, 40:].all()
+
+    def test_details_and_mask(self):
+        cam, flow, valid, road = self._scene()
+        mask = torch.ones_like(valid)
+        mask[..., :, :20] = False
+        det = detect_freespace(flow, cam, mask=mask, return_details=True)
+        assert isinstance(det, FreespaceDetection)
+        assert not det.freespace[..., :20].any()
+        assert det.seed.any() and bool(det.success.all())
+        assert (det.freespace & ~valid).sum() == 0
+
+    @pytest.mark.parametrize("B", [1, 3])
+    def test_cardinality(self, B):
+        cam, flow, valid, road = self._scene(B=B)
+        free = detect_freespace(flow, cam)
+        assert free.shape == (B, 1, *SIZE)
+        for b in range(B):
+            assert _iou(free[b], road[b]) > 0.95
+
+    def test_errors(self):
+        cam, flow, valid, road = self._scene()
+        with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
+            detect_freespace(flow, None)
+        with pytest.raises(ValueError, match="threshold: expected a finite number"):
+            detect_freespace(flow, cam, threshold=-1.0)
+        with pytest.raises(ValueError, match="bottom_rows: expected an integer >= 1"):
+            detect_freespace(flow, cam, bottom_rows=0)
+        with pytest.raises(ValueError, match="camera: expected batch 1 or 1"):
+            detect_freespace(flow, _camera(B=2))
+
+    @pytest.mark.parametrize("fill", [0.0, float("nan")])
+    def test_undeterminable_flow_gives_empty_failed_result(self, fill):
+        """A standing car (zero flow) or a flow with no finite value: flagged, empty, no NaN."""
+        cam = _camera()
+        flow = torch.full((1, 2, *SIZE), fill, dtype=torch.float64)
+        det = detect_freespace(flow, cam, return_details=True)
+        assert not bool(det.success.any()) and not det.freespace.any()
+        assert torch.isfinite(det.curve.a).all()
+
+    def test_cvc_complex_iou(self):
+        """Freespace of the cvc-complex preset from its ground-truth flow: IoU >= 0.9."""
+        scene = pytest.importorskip("fsof_torch.scene")
+        ious = []
+        for index in range(1):
+            pair = scene.render_pair("cvc-complex", index, seed=0, size=(128, 416), dtype=torch.float64)
+            flow = pair["flow"].unsqueeze(0)
+            # Noise-free flow: thresholds that separate the road from the pavement 12 cm above it.
+            free = detect_freespace(flow, pair["camera"], threshold=0.05, relative_threshold=0.02)
+            ious.append(_iou(free[0], pair["road"]))
+            # Restricted to the valid ground truth (the last rows' flow leaves the image).
+            valid = pair["valid"].unsqueeze(0)
+            free = detect_freespace(flow, pair["camera"], mask=valid, threshold=0.05, relative_threshold=0.02)
+            ious.append(_iou(free[0], pair["road"] & pair["valid"]))
+        assert min(ious) >= 0.9, ious
