@@ -1,0 +1,852 @@
+"""Fitting the freespace flow models to a flow field: ego-motion, roll and pitch, robustly.
+
+Only d / h is observable from flow (DESIGN.md §5): the camera height h is taken from the
+camera and the translation is reported in metres under it. The unknowns are
+
+- displacement model (:func:`fit_displacement`): x_d, z_d (metres), yaw φ (radians), and
+  optionally the mounting roll θ and pitch β (radians);
+- velocity model (:func:`fit_velocity`): the rear-axle speed v_r (m/s) and the yaw rate
+  (hence the steering angle δ_f = atan(φ̇ l / v_r) for a wheelbase l), optionally roll and pitch.
+
+Method: the road flow is the plane-induced homography H of the road (velocity model: its time
+derivative G), a 3×3 matrix per frame whose derivatives with respect to the parameters are
+written out below. Each frame is fitted by Levenberg–Marquardt on the end-point residuals with
+the IRLS weights of a robust kernel (Cauchy by default), the normal equations in float64,
+batched over frames. The scale of the kernel is annealed from the spread of the residuals of
+the initial guess down to ``scale`` so that a wrong start is not locked in by its own weights.
+The initial guess needs no prior: with the mounting fixed (at the camera's roll and pitch),
+the pixels and their flow targets back-project onto the road plane, where the motion is a
+planar rigid motion; a weighted linear least-squares fit of a 2-D similarity there (re-weighted
+a few times) gives yaw and translation. After the robust fit, a few iterations with Tukey's
+biweight cut at the inlier threshold (``polish``) stop far outliers (other vehicles) from
+pulling on the estimate. JᵀWJ is accumulated without a per-pixel Jacobian: the residual
+depends on the parameters only through the 9 entries of the 3×3 map (see
+:func:`_normal_equations`).
+
+Fitting is iterative and data dependent (convergence tests, accept/reject steps): it is not
+differentiable and not meant for ``torch.compile``; its results are detached tensors.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+from ._check import check_finite, check_float_tensor, check_positive, check_shape, result_dtype
+from .camera import Camera, mounting_matrix, pitch_matrix, roll_matrix
+from .flow_model import _flow_from_matrix, displacement_flow  # noqa: F401  (docstring example)
+
+__all__ = [
+    "FitResult",
+    "VelocityFitResult",
+    "fit_displacement",
+    "fit_velocity",
+    "robust_weight",
+    "ROBUST_KERNELS",
+]
+
+ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
+
+
+# -- results -----------------------------------------------------------------------------------
+
+@dataclass
+class FitResult:
+    """The displacement model fitted to B frames.
+
+    Attributes:
+        x_d, z_d: ego translation in metres under the camera height used (B,).
+        yaw: ego yaw φ in radians (B,).
+        roll, pitch: the mounting angles in radians (B,) (fitted, or the fixed ones).
+        flow: the model flow (B, 2, H, W) in pixels at the full resolution (0 where not defined).
+        valid: where the model is defined (B, 1, H, W) bool.
+        inliers: mask pixels whose flow agrees with the model (B, 1, H, W) bool: the robust
+            weight's residual ‖model − flow‖ ≤ ``inlier_threshold`` px.
+        residual: mean end-point error over the inliers in pixels (B,) (NaN-free; 0 when none).
+        success: (B,) bool: the fit converged, on enough well-spread inliers making up at least
+            ``min_inlier_fraction`` of the mask, with a well-conditioned problem. Where False
+            the parameters are finite but not to be trusted.
+        camera: the input camera with the fitted roll and pitch (B frames).
+        iterations: Levenberg–Marquardt iterations done (B,) int64.
+    """
+
+    x_d: Tensor
+    z_d: Tensor
+    yaw: Tensor
+    roll: Tensor
+    pitch: Tensor
+    flow: Tensor
+    valid: Tensor
+    inliers: Tensor
+    residual: Tensor
+    success: Tensor
+    camera: Camera
+    iterations: Tensor
+
+    def odometry(self) -> dict[str, Tensor]:
+        """``dict(x_d=, z_d=, yaw=)`` of (B,) tensors, the form the refiner and flow model take."""
+        return dict(x_d=self.x_d, z_d=self.z_d, yaw=self.yaw)
+
+
+@dataclass
+class VelocityFitResult:
+    """The velocity model fitted to B frames of flow in pixels per second.
+
+    Attributes:
+        speed: rear-axle speed v_r in m/s (B,); steering: front-wheel angle δ_f in radians (B,)
+            (0 where the speed is 0); yaw_rate: φ̇ in rad/s (B,); roll, pitch in radians (B,);
+        flow (B, 2, H, W) px/s, valid, inliers (B, 1, H, W) bool, residual (B,) px/s,
+        success (B,) bool, camera, iterations: as in :class:`FitResult`; wheelbase (B,) metres.
+    """
+
+    speed: Tensor
+    steering: Tensor
+    yaw_rate: Tensor
+    roll: Tensor
+    pitch: Tensor
+    flow: Tensor
+    valid: Tensor
+    inliers: Tensor
+    residual: Tensor
+    success: Tensor
+    camera: Camera
+    iterations: Tensor
+    wheelbase: Tensor
+
+    def velocity(self) -> dict[str, Tensor]:
+        """``dict(speed=, steering=, wheelbase=)`` of (B,) tensors."""
+        return dict(speed=self.speed, steering=self.steering, wheelbase=self.wheelbase)
+
+
+# -- robust kernels --------------------------------------------------------------------------
+
+def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
+    """IRLS weight w(r) = ρ'(r²)/… of a robust kernel for squared residual norms ``r2``.
+
+    ``kind``: "cauchy" (1/(1+r²/c²)), "huber" (min(1, c/r)), "soft_l1" (1/sqrt(1+r²/c²), SciPy's),
+    "tukey" ((1−r²/c²)² for r < c, else 0), "l2" (1). ``scale`` c in the residual's unit.
+    """
+    if kind == "l2":
+        return torch.ones_like(r2)
+    z = r2 / (scale * scale)
+    if kind == "cauchy":
+        return 1.0 / (1.0 + z)
+    if kind == "soft_l1":
+        return torch.rsqrt(1.0 + z)
+    if kind == "huber":
+        return torch.where(z <= 1.0, torch.ones_like(z), torch.rsqrt(z.clamp_min(1e-300)))
+    if kind == "tukey":
+        return torch.where(z < 1.0, (1.0 - z) ** 2, torch.zeros_like(z))
+    raise ValueError(f"robust: expected one of {ROBUST_KERNELS}, got {kind!r}")
+
+
+def _robust_cost(r2: Tensor, scale: Tensor, kind: str) -> Tensor:
+    """ρ(r²) (same shape), with ρ'(0) = 1, matching :func:`robust_weight`."""
+    c2 = scale * scale
+    z = r2 / c2
+    if kind == "l2":
+        return r2
+    if kind == "cauchy":
+        return c2 * torch.log1p(z)
+    if kind == "soft_l1":
+        return 2.0 * c2 * (torch.sqrt(1.0 + z) - 1.0)
+    if kind == "huber":
+        return torch.where(z <= 1.0, r2, c2 * (2.0 * torch.sqrt(z.clamp_min(1e-300)) - 1.0))
+    if kind == "tukey":
+        return torch.where(z < 1.0, c2 / 3.0 * (1.0 - (1.0 - z) ** 3), torch.full_like(z, 1.0) * c2 / 3.0)
+    raise ValueError(f"robust: expected one of {ROBUST_KERNELS}, got {kind!r}")
+
+
+# -- the model matrices and their derivatives ------------------------------------------------
+
+# Generators of the mounting rotations: dR_θ/dθ R_θᵀ and dR_β/dβ R_βᵀ are constant skew matrices,
+# so the derivative of C = R X Rᵀ is a commutator [G, C] (no per-angle derivative matrices).
+_G_ROLL = ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 0.0))
+_G_PITCH = ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+
+
+def _sandwich_jac(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor,
+                  inner: Tensor) -> tuple[Tensor, Tensor]:
+    """M = K R_c X R_cᵀ K⁻¹ and its derivatives, R_c = R_θ R_β.
+
+    ``inner`` (B, 1 + Q, 3, 3) stacks X and its derivatives by the Q motion parameters; returns
+    M (B, 3, 3) and dM (B, Q + 2, 3, 3) by (motion parameters..., θ, β).
+    """
+    Rt = roll_matrix(roll)
+    Rc = Rt @ pitch_matrix(pitch)
+    C = Rc.unsqueeze(1) @ inner @ Rc.transpose(-1, -2).unsqueeze(1)  # camera-frame maps
+    C0 = C[:, 0]
+    Gt = torch.tensor(_G_ROLL, dtype=C.dtype, device=C.device)
+    # pitch acts before roll: its generator is seen through R_θ
+    Gb = Rt @ torch.tensor(_G_PITCH, dtype=C.dtype, device=C.device) @ Rt.transpose(-1, -2)
+    dC = torch.cat([C[:, 1:], (Gt @ C0 - C0 @ Gt).unsqueeze(1), (Gb @ C0 - C0 @ Gb).unsqueeze(1)], dim=1)
+    out = K.unsqueeze(1) @ torch.cat([C0.unsqueeze(1), dC], dim=1) @ Kinv.unsqueeze(1)
+    return out[:, 0], out[:, 1:]
+
+
+def _homography_jac(K: Tensor, Kinv: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """H (B, 3, 3) and dH/dparams (B, 5, 3, 3) for params (a = x_d/h, b = z_d/h, φ, θ, β)."""
+    a, b, yaw, roll, pitch = params.unbind(-1)
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    z, o = torch.zeros_like(c), torch.ones_like(c)
+    ca_sb, sa_cb = c * a - s * b, s * a + c * b
+    inner = torch.stack([
+        c, -ca_sb, -s, z, o, z, s, -sa_cb, c,        # X = R_φ (I - d nᵀ / h)
+        z, -c, z, z, z, z, z, -s, z,                 # dX/da
+        z, s, z, z, z, z, z, -c, z,                  # dX/db
+        -s, sa_cb, -c, z, z, z, c, -ca_sb, -s,       # dX/dφ
+    ], dim=-1).reshape(-1, 4, 3, 3)
+    return _sandwich_jac(K, Kinv, roll, pitch, inner)
+
+
+def _velocity_jac(K: Tensor, Kinv: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
+    """G (B, 3, 3) and dG/dparams (B, 4, 3, 3) for params (s = v_r/h, ω = φ̇, θ, β)."""
+    sp, w, roll, pitch = params.unbind(-1)
+    z, o = torch.zeros_like(sp), torch.ones_like(sp)
+    inner = torch.stack([
+        z, z, -w, z, z, z, w, -sp, z,                # Ω - ḋ nᵀ / h
+        z, z, z, z, z, z, z, -o, z,                  # d/ds
+        z, z, -o, z, z, z, o, z, z,                  # d/dω
+    ], dim=-1).reshape(-1, 3, 3, 3)
+    return _sandwich_jac(K, Kinv, roll, pitch, inner)
+
+
+# -- evaluation on the sampled pixels ----------------------------------------------------------
+
+def _evaluate(M: Tensor, ray_row: Tensor, pts: Tensor, velocity: bool,
+              dM: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor | None]:
+    """Model flow (B, 2, N), model validity (B, N) and optionally the Jacobian (B, P, 2, N).
+
+    ``pts`` (B, 3, N) homogeneous pixels; ``ray_row`` (B, 1, 3) the vehicle-frame ray's y row.
+    """
+    B = M.shape[0]
+    rows = [M, ray_row] if dM is None else [M, ray_row, dM.reshape(B, -1, 3)]
+    q = torch.cat(rows, dim=1) @ pts  # one matmul for the map, the ray test and the derivatives
+    ray_y, qz = q[:, 3], q[:, 2]
+    if velocity:
+        valid = ray_y > 0
+        flow = q[:, :2] - pts[:, :2] * qz.unsqueeze(1)
+    else:
+        valid = (ray_y > 0) & (qz > 1e-9)
+        inv_z = torch.where(valid, qz, torch.ones_like(qz)).reciprocal().unsqueeze(1)
+        proj = q[:, :2] * inv_z
+        flow = proj - pts[:, :2]
+    if dM is None:
+        return flow, valid, None
+    P = dM.shape[1]
+    dq = q[:, 4:].reshape(B, P, 3, -1)
+    if velocity:
+        J = dq[:, :, :2] - pts[:, None, :2] * dq[:, :, 2:3]
+    else:
+        J = (dq[:, :, :2] - proj.unsqueeze(1) * dq[:, :, 2:3]) * inv_z.unsqueeze(1)
+    return flow, valid, J
+
+
+# -- input handling ------------------------------------------------------------------------------
+
+def _check_inputs(flow: Tensor, mask: Tensor, camera: Camera, valid: Tensor | None) -> tuple[dict, Camera, Tensor]:
+    check_float_tensor(flow, "flow")
+    dims = check_shape(flow, "flow", ("B", 2, "H", "W"))
+    if not isinstance(mask, Tensor):
+        raise TypeError(f"mask: expected a bool tensor of shape (B, 1, H, W), got {type(mask).__name__}")
+    if mask.dim() == 4 and mask.shape[0] == 1 and dims["B"] != 1:
+        mask = mask.expand(dims["B"], -1, -1, -1)
+    check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask: expected dtype torch.bool, got {mask.dtype}")
+    if valid is not None:
+        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+            raise TypeError(f"valid: expected a bool tensor of shape (B, 1, H, W), got "
+                            f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
+        check_shape(valid, "valid", ("B", 1, "H", "W"), dims)
+        mask = mask & valid
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    if camera.batch_size not in (1, dims["B"]):
+        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the flow's B), got {camera.batch_size}")
+    if camera.batch_size != dims["B"]:
+        camera = camera.expand(dims["B"])
+    if camera.device != flow.device:
+        camera = camera.to(device=flow.device)
+    # one reduction decides the common case (a NaN or inf anywhere makes the sum non-finite);
+    # only then look inside the mask
+    if not bool(torch.isfinite(flow.detach().sum())):
+        inside = flow.masked_select(mask.expand_as(flow))
+        n = int((~torch.isfinite(inside)).sum())
+    else:
+        n = 0
+    if n:
+        raise ValueError(f"flow: expected finite values inside mask, got {n} NaN/inf values there "
+                         f"(exclude them with valid=)")
+    return dims, camera, mask
+
+
+def _mask_sample(mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Flat pixel indices (B, N) of the mask, deterministically subsampled to at most
+    ``max_points`` per frame, the flags of real points (B, N) (the rest is padding) and the
+    per-frame count of mask pixels (B,)."""
+    B, _, H, W = mask.shape
+    flat = mask.reshape(B, H * W)
+    counts = flat.sum(1)
+    n_max = int(counts.max()) if B else 0
+    N = n_max if max_points is None else min(n_max, int(max_points))
+    N = max(N, 1)
+    _, p_idx = flat.nonzero(as_tuple=True)  # sorted by frame, then raster order
+    start = torch.cumsum(counts, 0) - counts
+    # the j-th kept pixel of a frame with n > N mask pixels is its floor(j n / N)-th one: an even
+    # stride over raster order; frames with n <= N keep all and pad the rest
+    j = torch.arange(N, device=mask.device).expand(B, N)
+    n = counts.unsqueeze(1)
+    rank = torch.where(n > N, (j * n) // N, j)
+    sel = rank < n
+    if p_idx.numel():
+        pix = p_idx[(start.unsqueeze(1) + rank).clamp_max(p_idx.numel() - 1)]
+        pix = torch.where(sel, pix, torch.zeros_like(pix))
+    else:
+        pix = torch.zeros(B, N, dtype=torch.long, device=mask.device)
+    return pix, sel, counts
+
+
+def _pixels(pix: Tensor, W: int) -> Tensor:
+    """Homogeneous pixel coordinates (B, 3, N) float64 of flat indices (B, N)."""
+    u = (pix % W).to(torch.float64)
+    v = torch.div(pix, W, rounding_mode="floor").to(torch.float64)
+    return torch.stack([u, v, torch.ones_like(u)], dim=1)
+
+
+def _sample(flow: Tensor, mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The mask's pixels (see :func:`_mask_sample`): pts (B, 3, N) float64 homogeneous pixels,
+    obs (B, 2, N) float64 flow there, sel (B, N) bool, counts (B,)."""
+    B, _, H, W = flow.shape
+    pix, sel, counts = _mask_sample(mask, max_points)
+    N = pix.shape[1]
+    obs = flow.reshape(B, 2, H * W).gather(2, pix.unsqueeze(1).expand(B, 2, N)).to(torch.float64)
+    obs = torch.where(sel.unsqueeze(1), obs, torch.zeros_like(obs))
+    return _pixels(pix, W), obs, sel, counts
+
+
+def _init_value(init: object, name: str, B: int, default: Tensor) -> Tensor:
+    """A per-frame start value from ``init`` (a FitResult, a dict, or None) as (B,) float64."""
+    if init is None:
+        return default
+    value = getattr(init, name, None) if not isinstance(init, dict) else init.get(name)
+    if value is None:
+        return default
+    t = torch.as_tensor(value, dtype=torch.float64, device=default.device).detach().reshape(-1)
+    if t.numel() not in (1, B):
+        raise ValueError(f"init: expected {name} of batch 1 or {B}, got {t.numel()} values")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"init: expected a finite {name}, got {t.tolist()}")
+    return t.expand(B).clone()
+
+
+# -- the initial guess from the road plane ------------------------------------------------
+
+def _planar_init(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, pts: Tensor, obs: Tensor,
+                 sel: Tensor, iters: int = 3) -> tuple[Tensor, Tensor]:
+    """Yaw and (x_d, z_d)/h from a 2-D similarity of back-projected road points.
+
+    A road pixel back-projects (mounting fixed) to the vehicle-frame ray x = R_cᵀ K⁻¹ p̃, scaled
+    to x_y = 1: (X/h, 1, Z/h) of its road point; its flow target p + F back-projects likewise.
+    The model moves road points by x' = R_φ (x − d/h), linear in (cos φ, sin φ, t) when cos and
+    sin are left free; weights ~ (x_y of the ray)² turn ground errors back into roughly equal
+    pixel errors, and a few Cauchy re-weightings drop outliers. Returns params (B, 3) =
+    (a, b, φ) and a bool (B,) that is False where the linear system was degenerate.
+    """
+    B = pts.shape[0]
+    Rc = mounting_matrix(roll, pitch)
+    A = Rc.transpose(-1, -2) @ Kinv
+    x = A @ pts
+    tgt = torch.cat([pts[:, :2] + obs, pts[:, 2:]], dim=1)
+    xp = A @ tgt
+    ok = sel & (x[:, 1] > 1e-6) & (xp[:, 1] > 1e-6)
+    y0 = torch.where(ok, x[:, 1], torch.ones_like(x[:, 1]))
+    y1 = torch.where(ok, xp[:, 1], torch.ones_like(xp[:, 1]))
+    X, Z = x[:, 0] / y0, x[:, 2] / y0
+    Xp, Zp = xp[:, 0] / y1, xp[:, 2] / y1
+    # x' = c X - s Z + tx ; z' = s X + c Z + tz  (tx, tz = -R_φ d/h)
+    zero, one = torch.zeros_like(X), torch.ones_like(X)
+    rows_x = torch.stack([X, -Z, one, zero], dim=-1)
+    rows_z = torch.stack([Z, X, zero, one], dim=-1)
+    D = torch.cat([rows_x, rows_z], dim=1)  # (B, 2N, 4)
+    rhs = torch.cat([Xp, Zp], dim=1)
+    base = torch.where(ok, y0 * y0, torch.zeros_like(y0))
+    base = torch.cat([base, base], dim=1)
+    w = base
+    theta = torch.zeros(B, 4, dtype=pts.dtype, device=pts.device)
+    good = torch.ones(B, dtype=torch.bool, device=pts.device)
+    for it in range(iters):
+        Dw = D * w.unsqueeze(-1)
+        N = Dw.transpose(1, 2) @ D
+        g = (Dw * rhs.unsqueeze(-1)).sum(1)
+        scale = N.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
+        Nn = N / (scale.unsqueeze(-1) * scale.unsqueeze(-2))
+        Nn = Nn + torch.eye(4, dtype=N.dtype, device=N.device) * 1e-12
+        theta = torch.linalg.solve(Nn, (g / scale).unsqueeze(-1)).squeeze(-1) / scale
+        res = (D @ theta.unsqueeze(-1)).squeeze(-1) - rhs
+        # residuals back in (roughly) pixel units for the re-weighting
+        rp = res * torch.cat([y0, y0], dim=1) * K[:, 0, 0].unsqueeze(-1)
+        rp2 = rp[:, : rp.shape[1] // 2] ** 2 + rp[:, rp.shape[1] // 2:] ** 2
+        rp2 = torch.where(ok, rp2, torch.full_like(rp2, float("nan")))
+        spread = torch.nanmedian(rp2, dim=1).values.clamp_min(1.0)
+        wr = 1.0 / (1.0 + rp2 / (4.0 * spread.unsqueeze(-1)))
+        wr = torch.where(ok, wr, torch.zeros_like(wr))
+        w = base * torch.cat([wr, wr], dim=1)
+    good = torch.linalg.eigvalsh(Nn)[:, 0] > 1e-9
+    c, s, tx, tz = theta.unbind(-1)
+    yaw = torch.atan2(s, c)
+    cn, sn = torch.cos(yaw), torch.sin(yaw)
+    a = -(cn * tx + sn * tz)
+    b = -(-sn * tx + cn * tz)
+    out = torch.stack([a, b, yaw], dim=-1)
+    good = good & torch.isfinite(out).all(-1) & (ok.sum(1) >= 4)
+    return torch.where(good.unsqueeze(-1), out, torch.zeros_like(out)), good
+
+
+def _velocity_init(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, pts: Tensor, obs: Tensor,
+                   sel: Tensor, kind: str, scale: float, iters: int = 4) -> tuple[Tensor, Tensor]:
+    """(v_r/h, φ̇) by re-weighted linear least squares with the mounting fixed (the velocity
+    flow is linear in both). Returns (B, 2) and a bool (B,) False where degenerate."""
+    B = pts.shape[0]
+    zero = torch.zeros(B, dtype=pts.dtype, device=pts.device)
+    params = torch.stack([zero, zero, roll, pitch], dim=-1)
+    M, dM = _velocity_jac(K, Kinv, params)
+    ray_row = (mounting_matrix(roll, pitch).transpose(-1, -2) @ Kinv)[:, 1:2, :]
+    _, valid, J = _evaluate(M, ray_row, pts, True, dM[:, :2])
+    J = J.reshape(B, 2, -1)  # flow = J^T theta exactly (linear, zero at theta = 0)
+    w = (sel & valid).to(pts.dtype)
+    r_obs = obs.reshape(B, -1)
+    theta = torch.zeros(B, 2, dtype=pts.dtype, device=pts.device)
+    good = torch.ones(B, dtype=torch.bool, device=pts.device)
+    for it in range(iters):
+        ww = torch.cat([w, w], dim=1).unsqueeze(1)
+        N = (J * ww) @ J.transpose(1, 2)
+        g = ((J * ww) * r_obs.unsqueeze(1)).sum(-1)
+        sc = N.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
+        Nn = N / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
+        Nn = Nn + torch.eye(2, dtype=N.dtype, device=N.device) * 1e-12
+        theta = torch.linalg.solve(Nn, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
+        res = (theta.unsqueeze(1) @ J).squeeze(1) - r_obs
+        r2 = res[:, : res.shape[1] // 2] ** 2 + res[:, res.shape[1] // 2:] ** 2
+        r2m = torch.where(sel & valid, r2, torch.full_like(r2, float("nan")))
+        spread = torch.nanmedian(r2m, dim=1).values.clamp_min(scale * scale)
+        w = robust_weight(r2, (4.0 * spread.unsqueeze(-1)).sqrt(), "cauchy") * (sel & valid)
+    good = (torch.linalg.eigvalsh(Nn)[:, 0] > 1e-9) & torch.isfinite(theta).all(-1)
+    return torch.where(good.unsqueeze(-1), theta, torch.zeros_like(theta)), good
+
+
+# -- Levenberg–Marquardt with robust weights ----------------------------------------------------
+
+def _moments(pts: Tensor) -> Tensor:
+    """The six distinct entries of p̃ p̃ᵀ per pixel, (B, N, 6): uu, uv, u, vv, v, 1."""
+    u, v, one = pts.unbind(1)
+    return torch.stack([u * u, u * v, u, v * v, v, one], dim=-1)
+
+
+def _sym3(m: Tensor) -> Tensor:
+    """(..., 6) moments uu, uv, u, vv, v, 1 -> the symmetric (..., 3, 3) matrix Σ p̃ p̃ᵀ."""
+    uu, uv, u, vv, v, one = m.unbind(-1)
+    return torch.stack([uu, uv, u, uv, vv, v, u, v, one], dim=-1).reshape(*m.shape[:-1], 3, 3)
+
+
+def _normal_equations(dM: Tensor, pts: Tensor, mom: Tensor, proj: Tensor, inv_z: Tensor | None,
+                      w: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
+    """Jᵀ W J (B, P, P) and Jᵀ W r (B, P) without forming the per-pixel Jacobian.
+
+    The end-point residual depends on the parameters only through the 3×3 matrix M: per pixel
+    ∂r/∂M = (1/q_z) [[p̃ᵀ, 0, −x′ p̃ᵀ], [0, p̃ᵀ, −y′ p̃ᵀ]] with (x′, y′) the projected point
+    (velocity model: q_z = 1 and (x′, y′) the pixel itself). So Jᵀ W J in M's 9 entries is made of
+    four weighted sums of p̃ p̃ᵀ (weights w/q_z² × 1, x′, y′, x′²+y′²): two skinny matmuls over
+    the pixels instead of a (P, 2, N) Jacobian, and the chain rule through dM/dp (B, P, 3, 3)
+    is applied to 9×9 and 9-vectors.
+    """
+    B, P = dM.shape[:2]
+    x, y = proj[:, 0], proj[:, 1]
+    a = w if inv_z is None else w * inv_z * inv_z
+    wts = torch.stack([a, a * x, a * y, a * (x * x + y * y)], dim=1)  # (B, 4, N)
+    S = _sym3(wts @ mom)  # (B, 4, 3, 3)
+    S0, S1, S2, S3 = S.unbind(1)
+    Z = torch.zeros_like(S0)
+    AH = torch.cat([torch.cat([S0, Z, -S1], -1), torch.cat([Z, S0, -S2], -1),
+                    torch.cat([-S1, -S2, S3], -1)], dim=-2)  # (B, 9, 9)
+    b = w if inv_z is None else w * inv_z
+    rx, ry = r[:, 0], r[:, 1]
+    gw = torch.stack([b * rx, b * ry, -b * (x * rx + y * ry)], dim=1)  # (B, 3, N)
+    gH = (gw @ pts.transpose(1, 2)).reshape(B, 9)
+    D = dM.reshape(B, P, 9)
+    A = D @ AH @ D.transpose(1, 2)
+    g = (D @ gH.unsqueeze(-1)).squeeze(-1)
+    return A, g
+
+
+def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor, pts: Tensor,
+        obs: Tensor, sel: Tensor, *, kind: str, scale: float, max_iter: int, tol: float,
+        anneal: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Robust Levenberg–Marquardt (IRLS weights, Marquardt scaling) over the free parameters.
+
+    Each iteration evaluates the model once, at the candidate; a frame whose robust cost went up
+    keeps its previous state and damps more. Returns params, converged (B,), iterations (B,),
+    and a conditioning measure (B,) (> 1: well posed).
+    """
+    B, P = params.shape
+    dt = params.dtype
+    dev = params.device
+    eye = torch.eye(P, dtype=dt, device=dev)
+    fixed = ~free
+    fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
+    eye_fixed = (eye * fixed.unsqueeze(-1)).expand(B, P, P)
+    lam = torch.full((B,), 1e-4, dtype=dt, device=dev)
+    done = torch.zeros(B, dtype=torch.bool, device=dev)
+    iters = torch.zeros(B, dtype=torch.long, device=dev)
+    n_sel = sel.sum(1).clamp_min(1)
+    mom = _moments(pts).to(dt)
+
+    def residuals(p: Tensor):
+        M, dM = jac_fn(K, Kinv, p)
+        ray_row = (mounting_matrix(p[:, -2], p[:, -1]).transpose(-1, -2) @ Kinv)[:, 1:2, :]
+        q = torch.cat([M, ray_row], dim=1) @ pts
+        ray_y, qz = q[:, 3], q[:, 2]
+        if velocity:
+            valid = ray_y > 0
+            inv_z = None
+            model = q[:, :2] - pts[:, :2] * qz.unsqueeze(1)
+            proj = pts[:, :2]
+        else:
+            valid = (ray_y > 0) & (qz > 1e-9)
+            inv_z = torch.where(valid, qz, torch.ones_like(qz)).reciprocal()
+            proj = q[:, :2] * inv_z.unsqueeze(1)
+            model = proj - pts[:, :2]
+        r = model - obs
+        use = sel & valid
+        r2 = torch.where(use, (r * r).sum(1), torch.zeros_like(qz))
+        return r, r2, use, (dM, proj, inv_z)
+
+    def cost(r2: Tensor, use: Tensor, s: Tensor) -> Tensor:
+        # a mask pixel where the model is undefined costs as much as a far outlier, so that the
+        # fit cannot shrink the model's domain to escape its residuals
+        sc = s.unsqueeze(-1)
+        rho = _robust_cost(r2, sc, kind)
+        far = _robust_cost(1e4 * sc * sc, sc, kind)
+        rho = torch.where(use, rho, far * sel)
+        return rho.sum(1) / n_sel
+
+    def normal_equations(r: Tensor, r2: Tensor, use: Tensor, lin, s: Tensor):
+        w = robust_weight(r2, s.unsqueeze(-1), kind) * use
+        dM, proj, inv_z = lin
+        A, g = _normal_equations(dM, pts, mom, proj, inv_z, w, r)
+        A = torch.where(fixed_rc, eye_fixed, A)  # fixed parameters: identity rows, no gradient
+        g = torch.where(fixed, torch.zeros_like(g), g)
+        return A, g, w
+
+    r, r2, use, lin = residuals(params)
+    s_eff = torch.full((B,), float(scale), dtype=dt, device=dev)
+    if anneal:
+        med = torch.nanmedian(torch.where(use, r2, torch.full_like(r2, float("nan"))), dim=1).values
+        s_eff = torch.maximum(s_eff, 3.0 * torch.nan_to_num(med, nan=0.0).sqrt())
+    c = cost(r2, use, s_eff)
+    A, g, w = normal_equations(r, r2, use, lin, s_eff)
+    for it in range(max_iter):
+        diag = A.diagonal(dim1=-2, dim2=-1)
+        # a relative floor: a direction the data do not see (roll without motion) must not be
+        # blown up to unit size by the Marquardt scaling
+        sc = torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
+        An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
+        delta = -torch.linalg.solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
+        delta = torch.where(fixed | done.unsqueeze(-1), torch.zeros_like(delta), delta)
+        delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+        cand = params + delta
+        rc, r2c, usec, linc = residuals(cand)
+        c1 = cost(r2c, usec, s_eff)
+        ok = torch.isfinite(c1) & (c1 <= c) & ~done
+        if bool(ok.all()):  # the common case: no per-frame selection (no copies)
+            params, r, r2, use, lin = cand, rc, r2c, usec, linc
+        else:
+            params = torch.where(ok.unsqueeze(-1), cand, params)
+            r = torch.where(ok.reshape(B, 1, 1), rc, r)
+            r2 = torch.where(ok.unsqueeze(-1), r2c, r2)
+            use = torch.where(ok.unsqueeze(-1), usec, use)
+            lin = tuple(None if x is None else torch.where(ok.reshape(B, *[1] * (x.dim() - 1)), xc, x)
+                        for xc, x in zip(linc, lin))
+        active = ~done
+        iters += active.long()
+        # converged: a negligible step (accepted, or rejected while nearly undamped: at rounding
+        # level the cost can tick up) or a negligible relative decrease of the cost
+        tiny = (delta.abs() <= tol * (1.0 + params.abs())).all(-1)
+        small = (tiny & (ok | (lam <= 1e-2))) | (ok & (c - c1 <= tol * c))
+        c = torch.where(ok, c1, c)
+        lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
+        stuck = ~ok & (lam > 1e8)
+        at_scale = s_eff <= scale * (1 + 1e-12)
+        done = done | (active & at_scale & (small | stuck))
+        if anneal and not bool(at_scale.all()):
+            s_eff = torch.maximum(torch.full_like(s_eff, float(scale)), s_eff * 0.5)
+            c = cost(r2, use, s_eff)
+        if bool(done.all()):
+            break
+        A, g, w = normal_equations(r, r2, use, lin, s_eff)
+    A, g, w = normal_equations(r, r2, use, lin, s_eff)
+    diag = A.diagonal(dim1=-2, dim2=-1)
+    sc = torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
+    An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
+    # conditioning: the smallest eigenvalue of the scaled normal matrix (collinear parameters),
+    # and of the unscaled one per unit weight (a parameter the flow barely depends on:
+    # (px per unit of parameter)², parameters being radians or d/h)
+    wsum = w.sum(1).clamp_min(1e-300)
+    Ab = torch.where(fixed_rc, eye_fixed, A / wsum.reshape(B, 1, 1))
+    min_eig = torch.minimum(torch.linalg.eigvalsh(An)[:, 0] / 1e-9, torch.linalg.eigvalsh(Ab)[:, 0] / 1e-6)
+    return params, done, iters, min_eig
+
+
+def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor,
+               pts: Tensor, obs: Tensor, sel: Tensor, *, kind: str, scale: float, max_iter: int,
+               tol: float, anneal: bool, polish: bool,
+               inlier_threshold: float | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The robust fit, then (``polish``) a few iterations with Tukey's biweight cut at the
+    inlier threshold: a kernel with unbounded support (Cauchy, Huber) still lets far outliers
+    pull on the estimate; a redescending one started near the answer ignores them."""
+    params, done, iters, min_eig = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
+                                       kind=kind, scale=scale, max_iter=max_iter, tol=tol,
+                                       anneal=anneal)
+    if not polish or kind in ("tukey", "l2"):
+        return params, done, iters, min_eig
+    thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
+    p2, done2, iters2, min_eig2 = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
+                                      kind="tukey", scale=thr, max_iter=max_iter, tol=tol,
+                                      anneal=False)
+    # keep the polished estimate only where it converged to a finite answer
+    take = done2 & torch.isfinite(p2).all(-1)
+    params = torch.where(take.unsqueeze(-1), p2, params)
+    return params, done & (done2 | ~take), iters + iters2, torch.where(take, min_eig2, min_eig)
+
+
+def _finish(flow: Tensor, mask: Tensor, model: Tensor, model_valid: Tensor, scale: float,
+            inlier_threshold: float | None, min_points: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Inliers (B, 1, H, W), residual (B,), a per-frame "enough well-spread inliers" flag, and
+    the inliers' share of the mask pixels where the model is defined (B,)."""
+    thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
+    use = mask & model_valid
+    diff = model - flow
+    epe = (diff[:, 0] * diff[:, 0]).addcmul_(diff[:, 1], diff[:, 1]).sqrt_().unsqueeze(1)
+    inliers = use & (epe <= thr)  # NaN flow outside the mask compares False
+    n_in = inliers.flatten(1).sum(1)
+    residual = (epe * inliers).flatten(1).sum(1) / n_in.clamp_min(1)
+    rows = inliers.any(3).flatten(1)
+    cols = inliers.any(2).flatten(1)
+    n_rows, n_cols = rows.sum(1), cols.sum(1)
+    spread = (n_in >= min_points) & (n_rows >= 3) & (n_cols >= 3)
+    fraction = n_in / use.flatten(1).sum(1).clamp_min(1)
+    return inliers, residual.to(flow.dtype), spread, fraction
+
+
+def _check_fraction(value: float) -> None:
+    if not (isinstance(value, (int, float)) and 0.0 <= value <= 1.0):
+        raise ValueError(f"min_inlier_fraction: expected a number in [0, 1], got {value!r}")
+
+
+def _check_options(robust: str, scale: float, max_iter: int, tol: float, max_points: int | None) -> None:
+    if robust not in ROBUST_KERNELS:
+        raise ValueError(f"robust: expected one of {ROBUST_KERNELS}, got {robust!r}")
+    if not (isinstance(scale, (int, float)) and math.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale: expected a finite number > 0 (pixels), got {scale!r}")
+    if not (isinstance(max_iter, int) and max_iter >= 1):
+        raise ValueError(f"max_iter: expected an int >= 1, got {max_iter!r}")
+    if not (isinstance(tol, (int, float)) and tol > 0):
+        raise ValueError(f"tol: expected a number > 0, got {tol!r}")
+    if max_points is not None and not (isinstance(max_points, int) and max_points >= 16):
+        raise ValueError(f"max_points: expected None or an int >= 16, got {max_points!r}")
+
+
+# -- public API ----------------------------------------------------------------------------------
+
+@torch.no_grad()
+def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bool = True,
+                     fit_pitch: bool = False, init: "FitResult | dict | None" = None,
+                     valid: Tensor | None = None, robust: str = "cauchy", scale: float = 1.0,
+                     max_iter: int = 50, tol: float = 1e-6, max_points: int | None = 8192,
+                     inlier_threshold: float | None = None, min_points: int = 30,
+                     min_inlier_fraction: float = 0.25, polish: bool = True) -> FitResult:
+    """Fit the displacement model (paper eq. 13) to a flow field inside a road mask.
+
+    Args:
+        flow: forward flow (B, 2, H, W) in pixels (channel 0 = u), any float dtype.
+        mask: road pixels to fit (B, 1, H, W) bool (batch 1 broadcasts).
+        camera: intrinsics at the flow's resolution, height (known; only d/h is observable),
+            and the mounting roll/pitch used where they are not fitted and as the start.
+        fit_roll, fit_pitch: also fit the mounting roll θ / pitch β (radians).
+        init: a start (a :class:`FitResult` or a dict with any of x_d, z_d, yaw, roll, pitch);
+            default: the linear road-plane fit described in the module docstring.
+        valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's); ANDed with mask.
+        robust: kernel of the IRLS weights, one of ``ROBUST_KERNELS``; "l2" for plain least squares.
+        scale: the kernel's scale in pixels (residuals well above it are down-weighted).
+        max_iter, tol: Levenberg–Marquardt iteration cap and step tolerance (relative).
+        max_points: at most this many mask pixels per frame enter the iterations (an even,
+            deterministic stride over the mask in raster order); None uses all. The model flow,
+            inliers and residual are always computed on every mask pixel.
+        inlier_threshold: end-point residual in px below which a mask pixel is an inlier
+            (default 3 × scale).
+        min_points: fewer inliers than this (or inliers on fewer than 3 rows or columns) mark
+            the frame as failed.
+        min_inlier_fraction: so does an inlier share of the mask (where the model is defined)
+            below this: the flow does not look like road motion (e.g. a flow method that failed
+            on the road: DIS on the shared KITTI pair gives 14%).
+        polish: after the robust fit, iterate with Tukey's biweight cut at the inlier
+            threshold, so that far outliers (other vehicles) stop pulling on the estimate.
+
+    Returns:
+        :class:`FitResult`; parameters (B,) in float64 if the flow is float64, else the camera's
+        dtype promoted with the flow's; ``flow``/``valid``/``inliers`` at (H, W).
+
+    Raises:
+        ValueError: wrong shapes, NaN/inf flow inside the mask, bad options. A frame whose
+        mask is empty, tiny, on one row, or whose geometry leaves the parameters undetermined
+        gets ``success=False`` (its parameters stay finite).
+
+    Example:
+        >>> cam = Camera(torch.tensor([[700., 0, 320], [0, 700, 90], [0, 0, 1]], dtype=torch.float64), 1.65)
+        >>> flow, valid = displacement_flow(cam, 0.05, 1.0, 0.01, (192, 640))
+        >>> fit = fit_displacement(flow, valid, cam)
+        >>> round(float(fit.z_d), 6), bool(fit.success)
+        (1.0, True)
+    """
+    _check_options(robust, scale, max_iter, tol, max_points)
+    _check_fraction(min_inlier_fraction)
+    dims, camera, mask = _check_inputs(flow, mask, camera, valid)
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    out_dtype = result_dtype(flow, camera.K)
+    K, Kinv, h = (t.to(torch.float64) for t in (camera.K, camera.K_inv(), camera.height))
+    pts, obs, sel, counts = _sample(flow.detach(), mask, max_points)
+
+    roll0 = _init_value(init, "roll", B, camera.roll.to(torch.float64, copy=True))
+    pitch0 = _init_value(init, "pitch", B, camera.pitch.to(torch.float64, copy=True))
+    # the start needs few points: every k-th of the sample (zero motion where degenerate)
+    k = max(1, pts.shape[-1] // 2048)
+    lin, _ = _planar_init(K, Kinv, roll0, pitch0, pts[..., ::k], obs[..., ::k], sel[..., ::k])
+    a0 = _init_value(init, "x_d", B, lin[:, 0] * h) / h
+    b0 = _init_value(init, "z_d", B, lin[:, 1] * h) / h
+    yaw0 = _init_value(init, "yaw", B, lin[:, 2])
+    params = torch.stack([a0, b0, yaw0, roll0, pitch0], dim=-1)
+    free = torch.tensor([True, True, True, bool(fit_roll), bool(fit_pitch)], device=flow.device)
+    params, converged, iters, min_eig = _robust_lm(
+        _homography_jac, False, K, Kinv, params, free, pts, obs, sel, kind=robust, scale=scale,
+        max_iter=max_iter, tol=tol, anneal=init is None, polish=polish,
+        inlier_threshold=inlier_threshold)
+
+    finite = torch.isfinite(params).all(-1)
+    params = torch.where(finite.unsqueeze(-1), params, torch.stack([a0, b0, yaw0, roll0, pitch0], -1))
+    x_d, z_d = params[:, 0] * h, params[:, 1] * h
+    yaw, roll, pitch = params[:, 2], params[:, 3], params[:, 4]
+    cam_fit = Camera(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
+                     pitch.to(out_dtype))
+    model, model_valid = _full_flow(_homography_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
+                                    out_dtype, velocity=False)
+    inliers, residual, spread, fraction = _finish(flow.to(out_dtype), mask, model, model_valid, scale,
+                                                  inlier_threshold, min_points)
+    success = (finite & converged & spread & (min_eig > 1.0) & (counts >= min_points)
+               & (fraction >= min_inlier_fraction))
+    return FitResult(
+        x_d=x_d.to(out_dtype), z_d=z_d.to(out_dtype), yaw=yaw.to(out_dtype),
+        roll=roll.to(out_dtype), pitch=pitch.to(out_dtype), flow=model, valid=model_valid,
+        inliers=inliers, residual=residual, success=success, camera=cam_fit,
+        iterations=iters)
+
+
+@torch.no_grad()
+def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor | float, *,
+                 fit_roll: bool = True, fit_pitch: bool = False,
+                 init: "VelocityFitResult | dict | None" = None, valid: Tensor | None = None,
+                 robust: str = "cauchy", scale: float = 10.0, max_iter: int = 50,
+                 tol: float = 1e-6, max_points: int | None = 8192,
+                 inlier_threshold: float | None = None, min_points: int = 30,
+                 min_inlier_fraction: float = 0.25, polish: bool = True) -> VelocityFitResult:
+    """Fit the velocity model (paper eq. 21) to a flow field in pixels per second.
+
+    Args:
+        flow: flow (B, 2, H, W) in px/s (a displacement flow divided by the frame interval).
+        mask, camera, valid, robust, max_iter, tol, max_points, inlier_threshold, min_points,
+            min_inlier_fraction, polish: as in :func:`fit_displacement`.
+        wheelbase: axle distance l in metres (> 0), float or (B,): only converts the fitted yaw
+            rate into a steering angle δ_f = atan(φ̇ l / v_r).
+        fit_roll, fit_pitch: also fit the mounting roll / pitch (radians).
+        init: a start (a :class:`VelocityFitResult` or a dict with any of speed, steering (needs
+            wheelbase), yaw_rate, roll, pitch); default: the linear fit with the mounting fixed.
+        scale: the robust kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz).
+
+    Returns:
+        :class:`VelocityFitResult` (speed m/s, steering rad, yaw_rate rad/s, ...).
+    """
+    _check_options(robust, scale, max_iter, tol, max_points)
+    _check_fraction(min_inlier_fraction)
+    dims, camera, mask = _check_inputs(flow, mask, camera, valid)
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    out_dtype = result_dtype(flow, camera.K)
+    if isinstance(wheelbase, Tensor):
+        check_float_tensor(wheelbase, "wheelbase")
+        wb = wheelbase.detach().to(torch.float64, copy=True).reshape(-1)
+    else:
+        if isinstance(wheelbase, bool) or not isinstance(wheelbase, (int, float)):
+            raise TypeError(f"wheelbase: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
+        wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
+    if wb.numel() not in (1, B):
+        raise ValueError(f"wheelbase: expected batch 1 or {B}, got {wb.numel()} values")
+    check_finite(wb, "wheelbase")
+    check_positive(wb, "wheelbase")
+    wb = wb.to(flow.device).expand(B)
+    K, Kinv, h = (t.to(torch.float64) for t in (camera.K, camera.K_inv(), camera.height))
+    pts, obs, sel, counts = _sample(flow.detach(), mask, max_points)
+
+    roll0 = _init_value(init, "roll", B, camera.roll.to(torch.float64, copy=True))
+    pitch0 = _init_value(init, "pitch", B, camera.pitch.to(torch.float64, copy=True))
+    lin, _ = _velocity_init(K, Kinv, roll0, pitch0, pts, obs, sel, robust, scale)
+    s0 = _init_value(init, "speed", B, lin[:, 0] * h) / h
+    w_default = lin[:, 1]
+
+    def given(name: str) -> bool:
+        value = init.get(name) if isinstance(init, dict) else getattr(init, name, None)
+        return value is not None
+
+    if init is not None and given("steering") and not given("yaw_rate"):
+        # a start given as a steering angle: its yaw rate at the start speed
+        steer = _init_value(init, "steering", B, w_default)
+        w_default = s0 * h * torch.tan(steer) / wb
+    w0 = _init_value(init, "yaw_rate", B, w_default)
+    params = torch.stack([s0, w0, roll0, pitch0], dim=-1)
+    free = torch.tensor([True, True, bool(fit_roll), bool(fit_pitch)], device=flow.device)
+    params, converged, iters, min_eig = _robust_lm(
+        _velocity_jac, True, K, Kinv, params, free, pts, obs, sel, kind=robust, scale=scale,
+        max_iter=max_iter, tol=tol, anneal=init is None, polish=polish,
+        inlier_threshold=inlier_threshold)
+    finite = torch.isfinite(params).all(-1)
+    params = torch.where(finite.unsqueeze(-1), params, torch.stack([s0, w0, roll0, pitch0], -1))
+    speed, yaw_rate, roll, pitch = params[:, 0] * h, params[:, 1], params[:, 2], params[:, 3]
+    moving = speed.abs() > 1e-12
+    steering = torch.where(moving, torch.atan(yaw_rate * wb / torch.where(moving, speed, torch.ones_like(speed))),
+                           torch.zeros_like(speed))
+    cam_fit = Camera(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
+                     pitch.to(out_dtype))
+    # evaluate G directly: a steering of ±π/2 (a yaw rate at zero speed) is outside velocity_flow
+    model, model_valid = _full_flow(_velocity_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
+                                    out_dtype, velocity=True)
+    inliers, residual, spread, fraction = _finish(flow.to(out_dtype), mask, model, model_valid, scale,
+                                                  inlier_threshold, min_points)
+    success = (finite & converged & spread & (min_eig > 1.0) & (counts >= min_points)
+               & (fraction >= min_inlier_fraction))
+    return VelocityFitResult(
+        speed=speed.to(out_dtype), steering=steering.to(out_dtype), yaw_rate=yaw_rate.to(out_dtype),
+        roll=roll.to(out_dtype), pitch=pitch.to(out_dtype), flow=model, valid=model_valid,
+        inliers=inliers, residual=residual, success=success, camera=cam_fit,
+        iterations=iters, wheelbase=wb.to(out_dtype))
+
+
+def _full_flow(M: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, H: int, W: int,
+               dtype: torch.dtype, velocity: bool) -> tuple[Tensor, Tensor]:
+    """The model flow and validity on the full (H, W) grid from the fitted 3×3 map (float64),
+    evaluated in ``dtype`` (what :func:`displacement_flow` / :func:`velocity_flow` compute)."""
+    ray_row = (mounting_matrix(roll, pitch).transpose(-1, -2) @ Kinv)[:, 1:2, :]
+    return _flow_from_matrix(M.to(dtype), ray_row.to(dtype), (H, W), M.shape[0], velocity=velocity)
+
+from .fit_photometric import fit_photometric  # noqa: E402  (re-exported; it uses this module)
+
+__all__.append("fit_photometric")

@@ -1,0 +1,355 @@
+"""Tests of fsof_torch.fit: robust fits of the displacement and velocity models to flow."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.fit import (
+    ROBUST_KERNELS,
+    FitResult,
+    VelocityFitResult,
+    _homography_jac,
+    _velocity_jac,
+    fit_displacement,
+    fit_velocity,
+    robust_weight,
+)
+from fsof_torch.flow_model import displacement_flow, road_homography, velocity_flow
+
+SIZE = (64, 160)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Fits are many small ops: one thread is faster than two contending ones on a shared CPU."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)  # H != W on purpose
+
+
+def small_camera(dtype=torch.float64, roll=0.0, pitch=0.0) -> Camera:
+    """A wide camera with the horizon near the top, so that most of a small image is road."""
+    K = torch.tensor([[130.0, 0.0, 80.0], [0.0, 130.0, 16.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    return Camera(K, 1.65, roll, pitch)
+
+
+def road_mask(valid: torch.Tensor, top: int = 24) -> torch.Tensor:
+    mask = valid.clone()
+    mask[:, :, :top] = False
+    return mask
+
+
+def epe_to(fit_flow: torch.Tensor, true_flow: torch.Tensor, mask: torch.Tensor) -> float:
+    return float((fit_flow - true_flow).norm(dim=1)[mask[:, 0]].mean())
+
+
+# -- smoke -------------------------------------------------------------------------------------
+
+def test_smoke_fields_and_odometry():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 0.8, 0.01, SIZE)
+    fit = fit_displacement(flow, road_mask(valid), cam)
+    assert isinstance(fit, FitResult)
+    for name in ("x_d", "z_d", "yaw", "roll", "pitch", "residual", "success"):
+        assert getattr(fit, name).shape == (1,)
+    assert fit.flow.shape == (1, 2, *SIZE) and fit.valid.shape == (1, 1, *SIZE)
+    assert fit.inliers.dtype == torch.bool and fit.inliers.shape == (1, 1, *SIZE)
+    assert set(fit.odometry()) == {"x_d", "z_d", "yaw"}
+    assert isinstance(fit.camera, Camera) and fit.camera.batch_size == 1
+    assert bool(fit.success)
+
+
+def test_smoke_float32_input_float32_output():
+    cam = small_camera(torch.float32)
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    fit = fit_displacement(flow, road_mask(valid), cam)
+    assert fit.z_d.dtype == torch.float32 and fit.flow.dtype == torch.float32
+    assert abs(float(fit.z_d) - 1.0) < 1e-4
+
+
+# -- exceptions --------------------------------------------------------------------------------
+
+def test_exceptions_shapes_and_types():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
+        fit_displacement(flow[:, :1], valid, cam)
+    with pytest.raises(ValueError, match="mask: expected shape"):
+        fit_displacement(flow, valid[..., :10], cam)
+    with pytest.raises(TypeError, match="mask: expected dtype torch.bool"):
+        fit_displacement(flow, valid.float(), cam)
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
+        fit_displacement(flow, valid, "cam")
+    with pytest.raises(TypeError, match="flow: expected a floating-point tensor"):
+        fit_displacement(flow.long(), valid, cam)
+    with pytest.raises(ValueError, match="robust: expected one of"):
+        fit_displacement(flow, valid, cam, robust="bisquare")
+    with pytest.raises(ValueError, match="scale: expected a finite number > 0"):
+        fit_displacement(flow, valid, cam, scale=0.0)
+    with pytest.raises(ValueError, match="camera: expected batch 1 or 2"):
+        fit_displacement(flow.expand(2, -1, -1, -1), valid, cam.expand(3))
+    with pytest.raises(ValueError, match=r"min_inlier_fraction: expected a number in \[0, 1\]"):
+        fit_displacement(flow, valid, cam, min_inlier_fraction=2.0)
+    with pytest.raises(ValueError, match="wheelbase: expected values > 0"):
+        fit_velocity(flow, valid, cam, -1.0)
+
+
+def test_exceptions_nan_inside_mask_raises_outside_is_ignored():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    mask = road_mask(valid)
+    bad = flow.clone()
+    bad[0, 0, 40, 50] = float("nan")
+    with pytest.raises(ValueError, match="flow: expected finite values inside mask"):
+        fit_displacement(bad, mask, cam)
+    # excluded through valid=, or outside the mask: no error, a correct fit
+    keep = torch.ones_like(mask)
+    keep[0, 0, 40, 50] = False
+    fit = fit_displacement(bad, mask, cam, valid=keep)
+    assert bool(fit.success) and abs(float(fit.z_d) - 1.0) < 1e-8
+    bad2 = flow.clone()
+    bad2[0, :, 2, 3] = float("nan")  # above the road mask
+    assert bool(fit_displacement(bad2, mask, cam).success)
+
+
+@pytest.mark.parametrize("case", ["empty", "tiny", "one_row", "above_horizon", "no_motion", "noise"])
+def test_exceptions_degenerate_inputs_flagged(case):
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 1.0, 0.01, SIZE)
+    mask = torch.zeros_like(valid)
+    if case == "empty":
+        pass
+    elif case == "tiny":
+        mask[0, 0, 50:53, 70:73] = True
+    elif case == "one_row":
+        mask[0, 0, 50, 10:150] = True
+    elif case == "above_horizon":  # a mask where the road cannot be: the model is undefined there
+        mask[0, 0, :10] = True
+        flow = torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+    elif case == "no_motion":  # zero flow: the roll is not observable
+        mask = road_mask(valid)
+        flow = torch.zeros_like(flow)
+    elif case == "noise":  # flow that is no road motion at all: few inliers
+        mask = road_mask(valid)
+        flow = 20.0 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+    fit = fit_displacement(flow, mask, cam)
+    assert not bool(fit.success)
+    for name in ("x_d", "z_d", "yaw", "roll", "pitch", "residual"):
+        assert bool(torch.isfinite(getattr(fit, name)).all()), name
+    assert bool(torch.isfinite(fit.flow).all())
+
+
+def test_no_motion_is_fine_with_the_mounting_fixed():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 0.0, 0.0, SIZE)
+    fit = fit_displacement(flow, road_mask(valid), cam, fit_roll=False)
+    assert bool(fit.success)
+    assert float(fit.z_d.abs()) < 1e-9 and float(fit.residual) < 1e-9
+
+
+# -- cardinality -------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 3])
+def test_cardinality_batch(B):
+    cam = small_camera()
+    x_d = torch.tensor([0.03, -0.05, 0.0][:B], dtype=torch.float64)
+    z_d = torch.tensor([0.9, 1.3, 0.5][:B], dtype=torch.float64)
+    yaw = torch.tensor([0.01, -0.02, 0.0][:B], dtype=torch.float64)
+    flow, valid = displacement_flow(cam, x_d, z_d, yaw, SIZE)
+    fit = fit_displacement(flow, road_mask(valid), cam)  # camera and mask broadcast from batch 1
+    assert fit.x_d.shape == (B,) and fit.flow.shape == (B, 2, *SIZE)
+    assert fit.camera.batch_size == B and fit.success.all()
+    torch.testing.assert_close(fit.z_d, z_d, atol=1e-8, rtol=0)
+    torch.testing.assert_close(fit.yaw, yaw, atol=1e-9, rtol=0)
+
+
+def test_cardinality_batch_is_per_frame():
+    """One failing frame does not disturb the others."""
+    cam = small_camera()
+    zero = torch.zeros(2, dtype=torch.float64)
+    flow, valid = displacement_flow(cam, zero, torch.tensor([1.0, 0.7], dtype=torch.float64), zero, SIZE)
+    mask = road_mask(valid).clone()
+    mask[1] = False
+    fit = fit_displacement(flow, mask, cam)
+    assert fit.success.tolist() == [True, False]
+    assert abs(float(fit.z_d[0]) - 1.0) < 1e-9
+
+
+# -- feature -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("params", [
+    dict(x_d=0.05, z_d=1.1, yaw=0.02, roll=0.03, pitch=-0.02),
+    dict(x_d=-0.2, z_d=0.6, yaw=-0.08, roll=-0.05, pitch=0.015),
+    dict(x_d=0.0, z_d=-0.7, yaw=0.0, roll=0.0, pitch=0.0),  # reversing
+])
+def test_feature_noise_free_recovery(params):
+    """float64, no noise, no prior: every parameter to 1e-6 relative (start: camera level)."""
+    true_cam = small_camera(roll=params["roll"], pitch=params["pitch"])
+    flow, valid = displacement_flow(true_cam, params["x_d"], params["z_d"], params["yaw"], SIZE)
+    fit = fit_displacement(flow, road_mask(valid), small_camera(), fit_roll=True, fit_pitch=True)
+    assert bool(fit.success)
+    scale = {"x_d": abs(params["z_d"]), "z_d": abs(params["z_d"]), "yaw": 1.0, "roll": 1.0, "pitch": 1.0}
+    for name, value in params.items():
+        got = float(getattr(fit, name))
+        assert abs(got - value) <= 1e-6 * max(abs(value), 1e-3 * scale[name]), (name, got, value)
+    assert float(fit.residual) < 1e-6
+    torch.testing.assert_close(fit.camera.roll, torch.tensor([params["roll"]], dtype=torch.float64))
+
+
+def test_feature_analytic_jacobians_match_autodiff():
+    K = small_camera().K
+    Kinv = torch.linalg.inv(K)
+    p = torch.tensor([[0.03, 0.7, 0.02, 0.04, -0.03]], dtype=torch.float64)
+    _, J = _homography_jac(K, Kinv, p)
+    Jad = torch.func.jacfwd(lambda q: _homography_jac(K, Kinv, q)[0])(p)  # (1,3,3,1,5)
+    torch.testing.assert_close(J[0], Jad[0, :, :, 0].permute(2, 0, 1))
+    pv = torch.tensor([[4.0, 0.1, 0.04, -0.03]], dtype=torch.float64)
+    _, Jv = _velocity_jac(K, Kinv, pv)
+    Jvad = torch.func.jacfwd(lambda q: _velocity_jac(K, Kinv, q)[0])(pv)
+    torch.testing.assert_close(Jv[0], Jvad[0, :, :, 0].permute(2, 0, 1))
+
+
+def test_feature_homography_matches_flow_model():
+    """The fit's H (in units of d/h) is the flow model's road homography."""
+    cam = small_camera(roll=0.02, pitch=-0.01)
+    p = torch.tensor([[0.1 / 1.65, 1.2 / 1.65, 0.03, 0.02, -0.01]], dtype=torch.float64)
+    H, _ = _homography_jac(cam.K, cam.K_inv(), p)
+    torch.testing.assert_close(H, road_homography(cam, 0.1, 1.2, 0.03))
+
+
+def _outlier_scene(seed: int):
+    cam = small_camera(roll=0.02, pitch=-0.01)
+    flow, valid = displacement_flow(cam, 0.04, 1.2, 0.015, SIZE)
+    mask = road_mask(valid)
+    # "cars": vertical bands of the mask carrying the flow of other motions, 30% of the mask
+    cars = flow.clone()
+    covered = torch.zeros_like(mask)
+    for (a, b), motion in zip([(6, 22), (62, 78), (124, 140)],
+                              [(0.0, 0.3, 0.0), (-0.3, 2.0, -0.05), (0.2, -0.5, 0.03)]):
+        other, _ = displacement_flow(cam, *motion, SIZE)
+        cars[..., a:b] = other[..., a:b]
+        covered[..., a:b] = True
+    frac = float((covered & mask).sum() / mask.sum())
+    noise = 0.5 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(seed), dtype=flow.dtype)
+    return cam, flow, mask, flow + noise, cars + noise, frac
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_feature_outliers_within_twice_the_noise_error(seed):
+    cam, truth, mask, clean, with_cars, frac = _outlier_scene(seed)
+    assert 0.28 <= frac <= 0.32
+    start = small_camera()
+    fit0 = fit_displacement(clean, mask, start, fit_pitch=True)
+    fit1 = fit_displacement(with_cars, mask, start, fit_pitch=True)
+    assert bool(fit0.success) and bool(fit1.success)
+    err0, err1 = epe_to(fit0.flow, truth, mask), epe_to(fit1.flow, truth, mask)
+    assert err1 <= 2.0 * err0, (err0, err1)
+    assert err0 < 0.05
+    # the cars whose motion differs by more than the inlier threshold are recognised as outliers
+    cars = torch.zeros_like(mask)
+    cars[..., 62:78] = True
+    cars[..., 124:140] = True
+    cars &= mask & ((with_cars - clean).norm(dim=1, keepdim=True) > 3.0)
+    assert float(fit1.inliers[cars].float().mean()) < 0.05
+
+
+def test_feature_robust_kernels_all_fit_clean_data():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 0.8, 0.01, SIZE)
+    for kind in ROBUST_KERNELS:
+        fit = fit_displacement(flow, road_mask(valid), cam, robust=kind)
+        assert bool(fit.success), kind
+        assert abs(float(fit.z_d) - 0.8) < 1e-8, kind
+
+
+def test_feature_robust_weight_values():
+    r2 = torch.tensor([0.0, 1.0, 4.0, 16.0], dtype=torch.float64)
+    torch.testing.assert_close(robust_weight(r2, 2.0, "cauchy"), 1 / (1 + r2 / 4))
+    torch.testing.assert_close(robust_weight(r2, 2.0, "soft_l1"), (1 + r2 / 4) ** -0.5)
+    torch.testing.assert_close(robust_weight(r2, 2.0, "huber"), torch.tensor([1.0, 1.0, 1.0, 0.5], dtype=torch.float64))
+    torch.testing.assert_close(robust_weight(r2, 2.0, "tukey"), torch.tensor([1.0, 0.5625, 0.0, 0.0], dtype=torch.float64))
+
+
+def test_feature_subsampling_is_deterministic_and_close():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 1.0, 0.01, SIZE)
+    noisy = flow + 0.3 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(3), dtype=flow.dtype)
+    mask = road_mask(valid)
+    a = fit_displacement(noisy, mask, cam, max_points=500)
+    b = fit_displacement(noisy, mask, cam, max_points=500)
+    full = fit_displacement(noisy, mask, cam, max_points=None)
+    assert torch.equal(a.z_d, b.z_d)
+    assert abs(float(a.z_d - full.z_d)) < 0.02
+
+
+def test_feature_init_from_a_previous_result():
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 1.0, 0.01, SIZE)
+    first = fit_displacement(flow, road_mask(valid), cam)
+    again = fit_displacement(flow, road_mask(valid), cam, init=first)
+    assert bool(again.success) and int(again.iterations) <= 3
+    again2 = fit_displacement(flow, road_mask(valid), cam, init=dict(z_d=0.5))
+    assert abs(float(again2.z_d) - 1.0) < 1e-8
+
+
+def test_feature_velocity_noise_free_recovery():
+    cam = small_camera(roll=0.02, pitch=-0.015)
+    flow, valid = velocity_flow(cam, 12.0, 0.05, 2.7, SIZE)
+    fit = fit_velocity(flow, road_mask(valid), small_camera(), 2.7, fit_pitch=True)
+    assert isinstance(fit, VelocityFitResult) and bool(fit.success)
+    for name, value in dict(speed=12.0, steering=0.05, roll=0.02, pitch=-0.015).items():
+        assert abs(float(getattr(fit, name)) - value) <= 1e-6 * abs(value), name
+    assert set(fit.velocity()) == {"speed", "steering", "wheelbase"}
+
+
+def test_feature_velocity_batch_and_outliers():
+    cam = small_camera()
+    speed = torch.tensor([8.0, 15.0, 3.0], dtype=torch.float64)
+    steer = torch.tensor([0.0, -0.04, 0.1], dtype=torch.float64)
+    flow, valid = velocity_flow(cam, speed, steer, 2.7, SIZE)
+    noisy = flow + 2.0 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+    noisy[..., 60:80] += 200.0  # a car: far outliers in px/s
+    fit = fit_velocity(noisy, road_mask(valid), cam, 2.7)
+    assert fit.success.all()
+    torch.testing.assert_close(fit.speed, speed, atol=0.05, rtol=0.0)
+    torch.testing.assert_close(fit.steering, steer, atol=2e-3, rtol=0.0)
+
+
+# -- real data ---------------------------------------------------------------------------------
+
+def _kitti(shared_data):
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+
+    folder = shared_data / "kitti15_000000"
+    if not folder.is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    u = (raw[..., 2] - 2.0**15) / 64.0
+    v = (raw[..., 1] - 2.0**15) / 64.0
+    flow = torch.from_numpy(np.stack([u, v]))[None]
+    valid = torch.from_numpy(raw[..., 0] > 0)[None, None]
+    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
+    road = np.zeros(raw.shape[:2], np.uint8)
+    cv2.fillPoly(road, [np.asarray(poly, np.int32)], 1)
+    return cam, flow, valid, torch.from_numpy(road > 0)[None, None]
+
+
+def test_real_kitti_ground_truth_fit(shared_data):
+    cam, flow, valid, road = _kitti(shared_data)
+    use = road & valid
+    fit = fit_displacement(flow, road, cam, valid=valid)
+    assert bool(fit.success)
+    e_E = epe_to(fit.flow, flow, use)
+    assert e_E <= 0.40, e_E
+    fit_p = fit_displacement(flow, road, cam, valid=valid, fit_pitch=True)
+    assert bool(fit_p.success)
+    assert epe_to(fit_p.flow, flow, use) <= e_E + 1e-6
+    # plausible ego-motion of a car at ~50 km/h and 10 Hz
+    assert 1.0 < float(fit.z_d) < 1.8 and abs(float(fit.roll)) < 0.02

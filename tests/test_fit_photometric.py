@@ -1,0 +1,156 @@
+"""Tests of fsof_torch.fit_photometric: ego-motion from the images by direct photometric fitting."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.fit import FitResult, fit_displacement, fit_photometric
+from fsof_torch.flow_model import displacement_flow
+from fsof_torch.warp import warp_backward
+
+SIZE = (96, 256)
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Fits are many small ops: one thread is faster than two contending ones on a shared CPU."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def small_camera(dtype=torch.float64, roll=0.0, pitch=0.0) -> Camera:
+    K = torch.tensor([[200.0, 0.0, 128.0], [0.0, 200.0, 24.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    return Camera(K, 1.65, roll, pitch)
+
+
+def texture(B: int, seed: int, size=SIZE) -> torch.Tensor:
+    """Smooth random texture (B, 3, H, W) on 0..255: noise blurred at two scales."""
+    from kornia.filters import gaussian_blur2d
+
+    g = torch.Generator().manual_seed(seed)
+    H, W = size
+    noise = torch.rand(B, 1, H + 40, W + 40, generator=g, dtype=torch.float64)
+    fine = gaussian_blur2d(noise, (9, 9), (1.5, 1.5))
+    coarse = gaussian_blur2d(noise, (25, 25), (6.0, 6.0))
+    img = (fine - fine.mean()) * 4.0 + (coarse - coarse.mean()) * 12.0
+    img = (128 + 120 * img.clamp(-1, 1))[..., 20:-20, 20:-20]
+    return img.expand(B, 3, H, W).contiguous()
+
+
+def synthetic_pair(cam: Camera, x_d, z_d, yaw, B: int = 1, seed: int = 0):
+    """image2 a texture; image1 = image2 warped back by the model flow (exact on the road)."""
+    image2 = texture(B, seed)
+    flow, valid = displacement_flow(cam, x_d, z_d, yaw, SIZE)
+    image1, inb = warp_backward(image2, flow)
+    mask = valid & inb
+    mask[:, :, :34] = False  # stay away from the horizon and its tiny flows
+    return image1.float(), image2.float(), mask, flow
+
+
+# -- smoke / exceptions ------------------------------------------------------------------------
+
+def test_smoke_result_type_and_shapes():
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    fit = fit_photometric(image1, image2, mask, cam.to(torch.float32), max_iter=5)
+    assert isinstance(fit, FitResult)
+    assert fit.flow.shape == (1, 2, *SIZE) and fit.inliers.shape == (1, 1, *SIZE)
+    assert fit.z_d.shape == (1,) and fit.flow.dtype == torch.float32
+
+
+def test_exceptions():
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    with pytest.raises(ValueError, match="image2: expected shape"):
+        fit_photometric(image1, image2[..., :100], mask, cam)
+    with pytest.raises(ValueError, match="expected 1 or 3 channels"):
+        fit_photometric(image1[:, :2], image2[:, :2], mask, cam)
+    with pytest.raises(TypeError, match="mask: expected a bool tensor"):
+        fit_photometric(image1, image2, mask.float(), cam)
+    bad = image1.clone()
+    bad[0, 0, 50, 50] = float("nan")
+    with pytest.raises(ValueError, match="image1: expected finite values"):
+        fit_photometric(bad, image2, mask, cam)
+    with pytest.raises(ValueError, match="robust: expected one of"):
+        fit_photometric(image1, image2, mask, cam, robust="nope")
+
+
+def test_exceptions_empty_mask_is_flagged():
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    fit = fit_photometric(image1, image2, torch.zeros_like(mask), cam, max_iter=3)
+    assert not bool(fit.success)
+    for name in ("x_d", "z_d", "yaw", "roll", "pitch", "residual"):
+        assert bool(torch.isfinite(getattr(fit, name)).all()), name
+
+
+# -- feature -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 2])
+def test_feature_recovers_motion_from_zero_start(B):
+    cam = small_camera()
+    z_d = torch.tensor([0.8, 0.5][:B], dtype=torch.float64)
+    x_d = torch.tensor([0.03, -0.02][:B], dtype=torch.float64)
+    yaw = torch.tensor([0.01, -0.015][:B], dtype=torch.float64)
+    image1, image2, mask, flow = synthetic_pair(cam, x_d, z_d, yaw, B=B)
+    # a brightness change between the frames, absorbed by the gain and offset
+    image2 = image2 * 1.05 + 4.0
+    fit = fit_photometric(image1, image2, mask, cam.to(torch.float32), fit_roll=False)
+    assert fit.success.all()
+    epe = (fit.flow.double() - flow).norm(dim=1)[mask[:, 0]].mean()
+    assert float(epe) < 0.05
+    torch.testing.assert_close(fit.z_d.double(), z_d, atol=5e-3, rtol=0.0)
+
+
+def test_feature_init_from_flow_fit_is_used():
+    cam = small_camera()
+    image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.7, 0.01)
+    start = fit_displacement(flow, mask, cam)
+    fit = fit_photometric(image1, image2, mask, cam, init=start, levels=1, fit_roll=False)
+    assert bool(fit.success) and int(fit.iterations) < 20  # converged at the single level
+    assert abs(float(fit.z_d) - 0.7) < 5e-3
+
+
+# -- real data ---------------------------------------------------------------------------------
+
+def _kitti(shared_data):
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+
+    folder = shared_data / "kitti15_000000"
+    if not folder.is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
+    gt = torch.from_numpy(np.stack([(raw[..., 2] - 2.0**15) / 64.0, (raw[..., 1] - 2.0**15) / 64.0]))[None]
+    valid = torch.from_numpy(raw[..., 0] > 0)[None, None]
+    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
+    road = np.zeros(raw.shape[:2], np.uint8)
+    cv2.fillPoly(road, [np.asarray(poly, np.int32)], 1)
+    bgr = [cv2.imread(str(folder / f"image_1{i}.png")) for i in (0, 1)]
+    rgb = [torch.from_numpy(cv2.cvtColor(b, cv2.COLOR_BGR2RGB)).permute(2, 0, 1)[None].float() for b in bgr]
+    grey = [cv2.cvtColor(b, cv2.COLOR_BGR2GRAY) for b in bgr]
+    return cam, gt, valid, torch.from_numpy(road > 0)[None, None], rgb, grey
+
+
+def test_real_kitti_dis_then_photometric(shared_data):
+    """No ground truth used: DIS flow, a flow fit, then the photometric fit; EPE vs GT ≤ 1 px."""
+    cv2 = pytest.importorskip("cv2")
+    cam, gt, valid, road, (image1, image2), (g1, g2) = _kitti(shared_data)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(g1, g2, None)
+    flow_dis = torch.from_numpy(dis).permute(2, 0, 1)[None].double()
+    use = (road & valid)[:, 0]
+    e_dis = float((flow_dis - gt).norm(dim=1)[use].mean())
+    start = fit_displacement(flow_dis, road, cam, fit_roll=False)
+    assert not bool(start.success)  # too few inliers: DIS is wrong on most of the road
+    fit = fit_photometric(image1, image2, road, cam, init=start)
+    e_fit = float((fit.flow.double() - gt).norm(dim=1)[use].mean())
+    assert bool(fit.success)
+    assert e_fit <= 1.0, (e_dis, e_fit)
+    assert e_dis > 5.0  # DIS itself is far off on this road (about 14 px)
