@@ -1,0 +1,346 @@
+"""Tests of the procedural scene renderer: contract, errors, and its ground truth against
+independent references (the paper's formula, rigid back-projection from depth, photometric
+consistency, OpenCV DIS)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.egomotion import ego_motion_from_ackermann
+from fsof_torch.flow_model import displacement_flow, velocity_flow
+from fsof_torch.scene import (KITTI_K, KITTI_SIZE, LABELS, PRESETS, SceneConfig, collate, render_pair,
+                              render_sequence, scene_config)
+
+TINY = (40, 128)
+SMALL = (64, 160)
+MEDIUM = (96, 320)
+KEYS = {"image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", "depth", "moving",
+        "camera", "odometry", "velocity", "pose1", "pose2", "index"}
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    """The renderer runs many small tensor ops: one intra-op thread is faster on a shared machine
+    (restored afterwards)."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def default_pair64(_one_thread) -> dict:
+    return render_pair("default", 0, size=MEDIUM, dtype=torch.float64)
+
+
+# -- smoke -------------------------------------------------------------------------------------------
+
+def test_render_pair_contract(dtype):
+    pair = render_pair("default", 0, size=SMALL, dtype=dtype)
+    H, W = SMALL
+    assert KEYS <= set(pair)
+    for key, shape in (("image1", (3, H, W)), ("image2", (3, H, W)), ("flow", (2, H, W)),
+                       ("flow_velocity", (2, H, W)), ("depth", (1, H, W))):
+        assert pair[key].shape == shape and pair[key].dtype == dtype, key
+    for key in ("valid", "road", "moving"):
+        assert pair[key].shape == (1, H, W) and pair[key].dtype == torch.bool, key
+    assert pair["labels"].shape == (H, W) and pair["labels"].dtype == torch.int64
+    assert 0 <= float(pair["image1"].min()) and float(pair["image1"].max()) <= 255
+    assert float(pair["image1"].std()) > 10  # not flat
+    cam = pair["camera"]
+    assert isinstance(cam, Camera) and cam.batch_size == 1 and cam.dtype == dtype
+    assert set(pair["odometry"]) == {"x_d", "z_d", "yaw"}
+    assert set(pair["velocity"]) == {"speed", "steering", "wheelbase", "dt"}
+    assert all(isinstance(v, float) for v in [*pair["odometry"].values(), *pair["velocity"].values()])
+    for key in ("flow", "flow_velocity", "depth", "image1", "image2"):
+        assert torch.isfinite(pair[key]).all(), key
+    assert pair["pose1"].shape == (4, 4) and pair["pose1"].dtype == torch.float64
+
+
+def test_presets_exist_and_render():
+    assert {"default", "cvc-simple", "cvc-complex", "carla-straight", "carla-turning"} <= set(PRESETS)
+    for name in PRESETS:
+        pair = render_pair(name, 0, size=TINY)
+        assert pair["road"].any(), name
+        assert pair["valid"].float().mean() > 0.3, name
+
+
+def test_sequence_shares_frames_and_equals_pairs():
+    seq = render_sequence("cvc-complex", 3, size=TINY, progress=True)
+    assert len(seq) == 3 and [p["index"] for p in seq] == [0, 1, 2]
+    for a, b in zip(seq, seq[1:]):
+        torch.testing.assert_close(a["image2"], b["image1"], atol=0, rtol=0)
+    single = render_pair("cvc-complex", 2, size=TINY)
+    for key in ("image1", "image2", "flow", "valid", "labels"):
+        torch.testing.assert_close(single[key], seq[2][key], atol=0, rtol=0)
+
+
+def test_same_seed_same_pixels_other_seed_other_scene():
+    a = render_pair("default", 1, seed=3, size=TINY)
+    b = render_pair("default", 1, seed=3, size=TINY)
+    c = render_pair("default", 1, seed=4, size=TINY)
+    for key in ("image1", "image2", "flow", "valid", "labels", "depth"):
+        torch.testing.assert_close(a[key], b[key], atol=0, rtol=0)
+    assert not torch.equal(a["image1"], c["image1"])
+
+
+def test_scene_config_overrides():
+    cfg = scene_config("cvc-simple", speed_factor=4, roll=0.1)
+    assert isinstance(cfg, SceneConfig) and cfg.speed_factor == 4 and cfg.roll == 0.1
+    assert PRESETS["cvc-simple"].speed_factor == 1  # presets are not modified
+
+
+# -- exceptions ----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(preset="nope"), ValueError, "preset: expected one of"),
+    (dict(preset=3), TypeError, "preset: expected a preset name"),
+    (dict(colour="red"), TypeError, "unknown overrides"),
+    (dict(dtype=torch.float16), TypeError, "dtype: expected torch.float32 or torch.float64"),
+    (dict(index=-1), ValueError, "index: expected >= 0"),
+    (dict(size=(0, 10)), ValueError, "size: expected positive sides"),
+    (dict(size=(10.5, 10)), TypeError, "size: expected integer sides"),
+    (dict(supersample=0), ValueError, "supersample: expected an integer >= 1"),
+    (dict(x_d=0.1), ValueError, "x_d, z_d, yaw: give all three or none"),
+    (dict(steering=2.0), ValueError, "steering: expected"),
+    (dict(height=-1.0), ValueError, "height: expected > 0"),
+    (dict(speed=float("nan")), ValueError, "speed: expected a finite number"),
+    (dict(roll=1.0), ValueError, "roll, pitch: expected"),
+])
+def test_render_pair_errors(kwargs, error, match):
+    kwargs = {"preset": "default", "size": TINY, **kwargs}
+    with pytest.raises(error, match=match):
+        render_pair(**kwargs)
+
+
+def test_render_sequence_errors():
+    with pytest.raises(ValueError, match="num_pairs: expected >= 1"):
+        render_sequence("default", 0, size=SMALL)
+    with pytest.raises(TypeError, match="num_pairs: expected an int"):
+        render_sequence("default", 1.5, size=SMALL)
+    with pytest.raises(ValueError, match="pairs: expected a non-empty list"):
+        collate([])
+
+
+# -- cardinality ---------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("batch", [1, 3])
+def test_collate(batch):
+    pairs = render_sequence("cvc-simple", batch, size=(48, 80))
+    out = collate(pairs)
+    assert out["image1"].shape == (batch, 3, 48, 80)
+    assert out["valid"].shape == (batch, 1, 48, 80) and out["labels"].shape == (batch, 48, 80)
+    assert out["camera"].batch_size == batch and out["camera"].K.shape == (batch, 3, 3)
+    assert out["odometry"]["z_d"].shape == (batch,) and out["velocity"]["dt"].shape == (batch,)
+    assert out["odometry"]["z_d"].dtype == out["camera"].dtype
+    assert out["index"] == list(range(batch))
+
+
+def test_size_scales_intrinsics():
+    pair = render_pair("cvc-simple", 0, size=(75, 414))
+    ref = Camera(torch.tensor(KITTI_K, dtype=torch.float64), 1.5).scaled(414 / KITTI_SIZE[1], 75 / KITTI_SIZE[0])
+    torch.testing.assert_close(pair["camera"].K, ref.K.float())
+    assert pair["image1"].shape == (3, 75, 414)
+
+
+# -- feature: the formula against the renderer's geometry ------------------------------------------------
+
+DEG = math.pi / 180
+CROSS_CHECK = [
+    ("default", {}),
+    ("cvc-simple", {}), ("cvc-simple", {"speed_factor": 4}),
+    ("cvc-complex", {}), ("cvc-complex", {"speed_factor": 4}),
+    ("carla-straight", {}), ("carla-straight", {"roll": 5 * DEG}), ("carla-straight", {"roll": -10 * DEG}),
+    ("carla-turning", {}), ("carla-turning", {"roll": -5 * DEG}), ("carla-turning", {"roll": 10 * DEG}),
+    ("carla-turning", {"roll": 3 * DEG, "pitch": -2 * DEG, "steering": -0.15}),
+    ("default", {"x_d": 0.05, "z_d": 1.2, "yaw": 0.02}),
+    ("cvc-complex", {"x_d": -0.03, "z_d": -0.7, "yaw": -0.01}),  # reversing
+    ("default", {"speed": 0.0}),
+]
+
+
+@pytest.mark.parametrize("preset, overrides", CROSS_CHECK)
+def test_road_flow_equals_formula(preset, overrides):
+    pair = render_pair(preset, 1, size=SMALL, dtype=torch.float64, **overrides)
+    cam, odo, vel = pair["camera"], pair["odometry"], pair["velocity"]
+    flow_d, valid_d = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], SMALL)
+    flow_v, valid_v = velocity_flow(cam, vel["speed"], vel["steering"], vel["wheelbase"], SMALL)
+    road = pair["road"]
+    assert int(road.sum()) > 500
+    assert bool(valid_d[0][road].all()) and bool(valid_v[0][road].all())  # road is below the horizon
+    err_d = (pair["flow"] - flow_d[0]).norm(dim=0)[road[0]]
+    err_v = (pair["flow_velocity"] - flow_v[0]).norm(dim=0)[road[0]]
+    assert float(err_d.mean()) <= 0.01 and float(err_d.max()) < 1e-6
+    assert float(err_v.mean()) <= 0.01 and float(err_v.max()) < 1e-6
+    if "z_d" in overrides:
+        assert odo == pytest.approx({k: overrides[k] for k in ("x_d", "z_d", "yaw")})
+        assert math.copysign(1.0, vel["speed"]) == math.copysign(1.0, overrides["z_d"])
+    if "roll" in overrides:
+        assert float(cam.roll[0]) == pytest.approx(overrides["roll"])
+
+
+def test_float32_matches_float64():
+    a = render_pair("carla-turning", 0, size=SMALL, dtype=torch.float32, roll=5 * DEG)
+    b = render_pair("carla-turning", 0, size=SMALL, dtype=torch.float64, roll=5 * DEG)
+    both = a["valid"][0] & b["valid"][0]
+    assert float((a["flow"].double() - b["flow"]).norm(dim=0)[both].max()) < 0.02
+    assert float((a["image1"].double() - b["image1"]).abs().mean()) < 0.5
+    assert float((a["valid"] != b["valid"]).float().mean()) < 0.01
+
+
+def test_odometry_and_velocity_are_ackermann():
+    pair = render_pair("carla-turning", 0, size=SMALL)
+    vel, odo = pair["velocity"], pair["odometry"]
+    ego = ego_motion_from_ackermann(torch.tensor([vel["speed"]], dtype=torch.float64), vel["steering"],
+                                    vel["wheelbase"], vel["dt"])
+    assert odo["x_d"] == pytest.approx(float(ego.x_d[0]), abs=1e-12)
+    assert odo["z_d"] == pytest.approx(float(ego.z_d[0]), abs=1e-12)
+    assert odo["yaw"] == pytest.approx(float(ego.yaw[0]), abs=1e-12) and odo["yaw"] > 0
+    fast = render_pair("cvc-simple", 0, size=SMALL, speed_factor=4)
+    slow = render_pair("cvc-simple", 0, size=SMALL)
+    assert fast["odometry"]["z_d"] == pytest.approx(4 * slow["odometry"]["z_d"])
+    # the relative camera pose agrees with the odometry: p_v(t+1) = R_φ (p_v(t) - d)
+    rel = torch.linalg.inv(pair["pose2"]) @ pair["pose1"]
+    assert float(rel[:3, 3].norm()) == pytest.approx(math.hypot(odo["x_d"], odo["z_d"]), rel=1e-9)
+
+
+def _rigid_flow(pair: dict) -> torch.Tensor:
+    """Flow of static points from depth, the camera and the odometry (an independent reference)."""
+    cam, odo = pair["camera"], pair["odometry"]
+    _, H, W = pair["depth"].shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    pix = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
+    pc = (cam.K_inv()[0] @ pix) * pair["depth"].reshape(1, -1)
+    Rc = cam.mounting()[0]
+    pv = Rc.T @ pc
+    c, s = math.cos(odo["yaw"]), math.sin(odo["yaw"])
+    R_phi = torch.tensor([[c, 0, -s], [0, 1, 0], [s, 0, c]], dtype=torch.float64)
+    d = torch.tensor([[odo["x_d"]], [0.0], [odo["z_d"]]], dtype=torch.float64)
+    q = cam.K[0] @ Rc @ R_phi @ (pv - d)
+    return (q[:2] / q[2:] - pix[:2]).reshape(2, H, W)
+
+
+def test_static_structure_and_moving_cars():
+    pair = render_pair("cvc-complex", 0, size=MEDIUM, dtype=torch.float64, moving_cars=4.0)
+    labels, depth = pair["labels"], pair["depth"][0]
+    ref = _rigid_flow(pair)
+    static = (labels != LABELS["sky"]) & ~pair["moving"][0]
+    err = (pair["flow"] - ref).norm(dim=0)
+    assert float(err[static].max()) < 1e-6
+    moving = pair["moving"][0]
+    assert int(moving.sum()) > 20
+    assert float(err[moving].mean()) > 0.5  # moving cars do not move like the static world
+    assert bool((labels[moving] == LABELS["car"]).all())
+
+
+def test_velocity_flow_is_the_limit_of_displacement_flow():
+    # every pixel, moving cars included: flow / dt -> flow_velocity as dt -> 0, linearly in dt
+    errors = {}
+    for dt in (1e-2, 1e-3):
+        pair = render_pair("carla-turning", 0, size=SMALL, dtype=torch.float64, dt=dt, moving_cars=4.0,
+                           roll=0.05, pitch=-0.02)
+        for name, mask in (("static", ~pair["moving"][0]), ("moving", pair["moving"][0])):
+            mask = mask & pair["valid"][0]
+            assert int(mask.sum()) > 20, name
+            diff = (pair["flow"] / dt - pair["flow_velocity"]).norm(dim=0)[mask].mean()
+            errors[name, dt] = float(diff / pair["flow_velocity"].norm(dim=0)[mask].mean())
+    for name in ("static", "moving"):
+        assert errors[name, 1e-3] < 0.01
+        assert errors[name, 1e-3] < 0.2 * errors[name, 1e-2]
+
+
+def test_off_road_flow_is_not_plane_flow(default_pair64):
+    pair = default_pair64
+    cam, odo = pair["camera"], pair["odometry"]
+    flow_d, valid_d = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], MEDIUM)
+    labels = pair["labels"]
+    for name in ("car", "building"):
+        mask = (labels == LABELS[name]) & valid_d[0, 0]
+        assert int(mask.sum()) > 50, name
+        diff = (pair["flow"] - flow_d[0]).norm(dim=0)[mask]
+        assert float(diff.mean()) > 1.0, name
+
+
+def test_depth_on_level_road():
+    pair = render_pair("cvc-simple", 0, size=SMALL, dtype=torch.float64)
+    cam = pair["camera"]
+    v = torch.arange(SMALL[0], dtype=torch.float64).reshape(-1, 1).expand(SMALL)
+    expected = cam.height[0] * cam.fy[0] / (v - cam.cy[0])
+    road = pair["road"][0]
+    torch.testing.assert_close(pair["depth"][0][road], expected[road], atol=1e-9, rtol=1e-9)
+    assert bool((pair["depth"][0][pair["labels"] == LABELS["sky"]] == 0).all())
+
+
+def test_labels_and_masks(default_pair64):
+    pair = default_pair64
+    labels = pair["labels"]
+    assert set(labels.unique().tolist()) <= set(LABELS.values())
+    assert {LABELS["road"], LABELS["marking"], LABELS["car"], LABELS["building"], LABELS["pavement"]} <= set(labels.unique().tolist())
+    road = (labels == LABELS["road"]) | (labels == LABELS["marking"])
+    assert torch.equal(pair["road"][0], road)
+    assert not bool(pair["valid"][0][labels == LABELS["sky"]].any())
+    # leaving the view is invalid
+    H, W = MEDIUM
+    u = torch.arange(W, dtype=torch.float64) + pair["flow"][0]
+    v = torch.arange(H, dtype=torch.float64).reshape(-1, 1) + pair["flow"][1]
+    outside = (u < 0) | (u > W - 1) | (v < 0) | (v > H - 1)
+    assert int(outside.sum()) > 0 and not bool(pair["valid"][0][outside].any())
+
+
+def test_occluded_points_are_invalid():
+    # a car parked ahead at the right: road behind it that it hides at t+1 is invalid
+    seq = render_sequence("cvc-complex", 1, size=MEDIUM, dtype=torch.float64, parked_cars=6.0, start=2)
+    pair = seq[0]
+    H, W = MEDIUM
+    u = torch.arange(W, dtype=torch.float64) + pair["flow"][0]
+    v = torch.arange(H, dtype=torch.float64).reshape(-1, 1) + pair["flow"][1]
+    inside = (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1) & (pair["labels"] != LABELS["sky"])
+    occluded = inside & ~pair["valid"][0]
+    assert int(occluded.sum()) > 10
+    # what is hidden at t+1 is the background of a nearer surface there, not a surface itself
+    assert bool((pair["labels"][occluded] != LABELS["sky"]).all())
+    assert float(pair["valid"].float().mean()) > 0.5
+
+
+# -- feature: photometric consistency and trackability --------------------------------------------------
+
+def _warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    try:
+        from fsof_torch.warp import warp_backward
+    except ImportError:  # the warp module of another issue; same convention
+        import torch.nn.functional as F
+        _, H, W = image.shape
+        u = torch.arange(W, dtype=flow.dtype) + flow[0]
+        v = torch.arange(H, dtype=flow.dtype).reshape(-1, 1) + flow[1]
+        grid = torch.stack([2 * u / (W - 1) - 1, 2 * v / (H - 1) - 1], dim=-1)
+        return F.grid_sample(image[None], grid[None], align_corners=True)[0]
+    return warp_backward(image[None], flow[None], align_corners=True)[0][0]
+
+
+def test_warp_by_ground_truth_is_photometrically_consistent(default_pair64):
+    pair = default_pair64
+    warped = _warp(pair["image2"], pair["flow"])
+    mask = (pair["road"] & pair["valid"])[0]
+    mae = (warped - pair["image1"]).abs().mean(0)[mask].mean()
+    unwarped = (pair["image2"] - pair["image1"]).abs().mean(0)[mask].mean()
+    assert float(mae) <= 2.0
+    assert float(unwarped) > 2 * float(mae)
+
+
+def test_opencv_dis_tracks_the_road(default_pair64):
+    cv2 = pytest.importorskip("cv2")
+    import numpy as np
+    pair = default_pair64
+    grey = [cv2.cvtColor(pair[k].permute(1, 2, 0).numpy().astype(np.uint8), cv2.COLOR_RGB2GRAY)
+            for k in ("image1", "image2")]
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow = torch.from_numpy(dis.calc(grey[0], grey[1], None)).permute(2, 0, 1).double()
+    assert bool(torch.isfinite(flow).all())
+    mask = (pair["road"] & pair["valid"])[0]
+    epe = (flow - pair["flow"]).norm(dim=0)[mask].mean()
+    zero = pair["flow"].norm(dim=0)[mask].mean()
+    assert float(epe) < 0.5 * float(zero)  # far better than no motion at all
