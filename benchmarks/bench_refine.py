@@ -1,0 +1,115 @@
+"""Speed of the refinement step at KITTI size (1242×375), one thread.
+
+Times, as the median of repeats after a warm-up:
+
+- model + fusion with odometry given (``FreespaceRefiner`` with ``odometry``);
+- the full step without odometry: fit (``fit_displacement``) + model + fusion;
+- the same in ``confidence`` mode;
+- the parts alone: ``fit_displacement``, ``displacement_flow``, ``fuse_flow``;
+- a RAFT-style output (12 iterations, refined level by level) with odometry;
+- reference, in the same run: OpenCV DIS (PRESET_MEDIUM) on the same pair of grey images.
+
+The flow is the model flow of a known motion plus 1 px Gaussian noise and 20% of the road mask
+replaced by an obstacle's flow (outliers for the robust fit); the road mask holds about 120 000
+pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--json PATH]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from pathlib import Path
+
+import torch
+
+
+def _time(fn, repeats: int, warmup: int = 2) -> dict[str, float]:
+    for _ in range(warmup):
+        fn()
+    samples = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        samples.append((time.perf_counter() - t0) * 1e3)
+    return {"median_ms": statistics.median(samples), "min_ms": min(samples), "repeats": repeats}
+
+
+def build_case(dtype: torch.dtype = torch.float32):
+    from fsof_torch.camera import Camera
+    from fsof_torch.flow_model import displacement_flow
+
+    H, W = 375, 1242
+    K = torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    camera = Camera(K, 1.65, roll=0.01, pitch=-0.015)
+    odo = {"x_d": 0.02, "z_d": 1.0, "yaw": 0.01}
+    gt, valid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], (H, W))
+    g = torch.Generator().manual_seed(0)
+    flow = (gt + torch.randn(gt.shape, generator=g, dtype=gt.dtype)).to(dtype)
+    rows = torch.arange(H).reshape(1, 1, H, 1)
+    cols = torch.arange(W).reshape(1, 1, 1, W)
+    # a trapezoid of road in front of the car, about 120 000 pixels
+    half = (rows - 190).clamp(min=0) * 3.3 + 60
+    mask = valid & (rows >= 190) & ((cols - 610).abs() <= half)
+    car = mask & (rows >= 220) & (rows < 300) & (cols >= 700) & (cols < 1000)
+    flow = torch.where(car, flow + torch.tensor([12.0, -3.0], dtype=dtype).reshape(1, 2, 1, 1), flow)
+    return camera, odo, flow, mask, (H, W)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+
+    import cv2
+    import numpy as np
+
+    from fsof_torch.fit import fit_displacement
+    from fsof_torch.flow_model import displacement_flow
+    from fsof_torch.fusion import FreespaceRefiner, fuse_flow
+
+    cv2.setNumThreads(1)
+    camera, odo, flow, mask, size = build_case()
+    refiner = FreespaceRefiner(warn=False)
+    confidence = FreespaceRefiner(mode="confidence", warn=False)
+    model, mvalid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size)
+    raft = [flow] * 12
+    g = np.random.default_rng(0)
+    grey1 = (g.random(size) * 255).astype(np.uint8)
+    grey1 = cv2.GaussianBlur(grey1, (0, 0), 2.0)
+    grey2 = np.roll(grey1, 3, axis=1)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+
+    cases = {
+        "refine, odometry given (model + fusion)": lambda: refiner(flow, mask, camera, odo),
+        "refine, fitted odometry (fit + model + fusion)": lambda: refiner(flow, mask, camera),
+        "refine confidence, fitted odometry": lambda: confidence(flow, mask, camera),
+        "  fit_displacement alone": lambda: fit_displacement(flow, mask, camera, fit_roll=False),
+        "  displacement_flow alone": lambda: displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size),
+        "  fuse_flow alone (replace)": lambda: fuse_flow(flow, model, mask & mvalid),
+        "refine RAFT list of 12, odometry given": lambda: refiner(raft, mask, camera, odo),
+        "reference: OpenCV DIS medium (same size)": lambda: dis.calc(grey1, grey2, None),
+    }
+    with torch.no_grad():
+        results = {name: _time(fn, args.repeats) for name, fn in cases.items()}
+    fitted = refiner(flow, mask, camera)
+    width = max(len(n) for n in results)
+    print(f"refinement step at {size[1]}x{size[0]}, {int(mask.sum())} road pixels, 1 thread, "
+          f"median of {args.repeats} (torch {torch.__version__})")
+    print(f"{'case':<{width}}  median ms  min ms")
+    for name, r in results.items():
+        print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}")
+    print(f"(fitted z_d {float(fitted.odometry['z_d'][0]):.4f} m for a true {odo['z_d']}; target for the full "
+          f"step: <= 15 ms)")
+    if args.json is not None:
+        from fsof_torch.io import write_json
+
+        write_json(args.json, {"size": list(size), "road_pixels": int(mask.sum()), "threads": 1,
+                               "torch": torch.__version__, "results": results})
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

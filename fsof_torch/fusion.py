@@ -1,0 +1,553 @@
+"""Refining a learned flow with the freespace model inside the road mask (DESIGN.md §1, §9).
+
+A flow network (RAFT, ARFlow/PWC-Lite, ptlflow models, a classical method) predicts forward
+flow for an image pair. Inside the road (freespace) mask the road moves by the plane-induced
+flow of the paper (eq. 13), computed from the camera and the ego-motion; the refiner replaces
+the prediction there by that model flow (``mode="replace"``, the paper), or blends the two
+with a per-pixel weight from their disagreement under a Cauchy kernel
+(``mode="confidence"``), so that an obstacle wrongly inside the mask keeps its predicted flow.
+Ego-motion comes from the caller's odometry, or is fitted to the prediction (or to the images)
+inside the mask.
+
+Convention: flow (B, 2, H, W) in pixels of its own resolution, channel 0 = u, forward from
+frame t to t+1; masks (B, 1, H, W) bool at the finest flow's resolution; the camera's K refers
+to the finest flow's resolution (coarser levels use ``camera.scaled``).
+
+Output structures (whatever the network returns, refined level by level at its own
+resolution, same container types):
+
+- a tensor (B, 2, H, W);
+- a list or tuple of them: RAFT's per-iteration flows, a ``(flow_low, flow_up)`` pair, a pyramid
+  ``flows_12`` (ARFlow/PWC-Lite) — levels may differ in size;
+- a dict (ARFlow's ``{"flows_fw": [...]}``, ptlflow's ``{"flows": (B, N, 2, H, W), ...}``): the
+  values under ``flow_keys`` are refined (tensors, 5-D stacks, lists), every other value
+  (backward flows, occlusions, features) is passed through untouched (the same object).
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import Any, Callable, Mapping, NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._check import as_batch_param, check_float_tensor, tracing
+from .camera import Camera
+from .egomotion import EgoMotion
+from .flow_model import displacement_flow
+
+__all__ = [
+    "DEFAULT_FLOW_KEYS",
+    "RefineOutput",
+    "FreespaceRefiner",
+    "FreespaceRefined",
+    "cauchy_weight",
+    "fuse_flow",
+    "refine_flow",
+    "resize_mask",
+]
+
+#: dict keys refined by default: the forward flows of ARFlow/PWC-Lite, ptlflow, RAFT wrappers.
+#: Backward flows (``flows_bw``, ``flows_21``) are left alone: the forward model does not apply.
+DEFAULT_FLOW_KEYS = ("flow", "flows", "flows_fw", "flows_12", "flow_12", "flow_preds",
+                     "flow_up", "flow_low", "flow_small", "flow_final", "flow_init")
+
+_MODES = ("replace", "confidence")
+_FITS = ("flow", "photometric")
+
+
+class RefineOutput(NamedTuple):
+    """What :class:`FreespaceRefiner` returns (a NamedTuple: ``out.flow`` or ``flow, *_ = out``).
+
+    Attributes:
+        flow: the refined flow(s), in the structure that came in (tensor, list, tuple, dict).
+        odometry: the ego-motion used, a dict ``x_d, z_d`` (metres), ``yaw`` (radians) of (B,)
+            tensors: the caller's, or the fitted one (0 for samples that were not refined).
+        fit: the :class:`fsof_torch.fit.FitResult` when ego-motion was fitted, else None. With
+            some masks empty it covers only the other samples (``refined`` says which).
+        weight: (B, 1, H, W) the model's weight at the finest resolution: 1 where the model
+            replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
+        mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
+            ∩ model defined, for refined samples).
+        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit).
+        camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
+        flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
+    """
+
+    flow: Any
+    odometry: dict
+    fit: Any
+    weight: Tensor
+    mask: Tensor
+    refined: Tensor
+    camera: Camera
+    flow_model: Tensor
+
+
+# -- plain functions --------------------------------------------------------------------------
+
+def cauchy_weight(residual_sq: Tensor, scale: float) -> Tensor:
+    """Cauchy (Lorentzian) weight ``w = 1 / (1 + r² / c²)`` of squared residuals ``r²`` (px²).
+
+    This is ρ'(r) / r for ρ(r) = c²/2 · log(1 + r²/c²): 1 at agreement, 1/2 at r = c, → 0 for
+    large disagreement. Written on r² so the gradient is finite at r = 0.
+    """
+    return 1.0 / (1.0 + residual_sq / (scale * scale))
+
+
+def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str = "replace",
+              scale: float = 2.0) -> tuple[Tensor, Tensor]:
+    """Fuse a predicted flow with the model flow inside ``mask``; outside it the prediction is
+    returned bit for bit.
+
+    Args:
+        flow_pred: (B, 2, H, W) predicted flow, pixels.
+        flow_model: (B, 2, H, W) model flow, pixels (same size; its dtype is cast to flow_pred's).
+        mask: (B, 1, H, W) bool, where the model applies (road ∩ model defined).
+        mode: ``"replace"`` (the paper: inside the mask the flow is the model flow) or
+            ``"confidence"`` (``w · model + (1 − w) · pred`` with the Cauchy weight
+            ``w = 1 / (1 + |pred − model|² / scale²)``).
+        scale: the Cauchy scale c in pixels (``confidence`` only): where prediction and model
+            disagree by c the two get equal weight.
+
+    Returns:
+        ``(flow, weight)``: the fused flow (B, 2, H, W) in flow_pred's dtype and the model's
+        weight (B, 1, H, W) (0 outside the mask). Non-finite predicted pixels inside the mask
+        get the model flow (weight 1); outside the mask they stay as they are.
+    """
+    if mode not in _MODES:
+        raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    flow_model = flow_model.to(flow_pred.dtype)
+    if mode == "replace":
+        weight = mask.to(flow_pred.dtype)
+        return torch.where(mask, flow_model, flow_pred), weight
+    finite = torch.isfinite(flow_pred).all(dim=1, keepdim=True)
+    # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0.
+    safe_pred = torch.where(finite, flow_pred, flow_model)
+    diff = safe_pred - flow_model
+    w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
+    w = torch.where(finite, w, torch.ones_like(w))
+    blended = flow_model + (1 - w) * diff  # = w · model + (1 − w) · pred
+    weight = torch.where(mask, w, torch.zeros_like(w))
+    return torch.where(mask, blended, flow_pred), weight
+
+
+def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
+    """A bool mask (B, 1, H, W) resampled to ``size = (h, w)``.
+
+    Shrinking keeps a coarse pixel only when its whole footprint is in the mask (area averaging,
+    then ``== 1``): a coarse road pixel never straddles a car's edge. Growing uses exact nearest
+    neighbour.
+    """
+    H, W = mask.shape[-2:]
+    h, w = size
+    if (h, w) == (H, W):
+        return mask
+    m = mask.to(torch.float32)
+    if h <= H and w <= W:
+        return F.interpolate(m, size=(h, w), mode="area") > 1.0 - 1e-6
+    return F.interpolate(m, size=(h, w), mode="nearest-exact") > 0.5
+
+
+# -- structure handling -----------------------------------------------------------------------
+
+def _is_flow(x: object) -> bool:
+    return isinstance(x, Tensor) and (
+        (x.dim() == 4 and x.shape[1] == 2) or (x.dim() == 5 and x.shape[2] == 2))
+
+
+def _walk(obj: Any, name: str, flow_keys: tuple[str, ...], out: list[tuple[str, Tensor]]) -> None:
+    """Collect (name, flow) of every flow of the structure, in order (validating shapes)."""
+    if isinstance(obj, Tensor):
+        if not _is_flow(obj):
+            raise ValueError(f"{name}: expected a flow of shape (B, 2, H, W) or (B, N, 2, H, W), "
+                             f"got {tuple(obj.shape)}")
+        check_float_tensor(obj, name)
+        out.append((name, obj))
+    elif isinstance(obj, (list, tuple)):
+        if len(obj) == 0:
+            raise ValueError(f"{name}: expected a non-empty list of flows, got an empty {type(obj).__name__}")
+        for i, item in enumerate(obj):
+            _walk(item, f"{name}[{i}]", flow_keys, out)
+    elif isinstance(obj, Mapping):
+        for key, value in obj.items():
+            if key in flow_keys:
+                _walk(value, f"{name}[{key!r}]", flow_keys, out)
+    else:
+        raise TypeError(f"{name}: expected a flow tensor (B, 2, H, W), a list/tuple of them or a dict, "
+                        f"got {type(obj).__name__}")
+
+
+def _rebuild(obj: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...]) -> Any:
+    """The structure with every flow replaced by ``fn(flow)``; containers keep their type."""
+    if isinstance(obj, Tensor):
+        if obj.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
+            return torch.stack([fn(obj[:, n]) for n in range(obj.shape[1])], dim=1)
+        return fn(obj)
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a NamedTuple
+        return type(obj)(*(_rebuild(v, fn, flow_keys) for v in obj))
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_rebuild(v, fn, flow_keys) for v in obj)
+    items = {k: (_rebuild(v, fn, flow_keys) if k in flow_keys else v) for k, v in obj.items()}
+    try:
+        return type(obj)(items)
+    except TypeError:  # a Mapping type without a dict constructor
+        return items
+
+
+def _finest(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
+    """The flow to fit: the largest resolution; among equals the last (RAFT's final iterate)."""
+    best = None
+    for name, f in flows:
+        f4 = f[:, -1] if f.dim() == 5 else f
+        area = f4.shape[-2] * f4.shape[-1]
+        if best is None or area >= best[0]:
+            best = (area, name, f4)
+    return best[1], best[2]
+
+
+# -- odometry ---------------------------------------------------------------------------------
+
+def _odometry_tensors(odometry: object, B: int, dtype: torch.dtype,
+                      device: torch.device) -> dict[str, Tensor]:
+    """The caller's odometry as x_d, z_d, yaw tensors of shape (B,) (batch 1 broadcast)."""
+    if isinstance(odometry, EgoMotion):
+        values = {"x_d": odometry.x_d, "z_d": odometry.z_d, "yaw": odometry.yaw}
+    elif isinstance(odometry, Mapping):
+        missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
+        if missing:
+            raise ValueError(f"odometry: missing keys {missing}; expected a dict with x_d, z_d "
+                             f"(metres) and yaw (radians), got keys {sorted(odometry)}")
+        values = {k: odometry[k] for k in ("x_d", "z_d", "yaw")}
+    else:
+        raise TypeError(f"odometry: expected a dict with x_d, z_d, yaw, an EgoMotion or None, "
+                        f"got {type(odometry).__name__}")
+    out = {}
+    for k, v in values.items():
+        t = as_batch_param(v, f"odometry[{k!r}]")
+        if t.shape[0] not in (1, B):
+            raise ValueError(f"odometry[{k!r}]: expected a float or a tensor of shape ({B},) "
+                             f"(the flow's batch) or (1,), got shape {tuple(t.shape)}")
+        out[k] = t.to(device=device, dtype=dtype).expand(B)
+    return out
+
+
+def _camera_subset(camera: Camera, index: Tensor) -> Camera:
+    return Camera(camera.K[index], camera.height[index], camera.roll[index], camera.pitch[index])
+
+
+def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
+    out = torch.zeros(B, *values.shape[1:], dtype=values.dtype, device=values.device)
+    return out.index_copy(0, index, values)
+
+
+# -- the refinement ---------------------------------------------------------------------------
+
+def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
+                mode: str = "replace", scale: float = 2.0, fit: str = "flow",
+                images: tuple[Tensor, Tensor] | None = None, fit_roll: bool = False,
+                fit_pitch: bool = False, fit_options: Mapping[str, Any] | None = None,
+                photometric_options: Mapping[str, Any] | None = None, min_pixels: int = 100,
+                flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True) -> RefineOutput:
+    """Refine predicted flow(s) with the freespace model inside the road mask.
+
+    Args:
+        flow: the prediction: (B, 2, H, W), a list/tuple of flows (RAFT iterations, a
+            ``(low, up)`` pair, a pyramid), or a dict (ARFlow, ptlflow; see ``flow_keys``).
+            Every flow is refined at its own resolution.
+        mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size.
+        camera: :class:`Camera` (batch 1 or B), K at the finest flow's resolution.
+        odometry: ego-motion from t to t+1: a dict ``x_d, z_d, yaw`` (floats or (B,) tensors;
+            metres, radians), an :class:`EgoMotion`, or None to fit it (detached) to the finest
+            flow inside the mask (``fit="flow"``, :func:`fsof_torch.fit.fit_displacement`), or
+            to the images (``fit="photometric"``: :func:`fsof_torch.fit.fit_photometric` started
+            from the flow fit; needs ``images``).
+        mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`); ``scale`` the Cauchy
+            scale in pixels of the finest level (coarser levels scale it with their size).
+        images: ``(image1, image2)`` (B, 3, H, W) 0..255 at the finest size, for ``fit="photometric"``.
+        fit_roll, fit_pitch: also fit the camera's roll / pitch (else the camera's are kept).
+        fit_options: further keyword arguments for ``fit_displacement``.
+        photometric_options: further keyword arguments for ``fit_photometric``.
+        min_pixels: without odometry, samples with fewer usable mask pixels are not fitted and
+            are left unchanged (``refined`` False); with odometry only an empty mask is.
+        flow_keys: the dict keys whose values are forward flows to refine.
+        warn: warn when samples are left unchanged or non-finite predictions are masked.
+
+    Returns:
+        :class:`RefineOutput`. Pixels outside the (resampled) mask, and samples left unchanged,
+        are bit for bit the prediction; the caller's tensors are never modified. The result is
+        differentiable with respect to the prediction and, when given, to the camera and the
+        odometry (the fit itself is detached).
+
+    Non-finite predicted values: they are left out of the fit; inside the mask the model
+    replaces them (both modes); outside the mask they are returned as they came.
+    """
+    if mode not in _MODES:
+        raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    if fit not in _FITS:
+        raise ValueError(f"fit: expected one of {_FITS}, got {fit!r}")
+    if not (scale > 0 and math.isfinite(scale)):
+        raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    flow_keys = tuple(flow_keys)
+    flows: list[tuple[str, Tensor]] = []
+    _walk(flow, "flow", flow_keys, flows)
+    if not flows:
+        raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
+                         f"one of the keys {flow_keys} (set flow_keys)")
+    _, finest = _finest(flows)
+    B, _, H, W = finest.shape
+    for name, f in flows:
+        if f.shape[0] != B:
+            raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
+    if not isinstance(mask, Tensor):
+        raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {type(mask).__name__}")
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask: expected a bool tensor (threshold a probability map first), got dtype {mask.dtype}")
+    if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[0] not in (1, B) or tuple(mask.shape[-2:]) != (H, W):
+        raise ValueError(f"mask: expected shape ({B}, 1, {H}, {W}) (the finest flow's size), got {tuple(mask.shape)}")
+    if camera.batch_size not in (1, B):
+        raise ValueError(f"camera: expected batch 1 or {B} (the flow's batch), got {camera.batch_size}")
+    device = finest.device
+    mask = mask.to(device).expand(B, 1, H, W)
+    # The model flow is computed in the prediction's dtype (half lifted to float32): float32
+    # evaluates the road homography to about 1e-3 px, far below any network's error, at half
+    # the cost of float64; a float64 prediction gets float64 geometry.
+    geo_dtype = torch.float32 if finest.dtype in (torch.float16, torch.bfloat16) else finest.dtype
+    camera = camera.to(device=device, dtype=geo_dtype).expand(B)
+
+    finite = torch.isfinite(finest).all(dim=1, keepdim=True)
+    fit_mask = mask & finite
+    counts = fit_mask.flatten(1).sum(dim=1)
+    # min_pixels guards the fit; with odometry given any mask pixel can be refined.
+    refined = counts >= (min_pixels if odometry is None else 1)
+    if warn and not tracing():
+        n_bad = int((mask & ~finite).sum())
+        if n_bad:
+            warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left out "
+                          f"of the fit and replaced by the model flow", RuntimeWarning, stacklevel=3)
+
+    fit_result = None
+    if odometry is not None:
+        odo = _odometry_tensors(odometry, B, geo_dtype, device)
+        cam_model = camera
+    else:
+        odo, cam_model, fit_result, refined = _fit(
+            finest, fit_mask, camera, refined, fit=fit, images=images, fit_roll=fit_roll,
+            fit_pitch=fit_pitch, fit_options=fit_options or {},
+            photometric_options=photometric_options or {})
+
+    if warn and not tracing() and not bool(refined.all()):
+        bad = (~refined).nonzero().flatten().tolist()
+        why = ("an empty mask" if odometry is not None
+               else f"fewer than {min_pixels} usable mask pixels or a failed fit")
+        warnings.warn(f"mask: samples {bad} left unchanged ({why}); see RefineOutput.refined",
+                      RuntimeWarning, stacklevel=3)
+
+    sample_ok = refined.reshape(B, 1, 1, 1)
+    cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
+
+    def level(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
+        """Model flow and fusion mask at a level's size (computed once per size)."""
+        if size not in cache:
+            h, w = size
+            cam = cam_model if (h, w) == (H, W) else cam_model.scaled(w / W, h / H)
+            f_model, valid = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], (h, w))
+            m = resize_mask(mask, (h, w)) & valid & sample_ok
+            cache[size] = (f_model, m)
+        return cache[size]
+
+    weights: dict[tuple[int, int], Tensor] = {}
+
+    def refine_one(f: Tensor) -> Tensor:
+        size = (f.shape[-2], f.shape[-1])
+        f_model, m = level(size)
+        # The Cauchy scale is in pixels of the level: a coarse level's flow is proportionally smaller.
+        c = scale * math.sqrt(size[0] * size[1] / (H * W))
+        out, w = fuse_flow(f, f_model, m, mode=mode, scale=c)
+        if size == (H, W):
+            weights[size] = w
+        return out
+
+    refined_flow = _rebuild(flow, refine_one, flow_keys)
+    f_model, m = level((H, W))
+    weight = weights.get((H, W))
+    if weight is None:  # pragma: no cover - the finest level is always visited
+        weight = m.to(finest.dtype)
+    return RefineOutput(refined_flow, odo, fit_result, weight, m, refined, cam_model, f_model)
+
+
+def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, fit: str,
+         images: tuple[Tensor, Tensor] | None, fit_roll: bool, fit_pitch: bool,
+         fit_options: Mapping[str, Any], photometric_options: Mapping[str, Any]):
+    """Fit ego-motion (detached) to the samples with enough mask pixels; scatter back to B."""
+    B = finest.shape[0]
+    dtype, device = camera.dtype, camera.device
+    zeros = torch.zeros(B, dtype=dtype, device=device)
+    if fit == "photometric":
+        if images is None:
+            raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
+        if not isinstance(images, (tuple, list)) or len(images) != 2:
+            raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
+        for i, im in enumerate(images):
+            check_float_tensor(im, f"images[{i}]")
+            if im.dim() != 4 or im.shape[0] != B or tuple(im.shape[-2:]) != tuple(finest.shape[-2:]):
+                raise ValueError(f"images[{i}]: expected shape ({B}, C, {finest.shape[-2]}, "
+                                 f"{finest.shape[-1]}), got {tuple(im.shape)}")
+    if not bool(refined.any()):
+        return {"x_d": zeros, "z_d": zeros.clone(), "yaw": zeros.clone()}, camera, None, refined
+    from .fit import fit_displacement  # the fitting layer (imported when needed)
+
+    index = refined.nonzero().flatten()
+    subset = index.numel() < B
+    with torch.no_grad():
+        f = finest.detach()
+        f = torch.where(fit_mask, f, torch.zeros_like(f)).to(dtype)  # no NaN reaches the fit
+        m = fit_mask
+        cam = camera.to(dtype)
+        cam_d = Camera(cam.K.detach(), cam.height.detach(), cam.roll.detach(), cam.pitch.detach())
+        if subset:
+            f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
+        result = fit_displacement(f, m, cam_d, fit_roll=fit_roll, fit_pitch=fit_pitch, **fit_options)
+        if fit == "photometric":
+            try:
+                from .fit import fit_photometric
+            except ImportError:  # kept in its own module
+                from .fit_photometric import fit_photometric
+
+            im1, im2 = (im.detach() for im in images)
+            if subset:
+                im1, im2 = im1[index], im2[index]
+            result = fit_photometric(im1, im2, m, cam_d, init=result, fit_roll=fit_roll,
+                                     fit_pitch=fit_pitch, **photometric_options)
+    ok = result.success.to(device=device, dtype=torch.bool)
+    odo = {k: _scatter(getattr(result, k).detach().to(dtype), index, B) for k in ("x_d", "z_d", "yaw")}
+    refined = refined.clone()
+    refined[index] = refined[index] & ok
+    cam_model = camera
+    if fit_roll or fit_pitch:
+        # The fitted mounting, attached to the caller's camera so K and height keep their graph.
+        roll = camera.roll.index_copy(0, index, result.roll.detach().to(dtype)) if fit_roll else camera.roll
+        pitch = camera.pitch.index_copy(0, index, result.pitch.detach().to(dtype)) if fit_pitch else camera.pitch
+        cam_model = camera.replace(roll=roll, pitch=pitch)
+    return odo, cam_model, result, refined
+
+
+class FreespaceRefiner(nn.Module):
+    """``nn.Module`` twin of :func:`refine_flow`: post-processes a flow network's output.
+
+    Args (keyword-only):
+        mode: ``"replace"`` (the paper: inside the road mask the flow becomes the model flow) or
+            ``"confidence"`` (Cauchy-weighted blend; an obstacle in the mask keeps its flow).
+        scale: Cauchy scale in pixels (finest level) for ``confidence``.
+        fit: ``"flow"`` or ``"photometric"``: how ego-motion is estimated when no odometry is given.
+        fit_roll, fit_pitch: fit the camera's roll / pitch as well (default: keep the camera's).
+        fit_options: extra keyword arguments for ``fit_displacement``.
+        photometric_options: extra keyword arguments for ``fit_photometric``.
+        min_pixels: without odometry, fewer usable mask pixels leave the sample unchanged.
+        flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`).
+
+    Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None) -> RefineOutput``.
+
+    Example:
+        >>> refiner = FreespaceRefiner(mode="replace")
+        >>> flows = raft(image1, image2)                       # list of (B, 2, H, W)
+        >>> out = refiner(flows, road, camera, {"x_d": 0.0, "z_d": 1.2, "yaw": 0.0})
+        >>> flow = out.flow[-1]                                # same structure as ``flows``
+    """
+
+    def __init__(self, *, mode: str = "replace", scale: float = 2.0, fit: str = "flow",
+                 fit_roll: bool = False, fit_pitch: bool = False,
+                 fit_options: Mapping[str, Any] | None = None,
+                 photometric_options: Mapping[str, Any] | None = None, min_pixels: int = 100,
+                 flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True) -> None:
+        super().__init__()
+        if mode not in _MODES:
+            raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+        if fit not in _FITS:
+            raise ValueError(f"fit: expected one of {_FITS}, got {fit!r}")
+        if not (float(scale) > 0 and math.isfinite(float(scale))):
+            raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+        if int(min_pixels) < 1:
+            raise ValueError(f"min_pixels: expected >= 1, got {min_pixels!r}")
+        self.mode = mode
+        self.scale = float(scale)
+        self.fit = fit
+        self.fit_roll = bool(fit_roll)
+        self.fit_pitch = bool(fit_pitch)
+        self.fit_options = dict(fit_options or {})
+        self.photometric_options = dict(photometric_options or {})
+        self.min_pixels = int(min_pixels)
+        self.flow_keys = tuple(flow_keys)
+        self.warn = bool(warn)
+
+    def forward(self, flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
+                images: tuple[Tensor, Tensor] | None = None) -> RefineOutput:
+        return refine_flow(flow, mask, camera, odometry, mode=self.mode, scale=self.scale,
+                           fit=self.fit, images=images, fit_roll=self.fit_roll,
+                           fit_pitch=self.fit_pitch, fit_options=self.fit_options,
+                           photometric_options=self.photometric_options,
+                           min_pixels=self.min_pixels, flow_keys=self.flow_keys, warn=self.warn)
+
+    def extra_repr(self) -> str:
+        extra = f", scale={self.scale}" if self.mode == "confidence" else ""
+        return f"mode={self.mode!r}{extra}, fit={self.fit!r}, fit_roll={self.fit_roll}, fit_pitch={self.fit_pitch}"
+
+
+class FreespaceRefined(nn.Module):
+    """A flow network with freespace refinement attached: a drop-in replacement for ``net``.
+
+    Args:
+        net: any module called as ``net(image1, image2, **kw)`` returning flow in one of the
+            structures :func:`refine_flow` accepts (RAFT list, ``(low, up)``, ARFlow/ptlflow dict).
+        refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
+        road: None (the caller passes ``mask``) or ``"auto"``: when no mask is given, detect the
+            freespace on the prediction with :func:`fsof_torch.vflow.detect_freespace`.
+        road_options: keyword arguments for ``detect_freespace``.
+
+    Forward: ``model(image1, image2, *, mask=None, camera, odometry=None, return_info=False, **kw)``
+    returns the net's output with its forward flows refined (same structure), or
+    ``(output, RefineOutput)`` with ``return_info=True``. Images (B, 3, H, W) as the net wants
+    them; the mask, the camera and the finest flow share one resolution. The refiner receives
+    the images too (for ``fit="photometric"``).
+    """
+
+    def __init__(self, net: nn.Module, refiner: FreespaceRefiner | None = None, *,
+                 road: str | None = None, road_options: Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        if not callable(net):
+            raise TypeError(f"net: expected a callable flow network, got {type(net).__name__}")
+        if refiner is not None and not isinstance(refiner, FreespaceRefiner):
+            raise TypeError(f"refiner: expected a FreespaceRefiner, got {type(refiner).__name__}")
+        if road not in (None, "auto"):
+            raise ValueError(f"road: expected None or 'auto', got {road!r}")
+        self.net = net
+        self.refiner = refiner if refiner is not None else FreespaceRefiner()
+        self.road = road
+        self.road_options = dict(road_options or {})
+
+    def forward(self, image1: Tensor, image2: Tensor, *, mask: Tensor | None = None,
+                camera: Camera, odometry: object = None, return_info: bool = False, **kw: Any):
+        output = self.net(image1, image2, **kw)
+        if mask is None:
+            if self.road != "auto":
+                raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
+                                 "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
+            flows: list[tuple[str, Tensor]] = []
+            _walk(output, "output", self.refiner.flow_keys, flows)
+            _, finest = _finest(flows)
+            from .vflow import detect_freespace  # freespace detection (imported when needed)
+
+            with torch.no_grad():
+                cam = camera.to(device=finest.device)
+                mask = detect_freespace(finest.detach(), cam, **self.road_options)
+        images = None
+        if image1.dim() == 4 and image2.dim() == 4:
+            images = (image1, image2)
+        info = self.refiner(output, mask, camera, odometry,
+                            images=images if self.refiner.fit == "photometric" else None)
+        return (info.flow, info) if return_info else info.flow

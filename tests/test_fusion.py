@@ -1,0 +1,452 @@
+"""FreespaceRefiner / FreespaceRefined: structures, invariants, gradients, bad input, wrappers."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fsof_torch.camera import Camera
+from fsof_torch.egomotion import EgoMotion
+from fsof_torch.flow_model import displacement_flow
+from fsof_torch.fusion import (
+    FreespaceRefined,
+    FreespaceRefiner,
+    RefineOutput,
+    cauchy_weight,
+    fuse_flow,
+    refine_flow,
+    resize_mask,
+)
+
+H, W = 48, 120
+ODO = {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01}
+
+
+def make_camera(dtype=torch.float64, B=1, **kw) -> Camera:
+    K = torch.tensor([[90.0, 0, 60.0], [0, 90.0, 14.0], [0, 0, 1]], dtype=dtype)
+    return Camera(K.expand(B, 3, 3), 1.65, **kw)
+
+
+def make_case(B=1, dtype=torch.float32, size=(H, W), noise=1.0, seed=0):
+    """Model flow of ODO, a noisy prediction, a road mask (model valid, below row 24)."""
+    g = torch.Generator().manual_seed(seed)
+    cam = make_camera(B=B)
+    gt, valid = displacement_flow(make_camera(), ODO["x_d"], ODO["z_d"], ODO["yaw"], size)
+    gt, valid = gt.expand(B, 2, *size), valid.expand(B, 1, *size)
+    pred = (gt + noise * torch.randn(gt.shape, generator=g, dtype=gt.dtype)).to(dtype)
+    mask = valid.clone()
+    mask[..., : size[0] // 2, :] = False
+    return pred, mask, cam, gt
+
+
+def road_epe(flow, gt, mask):
+    return (flow.double() - gt.double()).norm(dim=1)[mask[:, 0]].mean().item()
+
+
+# -- smoke --------------------------------------------------------------------------------------
+
+def test_smoke_replace_with_odometry():
+    pred, mask, cam, gt = make_case()
+    out = FreespaceRefiner()(pred, mask, cam, ODO)
+    assert isinstance(out, RefineOutput)
+    assert out.flow.shape == pred.shape and out.flow.dtype == pred.dtype
+    assert road_epe(out.flow, gt, mask) < 1e-4 < road_epe(pred, gt, mask)
+    assert torch.equal(out.weight, out.mask.to(pred.dtype))
+    assert out.fit is None and bool(out.refined.all())
+    assert out.flow_model.shape == (1, 2, H, W)
+
+
+def test_module_repr_and_options():
+    r = FreespaceRefiner(mode="confidence", scale=3.0)
+    assert "confidence" in repr(r) and "scale=3.0" in repr(r)
+
+
+def test_ego_motion_odometry_equals_dict():
+    pred, mask, cam, _ = make_case()
+    ego = EgoMotion(torch.tensor([ODO["x_d"]]), torch.tensor([ODO["z_d"]]), torch.tensor([ODO["yaw"]]))
+    a = FreespaceRefiner()(pred, mask, cam, ego).flow
+    b = FreespaceRefiner()(pred, mask, cam, ODO).flow
+    torch.testing.assert_close(a, b)
+
+
+# -- invariants ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_outside_mask_bit_for_bit(mode):
+    pred, mask, cam, _ = make_case(B=2)
+    g = torch.Generator().manual_seed(3)
+    mask = mask & (torch.rand(mask.shape, generator=g) > 0.3)  # ragged mask
+    out = FreespaceRefiner(mode=mode)(pred, mask, cam, ODO)
+    outside = ~mask.expand_as(pred)
+    assert torch.equal(out.flow[outside], pred[outside])
+    assert bool((out.weight[~mask] == 0).all())
+
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_caller_tensors_not_modified(mode):
+    pred, mask, cam, _ = make_case()
+    low = F.interpolate(pred, scale_factor=0.5, mode="bilinear") * 0.5
+    odo = {k: torch.tensor([v], dtype=torch.float64) for k, v in ODO.items()}
+    saved = [t.clone() for t in (pred, low, mask, cam.K, cam.height, *odo.values())]
+    FreespaceRefiner(mode=mode)([low, pred], mask, cam, odo)
+    for before, after in zip(saved, (pred, low, mask, cam.K, cam.height, *odo.values())):
+        assert torch.equal(before, after)
+
+
+def test_samples_are_independent():
+    pred, mask, cam, _ = make_case(B=3)
+    out3 = FreespaceRefiner()(pred, mask, cam, ODO).flow
+    out1 = FreespaceRefiner()(pred[1:2], mask[1:2], make_camera(), ODO)
+    torch.testing.assert_close(out3[1:2], out1.flow)
+
+
+# -- cardinality ----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 3])
+@pytest.mark.parametrize("size", [(40, 100), (64, 48)])
+def test_cardinality(B, size, dtype):
+    pred, mask, cam, gt = make_case(B=B, dtype=dtype, size=size)
+    odo = {k: torch.full((B,), v, dtype=dtype) for k, v in ODO.items()}
+    out = FreespaceRefiner()(pred, mask, cam.to(dtype), odo)
+    assert out.flow.shape == (B, 2, *size) and out.flow.dtype == dtype
+    assert out.mask.shape == (B, 1, *size) and out.refined.shape == (B,)
+    assert out.odometry["z_d"].shape == (B,)
+    assert road_epe(out.flow, gt, out.mask) < 1e-3
+
+
+# -- structures -----------------------------------------------------------------------------------
+
+def _pyramid(pred, levels=(1, 2, 4)):
+    return [pred if s == 1 else F.interpolate(pred, scale_factor=1 / s, mode="area") / s for s in levels]
+
+
+def test_list_of_iterations():
+    pred, mask, cam, gt = make_case()
+    flows = [pred * 0.5, pred * 0.9, pred]
+    out = FreespaceRefiner()(flows, mask, cam, ODO)
+    assert isinstance(out.flow, list) and len(out.flow) == 3
+    for f in out.flow:
+        assert road_epe(f, gt, mask) < 1e-4
+
+
+def test_low_up_pair_each_at_own_resolution():
+    pred, mask, cam, gt = make_case()
+    low = F.interpolate(pred, scale_factor=0.25, mode="area") * 0.25
+    out = FreespaceRefiner()((low, pred), mask, cam, ODO)
+    assert isinstance(out.flow, tuple) and out.flow[0].shape == low.shape
+    gt_low, _ = displacement_flow(cam.scaled(0.25), ODO["x_d"], ODO["z_d"], ODO["yaw"], low.shape[-2:])
+    m_low = resize_mask(mask, low.shape[-2:])
+    assert bool(m_low.any())
+    assert road_epe(out.flow[0], gt_low, m_low) < 1e-4
+    assert torch.equal(out.flow[0][~m_low.expand_as(low)], low[~m_low.expand_as(low)])
+
+
+def test_low_level_model_matches_resampled_full_resolution_model():
+    """Our choice: a coarse level's model comes from the scaled camera; it agrees with the
+    full-resolution model flow area-averaged and scaled (to interpolation error)."""
+    cam = make_camera(roll=0.02)
+    size = (128, 320)
+    cam = Camera(cam.K * torch.tensor([[2.0, 1, 2.0], [1, 2.0, 2.0], [1, 1, 1]], dtype=torch.float64), 1.65, roll=0.02)
+    full, valid = displacement_flow(cam, 0.1, 1.2, 0.02, size)
+    for s in (2, 4, 8):
+        low = torch.zeros(1, 2, size[0] // s, size[1] // s, dtype=torch.float64)
+        out = refine_flow([full, low], valid, cam, {"x_d": 0.1, "z_d": 1.2, "yaw": 0.02})
+        resampled = F.interpolate(full, size=low.shape[-2:], mode="area") / s
+        m = resize_mask(valid, low.shape[-2:]) & (out.flow[1] != 0).any(1, keepdim=True)
+        diff = (out.flow[1] - resampled).norm(dim=1)[m[:, 0]]
+        assert diff.numel() > 0 and diff.max().item() < 0.02 and diff.mean().item() < 0.01
+
+
+def test_arflow_dict_backward_untouched():
+    pred, mask, cam, gt = make_case()
+    bw = [-p for p in _pyramid(pred)]
+    res = {"flows_fw": _pyramid(pred), "flows_bw": bw, "note": "x"}
+    out = FreespaceRefiner()(res, mask, cam, ODO)
+    assert set(out.flow) == {"flows_fw", "flows_bw", "note"}
+    assert out.flow["flows_bw"] is bw and out.flow["note"] == "x"
+    assert [f.shape for f in out.flow["flows_fw"]] == [f.shape for f in res["flows_fw"]]
+    assert road_epe(out.flow["flows_fw"][0], gt, mask) < 1e-4
+    assert not torch.equal(out.flow["flows_fw"][2], res["flows_fw"][2])  # coarse level refined too
+
+
+def test_ptlflow_dict():
+    pred, mask, cam, gt = make_case(B=2)
+    occ = torch.zeros(2, 1, 1, H, W)
+    res = {"flows": torch.stack([pred, pred * 2], dim=1), "occs": occ, "flow_preds": [pred, pred]}
+    out = FreespaceRefiner()(res, mask, cam, ODO)
+    assert out.flow["flows"].shape == (2, 2, 2, H, W) and out.flow["occs"] is occ
+    for n in range(2):
+        assert road_epe(out.flow["flows"][:, n], gt, mask) < 1e-4
+    assert isinstance(out.flow["flow_preds"], list)
+
+
+def test_dict_without_flow_keys():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match="no flow found"):
+        FreespaceRefiner()({"other": pred}, mask, cam, ODO)
+    out = FreespaceRefiner(flow_keys=("other",))({"other": pred}, mask, cam, ODO)
+    assert out.flow["other"].shape == pred.shape
+
+
+# -- confidence fusion ------------------------------------------------------------------------------
+
+def test_fuse_flow_formula():
+    pred = torch.tensor([[[[3.0]], [[4.0]]]])
+    model = torch.zeros_like(pred)
+    mask = torch.ones(1, 1, 1, 1, dtype=torch.bool)
+    out, w = fuse_flow(pred, model, mask, mode="confidence", scale=5.0)
+    assert w.item() == pytest.approx(0.5)  # r = 5 = c
+    torch.testing.assert_close(out, 0.5 * pred)
+    assert cauchy_weight(torch.tensor(0.0), 1.0).item() == 1.0
+
+
+def test_confidence_keeps_a_car_inside_the_mask():
+    pred, mask, cam, gt = make_case(noise=0.3)
+    car = torch.zeros_like(mask)
+    car[..., 30:40, 40:70] = True
+    pred = torch.where(car & mask, pred + torch.tensor([15.0, -2.0]).reshape(1, 2, 1, 1), pred)
+    conf = FreespaceRefiner(mode="confidence", scale=2.0)(pred, mask, cam, ODO)
+    repl = FreespaceRefiner(mode="replace")(pred, mask, cam, ODO)
+    in_car = (car & mask)[:, 0]
+    car_keep = (conf.flow - pred).norm(dim=1)[in_car].mean().item()
+    assert car_keep < 0.5  # the car keeps (nearly) its flow
+    assert (repl.flow - pred).norm(dim=1)[in_car].mean().item() > 14  # replace overwrites it
+    road = mask & ~car
+    assert road_epe(conf.flow, gt, road) < 0.5 * road_epe(pred, gt, road)
+
+
+# -- gradients --------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_gradcheck_prediction_camera_odometry(mode):
+    size = (8, 12)
+    K = torch.tensor([[10.0, 0, 6.0], [0, 10.0, 2.0], [0, 0, 1]], dtype=torch.float64)
+    base = Camera(K, 1.65)
+    gt, valid = displacement_flow(base, 0.0, 1.0, 0.0, size)
+    g = torch.Generator().manual_seed(0)
+    pred = (gt + torch.randn(gt.shape, generator=g, dtype=torch.float64)).requires_grad_()
+    h = torch.tensor([1.65], dtype=torch.float64, requires_grad=True)
+    z = torch.tensor([1.0], dtype=torch.float64, requires_grad=True)
+    yaw = torch.tensor([0.01], dtype=torch.float64, requires_grad=True)
+    mask = valid.clone()
+    mask[..., 5:, :3] = False
+
+    def f(pred, h, z, yaw):
+        out = refine_flow(pred, mask, Camera(K, h), {"x_d": 0.0, "z_d": z, "yaw": yaw}, mode=mode,
+                          min_pixels=1)
+        return out.flow
+
+    assert torch.autograd.gradcheck(f, (pred, h, z, yaw))
+
+
+def test_gradients_reach_prediction_outside_and_camera_inside():
+    pred, mask, cam, _ = make_case()
+    pred = pred.double().requires_grad_()
+    K = cam.K.clone().requires_grad_()
+    z = torch.tensor([1.0], dtype=torch.float64, requires_grad=True)
+    out = FreespaceRefiner()(pred, mask, Camera(K, 1.65), {"x_d": 0.0, "z_d": z, "yaw": 0.0})
+    out.flow.sum().backward()
+    assert torch.equal(pred.grad, (~mask).expand_as(pred).double())  # replace: outside only
+    assert K.grad.abs().sum() > 0 and z.grad.abs().sum() > 0
+
+
+# -- bad input --------------------------------------------------------------------------------------
+
+def test_mask_of_a_different_size():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match=r"mask: expected shape \(1, 1, 48, 120\)"):
+        FreespaceRefiner()(pred, mask[..., :-1], cam, ODO)
+
+
+def test_mask_not_bool():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(TypeError, match="mask: expected a bool tensor"):
+        FreespaceRefiner()(pred, mask.float(), cam, ODO)
+
+
+@pytest.mark.parametrize("odometry", [ODO, None])
+def test_all_false_mask_returns_prediction_with_warning(odometry):
+    pred, mask, cam, _ = make_case()
+    with pytest.warns(RuntimeWarning, match="left unchanged"):
+        out = FreespaceRefiner()([pred, pred], torch.zeros_like(mask), cam, odometry)
+    assert torch.equal(out.flow[0], pred) and torch.equal(out.flow[1], pred)
+    assert not bool(out.refined.any()) and not bool(out.mask.any())
+
+
+def test_nan_prediction_inside_and_outside_mask():
+    pred, mask, cam, gt = make_case()
+    bad = pred.clone()
+    bad[0, :, 40, 10] = float("nan")  # inside the mask (row 40 is road)
+    bad[0, 0, 2, 3] = float("nan")  # outside
+    assert bool(mask[0, 0, 40, 10]) and not bool(mask[0, 0, 2, 3])
+    for mode in ("replace", "confidence"):
+        with pytest.warns(RuntimeWarning, match="non-finite"):
+            out = FreespaceRefiner(mode=mode)(bad, mask, cam, ODO)
+        assert torch.isfinite(out.flow[0, :, 40, 10]).all()
+        torch.testing.assert_close(out.flow[0, :, 40, 10], gt[0, :, 40, 10].float())
+        assert torch.isnan(out.flow[0, 0, 2, 3])
+        assert torch.isfinite(out.flow[~torch.isnan(bad)]).all()
+
+
+def test_odometry_wrong_batch_size():
+    pred, mask, cam, _ = make_case(B=2)
+    odo = {"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}
+    with pytest.raises(ValueError, match=r"odometry\['z_d'\]: expected .* shape \(2,\)"):
+        FreespaceRefiner()(pred, mask, cam, odo)
+
+
+def test_odometry_missing_key_and_bad_type():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match="odometry: missing keys"):
+        FreespaceRefiner()(pred, mask, cam, {"z_d": 1.0})
+    with pytest.raises(TypeError, match="odometry: expected a dict"):
+        FreespaceRefiner()(pred, mask, cam, [0.0, 1.0, 0.0])
+
+
+def test_bad_options_and_flows():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match="mode: expected one of"):
+        FreespaceRefiner(mode="blend")
+    with pytest.raises(ValueError, match="scale: expected"):
+        FreespaceRefiner(scale=0.0)
+    with pytest.raises(ValueError, match=r"flow: expected a flow of shape"):
+        FreespaceRefiner()(pred[:, :1], mask, cam, ODO)
+    with pytest.raises(TypeError, match="flow: expected a flow tensor"):
+        FreespaceRefiner()("flow", mask, cam, ODO)
+    with pytest.raises(ValueError, match="camera: expected batch 1 or 1"):
+        FreespaceRefiner()(pred, mask, make_camera(B=2), ODO)
+
+
+# -- fitted odometry (fsof_torch.fit) ----------------------------------------------------------------
+
+def test_fitted_odometry_recovers_motion_and_refines():
+    pred, mask, cam, gt = make_case(B=2, noise=1.0)
+    out = FreespaceRefiner()(pred, mask, cam)
+    assert out.fit is not None and bool(out.refined.all())
+    torch.testing.assert_close(out.odometry["z_d"], torch.full((2,), ODO["z_d"], dtype=pred.dtype),
+                               atol=0.05, rtol=0)
+    assert road_epe(out.flow, gt, mask) < 0.3 * road_epe(pred, gt, mask)
+    assert not out.odometry["z_d"].requires_grad
+
+
+def test_fitted_odometry_with_one_empty_sample():
+    pred, mask, cam, gt = make_case(B=2)
+    mask = mask.clone()
+    mask[1] = False
+    with pytest.warns(RuntimeWarning, match=r"samples \[1\] left unchanged"):
+        out = FreespaceRefiner()(pred, mask, cam)
+    assert out.refined.tolist() == [True, False]
+    assert torch.equal(out.flow[1], pred[1])
+    assert road_epe(out.flow[:1], gt[:1], mask[:1]) < 0.5
+
+
+# -- the wrapper ---------------------------------------------------------------------------------------
+
+class StandIn(nn.Module):
+    """A 'network' returning a noisy model flow in a chosen output structure, with one parameter."""
+
+    def __init__(self, kind: str):
+        super().__init__()
+        self.kind = kind
+        self.gain = nn.Parameter(torch.ones(()))
+
+    def forward(self, image1, image2, iters=3):
+        pred, _, _, _ = make_case(B=image1.shape[0])
+        pred = pred * self.gain
+        low = F.interpolate(pred, scale_factor=0.25, mode="area") * 0.25
+        if self.kind == "tensor":
+            return pred
+        if self.kind == "list":
+            return [pred * (i + 1) / iters for i in range(iters)]
+        if self.kind == "pair":
+            return low, pred
+        if self.kind == "arflow":
+            return {"flows_fw": _pyramid(pred), "flows_bw": [-f for f in _pyramid(pred)]}
+        return {"flows": pred.unsqueeze(1), "flow_small": low}
+
+
+@pytest.mark.parametrize("kind", ["tensor", "list", "pair", "arflow", "ptlflow"])
+def test_wrapper_each_structure(kind):
+    net = StandIn(kind)
+    model = FreespaceRefined(net, FreespaceRefiner())
+    images = torch.zeros(2, 3, H, W)
+    _, mask, cam, gt = make_case(B=2)
+    raw = net(images, images)
+    out, info = model(images, images, mask=mask, camera=cam, odometry=ODO, return_info=True)
+    assert type(out) is type(raw)
+    finest = {"tensor": lambda o: o, "list": lambda o: o[-1], "pair": lambda o: o[1],
+              "arflow": lambda o: o["flows_fw"][0], "ptlflow": lambda o: o["flows"][:, 0]}[kind]
+    assert road_epe(finest(out), gt, mask) < 1e-4
+    outside = ~mask.expand(2, 2, H, W)
+    assert torch.equal(finest(out)[outside], finest(raw)[outside])
+    finest(out).sum().backward()  # gradients reach the network's parameters
+    assert net.gain.grad is not None and net.gain.grad.abs() > 0
+
+
+def test_wrapper_needs_a_mask():
+    model = FreespaceRefined(StandIn("tensor"))
+    images = torch.zeros(1, 3, H, W)
+    with pytest.raises(ValueError, match="mask: expected a road mask"):
+        model(images, images, camera=make_camera(), odometry=ODO)
+    with pytest.raises(ValueError, match="road: expected None or 'auto'"):
+        FreespaceRefined(StandIn("tensor"), road="yes")
+
+
+def test_wrapper_with_the_test_net():
+    from fsof_torch.testnet import TinyRAFT
+
+    net = TinyRAFT(seed=0)
+    model = FreespaceRefined(net, FreespaceRefiner())
+    g = torch.Generator().manual_seed(0)
+    image1 = torch.rand(1, 3, H, W, generator=g) * 255
+    image2 = torch.roll(image1, 1, dims=-1)
+    _, mask, cam, gt = make_case()
+    raw = net(image1, image2)
+    out = model(image1, image2, mask=mask, camera=cam, odometry=ODO)
+    assert isinstance(out, list) and len(out) == len(raw)
+    assert road_epe(out[-1], gt, mask) < 1e-4
+    assert torch.equal(out[-1][~mask.expand(1, 2, H, W)], raw[-1][~mask.expand(1, 2, H, W)])
+
+
+def test_wrapper_road_auto():
+    """With road='auto' the mask comes from freespace detection on the prediction."""
+    K = torch.tensor([[180.0, 0, 120.0], [0, 180.0, 28.0], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.65)
+
+    class Exact2(nn.Module):
+        def forward(self, image1, image2):
+            flow, _ = displacement_flow(cam, 0.0, 1.0, 0.0, (96, 240))
+            return [flow.float()]
+
+    model = FreespaceRefined(Exact2(), FreespaceRefiner(), road="auto")
+    images = torch.zeros(1, 3, 96, 240)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out, info = model(images, images, camera=cam, odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0},
+                          return_info=True)
+    assert info.mask.shape == (1, 1, 96, 240) and bool(info.mask.any())
+    assert isinstance(out, list)
+
+
+def test_photometric_fit_from_the_images():
+    """fit='photometric': ego-motion from the two images (started from the flow fit)."""
+    from fsof_torch.scene import render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    gt, road = p["flow"][None], p["road"][None]
+    g = torch.Generator().manual_seed(0)
+    # a prediction that is badly wrong where road flow is large (as classical flow on weak texture)
+    rows = torch.arange(96).reshape(1, 1, 96, 1)
+    pred = gt * torch.where(rows > 70, 0.6, 1.0) + 0.3 * torch.randn(gt.shape, generator=g)
+    images = (p["image1"][None], p["image2"][None])
+    out = FreespaceRefiner(fit="photometric")(pred, road, p["camera"], images=images)
+    sel = road & p["valid"][None]
+    assert bool(out.refined.all())
+    assert road_epe(out.flow, gt, sel) < 0.3 < road_epe(pred, gt, sel)
+    assert out.odometry["z_d"].item() == pytest.approx(p["odometry"]["z_d"], rel=0.05)
+    with pytest.raises(ValueError, match="images: fit='photometric' needs images"):
+        FreespaceRefiner(fit="photometric")(pred, road, p["camera"])
