@@ -18,6 +18,7 @@ __all__ = [
     "check_shape",
     "check_float_tensor",
     "check_finite",
+    "check_all_finite",
     "check_positive",
     "check_size",
     "as_batch_param",
@@ -101,8 +102,10 @@ def check_size(size: object, name: str = "size") -> tuple[int, int]:
 
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
-                   device: torch.device | None = None) -> Tensor:
-    """A per-frame scalar as a 1-D tensor: a Python number -> (1,), a 0-d or (B,) tensor kept."""
+                   device: torch.device | None = None, *, finite: bool = True) -> Tensor:
+    """A per-frame scalar as a 1-D tensor: a Python number -> (1,), a 0-d or (B,) tensor kept.
+
+    ``finite=False`` leaves the finiteness check to the caller (see :func:`check_all_finite`)."""
     if isinstance(x, Tensor):
         if not x.is_floating_point():
             raise TypeError(f"{name}: expected a float tensor or a Python number, got dtype {x.dtype}")
@@ -116,8 +119,21 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
         x = torch.tensor([float(x)], dtype=dtype or torch.get_default_dtype(), device=device)
     else:
         raise TypeError(f"{name}: expected a float, or a tensor of shape (B,), got {type(x).__name__}")
-    check_finite(x, name)
+    if finite:
+        check_finite(x, name)
     return x
+
+
+def check_all_finite(named: dict[str, Tensor]) -> None:
+    """:func:`check_finite` for several small tensors of one dtype with one reduction (the
+    common case costs one check, not one per argument); the error names the first bad one."""
+    if tracing() or not named:
+        return
+    values = list(named.values())
+    flat = torch.cat([t.reshape(-1) for t in values]) if len(values) > 1 else values[0]
+    if not bool(torch.isfinite(flat).all()):
+        for name, t in named.items():
+            check_finite(t, name)
 
 
 def resolve_batch(named: dict[str, int]) -> int:

@@ -23,7 +23,6 @@ from ._check import (
     as_batch_param,
     check_finite,
     check_positive,
-    check_shape,
     resolve_batch,
     result_dtype,
     tracing,
@@ -82,9 +81,10 @@ class Camera:
             raise TypeError(f"K: expected a torch.Tensor of shape (3, 3) or (B, 3, 3), got {type(K).__name__}")
         if not K.is_floating_point():
             raise TypeError(f"K: expected a floating-point tensor, got dtype {K.dtype}")
+        if K.dim() not in (2, 3) or K.shape[-2:] != (3, 3):
+            raise ValueError(f"K: expected shape (3, 3) or (B, 3, 3), got {tuple(K.shape)}")
         if K.dim() == 2:
             K = K.unsqueeze(0)
-        check_shape(K, "K", ("B", 3, 3))
         tensors = [K] + [t for t in (self.height, self.roll, self.pitch) if isinstance(t, Tensor)]
         for name in ("height", "roll", "pitch"):
             t = getattr(self, name)
@@ -269,7 +269,11 @@ def _camera_flatten(cam: Camera):
 
 
 def _camera_unflatten(values, _context) -> Camera:
-    return Camera(*values)
+    # Rebuild without validation: the leaves come from a Camera that was validated, and while
+    # torch.export builds its inputs they are fake tensors whose values cannot be checked.
+    cam = object.__new__(Camera)
+    cam.K, cam.height, cam.roll, cam.pitch = values
+    return cam
 
 
 try:  # let torch.compile / torch.export see a Camera as a container of tensors

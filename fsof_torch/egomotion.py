@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
-from .camera import Camera, mounting_matrix
+from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose"]
 
@@ -45,10 +45,10 @@ def _as_4x4(T: Tensor, name: str) -> Tensor:
     if not isinstance(T, Tensor) or not T.is_floating_point():
         raise TypeError(f"{name}: expected a float tensor of shape (B, 4, 4) or (B, 3, 4), got "
                         f"{type(T).__name__ if not isinstance(T, Tensor) else T.dtype}")
+    if T.dim() not in (2, 3) or T.shape[-1] != 4 or T.shape[-2] not in (3, 4):
+        raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
     if T.dim() == 2:
         T = T.unsqueeze(0)
-    if T.dim() != 3 or T.shape[-1] != 4 or T.shape[-2] not in (3, 4):
-        raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
     check_finite(T, name)
     if T.shape[-2] == 3:
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 1, 4)

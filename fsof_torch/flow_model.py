@@ -26,7 +26,15 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ._check import as_batch_param, check_positive, check_size, resolve_batch, result_dtype, tracing
+from ._check import (
+    as_batch_param,
+    check_all_finite,
+    check_positive,
+    check_size,
+    resolve_batch,
+    result_dtype,
+    tracing,
+)
 from .camera import Camera
 
 __all__ = [
@@ -57,22 +65,28 @@ def _params(camera: Camera, named: dict[str, object]) -> tuple[Camera, dict[str,
     """Validate per-frame parameters, resolve the batch size and the common dtype."""
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    given = [as_batch_param(v, n) for n, v in named.items() if isinstance(v, Tensor)]
+    given = [as_batch_param(v, n, finite=False) for n, v in named.items() if isinstance(v, Tensor)]
     dtype = result_dtype(camera.K, *given)
     # Python floats are converted straight to the common dtype (no float32 round trip).
-    tensors = {n: as_batch_param(v, n, dtype, camera.device) for n, v in named.items()}
+    tensors = {n: as_batch_param(v, n, dtype, camera.device, finite=False) for n, v in named.items()}
+    check_all_finite(tensors)
     B = resolve_batch({"camera": camera.batch_size, **{n: t.shape[0] for n, t in tensors.items()}})
     if camera.dtype != dtype:
         camera = camera.to(dtype)
+    if camera.batch_size != B:
+        camera = camera.expand(B)
+    # every parameter to (B,): the 3×3 maps are built with torch.stack, which does not broadcast
+    tensors = {n: t.expand(B) for n, t in tensors.items()}
     return camera, tensors, B
 
 
-def _vehicle_ray_row(camera: Camera, Rc: Tensor) -> Tensor:
+def _vehicle_ray_row(camera: Camera, Rc: Tensor, K_inv: Tensor | None = None) -> Tensor:
     """The row a (B, 1, 3) with ``a · p̃`` = y component of the pixel's vehicle-frame ray.
 
     The ray meets the road in front of the camera iff this is > 0 (λ1 > 0 of the paper).
     """
-    return (Rc.transpose(-1, -2) @ camera.K_inv())[:, 1:2, :]
+    K_inv = camera.K_inv() if K_inv is None else K_inv
+    return Rc[:, :, 1:2].transpose(-1, -2) @ K_inv  # row 1 of R_cᵀ K⁻¹
 
 
 def road_homography(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
@@ -88,7 +102,8 @@ def road_homography(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
     return _homography(camera, camera.mounting(), p["x_d"], p["z_d"], p["yaw"])
 
 
-def _homography(camera: Camera, Rc: Tensor, x_d: Tensor, z_d: Tensor, yaw: Tensor) -> Tensor:
+def _homography(camera: Camera, Rc: Tensor, x_d: Tensor, z_d: Tensor, yaw: Tensor,
+                K_inv: Tensor | None = None) -> Tensor:
     c, s = torch.cos(yaw), torch.sin(yaw)
     h = camera.height
     z, o = torch.zeros_like(c), torch.ones_like(c)
@@ -98,7 +113,8 @@ def _homography(camera: Camera, Rc: Tensor, x_d: Tensor, z_d: Tensor, yaw: Tenso
     inner = torch.stack([c, -(c * a - s * b), -s,
                          z, o, z,
                          s, -(s * a + c * b), c], dim=-1).reshape(-1, 3, 3)
-    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ camera.K_inv()
+    K_inv = camera.K_inv() if K_inv is None else K_inv
+    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ K_inv
 
 
 def road_velocity_matrix(camera: Camera, speed: Tensor | float, steering: Tensor | float,
@@ -110,14 +126,15 @@ def road_velocity_matrix(camera: Camera, speed: Tensor | float, steering: Tensor
 
 
 def _velocity_matrix(camera: Camera, Rc: Tensor, speed: Tensor, steering: Tensor,
-                     wheelbase: Tensor) -> Tensor:
+                     wheelbase: Tensor, K_inv: Tensor | None = None) -> Tensor:
     yaw_rate = speed * torch.tan(steering) / wheelbase
     z = torch.zeros_like(yaw_rate)
     # dR_φ/dt - ḋ nᵀ / h with ḋ = (0, 0, v_r)
     inner = torch.stack([z, z, -yaw_rate,
                          z, z, z,
                          yaw_rate, -speed / camera.height, z], dim=-1).reshape(-1, 3, 3)
-    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ camera.K_inv()
+    K_inv = camera.K_inv() if K_inv is None else K_inv
+    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ K_inv
 
 
 def _check_velocity_values(steering: Tensor, wheelbase: Tensor) -> None:
@@ -148,9 +165,9 @@ def displacement_flow(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
     """
     size = check_size(size)
     camera, p, B = _params(camera, {"x_d": x_d, "z_d": z_d, "yaw": yaw})
-    Rc = camera.mounting()
-    Hmat = _homography(camera, Rc, p["x_d"], p["z_d"], p["yaw"])
-    return _flow_from_matrix(Hmat, _vehicle_ray_row(camera, Rc), size, B, velocity=False)
+    Rc, K_inv = camera.mounting(), camera.K_inv()
+    Hmat = _homography(camera, Rc, p["x_d"], p["z_d"], p["yaw"], K_inv)
+    return _flow_from_matrix(Hmat, _vehicle_ray_row(camera, Rc, K_inv), size, B, velocity=False)
 
 
 def velocity_flow(camera: Camera, speed: Tensor | float, steering: Tensor | float,
@@ -170,27 +187,116 @@ def velocity_flow(camera: Camera, speed: Tensor | float, steering: Tensor | floa
     size = check_size(size)
     camera, p, B = _params(camera, {"speed": speed, "steering": steering, "wheelbase": wheelbase})
     _check_velocity_values(p["steering"], p["wheelbase"])
-    Rc = camera.mounting()
-    G = _velocity_matrix(camera, Rc, p["speed"], p["steering"], p["wheelbase"])
-    return _flow_from_matrix(G, _vehicle_ray_row(camera, Rc), size, B, velocity=True)
+    Rc, K_inv = camera.mounting(), camera.K_inv()
+    G = _velocity_matrix(camera, Rc, p["speed"], p["steering"], p["wheelbase"], K_inv)
+    return _flow_from_matrix(G, _vehicle_ray_row(camera, Rc, K_inv), size, B, velocity=True)
 
 
 def _flow_from_matrix(M: Tensor, ray_row: Tensor, size: tuple[int, int], B: int,
                       velocity: bool) -> tuple[Tensor, Tensor]:
-    """Evaluate a per-frame 3×3 map on the pixel grid (one batched matmul, then a few passes)."""
+    """Evaluate a per-frame 3×3 map M on the pixel grid as row terms plus column terms.
+
+    ``q = M p̃`` is separable: ``q_k(u, v) = M[k,0] u + (M[k,1] v + M[k,2])``, so each per-pixel
+    quantity is an outer sum (or outer product) of an (H,) and a (W,) vector: no (3, H*W) grid,
+    no k=3 matmul (slow), no eager boolean ``torch.where`` (slow on CPU). The flow numerator
+    ``q_xy - p q_z`` (p = (u, v)) is, per channel, ``a[v] + b[u] - l[v] r[u]``:
+
+        x: (q_x v-terms) + (q_x u-terms - u q_z u-terms) - (q_z v-terms) u
+        y: (q_y v-terms - v q_z v-terms) + (q_y u-terms) - v (q_z u-terms)
+
+    Displacement: ``flow = num / q_z`` where valid; velocity: ``flow = num``. Elsewhere the flow
+    is exactly 0, with a denominator that cannot be 0, so neither the value nor the gradient can
+    be inf or NaN. Three spellings of the same arithmetic, each the fastest where it runs:
+    compiled (selects, fused by inductor), eager with autograd (0/1 float masks), eager without
+    autograd (the same, in place).
+    """
     H, W = size
-    grid = pixel_grid(size, M.dtype, M.device)
-    rows = torch.cat([M, ray_row], dim=1).expand(B, 4, 3)
-    q = rows @ grid  # (B, 4, H*W): q_x, q_y, q_z, ray_y
-    xy, qz, ray_y = q[:, :2], q[:, 2:3], q[:, 3:4]
-    if velocity:
-        valid = ray_y > 0
-        flow = xy - grid[:2] * qz
-    else:
-        valid = (ray_y > 0) & (qz > 0)
-        flow = xy / torch.where(valid, qz, torch.ones_like(qz)) - grid[:2]
-    flow = torch.where(valid, flow, torch.zeros_like(flow))
-    return flow.reshape(B, 2, H, W), valid.reshape(B, 1, H, W)
+    dtype, device = M.dtype, M.device
+    M = M.expand(B, 3, 3)
+    a = ray_row.expand(B, 1, 3)[:, 0].detach()  # only its sign is used
+    u = torch.arange(W, dtype=dtype, device=device)
+    v = torch.arange(H, dtype=dtype, device=device)
+    col = M[:, :, 0:1] * u                  # (B, 3, W): the u-terms of q
+    row = M[:, :, 1:2] * v + M[:, :, 2:3]   # (B, 3, H): the v-terms and constants of q
+    a_v = torch.stack([row[:, 0], row[:, 1] - v * row[:, 2]], dim=1)         # (B, 2, H)
+    b_u = torch.stack([col[:, 0] - u * col[:, 2], col[:, 1]], dim=1)         # (B, 2, W)
+    l_v = torch.stack([row[:, 2], v.expand(B, H)], dim=1)                    # (B, 2, H)
+    r_u = torch.stack([u.expand(B, W), col[:, 2]], dim=1)                    # (B, 2, W)
+    tiny = torch.finfo(dtype).tiny
+    if tracing() or M.requires_grad:
+        num = (a_v.unsqueeze(-1) + b_u.unsqueeze(-2)).addcmul_(l_v.unsqueeze(-1), r_u.unsqueeze(-2),
+                                                              value=-1.0)    # (B, 2, H, W)
+        # y component of the pixel's vehicle-frame ray: > 0 below the horizon (λ1 > 0)
+        ray_y = (a[:, 1:2] * v + a[:, 2:3]).unsqueeze(-1) + (a[:, 0:1] * u).unsqueeze(-2)  # (B, H, W)
+        qz = None if velocity else row[:, 2].unsqueeze(-1) + col[:, 2].unsqueeze(-2)  # (B, H, W)
+    if tracing():
+        # Compiled: inductor turns the select into a vector blend, all in one loop over the flow.
+        # The condition is used once (a bool used twice would be stored, slowly); the clamped
+        # denominator keeps the unused branch and its gradient finite.
+        edge = ray_y if velocity else torch.minimum(ray_y, qz.detach())  # valid: both > 0
+        cond = (edge > 0).unsqueeze(1)
+        valid = _valid_mask(a, row, col, u, v, velocity)
+        if velocity:
+            return torch.where(cond, num, 0.0), valid
+        return torch.where(cond, num / qz.clamp_min(tiny).unsqueeze(1), 0.0), valid
+    if M.requires_grad:
+        # Eager with autograd: a 0/1 float mask instead of a select (eager CPU selects are slow).
+        # sign(.) is 1 on the valid side, 0 or -1 elsewhere: clamped, a 0/1 mask.
+        edge = ray_y if velocity else torch.minimum(ray_y, qz.detach())
+        mask = torch.sign(edge).clamp_min(0).unsqueeze(1)
+        if velocity:
+            return num * mask, mask.bool()
+        # 1 / q_z on valid pixels, 0 elsewhere (also where q_z = 0); the backward pass never
+        # divides 0 by 0 because the clamped denominator is positive.
+        return num * (mask / qz.clamp_min(tiny).unsqueeze(1)), mask.bool()
+    # Eager without autograd: the same arithmetic in place, frame by frame, with q_z kept in the
+    # output's first plane until it is needed there: one (H, W) temporary in all, which stays in
+    # cache. Each fresh full-size tensor costs page faults on CPU, often more than the arithmetic.
+    flow = torch.empty(B, 2, H, W, dtype=dtype, device=device)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=device)
+    ray_v, ray_u = a[:, 1:2] * v + a[:, 2:3], a[:, 0:1] * u
+    for b in range(B):
+        f = flow[b:b + 1]
+        edge = ray_v[b:b + 1].unsqueeze(-1) + ray_u[b:b + 1].unsqueeze(-2)  # the one temporary
+        if not velocity:
+            qz = torch.add(row[b:b + 1, 2].unsqueeze(-1), col[b:b + 1, 2].unsqueeze(-2), out=f[:, 0])
+            torch.minimum(edge, qz, out=edge)
+        mask = edge.sign_().clamp_min_(0).unsqueeze(1)
+        valid[b:b + 1].copy_(mask)
+        if not velocity:
+            mask.div_(qz.clamp_min_(tiny).unsqueeze(1))  # now 1 / q_z or 0; q_z's plane is free
+        torch.add(a_v[b:b + 1].unsqueeze(-1), b_u[b:b + 1].unsqueeze(-2), out=f)
+        f.addcmul_(l_v[b:b + 1].unsqueeze(-1), r_u[b:b + 1].unsqueeze(-2), value=-1.0).mul_(mask)
+    return flow, valid
+
+
+def _valid_mask(a: Tensor, row: Tensor, col: Tensor, u: Tensor, v: Tensor, velocity: bool) -> Tensor:
+    """``valid`` (B, 1, H, W) bool for compiled and exported graphs, built to compile cheaply.
+
+    The same sign test as the flow's select (bit for bit: IEEE addition commutes), spelled
+    differently (column term first, ceil of a clamp) so that inductor does not merge the two and
+    keep a full-size mask in memory for both: recomputing it from the (H,) and (W,) terms is
+    cheaper than the round trip. The last step, uint8 to bool, is an opaque custom op running the
+    eager cast: inductor's CPU code for any bool result (a comparison, a cast, a bit cast) is an
+    element-by-element loop that costs more than the whole flow (torch 2.13).
+    """
+    edge = (a[:, 0:1] * u).unsqueeze(-2) + (a[:, 1:2] * v + a[:, 2:3]).unsqueeze(-1)
+    if not velocity:
+        qz = col[:, 2].detach().unsqueeze(-2) + row[:, 2].detach().unsqueeze(-1)
+        edge = torch.minimum(qz, edge)
+    # ceil(clamp(x, 0, 1)) is 1 for x > 0 and 0 (or -0) for x <= 0
+    return _uint8_to_bool(edge.clamp(0, 1).ceil().to(torch.uint8).unsqueeze(1))
+
+
+@torch.library.custom_op("fsof_torch::uint8_to_bool", mutates_args=())
+def _uint8_to_bool(mask: Tensor) -> Tensor:
+    """``mask != 0`` as a new bool tensor (the eager cast, vectorised)."""
+    return mask.bool()
+
+
+@_uint8_to_bool.register_fake
+def _(mask: Tensor) -> Tensor:
+    return torch.empty_like(mask, dtype=torch.bool)
 
 
 class DisplacementFlow(nn.Module):

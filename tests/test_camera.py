@@ -1,0 +1,268 @@
+"""Tests of fsof_torch.camera: the batched camera (intrinsics + mounting), KITTI calibration files."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from fsof_torch.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
+from fsof_torch.flow_model import displacement_flow, velocity_flow
+
+CAM_TO_CAM = """calib_time: 09-Jan-2012 13:57:47
+corner_dist: 9.950000e-02
+S_02: 1.392000e+03 5.120000e+02
+K_02: 9.597910e+02 0.000000e+00 6.960217e+02 0.000000e+00 9.569251e+02 2.241806e+02 0.000000e+00 0.000000e+00 1.000000e+00
+P_rect_00: 7.0e+02 0.0 6.0e+02 0.0 0.0 7.0e+02 1.8e+02 0.0 0.0 0.0 1.0 0.0
+P_rect_02: 7.215377e+02 0.000000e+00 6.095593e+02 4.485728e+01 0.000000e+00 7.215377e+02 1.728540e+02 2.163791e-01 0.000000e+00 0.000000e+00 1.000000e+00 2.745884e-03
+"""
+
+ODOMETRY_LABELLED = """P0: 7.070912e+02 0.0 6.018873e+02 0.0 0.0 7.070912e+02 1.831104e+02 0.0 0.0 0.0 1.0 0.0
+P1: 7.070912e+02 0.0 6.018873e+02 -3.798145e+02 0.0 7.070912e+02 1.831104e+02 0.0 0.0 0.0 1.0 0.0
+P2: 7.1e+02 0.0 6.1e+02 4.6e+01 0.0 7.1e+02 1.9e+02 -3.3e-01 0.0 0.0 1.0 3.0e-03
+Tr: 4.276802e-04 -9.999672e-01 -8.084492e-03 -1.198459e-02 -7.210626e-03 8.081198e-03 -9.999413e-01 -5.403984e-02 9.999738e-01 4.859485e-04 -7.206933e-03 -2.921968e-01
+"""
+
+ODOMETRY_UNLABELLED = """7.070912e+02 0.0 6.018873e+02 0.0 0.0 7.070912e+02 1.831104e+02 0.0 0.0 0.0 1.0 0.0
+7.070912e+02 0.0 6.018873e+02 -3.798145e+02 0.0 7.070912e+02 1.831104e+02 0.0 0.0 0.0 1.0 0.0
+"""
+
+
+def _K(fx=721.5377, fy=721.5377, cx=609.5593, cy=172.854, dtype=torch.float64):
+    return torch.tensor([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]], dtype=dtype)
+
+
+# --- smoke -----------------------------------------------------------------------------------------
+
+def test_smoke(kitti_K, dtype):
+    cam = Camera(kitti_K.to(dtype), 1.65)
+    assert cam.batch_size == 1 and cam.dtype == dtype and cam.device == torch.device("cpu")
+    assert cam.K.shape == (1, 3, 3) and cam.height.shape == (1,) and cam.roll.shape == (1,)
+    assert cam.fx.tolist() == pytest.approx([721.5377]) and cam.cy.tolist() == pytest.approx([172.854])
+    assert cam.fy.tolist() == pytest.approx([721.5377]) and cam.cx.tolist() == pytest.approx([609.5593])
+
+
+def test_docstring_example():
+    cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), 1.65)
+    assert cam.batch_size == 1 and cam.fx.tolist() == [721.5]
+
+
+def test_dtype_promotion():
+    cam = Camera(_K(dtype=torch.float32), torch.tensor([1.65], dtype=torch.float64))
+    assert cam.dtype == torch.float64 and cam.height.dtype == torch.float64
+    cam = Camera(_K(dtype=torch.float16), 1.65)
+    assert cam.dtype == torch.float32  # half precision lifted
+
+
+def test_rotation_matrices():
+    t = torch.tensor([0.3], dtype=torch.float64)
+    c, s = math.cos(0.3), math.sin(0.3)
+    torch.testing.assert_close(roll_matrix(t)[0], torch.tensor([[c, s, 0], [-s, c, 0], [0, 0, 1.0]],
+                                                               dtype=torch.float64))
+    torch.testing.assert_close(pitch_matrix(t)[0], torch.tensor([[1.0, 0, 0], [0, c, s], [0, -s, c]],
+                                                                dtype=torch.float64))
+    torch.testing.assert_close(mounting_matrix(t, -t), roll_matrix(t) @ pitch_matrix(-t))
+    cam = Camera(_K(), 1.65, 0.3, -0.3)
+    torch.testing.assert_close(cam.mounting(), mounting_matrix(t, -t))
+
+
+def test_K_inv(kitti_K):
+    K = kitti_K.clone()
+    K[0, 1] = 0.7  # skew
+    cam = Camera(K, 1.65)
+    torch.testing.assert_close(cam.K_inv()[0], torch.linalg.inv(K), rtol=1e-12, atol=1e-15)
+
+
+def test_horizon_row_separates_valid_pixels():
+    H, W = 40, 60
+    cam = Camera(_K(50.0, 55.0, 30.0, 18.0), 1.5, 0.1, 0.02)
+    _, valid = velocity_flow(cam, 1.0, 0.0, 2.7, (H, W))
+    for u in (0, 29, 59):
+        row = float(cam.horizon_row(torch.tensor([float(u)], dtype=torch.float64)))
+        column = valid[0, 0, :, u]
+        v = torch.arange(H, dtype=torch.float64)
+        assert torch.equal(column, v > row)
+    level = Camera(_K(50.0, 55.0, 30.0, 18.0), 1.5, 0.0, 0.02)  # pitch β > 0: horizon below v_0
+    assert float(level.horizon_row()) == pytest.approx(18.0 + 55.0 * math.tan(0.02), abs=1e-9)
+
+
+def test_to_expand_replace():
+    cam = Camera(_K(), 1.65, 0.01)
+    c32 = cam.to(torch.float32)
+    assert c32.dtype == torch.float32 and c32.height.dtype == torch.float32
+    c3 = cam.expand(3)
+    assert c3.batch_size == 3 and c3.K.shape == (3, 3, 3) and c3.roll.tolist() == [0.01] * 3
+    r = cam.replace(roll=0.05, height=torch.tensor([1.2, 1.3], dtype=torch.float64))
+    assert r.batch_size == 2 and r.roll.tolist() == [0.05, 0.05] and torch.equal(r.K[0], cam.K[0])
+    assert cam.roll.tolist() == [0.01]  # the original is unchanged
+    with pytest.raises(ValueError, match="batch_size: cannot expand a camera of batch 2 to 3"):
+        r.expand(3)
+    with pytest.raises(TypeError, match="replace: unknown fields"):
+        cam.replace(focal=3.0)
+
+
+def test_pytree_round_trip():
+    cam = Camera(_K(), 1.65, 0.01, -0.02)
+    leaves, spec = torch.utils._pytree.tree_flatten(cam)
+    assert len(leaves) == 4
+    back = torch.utils._pytree.tree_unflatten(leaves, spec)
+    assert isinstance(back, Camera)
+    for name in ("K", "height", "roll", "pitch"):
+        assert torch.equal(getattr(back, name), getattr(cam, name))
+    doubled = torch.utils._pytree.tree_map(lambda t: t * 2, cam)
+    assert isinstance(doubled, Camera) and doubled.height.tolist() == [3.3]
+
+
+# --- KITTI calibration --------------------------------------------------------------------------------
+
+def test_kitti_cam_to_cam_shared(shared_data):
+    cam = Camera.from_kitti(shared_data / "kitti15_000000" / "calib_cam_to_cam.txt", cam=2)
+    assert cam.dtype == torch.float64 and cam.height.tolist() == [1.65]
+    assert cam.fx.tolist() == [721.5377] and cam.fy.tolist() == [721.5377]
+    assert cam.cx.tolist() == [609.5593] and cam.cy.tolist() == [172.854]
+
+
+def test_kitti_odometry_shared(shared_data):
+    path = shared_data / "kitti_odometry_straight" / "calib.txt"
+    cam = Camera.from_kitti(path, cam=0, height=1.7, roll=0.01, pitch=-0.01)
+    assert cam.fx.tolist() == [707.0912] and cam.cx.tolist() == [601.8873] and cam.cy.tolist() == [183.1104]
+    assert cam.height.tolist() == [1.7] and cam.roll.tolist() == [0.01] and cam.pitch.tolist() == [-0.01]
+    P1 = read_kitti_calibration(path, 1)
+    assert P1[0, 3] == pytest.approx(-379.8145)
+
+
+def test_kitti_files_in_tmp_path(tmp_path):
+    (tmp_path / "calib_cam_to_cam.txt").write_text(CAM_TO_CAM)
+    (tmp_path / "calib.txt").write_text(ODOMETRY_LABELLED)
+    (tmp_path / "calib_unlabelled.txt").write_text(ODOMETRY_UNLABELLED)
+    P = read_kitti_calibration(tmp_path / "calib_cam_to_cam.txt", 2)
+    assert P.shape == (3, 4) and P.dtype == torch.float64 and P[0, 3] == pytest.approx(44.85728)
+    assert Camera.from_kitti(tmp_path / "calib_cam_to_cam.txt", cam=0).fx.tolist() == [700.0]
+    assert Camera.from_kitti(tmp_path / "calib.txt", cam=0).fx.tolist() == [707.0912]
+    assert Camera.from_kitti(tmp_path / "calib.txt", cam=2).cy.tolist() == [190.0]
+    cam = Camera.from_kitti(tmp_path / "calib_unlabelled.txt", cam=1, dtype=torch.float32)
+    assert cam.dtype == torch.float32 and cam.fx.tolist() == pytest.approx([707.0912])
+    cam = Camera.from_projection(P, 1.5)
+    assert cam.cx.tolist() == [609.5593] and cam.height.tolist() == [1.5]
+
+
+def test_kitti_exceptions(tmp_path):
+    with pytest.raises(FileNotFoundError, match="path: no calibration file"):
+        read_kitti_calibration(tmp_path / "missing.txt")
+    (tmp_path / "a.txt").write_text(CAM_TO_CAM)
+    with pytest.raises(ValueError, match="cam: expected 0..3, got 7"):
+        read_kitti_calibration(tmp_path / "a.txt", 7)
+    with pytest.raises(ValueError, match="has no P_rect_01 or P1 row"):
+        read_kitti_calibration(tmp_path / "a.txt", 1)
+    (tmp_path / "b.txt").write_text("P0: 1 2 3\n")
+    with pytest.raises(ValueError, match="has 3 numbers, expected 12"):
+        read_kitti_calibration(tmp_path / "b.txt", 0)
+    (tmp_path / "c.txt").write_text("P0: 1 2 x 4 5 6 7 8 9 10 11 12\n")
+    with pytest.raises(ValueError, match="line 1 .* is not a calibration row"):
+        read_kitti_calibration(tmp_path / "c.txt", 0)
+    with pytest.raises(ValueError, match=r"P: expected shape \(3, 4\)"):
+        Camera.from_projection(torch.zeros(3, 3), 1.65)
+
+
+# --- scaled: rendering geometry ----------------------------------------------------------------------
+
+@pytest.mark.parametrize("sx, sy", [(3, 3), (3, 5), (5, 3)])
+def test_scaled_matches_resized_rendering(sx, sy):
+    """Pixel centres map as u' + 0.5 = s (u + 0.5): with odd integer s, pixel (u, v) of the original
+    image is pixel (s u + (s-1)/2, s v + (s-1)/2) of the resized one, where the flow is s times larger."""
+    H, W = 12, 20
+    cam = Camera(_K(15.0, 16.0, 9.3, 4.1), 1.6, 0.03, -0.02)
+    flow, valid = displacement_flow(cam, 0.1, 1.1, 0.02, (H, W))
+    big = cam.scaled(sx, sy)
+    flow_big, valid_big = displacement_flow(big, 0.1, 1.1, 0.02, (H * sy, W * sx))
+    iu, iv = (sx - 1) // 2, (sy - 1) // 2
+    sub = flow_big[:, :, iv::sy, iu::sx]
+    assert sub.shape == flow.shape
+    assert torch.equal(valid_big[:, :, iv::sy, iu::sx], valid)
+    torch.testing.assert_close(sub[:, 0], sx * flow[:, 0], rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(sub[:, 1], sy * flow[:, 1], rtol=1e-10, atol=1e-10)
+    # and back down: scaling by 1/s recovers the original intrinsics
+    torch.testing.assert_close(big.scaled(1 / sx, 1 / sy).K, cam.K, rtol=1e-12, atol=1e-12)
+
+
+def test_scaled_values():
+    cam = Camera(_K(700.0, 710.0, 600.0, 180.0), 1.65)
+    half = cam.scaled(0.5)
+    assert half.fx.tolist() == [350.0] and half.fy.tolist() == [355.0]
+    assert half.cx.tolist() == [0.5 * 600.5 - 0.5] and half.cy.tolist() == [0.5 * 180.5 - 0.5]
+    assert half.height.tolist() == [1.65]
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="sx: expected a finite scale > 0"):
+            cam.scaled(bad, 1.0)
+    with pytest.raises(ValueError, match="sy: expected a finite scale > 0"):
+        cam.scaled(1.0, 0.0)
+
+
+# --- exceptions ------------------------------------------------------------------------------------
+
+def test_exceptions():
+    with pytest.raises(TypeError, match="K: expected a torch.Tensor"):
+        Camera([[1.0, 0, 0], [0, 1, 0], [0, 0, 1]], 1.65)
+    with pytest.raises(TypeError, match="K: expected a floating-point tensor, got dtype torch.int64"):
+        Camera(torch.eye(3, dtype=torch.int64), 1.65)
+    with pytest.raises(ValueError, match=r"K: expected shape \(3, 3\) or \(B, 3, 3\), got \(2, 2\)"):
+        Camera(torch.eye(2), 1.65)
+    with pytest.raises(ValueError, match=r"K: expected shape \(3, 3\) or \(B, 3, 3\), got \(1, 1, 3, 3\)"):
+        Camera(torch.eye(3).reshape(1, 1, 3, 3), 1.65)
+    with pytest.raises(ValueError, match="K: expected focal lengths f_x, f_y > 0"):
+        Camera(_K(fx=0.0), 1.65)
+    with pytest.raises(ValueError, match="K: expected focal lengths f_x, f_y > 0"):
+        Camera(_K(fy=-5.0), 1.65)
+    bad = _K()
+    bad[1, 0] = 0.1
+    with pytest.raises(ValueError, match="K: expected an upper-triangular intrinsic matrix"):
+        Camera(bad, 1.65)
+    bad = _K()
+    bad[2, 2] = 2.0
+    with pytest.raises(ValueError, match="K: expected an upper-triangular intrinsic matrix"):
+        Camera(bad, 1.65)
+    bad = _K()
+    bad[0, 2] = float("nan")
+    with pytest.raises(ValueError, match="K: expected finite values"):
+        Camera(bad, 1.65)
+    with pytest.raises(ValueError, match="height: expected values > 0, got \\[0.0\\]"):
+        Camera(_K(), 0.0)
+    with pytest.raises(ValueError, match="height: expected values > 0"):
+        Camera(_K(), torch.tensor([1.6, -1.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="height: expected finite values"):
+        Camera(_K(), float("inf"))
+    with pytest.raises(ValueError, match="pitch: expected finite values"):
+        Camera(_K(), 1.65, 0.0, float("nan"))
+    with pytest.raises(TypeError, match="roll: expected a float tensor or a Python number"):
+        Camera(_K(), 1.65, torch.tensor([1]))
+    with pytest.raises(TypeError, match="height: expected a float, or a tensor of shape"):
+        Camera(_K(), "1.65")
+    with pytest.raises(ValueError, match=r"roll: expected a scalar or shape \(B,\)"):
+        Camera(_K(), 1.65, torch.zeros(2, 2))
+    with pytest.raises(ValueError, match="mismatched batch sizes: K=2, height=3"):
+        Camera(_K().expand(2, 3, 3), torch.ones(3, dtype=torch.float64))
+
+
+# --- cardinality -----------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B", [1, 3])
+def test_cardinality(B):
+    K = _K().expand(B, 3, 3)
+    cam = Camera(K, torch.linspace(1.4, 1.8, B, dtype=torch.float64), 0.01, torch.zeros(B, dtype=torch.float64))
+    assert cam.batch_size == B and cam.roll.shape == (B,) and cam.pitch.shape == (B,)
+    assert cam.mounting().shape == (B, 3, 3) and cam.K_inv().shape == (B, 3, 3)
+    assert cam.horizon_row().shape == (B,)
+    assert cam.scaled(0.5).K.shape == (B, 3, 3)
+    cam = Camera(_K(), torch.ones(B, dtype=torch.float64))  # K of batch 1 broadcast
+    assert cam.K.shape == (B, 3, 3)
+
+
+def test_gradient_through_camera():
+    fx = torch.tensor(700.0, dtype=torch.float64, requires_grad=True)
+    h = torch.tensor([1.6], dtype=torch.float64, requires_grad=True)
+    z = torch.zeros((), dtype=torch.float64)
+    K = torch.stack([fx, z, z + 600, z, fx, z + 180, z, z, z + 1]).reshape(3, 3)
+    cam = Camera(K, h, 0.01)
+    (cam.scaled(0.5).fx.sum() + cam.height.sum()).backward()
+    assert fx.grad.item() == pytest.approx(0.5) and h.grad.tolist() == [1.0]

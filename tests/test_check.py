@@ -1,0 +1,117 @@
+"""Tests of fsof_torch._check: the one validation helper module."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fsof_torch._check import (
+    as_batch_param,
+    check_finite,
+    check_float_tensor,
+    check_positive,
+    check_shape,
+    check_size,
+    resolve_batch,
+    result_dtype,
+    tracing,
+)
+
+
+def test_check_shape_binds_letters_across_arguments():
+    dims = check_shape(torch.zeros(4, 2, 8, 9), "flow", ("B", 2, "H", "W"))
+    assert dims == {"B": 4, "H": 8, "W": 9}
+    check_shape(torch.zeros(4, 1, 8, 9), "mask", ("B", 1, "H", "W"), dims)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(B, 1, H, W\) with H=8 \(from an earlier "
+                                         r"argument\), got \(4, 1, 7, 9\)"):
+        check_shape(torch.zeros(4, 1, 7, 9), "mask", ("B", 1, "H", "W"), dims)
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\), got \(4, 3, 64, 64\)"):
+        check_shape(torch.zeros(4, 3, 64, 64), "flow", ("B", 2, "H", "W"))
+    with pytest.raises(ValueError, match=r"x: expected shape \(B,\), got \(2, 2\)"):
+        check_shape(torch.zeros(2, 2), "x", ("B",))
+
+
+def test_check_float_tensor():
+    x = torch.zeros(2)
+    assert check_float_tensor(x, "x") is x
+    with pytest.raises(TypeError, match="x: expected a torch.Tensor, got list"):
+        check_float_tensor([1.0], "x")
+    with pytest.raises(TypeError, match="x: expected a floating-point tensor, got dtype torch.int32"):
+        check_float_tensor(torch.zeros(2, dtype=torch.int32), "x")
+
+
+def test_check_finite_and_positive():
+    check_finite(torch.tensor([1.0, -2.0]), "x")
+    with pytest.raises(ValueError, match=r"x: expected finite values, got \[nan\]"):
+        check_finite(torch.tensor([1.0, float("nan")]), "x")
+    with pytest.raises(ValueError, match=r"x: expected finite values, got \[-inf\]"):
+        check_finite(torch.tensor([float("-inf")]), "x")
+    check_positive(torch.tensor([1e-9]), "h")
+    with pytest.raises(ValueError, match=r"h: expected values > 0, got \[0.0, -1.0\]"):
+        check_positive(torch.tensor([1.0, 0.0, -1.0]), "h")
+    with pytest.raises(ValueError, match="h: expected values > 0"):
+        check_positive(torch.tensor([float("nan")]), "h")
+
+
+@pytest.mark.parametrize("size, want", [((3, 4), (3, 4)), ([5, 6], (5, 6)), (torch.Size([7, 8]), (7, 8))])
+def test_check_size(size, want):
+    assert check_size(size) == want
+
+
+@pytest.mark.parametrize("size, err, msg", [
+    ((0, 4), ValueError, r"size: expected positive sides \(H, W\), got \(0, 4\)"),
+    ((3, -1), ValueError, "size: expected positive sides"),
+    ((3,), TypeError, r"size: expected \(H, W\), got \(3,\)"),
+    ((3, 4, 5), TypeError, r"size: expected \(H, W\)"),
+    ((3.0, 4), TypeError, "size: expected integer sides"),
+    ((True, 4), TypeError, "size: expected integer sides"),
+    (34, TypeError, r"size: expected \(H, W\), got 34"),
+])
+def test_check_size_errors(size, err, msg):
+    with pytest.raises(err, match=msg):
+        check_size(size)
+
+
+def test_as_batch_param():
+    x = as_batch_param(1.5, "x")
+    assert x.shape == (1,) and x.dtype == torch.get_default_dtype()
+    assert as_batch_param(1.5, "x", torch.float64).dtype == torch.float64
+    assert as_batch_param(torch.tensor(2.0), "x").shape == (1,)
+    t = torch.tensor([1.0, 2.0])
+    assert as_batch_param(t, "x") is t
+    assert as_batch_param(t, "x", torch.float64).dtype == torch.float64
+    with pytest.raises(TypeError, match="x: expected a float tensor or a Python number, got dtype torch.int64"):
+        as_batch_param(torch.tensor([1]), "x")
+    with pytest.raises(ValueError, match=r"x: expected a scalar or shape \(B,\), got \(2, 1\)"):
+        as_batch_param(torch.zeros(2, 1), "x")
+    with pytest.raises(TypeError, match="x: expected a float, or a tensor of shape"):
+        as_batch_param("1.0", "x")
+    with pytest.raises(TypeError, match="x: expected a float, or a tensor of shape"):
+        as_batch_param(True, "x")
+    with pytest.raises(ValueError, match="x: expected finite values"):
+        as_batch_param(float("nan"), "x")
+
+
+def test_resolve_batch():
+    assert resolve_batch({"a": 1, "b": 1}) == 1
+    assert resolve_batch({"a": 1, "b": 4, "c": 4}) == 4
+    with pytest.raises(ValueError, match="mismatched batch sizes: b=4, c=3"):
+        resolve_batch({"a": 1, "b": 4, "c": 3})
+
+
+def test_result_dtype():
+    f16, f32, f64 = (torch.zeros(1, dtype=d) for d in (torch.float16, torch.float32, torch.float64))
+    assert result_dtype(f32) == torch.float32
+    assert result_dtype(f32, f64) == torch.float64
+    assert result_dtype(f16) == torch.float32
+    assert result_dtype(torch.zeros(1, dtype=torch.bfloat16), f16) == torch.float32
+
+
+def test_tracing_flag():
+    assert tracing() is False
+
+    def f(x):
+        return x + (1.0 if tracing() else 0.0)
+
+    assert f(torch.zeros(1)).item() == 0.0
+    assert torch.compile(f, backend="eager", fullgraph=True)(torch.zeros(1)).item() == 1.0

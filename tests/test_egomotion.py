@@ -1,0 +1,221 @@
+"""Tests of fsof_torch.egomotion: poses -> (x_d, z_d, yaw) and the Ackermann integration."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
+from fsof_torch.flow_model import displacement_flow
+
+
+def _rot(axis, a):
+    c, s = math.cos(a), math.sin(a)
+    if axis == "x":
+        return np.array([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    if axis == "y":
+        return np.array([[c, 0, s], [0, 1.0, 0], [-s, 0, c]])
+    return np.array([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+
+
+def _R_yaw(phi):
+    """R_φ of the paper: p_v(t+1) = R_φ (p_v(t) - d)."""
+    c, s = math.cos(phi), math.sin(phi)
+    return np.array([[c, 0, -s], [0, 1.0, 0], [s, 0, c]])
+
+
+def _mounting(roll, pitch):
+    cr, sr, cp, sp = math.cos(roll), math.sin(roll), math.cos(pitch), math.sin(pitch)
+    R_roll = np.array([[cr, sr, 0], [-sr, cr, 0], [0, 0, 1.0]])
+    R_pitch = np.array([[1.0, 0, 0], [0, cp, sp], [0, -sp, cp]])
+    return R_roll @ R_pitch
+
+
+def _synthetic_cam1_T_cam0(x_d, z_d, yaw, roll, pitch, y_d=0.0, body=None):
+    """cam1_T_cam0 of a camera mounted with (roll, pitch) on a car that moves by d = (x_d, y_d, z_d)
+    and turns by yaw (optionally with an extra body rotation, out of the model's plane)."""
+    Rc = _mounting(roll, pitch)
+    Rv = _R_yaw(yaw) if body is None else body @ _R_yaw(yaw)
+    d = np.array([x_d, y_d, z_d])
+    T = np.eye(4)
+    T[:3, :3] = Rc @ Rv @ Rc.T
+    T[:3, 3] = -Rc @ Rv @ d
+    return torch.from_numpy(T)
+
+
+# --- smoke / feature: poses ---------------------------------------------------------------------------
+
+@pytest.mark.parametrize("x_d, z_d, yaw, roll, pitch", [
+    (0.0, 1.2, 0.0, 0.0, 0.0),
+    (0.1, 1.0, 0.03, 0.02, -0.015),
+    (-0.4, 2.7, -0.08, -0.1, 0.05),
+])
+def test_pose_round_trip(x_d, z_d, yaw, roll, pitch):
+    T = _synthetic_cam1_T_cam0(x_d, z_d, yaw, roll, pitch)
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, roll, pitch)
+    e = ego_motion_from_pose(T, cam)
+    assert isinstance(e, EgoMotion)
+    assert e.x_d.tolist() == pytest.approx([x_d], abs=1e-12)
+    assert e.z_d.tolist() == pytest.approx([z_d], abs=1e-12)
+    assert e.yaw.tolist() == pytest.approx([yaw], abs=1e-12)
+    assert e.y_d.abs().max() < 1e-12 and e.rotation_residual.abs().max() < 1e-12
+
+
+def test_pose_from_two_camera_to_world_poses():
+    g = np.random.default_rng(0)
+    P0 = np.eye(4)
+    P0[:3, :3] = _rot("y", 0.7) @ _rot("x", 0.01)
+    P0[:3, 3] = g.normal(size=3) * 10
+    T = _synthetic_cam1_T_cam0(0.2, 1.4, 0.05, 0.03, -0.02).numpy()
+    P1 = P0 @ np.linalg.inv(T)  # cam1_T_cam0 = inv(P1) @ P0
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.03, -0.02)
+    e = ego_motion_from_pose(torch.from_numpy(P0), cam, pose1=torch.from_numpy(P1))
+    assert e.x_d.item() == pytest.approx(0.2, abs=1e-9) and e.z_d.item() == pytest.approx(1.4, abs=1e-9)
+    assert e.yaw.item() == pytest.approx(0.05, abs=1e-12)
+    torch.testing.assert_close(relative_pose(torch.from_numpy(P0), torch.from_numpy(P1))[0],
+                               torch.from_numpy(T), rtol=1e-9, atol=1e-9)
+    # 3×4 rows (KITTI files) work as well
+    e34 = ego_motion_from_pose(torch.from_numpy(P0[:3]), cam, pose1=torch.from_numpy(P1[:3]))
+    torch.testing.assert_close(e34.z_d, e.z_d)
+
+
+def test_pose_remainder_nonzero_out_of_plane():
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.01, -0.01)
+    bump = _synthetic_cam1_T_cam0(0.0, 1.0, 0.02, 0.01, -0.01, y_d=0.05)
+    e = ego_motion_from_pose(bump, cam)
+    assert e.y_d.item() == pytest.approx(0.05, abs=1e-12)
+    assert e.rotation_residual.abs().max() < 1e-12
+    body_pitch = _synthetic_cam1_T_cam0(0.0, 1.0, 0.02, 0.01, -0.01, body=_rot("x", 0.01))
+    e = ego_motion_from_pose(body_pitch, cam)
+    assert e.rotation_residual.norm().item() == pytest.approx(0.01, rel=1e-3)
+    assert e.yaw.item() == pytest.approx(0.02, abs=1e-3)
+    # without the mounting, a mounted camera's motion looks partly out of plane
+    T = _synthetic_cam1_T_cam0(0.0, 1.0, 0.05, 0.0, -0.1)
+    e_wrong = ego_motion_from_pose(T)
+    assert e_wrong.y_d.abs().item() > 0.05
+
+
+def test_pose_batch():
+    Ts = torch.stack([_synthetic_cam1_T_cam0(0.1 * i, 1.0 + i, 0.01 * i, 0.02, 0.0) for i in range(3)])
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.02)
+    e = ego_motion_from_pose(Ts, cam)
+    assert e.x_d.shape == (3,) and e.rotation_residual.shape == (3, 3)
+    torch.testing.assert_close(e.z_d, torch.tensor([1.0, 2.0, 3.0], dtype=torch.float64))
+    with pytest.raises(ValueError, match="mismatched batch sizes"):
+        ego_motion_from_pose(Ts, cam.expand(2))
+
+
+def test_pose_and_flow_agree():
+    """The flow of the decomposed planar motion equals the projection of road points moved by the pose."""
+    H, W = 30, 50
+    K = torch.tensor([[40.0, 0, 25.0], [0, 40.0, 10.0], [0, 0, 1]], dtype=torch.float64)
+    roll, pitch, h = 0.03, -0.02, 1.6
+    T = _synthetic_cam1_T_cam0(0.15, 1.3, 0.04, roll, pitch).numpy()
+    cam = Camera(K, h, roll, pitch)
+    e = ego_motion_from_pose(torch.from_numpy(T), cam)
+    flow, valid = displacement_flow(cam, e.x_d, e.z_d, e.yaw, (H, W))
+    v, u = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
+    p = np.stack([u, v, np.ones_like(u)]).reshape(3, -1)
+    Kn = K.numpy()
+    Rc = _mounting(roll, pitch)
+    ray_c = np.linalg.solve(Kn, p)
+    ray_y = (Rc.T @ ray_c)[1]
+    ok = ray_y > 1e-6
+    X0 = ray_c * (h / np.where(ok, ray_y, 1.0))       # road points in camera-0 coordinates
+    X1 = T[:3, :3] @ X0 + T[:3, 3:4]
+    proj = Kn @ X1
+    ok &= X1[2] > 1e-6
+    want = (proj[:2] / np.where(ok, proj[2], 1.0) - p[:2]).reshape(2, H, W)
+    ok = ok.reshape(H, W)
+    assert (valid[0, 0].numpy() == ok).all()
+    np.testing.assert_allclose(flow[0].numpy()[:, ok], want[:, ok], atol=1e-9, rtol=1e-9)
+
+
+def test_kitti_odometry_poses(shared_data):
+    rows = np.loadtxt(shared_data / "kitti_odometry_straight" / "poses.txt").reshape(-1, 3, 4)
+    P = torch.from_numpy(rows)
+    e = ego_motion_from_pose(P[:-1], pose1=P[1:])
+    assert e.z_d.shape == (len(rows) - 1,)
+    assert e.z_d.mean().item() == pytest.approx(1.2, abs=0.15)
+    assert (e.z_d > 1.0).all() and (e.z_d < 1.4).all()
+    assert e.x_d.abs().max() < 0.05 and e.yaw.abs().max() < 0.01
+    assert e.y_d.abs().max() < 0.05 and e.rotation_residual.norm(dim=-1).max() < 0.01
+
+
+def test_pose_exceptions():
+    with pytest.raises(TypeError, match="cam1_T_cam0: expected a float tensor"):
+        ego_motion_from_pose(np.eye(4))
+    with pytest.raises(TypeError, match="cam1_T_cam0: expected a float tensor"):
+        ego_motion_from_pose(torch.eye(4, dtype=torch.int64))
+    with pytest.raises(ValueError, match=r"cam1_T_cam0: expected shape \(B, 4, 4\) or \(B, 3, 4\), got \(4, 3\)"):
+        ego_motion_from_pose(torch.eye(4)[:, :3])
+    bad = torch.eye(4)
+    bad[0, 3] = float("nan")
+    with pytest.raises(ValueError, match="cam1_T_cam0: expected finite values"):
+        ego_motion_from_pose(bad)
+    with pytest.raises(ValueError, match=r"pose1: expected shape"):
+        relative_pose(torch.eye(4), torch.eye(5))
+
+
+# --- Ackermann ------------------------------------------------------------------------------------------
+
+def _integrate(speed, steering, wheelbase, dt, steps=20000):
+    """RK4 on φ̇ = v tan δ / l, ẋ = v sin φ, ż = v cos φ (x right, z forward in the frame of time t)."""
+    k = speed * math.tan(steering) / wheelbase
+
+    def f(s):
+        return np.array([k, speed * math.sin(s[0]), speed * math.cos(s[0])])
+
+    s = np.zeros(3)
+    h = dt / steps
+    for _ in range(steps):
+        a = f(s); b = f(s + h / 2 * a); c = f(s + h / 2 * b); d = f(s + h * c)
+        s = s + h / 6 * (a + 2 * b + 2 * c + d)
+    return s  # yaw, x, z
+
+
+@pytest.mark.parametrize("speed, steering, dt", [(10.0, 0.1, 0.1), (5.0, -0.5, 1.0), (20.0, 0.02, 0.5)])
+def test_ackermann_exact_integration(speed, steering, dt):
+    e = ego_motion_from_ackermann(torch.tensor([speed], dtype=torch.float64), steering, 2.7, dt)
+    yaw, x, z = _integrate(speed, steering, 2.7, dt, steps=2000)
+    assert e.yaw.item() == pytest.approx(yaw, abs=1e-12)
+    assert e.x_d.item() == pytest.approx(x, abs=1e-9)
+    assert e.z_d.item() == pytest.approx(z, abs=1e-9)
+    assert e.y_d.tolist() == [0.0] and e.rotation_residual.abs().max() == 0
+
+
+def test_ackermann_straight_limit():
+    e = ego_motion_from_ackermann(torch.tensor([12.0], dtype=torch.float64), 0.0, 2.7, 0.1)
+    assert e.x_d.item() == 0.0 and e.yaw.item() == 0.0 and e.z_d.item() == pytest.approx(1.2, abs=1e-15)
+    small = ego_motion_from_ackermann(torch.tensor([12.0], dtype=torch.float64), 1e-9, 2.7, 0.1)
+    assert small.z_d.item() == pytest.approx(1.2, abs=1e-12) and abs(small.x_d.item()) < 1e-9
+    # the curvature κ -> 0 limit is smooth: finite gradients at δ = 0
+    steering = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+    speed = torch.tensor([12.0], dtype=torch.float64, requires_grad=True)
+    torch.autograd.gradcheck(lambda s, v: torch.cat(ego_motion_from_ackermann(v, s, 2.7, 0.1)[:3]),
+                             (steering, speed))
+    torch.autograd.gradcheck(lambda s, v: torch.cat(ego_motion_from_ackermann(v, s, 2.7, 0.1)[:3]),
+                             (steering.detach().clone().fill_(0.2).requires_grad_(), speed))
+
+
+def test_ackermann_batch_and_dtype():
+    e = ego_motion_from_ackermann(torch.tensor([5.0, 10.0, 15.0]), torch.tensor([0.0, 0.1, -0.1]), 2.7, 0.1)
+    assert e.x_d.shape == (3,) and e.x_d.dtype == torch.float32
+    assert e.x_d[1] > 0 and e.x_d[2] < 0 and e.yaw[1] > 0  # steering right turns toward +x
+    e = ego_motion_from_ackermann(10.0, 0.0, 2.7, 0.1)
+    assert e.z_d.shape == (1,)
+
+
+def test_ackermann_exceptions():
+    with pytest.raises(ValueError, match="wheelbase: expected values > 0"):
+        ego_motion_from_ackermann(10.0, 0.0, 0.0, 0.1)
+    with pytest.raises(ValueError, match="mismatched batch sizes"):
+        ego_motion_from_ackermann(torch.ones(2), torch.zeros(3), 2.7, 0.1)
+    with pytest.raises(TypeError, match="speed: expected a float tensor"):
+        ego_motion_from_ackermann(torch.tensor([10]), 0.0, 2.7, 0.1)
+    with pytest.raises(ValueError, match="dt: expected finite values"):
+        ego_motion_from_ackermann(10.0, 0.0, 2.7, float("nan"))
