@@ -1,0 +1,200 @@
+"""``python -m eval train``: does a freespace term help a flow network learn road flow?
+
+The test net (:class:`fsof_torch.testnet.TinyRAFT`) is trained twice from the same seed on the
+same synthetic driving pairs (:func:`fsof_torch.scene.render_sequence`, rendered once and kept in
+memory), for the same number of steps with the same batches: once with the unsupervised loss
+alone (:class:`~fsof_torch.losses.UnsupervisedFlowLoss`: photometric L1 + SSIM with a
+forward-backward occlusion mask, edge-aware smoothness), once with
+:class:`~fsof_torch.losses.FreespaceFlowLoss` added (the road flow of the freespace model from the
+pairs' odometry, inside their road masks). Both nets, and the untrained one, are then evaluated on
+held-out pairs of another seed against the exact ground truth: end-point error (and the others of
+:func:`fsof_torch.metrics.flow_metrics`) inside the road and outside it.
+
+Prints a table, writes ``--json PATH``, and with ``--out DIR`` saves both nets' ``state_dict``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from fsof_torch.camera import Camera
+from fsof_torch.io import write_json
+from fsof_torch.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
+from fsof_torch.metrics import flow_metrics
+from fsof_torch.scene import collate, render_sequence
+from fsof_torch.testnet import TinyRAFT, count_parameters
+
+__all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net"]
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--steps", type=int, default=150, help="optimiser steps per run (default 150)")
+    parser.add_argument("--seed", type=int, default=0,
+                        help="seed of the net, the batches and the training scenes (held-out: seed + 1000)")
+    parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.scene.PRESETS)")
+    parser.add_argument("--size", type=int, nargs=2, default=(64, 224), metavar=("H", "W"),
+                        help="image size of the rendered pairs (default 64 224)")
+    parser.add_argument("--batch", type=int, default=4, help="pairs per step (default 4)")
+    parser.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (default 1e-3)")
+    parser.add_argument("--freespace-weight", type=float, default=0.1,
+                        help="weight of the freespace term in the second run (default 0.1)")
+    parser.add_argument("--odometry", choices=("given", "fit"), default="given",
+                        help="freespace term from the pairs' odometry, or fitted to the prediction")
+    parser.add_argument("--iters", type=int, default=4, help="GRU iterations of the test net (default 4)")
+    parser.add_argument("--train-pairs", type=int, default=24, help="training pairs rendered (default 24)")
+    parser.add_argument("--test-pairs", type=int, default=6, help="held-out pairs rendered (default 6)")
+    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
+    parser.add_argument("--json", type=Path, default=None, help="write the results as JSON here")
+    parser.add_argument("--out", type=Path, default=None, help="save both nets' state_dicts in this folder")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+
+
+def render_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int],
+                 progress: bool = False) -> dict:
+    """``num_pairs`` consecutive pairs of a synthetic sequence, collated into one batch dict."""
+    return collate(render_sequence(preset, num_pairs, seed=seed, size=tuple(size), progress=progress))
+
+
+def _select(data: dict, idx: torch.Tensor) -> dict:
+    """Rows ``idx`` of a collated batch: tensors, the camera and the odometry dict."""
+    cam: Camera = data["camera"]
+    return {
+        "image1": data["image1"][idx], "image2": data["image2"][idx], "road": data["road"][idx],
+        "camera": Camera(cam.K[idx], cam.height[idx], cam.roll[idx], cam.pitch[idx]),
+        "odometry": {k: data["odometry"][k][idx] for k in ("x_d", "z_d", "yaw")},
+    }
+
+
+def build_loss(freespace_weight: float, odometry: str = "given") -> CompositeLoss:
+    """The training loss: the unsupervised term, plus the freespace term if its weight is > 0."""
+    terms = {"unsupervised": (1.0, UnsupervisedFlowLoss())}
+    if freespace_weight > 0:
+        terms["freespace"] = (freespace_weight, FreespaceFlowLoss(odometry=odometry))
+    return CompositeLoss(terms)
+
+
+def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, freespace_weight: float,
+              iters: int, odometry: str = "given", progress: bool = True, desc: str = "train") -> tuple[TinyRAFT, dict]:
+    """Train a fresh ``TinyRAFT(seed=seed)`` on the collated pairs ``data``; the batches depend on ``seed`` only.
+
+    Returns the net (in eval mode) and a log: the last step's term values and the wall time.
+    """
+    from tqdm import tqdm
+
+    net = TinyRAFT(seed=seed, iters=iters)
+    net.train()
+    loss_fn = build_loss(freespace_weight, odometry)
+    optimiser = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-5)
+    # Short warm-up, then linear decay: RAFT's one-cycle schedule in miniature.
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=lr, total_steps=steps, pct_start=0.05,
+                                                   anneal_strategy="linear", cycle_momentum=False)
+    gen = torch.Generator().manual_seed(seed)
+    n = data["image1"].shape[0]
+    values: dict[str, float] = {}
+    start = time.perf_counter()
+    bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
+    for _ in bar:
+        idx = torch.randperm(n, generator=gen)[:batch]
+        b = _select(data, idx)
+        # Both directions in one pass: the backward flows feed the occlusion check.
+        flows = net(torch.cat([b["image1"], b["image2"]]), torch.cat([b["image2"], b["image1"]]))
+        fw = [f[:batch] for f in flows]
+        bw = [f[batch:] for f in flows]
+        total, terms = loss_fn(fw, b, flows_backward=bw)
+        optimiser.zero_grad(set_to_none=True)
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        optimiser.step()
+        schedule.step()
+        values = {"total": float(total.detach()), **{k: float(v) for k, v in terms.items()}}
+        bar.set_postfix({k: f"{v:.3g}" for k, v in values.items()})
+    net.eval()
+    return net, {"final_loss": values, "seconds": time.perf_counter() - start}
+
+
+@torch.no_grad()
+def evaluate_net(net: TinyRAFT, data: dict, *, chunk: int = 4) -> dict:
+    """KITTI-style metrics of the net's last estimate on ``data``: road, non-road and all valid pixels."""
+    flows = torch.cat([net(data["image1"][i:i + chunk], data["image2"][i:i + chunk])[-1]
+                       for i in range(0, data["image1"].shape[0], chunk)])
+    road, valid, gt = data["road"], data["valid"], data["flow"]
+    return {"road": flow_metrics(flows, gt, road, valid),
+            "non_road": flow_metrics(flows, gt, ~road, valid),
+            "all": flow_metrics(flows, gt, None, valid)}
+
+
+def _row(name: str, m: dict) -> str:
+    return (f"{name:<22} {m['road']['e_E']:>9.3f} {m['non_road']['e_E']:>13.3f} {m['all']['e_E']:>8.3f} "
+            f"{100 * m['road']['Fl']:>9.1f} {100 * m['non_road']['Fl']:>13.1f}")
+
+
+def run(args: argparse.Namespace) -> int:
+    if args.steps < 1 or args.batch < 1 or args.train_pairs < 1 or args.test_pairs < 1:
+        raise SystemExit("--steps, --batch, --train-pairs and --test-pairs must be positive")
+    if args.freespace_weight <= 0:
+        raise SystemExit(f"--freespace-weight must be > 0 (the second run uses it), got {args.freespace_weight}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    progress = not args.no_progress
+    size = tuple(args.size)
+    t0 = time.perf_counter()
+    train = render_pairs(args.preset, args.train_pairs, seed=args.seed, size=size, progress=progress)
+    test = render_pairs(args.preset, args.test_pairs, seed=args.seed + 1000, size=size, progress=progress)
+    render_s = time.perf_counter() - t0
+
+    common = dict(steps=args.steps, seed=args.seed, batch=args.batch, lr=args.lr, iters=args.iters,
+                  progress=progress)
+    results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
+    logs: dict[str, dict] = {}
+    nets = {}
+    for name, weight in (("unsupervised", 0.0), ("unsupervised+freespace", args.freespace_weight)):
+        net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name, **common)
+        results[name] = evaluate_net(net, test)
+        logs[name] = log
+        nets[name] = net
+
+    base, free = results["unsupervised"], results["unsupervised+freespace"]
+    change = {region: (free[region]["e_E"] - base[region]["e_E"]) / max(base[region]["e_E"], 1e-12)
+              for region in ("road", "non_road", "all")}
+    print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
+          f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
+          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + 1000})")
+    print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
+    for name, m in results.items():
+        print(_row(name, m))
+    print(f"{'change with freespace':<22} {100 * change['road']:>+8.1f}% {100 * change['non_road']:>+12.1f}% "
+          f"{100 * change['all']:>+7.1f}%")
+    print(f"render {render_s:.1f} s; training " + ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in logs.items()))
+
+    report = {
+        "options": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
+                    for k, v in vars(args).items()},
+        "parameters": count_parameters(nets["unsupervised"]),
+        "metrics": results,
+        "relative_change_with_freespace": change,
+        "training": logs,
+        "render_seconds": render_s,
+    }
+    if args.json is not None:
+        write_json(args.json, report)
+    if args.out is not None:
+        args.out.mkdir(parents=True, exist_ok=True)
+        for name, net in nets.items():
+            torch.save(net.state_dict(), args.out / f"tinyraft_{name.replace('+', '_')}.pt")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the job in-process: ``main(["--steps", "10", ...])``."""
+    parser = argparse.ArgumentParser(prog="python -m eval train", description=__doc__.split("\n")[0])
+    add_arguments(parser)
+    return run(parser.parse_args(argv))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,522 @@
+"""Training losses for flow networks: an unsupervised (photometric) loss and the freespace term.
+
+Every term exists as a plain function and as an ``nn.Module`` twin, and accepts either one flow
+(B, 2, H, W) or a RAFT-style list of flows, coarse to refined, weighted γ^(N-1-i) as RAFT does
+(the last estimate has weight 1; the weights are not normalised). :class:`CompositeLoss` adds
+terms with weights and reports each term's value separately.
+
+- :func:`unsupervised_flow_loss` (ARFlow / UFlow style): photometric error of the second image
+  warped back by the flow (L1 + SSIM, optionally census) over pixels that are in bounds and pass
+  the forward-backward consistency check (its mask carries no gradient), plus edge-aware
+  smoothness of the flow (first or second order).
+- :func:`freespace_flow_loss`: a robust penalty (Charbonnier or Cauchy, from kornia) between the
+  predicted flow and the road flow of the freespace model (paper eq. 13) inside the road mask,
+  from given odometry or from the displacement model fitted to the (detached) prediction.
+
+Every mean is over a count clamped to at least 1: an empty mask or a warp that leaves the image
+everywhere gives a loss of 0 with finite (zero) gradients, never NaN.
+
+Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared on 0..1; flow
+(B, 2, H, W) in pixels, channel 0 = u, forward from ``image1`` to ``image2``; backward flow from
+``image2`` to ``image1``; masks (B, 1, H, W) bool.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._check import check_float_tensor, check_shape
+from .camera import Camera
+from .flow_model import displacement_flow
+from .photometric import census_transform
+from .warp import warp_backward
+
+__all__ = [
+    "sequence_weights",
+    "forward_backward_mask",
+    "photometric_loss",
+    "smoothness_loss",
+    "unsupervised_flow_loss",
+    "freespace_flow_loss",
+    "UnsupervisedFlowLoss",
+    "FreespaceFlowLoss",
+    "CompositeLoss",
+]
+
+_REDUCTIONS = ("mean", "sum", "none")
+_PENALTIES = ("charbonnier", "cauchy", "l1")
+
+
+# -- helpers ----------------------------------------------------------------------------------
+
+def _check_reduction(reduction: str) -> None:
+    if reduction not in _REDUCTIONS:
+        raise ValueError(f"reduction: expected one of {_REDUCTIONS}, got {reduction!r}")
+
+
+def _reduce(per_sample: Tensor, reduction: str) -> Tensor:
+    if reduction == "mean":
+        return per_sample.mean()
+    if reduction == "sum":
+        return per_sample.sum()
+    return per_sample
+
+
+def _as_flow_list(flows: Tensor | Sequence[Tensor], name: str = "flows") -> list[Tensor]:
+    if isinstance(flows, Tensor):
+        return [flows]
+    if not isinstance(flows, (list, tuple)) or len(flows) == 0:
+        raise TypeError(f"{name}: expected a tensor (B, 2, H, W) or a non-empty list of them, got "
+                        f"{type(flows).__name__}" + (" of length 0" if isinstance(flows, (list, tuple)) else ""))
+    return list(flows)
+
+
+def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
+    check_float_tensor(flow, name)
+    check_shape(flow, name, ("B", 2, "H", "W"), dims)
+
+
+def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int]) -> None:
+    if mask is None:
+        return
+    if not isinstance(mask, Tensor):
+        raise TypeError(f"{name}: expected a bool tensor (B, 1, H, W), got {type(mask).__name__}")
+    if mask.dtype != torch.bool:
+        raise TypeError(f"{name}: expected a bool tensor (B, 1, H, W), got dtype {mask.dtype}")
+    check_shape(mask, name, ("B", 1, "H", "W"), dims)
+
+
+def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
+    """Per-sample mean of ``value`` (B, C, H, W) under ``weight`` (B, 1, H, W) in 0..1 -> (B,).
+
+    Channels are averaged; the pixel count is clamped to 1, so an empty mask gives 0.
+    """
+    total = (value.mean(dim=1, keepdim=True) * weight).flatten(1).sum(dim=1)
+    return total / weight.flatten(1).sum(dim=1).clamp_min(1.0)
+
+
+def sequence_weights(n: int, gamma: float) -> list[float]:
+    """RAFT's weights γ^(n-1-i), i = 0..n-1, for a list of n estimates (the last gets 1)."""
+    if not 0.0 < gamma <= 1.0:
+        raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
+    return [gamma ** (n - 1 - i) for i in range(n)]
+
+
+def _image_gradients(x: Tensor) -> tuple[Tensor, Tensor]:
+    """Forward differences along x (B, C, H, W-1) and y (B, C, H-1, W)."""
+    return x[..., :, 1:] - x[..., :, :-1], x[..., 1:, :] - x[..., :-1, :]
+
+
+# -- terms --------------------------------------------------------------------------------------
+
+def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1: float = 0.01,
+                          alpha2: float = 0.5) -> Tensor:
+    """Forward-backward consistency (UnFlow / UFlow / ARFlow): True where a pixel is not occluded.
+
+    A pixel p of frame t is kept where |F_f(p) + F_b(p + F_f(p))|² < α1 (|F_f(p)|² +
+    |F_b(p + F_f(p))|²) + α2 and its sample point lies inside frame t+1. No gradient flows
+    through the mask.
+
+    Args:
+        flow_forward: (B, 2, H, W) pixels, frame t -> t+1.
+        flow_backward: (B, 2, H, W) pixels, frame t+1 -> t.
+        alpha1: relative tolerance (unitless); alpha2: absolute tolerance in px².
+
+    Returns:
+        (B, 1, H, W) bool, True = visible in both frames.
+    """
+    dims: dict[str, int] = {}
+    _check_flow(flow_forward, "flow_forward", dims)
+    _check_flow(flow_backward, "flow_backward", dims)
+    with torch.no_grad():
+        bw_warped, in_bounds = warp_backward(flow_backward.detach(), flow_forward.detach())
+        diff = (flow_forward + bw_warped).square().sum(dim=1, keepdim=True)
+        mag = flow_forward.square().sum(dim=1, keepdim=True) + bw_warped.square().sum(dim=1, keepdim=True)
+        return (diff < alpha1 * mag + alpha2) & in_bounds
+
+
+def _ssim3(x: Tensor, y: Tensor) -> Tensor:
+    """SSIM map over 3x3 box windows (Monodepth, ARFlow), images on 0..1, reflect-padded.
+
+    The training loss uses this rather than kornia's 7x7 Gaussian SSIM (which
+    :mod:`fsof_torch.photometric` reports): it is the window the unsupervised flow literature
+    trains with, and on the CPU it is several times cheaper, forward and backward.
+    """
+    c1, c2 = 0.01**2, 0.03**2
+    x, y = F.pad(x, (1, 1, 1, 1), mode="reflect"), F.pad(y, (1, 1, 1, 1), mode="reflect")
+    mu_x, mu_y = F.avg_pool2d(x, 3, 1), F.avg_pool2d(y, 3, 1)
+    sigma_x = F.avg_pool2d(x * x, 3, 1) - mu_x * mu_x
+    sigma_y = F.avg_pool2d(y * y, 3, 1) - mu_y * mu_y
+    sigma_xy = F.avg_pool2d(x * y, 3, 1) - mu_x * mu_y
+    return ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
+
+
+def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None, *,
+                     l1_weight: float = 0.15, ssim_weight: float = 0.85, census_weight: float = 0.0,
+                     data_range: float = 255.0, reduction: str = "mean") -> Tensor:
+    """Photometric error between ``image1`` and ``image2`` warped back by ``flow``, for training.
+
+    Per pixel: ``l1_weight`` · mean_c |I1 - Î1| + ``ssim_weight`` · (1 - SSIM)/2 (3×3 box
+    windows, as ARFlow) + ``census_weight`` · soft Hamming distance of census transforms
+    (:func:`fsof_torch.photometric.census_transform`, 7×7, summed over offsets, robust
+    (|d| + 0.01)^0.4 as UFlow), with images compared on 0..1. Averaged over pixels whose sample point lies
+    inside ``image2`` and inside ``mask``.
+
+    Args:
+        image1, image2: (B, 3, H, W) on 0..``data_range``.
+        flow: (B, 2, H, W) pixels, image1 -> image2.
+        mask: (B, 1, H, W) bool, pixels to count (e.g. the non-occluded ones), or None for all.
+        reduction: ``"mean"`` over the batch, ``"sum"``, or ``"none"`` for (B,).
+
+    Returns:
+        A scalar, or (B,) for ``reduction="none"``; 0 where no pixel counts.
+    """
+    _check_reduction(reduction)
+    dims: dict[str, int] = {}
+    for name, img in (("image1", image1), ("image2", image2)):
+        check_float_tensor(img, name)
+        check_shape(img, name, ("B", "C", "H", "W"), dims)
+    _check_flow(flow, "flow", dims)
+    _check_mask(mask, "mask", dims)
+    if data_range <= 0:
+        raise ValueError(f"data_range: expected > 0, got {data_range!r}")
+    i1 = image1.to(flow.dtype) / data_range
+    i2 = image2.to(flow.dtype) / data_range
+    warped, in_bounds = warp_backward(i2, flow)
+    # Pixels sampled from outside image2 read image1 itself: they count nothing, and they do not
+    # pollute the SSIM / census windows of their valid neighbours with the padding's zeros.
+    warped = torch.where(in_bounds, warped, i1.detach())
+    weight = in_bounds if mask is None else in_bounds & mask
+    weight = weight.to(flow.dtype)
+    err = torch.zeros_like(flow[:, :1])
+    if l1_weight:
+        err = err + l1_weight * (i1 - warped).abs().mean(dim=1, keepdim=True)
+    if ssim_weight:
+        s = _ssim3(i1, warped).mean(dim=1, keepdim=True)
+        err = err + ssim_weight * ((1.0 - s) / 2).clamp(0.0, 1.0)
+    if census_weight:
+        t1 = census_transform(i1, radius=3, data_range=1.0)
+        t2 = census_transform(warped, radius=3, data_range=1.0)
+        dist = (t1 - t2).square()
+        ham = (dist / (0.1 + dist)).sum(dim=1, keepdim=True)
+        err = err + census_weight * (ham.abs() + 0.01).pow(0.4)
+    return _reduce(_masked_mean(err, weight), reduction)
+
+
+def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight: float = 10.0,
+                    data_range: float = 255.0, reduction: str = "mean") -> Tensor:
+    """Edge-aware smoothness of ``flow`` (ARFlow): |∇^order F| weighted by exp(-w · mean_c |∇I|).
+
+    Args:
+        flow: (B, 2, H, W) pixels.
+        image: (B, C, H, W) on 0..``data_range``, the frame the flow starts from.
+        order: 1 (first differences) or 2 (second differences).
+        edge_weight: w, per unit of image gradient on the 0..1 scale.
+        reduction: ``"mean"``, ``"sum"`` or ``"none"`` for (B,).
+
+    Returns:
+        Mean weighted |difference| in pixels (x and y directions averaged).
+    """
+    _check_reduction(reduction)
+    if order not in (1, 2):
+        raise ValueError(f"order: expected 1 or 2, got {order!r}")
+    dims: dict[str, int] = {}
+    _check_flow(flow, "flow", dims)
+    check_float_tensor(image, "image")
+    check_shape(image, "image", ("B", "C", "H", "W"), dims)
+    img = image.to(flow.dtype) / data_range
+    gx, gy = _image_gradients(img)
+    wx = torch.exp(-edge_weight * gx.abs().mean(dim=1, keepdim=True))
+    wy = torch.exp(-edge_weight * gy.abs().mean(dim=1, keepdim=True))
+    fx, fy = _image_gradients(flow)
+    if order == 2:
+        fx, _ = _image_gradients(fx)
+        _, fy = _image_gradients(fy)
+        wx, wy = wx[..., :, :-1], wy[..., :-1, :]
+    # Images of width or height below order + 1 have no differences: their term is 0.
+    sx = (wx * fx.abs()).flatten(1).sum(dim=1) / max(fx[0, 0].numel(), 1) / 2
+    sy = (wy * fy.abs()).flatten(1).sum(dim=1) / max(fy[0, 0].numel(), 1) / 2
+    return _reduce((sx + sy) / 2, reduction)
+
+
+def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor, *,
+                           flows_backward: Tensor | Sequence[Tensor] | None = None, gamma: float = 0.8,
+                           l1_weight: float = 0.15, ssim_weight: float = 0.85, census_weight: float = 0.0,
+                           smooth_weight: float = 2.0, smooth_order: int = 2, edge_weight: float = 10.0,
+                           occlusion: bool = True, alpha1: float = 0.01, alpha2: float = 0.5,
+                           data_range: float = 255.0, reduction: str = "mean") -> Tensor:
+    """ARFlow/UFlow-style unsupervised loss: masked photometric error + edge-aware smoothness.
+
+    With ``flows_backward`` (the net run on (image2, image1)) the loss is symmetric (both
+    directions count, each half) and, if ``occlusion``, pixels failing the forward-backward check
+    of the last estimates (:func:`forward_backward_mask`, no gradient) are left out of the
+    photometric term. Without it only the forward direction counts and nothing is masked but the
+    pixels warped from outside the image.
+
+    Args:
+        flows: (B, 2, H, W) or a list of them (RAFT iterations, weighted γ^(N-1-i)).
+        image1, image2: (B, 3, H, W) on 0..``data_range``.
+        flows_backward: the same for image2 -> image1, or None.
+        smooth_weight: weight of :func:`smoothness_loss` (order ``smooth_order``) against the
+            photometric term (on the 0..1 scale).
+
+    Returns:
+        A scalar, or (B,) for ``reduction="none"``.
+    """
+    _check_reduction(reduction)
+    fw = _as_flow_list(flows, "flows")
+    bw = None if flows_backward is None else _as_flow_list(flows_backward, "flows_backward")
+    if bw is not None and len(bw) != len(fw):
+        raise ValueError(f"flows_backward: expected {len(fw)} estimates like flows, got {len(bw)}")
+    weights = sequence_weights(len(fw), gamma)
+    photo = dict(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
+                 data_range=data_range, reduction="none")
+    smooth = dict(order=smooth_order, edge_weight=edge_weight, data_range=data_range, reduction="none")
+    mask_fw = mask_bw = None
+    if bw is not None and occlusion:
+        mask_fw = forward_backward_mask(fw[-1], bw[-1], alpha1=alpha1, alpha2=alpha2)
+        mask_bw = forward_backward_mask(bw[-1], fw[-1], alpha1=alpha1, alpha2=alpha2)
+    # All iterations in one batch: one warp and one SSIM call instead of N (same arithmetic).
+    n = len(fw)
+    wts = torch.tensor(weights, dtype=fw[-1].dtype, device=fw[-1].device).reshape(n, 1)
+
+    def direction(flows: list[Tensor], first: Tensor, second: Tensor, mask: Tensor | None) -> Tensor:
+        stacked = torch.cat(flows)
+        rep = lambda x: None if x is None else x.repeat(n, *([1] * (x.dim() - 1)))  # noqa: E731
+        value = photometric_loss(rep(first), rep(second), stacked, rep(mask), **photo)
+        value = value + smooth_weight * smoothness_loss(stacked, rep(first), **smooth)
+        return (wts * value.reshape(n, -1)).sum(dim=0)
+
+    total = direction(fw, image1, image2, mask_fw)
+    if bw is not None:
+        total = (total + direction(bw, image2, image1, mask_bw)) / 2
+    return _reduce(total, reduction)
+
+
+def _odometry_tensors(odometry: object) -> tuple[object, object, object]:
+    if isinstance(odometry, Mapping):
+        missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
+        if missing:
+            raise ValueError(f"odometry: expected keys x_d, z_d, yaw, missing {missing}")
+        return odometry["x_d"], odometry["z_d"], odometry["yaw"]
+    if all(hasattr(odometry, k) for k in ("x_d", "z_d", "yaw")):
+        return odometry.x_d, odometry.z_d, odometry.yaw
+    raise TypeError("odometry: expected a dict with x_d, z_d, yaw (floats or (B,) tensors), an object with "
+                    f"those attributes, or 'fit'; got {type(odometry).__name__}")
+
+
+def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
+                        odometry: Mapping[str, object] | str, *, penalty: str = "charbonnier",
+                        scale: float = 1.0, gamma: float = 0.8, fit_options: Mapping[str, object] | None = None,
+                        reduction: str = "mean") -> Tensor:
+    """Robust distance between predicted flow and the freespace model flow inside the road mask.
+
+    The target is :func:`fsof_torch.flow_model.displacement_flow` of ``camera`` under
+    ``odometry``; pixels count where ``road`` is True and the model is defined. With
+    ``odometry="fit"`` the displacement model is fitted to the last (detached) estimate inside
+    ``road`` with :func:`fsof_torch.fit.fit_displacement` and its flow, detached, is the target;
+    frames whose fit did not succeed count no pixel. The fitted target only makes the road
+    flow consistent with *some* plane motion: it suits fine-tuning a net whose flow is roughly
+    right; from scratch it did not help in ``python -m eval train`` (see README).
+
+    Args:
+        flows: (B, 2, H, W) pixels, or a list of them (weighted γ^(N-1-i)).
+        road: (B, 1, H, W) bool freespace mask.
+        camera: intrinsics (at the flow's resolution) and mounting, batch 1 or B.
+        odometry: dict (or object) with ``x_d``, ``z_d`` (metres) and ``yaw`` (radians), floats
+            or (B,) tensors; or ``"fit"``.
+        penalty: ``"charbonnier"`` (kornia, sqrt(r² + 1) - 1), ``"cauchy"`` (kornia,
+            log(1 + r²/2)) or ``"l1"``, on each component of the residual r = (F - F_model) / scale.
+        scale: residual scale in pixels (> 0); the penalty is quadratic below about ``scale``.
+        fit_options: keyword arguments for ``fit_displacement`` (``odometry="fit"`` only).
+
+    Returns:
+        Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
+        for ``reduction="none"``; 0 for an empty mask.
+    """
+    _check_reduction(reduction)
+    if penalty not in _PENALTIES:
+        raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
+    if not scale > 0:
+        raise ValueError(f"scale: expected > 0 px, got {scale!r}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    fw = _as_flow_list(flows, "flows")
+    dims: dict[str, int] = {}
+    for i, f in enumerate(fw):
+        _check_flow(f, f"flows[{i}]", dims)
+    _check_mask(road, "road", dims)
+    size = (dims["H"], dims["W"])
+    last = fw[-1]
+    if isinstance(odometry, str):
+        if odometry != "fit":
+            raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
+        from .fit import fit_displacement
+
+        with torch.no_grad():
+            fitted = fit_displacement(last.detach(), road, camera, **dict(fit_options or {}))
+        target = fitted.flow.detach()
+        model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
+    else:
+        x_d, z_d, yaw = _odometry_tensors(odometry)
+        target, model_valid = displacement_flow(camera, x_d, z_d, yaw, size)
+    target = target.to(last.dtype).expand_as(last)
+    weight = (road & model_valid).to(last.dtype)
+    if penalty == "l1":
+        def rho(a: Tensor, b: Tensor) -> Tensor:
+            return (a - b).abs()
+    else:
+        from kornia.losses import cauchy_loss, charbonnier_loss
+
+        rho = charbonnier_loss if penalty == "charbonnier" else cauchy_loss
+    total = 0.0
+    for w, f in zip(sequence_weights(len(fw), gamma), fw):
+        per_pixel = rho(f / scale, target / scale).sum(dim=1, keepdim=True)
+        total = total + w * _masked_mean(per_pixel, weight)
+    return _reduce(total, reduction)
+
+
+# -- modules ------------------------------------------------------------------------------------
+
+class UnsupervisedFlowLoss(nn.Module):
+    """``nn.Module`` twin of :func:`unsupervised_flow_loss` (options fixed at construction).
+
+    ``forward(flows, image1, image2, flows_backward=None)`` -> scalar (or (B,)).
+
+    Example:
+        >>> loss = UnsupervisedFlowLoss(smooth_weight=2.0)
+        >>> value = loss(net(i1, i2), i1, i2, flows_backward=net(i2, i1))  # doctest: +SKIP
+    """
+
+    def __init__(self, *, gamma: float = 0.8, l1_weight: float = 0.15, ssim_weight: float = 0.85,
+                 census_weight: float = 0.0, smooth_weight: float = 2.0, smooth_order: int = 2,
+                 edge_weight: float = 10.0, occlusion: bool = True, alpha1: float = 0.01,
+                 alpha2: float = 0.5, data_range: float = 255.0, reduction: str = "mean") -> None:
+        super().__init__()
+        _check_reduction(reduction)
+        sequence_weights(1, gamma)
+        if smooth_order not in (1, 2):
+            raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
+        self.options = dict(gamma=gamma, l1_weight=l1_weight, ssim_weight=ssim_weight,
+                            census_weight=census_weight, smooth_weight=smooth_weight,
+                            smooth_order=smooth_order, edge_weight=edge_weight, occlusion=occlusion,
+                            alpha1=alpha1, alpha2=alpha2, data_range=data_range, reduction=reduction)
+
+    def forward(self, flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor,
+                flows_backward: Tensor | Sequence[Tensor] | None = None) -> Tensor:
+        return unsupervised_flow_loss(flows, image1, image2, flows_backward=flows_backward, **self.options)
+
+    def extra_repr(self) -> str:
+        return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+
+
+class FreespaceFlowLoss(nn.Module):
+    """``nn.Module`` twin of :func:`freespace_flow_loss`.
+
+    Args:
+        odometry: ``"given"`` (pass the odometry to ``forward``) or ``"fit"`` (fit the
+            displacement model to the detached prediction at every call).
+        penalty, scale, gamma, fit_options, reduction: as in :func:`freespace_flow_loss`.
+
+    ``forward(flows, road, camera, odometry=None)`` -> scalar (or (B,)).
+
+    Example:
+        >>> term = FreespaceFlowLoss(penalty="charbonnier", scale=1.0)
+        >>> value = term(flows, batch["road"], batch["camera"], batch["odometry"])  # doctest: +SKIP
+    """
+
+    def __init__(self, *, odometry: str = "given", penalty: str = "charbonnier", scale: float = 1.0,
+                 gamma: float = 0.8, fit_options: Mapping[str, object] | None = None,
+                 reduction: str = "mean") -> None:
+        super().__init__()
+        if odometry not in ("given", "fit"):
+            raise ValueError(f"odometry: expected 'given' or 'fit', got {odometry!r}")
+        if penalty not in _PENALTIES:
+            raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
+        if not scale > 0:
+            raise ValueError(f"scale: expected > 0 px, got {scale!r}")
+        _check_reduction(reduction)
+        sequence_weights(1, gamma)
+        self.mode = odometry
+        self.options = dict(penalty=penalty, scale=scale, gamma=gamma,
+                            fit_options=dict(fit_options or {}), reduction=reduction)
+
+    def forward(self, flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
+                odometry: Mapping[str, object] | None = None) -> Tensor:
+        if self.mode == "fit":
+            odometry = "fit"
+        elif odometry is None:
+            raise ValueError("odometry: this FreespaceFlowLoss was built with odometry='given'; pass a dict "
+                             "with x_d, z_d, yaw, or build it with odometry='fit'")
+        return freespace_flow_loss(flows, road, camera, odometry, **self.options)
+
+    def extra_repr(self) -> str:
+        return f"odometry={self.mode!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+
+
+class CompositeLoss(nn.Module):
+    """A weighted sum of loss terms, each reported separately.
+
+    Args:
+        terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
+            receives, from the inputs given to ``forward``, those whose names are parameters of
+            its ``forward`` (or of the function itself), so one batch dict can feed all terms.
+
+    ``forward(flows, inputs=None, **more)`` -> ``(total, values)``: the weighted sum (a scalar
+    with gradient) and ``{name: unweighted value}`` (detached scalars).
+
+    Example:
+        >>> loss = CompositeLoss({"unsupervised": (1.0, UnsupervisedFlowLoss()),
+        ...                       "freespace": (0.1, FreespaceFlowLoss())})
+        >>> total, values = loss(flows, batch, flows_backward=flows_bw)  # doctest: +SKIP
+    """
+
+    def __init__(self, terms: Mapping[str, tuple[float, object]]) -> None:
+        super().__init__()
+        if not isinstance(terms, Mapping) or not terms:
+            raise TypeError(f"terms: expected a non-empty dict {{name: (weight, term)}}, got {terms!r}")
+        self.weights: dict[str, float] = {}
+        self._names: dict[str, tuple[set[str], bool]] = {}
+        modules = {}
+        for name, entry in terms.items():
+            if not (isinstance(entry, (tuple, list)) and len(entry) == 2 and callable(entry[1])):
+                raise TypeError(f"terms[{name!r}]: expected (weight, callable term), got {entry!r}")
+            weight, term = entry
+            self.weights[name] = float(weight)
+            if isinstance(term, nn.Module):
+                modules[name] = term
+            else:
+                setattr(self, f"_fn_{name}", term)
+            self._names[name] = _accepted_names(term)
+        self.terms = nn.ModuleDict(modules)
+
+    def _term(self, name: str):
+        return self.terms[name] if name in self.terms else getattr(self, f"_fn_{name}")
+
+    def forward(self, flows: Tensor | Sequence[Tensor], inputs: Mapping[str, object] | None = None,
+                **more: object) -> tuple[Tensor, dict[str, Tensor]]:
+        given = {**dict(inputs or {}), **more}
+        total = 0.0
+        values: dict[str, Tensor] = {}
+        for name, weight in self.weights.items():
+            accepted, takes_all = self._names[name]
+            kwargs = given if takes_all else {k: v for k, v in given.items() if k in accepted}
+            value = self._term(name)(flows, **kwargs)
+            values[name] = value.detach()
+            total = total + weight * value
+        return total, values
+
+
+def _accepted_names(term: object) -> tuple[set[str], bool]:
+    """Keyword names ``term`` accepts after ``flows``, and whether it takes ``**kwargs``."""
+    fn = term.forward if isinstance(term, nn.Module) else term
+    params = list(inspect.signature(fn).parameters.values())[1:]
+    takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+    names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
+                                                   inspect.Parameter.KEYWORD_ONLY)}
+    return names, takes_all

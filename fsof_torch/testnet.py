@@ -1,0 +1,239 @@
+"""A small RAFT-style flow network to run and train when no trained weights are at hand.
+
+``TinyRAFT`` follows RAFT (Teed & Deng, ECCV 2020) in miniature: a feature encoder and a context
+encoder at 1/8 resolution, an all-pairs correlation volume with a pyramid looked up around the
+current estimate, a convolutional GRU that refines the flow a few times, and convex upsampling to
+full resolution after every iteration. About 0.4 M parameters, so it trains on a CPU in minutes
+(on small images); it is a test net, not a competitive one.
+
+Convention: images (B, 3, H, W) RGB on 0..255 (normalised inside); flow (B, 2, H, W) in pixels,
+channel 0 = u, forward from ``image1`` to ``image2``. Any H, W: the net pads to a multiple of 8
+(replicating the border) and crops its outputs back.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from ._check import check_float_tensor, check_shape, tracing
+
+__all__ = ["TinyRAFT", "count_parameters"]
+
+STRIDE = 8  # resolution of the encoders; the all-pairs volume grows with (H W / STRIDE²)²
+
+
+def count_parameters(module: nn.Module) -> int:
+    """The number of trainable scalars of ``module``."""
+    return sum(p.numel() for p in module.parameters() if p.requires_grad)
+
+
+def _conv(cin: int, cout: int, k: int = 3, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, k, stride=stride, padding=k // 2)
+
+
+class _ResidualBlock(nn.Module):
+    def __init__(self, cin: int, cout: int, stride: int, norm: bool) -> None:
+        super().__init__()
+        self.conv1 = _conv(cin, cout, 3, stride)
+        self.conv2 = _conv(cout, cout, 3)
+        # Instance norm for the matching features (as RAFT's fnet): invariant to the brightness
+        # and contrast of each image; the context encoder keeps no normalisation (RAFT-small).
+        self.norm1 = nn.InstanceNorm2d(cout) if norm else nn.Identity()
+        self.norm2 = nn.InstanceNorm2d(cout) if norm else nn.Identity()
+        self.skip = (nn.Identity() if stride == 1 and cin == cout else
+                     nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride),
+                                   nn.InstanceNorm2d(cout) if norm else nn.Identity()))
+
+    def forward(self, x: Tensor) -> Tensor:
+        y = F.relu(self.norm1(self.conv1(x)))
+        y = F.relu(self.norm2(self.conv2(y)))
+        return F.relu(self.skip(x) + y)
+
+
+class _Encoder(nn.Module):
+    """Image (N, 3, H, W) in -1..1 -> features (N, out_dim, H/8, W/8)."""
+
+    def __init__(self, out_dim: int, norm: bool, widths: tuple[int, int, int] = (24, 32, 48)) -> None:
+        super().__init__()
+        w1, w2, w3 = widths
+        self.stem = nn.Sequential(_conv(3, w1, 7, 2), nn.InstanceNorm2d(w1) if norm else nn.Identity(),
+                                  nn.ReLU())
+        self.layer2 = _ResidualBlock(w1, w2, 2, norm)
+        self.layer3 = _ResidualBlock(w2, w3, 2, norm)
+        self.out = nn.Conv2d(w3, out_dim, 1)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.out(self.layer3(self.layer2(self.stem(x))))
+
+
+class _ConvGRU(nn.Module):
+    def __init__(self, hidden_dim: int, input_dim: int) -> None:
+        super().__init__()
+        self.convz = _conv(hidden_dim + input_dim, hidden_dim)
+        self.convr = _conv(hidden_dim + input_dim, hidden_dim)
+        self.convq = _conv(hidden_dim + input_dim, hidden_dim)
+
+    def forward(self, h: Tensor, x: Tensor) -> Tensor:
+        hx = torch.cat([h, x], dim=1)
+        z = torch.sigmoid(self.convz(hx))
+        r = torch.sigmoid(self.convr(hx))
+        q = torch.tanh(self.convq(torch.cat([r * h, x], dim=1)))
+        return (1 - z) * h + z * q
+
+
+class _UpdateBlock(nn.Module):
+    """Correlation + flow + context -> new hidden state, flow increment, upsampling weights."""
+
+    def __init__(self, corr_planes: int, hidden_dim: int, context_dim: int, motion_dim: int = 64) -> None:
+        super().__init__()
+        self.convc = nn.Conv2d(corr_planes, 64, 1)
+        self.convf1 = _conv(2, 32, 7)
+        self.convf2 = _conv(32, 16, 3)
+        self.convm = _conv(64 + 16, motion_dim - 2)
+        self.gru = _ConvGRU(hidden_dim, context_dim + motion_dim)
+        self.flow_head = nn.Sequential(_conv(hidden_dim, 64), nn.ReLU(), _conv(64, 2))
+        self.mask_head = nn.Sequential(_conv(hidden_dim, 64), nn.ReLU(), nn.Conv2d(64, 9 * STRIDE**2, 1))
+
+    def forward(self, hidden: Tensor, context: Tensor, corr: Tensor, flow: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c = F.relu(self.convc(corr))
+        f = F.relu(self.convf2(F.relu(self.convf1(flow))))
+        motion = torch.cat([F.relu(self.convm(torch.cat([c, f], dim=1))), flow], dim=1)
+        hidden = self.gru(hidden, torch.cat([context, motion], dim=1))
+        # RAFT scales the mask logits by 1/4 to balance their gradients against the flow head's.
+        return hidden, self.flow_head(hidden), 0.25 * self.mask_head(hidden)
+
+
+def _correlation_pyramid(fmap1: Tensor, fmap2: Tensor, levels: int) -> list[Tensor]:
+    """All-pairs correlation (B h w, 1, h, w) and its average-pooled coarser levels."""
+    B, D, h, w = fmap1.shape
+    corr = torch.einsum("bdn,bdm->bnm", fmap1.flatten(2), fmap2.flatten(2)) / D**0.5
+    pyramid = [corr.reshape(B * h * w, 1, h, w)]
+    for _ in range(levels - 1):
+        last = pyramid[-1]
+        if min(last.shape[-2:]) < 2:  # tiny images: repeat the coarsest level instead of pooling to 0
+            pyramid.append(last)
+        else:
+            pyramid.append(F.avg_pool2d(last, 2, stride=2))
+    return pyramid
+
+
+def _lookup(pyramid: list[Tensor], coords: Tensor, radius: int) -> Tensor:
+    """Bilinear samples of every level in a (2r+1)² window around ``coords`` (B, 2, h, w), x first.
+
+    Returns (B, levels (2r+1)², h, w); windows reaching outside the volume read zeros.
+    """
+    B, _, h, w = coords.shape
+    d = torch.arange(-radius, radius + 1, dtype=coords.dtype, device=coords.device)
+    # delta[..., 0] is the x offset, delta[..., 1] the y offset of each window cell
+    delta = torch.stack(torch.meshgrid(d, d, indexing="xy"), dim=-1).reshape(1, 2 * radius + 1, 2 * radius + 1, 2)
+    centre = coords.permute(0, 2, 3, 1).reshape(B * h * w, 1, 1, 2)
+    out = []
+    for level, corr in enumerate(pyramid):
+        hl, wl = corr.shape[-2:]
+        scale = torch.tensor([max(wl - 1, 1), max(hl - 1, 1)], dtype=coords.dtype, device=coords.device)
+        pts = centre * (wl / w) + delta  # pixel positions at this level (pooling by 2 per level)
+        grid = 2 * pts / scale - 1
+        sampled = F.grid_sample(corr, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+        out.append(sampled.reshape(B, h, w, -1))
+    return torch.cat(out, dim=-1).permute(0, 3, 1, 2)
+
+
+def _convex_upsample(flow: Tensor, mask: Tensor) -> Tensor:
+    """Flow (B, 2, h, w) at 1/8 -> (B, 2, 8h, 8w): each fine pixel a convex mix of 3x3 coarse ones."""
+    B, _, h, w = flow.shape
+    mask = torch.softmax(mask.reshape(B, 1, 9, STRIDE, STRIDE, h, w), dim=2)
+    nb = F.unfold(STRIDE * flow, (3, 3), padding=1).reshape(B, 2, 9, 1, 1, h, w)
+    up = (mask * nb).sum(dim=2)  # (B, 2, 8, 8, h, w)
+    return up.permute(0, 1, 4, 2, 5, 3).reshape(B, 2, STRIDE * h, STRIDE * w)
+
+
+class TinyRAFT(nn.Module):
+    """A miniature RAFT: list of full-resolution flows, one per refinement iteration.
+
+    Args:
+        seed: the weights are drawn from ``torch.manual_seed(seed)`` inside a forked RNG, so the
+            same seed gives the same net and the global random state is left untouched.
+        iters: default number of GRU iterations (the length of the returned list).
+        feature_dim: channels of the matching features.
+        hidden_dim, context_dim: channels of the GRU state and of the context features.
+        corr_levels, corr_radius: correlation pyramid depth and lookup radius (in 1/8 pixels per
+            level); the reach is about ``8 · corr_radius · 2^(corr_levels-1)`` pixels per iteration.
+
+    Example:
+        >>> net = TinyRAFT(seed=0, iters=4)
+        >>> flows = net(torch.rand(1, 3, 64, 100) * 255, torch.rand(1, 3, 64, 100) * 255)
+        >>> len(flows), flows[-1].shape
+        (4, torch.Size([1, 2, 64, 100]))
+    """
+
+    def __init__(self, *, seed: int = 0, iters: int = 6, feature_dim: int = 64, hidden_dim: int = 48,
+                 context_dim: int = 32, corr_levels: int = 3, corr_radius: int = 3) -> None:
+        super().__init__()
+        for name, value in (("iters", iters), ("feature_dim", feature_dim), ("hidden_dim", hidden_dim),
+                            ("context_dim", context_dim), ("corr_levels", corr_levels),
+                            ("corr_radius", corr_radius)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected a positive int, got {value!r}")
+        self.iters = iters
+        self.hidden_dim = hidden_dim
+        self.context_dim = context_dim
+        self.corr_levels = corr_levels
+        self.corr_radius = corr_radius
+        with torch.random.fork_rng(devices=[]):
+            torch.manual_seed(seed)
+            self.fnet = _Encoder(feature_dim, norm=True)
+            self.cnet = _Encoder(hidden_dim + context_dim, norm=False)
+            self.update = _UpdateBlock(corr_levels * (2 * corr_radius + 1) ** 2, hidden_dim, context_dim)
+
+    def forward(self, image1: Tensor, image2: Tensor, iters: int | None = None) -> list[Tensor]:
+        """Flow from ``image1`` to ``image2``.
+
+        Args:
+            image1, image2: (B, 3, H, W) RGB on 0..255, any H and W.
+            iters: refinement iterations (default: the constructor's).
+
+        Returns:
+            ``iters`` flows (B, 2, H, W) in pixels, coarse to refined; the last is the estimate.
+        """
+        check_float_tensor(image1, "image1")
+        check_float_tensor(image2, "image2")
+        dims = check_shape(image1, "image1", ("B", 3, "H", "W"))
+        check_shape(image2, "image2", ("B", 3, "H", "W"), dims)
+        iters = self.iters if iters is None else iters
+        if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
+            raise ValueError(f"iters: expected a positive int, got {iters!r}")
+        if not tracing():
+            lo = min(float(image1.min()), float(image2.min()))
+            hi = max(float(image1.max()), float(image2.max()))
+            if lo < 0 or hi > 255:
+                raise ValueError(f"image1, image2: expected values on 0..255, got the range [{lo:.4g}, {hi:.4g}]")
+        B, H, W = dims["B"], dims["H"], dims["W"]
+        weight = self.fnet.out.weight
+        x = torch.cat([image1, image2], dim=0).to(weight.dtype) / 127.5 - 1.0
+        # Pad symmetrically to a multiple of the stride; replicate so the border carries no edge.
+        ph, pw = (-H) % STRIDE, (-W) % STRIDE
+        pad = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
+        x = F.pad(x, pad, mode="replicate")
+
+        fmap1, fmap2 = self.fnet(x).chunk(2, dim=0)
+        pyramid = _correlation_pyramid(fmap1, fmap2, self.corr_levels)
+        hidden, context = self.cnet(x[:B]).split([self.hidden_dim, self.context_dim], dim=1)
+        hidden, context = torch.tanh(hidden), F.relu(context)
+
+        h, w = fmap1.shape[-2:]
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=x.dtype, device=x.device),
+                                torch.arange(w, dtype=x.dtype, device=x.device), indexing="ij")
+        coords0 = torch.stack([xs, ys]).expand(B, 2, h, w)
+        flow = torch.zeros_like(coords0)
+        flows = []
+        for _ in range(iters):
+            # As RAFT: each iteration learns its own increment; no gradient through the lookup position.
+            flow = flow.detach()
+            corr = _lookup(pyramid, coords0 + flow, self.corr_radius)
+            hidden, delta, mask = self.update(hidden, context, corr, flow)
+            flow = flow + delta
+            up = _convex_upsample(flow, mask)
+            flows.append(up[:, :, pad[2]:pad[2] + H, pad[0]:pad[0] + W])
+        return flows

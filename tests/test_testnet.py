@@ -1,0 +1,105 @@
+"""Tests of the RAFT-style test net: shapes, any size, seeding, state_dict, gradients."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fsof_torch.testnet import TinyRAFT, count_parameters
+
+
+def _pair(B: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    image1 = torch.rand(B, 3, H, W, generator=g) * 255
+    image2 = torch.roll(image1, shifts=(0, 2), dims=(2, 3))
+    return image1, image2
+
+
+# -- smoke ---------------------------------------------------------------------------------------
+
+def test_forward_backward_kitti_like_size():
+    """The issue's case: a 1x3x128x416 pair, forward and backward on the CPU."""
+    net = TinyRAFT(seed=0, iters=3)
+    image1, image2 = _pair(1, 128, 416)
+    flows = net(image1, image2)
+    assert len(flows) == 3
+    assert all(f.shape == (1, 2, 128, 416) for f in flows)
+    loss = sum(f.abs().mean() for f in flows)
+    loss.backward()
+    grads = [p.grad for p in net.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in grads)
+    assert any(g.abs().sum() > 0 for g in grads)
+
+
+def test_parameter_count_small():
+    assert count_parameters(TinyRAFT()) < 500_000
+
+
+# -- cardinality ---------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("B,H,W", [(1, 37, 61), (3, 40, 72), (2, 9, 13)])
+def test_any_size_and_batch(B, H, W):
+    net = TinyRAFT(seed=1, iters=2)
+    image1, image2 = _pair(B, H, W)
+    with torch.no_grad():
+        flows = net(image1, image2)
+    assert [tuple(f.shape) for f in flows] == [(B, 2, H, W)] * 2
+    assert all(torch.isfinite(f).all() for f in flows)
+
+
+def test_iters_override():
+    net = TinyRAFT(seed=0, iters=4)
+    image1, image2 = _pair(1, 32, 48)
+    with torch.no_grad():
+        assert len(net(image1, image2, iters=2)) == 2
+        assert len(net(image1, image2)) == 4
+
+
+def test_batch_elements_independent():
+    """Instance norm and padding act per image: a sample's flow does not depend on its batch mates."""
+    net = TinyRAFT(seed=0, iters=2).eval()
+    image1, image2 = _pair(3, 24, 40)
+    with torch.no_grad():
+        batched = net(image1, image2)[-1]
+        single = net(image1[1:2], image2[1:2])[-1]
+    torch.testing.assert_close(batched[1:2], single, atol=1e-4, rtol=1e-4)
+
+
+# -- seeding and state ---------------------------------------------------------------------------
+
+def test_same_seed_same_weights_and_rng_untouched():
+    state = torch.get_rng_state()
+    a, b, c = TinyRAFT(seed=3), TinyRAFT(seed=3), TinyRAFT(seed=4)
+    assert torch.equal(state, torch.get_rng_state())
+    for (name, pa), pb, pc in zip(a.state_dict().items(), b.state_dict().values(), c.state_dict().values()):
+        assert torch.equal(pa, pb), name
+    assert any(not torch.equal(pa, pc) for pa, pc in zip(a.state_dict().values(), c.state_dict().values()))
+
+
+def test_state_dict_round_trip(tmp_path):
+    a = TinyRAFT(seed=5, iters=2)
+    torch.save(a.state_dict(), tmp_path / "net.pt")
+    b = TinyRAFT(seed=6, iters=2)
+    b.load_state_dict(torch.load(tmp_path / "net.pt"))
+    image1, image2 = _pair(1, 24, 40)
+    with torch.no_grad():
+        torch.testing.assert_close(a(image1, image2)[-1], b(image1, image2)[-1], atol=0, rtol=0)
+
+
+# -- exceptions ----------------------------------------------------------------------------------
+
+def test_rejects_bad_inputs():
+    net = TinyRAFT(iters=1)
+    image1, image2 = _pair(1, 16, 16)
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, 3, H, W\)"):
+        net(image1[:, :1], image2)
+    with pytest.raises(ValueError, match=r"image2: expected shape .*H=16"):
+        net(image1, image2[..., :8, :])
+    with pytest.raises(TypeError, match="image1: expected a floating-point tensor"):
+        net(image1.to(torch.uint8), image2)
+    with pytest.raises(ValueError, match=r"expected values on 0\.\.255"):
+        net(image1 * 2, image2)
+    with pytest.raises(ValueError, match="iters: expected a positive int"):
+        net(image1, image2, iters=0)
+    with pytest.raises(ValueError, match="corr_radius: expected a positive int"):
+        TinyRAFT(corr_radius=0)
