@@ -13,7 +13,14 @@ Rows (single thread, warm-up then repeats, median and min wall ms, median proces
 - SciPy ``curve_fit`` (plain least squares, the official code's call) with the paper's λ form
   (eq. 13) as the model function, unless ``--no-curve-fit``.
 
-Usage: ``python benchmarks/bench_fit.py [--repeats 10] [--json out.json] [--no-curve-fit]``.
+With ``--baseline FILE`` (another version of ``fsof_torch/fit.py``, e.g. from
+``git show REV:fsof_torch/fit.py > /tmp/fit_before.py``), that version's ``fit_displacement``
+is timed too, interleaved call by call with the current one (same load on a shared machine),
+for the default subsample, one frame and a batch of 8; the rows report both and the
+largest parameter difference between them.
+
+Usage: ``python benchmarks/bench_fit.py [--repeats 10] [--json out.json] [--no-curve-fit]
+[--baseline FILE]``.
 """
 
 from __future__ import annotations
@@ -25,12 +32,17 @@ import statistics
 import sys
 import time
 
-import numpy as np
-import torch
+# one thread for the NumPy / SciPy reference too: BLAS reads these when it is loaded (setting
+# them later, in main(), left the reference on two threads)
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
 
-from fsof_torch.camera import Camera
-from fsof_torch.fit import fit_displacement
-from fsof_torch.flow_model import displacement_flow
+import numpy as np  # noqa: E402
+import torch  # noqa: E402
+
+from fsof_torch.camera import Camera  # noqa: E402
+from fsof_torch.fit import fit_displacement  # noqa: E402
+from fsof_torch.flow_model import displacement_flow  # noqa: E402
 
 SIZE = (375, 1242)
 K = [[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]]
@@ -62,6 +74,36 @@ def timed(fn, repeats: int, warmup: int = 2) -> tuple[float, float, float]:
         times.append((time.perf_counter() - t) * 1e3)
         cpu.append((time.process_time() - c) * 1e3)
     return statistics.median(times), min(times), statistics.median(cpu)
+
+
+def timed_pair(fn_a, fn_b, repeats: int, warmup: int = 2):
+    """:func:`timed` for two functions, alternating calls so that both see the same load."""
+    for _ in range(warmup):
+        fn_a()
+        fn_b()
+    out = {"a": ([], []), "b": ([], [])}
+    for _ in range(repeats):
+        for key, fn in (("a", fn_a), ("b", fn_b)):
+            t, c = time.perf_counter(), time.process_time()
+            fn()
+            out[key][0].append((time.perf_counter() - t) * 1e3)
+            out[key][1].append((time.process_time() - c) * 1e3)
+    return [(statistics.median(w), min(w), statistics.median(c)) for w, c in out.values()]
+
+
+def load_baseline(path: str):
+    """``fit_displacement`` of another version of fsof_torch/fit.py (a file), as a submodule of
+    the installed package so that its relative imports resolve."""
+    import importlib.util
+
+    import fsof_torch  # noqa: F401  (the parent package of the loaded module)
+
+    name = "fsof_torch._fit_baseline"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    spec.loader.exec_module(module)
+    return module.fit_displacement
 
 
 def scipy_problem(flow: torch.Tensor, mask: torch.Tensor):
@@ -110,9 +152,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--json", type=str, default=None, help="write the rows as JSON here")
     parser.add_argument("--no-curve-fit", action="store_true", help="skip the curve_fit row")
+    parser.add_argument("--baseline", type=str, default=None,
+                        help="another fsof_torch/fit.py to time against the current one (interleaved)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
-    os.environ.setdefault("OMP_NUM_THREADS", "1")
 
     from scipy.optimize import curve_fit, least_squares
 
@@ -145,6 +188,19 @@ def main(argv: list[str] | None = None) -> int:
         args.repeats, 8, check=dict(success=int(fit8.success.sum())))
     add("fit_displacement batch 8 (all pixels)",
         lambda: fit_displacement(flow8, mask8, cam, max_points=None), max(3, args.repeats // 2), 8)
+
+    if args.baseline:
+        base_fit = load_baseline(args.baseline)
+        for label, (f, m, frames_) in {"1 frame": (flow, mask, 1), "batch 8": (flow8, mask8, 8)}.items():
+            res_a, res_b = base_fit(f, m, cam), fit_displacement(f, m, cam)
+            diff = max(float((getattr(res_a, k) - getattr(res_b, k)).abs().max())
+                       for k in ("x_d", "z_d", "yaw", "roll", "pitch"))
+            (med_a, min_a, cpu_a), (med_b, min_b, cpu_b) = timed_pair(
+                lambda: base_fit(f, m, cam), lambda: fit_displacement(f, m, cam), args.repeats)
+            for name, med, best, cpu in (("baseline", med_a, min_a, cpu_a), ("current", med_b, min_b, cpu_b)):
+                rows.append(dict(name=f"{name}, {label} (interleaved)", frames=frames_,
+                                 median_ms=round(med, 2), min_ms=round(best, 2), cpu_ms=round(cpu, 2),
+                                 max_param_diff=float(f"{diff:.3g}")))
 
     residual, u, v, target = scipy_problem(flow, mask)
     x0 = np.array([0.0, 0.5, 0.0, 0.0])

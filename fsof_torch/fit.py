@@ -29,6 +29,7 @@ differentiable and not meant for ``torch.compile``; its results are detached ten
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -36,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ._check import check_finite, check_float_tensor, check_positive, check_shape, result_dtype
-from .camera import Camera, mounting_matrix, pitch_matrix, roll_matrix
+from .camera import Camera, mounting_matrix
 from .flow_model import _flow_from_matrix, displacement_flow  # noqa: F401  (docstring example)
 
 __all__ = [
@@ -162,56 +163,124 @@ def _robust_cost(r2: Tensor, scale: Tensor, kind: str) -> Tensor:
 
 # -- the model matrices and their derivatives ------------------------------------------------
 
-# Generators of the mounting rotations: dR_θ/dθ R_θᵀ and dR_β/dβ R_βᵀ are constant skew matrices,
-# so the derivative of C = R X Rᵀ is a commutator [G, C] (no per-angle derivative matrices).
-_G_ROLL = ((0.0, 1.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 0.0, 0.0))
-_G_PITCH = ((0.0, 0.0, 0.0), (0.0, 0.0, 1.0), (0.0, -1.0, 0.0))
+# The maps are assembled with one matmul of a few per-frame monomials by a constant basis, not
+# entry by entry: fitting evaluates them once per iteration, and on CPU each small op costs more
+# than its arithmetic. Every entry of X (and its derivatives), of R_c = R_θ R_β and of the
+# mounting generators is linear in the monomials below.
+#
+# Displacement: X = R_φ (I − d nᵀ / h) = [[c, −u, −s], [0, 1, 0], [s, −v, c]] with c, s = cos φ,
+# sin φ and u = c a − s b, v = s a + c b; dX/da = [[0, −c, 0], [0, 0, 0], [0, −s, 0]],
+# dX/db = [[0, s, 0], [0, 0, 0], [0, −c, 0]], dX/dφ = [[−s, v, −c], [0, 0, 0], [c, −u, −s]].
+# Velocity: G = Ω − ḋ nᵀ / h = [[0, 0, −ω], [0, 0, 0], [ω, −k, 0]] (k = v_r / h, ω = φ̇);
+# dG/dk = [[0, 0, 0], [0, 0, 0], [0, −1, 0]], dG/dω = [[0, 0, −1], [0, 0, 0], [1, 0, 0]].
+# Mounting: R_c = [[cθ, sθ cβ, sθ sβ], [−sθ, cθ cβ, cθ sβ], [0, −sβ, cβ]]; the roll's generator
+# dR_θ/dθ R_θᵀ = [[0, 1, 0], [−1, 0, 0], [0, 0, 0]] and the pitch's seen through the roll,
+# R_θ G_β R_θᵀ = [[0, 0, sθ], [0, 0, cθ], [−sθ, −cθ, 0]].
+_MOUNT_MONOMIALS = ("ct", "st", "cb", "sb", "ct*cb", "ct*sb", "st*cb", "st*sb")
+_MOUNT_MAPS = (
+    ("ct", "st*cb", "st*sb", "-st", "ct*cb", "ct*sb", "0", "-sb", "cb"),  # R_c
+    ("0", "1", "0", "-1", "0", "0", "0", "0", "0"),                      # G_θ
+    ("0", "0", "st", "0", "0", "ct", "-st", "-ct", "0"),                 # R_θ G_β R_θᵀ
+)
+_DISP_MONOMIALS = ("1", "c", "s", "c*a", "c*b", "s*a", "s*b") + _MOUNT_MONOMIALS
+_DISP_MAPS = (
+    ("c", "-u", "-s", "0", "1", "0", "s", "-v", "c"),     # X
+    ("0", "-c", "0", "0", "0", "0", "0", "-s", "0"),      # dX/da
+    ("0", "s", "0", "0", "0", "0", "0", "-c", "0"),       # dX/db
+    ("-s", "v", "-c", "0", "0", "0", "c", "-u", "-s"),    # dX/dφ
+)
+_VEL_MONOMIALS = ("1", "k", "w") + _MOUNT_MONOMIALS
+_VEL_MAPS = (
+    ("0", "0", "-w", "0", "0", "0", "w", "-k", "0"),      # G
+    ("0", "0", "0", "0", "0", "0", "0", "-1", "0"),       # dG/dk
+    ("0", "0", "-1", "0", "0", "0", "1", "0", "0"),       # dG/dω
+)
+_LINEAR = {"u": {"c*a": 1.0, "s*b": -1.0}, "v": {"s*a": 1.0, "c*b": 1.0}}
+
+_CONSTANTS: dict = {}
 
 
-def _sandwich_jac(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor,
-                  inner: Tensor) -> tuple[Tensor, Tensor]:
+def _map_basis(monomials: tuple[str, ...], maps: tuple[tuple[str, ...], ...]) -> list[list[float]]:
+    """(len(monomials), 9 · len(maps)) coefficients: map entry = Σ monomial × coefficient."""
+    basis = [[0.0] * (9 * len(maps)) for _ in monomials]
+    for col, entry in enumerate(e for m in maps for e in m):
+        sign = -1.0 if entry.startswith("-") else 1.0
+        name = entry.lstrip("-")
+        if name == "0":
+            continue
+        for mono, coef in _LINEAR.get(name, {name: 1.0}).items():
+            basis[monomials.index(mono)][col] += sign * coef
+    return basis
+
+
+def _constants(dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
+    """Constant bases (see above and :func:`_normal_equations`), cached per dtype and device."""
+    key = (dtype, device)
+    if key not in _CONSTANTS:
+        # AH (9×9) of _normal_equations from the four moment sums (4 × 6): blocks
+        # [[S0, 0, −S1], [0, S0, −S2], [−S1, −S2, S3]], S_k symmetric from (uu, uv, u, vv, v, 1)
+        sym = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
+        blocks = {(0, 0): (0, 1.0), (1, 1): (0, 1.0), (0, 2): (1, -1.0), (2, 0): (1, -1.0),
+                  (1, 2): (2, -1.0), (2, 1): (2, -1.0), (2, 2): (3, 1.0)}
+        ah = torch.zeros(24, 81, dtype=dtype)
+        for (bi, bj), (k, sign) in blocks.items():
+            for i in range(3):
+                for j in range(3):
+                    ah[6 * k + sym[i][j], (3 * bi + i) * 9 + 3 * bj + j] = sign
+        _CONSTANTS[key] = dict(
+            disp=torch.tensor(_map_basis(_DISP_MONOMIALS, _DISP_MAPS + _MOUNT_MAPS), dtype=dtype, device=device),
+            vel=torch.tensor(_map_basis(_VEL_MONOMIALS, _VEL_MAPS + _MOUNT_MAPS), dtype=dtype, device=device),
+            ah=ah.to(device))
+    return _CONSTANTS[key]
+
+
+def _mount_monomials(roll: Tensor, pitch: Tensor) -> Tensor:
+    """(B, 8): cθ, sθ, cβ, sβ and their four products (the order of _MOUNT_MONOMIALS)."""
+    ang = torch.stack([roll, pitch], dim=-1)
+    cs = torch.stack([torch.cos(ang), torch.sin(ang)], dim=-1)  # (B, angle, cos / sin)
+    prod = cs[:, 0].unsqueeze(-1) * cs[:, 1].unsqueeze(-2)  # (cθ, sθ) ⊗ (cβ, sβ)
+    return torch.cat([cs.flatten(1), prod.flatten(1)], dim=-1)
+
+
+def _sandwich_jac(K: Tensor, Kinv: Tensor, monomials: Tensor, basis: Tensor, Q: int,
+                  ray: bool = False) -> tuple[Tensor, ...]:
     """M = K R_c X R_cᵀ K⁻¹ and its derivatives, R_c = R_θ R_β.
 
-    ``inner`` (B, 1 + Q, 3, 3) stacks X and its derivatives by the Q motion parameters; returns
-    M (B, 3, 3) and dM (B, Q + 2, 3, 3) by (motion parameters..., θ, β).
+    ``monomials`` (B, m) @ ``basis`` (m, 9 (Q + 4)) give X and its derivatives by the Q motion
+    parameters, R_c and the two mounting generators; returns M (B, 3, 3) and dM (B, Q + 2, 3, 3)
+    by (motion parameters..., θ, β), and with ``ray`` also the y row (B, 1, 3) of R_cᵀ K⁻¹ (the
+    vehicle-frame ray's height test). The derivative of C = R_c X R_cᵀ by a mounting angle is a
+    commutator [G, C] with the angle's generator G.
     """
-    Rt = roll_matrix(roll)
-    Rc = Rt @ pitch_matrix(pitch)
+    B = monomials.shape[0]
+    maps = (monomials @ basis).reshape(B, Q + 4, 3, 3)
+    inner, Rc, G = maps[:, : Q + 1], maps[:, Q + 1], maps[:, Q + 2:]
     C = Rc.unsqueeze(1) @ inner @ Rc.transpose(-1, -2).unsqueeze(1)  # camera-frame maps
-    C0 = C[:, 0]
-    Gt = torch.tensor(_G_ROLL, dtype=C.dtype, device=C.device)
-    # pitch acts before roll: its generator is seen through R_θ
-    Gb = Rt @ torch.tensor(_G_PITCH, dtype=C.dtype, device=C.device) @ Rt.transpose(-1, -2)
-    dC = torch.cat([C[:, 1:], (Gt @ C0 - C0 @ Gt).unsqueeze(1), (Gb @ C0 - C0 @ Gb).unsqueeze(1)], dim=1)
-    out = K.unsqueeze(1) @ torch.cat([C0.unsqueeze(1), dC], dim=1) @ Kinv.unsqueeze(1)
+    C0 = C[:, :1]
+    out = K.unsqueeze(1) @ torch.cat([C, G @ C0 - C0 @ G], dim=1) @ Kinv.unsqueeze(1)
+    if ray:
+        return out[:, 0], out[:, 1:], Rc[:, :, 1:2].transpose(-1, -2) @ Kinv
     return out[:, 0], out[:, 1:]
 
 
-def _homography_jac(K: Tensor, Kinv: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    """H (B, 3, 3) and dH/dparams (B, 5, 3, 3) for params (a = x_d/h, b = z_d/h, φ, θ, β)."""
-    a, b, yaw, roll, pitch = params.unbind(-1)
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    z, o = torch.zeros_like(c), torch.ones_like(c)
-    ca_sb, sa_cb = c * a - s * b, s * a + c * b
-    inner = torch.stack([
-        c, -ca_sb, -s, z, o, z, s, -sa_cb, c,        # X = R_φ (I - d nᵀ / h)
-        z, -c, z, z, z, z, z, -s, z,                 # dX/da
-        z, s, z, z, z, z, z, -c, z,                  # dX/db
-        -s, sa_cb, -c, z, z, z, c, -ca_sb, -s,       # dX/dφ
-    ], dim=-1).reshape(-1, 4, 3, 3)
-    return _sandwich_jac(K, Kinv, roll, pitch, inner)
+def _homography_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
+    """H (B, 3, 3) and dH/dparams (B, 5, 3, 3) for params (a = x_d/h, b = z_d/h, φ, θ, β)
+    (and the ray row with ``ray``, see :func:`_sandwich_jac`)."""
+    basis = _constants(params.dtype, params.device)["disp"]
+    yaw = params[:, 2:3]
+    cs = torch.cat([torch.ones_like(yaw), torch.cos(yaw), torch.sin(yaw)], dim=-1)
+    prod = cs[:, 1:].unsqueeze(-1) * params[:, :2].unsqueeze(-2)  # (c, s) ⊗ (a, b)
+    mono = torch.cat([cs, prod.flatten(1), _mount_monomials(params[:, 3], params[:, 4])], dim=-1)
+    return _sandwich_jac(K, Kinv, mono, basis, 3, ray)
 
 
-def _velocity_jac(K: Tensor, Kinv: Tensor, params: Tensor) -> tuple[Tensor, Tensor]:
-    """G (B, 3, 3) and dG/dparams (B, 4, 3, 3) for params (s = v_r/h, ω = φ̇, θ, β)."""
-    sp, w, roll, pitch = params.unbind(-1)
-    z, o = torch.zeros_like(sp), torch.ones_like(sp)
-    inner = torch.stack([
-        z, z, -w, z, z, z, w, -sp, z,                # Ω - ḋ nᵀ / h
-        z, z, z, z, z, z, z, -o, z,                  # d/ds
-        z, z, -o, z, z, z, o, z, z,                  # d/dω
-    ], dim=-1).reshape(-1, 3, 3, 3)
-    return _sandwich_jac(K, Kinv, roll, pitch, inner)
+def _velocity_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
+    """G (B, 3, 3) and dG/dparams (B, 4, 3, 3) for params (s = v_r/h, ω = φ̇, θ, β)
+    (and the ray row with ``ray``, see :func:`_sandwich_jac`)."""
+    basis = _constants(params.dtype, params.device)["vel"]
+    mono = torch.cat([torch.ones_like(params[:, :1]), params[:, :2],
+                      _mount_monomials(params[:, 2], params[:, 3])], dim=-1)
+    return _sandwich_jac(K, Kinv, mono, basis, 2, ray)
 
 
 # -- evaluation on the sampled pixels ----------------------------------------------------------
@@ -284,30 +353,45 @@ def _check_inputs(flow: Tensor, mask: Tensor, camera: Camera, valid: Tensor | No
     return dims, camera, mask
 
 
-def _mask_sample(mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor]:
-    """Flat pixel indices (B, N) of the mask, deterministically subsampled to at most
-    ``max_points`` per frame, the flags of real points (B, N) (the rest is padding) and the
-    per-frame count of mask pixels (B,)."""
+def _mask_indices(mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Every mask pixel and a deterministic subsample of them.
+
+    Returns ``pix`` (B, N) per-frame flat indices (y W + x) of at most ``max_points`` mask pixels
+    per frame, ``sel`` (B, N) the flags of real points (the rest is padding), ``counts`` (B,) the
+    per-frame number of mask pixels, and ``every`` (M,) the flat indices into (B·H·W) of all
+    M mask pixels of the batch, sorted (frame by frame, raster order).
+    """
     B, _, H, W = mask.shape
-    flat = mask.reshape(B, H * W)
-    counts = flat.sum(1)
+    HW = H * W
+    # one flat nonzero: a 2-D nonzero splits each index into (frame, pixel) by an int64 division
+    # per mask pixel, which costs more than the nonzero itself
+    every = mask.reshape(-1).nonzero().squeeze(1)
+    # the frames' boundaries in the sorted indices give counts and starts (no pass over the mask)
+    bounds = torch.searchsorted(every, torch.arange(B + 1, device=mask.device) * HW)
+    counts, start = bounds.diff(), bounds[:-1]
     n_max = int(counts.max()) if B else 0
     N = n_max if max_points is None else min(n_max, int(max_points))
     N = max(N, 1)
-    _, p_idx = flat.nonzero(as_tuple=True)  # sorted by frame, then raster order
-    start = torch.cumsum(counts, 0) - counts
     # the j-th kept pixel of a frame with n > N mask pixels is its floor(j n / N)-th one: an even
     # stride over raster order; frames with n <= N keep all and pad the rest
     j = torch.arange(N, device=mask.device).expand(B, N)
     n = counts.unsqueeze(1)
     rank = torch.where(n > N, (j * n) // N, j)
     sel = rank < n
-    if p_idx.numel():
-        pix = p_idx[(start.unsqueeze(1) + rank).clamp_max(p_idx.numel() - 1)]
+    if every.numel():
+        frame0 = torch.arange(B, device=mask.device).unsqueeze(1) * HW
+        pix = every[(start.unsqueeze(1) + rank).clamp_max(every.numel() - 1)] - frame0
         pix = torch.where(sel, pix, torch.zeros_like(pix))
     else:
         pix = torch.zeros(B, N, dtype=torch.long, device=mask.device)
-    return pix, sel, counts
+    return pix, sel, counts, every
+
+
+def _mask_sample(mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor]:
+    """Flat pixel indices (B, N) of the mask, deterministically subsampled to at most
+    ``max_points`` per frame, the flags of real points (B, N) (the rest is padding) and the
+    per-frame count of mask pixels (B,)."""
+    return _mask_indices(mask, max_points)[:3]
 
 
 def _pixels(pix: Tensor, W: int) -> Tensor:
@@ -317,15 +401,15 @@ def _pixels(pix: Tensor, W: int) -> Tensor:
     return torch.stack([u, v, torch.ones_like(u)], dim=1)
 
 
-def _sample(flow: Tensor, mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The mask's pixels (see :func:`_mask_sample`): pts (B, 3, N) float64 homogeneous pixels,
-    obs (B, 2, N) float64 flow there, sel (B, N) bool, counts (B,)."""
+def _sample(flow: Tensor, mask: Tensor, max_points: int | None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The mask's pixels (see :func:`_mask_indices`): pts (B, 3, N) float64 homogeneous pixels,
+    obs (B, 2, N) float64 flow there, sel (B, N) bool, counts (B,), every (M,)."""
     B, _, H, W = flow.shape
-    pix, sel, counts = _mask_sample(mask, max_points)
+    pix, sel, counts, every = _mask_indices(mask, max_points)
     N = pix.shape[1]
     obs = flow.reshape(B, 2, H * W).gather(2, pix.unsqueeze(1).expand(B, 2, N)).to(torch.float64)
     obs = torch.where(sel.unsqueeze(1), obs, torch.zeros_like(obs))
-    return _pixels(pix, W), obs, sel, counts
+    return _pixels(pix, W), obs, sel, counts, every
 
 
 def _init_value(init: object, name: str, B: int, default: Tensor) -> Tensor:
@@ -446,12 +530,6 @@ def _moments(pts: Tensor) -> Tensor:
     return torch.stack([u * u, u * v, u, v * v, v, one], dim=-1)
 
 
-def _sym3(m: Tensor) -> Tensor:
-    """(..., 6) moments uu, uv, u, vv, v, 1 -> the symmetric (..., 3, 3) matrix Σ p̃ p̃ᵀ."""
-    uu, uv, u, vv, v, one = m.unbind(-1)
-    return torch.stack([uu, uv, u, uv, vv, v, u, v, one], dim=-1).reshape(*m.shape[:-1], 3, 3)
-
-
 def _normal_equations(dM: Tensor, pts: Tensor, mom: Tensor, proj: Tensor, inv_z: Tensor | None,
                       w: Tensor, r: Tensor) -> tuple[Tensor, Tensor]:
     """Jᵀ W J (B, P, P) and Jᵀ W r (B, P) without forming the per-pixel Jacobian.
@@ -460,36 +538,33 @@ def _normal_equations(dM: Tensor, pts: Tensor, mom: Tensor, proj: Tensor, inv_z:
     ∂r/∂M = (1/q_z) [[p̃ᵀ, 0, −x′ p̃ᵀ], [0, p̃ᵀ, −y′ p̃ᵀ]] with (x′, y′) the projected point
     (velocity model: q_z = 1 and (x′, y′) the pixel itself). So Jᵀ W J in M's 9 entries is made of
     four weighted sums of p̃ p̃ᵀ (weights w/q_z² × 1, x′, y′, x′²+y′²): two skinny matmuls over
-    the pixels instead of a (P, 2, N) Jacobian, and the chain rule through dM/dp (B, P, 3, 3)
-    is applied to 9×9 and 9-vectors.
+    the pixels instead of a (P, 2, N) Jacobian; the 9×9 matrix is assembled from the 4 × 6
+    distinct sums by one matmul with a constant basis, and the chain rule through dM/dp
+    (B, P, 3, 3) is applied to 9×9 and 9-vectors.
     """
     B, P = dM.shape[:2]
-    x, y = proj[:, 0], proj[:, 1]
-    a = w if inv_z is None else w * inv_z * inv_z
-    wts = torch.stack([a, a * x, a * y, a * (x * x + y * y)], dim=1)  # (B, 4, N)
-    S = _sym3(wts @ mom)  # (B, 4, 3, 3)
-    S0, S1, S2, S3 = S.unbind(1)
-    Z = torch.zeros_like(S0)
-    AH = torch.cat([torch.cat([S0, Z, -S1], -1), torch.cat([Z, S0, -S2], -1),
-                    torch.cat([-S1, -S2, S3], -1)], dim=-2)  # (B, 9, 9)
-    b = w if inv_z is None else w * inv_z
-    rx, ry = r[:, 0], r[:, 1]
-    gw = torch.stack([b * rx, b * ry, -b * (x * rx + y * ry)], dim=1)  # (B, 3, N)
-    gH = (gw @ pts.transpose(1, 2)).reshape(B, 9)
+    a = w if inv_z is None else w * (inv_z * inv_z)
+    pp = (proj * proj).sum(1, keepdim=True)
+    wts = torch.cat([a.unsqueeze(1), proj * a.unsqueeze(1), pp * a.unsqueeze(1)], dim=1)  # (B, 4, N)
+    AH = ((wts @ mom).reshape(B, 24) @ _constants(w.dtype, w.device)["ah"]).reshape(B, 9, 9)
+    br = r * (w if inv_z is None else w * inv_z).unsqueeze(1)
+    gw = torch.cat([br, -(proj * br).sum(1, keepdim=True)], dim=1)  # (B, 3, N)
+    gH = (gw @ pts.transpose(1, 2)).reshape(B, 9, 1)
     D = dM.reshape(B, P, 9)
-    A = D @ AH @ D.transpose(1, 2)
-    g = (D @ gH.unsqueeze(-1)).squeeze(-1)
-    return A, g
+    return D @ AH @ D.transpose(1, 2), (D @ gH).squeeze(-1)
 
 
 def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor, pts: Tensor,
-        obs: Tensor, sel: Tensor, *, kind: str, scale: float, max_iter: int, tol: float,
-        anneal: bool) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        obs: Tensor, sel: Tensor, *, stages: list[tuple[str, float, bool, float]],
+        max_iter: int) -> list[tuple]:
     """Robust Levenberg–Marquardt (IRLS weights, Marquardt scaling) over the free parameters.
 
-    Each iteration evaluates the model once, at the candidate; a frame whose robust cost went up
-    keeps its previous state and damps more. Returns params, converged (B,), iterations (B,),
-    and a conditioning measure (B,) (> 1: well posed).
+    ``stages``: (kernel, scale, anneal, tol) run one after the other, each from where the previous
+    one ended, sharing the per-pixel set-up and the residuals at the hand-over. Each iteration
+    evaluates the model once, at the candidate; a frame whose robust cost went up keeps its
+    previous state and damps more. Returns per stage: params, converged (B,), iterations (B,),
+    and a function computing a conditioning measure (B,) (> 1: well posed) at the stage's end
+    (only evaluated where needed: it costs a pass over the pixels).
     """
     B, P = params.shape
     dt = params.dtype
@@ -498,106 +573,116 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
     fixed = ~free
     fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
     eye_fixed = (eye * fixed.unsqueeze(-1)).expand(B, P, P)
-    lam = torch.full((B,), 1e-4, dtype=dt, device=dev)
-    done = torch.zeros(B, dtype=torch.bool, device=dev)
-    iters = torch.zeros(B, dtype=torch.long, device=dev)
     n_sel = sel.sum(1).clamp_min(1)
     mom = _moments(pts).to(dt)
+    pxy = pts[:, :2]
+    # the observed flow's target point: the residual is then one subtraction per evaluation
+    target = obs if velocity else pxy + obs
 
     def residuals(p: Tensor):
-        M, dM = jac_fn(K, Kinv, p)
-        ray_row = (mounting_matrix(p[:, -2], p[:, -1]).transpose(-1, -2) @ Kinv)[:, 1:2, :]
+        M, dM, ray_row = jac_fn(K, Kinv, p, ray=True)
         q = torch.cat([M, ray_row], dim=1) @ pts
-        ray_y, qz = q[:, 3], q[:, 2]
+        qz = q[:, 2]
         if velocity:
-            valid = ray_y > 0
+            use = sel & (q[:, 3] > 0)
             inv_z = None
-            model = q[:, :2] - pts[:, :2] * qz.unsqueeze(1)
-            proj = pts[:, :2]
+            proj = pxy
+            r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0) - target
         else:
-            valid = (ray_y > 0) & (qz > 1e-9)
-            inv_z = torch.where(valid, qz, torch.ones_like(qz)).reciprocal()
+            use = sel & (q[:, 3] > 0) & (qz > 1e-9)
+            inv_z = torch.where(use, qz, 1.0).reciprocal()
             proj = q[:, :2] * inv_z.unsqueeze(1)
-            model = proj - pts[:, :2]
-        r = model - obs
-        use = sel & valid
-        r2 = torch.where(use, (r * r).sum(1), torch.zeros_like(qz))
+            r = proj - target
+        r2 = torch.where(use, (r * r).sum(1), 0.0)
         return r, r2, use, (dM, proj, inv_z)
 
-    def cost(r2: Tensor, use: Tensor, s: Tensor) -> Tensor:
+    def cost(r2: Tensor, use: Tensor, s: Tensor, kind: str) -> Tensor:
         # a mask pixel where the model is undefined costs as much as a far outlier, so that the
-        # fit cannot shrink the model's domain to escape its residuals
-        sc = s.unsqueeze(-1)
-        rho = _robust_cost(r2, sc, kind)
-        far = _robust_cost(1e4 * sc * sc, sc, kind)
-        rho = torch.where(use, rho, far * sel)
-        return rho.sum(1) / n_sel
+        # fit cannot shrink the model's domain to escape its residuals (r2 is 0 there: ρ(0) = 0)
+        rho = _robust_cost(r2, s.unsqueeze(-1), kind).sum(1)
+        return (rho + far_cost * (n_sel - use.sum(1))) / n_sel
 
-    def normal_equations(r: Tensor, r2: Tensor, use: Tensor, lin, s: Tensor):
+    def normal_equations(r: Tensor, r2: Tensor, use: Tensor, lin, s: Tensor, kind: str):
         w = robust_weight(r2, s.unsqueeze(-1), kind) * use
         dM, proj, inv_z = lin
         A, g = _normal_equations(dM, pts, mom, proj, inv_z, w, r)
         A = torch.where(fixed_rc, eye_fixed, A)  # fixed parameters: identity rows, no gradient
-        g = torch.where(fixed, torch.zeros_like(g), g)
+        g = torch.where(fixed, 0.0, g)
         return A, g, w
 
-    r, r2, use, lin = residuals(params)
-    s_eff = torch.full((B,), float(scale), dtype=dt, device=dev)
-    if anneal:
-        med = torch.nanmedian(torch.where(use, r2, torch.full_like(r2, float("nan"))), dim=1).values
-        s_eff = torch.maximum(s_eff, 3.0 * torch.nan_to_num(med, nan=0.0).sqrt())
-    c = cost(r2, use, s_eff)
-    A, g, w = normal_equations(r, r2, use, lin, s_eff)
-    for it in range(max_iter):
+    def scaled(A: Tensor) -> tuple[Tensor, Tensor]:
         diag = A.diagonal(dim1=-2, dim2=-1)
         # a relative floor: a direction the data do not see (roll without motion) must not be
         # blown up to unit size by the Marquardt scaling
         sc = torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
-        An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
-        delta = -torch.linalg.solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
-        delta = torch.where(fixed | done.unsqueeze(-1), torch.zeros_like(delta), delta)
-        delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-        cand = params + delta
-        rc, r2c, usec, linc = residuals(cand)
-        c1 = cost(r2c, usec, s_eff)
-        ok = torch.isfinite(c1) & (c1 <= c) & ~done
-        if bool(ok.all()):  # the common case: no per-frame selection (no copies)
-            params, r, r2, use, lin = cand, rc, r2c, usec, linc
-        else:
-            params = torch.where(ok.unsqueeze(-1), cand, params)
-            r = torch.where(ok.reshape(B, 1, 1), rc, r)
-            r2 = torch.where(ok.unsqueeze(-1), r2c, r2)
-            use = torch.where(ok.unsqueeze(-1), usec, use)
-            lin = tuple(None if x is None else torch.where(ok.reshape(B, *[1] * (x.dim() - 1)), xc, x)
-                        for xc, x in zip(linc, lin))
-        active = ~done
-        iters += active.long()
-        # converged: a negligible step (accepted, or rejected while nearly undamped: at rounding
-        # level the cost can tick up) or a negligible relative decrease of the cost
-        tiny = (delta.abs() <= tol * (1.0 + params.abs())).all(-1)
-        small = (tiny & (ok | (lam <= 1e-2))) | (ok & (c - c1 <= tol * c))
-        c = torch.where(ok, c1, c)
-        lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
-        stuck = ~ok & (lam > 1e8)
-        at_scale = s_eff <= scale * (1 + 1e-12)
-        done = done | (active & at_scale & (small | stuck))
-        if anneal and not bool(at_scale.all()):
-            s_eff = torch.maximum(torch.full_like(s_eff, float(scale)), s_eff * 0.5)
-            c = cost(r2, use, s_eff)
-        if bool(done.all()):
-            break
-        A, g, w = normal_equations(r, r2, use, lin, s_eff)
-    A, g, w = normal_equations(r, r2, use, lin, s_eff)
-    diag = A.diagonal(dim1=-2, dim2=-1)
-    sc = torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
-    An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
-    # conditioning: the smallest eigenvalue of the scaled normal matrix (collinear parameters),
-    # and of the unscaled one per unit weight (a parameter the flow barely depends on:
-    # (px per unit of parameter)², parameters being radians or d/h)
-    wsum = w.sum(1).clamp_min(1e-300)
-    Ab = torch.where(fixed_rc, eye_fixed, A / wsum.reshape(B, 1, 1))
-    min_eig = torch.minimum(torch.linalg.eigvalsh(An)[:, 0] / 1e-9, torch.linalg.eigvalsh(Ab)[:, 0] / 1e-6)
-    return params, done, iters, min_eig
+        return A / (sc.unsqueeze(-1) * sc.unsqueeze(-2)), sc
+
+    def conditioning(r: Tensor, r2: Tensor, use: Tensor, lin, s: Tensor, kind: str) -> Tensor:
+        A, g, w = normal_equations(r, r2, use, lin, s, kind)
+        An, _ = scaled(A)
+        # the smallest eigenvalue of the scaled normal matrix (collinear parameters), and of the
+        # unscaled one per unit weight (a parameter the flow barely depends on: (px per unit of
+        # parameter)², parameters being radians or d/h)
+        wsum = w.sum(1).clamp_min(1e-300)
+        Ab = torch.where(fixed_rc, eye_fixed, A / wsum.reshape(B, 1, 1))
+        eig = torch.linalg.eigvalsh(torch.stack([An, Ab]))[..., 0]
+        return torch.minimum(eig[0] / 1e-9, eig[1] / 1e-6)
+
+    r, r2, use, lin = residuals(params)
+    out = []
+    for kind, scale, anneal, tol in stages:
+        lam = torch.full((B,), 1e-4, dtype=dt, device=dev)
+        done = torch.zeros(B, dtype=torch.bool, device=dev)
+        iters = torch.zeros(B, dtype=torch.long, device=dev)
+        s_eff = torch.full((B,), float(scale), dtype=dt, device=dev)
+        if anneal:
+            med = torch.nanmedian(torch.where(use, r2, float("nan")), dim=1).values
+            s_eff = torch.maximum(s_eff, 3.0 * torch.nan_to_num(med, nan=0.0).sqrt())
+        far_cost = _robust_cost(1e4 * s_eff * s_eff, s_eff, kind)
+        c = cost(r2, use, s_eff, kind)
+        A, g, w = normal_equations(r, r2, use, lin, s_eff, kind)
+        for it in range(max_iter):
+            An, sc = scaled(A)
+            delta = -torch.linalg.solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
+            delta = torch.where(fixed | done.unsqueeze(-1), 0.0, delta)
+            delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
+            cand = params + delta
+            rc, r2c, usec, linc = residuals(cand)
+            c1 = cost(r2c, usec, s_eff, kind)
+            ok = torch.isfinite(c1) & (c1 <= c) & ~done
+            if bool(ok.all()):  # the common case: no per-frame selection (no copies)
+                params, r, r2, use, lin = cand, rc, r2c, usec, linc
+            else:
+                params = torch.where(ok.unsqueeze(-1), cand, params)
+                r = torch.where(ok.reshape(B, 1, 1), rc, r)
+                r2 = torch.where(ok.unsqueeze(-1), r2c, r2)
+                use = torch.where(ok.unsqueeze(-1), usec, use)
+                lin = tuple(None if x is None else torch.where(ok.reshape(B, *[1] * (x.dim() - 1)), xc, x)
+                            for xc, x in zip(linc, lin))
+            active = ~done
+            iters += active.long()
+            # converged: a negligible step (accepted, or rejected while nearly undamped: at
+            # rounding level the cost can tick up) or a negligible relative decrease of the cost
+            tiny = (delta.abs() <= tol * (1.0 + params.abs())).all(-1)
+            small = (tiny & (ok | (lam <= 1e-2))) | (ok & (c - c1 <= tol * c))
+            c = torch.where(ok, c1, c)
+            lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
+            stuck = ~ok & (lam > 1e8)
+            at_scale = s_eff <= scale * (1 + 1e-12)
+            done = done | (active & at_scale & (small | stuck))
+            if anneal and not bool(at_scale.all()):
+                s_eff = torch.maximum(torch.full_like(s_eff, float(scale)), s_eff * 0.5)
+                far_cost = _robust_cost(1e4 * s_eff * s_eff, s_eff, kind)
+                c = cost(r2, use, s_eff, kind)
+            if bool(done.all()):
+                break
+            A, g, w = normal_equations(r, r2, use, lin, s_eff, kind)
+        out.append((params, done, iters, functools.partial(conditioning, r, r2, use, lin, s_eff, kind)))
+    return out
+
+
+# relative step / cost-decrease tolerance of the robust stage when a polish follows it
+_ROBUST_STAGE_TOL = 1e-4
 
 
 def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor,
@@ -607,37 +692,65 @@ def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, 
     """The robust fit, then (``polish``) a few iterations with Tukey's biweight cut at the
     inlier threshold: a kernel with unbounded support (Cauchy, Huber) still lets far outliers
     pull on the estimate; a redescending one started near the answer ignores them."""
-    params, done, iters, min_eig = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
-                                       kind=kind, scale=scale, max_iter=max_iter, tol=tol,
-                                       anneal=anneal)
-    if not polish or kind in ("tukey", "l2"):
-        return params, done, iters, min_eig
-    thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
-    p2, done2, iters2, min_eig2 = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
-                                      kind="tukey", scale=thr, max_iter=max_iter, tol=tol,
-                                      anneal=False)
+    stages = [(kind, scale, anneal, tol)]
+    if polish and kind not in ("tukey", "l2"):
+        # the polish moves the estimate by more than the robust stage's last iterations would
+        # (it drops the outliers' pull), so that stage only needs to land in the polish's basin:
+        # a looser tolerance there saves iterations; the polish converges to ``tol``
+        stages = [(kind, scale, anneal, max(tol, _ROBUST_STAGE_TOL)),
+                  ("tukey", 3.0 * scale if inlier_threshold is None else float(inlier_threshold), False, tol)]
+    out = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel, stages=stages,
+              max_iter=max_iter)
+    params, done, iters, min_eig = out[0]
+    if len(out) == 1:
+        return params, done, iters, min_eig()
+    p2, done2, iters2, min_eig2 = out[1]
     # keep the polished estimate only where it converged to a finite answer
     take = done2 & torch.isfinite(p2).all(-1)
     params = torch.where(take.unsqueeze(-1), p2, params)
-    return params, done & (done2 | ~take), iters + iters2, torch.where(take, min_eig2, min_eig)
+    cond = min_eig2() if bool(take.all()) else torch.where(take, min_eig2(), min_eig())
+    return params, done & (done2 | ~take), iters + iters2, cond
 
 
-def _finish(flow: Tensor, mask: Tensor, model: Tensor, model_valid: Tensor, scale: float,
-            inlier_threshold: float | None, min_points: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+def _finish(flow: Tensor, every: Tensor, counts: Tensor, model: Tensor, model_valid: Tensor,
+            scale: float, inlier_threshold: float | None,
+            min_points: int) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Inliers (B, 1, H, W), residual (B,), a per-frame "enough well-spread inliers" flag, and
-    the inliers' share of the mask pixels where the model is defined (B,)."""
+    the inliers' share of the mask pixels where the model is defined (B,).
+
+    Works on the M mask pixels only (``every``, their sorted flat indices into B·H·W, with
+    ``counts`` per frame): gathered once, so no full-size difference, norm or comparison.
+    """
     thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
-    use = mask & model_valid
-    diff = model - flow
-    epe = (diff[:, 0] * diff[:, 0]).addcmul_(diff[:, 1], diff[:, 1]).sqrt_().unsqueeze(1)
-    inliers = use & (epe <= thr)  # NaN flow outside the mask compares False
-    n_in = inliers.flatten(1).sum(1)
-    residual = (epe * inliers).flatten(1).sum(1) / n_in.clamp_min(1)
-    rows = inliers.any(3).flatten(1)
-    cols = inliers.any(2).flatten(1)
-    n_rows, n_cols = rows.sum(1), cols.sum(1)
+    B, _, H, W = flow.shape
+    HW = H * W
+    inliers = torch.zeros(B, HW, dtype=torch.bool, device=flow.device)
+    n_in, n_use, epe_sum = [], [], []
+    start = 0
+    # frame by frame: each frame's gathers stay in cache, and a gather along the pixels is much
+    # faster on CPU than one take() with (2, M) offsets into the whole batch
+    for b, n in enumerate(counts.tolist()):
+        idx = every[start:start + n]
+        idx = idx - b * HW if b else idx
+        start += n
+        idx2 = idx.expand(2, -1)
+        diff = model[b].reshape(2, HW).gather(1, idx2) - flow[b].reshape(2, HW).gather(1, idx2)
+        epe = torch.hypot(diff[0], diff[1])  # (vector_norm over a dim of 2 is far slower on CPU)
+        use = model_valid[b].reshape(HW).gather(0, idx)
+        inl = use & (epe <= thr)
+        inliers[b].scatter_(0, idx, inl)
+        n_in.append(inl.sum())
+        n_use.append(use.sum())
+        epe_sum.append((epe * inl).sum(dtype=torch.float64))
+    inliers = inliers.reshape(B, 1, H, W)
+    n_in, n_use, epe_sum = torch.stack(n_in), torch.stack(n_use), torch.stack(epe_sum)
+    residual = epe_sum / n_in.clamp_min(1)
+    # max over a uint8 view: a bool any() along a dimension is ten times slower on CPU
+    in8 = inliers.view(torch.uint8)
+    n_rows = in8.amax(3).flatten(1).sum(1)
+    n_cols = in8.amax(2).flatten(1).sum(1)
     spread = (n_in >= min_points) & (n_rows >= 3) & (n_cols >= 3)
-    fraction = n_in / use.flatten(1).sum(1).clamp_min(1)
+    fraction = n_in / n_use.clamp_min(1)
     return inliers, residual.to(flow.dtype), spread, fraction
 
 
@@ -681,7 +794,9 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
         valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's); ANDed with mask.
         robust: kernel of the IRLS weights, one of ``ROBUST_KERNELS``; "l2" for plain least squares.
         scale: the kernel's scale in pixels (residuals well above it are down-weighted).
-        max_iter, tol: Levenberg–Marquardt iteration cap and step tolerance (relative).
+        max_iter, tol: Levenberg–Marquardt iteration cap (per stage) and step / cost-decrease
+            tolerance (relative) of the final stage; with ``polish``, the robust stage before it
+            stops at max(tol, 1e-4) (the polish then moves the estimate further than that).
         max_points: at most this many mask pixels per frame enter the iterations (an even,
             deterministic stride over the mask in raster order); None uses all. The model flow,
             inliers and residual are always computed on every mask pixel.
@@ -717,7 +832,7 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow, camera.K)
     K, Kinv, h = (t.to(torch.float64) for t in (camera.K, camera.K_inv(), camera.height))
-    pts, obs, sel, counts = _sample(flow.detach(), mask, max_points)
+    pts, obs, sel, counts, every = _sample(flow.detach(), mask, max_points)
 
     roll0 = _init_value(init, "roll", B, camera.roll.to(torch.float64, copy=True))
     pitch0 = _init_value(init, "pitch", B, camera.pitch.to(torch.float64, copy=True))
@@ -742,8 +857,8 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
                      pitch.to(out_dtype))
     model, model_valid = _full_flow(_homography_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
                                     out_dtype, velocity=False)
-    inliers, residual, spread, fraction = _finish(flow.to(out_dtype), mask, model, model_valid, scale,
-                                                  inlier_threshold, min_points)
+    inliers, residual, spread, fraction = _finish(flow.detach().to(out_dtype), every, counts, model,
+                                                  model_valid, scale, inlier_threshold, min_points)
     success = (finite & converged & spread & (min_eig > 1.0) & (counts >= min_points)
                & (fraction >= min_inlier_fraction))
     return FitResult(
@@ -795,7 +910,7 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     check_positive(wb, "wheelbase")
     wb = wb.to(flow.device).expand(B)
     K, Kinv, h = (t.to(torch.float64) for t in (camera.K, camera.K_inv(), camera.height))
-    pts, obs, sel, counts = _sample(flow.detach(), mask, max_points)
+    pts, obs, sel, counts, every = _sample(flow.detach(), mask, max_points)
 
     roll0 = _init_value(init, "roll", B, camera.roll.to(torch.float64, copy=True))
     pitch0 = _init_value(init, "pitch", B, camera.pitch.to(torch.float64, copy=True))
@@ -829,8 +944,8 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     # evaluate G directly: a steering of ±π/2 (a yaw rate at zero speed) is outside velocity_flow
     model, model_valid = _full_flow(_velocity_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
                                     out_dtype, velocity=True)
-    inliers, residual, spread, fraction = _finish(flow.to(out_dtype), mask, model, model_valid, scale,
-                                                  inlier_threshold, min_points)
+    inliers, residual, spread, fraction = _finish(flow.detach().to(out_dtype), every, counts, model,
+                                                  model_valid, scale, inlier_threshold, min_points)
     success = (finite & converged & spread & (min_eig > 1.0) & (counts >= min_points)
                & (fraction >= min_inlier_fraction))
     return VelocityFitResult(
