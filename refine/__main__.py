@@ -49,6 +49,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--size", type=_size, default=DEFAULT_SIZE, metavar="HxW",
                    help="image size (default: %(default)s, KITTI's)")
     g.add_argument("--seed", type=int, default=0, help="scene seed (default: %(default)s)")
+    g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
+                   help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
 
     g = p.add_argument_group("user data")
     g.add_argument("--images", type=Path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
@@ -144,7 +146,8 @@ def _run(args: argparse.Namespace) -> int:
                 raise JobError(f"--{opt} needs --images")
         if args.road not in (None, "auto"):
             raise JobError("--road: synthetic scenes use their own road mask, or 'auto'")
-        specs = synthetic_pairs(args.preset, args.num_pairs, seed=args.seed, size=args.size, road=args.road)
+        specs = synthetic_pairs(args.preset, args.num_pairs, seed=args.seed, size=args.size, road=args.road,
+                                noise=args.scene_noise)
         title = f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pairs, {args.size[0]}x{args.size[1]}"
         sources = args.source or ["dis", "testnet"]
         variants = args.odometry or ["given", "fit"]

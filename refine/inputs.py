@@ -41,19 +41,23 @@ class PairSpec:
 # -- synthetic -----------------------------------------------------------------------------------
 
 def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int] | None,
-                    road: str | None) -> list[PairSpec]:
+                    road: str | None, noise: float | None = None) -> list[PairSpec]:
     """Pairs of a rendered sequence (``fsof_torch.scene``), with the scene's exact ground truth,
-    road mask and odometry. ``road="auto"`` leaves the mask to detection."""
+    road mask and odometry. ``road="auto"`` leaves the mask to detection; ``noise`` overrides the
+    preset's sensor noise (grey levels at 375×1242)."""
     from fsof_torch import scene
 
     if preset not in scene.PRESETS:
         raise JobError(f"--preset: unknown preset {preset!r}; choose from {', '.join(sorted(scene.PRESETS))}")
     if num_pairs < 1:
         raise JobError(f"--num-pairs: expected >= 1, got {num_pairs}")
+    if noise is not None and not noise >= 0:
+        raise JobError(f"--scene-noise: expected >= 0 grey levels, got {noise}")
+    overrides = {} if noise is None else {"noise": float(noise)}
 
     def loader(index: int) -> Callable[[], dict[str, Any]]:
         def load() -> dict[str, Any]:
-            p = scene.render_pair(preset, index, seed=seed, size=size, dtype=torch.float32)
+            p = scene.render_pair(preset, index, seed=seed, size=size, dtype=torch.float32, **overrides)
             odo = {k: float(v) for k, v in p["odometry"].items() if k in ("x_d", "z_d", "yaw")}
             return {"image1": p["image1"], "image2": p["image2"], "camera": p["camera"].to(torch.float64),
                     "odometry": odo, "road": None if road == "auto" else p["road"],

@@ -109,6 +109,8 @@ def test_scene_config_overrides():
     (dict(steering=2.0), ValueError, "steering: expected"),
     (dict(height=-1.0), ValueError, "height: expected > 0"),
     (dict(speed=float("nan")), ValueError, "speed: expected a finite number"),
+    (dict(noise=-1.0), ValueError, "noise: expected >= 0"),
+    (dict(asphalt=(1.0, 2.0)), ValueError, "asphalt: expected 7 finite amplitudes"),
     (dict(roll=1.0), ValueError, "roll, pitch: expected"),
 ])
 def test_render_pair_errors(kwargs, error, match):
@@ -322,13 +324,36 @@ def _warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
 
 
 def test_warp_by_ground_truth_is_photometrically_consistent(default_pair64):
-    pair = default_pair64
+    # the default preset adds sensor noise (3.8 grey levels, independent per frame), which no flow
+    # can warp away; the geometry and textures are checked noise-free, the noise on its own below
+    pair = render_pair("default", 0, size=MEDIUM, dtype=torch.float64, noise=0.0)
+    assert torch.equal(pair["flow"], default_pair64["flow"])
     warped = _warp(pair["image2"], pair["flow"])
     mask = (pair["road"] & pair["valid"])[0]
     mae = (warped - pair["image1"]).abs().mean(0)[mask].mean()
     unwarped = (pair["image2"] - pair["image1"]).abs().mean(0)[mask].mean()
     assert float(mae) <= 2.0
     assert float(unwarped) > 2 * float(mae)
+
+
+def test_sensor_noise_is_seeded_gaussian_and_per_frame(default_pair64):
+    assert PRESETS["default"].noise > 0
+    # given at 375 x 1242; a smaller render is that image area-averaged: sigma scales with sqrt(area)
+    sigma = PRESETS["default"].noise * math.sqrt(MEDIUM[0] * MEDIUM[1] / (KITTI_SIZE[0] * KITTI_SIZE[1]))
+    clean = render_pair("default", 0, size=MEDIUM, dtype=torch.float64, noise=0.0)
+    for key in ("image1", "image2"):
+        diff = default_pair64[key] - clean[key]
+        inside = ((clean[key] > 5 * sigma) & (clean[key] < 255 - 5 * sigma)).all(0)  # away from the clamp
+        d = diff[:, inside]
+        assert torch.allclose(d[0], d[1], atol=1e-9) and torch.allclose(d[0], d[2], atol=1e-9)  # luminance noise
+        assert float(d[0].mean()) == pytest.approx(0.0, abs=0.05 * sigma)
+        assert float(d[0].std()) == pytest.approx(sigma, rel=0.05)
+    # the two frames have independent noise; frame 1 of pair 0 is frame 0 of pair 1
+    n1 = (default_pair64["image1"] - clean["image1"])[0]
+    n2 = (default_pair64["image2"] - clean["image2"])[0]
+    assert abs(float(torch.corrcoef(torch.stack([n1.flatten(), n2.flatten()]))[0, 1])) < 0.05
+    nxt = render_pair("default", 1, size=MEDIUM, dtype=torch.float64)
+    assert torch.equal(nxt["image1"], default_pair64["image2"])
 
 
 def test_opencv_dis_tracks_the_road(default_pair64):
