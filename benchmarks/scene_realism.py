@@ -1,5 +1,5 @@
 """How realistic is the ``default`` scene preset? Road texture statistics and DIS road error,
-real KITTI samples (``/work/shared/data`` or ``--data``) against rendered pairs.
+real KITTI samples (``../shared/data`` or ``--data``) against rendered pairs.
 
 Texture statistics on grey images (OpenCV RGB→grey, float) inside the road: the polygon of each
 sample's road.json (real), the ``road`` label without paint (rendered), both eroded by 7×7 px.
@@ -15,7 +15,7 @@ DIS (OpenCV PRESET_MEDIUM, grey) end-point error on road pixels with ground trut
 noise, at the old speed, and the old default). Road photometric error (l1) of the DIS flow and of
 the ground truth on pairs 0–3, with the default's sensor noise and without.
 
-    python benchmarks/scene_realism.py [--data /work/shared/data]
+    python benchmarks/scene_realism.py [--data ../shared/data]
 """
 
 from __future__ import annotations
@@ -88,7 +88,7 @@ def _dis(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path("/work/shared/data"))
+    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     import cv2

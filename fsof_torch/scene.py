@@ -153,7 +153,7 @@ _DEFAULT_ASPHALT = (25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0)
 #: Named scene presets (see the README table). Overrides such as ``speed_factor=4`` or
 #: ``roll=math.radians(5)`` apply on top.
 PRESETS: dict[str, SceneConfig] = {
-    # the refine job's default sequence, made like the real KITTI samples in /work/shared/data:
+    # the refine job's default sequence, made like the real KITTI samples in ../shared/data:
     # 12 m/s at 10 Hz (the KITTI odometry clip moves 1.197 m per frame), asphalt whose grey-level
     # statistics per row band (row-detrended std, band-pass at 1, 2, 4 px, gradient) match those
     # measured inside the road polygons of the real images (README: "Realistic default"), and
