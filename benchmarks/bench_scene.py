@@ -41,7 +41,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     from fsof_torch.flow_model import displacement_flow
-    from fsof_torch.scene import render_pair
+    from fsof_torch.scene import SENSOR_NOISE, render_pair
 
     size = tuple(args.size)
     rows = []
@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                 float((p["image2"] - p["image1"]).abs().mean(0)[mask].mean()))
 
     mae, mae_id = warp_mae(pair)
-    # the default preset adds sensor noise, independent per frame, that no flow warps away
-    mae_clean, mae_id_clean = warp_mae(render_pair("default", 0, size=size, noise=0.0))
+    # with sensor noise, independent per frame, that no flow warps away
+    mae_noisy, mae_id_noisy = warp_mae(render_pair("default", 0, size=size, noise=SENSOR_NOISE))
     flow_dis = torch.from_numpy(dis.calc(grey[0], grey[1], None)).permute(2, 0, 1)
     epe = (flow_dis - pair["flow"]).norm(dim=0)
     valid = pair["valid"][0]
@@ -93,7 +93,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"\ndefault pair 0 (seed 0): road pixels valid {int(mask.sum())}, mean |GT flow| on them "
           f"{float(pair['flow'].norm(dim=0)[mask].mean()):.2f} px")
     print(f"  mean |I1 - warp(I2, GT flow)| on valid road pixels: {mae:.3f} (no warp: {mae_id:.3f}); "
-          f"without sensor noise (noise=0): {mae_clean:.3f} (no warp: {mae_id_clean:.3f})")
+          f"with sensor noise (noise={SENSOR_NOISE}): {mae_noisy:.3f} (no warp: {mae_id_noisy:.3f})")
     print(f"  OpenCV DIS medium end-point error: road {float(epe[mask].mean()):.3f} px "
           f"(median {float(epe[mask].median()):.3f}), all valid pixels {float(epe[valid].mean()):.3f} px, "
           f"finite: {bool(torch.isfinite(flow_dis).all())}")
