@@ -1216,20 +1216,13 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
 
 def collate(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     """Stack rendered pairs into a batch: tensors get a leading B, cameras are concatenated,
-    ``odometry`` / ``velocity`` floats become (B,) tensors (of the cameras' dtype), ints a list."""
+    ``odometry`` / ``velocity`` floats become (B,) tensors (of the cameras' dtype), ints a list.
+
+    The rules of :func:`fsof_torch.datasets.collate`, so rendered pairs and pairs read from disk
+    batch alike.
+    """
     if not isinstance(pairs, (list, tuple)) or not pairs:
         raise ValueError(f"pairs: expected a non-empty list of rendered pairs, got {type(pairs).__name__}")
-    out: dict[str, Any] = {}
-    for key, first in pairs[0].items():
-        values = [p[key] for p in pairs]
-        if isinstance(first, Tensor):
-            out[key] = torch.stack(values)
-        elif isinstance(first, Camera):
-            out[key] = Camera(torch.cat([c.K for c in values]), torch.cat([c.height for c in values]),
-                              torch.cat([c.roll for c in values]), torch.cat([c.pitch for c in values]))
-        elif isinstance(first, dict):
-            dtype = pairs[0]["camera"].dtype if "camera" in pairs[0] else torch.float64
-            out[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=dtype) for k in first}
-        else:
-            out[key] = list(values)
-    return out
+    from .datasets import collate as collate_items
+
+    return collate_items(pairs)
