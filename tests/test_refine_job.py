@@ -204,3 +204,18 @@ def test_kitti15_dis_refined_with_photometric_odometry(shared_data, tmp_path):
     row = _rows(out / "report.json")[("dis", "photometric")]
     assert row["epe_road_before"] > 5.0
     assert row["epe_road_after"] <= 1.0
+
+
+def test_scene_noise_option(tmp_path, capsys):
+    """--scene-noise renders noisy images: the refined road flow (exact, with the scene's
+    odometry) then has a higher photometric floor than on the noise-free sequence."""
+    floors = []
+    for noise in ("0", "3.8"):
+        rc = main(["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--scene-noise", noise,
+                   "--no-figures", "--out", str(tmp_path / noise), "--json", str(tmp_path / f"{noise}.json"), *TINY])
+        assert rc == 0
+        (row,) = json.loads((tmp_path / f"{noise}.json").read_text())["rows"]
+        assert row["epe_road_after"] < 1e-3
+        floors.append(row["photo_road_after"])
+    assert floors[1] > floors[0]  # (at 48x160 the noise is area-scaled to about 0.5 grey levels)
+    assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
