@@ -185,8 +185,11 @@ def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor 
     _check_mask(mask, "mask", dims)
     if data_range <= 0:
         raise ValueError(f"data_range: expected > 0, got {data_range!r}")
-    i1 = image1.to(flow.dtype) / data_range
-    i2 = image2.to(flow.dtype) / data_range
+    # at least float32 (also under autocast): SSIM's variances lose everything in bfloat16
+    dtype = torch.promote_types(flow.dtype, torch.float32)
+    flow = flow.to(dtype)
+    i1 = image1.to(dtype) / data_range
+    i2 = image2.to(dtype) / data_range
     warped, in_bounds = warp_backward(i2, flow)
     # Pixels sampled from outside image2 read image1 itself: they count nothing, and they do not
     # pollute the SSIM / census windows of their valid neighbours with the padding's zeros.
@@ -229,6 +232,7 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
     _check_flow(flow, "flow", dims)
     check_float_tensor(image, "image")
     check_shape(image, "image", ("B", "C", "H", "W"), dims)
+    flow = flow.to(torch.promote_types(flow.dtype, torch.float32))
     img = image.to(flow.dtype) / data_range
     gx, gy = _image_gradients(img)
     wx = torch.exp(-edge_weight * gx.abs().mean(dim=1, keepdim=True))

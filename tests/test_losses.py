@@ -288,3 +288,16 @@ def test_freespace_fit_mode_recovers_model_and_detaches():
     value = term(bumped, road, cam)
     value.backward()
     assert value.item() > 0 and torch.isfinite(bumped.grad).all()
+
+
+def test_photometric_and_smoothness_compute_in_float32_under_bfloat16():
+    g = torch.Generator().manual_seed(0)
+    image1 = torch.rand(1, 3, 24, 32, generator=g) * 255
+    image2 = torch.roll(image1, 1, dims=-1)
+    flow = torch.zeros(1, 2, 24, 32)
+    flow[:, 0] = 1.0
+    exact = photometric_loss(image1, image2, flow)
+    low = photometric_loss(image1, image2, flow.bfloat16())
+    assert low.dtype == torch.float32
+    assert torch.allclose(low, exact, atol=1e-2)
+    assert smoothness_loss(flow.bfloat16(), image1).dtype == torch.float32
