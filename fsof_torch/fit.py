@@ -161,6 +161,18 @@ def _robust_cost(r2: Tensor, scale: Tensor, kind: str) -> Tensor:
     raise ValueError(f"robust: expected one of {ROBUST_KERNELS}, got {kind!r}")
 
 
+def _cost_sum(r2: Tensor, scale: Tensor, kind: str) -> Tensor:
+    """Σ_N ρ(r²) (B,) of :func:`_robust_cost` for r2 (B, N) and scale (B,), with the scale's
+    factor taken out of the sum: fewer passes over the pixels in the fitting loop."""
+    c2 = scale * scale
+    if kind == "cauchy":
+        return torch.log1p(r2 / c2.unsqueeze(-1)).sum(1) * c2
+    if kind == "tukey":
+        t = torch.rsub(r2 / c2.unsqueeze(-1), 1.0).clamp_min_(0.0)  # 1 − z where z < 1, else 0
+        return torch.rsub(t.pow_(3), 1.0).sum(1) * (c2 / 3.0)
+    return _robust_cost(r2, scale.unsqueeze(-1), kind).sum(1)
+
+
 # -- the model matrices and their derivatives ------------------------------------------------
 
 # The maps are assembled with one matmul of a few per-frame monomials by a constant basis, not
@@ -196,6 +208,16 @@ _VEL_MAPS = (
     ("0", "0", "-1", "0", "0", "0", "1", "0", "0"),       # dG/dω
 )
 _LINEAR = {"u": {"c*a": 1.0, "s*b": -1.0}, "v": {"s*a": 1.0, "c*b": 1.0}}
+# the factors of the monomials, in the order _homography_jac / _velocity_jac compute them: 1, the
+# cosines and sines of the angles, then the parameters that enter linearly
+_DISP_FACTORS = ("1", "c", "ct", "cb", "s", "st", "sb", "a", "b")
+_VEL_FACTORS = ("1", "ct", "cb", "st", "sb", "k", "w")
+
+
+def _factor_index(monomials: tuple[str, ...], factors: tuple[str, ...]) -> list[list[int]]:
+    """For each monomial the positions of its two factors in ``factors`` (1 for a lone one)."""
+    pairs = [(m.split("*") + ["1"])[:2] for m in monomials]
+    return [[factors.index(x) for x, _ in pairs], [factors.index(y) for _, y in pairs]]
 
 _CONSTANTS: dict = {}
 
@@ -218,8 +240,8 @@ def _constants(dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
     key = (dtype, device)
     if key not in _CONSTANTS:
         # AH (9×9) of _normal_equations from the four moment sums (4 × 6): blocks
-        # [[S0, 0, −S1], [0, S0, −S2], [−S1, −S2, S3]], S_k symmetric from (uu, uv, u, vv, v, 1)
-        sym = ((0, 1, 2), (1, 3, 4), (2, 4, 5))
+        # [[S0, 0, −S1], [0, S0, −S2], [−S1, −S2, S3]], S_k symmetric from (uu, uv, vv, u, v, 1)
+        sym = ((0, 1, 3), (1, 2, 4), (3, 4, 5))
         blocks = {(0, 0): (0, 1.0), (1, 1): (0, 1.0), (0, 2): (1, -1.0), (2, 0): (1, -1.0),
                   (1, 2): (2, -1.0), (2, 1): (2, -1.0), (2, 2): (3, 1.0)}
         ah = torch.zeros(24, 81, dtype=dtype)
@@ -230,16 +252,10 @@ def _constants(dtype: torch.dtype, device: torch.device) -> dict[str, Tensor]:
         _CONSTANTS[key] = dict(
             disp=torch.tensor(_map_basis(_DISP_MONOMIALS, _DISP_MAPS + _MOUNT_MAPS), dtype=dtype, device=device),
             vel=torch.tensor(_map_basis(_VEL_MONOMIALS, _VEL_MAPS + _MOUNT_MAPS), dtype=dtype, device=device),
+            disp_index=torch.tensor(_factor_index(_DISP_MONOMIALS, _DISP_FACTORS), device=device),
+            vel_index=torch.tensor(_factor_index(_VEL_MONOMIALS, _VEL_FACTORS), device=device),
             ah=ah.to(device))
     return _CONSTANTS[key]
-
-
-def _mount_monomials(roll: Tensor, pitch: Tensor) -> Tensor:
-    """(B, 8): cθ, sθ, cβ, sβ and their four products (the order of _MOUNT_MONOMIALS)."""
-    ang = torch.stack([roll, pitch], dim=-1)
-    cs = torch.stack([torch.cos(ang), torch.sin(ang)], dim=-1)  # (B, angle, cos / sin)
-    prod = cs[:, 0].unsqueeze(-1) * cs[:, 1].unsqueeze(-2)  # (cθ, sθ) ⊗ (cβ, sβ)
-    return torch.cat([cs.flatten(1), prod.flatten(1)], dim=-1)
 
 
 def _sandwich_jac(K: Tensor, Kinv: Tensor, monomials: Tensor, basis: Tensor, Q: int,
@@ -263,24 +279,32 @@ def _sandwich_jac(K: Tensor, Kinv: Tensor, monomials: Tensor, basis: Tensor, Q: 
     return out[:, 0], out[:, 1:]
 
 
+def _monomials(params: Tensor, n_lin: int, index: Tensor) -> Tensor:
+    """(B, m) monomials as products of two factors each: the factors (B, f) are 1, cos and sin of
+    ``params[:, n_lin:]`` (the angles), then ``params[:, :n_lin]``; ``index`` (2, m) picks them.
+    Two gathers and one product instead of a cos, sin, stack and outer product per group (the
+    fitting loop evaluates this once per iteration, where each small op costs more than its
+    arithmetic)."""
+    ang = params[:, n_lin:]
+    f = torch.cat([torch.ones_like(params[:, :1]), torch.cos(ang), torch.sin(ang), params[:, :n_lin]],
+                  dim=-1)
+    return f[:, index[0]] * f[:, index[1]]
+
+
 def _homography_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
     """H (B, 3, 3) and dH/dparams (B, 5, 3, 3) for params (a = x_d/h, b = z_d/h, φ, θ, β)
     (and the ray row with ``ray``, see :func:`_sandwich_jac`)."""
-    basis = _constants(params.dtype, params.device)["disp"]
-    yaw = params[:, 2:3]
-    cs = torch.cat([torch.ones_like(yaw), torch.cos(yaw), torch.sin(yaw)], dim=-1)
-    prod = cs[:, 1:].unsqueeze(-1) * params[:, :2].unsqueeze(-2)  # (c, s) ⊗ (a, b)
-    mono = torch.cat([cs, prod.flatten(1), _mount_monomials(params[:, 3], params[:, 4])], dim=-1)
-    return _sandwich_jac(K, Kinv, mono, basis, 3, ray)
+    const = _constants(params.dtype, params.device)
+    mono = _monomials(params, 2, const["disp_index"])
+    return _sandwich_jac(K, Kinv, mono, const["disp"], 3, ray)
 
 
 def _velocity_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
     """G (B, 3, 3) and dG/dparams (B, 4, 3, 3) for params (s = v_r/h, ω = φ̇, θ, β)
     (and the ray row with ``ray``, see :func:`_sandwich_jac`)."""
-    basis = _constants(params.dtype, params.device)["vel"]
-    mono = torch.cat([torch.ones_like(params[:, :1]), params[:, :2],
-                      _mount_monomials(params[:, 2], params[:, 3])], dim=-1)
-    return _sandwich_jac(K, Kinv, mono, basis, 2, ray)
+    const = _constants(params.dtype, params.device)
+    mono = _monomials(params, 2, const["vel_index"])
+    return _sandwich_jac(K, Kinv, mono, const["vel"], 2, ray)
 
 
 # -- evaluation on the sampled pixels ----------------------------------------------------------
@@ -451,34 +475,38 @@ def _planar_init(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, pts: Tens
     y1 = torch.where(ok, xp[:, 1], torch.ones_like(xp[:, 1]))
     X, Z = x[:, 0] / y0, x[:, 2] / y0
     Xp, Zp = xp[:, 0] / y1, xp[:, 2] / y1
-    # x' = c X - s Z + tx ; z' = s X + c Z + tz  (tx, tz = -R_φ d/h)
-    zero, one = torch.zeros_like(X), torch.ones_like(X)
-    rows_x = torch.stack([X, -Z, one, zero], dim=-1)
-    rows_z = torch.stack([Z, X, zero, one], dim=-1)
-    D = torch.cat([rows_x, rows_z], dim=1)  # (B, 2N, 4)
-    rhs = torch.cat([Xp, Zp], dim=1)
+    # x' = c X - s Z + tx ; z' = s X + c Z + tz  (tx, tz = -R_φ d/h): rows (X, -Z, 1, 0) and
+    # (Z, X, 0, 1) of the design matrix, both with the point's weight; its normal matrix and
+    # right-hand side are made of eight weighted sums (one matmul per re-weighting, no (2N, 4)
+    # design matrix): N = Σ w [[X²+Z², 0, X, Z], [0, X²+Z², -Z, X], [X, -Z, 1, 0], [Z, X, 0, 1]],
+    # g = Σ w (X X' + Z Z', X Z' - Z X', X', Z')
+    feats = torch.stack([X * X + Z * Z, X, Z, torch.ones_like(X), X * Xp + Z * Zp, X * Zp - Z * Xp,
+                         Xp, Zp], dim=-1)  # (B, N, 8)
     base = torch.where(ok, y0 * y0, torch.zeros_like(y0))
-    base = torch.cat([base, base], dim=1)
     w = base
     theta = torch.zeros(B, 4, dtype=pts.dtype, device=pts.device)
     good = torch.ones(B, dtype=torch.bool, device=pts.device)
+    fx2 = (K[:, 0, 0].unsqueeze(-1) * y0) ** 2  # residuals back in (roughly) pixel units
     for it in range(iters):
-        Dw = D * w.unsqueeze(-1)
-        N = Dw.transpose(1, 2) @ D
-        g = (Dw * rhs.unsqueeze(-1)).sum(1)
+        S = (w.unsqueeze(1) @ feats).squeeze(1)  # (B, 8)
+        rr, sx, sz, s1 = S[:, 0], S[:, 1], S[:, 2], S[:, 3]
+        zero = torch.zeros_like(rr)
+        N = torch.stack([rr, zero, sx, sz, zero, rr, -sz, sx, sx, -sz, s1, zero, sz, sx, zero, s1],
+                        dim=-1).reshape(B, 4, 4)
+        g = S[:, 4:]
         scale = N.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
         Nn = N / (scale.unsqueeze(-1) * scale.unsqueeze(-2))
         Nn = Nn + torch.eye(4, dtype=N.dtype, device=N.device) * 1e-12
         theta = torch.linalg.solve(Nn, (g / scale).unsqueeze(-1)).squeeze(-1) / scale
-        res = (D @ theta.unsqueeze(-1)).squeeze(-1) - rhs
-        # residuals back in (roughly) pixel units for the re-weighting
-        rp = res * torch.cat([y0, y0], dim=1) * K[:, 0, 0].unsqueeze(-1)
-        rp2 = rp[:, : rp.shape[1] // 2] ** 2 + rp[:, rp.shape[1] // 2:] ** 2
+        c_, s_, tx_, tz_ = theta.unsqueeze(-1).unbind(1)
+        rx = c_ * X - s_ * Z + tx_ - Xp
+        rz = s_ * X + c_ * Z + tz_ - Zp
+        rp2 = (rx * rx + rz * rz) * fx2
         rp2 = torch.where(ok, rp2, torch.full_like(rp2, float("nan")))
         spread = torch.nanmedian(rp2, dim=1).values.clamp_min(1.0)
         wr = 1.0 / (1.0 + rp2 / (4.0 * spread.unsqueeze(-1)))
         wr = torch.where(ok, wr, torch.zeros_like(wr))
-        w = base * torch.cat([wr, wr], dim=1)
+        w = base * wr
     good = torch.linalg.eigvalsh(Nn)[:, 0] > 1e-9
     c, s, tx, tz = theta.unbind(-1)
     yaw = torch.atan2(s, c)
@@ -525,9 +553,12 @@ def _velocity_init(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
 # -- Levenberg–Marquardt with robust weights ----------------------------------------------------
 
 def _moments(pts: Tensor) -> Tensor:
-    """The six distinct entries of p̃ p̃ᵀ per pixel, (B, N, 6): uu, uv, u, vv, v, 1."""
+    """The six distinct entries of p̃ p̃ᵀ per pixel, (B, 6, N): uu, uv, vv, u, v, 1 (p̃ last).
+
+    Stored moment-major: the sums against them (:func:`_normal_equations`) are then dot products
+    along contiguous rows, which the skinny matmul does faster than with (B, N, 6)."""
     u, v, one = pts.unbind(1)
-    return torch.stack([u * u, u * v, u, v * v, v, one], dim=-1)
+    return torch.stack([u * u, u * v, v * v, u, v, one], dim=1)
 
 
 def _normal_equations(dM: Tensor, pts: Tensor, mom: Tensor, proj: Tensor, inv_z: Tensor | None,
@@ -537,19 +568,31 @@ def _normal_equations(dM: Tensor, pts: Tensor, mom: Tensor, proj: Tensor, inv_z:
     The end-point residual depends on the parameters only through the 3×3 matrix M: per pixel
     ∂r/∂M = (1/q_z) [[p̃ᵀ, 0, −x′ p̃ᵀ], [0, p̃ᵀ, −y′ p̃ᵀ]] with (x′, y′) the projected point
     (velocity model: q_z = 1 and (x′, y′) the pixel itself). So Jᵀ W J in M's 9 entries is made of
-    four weighted sums of p̃ p̃ᵀ (weights w/q_z² × 1, x′, y′, x′²+y′²): two skinny matmuls over
-    the pixels instead of a (P, 2, N) Jacobian; the 9×9 matrix is assembled from the 4 × 6
-    distinct sums by one matmul with a constant basis, and the chain rule through dM/dp
-    (B, P, 3, 3) is applied to 9×9 and 9-vectors.
+    four weighted sums of p̃ p̃ᵀ (weights w/q_z² × 1, x′, y′, x′²+y′²) and Jᵀ W r of three weighted
+    sums of p̃ (weights w/q_z × (r_x, r_y, −(x′ r_x + y′ r_y))): the seven weights are written
+    into one (B, 7, N) buffer and summed against the moments (B, 6, N) by one skinny matmul (p̃
+    is the moments' last three rows), instead of a (P, 2, N) Jacobian; the 9×9 matrix is assembled
+    from the 4 × 6 distinct sums by one matmul with a constant basis, and the chain rule through
+    dM/dp (B, P, 3, 3) is applied to 9×9 and 9-vectors. ``pts`` (B, 3, N) only gives B and N.
     """
     B, P = dM.shape[:2]
-    a = w if inv_z is None else w * (inv_z * inv_z)
-    pp = (proj * proj).sum(1, keepdim=True)
-    wts = torch.cat([a.unsqueeze(1), proj * a.unsqueeze(1), pp * a.unsqueeze(1)], dim=1)  # (B, 4, N)
-    AH = ((wts @ mom).reshape(B, 24) @ _constants(w.dtype, w.device)["ah"]).reshape(B, 9, 9)
-    br = r * (w if inv_z is None else w * inv_z).unsqueeze(1)
-    gw = torch.cat([br, -(proj * br).sum(1, keepdim=True)], dim=1)  # (B, 3, N)
-    gH = (gw @ pts.transpose(1, 2)).reshape(B, 9, 1)
+    N = pts.shape[-1]
+    # in place into one buffer: on CPU each per-pixel temporary and cat costs a pass over memory
+    wts = torch.empty(B, 7, N, dtype=w.dtype, device=w.device)
+    a, ax, ay, app, br, gz = wts[:, 0], wts[:, 1], wts[:, 2], wts[:, 3], wts[:, 4:6], wts[:, 6]
+    if inv_z is None:
+        a.copy_(w)
+        br.copy_(r).mul_(w.unsqueeze(1))
+    else:
+        wi = w * inv_z
+        torch.mul(wi, inv_z, out=a)
+        torch.mul(r, wi.unsqueeze(1), out=br)
+    torch.mul(proj, a.unsqueeze(1), out=wts[:, 1:3])
+    torch.mul(proj[:, 0], ax, out=app).addcmul_(proj[:, 1], ay)        # (x′² + y′²) a
+    torch.mul(proj[:, 0], br[:, 0], out=gz).neg_().addcmul_(proj[:, 1], br[:, 1], value=-1.0)
+    S = wts @ mom.transpose(1, 2)  # (B, 7, 6)
+    AH = (S[:, :4].reshape(B, 24) @ _constants(w.dtype, w.device)["ah"]).reshape(B, 9, 9)
+    gH = S[:, 4:, 3:].reshape(B, 9, 1)  # (B, 3, 3) against p̃: rows x, y, z of M
     D = dM.reshape(B, P, 9)
     return D @ AH @ D.transpose(1, 2), (D @ gH).squeeze(-1)
 
@@ -590,20 +633,22 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
             r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0) - target
         else:
             use = sel & (q[:, 3] > 0) & (qz > 1e-9)
-            inv_z = torch.where(use, qz, 1.0).reciprocal()
-            proj = q[:, :2] * inv_z.unsqueeze(1)
+            # in place on the fresh products (q is ours): each per-pixel temporary costs a pass
+            inv_z = torch.where(use, qz, 1.0).reciprocal_()
+            proj = q[:, :2].mul_(inv_z.unsqueeze(1))
             r = proj - target
-        r2 = torch.where(use, (r * r).sum(1), 0.0)
+        r2 = torch.mul(r[:, 0], r[:, 0]).addcmul_(r[:, 1], r[:, 1])
+        r2 = torch.where(use, r2, 0.0)
         return r, r2, use, (dM, proj, inv_z)
 
     def cost(r2: Tensor, use: Tensor, s: Tensor, kind: str) -> Tensor:
         # a mask pixel where the model is undefined costs as much as a far outlier, so that the
         # fit cannot shrink the model's domain to escape its residuals (r2 is 0 there: ρ(0) = 0)
-        rho = _robust_cost(r2, s.unsqueeze(-1), kind).sum(1)
+        rho = _cost_sum(r2, s, kind)
         return (rho + far_cost * (n_sel - use.sum(1))) / n_sel
 
     def normal_equations(r: Tensor, r2: Tensor, use: Tensor, lin, s: Tensor, kind: str):
-        w = robust_weight(r2, s.unsqueeze(-1), kind) * use
+        w = robust_weight(r2, s.unsqueeze(-1), kind).mul_(use)
         dM, proj, inv_z = lin
         A, g = _normal_equations(dM, pts, mom, proj, inv_z, w, r)
         A = torch.where(fixed_rc, eye_fixed, A)  # fixed parameters: identity rows, no gradient
@@ -641,6 +686,7 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
         far_cost = _robust_cost(1e4 * s_eff * s_eff, s_eff, kind)
         c = cost(r2, use, s_eff, kind)
         A, g, w = normal_equations(r, r2, use, lin, s_eff, kind)
+        annealing = anneal  # some frame's kernel scale may still be above ``scale``
         for it in range(max_iter):
             An, sc = scaled(A)
             delta = -torch.linalg.solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
@@ -668,12 +714,18 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
             c = torch.where(ok, c1, c)
             lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
             stuck = ~ok & (lam > 1e8)
-            at_scale = s_eff <= scale * (1 + 1e-12)
-            done = done | (active & at_scale & (small | stuck))
-            if anneal and not bool(at_scale.all()):
-                s_eff = torch.maximum(torch.full_like(s_eff, float(scale)), s_eff * 0.5)
-                far_cost = _robust_cost(1e4 * s_eff * s_eff, s_eff, kind)
-                c = cost(r2, use, s_eff, kind)
+            # (done | (active & x) is done | x: a frame that is not active is done already)
+            if annealing:
+                at_scale = s_eff <= scale * (1 + 1e-12)
+                done = done | (at_scale & (small | stuck))
+                # the scales only come down to ``scale``: once all are there, they stay
+                annealing = not bool(at_scale.all())
+                if annealing:
+                    s_eff = torch.maximum(torch.full_like(s_eff, float(scale)), s_eff * 0.5)
+                    far_cost = _robust_cost(1e4 * s_eff * s_eff, s_eff, kind)
+                    c = cost(r2, use, s_eff, kind)
+            else:
+                done = done | small | stuck
             if bool(done.all()):
                 break
             A, g, w = normal_equations(r, r2, use, lin, s_eff, kind)
@@ -734,14 +786,17 @@ def _finish(flow: Tensor, every: Tensor, counts: Tensor, model: Tensor, model_va
         idx = idx - b * HW if b else idx
         start += n
         idx2 = idx.expand(2, -1)
-        diff = model[b].reshape(2, HW).gather(1, idx2) - flow[b].reshape(2, HW).gather(1, idx2)
-        epe = torch.hypot(diff[0], diff[1])  # (vector_norm over a dim of 2 is far slower on CPU)
+        # in place where the tensors are fresh: a new buffer of this size costs more (page
+        # faults of a fresh allocation) than the arithmetic
+        diff = model[b].reshape(2, HW).gather(1, idx2).sub_(flow[b].reshape(2, HW).gather(1, idx2))
+        epe = torch.hypot(diff[0], diff[1], out=diff[0])  # (vector_norm over 2 is far slower)
         use = model_valid[b].reshape(HW).gather(0, idx)
-        inl = use & (epe <= thr)
+        inl = torch.le(epe, thr).logical_and_(use)
         inliers[b].scatter_(0, idx, inl)
-        n_in.append(inl.sum())
-        n_use.append(use.sum())
-        epe_sum.append((epe * inl).sum(dtype=torch.float64))
+        # (count_nonzero and masked_fill_: a bool sum or product first converts the flags)
+        n_in.append(torch.count_nonzero(inl))
+        n_use.append(torch.count_nonzero(use))
+        epe_sum.append(_sum64(epe.masked_fill_(inl.logical_not(), 0.0)))
     inliers = inliers.reshape(B, 1, H, W)
     n_in, n_use, epe_sum = torch.stack(n_in), torch.stack(n_use), torch.stack(epe_sum)
     residual = epe_sum / n_in.clamp_min(1)
@@ -752,6 +807,17 @@ def _finish(flow: Tensor, every: Tensor, counts: Tensor, model: Tensor, model_va
     spread = (n_in >= min_points) & (n_rows >= 3) & (n_cols >= 3)
     fraction = n_in / n_use.clamp_min(1)
     return inliers, residual.to(flow.dtype), spread, fraction
+
+
+def _sum64(x: Tensor, block: int = 1024) -> Tensor:
+    """Sum of a 1-D tensor accumulated in float64 (a 0-d tensor), without a float64 copy of it:
+    float32 partial sums over blocks of ``block`` (each a few ulp), then those in float64. A
+    fresh float64 copy of a mask's worth of values costs more (page faults) than the sum."""
+    if x.dtype == torch.float64:
+        return x.sum()
+    m = x.numel() // block
+    tail = x[m * block:].sum(dtype=torch.float64)
+    return x[: m * block].view(m, block).sum(1).sum(dtype=torch.float64) + tail if m else tail
 
 
 def _check_fraction(value: float) -> None:
