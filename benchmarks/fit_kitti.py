@@ -28,17 +28,14 @@ DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000
 def load(folder: Path):
     import cv2
 
+    from fsof_torch.io import read_image, read_kitti_flow, read_road_mask
+
     cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-    gt = torch.from_numpy(np.stack([(raw[..., 2] - 2.0**15) / 64.0, (raw[..., 1] - 2.0**15) / 64.0]))[None]
-    valid = torch.from_numpy(raw[..., 0] > 0)[None, None]
-    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
-    road = np.zeros(raw.shape[:2], np.uint8)
-    cv2.fillPoly(road, [np.asarray(poly, np.int32)], 1)
-    bgr = [cv2.imread(str(folder / f"image_1{i}.png")) for i in (0, 1)]
-    rgb = [torch.from_numpy(cv2.cvtColor(b, cv2.COLOR_BGR2RGB)).permute(2, 0, 1)[None].float() for b in bgr]
-    grey = [cv2.cvtColor(b, cv2.COLOR_BGR2GRAY) for b in bgr]
-    return cam, gt, valid, torch.from_numpy(road > 0)[None, None], rgb, grey
+    gt, valid = read_kitti_flow(folder / "flow_noc_10.png")
+    road = read_road_mask(folder / "road.json", size=tuple(gt.shape[-2:]))
+    rgb = [read_image(folder / f"image_1{i}.png")[None] for i in (0, 1)]
+    grey = [cv2.cvtColor(im[0].permute(1, 2, 0).numpy().astype(np.uint8), cv2.COLOR_RGB2GRAY) for im in rgb]
+    return cam, gt[None].double(), valid[None], road[None], rgb, grey
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -25,6 +25,16 @@ def tolerance(dtype: torch.dtype) -> dict[str, float]:
     return {torch.float32: dict(atol=1e-3, rtol=1e-4), torch.float64: dict(atol=1e-9, rtol=1e-9)}[dtype]
 
 
+@pytest.fixture(scope="module")
+def one_thread():
+    """One intra-op thread for a module of many small tensor ops (fits, rendering): faster than two
+    contending threads on a shared CPU; the previous count is restored afterwards."""
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The folder of real KITTI samples beside the project; tests using it skip when absent."""

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import pytest
 import torch
@@ -23,13 +22,7 @@ from fsof_torch.flow_model import displacement_flow, road_homography, velocity_f
 SIZE = (64, 160)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Fits are many small ops: one thread is faster than two contending ones on a shared CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)  # H != W on purpose
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def small_camera(dtype=torch.float64, roll=0.0, pitch=0.0) -> Camera:
@@ -323,22 +316,15 @@ def test_feature_velocity_batch_and_outliers():
 # -- real data ---------------------------------------------------------------------------------
 
 def _kitti(shared_data):
-    cv2 = pytest.importorskip("cv2")
-    import numpy as np
+    from fsof_torch.io import read_kitti_flow, read_road_mask
 
     folder = shared_data / "kitti15_000000"
     if not folder.is_dir():
         pytest.skip("kitti15_000000 is absent")
     cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-    u = (raw[..., 2] - 2.0**15) / 64.0
-    v = (raw[..., 1] - 2.0**15) / 64.0
-    flow = torch.from_numpy(np.stack([u, v]))[None]
-    valid = torch.from_numpy(raw[..., 0] > 0)[None, None]
-    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
-    road = np.zeros(raw.shape[:2], np.uint8)
-    cv2.fillPoly(road, [np.asarray(poly, np.int32)], 1)
-    return cam, flow, valid, torch.from_numpy(road > 0)[None, None]
+    flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
+    road = read_road_mask(folder / "road.json", size=tuple(flow.shape[-2:]))
+    return cam, flow[None].double(), valid[None], road[None]
 
 
 def test_real_kitti_ground_truth_fit(shared_data):

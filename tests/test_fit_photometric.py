@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import pytest
 import torch
@@ -15,13 +14,7 @@ from fsof_torch.warp import warp_backward
 SIZE = (96, 256)
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Fits are many small ops: one thread is faster than two contending ones on a shared CPU."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def small_camera(dtype=torch.float64, roll=0.0, pitch=0.0) -> Camera:
@@ -126,17 +119,14 @@ def _kitti(shared_data):
     folder = shared_data / "kitti15_000000"
     if not folder.is_dir():
         pytest.skip("kitti15_000000 is absent")
+    from fsof_torch.io import read_image, read_kitti_flow, read_road_mask
+
     cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED).astype(np.float64)
-    gt = torch.from_numpy(np.stack([(raw[..., 2] - 2.0**15) / 64.0, (raw[..., 1] - 2.0**15) / 64.0]))[None]
-    valid = torch.from_numpy(raw[..., 0] > 0)[None, None]
-    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
-    road = np.zeros(raw.shape[:2], np.uint8)
-    cv2.fillPoly(road, [np.asarray(poly, np.int32)], 1)
-    bgr = [cv2.imread(str(folder / f"image_1{i}.png")) for i in (0, 1)]
-    rgb = [torch.from_numpy(cv2.cvtColor(b, cv2.COLOR_BGR2RGB)).permute(2, 0, 1)[None].float() for b in bgr]
-    grey = [cv2.cvtColor(b, cv2.COLOR_BGR2GRAY) for b in bgr]
-    return cam, gt, valid, torch.from_numpy(road > 0)[None, None], rgb, grey
+    gt, valid = read_kitti_flow(folder / "flow_noc_10.png")
+    road = read_road_mask(folder / "road.json", size=tuple(gt.shape[-2:]))
+    rgb = [read_image(folder / f"image_1{i}.png")[None] for i in (0, 1)]
+    grey = [cv2.cvtColor(im[0].permute(1, 2, 0).numpy().astype(np.uint8), cv2.COLOR_RGB2GRAY) for im in rgb]
+    return cam, gt[None].double(), valid[None], road[None], rgb, grey
 
 
 def test_real_kitti_dis_then_photometric(shared_data):

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 
 import numpy as np
 import pytest
@@ -256,23 +255,13 @@ def test_autocast_bfloat16():
 # --- real data (KITTI 2015 pair 000000) --------------------------------------------------------
 
 def _read_kitti(shared_data):
-    import cv2
+    from fsof_torch.io import read_image, read_kitti_flow, read_road_mask
 
     folder = shared_data / "kitti15_000000"
-
-    def rgb(name):
-        bgr = cv2.imread(str(folder / name), cv2.IMREAD_COLOR)
-        return torch.from_numpy(bgr[:, :, ::-1].copy()).permute(2, 0, 1).float()[None]
-
-    raw = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED)
-    valid = torch.from_numpy(raw[:, :, 0] > 0)[None, None]
-    u = (raw[:, :, 2].astype(np.float32) - 2 ** 15) / 64
-    v = (raw[:, :, 1].astype(np.float32) - 2 ** 15) / 64
-    flow = torch.from_numpy(np.stack([u, v]))[None] * valid
-    poly = json.loads((folder / "road.json").read_text())["road_polygon"]
-    road = np.zeros(raw.shape[:2], np.uint8)
-    cv2.fillPoly(road, [np.array(poly, np.int32)], 1)
-    return rgb("image_10.png"), rgb("image_11.png"), flow, valid, torch.from_numpy(road > 0)[None, None]
+    flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
+    road = read_road_mask(folder / "road.json", size=tuple(flow.shape[-2:]))
+    image1, image2 = (read_image(folder / name)[None] for name in ("image_10.png", "image_11.png"))
+    return image1, image2, flow[None], valid[None], road[None]
 
 
 def test_kitti_ground_truth_lowers_photometric_error(shared_data):

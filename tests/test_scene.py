@@ -22,18 +22,11 @@ KEYS = {"image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", 
         "camera", "odometry", "velocity", "pose1", "pose2", "index"}
 
 
-@pytest.fixture(scope="module", autouse=True)
-def _one_thread():
-    """The renderer runs many small tensor ops: one intra-op thread is faster on a shared machine
-    (restored afterwards)."""
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.fixture(scope="module")
-def default_pair64(_one_thread) -> dict:
+def default_pair64(one_thread) -> dict:
     return render_pair("default", 0, size=MEDIUM, dtype=torch.float64)
 
 
