@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     m = (valid & read_road_mask(k15 / "road.json", size=a.shape))[0].numpy()
     gt = gt.permute(1, 2, 0).numpy()
     e = np.linalg.norm(_dis(a, b) - gt, axis=2)[m]
-    print(f"\nDIS medium road end-point error\n| data | mean px | median px | mean road GT flow px |\n|---|---|---|---|")
+    print("\nDIS medium road end-point error\n| data | mean px | median px | mean road GT flow px |\n|---|---|---|---|")
     print(f"| KITTI flow 000000 | {e.mean():.2f} | {np.median(e):.2f} | {np.linalg.norm(gt, axis=2)[m].mean():.2f} |")
     cases = (("default, pairs 0–9", {}), (f"default with noise={SENSOR_NOISE}", dict(noise=SENSOR_NOISE)),
              ("default with speed=8.0", dict(speed=8.0)), ("old default, pairs 0–9", OLD_DEFAULT))

@@ -1028,6 +1028,6 @@ def _full_flow(M: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, H: int, W: 
     ray_row = (mounting_matrix(roll, pitch).transpose(-1, -2) @ Kinv)[:, 1:2, :]
     return _flow_from_matrix(M.to(dtype), ray_row.to(dtype), (H, W), M.shape[0], velocity=velocity)
 
-from .fit_photometric import fit_photometric  # noqa: E402  (re-exported; it uses this module)
+from .fit_photometric import fit_photometric  # noqa: E402, F401  (re-exported; it uses this module)
 
 __all__.append("fit_photometric")

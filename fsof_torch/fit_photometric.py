@@ -20,6 +20,7 @@ photometric residual (grey levels, 0..255 scale), not to an end-point error.
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
@@ -28,6 +29,9 @@ from torch import Tensor
 from ._check import check_float_tensor, check_shape, result_dtype
 from .camera import Camera, mounting_matrix
 from .flow_model import displacement_flow
+
+if TYPE_CHECKING:  # fit imports this module at its end
+    from .fit import FitResult
 
 __all__ = ["fit_photometric"]
 

@@ -97,7 +97,7 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
     dims, use = _check_flow_mask(flow, mask)
     if isinstance(bins, bool) or not isinstance(bins, int) or bins < 2:
         raise ValueError(f"bins: expected an integer >= 2, got {bins!r}")
-    B, H, W = dims["B"], dims["H"], dims["W"]
+    B, H = dims["B"], dims["H"]
     dtype = result_dtype(flow)
     fv = flow[:, 1].to(dtype)
     use = use[:, 0]

@@ -221,7 +221,7 @@ def _rigid_flow(pair: dict) -> torch.Tensor:
 
 def test_static_structure_and_moving_cars():
     pair = render_pair("cvc-complex", 0, size=MEDIUM, dtype=torch.float64, moving_cars=4.0)
-    labels, depth = pair["labels"], pair["depth"][0]
+    labels = pair["labels"]
     ref = _rigid_flow(pair)
     static = (labels != LABELS["sky"]) & ~pair["moving"][0]
     err = (pair["flow"] - ref).norm(dim=0)
