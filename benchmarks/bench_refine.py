@@ -1,6 +1,6 @@
 """Speed of the refinement step at KITTI size (1242×375), one thread.
 
-Times, as the median of repeats after a warm-up:
+Times, as the median (and min) over rounds of repeats, each after a warm-up:
 
 - model + fusion with odometry given (``FreespaceRefiner`` with ``odometry``);
 - the full step without odometry: fit (``fit_displacement``) + model + fusion;
@@ -11,7 +11,7 @@ Times, as the median of repeats after a warm-up:
 
 The flow is the model flow of a known motion plus 1 px Gaussian noise and 20% of the road mask
 replaced by an obstacle's flow (outliers for the robust fit); the road mask holds about 120 000
-pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--json PATH]``.
+pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--json PATH]``.
 """
 
 from __future__ import annotations
@@ -24,15 +24,23 @@ from pathlib import Path
 import torch
 
 
-def _time(fn, repeats: int, warmup: int = 2) -> dict[str, float]:
-    for _ in range(warmup):
-        fn()
-    samples = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        samples.append((time.perf_counter() - t0) * 1e3)
-    return {"median_ms": statistics.median(samples), "min_ms": min(samples), "repeats": repeats}
+def _time_rounds(cases: dict, repeats: int, rounds: int = 3, warmup: int = 2) -> dict[str, dict[str, float]]:
+    """Median and min per case over ``rounds`` × ``repeats`` timings: in each round every case
+    runs ``warmup`` + ``repeats`` times in a row (its steady state, as in a pipeline that calls
+    it frame after frame), the rounds spreading the shared machine's slow spells over all
+    cases. (Taking turns call by call would charge each case the page faults of the previous
+    one's buffers: the allocator hands large blocks back to the system between them.)"""
+    samples: dict[str, list[float]] = {name: [] for name in cases}
+    for _ in range(rounds):
+        for name, fn in cases.items():
+            for _ in range(warmup):
+                fn()
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                fn()
+                samples[name].append((time.perf_counter() - t0) * 1e3)
+    return {name: {"median_ms": statistics.median(x), "min_ms": min(x), "repeats": len(x)}
+            for name, x in samples.items()}
 
 
 def build_case(dtype: torch.dtype = torch.float32):
@@ -58,7 +66,8 @@ def build_case(dtype: torch.dtype = torch.float32):
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--repeats", type=int, default=15, help="timed calls per case and round")
+    parser.add_argument("--rounds", type=int, default=3, help="rounds over all cases")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -72,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cv2.setNumThreads(1)
     camera, odo, flow, mask, size = build_case()
+    camera32 = camera.to(torch.float32)  # the refiner computes in the prediction's dtype
     refiner = FreespaceRefiner(warn=False)
     confidence = FreespaceRefiner(mode="confidence", warn=False)
     model, mvalid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size)
@@ -86,18 +96,19 @@ def main(argv: list[str] | None = None) -> int:
         "refine, odometry given (model + fusion)": lambda: refiner(flow, mask, camera, odo),
         "refine, fitted odometry (fit + model + fusion)": lambda: refiner(flow, mask, camera),
         "refine confidence, fitted odometry": lambda: confidence(flow, mask, camera),
-        "  fit_displacement alone": lambda: fit_displacement(flow, mask, camera, fit_roll=False),
+        "  fit_displacement alone (float32, as in the refiner)": lambda: fit_displacement(flow, mask, camera32,
+                                                                                          fit_roll=False),
         "  displacement_flow alone": lambda: displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size),
         "  fuse_flow alone (replace)": lambda: fuse_flow(flow, model, mask & mvalid),
         "refine RAFT list of 12, odometry given": lambda: refiner(raft, mask, camera, odo),
         "reference: OpenCV DIS medium (same size)": lambda: dis.calc(grey1, grey2, None),
     }
     with torch.no_grad():
-        results = {name: _time(fn, args.repeats) for name, fn in cases.items()}
+        results = _time_rounds(cases, args.repeats, args.rounds)
     fitted = refiner(flow, mask, camera)
     width = max(len(n) for n in results)
     print(f"refinement step at {size[1]}x{size[0]}, {int(mask.sum())} road pixels, 1 thread, "
-          f"median of {args.repeats} (torch {torch.__version__})")
+          f"median of {args.rounds} x {args.repeats} (torch {torch.__version__})")
     print(f"{'case':<{width}}  median ms  min ms")
     for name, r in results.items():
         print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}")

@@ -602,7 +602,7 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
         max_iter: int) -> list[tuple]:
     """Robust Levenberg–Marquardt (IRLS weights, Marquardt scaling) over the free parameters.
 
-    ``stages``: (kernel, scale, anneal, tol) run one after the other, each from where the previous
+    ``stages``: (kernel, scale, anneal, tol, tol_res) run one after the other, each from where the previous
     one ended, sharing the per-pixel set-up and the residuals at the hand-over. Each iteration
     evaluates the model once, at the candidate; a frame whose robust cost went up keeps its
     previous state and damps more. Returns per stage: params, converged (B,), iterations (B,),
@@ -675,7 +675,7 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
 
     r, r2, use, lin = residuals(params)
     out = []
-    for kind, scale, anneal, tol in stages:
+    for kind, scale, anneal, tol, tol_res in stages:
         lam = torch.full((B,), 1e-4, dtype=dt, device=dev)
         done = torch.zeros(B, dtype=torch.bool, device=dev)
         iters = torch.zeros(B, dtype=torch.long, device=dev)
@@ -696,6 +696,16 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
             rc, r2c, usec, linc = residuals(cand)
             c1 = cost(r2c, usec, s_eff, kind)
             ok = torch.isfinite(c1) & (c1 <= c) & ~done
+            if tol_res > 0:
+                # below resolution: the step moved the model flow (RMS over the points) by at
+                # most tol_res times the robust RMS residual, far below the estimate's own
+                # uncertainty (about that RMS / sqrt(points)); with exact data the residual goes
+                # to 0 and the parameter tolerance decides
+                moved = (rc - r).square_().sum(1).mul_(use).sum(1)
+                spread = (w * r2).sum(1) / w.sum(1).clamp_min(1e-300)
+                resolved = ok & (moved <= (tol_res * tol_res) * spread * use.sum(1))
+            else:
+                resolved = torch.zeros_like(ok)
             if bool(ok.all()):  # the common case: no per-frame selection (no copies)
                 params, r, r2, use, lin = cand, rc, r2c, usec, linc
             else:
@@ -710,7 +720,7 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
             # converged: a negligible step (accepted, or rejected while nearly undamped: at
             # rounding level the cost can tick up) or a negligible relative decrease of the cost
             tiny = (delta.abs() <= tol * (1.0 + params.abs())).all(-1)
-            small = (tiny & (ok | (lam <= 1e-2))) | (ok & (c - c1 <= tol * c))
+            small = (tiny & (ok | (lam <= 1e-2))) | (ok & (c - c1 <= tol * c)) | resolved
             c = torch.where(ok, c1, c)
             lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
             stuck = ~ok & (lam > 1e8)
@@ -735,6 +745,13 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
 
 # relative step / cost-decrease tolerance of the robust stage when a polish follows it
 _ROBUST_STAGE_TOL = 1e-4
+# Resolution tolerance: an accepted step that moves the model flow by at most this fraction of
+# the robust RMS residual (RMS over the points) ends a stage. The estimate's own uncertainty is
+# about that RMS / sqrt(points) (8192 points: 1.1 %), so steps below 1 % change nothing the data
+# can resolve; the robust stage before a polish only has to land in the polish's basin (10 %).
+# With exact data the residual goes to 0 and ``tol`` decides (see bench_fit / bench_refine).
+_RESOLUTION_TOL = 0.01
+_ROBUST_STAGE_RESOLUTION = 0.1
 
 
 def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor,
@@ -744,13 +761,14 @@ def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, 
     """The robust fit, then (``polish``) a few iterations with Tukey's biweight cut at the
     inlier threshold: a kernel with unbounded support (Cauchy, Huber) still lets far outliers
     pull on the estimate; a redescending one started near the answer ignores them."""
-    stages = [(kind, scale, anneal, tol)]
+    stages = [(kind, scale, anneal, tol, _RESOLUTION_TOL)]
     if polish and kind not in ("tukey", "l2"):
         # the polish moves the estimate by more than the robust stage's last iterations would
         # (it drops the outliers' pull), so that stage only needs to land in the polish's basin:
         # a looser tolerance there saves iterations; the polish converges to ``tol``
-        stages = [(kind, scale, anneal, max(tol, _ROBUST_STAGE_TOL)),
-                  ("tukey", 3.0 * scale if inlier_threshold is None else float(inlier_threshold), False, tol)]
+        stages = [(kind, scale, anneal, max(tol, _ROBUST_STAGE_TOL), _ROBUST_STAGE_RESOLUTION),
+                  ("tukey", 3.0 * scale if inlier_threshold is None else float(inlier_threshold), False, tol,
+                   _RESOLUTION_TOL)]
     out = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel, stages=stages,
               max_iter=max_iter)
     params, done, iters, min_eig = out[0]
@@ -863,6 +881,9 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
         max_iter, tol: Levenberg–Marquardt iteration cap (per stage) and step / cost-decrease
             tolerance (relative) of the final stage; with ``polish``, the robust stage before it
             stops at max(tol, 1e-4) (the polish then moves the estimate further than that).
+            A stage also ends when a step moves the model flow by at most 1 % of the robust RMS
+            residual (the robust stage before a polish: 10 %), below what the points resolve;
+            with exact data the residual vanishes and ``tol`` decides.
         max_points: at most this many mask pixels per frame enter the iterations (an even,
             deterministic stride over the mask in raster order); None uses all. The model flow,
             inliers and residual are always computed on every mask pixel.

@@ -320,16 +320,24 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
     geo_dtype = torch.float32 if finest.dtype in (torch.float16, torch.bfloat16) else finest.dtype
     camera = camera.to(device=device, dtype=geo_dtype).expand(B)
 
-    finite = torch.isfinite(finest).all(dim=1, keepdim=True)
-    fit_mask = mask & finite
-    counts = fit_mask.flatten(1).sum(dim=1)
+    # One reduction settles the common case (a NaN or inf anywhere makes the sum non-finite;
+    # so may an overflow, which then takes the per-pixel path): no full-size test and no copy.
+    all_finite = not tracing() and bool(torch.isfinite(finest.detach().sum()))
+    if all_finite:
+        fit_mask = mask
+    else:
+        finite = torch.isfinite(finest).all(dim=1, keepdim=True)
+        fit_mask = mask & finite
+        if warn and not tracing():
+            n_bad = int((mask & ~finite).sum())
+            if n_bad:
+                warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left "
+                              f"out of the fit and replaced by the model flow", RuntimeWarning, stacklevel=3)
+    # (a uint8 sum into int32: counting bools by the default sum or count_nonzero goes through
+    # a full-size int64 copy)
+    counts = fit_mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)
     # min_pixels guards the fit; with odometry given any mask pixel can be refined.
     refined = counts >= (min_pixels if odometry is None else 1)
-    if warn and not tracing():
-        n_bad = int((mask & ~finite).sum())
-        if n_bad:
-            warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left out "
-                          f"of the fit and replaced by the model flow", RuntimeWarning, stacklevel=3)
 
     fit_result = None
     if odometry is not None:
@@ -339,7 +347,7 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         odo, cam_model, fit_result, refined = _fit(
             finest, fit_mask, camera, refined, fit=fit, images=images, fit_roll=fit_roll,
             fit_pitch=fit_pitch, fit_options=fit_options or {},
-            photometric_options=photometric_options or {})
+            photometric_options=photometric_options or {}, all_finite=all_finite)
 
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
@@ -348,8 +356,19 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         warnings.warn(f"mask: samples {bad} left unchanged ({why}); see RefineOutput.refined",
                       RuntimeWarning, stacklevel=3)
 
+    # (a broadcast & over the whole mask is slow on CPU: only when some sample is left out)
+    all_refined = not tracing() and bool(refined.all())
     sample_ok = refined.reshape(B, 1, 1, 1)
+
+    def usable(m: Tensor) -> Tensor:
+        return m if all_refined else m & sample_ok
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
+    if fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model):
+        # The fit evaluated this very model flow at the finest size (same parameters, same
+        # dtype): reuse it instead of a second full-size evaluation. Not when the camera carries
+        # a graph: then the model flow must be differentiable with respect to it.
+        valid = fit_result.valid.to(device)
+        cache[(H, W)] = (fit_result.flow.to(device=device, dtype=geo_dtype), usable(mask & valid))
 
     def level(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
         """Model flow and fusion mask at a level's size (computed once per size)."""
@@ -357,7 +376,7 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             h, w = size
             cam = cam_model if (h, w) == (H, W) else cam_model.scaled(w / W, h / H)
             f_model, valid = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], (h, w))
-            m = resize_mask(mask, (h, w)) & valid & sample_ok
+            m = usable(resize_mask(mask, (h, w)) & valid)
             cache[size] = (f_model, m)
         return cache[size]
 
@@ -381,10 +400,17 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
     return RefineOutput(refined_flow, odo, fit_result, weight, m, refined, cam_model, f_model)
 
 
+def _needs_grad(camera: Camera) -> bool:
+    return torch.is_grad_enabled() and any(
+        t.requires_grad for t in (camera.K, camera.height, camera.roll, camera.pitch))
+
+
 def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, fit: str,
          images: tuple[Tensor, Tensor] | None, fit_roll: bool, fit_pitch: bool,
-         fit_options: Mapping[str, Any], photometric_options: Mapping[str, Any]):
-    """Fit ego-motion (detached) to the samples with enough mask pixels; scatter back to B."""
+         fit_options: Mapping[str, Any], photometric_options: Mapping[str, Any],
+         all_finite: bool = False):
+    """Fit ego-motion (detached) to the samples with enough mask pixels; scatter back to B.
+    ``all_finite``: the prediction is known to be finite everywhere (no masking needed)."""
     B = finest.shape[0]
     dtype, device = camera.dtype, camera.device
     zeros = torch.zeros(B, dtype=dtype, device=device)
@@ -406,7 +432,9 @@ def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, f
     subset = index.numel() < B
     with torch.no_grad():
         f = finest.detach()
-        f = torch.where(fit_mask, f, torch.zeros_like(f)).to(dtype)  # no NaN reaches the fit
+        if not all_finite:
+            f = torch.where(fit_mask, f, torch.zeros_like(f))  # no NaN reaches the fit
+        f = f.to(dtype)
         m = fit_mask
         cam = camera.to(dtype)
         cam_d = Camera(cam.K.detach(), cam.height.detach(), cam.roll.detach(), cam.pitch.detach())

@@ -2,8 +2,9 @@
 
 With no arguments: render the default synthetic sequence (``fsof_torch.scene``, preset
 "default"), predict flow with OpenCV DIS and with the test net (random weights), refine each with
-the scene's odometry and with ego-motion fitted to the flow, and write refined flows, figures and
-a report (photometric error and end-point error, road and overall, before and after).
+the scene's odometry, with ego-motion fitted to the flow and with ego-motion fitted to the images,
+and write refined flows, figures and a report (photometric error and end-point error, road and
+overall, before and after).
 """
 
 from __future__ import annotations
@@ -75,7 +76,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--testnet-weights", type=Path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
     g.add_argument("--odometry", type=_list(VARIANTS), default=None,
                    help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: "
-                        "given,fit on synthetic data; given with --poses, else fit)")
+                        "given,fit,photometric on synthetic data; given with --poses, else fit)")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
     g.add_argument("--scale", type=float, default=2.0, help="Cauchy scale in px for --mode confidence (default: %(default)s)")
     g.add_argument("--fit-roll", action="store_true", help="also fit the camera roll")
@@ -150,7 +151,7 @@ def _run(args: argparse.Namespace) -> int:
                                 noise=args.scene_noise)
         title = f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pairs, {args.size[0]}x{args.size[1]}"
         sources = args.source or ["dis", "testnet"]
-        variants = args.odometry or ["given", "fit"]
+        variants = args.odometry or ["given", "fit", "photometric"]
         notes.append("Synthetic scene: odometry and flow ground truth are the scene's (exact); road mask: "
                      + ("detected on each prediction (--road auto)." if args.road == "auto" else "the scene's (exact)."))
     if "testnet" in sources and args.testnet_weights is None:

@@ -65,7 +65,11 @@ def evaluate(pair: dict, pred: Tensor, refined: Tensor, road: Tensor) -> tuple[d
     Photometric error (L1, 0..255 scale) over the pixels where both flows are finite and both
     sample points fall inside image2 (so that a flow that pushes pixels out of the image is not
     rewarded for it), inside the road and overall; with ground truth, e_E / e_A / Fl over the
-    valid ground-truth pixels where the prediction is finite (KITTI style).
+    valid ground-truth pixels where the prediction is finite (KITTI style), and the photometric
+    error once more over those pixels too (``photo_road_noc``, ``photo_all_noc``): a pixel
+    occluded in image 2 has no true match, so no flow explains its brightness and the error
+    there rewards a flow that points at a look-alike instead (on the synthetic scene the exact
+    flow scores 24.9 on its occluded road pixels, DIS 10.4).
     """
     from fsof_torch.metrics import flow_metrics
     from fsof_torch.photometric import photometric_error_map
@@ -75,9 +79,13 @@ def evaluate(pair: dict, pred: Tensor, refined: Tensor, road: Tensor) -> tuple[d
     flows = {"before": torch.nan_to_num(pred)[None], "after": torch.nan_to_num(refined)[None]}
     maps = {k: photometric_error_map(im1, im2, f) for k, f in flows.items()}
     common = finite & maps["before"][1] & maps["after"][1]
+    regions = [("road", common & road[None]), ("all", common)]
+    if pair.get("gt") is not None:
+        noc = pair["gt"][1][None]
+        regions += [("road_noc", common & road[None] & noc), ("all_noc", common & noc)]
     out: dict[str, dict] = {"before": {}, "after": {}}
     for stage, (err, _) in maps.items():
-        for region, mask in (("road", common & road[None]), ("all", common)):
+        for region, mask in regions:
             n = int(mask.sum())
             out[stage][f"photo_{region}"] = float(err[mask].double().sum()) / max(n, 1)
             out[stage][f"photo_{region}_n"] = n
@@ -286,6 +294,8 @@ def _weighted(records: list[dict], stage: str, key: str) -> float | None:
 
 
 METRICS = (("photo_road", "photometric error, road (0-255)"), ("photo_all", "photometric error, all"),
+           ("photo_road_noc", "photometric error, non-occluded road (0-255)"),
+           ("photo_all_noc", "photometric error, non-occluded (0-255)"),
            ("epe_road", "end-point error, road (px)"), ("epe_all", "end-point error, all (px)"))
 
 
@@ -324,16 +334,22 @@ def _fmt(x: Any, digits: int = 3) -> str:
 
 def table_markdown(summary: dict) -> str:
     have_epe = any("epe_all_before" in r for r in summary["rows"])
-    head = ["source", "odometry", "pairs", "photo road before", "after", "Δ%",
-            "photo all before", "after"]
+    have_noc = any("photo_road_noc_before" in r for r in summary["rows"])
+    head = ["source", "odometry", "pairs", "photo road before", "after", "Δ%"]
+    if have_noc:
+        head += ["photo road noc before", "after", "Δ%"]
+    head += ["photo all before", "after"]
     if have_epe:
         head += ["EPE road before", "after", "Δ%", "EPE all before", "after"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in summary["rows"]:
         cells = [r["source"], r["variant"], f'{r["refined"]}/{r["pairs"]}',
                  _fmt(r.get("photo_road_before")), _fmt(r.get("photo_road_after")),
-                 _fmt(r.get("photo_road_change_pct"), 1), _fmt(r.get("photo_all_before")),
-                 _fmt(r.get("photo_all_after"))]
+                 _fmt(r.get("photo_road_change_pct"), 1)]
+        if have_noc:
+            cells += [_fmt(r.get("photo_road_noc_before")), _fmt(r.get("photo_road_noc_after")),
+                      _fmt(r.get("photo_road_noc_change_pct"), 1)]
+        cells += [_fmt(r.get("photo_all_before")), _fmt(r.get("photo_all_after"))]
         if have_epe:
             cells += [_fmt(r.get("epe_road_before")), _fmt(r.get("epe_road_after")),
                       _fmt(r.get("epe_road_change_pct"), 1), _fmt(r.get("epe_all_before")),
@@ -349,7 +365,9 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
     md = [f"# {summary['title']}", "",
           f"Fusion mode: `{summary['mode']}`. Photometric error: mean |I1 − warp(I2, flow)| on the "
           "0–255 scale over the pixels where the sample points of both the prediction and the "
-          "refined flow fall inside image 2 (the same pixels before and after); end-point error against the ground truth (KITTI "
+          "refined flow fall inside image 2 (the same pixels before and after); with ground truth also over "
+          "the non-occluded ones only ('noc': the valid ground-truth pixels, where end-point error is "
+          "measured; an occluded pixel has no true match). End-point error against the ground truth (KITTI "
           "style, over all valid pixels of the set). 'road' is the road mask the refiner used. "
           "'pairs' counts refined/processed pairs.", "", table, ""]
     md += [f"- {n}" for n in summary["notes"]]

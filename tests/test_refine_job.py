@@ -71,11 +71,14 @@ def test_synthetic_default_pipeline(tmp_path, capsys):
     printed = capsys.readouterr().out
     assert "EPE road before" in printed and "photo road before" in printed
     rows = _rows(out / "report.json")
-    assert set(rows) == {("dis", "given"), ("dis", "fit")}
+    assert set(rows) == {("dis", "given"), ("dis", "fit"), ("dis", "photometric")}
     given = rows[("dis", "given")]
     assert given["pairs"] == 2 and given["refined"] == 2
     # the scene's odometry and road mask are exact: the refined road flow is the truth
     assert given["epe_road_after"] < 0.05 < given["epe_road_before"]
+    assert "photo road noc before" in printed
+    rec = json.loads((out / "dis" / "given" / "pairs" / "000000.json").read_text())
+    assert 0 < rec["after"]["photo_road_noc_n"] <= rec["after"]["photo_road_n"]
     assert (tmp_path / "r.json").is_file() and (out / "report.md").is_file()
     from fsof_torch.io import read_kitti_flow
 
@@ -219,3 +222,29 @@ def test_scene_noise_option(tmp_path, capsys):
         floors.append(row["photo_road_after"])
     assert floors[1] > floors[0]  # (at 48x160 the noise is area-scaled to about 0.5 grey levels)
     assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
+
+
+def test_evaluate_noc_leaves_out_occluded_pixels():
+    """With ground truth, the 'noc' photometric error covers only its valid pixels: a pixel
+    occluded in image 2 (invalid ground truth) whose brightness no flow can match is left out."""
+    from refine.job import evaluate
+
+    H, W = 6, 8
+    image1 = torch.full((3, H, W), 100.0)
+    image2 = image1.clone()
+    image2[:, 2, 3] = 160.0  # an occluder in image 2 at one road pixel
+    valid = torch.ones(1, H, W, dtype=torch.bool)
+    valid[0, 2, 3] = False
+    zero = torch.zeros(2, H, W)
+    pair = {"image1": image1, "image2": image2, "gt": (zero, valid)}
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 1:4, 1:6] = True
+    before, after = evaluate(pair, zero, zero.clone(), road)
+    for m in (before, after):
+        assert m["photo_road_n"] == 15 and m["photo_road_noc_n"] == 14
+        assert m["photo_road"] == pytest.approx(60.0 / 15)
+        assert m["photo_road_noc"] == 0.0
+        assert m["photo_all_noc_n"] == H * W - 1 and m["photo_all_noc"] == 0.0
+    # without ground truth there is nothing to tell occlusion by
+    before, _ = evaluate({"image1": image1, "image2": image2}, zero, zero, road)
+    assert "photo_road_noc" not in before
