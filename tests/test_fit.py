@@ -6,6 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
+import fsof_torch.fit as fit_module
 from fsof_torch.camera import Camera
 from fsof_torch.fit import (
     ROBUST_KERNELS,
@@ -249,6 +250,21 @@ def test_feature_outliers_within_twice_the_noise_error(seed):
     cars[..., 124:140] = True
     cars &= mask & ((with_cars - clean).norm(dim=1, keepdim=True) > 3.0)
     assert float(fit1.inliers[cars].float().mean()) < 0.05
+
+
+def test_feature_resolution_stop_saves_iterations_not_accuracy(monkeypatch):
+    """Steps that move the model flow by under 1 % of the robust RMS residual end the fit: on
+    noisy flow that saves iterations, and the estimate moves far less than its own error."""
+    cam, truth, mask, _, with_cars, _ = _outlier_scene(0)
+    start = small_camera()
+    fast = fit_displacement(with_cars, mask, start, max_points=None)
+    monkeypatch.setattr(fit_module, "_RESOLUTION_TOL", 0.0)
+    monkeypatch.setattr(fit_module, "_ROBUST_STAGE_RESOLUTION", 0.0)
+    tight = fit_displacement(with_cars, mask, start, max_points=None)
+    assert bool(fast.success) and bool(tight.success)
+    assert int(fast.iterations) < int(tight.iterations)
+    moved = epe_to(fast.flow, tight.flow, mask)
+    assert moved < 0.2 * epe_to(tight.flow, truth, mask), (moved, epe_to(tight.flow, truth, mask))
 
 
 def test_feature_robust_kernels_all_fit_clean_data():

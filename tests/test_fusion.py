@@ -333,6 +333,34 @@ def test_fitted_odometry_recovers_motion_and_refines():
     assert not out.odometry["z_d"].requires_grad
 
 
+def test_fitted_model_flow_is_the_fits_and_matches_the_model():
+    """With fitted odometry the refiner reuses the fit's full-size model flow: it is the model
+    of the fitted motion (displacement_flow of the returned camera and odometry)."""
+    pred, mask, cam, gt = make_case(B=2, noise=1.0)
+    out = FreespaceRefiner()(pred, mask, cam)
+    assert out.flow_model is out.fit.flow or torch.equal(out.flow_model, out.fit.flow)
+    again, valid = displacement_flow(out.camera, out.odometry["x_d"], out.odometry["z_d"],
+                                     out.odometry["yaw"], (H, W))
+    assert torch.equal(out.mask, mask & valid)
+    torch.testing.assert_close(out.flow_model[valid.expand_as(again)], again[valid.expand_as(again)],
+                               atol=1e-3, rtol=0)
+    inside = out.mask.expand_as(pred)
+    assert torch.equal(out.flow[inside], out.flow_model.to(pred.dtype)[inside])
+
+
+def test_fitted_odometry_gradient_reaches_the_camera():
+    """The fit is detached, but the model flow is recomputed on the caller's camera when that
+    carries a graph, so the refined road flow is differentiable with respect to K and h."""
+    pred, mask, _, _ = make_case(noise=0.5)
+    K = make_camera(dtype=torch.float32).K.clone().requires_grad_(True)
+    height = torch.tensor(1.65, requires_grad=True)
+    out = FreespaceRefiner(warn=False)(pred, mask, Camera(K, height))
+    assert bool(out.refined.all())
+    (out.flow * mask).sum().backward()
+    assert K.grad is not None and torch.isfinite(K.grad).all() and K.grad.abs().sum() > 0
+    assert height.grad is not None and torch.isfinite(height.grad) and height.grad != 0
+
+
 def test_fitted_odometry_with_one_empty_sample():
     pred, mask, cam, gt = make_case(B=2)
     mask = mask.clone()
