@@ -752,6 +752,8 @@ _ROBUST_STAGE_TOL = 1e-4
 # With exact data the residual goes to 0 and ``tol`` decides (see bench_fit / bench_refine).
 _RESOLUTION_TOL = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
+# the robust stage before a polish runs on an even stride of about this many of the points
+_ROBUST_STAGE_POINTS = 2048
 
 
 def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: Tensor,
@@ -769,12 +771,18 @@ def _robust_lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, 
         stages = [(kind, scale, anneal, max(tol, _ROBUST_STAGE_TOL), _ROBUST_STAGE_RESOLUTION),
                   ("tukey", 3.0 * scale if inlier_threshold is None else float(inlier_threshold), False, tol,
                    _RESOLUTION_TOL)]
-    out = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel, stages=stages,
-              max_iter=max_iter)
-    params, done, iters, min_eig = out[0]
-    if len(out) == 1:
+    if len(stages) == 1:
+        ((params, done, iters, min_eig),) = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
+                                                stages=stages, max_iter=max_iter)
         return params, done, iters, min_eig()
-    p2, done2, iters2, min_eig2 = out[1]
+    # the robust stage only has to land in the polish's basin: an even stride of the points does
+    # (its statistical error stays far below the polish's cut); the polish uses them all
+    k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS)
+    ((params, done, iters, min_eig),) = _lm(
+        jac_fn, velocity, K, Kinv, params, free, pts[..., ::k].contiguous(), obs[..., ::k].contiguous(),
+        sel[..., ::k].contiguous(), stages=stages[:1], max_iter=max_iter)
+    ((p2, done2, iters2, min_eig2),) = _lm(jac_fn, velocity, K, Kinv, params, free, pts, obs, sel,
+                                           stages=stages[1:], max_iter=max_iter)
     # keep the polished estimate only where it converged to a finite answer
     take = done2 & torch.isfinite(p2).all(-1)
     params = torch.where(take.unsqueeze(-1), p2, params)
