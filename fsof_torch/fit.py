@@ -901,7 +901,7 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
             the frame as failed.
         min_inlier_fraction: so does an inlier share of the mask (where the model is defined)
             below this: the flow does not look like road motion (e.g. a flow method that failed
-            on the road: DIS on the shared KITTI pair gives 14%).
+            on the road: DIS on the shared KITTI pair gives 13%).
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier
             threshold, so that far outliers (other vehicles) stop pulling on the estimate.
 
