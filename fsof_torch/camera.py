@@ -166,16 +166,32 @@ class Camera:
 
     # -- constructors and transforms ----------------------------------------------------
     def to(self, *args, **kwargs) -> "Camera":
-        """A copy moved / cast like ``Tensor.to``."""
-        return Camera(self.K.to(*args, **kwargs), self.height.to(*args, **kwargs),
-                      self.roll.to(*args, **kwargs), self.pitch.to(*args, **kwargs))
+        """A copy moved / cast like ``Tensor.to`` (``self`` when nothing changes, as there)."""
+        moved = [t.to(*args, **kwargs) for t in (self.K, self.height, self.roll, self.pitch)]
+        if all(a is b for a, b in zip(moved, (self.K, self.height, self.roll, self.pitch))):
+            return self
+        # a cast to a non-float dtype goes through the checks (and fails there)
+        return Camera._checked(*moved) if moved[0].is_floating_point() else Camera(*moved)
 
     def expand(self, batch_size: int) -> "Camera":
-        """The same camera for ``batch_size`` frames (from a batch of 1)."""
-        if self.batch_size not in (1, batch_size):
+        """The same camera for ``batch_size`` frames (from a batch of 1; ``self`` if it has
+        that batch already)."""
+        if self.batch_size == batch_size:
+            return self
+        if self.batch_size != 1:
             raise ValueError(f"batch_size: cannot expand a camera of batch {self.batch_size} to {batch_size}")
-        return Camera(self.K.expand(batch_size, 3, 3), self.height.expand(batch_size),
-                      self.roll.expand(batch_size), self.pitch.expand(batch_size))
+        return Camera._checked(self.K.expand(batch_size, 3, 3), self.height.expand(batch_size),
+                               self.roll.expand(batch_size), self.pitch.expand(batch_size))
+
+    @classmethod
+    def _checked(cls, K: Tensor, height: Tensor, roll: Tensor, pitch: Tensor) -> "Camera":
+        """A camera from values that already passed the checks of ``__post_init__`` (K (B, 3, 3),
+        the others (B,), one dtype and device): a cast, move or expansion of a valid camera, or
+        a valid camera's K and height with fitted, finite angles. Skips the validation, which
+        costs more than the fitting loop's iterations (it syncs to test the values)."""
+        cam = object.__new__(cls)
+        cam.K, cam.height, cam.roll, cam.pitch = K, height, roll, pitch
+        return cam
 
     def replace(self, **changes: Tensor | float) -> "Camera":
         """A copy with some of ``K, height, roll, pitch`` replaced."""

@@ -299,6 +299,31 @@ def _homography_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) 
     return _sandwich_jac(K, Kinv, mono, const["disp"], 3, ray)
 
 
+def _fixed_mount_homography_jac(K: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor):
+    """:func:`_homography_jac` for a mounting that is not fitted (the refiner's case).
+
+    With R_c fixed, M = (K R_c) X (R_cᵀ K⁻¹) and its derivatives by (a, b, φ) are linear in the
+    seven motion monomials: the products with K R_c and R_cᵀ K⁻¹ are taken once per fit, and
+    each evaluation is one (B, 7) @ (B, 7, 36) matmul. The derivatives by θ, β are 0 (those
+    parameters are fixed: their rows of the normal equations are replaced anyway).
+    """
+    B = K.shape[0]
+    const = _constants(K.dtype, K.device)
+    Rc = mounting_matrix(roll, pitch)
+    X = const["disp"][:7, :36].reshape(1, 7, 4, 3, 3)
+    left, right = (K @ Rc).reshape(B, 1, 1, 3, 3), (Rc.transpose(-1, -2) @ Kinv).reshape(B, 1, 1, 3, 3)
+    T = (left @ X @ right).reshape(B, 7, 36)
+    ray_row = Rc[:, :, 1:2].transpose(-1, -2) @ Kinv
+    index = const["disp_index"][:, :7]
+    zeros = K.new_zeros(B, 2, 3, 3)
+
+    def jac(K_: Tensor, Kinv_: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
+        maps = (_monomials(params, 2, index).unsqueeze(1) @ T).reshape(B, 4, 3, 3)
+        dM = torch.cat([maps[:, 1:], zeros], dim=1)
+        return (maps[:, 0], dM, ray_row) if ray else (maps[:, 0], dM)
+    return jac
+
+
 def _velocity_jac(K: Tensor, Kinv: Tensor, params: Tensor, ray: bool = False) -> tuple[Tensor, ...]:
     """G (B, 3, 3) and dG/dparams (B, 4, 3, 3) for params (s = v_r/h, ω = φ̇, θ, β)
     (and the ray row with ``ray``, see :func:`_sandwich_jac`)."""
@@ -939,8 +964,10 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
     yaw0 = _init_value(init, "yaw", B, lin[:, 2])
     params = torch.stack([a0, b0, yaw0, roll0, pitch0], dim=-1)
     free = torch.tensor([True, True, True, bool(fit_roll), bool(fit_pitch)], device=flow.device)
+    jac = (_homography_jac if fit_roll or fit_pitch
+           else _fixed_mount_homography_jac(K, Kinv, roll0, pitch0))
     params, converged, iters, min_eig = _robust_lm(
-        _homography_jac, False, K, Kinv, params, free, pts, obs, sel, kind=robust, scale=scale,
+        jac, False, K, Kinv, params, free, pts, obs, sel, kind=robust, scale=scale,
         max_iter=max_iter, tol=tol, anneal=init is None, polish=polish,
         inlier_threshold=inlier_threshold)
 
@@ -948,8 +975,8 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
     params = torch.where(finite.unsqueeze(-1), params, torch.stack([a0, b0, yaw0, roll0, pitch0], -1))
     x_d, z_d = params[:, 0] * h, params[:, 1] * h
     yaw, roll, pitch = params[:, 2], params[:, 3], params[:, 4]
-    cam_fit = Camera(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
-                     pitch.to(out_dtype))
+    cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
+                              pitch.to(out_dtype))
     model, model_valid = _full_flow(_homography_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
                                     out_dtype, velocity=False)
     inliers, residual, spread, fraction = _finish(flow.detach().to(out_dtype), every, counts, model,
@@ -1034,8 +1061,8 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     moving = speed.abs() > 1e-12
     steering = torch.where(moving, torch.atan(yaw_rate * wb / torch.where(moving, speed, torch.ones_like(speed))),
                            torch.zeros_like(speed))
-    cam_fit = Camera(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
-                     pitch.to(out_dtype))
+    cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype), roll.to(out_dtype),
+                              pitch.to(out_dtype))
     # evaluate G directly: a steering of ±π/2 (a yaw rate at zero speed) is outside velocity_flow
     model, model_valid = _full_flow(_velocity_jac(K, Kinv, params)[0], Kinv, roll, pitch, H, W,
                                     out_dtype, velocity=True)

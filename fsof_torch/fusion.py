@@ -437,7 +437,7 @@ def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, f
         f = f.to(dtype)
         m = fit_mask
         cam = camera.to(dtype)
-        cam_d = Camera(cam.K.detach(), cam.height.detach(), cam.roll.detach(), cam.pitch.detach())
+        cam_d = Camera._checked(cam.K.detach(), cam.height.detach(), cam.roll.detach(), cam.pitch.detach())
         if subset:
             f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
         result = fit_displacement(f, m, cam_d, fit_roll=fit_roll, fit_pitch=fit_pitch, **fit_options)

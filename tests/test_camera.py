@@ -102,6 +102,19 @@ def test_to_expand_replace():
         cam.replace(focal=3.0)
 
 
+def test_to_and_expand_without_change_return_the_camera_itself():
+    """Like Tensor.to: no change, no copy (and no re-validation in the refiner's hot path)."""
+    cam = Camera(_K(), 1.65, 0.01)
+    assert cam.to(torch.float64) is cam and cam.to("cpu") is cam and cam.expand(1) is cam
+    c32 = cam.to(torch.float32)
+    assert c32 is not cam and c32.to(torch.float32) is c32
+    torch.testing.assert_close(c32.K_inv().double(), cam.K_inv(), rtol=1e-6, atol=1e-9)
+    c2 = cam.expand(2)
+    assert c2.expand(2) is c2 and c2.K.shape == (2, 3, 3)
+    with pytest.raises(TypeError, match="K: expected a floating-point tensor"):
+        cam.to(torch.int64)
+
+
 def test_pytree_round_trip():
     cam = Camera(_K(), 1.65, 0.01, -0.02)
     leaves, spec = torch.utils._pytree.tree_flatten(cam)

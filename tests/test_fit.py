@@ -208,6 +208,24 @@ def test_feature_analytic_jacobians_match_autodiff():
     torch.testing.assert_close(Jv[0], Jvad[0, :, :, 0].permute(2, 0, 1))
 
 
+def test_feature_fixed_mount_jacobian_matches_the_general_one():
+    """With roll and pitch fixed the fit uses precomputed K R_c / R_cᵀ K⁻¹ products: the map, the
+    motion derivatives and the ray row equal the general ones (the mounting's derivatives are 0)."""
+    K = small_camera().K.expand(2, 3, 3)
+    Kinv = torch.linalg.inv(K)
+    roll = torch.tensor([0.04, -0.02], dtype=torch.float64)
+    pitch = torch.tensor([-0.03, 0.05], dtype=torch.float64)
+    jac = fit_module._fixed_mount_homography_jac(K, Kinv, roll, pitch)
+    motion = torch.tensor([[0.03, 0.7, 0.02], [-0.05, 1.1, -0.04]], dtype=torch.float64)
+    p = torch.cat([motion, roll[:, None], pitch[:, None]], dim=1)
+    M, dM, ray = _homography_jac(K, Kinv, p, ray=True)
+    M2, dM2, ray2 = jac(K, Kinv, p, ray=True)
+    torch.testing.assert_close(M2, M, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(dM2[:, :3], dM[:, :3], rtol=1e-12, atol=1e-12)
+    assert torch.equal(dM2[:, 3:], torch.zeros_like(dM2[:, 3:]))
+    torch.testing.assert_close(ray2, ray, rtol=1e-12, atol=1e-15)
+
+
 def test_feature_homography_matches_flow_model():
     """The fit's H (in units of d/h) is the flow model's road homography."""
     cam = small_camera(roll=0.02, pitch=-0.01)
