@@ -120,16 +120,26 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    return _fuse(flow_pred, flow_model, mask, mode, scale, all_finite=False)
+
+
+def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale: float, *,
+          all_finite: bool) -> tuple[Tensor, Tensor]:
+    """:func:`fuse_flow`; ``all_finite``: the caller knows flow_pred is finite everywhere."""
     flow_model = flow_model.to(flow_pred.dtype)
     if mode == "replace":
         weight = mask.to(flow_pred.dtype)
         return torch.where(mask, flow_model, flow_pred), weight
-    finite = torch.isfinite(flow_pred).all(dim=1, keepdim=True)
-    # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0.
-    safe_pred = torch.where(finite, flow_pred, flow_model)
-    diff = safe_pred - flow_model
-    w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
-    w = torch.where(finite, w, torch.ones_like(w))
+    if all_finite:
+        diff = flow_pred - flow_model
+        w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
+    else:
+        finite = torch.isfinite(flow_pred).all(dim=1, keepdim=True)
+        # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0.
+        safe_pred = torch.where(finite, flow_pred, flow_model)
+        diff = safe_pred - flow_model
+        w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
+        w = torch.where(finite, w, torch.ones_like(w))
     blended = flow_model + (1 - w) * diff  # = w · model + (1 − w) · pred
     weight = torch.where(mask, w, torch.zeros_like(w))
     return torch.where(mask, blended, flow_pred), weight
@@ -387,7 +397,8 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         f_model, m = level(size)
         # The Cauchy scale is in pixels of the level: a coarse level's flow is proportionally smaller.
         c = scale * math.sqrt(size[0] * size[1] / (H * W))
-        out, w = fuse_flow(f, f_model, m, mode=mode, scale=c)
+        # (the finiteness test above covered the finest prediction itself, not the other levels)
+        out, w = _fuse(f, f_model, m, mode, c, all_finite=all_finite and f is finest)
         if size == (H, W):
             weights[size] = w
         return out

@@ -292,6 +292,19 @@ def test_nan_prediction_inside_and_outside_mask():
         assert torch.isfinite(out.flow[~torch.isnan(bad)]).all()
 
 
+def test_nan_in_another_level_than_the_finest():
+    """The finest flow's finiteness decides the fast path only for that level: a NaN in a
+    coarser level of a list still gets the model inside the mask in confidence mode."""
+    pred, mask, cam, gt = make_case()
+    low = F.interpolate(pred, scale_factor=0.5, mode="bilinear", align_corners=False) * 0.5
+    low[0, :, 20, 5] = float("nan")  # road at the coarse level (row 40 at full size)
+    out = FreespaceRefiner(mode="confidence")([low, pred], mask, cam, ODO)
+    coarse_mask = resize_mask(mask, low.shape[-2:])
+    assert bool(coarse_mask[0, 0, 20, 5])
+    assert torch.isfinite(out.flow[0][0, :, 20, 5]).all()
+    assert torch.isfinite(out.flow[1]).all()
+
+
 def test_odometry_wrong_batch_size():
     pred, mask, cam, _ = make_case(B=2)
     odo = {"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}
