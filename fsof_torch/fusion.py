@@ -343,8 +343,8 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             if n_bad:
                 warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left "
                               f"out of the fit and replaced by the model flow", RuntimeWarning, stacklevel=3)
-    # (a uint8 sum into int32: counting bools by the default sum or count_nonzero goes through
-    # a full-size int64 copy)
+    # (a uint8 sum into int32: the sum converts its input first, and a bool sum or
+    # count_nonzero converts to int64, a copy twice the size)
     counts = fit_mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)
     # min_pixels guards the fit; with odometry given any mask pixel can be refined.
     refined = counts >= (min_pixels if odometry is None else 1)
