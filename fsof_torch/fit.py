@@ -723,9 +723,9 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
             ok = torch.isfinite(c1) & (c1 <= c) & ~done
             if tol_res > 0:
                 # below resolution: the step moved the model flow (RMS over the points) by at
-                # most tol_res times the robust RMS residual, far below the estimate's own
-                # uncertainty (about that RMS / sqrt(points)); with exact data the residual goes
-                # to 0 and the parameter tolerance decides
+                # most tol_res times the robust RMS residual, below the estimate's own
+                # uncertainty (of the order of RMS sqrt(parameters / points)); with exact data
+                # the residual goes to 0 and the parameter tolerance decides
                 moved = (rc - r).square_().sum(1).mul_(use).sum(1)
                 spread = (w * r2).sum(1) / w.sum(1).clamp_min(1e-300)
                 resolved = ok & (moved <= (tol_res * tol_res) * spread * use.sum(1))
@@ -772,8 +772,9 @@ def _lm(jac_fn, velocity: bool, K: Tensor, Kinv: Tensor, params: Tensor, free: T
 _ROBUST_STAGE_TOL = 1e-4
 # Resolution tolerance: an accepted step that moves the model flow by at most this fraction of
 # the robust RMS residual (RMS over the points) ends a stage. The estimate's own uncertainty is
-# about that RMS / sqrt(points) (8192 points: 1.1 %), so steps below 1 % change nothing the data
-# can resolve; the robust stage before a polish only has to land in the polish's basin (10 %).
+# of the order of that RMS times sqrt(parameters / points) (3 and 8192: 2 %), so steps below
+# 1 % change nothing the data can resolve; the robust stage before a polish only has to land
+# in the polish's basin (10 %).
 # With exact data the residual goes to 0 and ``tol`` decides (see bench_fit / bench_refine).
 _RESOLUTION_TOL = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
