@@ -1,6 +1,7 @@
 """Speed of the refinement step at KITTI size (1242×375), one thread.
 
-Times, as the median (and min) over rounds of repeats, each after a warm-up:
+Times, as the median (and min) over rounds of repeats, each after a warm-up, and the minor page
+faults per timed call (fresh memory from the system):
 
 - model + fusion with odometry given (``FreespaceRefiner`` with ``odometry``);
 - the full step without odometry: fit (``fit_displacement``) + model + fusion;
@@ -17,6 +18,7 @@ pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--j
 from __future__ import annotations
 
 import argparse
+import resource
 import statistics
 import time
 from pathlib import Path
@@ -31,16 +33,19 @@ def _time_rounds(cases: dict, repeats: int, rounds: int = 3, warmup: int = 2) ->
     cases. (Taking turns call by call would charge each case the page faults of the previous
     one's buffers: the allocator hands large blocks back to the system between them.)"""
     samples: dict[str, list[float]] = {name: [] for name in cases}
+    faults = dict.fromkeys(cases, 0)
     for _ in range(rounds):
         for name, fn in cases.items():
             for _ in range(warmup):
                 fn()
+            faults0 = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
             for _ in range(repeats):
                 t0 = time.perf_counter()
                 fn()
                 samples[name].append((time.perf_counter() - t0) * 1e3)
-    return {name: {"median_ms": statistics.median(x), "min_ms": min(x), "repeats": len(x)}
-            for name, x in samples.items()}
+            faults[name] += resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults0
+    return {name: {"median_ms": statistics.median(x), "min_ms": min(x), "repeats": len(x),
+                   "page_faults_per_call": faults[name] / len(x)} for name, x in samples.items()}
 
 
 def build_case(dtype: torch.dtype = torch.float32):
@@ -109,9 +114,9 @@ def main(argv: list[str] | None = None) -> int:
     width = max(len(n) for n in results)
     print(f"refinement step at {size[1]}x{size[0]}, {int(mask.sum())} road pixels, 1 thread, "
           f"median of {args.rounds} x {args.repeats} (torch {torch.__version__})")
-    print(f"{'case':<{width}}  median ms  min ms")
+    print(f"{'case':<{width}}  median ms  min ms  page faults/call")
     for name, r in results.items():
-        print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}")
+        print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}  {r['page_faults_per_call']:16.0f}")
     print(f"(fitted z_d {float(fitted.odometry['z_d'][0]):.4f} m for a true {odo['z_d']}; target for the full "
           f"step: <= 15 ms)")
     if args.json is not None:
