@@ -40,9 +40,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from fsof_torch.camera import Camera  # noqa: E402
-from fsof_torch.fit import fit_displacement  # noqa: E402
-from fsof_torch.flow_model import displacement_flow  # noqa: E402
+from fsof_torch.geometry.camera import Camera  # noqa: E402
+from fsof_torch.estimation.flow_fit import fit_displacement  # noqa: E402
+from fsof_torch.geometry.road_flow import displacement_flow  # noqa: E402
 
 SIZE = (375, 1242)
 K = [[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]]

@@ -33,8 +33,8 @@ import time
 import numpy as np
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.flow_model import DisplacementFlow, VelocityFlow, displacement_flow, velocity_flow
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.road_flow import DisplacementFlow, VelocityFlow, displacement_flow, velocity_flow
 
 # KITTI 2015 left colour camera (P_rect_02), nominal height; a mounting and a motion with every
 # term of the model non-zero.

@@ -49,8 +49,8 @@ def _time_rounds(cases: dict, repeats: int, rounds: int = 3, warmup: int = 2) ->
 
 
 def build_case(dtype: torch.dtype = torch.float32):
-    from fsof_torch.camera import Camera
-    from fsof_torch.flow_model import displacement_flow
+    from fsof_torch.geometry.camera import Camera
+    from fsof_torch.geometry.road_flow import displacement_flow
 
     H, W = 375, 1242
     K = torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -80,9 +80,9 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
     import numpy as np
 
-    from fsof_torch.fit import fit_displacement
-    from fsof_torch.flow_model import displacement_flow
-    from fsof_torch.fusion import FreespaceRefiner, fuse_flow
+    from fsof_torch.estimation.flow_fit import fit_displacement
+    from fsof_torch.geometry.road_flow import displacement_flow
+    from fsof_torch.refinement.fusion import FreespaceRefiner, fuse_flow
 
     cv2.setNumThreads(1)
     camera, odo, flow, mask, size = build_case()

@@ -40,8 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     import numpy as np
     import cv2
 
-    from fsof_torch.flow_model import displacement_flow
-    from fsof_torch.scene import SENSOR_NOISE, render_pair
+    from fsof_torch.geometry.road_flow import displacement_flow
+    from fsof_torch.data.scene import SENSOR_NOISE, render_pair
 
     size = tuple(args.size)
     rows = []
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     rows.append(("reference: OpenCV DIS medium on the pair", _median_ms(lambda: dis.calc(grey[0], grey[1], None), args.repeats)))
 
     # quality of the default pair: photometric consistency of the ground truth and trackability
-    from fsof_torch.warp import warp_backward
+    from fsof_torch.evaluation.warp import warp_backward
 
     mask = (pair["road"] & pair["valid"])[0]
 

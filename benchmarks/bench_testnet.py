@@ -1,4 +1,4 @@
-"""Speed and size of the test net (fsof_torch.testnet.TinyRAFT) on the CPU, one thread.
+"""Speed and size of the test net (fsof_torch.training.testnet.TinyRAFT) on the CPU, one thread.
 
     python benchmarks/bench_testnet.py [--repeats 5] [--iters 6]
 
@@ -16,7 +16,7 @@ import time
 
 import torch
 
-from fsof_torch.testnet import TinyRAFT, count_parameters
+from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 SIZES = [(128, 416), (375, 1242)]
 

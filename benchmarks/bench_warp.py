@@ -1,4 +1,4 @@
-"""Speed of fsof_torch.warp.warp_backward against a single kornia bilinear remap (reference).
+"""Speed of fsof_torch.evaluation.warp.warp_backward against a single kornia bilinear remap (reference).
 
 warp_backward samples bilinearly as four nearest-neighbour taps so that whole-pixel shifts are
 exact (see fsof_torch/warp.py); this prints what that costs. Single thread, warm-up, median of
@@ -12,7 +12,7 @@ import time
 
 import torch
 
-from fsof_torch.warp import normalize_coordinates, warp_backward
+from fsof_torch.evaluation.warp import normalize_coordinates, warp_backward
 
 
 def kornia_bilinear(image, flow):

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.fit import fit_displacement, fit_photometric
+from fsof_torch.geometry.camera import Camera
+from fsof_torch import fit_displacement, fit_photometric
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
 

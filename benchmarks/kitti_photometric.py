@@ -15,8 +15,8 @@ from pathlib import Path
 
 import torch
 
-from fsof_torch.metrics import flow_metrics
-from fsof_torch.photometric import photometric_error
+from fsof_torch.evaluation.metrics import flow_metrics
+from fsof_torch.evaluation.photometric import photometric_error
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
 

@@ -95,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
 
     cv2.setNumThreads(1)
     from fsof_torch.io import read_kitti_flow, read_road_mask
-    from fsof_torch.scene import SENSOR_NOISE, render_pair, render_sequence
+    from fsof_torch.data.scene import SENSOR_NOISE, render_pair, render_sequence
 
     k15, odo = args.data / "kitti15_000000", args.data / "kitti_odometry_straight"
     real15 = []
@@ -143,7 +143,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # the noise floor of the photometric error: DIS and the ground truth warped, on the default
     # (noise-free) pairs and on the same pairs with sensor noise (DIS computed on each)
-    from fsof_torch.photometric import photometric_error
+    from fsof_torch.evaluation.photometric import photometric_error
 
     rows = []
     for k in range(4):

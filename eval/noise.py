@@ -5,7 +5,7 @@ noisy flow (the paper's Fig. "noise robustness" and Fig. "vehicle pose estimatio
    the ground-truth flow of CVC12-like renders (cvc-simple / cvc-complex × speed ×1 / ×4); the
    displacement model is fitted inside the road mask; the fitted model flow is compared with the
    clean ground truth (e_E, e_A) and with the noisy flow it was fitted to.
-2. Pose estimation (:func:`fsof_torch.pose.pose_estimation_experiment`): random displacement
+2. Pose estimation (:func:`eval.pose.pose_estimation_experiment`): random displacement
    and yaw on a virtual road plane, the pose recovered from the noisy model flow alone.
 
 Writes ``noise_robustness.png``, ``pose_errors.png``, ``pose_scatter.png`` and ``noise.json``.
@@ -50,9 +50,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def noise_robustness(size, sigmas, scenarios, seed: int, bar=None) -> list[dict]:
     """Fit errors versus σ; one row per (scenario, speed, σ)."""
-    from fsof_torch.fit import fit_displacement
-    from fsof_torch.metrics import flow_metrics
-    from fsof_torch.scene import render_pair
+    from fsof_torch.estimation.flow_fit import fit_displacement
+    from fsof_torch.evaluation.metrics import flow_metrics
+    from fsof_torch.data.scene import render_pair
 
     rows = []
     gen = torch.Generator().manual_seed(seed)
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fsof_torch.io import write_json
-    from fsof_torch.pose import pose_estimation_experiment
+    from eval.pose import pose_estimation_experiment
 
     from .tables import format_table
 

@@ -1,6 +1,6 @@
 """``python -m eval synth``: render a synthetic driving sequence with exact ground truth and write
 it to disk in the KITTI-like layout of :mod:`fsof_torch.io.layout` (read it back with
-:class:`fsof_torch.datasets.SyntheticFlowDataset`).
+:class:`fsof_torch.data.datasets.SyntheticFlowDataset`).
 
 Example::
 
@@ -17,7 +17,7 @@ import torch
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.scene.PRESETS); default: default")
+    parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.data.scene.PRESETS); default: default")
     parser.add_argument("--pairs", type=int, default=4, metavar="N", help="number of frame pairs (default 4)")
     parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created)")
     parser.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
@@ -47,7 +47,7 @@ def _fmt(value: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
-    from fsof_torch.scene import PRESETS, render_pair
+    from fsof_torch.data.scene import PRESETS, render_pair
 
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)

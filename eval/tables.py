@@ -1,18 +1,18 @@
 """``python -m eval tables``: the paper's fitting tables, reproduced.
 
 Each scenario fits the freespace model to the ground-truth flow inside the road mask and reports
-the metrics (paper eq. 25-28, :func:`fsof_torch.metrics.flow_metrics`) of the fitted model flow
+the metrics (paper eq. 25-28, :func:`fsof_torch.evaluation.metrics.flow_metrics`) of the fitted model flow
 against that ground truth, aggregated over all road pixels of the scenario's pairs, with the
 paper's published figures beside ours:
 
-* CVC12-like (displacement model, :func:`fsof_torch.fit.fit_displacement`): presets
+* CVC12-like (displacement model, :func:`fsof_torch.estimation.flow_fit.fit_displacement`): presets
   ``cvc-simple`` / ``cvc-complex`` × vehicle speed ×1 / ×4; e_A (rad), e_E (px).
-* CARLA-like (velocity model, :func:`fsof_torch.fit.fit_velocity`): ``carla-straight`` /
+* CARLA-like (velocity model, :func:`fsof_torch.estimation.flow_fit.fit_velocity`): ``carla-straight`` /
   ``carla-turning`` × camera roll 0, ±5°, ±10°; e_A, e_E on px/s flow, and the fitted roll.
 * Real KITTI (``../shared/data/kitti15_000000``): sparse ground truth inside the hand-drawn
   ``road.json``, the paper's model and the model with pitch; e_A, e_E, e_U, e_V.
 
-The synthetic scenes are this project's renders (:mod:`fsof_torch.scene`), not the paper's data,
+The synthetic scenes are this project's renders (:mod:`fsof_torch.data.scene`), not the paper's data,
 and the KITTI row is one frame, not the paper's frames: compare orders of magnitude.
 
 Example::
@@ -116,9 +116,9 @@ def _finish(acc: dict) -> dict:
 # -- the three tables -------------------------------------------------------------------------------
 
 def cvc12_table(size, pairs: int, seed: int, bar=None) -> list[dict]:
-    from fsof_torch.fit import fit_displacement
-    from fsof_torch.metrics import flow_metrics
-    from fsof_torch.scene import render_pair
+    from fsof_torch.estimation.flow_fit import fit_displacement
+    from fsof_torch.evaluation.metrics import flow_metrics
+    from fsof_torch.data.scene import render_pair
 
     rows = []
     for scenario in ("simple", "complex"):
@@ -143,9 +143,9 @@ def cvc12_table(size, pairs: int, seed: int, bar=None) -> list[dict]:
 
 
 def carla_table(size, pairs: int, seed: int, rolls, bar=None) -> list[dict]:
-    from fsof_torch.fit import fit_velocity
-    from fsof_torch.metrics import flow_metrics
-    from fsof_torch.scene import render_pair
+    from fsof_torch.estimation.flow_fit import fit_velocity
+    from fsof_torch.evaluation.metrics import flow_metrics
+    from fsof_torch.data.scene import render_pair
 
     rows = []
     for direction in ("straight", "turning"):
@@ -172,10 +172,10 @@ def carla_table(size, pairs: int, seed: int, rolls, bar=None) -> list[dict]:
 
 
 def kitti_table(folder: Path, bar=None) -> list[dict]:
-    from fsof_torch.camera import Camera
-    from fsof_torch.fit import fit_displacement
+    from fsof_torch.geometry.camera import Camera
+    from fsof_torch.estimation.flow_fit import fit_displacement
     from fsof_torch.io import read_kitti_flow, read_road_mask
-    from fsof_torch.metrics import flow_metrics
+    from fsof_torch.evaluation.metrics import flow_metrics
 
     flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
     H, W = flow.shape[-2:]

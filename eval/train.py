@@ -1,14 +1,14 @@
 """``python -m eval train``: does a freespace term help a flow network learn road flow?
 
-The test net (:class:`fsof_torch.testnet.TinyRAFT`) is trained twice from the same seed on the
-same synthetic driving pairs (:func:`fsof_torch.scene.render_sequence`, rendered once and kept in
+The test net (:class:`fsof_torch.training.testnet.TinyRAFT`) is trained twice from the same seed on the
+same synthetic driving pairs (:func:`fsof_torch.data.scene.render_sequence`, rendered once and kept in
 memory), for the same number of steps with the same batches: once with the unsupervised loss
-alone (:class:`~fsof_torch.losses.UnsupervisedFlowLoss`: photometric L1 + SSIM with a
+alone (:class:`~fsof_torch.training.losses.UnsupervisedFlowLoss`: photometric L1 + SSIM with a
 forward-backward occlusion mask, edge-aware smoothness), once with
-:class:`~fsof_torch.losses.FreespaceFlowLoss` added (the road flow of the freespace model from the
+:class:`~fsof_torch.training.losses.FreespaceFlowLoss` added (the road flow of the freespace model from the
 pairs' odometry, inside their road masks). Both nets, and the untrained one, are then evaluated on
 held-out pairs of another seed against the exact ground truth: end-point error (and the others of
-:func:`fsof_torch.metrics.flow_metrics`) inside the road and outside it.
+:func:`fsof_torch.evaluation.metrics.flow_metrics`) inside the road and outside it.
 
 Prints a table, writes ``--json PATH``, and with ``--out DIR`` saves both nets' ``state_dict``.
 """
@@ -22,12 +22,12 @@ from pathlib import Path
 
 import torch
 
-from fsof_torch.camera import Camera
+from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import write_json
-from fsof_torch.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
-from fsof_torch.metrics import flow_metrics
-from fsof_torch.scene import collate, render_sequence
-from fsof_torch.testnet import TinyRAFT, count_parameters
+from fsof_torch.training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
+from fsof_torch.evaluation.metrics import flow_metrics
+from fsof_torch.data.scene import collate, render_sequence
+from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net"]
 
@@ -36,7 +36,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=150, help="optimiser steps per run (default 150)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the net, the batches and the training scenes (held-out: seed + 1000)")
-    parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.scene.PRESETS)")
+    parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.data.scene.PRESETS)")
     parser.add_argument("--size", type=int, nargs=2, default=(64, 224), metavar=("H", "W"),
                         help="image size of the rendered pairs (default 64 224)")
     parser.add_argument("--batch", type=int, default=4, help="pairs per step (default 4)")

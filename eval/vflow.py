@@ -134,7 +134,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fsof_torch.io import write_json
-    from fsof_torch.vflow import detect_freespace, fit_vflow_curve, vflow_map
+    from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
     if args.bins < 2:
         print(f"error: --bins: expected at least 2, got {args.bins}", file=sys.stderr)
@@ -156,7 +156,7 @@ def run(args: argparse.Namespace) -> int:
     info: dict = {}
     pair = camera = road = None
     if preset is not None:
-        from fsof_torch.scene import PRESETS, render_pair
+        from fsof_torch.data.scene import PRESETS, render_pair
 
         if preset not in PRESETS:
             print(f"error: --preset: unknown preset {preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)

@@ -8,11 +8,22 @@ Submodules: ``camera``, ``flow_model``, ``egomotion``, ``fit``, ``vflow``, ``pos
 ``datasets``, ``visualize``.
 """
 
-from . import datasets, io, metrics
-from .camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
-from .egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
-from .fit import FitResult, VelocityFitResult, fit_displacement, fit_photometric, fit_velocity
-from .flow_model import (
+import sys as _sys
+
+from . import io
+from .estimation import flow_fit as _flow_fit, image_fit as _image_fit
+from .geometry import road_flow as _road_flow
+from .data import datasets, scene
+from .estimation import vflow
+from .evaluation import metrics, photometric, visualize, warp
+from .geometry import camera, egomotion
+from .refinement import fusion
+from .training import losses, testnet
+from .geometry.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
+from .geometry.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
+from .estimation.flow_fit import FitResult, VelocityFitResult, fit_displacement, fit_velocity
+from .estimation.image_fit import fit_photometric
+from .geometry.road_flow import (
     DisplacementFlow,
     VelocityFlow,
     displacement_flow,
@@ -26,7 +37,7 @@ from .flow_model import (
     velocity_flow_straight_level,
     vflow_curve,
 )
-from .fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
+from .refinement.fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
 from .io import (
     read_flo,
     read_flow,
@@ -40,8 +51,8 @@ from .io import (
     write_kitti_flow,
     write_kitti_poses,
 )
-from .losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
-from .metrics import (
+from .training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
+from .evaluation.metrics import (
     angular_error,
     endpoint_error,
     flow_metrics,
@@ -50,15 +61,25 @@ from .metrics import (
     u_error,
     v_error,
 )
-from .photometric import PhotometricError, photometric_error, photometric_error_map
-from .pose import pose_estimation_experiment
-from .scene import PRESETS, collate, render_pair, render_sequence
-from .testnet import TinyRAFT
-from .vflow import detect_freespace, fit_vflow_curve, vflow_map
-from .visualize import flow_to_color, save_error_png, save_flow_png, save_overlay_png
-from .warp import WarpBackward, warp_backward
+from .evaluation.photometric import PhotometricError, photometric_error, photometric_error_map
+from .data.scene import PRESETS, collate, render_pair, render_sequence
+from .training.testnet import TinyRAFT
+from .estimation.freespace import detect_freespace
+from .estimation.vflow import fit_vflow_curve, vflow_map
+from .evaluation.visualize import flow_to_color, save_error_png, save_flow_png, save_overlay_png
+from .evaluation.warp import WarpBackward, warp_backward
 
 __version__ = "0.1.0"
+
+# The flat module paths of earlier versions (``fsof_torch.metrics``, ``fsof_torch.camera``, ...)
+# stay importable: each is an alias of the module that now holds it.
+for _name, _module in {"camera": camera, "egomotion": egomotion, "flow_model": _road_flow,
+                       "fit": _flow_fit, "fit_photometric": _image_fit, "vflow": vflow,
+                       "fusion": fusion, "warp": warp, "photometric": photometric, "metrics": metrics,
+                       "visualize": visualize, "losses": losses, "testnet": testnet,
+                       "datasets": datasets, "scene": scene}.items():
+    _sys.modules.setdefault(f"{__name__}.{_name}", _module)
+del _name, _module
 
 __all__ = [
     "Camera",
@@ -103,7 +124,6 @@ __all__ = [
     "photometric_error_map",
     "pitch_matrix",
     "pixel_grid",
-    "pose_estimation_experiment",
     "read_flo",
     "read_flow",
     "read_image",

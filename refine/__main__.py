@@ -1,6 +1,6 @@
 """``python -m refine``: refine optical flow with the freespace model inside the road mask.
 
-With no arguments: render the default synthetic sequence (``fsof_torch.scene``, preset
+With no arguments: render the default synthetic sequence (``fsof_torch.data.scene``, preset
 "default"), predict flow with OpenCV DIS and with the test net (random weights), refine each with
 the scene's odometry, with ego-motion fitted to the flow and with ego-motion fitted to the images,
 and write refined flows, figures and a report (photometric error and end-point error, road and

@@ -13,9 +13,9 @@ import sys
 
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.flow_model import displacement_flow
-from fsof_torch.photometric import photometric_error
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.evaluation.photometric import photometric_error
 
 from .inputs import JobError, PairSpec, odometry_from_pose
 

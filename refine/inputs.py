@@ -13,7 +13,7 @@ from typing import Any, Callable
 import torch
 from torch import Tensor
 
-from fsof_torch.camera import Camera
+from fsof_torch.geometry.camera import Camera
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
 FLOW_SUFFIXES = (".png", ".flo", ".npy")
@@ -42,7 +42,7 @@ class PairSpec:
 
 def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int] | None,
                     road: str | None, noise: float | None = None) -> list[PairSpec]:
-    """Pairs of a rendered sequence (``fsof_torch.scene``), with the scene's exact ground truth,
+    """Pairs of a rendered sequence (``fsof_torch.data.scene``), with the scene's exact ground truth,
     road mask and odometry. ``road="auto"`` leaves the mask to detection; ``noise`` overrides the
     preset's sensor noise (grey levels at 375×1242)."""
     from fsof_torch import scene
@@ -117,7 +117,7 @@ def read_camera(calib: Path, cam: int | None, height: float, roll_deg: float, pi
 
     Without ``cam``: camera 2 (the left colour camera) when the file has it, else camera 0.
     """
-    from fsof_torch.camera import read_kitti_calibration
+    from fsof_torch.geometry.camera import read_kitti_calibration
 
     if not calib.is_file():
         raise JobError(f"--calib: no calibration file at {str(calib)!r}")
@@ -135,7 +135,7 @@ def read_camera(calib: Path, cam: int | None, height: float, roll_deg: float, pi
 def odometry_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, float]:
     """The planar ego-motion (x_d, z_d, yaw) of a relative camera pose (4, 4), under the camera's
     mounting (its roll and pitch relate camera and vehicle frames)."""
-    from fsof_torch.egomotion import ego_motion_from_pose
+    from fsof_torch.geometry.egomotion import ego_motion_from_pose
 
     ego = ego_motion_from_pose(cam1_T_cam0.to(torch.float64).unsqueeze(0), camera.to(torch.float64))
     return {"x_d": float(ego.x_d[0]), "z_d": float(ego.z_d[0]), "yaw": float(ego.yaw[0])}

@@ -25,8 +25,8 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from fsof_torch.camera import Camera
-from fsof_torch.fusion import FreespaceRefiner
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.refinement.fusion import FreespaceRefiner
 
 from .inputs import JobError, PairSpec, odometry_from_pose
 from .sources import make_source
@@ -71,8 +71,8 @@ def evaluate(pair: dict, pred: Tensor, refined: Tensor, road: Tensor) -> tuple[d
     there rewards a flow that points at a look-alike instead (on the synthetic scene the exact
     flow scores 24.9 on its occluded road pixels, DIS 10.4).
     """
-    from fsof_torch.metrics import flow_metrics
-    from fsof_torch.photometric import photometric_error_map
+    from fsof_torch.evaluation.metrics import flow_metrics
+    from fsof_torch.evaluation.photometric import photometric_error_map
 
     im1, im2 = pair["image1"][None], pair["image2"][None]
     finite = (torch.isfinite(pred).all(dim=0, keepdim=True) & torch.isfinite(refined).all(dim=0, keepdim=True))[None]
@@ -107,7 +107,7 @@ def error_map(pair: dict, flow: Tensor) -> tuple[Tensor, Tensor, str]:
     if pair.get("gt") is not None:
         gt, valid = pair["gt"]
         return (f[0] - gt).norm(dim=0, keepdim=True), valid, "epe"
-    from fsof_torch.photometric import photometric_error_map
+    from fsof_torch.evaluation.photometric import photometric_error_map
 
     err, valid = photometric_error_map(pair["image1"][None], pair["image2"][None], f)
     return err[0], valid[0], "photo"
@@ -197,7 +197,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, *, camera: Camera | None = 
 def _road(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str]:
     if pair.get("road") is not None and not cfg.road_auto:
         return pair["road"].to(torch.bool), "given"
-    from fsof_torch.vflow import detect_freespace
+    from fsof_torch import detect_freespace
 
     f = torch.nan_to_num(pred)[None].to(torch.float64)
     H = pred.shape[-2]
@@ -234,7 +234,7 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, source: str, variant:
 # -- figures --------------------------------------------------------------------------------------
 
 def _figures_before(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, road: Tensor) -> None:
-    from fsof_torch.visualize import save_error_png, save_flow_png, save_overlay_png
+    from fsof_torch.evaluation.visualize import save_error_png, save_flow_png, save_overlay_png
 
     base = cfg.out / source / "before"
     max_flow = _max_flow(pair, pred)
@@ -247,7 +247,7 @@ def _figures_before(cfg: JobConfig, source: str, name: str, pair: dict, pred: Te
 
 
 def _figures_after(paths: dict, pair: dict, flow: Tensor, *, before_flow: Tensor) -> None:
-    from fsof_torch.visualize import save_error_png, save_flow_png
+    from fsof_torch.evaluation.visualize import save_error_png, save_flow_png
 
     save_flow_png(paths["fig_flow"], torch.nan_to_num(flow), max_flow=_max_flow(pair, before_flow))
     err, valid, _ = error_map(pair, flow)

@@ -43,7 +43,7 @@ def make_source(name: str, *, weights: Path | None = None) -> Callable[[dict, Pa
     if name == "dis":
         return lambda pair, _file: dis_flow(pair["image1"], pair["image2"])
     if name == "testnet":
-        from fsof_torch.testnet import TinyRAFT
+        from fsof_torch.training.testnet import TinyRAFT
 
         net = TinyRAFT(seed=0)
         if weights is not None:

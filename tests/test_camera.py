@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.camera: the batched camera (intrinsics + mounting), KITTI calibration files."""
+"""Tests of fsof_torch.geometry.camera: the batched camera (intrinsics + mounting), KITTI calibration files."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from fsof_torch.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
-from fsof_torch.flow_model import displacement_flow, velocity_flow
+from fsof_torch.geometry.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
+from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow
 
 CAM_TO_CAM = """calib_time: 09-Jan-2012 13:57:47
 corner_dist: 9.950000e-02

@@ -1,4 +1,4 @@
-"""fsof_torch.datasets: pair datasets over the synthetic layout, KITTI layouts, the shared samples,
+"""fsof_torch.data.datasets: pair datasets over the synthetic layout, KITTI layouts, the shared samples,
 CARLA runs; collate with DataLoader."""
 
 from __future__ import annotations
@@ -11,8 +11,8 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from fsof_torch.camera import Camera
-from fsof_torch.datasets import (
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.data.datasets import (
     CarlaRunDataset,
     KittiFlowDataset,
     KittiOdometryDataset,
@@ -21,7 +21,7 @@ from fsof_torch.datasets import (
     collate,
     concat_cameras,
 )
-from fsof_torch.flow_model import displacement_flow
+from fsof_torch.geometry.road_flow import displacement_flow
 from fsof_torch.io import (
     write_carla_flow,
     write_image,

@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.egomotion: poses -> (x_d, z_d, yaw) and the Ackermann integration."""
+"""Tests of fsof_torch.geometry.egomotion: poses -> (x_d, z_d, yaw) and the Ackermann integration."""
 
 from __future__ import annotations
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
-from fsof_torch.flow_model import displacement_flow
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
+from fsof_torch.geometry.road_flow import displacement_flow
 
 
 def _rot(axis, a):

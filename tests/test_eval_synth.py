@@ -8,11 +8,11 @@ import pytest
 import torch
 
 from eval.__main__ import main
-from fsof_torch.datasets import SyntheticFlowDataset, collate
-from fsof_torch.egomotion import ego_motion_from_pose
+from fsof_torch.data.datasets import SyntheticFlowDataset, collate
+from fsof_torch.geometry.egomotion import ego_motion_from_pose
 from fsof_torch.io import read_kitti_poses
 
-scene = pytest.importorskip("fsof_torch.scene")
+scene = pytest.importorskip("fsof_torch.data.scene")
 
 
 @pytest.fixture(scope="module")

@@ -7,11 +7,11 @@ import json
 import pytest
 import torch
 
-pytest.importorskip("fsof_torch.scene")
+pytest.importorskip("fsof_torch.data.scene")
 
 from eval import train  # noqa: E402
 from eval.__main__ import main as eval_main  # noqa: E402
-from fsof_torch.testnet import TinyRAFT  # noqa: E402
+from fsof_torch.training.testnet import TinyRAFT  # noqa: E402
 
 
 @pytest.fixture

@@ -32,8 +32,8 @@ def test_vflow_velocity(tmp_path):
 
 
 def test_vflow_flow_file(tmp_path):
-    from fsof_torch.camera import Camera
-    from fsof_torch.flow_model import displacement_flow
+    from fsof_torch.geometry.camera import Camera
+    from fsof_torch.geometry.road_flow import displacement_flow
     from fsof_torch.io import write_flow
 
     cam = Camera(torch.tensor([[150.0, 0, 80], [0, 150.0, 15], [0, 0, 1]]), 1.5)

@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.fit: robust fits of the displacement and velocity models to flow."""
+"""Tests of fsof_torch.estimation.flow_fit: robust fits of the displacement and velocity models to flow."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-import fsof_torch.fit as fit_module
-from fsof_torch.camera import Camera
-from fsof_torch.fit import (
+import fsof_torch.estimation.flow_fit as fit_module
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.estimation.flow_fit import (
     ROBUST_KERNELS,
     FitResult,
     VelocityFitResult,
@@ -18,7 +18,7 @@ from fsof_torch.fit import (
     fit_velocity,
     robust_weight,
 )
-from fsof_torch.flow_model import displacement_flow, road_homography, velocity_flow
+from fsof_torch.geometry.road_flow import displacement_flow, road_homography, velocity_flow
 
 SIZE = (64, 160)
 

@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.fit_photometric: ego-motion from the images by direct photometric fitting."""
+"""Tests of fsof_torch.estimation.image_fit: ego-motion from the images by direct photometric fitting."""
 
 from __future__ import annotations
 
@@ -6,10 +6,10 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.fit import FitResult, fit_displacement, fit_photometric
-from fsof_torch.flow_model import displacement_flow
-from fsof_torch.warp import warp_backward
+from fsof_torch.geometry.camera import Camera
+from fsof_torch import FitResult, fit_displacement, fit_photometric
+from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.evaluation.warp import warp_backward
 
 SIZE = (96, 256)
 

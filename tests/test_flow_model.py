@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.flow_model: the displacement (eq. 13) and velocity (eq. 21) road-flow models.
+"""Tests of fsof_torch.geometry.road_flow: the displacement (eq. 13) and velocity (eq. 21) road-flow models.
 
 Independent references, all written here in NumPy float64:
 - the paper's λ formula (eq. 13 / eq. 21, roll only: the paper has no pitch),
@@ -17,9 +17,9 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fsof_torch.camera import Camera
-from fsof_torch.egomotion import ego_motion_from_ackermann
-from fsof_torch.flow_model import (
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import ego_motion_from_ackermann
+from fsof_torch.geometry.road_flow import (
     DisplacementFlow,
     VelocityFlow,
     displacement_flow,

@@ -9,10 +9,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fsof_torch.camera import Camera
-from fsof_torch.egomotion import EgoMotion
-from fsof_torch.flow_model import displacement_flow
-from fsof_torch.fusion import (
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import EgoMotion
+from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.refinement.fusion import (
     FreespaceRefined,
     FreespaceRefiner,
     RefineOutput,
@@ -334,7 +334,7 @@ def test_bad_options_and_flows():
         FreespaceRefiner()(pred, mask, make_camera(B=2), ODO)
 
 
-# -- fitted odometry (fsof_torch.fit) ----------------------------------------------------------------
+# -- fitted odometry (fsof_torch.estimation.flow_fit) ----------------------------------------------------------------
 
 def test_fitted_odometry_recovers_motion_and_refines():
     pred, mask, cam, gt = make_case(B=2, noise=1.0)
@@ -438,7 +438,7 @@ def test_wrapper_needs_a_mask():
 
 
 def test_wrapper_with_the_test_net():
-    from fsof_torch.testnet import TinyRAFT
+    from fsof_torch.training.testnet import TinyRAFT
 
     net = TinyRAFT(seed=0)
     model = FreespaceRefined(net, FreespaceRefiner())
@@ -475,7 +475,7 @@ def test_wrapper_road_auto():
 
 def test_photometric_fit_from_the_images():
     """fit='photometric': ego-motion from the two images (started from the flow fit)."""
-    from fsof_torch.scene import render_pair
+    from fsof_torch.data.scene import render_pair
 
     # noise-free images: the mechanism is under test here; real, noisy images are covered by the
     # KITTI check in test_refine_job.py

@@ -9,7 +9,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fsof_torch.camera import Camera
+from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import (
     read_kitti_calibration,
     read_kitti_flow,
@@ -77,7 +77,7 @@ class TestFeature:
         assert err.numel() == 0 or float(err.max()) <= STEP / 2 + 1e-9
 
     def test_poses_round_trip_and_relative_motion(self, tmp_path):
-        from fsof_torch.egomotion import ego_motion_from_pose
+        from fsof_torch.geometry.egomotion import ego_motion_from_pose
 
         c, s = np.cos(0.01), np.sin(0.01)
         P0 = torch.eye(4, dtype=torch.float64)

@@ -8,9 +8,9 @@ import math
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.egomotion import ego_motion_from_pose
-from fsof_torch.flow_model import displacement_flow
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import ego_motion_from_pose
+from fsof_torch.geometry.road_flow import displacement_flow
 from fsof_torch.io import (
     read_depth_png,
     read_kitti_calibration,

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.egomotion import ego_motion_from_pose
+from fsof_torch.geometry.egomotion import ego_motion_from_pose
 from fsof_torch.io import (
     read_vkitti2_classes,
     read_vkitti2_colors,

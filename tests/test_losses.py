@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.flow_model import displacement_flow
-from fsof_torch.losses import (
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.training.losses import (
     CompositeLoss,
     FreespaceFlowLoss,
     UnsupervisedFlowLoss,

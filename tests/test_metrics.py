@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.metrics: e_A, e_E, e_U, e_V (paper eq. 25-28) and KITTI Fl."""
+"""Tests of fsof_torch.evaluation.metrics: e_A, e_E, e_U, e_V (paper eq. 25-28) and KITTI Fl."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-import fsof_torch.metrics as metrics_module
-from fsof_torch.metrics import (
+import fsof_torch.evaluation.metrics as metrics_module
+from fsof_torch.evaluation.metrics import (
     METRIC_NAMES,
     angular_error,
     endpoint_error,

@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.photometric: photometric error of a flow (l1, ssim, census)."""
+"""Tests of fsof_torch.evaluation.photometric: photometric error of a flow (l1, ssim, census)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.photometric import (
+from fsof_torch.evaluation.photometric import (
     PhotometricError,
     census_transform,
     photometric_error,
@@ -54,7 +54,7 @@ def test_smoke(kind, dtype):
 
 
 def test_public_names():
-    import fsof_torch.photometric as mod
+    import fsof_torch.evaluation.photometric as mod
 
     assert set(mod.__all__) >= {"photometric_error", "photometric_error_map", "census_transform",
                                 "PhotometricError"}
@@ -284,7 +284,7 @@ def test_kitti_dis_photometric_and_endpoint(shared_data):
     the road, yet 14 px end-point error there: photometric error alone can reward a wrong flow."""
     import cv2
 
-    from fsof_torch.metrics import endpoint_error
+    from fsof_torch.evaluation.metrics import endpoint_error
 
     i1, i2, flow, valid, road = _read_kitti(shared_data)
     folder = shared_data / "kitti15_000000"

@@ -7,8 +7,8 @@ import math
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.pose import PoseEstimationResult, default_pose_camera, pose_estimation_experiment
+from fsof_torch.geometry.camera import Camera
+from eval.pose import PoseEstimationResult, default_pose_camera, pose_estimation_experiment
 
 SMALL = (120, 400)
 

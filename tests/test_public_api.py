@@ -24,7 +24,7 @@ def test_contract_name_exported(name):
 
 @pytest.mark.parametrize("name", METRICS)
 def test_metrics_names(name):
-    assert callable(getattr(fsof_torch.metrics, name))
+    assert callable(getattr(fsof_torch.evaluation.metrics, name))
 
 
 def test_all_names_resolve():

@@ -17,7 +17,7 @@ TINY = ["--size", f"{SIZE[0]}x{SIZE[1]}", "--no-progress", "--threads", "1"]
 
 @pytest.fixture(scope="module")
 def scene_pairs():
-    from fsof_torch.scene import render_pair
+    from fsof_torch.data.scene import render_pair
 
     return [render_pair("default", i, size=SIZE) for i in range(2)]
 

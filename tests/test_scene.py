@@ -9,10 +9,10 @@ import math
 import pytest
 import torch
 
-from fsof_torch.camera import Camera
-from fsof_torch.egomotion import ego_motion_from_ackermann
-from fsof_torch.flow_model import displacement_flow, velocity_flow
-from fsof_torch.scene import (KITTI_K, KITTI_SIZE, LABELS, PRESETS, SENSOR_NOISE, SceneConfig, collate, render_pair,
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import ego_motion_from_ackermann
+from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow
+from fsof_torch.data.scene import (KITTI_K, KITTI_SIZE, LABELS, PRESETS, SENSOR_NOISE, SceneConfig, collate, render_pair,
                               render_sequence, scene_config)
 
 TINY = (40, 128)
@@ -305,7 +305,7 @@ def test_occluded_points_are_invalid():
 
 def _warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     try:
-        from fsof_torch.warp import warp_backward
+        from fsof_torch.evaluation.warp import warp_backward
     except ImportError:  # the warp module of another issue; same convention
         import torch.nn.functional as F
         _, H, W = image.shape

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from fsof_torch.testnet import TinyRAFT, count_parameters
+from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 
 def _pair(B: int, H: int, W: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:

@@ -8,12 +8,11 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fsof_torch.camera import Camera
-from fsof_torch.flow_model import displacement_flow, velocity_flow, vflow_curve
-from fsof_torch.vflow import (
-    FreespaceDetection,
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow, vflow_curve
+from fsof_torch.estimation.freespace import FreespaceDetection, detect_freespace
+from fsof_torch.estimation.vflow import (
     VFlowCurve,
-    detect_freespace,
     fit_vflow_curve,
     row_dominant_flow,
     vflow_curve_model,
@@ -157,7 +156,7 @@ class TestFitVFlowCurve:
     @pytest.mark.parametrize("model", ["displacement", "velocity"])
     def test_analytic_jacobian_of_the_fit(self, model):
         """The Gauss–Newton Jacobian (private) against autograd."""
-        from fsof_torch.vflow import _curve
+        from fsof_torch.estimation.vflow import _curve
 
         v = torch.linspace(20.0, 60.0, 9, dtype=torch.float64)
         a = torch.tensor(0.004, dtype=torch.float64, requires_grad=True)
@@ -345,7 +344,7 @@ class TestDetectFreespace:
 
     def test_cvc_complex_iou(self):
         """Freespace of the cvc-complex preset from its ground-truth flow: IoU >= 0.9."""
-        scene = pytest.importorskip("fsof_torch.scene")
+        scene = pytest.importorskip("fsof_torch.data.scene")
         ious = []
         for index in range(1):
             pair = scene.render_pair("cvc-complex", index, seed=0, size=(128, 416), dtype=torch.float64)

@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.visualize: flow colours, error maps, mask overlays and their PNG files."""
+"""Tests of fsof_torch.evaluation.visualize: flow colours, error maps, mask overlays and their PNG files."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.visualize import (
+from fsof_torch.evaluation.visualize import (
     error_to_color,
     flow_to_color,
     make_colorwheel,
@@ -86,7 +86,7 @@ def test_smoke(dtype):
 
 
 def test_public_names():
-    import fsof_torch.visualize as mod
+    import fsof_torch.evaluation.visualize as mod
 
     assert set(mod.__all__) >= {"flow_to_color", "error_to_color", "overlay_mask", "make_colorwheel",
                                 "save_flow_png", "save_error_png", "save_overlay_png"}

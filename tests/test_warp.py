@@ -1,4 +1,4 @@
-"""Tests of fsof_torch.warp: the one backward warp of the project."""
+"""Tests of fsof_torch.evaluation.warp: the one backward warp of the project."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from fsof_torch.warp import WarpBackward, normalize_coordinates, warp_backward
+from fsof_torch.evaluation.warp import WarpBackward, normalize_coordinates, warp_backward
 
 
 def _image(B=1, C=3, H=24, W=40, dtype=torch.float32, seed=0):
@@ -41,7 +41,7 @@ def test_smoke(dtype):
 
 
 def test_public_names():
-    import fsof_torch.warp as mod
+    import fsof_torch.evaluation.warp as mod
 
     assert set(mod.__all__) >= {"warp_backward", "WarpBackward", "normalize_coordinates"}
 

@@ -8,7 +8,7 @@ Conventions: flow (2, H, W) float32 in pixels, channel 0 = u; valid and road mas
 bool; images (3, H, W) float32 RGB 0..255.
 """
 
-from ..camera import read_kitti_calibration
+from ..geometry.camera import read_kitti_calibration
 from .atomic import atomic_path, to_jsonable, write_bytes, write_json, write_text
 from .carla import (
     CARLA_CAMERA_HEIGHT,

@@ -36,7 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import Camera
+from ..geometry.camera import Camera
 from .flo import _as_chw_flow
 from .images import read_image, read_image_array, write_image_array
 from .masks import mask_from_colors

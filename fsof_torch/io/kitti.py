@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import read_kitti_calibration
+from ..geometry.camera import read_kitti_calibration
 from .atomic import write_text
 from .flo import _as_chw_flow
 from .images import read_image_array, write_image_array

@@ -49,7 +49,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..camera import Camera
+from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
 from .images import read_image, read_image_array, write_image, write_image_array

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ._check import check_float_tensor, check_shape, result_dtype
+from .._check import check_float_tensor, check_shape, result_dtype
 
 __all__ = [
     "flow_error_maps",

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._check import check_float_tensor, check_shape, tracing
+from .._check import check_float_tensor, check_shape, tracing
 
 __all__ = ["TinyRAFT", "count_parameters"]
 

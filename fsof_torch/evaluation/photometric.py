@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._check import check_float_tensor, check_shape, result_dtype, tracing
+from .._check import check_float_tensor, check_shape, result_dtype, tracing
 from .warp import warp_backward
 
 __all__ = ["photometric_error", "photometric_error_map", "census_transform", "PhotometricError"]

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from ._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
+from .._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose"]

@@ -35,13 +35,13 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .camera import Camera
-from .egomotion import ego_motion_from_pose, relative_pose
-from .io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
-from .io.images import read_image
-from .io.kitti import read_kitti_calibration, read_kitti_flow, read_kitti_poses
-from .io.layout import read_synthetic_pair, synthetic_pair_indices
-from .io.masks import mask_from_colors, read_road_mask
+from ..geometry.camera import Camera
+from ..geometry.egomotion import ego_motion_from_pose, relative_pose
+from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
+from ..io.images import read_image
+from ..io.kitti import read_kitti_calibration, read_kitti_flow, read_kitti_poses
+from ..io.layout import read_synthetic_pair, synthetic_pair_indices
+from ..io.masks import mask_from_colors, read_road_mask
 
 __all__ = [
     "collate",

@@ -26,12 +26,12 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._check import check_float_tensor, check_shape, result_dtype
-from .camera import Camera, mounting_matrix
-from .flow_model import displacement_flow
+from .._check import check_float_tensor, check_shape, result_dtype
+from ..geometry.camera import Camera, mounting_matrix
+from ..geometry.road_flow import displacement_flow
 
 if TYPE_CHECKING:  # fit imports this module at its end
-    from .fit import FitResult
+    from .flow_fit import FitResult
 
 __all__ = ["fit_photometric"]
 
@@ -105,9 +105,9 @@ def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera
     from kornia.filters import gaussian_blur2d, spatial_gradient
     from kornia.geometry.transform import build_pyramid
 
-    from .fit import (FitResult, _check_options, _evaluate, _homography_jac, _init_value, _mask_sample,
+    from .flow_fit import (FitResult, _check_options, _evaluate, _homography_jac, _init_value, _mask_sample,
                       _pixels, _robust_cost, robust_weight)
-    from .warp import warp_backward
+    from ..evaluation.warp import warp_backward
 
     for name, img in (("image1", image1), ("image2", image2)):
         check_float_tensor(img, name)

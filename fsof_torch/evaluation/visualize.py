@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ._check import check_float_tensor, check_shape
+from .._check import check_float_tensor, check_shape
 
 __all__ = [
     "make_colorwheel",
@@ -211,7 +211,7 @@ def _write_png(path: str | os.PathLike, rgb: Tensor) -> Path:
     """Write one (1, 3, H, W) or (3, H, W) uint8 RGB image as PNG, atomically."""
     import cv2
 
-    from .io.atomic import write_bytes
+    from ..io.atomic import write_bytes
 
     if rgb.dim() == 4:
         if rgb.shape[0] != 1:

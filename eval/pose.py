@@ -1,12 +1,12 @@
 """Vehicle pose estimation from noisy freespace flow: the paper's experiment (§ "Vehicle Pose
-Estimation"), with the robust least-squares fit of :mod:`fsof_torch.fit` in place of the paper's
+Estimation"), with the robust least-squares fit of :mod:`fsof_torch.estimation.flow_fit` in place of the paper's
 particle swarm optimisation.
 
 A virtual road plane is seen by a calibrated camera; the pixels of a box below the horizon sample
 it uniformly. The vehicle moves by a random displacement (x_d, z_d) and yaw φ (seeded); the
 model flow of that motion (paper eq. 13) plus Gaussian noise of standard deviation σ pixels in
 each component is the only input of the estimator, which recovers (x_d, z_d, φ) with
-:func:`fsof_torch.fit.fit_displacement` (camera height known, roll known unless ``fit_roll``).
+:func:`fsof_torch.estimation.flow_fit.fit_displacement` (camera height known, roll known unless ``fit_roll``).
 """
 
 from __future__ import annotations
@@ -17,8 +17,7 @@ from dataclasses import dataclass, field
 import torch
 from torch import Tensor
 
-from .camera import Camera
-from .flow_model import displacement_flow
+from fsof_torch import Camera, displacement_flow
 
 __all__ = ["PoseEstimationResult", "pose_estimation_experiment", "default_pose_camera"]
 
@@ -108,7 +107,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         chunk: trials fitted per batch (bounds memory).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
         progress: show a tqdm progress bar over σ.
-        **fit_options: passed to :func:`fsof_torch.fit.fit_displacement`.
+        **fit_options: passed to :func:`fsof_torch.estimation.flow_fit.fit_displacement`.
 
     Returns:
         :class:`PoseEstimationResult`.
@@ -118,7 +117,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         >>> res.rows()[1]["yaw_error_deg"] < 0.05
         True
     """
-    from .fit import fit_displacement
+    from fsof_torch import fit_displacement
 
     sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
     if not sig or not all(math.isfinite(s) and s >= 0 for s in sig):

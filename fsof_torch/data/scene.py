@@ -50,9 +50,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ._check import check_size
-from .camera import Camera
-from .egomotion import ego_motion_from_ackermann
+from .._check import check_size
+from ..geometry.camera import Camera
+from ..geometry.egomotion import ego_motion_from_ackermann
 
 __all__ = [
     "LABELS",

@@ -19,7 +19,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from ._check import (
+from .._check import (
     as_batch_param,
     check_finite,
     check_positive,

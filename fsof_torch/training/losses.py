@@ -30,11 +30,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._check import check_float_tensor, check_shape
-from .camera import Camera
-from .flow_model import displacement_flow
-from .photometric import census_transform
-from .warp import warp_backward
+from .._check import check_float_tensor, check_shape
+from ..geometry.camera import Camera
+from ..geometry.road_flow import displacement_flow
+from ..evaluation.photometric import census_transform
+from ..evaluation.warp import warp_backward
 
 __all__ = [
     "sequence_weights",
@@ -360,7 +360,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     if isinstance(odometry, str):
         if odometry != "fit":
             raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
-        from .fit import fit_displacement
+        from ..estimation.flow_fit import fit_displacement
 
         with torch.no_grad():
             fitted = fit_displacement(last.detach(), road, camera, **dict(fit_options or {}))

@@ -36,9 +36,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from ._check import check_finite, check_float_tensor, check_positive, check_shape, result_dtype
-from .camera import Camera, mounting_matrix
-from .flow_model import _flow_from_matrix, displacement_flow  # noqa: F401  (docstring example)
+from .._check import check_finite, check_float_tensor, check_positive, check_shape, result_dtype
+from ..geometry.camera import Camera, mounting_matrix
+from ..geometry.road_flow import _flow_from_matrix, displacement_flow  # noqa: F401  (docstring example)
 
 __all__ = [
     "FitResult",
@@ -1084,7 +1084,3 @@ def _full_flow(M: Tensor, Kinv: Tensor, roll: Tensor, pitch: Tensor, H: int, W: 
     evaluated in ``dtype`` (what :func:`displacement_flow` / :func:`velocity_flow` compute)."""
     ray_row = (mounting_matrix(roll, pitch).transpose(-1, -2) @ Kinv)[:, 1:2, :]
     return _flow_from_matrix(M.to(dtype), ray_row.to(dtype), (H, W), M.shape[0], velocity=velocity)
-
-from .fit_photometric import fit_photometric  # noqa: E402, F401  (re-exported; it uses this module)
-
-__all__.append("fit_photometric")

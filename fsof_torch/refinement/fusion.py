@@ -34,10 +34,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from ._check import as_batch_param, check_float_tensor, tracing
-from .camera import Camera
-from .egomotion import EgoMotion
-from .flow_model import displacement_flow
+from .._check import as_batch_param, check_float_tensor, tracing
+from ..geometry.camera import Camera
+from ..geometry.egomotion import EgoMotion
+from ..geometry.road_flow import displacement_flow
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
@@ -437,7 +437,7 @@ def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, f
                                  f"{finest.shape[-1]}), got {tuple(im.shape)}")
     if not bool(refined.any()):
         return {"x_d": zeros, "z_d": zeros.clone(), "yaw": zeros.clone()}, camera, None, refined
-    from .fit import fit_displacement  # the fitting layer (imported when needed)
+    from ..estimation.flow_fit import fit_displacement  # the fitting layer (imported when needed)
 
     index = refined.nonzero().flatten()
     subset = index.numel() < B
@@ -453,10 +453,7 @@ def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, f
             f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
         result = fit_displacement(f, m, cam_d, fit_roll=fit_roll, fit_pitch=fit_pitch, **fit_options)
         if fit == "photometric":
-            try:
-                from .fit import fit_photometric
-            except ImportError:  # kept in its own module
-                from .fit_photometric import fit_photometric
+            from ..estimation.image_fit import fit_photometric
 
             im1, im2 = (im.detach() for im in images)
             if subset:
@@ -545,7 +542,7 @@ class FreespaceRefined(nn.Module):
             structures :func:`refine_flow` accepts (RAFT list, ``(low, up)``, ARFlow/ptlflow dict).
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
         road: None (the caller passes ``mask``) or ``"auto"``: when no mask is given, detect the
-            freespace on the prediction with :func:`fsof_torch.vflow.detect_freespace`.
+            freespace on the prediction with :func:`fsof_torch.detect_freespace`.
         road_options: keyword arguments for ``detect_freespace``.
 
     Forward: ``model(image1, image2, *, mask=None, camera, odometry=None, return_info=False, **kw)``
@@ -579,7 +576,7 @@ class FreespaceRefined(nn.Module):
             flows: list[tuple[str, Tensor]] = []
             _walk(output, "output", self.refiner.flow_keys, flows)
             _, finest = _finest(flows)
-            from .vflow import detect_freespace  # freespace detection (imported when needed)
+            from ..estimation.freespace import detect_freespace  # freespace detection (imported when needed)
 
             with torch.no_grad():
                 cam = camera.to(device=finest.device)

@@ -26,7 +26,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from ._check import (
+from .._check import (
     as_batch_param,
     check_all_finite,
     check_positive,

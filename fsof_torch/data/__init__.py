@@ -1,0 +1,1 @@
+"""Data: procedural driving scenes with exact ground truth, and datasets."""

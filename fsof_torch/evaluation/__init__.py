@@ -1,0 +1,1 @@
+"""Evaluation: backward warping, photometric error, ground-truth metrics and pictures."""
