@@ -21,22 +21,32 @@ from .refinement import fusion
 from .training import losses, testnet
 from .geometry.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
 from .geometry.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
-from .estimation.flow_fit import FitResult, VelocityFitResult, fit_displacement, fit_velocity
-from .estimation.image_fit import fit_photometric
+from .estimation.flow_fit import (
+    FitResult,
+    RoadFit,
+    VelocityFitResult,
+    decompose_homography,
+    fit_displacement,
+    fit_road,
+    fit_velocity,
+)
+from .estimation.image_fit import fit_image, fit_photometric
 from .geometry.road_flow import (
     DisplacementFlow,
     VelocityFlow,
     displacement_flow,
     displacement_flow_straight,
     displacement_flow_straight_level,
+    RoadFlow,
     pixel_grid,
-    road_homography,
+    road_flow,
     road_velocity_matrix,
     velocity_flow,
     velocity_flow_straight,
     velocity_flow_straight_level,
     vflow_curve,
 )
+from .geometry.road_models import ROAD_MODELS, RoadModel, plane_from_pose, road_homography, road_motion
 from .refinement.fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
 from .io import (
     read_flo,
@@ -136,6 +146,16 @@ __all__ = [
     "render_pair",
     "render_sequence",
     "road_homography",
+    "road_flow",
+    "RoadFlow",
+    "RoadFit",
+    "RoadModel",
+    "ROAD_MODELS",
+    "fit_road",
+    "fit_image",
+    "decompose_homography",
+    "plane_from_pose",
+    "road_motion",
     "road_velocity_matrix",
     "roll_matrix",
     "save_error_png",

@@ -12,13 +12,12 @@ from fsof_torch.estimation.flow_fit import (
     ROBUST_KERNELS,
     FitResult,
     VelocityFitResult,
-    _homography_jac,
-    _velocity_jac,
     fit_displacement,
     fit_velocity,
     robust_weight,
 )
-from fsof_torch.geometry.road_flow import displacement_flow, road_homography, velocity_flow
+from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow
+from fsof_torch.geometry.road_models import road_homography
 
 SIZE = (64, 160)
 
@@ -195,43 +194,14 @@ def test_feature_noise_free_recovery(params):
     torch.testing.assert_close(fit.camera.roll, torch.tensor([params["roll"]], dtype=torch.float64))
 
 
-def test_feature_analytic_jacobians_match_autodiff():
-    K = small_camera().K
-    Kinv = torch.linalg.inv(K)
-    p = torch.tensor([[0.03, 0.7, 0.02, 0.04, -0.03]], dtype=torch.float64)
-    _, J = _homography_jac(K, Kinv, p)
-    Jad = torch.func.jacfwd(lambda q: _homography_jac(K, Kinv, q)[0])(p)  # (1,3,3,1,5)
-    torch.testing.assert_close(J[0], Jad[0, :, :, 0].permute(2, 0, 1))
-    pv = torch.tensor([[4.0, 0.1, 0.04, -0.03]], dtype=torch.float64)
-    _, Jv = _velocity_jac(K, Kinv, pv)
-    Jvad = torch.func.jacfwd(lambda q: _velocity_jac(K, Kinv, q)[0])(pv)
-    torch.testing.assert_close(Jv[0], Jvad[0, :, :, 0].permute(2, 0, 1))
-
-
-def test_feature_fixed_mount_jacobian_matches_the_general_one():
-    """With roll and pitch fixed the fit uses precomputed K R_c / R_cᵀ K⁻¹ products: the map, the
-    motion derivatives and the ray row equal the general ones (the mounting's derivatives are 0)."""
-    K = small_camera().K.expand(2, 3, 3)
-    Kinv = torch.linalg.inv(K)
-    roll = torch.tensor([0.04, -0.02], dtype=torch.float64)
-    pitch = torch.tensor([-0.03, 0.05], dtype=torch.float64)
-    jac = fit_module._fixed_mount_homography_jac(K, Kinv, roll, pitch)
-    motion = torch.tensor([[0.03, 0.7, 0.02], [-0.05, 1.1, -0.04]], dtype=torch.float64)
-    p = torch.cat([motion, roll[:, None], pitch[:, None]], dim=1)
-    M, dM, ray = _homography_jac(K, Kinv, p, ray=True)
-    M2, dM2, ray2 = jac(K, Kinv, p, ray=True)
-    torch.testing.assert_close(M2, M, rtol=1e-12, atol=1e-12)
-    torch.testing.assert_close(dM2[:, :3], dM[:, :3], rtol=1e-12, atol=1e-12)
-    assert torch.equal(dM2[:, 3:], torch.zeros_like(dM2[:, 3:]))
-    torch.testing.assert_close(ray2, ray, rtol=1e-12, atol=1e-15)
-
-
-def test_feature_homography_matches_flow_model():
-    """The fit's H (in units of d/h) is the flow model's road homography."""
+def test_feature_fitted_homography_is_the_flow_models():
+    """The fit's homography is the road homography of its parameters, and its flow the model's."""
     cam = small_camera(roll=0.02, pitch=-0.01)
-    p = torch.tensor([[0.1 / 1.65, 1.2 / 1.65, 0.03, 0.02, -0.01]], dtype=torch.float64)
-    H, _ = _homography_jac(cam.K, cam.K_inv(), p)
-    torch.testing.assert_close(H, road_homography(cam, 0.1, 1.2, 0.03))
+    flow, valid = displacement_flow(cam, 0.1, 1.2, 0.03, SIZE)
+    fit = fit_displacement(flow, road_mask(valid), cam, fit_pitch=True)
+    torch.testing.assert_close(fit.homography, road_homography(fit.camera, fit.odometry(), model="paper"))
+    model, _ = displacement_flow(fit.camera, fit.x_d, fit.z_d, fit.yaw, SIZE)
+    torch.testing.assert_close(fit.flow, model)
 
 
 def _outlier_scene(seed: int):
@@ -276,7 +246,7 @@ def test_feature_resolution_stop_saves_iterations_not_accuracy(monkeypatch):
     cam, truth, mask, _, with_cars, _ = _outlier_scene(0)
     start = small_camera()
     fast = fit_displacement(with_cars, mask, start, max_points=None)
-    monkeypatch.setattr(fit_module, "_RESOLUTION_TOL", 0.0)
+    monkeypatch.setattr(fit_module, "_RESOLUTION", 0.0)
     monkeypatch.setattr(fit_module, "_ROBUST_STAGE_RESOLUTION", 0.0)
     tight = fit_displacement(with_cars, mask, start, max_points=None)
     assert bool(fast.success) and bool(tight.success)

@@ -26,13 +26,13 @@ from fsof_torch.geometry.road_flow import (
     displacement_flow_straight,
     displacement_flow_straight_level,
     pixel_grid,
-    road_homography,
     road_velocity_matrix,
     velocity_flow,
     velocity_flow_straight,
     velocity_flow_straight_level,
     vflow_curve,
 )
+from fsof_torch.geometry.road_models import road_homography
 
 KITTI = dict(fx=721.5377, fy=721.5377, cx=609.5593, cy=172.854)
 
@@ -377,7 +377,7 @@ def test_feature_matches_homography_and_raycast_with_pitch():
     _assert_flow_close(got, hom, got_valid & hom_valid)
     _assert_flow_close(got, ray, got_valid & ray_valid)
     cam = Camera(torch.as_tensor(K), 1.4, 0.07, -0.04)
-    Hm_model = road_homography(cam, 0.3, 2.0, -0.05)[0].numpy()
+    Hm_model = road_homography(cam, {"x_d": 0.3, "z_d": 2.0, "yaw": -0.05})[0].numpy()
     np.testing.assert_allclose(Hm_model / Hm_model[2, 2], Hm / Hm[2, 2], rtol=1e-12, atol=1e-12)
 
 
@@ -465,8 +465,8 @@ def test_feature_velocity_matrix_is_derivative_of_homography():
     speed, steering, l, dt = 9.0, -0.2, 2.9, 1e-6
     G = road_velocity_matrix(cam, speed, steering, l)
     yaw_rate = speed * math.tan(steering) / l
-    Hp = road_homography(cam, 0.0, speed * dt, yaw_rate * dt)
-    Hm = road_homography(cam, 0.0, -speed * dt, -yaw_rate * dt)
+    Hp = road_homography(cam, {"x_d": 0.0, "z_d": speed * dt, "yaw": yaw_rate * dt})
+    Hm = road_homography(cam, {"x_d": 0.0, "z_d": -speed * dt, "yaw": -yaw_rate * dt})
     torch.testing.assert_close((Hp - Hm) / (2 * dt), G, rtol=1e-6, atol=1e-6)
 
 

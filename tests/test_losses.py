@@ -255,7 +255,7 @@ def test_errors_name_the_argument():
         freespace_flow_loss(flow, road[..., :10, :], cam, odo)
     with pytest.raises(ValueError, match="penalty: expected one of"):
         freespace_flow_loss(flow, road, cam, odo, penalty="huber")
-    with pytest.raises(ValueError, match="odometry: expected keys x_d, z_d, yaw, missing"):
+    with pytest.raises(ValueError, match="odometry: missing keys"):
         freespace_flow_loss(flow, road, cam, {"z_d": 1.0})
     with pytest.raises(ValueError, match="odometry: expected a dict of x_d, z_d, yaw or 'fit'"):
         freespace_flow_loss(flow, road, cam, "given")

@@ -1,283 +1,475 @@
-"""Direct photometric fit of the displacement model: ego-motion from the two images themselves.
+"""Road motion from the two images themselves: a direct, coarse-to-fine, robust photometric fit.
 
-Flow methods fail on the road exactly where its motion is large and its texture weak (the
-bottom of the image), and a fit to such a flow inherits the failure. The road's motion is
-nevertheless fixed by a handful of parameters, and the images determine them: this module
-minimises the robust photometric error of the road between the two frames under the model
-flow,
+Flow methods fail on the road exactly where its motion is large and its texture weak (the bottom
+of the image), and a fit to such a flow inherits the failure. The road's motion is nevertheless
+fixed by a handful of parameters, and the images determine them. For any road model
+(:mod:`fsof_torch.geometry.road_models`) this module minimises, with the library's one solver,
 
-    E(p) = Σ_road ρ( a · I_2(x + f(x; p)) + b − I_1(x) ),   p = (x_d/h, z_d/h, φ[, θ, β]),
+    E(p, a, b) = Σ_points ρ( a · I_2(x + f(x; p)) + b − I_1(x) ) + priors(p)
 
-with a gain a and an offset b absorbing an exposure change, by Gauss–Newton (Levenberg–Marquardt
-damping) coarse to fine over an image pyramid. Images are converted to grey and smoothed; the
-gradient is the ESM average of the gradients of I_1 and of the warped I_2, which widens the
-basin of convergence. Warping goes through :func:`fsof_torch.warp.warp_backward`.
+over the road pixels x of frame t, where a gain a and an offset b absorb an exposure change
+between the frames, ρ is a robust kernel (moving cars and mask errors are outliers), and the
+priors are Gaussian (a MAP estimate; DESIGN.md §10: the camera's attitude over the road stays
+within about a degree of its calibration, the body's pitch and roll change by tenths of a degree
+per frame, its vertical motion is centimetres).
 
-The result is a :class:`fsof_torch.fit.FitResult`; its ``residual`` and ``inliers`` refer to the
-photometric residual (grey levels, 0..255 scale), not to an end-point error.
+- **Coarse to fine** over an image pyramid (kornia), each level starting where the coarser one
+  ended.
+- **Pixel selection weighted by gradient**: at each level the road pixels whose gradient is
+  above the road's median (they carry the information), an even subsample of them.
+- **Cheap iterations**: the sample points are fixed per level; an iteration evaluates the model's
+  3×3 map, samples the second image and its gradients at the points (one ``grid_sample``) and
+  uses the average of both images' gradients (efficient second-order minimisation).
+- **Several starts**, chosen by the robust image cost at the coarsest level: zero motion, and
+  whatever the caller gives (a fit to a network's flow, the previous frame's motion, a
+  constant-velocity prediction).
+- **Bounds** that make absurd answers impossible, and the fit's own confidence: its robust
+  cost, its inlier share and its parameters' covariance.
+
+Images are (B, 1 or 3, H, W) on 0..``data_range`` (converted to grey and to the 0..255 scale);
+the mask marks road pixels of image 1. Not differentiable; results are detached.
 """
 
 from __future__ import annotations
 
 import math
-from typing import TYPE_CHECKING
+from typing import Any, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import check_float_tensor, check_shape, result_dtype
-from ..geometry.camera import Camera, mounting_matrix
-from ..geometry.road_flow import displacement_flow
+from ..geometry.camera import Camera
+from ..geometry.road_flow import flow_from_map
+from ..geometry.road_models import RoadModel, get_road_model, pack_params
+from .flow_fit import RoadFit, check_fit_options, fixed_parameters, start_values
+from .robust import check_kernel
+from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
+from .solver import Evaluation, solve
 
-if TYPE_CHECKING:  # fit imports this module at its end
-    from .flow_fit import FitResult
+__all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
+           "DEG"]
 
-__all__ = ["fit_photometric"]
+DEG = math.pi / 180.0
+
+
+def calibration_prior(model: str | RoadModel, camera: Camera, *, mounting_deg: float = 1.0,
+                      body_rotation_deg: float = 0.3, vertical_m: float = 0.02) -> dict[str, tuple[Tensor, float]]:
+    """Gaussian priors from the calibration and the physics of a car (DESIGN.md §10).
+
+    The camera's roll and pitch relative to the road: the calibrated values ± ``mounting_deg``;
+    the body's pitch and roll change between frames: 0 ± ``body_rotation_deg``; its vertical
+    motion: 0 ± ``vertical_m``. Returns ``{name: (mean (B,), sigma)}`` for the model's parameters
+    that have one (none for the homography model).
+    """
+    model = get_road_model(model)
+    out: dict[str, tuple[Tensor, float]] = {}
+    if "roll" in model.params:
+        out["roll"] = (camera.roll, mounting_deg * DEG)
+        out["pitch"] = (camera.pitch, mounting_deg * DEG)
+    for name, sigma in (("pitch_change", body_rotation_deg * DEG), ("roll_change", body_rotation_deg * DEG),
+                        ("y_d", vertical_m)):
+        if name in model.params:
+            out[name] = (torch.zeros_like(camera.height), sigma)
+    return out
+
+
+def physical_bounds(model: str | RoadModel, camera: Camera) -> tuple[Tensor, Tensor]:
+    """Bounds (B, P) each, beyond which a road-motion estimate has failed whatever the images say:
+    the camera's roll and pitch within 10° of the calibration, the body's pitch and roll change
+    below 5° per frame, yaw below 30° per frame, the translation below 20 camera heights per frame
+    (y_d below 0.3). The homography model has none."""
+    model = get_road_model(model)
+    B = camera.batch_size
+    h = camera.height.to(torch.float64)
+    lo = torch.full((B, len(model.params)), -math.inf, dtype=torch.float64, device=camera.device)
+    hi = -lo
+    limits = {"yaw": 30 * DEG, "pitch_change": 5 * DEG, "roll_change": 5 * DEG, "x_d": 20 * h, "z_d": 20 * h,
+              "y_d": 0.3 * h}
+    for i, name in enumerate(model.params):
+        if name in ("roll", "pitch"):
+            centre = getattr(camera, name).to(torch.float64)
+            lo[:, i], hi[:, i] = centre - 10 * DEG, centre + 10 * DEG
+        elif name in limits:
+            lo[:, i], hi[:, i] = -limits[name], limits[name]
+    return lo, hi
 
 
 def _grey(image: Tensor) -> Tensor:
     if image.shape[1] == 3:
-        w = torch.tensor([0.299, 0.587, 0.114], dtype=image.dtype, device=image.device)
-        return (image * w.reshape(1, 3, 1, 1)).sum(1, keepdim=True)
+        from kornia.color import rgb_to_grayscale
+
+        return rgb_to_grayscale(image)
     return image
 
 
-def _gather(x: Tensor, pix: Tensor) -> Tensor:
-    """x (B, C, H, W) at flat pixel indices (B, N) -> (B, C, N)."""
-    B, C = x.shape[:2]
-    return x.reshape(B, C, -1).gather(2, pix.unsqueeze(1).expand(B, C, pix.shape[1]))
+def _sample_points(stack: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear samples of ``stack`` (B, C, H, W) at pixel positions ``xy`` (B, 2, N) float64.
 
-
-def _sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
-    """Bilinear samples of ``image`` (B, C, H, W) at pixel positions ``xy`` (B, 2, N) float64.
-
-    The iterations need the warped image only at the road's sample points, so they sample those
-    points (grid_sample on a (B, 1, N) grid, the corner-aligned normalisation written here)
-    instead of warping the whole frame with :func:`warp_backward`, which the final full-resolution
-    evaluation uses. Returns (B, C, N) float64 and in-bounds flags (B, N).
+    The iterations need the warped image only at the sample points, so they sample those points
+    (``grid_sample`` on a (B, 1, N) grid, with the corner-aligned normalisation written here)
+    instead of warping the whole frame. Returns (B, C, N) float64 and in-bounds flags (B, N).
     """
-    B, C, H, W = image.shape
+    B, C, H, W = stack.shape
     x, y = xy[:, 0], xy[:, 1]
     inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
     gx = x * (2.0 / max(W - 1, 1)) - 1.0
     gy = y * (2.0 / max(H - 1, 1)) - 1.0
-    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1).to(image.dtype)  # (B, 1, N, 2)
-    out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1).to(stack.dtype)  # (B, 1, N, 2)
+    out = F.grid_sample(stack, grid, mode="bilinear", padding_mode="border", align_corners=True)
     return out[:, :, 0].to(torch.float64), inb
 
 
-@torch.no_grad()
-def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
-                    init: object = None, fit_roll: bool = True, fit_pitch: bool = False,
-                    levels: int | None = None, min_size: int = 24, max_iter: int = 20,
-                    tol: float = 1e-6, smooth_sigma: float = 1.0, robust: str = "cauchy",
-                    scale: float | None = None, max_points: int | None = 40000,
-                    affine: bool = True, inlier_threshold: float = 10.0,
-                    min_points: int = 100) -> "FitResult":
-    """Fit x_d, z_d, yaw (and roll / pitch) by minimising the road's photometric error.
+class ImageProblem:
+    """The photometric residuals of a road model at fixed sample points of one pyramid level.
 
-    Args:
-        image1, image2: the frames at t and t+1, (B, 3, H, W) RGB or (B, 1, H, W) grey, 0..255.
-        mask: road pixels of image1 (B, 1, H, W) bool (batch 1 broadcasts).
-        camera: intrinsics at the images' resolution, known height; roll / pitch used where not
-            fitted and as the start.
-        init: a start: a :class:`FitResult` (e.g. of :func:`fit_displacement` on a flow) or a dict
-            with any of x_d, z_d, yaw, roll, pitch; default zero motion.
-        fit_roll, fit_pitch: also fit the mounting roll / pitch (radians).
-        levels: pyramid levels (default: halve until the shorter side would drop below
-            ``min_size``); each level runs at most ``max_iter`` Gauss–Newton iterations,
-            stopping when the step falls below ``tol`` (relative).
-        smooth_sigma: Gaussian smoothing of the grey images in pixels before the pyramid.
-        robust: the kernel of the IRLS weights (see :data:`fsof_torch.fit.ROBUST_KERNELS`).
-        scale: its scale in grey levels (default: from the residuals' median absolute
-            deviation at each level's start, at least 2).
-        max_points: at most this many road pixels per frame and level (deterministic stride).
-        affine: also fit a gain and an offset between the frames' brightness.
-        inlier_threshold: |photometric residual| in grey levels below which a road pixel is an
-            inlier at the end; min_points: fewer inliers mark the frame as failed.
-
-    Returns:
-        :class:`fsof_torch.fit.FitResult`: parameters (B,), the model ``flow`` (B, 2, H, W) px,
-        ``valid``, ``inliers`` (photometric), ``residual`` (B,): mean |photometric residual| over
-        the inliers in grey levels, ``success``.
+    Parameters (B, P + 2): the model's, then the gain a and the offset b. Residual per point:
+    e = a I_2(x + f(x; p)) + b − I_1(x), grey levels.
     """
-    from kornia.filters import gaussian_blur2d, spatial_gradient
-    from kornia.geometry.transform import build_pyramid
 
-    from .flow_fit import (FitResult, _check_options, _evaluate, _homography_jac, _init_value, _mask_sample,
-                      _pixels, _robust_cost, robust_weight)
-    from ..evaluation.warp import warp_backward
+    def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, I1: Tensor, grad1: Tensor,
+                 stack2: Tensor, sel: Tensor) -> None:
+        self.model, self.pts, self.I1, self.grad1, self.stack2, self.sel = model, pts, I1, grad1, stack2, sel
+        self.K, self.K_inv, self.height = camera.K, camera.K_inv(), camera.height
+        self.horizon_camera = camera
+        self.count = sel.sum(1)
+        self.P = len(model.params)
 
+    def evaluate(self, params: Tensor) -> Evaluation:
+        P = self.P
+        values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
+        M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, values, True)
+        if horizon is None:
+            horizon = self.model.horizon_row(self.horizon_camera, values)
+        B = M.shape[0]
+        q = torch.cat([M, horizon, dM.reshape(B, -1, 3)], dim=1) @ self.pts
+        qz = q[:, 2]
+        ok = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
+        inv_z = torch.where(ok, qz, 1.0).reciprocal()
+        proj = q[:, :2] * inv_z.unsqueeze(1)
+        dq = q[:, 4:].reshape(B, P, 3, -1)
+        J_flow = (dq[:, :, :2] - proj.unsqueeze(1) * dq[:, :, 2:3]) * inv_z[:, None, None]  # (B, P, 2, N)
+        sample, inb = _sample_points(self.stack2, proj)
+        use = ok & inb
+        I2 = sample[:, 0]
+        e = gain.unsqueeze(-1) * I2 + offset.unsqueeze(-1) - self.I1
+        # efficient second-order minimisation: the mean of both images' gradients
+        grad = 0.5 * (self.grad1 + gain[:, None, None] * sample[:, 1:])
+        J = torch.cat([(grad.unsqueeze(1) * J_flow).sum(2), I2.unsqueeze(1), torch.ones_like(I2).unsqueeze(1)], dim=1)
+        return Evaluation(e.square(), use, e.unsqueeze(1), J.unsqueeze(2))
+
+    def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
+        J = ev.state[:, :, 0]  # (B, P + 2, N)
+        Jw = J * w.unsqueeze(1)
+        return Jw @ J.transpose(1, 2), (Jw @ ev.residual.transpose(1, 2)).squeeze(-1)
+
+
+def _levels(H: int, W: int, levels: int | None, min_size: int) -> int:
+    if levels is None:
+        levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
+    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
+        raise ValueError(f"levels: expected None or an int >= 1, got {levels!r}")
+    return levels
+
+
+def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
+                  data_range: float) -> tuple[dict, Tensor]:
     for name, img in (("image1", image1), ("image2", image2)):
         check_float_tensor(img, name)
     dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
     check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
     if dims["C"] not in (1, 3):
         raise ValueError(f"image1: expected 1 or 3 channels, got {dims['C']}")
-    B, H, W = dims["B"], dims["H"], dims["W"]
+    if dims["B"] == 0 or dims["H"] < 2 or dims["W"] < 2:
+        raise ValueError(f"image1: expected a non-empty batch of images of at least 2x2 pixels, got {tuple(image1.shape)}")
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
         raise TypeError(f"mask: expected a bool tensor of shape (B, 1, H, W), got "
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
-    if mask.dim() == 4 and mask.shape[0] == 1 and B != 1:
-        mask = mask.expand(B, -1, -1, -1)
+    if mask.dim() == 4 and mask.shape[0] == 1 and dims["B"] != 1:
+        mask = mask.expand(dims["B"], -1, -1, -1)
     check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (the images' B), got {camera.batch_size}")
-    _check_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points)
+    if camera.batch_size not in (1, dims["B"]):
+        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the images' B), got {camera.batch_size}")
+    if not (isinstance(data_range, (int, float)) and not isinstance(data_range, bool)
+            and math.isfinite(data_range) and data_range > 0):
+        raise ValueError(f"data_range: expected a finite number > 0, got {data_range!r}")
     for name, img in (("image1", image1), ("image2", image2)):
-        if not bool(torch.isfinite(img).all()):
+        lo, hi = torch.aminmax(img.detach())
+        lo, hi = float(lo), float(hi)
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             raise ValueError(f"{name}: expected finite values, got NaN or inf")
+        if lo < -0.01 * data_range or hi > 1.01 * data_range:
+            raise ValueError(f"{name}: expected values in [0, data_range={data_range:g}], got [{lo:g}, {hi:g}]")
+        if data_range > 1.5 and 0.0 < hi <= 1.0:
+            raise ValueError(f"{name}: values in [{lo:g}, {hi:g}] look like 0..1 images; pass data_range=1.0 "
+                             f"(expected 0..{data_range:g})")
+    return dims, mask
+
+
+def _start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
+    """Start values (B, P) float64: zero motion (the default), ``init`` and each of ``starts``."""
+    out = [default]
+    for s in ([init] if init is not None else []) + list(starts):
+        values, _ = start_values(model, s, camera, default)
+        out.append(values)
+    return out
+
+
+@torch.no_grad()
+def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
+              model: str | RoadModel = "plane", fixed: object = None, init: Any = None,
+              starts: Sequence[Any] = (), prior: Mapping[str, tuple[Any, Any]] | str | None = "calibration",
+              bounds: str | tuple[Tensor, Tensor] | None = "physical", levels: int | None = None,
+              min_size: int = 32, max_iter: int = 12, tol: float = 1e-6, resolution: float = 0.02,
+              smooth_sigma: float = 1.0,
+              robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
+              gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
+              min_points: int = 100, min_inlier_fraction: float = 0.25, data_range: float = 255.0,
+              check_every: int | None = 2) -> RoadFit:
+    """Fit a road model's motion by minimising the road's robust photometric error.
+
+    Args:
+        image1, image2: the frames at t and t+1, (B, 3, H, W) RGB or (B, 1, H, W) grey, on
+            0..``data_range``.
+        mask: road pixels of image1 (B, 1, H, W) bool (batch 1 broadcasts).
+        camera: intrinsics at the images' resolution, known height, and the calibrated roll and
+            pitch (start, and centre of the prior and the bounds).
+        model: ``"plane"`` (default), ``"paper"`` or ``"homography"``.
+        fixed: parameter names held at their start (default: none for ``"plane"`` and
+            ``"homography"``, the pitch for ``"paper"``).
+        init, starts: start candidates besides zero motion: :class:`RoadFit` results of the same
+            model or dicts of its parameters (e.g. a fit to a network's flow, the previous frame's
+            motion, a constant-velocity prediction). Each is tried at the coarsest level; the one
+            with the lowest robust image cost goes on.
+        prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
+        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
+        levels, min_size: pyramid levels (default: halve until the shorter side would drop below
+            ``min_size``); ``max_iter``, ``tol``: the solver's budget and tolerance per level;
+            ``resolution``: a level also ends when a step moves the residuals by less than this
+            fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`).
+        smooth_sigma: Gaussian smoothing of the grey images (pixels) before the pyramid.
+        robust, scale: the kernel and its scale in grey levels (default: 1.4826 × the median
+            absolute residual at each level's start, at least 2).
+        max_points: road pixels per frame and level that enter the iterations.
+        gradient_fraction: the share of the road's pixels, those with the strongest gradient,
+            from which the points are drawn.
+        affine: also fit a gain and an offset between the frames' brightness.
+        inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution.
+        min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask, mark the
+            frame as failed (as does a diverged or ill-conditioned fit).
+        data_range: the images' range (255.0 or 1.0).
+        check_every: the solver's early-stop check (see :func:`~fsof_torch.estimation.solver.solve`).
+
+    Returns:
+        :class:`~fsof_torch.estimation.flow_fit.RoadFit` of the model; ``residual`` and
+        ``inliers`` refer to the photometric residual (grey levels on 0..255); ``extras`` holds
+        ``gain`` and ``offset`` (B,).
+    """
+    model = get_road_model(model)
+    if model.velocity:
+        raise ValueError("model: the image fit estimates a motion between two frames; the 'velocity' model "
+                         "is a rate (fit its flow with fit_velocity instead)")
+    check_kernel(robust)
+    check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
+                      min_points, min_inlier_fraction)
+    if not 0.0 < float(gradient_fraction) <= 1.0:
+        raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
+    dims, mask = _check_images(image1, image2, mask, camera, data_range)
+    B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(image1, camera.K)
-    camera = camera.expand(B).to(device=image1.device)
+    dev = image1.device
+    camera = camera.expand(B).to(device=dev)
     cam64 = camera.to(torch.float64)
-    h = cam64.height
+    n_levels = _levels(H, W, levels, min_size)
+    fixed_names = fixed_parameters(model, fixed)
+    P = len(model.params)
+    free = torch.tensor([n not in fixed_names for n in model.params] + [affine, affine], device=dev)
 
-    if levels is None:
-        levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
-    work = torch.float32 if image1.dtype != torch.float64 else torch.float64
-    grey = torch.cat([_grey(image1.detach().to(work)), _grey(image2.detach().to(work))], dim=1)
-    if smooth_sigma > 0:
-        k = 2 * int(math.ceil(3 * smooth_sigma)) + 1
-        grey = gaussian_blur2d(grey, (k, k), (smooth_sigma, smooth_sigma), border_type="replicate")
-    pyramid = build_pyramid(grey, levels)
+    with torch.autocast(dev.type, enabled=False):
+        from kornia.filters import gaussian_blur2d
+        from kornia.geometry.transform import build_pyramid
 
-    zero = torch.zeros(B, dtype=torch.float64, device=image1.device)
-    roll0 = _init_value(init, "roll", B, cam64.roll.clone())
-    pitch0 = _init_value(init, "pitch", B, cam64.pitch.clone())
-    a0 = _init_value(init, "x_d", B, zero) / h
-    b0 = _init_value(init, "z_d", B, zero) / h
-    yaw0 = _init_value(init, "yaw", B, zero)
-    params = torch.stack([a0, b0, yaw0, roll0, pitch0], dim=-1)
-    gain = torch.ones(B, dtype=torch.float64, device=image1.device)
-    offset = torch.zeros(B, dtype=torch.float64, device=image1.device)
-    free = torch.tensor([True, True, True, bool(fit_roll), bool(fit_pitch)] + [affine, affine],
-                        device=image1.device)
-    P = free.numel()
-    eye = torch.eye(P, dtype=torch.float64, device=image1.device)
-    iters = torch.zeros(B, dtype=torch.long, device=image1.device)
-    converged = torch.zeros(B, dtype=torch.bool, device=image1.device)
-    finest_An = None
+        work = torch.float64 if image1.dtype == torch.float64 else torch.float32
+        grey = torch.cat([_grey(image1.detach().to(work)), _grey(image2.detach().to(work))], dim=1) * (255.0 / data_range)
+        if smooth_sigma > 0:
+            k = 2 * int(math.ceil(3 * smooth_sigma)) + 1
+            grey = gaussian_blur2d(grey, (k, k), (smooth_sigma, smooth_sigma), border_type="replicate")
+        pyramid = build_pyramid(grey, n_levels)
 
-    for level in reversed(range(levels)):
-        img = pyramid[level]
-        h_l, w_l = img.shape[-2:]
-        cam_l = cam64.scaled(w_l / W, h_l / H)
-        K, Kinv = cam_l.K, cam_l.K_inv()
-        if level == 0:
-            mask_l = mask
-        else:
-            # a coarse pixel is road only if all the fine pixels under it are
-            mask_l = F.interpolate(mask.to(work), size=(h_l, w_l), mode="area") > 0.999
-        pix, sel, _ = _mask_sample(mask_l, max_points)
-        pts = _pixels(pix, w_l)
-        I1, I2 = img[:, :1], img[:, 1:]
-        g1 = spatial_gradient(I1, mode="diff", order=1)[:, 0]  # (B, 2, h, w): d/du, d/dv (central)
-        g2 = spatial_gradient(I2, mode="diff", order=1)[:, 0]
-        stack2 = torch.cat([I2, g2], dim=1)
-        I1p = _gather(I1, pix)[:, 0].to(torch.float64)
-        g1p = _gather(g1, pix).to(torch.float64)
-        lam = torch.full((B,), 1e-3, dtype=torch.float64, device=image1.device)
-        s_level = None
-        prev_cost = None
-        prev_state = None
-        done = torch.zeros(B, dtype=torch.bool, device=image1.device)
+        _, default = pack_params(model, cam64, None)
+        candidates = _start_list(model, cam64, init, starts, default)
+        S = len(candidates)
+        ones, zeros = torch.ones(B, 1, dtype=torch.float64, device=dev), torch.zeros(B, 1, dtype=torch.float64, device=dev)
+        params = torch.cat([torch.cat(candidates), ones.repeat(S, 1), zeros.repeat(S, 1)], dim=1)  # (S B, P + 2)
+        prior_spec = calibration_prior(model, cam64) if prior == "calibration" else prior
+        lo, hi = physical_bounds(model, cam64) if bounds == "physical" else (bounds or (None, None))
+        bound_lo = None if lo is None else torch.cat([lo, torch.full((B, 2), -math.inf, dtype=torch.float64, device=dev)], 1)
+        bound_hi = None if hi is None else torch.cat([hi, torch.full((B, 2), math.inf, dtype=torch.float64, device=dev)], 1)
 
-        def residual(params, gain, offset, want_jac):
-            M, dM = _homography_jac(K, Kinv, params)
-            ray_row = (mounting_matrix(params[:, 3], params[:, 4]).transpose(-1, -2) @ Kinv)[:, 1:2, :]
-            flow_p, valid_m, J = _evaluate(M, ray_row, pts, False, dM if want_jac else None)
-            I2p, inb = _sample_points(stack2, pts[:, :2] + flow_p)
-            ok = inb & sel & valid_m
-            e = gain.unsqueeze(-1) * I2p[:, 0] + offset.unsqueeze(-1) - I1p
-            return e, ok, I2p, J
+        iterations = torch.zeros(B, dtype=torch.long, device=dev)
+        sol = None
+        for level in reversed(range(n_levels)):
+            reps = S if S > 1 and level == n_levels - 1 else 1  # the starts compete at the coarsest
+            img = pyramid[level]
+            h_l, w_l = img.shape[-2:]
+            cam_l = cam64.scaled(w_l / W, h_l / H)
+            problem = _level_problem(model, cam_l, img, mask, gradient_fraction, max_points, reps)
+            s_level = _level_scale(problem, params, scale)
+            noise = s_level.reshape(reps, B)[0]
+            mean, precision = _prior(model, prior_spec, noise, B, dev)
+            rep = (lambda t: None if t is None else t.repeat(reps, 1))
+            sol = solve(problem, params, free=free, prior_mean=rep(mean), prior_precision=rep(precision),
+                        lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust, scale=s_level,
+                        max_iter=max_iter, tol=tol, resolution=resolution, check_every=check_every, missing="mean")
+            params = sol.params
+            if reps > 1:
+                # the start with the lowest robust cost goes on (one common scale per frame)
+                cost = sol.cost.reshape(reps, B)
+                best = cost.argmin(0)
+                params = params.reshape(reps, B, -1)[best, torch.arange(B, device=dev)]
+                iterations = iterations + sol.iterations.reshape(reps, B)[best, torch.arange(B, device=dev)]
+                sol = None if level == 0 else sol
+                continue
+            iterations = iterations + sol.iterations
+        if sol is None:  # a single level with several starts: one more solve on the winner
+            problem = _level_problem(model, cam64, pyramid[0], mask, gradient_fraction, max_points, 1)
+            s_level = _level_scale(problem, params, scale)
+            mean, precision = _prior(model, prior_spec, s_level, B, dev)
+            sol = solve(problem, params, free=free, prior_mean=mean, prior_precision=precision,
+                        lower=bound_lo, upper=bound_hi, kernel=robust, scale=s_level, max_iter=max_iter,
+                        tol=tol, resolution=resolution, check_every=check_every, missing="mean")
+            params = sol.params
+        values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
+        finite = torch.isfinite(params).all(-1)
+        values = torch.where(finite.unsqueeze(-1), values, default)
+        M = model.matrix(cam64, values)
+        flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
+        points = sample_mask(mask, max_points)
+        inliers, residual, fraction = _photometric_inliers(grey, flow, valid, points, gain, offset, inlier_threshold)
+        n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
+    A = sol.normal[:, :P, :P]
+    d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
+    well_posed = torch.linalg.eigvalsh(A / (d.unsqueeze(-1) * d.unsqueeze(-2)))[:, 0] > 1e-9
+    success = (finite & sol.converged & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction))
+    named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
+    cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
+                              named.get("roll", camera.roll.to(out_dtype)), named.get("pitch", camera.pitch.to(out_dtype)))
+    return RoadFit(model=model.name, params=named, homography=M.to(out_dtype), flow=flow, valid=valid,
+                   inliers=inliers, residual=residual.to(out_dtype), success=success, camera=cam_fit,
+                   iterations=iterations, covariance=sol.covariance()[:, :P, :P].to(out_dtype),
+                   cost=sol.cost.to(out_dtype), extras={"gain": gain.to(out_dtype), "offset": offset.to(out_dtype),
+                                                         "inlier_fraction": fraction.to(out_dtype)})
 
-        for it in range(max_iter):
-            e, ok, I2p, J = residual(params, gain, offset, True)
-            if s_level is None:
-                if scale is not None:
-                    s_level = torch.full((B,), float(scale), dtype=torch.float64, device=image1.device)
-                else:
-                    ae = torch.where(ok, e.abs(), torch.full_like(e, float("nan")))
-                    mad = torch.nan_to_num(torch.nanmedian(ae, dim=1).values, nan=2.0)
-                    s_level = (1.4826 * mad).clamp_min(2.0)
-            r2 = torch.where(ok, e * e, torch.zeros_like(e))
-            w = robust_weight(r2, s_level.unsqueeze(-1), robust) * ok
-            n_ok = ok.sum(1).clamp_min(1)
-            cost = (_robust_cost(r2, s_level.unsqueeze(-1), robust) * ok).sum(1) / n_ok
-            if prev_cost is not None:
-                # reject a step that made things worse: go back and damp more
-                worse = ~(cost <= prev_cost) & ~done
-                if bool(worse.any()):
-                    p_prev, g_prev, o_prev, step_prev = prev_state
-                    params = torch.where(worse.unsqueeze(-1), p_prev, params)
-                    gain = torch.where(worse, g_prev, gain)
-                    offset = torch.where(worse, o_prev, offset)
-                    lam = torch.where(worse, lam * 10.0, (lam / 3.0).clamp_min(1e-9))
-                    if bool(worse.all()):
-                        continue
-                    e, ok, I2p, J = residual(params, gain, offset, True)
-                    r2 = torch.where(ok, e * e, torch.zeros_like(e))
-                    w = robust_weight(r2, s_level.unsqueeze(-1), robust) * ok
-                    n_ok = ok.sum(1).clamp_min(1)
-                    cost = (_robust_cost(r2, s_level.unsqueeze(-1), robust) * ok).sum(1) / n_ok
-                else:
-                    lam = (lam / 3.0).clamp_min(1e-9)
-            grad = 0.5 * (g1p + gain.reshape(B, 1, 1) * I2p[:, 1:])  # ESM: mean of both gradients
-            Jg = gain.reshape(B, 1, 1) * (grad[:, None, 0] * J[:, :, 0] + grad[:, None, 1] * J[:, :, 1])
-            Jall = torch.cat([Jg, I2p[:, None, 0], torch.ones_like(I2p[:, None, 0])], dim=1)  # (B, P, N)
-            Jw = Jall * w.unsqueeze(1)
-            A = Jw @ Jall.transpose(1, 2)
-            g = (Jw * e.unsqueeze(1)).sum(-1)
-            fixed = ~free
-            A = torch.where(fixed.unsqueeze(-1) | fixed.unsqueeze(-2), eye.expand(B, P, P) * fixed.unsqueeze(-1), A)
-            g = torch.where(fixed, torch.zeros_like(g), g)
-            diag = A.diagonal(dim1=-2, dim2=-1)
-            sc = torch.maximum(diag, 1e-12 * diag.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
-            An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
-            L = An + lam.reshape(B, 1, 1) * eye
-            delta = -torch.linalg.solve(L, (g / sc).unsqueeze(-1)).squeeze(-1) / sc
-            delta = torch.where(fixed | done.unsqueeze(-1), torch.zeros_like(delta), delta)
-            delta = torch.nan_to_num(delta, nan=0.0, posinf=0.0, neginf=0.0)
-            prev_state = (params, gain, offset, delta)
-            prev_cost = cost
-            params = params + delta[:, :5]
-            gain = gain + delta[:, 5]
-            offset = offset + delta[:, 6]
-            iters += (~done).long()
-            small = (delta[:, :5].abs() <= tol * (1.0 + params.abs())).all(-1)
-            done = done | small
-            if level == 0:
-                finest_An = An
-            if bool(done.all()):
-                break
-        if level == 0:
-            converged = done | (lam < 1e3)
 
-    x_d, z_d = params[:, 0] * h, params[:, 1] * h
-    yaw, roll, pitch = params[:, 2], params[:, 3], params[:, 4]
-    finite = torch.isfinite(params).all(-1)
-    cam_fit = camera.replace(roll=roll.to(camera.dtype), pitch=pitch.to(camera.dtype))
-    model, model_valid = displacement_flow(cam_fit.to(torch.float64), x_d, z_d, yaw, (H, W))
-    model = model.to(out_dtype)
-    # photometric inliers at full resolution
-    g1, g2 = grey[:, :1], grey[:, 1:]
-    warped, inb = warp_backward(g2, model.to(work))
-    err = (gain.reshape(B, 1, 1, 1) * warped.to(torch.float64) + offset.reshape(B, 1, 1, 1)
-           - g1.to(torch.float64)).abs()
-    use = mask & model_valid & inb
-    inliers = use & (err <= inlier_threshold)
-    n_in = inliers.flatten(1).sum(1)
-    residual = (torch.where(inliers, err, torch.zeros_like(err))).flatten(1).sum(1) / n_in.clamp_min(1)
-    if finest_An is not None:
-        well_posed = torch.linalg.eigvalsh(finest_An)[:, 0] > 1e-9
+def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,
+                   max_points: int | None, reps: int) -> ImageProblem:
+    """The sample points of one pyramid level: road pixels (all of a coarse pixel's footprint in
+    the mask) with a gradient among the strongest ``gradient_fraction`` of the road's."""
+    from kornia.filters import spatial_gradient
+
+    h_l, w_l = img.shape[-2:]
+    B = img.shape[0]
+    mask_l = mask if mask.shape[-2:] == (h_l, w_l) else F.interpolate(mask.to(img.dtype), size=(h_l, w_l),
+                                                                      mode="area") > 0.999
+    I1, I2 = img[:, :1], img[:, 1:]
+    g1 = spatial_gradient(I1, mode="diff", order=1)[:, 0]  # (B, 2, h, w): central differences
+    g2 = spatial_gradient(I2, mode="diff", order=1)[:, 0]
+    if gradient_fraction < 1.0:
+        mag = g1.abs().sum(1, keepdim=True)
+        vals = torch.where(mask_l, mag, float("nan")).flatten(1)
+        thr = torch.nanquantile(vals.double(), 1.0 - gradient_fraction, dim=1).to(mag.dtype)
+        strong = mask_l & (mag >= torch.nan_to_num(thr, nan=0.0).reshape(B, 1, 1, 1))
     else:
-        well_posed = torch.zeros(B, dtype=torch.bool, device=image1.device)
-    success = finite & converged & well_posed & (n_in >= min_points)
-    return FitResult(
-        x_d=x_d.to(out_dtype), z_d=z_d.to(out_dtype), yaw=yaw.to(out_dtype),
-        roll=roll.to(out_dtype), pitch=pitch.to(out_dtype), flow=model, valid=model_valid,
-        inliers=inliers, residual=residual.to(out_dtype), success=success,
-        camera=cam_fit.to(out_dtype), iterations=iters)
+        strong = mask_l
+    points = sample_mask(strong, max_points)
+    pts = pixel_coordinates(points.pix, w_l)
+    I1p = gather_pixels(I1, points.pix)[:, 0].to(torch.float64)
+    g1p = gather_pixels(g1, points.pix).to(torch.float64)
+    stack2 = torch.cat([I2, g2], dim=1)
+    rep = (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
+    cam = camera if reps == 1 else Camera._checked(rep(camera.K), rep(camera.height), rep(camera.roll), rep(camera.pitch))
+    return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(stack2), rep(points.sel))
+
+
+def _level_scale(problem: ImageProblem, params: Tensor, scale: float | None) -> Tensor:
+    """The kernel's scale per sample (grey levels): given, or 1.4826 × the median absolute
+    residual at the level's start, at least 2."""
+    B = params.shape[0]
+    if scale is not None:
+        return torch.full((B,), float(scale), dtype=torch.float64, device=params.device)
+    ev = problem.evaluate(params)
+    mad = torch.nanmedian(torch.where(ev.use, ev.r2.sqrt(), float("nan")), dim=1).values
+    return (1.4826 * torch.nan_to_num(mad, nan=2.0)).clamp_min(2.0)
+
+
+def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, noise: Tensor, B: int,
+           device: torch.device) -> tuple[Tensor | None, Tensor | None]:
+    """(mean, precision) (B, P + 2) of Gaussian priors ``{name: (mean, sigma)}``: precision
+    noise² / σ², the residuals' noise in grey levels against the parameter's σ."""
+    if not spec:
+        return None, None
+    P = len(model.params)
+    mean = torch.zeros(B, P + 2, dtype=torch.float64, device=device)
+    precision = torch.zeros_like(mean)
+    for name, value in spec.items():
+        if name not in model.params:
+            raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}; expected some of {model.params}")
+        try:
+            mu, sigma = value
+        except (TypeError, ValueError):
+            raise ValueError(f"prior[{name!r}]: expected (mean, sigma), got {value!r}") from None
+        mu = torch.as_tensor(mu, dtype=torch.float64, device=device)
+        sigma = torch.as_tensor(sigma, dtype=torch.float64, device=device)
+        if not bool(torch.isfinite(mu).all()) or not bool((sigma > 0).all()):
+            raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
+        i = model.params.index(name)
+        mean[:, i] = mu
+        precision[:, i] = noise.square() / sigma.square()
+    return mean, precision
+
+
+def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints, gain: Tensor,
+                         offset: Tensor, threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
+    |residual| (B,) and their share of the mask (B,)."""
+    B, _, H, W = grey.shape
+    every = points.every
+    frame = torch.div(every, H * W, rounding_mode="floor")
+    pixel = every - frame * H * W
+    u = (pixel % W).to(torch.float64)
+    v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
+    f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
+    xy = torch.stack([u + f[0], v + f[1]])
+    I1 = grey[:, 0].reshape(-1).gather(0, every).to(torch.float64)
+    I2 = torch.empty_like(I1)
+    inb = torch.empty_like(I1, dtype=torch.bool)
+    for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
+        run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
+        s, ok = _sample_points(grey[b:b + 1, 1:], xy[:, run].unsqueeze(0))
+        I2[run], inb[run] = s[0, 0], ok[0]
+    ok = inb & valid.reshape(-1).gather(0, every)
+    err = (gain[frame] * I2 + offset[frame] - I1).abs()
+    inl = ok & (err <= threshold)
+    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, every, inl).reshape(B, 1, H, W)
+    n_in = points.per_frame(inl.to(torch.float64))
+    residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
+    return inliers, residual, n_in / points.count.to(torch.float64).clamp_min(1)
+
+
+def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,
+                    fit_roll: bool = True, fit_pitch: bool = False, **options: Any) -> RoadFit:
+    """Fit the paper's displacement model (x_d, z_d, yaw; roll / pitch where ``fit_roll`` /
+    ``fit_pitch``) to two images: :func:`fit_image` with ``model="paper"``, no prior and no
+    bounds, every road pixel (up to 40 000 per level), pyramid levels down to 24 pixels and 20
+    iterations per level unless given. Other options as there.
+    """
+    fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
+    if isinstance(init, RoadFit) and init.model != "paper":
+        raise ValueError(f"init: expected a fit of the 'paper' model, got one of {init.model!r}")
+    for name, value in (("prior", None), ("bounds", None), ("max_points", 40000), ("gradient_fraction", 1.0),
+                        ("min_size", 24), ("max_iter", 20)):
+        options.setdefault(name, value)
+    return fit_image(image1, image2, mask, camera, model="paper", fixed=fixed, init=init, **options)

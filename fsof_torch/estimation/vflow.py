@@ -29,6 +29,7 @@ from torch import Tensor
 
 from .._check import check_float_tensor, check_shape, result_dtype
 from ..geometry.camera import Camera
+from .solver import ResidualProblem, solve
 
 __all__ = [
     "VFlowMap",
@@ -351,36 +352,22 @@ def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, m
 
 def _gauss_newton_rows(v: Tensor, y: Tensor, rows: Tensor, thr: Tensor, a: Tensor, v0: Tensor,
                        model: str, iterations: int) -> tuple[Tensor, Tensor]:
-    """Levenberg–Marquardt on (a, v0) with Tukey weights (scale ``2·thr``) over the given rows."""
-    lam = torch.full_like(a, 1e-3)
+    """(a, v0) by the library's robust solver over the given rows: Tukey's biweight on the row
+    residuals measured in units of twice each row's threshold (so one kernel serves rows whose
+    tolerance grows with their flow)."""
+    c = 2.0 * thr
 
-    def cost_and_terms(a_, v0_):
-        f, da, dv0, _ = _curve(v, a_.unsqueeze(-1), v0_.unsqueeze(-1), model)
-        r = y - f
-        c = 2.0 * thr
-        u = (r / c).clamp(-1, 1)
-        w = torch.where(rows & (r.abs() < c), (1 - u * u) ** 2, torch.zeros_like(r))
-        rho = torch.where(rows, c * c / 6 * (1 - (1 - u * u) ** 3), torch.zeros_like(r))
-        return rho.sum(-1), r, w, da, dv0
+    def residual(p: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        f, da, dv0, _ = _curve(v, p[:, :1], p[:, 1:], model)
+        r = ((f - y) / c).unsqueeze(1)                                     # (B, 1, H)
+        J = torch.stack([da / c, dv0 / c], dim=1).unsqueeze(2)             # (B, 2, 1, H)
+        return r, J, rows
 
-    cost, r, w, da, dv0 = cost_and_terms(a, v0)
-    for _ in range(iterations):
-        J = torch.stack([da, dv0], dim=-1)  # (B, H, 2)
-        JtW = J.transpose(1, 2) * w.unsqueeze(1)
-        N = JtW @ J
-        g = (JtW @ r.unsqueeze(-1)).squeeze(-1)
-        diag = torch.diagonal(N, dim1=-2, dim2=-1)
-        Nd = N + torch.diag_embed(lam.unsqueeze(-1) * diag + 1e-300)
-        step, info = torch.linalg.solve_ex(Nd, g.unsqueeze(-1))
-        step = torch.where((info == 0).unsqueeze(-1), step.squeeze(-1), torch.zeros_like(g))
-        step = torch.where(torch.isfinite(step), step, torch.zeros_like(step))
-        a_new, v0_new = a + step[:, 0], v0 + step[:, 1]
-        cost_new, r_new, w_new, da_new, dv0_new = cost_and_terms(a_new, v0_new)
-        better = cost_new <= cost
-        a, v0 = torch.where(better, a_new, a), torch.where(better, v0_new, v0)
-        cost = torch.where(better, cost_new, cost)
-        b = better.unsqueeze(-1)
-        r, w = torch.where(b, r_new, r), torch.where(b, w_new, w)
-        da, dv0 = torch.where(b, da_new, da), torch.where(b, dv0_new, dv0)
-        lam = torch.where(better, lam * 0.3, lam * 10.0).clamp(1e-12, 1e12)
-    return a, v0
+    start = torch.stack([a, v0], dim=-1)
+    if iterations == 0:
+        return a, v0
+    sol = solve(ResidualProblem(residual, rows.sum(1)), start, kernel="tukey", scale=1.0,
+                max_iter=iterations, damping=1e-3, check_every=None)
+    good = torch.isfinite(sol.params).all(-1, keepdim=True)
+    out = torch.where(good, sol.params, start)
+    return out[:, 0], out[:, 1]

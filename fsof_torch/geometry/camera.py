@@ -28,7 +28,7 @@ from .._check import (
     tracing,
 )
 
-__all__ = ["Camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration"]
+__all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration"]
 
 
 def roll_matrix(roll: Tensor) -> Tensor:
@@ -234,6 +234,13 @@ class Camera:
         odometry ``calib.txt`` (``P{cam}``). The height is not in the file (KITTI: about 1.65 m)."""
         P = read_kitti_calibration(path, cam)
         return cls.from_projection(torch.as_tensor(P, dtype=dtype), height, roll, pitch)
+
+
+def check_camera(camera: object, name: str = "camera") -> "Camera":
+    """``camera`` itself if it is a :class:`Camera`, else a TypeError naming the argument."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"{name}: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    return camera
 
 
 def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tensor":

@@ -16,7 +16,7 @@ from torch import Tensor
 from .._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
 from .camera import Camera
 
-__all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose"]
+__all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
 
 
 class EgoMotion(NamedTuple):
@@ -37,11 +37,12 @@ class EgoMotion(NamedTuple):
 
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
     """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)."""
-    P0, P1 = _as_4x4(pose0, "pose0"), _as_4x4(pose1, "pose1")
+    P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
     return torch.linalg.inv(P1) @ P0
 
 
-def _as_4x4(T: Tensor, name: str) -> Tensor:
+def as_pose_4x4(T: Tensor, name: str) -> Tensor:
+    """A rigid transform (B, 4, 4) or (B, 3, 4) (or unbatched) as float (B, 4, 4), validated."""
     if not isinstance(T, Tensor) or not T.is_floating_point():
         raise TypeError(f"{name}: expected a float tensor of shape (B, 4, 4) or (B, 3, 4), got "
                         f"{type(T).__name__ if not isinstance(T, Tensor) else T.dtype}")
@@ -81,7 +82,7 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
     Returns:
         :class:`EgoMotion` with x_d, z_d, yaw and the dropped remainder (y_d, rotation_residual).
     """
-    T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else _as_4x4(cam1_T_cam0, "cam1_T_cam0")
+    T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     R, t = T[:, :3, :3], T[:, :3, 3]
     if camera is not None:
         Rc = camera.mounting().to(T.dtype)

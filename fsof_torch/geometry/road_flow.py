@@ -1,27 +1,23 @@
-"""The freespace flow models of the paper: displacement (eq. 13) and velocity (eq. 21).
+"""The road's flow under a road-motion model: the paper's displacement (eq. 13) and velocity
+(eq. 21) models, and any model of :mod:`fsof_torch.geometry.road_models`.
 
-Both are evaluated through the plane-induced homography of the road (DESIGN.md §3), not
-per-pixel trigonometry: for the displacement model every road pixel moves by
+Every model gives a 3×3 map per frame (:func:`~fsof_torch.geometry.road_models.road_homography`);
+this module evaluates it on the pixel grid:
 
-    H = K R_c R_φ (I - d nᵀ / h) R_cᵀ K⁻¹,   n = (0, 1, 0)ᵀ,  d = (x_d, 0, z_d)ᵀ,
-    f_d(p) = π(H p̃) - p,
-
-and the velocity model is the time derivative of that map at Δt = 0 (with ḋ = (0, 0, v_r),
-φ̇ = v_r tan δ_f / l):
-
-    G = K R_c (Ω - ḋ nᵀ / h) R_cᵀ K⁻¹,   g = G p̃,   f_v(p) = (g_x - u g_z, g_y - v g_z).
-
-R_c = R_θ R_β is the camera mounting (roll θ, pitch β; β = 0 is the paper).
+    homography H:        f(p) = π(H p̃) - p                    (pixels per frame)
+    time derivative G:   f(p) = (g_x - u g_z, g_y - v g_z),  g = G p̃   (pixels per second)
 
 Convention: pixel (u, v) with origin at the centre of the top-left pixel; flow channel 0 is u,
-channel 1 is v; forward flow from frame t to t+1; displacement flow in pixels, velocity flow in
-pixels per second. ``valid`` is True where the model is defined: the pixel's viewing ray meets
-the road in front of the camera (below the horizon) and, for the displacement model, the road
-point is in front of the camera at t+1. Elsewhere the flow is 0 (never NaN or inf) and gradients
-are finite.
+channel 1 is v; forward flow from frame t to t+1. ``valid`` is True where the model is defined:
+the pixel's viewing ray meets the road in front of the camera (below the horizon) and, for a
+homography, the road point is in front of the camera at t+1. Elsewhere the flow is 0 (never NaN
+or inf) and gradients are finite. Geometry runs in at least float32, also under
+``torch.autocast``.
 """
 
 from __future__ import annotations
+
+from typing import Mapping
 
 import torch
 from torch import Tensor, nn
@@ -35,15 +31,18 @@ from .._check import (
     result_dtype,
     tracing,
 )
-from .camera import Camera
+from .camera import Camera, check_camera
+from .road_models import RoadModel, get_road_model, pack_params
 
 __all__ = [
-    "road_homography",
-    "road_velocity_matrix",
+    "road_flow",
+    "flow_from_map",
     "displacement_flow",
     "velocity_flow",
+    "road_velocity_matrix",
     "DisplacementFlow",
     "VelocityFlow",
+    "RoadFlow",
     "displacement_flow_straight",
     "displacement_flow_straight_level",
     "velocity_flow_straight",
@@ -61,86 +60,52 @@ def pixel_grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device |
     return torch.stack([u, v, torch.ones_like(u)]).reshape(3, H * W)
 
 
-def _params(camera: Camera, named: dict[str, object]) -> tuple[Camera, dict[str, Tensor], int]:
-    """Validate per-frame parameters, resolve the batch size and the common dtype."""
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    given = [as_batch_param(v, n, finite=False) for n, v in named.items() if isinstance(v, Tensor)]
-    dtype = result_dtype(camera.K, *given)
-    # Python floats are converted straight to the common dtype (no float32 round trip).
-    tensors = {n: as_batch_param(v, n, dtype, camera.device, finite=False) for n, v in named.items()}
-    check_all_finite(tensors)
-    B = resolve_batch({"camera": camera.batch_size, **{n: t.shape[0] for n, t in tensors.items()}})
-    if camera.dtype != dtype:
-        camera = camera.to(dtype)
-    if camera.batch_size != B:
-        camera = camera.expand(B)
-    # every parameter to (B,): the 3×3 maps are built with torch.stack, which does not broadcast
-    tensors = {n: t.expand(B) for n, t in tensors.items()}
-    return camera, tensors, B
-
-
-def _vehicle_ray_row(camera: Camera, Rc: Tensor, K_inv: Tensor | None = None) -> Tensor:
-    """The row a (B, 1, 3) with ``a · p̃`` = y component of the pixel's vehicle-frame ray.
-
-    The ray meets the road in front of the camera iff this is > 0 (λ1 > 0 of the paper).
-    """
-    K_inv = camera.K_inv() if K_inv is None else K_inv
-    return Rc[:, :, 1:2].transpose(-1, -2) @ K_inv  # row 1 of R_cᵀ K⁻¹
-
-
-def road_homography(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
-                    yaw: Tensor | float) -> Tensor:
-    """The road-plane homography H (B, 3, 3) mapping pixels of frame t to frame t+1.
+def road_flow(camera: Camera, params: Mapping[str, Tensor | float] | None, size: tuple[int, int], *,
+              model: str | RoadModel = "paper") -> tuple[Tensor, Tensor]:
+    """The road's flow under any road-motion model.
 
     Args:
-        camera: intrinsics and mounting, batch 1 or B.
-        x_d, z_d: ego translation in metres in the vehicle frame of time t (right, forward).
-        yaw: rotation φ about the vehicle's y axis in radians (positive turns toward +x).
+        camera: intrinsics (K at the flow's resolution), height and mounting; batch 1 or B.
+        params: the model's named parameters, floats or (B,) tensors (names and units:
+            :data:`~fsof_torch.geometry.road_models.ROAD_MODELS`); missing motion parameters are 0,
+            missing roll / pitch the camera's.
+        size: ``(H, W)`` of the flow.
+        model: ``"paper"``, ``"plane"``, ``"homography"`` (pixels per frame) or ``"velocity"``
+            (pixels per second).
+
+    Returns:
+        ``flow`` (B, 2, H, W) and ``valid`` (B, 1, H, W) bool, in the common dtype of the camera
+        and the parameters (at least float32).
+
+    Example:
+        >>> cam = Camera(torch.tensor([[700., 0, 600], [0, 700, 180], [0, 0, 1]]), 1.65)
+        >>> flow, valid = road_flow(cam, {"z_d": 1.2, "pitch_change": 0.002}, (370, 1226), model="plane")
+        >>> flow.shape
+        torch.Size([1, 2, 370, 1226])
     """
-    camera, p, B = _params(camera, {"x_d": x_d, "z_d": z_d, "yaw": yaw})
-    return _homography(camera, camera.mounting(), p["x_d"], p["z_d"], p["yaw"])
+    size = check_size(size)
+    model = get_road_model(model)
+    check_camera(camera)
+    with torch.autocast(camera.device.type, enabled=False):
+        camera, values = pack_params(model, camera, params)
+        M = model.matrix(camera, values)
+        _check_map(M, size, model, values)
+        return flow_from_map(M, model.horizon_row(camera, values), size, velocity=model.velocity)
 
 
-def _homography(camera: Camera, Rc: Tensor, x_d: Tensor, z_d: Tensor, yaw: Tensor,
-                K_inv: Tensor | None = None) -> Tensor:
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    h = camera.height
-    z, o = torch.zeros_like(c), torch.ones_like(c)
-    # R_φ (I - d nᵀ / h): only the middle column changes, by -R_φ d / h.
-    a = x_d / h
-    b = z_d / h
-    inner = torch.stack([c, -(c * a - s * b), -s,
-                         z, o, z,
-                         s, -(s * a + c * b), c], dim=-1).reshape(-1, 3, 3)
-    K_inv = camera.K_inv() if K_inv is None else K_inv
-    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ K_inv
+def _check_map(M: Tensor, size: tuple[int, int], model: RoadModel, values: Tensor) -> None:
+    """Reject parameters whose map overflows the dtype at this image size (NaN flow otherwise).
 
-
-def road_velocity_matrix(camera: Camera, speed: Tensor | float, steering: Tensor | float,
-                         wheelbase: Tensor | float) -> Tensor:
-    """G (B, 3, 3), the time derivative of the road homography at Δt = 0 (units 1/s)."""
-    camera, p, B = _params(camera, {"speed": speed, "steering": steering, "wheelbase": wheelbase})
-    _check_velocity_values(p["steering"], p["wheelbase"])
-    return _velocity_matrix(camera, camera.mounting(), p["speed"], p["steering"], p["wheelbase"])
-
-
-def _velocity_matrix(camera: Camera, Rc: Tensor, speed: Tensor, steering: Tensor,
-                     wheelbase: Tensor, K_inv: Tensor | None = None) -> Tensor:
-    yaw_rate = speed * torch.tan(steering) / wheelbase
-    z = torch.zeros_like(yaw_rate)
-    # dR_φ/dt - ḋ nᵀ / h with ḋ = (0, 0, v_r)
-    inner = torch.stack([z, z, -yaw_rate,
-                         z, z, z,
-                         yaw_rate, -speed / camera.height, z], dim=-1).reshape(-1, 3, 3)
-    K_inv = camera.K_inv() if K_inv is None else K_inv
-    return camera.K @ Rc @ inner @ Rc.transpose(-1, -2) @ K_inv
-
-
-def _check_velocity_values(steering: Tensor, wheelbase: Tensor) -> None:
-    check_positive(wheelbase, "wheelbase")
-    if not tracing() and not bool((steering.abs() < torch.pi / 2).all()):
-        raise ValueError(f"steering: expected |δ_f| < π/2 rad, got {steering.tolist()}")
+    Per pixel the flow multiplies map entries by coordinates up to H + W and adds a few such
+    products: entries up to finfo.max / (16 (1 + H + W)²) cannot overflow.
+    """
+    if tracing() or M.device.type == "meta":
+        return
+    bound = torch.finfo(M.dtype).max / (16.0 * (1.0 + size[0] + size[1]) ** 2)
+    if not bool((M.abs() <= bound).all()):  # False for NaN as well
+        bad = {n: values[:, i].tolist() for i, n in enumerate(model.params)}
+        raise ValueError(f"{', '.join(model.params)}: the {model.name!r} road map overflows {M.dtype} at "
+                         f"size {size} (entries beyond {bound:.3g}); got {bad}")
 
 
 def displacement_flow(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
@@ -163,11 +128,23 @@ def displacement_flow(camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
         >>> flow.shape, bool(valid[0, 0, -1, 600])
         (torch.Size([1, 2, 370, 1226]), True)
     """
-    size = check_size(size)
-    camera, p, B = _params(camera, {"x_d": x_d, "z_d": z_d, "yaw": yaw})
-    Rc, K_inv = camera.mounting(), camera.K_inv()
-    Hmat = _homography(camera, Rc, p["x_d"], p["z_d"], p["yaw"], K_inv)
-    return _flow_from_matrix(Hmat, _vehicle_ray_row(camera, Rc, K_inv), size, B, velocity=False)
+    return road_flow(camera, {"x_d": x_d, "z_d": z_d, "yaw": yaw}, size, model="paper")
+
+
+def _yaw_rate(speed: Tensor | float, steering: Tensor | float, wheelbase: Tensor | float,
+              camera: Camera) -> dict[str, Tensor]:
+    """Speed and yaw rate φ̇ = v_r tan δ_f / l of the Ackermann model (no side slip)."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    named = {"speed": speed, "steering": steering, "wheelbase": wheelbase}
+    dtype = result_dtype(camera.K, *[as_batch_param(v, n, finite=False) for n, v in named.items()
+                                     if isinstance(v, Tensor)])
+    p = {n: as_batch_param(v, n, dtype, camera.device) for n, v in named.items()}
+    resolve_batch({"camera": camera.batch_size, **{n: t.shape[0] for n, t in p.items()}})
+    check_positive(p["wheelbase"], "wheelbase")
+    if not tracing() and p["steering"].device.type != "meta" and not bool((p["steering"].abs() < torch.pi / 2).all()):
+        raise ValueError(f"steering: expected |δ_f| < π/2 rad, got {p['steering'].tolist()}")
+    return {"speed": p["speed"], "yaw_rate": p["speed"] * torch.tan(p["steering"]) / p["wheelbase"]}
 
 
 def velocity_flow(camera: Camera, speed: Tensor | float, steering: Tensor | float,
@@ -184,36 +161,47 @@ def velocity_flow(camera: Camera, speed: Tensor | float, steering: Tensor | floa
     Returns:
         ``flow`` (B, 2, H, W) in pixels per second and ``valid`` (B, 1, H, W) bool (below the horizon).
     """
-    size = check_size(size)
-    camera, p, B = _params(camera, {"speed": speed, "steering": steering, "wheelbase": wheelbase})
-    _check_velocity_values(p["steering"], p["wheelbase"])
-    Rc, K_inv = camera.mounting(), camera.K_inv()
-    G = _velocity_matrix(camera, Rc, p["speed"], p["steering"], p["wheelbase"], K_inv)
-    return _flow_from_matrix(G, _vehicle_ray_row(camera, Rc, K_inv), size, B, velocity=True)
+    return road_flow(camera, _yaw_rate(speed, steering, wheelbase, camera), size, model="velocity")
 
 
-def _flow_from_matrix(M: Tensor, ray_row: Tensor, size: tuple[int, int], B: int,
-                      velocity: bool) -> tuple[Tensor, Tensor]:
-    """Evaluate a per-frame 3×3 map M on the pixel grid as row terms plus column terms.
+def road_velocity_matrix(camera: Camera, speed: Tensor | float, steering: Tensor | float,
+                         wheelbase: Tensor | float) -> Tensor:
+    """G (B, 3, 3), the time derivative of the road homography at Δt = 0 (1/s), for a speed
+    (m/s), a steering angle (rad) and a wheelbase (m): the ``"velocity"`` model's map."""
+    from .road_models import road_homography
+
+    return road_homography(camera, _yaw_rate(speed, steering, wheelbase, camera), model="velocity")
+
+
+def flow_from_map(M: Tensor, horizon: Tensor, size: tuple[int, int], *,
+                  velocity: bool = False) -> tuple[Tensor, Tensor]:
+    """Evaluate per-frame 3×3 maps on the pixel grid: the flow and where it is defined.
+
+    Args:
+        M: (B, 3, 3) a road homography (pixels of t -> t+1) or, with ``velocity``, its time
+            derivative G (1/s).
+        horizon: (B, 1, 3) the row a with ``a · p̃ > 0`` below the horizon
+            (:meth:`~fsof_torch.geometry.road_models.RoadModel.horizon_row`).
+        size: ``(H, W)``.
+
+    Returns:
+        ``flow`` (B, 2, H, W) (pixels, or px/s with ``velocity``), 0 where not defined, and
+        ``valid`` (B, 1, H, W) bool.
 
     ``q = M p̃`` is separable: ``q_k(u, v) = M[k,0] u + (M[k,1] v + M[k,2])``, so each per-pixel
-    quantity is an outer sum (or outer product) of an (H,) and a (W,) vector: no (3, H*W) grid,
-    no k=3 matmul (slow), no eager boolean ``torch.where`` (slow on CPU). The flow numerator
-    ``q_xy - p q_z`` (p = (u, v)) is, per channel, ``a[v] + b[u] - l[v] r[u]``:
+    quantity is an outer sum (or product) of an (H,) and a (W,) vector, and the flow numerator
+    ``q_xy - p q_z`` is, per channel, ``a[v] + b[u] - l[v] r[u]``:
 
         x: (q_x v-terms) + (q_x u-terms - u q_z u-terms) - (q_z v-terms) u
         y: (q_y v-terms - v q_z v-terms) + (q_y u-terms) - v (q_z u-terms)
 
-    Displacement: ``flow = num / q_z`` where valid; velocity: ``flow = num``. Elsewhere the flow
-    is exactly 0, with a denominator that cannot be 0, so neither the value nor the gradient can
-    be inf or NaN. Three spellings of the same arithmetic, each the fastest where it runs:
-    compiled (selects, fused by inductor), eager with autograd (0/1 float masks), eager without
-    autograd (the same, in place).
+    Where not valid the flow is exactly 0 with a denominator that cannot be 0, so neither the
+    value nor its gradient can be inf or NaN.
     """
     H, W = size
+    B = M.shape[0]
     dtype, device = M.dtype, M.device
-    M = M.expand(B, 3, 3)
-    a = ray_row.expand(B, 1, 3)[:, 0].detach()  # only its sign is used
+    a = horizon.expand(B, 1, 3)[:, 0].detach()  # only its sign is used
     u = torch.arange(W, dtype=dtype, device=device)
     v = torch.arange(H, dtype=dtype, device=device)
     col = M[:, :, 0:1] * u                  # (B, 3, W): the u-terms of q
@@ -222,38 +210,42 @@ def _flow_from_matrix(M: Tensor, ray_row: Tensor, size: tuple[int, int], B: int,
     b_u = torch.stack([col[:, 0] - u * col[:, 2], col[:, 1]], dim=1)         # (B, 2, W)
     l_v = torch.stack([row[:, 2], v.expand(B, H)], dim=1)                    # (B, 2, H)
     r_u = torch.stack([u.expand(B, W), col[:, 2]], dim=1)                    # (B, 2, W)
+    if not tracing() and not M.requires_grad:
+        # The fast path of inference (python benchmarks/bench_model.py: about 2.5x faster than
+        # the selects below in eager mode at 375x1242).
+        return _flow_in_place(a, row, col, u, v, a_v, b_u, l_v, r_u, velocity)
+    num = (a_v.unsqueeze(-1) + b_u.unsqueeze(-2)) - l_v.unsqueeze(-1) * r_u.unsqueeze(-2)  # (B, 2, H, W)
+    # y component of the pixel's road-aligned ray: > 0 below the horizon (λ1 > 0 of the paper)
+    ray_y = (a[:, 1:2] * v + a[:, 2:3]).unsqueeze(-1) + (a[:, 0:1] * u).unsqueeze(-2)   # (B, H, W)
+    if velocity:
+        edge = ray_y
+    else:
+        qz = row[:, 2].unsqueeze(-1) + col[:, 2].unsqueeze(-2)                           # (B, H, W)
+        edge = torch.minimum(ray_y, qz.detach())  # valid: both > 0
     tiny = torch.finfo(dtype).tiny
-    if tracing() or M.requires_grad:
-        num = (a_v.unsqueeze(-1) + b_u.unsqueeze(-2)).addcmul_(l_v.unsqueeze(-1), r_u.unsqueeze(-2),
-                                                              value=-1.0)    # (B, 2, H, W)
-        # y component of the pixel's vehicle-frame ray: > 0 below the horizon (λ1 > 0)
-        ray_y = (a[:, 1:2] * v + a[:, 2:3]).unsqueeze(-1) + (a[:, 0:1] * u).unsqueeze(-2)  # (B, H, W)
-        qz = None if velocity else row[:, 2].unsqueeze(-1) + col[:, 2].unsqueeze(-2)  # (B, H, W)
     if tracing():
-        # Compiled: inductor turns the select into a vector blend, all in one loop over the flow.
-        # The condition is used once (a bool used twice would be stored, slowly); the clamped
-        # denominator keeps the unused branch and its gradient finite.
-        edge = ray_y if velocity else torch.minimum(ray_y, qz.detach())  # valid: both > 0
+        # Compiled: the condition is used once (a bool used twice would be stored, slowly); see
+        # _valid_mask for the mask itself.
         cond = (edge > 0).unsqueeze(1)
         valid = _valid_mask(a, row, col, u, v, velocity)
-        if velocity:
-            return torch.where(cond, num, 0.0), valid
-        return torch.where(cond, num / qz.clamp_min(tiny).unsqueeze(1), 0.0), valid
-    if M.requires_grad:
-        # Eager with autograd: a 0/1 float mask instead of a select (eager CPU selects are slow).
-        # sign(.) is 1 on the valid side, 0 or -1 elsewhere: clamped, a 0/1 mask.
-        edge = ray_y if velocity else torch.minimum(ray_y, qz.detach())
-        mask = torch.sign(edge).clamp_min(0).unsqueeze(1)
-        if velocity:
-            return num * mask, mask.bool()
-        # 1 / q_z on valid pixels, 0 elsewhere (also where q_z = 0); the backward pass never
-        # divides 0 by 0 because the clamped denominator is positive.
-        return num * (mask / qz.clamp_min(tiny).unsqueeze(1)), mask.bool()
-    # Eager without autograd: the same arithmetic in place, frame by frame, with q_z kept in the
-    # output's first plane until it is needed there: one (H, W) temporary in all, which stays in
-    # cache. Each fresh full-size tensor costs page faults on CPU, often more than the arithmetic.
-    flow = torch.empty(B, 2, H, W, dtype=dtype, device=device)
-    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=device)
+    else:
+        valid = (edge > 0).unsqueeze(1)
+        cond = valid
+    if velocity:
+        return torch.where(cond, num, 0.0), valid
+    return torch.where(cond, num / qz.clamp_min(tiny).unsqueeze(1), 0.0), valid
+
+
+def _flow_in_place(a: Tensor, row: Tensor, col: Tensor, u: Tensor, v: Tensor, a_v: Tensor, b_u: Tensor,
+                   l_v: Tensor, r_u: Tensor, velocity: bool) -> tuple[Tensor, Tensor]:
+    """:func:`flow_from_map` without autograd: the same arithmetic in place, frame by frame,
+    with q_z kept in the output's first plane until it is needed there: one (H, W) temporary in
+    all, which stays in cache. Each fresh full-size tensor costs page faults on CPU, often more
+    than the arithmetic."""
+    B, H, W = row.shape[0], v.shape[0], u.shape[0]
+    tiny = torch.finfo(row.dtype).tiny
+    flow = torch.empty(B, 2, H, W, dtype=row.dtype, device=row.device)
+    valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=row.device)
     ray_v, ray_u = a[:, 1:2] * v + a[:, 2:3], a[:, 0:1] * u
     for b in range(B):
         f = flow[b:b + 1]
@@ -261,7 +253,7 @@ def _flow_from_matrix(M: Tensor, ray_row: Tensor, size: tuple[int, int], B: int,
         if not velocity:
             qz = torch.add(row[b:b + 1, 2].unsqueeze(-1), col[b:b + 1, 2].unsqueeze(-2), out=f[:, 0])
             torch.minimum(edge, qz, out=edge)
-        mask = edge.sign_().clamp_min_(0).unsqueeze(1)
+        mask = edge.sign_().clamp_min_(0).unsqueeze(1)  # 1 on the valid side, else 0
         valid[b:b + 1].copy_(mask)
         if not velocity:
             mask.div_(qz.clamp_min_(tiny).unsqueeze(1))  # now 1 / q_z or 0; q_z's plane is free
@@ -273,12 +265,11 @@ def _flow_from_matrix(M: Tensor, ray_row: Tensor, size: tuple[int, int], B: int,
 def _valid_mask(a: Tensor, row: Tensor, col: Tensor, u: Tensor, v: Tensor, velocity: bool) -> Tensor:
     """``valid`` (B, 1, H, W) bool for compiled and exported graphs, built to compile cheaply.
 
-    The same sign test as the flow's select (bit for bit: IEEE addition commutes), spelled
-    differently (column term first, ceil of a clamp) so that inductor does not merge the two and
-    keep a full-size mask in memory for both: recomputing it from the (H,) and (W,) terms is
-    cheaper than the round trip. The last step, uint8 to bool, is an opaque custom op running the
-    eager cast: inductor's CPU code for any bool result (a comparison, a cast, a bit cast) is an
-    element-by-element loop that costs more than the whole flow (torch 2.13).
+    The same sign test as the flow's select, spelled differently (column term first, ceil of a
+    clamp) so that inductor does not merge the two and keep a full-size mask in memory for both.
+    The last step, uint8 to bool, is an opaque custom op running the eager cast: inductor's CPU
+    code for a bool result is an element-by-element loop that costs more than the whole flow
+    (torch 2.13; python benchmarks/bench_model.py: compiled about 3x faster with it).
     """
     edge = (a[:, 0:1] * u).unsqueeze(-2) + (a[:, 1:2] * v + a[:, 2:3]).unsqueeze(-1)
     if not velocity:
@@ -297,6 +288,22 @@ def _uint8_to_bool(mask: Tensor) -> Tensor:
 @_uint8_to_bool.register_fake
 def _(mask: Tensor) -> Tensor:
     return torch.empty_like(mask, dtype=torch.bool)
+
+
+class RoadFlow(nn.Module):
+    """``nn.Module`` twin of :func:`road_flow` for one model and output size:
+    ``forward(camera, params) -> (flow, valid)``."""
+
+    def __init__(self, size: tuple[int, int], *, model: str = "paper") -> None:
+        super().__init__()
+        self.size = check_size(size)
+        self.model = get_road_model(model).name
+
+    def forward(self, camera: Camera, params: Mapping[str, Tensor | float] | None = None) -> tuple[Tensor, Tensor]:
+        return road_flow(camera, params, self.size, model=self.model)
+
+    def extra_repr(self) -> str:
+        return f"size={self.size}, model={self.model!r}"
 
 
 class DisplacementFlow(nn.Module):
@@ -339,6 +346,19 @@ class VelocityFlow(nn.Module):
 
 
 # -- the special cases of the paper (eq. 22-24) ------------------------------------------------
+
+def _params(camera: Camera, named: dict[str, object]) -> tuple[Camera, dict[str, Tensor], int]:
+    """Validate per-frame parameters, resolve the batch size and the common dtype."""
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    given = [as_batch_param(v, n, finite=False) for n, v in named.items() if isinstance(v, Tensor)]
+    dtype = result_dtype(camera.K, *given)
+    tensors = {n: as_batch_param(v, n, dtype, camera.device, finite=False) for n, v in named.items()}
+    check_all_finite(tensors)
+    B = resolve_batch({"camera": camera.batch_size, **{n: t.shape[0] for n, t in tensors.items()}})
+    camera = camera.to(dtype).expand(B)
+    return camera, {n: t.expand(B) for n, t in tensors.items()}, B
+
 
 def _centred(camera: Camera, size: tuple[int, int], dtype: torch.dtype) -> tuple[Tensor, Tensor]:
     """(u - u_0, v - v_0), each (B, 1, H, W)."""

@@ -36,8 +36,8 @@ from torch import Tensor, nn
 
 from .._check import as_batch_param, check_float_tensor, tracing
 from ..geometry.camera import Camera
-from ..geometry.egomotion import EgoMotion
-from ..geometry.road_flow import displacement_flow
+from ..geometry.road_flow import road_flow
+from ..geometry.road_models import road_motion
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
@@ -64,8 +64,9 @@ class RefineOutput(NamedTuple):
 
     Attributes:
         flow: the refined flow(s), in the structure that came in (tensor, list, tuple, dict).
-        odometry: the ego-motion used, a dict ``x_d, z_d`` (metres), ``yaw`` (radians) of (B,)
-            tensors: the caller's, or the fitted one (0 for samples that were not refined).
+        odometry: the road motion used, a dict of its model's parameters, (B,) tensors: the
+            caller's, or the fitted ``x_d, z_d`` (metres), ``yaw`` (radians) of the paper's model
+            (0 for samples that were not refined).
         fit: the :class:`fsof_torch.fit.FitResult` when ego-motion was fitted, else None. With
             some masks empty it covers only the other samples (``refined`` says which).
         weight: (B, 1, H, W) the model's weight at the finest resolution: 1 where the model
@@ -222,19 +223,10 @@ def _finest(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
 # -- odometry ---------------------------------------------------------------------------------
 
 def _odometry_tensors(odometry: object, B: int, dtype: torch.dtype,
-                      device: torch.device) -> dict[str, Tensor]:
-    """The caller's odometry as x_d, z_d, yaw tensors of shape (B,) (batch 1 broadcast)."""
-    if isinstance(odometry, EgoMotion):
-        values = {"x_d": odometry.x_d, "z_d": odometry.z_d, "yaw": odometry.yaw}
-    elif isinstance(odometry, Mapping):
-        missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
-        if missing:
-            raise ValueError(f"odometry: missing keys {missing}; expected a dict with x_d, z_d "
-                             f"(metres) and yaw (radians), got keys {sorted(odometry)}")
-        values = {k: odometry[k] for k in ("x_d", "z_d", "yaw")}
-    else:
-        raise TypeError(f"odometry: expected a dict with x_d, z_d, yaw, an EgoMotion or None, "
-                        f"got {type(odometry).__name__}")
+                      device: torch.device) -> tuple[str, dict[str, Tensor]]:
+    """The caller's road motion (any form :func:`~fsof_torch.geometry.road_models.road_motion`
+    takes) as its model's name and parameters, tensors of shape (B,) (batch 1 broadcast)."""
+    model, values = road_motion(odometry)
     out = {}
     for k, v in values.items():
         t = as_batch_param(v, f"odometry[{k!r}]")
@@ -242,7 +234,7 @@ def _odometry_tensors(odometry: object, B: int, dtype: torch.dtype,
             raise ValueError(f"odometry[{k!r}]: expected a float or a tensor of shape ({B},) "
                              f"(the flow's batch) or (1,), got shape {tuple(t.shape)}")
         out[k] = t.to(device=device, dtype=dtype).expand(B)
-    return out
+    return model.name, out
 
 
 def _camera_subset(camera: Camera, index: Tensor) -> Camera:
@@ -271,7 +263,9 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size.
         camera: :class:`Camera` (batch 1 or B), K at the finest flow's resolution.
         odometry: ego-motion from t to t+1: a dict ``x_d, z_d, yaw`` (floats or (B,) tensors;
-            metres, radians), an :class:`EgoMotion`, or None to fit it (detached) to the finest
+            metres, radians), any road model's motion (a dict with a ``"model"`` key and its
+            parameters, or a fit result: :func:`~fsof_torch.geometry.road_models.road_motion`),
+            an :class:`EgoMotion`, or None to fit it (detached) to the finest
             flow inside the mask (``fit="flow"``, :func:`fsof_torch.fit.fit_displacement`), or
             to the images (``fit="photometric"``: :func:`fsof_torch.fit.fit_photometric` started
             from the flow fit; needs ``images``).
@@ -350,8 +344,9 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
     refined = counts >= (min_pixels if odometry is None else 1)
 
     fit_result = None
+    motion_model = "paper"
     if odometry is not None:
-        odo = _odometry_tensors(odometry, B, geo_dtype, device)
+        motion_model, odo = _odometry_tensors(odometry, B, geo_dtype, device)
         cam_model = camera
     else:
         odo, cam_model, fit_result, refined = _fit(
@@ -385,7 +380,7 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         if size not in cache:
             h, w = size
             cam = cam_model if (h, w) == (H, W) else cam_model.scaled(w / W, h / H)
-            f_model, valid = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], (h, w))
+            f_model, valid = road_flow(cam, odo, (h, w), model=motion_model)
             m = usable(resize_mask(mask, (h, w)) & valid)
             cache[size] = (f_model, m)
         return cache[size]

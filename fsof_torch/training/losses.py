@@ -32,7 +32,8 @@ from torch import Tensor, nn
 
 from .._check import check_float_tensor, check_shape
 from ..geometry.camera import Camera
-from ..geometry.road_flow import displacement_flow
+from ..geometry.road_flow import road_flow
+from ..geometry.road_models import road_motion
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 
@@ -302,28 +303,17 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
     return _reduce(total, reduction)
 
 
-def _odometry_tensors(odometry: object) -> tuple[object, object, object]:
-    if isinstance(odometry, Mapping):
-        missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
-        if missing:
-            raise ValueError(f"odometry: expected keys x_d, z_d, yaw, missing {missing}")
-        return odometry["x_d"], odometry["z_d"], odometry["yaw"]
-    if all(hasattr(odometry, k) for k in ("x_d", "z_d", "yaw")):
-        return odometry.x_d, odometry.z_d, odometry.yaw
-    raise TypeError("odometry: expected a dict with x_d, z_d, yaw (floats or (B,) tensors), an object with "
-                    f"those attributes, or 'fit'; got {type(odometry).__name__}")
-
-
 def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
                         odometry: Mapping[str, object] | str, *, penalty: str = "charbonnier",
                         scale: float = 1.0, gamma: float = 0.8, fit_options: Mapping[str, object] | None = None,
                         reduction: str = "mean") -> Tensor:
     """Robust distance between predicted flow and the freespace model flow inside the road mask.
 
-    The target is :func:`fsof_torch.flow_model.displacement_flow` of ``camera`` under
-    ``odometry``; pixels count where ``road`` is True and the model is defined. With
-    ``odometry="fit"`` the displacement model is fitted to the last (detached) estimate inside
-    ``road`` with :func:`fsof_torch.fit.fit_displacement` and its flow, detached, is the target;
+    The target is the road flow (:func:`fsof_torch.road_flow`) of ``camera`` under ``odometry``,
+    any road model's motion; pixels count where ``road`` is True and the model is defined. With
+    ``odometry="fit"`` a road model (``fit_options["model"]``, default the paper's) is fitted to the
+    last (detached) estimate inside ``road`` with :func:`fsof_torch.fit_road` and its flow,
+    detached, is the target;
     frames whose fit did not succeed count no pixel. The fitted target only makes the road
     flow consistent with *some* plane motion: it suits fine-tuning a net whose flow is roughly
     right; from scratch it did not help in ``python -m eval train`` (see README).
@@ -332,12 +322,14 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         flows: (B, 2, H, W) pixels, or a list of them (weighted γ^(N-1-i)).
         road: (B, 1, H, W) bool freespace mask.
         camera: intrinsics (at the flow's resolution) and mounting, batch 1 or B.
-        odometry: dict (or object) with ``x_d``, ``z_d`` (metres) and ``yaw`` (radians), floats
-            or (B,) tensors; or ``"fit"``.
+        odometry: the road motion: a dict with ``x_d``, ``z_d`` (metres) and ``yaw`` (radians),
+            floats or (B,) tensors; a dict with a ``"model"`` key and that model's parameters; a
+            fit result; or ``"fit"`` (see :func:`~fsof_torch.geometry.road_models.road_motion`).
         penalty: ``"charbonnier"`` (kornia, sqrt(r² + 1) - 1), ``"cauchy"`` (kornia,
             log(1 + r²/2)) or ``"l1"``, on each component of the residual r = (F - F_model) / scale.
         scale: residual scale in pixels (> 0); the penalty is quadratic below about ``scale``.
-        fit_options: keyword arguments for ``fit_displacement`` (``odometry="fit"`` only).
+        fit_options: keyword arguments for ``fit_road`` (with a ``"model"``) or
+            ``fit_displacement`` (without) (``odometry="fit"`` only).
 
     Returns:
         Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
@@ -360,15 +352,17 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     if isinstance(odometry, str):
         if odometry != "fit":
             raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
-        from ..estimation.flow_fit import fit_displacement
+        from ..estimation.flow_fit import fit_displacement, fit_road
 
-        with torch.no_grad():
-            fitted = fit_displacement(last.detach(), road, camera, **dict(fit_options or {}))
+        options = dict(fit_options or {})
+        with torch.no_grad():  # (the paper's model by default, with fit_displacement's options)
+            fit = fit_road if "model" in options else fit_displacement
+            fitted = fit(last.detach(), road, camera, **options)
         target = fitted.flow.detach()
         model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
     else:
-        x_d, z_d, yaw = _odometry_tensors(odometry)
-        target, model_valid = displacement_flow(camera, x_d, z_d, yaw, size)
+        model, params = road_motion(odometry)
+        target, model_valid = road_flow(camera, params, size, model=model)
     target = target.to(last.dtype).expand_as(last)
     weight = (road & model_valid).to(last.dtype)
     if penalty == "l1":

@@ -1,0 +1,84 @@
+"""Points of a mask for the estimators: a deterministic, even subsample, chosen on the device.
+
+A fit needs a few thousand of a mask's pixels per frame, not all of them: their statistical error
+stays far below the flow's, and each iteration's cost scales with their number. The kept pixels
+are an even stride over the mask in raster order, picked with a binary
+search over the mask's pixels, so the number of points is fixed in advance.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["MaskPoints", "sample_mask", "pixel_coordinates", "gather_pixels"]
+
+
+@dataclass
+class MaskPoints:
+    """The pixels of a mask and an even subsample of them.
+
+    Attributes:
+        pix: (B, N) flat pixel indices (y W + x) of at most N pixels per frame.
+        sel: (B, N) bool, flags of real points (frames with fewer mask pixels are padded with
+            pixel 0, flagged False).
+        count: (B,) the number of mask pixels per frame.
+        every: (M,) the flat indices into (B H W) of all M mask pixels of the batch, sorted.
+        bounds: (B + 1,) where each frame's pixels start in ``every`` (and where the last ends).
+    """
+
+    pix: Tensor
+    sel: Tensor
+    count: Tensor
+    every: Tensor
+    bounds: Tensor
+
+    def per_frame(self, x: Tensor) -> Tensor:
+        """Per-frame sums (B,) of values (M,) given at ``every``'s pixels."""
+        if self.bounds.numel() == 2:  # one frame
+            return x.sum(0, keepdim=True)
+        c = torch.cat([x.new_zeros(1), x.cumsum(0)])
+        return c[self.bounds[1:]] - c[self.bounds[:-1]]
+
+
+def sample_mask(mask: Tensor, max_points: int | None) -> MaskPoints:
+    """The pixels of a mask (B, 1, H, W) bool, and an even subsample of at most ``max_points``
+    per frame (None: all of them; N is then the largest count in the batch, one more host read).
+
+    The j-th kept pixel of a frame with n > N mask pixels is its floor(j n / N)-th one in raster
+    order. One ``nonzero`` finds the pixels (the one host read: it sizes its result); the rest
+    stays on the device.
+    """
+    B, _, H, W = mask.shape
+    HW = H * W
+    # one flat nonzero: a 2-D nonzero splits each index into (frame, pixel) by an int64 division
+    every = mask.reshape(-1).nonzero().squeeze(1)
+    bounds = torch.searchsorted(every, torch.arange(B + 1, device=mask.device) * HW)
+    count, start = bounds.diff(), bounds[:-1]
+    N = max(int(count.max()) if B else 0, 1) if max_points is None else int(max_points)
+    j = torch.arange(N, device=mask.device).expand(B, N)
+    n = count.unsqueeze(1)
+    rank = torch.where(n > N, (j * n) // N, j)
+    sel = rank < n
+    if every.numel():
+        frame0 = torch.arange(B, device=mask.device).unsqueeze(1) * HW
+        pix = every[(start.unsqueeze(1) + rank).clamp_max(every.numel() - 1)] - frame0
+        pix = torch.where(sel, pix, 0)
+    else:
+        pix = torch.zeros(B, N, dtype=torch.long, device=mask.device)
+    return MaskPoints(pix, sel, count, every, bounds)
+
+
+def pixel_coordinates(pix: Tensor, width: int, dtype: torch.dtype = torch.float64) -> Tensor:
+    """Homogeneous pixel coordinates (B, 3, N) (u, v, 1) of flat indices (B, N)."""
+    u = (pix % width).to(dtype)
+    v = torch.div(pix, width, rounding_mode="floor").to(dtype)
+    return torch.stack([u, v, torch.ones_like(u)], dim=1)
+
+
+def gather_pixels(x: Tensor, pix: Tensor) -> Tensor:
+    """``x`` (B, C, H, W) at flat pixel indices (B, N) -> (B, C, N)."""
+    B, C = x.shape[:2]
+    return x.reshape(B, C, -1).gather(2, pix.unsqueeze(1).expand(B, C, pix.shape[1]))

@@ -1,0 +1,483 @@
+"""The road's motion models: named parameters -> the road's 3×3 map between two frames.
+
+Every model is defined once, here, as a map from its parameters to a matrix per frame; the flow,
+every fit, the refiner and the loss terms derive what they need from that definition. The
+derivatives of the map by the parameters are written beside it (analytic: rotations differentiate
+through their generators) and tested against finite differences.
+
+Frames (DESIGN.md §2, §10): pixels (u, v), u right, v down, origin at the centre of the top-left
+pixel. The road-aligned vehicle frame of time t has x right, y down along the road's normal,
+z forward, origin at the camera; the road is the plane y = h (h the camera height, known: only
+d / h is observable from images). The camera sees ``p_cam = R_c p_vehicle`` with the camera's
+attitude relative to the road ``R_c = R_roll(θ) R_pitch(β)`` (:func:`~fsof_torch.geometry.camera.
+mounting_matrix`). Rotations about the vehicle's axes:
+
+    R_roll(γ)  = [[cos γ, sin γ, 0], [-sin γ, cos γ, 0], [0, 0, 1]]     (about z)
+    R_pitch(α) = [[1, 0, 0], [0, cos α, sin α], [0, -sin α, cos α]]     (about x; > 0 looks up)
+    R_yaw(φ)   = [[cos φ, 0, -sin φ], [0, 1, 0], [sin φ, 0, cos φ]]     (about y; > 0 turns right)
+
+A static road point moves into the vehicle frame of t+1 as ``p' = R_v (p - d)`` with
+``R_v = R_roll(γ) R_pitch(α) R_yaw(φ)`` and ``d = (x_d, y_d, z_d)`` in metres; the camera stays
+rigidly mounted. Every road pixel then moves by the plane-induced homography
+
+    H = K R_c R_v (I - d e_yᵀ / h) R_cᵀ K⁻¹ = K (R + t nᵀ / h) K⁻¹,
+    R = R_c R_v R_cᵀ,  t = -R_c R_v d,  n = R_c e_y,
+
+and the flow of a pixel p is π(H p̃) - p. The models:
+
+- ``"paper"``: the paper's displacement model (eq. 13): (x_d, z_d, yaw) with the camera's roll
+  and pitch (the mounting), i.e. ``"plane"`` with no pitch or roll change and y_d = 0.
+- ``"plane"``: the rigid 6-DOF motion of the vehicle over the road (pitch_change, yaw,
+  roll_change in radians; x_d, y_d, z_d in metres) and the camera's roll and pitch relative to the
+  road at t: 8 parameters, as many as a homography has.
+- ``"homography"``: a general road homography, the unconstrained reference: the 8 entries
+  ``h11 … h32`` of ``K⁻¹ H K − I`` (the calibrated homography minus the identity, its last entry
+  held at 1), unitless. :func:`fsof_torch.decompose_homography` turns one into ``"plane"``
+  parameters.
+- ``"velocity"``: the paper's velocity model (eq. 21), the time derivative of the homography at
+  Δt = 0 for a forward speed (m/s) and a yaw rate (rad/s), with the camera's roll and pitch:
+  ``G = K R_c (φ̇ E_y - v e_z e_yᵀ / h) R_cᵀ K⁻¹`` (1/s), flow = ``(g_x - u g_z, g_y - v g_z)`` for
+  ``g = G p̃``, in pixels per second.
+
+Example:
+    >>> cam = Camera(torch.tensor([[700., 0, 600], [0, 700, 180], [0, 0, 1]]), 1.65)
+    >>> H = road_homography(cam, {"x_d": 0.0, "z_d": 1.2, "yaw": 0.0}, model="paper")
+    >>> H.shape
+    torch.Size([1, 3, 3])
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Mapping
+
+import torch
+from torch import Tensor
+
+from .._check import as_batch_param, check_all_finite, resolve_batch, result_dtype, tracing
+from .camera import Camera, check_camera
+
+__all__ = [
+    "RoadModel",
+    "ROAD_MODELS",
+    "get_road_model",
+    "road_homography",
+    "road_motion",
+    "mounting_products",
+    "pack_params",
+    "unpack_params",
+    "rotation_angles",
+    "plane_from_pose",
+    "plane_from_homography",
+]
+
+
+# -- rotations about the vehicle's axes, as constant bases -------------------------------------
+
+# R(angle) = E0 + cos(angle) Ec + sin(angle) Es for a rotation about one axis, and its derivative
+# is Es R = R Es (the axis's generator). Rows: roll (z), pitch (x), yaw (y).
+_E0 = ((0, 0, 0, 0, 0, 0, 0, 0, 1), (1, 0, 0, 0, 0, 0, 0, 0, 0), (0, 0, 0, 0, 1, 0, 0, 0, 0))
+_EC = ((1, 0, 0, 0, 1, 0, 0, 0, 0), (0, 0, 0, 0, 1, 0, 0, 0, 1), (1, 0, 0, 0, 0, 0, 0, 0, 1))
+_ES = ((0, 1, 0, -1, 0, 0, 0, 0, 0), (0, 0, 0, 0, 0, 1, 0, -1, 0), (0, 0, -1, 0, 0, 0, 1, 0, 0))
+_ROLL, _PITCH, _YAW = 0, 1, 2
+_CACHE: dict = {}
+
+
+def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """(E0, Ec, Es), each (3, 3, 3) indexed by axis (roll, pitch, yaw); cached in eager mode."""
+    key = (dtype, device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    out = tuple(torch.tensor(b, dtype=dtype, device=device).reshape(3, 3, 3) for b in (_E0, _EC, _ES))
+    if not tracing():
+        _CACHE[key] = out
+    return out
+
+
+def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
+    """Rotation matrices (B, A, 3, 3) for angles (B, A) about the given axes (one per column)."""
+    E0, Ec, Es = _bases(angles.dtype, angles.device)
+    idx = list(axes)
+    c, s = torch.cos(angles)[..., None, None], torch.sin(angles)[..., None, None]
+    return E0[idx] + c * Ec[idx] + s * Es[idx]
+
+
+def _commutator(G: Tensor, C: Tensor) -> Tensor:
+    return G @ C - C @ G
+
+
+def _sandwich(camera_K: Tensor, K_inv: Tensor, C: Tensor) -> Tensor:
+    """K C K⁻¹ for C (B, ..., 3, 3)."""
+    extra = C.dim() - 3
+    K = camera_K.reshape(camera_K.shape[0], *([1] * extra), 3, 3)
+    Ki = K_inv.reshape(K_inv.shape[0], *([1] * extra), 3, 3)
+    return K @ C @ Ki
+
+
+# -- the definitions ------------------------------------------------------------------------------
+#
+# The rigid models and the velocity model are a vehicle-frame map X of the motion, seen through
+# the camera's attitude over the road: H = K R_c X R_cᵀ K⁻¹. Each model defines X and its
+# derivatives by its motion parameters; :func:`_mounted` does the rest, including the derivatives
+# by the roll θ and pitch β (d(R_c X R_cᵀ)/dangle = [G, R_c X R_cᵀ] with the angle's generator G).
+
+def _mounted(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, X: Tensor, dX: Tensor | None,
+             outer: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor | None, Tensor]:
+    """H = K R_c X R_cᵀ K⁻¹ (B, 3, 3), with ``dX`` (B, Q, 3, 3) dH by (motion..., roll, pitch)
+    (else None), and the horizon row (R_c e_y)ᵀ K⁻¹ (B, 1, 3).
+
+    ``outer``: the products (K R_c, R_cᵀ K⁻¹) of a mounting that is not being fitted, computed
+    once by the caller; the derivatives by roll and pitch are then 0 (python
+    benchmarks/bench_fit.py: a fit with the mounting fixed evaluates the map every iteration).
+    """
+    B = X.shape[0]
+    if outer is not None:
+        L, R = outer
+        H = L @ X @ R
+        if dX is None:
+            return H, None, R[:, 1:2]
+        dH = L.unsqueeze(1) @ dX @ R.unsqueeze(1)
+        return H, torch.cat([dH, dH.new_zeros(B, 2, 3, 3)], dim=1), R[:, 1:2]
+    Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
+    Rc = Rt @ Rb
+    Rct = Rc.transpose(-1, -2)
+    C = Rc @ X @ Rct
+    H = _sandwich(K, K_inv, C)
+    horizon = Rct[:, 1:2] @ K_inv
+    if dX is None:
+        return H, None, horizon
+    _, _, Es = _bases(X.dtype, X.device)
+    Gz, Gx = Es[_ROLL].expand(B, 3, 3), Es[_PITCH]
+    G_beta = Rt @ Gx @ Rt.transpose(-1, -2)
+    dC = torch.cat([Rc.unsqueeze(1) @ dX @ Rct.unsqueeze(1),
+                    torch.stack([_commutator(Gz, C), _commutator(G_beta, C)], dim=1)], dim=1)
+    return H, _sandwich(K, K_inv, dC), horizon
+
+
+def mounting_products(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor) -> tuple[Tensor, Tensor]:
+    """(K R_c, R_cᵀ K⁻¹) (B, 3, 3) each, for ``outer=`` of :meth:`RoadModel.evaluate`."""
+    Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
+    Rc = Rt @ Rb
+    return K @ Rc, Rc.transpose(-1, -2) @ K_inv
+
+
+def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
+           outer: tuple[Tensor, Tensor] | None = None):
+    """The ``"plane"`` map: values (B, 8) = (pitch_change α, yaw φ, roll_change γ, x_d, y_d, z_d,
+    roll θ, pitch β); X = R_v (I - d e_yᵀ / h), R_v = R_roll(γ) R_pitch(α) R_yaw(φ)."""
+    B = values.shape[0]
+    R = _rotations(values[:, [2, 0, 1]], (_ROLL, _PITCH, _YAW))
+    Rg, Ra, Rp = R.unbind(1)
+    Rga = Rg @ Ra
+    Rv = Rga @ Rp
+    # only the middle column changes, by -R_v d / h
+    ey = values.new_tensor([0.0, 1.0, 0.0])
+    shift = (Rv @ (values[:, 3:6] / h.unsqueeze(-1)).unsqueeze(-1)).squeeze(-1)
+    X = Rv - shift.unsqueeze(-1) * ey
+    dX = None
+    if jacobian:
+        _, _, Es = _bases(values.dtype, values.device)
+        Gz, Gx, Gy = Es[_ROLL], Es[_PITCH], Es[_YAW]
+        # d R_v / d angle = G_left R_v: roll outermost, pitch seen through the roll, yaw through both
+        G_left = torch.stack([Rg @ Gx @ Rg.transpose(-1, -2), Rga @ Gy @ Rga.transpose(-1, -2),
+                              Gz.expand(B, 3, 3)], dim=1)
+        dX_d = -(Rv.transpose(-1, -2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey  # column 1: -R_v e_k / h
+        dX = torch.cat([G_left @ X.unsqueeze(1), dX_d], dim=1)
+    return _mounted(K, K_inv, values[:, 6], values[:, 7], X, dX, outer)
+
+
+def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
+           outer: tuple[Tensor, Tensor] | None = None):
+    """The ``"paper"`` map: values (B, 5) = (x_d, z_d, yaw, roll, pitch); X = R_yaw(φ) (I - d e_yᵀ / h)
+    with d = (x_d, 0, z_d): the ``"plane"`` map with no pitch or roll change and y_d = 0."""
+    x_d, z_d, yaw = values[:, 0], values[:, 1], values[:, 2]
+    c, s = torch.cos(yaw), torch.sin(yaw)
+    a, b = x_d / h, z_d / h
+    z, o = torch.zeros_like(c), torch.ones_like(c)
+    u, v = c * a - s * b, s * a + c * b
+    entries = [c, -u, -s, z, o, z, s, -v, c]
+    if jacobian:
+        ih = 1.0 / h
+        entries += [z, -c * ih, z, z, z, z, z, -s * ih, z,        # d/dx_d
+                    z, s * ih, z, z, z, z, z, -c * ih, z,         # d/dz_d
+                    -s, v, -c, z, z, z, c, -u, -s]                # d/dyaw
+    maps = torch.stack(entries, dim=-1).reshape(-1, len(entries) // 9, 3, 3)
+    return _mounted(K, K_inv, values[:, 3], values[:, 4], maps[:, 0], maps[:, 1:] if jacobian else None, outer)
+
+
+def _velocity(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
+              outer: tuple[Tensor, Tensor] | None = None):
+    """The ``"velocity"`` map G (1/s): values (B, 4) = (speed, yaw_rate, roll, pitch);
+    X = d/dt [R_yaw(φ̇ t) (I - (0, 0, v t) e_yᵀ / h)] at t = 0 = φ̇ G_y - v e_z e_yᵀ / h."""
+    speed, yaw_rate = values[:, 0], values[:, 1]
+    z = torch.zeros_like(speed)
+    k = -1.0 / h
+    # d X / d speed = -e_z e_yᵀ / h, d X / d yaw_rate = G_y: constant in the motion
+    entries = [z, z, -yaw_rate, z, z, z, yaw_rate, speed * k, z]
+    if jacobian:
+        o = torch.ones_like(speed)
+        entries += [z, z, z, z, z, z, z, k, z, z, z, -o, z, z, z, o, z, z]
+    maps = torch.stack(entries, dim=-1).reshape(-1, len(entries) // 9, 3, 3)
+    return _mounted(K, K_inv, values[:, 2], values[:, 3], maps[:, 0], maps[:, 1:] if jacobian else None, outer)
+
+
+def _homography(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
+                outer: tuple[Tensor, Tensor] | None = None):
+    """The ``"homography"`` map: values (B, 8), the entries of K⁻¹ H K − I (its last entry 0)."""
+    B = values.shape[0]
+    G = torch.eye(3, dtype=values.dtype, device=values.device) + torch.cat(
+        [values, torch.zeros_like(values[:, :1])], dim=-1).reshape(B, 3, 3)
+    H = _sandwich(K, K_inv, G)
+    if not jacobian:
+        return H, None, None
+    E = torch.eye(9, dtype=values.dtype, device=values.device)[:8].reshape(1, 8, 3, 3)
+    return H, _sandwich(K, K_inv, E.expand(B, 8, 3, 3)), None
+
+
+@dataclass(frozen=True)
+class RoadModel:
+    """A road-motion model: its parameter names and units, and its map.
+
+    Attributes:
+        name: ``"paper"``, ``"plane"``, ``"homography"`` or ``"velocity"``.
+        params: the parameter names, in the order of the columns of a (B, P) value tensor.
+        units: the unit of each parameter (``"m"``, ``"rad"``, ``"m/s"``, ``"rad/s"``, ``"1"``).
+        mounting: the parameters that are the camera's roll and pitch relative to the road
+            (taken from the :class:`Camera` when not given).
+        velocity: True when the map is a time derivative G (flow = (g_x - u g_z, g_y - v g_z) in
+            px/s), False for a homography (flow = π(H p̃) - p in px).
+    """
+
+    name: str
+    params: tuple[str, ...]
+    units: tuple[str, ...]
+    mounting: tuple[str, ...]
+    velocity: bool
+    _fn: object
+
+    def matrix(self, camera: Camera, values: Tensor) -> Tensor:
+        """The map (B, 3, 3) for values (B, P) (float; the camera's K and height, batch B)."""
+        return self._fn(camera.K, camera.K_inv(), camera.height, values, False)[0]
+
+    def matrix_and_jacobian(self, camera: Camera, values: Tensor) -> tuple[Tensor, Tensor]:
+        """The map (B, 3, 3) and its derivatives by the parameters (B, P, 3, 3)."""
+        return self._fn(camera.K, camera.K_inv(), camera.height, values, True)[:2]
+
+    def evaluate(self, K: Tensor, K_inv: Tensor, height: Tensor, values: Tensor, jacobian: bool,
+                 outer: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor | None, Tensor | None]:
+        """The map, its derivatives (with ``jacobian``) and the horizon row (:meth:`horizon_row`;
+        None for a model without a mounting) from the camera's K (B, 3, 3), K⁻¹ and height (B,),
+        for loops that evaluate the map many times with one camera; ``outer``: the
+        :func:`mounting_products` of a mounting held fixed (its derivatives are then 0)."""
+        return self._fn(K, K_inv, height, values, jacobian, outer)
+
+    def horizon_row(self, camera: Camera, values: Tensor) -> Tensor:
+        """The row a (B, 1, 3) with ``a · p̃ > 0`` for pixels whose ray meets the road in front of
+        the camera at t: ``a = (R_c e_y)ᵀ K⁻¹`` with the camera's roll and pitch relative to the
+        road (the model's own where it has them, else the camera's)."""
+        if self.mounting:
+            i, j = (self.params.index(n) for n in self.mounting)
+            roll, pitch = values[:, i], values[:, j]
+        else:
+            roll, pitch = camera.roll.to(values), camera.pitch.to(values)
+        Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
+        n = (Rt @ Rb)[:, :, 1:2]  # the road's normal in the camera frame (pointing down)
+        return n.transpose(-1, -2) @ camera.K_inv().to(values)
+
+    def index(self, name: str) -> int:
+        return self.params.index(name)
+
+
+ROAD_MODELS: dict[str, RoadModel] = {
+    "paper": RoadModel("paper", ("x_d", "z_d", "yaw", "roll", "pitch"), ("m", "m", "rad", "rad", "rad"),
+                       ("roll", "pitch"), False, _paper),
+    "plane": RoadModel("plane", ("pitch_change", "yaw", "roll_change", "x_d", "y_d", "z_d", "roll", "pitch"),
+                       ("rad", "rad", "rad", "m", "m", "m", "rad", "rad"), ("roll", "pitch"), False, _rigid),
+    "homography": RoadModel("homography", ("h11", "h12", "h13", "h21", "h22", "h23", "h31", "h32"),
+                            ("1",) * 8, (), False, _homography),
+    "velocity": RoadModel("velocity", ("speed", "yaw_rate", "roll", "pitch"), ("m/s", "rad/s", "rad", "rad"),
+                          ("roll", "pitch"), True, _velocity),
+}
+
+
+def get_road_model(model: str | RoadModel) -> RoadModel:
+    """The :class:`RoadModel` of a name in :data:`ROAD_MODELS` (or the model itself)."""
+    if isinstance(model, RoadModel):
+        return model
+    if not isinstance(model, str) or model not in ROAD_MODELS:
+        raise ValueError(f"model: expected one of {tuple(ROAD_MODELS)}, got {model!r}")
+    return ROAD_MODELS[model]
+
+
+# -- named parameters <-> value tensors ------------------------------------------------------------
+
+def pack_params(model: str | RoadModel, camera: Camera, params: Mapping[str, Tensor | float] | None,
+                ) -> tuple[Camera, Tensor]:
+    """Named parameters -> ``(camera, values (B, P))`` in one float dtype (half lifted to float32).
+
+    Missing motion parameters are 0 (no motion); missing mounting parameters are the camera's
+    roll and pitch. Python floats and (B,) tensors broadcast against the camera's batch; the
+    camera comes back cast and expanded to the common dtype and batch.
+    """
+    model = get_road_model(model)
+    check_camera(camera)
+    params = {} if params is None else params
+    if not isinstance(params, Mapping):
+        raise TypeError(f"params: expected a dict of {model.params}, got {type(params).__name__}")
+    unknown = sorted(set(params) - set(model.params))
+    if unknown:
+        raise ValueError(f"params: unknown names {unknown} for model {model.name!r}; expected some of {model.params}")
+    tensors = [as_batch_param(v, n, finite=False) for n, v in params.items() if isinstance(v, Tensor)]
+    dtype = result_dtype(camera.K, *tensors)
+    # Python floats go straight to the common dtype (no float32 round trip)
+    given = {n: as_batch_param(v, n, dtype, camera.device, finite=False) for n, v in params.items()}
+    check_all_finite(given)
+    B = resolve_batch({"camera": camera.batch_size, **{n: t.shape[0] for n, t in given.items()}})
+    camera = camera.to(dtype).expand(B) if camera.dtype != dtype else camera.expand(B)
+    mount = {"roll": camera.roll, "pitch": camera.pitch}
+    cols = []
+    for name in model.params:
+        if name in given:
+            cols.append(given[name].expand(B))
+        elif name in model.mounting:
+            cols.append(mount[name])
+        else:
+            cols.append(torch.zeros(B, dtype=dtype, device=camera.device))
+    return camera, torch.stack(cols, dim=-1)
+
+
+def unpack_params(model: str | RoadModel, values: Tensor) -> dict[str, Tensor]:
+    """Values (B, P) -> ``{name: (B,)}``."""
+    model = get_road_model(model)
+    return {n: values[:, i] for i, n in enumerate(model.params)}
+
+
+def road_homography(camera: Camera, params: Mapping[str, Tensor | float] | None = None, *,
+                    model: str | RoadModel = "paper") -> Tensor:
+    """The road's map (B, 3, 3) under a model's named parameters: pixels of t -> t+1.
+
+    Args:
+        camera: intrinsics (K at the flow's resolution), height and mounting; batch 1 or B.
+        params: the model's parameters (floats or (B,) tensors; see :data:`ROAD_MODELS` for names
+            and units); missing motion parameters are 0, missing roll / pitch the camera's.
+        model: ``"paper"``, ``"plane"``, ``"homography"`` or ``"velocity"`` (whose map is the time
+            derivative G, in 1/s).
+
+    Returns:
+        (B, 3, 3) in the common dtype of the camera and the parameters (at least float32).
+    """
+    model = get_road_model(model)
+    check_camera(camera)
+    with torch.autocast(camera.device.type, enabled=False):
+        camera, values = pack_params(model, camera, params)
+        return model.matrix(camera, values)
+
+
+# -- from other descriptions of the motion ---------------------------------------------------------
+
+def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, dict[str, object]]:
+    """``(model, params)`` of a road motion given in any of the forms the library takes:
+
+    - a dict of the paper's ``x_d``, ``z_d`` (metres) and ``yaw`` (radians);
+    - a dict with a ``"model"`` key and that model's parameters (``{"model": "plane", "z_d":
+      1.2, "pitch_change": 0.002}``; missing ones are 0, missing roll / pitch the camera's);
+    - a fit result or anything with ``model`` and ``params`` attributes
+      (:class:`~fsof_torch.estimation.flow_fit.RoadFit`);
+    - an object with ``x_d``, ``z_d`` and ``yaw`` attributes (:class:`~fsof_torch.geometry.egomotion.EgoMotion`).
+    """
+    if isinstance(odometry, Mapping):
+        if "model" in odometry:
+            model = get_road_model(odometry["model"])
+            params = {k: v for k, v in odometry.items() if k != "model"}
+        else:
+            model = ROAD_MODELS["paper"]
+            missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
+            if missing:
+                raise ValueError(f"{name}: missing keys {missing}; expected a dict with x_d, z_d (metres) and yaw "
+                                 f"(radians), or a 'model' key and that model's parameters; got keys {sorted(odometry)}")
+            params = dict(odometry)
+    elif hasattr(odometry, "model") and hasattr(odometry, "params"):
+        model, params = get_road_model(odometry.model), dict(odometry.params)
+    elif all(hasattr(odometry, k) for k in ("x_d", "z_d", "yaw")):
+        model = ROAD_MODELS["paper"]
+        params = {k: getattr(odometry, k) for k in ("x_d", "z_d", "yaw")}
+    else:
+        raise TypeError(f"{name}: expected a dict of x_d, z_d, yaw (or with a 'model' key), a fit result or an "
+                        f"EgoMotion, got {type(odometry).__name__}")
+    unknown = sorted(set(params) - set(model.params))
+    if unknown:
+        raise ValueError(f"{name}: unknown parameters {unknown} of model {model.name!r}; expected some of {model.params}")
+    return model, params
+
+
+def rotation_angles(R: Tensor) -> Tensor:
+    """(pitch_change α, yaw φ, roll_change γ) (B, 3) of rotations R = R_roll(γ) R_pitch(α) R_yaw(φ).
+
+    The row z of that product is (cos α sin φ, -sin α, cos α cos φ) and its column y is
+    (sin γ cos α, cos γ cos α, -sin α): the angles follow with atan2 (|α| < π/2).
+    """
+    alpha = torch.atan2(-R[..., 2, 1], torch.hypot(R[..., 2, 0], R[..., 2, 2]))
+    phi = torch.atan2(R[..., 2, 0], R[..., 2, 2])
+    gamma = torch.atan2(R[..., 0, 1], R[..., 1, 1])
+    return torch.stack([alpha, phi, gamma], dim=-1)
+
+
+def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
+    """The ``"plane"`` parameters of a relative camera pose, with the camera's roll and pitch
+    relative to the road (and its height) taken from ``camera``.
+
+    Args:
+        cam1_T_cam0: (B, 4, 4) or (B, 3, 4): camera-t coordinates to camera-(t+1) coordinates
+            (KITTI: ``inverse(P_{t+1}) @ P_t`` for camera-to-world poses), metres.
+        camera: the camera's attitude over the road at t (roll, pitch) and its height.
+
+    Returns:
+        ``{"pitch_change", "yaw", "roll_change", "x_d", "y_d", "z_d", "roll", "pitch"}`` of (B,):
+        R_v = R_cᵀ R R_c and d = -R_vᵀ R_cᵀ t (DESIGN.md §10).
+    """
+    from .egomotion import as_pose_4x4
+
+    T = as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
+    B = resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
+    T = T.expand(B, 4, 4)
+    cam = camera.to(T.dtype).expand(B)
+    Rc = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH))
+    Rc = Rc[:, 0] @ Rc[:, 1]
+    R, t = T[:, :3, :3], T[:, :3, 3:]
+    Rv = Rc.transpose(-1, -2) @ R @ Rc
+    d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
+    a = rotation_angles(Rv)
+    return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
+            "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}
+
+
+def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
+    """``"plane"`` parameters of road homographies (B, 3, 3) with the road's normal taken from the
+    camera's roll and pitch: exact when that is the true attitude, a close start otherwise.
+
+    With n known, ``G = K⁻¹ H K = λ (R + t nᵀ / h)`` maps the two directions m ⟂ n by λ R alone:
+    λ is their stretch (its sign that of det G), R the rotation closest to what it does to them
+    (Procrustes), and t = h (G n / λ − R n). :func:`fsof_torch.decompose_homography` refines this
+    start by a fit that frees the normal too.
+    """
+    B = resolve_batch({"H": H.shape[0], "camera": camera.batch_size})
+    cam = camera.to(H.dtype).expand(B)
+    G = cam.K_inv() @ H.expand(B, 3, 3) @ cam.K
+    Rt, Rb = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
+    Rc = Rt @ Rb
+    m1, n, m2 = Rc[:, :, 0:1], Rc[:, :, 1:2], Rc[:, :, 2:3]
+    a1, a2 = G @ m1, G @ m2
+    lam = 0.5 * (a1.norm(dim=1) + a2.norm(dim=1)) * torch.sign(torch.linalg.det(G)).unsqueeze(-1)  # (B, 1)
+    r1, r2 = a1 / lam.unsqueeze(-1), a2 / lam.unsqueeze(-1)
+    # R R_c maps (m1, n, m2), the columns of R_c (m2 × m1 = n), to (r1, r2 × r1, r2)
+    target = torch.cat([r1, torch.linalg.cross(r2, r1, dim=1), r2], dim=2)
+    U, _, Vh = torch.linalg.svd(target @ Rc.transpose(-1, -2))
+    D = torch.ones(B, 3, dtype=H.dtype, device=H.device)
+    D[:, 2] = torch.sign(torch.linalg.det(U @ Vh))
+    R = U @ torch.diag_embed(D) @ Vh
+    t = cam.height.reshape(B, 1, 1) * ((G @ n) / lam.unsqueeze(-1) - R @ n)
+    Rv = Rc.transpose(-1, -2) @ R @ Rc
+    d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
+    a = rotation_angles(Rv)
+    return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
+            "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}

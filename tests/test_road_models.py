@@ -1,0 +1,296 @@
+"""Tests of fsof_torch.geometry.road_models and road_flow for every road model.
+
+Independent references, written here in NumPy float64:
+- the plane-induced homography H = K (R + t nᵀ / h) K⁻¹ of a rigid camera motion over the road
+  plane nᵀX = h, with R, t, n built from the model's definition (DESIGN.md §10);
+- a ray cast: intersect each pixel's ray with the plane, move the point rigidly, project;
+- the paper's λ formula (eq. 13) for the "paper" model.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from fsof_torch import Camera, decompose_homography
+from fsof_torch.geometry.road_flow import RoadFlow, displacement_flow, road_flow
+from fsof_torch.geometry.road_models import (
+    ROAD_MODELS,
+    mounting_products,
+    pack_params,
+    plane_from_pose,
+    road_homography,
+    road_motion,
+    rotation_angles,
+)
+
+SIZE = (48, 120)
+K_SMALL = [[90.0, 0.0, 60.0], [0.0, 95.0, 14.0], [0.0, 0.0, 1.0]]
+
+
+def camera(roll=0.0, pitch=0.0, height=1.65, dtype=torch.float64) -> Camera:
+    return Camera(torch.tensor(K_SMALL, dtype=dtype), height, roll, pitch)
+
+
+# -- independent references ----------------------------------------------------------------------
+
+def _rx(a):  # pitch: [[1, 0, 0], [0, c, s], [0, -s, c]]
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[1, 0, 0], [0, c, s], [0, -s, c]])
+
+
+def _ry(a):  # yaw: [[c, 0, -s], [0, 1, 0], [s, 0, c]]
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, 0, -s], [0, 1, 0], [s, 0, c]])
+
+
+def _rz(a):  # roll: [[c, s, 0], [-s, c, 0], [0, 0, 1]]
+    c, s = math.cos(a), math.sin(a)
+    return np.array([[c, s, 0], [-s, c, 0], [0, 0, 1]])
+
+
+def rigid_motion(p: dict) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, t, n) of the camera: X' = R X + t, road plane nᵀX = h, from plane parameters."""
+    Rc = _rz(p.get("roll", 0.0)) @ _rx(p.get("pitch", 0.0))
+    Rv = _rz(p.get("roll_change", 0.0)) @ _rx(p.get("pitch_change", 0.0)) @ _ry(p.get("yaw", 0.0))
+    d = np.array([p.get("x_d", 0.0), p.get("y_d", 0.0), p.get("z_d", 0.0)])
+    return Rc @ Rv @ Rc.T, -Rc @ Rv @ d, Rc @ np.array([0.0, 1.0, 0.0])
+
+
+def flow_of_homography(Hm: np.ndarray, size) -> np.ndarray:
+    H, W = size
+    v, u = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
+    q = np.einsum("ij,jhw->ihw", Hm, np.stack([u, v, np.ones_like(u)]))
+    return np.stack([q[0] / q[2] - u, q[1] / q[2] - v])
+
+
+def ray_cast_flow(K: np.ndarray, h: float, R, t, n, size) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Flow by intersecting each pixel's ray with the plane nᵀX = h, moving it, projecting; where
+    it is defined; and where that is clear of rounding (away from the horizon and the camera
+    plane of t+1)."""
+    H, W = size
+    v, u = np.meshgrid(np.arange(H, dtype=np.float64), np.arange(W, dtype=np.float64), indexing="ij")
+    rays = np.einsum("ij,jhw->ihw", np.linalg.inv(K), np.stack([u, v, np.ones_like(u)]))
+    denom = np.einsum("i,ihw->hw", n, rays)
+    ok = denom > 0
+    X = rays * np.where(ok, h / np.where(ok, denom, 1.0), 0.0)
+    Xp = np.einsum("ij,jhw->ihw", R, X) + t[:, None, None]
+    ok &= Xp[2] > 0
+    clear = (np.abs(denom) > 1e-6) & (np.abs(Xp[2]) > 1e-6)
+    q = np.einsum("ij,jhw->ihw", K, Xp)
+    z = np.where(ok, q[2], 1.0)
+    return np.stack([q[0] / z - u, q[1] / z - v]), ok, clear
+
+
+plane_params = st.fixed_dictionaries({
+    "pitch_change": st.floats(-0.02, 0.02), "yaw": st.floats(-0.1, 0.1), "roll_change": st.floats(-0.02, 0.02),
+    "x_d": st.floats(-0.3, 0.3), "y_d": st.floats(-0.05, 0.05), "z_d": st.floats(-0.5, 2.5),
+    "roll": st.floats(-0.1, 0.1), "pitch": st.floats(-0.1, 0.1)})
+
+
+# -- feature: each model against the independent references --------------------------------------
+
+@settings(max_examples=25, deadline=None)
+@given(p=plane_params, height=st.floats(1.0, 2.5))
+def test_plane_equals_plane_induced_homography_and_ray_cast(p, height):
+    cam = camera(height=height)
+    flow, valid = road_flow(cam, p, SIZE, model="plane")
+    R, t, n = rigid_motion(p)
+    K = np.asarray(K_SMALL)
+    Hm = K @ (R + np.outer(t, n) / height) @ np.linalg.inv(K)
+    ref = flow_of_homography(Hm, SIZE)
+    cast, ok, clear = ray_cast_flow(K, height, R, t, n, SIZE)
+    m = valid[0, 0].numpy()
+    assert np.array_equal(m[clear], ok[clear])  # the same pixels are defined
+    both = m & ok & clear
+    np.testing.assert_allclose(flow[0].numpy()[:, both], ref[:, both], atol=1e-6)
+    np.testing.assert_allclose(flow[0].numpy()[:, both], cast[:, both], atol=1e-6)
+
+
+@settings(max_examples=20, deadline=None)
+@given(p=plane_params)
+def test_paper_is_plane_without_body_motion_and_matches_eq13(p):
+    paper = {k: p[k] for k in ("x_d", "z_d", "yaw")}
+    cam = camera(roll=p["roll"])  # eq. 13 has roll only
+    flow, valid = road_flow(cam, paper, SIZE, model="paper")
+    same, _ = road_flow(cam, {**paper, "roll": p["roll"]}, SIZE, model="plane")
+    torch.testing.assert_close(flow, same, rtol=0, atol=1e-9)
+    # the paper's λ form (eq. 13), written out here
+    K = np.asarray(K_SMALL)
+    fx, fy, u0, v0 = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    v, u = np.meshgrid(np.arange(SIZE[0], dtype=np.float64), np.arange(SIZE[1], dtype=np.float64), indexing="ij")
+    th, h, phi = p["roll"], 1.65, p["yaw"]
+    l1 = (u - u0) / fx * math.sin(th) + (v - v0) / fy * math.cos(th)
+    l2 = (u - u0) / fx * math.cos(th) - (v - v0) / fy * math.sin(th)
+    l3, l4 = l2 * h - l1 * p["x_d"], h - l1 * p["z_d"]
+    D = l3 * math.sin(phi) + l4 * math.cos(phi)
+    ok = (l1 > 1e-6) & (D > 1e-6)
+    Ds = np.where(ok, D, 1.0)
+    a = (l3 * math.cos(phi) - l4 * math.sin(phi)) / Ds - l2
+    b = l1 * h / Ds - l1
+    M = np.array([[fx * math.cos(th), fx * math.sin(th)], [-fy * math.sin(th), fy * math.cos(th)]])
+    ref = np.einsum("ij,jhw->ihw", M, np.stack([a, b]))
+    both = valid[0, 0].numpy() & ok
+    np.testing.assert_allclose(flow[0].numpy()[:, both], ref[:, both], atol=1e-6)
+
+
+def test_paper_equals_displacement_flow():
+    cam = camera(roll=0.02, pitch=-0.015)
+    a = road_flow(cam, {"x_d": 0.1, "z_d": 1.2, "yaw": 0.03}, SIZE, model="paper")
+    b = displacement_flow(cam, 0.1, 1.2, 0.03, SIZE)
+    torch.testing.assert_close(a, b, rtol=0, atol=0)
+
+
+def test_homography_model_is_its_matrix():
+    cam = camera()
+    h = {"h11": 0.01, "h12": -0.02, "h13": 0.03, "h21": 0.004, "h22": 0.02, "h23": -0.01, "h31": 0.001, "h32": -0.6}
+    flow, valid = road_flow(cam, h, SIZE, model="homography")
+    G = np.eye(3) + np.append(list(h.values()), 0.0).reshape(3, 3)
+    K = np.asarray(K_SMALL)
+    Hm = K @ G @ np.linalg.inv(K)
+    ref = flow_of_homography(Hm, SIZE)
+    m = valid[0, 0].numpy()
+    assert m.sum() > 1000
+    np.testing.assert_allclose(flow[0].numpy()[:, m], ref[:, m], atol=1e-9)
+    torch.testing.assert_close(road_homography(cam, h, model="homography")[0], torch.from_numpy(Hm))
+
+
+def test_velocity_model_is_the_derivative_of_the_plane_homography():
+    cam = camera(roll=0.03, pitch=-0.02)
+    speed, yaw_rate, dt = 8.0, 0.2, 1e-6
+    G = road_homography(cam, {"speed": speed, "yaw_rate": yaw_rate}, model="velocity")
+    Hp = road_homography(cam, {"z_d": speed * dt, "yaw": yaw_rate * dt}, model="plane")
+    Hm = road_homography(cam, {"z_d": -speed * dt, "yaw": -yaw_rate * dt}, model="plane")
+    torch.testing.assert_close(G, (Hp - Hm) / (2 * dt), rtol=1e-6, atol=1e-6)
+
+
+# -- derivatives ------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("name", list(ROAD_MODELS))
+def test_jacobian_matches_finite_differences(name):
+    model = ROAD_MODELS[name]
+    cam = Camera(torch.tensor(K_SMALL, dtype=torch.float64).expand(2, 3, 3), torch.tensor([1.6, 1.4], dtype=torch.float64),
+                 torch.tensor([0.02, -0.01], dtype=torch.float64), torch.tensor([-0.015, 0.01], dtype=torch.float64))
+    cam, values = pack_params(model, cam, None)
+    values = values + 0.05 * torch.randn(values.shape, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    M, dM = model.matrix_and_jacobian(cam, values)
+    torch.testing.assert_close(M, model.matrix(cam, values))
+    eps = 1e-6
+    for k in range(values.shape[1]):
+        e = torch.zeros_like(values)
+        e[:, k] = eps
+        fd = (model.matrix(cam, values + e) - model.matrix(cam, values - e)) / (2 * eps)
+        torch.testing.assert_close(dM[:, k], fd, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["paper", "plane", "velocity"])
+def test_fixed_mounting_products_give_the_same_map(name):
+    model = ROAD_MODELS[name]
+    cam, values = pack_params(model, camera(roll=0.03, pitch=-0.02), None)
+    values = values + 0.05
+    i, j = (model.index(n) for n in model.mounting)
+    outer = mounting_products(cam.K, cam.K_inv(), values[:, i], values[:, j])
+    M, dM, horizon = model.evaluate(cam.K, cam.K_inv(), cam.height, values, True)
+    M2, dM2, horizon2 = model.evaluate(cam.K, cam.K_inv(), cam.height, values, True, outer)
+    torch.testing.assert_close(M2, M)
+    motion = [k for k in range(values.shape[1]) if k not in (i, j)]
+    torch.testing.assert_close(dM2[:, :len(motion)], dM[:, :len(motion)])
+    assert torch.equal(dM2[:, len(motion):], torch.zeros_like(dM2[:, len(motion):]))
+    torch.testing.assert_close(horizon2, horizon)
+    torch.testing.assert_close(horizon, model.horizon_row(cam, values))
+
+
+@pytest.mark.parametrize("name", list(ROAD_MODELS))
+def test_gradcheck_float64(name):
+    model = ROAD_MODELS[name]
+    cam, values = pack_params(model, camera(roll=0.02, pitch=-0.01), None)
+    values = (values + 0.02).requires_grad_()
+
+    def f(v):
+        return road_flow(cam, dict(zip(model.params, v.unbind(-1))), (12, 20), model=name)[0]
+
+    assert torch.autograd.gradcheck(f, (values,), eps=1e-6, atol=1e-5)
+
+
+@pytest.mark.parametrize("name", list(ROAD_MODELS))
+def test_module_twin_compiles_fullgraph_and_exports(name):
+    module = RoadFlow((24, 40), model=name)
+    cam = camera(dtype=torch.float32)
+    params = {n: torch.tensor([0.01]) for n in ROAD_MODELS[name].params if n not in ("roll", "pitch")}
+    eager = module(cam, params)
+    compiled = torch.compile(module, fullgraph=True)(cam, params)
+    torch.testing.assert_close(compiled[0], eager[0], rtol=1e-5, atol=1e-5)
+    assert torch.equal(compiled[1], eager[1])
+    exported = torch.export.export(module, (cam, params))
+    out = exported.module()(cam, params)
+    torch.testing.assert_close(out[0], eager[0], rtol=1e-5, atol=1e-5)
+
+
+def test_geometry_in_float32_under_autocast():
+    cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), 1.65, 0.01, -0.01)
+    ref, valid = road_flow(cam, {"z_d": 1.2, "yaw": 0.02, "pitch_change": 0.002}, (375, 1242), model="plane")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out, valid2 = road_flow(cam, {"z_d": 1.2, "yaw": 0.02, "pitch_change": 0.002}, (375, 1242), model="plane")
+    assert out.dtype == torch.float32
+    assert torch.equal(valid, valid2)
+    torch.testing.assert_close(out, ref, rtol=0, atol=1e-3)
+
+
+# -- conversions --------------------------------------------------------------------------------------
+
+@settings(max_examples=20, deadline=None)
+@given(p=plane_params)
+def test_rotation_angles_invert_the_composition(p):
+    R = _rz(p["roll_change"]) @ _rx(p["pitch_change"]) @ _ry(p["yaw"])
+    a = rotation_angles(torch.from_numpy(R))
+    np.testing.assert_allclose(a.numpy(), [p["pitch_change"], p["yaw"], p["roll_change"]], atol=1e-12)
+
+
+@settings(max_examples=20, deadline=None)
+@given(p=plane_params)
+def test_plane_from_pose_and_decomposition_recover_the_parameters(p):
+    cam = camera(roll=p["roll"], pitch=p["pitch"])
+    R, t, _ = rigid_motion(p)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3], T[:3, 3] = torch.from_numpy(R), torch.from_numpy(t)
+    got = plane_from_pose(T, cam)
+    for k, v in p.items():
+        assert abs(float(got[k]) - v) < 1e-10, k
+    if abs(p["z_d"]) + abs(p["x_d"]) > 0.05:  # a homography of (almost) no translation has no plane
+        H = road_homography(cam, p, model="plane")
+        dec = decompose_homography(3.0 * H, cam)  # any scale
+        for k, v in p.items():
+            assert abs(float(dec.params[k]) - v) < 1e-6, k
+
+
+def test_road_motion_forms_and_errors():
+    assert road_motion({"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})[0].name == "paper"
+    model, params = road_motion({"model": "plane", "z_d": 1.0})
+    assert model.name == "plane" and params == {"z_d": 1.0}
+    with pytest.raises(ValueError, match="odometry: missing keys"):
+        road_motion({"z_d": 1.0})
+    with pytest.raises(ValueError, match="unknown parameters"):
+        road_motion({"model": "plane", "speed": 1.0})
+    with pytest.raises(ValueError, match="model: expected one of"):
+        road_motion({"model": "bicycle"})
+    with pytest.raises(TypeError, match="odometry: expected a dict"):
+        road_motion(3.0)
+
+
+def test_bad_inputs_name_the_argument():
+    cam = camera()
+    with pytest.raises(ValueError, match="params: unknown names"):
+        road_flow(cam, {"speed": 1.0}, SIZE, model="paper")
+    with pytest.raises(ValueError, match="mismatched batch sizes"):
+        road_flow(cam.expand(2), {"z_d": torch.ones(3, dtype=torch.float64)}, SIZE)
+    with pytest.raises(ValueError, match="z_d: expected finite"):
+        road_flow(cam, {"z_d": float("nan")}, SIZE)
+    with pytest.raises(ValueError, match="overflows"):
+        road_flow(Camera(torch.tensor(K_SMALL), 1.65), {"x_d": 1e37}, SIZE)
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
+        road_flow("cam", {"z_d": 1.0}, SIZE)
