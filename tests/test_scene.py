@@ -19,7 +19,7 @@ TINY = (40, 128)
 SMALL = (64, 160)
 MEDIUM = (96, 320)
 KEYS = {"image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", "depth", "moving",
-        "camera", "odometry", "velocity", "pose1", "pose2", "index"}
+        "camera", "odometry", "velocity", "pose1", "pose2", "road_pose", "plane", "index"}
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

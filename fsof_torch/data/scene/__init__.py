@@ -17,6 +17,15 @@ frame as ``p_local = R_ψ (p_world - c)`` with ``R_ψ = [[cos ψ, 0, -sin ψ], [
 [sin ψ, 0, cos ψ]]``; the ego vehicle, the buildings and the cars all use it. The camera sees
 ``p_cam = R_roll R_pitch p_vehicle`` (:class:`fsof_torch.camera.Camera`).
 
+Beyond the paper (DESIGN.md §10): the body may oscillate over the road (the camera's pitch, roll
+and height relative to the road at frame k follow slow sinusoids), and a straight road may have a
+grade (its surface is y = h - g(s), a crest or a dip, with the ego vehicle riding on it). Then the
+camera at frame k sees ``p_cam = R_roll(θ_k) R_pitch(β_k) R_ψ_k (p_world - c_k)`` with θ_k, β_k
+the mounting plus the oscillation (plus the road's slope under the vehicle in β_k) and c_k at the
+oscillating height over the road along its normal; the world is the level frame whose road at
+s = 0 is y = h (:mod:`.world`). ``road_pose`` and ``plane`` give the exact pose over the road and
+the rigid plane motion of each pair.
+
 Ground truth per pair (frames t = index, t+1):
 
 * ``flow``: each pixel centre's ray at t meets a surface at a 3D point; the point moves with its
@@ -28,10 +37,13 @@ Ground truth per pair (frames t = index, t+1):
   depth render of frame t+1 interpolated bilinearly at the projected position (bilinear
   interpolation of inverse depth is exact on planes; at depth edges it errs toward "occluded").
 * ``flow_velocity`` (px/s): the analytic time derivative of each point's projection under the
-  instantaneous ego motion (forward rate v_r, lateral rate 0, yaw rate v_r tan δ_f / l) and, for
-  moving cars, the car's own velocity.
+  instantaneous ego motion (forward rate v_r, lateral rate 0, yaw rate v_r tan δ_f / l; with
+  body motion or a grade, the rates of the camera's attitude and height as well) and, for moving
+  cars, the car's own velocity.
 * ``depth``: camera z in metres (0 on the sky); ``labels``: see :data:`LABELS`; ``road``: road
   or marking pixels (the plane y = h, the freespace).
+* ``road_pose``, ``plane``: the camera over the road's tangent plane at t and its rigid motion
+  to t+1 (:func:`.ground_truth.road_motion`).
 
 The package, one idea per module: :mod:`.config` (labels, :class:`SceneConfig`, presets),
 :mod:`.motion` (the ego vehicle's motion), :mod:`.road` (road coordinates), :mod:`.objects`

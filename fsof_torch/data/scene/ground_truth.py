@@ -1,5 +1,6 @@
 """Ground truth of a pair from the 3D geometry: flow (the hit points moved rigidly and projected
-into frame t+1), validity (in view and not occluded at t+1) and the instantaneous flow in px/s."""
+into frame t+1), validity (in view and not occluded at t+1), the instantaneous flow in px/s, and
+the camera's pose over the road and its rigid motion between the two frames."""
 
 from __future__ import annotations
 
@@ -9,6 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from ...geometry.camera import mounting_matrix
 from .config import SKY
 from .motion import rot_y
 from .objects import SceneObject
@@ -44,10 +46,12 @@ def _moving_object_tables(scene: Scene, objects: list[SceneObject], k: int, dtyp
         M[i] = R1.T @ R0
         b[i] = torch.tensor(c1, dtype=torch.float64) - M[i] @ torch.tensor(c0, dtype=torch.float64)
         # the reference point on the lane line moves along the arc; the body turns about it
-        x, z, psi_s = scene.road.to_world(o.e, o.s0 + o.vs * k * scene.motion.dt)
+        s = o.s0 + o.vs * k * scene.motion.dt
+        x, z, psi_s = scene.road.to_world(o.e, s)
         speed = o.vs * (1 - scene.road.kappa * o.e)
         yaw_rate = o.vs * scene.road.kappa
-        V[i] = torch.tensor([speed * math.sin(psi_s), 0.0, speed * math.cos(psi_s)], dtype=torch.float64)
+        climb = -scene.grade.slope_at(s) * o.vs if scene.grade.active else 0.0  # y is down
+        V[i] = torch.tensor([speed * math.sin(psi_s), climb, speed * math.cos(psi_s)], dtype=torch.float64)
         # p = c + R_ψᵀ l  =>  ṗ = ċ - ψ̇ J (p - c)
         Om[i] = -yaw_rate * J
         C[i] = torch.tensor([x, 0.0, z], dtype=torch.float64)
@@ -60,10 +64,10 @@ def ground_truth(scene: Scene, k: int, hits: Hits, next_inv_depth: Tensor) -> di
     H, W = hits.t.shape
     sky = hits.label == SKY
     t = torch.where(sky, 0.0, hits.t)
-    ox, oz = hits.origin[0], hits.origin[2]
+    ox, oy, oz = hits.origin
     # world points at frame k (sky: the ray direction, a point at infinity)
     Px = torch.where(sky, hits.dx, ox + t * hits.dx)
-    Py = torch.where(sky, hits.dy, t * hits.dy)
+    Py = torch.where(sky, hits.dy, oy + t * hits.dy)
     Pz = torch.where(sky, hits.dz, oz + t * hits.dz)
     moving, M, b, V, Om, C = _moving_object_tables(scene, hits.objects, k, dtype)
     idx = None
@@ -99,8 +103,11 @@ def ground_truth(scene: Scene, k: int, hits: Hits, next_inv_depth: Tensor) -> di
     visible = (1.0 / Zs) * (1 + 2e-3) + 1e-9 >= seen
     valid = ~sky & inside & visible
 
-    # px/s: p_v = R_ψ (P - c); ṗ_v = ω J p_v - (0, 0, v_r) + R_ψ ṗ_world; p_cam = R_c p_v
-    A0, c0 = scene.world_to_camera(k)
+    # px/s: p_cam = M p_v with p_v = R_ψ (P - c), M the camera's attitude relative to the heading
+    # frame; ṗ_v = ω J p_v - R_ψ ċ + R_ψ ṗ_world, where R_ψ ċ = (0, 0, v_r) for the planar
+    # motion alone; ṗ_cam = M ṗ_v + Ṁ p_v (Ṁ = 0 without body motion or grade)
+    pose = scene.pose(k)
+    c0 = pose.c
     _, _, psi = scene.ego_pose(k)
     Rpsi = rot_y(psi)
     mot = scene.motion
@@ -112,9 +119,18 @@ def ground_truth(scene: Scene, k: int, hits: Hits, next_inv_depth: Tensor) -> di
     if idx is not None:
         wx, wy, wz = _apply(Rpsi, Pdot_sel[:, 0], Pdot_sel[:, 1], Pdot_sel[:, 2])
         dvx, dvy, dvz = dvx.index_put(idx, dvx[idx] + wx), dvy.index_put(idx, wy), dvz.index_put(idx, dvz[idx] + wz)
-    Rc = scene.Rc
-    Xc, Yc, Zc = _apply(Rc, pvx, pvy, pvz)
-    dXc, dYc, dZc = _apply(Rc, dvx, dvy, dvz)
+    if scene.rides:
+        mount_dot, centre_dot = scene.pose_rates(k)
+        # the centre's velocity beyond the planar motion (height oscillation, riding the grade)
+        planar = (mot.speed * math.sin(psi), 0.0, mot.speed * math.cos(psi))
+        extra = [float(centre_dot[m]) - planar[m] for m in range(3)]
+        ex, ey, ez = (sum(Rpsi[r][m] * extra[m] for m in range(3)) for r in range(3))
+        dvx, dvy, dvz = dvx - ex * not_sky, dvy - ey * not_sky, dvz - ez * not_sky
+    Xc, Yc, Zc = _apply(pose.mount, pvx, pvy, pvz)
+    dXc, dYc, dZc = _apply(pose.mount, dvx, dvy, dvz)
+    if scene.rides:
+        mx, my, mz = _apply(mount_dot.tolist(), pvx, pvy, pvz)
+        dXc, dYc, dZc = dXc + mx, dYc + my, dZc + mz
     okc = Zc > 1e-6
     Zc = torch.where(okc, Zc, 1.0)
     dx_ = (dXc * Zc - Xc * dZc) / (Zc * Zc)
@@ -123,3 +139,34 @@ def ground_truth(scene: Scene, k: int, hits: Hits, next_inv_depth: Tensor) -> di
     fv = torch.where(okc, Kt[1][1] * dy_, 0.0)
     return {"flow": flow, "valid": valid.unsqueeze(0), "flow_velocity": torch.stack([fu, fv])}
 
+
+def road_motion(scene: Scene, k: int) -> tuple[dict[str, float], dict[str, float]]:
+    """The camera over the road at frame k and its rigid motion to frame k+1 (DESIGN.md §10).
+
+    ``road_pose``: ``pitch``, ``roll`` (rad) of the camera relative to the road's tangent plane
+    under the vehicle at k, and its ``height`` (m) over that plane. ``plane``: with
+    R_c = R_roll(roll) R_pitch(pitch), the camera motion X' = R X + t (camera k -> camera k+1,
+    from the two poses) written as R = R_c R_v R_cᵀ, t = -R_c R_v d, where
+    R_v = R_roll(roll_change) R_pitch(pitch_change) R_yaw(yaw) and d = (x_d, y_d, z_d) is the
+    camera's displacement in the road-aligned vehicle frame of k (x right, y down along the road
+    normal, z forward); plus the ``road_pose`` values. Floats, radians and metres.
+    """
+    p0, p1 = scene.pose(k), scene.pose(k + 1)
+    A0, A1 = (torch.tensor(p.A, dtype=torch.float64) for p in (p0, p1))
+    c0, c1 = (torch.tensor(p.c, dtype=torch.float64) for p in (p0, p1))
+    R = A1 @ A0.T
+    t = A1 @ (c0 - c1)
+    Rc = mounting_matrix(torch.tensor([p0.roll], dtype=torch.float64), torch.tensor([p0.pitch], dtype=torch.float64))[0]
+    Rv = Rc.T @ R @ Rc
+    d = -(Rv.T @ (Rc.T @ t))
+    # R_v = R_roll(γ) R_pitch(α) R_yaw(φ): its last row is (cos α sin φ, -sin α, cos α cos φ), its
+    # second column (sin γ cos α, cos γ cos α, -sin α)
+    road_pose = {"pitch": p0.pitch, "roll": p0.roll, "height": p0.height}
+    plane = {
+        "pitch_change": math.atan2(-float(Rv[2, 1]), math.hypot(float(Rv[2, 0]), float(Rv[2, 2]))),
+        "yaw": math.atan2(float(Rv[2, 0]), float(Rv[2, 2])),
+        "roll_change": math.atan2(float(Rv[0, 1]), float(Rv[1, 1])),
+        "x_d": float(d[0]), "y_d": float(d[1]), "z_d": float(d[2]),
+        **road_pose,
+    }
+    return road_pose, plane

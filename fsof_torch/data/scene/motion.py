@@ -1,5 +1,5 @@
-"""The ego vehicle's planar motion: odometry per pair from the configuration, and the chain of
-world poses (c_x, c_z, ψ) of frames 0..k.
+"""The ego vehicle's motion: its planar motion (odometry per pair from the configuration, and the
+chain of world poses (c_x, c_z, ψ) of frames 0..k), and the body's oscillation over the road.
 
 A pose (c, ψ) maps world points into a local frame as ``p_local = R_ψ (p_world - c)`` with
 ``R_ψ = [[cos ψ, 0, -sin ψ], [0, 1, 0], [sin ψ, 0, cos ψ]]`` (:func:`rot_y`).
@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 import torch
+from torch import Tensor
 
 from ...geometry.egomotion import ego_motion_from_ackermann
 from .config import SceneConfig
@@ -65,3 +66,21 @@ def rot_y(psi: float) -> list[list[float]]:
     c, s = math.cos(psi), math.sin(psi)
     return [[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]]
 
+
+
+class BodyMotion:
+    """Suspension-like oscillation of the body over the road: offsets of the camera's pitch and
+    roll (rad) and height (m) relative to the road, each ``a sin(2π f τ + φ)`` at time τ (s), with
+    the amplitudes a and frequencies f of the configuration and phases φ drawn from the scene seed.
+    """
+
+    def __init__(self, cfg: SceneConfig, seed: int) -> None:
+        self.amplitudes = (float(cfg.body_pitch), float(cfg.body_roll), float(cfg.body_height))
+        self.frequencies = (float(cfg.body_pitch_hz), float(cfg.body_roll_hz), float(cfg.body_height_hz))
+        g = torch.Generator().manual_seed((int(seed) * 1_000_003 + 271_828) % (2 ** 63))
+        self.phases = tuple((2 * math.pi * torch.rand(3, generator=g, dtype=torch.float64)).tolist())
+
+    def offsets(self, tau: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """(pitch, roll, height) offsets at times ``tau`` (s), differentiable in ``tau``."""
+        return tuple(a * torch.sin(2 * math.pi * f * tau + phase)
+                     for a, f, phase in zip(self.amplitudes, self.frequencies, self.phases))

@@ -15,12 +15,14 @@ BUILDING_BOX, CAR_BODY, CAR_CABIN = 0, 1, 2
 
 @dataclass
 class SceneObject:
+    """A box of the scene (a building block, or a car's body or cabin), placed in road coordinates."""
+
     kind: int          # BUILDING_BOX, CAR_BODY, CAR_CABIN
     e: float           # lateral road coordinate of the reference point (m)
     s0: float          # arc length at frame 0 (m)
     vs: float          # arc-length speed (m/s), negative for oncoming cars
     half: tuple        # half extents (x, y, z) in the object's frame (m)
-    y: float           # world y of the centre (m, down)
+    y: float           # world y of the centre (m, down) on a level road
     offset: float      # shift of the centre along the object's z axis (m)
     reverse: bool      # facing against the road direction
     colour: tuple      # base RGB 0..255
@@ -28,7 +30,7 @@ class SceneObject:
 
 
 def block_objects(cfg: SceneConfig, motion: Motion, seed: int, block: int,
-                   road_kappa: float = 0.0) -> list[SceneObject]:
+                  road_kappa: float = 0.0) -> list[SceneObject]:
     """The objects generated for road block ``block`` (arc length [40 b, 40 (b + 1)) at frame 0)."""
     g = torch.Generator().manual_seed((seed * 1_000_003 + block * 7919 + 12345) % (2 ** 63))
 
@@ -56,8 +58,13 @@ def block_objects(cfg: SceneConfig, motion: Motion, seed: int, block: int,
                 e = side * (w_road + cfg.pavement_width + setback + depth / 2)
                 tone = uni(0.0, 1.0)
                 colour = (150 + 70 * tone + uni(-15, 15), 120 + 60 * tone + uni(-15, 15), 100 + 50 * tone + uni(-15, 15))
-                objs.append(SceneObject(BUILDING_BOX, e, s + length / 2, 0.0, (depth / 2, tall / 2, length / 2),
-                                    h - cfg.kerb_height - tall / 2, 0.0, False, colour, int(uni(0, 1e6))))
+                # on a grade the block sits at the height of its middle; its foot reaches down to
+                # the lowest point of the pavement along it (the part below ground is hidden)
+                sink = max(abs(cfg.grade_before), abs(cfg.grade_after)) * length / 2 if cfg.has_grade else 0.0
+                objs.append(SceneObject(BUILDING_BOX, e, s + length / 2, 0.0,
+                                        (depth / 2, tall / 2 + sink / 2, length / 2),
+                                        h - cfg.kerb_height - tall / 2 + sink / 2, 0.0, False, colour,
+                                        int(uni(0, 1e6))))
                 s += length + uni(0.5, 4.0)
 
     def car(e: float, s0: float, vs: float, reverse: bool) -> None:

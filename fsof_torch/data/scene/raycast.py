@@ -1,5 +1,6 @@
 """Ray casting: the nearest surface (road, kerb, pavement, box, or the sky) along each sample's
-viewing ray, closed-form intersections in the scene's dtype."""
+viewing ray, closed-form intersections in the scene's dtype (on a graded road the ground's in
+float64: :meth:`fsof_torch.data.scene.road.Grade.first_hit`)."""
 
 from __future__ import annotations
 
@@ -42,17 +43,20 @@ def _box_slab(o_l: list[float], d_l: list[Tensor], half: tuple) -> tuple[Tensor,
     return t_near, t_far
 
 
-def _ground(scene: Scene, ox: float, oz: float, dx: Tensor, dy: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
+def _ground(scene: Scene, origin: list[float], dx: Tensor, dy: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
     """Ray parameter and label of the first hit with the road, the kerb faces and the raised
     pavement (inf and sky where a ray goes up)."""
+    if scene.grade.active:
+        return _ground_on_grade(scene, origin, dx, dy, dz)
+    ox, oy, oz = origin
     h, kh = scene.h, scene.cfg.kerb_height
     road = scene.road
     w_road = scene.cfg.lane_width + scene.cfg.parking_width
     down = dy > 1e-9
     dy_safe = torch.where(down, dy, torch.ones_like(dy))
-    t_road = h / dy_safe
+    t_road = (h - oy) / dy_safe
     e_road = road.lateral(ox + t_road * dx, oz + t_road * dz)
-    t_pave = (h - kh) / dy_safe
+    t_pave = (h - kh - oy) / dy_safe
     e_pave = road.lateral(ox + t_pave * dx, oz + t_pave * dz)
     # the raised pavement is met first: a ray over it at kerb height hits its top
     on_pave = down & (e_pave.abs() >= w_road)
@@ -67,6 +71,38 @@ def _ground(scene: Scene, ox: float, oz: float, dx: Tensor, dy: Tensor, dz: Tens
         t = t.index_put(idx, tk)
         label = label.index_put(idx, torch.full_like(tk, KERB, dtype=torch.int64))
     return t, label
+
+
+def _ground_on_grade(scene: Scene, origin: list[float], dx: Tensor, dy: Tensor, dz: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`_ground` on a straight road with a grade (road y = h - g(z), pavement kh higher),
+    in float64. A ray meets the pavement top if it reaches the pavement's level over the
+    pavement; else the road if it reaches the road's level over the road; else the kerb face
+    toward which it moves, if it crosses that face while between the two levels; else nothing
+    (the lateral offset is linear along a ray, and each level is met first where the ray goes
+    below it)."""
+    ox, oy, oz = origin
+    dtype = dy.dtype
+    dx, dy, dz = dx.double(), dy.double(), dz.double()
+    h, kh = scene.h, scene.cfg.kerb_height
+    road, grade = scene.road, scene.grade
+    w_road = scene.cfg.lane_width + scene.cfg.parking_width
+    t_road = grade.first_hit(oy, oz, dy, dz, h)
+    t_pave = grade.first_hit(oy, oz, dy, dz, h - kh)
+
+    def lateral(t: Tensor) -> Tensor:
+        return road.lateral(ox + torch.where(torch.isfinite(t), t, 0.0) * dx, oz)  # straight: e = x + e0
+
+    on_pave = torch.isfinite(t_pave) & (lateral(t_pave).abs() >= w_road)
+    on_road = ~on_pave & torch.isfinite(t_road) & (lateral(t_road).abs() < w_road)
+    # the kerb line x = ±w_road - e0 on the side the ray moves toward
+    moving = dx != 0
+    t_kerb = (torch.sign(dx) * w_road - road.e0 - ox) / torch.where(moving, dx, 1.0)
+    t_kerb = torch.where(moving & torch.isfinite(t_pave), t_kerb, math.inf)
+    below_pave = oy + t_kerb * dy >= h - kh - grade.elevation(oz + t_kerb * dz)
+    kerb = ~on_pave & ~on_road & (t_kerb >= t_pave) & (t_kerb <= t_road) & below_pave
+    t = torch.where(on_pave, t_pave, torch.where(on_road, t_road, torch.where(kerb, t_kerb, math.inf)))
+    label = torch.where(on_road, ROAD, torch.where(on_pave, PAVEMENT, torch.where(kerb, KERB, SKY)))
+    return t.to(dtype), label
 
 
 def cast_rays(scene: Scene, k: int, u: Tensor, v: Tensor, *, grid: bool = True, details: bool = True) -> Hits:
@@ -91,18 +127,19 @@ def cast_rays(scene: Scene, k: int, u: Tensor, v: Tensor, *, grid: bool = True, 
     dcx = Ki[0][0] * ug + Ki[0][1] * vg + Ki[0][2]
     dcy = Ki[1][1] * vg + Ki[1][2]
     dx, dy, dz = ((A[0][j] * dcx + A[1][j] * dcy + A[2][j]).expand(shape) for j in range(3))
-    ox, oz = c[0], c[2]
+    ox, oy, oz = c
 
     if grid:
-        # rows entirely above the horizon see no ground: skip them
-        rows = (dy > 1e-9).any(dim=1)
+        # rows entirely above the horizon see no level ground: skip them (a graded road may
+        # rise above the horizon)
+        rows = torch.ones(Hs, dtype=torch.bool) if scene.grade.active else (dy > 1e-9).any(dim=1)
         r0 = int(rows.to(torch.int8).argmax()) if bool(rows.any()) else Hs
         t = torch.full(shape, float("inf"), dtype=dtype)
         label = torch.full(shape, SKY, dtype=torch.int64)
         if r0 < Hs:
-            t[r0:], label[r0:] = _ground(scene, ox, oz, dx[r0:], dy[r0:], dz[r0:])
+            t[r0:], label[r0:] = _ground(scene, c, dx[r0:], dy[r0:], dz[r0:])
     else:
-        t, label = _ground(scene, ox, oz, dx, dy, dz)
+        t, label = _ground(scene, c, dx, dy, dz)
     obj = torch.full(shape, -1, dtype=torch.int64)
     objects = scene.objects(k)
     if objects:
@@ -135,7 +172,7 @@ def cast_rays(scene: Scene, k: int, u: Tensor, v: Tensor, *, grid: bool = True, 
                 continue
         ddx, ddy, ddz = dx[sel], dy[sel], dz[sel]
         centre, (cs, sn) = centres[i], psis[i]
-        rel = (ox - centre[0], -centre[1], oz - centre[2])
+        rel = (ox - centre[0], oy - centre[1], oz - centre[2])
         o_l = [cs * rel[0] - sn * rel[2], rel[1], sn * rel[0] + cs * rel[2]]
         d_l = [cs * ddx - sn * ddz, ddy, sn * ddx + cs * ddz]
         t_near, t_far = _box_slab(o_l, d_l, o.half)
@@ -156,7 +193,7 @@ def cast_rays(scene: Scene, k: int, u: Tensor, v: Tensor, *, grid: bool = True, 
             tt = t[idx]
             table = torch.tensor([[*centres[i], *psis[i], *o.half] for i, o in enumerate(objects)], dtype=dtype)[oid]
             rx = ox + tt * dx[idx] - table[:, 0]
-            ry = tt * dy[idx] - table[:, 1]
+            ry = oy + tt * dy[idx] - table[:, 1]
             rz = oz + tt * dz[idx] - table[:, 2]
             cs, sn = table[:, 3], table[:, 4]
             local = torch.stack([cs * rx - sn * rz, ry, sn * rx + cs * rz], dim=1)

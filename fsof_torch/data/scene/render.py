@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..._check import check_size
 from .config import MARKING, ROAD, SKY, SceneConfig, scene_config
-from .ground_truth import ground_truth
+from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
 from .shading import sensor_noise, shade
 from .world import Scene
@@ -98,6 +98,7 @@ class _Renderer:
         mot = scene.motion
         cam0 = scene.world_to_camera(k)
         cam1 = scene.world_to_camera(k + 1)
+        road_pose, plane = road_motion(scene, k)
         return {
             "image1": f0["image"],
             "image2": f1["image"].clone(),  # the next pair's image1: no aliasing between pairs
@@ -114,6 +115,8 @@ class _Renderer:
                          "dt": mot.dt},
             "pose1": _camera_to_world(*cam0),
             "pose2": _camera_to_world(*cam1),
+            "road_pose": road_pose,
+            "plane": plane,
             "index": k,
         }
 
@@ -151,10 +154,16 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         ``valid`` (1, H, W) bool; ``flow_velocity`` (2, H, W) px/s; ``road`` (1, H, W) bool;
         ``labels`` (H, W) int64 (:data:`LABELS`); ``depth`` (1, H, W) m (camera z, 0 on the sky);
         ``moving`` (1, H, W) bool (pixels on moving cars);
-        ``camera`` (:class:`Camera`, batch 1); ``odometry`` dict(x_d, z_d, yaw) floats (m, rad);
-        ``velocity`` dict(speed m/s, steering rad, wheelbase m, dt s) floats; ``pose1``, ``pose2``
-        (4, 4) float64 camera-to-world poses (KITTI convention, world = vehicle frame of frame 0);
-        ``index`` int.
+        ``camera`` (:class:`Camera`, batch 1: the calibrated mounting, without body motion);
+        ``odometry`` dict(x_d, z_d, yaw) floats (m, rad) of the planar ego motion; ``velocity``
+        dict(speed m/s, steering rad, wheelbase m, dt s) floats; ``pose1``, ``pose2`` (4, 4)
+        float64 camera-to-world poses (KITTI convention; world = the vehicle frame of frame 0 on a
+        level road without body motion, in general the level frame x right, y down, z along the
+        road's start, in which the road at s = 0 is y = h); ``road_pose`` dict(pitch, roll rad,
+        height m) of the camera relative to the road's tangent plane under the vehicle at t;
+        ``plane`` dict(pitch_change, yaw, roll_change rad, x_d, y_d, z_d m, pitch, roll, height)
+        of the rigid motion t -> t+1 over that plane (:func:`.ground_truth.road_motion`, DESIGN.md
+        §10); ``index`` int.
     """
     return render_sequence(preset, 1, seed=seed, size=size, dtype=dtype, start=index, **overrides)[0]
 

@@ -29,7 +29,8 @@ def shade(scene: Scene, hits: Hits, *, labels: bool = False) -> Tensor | tuple[T
     f = scene.K[0][0]
     tables = scene.noise
     label = hits.label
-    ox, oz = hits.origin[0], hits.origin[2]
+    ox, oy, oz = hits.origin
+    graded = scene.grade.active
 
     # sky: a function of the world direction only (it lies at infinity)
     idx = (label == SKY).nonzero(as_tuple=True)
@@ -56,11 +57,19 @@ def shade(scene: Scene, hits: Hits, *, labels: bool = False) -> Tensor | tuple[T
             # a vertical face seen at a grazing angle: blur generously
             fp = (t * torch.sqrt(dn2) * (3.0 / f)).clamp_min(1e-4)
             _, s = scene.road.to_road(px, pz)
-            value = 185.0 + tex * 0.6 * _fbm(tables, s, t * dy * 3, fp, ASPHALT_CELLS[:4], _ROAD_AMPS[:4])
+            height = oy + t * dy  # world y, and on a grade relative to the road there
+            if graded:
+                height = height + scene.grade.elevation(pz.double()).to(dtype)
+            value = 185.0 + tex * 0.6 * _fbm(tables, s, height * 3, fp, ASPHALT_CELLS[:4], _ROAD_AMPS[:4])
             colour = (value, value, value + 3.0)
         else:
-            # pixel footprint on the plane: distance / f / cos(incidence), metres
-            fp = (t * dn2 / (f * dy)).clamp_min(1e-4)
+            # pixel footprint on the plane: distance / f / cos(incidence), metres; the ray's
+            # component along the surface normal (0, 1, g') / sqrt(1 + g'²) is dy on a level road
+            facing = dy
+            if graded:
+                q = scene.grade.slope(pz.double()).to(dtype)
+                facing = (dy + q * dz) / torch.sqrt(1 + q * q)
+            fp = (t * dn2 / (f * facing)).clamp_min(1e-4)
             amps = tuple(cfg.asphalt) if kind == ROAD and cfg.asphalt is not None else _ROAD_AMPS
             n = _fbm(tables, px, pz, fp, ASPHALT_CELLS, amps)
             e, s = scene.road.to_road(px, pz)

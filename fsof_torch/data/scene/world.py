@@ -1,18 +1,46 @@
-"""A configured scene: road, ego poses, objects near the ego vehicle, camera matrices and the
-value-noise tables of its textures."""
+"""A configured scene: road, ego poses, objects near the ego vehicle, camera poses and the
+value-noise tables of its textures.
+
+The camera at frame k (time τ = k dt) sees ``p_cam = A (p_world - c)`` with
+
+    A = R_roll(θ) R_pitch(β) R_roll(ρ) R_pitch(α) R_ψ,    c = G - H n
+
+where ψ is the heading of the planar ego motion, (x, z) its position and G = (x, h - g(z), z) the
+road point under it; n the road's downward unit normal at G and (α, ρ) the tilt of that tangent
+plane along and across the heading (ρ = 0 whenever the vehicle heads along the road, as it does
+on a straight road with a grade); θ = roll + body roll offset, β = pitch + body pitch offset the
+camera's attitude relative to the road plane, H = h + body height offset its height over that
+plane. On a level road α = ρ = 0: A = R_roll(θ) R_pitch(β) R_ψ.
+"""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
+from torch import Tensor
 
-from ...geometry.camera import Camera
+from ...geometry.camera import Camera, mounting_matrix, pitch_matrix, roll_matrix
 from .config import SceneConfig
-from .motion import ego_poses, motion_from_config, rot_y
+from .motion import BodyMotion, ego_poses, motion_from_config, rot_y
 from .objects import BLOCK, SceneObject, block_objects
-from .road import Road
+from .road import Grade, Road
+
+
+@dataclass(frozen=True)
+class CameraPose:
+    """The camera at one frame: ``p_cam = A (p_world - c)`` (A 3×3, c 3, Python floats);
+    ``mount`` the attitude relative to the heading frame (A = mount R_ψ); ``roll``, ``pitch``
+    (rad) relative to the road's tangent plane under the vehicle and ``height`` (m) over it."""
+
+    A: list
+    c: list
+    mount: list
+    roll: float
+    pitch: float
+    height: float
 
 
 class Scene:
@@ -22,6 +50,10 @@ class Scene:
         self.cfg, self.seed, self.dtype = cfg, int(seed), dtype
         self.motion = motion_from_config(cfg)
         self.road = Road(cfg, self.motion)
+        self.grade = Grade(cfg)
+        self.body = BodyMotion(cfg, self.seed)
+        # the camera's attitude, centre or height change beyond the planar motion
+        self.rides = cfg.has_grade or cfg.has_body_motion
         self.h = float(cfg.height)
         base = Camera(torch.tensor(cfg.K, dtype=torch.float64), cfg.height, cfg.roll, cfg.pitch)
         size = tuple(cfg.size) if cfg.size is not None else tuple(cfg.base_size)
@@ -29,7 +61,8 @@ class Scene:
             base = base.scaled(size[1] / cfg.base_size[1], size[0] / cfg.base_size[0])
         self.size = size
         self.camera64 = base
-        self.Rc = base.mounting()[0].tolist()
+        # the mounting as the Camera holds it ((1,) float64), for the poses
+        self.roll, self.pitch = base.roll.clone(), base.pitch.clone()
         self.K = base.K[0].tolist()
         self.K_inv = base.K_inv()[0].tolist()
         g = torch.Generator().manual_seed(self.seed * 2 + 1)
@@ -37,6 +70,7 @@ class Scene:
         lattice = torch.rand(12, 1, 128, 128, generator=g, dtype=torch.float64) * 2 - 1
         self.noise = F.pad(lattice, (0, 1, 0, 1), mode="circular").to(dtype)
         self._poses = ego_poses(self.motion, 1)
+        self._camera_poses: dict[int, CameraPose] = {}
         self._blocks: dict[int, list[SceneObject]] = {}
 
     # -- poses and objects --------------------------------------------------------------------
@@ -58,7 +92,9 @@ class Scene:
         # the centre sits `offset` metres along the object's own z axis
         x += o.offset * math.sin(psi)
         z += o.offset * math.cos(psi)
-        return [x, o.y, z], psi
+        # on a grade the object keeps its height over the road at its reference point
+        y = o.y - self.grade.elevation_at(s) if self.grade.active else o.y
+        return [x, y, z], psi
 
     def objects(self, k: int) -> list[SceneObject]:
         """The objects near the ego vehicle at frame k: arc length from 30 m behind to 220 m ahead
@@ -84,14 +120,64 @@ class Scene:
                     out.append(o)
         return out
 
-    # -- camera matrices --------------------------------------------------------------------
+    # -- camera poses --------------------------------------------------------------------
+    def _mounting(self, x: Tensor, z: Tensor, psi: Tensor, tau: Tensor) -> tuple[Tensor, ...]:
+        """The camera's attitude relative to the heading frame (3, 3), its centre (3,) in the
+        world, and θ, β, H (module docstring) for the planar pose (x, z, ψ) at time τ; (1,)
+        float64 inputs, differentiable (:meth:`pose_rates` takes its derivative)."""
+        d_pitch, d_roll, d_height = self.body.offsets(tau)
+        theta, beta, height = self.roll + d_roll, self.pitch + d_pitch, self.h + d_height
+        # the road's downward unit normal at G on a straight road: (0, 1, g'(z)) / N
+        q = self.grade.slope(z)
+        N = torch.sqrt(1 + q * q)
+        alpha = torch.atan2(torch.cos(psi) * q, torch.ones_like(q))
+        rho = torch.asin(torch.sin(psi) * q / N)
+        mount = mounting_matrix(theta, beta) @ (roll_matrix(rho) @ pitch_matrix(alpha))
+        normal = torch.stack([torch.zeros_like(q), torch.ones_like(q), q], dim=-1) / N.unsqueeze(-1)
+        ground = torch.stack([x, self.h - self.grade.elevation(z), z], dim=-1)
+        centre = ground - height.unsqueeze(-1) * normal
+        return mount[0], centre[0], theta[0], beta[0], height[0]
+
+    def _planar_state(self, k: int) -> tuple[Tensor, ...]:
+        x, z, psi = self.ego_pose(k)
+        return tuple(torch.tensor([v], dtype=torch.float64) for v in (x, z, psi, k * self.motion.dt))
+
+    def pose(self, k: int) -> CameraPose:
+        """The camera pose at frame k."""
+        if k not in self._camera_poses:
+            mount, centre, theta, beta, height = self._mounting(*self._planar_state(k))
+            mount = mount.tolist()
+            R = rot_y(self.ego_pose(k)[2])
+            # Python sums in this order: the poses of a level road without body motion are the
+            # ones earlier versions rendered, to the bit
+            A = [[sum(mount[i][m] * R[m][j] for m in range(3)) for j in range(3)] for i in range(3)]
+            self._camera_poses = {kk: v for kk, v in self._camera_poses.items() if kk >= k - 2}
+            self._camera_poses[k] = CameraPose(A, centre.tolist(), mount, float(theta), float(beta), float(height))
+        return self._camera_poses[k]
+
     def world_to_camera(self, k: int) -> tuple[list[list[float]], list[float]]:
         """(A, c): p_cam = A (p_world - c) at frame k."""
-        cx, cz, psi = self.ego_pose(k)
-        R = rot_y(psi)
-        A = [[sum(self.Rc[i][m] * R[m][j] for m in range(3)) for j in range(3)] for i in range(3)]
-        return A, [cx, 0.0, cz]
+        pose = self.pose(k)
+        return pose.A, pose.c
+
+    def pose_rates(self, k: int) -> tuple[Tensor, Tensor]:
+        """Time derivatives at frame k of the camera's attitude relative to the heading frame
+        (3, 3, per s) and of its centre (3,, m/s, world), along the instantaneous ego motion
+        (speed v along the heading, yaw rate ω) and the body oscillation; float64."""
+        mot = self.motion
+        omega = mot.speed * math.tan(mot.steering) / mot.wheelbase
+        psi = self.ego_pose(k)[2]
+        rates = (mot.speed * math.sin(psi), mot.speed * math.cos(psi), omega, 1.0)
+        # d/ds of the pose along the motion (x + s ẋ, z + s ż, ψ + s ω, τ + s) at s = 0, by
+        # reverse mode twice: g(w) = Jᵀ w, then dg/dw = J (forward-mode AD would load torch's
+        # TorchScript decompositions on first use)
+        s = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+        mount, centre = self._mounting(*(p + r * s for p, r in zip(self._planar_state(k), rates)))[:2]
+        out = torch.cat([mount.reshape(-1), centre])
+        w = torch.zeros_like(out, requires_grad=True)
+        (g,) = torch.autograd.grad(out, s, grad_outputs=w, create_graph=True)
+        (rate,) = torch.autograd.grad(g, w, torch.ones_like(g))
+        return rate[:9].reshape(3, 3), rate[9:]
 
     def camera(self) -> Camera:
         return self.camera64.to(self.dtype)
-
