@@ -217,6 +217,22 @@ def test_ground_lies_on_the_graded_surfaces(preset):
     torch.testing.assert_close(e.abs(), torch.full_like(e, cfg.lane_width + cfg.parking_width), atol=1e-9, rtol=0)
     road_y = cfg.height - _elevation(cfg, P[2][kerb])
     assert bool(((P[1][kerb] <= road_y + 1e-9) & (P[1][kerb] >= road_y - cfg.kerb_height - 1e-9)).all())
+    # no ray crosses the ground before its hit (or, for the sky, within 3 km): 2000 rays sampled
+    # at 2000 points each
+    ground = torch.isin(labels, torch.tensor([LABELS[n] for n in ("road", "marking", "pavement", "sky")]))
+    pick = ground.flatten().nonzero()[:, 0][torch.randperm(int(ground.sum()), generator=torch.Generator().manual_seed(0))[:2000]]
+    T = pair["pose1"]
+    cam = pair["camera"]
+    H, W = labels.shape
+    pix = torch.stack([pick % W, pick // W, torch.ones_like(pick)]).double()
+    direction = T[:3, :3] @ (cam.K_inv()[0].double() @ pix)
+    far = torch.where(labels.flatten()[pick] == LABELS["sky"], 3000.0, pair["depth"].flatten()[pick].double())
+    frac = torch.linspace(1e-3, 1 - 1e-6, 2000, dtype=torch.float64).unsqueeze(1)
+    pts = T[:3, 3].reshape(3, 1, 1) + direction.unsqueeze(1) * (frac * far).unsqueeze(0)  # (3, samples, rays)
+    below_road = pts[1] > cfg.height - _elevation(cfg, pts[2]) + 1e-9
+    on_pavement_side = (pts[0] + cfg.lane_width / 2).abs() >= cfg.lane_width + cfg.parking_width
+    below_pavement = pts[1] > cfg.height - cfg.kerb_height - _elevation(cfg, pts[2]) + 1e-9
+    assert not bool((below_road | (on_pavement_side & below_pavement)).any())
 
 
 def test_crest_road_is_the_tangent_plane_before_the_curve_and_not_after():
@@ -271,25 +287,6 @@ def test_static_flow_from_depth_and_poses(preset, overrides):
     if overrides:
         moving = pair["moving"][0] & pair["valid"][0]
         assert int(moving.sum()) > 20 and float((pair["flow"] - ref).norm(dim=0)[moving].mean()) > 0.5
-
-
-@pytest.mark.parametrize("preset, overrides", [
-    ("body-motion", {}), ("crest", {"body_pitch": DEG, "body_roll": DEG, "body_height": 0.02}), ("dip", {}),
-])
-def test_velocity_flow_is_the_limit_of_displacement_flow(preset, overrides):
-    # flow / dt -> flow_velocity linearly in dt, moving cars included: the rates of the camera's
-    # attitude and height are in the px/s ground truth
-    errors = {}
-    for dt in (1e-3, 1e-4):
-        pair = render_pair(preset, 0, size=SMALL, dtype=torch.float64, dt=dt, moving_cars=4.0, **overrides)
-        for name, mask in (("static", ~pair["moving"][0]), ("moving", pair["moving"][0])):
-            mask = mask & pair["valid"][0]
-            assert int(mask.sum()) > 20, name
-            diff = (pair["flow"] / dt - pair["flow_velocity"]).norm(dim=0)[mask].mean()
-            errors[name, dt] = float(diff / pair["flow_velocity"].norm(dim=0)[mask].mean())
-    for name in ("static", "moving"):
-        assert errors[name, 1e-4] < 1e-3
-        assert errors[name, 1e-4] < 0.2 * errors[name, 1e-3]
 
 
 def test_objects_follow_the_grade():

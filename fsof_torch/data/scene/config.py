@@ -68,8 +68,9 @@ class SceneConfig:
     Vehicle body motion over the road (0 for none): ``body_pitch``, ``body_roll`` (rad) and
     ``body_height`` (m) are the amplitudes of a sinusoidal oscillation of the camera's pitch, roll
     and height relative to the road, at the frequencies ``body_pitch_hz``, ``body_roll_hz``,
-    ``body_height_hz`` (Hz) and phases drawn from the scene seed. The defaults give, at ±1°, ±1°,
-    ±2 cm and dt = 0.1 s, mean per-frame changes of 0.084°, 0.092° and 0.97 cm (about KITTI's).
+    ``body_height_hz`` (Hz) and phases drawn from the scene seed. With ±1°, ±1°, ±2 cm at
+    dt = 0.1 s the default frequencies give mean per-frame changes of (4/π) a sin(π f dt) =
+    0.084°, 0.092° and 0.97 cm, as measured on KITTI ground truth (0.085°, 0.09°, about 1 cm).
 
     Road grade (0 for a level road): the road's elevation g(s) along the arc length s rises by
     ``grade_before`` metres per metre up to ``grade_start`` (m), then the grade changes linearly
@@ -136,7 +137,7 @@ _DEFAULT_ASPHALT = (25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0)
 #: (1 px band-pass) contrast measured on the real KITTI road (benchmarks/scene_realism.py).
 SENSOR_NOISE = 3.8
 
-#: Named scene presets (see the README table). Overrides such as ``speed_factor=4`` or
+#: Named scene presets (docs/synthetic-scenes.md). Overrides such as ``speed_factor=4`` or
 #: ``roll=math.radians(5)`` apply on top.
 PRESETS: dict[str, SceneConfig] = {
     # the refine job's default sequence, made like the real KITTI samples in ../shared/data:

@@ -111,7 +111,7 @@ def ground_truth(scene: Scene, k: int, hits: Hits, next_inv_depth: Tensor) -> di
     _, _, psi = scene.ego_pose(k)
     Rpsi = rot_y(psi)
     mot = scene.motion
-    omega = mot.speed * math.tan(mot.steering) / mot.wheelbase
+    omega = mot.yaw_rate
     pvx, pvy, pvz = _apply(Rpsi, Px - c0[0] * not_sky, Py - c0[1] * not_sky, Pz - c0[2] * not_sky)
     dvx = -omega * pvz
     dvy = torch.zeros_like(pvy)

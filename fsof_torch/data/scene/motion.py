@@ -29,6 +29,11 @@ class Motion:
     wheelbase: float
     dt: float
 
+    @property
+    def yaw_rate(self) -> float:
+        """ψ̇ = v_r tan δ_f / l (rad/s)."""
+        return self.speed * math.tan(self.steering) / self.wheelbase
+
 
 def motion_from_config(cfg: SceneConfig) -> Motion:
     """The per-pair odometry and velocities of a configuration (explicit odometry, or Ackermann

@@ -3,14 +3,14 @@ value-noise tables of its textures.
 
 The camera at frame k (time τ = k dt) sees ``p_cam = A (p_world - c)`` with
 
-    A = R_roll(θ) R_pitch(β) R_roll(ρ) R_pitch(α) R_ψ,    c = G - H n
+    A = R_roll(θ) R_pitch(β + α) R_ψ,    c = G - H n
 
 where ψ is the heading of the planar ego motion, (x, z) its position and G = (x, h - g(z), z) the
-road point under it; n the road's downward unit normal at G and (α, ρ) the tilt of that tangent
-plane along and across the heading (ρ = 0 whenever the vehicle heads along the road, as it does
-on a straight road with a grade); θ = roll + body roll offset, β = pitch + body pitch offset the
-camera's attitude relative to the road plane, H = h + body height offset its height over that
-plane. On a level road α = ρ = 0: A = R_roll(θ) R_pitch(β) R_ψ.
+road point under it (a grade needs a straight road along z and no yaw, so the vehicle heads along
+the road); n = (0, 1, g'(z)) / sqrt(1 + g'²) the road's downward unit normal at G and
+α = atan g'(z) its slope, by which the vehicle pitches; θ = roll + body roll offset and
+β = pitch + body pitch offset the camera's attitude relative to the road's tangent plane at G,
+H = h + body height offset its height over that plane. On a level road α = 0 and G = (x, h, z).
 """
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from ...geometry.camera import Camera, mounting_matrix, pitch_matrix, roll_matrix
+from ...geometry.camera import Camera, mounting_matrix, pitch_matrix
 from .config import SceneConfig
 from .motion import BodyMotion, ego_poses, motion_from_config, rot_y
 from .objects import BLOCK, SceneObject, block_objects
@@ -127,12 +127,10 @@ class Scene:
         float64 inputs, differentiable (:meth:`pose_rates` takes its derivative)."""
         d_pitch, d_roll, d_height = self.body.offsets(tau)
         theta, beta, height = self.roll + d_roll, self.pitch + d_pitch, self.h + d_height
-        # the road's downward unit normal at G on a straight road: (0, 1, g'(z)) / N
+        # the road's slope under the vehicle (ψ = 0 on a graded road: no cross slope)
         q = self.grade.slope(z)
         N = torch.sqrt(1 + q * q)
-        alpha = torch.atan2(torch.cos(psi) * q, torch.ones_like(q))
-        rho = torch.asin(torch.sin(psi) * q / N)
-        mount = mounting_matrix(theta, beta) @ (roll_matrix(rho) @ pitch_matrix(alpha))
+        mount = mounting_matrix(theta, beta) @ pitch_matrix(torch.atan(q))
         normal = torch.stack([torch.zeros_like(q), torch.ones_like(q), q], dim=-1) / N.unsqueeze(-1)
         ground = torch.stack([x, self.h - self.grade.elevation(z), z], dim=-1)
         centre = ground - height.unsqueeze(-1) * normal
@@ -148,8 +146,8 @@ class Scene:
             mount, centre, theta, beta, height = self._mounting(*self._planar_state(k))
             mount = mount.tolist()
             R = rot_y(self.ego_pose(k)[2])
-            # Python sums in this order: the poses of a level road without body motion are the
-            # ones earlier versions rendered, to the bit
+            # Python sums in the order of R_c R_ψ: on a level road without body motion the pose
+            # is exactly the planar model's (mount = R_c), to the bit
             A = [[sum(mount[i][m] * R[m][j] for m in range(3)) for j in range(3)] for i in range(3)]
             self._camera_poses = {kk: v for kk, v in self._camera_poses.items() if kk >= k - 2}
             self._camera_poses[k] = CameraPose(A, centre.tolist(), mount, float(theta), float(beta), float(height))
@@ -165,9 +163,8 @@ class Scene:
         (3, 3, per s) and of its centre (3,, m/s, world), along the instantaneous ego motion
         (speed v along the heading, yaw rate ω) and the body oscillation; float64."""
         mot = self.motion
-        omega = mot.speed * math.tan(mot.steering) / mot.wheelbase
         psi = self.ego_pose(k)[2]
-        rates = (mot.speed * math.sin(psi), mot.speed * math.cos(psi), omega, 1.0)
+        rates = (mot.speed * math.sin(psi), mot.speed * math.cos(psi), mot.yaw_rate, 1.0)
         # d/ds of the pose along the motion (x + s ẋ, z + s ż, ψ + s ω, τ + s) at s = 0, by
         # reverse mode twice: g(w) = Jᵀ w, then dg/dw = J (forward-mode AD would load torch's
         # TorchScript decompositions on first use)
