@@ -9,6 +9,8 @@ import math
 
 import pytest
 import torch
+from hypothesis import assume, given, settings
+from hypothesis import strategies as st
 
 from fsof_torch.data.scene import LABELS, PRESETS, render_pair, render_sequence, scene_config
 from fsof_torch.geometry.camera import pitch_matrix, roll_matrix
@@ -146,6 +148,21 @@ def test_body_motion_road_flow_is_the_plane_homography(index, seed, overrides):
     assert float(err.max()) <= 1e-6
     # the paper's planar model with the calibrated mounting is not it
     assert abs(pair["road_pose"]["pitch"] - pair["camera"].pitch.item()) > 1e-5
+
+
+@settings(max_examples=15, deadline=None)
+@given(st.fixed_dictionaries({
+    "body_pitch": st.floats(0.0, 5 * DEG), "body_roll": st.floats(0.0, 5 * DEG), "body_height": st.floats(0.0, 0.1),
+    "body_pitch_hz": st.floats(0.0, 3.0), "body_roll_hz": st.floats(0.0, 3.0), "body_height_hz": st.floats(0.0, 3.0),
+    "roll": st.floats(-3 * DEG, 3 * DEG), "pitch": st.floats(-3 * DEG, 3 * DEG), "height": st.floats(1.2, 2.0),
+    "steering": st.floats(-0.1, 0.1), "speed": st.floats(2.0, 20.0)}),
+    st.integers(0, 30), st.integers(0, 1000))
+def test_random_body_motion_is_a_plane_homography(overrides, index, seed):
+    pair = render_pair("body-motion", index, seed=seed, size=(40, 128), dtype=torch.float64, **overrides)
+    road = pair["road"][0]
+    assume(int(road.sum()) >= 50)  # a sharp turn can leave little road in a small view
+    err = (pair["flow"] - _homography_flow(pair)).norm(dim=0)[road]
+    assert float(err.max()) <= 1e-6
 
 
 @pytest.mark.parametrize("preset, index", [("body-motion", 4), ("crest", 20), ("dip", 35)])

@@ -89,8 +89,8 @@ def _ground_on_grade(scene: Scene, origin: list[float], dx: Tensor, dy: Tensor, 
     t_road = grade.first_hit(oy, oz, dy, dz, h)
     t_pave = grade.first_hit(oy, oz, dy, dz, h - kh)
 
-    def lateral(t: Tensor) -> Tensor:
-        return road.lateral(ox + torch.where(torch.isfinite(t), t, 0.0) * dx, oz)  # straight: e = x + e0
+    def lateral(t: Tensor) -> Tensor:  # on a straight road e = x + e0
+        return road.e0 + ox + torch.where(torch.isfinite(t), t, 0.0) * dx
 
     on_pave = torch.isfinite(t_pave) & (lateral(t_pave).abs() >= w_road)
     on_road = ~on_pave & torch.isfinite(t_road) & (lateral(t_road).abs() < w_road)
