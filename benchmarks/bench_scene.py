@@ -50,6 +50,9 @@ def main(argv: list[str] | None = None) -> int:
         ("render_pair default, float32, no supersampling", dict(dtype=torch.float32, supersample=1)),
         ("render_pair default, float64, supersample 2 at edges", dict(dtype=torch.float64)),
         ("render_pair cvc-simple, float32, supersample 2 at edges", dict(dtype=torch.float32, preset="cvc-simple")),
+        ("render_pair body-motion, float32, supersample 2 at edges", dict(dtype=torch.float32, preset="body-motion")),
+        ("render_pair crest, float32, supersample 2 at edges", dict(dtype=torch.float32, preset="crest")),
+        ("render_pair dip, float32, supersample 2 at edges", dict(dtype=torch.float32, preset="dip")),
         ("render_pair default, float32, supersample 2 at every pixel", dict(dtype=torch.float32, adaptive=False)),
     ]
     for name, kw in cases:

@@ -33,11 +33,14 @@ def _stats(pair: dict) -> dict:
     road = pair.get("road")
     odo = pair["odometry"]
     magnitude = flow.norm(dim=0, keepdim=True)[valid]
+    pose = pair.get("road_pose")
     return {
         "x_d": float(odo["x_d"]), "z_d": float(odo["z_d"]), "yaw_deg": float(torch.rad2deg(torch.tensor(float(odo["yaw"])))),
         "valid_pct": 100.0 * float(valid.float().mean()),
         "road_pct": 100.0 * float(road.float().mean()) if road is not None else None,
         "max_flow_px": float(magnitude.max()) if magnitude.numel() else 0.0,
+        # the camera over the road at t (differs from the calibration with body motion or a grade)
+        "road_pose": {k: float(v) for k, v in pose.items()} if pose is not None else None,
     }
 
 

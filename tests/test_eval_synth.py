@@ -34,6 +34,7 @@ def test_writes_the_layout(written, capsys):
     assert meta["preset"] == "default" and meta["seed"] == 3 and meta["num_pairs"] == 2 and meta["size"] == [48, 160]
     summary = json.loads(report.read_text())
     assert summary["num_pairs"] == 2 and len(summary["pairs"]) == 2 and summary["bytes"] > 0
+    assert set(summary["pairs"][0]["road_pose"]) == {"pitch", "roll", "height"}
 
 
 def test_dataset_reads_back_the_render(written):
@@ -64,6 +65,18 @@ def test_poses_give_back_the_odometry(written):
         ego = ego_motion_from_pose(poses[i:i + 1], item["camera"], pose1=poses[i + 1:i + 2])
         for key in ("x_d", "z_d", "yaw"):
             assert float(getattr(ego, key)) == pytest.approx(item["odometry"][key], abs=1e-6)
+
+
+def test_stores_the_road_pose_and_plane_motion(tmp_path):
+    rc = main(["synth", "--preset", "body-motion", "--pairs", "2", "--out", str(tmp_path / "b"), "--size", "24", "64",
+               "--no-progress"])
+    assert rc == 0
+    ds = SyntheticFlowDataset(tmp_path / "b", dtype=torch.float64)
+    for i in range(2):
+        truth = scene.render_pair("body-motion", i, size=(24, 64))
+        assert ds[i]["road_pose"] == truth["road_pose"] and ds[i]["plane"] == truth["plane"]
+    batch = collate([ds[0], ds[1]])
+    assert batch["plane"]["pitch_change"].shape == (2,)
 
 
 def test_prints_a_table(tmp_path, capsys):

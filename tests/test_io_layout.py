@@ -64,6 +64,18 @@ class TestSmoke:
         P = read_kitti_calibration(tmp_path / "calib" / "000000.txt", 2)
         torch.testing.assert_close(P[:, :3], pair["camera"].K[0].double())
 
+    def test_road_pose_and_plane_round_trip(self, tmp_path):
+        pair = _pair()
+        pair["road_pose"] = {"pitch": -0.021, "roll": 0.013, "height": 1.62}
+        pair["plane"] = {"pitch_change": 1e-3, "yaw": 4e-3, "roll_change": -2e-3, "x_d": 0.02, "y_d": -0.004,
+                         "z_d": 0.9, **pair["road_pose"]}
+        write_synthetic_pair(tmp_path, 0, pair)
+        back = read_synthetic_pair(tmp_path, 0)
+        assert back["road_pose"] == pair["road_pose"] and back["plane"] == pair["plane"]
+        # a folder written without them (older versions) reads without them
+        write_synthetic_pair(tmp_path, 1, _pair(1))
+        assert "road_pose" not in read_synthetic_pair(tmp_path, 1) and "plane" not in read_synthetic_pair(tmp_path, 1)
+
     def test_ground_truth_false(self, tmp_path):
         write_synthetic_pair(tmp_path, 3, _pair(3))
         back = read_synthetic_pair(tmp_path, 3, ground_truth=False)

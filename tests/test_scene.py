@@ -19,7 +19,7 @@ TINY = (40, 128)
 SMALL = (64, 160)
 MEDIUM = (96, 320)
 KEYS = {"image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", "depth", "moving",
-        "camera", "odometry", "velocity", "pose1", "pose2", "index"}
+        "camera", "odometry", "velocity", "pose1", "pose2", "road_pose", "plane", "index"}
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -232,12 +232,16 @@ def test_static_structure_and_moving_cars():
     assert bool((labels[moving] == LABELS["car"]).all())
 
 
-def test_velocity_flow_is_the_limit_of_displacement_flow():
+@pytest.mark.parametrize("preset, overrides", [
+    ("carla-turning", {"roll": 0.05, "pitch": -0.02}),
+    # body motion and a grade: the rates of the camera's attitude and height are in the px/s truth
+    ("body-motion", {}), ("crest", {"body_pitch": DEG, "body_roll": DEG, "body_height": 0.02}), ("dip", {}),
+])
+def test_velocity_flow_is_the_limit_of_displacement_flow(preset, overrides):
     # every pixel, moving cars included: flow / dt -> flow_velocity as dt -> 0, linearly in dt
     errors = {}
     for dt in (1e-2, 1e-3):
-        pair = render_pair("carla-turning", 0, size=SMALL, dtype=torch.float64, dt=dt, moving_cars=4.0,
-                           roll=0.05, pitch=-0.02)
+        pair = render_pair(preset, 0, size=SMALL, dtype=torch.float64, dt=dt, moving_cars=4.0, **overrides)
         for name, mask in (("static", ~pair["moving"][0]), ("moving", pair["moving"][0])):
             mask = mask & pair["valid"][0]
             assert int(mask.sum()) > 20, name

@@ -13,6 +13,8 @@ overlap:
 ``odometry``              dict ``x_d, z_d, yaw`` of Python floats (metres, radians)
 ``velocity``              dict ``speed, steering, wheelbase, dt`` (synthetic data)
 ``pose1``, ``pose2``      (4, 4) float64 camera-to-world poses (synthetic data)
+``road_pose``, ``plane``  dicts of floats: the camera over the road at t and the rigid plane
+                          motion t -> t+1 (synthetic data; :func:`fsof_torch.scene.render_pair`)
 ``cam1_T_cam0``           (4, 4) float64 relative pose (odometry data)
 ``index``, ``name``       int, str
 ========================  =====================================================================

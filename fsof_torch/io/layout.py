@@ -22,8 +22,11 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
                                    intrinsics of the pair
         params/000000.json         the true camera (K, height, roll, pitch, in metres/radians) and
                                    odometry (x_d, z_d, yaw) of the pair, its velocity (speed,
-                                   steering, wheelbase, dt) and camera-to-world poses pose1, pose2
-                                   (4×4) when rendered with them, preset, seed, size
+                                   steering, wheelbase, dt), camera-to-world poses pose1, pose2
+                                   (4×4), the camera over the road at t (road_pose: pitch, roll,
+                                   height) and the rigid plane motion t -> t+1 (plane:
+                                   pitch_change, yaw, roll_change, x_d, y_d, z_d, pitch, roll,
+                                   height) when rendered with them, preset, seed, size
         poses.txt                  N + 1 rows, KITTI odometry format (camera-to-world 3×4):
                                    row i is the camera of ``{i:06d}_10``, row i + 1 the camera of
                                    ``{i:06d}_11``, so ``ego_motion_from_pose(P[i], camera,
@@ -33,8 +36,9 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
                                    otherwise the chain of each pair's true relative motion
                                    (world = camera of the first frame). meta.json says which.
 
-Optional parts of a pair (velocity flow, labels, depth, velocity) are written when the pair
-has them. Every file is written atomically.
+Optional parts of a pair (velocity flow, labels, depth, velocity, poses, road pose, plane
+motion) are written when the pair has them, and read back when the files have them (folders
+written before road_pose and plane existed read as before). Every file is written atomically.
 """
 
 from __future__ import annotations
@@ -83,7 +87,7 @@ FILES = {
     "semantic/{name}_10.png": "label map",
     "depth/{name}_10.png": "depth, uint16 = metres * 256, 0 = none",
     "calib/{name}.txt": "P_rect_02: K | 0",
-    "params/{name}.json": "true camera, odometry, velocity",
+    "params/{name}.json": "true camera, odometry, velocity, poses, road pose, plane motion",
     "poses.txt": "N+1 camera-to-world poses (KITTI odometry format), chained",
 }
 
@@ -157,8 +161,9 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
 
     Required keys: ``image1``, ``image2`` (3, H, W) 0..255, ``flow`` (2, H, W), ``valid``
     (1, H, W) bool, ``camera`` (batch 1), ``odometry`` (x_d, z_d, yaw). Optional: ``road``,
-    ``labels``, ``depth``, ``flow_velocity``, ``velocity``. ``extra`` goes into the params JSON
-    (preset, seed, ...). Returns the written paths by kind.
+    ``labels``, ``depth``, ``flow_velocity``, ``velocity``, ``pose1``, ``pose2``, ``road_pose``,
+    ``plane``. ``extra`` goes into the params JSON (preset, seed, ...). Returns the written paths
+    by kind.
     """
     root = Path(root)
     missing = [k for k in ("image1", "image2", "flow", "valid", "camera", "odometry") if k not in pair]
@@ -193,8 +198,9 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
         "camera": _camera_dict(camera),
         "odometry": {k: _float(pair["odometry"][k]) for k in ("x_d", "z_d", "yaw")},
     }
-    if pair.get("velocity") is not None:
-        params["velocity"] = {k: _float(v) for k, v in pair["velocity"].items()}
+    for key in ("velocity", "road_pose", "plane"):
+        if pair.get(key) is not None:
+            params[key] = {k: _float(v) for k, v in pair[key].items()}
     for key in ("pose1", "pose2"):
         if pair.get(key) is not None:
             params[key] = pair[key].detach().cpu().double().reshape(4, 4).tolist()
@@ -287,7 +293,8 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     gives (keys where present on disk): ``image1``, ``image2`` (3, H, W) ``dtype`` 0..255,
     ``flow`` (2, H, W) px, ``valid`` (1, H, W) bool, ``flow_velocity`` (2, H, W) px/s, ``road``
     (1, H, W) bool, ``labels`` (H, W) int64, ``depth`` (1, H, W) m, ``camera`` (Camera, batch 1,
-    ``dtype``), ``odometry`` and ``velocity`` (dicts of floats), ``pose1``, ``pose2`` (4, 4) float64, plus ``index`` and ``name``.
+    ``dtype``), ``odometry``, ``velocity``, ``road_pose`` and ``plane`` (dicts of floats), ``pose1``,
+    ``pose2`` (4, 4) float64, plus ``index`` and ``name``.
     ``ground_truth=False`` reads only the images and the camera.
     """
     root = Path(root)
@@ -318,8 +325,9 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     if path.is_file():
         sample["depth"] = read_depth_png(path)[0].to(dtype)
     sample["odometry"] = {k: float(params["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
-    if "velocity" in params:
-        sample["velocity"] = {k: float(v) for k, v in params["velocity"].items()}
+    for key in ("velocity", "road_pose", "plane"):
+        if key in params:
+            sample[key] = {k: float(v) for k, v in params[key].items()}
     for key in ("pose1", "pose2"):
         if key in params:
             sample[key] = torch.tensor(params[key], dtype=torch.float64)
