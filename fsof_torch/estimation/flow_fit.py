@@ -33,7 +33,7 @@ from ..geometry.road_models import ROAD_MODELS, RoadModel, get_road_model, mount
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
-from .solver import Evaluation, solve
+from .solver import Evaluation, positive_definite, solve
 
 __all__ = ["RoadFit", "FitResult", "VelocityFitResult", "FlowProblem", "fit_road", "fit_displacement",
            "fit_velocity", "decompose_homography", "robust_weight", "ROBUST_KERNELS", "DEFAULT_FIXED"]
@@ -503,15 +503,15 @@ def _pack_default(model: RoadModel, camera: Camera) -> tuple[Camera, Tensor]:
 
 def _well_posed(sol: Any, free: Tensor) -> Tensor:
     """A conditioning test of the final normal equations: the smallest eigenvalue of the
-    scaled normal matrix (collinear parameters) and of the unscaled one per unit weight (a
-    parameter the flow barely depends on: (px per unit of parameter)²)."""
+    scaled normal matrix (collinear parameters) above 1e-9, and of the unscaled one per unit
+    weight (a parameter the flow barely depends on: (px per unit of parameter)²) above 1e-6."""
     A = sol.normal
     B = A.shape[0]
     wsum = sol.weights.sum(1).clamp_min(1e-300)
     fixed = ~free
     eye_fixed = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device) * fixed
     Ab = torch.where(fixed.unsqueeze(-1) | fixed.unsqueeze(-2), eye_fixed, A / wsum.reshape(B, 1, 1))
-    return torch.minimum(sol.conditioning() / 1e-9, torch.linalg.eigvalsh(Ab)[:, 0] / 1e-6) > 1.0
+    return sol.well_conditioned(1e-9) & positive_definite(Ab, 1e-6)
 
 
 def _result(model: RoadModel, camera: Camera, params: Tensor, M: Tensor, flow: Tensor, valid: Tensor,

@@ -46,7 +46,7 @@ from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters, start_values
 from .robust import check_kernel
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
-from .solver import Evaluation, solve
+from .solver import Evaluation, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
            "DEG"]
@@ -352,7 +352,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
     A = sol.normal[:, :P, :P]
     d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
-    well_posed = torch.linalg.eigvalsh(A / (d.unsqueeze(-1) * d.unsqueeze(-2)))[:, 0] > 1e-9
+    well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
     success = (finite & sol.converged & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction))
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),

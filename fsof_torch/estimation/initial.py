@@ -61,7 +61,7 @@ def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
     yaw = torch.atan2(s, c)
     cn, sn = torch.cos(yaw), torch.sin(yaw)
     out = torch.stack([-(cn * tx + sn * tz), -(-sn * tx + cn * tz), yaw], dim=-1)
-    good = (sol.conditioning() > 1e-9) & torch.isfinite(out).all(-1) & (ok.sum(1) >= 4)
+    good = sol.well_conditioned(1e-9) & torch.isfinite(out).all(-1) & (ok.sum(1) >= 4)
     return torch.where(good.unsqueeze(-1), out, 0.0), good
 
 

@@ -10,7 +10,7 @@ point where the model is not defined (that of a far outlier, so that a fit canno
 model's domain to escape its residuals), and an optional Gaussian prior of mean μ and precision λ
 (in residual² per parameter²). Each iteration builds the IRLS normal equations Jᵀ W J and Jᵀ W r
 (the problem does, knowing its structure), adds the prior, scales them (Marquardt), solves the
-damped system with ``torch.linalg.solve_ex`` (no host read), clamps the candidate to the bounds and
+damped system by Cholesky (no host read), clamps the candidate to the bounds and
 keeps it per sample where E went down (else damps more).
 
 The kernel's scale can be annealed from the spread of the first residuals down to c (halving each
@@ -33,7 +33,7 @@ from torch import Tensor
 
 from .robust import check_kernel, robust_cost, robust_weight
 
-__all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve"]
+__all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
 
 
 @dataclass
@@ -113,12 +113,14 @@ class Solution:
     normal: Tensor
     scale: Tensor
 
-    def conditioning(self, free: Tensor | None = None) -> Tensor:
+    def conditioning(self) -> Tensor:
         """The smallest eigenvalue of the normal matrix scaled to a unit diagonal (B,): near 0
         when two parameters are nearly collinear for the data."""
-        A = self.normal
-        d = A.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(A.dtype).tiny).sqrt()
-        return torch.linalg.eigvalsh(A / (d.unsqueeze(-1) * d.unsqueeze(-2)))[..., 0]
+        return torch.linalg.eigvalsh(_unit_diagonal(self.normal))[..., 0]
+
+    def well_conditioned(self, margin: float = 1e-9) -> Tensor:
+        """(B,) bool: :meth:`conditioning` exceeds ``margin`` (decided without a host read)."""
+        return positive_definite(_unit_diagonal(self.normal), margin)
 
     def covariance(self) -> Tensor:
         """(B, P, P) parameter covariance: the inverse normal matrix times the weighted residual
@@ -128,8 +130,26 @@ class Solution:
         # weights as fractional counts: a down-weighted outlier counts for its weight
         dof = (R * w.sum(1) - self.params.shape[1]).clamp_min(1.0)
         sigma2 = (w * ev.r2).sum(1) / dof
-        inv, _ = torch.linalg.inv_ex(self.normal)
-        return inv * sigma2.reshape(-1, 1, 1)
+        eye = torch.eye(self.normal.shape[-1], dtype=self.normal.dtype, device=self.normal.device)
+        return spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
+
+
+# Small symmetric positive definite systems by Cholesky and two triangular solves: on the CPU,
+# torch's LU, Cholesky-solve, inverse and eigenvalue routines read a value back to the host inside
+# (a workspace or error query), which the triangular solves and cholesky_ex do not.
+
+def spd_solve(A: Tensor, b: Tensor) -> Tensor:
+    """x with A x = b for symmetric positive definite A (B, P, P) and b (B, P, K); NaN or inf
+    where A is not positive definite."""
+    L, _ = torch.linalg.cholesky_ex(A)
+    return torch.linalg.solve_triangular(L.mT, torch.linalg.solve_triangular(L, b, upper=False), upper=True)
+
+
+def positive_definite(A: Tensor, margin: float | Tensor = 0.0) -> Tensor:
+    """(B,) bool: the smallest eigenvalue of symmetric A (B, P, P) exceeds ``margin``."""
+    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
+    _, info = torch.linalg.cholesky_ex(A - margin * eye)
+    return info == 0
 
 
 def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float) -> Tensor:
@@ -243,7 +263,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         # a relative floor: a direction the data do not see must not be blown up to unit size
         sc = torch.maximum(d, 1e-12 * d.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
         An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
-        step, _ = torch.linalg.solve_ex(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1))
+        step = spd_solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1))
         delta = step.squeeze(-1).div_(sc).neg_()
         # no step for finished samples, and none from a singular system
         delta = torch.where(done.unsqueeze(-1) | ~torch.isfinite(delta), 0.0, delta)
@@ -288,6 +308,11 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             if bool(done.all()):
                 break
     return Solution(params, c, done, iters, ev, w, A, s)
+
+
+def _unit_diagonal(A: Tensor) -> Tensor:
+    d = A.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(A.dtype).tiny).sqrt()
+    return A / (d.unsqueeze(-1) * d.unsqueeze(-2))
 
 
 def _select(ok: Tensor, new: Evaluation, old: Evaluation) -> Evaluation:

@@ -1,0 +1,128 @@
+"""Tests of fsof_torch.estimation.solver (the one robust solver) and the robust kernels.
+
+References written here: closed-form weighted least squares, the Gaussian posterior of a linear
+model with a Gaussian prior, SciPy's robust least squares.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
+from fsof_torch.estimation.sampling import sample_mask
+from fsof_torch.estimation.solver import ResidualProblem, solve
+
+
+def line_problem(B: int = 2, N: int = 200, noise: float = 0.01, outliers: float = 0.0, seed: int = 0):
+    """y = a x + b per sample: a linear problem with known truth (and optional gross outliers)."""
+    g = torch.Generator().manual_seed(seed)
+    x = torch.linspace(-1, 1, N, dtype=torch.float64).expand(B, N)
+    truth = torch.tensor([[2.0, -1.0], [0.5, 3.0], [-1.0, 0.2]], dtype=torch.float64)[:B]
+    y = truth[:, :1] * x + truth[:, 1:] + noise * torch.randn(B, N, generator=g, dtype=torch.float64)
+    n_out = int(outliers * N)
+    if n_out:
+        y[:, :n_out] += 20.0 + 5.0 * torch.rand(B, n_out, generator=g, dtype=torch.float64)
+    J = torch.stack([x, torch.ones_like(x)], dim=1).unsqueeze(2)  # (B, 2, 1, N)
+    use = torch.ones(B, N, dtype=torch.bool)
+
+    def residual(p):
+        return ((p[:, :1] * x + p[:, 1:]) - y).unsqueeze(1), J, use
+
+    return ResidualProblem(residual, use.sum(1)), truth, x, y
+
+
+def test_linear_least_squares_exact():
+    problem, truth, x, y = line_problem(noise=0.0)
+    sol = solve(problem, torch.zeros(2, 2, dtype=torch.float64), kernel="l2", max_iter=10)
+    torch.testing.assert_close(sol.params, truth, rtol=0, atol=1e-10)
+    assert bool(sol.converged.all())
+
+
+def test_redescending_kernels_drop_gross_outliers_and_l2_does_not():
+    problem, truth, _, _ = line_problem(noise=0.01, outliers=0.3)
+    start = torch.zeros(2, 2, dtype=torch.float64)
+    l2 = solve(problem, start, kernel="l2", max_iter=10)
+    assert (l2.params - truth).abs().max() > 1.0
+    for kernel in ("cauchy", "tukey"):
+        sol = solve(problem, start, kernel=kernel, scale=0.05, anneal=True, max_iter=60)
+        assert (sol.params - truth).abs().max() < 0.05, kernel
+        assert bool(sol.converged.all())
+
+
+def test_gaussian_prior_gives_the_posterior_mean():
+    """Linear model, Gaussian noise and prior: the MAP estimate is the posterior mean
+    (JᵀJ + Λ)⁻¹ (Jᵀy + Λμ), written out here."""
+    problem, truth, x, y = line_problem(B=1, N=20, noise=0.1)
+    mu = torch.tensor([[1.0, 0.0]], dtype=torch.float64)
+    lam = torch.tensor([[5.0, 0.5]], dtype=torch.float64)
+    sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", prior_mean=mu,
+                prior_precision=lam, max_iter=10)
+    J = torch.stack([x[0], torch.ones_like(x[0])], dim=1)
+    ref = torch.linalg.solve(J.T @ J + torch.diag(lam[0]), J.T @ y[0] + lam[0] * mu[0])
+    torch.testing.assert_close(sol.params[0], ref, rtol=0, atol=1e-7)
+
+
+def test_bounds_fixed_parameters_and_per_sample_convergence():
+    problem, truth, _, _ = line_problem(B=3, noise=0.0)
+    start = torch.zeros(3, 2, dtype=torch.float64)
+    upper = torch.tensor([1.0, float("inf")], dtype=torch.float64)
+    sol = solve(problem, start, kernel="l2", upper=upper, max_iter=20)
+    assert bool((sol.params[:, 0] <= 1.0).all())
+    torch.testing.assert_close(sol.params[2], truth[2])  # inside the bounds: unaffected
+    free = torch.tensor([True, False])
+    sol = solve(problem, start, kernel="l2", free=free, max_iter=20)
+    assert torch.equal(sol.params[:, 1], start[:, 1])
+    # a sample that starts at its answer converges at once, the others keep their own count
+    start = truth.clone()
+    start[1] += 1.0
+    sol = solve(problem, start, kernel="l2", max_iter=20)
+    assert int(sol.iterations[0]) <= 1 < int(sol.iterations[1])
+
+
+def test_no_host_read_without_checks_and_fixed_budget():
+    problem, truth, _, _ = line_problem(noise=0.0)
+    sol = solve(problem, torch.zeros(2, 2, dtype=torch.float64), kernel="l2", max_iter=7, check_every=None)
+    torch.testing.assert_close(sol.params, truth)
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        solve(problem, torch.zeros(2, 2, dtype=torch.float64), kernel="cauchy", max_iter=7, check_every=None)
+    names = [e.key for e in prof.key_averages()]
+    assert "aten::_local_scalar_dense" not in names and "aten::nonzero" not in names
+
+
+def test_covariance_of_linear_least_squares():
+    problem, truth, x, y = line_problem(B=1, N=400, noise=0.05, seed=3)
+    sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", max_iter=10)
+    J = torch.stack([x[0], torch.ones_like(x[0])], dim=1)
+    r = J @ sol.params[0] - y[0]
+    sigma2 = (r @ r) / (400 - 2)
+    torch.testing.assert_close(sol.covariance()[0], sigma2 * torch.linalg.inv(J.T @ J), rtol=1e-8, atol=1e-15)
+
+
+def test_robust_kernels_match_scipy_losses():
+    scipy_ls = pytest.importorskip("scipy.optimize._lsq.least_squares")
+    r2 = torch.linspace(0, 9, 50, dtype=torch.float64)
+    c = 1.5
+    for kind, name in (("soft_l1", "soft_l1"), ("cauchy", "cauchy"), ("huber", "huber")):
+        rho = np.empty((3, 50))
+        getattr(scipy_ls, name)((r2 / c**2).numpy(), rho, cost_only=False)
+        torch.testing.assert_close(robust_cost(r2, c, kind), c**2 * torch.from_numpy(rho[0]))
+        torch.testing.assert_close(robust_weight(r2, c, kind), torch.from_numpy(rho[1]))
+    with pytest.raises(ValueError, match="robust: expected one of"):
+        robust_weight(r2, c, "bisquare")
+    assert set(ROBUST_KERNELS) == {"cauchy", "huber", "soft_l1", "tukey", "l2"}
+
+
+def test_sample_mask_even_stride_and_padding():
+    mask = torch.zeros(2, 1, 10, 12, dtype=torch.bool)
+    mask[0, 0, 5:] = True          # 60 pixels
+    mask[1, 0, 2, 3:6] = True      # 3 pixels
+    pts = sample_mask(mask, 16)
+    assert pts.pix.shape == (2, 16) and pts.count.tolist() == [60, 3]
+    ref = torch.arange(60)[(torch.arange(16) * 60) // 16] + 60  # the floor(j n / N)-th mask pixel
+    assert torch.equal(pts.pix[0], ref)
+    assert pts.sel[1].tolist() == [True] * 3 + [False] * 13 and pts.pix[1, :3].tolist() == [27, 28, 29]
+    assert pts.per_frame(torch.ones(63, dtype=torch.float64)).tolist() == [60.0, 3.0]
