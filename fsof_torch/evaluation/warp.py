@@ -67,8 +67,10 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
     """Sample ``image`` at ``p + flow(p)``: the second frame warped back onto the first.
 
     Args:
-        image: (B, C, H, W) float, any range (the values are only interpolated).
-        flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down).
+        image: (B, C, H, W) float, any range (the values are only interpolated), finite: a NaN
+            pixel would reach every output pixel whose bilinear taps touch it, so a non-finite
+            value anywhere raises ValueError (replace or inpaint such pixels first).
+        flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down); finite.
         align_corners: the normalisation convention handed to kornia / ``grid_sample``; this
             function normalises with the same flag, so both values give the same result.
         mode: ``"bilinear"`` (differentiable in image and flow) or ``"nearest"`` (differentiable
@@ -100,6 +102,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
         raise ValueError(f"padding_mode: expected one of {_PADDING}, got {padding_mode!r}")
     if not isinstance(align_corners, bool):
         raise TypeError(f"align_corners: expected a bool, got {type(align_corners).__name__}")
+    check_finite(image, "image")
     check_finite(flow, "flow")
 
     out_dtype = torch.promote_types(image.dtype, flow.dtype)

@@ -59,6 +59,9 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     import cv2
 
     path = Path(path)
+    if not path.suffix or not cv2.haveImageWriter(str(path)):
+        raise ValueError(f"path: OpenCV has no image writer for the suffix {path.suffix!r} of {str(path)!r} "
+                         f"(use .png, .jpg, .tif, .bmp, ...)")
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), array):
             raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
