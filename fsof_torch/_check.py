@@ -10,9 +10,10 @@ skip them too, so shape inference runs through the library).
 
 from __future__ import annotations
 
+import contextlib
 import math
 import numbers
-from typing import Sequence
+from typing import ContextManager, Sequence
 
 import torch
 from torch import Tensor
@@ -31,6 +32,9 @@ __all__ = [
     "resolve_batch",
     "tracing",
     "skip_values",
+    "result_dtype",
+    "autocast_off",
+    "check_has_values",
 ]
 
 
@@ -42,6 +46,13 @@ def tracing() -> bool:
 def skip_values(*tensors: object) -> bool:
     """True where value checks cannot run: while tracing, or when a tensor is on the meta device."""
     return tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
+
+
+def check_has_values(x: object, name: str) -> None:
+    """Writers and readers need values: a tensor on the meta device (shapes only) raises."""
+    if isinstance(x, Tensor) and x.device.type == "meta":
+        raise ValueError(f"{name}: a tensor on the meta device has shapes but no values to write or "
+                         f"convert; move it to a real device first")
 
 
 def _fmt_shape(shape: Sequence[object]) -> str:
@@ -221,3 +232,12 @@ def result_dtype(*tensors: Tensor) -> torch.dtype:
     if dt in (torch.float16, torch.bfloat16):
         dt = torch.float32
     return dt
+
+
+def autocast_off(x: Tensor) -> ContextManager:
+    """``torch.autocast(enabled=False)`` for ``x``'s device type: the caller casts to its working
+    dtype (:func:`result_dtype`) itself. A no-op where autocast does not exist (the meta device)."""
+    device_type = x.device.type
+    if not torch.amp.is_autocast_available(device_type):
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device_type, enabled=False)

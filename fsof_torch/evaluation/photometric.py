@@ -34,6 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (
+    autocast_off,
     check_data_range,
     check_float_tensor,
     check_image_range,
@@ -77,7 +78,7 @@ def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.
     # At least float32, also under autocast: the comparisons of near-equal grey levels are the
     # whole signal, and bfloat16 keeps 3 significant digits of them.
     work = result_dtype(image)
-    with torch.autocast(device_type=image.device.type, enabled=False):
+    with autocast_off(image):
         grey = _grey(image.to(work)) * (255.0 / data_range)
         k = 2 * radius + 1
         # One-hot kernels pick each neighbour: the census as a single convolution.
@@ -146,7 +147,7 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
     check_image_range(image2, "image2", data_range)
 
     work = result_dtype(image1, image2, flow)
-    with torch.autocast(device_type=image1.device.type, enabled=False):
+    with autocast_off(image1):
         im1 = image1.to(work)
         warped, valid = warp_backward(image2.to(work), flow.to(work), align_corners=align_corners)
         if kind == "l1":
@@ -154,8 +155,13 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         elif kind == "ssim":
             from kornia.metrics import ssim
 
-            # eps=0: kornia's default eps biases flat dark patches; c1, c2 > 0 keep it finite.
-            s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
+            if im1.device.type == "meta":
+                # kornia's ssim enters torch.autocast, which the meta device lacks; its map has
+                # the images' shape, which is all shape inference needs.
+                s = torch.empty_like(im1)
+            else:
+                # eps=0: kornia's default eps biases flat dark patches; c1, c2 > 0 keep it finite.
+                s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
             error = ((1.0 - s) * 0.5).clamp(0.0, 1.0).mean(dim=1, keepdim=True)
             valid = _erode(valid, window // 2)
         else:

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._check import check_finite, check_float_tensor, check_shape, result_dtype
+from .._check import autocast_off, check_finite, check_float_tensor, check_shape, result_dtype
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -109,7 +109,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
     work = result_dtype(image, flow)
     B, _, H, W = image.shape
     # Geometry in at least float32: a bfloat16 pixel coordinate is off by up to 4 px at u = 1000.
-    with torch.autocast(device_type=image.device.type, enabled=False):
+    with autocast_off(image):
         img = image.to(work)
         f = flow.to(work)
         u = torch.arange(W, dtype=work, device=image.device).expand(H, W)

@@ -114,7 +114,8 @@ def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
     named = {"speed": speed, "steering": steering, "wheelbase": wheelbase, "dt": dt}
     given = [as_batch_param(v, n) for n, v in named.items() if isinstance(v, Tensor)]
     dtype = result_dtype(*given) if given else torch.get_default_dtype()
-    p = {n: as_batch_param(v, n, dtype) for n, v in named.items()}
+    device = given[0].device if given else None  # Python numbers follow the tensors' device
+    p = {n: as_batch_param(v, n, dtype, device) for n, v in named.items()}
     resolve_batch({n: t.shape[0] for n, t in p.items()})
     check_positive(p["wheelbase"], "wheelbase")
     arc = p["speed"] * p["dt"]

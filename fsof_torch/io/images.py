@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from .atomic import atomic_path
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
@@ -108,6 +109,9 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
         image = image.unsqueeze(0)
     else:
         raise ValueError(f"image: expected shape (3, H, W), (1, H, W) or (H, W), got {tuple(image.shape)}")
+    if min(image.shape[-2:]) < 1:
+        raise ValueError(f"image: expected H, W >= 1, got shape {tuple(image.shape)}")
+    check_has_values(image, "image")
     image = image.detach().cpu()
     if image.dtype == torch.uint8:
         array = image.numpy()

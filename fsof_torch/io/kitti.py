@@ -20,6 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .flo import _as_chw_flow
@@ -171,6 +172,7 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
         poses = poses.unsqueeze(0)
     if poses.dim() != 3 or tuple(poses.shape[-2:]) not in ((4, 4), (3, 4)):
         raise ValueError(f"poses: expected shape (N, 4, 4) or (N, 3, 4), got {tuple(poses.shape)}")
+    check_has_values(poses, "poses")
     if not bool(torch.isfinite(poses).all()):
         raise ValueError("poses: expected finite values, got NaN or inf")
     rows = poses[:, :3, :].detach().cpu().double().reshape(-1, 12).tolist()
@@ -196,6 +198,7 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
     if not isinstance(K, Tensor) or not K.is_floating_point():
         raise TypeError(f"K: expected a float tensor of shape (3, 3), got "
                         f"{K.dtype if isinstance(K, Tensor) else type(K).__name__}")
+    check_has_values(K, "K")
     if K.dim() == 3 and K.shape[0] == 1:
         K = K[0]
     if tuple(K.shape) == (3, 3):

@@ -35,6 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from .images import read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
@@ -50,6 +51,7 @@ def _as_polygon(poly: object, where: str) -> np.ndarray:
     """(N, 2) float64 vertices from a list of [u, v] points or an (N, 2) array, checked; ``where``
     names the polygon in errors."""
     if isinstance(poly, Tensor):
+        check_has_values(poly, where)
         poly = poly.detach().cpu().numpy()
     if isinstance(poly, np.ndarray):
         if poly.ndim != 2 or poly.shape[1] != 2 or not (np.issubdtype(poly.dtype, np.integer)
@@ -223,8 +225,9 @@ def write_road_mask(path: str | os.PathLike, mask: Tensor) -> Path:
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
     if mask.dim() == 3 and mask.shape[0] == 1:
         mask = mask[0]
-    if mask.dim() != 2:
-        raise ValueError(f"mask: expected shape (1, H, W) or (H, W), got {tuple(mask.shape)}")
+    if mask.dim() != 2 or min(mask.shape) < 1:
+        raise ValueError(f"mask: expected shape (1, H, W) or (H, W) with H, W >= 1, got {tuple(mask.shape)}")
+    check_has_values(mask, "mask")
     return write_image_array(path, mask.detach().cpu().numpy().astype(np.uint8) * 255)
 
 
@@ -238,6 +241,7 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
     if isinstance(rgb, Tensor):
         if rgb.dim() != 3 or rgb.shape[0] != 3:
             raise ValueError(f"rgb: expected shape (3, H, W), got {tuple(rgb.shape)}")
+        check_has_values(rgb, "rgb")
         array = rgb.detach().cpu().round().to(torch.int64).permute(1, 2, 0).numpy()
     else:
         array = np.asarray(rgb).astype(np.int64)
@@ -263,8 +267,9 @@ def write_label_map(path: str | os.PathLike, labels: Tensor) -> Path:
                         f"{labels.dtype if isinstance(labels, Tensor) else type(labels).__name__}")
     if labels.dim() == 3 and labels.shape[0] == 1:
         labels = labels[0]
-    if labels.dim() != 2:
-        raise ValueError(f"labels: expected shape (H, W), got {tuple(labels.shape)}")
+    if labels.dim() != 2 or min(labels.shape) < 1:
+        raise ValueError(f"labels: expected shape (H, W) with H, W >= 1, got {tuple(labels.shape)}")
+    check_has_values(labels, "labels")
     lo, hi = int(labels.min()), int(labels.max())
     if lo < 0 or hi > 65535:
         raise ValueError(f"labels: expected values in 0..65535, got the range [{lo}, {hi}]")

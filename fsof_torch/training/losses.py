@@ -47,6 +47,7 @@ from torch import Tensor, nn
 
 from .._check import (
     as_batch_param,
+    autocast_off,
     check_data_range,
     check_finite,
     check_float_tensor,
@@ -135,11 +136,6 @@ def _work_dtype(*tensors: Tensor) -> torch.dtype:
     return result_dtype(*tensors)
 
 
-def _no_autocast(x: Tensor):
-    """Autocast off for the loss arithmetic (each term casts to its working dtype itself)."""
-    return torch.autocast(device_type=x.device.type, enabled=False)
-
-
 def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     """Per-sample mean of ``value`` (B, C, H, W) under ``weight`` (B, 1, H, W) in 0..1 -> (B,).
 
@@ -189,7 +185,7 @@ def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1
 
 
 def _fb_mask(flow_forward: Tensor, flow_backward: Tensor, alpha1: float, alpha2: float) -> Tensor:
-    with torch.no_grad(), _no_autocast(flow_forward):
+    with torch.no_grad(), autocast_off(flow_forward):
         work = _work_dtype(flow_forward, flow_backward)
         fw, bw = flow_forward.detach().to(work), flow_backward.detach().to(work)
         bw_warped, in_bounds = warp_backward(bw, fw)
@@ -262,7 +258,7 @@ def _photometric(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | No
                  ssim_weight: float, census_weight: float, data_range: float) -> Tensor:
     """:func:`photometric_loss` per sample (B,) on checked inputs."""
     dtype = _work_dtype(flow)
-    with _no_autocast(flow):
+    with autocast_off(flow):
         flow = flow.to(dtype)
         i1 = image1.to(dtype) / data_range
         i2 = image2.to(dtype) / data_range
@@ -317,7 +313,7 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
 
 def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, data_range: float) -> Tensor:
     """:func:`smoothness_loss` per sample (B,) on checked inputs."""
-    with _no_autocast(flow):
+    with autocast_off(flow):
         flow = flow.to(_work_dtype(flow))
         img = image.to(flow.dtype) / data_range
         gx, gy = _image_gradients(img)
@@ -505,7 +501,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     work = _work_dtype(*fw)
     device = last.device
     finite = [torch.isfinite(f).all(dim=1, keepdim=True) for f in fw]
-    with _no_autocast(last):
+    with autocast_off(last):
         if isinstance(odometry, str):
             if odometry != "fit":
                 raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")

@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_shape, tracing
+from .._check import check_float_tensor, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -204,10 +204,10 @@ class TinyRAFT(nn.Module):
         iters = self.iters if iters is None else iters
         if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
             raise ValueError(f"iters: expected a positive int, got {iters!r}")
-        if not tracing():
+        if not skip_values(image1, image2):
             lo = min(float(image1.min()), float(image2.min()))
             hi = max(float(image1.max()), float(image2.max()))
-            if lo < 0 or hi > 255:
+            if not (0 <= lo and hi <= 255):  # NaN fails both comparisons
                 raise ValueError(f"image1, image2: expected values on 0..255, got the range [{lo:.4g}, {hi:.4g}]")
         B, H, W = dims["B"], dims["H"], dims["W"]
         weight = self.fnet.out.weight
