@@ -12,6 +12,7 @@ Angles in radians, heights in metres, focal lengths in pixels.
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 from dataclasses import dataclass, fields
@@ -63,11 +64,13 @@ def camera_value_bounds(dtype: torch.dtype) -> tuple[float, float]:
     c by c / f by u. With every factor (a focal length, a principal point, a pixel coordinate, a
     height) within [max^(-1/5), max^(1/5)], any product of five lies within [1/max, max]: it
     neither overflows to inf nor underflows to 0, so a camera that passes cannot make the flow
-    NaN through its own scale. float32: [2.0e-8, 5.0e7]; float64: [6.5e-62, 1.6e61] (half
-    precision cameras are stored in float32). Real cameras sit far inside both ranges.
+    NaN through its own scale. The bounds are the powers of two just inside those roots (exact
+    in every dtype): float32 [2^-25, 2^25] = [3.0e-8, 3.4e7]; float64 [2^-204, 2^204] =
+    [3.9e-62, 2.6e61] (half precision cameras are stored in float32). Real cameras sit far
+    inside both ranges.
     """
-    hi = torch.finfo(dtype).max ** 0.2
-    return 1.0 / hi, hi
+    k = math.floor(math.log2(torch.finfo(dtype).max) / 5)
+    return 2.0 ** -k, 2.0 ** k
 
 
 def _check_camera_values(K: Tensor, height: Tensor) -> None:
