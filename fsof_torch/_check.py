@@ -143,7 +143,7 @@ def check_number(x: object, name: str, *, positive: bool = False, nonnegative: b
     if finite and not math.isfinite(value):
         raise ValueError(f"{name}: expected a finite number, got {x!r}")
     if positive and not value > 0:
-        raise ValueError(f"{name}: expected a number > 0, got {x!r}")
+        raise ValueError(f"{name}: expected a positive number (> 0), got {x!r}")
     if nonnegative and not value >= 0:
         raise ValueError(f"{name}: expected a number >= 0, got {x!r}")
     return value

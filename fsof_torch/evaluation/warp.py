@@ -42,8 +42,12 @@ def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> 
     ``align_corners=True``: -1 and 1 are the centres of the first and last pixel;
     ``align_corners=False``: -1 and 1 are the outer edges of those pixels. Pass the same flag to
     the sampler. A singleton axis maps its only pixel to 0 (the corner-aligned scale is
-    undefined there, and grid_sample then ignores the coordinate anyway).
+    undefined there, and grid_sample then ignores the coordinate anyway). Elementwise: a NaN
+    coordinate stays NaN.
     """
+    check_float_tensor(coords, "coords")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size: expected a positive int (pixels along the axis), got {size!r}")
     if size == 1:
         return coords * 2.0
     if align_corners:

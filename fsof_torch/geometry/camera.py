@@ -24,6 +24,7 @@ from torch import Tensor
 from .._check import (
     as_batch_param,
     check_finite,
+    check_float_tensor,
     check_positive,
     resolve_batch,
     result_dtype,
@@ -35,22 +36,33 @@ __all__ = ["Camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kit
 
 
 def roll_matrix(roll: Tensor) -> Tensor:
-    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians."""
+    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians.
+
+    Elementwise, as ``torch.cos``: a NaN or inf angle gives NaN entries (a :class:`Camera`
+    rejects non-finite angles before they get here)."""
+    check_float_tensor(roll, "roll")
     c, s = torch.cos(roll), torch.sin(roll)
     z, o = torch.zeros_like(roll), torch.ones_like(roll)
     return torch.stack([c, s, z, -s, c, z, z, z, o], dim=-1).reshape(*roll.shape, 3, 3)
 
 
 def pitch_matrix(pitch: Tensor) -> Tensor:
-    """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up)."""
+    """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up); elementwise
+    like :func:`roll_matrix`."""
+    check_float_tensor(pitch, "pitch")
     c, s = torch.cos(pitch), torch.sin(pitch)
     z, o = torch.zeros_like(pitch), torch.ones_like(pitch)
     return torch.stack([o, z, z, z, c, s, z, -s, c], dim=-1).reshape(*pitch.shape, 3, 3)
 
 
 def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
-    """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame."""
-    return roll_matrix(roll) @ pitch_matrix(pitch)
+    """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame (roll and
+    pitch of batch 1 or B, in their promoted dtype)."""
+    Rr, Rp = roll_matrix(roll), pitch_matrix(pitch)
+    if roll.dim() and pitch.dim():
+        resolve_batch({"roll": roll.shape[0], "pitch": pitch.shape[0]})
+    dtype = torch.promote_types(Rr.dtype, Rp.dtype)
+    return Rr.to(dtype) @ Rp.to(dtype)
 
 
 def camera_value_bounds(dtype: torch.dtype) -> tuple[float, float]:
@@ -272,7 +284,10 @@ class Camera:
                 raise ValueError(f"{name}: expected a finite scale > 0, got {s!r}")
         S = torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
                          dtype=self.dtype, device=self.device)
-        return self.replace(K=S @ self.K)
+        try:
+            return self.replace(K=S @ self.K)
+        except ValueError as err:
+            raise ValueError(f"sx, sy: the camera resized by ({sx!r}, {sy!r}) is out of range: {err}") from None
 
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,

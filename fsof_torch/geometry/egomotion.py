@@ -38,7 +38,9 @@ class EgoMotion(NamedTuple):
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
     """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)."""
     P0, P1 = _as_4x4(pose0, "pose0"), _as_4x4(pose1, "pose1")
-    return torch.linalg.inv(P1) @ P0
+    resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
+    dtype = result_dtype(P0, P1)
+    return torch.linalg.inv(P1.to(dtype)) @ P0.to(dtype)
 
 
 def _as_4x4(T: Tensor, name: str) -> Tensor:
@@ -49,6 +51,7 @@ def _as_4x4(T: Tensor, name: str) -> Tensor:
         raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
     if T.dim() == 2:
         T = T.unsqueeze(0)
+    T = T.to(result_dtype(T))  # linear algebra in at least float32 (torch has no half inverse)
     check_finite(T, name)
     if T.shape[-2] == 3:
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 1, 4)
@@ -81,6 +84,8 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
     Returns:
         :class:`EgoMotion` with x_d, z_d, yaw and the dropped remainder (y_d, rotation_residual).
     """
+    if camera is not None and not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera or None, got {type(camera).__name__}")
     T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else _as_4x4(cam1_T_cam0, "cam1_T_cam0")
     R, t = T[:, :3, :3], T[:, :3, 3]
     if camera is not None:

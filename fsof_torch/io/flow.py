@@ -36,7 +36,7 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
             raise FileNotFoundError(f"path: no file at {str(path)!r}")
         try:
             array = np.load(path, allow_pickle=False)
-        except (ValueError, EOFError, OSError) as err:  # an empty file raises EOFError
+        except Exception as err:  # noqa: BLE001 - numpy's header parser raises EOFError, SyntaxError, ...
             raise ValueError(f"path: {str(path)!r} is not a readable .npy array "
                              f"({type(err).__name__}: {err or 'empty file'})") from None
         if not isinstance(array, np.ndarray):  # an .npz archive under a .npy name

@@ -138,6 +138,8 @@ def write_depth_png(path: str | os.PathLike, depth: Tensor) -> Path:
     """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none)."""
     if not isinstance(depth, Tensor) or not depth.is_floating_point():
         raise TypeError("depth: expected a float tensor of shape (1, H, W)")
+    if depth.dim() not in (2, 3) or (depth.dim() == 3 and depth.shape[0] != 1) or min(depth.shape[-2:]) < 1:
+        raise ValueError(f"depth: expected shape (1, H, W) or (H, W), got {tuple(depth.shape)}")
     check_has_values(depth, "depth")
     d = depth.detach().cpu().double().reshape(depth.shape[-2:])
     coded = torch.where(torch.isfinite(d) & (d > 0), (d * _DEPTH_SCALE).round(), torch.zeros_like(d))

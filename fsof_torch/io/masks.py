@@ -242,11 +242,20 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
         if rgb.dim() != 3 or rgb.shape[0] != 3:
             raise ValueError(f"rgb: expected shape (3, H, W), got {tuple(rgb.shape)}")
         check_has_values(rgb, "rgb")
-        array = rgb.detach().cpu().round().to(torch.int64).permute(1, 2, 0).numpy()
+        # non-finite values match no colour
+        array = torch.nan_to_num(rgb.detach().cpu().double(), nan=-1.0, posinf=-1.0, neginf=-1.0)
+        array = array.round().to(torch.int64).permute(1, 2, 0).numpy()
+    elif isinstance(rgb, np.ndarray):
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or not np.issubdtype(rgb.dtype, np.integer):
+            raise ValueError(f"rgb: expected an integer (H, W, 3) array, got {rgb.dtype} of shape {rgb.shape}")
+        array = rgb.astype(np.int64)
     else:
-        array = np.asarray(rgb).astype(np.int64)
+        raise TypeError(f"rgb: expected a (3, H, W) tensor or an (H, W, 3) uint8 array, got {type(rgb).__name__}")
     mask = np.zeros(array.shape[:2], dtype=bool)
-    for color in colors:
+    for i, color in enumerate(colors):
+        if not (isinstance(color, (tuple, list)) and len(color) == 3
+                and all(isinstance(c, numbers.Integral) and not isinstance(c, bool) for c in color)):
+            raise ValueError(f"colors[{i}]: expected an (r, g, b) triple of integers, got {color!r}")
         mask |= (array == np.asarray(color, dtype=np.int64).reshape(1, 1, 3)).all(axis=2)
     return torch.from_numpy(mask).unsqueeze(0)
 

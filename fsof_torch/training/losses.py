@@ -147,6 +147,8 @@ def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
 
 def sequence_weights(n: int, gamma: float) -> list[float]:
     """RAFT's weights γ^(n-1-i), i = 0..n-1, for a list of n estimates (the last gets 1)."""
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n: expected a positive number of estimates, got {n!r}")
     if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < gamma <= 1.0:
         raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
     return [gamma ** (n - 1 - i) for i in range(n)]
@@ -493,6 +495,8 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     dims: dict[str, int] = {}
     for i, f in enumerate(fw):
         _check_flow(f, f"flows[{i}]", dims)
+    if road is None:
+        raise TypeError("road: expected a bool tensor (B, 1, H, W) (the freespace mask), got None")
     _check_mask(road, "road", dims)
     B, size = dims["B"], (dims["H"], dims["W"])
     if camera.batch_size not in (1, B):
