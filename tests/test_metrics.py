@@ -394,3 +394,12 @@ def test_accumulator_all_reduce_across_two_processes(tmp_path):
     assert got["pixels"] == pytest.approx(one.compute("pixels"), rel=1e-12)
     assert got["images"] == pytest.approx(one.compute("images"), rel=1e-12)
     assert got["local"]["n_pixels"] < got["pixels"]["n_pixels"]
+
+
+def test_metrics_under_autocast_equal_float32():
+    est, gt = _random(dtype=torch.float32), _random(seed=1, dtype=torch.float32)
+    exact = flow_metrics(est, gt)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = flow_metrics(est, gt)
+        per = flow_metrics_per_sample(est, gt)
+    assert low == exact and per["epe"].dtype == torch.float32

@@ -131,11 +131,6 @@ def _check_weights(**weights: float) -> None:
         check_number(value, name, nonnegative=True)
 
 
-def _work_dtype(*tensors: Tensor) -> torch.dtype:
-    """The dtype a loss computes in: the inputs' promoted float dtype, at least float32."""
-    return result_dtype(*tensors)
-
-
 def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     """Per-sample mean of ``value`` (B, C, H, W) under ``weight`` (B, 1, H, W) in 0..1 -> (B,).
 
@@ -188,7 +183,7 @@ def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1
 
 def _fb_mask(flow_forward: Tensor, flow_backward: Tensor, alpha1: float, alpha2: float) -> Tensor:
     with torch.no_grad(), autocast_off(flow_forward):
-        work = _work_dtype(flow_forward, flow_backward)
+        work = result_dtype(flow_forward, flow_backward)
         fw, bw = flow_forward.detach().to(work), flow_backward.detach().to(work)
         bw_warped, in_bounds = warp_backward(bw, fw)
         diff = (fw + bw_warped).square().sum(dim=1, keepdim=True)
@@ -259,7 +254,7 @@ def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor 
 def _photometric(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None, l1_weight: float,
                  ssim_weight: float, census_weight: float, data_range: float) -> Tensor:
     """:func:`photometric_loss` per sample (B,) on checked inputs."""
-    dtype = _work_dtype(flow)
+    dtype = result_dtype(flow)
     with autocast_off(flow):
         flow = flow.to(dtype)
         i1 = image1.to(dtype) / data_range
@@ -316,7 +311,7 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
 def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, data_range: float) -> Tensor:
     """:func:`smoothness_loss` per sample (B,) on checked inputs."""
     with autocast_off(flow):
-        flow = flow.to(_work_dtype(flow))
+        flow = flow.to(result_dtype(flow))
         img = image.to(flow.dtype) / data_range
         gx, gy = _image_gradients(img)
         wx = torch.exp(-edge_weight * gx.abs().mean(dim=1, keepdim=True))
@@ -382,7 +377,7 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
         mask_bw = _fb_mask(bw[-1], fw[-1], alpha1, alpha2)
     # All iterations in one batch: one warp and one SSIM call instead of N (same arithmetic).
     n = len(fw)
-    dtype = _work_dtype(*fw, *(bw or []))
+    dtype = result_dtype(*fw, *(bw or []))
     wts = torch.tensor(weights, dtype=dtype, device=fw[-1].device).reshape(n, 1)
 
     def direction(flows: list[Tensor], first: Tensor, second: Tensor, mask: Tensor | None) -> Tensor:
@@ -502,7 +497,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch 1 or {B} (the flows' batch), got {camera.batch_size}")
     last = fw[-1]
-    work = _work_dtype(*fw)
+    work = result_dtype(*fw)
     device = last.device
     finite = [torch.isfinite(f).all(dim=1, keepdim=True) for f in fw]
     with autocast_off(last):
@@ -549,9 +544,9 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             warnings.warn(f"flows: non-finite predicted pixels inside the road mask are left out of the "
                           f"freespace loss ({listing})", RuntimeWarning, stacklevel=2)
         if not finite_total:
-            raise ValueError(f"flows: the {penalty} penalty overflows {work} (largest |flow| "
-                             f"{max(float(torch.where(o, f, 0).detach().abs().amax()) for f, o in zip(fw, finite)):.3g} px"
-                             f" at scale {scale:g}); the prediction has diverged, or compute the loss in float64")
+            largest = max(float(torch.where(ok, f.detach(), 0).abs().amax()) for f, ok in zip(fw, finite))
+            raise ValueError(f"flows: the {penalty} penalty overflows {work} (largest |flow| {largest:.3g} px at "
+                             f"scale {scale:g}); the prediction has diverged, or compute the loss in float64")
     return _reduce(total, reduction)
 
 
