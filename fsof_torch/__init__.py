@@ -63,6 +63,7 @@ from .io import (
 )
 from .training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
 from .evaluation.metrics import (
+    FlowMetricAccumulator,
     angular_error,
     endpoint_error,
     flow_metrics,
@@ -97,6 +98,7 @@ __all__ = [
     "DisplacementFlow",
     "EgoMotion",
     "FitResult",
+    "FlowMetricAccumulator",
     "FreespaceFlowLoss",
     "FreespaceRefined",
     "FreespaceRefiner",

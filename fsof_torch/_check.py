@@ -2,14 +2,18 @@
 
 Shape letters are bound across arguments: ``check_shape(flow, "flow", ("B", 2, "H", "W"), dims)``
 followed by ``check_shape(mask, "mask", ("B", 1, "H", "W"), dims)`` requires the same B, H, W.
-Value checks (finite, positive) look at tensor values and are skipped while ``torch.compile`` or
-``torch.export`` traces, where a data-dependent branch would break the graph.
+Value checks (finite, positive, in range) look at tensor values and are skipped while
+``torch.compile`` or ``torch.export`` traces, where a data-dependent branch would break the graph,
+and for tensors on the ``meta`` device, which have shapes but no values (torch's own value checks
+skip them too, so shape inference runs through the library).
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
 import numbers
-from typing import Sequence
+from typing import ContextManager, Sequence
 
 import torch
 from torch import Tensor
@@ -21,15 +25,34 @@ __all__ = [
     "check_all_finite",
     "check_positive",
     "check_size",
+    "check_number",
+    "check_data_range",
+    "check_image_range",
     "as_batch_param",
     "resolve_batch",
     "tracing",
+    "skip_values",
+    "result_dtype",
+    "autocast_off",
+    "check_has_values",
 ]
 
 
 def tracing() -> bool:
     """True while torch.compile / torch.export traces: skip value-dependent checks then."""
     return torch.compiler.is_compiling()
+
+
+def skip_values(*tensors: object) -> bool:
+    """True where value checks cannot run: while tracing, or when a tensor is on the meta device."""
+    return tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
+
+
+def check_has_values(x: object, name: str) -> None:
+    """Writers and readers need values: a tensor on the meta device (shapes only) raises."""
+    if isinstance(x, Tensor) and x.device.type == "meta":
+        raise ValueError(f"{name}: a tensor on the meta device has shapes but no values to write or "
+                         f"convert; move it to a real device first")
 
 
 def _fmt_shape(shape: Sequence[object]) -> str:
@@ -46,14 +69,20 @@ def check_float_tensor(x: object, name: str) -> Tensor:
 
 
 def check_shape(
-    x: Tensor, name: str, pattern: Sequence[int | str], dims: dict[str, int] | None = None
+    x: Tensor, name: str, pattern: Sequence[int | str], dims: dict[str, int] | None = None,
+    *, nonempty: Sequence[str] = ("H", "W"),
 ) -> dict[str, int]:
-    """Check ``x.shape`` against ``pattern`` (ints fixed, letters bound through ``dims``)."""
+    """Check ``x.shape`` against ``pattern`` (ints fixed, letters bound through ``dims``).
+
+    The letters in ``nonempty`` (by default the image sides H and W) must be at least 1: an image
+    without rows or columns has no pixel to warp, filter or evaluate."""
     dims = {} if dims is None else dims
     want = _fmt_shape(pattern)
     if x.dim() != len(pattern):
         raise ValueError(f"{name}: expected shape {want}, got {_fmt_shape(tuple(x.shape))}")
     for size, p in zip(x.shape, pattern):
+        if isinstance(p, str) and p in nonempty and size < 1:
+            raise ValueError(f"{name}: expected shape {want} with {p} >= 1, got {_fmt_shape(tuple(x.shape))}")
         if isinstance(p, int):
             if size != p:
                 raise ValueError(f"{name}: expected shape {want}, got {_fmt_shape(tuple(x.shape))}")
@@ -70,7 +99,7 @@ def check_shape(
 
 
 def check_finite(x: Tensor, name: str) -> None:
-    if tracing():
+    if skip_values(x):
         return
     if not bool(torch.isfinite(x).all()):
         bad = x[~torch.isfinite(x)].flatten()[:3].tolist()
@@ -78,7 +107,7 @@ def check_finite(x: Tensor, name: str) -> None:
 
 
 def check_positive(x: Tensor, name: str) -> None:
-    if tracing():
+    if skip_values(x):
         return
     if not bool((x > 0).all()):
         bad = x[~(x > 0)].flatten()[:3].tolist()
@@ -99,6 +128,56 @@ def check_size(size: object, name: str = "size") -> tuple[int, int]:
             raise ValueError(f"{name}: expected positive sides (H, W), got {tuple(size)!r}")
         out.append(int(s))
     return out[0], out[1]
+
+
+def check_number(x: object, name: str, *, positive: bool = False, nonnegative: bool = False,
+                 finite: bool = True) -> float:
+    """A Python real (not a bool; a 0-d tensor is read) checked for finiteness and sign -> float."""
+    if isinstance(x, Tensor) and x.dim() == 0 and x.dtype != torch.bool:
+        if skip_values(x):
+            raise ValueError(f"{name}: expected a Python number, got a tensor on the meta device")
+        x = x.item()
+    if isinstance(x, bool) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name}: expected a number, got {type(x).__name__} {x!r}")
+    value = float(x)
+    if finite and not math.isfinite(value):
+        raise ValueError(f"{name}: expected a finite number, got {x!r}")
+    if positive and not value > 0:
+        raise ValueError(f"{name}: expected a positive number (> 0), got {x!r}")
+    if nonnegative and not value >= 0:
+        raise ValueError(f"{name}: expected a number >= 0, got {x!r}")
+    return value
+
+
+def check_data_range(data_range: object, name: str = "data_range") -> float:
+    """The images' value range (1.0 for 0-1 images, 255.0 for 0-255): a finite number > 0."""
+    if isinstance(data_range, Tensor) and data_range.dim() == 0 and not skip_values(data_range):
+        data_range = data_range.item()
+    if (isinstance(data_range, bool) or not isinstance(data_range, numbers.Real)
+            or not (math.isfinite(float(data_range)) and float(data_range) > 0)):
+        raise (ValueError if isinstance(data_range, numbers.Real) else TypeError)(
+            f"{name}: expected a positive finite number (the images' maximum: 1.0 for 0-1 images, "
+            f"255.0 for 0-255 images), got {data_range!r}")
+    return float(data_range)
+
+
+def check_image_range(image: Tensor, name: str, data_range: float) -> None:
+    """Finite values in [0, data_range] up to 1% (catches 0-255 images passed as 0-1 and NaN pixels).
+
+    A NaN pixel would spread through bilinear taps and filter windows into its neighbours' values,
+    so an image must be finite everywhere, not only where it is evaluated."""
+    if skip_values(image) or image.numel() == 0:
+        return
+    d = image.detach()
+    lo, hi = torch.stack([d.amin(), d.amax()]).tolist()  # NaN propagates through both
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        bad = d[~torch.isfinite(d)].flatten()[:3].tolist()
+        raise ValueError(f"{name}: expected finite pixel values, got {bad} (NaN or inf); "
+                         f"replace or mask them before warping or filtering")
+    if hi > data_range * 1.01 or lo < -0.01 * data_range:
+        raise ValueError(
+            f"{name}: expected values in [0, data_range={data_range:g}], got values in "
+            f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
 
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
@@ -127,9 +206,9 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
 def check_all_finite(named: dict[str, Tensor]) -> None:
     """:func:`check_finite` for several small tensors of one dtype with one reduction (the
     common case costs one check, not one per argument); the error names the first bad one."""
-    if tracing() or not named:
-        return
     values = list(named.values())
+    if not values or skip_values(*values):
+        return
     flat = torch.cat([t.reshape(-1) for t in values]) if len(values) > 1 else values[0]
     if not bool(torch.isfinite(flat).all()):
         for name, t in named.items():
@@ -153,3 +232,12 @@ def result_dtype(*tensors: Tensor) -> torch.dtype:
     if dt in (torch.float16, torch.bfloat16):
         dt = torch.float32
     return dt
+
+
+def autocast_off(x: Tensor) -> ContextManager:
+    """``torch.autocast(enabled=False)`` for ``x``'s device type: the caller casts to its working
+    dtype (:func:`result_dtype`) itself. A no-op where autocast does not exist (the meta device)."""
+    device_type = x.device.type
+    if not torch.amp.is_autocast_available(device_type):
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device_type, enabled=False)

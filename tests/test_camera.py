@@ -279,3 +279,94 @@ def test_gradient_through_camera():
     cam = Camera(K, h, 0.01)
     (cam.scaled(0.5).fx.sum() + cam.height.sum()).backward()
     assert fx.grad.item() == pytest.approx(0.5) and h.grad.tolist() == [1.0]
+
+
+# --- values whose geometry overflows or underflows in the camera's dtype ---------------------------
+
+from fsof_torch.geometry.camera import camera_value_bounds  # noqa: E402
+
+
+@pytest.mark.parametrize("dtype, field, value", [
+    (torch.float32, "cx", 1e21), (torch.float32, "cy", -1e21), (torch.float32, "height", 1e-38),
+    (torch.float32, "fx", 1e38), (torch.float64, "fx", 1e-171), (torch.float64, "height", 1e-300),
+    (torch.float64, "fy", 1e200)])
+def test_values_that_break_the_geometry_are_rejected(dtype, field, value):
+    """Each once passed the checks and gave NaN flow at pixels marked valid."""
+    K = _K(dtype=dtype)
+    height = 1.65
+    if field == "height":
+        height = value
+    else:
+        i, j = {"fx": (0, 0), "fy": (1, 1), "cx": (0, 2), "cy": (1, 2)}[field]
+        K[i, j] = value
+    name = "height" if field == "height" else "K"
+    with pytest.raises(ValueError, match=rf"{name}: expected .* for a {dtype} camera"):
+        Camera(K, height)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bounds_follow_the_dtype_and_the_geometry_stays_finite_inside_them(dtype):
+    lo, hi = camera_value_bounds(dtype)
+    finfo = torch.finfo(dtype)
+    # no product of five factors overflows or leaves the normal range
+    assert hi ** 5 <= finfo.max and lo ** 5 >= finfo.tiny
+    assert lo == 1 / hi and finfo.max ** 0.2 / 2 < hi <= finfo.max ** 0.2
+    inside = {"fx": [hi, lo], "cx": [hi, -hi], "height": [hi, lo]}
+    for field, values in inside.items():
+        for value in values:
+            K, height = _K(dtype=dtype), 1.65
+            if field == "height":
+                height = value
+            else:
+                K[(0, 0) if field == "fx" else (0, 2)] = value
+                if field == "fx":
+                    K[1, 1] = value
+            cam = Camera(K, height)
+            flow, valid = displacement_flow(cam, 0.1, 1.0, 0.01, (24, 40))
+            vel, _ = velocity_flow(cam, 10.0, 0.01, 2.7, (24, 40))
+            assert torch.isfinite(flow).all() and torch.isfinite(vel).all(), (field, value)
+            # just outside: rejected
+            outside = value * 1.01 if value in (hi, -hi) else value / 1.01
+            if field == "height":
+                height = outside
+            else:
+                K[(0, 0) if field == "fx" else (0, 2)] = outside
+            with pytest.raises(ValueError, match="for a .* camera"):
+                Camera(K, height)
+
+
+def test_cast_to_a_narrower_dtype_checks_its_bounds():
+    cam = Camera(_K(fx=1e10), 1.65)
+    assert cam.to(torch.float64) is cam
+    with pytest.raises(ValueError, match="K: expected focal lengths in .* for a torch.float32 camera"):
+        cam.to(torch.float32)
+    assert Camera(_K(), 1.65).to(torch.bfloat16).dtype == torch.float32  # as the constructor does
+
+
+def test_scaled_needs_numbers():
+    """cam.scaled("2") was accepted silently (float("2") == 2)."""
+    cam = Camera(_K(), 1.65)
+    with pytest.raises(TypeError, match="sx: expected a number \\(the resize factor\\), got str '2'"):
+        cam.scaled("2")
+    with pytest.raises(TypeError, match="sy: expected a number"):
+        cam.scaled(2.0, True)
+
+
+def test_kitti_calibration_bad_camera_index_and_binary_file(tmp_path):
+    (tmp_path / "a.txt").write_text(CAM_TO_CAM)
+    for cam in ("x", 2.0, True, -1):
+        with pytest.raises(ValueError, match=rf"cam: expected 0..3, got {cam!r}"):
+            read_kitti_calibration(tmp_path / "a.txt", cam)
+    (tmp_path / "b.txt").write_bytes(bytes(range(256)))
+    with pytest.raises(ValueError, match=r"path: '.*b.txt' is not a text calibration file"):
+        read_kitti_calibration(tmp_path / "b.txt")
+    with pytest.raises(ValueError, match=r"path: '.*b.txt' is not a text calibration file"):
+        Camera.from_kitti(tmp_path / "b.txt")
+
+
+def test_meta_device_shape_inference():
+    """Value checks once called .item() on meta tensors; torch skips them there, and so does Camera."""
+    cam = Camera(_K(dtype=torch.float32).to("meta"), torch.ones(2, device="meta"))
+    assert cam.device.type == "meta" and cam.batch_size == 2
+    assert cam.scaled(0.5).K.shape == (2, 3, 3) and cam.horizon_row().shape == (2,)
+    assert cam.to(torch.float64).dtype == torch.float64

@@ -7,13 +7,19 @@ import torch
 
 from fsof_torch._check import (
     as_batch_param,
+    autocast_off,
+    check_data_range,
     check_finite,
     check_float_tensor,
+    check_has_values,
+    check_image_range,
+    check_number,
     check_positive,
     check_shape,
     check_size,
     resolve_batch,
     result_dtype,
+    skip_values,
     tracing,
 )
 
@@ -115,3 +121,57 @@ def test_tracing_flag():
 
     assert f(torch.zeros(1)).item() == 0.0
     assert torch.compile(f, backend="eager", fullgraph=True)(torch.zeros(1)).item() == 1.0
+
+
+def test_check_shape_rejects_empty_images():
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\) with H >= 1, got \(1, 2, 0, 5\)"):
+        check_shape(torch.zeros(1, 2, 0, 5), "flow", ("B", 2, "H", "W"))
+    assert check_shape(torch.zeros(0, 2, 3, 5), "flow", ("B", 2, "H", "W")) == {"B": 0, "H": 3, "W": 5}
+    assert check_shape(torch.zeros(1, 0), "x", ("B", "N"), nonempty=()) == {"B": 1, "N": 0}
+
+
+def test_value_checks_skip_meta_tensors():
+    meta = torch.full((3,), float("nan"), device="meta")
+    assert skip_values(meta) and not skip_values(torch.zeros(1))
+    check_finite(meta, "x")
+    check_positive(meta, "x")
+    check_image_range(meta, "image", 1.0)
+    with autocast_off(meta):  # autocast does not exist on meta: a no-op
+        pass
+    with pytest.raises(ValueError, match="x: a tensor on the meta device has shapes but no values"):
+        check_has_values(meta, "x")
+
+
+def test_check_number_and_data_range():
+    assert check_number(2, "n", positive=True) == 2.0
+    assert check_number(torch.tensor(0.5), "n") == 0.5
+    with pytest.raises(TypeError, match="n: expected a number, got str '1'"):
+        check_number("1", "n")
+    with pytest.raises(TypeError, match="n: expected a number, got bool"):
+        check_number(True, "n")
+    with pytest.raises(ValueError, match="n: expected a finite number, got nan"):
+        check_number(float("nan"), "n")
+    with pytest.raises(ValueError, match="n: expected a number >= 0, got -1"):
+        check_number(-1, "n", nonnegative=True)
+    assert check_data_range(255) == 255.0
+    for bad in (0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="data_range: expected a positive finite number"):
+            check_data_range(bad)
+
+
+def test_check_image_range():
+    check_image_range(torch.tensor([0.0, 1.0]), "image", 1.0)
+    with pytest.raises(ValueError, match=r"image: expected values in \[0, data_range=1\], got values in \[0, 255\]"):
+        check_image_range(torch.tensor([0.0, 255.0]), "image", 1.0)
+    with pytest.raises(ValueError, match=r"image: expected finite pixel values, got \[nan\]"):
+        check_image_range(torch.tensor([0.0, float("nan")]), "image", 255.0)
+    with pytest.raises(ValueError, match=r"image: expected finite pixel values, got \[-inf\]"):
+        check_image_range(torch.tensor([-float("inf"), 3.0]), "image", 255.0)
+
+
+def test_autocast_off_restores_float32_arithmetic():
+    a = torch.randn(4, 4)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert (a @ a).dtype == torch.bfloat16
+        with autocast_off(a):
+            assert (a @ a).dtype == torch.float32

@@ -219,3 +219,10 @@ def test_ackermann_exceptions():
         ego_motion_from_ackermann(torch.tensor([10]), 0.0, 2.7, 0.1)
     with pytest.raises(ValueError, match="dt: expected finite values"):
         ego_motion_from_ackermann(10.0, 0.0, 2.7, float("nan"))
+
+
+def test_ackermann_on_the_meta_device_follows_its_tensors():
+    """Python numbers once became CPU tensors beside meta ones (a device mismatch)."""
+    speed = torch.empty(3, device="meta")
+    out = ego_motion_from_ackermann(speed, 0.1, 2.7, 0.1)
+    assert out.x_d.device.type == "meta" and out.x_d.shape == (3,)

@@ -493,3 +493,37 @@ def test_photometric_fit_from_the_images():
     assert out.odometry["z_d"].item() == pytest.approx(p["odometry"]["z_d"], rel=0.05)
     with pytest.raises(ValueError, match="images: fit='photometric' needs images"):
         FreespaceRefiner(fit="photometric")(pred, road, p["camera"])
+
+
+# -- fuse_flow: bad input, each named ----------------------------------------------------------------
+
+def test_fuse_flow_rejects_bad_input():
+    pred, mask, _, gt = make_case()
+    model = gt.to(pred.dtype)
+    with pytest.raises(TypeError, match="mask: expected a bool tensor .* got dtype torch.uint8"):
+        fuse_flow(pred, model, mask.to(torch.uint8))  # once only a deprecation warning
+    with pytest.raises(ValueError, match=r"flow_model: expected shape \(1, 2, 48, 120\) .* got \(1, 2, 24, 60\)"):
+        fuse_flow(pred, model[..., ::2, ::2], mask)  # once a RuntimeError
+    with pytest.raises(ValueError, match=r"mask: expected shape \(1, 1, 48, 120\)"):
+        fuse_flow(pred, model, mask[..., :10])
+    for scale in (0.0, float("nan"), float("inf"), -2.0):
+        with pytest.raises(ValueError, match="scale: expected a finite Cauchy scale > 0 pixels"):
+            fuse_flow(pred, model, mask, mode="confidence", scale=scale)  # once a NaN output
+    with pytest.raises(TypeError, match="scale: expected a finite Cauchy scale"):
+        fuse_flow(pred, model, mask, scale="2")
+    nan_model = model.clone()
+    nan_model[mask.expand_as(nan_model)] = float("nan")
+    with pytest.raises(ValueError, match=r"flow_model: expected finite values inside the mask, got \d+ non-finite"):
+        fuse_flow(pred, nan_model, mask)
+    with pytest.raises(TypeError, match="flow_pred: expected a floating-point tensor"):
+        fuse_flow(pred.to(torch.int32), model, mask)
+
+
+def test_fuse_flow_nonfinite_model_outside_the_mask_is_harmless():
+    pred, mask, _, gt = make_case()
+    model = gt.to(pred.dtype).clone()
+    model[~mask.expand_as(model)] = float("nan")
+    for mode in ("replace", "confidence"):
+        out, weight = fuse_flow(pred, model, mask, mode=mode)
+        assert torch.equal(out[~mask.expand_as(out)], pred[~mask.expand_as(pred)])
+        assert torch.isfinite(out).all() and torch.isfinite(weight).all()

@@ -66,3 +66,13 @@ class TestExceptions:
             read_flow(tmp_path / "i.npy")
         with pytest.raises(FileNotFoundError):
             read_flow(tmp_path / "none.npy")
+
+    def test_zero_byte_and_npz_npy(self, tmp_path):
+        """A zero-byte .npy once raised a bare EOFError."""
+        (tmp_path / "z.npy").write_bytes(b"")
+        with pytest.raises(ValueError, match=r"path: '.*z\.npy' is not a readable \.npy array \(EOFError"):
+            read_flow(tmp_path / "z.npy")
+        np.savez(tmp_path / "a.npz", flow=np.zeros((2, 3, 3), np.float32))
+        (tmp_path / "a.npz").rename(tmp_path / "a.npy")
+        with pytest.raises(ValueError, match=r"a\.npy' is not a single \.npy array"):
+            read_flow(tmp_path / "a.npy")

@@ -72,6 +72,13 @@ class TestExceptions:
         with pytest.raises(TypeError, match="torch.bool"):
             write_image(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.bool))
 
+    @pytest.mark.parametrize("name", ["x.xyz", "noext"])
+    def test_unknown_image_suffix(self, tmp_path, name):
+        """write_image("x.xyz") once raised a cv2.error; nothing may be left behind."""
+        with pytest.raises(ValueError, match=r"path: OpenCV has no image writer for the suffix"):
+            write_image(tmp_path / name, torch.zeros(3, 4, 4))
+        assert list(tmp_path.iterdir()) == []
+
     def test_encoder_failing_midway_leaves_no_file(self, tmp_path, monkeypatch):
         write_image(tmp_path / "ref.png", _ramp())
         good = (tmp_path / "ref.png").read_bytes()

@@ -161,6 +161,28 @@ class TestExceptions:
         with pytest.raises(ValueError, match="style"):
             write_kitti_calibration(tmp_path / "c.txt", torch.eye(3), style="raw")
 
+    def test_binary_poses_file(self, tmp_path):
+        """Once a bare UnicodeDecodeError without the path."""
+        (tmp_path / "poses.txt").write_bytes(bytes(range(256)))
+        with pytest.raises(ValueError, match=r"path: '.*poses\.txt' is not a text poses file"):
+            read_kitti_poses(tmp_path / "poses.txt")
+
+    @pytest.mark.parametrize("rotation, why", [("0 0 0 0 0 0 0 0 0", "det 0"), ("2 0 0 0 2 0 0 0 2", "up to 3"),
+                                               ("1 0 0 0 1 0 0 0 -1", "det -1")])
+    def test_poses_whose_rotation_is_not_a_rotation(self, tmp_path, rotation, why):
+        """An all-zero rotation was once accepted (singular: its relative poses are inf)."""
+        r = rotation.split()
+        good = "1 0 0 0 0 1 0 0 0 0 1 0"
+        row = " ".join(r[0:3] + ["1"] + r[3:6] + ["2"] + r[6:9] + ["3"])
+        (tmp_path / "p.txt").write_text(f"{good}\n# a comment\n{row}\n")
+        with pytest.raises(ValueError, match=rf"path: line 3 of '.*p\.txt' is not a rigid pose: .*{why}"):
+            read_kitti_poses(tmp_path / "p.txt")
+
+    def test_calibration_writer_camera_index(self, tmp_path):
+        for cam in ("x", 4, 1.0):
+            with pytest.raises(ValueError, match=rf"cam: expected 0..3, got {cam!r}"):
+                write_kitti_calibration(tmp_path / "c.txt", torch.eye(3), cam=cam)
+
 
 class TestShared:
     def test_kitti15_sample_valid_fraction(self, shared_data):

@@ -127,3 +127,119 @@ class TestShared:
         assert mask.shape == (1, *size)
         assert low < float(mask.float().mean()) < high
         assert not mask[0, :150].any()  # the polygons lie below the horizon
+
+
+# --- malformed polygon JSON: each raises an error naming the file and the entry -----------------
+
+_TRIANGLE = [[0, 0], [5, 0], [5, 5]]
+_MALFORMED = {
+    "a number": (5, TypeError, "expected a JSON object"),
+    "a string": ("road", TypeError, "expected a JSON object"),
+    "null points": ({"size": [8, 8], "road_polygon": None}, TypeError, r"\['road_polygon'\]: expected a list of \[u, v\] points"),
+    "dict points": ({"size": [8, 8], "road_polygon": {"a": 1}}, TypeError, r"\['road_polygon'\]: expected a list"),
+    "3-coordinate points": ({"size": [8, 8], "road_polygon": [[0, 0, 0], [5, 0, 0], [5, 5, 0]]}, ValueError,
+                            r"\['road_polygon'\]\[0\]: expected a point \[u, v\] \(two numbers\)"),
+    "string points": ({"size": [8, 8], "road_polygon": ["a", "b", "c"]}, ValueError, r"\[0\]: expected a point"),
+    "string coordinates": ({"size": [8, 8], "road_polygon": [["a", 0], [5, 0], [5, 5]]}, TypeError,
+                           r"\[0\]: expected numeric coordinates"),
+    "bool coordinates": ({"size": [8, 8], "road_polygon": [[True, 0], [5, 0], [5, 5]]}, TypeError, "numeric"),
+    "two points": ({"size": [8, 8], "road_polygon": [[0, 0], [1, 1]]}, ValueError, "at least three"),
+    "size [0, 0]": ({"size": [0, 0], "road_polygon": _TRIANGLE}, ValueError, r"\['size'\]: expected positive sides"),
+    "negative size": ({"size": [-8, 8], "road_polygon": _TRIANGLE}, ValueError, "expected positive sides"),
+    "size 'big'": ({"size": "big", "road_polygon": _TRIANGLE}, ValueError, r"\['size'\]: expected \[H, W\]"),
+    "three sizes": ({"size": [8, 8, 3], "road_polygon": _TRIANGLE}, ValueError, r"expected \[H, W\]"),
+    "float size": ({"size": [8.5, 8], "road_polygon": _TRIANGLE}, TypeError, "expected integer sides"),
+    "integral float size": ({"size": [8.0, 8], "road_polygon": _TRIANGLE}, TypeError, "expected integer sides"),
+    "polygons not a list": ({"size": [8, 8], "polygons": 3}, TypeError, r"\['polygons'\]: expected a list of polygons"),
+    "named non-polygon": ({"size": [8, 8], "lane": _TRIANGLE, "note": "hand-drawn"}, TypeError,
+                          r"\['note'\]: expected a list of \[u, v\] points"),
+    "no polygon": ({"size": [8, 8]}, ValueError, "has no 'road_polygon'"),
+}
+
+
+class TestPolygonJson:
+    @pytest.mark.parametrize("case", list(_MALFORMED))
+    def test_malformed(self, tmp_path, case):
+        obj, err, msg = _MALFORMED[case]
+        path = _write_json(tmp_path / "road.json", obj)
+        with pytest.raises(err, match=rf"path: '.*road\.json'.*{msg}"):
+            read_road_mask(path)
+
+    @pytest.mark.parametrize("text", ['{"size": [30, 30], "road_polygon": [[0, 0], [NaN, 0], [20, 20]]}',
+                                      '{"size": [30, 30], "road_polygon": [[0, 0], [Infinity, 0], [20, 20]]}'])
+    def test_non_finite_vertex(self, tmp_path, text):
+        """A NaN vertex once gave a 22-pixel mask."""
+        (tmp_path / "r.json").write_text(text)
+        with pytest.raises(ValueError, match=r"\['road_polygon'\]\[1\]: expected finite coordinates"):
+            read_road_mask(tmp_path / "r.json")
+
+    def test_binary_file(self, tmp_path):
+        (tmp_path / "r.json").write_bytes(bytes(range(256)))
+        with pytest.raises(ValueError, match=r"path: '.*r\.json' is not a text \(UTF-8\) JSON file"):
+            read_road_mask(tmp_path / "r.json")
+
+    def test_size_argument_checked(self, tmp_path):
+        path = _write_json(tmp_path / "r.json", {"size": [8, 8], "road_polygon": _TRIANGLE})
+        for size, err in (((0, 8), ValueError), ((8.5, 8), TypeError), ((8, 8, 1), ValueError)):
+            with pytest.raises(err, match="size: expected"):
+                read_road_mask(path, size=size)
+
+    def test_the_four_formats_give_the_same_mask(self, tmp_path):
+        a, b = [[0, 0], [4, 0], [4, 4]], [[6, 6], [9, 6], [9, 9], [6, 9]]
+        want = rasterize_polygons([a, b], (10, 12))
+        forms = {"one": ({"size": [10, 12], "road_polygon": a}, None),
+                 "list": ({"size": [10, 12], "polygons": [a, b]}, None),
+                 "named": ({"size": [10, 12], "polygons": {"left": a, "right": b}}, None),
+                 "named top level": ({"size": [10, 12], "left": a, "right": b}, None),
+                 "bare list": ([a, b], (10, 12))}
+        for name, (obj, size) in forms.items():
+            got = read_road_mask(_write_json(tmp_path / f"{name}.json", obj), size=size)
+            expected = rasterize_polygons([a], (10, 12)) if name == "one" else want
+            assert torch.equal(got, expected), name
+        with pytest.raises(ValueError, match="has no 'size' entry; pass size"):
+            read_road_mask(_write_json(tmp_path / "bare.json", [a]))
+
+
+class TestClipping:
+    def test_polygon_enclosing_the_image_far_outside(self, tmp_path):
+        """±2e8 px once overflowed OpenCV's int32 fixed-point vertices and gave an empty mask."""
+        for far in (2e8, 1e12, 1e15):
+            poly = [[-far, -far], [far, -far], [far, far], [-far, far]]
+            assert rasterize_polygons([poly], (10, 12)).all(), far
+        path = _write_json(tmp_path / "r.json", {"size": [10, 12], "road_polygon": [[-2e8, -2e8], [2e8, -2e8],
+                                                                                    [2e8, 2e8], [-2e8, 2e8]]})
+        assert int(read_road_mask(path).sum()) == 120
+        with pytest.raises(ValueError, match=r"polygons\[0\]\[0\]: coordinates beyond ±1e\+15 px"):
+            rasterize_polygons([[[-1e16, 0], [5, 0], [5, 5]]], (10, 12))
+
+    def test_far_half_plane_edge_keeps_its_slope(self):
+        """A triangle with one vertex far away: clipping keeps the edge through the image exact."""
+        poly = [[0.0, 0.0], [1e9, 1e9], [0.0, 1e9]]  # the half plane v >= u, below the diagonal
+        mask = rasterize_polygons([poly], (20, 20))[0]
+        v, u = torch.meshgrid(torch.arange(20), torch.arange(20), indexing="ij")
+        assert torch.equal(mask[v != u], (v >= u)[v != u])
+
+    def test_clipping_matches_an_exact_even_odd_reference(self):
+        """Random polygons (also concave and self-intersecting) reaching up to 1e7 px outside the
+        image, clipped then filled, against an independent even-odd test of each pixel centre.
+        Pixels within 1.5 px of an edge are left out: fillPoly draws its edges and rounds
+        vertices to 1/16 px, so which side they fall on is OpenCV's business."""
+        g = np.random.default_rng(0)
+        H, W = 20, 30
+        v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+        for trial in range(150):
+            n = int(g.integers(3, 9))
+            reach = 10.0 ** g.uniform(1, 7)
+            poly = g.uniform([-reach, -reach], [W + reach, H + reach], size=(n, 2))
+            poly[: n // 2] = g.uniform([0, 0], [W, H], size=(n // 2, 2))  # some vertices inside
+            inside = np.zeros((H, W), bool)
+            near = np.zeros((H, W), bool)
+            for (x0, y0), (x1, y1) in zip(poly, np.roll(poly, -1, axis=0)):
+                crosses = (y0 > v) != (y1 > v)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    x_at = x0 + (v - y0) * (x1 - x0) / (y1 - y0)
+                inside ^= crosses & (u < x_at)
+                t = np.clip(((u - x0) * (x1 - x0) + (v - y0) * (y1 - y0)) / ((x1 - x0) ** 2 + (y1 - y0) ** 2), 0, 1)
+                near |= np.hypot(u - (x0 + t * (x1 - x0)), v - (y0 + t * (y1 - y0))) < 1.5
+            got = rasterize_polygons([poly.tolist()], (H, W))[0].numpy()
+            assert (got == inside)[~near].all(), (trial, poly.tolist())

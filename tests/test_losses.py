@@ -22,6 +22,7 @@ from fsof_torch.training.losses import (
 )
 
 H, W = 48, 80
+_PENALTY_NAMES = ("charbonnier", "cauchy", "l1")
 
 
 def _camera(dtype=torch.float64) -> Camera:
@@ -301,3 +302,194 @@ def test_photometric_and_smoothness_compute_in_float32_under_bfloat16():
     assert low.dtype == torch.float32
     assert torch.allclose(low, exact, atol=1e-2)
     assert smoothness_loss(flow.bfloat16(), image1).dtype == torch.float32
+
+
+# -- mixed precision: the terms compute in at least float32 under autocast -------------------------
+
+def _road_case(dtype=torch.float32):
+    cam = _camera(dtype)
+    odo = {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01}
+    model, valid = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], (H, W))
+    road = valid.clone()
+    road[..., : H // 2 + 2, :] = False
+    return cam, odo, model, road
+
+
+@pytest.mark.parametrize("amp", [torch.bfloat16, torch.float16], ids=["bf16", "f16"])
+def test_freespace_loss_of_the_exact_model_flow_is_zero_under_autocast(amp):
+    """Once 3.29 instead of 0 under bfloat16: the model flow was computed in bfloat16."""
+    cam, odo, model, road = _road_case()
+    for penalty in _PENALTY_NAMES:
+        with torch.autocast("cpu", dtype=amp):
+            # end to end: the term computes its own model flow inside the autocast region
+            value = FreespaceFlowLoss(penalty=penalty)(model, road, cam, odo)
+        assert value.dtype == torch.float32 and value.item() == 0.0, penalty
+    # a float64 camera: the model flow in float64, compared in float32
+    cam64 = _camera(torch.float64)
+    model64, _ = displacement_flow(cam64, odo["x_d"], odo["z_d"], odo["yaw"], (H, W))
+    with torch.autocast("cpu", dtype=amp):
+        value = freespace_flow_loss(model64.float(), road, cam64, odo)
+    assert value.item() <= 1e-12
+
+
+@pytest.mark.parametrize("amp", [torch.bfloat16, torch.float16], ids=["bf16", "f16"])
+def test_losses_under_autocast_equal_float32(amp):
+    cam, odo, model, road = _road_case()
+    g = torch.Generator().manual_seed(3)
+    flow = (model + torch.randn(model.shape, generator=g)).requires_grad_(True)
+    image1, image2, shift = _shifted_pair(1, dtype=torch.float32)
+    cases = {
+        "freespace": lambda f: freespace_flow_loss([f * 0.5, f], road, cam, odo, penalty="cauchy"),
+        "freespace_fit": lambda f: FreespaceFlowLoss(odometry="fit")(f, road, cam),
+        "unsupervised": lambda f: unsupervised_flow_loss([f], image1, image2, flows_backward=[-f],
+                                                         census_weight=1.0),
+    }
+    for name, fn in cases.items():
+        f = flow if name != "unsupervised" else (shift + 0.3).requires_grad_(True)
+        exact = fn(f)
+        (grad_exact,) = torch.autograd.grad(exact, f)
+        with torch.autocast("cpu", dtype=amp):
+            low = fn(f)
+        (grad_low,) = torch.autograd.grad(low, f)
+        assert low.dtype == torch.float32, name
+        torch.testing.assert_close(low, exact, rtol=1e-4, atol=0, msg=name)
+        torch.testing.assert_close(grad_low, grad_exact, rtol=1e-4, atol=1e-9, msg=name)
+
+
+def test_census_term_runs_in_float32_under_autocast():
+    """The census convolution once ran in bfloat16 under autocast (three significant digits)."""
+    from fsof_torch.evaluation.photometric import census_transform
+
+    image = _textured(1, torch.float32) / 255
+    exact = census_transform(image, data_range=1.0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = census_transform(image, data_range=1.0)
+    assert low.dtype == torch.float32 and torch.equal(low, exact)
+
+
+# -- non-finite and huge predictions in the freespace term ---------------------------------------
+
+def test_nonfinite_predictions_outside_the_road_do_not_count():
+    """One inf or NaN pixel outside the road (or 1e20 in float32) once made the loss and every
+    gradient NaN."""
+    cam, odo, model, road = _road_case()
+    off = model + 0.7
+    clean = freespace_flow_loss(off, road, cam, odo)
+    bad = off.clone()
+    bad[0, 0, 0, 0], bad[0, 1, 1, 1], bad[0, 0, 2, 2] = float("inf"), float("nan"), 1e20
+    assert not road[0, 0, :3, :3].any()
+    bad.requires_grad_(True)
+    for penalty in _PENALTY_NAMES:
+        value = freespace_flow_loss([bad, bad], road, cam, odo, penalty=penalty)
+        (grad,) = torch.autograd.grad(value, bad)
+        assert torch.isfinite(grad).all() and (grad[..., :3, :3] == 0).all(), penalty
+        if penalty == "charbonnier":
+            torch.testing.assert_close(value, clean * (1 + 0.8), rtol=1e-6, atol=0)
+
+
+def test_nonfinite_predictions_inside_the_road_are_left_out_with_a_warning():
+    cam, odo, model, road = _road_case()
+    off = model + 0.7
+    bad = off.clone()
+    rows, cols = torch.nonzero(road[0, 0])[:3].T
+    bad[0, 0, rows[0], cols[0]] = float("nan")
+    bad[0, 1, rows[1], cols[1]] = float("inf")
+    keep = road.clone()
+    keep[0, 0, rows[:2], cols[:2]] = False
+    bad.requires_grad_(True)
+    with pytest.warns(RuntimeWarning, match=r"flows: non-finite predicted pixels inside the road mask are "
+                                            r"left out of the freespace loss \(flows\[0\]: 2\)"):
+        value = freespace_flow_loss(bad, road, cam, odo)
+    (grad,) = torch.autograd.grad(value, bad)
+    assert torch.isfinite(grad).all()
+    torch.testing.assert_close(value, freespace_flow_loss(off, keep, cam, odo), rtol=1e-6, atol=0)
+
+
+def test_huge_finite_predictions_give_finite_penalties():
+    """r = 1e20 px in float32: r² overflows; the penalties are written without forming it."""
+    cam, odo, model, road = _road_case()
+    big = model.clone()
+    r, c = torch.nonzero(road[0, 0])[0].tolist()
+    big[0, 0, r, c] = 1e20
+    big.requires_grad_(True)
+    n = int(road.sum())
+    for penalty, want in (("charbonnier", 1e20 - 1), ("cauchy", 2 * math.log(1e20 / math.sqrt(2))), ("l1", 1e20)):
+        value = freespace_flow_loss(big, road, cam, odo, penalty=penalty)
+        (grad,) = torch.autograd.grad(value, big)
+        assert torch.isfinite(grad).all() and torch.isfinite(value), penalty
+        assert value.item() == pytest.approx(want / n, rel=1e-5), penalty
+    with pytest.raises(ValueError, match="flows: the charbonnier penalty overflows torch.float32"):
+        freespace_flow_loss(torch.full_like(model, 3e38), road, cam, odo, scale=0.01)
+
+
+def test_cauchy_penalty_is_continuous_at_its_switch():
+    from fsof_torch.training.losses import _CAUCHY_SWITCH, _cauchy
+
+    r = torch.tensor([_CAUCHY_SWITCH * (1 - 1e-12), _CAUCHY_SWITCH, 7.0, 1e-4], dtype=torch.float64)
+    torch.testing.assert_close(_cauchy(r), torch.log1p(r * r / 2), rtol=1e-12, atol=0)
+
+
+# -- the failures of bad arguments, each named -------------------------------------------------------
+
+def test_freespace_batch_mismatches_name_the_argument():
+    """Once a RuntimeError 'expanded size ...' from inside the model flow."""
+    flow = torch.zeros(2, 2, H, W, dtype=torch.float64)
+    road = torch.ones(2, 1, H, W, dtype=torch.bool)
+    K3 = _camera().K.expand(3, 3, 3)
+    with pytest.raises(ValueError, match=r"camera: expected batch 1 or 2 \(the flows' batch\), got 3"):
+        freespace_flow_loss(flow, road, Camera(K3, 1.65), {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
+    with pytest.raises(ValueError, match=r"odometry\['z_d'\]: expected a float or a tensor of shape \(1,\) or "
+                                         r"\(2,\) \(the flows' batch\), got shape \(3,\)"):
+        FreespaceFlowLoss()(flow, road, _camera(), {"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0})
+
+
+@pytest.mark.parametrize("scale", [float("inf"), float("nan"), 0.0, -1.0])
+def test_freespace_scale_must_be_finite_and_positive(scale):
+    """scale=inf once made the term 0 whatever the flow."""
+    flow, road = torch.zeros(1, 2, H, W), torch.ones(1, 1, H, W, dtype=torch.bool)
+    with pytest.raises(ValueError, match="scale: expected a finite residual scale > 0 px"):
+        FreespaceFlowLoss(scale=scale)
+    with pytest.raises(ValueError, match="scale: expected a finite residual scale > 0 px"):
+        freespace_flow_loss(flow, road, _camera(), {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, scale=scale)
+    with pytest.raises(TypeError, match="scale: expected a finite residual scale"):
+        FreespaceFlowLoss(scale="1")
+
+
+def test_unsupervised_loss_rejects_bad_images_and_ranges():
+    image1, image2, flow = _shifted_pair(1)
+    with pytest.raises(ValueError, match=r"image1: expected values in \[0, data_range=1\], got values in"):
+        UnsupervisedFlowLoss(data_range=1.0)(flow, image1, image2)  # 0..255 images
+    nan_image = image2.clone()
+    nan_image[0, 1, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match=r"image2: expected finite pixel values, got \[nan\]"):
+        UnsupervisedFlowLoss()(flow, image1, nan_image)
+    bad_flow = flow.clone()
+    bad_flow[0, 0, 5, 5] = float("inf")
+    with pytest.raises(ValueError, match=r"flows\[1\]: expected finite values, got \[inf\]"):
+        unsupervised_flow_loss([flow, bad_flow], image1, image2)
+    with pytest.raises(ValueError, match=r"flows_backward\[0\]: expected finite values"):
+        unsupervised_flow_loss(flow, image1, image2, flows_backward=bad_flow)
+    for bad in (float("nan"), 0.0, -1.0, float("inf")):
+        with pytest.raises(ValueError, match="data_range: expected a positive finite number"):
+            UnsupervisedFlowLoss(data_range=bad)
+        with pytest.raises(ValueError, match="data_range: expected a positive finite number"):
+            photometric_loss(image1, image2, flow, data_range=bad)
+        with pytest.raises(ValueError, match="data_range: expected a positive finite number"):
+            smoothness_loss(flow, image1, data_range=bad)
+    with pytest.raises(ValueError, match="ssim_weight: expected a number >= 0"):
+        UnsupervisedFlowLoss(ssim_weight=-1.0)
+
+
+def test_one_pixel_images():
+    """The unsupervised loss on 1-pixel images once failed inside the SSIM padding."""
+    image = torch.full((1, 3, 1, 1), 100.0)
+    flow = torch.zeros(1, 2, 1, 1)
+    with pytest.raises(ValueError, match=r"image1: the SSIM term needs H and W >= 2, got shape \(1, 3, 1, 1\)"):
+        UnsupervisedFlowLoss()(flow, image, image)
+    value = UnsupervisedFlowLoss(ssim_weight=0.0, census_weight=1.0)(flow, image, image)
+    assert torch.isfinite(value)
+    row = torch.rand(1, 3, 1, 9, generator=torch.Generator().manual_seed(0)) * 255
+    with pytest.raises(ValueError, match=r"image1: the SSIM term needs H and W >= 2"):
+        photometric_loss(row, row, torch.zeros(1, 2, 1, 9))
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with H >= 1"):
+        UnsupervisedFlowLoss()(torch.zeros(1, 2, 0, 4), image[..., :0, :4], image[..., :0, :4])

@@ -10,7 +10,9 @@ import torch
 
 import fsof_torch.evaluation.metrics as metrics_module
 from fsof_torch.evaluation.metrics import (
+    BENCHMARK_NAMES,
     METRIC_NAMES,
+    FlowMetricAccumulator,
     angular_error,
     endpoint_error,
     flow_error_maps,
@@ -53,7 +55,7 @@ def test_smoke(dtype):
         out = fn(est, gt)
         assert out.shape == (2,) and out.dtype == dtype and torch.isfinite(out).all(), name
     m = flow_metrics(est, gt)
-    assert set(m) == set(METRIC_NAMES) | {"n_pixels"} and m["n_pixels"] == 2 * 6 * 9
+    assert set(m) == set(METRIC_NAMES) | set(BENCHMARK_NAMES) | {"n_pixels"} and m["n_pixels"] == 2 * 6 * 9
     assert all(isinstance(m[k], float) for k in METRIC_NAMES)
 
 
@@ -210,3 +212,194 @@ def test_gradcheck():
     gt = _random(B=1, H=3, W=4, seed=7)
     for name in ["e_A", "e_E", "e_U", "e_V"]:
         assert torch.autograd.gradcheck(lambda f: PER_SAMPLE[name](f, gt), (est,)), name
+
+
+# --- non-finite values and overflow ------------------------------------------------------------
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
+def test_nonfinite_estimate_at_a_counted_pixel_raises(bad):
+    """An all-NaN estimate against 10 px ground truth once scored e_E = 0, Fl = 0 (perfect)."""
+    gt = torch.full((1, 2, 4, 5), 10.0)
+    est = torch.full_like(gt, bad)
+    fns = [*PER_SAMPLE.values(), flow_metrics, flow_metrics_per_sample, flow_error_maps]
+    for fn in fns:
+        with pytest.raises(ValueError, match=r"flow_est: 20 non-finite value\(s\) \(NaN or inf\) at counted pixels"):
+            fn(est, gt)
+    one = torch.zeros_like(gt)
+    one[0, 1, 2, 3] = bad
+    with pytest.raises(ValueError, match=r"flow_est: 1 non-finite .* sample 0, pixel \(u=3, v=2\)"):
+        flow_metrics(one, gt)
+
+
+def test_nonfinite_estimate_outside_the_selection_is_not_counted():
+    est, gt = _random(), _random(seed=1)
+    mask = torch.ones(2, 1, 6, 9, dtype=torch.bool)
+    mask[:, :, 0] = False
+    bad = est.clone()
+    bad[:, :, 0] = float("nan")
+    bad[0, 0, 0, 0] = float("inf")
+    assert flow_metrics(bad, gt, mask) == flow_metrics(est, gt, mask)
+    for name, fn in PER_SAMPLE.items():
+        torch.testing.assert_close(fn(bad, gt, valid=mask), fn(est, gt, valid=mask))
+
+
+def test_nonfinite_ground_truth_is_invalid():
+    """NaN or inf ground truth marks the pixel invalid (as KITTI's valid channel), without a mask."""
+    est, gt = _random(), _random(seed=1)
+    gt_bad = gt.clone()
+    gt_bad[0, 0, 1, 2] = float("nan")
+    gt_bad[1, 1, 3, 4] = float("inf")
+    valid = torch.isfinite(gt_bad).all(dim=1, keepdim=True)
+    got = flow_metrics(est, gt_bad)
+    assert got["n_pixels"] == 2 * 6 * 9 - 2
+    assert got == flow_metrics(est, gt, valid=valid)
+    per = flow_metrics_per_sample(est, gt_bad)
+    assert per["n_pixels"].tolist() == [53, 53]
+
+
+def test_float32_values_of_1e20_give_finite_correct_metrics():
+    """Squares of 1e20 overflow float32; the metrics scale by powers of two first."""
+    g = torch.Generator().manual_seed(4)
+    est64 = torch.randn(1, 2, 3, 4, generator=g, dtype=torch.float64) * 1e20
+    gt64 = torch.randn(1, 2, 3, 4, generator=g, dtype=torch.float64) * 1e20
+    est, gt = est64.float(), gt64.float()
+    ref = _reference(est.double(), gt.double())  # the float32 inputs, evaluated in float64
+    maps, _ = flow_error_maps(est, gt)
+    for name in METRIC_NAMES:
+        assert torch.isfinite(maps[name]).all(), name
+        np.testing.assert_allclose(maps[name][:, 0].double().numpy(), ref[name], rtol=1e-5, atol=1e-6, err_msg=name)
+    # small flows: bit-identical to the unscaled formula (the scale is 1)
+    small, small_gt = _random(dtype=torch.float32), _random(seed=5, dtype=torch.float32)
+    d = small - small_gt
+    assert torch.equal(endpoint_error(small, small_gt), torch.sqrt((d * d).sum(1)).flatten(1).mean(1))
+
+
+def test_an_error_beyond_the_dtype_range_raises():
+    est = torch.full((1, 2, 2, 2), 3e38)
+    gt = torch.full((1, 2, 2, 2), -3e38)
+    with pytest.raises(ValueError, match=r"flow_est: 4 end-point error\(s\) overflow torch.float32 .* evaluate in float64"):
+        flow_metrics(est, gt)
+    assert flow_metrics(est.double(), gt.double())["e_E"] == pytest.approx(6e38 * math.sqrt(2), rel=1e-6)
+
+
+# --- benchmark names: epe, fl / flall, px1, px3, px5 -------------------------------------------
+
+def test_benchmark_names_match_their_definitions():
+    """ptlflow: pxN = mean(epe < N) over valid pixels; KITTI Fl-all: epe > 3 px and > 5 % of |gt|."""
+    est, gt = _random(B=3, H=7, W=8, scale=4.0), _random(B=3, H=7, W=8, seed=9, scale=4.0)
+    valid = torch.rand(3, 1, 7, 8, generator=torch.Generator().manual_seed(2)) > 0.3
+    e, gnp, sel = est.numpy(), gt.numpy(), valid[:, 0].numpy()
+    epe = np.sqrt(((e - gnp) ** 2).sum(axis=1))
+    mag = np.sqrt((gnp ** 2).sum(axis=1))
+    want = {"epe": epe, "fl": (epe > 3) & (epe > 0.05 * mag), "px1": epe < 1, "px3": epe < 3, "px5": epe < 5}
+    want["flall"] = want["fl"]
+    pooled = flow_metrics(est, gt, valid=valid)
+    per = flow_metrics_per_sample(est, gt, valid=valid)
+    for name, w in want.items():
+        assert pooled[name] == pytest.approx(w[sel].mean(), rel=1e-12), name
+        for b in range(3):
+            assert float(per[name][b]) == pytest.approx(w[b][sel[b]].mean(), rel=1e-12), (name, b)
+    assert pooled["epe"] == pooled["e_E"] and pooled["fl"] == pooled["Fl"] == pooled["flall"]
+    assert set(BENCHMARK_NAMES) <= set(per)
+
+
+# --- the accumulator ----------------------------------------------------------------------------
+
+def _batches():
+    """Three batches with different valid-pixel counts (one image with none)."""
+    out = []
+    for k, B in enumerate((2, 1, 3)):
+        est, gt = _random(B=B, seed=10 + k), _random(B=B, seed=20 + k)
+        valid = torch.rand(B, 1, 6, 9, generator=torch.Generator().manual_seed(30 + k)) > 0.4
+        if k == 2:
+            valid[1] = False
+        out.append((est, gt, valid))
+    return out
+
+
+def test_accumulator_pools_pixels_and_images():
+    acc = FlowMetricAccumulator()
+    per_image = []
+    for est, gt, valid in _batches():
+        returned = acc.update(est, gt, valid=valid)
+        per = flow_metrics_per_sample(est, gt, valid=valid)
+        torch.testing.assert_close(returned["epe"], per["epe"])
+        per_image += [{k: float(per[k][b]) for k in BENCHMARK_NAMES + METRIC_NAMES} | {"n": int(per["n_pixels"][b])}
+                      for b in range(est.shape[0])]
+    est = torch.cat([b[0] for b in _batches()])
+    gt = torch.cat([b[1] for b in _batches()])
+    valid = torch.cat([b[2] for b in _batches()])
+    pooled, by_image = acc.compute("pixels"), acc.compute("images")
+    whole = flow_metrics(est, gt, valid=valid)
+    for name in METRIC_NAMES + BENCHMARK_NAMES:
+        assert pooled[name] == pytest.approx(whole[name], rel=1e-12, abs=1e-15), name
+        counted = [p[name] for p in per_image if p["n"] > 0]
+        assert by_image[name] == pytest.approx(sum(counted) / len(counted), rel=1e-12, abs=1e-15), name
+    assert pooled["n_pixels"] == whole["n_pixels"] == acc.n_pixels
+    assert by_image["n_images"] == 5  # six images, one without a counted pixel
+
+
+def test_accumulator_merge_state_and_errors():
+    batches = _batches()
+    one, a, b = FlowMetricAccumulator(), FlowMetricAccumulator(), FlowMetricAccumulator()
+    for i, (est, gt, valid) in enumerate(batches):
+        one.update(est, gt, valid=valid)
+        (a if i % 2 else b).update(est, gt, valid=valid)
+    assert a.merge(b).compute() == pytest.approx(one.compute())
+    restored = FlowMetricAccumulator()
+    restored.load_state_dict(one.state_dict())
+    assert restored.compute("images") == one.compute("images")
+    assert one.all_reduce().compute() == one.compute()  # no process group: a copy
+    empty = FlowMetricAccumulator().compute()
+    assert empty["n_pixels"] == 0 and empty["epe"] == 0.0
+    with pytest.raises(ValueError, match="reduction: expected 'pixels' or 'images'"):
+        one.compute("frames")
+    with pytest.raises(TypeError, match="other: expected a FlowMetricAccumulator"):
+        one.merge({"epe": 1.0})
+    with pytest.raises(ValueError, match="state: expected"):
+        one.load_state_dict({"state": torch.zeros(3)})
+    with pytest.raises(ValueError, match="flow_est: 1 non-finite"):
+        bad = batches[0][0].clone()
+        bad[0, 0, 0, 0] = float("nan")
+        one.update(bad, batches[0][1])
+
+
+def _all_reduce_worker(rank: int, world: int, init: str, out: str) -> None:
+    import torch.distributed as dist
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
+    try:
+        acc = FlowMetricAccumulator()
+        for i, (est, gt, valid) in enumerate(_batches()):
+            if i % world == rank:  # strided shards, each batch on exactly one process
+                acc.update(est, gt, valid=valid)
+        total = acc.all_reduce()
+        if rank == 0:
+            torch.save({"pixels": total.compute("pixels"), "images": total.compute("images"),
+                        "local": acc.compute()}, out)
+    finally:
+        dist.destroy_process_group()
+
+
+def test_accumulator_all_reduce_across_two_processes(tmp_path):
+    import torch.multiprocessing as mp
+
+    out = tmp_path / "result.pt"
+    mp.spawn(_all_reduce_worker, args=(2, f"file://{tmp_path / 'store'}", str(out)), nprocs=2)
+    got = torch.load(out)
+    one = FlowMetricAccumulator()
+    for est, gt, valid in _batches():
+        one.update(est, gt, valid=valid)
+    assert got["pixels"] == pytest.approx(one.compute("pixels"), rel=1e-12)
+    assert got["images"] == pytest.approx(one.compute("images"), rel=1e-12)
+    assert got["local"]["n_pixels"] < got["pixels"]["n_pixels"]
+
+
+def test_metrics_under_autocast_equal_float32():
+    est, gt = _random(dtype=torch.float32), _random(seed=1, dtype=torch.float32)
+    exact = flow_metrics(est, gt)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        low = flow_metrics(est, gt)
+        per = flow_metrics_per_sample(est, gt)
+    assert low == exact and per["epe"].dtype == torch.float32

@@ -304,3 +304,43 @@ def test_kitti_dis_photometric_and_endpoint(shared_data):
     assert abs(float(road_dis) - 8.35) < 0.6 and abs(int(n_dis) - 77952) < 2000
     assert float(road_dis) < 1.1 * float(road_gt)
     assert abs(float(epe_road) - 14.08) < 2.0
+
+
+# --- non-finite pixels, data_range, small images ----------------------------------------------
+
+@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("which", ["image1", "image2"])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_nonfinite_pixels_raise(kind, which, bad):
+    """A NaN pixel at a counted pixel once gave a NaN error (all three kinds)."""
+    image1, image2, flow = _shifted_pair()
+    images = {"image1": image1.clone(), "image2": image2.clone()}
+    images[which][0, 1, 10, 20] = bad
+    with pytest.raises(ValueError, match=rf"{which}: expected finite pixel values, got \[{bad}\]"):
+        photometric_error(images["image1"], images["image2"], flow, kind=kind)
+
+
+@pytest.mark.parametrize("data_range", [float("nan"), 0.0, -1.0, float("inf"), "255", True])
+def test_data_range_must_be_a_positive_finite_number(data_range):
+    image1, image2, flow = _shifted_pair()
+    err = TypeError if isinstance(data_range, str) else ValueError
+    with pytest.raises(err, match=r"data_range: expected a positive finite number \(the images' maximum"):
+        photometric_error(image1, image2, flow, data_range=data_range)
+    with pytest.raises(err, match="data_range: expected a positive finite number"):
+        PhotometricError(data_range=data_range)
+    with pytest.raises(err, match="data_range: expected a positive finite number"):
+        census_transform(image1, data_range=data_range)
+
+
+@pytest.mark.parametrize("size", [(3, 16), (16, 3), (1, 1)])
+def test_ssim_on_images_smaller_than_its_window(size):
+    """kind='ssim' with H or W < 4 once failed inside kornia's padding."""
+    image = _smooth_image(H=16, W=16)[..., : size[0], : size[1]].contiguous()
+    flow = torch.zeros(1, 2, *size)
+    with pytest.raises(ValueError, match=rf"image1: kind='ssim' with window=7 needs H and W >= 4, "
+                                         rf"got shape \(1, 3, {size[0]}, {size[1]}\)"):
+        photometric_error(image, image, flow, kind="ssim")
+    if min(size) >= 2:  # a window that fits works: identical images have no error
+        assert photometric_error(image, image, flow, kind="ssim", window=3).item() == pytest.approx(0.0, abs=1e-6)
+    for kind in ("l1", "census"):  # no window padding by reflection: any size
+        assert photometric_error(image, image, flow, kind=kind).item() == 0.0

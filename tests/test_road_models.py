@@ -78,8 +78,9 @@ def ray_cast_flow(K: np.ndarray, h: float, R, t, n, size) -> tuple[np.ndarray, n
     rays = np.einsum("ij,jhw->ihw", np.linalg.inv(K), np.stack([u, v, np.ones_like(u)]))
     denom = np.einsum("i,ihw->hw", n, rays)
     ok = denom > 0
-    X = rays * np.where(ok, h / np.where(ok, denom, 1.0), 0.0)
-    Xp = np.einsum("ij,jhw->ihw", R, X) + t[:, None, None]
+    with np.errstate(over="ignore", invalid="ignore"):  # rays grazing the horizon: not compared
+        X = rays * np.where(ok, h / np.where(ok, denom, 1.0), 0.0)
+        Xp = np.einsum("ij,jhw->ihw", R, X) + t[:, None, None]
     ok &= Xp[2] > 0
     clear = (np.abs(denom) > 1e-6) & (np.abs(Xp[2]) > 1e-6)
     q = np.einsum("ij,jhw->ihw", K, Xp)

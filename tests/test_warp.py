@@ -270,3 +270,20 @@ def test_nearest_has_zero_flow_gradient():
     warp_backward(image, flow, mode="nearest")[0].sum().backward()
     assert flow.grad is None or torch.count_nonzero(flow.grad) == 0
     assert image.grad.abs().sum() > 0
+
+
+def test_nonfinite_image_rejected():
+    """A NaN pixel once reached every output pixel whose bilinear taps touched it."""
+    image = _image()
+    image[0, 2, 5, 7] = float("nan")
+    with pytest.raises(ValueError, match=r"image: expected finite values, got \[nan\]"):
+        warp_backward(image, _flow())
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 0, 4), (1, 3, 4, 0), (2, 1, 0, 0)])
+def test_empty_image_rejected(shape):
+    """H = 0 once raised an internal error from the sampler."""
+    B, _, Hs, Ws = shape
+    side = "H" if Hs == 0 else "W"
+    with pytest.raises(ValueError, match=rf"image: expected shape \(B, C, H, W\) with {side} >= 1"):
+        warp_backward(torch.zeros(shape), torch.zeros(B, 2, Hs, Ws))

@@ -26,7 +26,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, result_dtype
+from .._check import autocast_off, check_float_tensor, check_shape, result_dtype
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import ROAD_MODELS, RoadModel, get_road_model, mounting_products, plane_from_homography
@@ -449,7 +449,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     fixed_names = fixed_parameters(model, fixed)
     free = torch.tensor([n not in fixed_names for n in model.params], device=flow.device)
 
-    with torch.autocast(flow.device.type, enabled=False):
+    with autocast_off(flow):
         points = sample_mask(mask, max_points)
         pix, sel, count = points.pix, points.sel, points.count
         pts = pixel_coordinates(pix, W)

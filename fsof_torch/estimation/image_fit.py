@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, result_dtype
+from .._check import autocast_off, check_float_tensor, check_shape, result_dtype
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
@@ -288,7 +288,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     P = len(model.params)
     free = torch.tensor([n not in fixed_names for n in model.params] + [affine, affine], device=dev)
 
-    with torch.autocast(dev.type, enabled=False):
+    with autocast_off(image1):
         from kornia.filters import gaussian_blur2d
         from kornia.geometry.transform import build_pyramid
 

@@ -1,4 +1,5 @@
-"""Flow accuracy against ground truth: the paper's e_A, e_E, e_U, e_V (eq. 25-28) and KITTI's Fl.
+"""Flow accuracy against ground truth: the paper's e_A, e_E, e_U, e_V (eq. 25-28), KITTI's Fl and
+the benchmark names ``epe``, ``fl`` / ``flall``, ``px1``, ``px3``, ``px5``.
 
 Per pixel, with F the estimate and F̂ the ground truth (both (u, v) in pixels):
 
@@ -9,18 +10,31 @@ Per pixel, with F the estimate and F̂ the ground truth (both (u, v) in pixels):
 - e_E = ‖F − F̂‖₂ (end-point error, px); e_U = |u − û|, e_V = |v − v̂| (px).
 - Fl = 1 where e_E > 3 px and e_E > 5% of ‖F̂‖ (KITTI 2015 outlier), else 0.
 
-Which pixels count: ``mask`` (where to evaluate, e.g. the road) and ``valid`` (where the ground
-truth exists, e.g. KITTI's sparse laser points), both optional (B, 1, H, W) bool; the metrics
-average over pixels where both are True. Two reductions:
+The names benchmarks and ptlflow use: ``epe`` = e_E; ``fl`` and ``flall`` = Fl (KITTI's
+"Fl-all": over all counted pixels; a fraction here, KITTI prints percent); ``px1``, ``px3``,
+``px5`` = the fraction of counted pixels with e_E < 1, 3, 5 px (ptlflow's definition: higher is
+better).
 
-- per sample (B,): the functions :func:`angular_error`, :func:`endpoint_error`, :func:`u_error`,
-  :func:`v_error`, :func:`outlier_rate` and :func:`flow_metrics_per_sample`;
+Which pixels count: ``mask`` (where to evaluate, e.g. the road) and ``valid`` (where the ground
+truth exists, e.g. KITTI's sparse laser points), both optional (B, 1, H, W) bool, and only where
+the ground truth is finite (a NaN or inf ground-truth value marks the pixel invalid, as KITTI's
+valid channel does). Non-finite *estimates* at counted pixels raise ValueError naming
+``flow_est``: a NaN cannot be scored, and scoring it as 0 or dropping it would let a broken
+network look good. Values are scaled by powers of two before squaring, so a float32 flow of
+1e20 px gives a finite e_E of the right size; a result beyond the dtype's range (an error above
+3.4e38 px in float32) raises ValueError instead of returning inf.
+
+Reductions:
+
+- per sample (B,): :func:`angular_error`, :func:`endpoint_error`, :func:`u_error`,
+  :func:`v_error`, :func:`outlier_rate` and :func:`flow_metrics_per_sample` (every name);
 - over all counted pixels of the batch at once, KITTI style (a frame with many valid pixels
-  weighs more): :func:`flow_metrics`, returning Python floats and the pixel count.
+  weighs more): :func:`flow_metrics`, returning Python floats and the pixel count;
+- over a data set, across batches and processes: :class:`FlowMetricAccumulator` (pooled over
+  pixels, KITTI, or the mean of per-image values, ptlflow).
 
 Empty selections: a mean over zero pixels is reported as 0.0 with a count of 0, never NaN; the
-count (``return_count=True``, or ``n_pixels``) is the flag to check. Fl is a fraction in [0, 1]
-(KITTI prints it in percent).
+count (``return_count=True``, or ``n_pixels``) is the flag to check.
 """
 
 from __future__ import annotations
@@ -28,7 +42,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, result_dtype
+from .._check import check_float_tensor, check_shape, result_dtype, skip_values
 
 __all__ = [
     "flow_error_maps",
@@ -39,10 +53,20 @@ __all__ = [
     "outlier_rate",
     "flow_metrics",
     "flow_metrics_per_sample",
+    "FlowMetricAccumulator",
     "METRIC_NAMES",
+    "BENCHMARK_NAMES",
+    "PX_THRESHOLDS",
 ]
 
 METRIC_NAMES = ("e_A", "e_E", "e_U", "e_V", "Fl")
+#: The benchmark names: ``epe`` is e_E, ``fl`` and ``flall`` are Fl, ``pxN`` the fraction below N px.
+BENCHMARK_NAMES = ("epe", "fl", "flall", "px1", "px3", "px5")
+#: The thresholds of ``px1``, ``px3``, ``px5`` in pixels.
+PX_THRESHOLDS = (1.0, 3.0, 5.0)
+
+# Every per-pixel map a reduction sums (the benchmark aliases are derived after the means).
+_MAPS = METRIC_NAMES + tuple(f"px{int(t)}" for t in PX_THRESHOLDS)
 
 # A per-sample mean (B,), or (mean, count (B,) int64) with return_count=True.
 _Result = Tensor | tuple[Tensor, Tensor]
@@ -52,6 +76,14 @@ _FL_ABS_PX = 3.0
 _FL_REL = 0.05
 
 
+def _check_mask(m: object, name: str, dims: dict[str, int]) -> Tensor:
+    if not isinstance(m, Tensor) or m.dtype != torch.bool:
+        got = m.dtype if isinstance(m, Tensor) else type(m).__name__
+        raise TypeError(f"{name}: expected a bool tensor, got {got}")
+    check_shape(m, name, ("B", 1, "H", "W"), dims)
+    return m
+
+
 def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
                valid: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
     """Check the inputs; return both flows in the working dtype and the counted pixels (B,1,H,W)."""
@@ -59,16 +91,13 @@ def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
     check_float_tensor(flow_gt, "flow_gt")
     dims = check_shape(flow_est, "flow_est", ("B", 2, "H", "W"))
     check_shape(flow_gt, "flow_gt", ("B", 2, "H", "W"), dims)
-    B, _, H, W = flow_est.shape
-    sel = torch.ones(B, 1, H, W, dtype=torch.bool, device=flow_est.device)
+    if flow_gt.device != flow_est.device:
+        raise ValueError(f"flow_gt: expected the device of flow_est ({flow_est.device}), got {flow_gt.device}")
+    # Non-finite ground truth is not ground truth: such pixels are invalid (KITTI style).
+    sel = torch.isfinite(flow_gt).all(dim=1, keepdim=True)
     for name, m in (("mask", mask), ("valid", valid)):
-        if m is None:
-            continue
-        if not isinstance(m, Tensor) or m.dtype != torch.bool:
-            got = m.dtype if isinstance(m, Tensor) else type(m).__name__
-            raise TypeError(f"{name}: expected a bool tensor, got {got}")
-        check_shape(m, name, ("B", 1, "H", "W"), dims)
-        sel = sel & m
+        if m is not None:
+            sel = sel & _check_mask(m, name, dims).to(flow_est.device)
     work = result_dtype(flow_est, flow_gt)
     # Zero the flows outside the selection: ground truth may hold NaN or 1e9 where it is invalid,
     # and torch.where on the inputs keeps both the sums and the gradients finite.
@@ -78,53 +107,119 @@ def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
     return est, gt, sel
 
 
-def _safe_sqrt(sq: Tensor) -> Tensor:
-    """sqrt with a zero (not infinite) gradient at 0: equal flows must not give NaN gradients."""
+def _pow2_scale(*xs: Tensor) -> Tensor:
+    """A power of two s >= 1 per pixel with |x| / s <= 1 for every x: dividing by it is exact (no
+    rounding), so the scaled formulas give bit-identical results for ordinary flows and finite
+    ones for flows whose squares would overflow. Detached: the metrics do not depend on it."""
+    m = xs[0].detach().abs()
+    for x in xs[1:]:
+        m = torch.maximum(m, x.detach().abs())
+    _, exponent = torch.frexp(torch.clamp(m, min=1.0))  # m = mantissa · 2^exponent, mantissa in [0.5, 1)
+    return torch.ldexp(torch.ones_like(m), exponent)
+
+
+def _norm(*components: Tensor) -> Tensor:
+    """Euclidean norm of components of magnitude <= 1 with a zero (not NaN) gradient at 0."""
+    sq = components[0] * components[0]
+    for c in components[1:]:
+        sq = sq + c * c
     positive = sq > 0
     return torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))),
                        torch.zeros_like(sq))
 
 
 def _maps(est: Tensor, gt: Tensor) -> dict[str, Tensor]:
-    u1, v1 = est[:, 0:1], est[:, 1:2]
-    u2, v2 = gt[:, 0:1], gt[:, 1:2]
-    # a = (u1, v1, 1), b = (u2, v2, 1): a x b and a . b.
-    cross = torch.stack([v1 - v2, u2 - u1, u1 * v2 - v1 * u2])
-    cross_norm = _safe_sqrt((cross * cross).sum(dim=0))
-    dot = u1 * u2 + v1 * v2 + 1.0
+    s = _pow2_scale(est[:, 0:1], est[:, 1:2], gt[:, 0:1], gt[:, 1:2])
+    u1, v1 = est[:, 0:1] / s, est[:, 1:2] / s
+    u2, v2 = gt[:, 0:1] / s, gt[:, 1:2] / s
+    # a = (u1, v1, 1/s), b = (u2, v2, 1/s): the space-time vectors divided by s (the angle between
+    # them does not change) -> a x b and a . b without overflow.
+    w = 1.0 / s
+    cross_norm = _norm((v1 - v2) * w, (u2 - u1) * w, u1 * v2 - v1 * u2)
+    dot = u1 * u2 + v1 * v2 + w * w
     e_a = torch.atan2(cross_norm, dot)
     du, dv = u1 - u2, v1 - v2
-    e_u, e_v = du.abs(), dv.abs()
-    e_e = _safe_sqrt(du * du + dv * dv)
-    mag_gt = torch.sqrt(u2 * u2 + v2 * v2)
-    fl = ((e_e > _FL_ABS_PX) & (e_e > _FL_REL * mag_gt)).to(est.dtype)
-    return {"e_A": e_a, "e_E": e_e, "e_U": e_u, "e_V": e_v, "Fl": fl}
+    e_u, e_v = du.abs() * s, dv.abs() * s
+    e_e = _norm(du, dv) * s
+    mag_gt = _norm(u2, v2) * s
+    maps = {"e_A": e_a, "e_E": e_e, "e_U": e_u, "e_V": e_v,
+            "Fl": ((e_e > _FL_ABS_PX) & (e_e > _FL_REL * mag_gt)).to(est.dtype)}
+    for t in PX_THRESHOLDS:
+        maps[f"px{int(t)}"] = (e_e < t).to(est.dtype)
+    return maps
+
+
+def _check_counted(flow_est: Tensor, e_e: Tensor, sel: Tensor) -> None:
+    """Raise where an estimate is not finite, or its error overflows, at a counted pixel."""
+    if skip_values(flow_est, e_e):
+        return
+    bad_est = ~torch.isfinite(flow_est).all(dim=1, keepdim=True) & sel
+    overflow = ~torch.isfinite(e_e) & sel
+    n_bad, n_over = torch.stack([bad_est.sum(), overflow.sum()]).tolist()
+    if n_bad:
+        b, _, y, x = bad_est.nonzero()[0].tolist()
+        raise ValueError(
+            f"flow_est: {n_bad} non-finite value(s) (NaN or inf) at counted pixels, the first at "
+            f"sample {b}, pixel (u={x}, v={y}): {flow_est[b, :, y, x].tolist()}; a metric cannot "
+            f"score them (exclude them with mask/valid, or fix the prediction)")
+    if n_over:
+        raise ValueError(
+            f"flow_est: {n_over} end-point error(s) overflow {e_e.dtype} (largest |flow_est| "
+            f"{float(flow_est.detach().abs().amax()):.3g} px); evaluate in float64")
 
 
 def flow_error_maps(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                     valid: Tensor | None = None) -> tuple[dict[str, Tensor], Tensor]:
-    """Per-pixel errors: ``({"e_A", "e_E", "e_U", "e_V", "Fl"}: (B, 1, H, W), counted (B, 1, H, W) bool)``.
+    """Per-pixel errors and the pixels that count.
 
     Args:
-        flow_est: (B, 2, H, W) estimated flow, pixels.
-        flow_gt: (B, 2, H, W) ground-truth flow, pixels.
-        mask, valid: optional (B, 1, H, W) bool; ``counted = mask & valid``.
+        flow_est: (B, 2, H, W) estimated flow, pixels; finite wherever it is counted.
+        flow_gt: (B, 2, H, W) ground-truth flow, pixels; non-finite values mark invalid pixels.
+        mask, valid: optional (B, 1, H, W) bool; ``counted = mask & valid & finite(flow_gt)``.
 
     Returns:
-        maps: e_A in radians, e_E, e_U, e_V in pixels, Fl 0/1; each 0 where not counted.
-        counted: the pixels that enter the means.
+        maps: ``{"e_A", "e_E", "e_U", "e_V", "Fl", "px1", "px3", "px5"}``: (B, 1, H, W); e_A in
+            radians, e_E, e_U, e_V in pixels, Fl and pxN 0/1; each 0 where not counted.
+        counted: (B, 1, H, W) bool, the pixels that enter the means.
+
+    Raises:
+        ValueError: naming ``flow_est`` for a NaN or inf estimate at a counted pixel.
     """
     est, gt, sel = _selection(flow_est, flow_gt, mask, valid)
+    maps = _maps(est, gt)
+    _check_counted(flow_est, maps["e_E"], sel)
     zero = torch.zeros((), dtype=est.dtype, device=est.device)
-    return {k: torch.where(sel, m, zero) for k, m in _maps(est, gt).items()}, sel
+    return {k: torch.where(sel, m, zero) for k, m in maps.items()}, sel
+
+
+def _sum_dtype(device: torch.device) -> torch.dtype:
+    # Sums over millions of pixels in float64 (float32 loses digits and can overflow);
+    # MPS has no float64.
+    return torch.float32 if device.type == "mps" else torch.float64
+
+
+def _means(maps: dict[str, Tensor], sel: Tensor) -> tuple[dict[str, Tensor], Tensor]:
+    count = sel.flatten(1).sum(dim=1)
+    out = {}
+    for k, m in maps.items():
+        total = m.flatten(1).sum(dim=1, dtype=_sum_dtype(m.device))
+        out[k] = (total / count.clamp(min=1).to(total.dtype)).to(m.dtype)
+    return out, count
+
+
+def _with_aliases(values: dict) -> dict:
+    """Add the benchmark names to a dict of METRIC_NAMES values (same numbers, two names)."""
+    values["epe"] = values["e_E"]
+    values["fl"] = values["Fl"]
+    values["flall"] = values["Fl"]
+    return values
 
 
 def _per_sample(name: str, flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
                 valid: Tensor | None, return_count: bool) -> _Result:
     maps, sel = flow_error_maps(flow_est, flow_gt, mask, valid)
-    count = sel.flatten(1).sum(dim=1)
-    mean = maps[name].flatten(1).sum(dim=1) / count.clamp(min=1).to(maps[name].dtype)
-    return (mean, count) if return_count else mean
+    means, count = _means({name: maps[name]}, sel)
+    return (means[name], count) if return_count else means[name]
 
 
 def angular_error(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
@@ -139,7 +234,7 @@ def angular_error(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
 
 def endpoint_error(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                    valid: Tensor | None = None, *, return_count: bool = False) -> _Result:
-    """Mean end-point error e_E (paper eq. 26) per sample, pixels: (B,) [, count (B,) int64]."""
+    """Mean end-point error e_E (paper eq. 26, ``epe``) per sample, pixels: (B,) [, count (B,) int64]."""
     return _per_sample("e_E", flow_est, flow_gt, mask, valid, return_count)
 
 
@@ -157,44 +252,163 @@ def v_error(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
 
 def outlier_rate(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                  valid: Tensor | None = None, *, return_count: bool = False) -> _Result:
-    """KITTI Fl per sample: the fraction (0-1) of pixels with e_E > 3 px and > 5% of ‖F̂‖: (B,)."""
+    """KITTI Fl (``fl`` / ``flall``) per sample: the fraction (0-1) of pixels with e_E > 3 px and
+    > 5% of ‖F̂‖: (B,)."""
     return _per_sample("Fl", flow_est, flow_gt, mask, valid, return_count)
 
 
 def flow_metrics_per_sample(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                             valid: Tensor | None = None) -> dict[str, Tensor]:
-    """All five metrics per sample: ``{"e_A", "e_E", "e_U", "e_V", "Fl"}: (B,)``, ``"n_pixels"``: (B,) int64.
+    """Every metric per sample (per image): (B,) tensors.
 
-    A sample with ``n_pixels == 0`` has all metrics 0.0.
+    Returns:
+        ``{"e_A", "e_E", "e_U", "e_V", "Fl", "px1", "px3", "px5", "epe", "fl", "flall"}``: (B,)
+        in the flows' dtype (``epe`` is e_E, ``fl`` and ``flall`` are Fl), and ``"n_pixels"``:
+        (B,) int64. A sample with ``n_pixels == 0`` has all metrics 0.0.
     """
     maps, sel = flow_error_maps(flow_est, flow_gt, mask, valid)
-    count = sel.flatten(1).sum(dim=1)
-    denom = count.clamp(min=1)
-    out = {k: m.flatten(1).sum(dim=1) / denom.to(m.dtype) for k, m in maps.items()}
+    out, count = _means(maps, sel)
+    out = _with_aliases(out)
     out["n_pixels"] = count
     return out
 
 
 def flow_metrics(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                  valid: Tensor | None = None) -> dict[str, float | int]:
-    """The five metrics over all counted pixels of the batch at once (KITTI style), as numbers.
+    """Every metric over all counted pixels of the batch at once (KITTI style), as numbers.
 
     Args:
         flow_est, flow_gt: (B, 2, H, W) pixels.
         mask, valid: optional (B, 1, H, W) bool.
 
     Returns:
-        ``{"e_A": rad, "e_E": px, "e_U": px, "e_V": px, "Fl": fraction, "n_pixels": int}``.
-        With ``n_pixels == 0`` every metric is 0.0 (not NaN): check ``n_pixels``.
+        ``{"e_A": rad, "e_E": px, "e_U": px, "e_V": px, "Fl": fraction, "px1", "px3", "px5":
+        fractions, "epe", "fl", "flall": the same numbers under the benchmark names,
+        "n_pixels": int}``. With ``n_pixels == 0`` every metric is 0.0 (not NaN): check
+        ``n_pixels``.
 
     Example:
         >>> est = torch.tensor([1.0, 0.0]).view(1, 2, 1, 1); gt = torch.tensor([0.0, 1.0]).view(1, 2, 1, 1)
-        >>> m = flow_metrics(est, gt); round(m["e_A"], 6), round(m["e_E"], 6), m["n_pixels"]
-        (1.047198, 1.414214, 1)
+        >>> m = flow_metrics(est, gt); round(m["e_A"], 6), round(m["e_E"], 6), m["px1"], m["n_pixels"]
+        (1.047198, 1.414214, 0.0, 1)
     """
     maps, sel = flow_error_maps(flow_est, flow_gt, mask, valid)
+    if skip_values(sel):
+        raise ValueError("flow_est: flow_metrics returns Python numbers, which a meta tensor does "
+                         "not have; use flow_metrics_per_sample for shape inference")
+    sums = torch.stack([m.detach().flatten().sum(dtype=_sum_dtype(m.device)) for m in maps.values()])
     n = int(sel.sum())
-    # Sum in float64: float32 sums over millions of pixels lose digits.
-    out: dict[str, float | int] = {k: float(m.detach().double().sum()) / max(n, 1) for k, m in maps.items()}
+    out: dict[str, float | int] = {k: v / max(n, 1) for k, v in zip(maps, sums.tolist())}
+    out = _with_aliases(out)
     out["n_pixels"] = n
     return out
+
+
+class FlowMetricAccumulator:
+    """Sums and counts of every metric over a data set: across batches, and across processes.
+
+    Two ways to pool, both kept at once:
+
+    - ``compute("pixels")``: over all counted pixels of the set (KITTI's way: a frame with more
+      valid pixels weighs more; what :func:`flow_metrics` does within a batch);
+    - ``compute("images")``: the mean of per-image values (ptlflow's way); images without any
+      counted pixel are left out of this mean (``n_images`` counts the others).
+
+    Across processes: :meth:`all_reduce` returns the accumulator summed over every process of
+    the default ``torch.distributed`` group (one ``all_reduce`` of one float64 tensor); without
+    an initialised group it returns a copy of this one. :meth:`merge` adds another accumulator
+    (from a worker, or a saved state) by hand. Counts are held in float64, exact up to 2^53.
+
+    Example:
+        >>> acc = FlowMetricAccumulator()
+        >>> for est, gt, valid in batches:                            # doctest: +SKIP
+        ...     acc.update(est, gt, valid=valid)
+        >>> acc.all_reduce().compute()["epe"]                         # doctest: +SKIP
+    """
+
+    def __init__(self, *, device: torch.device | str | None = None) -> None:
+        n = len(_MAPS)
+        # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
+        self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
+
+    @property
+    def n_pixels(self) -> int:
+        return int(self.state[len(_MAPS)])
+
+    @property
+    def n_images(self) -> int:
+        return int(self.state[-1])
+
+    def reset(self) -> None:
+        self.state.zero_()
+
+    def update(self, flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
+               valid: Tensor | None = None) -> dict[str, Tensor]:
+        """Add a batch; returns its per-image metrics (:func:`flow_metrics_per_sample`, detached)."""
+        with torch.no_grad():
+            maps, sel = flow_error_maps(flow_est, flow_gt, mask, valid)
+            if skip_values(sel):
+                raise ValueError("flow_est: an accumulator sums values, which a meta tensor does not have")
+            count = sel.flatten(1).sum(dim=1)
+            pixel_sums = torch.stack([m.flatten(1).sum(dim=1, dtype=torch.float64) for m in maps.values()])
+            per_image = pixel_sums / count.clamp(min=1).to(torch.float64)
+            has_pixels = (count > 0).to(torch.float64)
+            batch = torch.cat([pixel_sums.sum(dim=1), count.sum().reshape(1).to(torch.float64),
+                               (per_image * has_pixels).sum(dim=1), has_pixels.sum().reshape(1)])
+            self.state += batch.to(self.state.device)
+        out = {k: per_image[i].to(flow_est.dtype) for i, k in enumerate(maps)}
+        out = _with_aliases(out)
+        out["n_pixels"] = count
+        return out
+
+    def merge(self, other: "FlowMetricAccumulator") -> "FlowMetricAccumulator":
+        """Add the sums and counts of ``other`` to this accumulator (in place); returns self."""
+        if not isinstance(other, FlowMetricAccumulator):
+            raise TypeError(f"other: expected a FlowMetricAccumulator, got {type(other).__name__}")
+        self.state += other.state.to(self.state.device)
+        return self
+
+    def all_reduce(self, group: object = None) -> "FlowMetricAccumulator":
+        """A new accumulator holding the sums over every process of ``group`` (default: the
+        world). This one keeps its local sums, so calling it twice never double-counts. Without
+        an initialised process group (one process) the copy equals this accumulator. With the
+        nccl backend, build the accumulator with ``device`` set to the process's GPU."""
+        out = FlowMetricAccumulator(device=self.state.device)
+        out.state = self.state.clone()
+        import torch.distributed as dist
+
+        if dist.is_available() and dist.is_initialized():
+            dist.all_reduce(out.state, op=dist.ReduceOp.SUM, group=group)
+        return out
+
+    def compute(self, reduction: str = "pixels") -> dict[str, float | int]:
+        """The metrics as numbers: ``{"e_A", "e_E", "e_U", "e_V", "Fl", "px1", "px3", "px5",
+        "epe", "fl", "flall", "n_pixels", "n_images"}``; 0.0 (not NaN) when nothing was counted.
+
+        Args:
+            reduction: ``"pixels"`` (pooled over all counted pixels, KITTI) or ``"images"`` (the
+                mean of per-image values, ptlflow).
+        """
+        if reduction not in ("pixels", "images"):
+            raise ValueError(f"reduction: expected 'pixels' or 'images', got {reduction!r}")
+        n = len(_MAPS)
+        values = self.state.tolist()
+        sums, count = (values[:n], values[n]) if reduction == "pixels" else (values[n + 1:-1], values[-1])
+        out: dict[str, float | int] = {k: s / max(count, 1.0) for k, s in zip(_MAPS, sums)}
+        out = _with_aliases(out)
+        out["n_pixels"] = int(values[n])
+        out["n_images"] = int(values[-1])
+        return out
+
+    def state_dict(self) -> dict[str, Tensor]:
+        return {"state": self.state.clone()}
+
+    def load_state_dict(self, state: dict[str, Tensor]) -> None:
+        value = state.get("state") if isinstance(state, dict) else None
+        if not isinstance(value, Tensor) or value.shape != self.state.shape:
+            raise ValueError(f"state: expected {{'state': tensor of shape {tuple(self.state.shape)}}}, "
+                             f"got {state!r:.80}")
+        self.state = value.to(dtype=torch.float64, device=self.state.device).clone()
+
+    def __repr__(self) -> str:
+        return f"FlowMetricAccumulator(n_pixels={self.n_pixels}, n_images={self.n_images})"

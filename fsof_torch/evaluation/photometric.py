@@ -33,24 +33,19 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_shape, result_dtype, tracing
+from .._check import (
+    autocast_off,
+    check_data_range,
+    check_float_tensor,
+    check_image_range,
+    check_shape,
+    result_dtype,
+)
 from .warp import warp_backward
 
 __all__ = ["photometric_error", "photometric_error_map", "census_transform", "PhotometricError"]
 
 _KINDS = ("l1", "ssim", "census")
-
-
-def _check_range(image: Tensor, name: str, data_range: float) -> None:
-    """Values must lie in [0, data_range] up to 1% (catches 0-255 images passed as 0-1)."""
-    if tracing():
-        return
-    hi = float(image.detach().amax())
-    lo = float(image.detach().amin())
-    if hi > data_range * 1.01 or lo < -0.01 * data_range:
-        raise ValueError(
-            f"{name}: expected values in [0, data_range={data_range:g}], got values in "
-            f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
 
 
 def _grey(image: Tensor) -> Tensor:
@@ -71,16 +66,26 @@ def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.
         data_range: the images' range; intensities are compared on the 0-255 scale.
 
     Returns:
-        (B, (2r+1)², H, W) in (-1, 1): t = δ / sqrt(0.81 + δ²), δ = I(q) - I(p) in grey levels.
-        The image border is replicated, so border offsets compare real pixels.
+        (B, (2r+1)², H, W) in (-1, 1): t = δ / sqrt(0.81 + δ²), δ = I(q) - I(p) in grey levels,
+        in at least float32 (also under ``torch.autocast``). The image border is replicated, so
+        border offsets compare real pixels.
     """
-    grey = _grey(image) * (255.0 / data_range)
-    k = 2 * radius + 1
-    # One-hot kernels pick each neighbour: the census as a single convolution.
-    eye = torch.eye(k * k, dtype=grey.dtype, device=grey.device).reshape(k * k, 1, k, k)
-    padded = F.pad(grey, (radius, radius, radius, radius), mode="replicate")
-    delta = F.conv2d(padded, eye) - grey
-    return delta / torch.sqrt(0.81 + delta * delta)
+    check_float_tensor(image, "image")
+    check_shape(image, "image", ("B", "C", "H", "W"))
+    if isinstance(radius, bool) or not isinstance(radius, int) or radius < 1:
+        raise ValueError(f"radius: expected a positive int, got {radius!r}")
+    data_range = check_data_range(data_range)
+    # At least float32, also under autocast: the comparisons of near-equal grey levels are the
+    # whole signal, and bfloat16 keeps 3 significant digits of them.
+    work = result_dtype(image)
+    with autocast_off(image):
+        grey = _grey(image.to(work)) * (255.0 / data_range)
+        k = 2 * radius + 1
+        # One-hot kernels pick each neighbour: the census as a single convolution.
+        eye = torch.eye(k * k, dtype=grey.dtype, device=grey.device).reshape(k * k, 1, k, k)
+        padded = F.pad(grey, (radius, radius, radius, radius), mode="replicate")
+        delta = F.conv2d(padded, eye) - grey
+        return delta / torch.sqrt(0.81 + delta * delta)
 
 
 def _erode(valid: Tensor, radius: int) -> Tensor:
@@ -102,9 +107,12 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         flow: (B, 2, H, W) forward flow t -> t+1 in pixels (channel 0 = u).
         mask: optional (B, 1, H, W) bool, the pixels to evaluate (e.g. the road).
         kind: ``"l1"`` (grey levels, 0-255 scale), ``"ssim"`` ((1 - SSIM)/2) or ``"census"``.
-        data_range: the images' range (255.0 or 1.0). Values outside [0, 1.01 * data_range]
-            raise ValueError.
-        window: odd SSIM window size (taps of the σ = 1.5 Gaussian).
+        data_range: the images' range (255.0 or 1.0): a finite number > 0. Values outside
+            [0, 1.01 * data_range], and NaN or inf pixels anywhere in either image, raise
+            ValueError naming the image (a NaN pixel would spread through the warp's taps and the
+            SSIM and census windows into its neighbours).
+        window: odd SSIM window size (taps of the σ = 1.5 Gaussian); ``"ssim"`` needs H and W
+            larger than ``window // 2`` (the reflection padding).
         census_radius: census neighbourhood radius r ((2r+1)² offsets).
         align_corners: passed to :func:`~fsof_torch.warp.warp_backward` (does not change results).
 
@@ -126,17 +134,20 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
     if kind not in _KINDS:
         raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
-    if not (isinstance(data_range, (int, float)) and not isinstance(data_range, bool) and data_range > 0):
-        raise ValueError(f"data_range: expected a positive number, got {data_range!r}")
-    if not isinstance(window, int) or window < 1 or window % 2 == 0:
+    data_range = check_data_range(data_range)
+    if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 == 0:
         raise ValueError(f"window: expected an odd positive int, got {window!r}")
-    if not isinstance(census_radius, int) or census_radius < 1:
+    if isinstance(census_radius, bool) or not isinstance(census_radius, int) or census_radius < 1:
         raise ValueError(f"census_radius: expected a positive int, got {census_radius!r}")
-    _check_range(image1, "image1", data_range)
-    _check_range(image2, "image2", data_range)
+    if kind == "ssim" and min(dims["H"], dims["W"]) <= window // 2:
+        # kornia pads the SSIM window by reflection, which needs more pixels than the window radius
+        raise ValueError(f"image1: kind='ssim' with window={window} needs H and W >= {window // 2 + 1}, "
+                         f"got shape {tuple(image1.shape)} (pass a smaller odd window)")
+    check_image_range(image1, "image1", data_range)
+    check_image_range(image2, "image2", data_range)
 
     work = result_dtype(image1, image2, flow)
-    with torch.autocast(device_type=image1.device.type, enabled=False):
+    with autocast_off(image1):
         im1 = image1.to(work)
         warped, valid = warp_backward(image2.to(work), flow.to(work), align_corners=align_corners)
         if kind == "l1":
@@ -144,8 +155,13 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         elif kind == "ssim":
             from kornia.metrics import ssim
 
-            # eps=0: kornia's default eps biases flat dark patches; c1, c2 > 0 keep it finite.
-            s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
+            if im1.device.type == "meta":
+                # kornia's ssim enters torch.autocast, which the meta device lacks; its map has
+                # the images' shape, which is all shape inference needs.
+                s = torch.empty_like(im1)
+            else:
+                # eps=0: kornia's default eps biases flat dark patches; c1, c2 > 0 keep it finite.
+                s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
             error = ((1.0 - s) * 0.5).clamp(0.0, 1.0).mean(dim=1, keepdim=True)
             valid = _erode(valid, window // 2)
         else:
@@ -196,6 +212,7 @@ class PhotometricError(nn.Module):
         super().__init__()
         if kind not in _KINDS:
             raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+        data_range = check_data_range(data_range)
         self.kind = kind
         self.data_range = data_range
         self.window = window

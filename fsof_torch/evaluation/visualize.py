@@ -21,7 +21,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape
+from .._check import check_float_tensor, check_number, check_shape
 
 __all__ = [
     "make_colorwheel",
@@ -109,9 +109,8 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     elif isinstance(max_flow, Tensor):
         scale = max_flow.detach().to(work).reshape(-1).expand(B)
     else:
-        if not float(max_flow) > 0:
-            raise ValueError(f"max_flow: expected a positive number, got {max_flow!r}")
-        scale = torch.full((B,), float(max_flow), dtype=work, device=flow.device)
+        scale = torch.full((B,), check_number(max_flow, "max_flow", positive=True), dtype=work,
+                           device=flow.device)
     # Same epsilon as the reference code, so that a zero flow is white, not NaN.
     scale = (scale + 1e-5).view(B, 1, 1, 1)
     u, v, rad = u / scale, v / scale, rad / scale
@@ -159,8 +158,7 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
     """
     check_float_tensor(error, "error")
     error = _as_batch(error, "error", 1)
-    if not float(vmax) > 0:
-        raise ValueError(f"vmax: expected a positive number, got {vmax!r}")
+    vmax = check_number(vmax, "vmax", positive=True)
     ok = torch.isfinite(error)
     if valid is not None:
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
@@ -207,15 +205,16 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
     return torch.round(out).clamp(0, 255).to(torch.uint8)
 
 
-def _write_png(path: str | os.PathLike, rgb: Tensor) -> Path:
-    """Write one (1, 3, H, W) or (3, H, W) uint8 RGB image as PNG, atomically."""
+def _write_png(path: str | os.PathLike, rgb: Tensor, name: str) -> Path:
+    """Write one (1, 3, H, W) or (3, H, W) uint8 RGB image as PNG, atomically; ``name`` is the
+    argument the image came from (for the error of a batch above 1)."""
     import cv2
 
     from ..io.atomic import write_bytes
 
     if rgb.dim() == 4:
         if rgb.shape[0] != 1:
-            raise ValueError(f"expected a single image (batch 1) to save, got batch {rgb.shape[0]}")
+            raise ValueError(f"{name}: expected a single image (batch 1) to save, got batch {rgb.shape[0]}")
         rgb = rgb[0]
     bgr = rgb.permute(1, 2, 0).flip(-1).contiguous().cpu().numpy()
     ok, data = cv2.imencode(".png", bgr)
@@ -230,7 +229,7 @@ def save_flow_png(path: str | os.PathLike, flow: Tensor, *, max_flow: float | No
 
     See :func:`flow_to_color` for ``max_flow`` and ``valid``. Returns the path.
     """
-    return _write_png(path, flow_to_color(flow, max_flow, valid=valid))
+    return _write_png(path, flow_to_color(flow, max_flow, valid=valid), "flow")
 
 
 def save_error_png(path: str | os.PathLike, error_map: Tensor, vmax: float, *,
@@ -239,7 +238,9 @@ def save_error_png(path: str | os.PathLike, error_map: Tensor, vmax: float, *,
 
     See :func:`error_to_color`. Returns the path.
     """
-    return _write_png(path, error_to_color(error_map, vmax, valid=valid, colormap=colormap))
+    check_float_tensor(error_map, "error_map")
+    error_map = _as_batch(error_map, "error_map", 1)
+    return _write_png(path, error_to_color(error_map, vmax, valid=valid, colormap=colormap), "error_map")
 
 
 def save_overlay_png(path: str | os.PathLike, image: Tensor, mask: Tensor, *,
@@ -249,4 +250,4 @@ def save_overlay_png(path: str | os.PathLike, image: Tensor, mask: Tensor, *,
 
     See :func:`overlay_mask`. Returns the path.
     """
-    return _write_png(path, overlay_mask(image, mask, color=color, alpha=alpha, data_range=data_range))
+    return _write_png(path, overlay_mask(image, mask, color=color, alpha=alpha, data_range=data_range), "image")

@@ -28,7 +28,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._check import check_finite, check_float_tensor, check_shape, result_dtype
+from .._check import autocast_off, check_finite, check_float_tensor, check_shape, result_dtype
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -42,8 +42,12 @@ def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> 
     ``align_corners=True``: -1 and 1 are the centres of the first and last pixel;
     ``align_corners=False``: -1 and 1 are the outer edges of those pixels. Pass the same flag to
     the sampler. A singleton axis maps its only pixel to 0 (the corner-aligned scale is
-    undefined there, and grid_sample then ignores the coordinate anyway).
+    undefined there, and grid_sample then ignores the coordinate anyway). Elementwise: a NaN
+    coordinate stays NaN.
     """
+    check_float_tensor(coords, "coords")
+    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
+        raise ValueError(f"size: expected a positive int (pixels along the axis), got {size!r}")
     if size == 1:
         return coords * 2.0
     if align_corners:
@@ -67,8 +71,10 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
     """Sample ``image`` at ``p + flow(p)``: the second frame warped back onto the first.
 
     Args:
-        image: (B, C, H, W) float, any range (the values are only interpolated).
-        flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down).
+        image: (B, C, H, W) float, any range (the values are only interpolated), finite: a NaN
+            pixel would reach every output pixel whose bilinear taps touch it, so a non-finite
+            value anywhere raises ValueError (replace or inpaint such pixels first).
+        flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down); finite.
         align_corners: the normalisation convention handed to kornia / ``grid_sample``; this
             function normalises with the same flag, so both values give the same result.
         mode: ``"bilinear"`` (differentiable in image and flow) or ``"nearest"`` (differentiable
@@ -100,13 +106,14 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
         raise ValueError(f"padding_mode: expected one of {_PADDING}, got {padding_mode!r}")
     if not isinstance(align_corners, bool):
         raise TypeError(f"align_corners: expected a bool, got {type(align_corners).__name__}")
+    check_finite(image, "image")
     check_finite(flow, "flow")
 
     out_dtype = torch.promote_types(image.dtype, flow.dtype)
     work = result_dtype(image, flow)
     B, _, H, W = image.shape
     # Geometry in at least float32: a bfloat16 pixel coordinate is off by up to 4 px at u = 1000.
-    with torch.autocast(device_type=image.device.type, enabled=False):
+    with autocast_off(image):
         img = image.to(work)
         f = flow.to(work)
         u = torch.arange(W, dtype=work, device=image.device).expand(H, W)

@@ -12,6 +12,8 @@ Angles in radians, heights in metres, focal lengths in pixels.
 
 from __future__ import annotations
 
+import math
+import numbers
 import os
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -22,32 +24,85 @@ from torch import Tensor
 from .._check import (
     as_batch_param,
     check_finite,
+    check_float_tensor,
     check_positive,
     resolve_batch,
     result_dtype,
-    tracing,
+    skip_values,
 )
 
-__all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration"]
+__all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration",
+           "camera_value_bounds", "check_camera_index"]
 
 
 def roll_matrix(roll: Tensor) -> Tensor:
-    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians."""
+    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians.
+
+    Elementwise, as ``torch.cos``: a NaN or inf angle gives NaN entries (a :class:`Camera`
+    rejects non-finite angles before they get here)."""
+    check_float_tensor(roll, "roll")
     c, s = torch.cos(roll), torch.sin(roll)
     z, o = torch.zeros_like(roll), torch.ones_like(roll)
     return torch.stack([c, s, z, -s, c, z, z, z, o], dim=-1).reshape(*roll.shape, 3, 3)
 
 
 def pitch_matrix(pitch: Tensor) -> Tensor:
-    """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up)."""
+    """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up); elementwise
+    like :func:`roll_matrix`."""
+    check_float_tensor(pitch, "pitch")
     c, s = torch.cos(pitch), torch.sin(pitch)
     z, o = torch.zeros_like(pitch), torch.ones_like(pitch)
     return torch.stack([o, z, z, z, c, s, z, -s, c], dim=-1).reshape(*pitch.shape, 3, 3)
 
 
 def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
-    """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame."""
-    return roll_matrix(roll) @ pitch_matrix(pitch)
+    """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame (roll and
+    pitch of batch 1 or B, in their promoted dtype)."""
+    Rr, Rp = roll_matrix(roll), pitch_matrix(pitch)
+    if roll.dim() and pitch.dim():
+        resolve_batch({"roll": roll.shape[0], "pitch": pitch.shape[0]})
+    dtype = torch.promote_types(Rr.dtype, Rp.dtype)
+    return Rr.to(dtype) @ Rp.to(dtype)
+
+
+def camera_value_bounds(dtype: torch.dtype) -> tuple[float, float]:
+    """The magnitudes ``(lo, hi)`` a camera of ``dtype`` may hold: focal lengths and the height
+    in [lo, hi], |principal point| and |skew| at most hi.
+
+    Why the fifth root of the dtype's range: the road geometry multiplies up to about five
+    camera-scale quantities before a division brings the result back to pixels. The velocity
+    model's terms are f · ((u - c) / f)² · (v / h)-like products, the fit's Jacobians square
+    normalised coordinates (u - c) / f, and the homography K R K⁻¹ applied to a pixel multiplies
+    c by c / f by u. With every factor (a focal length, a principal point, a pixel coordinate, a
+    height) within [max^(-1/5), max^(1/5)], any product of five lies within [1/max, max]: it
+    neither overflows to inf nor underflows to 0, so a camera that passes cannot make the flow
+    NaN through its own scale. The bounds are the powers of two just inside those roots (exact
+    in every dtype): float32 [2^-25, 2^25] = [3.0e-8, 3.4e7]; float64 [2^-204, 2^204] =
+    [3.9e-62, 2.6e61] (half precision cameras are stored in float32). Real cameras sit far
+    inside both ranges.
+    """
+    k = math.floor(math.log2(torch.finfo(dtype).max) / 5)
+    return 2.0 ** -k, 2.0 ** k
+
+
+def _check_camera_values(K: Tensor, height: Tensor) -> None:
+    """Reject values whose geometry overflows or underflows in K's dtype (see camera_value_bounds)."""
+    if skip_values(K, height):
+        return
+    lo, hi = camera_value_bounds(K.dtype)
+    f = torch.stack([K[:, 0, 0], K[:, 1, 1]], dim=-1)
+    offsets = torch.stack([K[:, 0, 1], K[:, 0, 2], K[:, 1, 2]], dim=-1).abs()
+    if not bool(((f >= lo) & (f <= hi)).all()):
+        raise ValueError(f"K: expected focal lengths in [{lo:.3g}, {hi:.3g}] px for a {K.dtype} camera "
+                         f"(beyond them the road geometry overflows), got f_x={K[:, 0, 0].tolist()}, "
+                         f"f_y={K[:, 1, 1].tolist()}")
+    if not bool((offsets <= hi).all()):
+        raise ValueError(f"K: expected |principal point| and |skew| <= {hi:.3g} px for a {K.dtype} camera "
+                         f"(beyond it the road geometry overflows), got c_x={K[:, 0, 2].tolist()}, "
+                         f"c_y={K[:, 1, 2].tolist()}, skew={K[:, 0, 1].tolist()}")
+    if not bool(((height >= lo) & (height <= hi)).all()):
+        raise ValueError(f"height: expected a camera height in [{lo:.3g}, {hi:.3g}] m for a {K.dtype} camera "
+                         f"(beyond it the road geometry overflows or underflows), got {height.tolist()}")
 
 
 @dataclass
@@ -100,13 +155,14 @@ class Camera:
                            "pitch": pitch.shape[0]})
         check_finite(K, "K")
         check_positive(height, "height")
-        if not tracing():
+        if not skip_values(K):
             fx, fy = K[:, 0, 0], K[:, 1, 1]
             if not bool(((fx > 0) & (fy > 0)).all()):
                 raise ValueError(f"K: expected focal lengths f_x, f_y > 0, got f_x={fx.tolist()}, f_y={fy.tolist()}")
             lower = torch.stack([K[:, 1, 0], K[:, 2, 0], K[:, 2, 1]], dim=-1)
             if not bool((lower == 0).all()) or not bool((K[:, 2, 2] == 1).all()):
                 raise ValueError(f"K: expected an upper-triangular intrinsic matrix with K[2, 2] = 1, got {K.tolist()}")
+        _check_camera_values(K, height)
         self.K = K.expand(B, 3, 3)
         self.height = height.expand(B)
         self.roll = roll.expand(B)
@@ -166,12 +222,23 @@ class Camera:
 
     # -- constructors and transforms ----------------------------------------------------
     def to(self, *args, **kwargs) -> "Camera":
-        """A copy moved / cast like ``Tensor.to`` (``self`` when nothing changes, as there)."""
+        """A copy moved / cast like ``Tensor.to`` (``self`` when nothing changes, as there).
+
+        A half precision dtype gives a float32 camera, as the constructor does; a cast to a
+        narrower dtype checks the values against that dtype's bounds (:func:`camera_value_bounds`)."""
         moved = [t.to(*args, **kwargs) for t in (self.K, self.height, self.roll, self.pitch)]
         if all(a is b for a, b in zip(moved, (self.K, self.height, self.roll, self.pitch))):
             return self
         # a cast to a non-float dtype goes through the checks (and fails there)
-        return Camera._checked(*moved) if moved[0].is_floating_point() else Camera(*moved)
+        if not moved[0].is_floating_point():
+            return Camera(*moved)
+        if moved[0].dtype in (torch.float16, torch.bfloat16):
+            # as the constructor does: half precision cameras are kept in float32
+            moved = [t.to(torch.float32) for t in moved]
+        if torch.finfo(moved[0].dtype).max < torch.finfo(self.dtype).max:
+            # a narrower dtype has narrower bounds (a float64 focal of 1e10 px is out of float32's)
+            _check_camera_values(moved[0], moved[1])
+        return Camera._checked(*moved)
 
     def expand(self, batch_size: int) -> "Camera":
         """The same camera for ``batch_size`` frames (from a batch of 1; ``self`` if it has
@@ -211,11 +278,16 @@ class Camera:
         """
         sy = sx if sy is None else sy
         for name, s in (("sx", sx), ("sy", sy)):
+            if isinstance(s, bool) or not isinstance(s, numbers.Real):
+                raise TypeError(f"{name}: expected a number (the resize factor), got {type(s).__name__} {s!r}")
             if not (float(s) > 0 and float(s) < float("inf")):
                 raise ValueError(f"{name}: expected a finite scale > 0, got {s!r}")
         S = torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
                          dtype=self.dtype, device=self.device)
-        return self.replace(K=S @ self.K)
+        try:
+            return self.replace(K=S @ self.K)
+        except ValueError as err:
+            raise ValueError(f"sx, sy: the camera resized by ({sx!r}, {sy!r}) is out of range: {err}") from None
 
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,
@@ -250,13 +322,17 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     (key ``P{cam}``, or unlabelled rows in order).
     """
     path = Path(path)
+    cam = check_camera_index(cam)
     if not path.is_file():
         raise FileNotFoundError(f"path: no calibration file at {str(path)!r}")
-    if not 0 <= int(cam) <= 3:
-        raise ValueError(f"cam: expected 0..3, got {cam!r}")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"path: {str(path)!r} is not a text calibration file (undecodable byte at "
+                         f"offset {err.start})") from None
     rows: dict[str, list[float]] = {}
     unlabelled: list[list[float]] = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line:
             continue
@@ -285,6 +361,13 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     if len(values) != 12:
         raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
     return torch.tensor(values, dtype=torch.float64).reshape(3, 4)
+
+
+def check_camera_index(cam: object, name: str = "cam") -> int:
+    """A KITTI camera index: an int 0..3 (0/1 grey, 2/3 colour)."""
+    if isinstance(cam, bool) or not isinstance(cam, numbers.Integral) or not 0 <= int(cam) <= 3:
+        raise ValueError(f"{name}: expected 0..3, got {cam!r} (the KITTI camera index)")
+    return int(cam)
 
 
 def _camera_flatten(cam: Camera):

@@ -38,7 +38,9 @@ class EgoMotion(NamedTuple):
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
     """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)."""
     P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
-    return torch.linalg.inv(P1) @ P0
+    resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
+    dtype = result_dtype(P0, P1)
+    return torch.linalg.inv(P1.to(dtype)) @ P0.to(dtype)
 
 
 def as_pose_4x4(T: Tensor, name: str) -> Tensor:
@@ -50,6 +52,7 @@ def as_pose_4x4(T: Tensor, name: str) -> Tensor:
         raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
     if T.dim() == 2:
         T = T.unsqueeze(0)
+    T = T.to(result_dtype(T))  # linear algebra in at least float32 (torch has no half inverse)
     check_finite(T, name)
     if T.shape[-2] == 3:
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 1, 4)
@@ -82,6 +85,8 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
     Returns:
         :class:`EgoMotion` with x_d, z_d, yaw and the dropped remainder (y_d, rotation_residual).
     """
+    if camera is not None and not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera or None, got {type(camera).__name__}")
     T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     R, t = T[:, :3, :3], T[:, :3, 3]
     if camera is not None:
@@ -115,7 +120,8 @@ def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
     named = {"speed": speed, "steering": steering, "wheelbase": wheelbase, "dt": dt}
     given = [as_batch_param(v, n) for n, v in named.items() if isinstance(v, Tensor)]
     dtype = result_dtype(*given) if given else torch.get_default_dtype()
-    p = {n: as_batch_param(v, n, dtype) for n, v in named.items()}
+    device = given[0].device if given else None  # Python numbers follow the tensors' device
+    p = {n: as_batch_param(v, n, dtype, device) for n, v in named.items()}
     resolve_batch({n: t.shape[0] for n, t in p.items()})
     check_positive(p["wheelbase"], "wheelbase")
     arc = p["speed"] * p["dt"]

@@ -23,6 +23,7 @@ import torch
 from torch import Tensor, nn
 
 from .._check import (
+    autocast_off,
     as_batch_param,
     check_all_finite,
     check_positive,
@@ -86,7 +87,7 @@ def road_flow(camera: Camera, params: Mapping[str, Tensor | float] | None, size:
     size = check_size(size)
     model = get_road_model(model)
     check_camera(camera)
-    with torch.autocast(camera.device.type, enabled=False):
+    with autocast_off(camera.K):
         camera, values = pack_params(model, camera, params)
         M = model.matrix(camera, values)
         _check_map(M, size, model, values)

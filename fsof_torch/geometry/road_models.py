@@ -54,7 +54,7 @@ from typing import Mapping
 import torch
 from torch import Tensor
 
-from .._check import as_batch_param, check_all_finite, resolve_batch, result_dtype, tracing
+from .._check import autocast_off, as_batch_param, check_all_finite, resolve_batch, result_dtype, tracing
 from .camera import Camera, check_camera
 
 __all__ = [
@@ -368,7 +368,7 @@ def road_homography(camera: Camera, params: Mapping[str, Tensor | float] | None 
     """
     model = get_road_model(model)
     check_camera(camera)
-    with torch.autocast(camera.device.type, enabled=False):
+    with autocast_off(camera.K):
         camera, values = pack_params(model, camera, params)
         return model.matrix(camera, values)
 

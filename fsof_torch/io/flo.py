@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from .atomic import atomic_path
 
 __all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
@@ -68,6 +69,7 @@ def _as_chw_flow(flow: Tensor | np.ndarray, name: str) -> Tensor:
         flow = torch.from_numpy(flow)
     if not isinstance(flow, Tensor):
         raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
+    check_has_values(flow, name)
     if not flow.is_floating_point():
         raise TypeError(f"{name}: expected a floating-point tensor, got dtype {flow.dtype}")
     if flow.dim() != 3 or flow.shape[0] != 2 or flow.shape[1] == 0 or flow.shape[2] == 0:

@@ -36,8 +36,11 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
             raise FileNotFoundError(f"path: no file at {str(path)!r}")
         try:
             array = np.load(path, allow_pickle=False)
-        except ValueError as err:
-            raise ValueError(f"path: {str(path)!r} is not a readable .npy array: {err}") from err
+        except Exception as err:  # noqa: BLE001 - numpy's header parser raises EOFError, SyntaxError, ...
+            raise ValueError(f"path: {str(path)!r} is not a readable .npy array "
+                             f"({type(err).__name__}: {err or 'empty file'})") from None
+        if not isinstance(array, np.ndarray):  # an .npz archive under a .npy name
+            raise ValueError(f"path: {str(path)!r} is not a single .npy array")
         if array.ndim != 3 or 2 not in (array.shape[0], array.shape[2]):
             raise ValueError(f"path: {str(path)!r} holds an array of shape {array.shape}; expected (2, H, W) or (H, W, 2)")
         if not np.issubdtype(array.dtype, np.floating):

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from .atomic import atomic_path
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
@@ -59,6 +60,9 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     import cv2
 
     path = Path(path)
+    if not path.suffix or not cv2.haveImageWriter(str(path)):
+        raise ValueError(f"path: OpenCV has no image writer for the suffix {path.suffix!r} of {str(path)!r} "
+                         f"(use .png, .jpg, .tif, .bmp, ...)")
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), array):
             raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
@@ -105,6 +109,9 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
         image = image.unsqueeze(0)
     else:
         raise ValueError(f"image: expected shape (3, H, W), (1, H, W) or (H, W), got {tuple(image.shape)}")
+    if min(image.shape[-2:]) < 1:
+        raise ValueError(f"image: expected H, W >= 1, got shape {tuple(image.shape)}")
+    check_has_values(image, "image")
     image = image.detach().cpu()
     if image.dtype == torch.uint8:
         array = image.numpy()

@@ -20,7 +20,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from ..geometry.camera import read_kitti_calibration
+from .._check import check_has_values
+from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .flo import _as_chw_flow
 from .images import read_image_array, write_image_array
@@ -40,6 +41,7 @@ KITTI_FLOW_SCALE = 64.0
 _OFFSET = 2.0 ** 15
 KITTI_FLOW_MAX = (65535 - _OFFSET) / KITTI_FLOW_SCALE  # 511.984375 px
 KITTI_FLOW_MIN = -_OFFSET / KITTI_FLOW_SCALE  # -512 px
+_ROTATION_TOL = 1e-3
 
 
 def read_kitti_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
@@ -105,12 +107,22 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
     Each non-empty line holds 12 numbers (the 3×4 [R | t] row by row). Also accepted, for other
     data sets written in the same spirit: 16 numbers (the full 4×4, last row 0 0 0 1), or 13 / 17
     numbers with a leading frame index (which is dropped). ``#`` starts a comment.
+
+    Raises ValueError naming the path (and the line) for a binary file, a row of the wrong
+    length, non-finite values, or a 3×3 block that is not a rotation (|RᵀR − I| > 1e-3 or
+    det R <= 0: an all-zero block is singular).
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no poses file at {str(path)!r}")
+    try:
+        text = path.read_text()
+    except UnicodeDecodeError as err:
+        raise ValueError(f"path: {str(path)!r} is not a text poses file (undecodable byte at offset "
+                         f"{err.start})") from None
     rows = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    lines = []
+    for n, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
@@ -125,6 +137,7 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
         elif len(values) != 16:
             raise ValueError(f"path: line {n} of {str(path)!r} has {len(values)} numbers; expected 12 (KITTI 3×4 pose)")
         rows.append(values)
+        lines.append(n)
     if not rows:
         raise ValueError(f"path: {str(path)!r} holds no poses")
     poses = torch.tensor(rows, dtype=torch.float64).reshape(-1, 4, 4)
@@ -133,6 +146,17 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
         raise ValueError(f"path: {str(path)!r} has 4×4 poses whose last row is not 0 0 0 1")
     if not bool(torch.isfinite(poses).all()):
         raise ValueError(f"path: {str(path)!r} holds non-finite pose values")
+    # The 3×3 block must be a rotation: an all-zero or scaled block is singular or not rigid, and
+    # relative poses (its inverse) would be inf or wrong. KITTI's rows, printed to 7 digits, are
+    # orthonormal to 2e-7; the tolerance leaves room for other writers' rounding.
+    R = poses[:, :3, :3]
+    error = (R.transpose(1, 2) @ R - torch.eye(3, dtype=R.dtype)).abs().flatten(1).amax(dim=1)
+    bad = ((error > _ROTATION_TOL) | (torch.linalg.det(R) <= 0)).nonzero().flatten()
+    if bad.numel():
+        i = int(bad[0])
+        raise ValueError(f"path: line {lines[i]} of {str(path)!r} is not a rigid pose: its 3×3 block is not a "
+                         f"rotation (|RᵀR − I| up to {float(error[i]):.3g}, det {float(torch.linalg.det(R[i])):.3g}; "
+                         f"an all-zero block is singular)")
     return poses
 
 
@@ -148,6 +172,7 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
         poses = poses.unsqueeze(0)
     if poses.dim() != 3 or tuple(poses.shape[-2:]) not in ((4, 4), (3, 4)):
         raise ValueError(f"poses: expected shape (N, 4, 4) or (N, 3, 4), got {tuple(poses.shape)}")
+    check_has_values(poses, "poses")
     if not bool(torch.isfinite(poses).all()):
         raise ValueError("poses: expected finite values, got NaN or inf")
     rows = poses[:, :3, :].detach().cpu().double().reshape(-1, 12).tolist()
@@ -173,6 +198,7 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
     if not isinstance(K, Tensor) or not K.is_floating_point():
         raise TypeError(f"K: expected a float tensor of shape (3, 3), got "
                         f"{K.dtype if isinstance(K, Tensor) else type(K).__name__}")
+    check_has_values(K, "K")
     if K.dim() == 3 and K.shape[0] == 1:
         K = K[0]
     if tuple(K.shape) == (3, 3):
@@ -181,8 +207,7 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
         P = K.double()
     else:
         raise ValueError(f"K: expected shape (3, 3) or (3, 4), got {tuple(K.shape)}")
-    if not 0 <= int(cam) <= 3:
-        raise ValueError(f"cam: expected 0..3, got {cam!r}")
+    cam = check_camera_index(cam)
     row = " ".join(f"{x:.12e}" for x in P.detach().cpu().reshape(-1).tolist())
     if style == "cam_to_cam":
         text = f"P_rect_0{cam}: {row}\n"

@@ -53,6 +53,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
@@ -126,6 +127,7 @@ def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: flo
     ``cam1_T_cam0 = [[R_c R_φ R_cᵀ, -R_c R_φ d], [0, 1]]`` (the inverse of what
     :func:`fsof_torch.egomotion.ego_motion_from_pose` projects).
     """
+    check_has_values(camera.K, "camera")
     Rc = camera.to(device="cpu", dtype=torch.float64).mounting()[0].detach()
     c, s = math.cos(yaw), math.sin(yaw)
     R_phi = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
@@ -140,6 +142,9 @@ def write_depth_png(path: str | os.PathLike, depth: Tensor) -> Path:
     """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none)."""
     if not isinstance(depth, Tensor) or not depth.is_floating_point():
         raise TypeError("depth: expected a float tensor of shape (1, H, W)")
+    if depth.dim() not in (2, 3) or (depth.dim() == 3 and depth.shape[0] != 1) or min(depth.shape[-2:]) < 1:
+        raise ValueError(f"depth: expected shape (1, H, W) or (H, W), got {tuple(depth.shape)}")
+    check_has_values(depth, "depth")
     d = depth.detach().cpu().double().reshape(depth.shape[-2:])
     coded = torch.where(torch.isfinite(d) & (d > 0), (d * _DEPTH_SCALE).round(), torch.zeros_like(d))
     coded = torch.where(coded > 65535, torch.zeros_like(coded), coded)

@@ -1,89 +1,214 @@
 """Road (freespace) masks and label maps: PNG masks, polygon JSON, colour-coded segmentation.
 
-Polygon JSON (like ``shared/data/*/road.json``): ``{"size": [H, W], "road_polygon": [[u, v],
-...]}`` in pixel coordinates (u right, v down, origin at the centre of the top-left pixel); also
-accepted: ``"polygon"`` or ``"polygons"`` / ``"road_polygons"`` (a list of polygons, filled as a
-union). Rasterised with ``cv2.fillPoly`` at 1/16 px vertex precision.
+Polygon JSON. Coordinates are pixels (u right, v down, origin at the centre of the top-left
+pixel); a polygon is a list of at least three ``[u, v]`` points (finite numbers). A file holds
+one of these (several polygons are filled as a union):
+
+1. ``{"size": [H, W], "road_polygon": [[u, v], ...]}`` (or ``"polygon"``): one polygon. Other
+   keys (``"image"``, ``"note"``, ...) are ignored. This is the format of ``shared/data/*/road.json``.
+2. ``{"size": [H, W], "polygons": [[[u, v], ...], ...]}`` (or ``"road_polygons"``): a list of
+   polygons.
+3. ``{"size": [H, W], "polygons": {"ego_lane": [[u, v], ...], "left_lane": [...]}}``: named
+   polygons under ``"polygons"``; or the names at the top level, ``{"size": [H, W], "ego_lane":
+   [...], ...}``, when none of the keys above is present (then every key but ``"size"`` must
+   name a polygon).
+4. ``[[[u, v], ...], ...]``: a bare list of polygons (no size in the file: pass ``size``).
+
+``"size"`` is ``[H, W]``, two positive integers (not floats). Every malformed input raises a
+ValueError or TypeError that names the file and the offending entry. Polygons may reach far
+outside the image: they are clipped to the image (Sutherland–Hodgman, in float64) before they
+are rasterised with ``cv2.fillPoly`` at 1/16 px vertex precision, so a polygon enclosing the
+image at ±2e8 px fills it instead of overflowing OpenCV's 32-bit fixed-point vertices.
+Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected.
 """
 
 from __future__ import annotations
 
 import json
+import math
+import numbers
 import os
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
 import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_has_values
 from .images import read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
            "read_label_map", "write_label_map"]
 
 _SHIFT = 4  # fixed-point bits of cv2.fillPoly vertices: 1/16 px
+_MAX_COORD = 1e15  # beyond it float64 resolves less than a pixel
+_ONE = ("road_polygon", "polygon")
+_MANY = ("road_polygons", "polygons")
+
+
+def _as_polygon(poly: object, where: str) -> np.ndarray:
+    """(N, 2) float64 vertices from a list of [u, v] points or an (N, 2) array, checked; ``where``
+    names the polygon in errors."""
+    if isinstance(poly, Tensor):
+        check_has_values(poly, where)
+        poly = poly.detach().cpu().numpy()
+    if isinstance(poly, np.ndarray):
+        if poly.ndim != 2 or poly.shape[1] != 2 or not (np.issubdtype(poly.dtype, np.integer)
+                                                        or np.issubdtype(poly.dtype, np.floating)):
+            raise ValueError(f"{where}: expected an (N, 2) array of numeric (u, v) points, got "
+                             f"{poly.dtype} of shape {poly.shape}")
+        points = [tuple(p) for p in poly.astype(np.float64).tolist()]
+    elif isinstance(poly, (list, tuple)):
+        points = poly
+    else:
+        raise TypeError(f"{where}: expected a list of [u, v] points, got {type(poly).__name__} {poly!r:.60}")
+    if len(points) < 3:
+        raise ValueError(f"{where}: expected at least three (u, v) points, got {len(points)}")
+    for i, point in enumerate(points):
+        if not isinstance(point, (list, tuple)) or len(point) != 2:
+            raise ValueError(f"{where}[{i}]: expected a point [u, v] (two numbers), got {point!r:.60}")
+        for c in point:
+            if isinstance(c, bool) or not isinstance(c, numbers.Real):
+                raise TypeError(f"{where}[{i}]: expected numeric coordinates [u, v], got {point!r:.60}")
+            if not math.isfinite(float(c)):
+                raise ValueError(f"{where}[{i}]: expected finite coordinates, got {point!r:.60}")
+            if abs(float(c)) > _MAX_COORD:
+                raise ValueError(f"{where}[{i}]: coordinates beyond ±{_MAX_COORD:g} px are not pixels, "
+                                 f"got {point!r:.60}")
+    return np.asarray(points, dtype=np.float64).reshape(-1, 2)
+
+
+def _clip(poly: np.ndarray, lo: tuple[float, float], hi: tuple[float, float]) -> np.ndarray:
+    """Sutherland–Hodgman clipping of a polygon (N, 2) to the box [lo, hi] (u, v), in float64.
+
+    Correct for any polygon against a convex box (concave ones may gain edges along the box's
+    border, which lies outside every pixel centre here and so changes no pixel)."""
+    for axis in (0, 1):
+        for bound, inside in ((lo[axis], lambda x, b: x >= b), (hi[axis], lambda x, b: x <= b)):
+            if len(poly) == 0:
+                return poly
+            out = []
+            prev = poly[-1]
+            for cur in poly:
+                cur_in, prev_in = inside(cur[axis], bound), inside(prev[axis], bound)
+                if cur_in != prev_in:
+                    t = (bound - prev[axis]) / (cur[axis] - prev[axis])
+                    point = prev + t * (cur - prev)
+                    point[axis] = bound  # exactly on the border, whatever the rounding of t
+                    out.append(point)
+                if cur_in:
+                    out.append(cur)
+                prev = cur
+            poly = np.asarray(out, dtype=np.float64).reshape(-1, 2)
+    return poly
 
 
 def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tuple[int, int]) -> Tensor:
-    """Fill polygons of pixel coordinates (u, v) into a (1, H, W) bool mask (``cv2.fillPoly``)."""
+    """Fill polygons of pixel coordinates (u, v) into a (1, H, W) bool mask (``cv2.fillPoly``).
+
+    A pixel is filled where its centre is inside a polygon (up to the 1/16 px vertex grid).
+    Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px work.
+    """
     import cv2
 
-    height, width = size
+    height, width = _check_size(size, "size")
     canvas = np.zeros((height, width), dtype=np.uint8)
+    if isinstance(polygons, (str, bytes)) or not isinstance(polygons, Iterable):
+        raise TypeError(f"polygons: expected a list of polygons, got {type(polygons).__name__}")
+    # one pixel beyond the centres of the border pixels: no pixel centre lies on the clip border
+    lo, hi = (-1.0, -1.0), (float(width), float(height))
     pts = []
-    for poly in polygons:
-        arr = np.asarray(poly, dtype=np.float64)
-        if arr.ndim != 2 or arr.shape[1] != 2 or arr.shape[0] < 3:
-            raise ValueError(f"polygons: expected lists of at least three (u, v) points, got shape {arr.shape}")
-        pts.append(np.round(arr * (1 << _SHIFT)).astype(np.int32))
+    for k, poly in enumerate(polygons):
+        clipped = _clip(_as_polygon(poly, f"polygons[{k}]"), lo, hi)
+        if len(clipped) >= 3:
+            pts.append(np.round(clipped * (1 << _SHIFT)).astype(np.int32))
     if pts:
         cv2.fillPoly(canvas, pts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
     return torch.from_numpy(canvas > 0).unsqueeze(0)
 
 
-def _polygons_from_json(obj: dict, path: Path) -> list:
-    for key in ("road_polygon", "polygon"):
+def _check_size(size: object, name: str) -> tuple[int, int]:
+    """(H, W): two positive ints (a float such as 375.0 or 375.5 is rejected, not truncated)."""
+    if not isinstance(size, (list, tuple)) or len(size) != 2:
+        raise ValueError(f"{name}: expected [H, W] (two positive integers), got {size!r:.60}")
+    for s in size:
+        if isinstance(s, bool) or not isinstance(s, numbers.Integral):
+            raise TypeError(f"{name}: expected integer sides [H, W], got {size!r:.60}")
+        if s <= 0:
+            raise ValueError(f"{name}: expected positive sides [H, W], got {list(size)!r}")
+    return int(size[0]), int(size[1])
+
+
+def _polygons_from_json(obj: Any, where: str) -> list[tuple[str, Any]]:
+    """(name, polygon) pairs of a parsed polygon JSON (formats 1-4 of the module docstring)."""
+    if isinstance(obj, list):
+        return [(f"{where}[{i}]", p) for i, p in enumerate(obj)]
+    if not isinstance(obj, dict):
+        raise TypeError(f"{where}: expected a JSON object {{'size': [H, W], 'road_polygon': [...]}} or a "
+                        f"list of polygons, got {type(obj).__name__} {obj!r:.60}")
+    for key in _ONE:
         if key in obj:
-            return [obj[key]]
-    for key in ("road_polygons", "polygons"):
+            return [(f"{where}[{key!r}]", obj[key])]
+    for key in _MANY:
         if key in obj:
-            return list(obj[key])
-    raise ValueError(f"path: {str(path)!r} has no 'road_polygon', 'polygon' or 'polygons' entry")
+            value = obj[key]
+            if isinstance(value, dict):
+                return [(f"{where}[{key!r}][{name!r}]", p) for name, p in value.items()]
+            if not isinstance(value, list):
+                raise TypeError(f"{where}[{key!r}]: expected a list of polygons or a dict of named polygons, "
+                                f"got {type(value).__name__}")
+            return [(f"{where}[{key!r}][{i}]", p) for i, p in enumerate(value)]
+    named = [(f"{where}[{name!r}]", p) for name, p in obj.items() if name != "size"]
+    if not named:
+        raise ValueError(f"{where}: has no 'road_polygon', 'polygon' or 'polygons' entry (nor named polygons)")
+    return named
 
 
 def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:
     """A road mask as (1, H, W) bool.
 
     Args:
-        path: a PNG (any channel nonzero = road) or a polygon JSON (see the module docstring).
+        path: a PNG (any channel nonzero = road) or a polygon JSON (the formats in the module
+            docstring).
         size: (H, W) wanted. A PNG of another size is resized with nearest-neighbour sampling. A
             JSON's polygon is drawn at its own ``"size"`` scaled to ``size`` (pixel centres map as
             ``u' + 0.5 = s (u + 0.5)``); a JSON without ``"size"`` needs ``size``.
+
+    Raises:
+        ValueError / TypeError naming ``path`` (and the entry) for a file that is not valid
+        UTF-8 JSON, a missing or malformed size, a malformed polygon; FileNotFoundError for a
+        missing file.
     """
     import cv2
 
     path = Path(path)
     if size is not None:
-        size = (int(size[0]), int(size[1]))
-        if size[0] <= 0 or size[1] <= 0:
-            raise ValueError(f"size: expected positive (H, W), got {size!r}")
+        size = _check_size(list(size) if isinstance(size, (tuple, torch.Size)) else size, "size")
     if path.suffix.lower() == ".json":
         if not path.is_file():
             raise FileNotFoundError(f"path: no file at {str(path)!r}")
+        where = f"path: {str(path)!r}"
         try:
-            obj = json.loads(path.read_text())
+            obj = json.loads(path.read_bytes().decode("utf-8"))
+        except UnicodeDecodeError as err:
+            raise ValueError(f"{where} is not a text (UTF-8) JSON file (undecodable byte at offset "
+                             f"{err.start})") from None
         except json.JSONDecodeError as err:
-            raise ValueError(f"path: {str(path)!r} is not valid JSON: {err}") from err
-        polygons = _polygons_from_json(obj, path)
-        own = obj.get("size")
+            raise ValueError(f"{where} is not valid JSON: {err}") from None
+        named = _polygons_from_json(obj, where)
+        own = obj.get("size") if isinstance(obj, dict) else None
         if own is None and size is None:
-            raise ValueError(f"path: {str(path)!r} has no 'size' entry; pass size=(H, W)")
-        own = tuple(int(s) for s in own) if own is not None else size
+            raise ValueError(f"{where} has no 'size' entry; pass size=(H, W)")
+        own = _check_size(own, f"{where}['size']") if own is not None else size
         target = size or own
         sy, sx = target[0] / own[0], target[1] / own[1]
-        scaled = [[[sx * (u + 0.5) - 0.5, sy * (v + 0.5) - 0.5] for u, v in poly] for poly in polygons]
-        return rasterize_polygons(scaled, target)
+        polygons = []
+        for name, poly in named:
+            arr = _as_polygon(poly, name)
+            # pixel centres map as u' + 0.5 = s (u + 0.5)
+            polygons.append(np.stack([sx * (arr[:, 0] + 0.5) - 0.5, sy * (arr[:, 1] + 0.5) - 0.5], axis=1))
+        return rasterize_polygons(polygons, target)
     array = read_image_array(path, what="road mask image")
     if array.ndim == 3:
         array = array.max(axis=2)
@@ -100,8 +225,9 @@ def write_road_mask(path: str | os.PathLike, mask: Tensor) -> Path:
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
     if mask.dim() == 3 and mask.shape[0] == 1:
         mask = mask[0]
-    if mask.dim() != 2:
-        raise ValueError(f"mask: expected shape (1, H, W) or (H, W), got {tuple(mask.shape)}")
+    if mask.dim() != 2 or min(mask.shape) < 1:
+        raise ValueError(f"mask: expected shape (1, H, W) or (H, W) with H, W >= 1, got {tuple(mask.shape)}")
+    check_has_values(mask, "mask")
     return write_image_array(path, mask.detach().cpu().numpy().astype(np.uint8) * 255)
 
 
@@ -115,11 +241,21 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
     if isinstance(rgb, Tensor):
         if rgb.dim() != 3 or rgb.shape[0] != 3:
             raise ValueError(f"rgb: expected shape (3, H, W), got {tuple(rgb.shape)}")
-        array = rgb.detach().cpu().round().to(torch.int64).permute(1, 2, 0).numpy()
+        check_has_values(rgb, "rgb")
+        # non-finite values match no colour
+        array = torch.nan_to_num(rgb.detach().cpu().double(), nan=-1.0, posinf=-1.0, neginf=-1.0)
+        array = array.round().to(torch.int64).permute(1, 2, 0).numpy()
+    elif isinstance(rgb, np.ndarray):
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or not np.issubdtype(rgb.dtype, np.integer):
+            raise ValueError(f"rgb: expected an integer (H, W, 3) array, got {rgb.dtype} of shape {rgb.shape}")
+        array = rgb.astype(np.int64)
     else:
-        array = np.asarray(rgb).astype(np.int64)
+        raise TypeError(f"rgb: expected a (3, H, W) tensor or an (H, W, 3) uint8 array, got {type(rgb).__name__}")
     mask = np.zeros(array.shape[:2], dtype=bool)
-    for color in colors:
+    for i, color in enumerate(colors):
+        if not (isinstance(color, (tuple, list)) and len(color) == 3
+                and all(isinstance(c, numbers.Integral) and not isinstance(c, bool) for c in color)):
+            raise ValueError(f"colors[{i}]: expected an (r, g, b) triple of integers, got {color!r}")
         mask |= (array == np.asarray(color, dtype=np.int64).reshape(1, 1, 3)).all(axis=2)
     return torch.from_numpy(mask).unsqueeze(0)
 
@@ -140,8 +276,9 @@ def write_label_map(path: str | os.PathLike, labels: Tensor) -> Path:
                         f"{labels.dtype if isinstance(labels, Tensor) else type(labels).__name__}")
     if labels.dim() == 3 and labels.shape[0] == 1:
         labels = labels[0]
-    if labels.dim() != 2:
-        raise ValueError(f"labels: expected shape (H, W), got {tuple(labels.shape)}")
+    if labels.dim() != 2 or min(labels.shape) < 1:
+        raise ValueError(f"labels: expected shape (H, W) with H, W >= 1, got {tuple(labels.shape)}")
+    check_has_values(labels, "labels")
     lo, hi = int(labels.min()), int(labels.max())
     if lo < 0 or hi > 65535:
         raise ValueError(f"labels: expected values in 0..65535, got the range [{lo}, {hi}]")

@@ -24,6 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._check import check_finite, result_dtype, skip_values
 from .flo import _as_chw_flow
 from .images import read_image_array, write_image_array
 
@@ -139,8 +140,19 @@ def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
 
 
 def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
-    """Camera-to-world poses (N, 4, 4) (KITTI convention) from VKITTI2 world-to-camera extrinsics."""
-    return torch.linalg.inv(camera_T_world)
+    """Camera-to-world poses (N, 4, 4) (KITTI convention) from VKITTI2 world-to-camera extrinsics
+    (N, 4, 4), finite (in at least float32)."""
+    if not isinstance(camera_T_world, Tensor) or not camera_T_world.is_floating_point():
+        got = camera_T_world.dtype if isinstance(camera_T_world, Tensor) else type(camera_T_world).__name__
+        raise TypeError(f"camera_T_world: expected a float tensor of shape (N, 4, 4), got {got}")
+    if camera_T_world.dim() != 3 or tuple(camera_T_world.shape[-2:]) != (4, 4):
+        raise ValueError(f"camera_T_world: expected shape (N, 4, 4), got {tuple(camera_T_world.shape)}")
+    check_finite(camera_T_world, "camera_T_world")
+    T = camera_T_world.to(result_dtype(camera_T_world))
+    inverse = torch.linalg.inv_ex(T)
+    if not skip_values(T) and bool((inverse.info != 0).any()):
+        raise ValueError(f"camera_T_world: singular matrices at {(inverse.info != 0).nonzero().flatten().tolist()}")
+    return inverse.inverse
 
 
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:

@@ -34,7 +34,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import as_batch_param, check_float_tensor, tracing
+from .._check import as_batch_param, check_float_tensor, skip_values, tracing
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
@@ -118,10 +118,39 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
         ``(flow, weight)``: the fused flow (B, 2, H, W) in flow_pred's dtype and the model's
         weight (B, 1, H, W) (0 outside the mask). Non-finite predicted pixels inside the mask
         get the model flow (weight 1); outside the mask they stay as they are.
+
+    Raises:
+        TypeError: a mask that is not bool (threshold a probability or 0/1 map first), or flows
+            that are not float tensors.
+        ValueError: shapes that differ (batch 1 of ``flow_model`` or ``mask`` is broadcast), a
+            scale that is not a finite number > 0, or a non-finite model flow inside the mask
+            (the model flow is the reference there: it must be finite).
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    return _fuse(flow_pred, flow_model, mask, mode, scale, all_finite=False)
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
+        raise (ValueError if isinstance(scale, (int, float)) else TypeError)(
+            f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    check_float_tensor(flow_pred, "flow_pred")
+    check_float_tensor(flow_model, "flow_model")
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {got}")
+    if flow_pred.dim() != 4 or flow_pred.shape[1] != 2 or min(flow_pred.shape[-2:]) < 1:
+        raise ValueError(f"flow_pred: expected shape (B, 2, H, W), got {tuple(flow_pred.shape)}")
+    B, _, H, W = flow_pred.shape
+    for name, t, c in (("flow_model", flow_model, 2), ("mask", mask, 1)):
+        if t.dim() != 4 or t.shape[0] not in (1, B) or tuple(t.shape[1:]) != (c, H, W):
+            raise ValueError(f"{name}: expected shape ({B}, {c}, {H}, {W}) (flow_pred's size; batch 1 "
+                             f"is broadcast), got {tuple(t.shape)}")
+        if t.device != flow_pred.device:
+            raise ValueError(f"{name}: expected the device of flow_pred ({flow_pred.device}), got {t.device}")
+    if not skip_values(flow_model, mask):
+        bad = (~torch.isfinite(flow_model).all(dim=1, keepdim=True) & mask).sum()
+        if int(bad):
+            raise ValueError(f"flow_model: expected finite values inside the mask, got {int(bad)} "
+                             f"non-finite pixel(s) (NaN or inf) there")
+    return _fuse(flow_pred, flow_model, mask, mode, float(scale), all_finite=False)
 
 
 def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale: float, *,

@@ -9,12 +9,25 @@ terms with weights and reports each term's value separately.
   warped back by the flow (L1 + SSIM, optionally census) over pixels that are in bounds and pass
   the forward-backward consistency check (its mask carries no gradient), plus edge-aware
   smoothness of the flow (first or second order).
-- :func:`freespace_flow_loss`: a robust penalty (Charbonnier or Cauchy, from kornia) between the
-  predicted flow and the road flow of the freespace model (paper eq. 13) inside the road mask,
-  from given odometry or from the displacement model fitted to the (detached) prediction.
+- :func:`freespace_flow_loss`: a robust penalty (Charbonnier or Cauchy) between the predicted
+  flow and the road flow of the freespace model (paper eq. 13) inside the road mask, from given
+  odometry or from the displacement model fitted to the (detached) prediction.
 
 Every mean is over a count clamped to at least 1: an empty mask or a warp that leaves the image
 everywhere gives a loss of 0 with finite (zero) gradients, never NaN.
+
+Precision: the arithmetic of every term runs in at least float32, also under ``torch.autocast``
+(bfloat16 keeps three significant digits: enough to make the freespace term of the exact model
+flow 3.3 instead of 0, and to flatten SSIM's variances and the census comparisons). A loss comes
+back in the prediction's dtype lifted to at least float32, as autocast's own losses do.
+
+Non-finite values. Images must be finite everywhere and in [0, ``data_range``] (ValueError
+naming the image otherwise); flows given to the unsupervised loss must be finite (ValueError
+naming ``flows[i]``). In the freespace term, a NaN or inf predicted pixel outside the road mask
+does not count and gets a zero gradient; one inside the mask is left out as well, with a
+``RuntimeWarning`` that counts them (a network's prediction may diverge at a few pixels; the
+term must not turn every gradient of the batch into NaN). Large finite values give large finite
+penalties: the penalties are written without squaring the residual where it could overflow.
 
 Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared on 0..1; flow
 (B, 2, H, W) in pixels, channel 0 = u, forward from ``image1`` to ``image2``; backward flow from
@@ -24,13 +37,26 @@ Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared 
 from __future__ import annotations
 
 import inspect
+import math
+import warnings
 from collections.abc import Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_shape
+from .._check import (
+    as_batch_param,
+    autocast_off,
+    check_data_range,
+    check_finite,
+    check_float_tensor,
+    check_image_range,
+    check_number,
+    check_shape,
+    result_dtype,
+    skip_values,
+)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
@@ -92,6 +118,20 @@ def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int]) -> None:
     check_shape(mask, name, ("B", 1, "H", "W"), dims)
 
 
+def _check_images(images: dict[str, Tensor], dims: dict[str, int], data_range: float) -> None:
+    """Float (B, C, H, W) images with one shape, finite and within [0, data_range]."""
+    for name, img in images.items():
+        check_float_tensor(img, name)
+        check_shape(img, name, ("B", "C", "H", "W"), dims)
+    for name, img in images.items():
+        check_image_range(img, name, data_range)
+
+
+def _check_weights(**weights: float) -> None:
+    for name, value in weights.items():
+        check_number(value, name, nonnegative=True)
+
+
 def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     """Per-sample mean of ``value`` (B, C, H, W) under ``weight`` (B, 1, H, W) in 0..1 -> (B,).
 
@@ -103,7 +143,9 @@ def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
 
 def sequence_weights(n: int, gamma: float) -> list[float]:
     """RAFT's weights γ^(n-1-i), i = 0..n-1, for a list of n estimates (the last gets 1)."""
-    if not 0.0 < gamma <= 1.0:
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"n: expected a positive number of estimates, got {n!r}")
+    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < gamma <= 1.0:
         raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
     return [gamma ** (n - 1 - i) for i in range(n)]
 
@@ -124,8 +166,8 @@ def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1
     through the mask.
 
     Args:
-        flow_forward: (B, 2, H, W) pixels, frame t -> t+1.
-        flow_backward: (B, 2, H, W) pixels, frame t+1 -> t.
+        flow_forward: (B, 2, H, W) pixels, frame t -> t+1, finite.
+        flow_backward: (B, 2, H, W) pixels, frame t+1 -> t, finite.
         alpha1: relative tolerance (unitless); alpha2: absolute tolerance in px².
 
     Returns:
@@ -134,10 +176,19 @@ def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1
     dims: dict[str, int] = {}
     _check_flow(flow_forward, "flow_forward", dims)
     _check_flow(flow_backward, "flow_backward", dims)
-    with torch.no_grad():
-        bw_warped, in_bounds = warp_backward(flow_backward.detach(), flow_forward.detach())
-        diff = (flow_forward + bw_warped).square().sum(dim=1, keepdim=True)
-        mag = flow_forward.square().sum(dim=1, keepdim=True) + bw_warped.square().sum(dim=1, keepdim=True)
+    check_finite(flow_forward, "flow_forward")
+    check_finite(flow_backward, "flow_backward")
+    _check_weights(alpha1=alpha1, alpha2=alpha2)
+    return _fb_mask(flow_forward, flow_backward, alpha1, alpha2)
+
+
+def _fb_mask(flow_forward: Tensor, flow_backward: Tensor, alpha1: float, alpha2: float) -> Tensor:
+    with torch.no_grad(), autocast_off(flow_forward):
+        work = result_dtype(flow_forward, flow_backward)
+        fw, bw = flow_forward.detach().to(work), flow_backward.detach().to(work)
+        bw_warped, in_bounds = warp_backward(bw, fw)
+        diff = (fw + bw_warped).square().sum(dim=1, keepdim=True)
+        mag = fw.square().sum(dim=1, keepdim=True) + bw_warped.square().sum(dim=1, keepdim=True)
         return (diff < alpha1 * mag + alpha2) & in_bounds
 
 
@@ -157,6 +208,13 @@ def _ssim3(x: Tensor, y: Tensor) -> Tensor:
     return ((2 * mu_x * mu_y + c1) * (2 * sigma_xy + c2)) / ((mu_x**2 + mu_y**2 + c1) * (sigma_x + sigma_y + c2))
 
 
+def _check_ssim_size(ssim_weight: float, dims: dict[str, int], name: str, shape: tuple) -> None:
+    if ssim_weight and min(dims["H"], dims["W"]) < 2:
+        # the 3x3 SSIM window is padded by reflection, which needs two pixels per side
+        raise ValueError(f"{name}: the SSIM term needs H and W >= 2, got shape {shape} "
+                         f"(pass ssim_weight=0 for images of one row or column)")
+
+
 def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None, *,
                      l1_weight: float = 0.15, ssim_weight: float = 0.85, census_weight: float = 0.0,
                      data_range: float = 255.0, reduction: str = "mean") -> Tensor:
@@ -169,47 +227,58 @@ def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor 
     inside ``image2`` and inside ``mask``.
 
     Args:
-        image1, image2: (B, 3, H, W) on 0..``data_range``.
-        flow: (B, 2, H, W) pixels, image1 -> image2.
+        image1, image2: (B, 3, H, W) on 0..``data_range``, finite (ValueError otherwise; images
+            0..255 with ``data_range=1`` are caught by the range check).
+        flow: (B, 2, H, W) pixels, image1 -> image2, finite.
         mask: (B, 1, H, W) bool, pixels to count (e.g. the non-occluded ones), or None for all.
+        l1_weight, ssim_weight, census_weight: finite weights >= 0; the SSIM term needs
+            H, W >= 2.
+        data_range: the images' maximum, a finite number > 0 (1.0 or 255.0).
         reduction: ``"mean"`` over the batch, ``"sum"``, or ``"none"`` for (B,).
 
     Returns:
-        A scalar, or (B,) for ``reduction="none"``; 0 where no pixel counts.
+        A scalar, or (B,) for ``reduction="none"``; 0 where no pixel counts. In at least float32.
     """
     _check_reduction(reduction)
+    _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight)
+    data_range = check_data_range(data_range)
     dims: dict[str, int] = {}
-    for name, img in (("image1", image1), ("image2", image2)):
-        check_float_tensor(img, name)
-        check_shape(img, name, ("B", "C", "H", "W"), dims)
+    _check_images({"image1": image1, "image2": image2}, dims, data_range)
     _check_flow(flow, "flow", dims)
     _check_mask(mask, "mask", dims)
-    if data_range <= 0:
-        raise ValueError(f"data_range: expected > 0, got {data_range!r}")
-    # at least float32 (also under autocast): SSIM's variances lose everything in bfloat16
-    dtype = torch.promote_types(flow.dtype, torch.float32)
-    flow = flow.to(dtype)
-    i1 = image1.to(dtype) / data_range
-    i2 = image2.to(dtype) / data_range
-    warped, in_bounds = warp_backward(i2, flow)
-    # Pixels sampled from outside image2 read image1 itself: they count nothing, and they do not
-    # pollute the SSIM / census windows of their valid neighbours with the padding's zeros.
-    warped = torch.where(in_bounds, warped, i1.detach())
-    weight = in_bounds if mask is None else in_bounds & mask
-    weight = weight.to(flow.dtype)
-    err = torch.zeros_like(flow[:, :1])
-    if l1_weight:
-        err = err + l1_weight * (i1 - warped).abs().mean(dim=1, keepdim=True)
-    if ssim_weight:
-        s = _ssim3(i1, warped).mean(dim=1, keepdim=True)
-        err = err + ssim_weight * ((1.0 - s) / 2).clamp(0.0, 1.0)
-    if census_weight:
-        t1 = census_transform(i1, radius=3, data_range=1.0)
-        t2 = census_transform(warped, radius=3, data_range=1.0)
-        dist = (t1 - t2).square()
-        ham = (dist / (0.1 + dist)).sum(dim=1, keepdim=True)
-        err = err + census_weight * (ham.abs() + 0.01).pow(0.4)
-    return _reduce(_masked_mean(err, weight), reduction)
+    check_finite(flow, "flow")
+    _check_ssim_size(ssim_weight, dims, "image1", tuple(image1.shape))
+    value = _photometric(image1, image2, flow, mask, l1_weight, ssim_weight, census_weight, data_range)
+    return _reduce(value, reduction)
+
+
+def _photometric(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None, l1_weight: float,
+                 ssim_weight: float, census_weight: float, data_range: float) -> Tensor:
+    """:func:`photometric_loss` per sample (B,) on checked inputs."""
+    dtype = result_dtype(flow)
+    with autocast_off(flow):
+        flow = flow.to(dtype)
+        i1 = image1.to(dtype) / data_range
+        i2 = image2.to(dtype) / data_range
+        warped, in_bounds = warp_backward(i2, flow)
+        # Pixels sampled from outside image2 read image1 itself: they count nothing, and they do not
+        # pollute the SSIM / census windows of their valid neighbours with the padding's zeros.
+        warped = torch.where(in_bounds, warped, i1.detach())
+        weight = in_bounds if mask is None else in_bounds & mask
+        weight = weight.to(flow.dtype)
+        err = torch.zeros_like(flow[:, :1])
+        if l1_weight:
+            err = err + l1_weight * (i1 - warped).abs().mean(dim=1, keepdim=True)
+        if ssim_weight:
+            s = _ssim3(i1, warped).mean(dim=1, keepdim=True)
+            err = err + ssim_weight * ((1.0 - s) / 2).clamp(0.0, 1.0)
+        if census_weight:
+            t1 = census_transform(i1, radius=3, data_range=1.0)
+            t2 = census_transform(warped, radius=3, data_range=1.0)
+            dist = (t1 - t2).square()
+            ham = (dist / (0.1 + dist)).sum(dim=1, keepdim=True)
+            err = err + census_weight * (ham.abs() + 0.01).pow(0.4)
+        return _masked_mean(err, weight)
 
 
 def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight: float = 10.0,
@@ -217,36 +286,46 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
     """Edge-aware smoothness of ``flow`` (ARFlow): |∇^order F| weighted by exp(-w · mean_c |∇I|).
 
     Args:
-        flow: (B, 2, H, W) pixels.
-        image: (B, C, H, W) on 0..``data_range``, the frame the flow starts from.
+        flow: (B, 2, H, W) pixels, finite.
+        image: (B, C, H, W) on 0..``data_range`` (finite, range checked), the frame the flow
+            starts from.
         order: 1 (first differences) or 2 (second differences).
-        edge_weight: w, per unit of image gradient on the 0..1 scale.
+        edge_weight: w >= 0, per unit of image gradient on the 0..1 scale.
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` for (B,).
 
     Returns:
-        Mean weighted |difference| in pixels (x and y directions averaged).
+        Mean weighted |difference| in pixels (x and y directions averaged); 0 for images too
+        small to have differences of that order. In at least float32.
     """
     _check_reduction(reduction)
-    if order not in (1, 2):
+    if order not in (1, 2) or isinstance(order, bool):
         raise ValueError(f"order: expected 1 or 2, got {order!r}")
+    _check_weights(edge_weight=edge_weight)
+    data_range = check_data_range(data_range)
     dims: dict[str, int] = {}
     _check_flow(flow, "flow", dims)
-    check_float_tensor(image, "image")
-    check_shape(image, "image", ("B", "C", "H", "W"), dims)
-    flow = flow.to(torch.promote_types(flow.dtype, torch.float32))
-    img = image.to(flow.dtype) / data_range
-    gx, gy = _image_gradients(img)
-    wx = torch.exp(-edge_weight * gx.abs().mean(dim=1, keepdim=True))
-    wy = torch.exp(-edge_weight * gy.abs().mean(dim=1, keepdim=True))
-    fx, fy = _image_gradients(flow)
-    if order == 2:
-        fx, _ = _image_gradients(fx)
-        _, fy = _image_gradients(fy)
-        wx, wy = wx[..., :, :-1], wy[..., :-1, :]
-    # Images of width or height below order + 1 have no differences: their term is 0.
-    sx = (wx * fx.abs()).flatten(1).sum(dim=1) / max(fx[0, 0].numel(), 1) / 2
-    sy = (wy * fy.abs()).flatten(1).sum(dim=1) / max(fy[0, 0].numel(), 1) / 2
-    return _reduce((sx + sy) / 2, reduction)
+    _check_images({"image": image}, dims, data_range)
+    check_finite(flow, "flow")
+    return _reduce(_smoothness(flow, image, order, edge_weight, data_range), reduction)
+
+
+def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, data_range: float) -> Tensor:
+    """:func:`smoothness_loss` per sample (B,) on checked inputs."""
+    with autocast_off(flow):
+        flow = flow.to(result_dtype(flow))
+        img = image.to(flow.dtype) / data_range
+        gx, gy = _image_gradients(img)
+        wx = torch.exp(-edge_weight * gx.abs().mean(dim=1, keepdim=True))
+        wy = torch.exp(-edge_weight * gy.abs().mean(dim=1, keepdim=True))
+        fx, fy = _image_gradients(flow)
+        if order == 2:
+            fx, _ = _image_gradients(fx)
+            _, fy = _image_gradients(fy)
+            wx, wy = wx[..., :, :-1], wy[..., :-1, :]
+        # Images of width or height below order + 1 have no differences: their term is 0.
+        sx = (wx * fx.abs()).flatten(1).sum(dim=1) / max(fx[0, 0].numel(), 1) / 2
+        sy = (wy * fy.abs()).flatten(1).sum(dim=1) / max(fy[0, 0].numel(), 1) / 2
+        return (sx + sy) / 2
 
 
 def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor, *,
@@ -264,43 +343,92 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
     pixels warped from outside the image.
 
     Args:
-        flows: (B, 2, H, W) or a list of them (RAFT iterations, weighted γ^(N-1-i)).
-        image1, image2: (B, 3, H, W) on 0..``data_range``.
+        flows: (B, 2, H, W) or a list of them (RAFT iterations, weighted γ^(N-1-i)); finite.
+        image1, image2: (B, 3, H, W) on 0..``data_range``, finite (ValueError naming the image
+            otherwise: 0..255 images with ``data_range=1`` are caught here). With
+            ``ssim_weight > 0`` H and W must be at least 2.
         flows_backward: the same for image2 -> image1, or None.
         smooth_weight: weight of :func:`smoothness_loss` (order ``smooth_order``) against the
             photometric term (on the 0..1 scale).
 
     Returns:
-        A scalar, or (B,) for ``reduction="none"``.
+        A scalar, or (B,) for ``reduction="none"``, in at least float32 (also under autocast).
     """
     _check_reduction(reduction)
+    if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
+        raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
+    _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
+                   smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
+    data_range = check_data_range(data_range)
     fw = _as_flow_list(flows, "flows")
     bw = None if flows_backward is None else _as_flow_list(flows_backward, "flows_backward")
     if bw is not None and len(bw) != len(fw):
         raise ValueError(f"flows_backward: expected {len(fw)} estimates like flows, got {len(bw)}")
     weights = sequence_weights(len(fw), gamma)
-    photo = dict(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
-                 data_range=data_range, reduction="none")
-    smooth = dict(order=smooth_order, edge_weight=edge_weight, data_range=data_range, reduction="none")
+    dims: dict[str, int] = {}
+    _check_images({"image1": image1, "image2": image2}, dims, data_range)
+    for prefix, group in (("flows", fw), ("flows_backward", bw or [])):
+        for i, f in enumerate(group):
+            _check_flow(f, f"{prefix}[{i}]", dims)
+            check_finite(f, f"{prefix}[{i}]")
+    _check_ssim_size(ssim_weight, dims, "image1", tuple(image1.shape))
     mask_fw = mask_bw = None
     if bw is not None and occlusion:
-        mask_fw = forward_backward_mask(fw[-1], bw[-1], alpha1=alpha1, alpha2=alpha2)
-        mask_bw = forward_backward_mask(bw[-1], fw[-1], alpha1=alpha1, alpha2=alpha2)
+        mask_fw = _fb_mask(fw[-1], bw[-1], alpha1, alpha2)
+        mask_bw = _fb_mask(bw[-1], fw[-1], alpha1, alpha2)
     # All iterations in one batch: one warp and one SSIM call instead of N (same arithmetic).
     n = len(fw)
-    wts = torch.tensor(weights, dtype=fw[-1].dtype, device=fw[-1].device).reshape(n, 1)
+    dtype = result_dtype(*fw, *(bw or []))
+    wts = torch.tensor(weights, dtype=dtype, device=fw[-1].device).reshape(n, 1)
 
     def direction(flows: list[Tensor], first: Tensor, second: Tensor, mask: Tensor | None) -> Tensor:
-        stacked = torch.cat(flows)
+        stacked = torch.cat([f.to(dtype) for f in flows])
         rep = lambda x: None if x is None else x.repeat(n, *([1] * (x.dim() - 1)))  # noqa: E731
-        value = photometric_loss(rep(first), rep(second), stacked, rep(mask), **photo)
-        value = value + smooth_weight * smoothness_loss(stacked, rep(first), **smooth)
+        value = _photometric(rep(first), rep(second), stacked, rep(mask), l1_weight, ssim_weight,
+                             census_weight, data_range)
+        value = value + smooth_weight * _smoothness(stacked, rep(first), smooth_order, edge_weight, data_range)
         return (wts * value.reshape(n, -1)).sum(dim=0)
 
     total = direction(fw, image1, image2, mask_fw)
     if bw is not None:
         total = (total + direction(bw, image2, image1, mask_bw)) / 2
     return _reduce(total, reduction)
+
+
+# -- the freespace term -------------------------------------------------------------------------
+
+def _charbonnier(r: Tensor) -> Tensor:
+    """sqrt(r² + 1) - 1 (kornia's ``charbonnier_loss``), as hypot(r, 1) - 1: r² is never formed,
+    so a residual of 1e20 px in float32 gives a penalty of 1e20 and a gradient of ±1, not inf/NaN."""
+    return torch.hypot(r, torch.ones_like(r)) - 1.0
+
+
+# Below this |r| the Cauchy penalty is log1p(r²/2) (r² fits any float dtype; precise near 0);
+# above, 2 log(hypot(r/√2, 1)), which never squares r.
+_CAUCHY_SWITCH = 1024.0
+
+
+def _cauchy(r: Tensor) -> Tensor:
+    """log(1 + r²/2) (kornia's ``cauchy_loss``) without overflow for large r."""
+    small = r.abs() < _CAUCHY_SWITCH
+    r_small = torch.where(small, r, torch.zeros_like(r))
+    r_large = torch.where(small, torch.full_like(r, _CAUCHY_SWITCH), r)
+    return torch.where(small, torch.log1p(0.5 * r_small * r_small),
+                       2.0 * torch.log(torch.hypot(r_large * math.sqrt(0.5), torch.ones_like(r))))
+
+
+def _l1(r: Tensor) -> Tensor:
+    return r.abs()
+
+
+_PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": _l1}
+
+
+def _check_scale(scale: object) -> float:
+    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
+        raise (TypeError if not isinstance(scale, (int, float)) else ValueError)(
+            f"scale: expected a finite residual scale > 0 px, got {scale!r}")
+    return float(scale)
 
 
 def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
@@ -310,72 +438,109 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     """Robust distance between predicted flow and the freespace model flow inside the road mask.
 
     The target is the road flow (:func:`fsof_torch.road_flow`) of ``camera`` under ``odometry``,
-    any road model's motion; pixels count where ``road`` is True and the model is defined. With
-    ``odometry="fit"`` a road model (``fit_options["model"]``, default the paper's) is fitted to the
-    last (detached) estimate inside ``road`` with :func:`fsof_torch.fit_road` and its flow,
-    detached, is the target;
-    frames whose fit did not succeed count no pixel. The fitted target only makes the road
-    flow consistent with *some* plane motion: it suits fine-tuning a net whose flow is roughly
-    right; from scratch it did not help in ``python -m eval train`` (see README).
+    any road model's motion; pixels count where ``road`` is True, the model is defined and the
+    prediction is finite. With ``odometry="fit"`` a road model (``fit_options["model"]``, default
+    the paper's) is fitted to the last (detached) estimate inside ``road`` and its flow,
+    detached, is the target; frames whose fit did not succeed count no pixel. The fitted target
+    only makes the road flow consistent with *some* plane motion: it suits fine-tuning a net
+    whose flow is roughly right; from scratch it did not help in ``python -m eval train``.
 
     Args:
         flows: (B, 2, H, W) pixels, or a list of them (weighted γ^(N-1-i)).
         road: (B, 1, H, W) bool freespace mask.
         camera: intrinsics (at the flow's resolution) and mounting, batch 1 or B.
         odometry: the road motion: a dict with ``x_d``, ``z_d`` (metres) and ``yaw`` (radians),
-            floats or (B,) tensors; a dict with a ``"model"`` key and that model's parameters; a
-            fit result; or ``"fit"`` (see :func:`~fsof_torch.geometry.road_models.road_motion`).
-        penalty: ``"charbonnier"`` (kornia, sqrt(r² + 1) - 1), ``"cauchy"`` (kornia,
-            log(1 + r²/2)) or ``"l1"``, on each component of the residual r = (F - F_model) / scale.
-        scale: residual scale in pixels (> 0); the penalty is quadratic below about ``scale``.
+            floats or tensors of shape (1,) or (B,); a dict with a ``"model"`` key and that model's
+            parameters; a fit result; or ``"fit"`` (see
+            :func:`~fsof_torch.geometry.road_models.road_motion`).
+        penalty: ``"charbonnier"`` (sqrt(r² + 1) - 1, as kornia's), ``"cauchy"`` (log(1 + r²/2),
+            as kornia's) or ``"l1"``, on each component of the residual r = (F - F_model) / scale;
+            evaluated without forming r² where it could overflow.
+        scale: residual scale in pixels, finite and > 0; the penalty is quadratic below about
+            ``scale``.
         fit_options: keyword arguments for ``fit_road`` (with a ``"model"``) or
             ``fit_displacement`` (without) (``odometry="fit"`` only).
 
     Returns:
         Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
-        for ``reduction="none"``; 0 for an empty mask.
+        for ``reduction="none"``; 0 for an empty mask. In the prediction's dtype, at least
+        float32; the model flow and the penalty are computed in at least float32 whatever the
+        autocast state.
+
+    Non-finite predictions: outside ``road`` they do not count (zero gradient); inside, they are
+    left out too, with a ``RuntimeWarning`` giving their number. A penalty that overflows the
+    working dtype (a prediction near its largest value) raises ValueError naming ``flows``.
     """
     _check_reduction(reduction)
     if penalty not in _PENALTIES:
         raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
-    if not scale > 0:
-        raise ValueError(f"scale: expected > 0 px, got {scale!r}")
+    scale = _check_scale(scale)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     fw = _as_flow_list(flows, "flows")
+    weights = sequence_weights(len(fw), gamma)
     dims: dict[str, int] = {}
     for i, f in enumerate(fw):
         _check_flow(f, f"flows[{i}]", dims)
+    if road is None:
+        raise TypeError("road: expected a bool tensor (B, 1, H, W) (the freespace mask), got None")
     _check_mask(road, "road", dims)
-    size = (dims["H"], dims["W"])
+    B, size = dims["B"], (dims["H"], dims["W"])
+    if camera.batch_size not in (1, B):
+        raise ValueError(f"camera: expected batch 1 or {B} (the flows' batch), got {camera.batch_size}")
     last = fw[-1]
-    if isinstance(odometry, str):
-        if odometry != "fit":
-            raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
-        from ..estimation.flow_fit import fit_displacement, fit_road
+    work = result_dtype(*fw)
+    device = last.device
+    finite = [torch.isfinite(f).all(dim=1, keepdim=True) for f in fw]
+    with autocast_off(last):
+        if isinstance(odometry, str):
+            if odometry != "fit":
+                raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
+            from ..estimation.flow_fit import fit_displacement, fit_road
 
-        options = dict(fit_options or {})
-        with torch.no_grad():  # (the paper's model by default, with fit_displacement's options)
-            fit = fit_road if "model" in options else fit_displacement
-            fitted = fit(last.detach(), road, camera, **options)
-        target = fitted.flow.detach()
-        model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
-    else:
-        model, params = road_motion(odometry)
-        target, model_valid = road_flow(camera, params, size, model=model)
-    target = target.to(last.dtype).expand_as(last)
-    weight = (road & model_valid).to(last.dtype)
-    if penalty == "l1":
-        def rho(a: Tensor, b: Tensor) -> Tensor:
-            return (a - b).abs()
-    else:
-        from kornia.losses import cauchy_loss, charbonnier_loss
-
-        rho = charbonnier_loss if penalty == "charbonnier" else cauchy_loss
-    total = 0.0
-    for w, f in zip(sequence_weights(len(fw), gamma), fw):
-        per_pixel = rho(f / scale, target / scale).sum(dim=1, keepdim=True)
-        total = total + w * _masked_mean(per_pixel, weight)
+            options = dict(fit_options or {})
+            fit = fit_road if "model" in options else fit_displacement  # (the paper's by default)
+            with torch.no_grad():
+                fit_mask = road & finite[-1]
+                observed = torch.where(fit_mask, last.detach(), torch.zeros((), dtype=last.dtype, device=device))
+                fitted = fit(observed.to(work), fit_mask, camera, **options)
+            target = fitted.flow.detach()
+            model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
+        else:
+            model, params = road_motion(odometry)
+            values = {}
+            for key, v in params.items():
+                t = as_batch_param(v, f"odometry[{key!r}]")
+                if t.shape[0] not in (1, B):
+                    raise ValueError(f"odometry[{key!r}]: expected a float or a tensor of shape (1,) or "
+                                     f"({B},) (the flows' batch), got shape {tuple(t.shape)}")
+                values[key] = t
+            geo = torch.promote_types(work, camera.dtype)
+            cam = camera.to(device=device, dtype=geo)
+            target, model_valid = road_flow(
+                cam, {k: t.to(device=device, dtype=geo) for k, t in values.items()}, size, model=model)
+        target = target.to(device=device, dtype=work).expand(B, 2, *size)
+        counted_model = road & model_valid.to(device)
+        rho = _PENALTY_FNS[penalty]
+        total = torch.zeros(B, dtype=work, device=device)
+        n_bad = []
+        for w, f, ok in zip(weights, fw, finite):
+            counted = counted_model & ok
+            n_bad.append((counted_model & ~ok).sum())
+            # the residual is 0 (and its gradient too) wherever the pixel does not count
+            safe = torch.where(counted, f.to(work), target)
+            per_pixel = rho((safe - target) / scale).sum(dim=1, keepdim=True)
+            total = total + w * _masked_mean(per_pixel, counted.to(work))
+    if not skip_values(total, last):
+        *bad, finite_total = torch.stack([*n_bad, torch.isfinite(total).all()]).tolist()
+        if any(bad):
+            listing = ", ".join(f"flows[{i}]: {n}" for i, n in enumerate(bad) if n)
+            warnings.warn(f"flows: non-finite predicted pixels inside the road mask are left out of the "
+                          f"freespace loss ({listing})", RuntimeWarning, stacklevel=2)
+        if not finite_total:
+            largest = max(float(torch.where(ok, f.detach(), 0).abs().amax()) for f, ok in zip(fw, finite))
+            raise ValueError(f"flows: the {penalty} penalty overflows {work} (largest |flow| {largest:.3g} px at "
+                             f"scale {scale:g}); the prediction has diverged, or compute the loss in float64")
     return _reduce(total, reduction)
 
 
@@ -398,8 +563,11 @@ class UnsupervisedFlowLoss(nn.Module):
         super().__init__()
         _check_reduction(reduction)
         sequence_weights(1, gamma)
-        if smooth_order not in (1, 2):
+        if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
             raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
+        _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
+                       smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
+        data_range = check_data_range(data_range)
         self.options = dict(gamma=gamma, l1_weight=l1_weight, ssim_weight=ssim_weight,
                             census_weight=census_weight, smooth_weight=smooth_weight,
                             smooth_order=smooth_order, edge_weight=edge_weight, occlusion=occlusion,
@@ -436,8 +604,7 @@ class FreespaceFlowLoss(nn.Module):
             raise ValueError(f"odometry: expected 'given' or 'fit', got {odometry!r}")
         if penalty not in _PENALTIES:
             raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
-        if not scale > 0:
-            raise ValueError(f"scale: expected > 0 px, got {scale!r}")
+        scale = _check_scale(scale)
         _check_reduction(reduction)
         sequence_weights(1, gamma)
         self.mode = odometry

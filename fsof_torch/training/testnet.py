@@ -17,7 +17,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_shape, tracing
+from .._check import check_float_tensor, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -204,11 +204,12 @@ class TinyRAFT(nn.Module):
         iters = self.iters if iters is None else iters
         if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
             raise ValueError(f"iters: expected a positive int, got {iters!r}")
-        if not tracing():
-            lo = min(float(image1.min()), float(image2.min()))
-            hi = max(float(image1.max()), float(image2.max()))
-            if lo < 0 or hi > 255:
-                raise ValueError(f"image1, image2: expected values on 0..255, got the range [{lo:.4g}, {hi:.4g}]")
+        if not skip_values(image1, image2):
+            lo1, hi1, lo2, hi2 = torch.stack([image1.detach().amin(), image1.detach().amax(),
+                                              image2.detach().amin(), image2.detach().amax()]).tolist()
+            for name, lo, hi in (("image1", lo1, hi1), ("image2", lo2, hi2)):
+                if not (0 <= lo and hi <= 255):  # NaN fails both comparisons
+                    raise ValueError(f"{name}: expected values on 0..255 (finite), got the range [{lo:.4g}, {hi:.4g}]")
         B, H, W = dims["B"], dims["H"], dims["W"]
         weight = self.fnet.out.weight
         x = torch.cat([image1, image2], dim=0).to(weight.dtype) / 127.5 - 1.0
