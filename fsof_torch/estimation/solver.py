@@ -181,8 +181,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         max_iter: the iteration budget.
         tol: converged when a step changes no parameter by more than tol (1 + |p|), or E by less
             than tol E.
-        resolution: also converged when an accepted step moves the residuals by at most this
-            fraction of their robust RMS (below what the points can resolve); 0: off.
+        resolution: also converged when a step (accepted or not) moves the residuals by at most
+            this fraction of their robust RMS (below what the points can resolve); 0: off.
         check_every: stop early when all samples converged, checked (one host read each) after
             this many iterations, then after twice as many, four times...: a handful of reads for
             any budget; None: always run ``max_iter``.
@@ -282,7 +282,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             else:
                 moved = (ev_c.r2.sqrt() - ev.r2.sqrt()).square_().mul_(ev.use).sum(1)
             spread = (w * ev.r2).sum(1) / w.sum(1).clamp_min(1e-300)
-            small = small | (ok & (moved <= resolution ** 2 * spread * ev.use.sum(1)))
+            # (also a rejected step: below resolution the cost cannot reliably go down any more)
+            small = small | (~done & (moved <= resolution ** 2 * spread * ev.use.sum(1)))
         params = torch.where(ok.unsqueeze(-1), cand, params)
         ev = _select(ok, ev_c, ev)
         iters += (~done).long()
