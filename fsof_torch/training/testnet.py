@@ -108,7 +108,9 @@ class _UpdateBlock(nn.Module):
 def _correlation_pyramid(fmap1: Tensor, fmap2: Tensor, levels: int) -> list[Tensor]:
     """All-pairs correlation (B h w, 1, h, w) and its average-pooled coarser levels."""
     B, D, h, w = fmap1.shape
-    corr = torch.einsum("bdn,bdm->bnm", fmap1.flatten(2), fmap2.flatten(2)) / D**0.5
+    # RAFT divides the volume by sqrt(D); scaling the (D, h w) features instead gives the same
+    # numbers without a second pass over the (h w)² volume (215 MB at 375x1242).
+    corr = torch.einsum("bdn,bdm->bnm", fmap1.flatten(2) * D**-0.5, fmap2.flatten(2))
     pyramid = [corr.reshape(B * h * w, 1, h, w)]
     for _ in range(levels - 1):
         last = pyramid[-1]
