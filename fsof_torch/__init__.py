@@ -38,6 +38,7 @@ from .geometry.road_flow import (
     vflow_curve,
 )
 from .refinement.fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
+from .refinement.contracts import InputPadder
 from .io import (
     read_flo,
     read_flow,
@@ -90,6 +91,7 @@ __all__ = [
     "FreespaceFlowLoss",
     "FreespaceRefined",
     "FreespaceRefiner",
+    "InputPadder",
     "PRESETS",
     "PhotometricError",
     "RefineOutput",

@@ -39,15 +39,20 @@ def fingerprint(identity: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
+def _creatable(path: Path, option: str) -> None:
+    """The nearest existing parent of ``path`` is a folder (so ``path`` can be created)."""
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise JobError(f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created")
+            return
+
+
 def check_out_path(out: Path) -> None:
     """``--out`` must be a folder or not exist yet (checked before any work)."""
     if out.exists() and not out.is_dir():
         raise JobError(f"--out: {str(out)!r} is a file; expected a folder (it is created if missing)")
-    for parent in out.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise JobError(f"--out: {str(parent)!r} is a file, so {str(out)!r} cannot be created")
-            break
+    _creatable(out, "--out")
 
 
 def check_json_path(path: Path | None) -> None:
@@ -56,11 +61,7 @@ def check_json_path(path: Path | None) -> None:
         return
     if path.is_dir():
         raise JobError(f"--json: {str(path)!r} is a folder; expected a file path such as {str(path / 'report.json')!r}")
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise JobError(f"--json: {str(parent)!r} is a file, so {str(path)!r} cannot be created")
-            break
+    _creatable(path, "--json")
 
 
 @contextlib.contextmanager

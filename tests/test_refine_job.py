@@ -336,6 +336,15 @@ def test_images_of_another_size_than_the_calibration(tmp_path, user_folder, scen
     cam2cam.write_text(cam2cam.read_text() + "S_rect_02: 1.600000e+02 4.800000e+01\n")
     args[3] = str(cam2cam)
     assert "is for 48x160 images" in _err(capsys, args)
+    double = tmp_path / "double"
+    double.mkdir()
+    from fsof_torch.io import read_image
+
+    for p in sorted((user_folder / "images").iterdir()):
+        write_image(double / p.name, F.interpolate(read_image(p)[None], scale_factor=2.0, mode="bilinear")[0])
+    err = _err(capsys, ["--images", str(double), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+                        "--out", str(tmp_path / "o"), "--no-progress"])
+    assert "--images: 000000.png is 96x320" in err and "middle third" in err
 
 
 def test_crashes_of_the_past_exit_2(tmp_path, user_folder, scene_pairs, capsys):
