@@ -264,10 +264,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     resume.check_out_path(out)
     resume.check_json_path(args.json)
     if not args.no_figures:
-        try:
-            import matplotlib  # noqa: F401
-        except ImportError:
-            raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures") from None
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:
+            raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
     specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
     net_spec = NetSpec(args.net, args.net_contract, args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}

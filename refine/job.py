@@ -130,14 +130,18 @@ def error_panel(maps: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
     return maps["photo"], maps["in_bounds"] & maps["finite"]
 
 
-def max_flow(pair: dict, pred: Tensor) -> float:
+def max_flow(pair: dict, pred: Tensor, road: Tensor | None = None) -> float:
     """One colour scale for before and after: the 99th percentile of the ground truth's magnitude
-    over its valid pixels, or of the prediction's (a few wild vectors would wash the picture out)."""
+    over its valid pixels, or of the prediction's, inside the road when ``road`` (1, H, W) has
+    pixels (the road is what the figures are about; the much larger flow of nearby buildings
+    would wash it out), else over the image."""
     if pair.get("gt") is not None:
         flow, valid = pair["gt"]
     else:
         flow = torch.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0)
         valid = torch.isfinite(pred).all(dim=0, keepdim=True)
+    if road is not None and bool((valid & road).any()):
+        valid = valid & road
     mag = torch.where(valid[0], torch.hypot(flow[0], flow[1]), torch.full((), -1.0, dtype=flow.dtype)).flatten()
     n_valid = int(valid.sum())
     if n_valid == 0:
@@ -314,15 +318,16 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
     from fsof_torch.evaluation.figures import pair_figure, save_figure
 
     gt = pair.get("gt") is not None
-    label = "end-point error (px)" if gt else "photometric error |I1 − warp(I2)| (grey levels)"
+    label = "end-point error (px)" if gt else "photometric error (grey levels)"
     columns = {f"before ({source})": (pred, before)}
     columns.update({f"after, odometry '{v}'": (flows[v], maps[v]) for v in flows})
     cpu = lambda t: t.detach().cpu()  # noqa: E731
     fig = pair_figure(images=(cpu(pair["image1"]), cpu(pair["image2"])),
                       flows={k: cpu(f) for k, (f, _) in columns.items()},
                       errors={k: tuple(cpu(t) for t in error_panel(m)) for k, (_, m) in columns.items()},
-                      road=cpu(road), max_flow=max_flow(pair, pred), error_vmax=5.0 if gt else 50.0,
+                      road=cpu(road), max_flow=max_flow(pair, pred, road), error_vmax=5.0 if gt else 50.0,
                       error_label=label,
                       title=f"pair {name}, flow source '{source}': flow and error before and after "
-                            f"refinement (mode '{cfg.mode}')")
+                            f"refinement (mode '{cfg.mode}'); error: "
+                            + ("|flow − ground truth|" if gt else "|I1 − I2 warped by the flow|, 0–255"))
     save_figure(fig, figure_path(cfg, source, name))

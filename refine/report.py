@@ -142,7 +142,7 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
           f"odometry {', '.join(cfg.variants)}; fusion mode `{summary['mode']}`"
           + (f" (Cauchy scale {cfg.scale:g} px)" if cfg.mode == "confidence" else "")
           + f"; road mask {summary['road']}"
-          + (f"; fitted roll" if cfg.fit_roll else "") + (f"; fitted pitch" if cfg.fit_pitch else "")
+          + ("; fitted roll" if cfg.fit_roll else "") + ("; fitted pitch" if cfg.fit_pitch else "")
           + f"; {summary['world_size']} process(es). "
           + (f"{summary['records_resumed']} of {len(summary['pairs'])} records were finished by an earlier "
              f"run with the same fingerprint (same inputs and options) and reused."

@@ -425,6 +425,11 @@ def test_max_flow_is_the_99th_percentile_of_valid_magnitudes():
     valid[0, :, 10:] = False  # keep 100 values: 0..9, 20..29, ...
     kept = torch.sort(gt[0][valid[0]]).values
     assert max_flow({"gt": (gt, valid)}, gt) == float(kept[math.ceil(0.99 * 100) - 1])
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 5:, :] = True  # the road's valid magnitudes: 100..109, 120..129, ...
+    kept = torch.sort(gt[0][(valid & road)[0]]).values
+    assert max_flow({"gt": (gt, valid)}, gt, road) == float(kept[math.ceil(0.99 * 50) - 1])
+    assert max_flow({"gt": (gt, valid)}, gt, torch.zeros_like(road)) == max_flow({"gt": (gt, valid)}, gt)
 
 
 # -- the shared real data -------------------------------------------------------------------------
