@@ -11,13 +11,21 @@ held-out pairs of another seed against the exact ground truth: end-point error (
 :func:`fsof_torch.evaluation.metrics.flow_metrics`) inside the road and outside it.
 
 Prints a table, writes ``--json PATH``, and with ``--out DIR`` saves both nets' ``state_dict``.
+
+Distributed: ``torchrun --nproc-per-node N -m eval train ...`` trains with DistributedDataParallel
+(gloo on CPU, nccl with ``--device cuda``). Every process draws the same global batch of
+``--batch`` pairs and takes every N-th of them; DDP averages the gradients, which equals the
+gradient of the global batch's mean loss (the losses are means over samples, and every process
+holds ``--batch / N`` of them). Rank 0 evaluates, prints and writes the outputs.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -52,6 +60,49 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, default=None, help="write the results as JSON here")
     parser.add_argument("--out", type=Path, default=None, help="save both nets' state_dicts in this folder")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda: the process's GPU)")
+    parser.add_argument("--dump-first-step", type=Path, default=None, metavar="PATH",
+                        help="save the first step's loss and gradients of each run here (torch.save), to "
+                             "compare a distributed run with a single process")
+
+
+@dataclass(frozen=True)
+class Ranks:
+    """This process's place among torchrun's processes (one process: rank 0 of 1)."""
+
+    rank: int = 0
+    world_size: int = 1
+
+    @property
+    def distributed(self) -> bool:
+        return self.world_size > 1
+
+
+def _join_process_group(device: torch.device) -> Ranks:
+    """Join the process group torchrun set up (gloo on CPU, nccl on CUDA), if it set one up."""
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size <= 1:
+        return Ranks()
+    import torch.distributed as dist
+
+    if not dist.is_initialized():
+        dist.init_process_group(backend="nccl" if device.type == "cuda" else "gloo")
+    return Ranks(dist.get_rank(), dist.get_world_size())
+
+
+def _to(data: dict, device: torch.device) -> dict:
+    """A collated batch dict on ``device`` (tensors, the camera, the odometry dict)."""
+    out = {}
+    for k, v in data.items():
+        if isinstance(v, torch.Tensor):
+            out[k] = v.to(device)
+        elif isinstance(v, Camera):
+            out[k] = v.to(device=device)
+        elif isinstance(v, dict):
+            out[k] = {kk: vv.to(device) if isinstance(vv, torch.Tensor) else vv for kk, vv in v.items()}
+        else:
+            out[k] = v
+    return out
 
 
 def render_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int],
@@ -79,15 +130,29 @@ def build_loss(freespace_weight: float, odometry: str = "given") -> CompositeLos
 
 
 def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, freespace_weight: float,
-              iters: int, odometry: str = "given", progress: bool = True, desc: str = "train") -> tuple[TinyRAFT, dict]:
+              iters: int, odometry: str = "given", progress: bool = True, desc: str = "train",
+              ranks: Ranks = Ranks(), device: torch.device | str = "cpu",
+              first_step: dict | None = None) -> tuple[TinyRAFT, dict]:
     """Train a fresh ``TinyRAFT(seed=seed)`` on the collated pairs ``data``; the batches depend on ``seed`` only.
 
-    Returns the net (in eval mode) and a log: the last step's term values and the wall time.
+    Under torchrun (``ranks.distributed``) the net is wrapped in DistributedDataParallel and this
+    process trains on every ``world_size``-th pair of each global batch of ``batch`` pairs.
+    ``first_step``, when given, receives the first step's global mean loss and the gradients
+    (averaged over the processes, before clipping).
+
+    Returns the net (in eval mode) and a log: the last step's term values (global means) and the
+    wall time.
     """
     from tqdm import tqdm
 
-    net = TinyRAFT(seed=seed, iters=iters)
+    device = torch.device(device)
+    net = TinyRAFT(seed=seed, iters=iters).to(device)
     net.train()
+    model: torch.nn.Module = net
+    if ranks.distributed:
+        from torch.nn.parallel import DistributedDataParallel
+
+        model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
     loss_fn = build_loss(freespace_weight, odometry)
     optimiser = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-5)
     # Short warm-up, then linear decay: RAFT's one-cycle schedule in miniature.
@@ -98,23 +163,39 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
     values: dict[str, float] = {}
     start = time.perf_counter()
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
-    for _ in bar:
-        idx = torch.randperm(n, generator=gen)[:batch]
-        b = _select(data, idx)
+    for step in bar:
+        idx = torch.randperm(n, generator=gen)[:batch]  # the global batch, the same on every process
+        b = _to(_select(data, idx[ranks.rank::ranks.world_size]), device)
+        local = b["image1"].shape[0]
         # Both directions in one pass: the backward flows feed the occlusion check.
-        flows = net(torch.cat([b["image1"], b["image2"]]), torch.cat([b["image2"], b["image1"]]))
-        fw = [f[:batch] for f in flows]
-        bw = [f[batch:] for f in flows]
+        flows = model(torch.cat([b["image1"], b["image2"]]), torch.cat([b["image2"], b["image1"]]))
+        fw = [f[:local] for f in flows]
+        bw = [f[local:] for f in flows]
         total, terms = loss_fn(fw, b, flows_backward=bw)
         optimiser.zero_grad(set_to_none=True)
-        total.backward()
+        total.backward()  # under DDP: gradients averaged over the processes
+        reported = _mean_over_processes(torch.stack([total.detach(), *(v.detach() for v in terms.values())]), ranks)
+        if step == 0 and first_step is not None:
+            first_step.update(loss=float(reported[0]), grads={k: p.grad.detach().cpu().clone()
+                                                               for k, p in net.named_parameters() if p.grad is not None})
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         optimiser.step()
         schedule.step()
-        values = {"total": float(total.detach()), **{k: float(v) for k, v in terms.items()}}
+        values = {"total": float(reported[0]), **{k: float(v) for k, v in zip(terms, reported[1:])}}
         bar.set_postfix({k: f"{v:.3g}" for k, v in values.items()})
     net.eval()
     return net, {"final_loss": values, "seconds": time.perf_counter() - start}
+
+
+def _mean_over_processes(values: torch.Tensor, ranks: Ranks) -> torch.Tensor:
+    """The mean of per-process means over the processes: the global batch's mean (equal shares)."""
+    if not ranks.distributed:
+        return values
+    import torch.distributed as dist
+
+    values = values.clone()
+    dist.all_reduce(values, op=dist.ReduceOp.SUM)
+    return values / ranks.world_size
 
 
 @torch.no_grad()
@@ -140,7 +221,23 @@ def run(args: argparse.Namespace) -> int:
         raise SystemExit(f"--freespace-weight must be > 0 (the second run uses it), got {args.freespace_weight}")
     if args.threads:
         torch.set_num_threads(args.threads)
-    progress = not args.no_progress
+    device = torch.device(args.device)
+    ranks = _join_process_group(device)
+    try:
+        return _train_and_report(args, device, ranks)
+    finally:
+        if ranks.distributed:
+            import torch.distributed as dist
+
+            dist.destroy_process_group()
+
+
+def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ranks) -> int:
+    if args.batch % ranks.world_size:
+        raise SystemExit(f"--batch: {args.batch} pairs cannot be shared evenly by {ranks.world_size} processes")
+    if device.type == "cuda" and device.index is None and ranks.distributed:
+        device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    progress = not args.no_progress and ranks.rank == 0
     size = tuple(args.size)
     t0 = time.perf_counter()
     train = render_pairs(args.preset, args.train_pairs, seed=args.seed, size=size, progress=progress)
@@ -148,22 +245,31 @@ def run(args: argparse.Namespace) -> int:
     render_s = time.perf_counter() - t0
 
     common = dict(steps=args.steps, seed=args.seed, batch=args.batch, lr=args.lr, iters=args.iters,
-                  progress=progress)
-    results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
+                  progress=progress, ranks=ranks, device=device)
     logs: dict[str, dict] = {}
     nets = {}
+    first_steps: dict[str, dict] = {}
     for name, weight in (("unsupervised", 0.0), ("unsupervised+freespace", args.freespace_weight)):
-        net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name, **common)
-        results[name] = evaluate_net(net, test)
+        first_steps[name] = {}
+        net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name,
+                             first_step=first_steps[name], **common)
         logs[name] = log
-        nets[name] = net
+        nets[name] = net.cpu()
+    if ranks.rank != 0:
+        return 0
+    if args.dump_first_step is not None:
+        torch.save({"world_size": ranks.world_size, **first_steps}, args.dump_first_step)
+    results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
+    for name, net in nets.items():
+        results[name] = evaluate_net(net, test)
 
     base, free = results["unsupervised"], results["unsupervised+freespace"]
     change = {region: (free[region]["e_E"] - base[region]["e_E"]) / max(base[region]["e_E"], 1e-12)
               for region in ("road", "non_road", "all")}
     print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
           f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
-          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + 1000})")
+          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + 1000})"
+          + (f"; {ranks.world_size} processes (DDP)" if ranks.distributed else ""))
     print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
     for name, m in results.items():
         print(_row(name, m))
@@ -174,6 +280,7 @@ def run(args: argparse.Namespace) -> int:
     report = {
         "options": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
                     for k, v in vars(args).items()},
+        "world_size": ranks.world_size,
         "parameters": count_parameters(nets["unsupervised"]),
         "metrics": results,
         "relative_change_with_freespace": change,

@@ -48,6 +48,7 @@ from .geometry.road_flow import (
 )
 from .geometry.road_models import ROAD_MODELS, RoadModel, plane_from_pose, road_homography, road_motion
 from .refinement.fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
+from .refinement.contracts import InputPadder
 from .io import (
     read_flo,
     read_flow,
@@ -102,6 +103,7 @@ __all__ = [
     "FreespaceFlowLoss",
     "FreespaceRefined",
     "FreespaceRefiner",
+    "InputPadder",
     "PRESETS",
     "PhotometricError",
     "RefineOutput",

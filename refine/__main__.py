@@ -4,17 +4,22 @@ With no arguments: render the default synthetic sequence (``fsof_torch.data.scen
 "default"), predict flow with OpenCV DIS and with the test net (random weights), refine each with
 the scene's odometry, with ego-motion fitted to the flow and with ego-motion fitted to the images,
 and write refined flows, figures and a report (photometric error and end-point error, road and
-overall, before and after).
+overall, before and after) into ``refine_out/synthetic-default/``.
+
+Options, inputs, outputs, resuming and distributed runs: ``docs/jobs.md``.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import math
 import sys
 from pathlib import Path
 
 DEFAULT_PAIRS = 4
 DEFAULT_SIZE = (375, 1242)
+DEFAULT_OUT = Path("refine_out")
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -33,22 +38,25 @@ def _list(choices: tuple[str, ...]):
         bad = [t for t in items if t not in choices]
         if bad or not items:
             raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(choices)}, got {text!r}")
-        return items
+        return list(dict.fromkeys(items))
     return parse
 
 
 def build_parser() -> argparse.ArgumentParser:
     from .job import VARIANTS
+    from .sources import CONTRACTS, SOURCES
 
     p = argparse.ArgumentParser(
         prog="python -m refine", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-        epilog="Exit status: 0 done, 2 bad or missing input (with a message). An interrupted run "
-               "resumes: pairs whose outputs exist are skipped unless --overwrite.")
+        epilog="Exit status: 0 done, 2 bad or missing input (with a message naming the option). An "
+               "interrupted run resumes: pairs finished by a run of the same inputs and options are "
+               "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
+               "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
     g = p.add_argument_group("synthetic data (the default)")
     g.add_argument("--preset", default="default", help="scene preset (default: %(default)s)")
     g.add_argument("--num-pairs", type=int, default=DEFAULT_PAIRS, help="pairs to render (default: %(default)s)")
     g.add_argument("--size", type=_size, default=DEFAULT_SIZE, metavar="HxW",
-                   help="image size (default: %(default)s, KITTI's)")
+                   help="image size (default: 375x1242, KITTI's)")
     g.add_argument("--seed", type=int, default=0, help="scene seed (default: %(default)s)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
@@ -56,24 +64,38 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("user data")
     g.add_argument("--images", type=Path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
     g.add_argument("--calib", type=Path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
+    g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
+                   help="image size the calibration is for (default: the file's S_rect row, else checked loosely)")
     g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
     g.add_argument("--height", type=float, default=1.65, help="camera height above the road, m (default: %(default)s)")
     g.add_argument("--roll-deg", type=float, default=0.0, help="camera roll, degrees (default: 0)")
     g.add_argument("--pitch-deg", type=float, default=0.0, help="camera pitch, degrees (default: 0)")
     g.add_argument("--poses", type=Path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
-    g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows from any network (KITTI .png, .flo, .npy)")
-    g.add_argument("--road", metavar="DIR|FILE.json|auto", help="road masks: PNG folder, a polygon JSON, or auto (detect)")
-    g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows (optional)")
+    g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
+                   "named like the pair (KITTI .png, .flo, .npy)")
+    g.add_argument("--road", metavar="DIR|FILE.json|auto", help="road masks: PNG folder (named like the pairs), "
+                   "a polygon JSON, or auto (detect)")
+    g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
     g = p.add_argument_group("shared KITTI samples")
     g.add_argument("--kitti15", type=Path, metavar="PATH", help="kitti15_000000 folder: DIS refined with fitted ego-motion vs ground truth")
     g.add_argument("--kitti-odometry", type=Path, metavar="PATH",
                    help="kitti_odometry_straight folder: DIS refined with the poses, and with a calibrated pitch")
 
-    g = p.add_argument_group("refinement")
-    g.add_argument("--source", type=_list(("dis", "testnet")), default=None,
-                   help="flow sources, comma-separated (default: dis,testnet; with --flows: the files)")
+    g = p.add_argument_group("flow networks")
+    g.add_argument("--source", type=_list(SOURCES), default=None,
+                   help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet; "
+                        "with --net: net; with --flows: the files)")
     g.add_argument("--testnet-weights", type=Path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
+    g.add_argument("--net", metavar="MODULE:CALLABLE",
+                   help="your flow network: a factory returning an nn.Module (e.g. mypkg.models:make_raft)")
+    g.add_argument("--net-contract", choices=CONTRACTS, default="auto",
+                   help="how --net is called: ptlflow (dict, BGR [0,1]), torchvision (RGB [-1,1], list), "
+                        "raft (RGB 0..255, list); default: from the network (see docs/contracts.md)")
+    g.add_argument("--checkpoint", type=Path, metavar="FILE",
+                   help="a local state_dict for --net (loaded with torch.load(weights_only=True))")
+
+    g = p.add_argument_group("refinement")
     g.add_argument("--odometry", type=_list(VARIANTS), default=None,
                    help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: "
                         "given,fit,photometric on synthetic data; given with --poses, else fit)")
@@ -85,75 +107,118 @@ def build_parser() -> argparse.ArgumentParser:
                    help="with --poses: find the pitch minimising road photometric error over the clip (adds variant given_pitch)")
 
     g = p.add_argument_group("output")
-    g.add_argument("--out", type=Path, default=Path("refine_out"), help="output folder (default: %(default)s)")
+    g.add_argument("--out", type=Path, default=None,
+                   help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
     g.add_argument("--json", type=Path, metavar="PATH", help="also write the report JSON here")
-    g.add_argument("--overwrite", action="store_true", help="redo pairs whose outputs exist")
+    g.add_argument("--overwrite", action="store_true",
+                   help="redo every pair; replace the results of another run in --out")
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    g.add_argument("--threads", type=int, default=1,
+                   help="intra-op threads per process for torch and OpenCV (default: 1; more helps only "
+                        "on idle cores)")
+    g.add_argument("--device", default="cpu", help="torch device for the networks and the refiner "
+                   "(default: cpu; cuda uses the process's GPU)")
     return p
 
 
-def _run(args: argparse.Namespace) -> int:
-    import torch
+def default_out(args: argparse.Namespace) -> Path:
+    """``refine_out/<input name>``: one folder per input, so runs on other inputs do not meet."""
+    if args.images is not None:
+        name = args.images.resolve().name or "images"
+    elif args.kitti15 is not None:
+        name = args.kitti15.resolve().name
+    elif args.kitti_odometry is not None:
+        name = args.kitti_odometry.resolve().name
+    else:
+        name = f"synthetic-{args.preset}"
+        if args.seed:
+            name += f"-seed{args.seed}"
+        if tuple(args.size) != DEFAULT_SIZE:
+            name += f"-{args.size[0]}x{args.size[1]}"
+        if args.scene_noise is not None:
+            name += f"-noise{args.scene_noise:g}"
+    return DEFAULT_OUT / name
 
-    from .calibrate import calibrate_pitch
+
+def _configure(args: argparse.Namespace):
+    """Options -> (pair specs, camera, config parts, input identity), checked before any work."""
     from .inputs import JobError, kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
-    from .job import JobConfig, run_pairs, summarize, write_report
 
-    if args.threads is not None:
-        if args.threads < 1:
-            raise JobError(f"--threads: expected >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
     chosen = [n for n in ("images", "kitti15", "kitti_odometry") if getattr(args, n) is not None]
     if len(chosen) > 1:
         raise JobError(f"choose one input: got --{' and --'.join(c.replace('_', '-') for c in chosen)}")
     if args.flows is not None and args.images is None:
         raise JobError("--flows needs --images (the pairs the flows belong to)")
-    if args.scale <= 0:
-        raise JobError(f"--scale: expected > 0 px, got {args.scale}")
+    if not (args.scale > 0 and math.isfinite(args.scale)):
+        raise JobError(f"--scale: expected a finite value > 0 px, got {args.scale}")
+    if args.checkpoint is not None and args.net is None:
+        raise JobError("--checkpoint needs --net (the network the state_dict is for)")
+    if args.net_contract != "auto" and args.net is None:
+        raise JobError("--net-contract needs --net")
     notes: list[str] = []
     camera = None
     calibrate = args.calibrate_pitch
+    default_sources = ["net"] if args.net is not None else None
     if args.kitti15 is not None:
-        specs = kitti15_pairs(args.kitti15, height=args.height)
-        title = "refine: KITTI 2015 pair 000000 (DIS)"
-        sources = args.source or ["dis"]
+        specs, camera = kitti15_pairs(args.kitti15, height=args.height)
+        title = "refine: KITTI 2015 pair 000000"
+        sources = args.source or default_sources or ["dis"]
         variants = args.odometry or ["fit", "photometric"]
         notes.append("Road mask: the hand-drawn road.json; ground truth: flow_noc_10.png (sparse).")
+        identity = {"kind": "kitti15", "root": str(args.kitti15.resolve()), "height": args.height}
     elif args.kitti_odometry is not None:
         specs, camera = kitti_odometry_pairs(args.kitti_odometry, height=args.height, pitch_deg=args.pitch_deg)
-        title = "refine: KITTI odometry straight clip (DIS)"
-        sources = args.source or ["dis"]
+        title = "refine: KITTI odometry clip"
+        sources = args.source or default_sources or ["dis"]
         calibrate = True
         variants = args.odometry or ["given", "given_pitch", "fit"]
         notes.append("Road mask: the hand-drawn road.json (ego lane); no ground-truth flow: photometric error only.")
+        identity = {"kind": "kitti_odometry", "root": str(args.kitti_odometry.resolve()), "height": args.height,
+                    "pitch_deg": args.pitch_deg}
     elif args.images is not None:
+        from .inputs import file_digest
+
         if args.calib is None:
             raise JobError("--calib: user data needs a calibration file (KITTI format)")
-        specs, camera = user_pairs(images=args.images, calib=args.calib, cam=args.cam, height=args.height,
-                                   roll_deg=args.roll_deg, pitch_deg=args.pitch_deg, poses=args.poses,
-                                   flows=args.flows, road=args.road, gt=args.gt)
-        title = f"refine: {args.images}"
-        sources = ["files"] if args.flows is not None else (args.source or ["dis"])
         if args.flows is not None and args.source:
             raise JobError("--source and --flows: give one of them")
+        specs, camera = user_pairs(images=args.images, calib=args.calib, cam=args.cam, height=args.height,
+                                   roll_deg=args.roll_deg, pitch_deg=args.pitch_deg, poses=args.poses,
+                                   flows=args.flows, road=args.road, gt=args.gt, calib_size=args.calib_size)
+        title = f"refine: {args.images}"
+        sources = ["files"] if args.flows is not None else (args.source or default_sources or ["dis"])
         variants = args.odometry or (["given"] if args.poses is not None else ["fit"])
         if "given" in variants and args.poses is None:
             raise JobError("--odometry given: user data needs --poses (or use fit / photometric)")
+        road = args.road
+        if road not in (None, "auto") and Path(road).is_file():
+            road = {"file": str(Path(road).resolve()), "digest": file_digest(Path(road))}
+        elif road not in (None, "auto"):
+            road = str(Path(road).resolve())
+        identity = {"kind": "images", "images": str(args.images.resolve()), "calib": file_digest(args.calib),
+                    "calib_size": args.calib_size, "cam": args.cam, "height": args.height,
+                    "roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg,
+                    "poses": file_digest(args.poses) if args.poses is not None else None,
+                    "flows": str(args.flows.resolve()) if args.flows is not None else None, "road": road,
+                    "gt": str(args.gt.resolve()) if args.gt is not None else None}
     else:
-        for opt in ("calib", "poses", "gt", "flows"):
+        for opt in ("calib", "poses", "gt", "flows", "calib_size"):
             if getattr(args, opt) is not None:
-                raise JobError(f"--{opt} needs --images")
+                raise JobError(f"--{opt.replace('_', '-')} needs --images")
         if args.road not in (None, "auto"):
             raise JobError("--road: synthetic scenes use their own road mask, or 'auto'")
         specs = synthetic_pairs(args.preset, args.num_pairs, seed=args.seed, size=args.size, road=args.road,
                                 noise=args.scene_noise)
         title = f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pairs, {args.size[0]}x{args.size[1]}"
-        sources = args.source or ["dis", "testnet"]
+        sources = args.source or default_sources or ["dis", "testnet"]
         variants = args.odometry or ["given", "fit", "photometric"]
         notes.append("Synthetic scene: odometry and flow ground truth are the scene's (exact); road mask: "
                      + ("detected on each prediction (--road auto)." if args.road == "auto" else "the scene's (exact)."))
+        identity = {"kind": "synthetic", "preset": args.preset, "seed": args.seed, "size": list(args.size),
+                    "noise": args.scene_noise}
+    if "net" in sources and args.net is None:
+        raise JobError("--source net needs --net module:callable")
     if "testnet" in sources and args.testnet_weights is None:
         notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
                      "it shows the wrapper on a RAFT-style output.")
@@ -161,29 +226,103 @@ def _run(args: argparse.Namespace) -> int:
         raise JobError("--odometry given_pitch needs --calibrate-pitch")
     if calibrate and "given_pitch" not in variants:
         variants = [*variants, "given_pitch"]
-    cfg = JobConfig(out=args.out, sources=sources, variants=variants, mode=args.mode, scale=args.scale,
+    if calibrate and camera is None:
+        raise JobError("--calibrate-pitch needs user data with --poses")
+    return specs, camera, title, sources, variants, calibrate, notes, identity
+
+
+def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
+    import torch
+
+    from fsof_torch import __version__
+
+    from . import distributed, resume
+    from .calibrate import calibrate_pitch
+    from .inputs import JobError, file_digest
+    from .job import JobConfig, run_pairs
+    from .report import pair_table, summarize, write_clip_summaries, write_report
+    from .sources import NetSpec, make_source, net_identity
+
+    if args.threads < 1:
+        raise JobError(f"--threads: expected >= 1, got {args.threads}")
+    torch.set_num_threads(args.threads)
+    import cv2
+
+    cv2.setNumThreads(args.threads)
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        raise JobError(f"--device: not a torch device: {args.device!r}") from None
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise JobError(f"--device: {args.device!r} requested but CUDA is not available")
+    world = distributed.init(device.type)
+    stack.callback(distributed.finish, world)
+    if device.type == "cuda" and device.index is None:
+        device = torch.device("cuda", world.local_rank)
+
+    out = args.out if args.out is not None else default_out(args)
+    resume.check_out_path(out)
+    resume.check_json_path(args.json)
+    if not args.no_figures:
+        import importlib.util
+
+        if importlib.util.find_spec("matplotlib") is None:
+            raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
+    specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
+    net_spec = NetSpec(args.net, args.net_contract, args.checkpoint) if args.net is not None else None
+    built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
+
+    identity = {"version": __version__, "input": input_identity, "sources": sources, "variants": variants,
+                "mode": args.mode, "scale": args.scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
+                "road": args.road, "calibrate_pitch": calibrate,
+                "testnet_weights": file_digest(args.testnet_weights) if args.testnet_weights is not None
+                and "testnet" in sources else None,
+                "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources}
+    error = None
+    if world.is_main:
+        try:
+            stack.enter_context(resume.locked(out))
+            resume.prepare(out, identity, overwrite=args.overwrite)
+        except JobError as err:
+            error = str(err)
+    error = distributed.broadcast_object(error, world)
+    if error is not None:
+        raise JobError(error)
+    fp = resume.fingerprint(identity)
+    cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=args.scale,
                     fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto",
-                    overwrite=args.overwrite, figures=not args.no_figures, progress=not args.no_progress,
-                    title=title, testnet_weights=args.testnet_weights, notes=notes)
-    args.out.mkdir(parents=True, exist_ok=True)
+                    overwrite=args.overwrite, figures=not args.no_figures,
+                    progress=not args.no_progress and world.is_main, title=title, notes=notes,
+                    fingerprint=fp, device=str(device))
     if calibrate:
-        if camera is None:
-            raise JobError("--calibrate-pitch needs user data with --poses")
         pitch, scores = calibrate_pitch(specs, camera, progress=cfg.progress)
         cfg.calibrated_pitch_deg = pitch
         notes.append(f"Calibrated pitch: {pitch:.2f}° (minimum of the road photometric error of the "
                      f"pose-driven model flow over the clip; {len(scores)} candidates, "
                      f"error {min(s for _, s in scores):.3f} at the minimum, "
                      f"{dict(scores).get(0.0, float('nan')):.3f} at 0°).")
-    records = run_pairs(specs, cfg)
-    summary = summarize(records, cfg)
+    if world.distributed:
+        notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
+    records = run_pairs(distributed.shard(specs, world), cfg, built, rank=world.rank)
+    names = [s.name for s in specs]
+    metrics, extra = pair_table(records, names, cfg)
+    metrics, extra = distributed.all_reduce_sum(metrics, world), distributed.all_reduce_sum(extra, world)
+    gathered = distributed.gather_objects(records, world)
+    if not world.is_main:
+        return 0
+    order = {n: i for i, n in enumerate(names)}
+    key = {(s, v): j for j, (s, v) in enumerate((s, v) for s in sources for v in variants)}
+    records = sorted((r for rs in gathered for r in rs), key=lambda r: (order[r["pair"]], key[(r["source"], r["variant"])]))
+    summary = summarize(metrics, extra, records, cfg, world_size=world.world_size, identity=identity)
     if cfg.calibrated_pitch_deg is not None:
         summary["calibrated_pitch_deg"] = cfg.calibrated_pitch_deg
+    if cfg.figures:
+        write_clip_summaries(summary, cfg)
     table = write_report(summary, cfg, args.json)
     print(f"\n{title}\n\n{table}\n")
     for n in notes:
         print(f"- {n}")
-    print(f"\nreport: {cfg.out / 'report.md'} and {cfg.out / 'report.json'}")
+    print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0
 
 
@@ -196,14 +335,14 @@ def main(argv: list[str] | None = None) -> int:
         return int(exit_.code or 0)
     from .inputs import JobError
 
-    try:
-        return _run(args)
-    except (JobError, FileNotFoundError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    except ValueError as err:  # a reader or the library rejected an input file or value
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    with contextlib.ExitStack() as stack:
+        try:
+            return _run(args, stack)
+        except (JobError, FileNotFoundError, ValueError) as err:
+            # JobError: an option or input file the job rejected; FileNotFoundError / ValueError:
+            # a reader or the library rejected an input file or value (their messages name it)
+            print(f"error: {err}", file=sys.stderr)
+            return 2
 
 
 if __name__ == "__main__":

@@ -1,17 +1,26 @@
 """Flow sources of the job: OpenCV DIS, the test net (random weights unless a state_dict is
-given), or flow files written by any network."""
+given), flow files written by any network, or a user's network (``--net module:callable``).
+
+Every source is built, and its weights loaded, before the first pair is processed, so a bad
+``--testnet-weights``, ``--net`` or ``--checkpoint`` stops the job before any work.
+"""
 
 from __future__ import annotations
 
+import importlib
+import importlib.util
+import inspect
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .inputs import JobError
 
-SOURCES = ("dis", "testnet", "files")
+SOURCES = ("dis", "testnet", "net")
+CONTRACTS = ("auto", "ptlflow", "torchvision", "raft")
 
 
 def dis_flow(image1: Tensor, image2: Tensor, *, preset: str = "medium") -> Tensor:
@@ -38,27 +47,142 @@ def dis_flow(image1: Tensor, image2: Tensor, *, preset: str = "medium") -> Tenso
     return torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1))).to(torch.float32)
 
 
-def make_source(name: str, *, weights: Path | None = None) -> Callable[[dict, Path | None], Tensor]:
-    """A callable ``(pair, flow_file) -> flow (2, H, W)`` for source ``name``."""
+@dataclass
+class NetSpec:
+    """A user's network: ``factory`` as ``module:callable``, the contract it follows, an optional
+    local checkpoint (a state_dict)."""
+
+    factory: str
+    contract: str = "auto"
+    checkpoint: Path | None = None
+
+
+def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
+    """Load a local state_dict (``torch.load(weights_only=True)``: tensors only, no code) into
+    ``net``; every problem is a JobError naming ``option`` and the file."""
+    if not path.is_file():
+        raise JobError(f"{option}: no file at {str(path)!r}")
+    try:
+        state = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # torch.load raises many types on foreign bytes (pickle, zip, EOF)
+        raise JobError(f"{option}: {str(path)!r} is not a state_dict file torch.load(weights_only=True) "
+                       f"can read ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
+        state = state["state_dict"]  # a Lightning / ptlflow checkpoint keeps the weights here
+    if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
+        raise JobError(f"{option}: {str(path)!r} holds a {type(state).__name__}, not a state_dict "
+                       f"(a dict of parameter names to tensors)")
+    try:
+        result = net.load_state_dict(state, strict=True)
+    except RuntimeError as err:
+        own = set(net.state_dict())
+        missing = sorted(own - set(state))[:4]
+        unexpected = sorted(set(state) - own)[:4]
+        detail = (f"missing keys {missing}, unexpected keys {unexpected}" if missing or unexpected
+                  else str(err).splitlines()[-1].strip())
+        raise JobError(f"{option}: {str(path)!r} does not fit {type(net).__name__}: {detail}") from None
+    del result
+
+
+def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
+    """Import ``module:callable``, call it, check what it returns; load the checkpoint. Returns
+    the network in eval mode and the contract it follows."""
+    module_name, sep, attr = spec.factory.partition(":")
+    if not sep or not module_name or not attr:
+        raise JobError(f"--net: expected module:callable such as mypkg.models:make_raft, got {spec.factory!r}")
+    try:
+        module = importlib.import_module(module_name)
+    except ModuleNotFoundError as err:
+        raise JobError(f"--net: cannot import module {module_name!r} ({err}); is it installed, or on PYTHONPATH?") from None
+    except Exception as err:  # the user's module failed while importing
+        raise JobError(f"--net: importing {module_name!r} failed: {type(err).__name__}: {err}") from None
+    factory: Any = module
+    for part in attr.split("."):
+        if not hasattr(factory, part):
+            raise JobError(f"--net: module {module_name!r} has no attribute {attr!r}")
+        factory = getattr(factory, part)
+    if not callable(factory):
+        raise JobError(f"--net: {spec.factory!r} is a {type(factory).__name__}, not a callable")
+    try:
+        net = factory()
+    except Exception as err:
+        raise JobError(f"--net: calling {spec.factory}() failed: {type(err).__name__}: {err}") from None
+    if not isinstance(net, nn.Module):
+        raise JobError(f"--net: {spec.factory}() returned a {type(net).__name__}; expected a torch.nn.Module")
+    if spec.checkpoint is not None:
+        load_state_dict(net, spec.checkpoint, "--checkpoint")
+    net.eval()
+    return net, _contract(net, spec)
+
+
+def _contract(net: nn.Module, spec: NetSpec) -> str:
+    """The contract a network follows: the option's, else the class's ``flow_contract``
+    attribute, else its package (ptlflow, torchvision), else a one-argument forward (ptlflow's)."""
+    if spec.contract != "auto":
+        return spec.contract
+    declared = getattr(net, "flow_contract", None)
+    if declared in CONTRACTS[1:]:
+        return declared
+    package = type(net).__module__.split(".")[0]
+    if package in ("ptlflow", "torchvision"):
+        return package
+    try:
+        params = [p for p in inspect.signature(net.forward).parameters.values()
+                  if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty]
+    except (TypeError, ValueError):
+        params = []
+    if len(params) == 1:
+        return "ptlflow"
+    raise JobError(f"--net-contract: cannot tell how to call {type(net).__name__} (forward takes "
+                   f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
+
+
+def net_flow(net: nn.Module, contract: str, image1: Tensor, image2: Tensor) -> Tensor:
+    """Run a network of the given contract on one pair ((3, H, W) RGB 0..255) and return its
+    final full-size flow (2, H, W) float32. Sizes are padded as RAFT does when the contract
+    needs it (torchvision, raft: to a multiple of 8) and the output cropped back."""
+    from fsof_torch.refinement.contracts import InputPadder, collect_flows, finest_flow, ptlflow_inputs
+
+    im1, im2 = image1[None], image2[None]
+    size = tuple(im1.shape[-2:])
+    padding = InputPadder(8).padding(size)
+    with torch.no_grad():
+        if contract == "ptlflow":
+            output = net(ptlflow_inputs(im1, im2))  # ptlflow's models pad internally
+        else:
+            if contract == "torchvision":
+                im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0
+            output = net(padding.pad(im1), padding.pad(im2))
+            output = padding.unpad_output(output, padding.padded_size(size))
+        flows = collect_flows(output, "--net output")
+    _, flow = finest_flow(flows)
+    if tuple(flow.shape[-2:]) != size:
+        raise JobError(f"--net: the network's finest flow is {tuple(flow.shape[-2:])}, the images {size}")
+    return flow[0].to(torch.float32)
+
+
+def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None = None,
+                device: torch.device | str = "cpu") -> Callable[[dict, Path | None], Tensor]:
+    """A callable ``(pair, flow_file) -> flow (2, H, W)`` for source ``name`` (built now: weights
+    and networks load here); networks run on ``device``."""
     if name == "dis":
         return lambda pair, _file: dis_flow(pair["image1"], pair["image2"])
     if name == "testnet":
-        from fsof_torch.training.testnet import TinyRAFT
+        from fsof_torch import TinyRAFT
 
-        net = TinyRAFT(seed=0)
+        testnet = TinyRAFT(seed=0)
         if weights is not None:
-            if not weights.is_file():
-                raise JobError(f"--testnet-weights: no file at {str(weights)!r}")
-            net.load_state_dict(torch.load(weights, map_location="cpu", weights_only=True))
-        net.eval()
-
-        def run(pair: dict, _file: Path | None) -> Tensor:
-            with torch.no_grad():
-                flows = net(pair["image1"].unsqueeze(0), pair["image2"].unsqueeze(0))
-            return flows[-1][0].to(torch.float32)
-        return run
+            load_state_dict(testnet, weights, "--testnet-weights")
+        testnet.eval().to(device)
+        return lambda pair, _file: net_flow(testnet, "raft", pair["image1"], pair["image2"])
+    if name == "net":
+        if net is None:
+            raise JobError("--source net needs --net module:callable")
+        model, contract = build_user_net(net)
+        model.to(device)
+        return lambda pair, _file: net_flow(model, contract, pair["image1"], pair["image2"])
     if name == "files":
-        from fsof_torch.io import read_flow
+        from fsof_torch import read_flow
 
         def read(pair: dict, file: Path | None) -> Tensor:
             if file is None:
@@ -70,4 +194,22 @@ def make_source(name: str, *, weights: Path | None = None) -> Callable[[dict, Pa
             # invalid pixels of a flow file carry no prediction: NaN keeps them out of the fit
             return torch.where(valid, flow, torch.full_like(flow, float("nan")))
         return read
-    raise JobError(f"--source: unknown flow source {name!r}; choose from {', '.join(SOURCES[:2])} or give --flows")
+    raise JobError(f"--source: unknown flow source {name!r}; choose from {', '.join(SOURCES)} or give --flows")
+
+
+def net_identity(spec: NetSpec | None) -> dict[str, Any] | None:
+    """What identifies a user's network for resuming: the factory, the contract, the checkpoint's
+    contents and the source file of the factory's module."""
+    if spec is None:
+        return None
+    from .inputs import file_digest
+
+    module_file = None
+    try:
+        found = importlib.util.find_spec(spec.factory.partition(":")[0])
+        if found is not None and found.origin and Path(found.origin).is_file():
+            module_file = file_digest(Path(found.origin))
+    except (ImportError, ValueError):
+        pass
+    return {"factory": spec.factory, "contract": spec.contract, "module_file": module_file,
+            "checkpoint": file_digest(spec.checkpoint) if spec.checkpoint is not None and spec.checkpoint.is_file() else None}

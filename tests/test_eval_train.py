@@ -50,3 +50,38 @@ def test_dispatcher_help(capsys):
         eval_main(["train", "--help"])
     assert exc.value.code == 0
     assert "--freespace-weight" in capsys.readouterr().out
+
+
+@pytest.mark.slow
+def test_torchrun_ddp_first_step_equals_one_process(tmp_path, keep_threads):
+    """torchrun with 2 gloo processes runs to the end; its first step's loss and gradients equal
+    one process's on the same global batch (relative 1e-5)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    args = ["--steps", "2", "--size", "32", "64", "--batch", "4", "--iters", "1", "--train-pairs", "4",
+            "--test-pairs", "1", "--threads", "1", "--no-progress"]
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    done = subprocess.run([sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2",
+                           "-m", "eval", "train", *args, "--json", str(tmp_path / "ddp.json"),
+                           "--dump-first-step", str(tmp_path / "ddp.pt")],
+                          env=env, capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert json.loads((tmp_path / "ddp.json").read_text())["world_size"] == 2
+    assert train.main([*args, "--dump-first-step", str(tmp_path / "one.pt")]) == 0
+    ddp, one = torch.load(tmp_path / "ddp.pt"), torch.load(tmp_path / "one.pt")
+    assert (ddp["world_size"], one["world_size"]) == (2, 1)
+    for run in ("unsupervised", "unsupervised+freespace"):
+        assert ddp[run]["loss"] == pytest.approx(one[run]["loss"], rel=1e-5)
+        g1, g2 = one[run]["grads"], ddp[run]["grads"]
+        assert set(g1) == set(g2)
+        flat = torch.cat([g.flatten() for g in g1.values()])
+        diff = torch.cat([(g2[k] - g1[k]).flatten() for k in g1])
+        assert float(diff.norm() / flat.norm()) < 1e-5
+        # tensor by tensor, to 1e-5 of the gradient's scale (biases before instance norm have a
+        # zero gradient, whose rounding noise has no relative size)
+        scale = float(flat.abs().max())
+        for k in g1:
+            torch.testing.assert_close(g2[k], g1[k], rtol=1e-5, atol=1e-5 * scale, msg=k)

@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.io import atomic_path, to_jsonable, write_bytes, write_json, write_text
+from fsof_torch.io import (atomic_path, remove_stale_temporaries, to_jsonable, write_bytes, write_json,
+                           write_text)
 
 
 def _leftovers(folder):
@@ -72,3 +73,45 @@ class TestExceptions:
     def test_json_non_finite_becomes_null(self, tmp_path):
         write_json(tmp_path / "nan.json", {"x": float("nan"), "t": torch.tensor([1.0, float("inf")])})
         assert json.loads((tmp_path / "nan.json").read_text()) == {"x": None, "t": [1.0, None]}
+
+
+class TestPermissions:
+    @pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+    def test_mode_follows_umask(self, tmp_path, umask):
+        """Written files get 0o666 less the umask, as open() gives (not mkstemp's private 0o600)."""
+        import os
+        import stat
+
+        old = os.umask(umask)
+        try:
+            write_text(tmp_path / "a.txt", "x")
+        finally:
+            os.umask(old)
+        assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o666 & ~umask
+
+
+class TestStaleTemporaries:
+    def test_removes_only_leftovers_of_atomic_writes(self, tmp_path):
+        """A killed writer leaves '.<name>.<16 hex>.tmp<suffix>'; other hidden or .tmp files stay."""
+        (tmp_path / "sub").mkdir()
+        stale = [tmp_path / ".x.png.0123456789abcdef.tmp.png", tmp_path / "sub" / ".r.json.fedcba9876543210.tmp.json",
+                 tmp_path / ".noext.00000000000000aa.tmp"]
+        keep = [tmp_path / ".hidden", tmp_path / "user.tmp", tmp_path / ".x.png.nothex0123456789.tmp.png",
+                tmp_path / "x.png"]
+        for p in stale + keep:
+            p.write_bytes(b"1")
+        removed = remove_stale_temporaries(tmp_path)
+        assert sorted(removed) == sorted(stale)
+        assert all(p.exists() for p in keep) and not any(p.exists() for p in stale)
+
+    def test_pattern_matches_what_atomic_path_creates(self, tmp_path):
+        with pytest.raises(RuntimeError):
+            with atomic_path(tmp_path / "f.flo") as tmp:
+                name = tmp.name
+                raise RuntimeError("killed")
+        # a temporary of that very name (as a SIGKILL would leave it) is recognised
+        (tmp_path / name).write_bytes(b"half")
+        assert remove_stale_temporaries(tmp_path) == [tmp_path / name]
+
+    def test_missing_folder_is_empty(self, tmp_path):
+        assert remove_stale_temporaries(tmp_path / "none") == []

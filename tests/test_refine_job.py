@@ -1,9 +1,12 @@
-"""Smoke tests of ``python -m refine`` in-process (``refine.__main__.main``) on tiny inputs."""
+"""``python -m refine`` in-process (``refine.__main__.main``) on tiny inputs: the pipeline, its
+outputs, resuming by fingerprint, and every bad input exiting 2 with a message naming the option."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import stat
 from pathlib import Path
 
 import pytest
@@ -12,7 +15,7 @@ import torch
 from refine.__main__ import main
 
 SIZE = (48, 160)
-TINY = ["--size", f"{SIZE[0]}x{SIZE[1]}", "--no-progress", "--threads", "1"]
+TINY = ["--size", f"{SIZE[0]}x{SIZE[1]}", "--no-progress"]
 
 
 @pytest.fixture(scope="module")
@@ -25,7 +28,7 @@ def scene_pairs():
 @pytest.fixture
 def user_folder(tmp_path, scene_pairs) -> Path:
     """Three frames of the synthetic scene in a user layout: images, calib, poses, road PNGs,
-    ground truth and predicted flows (ground truth + noise) in three file formats."""
+    ground truth and predicted flows (ground truth + noise) in two file formats."""
     from fsof_torch.io import (write_flow, write_image, write_kitti_calibration, write_kitti_poses,
                                write_road_mask)
 
@@ -52,21 +55,36 @@ def _mounting(scene_pairs) -> list[str]:
             "--pitch-deg", str(math.degrees(float(cam.pitch[0]))), "--height", str(float(cam.height[0]))]
 
 
+def _user(user_folder, out, *extra) -> list[str]:
+    return ["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"),
+            "--out", str(out), "--no-progress", "--no-figures", *extra]
+
+
 def _rows(report: Path) -> dict[tuple[str, str], dict]:
     summary = json.loads(report.read_text())
     return {(r["source"], r["variant"]): r for r in summary["rows"]}
+
+
+def _err(capsys, argv) -> str:
+    assert main(argv) == 2
+    return capsys.readouterr().err
 
 
 # -- smoke ----------------------------------------------------------------------------------------
 
 def test_help_exits_zero(capsys):
     assert main(["--help"]) == 0
-    assert "--kitti15" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "--kitti15" in out and "--net" in out and "--checkpoint" in out
 
 
 def test_synthetic_default_pipeline(tmp_path, capsys):
     out = tmp_path / "out"
-    rc = main(["--num-pairs", "2", "--source", "dis", "--out", str(out), "--json", str(tmp_path / "r.json"), *TINY])
+    old = os.umask(0o022)
+    try:
+        rc = main(["--num-pairs", "2", "--source", "dis", "--out", str(out), "--json", str(tmp_path / "r.json"), *TINY])
+    finally:
+        os.umask(old)
     assert rc == 0
     printed = capsys.readouterr().out
     assert "EPE road before" in printed and "photo road before" in printed
@@ -79,16 +97,37 @@ def test_synthetic_default_pipeline(tmp_path, capsys):
     assert "photo road noc before" in printed
     rec = json.loads((out / "dis" / "given" / "pairs" / "000000.json").read_text())
     assert 0 < rec["after"]["photo_road_noc_n"] <= rec["after"]["photo_road_n"]
-    assert (tmp_path / "r.json").is_file() and (out / "report.md").is_file()
+    assert rec["rank"] == 0 and len(rec["fingerprint"]) == 16 and len(rec["input_fingerprint"]) == 16
+    assert (tmp_path / "r.json").is_file() and (out / "report.md").is_file() and (out / "run.json").is_file()
     from fsof_torch.io import read_kitti_flow
 
     flow, valid = read_kitti_flow(out / "dis" / "given" / "flow" / "000001.png")
     assert flow.shape == (2, *SIZE) and bool(valid.all())
-    for f in ("before/000000_flow.png", "before/000000_error.png", "before/000000_road.png",
-              "given/figures/000000_flow.png", "given/figures/000000_error.png"):
+    for f in ("figures/000000.png", "figures/000001.png", "summary.png"):
         assert (out / "dis" / f).is_file(), f
     assert not list(out.rglob("*.tmp*"))  # atomic writes leave no temporary files
+    # outputs are readable per the umask (0o644 here), not private
+    for p in [out / "report.md", out / "dis" / "summary.png", out / "dis" / "given" / "flow" / "000001.png"]:
+        assert stat.S_IMODE(p.stat().st_mode) == 0o644, p
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["world_size"] == 1 and summary["records_computed"] == 6
+    assert summary["identity"]["input"] == {"kind": "synthetic", "preset": "default", "seed": 0,
+                                            "size": list(SIZE), "noise": None}
 
+
+def test_default_out_is_named_after_the_input(tmp_path, monkeypatch, user_folder):
+    from refine.__main__ import build_parser, default_out
+
+    parse = build_parser().parse_args
+    assert default_out(parse([])) == Path("refine_out/synthetic-default")
+    assert default_out(parse(["--seed", "3", "--size", "48x160"])) == Path("refine_out/synthetic-default-seed3-48x160")
+    assert default_out(parse(["--images", str(user_folder / "images")])) == Path("refine_out/images")
+    monkeypatch.chdir(tmp_path)
+    assert main(["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", *TINY]) == 0
+    assert (tmp_path / "refine_out" / "synthetic-default-48x160" / "report.json").is_file()
+
+
+# -- resuming -------------------------------------------------------------------------------------
 
 def test_resume_skips_finished_pairs(tmp_path):
     out = tmp_path / "out"
@@ -102,9 +141,79 @@ def test_resume_skips_finished_pairs(tmp_path):
     assert main(args) == 0
     assert rec0.stat().st_mtime_ns == stamp0  # finished pair not redone
     assert rec1.is_file() and json.loads(rec1.read_text()) == json.loads(text1)
-    assert _rows(out / "report.json")[("dis", "given")]["pairs"] == 2
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["rows"][0]["pairs"] == 2
+    assert summary["records_resumed"] == 1 and summary["records_computed"] == 1
+    assert "1 of 2 records were finished by an earlier run" in (out / "report.md").read_text()
     assert main([*args, "--overwrite"]) == 0
     assert rec0.stat().st_mtime_ns != stamp0
+
+
+def test_rerun_with_other_options_is_refused_then_replaced(tmp_path, capsys):
+    """A finished folder and a rerun with another fusion mode: refused with what differs; with
+    --overwrite the work is redone and the report describes the new run."""
+    out = tmp_path / "out"
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(base) == 0
+    err = _err(capsys, [*base, "--mode", "confidence"])
+    assert "--out:" in err and "another run" in err and "mode" in err and "--overwrite" in err
+    assert json.loads((out / "report.json").read_text())["mode"] == "replace"  # untouched
+    assert main([*base, "--mode", "confidence", "--overwrite"]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["mode"] == "confidence" and summary["records_resumed"] == 0
+    assert {r["mode"] for r in summary["pairs"]} == {"confidence"}
+    assert "fusion mode `confidence`" in (out / "report.md").read_text()
+
+
+def test_rerun_with_other_inputs_is_refused(tmp_path, capsys, user_folder, scene_pairs):
+    """A synthetic run, then user images into the same --out: refused, never reported as new."""
+    out = tmp_path / "out"
+    assert main(["--num-pairs", "2", "--source", "dis", "--odometry", "given", "--no-figures",
+                 "--out", str(out), *TINY]) == 0
+    before = (out / "report.json").read_text()
+    err = _err(capsys, _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis",
+                             *_mounting(scene_pairs)))
+    assert "--out:" in err and "input.kind" in err and "synthetic" in err
+    assert (out / "report.json").read_text() == before
+
+
+def test_changed_input_file_redoes_that_pair(tmp_path, user_folder, scene_pairs):
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", *_mounting(scene_pairs))
+    assert main(args) == 0
+    rec0, rec1 = (out / "dis" / "fit" / "pairs" / f"{i:06d}.json" for i in (0, 1))
+    stamps = [r.stat().st_mtime_ns for r in (rec0, rec1)]
+    from fsof_torch.io import write_image
+
+    write_image(user_folder / "images" / "000002.png", scene_pairs[1]["image2"].flip(-1))  # pair 000001 only
+    assert main(args) == 0
+    assert rec0.stat().st_mtime_ns == stamps[0] and rec1.stat().st_mtime_ns != stamps[1]
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 1 and summary["records_computed"] == 1
+
+
+def test_stale_temporaries_are_removed(tmp_path):
+    """A SIGKILL mid-write leaves hidden temporaries; the next run into the folder removes them."""
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--out", str(out), *TINY]
+    assert main(args) == 0
+    stale = [out / "dis" / "given" / "flow" / ".000000.png.0123456789abcdef.tmp.png",
+             out / "dis" / "figures" / ".000000.png.fedcba9876543210.tmp.png",
+             out / ".report.json.00000000000000aa.tmp.json"]
+    for p in stale:
+        p.write_bytes(b"half a file")
+    assert main(args) == 0
+    assert not any(p.exists() for p in stale)
+    assert not list(out.rglob("*.tmp*"))
+
+
+def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
+    from refine.resume import locked
+
+    out = tmp_path / "out"
+    with locked(out):
+        err = _err(capsys, ["--num-pairs", "1", "--source", "dis", "--no-figures", "--out", str(out), *TINY])
+    assert "another refine run" in err and str(os.getpid()) in err
 
 
 def test_testnet_source_confidence_mode(tmp_path):
@@ -129,11 +238,9 @@ def test_synthetic_road_auto(tmp_path):
 
 def test_user_data_flow_files_poses_and_gt(tmp_path, user_folder, scene_pairs):
     out = tmp_path / "out"
-    rc = main(["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"),
-               "--poses", str(user_folder / "poses.txt"), "--flows", str(user_folder / "flows"),
-               "--road", str(user_folder / "road"), "--gt", str(user_folder / "gt"),
-               "--odometry", "given,fit", "--out", str(out), "--no-progress", "--no-figures",
-               *_mounting(scene_pairs)])
+    rc = main(_user(user_folder, out, "--poses", str(user_folder / "poses.txt"), "--flows", str(user_folder / "flows"),
+                    "--road", str(user_folder / "road"), "--gt", str(user_folder / "gt"), "--odometry", "given,fit",
+                    *_mounting(scene_pairs)))
     assert rc == 0
     rows = _rows(out / "report.json")
     given, fit = rows[("files", "given")], rows[("files", "fit")]
@@ -150,19 +257,13 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
     poly = {"size": list(SIZE), "road_polygon": [[0, 47], [40, 36], [120, 36], [159, 47]]}
     (user_folder / "road.json").write_text(json.dumps(poly))
     out = tmp_path / "out"
-    rc = main(["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"),
-               "--road", str(user_folder / "road.json"), "--source", "dis", "--out", str(out),
-               "--no-progress", "--no-figures", *_mounting(scene_pairs)])
+    rc = main(_user(user_folder, out, "--road", str(user_folder / "road.json"), "--source", "dis",
+                    *_mounting(scene_pairs)))
     assert rc == 0
     assert _rows(out / "report.json")[("dis", "fit")]["pairs"] == 2
 
 
 # -- errors ---------------------------------------------------------------------------------------
-
-def _err(capsys, argv) -> str:
-    assert main(argv) == 2
-    return capsys.readouterr().err
-
 
 def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     base = ["--images", str(user_folder / "images"), "--out", str(tmp_path / "o"), "--no-progress"]
@@ -173,7 +274,7 @@ def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     assert "--calib: no calibration file" in _err(capsys, [*base, "--calib", str(tmp_path / "x.txt"), "--road", "auto"])
     (user_folder / "flows" / "000001.npy").unlink()
     err = _err(capsys, [*base, *calib, "--road", "auto", "--flows", str(user_folder / "flows")])
-    assert "--flows:" in err and "1 file(s)" in err
+    assert "--flows: no file for pair 000001" in err
     short = tmp_path / "short.txt"
     short.write_text((user_folder / "poses.txt").read_text().splitlines()[0] + "\n")
     assert "--poses:" in _err(capsys, [*base, *calib, "--road", "auto", "--poses", str(short)])
@@ -183,13 +284,152 @@ def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     assert main(["--mode", "blend"]) == 2  # argparse's own error
 
 
+@pytest.mark.parametrize("option", ["--flows", "--road", "--gt"])
+def test_files_are_never_paired_by_position(tmp_path, user_folder, capsys, option):
+    """Two files for two pairs, but one named for neither pair: exit 2 naming the option and the
+    pair, where sorted order would have given pair 000001 the wrong file."""
+    folder = user_folder / option[2:]
+    (old,) = [p for p in folder.iterdir() if p.stem == "000001"]
+    old.rename(folder / f"000002{old.suffix}")
+    road = [] if option == "--road" else ["--road", str(user_folder / "road")]
+    err = _err(capsys, _user(user_folder, tmp_path / "o", option, str(folder), *road))
+    assert f"{option}: no file for pair 000001" in err and str(folder) in err
+    assert not (tmp_path / "o" / "run.json").exists()  # stopped before any work
+
+
+def test_ambiguous_file_names(tmp_path, user_folder, capsys):
+    from fsof_torch.io import write_flow
+
+    write_flow(user_folder / "flows" / "000000.npy", torch.zeros(2, *SIZE))  # beside 000000.flo
+    err = _err(capsys, _user(user_folder, tmp_path / "o", "--road", "auto", "--flows", str(user_folder / "flows")))
+    assert "--flows: pair 000000 matches 2 files" in err
+
+
 def test_mismatched_image_sizes(tmp_path, user_folder, capsys):
     from fsof_torch.io import write_image
 
     write_image(user_folder / "images" / "000002.png", torch.zeros(3, 40, 100))
-    err = _err(capsys, ["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"),
-                        "--road", str(user_folder / "road"), "--out", str(tmp_path / "o"), "--no-progress"])
-    assert "is (48, 160) but 000002.png is (40, 100)" in err
+    err = _err(capsys, _user(user_folder, tmp_path / "o", "--road", str(user_folder / "road")))
+    assert "--images: 000002.png is 40x100 but 000000.png is 48x160" in err
+
+
+def test_images_of_another_size_than_the_calibration(tmp_path, user_folder, scene_pairs, capsys):
+    """Images at half the calibrated size: the principal point falls outside the images' middle
+    half (odometry calib.txt has no size); a stated size (S_rect row, --calib-size) must match."""
+    import torch.nn.functional as F
+
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    half = tmp_path / "half"
+    half.mkdir()
+    for p in sorted((user_folder / "images").iterdir()):
+        from fsof_torch.io import read_image
+
+        write_image(half / p.name, F.avg_pool2d(read_image(p)[None], 2)[0])
+    args = ["--images", str(half), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+            "--out", str(tmp_path / "o"), "--no-progress"]
+    err = _err(capsys, args)
+    assert "--images: 000000.png is 24x80" in err and "principal point" in err and "calib.txt" in err
+    assert "--images: 000000.png is 24x80 but the calibration" in _err(capsys, [*args, "--calib-size", "48x160"])
+    cam2cam = tmp_path / "calib_cam_to_cam.txt"
+    write_kitti_calibration(cam2cam, scene_pairs[0]["camera"].K[0], cam=2)
+    cam2cam.write_text(cam2cam.read_text() + "S_rect_02: 1.600000e+02 4.800000e+01\n")
+    args[3] = str(cam2cam)
+    assert "is for 48x160 images" in _err(capsys, args)
+    double = tmp_path / "double"
+    double.mkdir()
+    from fsof_torch.io import read_image
+
+    for p in sorted((user_folder / "images").iterdir()):
+        write_image(double / p.name, F.interpolate(read_image(p)[None], scale_factor=2.0, mode="bilinear")[0])
+    err = _err(capsys, ["--images", str(double), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+                        "--out", str(tmp_path / "o"), "--no-progress"])
+    assert "--images: 000000.png is 96x320" in err and "middle third" in err
+
+
+def test_crashes_of_the_past_exit_2(tmp_path, user_folder, scene_pairs, capsys):
+    """Each input that once ended in a traceback: exit 2 with a message naming the option."""
+    base = ["--num-pairs", "1", "--source", "dis", "--no-figures", *TINY]
+    # --json pointing at a folder: refused before the work, not after it
+    (tmp_path / "jdir").mkdir()
+    err = _err(capsys, [*base, "--out", str(tmp_path / "o1"), "--json", str(tmp_path / "jdir")])
+    assert "--json:" in err and "is a folder" in err and not (tmp_path / "o1").exists()
+    # --out an existing file
+    (tmp_path / "file").write_text("x")
+    assert "--out:" in _err(capsys, [*base, "--out", str(tmp_path / "file")])
+    # a binary calibration file
+    binary = tmp_path / "calib.bin"
+    binary.write_bytes(bytes(range(256)) * 4)
+    err = _err(capsys, ["--images", str(user_folder / "images"), "--calib", str(binary), "--road", "auto",
+                        "--out", str(tmp_path / "o2"), "--no-progress"])
+    assert "--calib:" in err and "calib.bin" in err
+    user = _user(user_folder, tmp_path / "o3")
+    # singular poses (an all-zero rotation)
+    rows = (user_folder / "poses.txt").read_text().splitlines()
+    rows[1] = " ".join(["0"] * 12)
+    bad_poses = tmp_path / "poses.txt"
+    bad_poses.write_text("\n".join(rows) + "\n")
+    err = _err(capsys, [*user, "--road", "auto", "--poses", str(bad_poses)])
+    assert "--poses:" in err and "line 2" in err and "not a rigid pose" in err
+    # road JSON that is a number, or has size [0, 0]
+    for text in ("5", json.dumps({"size": [0, 0], "road_polygon": [[0, 40], [100, 40], [50, 47]]})):
+        (tmp_path / "road.json").write_text(text)
+        err = _err(capsys, [*user, "--road", str(tmp_path / "road.json"), *_mounting(scene_pairs)])
+        assert "--road:" in err and "road.json" in err
+    # garbage and wrong-keys test-net weights
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint" * 10)
+    err = _err(capsys, [*base, "--source", "testnet", "--out", str(tmp_path / "o4"),
+                        "--testnet-weights", str(tmp_path / "garbage.pt")])
+    assert "--testnet-weights:" in err and "garbage.pt" in err
+    torch.save({"conv.weight": torch.zeros(3)}, tmp_path / "wrong.pt")
+    err = _err(capsys, [*base, "--source", "testnet", "--out", str(tmp_path / "o5"),
+                        "--testnet-weights", str(tmp_path / "wrong.pt")])
+    assert "--testnet-weights:" in err and "does not fit TinyRAFT" in err and "unexpected keys ['conv.weight']" in err
+    assert not (tmp_path / "o4" / "run.json").exists() and not (tmp_path / "o5" / "run.json").exists()
+
+
+def test_evaluate_noc_leaves_out_occluded_pixels():
+    """With ground truth, the 'noc' photometric error covers only its valid pixels: a pixel
+    occluded in image 2 (invalid ground truth) whose brightness no flow can match is left out."""
+    from refine.job import evaluate
+
+    H, W = 6, 8
+    image1 = torch.full((3, H, W), 100.0)
+    image2 = image1.clone()
+    image2[:, 2, 3] = 160.0  # an occluder in image 2 at one road pixel
+    valid = torch.ones(1, H, W, dtype=torch.bool)
+    valid[0, 2, 3] = False
+    zero = torch.zeros(2, H, W)
+    pair = {"image1": image1, "image2": image2, "gt": (zero, valid)}
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 1:4, 1:6] = True
+    before, after = evaluate(pair, zero, zero.clone(), road)
+    for m in (before, after):
+        assert m["photo_road_n"] == 15 and m["photo_road_noc_n"] == 14
+        assert m["photo_road"] == pytest.approx(60.0 / 15)
+        assert m["photo_road_noc"] == 0.0
+        assert m["photo_all_noc_n"] == H * W - 1 and m["photo_all_noc"] == 0.0
+        assert m["epe_road_n"] == 14 and m["epe_road"] == 0.0
+    # without ground truth there is nothing to tell occlusion by
+    before, _ = evaluate({"image1": image1, "image2": image2}, zero, zero, road)
+    assert "photo_road_noc" not in before
+
+
+def test_max_flow_is_the_99th_percentile_of_valid_magnitudes():
+    from refine.job import max_flow
+
+    H, W = 10, 20
+    gt = torch.zeros(2, H, W)
+    gt[0] = torch.arange(H * W, dtype=torch.float32).reshape(H, W)  # magnitudes 0..199
+    valid = torch.ones(1, H, W, dtype=torch.bool)
+    valid[0, :, 10:] = False  # keep 100 values: 0..9, 20..29, ...
+    kept = torch.sort(gt[0][valid[0]]).values
+    assert max_flow({"gt": (gt, valid)}, gt) == float(kept[math.ceil(0.99 * 100) - 1])
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 5:, :] = True  # the road's valid magnitudes: 100..109, 120..129, ...
+    kept = torch.sort(gt[0][(valid & road)[0]]).values
+    assert max_flow({"gt": (gt, valid)}, gt, road) == float(kept[math.ceil(0.99 * 50) - 1])
+    assert max_flow({"gt": (gt, valid)}, gt, torch.zeros_like(road)) == max_flow({"gt": (gt, valid)}, gt)
 
 
 # -- the shared real data -------------------------------------------------------------------------
@@ -222,29 +462,3 @@ def test_scene_noise_option(tmp_path, capsys):
         floors.append(row["photo_road_after"])
     assert floors[1] > floors[0]  # (at 48x160 the noise is area-scaled to about 0.5 grey levels)
     assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
-
-
-def test_evaluate_noc_leaves_out_occluded_pixels():
-    """With ground truth, the 'noc' photometric error covers only its valid pixels: a pixel
-    occluded in image 2 (invalid ground truth) whose brightness no flow can match is left out."""
-    from refine.job import evaluate
-
-    H, W = 6, 8
-    image1 = torch.full((3, H, W), 100.0)
-    image2 = image1.clone()
-    image2[:, 2, 3] = 160.0  # an occluder in image 2 at one road pixel
-    valid = torch.ones(1, H, W, dtype=torch.bool)
-    valid[0, 2, 3] = False
-    zero = torch.zeros(2, H, W)
-    pair = {"image1": image1, "image2": image2, "gt": (zero, valid)}
-    road = torch.zeros(1, H, W, dtype=torch.bool)
-    road[0, 1:4, 1:6] = True
-    before, after = evaluate(pair, zero, zero.clone(), road)
-    for m in (before, after):
-        assert m["photo_road_n"] == 15 and m["photo_road_noc_n"] == 14
-        assert m["photo_road"] == pytest.approx(60.0 / 15)
-        assert m["photo_road_noc"] == 0.0
-        assert m["photo_all_noc_n"] == H * W - 1 and m["photo_all_noc"] == 0.0
-    # without ground truth there is nothing to tell occlusion by
-    before, _ = evaluate({"image1": image1, "image2": image2}, zero, zero, road)
-    assert "photo_road_noc" not in before

@@ -103,3 +103,22 @@ def test_rejects_bad_inputs():
         net(image1, image2, iters=0)
     with pytest.raises(ValueError, match="corr_radius: expected a positive int"):
         TinyRAFT(corr_radius=0)
+
+
+def test_correlation_volume_is_rafts():
+    """All-pairs correlation <f1(p), f2(q)> / sqrt(D), written out per pixel pair, and the
+    average-pooled levels of the pyramid."""
+    from fsof_torch.training.testnet import _correlation_pyramid
+
+    g = torch.Generator().manual_seed(3)
+    f1, f2 = torch.randn(2, 16, 4, 6, generator=g, dtype=torch.float64), torch.randn(2, 16, 4, 6, generator=g,
+                                                                                    dtype=torch.float64)
+    pyramid = _correlation_pyramid(f1, f2, 2)
+    ref = torch.empty(2, 4, 6, 4, 6, dtype=torch.float64)
+    for b in range(2):
+        for y in range(4):
+            for x in range(6):
+                ref[b, y, x] = (f1[b, :, y, x, None, None] * f2[b]).sum(0) / 4.0
+    torch.testing.assert_close(pyramid[0].reshape(2, 4, 6, 4, 6), ref)
+    torch.testing.assert_close(pyramid[1].reshape(2, 4, 6, 2, 3),
+                               ref.reshape(2, 4, 6, 2, 2, 3, 2).mean(dim=(4, 6)))

@@ -289,6 +289,39 @@ class Camera:
         except ValueError as err:
             raise ValueError(f"sx, sy: the camera resized by ({sx!r}, {sy!r}) is out of range: {err}") from None
 
+    def padded(self, left: int, top: int, right: int = 0, bottom: int = 0) -> "Camera":
+        """The camera for the image padded by ``left`` columns on the left and ``top`` rows on top
+        (``right`` and ``bottom`` at the other sides), as ``F.pad(image, (left, right, top,
+        bottom))`` or RAFT's ``InputPadder`` do.
+
+        Convention: the pixel (u, v) of the image is the pixel (u + left, v + top) of the padded
+        one, so the principal point moves by the padding on the left and top,
+        ``c_x' = c_x + left``, ``c_y' = c_y + top``; focal lengths stay. Padding on the right or
+        bottom changes the image size, not K (a camera does not store the size; the arguments
+        are accepted so that a padder's four numbers can be passed as they are). Example: RAFT's
+        KITTI padder takes 375×1242 to 376×1248 with (left, right, top, bottom) = (3, 3, 0, 1):
+        ``camera.padded(3, 0, 3, 1)`` moves c_x by 3 px.
+        """
+        amounts = _pixel_amounts("padded", left=left, top=top, right=right, bottom=bottom)
+        return self._shifted(amounts["left"], amounts["top"])
+
+    def cropped(self, left: int, top: int, right: int = 0, bottom: int = 0) -> "Camera":
+        """The camera for the image with ``left`` columns and ``top`` rows cut away at the left and
+        top (``right``, ``bottom`` at the other sides), as ``image[..., top:H-bottom, left:W-right]``.
+
+        The inverse of :meth:`padded`: ``c_x' = c_x - left``, ``c_y' = c_y - top``; the principal
+        point may fall outside the crop (an off-centre crop), which is valid.
+        """
+        amounts = _pixel_amounts("cropped", left=left, top=top, right=right, bottom=bottom)
+        return self._shifted(-amounts["left"], -amounts["top"])
+
+    def _shifted(self, du: int, dv: int) -> "Camera":
+        if du == 0 and dv == 0:
+            return self
+        T = torch.tensor([[1.0, 0.0, float(du)], [0.0, 1.0, float(dv)], [0.0, 0.0, 1.0]],
+                         dtype=self.dtype, device=self.device)
+        return Camera._checked(T @ self.K, self.height, self.roll, self.pitch)
+
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,
                         pitch: Tensor | float = 0.0) -> "Camera":
@@ -313,6 +346,20 @@ def check_camera(camera: object, name: str = "camera") -> "Camera":
     if not isinstance(camera, Camera):
         raise TypeError(f"{name}: expected a fsof_torch.Camera, got {type(camera).__name__}")
     return camera
+
+
+def _pixel_amounts(method: str, **amounts: object) -> dict[str, int]:
+    """Padding or cropping amounts as non-negative ints (a whole number of pixels)."""
+    out = {}
+    for name, value in amounts.items():
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name}: expected a whole number of pixels (int) for Camera.{method}, "
+                            f"got {type(value).__name__} {value!r}")
+        value = int(value)
+        if value < 0:
+            raise ValueError(f"{name}: expected >= 0 pixels for Camera.{method}, got {value}")
+        out[name] = value
+    return out
 
 
 def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tensor":

@@ -9,7 +9,7 @@ bool; images (3, H, W) float32 RGB 0..255.
 """
 
 from ..geometry.camera import read_kitti_calibration
-from .atomic import atomic_path, to_jsonable, write_bytes, write_json, write_text
+from .atomic import atomic_path, remove_stale_temporaries, to_jsonable, write_bytes, write_json, write_text
 from .carla import (
     CARLA_CAMERA_HEIGHT,
     CARLA_ROAD_COLORS,
@@ -100,6 +100,7 @@ __all__ = [
     "read_vkitti2_flow",
     "read_vkitti2_intrinsics",
     "relative_pose_from_odometry",
+    "remove_stale_temporaries",
     "synthetic_pair_indices",
     "to_jsonable",
     "vkitti2_camera_poses",

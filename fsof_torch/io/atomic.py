@@ -3,6 +3,11 @@
 A crash (an exception, a killed process) while a file is written leaves the old file, or no file,
 at the target path: never half a file. Every writer of :mod:`fsof_torch.io` goes through
 :func:`atomic_path`.
+
+The temporary file is named ``.<name>.<random>.tmp<suffix>`` (hidden, beside the target). A
+process killed between creating and renaming it (SIGKILL, power loss) leaves it behind;
+:func:`remove_stale_temporaries` removes such leftovers from a folder before a job writes there
+again. Files are created with mode ``0o666`` less the process's umask, like ``open()``.
 """
 
 from __future__ import annotations
@@ -12,11 +17,15 @@ import json
 import math
 import numbers
 import os
-import tempfile
+import re
+import secrets
 from pathlib import Path
 from typing import Any, Iterator
 
-__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable"]
+__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable", "remove_stale_temporaries"]
+
+#: the names :func:`atomic_path` gives its temporary files
+TEMPORARY_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp(\.[^.]*)?$")
 
 
 @contextlib.contextmanager
@@ -36,9 +45,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     folder = path.parent
     if not folder.is_dir():
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=folder)
-    os.close(fd)
-    tmp = Path(tmp_name)
+    tmp = _create_temporary(folder, path)
     try:
         yield tmp
         if not tmp.is_file() or tmp.stat().st_size == 0:
@@ -51,6 +58,43 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
         raise
+
+
+def _create_temporary(folder: Path, path: Path) -> Path:
+    """Create a new, empty ``.<name>.<random>.tmp<suffix>`` in ``folder``.
+
+    ``os.open`` with mode 0o666 lets the umask decide the permissions, as for any file a program
+    creates (``tempfile.mkstemp`` would make every output private, mode 0o600)."""
+    for _ in range(100):
+        tmp = folder / f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}"
+        try:
+            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
+        except FileExistsError:  # pragma: no cover - 64 random bits
+            continue
+        os.close(fd)
+        return tmp
+    raise FileExistsError(f"path: could not create a temporary file beside {str(path)!r}")  # pragma: no cover
+
+
+def remove_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = True) -> list[Path]:
+    """Delete the temporary files :func:`atomic_path` left in ``folder`` when a process was
+    killed mid-write; returns the paths removed.
+
+    Only names of the pattern ``.<name>.<16 hex digits>.tmp<suffix>`` are touched. Call it
+    when no other process writes into ``folder`` (at the start of a job): a temporary being
+    written by a live process would be removed under it.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    found = folder.rglob(".*") if recursive else folder.glob(".*")
+    removed = []
+    for p in sorted(found):
+        if TEMPORARY_NAME.match(p.name) and p.is_file():
+            with contextlib.suppress(FileNotFoundError):
+                p.unlink()
+                removed.append(p)
+    return removed
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:

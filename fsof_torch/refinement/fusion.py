@@ -13,22 +13,17 @@ Convention: flow (B, 2, H, W) in pixels of its own resolution, channel 0 = u, fo
 frame t to t+1; masks (B, 1, H, W) bool at the finest flow's resolution; the camera's K refers
 to the finest flow's resolution (coarser levels use ``camera.scaled``).
 
-Output structures (whatever the network returns, refined level by level at its own
-resolution, same container types):
-
-- a tensor (B, 2, H, W);
-- a list or tuple of them: RAFT's per-iteration flows, a ``(flow_low, flow_up)`` pair, a pyramid
-  ``flows_12`` (ARFlow/PWC-Lite) — levels may differ in size;
-- a dict (ARFlow's ``{"flows_fw": [...]}``, ptlflow's ``{"flows": (B, N, 2, H, W), ...}``): the
-  values under ``flow_keys`` are refined (tensors, 5-D stacks, lists), every other value
-  (backward flows, occlusions, features) is passed through untouched (the same object).
+Output structures (whatever the network returns: a tensor, RAFT's list, a ``(low, up)`` pair, a
+pyramid, ARFlow's or ptlflow's dict with 5-D stacks) are refined level by level at their own
+resolution and come back in the same containers; :mod:`fsof_torch.refinement.contracts` defines
+them, with ptlflow's and torchvision's input conventions and RAFT-style padding.
 """
 
 from __future__ import annotations
 
 import math
 import warnings
-from typing import Any, Callable, Mapping, NamedTuple
+from typing import Any, Mapping, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -38,6 +33,15 @@ from .._check import as_batch_param, check_float_tensor, skip_values, tracing
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
+from .contracts import (
+    DEFAULT_FLOW_KEYS,
+    InputPadder,
+    collect_flows,
+    finest_flow,
+    images_from_ptlflow,
+    is_ptlflow_inputs,
+    map_flows,
+)
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
@@ -49,11 +53,6 @@ __all__ = [
     "refine_flow",
     "resize_mask",
 ]
-
-#: dict keys refined by default: the forward flows of ARFlow/PWC-Lite, ptlflow, RAFT wrappers.
-#: Backward flows (``flows_bw``, ``flows_21``) are left alone: the forward model does not apply.
-DEFAULT_FLOW_KEYS = ("flow", "flows", "flows_fw", "flows_12", "flow_12", "flow_preds",
-                     "flow_up", "flow_low", "flow_small", "flow_final", "flow_init")
 
 _MODES = ("replace", "confidence")
 _FITS = ("flow", "photometric")
@@ -192,63 +191,6 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
     return F.interpolate(m, size=(h, w), mode="nearest-exact") > 0.5
 
 
-# -- structure handling -----------------------------------------------------------------------
-
-def _is_flow(x: object) -> bool:
-    return isinstance(x, Tensor) and (
-        (x.dim() == 4 and x.shape[1] == 2) or (x.dim() == 5 and x.shape[2] == 2))
-
-
-def _walk(obj: Any, name: str, flow_keys: tuple[str, ...], out: list[tuple[str, Tensor]]) -> None:
-    """Collect (name, flow) of every flow of the structure, in order (validating shapes)."""
-    if isinstance(obj, Tensor):
-        if not _is_flow(obj):
-            raise ValueError(f"{name}: expected a flow of shape (B, 2, H, W) or (B, N, 2, H, W), "
-                             f"got {tuple(obj.shape)}")
-        check_float_tensor(obj, name)
-        out.append((name, obj))
-    elif isinstance(obj, (list, tuple)):
-        if len(obj) == 0:
-            raise ValueError(f"{name}: expected a non-empty list of flows, got an empty {type(obj).__name__}")
-        for i, item in enumerate(obj):
-            _walk(item, f"{name}[{i}]", flow_keys, out)
-    elif isinstance(obj, Mapping):
-        for key, value in obj.items():
-            if key in flow_keys:
-                _walk(value, f"{name}[{key!r}]", flow_keys, out)
-    else:
-        raise TypeError(f"{name}: expected a flow tensor (B, 2, H, W), a list/tuple of them or a dict, "
-                        f"got {type(obj).__name__}")
-
-
-def _rebuild(obj: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...]) -> Any:
-    """The structure with every flow replaced by ``fn(flow)``; containers keep their type."""
-    if isinstance(obj, Tensor):
-        if obj.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
-            return torch.stack([fn(obj[:, n]) for n in range(obj.shape[1])], dim=1)
-        return fn(obj)
-    if isinstance(obj, tuple) and hasattr(obj, "_fields"):  # a NamedTuple
-        return type(obj)(*(_rebuild(v, fn, flow_keys) for v in obj))
-    if isinstance(obj, (list, tuple)):
-        return type(obj)(_rebuild(v, fn, flow_keys) for v in obj)
-    items = {k: (_rebuild(v, fn, flow_keys) if k in flow_keys else v) for k, v in obj.items()}
-    try:
-        return type(obj)(items)
-    except TypeError:  # a Mapping type without a dict constructor
-        return items
-
-
-def _finest(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
-    """The flow to fit: the largest resolution; among equals the last (RAFT's final iterate)."""
-    best = None
-    for name, f in flows:
-        f4 = f[:, -1] if f.dim() == 5 else f
-        area = f4.shape[-2] * f4.shape[-1]
-        if best is None or area >= best[0]:
-            best = (area, name, f4)
-    return best[1], best[2]
-
-
 # -- odometry ---------------------------------------------------------------------------------
 
 def _odometry_tensors(odometry: object, B: int, dtype: torch.dtype,
@@ -300,7 +242,8 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             from the flow fit; needs ``images``).
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`); ``scale`` the Cauchy
             scale in pixels of the finest level (coarser levels scale it with their size).
-        images: ``(image1, image2)`` (B, 3, H, W) 0..255 at the finest size, for ``fit="photometric"``.
+        images: ``(image1, image2)`` (B, 3, H, W) RGB 0..255 at the finest size, or ptlflow's input
+            dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]), for ``fit="photometric"``.
         fit_roll, fit_pitch: also fit the camera's roll / pitch (else the camera's are kept).
         fit_options: further keyword arguments for ``fit_displacement``.
         photometric_options: further keyword arguments for ``fit_photometric``.
@@ -327,12 +270,13 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     flow_keys = tuple(flow_keys)
-    flows: list[tuple[str, Tensor]] = []
-    _walk(flow, "flow", flow_keys, flows)
+    if is_ptlflow_inputs(images):
+        images = images_from_ptlflow(images)
+    flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
                          f"one of the keys {flow_keys} (set flow_keys)")
-    _, finest = _finest(flows)
+    _, finest = finest_flow(flows)
     B, _, H, W = finest.shape
     for name, f in flows:
         if f.shape[0] != B:
@@ -427,7 +371,7 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             weights[size] = w
         return out
 
-    refined_flow = _rebuild(flow, refine_one, flow_keys)
+    refined_flow = map_flows(flow, refine_one, flow_keys)
     f_model, m = level((H, W))
     weight = weights.get((H, W))
     if weight is None:  # pragma: no cover - the finest level is always visited
@@ -562,22 +506,37 @@ class FreespaceRefined(nn.Module):
     """A flow network with freespace refinement attached: a drop-in replacement for ``net``.
 
     Args:
-        net: any module called as ``net(image1, image2, **kw)`` returning flow in one of the
-            structures :func:`refine_flow` accepts (RAFT list, ``(low, up)``, ARFlow/ptlflow dict).
+        net: a flow network, called as it expects to be called (see
+            :mod:`fsof_torch.refinement.contracts`): ``net(image1, image2, **kw)`` (RAFT,
+            torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
+            dict. It may return any structure :func:`refine_flow` accepts.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
         road: None (the caller passes ``mask``) or ``"auto"``: when no mask is given, detect the
             freespace on the prediction with :func:`fsof_torch.detect_freespace`.
         road_options: keyword arguments for ``detect_freespace``.
+        pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
+            sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
+            so that its ``flow_small`` is refined on its true grid). The images are padded before
+            the net, the mask (with False) and the camera (:meth:`Camera.padded`) the same way;
+            the output is refined on the padded grid, so a coarse level such as ``flow_small``
+            (1/8 of the padded size) gets the padded camera scaled to it; then every output tensor
+            of the padded full size is cropped back to the input size. Coarser levels stay on
+            their padded grid, as the network returned them.
+        image_range: ``(low, high)`` of the images passed as two tensors (the net's convention:
+            (0, 255) for RAFT and TinyRAFT, (-1, 1) for torchvision's weights' transforms); the
+            refiner's photometric fit reads them as 0..255. ptlflow dicts are BGR in [0, 1].
 
-    Forward: ``model(image1, image2, *, mask=None, camera, odometry=None, return_info=False, **kw)``
-    returns the net's output with its forward flows refined (same structure), or
-    ``(output, RefineOutput)`` with ``return_info=True``. Images (B, 3, H, W) as the net wants
-    them; the mask, the camera and the finest flow share one resolution. The refiner receives
-    the images too (for ``fit="photometric"``).
+    Forward: ``model(image1, image2, *, camera, mask=None, odometry=None, return_info=False, **kw)``
+    or ``model(inputs, *, camera, ...)`` with a ptlflow dict. Returns the net's output with its
+    forward flows refined (same structure), or ``(output, RefineOutput)`` with
+    ``return_info=True``. The mask (B, 1, H, W) bool and the camera refer to the input images'
+    size. With ``pad`` the RefineOutput's maps are cropped to the input size and its camera
+    is the input's (the padding undone).
     """
 
     def __init__(self, net: nn.Module, refiner: FreespaceRefiner | None = None, *,
-                 road: str | None = None, road_options: Mapping[str, Any] | None = None) -> None:
+                 road: str | None = None, road_options: Mapping[str, Any] | None = None,
+                 pad: InputPadder | None = None, image_range: tuple[float, float] = (0.0, 255.0)) -> None:
         super().__init__()
         if not callable(net):
             raise TypeError(f"net: expected a callable flow network, got {type(net).__name__}")
@@ -585,29 +544,79 @@ class FreespaceRefined(nn.Module):
             raise TypeError(f"refiner: expected a FreespaceRefiner, got {type(refiner).__name__}")
         if road not in (None, "auto"):
             raise ValueError(f"road: expected None or 'auto', got {road!r}")
+        if pad is not None and not isinstance(pad, InputPadder):
+            raise TypeError(f"pad: expected an InputPadder or None, got {type(pad).__name__}")
+        lo, hi = (float(v) for v in image_range)
+        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
+            raise ValueError(f"image_range: expected finite (low, high) with high > low, got {image_range!r}")
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
         self.road_options = dict(road_options or {})
+        self.pad = pad
+        self.image_range = (lo, hi)
 
-    def forward(self, image1: Tensor, image2: Tensor, *, mask: Tensor | None = None,
-                camera: Camera, odometry: object = None, return_info: bool = False, **kw: Any):
-        output = self.net(image1, image2, **kw)
+    def forward(self, *inputs: Any, camera: Camera, mask: Tensor | None = None, odometry: object = None,
+                return_info: bool = False, **kw: Any):
+        if len(inputs) == 1 and is_ptlflow_inputs(inputs[0]):
+            net_inputs = dict(inputs[0])
+            image1, image2 = images_from_ptlflow(net_inputs)  # (validates the dict)
+            size = tuple(image1.shape[-2:])
+            padding = self.pad.padding(size) if self.pad is not None else None
+            if padding is not None:
+                net_inputs["images"] = padding.pad(net_inputs["images"], mode=self.pad.pad_mode)
+            output = self.net(net_inputs, **kw)
+        elif len(inputs) == 2:
+            image1, image2 = inputs
+            for name, im in (("image1", image1), ("image2", image2)):
+                check_float_tensor(im, name)
+                if im.dim() != 4:
+                    raise ValueError(f"{name}: expected shape (B, C, H, W), got {tuple(im.shape)}")
+            size = tuple(image1.shape[-2:])
+            padding = self.pad.padding(size) if self.pad is not None else None
+            if padding is not None:
+                output = self.net(padding.pad(image1, mode=self.pad.pad_mode),
+                                  padding.pad(image2, mode=self.pad.pad_mode), **kw)
+            else:
+                output = self.net(image1, image2, **kw)
+            lo, hi = self.image_range
+            if (lo, hi) != (0.0, 255.0):
+                image1, image2 = ((im - lo) * (255.0 / (hi - lo)) for im in (image1, image2))
+        else:
+            raise TypeError(f"inputs: expected (image1, image2) or one ptlflow dict {{'images': ...}}, "
+                            f"got {len(inputs)} positional argument(s)")
+        if padding is not None and padding.is_zero:
+            padding = None
+        if padding is not None:
+            camera = padding.camera(camera)
+            image1, image2 = (padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
+            if mask is not None:
+                if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+                    raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {getattr(mask, 'dtype', type(mask).__name__)}")
+                if tuple(mask.shape[-2:]) != size:
+                    raise ValueError(f"mask: expected the images' size {size}, got shape {tuple(mask.shape)}")
+                mask = padding.pad(mask)
         if mask is None:
             if self.road != "auto":
                 raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
                                  "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
-            flows: list[tuple[str, Tensor]] = []
-            _walk(output, "output", self.refiner.flow_keys, flows)
-            _, finest = _finest(flows)
+            _, finest = finest_flow(collect_flows(output, "output", self.refiner.flow_keys))
             from ..estimation.freespace import detect_freespace  # freespace detection (imported when needed)
 
             with torch.no_grad():
                 cam = camera.to(device=finest.device)
                 mask = detect_freespace(finest.detach(), cam, **self.road_options)
-        images = None
-        if image1.dim() == 4 and image2.dim() == 4:
-            images = (image1, image2)
-        info = self.refiner(output, mask, camera, odometry,
-                            images=images if self.refiner.fit == "photometric" else None)
-        return (info.flow, info) if return_info else info.flow
+            if padding is not None:  # the replicated border is not road
+                mask = padding.pad(padding.unpad(mask))
+        images = (image1, image2) if self.refiner.fit == "photometric" else None
+        info = self.refiner(output, mask, camera, odometry, images=images)
+        if padding is None:
+            return (info.flow, info) if return_info else info.flow
+        padded_size = padding.padded_size(size)
+        flow = padding.unpad_output(info.flow, padded_size)
+        if not return_info:
+            return flow
+        info = info._replace(flow=flow, weight=padding.unpad(info.weight), mask=padding.unpad(info.mask),
+                             flow_model=padding.unpad(info.flow_model),
+                             camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
+        return flow, info

@@ -1,0 +1,75 @@
+"""Wall and CPU time of the Quick start job, ``python -m refine`` with no arguments, on a loaded
+machine: two runs side by side, each started with no arguments in its own fresh working folder
+(so each writes its own ``refine_out/synthetic-default/``), as a user meets it when another job
+shares the cores.
+
+Each run is measured with ``/usr/bin/time -v`` (wall clock, and user + system CPU of the process
+and its children). Prints one row per run and the machine's core count. The job's defaults decide
+what is measured (sources, odometry variants, figures, one intra-op thread), so rerun this after
+changing them.
+
+Run: ``python benchmarks/bench_quickstart.py [--runs 2] [--args "..."]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import re
+import shlex
+import shutil
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _parse(text: str) -> dict[str, float]:
+    """Wall seconds and user + system CPU seconds from ``/usr/bin/time -v``'s report."""
+    user = float(re.search(r"User time \(seconds\): ([\d.]+)", text).group(1))
+    system = float(re.search(r"System time \(seconds\): ([\d.]+)", text).group(1))
+    wall = re.search(r"Elapsed \(wall clock\) time \(h:mm:ss or m:ss\): ([\d:.]+)", text).group(1)
+    seconds = 0.0
+    for part in wall.split(":"):
+        seconds = seconds * 60 + float(part)
+    rss = int(re.search(r"Maximum resident set size \(kbytes\): (\d+)", text).group(1))
+    return {"wall_s": seconds, "cpu_s": user + system, "user_s": user, "sys_s": system, "max_rss_mb": rss / 1024}
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--runs", type=int, default=2, help="runs started side by side (default 2)")
+    parser.add_argument("--args", default="", help="extra options for each run (default: none, the Quick start)")
+    args = parser.parse_args(argv)
+    time_bin = shutil.which("time") or "/usr/bin/time"
+    if not Path(time_bin).is_file():
+        print("needs /usr/bin/time (GNU time)", file=sys.stderr)
+        return 2
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    with tempfile.TemporaryDirectory() as tmp:
+        procs = []
+        env["PYTHONPATH"] = os.pathsep.join([str(ROOT), env.get("PYTHONPATH", "")]).rstrip(os.pathsep)
+        for i in range(args.runs):
+            cwd = Path(tmp) / f"run{i}"
+            cwd.mkdir()
+            cmd = [time_bin, "-v", sys.executable, "-m", "refine", *shlex.split(args.args)]
+            procs.append(subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL,
+                                          stderr=subprocess.PIPE, text=True))
+        rows = []
+        for p in procs:
+            _, err = p.communicate()
+            if p.returncode != 0:
+                print(err[-2000:], file=sys.stderr)
+                return 1
+            rows.append(_parse(err))
+    print(f"python -m refine {args.args} ({args.runs} runs side by side, {os.cpu_count()} cores)")
+    print(f"{'run':>4} {'wall s':>8} {'CPU s':>8} {'user s':>8} {'sys s':>7} {'max RSS MB':>11}")
+    for i, r in enumerate(rows):
+        print(f"{i:>4} {r['wall_s']:>8.1f} {r['cpu_s']:>8.1f} {r['user_s']:>8.1f} {r['sys_s']:>7.1f} {r['max_rss_mb']:>11.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

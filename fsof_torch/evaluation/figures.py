@@ -1,0 +1,362 @@
+"""Figures that read without the code: every figure the refine job writes is built here.
+
+Each figure has a title; flow images carry a colour-wheel legend with the magnitude at full
+saturation; error maps carry a colour bar with the unit and the value where the colours saturate;
+image panels have pixel axes; the road mask is drawn as a black-and-white dashed outline (no
+fill, so nothing under it changes colour and it cannot be taken for an object); before and after
+stand side by side. A clip gets a summary plot over its pairs: the error before and after, and
+every estimated motion and mounting field the job's records hold.
+
+Builders return a ``matplotlib.figure.Figure`` (so tests and notebooks can inspect or show it);
+:func:`save_figure` writes one as PNG atomically and closes it. matplotlib is imported inside the
+functions, with the non-interactive Agg backend. Colour coding itself (Middlebury flow colours,
+colour maps) is :mod:`fsof_torch.evaluation.visualize`.
+"""
+
+from __future__ import annotations
+
+import io
+import math
+import os
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from .visualize import flow_to_color
+
+__all__ = [
+    "FIGURE_DPI",
+    "clip_summary_figure",
+    "colour_wheel",
+    "pair_figure",
+    "road_outline",
+    "save_figure",
+]
+
+#: resolution of the written PNGs
+FIGURE_DPI = 80
+
+# road outline: a white dashed line over a black one, visible on any colour of the flow wheel
+# and of the error maps, and never a filled area that could be read as an object
+_OUTLINE = ({"color": "black", "linewidth": 2.0, "linestyle": "-"},
+            {"color": "white", "linewidth": 1.0, "linestyle": (0, (4, 3))})
+
+_UNITS = {"x_d": ("lateral motion x_d", "m", 1.0), "z_d": ("forward motion z_d", "m", 1.0),
+          "y_d": ("vertical motion y_d", "m", 1.0), "yaw": ("yaw", "deg", 180 / math.pi),
+          "roll": ("camera roll", "deg", 180 / math.pi), "pitch": ("camera pitch", "deg", 180 / math.pi),
+          "d_roll": ("roll change", "deg", 180 / math.pi), "d_pitch": ("pitch change", "deg", 180 / math.pi)}
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _reduce(x: Tensor, factor: int, mode: str = "area") -> Tensor:
+    """(C, H, W) reduced by an integer factor: area average, or 'any' for a bool mask."""
+    if factor <= 1:
+        return x
+    import torch.nn.functional as F
+
+    if x.dtype == torch.bool:
+        return F.max_pool2d(x[None].to(torch.uint8), factor, ceil_mode=True)[0].to(torch.bool)
+    return F.avg_pool2d(x[None].to(torch.float32), factor, ceil_mode=True, count_include_pad=False)[0]
+
+
+def _factor(width: int, panel_pixels: float) -> int:
+    """The integer reduction that brings an image of ``width`` to about the panel's pixel width
+    (never below it: matplotlib then only enlarges a little, which is cheap)."""
+    return max(1, int(width // max(panel_pixels, 1.0)))
+
+
+def road_outline(mask: Tensor) -> list[Any]:
+    """The outline of a bool road mask ((1, H, W) or (H, W)) as closed polygons of (u, v) pixel
+    coordinates (NumPy (N, 2) arrays), from ``cv2.findContours``."""
+    import cv2
+    import numpy as np
+
+    m = mask.reshape(mask.shape[-2:]).detach().to(torch.uint8).cpu().numpy()
+    contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
+    out = []
+    for c in contours:
+        pts = c[:, 0, :].astype(np.float64)
+        if len(pts) >= 2:
+            out.append(np.vstack([pts, pts[:1]]))  # closed
+    return out
+
+
+def _draw_outline(ax, polygons: list[Any]) -> None:
+    from matplotlib.collections import LineCollection
+
+    for style in _OUTLINE:
+        ax.add_collection(LineCollection(polygons, **style))
+
+
+def _outline_handle():
+    from matplotlib.lines import Line2D
+
+    return Line2D([], [], **_OUTLINE[1], label="road mask (outline)",
+                  path_effects=_outline_effects())
+
+
+def _outline_effects():
+    import matplotlib.patheffects as pe
+
+    return [pe.Stroke(linewidth=2.0, foreground="black"), pe.Normal()]
+
+
+def colour_wheel(max_flow: float, size: int = 101) -> Tensor:
+    """The Middlebury colour coding of the disc of flows up to ``max_flow`` px: (size, size, 3)
+    uint8 RGB, u to the right, v down (outside the disc white)."""
+    r = torch.linspace(-1.0, 1.0, size, dtype=torch.float64)
+    v, u = torch.meshgrid(r, r, indexing="ij")
+    flow = torch.stack([u, v]) * max_flow
+    inside = (u * u + v * v) <= 1.0
+    rgb = flow_to_color(flow, max_flow)[0]
+    rgb = torch.where(inside[None], rgb, torch.full_like(rgb, 255))
+    return rgb.permute(1, 2, 0)
+
+
+def _wheel_axes(fig, rect: Sequence[float], max_flow: float, *, shrink_label: str = "") -> Any:
+    ax = fig.add_axes(rect)
+    ax.imshow(colour_wheel(max_flow).numpy(), extent=(-max_flow, max_flow, max_flow, -max_flow))
+    ax.set_label("colour wheel")
+    ax.set_title(f"flow colour\nfull saturation {max_flow:.3g} px{shrink_label}", fontsize=8)
+    ax.set_xlabel("u (px)", fontsize=7, labelpad=1)
+    ax.set_ylabel("v (px)", fontsize=7, labelpad=1)
+    ax.tick_params(labelsize=6, length=2)
+    ax.set_xticks([-max_flow, 0, max_flow])
+    ax.set_yticks([-max_flow, 0, max_flow])
+    ax.xaxis.set_major_formatter(_short_format())
+    ax.yaxis.set_major_formatter(_short_format())
+    return ax
+
+
+def _short_format():
+    from matplotlib.ticker import FuncFormatter
+
+    return FuncFormatter(lambda x, _pos: f"{x:.3g}")
+
+
+def _image_axes(ax, title: str, size: tuple[int, int], *, xlabel: bool, ylabel: bool) -> None:
+    """Title and pixel axes of an image panel: three ticks a side (each tick is a costly object
+    to draw), axis labels on the outer panels only."""
+    H, W = size
+    ax.set_title(title, fontsize=9)
+    ax.set_xticks([0, _round(W / 2), _round(W - 1)])
+    ax.set_yticks([0, _round(H / 2), _round(H - 1)])
+    ax.tick_params(labelsize=6, length=2, labelbottom=xlabel, labelleft=ylabel)
+    if xlabel:
+        ax.set_xlabel("u (px)", fontsize=7, labelpad=1)
+    if ylabel:
+        ax.set_ylabel("v (px)", fontsize=7, labelpad=1)
+
+
+def _round(x: float) -> int:
+    """``x`` rounded to two significant digits (tick positions people read at a glance)."""
+    if x < 10:
+        return int(x)
+    step = 10 ** (int(math.log10(x)) - 1)
+    return int(x // step * step)
+
+
+def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, Tensor]], road: Tensor,
+                max_flow: float, error_vmax: float, error_label: str, title: str,
+                images: tuple[Tensor, Tensor] | None = None, valid: Tensor | None = None) -> Any:
+    """Flows and error maps of one pair, before and after refinement side by side.
+
+    Args:
+        flows: column title -> flow (2, H, W) px (e.g. ``{"before": ..., "after": ...}``); one
+            column each, in order. Non-finite pixels are black.
+        errors: column title -> ``(error map (1, H, W), valid (1, H, W) bool)`` for the second row
+            (a title of ``flows`` missing here leaves that panel empty); invalid pixels are black.
+        road: (1, H, W) bool road mask, drawn as an outline on every panel.
+        max_flow: flow magnitude at full colour saturation, px (one scale for all columns).
+        error_vmax: error at the top of the colour bar; larger errors saturate (the bar's arrow,
+            drawn white in the maps).
+        error_label: the error's name and unit for the colour bar, e.g. "end-point error (px)".
+        title: the figure's title.
+        images: optional ``(image1, image2)`` (3, H, W) RGB 0..255, shown as a first column.
+        valid: optional (1, H, W) bool for the flow row (e.g. a flow file's valid pixels).
+
+    Returns:
+        the Figure: a row of flow panels with a colour-wheel legend, a row of error panels with
+        a colour bar; every panel has the road outline, pixel axes and a title.
+    """
+    import numpy as np
+
+    plt = _pyplot()
+    names = list(flows)
+    H, W = road.shape[-2:]
+    outline = road_outline(road)
+    ncol = len(names) + (images is not None)
+    panel_w = 4.2
+    panel_h = panel_w * H / W
+    factor = _factor(W, 0.95 * panel_w * FIGURE_DPI)
+    extent = (-0.5, W - 0.5, H - 0.5, -0.5)  # axes in pixels of the full image
+    fig = plt.figure(figsize=(panel_w * ncol + 1.8, 2 * panel_h + 1.5), dpi=FIGURE_DPI)
+    fig.suptitle(title, fontsize=10)
+    right = 1.0 - 1.5 / (panel_w * ncol + 1.8)
+    left, bottom, top = 0.45 / (panel_w * ncol + 1.8), 0.09, 0.84
+    gap = 0.35 / (panel_w * ncol + 1.8)
+    col_w = (right - left - gap * (ncol - 1)) / ncol
+    row_h = (top - bottom - 0.11) / 2
+    rows = (bottom + row_h + 0.11, bottom)
+
+    def panel(j: int, r: int, picture: Any, name: str, **kw: Any):
+        ax = fig.add_axes((left + j * (col_w + gap), rows[r], col_w, row_h))
+        shown = ax.imshow(picture, interpolation="nearest", extent=extent, **kw)
+        _draw_outline(ax, outline)
+        _image_axes(ax, name, (H, W), xlabel=r == 1, ylabel=j == 0)
+        return shown
+
+    j0 = 0
+    if images is not None:
+        for r, (im, name) in enumerate(zip(images, ("image 1 (time t)", "image 2 (time t+1)"))):
+            rgb = _reduce(im.float(), factor).clamp(0, 255).round().to(torch.uint8)
+            panel(0, r, rgb.permute(1, 2, 0).numpy(), name)
+        j0 = 1
+    cmap = _error_cmap()
+    shown = None
+    for j, name in enumerate(names, start=j0):
+        f = flows[name]
+        ok = torch.isfinite(f).all(dim=0, keepdim=True)
+        if valid is not None:
+            ok = ok & valid
+        # a reduced pixel shows no value when any of its pixels has none
+        rgb = flow_to_color(_reduce(torch.nan_to_num(f), factor), max_flow, valid=~_reduce(~ok, factor))[0]
+        panel(j, 0, rgb.permute(1, 2, 0).numpy(), f"flow, {name}")
+        if name not in errors:
+            continue
+        err, ok_e = errors[name]
+        e = torch.where(ok_e, torch.nan_to_num(err.float(), nan=0.0), torch.zeros((), dtype=torch.float32))
+        e = _reduce(e, factor)[0].numpy()
+        ok_r = (~_reduce(~ok_e, factor))[0].numpy()
+        shown = panel(j, 1, np.ma.masked_where(~ok_r, e), f"{error_label.split(' (')[0]}, {name}",
+                      cmap=cmap, vmin=0.0, vmax=error_vmax)
+    _wheel_axes(fig, (right + 0.25 * (1 - right), rows[0] + row_h * 0.08, 0.55 * (1 - right), row_h * 0.75),
+                max_flow)
+    if shown is not None:
+        cax = fig.add_axes((right + 0.3 * (1 - right), bottom + row_h * 0.05, 0.08 * (1 - right), row_h * 0.9))
+        bar = fig.colorbar(shown, cax=cax, extend="max")
+        bar.set_label(f"{error_label}\nsaturates at {error_vmax:g}", fontsize=7)
+        bar.ax.tick_params(labelsize=6)
+    fig.legend(handles=[_outline_handle(), _invalid_handle()], loc="upper right", fontsize=7,
+               framealpha=0.9, bbox_to_anchor=(0.995, 0.995))
+    return fig
+
+
+def _invalid_handle():
+    from matplotlib.patches import Patch
+
+    return Patch(facecolor="black", edgecolor="grey", label="no value (invalid / out of view)")
+
+
+def _error_cmap():
+    import matplotlib
+
+    # no value: black; beyond the saturation value: white, so it stands out of the map
+    return matplotlib.colormaps["inferno"].with_extremes(bad="black", over="white")
+
+
+def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, error_key: str, error_label: str,
+                        title: str) -> Any:
+    """A clip's pairs over time: the error before and after refinement per variant, and every
+    estimated field of the records' ``odometry`` (and ``roll``, ``pitch``, plus the given
+    odometry as a reference line).
+
+    Args:
+        records: the job's per-pair records of one flow source (``pair``, ``variant``,
+            ``before``/``after`` metrics, ``odometry`` dict, ``roll``, ``pitch``, optionally
+            ``odometry_given``). Fields are read as they come: a field new to the records shows
+            up as a panel of its own.
+        error_key: the metric plotted, e.g. ``"epe_road"`` or ``"photo_road"``.
+        error_label: its name and unit, e.g. "end-point error, road (px)".
+    """
+    plt = _pyplot()
+    pairs = sorted({r["pair"] for r in records})
+    index = {p: i for i, p in enumerate(pairs)}
+    variants = list(dict.fromkeys(r["variant"] for r in records))
+    fields = list(dict.fromkeys(k for r in records for k in r.get("odometry", {})
+                                if isinstance(r["odometry"][k], (int, float))))
+    mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float)) for r in records)]
+    panels = ["error", *fields, *mounting]
+    ncol = 2
+    nrow = math.ceil(len(panels) / ncol)
+    height = 2.6 * nrow + 0.9
+    fig, axes = plt.subplots(nrow, ncol, figsize=(11, height), dpi=FIGURE_DPI, squeeze=False, sharex=True)
+    # a fixed layout: tight_layout would draw the figure once more to measure its texts
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.75 / height, top=1 - 0.65 / height,
+                        wspace=0.25, hspace=0.45)
+    fig.suptitle(title, fontsize=10)
+    colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    x_of = lambda rs: [index[r["pair"]] for r in rs]  # noqa: E731
+    for k, panel in enumerate(panels):
+        ax = axes[k // ncol][k % ncol]
+        if panel == "error":
+            before = {}
+            for r in records:
+                if error_key in r.get("before", {}):
+                    before[r["pair"]] = r["before"][error_key]
+            xs = sorted(before, key=index.get)
+            ax.plot([index[p] for p in xs], [before[p] for p in xs], color="black", marker="o", ms=3,
+                    linestyle="--", label="before (prediction)")
+            for c, v in enumerate(variants):
+                rs = sorted((r for r in records if r["variant"] == v and error_key in r.get("after", {})),
+                            key=lambda r: index[r["pair"]])
+                ax.plot(x_of(rs), [r["after"][error_key] for r in rs], color=colours[c % len(colours)],
+                        marker="o", ms=3, label=f"after, {v}")
+            ax.set_ylabel(error_label, fontsize=8)
+            ax.set_title("error before and after refinement", fontsize=9)
+        else:
+            name, unit, scale = _UNITS.get(panel, (panel, "", 1.0))
+            for c, v in enumerate(variants):
+                rs = sorted((r for r in records if r["variant"] == v), key=lambda r: index[r["pair"]])
+                rs = [r for r in rs if isinstance(_field(r, panel), (int, float))]
+                ax.plot(x_of(rs), [scale * _field(r, panel) for r in rs], color=colours[c % len(colours)],
+                        marker="o", ms=3, label=v)
+            given = {r["pair"]: r["odometry_given"][panel] for r in records
+                     if isinstance(r.get("odometry_given"), Mapping) and panel in r["odometry_given"]}
+            if given:
+                xs = sorted(given, key=index.get)
+                ax.plot([index[p] for p in xs], [scale * given[p] for p in xs], color="black", linestyle="--",
+                        marker="x", ms=4, label="given (odometry / poses)")
+            ax.set_ylabel(f"{name} ({unit})" if unit else name, fontsize=8)
+            ax.set_title(("estimated mounting: " if panel in mounting else "estimated motion: ") + name, fontsize=9)
+        ax.grid(alpha=0.3)
+        ax.tick_params(labelsize=7)
+        ax.legend(fontsize=7, loc="best")
+    for k in range(len(panels), nrow * ncol):
+        axes[k // ncol][k % ncol].set_visible(False)
+    for ax in axes[-1]:
+        ax.set_xlabel("pair", fontsize=8)
+        if len(pairs) <= 12:
+            ax.set_xticks(range(len(pairs)))
+            ax.set_xticklabels(pairs, rotation=30, fontsize=6)
+        ax.tick_params(labelbottom=True)
+    return fig
+
+
+def _field(record: Mapping[str, Any], key: str) -> Any:
+    if key in record.get("odometry", {}):
+        return record["odometry"][key]
+    return record.get(key)
+
+
+def save_figure(fig: Any, path: str | os.PathLike) -> Path:
+    """Write a Figure as PNG atomically (:func:`fsof_torch.io.write_bytes`) and close it."""
+    from ..io.atomic import write_bytes
+
+    plt = _pyplot()
+    buf = io.BytesIO()
+    try:
+        fig.savefig(buf, format="png", dpi=fig.dpi)
+    finally:
+        plt.close(fig)
+    return write_bytes(path, buf.getvalue())

@@ -1,0 +1,307 @@
+"""What flow networks take and return, written once: the output structures the refiner walks,
+the input conventions of ptlflow and torchvision, and RAFT-style padding.
+
+**Output structures.** Whatever a network returns is refined level by level at its own
+resolution, and comes back in the same containers:
+
+- a tensor (B, 2, H, W);
+- a list, tuple or NamedTuple of flows: RAFT's per-iteration flows, a ``(flow_low, flow_up)``
+  pair, an ARFlow/PWC-Lite pyramid (levels may differ in size);
+- a dict: the values under ``flow_keys`` (:data:`DEFAULT_FLOW_KEYS`) are forward flows (tensors,
+  ptlflow's 5-D stacks (B, N, 2, H, W) with N ≥ 1, lists); every other value (backward flows,
+  occlusions, features) passes through as the same object.
+
+**Input contracts** (what a network is called with):
+
+- *ptlflow*: ``model(inputs)`` with ``inputs = {"images": (B, 2, 3, H, W)}``, BGR (OpenCV's
+  order) in [0, 1]; it returns ``{"flows": (B, 1, 2, H, W), ...}`` at the input size. Its RAFT
+  models pad the images internally to a multiple of 8 (replicating the border, on both sides)
+  and add ``"flow_small"`` (B, 2, Hp/8, Wp/8): the flow at 1/8 of the *padded* size, in pixels
+  of that grid. :func:`ptlflow_inputs` and :func:`images_from_ptlflow` convert.
+- *torchvision*: ``raft_large()(image1, image2)`` with (B, 3, H, W) RGB in [-1, 1] and H, W
+  divisible by 8; it returns a list of (B, 2, H, W), one per update, the last the estimate.
+- *RAFT* (the authors' code) and :class:`fsof_torch.TinyRAFT`: (B, 3, H, W) RGB on 0..255; a
+  list of flows (RAFT's ``test_mode``: ``(flow_low, flow_up)``).
+
+**Padding** (RAFT's ``InputPadder``): H and W are padded up to a multiple of the stride; the
+``"sintel"`` rule splits the padding between both sides (ptlflow's ``pad_two_side=True``), the
+``"kitti"`` rule puts the rows at the bottom: 375×1242 becomes 376×1248 with (left, right, top,
+bottom) = (3, 3, 0, 1). A pixel (u, v) of the image is (u + left, v + top) of the padded one, so
+the camera's principal point moves by (left, top) (:meth:`fsof_torch.Camera.padded`), and a
+level at 1/8 of the padded size has the K of the padded camera scaled by 1/8.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .._check import check_float_tensor, tracing
+from ..geometry.camera import Camera
+
+__all__ = [
+    "DEFAULT_FLOW_KEYS",
+    "InputPadder",
+    "Padding",
+    "collect_flows",
+    "finest_flow",
+    "images_from_ptlflow",
+    "is_ptlflow_inputs",
+    "map_flows",
+    "ptlflow_inputs",
+]
+
+#: dict keys refined by default: the forward flows of ARFlow/PWC-Lite, ptlflow, RAFT wrappers.
+#: Backward flows (``flows_bw``, ``flows_21``) are left alone: the forward model does not apply.
+DEFAULT_FLOW_KEYS = ("flow", "flows", "flows_fw", "flows_12", "flow_12", "flow_preds",
+                     "flow_up", "flow_low", "flow_small", "flow_final", "flow_init")
+
+
+# -- output structures ------------------------------------------------------------------------
+
+def _check_flow(x: Tensor, name: str) -> None:
+    stack = x.dim() == 5
+    if not ((x.dim() == 4 and x.shape[1] == 2) or (stack and x.shape[2] == 2)):
+        raise ValueError(f"{name}: expected a flow of shape (B, 2, H, W) or (B, N, 2, H, W), "
+                         f"got {tuple(x.shape)}")
+    check_float_tensor(x, name)
+    if stack and x.shape[1] == 0:
+        raise ValueError(f"{name}: expected at least one prediction in the (B, N, 2, H, W) stack, "
+                         f"got N = 0 (shape {tuple(x.shape)})")
+    if x.shape[0] == 0 or x.shape[-1] == 0 or x.shape[-2] == 0:
+        raise ValueError(f"{name}: expected B, H and W of at least 1, got shape {tuple(x.shape)}")
+
+
+def collect_flows(output: Any, name: str = "flow",
+                  flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS) -> list[tuple[str, Tensor]]:
+    """Every forward flow of a network's output, in order, as ``(name, flow)`` pairs.
+
+    ``name`` locates the flow for messages (``flow['flows']``, ``flow[2]``). Shapes are
+    validated: each flow is (B, 2, H, W) or a stack (B, N, 2, H, W) with N ≥ 1, float, with
+    no empty dimension. A dict contributes only its ``flow_keys`` values.
+    """
+    out: list[tuple[str, Tensor]] = []
+    _collect(output, name, tuple(flow_keys), out)
+    return out
+
+
+def _collect(obj: Any, name: str, flow_keys: tuple[str, ...], out: list[tuple[str, Tensor]]) -> None:
+    if isinstance(obj, Tensor):
+        _check_flow(obj, name)
+        out.append((name, obj))
+    elif isinstance(obj, (list, tuple)):
+        if len(obj) == 0:
+            raise ValueError(f"{name}: expected a non-empty list of flows, got an empty {type(obj).__name__}")
+        for i, item in enumerate(obj):
+            _collect(item, f"{name}[{i}]", flow_keys, out)
+    elif isinstance(obj, Mapping):
+        for key, value in obj.items():
+            if key in flow_keys:
+                _collect(value, f"{name}[{key!r}]", flow_keys, out)
+    else:
+        raise TypeError(f"{name}: expected a flow tensor (B, 2, H, W), a list/tuple of them or a dict, "
+                        f"got {type(obj).__name__}")
+
+
+def map_flows(output: Any, fn: Callable[[Tensor], Tensor],
+              flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS) -> Any:
+    """The structure with every flow ``f`` replaced by ``fn(f)`` ((B, 2, H, W) in and out).
+
+    Containers keep their type (list, tuple, NamedTuple, dict subclass); a 5-D stack is mapped
+    prediction by prediction; dict values outside ``flow_keys`` are the same objects.
+    """
+    flow_keys = tuple(flow_keys)
+    if isinstance(output, Tensor):
+        if output.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
+            return torch.stack([fn(output[:, n]) for n in range(output.shape[1])], dim=1)
+        return fn(output)
+    if isinstance(output, tuple) and hasattr(output, "_fields"):  # a NamedTuple
+        return type(output)(*(map_flows(v, fn, flow_keys) for v in output))
+    if isinstance(output, (list, tuple)):
+        return type(output)(map_flows(v, fn, flow_keys) for v in output)
+    items = {k: (map_flows(v, fn, flow_keys) if k in flow_keys else v) for k, v in output.items()}
+    try:
+        return type(output)(items)
+    except TypeError:  # a Mapping type without a dict constructor
+        return items
+
+
+def finest_flow(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
+    """The flow to fit: the largest resolution; among equals the last (RAFT's final iterate);
+    of a stack (B, N, 2, H, W) its last prediction. Returns ``(name, (B, 2, H, W))``."""
+    best = None
+    for name, f in flows:
+        f4 = f[:, -1] if f.dim() == 5 else f
+        area = f4.shape[-2] * f4.shape[-1]
+        if best is None or area >= best[0]:
+            best = (area, name, f4)
+    if best is None:
+        raise ValueError("flow: expected at least one flow, got none")
+    return best[1], best[2]
+
+
+def _map_tensors(obj: Any, fn: Callable[[Tensor], Tensor]) -> Any:
+    """Every tensor of a nested structure through ``fn`` (containers keep their type)."""
+    if isinstance(obj, Tensor):
+        return fn(obj)
+    if isinstance(obj, tuple) and hasattr(obj, "_fields"):
+        return type(obj)(*(_map_tensors(v, fn) for v in obj))
+    if isinstance(obj, (list, tuple)):
+        return type(obj)(_map_tensors(v, fn) for v in obj)
+    if isinstance(obj, Mapping):
+        items = {k: _map_tensors(v, fn) for k, v in obj.items()}
+        try:
+            return type(obj)(items)
+        except TypeError:
+            return items
+    return obj
+
+
+# -- ptlflow's inputs ---------------------------------------------------------------------------
+
+def is_ptlflow_inputs(obj: object) -> bool:
+    """True for a ptlflow input dict (a mapping with an ``"images"`` entry)."""
+    return isinstance(obj, Mapping) and "images" in obj
+
+
+def _ptlflow_images(inputs: Mapping[str, Any], name: str = "inputs") -> Tensor:
+    images = inputs["images"]
+    check_float_tensor(images, f"{name}['images']")
+    if images.dim() != 5 or images.shape[1] < 2 or images.shape[2] != 3:
+        raise ValueError(f"{name}['images']: expected shape (B, 2, 3, H, W) (two BGR images in [0, 1]), "
+                         f"got {tuple(images.shape)}")
+    if images.shape[0] == 0 or images.shape[-1] == 0 or images.shape[-2] == 0:
+        raise ValueError(f"{name}['images']: expected B, H and W of at least 1, got {tuple(images.shape)}")
+    if not tracing() and images.device.type != "meta":
+        lo, hi = float(images.min()), float(images.max())
+        if not (lo >= 0.0 and hi <= 1.0):
+            raise ValueError(f"{name}['images']: expected BGR values in [0, 1] (ptlflow's convention), "
+                             f"got the range [{lo:.4g}, {hi:.4g}]")
+    return images
+
+
+def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0) -> dict[str, Tensor]:
+    """ptlflow's input dict from two RGB images: ``{"images": (B, 2, 3, H, W)}``, BGR in [0, 1].
+
+    Args:
+        image1, image2: (B, 3, H, W) RGB on 0..``data_range``.
+    """
+    for name, im in (("image1", image1), ("image2", image2)):
+        check_float_tensor(im, name)
+        if im.dim() != 4 or im.shape[1] != 3:
+            raise ValueError(f"{name}: expected shape (B, 3, H, W) RGB, got {tuple(im.shape)}")
+    if image1.shape != image2.shape:
+        raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
+    if not (float(data_range) > 0 and math.isfinite(float(data_range))):
+        raise ValueError(f"data_range: expected a finite value > 0, got {data_range!r}")
+    pair = torch.stack([image1, image2], dim=1) / float(data_range)
+    return {"images": pair.flip(2)}  # RGB -> BGR along the channel axis
+
+
+def images_from_ptlflow(inputs: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+    """The first two images of a ptlflow input dict as (B, 3, H, W) RGB on 0..255 (the range
+    the refiner's photometric fit and freespace detection read)."""
+    images = _ptlflow_images(inputs)
+    rgb = images[:, :2].flip(2) * 255.0
+    return rgb[:, 0], rgb[:, 1]
+
+
+# -- padding ------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Padding:
+    """Whole pixels added at each side of an image (``F.pad``'s (left, right, top, bottom)).
+
+    A pixel (u, v) of the image is (u + left, v + top) of the padded image.
+    """
+
+    left: int = 0
+    right: int = 0
+    top: int = 0
+    bottom: int = 0
+
+    def __post_init__(self) -> None:
+        for name in ("left", "right", "top", "bottom"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                raise ValueError(f"{name}: expected a whole number of pixels >= 0, got {value!r}")
+
+    @property
+    def is_zero(self) -> bool:
+        return self.left == self.right == self.top == self.bottom == 0
+
+    def padded_size(self, size: tuple[int, int]) -> tuple[int, int]:
+        """(H, W) of the image -> (H, W) of the padded image."""
+        return size[0] + self.top + self.bottom, size[1] + self.left + self.right
+
+    def pad(self, x: Tensor, *, mode: str = "replicate") -> Tensor:
+        """Pad the last two dimensions of ``x`` (any leading dimensions, e.g. ptlflow's
+        (B, 2, 3, H, W)). ``mode``: ``"replicate"`` (RAFT's, for images) or ``"constant"`` (zeros;
+        False for a bool mask)."""
+        if self.is_zero:
+            return x
+        pads = (self.left, self.right, self.top, self.bottom)
+        if mode == "constant" or x.dtype == torch.bool:
+            return F.pad(x, pads)
+        lead = x.shape[:-3] if x.dim() > 4 else None
+        y = x.reshape(-1, *x.shape[-3:]) if lead is not None else x
+        y = F.pad(y, pads, mode=mode)
+        return y.reshape(*lead, *y.shape[-3:]) if lead is not None else y
+
+    def unpad(self, x: Tensor) -> Tensor:
+        """Crop the padding off the last two dimensions of ``x`` (a view)."""
+        H, W = x.shape[-2:]
+        return x[..., self.top:H - self.bottom, self.left:W - self.right]
+
+    def camera(self, camera: Camera) -> Camera:
+        """The camera of the padded image (:meth:`fsof_torch.Camera.padded`)."""
+        return camera.padded(self.left, self.top, self.right, self.bottom)
+
+    def unpad_output(self, output: Any, padded_size: tuple[int, int]) -> Any:
+        """Crop every tensor of a network's output whose last two dimensions are the padded size
+        (flows, occlusions, confidences); coarser tensors (``flow_small``) stay on their grid."""
+        if self.is_zero:
+            return output
+        return _map_tensors(output, lambda t: self.unpad(t) if tuple(t.shape[-2:]) == tuple(padded_size) else t)
+
+
+class InputPadder:
+    """RAFT's padding rule: pad H and W up to a multiple of ``stride``.
+
+    Args:
+        stride: the multiple (8 for RAFT and torchvision's RAFT; some ptlflow models need 32 or 64).
+        mode: ``"sintel"`` (the padding split between both sides, the larger half right/bottom;
+            ptlflow's ``pad_two_side=True``) or ``"kitti"`` (columns split, all rows at the bottom).
+        pad_mode: how images are extended, ``"replicate"`` (RAFT's) or ``"constant"``.
+
+    Example:
+        >>> InputPadder(8, mode="kitti").padding((375, 1242))
+        Padding(left=3, right=3, top=0, bottom=1)
+    """
+
+    def __init__(self, stride: int = 8, *, mode: str = "sintel", pad_mode: str = "replicate") -> None:
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
+            raise ValueError(f"stride: expected a positive int, got {stride!r}")
+        if mode not in ("sintel", "kitti"):
+            raise ValueError(f"mode: expected 'sintel' or 'kitti', got {mode!r}")
+        if pad_mode not in ("replicate", "constant", "reflect"):
+            raise ValueError(f"pad_mode: expected 'replicate', 'constant' or 'reflect', got {pad_mode!r}")
+        self.stride = stride
+        self.mode = mode
+        self.pad_mode = pad_mode
+
+    def padding(self, size: tuple[int, int]) -> Padding:
+        """The :class:`Padding` of an image of ``size = (H, W)``."""
+        H, W = int(size[0]), int(size[1])
+        ph, pw = (-H) % self.stride, (-W) % self.stride
+        if self.mode == "sintel":
+            return Padding(pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
+        return Padding(pw // 2, pw - pw // 2, 0, ph)
+
+    def __repr__(self) -> str:
+        return f"InputPadder({self.stride}, mode={self.mode!r}, pad_mode={self.pad_mode!r})"

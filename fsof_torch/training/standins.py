@@ -1,0 +1,106 @@
+"""Stand-ins for the flow networks users bring: the I/O contracts of ptlflow's RAFT and of
+torchvision's RAFT, reproduced exactly (shapes, colour order, value range, padding), around the
+test net :class:`~fsof_torch.training.testnet.TinyRAFT`.
+
+They exist to test code that wraps such networks (:class:`fsof_torch.FreespaceRefined`, the
+refine job's ``--net``) without installing ptlflow or torchvision or downloading weights. Their
+flows are TinyRAFT's (random weights unless a state_dict is loaded): meaningless as estimates,
+exact as contracts. See :mod:`fsof_torch.refinement.contracts` for the contracts themselves.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from .._check import check_float_tensor, tracing
+from ..refinement.contracts import InputPadder
+from .testnet import TinyRAFT
+
+__all__ = ["PtlflowRAFTStandIn", "TorchvisionRAFTStandIn", "ptlflow_raft", "torchvision_raft"]
+
+
+class PtlflowRAFTStandIn(nn.Module):
+    """ptlflow's RAFT contract (in eval mode).
+
+    ``forward(inputs)`` with ``inputs["images"]`` (B, 2, 3, H, W), BGR in [0, 1], any H and W.
+    Like ptlflow's RAFT it pads the images to a multiple of 8 (replicating the border, split
+    between both sides), converts BGR to RGB and returns
+
+    - ``"flows"``: (B, 1, 2, H, W), the estimate at the input size (the padding cropped off);
+    - ``"flow_small"``: (B, 2, Hp/8, Wp/8), the estimate at 1/8 of the *padded* size, in pixels of
+      that grid (here: the full-resolution estimate averaged over 8×8 blocks, divided by 8).
+
+    Args:
+        net: the TinyRAFT inside (default: ``TinyRAFT(seed=seed, iters=iters)``).
+    """
+
+    flow_contract = "ptlflow"  # read by the refine job's --net (see docs/jobs.md)
+    output_stride = 8
+
+    def __init__(self, net: TinyRAFT | None = None, *, seed: int = 0, iters: int = 4) -> None:
+        super().__init__()
+        self.net = net if net is not None else TinyRAFT(seed=seed, iters=iters)
+        self.padder = InputPadder(self.output_stride, mode="sintel")
+
+    def forward(self, inputs: Mapping[str, Any]) -> dict[str, Tensor]:
+        if not isinstance(inputs, Mapping) or "images" not in inputs:
+            raise TypeError(f"inputs: expected ptlflow's dict {{'images': (B, 2, 3, H, W)}}, got {type(inputs).__name__}")
+        images = inputs["images"]
+        check_float_tensor(images, "inputs['images']")
+        if images.dim() != 5 or images.shape[1] != 2 or images.shape[2] != 3:
+            raise ValueError(f"inputs['images']: expected shape (B, 2, 3, H, W), got {tuple(images.shape)}")
+        if not tracing() and not (float(images.min()) >= 0.0 and float(images.max()) <= 1.0):
+            raise ValueError("inputs['images']: expected BGR values in [0, 1]")
+        H, W = images.shape[-2:]
+        padding = self.padder.padding((H, W))
+        rgb = padding.pad(images).flip(2) * 255.0      # BGR [0, 1] -> RGB 0..255, padded
+        up = self.net(rgb[:, 0], rgb[:, 1])[-1]        # (B, 2, Hp, Wp): divisible, TinyRAFT pads nothing
+        small = F.avg_pool2d(up, self.output_stride) / self.output_stride
+        return {"flows": padding.unpad(up)[:, None], "flow_small": small}
+
+
+class TorchvisionRAFTStandIn(nn.Module):
+    """torchvision's RAFT contract.
+
+    ``forward(image1, image2, num_flow_updates=4)`` with (B, 3, H, W) RGB in [-1, 1] (what the
+    transforms of ``Raft_Large_Weights`` produce) and H, W divisible by 8 (else a ValueError, as
+    torchvision raises); returns a list of ``num_flow_updates`` flows (B, 2, H, W), the last the
+    estimate.
+    """
+
+    flow_contract = "torchvision"  # read by the refine job's --net (see docs/jobs.md)
+
+    def __init__(self, net: TinyRAFT | None = None, *, seed: int = 0) -> None:
+        super().__init__()
+        self.net = net if net is not None else TinyRAFT(seed=seed)
+
+    def forward(self, image1: Tensor, image2: Tensor, num_flow_updates: int = 4) -> list[Tensor]:
+        for name, im in (("image1", image1), ("image2", image2)):
+            check_float_tensor(im, name)
+            if im.dim() != 4 or im.shape[1] != 3:
+                raise ValueError(f"{name}: expected shape (B, 3, H, W), got {tuple(im.shape)}")
+        if image1.shape != image2.shape:
+            raise ValueError(f"input images should have the same shape, instead got ({tuple(image1.shape)}) "
+                             f"!= ({tuple(image2.shape)})")
+        h, w = image1.shape[-2:]
+        if h % 8 or w % 8:
+            raise ValueError(f"input image H and W should be divisible by 8, instead got {h} (h) and {w} (w)")
+        if not tracing():
+            lo = min(float(image1.min()), float(image2.min()))
+            hi = max(float(image1.max()), float(image2.max()))
+            if lo < -1.0 or hi > 1.0:
+                raise ValueError(f"image1, image2: expected RGB values in [-1, 1], got [{lo:.4g}, {hi:.4g}]")
+        return self.net((image1 + 1.0) * 127.5, (image2 + 1.0) * 127.5, iters=num_flow_updates)
+
+
+def ptlflow_raft(seed: int = 0) -> PtlflowRAFTStandIn:
+    """Factory for the refine job's ``--net fsof_torch.training.standins:ptlflow_raft``."""
+    return PtlflowRAFTStandIn(seed=seed).eval()
+
+
+def torchvision_raft(seed: int = 0) -> TorchvisionRAFTStandIn:
+    """Factory for the refine job's ``--net fsof_torch.training.standins:torchvision_raft``."""
+    return TorchvisionRAFTStandIn(seed=seed).eval()

@@ -1,0 +1,144 @@
+"""The output folder of a run: its fingerprint, the manifest ``OUT/run.json``, the lock that keeps
+two runs from writing into one folder, and the cleaning of temporaries a killed run left.
+
+A run's *identity* is everything that decides its results: the input (a synthetic scene's preset,
+seed, size and noise; a folder's path, calibration and poses contents, camera options), the flow
+sources (test-net weights and user networks by their contents), the odometry variants and the
+refinement options, and the library's version. Its fingerprint is a hash of that identity.
+Each pair's record also stores the fingerprint of the pair's own inputs (the contents of its
+images and flow, road and ground-truth files, its poses).
+
+Resuming: a record counts as finished only when both fingerprints match the current run's.
+A rerun into a folder that holds a run of another identity stops with a message naming what
+differs (``--overwrite`` deletes that run's outputs first). The number of pairs is not part of
+the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+from typing import Any, Iterator
+
+from .inputs import JobError
+
+MANIFEST = "run.json"
+LOCK = ".refine.lock"
+REPORTS = ("report.md", "report.json")
+
+
+def fingerprint(identity: Any) -> str:
+    """A short stable hash (16 hex digits) of a JSON-able description."""
+    from fsof_torch.io import to_jsonable
+
+    text = json.dumps(to_jsonable(identity), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def _creatable(path: Path, option: str) -> None:
+    """The nearest existing parent of ``path`` is a folder (so ``path`` can be created)."""
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise JobError(f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created")
+            return
+
+
+def check_out_path(out: Path) -> None:
+    """``--out`` must be a folder or not exist yet (checked before any work)."""
+    if out.exists() and not out.is_dir():
+        raise JobError(f"--out: {str(out)!r} is a file; expected a folder (it is created if missing)")
+    _creatable(out, "--out")
+
+
+def check_json_path(path: Path | None) -> None:
+    """``--json`` must name a file that can be written (checked before any work)."""
+    if path is None:
+        return
+    if path.is_dir():
+        raise JobError(f"--json: {str(path)!r} is a folder; expected a file path such as {str(path / 'report.json')!r}")
+    _creatable(path, "--json")
+
+
+@contextlib.contextmanager
+def locked(out: Path) -> Iterator[None]:
+    """Hold an exclusive lock on ``out`` for the run (released when the process ends, even by
+    SIGKILL). A second run into the same folder stops with a message."""
+    out.mkdir(parents=True, exist_ok=True)
+    try:
+        import fcntl
+    except ImportError:  # pragma: no cover - not on POSIX: no lock, as before
+        yield
+        return
+    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            other = os.read(fd, 32).decode(errors="replace").strip() or "?"
+            raise JobError(f"--out: another refine run (pid {other}) is writing into {str(out)!r}; "
+                           f"wait for it, or give another --out") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield
+    finally:
+        os.close(fd)
+
+
+def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
+    """Human-readable paths where two identities differ."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        out = []
+        for k in sorted(set(old) | set(new), key=str):
+            out += _differences(old.get(k), new.get(k), f"{prefix}{k}" if not prefix else f"{prefix}.{k}")
+        return out
+    if old != new:
+        def short(x: Any) -> str:
+            text = json.dumps(x, sort_keys=True, default=str)
+            return text if len(text) <= 40 else text[:37] + "..."
+        return [f"{prefix or 'identity'}: {short(old)} -> {short(new)}"]
+    return []
+
+
+def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
+    """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
+    ``overwrite`` clear) a folder that holds another run; write the manifest. Call under
+    :func:`locked`. Returns the manifest (with ``fingerprint``)."""
+    from fsof_torch.io import remove_stale_temporaries, write_json
+
+    out.mkdir(parents=True, exist_ok=True)
+    remove_stale_temporaries(out)
+    fp = fingerprint(identity)
+    manifest_path = out / MANIFEST
+    old = None
+    if manifest_path.is_file():
+        try:
+            old = json.loads(manifest_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            old = {"fingerprint": None, "identity": "unreadable"}
+    if old is not None and old.get("fingerprint") != fp:
+        if not overwrite:
+            diffs = _differences(old.get("identity"), json.loads(json.dumps(identity, default=str)))
+            raise JobError(f"--out: {str(out)!r} holds the results of another run ("
+                           + "; ".join(diffs[:4]) + ("; ..." if len(diffs) > 4 else "")
+                           + "); give another --out, or --overwrite to replace them")
+        for sub in old.get("outputs", []):
+            target = (out / sub).resolve()
+            if target.parent == out.resolve() and target.is_dir():
+                shutil.rmtree(target)
+        for name in REPORTS:
+            with contextlib.suppress(FileNotFoundError):
+                (out / name).unlink()
+    elif old is None:
+        leftovers = [p.name for p in out.iterdir() if p.name != LOCK]
+        if leftovers and not overwrite:
+            raise JobError(f"--out: {str(out)!r} already holds files ({', '.join(sorted(leftovers)[:4])}) "
+                           f"but no refine run ({MANIFEST}); give a new or empty folder, or --overwrite "
+                           f"to write into it anyway")
+    manifest = {"fingerprint": fp, "identity": identity, "outputs": identity.get("outputs", [])}
+    write_json(manifest_path, manifest)
+    return manifest

@@ -1,0 +1,265 @@
+"""fsof_torch.refinement.contracts and the drop-in wrapper with the stand-ins of ptlflow's RAFT
+and torchvision's RAFT: shapes, colour order, padding, and refinement on the padded grid."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from typing import NamedTuple
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from fsof_torch import Camera, FreespaceRefined, FreespaceRefiner, displacement_flow, refine_flow
+from fsof_torch.refinement.contracts import (
+    DEFAULT_FLOW_KEYS,
+    InputPadder,
+    Padding,
+    collect_flows,
+    finest_flow,
+    images_from_ptlflow,
+    map_flows,
+    ptlflow_inputs,
+)
+from fsof_torch.training.standins import PtlflowRAFTStandIn, TorchvisionRAFTStandIn
+
+SIZE = (53, 94)  # neither side divisible by 8: padding (left, right, top, bottom) = (1, 1, 1, 2)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """One rendered pair at SIZE: images, road mask, camera (float32) and exact odometry."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=SIZE)
+    odo = {k: float(p["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+    return {"image1": p["image1"][None], "image2": p["image2"][None], "road": p["road"][None],
+            "camera": p["camera"].to(torch.float32), "odometry": odo}
+
+
+def _assert_refined(out: torch.Tensor, raw: torch.Tensor, expected: torch.Tensor, mask: torch.Tensor):
+    """Outside ``mask`` ``out`` is ``raw`` bit for bit; inside it is ``expected`` to 1e-4 px."""
+    m = mask.expand_as(out)
+    assert torch.equal(out[~m], raw[~m])
+    assert bool(m.any())
+    torch.testing.assert_close(out[m], expected[m], atol=1e-4, rtol=0)
+
+
+# -- structures ----------------------------------------------------------------------------------
+
+class Pair(NamedTuple):
+    low: torch.Tensor
+    up: torch.Tensor
+
+
+class TestStructures:
+    def test_collect_names_and_order(self):
+        a, b = torch.zeros(1, 2, 4, 6), torch.ones(1, 3, 2, 8, 12)
+        out = {"flows": b, "occs": torch.zeros(1, 1, 1, 8, 12), "flow_small": a}
+        names = [n for n, _ in collect_flows(out)]
+        assert names == ["flow['flows']", "flow['flow_small']"]
+        name, finest = finest_flow(collect_flows(out))
+        assert name == "flow['flows']" and torch.equal(finest, b[:, -1])
+
+    def test_map_keeps_containers_and_passes_other_values(self):
+        occ = torch.zeros(1, 1, 4, 6)
+        out = OrderedDict(flow_up=[torch.zeros(1, 2, 4, 6)], occ=occ, pair=Pair(torch.zeros(1, 2, 2, 3),
+                                                                                    torch.zeros(1, 2, 4, 6)))
+        mapped = map_flows(out, lambda f: f + 1, (*DEFAULT_FLOW_KEYS, "pair"))
+        assert type(mapped) is OrderedDict and mapped["occ"] is occ
+        assert isinstance(mapped["pair"], Pair) and float(mapped["pair"].low.min()) == 1.0
+        stack = torch.zeros(2, 3, 2, 4, 6)
+        assert torch.equal(map_flows(stack, lambda f: f + 1), stack + 1)
+
+    def test_errors_name_the_place(self):
+        with pytest.raises(ValueError, match=r"flow\['flows'\]: expected at least one prediction .* N = 0"):
+            collect_flows({"flows": torch.zeros(1, 0, 2, 4, 6)})
+        with pytest.raises(ValueError, match=r"flow\[1\]: expected a flow of shape"):
+            collect_flows([torch.zeros(1, 2, 4, 6), torch.zeros(1, 3, 4, 6)])
+        with pytest.raises(ValueError, match=r"expected B, H and W of at least 1"):
+            collect_flows(torch.zeros(1, 2, 0, 6))
+        with pytest.raises(ValueError, match="non-empty list"):
+            collect_flows([])
+        with pytest.raises(TypeError, match="got str"):
+            collect_flows("flow")
+
+    def test_refiner_rejects_empty_ptlflow_stack(self, scene):
+        with pytest.raises(ValueError, match=r"N = 0"):
+            refine_flow({"flows": torch.zeros(1, 0, 2, *SIZE)}, scene["road"], scene["camera"], scene["odometry"])
+
+
+# -- ptlflow inputs --------------------------------------------------------------------------------
+
+class TestPtlflowInputs:
+    def test_bgr_unit_range_and_back(self):
+        g = torch.Generator().manual_seed(0)
+        im1, im2 = (torch.rand(2, 3, 5, 7, generator=g) * 255 for _ in range(2))
+        inputs = ptlflow_inputs(im1, im2)
+        images = inputs["images"]
+        assert images.shape == (2, 2, 3, 5, 7)
+        # channel 0 is blue (RGB channel 2), scaled to [0, 1]
+        torch.testing.assert_close(images[:, 0, 0], im1[:, 2] / 255)
+        torch.testing.assert_close(images[:, 1, 2], im2[:, 0] / 255)
+        back1, back2 = images_from_ptlflow(inputs)
+        torch.testing.assert_close(back1, im1)
+        torch.testing.assert_close(back2, im2)
+
+    def test_errors(self):
+        with pytest.raises(ValueError, match=r"inputs\['images'\]: expected shape \(B, 2, 3, H, W\)"):
+            images_from_ptlflow({"images": torch.zeros(1, 3, 5, 7)})
+        with pytest.raises(ValueError, match=r"expected BGR values in \[0, 1\]"):
+            images_from_ptlflow({"images": torch.full((1, 2, 3, 5, 7), 255.0)})
+        with pytest.raises(ValueError, match="image2: expected the shape of image1"):
+            ptlflow_inputs(torch.zeros(1, 3, 5, 7), torch.zeros(1, 3, 5, 8))
+
+
+# -- padding and the camera --------------------------------------------------------------------------
+
+class TestPadding:
+    def test_raft_rules(self):
+        # RAFT's KITTI padder: 375x1242 -> 376x1248, (left, right, top, bottom) = (3, 3, 0, 1)
+        assert InputPadder(8, mode="kitti").padding((375, 1242)) == Padding(3, 3, 0, 1)
+        assert InputPadder(8).padding(SIZE) == Padding(1, 1, 1, 2)
+        assert InputPadder(8, mode="kitti").padding(SIZE) == Padding(1, 1, 0, 3)
+        assert InputPadder(8).padding((48, 64)).is_zero
+
+    def test_pad_unpad_any_leading_dims(self):
+        x = torch.arange(2 * 2 * 3 * 5 * 7, dtype=torch.float32).reshape(2, 2, 3, 5, 7)
+        p = Padding(1, 2, 3, 0)
+        y = p.pad(x)
+        assert y.shape == (2, 2, 3, 8, 10)
+        assert torch.equal(p.unpad(y), x)
+        assert torch.equal(y[..., 0, 0], x[..., 0, 0])  # replicated corner
+        m = p.pad(torch.ones(1, 1, 5, 7, dtype=torch.bool))
+        assert m.dtype == torch.bool and int(m.sum()) == 35
+
+    def test_camera_follows_padding(self, kitti_K):
+        """The model flow of the padded camera on the padded grid is the original one, shifted."""
+        cam = Camera(kitti_K, 1.65, 0.01, -0.02)
+        H, W = 60, 100
+        cam = cam.scaled(W / 1242, H / 375)
+        left, top, right, bottom = 3, 2, 5, 1
+        padded = cam.padded(left, top, right, bottom)
+        expected_K = cam.K.clone()
+        expected_K[:, 0, 2] += left
+        expected_K[:, 1, 2] += top
+        torch.testing.assert_close(padded.K, expected_K, rtol=0, atol=1e-12)
+        f0, v0 = displacement_flow(cam, 0.1, 1.2, 0.02, (H, W))
+        f1, v1 = displacement_flow(padded, 0.1, 1.2, 0.02, (H + top + bottom, W + left + right))
+        crop = (..., slice(top, top + H), slice(left, left + W))
+        assert torch.equal(v1[crop], v0)
+        torch.testing.assert_close(f1[crop], f0, rtol=0, atol=1e-9)
+        back = padded.cropped(left, top, right, bottom)
+        torch.testing.assert_close(back.K, cam.K, rtol=0, atol=1e-12)
+        assert cam.padded(0, 0) is cam
+
+    @pytest.mark.parametrize("bad, err", [(-1, ValueError), (1.5, TypeError), (True, TypeError)])
+    def test_camera_padding_errors(self, kitti_K, bad, err):
+        with pytest.raises(err, match="left: expected"):
+            Camera(kitti_K, 1.65).padded(bad, 0)
+        with pytest.raises(err, match="left: expected"):
+            Camera(kitti_K, 1.65).cropped(bad, 0)
+
+
+# -- the stand-ins reproduce the contracts ----------------------------------------------------------
+
+class TestStandIns:
+    def test_ptlflow_shapes(self, scene):
+        net = PtlflowRAFTStandIn(iters=2).eval()
+        with torch.no_grad():
+            out = net(ptlflow_inputs(scene["image1"], scene["image2"]))
+        assert set(out) == {"flows", "flow_small"}
+        assert out["flows"].shape == (1, 1, 2, *SIZE)
+        assert out["flow_small"].shape == (1, 2, 56 // 8, 96 // 8)  # 1/8 of the padded 56x96
+        with pytest.raises(ValueError, match=r"\[0, 1\]"):  # 0..255 RGB is not ptlflow's convention
+            net({"images": torch.stack([scene["image1"], scene["image2"]], 1)})
+
+    def test_ptlflow_colour_order_matters(self, scene):
+        net = PtlflowRAFTStandIn(iters=2).eval()
+        inputs = ptlflow_inputs(scene["image1"], scene["image2"])
+        swapped = {"images": inputs["images"].flip(2)}  # RGB where BGR is expected
+        with torch.no_grad():
+            assert not torch.equal(net(inputs)["flows"], net(swapped)["flows"])
+
+    def test_torchvision_needs_divisible_sizes(self, scene):
+        net = TorchvisionRAFTStandIn().eval()
+        x = scene["image1"] / 127.5 - 1
+        with pytest.raises(ValueError, match="divisible by 8, instead got 53 .h. and 94 .w."):
+            net(x, x)
+        with torch.no_grad():
+            flows = net(F.pad(x, (1, 1, 1, 2)), F.pad(x, (1, 1, 1, 2)), num_flow_updates=3)
+        assert isinstance(flows, list) and len(flows) == 3 and flows[-1].shape == (1, 2, 56, 96)
+
+
+# -- the wrapper on the padded grid -----------------------------------------------------------------
+
+class TestFreespaceRefinedContracts:
+    def test_ptlflow_dict_in_and_out(self, scene):
+        net = PtlflowRAFTStandIn(iters=2).eval()
+        model = FreespaceRefined(net, FreespaceRefiner(), pad=InputPadder(8))
+        inputs = ptlflow_inputs(scene["image1"], scene["image2"])
+        cam, road, odo = scene["camera"], scene["road"], scene["odometry"]
+        with torch.no_grad():
+            raw = net(inputs)  # the net pads internally
+            out, info = model(inputs, mask=road, camera=cam, odometry=odo, return_info=True)
+        assert set(out) == {"flows", "flow_small"} and out["flows"].shape == raw["flows"].shape
+        assert out["flow_small"].shape == raw["flow_small"].shape
+        # full size: the refinement of the unpadded flow with the unpadded camera
+        expected = refine_flow(raw["flows"][:, 0], road, cam, odo).flow
+        _assert_refined(out["flows"][:, 0], raw["flows"][:, 0], expected, road)
+        # flow_small: the model flow of the padded camera scaled to 1/8, inside the mask padded
+        # and reduced to the 1/8 pixels whose 8x8 footprint is all road
+        pad = Padding(1, 1, 1, 2)
+        K = cam.K.clone()
+        K[:, 0, 0] /= 8
+        K[:, 1, 1] /= 8
+        K[:, 0, 2] = (K[:, 0, 2] + pad.left + 0.5) / 8 - 0.5
+        K[:, 1, 2] = (K[:, 1, 2] + pad.top + 0.5) / 8 - 0.5
+        small_size = tuple(raw["flow_small"].shape[-2:])
+        model_small, valid = displacement_flow(Camera(K, cam.height, cam.roll, cam.pitch), odo["x_d"],
+                                               odo["z_d"], odo["yaw"], small_size)
+        footprint = F.avg_pool2d(F.pad(road.float(), (1, 1, 1, 2)), 8) == 1.0
+        _assert_refined(out["flow_small"], raw["flow_small"], model_small, footprint & valid)
+        # the info is given at the input size, with the input's camera
+        assert info.mask.shape == (1, 1, *SIZE) and info.weight.shape == (1, 1, *SIZE)
+        torch.testing.assert_close(info.camera.K, cam.K, rtol=0, atol=1e-5)
+        assert torch.equal(info.mask, info.mask & road)
+
+    def test_torchvision_list(self, scene):
+        net = TorchvisionRAFTStandIn().eval()
+        model = FreespaceRefined(net, FreespaceRefiner(), pad=InputPadder(8), image_range=(-1.0, 1.0))
+        x1, x2 = scene["image1"] / 127.5 - 1, scene["image2"] / 127.5 - 1
+        cam, road, odo = scene["camera"], scene["road"], scene["odometry"]
+        pad = Padding(1, 1, 1, 2)
+        with torch.no_grad():
+            raw = [pad.unpad(f) for f in net(pad.pad(x1), pad.pad(x2), num_flow_updates=3)]
+            out = model(x1, x2, mask=road, camera=cam, odometry=odo, num_flow_updates=3)
+        assert isinstance(out, list) and len(out) == 3
+        for r, o in zip(raw, out):
+            assert o.shape == (1, 2, *SIZE)
+            _assert_refined(o, r, refine_flow(r, road, cam, odo).flow, road)
+
+    def test_refiner_takes_ptlflow_input_dict_for_the_image_fit(self, scene):
+        """images= may be ptlflow's input dict: the same result as the RGB 0..255 pair."""
+        road, cam = scene["road"], scene["camera"]
+        flow = displacement_flow(cam, scene["odometry"]["x_d"], scene["odometry"]["z_d"],
+                                 scene["odometry"]["yaw"], SIZE)[0]
+        refiner = FreespaceRefiner(fit="photometric", warn=False)
+        pair = (scene["image1"], scene["image2"])
+        a = refiner(flow, road, cam, images=pair)
+        b = refiner(flow, road, cam, images=ptlflow_inputs(*pair))
+        for k in ("x_d", "z_d", "yaw"):
+            torch.testing.assert_close(a.odometry[k], b.odometry[k], rtol=1e-5, atol=1e-6)
+
+    def test_wrapper_errors(self, scene):
+        net = TorchvisionRAFTStandIn().eval()
+        with pytest.raises(TypeError, match="pad: expected an InputPadder"):
+            FreespaceRefined(net, pad=8)
+        with pytest.raises(ValueError, match="image_range"):
+            FreespaceRefined(net, image_range=(1.0, 1.0))
+        model = FreespaceRefined(net, pad=InputPadder(8))
+        with pytest.raises(TypeError, match="inputs: expected"):
+            model(scene["image1"], camera=scene["camera"], mask=scene["road"])
+        with pytest.raises(ValueError, match="mask: expected the images' size"):
+            x = scene["image1"] / 127.5 - 1
+            model(x, x, camera=scene["camera"], mask=scene["road"][..., :-1])

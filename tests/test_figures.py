@@ -1,0 +1,164 @@
+"""fsof_torch.evaluation.figures: every figure the refine job writes has a title, a legend or a
+colour bar, and axes where they apply (checked on the matplotlib objects), and draws the road
+as an outline that leaves the pixels under it as they are."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+pytest.importorskip("matplotlib")
+
+from fsof_torch.evaluation.figures import (  # noqa: E402
+    clip_summary_figure,
+    colour_wheel,
+    pair_figure,
+    road_outline,
+    save_figure,
+)
+from fsof_torch.evaluation.visualize import flow_to_color  # noqa: E402
+
+H, W = 30, 90
+
+
+def _pair():
+    g = torch.Generator().manual_seed(0)
+    flow = torch.randn(2, H, W, generator=g) * 3
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 18:, 10:80] = True
+    images = tuple(torch.rand(3, H, W, generator=g) * 255 for _ in range(2))
+    err = torch.rand(1, H, W, generator=g) * 8
+    valid = torch.ones(1, H, W, dtype=torch.bool)
+    valid[0, :3] = False
+    return flow, road, images, err, valid
+
+
+def _image_axes(fig):
+    return [ax for ax in fig.axes if ax.get_images() and ax.get_label() != "colour wheel"
+            and not hasattr(ax, "_colorbar")]
+
+
+@pytest.fixture
+def figure():
+    flow, road, images, err, valid = _pair()
+    fig = pair_figure(images=images, flows={"before": flow, "after, odometry 'fit'": flow * 0.5},
+                      errors={"before": (err, valid), "after, odometry 'fit'": (err * 0.1, valid)},
+                      road=road, max_flow=6.0, error_vmax=5.0, error_label="end-point error (px)",
+                      title="pair 000000: before and after")
+    yield fig
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_pair_figure_parts(figure):
+    assert figure.get_suptitle() == "pair 000000: before and after"
+    panels = _image_axes(figure)
+    assert len(panels) == 6  # images, before, after; flow row and error row
+    for ax in panels:
+        assert ax.get_title()
+        assert len(ax.get_xticks()) >= 2 and len(ax.get_yticks()) >= 2
+    assert {ax.get_xlabel() for ax in panels} == {"u (px)", ""}
+    assert {ax.get_ylabel() for ax in panels} == {"v (px)", ""}
+    titles = [ax.get_title() for ax in panels]
+    assert "flow, before" in titles and "end-point error, after, odometry 'fit'" in titles
+    # the colour-wheel legend of the flow images, with the saturation
+    (wheel,) = [ax for ax in figure.axes if ax.get_label() == "colour wheel"]
+    assert "6 px" in wheel.get_title() and wheel.get_xlabel() == "u (px)" and wheel.get_ylabel() == "v (px)"
+    # the error maps' colour bar: the unit, the saturation value, the arrow past it
+    errors = [ax.get_images()[0] for ax in panels if ax.get_title().startswith("end-point error")]
+    bars = {id(im.colorbar) for im in errors if im.colorbar is not None}
+    assert len(bars) == 1
+    bar = next(im.colorbar for im in errors if im.colorbar is not None)
+    assert "end-point error (px)" in bar.ax.get_ylabel() and "saturates at 5" in bar.ax.get_ylabel()
+    assert bar.extend == "max" and all(im.get_clim() == (0.0, 5.0) for im in errors)
+    # the legend names the road outline and the pixels without a value
+    (legend,) = figure.legends
+    texts = [t.get_text() for t in legend.get_texts()]
+    assert "road mask (outline)" in texts and any("no value" in t for t in texts)
+
+
+def test_road_is_an_outline_not_a_tint(figure):
+    """The image panels show the image's own pixels (no colour blended in); the road is a line."""
+    from matplotlib.collections import LineCollection
+
+    flow, road, images, _, _ = _pair()
+    panels = _image_axes(figure)
+    first = panels[0]
+    assert first.get_title() == "image 1 (time t)"
+    shown = torch.from_numpy(first.get_images()[0].get_array().copy())
+    assert torch.equal(shown, images[0].round().to(torch.uint8).permute(1, 2, 0))
+    flow_panel = next(ax for ax in panels if ax.get_title() == "flow, before")
+    colours = torch.from_numpy(flow_panel.get_images()[0].get_array().copy())
+    assert torch.equal(colours, flow_to_color(flow, 6.0)[0].permute(1, 2, 0))
+    for ax in panels:
+        lines = [c for c in ax.collections if isinstance(c, LineCollection)]
+        assert len(lines) == 2  # a black line under a white dashed one
+        assert all(len(c.get_facecolor()) == 0 or c.get_facecolor()[0][3] == 0 for c in lines)
+
+
+def test_road_outline_traces_the_mask():
+    road = torch.zeros(1, 10, 12, dtype=torch.bool)
+    road[0, 4:8, 2:9] = True
+    (poly,) = road_outline(road)
+    assert poly.shape[1] == 2 and (poly[0] == poly[-1]).all()
+    assert poly[:, 0].min() == 2 and poly[:, 0].max() == 8 and poly[:, 1].min() == 4 and poly[:, 1].max() == 7
+
+
+def test_colour_wheel_is_the_flow_coding():
+    wheel = colour_wheel(4.0, size=21)
+    assert wheel.shape == (21, 21, 3) and wheel.dtype == torch.uint8
+    # bottom centre: flow (0, 4) px, full saturation downwards, yellow in Middlebury colours
+    down = flow_to_color(torch.tensor([[[0.0]], [[4.0]]], dtype=torch.float64), 4.0)[0, :, 0, 0].tolist()
+    assert wheel[20, 10].tolist() == down and down[0] == 255 and down[2] == 0
+    assert wheel[0, 0].tolist() == [255, 255, 255]  # outside the disc
+
+
+def _records():
+    recs = []
+    for i in range(3):
+        for v, shift in (("given", 0.0), ("fit", 0.01)):
+            recs.append({"pair": f"{i:06d}", "source": "dis", "variant": v,
+                         "before": {"epe_road": 2.0 + i}, "after": {"epe_road": 0.1 * i + shift},
+                         "odometry": {"x_d": 0.0 + shift, "z_d": 1.2 - shift, "yaw": 0.01, "y_d": 0.002 * i},
+                         "roll": 0.01, "pitch": -0.02, "odometry_given": {"x_d": 0.0, "z_d": 1.2, "yaw": 0.01}})
+    return recs
+
+
+def test_clip_summary_parts():
+    import matplotlib.pyplot as plt
+
+    fig = clip_summary_figure(_records(), error_key="epe_road", error_label="end-point error, road (px)",
+                              title="clip: dis")
+    try:
+        assert fig.get_suptitle() == "clip: dis"
+        visible = [ax for ax in fig.axes if ax.get_visible()]
+        titles = [ax.get_title() for ax in visible]
+        # every odometry field of the records shows up, a new one (y_d) included, and the mounting
+        assert len(visible) == 7
+        assert titles[0] == "error before and after refinement"
+        assert any("vertical motion y_d" in t for t in titles)
+        assert any("camera roll" in t for t in titles) and any("camera pitch" in t for t in titles)
+        for ax in visible:
+            assert ax.get_title() and ax.get_ylabel() and ax.get_legend() is not None
+        assert "end-point error, road (px)" == visible[0].get_ylabel()
+        bottom = [ax for ax in visible if ax.get_xlabel()]
+        assert bottom and all(ax.get_xlabel() == "pair" for ax in bottom)
+        labels = [t.get_text() for t in visible[0].get_legend().get_texts()]
+        assert labels == ["before (prediction)", "after, given", "after, fit"]
+        # yaw in degrees, with the given odometry as a reference line
+        yaw = next(ax for ax in visible if "yaw" in ax.get_title())
+        assert yaw.get_ylabel() == "yaw (deg)"
+        (fit_line,) = [ln for ln in yaw.get_lines() if ln.get_label() == "fit"]
+        assert fit_line.get_ydata()[0] == pytest.approx(0.01 * 180 / 3.141592653589793)
+        assert "given (odometry / poses)" in [t.get_text() for t in yaw.get_legend().get_texts()]
+    finally:
+        plt.close(fig)
+
+
+def test_save_figure_writes_png_and_closes(tmp_path, figure):
+    import matplotlib.pyplot as plt
+
+    path = save_figure(figure, tmp_path / "f.png")
+    assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert not plt.fignum_exists(figure.number)
