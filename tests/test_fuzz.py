@@ -296,7 +296,7 @@ TABLE: list[Entry] = [
     *[Entry(f"photometric_error[{k}]", (lambda k: lambda image1, image2, flow, mask: P.photometric_error(
         image1, image2, flow, mask, kind=k, return_count=True))(k),
         {"image1": "image", "image2": "image", "flow": "flow", "mask": "mask"}) for k in ("l1", "ssim", "census")],
-    Entry("photometric_error_map", lambda image1, image2, flow: P.photometric_error_map(image1, image2, flow, kind="census"),
+    Entry("photometric_error_map", lambda image1, image2, flow: P.photometric_error_map(image1, image2, flow, kind="soft_census"),
           {"image1": "image", "image2": "image", "flow": "flow"}),
     Entry("PhotometricError", lambda image1, image2, flow: P.PhotometricError(kind="ssim", window=3)(image1, image2, flow),
           {"image1": "image", "image2": "image", "flow": "flow"}),

@@ -14,7 +14,9 @@ from fsof_torch.evaluation.photometric import (
     photometric_error_map,
 )
 
-KINDS = ["l1", "ssim", "census"]
+KINDS = ["l1", "ssim", "census", "soft_census"]
+# the differentiable kinds (the census distance counts bits)
+SMOOTH_KINDS = ["l1", "ssim", "soft_census"]
 
 
 def _smooth_image(B=1, H=32, W=48, seed=0, dtype=torch.float32):
@@ -209,7 +211,7 @@ def test_windowed_kinds_erode_out_of_bounds():
 
 # --- empty masks and gradients -----------------------------------------------------------------
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", SMOOTH_KINDS)
 def test_empty_mask_is_zero_with_count_zero(kind):
     i1, i2, flow = _shifted_pair(B=2)
     flow = flow.clone().requires_grad_()
@@ -221,7 +223,7 @@ def test_empty_mask_is_zero_with_count_zero(kind):
     assert torch.isfinite(flow.grad).all()
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", SMOOTH_KINDS)
 def test_all_invalid_warp_has_finite_gradient(kind):
     i1, i2, flow = _shifted_pair()
     flow = torch.full_like(flow, 500.0).requires_grad_()
@@ -231,7 +233,7 @@ def test_all_invalid_warp_has_finite_gradient(kind):
     assert torch.isfinite(flow.grad).all()
 
 
-@pytest.mark.parametrize("kind", KINDS)
+@pytest.mark.parametrize("kind", SMOOTH_KINDS)
 def test_gradcheck(kind):
     i1, i2, flow = _shifted_pair(dtype=torch.float64)
     i1, i2 = i1[..., :8, :9].contiguous(), i2[..., :8, :9].contiguous()
@@ -344,3 +346,27 @@ def test_ssim_on_images_smaller_than_its_window(size):
         assert photometric_error(image, image, flow, kind="ssim", window=3).item() == pytest.approx(0.0, abs=1e-6)
     for kind in ("l1", "census"):  # no window padding by reflection: any size
         assert photometric_error(image, image, flow, kind=kind).item() == 0.0
+
+
+def test_census_distance_is_the_hamming_distance_of_census_bits():
+    """Against a census written out here: bits I(q) > I(p) over the 7x7 window, image 1 against
+    image 2 warped by the flow, Hamming distance / 48, on pixels whose window stays in bounds."""
+    g = torch.Generator().manual_seed(3)
+    i1 = torch.rand(1, 1, 20, 24, generator=g, dtype=torch.float64) * 255
+    i2 = torch.roll(i1, shifts=2, dims=-1) * 0.8 + 10  # shifted right by 2 px, darker
+    flow = torch.zeros(1, 2, 20, 24, dtype=torch.float64)
+    flow[:, 0] = 2.0
+    err, valid = photometric_error_map(i1, i2, flow, kind="census")
+    a = i1[0, 0].numpy()
+    w = torch.roll(i2, shifts=-2, dims=-1)[0, 0].numpy()  # image 2 warped back (exact on the interior)
+
+    def bits(x):
+        p = np.pad(x, 3, mode="edge")
+        return np.stack([p[3 + dy:23 + dy, 3 + dx:27 + dx] > x
+                         for dy in range(-3, 4) for dx in range(-3, 4) if (dy, dx) != (0, 0)])
+
+    ref = (bits(a) != bits(w)).sum(0) / 48.0
+    v = valid[0, 0].numpy()
+    assert v.sum() > 50 and not v[:, -5:].any()  # the window's samples must stay inside image 2
+    np.testing.assert_allclose(err[0, 0].numpy()[v], ref[v])
+    assert float(err[0, 0][valid[0, 0]].max()) == 0.0  # a monotonic brightness change costs nothing

@@ -8,14 +8,19 @@ Three kinds of ρ (DESIGN.md §6):
   images come in (the paper's table of RAFT/ARFlow photometric errors).
 - ``"ssim"``: the structural dissimilarity (1 − SSIM) / 2 in [0, 1], mean over channels, from
   ``kornia.metrics.ssim`` (Gaussian window of σ = 1.5, ``window`` taps, reflect padding).
-- ``"census"``: the soft Hamming distance between census transforms of the grey images, as in
-  UFlow and ARFlow's ternary loss: per neighbour offset t = (I(q) − I(p)) / sqrt(0.81 + (I(q) −
-  I(p))²) on the 0–255 scale, then mean over the (2r+1)² offsets of d² / (0.1 + d²) with
-  d = t_1 − t_2. In [0, 1).
+- ``"census"``: the census distance (DESIGN.md §6): the census transform of the grey images (one
+  bit per neighbour q of the (2r+1)² window: I(q) > I(p)), image 1 against image 2 warped by the
+  flow, as the Hamming distance over the (2r+1)² − 1 neighbours (48 for r = 3). In [0, 1];
+  indifferent to any monotonic change of brightness between the frames. Not differentiable: the
+  measure to judge a flow by on real images.
+- ``"soft_census"``: the soft Hamming distance between soft census transforms, as in UFlow and
+  ARFlow's ternary loss: per neighbour offset t = (I(q) − I(p)) / sqrt(0.81 + (I(q) − I(p))²) on
+  the 0–255 scale, then mean over the (2r+1)² offsets of d² / (0.1 + d²) with d = t_1 − t_2. In
+  [0, 1); differentiable (the training loss's census term).
 
 Which pixels count. A pixel is valid when its sample point p + F(p) lies inside the second image
 (:func:`fsof_torch.warp.warp_backward`'s ``in_bounds``) and the caller's ``mask`` is True there.
-For ``"ssim"`` and ``"census"``, whose value at p looks at a window around p, the in-bounds map
+For ``"ssim"`` and the census kinds, whose value at p looks at a window around p, the in-bounds map
 is first eroded by the window radius, so that no value mixes in the warp's padding (the image
 border itself is padded by reflection or replication, not dropped).
 
@@ -45,7 +50,7 @@ from .warp import warp_backward
 
 __all__ = ["photometric_error", "photometric_error_map", "census_transform", "PhotometricError"]
 
-_KINDS = ("l1", "ssim", "census")
+_KINDS = ("l1", "ssim", "census", "soft_census")
 
 
 def _grey(image: Tensor) -> Tensor:
@@ -106,7 +111,8 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         image2: (B, C, H, W) frame t+1, same range.
         flow: (B, 2, H, W) forward flow t -> t+1 in pixels (channel 0 = u).
         mask: optional (B, 1, H, W) bool, the pixels to evaluate (e.g. the road).
-        kind: ``"l1"`` (grey levels, 0-255 scale), ``"ssim"`` ((1 - SSIM)/2) or ``"census"``.
+        kind: ``"l1"`` (grey levels, 0-255 scale), ``"ssim"`` ((1 - SSIM)/2), ``"census"`` (the
+            Hamming distance of census transforms / the neighbour count) or ``"soft_census"``.
         data_range: the images' range (255.0 or 1.0): a finite number > 0. Values outside
             [0, 1.01 * data_range], and NaN or inf pixels anywhere in either image, raise
             ValueError naming the image (a NaN pixel would spread through the warp's taps and the
@@ -164,6 +170,13 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
                 s = ssim(im1, warped, window, max_val=float(data_range), eps=0.0)
             error = ((1.0 - s) * 0.5).clamp(0.0, 1.0).mean(dim=1, keepdim=True)
             valid = _erode(valid, window // 2)
+        elif kind == "census":
+            # the sign of each neighbour's soft census value is its census bit (0 at the centre)
+            b1 = census_transform(im1, radius=census_radius, data_range=data_range) > 0
+            b2 = census_transform(warped, radius=census_radius, data_range=data_range) > 0
+            n = (2 * census_radius + 1) ** 2 - 1
+            error = (b1 != b2).sum(dim=1, keepdim=True).to(work) / n
+            valid = _erode(valid, census_radius)
         else:
             t1 = census_transform(im1, radius=census_radius, data_range=data_range)
             t2 = census_transform(warped, radius=census_radius, data_range=data_range)
