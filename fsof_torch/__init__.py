@@ -21,6 +21,8 @@ from .refinement import fusion
 from .training import losses, testnet
 from .geometry.camera import Camera, mounting_matrix, pitch_matrix, read_kitti_calibration, roll_matrix
 from .geometry.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
+from .refinement.estimators import FlowMotionEstimator, ImageMotionEstimator
+from .refinement.gate import ImageGate
 from .estimation.flow_fit import (
     FitResult,
     RoadFit,
@@ -157,6 +159,9 @@ __all__ = [
     "ROAD_MODELS",
     "fit_road",
     "fit_image",
+    "FlowMotionEstimator",
+    "ImageMotionEstimator",
+    "ImageGate",
     "decompose_homography",
     "plane_from_pose",
     "road_motion",

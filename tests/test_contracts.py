@@ -196,7 +196,7 @@ class TestStandIns:
 class TestFreespaceRefinedContracts:
     def test_ptlflow_dict_in_and_out(self, scene):
         net = PtlflowRAFTStandIn(iters=2).eval()
-        model = FreespaceRefined(net, FreespaceRefiner(), pad=InputPadder(8))
+        model = FreespaceRefined(net, FreespaceRefiner(fit="flow", gate=None), pad=InputPadder(8))
         inputs = ptlflow_inputs(scene["image1"], scene["image2"])
         cam, road, odo = scene["camera"], scene["road"], scene["odometry"]
         with torch.no_grad():
@@ -227,7 +227,7 @@ class TestFreespaceRefinedContracts:
 
     def test_torchvision_list(self, scene):
         net = TorchvisionRAFTStandIn().eval()
-        model = FreespaceRefined(net, FreespaceRefiner(), pad=InputPadder(8), image_range=(-1.0, 1.0))
+        model = FreespaceRefined(net, FreespaceRefiner(fit="flow", gate=None), pad=InputPadder(8), image_range=(-1.0, 1.0))
         x1, x2 = scene["image1"] / 127.5 - 1, scene["image2"] / 127.5 - 1
         cam, road, odo = scene["camera"], scene["road"], scene["odometry"]
         pad = Padding(1, 1, 1, 2)

@@ -413,7 +413,7 @@ class StandIn(nn.Module):
 @pytest.mark.parametrize("kind", ["tensor", "list", "pair", "arflow", "ptlflow"])
 def test_wrapper_each_structure(kind):
     net = StandIn(kind)
-    model = FreespaceRefined(net, FreespaceRefiner())
+    model = FreespaceRefined(net, FreespaceRefiner(fit="flow", gate=None))
     images = torch.zeros(2, 3, H, W)
     _, mask, cam, gt = make_case(B=2)
     raw = net(images, images)
@@ -441,7 +441,8 @@ def test_wrapper_with_the_test_net():
     from fsof_torch.training.testnet import TinyRAFT
 
     net = TinyRAFT(seed=0)
-    model = FreespaceRefined(net, FreespaceRefiner())
+    # odometry used as given (no estimation from these unrelated images), no gate: the model replaces the mask
+    model = FreespaceRefined(net, FreespaceRefiner(fit="flow", gate=None))
     g = torch.Generator().manual_seed(0)
     image1 = torch.rand(1, 3, H, W, generator=g) * 255
     image2 = torch.roll(image1, 1, dims=-1)

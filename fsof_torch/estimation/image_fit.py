@@ -242,12 +242,10 @@ def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
 
 
 def _start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
-    """Start values (B, P) float64: zero motion (the default), ``init`` and each of ``starts``."""
-    out = [default]
-    for s in ([init] if init is not None else []) + list(starts):
-        values, _ = start_values(model, s, camera, default)
-        out.append(values)
-    return out
+    """Start values (B, P) float64: ``init`` over zero motion (the base), then each of ``starts``
+    over the base (a start gives some parameters; the others are the base's)."""
+    base, _ = start_values(model, init, camera, default)
+    return [base] + [start_values(model, s, camera, base)[0] for s in starts]
 
 
 @torch.no_grad()
@@ -255,8 +253,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               model: str | RoadModel = "plane", fixed: object = None, init: Any = None,
               starts: Sequence[Any] = (), prior: Mapping[str, tuple[Any, Any]] | str | None = "calibration",
               bounds: str | tuple[Tensor, Tensor] | None = "physical", levels: int | None = None,
-              min_size: int = 32, max_iter: int = 12, tol: float = 1e-6, resolution: float = 0.02,
-              smooth_sigma: float = 1.0, highpass: float | None = None, band_levels: int = 99,
+              min_size: int = 16, max_iter: int = 12, tol: float = 1e-6, resolution: float = 0.02,
+              smooth_sigma: float = 1.0, highpass: float | None = 5.0, band_levels: int = 2,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, data_range: float = 255.0,
@@ -272,10 +270,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         model: ``"plane"`` (default), ``"paper"`` or ``"homography"``.
         fixed: parameter names held at their start (default: none for ``"plane"`` and
             ``"homography"``, the pitch for ``"paper"``).
-        init, starts: start candidates besides zero motion: :class:`RoadFit` results of the same
-            model or dicts of its parameters (e.g. a fit to a network's flow, the previous frame's
-            motion, a constant-velocity prediction). Each is tried at the coarsest level; the one
-            with the lowest robust image cost goes on.
+        init: the first start (a :class:`RoadFit` of the same model or a dict of any of its
+            parameters; the others at zero motion and the camera's roll and pitch); fixed
+            parameters stay at it.
+        starts: further start candidates, each a dict or fit whose parameters override ``init``'s
+            (e.g. a fit to a network's flow, the previous frame's motion, a constant-velocity
+            prediction). Each is tried at the coarsest level; the one with the lowest robust
+            image cost goes on.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -283,6 +284,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             ``resolution``: a level also ends when a step moves the residuals by less than this
             fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`).
         smooth_sigma: Gaussian smoothing of the grey images (pixels) before the pyramid.
+        highpass, band_levels: the ``band_levels`` finest levels compare each image minus its
+            Gaussian blur of ``highpass`` pixels (of that level): the detail, not the lighting,
+            which changes between real frames with exposure, vignetting and shade (None: the
+            intensities themselves; coarser levels always do, for a wide basin).
         robust, scale: the kernel and its scale in grey levels (default: 1.4826 × the median
             absolute residual at each level's start, at least 2).
         max_points: road pixels per frame and level that enter the iterations.
@@ -547,13 +552,13 @@ def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera
                     fit_roll: bool = True, fit_pitch: bool = False, **options: Any) -> RoadFit:
     """Fit the paper's displacement model (x_d, z_d, yaw; roll / pitch where ``fit_roll`` /
     ``fit_pitch``) to two images: :func:`fit_image` with ``model="paper"``, no prior and no
-    bounds, every road pixel (up to 40 000 per level), pyramid levels down to 24 pixels and 20
-    iterations per level unless given. Other options as there.
+    bounds, every road pixel (up to 40 000 per level), intensities at every level, pyramid levels
+    down to 24 pixels and 20 iterations per level unless given. Other options as there.
     """
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     if isinstance(init, RoadFit) and init.model != "paper":
         raise ValueError(f"init: expected a fit of the 'paper' model, got one of {init.model!r}")
     for name, value in (("prior", None), ("bounds", None), ("max_points", 40000), ("gradient_fraction", 1.0),
-                        ("min_size", 24), ("max_iter", 20)):
+                        ("min_size", 24), ("max_iter", 20), ("highpass", None)):
         options.setdefault(name, value)
     return fit_image(image1, image2, mask, camera, model="paper", fixed=fixed, init=init, **options)

@@ -4,10 +4,14 @@ A flow network (RAFT, ARFlow/PWC-Lite, ptlflow models, a classical method) predi
 flow for an image pair. Inside the road (freespace) mask the road moves by the plane-induced
 flow of the paper (eq. 13), computed from the camera and the ego-motion; the refiner replaces
 the prediction there by that model flow (``mode="replace"``, the paper), or blends the two
-with a per-pixel weight from their disagreement under a Cauchy kernel
+with a per-pixel weight from their disagreement under a Cauchy kernel and the images' evidence
 (``mode="confidence"``), so that an obstacle wrongly inside the mask keeps its predicted flow.
-Ego-motion comes from the caller's odometry, or is fitted to the prediction (or to the images)
-inside the mask.
+
+The road's motion comes from a component (:mod:`fsof_torch.refinement.estimators`): by default,
+with the images given, a direct fit of the 6-DOF road motion to the images (the network's flow
+one start among several; the caller's planar odometry, when given, held fixed); without images,
+a fit to the prediction. A gate (:mod:`fsof_torch.refinement.gate`) then keeps the prediction in
+every region of the mask where the model explains the images worse.
 
 Convention: flow (B, 2, H, W) in pixels of its own resolution, channel 0 = u, forward from
 frame t to t+1; masks (B, 1, H, W) bool at the finest flow's resolution; the camera's K refers
@@ -33,6 +37,8 @@ from .._check import as_batch_param, check_float_tensor, skip_values, tracing
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
+from .estimators import FlowMotionEstimator, ImageMotionEstimator
+from .gate import ImageGate
 from .contracts import (
     DEFAULT_FLOW_KEYS,
     InputPadder,
@@ -55,7 +61,7 @@ __all__ = [
 ]
 
 _MODES = ("replace", "confidence")
-_FITS = ("flow", "photometric")
+_FITS = ("flow", "photometric")  # (the older estimator choice)
 
 
 class RefineOutput(NamedTuple):
@@ -75,6 +81,9 @@ class RefineOutput(NamedTuple):
         refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit).
         camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
         flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
+        model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
+        gate: the :class:`~fsof_torch.refinement.gate.GateResult` where the images were judged,
+            else None.
     """
 
     flow: Any
@@ -85,6 +94,8 @@ class RefineOutput(NamedTuple):
     refined: Tensor
     camera: Camera
     flow_model: Tensor
+    model: str = "paper"
+    gate: Any = None
 
 
 # -- plain functions --------------------------------------------------------------------------
@@ -153,8 +164,10 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
 
 
 def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale: float, *,
-          all_finite: bool) -> tuple[Tensor, Tensor]:
-    """:func:`fuse_flow`; ``all_finite``: the caller knows flow_pred is finite everywhere."""
+          all_finite: bool, evidence: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    """:func:`fuse_flow`; ``all_finite``: the caller knows flow_pred is finite everywhere;
+    ``evidence`` (B, 1, H, W): the images' evidence for the model in [0, 1] (confidence mode):
+    where the two flows disagree, it decides, w = w_flow + (1 − w_flow) · evidence."""
     flow_model = flow_model.to(flow_pred.dtype)
     if mode == "replace":
         weight = mask.to(flow_pred.dtype)
@@ -169,6 +182,8 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
         diff = safe_pred - flow_model
         w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
         w = torch.where(finite, w, torch.ones_like(w))
+    if evidence is not None:
+        w = w + (1 - w) * evidence.to(w.dtype)
     blended = flow_model + (1 - w) * diff  # = w · model + (1 − w) · pred
     weight = torch.where(mask, w, torch.zeros_like(w))
     return torch.where(mask, blended, flow_pred), weight
@@ -219,13 +234,52 @@ def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
 
 # -- the refinement ---------------------------------------------------------------------------
 
+def _estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
+               fit_options: Mapping[str, Any] | None, photometric_options: Mapping[str, Any] | None):
+    """The road-motion estimator to use: the caller's; one built from the older ``fit=``
+    options; or the default: the image estimator where there are images, else a fit to the
+    prediction."""
+    if estimator is not None:
+        if fit is not None:
+            raise ValueError("fit: give an estimator or fit=, not both")
+        if not callable(estimator):
+            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+        return estimator
+    fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
+    if fit not in (None, *_FITS):
+        raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
+    if fit == "flow" or (fit is None and images is None):
+        return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
+    if fit == "photometric":  # the paper's model fitted to the images, started from the flow fit
+        options = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
+                   "max_iter": 20, "highpass": None, **dict(photometric_options or {})}
+        return ImageMotionEstimator(model="paper", fixed=fixed, **options)
+    return ImageMotionEstimator()
+
+
+def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
+    if images is None:
+        return None
+    if is_ptlflow_inputs(images):
+        images = images_from_ptlflow(images)
+    if not isinstance(images, (tuple, list)) or len(images) != 2:
+        raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
+    B, _, H, W = finest.shape
+    for i, im in enumerate(images):
+        check_float_tensor(im, f"images[{i}]")
+        if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
+            raise ValueError(f"images[{i}]: expected shape ({B}, C, {H}, {W}) (the finest flow's size), "
+                             f"got {tuple(im.shape)}")
+    return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
+
+
 def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
-                mode: str = "replace", scale: float = 2.0, fit: str = "flow",
-                images: tuple[Tensor, Tensor] | None = None, fit_roll: bool = False,
-                fit_pitch: bool = False, fit_options: Mapping[str, Any] | None = None,
-                photometric_options: Mapping[str, Any] | None = None, min_pixels: int = 100,
-                flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True) -> RefineOutput:
-    """Refine predicted flow(s) with the freespace model inside the road mask.
+                estimator: Any = None, gate: Any = "auto", mode: str = "replace", scale: float = 2.0,
+                images: tuple[Tensor, Tensor] | None = None, starts: tuple = (), min_pixels: int = 100,
+                flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True, fit: str | None = None,
+                fit_roll: bool = False, fit_pitch: bool = False, fit_options: Mapping[str, Any] | None = None,
+                photometric_options: Mapping[str, Any] | None = None) -> RefineOutput:
+    """Refine predicted flow(s) with the road model inside the road mask.
 
     Args:
         flow: the prediction: (B, 2, H, W), a list/tuple of flows (RAFT iterations, a
@@ -233,45 +287,48 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             Every flow is refined at its own resolution.
         mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size.
         camera: :class:`Camera` (batch 1 or B), K at the finest flow's resolution.
-        odometry: ego-motion from t to t+1: a dict ``x_d, z_d, yaw`` (floats or (B,) tensors;
-            metres, radians), any road model's motion (a dict with a ``"model"`` key and its
-            parameters, or a fit result: :func:`~fsof_torch.geometry.road_models.road_motion`),
-            an :class:`EgoMotion`, or None to fit it (detached) to the finest
-            flow inside the mask (``fit="flow"``, :func:`fsof_torch.fit.fit_displacement`), or
-            to the images (``fit="photometric"``: :func:`fsof_torch.fit.fit_photometric` started
-            from the flow fit; needs ``images``).
-        mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`); ``scale`` the Cauchy
-            scale in pixels of the finest level (coarser levels scale it with their size).
-        images: ``(image1, image2)`` (B, 3, H, W) RGB 0..255 at the finest size, or ptlflow's input
-            dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]), for ``fit="photometric"``.
-        fit_roll, fit_pitch: also fit the camera's roll / pitch (else the camera's are kept).
-        fit_options: further keyword arguments for ``fit_displacement``.
-        photometric_options: further keyword arguments for ``fit_photometric``.
-        min_pixels: without odometry, samples with fewer usable mask pixels are not fitted and
-            are left unchanged (``refined`` False); with odometry only an empty mask is.
+        odometry: the motion from t to t+1, or None to estimate it. A road motion in any form
+            :func:`~fsof_torch.geometry.road_models.road_motion` takes: a dict ``x_d, z_d, yaw``
+            (metres, radians; floats or (B,) tensors), an :class:`EgoMotion`, a dict with a
+            ``"model"`` key and that model's parameters, or a fit result. A complete model's
+            motion (with ``"model"``, or a fit) is used as it is; the planar odometry of the
+            paper's model, with images, fixes the planar motion while the images estimate the
+            body's pitch and roll changes, its vertical motion and the camera's attitude (the
+            plain planar model where that estimate fails).
+        estimator: the road-motion estimator (:mod:`fsof_torch.refinement.estimators`); default:
+            :class:`ImageMotionEstimator` with images, :class:`FlowMotionEstimator` without.
+        gate: an :class:`~fsof_torch.refinement.gate.ImageGate`, ``"auto"`` (the default gate where
+            there are images), or None (no gate: the model replaces the whole mask).
+        mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
+            evidence per region decides where the flows disagree); ``scale`` the Cauchy scale in
+            pixels of the finest level (coarser levels scale it with their size).
+        images: ``(image1, image2)`` (B, C, H, W) on 0..255 at the finest size, or ptlflow's input
+            dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
+        starts: further start candidates for an image estimator (e.g. the previous frame's motion).
+        min_pixels: without odometry, samples with fewer usable mask pixels are not refined.
         flow_keys: the dict keys whose values are forward flows to refine.
         warn: warn when samples are left unchanged or non-finite predictions are masked.
+        fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
+            estimator (``fit="flow"``: the paper's model fitted to the prediction with
+            ``fit_displacement``'s options; ``fit="photometric"``: fitted to the images, started
+            from that flow fit).
 
     Returns:
-        :class:`RefineOutput`. Pixels outside the (resampled) mask, and samples left unchanged,
-        are bit for bit the prediction; the caller's tensors are never modified. The result is
-        differentiable with respect to the prediction and, when given, to the camera and the
-        odometry (the fit itself is detached).
+        :class:`RefineOutput`. Pixels outside the (resampled) mask, where the gate keeps the
+        prediction, and samples left unchanged, are bit for bit the prediction; the caller's
+        tensors are never modified. The result is differentiable with respect to the prediction
+        and, when given, to the camera and the odometry (estimation itself is detached).
 
-    Non-finite predicted values: they are left out of the fit; inside the mask the model
+    Non-finite predicted values: they are left out of the estimation; inside the mask the model
     replaces them (both modes); outside the mask they are returned as they came.
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    if fit not in _FITS:
-        raise ValueError(f"fit: expected one of {_FITS}, got {fit!r}")
     if not (scale > 0 and math.isfinite(scale)):
         raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     flow_keys = tuple(flow_keys)
-    if is_ptlflow_inputs(images):
-        images = images_from_ptlflow(images)
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
@@ -289,6 +346,9 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         raise ValueError(f"mask: expected shape ({B}, 1, {H}, {W}) (the finest flow's size), got {tuple(mask.shape)}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch 1 or {B} (the flow's batch), got {camera.batch_size}")
+    images = _check_images(images, finest)
+    if fit == "photometric" and images is None:
+        raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
     device = finest.device
     mask = mask.to(device).expand(B, 1, H, W)
     # The model flow is computed in the prediction's dtype (half lifted to float32): float32
@@ -309,74 +369,94 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
             n_bad = int((mask & ~finite).sum())
             if n_bad:
                 warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left "
-                              f"out of the fit and replaced by the model flow", RuntimeWarning, stacklevel=3)
+                              f"out of the estimation and replaced by the model flow", RuntimeWarning, stacklevel=3)
     # (a uint8 sum into int32: the sum converts its input first, and a bool sum or
     # count_nonzero converts to int64, a copy twice the size)
     counts = fit_mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)
-    # min_pixels guards the fit; with odometry given any mask pixel can be refined.
+    given_model = None if odometry is None else road_motion(odometry)[0].name
+    # the paper's planar odometry leaves the rest of the road's motion to the images
+    estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
+    # min_pixels guards estimation; with odometry given any mask pixel can be refined.
     refined = counts >= (min_pixels if odometry is None else 1)
 
     fit_result = None
-    motion_model = "paper"
+    cam_model = camera
+    motion_model, odo = "paper", None
     if odometry is not None:
         motion_model, odo = _odometry_tensors(odometry, B, geo_dtype, device)
-        cam_model = camera
-    else:
-        odo, cam_model, fit_result, refined = _fit(
-            finest, fit_mask, camera, refined, fit=fit, images=images, fit_roll=fit_roll,
-            fit_pitch=fit_pitch, fit_options=fit_options or {},
-            photometric_options=photometric_options or {}, all_finite=all_finite)
-
-    if warn and not tracing() and not bool(refined.all()):
-        bad = (~refined).nonzero().flatten().tolist()
-        why = ("an empty mask" if odometry is not None
-               else f"fewer than {min_pixels} usable mask pixels or a failed fit")
-        warnings.warn(f"mask: samples {bad} left unchanged ({why}); see RefineOutput.refined",
-                      RuntimeWarning, stacklevel=3)
+    if estimating:
+        chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
+        est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
+                        starts=starts, all_finite=all_finite)
+        if est is not None:
+            fit_result, ok, values, est_model, est_camera = est
+            if odometry is None:
+                motion_model, odo, cam_model = est_model, values, est_camera
+                refined = refined & ok
+            elif bool(ok.all()):
+                motion_model, odo, cam_model = est_model, values, est_camera
+            else:  # where the images say nothing, the odometry alone
+                fit_result = None
+        elif odometry is None:
+            refined = torch.zeros_like(refined)
+            odo = {k: torch.zeros(B, dtype=geo_dtype, device=device) for k in ("x_d", "z_d", "yaw")}
 
     # (a broadcast & over the whole mask is slow on CPU: only when some sample is left out)
-    all_refined = not tracing() and bool(refined.all())
-    sample_ok = refined.reshape(B, 1, 1, 1)
-
-    def usable(m: Tensor) -> Tensor:
-        return m if all_refined else m & sample_ok
+    def usable(m: Tensor, ok: Tensor) -> Tensor:
+        return m if not tracing() and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
     if fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model):
-        # The fit evaluated this very model flow at the finest size (same parameters, same
-        # dtype): reuse it instead of a second full-size evaluation. Not when the camera carries
-        # a graph: then the model flow must be differentiable with respect to it.
-        valid = fit_result.valid.to(device)
-        cache[(H, W)] = (fit_result.flow.to(device=device, dtype=geo_dtype), usable(mask & valid))
+        # The estimate evaluated this very model flow at the finest size (same parameters): reuse
+        # it instead of a second full-size evaluation. Not when the camera carries a graph: then
+        # the model flow must be differentiable with respect to it.
+        cache[(H, W)] = (fit_result.flow.to(device=device, dtype=geo_dtype), fit_result.valid.to(device))
 
-    def level(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-        """Model flow and fusion mask at a level's size (computed once per size)."""
+    def model_flow(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
         if size not in cache:
             h, w = size
             cam = cam_model if (h, w) == (H, W) else cam_model.scaled(w / W, h / H)
-            f_model, valid = road_flow(cam, odo, (h, w), model=motion_model)
-            m = usable(resize_mask(mask, (h, w)) & valid)
-            cache[size] = (f_model, m)
+            cache[size] = road_flow(cam, odo, (h, w), model=motion_model)
         return cache[size]
 
+    f_model_finest, valid_finest = model_flow((H, W))
+    fuse_mask = usable(mask & valid_finest, refined)
+    gate_result = None
+    the_gate = ImageGate() if gate == "auto" and images is not None else (None if gate in ("auto", None) else gate)
+    if the_gate is not None:
+        if images is None:
+            raise ValueError("images: a gate judges the flows by the images; pass images=(image1, image2)")
+        gate_result = the_gate(images[0], images[1], finest, f_model_finest, fuse_mask)
+        fuse_mask = gate_result.use_model
+        refined = refined & gate_result.model_used
+    if warn and not tracing() and not bool(refined.all()):
+        bad = (~refined).nonzero().flatten().tolist()
+        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, or a model that "
+                      f"explains the images worse); see RefineOutput.refined", RuntimeWarning, stacklevel=3)
+
+    masks: dict[tuple[int, int], Tensor] = {(H, W): fuse_mask}
     weights: dict[tuple[int, int], Tensor] = {}
+    evidence = gate_result.evidence if gate_result is not None and mode == "confidence" else None
 
     def refine_one(f: Tensor) -> Tensor:
         size = (f.shape[-2], f.shape[-1])
-        f_model, m = level(size)
+        f_model, valid = model_flow(size)
+        if size not in masks:
+            masks[size] = resize_mask(fuse_mask, size) & valid
         # The Cauchy scale is in pixels of the level: a coarse level's flow is proportionally smaller.
         c = scale * math.sqrt(size[0] * size[1] / (H * W))
+        ev = None if evidence is None else (evidence if size == (H, W) else F.interpolate(evidence, size=size, mode="area"))
         # (the finiteness test above covered the finest prediction itself, not the other levels)
-        out, w = _fuse(f, f_model, m, mode, c, all_finite=all_finite and f is finest)
+        out, w = _fuse(f, f_model, masks[size], mode, c, all_finite=all_finite and f is finest, evidence=ev)
         if size == (H, W):
             weights[size] = w
         return out
 
     refined_flow = map_flows(flow, refine_one, flow_keys)
-    f_model, m = level((H, W))
     weight = weights.get((H, W))
     if weight is None:  # pragma: no cover - the finest level is always visited
-        weight = m.to(finest.dtype)
-    return RefineOutput(refined_flow, odo, fit_result, weight, m, refined, cam_model, f_model)
+        weight = fuse_mask.to(finest.dtype)
+    return RefineOutput(refined_flow, odo, fit_result, weight, fuse_mask, refined, cam_model, f_model_finest,
+                        motion_model, gate_result)
 
 
 def _needs_grad(camera: Camera) -> bool:
@@ -384,100 +464,94 @@ def _needs_grad(camera: Camera) -> bool:
         t.requires_grad for t in (camera.K, camera.height, camera.roll, camera.pitch))
 
 
-def _fit(finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *, fit: str,
-         images: tuple[Tensor, Tensor] | None, fit_roll: bool, fit_pitch: bool,
-         fit_options: Mapping[str, Any], photometric_options: Mapping[str, Any],
-         all_finite: bool = False):
-    """Fit ego-motion (detached) to the samples with enough mask pixels; scatter back to B.
-    ``all_finite``: the prediction is known to be finite everywhere (no masking needed)."""
+def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
+              images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
+    """Estimate the road's motion (detached) for the samples with enough mask pixels.
+
+    Returns None when no sample can be estimated, else ``(fit, success (B,), params {name: (B,)},
+    model name, camera with the estimated roll and pitch)``; samples not estimated get zero
+    motion and success False.
+    """
     B = finest.shape[0]
     dtype, device = camera.dtype, camera.device
-    zeros = torch.zeros(B, dtype=dtype, device=device)
-    if fit == "photometric":
-        if images is None:
-            raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
-        if not isinstance(images, (tuple, list)) or len(images) != 2:
-            raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
-        for i, im in enumerate(images):
-            check_float_tensor(im, f"images[{i}]")
-            if im.dim() != 4 or im.shape[0] != B or tuple(im.shape[-2:]) != tuple(finest.shape[-2:]):
-                raise ValueError(f"images[{i}]: expected shape ({B}, C, {finest.shape[-2]}, "
-                                 f"{finest.shape[-1]}), got {tuple(im.shape)}")
     if not bool(refined.any()):
-        return {"x_d": zeros, "z_d": zeros.clone(), "yaw": zeros.clone()}, camera, None, refined
-    from ..estimation.flow_fit import fit_displacement  # the fitting layer (imported when needed)
-
+        return None
     index = refined.nonzero().flatten()
     subset = index.numel() < B
     with torch.no_grad():
         f = finest.detach()
         if not all_finite:
-            f = torch.where(fit_mask, f, torch.zeros_like(f))  # no NaN reaches the fit
+            f = torch.where(fit_mask, f, torch.zeros_like(f))  # no NaN reaches the estimate
         f = f.to(dtype)
         m = fit_mask
-        cam = camera.to(dtype)
-        cam_d = Camera._checked(cam.K.detach(), cam.height.detach(), cam.roll.detach(), cam.pitch.detach())
+        cam_d = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(), camera.pitch.detach())
+        ims = images
+        odo = odometry
         if subset:
             f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
-        result = fit_displacement(f, m, cam_d, fit_roll=fit_roll, fit_pitch=fit_pitch, **fit_options)
-        if fit == "photometric":
-            from ..estimation.image_fit import fit_photometric
-
-            im1, im2 = (im.detach() for im in images)
-            if subset:
-                im1, im2 = im1[index], im2[index]
-            result = fit_photometric(im1, im2, m, cam_d, init=result, fit_roll=fit_roll,
-                                     fit_pitch=fit_pitch, **photometric_options)
+            ims = None if images is None else tuple(im[index] for im in images)
+            if odometry is not None:
+                _, values = _odometry_tensors(odometry, B, dtype, device)
+                odo = {"model": road_motion(odometry)[0].name, **{k: v[index] for k, v in values.items()}}
+        result = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
     ok = result.success.to(device=device, dtype=torch.bool)
-    odo = {k: _scatter(getattr(result, k).detach().to(dtype), index, B) for k in ("x_d", "z_d", "yaw")}
-    refined = refined.clone()
-    refined[index] = refined[index] & ok
-    cam_model = camera
-    if fit_roll or fit_pitch:
-        # The fitted mounting, attached to the caller's camera so K and height keep their graph.
-        roll = camera.roll.index_copy(0, index, result.roll.detach().to(dtype)) if fit_roll else camera.roll
-        pitch = camera.pitch.index_copy(0, index, result.pitch.detach().to(dtype)) if fit_pitch else camera.pitch
-        cam_model = camera.replace(roll=roll, pitch=pitch)
-    return odo, cam_model, result, refined
+    params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}
+    success = torch.zeros(B, dtype=torch.bool, device=device).index_copy(0, index, ok)
+    roll = camera.roll.index_copy(0, index, result.camera.roll.detach().to(device=device, dtype=dtype))
+    pitch = camera.pitch.index_copy(0, index, result.camera.pitch.detach().to(device=device, dtype=dtype))
+    # the estimated attitude, attached to the caller's camera so K and height keep their graph
+    cam_model = camera if torch.equal(roll, camera.roll) and torch.equal(pitch, camera.pitch) else \
+        camera.replace(roll=roll, pitch=pitch)
+    return result, success, params, result.model, cam_model
 
 
 class FreespaceRefiner(nn.Module):
     """``nn.Module`` twin of :func:`refine_flow`: post-processes a flow network's output.
 
     Args (keyword-only):
+        estimator: the road-motion estimator (default: from the images where given, else from the
+            prediction; see :mod:`fsof_torch.refinement.estimators`).
+        gate: an :class:`~fsof_torch.refinement.gate.ImageGate`, ``"auto"`` (the default gate
+            where there are images) or None.
         mode: ``"replace"`` (the paper: inside the road mask the flow becomes the model flow) or
-            ``"confidence"`` (Cauchy-weighted blend; an obstacle in the mask keeps its flow).
+            ``"confidence"`` (a blend by the flows' disagreement and the images' evidence).
         scale: Cauchy scale in pixels (finest level) for ``confidence``.
-        fit: ``"flow"`` or ``"photometric"``: how ego-motion is estimated when no odometry is given.
-        fit_roll, fit_pitch: fit the camera's roll / pitch as well (default: keep the camera's).
-        fit_options: extra keyword arguments for ``fit_displacement``.
-        photometric_options: extra keyword arguments for ``fit_photometric``.
         min_pixels: without odometry, fewer usable mask pixels leave the sample unchanged.
         flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`).
+        fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
+            estimator (see :func:`refine_flow`).
 
-    Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None) -> RefineOutput``.
+    Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None, starts=()) -> RefineOutput``.
 
     Example:
-        >>> refiner = FreespaceRefiner(mode="replace")
+        >>> refiner = FreespaceRefiner()
         >>> flows = raft(image1, image2)                       # list of (B, 2, H, W)
-        >>> out = refiner(flows, road, camera, {"x_d": 0.0, "z_d": 1.2, "yaw": 0.0})
+        >>> out = refiner(flows, road, camera, images=(image1, image2))
         >>> flow = out.flow[-1]                                # same structure as ``flows``
     """
 
-    def __init__(self, *, mode: str = "replace", scale: float = 2.0, fit: str = "flow",
-                 fit_roll: bool = False, fit_pitch: bool = False,
+    def __init__(self, *, estimator: Any = None, gate: Any = "auto", mode: str = "replace", scale: float = 2.0,
+                 min_pixels: int = 100, flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True,
+                 fit: str | None = None, fit_roll: bool = False, fit_pitch: bool = False,
                  fit_options: Mapping[str, Any] | None = None,
-                 photometric_options: Mapping[str, Any] | None = None, min_pixels: int = 100,
-                 flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True) -> None:
+                 photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
         if mode not in _MODES:
             raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-        if fit not in _FITS:
-            raise ValueError(f"fit: expected one of {_FITS}, got {fit!r}")
+        if fit not in (None, *_FITS):
+            raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
+        if estimator is not None and fit is not None:
+            raise ValueError("fit: give an estimator or fit=, not both")
+        if estimator is not None and not callable(estimator):
+            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+        if gate not in ("auto", None) and not isinstance(gate, ImageGate):
+            raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
         if not (float(scale) > 0 and math.isfinite(float(scale))):
             raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
         if int(min_pixels) < 1:
             raise ValueError(f"min_pixels: expected >= 1, got {min_pixels!r}")
+        self.estimator = estimator
+        self.gate = gate
         self.mode = mode
         self.scale = float(scale)
         self.fit = fit
@@ -490,16 +564,17 @@ class FreespaceRefiner(nn.Module):
         self.warn = bool(warn)
 
     def forward(self, flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
-                images: tuple[Tensor, Tensor] | None = None) -> RefineOutput:
-        return refine_flow(flow, mask, camera, odometry, mode=self.mode, scale=self.scale,
-                           fit=self.fit, images=images, fit_roll=self.fit_roll,
+                images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
+        return refine_flow(flow, mask, camera, odometry, estimator=self.estimator, gate=self.gate, mode=self.mode,
+                           scale=self.scale, images=images, starts=starts, min_pixels=self.min_pixels,
+                           flow_keys=self.flow_keys, warn=self.warn, fit=self.fit, fit_roll=self.fit_roll,
                            fit_pitch=self.fit_pitch, fit_options=self.fit_options,
-                           photometric_options=self.photometric_options,
-                           min_pixels=self.min_pixels, flow_keys=self.flow_keys, warn=self.warn)
+                           photometric_options=self.photometric_options)
 
     def extra_repr(self) -> str:
         extra = f", scale={self.scale}" if self.mode == "confidence" else ""
-        return f"mode={self.mode!r}{extra}, fit={self.fit!r}, fit_roll={self.fit_roll}, fit_pitch={self.fit_pitch}"
+        how = f"fit={self.fit!r}" if self.fit is not None else f"estimator={self.estimator!r}"
+        return f"mode={self.mode!r}{extra}, {how}, gate={self.gate!r}"
 
 
 class FreespaceRefined(nn.Module):
@@ -608,8 +683,7 @@ class FreespaceRefined(nn.Module):
                 mask = detect_freespace(finest.detach(), cam, **self.road_options)
             if padding is not None:  # the replicated border is not road
                 mask = padding.pad(padding.unpad(mask))
-        images = (image1, image2) if self.refiner.fit == "photometric" else None
-        info = self.refiner(output, mask, camera, odometry, images=images)
+        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))
         if padding is None:
             return (info.flow, info) if return_info else info.flow
         padded_size = padding.padded_size(size)

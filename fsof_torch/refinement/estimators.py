@@ -1,0 +1,122 @@
+"""Road-motion estimators: the components a refiner asks for the road's motion between two frames.
+
+Each is called as ``estimator(flow, mask, camera, *, images=None, odometry=None, starts=())`` and
+returns a detached :class:`~fsof_torch.estimation.flow_fit.RoadFit` (its ``success`` says whether
+to trust it):
+
+- :class:`FlowMotionEstimator` fits a road model to the network's own flow inside the mask (the
+  paper's approach; it inherits the flow's failures on weak road texture);
+- :class:`ImageMotionEstimator` fits it to the two images directly
+  (:func:`~fsof_torch.estimation.image_fit.fit_image`), the network's flow being one start among
+  several; given the vehicle's planar odometry, that is held fixed and the images estimate what
+  odometry does not measure (the body's pitch and roll changes, its vertical motion, the camera's
+  attitude over the road).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from ..estimation.flow_fit import RoadFit, fit_road
+from ..estimation.image_fit import fit_image
+from ..geometry.camera import Camera
+from ..geometry.road_models import get_road_model, road_motion
+
+__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "planar_odometry"]
+
+_PLANAR = ("x_d", "z_d", "yaw")
+
+
+def planar_odometry(odometry: object) -> dict[str, Any] | None:
+    """The planar part (x_d, z_d, yaw) of an odometry in any form
+    :func:`~fsof_torch.geometry.road_models.road_motion` takes, or None where it has none
+    (a general homography)."""
+    model, params = road_motion(odometry)
+    if not all(k in model.params for k in _PLANAR):
+        return None
+    return {k: params.get(k, 0.0) for k in _PLANAR}
+
+
+class FlowMotionEstimator:
+    """Fits a road model to the predicted flow inside the mask (:func:`~fsof_torch.fit_road`).
+
+    Args (keyword-only):
+        model: the road model (default the paper's).
+        fixed: parameters held at the camera's / start values (default: the camera's roll and
+            pitch, which a network's flow pins poorly).
+        **options: further keyword arguments of :func:`~fsof_torch.fit_road`.
+    """
+
+    def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = ("roll", "pitch"),
+                 **options: Any) -> None:
+        self.model = get_road_model(model).name
+        self.fixed = None if fixed is None else tuple(fixed)
+        self.options = dict(options)
+
+    def __call__(self, flow: Tensor, mask: Tensor, camera: Camera, *, images: Any = None,
+                 odometry: object = None, starts: Sequence[Any] = ()) -> RoadFit:
+        if flow is None:
+            raise ValueError("flow: FlowMotionEstimator needs the predicted flow, got None")
+        init = None
+        if odometry is not None:
+            model, params = road_motion(odometry)
+            init = params if model.name == self.model else None
+        return fit_road(flow, mask, camera, model=self.model, fixed=self.fixed, init=init, **self.options)
+
+    def __repr__(self) -> str:
+        return f"FlowMotionEstimator(model={self.model!r}, fixed={self.fixed!r})"
+
+
+class ImageMotionEstimator:
+    """Fits a road model to the two images (:func:`~fsof_torch.estimation.image_fit.fit_image`):
+    coarse to fine, robust to exposure changes and to cars in the mask, with MAP priors from the
+    calibration and physical bounds.
+
+    Args (keyword-only):
+        model: ``"plane"`` (default: the 6-DOF motion over the road and the camera's attitude
+            over it), ``"paper"`` or ``"homography"``.
+        flow_start: also start from the road model fitted to the predicted flow (when one is
+            given); the start with the lowest robust image cost wins at the coarsest level.
+        **options: further keyword arguments of ``fit_image`` (``prior``, ``bounds``,
+            ``max_points``, ``levels``, ...).
+
+    Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
+    fixed and the images estimate the rest of the model's parameters.
+    """
+
+    def __init__(self, *, model: str = "plane", flow_start: bool = True, **options: Any) -> None:
+        self.model = get_road_model(model).name
+        if get_road_model(model).velocity:
+            raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
+        self.flow_start = bool(flow_start)
+        self.options = dict(options)
+
+    def __call__(self, flow: Tensor | None, mask: Tensor, camera: Camera, *,
+                 images: tuple[Tensor, Tensor] | None = None, odometry: object = None,
+                 starts: Sequence[Any] = ()) -> RoadFit:
+        if images is None:
+            raise ValueError("images: ImageMotionEstimator needs images=(image1, image2), got None")
+        image1, image2 = images
+        options = dict(self.options)
+        starts = list(starts)
+        fixed = options.pop("fixed", None)
+        init = options.pop("init", None)
+        if odometry is not None:
+            planar = planar_odometry(odometry)
+            if planar is not None:
+                # the odometry fixes the planar motion; the images add what it does not measure
+                init = {**(init or {}), **planar}
+                starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
+                fixed = tuple(fixed or ()) + tuple(k for k in _PLANAR if k not in (fixed or ()))
+        elif self.flow_start and flow is not None and bool(torch.isfinite(flow).all()):
+            start = fit_road(flow, mask, camera, model="paper", fixed=("roll", "pitch"), max_points=2048,
+                             min_inlier_fraction=0.0)
+            starts.append({k: start.params[k] for k in _PLANAR})
+        return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
+                         **options)
+
+    def __repr__(self) -> str:
+        return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start})"

@@ -1,0 +1,211 @@
+"""The never-worse gate: the model flow replaces the prediction only where it explains the images
+at least as well.
+
+Once the road model's flow is known, both it and the network's prediction are judged by how well
+they explain the two images, per sample and per local region of the mask (a grid of cells). The
+judge is a census distance (DESIGN.md §6), indifferent to exposure changes between the frames:
+at an even subsample of the mask's pixels, the order of the pixel against a ring of 16 neighbours
+at radius 3 in image 1, against the same order in image 2 at the flow's end point (bilinear). Only
+neighbours whose order is clear in image 1 count (a ternary census): weak texture, where a wrong
+flow matches as well as a right one by chance, is no evidence. A cell keeps the prediction where
+the model's mean distance exceeds the prediction's by more than ``margin`` plus ``z`` standard
+errors of the difference (the model is the physically constrained estimate; the prediction has
+to be clearly better) and the prediction explains the cell itself (its mean distance at most
+``occlusion``: where neither flow does, the road is occluded in image 2 or the content is new,
+and the model's geometry is the better guess); so does every cell of a sample where that holds
+over the whole mask. Cells with too few points follow
+their sample's decision.
+
+Images are (B, C, H, W) on 0..255 (grey or RGB); flows (B, 2, H, W) in pixels; masks (B, 1, H, W)
+bool. Not differentiable (a decision); nothing is read back to the host.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..estimation.sampling import sample_mask
+
+__all__ = ["ImageGate", "GateResult", "census_ring_distance"]
+
+# 16 neighbours on a ring of radius 3 (a Bresenham circle, as the FAST corner detector's)
+_RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
+         (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
+
+
+class GateResult(NamedTuple):
+    """What :class:`ImageGate` decided.
+
+    Attributes:
+        use_model: (B, 1, H, W) bool, mask pixels where the model flow is used.
+        evidence: (B, 1, H, W) float in [0, 1], the image evidence for the model over the
+            prediction per cell (0.5: no preference), for confidence fusion; 0 outside the mask.
+        cost_model, cost_prediction: (B,) mean census distances over the points that count.
+        points: (B,) the number of points that count.
+        cells, cells_kept: (B,) cells with enough points, and of those the cells that keep the
+            prediction.
+        model_used: (B,) bool, False where the model is worse over the whole mask.
+    """
+
+    use_model: Tensor
+    evidence: Tensor
+    cost_model: Tensor
+    cost_prediction: Tensor
+    points: Tensor
+    cells: Tensor
+    cells_kept: Tensor
+    model_used: Tensor
+
+
+def _grey(image: Tensor) -> Tensor:
+    if image.shape[1] == 3:
+        from kornia.color import rgb_to_grayscale
+
+        return rgb_to_grayscale(image)
+    return image.mean(dim=1, keepdim=True)
+
+
+def _bilinear(image: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
+    """``image`` (B, 1, H, W) at pixel positions x, y (B, N): values (B, N), in-bounds (B, N)."""
+    H, W = image.shape[-2:]
+    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    grid = torch.stack([x * (2.0 / max(W - 1, 1)) - 1.0, y * (2.0 / max(H - 1, 1)) - 1.0], dim=-1)
+    out = F.grid_sample(image, grid.unsqueeze(1).to(image.dtype), mode="bilinear", padding_mode="border",
+                        align_corners=True)
+    return out[:, 0, 0], inb
+
+
+def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flow: Tensor,
+                         threshold: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
+    """Ternary census distance of the points (x, y) (B, N) of image 1 (integer pixels) against
+    image 2 at x + flow (flow (B, 2, N)), over the 16 ring neighbours.
+
+    A neighbour counts where its order relative to the centre is clear in image 1 (a difference
+    above ``threshold`` grey levels); the distance is the fraction of those whose order differs in
+    image 2 (there: sign of the difference, 0 within the threshold). Weak texture carries no
+    evidence either way, so it does not count. Returns the distance (B, N), the number of
+    neighbours that count (B, N) and flags of points whose samples lie in both images (B, N).
+    """
+    ring = grey1.new_tensor(_RING)  # (16, 2)
+    R = ring.shape[0]
+    xs = torch.cat([x.unsqueeze(1), x.unsqueeze(1) + ring[:, 0, None]], dim=1)  # (B, 17, N)
+    ys = torch.cat([y.unsqueeze(1), y.unsqueeze(1) + ring[:, 1, None]], dim=1)
+    B, _, N = xs.shape
+    v1, in1 = _bilinear(grey1, xs.reshape(B, -1), ys.reshape(B, -1))
+    v2, in2 = _bilinear(grey2, (xs + flow[:, :1]).reshape(B, -1), (ys + flow[:, 1:]).reshape(B, -1))
+    d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, 1 + R, N)[:, :1]
+    d2 = v2.reshape(B, R + 1, N)[:, 1:] - v2.reshape(B, 1 + R, N)[:, :1]
+    clear = d1.abs() > threshold
+    t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
+    n = clear.sum(1)
+    dist = ((torch.sign(d1) != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
+    ok = in1.reshape(B, R + 1, N).all(1) & in2.reshape(B, R + 1, N).all(1)
+    return dist, n, ok
+
+
+class ImageGate:
+    """Keeps the prediction wherever the model explains the images worse (see the module).
+
+    Args (keyword-only):
+        grid: (rows, columns) of cells over the image.
+        points: mask pixels per sample that are judged (an even subsample).
+        min_points: a cell with fewer points follows its sample's decision.
+        margin, z: the model may be worse than the prediction by ``margin`` census distance plus
+            ``z`` standard errors of the difference and still be used.
+        occlusion: the prediction's mean distance above which it does not explain a cell either.
+        temperature: the census difference over which the confidence evidence goes from 0.27 to
+            0.73 (a logistic of (prediction − model) / temperature).
+        contrast: grey levels above which a neighbour's order in image 1 is clear.
+        min_neighbours: points with fewer clear neighbours (weak texture) do not count.
+    """
+
+    def __init__(self, *, grid: tuple[int, int] = (8, 16), points: int = 6000, min_points: int = 12,
+                 margin: float = 0.0, z: float = 2.0, occlusion: float = 0.35, temperature: float = 0.02,
+                 contrast: float = 2.0, min_neighbours: int = 4) -> None:
+        rows, cols = grid
+        for name, value in (("grid", rows), ("grid", cols), ("points", points), ("min_points", min_points)):
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name}: expected positive integers, got {value!r}")
+        for name, value in (("margin", margin), ("z", z), ("occlusion", occlusion), ("temperature", temperature),
+                            ("contrast", contrast), ("min_neighbours", min_neighbours)):
+            if not (isinstance(value, (int, float)) and math.isfinite(value)) or value < 0:
+                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+        if temperature <= 0:
+            raise ValueError(f"temperature: expected > 0, got {temperature!r}")
+        self.grid, self.points, self.min_points = (rows, cols), points, min_points
+        self.margin, self.occlusion, self.temperature = float(margin), float(occlusion), float(temperature)
+        self.z, self.contrast, self.min_neighbours = float(z), float(contrast), int(min_neighbours)
+
+    @torch.no_grad()
+    def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
+                 mask: Tensor) -> GateResult:
+        B, _, H, W = prediction.shape
+        work = torch.promote_types(prediction.dtype, torch.float32)
+        g1, g2 = _grey(image1.detach().to(work)), _grey(image2.detach().to(work))
+        pts = sample_mask(mask, self.points)
+        x = (pts.pix % W).to(work)
+        y = torch.div(pts.pix, W, rounding_mode="floor").to(work)
+
+        def at(f: Tensor) -> Tensor:
+            return f.detach().to(work).reshape(B, 2, -1).gather(2, pts.pix.unsqueeze(1).expand(B, 2, -1))
+
+        fp, fm = at(prediction), at(model)
+        finite = torch.isfinite(fp).all(1)
+        fp = torch.where(finite.unsqueeze(1), fp, fm)
+        d_pred, n_clear, ok_pred = census_ring_distance(g1, g2, x, y, fp, self.contrast)
+        d_model, _, ok_model = census_ring_distance(g1, g2, x, y, fm, self.contrast)
+        # points that count: real, textured, judged by both flows
+        count = pts.sel & ok_pred & ok_model & finite & (n_clear >= self.min_neighbours)
+        w = count.to(work)
+        rows, cols = self.grid
+        cell = (torch.div(y, math.ceil(H / rows), rounding_mode="floor") * cols
+                + torch.div(x, math.ceil(W / cols), rounding_mode="floor")).long()
+        n_cells = rows * cols
+
+        def per_cell(v: Tensor) -> Tensor:
+            return torch.zeros(B, n_cells, dtype=work, device=v.device).scatter_add_(1, cell, v)
+
+        n = per_cell(w)
+        delta = d_model - d_pred  # > 0: the prediction explains the point better
+        sum_pred, sum_model = per_cell(d_pred * w), per_cell(d_model * w)
+        n_all = w.sum(1)
+        cost_pred = sum_pred.sum(1) / n_all.clamp_min(1)
+        cost_model = sum_model.sum(1) / n_all.clamp_min(1)
+
+        def worse(mean: Tensor, sq: Tensor, count: Tensor) -> Tensor:
+            """The model is worse by more than the margin and z standard errors of the mean."""
+            var = (sq / count.clamp_min(1) - mean.square()).clamp_min(0)
+            return mean > self.margin + self.z * (var / count.clamp_min(1)).sqrt()
+
+        mean_all = (delta * w).sum(1) / n_all.clamp_min(1)
+        # the prediction is kept only where it explains the images itself: where neither flow
+        # does (occluded in image 2, new content), the model's geometry is the better guess
+        # (no textured point at all is no evidence against the model either)
+        model_used = ~(worse(mean_all, (delta.square() * w).sum(1), n_all) & (cost_pred <= self.occlusion))
+        enough = n >= self.min_points
+        diff = (sum_model - sum_pred) / n.clamp_min(1)
+        cell_worse = worse(diff, per_cell(delta.square() * w), n) & (sum_pred / n.clamp_min(1) <= self.occlusion)
+        cell_model = torch.where(enough, ~cell_worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
+        diff = -diff  # > 0: the model explains the cell better
+        evidence = torch.where(enough, torch.sigmoid(diff / self.temperature),
+                               torch.where(model_used, 0.5, 0.0).unsqueeze(1))
+        evidence = evidence * model_used.unsqueeze(1)
+        ch, cw = math.ceil(H / rows), math.ceil(W / cols)
+
+        def to_pixels(c: Tensor) -> Tensor:
+            m = c.reshape(B, 1, rows, cols).repeat_interleave(ch, dim=2).repeat_interleave(cw, dim=3)
+            return m[..., :H, :W]
+
+        use_model = mask & to_pixels(cell_model)
+        evidence_map = torch.where(mask, to_pixels(evidence), 0.0)
+        return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough.sum(1),
+                          (enough & ~cell_model).sum(1), model_used)
+
+    def __repr__(self) -> str:
+        return (f"ImageGate(grid={self.grid}, points={self.points}, margin={self.margin}, "
+                f"occlusion={self.occlusion})")
