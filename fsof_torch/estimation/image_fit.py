@@ -49,7 +49,7 @@ from .sampling import MaskPoints, pixel_coordinates, sample_mask
 from .solver import Evaluation, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
-           "image_pyramid", "DEG"]
+           "image_pyramid", "gaussian_blur", "DEG"]
 
 DEG = math.pi / 180.0
 # a coarser level ends when a step moves the residuals by less than this fraction of their RMS
@@ -406,29 +406,20 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     each next level the 5-tap binomial blur [1, 4, 6, 4, 1] / 16 of the one below, sampled at its
     even pixels (OpenCV's ``pyrDown``): pixel i of level l is pixel 2^l i of level 0.
 
-    On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: a σ = 1 blur of a
-    375 x 1242 frame takes about 0.3 ms there against 5 ms for kornia's, the decimations 0.05 ms
-    against 5 ms); elsewhere kornia and torch do the same arithmetic.
+    On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: the decimations
+    take about 0.05 ms there against 5 ms for kornia's); elsewhere torch does the same arithmetic.
     """
     if images.device.type == "cpu":
         import cv2
         import numpy as np
 
         B, C = images.shape[:2]
-        planes = [images[b, c].numpy() for b in range(B) for c in range(C)]
-        if smooth_sigma > 0:
-            k = 2 * int(math.ceil(3 * smooth_sigma)) + 1
-            planes = [cv2.GaussianBlur(x, (k, k), smooth_sigma, borderType=cv2.BORDER_REFLECT_101) for x in planes]
-        out = [planes]
+        level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
+        out = [[x.numpy() for x in level.reshape(B * C, *level.shape[-2:])]]
         for _ in range(levels - 1):
             out.append([cv2.pyrDown(x) for x in out[-1]])
-        return [torch.from_numpy(np.stack(level)).reshape(B, C, *level[0].shape) for level in out]
-    from kornia.filters import gaussian_blur2d
-
-    level = images
-    if smooth_sigma > 0:
-        k = 2 * int(math.ceil(3 * smooth_sigma)) + 1
-        level = gaussian_blur2d(level, (k, k), (smooth_sigma, smooth_sigma), border_type="reflect")
+        return [torch.from_numpy(np.stack(planes)).reshape(B, C, *planes[0].shape) for planes in out]
+    level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
     out = [level]
     taps = images.new_tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
     for _ in range(levels - 1):
@@ -453,10 +444,25 @@ def _band(img: Tensor, sigma: float | None) -> Tensor:
     detail, indifferent to smooth changes of lighting between the frames; None: the level itself."""
     if not sigma:
         return img
+    return img - gaussian_blur(img, sigma)
+
+
+def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
+    """Gaussian blur of images (B, C, H, W), reflected at the border (a kernel of ±3 σ): OpenCV
+    on the CPU (python benchmarks/bench_image_fit.py: about 15x faster than kornia's at σ = 5),
+    kornia elsewhere."""
+    k = 2 * int(math.ceil(3 * sigma)) + 1
+    if images.device.type == "cpu":
+        import cv2
+        import numpy as np
+
+        B, C, H, W = images.shape
+        planes = [cv2.GaussianBlur(x.numpy(), (k, k), sigma, borderType=cv2.BORDER_REFLECT_101)
+                  for x in images.detach().reshape(B * C, H, W)]
+        return torch.from_numpy(np.stack(planes)).reshape(B, C, H, W)
     from kornia.filters import gaussian_blur2d
 
-    k = 2 * int(math.ceil(3 * sigma)) + 1
-    return img - gaussian_blur2d(img, (k, k), (sigma, sigma), border_type="replicate")
+    return gaussian_blur2d(images, (k, k), (sigma, sigma), border_type="reflect")
 
 
 def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,

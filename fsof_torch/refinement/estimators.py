@@ -25,7 +25,7 @@ from ..estimation.image_fit import fit_image
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
 
-__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "planar_odometry"]
+__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "planar_odometry", "planar_start"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
 
@@ -38,6 +38,22 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     if not all(k in model.params for k in _PLANAR):
         return None
     return {k: params.get(k, 0.0) for k in _PLANAR}
+
+
+def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:
+    """A quick start from a predicted flow: x_d, z_d, yaw (B,) of the planar motion of its
+    back-projected road points (:func:`~fsof_torch.estimation.initial.planar_motion`, robust), at
+    the camera's roll and pitch; zero motion where that is degenerate."""
+    from ..estimation.initial import planar_motion
+    from ..estimation.sampling import gather_pixels, pixel_coordinates, sample_mask
+
+    pts = sample_mask(mask.expand(flow.shape[0], -1, -1, -1), points)
+    xy = pixel_coordinates(pts.pix, flow.shape[-1])
+    f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow.detach(), pts.pix).to(torch.float64), 0.0)
+    cam = camera.to(torch.float64).expand(flow.shape[0])
+    lin, _ = planar_motion(cam.K, cam.K_inv(), cam.roll, cam.pitch, xy, f, pts.sel)
+    h = cam.height
+    return {"x_d": lin[:, 0] * h, "z_d": lin[:, 1] * h, "yaw": lin[:, 2]}
 
 
 class FlowMotionEstimator:
@@ -78,8 +94,9 @@ class ImageMotionEstimator:
     Args (keyword-only):
         model: ``"plane"`` (default: the 6-DOF motion over the road and the camera's attitude
             over it), ``"paper"`` or ``"homography"``.
-        flow_start: also start from the road model fitted to the predicted flow (when one is
-            given); the start with the lowest robust image cost wins at the coarsest level.
+        flow_start: also start from the planar motion of the predicted flow (when one is given,
+            :func:`planar_start`); the start with the lowest robust image cost wins at the
+            coarsest level.
         **options: further keyword arguments of ``fit_image`` (``prior``, ``bounds``,
             ``max_points``, ``levels``, ...).
 
@@ -112,9 +129,7 @@ class ImageMotionEstimator:
                 starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
                 fixed = tuple(fixed or ()) + tuple(k for k in _PLANAR if k not in (fixed or ()))
         elif self.flow_start and flow is not None and bool(torch.isfinite(flow).all()):
-            start = fit_road(flow, mask, camera, model="paper", fixed=("roll", "pitch"), max_points=2048,
-                             min_inlier_fraction=0.0)
-            starts.append({k: start.params[k] for k in _PLANAR})
+            starts.append(planar_start(flow, mask, camera))
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
                          **options)
 
