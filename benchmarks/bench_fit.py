@@ -21,6 +21,10 @@ one solver; ``none`` to skip): that git revision's package is imported beside th
 current one (the same load on a shared machine), for the default subsample, one frame and a
 batch of 8; the rows report both, their ratio and the largest parameter difference.
 
+After the table: the host reads of one call of each fit on the single frame, counted with
+torch.profiler (``aten::_local_scalar_dense``: ``.item()`` / ``bool(tensor)``; ``aten::nonzero``,
+which reads its result's size; ``aten::linalg_solve``, which reads its error code).
+
 Usage: ``python benchmarks/bench_fit.py [--repeats 10] [--json out.json] [--no-curve-fit]
 [--baseline REV]``.
 """
@@ -92,6 +96,23 @@ def timed_pair(fn_a, fn_b, repeats: int, warmup: int = 2):
             out[key][0].append((time.perf_counter() - t) * 1e3)
             out[key][1].append((time.process_time() - c) * 1e3)
     return [(statistics.median(w), min(w), statistics.median(c)) for w, c in out.values()]
+
+
+HOST_READS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::linalg_solve")
+
+
+def host_reads(fn) -> dict[str, int]:
+    """Host reads of one call of ``fn``, by kind, counted with torch.profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()  # constants cached on the first call
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    counts = dict.fromkeys(HOST_READS, 0)
+    for event in prof.events():
+        if event.name in counts:
+            counts[event.name] += 1
+    return counts
 
 
 def scipy_problem(flow: torch.Tensor, mask: torch.Tensor):
@@ -241,9 +262,18 @@ def main(argv: list[str] | None = None) -> int:
     if ratios:
         print(f"current / baseline {args.baseline} (interleaved): "
               + "; ".join(f"{label}: median {a:.3f}, min {b:.3f}" for label, a, b in ratios))
+    reads = {"fit_displacement": host_reads(lambda: fit_displacement(flow, mask, cam)),
+             "fit_displacement batch 8": host_reads(lambda: fit_displacement(flow8, mask8, cam)),
+             "fit_road plane": host_reads(lambda: fit_road(flow, mask, cam, model="plane")),
+             "fit_road homography": host_reads(lambda: fit_road(flow, mask, cam, model="homography"))}
+    print("host reads per call (torch.profiler):")
+    for name, counts in reads.items():
+        kinds = ", ".join(f"{kind.removeprefix('aten::')} {n}" for kind, n in counts.items())
+        print(f"  {name:<26} {sum(counts.values()):>3}  ({kinds})")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows), fh, indent=2)
+            json.dump(dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows, host_reads=reads), fh,
+                      indent=2)
     return 0
 
 
