@@ -307,22 +307,10 @@ def test_graded_road_best_plane_is_closer_near_the_vehicle(preset):
 
 # -- the real KITTI pair ----------------------------------------------------------------------------
 
-def _kitti(shared_data):
-    from fsof_torch.io import read_kitti_flow, read_road_mask
-
-    folder = shared_data / "kitti15_000000"
-    if not folder.is_dir():
-        pytest.skip("kitti15_000000 is absent")
-    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
-    road = read_road_mask(folder / "road.json", size=tuple(flow.shape[-2:]))
-    return cam, flow[None].double(), valid[None], road[None]
-
-
-def test_real_kitti_ground_truth_each_model(shared_data):
+def test_real_kitti_ground_truth_each_model(kitti15_ground_truth):
     """e_E inside road.json against KITTI's ground truth (measured: paper 0.375, plane and
     homography 0.337 px; a general homography fitted by SciPy's least_squares: 0.34)."""
-    cam, flow, valid, road = _kitti(shared_data)
+    cam, flow, valid, road = kitti15_ground_truth
     use = road & valid
     e_E = {}
     for model in ("paper", "plane", "homography"):
