@@ -48,7 +48,10 @@ def load_baseline(rev: str = DEFAULT_BASELINE) -> ModuleType:
     folder = Path(tempfile.mkdtemp(prefix="fsof_baseline_"))
     atexit.register(shutil.rmtree, folder, ignore_errors=True)
     with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
-        tar.extractall(folder, filter="data")
+        try:
+            tar.extractall(folder, filter="data")
+        except TypeError:  # a Python without extraction filters (the archive is this repository's)
+            tar.extractall(folder)
     package = folder / name
     (folder / "fsof_torch").rename(package)
     for path in package.rglob("*.py"):
