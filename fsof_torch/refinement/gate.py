@@ -231,18 +231,20 @@ class ImageGate:
         import numpy as np
 
         B, _, H, W = prediction.shape
-        gap = (prediction.detach() - model.detach()).square().sum(1, keepdim=True)
-        kept = torch.zeros_like(mask)
+        gap = (prediction.detach() - model.detach()).square().sum(1).masked_fill_(~mask[:, 0], 0.0)
+        gap = gap.to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
+        pix_np = pix.to("cpu").numpy()
+        kept = np.zeros((B, H, W), dtype=bool)
         # a region of large differences inside one of small ones (a car beside a patch of road
         # the prediction got slightly wrong) stands apart at a higher threshold
         for threshold in (self.object_px, 2 * self.object_px, 4 * self.object_px):
-            apart = (gap > threshold ** 2) & mask
-            # connected regions on the CPU (OpenCV): one small transfer per threshold
-            maps = apart[:, 0].to("cpu", torch.uint8).numpy()
-            labels = torch.from_numpy(np.stack([cv2.connectedComponents(m, connectivity=8)[1] for m in maps]))
-            labels = labels.to(device=pix.device, dtype=torch.long).reshape(B, -1)
+            labels = np.stack([cv2.connectedComponents((g > threshold ** 2).astype(np.uint8), connectivity=8)[1]
+                               for g in gap])
             L = int(labels.max()) + 1
-            at = labels.gather(1, pix)  # each point's region (0: the flows agree)
+            if L == 1:
+                break  # no region apart at this threshold, nor at higher ones
+            at = torch.from_numpy(np.take_along_axis(labels.reshape(B, -1), pix_np, axis=1).astype(np.int64))
+            at = at.to(pix.device)  # each point's region (0: the flows agree)
 
             def per_region(v: Tensor) -> Tensor:
                 return torch.zeros(B, L, dtype=v.dtype, device=v.device).scatter_add_(1, at, v)
@@ -253,8 +255,10 @@ class ImageGate:
             keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
                     & (per_region(d_pred * w) / n.clamp_min(1) <= self.occlusion))
             keep[:, 0] = False
-            kept = kept | keep.gather(1, labels).reshape(B, 1, H, W)
-        return kept
+            keep = keep.to("cpu").numpy()
+            if keep.any():
+                kept |= np.stack([keep[b][labels[b]] for b in range(B)])
+        return torch.from_numpy(kept).to(mask.device).unsqueeze(1)
 
     def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
