@@ -15,19 +15,11 @@ import argparse
 from pathlib import Path
 
 import cv2
-import numpy as np
 import torch
 
 import fsof_torch as fs
 from fsof_torch.evaluation.figures import pair_figure, save_figure
-
-
-def dis_flow(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-    """OpenCV DIS (PRESET_MEDIUM) on grey images: (3, H, W) RGB 0..255 -> (2, H, W) px."""
-    grey = [cv2.cvtColor(im.permute(1, 2, 0).round().numpy().astype(np.uint8), cv2.COLOR_RGB2GRAY)
-            for im in (image1, image2)]
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(grey[0], grey[1], None)
-    return torch.from_numpy(flow).permute(2, 0, 1).float()
+from refine.sources import dis_flow  # the refine job's DIS source (PRESET_MEDIUM, grey images)
 
 
 def main(argv: list[str] | None = None) -> int:
