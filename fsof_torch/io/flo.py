@@ -26,8 +26,10 @@ _HEADER = 12
 def read_flo(path: str | os.PathLike) -> Tensor:
     """A Middlebury ``.flo`` file as a (2, H, W) float32 tensor in pixels (channel 0 = u).
 
-    Raises ValueError naming the path for a wrong magic number, a non-positive size or a file
-    whose length does not match the size in its header.
+    The values come as stored: unknown flow (NaN, inf, or Middlebury's values above 1e9) stays;
+    :func:`~fsof_torch.io.read_flow` turns it into a validity mask. Raises ValueError naming the
+    path for a wrong magic number, a non-positive size or a file whose length does not match the
+    size in its header.
     """
     path = Path(path)
     if not path.is_file():
