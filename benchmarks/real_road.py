@@ -38,11 +38,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:  # run as a script from anywhere: the job's loaders live in refine/
-    sys.path.insert(0, str(ROOT))
-
-DEFAULT_DATA = ROOT.parent / "shared" / "data"
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 #: a method more than this much census worse than DIS on a pair counts as worse there
 WORSE = 0.01
 ECC_CRITERIA = (3, 100, 1e-6)  # cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, epsilon

@@ -240,5 +240,5 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
                       title=f"pair {name}, flow source '{source}': flow and error before and after "
                             f"refinement (mode '{cfg.mode}'); error: "
                             + ("|flow − ground truth|" if gt else
-                               "census distance of I1 and I2 warped by the flow (7×7 census bits that differ / 48)"))
+                               "census distance of I1 and I2 warped by the flow, 0–1"))
     save_figure(fig, figure_path(cfg, source, name))
