@@ -1,8 +1,11 @@
-"""Speed of fsof_torch.evaluation.warp.warp_backward against a single kornia bilinear remap (reference).
+"""Speed of fsof_torch.evaluation.warp.warp_backward against a single kornia bilinear remap (reference),
+and of the photometric error kinds built on it against the warp alone (reference).
 
 warp_backward samples bilinearly as four nearest-neighbour taps so that whole-pixel shifts are
-exact (see fsof_torch/warp.py); this prints what that costs. Single thread, warm-up, median of
-repeats, milliseconds. Run: python benchmarks/bench_warp.py
+exact (see fsof_torch/warp.py); the first table prints what that costs. The second, at KITTI's
+size without gradient (evaluation): each kind of ``photometric_error_map`` (the warp included) and
+``photometric_error_maps`` with L1, SSIM and census at once (one warp), with the ratio to the
+warp. Single thread, warm-up, median of repeats, milliseconds. Run: python benchmarks/bench_warp.py
 """
 
 from __future__ import annotations
@@ -12,6 +15,7 @@ import time
 
 import torch
 
+from fsof_torch.evaluation.photometric import photometric_error_map, photometric_error_maps
 from fsof_torch.evaluation.warp import normalize_coordinates, warp_backward
 
 
@@ -58,7 +62,25 @@ def main() -> int:
             ours = median_ms(lambda: run(warp_backward))
             ref = median_ms(lambda: run(kornia_bilinear))
             print(f"{f'{B}x3x{H}x{W}':>16} {name:>9} {ours:>11.2f} ms {ref:>10.2f} ms {ours / ref:>6.1f}")
+    photometric_table(g)
     return 0
+
+
+def photometric_table(g: torch.Generator) -> None:
+    B, H, W = 1, 375, 1242
+    image1 = torch.rand(B, 3, H, W, generator=g) * 255
+    image2 = torch.rand(B, 3, H, W, generator=g) * 255
+    flow = torch.randn(B, 2, H, W, generator=g) * 3
+    with torch.no_grad():
+        ref = median_ms(lambda: warp_backward(image2, flow))
+        rows = [("warp_backward", ref)]
+        for kind in ("l1", "ssim", "census", "soft_census"):
+            rows.append((f"kind={kind!r}", median_ms(lambda: photometric_error_map(image1, image2, flow, kind=kind))))
+        rows.append(("l1+ssim+census", median_ms(lambda: photometric_error_maps(image1, image2, flow))))
+    print(f"\nphotometric error, {B}x3x{H}x{W}, no gradient")
+    print(f"{'what':>22} {'ms':>9} {'/ warp':>7}")
+    for name, ms in rows:
+        print(f"{name:>22} {ms:>9.1f} {ms / ref:>7.1f}")
 
 
 if __name__ == "__main__":

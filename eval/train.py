@@ -8,7 +8,9 @@ forward-backward occlusion mask, edge-aware smoothness), once with
 :class:`~fsof_torch.training.losses.FreespaceFlowLoss` added (the road flow of the freespace model from the
 pairs' odometry, inside their road masks). Both nets, and the untrained one, are then evaluated on
 held-out pairs of another seed against the exact ground truth: end-point error (and the others of
-:func:`fsof_torch.evaluation.metrics.flow_metrics`) inside the road and outside it.
+:func:`fsof_torch.evaluation.metrics.flow_metrics`) inside the road and outside it, and the
+photometric error of each estimate (census distance and SSIM beside L1: the net is trained on L1
+and SSIM, so census is the judge it was not trained on).
 
 Prints a table, writes ``--json PATH``, and with ``--out DIR`` saves both nets' ``state_dict``.
 
@@ -34,6 +36,7 @@ from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import write_json
 from fsof_torch.training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
 from fsof_torch.evaluation.metrics import flow_metrics
+from fsof_torch.evaluation.photometric import photometric_error_maps
 from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
@@ -200,18 +203,35 @@ def _mean_over_processes(values: torch.Tensor, ranks: Ranks) -> torch.Tensor:
 
 @torch.no_grad()
 def evaluate_net(net: TinyRAFT, data: dict, *, chunk: int = 4) -> dict:
-    """KITTI-style metrics of the net's last estimate on ``data``: road, non-road and all valid pixels."""
+    """Metrics of the net's last estimate on ``data``, road, non-road and all pixels: KITTI-style
+    flow metrics over the valid ground-truth pixels (``e_E``, ``Fl``, ...), and the photometric
+    error of image 1 against image 2 warped by the estimate (``census``, ``ssim``, ``l1``, pooled
+    over every pixel whose sample point, and window, falls inside image 2, with ``n_photometric``
+    per kind): a net trained on a photometric loss of L1 and SSIM is judged by census too."""
     flows = torch.cat([net(data["image1"][i:i + chunk], data["image2"][i:i + chunk])[-1]
                        for i in range(0, data["image1"].shape[0], chunk)])
     road, valid, gt = data["road"], data["valid"], data["flow"]
-    return {"road": flow_metrics(flows, gt, road, valid),
-            "non_road": flow_metrics(flows, gt, ~road, valid),
-            "all": flow_metrics(flows, gt, None, valid)}
+    photo = photometric_error_maps(data["image1"], data["image2"], flows)
+    out = {}
+    for region, mask in (("road", road), ("non_road", ~road), ("all", None)):
+        out[region] = flow_metrics(flows, gt, mask, valid)
+        for kind, (error, ok) in photo.items():
+            counted = ok if mask is None else ok & mask
+            n = int(counted.sum())
+            total = torch.where(counted, error, torch.zeros_like(error)).sum(dtype=torch.float64)
+            out[region][kind] = float(total) / max(n, 1)
+            out[region][f"n_{kind}"] = n
+    return out
 
 
 def _row(name: str, m: dict) -> str:
     return (f"{name:<22} {m['road']['e_E']:>9.3f} {m['non_road']['e_E']:>13.3f} {m['all']['e_E']:>8.3f} "
             f"{100 * m['road']['Fl']:>9.1f} {100 * m['non_road']['Fl']:>13.1f}")
+
+
+def _photometric_row(name: str, m: dict) -> str:
+    return (f"{name:<22} {m['road']['census']:>11.4f} {m['road']['ssim']:>9.4f} {m['road']['l1']:>8.2f} "
+            f"{m['all']['census']:>11.4f} {m['all']['ssim']:>9.4f} {m['all']['l1']:>8.2f}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -275,6 +295,11 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
         print(_row(name, m))
     print(f"{'change with freespace':<22} {100 * change['road']:>+8.1f}% {100 * change['non_road']:>+12.1f}% "
           f"{100 * change['all']:>+7.1f}%")
+    print("photometric error of image 1 against image 2 warped by the estimate (census distance, "
+          "SSIM dissimilarity, L1 on 0-255; lower is better; L1 alone rewards a flow bent to match brightness):")
+    print(f"{'run':<22} {'road census':>11} {'road SSIM':>9} {'road L1':>8} {'all census':>11} {'all SSIM':>9} {'all L1':>8}")
+    for name, m in results.items():
+        print(_photometric_row(name, m))
     print(f"render {render_s:.1f} s; training " + ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in logs.items()))
 
     report = {

@@ -76,7 +76,13 @@ from .evaluation.metrics import (
     u_error,
     v_error,
 )
-from .evaluation.photometric import PhotometricError, photometric_error, photometric_error_map
+from .evaluation.photometric import (
+    PhotometricError,
+    photometric_error,
+    photometric_error_map,
+    photometric_error_maps,
+    photometric_errors,
+)
 from .data.scene import PRESETS, collate, render_pair, render_sequence
 from .training.testnet import TinyRAFT
 from .estimation.freespace import detect_freespace
@@ -139,6 +145,8 @@ __all__ = [
     "outlier_rate",
     "photometric_error",
     "photometric_error_map",
+    "photometric_error_maps",
+    "photometric_errors",
     "pitch_matrix",
     "pixel_grid",
     "read_flo",

@@ -3,8 +3,8 @@
 With no arguments: render the default synthetic sequence (``fsof_torch.data.scene``, preset
 "default"), predict flow with OpenCV DIS and with the test net (random weights), refine each with
 the scene's odometry, with ego-motion fitted to the flow and with ego-motion fitted to the images,
-and write refined flows, figures and a report (photometric error and end-point error, road and
-overall, before and after) into ``refine_out/synthetic-default/``.
+and write refined flows, figures and a report (census distance, SSIM and L1 photometric error, and
+end-point error, road and overall, before and after) into ``refine_out/synthetic-default/``.
 
 Options, inputs, outputs, resuming and distributed runs: ``docs/jobs.md``.
 """
@@ -240,6 +240,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     from .calibrate import calibrate_pitch
     from .inputs import JobError, file_digest
     from .job import JobConfig, run_pairs
+    from .measure import PHOTO
     from .report import pair_table, summarize, write_clip_summaries, write_report
     from .sources import NetSpec, make_source, net_identity
 
@@ -277,7 +278,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
                 "road": args.road, "calibrate_pitch": calibrate,
                 "testnet_weights": file_digest(args.testnet_weights) if args.testnet_weights is not None
                 and "testnet" in sources else None,
-                "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources}
+                "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources,
+                "photometric": [kind for _, kind, _ in PHOTO]}
     error = None
     if world.is_main:
         try:

@@ -30,6 +30,7 @@ from torch import Tensor
 from fsof_torch import Camera, FreespaceRefiner
 
 from .inputs import JobError, PairSpec, odometry_from_pose
+from .measure import compare, error_panel, flow_maps, max_flow
 
 VARIANTS = ("given", "given_pitch", "fit", "photometric")
 VARIANT_HELP = {"given": "odometry given (scene / poses)",
@@ -56,98 +57,6 @@ class JobConfig:
     notes: list[str] = field(default_factory=list)
     fingerprint: str = ""
     device: str = "cpu"
-
-
-# -- measuring ------------------------------------------------------------------------------------
-
-def flow_maps(pair: dict, flow: Tensor) -> dict[str, Tensor]:
-    """The per-pixel maps of one flow (2, H, W), computed once and reduced over any region:
-    ``finite`` (1, H, W), the photometric error ``photo`` (|I1 − warp(I2, flow)|, 0..255) with
-    ``in_bounds``; with ground truth ``e_E`` (px), ``e_A`` (rad), ``Fl`` (0/1) and ``gt_valid``."""
-    from fsof_torch import photometric_error_map
-    from fsof_torch.evaluation.metrics import flow_error_maps
-
-    finite = torch.isfinite(flow).all(dim=0, keepdim=True)
-    f = torch.nan_to_num(flow)[None]
-    err, in_bounds = photometric_error_map(pair["image1"][None], pair["image2"][None], f)
-    maps = {"flow": f[0], "finite": finite, "photo": err[0], "in_bounds": in_bounds[0]}
-    if pair.get("gt") is not None:
-        gt, valid = pair["gt"]
-        errors, counted = flow_error_maps(f, gt[None].to(f.dtype), None, valid[None])
-        maps.update({"e_E": errors["e_E"][0], "e_A": errors["e_A"][0], "Fl": errors["Fl"][0],
-                     "gt_valid": counted[0]})
-    return maps
-
-
-def _mean(x: Tensor, mask: Tensor) -> tuple[float, int]:
-    """Mean of ``x`` over ``mask`` (float64 sum, no boolean indexing) and the pixel count."""
-    n = int(mask.sum())
-    total = float(torch.where(mask, x, torch.zeros((), dtype=x.dtype, device=x.device)).sum(dtype=torch.float64))
-    return total / max(n, 1), n
-
-
-def compare(before: dict[str, Tensor], after: dict[str, Tensor], road: Tensor) -> tuple[dict, dict]:
-    """Metrics of the prediction and of the refined flow on the same pixels.
-
-    Photometric error (L1, 0..255 scale) over the pixels where both flows are finite and both
-    sample points fall inside image2 (so that a flow that pushes pixels out of the image is not
-    rewarded for it), inside the road and overall; with ground truth, e_E / e_A / Fl over the
-    valid ground-truth pixels where both flows are finite (KITTI style), and the photometric
-    error once more over those pixels (``photo_road_noc``, ``photo_all_noc``): a pixel occluded
-    in image 2 has no true match, so no flow explains its brightness and the error there rewards
-    a flow that points at a look-alike instead (on the synthetic scene the exact flow scores 24.9
-    on its occluded road pixels, DIS 10.4).
-    """
-    finite = before["finite"] & after["finite"]
-    common = finite & before["in_bounds"] & after["in_bounds"]
-    regions = [("road", common & road), ("all", common)]
-    gt = "gt_valid" in before
-    if gt:
-        noc = before["gt_valid"]
-        regions += [("road_noc", common & road & noc), ("all_noc", common & noc)]
-        epe_regions = [("road", road & finite & noc), ("all", finite & noc)]
-    out: tuple[dict, dict] = ({}, {})
-    for stage, maps in zip(out, (before, after)):
-        for region, mask in regions:
-            stage[f"photo_{region}"], stage[f"photo_{region}_n"] = _mean(maps["photo"], mask)
-        if gt:
-            for region, mask in epe_regions:
-                stage[f"epe_{region}"], stage[f"epe_{region}_n"] = _mean(maps["e_E"], mask)
-                stage[f"ae_{region}"], _ = _mean(maps["e_A"], mask)
-                stage[f"fl_{region}"], _ = _mean(maps["Fl"], mask)
-    return out
-
-
-def evaluate(pair: dict, pred: Tensor, refined: Tensor, road: Tensor) -> tuple[dict, dict]:
-    """:func:`compare` of a prediction and its refinement (both (2, H, W)); ``road`` (1, H, W)."""
-    return compare(flow_maps(pair, pred), flow_maps(pair, refined), road)
-
-
-def error_panel(maps: dict[str, Tensor]) -> tuple[Tensor, Tensor]:
-    """The map a figure shows for a flow: end-point error with ground truth, else photometric."""
-    if "e_E" in maps:
-        return maps["e_E"], maps["gt_valid"] & maps["finite"]
-    return maps["photo"], maps["in_bounds"] & maps["finite"]
-
-
-def max_flow(pair: dict, pred: Tensor, road: Tensor | None = None) -> float:
-    """One colour scale for before and after: the 99th percentile of the ground truth's magnitude
-    over its valid pixels, or of the prediction's, inside the road when ``road`` (1, H, W) has
-    pixels (the road is what the figures are about; the much larger flow of nearby buildings
-    would wash it out), else over the image."""
-    if pair.get("gt") is not None:
-        flow, valid = pair["gt"]
-    else:
-        flow = torch.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0)
-        valid = torch.isfinite(pred).all(dim=0, keepdim=True)
-    if road is not None and bool((valid & road).any()):
-        valid = valid & road
-    mag = torch.where(valid[0], torch.hypot(flow[0], flow[1]), torch.full((), -1.0, dtype=flow.dtype)).flatten()
-    n_valid = int(valid.sum())
-    if n_valid == 0:
-        return 1.0
-    k = mag.numel() - n_valid + max(1, math.ceil(0.99 * n_valid))  # the invalid -1s sort first
-    return max(float(mag.kthvalue(k).values), 1.0)
 
 
 # -- the loop -------------------------------------------------------------------------------------
@@ -297,7 +206,7 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
     images = (pair["image1"][None], pair["image2"][None]) if variant == "photometric" else None
     out = refiner(pred[None], road[None], camera, odo, images=images)
     flow = out.flow[0].detach()
-    after = flow_maps(pair, flow)
+    after = flow_maps(pair, flow, reference=before)
     m_before, m_after = compare(before, after, road)
     record: dict[str, Any] = {
         "road_pixels": int(road.sum()), "refined": bool(out.refined[0]),
@@ -318,16 +227,18 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
     from fsof_torch.evaluation.figures import pair_figure, save_figure
 
     gt = pair.get("gt") is not None
-    label = "end-point error (px)" if gt else "photometric error (grey levels)"
     columns = {f"before ({source})": (pred, before)}
     columns.update({f"after, odometry '{v}'": (flows[v], maps[v]) for v in flows})
     cpu = lambda t: t.detach().cpu()  # noqa: E731
+    panels = {k: error_panel(m) for k, (_, m) in columns.items()}
+    label = next(iter(panels.values()))[2]
     fig = pair_figure(images=(cpu(pair["image1"]), cpu(pair["image2"])),
                       flows={k: cpu(f) for k, (f, _) in columns.items()},
-                      errors={k: tuple(cpu(t) for t in error_panel(m)) for k, (_, m) in columns.items()},
-                      road=cpu(road), max_flow=max_flow(pair, pred, road), error_vmax=5.0 if gt else 50.0,
+                      errors={k: (cpu(e), cpu(v)) for k, (e, v, _) in panels.items()},
+                      road=cpu(road), max_flow=max_flow(pair, pred, road), error_vmax=5.0 if gt else 0.5,
                       error_label=label,
                       title=f"pair {name}, flow source '{source}': flow and error before and after "
                             f"refinement (mode '{cfg.mode}'); error: "
-                            + ("|flow − ground truth|" if gt else "|I1 − I2 warped by the flow|, 0–255"))
+                            + ("|flow − ground truth|" if gt else
+                               "census distance of I1 and I2 warped by the flow, 0–1"))
     save_figure(fig, figure_path(cfg, source, name))

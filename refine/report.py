@@ -17,11 +17,15 @@ from typing import Any
 import torch
 
 from .job import VARIANT_HELP, JobConfig
+from .measure import PHOTO
 
-METRICS = (("photo_road", "photometric error, road (0-255)"), ("photo_all", "photometric error, all"),
-           ("photo_road_noc", "photometric error, non-occluded road (0-255)"),
-           ("photo_all_noc", "photometric error, non-occluded (0-255)"),
-           ("epe_road", "end-point error, road (px)"), ("epe_all", "end-point error, all (px)"))
+# (record key, label): each photometric kind inside the road and overall, and over the
+# non-occluded pixels where ground truth exists; end-point error where ground truth exists
+METRICS = tuple((f"{prefix}_{region}", f"{label}, {where}")
+                for prefix, _, label in PHOTO
+                for region, where in (("road", "road"), ("all", "all"), ("road_noc", "non-occluded road"),
+                                      ("all_noc", "non-occluded"))) + \
+    (("epe_road", "end-point error (px), road"), ("epe_all", "end-point error (px), all"))
 STAGES = ("before", "after")
 # extra per-pair columns: refined (0/1), processed (1), |z_d − given z_d| (m) with its count
 _REFINED, _PROCESSED, _ZD_ERR, _ZD_N = range(4)
@@ -105,29 +109,30 @@ def _fmt(x: Any, digits: int = 3) -> str:
     return str(x)
 
 
+# the report's rows per (source, variant): (record key prefix, label, digits); 'noc' rows and
+# end-point error only where ground truth exists
+_TABLE = tuple((prefix, label, 3 if prefix == "photo" else 4) for prefix, _, label in PHOTO) + \
+    (("epe", "end-point error (px)", 3),)
+
+
 def table_markdown(summary: dict) -> str:
-    have_epe = any("epe_all_before" in r for r in summary["rows"])
-    have_noc = any("photo_road_noc_before" in r for r in summary["rows"])
-    head = ["source", "odometry", "pairs", "photo road before", "after", "Δ%"]
-    if have_noc:
-        head += ["photo road noc before", "after", "Δ%"]
-    head += ["photo all before", "after"]
-    if have_epe:
-        head += ["EPE road before", "after", "Δ%", "EPE all before", "after"]
+    """One row per source, variant and metric: road and overall, before, after and change."""
+    head = ["source", "odometry", "pairs", "metric", "road before", "after", "Δ%", "all before", "after", "Δ%"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for r in summary["rows"]:
-        cells = [r["source"], r["variant"], f'{r["refined"]}/{r["pairs"]}',
-                 _fmt(r.get("photo_road_before")), _fmt(r.get("photo_road_after")),
-                 _fmt(r.get("photo_road_change_pct"), 1)]
-        if have_noc:
-            cells += [_fmt(r.get("photo_road_noc_before")), _fmt(r.get("photo_road_noc_after")),
-                      _fmt(r.get("photo_road_noc_change_pct"), 1)]
-        cells += [_fmt(r.get("photo_all_before")), _fmt(r.get("photo_all_after"))]
-        if have_epe:
-            cells += [_fmt(r.get("epe_road_before")), _fmt(r.get("epe_road_after")),
-                      _fmt(r.get("epe_road_change_pct"), 1), _fmt(r.get("epe_all_before")),
-                      _fmt(r.get("epe_all_after"))]
-        lines.append("| " + " | ".join(cells) + " |")
+        first = True
+        for prefix, label, digits in _TABLE:
+            for suffix, name in (("", label), ("_noc", f"{label}, non-occluded")):
+                road, every = f"{prefix}_road{suffix}", f"{prefix}_all{suffix}"
+                if f"{road}_before" not in r and f"{every}_before" not in r:
+                    continue
+                cells = [r["source"], r["variant"], f'{r["refined"]}/{r["pairs"]}'] if first else ["", "", ""]
+                first = False
+                cells.append(name)
+                for key in (road, every):
+                    cells += [_fmt(r.get(f"{key}_before"), digits), _fmt(r.get(f"{key}_after"), digits),
+                              _fmt(r.get(f"{key}_change_pct"), 1)]
+                lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
 
@@ -147,12 +152,17 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
           + (f"{summary['records_resumed']} of {len(summary['pairs'])} records were finished by an earlier "
              f"run with the same fingerprint (same inputs and options) and reused."
              if summary["records_resumed"] else "All records were computed by this run."), "",
-          "Photometric error: mean |I1 − warp(I2, flow)| on the 0–255 scale over the pixels where the "
-          "sample points of both the prediction and the refined flow fall inside image 2 (the same pixels "
-          "before and after); with ground truth also over the non-occluded ones only ('noc': the valid "
-          "ground-truth pixels, where end-point error is measured; an occluded pixel has no true match). "
-          "End-point error against the ground truth (KITTI style, over all valid pixels of the set). "
-          "'road' is the road mask the refiner used. 'pairs' counts refined/processed pairs.", "", table, ""]
+          "Photometric error of image 1 against image 2 warped back by the flow, three kinds: the census "
+          "distance (7×7 census bits of the grey images that differ, / 48), the SSIM dissimilarity "
+          "((1 − SSIM) / 2) and L1 (mean |I1 − warp(I2, flow)|, 0–255); lower is better. Judge by census "
+          "(and by end-point error where there is ground truth): L1 on raw intensities charges a correct "
+          "flow for every exposure change between the frames and rewards a flow bent to match brightness. "
+          "Each kind is averaged over the pixels where both the prediction and the refined flow are defined "
+          "(sample point, and for census and SSIM its window, inside image 2: the same pixels before and "
+          "after); with ground truth also over the non-occluded ones only (its valid pixels, where "
+          "end-point error is measured; an occluded pixel has no true match). End-point error against the "
+          "ground truth (KITTI style, over all valid pixels of the set). 'road' is the road mask the refiner "
+          "used; 'all' the whole image. 'pairs' counts refined/processed pairs.", "", table, ""]
     md += [f"- {n}" for n in summary["notes"]]
     md += ["", "Odometry variants: " + "; ".join(f"`{k}`: {v}" for k, v in VARIANT_HELP.items()), ""]
     write_text(cfg.out / "report.md", "\n".join(md))
@@ -165,8 +175,9 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
 
 
 def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:
-    """``OUT/<source>/summary.png`` per flow source: error before and after, and every estimated
-    motion and mounting field of the records, over the pairs."""
+    """``OUT/<source>/summary.png`` per flow source: the road's errors before and after (end-point
+    error where there is ground truth; census, SSIM and L1), and every estimated motion and
+    mounting field of the records, over the pairs."""
     from fsof_torch.evaluation.figures import clip_summary_figure, save_figure
 
     written = []
@@ -174,11 +185,10 @@ def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:
         records = [r for r in summary["pairs"] if r["source"] == source]
         if not records:
             continue
-        gt = any("epe_road" in r["before"] for r in records)
-        key, label = ("epe_road", "end-point error, road (px)") if gt else \
-            ("photo_road", "photometric error, road (grey levels)")
-        fig = clip_summary_figure(records, error_key=key, error_label=label,
-                                  title=f"{cfg.title}: flow source '{source}' over the pairs")
+        errors = {f"{prefix}_road": f"{label}, road" for prefix, _, label in PHOTO}
+        if any("epe_road" in r["before"] for r in records):
+            errors = {"epe_road": "end-point error (px), road", **errors}
+        fig = clip_summary_figure(records, errors=errors, title=f"{cfg.title}: flow source '{source}' over the pairs")
         path = cfg.out / source / "summary.png"
         save_figure(fig, path)
         written.append(path)

@@ -32,9 +32,13 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     assert "road EPE" in printed and "change with freespace" in printed
     report = json.loads((tmp_path / "train.json").read_text())
     assert set(report["metrics"]) == {"untrained", "unsupervised", "unsupervised+freespace"}
+    assert "road census" in printed and "road SSIM" in printed and "road L1" in printed
     for run in report["metrics"].values():
         for region in ("road", "non_road", "all"):
             assert run[region]["e_E"] >= 0 and run[region]["n_pixels"] > 0
+            for kind in ("census", "ssim", "l1"):
+                assert run[region][f"n_{kind}"] > 0 and run[region][kind] >= 0
+            assert 0 <= run[region]["census"] <= 1 and 0 <= run[region]["ssim"] <= 1
     assert set(report["training"]["unsupervised+freespace"]["final_loss"]) == {"total", "unsupervised", "freespace"}
     net = TinyRAFT(iters=1)
     net.load_state_dict(torch.load(out / "tinyraft_unsupervised_freespace.pt"))
@@ -85,3 +89,22 @@ def test_torchrun_ddp_first_step_equals_one_process(tmp_path, keep_threads):
         scale = float(flat.abs().max())
         for k in g1:
             torch.testing.assert_close(g2[k], g1[k], rtol=1e-5, atol=1e-5 * scale, msg=k)
+
+
+def test_evaluate_net_pools_photometric_errors_over_pixels(keep_threads):
+    """The photometric figures of eval train pool over pixels (KITTI style): the count-weighted
+    mean of the per-pair errors, road and overall, for census, SSIM and L1."""
+    from fsof_torch.evaluation.photometric import photometric_error
+
+    torch.set_num_threads(1)
+    data = train.render_pairs("default", 2, seed=5, size=(32, 64))
+    net = TinyRAFT(seed=0, iters=1).eval()
+    metrics = train.evaluate_net(net, data)
+    with torch.no_grad():
+        flows = net(data["image1"], data["image2"])[-1]
+    for region, mask in (("road", data["road"]), ("all", None)):
+        for kind in ("census", "ssim", "l1"):
+            mean, count = photometric_error(data["image1"], data["image2"], flows, mask, kind=kind, return_count=True)
+            pooled = float((mean.double() * count).sum() / count.sum())
+            assert metrics[region][kind] == pytest.approx(pooled, rel=1e-6)
+            assert metrics[region][f"n_{kind}"] == int(count.sum())

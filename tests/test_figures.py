@@ -119,7 +119,8 @@ def _records():
     for i in range(3):
         for v, shift in (("given", 0.0), ("fit", 0.01)):
             recs.append({"pair": f"{i:06d}", "source": "dis", "variant": v,
-                         "before": {"epe_road": 2.0 + i}, "after": {"epe_road": 0.1 * i + shift},
+                         "before": {"epe_road": 2.0 + i, "census_road": 0.3},
+                         "after": {"epe_road": 0.1 * i + shift, "census_road": 0.2 + shift},
                          "odometry": {"x_d": 0.0 + shift, "z_d": 1.2 - shift, "yaw": 0.01, "y_d": 0.002 * i},
                          "roll": 0.01, "pitch": -0.02, "odometry_given": {"x_d": 0.0, "z_d": 1.2, "yaw": 0.01}})
     return recs
@@ -128,20 +129,26 @@ def _records():
 def test_clip_summary_parts():
     import matplotlib.pyplot as plt
 
-    fig = clip_summary_figure(_records(), error_key="epe_road", error_label="end-point error, road (px)",
-                              title="clip: dis")
+    # one panel per error the records hold (no record has ssim_road: no panel for it)
+    errors = {"epe_road": "end-point error (px), road", "census_road": "census distance (0-1), road",
+              "ssim_road": "SSIM dissimilarity (0-1), road"}
+    fig = clip_summary_figure(_records(), errors=errors, title="clip: dis")
     try:
         assert fig.get_suptitle() == "clip: dis"
         visible = [ax for ax in fig.axes if ax.get_visible()]
         titles = [ax.get_title() for ax in visible]
         # every odometry field of the records shows up, a new one (y_d) included, and the mounting
-        assert len(visible) == 7
-        assert titles[0] == "error before and after refinement"
+        assert len(visible) == 8
+        assert titles[:2] == ["end-point error, road: before and after refinement",
+                              "census distance, road: before and after refinement"]
+        assert visible[1].get_ylabel() == "census distance (0-1), road"
+        (census_fit,) = [ln for ln in visible[1].get_lines() if ln.get_label() == "after, fit"]
+        assert list(census_fit.get_ydata()) == pytest.approx([0.21] * 3)
         assert any("vertical motion y_d" in t for t in titles)
         assert any("camera roll" in t for t in titles) and any("camera pitch" in t for t in titles)
         for ax in visible:
             assert ax.get_title() and ax.get_ylabel() and ax.get_legend() is not None
-        assert "end-point error, road (px)" == visible[0].get_ylabel()
+        assert "end-point error (px), road" == visible[0].get_ylabel()
         bottom = [ax for ax in visible if ax.get_xlabel()]
         assert bottom and all(ax.get_xlabel() == "pair" for ax in bottom)
         labels = [t.get_text() for t in visible[0].get_legend().get_texts()]

@@ -8,10 +8,13 @@ import pytest
 import torch
 
 from fsof_torch.evaluation.photometric import (
+    REPORTED_KINDS,
     PhotometricError,
     census_transform,
     photometric_error,
     photometric_error_map,
+    photometric_error_maps,
+    photometric_errors,
 )
 
 KINDS = ["l1", "ssim", "census", "soft_census"]
@@ -59,7 +62,11 @@ def test_public_names():
     import fsof_torch.evaluation.photometric as mod
 
     assert set(mod.__all__) >= {"photometric_error", "photometric_error_map", "census_transform",
-                                "PhotometricError"}
+                                "PhotometricError", "photometric_error_maps", "photometric_errors",
+                                "REPORTED_KINDS"}
+    import fsof_torch
+
+    assert {"photometric_error_maps", "photometric_errors"} <= set(fsof_torch.__all__)
 
 
 def test_module_twin():
@@ -370,3 +377,67 @@ def test_census_distance_is_the_hamming_distance_of_census_bits():
     assert v.sum() > 50 and not v[:, -5:].any()  # the window's samples must stay inside image 2
     np.testing.assert_allclose(err[0, 0].numpy()[v], ref[v])
     assert float(err[0, 0][valid[0, 0]].max()) == 0.0  # a monotonic brightness change costs nothing
+
+
+# --- several kinds at once ---------------------------------------------------------------------
+
+def test_several_kinds_equal_one_kind_at_a_time():
+    """One warp for all kinds: each map, validity and mean is what the one-kind call gives."""
+    i1, i2, flow = _shifted_pair(B=2)
+    flow = flow * 0.7 + 0.3  # not the true flow: errors everywhere
+    mask = torch.zeros(2, 1, 32, 48, dtype=torch.bool)
+    mask[:, :, 8:30, 5:40] = True
+    maps = photometric_error_maps(i1, i2, flow, mask, kinds=KINDS)
+    assert list(maps) == KINDS
+    errors = photometric_errors(i1, i2, flow, mask, kinds=KINDS, return_count=True)
+    for kind in KINDS:
+        error, valid = photometric_error_map(i1, i2, flow, mask, kind=kind)
+        assert torch.equal(maps[kind][0], error) and torch.equal(maps[kind][1], valid), kind
+        mean, count = photometric_error(i1, i2, flow, mask, kind=kind, return_count=True)
+        assert torch.equal(errors[kind][0], mean) and torch.equal(errors[kind][1], count), kind
+    assert REPORTED_KINDS == ("l1", "ssim", "census")
+    assert list(photometric_errors(i1, i2, flow)) == ["l1", "ssim", "census"]
+
+
+def test_exposure_change_costs_l1_and_ssim_not_census():
+    """Image 2 = a gain and bias of image 1, no motion: the census distance is 0 (it sees only the
+    order of grey levels), L1 is the mean of |I - (0.6 I + 30)| computed by hand."""
+    i1 = _smooth_image(H=24, W=32)
+    i2 = i1 * 0.6 + 30.0
+    zero = torch.zeros(1, 2, 24, 32)
+    errors = photometric_errors(i1, i2, zero)
+    assert float(errors["census"]) == 0.0
+    assert float(errors["l1"]) == pytest.approx(float((0.4 * i1 - 30.0).abs().mean()), rel=1e-5)
+    assert float(errors["ssim"]) > 0.0
+
+
+def test_kinds_argument_is_checked():
+    i1, i2, flow = _shifted_pair()
+    with pytest.raises(TypeError, match=r"kinds: expected a non-empty tuple or list of kinds .*got 'census'"):
+        photometric_error_maps(i1, i2, flow, kinds="census")
+    with pytest.raises(TypeError, match="kinds: expected a non-empty tuple or list"):
+        photometric_errors(i1, i2, flow, kinds=())
+    with pytest.raises(ValueError, match=r"kinds: expected kinds from .*, got 'l2'"):
+        photometric_errors(i1, i2, flow, kinds=("l1", "l2"))
+    with pytest.raises(ValueError, match=r"kinds: expected each kind once, got \('l1', 'l1'\)"):
+        photometric_errors(i1, i2, flow, kinds=["l1", "l1"])
+
+
+@pytest.mark.parametrize("radius", [1, 3])
+def test_windowed_validity_is_the_in_bounds_map_eroded_by_the_window(radius):
+    """A windowed kind counts a pixel only if every sample point of its (2r+1)² window falls in
+    image 2; pixels outside the image count as in bounds (the border is padded, not dropped).
+    Reference: a max-pool of the out-of-bounds map."""
+    import torch.nn.functional as F
+
+    from fsof_torch import warp_backward
+
+    g = torch.Generator().manual_seed(radius)
+    i1, i2, _ = _shifted_pair()
+    flow = torch.randn(1, 2, 32, 48, generator=g)
+    flow[..., 10:14, 20:23] = 60.0  # a patch whose sample points leave the image, and the border
+    _, in_bounds = warp_backward(i2, flow)
+    ref = F.max_pool2d((~in_bounds).float(), 2 * radius + 1, stride=1, padding=radius) == 0
+    _, valid = photometric_error_map(i1, i2, flow, kind="census", census_radius=radius)
+    assert 0 < int(valid.sum()) < int(in_bounds.sum())
+    assert torch.equal(valid, ref)

@@ -87,16 +87,29 @@ def test_synthetic_default_pipeline(tmp_path, capsys):
         os.umask(old)
     assert rc == 0
     printed = capsys.readouterr().out
-    assert "EPE road before" in printed and "photo road before" in printed
+    assert "| road before | after | Δ% | all before | after | Δ% |" in printed
+    for metric in ("census distance (0-1)", "SSIM dissimilarity (0-1)", "L1 photometric error (0-255)",
+                   "end-point error (px)"):
+        assert f"| {metric} |" in printed and f"| {metric}, non-occluded |" in printed or metric.startswith("end")
     rows = _rows(out / "report.json")
     assert set(rows) == {("dis", "given"), ("dis", "fit"), ("dis", "photometric")}
     given = rows[("dis", "given")]
     assert given["pairs"] == 2 and given["refined"] == 2
     # the scene's odometry and road mask are exact: the refined road flow is the truth
     assert given["epe_road_after"] < 0.05 < given["epe_road_before"]
-    assert "photo road noc before" in printed
     rec = json.loads((out / "dis" / "given" / "pairs" / "000000.json").read_text())
     assert 0 < rec["after"]["photo_road_noc_n"] <= rec["after"]["photo_road_n"]
+    # census and SSIM beside L1, road and overall, pooled over the pairs' pixels (KITTI style)
+    summary = json.loads((out / "report.json").read_text())
+    records = [r for r in summary["pairs"] if r["variant"] == "given"]
+    for key in ("census_road", "census_all", "ssim_road", "ssim_all_noc", "photo_road", "epe_road"):
+        for stage in ("before", "after"):
+            pooled = (sum(r[stage][key] * r[stage][f"{key}_n"] for r in records)
+                      / sum(r[stage][f"{key}_n"] for r in records))
+            assert given[f"{key}_{stage}"] == pytest.approx(pooled, rel=1e-12), (key, stage)
+    # the exact road flow matches the images better than DIS by the census distance
+    assert given["census_road_after"] < given["census_road_before"]
+    assert 0 < rec["after"]["census_road_n"] <= rec["after"]["photo_road_n"]
     assert rec["rank"] == 0 and len(rec["fingerprint"]) == 16 and len(rec["input_fingerprint"]) == 16
     assert (tmp_path / "r.json").is_file() and (out / "report.md").is_file() and (out / "run.json").is_file()
     from fsof_torch.io import read_kitti_flow
@@ -391,7 +404,7 @@ def test_crashes_of_the_past_exit_2(tmp_path, user_folder, scene_pairs, capsys):
 def test_evaluate_noc_leaves_out_occluded_pixels():
     """With ground truth, the 'noc' photometric error covers only its valid pixels: a pixel
     occluded in image 2 (invalid ground truth) whose brightness no flow can match is left out."""
-    from refine.job import evaluate
+    from refine.measure import evaluate
 
     H, W = 6, 8
     image1 = torch.full((3, H, W), 100.0)
@@ -415,8 +428,79 @@ def test_evaluate_noc_leaves_out_occluded_pixels():
     assert "photo_road_noc" not in before
 
 
+@pytest.fixture(scope="module")
+def refined_pair():
+    """A synthetic pair, a prediction (the truth + 0.8 px, with a NaN on the road) and its
+    refinement (the truth on the road)."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(64, 200))
+    pred = p["flow"] + 0.8
+    pred[:, 60, 100] = float("nan")
+    refined = torch.where(p["road"], p["flow"], pred)
+    return {"image1": p["image1"], "image2": p["image2"], "gt": (p["flow"], p["valid"])}, pred, refined, p["road"]
+
+
+def test_maps_of_a_refinement_are_computed_where_it_changed_the_flow(refined_pair):
+    """With the prediction's maps as reference only the box around the changed pixels is
+    computed: every map equals the whole image's, bit for bit but SSIM (its convolutions may sum
+    in another order on a smaller image)."""
+    from refine.measure import flow_maps
+
+    pair, pred, refined, _ = refined_pair
+    before = flow_maps(pair, pred)
+    whole = flow_maps(pair, refined)
+    boxed = flow_maps(pair, refined, reference=before)
+    assert set(boxed) == set(whole)
+    for key in whole:
+        if key == "ssim":
+            torch.testing.assert_close(boxed[key], whole[key], rtol=1e-6, atol=1e-7)
+        else:
+            assert torch.equal(boxed[key], whole[key]), key
+    same = flow_maps(pair, pred.clone(), reference=before)  # nothing changed: the reference's maps
+    assert all(torch.equal(same[k], before[k]) for k in before)
+
+
+def test_compare_census_and_ssim_on_the_pixels_both_flows_define(refined_pair):
+    """compare's photometric means, against means taken here with boolean indexing over the road
+    pixels where both flows are finite and both kinds' windows lie in image 2."""
+    from fsof_torch import photometric_error_map
+    from refine.measure import evaluate
+
+    pair, pred, refined, road = refined_pair
+    before, after = evaluate(pair, pred, refined, road)
+    finite = torch.isfinite(pred).all(0, keepdim=True)
+    for kind, prefix in (("census", "census"), ("ssim", "ssim"), ("l1", "photo")):
+        maps = [photometric_error_map(pair["image1"][None], pair["image2"][None], torch.nan_to_num(f)[None], kind=kind)
+                for f in (pred, refined)]
+        common = finite & maps[0][1][0] & maps[1][1][0]
+        for stage, (error, _) in zip((before, after), maps):
+            for region, mask in (("road", road), ("all", torch.ones_like(road)),
+                                 ("road_noc", road & pair["gt"][1])):
+                sel = common & mask
+                assert stage[f"{prefix}_{region}_n"] == int(sel.sum())
+                assert stage[f"{prefix}_{region}"] == pytest.approx(float(error[0][sel].double().mean()), rel=1e-9)
+    assert after["census_road"] < before["census_road"] and after["epe_road"] < 1e-6
+
+
+def test_error_panel_is_epe_with_ground_truth_else_census(refined_pair):
+    """A figure shows end-point error where there is ground truth; without it the census distance
+    (not L1, which exposure changes and brightness-matching flows fool)."""
+    from refine.measure import error_panel, flow_maps
+
+    pair, pred, _, _ = refined_pair
+    maps = flow_maps(pair, pred)
+    error, valid, label = error_panel(maps)
+    assert label == "end-point error (px)" and torch.equal(error, maps["e_E"])
+    assert torch.equal(valid, maps["gt_valid"] & maps["finite"])
+    maps = flow_maps({k: v for k, v in pair.items() if k != "gt"}, pred)
+    error, valid, label = error_panel(maps)
+    assert label == "census distance (0-1)" and torch.equal(error, maps["census"])
+    assert not bool(valid[0, 60, 100])  # the NaN pixel has no value
+
+
 def test_max_flow_is_the_99th_percentile_of_valid_magnitudes():
-    from refine.job import max_flow
+    from refine.measure import max_flow
 
     H, W = 10, 20
     gt = torch.zeros(2, H, W)

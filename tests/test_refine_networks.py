@@ -157,6 +157,9 @@ def test_torchrun_two_processes_write_the_single_process_report(tmp_path):
     single = json.loads((tmp_path / "single" / "report.json").read_text())
     assert multi["world_size"] == 2 and single["world_size"] == 1
     assert multi["rows"] == single["rows"]  # equal, not close: the sums are reduced pair by pair
+    # every metric goes through the all-reduce: census and SSIM beside L1 and EPE
+    for key in ("census_road", "census_all_noc", "ssim_road", "ssim_all", "photo_road", "epe_road"):
+        assert all(f"{key}_before" in r and f"{key}_after" in r for r in multi["rows"]), key
     assert sorted({r["rank"] for r in multi["pairs"]}) == [0, 1]
     keys = [(r["pair"], r["variant"]) for r in multi["pairs"]]
     assert sorted(keys) == sorted((f"{i:06d}", v) for i in range(4) for v in ("given", "fit"))  # each once

@@ -4,7 +4,7 @@ Each figure has a title; flow images carry a colour-wheel legend with the magnit
 saturation; error maps carry a colour bar with the unit and the value where the colours saturate;
 image panels have pixel axes; the road mask is drawn as a black-and-white dashed outline (no
 fill, so nothing under it changes colour and it cannot be taken for an object); before and after
-stand side by side. A clip gets a summary plot over its pairs: the error before and after, and
+stand side by side. A clip gets a summary plot over its pairs: each error before and after, and
 every estimated motion and mounting field the job's records hold.
 
 Builders return a ``matplotlib.figure.Figure`` (so tests and notebooks can inspect or show it);
@@ -18,6 +18,7 @@ from __future__ import annotations
 import io
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -265,9 +266,8 @@ def _error_cmap():
     return matplotlib.colormaps["inferno"].with_extremes(bad="black", over="white")
 
 
-def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, error_key: str, error_label: str,
-                        title: str) -> Any:
-    """A clip's pairs over time: the error before and after refinement per variant, and every
+def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping[str, str], title: str) -> Any:
+    """A clip's pairs over time: each error before and after refinement per variant, and every
     estimated field of the records' ``odometry`` (and ``roll``, ``pitch``, plus the given
     odometry as a reference line).
 
@@ -276,8 +276,10 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, error_key: str,
             ``before``/``after`` metrics, ``odometry`` dict, ``roll``, ``pitch``, optionally
             ``odometry_given``). Fields are read as they come: a field new to the records shows
             up as a panel of its own.
-        error_key: the metric plotted, e.g. ``"epe_road"`` or ``"photo_road"``.
-        error_label: its name and unit, e.g. "end-point error, road (px)".
+        errors: the metrics plotted, one panel each, as record key -> name and unit, e.g.
+            ``{"epe_road": "end-point error (px), road", "census_road": "census distance, road"}``
+            (a key no record holds gets no panel).
+        title: the figure's title.
     """
     plt = _pyplot()
     pairs = sorted({r["pair"] for r in records})
@@ -286,9 +288,10 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, error_key: str,
     fields = list(dict.fromkeys(k for r in records for k in r.get("odometry", {})
                                 if isinstance(r["odometry"][k], (int, float))))
     mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float)) for r in records)]
-    panels = ["error", *fields, *mounting]
+    error_keys = [k for k in errors if any(k in r.get("before", {}) for r in records)]
+    panels = [*error_keys, *fields, *mounting]
     ncol = 2
-    nrow = math.ceil(len(panels) / ncol)
+    nrow = max(1, math.ceil(len(panels) / ncol))
     height = 2.6 * nrow + 0.9
     fig, axes = plt.subplots(nrow, ncol, figsize=(11, height), dpi=FIGURE_DPI, squeeze=False, sharex=True)
     # a fixed layout: tight_layout would draw the figure once more to measure its texts
@@ -299,21 +302,22 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, error_key: str,
     x_of = lambda rs: [index[r["pair"]] for r in rs]  # noqa: E731
     for k, panel in enumerate(panels):
         ax = axes[k // ncol][k % ncol]
-        if panel == "error":
+        if panel in error_keys:
             before = {}
             for r in records:
-                if error_key in r.get("before", {}):
-                    before[r["pair"]] = r["before"][error_key]
+                if panel in r.get("before", {}):
+                    before[r["pair"]] = r["before"][panel]
             xs = sorted(before, key=index.get)
             ax.plot([index[p] for p in xs], [before[p] for p in xs], color="black", marker="o", ms=3,
                     linestyle="--", label="before (prediction)")
             for c, v in enumerate(variants):
-                rs = sorted((r for r in records if r["variant"] == v and error_key in r.get("after", {})),
+                rs = sorted((r for r in records if r["variant"] == v and panel in r.get("after", {})),
                             key=lambda r: index[r["pair"]])
-                ax.plot(x_of(rs), [r["after"][error_key] for r in rs], color=colours[c % len(colours)],
+                ax.plot(x_of(rs), [r["after"][panel] for r in rs], color=colours[c % len(colours)],
                         marker="o", ms=3, label=f"after, {v}")
-            ax.set_ylabel(error_label, fontsize=8)
-            ax.set_title("error before and after refinement", fontsize=9)
+            ax.set_ylabel(errors[panel], fontsize=8)
+            name = re.sub(r" \([^)]*\)", "", errors[panel])  # the unit is on the y axis
+            ax.set_title(f"{name}: before and after refinement", fontsize=9)
         else:
             name, unit, scale = _UNITS.get(panel, (panel, "", 1.0))
             for c, v in enumerate(variants):

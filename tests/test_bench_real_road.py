@@ -1,0 +1,156 @@
+"""``benchmarks/real_road.py``'s functions on a tiny synthetic pair (the full benchmark on the shared
+KITTI data is not run here): the homography flow, ECC, poses as odometry, the road errors, the
+summary, and ``main`` on a tiny clip in the shared data's layout."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+SIZE = (96, 320)
+# inside the synthetic default scene's road at 96x320 (rows 48-95)
+POLYGON = [[60, 95], [150, 56], [195, 56], [205, 95]]
+
+
+@pytest.fixture(scope="module")
+def rr():
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "real_road.py"
+    spec = importlib.util.spec_from_file_location("real_road", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def scenes():
+    from fsof_torch.data.scene import render_pair
+
+    return [render_pair("default", i, size=SIZE) for i in range(2)]
+
+
+@pytest.fixture(scope="module")
+def pair(scenes):
+    from fsof_torch.io import rasterize_polygons
+
+    p = scenes[0]
+    road = rasterize_polygons([POLYGON], SIZE).reshape(1, *SIZE)
+    assert bool(road.any()) and not bool((road & ~p["road"]).any())  # the polygon lies on the road
+    return {"image1": p["image1"], "image2": p["image2"], "camera": p["camera"], "road": road,
+            "relative_pose": torch.linalg.inv(p["pose2"]) @ p["pose1"], "gt": (p["flow"], p["valid"])}
+
+
+@pytest.fixture(scope="module")
+def results(rr, pair):
+    return rr.run_pair(pair, rr.METHODS)
+
+
+def test_homography_flow_against_hand_computation(rr):
+    flow, valid = rr.homography_flow(np.eye(3), (4, 5))
+    assert torch.equal(flow, torch.zeros(2, 4, 5)) and bool(valid.all())
+    shift = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, -1.5], [0.0, 0.0, 1.0]])
+    flow, _ = rr.homography_flow(shift, (4, 5))
+    assert torch.equal(flow[0], torch.full((4, 5), 2.0)) and torch.equal(flow[1], torch.full((4, 5), -1.5))
+    H = np.array([[1.1, 0.02, 3.0], [0.01, 0.95, -2.0], [1e-3, 2e-3, 1.0]])
+    flow, _ = rr.homography_flow(H, (4, 5))
+    u, v = 3, 2  # pixel (u, v) -> (H p) / (H p)_z
+    q = H @ np.array([u, v, 1.0])
+    assert flow[:, v, u].tolist() == pytest.approx([q[0] / q[2] - u, q[1] / q[2] - v], abs=1e-5)
+    behind = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, -1.0, 1.5]])  # z = 1.5 - v: behind from v = 2
+    flow, valid = rr.homography_flow(behind, (4, 5))
+    assert valid[0, :, 0].tolist() == [True, True, False, False] and bool((flow[:, 2:] == 0).all())
+
+
+def test_ecc_fits_the_road_plane_better_than_dis(results):
+    """The synthetic road is a plane: ECC's homography is closer to the truth than DIS."""
+    assert not results["ECC homography"]["ecc_failed"]
+    assert results["ECC homography"]["epe"] < results["DIS"]["epe"]
+    assert results["ECC homography"]["census"] < results["DIS"]["census"]
+
+
+def test_poses_as_odometry_give_the_exact_road_flow(results):
+    """inverse(P_{i+1}) @ P_i as the plane model's motion, or projected on the paper's planar
+    motion (the scene's road has no body motion), gives the true road flow."""
+    for name in ("refiner, poses ('plane')", "refiner, poses (paper's planar)"):
+        r = results[name]
+        assert r["refined"] and r["epe"] < 1e-3, name
+        assert r["census"] < results["DIS"]["census"]
+
+
+def test_road_errors_are_the_library_figures_of_the_combined_flow(rr, pair):
+    """Inside the road the method's flow, DIS's elsewhere; census, SSIM and L1 as
+    ``photometric_error`` gives them, EPE over road ∩ valid ground truth."""
+    from fsof_torch import endpoint_error, photometric_error
+
+    dis = torch.zeros(2, *SIZE)
+    dis[0] = 0.5
+    method = pair["gt"][0]
+    errors = rr.road_errors(pair, method, dis)
+    road = pair["road"][None]
+    combined = torch.where(road, method[None], dis[None])
+    for kind in ("census", "ssim", "l1"):
+        expected = float(photometric_error(pair["image1"][None], pair["image2"][None], combined, road, kind=kind)[0])
+        assert errors[kind] == pytest.approx(expected, rel=1e-6), kind
+    assert errors["epe"] == pytest.approx(0.0, abs=1e-6) and errors["n_epe"] == int((road & pair["gt"][1]).sum())
+    # outside the road the flow is DIS's: a different flow there changes nothing but the windows
+    # of census and SSIM at the polygon's edge, and L1 not at all
+    other = method.clone()
+    other[:, ~pair["road"][0]] = 40.0
+    assert rr.road_errors(pair, other, dis)["l1"] == errors["l1"]
+    assert float(endpoint_error(combined, method[None], road)[0]) == 0.0
+
+
+def test_summarize_counts_worse_pairs_and_the_difference_to_ecc(rr):
+    def run(census):
+        return {"census": census, "ssim": 0.1, "l1": 5.0, "seconds": 0.5}
+
+    per_pair = [{"DIS": run(0.30), "ECC homography": run(0.20), "refiner (no odometry)": run(0.315)},
+                {"DIS": run(0.30), "ECC homography": run(0.22), "refiner (no odometry)": run(0.305)},
+                {"DIS": run(0.40), "refiner (no odometry)": run(0.10)}]  # ECC not run on this pair
+    rows = {r["method"]: r for r in rr.summarize(per_pair)}
+    ref = rows["refiner (no odometry)"]
+    assert ref["pairs"] == 3 and ref["census"] == pytest.approx((0.315 + 0.305 + 0.10) / 3)
+    assert ref["worse_than_dis"] == 1 and ref["max_worse_than_dis"] == pytest.approx(0.015)
+    assert ref["minus_ecc"] == pytest.approx(((0.315 - 0.20) + (0.305 - 0.22)) / 2)
+    assert rows["ECC homography"]["pairs"] == 2 and rows["ECC homography"]["minus_ecc"] == 0.0
+    assert rows["DIS"]["worse_than_dis"] == 0
+    text = rr.table(rr.summarize(per_pair))
+    assert "| refiner (no odometry) | 3 | 0.2400 |" in text and "1 (max +0.015)" in text
+
+
+def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
+    """Three frames, two poses (the second pair has none, as the real clip's last), a polygon."""
+    from fsof_torch.io import write_image, write_kitti_calibration, write_kitti_poses
+
+    root = tmp_path / "data" / "kitti_odometry_straight"
+    (root / "image_l").mkdir(parents=True)
+    p0, p1 = scenes
+    for i, im in enumerate([p0["image1"], p0["image2"], p1["image2"]]):
+        write_image(root / "image_l" / f"{i:06d}.png", im)
+    write_kitti_calibration(root / "calib.txt", p0["camera"].K[0], cam=0, style="odometry")
+    write_kitti_poses(root / "poses.txt", torch.stack([p0["pose1"], p0["pose2"]]))
+    (root / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+    out = tmp_path / "real_road.json"
+    assert rr.main(["--data", str(tmp_path / "data"), "--json", str(out), "--no-progress"]) == 0
+    printed = capsys.readouterr()
+    assert "kitti15_000000 not found, skipped" in printed.err
+    assert "| DIS | 2 |" in printed.out and "| refiner, poses ('plane') | 1 |" in printed.out
+    report = json.loads(out.read_text())
+    rows = {r["method"]: r for r in report["clip"]["rows"]}
+    assert set(rows) == {"DIS", "ECC homography", "refiner (no odometry)", "refiner, poses ('plane')",
+                         "refiner, poses (paper's planar)"}
+    for r in rows.values():
+        assert 0 <= r["census"] <= 1 and r["seconds"] >= 0 and "epe" not in r
+    assert [p["pair"] for p in report["clip"]["pairs"]] == ["000000", "000001"]
+    assert rr.main(["--data", str(tmp_path / "data"), "--pairs", "1", "--no-ecc", "--no-progress"]) == 0
+    printed = capsys.readouterr().out
+    assert "| DIS | 1 |" in printed and "| ECC homography |" not in printed
+
+
+def test_main_without_data_exits_2(rr, tmp_path, capsys):
+    assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
+    assert "--data: no kitti15_000000/ or kitti_odometry_straight/" in capsys.readouterr().err
