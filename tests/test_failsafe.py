@@ -56,5 +56,5 @@ def test_dark_low_texture_frames_keep_the_prediction_and_are_flagged(scene):
     with pytest.warns(RuntimeWarning, match="left unchanged"):
         out = fs.FreespaceRefiner()(prediction, scene["road"][None], scene["camera"], images=(dark[0][None], dark[1][None]))
     assert not bool(out.refined.any())
-    assert not bool(out.gate.confirmed.any())
+    assert not bool(out.gate.confirmed.any()) and not bool(out.gate.informative.any())
     assert torch.equal(out.flow, prediction)

@@ -74,13 +74,24 @@ def test_the_gate_keeps_the_prediction_where_the_model_is_wrong():
     assert 0.0 < float(out.textured) <= 1.0
 
 
-def test_unconfirmed_models_leave_the_prediction():
+def test_images_without_evidence_leave_the_prediction():
+    g1, _, true = _pair()
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    # image 2 unrelated to image 1: no flow explains it, the census is noise for both
+    noise = _texture(seed=7)
+    out = ImageGate()(g1, noise, true, true.clone(), mask)
+    assert not bool(out.informative.any()) and not bool(out.confirmed.any())
+    assert not bool(out.model_used.any()) and not bool(out.use_model.any())
+    loose = ImageGate(require_evidence=False)(g1, noise, true, true.clone(), mask)
+    assert bool(loose.model_used.all()) and bool(loose.use_model.all())
+
+
+def test_a_model_as_good_as_the_prediction_is_used():
     g1, g2, true = _pair()
     mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
-    out = ImageGate()(g1, g2, true, true.clone(), mask)  # the images cannot tell them apart
-    assert not bool(out.confirmed.any()) and not bool(out.use_model.any())
-    loose = ImageGate(require_confirmation=False)(g1, g2, true, true.clone(), mask)
-    assert bool(loose.model_used.all()) and bool(loose.use_model.all())
+    out = ImageGate()(g1, g2, true, true.clone(), mask)  # both explain the images
+    assert bool(out.informative.all()) and not bool(out.confirmed.any())
+    assert bool(out.model_used.all()) and bool(out.use_model.all())
 
 
 def test_a_small_object_keeps_its_flow():
@@ -117,7 +128,7 @@ def test_gate_options_are_checked(kwargs, match):
         ImageGate(**kwargs)
 
 
-@pytest.mark.parametrize("kwargs, match", [(dict(objects=1), "objects"), (dict(require_confirmation="yes"), "require")])
+@pytest.mark.parametrize("kwargs, match", [(dict(objects=1), "objects"), (dict(require_evidence="yes"), "require")])
 def test_gate_flags_are_checked(kwargs, match):
     with pytest.raises(TypeError, match=match):
         ImageGate(**kwargs)

@@ -16,10 +16,11 @@ and the model's geometry is the better guess); so does every cell of a sample wh
 over the whole mask. Cells with too few points follow their sample's decision.
 
 A sample is *confirmed* when over its whole mask the model explains the images better than the
-prediction by more than ``z`` standard errors. With ``require_confirmation`` (the default) an
-unconfirmed sample keeps its prediction everywhere: where the images cannot tell the two flows
-apart (identical frames, a prediction as good as the model, dark or textureless frames whose
-census is noise), replacing the prediction would rest on the model alone.
+prediction by more than ``z`` standard errors, and *informative* when at least one of the two
+flows explains them (its mean distance at most ``occlusion``). With ``require_evidence`` (the
+default) a sample whose images are not informative and do not confirm the model keeps its
+prediction everywhere: on dark, noisy or textureless frames the census is noise for any flow,
+and replacing the prediction would rest on the model alone.
 
 Images are (B, C, H, W) on 0..255 (grey or RGB); flows (B, 2, H, W) in pixels; masks (B, 1, H, W)
 bool. Not differentiable (a decision); nothing is read back to the host.
@@ -55,9 +56,11 @@ class GateResult(NamedTuple):
         cells, cells_kept: (B,) cells of the (coarse) grid with enough points, and of those the
             cells that keep the prediction.
         model_used: (B,) bool, False where the model is worse over the whole mask, or (with
-            ``require_confirmation``) not confirmed.
+            ``require_evidence``) where the images neither inform nor confirm.
         confirmed: (B,) bool, the model explains the images significantly better than the
             prediction over the whole mask.
+        informative: (B,) bool, one of the two flows explains the images (mean census
+            distance at most ``occlusion``).
         textured: (B,) the share of the judged points with enough clear texture to count.
     """
 
@@ -70,6 +73,7 @@ class GateResult(NamedTuple):
     cells_kept: Tensor
     model_used: Tensor
     confirmed: Tensor
+    informative: Tensor
     textured: Tensor
 
 
@@ -146,14 +150,14 @@ class ImageGate:
             0.73 (a logistic of (prediction − model) / temperature).
         contrast: grey levels above which a neighbour's order in image 1 is clear.
         min_neighbours: points with fewer clear neighbours (weak texture) do not count.
-        require_confirmation: a sample whose model is not significantly better than its
-            prediction over the whole mask keeps the prediction.
+        require_evidence: a sample whose images are not informative keeps its prediction unless
+            they confirm the model.
     """
 
     def __init__(self, *, grid: tuple[int, int] = (8, 16), objects: bool = True, object_px: float = 1.0,
                  min_points_fine: int = 4, points: int = 6000, min_points: int = 12,
                  margin: float = 0.0, z: float = 2.0, occlusion: float = 0.35, temperature: float = 0.02,
-                 contrast: float = 2.0, min_neighbours: int = 4, require_confirmation: bool = True) -> None:
+                 contrast: float = 2.0, min_neighbours: int = 4, require_evidence: bool = True) -> None:
         if (not isinstance(grid, (tuple, list)) or len(grid) != 2
                 or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in grid)):
             raise ValueError(f"grid: expected (rows, columns) of positive integers, got {grid!r}")
@@ -174,9 +178,9 @@ class ImageGate:
         self.objects, self.object_px, self.min_points_fine = objects, float(object_px), min_points_fine
         self.margin, self.occlusion, self.temperature = float(margin), float(occlusion), float(temperature)
         self.z, self.contrast, self.min_neighbours = float(z), float(contrast), int(min_neighbours)
-        if not isinstance(require_confirmation, bool):
-            raise TypeError(f"require_confirmation: expected a bool, got {require_confirmation!r}")
-        self.require_confirmation = require_confirmation
+        if not isinstance(require_evidence, bool):
+            raise TypeError(f"require_evidence: expected a bool, got {require_evidence!r}")
+        self.require_evidence = require_evidence
 
     @torch.no_grad()
     def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
@@ -210,8 +214,9 @@ class ImageGate:
         model_used = ~((mean_all > self.margin + self.z * se_all) & (cost_pred <= self.occlusion))
         # confirmed: the model better by z standard errors (no margin: the images decide)
         confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
-        if self.require_confirmation:
-            model_used = model_used & confirmed
+        informative = (n_all > 0) & (torch.minimum(cost_model, cost_pred) <= self.occlusion)
+        if self.require_evidence:
+            model_used = model_used & (confirmed | informative)
         cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
         use_model = mask & model_used.reshape(B, 1, 1, 1) & cell_model
         if self.objects:
@@ -219,7 +224,7 @@ class ImageGate:
         evidence_map = torch.where(mask, evidence * model_used.reshape(B, 1, 1, 1), 0.0)
         textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
         return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
-                          confirmed, textured)
+                          confirmed, informative, textured)
 
     def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pix: Tensor, delta: Tensor, d_pred: Tensor,
                  w: Tensor) -> Tensor:
@@ -290,4 +295,4 @@ class ImageGate:
 
     def __repr__(self) -> str:
         return (f"ImageGate(grid={self.grid}, objects={self.objects}, points={self.points}, margin={self.margin}, "
-                f"occlusion={self.occlusion}, require_confirmation={self.require_confirmation})")
+                f"occlusion={self.occlusion}, require_evidence={self.require_evidence})")
