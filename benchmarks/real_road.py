@@ -11,7 +11,8 @@ pairs, poses), per pair:
   (``cv2.error``) the RANSAC start is kept and the failure counted;
 - ``refiner (no odometry)``: ``fsof_torch.FreespaceRefiner()`` on DIS's flow with the images,
   without odometry: what a user gets by default;
-- on the clip, the refiner with the ground-truth poses as odometry: the ``"plane"`` model's motion
+- on the clip, the refiner with the clip's road motion from its images (``fsof_torch.fit_sequence``,
+  no poses), and with the ground-truth poses as odometry: the ``"plane"`` model's motion
   (``fsof_torch.plane_from_pose``) and the paper's planar motion
   (``fsof_torch.ego_motion_from_pose``), on the pairs whose two frames have a pose.
 
@@ -22,7 +23,7 @@ SSIM dissimilarity and L1 (0-255); the road end-point error where there is groun
 time per pair on one thread (for ECC and the refiner: on top of DIS, whose flow they start from); the
 pairs more than 0.01 census worse than DIS; and the mean census difference to ECC.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--no-ecc] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--no-ecc] [--no-sequence] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -135,6 +136,29 @@ METHODS: dict[str, tuple[str | None, Callable[[dict, Tensor], tuple[Tensor, dict
     "refiner, poses (paper's planar)": ("relative_pose",
                                         lambda pair, dis: refiner_flow(pair, dis, paper_odometry(pair))),
 }
+
+
+def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable]:
+    """The refiner with the clip's road motion from its images (``fsof_torch.fit_sequence``: the
+    mounting calibrated over the clip, the motion carried forward, the attitude smoothed; no
+    poses), each pair refined with its ``"plane"`` motion and the calibrated camera. Its time per
+    pair includes the clip fit's share (its CPU time over the clip / the pairs)."""
+    from fsof_torch import fit_sequence
+
+    loaded = [load() for _, load in pairs]
+    frames = [p["image1"] for p in loaded] + [loaded[-1]["image2"]]
+    t0 = time.process_time()
+    seq = fit_sequence(frames, [p["road"] for p in loaded], loaded[0]["camera"].to(torch.float64), progress=progress)
+    share = (time.process_time() - t0) / len(loaded)
+    motion = {name: {"model": "plane", **{k: v[i:i + 1] for k, v in seq.params.items()}}
+              for i, (name, _) in enumerate(pairs)}
+
+    def method(pair: dict, dis: Tensor) -> tuple[Tensor, dict]:
+        t = time.process_time()
+        flow, info = refiner_flow({**pair, "camera": seq.camera}, dis, motion[pair["name"]])
+        return flow, {**info, "seconds": time.process_time() - t + share}
+
+    return "refiner, clip motion (fit_sequence)", method
 
 
 # -- measuring ------------------------------------------------------------------------------------
@@ -258,7 +282,7 @@ def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dic
 
     per_pair = []
     for i, (pair_name, load) in enumerate(tqdm(pairs, desc=name, unit="pair", disable=not progress, file=sys.stderr)):
-        pair = load()
+        pair = {**load(), "name": pair_name}
         if i == 0:
             run_pair(pair, methods)  # once untimed: first calls load code and allocate
         per_pair.append({"pair": pair_name, **run_pair(pair, methods)})
@@ -272,6 +296,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder holding kitti15_000000/ and kitti_odometry_straight/ (default: ../shared/data)")
     parser.add_argument("--pairs", type=int, default=None, help="only the first N pairs of the clip")
     parser.add_argument("--no-ecc", action="store_true", help="leave out the ECC homography")
+    parser.add_argument("--no-sequence", action="store_true", help="leave out the clip's fit_sequence method")
     parser.add_argument("--height", type=float, default=1.65, help="camera height, m (default 1.65)")
     parser.add_argument("--pitch-deg", type=float, default=0.0,
                         help="the clip's camera pitch for the refiner, degrees (default 0: the calibration has none)")
@@ -297,7 +322,11 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{title}: {root} not found, skipped", file=sys.stderr)
             continue
         found = True
-        result = measure(key, pairs(root), methods, not args.no_progress)
+        data, run_methods = pairs(root), dict(methods)
+        if key == "clip" and not args.no_sequence and len(data) > 1:
+            name, method = clip_method(data, not args.no_progress)
+            run_methods[name] = (None, method)
+        result = measure(key, data, run_methods, not args.no_progress)
         report[key] = result
         print(f"\n{title}: {len(result['pairs'])} pair(s)\n")
         print(table(result["rows"]))

@@ -104,7 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--fit-roll", action="store_true", help="also fit the camera roll")
     g.add_argument("--fit-pitch", action="store_true", help="also fit the camera pitch")
     g.add_argument("--calibrate-pitch", action="store_true",
-                   help="with --poses: find the pitch minimising road photometric error over the clip (adds variant given_pitch)")
+                   help="calibrate the camera's pitch and roll over the road from the clip's images (with --poses "
+                        "also its height) and refine every variant with it")
 
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, default=None,
@@ -171,8 +172,7 @@ def _configure(args: argparse.Namespace):
         specs, camera = kitti_odometry_pairs(args.kitti_odometry, height=args.height, pitch_deg=args.pitch_deg)
         title = "refine: KITTI odometry clip"
         sources = args.source or default_sources or ["dis"]
-        calibrate = True
-        variants = args.odometry or ["given", "given_pitch", "fit"]
+        variants = args.odometry or ["given", "sequence", "photometric"]
         notes.append("Road mask: the hand-drawn road.json (ego lane); no ground-truth flow: photometric error only.")
         identity = {"kind": "kitti_odometry", "root": str(args.kitti_odometry.resolve()), "height": args.height,
                     "pitch_deg": args.pitch_deg}
@@ -188,9 +188,14 @@ def _configure(args: argparse.Namespace):
                                    flows=args.flows, road=args.road, gt=args.gt, calib_size=args.calib_size)
         title = f"refine: {args.images}"
         sources = ["files"] if args.flows is not None else (args.source or default_sources or ["dis"])
-        variants = args.odometry or (["given"] if args.poses is not None else ["fit"])
-        if "given" in variants and args.poses is None:
-            raise JobError("--odometry given: user data needs --poses (or use fit / photometric)")
+        from .inputs import kitti_flow_layout, list_images
+
+        clip = len(specs) > 1 and not kitti_flow_layout(list_images(args.images))
+        variants = args.odometry or (["sequence" if clip else "photometric"]
+                                     + (["given_images"] if args.poses is not None else []))
+        for v in ("given", "given_images", "given_pitch"):
+            if v in variants and args.poses is None:
+                raise JobError(f"--odometry {v}: user data needs --poses (or use photometric / sequence / fit)")
         road = args.road
         if road not in (None, "auto") and Path(road).is_file():
             road = {"file": str(Path(road).resolve()), "digest": file_digest(Path(road))}
@@ -222,12 +227,9 @@ def _configure(args: argparse.Namespace):
     if "testnet" in sources and args.testnet_weights is None:
         notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
                      "it shows the wrapper on a RAFT-style output.")
-    if "given_pitch" in variants and not calibrate:
-        raise JobError("--odometry given_pitch needs --calibrate-pitch")
-    if calibrate and "given_pitch" not in variants:
-        variants = [*variants, "given_pitch"]
-    if calibrate and camera is None:
-        raise JobError("--calibrate-pitch needs user data with --poses")
+    if (calibrate or "sequence" in variants or "given_pitch" in variants) and len(specs) < 2:
+        raise JobError("--calibrate-pitch / --odometry sequence / given_pitch: a clip of at least 2 pairs is needed, "
+                       f"got {len(specs)}")
     return specs, camera, title, sources, variants, calibrate, notes, identity
 
 
@@ -237,7 +239,6 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     from fsof_torch import __version__
 
     from . import distributed, resume
-    from .calibrate import calibrate_pitch
     from .inputs import JobError, file_digest
     from .job import JobConfig, run_pairs
     from .measure import PHOTO
@@ -292,17 +293,20 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         raise JobError(error)
     fp = resume.fingerprint(identity)
     cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=args.scale,
-                    fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto",
+                    fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto", calibrate=calibrate,
                     overwrite=args.overwrite, figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
                     fingerprint=fp, device=str(device))
-    if calibrate:
-        pitch, scores = calibrate_pitch(specs, camera, progress=cfg.progress)
-        cfg.calibrated_pitch_deg = pitch
-        notes.append(f"Calibrated pitch: {pitch:.2f}° (minimum of the road photometric error of the "
-                     f"pose-driven model flow over the clip; {len(scores)} candidates, "
-                     f"error {min(s for _, s in scores):.3f} at the minimum, "
-                     f"{dict(scores).get(0.0, float('nan')):.3f} at 0°).")
+    if calibrate or "sequence" in variants or "given_pitch" in variants:
+        from .job import input_fingerprint
+
+        cfg.clip = _fit_clip(specs, camera, cfg, built, device)
+        cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
+        m = cfg.clip.mounting
+        notes.append(f"Mounting calibrated over the clip from its images: pitch {m['pitch_deg']:.2f}°, roll "
+                     f"{m['roll_deg']:.2f}°" + (f", height {m['height_m']:.3f} m (scale from the poses)"
+                                                if "height_m" in m else "")
+                     + ("; every variant uses it." if calibrate else "; variants sequence / given_pitch use it."))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
     records = run_pairs(distributed.shard(specs, world), cfg, built, rank=world.rank)
@@ -316,8 +320,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     key = {(s, v): j for j, (s, v) in enumerate((s, v) for s in sources for v in variants)}
     records = sorted((r for rs in gathered for r in rs), key=lambda r: (order[r["pair"]], key[(r["source"], r["variant"])]))
     summary = summarize(metrics, extra, records, cfg, world_size=world.world_size, identity=identity)
-    if cfg.calibrated_pitch_deg is not None:
-        summary["calibrated_pitch_deg"] = cfg.calibrated_pitch_deg
+    if cfg.clip is not None:
+        summary["calibrated_mounting"] = cfg.clip.mounting
     if cfg.figures:
         write_clip_summaries(summary, cfg)
     table = write_report(summary, cfg, args.json)
@@ -326,6 +330,27 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         print(f"- {n}")
     print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0
+
+
+def _fit_clip(specs, camera, cfg, built: dict, device):
+    """The clip's road motion and calibrated camera (refine.calibrate); road masks the pairs' own,
+    or detected on DIS's flow where the road is auto."""
+    import torch
+
+    from .calibrate import fit_clip
+    from .job import road_mask
+    from .sources import make_source
+
+    dis = built.get("dis") or make_source("dis", weights=None, net=None, device=device)
+
+    def road_for(pair: dict) -> torch.Tensor:
+        if pair.get("road") is not None and not cfg.road_auto:
+            return pair["road"]
+        cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
+        return road_mask(pair, dis(pair, None), cam, cfg)[0]
+
+    cam = camera if camera is not None else specs[0].load()["camera"]
+    return fit_clip(specs, cam, road_for, progress=cfg.progress)
 
 
 def main(argv: list[str] | None = None) -> int:

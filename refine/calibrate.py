@@ -1,79 +1,74 @@
-"""Calibrating the camera pitch over a clip with known poses: the pitch whose road model flow
-(from the poses) minimises the road photometric error over the clip.
+"""The road motion of a clip from its images (:func:`fsof_torch.fit_sequence`): the camera's
+mounting calibrated over the clip (its pitch and roll over the road; with poses, the height), each
+pair's motion for the ``sequence`` variant.
 
-The paper's model has no pitch; real mountings have one (KITTI: about −1°), and with poses the
-model flow is fixed by the pitch alone, so a one-dimensional search is enough: a coarse grid,
-then a fine grid around the best value.
+The pairs must be consecutive frames of one clip (pair k's second image is pair k+1's first); the
+road masks are the pairs' own, or detected on a DIS flow where the road is ``auto``. Poses, where
+the pairs have them, give the metric scale (the images give the translation over the height only).
 """
 
 from __future__ import annotations
 
 import math
 import sys
+from dataclasses import dataclass
+from typing import Any, Callable
 
 import torch
+from torch import Tensor
 
-from fsof_torch.geometry.camera import Camera
-from fsof_torch.geometry.road_flow import displacement_flow
-from fsof_torch.evaluation.photometric import photometric_error
+from fsof_torch import Camera, fit_sequence
 
-from .inputs import JobError, PairSpec, odometry_from_pose
+from .inputs import JobError, PairSpec
 
 
-def calibrate_pitch(specs: list[PairSpec], camera: Camera, *, max_pairs: int = 24,
-                    coarse_deg: tuple[float, float, float] = (-3.0, 1.0, 0.25),
-                    fine_step_deg: float = 0.05, progress: bool = True) -> tuple[float, list[tuple[float, float]]]:
-    """The pitch (degrees) minimising the mean road photometric error of the pose-driven model flow.
+@dataclass
+class ClipFit:
+    """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
+    ``camera`` the calibrated camera, ``mounting`` {"roll", "pitch" (degrees), "height" (m) with
+    poses}, ``success[name]`` whether the pair's fit succeeded."""
+
+    motion: dict[str, dict[str, Any]]
+    camera: Camera
+    mounting: dict[str, float]
+    success: dict[str, bool]
+
+
+def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], Tensor], *,
+             progress: bool = True) -> ClipFit:
+    """Fit the road motion of the clip made by ``specs`` (see the module docstring).
 
     Args:
-        specs: pairs whose ``load()`` gives ``relative_pose`` and a ``road`` mask.
-        camera: the camera (its pitch is replaced by the candidates).
-        max_pairs: at most this many pairs, evenly spread over the clip, enter the search.
-        coarse_deg: (start, stop, step) of the coarse grid, degrees.
-        fine_step_deg: the step of the fine grid around the coarse optimum (± one coarse step).
-
-    Returns:
-        ``(best_pitch_deg, [(pitch_deg, mean_road_photometric_error), ...])`` over every candidate.
+        specs: the clip's pairs, in order.
+        camera: the nominal camera (batch 1): intrinsics, height, roll and pitch.
+        road_for: a loaded pair -> its road mask (1, H, W) bool.
+        progress: progress bars.
     """
     from tqdm import tqdm
 
-    if not specs:
-        raise JobError("--calibrate-pitch: no pairs")
-    step = max(1, math.ceil(len(specs) / max_pairs))
-    data = []
-    for spec in tqdm(specs[::step], desc="calibrate pitch: load", disable=not progress, file=sys.stderr):
-        pair = spec.load()
-        if pair.get("relative_pose") is None or pair.get("road") is None:
-            raise JobError("--calibrate-pitch: needs --poses and a road mask (not 'auto')")
-        # grey is enough for the L1 error and a third of the memory
-        grey = lambda im: im.mean(dim=0, keepdim=True)[None]  # noqa: E731
-        data.append((grey(pair["image1"]), grey(pair["image2"]), pair["road"][None], pair["relative_pose"]))
-    size = tuple(data[0][0].shape[-2:])
-    cam64 = camera.to(torch.float64)
-    scores: dict[float, float] = {}
-
-    def score(pitch_deg: float) -> float:
-        key = round(pitch_deg, 6)
-        if key not in scores:
-            cam = cam64.replace(pitch=math.radians(pitch_deg))
-            num = den = 0.0
-            for im1, im2, road, rel in data:
-                odo = odometry_from_pose(rel, cam)
-                flow, valid = displacement_flow(cam, odo["x_d"], odo["z_d"], odo["yaw"], size)
-                pe, n = photometric_error(im1, im2, flow.to(im1.dtype), road & valid, return_count=True)
-                num += float(pe[0]) * int(n[0])
-                den += int(n[0])
-            scores[key] = num / den if den else float("inf")
-        return scores[key]
-
-    start, stop, coarse = coarse_deg
-    grid = [start + i * coarse for i in range(int(round((stop - start) / coarse)) + 1)]
-    for p in tqdm(grid, desc="calibrate pitch: coarse", disable=not progress, file=sys.stderr):
-        score(p)
-    best = min(scores, key=scores.get)
-    n_fine = int(round(coarse / fine_step_deg))
-    fine = [best + i * fine_step_deg for i in range(-n_fine, n_fine + 1)]
-    for p in tqdm(fine, desc="calibrate pitch: fine", disable=not progress, file=sys.stderr):
-        score(p)
-    best = min(scores, key=scores.get)
-    return best, sorted(scores.items())
+    if len(specs) < 2:
+        raise JobError("sequence: a clip needs at least 2 pairs (3 frames)")
+    pairs = [spec.load() for spec in tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)]
+    for k in range(len(pairs) - 1):
+        if not torch.equal(pairs[k]["image2"], pairs[k + 1]["image1"]):
+            raise JobError(f"sequence: pairs {specs[k].name} and {specs[k + 1].name} are not consecutive frames "
+                           f"of one clip (the second image of one is not the first of the next); use "
+                           f"--odometry photometric for separate pairs")
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    masks = [road_for(p).reshape(1, *frames[0].shape[-2:]).to(torch.bool) for p in pairs]
+    poses = None
+    if all(p.get("relative_pose") is not None for p in pairs):
+        # camera-to-world poses from the relative ones: P_{k+1} = P_k inverse(cam1_T_cam0)
+        P = [torch.eye(4, dtype=torch.float64)]
+        for p in pairs:
+            P.append(P[-1] @ torch.linalg.inv(p["relative_pose"].to(torch.float64)))
+        poses = torch.stack(P)
+    cam = camera.to(torch.float64)
+    seq = fit_sequence(frames, masks, cam, poses=poses, progress=progress)
+    motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
+              for i, spec in enumerate(specs)}
+    mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}
+    if "height" in seq.mounting:
+        mounting["height_m"] = seq.mounting["height"]
+    success = {spec.name: bool(f.success.all()) for spec, f in zip(specs, seq.fits)}
+    return ClipFit(motion, seq.camera, mounting, success)

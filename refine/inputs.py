@@ -106,11 +106,18 @@ def list_images(folder: Path) -> list[Path]:
     return images
 
 
+def kitti_flow_layout(images: list[Path]) -> bool:
+    """Whether the images are KITTI flow pairs (``NNNNNN_10`` / ``NNNNNN_11``), not one clip."""
+    stems = {p.stem for p in images}
+    kitti = [s for s in stems if re.fullmatch(r".*_10", s)]
+    return bool(kitti) and all(s[:-3] + "_11" in stems for s in kitti)
+
+
 def image_pairs(images: list[Path]) -> list[tuple[str, Path, Path]]:
     """Consecutive pairs (i, i+1); KITTI flow layout (``NNNNNN_10`` / ``NNNNNN_11``) pairs by name."""
     stems = {p.stem: p for p in images}
     kitti = [s for s in stems if re.fullmatch(r".*_10", s)]
-    if kitti and all(s[:-3] + "_11" in stems for s in kitti):
+    if kitti_flow_layout(images):
         return [(s[:-3], stems[s], stems[s[:-3] + "_11"]) for s in sorted(kitti)]
     return [(images[i].stem, images[i], images[i + 1]) for i in range(len(images) - 1)]
 

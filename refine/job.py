@@ -32,11 +32,17 @@ from fsof_torch import Camera, FreespaceRefiner
 from .inputs import JobError, PairSpec, odometry_from_pose
 from .measure import compare, error_panel, flow_maps, max_flow
 
-VARIANTS = ("given", "given_pitch", "fit", "photometric")
-VARIANT_HELP = {"given": "odometry given (scene / poses)",
-                "given_pitch": "poses, with the camera pitch calibrated over the clip",
-                "fit": "ego-motion fitted to the flow",
-                "photometric": "ego-motion fitted to the images (started from the flow fit)"}
+VARIANTS = ("given", "given_images", "given_pitch", "fit", "photometric", "sequence")
+VARIANT_HELP = {"given": "odometry given (scene / poses), the paper's model alone",
+                "given_images": "odometry given fixes the planar motion, the images estimate the rest "
+                                "(the camera's attitude over the road, its changes, vertical motion)",
+                "given_pitch": "odometry given, with the camera's mounting calibrated over the clip",
+                "fit": "ego-motion fitted to the predicted flow",
+                "photometric": "road motion estimated from the two images (the refiner's default with images)",
+                "sequence": "road motion of the clip from its images: mounting calibrated over the clip, "
+                            "motion carried forward, attitude smoothed"}
+#: the variants whose refiner sees the images (and judges the model by them)
+WITH_IMAGES = ("given_images", "photometric", "sequence")
 
 
 @dataclass
@@ -53,7 +59,9 @@ class JobConfig:
     figures: bool = True
     progress: bool = True
     title: str = "refine"
-    calibrated_pitch_deg: float | None = None
+    calibrate: bool = False
+    clip: Any = None  # refine.calibrate.ClipFit: the clip's road motion and calibrated camera
+    clip_fingerprint: str = ""  # the inputs of every pair of the clip
     notes: list[str] = field(default_factory=list)
     fingerprint: str = ""
     device: str = "cpu"
@@ -84,21 +92,30 @@ def read_record(cfg: JobConfig, source: str, variant: str, spec: PairSpec, input
     return record
 
 
+def _uses_clip(variant: str, cfg: JobConfig) -> bool:
+    return variant in ("given_pitch", "sequence") or cfg.calibrate
+
+
 def _camera_for(variant: str, camera: Camera, cfg: JobConfig) -> Camera:
-    if variant == "given_pitch":
-        if cfg.calibrated_pitch_deg is None:
-            raise JobError("--odometry given_pitch needs --calibrate-pitch (and --poses)")
-        return camera.replace(pitch=math.radians(cfg.calibrated_pitch_deg))
+    """The camera of a variant: the clip's calibrated one with --calibrate-pitch, for
+    ``given_pitch`` and for ``sequence`` (whose motion refers to it)."""
+    if _uses_clip(variant, cfg):
+        if cfg.clip is None:
+            raise JobError(f"--odometry {variant} needs a clip (consecutive frames) to calibrate over")
+        return cfg.clip.camera.to(camera.K.dtype)
     return camera
 
 
-def _odometry(variant: str, pair: dict, camera: Camera) -> dict | None:
-    if variant not in ("given", "given_pitch"):
+def _odometry(variant: str, pair: dict, camera: Camera, cfg: JobConfig | None = None,
+              name: str | None = None) -> dict | None:
+    if variant == "sequence":
+        return cfg.clip.motion[name]
+    if variant not in ("given", "given_images", "given_pitch"):
         return None
     if pair.get("relative_pose") is not None:
         return odometry_from_pose(pair["relative_pose"], camera)
     if pair.get("odometry") is None:
-        raise JobError("--odometry given: this pair has no odometry (give --poses, or use a synthetic scene)")
+        raise JobError(f"--odometry {variant}: this pair has no odometry (give --poses, or use a synthetic scene)")
     return pair["odometry"]
 
 
@@ -118,16 +135,17 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 p.parent.mkdir(parents=True, exist_ok=True)
         if cfg.figures:
             figure_path(cfg, source, "x").parent.mkdir(parents=True, exist_ok=True)
-    refiners = {v: FreespaceRefiner(mode=cfg.mode, scale=cfg.scale,
-                                    fit="photometric" if v == "photometric" else "flow",
-                                    fit_roll=cfg.fit_roll, fit_pitch=cfg.fit_pitch, warn=False)
-                for v in cfg.variants}
+    refiners = {v: FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, fit="flow", fit_roll=cfg.fit_roll,
+                                    fit_pitch=cfg.fit_pitch, warn=False) if v == "fit"
+                else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False) for v in cfg.variants}
     records: list[dict] = []
     bar = tqdm(specs, desc="refine", unit="pair", disable=not cfg.progress, file=sys.stderr, dynamic_ncols=True)
     for spec in bar:
         bar.set_postfix_str(f"{spec.name}: checking earlier results")
-        input_fp = _input_fingerprint(spec)
-        done = {(s, v): read_record(cfg, s, v, spec, input_fp) for s in cfg.sources for v in cfg.variants}
+        pair_fp = input_fingerprint(spec)
+        # a variant that rests on the clip's fit depends on every frame of the clip
+        input_fp = {v: pair_fp + ":" + cfg.clip_fingerprint if _uses_clip(v, cfg) else pair_fp for v in cfg.variants}
+        done = {(s, v): read_record(cfg, s, v, spec, input_fp[v]) for s in cfg.sources for v in cfg.variants}
         todo = [s for s in cfg.sources
                 if cfg.overwrite or any(done[(s, v)] is None for v in cfg.variants)
                 or (cfg.figures and not figure_path(cfg, s, spec.name).is_file())]
@@ -143,16 +161,16 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
             bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
             pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
             bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
-            road, road_from = _road(pair, pred, cam, cfg)
+            road, road_from = road_mask(pair, pred, cam, cfg)
             before = flow_maps(pair, pred)
             flows, maps = {}, {}
             for variant in cfg.variants:
                 bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")
                 record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
-                                                  _camera_for(variant, cam, cfg), variant, before)
+                                                  _camera_for(variant, cam, cfg), variant, before, spec.name)
                 record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
                                "road": road_from, "rank": rank, "fingerprint": cfg.fingerprint,
-                               "input_fingerprint": input_fp})
+                               "input_fingerprint": input_fp[variant]})
                 p = paths(cfg, source, variant, spec.name)
                 finite = torch.isfinite(flow).all(dim=0, keepdim=True)
                 write_kitti_flow(p["flow"], torch.nan_to_num(flow).cpu(), finite.cpu())
@@ -179,13 +197,14 @@ def _to_device(pair: dict, device: str) -> dict:
     return out
 
 
-def _input_fingerprint(spec: PairSpec) -> str:
+def input_fingerprint(spec: PairSpec) -> str:
+    """The identity of one pair's inputs (file contents, render parameters) for resuming."""
     from .resume import fingerprint
 
     return fingerprint({"pair": spec.name, **spec.identity()})
 
 
-def _road(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str]:
+def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str]:
     if pair.get("road") is not None and not cfg.road_auto:
         return pair["road"].to(torch.bool), "given"
     from fsof_torch import detect_freespace
@@ -201,9 +220,9 @@ def _road(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Ten
 
 
 def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Tensor, road: Tensor,
-                camera: Camera, variant: str, before: dict) -> tuple[dict, Tensor, dict]:
-    odo = _odometry(variant, pair, camera)
-    images = (pair["image1"][None], pair["image2"][None]) if variant == "photometric" else None
+                camera: Camera, variant: str, before: dict, name: str) -> tuple[dict, Tensor, dict]:
+    odo = _odometry(variant, pair, camera, cfg, name)
+    images = (pair["image1"][None], pair["image2"][None]) if variant in WITH_IMAGES else None
     out = refiner(pred[None], road[None], camera, odo, images=images)
     flow = out.flow[0].detach()
     after = flow_maps(pair, flow, reference=before)
@@ -211,11 +230,19 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
     record: dict[str, Any] = {
         "road_pixels": int(road.sum()), "refined": bool(out.refined[0]),
         "odometry": {k: float(v[0]) for k, v in out.odometry.items()},
-        "roll": float(out.camera.roll[0]), "pitch": float(out.camera.pitch[0]),
+        "model": out.model, "roll": float(out.camera.roll[0]), "pitch": float(out.camera.pitch[0]),
         "before": m_before, "after": m_after,
     }
+    if out.gate is not None:  # what the images decided (see fsof_torch.ImageGate)
+        g = out.gate
+        record["gate"] = {"model_used": bool(g.model_used[0]), "confirmed": bool(g.confirmed[0]),
+                          "informative": bool(g.informative[0]), "cells": int(g.cells[0]),
+                          "cells_kept": int(g.cells_kept[0]), "census_model": float(g.cost_model[0]),
+                          "census_prediction": float(g.cost_prediction[0])}
+    if variant == "sequence":
+        record["clip_fit_success"] = cfg.clip.success[name]
     if pair.get("odometry") is not None or pair.get("relative_pose") is not None:
-        record["odometry_given"] = _odometry("given", pair, camera)
+        record["odometry_given"] = _odometry("given", pair, camera, cfg, name)
     if out.fit is not None:
         record["fit_success"] = bool(out.fit.success.all())
         record["fit_residual_px"] = float(out.fit.residual[0])

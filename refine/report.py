@@ -53,7 +53,7 @@ def pair_table(records: list[dict], names: list[str], cfg: JobConfig) -> tuple[t
                     metrics[i, j, k, s, 1] = n
         extra[i, j, _REFINED] = float(r["refined"])
         extra[i, j, _PROCESSED] = 1.0
-        if r["variant"] in ("fit", "photometric") and "odometry_given" in r:
+        if r["variant"] in ("fit", "photometric", "sequence") and "odometry_given" in r:
             extra[i, j, _ZD_ERR] = abs(r["odometry"]["z_d"] - r["odometry_given"]["z_d"])
             extra[i, j, _ZD_N] = 1.0
     return metrics, extra

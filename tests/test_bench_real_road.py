@@ -143,7 +143,7 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     report = json.loads(out.read_text())
     rows = {r["method"]: r for r in report["clip"]["rows"]}
     assert set(rows) == {"DIS", "ECC homography", "refiner (no odometry)", "refiner, poses ('plane')",
-                         "refiner, poses (paper's planar)"}
+                         "refiner, poses (paper's planar)", "refiner, clip motion (fit_sequence)"}
     for r in rows.values():
         assert 0 <= r["census"] <= 1 and r["seconds"] >= 0 and "epe" not in r
     assert [p["pair"] for p in report["clip"]["pairs"]] == ["000000", "000001"]

@@ -192,7 +192,8 @@ def test_rerun_with_other_inputs_is_refused(tmp_path, capsys, user_folder, scene
 
 def test_changed_input_file_redoes_that_pair(tmp_path, user_folder, scene_pairs):
     out = tmp_path / "out"
-    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", *_mounting(scene_pairs))
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry", "fit",
+                 *_mounting(scene_pairs))
     assert main(args) == 0
     rec0, rec1 = (out / "dis" / "fit" / "pairs" / f"{i:06d}.json" for i in (0, 1))
     stamps = [r.stat().st_mtime_ns for r in (rec0, rec1)]
@@ -203,6 +204,41 @@ def test_changed_input_file_redoes_that_pair(tmp_path, user_folder, scene_pairs)
     assert rec0.stat().st_mtime_ns == stamps[0] and rec1.stat().st_mtime_ns != stamps[1]
     summary = json.loads((out / "report.json").read_text())
     assert summary["records_resumed"] == 1 and summary["records_computed"] == 1
+
+
+def test_a_clip_uses_the_sequence_and_a_changed_frame_redoes_the_clip(tmp_path, user_folder, scene_pairs):
+    """User images of a clip: the default variant is the clip's road motion (fit_sequence), its
+    mounting is reported, and changing any frame redoes every pair of the clip."""
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", *_mounting(scene_pairs))
+    assert main(args) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert {r["variant"] for r in summary["rows"]} == {"sequence"}
+    assert set(summary["calibrated_mounting"]) == {"roll_deg", "pitch_deg"}
+    rec = json.loads((out / "dis" / "sequence" / "pairs" / "000000.json").read_text())
+    assert rec["model"] == "plane" and "gate" in rec and rec["odometry"]["z_d"] > 0.5
+    recs = [out / "dis" / "sequence" / "pairs" / f"{i:06d}.json" for i in (0, 1)]
+    stamps = [r.stat().st_mtime_ns for r in recs]
+    from fsof_torch.io import write_image
+
+    write_image(user_folder / "images" / "000002.png", scene_pairs[1]["image2"].flip(-1))  # pair 000001's frame
+    assert main(args) == 0
+    assert all(r.stat().st_mtime_ns != t for r, t in zip(recs, stamps))
+
+
+def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
+    """--calibrate-pitch from the images alone: every variant refines with the calibrated camera."""
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry", "fit",
+                 "--calibrate-pitch")
+    assert main(args) == 0
+    summary = json.loads((out / "report.json").read_text())
+    pitch = summary["calibrated_mounting"]["pitch_deg"]
+    # the nominal pitch is 0 (no --pitch-deg); the scene's camera is pitched
+    true = math.degrees(float(scene_pairs[0]["camera"].pitch[0]))
+    assert abs(pitch - true) < 0.5
+    rec = json.loads((out / "dis" / "fit" / "pairs" / "000000.json").read_text())
+    assert rec["pitch"] == pytest.approx(math.radians(pitch), abs=1e-9) or rec["refined"] is False
 
 
 def test_stale_temporaries_are_removed(tmp_path):
@@ -273,7 +309,7 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
     rc = main(_user(user_folder, out, "--road", str(user_folder / "road.json"), "--source", "dis",
                     *_mounting(scene_pairs)))
     assert rc == 0
-    assert _rows(out / "report.json")[("dis", "fit")]["pairs"] == 2
+    assert _rows(out / "report.json")[("dis", "sequence")]["pairs"] == 2
 
 
 # -- errors ---------------------------------------------------------------------------------------
