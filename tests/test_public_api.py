@@ -10,7 +10,7 @@ CONTRACT = [
     "Camera", "displacement_flow", "velocity_flow", "DisplacementFlow", "VelocityFlow",
     "fit_displacement", "fit_velocity", "fit_photometric", "warp_backward", "photometric_error",
     "FreespaceRefiner", "FreespaceRefined", "FreespaceFlowLoss", "UnsupervisedFlowLoss", "TinyRAFT",
-    "detect_freespace", "vflow_map", "render_pair", "ego_motion_from_pose",
+    "detect_freespace", "detect_road", "vflow_map", "render_pair", "ego_motion_from_pose",
     "ego_motion_from_ackermann", "read_kitti_flow", "write_kitti_flow", "read_flo", "write_flo",
 ]
 METRICS = ["angular_error", "endpoint_error", "u_error", "v_error", "outlier_rate", "flow_metrics"]
