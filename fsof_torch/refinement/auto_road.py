@@ -258,7 +258,7 @@ class _Evidence:
 
 def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, parallax: Tensor, seed: Tensor,
               gain: Tensor, *, window: int, height_window: int, min_height: float, max_height: float,
-              z: float) -> _Evidence:
+              z: float, min_misfit: float) -> _Evidence:
     """The window tests of the module docstring, at one resolution. ``parallax`` (B, 2, h, w): the
     flow of a surface ``min_height`` above the road minus the road's."""
     B = grey1.shape[0]
@@ -311,7 +311,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         # adds little; the model's misfit τ: what the rest of the seed adds, per gradient energy
         noise = _median(E_s[T_s <= torch.quantile(T_s, 0.25)], 0.0) if T_s.numel() > 3 else E.new_tensor(0.0)
         hi = T_s >= _median(T_s, 0.0)
-        tau = (_median(2 * (E_s[hi] - noise) / T_s[hi], 0.0)).clamp_min(0).sqrt()
+        tau = (_median(2 * (E_s[hi] - noise) / T_s[hi], 0.0)).clamp_min(min_misfit ** 2).sqrt()
         floor = _MISFIT * tau
         Pb = P[b]
         d2 = (E[b] - noise) / (0.5 * TA[b])
@@ -453,7 +453,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         v = options[name]
         if isinstance(v, bool) or not isinstance(v, int) or v < 3 or v % 2 == 0:
             raise ValueError(f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}")
-    for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z"):
+    for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
         v = options[name]
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
             raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
@@ -472,7 +472,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
                 max_height_m: float = 0.3, z: float = 2.0, window: int = 7, height_window: int = 15,
-                min_coverage: float = 0.01) -> RoadDetection:
+                min_misfit_px: float = 0.5, min_coverage: float = 0.01) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
     the road plane (see the module for the method).
 
@@ -497,6 +497,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             of it above or below the road plane are off the road.
         max_height_m: evidence counts where a surface this high would show (see the module).
         z: significance of every test, in standard errors.
+        min_misfit_px: the least residual motion (pixels of the images) the road model is trusted
+            to: a fitted road motion is not more accurate than about half a pixel on real images
+            (DESIGN.md §5), even where the seed, which it was fitted to, says less.
         window, height_window: window sides at the working resolution for the misalignment and
             the height tests (the height needs more pixels).
         min_coverage: a road smaller than this share of the image below the horizon is flagged
@@ -514,7 +517,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         level = max(0, int(math.floor(math.log2(max(image1.shape[-2], 1) / _WORK_ROWS))))
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
-                   max_height_m=max_height_m, z=z, min_coverage=min_coverage)
+                   max_height_m=max_height_m, z=z, min_misfit_px=min_misfit_px, min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options)
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
@@ -552,7 +555,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
         ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, (raised - f).to(work), seed_l, gain,
                        window=window, height_window=height_window, min_height=min_height_m,
-                       max_height=max_height_m, z=z)
+                       max_height=max_height_m, z=z, min_misfit=min_misfit_px / 2 ** level)
         focus = _focus_of_expansion(model, params, cam_l)
         roads = []
         for b in range(B):
