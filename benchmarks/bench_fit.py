@@ -1,4 +1,4 @@
-"""Speed of fitting the displacement model to one frame of flow, and to a batch of 8.
+"""Speed of fitting the road-motion models to one frame of flow, and to a batch of 8.
 
 Data: a KITTI-sized frame (375 × 1242, the KITTI camera), road flow of a known motion with
 roll plus Gaussian noise (σ = 0.5 px), 10% of the mask replaced by the flow of another motion
@@ -8,19 +8,25 @@ official code's scipy ``curve_fit`` took 0.77 s on it).
 Rows (single thread, warm-up then repeats, median and min wall ms, median process CPU ms):
 - ``fit_displacement`` with its default subsample (``max_points=8192``) and with every mask
   pixel (``max_points=None``), one frame and a batch of 8;
+- ``fit_road`` with ``model="plane"`` (8 parameters: the 6-DOF motion and the camera's attitude)
+  and ``model="homography"`` on the same frame;
 - SciPy ``least_squares(loss="soft_l1")`` on the same 120 000 pixels (the same homography
   model, vectorised NumPy residuals, 2-point Jacobian) — the reference, measured in this run;
 - SciPy ``curve_fit`` (plain least squares, the official code's call) with the paper's λ form
   (eq. 13) as the model function, unless ``--no-curve-fit``.
 
-With ``--baseline FILE`` (another version of ``fsof_torch/fit.py``, e.g. from
-``git show REV:fsof_torch/fit.py > /tmp/fit_before.py``), that version's ``fit_displacement``
-is timed too, interleaved call by call with the current one (same load on a shared machine),
-for the default subsample, one frame and a batch of 8; the rows report both and the
-largest parameter difference between them.
+``--baseline REV`` (default 09d064e, the flat package before the road-model family and the
+one solver; ``none`` to skip): that git revision's package is imported beside the current one
+(``baseline.py``) and its ``fit_displacement`` is timed interleaved call by call with the
+current one (the same load on a shared machine), for the default subsample, one frame and a
+batch of 8; the rows report both, their ratio and the largest parameter difference.
+
+After the table: the host reads of one call of each fit on the single frame, counted with
+torch.profiler (``aten::_local_scalar_dense``: ``.item()`` / ``bool(tensor)``; ``aten::nonzero``,
+which reads its result's size; ``aten::linalg_solve``, which reads its error code).
 
 Usage: ``python benchmarks/bench_fit.py [--repeats 10] [--json out.json] [--no-curve-fit]
-[--baseline FILE]``.
+[--baseline REV]``.
 """
 
 from __future__ import annotations
@@ -40,8 +46,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
+from baseline import DEFAULT_BASELINE, load_baseline  # noqa: E402
 from fsof_torch.geometry.camera import Camera  # noqa: E402
-from fsof_torch.estimation.flow_fit import fit_displacement  # noqa: E402
+from fsof_torch.estimation.flow_fit import fit_displacement, fit_road  # noqa: E402
 from fsof_torch.geometry.road_flow import displacement_flow  # noqa: E402
 
 SIZE = (375, 1242)
@@ -91,19 +98,21 @@ def timed_pair(fn_a, fn_b, repeats: int, warmup: int = 2):
     return [(statistics.median(w), min(w), statistics.median(c)) for w, c in out.values()]
 
 
-def load_baseline(path: str):
-    """``fit_displacement`` of another version of fsof_torch/fit.py (a file), as a submodule of
-    the installed package so that its relative imports resolve."""
-    import importlib.util
+HOST_READS = ("aten::_local_scalar_dense", "aten::nonzero", "aten::linalg_solve")
 
-    import fsof_torch  # noqa: F401  (the parent package of the loaded module)
 
-    name = "fsof_torch._fit_baseline"
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module.fit_displacement
+def host_reads(fn) -> dict[str, int]:
+    """Host reads of one call of ``fn``, by kind, counted with torch.profiler."""
+    from torch.profiler import ProfilerActivity, profile
+
+    fn()  # constants cached on the first call
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        fn()
+    counts = dict.fromkeys(HOST_READS, 0)
+    for event in prof.events():
+        if event.name in counts:
+            counts[event.name] += 1
+    return counts
 
 
 def scipy_problem(flow: torch.Tensor, mask: torch.Tensor):
@@ -152,8 +161,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--json", type=str, default=None, help="write the rows as JSON here")
     parser.add_argument("--no-curve-fit", action="store_true", help="skip the curve_fit row")
-    parser.add_argument("--baseline", type=str, default=None,
-                        help="another fsof_torch/fit.py to time against the current one (interleaved)")
+    parser.add_argument("--baseline", type=str, default=DEFAULT_BASELINE,
+                        help="a git revision whose fit_displacement is timed interleaved with the current one "
+                             f"(default {DEFAULT_BASELINE}; 'none' to skip)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -189,18 +199,29 @@ def main(argv: list[str] | None = None) -> int:
     add("fit_displacement batch 8 (all pixels)",
         lambda: fit_displacement(flow8, mask8, cam, max_points=None), max(3, args.repeats // 2), 8)
 
-    if args.baseline:
-        base_fit = load_baseline(args.baseline)
+    for model in ("plane", "homography"):
+        fit = fit_road(flow, mask, cam, model=model)
+        check = dict(success=bool(fit.success))
+        if model == "plane":
+            check.update(z_d=round(float(fit.z_d), 5), roll=round(float(fit.roll), 5))
+        add(f"fit_road model={model!r} (max_points=8192)", lambda: fit_road(flow, mask, cam, model=model),
+            args.repeats, check=check)
+
+    if args.baseline and args.baseline.lower() != "none":
+        base = load_baseline(args.baseline)
+        base_cam = base.Camera(torch.tensor(K, dtype=torch.float32), 1.65)
         for label, (f, m, frames_) in {"1 frame": (flow, mask, 1), "batch 8": (flow8, mask8, 8)}.items():
-            res_a, res_b = base_fit(f, m, cam), fit_displacement(f, m, cam)
+            res_a, res_b = base.fit_displacement(f, m, base_cam), fit_displacement(f, m, cam)
             diff = max(float((getattr(res_a, k) - getattr(res_b, k)).abs().max())
                        for k in ("x_d", "z_d", "yaw", "roll", "pitch"))
             (med_a, min_a, cpu_a), (med_b, min_b, cpu_b) = timed_pair(
-                lambda: base_fit(f, m, cam), lambda: fit_displacement(f, m, cam), args.repeats)
-            for name, med, best, cpu in (("baseline", med_a, min_a, cpu_a), ("current", med_b, min_b, cpu_b)):
+                lambda: base.fit_displacement(f, m, base_cam), lambda: fit_displacement(f, m, cam), args.repeats)
+            for name, med, best, cpu in ((f"baseline {args.baseline}", med_a, min_a, cpu_a),
+                                         ("current", med_b, min_b, cpu_b)):
                 rows.append(dict(name=f"{name}, {label} (interleaved)", frames=frames_,
                                  median_ms=round(med, 2), min_ms=round(best, 2), cpu_ms=round(cpu, 2),
                                  max_param_diff=float(f"{diff:.3g}")))
+            rows[-1].update(vs_baseline_median=round(med_b / med_a, 3), vs_baseline_min=round(min_b / min_a, 3))
 
     residual, u, v, target = scipy_problem(flow, mask)
     x0 = np.array([0.0, 0.5, 0.0, 0.0])
@@ -236,9 +257,23 @@ def main(argv: list[str] | None = None) -> int:
                  if k not in ("name", "frames", "median_ms", "min_ms", "cpu_ms", "scipy_ls_ratio")}
         print(f"{r['name']:<46} {r['frames']:>6} {r['median_ms']:>10.2f} {r['min_ms']:>8.2f} {r['cpu_ms']:>8.2f} "
               f"{r['scipy_ls_ratio']:>23.1f}x  {extra}")
+    ratios = [(r["name"].split(", ")[1].split(" (")[0], r["vs_baseline_median"], r["vs_baseline_min"])
+              for r in rows if "vs_baseline_median" in r]
+    if ratios:
+        print(f"current / baseline {args.baseline} (interleaved): "
+              + "; ".join(f"{label}: median {a:.3f}, min {b:.3f}" for label, a, b in ratios))
+    reads = {"fit_displacement": host_reads(lambda: fit_displacement(flow, mask, cam)),
+             "fit_displacement batch 8": host_reads(lambda: fit_displacement(flow8, mask8, cam)),
+             "fit_road plane": host_reads(lambda: fit_road(flow, mask, cam, model="plane")),
+             "fit_road homography": host_reads(lambda: fit_road(flow, mask, cam, model="homography"))}
+    print("host reads per call (torch.profiler):")
+    for name, counts in reads.items():
+        kinds = ", ".join(f"{kind.removeprefix('aten::')} {n}" for kind, n in counts.items())
+        print(f"  {name:<26} {sum(counts.values()):>3}  ({kinds})")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump(dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows), fh, indent=2)
+            json.dump(dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows, host_reads=reads), fh,
+                      indent=2)
     return 0
 
 

@@ -10,9 +10,16 @@ faults per timed call (fresh memory from the system):
 - a RAFT-style output (12 iterations, refined level by level) with odometry;
 - reference, in the same run: OpenCV DIS (PRESET_MEDIUM) on the same pair of grey images.
 
+``--baseline REV`` (default 09d064e, the flat package before the road-model family and the one
+solver; ``none`` to skip) adds a second table: the refinement step with odometry given and with
+the fitted ego-motion (``FreespaceRefiner(fit="flow")``), that revision's (imported beside the
+current package by ``baseline.py``) against the current one's, interleaved call by call over
+the rounds so that both see the same load, with their ratio.
+
 The flow is the model flow of a known motion plus 1 px Gaussian noise and 20% of the road mask
 replaced by an obstacle's flow (outliers for the robust fit); the road mask holds about 120 000
-pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--json PATH]``.
+pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--json PATH]
+[--baseline REV]``.
 """
 
 from __future__ import annotations
@@ -48,6 +55,56 @@ def _time_rounds(cases: dict, repeats: int, rounds: int = 3, warmup: int = 2) ->
                    "page_faults_per_call": faults[name] / len(x)} for name, x in samples.items()}
 
 
+def _time_interleaved(pairs: dict, repeats: int, rounds: int, warmup: int = 2) -> dict[str, dict[str, float]]:
+    """Median and min per case of ``pairs`` ({name: (baseline fn, current fn)}): within a round
+    each case's two versions take turns call by call (``warmup`` turns untimed)."""
+    samples: dict[str, list[float]] = {}
+    for _ in range(rounds):
+        for name, fns in pairs.items():
+            for _ in range(warmup):
+                for fn in fns:
+                    fn()
+            for _ in range(repeats):
+                for label, fn in zip(("baseline", "current"), fns):
+                    t0 = time.perf_counter()
+                    fn()
+                    samples.setdefault(f"{name}|{label}", []).append((time.perf_counter() - t0) * 1e3)
+    return {key: {"median_ms": statistics.median(x), "min_ms": min(x), "repeats": len(x)}
+            for key, x in samples.items()}
+
+
+def baseline_table(rev: str, case: tuple, repeats: int, rounds: int) -> dict:
+    """The refinement step of git revision ``rev`` against the current one (interleaved)."""
+    from baseline import load_baseline
+
+    from fsof_torch.refinement.fusion import FreespaceRefiner
+
+    base = load_baseline(rev)
+    camera, odo, flow, mask, _ = case
+    base_camera = base.Camera(camera.K, camera.height, camera.roll, camera.pitch)
+    current = FreespaceRefiner(fit="flow", warn=False)
+    before = base.FreespaceRefiner(fit="flow", warn=False)
+    pairs = {
+        "refine, odometry given (model + fusion)": (lambda: before(flow, mask, base_camera, odo),
+                                                    lambda: current(flow, mask, camera, odo)),
+        "refine, fitted ego-motion (fit='flow')": (lambda: before(flow, mask, base_camera),
+                                                   lambda: current(flow, mask, camera)),
+    }
+    with torch.no_grad():
+        results = _time_interleaved(pairs, repeats, rounds)
+        z_before = float(before(flow, mask, base_camera).odometry["z_d"][0])
+        z_now = float(current(flow, mask, camera).odometry["z_d"][0])
+    width = max(len(n) for n in pairs)
+    print(f"\nagainst revision {rev} (interleaved call by call, median of {rounds} x {repeats} each)")
+    print(f"{'case':<{width}}  baseline median / min ms  current median / min ms  ratio median / min")
+    for name in pairs:
+        a, b = results[f"{name}|baseline"], results[f"{name}|current"]
+        print(f"{name:<{width}}  {a['median_ms']:14.2f} / {a['min_ms']:6.2f}  {b['median_ms']:13.2f} / "
+              f"{b['min_ms']:6.2f}  {b['median_ms'] / a['median_ms']:11.3f} / {b['min_ms'] / a['min_ms']:.3f}")
+    print(f"(fitted z_d: baseline {z_before:.6f} m, current {z_now:.6f} m)")
+    return results
+
+
 def build_case(dtype: torch.dtype = torch.float32):
     from fsof_torch.geometry.camera import Camera
     from fsof_torch.geometry.road_flow import displacement_flow
@@ -74,6 +131,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=15, help="timed calls per case and round")
     parser.add_argument("--rounds", type=int, default=3, help="rounds over all cases")
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument("--baseline", type=str, default="09d064e",
+                        help="a git revision to time against the current version (interleaved); 'none' to skip")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 
@@ -119,11 +178,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}  {r['page_faults_per_call']:16.0f}")
     print(f"(fitted z_d {float(fitted.odometry['z_d'][0]):.4f} m for a true {odo['z_d']}; target for the full "
           f"step: <= 15 ms)")
+    against = None
+    if args.baseline and args.baseline.lower() != "none":
+        against = baseline_table(args.baseline, (camera, odo, flow, mask, size), args.repeats, args.rounds)
     if args.json is not None:
         from fsof_torch.io import write_json
 
         write_json(args.json, {"size": list(size), "road_pixels": int(mask.sum()), "threads": 1,
-                               "torch": torch.__version__, "results": results})
+                               "torch": torch.__version__, "results": results, "baseline": args.baseline,
+                               "against_baseline": against})
     return 0
 
 

@@ -33,6 +33,7 @@ from .estimation.flow_fit import (
     fit_velocity,
 )
 from .estimation.image_fit import fit_image, fit_photometric
+from .estimation.sequence import SequenceFit, fit_sequence
 from .geometry.road_flow import (
     DisplacementFlow,
     VelocityFlow,
@@ -163,6 +164,8 @@ __all__ = [
     "ROAD_MODELS",
     "fit_road",
     "fit_image",
+    "fit_sequence",
+    "SequenceFit",
     "FlowMotionEstimator",
     "ImageMotionEstimator",
     "ImageGate",

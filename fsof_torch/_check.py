@@ -35,6 +35,7 @@ __all__ = [
     "result_dtype",
     "autocast_off",
     "check_has_values",
+    "as_chw_flow",
 ]
 
 
@@ -241,3 +242,19 @@ def autocast_off(x: Tensor) -> ContextManager:
     if not torch.amp.is_autocast_available(device_type):
         return contextlib.nullcontext()
     return torch.autocast(device_type=device_type, enabled=False)
+
+
+def as_chw_flow(flow: object, name: str) -> Tensor:
+    """A flow as a (2, H, W) float tensor (from a tensor or array of that shape)."""
+    import numpy as np
+
+    if isinstance(flow, np.ndarray):
+        flow = torch.from_numpy(flow)
+    if not isinstance(flow, Tensor):
+        raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
+    check_has_values(flow, name)
+    if not flow.is_floating_point():
+        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {flow.dtype}")
+    if flow.dim() != 3 or flow.shape[0] != 2 or flow.shape[1] == 0 or flow.shape[2] == 0:
+        raise ValueError(f"{name}: expected shape (2, H, W), got {tuple(flow.shape)}")
+    return flow

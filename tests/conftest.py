@@ -44,6 +44,23 @@ def shared_data() -> Path:
 
 
 @pytest.fixture
+def kitti15_ground_truth(shared_data):
+    """The shared KITTI 2015 pair's ground truth: ``(camera, flow (1, 2, H, W) float64, valid
+    (1, 1, H, W), road (1, 1, H, W))``, the camera 1.65 m high, road from road.json; skips when
+    the pair is absent."""
+    from fsof_torch import Camera
+    from fsof_torch.io import read_kitti_flow, read_road_mask
+
+    folder = shared_data / "kitti15_000000"
+    if not folder.is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
+    road = read_road_mask(folder / "road.json", size=tuple(flow.shape[-2:]))
+    return cam, flow[None].double(), valid[None], road[None]
+
+
+@pytest.fixture
 def kitti_K() -> torch.Tensor:
     return torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]],
                         dtype=torch.float64)

@@ -319,20 +319,8 @@ def test_feature_velocity_batch_and_outliers():
 
 # -- real data ---------------------------------------------------------------------------------
 
-def _kitti(shared_data):
-    from fsof_torch.io import read_kitti_flow, read_road_mask
-
-    folder = shared_data / "kitti15_000000"
-    if not folder.is_dir():
-        pytest.skip("kitti15_000000 is absent")
-    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
-    road = read_road_mask(folder / "road.json", size=tuple(flow.shape[-2:]))
-    return cam, flow[None].double(), valid[None], road[None]
-
-
-def test_real_kitti_ground_truth_fit(shared_data):
-    cam, flow, valid, road = _kitti(shared_data)
+def test_real_kitti_ground_truth_fit(kitti15_ground_truth):
+    cam, flow, valid, road = kitti15_ground_truth
     use = road & valid
     fit = fit_displacement(flow, road, cam, valid=valid)
     assert bool(fit.success)

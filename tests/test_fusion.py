@@ -463,7 +463,7 @@ def test_wrapper_road_auto():
 
     class Noisy(nn.Module):
         def forward(self, image1, image2):
-            return [p["flow"][None] + 0.5 * torch.randn(1, 2, 188, 621, generator=torch.Generator().manual_seed(0))]
+            return [p["flow"][None] + 2.0 * torch.randn(1, 2, 188, 621, generator=torch.Generator().manual_seed(0))]
 
     model = FreespaceRefined(Noisy(), FreespaceRefiner(gate=None), road="auto")
     out, info = model(p["image1"][None], p["image2"][None], camera=p["camera"], return_info=True)

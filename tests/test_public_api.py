@@ -12,6 +12,9 @@ CONTRACT = [
     "FreespaceRefiner", "FreespaceRefined", "FreespaceFlowLoss", "UnsupervisedFlowLoss", "TinyRAFT",
     "detect_freespace", "detect_road", "vflow_map", "render_pair", "ego_motion_from_pose",
     "ego_motion_from_ackermann", "read_kitti_flow", "write_kitti_flow", "read_flo", "write_flo",
+    # the road-motion models and their fit (DESIGN.md §9, §10)
+    "fit_road", "road_flow", "road_homography", "RoadFit", "ROAD_MODELS", "decompose_homography",
+    "plane_from_pose", "road_motion",
 ]
 METRICS = ["angular_error", "endpoint_error", "u_error", "v_error", "outlier_rate", "flow_metrics"]
 

@@ -150,22 +150,31 @@ class FlowProblem:
             r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0) - self.target
         else:
             use = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
-            inv_z = torch.where(use, qz, 1.0).reciprocal()
-            proj = q[:, :2] * inv_z.unsqueeze(1)
+            # in place on the fresh product q (each per-point temporary costs a pass over memory)
+            inv_z = torch.where(use, qz, 1.0).reciprocal_()
+            proj = q[:, :2].mul_(inv_z.unsqueeze(1))
             r = proj - self.target
         # (points not in ``use`` keep a finite residual: every sum over the points masks them)
-        return Evaluation(r[:, 0].square() + r[:, 1].square(), use, r, (dM, proj, inv_z))
+        return Evaluation(torch.mul(r[:, 0], r[:, 0]).addcmul_(r[:, 1], r[:, 1]), use, r, (dM, proj, inv_z))
 
     def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
         dM, proj, inv_z = ev.state
         r = ev.residual
         B, P = dM.shape[:2]
-        wi = w if inv_z is None else w * inv_z
-        a = wi if inv_z is None else wi * inv_z
-        br = r * wi.unsqueeze(1)
-        ax, ay = proj[:, 0] * a, proj[:, 1] * a
-        wts = torch.stack([a, ax, ay, proj[:, 0] * ax + proj[:, 1] * ay, br[:, 0], br[:, 1],
-                           -(proj[:, 0] * br[:, 0] + proj[:, 1] * br[:, 1])], dim=1)
+        # the seven weights written into one buffer (per-point temporaries and a stack would
+        # each cost a pass over memory): a, a x′, a y′, a (x′² + y′²), w/q_z r, -w/q_z (x′ r_x + y′ r_y)
+        wts = torch.empty(B, 7, w.shape[-1], dtype=w.dtype, device=w.device)
+        a, br, gz = wts[:, 0], wts[:, 4:6], wts[:, 6]
+        if inv_z is None:
+            a.copy_(w)
+            torch.mul(r, w.unsqueeze(1), out=br)
+        else:
+            wi = w * inv_z
+            torch.mul(wi, inv_z, out=a)
+            torch.mul(r, wi.unsqueeze(1), out=br)
+        torch.mul(proj, a.unsqueeze(1), out=wts[:, 1:3])
+        torch.mul(proj[:, 0], wts[:, 1], out=wts[:, 3]).addcmul_(proj[:, 1], wts[:, 2])
+        torch.mul(proj[:, 0], br[:, 0], out=gz).neg_().addcmul_(proj[:, 1], br[:, 1], value=-1.0)
         S = wts @ self.moments.transpose(1, 2)  # (B, 7, 6)
         AH = (S[:, :4].reshape(B, 24) @ _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
         gH = S[:, 4:, 3:].reshape(B, 9, 1)  # rows x, y, z of M against p̃
@@ -318,7 +327,9 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     columns (B,), and their share of the mask pixels where the model is defined (B,).
 
     Works on the mask's pixels only (``points.every``): a road mask is a fraction of the image,
-    and full-size differences, norms and sums cost more than gathering them.
+    and full-size differences, norms and sums cost more than gathering them. The end-point
+    errors stay in the flow's dtype (in place on the fresh gathers); only the sums are float64
+    (python benchmarks/bench_fit.py: a float64 copy of the gathered flows cost more than the rest).
     """
     B, _, H, W = flow.shape
     every = points.every
@@ -327,16 +338,15 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
         return f.transpose(0, 1).reshape(2, B * H * W)
 
     at = every.expand(2, -1)
-    diff = channels(model_flow).gather(1, at).to(torch.float64) - channels(flow).gather(1, at).to(torch.float64)
-    epe = diff.square_().sum(0).sqrt_()
+    diff = channels(model_flow).gather(1, at).sub_(channels(flow).gather(1, at).to(model_flow.dtype))
+    epe = torch.hypot(diff[0], diff[1], out=diff[0])
     use = model_valid.reshape(-1).gather(0, every)
-    inl = use & (epe <= threshold)
+    inl = torch.le(epe, threshold).logical_and_(use)
     inliers = torch.zeros(B * H * W, dtype=torch.bool, device=flow.device).scatter_(0, every, inl)
     inliers = inliers.reshape(B, 1, H, W)
-    inl64 = inl.to(torch.float64)
-    n_in = points.per_frame(inl64)
-    residual = points.per_frame(epe.mul_(inl64)) / n_in.clamp_min(1)
-    fraction = n_in / points.per_frame(use.to(torch.float64)).clamp_min(1)
+    n_in = points.per_frame(inl)
+    residual = points.per_frame(epe.masked_fill_(inl.logical_not(), 0.0)) / n_in.clamp_min(1)
+    fraction = n_in / points.per_frame(use).clamp_min(1)
     in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
     spread = (in8.amax(3).flatten(1).sum(1) >= 3) & (in8.amax(2).flatten(1).sum(1) >= 3)
     return inliers, residual.to(model_flow.dtype), spread, fraction

@@ -33,7 +33,7 @@ the mask marks road pixels of image 1. Not differentiable; results are detached.
 from __future__ import annotations
 
 import math
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -46,7 +46,7 @@ from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters, start_values
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, sample_mask
-from .solver import Evaluation, positive_definite, solve
+from .solver import Evaluation, Solution, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
            "image_pyramid", "gaussian_blur", "DEG"]
@@ -123,22 +123,16 @@ def _sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
     return out[:, :, 0].to(torch.float64), inb
 
 
-# the sample and its four neighbours one pixel away: the value and its central differences
-_STENCIL = ((0.0, 0.0), (1.0, 0.0), (-1.0, 0.0), (0.0, 1.0), (0.0, -1.0))
-
-
-def _sample_with_gradient(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """``image`` (B, 1, H, W) at ``xy`` (B, 2, N): the value (B, N), its central-difference
-    gradient (B, 2, N) and in-bounds flags (B, N), from one ``grid_sample`` of five points each
-    (no gradient image of the whole frame)."""
-    N = xy.shape[-1]
-    offsets = xy.new_tensor(_STENCIL).T.repeat_interleave(N, dim=1)  # (2, 5 N)
-    values, _ = _sample_points(image, xy.repeat(1, 1, 5) + offsets)
-    v = values[:, 0].reshape(-1, 5, N)
-    x, y = xy[:, 0], xy[:, 1]
-    H, W = image.shape[-2:]
-    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    return v[:, 0], 0.5 * torch.stack([v[:, 1] - v[:, 2], v[:, 3] - v[:, 4]], dim=1), inb
+def _with_gradient(image: Tensor) -> Tensor:
+    """``image`` (B, 1, H, W) and its central-difference gradient: (B, 3, H, W) = (I, ∂I/∂x,
+    ∂I/∂y), replicated at the border. Sampling this bilinearly gives the same numbers as central
+    differences of bilinear samples one pixel apart (both are linear in the pixels, and a shift by
+    whole pixels keeps the interpolation weights), for one ``grid_sample`` of three channels
+    instead of five points."""
+    p = F.pad(image, (1, 1, 1, 1), mode="replicate")
+    gx = 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2])
+    gy = 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])
+    return torch.cat([image, gx, gy], dim=1)
 
 
 def _pixel_gradient(image: Tensor, pix: Tensor) -> tuple[Tensor, Tensor]:
@@ -159,6 +153,10 @@ class ImageProblem:
 
     Parameters (B, P + 2): the model's, then the gain a and the offset b. Residual per point:
     e = a I_2(x + f(x; p)) + b − I_1(x), grey levels.
+
+    ``pts`` (B, 3, N) homogeneous pixel coordinates of the points, ``I1`` (B, N) and ``grad1``
+    (B, 2, N) image1 there, ``image2`` (B, 3, H, W) image2 with its gradient (I, ∂I/∂x, ∂I/∂y),
+    ``sel`` (B, N) the real points.
     """
 
     def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, I1: Tensor, grad1: Tensor,
@@ -183,7 +181,8 @@ class ImageProblem:
         proj = q[:, :2] * inv_z.unsqueeze(1)
         dq = q[:, 4:].reshape(B, P, 3, -1)
         J_flow = (dq[:, :, :2] - proj.unsqueeze(1) * dq[:, :, 2:3]) * inv_z[:, None, None]  # (B, P, 2, N)
-        I2, grad2, inb = _sample_with_gradient(self.image2, proj)
+        sample, inb = _sample_points(self.image2, proj)  # (B, 3, N): I_2 and its gradient
+        I2, grad2 = sample[:, 0], sample[:, 1:]
         use = ok & inb
         e = gain.unsqueeze(-1) * I2 + offset.unsqueeze(-1) - self.I1
         # efficient second-order minimisation: the mean of both images' gradients
@@ -340,44 +339,40 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         ones, zeros = torch.ones(B, 1, dtype=torch.float64, device=dev), torch.zeros(B, 1, dtype=torch.float64, device=dev)
         params = torch.cat([torch.cat(candidates), ones.repeat(S, 1), zeros.repeat(S, 1)], dim=1)  # (S B, P + 2)
         prior_spec = calibration_prior(model, cam64) if prior == "calibration" else prior
+        # each level weighs the prior by its residuals' noise: precision noise² / σ²
+        prior_mean, inverse_variance = _prior(model, prior_spec, B, dev)
         lo, hi = physical_bounds(model, cam64) if bounds == "physical" else (bounds or (None, None))
         bound_lo = None if lo is None else torch.cat([lo, torch.full((B, 2), -math.inf, dtype=torch.float64, device=dev)], 1)
         bound_hi = None if hi is None else torch.cat([hi, torch.full((B, 2), math.inf, dtype=torch.float64, device=dev)], 1)
+
+        def run(level: int, reps: int, params: Tensor, band: float | None) -> Solution:
+            problem = _level_problem(model, _level_camera(cam64, level), _band(pyramid[level], band), masks[level],
+                                     gradient_fraction, max_points, reps)
+            rep = (lambda t: None if t is None else t.repeat(reps, 1))
+            precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
+            return solve(problem, params, free=free, prior_mean=rep(prior_mean), prior_precision=precision,
+                         lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust,
+                         scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
+                         # a coarse level only has to land in the next one's basin
+                         resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
+                         check_every=check_every, missing="mean")
 
         iterations = torch.zeros(B, dtype=torch.long, device=dev)
         sol = None
         for level in reversed(range(n_levels)):
             reps = S if S > 1 and level == n_levels - 1 else 1  # the starts compete at the coarsest
-            img = _band(pyramid[level], highpass if level < band_levels else None)
-            cam_l = _level_camera(cam64, level)
-            problem = _level_problem(model, cam_l, img, masks[level], gradient_fraction, max_points, reps)
-            s_level = _level_scale(problem, params, scale)
-            noise = s_level.reshape(reps, B)[0]
-            mean, precision = _prior(model, prior_spec, noise, B, dev)
-            rep = (lambda t: None if t is None else t.repeat(reps, 1))
-            sol = solve(problem, params, free=free, prior_mean=rep(mean), prior_precision=rep(precision),
-                        lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust, scale=s_level,
-                        max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
-                        # a coarse level only has to land in the next one's basin
-                        resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
-                        check_every=check_every, missing="mean")
+            sol = run(level, reps, params, highpass if level < band_levels else None)
             params = sol.params
             if reps > 1:
                 # the start with the lowest robust cost goes on (one common scale per frame)
-                cost = sol.cost.reshape(reps, B)
-                best = cost.argmin(0)
+                best = sol.cost.reshape(reps, B).argmin(0)
                 params = params.reshape(reps, B, -1)[best, torch.arange(B, device=dev)]
                 iterations = iterations + sol.iterations.reshape(reps, B)[best, torch.arange(B, device=dev)]
                 sol = None if level == 0 else sol
                 continue
             iterations = iterations + sol.iterations
         if sol is None:  # a single level with several starts: one more solve on the winner
-            problem = _level_problem(model, cam64, _band(pyramid[0], highpass), masks[0], gradient_fraction, max_points, 1)
-            s_level = _level_scale(problem, params, scale)
-            mean, precision = _prior(model, prior_spec, s_level, B, dev)
-            sol = solve(problem, params, free=free, prior_mean=mean, prior_precision=precision,
-                        lower=bound_lo, upper=bound_hi, kernel=robust, scale=s_level, max_iter=max_iter,
-                        tol=tol, resolution=resolution, check_every=check_every, missing="mean")
+            sol = run(0, 1, params, highpass)
             params = sol.params
         values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
         finite = torch.isfinite(params).all(-1)
@@ -472,7 +467,9 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
     the information)."""
     w_l = img.shape[-1]
     I1, I2 = img[:, :1], img[:, 1:]
-    n_candidates = None if max_points is None else int(math.ceil(max_points / gradient_fraction))
+    # (no more candidates than the level has pixels: coarse levels do not carry padding)
+    n_candidates = None if max_points is None else min(int(math.ceil(max_points / gradient_fraction)),
+                                                        img.shape[-2] * w_l)
     points = sample_mask(mask, n_candidates)
     I1p, g1p = _pixel_gradient(I1, points.pix)
     pix, sel = points.pix, points.sel
@@ -486,29 +483,32 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
     pts = pixel_coordinates(pix, w_l)
     rep = (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
     cam = camera if reps == 1 else Camera._checked(rep(camera.K), rep(camera.height), rep(camera.roll), rep(camera.pitch))
-    return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(I2), rep(sel))
+    return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(_with_gradient(I2)), rep(sel))
 
 
-def _level_scale(problem: ImageProblem, params: Tensor, scale: float | None) -> Tensor:
+def _level_scale(scale: float | None, reps: int) -> float | Callable[[Evaluation], Tensor]:
     """The kernel's scale per sample (grey levels): given, or 1.4826 × the median absolute
-    residual at the level's start, at least 2."""
-    B = params.shape[0]
+    residual at the level's start (of the first start where several compete, so that their costs
+    compare), at least 2."""
     if scale is not None:
-        return torch.full((B,), float(scale), dtype=torch.float64, device=params.device)
-    ev = problem.evaluate(params)
-    mad = torch.nanmedian(torch.where(ev.use, ev.r2.sqrt(), float("nan")), dim=1).values
-    return (1.4826 * torch.nan_to_num(mad, nan=2.0)).clamp_min(2.0)
+        return float(scale)
+
+    def from_start(ev: Evaluation) -> Tensor:
+        mad = torch.nanmedian(torch.where(ev.use, ev.r2.sqrt(), float("nan")), dim=1).values
+        s = (1.4826 * torch.nan_to_num(mad, nan=2.0)).clamp_min(2.0)
+        return s.reshape(reps, -1)[0].repeat(reps)
+
+    return from_start
 
 
-def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, noise: Tensor, B: int,
+def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
            device: torch.device) -> tuple[Tensor | None, Tensor | None]:
-    """(mean, precision) (B, P + 2) of Gaussian priors ``{name: (mean, sigma)}``: precision
-    noise² / σ², the residuals' noise in grey levels against the parameter's σ."""
+    """(mean, 1 / σ²) (B, P + 2) of Gaussian priors ``{name: (mean, sigma)}`` (zero where none)."""
     if not spec:
         return None, None
     P = len(model.params)
     mean = torch.zeros(B, P + 2, dtype=torch.float64, device=device)
-    precision = torch.zeros_like(mean)
+    inverse_variance = torch.zeros_like(mean)
     for name, value in spec.items():
         if name not in model.params:
             raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}; expected some of {model.params}")
@@ -522,8 +522,8 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, noise: 
             raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
         i = model.params.index(name)
         mean[:, i] = mu
-        precision[:, i] = noise.square() / sigma.square()
-    return mean, precision
+        inverse_variance[:, i] = sigma.square().reciprocal()
+    return mean, inverse_variance
 
 
 def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints, gain: Tensor,

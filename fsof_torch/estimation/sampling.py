@@ -36,10 +36,11 @@ class MaskPoints:
     bounds: Tensor
 
     def per_frame(self, x: Tensor) -> Tensor:
-        """Per-frame sums (B,) of values (M,) given at ``every``'s pixels."""
+        """Per-frame sums (B,) float64 of values (M,) given at ``every``'s pixels (accumulated in
+        float64 without a float64 copy of ``x``)."""
         if self.bounds.numel() == 2:  # one frame
-            return x.sum(0, keepdim=True)
-        c = torch.cat([x.new_zeros(1), x.cumsum(0)])
+            return x.sum(0, keepdim=True, dtype=torch.float64)
+        c = torch.cat([x.new_zeros(1, dtype=torch.float64), x.cumsum(0, dtype=torch.float64)])
         return c[self.bounds[1:]] - c[self.bounds[:-1]]
 
 

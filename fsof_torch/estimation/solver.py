@@ -160,9 +160,9 @@ def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float)
 
 
 def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
-          prior_mean: Tensor | None = None, prior_precision: Tensor | None = None,
+          prior_mean: Tensor | None = None, prior_precision: Tensor | Callable[[Tensor], Tensor] | None = None,
           lower: Tensor | None = None, upper: Tensor | None = None, kernel: str = "cauchy",
-          scale: Tensor | float = 1.0, anneal: bool = False, max_iter: int = 50, tol: float = 1e-6,
+          scale: Tensor | float | Callable[[Evaluation], Tensor] = 1.0, anneal: bool = False, max_iter: int = 50, tol: float = 1e-6,
           resolution: float = 0.0, check_every: int | None = 2, damping: float = 1e-4,
           missing: str = "outlier") -> Solution:
     """Robust Levenberg–Marquardt for B independent samples (see the module docstring).
@@ -172,10 +172,13 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         params: (B, P) the start (float64 recommended; the normal equations use its dtype).
         free: (P,) or (B, P) bool, the parameters to estimate (default all); the others stay.
         prior_mean, prior_precision: (P,) or (B, P): a Gaussian prior λ (p - μ)² per parameter
-            (precision 0: none).
+            (precision 0: none); the precision may be a function of the scale (B,) returning it
+            (a prior whose weight follows the residuals' noise).
         lower, upper: (P,) or (B, P) bounds (±inf: none); the start is clamped into them.
         kernel: a name of :data:`~fsof_torch.estimation.robust.ROBUST_KERNELS`.
-        scale: the kernel's scale c (float or (B,)), in the residual's unit.
+        scale: the kernel's scale c (float or (B,)), in the residual's unit, or a function of the
+            start's :class:`Evaluation` returning it (B,) (a scale from the residuals, without
+            evaluating the start twice).
         anneal: start the scale at max(c, 3 · median residual norm), then halve it every iteration
             or drop it to 3 × the current median, whichever is smaller, down to c.
         max_iter: the iteration budget.
@@ -205,10 +208,6 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         fixed = ~free.to(dev).expand(B, P)
         fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
         eye_fixed = eye * fixed.unsqueeze(-1)
-    has_prior = prior_precision is not None
-    if has_prior:
-        mu = _expand(prior_mean, B, P, params, 0.0)
-        lam_p = _expand(prior_precision, B, P, params, 0.0)
     has_bounds = lower is not None or upper is not None
     if has_bounds:
         lo = _expand(lower, B, P, params, -float("inf"))
@@ -249,7 +248,13 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         return 3.0 * torch.nan_to_num(med, nan=0.0).sqrt()
 
     ev = problem.evaluate(params)
+    if callable(scale):
+        scale = scale(ev)
     s_min = torch.as_tensor(scale, dtype=dt, device=dev).expand(B).clone()
+    has_prior = prior_precision is not None
+    if has_prior:
+        mu = _expand(prior_mean, B, P, params, 0.0)
+        lam_p = _expand(prior_precision(s_min) if callable(prior_precision) else prior_precision, B, P, params, 0.0)
     s = torch.maximum(s_min, kernel_spread(ev)) if anneal else s_min
     far = far_cost(s)
     c = cost(ev, params, s, far)

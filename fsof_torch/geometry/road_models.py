@@ -96,10 +96,21 @@ def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Te
 
 def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
     """Rotation matrices (B, A, 3, 3) for angles (B, A) about the given axes (one per column)."""
-    E0, Ec, Es = _bases(angles.dtype, angles.device)
-    idx = list(axes)
+    E0, Ec, Es = _axis_bases(axes, angles.dtype, angles.device)
     c, s = torch.cos(angles)[..., None, None], torch.sin(angles)[..., None, None]
-    return E0[idx] + c * Ec[idx] + s * Es[idx]
+    return torch.addcmul(torch.addcmul(E0, c, Ec), s, Es)
+
+
+def _axis_bases(axes: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """The bases (E0, Ec, Es) of :func:`_bases` for the given axes, each (A, 3, 3); cached in
+    eager mode (the map is evaluated every solver iteration: indexing them each time showed)."""
+    key = (axes, dtype, device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    out = tuple(b[list(axes)] for b in _bases(dtype, device))
+    if not tracing():
+        _CACHE[key] = out
+    return out
 
 
 def _commutator(G: Tensor, C: Tensor) -> Tensor:
@@ -140,18 +151,19 @@ def _mounted(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, X: Tensor, d
         return H, torch.cat([dH, dH.new_zeros(B, 2, 3, 3)], dim=1), R[:, 1:2]
     Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
     Rc = Rt @ Rb
-    Rct = Rc.transpose(-1, -2)
-    C = Rc @ X @ Rct
-    H = _sandwich(K, K_inv, C)
-    horizon = Rct[:, 1:2] @ K_inv
+    L, R = K @ Rc, Rc.transpose(-1, -2) @ K_inv
     if dX is None:
-        return H, None, horizon
+        return L @ X @ R, None, R[:, 1:2]
+    # the map and its motion derivatives through one pair of products; by roll and pitch,
+    # K [G, C] K⁻¹ = [K G K⁻¹, H] with the angle's generator G (pitch's seen through the roll).
+    # (python benchmarks/bench_fit.py: batched 3×3 products dominate the map's cost; these are
+    # half as many as sandwiching C and its derivatives separately)
+    HdH = L.unsqueeze(1) @ torch.cat([X.unsqueeze(1), dX], dim=1) @ R.unsqueeze(1)
     _, _, Es = _bases(X.dtype, X.device)
-    Gz, Gx = Es[_ROLL].expand(B, 3, 3), Es[_PITCH]
-    G_beta = Rt @ Gx @ Rt.transpose(-1, -2)
-    dC = torch.cat([Rc.unsqueeze(1) @ dX @ Rct.unsqueeze(1),
-                    torch.stack([_commutator(Gz, C), _commutator(G_beta, C)], dim=1)], dim=1)
-    return H, _sandwich(K, K_inv, dC), horizon
+    G = torch.stack([Es[_ROLL].expand(B, 3, 3), Rt @ Es[_PITCH] @ Rt.transpose(-1, -2)], dim=1)
+    KGK = K.unsqueeze(1) @ G @ K_inv.unsqueeze(1)
+    H = HdH[:, :1]
+    return HdH[:, 0], torch.cat([HdH[:, 1:], _commutator(KGK, H)], dim=1), R[:, 1:2]
 
 
 def mounting_products(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor) -> tuple[Tensor, Tensor]:

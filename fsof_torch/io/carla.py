@@ -37,7 +37,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Camera
-from .flo import _as_chw_flow
+from .._check import as_chw_flow
 from .images import read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
 
@@ -84,7 +84,7 @@ def read_carla_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
 def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
     """Write a (2, H, W) flow as the paper's CARLA TIFF (single-channel float32 (H, 2W), x and y
     interleaved, ``x = u / W``, ``y = -v / H``), atomically. For tests and synthetic runs."""
-    flow = _as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
     _, height, width = flow.shape
     xy = torch.stack([flow[0] / width, -flow[1] / height], dim=-1).numpy()
     return write_image_array(path, np.ascontiguousarray(xy.reshape(height, 2 * width)))

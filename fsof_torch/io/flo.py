@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_has_values
+from .._check import as_chw_flow
 from .atomic import atomic_path
 
 __all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
@@ -52,7 +52,7 @@ def read_flo(path: str | os.PathLike) -> Tensor:
 
 def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
     """Write a (2, H, W) flow in pixels to a Middlebury ``.flo`` file atomically (float32, exact)."""
-    flow = _as_chw_flow(flow, "flow")
+    flow = as_chw_flow(flow, "flow")
     _, height, width = flow.shape
     array = flow.detach().cpu().to(torch.float32).numpy().transpose(1, 2, 0)
     header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
@@ -61,17 +61,3 @@ def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
         f.write(header)
         f.write(np.ascontiguousarray(array, dtype="<f4").tobytes())
     return path
-
-
-def _as_chw_flow(flow: Tensor | np.ndarray, name: str) -> Tensor:
-    """A flow as a (2, H, W) float tensor (from a tensor or array of that shape)."""
-    if isinstance(flow, np.ndarray):
-        flow = torch.from_numpy(flow)
-    if not isinstance(flow, Tensor):
-        raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
-    check_has_values(flow, name)
-    if not flow.is_floating_point():
-        raise TypeError(f"{name}: expected a floating-point tensor, got dtype {flow.dtype}")
-    if flow.dim() != 3 or flow.shape[0] != 2 or flow.shape[1] == 0 or flow.shape[2] == 0:
-        raise ValueError(f"{name}: expected shape (2, H, W), got {tuple(flow.shape)}")
-    return flow

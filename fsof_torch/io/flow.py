@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 
 from .atomic import write_bytes
-from .flo import _as_chw_flow, read_flo, write_flo
+from .._check import as_chw_flow
+from .flo import read_flo, write_flo
 from .kitti import read_kitti_flow, write_kitti_flow
 
 __all__ = ["read_flow", "write_flow"]
@@ -65,7 +66,7 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
     suffix = path.suffix.lower()
     if suffix == ".png":
         return write_kitti_flow(path, flow, valid)
-    flow = _as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
     if valid is not None:
         if isinstance(valid, np.ndarray):
             valid = torch.from_numpy(valid)

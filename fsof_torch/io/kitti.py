@@ -20,10 +20,9 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_has_values
+from .._check import as_chw_flow, check_has_values
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
-from .flo import _as_chw_flow
 from .images import read_image_array, write_image_array
 
 __all__ = [
@@ -74,7 +73,7 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
     Flow is rounded to 1/64 px. Valid pixels must lie in [-512, 511.98] px (else ValueError);
     invalid pixels are written as 0 flow, whatever they held (NaN included).
     """
-    flow = _as_chw_flow(flow, "flow").detach().cpu().double()
+    flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
     finite = torch.isfinite(flow).all(dim=0)
     if valid is None:

@@ -24,8 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_finite, result_dtype, skip_values
-from .flo import _as_chw_flow
+from .._check import as_chw_flow, check_finite, result_dtype, skip_values
 from .images import read_image_array, write_image_array
 
 __all__ = [
@@ -69,7 +68,7 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
     ``valid`` (1, H, W) bool defaults to the finite pixels. Valid flow must lie within
     ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding.
     """
-    flow = _as_chw_flow(flow, "flow").detach().cpu().double()
+    flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
     finite = torch.isfinite(flow).all(dim=0)
     valid_hw = finite if valid is None else valid.detach().cpu().reshape(height, width)

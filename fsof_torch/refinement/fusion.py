@@ -79,7 +79,8 @@ class RefineOutput(NamedTuple):
             replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
             ∩ model defined, for refined samples).
-        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit).
+        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit, a model
+            the images do not confirm: see ``gate``).
         camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
         flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
         model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
@@ -442,8 +443,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         refined = refined & gate_result.model_used
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, or a model that "
-                      f"explains the images worse); see RefineOutput.refined", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, or a model the "
+                      f"images do not confirm: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
 
     masks: dict[tuple[int, int], Tensor] = {(H, W): fuse_mask}
     weights: dict[tuple[int, int], Tensor] = {}

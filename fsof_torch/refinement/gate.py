@@ -13,8 +13,13 @@ errors of the difference (the model is the physically constrained estimate; the 
 to be clearly better) and the prediction explains the cell itself (its mean distance at most
 ``occlusion``: where neither flow does, the road is occluded in image 2 or the content is new,
 and the model's geometry is the better guess); so does every cell of a sample where that holds
-over the whole mask. Cells with too few points follow
-their sample's decision.
+over the whole mask. Cells with too few points follow their sample's decision.
+
+A sample is *confirmed* when over its whole mask the model explains the images better than the
+prediction by more than ``z`` standard errors. With ``require_confirmation`` (the default) an
+unconfirmed sample keeps its prediction everywhere: where the images cannot tell the two flows
+apart (identical frames, a prediction as good as the model, dark or textureless frames whose
+census is noise), replacing the prediction would rest on the model alone.
 
 Images are (B, C, H, W) on 0..255 (grey or RGB); flows (B, 2, H, W) in pixels; masks (B, 1, H, W)
 bool. Not differentiable (a decision); nothing is read back to the host.
@@ -47,9 +52,13 @@ class GateResult(NamedTuple):
             prediction per cell (0.5: no preference), for confidence fusion; 0 outside the mask.
         cost_model, cost_prediction: (B,) mean census distances over the points that count.
         points: (B,) the number of points that count.
-        cells, cells_kept: (B,) cells with enough points, and of those the cells that keep the
-            prediction.
-        model_used: (B,) bool, False where the model is worse over the whole mask.
+        cells, cells_kept: (B,) cells of the (coarse) grid with enough points, and of those the
+            cells that keep the prediction.
+        model_used: (B,) bool, False where the model is worse over the whole mask, or (with
+            ``require_confirmation``) not confirmed.
+        confirmed: (B,) bool, the model explains the images significantly better than the
+            prediction over the whole mask.
+        textured: (B,) the share of the judged points with enough clear texture to count.
     """
 
     use_model: Tensor
@@ -60,6 +69,8 @@ class GateResult(NamedTuple):
     cells: Tensor
     cells_kept: Tensor
     model_used: Tensor
+    confirmed: Tensor
+    textured: Tensor
 
 
 def _grey(image: Tensor) -> Tensor:
@@ -108,11 +119,24 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
     return dist, n, ok
 
 
+def _mean_and_error(v: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+    """The weighted mean of ``v`` (B, N) over points of weight ``w`` (0 or 1) and its standard
+    error (B,) each."""
+    n = w.sum(1).clamp_min(1)
+    mean = (v * w).sum(1) / n
+    var = ((v.square() * w).sum(1) / n - mean.square()).clamp_min(0)
+    return mean, (var / n).sqrt()
+
+
 class ImageGate:
     """Keeps the prediction wherever the model explains the images worse (see the module).
 
     Args (keyword-only):
-        grid: (rows, columns) of cells over the image.
+        grid: (rows, columns) of cells over the image (their evidence drives confidence fusion).
+        objects: also test the connected regions where the flows differ by more than
+            ``object_px``, 2 or 4 times that (objects smaller than a cell, such as a car inside the
+            mask); a region
+            keeps the prediction on ``min_points_fine`` points or more.
         points: mask pixels per sample that are judged (an even subsample).
         min_points: a cell with fewer points follows its sample's decision.
         margin, z: the model may be worse than the prediction by ``margin`` census distance plus
@@ -122,24 +146,37 @@ class ImageGate:
             0.73 (a logistic of (prediction − model) / temperature).
         contrast: grey levels above which a neighbour's order in image 1 is clear.
         min_neighbours: points with fewer clear neighbours (weak texture) do not count.
+        require_confirmation: a sample whose model is not significantly better than its
+            prediction over the whole mask keeps the prediction.
     """
 
-    def __init__(self, *, grid: tuple[int, int] = (8, 16), points: int = 6000, min_points: int = 12,
+    def __init__(self, *, grid: tuple[int, int] = (8, 16), objects: bool = True, object_px: float = 1.0,
+                 min_points_fine: int = 4, points: int = 6000, min_points: int = 12,
                  margin: float = 0.0, z: float = 2.0, occlusion: float = 0.35, temperature: float = 0.02,
-                 contrast: float = 2.0, min_neighbours: int = 4) -> None:
-        rows, cols = grid
-        for name, value in (("grid", rows), ("grid", cols), ("points", points), ("min_points", min_points)):
+                 contrast: float = 2.0, min_neighbours: int = 4, require_confirmation: bool = True) -> None:
+        if (not isinstance(grid, (tuple, list)) or len(grid) != 2
+                or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in grid)):
+            raise ValueError(f"grid: expected (rows, columns) of positive integers, got {grid!r}")
+        if not isinstance(objects, bool):
+            raise TypeError(f"objects: expected a bool, got {objects!r}")
+        if not (isinstance(object_px, (int, float)) and math.isfinite(object_px) and object_px > 0):
+            raise ValueError(f"object_px: expected a finite number > 0, got {object_px!r}")
+        for name, value in (("points", points), ("min_points", min_points), ("min_points_fine", min_points_fine)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected positive integers, got {value!r}")
+                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
         for name, value in (("margin", margin), ("z", z), ("occlusion", occlusion), ("temperature", temperature),
                             ("contrast", contrast), ("min_neighbours", min_neighbours)):
             if not (isinstance(value, (int, float)) and math.isfinite(value)) or value < 0:
                 raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
         if temperature <= 0:
             raise ValueError(f"temperature: expected > 0, got {temperature!r}")
-        self.grid, self.points, self.min_points = (rows, cols), points, min_points
+        self.grid, self.points, self.min_points = tuple(grid), points, min_points
+        self.objects, self.object_px, self.min_points_fine = objects, float(object_px), min_points_fine
         self.margin, self.occlusion, self.temperature = float(margin), float(occlusion), float(temperature)
         self.z, self.contrast, self.min_neighbours = float(z), float(contrast), int(min_neighbours)
+        if not isinstance(require_confirmation, bool):
+            raise TypeError(f"require_confirmation: expected a bool, got {require_confirmation!r}")
+        self.require_confirmation = require_confirmation
 
     @torch.no_grad()
     def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
@@ -162,50 +199,95 @@ class ImageGate:
         # points that count: real, textured, judged by both flows
         count = pts.sel & ok_pred & ok_model & finite & (n_clear >= self.min_neighbours)
         w = count.to(work)
-        rows, cols = self.grid
-        cell = (torch.div(y, math.ceil(H / rows), rounding_mode="floor") * cols
-                + torch.div(x, math.ceil(W / cols), rounding_mode="floor")).long()
-        n_cells = rows * cols
-
-        def per_cell(v: Tensor) -> Tensor:
-            return torch.zeros(B, n_cells, dtype=work, device=v.device).scatter_add_(1, cell, v)
-
-        n = per_cell(w)
         delta = d_model - d_pred  # > 0: the prediction explains the point better
-        sum_pred, sum_model = per_cell(d_pred * w), per_cell(d_model * w)
         n_all = w.sum(1)
-        cost_pred = sum_pred.sum(1) / n_all.clamp_min(1)
-        cost_model = sum_model.sum(1) / n_all.clamp_min(1)
-
-        def worse(mean: Tensor, sq: Tensor, count: Tensor) -> Tensor:
-            """The model is worse by more than the margin and z standard errors of the mean."""
-            var = (sq / count.clamp_min(1) - mean.square()).clamp_min(0)
-            return mean > self.margin + self.z * (var / count.clamp_min(1)).sqrt()
-
-        mean_all = (delta * w).sum(1) / n_all.clamp_min(1)
+        cost_pred = (d_pred * w).sum(1) / n_all.clamp_min(1)
+        cost_model = (d_model * w).sum(1) / n_all.clamp_min(1)
         # the prediction is kept only where it explains the images itself: where neither flow
         # does (occluded in image 2, new content), the model's geometry is the better guess
         # (no textured point at all is no evidence against the model either)
-        model_used = ~(worse(mean_all, (delta.square() * w).sum(1), n_all) & (cost_pred <= self.occlusion))
-        enough = n >= self.min_points
-        diff = (sum_model - sum_pred) / n.clamp_min(1)
-        cell_worse = worse(diff, per_cell(delta.square() * w), n) & (sum_pred / n.clamp_min(1) <= self.occlusion)
-        cell_model = torch.where(enough, ~cell_worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
-        diff = -diff  # > 0: the model explains the cell better
-        evidence = torch.where(enough, torch.sigmoid(diff / self.temperature),
-                               torch.where(model_used, 0.5, 0.0).unsqueeze(1))
-        evidence = evidence * model_used.unsqueeze(1)
+        mean_all, se_all = _mean_and_error(delta, w)
+        model_used = ~((mean_all > self.margin + self.z * se_all) & (cost_pred <= self.occlusion))
+        # confirmed: the model better by z standard errors (no margin: the images decide)
+        confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
+        if self.require_confirmation:
+            model_used = model_used & confirmed
+        cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
+        use_model = mask & model_used.reshape(B, 1, 1, 1) & cell_model
+        if self.objects:
+            use_model = use_model & ~self._objects(prediction, model, mask, pts.pix, delta, d_pred, w)
+        evidence_map = torch.where(mask, evidence * model_used.reshape(B, 1, 1, 1), 0.0)
+        textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
+        return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
+                          confirmed, textured)
+
+    def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pix: Tensor, delta: Tensor, d_pred: Tensor,
+                 w: Tensor) -> Tensor:
+        """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
+        than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
+        significantly better (a car inside the mask, whatever its shape and however it meets the
+        cells)."""
+        import cv2
+        import numpy as np
+
+        B, _, H, W = prediction.shape
+        gap = (prediction.detach() - model.detach()).square().sum(1).masked_fill_(~mask[:, 0], 0.0)
+        gap = gap.to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
+        pix_np = pix.to("cpu").numpy()
+        kept = np.zeros((B, H, W), dtype=bool)
+        # a region of large differences inside one of small ones (a car beside a patch of road
+        # the prediction got slightly wrong) stands apart at a higher threshold
+        for threshold in (self.object_px, 2 * self.object_px, 4 * self.object_px):
+            labels = np.stack([cv2.connectedComponents((g > threshold ** 2).astype(np.uint8), connectivity=8)[1]
+                               for g in gap])
+            L = int(labels.max()) + 1
+            if L == 1:
+                break  # no region apart at this threshold, nor at higher ones
+            at = torch.from_numpy(np.take_along_axis(labels.reshape(B, -1), pix_np, axis=1).astype(np.int64))
+            at = at.to(pix.device)  # each point's region (0: the flows agree)
+
+            def per_region(v: Tensor) -> Tensor:
+                return torch.zeros(B, L, dtype=v.dtype, device=v.device).scatter_add_(1, at, v)
+
+            n = per_region(w)
+            diff = per_region(delta * w) / n.clamp_min(1)
+            var = (per_region(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
+            keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
+                    & (per_region(d_pred * w) / n.clamp_min(1) <= self.occlusion))
+            keep[:, 0] = False
+            keep = keep.to("cpu").numpy()
+            if keep.any():
+                kept |= np.stack([keep[b][labels[b]] for b in range(B)])
+        return torch.from_numpy(kept).to(mask.device).unsqueeze(1)
+
+    def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
+               size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """The decision on one grid of cells: where the model is used (B, 1, H, W) bool, the
+        evidence for it (B, 1, H, W), the cells with enough points and the cells that keep the
+        prediction (B,) each."""
+        (H, W), (rows, cols), B, min_points = size, self.grid, delta.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
+        cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
+
+        def per_cell(v: Tensor) -> Tensor:
+            return torch.zeros(B, rows * cols, dtype=v.dtype, device=v.device).scatter_add_(1, cell, v)
+
+        n = per_cell(w)
+        diff = per_cell(delta * w) / n.clamp_min(1)  # > 0: the prediction explains the cell better
+        var = (per_cell(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
+        worse = (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt()) \
+            & (per_cell(d_pred * w) / n.clamp_min(1) <= self.occlusion)
+        enough = n >= min_points
+        cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
+        evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
+                               torch.where(model_used, 0.5, 0.0).unsqueeze(1))
 
         def to_pixels(c: Tensor) -> Tensor:
             m = c.reshape(B, 1, rows, cols).repeat_interleave(ch, dim=2).repeat_interleave(cw, dim=3)
             return m[..., :H, :W]
 
-        use_model = mask & to_pixels(cell_model)
-        evidence_map = torch.where(mask, to_pixels(evidence), 0.0)
-        return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough.sum(1),
-                          (enough & ~cell_model).sum(1), model_used)
+        return to_pixels(cell_model), to_pixels(evidence), enough.sum(1), (enough & ~cell_model).sum(1)
 
     def __repr__(self) -> str:
-        return (f"ImageGate(grid={self.grid}, points={self.points}, margin={self.margin}, "
-                f"occlusion={self.occlusion})")
+        return (f"ImageGate(grid={self.grid}, objects={self.objects}, points={self.points}, margin={self.margin}, "
+                f"occlusion={self.occlusion}, require_confirmation={self.require_confirmation})")

@@ -1,0 +1,222 @@
+"""Road motion over a clip: the camera's attitude over the road calibrated without poses, the motion
+carried from pair to pair, and the attitude track smoothed.
+
+A clip of N + 1 frames gives N pairs. Each pair's road motion is fitted to its two images
+(:func:`~fsof_torch.estimation.image_fit.fit_image`, the ``"plane"`` model), started from the
+previous pair's motion and a constant-velocity prediction besides zero motion. Then:
+
+1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
+   the per-pair attitudes: the body's pitching and rolling averages out over a clip. With poses
+   (metric translations), the camera height follows as well: only d / h is observable from images.
+2. **Smoothing.** The camera's attitude over the road at frame k+1 is its attitude at frame k
+   plus the body's pitch and roll change between them (on a flat road, to first order). Each pair
+   measures both; a weighted least-squares track over the clip makes them consistent, with the
+   changes (well measured) tying the noisy absolute attitudes together.
+3. **Second pass.** Every pair is fitted again, started at the smoothed track and tied to it by a
+   prior of the track's own uncertainty (its attitude and attitude change); its translation and
+   yaw are started from (and loosely tied to) the previous pair's motion.
+
+Frames are (B=1 per frame) images (3 or 1, H, W) on 0..255; masks (1, H, W) bool (one for the clip,
+or one per pair). Not differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+from torch import Tensor
+
+from ..geometry.camera import Camera
+from ..geometry.road_models import get_road_model
+from .flow_fit import RoadFit
+from .image_fit import DEG, calibration_prior, fit_image
+
+__all__ = ["SequenceFit", "fit_sequence", "smooth_attitude"]
+
+
+@dataclass
+class SequenceFit:
+    """The road motion of a clip.
+
+    Attributes:
+        fits: one :class:`~fsof_torch.estimation.flow_fit.RoadFit` per pair (the second pass,
+            with the smoothed attitude, or the first with ``passes=1``).
+        params: ``{name: (N,)}`` the pairs' parameters.
+        mounting: ``{"roll": float, "pitch": float}`` the calibrated attitude (radians), and
+            ``"height"`` (metres) when poses gave the scale.
+        camera: the input camera with the calibrated roll, pitch (and height).
+        first_pass: ``{name: (N,)}`` the per-pair parameters before calibration, for reference.
+    """
+
+    fits: list[RoadFit]
+    params: dict[str, Tensor]
+    mounting: dict[str, float]
+    camera: Camera
+    first_pass: dict[str, Tensor]
+
+
+def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | float,
+                    change_sigma: Tensor | float) -> tuple[Tensor, Tensor]:
+    """A consistent attitude track (N + 1,) from per-pair measurements of the attitude at the
+    pair's first frame (N,) and of its change to the next frame (N,), by weighted least squares:
+    minimise Σ ((a_k − attitude_k) / σ_a)² + Σ ((a_{k+1} − a_k − change_k) / σ_c)². The last
+    frame's attitude rests on the changes alone. Measurements with infinite σ do not count.
+
+    Returns the track (N + 1,) and its standard deviations (N + 1,) (float64)."""
+    N = attitude.shape[0]
+    dt = torch.float64
+    wa = 1.0 / torch.as_tensor(attitude_sigma, dtype=dt).expand(N).square()
+    wc = 1.0 / torch.as_tensor(change_sigma, dtype=dt).expand(N).square()
+    A = torch.zeros(N + 1, N + 1, dtype=dt)
+    b = torch.zeros(N + 1, dtype=dt)
+    idx = torch.arange(N)
+    A[idx, idx] += wa
+    b[idx] += wa * attitude.to(dt)
+    # (a_{k+1} − a_k − c_k)² wc: the 2 × 2 block [[1, −1], [−1, 1]] wc
+    A[idx, idx] += wc
+    A[idx + 1, idx + 1] += wc
+    A[idx, idx + 1] -= wc
+    A[idx + 1, idx] -= wc
+    b[idx] -= wc * change.to(dt)
+    b[idx + 1] += wc * change.to(dt)
+    cov = torch.linalg.inv(A + 1e-12 * torch.eye(N + 1, dtype=dt))
+    return cov @ b, cov.diagonal().sqrt()
+
+
+def _robust_mean(x: Tensor, ok: Tensor) -> float:
+    """The mean of the values within 3 median absolute deviations of their median (success only)."""
+    v = x[ok] if bool(ok.any()) else x
+    med = v.median()
+    mad = (v - med).abs().median().clamp_min(1e-9)
+    keep = (v - med).abs() <= 3 * 1.4826 * mad
+    return float(v[keep].mean())
+
+
+def _stack(fits: Sequence[RoadFit]) -> dict[str, Tensor]:
+    return {k: torch.cat([f.params[k].detach().double().reshape(-1) for f in fits]) for k in fits[0].params}
+
+
+@torch.no_grad()
+def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], camera: Camera, *,
+                 poses: Tensor | None = None, flows: Sequence[Tensor] | None = None,
+                 passes: int = 2, attitude_deg: float = 1.0, body_rotation_deg: float = 0.3,
+                 progress: bool = False, **options: Any) -> SequenceFit:
+    """Fit the ``"plane"`` road motion of every pair of a clip, calibrating the camera's attitude
+    over the road without poses (see the module docstring).
+
+    Args:
+        frames: N + 1 images, each (C, H, W) or (1, C, H, W), 0..255.
+        mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool for the clip,
+            or a sequence of N.
+        camera: intrinsics, height and the nominal roll and pitch (batch 1).
+        poses: optional (N + 1, 4, 4) camera-to-world poses: their translations give the metric
+            scale, hence the camera height (the images give d / h only).
+        flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar motion.
+        passes: 1 (per-pair fits only) or 2 (with the calibrated attitude).
+        attitude_deg: the prior's standard deviation of the per-frame attitude around the
+            calibrated mounting (the body's pitching and rolling), degrees.
+        body_rotation_deg: the standard deviation of the body's pitch and roll change per frame.
+        progress: show a progress bar.
+        **options: further keyword arguments of :func:`~fsof_torch.estimation.image_fit.fit_image`.
+
+    Returns:
+        :class:`SequenceFit`.
+    """
+    if len(frames) < 2:
+        raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
+    if passes not in (1, 2):
+        raise ValueError(f"passes: expected 1 or 2, got {passes!r}")
+    if not isinstance(camera, Camera) or camera.batch_size != 1:
+        raise TypeError("camera: expected a fsof_torch.Camera of batch 1")
+    N = len(frames) - 1
+    imgs = [f if f.dim() == 4 else f.unsqueeze(0) for f in frames]
+    masks = [mask] * N if isinstance(mask, Tensor) else list(mask)
+    if len(masks) != N:
+        raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(masks)}")
+    masks = [m.reshape(1, 1, *m.shape[-2:]) for m in masks]
+    if poses is not None:
+        poses = torch.as_tensor(poses)
+        if poses.shape != (N + 1, 4, 4) or not poses.is_floating_point():
+            raise ValueError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
+                             f"{poses.dtype} {tuple(poses.shape)}")
+        if not bool(torch.isfinite(poses).all()):
+            raise ValueError("poses: expected finite values, got NaN or inf")
+    if flows is not None and len(flows) != N:
+        raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
+    model = get_road_model(options.pop("model", "plane"))
+    if model.name != "plane":
+        raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
+    motion = [n for n in model.params if n not in model.mounting]
+
+    attitude = ("roll", "pitch", "roll_change", "pitch_change")
+
+    def run(cam: Camera, label: str, track: dict[str, tuple[Tensor, Tensor]] | None = None) -> list[RoadFit]:
+        from tqdm.auto import tqdm
+
+        fits: list[RoadFit] = []
+        for k in tqdm(range(N), desc=f"road motion: {label}", unit="pair", disable=not progress):
+            starts: list[dict] = []
+            prior = calibration_prior(model, cam, mounting_deg=attitude_deg, body_rotation_deg=body_rotation_deg)
+            if fits:
+                prev = {n: fits[-1].params[n] for n in motion}
+                starts.append(prev)
+                if len(fits) > 1:  # constant velocity: the motion changes as it did
+                    starts.append({n: 2 * fits[-1].params[n] - fits[-2].params[n] for n in motion})
+                if fits[-1].success.all():  # the previous motion, loosely: a car changes speed gently
+                    z = prev["z_d"].abs()
+                    prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
+                                 yaw=(prev["yaw"], 1.0 * DEG))
+            if flows is not None:
+                from ..refinement.estimators import planar_start
+
+                f = flows[k] if flows[k].dim() == 4 else flows[k].unsqueeze(0)
+                starts.append(planar_start(f.to(torch.float64), masks[k], cam))
+            init = None
+            if track is not None:  # the attitude and its change: start at the smoothed track, tied to it
+                init = {}
+                for n in ("roll", "pitch"):
+                    value, sigma = track[n]
+                    init[n], init[n + "_change"] = value[k:k + 1], value[k + 1:k + 2] - value[k:k + 1]
+                    prior[n] = (init[n], sigma[k:k + 1])
+                    prior[n + "_change"] = (init[n + "_change"], 0.1 * body_rotation_deg * DEG)
+                starts = [{n: v for n, v in st.items() if n not in attitude} for st in starts]
+            fits.append(fit_image(imgs[k], imgs[k + 1], masks[k], cam, model=model, init=init,
+                                  starts=starts, prior=prior, **options))
+        return fits
+
+    first = run(camera, "first pass")
+    raw = _stack(first)
+    ok = torch.cat([f.success.reshape(-1) for f in first])
+    roll0, pitch0 = _robust_mean(raw["roll"], ok), _robust_mean(raw["pitch"], ok)
+    mounting = {"roll": roll0, "pitch": pitch0}
+    cam = camera.replace(roll=roll0, pitch=pitch0)
+    if poses is not None:
+        P = torch.as_tensor(poses, dtype=torch.float64)
+        steps = (P[1:N + 1, :3, 3] - P[:N, :3, 3]).norm(dim=-1)
+        image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
+        use = ok & (image_steps > 1e-3)
+        if bool(use.any()):
+            # metric step = (d / h) h: h = h_nominal · median(metric / image-derived)
+            height = float(camera.height[0]) * float((steps[use] / image_steps[use]).median())
+            if not (math.isfinite(height) and height > 0):
+                raise ValueError(f"poses: their translations give no scale (camera height {height:g} m): the "
+                                 "poses do not move where the images do")
+            mounting["height"] = height
+            cam = cam.replace(height=height)
+    fits = first
+    if passes == 2:
+        fits = run(cam, "smoothed attitude", _track(raw, ok, attitude_deg, body_rotation_deg))
+    return SequenceFit(fits, _stack(fits), mounting, cam, raw)
+
+
+def _track(params: dict[str, Tensor], ok: Tensor, attitude_deg: float,
+           body_rotation_deg: float) -> dict[str, tuple[Tensor, Tensor]]:
+    """Smoothed roll and pitch tracks (N + 1,) with their standard deviations; failed pairs do
+    not count."""
+    sa = torch.where(ok, attitude_deg * DEG, math.inf).double()
+    # the changes are measured far better than the attitudes; a failed pair's change says nothing
+    sc = torch.where(ok, 0.1 * body_rotation_deg * DEG, 10 * body_rotation_deg * DEG).double()
+    return {n: smooth_attitude(params[n], params[n + "_change"], sa, sc) for n in ("roll", "pitch")}

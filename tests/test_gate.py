@@ -1,0 +1,123 @@
+"""ImageGate: the census it judges by, and its decisions on images whose true flow is known."""
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from fsof_torch.refinement.gate import ImageGate, census_ring_distance
+
+RING = [(0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
+        (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3)]
+
+
+def _texture(H=96, W=192, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    noise = torch.rand(1, 1, H // 4, W // 4, generator=g) * 255
+    return F.interpolate(noise, size=(H, W), mode="bicubic", align_corners=False).clamp(0, 255)
+
+
+def test_census_ring_distance_against_a_loop():
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    x = torch.tensor([[10.0, 50.0, 90.0]])
+    y = torch.tensor([[20.0, 40.0, 60.0]])
+    flow = torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]])  # whole pixels: no interpolation
+    dist, n, ok = census_ring_distance(g1, g2, x, y, flow, threshold=2.0)
+    a, b = g1[0, 0].numpy(), g2[0, 0].numpy()
+    for i in range(3):
+        u, v = int(x[0, i]), int(y[0, i])
+        u2, v2 = u + int(flow[0, 0, i]), v + int(flow[0, 1, i])
+        clear = differ = 0
+        for dx, dy in RING:
+            d1 = a[v + dy, u + dx] - a[v, u]
+            d2 = b[v2 + dy, u2 + dx] - b[v2, u2]
+            if abs(d1) > 2.0:
+                clear += 1
+                t2 = np.sign(d2) if abs(d2) > 2.0 else 0.0
+                differ += int(np.sign(d1) != t2)
+        assert int(n[0, i]) == clear
+        assert float(dist[0, i]) == pytest.approx(differ / clear)
+    assert bool(ok.all())
+
+
+def _smooth_noise(amplitude, seed=0, H=96, W=192):
+    """A flow error that varies smoothly over the image, as a network's does (B, 2, H, W)."""
+    g = torch.Generator().manual_seed(seed)
+    coarse = torch.rand(1, 2, H // 16, W // 16, generator=g) * 2 - 1
+    return amplitude * F.interpolate(coarse, size=(H, W), mode="bilinear", align_corners=False)
+
+
+def _pair(shift=3):
+    """image2 is image1 moved right by ``shift`` pixels: the true flow is (shift, 0)."""
+    g1 = _texture()
+    g2 = torch.roll(g1, shifts=shift, dims=-1)
+    true = torch.zeros(1, 2, *g1.shape[-2:])
+    true[:, 0] = shift
+    return g1, g2, true
+
+
+def test_the_gate_keeps_the_prediction_where_the_model_is_wrong():
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 10:-10, 10:-10] = True
+    model = true.clone()
+    model[..., 40:70, 100:150] += torch.tensor([4.0, -3.0]).reshape(1, 2, 1, 1)  # the model wrong here
+    prediction = true + _smooth_noise(2.0)
+    out = ImageGate(grid=(4, 8))(g1, g2, prediction, model, mask)
+    assert bool(out.confirmed.all()) and bool(out.model_used.all())
+    wrong = torch.zeros_like(mask)
+    wrong[..., 40:70, 100:150] = True
+    # the region where the model is wrong keeps the prediction; most of the rest takes the model
+    assert not bool((out.use_model & wrong)[..., 45:65, 105:145].any())
+    assert float(out.use_model[mask & ~wrong].float().mean()) > 0.8
+    assert not bool(out.use_model[~mask].any())
+    assert 0.0 < float(out.textured) <= 1.0
+
+
+def test_unconfirmed_models_leave_the_prediction():
+    g1, g2, true = _pair()
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    out = ImageGate()(g1, g2, true, true.clone(), mask)  # the images cannot tell them apart
+    assert not bool(out.confirmed.any()) and not bool(out.use_model.any())
+    loose = ImageGate(require_confirmation=False)(g1, g2, true, true.clone(), mask)
+    assert bool(loose.model_used.all()) and bool(loose.use_model.all())
+
+
+def test_a_small_object_keeps_its_flow():
+    g1, g2, true = _pair()
+    # an object of 20 x 24 pixels moving by (-2, 0): image2 shows it there
+    obj = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    obj[..., 50:70, 60:84] = True
+    g2 = g2.clone()
+    g2[..., 50:70, 58:82] = g1[..., 50:70, 60:84]
+    prediction = torch.where(obj, torch.tensor([-2.0, 0.0]).reshape(1, 2, 1, 1), true + _smooth_noise(2.0))
+    mask = torch.ones_like(obj)
+    out = ImageGate(grid=(2, 4))(g1, g2, prediction, true.clone(), mask)
+    # the object keeps the prediction although its cell is mostly background
+    assert not bool((out.use_model & obj)[..., 53:67, 63:81].any())
+    coarse = ImageGate(grid=(2, 4), objects=False)(g1, g2, prediction, true.clone(), mask)
+    assert bool((coarse.use_model & obj).any())
+
+
+def test_the_gate_leaves_its_inputs_alone():
+    g1, g2, true = _pair()
+    args = [g1, g2, true, true + 1.0, torch.ones(1, 1, 96, 192, dtype=torch.bool)]
+    before = [a.clone() for a in args]
+    ImageGate()(*args)
+    assert all(torch.equal(a, b) for a, b in zip(args, before))
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(grid=(0, 4)), "grid"), (dict(grid=3), "grid"), (dict(points=0), "points"),
+    (dict(z=-1.0), "z"), (dict(object_px=0.0), "object_px"), (dict(temperature=0.0), "temperature"),
+    (dict(min_points_fine=0), "min_points_fine"),
+])
+def test_gate_options_are_checked(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        ImageGate(**kwargs)
+
+
+@pytest.mark.parametrize("kwargs, match", [(dict(objects=1), "objects"), (dict(require_confirmation="yes"), "require")])
+def test_gate_flags_are_checked(kwargs, match):
+    with pytest.raises(TypeError, match=match):
+        ImageGate(**kwargs)

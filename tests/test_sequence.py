@@ -1,0 +1,111 @@
+"""fit_sequence: the mounting calibrated over a clip without poses, the height from poses, the
+attitude track; smooth_attitude against an independent least-squares solution."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch import Camera
+from fsof_torch.data.scene import render_sequence
+from fsof_torch.estimation.sequence import SequenceFit, fit_sequence, smooth_attitude
+
+
+def test_smooth_attitude_matches_numpy_least_squares():
+    rng = np.random.default_rng(0)
+    N = 7
+    att, chg = rng.normal(0, 0.01, N), rng.normal(0, 0.002, N)
+    sa, sc = rng.uniform(0.005, 0.02, N), rng.uniform(0.0005, 0.002, N)
+    rows, rhs = [], []
+    for k in range(N):  # (a_k − att_k) / sa_k and (a_{k+1} − a_k − chg_k) / sc_k, written out
+        r = np.zeros(N + 1); r[k] = 1 / sa[k]; rows.append(r); rhs.append(att[k] / sa[k])
+        r = np.zeros(N + 1); r[k + 1], r[k] = 1 / sc[k], -1 / sc[k]; rows.append(r); rhs.append(chg[k] / sc[k])
+    A, b = np.array(rows), np.array(rhs)
+    expected = np.linalg.lstsq(A, b, rcond=None)[0]
+    std = np.sqrt(np.diag(np.linalg.inv(A.T @ A)))
+    track, sigma = smooth_attitude(torch.tensor(att), torch.tensor(chg), torch.tensor(sa), torch.tensor(sc))
+    np.testing.assert_allclose(track.numpy(), expected, atol=1e-10)
+    np.testing.assert_allclose(sigma.numpy(), std, rtol=1e-6)
+
+
+def test_smooth_attitude_ignores_infinite_sigma():
+    att = torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64)  # the middle one is an outlier
+    chg = torch.zeros(3, dtype=torch.float64)
+    track, _ = smooth_attitude(att, chg, torch.tensor([1.0, math.inf, 1.0]), 1.0)
+    assert torch.allclose(track, torch.zeros(4, dtype=torch.float64), atol=1e-9)
+
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+@pytest.fixture(scope="module")
+def body_motion_clip(one_thread):
+    pairs = render_sequence("body-motion", 4, seed=0)
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    poses = torch.stack([p["pose1"] for p in pairs] + [pairs[-1]["pose2"]])
+    return pairs, frames, poses
+
+
+@pytest.fixture(scope="module")
+def body_motion_fit(body_motion_clip):
+    pairs, frames, poses = body_motion_clip
+    return fit_sequence(frames, [p["road"] for p in pairs], pairs[0]["camera"], poses=poses)
+
+
+def test_fit_sequence_calibrates_the_mounting_and_height(body_motion_clip, body_motion_fit):
+    pairs, frames, _ = body_motion_clip
+    seq = body_motion_fit
+    assert isinstance(seq, SequenceFit) and len(seq.fits) == len(pairs)
+    nominal = pairs[0]["camera"]
+    true_pitch = float(np.mean([p["plane"]["pitch"] for p in pairs]))
+    true_roll = float(np.mean([p["plane"]["roll"] for p in pairs]))
+    # the nominal mounting is about a degree off the body-motion preset's attitude over the road
+    assert abs(float(nominal.pitch) - true_pitch) > 0.5 * math.pi / 180
+    assert abs(seq.mounting["pitch"] - true_pitch) < 0.3 * math.pi / 180
+    assert abs(seq.mounting["roll"] - true_roll) < 0.3 * math.pi / 180
+    # metric scale from the poses: the camera height over the road within 2 %
+    assert seq.mounting["height"] == pytest.approx(pairs[0]["plane"]["height"], rel=0.02)
+    assert float(seq.camera.pitch) == pytest.approx(seq.mounting["pitch"])
+    for k, p in enumerate(pairs):
+        road = (p["road"] & p["valid"])[0]
+        epe = float((seq.fits[k].flow[0] - p["flow"]).norm(dim=0)[road].mean())
+        assert epe < 1.0, (k, epe)
+        assert seq.params["z_d"][k] == pytest.approx(float(seq.fits[k].params["z_d"][0]))
+    assert set(seq.first_pass) == set(seq.params)
+
+
+def test_fit_sequence_without_poses_has_no_height(body_motion_clip):
+    pairs, frames, _ = body_motion_clip
+    seq = fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], passes=1, max_points=1000)
+    assert "height" not in seq.mounting and len(seq.fits) == 2
+    assert seq.fits is not None and seq.params["x_d"].shape == (2,)
+
+
+def test_fit_sequence_leaves_inputs_alone(body_motion_clip):
+    pairs, frames, _ = body_motion_clip
+    before = [f.clone() for f in frames[:3]]
+    fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], passes=1, max_points=500)
+    assert all(torch.equal(a, b) for a, b in zip(before, frames[:3]))
+
+
+def test_fit_sequence_errors(body_motion_clip):
+    pairs, frames, _ = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    with pytest.raises(ValueError, match="frames: expected at least 2"):
+        fit_sequence(frames[:1], road, cam)
+    with pytest.raises(ValueError, match="passes"):
+        fit_sequence(frames[:3], road, cam, passes=3)
+    with pytest.raises(ValueError, match="mask: expected one mask or 2"):
+        fit_sequence(frames[:3], [road] * 3, cam)
+    with pytest.raises(ValueError, match="flows: expected 2"):
+        fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, 8, 8)])
+    with pytest.raises(TypeError, match="camera"):
+        fit_sequence(frames[:3], road, "cam")
+    with pytest.raises(ValueError, match="model"):
+        fit_sequence(frames[:3], road, cam, model="paper")
+    two = Camera(cam.K.expand(2, -1, -1), height=1.65)
+    with pytest.raises(TypeError, match="camera"):
+        fit_sequence(frames[:3], road, two)
+    with pytest.raises(ValueError, match="poses"):
+        fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))
