@@ -538,10 +538,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     estimated = motion is None
     if estimated:
         cam_s = _level_camera(camera, seed_level)
-        seed_s = seed_l if seed_level == level else road_seed(cam_s, (H >> seed_level, W >> seed_level),
-                                                                width_m=seed_width_m, depth_m=seed_depth_m)
-        flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :H >> seed_level, :W >> seed_level] / 2 ** seed_level
-        images_s = tuple(_pool(im, seed_level)[..., :H >> seed_level, :W >> seed_level] for im in (im1, im2))
+        hs, ws = H >> seed_level, W >> seed_level
+        seed_s = seed_l if seed_level == level else road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m)
+        flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :hs, :ws] / 2 ** seed_level
+        images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
         motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
     grey = gaussian_blur(_pool(torch.cat([_grey(im1), _grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
 

@@ -282,16 +282,14 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = (), min_pixels: int = 100,
                 flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True, fit: str | None = None,
                 fit_roll: bool = False, fit_pitch: bool = False, fit_options: Mapping[str, Any] | None = None,
-                photometric_options: Mapping[str, Any] | None = None, road_options: Mapping[str, Any] | None = None,
-                ) -> RefineOutput:
+                photometric_options: Mapping[str, Any] | None = None, road_options: Mapping | None = None) -> RefineOutput:
     """Refine predicted flow(s) with the road model inside the road mask.
 
     Args:
         flow: the prediction: (B, 2, H, W), a list/tuple of flows (RAFT iterations, a
             ``(low, up)`` pair, a pyramid), or a dict (ARFlow, ptlflow; see ``flow_keys``).
             Every flow is refined at its own resolution.
-        mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size, or ``"auto"``
-            (:func:`~fsof_torch.refinement.auto_road.refine_with_auto_road`, ``road_options``).
+        mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size, or ``"auto"`` (auto_road.py).
         camera: :class:`Camera` (batch 1 or B), K at the finest flow's resolution.
         odometry: the motion from t to t+1, or None to estimate it. A road motion in any form
             :func:`~fsof_torch.geometry.road_models.road_motion` takes: a dict ``x_d, z_d, yaw``
@@ -335,12 +333,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
-        est = images and _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
-        return refine_with_auto_road(refine_flow, flow, mask, camera, odometry, images=images, road_estimator=est,
-                                     road_options=road_options, warn=warn, estimator=estimator, gate=gate, mode=mode,
-                                     scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys, fit=fit,
-                                     fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options,
-                                     photometric_options=photometric_options)
+        return refine_with_auto_road(
+            refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
+            road_estimator=images and _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options),
+            estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
+            fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
     flow_keys = tuple(flow_keys)
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
@@ -533,7 +530,6 @@ class FreespaceRefiner(nn.Module):
         flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`).
         fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
             estimator (see :func:`refine_flow`).
-        road_options: keyword arguments of ``detect_road`` for ``mask="auto"``.
 
     Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None, starts=()) -> RefineOutput``.
 
@@ -547,8 +543,8 @@ class FreespaceRefiner(nn.Module):
     def __init__(self, *, estimator: Any = None, gate: Any = "auto", mode: str = "replace", scale: float = 2.0,
                  min_pixels: int = 100, flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True,
                  fit: str | None = None, fit_roll: bool = False, fit_pitch: bool = False,
-                 fit_options: Mapping[str, Any] | None = None, photometric_options: Mapping[str, Any] | None = None,
-                 road_options: Mapping[str, Any] | None = None) -> None:
+                 fit_options: Mapping[str, Any] | None = None,
+                 photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
         if mode not in _MODES:
             raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
@@ -573,7 +569,6 @@ class FreespaceRefiner(nn.Module):
         self.fit_pitch = bool(fit_pitch)
         self.fit_options = dict(fit_options or {})
         self.photometric_options = dict(photometric_options or {})
-        self.road_options = dict(road_options or {})
         self.min_pixels = int(min_pixels)
         self.flow_keys = tuple(flow_keys)
         self.warn = bool(warn)
@@ -583,8 +578,8 @@ class FreespaceRefiner(nn.Module):
         return refine_flow(flow, mask, camera, odometry, estimator=self.estimator, gate=self.gate, mode=self.mode,
                            scale=self.scale, images=images, starts=starts, min_pixels=self.min_pixels,
                            flow_keys=self.flow_keys, warn=self.warn, fit=self.fit, fit_roll=self.fit_roll,
-                           fit_pitch=self.fit_pitch, fit_options=self.fit_options, photometric_options=self.photometric_options,
-                           road_options=self.road_options)
+                           fit_pitch=self.fit_pitch, fit_options=self.fit_options,
+                           photometric_options=self.photometric_options)
 
     def extra_repr(self) -> str:
         extra = f", scale={self.scale}" if self.mode == "confidence" else ""
@@ -601,8 +596,7 @@ class FreespaceRefined(nn.Module):
             torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
             dict. It may return any structure :func:`refine_flow` accepts.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
-        road: None (the caller passes ``mask``) or ``"auto"``: when no mask is given, the road is
-            found in the two images (``mask="auto"`` of :func:`refine_flow`).
+        road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two images).
         road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
@@ -686,17 +680,14 @@ class FreespaceRefined(nn.Module):
                 if tuple(mask.shape[-2:]) != size:
                     raise ValueError(f"mask: expected the images' size {size}, got shape {tuple(mask.shape)}")
                 mask = padding.pad(mask)
-        road = None
-        if mask is None:
-            if self.road != "auto":
-                raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
-                                 "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
-            _, finest = finest_flow(collect_flows(output, "output", self.refiner.flow_keys))
-            # found in the images as they came (a padded border is not road)
-            road = detect_road_padded(padding, image1, image2, camera, finest, **self.road_options)
+        if mask is None and self.road != "auto":
+            raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
+                             "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
+        road = None if mask is not None else detect_road_padded(padding, image1, image2, camera, finest_flow(
+            collect_flows(output, "output", self.refiner.flow_keys))[1], **self.road_options)  # (images as they came)
+        if road is not None:  # its mask, and its motion unless the caller's odometry is given
             mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
-        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))
-        info = info if road is None else info._replace(road=road)
+        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))._replace(road=road)
         if padding is None:
             return (info.flow, info) if return_info else info.flow
         padded_size = padding.padded_size(size)
