@@ -86,6 +86,7 @@ from .evaluation.photometric import (
 from .data.scene import PRESETS, collate, render_pair, render_sequence
 from .training.testnet import TinyRAFT
 from .estimation.freespace import detect_freespace
+from .refinement.auto_road import RoadDetection, detect_road, road_seed
 from .estimation.vflow import fit_vflow_curve, vflow_map
 from .evaluation.visualize import flow_to_color, save_error_png, save_flow_png, save_overlay_png
 from .evaluation.warp import WarpBackward, warp_backward
@@ -116,6 +117,7 @@ __all__ = [
     "PRESETS",
     "PhotometricError",
     "RefineOutput",
+    "RoadDetection",
     "TinyRAFT",
     "UnsupervisedFlowLoss",
     "VelocityFitResult",
@@ -125,6 +127,7 @@ __all__ = [
     "collate",
     "datasets",
     "detect_freespace",
+    "detect_road",
     "displacement_flow",
     "displacement_flow_straight",
     "displacement_flow_straight_level",
@@ -162,6 +165,7 @@ __all__ = [
     "render_sequence",
     "road_homography",
     "road_flow",
+    "road_seed",
     "RoadFlow",
     "RoadFit",
     "RoadModel",

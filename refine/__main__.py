@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
     g.add_argument("--road", metavar="DIR|FILE.json|auto", help="road masks: PNG folder (named like the pairs), "
-                   "a polygon JSON, or auto (detect)")
+                   "a polygon JSON, or auto (found in the images: docs/auto-road.md)")
     g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
     g = p.add_argument_group("shared KITTI samples")
@@ -219,7 +219,7 @@ def _configure(args: argparse.Namespace):
         sources = args.source or default_sources or ["dis", "testnet"]
         variants = args.odometry or ["given", "fit", "photometric"]
         notes.append("Synthetic scene: odometry and flow ground truth are the scene's (exact); road mask: "
-                     + ("detected on each prediction (--road auto)." if args.road == "auto" else "the scene's (exact)."))
+                     + ("found in the images of each pair (--road auto)." if args.road == "auto" else "the scene's (exact)."))
         identity = {"kind": "synthetic", "preset": args.preset, "seed": args.seed, "size": list(args.size),
                     "noise": args.scene_noise}
     if "net" in sources and args.net is None:

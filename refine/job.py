@@ -161,7 +161,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
             bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
             pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
             bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
-            road, road_from = road_mask(pair, pred, cam, cfg)
+            road, road_from, road_info = road_mask(pair, pred, cam, cfg)
             before = flow_maps(pair, pred)
             flows, maps = {}, {}
             for variant in cfg.variants:
@@ -169,7 +169,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
                                                   _camera_for(variant, cam, cfg), variant, before, spec.name)
                 record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
-                               "road": road_from, "rank": rank, "fingerprint": cfg.fingerprint,
+                               "road": road_from, **road_info, "rank": rank, "fingerprint": cfg.fingerprint,
                                "input_fingerprint": input_fp[variant]})
                 p = paths(cfg, source, variant, spec.name)
                 finite = torch.isfinite(flow).all(dim=0, keepdim=True)
@@ -204,19 +204,19 @@ def input_fingerprint(spec: PairSpec) -> str:
     return fingerprint({"pair": spec.name, **spec.identity()})
 
 
-def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str]:
+def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str, dict]:
+    """The road mask, where it came from, and with ``--road auto`` the detection's flag, reason and
+    coverage (recorded per pair: a flagged pair is left unrefined, never silently)."""
     if pair.get("road") is not None and not cfg.road_auto:
-        return pair["road"].to(torch.bool), "given"
-    from fsof_torch import detect_freespace
+        return pair["road"].to(torch.bool), "given", {}
+    from fsof_torch import detect_road
 
-    f = torch.nan_to_num(pred)[None].to(torch.float64)
-    H = pred.shape[-2]
-    # A flow method is least reliable on the road right in front of the car (large motion, weak
-    # texture): let the freespace start anywhere in the bottom eighth, and accept 1 px / 10 %.
+    finite = bool(torch.isfinite(pred).all())
     with torch.no_grad():
-        mask = detect_freespace(f, camera, mask=torch.isfinite(pred).all(0, keepdim=True)[None],
-                                bottom_rows=max(1, H // 8), threshold=1.0, relative_threshold=0.1)
-    return mask[0], "auto"
+        det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None] if finite else None)
+    info = {"road_flag": det.flag[0], "road_reason": det.reason[0], "road_coverage": float(det.coverage[0]),
+            "road_auto_pixels": int(det.mask.sum())}
+    return det.usable_mask[0], "auto", info
 
 
 def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Tensor, road: Tensor,

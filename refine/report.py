@@ -163,7 +163,7 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
           "end-point error is measured; an occluded pixel has no true match). End-point error against the "
           "ground truth (KITTI style, over all valid pixels of the set). 'road' is the road mask the refiner "
           "used; 'all' the whole image. 'pairs' counts refined/processed pairs.", "", table, ""]
-    md += [f"- {n}" for n in summary["notes"]]
+    md += [f"- {n}" for n in summary["notes"]] + auto_road_lines(summary)
     md += ["", "Odometry variants: " + "; ".join(f"`{k}`: {v}" for k, v in VARIANT_HELP.items()), ""]
     write_text(cfg.out / "report.md", "\n".join(md))
     write_json(cfg.out / "report.json", summary)
@@ -172,6 +172,20 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
             json_path.parent.mkdir(parents=True, exist_ok=True)
         write_json(json_path, summary)
     return table
+
+
+def auto_road_lines(summary: dict) -> list[str]:
+    """With ``--road auto``: how many pairs' roads were flagged (left unrefined), why, and the
+    coverage of the others (each pair's flag, reason and coverage are in report.json)."""
+    found = {r["pair"]: r for r in summary["pairs"] if "road_flag" in r}
+    if not found:
+        return []
+    ok = [r["road_coverage"] for r in found.values() if r["road_flag"] == "ok"]
+    flagged = {p: f'{r["road_flag"]} ({r["road_reason"]})' for p, r in found.items() if r["road_flag"] != "ok"}
+    line = (f"- Auto road (found in the images): {len(found) - len(flagged)} of {len(found)} pairs ok"
+            + (f", covering {100 * sum(ok) / len(ok):.1f} % (min {100 * min(ok):.1f} %) of the image below the "
+               f"horizon" if ok else ""))
+    return [line] + [f"  - flagged, left unrefined: {p}: {why}" for p, why in sorted(flagged.items())]
 
 
 def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:

@@ -455,23 +455,29 @@ def test_wrapper_with_the_test_net():
 
 
 def test_wrapper_road_auto():
-    """With road='auto' the mask comes from freespace detection on the prediction."""
-    K = torch.tensor([[180.0, 0, 120.0], [0, 180.0, 28.0], [0, 0, 1]], dtype=torch.float64)
-    cam = Camera(K, 1.65)
+    """With road='auto' the road is found in the two images; on textureless images it cannot be,
+    and the output is the net's, with the reason in ``info.road``."""
+    from fsof_torch.data.scene import render_pair
 
-    class Exact2(nn.Module):
+    p = render_pair("default", 30, size=(188, 621))
+
+    class Noisy(nn.Module):
         def forward(self, image1, image2):
-            flow, _ = displacement_flow(cam, 0.0, 1.0, 0.0, (96, 240))
-            return [flow.float()]
+            return [p["flow"][None] + 2.0 * torch.randn(1, 2, 188, 621, generator=torch.Generator().manual_seed(0))]
 
-    model = FreespaceRefined(Exact2(), FreespaceRefiner(gate=None), road="auto")  # (blank images judge nothing)
-    images = torch.zeros(1, 3, 96, 240)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        out, info = model(images, images, camera=cam, odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0},
-                          return_info=True)
-    assert info.mask.shape == (1, 1, 96, 240) and bool(info.mask.any())
-    assert isinstance(out, list)
+    model = FreespaceRefined(Noisy(), FreespaceRefiner(gate=None), road="auto")
+    out, info = model(p["image1"][None], p["image2"][None], camera=p["camera"], return_info=True)
+    assert isinstance(out, list) and info.road.flag == ["ok"]
+    assert bool(info.mask.any()) and bool((info.mask <= info.road.mask).all())
+    road = info.mask & p["valid"][None]
+    err = lambda f: float((f - p["flow"][None]).norm(dim=1, keepdim=True)[road].mean())  # noqa: E731
+    assert err(out[-1]) < err(Noisy()(None, None)[-1])
+
+    flat = torch.full((1, 3, 188, 621), 80.0)
+    with pytest.warns(RuntimeWarning, match="left unchanged"):
+        out, info = model(flat, flat, camera=p["camera"], return_info=True)
+    assert info.road.flag[0] != "ok" and not bool(info.mask.any())
+    assert torch.equal(out[-1], Noisy()(None, None)[-1])
 
 
 def test_photometric_fit_from_the_images():

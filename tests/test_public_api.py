@@ -10,7 +10,7 @@ CONTRACT = [
     "Camera", "displacement_flow", "velocity_flow", "DisplacementFlow", "VelocityFlow",
     "fit_displacement", "fit_velocity", "fit_photometric", "warp_backward", "photometric_error",
     "FreespaceRefiner", "FreespaceRefined", "FreespaceFlowLoss", "UnsupervisedFlowLoss", "TinyRAFT",
-    "detect_freespace", "vflow_map", "render_pair", "ego_motion_from_pose",
+    "detect_freespace", "detect_road", "vflow_map", "render_pair", "ego_motion_from_pose",
     "ego_motion_from_ackermann", "read_kitti_flow", "write_kitti_flow", "read_flo", "write_flo",
     # the road-motion models and their fit (DESIGN.md §9, §10)
     "fit_road", "road_flow", "road_homography", "RoadFit", "ROAD_MODELS", "decompose_homography",

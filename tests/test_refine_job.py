@@ -281,8 +281,18 @@ def test_synthetic_road_auto(tmp_path):
     assert rc == 0
     rec = json.loads((out / "dis" / "fit" / "pairs" / "000000.json").read_text())
     assert rec["road"] == "auto"
-    if not rec["refined"]:  # nothing detected on so small a DIS flow: the prediction is kept
+    # the road found in the images: its flag and coverage are recorded per pair and in the report
+    from fsof_torch.refinement.auto_road import FLAGS
+
+    assert rec["road_flag"] in ("ok", *FLAGS) and 0.0 <= rec["road_coverage"] <= 1.0
+    assert (rec["road_flag"] == "ok") == (rec["road_reason"] == "")
+    if rec["road_flag"] != "ok":  # a flagged road: nothing is refined and the prediction is kept
+        assert rec["road_pixels"] == 0 and not rec["refined"]
+    if not rec["refined"]:
         assert rec["after"]["epe_all"] == rec["before"]["epe_all"]
+    report = (out / "report.md").read_text()
+    assert "Auto road (found in the images):" in report
+    assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
 
 
 def test_user_data_flow_files_poses_and_gt(tmp_path, user_folder, scene_pairs):

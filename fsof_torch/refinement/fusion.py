@@ -37,6 +37,7 @@ from .._check import as_batch_param, check_float_tensor, skip_values, tracing
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
+from .auto_road import detect_road_padded, refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
 from .contracts import (
@@ -85,6 +86,7 @@ class RefineOutput(NamedTuple):
         model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
         gate: the :class:`~fsof_torch.refinement.gate.GateResult` where the images were judged,
             else None.
+        road: the :class:`~fsof_torch.refinement.auto_road.RoadDetection` of ``mask="auto"`` with images.
     """
 
     flow: Any
@@ -97,6 +99,7 @@ class RefineOutput(NamedTuple):
     flow_model: Tensor
     model: str = "paper"
     gate: Any = None
+    road: Any = None
 
 
 # -- plain functions --------------------------------------------------------------------------
@@ -274,19 +277,19 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
     return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
 
 
-def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
+def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
                 estimator: Any = None, gate: Any = "auto", mode: str = "replace", scale: float = 2.0,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = (), min_pixels: int = 100,
                 flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS, warn: bool = True, fit: str | None = None,
                 fit_roll: bool = False, fit_pitch: bool = False, fit_options: Mapping[str, Any] | None = None,
-                photometric_options: Mapping[str, Any] | None = None) -> RefineOutput:
+                photometric_options: Mapping[str, Any] | None = None, road_options: Mapping | None = None) -> RefineOutput:
     """Refine predicted flow(s) with the road model inside the road mask.
 
     Args:
         flow: the prediction: (B, 2, H, W), a list/tuple of flows (RAFT iterations, a
             ``(low, up)`` pair, a pyramid), or a dict (ARFlow, ptlflow; see ``flow_keys``).
             Every flow is refined at its own resolution.
-        mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size.
+        mask: (B, 1, H, W) or (1, 1, H, W) bool road mask at the finest flow's size, or ``"auto"`` (auto_road.py).
         camera: :class:`Camera` (batch 1 or B), K at the finest flow's resolution.
         odometry: the motion from t to t+1, or None to estimate it. A road motion in any form
             :func:`~fsof_torch.geometry.road_models.road_motion` takes: a dict ``x_d, z_d, yaw``
@@ -329,6 +332,12 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
         raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
+        return refine_with_auto_road(
+            refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
+            road_estimator=images and _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options),
+            estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
+            fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
     flow_keys = tuple(flow_keys)
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
@@ -564,7 +573,7 @@ class FreespaceRefiner(nn.Module):
         self.flow_keys = tuple(flow_keys)
         self.warn = bool(warn)
 
-    def forward(self, flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
+    def forward(self, flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
         return refine_flow(flow, mask, camera, odometry, estimator=self.estimator, gate=self.gate, mode=self.mode,
                            scale=self.scale, images=images, starts=starts, min_pixels=self.min_pixels,
@@ -587,9 +596,8 @@ class FreespaceRefined(nn.Module):
             torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
             dict. It may return any structure :func:`refine_flow` accepts.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
-        road: None (the caller passes ``mask``) or ``"auto"``: when no mask is given, detect the
-            freespace on the prediction with :func:`fsof_torch.detect_freespace`.
-        road_options: keyword arguments for ``detect_freespace``.
+        road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two images).
+        road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
             so that its ``flow_small`` is refined on its true grid). The images are padded before
@@ -672,19 +680,14 @@ class FreespaceRefined(nn.Module):
                 if tuple(mask.shape[-2:]) != size:
                     raise ValueError(f"mask: expected the images' size {size}, got shape {tuple(mask.shape)}")
                 mask = padding.pad(mask)
-        if mask is None:
-            if self.road != "auto":
-                raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
-                                 "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
-            _, finest = finest_flow(collect_flows(output, "output", self.refiner.flow_keys))
-            from ..estimation.freespace import detect_freespace  # freespace detection (imported when needed)
-
-            with torch.no_grad():
-                cam = camera.to(device=finest.device)
-                mask = detect_freespace(finest.detach(), cam, **self.road_options)
-            if padding is not None:  # the replicated border is not road
-                mask = padding.pad(padding.unpad(mask))
-        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))
+        if mask is None and self.road != "auto":
+            raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
+                             "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
+        road = None if mask is not None else detect_road_padded(padding, image1, image2, camera, finest_flow(
+            collect_flows(output, "output", self.refiner.flow_keys))[1], **self.road_options)  # (images as they came)
+        if road is not None:  # its mask, and its motion unless the caller's odometry is given
+            mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
+        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))._replace(road=road)
         if padding is None:
             return (info.flow, info) if return_info else info.flow
         padded_size = padding.padded_size(size)

@@ -1,0 +1,180 @@
+"""Auto road (fsof_torch.detect_road): quality on synthetic scenes and the shared real data, and time.
+
+Prints three tables, single thread:
+
+1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
+   precision and recall against the scene's true road, mean and min per preset, and the flags;
+   and the IoU when the scene's exact road motion is given (what the judging alone achieves).
+2. Real KITTI: the shared pair 000000 and every pair of the 51-frame straight clip. road.json is a
+   conservative polygon (the clip's: the ego lane only), so the figures are the share of the auto
+   mask inside the polygon and the share of the polygon the mask covers; mean and min over the
+   pairs, the number of empty and of flagged masks. Beside it, for reference, the flow-based
+   detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow, as the refine
+   job called it).
+3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
+   estimates (on the seed at half size, again on the road), the detection judging a motion it is
+   given (what it adds to a refiner that estimated the motion anyway), the default image motion
+   estimate on a given mask (the refiner's own estimation), and refine_flow on DIS flow with
+   mask="auto" against the same with the polygon as mask; medians of --repeat runs.
+
+Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic]
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data"
+PRESETS = ("default", "body-motion", "crest", "dip")
+PAIRS = (0, 10, 20, 30)
+
+
+def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+    """OpenCV DIS (medium) on grey images: (1, 2, H, W)."""
+    import cv2
+
+    g = [np.clip(im[0].mean(0).numpy(), 0, 255).astype(np.uint8) for im in (image1, image2)]
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(g[0], g[1], None)
+    return torch.from_numpy(flow).permute(2, 0, 1)[None]
+
+
+def synthetic_table() -> None:
+    from fsof_torch import detect_road, render_pair
+
+    print("Synthetic scenes, 375 x 1242, pairs " + ", ".join(map(str, PAIRS)))
+    print("(exact motion: the scene's own road motion given, nothing estimated)")
+    print(f"{'preset':>12} {'IoU mean':>9} {'IoU min':>8} {'precision':>10} {'recall':>7} "
+          f"{'exact motion: IoU mean':>23} {'min':>6}  flags")
+    for preset in PRESETS:
+        ious, precisions, recalls, exact, flags = [], [], [], [], []
+        for index in PAIRS:
+            p = render_pair(preset, index)
+            t = p["road"][None].bool()
+            det = detect_road(p["image1"][None], p["image2"][None], p["camera"])
+            m = det.mask
+            ious.append(float((m & t).sum() / (m | t).sum()))
+            precisions.append(float((m & t).sum() / m.sum().clamp_min(1)))
+            recalls.append(float((m & t).sum() / t.sum()))
+            flags += det.flag
+            motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
+            cam = p["camera"].replace(height=p["plane"]["height"])
+            m = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion).mask
+            exact.append(float((m & t).sum() / (m | t).sum()))
+        counts = {f: flags.count(f) for f in sorted(set(flags))}
+        print(f"{preset:>12} {statistics.mean(ious):9.3f} {min(ious):8.3f} {statistics.mean(precisions):10.3f} "
+              f"{statistics.mean(recalls):7.3f} {statistics.mean(exact):23.3f} {min(exact):6.3f}  {counts}")
+
+
+def real_pairs(root: Path):
+    """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs."""
+    from fsof_torch import Camera
+    from fsof_torch.io import read_image, read_road_mask
+
+    k15 = root / "kitti15_000000"
+    im1, im2 = (read_image(k15 / f"image_1{i}.png")[None] for i in (0, 1))
+    yield ("kitti15 000000", im1, im2, Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65),
+           read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool())
+    clip = root / "kitti_odometry_straight"
+    cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
+    files = sorted((clip / "image_l").glob("*.png"))
+    frames = [read_image(f)[None, :1] for f in files]
+    poly = read_road_mask(clip / "road.json", tuple(frames[0].shape[-2:])).reshape(1, 1, *frames[0].shape[-2:]).bool()
+    for i in range(len(frames) - 1):
+        yield f"clip {i:02d}", frames[i], frames[i + 1], cam, poly
+
+
+def real_table(root: Path) -> None:
+    from fsof_torch import detect_freespace, detect_road
+
+    rows: dict[str, dict[str, list]] = {}
+    for name, im1, im2, cam, poly in real_pairs(root):
+        group = "kitti15 pair" if name.startswith("kitti15") else "straight clip"
+        flow = dis(im1, im2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            det = detect_road(im1, im2, cam, flow=flow)
+            # the flow-based detection as the refine job called it before images were used
+            old = detect_freespace(flow.to(cam.dtype), cam, bottom_rows=max(1, im1.shape[-2] // 8), threshold=1.0,
+                                   relative_threshold=0.1)
+        for method, m, flag in (("auto road (images)", det.mask, det.flag[0]), ("flow-based (DIS)", old, "")):
+            r = rows.setdefault(group, {}).setdefault(method, {"inside": [], "cover": [], "empty": 0, "flagged": 0})
+            n = int(m.sum())
+            r["inside"].append(float((m & poly).sum()) / max(n, 1))
+            r["cover"].append(float((m & poly).sum() / poly.sum()))
+            r["empty"] += n == 0
+            r["flagged"] += flag not in ("", "ok")
+    print("\nReal KITTI: share of the mask inside road.json's polygon, share of the polygon covered")
+    print(f"{'data':>14} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
+          f"{'cover min':>9} {'empty':>5} {'flagged':>7}")
+    for group, methods in rows.items():
+        for method, r in methods.items():
+            print(f"{group:>14} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
+                  f"{min(r['inside']):10.3f} {statistics.mean(r['cover']):10.3f} {min(r['cover']):9.3f} "
+                  f"{r['empty']:5d} {r['flagged'] if method.startswith('auto') else '-':>7}")
+
+
+def timed(fn, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return 1000 * statistics.median(times)
+
+
+def time_table(root: Path, repeat: int) -> None:
+    from fsof_torch import detect_road, refine_flow
+    from fsof_torch.refinement.estimators import ImageMotionEstimator
+
+    name, im1, im2, cam, poly = next(real_pairs(root))
+    flow = dis(im1, im2)
+    motion = detect_road(im1, im2, cam, flow=flow).motion
+    estimator = ImageMotionEstimator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rows = {
+            "detect_road, own motion (seed + road fit)": lambda: detect_road(im1, im2, cam, flow=flow),
+            "detect_road, own motion, no refit": lambda: detect_road(im1, im2, cam, flow=flow, refit=False),
+            "detect_road, motion given (the judging)": lambda: detect_road(im1, im2, cam, motion=motion),
+            "reference: image motion estimate on the polygon": lambda: estimator(flow, poly, cam, images=(im1, im2)),
+            "refine_flow(DIS, polygon, images)": lambda: refine_flow(flow, poly, cam, images=(im1, im2)),
+            "refine_flow(DIS, 'auto', images)": lambda: refine_flow(flow, "auto", cam, images=(im1, im2)),
+            "reference: OpenCV DIS medium": lambda: dis(im1, im2),
+        }
+        ms = {k: timed(f, repeat) for k, f in rows.items()}
+    ref = ms["reference: image motion estimate on the polygon"]
+    print(f"\nTime per pair, {name}, {tuple(im1.shape[-2:])}, one thread, median of {repeat}")
+    print(f"{'':>50} {'ms':>8} {'/ estimate':>10}")
+    for k, v in ms.items():
+        print(f"{k:>50} {v:8.1f} {v / ref:10.2f}")
+
+
+def main(argv=None) -> int:
+    import cv2
+
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT)
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--no-synthetic", action="store_true")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    if not args.no_synthetic:
+        synthetic_table()
+    if not args.data.is_dir():
+        print(f"\n{args.data} is absent: no real-data tables")
+        return 0
+    real_table(args.data)
+    time_table(args.data, args.repeat)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

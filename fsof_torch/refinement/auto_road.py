@@ -1,0 +1,691 @@
+"""The road found from two images: the region in front of the vehicle that moves like the road plane.
+
+The road's motion between two frames is a plane-induced homography (DESIGN.md §10). Warped by
+it, image 2 lines up with image 1 on the road and only there: a kerb, a pavement or a grass
+verge a few centimetres higher moves by a little more, a car or a wall by much more. The
+detection:
+
+1. **Seed.** A conservative band of road in front of the vehicle, from the geometry alone: the
+   ground points within ``seed_width_m / 2`` of the camera's axis and nearer than
+   ``seed_depth_m``, seen below the horizon (:func:`road_seed`).
+2. **Motion.** The road's motion fitted to the images in the seed (an image estimator, the
+   predicted flow one start), or the caller's. With ``refit`` the motion is fitted again on the
+   detected road and the road detected again: the seed alone pins the motion poorly far from it.
+3. **Evidence**, per window, at a working resolution (``level``): image 2 is warped by the road
+   flow, and the residual against image 1 is compared with what noise and the model's own misfit
+   explain, both measured in the seed (nothing is tuned to particular frames):
+
+   - *misalignment*: the residual energy above the noise, over the window's gradient energy, is
+     the window's squared residual motion in pixels. A window is off the road when that motion
+     is significantly (``z`` standard errors) larger than half the parallax of a surface
+     ``min_height_m`` above the road (the decision boundary between the road and such a surface)
+     and than ``3 τ``, τ the seed's typical residual motion (the model's own misfit);
+   - *height*: a Lucas–Kanade step along the direction in which a raised surface would move
+     (the parallax direction) gives the window's height over the road plane in metres; a window
+     whose height differs significantly from the seed's by more than ``min_height_m / 2`` is off
+     the road (a kerb, a pavement, a verge), and so is a textured window whose residual is larger
+     than its own texture (nothing lines up);
+   - a window is road evidence when it is not off the road and it is *testable*: the parallax of
+     a surface ``max_height_m`` high is at least ``3 τ`` there. Far away, where any height moves
+     like the road within the noise, and on textureless or out-of-frame pixels there is no
+     evidence either way.
+
+4. **Region.** The road evidence connected to the seed; pixels without evidence take the
+   majority of the evidence around them where they are testable, else the decision found along
+   their line through the focus of expansion (the road's edges, kerbs and verges run along those
+   lines: a pixel that leaves the frame takes the decision of the pixel that will be where it is,
+   a pixel too far to test that of the nearest testable one); then the component connected to the
+   seed, with small enclosed holes filled.
+5. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
+   ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere: a stopped
+   vehicle, identical frames), ``"textureless"`` (no evidence in the seed: dark, flat frames),
+   ``"implausible"`` (the seed itself does not move like a road: an obstacle close ahead),
+   ``"empty"`` and ``"small"`` (less than ``min_coverage`` of the image below the horizon).
+
+Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not differentiable
+(a segmentation); the caller's tensors are never modified.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any, Sequence
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from .._check import check_float_tensor, check_shape
+from ..estimation.image_fit import gaussian_blur
+from ..evaluation.warp import warp_backward
+from ..geometry.camera import Camera, mounting_matrix
+from ..geometry.road_flow import road_flow
+from ..geometry.road_models import plane_from_homography, road_motion
+from .estimators import ImageMotionEstimator
+
+__all__ = ["RoadDetection", "detect_road", "detect_road_padded", "road_seed", "refine_with_auto_road", "FLAGS"]
+
+#: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies)
+FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
+
+# windows count as independent pixels / this factor: the smoothing (σ = 1 px) correlates
+# neighbours over about 2 × 2 pixels
+_CORRELATION = 4.0
+# a residual motion of more than this many times the seed's typical one is never the road's
+_MISFIT = 3.0
+# the working resolution: the coarsest level of at least this many rows (the windows, the smoothing
+# and the border margin are in its pixels)
+_WORK_ROWS = 150
+# the smoothing of the grey images at the working resolution (pixels)
+_SIGMA = 1.0
+# pixels of image 2's border whose smoothed values mix in its padding (3 σ of the blur, plus one)
+_BORDER = 4
+_FILL = 'rays'
+
+
+@dataclass
+class RoadDetection:
+    """What :func:`detect_road` found, per sample.
+
+    Attributes:
+        mask: (B, 1, H, W) bool, the road. Flagged samples keep the mask found (possibly empty)
+            for inspection; use :attr:`usable_mask` to apply only trusted ones.
+        flag: per sample ``"ok"`` or one of :data:`FLAGS`.
+        reason: per sample, a sentence saying why it was flagged (``""`` when ok).
+        ok: (B,) bool, ``flag == "ok"``.
+        motion: the road motion the mask was judged with (a fit result of any road model).
+        seed: (B, 1, H, W) bool, the geometric seed.
+        coverage: (B,) the mask's share of the image below the horizon.
+        seed_agreement: (B,) of the seed's windows with evidence, the share that is road evidence.
+        evidence: (B, 1, h, w) int8 at the working resolution: 1 road, 0 off the road, -1 none.
+        height: (B, 1, h, w) the windows' estimated height over the road plane (m; 0 where none).
+        level: the working resolution is the images' / 2**level.
+    """
+
+    mask: Tensor
+    flag: list[str]
+    reason: list[str]
+    ok: Tensor
+    motion: Any
+    seed: Tensor
+    coverage: Tensor
+    seed_agreement: Tensor
+    evidence: Tensor
+    height: Tensor
+    level: int
+    stats: dict[str, Tensor] = field(default_factory=dict)
+
+    @property
+    def usable_mask(self) -> Tensor:
+        """(B, 1, H, W) bool: the mask where the sample is ok, empty elsewhere."""
+        return self.mask & self.ok.reshape(-1, 1, 1, 1)
+
+
+# -- geometry -----------------------------------------------------------------------------------
+
+def _ground(camera: Camera, size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
+    """Lateral X and forward Z (metres, vehicle frame) of the road point seen by every pixel, and
+    whether the pixel sees the road in front of the camera (below the horizon): (B, 1, H, W) each."""
+    H, W = size
+    cam = camera.to(torch.float64)
+    A = cam.mounting().transpose(-1, -2) @ cam.K_inv()  # pixel -> vehicle-frame ray
+    u = torch.arange(W, dtype=torch.float64, device=cam.device)
+    v = torch.arange(H, dtype=torch.float64, device=cam.device)
+    ray = A[:, :, 0:1, None] * u + A[:, :, 1:2, None] * v[:, None] + A[:, :, 2:3, None]  # (B, 3, H, W)
+    below = ray[:, 1] > 1e-9
+    s = cam.height.reshape(-1, 1, 1) / torch.where(below, ray[:, 1], 1.0)
+    return (s * ray[:, 0]).unsqueeze(1), (s * ray[:, 2]).unsqueeze(1), below.unsqueeze(1)
+
+
+def road_seed(camera: Camera, size: tuple[int, int], *, width_m: float = 4.0, depth_m: float = 20.0) -> Tensor:
+    """The conservative road in front of the vehicle, from the camera's geometry alone.
+
+    The pixels whose viewing ray meets the road plane (the camera's height, roll and pitch) in
+    front of the camera, within ``width_m / 2`` of the vehicle's axis and nearer than ``depth_m``
+    metres: a lane-wide band from the bottom of the image towards the horizon.
+
+    Returns (B, 1, H, W) bool, B the camera's batch.
+    """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    for name, value in (("width_m", width_m), ("depth_m", depth_m)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+            raise ValueError(f"{name}: expected a finite number of metres > 0, got {value!r}")
+    X, Z, below = _ground(camera, (int(size[0]), int(size[1])))
+    return below & (X.abs() <= width_m / 2) & (Z <= depth_m)
+
+
+def _level_camera(camera: Camera, level: int) -> Camera:
+    """The camera of images averaged over 2**level × 2**level blocks (pixel i there is the
+    block of pixels 2**level i .. 2**level (i + 1) - 1)."""
+    return camera if level == 0 else camera.scaled(0.5 ** level)
+
+
+def _pool(x: Tensor, level: int) -> Tensor:
+    return x if level == 0 else F.avg_pool2d(x, 2 ** level)
+
+
+def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
+    """The motion as a model with metric translation (``"paper"`` or ``"plane"``): a
+    ``"homography"`` is decomposed with the camera's attitude."""
+    model, params = road_motion(motion, "motion")
+    if model.name in ("paper", "plane"):
+        return model.name, params
+    if model.name == "homography":
+        H = getattr(motion, "homography", None)
+        if H is None:
+            raise ValueError("motion: a 'homography' motion needs its homography (a fit result)")
+        return "plane", plane_from_homography(H.to(torch.float64), camera.to(torch.float64))
+    raise ValueError(f"motion: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
+
+
+def _focus_of_expansion(model: str, params: dict[str, Tensor], camera: Camera) -> Tensor:
+    """(B, 3) the homogeneous image point the camera moves towards (the epipole in image 1): the
+    camera centre at t+1, R_c d in the camera frame of t, projected by K."""
+    B = camera.batch_size
+    cam = camera.to(torch.float64)
+
+    def get(name: str, default: Tensor) -> Tensor:
+        v = params.get(name)
+        return default if v is None else torch.as_tensor(v, dtype=torch.float64, device=cam.device).expand(B)
+
+    zero = torch.zeros(B, dtype=torch.float64, device=cam.device)
+    d = torch.stack([get("x_d", zero), get("y_d", zero), get("z_d", zero)], dim=-1)
+    Rc = mounting_matrix(get("roll", cam.roll), get("pitch", cam.pitch))
+    return (cam.K @ (Rc @ d.unsqueeze(-1))).squeeze(-1)
+
+
+# -- image statistics ---------------------------------------------------------------------------
+
+def _box(x: Tensor, k: int) -> Tensor:
+    """Mean over k × k windows of (B, C, h, w), the border replicated (OpenCV on the CPU: a
+    running sum; elsewhere two 1-D average pools)."""
+    if x.device.type == "cpu":
+        import cv2
+        import numpy as np
+
+        B, C, h, w = x.shape
+        planes = [cv2.boxFilter(p, -1, (k, k), borderType=cv2.BORDER_REPLICATE)
+                  for p in x.detach().reshape(B * C, h, w).numpy()]
+        return torch.from_numpy(np.stack(planes)).reshape(B, C, h, w)
+    r = k // 2
+    x = F.avg_pool2d(F.pad(x, (r, r, 0, 0), mode="replicate"), (1, k), stride=1)
+    return F.avg_pool2d(F.pad(x, (0, 0, r, r), mode="replicate"), (k, 1), stride=1)
+
+
+def _gradient(g: Tensor) -> tuple[Tensor, Tensor]:
+    """Central differences of (B, 1, h, w), one-sided at the border."""
+    p = F.pad(g, (1, 1, 1, 1), mode="replicate")
+    return 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]), 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])
+
+
+def _erode(mask: Tensor, k: int) -> Tensor:
+    """(B, 1, h, w) bool eroded by a k × k square (outside the image counts as inside)."""
+    if mask.device.type == "cpu":
+        import cv2
+        import numpy as np
+
+        kernel = np.ones((k, k), np.uint8)
+        planes = [cv2.erode(p, kernel, borderType=cv2.BORDER_REPLICATE) for p in mask[:, 0].numpy().astype(np.uint8)]
+        return torch.from_numpy(np.stack(planes)).unsqueeze(1) > 0
+    return -F.max_pool2d(-mask.to(torch.float32), k, stride=1, padding=k // 2) > 0.5
+
+
+def _grey(image: Tensor) -> Tensor:
+    if image.shape[1] == 3:
+        from kornia.color import rgb_to_grayscale
+
+        return rgb_to_grayscale(image)
+    return image.mean(dim=1, keepdim=True)
+
+
+def _median(x: Tensor, fallback: float) -> Tensor:
+    return x.median() if x.numel() else x.new_tensor(fallback)
+
+
+@dataclass
+class _Evidence:
+    good: Tensor      # (B, 1, h, w) bool
+    bad: Tensor
+    ok: Tensor        # the warp is defined over the window
+    testable: Tensor
+    height: Tensor
+    tau: Tensor       # (B,) the seed's typical residual motion (px at the level)
+    noise: Tensor     # (B,) residual energy of textureless road (grey levels²)
+    bias: Tensor      # (B,) the seed's height over the fitted plane (m)
+
+
+def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, parallax: Tensor, seed: Tensor,
+              gain: Tensor, *, window: int, height_window: int, min_height: float, max_height: float,
+              z: float, min_misfit: float) -> _Evidence:
+    """The window tests of the module docstring, at one resolution. ``parallax`` (B, 2, h, w): the
+    flow of a surface ``min_height`` above the road minus the road's."""
+    B = grey1.shape[0]
+    warped, _ = warp_backward(grey2, flow)
+    # samples near image 2's border see the smoothing's reflected padding: not evidence
+    h, w = grey1.shape[-2:]
+    x = torch.arange(w, dtype=flow.dtype, device=flow.device) + flow[:, :1]
+    y = torch.arange(h, dtype=flow.dtype, device=flow.device).reshape(h, 1) + flow[:, 1:]
+    m = _BORDER
+    defined = valid & (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
+    ok = _erode(defined, window)
+    ok_h = _erode(defined, height_window)
+    g = gain.reshape(B, 1, 1, 1).to(grey1.dtype)
+    e = g * warped - grey1
+    gx1, gy1 = _gradient(grey1)
+    gx2, gy2 = _gradient(warped)
+    # efficient second-order: the mean of both images' gradients
+    gx, gy = 0.5 * (gx1 + g * gx2), 0.5 * (gy1 + g * gy2)
+
+    # misalignment, per window: residual energy and gradient energy (offsets removed: exposure)
+    k = window
+    stack = torch.cat([e, e * e, gx, gx * gx, gy, gy * gy], dim=1)
+    m = _box(stack, k)
+    E = (m[:, 1:2] - m[:, 0:1] ** 2).clamp_min(0)
+    TA = (m[:, 3:4] - m[:, 2:3] ** 2 + m[:, 5:6] - m[:, 4:5] ** 2).clamp_min(1e-12)
+
+    # height, per (larger) window: one Lucas–Kanade step along the parallax direction
+    P = torch.hypot(parallax[:, :1], parallax[:, 1:])
+    direction = parallax / P.clamp_min(1e-9)
+    gr = gx * direction[:, :1] + gy * direction[:, 1:]
+    kh = height_window
+    mh = _box(torch.cat([e, e * e, gr, gr * gr, gr * e, grey1, grey1 * grey1], dim=1), kh)
+    Eh = (mh[:, 1:2] - mh[:, 0:1] ** 2).clamp_min(0)
+    Vg = (mh[:, 3:4] - mh[:, 2:3] ** 2).clamp_min(1e-12)
+    C = mh[:, 4:5] - mh[:, 2:3] * mh[:, 0:1]
+    texture = (mh[:, 6:7] - mh[:, 5:6] ** 2).clamp_min(0)
+    shift = -C / Vg                                   # px along the parallax direction
+    left = (Eh - C * C / Vg).clamp_min(0)             # residual energy the shift leaves
+    height = min_height * shift / P.clamp_min(1e-9)
+
+    good = torch.zeros_like(ok)
+    bad = torch.zeros_like(ok)
+    testable = torch.zeros_like(ok)
+    taus, noises, biases = [], [], []
+    n_k, n_kh = k * k / _CORRELATION, kh * kh / _CORRELATION
+    for b in range(B):
+        s = seed[b] & ok[b]
+        E_s, T_s = E[b][s], TA[b][s]
+        # the noise: residual energy of the seed's least textured windows, where misalignment
+        # adds little; the model's misfit τ: what the rest of the seed adds, per gradient energy
+        noise = _median(E_s[T_s <= torch.quantile(T_s, 0.25)], 0.0) if T_s.numel() > 3 else E.new_tensor(0.0)
+        hi = T_s >= _median(T_s, 0.0)
+        tau = (_median(2 * (E_s[hi] - noise) / T_s[hi], 0.0)).clamp_min(min_misfit ** 2).sqrt()
+        floor = _MISFIT * tau
+        Pb = P[b]
+        d2 = (E[b] - noise) / (0.5 * TA[b])
+        se = torch.maximum(E[b], noise) * math.sqrt(2 / n_k) / (0.5 * TA[b])
+        thr2 = torch.maximum(0.5 * Pb, floor) ** 2
+        test_b = 0.5 * Pb * (max_height / min_height) >= floor
+        off_plane = d2 - z * se > thr2
+        on_plane = (d2 + z * se < thr2) & test_b
+
+        se_shift = (torch.maximum(left[b], noise) / (n_kh * Vg[b])).sqrt()
+        se_h = min_height * se_shift / Pb.clamp_min(1e-9)
+        informative = s & ok_h[b] & (se_h < min_height / 4)
+        hs = height[b][informative]
+        bias = _median(hs, 0.0)
+        # the seed's scatter of the shift beyond the noise model: the model's misfit, in pixels
+        rest = (shift[b] - bias / min_height * Pb)[informative]
+        spread = 1.4826 * (rest - rest.median()).abs().median() if rest.numel() else rest.new_tensor(0.0)
+        se_h = min_height * (se_shift ** 2 + spread ** 2).sqrt() / Pb.clamp_min(1e-9)
+        raised = ((height[b] - bias).abs() - z * se_h > 0.5 * min_height)
+        unexplained = (texture[b] > 4 * noise) & (Eh[b] > texture[b])
+        bad[b] = ok[b] & off_plane | ok_h[b] & (raised | unexplained)
+        good[b] = ok[b] & on_plane & ~bad[b]
+        testable[b] = test_b
+        taus.append(tau)
+        noises.append(noise)
+        biases.append(bias)
+    height = torch.where(ok, height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
+    return _Evidence(good, bad, ok, testable, height, torch.stack(taus), torch.stack(noises), torch.stack(biases))
+
+
+# -- the region ---------------------------------------------------------------------------------
+
+def _components_touching(mask, touch, connectivity: int = 8):
+    """The connected components of a (h, w) bool array that contain a pixel of ``touch``."""
+    import cv2
+    import numpy as np
+
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=connectivity)
+    keep = np.zeros(count, dtype=bool)
+    keep[np.unique(labels[touch & mask])] = True
+    keep[0] = False
+    return keep[labels]
+
+
+def _along_rays(decisions, focus: tuple[float, float], inward, todo, steps: int = 16, reach: float = 8.0):
+    """Decisions (0 / 1) for the pixels ``todo`` (h, w) bool from a (h, w) int8 map (-1: none):
+    the nearest decision on each pixel's line through ``focus`` (x, y in pixels of the map),
+    towards the focus where ``inward`` (pixels that leave the frame: the decision of what will be
+    where they are), away from it elsewhere (pixels too far to test: the decision of the nearest
+    testable ones). Samples at focus + (p − focus) · s, s = reach^(∓i/steps), nearest first.
+    Returns (h, w) int8, -1 where no decision was found."""
+    import numpy as np
+
+    h, w = decisions.shape
+    out = np.full((h, w), -1, dtype=np.int8)
+    ys, xs = np.nonzero(todo)
+    if ys.size == 0:
+        return out
+    fx, fy = focus
+    factor = np.where(inward[ys, xs], -1.0, 1.0) * (math.log(reach) / steps)
+    found = np.full(ys.size, -1, dtype=np.int8)
+    dx, dy = xs - fx, ys - fy
+    for i in range(1, steps + 1):
+        s = np.exp(factor * i)
+        x = np.rint(fx + dx * s).astype(np.int64)
+        y = np.rint(fy + dy * s).astype(np.int64)
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (found < 0)
+        got = decisions[y[inside], x[inside]]
+        found[np.flatnonzero(inside)] = np.where(got >= 0, got, -1)
+    out[ys, xs] = found
+    return out
+
+
+def _region(good, bad, ok, testable, below, seed, focus: tuple[float, float] | None, window: int, max_hole: int):
+    """The road (h, w) bool from the window decisions (NumPy arrays; step 4 of the module)."""
+    import cv2
+    import numpy as np
+
+    closed = cv2.morphologyEx(good.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+    core = _components_touching(closed & ~bad, seed)
+    if not core.any():
+        return core
+    off = bad | (good & ~core)
+    # stray off-road windows inside the road must not decide whole rays: only components of at
+    # least a window's area count
+    count, lab, stats, _ = cv2.connectedComponentsWithStats(off.astype(np.uint8), connectivity=8)
+    off = off & (stats[:, cv2.CC_STAT_AREA] >= window * window)[lab]
+    # undecided but testable (textureless): the majority of the decisions around
+    k = 2 * window + 1
+    n_road = cv2.boxFilter(core.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    n_off = cv2.boxFilter(off.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    local = below & ~core & ~off & testable & ok & (n_road + n_off > 0)
+    road = core | (local & (n_road > n_off))
+    off = off | (local & (n_road <= n_off))
+    if focus is not None:
+        decisions = np.full(road.shape, -1, dtype=np.int8)
+        decisions[off] = 0
+        decisions[road] = 1
+        filled = _along_rays(decisions, focus, below & ~ok, below & (decisions < 0))
+        road = road | (filled == 1)
+    road = _components_touching(road & below, seed, connectivity=4)
+    # enclosed holes (a manhole, a patch of shade without texture) are road
+    count, lab, stats, _ = cv2.connectedComponentsWithStats((~road).astype(np.uint8), connectivity=4)
+    fill = stats[:, cv2.CC_STAT_AREA] <= max_hole
+    fill[0] = False  # label 0: the road itself
+    fill[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
+    return road | fill[lab]
+
+
+# -- the detection ------------------------------------------------------------------------------
+
+def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
+                  options: dict[str, Any]) -> dict[str, int]:
+    from .._check import check_data_range, check_image_range
+
+    for name, img in (("image1", image1), ("image2", image2)):
+        check_float_tensor(img, name)
+    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
+    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
+    if dims["C"] not in (1, 3):
+        raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    if camera.batch_size not in (1, dims["B"]):
+        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the images' B), got {camera.batch_size}")
+    if flow is not None:
+        check_float_tensor(flow, "flow")
+        check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
+    data_range = check_data_range(data_range)
+    check_image_range(image1, "image1", data_range)
+    check_image_range(image2, "image2", data_range)
+    for name in ("level", "seed_level"):
+        v = options[name]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+            raise ValueError(f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}")
+        if min(dims["H"], dims["W"]) >> v < 16:
+            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images")
+    for name in ("window", "height_window"):
+        v = options[name]
+        if isinstance(v, bool) or not isinstance(v, int) or v < 3 or v % 2 == 0:
+            raise ValueError(f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}")
+    for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
+        v = options[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
+            raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+    if options["max_height_m"] < options["min_height_m"]:
+        raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
+                         f"got {options['max_height_m']!r}")
+    v = options["min_coverage"]
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1):
+        raise ValueError(f"min_coverage: expected a fraction in [0, 1), got {v!r}")
+    return dims
+
+
+@torch.no_grad()
+def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor | None = None,
+                motion: Any = None, estimator: Any = None, odometry: object = None, starts: Sequence[Any] = (),
+                refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
+                seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
+                max_height_m: float = 0.3, z: float = 2.0, window: int = 7, height_window: int = 15,
+                min_misfit_px: float = 0.5, min_coverage: float = 0.01) -> RoadDetection:
+    """The road in image 1: the region connected to the road in front of the vehicle that moves like
+    the road plane (see the module for the method).
+
+    Args:
+        image1, image2: frames t and t+1, (B, 3, H, W) RGB or (B, 1, H, W) grey, on 0..``data_range``.
+        camera: intrinsics at the images' resolution, height, calibrated roll and pitch (batch 1 or B).
+        flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start).
+        motion: the road motion to judge with (a fit result, or a dict with a ``"model"`` key and
+            its parameters); default: estimated on the seed.
+        estimator: the road-motion estimator (the refiner's protocol, default
+            :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
+            ``starts`` go to it.
+        refit: after the first detection, estimate the motion again on the detected road (started
+            from the first) and detect again. Only where the motion was estimated here.
+        level: the evidence is judged on images averaged over 2**level pixels; default: the
+            coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows). The windows
+            and the smoothing are in pixels of that level.
+        seed_level: the first estimate, on the seed, runs on images averaged over 2**seed_level
+            pixels (the motion's parameters do not depend on the resolution).
+        seed_width_m, seed_depth_m: the seed (:func:`road_seed`).
+        min_height_m: the smallest step the road must not take in (a kerb); surfaces more than half
+            of it above or below the road plane are off the road.
+        max_height_m: evidence counts where a surface this high would show (see the module).
+        z: significance of every test, in standard errors.
+        min_misfit_px: the least residual motion (pixels of the images) the road model is trusted
+            to: a fitted road motion is not more accurate than about half a pixel on real images
+            (DESIGN.md §5), even where the seed, which it was fitted to, says less.
+        window, height_window: window sides at the working resolution for the misalignment and
+            the height tests (the height needs more pixels).
+        min_coverage: a road smaller than this share of the image below the horizon is flagged
+            ``"small"``.
+
+    Returns:
+        :class:`RoadDetection`.
+
+    Raises:
+        TypeError, ValueError: bad input, naming the argument.
+    """
+    import numpy as np
+
+    if level is None and isinstance(image1, Tensor) and image1.dim() == 4:
+        level = max(0, int(math.floor(math.log2(max(image1.shape[-2], 1) / _WORK_ROWS))))
+    options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
+                   seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
+                   max_height_m=max_height_m, z=z, min_misfit_px=min_misfit_px, min_coverage=min_coverage)
+    dims = _check_inputs(image1, image2, camera, flow, data_range, options)
+    if estimator is not None and not callable(estimator):
+        raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    device = image1.device
+    work = torch.float64 if image1.dtype == torch.float64 else torch.float32
+    camera = camera.to(device=device).expand(B)
+    # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are
+    scale = 255.0 / float(data_range)
+    im1, im2 = (im.detach().to(work) * scale for im in (image1, image2))
+    estimator = estimator if estimator is not None else ImageMotionEstimator()
+    # the geometry at the working resolution (the seed and the region live there)
+    cam_l = _level_camera(camera, level)
+    h, w = H >> level, W >> level
+    X, Z, below_l = _ground(cam_l, (h, w))
+    seed_l = below_l & (X.abs() <= seed_width_m / 2) & (Z <= seed_depth_m)
+
+    estimated = motion is None
+    if estimated:
+        cam_s = _level_camera(camera, seed_level)
+        hs, ws = H >> seed_level, W >> seed_level
+        seed_s = seed_l if seed_level == level else road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m)
+        flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :hs, :ws] / 2 ** seed_level
+        images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
+        motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
+    grey = gaussian_blur(_pool(torch.cat([_grey(im1), _grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
+
+    def judge(motion: Any) -> tuple[_Evidence, Tensor]:
+        model, params = _plane_motion(motion, camera)
+        params = {k: torch.as_tensor(v, device=device).to(torch.float64) for k, v in params.items()}
+        f, valid = road_flow(cam_l.to(torch.float64), params, (h, w), model=model)
+        raised, _ = road_flow(cam_l.to(torch.float64).replace(height=cam_l.height.to(torch.float64) - min_height_m),
+                              params, (h, w), model=model)
+        gain = getattr(motion, "extras", {}).get("gain") if hasattr(motion, "extras") else None
+        gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
+        ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, (raised - f).to(work), seed_l, gain,
+                       window=window, height_window=height_window, min_height=min_height_m,
+                       max_height=max_height_m, z=z, min_misfit=min_misfit_px / 2 ** level)
+        focus = _focus_of_expansion(model, params, cam_l)
+        roads = []
+        for b in range(B):
+            fz = focus[b]
+            fo = (float(fz[0] / fz[2]), float(fz[1] / fz[2])) if abs(float(fz[2])) > 1e-9 * float(fz.abs().max()) else None
+            arrays = [t[b, 0].cpu().numpy() for t in (ev.good, ev.bad, ev.ok, ev.testable, below_l, seed_l)]
+            roads.append(torch.from_numpy(_region(*arrays, fo, window, max(1, (h * w) // 500))))
+        return ev, torch.stack(roads).unsqueeze(1).to(device)
+
+    ev, road_l = judge(motion)
+    if estimated and refit and bool(road_l.any()):
+        mask = _upsample(road_l, level, (H, W))
+        again = estimator(None if flow is None else flow.detach().to(work), mask, camera, images=(im1, im2),
+                          odometry=odometry, starts=(motion, *starts))
+        ok_again = getattr(again, "success", torch.ones(B, dtype=torch.bool))
+        if bool(torch.as_tensor(ok_again).all()):
+            motion = again
+            ev, road_l = judge(motion)
+    mask = _upsample(road_l, level, (H, W))
+    return _report(mask, motion, _upsample(seed_l, level, (H, W)), road_l, below_l, ev, seed_l, level, min_coverage)
+
+
+def _upsample(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
+    """A working-resolution mask back at full size (each pixel its block; the rows and columns
+    the pooling dropped copy their neighbours)."""
+    if level == 0:
+        return road
+    m = road.repeat_interleave(2 ** level, dim=-2).repeat_interleave(2 ** level, dim=-1)
+    H, W = size
+    return F.pad(m.to(torch.uint8), (0, W - m.shape[-1], 0, H - m.shape[-2]), mode="replicate").bool()
+
+
+def _report(mask: Tensor, motion: Any, seed: Tensor, road_l: Tensor, below_l: Tensor, ev: _Evidence, seed_l: Tensor,
+            level: int, min_coverage: float) -> RoadDetection:
+    """Coverage, the seed's agreement and the flags (step 5 of the module)."""
+    B = mask.shape[0]
+    success = getattr(motion, "success", None)
+    success = torch.ones(B, dtype=torch.bool) if success is None else torch.as_tensor(success).reshape(-1).expand(B).cpu()
+    pixels = road_l.flatten(1).sum(1).cpu()
+    coverage = (pixels / below_l.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
+    s = seed_l & ev.ok
+    n_seed = s.flatten(1).sum(1).cpu().clamp_min(1)
+    n_good = (s & ev.good).flatten(1).sum(1).cpu()
+    n_bad = (s & ev.bad).flatten(1).sum(1).cpu()
+    n_test = (s & ev.testable).flatten(1).sum(1).cpu()
+    agreement = (n_good / (n_good + n_bad).clamp_min(1)).to(torch.float64)
+    evidence_share = ((n_good + n_bad) / n_seed).to(torch.float64)
+    flags, reasons = [], []
+    for b in range(B):
+        if not bool(success[b]):
+            flag, why = "no_motion", "the road's motion could not be estimated from the images"
+        elif int(n_test[b]) == 0:
+            flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames): the road cannot be "
+                                   "told from what stands on it")
+        elif float(evidence_share[b]) < 0.1:
+            flag, why = "textureless", (f"only {100 * float(evidence_share[b]):.1f} % of the road ahead carries "
+                                        f"evidence (dark or textureless frames)")
+        elif float(agreement[b]) < 0.5:
+            flag, why = "implausible", (f"the road ahead does not move like a road plane ({100 * float(agreement[b]):.0f} % "
+                                        f"of its evidence agrees): an obstacle close ahead, or a wrong motion")
+        elif int(pixels[b]) == 0:
+            flag, why = "empty", "no road found"
+        elif float(coverage[b]) < min_coverage:
+            flag, why = "small", (f"the road covers {100 * float(coverage[b]):.2f} % of the image below the horizon "
+                                  f"(fewer than {100 * min_coverage:g} %)")
+        else:
+            flag, why = "ok", ""
+        flags.append(flag)
+        reasons.append(why)
+    evidence = torch.where(ev.good, 1, torch.where(ev.bad, 0, -1)).to(torch.int8)
+    ok = torch.tensor([f == "ok" for f in flags], dtype=torch.bool, device=mask.device)
+    return RoadDetection(mask=mask, flag=flags, reason=reasons, ok=ok, motion=motion, seed=seed,
+                         coverage=coverage, seed_agreement=agreement, evidence=evidence, height=ev.height,
+                         level=level, stats={"tau_px": ev.tau.cpu(), "noise": ev.noise.cpu(),
+                                             "height_bias_m": ev.bias.cpu(), "seed_evidence": evidence_share})
+
+
+# -- the refiner's road="auto" ------------------------------------------------------------------
+
+def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odometry: object, *, images: Any,
+                          road_estimator: Any, road_options: dict[str, Any] | None, warn: bool, **kw: Any):
+    """``refine_flow(flow, "auto", ...)``: find the road, then refine inside it (the refiner's
+    function ``refine`` is passed in: it builds on this module).
+
+    With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
+    predicted flow one start; the caller's planar odometry held fixed), or judges with the
+    caller's complete road motion; the motion it settled on is then the refinement's (no second
+    estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
+    detection comes back as ``RefineOutput.road``. Without images, the road is detected on the
+    prediction (:func:`fsof_torch.detect_freespace`), as before images were used.
+    """
+    import warnings
+
+    from ..estimation.freespace import detect_freespace
+    from .contracts import collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
+
+    if mask != "auto":
+        raise ValueError(f"mask: expected a bool tensor (B, 1, H, W) or 'auto', got {mask!r}")
+    _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
+    options = dict(road_options or {})
+    if images is None:
+        with torch.no_grad():
+            road = detect_freespace(finest.detach().to(camera.dtype), camera.to(device=finest.device), **options)
+        return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
+    if is_ptlflow_inputs(images):
+        images = images_from_ptlflow(images)
+    image1, image2 = images
+    B = finest.shape[0]
+    image1, image2 = (im.detach().expand(B, -1, -1, -1) for im in (image1, image2))
+    complete = odometry is not None and (road_motion(odometry)[0].name != "paper" or kw.get("fit") is not None)
+    f = finest.detach()
+    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if bool(torch.isfinite(f).all()) else None,
+                      motion=odometry if complete else None, estimator=road_estimator,
+                      odometry=None if complete else odometry, starts=kw.pop("starts", ()), **options)
+    if warn and not all(det.ok.tolist()):
+        bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
+        warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
+                      RuntimeWarning, stacklevel=3)
+    out = refine(flow, det.usable_mask, camera, det.motion, images=(image1, image2), warn=False, **kw)
+    return out._replace(road=det, fit=det.motion if not complete else out.fit)
+
+
+def detect_road_padded(padding: Any, image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor,
+                       **options: Any) -> RoadDetection:
+    """:func:`detect_road` on padded inputs (a :class:`~fsof_torch.refinement.contracts.Padding`
+    or None, and the padded images, camera and flow), judged on the images as they came (the
+    replicated border is not road); its masks are padded back with False."""
+    if padding is None:
+        return detect_road(image1, image2, camera, flow=flow.detach(), **options)
+    det = detect_road(padding.unpad(image1), padding.unpad(image2),
+                      camera.cropped(padding.left, padding.top, padding.right, padding.bottom),
+                      flow=padding.unpad(flow.detach()), **options)
+    return RoadDetection(**{**det.__dict__, "mask": padding.pad(det.mask), "seed": padding.pad(det.seed)})
