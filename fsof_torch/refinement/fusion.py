@@ -33,12 +33,14 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import as_batch_param, check_float_tensor, skip_values, tracing
+from .._check import (as_batch_param, check_float_tensor, check_has_values, check_mask, check_names, check_number,
+                      check_shape, check_size, skip_values, tracing)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
+from .options import FITS, MODES, check_refine_options
 from .contracts import (
     DEFAULT_FLOW_KEYS,
     InputPadder,
@@ -60,8 +62,7 @@ __all__ = [
     "resize_mask",
 ]
 
-_MODES = ("replace", "confidence")
-_FITS = ("flow", "photometric")  # (the older estimator choice)
+_MODES, _FITS = MODES, FITS
 
 
 class RefineOutput(NamedTuple):
@@ -104,8 +105,12 @@ def cauchy_weight(residual_sq: Tensor, scale: float) -> Tensor:
     """Cauchy (Lorentzian) weight ``w = 1 / (1 + r² / c²)`` of squared residuals ``r²`` (px²).
 
     This is ρ'(r) / r for ρ(r) = c²/2 · log(1 + r²/c²): 1 at agreement, 1/2 at r = c, → 0 for
-    large disagreement. Written on r² so the gradient is finite at r = 0.
+    large disagreement. Written on r² so the gradient is finite at r = 0. Elementwise: a NaN
+    residual gives a NaN weight, as ``torch`` functions do.
     """
+    check_float_tensor(residual_sq, "residual_sq")
+    if not isinstance(scale, Tensor):  # (a tensor scale is elementwise, like the residuals)
+        check_number(scale, "scale", positive=True)
     return 1.0 / (1.0 + residual_sq / (scale * scale))
 
 
@@ -196,8 +201,9 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
     then ``== 1``): a coarse road pixel never straddles a car's edge. Growing uses exact nearest
     neighbour.
     """
+    check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"))
+    h, w = check_size(size, "size")
     H, W = mask.shape[-2:]
-    h, w = size
     if (h, w) == (H, W):
         return mask
     m = mask.to(torch.float32)
@@ -322,13 +328,12 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
     Non-finite predicted values: they are left out of the estimation; inside the mask the model
     replaces them (both modes); outside the mask they are returned as they came.
     """
-    if mode not in _MODES:
-        raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    if not (scale > 0 and math.isfinite(scale)):
-        raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+                         flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
+                         fit_options=fit_options, photometric_options=photometric_options, starts=starts)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    flow_keys = tuple(flow_keys)
+    flow_keys = check_names(flow_keys, "flow_keys")
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
@@ -359,7 +364,10 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
 
     # One reduction settles the common case (a NaN or inf anywhere makes the sum non-finite;
     # so may an overflow, which then takes the per-pixel path): no full-size test and no copy.
-    all_finite = not tracing() and bool(torch.isfinite(finest.detach().sum()))
+    # (no host reads while tracing or on meta tensors, which have no values: nothing to warn about)
+    no_values = skip_values(finest)
+    all_finite = not no_values and bool(torch.isfinite(finest.detach().sum()))
+    warn = warn and not no_values
     if all_finite:
         fit_mask = mask
     else:
@@ -403,7 +411,7 @@ def refine_flow(flow: Any, mask: Tensor, camera: Camera, odometry: object = None
 
     # (a broadcast & over the whole mask is slow on CPU: only when some sample is left out)
     def usable(m: Tensor, ok: Tensor) -> Tensor:
-        return m if not tracing() and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
+        return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
     if fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model):
         # The estimate evaluated this very model flow at the finest size (same parameters): reuse
@@ -464,6 +472,9 @@ def _needs_grad(camera: Camera) -> bool:
         t.requires_grad for t in (camera.K, camera.height, camera.roll, camera.pitch))
 
 
+# Estimation is iterative, data dependent and detached: under torch.compile it runs eagerly, and the
+# geometry and fusion around it compile (tests/test_fusion_backends.py, docs/reliability.md).
+@torch.compiler.disable
 def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
               images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
@@ -472,6 +483,8 @@ def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, 
     model name, camera with the estimated roll and pitch)``; samples not estimated get zero
     motion and success False.
     """
+    check_has_values(finest, "flow", "to estimate the road's motion from (for shape inference on the meta "
+                     "device pass odometry=: planar odometry without images, or a model's full motion)")
     B = finest.shape[0]
     dtype, device = camera.dtype, camera.device
     if not bool(refined.any()):
@@ -536,20 +549,9 @@ class FreespaceRefiner(nn.Module):
                  fit_options: Mapping[str, Any] | None = None,
                  photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
-        if mode not in _MODES:
-            raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-        if fit not in (None, *_FITS):
-            raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
-        if estimator is not None and fit is not None:
-            raise ValueError("fit: give an estimator or fit=, not both")
-        if estimator is not None and not callable(estimator):
-            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
-        if gate not in ("auto", None) and not isinstance(gate, ImageGate):
-            raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
-        if not (float(scale) > 0 and math.isfinite(float(scale))):
-            raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
-        if int(min_pixels) < 1:
-            raise ValueError(f"min_pixels: expected >= 1, got {min_pixels!r}")
+        check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+                             flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
+                             fit_options=fit_options, photometric_options=photometric_options)
         self.estimator = estimator
         self.gate = gate
         self.mode = mode
@@ -560,8 +562,8 @@ class FreespaceRefiner(nn.Module):
         self.fit_options = dict(fit_options or {})
         self.photometric_options = dict(photometric_options or {})
         self.min_pixels = int(min_pixels)
-        self.flow_keys = tuple(flow_keys)
-        self.warn = bool(warn)
+        self.flow_keys = check_names(flow_keys, "flow_keys")
+        self.warn = warn
 
     def forward(self, flow: Any, mask: Tensor, camera: Camera, odometry: object = None, *,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
