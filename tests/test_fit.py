@@ -120,7 +120,7 @@ NAN = float("nan")
     (dict(inlier_threshold=NAN), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
     (dict(inlier_threshold=-1), ValueError, "inlier_threshold: expected a finite number > 0, got -1"),
     (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
-    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str"),
+    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
     (dict(polish="yes"), TypeError, "polish: expected True or False, got str 'yes'"),
     (dict(check_every=0), ValueError, "check_every: expected an int >= 1, got 0"),
     (dict(check_every=2.5), TypeError, "check_every: expected None or an int, got float 2.5"),
@@ -146,7 +146,7 @@ def test_exceptions_options_of_fit_road_and_fit_velocity(fn):
     for options, error, message in [
             (dict(inlier_threshold=NAN), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
             (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
-            (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict"),
+            (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict .* got str 'zero'"),
             (dict(max_points=3), ValueError, "max_points: expected an int > 15, got 3"),
             (dict(polish=None), TypeError, "polish: expected True or False, got NoneType None")]:
         with pytest.raises(error, match=message):

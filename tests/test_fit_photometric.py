@@ -79,7 +79,7 @@ def test_exceptions():
     # OpenCV's assertion, 'int' object is not iterable)
     (dict(inlier_threshold=float("nan")), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
     (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
-    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str"),
+    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
     (dict(min_size=0), ValueError, "min_size: expected an int >= 2, got 0"),
     (dict(resolution=-1.0), ValueError, "resolution: expected a number >= 0, got -1.0"),
     (dict(smooth_sigma=float("nan")), ValueError, "smooth_sigma: expected a finite number, got nan"),
@@ -88,7 +88,7 @@ def test_exceptions():
     (dict(gradient_fraction="x"), TypeError, "gradient_fraction: expected a number, got str 'x'"),
     (dict(affine="x"), TypeError, "affine: expected True or False, got str 'x'"),
     (dict(starts=5), TypeError, "starts: expected a list of starts"),
-    (dict(starts=["x"]), TypeError, "starts: expected a list of starts"),
+    (dict(starts=["x"]), TypeError, "starts: expected dicts of parameters or fits, got an element str 'x'"),
     (dict(prior="loose"), ValueError, "prior: expected 'calibration', None or {name: \\(mean, sigma\\)}, got 'loose'"),
     (dict(prior=5), TypeError, "prior: expected None or a dict with string keys, got int 5"),
     (dict(bounds="wide"), TypeError, "bounds: expected 'physical', None or \\(lower, upper\\) tensors of shape \\(1, 8\\)"),

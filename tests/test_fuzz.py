@@ -50,7 +50,8 @@ from fsof_torch.estimation.vflow import fit_vflow_curve, vflow_map
 from fsof_torch.geometry import egomotion as E
 from fsof_torch.geometry.camera import Camera, mounting_matrix, pitch_matrix, roll_matrix
 from fsof_torch.geometry.road_flow import displacement_flow, road_flow, velocity_flow
-from fsof_torch.geometry.road_models import road_homography
+from fsof_torch.geometry import road_flow as RF
+from fsof_torch.geometry.road_models import plane_from_pose, road_homography
 from fsof_torch.refinement.estimators import FlowMotionEstimator, ImageMotionEstimator
 from fsof_torch.refinement.fusion import FreespaceRefined, FreespaceRefiner, cauchy_weight, fuse_flow, refine_flow, resize_mask
 from fsof_torch.refinement.gate import ImageGate
@@ -422,6 +423,16 @@ TABLE: list[Entry] = [
         camera, params, size, model=model))(model), {"camera": "camera", "params": role, "size": "size"},
         also_named=_MOTION_NAMES) for model, role in (("paper", "odometry"), ("plane", "plane_motion"))],
     Entry("road_homography", lambda camera, params: road_homography(camera, params, model="plane"),
+          {"camera": "camera", "params": "plane_motion"}, also_named=_MOTION_NAMES),
+    *[Entry(fn.__name__, (lambda fn: lambda camera, motion, size: fn(camera, motion, size))(fn),
+            {"camera": "camera", "motion": "speed", "size": "size"}, also_named=("mismatched batch sizes", name))
+      for fn, name in ((RF.displacement_flow_straight, "z_d"), (RF.displacement_flow_straight_level, "z_d"),
+                       (RF.velocity_flow_straight, "speed"), (RF.velocity_flow_straight_level, "speed"))],
+    Entry("road_velocity_matrix", lambda camera, speed, steering: RF.road_velocity_matrix(camera, speed, steering, 2.7),
+          {"camera": "camera", "speed": "speed", "steering": "angles"}, also_named=("mismatched batch sizes",)),
+    Entry("plane_from_pose", lambda cam1_T_cam0, camera: plane_from_pose(cam1_T_cam0, camera),
+          {"cam1_T_cam0": "pose", "camera": "camera"}, also_named=("mismatched batch sizes",)),
+    Entry("RoadFlow", lambda camera, params: RF.RoadFlow((5, 7), model="plane")(camera, params),
           {"camera": "camera", "params": "plane_motion"}, also_named=_MOTION_NAMES),
     # training: losses and the test net
     Entry("sequence_weights", lambda n, gamma: L.sequence_weights(n, gamma), {"n": "side", "gamma": "gamma"}),

@@ -26,18 +26,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import (
-    autocast_off,
-    check_bool,
-    check_fit_flags,
-    check_float_tensor,
-    check_has_values,
-    check_int,
-    check_mapping,
-    check_names,
-    check_shape,
-    result_dtype,
-)
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+                      check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import ROAD_MODELS, RoadModel, get_road_model, mounting_products, plane_from_homography
@@ -455,6 +445,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     check_bool(polish, "polish")
     check_int(check_every, "check_every", minimum=1, optional=True)
     fixed, prior = check_names(fixed, "fixed"), check_mapping(prior, "prior")
+    if init is not None and not isinstance(init, (Mapping, RoadFit)):
+        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)

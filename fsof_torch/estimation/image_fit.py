@@ -39,19 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (
-    autocast_off,
-    check_bool,
-    check_fit_flags,
-    check_float_tensor,
-    check_has_values,
-    check_int,
-    check_mapping,
-    check_names,
-    check_number,
-    check_shape,
-    result_dtype,
-)
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+                      check_mapping, check_names, check_number, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
@@ -356,8 +345,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
     if not isinstance(prior, str):
         prior = check_mapping(prior, "prior")
-    if not isinstance(starts, (list, tuple)) or not all(isinstance(x, (Mapping, RoadFit)) for x in starts):
-        raise TypeError(f"starts: expected a list of starts (dicts of parameters or fits), got {starts!r}")
+    if init is not None and not isinstance(init, (Mapping, RoadFit)):
+        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
+    if not isinstance(starts, (list, tuple)):
+        raise TypeError(f"starts: expected a list of starts (dicts of parameters or fits), got {type(starts).__name__}")
+    for x in starts:
+        if not isinstance(x, (Mapping, RoadFit)):
+            raise TypeError(f"starts: expected dicts of parameters or fits, got an element {type(x).__name__} {x!r}")
     for name, t in (("image1", image1), ("image2", image2), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, mask = _check_images(image1, image2, mask, camera, data_range)

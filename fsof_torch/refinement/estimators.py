@@ -130,6 +130,8 @@ class ImageMotionEstimator:
         check_mask(mask, "mask")
         if flow is not None:  # (the flow is only a start: fit_image checks the rest)
             dims = check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"))
+            for name, image in (("image1", image1), ("image2", image2)):
+                check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims)
             if mask.dim() != 4 or mask.shape[0] not in (1, dims["B"]) or tuple(mask.shape[1:]) != (1, dims["H"], dims["W"]):
                 raise ValueError(f"mask: expected shape ({dims['B']}, 1, {dims['H']}, {dims['W']}) (the flow's; batch 1 "
                                  f"is broadcast), got {tuple(mask.shape)}")
