@@ -331,4 +331,3 @@ def autocast_off(x: Tensor) -> ContextManager:
     if not torch.amp.is_autocast_available(device_type):
         return contextlib.nullcontext()
     return torch.autocast(device_type=device_type, enabled=False)
-
