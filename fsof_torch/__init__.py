@@ -50,7 +50,8 @@ from .geometry.road_flow import (
     vflow_curve,
 )
 from .geometry.road_models import ROAD_MODELS, RoadModel, plane_from_pose, road_homography, road_motion
-from .refinement.fusion import FreespaceRefined, FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
+from .refinement.fusion import FreespaceRefiner, RefineOutput, fuse_flow, refine_flow
+from .refinement.wrapped import FreespaceRefined
 from .refinement.contracts import InputPadder
 from .io import (
     read_flo,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import contextlib
 import math
 import numbers
+from collections.abc import Iterable, Mapping
 from typing import ContextManager, Sequence
 
 import torch
@@ -21,11 +22,18 @@ from torch import Tensor
 __all__ = [
     "check_shape",
     "check_float_tensor",
+    "check_mask",
     "check_finite",
     "check_all_finite",
     "check_positive",
     "check_size",
     "check_number",
+    "check_bool",
+    "check_int",
+    "check_names",
+    "check_mapping",
+    "check_keywords",
+    "check_fit_flags",
     "check_data_range",
     "check_image_range",
     "as_batch_param",
@@ -49,11 +57,12 @@ def skip_values(*tensors: object) -> bool:
     return tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
 
 
-def check_has_values(x: object, name: str) -> None:
-    """Writers and readers need values: a tensor on the meta device (shapes only) raises."""
+def check_has_values(x: object, name: str, purpose: str = "to write or convert") -> None:
+    """Writers, readers and data-dependent estimators need values: a tensor on the meta device
+    (shapes only) raises a ValueError that says what needs them (``purpose``)."""
     if isinstance(x, Tensor) and x.device.type == "meta":
-        raise ValueError(f"{name}: a tensor on the meta device has shapes but no values to write or "
-                         f"convert; move it to a real device first")
+        raise ValueError(f"{name}: a tensor on the meta device has shapes but no values {purpose}; "
+                         f"move it to a real device first")
 
 
 def _fmt_shape(shape: Sequence[object]) -> str:
@@ -66,6 +75,14 @@ def check_float_tensor(x: object, name: str) -> Tensor:
         raise TypeError(f"{name}: expected a torch.Tensor, got {type(x).__name__}")
     if not x.is_floating_point():
         raise TypeError(f"{name}: expected a floating-point tensor, got dtype {x.dtype}")
+    return x
+
+
+def check_mask(x: object, name: str) -> Tensor:
+    """A mask: a bool tensor (a 0/1 or probability map must be thresholded by the caller)."""
+    if not isinstance(x, Tensor) or x.dtype != torch.bool:
+        got = f"dtype {x.dtype}" if isinstance(x, Tensor) else type(x).__name__
+        raise TypeError(f"{name}: expected a bool tensor (B, 1, H, W), got {got}")
     return x
 
 
@@ -148,6 +165,79 @@ def check_number(x: object, name: str, *, positive: bool = False, nonnegative: b
     if nonnegative and not value >= 0:
         raise ValueError(f"{name}: expected a number >= 0, got {x!r}")
     return value
+
+
+# -- options: plain Python values of keyword arguments ---------------------------------------------
+
+def check_bool(x: object, name: str) -> bool:
+    """A flag: True or False (not a truthy string or number, which would pass silently)."""
+    if not isinstance(x, bool):
+        raise TypeError(f"{name}: expected True or False, got {type(x).__name__} {x!r}")
+    return x
+
+
+def check_int(x: object, name: str, *, minimum: int | None = None, optional: bool = False) -> int | None:
+    """An integer option (not a bool or a float), at least ``minimum``; None where ``optional``."""
+    if x is None and optional:
+        return None
+    if isinstance(x, bool) or not isinstance(x, numbers.Integral):
+        what = "None or an int" if optional else "an int"
+        raise TypeError(f"{name}: expected {what}, got {type(x).__name__} {x!r}")
+    if minimum is not None and x < minimum:
+        raise ValueError(f"{name}: expected an int >= {minimum}, got {x!r}")
+    return int(x)
+
+
+def check_names(x: object, name: str) -> tuple[str, ...] | None:
+    """Parameter names: None, one name, or a sequence of names -> a tuple (None kept)."""
+    if x is None:
+        return None
+    if isinstance(x, str):
+        return (x,)
+    if isinstance(x, Iterable) and not isinstance(x, (Mapping, bytes, Tensor)):
+        names = tuple(x)
+        if all(isinstance(n, str) for n in names):
+            return names
+    raise TypeError(f"{name}: expected None, a name or a sequence of names, got {type(x).__name__} {x!r}")
+
+
+def check_mapping(x: object, name: str) -> dict:
+    """Keyword options or named values: None (empty) or a mapping with string keys -> a dict."""
+    if x is None:
+        return {}
+    if not isinstance(x, Mapping) or not all(isinstance(k, str) for k in x):
+        raise TypeError(f"{name}: expected None or a dict with string keys, got {type(x).__name__} {x!r}")
+    return dict(x)
+
+
+def check_keywords(options: Mapping[str, object], name: str, fn: object,
+                   reserved: Sequence[str] = ()) -> None:
+    """``options`` are keyword arguments that will be forwarded to ``fn``: a name ``fn`` does not
+    take, or one the caller sets itself (``reserved``), raises now rather than at the first call."""
+    import inspect
+
+    params = inspect.signature(fn).parameters
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return
+    taken = {n for n, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    unknown = sorted(set(options) - taken)
+    if unknown:
+        raise TypeError(f"{name}: unknown options {unknown} of {fn.__name__}; expected some of {sorted(taken - set(reserved))}")
+    clash = sorted(set(options) & set(reserved))
+    if clash:
+        raise TypeError(f"{name}: options {clash} are set by the caller itself, not through {name}")
+
+
+def check_fit_flags(fn: str, fit_roll: object, fit_pitch: object, options: Mapping[str, object]) -> None:
+    """The flags of a one-model fit (``fit_displacement``, ``fit_velocity``, ``fit_photometric``),
+    which chooses the model and its fixed parameters itself: ``model`` or ``fixed`` among the
+    forwarded ``options`` raise (Python would report a duplicate keyword deep inside)."""
+    check_bool(fit_roll, "fit_roll")
+    check_bool(fit_pitch, "fit_pitch")
+    for key in ("model", "fixed"):
+        if key in options:
+            raise TypeError(f"{key}: {fn} sets the model and its fixed parameters itself (fit_roll, "
+                            f"fit_pitch); use fit_road or fit_image for other choices")
 
 
 def check_data_range(data_range: object, name: str = "data_range") -> float:

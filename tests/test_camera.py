@@ -370,3 +370,11 @@ def test_meta_device_shape_inference():
     assert cam.device.type == "meta" and cam.batch_size == 2
     assert cam.scaled(0.5).K.shape == (2, 3, 3) and cam.horizon_row().shape == (2,)
     assert cam.to(torch.float64).dtype == torch.float64
+
+
+def test_meta_camera_cannot_move_to_a_real_device():
+    """A meta camera beside real tensors once failed inside torch ("Cannot copy out of meta tensor")."""
+    cam = Camera(_K(dtype=torch.float32).to("meta"), 1.65)
+    with pytest.raises(ValueError, match="camera: a camera on the meta device has shapes but no values to move to another device"):
+        cam.to("cpu")
+    assert cam.to(torch.float64).device.type == "meta"

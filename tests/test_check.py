@@ -8,11 +8,17 @@ import torch
 from fsof_torch._check import (
     as_batch_param,
     autocast_off,
+    check_bool,
     check_data_range,
+    check_fit_flags,
     check_finite,
     check_float_tensor,
     check_has_values,
     check_image_range,
+    check_int,
+    check_keywords,
+    check_mapping,
+    check_names,
     check_number,
     check_positive,
     check_shape,
@@ -175,3 +181,38 @@ def test_autocast_off_restores_float32_arithmetic():
         assert (a @ a).dtype == torch.bfloat16
         with autocast_off(a):
             assert (a @ a).dtype == torch.float32
+
+
+def test_option_checks_name_the_option_and_quote_the_value():
+    assert check_bool(True, "flag") is True
+    with pytest.raises(TypeError, match="flag: expected True or False, got int 1"):
+        check_bool(1, "flag")
+    assert check_int(3, "n", minimum=1) == 3 and check_int(None, "n", optional=True) is None
+    with pytest.raises(TypeError, match="n: expected an int, got float 2.0"):
+        check_int(2.0, "n")
+    with pytest.raises(TypeError, match="n: expected an int, got bool True"):
+        check_int(True, "n")
+    with pytest.raises(ValueError, match="n: expected an int >= 1, got -5"):
+        check_int(-5, "n", minimum=1)
+    assert check_names("roll", "fixed") == ("roll",) and check_names(["a", "b"], "fixed") == ("a", "b")
+    assert check_names(None, "fixed") is None and check_names({"a": 1}.keys(), "keys") == ("a",)
+    for bad in (5, [1], {"a": 1}):
+        with pytest.raises(TypeError, match="fixed: expected None, a name or a sequence of names"):
+            check_names(bad, "fixed")
+    assert check_mapping(None, "options") == {}
+    with pytest.raises(TypeError, match="options: expected None or a dict with string keys, got list"):
+        check_mapping([1], "options")
+
+
+def test_check_keywords_against_the_receiving_function():
+    def fit(flow, *, scale=1.0, model="paper"):
+        return flow
+
+    check_keywords({"scale": 2.0}, "options", fit)
+    with pytest.raises(TypeError, match=r"options: unknown options \['bogus'\] of fit; expected some of"):
+        check_keywords({"bogus": 1}, "options", fit)
+    with pytest.raises(TypeError, match=r"options: options \['model'\] are set by the caller itself"):
+        check_keywords({"model": "plane"}, "options", fit, reserved=("model",))
+    check_fit_flags("fit_x", True, False, {"scale": 1.0})
+    with pytest.raises(TypeError, match="fixed: fit_x sets the model and its fixed parameters itself"):
+        check_fit_flags("fit_x", True, False, {"fixed": ()})

@@ -12,7 +12,9 @@ from fsof_torch.estimation.flow_fit import (
     ROBUST_KERNELS,
     FitResult,
     VelocityFitResult,
+    decompose_homography,
     fit_displacement,
+    fit_road,
     fit_velocity,
     robust_weight,
 )
@@ -108,6 +110,82 @@ def test_exceptions_nan_inside_mask_raises_outside_is_ignored():
     bad2 = flow.clone()
     bad2[0, :, 2, 3] = float("nan")  # above the road mask
     assert bool(fit_displacement(bad2, mask, cam).success)
+
+
+NAN = float("nan")
+
+
+@pytest.mark.parametrize("options, error, message", [
+    # once accepted silently (or failing far from the option without naming it)
+    (dict(inlier_threshold=NAN), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
+    (dict(inlier_threshold=-1), ValueError, "inlier_threshold: expected a finite number > 0, got -1"),
+    (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
+    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
+    (dict(polish="yes"), TypeError, "polish: expected True or False, got str 'yes'"),
+    (dict(check_every=0), ValueError, "check_every: expected an int >= 1, got 0"),
+    (dict(check_every=2.5), TypeError, "check_every: expected None or an int, got float 2.5"),
+    (dict(prior=5), TypeError, "prior: expected None or a dict with string keys, got int 5"),
+    (dict(fit_roll="no"), TypeError, "fit_roll: expected True or False, got str 'no'"),
+    (dict(fit_pitch=1), TypeError, "fit_pitch: expected True or False, got int 1"),
+    (dict(model="plane"), TypeError, "model: fit_displacement sets the model and its fixed parameters itself"),
+    (dict(fixed=("roll",)), TypeError, "fixed: fit_displacement sets the model"),
+])
+def test_exceptions_options_named_and_quoted(options, error, message):
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    with pytest.raises(error, match=message):
+        fit_displacement(flow, valid, cam, **options)
+
+
+@pytest.mark.parametrize("fn", ["fit_road", "fit_velocity"])
+def test_exceptions_options_of_fit_road_and_fit_velocity(fn):
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    call = (lambda **kw: fit_road(flow, valid, cam, **kw)) if fn == "fit_road" else (
+        lambda **kw: fit_velocity(flow, valid, cam, 2.7, **kw))
+    for options, error, message in [
+            (dict(inlier_threshold=NAN), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
+            (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
+            (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict .* got str 'zero'"),
+            (dict(max_points=3), ValueError, "max_points: expected an int > 15, got 3"),
+            (dict(polish=None), TypeError, "polish: expected True or False, got NoneType None")]:
+        with pytest.raises(error, match=message):
+            call(**options)
+    if fn == "fit_road":
+        with pytest.raises(TypeError, match="fixed: expected None, a name or a sequence of names, got int 5"):
+            call(fixed=5)
+        with pytest.raises(ValueError, match="fixed: unknown parameters"):
+            call(fixed=("speed",))
+
+
+def test_exceptions_meta_device_fits_need_values():
+    """Fitting is iterative and data dependent: on the meta device a named error, not .item()'s."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    meta_cam = Camera(cam.K.to("meta"), cam.height.to("meta"))
+    for call in (lambda: fit_displacement(flow.to("meta"), valid.to("meta"), meta_cam),
+                 lambda: fit_road(flow.to("meta"), valid.to("meta"), meta_cam, model="plane"),
+                 lambda: fit_velocity(flow.to("meta"), valid.to("meta"), meta_cam, 2.7)):
+        with pytest.raises(ValueError, match="flow: a tensor on the meta device has shapes but no values to fit"):
+            call()
+    with pytest.raises(ValueError, match="camera: a tensor on the meta device has shapes but no values to fit"):
+        fit_displacement(flow, valid, meta_cam)
+
+
+def test_exceptions_decompose_homography():
+    cam = small_camera()
+    Hm = road_homography(cam, {"z_d": 1.0})
+    with pytest.raises(TypeError, match="H: expected a floating-point tensor, got dtype torch.int64"):
+        decompose_homography(torch.eye(3, dtype=torch.int64)[None], cam)
+    with pytest.raises(ValueError, match=r"H: expected shape \(B, 3, 3\), got \(3, 3\)"):
+        decompose_homography(Hm[0], cam)
+    for bad in (torch.zeros(1, 3, 3), torch.full((1, 3, 3), NAN)):  # once a LinAlgError from the SVD
+        with pytest.raises(ValueError, match=r"H: expected finite, invertible homographies with H\[2, 2\] != 0"):
+            decompose_homography(bad.double(), cam)
+    with pytest.raises(ValueError, match="size: expected an int >= 8, got 0"):
+        decompose_homography(Hm, cam, size=0)
+    with pytest.raises(ValueError, match="H: a tensor on the meta device has shapes but no values to decompose"):
+        decompose_homography(Hm.to("meta"), cam)
 
 
 @pytest.mark.parametrize("case", ["empty", "tiny", "one_row", "above_horizon", "no_motion", "noise"])

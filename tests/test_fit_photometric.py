@@ -74,6 +74,48 @@ def test_exceptions():
         fit_photometric(image1, image2, mask, cam, robust="nope")
 
 
+@pytest.mark.parametrize("options, error, message", [
+    # once accepted silently, or failing far from the option (ZeroDivisionError, math domain error,
+    # OpenCV's assertion, 'int' object is not iterable)
+    (dict(inlier_threshold=float("nan")), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
+    (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
+    (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
+    (dict(min_size=0), ValueError, "min_size: expected an int >= 2, got 0"),
+    (dict(resolution=-1.0), ValueError, "resolution: expected a number >= 0, got -1.0"),
+    (dict(smooth_sigma=float("nan")), ValueError, "smooth_sigma: expected a finite number, got nan"),
+    (dict(highpass=-1.0), ValueError, "highpass: expected a number >= 0, got -1.0"),
+    (dict(band_levels=1.5), TypeError, "band_levels: expected an int, got float 1.5"),
+    (dict(gradient_fraction="x"), TypeError, "gradient_fraction: expected a number, got str 'x'"),
+    (dict(affine="x"), TypeError, "affine: expected True or False, got str 'x'"),
+    (dict(starts=5), TypeError, "starts: expected a list of starts"),
+    (dict(starts=["x"]), TypeError, "starts: expected dicts of parameters or fits, got an element str 'x'"),
+    (dict(prior="loose"), ValueError, "prior: expected 'calibration', None or {name: \\(mean, sigma\\)}, got 'loose'"),
+    (dict(prior=5), TypeError, "prior: expected None or a dict with string keys, got int 5"),
+    (dict(bounds="wide"), TypeError, "bounds: expected 'physical', None or \\(lower, upper\\) tensors of shape \\(1, 8\\)"),
+    (dict(bounds=(torch.zeros(1, 5), torch.ones(1, 5))), ValueError, r"bounds \(lower\): expected shape \(1, 8\)"),
+    (dict(check_every=0), ValueError, "check_every: expected an int >= 1, got 0"),
+    (dict(fixed=3), TypeError, "fixed: expected None, a name or a sequence of names, got int 3"),
+])
+def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    with pytest.raises(error, match=message):
+        fit_image(image1, image2, mask, cam, **options)
+
+
+def test_exceptions_fit_photometric_flags_and_meta_device():
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    with pytest.raises(TypeError, match="fit_roll: expected True or False, got str 'x'"):
+        fit_photometric(image1, image2, mask, cam, fit_roll="x")
+    with pytest.raises(TypeError, match="model: fit_photometric sets the model"):
+        fit_photometric(image1, image2, mask, cam, model="plane")
+    with pytest.raises(ValueError, match="image1: a tensor on the meta device has shapes but no values to fit"):
+        fit_photometric(image1.to("meta"), image2.to("meta"), mask.to("meta"), cam)
+
+
 def test_exceptions_empty_mask_is_flagged():
     cam = small_camera()
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)

@@ -13,7 +13,6 @@ from fsof_torch.geometry.camera import Camera
 from fsof_torch.geometry.egomotion import EgoMotion
 from fsof_torch.geometry.road_flow import displacement_flow
 from fsof_torch.refinement.fusion import (
-    FreespaceRefined,
     FreespaceRefiner,
     RefineOutput,
     cauchy_weight,
@@ -21,6 +20,7 @@ from fsof_torch.refinement.fusion import (
     refine_flow,
     resize_mask,
 )
+from fsof_torch.refinement.wrapped import FreespaceRefined
 
 H, W = 48, 120
 ODO = {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01}
@@ -534,3 +534,89 @@ def test_fuse_flow_nonfinite_model_outside_the_mask_is_harmless():
         out, weight = fuse_flow(pred, model, mask, mode=mode)
         assert torch.equal(out[~mask.expand_as(out)], pred[~mask.expand_as(pred)])
         assert torch.isfinite(out).all() and torch.isfinite(weight).all()
+
+
+# -- options and helpers: named errors quoting what came ----------------------------------------------
+
+@pytest.mark.parametrize("options, error, message", [
+    (dict(scale="2"), TypeError, "scale: expected a number, got str '2'"),
+    (dict(min_pixels=2.5), TypeError, "min_pixels: expected an int, got float 2.5"),  # once accepted
+    (dict(min_pixels=0), ValueError, "min_pixels: expected an int >= 1, got 0"),
+    (dict(warn="x"), TypeError, "warn: expected True or False, got str 'x'"),
+    (dict(flow_keys=5), TypeError, "flow_keys: expected None, a name or a sequence of names, got int 5"),
+    (dict(fit_roll="x"), TypeError, "fit_roll: expected True or False, got str 'x'"),
+    (dict(fit_options=5), TypeError, "fit_options: expected None or a dict with string keys, got int 5"),
+    (dict(fit_options={"bogus": 1}), TypeError, r"fit_options: unknown options \['bogus'\] of fit_road"),
+    (dict(photometric_options={"model": "plane"}), TypeError,
+     r"photometric_options: options \['model'\] are set by the caller itself"),
+    (dict(gate=5), TypeError, "gate: expected an ImageGate, 'auto' or None, got 5"),
+])
+def test_refiner_options_named_and_quoted(options, error, message):
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(error, match=message):
+        FreespaceRefiner(**options)
+    with pytest.raises(error, match=message):
+        refine_flow(pred, mask, cam, ODO, **options)
+
+
+def test_refiner_flow_keys_as_one_name_and_starts():
+    pred, mask, cam, _ = make_case()
+    # a single key once became its letters ('f', 'l', 'o', 'w'): the dict's flow was not found
+    out = refine_flow({"flow": pred}, mask, cam, ODO, flow_keys="flow")
+    assert torch.equal(out.flow["flow"], FreespaceRefiner()(pred, mask, cam, ODO).flow)
+    with pytest.raises(TypeError, match="starts: expected a list of start candidates"):
+        refine_flow(pred, mask, cam, starts=5)
+
+
+def test_estimator_options_checked_when_built():
+    from fsof_torch.refinement.estimators import FlowMotionEstimator, ImageMotionEstimator
+
+    with pytest.raises(TypeError, match="fixed: expected None, a name or a sequence of names, got int 5"):
+        FlowMotionEstimator(fixed=5)
+    with pytest.raises(TypeError, match=r"options: unknown options \['bogus'\] of fit_road"):
+        FlowMotionEstimator(bogus=1)
+    with pytest.raises(TypeError, match="flow_start: expected True or False, got str 'x'"):
+        ImageMotionEstimator(flow_start="x")
+    with pytest.raises(TypeError, match=r"options: options \['starts'\] are set by the caller itself"):
+        ImageMotionEstimator(starts=[])
+
+
+def test_gate_arguments_named():
+    from fsof_torch.refinement.gate import ImageGate
+
+    pred, mask, _, gt = make_case()
+    image = torch.rand(1, 3, H, W) * 255
+    gate = ImageGate()
+    with pytest.raises(TypeError, match="image1: expected a torch.Tensor, got int"):
+        gate(5, image, pred, gt.float(), mask)  # once an AttributeError
+    with pytest.raises(ValueError, match=r"model: expected shape \(B, 2, H, W\) with W=119"):
+        gate(image[..., :-1], image[..., :-1], pred[..., :-1], gt.float(), mask)  # once an IndexError
+    with pytest.raises(TypeError, match="mask: expected a bool tensor .* got dtype torch.uint8"):
+        gate(image, image, pred, gt.float(), mask.to(torch.uint8))  # once accepted
+    with pytest.raises(ValueError, match="image1: expected 1 or 3 channels"):
+        gate(image[:, :2], image[:, :2], pred, gt.float(), mask)
+    with pytest.raises(ValueError, match="prediction: a tensor on the meta device has shapes but no values to judge"):
+        gate(image.to("meta"), image.to("meta"), pred.to("meta"), gt.float().to("meta"), mask.to("meta"))
+
+
+def test_cauchy_weight_and_resize_mask_check_their_arguments():
+    """Once a list or None reached the arithmetic (TypeError or AttributeError without a name)."""
+    r2 = torch.tensor([0.0, 4.0])
+    torch.testing.assert_close(cauchy_weight(r2, 2.0), torch.tensor([1.0, 0.5]))
+    for bad, error, message in [([1.0], TypeError, "residual_sq: expected a torch.Tensor, got list"),
+                                (None, TypeError, "residual_sq: expected a torch.Tensor, got NoneType")]:
+        with pytest.raises(error, match=message):
+            cauchy_weight(bad, 2.0)
+    for scale, error in [(0.0, ValueError), (float("nan"), ValueError), ("2", TypeError), (None, TypeError)]:
+        with pytest.raises(error, match="scale: expected"):
+            cauchy_weight(r2, scale)
+    mask = torch.ones(1, 1, 4, 6, dtype=torch.bool)
+    assert resize_mask(mask, (2, 3)).shape == (1, 1, 2, 3)
+    with pytest.raises(TypeError, match="mask: expected a bool tensor .* got list"):
+        resize_mask([[True]], (2, 3))
+    with pytest.raises(TypeError, match="mask: expected a bool tensor .* got dtype torch.float32"):
+        resize_mask(mask.float(), (2, 3))
+    with pytest.raises(ValueError, match=r"size: expected positive sides \(H, W\), got \(0, 3\)"):
+        resize_mask(mask, (0, 3))
+    with pytest.raises(TypeError, match="size: expected"):
+        resize_mask(mask, None)

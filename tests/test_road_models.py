@@ -295,3 +295,5 @@ def test_bad_inputs_name_the_argument():
         road_flow(Camera(torch.tensor(K_SMALL), 1.65), {"x_d": 1e37}, SIZE)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
         road_flow("cam", {"z_d": 1.0}, SIZE)
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera, got list"):
+        plane_from_pose(torch.eye(4, dtype=torch.float64)[None], [1.0, 2.0])  # once an AttributeError

@@ -332,6 +332,22 @@ class TestDetectFreespace:
             detect_freespace(flow, cam, bottom_rows=0)
         with pytest.raises(ValueError, match="camera: expected batch 1 or 1"):
             detect_freespace(flow, _camera(B=2))
+        with pytest.raises(TypeError, match="fit_roll: expected True or False, got str 'yes'"):
+            detect_freespace(flow, cam, fit_roll="yes")
+        with pytest.raises(TypeError, match="fit_options: expected None or a dict with string keys, got int 5"):
+            detect_freespace(flow, cam, fit_options=5)
+
+    def test_meta_device_needs_values(self):
+        """The detection and the V-flow curve are fits: a named error on the meta device, where
+        the V-flow map itself infers shapes."""
+        cam, flow, valid, road = self._scene(B=2)
+        meta = flow.to("meta")
+        with pytest.raises(ValueError, match="flow: a tensor on the meta device has shapes but no values to detect"):
+            detect_freespace(meta, cam)
+        with pytest.raises(ValueError, match="flow: a tensor on the meta device has shapes but no values to fit the V-flow"):
+            fit_vflow_curve(meta, valid.to("meta"))
+        hist, edges = vflow_map(meta, valid.to("meta"), bins=16)
+        assert hist.device.type == "meta" and hist.shape == (2, SIZE[0], 16) and edges.shape == (17,)
 
     @pytest.mark.parametrize("fill", [0.0, float("nan")])
     def test_undeterminable_flow_gives_empty_failed_result(self, fill):

@@ -26,7 +26,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import autocast_off, check_float_tensor, check_shape, result_dtype
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+                      check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import ROAD_MODELS, RoadModel, get_road_model, mounting_products, plane_from_homography
@@ -451,6 +452,13 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     """
     model = get_road_model(model)
     check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
+    check_bool(polish, "polish")
+    check_int(check_every, "check_every", minimum=1, optional=True)
+    fixed, prior = check_names(fixed, "fixed"), check_mapping(prior, "prior")
+    if init is not None and not isinstance(init, (Mapping, RoadFit)):
+        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
+    for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
+        check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow, camera.K)
@@ -551,6 +559,7 @@ def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bo
         >>> round(float(fit.z_d), 6), bool(fit.success)
         (1.0, True)
     """
+    check_fit_flags("fit_displacement", fit_roll, fit_pitch, options)
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     if isinstance(init, RoadFit) and init.model != "paper":
         raise ValueError(f"init: expected a fit of the 'paper' model, got one of {init.model!r}")
@@ -568,6 +577,7 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     ``init`` may give a steering angle instead of a yaw rate. ``scale``: the kernel's scale in
     px/s (default 10 px/s: 1 px at 10 Hz).
     """
+    check_fit_flags("fit_velocity", fit_roll, fit_pitch, options)
     wb = _wheelbase(wheelbase, flow)
     if isinstance(init, Mapping) and init.get("steering") is not None and init.get("yaw_rate") is None:
         init = dict(init)
@@ -620,13 +630,24 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual`` says how
         far the homography is from any rigid road motion, in grid pixels).
     """
-    if not isinstance(H, Tensor) or H.dim() != 3 or H.shape[-2:] != (3, 3):
-        raise ValueError(f"H: expected shape (B, 3, 3), got {tuple(H.shape) if isinstance(H, Tensor) else type(H).__name__}")
+    check_float_tensor(H, "H")
+    check_shape(H, "H", ("B", 3, 3))
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     B = H.shape[0]
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch 1 or {B} (H's B), got {camera.batch_size}")
+    check_int(size, "size", minimum=8)
+    check_has_values(H, "H", "to decompose (the decomposition is a fit)")
+    check_has_values(camera.K, "camera", "to decompose a homography (the decomposition is a fit)")
+    if B == 0:
+        raise ValueError("H: expected a non-empty batch, got shape (0, 3, 3)")
+    H64 = H.detach().to(torch.float64)
+    usable = torch.isfinite(H64).all((1, 2)) & (H64[:, 2, 2] != 0) & (torch.linalg.det(H64).abs() > 0)
+    if not bool(usable.all()):
+        bad = (~usable).nonzero().flatten().tolist()
+        raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
+                         f"that are not: {H64[bad[0]].tolist()}")
     cam = camera.to(torch.float64).expand(B).to(device=H.device)
     # a virtual image around the principal point, scaled so that its longer side is ``size``
     w0 = 2.0 * float(cam.cx.max()) + 1.0

@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._check import check_bool, check_has_values, check_mapping
 from ..geometry.camera import Camera
 from .flow_fit import fit_displacement
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
@@ -113,10 +114,14 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
                              ("refits", refits, 0)):
         if isinstance(value, bool) or not isinstance(value, int) or value < low:
             raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    for name, value in (("fit_roll", fit_roll), ("fit_pitch", fit_pitch), ("return_details", return_details)):
+        check_bool(value, name)
+    curve_options, fit_options = check_mapping(curve_options, "curve_options"), check_mapping(fit_options, "fit_options")
+    check_has_values(flow, "flow", "to detect freespace in (the detection fits the road model)")
     use = use & torch.isfinite(flow).all(dim=1, keepdim=True)
     flow_safe = torch.where(use, flow, torch.zeros_like(flow))
 
-    curve = fit_vflow_curve(flow_safe, use, model="displacement", **(curve_options or {}))
+    curve = fit_vflow_curve(flow_safe, use, model="displacement", **curve_options)
     fv = flow_safe[:, 1:2].to(curve.fitted.dtype)
     seed_tol = torch.clamp(seed_relative_threshold * curve.fitted.abs(), min=float(seed_threshold))
     seed = use & curve.fitted_valid & ((fv - curve.fitted).abs() <= seed_tol)
@@ -124,7 +129,7 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     camera = camera.expand(B) if camera.batch_size != B else camera
     # The fit's robust scale is the same statement about the flow's noise as the threshold.
     fit_kw = dict(fit_roll=fit_roll, fit_pitch=fit_pitch, scale=max(float(threshold), 1e-3))
-    fit_kw.update(fit_options or {})
+    fit_kw.update(fit_options)
     fit = fit_displacement(flow_safe, seed, camera, **fit_kw)
     agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
     for _ in range(refits):

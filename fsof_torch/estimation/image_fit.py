@@ -39,7 +39,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import autocast_off, check_float_tensor, check_shape, result_dtype
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+                      check_mapping, check_names, check_number, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
@@ -240,6 +241,22 @@ def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
     return dims, mask
 
 
+def _check_bounds(bounds: object, model: RoadModel, B: int) -> None:
+    """``"physical"``, None, or ``(lower, upper)`` float tensors (B, P) in the model's order."""
+    if bounds is None or (isinstance(bounds, str) and bounds == "physical"):
+        return
+    P = len(model.params)
+    if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
+        raise TypeError(f"bounds: expected 'physical', None or (lower, upper) tensors of shape ({B}, {P}), got {bounds!r}")
+    for name, t in zip(("lower", "upper"), bounds):
+        check_float_tensor(t, f"bounds ({name})")
+        if tuple(t.shape) != (B, P):
+            raise ValueError(f"bounds ({name}): expected shape ({B}, {P}) (batch, the {model.name!r} model's "
+                             f"parameters {model.params}), got {tuple(t.shape)}")
+    if not bool((bounds[0] <= bounds[1]).all()):
+        raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
+
+
 def _start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
     """Start values (B, P) float64: ``init`` over zero motion (the base), then each of ``starts``
     over the base (a start gives some parameters; the others are the base's)."""
@@ -315,9 +332,33 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     check_kernel(robust)
     check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
                       min_points, min_inlier_fraction)
-    if not 0.0 < float(gradient_fraction) <= 1.0:
+    check_int(levels, "levels", minimum=1, optional=True)
+    check_int(min_size, "min_size", minimum=2)
+    check_int(band_levels, "band_levels", minimum=0)
+    check_int(check_every, "check_every", minimum=1, optional=True)
+    check_number(resolution, "resolution", nonnegative=True)
+    check_number(smooth_sigma, "smooth_sigma", nonnegative=True)
+    if highpass is not None:
+        check_number(highpass, "highpass", nonnegative=True)
+    if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
         raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
+    check_bool(affine, "affine")
+    fixed = check_names(fixed, "fixed")
+    if isinstance(prior, str) and prior != "calibration":
+        raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
+    if not isinstance(prior, str):
+        prior = check_mapping(prior, "prior")
+    if init is not None and not isinstance(init, (Mapping, RoadFit)):
+        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
+    if not isinstance(starts, (list, tuple)):
+        raise TypeError(f"starts: expected a list of starts (dicts of parameters or fits), got {type(starts).__name__}")
+    for x in starts:
+        if not isinstance(x, (Mapping, RoadFit)):
+            raise TypeError(f"starts: expected dicts of parameters or fits, got an element {type(x).__name__} {x!r}")
+    for name, t in (("image1", image1), ("image2", image2), ("mask", mask), ("camera", getattr(camera, "K", None))):
+        check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, mask = _check_images(image1, image2, mask, camera, data_range)
+    _check_bounds(bounds, model, dims["B"])
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(image1, camera.K)
     dev = image1.device
@@ -568,6 +609,7 @@ def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera
     bounds, every road pixel (up to 40 000 per level), intensities at every level smoothed by σ = 1, pyramid levels
     down to 24 pixels and 20 iterations per level unless given. Other options as there.
     """
+    check_fit_flags("fit_photometric", fit_roll, fit_pitch, options)
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     if isinstance(init, RoadFit) and init.model != "paper":
         raise ValueError(f"init: expected a fit of the 'paper' model, got one of {init.model!r}")

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, result_dtype
+from .._check import check_float_tensor, check_has_values, check_shape, result_dtype
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -290,6 +290,7 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
             raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
     dims, _ = check_flow_mask(flow, mask)
+    check_has_values(flow, "flow", "to fit the V-flow curve to (a robust fit reads values)")
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow)
     value, support = row_dominant_flow(flow, mask, statistic=statistic, bins=bins, max_flow=max_flow)

@@ -226,7 +226,13 @@ class Camera:
 
         A half precision dtype gives a float32 camera, as the constructor does; a cast to a
         narrower dtype checks the values against that dtype's bounds (:func:`camera_value_bounds`)."""
-        moved = [t.to(*args, **kwargs) for t in (self.K, self.height, self.roll, self.pitch)]
+        try:
+            moved = [t.to(*args, **kwargs) for t in (self.K, self.height, self.roll, self.pitch)]
+        except NotImplementedError:  # torch: "Cannot copy out of meta tensor; no data!"
+            if self.device.type != "meta":
+                raise
+            raise ValueError("camera: a camera on the meta device has shapes but no values to move to another "
+                             "device; build it there (or keep every input on meta)") from None
         if all(a is b for a, b in zip(moved, (self.K, self.height, self.roll, self.pitch))):
             return self
         # a cast to a non-float dtype goes through the checks (and fails there)

@@ -449,6 +449,8 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
     """
     from .egomotion import as_pose_4x4
 
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     T = as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     B = resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
     T = T.expand(B, 4, 4)

@@ -20,6 +20,8 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
+from .._check import (check_bool, check_float_tensor, check_has_values, check_keywords, check_mask, check_names,
+                      check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
 from ..estimation.image_fit import fit_image
 from ..geometry.camera import Camera
@@ -69,7 +71,9 @@ class FlowMotionEstimator:
     def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = ("roll", "pitch"),
                  **options: Any) -> None:
         self.model = get_road_model(model).name
-        self.fixed = None if fixed is None else tuple(fixed)
+        self.fixed = check_names(fixed, "fixed")
+        # (the options' values are checked by fit_road at the first call; their names now)
+        check_keywords(options, "options", fit_road, reserved=("model", "fixed", "init"))
         self.options = dict(options)
 
     def __call__(self, flow: Tensor, mask: Tensor, camera: Camera, *, images: Any = None,
@@ -108,7 +112,8 @@ class ImageMotionEstimator:
         self.model = get_road_model(model).name
         if get_road_model(model).velocity:
             raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
-        self.flow_start = bool(flow_start)
+        self.flow_start = check_bool(flow_start, "flow_start")
+        check_keywords(options, "options", fit_image, reserved=("model", "starts"))
         self.options = dict(options)
 
     def __call__(self, flow: Tensor | None, mask: Tensor, camera: Camera, *,
@@ -116,7 +121,20 @@ class ImageMotionEstimator:
                  starts: Sequence[Any] = ()) -> RoadFit:
         if images is None:
             raise ValueError("images: ImageMotionEstimator needs images=(image1, image2), got None")
+        if not isinstance(images, (tuple, list)) or len(images) != 2:
+            raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
         image1, image2 = images
+        check_has_values(image1, "image1", "to fit (a fit is iterative and data dependent)")
+        if not isinstance(camera, Camera):
+            raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+        check_mask(mask, "mask")
+        if flow is not None:  # (the flow is only a start: fit_image checks the rest)
+            dims = check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"))
+            for name, image in (("image1", image1), ("image2", image2)):
+                check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims)
+            if mask.dim() != 4 or mask.shape[0] not in (1, dims["B"]) or tuple(mask.shape[1:]) != (1, dims["H"], dims["W"]):
+                raise ValueError(f"mask: expected shape ({dims['B']}, 1, {dims['H']}, {dims['W']}) (the flow's; batch 1 "
+                                 f"is broadcast), got {tuple(mask.shape)}")
         options = dict(self.options)
         starts = list(starts)
         fixed = options.pop("fixed", None)

@@ -33,16 +33,17 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import as_batch_param, check_float_tensor, skip_values, tracing
+from .._check import (as_batch_param, check_float_tensor, check_has_values, check_mask, check_names, check_number,
+                      check_shape, check_size, skip_values, tracing)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion
-from .auto_road import detect_road_padded, refine_with_auto_road
+from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
+from .options import FITS, MODES, check_refine_options
 from .contracts import (
     DEFAULT_FLOW_KEYS,
-    InputPadder,
     collect_flows,
     finest_flow,
     images_from_ptlflow,
@@ -54,15 +55,13 @@ __all__ = [
     "DEFAULT_FLOW_KEYS",
     "RefineOutput",
     "FreespaceRefiner",
-    "FreespaceRefined",
     "cauchy_weight",
     "fuse_flow",
     "refine_flow",
     "resize_mask",
 ]
 
-_MODES = ("replace", "confidence")
-_FITS = ("flow", "photometric")  # (the older estimator choice)
+_MODES, _FITS = MODES, FITS
 
 
 class RefineOutput(NamedTuple):
@@ -108,8 +107,12 @@ def cauchy_weight(residual_sq: Tensor, scale: float) -> Tensor:
     """Cauchy (Lorentzian) weight ``w = 1 / (1 + r² / c²)`` of squared residuals ``r²`` (px²).
 
     This is ρ'(r) / r for ρ(r) = c²/2 · log(1 + r²/c²): 1 at agreement, 1/2 at r = c, → 0 for
-    large disagreement. Written on r² so the gradient is finite at r = 0.
+    large disagreement. Written on r² so the gradient is finite at r = 0. Elementwise: a NaN
+    residual gives a NaN weight, as ``torch`` functions do.
     """
+    check_float_tensor(residual_sq, "residual_sq")
+    if not isinstance(scale, Tensor):  # (a tensor scale is elementwise, like the residuals)
+        check_number(scale, "scale", positive=True)
     return 1.0 / (1.0 + residual_sq / (scale * scale))
 
 
@@ -200,8 +203,9 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
     then ``== 1``): a coarse road pixel never straddles a car's edge. Growing uses exact nearest
     neighbour.
     """
+    check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"))
+    h, w = check_size(size, "size")
     H, W = mask.shape[-2:]
-    h, w = size
     if (h, w) == (H, W):
         return mask
     m = mask.to(torch.float32)
@@ -326,10 +330,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     Non-finite predicted values: they are left out of the estimation; inside the mask the model
     replaces them (both modes); outside the mask they are returned as they came.
     """
-    if mode not in _MODES:
-        raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    if not (scale > 0 and math.isfinite(scale)):
-        raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+                         flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
+                         fit_options=fit_options, photometric_options=photometric_options, starts=starts)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
@@ -338,7 +341,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             road_estimator=images and _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options),
             estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
             fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
-    flow_keys = tuple(flow_keys)
+    flow_keys = check_names(flow_keys, "flow_keys")
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
@@ -369,7 +372,10 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
 
     # One reduction settles the common case (a NaN or inf anywhere makes the sum non-finite;
     # so may an overflow, which then takes the per-pixel path): no full-size test and no copy.
-    all_finite = not tracing() and bool(torch.isfinite(finest.detach().sum()))
+    # (no host reads while tracing or on meta tensors, which have no values: nothing to warn about)
+    no_values = skip_values(finest)
+    all_finite = not no_values and bool(torch.isfinite(finest.detach().sum()))
+    warn = warn and not no_values
     if all_finite:
         fit_mask = mask
     else:
@@ -413,7 +419,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
 
     # (a broadcast & over the whole mask is slow on CPU: only when some sample is left out)
     def usable(m: Tensor, ok: Tensor) -> Tensor:
-        return m if not tracing() and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
+        return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
     if fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model):
         # The estimate evaluated this very model flow at the finest size (same parameters): reuse
@@ -474,6 +480,9 @@ def _needs_grad(camera: Camera) -> bool:
         t.requires_grad for t in (camera.K, camera.height, camera.roll, camera.pitch))
 
 
+# Estimation is iterative, data dependent and detached: under torch.compile it runs eagerly, and the
+# geometry and fusion around it compile (tests/test_fusion_backends.py, docs/reliability.md).
+@torch.compiler.disable
 def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
               images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
@@ -482,6 +491,8 @@ def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, 
     model name, camera with the estimated roll and pitch)``; samples not estimated get zero
     motion and success False.
     """
+    check_has_values(finest, "flow", "to estimate the road's motion from (for shape inference on the meta "
+                     "device pass odometry=: planar odometry without images, or a model's full motion)")
     B = finest.shape[0]
     dtype, device = camera.dtype, camera.device
     if not bool(refined.any()):
@@ -546,20 +557,9 @@ class FreespaceRefiner(nn.Module):
                  fit_options: Mapping[str, Any] | None = None,
                  photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
-        if mode not in _MODES:
-            raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-        if fit not in (None, *_FITS):
-            raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
-        if estimator is not None and fit is not None:
-            raise ValueError("fit: give an estimator or fit=, not both")
-        if estimator is not None and not callable(estimator):
-            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
-        if gate not in ("auto", None) and not isinstance(gate, ImageGate):
-            raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
-        if not (float(scale) > 0 and math.isfinite(float(scale))):
-            raise ValueError(f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
-        if int(min_pixels) < 1:
-            raise ValueError(f"min_pixels: expected >= 1, got {min_pixels!r}")
+        check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+                             flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
+                             fit_options=fit_options, photometric_options=photometric_options)
         self.estimator = estimator
         self.gate = gate
         self.mode = mode
@@ -570,8 +570,8 @@ class FreespaceRefiner(nn.Module):
         self.fit_options = dict(fit_options or {})
         self.photometric_options = dict(photometric_options or {})
         self.min_pixels = int(min_pixels)
-        self.flow_keys = tuple(flow_keys)
-        self.warn = bool(warn)
+        self.flow_keys = check_names(flow_keys, "flow_keys")
+        self.warn = warn
 
     def forward(self, flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
@@ -585,116 +585,3 @@ class FreespaceRefiner(nn.Module):
         extra = f", scale={self.scale}" if self.mode == "confidence" else ""
         how = f"fit={self.fit!r}" if self.fit is not None else f"estimator={self.estimator!r}"
         return f"mode={self.mode!r}{extra}, {how}, gate={self.gate!r}"
-
-
-class FreespaceRefined(nn.Module):
-    """A flow network with freespace refinement attached: a drop-in replacement for ``net``.
-
-    Args:
-        net: a flow network, called as it expects to be called (see
-            :mod:`fsof_torch.refinement.contracts`): ``net(image1, image2, **kw)`` (RAFT,
-            torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
-            dict. It may return any structure :func:`refine_flow` accepts.
-        refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
-        road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two images).
-        road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`.
-        pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
-            sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
-            so that its ``flow_small`` is refined on its true grid). The images are padded before
-            the net, the mask (with False) and the camera (:meth:`Camera.padded`) the same way;
-            the output is refined on the padded grid, so a coarse level such as ``flow_small``
-            (1/8 of the padded size) gets the padded camera scaled to it; then every output tensor
-            of the padded full size is cropped back to the input size. Coarser levels stay on
-            their padded grid, as the network returned them.
-        image_range: ``(low, high)`` of the images passed as two tensors (the net's convention:
-            (0, 255) for RAFT and TinyRAFT, (-1, 1) for torchvision's weights' transforms); the
-            refiner's photometric fit reads them as 0..255. ptlflow dicts are BGR in [0, 1].
-
-    Forward: ``model(image1, image2, *, camera, mask=None, odometry=None, return_info=False, **kw)``
-    or ``model(inputs, *, camera, ...)`` with a ptlflow dict. Returns the net's output with its
-    forward flows refined (same structure), or ``(output, RefineOutput)`` with
-    ``return_info=True``. The mask (B, 1, H, W) bool and the camera refer to the input images'
-    size. With ``pad`` the RefineOutput's maps are cropped to the input size and its camera
-    is the input's (the padding undone).
-    """
-
-    def __init__(self, net: nn.Module, refiner: FreespaceRefiner | None = None, *,
-                 road: str | None = None, road_options: Mapping[str, Any] | None = None,
-                 pad: InputPadder | None = None, image_range: tuple[float, float] = (0.0, 255.0)) -> None:
-        super().__init__()
-        if not callable(net):
-            raise TypeError(f"net: expected a callable flow network, got {type(net).__name__}")
-        if refiner is not None and not isinstance(refiner, FreespaceRefiner):
-            raise TypeError(f"refiner: expected a FreespaceRefiner, got {type(refiner).__name__}")
-        if road not in (None, "auto"):
-            raise ValueError(f"road: expected None or 'auto', got {road!r}")
-        if pad is not None and not isinstance(pad, InputPadder):
-            raise TypeError(f"pad: expected an InputPadder or None, got {type(pad).__name__}")
-        lo, hi = (float(v) for v in image_range)
-        if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
-            raise ValueError(f"image_range: expected finite (low, high) with high > low, got {image_range!r}")
-        self.net = net
-        self.refiner = refiner if refiner is not None else FreespaceRefiner()
-        self.road = road
-        self.road_options = dict(road_options or {})
-        self.pad = pad
-        self.image_range = (lo, hi)
-
-    def forward(self, *inputs: Any, camera: Camera, mask: Tensor | None = None, odometry: object = None,
-                return_info: bool = False, **kw: Any):
-        if len(inputs) == 1 and is_ptlflow_inputs(inputs[0]):
-            net_inputs = dict(inputs[0])
-            image1, image2 = images_from_ptlflow(net_inputs)  # (validates the dict)
-            size = tuple(image1.shape[-2:])
-            padding = self.pad.padding(size) if self.pad is not None else None
-            if padding is not None:
-                net_inputs["images"] = padding.pad(net_inputs["images"], mode=self.pad.pad_mode)
-            output = self.net(net_inputs, **kw)
-        elif len(inputs) == 2:
-            image1, image2 = inputs
-            for name, im in (("image1", image1), ("image2", image2)):
-                check_float_tensor(im, name)
-                if im.dim() != 4:
-                    raise ValueError(f"{name}: expected shape (B, C, H, W), got {tuple(im.shape)}")
-            size = tuple(image1.shape[-2:])
-            padding = self.pad.padding(size) if self.pad is not None else None
-            if padding is not None:
-                output = self.net(padding.pad(image1, mode=self.pad.pad_mode),
-                                  padding.pad(image2, mode=self.pad.pad_mode), **kw)
-            else:
-                output = self.net(image1, image2, **kw)
-            lo, hi = self.image_range
-            if (lo, hi) != (0.0, 255.0):
-                image1, image2 = ((im - lo) * (255.0 / (hi - lo)) for im in (image1, image2))
-        else:
-            raise TypeError(f"inputs: expected (image1, image2) or one ptlflow dict {{'images': ...}}, "
-                            f"got {len(inputs)} positional argument(s)")
-        if padding is not None and padding.is_zero:
-            padding = None
-        if padding is not None:
-            camera = padding.camera(camera)
-            image1, image2 = (padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
-            if mask is not None:
-                if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
-                    raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {getattr(mask, 'dtype', type(mask).__name__)}")
-                if tuple(mask.shape[-2:]) != size:
-                    raise ValueError(f"mask: expected the images' size {size}, got shape {tuple(mask.shape)}")
-                mask = padding.pad(mask)
-        if mask is None and self.road != "auto":
-            raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
-                             "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
-        road = None if mask is not None else detect_road_padded(padding, image1, image2, camera, finest_flow(
-            collect_flows(output, "output", self.refiner.flow_keys))[1], **self.road_options)  # (images as they came)
-        if road is not None:  # its mask, and its motion unless the caller's odometry is given
-            mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
-        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))._replace(road=road)
-        if padding is None:
-            return (info.flow, info) if return_info else info.flow
-        padded_size = padding.padded_size(size)
-        flow = padding.unpad_output(info.flow, padded_size)
-        if not return_info:
-            return flow
-        info = info._replace(flow=flow, weight=padding.unpad(info.weight), mask=padding.unpad(info.mask),
-                             flow_model=padding.unpad(info.flow_model),
-                             camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
-        return flow, info

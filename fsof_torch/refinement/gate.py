@@ -35,6 +35,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._check import check_float_tensor, check_has_values, check_mask, check_shape
 from ..estimation.sampling import sample_mask
 
 __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
@@ -185,6 +186,20 @@ class ImageGate:
     @torch.no_grad()
     def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
                  mask: Tensor) -> GateResult:
+        """Judge ``prediction`` against ``model`` (each (B, 2, H, W) px) by ``image1`` and ``image2``
+        (B, 1 or 3, H, W) on 0..255 inside ``mask`` (B, 1, H, W) bool. Values are not checked
+        (nothing is read back to the host): a point where an image or a flow is not finite gives no
+        evidence either way. The gate samples the mask's pixels (data dependent): on the meta
+        device it raises a ValueError."""
+        dims = check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"))
+        check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
+        for name, image in (("image1", image1), ("image2", image2)):
+            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims)
+            if image.shape[1] not in (1, 3):
+                raise ValueError(f"{name}: expected 1 or 3 channels (grey or RGB), got shape {tuple(image.shape)}")
+        check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"), dims)
+        check_has_values(prediction, "prediction", "to judge by the images (the gate samples the mask's pixels; "
+                         "a refiner with gate=None infers shapes on the meta device)")
         B, _, H, W = prediction.shape
         work = torch.promote_types(prediction.dtype, torch.float32)
         g1, g2 = _grey(image1.detach().to(work)), _grey(image2.detach().to(work))

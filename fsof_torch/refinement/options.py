@@ -1,0 +1,50 @@
+"""The options of the refiner (:func:`~fsof_torch.refinement.fusion.refine_flow` and
+:class:`~fsof_torch.refinement.fusion.FreespaceRefiner`), checked in one place before any work:
+a named ``TypeError`` / ``ValueError`` quoting what came, also for the options it forwards to the
+fits (checked against the receiving function's signature)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from .._check import check_bool, check_int, check_keywords, check_mapping, check_names, check_number
+from ..estimation.flow_fit import fit_road
+from ..estimation.image_fit import fit_image
+from .gate import ImageGate
+
+__all__ = ["MODES", "FITS", "check_refine_options"]
+
+#: How the model flow and the prediction are fused.
+MODES = ("replace", "confidence")
+#: The older way to choose the estimator (``fit=``).
+FITS = ("flow", "photometric")
+
+
+def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: object, min_pixels: object,
+                         flow_keys: object, warn: object, fit: object, fit_roll: object, fit_pitch: object,
+                         fit_options: object, photometric_options: object, starts: object = ()) -> None:
+    """The options of :func:`refine_flow` and :class:`FreespaceRefiner` (named errors, quoting
+    what came), checked before any work."""
+    if mode not in MODES:
+        raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    check_number(scale, "scale", positive=True)
+    check_int(min_pixels, "min_pixels", minimum=1)
+    check_names(flow_keys, "flow_keys")
+    check_bool(warn, "warn")
+    check_bool(fit_roll, "fit_roll")
+    check_bool(fit_pitch, "fit_pitch")
+    if fit not in (None, *FITS):
+        raise ValueError(f"fit: expected one of {FITS} or None, got {fit!r}")
+    if estimator is not None and fit is not None:
+        raise ValueError("fit: give an estimator or fit=, not both")
+    if estimator is not None and not callable(estimator):
+        raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    if not isinstance(starts, (list, tuple)):
+        raise TypeError(f"starts: expected a list of start candidates (dicts or fits), got {type(starts).__name__}")
+    if not (gate is None or isinstance(gate, ImageGate) or (isinstance(gate, str) and gate == "auto")):
+        raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
+    # the options of the older fit= choice go to fit_road / fit_image with these set by the refiner
+    check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road,
+                   reserved=("model", "fixed", "init"))
+    check_keywords(check_mapping(photometric_options, "photometric_options"), "photometric_options", fit_image,
+                   reserved=("model", "fixed", "starts"))
