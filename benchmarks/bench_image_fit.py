@@ -1,0 +1,100 @@
+"""Speed of the road-motion estimate from two images at 1242 × 375, one thread, beside OpenCV DIS
+(MEDIUM) in the same run, and of the image operations the fit takes from OpenCV on the CPU
+against their torch / kornia equivalents.
+
+Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
+
+- DIS (the reference), ``fit_image`` (the default ``"plane"`` fit), the default refiner with the
+  images (estimation, model flow, gate, fusion), and the gate alone;
+- a Gaussian blur σ = 4 (the band-pass) and the pyramid's decimation: OpenCV against kornia /
+  torch (the fast paths ``gaussian_blur`` and ``image_pyramid`` take on the CPU).
+
+    python benchmarks/bench_image_fit.py [--repeats 15]
+
+Uses the shared KITTI clip's first pair when ``../shared`` is there, else a synthetic pair.
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry_straight"
+
+
+def pair():
+    import fsof_torch as fs
+
+    if SHARED.is_dir():
+        files = sorted((SHARED / "image_l").glob("*.png"))
+        im1, im2 = fs.read_image(files[0]), fs.read_image(files[1])
+        road = fs.read_road_mask(SHARED / "road.json", size=tuple(im1.shape[-2:]))
+        return im1, im2, road, fs.Camera.from_kitti(SHARED / "calib.txt", cam=0, height=1.65), "KITTI clip pair 0"
+    p = fs.render_pair("default", 0)
+    return p["image1"], p["image2"], p["road"], p["camera"], "synthetic default pair 0"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=15)
+    args = parser.parse_args()
+    import cv2
+    from kornia.filters import gaussian_blur2d
+
+    import fsof_torch as fs
+    from fsof_torch.estimation.image_fit import gaussian_blur, image_pyramid
+    from refine.sources import dis_flow
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    warnings.simplefilter("ignore")
+    im1, im2, road, cam, what = pair()
+    I1, I2, M = im1[None], im2[None], road[None]
+    flow = dis_flow(im1, im2)[None]
+    refiner = fs.FreespaceRefiner()
+    out = refiner(flow, M, cam, images=(I1, I2))
+    gate = fs.ImageGate()
+    grey = torch.cat([I1.mean(1, keepdim=True), I2.mean(1, keepdim=True)], 1)
+    k = 2 * int(np.ceil(3 * 4.0)) + 1
+    taps = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
+
+    def torch_decimate(x):
+        x = F.conv2d(F.pad(x.reshape(-1, 1, *x.shape[-2:]), (2, 2, 0, 0), mode="reflect"), taps.reshape(1, 1, 1, 5))
+        x = F.conv2d(F.pad(x, (0, 0, 2, 2), mode="reflect"), taps.reshape(1, 1, 5, 1))
+        return x[..., ::2, ::2]
+
+    rows = {
+        "DIS (MEDIUM), the reference": lambda: dis_flow(im1, im2),
+        "fit_image (plane, defaults)": lambda: fs.fit_image(I1, I2, M, cam),
+        "FreespaceRefiner() with the images": lambda: refiner(flow, M, cam, images=(I1, I2)),
+        "ImageGate() alone": lambda: gate(I1, I2, flow, out.flow_model, M),
+        "Gaussian blur σ 4, OpenCV": lambda: gaussian_blur(grey, 4.0),
+        "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),
+        "pyramid, 5 levels, OpenCV": lambda: image_pyramid(grey, 5, 0.0),
+        "pyramid, 5 levels, torch": lambda: [x := grey] + [x := torch_decimate(x) for _ in range(4)],
+    }
+    times = {name: [] for name in rows}
+    for name, fn in rows.items():
+        fn()
+    for _ in range(args.repeats):
+        for name, fn in rows.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    ref = np.median(times["DIS (MEDIUM), the reference"])
+    print(f"{what}, {tuple(im1.shape[-2:])}, one thread, {args.repeats} interleaved repeats\n")
+    print("| row | median ms | min ms | median / DIS |")
+    print("|---|---|---|---|")
+    for name, t in times.items():
+        t = np.array(t) * 1e3
+        print(f"| {name} | {np.median(t):.1f} | {t.min():.1f} | {np.median(t) / (ref * 1e3):.2f} |")
+
+
+if __name__ == "__main__":
+    main()
