@@ -241,6 +241,19 @@ def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
     assert rec["pitch"] == pytest.approx(math.radians(pitch), abs=1e-9) or rec["refined"] is False
 
 
+def test_calibrate_pitch_with_auto_road(tmp_path, user_folder, scene_pairs):
+    """--calibrate-pitch with --road auto: the clip's masks are found in the images first."""
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", "auto", "--source", "dis", "--odometry", "photometric",
+                 "--calibrate-pitch")
+    assert main(args) == 0
+    summary = json.loads((out / "report.json").read_text())
+    true = math.degrees(float(scene_pairs[0]["camera"].pitch[0]))
+    assert abs(summary["calibrated_mounting"]["pitch_deg"] - true) < 1.0
+    rec = json.loads((out / "dis" / "photometric" / "pairs" / "000000.json").read_text())
+    assert rec["road"] == "auto" and "road_flag" in rec
+
+
 def test_stale_temporaries_are_removed(tmp_path):
     """A SIGKILL mid-write leaves hidden temporaries; the next run into the folder removes them."""
     out = tmp_path / "out"
