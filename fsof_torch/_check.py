@@ -348,3 +348,14 @@ def as_chw_flow(flow: object, name: str) -> Tensor:
     if flow.dim() != 3 or flow.shape[0] != 2 or flow.shape[1] == 0 or flow.shape[2] == 0:
         raise ValueError(f"{name}: expected shape (2, H, W), got {tuple(flow.shape)}")
     return flow
+
+
+def check_image_pair(image1: object, image2: object) -> dict[str, int]:
+    """Two frames (B, C, H, W) float of one shape, grey (C = 1) or RGB (C = 3): their dims."""
+    for name, img in (("image1", image1), ("image2", image2)):
+        check_float_tensor(img, name)
+    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
+    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
+    if dims["C"] not in (1, 3):
+        raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
+    return dims

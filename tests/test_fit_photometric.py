@@ -62,7 +62,7 @@ def test_exceptions():
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
     with pytest.raises(ValueError, match="image2: expected shape"):
         fit_photometric(image1, image2[..., :100], mask, cam)
-    with pytest.raises(ValueError, match="expected 1 or 3 channels"):
+    with pytest.raises(ValueError, match="expected 1 \\(grey\\) or 3 \\(RGB\\) channels"):
         fit_photometric(image1[:, :2], image2[:, :2], mask, cam)
     with pytest.raises(TypeError, match="mask: expected a bool tensor"):
         fit_photometric(image1, image2, mask.float(), cam)

@@ -39,7 +39,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_image_pair, check_int,
                       check_mapping, check_names, check_number, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
@@ -210,12 +210,7 @@ def _levels(H: int, W: int, levels: int | None, min_size: int) -> int:
 
 def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
                   data_range: float) -> tuple[dict, Tensor]:
-    for name, img in (("image1", image1), ("image2", image2)):
-        check_float_tensor(img, name)
-    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
-    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
-    if dims["C"] not in (1, 3):
-        raise ValueError(f"image1: expected 1 or 3 channels, got {dims['C']}")
+    dims = check_image_pair(image1, image2)
     if dims["B"] == 0 or dims["H"] < 2 or dims["W"] < 2:
         raise ValueError(f"image1: expected a non-empty batch of images of at least 2x2 pixels, got {tuple(image1.shape)}")
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:

@@ -425,14 +425,9 @@ def _region(good, bad, ok, testable, below, seed, focus: tuple[float, float] | N
 
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any]) -> dict[str, int]:
-    from .._check import check_data_range, check_image_range
+    from .._check import check_data_range, check_image_pair, check_image_range
 
-    for name, img in (("image1", image1), ("image2", image2)):
-        check_float_tensor(img, name)
-    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
-    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
-    if dims["C"] not in (1, 3):
-        raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
+    dims = check_image_pair(image1, image2)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
