@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -81,11 +82,13 @@ def options_of(options: dict[str, str] | str) -> Iterator[None]:
         yield
     except (ValueError, TypeError, FileNotFoundError) as err:
         argument, sep, rest = str(err).partition(": ")
-        option = options if isinstance(options, str) else options.get(argument) if sep else None
-        if option is None:
+        if not (sep and re.fullmatch(r"[a-z_0-9]+", argument)):
+            raise  # not a message about an argument: a bug, shown as such
+        if isinstance(options, str):
+            raise JobError(f"{options}: {err}") from None
+        if argument not in options:
             raise
-        rest = rest.replace("calib_size=(H, W)", "--calib-size HxW")
-        raise JobError(f"{option}: {rest}" if isinstance(options, dict) else f"{option}: {err}") from None
+        raise JobError(f"{options[argument]}: {rest.replace('calib_size=(H, W)', '--calib-size HxW')}") from None
 
 
 def _spec(name: str, dataset, i: int, options: dict[str, str] | str, identity: Callable[[], dict[str, Any]],
@@ -157,8 +160,8 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
                                      camera_dtype=torch.float64)
     names = [p.name for p in dataset.pairs]
     stems = {p.name: [p.image1.stem] for p in dataset.pairs}
-    with options_of("--flows"):
-        flow_files = match_files(flows, names, what="--flows", stems=stems) if flows is not None else {}
+    with options_of({"flows": "--flows"}):
+        flow_files = match_files(flows, names, what="flows", stems=stems) if flows is not None else {}
     specs = [_spec(p.name, dataset, i, USER_OPTIONS, _file_identity(dataset, i, flow_files.get(p.name)),
                    {"files": flow_files[p.name]} if p.name in flow_files else {})
              for i, p in enumerate(dataset.pairs)]

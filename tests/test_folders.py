@@ -151,6 +151,10 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
         ImageFolderDataset(tmp_path / "none")
     with pytest.raises(ValueError, match=r"^images: 1 image\(s\) given; a pair needs at least 2"):
         ImageFolderDataset([root / "images" / "000000.png"])
+    with pytest.raises(ValueError, match=r"^images: 4 frames make no pair \(i, i \+ step\) with step 4"):
+        ImageFolderDataset(root / "images", step=4)
+    with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40 but calib_size is for 12x40 images"):
+        ImageFolderDataset(root / "images", calib_size=(12, 40))
     with pytest.raises(FileNotFoundError, match=r"^calib: no calibration file at"):
         ImageFolderDataset(root / "images", tmp_path / "calib.txt")
     (tmp_path / "calib.bin").write_bytes(bytes(range(256)))

@@ -232,6 +232,8 @@ class ImageFolderDataset(Dataset):
             if len(self.frames) < 2:
                 raise ValueError(f"images: {len(self.frames)} image(s) given; a pair needs at least 2")
         pairs = frame_pairs(self.frames, step)
+        if not pairs:
+            raise ValueError(f"images: {len(self.frames)} frames make no pair (i, i + step) with step {step}")
         names = [n for n, _, _ in pairs]
         stems = {n: [self.frames[i].stem] for n, i, _ in pairs}
         self.dtype, self.ground_truth = dtype, ground_truth
@@ -292,7 +294,8 @@ class ImageFolderDataset(Dataset):
         H, W = self.size
         if self.calib_size is not None:
             if self.size != self.calib_size:
-                raise ValueError(f"images: {image.name} is {H}x{W} but the calibration {str(self.calib)!r} is for "
+                stated = f"the calibration {str(self.calib)!r}" if self.calib is not None else "calib_size"
+                raise ValueError(f"images: {image.name} is {H}x{W} but {stated} is for "
                                  f"{self.calib_size[0]}x{self.calib_size[1]} images; resize the images, or give the "
                                  f"calibration of this size")
             return
