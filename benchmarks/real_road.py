@@ -29,6 +29,7 @@ Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--no-
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import time
 import warnings
@@ -173,8 +174,8 @@ def road_errors(pair: dict, flow: Tensor, flow_dis: Tensor) -> dict[str, float]:
     errors = photometric_errors(pair["image1"][None], pair["image2"][None], combined, road, return_count=True)
     out = {kind: float(mean[0]) for kind, (mean, _) in errors.items()}
     out["n_census"] = int(errors["census"][1][0])
-    if pair.get("gt") is not None:
-        gt, valid = pair["gt"]
+    if pair.get("flow") is not None:
+        gt, valid = pair["flow"], pair["valid"]
         epe, n = endpoint_error(combined, gt[None].to(combined.dtype), road, valid[None], return_count=True)
         out["epe"], out["n_epe"] = float(epe[0]), int(n[0])
     return out
@@ -250,30 +251,30 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 def kitti15(root: Path, height: float) -> list[tuple[str, Callable[[], dict]]]:
     """The KITTI 2015 pair: images, camera (P_rect_02), road.json, ground truth."""
-    from refine.inputs import kitti15_pairs
+    from fsof_torch.datasets import KittiSampleDataset
 
-    specs, _ = kitti15_pairs(root, height=height)
-    return [(s.name, s.load) for s in specs]
+    dataset = KittiSampleDataset(root, camera_height=height, camera_dtype=torch.float64)
+    return [("kitti15_000000", lambda: dataset[0])]
 
 
 def odometry_clip(root: Path, height: float, pitch_deg: float) -> list[tuple[str, Callable[[], dict]]]:
     """The straight clip: every pair of consecutive images, with the relative pose
     inverse(P_{i+1}) @ P_i where poses.txt has both frames."""
     from fsof_torch import read_kitti_poses
-    from refine.inputs import user_pairs
+    from fsof_torch.datasets import ImageFolderDataset
 
-    specs, _ = user_pairs(images=root / "image_l", calib=root / "calib.txt", cam=0, height=height, roll_deg=0.0,
-                          pitch_deg=pitch_deg, poses=None, flows=None, road=str(root / "road.json"), gt=None)
+    dataset = ImageFolderDataset(root / "image_l", root / "calib.txt", cam=0, camera_height=height,
+                                 pitch=math.radians(pitch_deg), road=root / "road.json", camera_dtype=torch.float64)
     poses = read_kitti_poses(root / "poses.txt")
 
-    def loader(i: int, load: Callable[[], dict]) -> Callable[[], dict]:
+    def loader(i: int) -> Callable[[], dict]:
         def with_pose() -> dict:
-            pair = load()
+            pair = dataset[i]
             pair["relative_pose"] = torch.linalg.inv(poses[i + 1]) @ poses[i] if i + 1 < len(poses) else None
             return pair
         return with_pose
 
-    return [(s.name, loader(i, s.load)) for i, s in enumerate(specs)]
+    return [(p.name, loader(i)) for i, p in enumerate(dataset.pairs)]
 
 
 def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dict, progress: bool) -> dict:

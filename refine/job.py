@@ -189,11 +189,9 @@ def _to_device(pair: dict, device: str) -> dict:
     if device == "cpu":
         return pair
     out = dict(pair)
-    for k in ("image1", "image2", "road"):
+    for k in ("image1", "image2", "road", "flow", "valid"):
         if isinstance(out.get(k), Tensor):
             out[k] = out[k].to(device)
-    if out.get("gt") is not None:
-        out["gt"] = tuple(t.to(device) for t in out["gt"])
     return out
 
 
@@ -253,7 +251,7 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
             before: dict, flows: dict[str, Tensor], maps: dict[str, dict]) -> None:
     from fsof_torch.evaluation.figures import pair_figure, save_figure
 
-    gt = pair.get("gt") is not None
+    gt = pair.get("flow") is not None
     columns = {f"before ({source})": (pred, before)}
     columns.update({f"after, odometry '{v}'": (flows[v], maps[v]) for v in flows})
     cpu = lambda t: t.detach().cpu()  # noqa: E731

@@ -103,8 +103,8 @@ def _maps_in_box(pair: dict, f: Tensor, box: tuple[int, int, int, int] | None) -
     for prefix, kind, _ in PHOTO:
         error, valid = photo[kind]
         maps[prefix], maps[f"{prefix}_valid"] = error[0][inner], valid[0][inner]
-    if pair.get("gt") is not None:
-        gt, valid = pair["gt"]
+    if pair.get("flow") is not None:
+        gt, valid = pair["flow"], pair["valid"]
         cut = (slice(None), slice(top, bottom), slice(left, right))
         errors, counted = flow_error_maps(f[cut][None], gt[cut][None].to(f.dtype), None, valid[cut][None])
         maps.update({name: errors[name][0] for _, name in FLOW_ERRORS})
@@ -206,8 +206,8 @@ def max_flow(pair: dict, pred: Tensor, road: Tensor | None = None) -> float:
     over its valid pixels, or of the prediction's, inside the road when ``road`` (1, H, W) has
     pixels (the road is what the figures are about; the much larger flow of nearby buildings
     would wash it out), else over the image."""
-    if pair.get("gt") is not None:
-        flow, valid = pair["gt"]
+    if pair.get("flow") is not None:
+        flow, valid = pair["flow"], pair["valid"]
     else:
         flow = torch.nan_to_num(pred, nan=0.0, posinf=0.0, neginf=0.0)
         valid = torch.isfinite(pred).all(dim=0, keepdim=True)

@@ -41,7 +41,7 @@ def pair(scenes):
     road = rasterize_polygons([POLYGON], SIZE).reshape(1, *SIZE)
     assert bool(road.any()) and not bool((road & ~p["road"]).any())  # the polygon lies on the road
     return {"image1": p["image1"], "image2": p["image2"], "camera": p["camera"], "road": road,
-            "relative_pose": torch.linalg.inv(p["pose2"]) @ p["pose1"], "gt": (p["flow"], p["valid"])}
+            "relative_pose": torch.linalg.inv(p["pose2"]) @ p["pose1"], "flow": p["flow"], "valid": p["valid"]}
 
 
 @pytest.fixture(scope="module")
@@ -89,14 +89,14 @@ def test_road_errors_are_the_library_figures_of_the_combined_flow(rr, pair):
 
     dis = torch.zeros(2, *SIZE)
     dis[0] = 0.5
-    method = pair["gt"][0]
+    method = pair["flow"]
     errors = rr.road_errors(pair, method, dis)
     road = pair["road"][None]
     combined = torch.where(road, method[None], dis[None])
     for kind in ("census", "ssim", "l1"):
         expected = float(photometric_error(pair["image1"][None], pair["image2"][None], combined, road, kind=kind)[0])
         assert errors[kind] == pytest.approx(expected, rel=1e-6), kind
-    assert errors["epe"] == pytest.approx(0.0, abs=1e-6) and errors["n_epe"] == int((road & pair["gt"][1]).sum())
+    assert errors["epe"] == pytest.approx(0.0, abs=1e-6) and errors["n_epe"] == int((road & pair["valid"]).sum())
     # outside the road the flow is DIS's: a different flow there changes nothing but the windows
     # of census and SSIM at the polygon's edge, and L1 not at all
     other = method.clone()

@@ -13,11 +13,15 @@ from torch.utils.data import DataLoader
 
 from fsof_torch.geometry.camera import Camera
 from fsof_torch.data.datasets import (
+    ITEM_KEYS,
     CarlaRunDataset,
+    ImageFolderDataset,
     KittiFlowDataset,
     KittiOdometryDataset,
     KittiSampleDataset,
+    SceneDataset,
     SyntheticFlowDataset,
+    check_item,
     collate,
     concat_cameras,
 )
@@ -100,7 +104,8 @@ class TestSynthetic:
     def test_float64_and_no_ground_truth(self, synthetic_root):
         root, _ = synthetic_root
         item = SyntheticFlowDataset(root, dtype=torch.float64, ground_truth=False)[0]
-        assert "flow" not in item and item["image1"].dtype == torch.float64 and item["camera"].dtype == torch.float64
+        assert item["flow"] is None and item["road"] is None and item["odometry"] is None
+        assert item["image1"].dtype == torch.float64 and item["camera"].dtype == torch.float64
 
 
 class TestKittiLayout:
@@ -121,8 +126,8 @@ class TestKittiLayout:
             p.unlink()
         K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
         item = KittiFlowDataset(root, flow="occ", K=K, camera_height=1.7)[0]
-        assert "flow" not in item and float(item["camera"].height) == pytest.approx(1.7)
-        assert "camera" not in KittiFlowDataset(root)[0]
+        assert item["flow"] is None and item["valid"] is None and float(item["camera"].height) == pytest.approx(1.7)
+        assert KittiFlowDataset(root)[0]["camera"] is None
 
     def test_reads_the_synthetic_layout(self, synthetic_root):
         root, pairs = synthetic_root
@@ -198,7 +203,7 @@ class TestShared:
         assert abs(float(item["valid"].float().mean()) - 0.162) < 0.002
         assert float(item["camera"].fx) == pytest.approx(721.5377) and float(item["camera"].height) == pytest.approx(1.65)
         assert item["road"].shape == (1, 375, 1242) and 0.15 < float(item["road"].float().mean()) < 0.25
-        assert "odometry" not in item
+        assert item["odometry"] is None and item["relative_pose"] is None and item["name"] == "kitti15_000000"
 
     def test_kitti_odometry_clip(self, shared_data):
         ds = KittiOdometryDataset(shared_data / "kitti_odometry_straight")
@@ -208,8 +213,60 @@ class TestShared:
         assert float(item["camera"].fx) == pytest.approx(707.0912)
         odo = item["odometry"]
         assert 1.1 < odo["z_d"] < 1.3 and abs(odo["x_d"]) < 0.05 and abs(odo["yaw"]) < 0.01
-        assert abs(item["pose_residual"]["y_d"]) < 0.05 and item["cam1_T_cam0"].shape == (4, 4)
+        assert abs(item["pose_residual"]["y_d"]) < 0.05 and item["relative_pose"].shape == (4, 4)
         assert item["road"].shape == (1, 370, 1226) and item["road"].any()
         batch = collate([ds[0], ds[10]])
         assert batch["odometry"]["z_d"].shape == (2,) and batch["camera"].batch_size == 2
         assert len(KittiOdometryDataset(shared_data / "kitti_odometry_straight", step=2)) == 49
+
+
+class TestScene:
+    def test_items_are_the_rendered_pairs(self):
+        from fsof_torch.data.scene import render_pair
+
+        ds = SceneDataset("default", 2, seed=1, size=SIZE, camera_dtype=torch.float64, noise=0.0)
+        assert len(ds) == 2
+        item, p = ds[-1], render_pair("default", 1, seed=1, size=SIZE, noise=0.0)
+        assert item["index"] == 1 and item["name"] == "000001" and item["relative_pose"] is None
+        for key in ("image1", "image2", "flow", "valid", "road", "labels", "depth", "pose2"):
+            assert torch.equal(item[key], p[key]), key
+        assert item["odometry"] == p["odometry"] and item["plane"] == p["plane"]
+        assert item["camera"].dtype == torch.float64 and torch.equal(item["camera"].K, p["camera"].K.double())
+        bare = SceneDataset("default", 1, size=SIZE, ground_truth=False)[0]
+        assert set(bare) == set(ITEM_KEYS) and bare["flow"] is None and bare["road"] is None
+
+    def test_errors(self):
+        with pytest.raises(ValueError, match="preset: expected one of"):
+            SceneDataset("nope")
+        with pytest.raises(TypeError, match="unknown overrides"):
+            SceneDataset("default", 1, wobble=3)
+        with pytest.raises(ValueError, match="num_pairs: expected an int >= 1"):
+            SceneDataset("default", 0)
+        with pytest.raises(IndexError, match="out of range"):
+            SceneDataset("default", 2, size=SIZE)[2]
+
+
+class TestContract:
+    """Every dataset's items have the contract's keys first, in order, and pass check_item."""
+
+    def test_every_dataset(self, synthetic_root, kitti_root, tmp_path):
+        run = tmp_path / "t10_s0_r0"
+        for sub in ("rgb", "optical_flow", "semantic"):
+            (run / sub).mkdir(parents=True)
+        for k in range(2):
+            write_image(run / "rgb" / f"{k:08d}.png", torch.full((3, 12, 16), 5.0 * k))
+            write_carla_flow(run / "optical_flow" / f"{k:08d}.tif", torch.full((2, 12, 16), 3.0))
+            cv2.imwrite(str(run / "semantic" / f"{k:08d}.png"), np.zeros((12, 16, 3), np.uint8))
+        datasets = [SceneDataset("default", 1, size=SIZE), SyntheticFlowDataset(synthetic_root[0]),
+                    KittiFlowDataset(kitti_root[0]), CarlaRunDataset(run),
+                    ImageFolderDataset(kitti_root[0] / "image_2")]
+        for ds in datasets:
+            for ground_truth in (True, False):
+                ds.ground_truth = ground_truth
+                item = ds[0]
+                check_item(item)
+                assert tuple(item)[:len(ITEM_KEYS)] == ITEM_KEYS, type(ds).__name__
+                if not ground_truth:
+                    assert set(item) == set(ITEM_KEYS), type(ds).__name__
+        carla = CarlaRunDataset(run)[0]
+        assert carla["flow"] is None and carla["valid"].shape == (1, 12, 16) and carla["name"] == "00000000"

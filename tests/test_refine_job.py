@@ -472,7 +472,7 @@ def test_evaluate_noc_leaves_out_occluded_pixels():
     valid = torch.ones(1, H, W, dtype=torch.bool)
     valid[0, 2, 3] = False
     zero = torch.zeros(2, H, W)
-    pair = {"image1": image1, "image2": image2, "gt": (zero, valid)}
+    pair = {"image1": image1, "image2": image2, "flow": zero, "valid": valid}
     road = torch.zeros(1, H, W, dtype=torch.bool)
     road[0, 1:4, 1:6] = True
     before, after = evaluate(pair, zero, zero.clone(), road)
@@ -497,7 +497,7 @@ def refined_pair():
     pred = p["flow"] + 0.8
     pred[:, 60, 100] = float("nan")
     refined = torch.where(p["road"], p["flow"], pred)
-    return {"image1": p["image1"], "image2": p["image2"], "gt": (p["flow"], p["valid"])}, pred, refined, p["road"]
+    return {"image1": p["image1"], "image2": p["image2"], "flow": p["flow"], "valid": p["valid"]}, pred, refined, p["road"]
 
 
 def test_maps_of_a_refinement_are_computed_where_it_changed_the_flow(refined_pair):
@@ -535,7 +535,7 @@ def test_compare_census_and_ssim_on_the_pixels_both_flows_define(refined_pair):
         common = finite & maps[0][1][0] & maps[1][1][0]
         for stage, (error, _) in zip((before, after), maps):
             for region, mask in (("road", road), ("all", torch.ones_like(road)),
-                                 ("road_noc", road & pair["gt"][1])):
+                                 ("road_noc", road & pair["valid"])):
                 sel = common & mask
                 assert stage[f"{prefix}_{region}_n"] == int(sel.sum())
                 assert stage[f"{prefix}_{region}"] == pytest.approx(float(error[0][sel].double().mean()), rel=1e-9)
@@ -552,7 +552,7 @@ def test_error_panel_is_epe_with_ground_truth_else_census(refined_pair):
     error, valid, label = error_panel(maps)
     assert label == "end-point error (px)" and torch.equal(error, maps["e_E"])
     assert torch.equal(valid, maps["gt_valid"] & maps["finite"])
-    maps = flow_maps({k: v for k, v in pair.items() if k != "gt"}, pred)
+    maps = flow_maps({**pair, "flow": None, "valid": None}, pred)
     error, valid, label = error_panel(maps)
     assert label == "census distance (0-1)" and torch.equal(error, maps["census"])
     assert not bool(valid[0, 60, 100])  # the NaN pixel has no value
@@ -567,12 +567,12 @@ def test_max_flow_is_the_99th_percentile_of_valid_magnitudes():
     valid = torch.ones(1, H, W, dtype=torch.bool)
     valid[0, :, 10:] = False  # keep 100 values: 0..9, 20..29, ...
     kept = torch.sort(gt[0][valid[0]]).values
-    assert max_flow({"gt": (gt, valid)}, gt) == float(kept[math.ceil(0.99 * 100) - 1])
+    assert max_flow({"flow": gt, "valid": valid}, gt) == float(kept[math.ceil(0.99 * 100) - 1])
     road = torch.zeros(1, H, W, dtype=torch.bool)
     road[0, 5:, :] = True  # the road's valid magnitudes: 100..109, 120..129, ...
     kept = torch.sort(gt[0][(valid & road)[0]]).values
-    assert max_flow({"gt": (gt, valid)}, gt, road) == float(kept[math.ceil(0.99 * 50) - 1])
-    assert max_flow({"gt": (gt, valid)}, gt, torch.zeros_like(road)) == max_flow({"gt": (gt, valid)}, gt)
+    assert max_flow({"flow": gt, "valid": valid}, gt, road) == float(kept[math.ceil(0.99 * 50) - 1])
+    assert max_flow({"flow": gt, "valid": valid}, gt, torch.zeros_like(road)) == max_flow({"flow": gt, "valid": valid}, gt)
 
 
 # -- the shared real data -------------------------------------------------------------------------

@@ -1,54 +1,61 @@
 """Torch datasets of image pairs with optional ground truth, and a ``collate`` for DataLoader.
 
-Each item is a dict with the key names of :func:`fsof_torch.scene.render_pair` where they
-overlap:
+Every dataset's items follow one contract, written in :mod:`fsof_torch.data.items`: the keys
+``image1``, ``image2`` ((3, H, W) float RGB 0..255), ``camera`` (a Camera of batch 1), ``flow``
+((2, H, W) px), ``valid`` ((1, H, W) bool), ``road`` ((1, H, W) bool), ``odometry`` (dict
+``x_d``, ``z_d``, ``yaw`` floats), ``relative_pose`` ((4, 4) float64 ``cam1_T_cam0``), ``index``
+and ``name`` are always present, None where the data does not have them; some data sets add keys
+of their own (``flow_velocity``, ``labels``, ``depth``, ``pose1``, ``pose2``, ``road_pose``,
+``plane``, ``pose_residual``, ...).
 
-========================  =====================================================================
-``image1``, ``image2``    (3, H, W) float RGB 0..255 (grey images repeated to 3 channels)
-``flow``, ``valid``       (2, H, W) px forward flow t -> t+1, (1, H, W) bool
-``flow_velocity``         (2, H, W) px/s (synthetic and CARLA data)
-``road``                  (1, H, W) bool road (freespace) mask
-``labels``, ``depth``     (H, W) int64, (1, H, W) metres (synthetic data)
-``camera``                :class:`fsof_torch.camera.Camera` of batch 1 (K at the image size)
-``odometry``              dict ``x_d, z_d, yaw`` of Python floats (metres, radians)
-``velocity``              dict ``speed, steering, wheelbase, dt`` (synthetic data)
-``pose1``, ``pose2``      (4, 4) float64 camera-to-world poses (synthetic data)
-``road_pose``, ``plane``  dicts of floats: the camera over the road at t and the rigid plane
-                          motion t -> t+1 (synthetic data; :func:`fsof_torch.scene.render_pair`)
-``cam1_T_cam0``           (4, 4) float64 relative pose (odometry data)
-``index``, ``name``       int, str
-========================  =====================================================================
+========================  ============================================================================
+:class:`SceneDataset`     the procedural scene rendered on demand (:func:`fsof_torch.scene.render_pair`)
+SyntheticFlowDataset      a rendered sequence on disk (``python -m eval synth``)
+ImageFolderDataset        a folder of frames with a KITTI calibration, poses, road masks and ground
+                          truth matched by name (:mod:`fsof_torch.data.folders`)
+KittiFlowDataset          KITTI flow 2012/2015 training folders, the paper's KITTI evaluation folder
+KittiSampleDataset        the single-pair folder ``shared/data/kitti15_000000``
+KittiOdometryDataset      a KITTI odometry clip with its poses (``shared/data/kitti_odometry_straight``)
+CarlaRunDataset           one run of the paper's CARLA layout
+========================  ============================================================================
 
-Keys are present only when the data has them (``ground_truth=False`` leaves out flow, valid and
-odometry). :func:`collate` batches a list of items: tensors are stacked (leading B), cameras are
-concatenated into one Camera of batch B, dicts of floats become dicts of (B,) tensors, anything
-else (index, name) a list, as :func:`fsof_torch.scene.collate` does for rendered pairs. Images of different sizes cannot be stacked: use
-``batch_size=1`` for KITTI, whose frames differ by a pixel or two.
+:func:`collate` batches a list of items: tensors are stacked (leading B), cameras are concatenated
+into one Camera of batch B, dicts of floats become dicts of (B,) tensors, a key None in every item
+stays None, anything else (index, name) becomes a list. Images of different sizes cannot be
+stacked: use ``batch_size=1`` for KITTI, whose frames differ by a pixel or two.
 """
 
 from __future__ import annotations
 
-import numbers
 import os
+from dataclasses import replace
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
 
 import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from ..geometry.camera import Camera
-from ..geometry.egomotion import ego_motion_from_pose, relative_pose
+from .._check import check_int
+from ..geometry.camera import Camera, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
-from ..io.kitti import read_kitti_calibration, read_kitti_flow, read_kitti_poses
-from ..io.layout import read_synthetic_pair, synthetic_pair_indices
+from ..io.kitti import read_kitti_flow, read_kitti_poses
+from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
+from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, check_index
+from .items import ITEM_KEYS, as_item, check_item, collate, concat_cameras, make_item
 
 __all__ = [
+    "ITEM_KEYS",
     "collate",
     "concat_cameras",
+    "check_item",
+    "make_item",
+    "SceneDataset",
     "SyntheticFlowDataset",
+    "ImageFolderDataset",
+    "FramePair",
     "KittiFlowDataset",
     "KittiSampleDataset",
     "KittiOdometryDataset",
@@ -58,64 +65,6 @@ __all__ = [
 
 # the paper's hand labels of KITTI (semantic/*.png): road painted pure red
 KITTI_ROAD_COLOR = (255, 0, 0)
-_KITTI_HEIGHT = 1.65
-
-
-def concat_cameras(cameras: Sequence[Camera]) -> Camera:
-    """One Camera of batch sum(B_i) from several (dtype promoted, device of the first)."""
-    if not cameras:
-        raise ValueError("cameras: expected at least one Camera")
-    dtype = cameras[0].dtype
-    for cam in cameras[1:]:
-        dtype = torch.promote_types(dtype, cam.dtype)
-    device = cameras[0].device
-    parts = [c.to(device=device, dtype=dtype) for c in cameras]
-    return Camera(torch.cat([c.K for c in parts]), torch.cat([c.height for c in parts]),
-                  torch.cat([c.roll for c in parts]), torch.cat([c.pitch for c in parts]))
-
-
-def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Batch a list of dataset items (for ``DataLoader(..., collate_fn=collate)``).
-
-    Tensors -> stacked (B, ...); Camera -> one Camera of batch B; dicts of numbers (odometry,
-    velocity) -> dicts of (B,) tensors (the cameras' dtype, else float64); anything else (index,
-    name) -> a list. The same rules as :func:`fsof_torch.scene.collate`, so rendered pairs and
-    items read from disk batch alike. Every item must have the same keys.
-    """
-    if not samples:
-        raise ValueError("samples: expected a non-empty list of dicts")
-    keys = list(samples[0].keys())
-    for i, s in enumerate(samples[1:], 1):
-        if set(s.keys()) != set(keys):
-            diff = sorted(set(s.keys()) ^ set(keys))
-            raise ValueError(f"samples: item {i} has different keys from item 0 (differing: {diff})")
-    cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
-    float_dtype = cams[0].dtype if cams else torch.float64
-    batch: dict[str, Any] = {}
-    for key in keys:
-        values = [s[key] for s in samples]
-        first = values[0]
-        if isinstance(first, Tensor):
-            shapes = {tuple(v.shape) for v in values}
-            if len(shapes) > 1:
-                raise ValueError(f"samples: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
-                                 f"or images of one size")
-            batch[key] = torch.stack(values)
-        elif isinstance(first, Camera):
-            batch[key] = concat_cameras(values)
-        elif isinstance(first, Mapping) and all(isinstance(x, numbers.Number) for x in first.values()):
-            batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype) for k in first}
-        else:
-            batch[key] = list(values)
-    return batch
-
-
-def _check_index(index: int, length: int) -> int:
-    if not isinstance(index, numbers.Integral):
-        raise TypeError(f"index: expected an int, got {type(index).__name__}")
-    if not -length <= index < length:
-        raise IndexError(f"index: {index} out of range for a dataset of {length} pairs")
-    return int(index) % length
 
 
 def _folder(root: str | os.PathLike, name: str = "root") -> Path:
@@ -125,42 +74,93 @@ def _folder(root: str | os.PathLike, name: str = "root") -> Path:
     return root
 
 
+def _images_and_camera(sample: dict[str, Any]) -> dict[str, Any]:
+    """``sample`` reduced to what ``ground_truth=False`` keeps: images, camera, index, name."""
+    return {k: sample[k] for k in ("image1", "image2", "camera", "index", "name")}
+
+
+class SceneDataset(Dataset):
+    """Pairs 0 .. ``num_pairs`` − 1 of a procedural driving sequence, rendered when an item is
+    read (:func:`fsof_torch.scene.render_pair`), with its exact ground truth: flow, valid, road,
+    odometry, and the extras ``flow_velocity``, ``labels``, ``depth``, ``moving``, ``velocity``,
+    ``pose1``, ``pose2``, ``road_pose``, ``plane``. ``relative_pose`` is None: the scene's motion
+    is exact (``odometry``, ``plane``, ``pose1``, ``pose2``), not a given pose. Names are
+    ``000000``, ``000001``, ...
+
+    Args:
+        preset: a name of :data:`fsof_torch.scene.PRESETS` or a ``SceneConfig``.
+        num_pairs: the sequence's length in pairs.
+        seed: the scene's seed; size: ``(H, W)`` (default: the preset's).
+        dtype: float32 or float64 for the rendering; ``camera_dtype`` of the camera (default ``dtype``).
+        ground_truth: False -> images, camera, index and name only.
+        **overrides: fields of ``SceneConfig`` (``noise=0.5``, ``speed_factor=2``, ...).
+    """
+
+    def __init__(self, preset: Any = "default", num_pairs: int = 4, *, seed: int = 0,
+                 size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True, **overrides: Any):
+        from .scene import scene_config
+
+        scene_config(preset, **overrides)  # a bad preset or override fails here, not at the first item
+        self.num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
+        self.seed = check_int(seed, "seed")
+        self.preset, self.size, self.overrides = preset, size, overrides
+        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype or dtype, ground_truth
+
+    def __len__(self) -> int:
+        return self.num_pairs
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        from .scene import render_pair
+
+        i = check_index(index, len(self))
+        p = render_pair(self.preset, i, seed=self.seed, size=self.size, dtype=self.dtype, **self.overrides)
+        p.update(index=i, name=f"{i:06d}", camera=p["camera"].to(self.camera_dtype))
+        return as_item(p if self.ground_truth else _images_and_camera(p))
+
+
 class SyntheticFlowDataset(Dataset):
     """Pairs of a synthetic KITTI-like layout folder (``python -m eval synth`` /
-    :func:`fsof_torch.io.write_synthetic_sequence`), with their exact ground truth.
+    :func:`fsof_torch.io.write_synthetic_sequence`), with their exact ground truth and the extras
+    of :class:`SceneDataset` that were written (``flow_velocity``, ``labels``, ``depth``,
+    ``velocity``, ``pose1``, ``pose2``, ``road_pose``, ``plane``).
 
     Args:
         root: the folder.
-        dtype: float dtype of images, flows, depth and camera.
+        dtype: float dtype of images, flows and depth; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> images, camera, index and name only.
     """
 
-    def __init__(self, root: str | os.PathLike, *, dtype: torch.dtype = torch.float32, ground_truth: bool = True):
+    def __init__(self, root: str | os.PathLike, *, dtype: torch.dtype = torch.float32,
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         self.root = _folder(root)
         self.indices = synthetic_pair_indices(self.root)
         if not self.indices:
             raise ValueError(f"root: {str(self.root)!r} holds no pairs (params/*.json)")
-        self.dtype = dtype
-        self.ground_truth = ground_truth
+        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
     def __len__(self) -> int:
         return len(self.indices)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        i = self.indices[_check_index(index, len(self))]
-        return read_synthetic_pair(self.root, i, dtype=self.dtype, ground_truth=self.ground_truth)
+        i = check_index(index, len(self))
+        pair = self.indices[i]
+        sample = read_synthetic_pair(self.root, pair, dtype=self.dtype, ground_truth=self.ground_truth)
+        if self.camera_dtype not in (None, self.dtype):  # from the file's digits, not a rounded copy
+            sample["camera"] = camera_from_params(read_synthetic_params(self.root, pair), self.camera_dtype)
+        return as_item(sample, index=i)
 
 
 class KittiFlowDataset(Dataset):
     """Pairs of a KITTI flow layout: KITTI 2012/2015 training folders, the paper's KITTI
     evaluation folder, or a synthetic layout folder read as KITTI.
 
-    Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it:
-    flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; absent -> no flow
-    keys); the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
-    ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else none;
+    Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it (named ``NAME``):
+    flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; absent -> None);
+    the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
+    ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
-    ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0)).
+    ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0)). No odometry (KITTI flow has none).
 
     Args:
         root: the folder (holding ``image_dir``).
@@ -169,13 +169,13 @@ class KittiFlowDataset(Dataset):
         cam: camera index of the calibration row.
         camera_height: metres (not in KITTI's files; nominal 1.65).
         K: (3, 3) intrinsics used where no calibration file is found.
-        dtype: float dtype of images, flow and camera.
+        dtype: float dtype of images and flow; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road.
     """
 
     def __init__(self, root: str | os.PathLike, *, flow: str = "noc", image_dir: str = "image_2", cam: int = 2,
-                 camera_height: float = _KITTI_HEIGHT, K: Tensor | None = None, dtype: torch.dtype = torch.float32,
-                 ground_truth: bool = True):
+                 camera_height: float = KITTI_HEIGHT, K: Tensor | None = None, dtype: torch.dtype = torch.float32,
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         if flow not in ("noc", "occ"):
             raise ValueError(f"flow: expected 'noc' or 'occ', got {flow!r}")
         self.root = _folder(root)
@@ -188,7 +188,7 @@ class KittiFlowDataset(Dataset):
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
         self.cam, self.camera_height, self.K = cam, float(camera_height), K
-        self.dtype, self.ground_truth = dtype, ground_truth
+        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype or dtype, ground_truth
 
     def __len__(self) -> int:
         return len(self.names)
@@ -199,168 +199,128 @@ class KittiFlowDataset(Dataset):
             path = self.root / folder / f"{name}.txt"
             if path.is_file():
                 P = read_kitti_calibration(path, self.cam)
-                return Camera.from_projection(P.to(self.dtype), self.camera_height)
+                return Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
         if self.K is not None:
-            return Camera(torch.as_tensor(self.K).to(self.dtype), self.camera_height)
+            return Camera(torch.as_tensor(self.K).to(self.camera_dtype), self.camera_height)
         return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        i = _check_index(index, len(self))
+        i = check_index(index, len(self))
         name = self.names[i]
         images = self.root / self.image_dir
-        sample: dict[str, Any] = {
-            "image1": read_image(images / f"{name}_10.png").to(self.dtype),
-            "image2": read_image(images / f"{name}_11.png").to(self.dtype),
-        }
-        camera = self.camera(name)
-        if camera is not None:
-            sample["camera"] = camera
+        image1 = read_image(images / f"{name}_10.png").to(self.dtype)
+        truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.root / self.flow_dir / f"{name}_10.png"
             if path.is_file():
-                flow, valid = read_kitti_flow(path)
-                sample["flow"], sample["valid"] = flow.to(self.dtype), valid
+                flow, truth["valid"] = read_kitti_flow(path)
+                truth["flow"] = flow.to(self.dtype)
             road = self.root / "road" / f"{name}_10.png"
             semantic = self.root / "semantic" / f"{name}_10.png"
             if road.is_file():
-                sample["road"] = read_road_mask(road, size=tuple(sample["image1"].shape[-2:]))
+                truth["road"] = read_road_mask(road, size=tuple(image1.shape[-2:]))
             elif semantic.is_file():
-                sample["road"] = mask_from_colors(read_image(semantic), [KITTI_ROAD_COLOR])
-        sample["index"], sample["name"] = i, name
-        return sample
+                truth["road"] = mask_from_colors(read_image(semantic), [KITTI_ROAD_COLOR])
+        return make_item(image1, read_image(images / f"{name}_11.png").to(self.dtype), index=i, name=name,
+                         camera=self.camera(name), **truth)
 
 
-class KittiSampleDataset(Dataset):
+class KittiSampleDataset(ImageFolderDataset):
     """The single-pair folder ``shared/data/kitti15_000000`` (or one like it): ``image_10.png``,
-    ``image_11.png``, ``flow_noc_10.png``, ``road.json``, ``calib_cam_to_cam.txt``.
-
-    No odometry (KITTI flow does not publish it). ``camera_height`` in metres.
+    ``image_11.png``, and where present ``calib_cam_to_cam.txt`` (camera ``cam``, with its
+    ``S_rect`` size checked), ``flow_noc_10.png`` (ground truth), ``road.json``. The pair is named
+    after the folder. No odometry (KITTI flow does not publish it). ``camera_height`` in metres,
+    ``roll`` and ``pitch`` in radians; the other arguments as in :class:`ImageFolderDataset`.
     """
 
-    def __init__(self, folder: str | os.PathLike, *, cam: int = 2, camera_height: float = _KITTI_HEIGHT,
-                 dtype: torch.dtype = torch.float32, ground_truth: bool = True):
-        self.folder = _folder(folder, "folder")
+    def __init__(self, folder: str | os.PathLike, *, cam: int = 2, camera_height: float = KITTI_HEIGHT,
+                 roll: float = 0.0, pitch: float = 0.0, dtype: torch.dtype = torch.float32,
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
+        self.folder = f = _folder(folder, "folder")
         for file in ("image_10.png", "image_11.png"):
-            if not (self.folder / file).is_file():
-                raise FileNotFoundError(f"folder: {str(self.folder)!r} has no {file}")
-        self.cam, self.camera_height, self.dtype, self.ground_truth = cam, float(camera_height), dtype, ground_truth
-
-    def __len__(self) -> int:
-        return 1
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        _check_index(index, 1)
-        f = self.folder
-        sample: dict[str, Any] = {
-            "image1": read_image(f / "image_10.png").to(self.dtype),
-            "image2": read_image(f / "image_11.png").to(self.dtype),
-        }
-        size = tuple(sample["image1"].shape[-2:])
-        if (f / "calib_cam_to_cam.txt").is_file():
-            P = read_kitti_calibration(f / "calib_cam_to_cam.txt", self.cam)
-            sample["camera"] = Camera.from_projection(P.to(self.dtype), self.camera_height)
-        if self.ground_truth:
-            if (f / "flow_noc_10.png").is_file():
-                flow, valid = read_kitti_flow(f / "flow_noc_10.png")
-                sample["flow"], sample["valid"] = flow.to(self.dtype), valid
-            if (f / "road.json").is_file():
-                sample["road"] = read_road_mask(f / "road.json", size=size)
-        sample["index"], sample["name"] = 0, f.name
-        return sample
+            if not (f / file).is_file():
+                raise FileNotFoundError(f"folder: {str(f)!r} has no {file}")
+        calib, road, gt = f / "calib_cam_to_cam.txt", f / "road.json", f / "flow_noc_10.png"
+        super().__init__([f / "image_10.png", f / "image_11.png"], calib if calib.is_file() else None, cam=cam,
+                         camera_height=camera_height, roll=roll, pitch=pitch,
+                         road=road if road.is_file() else None, dtype=dtype, camera_dtype=camera_dtype,
+                         ground_truth=ground_truth)
+        self.pairs = [replace(self.pairs[0], name=f.name, gt=gt if gt.is_file() else None)]
 
 
-class KittiOdometryDataset(Dataset):
+class KittiOdometryDataset(ImageFolderDataset):
     """Consecutive frames of a KITTI odometry clip (like ``shared/data/kitti_odometry_straight``)
     with the odometry from its ground-truth poses.
 
     Folder: ``image_dir/NNNNNN.png`` frames, ``calib.txt`` (``P{cam}``), ``poses.txt``
-    (camera-to-world, one row per frame), optionally ``road.json`` (one polygon for the clip).
-    Pair ``i`` = frames ``(i, i + step)``; only frames with a pose and an image are used.
-    ``odometry`` = :func:`fsof_torch.egomotion.ego_motion_from_pose` of the two poses for the
-    camera (its roll/pitch, default 0); ``cam1_T_cam0`` the full relative pose; ``pose_residual``
-    what the planar model drops (``y_d`` in metres, rotation residual angle in radians).
+    (camera-to-world, line n for frame n), optionally ``road.json`` (one polygon for the clip).
+    Only frames with a pose are used; pair ``i`` is frames (i, i + step) of those, named after its
+    first frame. ``odometry`` is :func:`fsof_torch.egomotion.ego_motion_from_pose` of the pair's
+    ``relative_pose`` under the camera's mounting (``roll``, ``pitch`` in radians, default 0);
+    ``pose_residual`` what the planar model drops (``y_d`` in metres, rotation residual angle in
+    radians). The other arguments as in :class:`ImageFolderDataset`.
     """
 
     def __init__(self, folder: str | os.PathLike, *, image_dir: str = "image_l", cam: int = 0, step: int = 1,
-                 camera_height: float = _KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
-                 dtype: torch.dtype = torch.float32, ground_truth: bool = True):
+                 camera_height: float = KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
+                 dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
+                 ground_truth: bool = True):
         self.folder = _folder(folder, "folder")
-        if not isinstance(step, numbers.Integral) or step < 1:
-            raise ValueError(f"step: expected an int >= 1, got {step!r}")
+        step = check_int(step, "step", minimum=1)
         images = self.folder / image_dir
         if not images.is_dir():
             raise FileNotFoundError(f"folder: {str(self.folder)!r} has no {image_dir}/ folder")
-        frames = sorted(p.stem for p in images.glob("*.png") if p.stem.isdigit())
-        poses_path = self.folder / "poses.txt"
-        self.poses = read_kitti_poses(poses_path) if ground_truth or poses_path.is_file() else None
-        limit = len(self.poses) if self.poses is not None else float("inf")
-        have = {int(s): s for s in frames if int(s) < limit}
-        self.pairs = [(have[i], have[i + step]) for i in sorted(have) if i + step in have]
-        if not self.pairs:
+        frames = sorted((p for p in images.glob("*.png") if p.stem.isdigit()), key=lambda p: int(p.stem))
+        path, poses = self.folder / "poses.txt", None
+        if ground_truth or path.is_file():
+            try:
+                P = read_kitti_poses(path)
+            except FileNotFoundError:
+                raise FileNotFoundError(f"poses: no file at {str(path)!r}") from None
+            except ValueError as err:
+                raise ValueError(f"poses: {err}") from None
+            frames = [p for p in frames if int(p.stem) < len(P)]
+            poses = P[[int(p.stem) for p in frames]]
+        if len(frames) <= step:
             raise ValueError(f"folder: {str(self.folder)!r} has no frame pairs with poses (step {step})")
-        P = read_kitti_calibration(self.folder / "calib.txt", cam)
-        self.camera_ = Camera.from_projection(P.to(torch.float64), float(camera_height), float(roll), float(pitch))
-        self.image_dir, self.dtype, self.ground_truth = image_dir, dtype, ground_truth
-        self.road_path = self.folder / "road.json"
-
-    def __len__(self) -> int:
-        return len(self.pairs)
-
-    def __getitem__(self, index: int) -> dict[str, Any]:
-        i = _check_index(index, len(self))
-        a, b = self.pairs[i]
-        images = self.folder / self.image_dir
-        sample: dict[str, Any] = {
-            "image1": read_image(images / f"{a}.png").to(self.dtype),
-            "image2": read_image(images / f"{b}.png").to(self.dtype),
-            "camera": self.camera_.to(self.dtype),
-        }
-        if self.ground_truth:
-            pose0, pose1 = self.poses[int(a)], self.poses[int(b)]
-            ego = ego_motion_from_pose(pose0.unsqueeze(0), self.camera_, pose1=pose1.unsqueeze(0))
-            sample["odometry"] = {"x_d": float(ego.x_d[0]), "z_d": float(ego.z_d[0]), "yaw": float(ego.yaw[0])}
-            sample["pose_residual"] = {"y_d": float(ego.y_d[0]),
-                                       "rotation": float(ego.rotation_residual[0].norm())}
-            sample["cam1_T_cam0"] = relative_pose(pose0.unsqueeze(0), pose1.unsqueeze(0))[0]
-            if self.road_path.is_file():
-                sample["road"] = read_road_mask(self.road_path, size=tuple(sample["image1"].shape[-2:]))
-        sample["index"], sample["name"] = i, f"{a}-{b}"
-        return sample
+        road = self.folder / "road.json"
+        super().__init__(frames, self.folder / "calib.txt", cam=cam, camera_height=camera_height, roll=roll,
+                         pitch=pitch, poses=poses, road=road if road.is_file() else None, step=step, dtype=dtype,
+                         camera_dtype=camera_dtype, ground_truth=ground_truth)
 
 
 class CarlaRunDataset(Dataset):
     """Frame pairs (k, k+1) of one run of the paper's CARLA layout (see :mod:`fsof_torch.io.carla`).
 
-    ``flow_velocity`` is the run's flow of frame k (the paper: instantaneous, px/s); ``road`` from
-    the semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run
-    name (``r`` in degrees). No displacement ``flow`` (CARLA gives velocities).
+    ``flow_velocity`` (an extra key) is the run's flow of frame k (the paper: instantaneous, px/s)
+    and ``valid`` its validity; ``flow`` is None (CARLA gives velocities). ``road`` from the
+    semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run name
+    (``r`` in degrees). Pairs are named after frame k.
     """
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
-                 ground_truth: bool = True):
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         self.run = CarlaRun(run)
         self.camera_height, self.dtype, self.ground_truth = float(camera_height), dtype, ground_truth
+        self.camera_dtype = camera_dtype or dtype
 
     def __len__(self) -> int:
         return max(len(self.run) - 1, 0)
 
     def __getitem__(self, index: int) -> dict[str, Any]:
-        i = _check_index(index, len(self))
+        i = check_index(index, len(self))
         a, b = self.run.frames[i], self.run.frames[i + 1]
         image1 = read_image(self.run.path("rgb", a)).to(self.dtype)
-        sample: dict[str, Any] = {
-            "image1": image1,
-            "image2": read_image(self.run.path("rgb", b)).to(self.dtype),
-            "camera": carla_camera(tuple(image1.shape[-2:]), height=self.camera_height,
-                                   roll=self.run.params.get("roll", 0.0), dtype=self.dtype),
-        }
+        camera = carla_camera(tuple(image1.shape[-2:]), height=self.camera_height,
+                              roll=self.run.params.get("roll", 0.0), dtype=self.camera_dtype)
+        truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.run.path("optical_flow", a)
             if path.is_file():
-                flow, valid = read_carla_flow(path)
-                sample["flow_velocity"], sample["valid"] = flow.to(self.dtype), valid
+                flow, truth["valid"] = read_carla_flow(path)
+                truth["flow_velocity"] = flow.to(self.dtype)
             path = self.run.path("semantic", a)
             if path.is_file():
-                sample["road"] = read_carla_road(path)
-        sample["index"], sample["name"] = i, a
-        return sample
+                truth["road"] = read_carla_road(path)
+        return make_item(image1, read_image(self.run.path("rgb", b)).to(self.dtype), index=i, name=a,
+                         camera=camera, **truth)

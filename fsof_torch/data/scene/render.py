@@ -206,6 +206,6 @@ def collate(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     """
     if not isinstance(pairs, (list, tuple)) or not pairs:
         raise ValueError(f"pairs: expected a non-empty list of rendered pairs, got {type(pairs).__name__}")
-    from ..datasets import collate as collate_items
+    from ..items import collate as collate_items
 
     return collate_items(pairs)

@@ -1,0 +1,359 @@
+"""Image pairs of a folder of frames with a KITTI calibration, and optional poses, road masks and
+ground-truth flows matched to the pairs by name: the layout of your own recordings, which
+``python -m refine --images`` reads through :class:`ImageFolderDataset`.
+
+Pairs: consecutive frames (i, i + step) of the folder sorted by name, each named after its first
+frame; or, where the frames are KITTI flow pairs (``NAME_10`` / ``NAME_11``), those pairs, named
+``NAME``.
+
+Files are matched to pairs by name only, never by position (:func:`match_files`): the pair ``NAME``
+takes ``NAME.<ext>`` (or its first image's stem) from a folder; a pair without such a file, or
+with two (``0001.png`` and ``0001.flo``), is an error naming the argument and the file.
+
+Image size against the calibration: a KITTI ``calib_cam_to_cam.txt`` states the rectified size
+(``S_rect_0N``), ``calib_size`` states it for other files; every image must have exactly that
+size. Without either, every image must have the size of the first pair, and the principal point
+must lie in the middle third of that image (|c_x − (W−1)/2| ≤ W/6, likewise for y): a calibration
+made for images twice as large or half as large fails this test (its principal point lies a
+quarter or a half of the image away from the centre), a camera's own offset (KITTI: 11 px of
+1242) passes it. Everything that can be checked without reading every pair is checked when the
+dataset is made; the other pairs' sizes when they load.
+"""
+
+from __future__ import annotations
+
+import numbers
+import os
+import re
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import torch
+from torch import Tensor
+from torch.utils.data import Dataset
+
+from .._check import check_int, check_number, check_size
+from ..geometry.camera import Camera, read_kitti_calibration
+from ..geometry.egomotion import ego_motion_from_pose, relative_pose
+from ..io.flow import read_flow
+from ..io.images import read_image
+from ..io.kitti import read_kitti_poses
+from ..io.masks import read_road_mask
+from .items import make_item
+
+__all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
+           "check_index", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
+FLOW_SUFFIXES = (".png", ".flo", ".npy")
+KITTI_HEIGHT = 1.65  # metres; KITTI's files do not record the camera height
+
+# what a road mask reader may raise on a malformed file (each one was a traceback once)
+_MASK_ERRORS = (ValueError, TypeError, KeyError, IndexError, ZeroDivisionError, UnicodeDecodeError,
+                AttributeError, OverflowError)
+
+
+def check_index(index: int, length: int) -> int:
+    """A dataset index (negative counts from the end) -> its position, or IndexError / TypeError."""
+    if not isinstance(index, numbers.Integral):
+        raise TypeError(f"index: expected an int, got {type(index).__name__}")
+    if not -length <= index < length:
+        raise IndexError(f"index: {index} out of range for a dataset of {length} pairs")
+    return int(index) % length
+
+
+def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
+    """The image files of ``folder`` sorted by name (at least 2; ``name`` is the argument the
+    errors name)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
+    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if len(images) < 2:
+        raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
+    return images
+
+
+def kitti_flow_layout(images: Iterable[Path]) -> bool:
+    """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``), not one clip."""
+    stems = {Path(p).stem for p in images}
+    kitti = [s for s in stems if re.fullmatch(r".*_10", s)]
+    return bool(kitti) and all(s[:-3] + "_11" in stems for s in kitti)
+
+
+def frame_pairs(images: Sequence[Path], step: int = 1) -> list[tuple[str, int, int]]:
+    """``(name, i, j)``: the pairs of ``images`` as positions in the list. Consecutive frames
+    (i, i + step) named after frame i; KITTI flow pairs by name (``NAME_10`` / ``NAME_11`` ->
+    ``NAME``, step 1 only)."""
+    step = check_int(step, "step", minimum=1)
+    if kitti_flow_layout(images):
+        if step != 1:
+            raise ValueError(f"step: KITTI flow pairs (NAME_10 / NAME_11) pair by name; expected 1, got {step}")
+        position = {Path(p).stem: i for i, p in enumerate(images)}
+        return [(s[:-3], position[s], position[s[:-3] + "_11"])
+                for s in sorted(s for s in position if re.fullmatch(r".*_10", s))]
+    return [(Path(images[i]).stem, i, i + step) for i in range(len(images) - step)]
+
+
+def match_files(folder: str | os.PathLike, names: Sequence[str], *, what: str,
+                suffixes: Sequence[str] = FLOW_SUFFIXES,
+                stems: dict[str, list[str]] | None = None) -> dict[str, Path]:
+    """One file per pair from ``folder``, by name: the pair's name or one of its ``stems`` (its
+    first image's), with any of ``suffixes``. A pair without such a file, or with two
+    (``0001.png`` and ``0001.flo``), raises an error that starts with ``what`` (the argument) and
+    names the pair and the folder: files are never paired by position."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{what}: no folder at {str(folder)!r}")
+    by_stem: dict[str, list[Path]] = {}
+    for p in sorted(folder.iterdir()):
+        if p.is_file() and p.suffix.lower() in suffixes:
+            by_stem.setdefault(p.stem, []).append(p)
+    out: dict[str, Path] = {}
+    for name in names:
+        candidates = list(dict.fromkeys([name, *(stems or {}).get(name, [])]))
+        found = [p for s in candidates for p in by_stem.get(s, [])]
+        if len(found) > 1:
+            raise ValueError(f"{what}: pair {name} matches {len(found)} files in {str(folder)!r} "
+                             f"({', '.join(p.name for p in found)}); keep one")
+        if not found:
+            near = sorted(by_stem)[:3]
+            raise ValueError(f"{what}: no file for pair {name} in {str(folder)!r}: expected "
+                             f"{' or '.join(s + '.*' for s in candidates)} ({', '.join(suffixes)}); "
+                             f"the folder has {sum(len(v) for v in by_stem.values())} such file(s)"
+                             + (f", e.g. {', '.join(near)}" if near else ""))
+        out[name] = found[0]
+    return out
+
+
+def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | None:
+    """The rectified image size (H, W) a KITTI ``calib_cam_to_cam.txt`` states for camera
+    ``cam`` (``S_rect_0N: W H``), or None when the file has no such row (odometry ``calib.txt``)."""
+    calib = Path(calib)
+    try:
+        text = calib.read_text()
+    except UnicodeDecodeError:
+        return None  # the calibration reader reports the file
+    for line in text.splitlines():
+        key, sep, rest = line.partition(":")
+        if sep and key.strip() == f"S_rect_0{cam}":
+            try:
+                w, h = (float(x) for x in rest.split())
+            except ValueError:
+                raise ValueError(f"calib: {str(calib)!r} has an S_rect_0{cam} row that is not 'W H': "
+                                 f"{line.strip()[:60]!r}") from None
+            return int(round(h)), int(round(w))
+    return None
+
+
+def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch: float) -> tuple[Camera, int]:
+    """A float64 camera from a KITTI calibration file and the camera index used: ``cam``, or
+    without it camera 2 (the left colour camera) where the file has it, else camera 0."""
+    if not calib.is_file():
+        raise FileNotFoundError(f"calib: no calibration file at {str(calib)!r}")
+    if cam is not None and not 0 <= cam <= 3:
+        raise ValueError(f"cam: expected 0..3, got {cam}")
+    for c in ([cam] if cam is not None else [2, 0]):
+        try:
+            P = read_kitti_calibration(calib, c)
+            break
+        except ValueError as err:
+            last = err
+    else:
+        raise ValueError(f"calib: {last}")
+    try:
+        return Camera.from_projection(P, height, roll, pitch), c
+    except ValueError as err:
+        raise ValueError(f"calib: {str(calib)!r} camera {c}: {err}") from None
+
+
+def _read_road(path: Path, size: tuple[int, int] | None) -> Tensor:
+    """A road mask file; whatever the reader rejects names ``road`` and the file."""
+    try:
+        return read_road_mask(path, size)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"road: no file at {str(path)!r}") from None
+    except _MASK_ERRORS as err:
+        raise ValueError(f"road: {str(path)!r} is not a usable road mask ({type(err).__name__}: {err})") from None
+
+
+@dataclass(frozen=True)
+class FramePair:
+    """The files of one pair: its images (``frame1``, ``frame2`` their positions among the
+    dataset's frames, which index its poses), and its own road mask and ground-truth flow."""
+
+    name: str
+    image1: Path
+    image2: Path
+    frame1: int
+    frame2: int
+    road: Path | None = None
+    gt: Path | None = None
+
+
+class ImageFolderDataset(Dataset):
+    """Image pairs of a folder of frames with a KITTI calibration (see the module docstring);
+    items follow the contract of :mod:`fsof_torch.data.items`.
+
+    Args:
+        images: a folder of frames, or the frames' files in order.
+        calib: a KITTI ``calib_cam_to_cam.txt`` (``P_rect_0N``) or odometry ``calib.txt`` (``PN``);
+            None: items without a camera.
+        cam: camera index in ``calib`` (default: 2 where the file has it, else 0).
+        camera_height: metres above the road; ``roll``, ``pitch``: the mounting in radians.
+        poses: camera-to-world poses, one per frame in order: a KITTI poses file, or an (N, 4, 4)
+            float tensor. Items then carry ``relative_pose`` (``inverse(P_j) @ P_i``), its planar
+            ``odometry`` under the camera's mounting and ``pose_residual``.
+        road: a folder of masks matched by name, or one mask file (PNG, or a polygon JSON drawn at
+            the images' size) for every pair.
+        gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
+        calib_size: ``(H, W)`` the calibration is for (default: the file's ``S_rect`` row).
+        step: pair frames (i, i + step) of a clip.
+        dtype: float dtype of images and flows; ``camera_dtype`` of the camera (default ``dtype``).
+        ground_truth: False -> no flow, valid, road, odometry, relative_pose.
+
+    Errors name the argument (``images``, ``calib``, ``cam``, ``poses``, ``road``, ``gt``) and the
+    file: a ``FileNotFoundError`` for a missing file or folder, a ``ValueError`` for one that does
+    not fit.
+    """
+
+    def __init__(self, images: str | os.PathLike | Sequence[str | os.PathLike],
+                 calib: str | os.PathLike | None = None, *, cam: int | None = None,
+                 camera_height: float = KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
+                 poses: str | os.PathLike | Tensor | None = None, road: str | os.PathLike | None = None,
+                 gt: str | os.PathLike | None = None, calib_size: tuple[int, int] | None = None, step: int = 1,
+                 dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
+                 ground_truth: bool = True):
+        if isinstance(images, (str, os.PathLike)):
+            self.frames = list_images(images)
+        else:
+            self.frames = [Path(p) for p in images]
+            if len(self.frames) < 2:
+                raise ValueError(f"images: {len(self.frames)} image(s) given; a pair needs at least 2")
+        pairs = frame_pairs(self.frames, step)
+        if not pairs:
+            raise ValueError(f"images: {len(self.frames)} frames make no pair (i, i + step) with step {step}")
+        names = [n for n, _, _ in pairs]
+        stems = {n: [self.frames[i].stem] for n, i, _ in pairs}
+        self.dtype, self.ground_truth = dtype, ground_truth
+        camera_height = check_number(camera_height, "camera_height", positive=True)
+        roll, pitch = check_number(roll, "roll"), check_number(pitch, "pitch")
+        self.calib = Path(calib) if calib is not None else None
+        self.camera: Camera | None = None
+        self.calib_size = check_size(calib_size, "calib_size") if calib_size is not None else None
+        if self.calib is not None:
+            camera64, used = _read_camera(self.calib, check_int(cam, "cam", optional=True), camera_height,
+                                          roll, pitch)
+            self._camera64 = camera64
+            self.camera = camera64.to(camera_dtype or dtype)
+            self.calib_size = self.calib_size or calibration_size(self.calib, used)
+        else:
+            self._camera64 = None
+        self.poses = self._read_poses(poses, max(j for _, _, j in pairs) + 1) if poses is not None else None
+
+        road_files: dict[str, Path] = {}
+        self.road_file: Path | None = None
+        if road is not None:
+            rp = Path(road)
+            if rp.suffix.lower() == ".json" or rp.is_file():
+                if not rp.is_file():
+                    raise FileNotFoundError(f"road: no file at {str(rp)!r}")
+                self.road_file = rp
+            else:
+                road_files = match_files(rp, names, what="road", suffixes=IMAGE_SUFFIXES, stems=stems)
+        gt_files = match_files(gt, names, what="gt", stems=stems) if gt is not None else {}
+        self.pairs = [FramePair(n, self.frames[i], self.frames[j], i, j, road_files.get(n), gt_files.get(n))
+                      for n, i, j in pairs]
+
+        # the first pair, before any work: its size fixes the dataset's (or meets the calibration's)
+        first = self.pairs[0].image1
+        self.size = tuple(self._read_image(first).shape[-2:])
+        self._check_calibrated_size(first)
+        self._road_mask = _read_road(self.road_file, self.size) if self.road_file is not None else None
+
+    def _read_poses(self, poses: str | os.PathLike | Tensor, need: int) -> Tensor:
+        if isinstance(poses, Tensor):
+            if poses.dim() != 3 or poses.shape[-2:] != (4, 4) or not poses.is_floating_point():
+                raise ValueError(f"poses: expected an (N, 4, 4) float tensor, got {tuple(poses.shape)} {poses.dtype}")
+            P, where = poses.to(torch.float64), "the poses"
+        else:
+            path = Path(poses)
+            if not path.is_file():
+                raise FileNotFoundError(f"poses: no file at {str(path)!r}")
+            try:
+                P = read_kitti_poses(path)
+            except ValueError as err:
+                raise ValueError(f"poses: {err}") from None
+            where = repr(str(path))
+        if P.shape[0] < need:
+            raise ValueError(f"poses: {where} has {P.shape[0]} poses for {need} images")
+        return P
+
+    def _check_calibrated_size(self, image: Path) -> None:
+        H, W = self.size
+        if self.calib_size is not None:
+            if self.size != self.calib_size:
+                stated = f"the calibration {str(self.calib)!r}" if self.calib is not None else "calib_size"
+                raise ValueError(f"images: {image.name} is {H}x{W} but {stated} is for "
+                                 f"{self.calib_size[0]}x{self.calib_size[1]} images; resize the images, or give the "
+                                 f"calibration of this size")
+            return
+        if self.camera is None:
+            return
+        cx, cy = float(self._camera64.cx[0]), float(self._camera64.cy[0])
+        if abs(cx - (W - 1) / 2) > W / 6 or abs(cy - (H - 1) / 2) > H / 6:
+            raise ValueError(f"images: {image.name} is {H}x{W}, but the principal point of {str(self.calib)!r} "
+                             f"({cx:.1f}, {cy:.1f}) lies outside the middle third of such an image: the "
+                             f"calibration belongs to another image size (give images of the calibrated size, "
+                             f"or state the size with calib_size=(H, W))")
+
+    def _read_image(self, path: Path) -> Tensor:
+        try:
+            return read_image(path)
+        except FileNotFoundError as err:
+            raise FileNotFoundError(f"images: {err}") from None
+        except ValueError as err:
+            raise ValueError(f"images: {err}") from None
+
+    def _checked(self, what: str, path: Path, x: Tensor) -> Tensor:
+        """``x`` if it has the images' size, else an error naming ``what`` and the file."""
+        if tuple(x.shape[-2:]) != self.size:
+            if what == "images":
+                raise ValueError(f"images: {path.name} is {x.shape[-2]}x{x.shape[-1]} but {self.pairs[0].image1.name} "
+                                 f"is {self.size[0]}x{self.size[1]}; all images need one size (the calibration's)")
+            raise ValueError(f"{what}: {path.name} is {tuple(x.shape[-2:])}, the images {self.size}")
+        return x
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        i = check_index(index, len(self))
+        pair = self.pairs[i]
+        image1, image2 = (self._checked("images", p, self._read_image(p)) for p in (pair.image1, pair.image2))
+        truth: dict[str, Any] = {}
+        if self.ground_truth:
+            if self._road_mask is not None:
+                truth["road"] = self._road_mask.clone()
+            elif pair.road is not None:
+                truth["road"] = self._checked("road", pair.road, _read_road(pair.road, None))
+            if pair.gt is not None:
+                try:
+                    flow, valid = read_flow(pair.gt)
+                except ValueError as err:
+                    raise ValueError(f"gt: {err}") from None
+                truth["flow"], truth["valid"] = self._checked("gt", pair.gt, flow).to(self.dtype), valid
+            if self.poses is not None:
+                truth.update(self._motion(pair))
+        return make_item(image1.to(self.dtype), image2.to(self.dtype), index=i, name=pair.name,
+                         camera=self.camera, **truth)
+
+    def _motion(self, pair: FramePair) -> dict[str, Any]:
+        """The pair's relative pose, its planar odometry under the camera's mounting and the rest."""
+        P = self.poses
+        cam1_T_cam0 = relative_pose(P[pair.frame1][None], P[pair.frame2][None])[0]
+        ego = ego_motion_from_pose(cam1_T_cam0[None], self._camera64)
+        return {"relative_pose": cam1_T_cam0,
+                "odometry": {"x_d": float(ego.x_d[0]), "z_d": float(ego.z_d[0]), "yaw": float(ego.yaw[0])},
+                "pose_residual": {"y_d": float(ego.y_d[0]), "rotation": float(ego.rotation_residual[0].norm())}}

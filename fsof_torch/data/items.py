@@ -1,0 +1,196 @@
+"""The dataset item contract: one dict of one image pair, the same keys for every data set.
+
+Every dataset of :mod:`fsof_torch.datasets` (and the ``refine`` job, which loads through them)
+returns items with these keys, always present; a value the data does not have is ``None``:
+
+==================  ===============================================================================
+``image1``          (3, H, W) float RGB, 0..255 (grey images repeated to 3 channels), frame t
+``image2``          (3, H, W) the same for frame t+1
+``camera``          :class:`fsof_torch.Camera` of batch 1, K at the images' resolution, with the
+                    mounting (height m, roll and pitch rad); None without a calibration
+``flow``            (2, H, W) px, ground-truth forward flow t -> t+1 (channel 0 = u); or None
+``valid``           (1, H, W) bool, where the ground truth holds (for ``flow``, or for
+                    ``flow_velocity`` where only that exists); None without ground truth
+``road``            (1, H, W) bool road (freespace) mask; or None
+``odometry``        dict ``x_d``, ``z_d`` (m), ``yaw`` (rad) of Python floats: the planar ego-motion
+                    t -> t+1 of the displacement model (DESIGN.md §2); or None
+``relative_pose``   (4, 4) float64 ``cam1_T_cam0``, a *given* relative pose (from a poses file:
+                    camera-t coordinates -> camera-(t+1) coordinates); or None. ``odometry`` is
+                    its planar part under ``camera``'s mounting. Synthetic scenes give their exact
+                    motion as ``odometry`` (and ``plane``, ``pose1``, ``pose2``) instead.
+``index``           int, the item's position in its dataset
+``name``            str, the pair's name: its first frame's file stem (``000042``), ``NAME`` of a
+                    KITTI ``NAME_10``/``NAME_11`` pair, the scene's ``000000``-style index
+==================  ===============================================================================
+
+Some data sets carry more (keys present only there):
+
+==========================  =======================================================================
+``flow_velocity``           (2, H, W) px/s, instantaneous flow (synthetic scenes, CARLA)
+``labels``, ``depth``       (H, W) int64 classes, (1, H, W) m camera depth (synthetic scenes)
+``moving``                  (1, H, W) bool pixels on moving cars (rendered scenes)
+``velocity``                dict ``speed``, ``steering``, ``wheelbase``, ``dt`` (synthetic scenes)
+``pose1``, ``pose2``        (4, 4) float64 camera-to-world poses (synthetic scenes)
+``road_pose``, ``plane``    dicts of floats: the camera over the road at t and the rigid plane
+                            motion t -> t+1 (synthetic scenes; :func:`fsof_torch.scene.render_pair`)
+``pose_residual``           dict ``y_d`` (m), ``rotation`` (rad): what ``odometry`` drops of
+                            ``relative_pose`` (data with poses)
+==========================  =======================================================================
+
+:func:`make_item` builds an item (:func:`as_item` from a dict with some of the keys),
+:func:`check_item` checks one against the contract (for your own datasets), :func:`collate`
+batches items for a ``DataLoader``.
+"""
+
+from __future__ import annotations
+
+import numbers
+from typing import Any, Mapping, Sequence
+
+import torch
+from torch import Tensor
+
+from ..geometry.camera import Camera
+
+__all__ = ["ITEM_KEYS", "ODOMETRY_KEYS", "as_item", "make_item", "check_item", "collate", "concat_cameras"]
+
+#: the keys of every item, in order
+ITEM_KEYS = ("image1", "image2", "camera", "flow", "valid", "road", "odometry", "relative_pose", "index", "name")
+#: the keys of ``odometry``
+ODOMETRY_KEYS = ("x_d", "z_d", "yaw")
+
+
+def make_item(image1: Tensor, image2: Tensor, *, index: int, name: str, camera: Camera | None = None,
+              flow: Tensor | None = None, valid: Tensor | None = None, road: Tensor | None = None,
+              odometry: Mapping[str, float] | None = None, relative_pose: Tensor | None = None,
+              **extras: Any) -> dict[str, Any]:
+    """An item of the contract (see the module docstring): the keys of :data:`ITEM_KEYS` in order,
+    then ``extras``. ``odometry`` is reduced to ``x_d``, ``z_d``, ``yaw`` as Python floats."""
+    if odometry is not None:
+        odometry = {k: float(odometry[k]) for k in ODOMETRY_KEYS}
+    item = {"image1": image1, "image2": image2, "camera": camera, "flow": flow, "valid": valid, "road": road,
+            "odometry": odometry, "relative_pose": relative_pose, "index": int(index), "name": str(name)}
+    item.update(extras)
+    return item
+
+
+def as_item(sample: Mapping[str, Any], **changes: Any) -> dict[str, Any]:
+    """An item of the contract from a dict that holds its keys where present (the output of
+    :func:`fsof_torch.scene.render_pair` or :func:`fsof_torch.io.read_synthetic_pair`), with
+    ``changes`` applied: absent keys of the contract become None, the others stay as extras."""
+    d = {**sample, **changes}
+    images = d.pop("image1"), d.pop("image2")
+    index, name = d.pop("index"), d.pop("name")
+    core = {k: d.pop(k, None) for k in ITEM_KEYS if k not in ("image1", "image2", "index", "name")}
+    return make_item(*images, index=index, name=name, **core, **d)
+
+
+def _check_tensor(item: Mapping[str, Any], key: str, shape: tuple, *, boolean: bool = False) -> None:
+    x = item[key]
+    if not isinstance(x, Tensor):
+        raise TypeError(f"item[{key!r}]: expected a tensor of shape {shape}, got {type(x).__name__}")
+    if tuple(x.shape) != shape:
+        raise ValueError(f"item[{key!r}]: expected shape {shape}, got {tuple(x.shape)}")
+    if boolean and x.dtype != torch.bool:
+        raise TypeError(f"item[{key!r}]: expected a bool tensor, got {x.dtype}")
+    if not boolean and not x.is_floating_point():
+        raise TypeError(f"item[{key!r}]: expected a float tensor, got {x.dtype}")
+
+
+def check_item(item: Mapping[str, Any]) -> None:
+    """Check ``item`` against the contract: every key of :data:`ITEM_KEYS` present, tensors of
+    the documented shapes and dtypes at the images' size, ``camera`` of batch 1, ``odometry``
+    floats; a ValueError or TypeError names the key and quotes what came."""
+    if not isinstance(item, Mapping):
+        raise TypeError(f"item: expected a dict, got {type(item).__name__}")
+    missing = [k for k in ITEM_KEYS if k not in item]
+    if missing:
+        raise ValueError(f"item: missing keys {missing} (every key of the contract is present, None where absent)")
+    image1 = item["image1"]
+    if not isinstance(image1, Tensor) or image1.dim() != 3 or image1.shape[0] != 3:
+        got = tuple(image1.shape) if isinstance(image1, Tensor) else type(image1).__name__
+        raise ValueError(f"item['image1']: expected a tensor of shape (3, H, W), got {got}")
+    H, W = image1.shape[-2:]
+    _check_tensor(item, "image1", (3, H, W))
+    _check_tensor(item, "image2", (3, H, W))
+    for key, channels, boolean in (("flow", 2, False), ("valid", 1, True), ("road", 1, True),
+                                   ("flow_velocity", 2, False), ("moving", 1, True)):
+        if item.get(key) is not None:
+            _check_tensor(item, key, (channels, H, W), boolean=boolean)
+    if item["flow"] is not None and item["valid"] is None:
+        raise ValueError("item['valid']: None beside a ground-truth flow; expected (1, H, W) bool")
+    camera = item["camera"]
+    if camera is not None and not (isinstance(camera, Camera) and camera.batch_size == 1):
+        raise TypeError(f"item['camera']: expected a Camera of batch 1 or None, got {camera!r}")
+    odometry = item["odometry"]
+    if odometry is not None:
+        if not isinstance(odometry, Mapping) or set(odometry) != set(ODOMETRY_KEYS):
+            raise ValueError(f"item['odometry']: expected a dict with keys {list(ODOMETRY_KEYS)}, got {odometry!r}")
+        if not all(isinstance(v, float) for v in odometry.values()):
+            raise TypeError(f"item['odometry']: expected Python floats, got {odometry!r}")
+    pose = item["relative_pose"]
+    if pose is not None:
+        if not isinstance(pose, Tensor) or tuple(pose.shape) != (4, 4) or pose.dtype != torch.float64:
+            raise ValueError(f"item['relative_pose']: expected a (4, 4) float64 tensor or None, got "
+                             f"{tuple(pose.shape) if isinstance(pose, Tensor) else type(pose).__name__}")
+    if isinstance(item["index"], bool) or not isinstance(item["index"], numbers.Integral):
+        raise TypeError(f"item['index']: expected an int, got {item['index']!r}")
+    if not isinstance(item["name"], str):
+        raise TypeError(f"item['name']: expected a str, got {item['name']!r}")
+
+
+def concat_cameras(cameras: Sequence[Camera]) -> Camera:
+    """One Camera of batch sum(B_i) from several (dtype promoted, device of the first)."""
+    if not cameras:
+        raise ValueError("cameras: expected at least one Camera")
+    dtype = cameras[0].dtype
+    for cam in cameras[1:]:
+        dtype = torch.promote_types(dtype, cam.dtype)
+    device = cameras[0].device
+    parts = [c.to(device=device, dtype=dtype) for c in cameras]
+    return Camera(torch.cat([c.K for c in parts]), torch.cat([c.height for c in parts]),
+                  torch.cat([c.roll for c in parts]), torch.cat([c.pitch for c in parts]))
+
+
+def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Batch a list of dataset items (for ``DataLoader(..., collate_fn=collate)``).
+
+    Tensors -> stacked (B, ...); Camera -> one Camera of batch B; dicts of numbers (odometry,
+    velocity) -> dicts of (B,) tensors (the cameras' dtype, else float64); a key that is None in
+    every item -> None; anything else (index, name) -> a list. The same rules serve
+    :func:`fsof_torch.scene.collate`, so rendered pairs and items read from disk batch alike. Every
+    item must have the same keys, and a key None in one item must be None in all.
+    """
+    if not samples:
+        raise ValueError("samples: expected a non-empty list of dicts")
+    keys = list(samples[0].keys())
+    for i, s in enumerate(samples[1:], 1):
+        if set(s.keys()) != set(keys):
+            diff = sorted(set(s.keys()) ^ set(keys))
+            raise ValueError(f"samples: item {i} has different keys from item 0 (differing: {diff})")
+    cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
+    float_dtype = cams[0].dtype if cams else torch.float64
+    batch: dict[str, Any] = {}
+    for key in keys:
+        values = [s[key] for s in samples]
+        absent = [v is None for v in values]
+        if all(absent):
+            batch[key] = None
+            continue
+        if any(absent):
+            raise ValueError(f"samples: {key!r} is None in item {absent.index(True)} but not in item "
+                             f"{absent.index(False)}; batch items that have the same data")
+        first = values[0]
+        if isinstance(first, Tensor):
+            shapes = {tuple(v.shape) for v in values}
+            if len(shapes) > 1:
+                raise ValueError(f"samples: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
+                                 f"or images of one size")
+            batch[key] = torch.stack(values)
+        elif isinstance(first, Camera):
+            batch[key] = concat_cameras(values)
+        elif isinstance(first, Mapping) and all(isinstance(x, numbers.Number) for x in first.values()):
+            batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype) for k in first}
+        else:
+            batch[key] = list(values)
+    return batch

@@ -1,0 +1,181 @@
+"""fsof_torch.data.folders: ImageFolderDataset over a folder of frames written by the library's
+writers (pairs, files matched by name, poses, one road file for all pairs, the size checks) and
+the errors that name the argument and the file."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from fsof_torch.data.folders import ImageFolderDataset, frame_pairs, kitti_flow_layout, match_files
+from fsof_torch.data.items import check_item
+from fsof_torch.io import (read_kitti_poses, write_flow, write_image, write_kitti_calibration, write_kitti_poses,
+                           write_road_mask)
+
+SIZE = (24, 40)
+K = torch.tensor([[30.0, 0.0, 19.5], [0.0, 30.0, 11.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+
+
+def _motion(yaw: float) -> torch.Tensor:
+    """Camera i in the coordinates of camera i - 1: 1 m forward, then turned by ``yaw`` about y
+    (the displacement model's d = (0, 0, 1), φ = yaw)."""
+    c, s = torch.cos(torch.tensor(yaw, dtype=torch.float64)), torch.sin(torch.tensor(yaw, dtype=torch.float64))
+    M = torch.eye(4, dtype=torch.float64)
+    M[0, 0], M[0, 2], M[2, 0], M[2, 2], M[2, 3] = c, s, -s, c, 1.0
+    return M
+
+
+@pytest.fixture
+def clip(tmp_path):
+    """Four frames (frame i filled with 10 i), calib.txt, poses, road PNGs and flows per pair."""
+    root = tmp_path / "clip"
+    for d in ("images", "road", "gt"):
+        (root / d).mkdir(parents=True)
+    for i in range(4):
+        write_image(root / "images" / f"{i:06d}.png", torch.full((3, *SIZE), 10.0 * i))
+    write_kitti_calibration(root / "calib.txt", K, cam=0, style="odometry")
+    poses = [torch.eye(4, dtype=torch.float64)]
+    for i in range(1, 4):  # camera-to-world: P_i = P_{i-1} M_i, turning by 0.01 i
+        poses.append(poses[-1] @ _motion(0.01 * i))
+    poses = torch.stack(poses)
+    write_kitti_poses(root / "poses.txt", poses)
+    for i in range(3):
+        road = torch.zeros(1, *SIZE, dtype=torch.bool)
+        road[:, 12 + i:] = True
+        write_road_mask(root / "road" / f"{i:06d}.png", road)
+        write_flow(root / "gt" / f"{i:06d}.flo", torch.full((2, *SIZE), 0.5 * i))
+    return root, poses
+
+
+def test_consecutive_pairs_with_poses_road_and_ground_truth(clip):
+    root, poses = clip
+    ds = ImageFolderDataset(root / "images", root / "calib.txt", camera_height=1.5, poses=root / "poses.txt",
+                            road=root / "road", gt=root / "gt")
+    assert len(ds) == 3 and [p.name for p in ds.pairs] == ["000000", "000001", "000002"]
+    item = ds[1]
+    check_item(item)
+    assert item["image1"].eq(10.0).all() and item["image2"].eq(20.0).all() and item["name"] == "000001"
+    assert int(item["road"].sum()) == (SIZE[0] - 13) * SIZE[1]
+    assert item["flow"].eq(0.5).all() and item["valid"].all()
+    torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[2]) @ poses[1], rtol=0, atol=1e-12)
+    # forward by 1 m, turning by 0.02 rad, a level camera: the odometry by construction
+    assert item["odometry"]["yaw"] == pytest.approx(0.02, abs=1e-12)
+    assert item["odometry"]["z_d"] == pytest.approx(1.0, abs=1e-12) and abs(item["odometry"]["x_d"]) < 1e-12
+    assert item["camera"].dtype == torch.float32 and float(item["camera"].height) == 1.5
+    torch.testing.assert_close(item["camera"].K[0].double(), K)
+
+
+def test_step_frame_list_poses_tensor_and_no_calibration(clip):
+    root, poses = clip
+    frames = sorted((root / "images").iterdir())
+    ds = ImageFolderDataset(frames, poses=poses, step=2)
+    assert [(p.name, p.frame1, p.frame2) for p in ds.pairs] == [("000000", 0, 2), ("000001", 1, 3)]
+    item = ds[1]
+    assert item["camera"] is None and item["road"] is None and item["flow"] is None
+    torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[3]) @ poses[1], rtol=0, atol=1e-12)
+    assert item["odometry"]["yaw"] == pytest.approx(0.02 + 0.03, abs=1e-12)  # two turns
+    torch.testing.assert_close(torch.as_tensor(ImageFolderDataset(frames, poses=root / "poses.txt").poses), poses,
+                               rtol=0, atol=1e-12)
+
+
+def test_one_road_file_for_every_pair(clip, tmp_path):
+    root, _ = clip
+    (tmp_path / "road.json").write_text(json.dumps({"size": [2 * SIZE[0], 2 * SIZE[1]],
+                                                    "road_polygon": [[0, 47], [0, 24], [79, 24], [79, 47]]}))
+    ds = ImageFolderDataset(root / "images", road=tmp_path / "road.json")
+    a, b = ds[0]["road"], ds[2]["road"]
+    assert torch.equal(a, b) and a.shape == (1, *SIZE) and a[:, 12:].all() and not a[:, :12].any()
+    a[:] = False  # an item's mask is its own
+    assert ds[0]["road"].any()
+    road = torch.zeros(1, *SIZE, dtype=torch.bool)
+    road[:, :, :5] = True
+    write_road_mask(tmp_path / "road.png", road)
+    assert torch.equal(ImageFolderDataset(root / "images", road=tmp_path / "road.png")[1]["road"], road)
+
+
+def test_kitti_flow_pairs_pair_by_name(tmp_path):
+    for name in ("000004", "000002"):
+        for t, v in (("10", 1.0), ("11", 2.0)):
+            write_image(tmp_path / f"{name}_{t}.png", torch.full((3, *SIZE), v))
+    files = sorted(tmp_path.iterdir())
+    assert kitti_flow_layout(files)
+    assert frame_pairs(files) == [("000002", 0, 1), ("000004", 2, 3)]
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == ["000002", "000004"] and ds[1]["image2"].eq(2.0).all()
+    with pytest.raises(ValueError, match="step: KITTI flow pairs"):
+        ImageFolderDataset(tmp_path, step=2)
+    write_image(tmp_path / "000009_10.png", torch.zeros(3, *SIZE))  # without its _11: one clip of frames
+    assert not kitti_flow_layout(sorted(tmp_path.iterdir()))
+
+
+def test_files_match_by_name_never_by_position(clip):
+    root, _ = clip
+    (root / "gt" / "000001.flo").rename(root / "gt" / "000007.flo")
+    with pytest.raises(ValueError, match=r"^gt: no file for pair 000001 in .*expected 000001\.\* \(\.png, \.flo, \.npy\)"):
+        ImageFolderDataset(root / "images", gt=root / "gt")
+    write_flow(root / "gt" / "000000.npy", torch.zeros(2, *SIZE))
+    with pytest.raises(ValueError, match=r"gt: pair 000000 matches 2 files .*\(000000\.flo, 000000\.npy\); keep one"):
+        match_files(root / "gt", ["000000"], what="gt")
+    with pytest.raises(FileNotFoundError, match=r"^road: no folder at"):
+        ImageFolderDataset(root / "images", road=root / "nothing")
+    with pytest.raises(FileNotFoundError, match=r"^road: no file at .*none\.json"):
+        ImageFolderDataset(root / "images", road=root / "none.json")
+
+
+def test_sizes_against_the_first_pair_and_the_calibration(clip, tmp_path):
+    root, _ = clip
+    write_image(root / "images" / "000003.png", torch.zeros(3, 20, 40))
+    ds = ImageFolderDataset(root / "images", root / "calib.txt")  # the first pair is fine
+    ds[1]
+    with pytest.raises(ValueError, match=r"^images: 000003\.png is 20x40 but 000000\.png is 24x40; all images need one size"):
+        ds[2]
+    with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40 but the calibration .* is for 48x80 images"):
+        ImageFolderDataset(root / "images", root / "calib.txt", calib_size=(48, 80))
+    cam2cam = tmp_path / "calib_cam_to_cam.txt"
+    write_kitti_calibration(cam2cam, K, cam=2)
+    cam2cam.write_text(cam2cam.read_text() + "S_rect_02: 8.000000e+01 4.800000e+01\n")
+    with pytest.raises(ValueError, match=r"is for 48x80 images"):
+        ImageFolderDataset(root / "images", cam2cam)
+    # a calibration for images twice as large: the principal point is a quarter image off centre
+    write_kitti_calibration(tmp_path / "double.txt", K * torch.tensor([[2.0], [2.0], [1.0]], dtype=torch.float64),
+                            cam=0, style="odometry")
+    with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40, but the principal point .*middle third"):
+        ImageFolderDataset(root / "images", tmp_path / "double.txt")
+
+
+def test_errors_name_the_argument_and_the_file(clip, tmp_path):
+    root, _ = clip
+    with pytest.raises(FileNotFoundError, match=r"^images: no folder at"):
+        ImageFolderDataset(tmp_path / "none")
+    with pytest.raises(ValueError, match=r"^images: 1 image\(s\) given; a pair needs at least 2"):
+        ImageFolderDataset([root / "images" / "000000.png"])
+    with pytest.raises(ValueError, match=r"^images: 4 frames make no pair \(i, i \+ step\) with step 4"):
+        ImageFolderDataset(root / "images", step=4)
+    with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40 but calib_size is for 12x40 images"):
+        ImageFolderDataset(root / "images", calib_size=(12, 40))
+    with pytest.raises(FileNotFoundError, match=r"^calib: no calibration file at"):
+        ImageFolderDataset(root / "images", tmp_path / "calib.txt")
+    (tmp_path / "calib.bin").write_bytes(bytes(range(256)))
+    with pytest.raises(ValueError, match=r"^calib: .*calib\.bin"):
+        ImageFolderDataset(root / "images", tmp_path / "calib.bin")
+    with pytest.raises(ValueError, match=r"^cam: expected 0\.\.3, got 4"):
+        ImageFolderDataset(root / "images", root / "calib.txt", cam=4)
+    with pytest.raises(ValueError, match=r"^camera_height: expected a positive number"):
+        ImageFolderDataset(root / "images", root / "calib.txt", camera_height=0.0)
+    short = tmp_path / "poses.txt"
+    write_kitti_poses(short, read_kitti_poses(root / "poses.txt")[:2])
+    with pytest.raises(ValueError, match=r"^poses: .*poses\.txt' has 2 poses for 4 images"):
+        ImageFolderDataset(root / "images", poses=short)
+    rows = (root / "poses.txt").read_text().splitlines()
+    rows[2] = " ".join(["0"] * 12)
+    short.write_text("\n".join(rows) + "\n")
+    with pytest.raises(ValueError, match=r"^poses: .*line 3 .*not a rigid pose"):
+        ImageFolderDataset(root / "images", poses=short)
+    (tmp_path / "road.json").write_text("5")
+    with pytest.raises(ValueError, match=r"^road: .*road\.json' is not a usable road mask"):
+        ImageFolderDataset(root / "images", road=tmp_path / "road.json")
+    write_road_mask(root / "road" / "000001.png", torch.ones(1, 10, 10, dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"^road: 000001\.png is \(10, 10\), the images \(24, 40\)"):
+        ImageFolderDataset(root / "images", road=root / "road")[1]

@@ -1,0 +1,116 @@
+"""fsof_torch.data.items: the one item contract of the datasets and the job, written once in the
+docs and in the module; make_item, as_item, check_item, collate with absent (None) values."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+import torch
+
+from fsof_torch.data import items
+from fsof_torch.data.items import ITEM_KEYS, as_item, check_item, collate, make_item
+from fsof_torch.geometry.camera import Camera
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "data-formats.md"
+H, W = 6, 10
+
+
+def _documented_keys(text: str, heading: str, table: int) -> list[str]:
+    """The backticked names in the first column of table ``table`` (0-based) under ``heading``."""
+    section = text.split(heading, 1)[1].split("\n## ", 1)[0]
+    tables, rows = [], []
+    for line in section.splitlines():
+        if line.startswith("|"):
+            rows.append(line)
+        elif rows:
+            tables.append(rows)
+            rows = []
+    if rows:
+        tables.append(rows)
+    first = [row.split("|")[1] for row in tables[table][2:]]
+    return [name for cell in first for name in re.findall(r"`([a-z_0-9]+)`", cell)]
+
+
+def test_the_docs_list_the_contracts_keys_in_order():
+    text = DOCS.read_text()
+    assert tuple(_documented_keys(text, "## Datasets and their items", 0)) == ITEM_KEYS
+    extras = _documented_keys(text, "## Datasets and their items", 1)
+    assert extras == ["flow_velocity", "labels", "depth", "moving", "velocity", "pose1", "pose2", "road_pose",
+                      "plane", "pose_residual"]
+    # the module's docstring lists the same keys, each in its first column
+    for key in (*ITEM_KEYS, *extras):
+        assert re.search(rf"^``{key}``|, ``{key}``", items.__doc__, re.M), key
+
+
+def _item(**changes):
+    g = torch.Generator().manual_seed(0)
+    base = dict(image1=torch.rand(3, H, W, generator=g) * 255, image2=torch.rand(3, H, W, generator=g) * 255,
+                index=3, name="000003", camera=Camera(torch.eye(3), 1.5))
+    return make_item(**{**base, **changes})
+
+
+def test_make_item_has_every_key_in_order_and_floats():
+    item = _item(odometry={"x_d": torch.tensor(0.1), "z_d": 1, "yaw": 0.0, "extra": 5.0}, labels="x")
+    assert tuple(item) == (*ITEM_KEYS, "labels")
+    assert item["odometry"] == {"x_d": pytest.approx(0.1), "z_d": 1.0, "yaw": 0.0}
+    assert all(type(v) is float for v in item["odometry"].values())
+    assert item["flow"] is None and item["road"] is None and item["relative_pose"] is None
+    check_item(item)
+
+
+def test_as_item_fills_the_absent_keys_and_keeps_extras():
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(24, 80))
+    item = as_item(p, name="000000")
+    assert tuple(item)[:len(ITEM_KEYS)] == ITEM_KEYS
+    assert item["relative_pose"] is None and torch.equal(item["flow"], p["flow"]) and item["index"] == 0
+    assert {"flow_velocity", "labels", "depth", "moving", "velocity", "pose1", "pose2", "road_pose", "plane"} \
+        <= set(item)
+    check_item(item)
+    bare = as_item({"image1": p["image1"], "image2": p["image2"], "index": 1, "name": "x"})
+    assert all(bare[k] is None for k in ITEM_KEYS if k not in ("image1", "image2", "index", "name"))
+
+
+@pytest.mark.parametrize("change, error, match", [
+    ({"flow": torch.zeros(2, H, W + 1), "valid": torch.ones(1, H, W, dtype=torch.bool)}, ValueError,
+     r"item\['flow'\]: expected shape \(2, 6, 10\), got \(2, 6, 11\)"),
+    ({"flow": torch.zeros(2, H, W)}, ValueError, r"item\['valid'\]: None beside a ground-truth flow"),
+    ({"road": torch.ones(1, H, W)}, TypeError, r"item\['road'\]: expected a bool tensor, got torch.float32"),
+    ({"image2": torch.zeros(3, H + 1, W)}, ValueError, r"item\['image2'\]: expected shape \(3, 6, 10\)"),
+    ({"image1": torch.zeros(1, H, W)}, ValueError, r"item\['image1'\]: expected a tensor of shape \(3, H, W\)"),
+    ({"relative_pose": torch.eye(4)}, ValueError, r"item\['relative_pose'\]: expected a \(4, 4\) float64"),
+    ({"camera": Camera(torch.eye(3).expand(2, 3, 3), 1.5)}, TypeError, r"item\['camera'\]: expected a Camera of batch 1"),
+])
+def test_check_item_names_the_key(change, error, match):
+    item = _item()
+    item.update(change)
+    with pytest.raises(error, match=match):
+        check_item(item)
+
+
+def test_check_item_wants_every_key_and_float_odometry():
+    item = _item()
+    del item["road"]
+    with pytest.raises(ValueError, match=r"item: missing keys \['road'\]"):
+        check_item(item)
+    item = _item()
+    item["odometry"] = {"x_d": 0.0, "z_d": 1.0}
+    with pytest.raises(ValueError, match=r"item\['odometry'\]: expected a dict with keys"):
+        check_item(item)
+    item["odometry"] = {"x_d": 0.0, "z_d": torch.tensor(1.0), "yaw": 0.0}
+    with pytest.raises(TypeError, match=r"item\['odometry'\]: expected Python floats"):
+        check_item(item)
+
+
+def test_collate_keeps_keys_absent_in_every_item_and_refuses_a_mix():
+    a, b = _item(index=0, name="a"), _item(index=1, name="b")
+    batch = collate([a, b])
+    assert batch["flow"] is None and batch["odometry"] is None and batch["relative_pose"] is None
+    assert batch["image1"].shape == (2, 3, H, W) and batch["camera"].batch_size == 2
+    assert batch["index"] == [0, 1] and batch["name"] == ["a", "b"]
+    b["road"] = torch.ones(1, H, W, dtype=torch.bool)
+    with pytest.raises(ValueError, match=r"samples: 'road' is None in item 0 but not in item 1"):
+        collate([a, b])

@@ -1,0 +1,297 @@
+"""``refine.inputs``: the job loads through the library's datasets. For the same files (written to
+tmp_path by the library's writers) the job's pairs and the datasets' items are identical, both
+follow the item contract, and both equal the data that was written (read back independently
+where the format rounds: images to integers, KITTI flow PNGs to 1/64 px). A pair's resume
+identity changes with its own files only."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from fsof_torch import Camera
+from fsof_torch.data.items import ITEM_KEYS, check_item
+from fsof_torch.datasets import ImageFolderDataset, KittiOdometryDataset, KittiSampleDataset, SceneDataset
+
+SIZE = (48, 160)
+POLYGON = [[0, 47], [40, 36], [120, 36], [159, 47]]
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Three consecutive rendered pairs (four frames)."""
+    from fsof_torch.data.scene import render_pair
+
+    return [render_pair("default", i, size=SIZE) for i in range(3)]
+
+
+def _frames(scene) -> list[torch.Tensor]:
+    return [scene[0]["image1"], *(p["image2"] for p in scene)]
+
+
+def _mounting(camera: Camera) -> dict[str, float]:
+    return {"height": float(camera.height[0]), "roll_deg": math.degrees(float(camera.roll[0])),
+            "pitch_deg": math.degrees(float(camera.pitch[0]))}
+
+
+@pytest.fixture
+def user_folder(tmp_path, scene) -> Path:
+    """A clip of four frames with calib.txt, poses.txt, road PNGs, ground truth and flows."""
+    from fsof_torch.io import write_flow, write_image, write_kitti_calibration, write_kitti_poses, write_road_mask
+
+    root = tmp_path / "user"
+    for d in ("images", "road", "gt", "flows"):
+        (root / d).mkdir(parents=True)
+    for i, im in enumerate(_frames(scene)):
+        write_image(root / "images" / f"{i:06d}.png", im)
+    write_kitti_calibration(root / "calib.txt", scene[0]["camera"].K[0], cam=0, style="odometry")
+    write_kitti_poses(root / "poses.txt", torch.stack([scene[0]["pose1"], *(p["pose2"] for p in scene)]))
+    for i, (p, ext) in enumerate(zip(scene, (".flo", ".npy", ".png"))):
+        write_road_mask(root / "road" / f"{i:06d}.png", p["road"])
+        write_flow(root / "gt" / f"{i:06d}.png", p["flow"], p["valid"])
+        write_flow(root / "flows" / f"{i:06d}{ext}", p["flow"] + 0.5)
+    return root
+
+
+@pytest.fixture
+def kitti15_folder(tmp_path, scene) -> Path:
+    """A folder in the layout of shared/data/kitti15_000000."""
+    from fsof_torch.io import write_image, write_kitti_calibration, write_kitti_flow
+
+    root = tmp_path / "kitti15_000000"
+    root.mkdir()
+    p = scene[0]
+    write_image(root / "image_10.png", p["image1"])
+    write_image(root / "image_11.png", p["image2"])
+    write_kitti_calibration(root / "calib_cam_to_cam.txt", p["camera"].K[0], cam=2)
+    with open(root / "calib_cam_to_cam.txt", "a") as f:
+        f.write(f"S_rect_02: {SIZE[1]:.6e} {SIZE[0]:.6e}\n")
+    write_kitti_flow(root / "flow_noc_10.png", p["flow"], p["valid"])
+    (root / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+    return root
+
+
+@pytest.fixture
+def odometry_folder(tmp_path, scene) -> Path:
+    """A folder in the layout of shared/data/kitti_odometry_straight: image_l/, calib.txt (P0),
+    poses.txt, road.json."""
+    from fsof_torch.io import write_image, write_kitti_calibration, write_kitti_poses
+
+    root = tmp_path / "clip"
+    (root / "image_l").mkdir(parents=True)
+    for i, im in enumerate(_frames(scene)):
+        write_image(root / "image_l" / f"{i:06d}.png", im)
+    write_kitti_calibration(root / "calib.txt", scene[0]["camera"].K[0], cam=0, style="odometry")
+    write_kitti_poses(root / "poses.txt", torch.stack([scene[0]["pose1"], *(p["pose2"] for p in scene)]))
+    (root / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+    return root
+
+
+def assert_same_item(a: dict, b: dict) -> None:
+    """Two items hold the same keys and equal values: tensors bit for bit, cameras' parameters."""
+    assert list(a) == list(b)
+    for key in a:
+        x, y = a[key], b[key]
+        if isinstance(x, torch.Tensor):
+            assert x.dtype == y.dtype and torch.equal(x, y), key
+        elif isinstance(x, Camera):
+            for name in ("K", "height", "roll", "pitch"):
+                assert torch.equal(getattr(x, name), getattr(y, name)), (key, name)
+        else:
+            assert x == y, key
+
+
+def _loaded(specs) -> list[dict]:
+    return [s.load() for s in specs]
+
+
+def test_synthetic_pairs_are_the_scene_dataset_and_the_rendered_pairs(scene):
+    from refine.inputs import synthetic_pairs
+
+    specs = synthetic_pairs("default", 3, seed=0, size=SIZE, road=None)
+    dataset = SceneDataset("default", 3, size=SIZE, camera_dtype=torch.float64)
+    assert [s.name for s in specs] == ["000000", "000001", "000002"]
+    for i, (spec, p) in enumerate(zip(specs, scene)):
+        item = spec.load()
+        check_item(item)
+        assert_same_item(item, dataset[i])
+        # the rendered pair itself, under the contract's keys
+        for key in ("image1", "image2", "flow", "valid", "road", "flow_velocity", "pose1", "pose2"):
+            assert torch.equal(item[key], p[key]), key
+        assert item["odometry"] == {k: p["odometry"][k] for k in ("x_d", "z_d", "yaw")}
+        assert item["relative_pose"] is None and item["camera"].dtype == torch.float64
+        torch.testing.assert_close(item["camera"].K, p["camera"].K.double(), rtol=0, atol=0)
+        assert spec.identity() == {"index": i}
+
+
+def test_user_pairs_are_the_image_folder_dataset(user_folder, scene):
+    from refine.inputs import user_pairs
+
+    m = _mounting(scene[0]["camera"])
+    specs, camera = user_pairs(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None,
+                               height=m["height"], roll_deg=m["roll_deg"], pitch_deg=m["pitch_deg"],
+                               poses=user_folder / "poses.txt", flows=user_folder / "flows",
+                               road=str(user_folder / "road"), gt=user_folder / "gt")
+    dataset = ImageFolderDataset(user_folder / "images", user_folder / "calib.txt", camera_height=m["height"],
+                                 roll=math.radians(m["roll_deg"]), pitch=math.radians(m["pitch_deg"]),
+                                 poses=user_folder / "poses.txt", road=user_folder / "road", gt=user_folder / "gt",
+                                 camera_dtype=torch.float64)
+    assert [s.name for s in specs] == ["000000", "000001", "000002"]
+    assert [s.flow_files["files"].name for s in specs] == ["000000.flo", "000001.npy", "000002.png"]
+    for i, (spec, p) in enumerate(zip(specs, scene)):
+        item = spec.load()
+        check_item(item)
+        assert_same_item(item, dataset[i])
+        # what was written, read back independently of the readers' code
+        assert torch.equal(item["image1"], p["image1"].round()) and torch.equal(item["image2"], p["image2"].round())
+        assert torch.equal(item["road"], p["road"]) and torch.equal(item["valid"], p["valid"])
+        assert float((item["flow"] - p["flow"]).abs().amax(0)[p["valid"][0]].max()) <= 1 / 128
+        torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(p["pose2"]) @ p["pose1"],
+                                   rtol=0, atol=1e-9)
+        for k in ("x_d", "z_d", "yaw"):
+            assert item["odometry"][k] == pytest.approx(p["odometry"][k], abs=1e-6)
+        assert item["camera"] is camera
+    torch.testing.assert_close(camera.K, scene[0]["camera"].K.double(), rtol=0, atol=1e-4)
+
+
+def test_user_pairs_of_a_kitti_flow_layout(tmp_path, user_folder, scene):
+    """KITTI flow pairs NAME_10 / NAME_11 pair by name and are named NAME, in the job and the dataset."""
+    from fsof_torch.io import write_image
+    from refine.inputs import user_pairs
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    for name, p in (("000007", scene[0]), ("000003", scene[2])):
+        write_image(folder / f"{name}_10.png", p["image1"])
+        write_image(folder / f"{name}_11.png", p["image2"])
+    specs, _ = user_pairs(images=folder, calib=user_folder / "calib.txt", cam=0, height=1.65, roll_deg=0.0,
+                          pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+    dataset = ImageFolderDataset(folder, user_folder / "calib.txt", cam=0, camera_dtype=torch.float64)
+    assert [s.name for s in specs] == [p.name for p in dataset.pairs] == ["000003", "000007"]
+    for i, spec in enumerate(specs):
+        item = spec.load()
+        assert_same_item(item, dataset[i])
+        assert item["road"] is None and item["flow"] is None and item["odometry"] is None
+    assert torch.equal(specs[0].load()["image1"], scene[2]["image1"].round())
+
+
+def test_kitti15_pairs_are_the_sample_dataset(kitti15_folder, scene):
+    from refine.inputs import kitti15_pairs
+
+    specs, camera = kitti15_pairs(kitti15_folder, height=1.65)
+    dataset = KittiSampleDataset(kitti15_folder, camera_dtype=torch.float64)
+    assert [s.name for s in specs] == ["kitti15_000000"] and len(dataset) == 1
+    item = specs[0].load()
+    check_item(item)
+    assert_same_item(item, dataset[0])
+    p = scene[0]
+    assert torch.equal(item["image1"], p["image1"].round()) and torch.equal(item["valid"], p["valid"])
+    assert float((item["flow"] - p["flow"]).abs().amax(0)[p["valid"][0]].max()) <= 1 / 128
+    assert item["odometry"] is None and item["relative_pose"] is None
+    from fsof_torch.io import rasterize_polygons
+
+    assert torch.equal(item["road"], rasterize_polygons([POLYGON], SIZE).reshape(1, *SIZE))
+    assert float(camera.height[0]) == 1.65 and float(camera.pitch[0]) == 0.0
+
+
+def test_kitti_odometry_pairs_are_the_odometry_dataset(odometry_folder, scene):
+    from refine.inputs import kitti_odometry_pairs
+
+    specs, camera = kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=-1.0)
+    dataset = KittiOdometryDataset(odometry_folder, pitch=math.radians(-1.0), camera_dtype=torch.float64)
+    assert [s.name for s in specs] == ["000000", "000001", "000002"]
+    assert float(camera.pitch[0]) == pytest.approx(math.radians(-1.0), abs=1e-15)
+    for i, (spec, p) in enumerate(zip(specs, scene)):
+        item = spec.load()
+        check_item(item)
+        assert_same_item(item, dataset[i])
+        torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(p["pose2"]) @ p["pose1"],
+                                   rtol=0, atol=1e-9)
+        assert set(item["pose_residual"]) == {"y_d", "rotation"}
+
+
+def test_every_item_has_the_contract_keys_in_order(user_folder, kitti15_folder, odometry_folder):
+    from refine.inputs import kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
+
+    loaded = [synthetic_pairs("default", 1, seed=0, size=SIZE, road="auto")[0].load(),
+              kitti15_pairs(kitti15_folder, height=1.65)[0][0].load(),
+              kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)[0][0].load(),
+              user_pairs(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None, height=1.65,
+                         roll_deg=0.0, pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)[0][0].load()]
+    for item in loaded:
+        assert tuple(item)[:len(ITEM_KEYS)] == ITEM_KEYS
+
+
+def test_a_changed_file_changes_only_its_pairs_identity(user_folder, scene):
+    """The resume fingerprint's input: the contents of a pair's own files and its poses."""
+    from fsof_torch.io import write_flow, write_image
+    from refine.inputs import user_pairs
+
+    def identities():
+        specs, _ = user_pairs(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None,
+                              height=1.65, roll_deg=0.0, pitch_deg=0.0, poses=user_folder / "poses.txt",
+                              flows=user_folder / "flows", road=str(user_folder / "road"), gt=user_folder / "gt")
+        return [s.identity() for s in specs]
+
+    first = identities()
+    assert set(first[0]["files"]) == {"image1", "image2", "flow", "gt", "road"} and len(first[0]["poses"]) == 32
+    assert identities() == first  # the same files, the same identities
+    write_image(user_folder / "images" / "000003.png", scene[2]["image2"].flip(-1))  # pair 000002's second frame
+    second = identities()
+    assert second[:2] == first[:2] and second[2]["files"]["image2"] != first[2]["files"]["image2"]
+    write_flow(user_folder / "flows" / "000000.flo", scene[0]["flow"])  # pair 000000's prediction
+    third = identities()
+    assert third[1:] == second[1:] and third[0]["files"]["flow"] != second[0]["files"]["flow"]
+
+
+def test_dataset_errors_name_the_option(user_folder, tmp_path):
+    """The datasets' errors name their argument; the job's name the option that gave it."""
+    from refine.inputs import JobError, user_pairs
+
+    args = dict(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None, height=1.65,
+                roll_deg=0.0, pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+    (user_folder / "gt" / "000001.png").unlink()
+    with pytest.raises(ValueError, match=r"^gt: no file for pair 000001 in "):
+        ImageFolderDataset(user_folder / "images", user_folder / "calib.txt", gt=user_folder / "gt")
+    with pytest.raises(JobError, match=r"^--gt: no file for pair 000001 in "):
+        user_pairs(**{**args, "gt": user_folder / "gt"})
+    with pytest.raises(JobError, match=r"^--cam: expected 0..3, got 7"):
+        user_pairs(**{**args, "cam": 7})
+    with pytest.raises(JobError, match=r"^--calib-size: .*positive"):
+        user_pairs(**{**args, "calib_size": (0, 160)})
+    with pytest.raises(JobError, match=r"--calib-size HxW"):  # the hint names the option, not the argument
+        user_pairs(**{**args, "images": _resized(user_folder, tmp_path, 2.0)})
+
+
+def _resized(user_folder: Path, tmp_path: Path, factor: float) -> Path:
+    import torch.nn.functional as F
+
+    from fsof_torch.io import read_image, write_image
+
+    out = tmp_path / f"resized{factor:g}"
+    out.mkdir()
+    for p in sorted((user_folder / "images").iterdir()):
+        write_image(out / p.name, F.interpolate(read_image(p)[None], scale_factor=factor, mode="bilinear")[0])
+    return out
+
+
+def test_the_sequence_variant_refuses_pairs_that_are_not_one_clip(tmp_path, user_folder, scene, capsys):
+    """Two KITTI flow pairs loaded through the dataset are separate pairs: the clip's fit finds
+    that the second image of one is not the first of the next, and the job exits 2."""
+    from fsof_torch.io import write_image
+    from refine.__main__ import main
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    for name, p in (("000000", scene[0]), ("000001", scene[2])):
+        write_image(folder / f"{name}_10.png", p["image1"])
+        write_image(folder / f"{name}_11.png", p["image2"])
+    rc = main(["--images", str(folder), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+               "--odometry", "sequence", "--source", "dis", "--no-figures", "--no-progress",
+               "--out", str(tmp_path / "out")])
+    err = capsys.readouterr().err
+    assert rc == 2 and "sequence: pairs 000000 and 000001 are not consecutive frames" in err
