@@ -120,36 +120,43 @@ class FlowProblem:
     """
 
     def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, flow: Tensor, sel: Tensor,
-                 mounting_fixed: bool) -> None:
+                 mounting_fixed: bool, K_inv: Tensor | None = None) -> None:
         self.model, self.camera, self.pts, self.sel = model, camera, pts, sel
-        self.K, self.K_inv, self.height = camera.K, camera.K_inv(), camera.height
+        self.K, self.height = camera.K, camera.height
+        self.K_inv = camera.K_inv() if K_inv is None else K_inv
         self.count = sel.sum(1)
         self.target = flow if model.velocity else pts[:, :2] + flow
         u, v, one = pts.unbind(1)
-        self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=1)  # p̃ p̃ᵀ, p̃ last
-        self._horizon = None
+        # p̃ p̃ᵀ's six entries and p̃ (last), point-major for the sums against the weights
+        self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=-1)
         self._outer = None
         self._outer_pending = mounting_fixed and bool(model.mounting)
+        # the points below the horizon, where the horizon does not move (no mounting parameters
+        # being fitted): once
+        self._below = None
+        if not model.mounting:
+            self._below = sel & (torch.bmm(model.horizon_row(camera, torch.zeros_like(camera.height)[:, None]), pts)[:, 0] > 0)
 
     def evaluate(self, params: Tensor) -> Evaluation:
         if self._outer_pending:  # the mounting does not move: its products once
             i, j = (self.model.index(n) for n in self.model.mounting)
             self._outer = mounting_products(self.K, self.K_inv, params[:, i], params[:, j])
+            self._below = self.sel & (torch.bmm(self._outer[1], self.pts)[:, 0] > 0)
             self._outer_pending = False
         M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, params, True, self._outer)
-        if horizon is None:  # a model without a mounting: the camera's, once
-            if self._horizon is None:
-                self._horizon = self.model.horizon_row(self.camera, params)
-            horizon = self._horizon
-        q = torch.cat([M, horizon], dim=1) @ self.pts
+        if self._below is None:
+            q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)
+            below = self.sel & (q[:, 3] > 0)
+        else:
+            q, below = torch.bmm(M, self.pts), self._below
         qz = q[:, 2]
         pxy = self.pts[:, :2]
         if self.model.velocity:
-            use = self.sel & (q[:, 3] > 0)
+            use = below
             inv_z, proj = None, pxy
-            r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0) - self.target
+            r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0).sub_(self.target)
         else:
-            use = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
+            use = below & (qz > 1e-9)
             # in place on the fresh product q (each per-point temporary costs a pass over memory)
             inv_z = torch.where(use, qz, 1.0).reciprocal_()
             proj = q[:, :2].mul_(inv_z.unsqueeze(1))
@@ -175,11 +182,11 @@ class FlowProblem:
         torch.mul(proj, a.unsqueeze(1), out=wts[:, 1:3])
         torch.mul(proj[:, 0], wts[:, 1], out=wts[:, 3]).addcmul_(proj[:, 1], wts[:, 2])
         torch.mul(proj[:, 0], br[:, 0], out=gz).neg_().addcmul_(proj[:, 1], br[:, 1], value=-1.0)
-        S = wts @ self.moments.transpose(1, 2)  # (B, 7, 6)
-        AH = (S[:, :4].reshape(B, 24) @ _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
+        S = torch.bmm(wts, self.moments)  # (B, 7, 6)
+        AH = torch.mm(S[:, :4].reshape(B, 24), _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
         gH = S[:, 4:, 3:].reshape(B, 9, 1)  # rows x, y, z of M against p̃
         D = dM.reshape(B, P, 9)
-        return D @ AH @ D.transpose(1, 2), (D @ gH).squeeze(-1)
+        return torch.bmm(torch.bmm(D, AH), D.transpose(1, 2)), torch.bmm(D, gH).squeeze(-1)
 
 
 _BASIS: dict = {}
@@ -365,7 +372,19 @@ _RESOLUTION = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
 
 
-def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow: Tensor,
+def _check_schedule(first: int | None, max_iter: int) -> list[int] | None:
+    """The solver's early-stop checks: after ``first`` iterations, then 1, 2, 4, ... more (a stage
+    that has not converged at its expected count usually needs one or two more iterations)."""
+    if first is None:
+        return None
+    out, gap = [first], 1
+    while out[-1] + gap < max_iter:
+        out.append(out[-1] + gap)
+        gap *= 2
+    return out
+
+
+def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pts: Tensor, flow: Tensor,
              sel: Tensor) -> Tensor:
     """Values (B, P) float64 of a start without a prior: the paper's model from the planar motion
     of back-projected points; the plane and the homography from a robust DLT homography (the plane
@@ -377,10 +396,10 @@ def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow
     pts, flow, sel = pts[..., ::k], flow[..., ::k], sel[..., ::k]
     if model.name == "paper":
         roll, pitch = values[:, model.index("roll")], values[:, model.index("pitch")]
-        lin, _ = planar_motion(camera.K, camera.K_inv(), roll, pitch, pts, flow, sel)
+        lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel)
         h = camera.height
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
-    H = homography_dlt(pts, flow, sel)
+    H = homography_dlt(camera.K, K_inv, pts, flow, sel)
     if model.name == "plane":
         cam = camera
         if model.mounting:  # the attitude to decompose with: the start's
@@ -390,7 +409,7 @@ def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow
         out = torch.stack([plane[n] for n in model.params], dim=-1)
         return torch.where(torch.isfinite(out), out, values)
     # homography: K⁻¹ H K normalised, minus the identity
-    G = camera.K_inv() @ H @ camera.K
+    G = K_inv @ H @ camera.K
     G = G / G[:, 2:3, 2:3]
     return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
 
@@ -402,7 +421,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
              robust: str = "cauchy", scale: float = 1.0, max_iter: int = 50, tol: float = 1e-6,
              max_points: int | None = 8192, inlier_threshold: float | None = None,
              min_points: int = 30, min_inlier_fraction: float = 0.25, polish: bool = True,
-             check_every: int | None = 2) -> RoadFit:
+             check_every: int | tuple[int, int] | None = (3, 1)) -> RoadFit:
     """Fit a road-motion model to a flow field inside a road mask.
 
     Args:
@@ -428,8 +447,11 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns), or an inlier share of the mask below the fraction, mark the frame as failed.
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
-        check_every: the solver's first early-stop check (one host read; then after twice as
-            many iterations, ...); None: run the fixed budget (no host read inside the loop).
+        check_every: each solver stage's first early-stop check (one host read; then after 1,
+            2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both. The
+            default (3, 1): the robust stage anneals its kernel over about two iterations and
+            converges in one more; the polish starts at the robust answer. None: run the fixed
+            budgets (no host read inside the loops).
 
     Returns:
         :class:`RoadFit`; parameters in float64 for float64 flow, else the camera's dtype
@@ -451,10 +473,16 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     """
     model = get_road_model(model)
     check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
+    checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
+    if len(checks) != 2 or not all(k is None or (isinstance(k, int) and not isinstance(k, bool) and k >= 1)
+                                   for k in checks):
+        raise ValueError(f"check_every: expected an int >= 1, a pair of them (robust stage, polish) or None, "
+                         f"got {check_every!r}")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow, camera.K)
     cam64 = camera.to(torch.float64)
+    K_inv = cam64.K_inv()
     thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
     fixed_names = fixed_parameters(model, fixed)
     free = torch.tensor([n not in fixed_names for n in model.params], device=flow.device)
@@ -468,24 +496,25 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         _, default = _pack_default(model, cam64)
         start, given = start_values(model, init, cam64, default)
         if not all(given):
-            guess = _initial(model, cam64, start, pts, obs, sel)
+            guess = _initial(model, cam64, K_inv, start, pts, obs, sel)
             start = torch.where(torch.tensor(given, device=flow.device), start, guess)
         mean, precision = prior_terms(model, prior, scale, B, torch.float64, flow.device) if prior else (None, None)
         mounting_fixed = all(n in fixed_names for n in model.mounting)
-        stages = [(robust, float(scale), init is None, _RESOLUTION)]
+        stages = [(robust, float(scale), init is None, _RESOLUTION, checks[0])]
         if polish and robust not in ("tukey", "l2"):
-            stages = [(robust, float(scale), init is None, _ROBUST_STAGE_RESOLUTION), ("tukey", thr, False, _RESOLUTION)]
+            stages = [(robust, float(scale), init is None, _ROBUST_STAGE_RESOLUTION, checks[0]),
+                      ("tukey", thr, False, _RESOLUTION, checks[1])]
         params = start
         iterations = torch.zeros(B, dtype=torch.long, device=flow.device)
-        for i, (kernel, s, anneal, resolution) in enumerate(stages):
+        for i, (kernel, s, anneal, resolution, first_check) in enumerate(stages):
             k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS) if i + 1 < len(stages) else 1
             problem = FlowProblem(model, cam64, pts[..., ::k].contiguous(), obs[..., ::k].contiguous(),
-                                  sel[..., ::k].contiguous(), mounting_fixed)
+                                  sel[..., ::k].contiguous(), mounting_fixed, K_inv)
             sol = solve(problem, params, free=free, prior_mean=mean,
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
-                        check_every=check_every)
+                        check_every=_check_schedule(first_check, max_iter))
             if i == 0:
                 params, converged = sol.params, sol.converged
             else:
@@ -496,9 +525,10 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         finite = torch.isfinite(params).all(-1)
         params = torch.where(finite.unsqueeze(-1), params, start)
         well_posed = _well_posed(sol, free)
-        M = model.matrix(cam64, params)
-        model_flow, model_valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, params).to(out_dtype),
-                                                (H, W), velocity=model.velocity)
+        M, _, horizon = model.evaluate(cam64.K, K_inv, cam64.height, params, False)
+        if horizon is None:
+            horizon = model.horizon_row(cam64, params)
+        model_flow, model_valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W), velocity=model.velocity)
         inliers, residual, spread, fraction = agreement(flow.detach(), model_flow, model_valid, points, thr)
     success = finite & converged & spread & well_posed & (count >= min_points) & (fraction >= min_inlier_fraction)
     return _result(model, camera, params, M, model_flow, model_valid, inliers, residual, success, iterations,
