@@ -162,7 +162,8 @@ class FlowProblem:
             proj = q[:, :2].mul_(inv_z.unsqueeze(1))
             r = proj - self.target
         # (points not in ``use`` keep a finite residual: every sum over the points masks them)
-        return Evaluation(torch.mul(r[:, 0], r[:, 0]).addcmul_(r[:, 1], r[:, 1]), use, r, (dM, proj, inv_z))
+        rx, ry = r.unbind(1)
+        return Evaluation(torch.mul(rx, rx).addcmul_(ry, ry), use, r, (dM, proj, inv_z))
 
     def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
         dM, proj, inv_z = ev.state
@@ -171,17 +172,18 @@ class FlowProblem:
         # the seven weights written into one buffer (per-point temporaries and a stack would
         # each cost a pass over memory): a, a x′, a y′, a (x′² + y′²), w/q_z r, -w/q_z (x′ r_x + y′ r_y)
         wts = torch.empty(B, 7, w.shape[-1], dtype=w.dtype, device=w.device)
-        a, br, gz = wts[:, 0], wts[:, 4:6], wts[:, 6]
+        a, ax, ay, app, brx, bry, gz = wts.unbind(1)
+        x, y = proj.unbind(1)
         if inv_z is None:
             a.copy_(w)
-            torch.mul(r, w.unsqueeze(1), out=br)
+            torch.mul(r, w.unsqueeze(1), out=wts[:, 4:6])
         else:
             wi = w * inv_z
             torch.mul(wi, inv_z, out=a)
-            torch.mul(r, wi.unsqueeze(1), out=br)
+            torch.mul(r, wi.unsqueeze(1), out=wts[:, 4:6])
         torch.mul(proj, a.unsqueeze(1), out=wts[:, 1:3])
-        torch.mul(proj[:, 0], wts[:, 1], out=wts[:, 3]).addcmul_(proj[:, 1], wts[:, 2])
-        torch.mul(proj[:, 0], br[:, 0], out=gz).neg_().addcmul_(proj[:, 1], br[:, 1], value=-1.0)
+        torch.mul(x, ax, out=app).addcmul_(y, ay)
+        torch.mul(x, brx, out=gz).neg_().addcmul_(y, bry, value=-1.0)
         S = torch.bmm(wts, self.moments)  # (B, 7, 6)
         AH = torch.mm(S[:, :4].reshape(B, 24), _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
         gH = S[:, 4:, 3:].reshape(B, 9, 1)  # rows x, y, z of M against p̃
@@ -396,7 +398,9 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
     pts, flow, sel = pts[..., ::k], flow[..., ::k], sel[..., ::k]
     if model.name == "paper":
         roll, pitch = values[:, model.index("roll")], values[:, model.index("pitch")]
-        lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel)
+        # (one robust step after least squares: the robust stage anneals from there; more steps
+        # here leave its iterations unchanged on the benchmarks' frames)
+        lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel, iterations=1)
         h = camera.height
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
     H = homography_dlt(camera.K, K_inv, pts, flow, sel)

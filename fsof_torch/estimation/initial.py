@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import mounting_matrix
-from .solver import Evaluation, Solution, solve
+from .solver import Evaluation, Solution, solve, spd_solve
 
 __all__ = ["LinearProblem", "planar_motion", "homography_dlt"]
 
@@ -48,22 +48,26 @@ class LinearProblem:
         return torch.bmm(Jw, self.J.transpose(1, 2)), torch.bmm(Jw, ev.residual.reshape(B, -1, 1)).squeeze(-1)
 
 
-def _robust_linear_fit(J: Tensor, target: Tensor, use: Tensor, start: Tensor, scale: float,
-                       iterations: int) -> Solution:
-    """The annealed Cauchy fit of a :class:`LinearProblem` with a fixed budget (no host read)."""
-    return solve(LinearProblem(J, target, use), start, kernel="cauchy", scale=scale, anneal=True,
-                 max_iter=iterations, check_every=None)
+def _robust_linear_fit(J: Tensor, target: Tensor, use: Tensor, scale: float, iterations: int) -> Solution:
+    """A robust fit of a :class:`LinearProblem`: least squares in one solve (the first step of
+    an annealed fit from any start), then ``iterations`` more with the Cauchy kernel annealed
+    from the spread of its residuals (a fixed budget: no host read)."""
+    problem = LinearProblem(J, target, use)
+    B, P = J.shape[:2]
+    A, g = problem.normal_equations(problem.evaluate(J.new_zeros(B, P)), use.to(J.dtype))
+    start = spd_solve(A, g.neg().unsqueeze(-1)).squeeze(-1).nan_to_num_(0.0, 0.0, 0.0)  # (0 where singular)
+    return solve(problem, start, kernel="cauchy", scale=scale, anneal=True, max_iter=iterations, check_every=None)
 
 
 def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Tensor, flow: Tensor,
-                  sel: Tensor, *, scale: float = 2.0, iterations: int = 3) -> tuple[Tensor, Tensor]:
+                  sel: Tensor, *, scale: float = 2.0, iterations: int = 2) -> tuple[Tensor, Tensor]:
     """(x_d/h, z_d/h, yaw) (B, 3) of the paper's motion from flow at road pixels.
 
     Args:
         K, K_inv: (B, 3, 3) float64; roll, pitch: (B,) the camera's attitude over the road.
         pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their flow (px); sel: (B, N) real points.
-        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget (a start
-            needs only a few).
+        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
+            least-squares start (a start needs only a few).
 
     Returns:
         ``(params (B, 3), good (B,))``: good is False where the problem was degenerate (too few
@@ -74,17 +78,14 @@ def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
     x = torch.bmm(A, pts)
     xp = torch.bmm(A, torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1))
     ok = sel & (x[:, 1] > 1e-6) & (xp[:, 1] > 1e-6)
-    y0 = torch.where(ok, x[:, 1], 1.0)
-    y1 = torch.where(ok, xp[:, 1], 1.0)
-    # ground errors times f_x y0 are roughly pixel errors
-    f = K[:, 0, 0].unsqueeze(-1) * y0
-    Xf, Zf = x[:, 0] / y0 * f, x[:, 2] / y0 * f
+    # road points (X, 1, Z) = x / x_y; ground errors times f_x x_y are about pixel errors: the
+    # unknowns' coefficients f_x (x_x, x_z, x_y) and the targets f_x x_y (x'_x, x'_z) / x'_y
+    Xf, f, Zf = (x * K[:, 0:1, 0:1]).unbind(1)
     zero = torch.zeros_like(f)
     # x' = c X - s Z + t_x, z' = s X + c Z + t_z: (B, P=4, R=2, N)
     J = torch.stack([Xf, Zf, -Zf, Xf, f, zero, zero, f], dim=1).reshape(B, 4, 2, -1)
-    target = xp[:, 0::2] / y1.unsqueeze(1) * f.unsqueeze(1)
-    start = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=pts.dtype, device=pts.device).expand(B, 4)
-    sol = _robust_linear_fit(J, target, ok, start, scale, iterations)
+    target = xp[:, 0::2] * (f / torch.where(ok, xp[:, 1], 1.0)).unsqueeze(1)
+    sol = _robust_linear_fit(J, target, ok, scale, iterations)
     c, s, tx, tz = sol.params.unbind(-1)
     yaw = torch.atan2(s, c)
     cn, sn = torch.cos(yaw), torch.sin(yaw)
@@ -94,7 +95,7 @@ def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
 
 
 def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Tensor, *,
-                   scale: float = 2.0, iterations: int = 5) -> Tensor:
+                   scale: float = 2.0, iterations: int = 4) -> Tensor:
     """The homography (B, 3, 3) taking pixels p̃ to p + flow: a robust direct linear transform.
 
     In calibrated coordinates x = K⁻¹ p̃ and x' = K⁻¹ (p̃ + flow), the unknowns are the eight
@@ -105,7 +106,8 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
     Args:
         K, K_inv: (B, 3, 3) float64; pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their
             flow (px); sel: (B, N) real points.
-        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget.
+        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
+            least-squares start.
 
     Returns:
         (B, 3, 3), the identity where the fit is not finite.
@@ -122,8 +124,7 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
     J = torch.stack([u, zero, v, zero, one, zero, zero, u, zero, v, zero, one,
                      -X * u, -Y * u, -X * v, -Y * v], dim=1).reshape(B, 8, 2, -1)
     target = xps - xs[:, :2]
-    sol = _robust_linear_fit(J, target, sel, torch.zeros(B, 8, dtype=pts.dtype, device=pts.device), scale,
-                             iterations)
+    sol = _robust_linear_fit(J, target, sel, scale, iterations)
     G = torch.cat([sol.params, torch.zeros_like(sol.params[:, :1])], dim=-1).reshape(B, 3, 3)
     G = G + torch.eye(3, dtype=G.dtype, device=G.device)
     H = torch.bmm(torch.bmm(K, G), K_inv)

@@ -319,7 +319,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             at_scale = s <= s_min * (1 + 1e-12)
             s_c = torch.where(at_scale, s, torch.maximum(s_min, torch.minimum(0.5 * s, kernel_spread(ev_c))))
             costs, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, torch.stack([s, s_c], dim=-1))
-            c1, c_next, w_c = costs[:, 0], costs[:, 1], w_c[:, 1]
+            (c1, c_next), w_c = costs.unbind(1), w_c[:, 1]
         else:
             c1, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, s)
         ok = (c1 <= c) & active  # (False for a NaN cost)

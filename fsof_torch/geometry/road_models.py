@@ -193,7 +193,9 @@ def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int
     cols = list(motion) if outer is not None else list(motion) + [roll, roll + 1]
     if not cols:
         return [], None, None
-    Rs = _rotations(values[:, cols], axes + (() if outer is not None else (_ROLL, _PITCH))).unbind(1)
+    # (a slice where the columns follow each other: cheaper than gathering them)
+    angles = values[:, cols[0]:cols[-1] + 1] if cols == list(range(cols[0], cols[-1] + 1)) else values[:, cols]
+    Rs = _rotations(angles, axes + (() if outer is not None else (_ROLL, _PITCH))).unbind(1)
     if outer is not None:
         return list(Rs), None, None
     return list(Rs[:-2]), Rs[-2], Rs[-1]
@@ -210,8 +212,8 @@ def mounting_products(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor) -> 
 
 
 def _unit_y(like: Tensor) -> Tensor:
-    """e_y (3,) in ``like``'s dtype and device (from the cached bases)."""
-    return _bases(like.dtype, like.device)[0][_YAW, 1]
+    """e_y (3,) in ``like``'s dtype and device; cached in eager mode."""
+    return _unit_matrix(1, 1, like)[1]
 
 
 def _unit_matrix(i: int, j: int, like: Tensor) -> Tensor:
