@@ -335,27 +335,38 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     defined — their mean end-point error (B,), whether they spread over at least 3 rows and
     columns (B,), and their share of the mask pixels where the model is defined (B,).
 
-    Works on the mask's pixels only (``points.every``): a road mask is a fraction of the image,
-    and full-size differences, norms and sums cost more than gathering them. The end-point
-    errors stay in the flow's dtype (in place on the fresh gathers); only the sums are float64
-    (python benchmarks/bench_fit.py: a float64 copy of the gathered flows cost more than the rest).
+    Works on the mask's pixels only (``points.every``), frame by frame: a road mask is a
+    fraction of the image, and full-size differences, norms and sums cost more than gathering
+    them from each frame's own contiguous flow. The end-point errors stay in the flow's dtype (in
+    place on the fresh gathers); only the sums are float64 (python benchmarks/bench_fit.py: a
+    float64 copy of the gathered flows cost more than the rest). A batch reads where each
+    frame's pixels start once (python benchmarks/bench_fit.py, batch 8: without, gathering the
+    whole batch at once through channel-first copies of both flows cost more than the rest of
+    the fit).
     """
     B, _, H, W = flow.shape
+    HW = H * W
     every = points.every
-
-    def channels(f: Tensor) -> Tensor:  # (2, B H W): a view for one frame
-        return f.transpose(0, 1).reshape(2, B * H * W)
-
-    at = every.expand(2, -1)
-    diff = channels(model_flow).gather(1, at).sub_(channels(flow).gather(1, at).to(model_flow.dtype))
-    epe = torch.hypot(diff[0], diff[1], out=diff[0])
-    use = model_valid.reshape(-1).gather(0, every)
-    inl = torch.le(epe, threshold).logical_and_(use)
-    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=flow.device).scatter_(0, every, inl)
+    bounds = [0, every.numel()] if B == 1 else points.bounds.tolist()
+    inliers = torch.zeros(B, HW, dtype=torch.bool, device=flow.device)
+    n_in, n_use, epe_in = [], [], []
+    for b in range(B):
+        idx = every[bounds[b]:bounds[b + 1]]
+        idx = idx - b * HW if b else idx
+        at = idx.expand(2, -1)
+        diff = model_flow[b].reshape(2, HW).gather(1, at).sub_(flow[b].reshape(2, HW).gather(1, at).to(model_flow.dtype))
+        epe = torch.hypot(diff[0], diff[1], out=diff[0])
+        use = model_valid[b].reshape(HW).gather(0, idx)
+        inl = torch.le(epe, threshold).logical_and_(use)
+        inliers[b].scatter_(0, idx, inl)
+        # (count_nonzero and masked_fill_: a bool sum or product first converts the flags)
+        n_in.append(torch.count_nonzero(inl))
+        n_use.append(torch.count_nonzero(use))
+        epe_in.append(epe.masked_fill_(inl.logical_not(), 0.0).sum(dtype=torch.float64))
+    n_in = torch.stack(n_in).to(torch.float64)
+    residual = torch.stack(epe_in) / n_in.clamp_min(1)
+    fraction = n_in / torch.stack(n_use).clamp_min(1)
     inliers = inliers.reshape(B, 1, H, W)
-    n_in = points.per_frame(inl)
-    residual = points.per_frame(epe.masked_fill_(inl.logical_not(), 0.0)) / n_in.clamp_min(1)
-    fraction = n_in / points.per_frame(use).clamp_min(1)
     in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
     spread = (in8.amax(3).flatten(1).sum(1) >= 3) & (in8.amax(2).flatten(1).sum(1) >= 3)
     return inliers, residual.to(model_flow.dtype), spread, fraction
