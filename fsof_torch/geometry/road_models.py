@@ -253,22 +253,64 @@ def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
     return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
 
 
+# The paper's X and its derivatives by (x_d, z_d, φ) are linear in nine monomials of its motion,
+# (1, c, s, c a, c b, c / h, s a, s b, s / h) with c, s = cos φ, sin φ and a, b = x_d / h, z_d / h:
+#
+#   X       = [[c, -(c a - s b), -s], [0, 1, 0], [s, -(s a + c b), c]]
+#   dX/dx_d = [[0, -c / h, 0], [0, 0, 0], [0, -s / h, 0]]
+#   dX/dz_d = [[0, s / h, 0], [0, 0, 0], [0, -c / h, 0]]
+#   dX/dφ   = G_y X = [[-s, s a + c b, -c], [0, 0, 0], [c, -(c a - s b), -s]]
+#
+# so the four maps are one product of the monomials with a constant basis (the fits evaluate them
+# every solver iteration; python benchmarks/bench_fit.py: building them matrix by matrix took a
+# third of the refinement step's fit).
+_PAPER_MONOMIALS = ("1", "c", "s", "ca", "cb", "c/h", "sa", "sb", "s/h")
+_PAPER_MAPS = (  # {entry (row-major) of [X, dX/dx_d, dX/dz_d, dX/dφ]: {monomial: coefficient}}
+    {0: {"c": 1}, 1: {"ca": -1, "sb": 1}, 2: {"s": -1}, 4: {"1": 1}, 6: {"s": 1}, 7: {"sa": -1, "cb": -1},
+     8: {"c": 1}},
+    {1: {"c/h": -1}, 7: {"s/h": -1}},
+    {1: {"s/h": 1}, 7: {"c/h": -1}},
+    {0: {"s": -1}, 1: {"sa": 1, "cb": 1}, 2: {"c": -1}, 6: {"c": 1}, 7: {"ca": -1, "sb": 1}, 8: {"s": -1}},
+)
+
+
+def _coefficients(monomials: tuple[str, ...], maps: tuple[dict, ...]) -> list[list[float]]:
+    """(monomials, 9 · maps) coefficients of :data:`_PAPER_MAPS`-like tables, as nested lists."""
+    table = [[0.0] * (9 * len(maps)) for _ in monomials]
+    for k, entries in enumerate(maps):
+        for entry, coefficients in entries.items():
+            for monomial, c in coefficients.items():
+                table[monomials.index(monomial)][9 * k + entry] = float(c)
+    return table
+
+
+_PAPER_BASIS = _coefficients(_PAPER_MONOMIALS, _PAPER_MAPS)
+
+
+def _paper_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(9, 36): the maps [X, dX/dx_d, dX/dz_d, dX/dφ] (row-major) from the monomials above;
+    cached in eager mode (a constant of the graph when tracing)."""
+    key = ("paper", dtype, device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    basis = torch.tensor(_PAPER_BASIS, dtype=dtype, device=device)
+    if not tracing():
+        _CACHE[key] = basis
+    return basis
+
+
 def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
            outer: tuple[Tensor, Tensor] | None = None):
     """The ``"paper"`` map: values (B, 5) = (x_d, z_d, yaw, roll, pitch); X = R_yaw(φ) (I - d e_yᵀ / h)
     with d = (x_d, 0, z_d): the ``"plane"`` map with no pitch or roll change and y_d = 0."""
     B = values.shape[0]
-    (R,), Rt, Rb = _mounting_rotations(values, (2,), (_YAW,), 3, outer)
-    # R_yaw keeps e_y: only the middle column changes, by -R d / h = -(R e_x x_d + R e_z z_d) / h
-    Rxz = R[:, :, 0::2]  # (B, 3, 2): R e_x, R e_z
-    ey = _unit_y(values)
-    X = R - _mm(Rxz, (values[:, :2] / h.unsqueeze(-1)).unsqueeze(-1)) * ey
-    stack = X.unsqueeze(1)
-    if jacobian:
-        _, _, Es = _bases(values.dtype, values.device)
-        # by x_d and z_d: -R e_k e_yᵀ / h; by the yaw: G_y X (R_yaw' = G_y R_yaw)
-        dX_d = -(Rxz.transpose(1, 2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey
-        stack = torch.cat([stack, dX_d, _mm(Es[_YAW].expand(B, 3, 3), X).unsqueeze(1)], dim=1)
+    _, Rt, Rb = _mounting_rotations(values, (), (), 3, outer)
+    yaw = values[:, 2:3]
+    cs = torch.cat([torch.cos(yaw), torch.sin(yaw)], dim=-1)                       # (c, s)
+    lin = torch.cat([values[:, :2], torch.ones_like(yaw)], dim=-1) / h.unsqueeze(-1)  # (a, b, 1 / h)
+    monomials = torch.cat([torch.ones_like(yaw), cs, (cs.unsqueeze(-1) * lin.unsqueeze(1)).reshape(B, 6)], dim=-1)
+    basis = _paper_basis(values.dtype, values.device)
+    stack = torch.mm(monomials, basis if jacobian else basis[:, :9]).reshape(B, -1, 3, 3)
     return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
 
 
