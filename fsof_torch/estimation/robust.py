@@ -64,20 +64,21 @@ def robust_terms(r2: Tensor, scale: Tensor, kind: str, mask: Tensor) -> tuple[Te
     if kind == "l2":
         return (r2 * mask).sum(-1).expand(scale.shape), mask.expand(*scale.shape, mask.shape[-1])
     c2 = scale * scale
-    rho, w = _unit_kernel(r2 / c2.unsqueeze(-1), kind)
+    rho, w = _unit_kernel(r2 / c2.unsqueeze(-1), kind, in_place=True)
     # every kernel is ρ(r²) = c² ρ₁(r² / c²): the scale multiplies the sum, not each point
-    return c2 * (rho * mask).sum(-1), w.mul_(mask)
+    return c2 * torch.linalg.vecdot(rho, mask), w.mul_(mask)
 
 
-def _unit_kernel(z: Tensor, kind: str, cost: bool = True,
-                 weight: bool = True) -> tuple[Tensor | None, Tensor | None]:
-    """(ρ₁(z), w(z)) of the table above at unit scale (z = r² / c²), each where asked for."""
+def _unit_kernel(z: Tensor, kind: str, cost: bool = True, weight: bool = True,
+                 in_place: bool = False) -> tuple[Tensor | None, Tensor | None]:
+    """(ρ₁(z), w(z)) of the table above at unit scale (z = r² / c²), each where asked for
+    (``in_place``: z is the caller's scratch and may be overwritten)."""
     rho = w = None
     if kind == "cauchy":
         if weight:
             w = (1.0 + z).reciprocal_()
         if cost:
-            rho = torch.log1p(z)
+            rho = z.log1p_() if in_place else torch.log1p(z)
     elif kind == "soft_l1":
         root = torch.sqrt(1.0 + z)
         if weight:

@@ -276,7 +276,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     def resolved(w: Tensor, r2: Tensor, used: Tensor) -> Tensor:
         """What a step must move the squared residuals by, summed over the points that count, to
         matter (B,): resolution² × their robust mean square × their number."""
-        return (resolution ** 2) * (w * r2).sum(1) / w.sum(1).clamp_min(1e-300) * used
+        return (resolution ** 2) * torch.linalg.vecdot(w, r2) / w.sum(1).clamp_min(1e-300) * used
 
     def counted(ev: Evaluation) -> tuple[Tensor, Tensor]:
         """The points that count as a 0/1 mask (B, N) in the parameters' dtype, and their number."""
@@ -332,7 +332,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             else:
                 moved = (ev_c.r2.sqrt() - r2.sqrt()).square_()
             # (a finished sample does not move: it stays finished)
-            small = small | ((moved * mask).sum(1) <= bar)
+            small = small | (torch.linalg.vecdot(moved, mask) <= bar)
         tiny = (delta.abs() <= tol * (1.0 + cand.abs())).all(-1)
         small = small | (tiny & (ok | (lam <= 1e-2)))
         # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
