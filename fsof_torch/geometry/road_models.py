@@ -136,13 +136,19 @@ def _apply(T: Tensor, X: Tensor) -> Tensor:
     return _mm(X.reshape(B, Q, 9), T.transpose(1, 2)).reshape(B, Q, 3, 3)
 
 
-def _commutator(G: Tensor, H: Tensor) -> Tensor:
-    """[G_q, H] = G_q H - H G_q (B, Q, 3, 3) for G (B, Q, 3, 3) and H (B, 3, 3)."""
-    B, Q = G.shape[:2]
-    GH = _mm(G.reshape(B, 3 * Q, 3), H).reshape(B, Q, 3, 3)
-    # H G_q = (G_qᵀ Hᵀ)ᵀ: the transposed stack as rows
-    HG = _mm(G.transpose(-1, -2).reshape(B, 3 * Q, 3), H.transpose(-1, -2)).reshape(B, Q, 3, 3)
-    return GH - HG.transpose(-1, -2)
+def _commutators(like: Tensor) -> Tensor:
+    """(9, 27): vec(X) (row-major, as a row) times this gives vec([G, X]) = vec(G X - X G) for
+    the generators G of the three axes (roll, pitch, yaw, in :data:`_ES`'s order); cached."""
+    key = ("commutators", like.dtype, like.device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    _, _, Es = _bases(like.dtype, like.device)
+    eye = torch.eye(3, dtype=like.dtype, device=like.device)
+    # vec(G X) = (G ⊗ I) vec(X), vec(X G) = (I ⊗ Gᵀ) vec(X)
+    out = torch.cat([(torch.kron(G, eye) - torch.kron(eye, G.T.contiguous())).T for G in Es], dim=1)
+    if not tracing():
+        _CACHE[key] = out
+    return out
 
 
 # -- the definitions ------------------------------------------------------------------------------
@@ -177,10 +183,11 @@ def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor | None, Rb: Tensor | None, sta
         R = _mm(Rc.transpose(1, 2), K_inv)
         T, horizon = _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
         if jacobian:
-            _, _, Es = _bases(stack.dtype, stack.device)
-            G = torch.stack([_mm(_mm(Rb.transpose(1, 2), Es[_ROLL].expand(B, 3, 3)), Rb),
-                             Es[_PITCH].expand(B, 3, 3)], dim=1)
-            stack = torch.cat([stack, _commutator(G, stack[:, 0])], dim=1)
+            # [G_x, X], [G_y, X], [G_z, X] at once; the roll's G̃ = Rbᵀ G_z Rb = cos β G_z - sin β G_y
+            comm = torch.mm(stack[:, 0].reshape(B, 9), _commutators(stack)).reshape(B, 3, 3, 3)
+            cos_b, sin_b = Rb[:, 2:3, 2:3].unsqueeze(1), Rb[:, 1:2, 2:3].unsqueeze(1)
+            roll = comm[:, _ROLL:_ROLL + 1] * cos_b - comm[:, _YAW:_YAW + 1] * sin_b
+            stack = torch.cat([stack, roll, comm[:, _PITCH:_PITCH + 1]], dim=1)
     HdH = _apply(T, stack)
     return HdH[:, 0], (HdH[:, 1:] if jacobian else None), horizon
 
