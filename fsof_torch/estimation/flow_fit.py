@@ -157,8 +157,9 @@ class FlowProblem:
             r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0).sub_(self.target)
         else:
             use = below & (qz > 1e-9)
-            # in place on the fresh product q (each per-point temporary costs a pass over memory)
-            inv_z = torch.where(use, qz, 1.0).reciprocal_()
+            # in place on the fresh product q (each per-point temporary costs a pass over memory);
+            # a point that does not count keeps a finite (if huge) residual
+            inv_z = qz.clamp_min(1e-9).reciprocal_()
             proj = q[:, :2].mul_(inv_z.unsqueeze(1))
             r = proj - self.target
         # (points not in ``use`` keep a finite residual: every sum over the points masks them)

@@ -313,9 +313,10 @@ def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
     B = values.shape[0]
     _, Rt, Rb = _mounting_rotations(values, (), (), 3, outer)
     yaw = values[:, 2:3]
-    cs = torch.cat([torch.cos(yaw), torch.sin(yaw)], dim=-1)                       # (c, s)
-    lin = torch.cat([values[:, :2], torch.ones_like(yaw)], dim=-1) / h.unsqueeze(-1)  # (a, b, 1 / h)
-    monomials = torch.cat([torch.ones_like(yaw), cs, (cs.unsqueeze(-1) * lin.unsqueeze(1)).reshape(B, 6)], dim=-1)
+    one = torch.ones_like(yaw)
+    cs = torch.cat([torch.cos(yaw), torch.sin(yaw)], dim=-1)                   # (c, s)
+    lin = torch.cat([values[:, :2], one], dim=-1) / h.unsqueeze(-1)             # (a, b, 1 / h)
+    monomials = torch.cat([one, cs, (cs.unsqueeze(-1) * lin.unsqueeze(1)).reshape(B, 6)], dim=-1)
     basis = _paper_basis(values.dtype, values.device)
     stack = torch.mm(monomials, basis if jacobian else basis[:, :9]).reshape(B, -1, 3, 3)
     return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
