@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "check_kernel"]
+__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
@@ -100,3 +100,13 @@ def _unit_kernel(z: Tensor, kind: str, cost: bool = True, weight: bool = True,
         if cost:
             rho = (1.0 - t2 * t) / 3.0
     return rho, w
+
+
+# ρ₁(10⁴) per kernel, computed once at import (no host read inside a fit)
+_FAR = {kind: float(robust_cost(torch.tensor(1e4, dtype=torch.float64), 1.0, kind)) for kind in ROBUST_KERNELS}
+
+
+def far_outlier_cost(kind: str) -> float:
+    """ρ(10⁴ c²) / c²: the cost of a residual a hundred scales out at unit scale (every kernel is
+    ρ(r²) = c² ρ₁(r² / c²)); the solver charges it for a point where the model is undefined."""
+    return _FAR[check_kernel(kind)]

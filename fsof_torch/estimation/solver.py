@@ -33,7 +33,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .robust import check_kernel, robust_cost, robust_terms
+from .robust import check_kernel, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
 
@@ -242,7 +242,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         hi = _expand(upper, B, P, params, float("inf"))
         params = torch.minimum(torch.maximum(params, lo), hi)
     n = problem.count.to(dt).clamp_min(1)
-    far = _far_cost(kernel)
+    far = far_outlier_cost(kernel)
 
     def cost_and_weights(ev: Evaluation, mask: Tensor, used: Tensor, p: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """E / n (B,) and the IRLS weights (B, N) at the scale s (B,); ``mask``: 1.0 where a point
@@ -360,17 +360,6 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
                 break
     # (the problem's state is not kept: the normal equations built from it are)
     return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s)
-
-
-_FAR: dict[str, float] = {}
-
-
-def _far_cost(kernel: str) -> float:
-    """ρ₁(10⁴): the cost of a point where the model is undefined, that of a far outlier, at unit
-    scale (ρ(10⁴ c²) = c² ρ₁(10⁴) for every kernel); computed once per kernel."""
-    if kernel not in _FAR:
-        _FAR[kernel] = float(robust_cost(torch.tensor(1e4, dtype=torch.float64), 1.0, kernel))
-    return _FAR[kernel]
 
 
 def _damped_step(A: Tensor, g: Tensor, lam: Tensor) -> Tensor:
