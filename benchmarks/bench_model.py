@@ -4,6 +4,10 @@ Measures, in one run, at one image size (default KITTI 1242×375), float32, on t
 
 - ``displacement_flow`` and ``velocity_flow`` eager, and compiled with ``torch.compile(fullgraph=True)``
   (skipped with ``--no-compile`` or when compiling fails here);
+- the two speed paths of the library, each against what it replaces: ``flow_from_map`` in place
+  (eager, without autograd: the default there) against its general path (the one autograd and
+  tracing use), on the same maps; and the compiled model against the same graph with its last
+  step, the opaque uint8 -> bool op, replaced by a plain cast;
 - a plain NumPy float64 transcription of the paper's λ formula (eq. 13, per pixel, as the official
   code does), one frame after another;
 - the floor: ``torch.full`` of a (B, 2, H, W) float32 tensor, the output the model must at least
@@ -34,7 +38,9 @@ import numpy as np
 import torch
 
 from fsof_torch.geometry.camera import Camera
-from fsof_torch.geometry.road_flow import DisplacementFlow, VelocityFlow, displacement_flow, velocity_flow
+from fsof_torch.geometry import road_flow
+from fsof_torch.geometry.road_flow import DisplacementFlow, VelocityFlow, displacement_flow, flow_from_map, velocity_flow
+from fsof_torch.geometry.road_models import ROAD_MODELS, pack_params
 
 # KITTI 2015 left colour camera (P_rect_02), nominal height; a mounting and a motion with every
 # term of the model non-zero.
@@ -106,6 +112,15 @@ def run(args: argparse.Namespace) -> dict:
         # Eager first, before torch.compile has touched the allocator: what a fresh process sees.
         measure([("displacement_flow eager", lambda: displacement_flow(cam, x_d, z_d, yaw, size)),
                  ("velocity_flow eager", lambda: velocity_flow(cam, speed, steering, WHEELBASE, size))])
+        # flow_from_map's paths on the same maps: in place (no autograd) and general (a map that
+        # requires grad takes it; under no_grad no graph is kept)
+        model = ROAD_MODELS["paper"]
+        cam_p, values = pack_params(model, cam, {"x_d": x_d, "z_d": z_d, "yaw": yaw})
+        M, horizon = model.matrix(cam_p, values), model.horizon_row(cam_p, values)
+        M_general = M.clone().requires_grad_()
+        with torch.no_grad():
+            measure([("flow_from_map in place", lambda: flow_from_map(M, horizon, size)),
+                     ("flow_from_map general path", lambda: flow_from_map(M_general, horizon, size))])
         if not args.no_compile:
             try:
                 disp_c = torch.compile(DisplacementFlow(size), fullgraph=True, dynamic=False)
@@ -120,6 +135,16 @@ def run(args: argparse.Namespace) -> dict:
                 print(f"batch {B}: torch.compile of both models took {compile_s:.1f} s", file=sys.stderr)
                 measure([("displacement_flow compiled", lambda: disp_c(cam, x_d, z_d, yaw)),
                          ("velocity_flow compiled", lambda: vel_c(cam, speed, steering))])
+                # the same graph with a plain cast as its last step (measured while it is in place:
+                # the compiled graph guards on the function it traced)
+                opaque = road_flow._uint8_to_bool
+                road_flow._uint8_to_bool = lambda mask: mask.bool()
+                try:
+                    disp_plain = torch.compile(DisplacementFlow(size), fullgraph=True, dynamic=False)
+                    disp_plain(cam, x_d, z_d, yaw)
+                    measure([("compiled, plain bool cast", lambda: disp_plain(cam, x_d, z_d, yaw))])
+                finally:
+                    road_flow._uint8_to_bool = opaque
             except Exception as err:  # noqa: BLE001 - report and go on without the compiled rows
                 compile_status = f"failed: {type(err).__name__}: {err}"[:200]
                 print(f"torch.compile unavailable here ({compile_status})", file=sys.stderr)

@@ -27,11 +27,11 @@ from .estimation.flow_fit import (
     FitResult,
     RoadFit,
     VelocityFitResult,
-    decompose_homography,
     fit_displacement,
     fit_road,
     fit_velocity,
 )
+from .estimation.decompose import decompose_homography
 from .estimation.image_fit import fit_image, fit_photometric
 from .estimation.sequence import SequenceFit, fit_sequence
 from .geometry.road_flow import (

@@ -8,11 +8,11 @@ import torch
 
 import fsof_torch.estimation.flow_fit as fit_module
 from fsof_torch.geometry.camera import Camera
+from fsof_torch.estimation.decompose import decompose_homography
 from fsof_torch.estimation.flow_fit import (
     ROBUST_KERNELS,
     FitResult,
     VelocityFitResult,
-    decompose_homography,
     fit_displacement,
     fit_road,
     fit_velocity,
@@ -122,8 +122,8 @@ NAN = float("nan")
     (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
     (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
     (dict(polish="yes"), TypeError, "polish: expected True or False, got str 'yes'"),
-    (dict(check_every=0), ValueError, "check_every: expected an int >= 1, got 0"),
-    (dict(check_every=2.5), TypeError, "check_every: expected None or an int, got float 2.5"),
+    (dict(check_every=0), ValueError, "check_every: expected an int >= 1, a pair of them .*got 0"),
+    (dict(check_every=2.5), TypeError, "check_every: expected an int >= 1, .*got float 2.5"),
     (dict(prior=5), TypeError, "prior: expected None or a dict with string keys, got int 5"),
     (dict(fit_roll="no"), TypeError, "fit_roll: expected True or False, got str 'no'"),
     (dict(fit_pitch=1), TypeError, "fit_pitch: expected True or False, got int 1"),

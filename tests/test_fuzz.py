@@ -43,7 +43,8 @@ from fsof_torch.evaluation import metrics as M
 from fsof_torch.evaluation import photometric as P
 from fsof_torch.evaluation import visualize as V
 from fsof_torch.evaluation.warp import WarpBackward, normalize_coordinates, warp_backward
-from fsof_torch.estimation.flow_fit import decompose_homography, fit_displacement, fit_road, fit_velocity
+from fsof_torch.estimation.decompose import decompose_homography
+from fsof_torch.estimation.flow_fit import fit_displacement, fit_road, fit_velocity
 from fsof_torch.estimation.freespace import detect_freespace
 from fsof_torch.estimation.image_fit import fit_image, fit_photometric
 from fsof_torch.estimation.vflow import fit_vflow_curve, vflow_map

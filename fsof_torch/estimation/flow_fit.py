@@ -26,18 +26,18 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_int,
+from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values,
                       check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import ROAD_MODELS, RoadModel, get_road_model, mounting_products, plane_from_homography
+from ..geometry.road_models import RoadModel, get_road_model, mounting_products, plane_from_homography
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, positive_definite, solve
 
 __all__ = ["RoadFit", "FitResult", "VelocityFitResult", "FlowProblem", "fit_road", "fit_displacement",
-           "fit_velocity", "decompose_homography", "robust_weight", "ROBUST_KERNELS", "DEFAULT_FIXED"]
+           "fit_velocity", "robust_weight", "ROBUST_KERNELS", "DEFAULT_FIXED"]
 
 #: The parameters each model holds at their start unless told otherwise: a flow field pins the
 #: camera's roll well (with motion), its pitch poorly (it trades against z_d near the horizon).
@@ -121,42 +121,51 @@ class FlowProblem:
     """
 
     def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, flow: Tensor, sel: Tensor,
-                 mounting_fixed: bool) -> None:
+                 mounting_fixed: bool, K_inv: Tensor | None = None) -> None:
         self.model, self.camera, self.pts, self.sel = model, camera, pts, sel
-        self.K, self.K_inv, self.height = camera.K, camera.K_inv(), camera.height
+        self.K, self.height = camera.K, camera.height
+        self.K_inv = camera.K_inv() if K_inv is None else K_inv
         self.count = sel.sum(1)
         self.target = flow if model.velocity else pts[:, :2] + flow
         u, v, one = pts.unbind(1)
-        self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=1)  # p̃ p̃ᵀ, p̃ last
-        self._horizon = None
+        # p̃ p̃ᵀ's six entries and p̃ (last), point-major for the sums against the weights
+        self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=-1)
         self._outer = None
         self._outer_pending = mounting_fixed and bool(model.mounting)
+        # the points below the horizon, where the horizon does not move (no mounting parameters
+        # being fitted): once
+        self._below = None
+        if not model.mounting:
+            self._below = sel & (torch.bmm(model.horizon_row(camera, torch.zeros_like(camera.height)[:, None]), pts)[:, 0] > 0)
 
     def evaluate(self, params: Tensor) -> Evaluation:
         if self._outer_pending:  # the mounting does not move: its products once
             i, j = (self.model.index(n) for n in self.model.mounting)
             self._outer = mounting_products(self.K, self.K_inv, params[:, i], params[:, j])
+            self._below = self.sel & (torch.bmm(self._outer[1], self.pts)[:, 0] > 0)
             self._outer_pending = False
         M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, params, True, self._outer)
-        if horizon is None:  # a model without a mounting: the camera's, once
-            if self._horizon is None:
-                self._horizon = self.model.horizon_row(self.camera, params)
-            horizon = self._horizon
-        q = torch.cat([M, horizon], dim=1) @ self.pts
+        if self._below is None:
+            q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)
+            below = self.sel & (q[:, 3] > 0)
+        else:
+            q, below = torch.bmm(M, self.pts), self._below
         qz = q[:, 2]
         pxy = self.pts[:, :2]
         if self.model.velocity:
-            use = self.sel & (q[:, 3] > 0)
+            use = below
             inv_z, proj = None, pxy
-            r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0) - self.target
+            r = torch.addcmul(q[:, :2], pxy, qz.unsqueeze(1), value=-1.0).sub_(self.target)
         else:
-            use = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
-            # in place on the fresh product q (each per-point temporary costs a pass over memory)
-            inv_z = torch.where(use, qz, 1.0).reciprocal_()
+            use = below & (qz > 1e-9)
+            # in place on the fresh product q (each per-point temporary costs a pass over memory);
+            # a point that does not count keeps a finite (if huge) residual
+            inv_z = qz.clamp_min(1e-9).reciprocal_()
             proj = q[:, :2].mul_(inv_z.unsqueeze(1))
             r = proj - self.target
         # (points not in ``use`` keep a finite residual: every sum over the points masks them)
-        return Evaluation(torch.mul(r[:, 0], r[:, 0]).addcmul_(r[:, 1], r[:, 1]), use, r, (dM, proj, inv_z))
+        rx, ry = r.unbind(1)
+        return Evaluation(torch.mul(rx, rx).addcmul_(ry, ry), use, r, (dM, proj, inv_z))
 
     def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
         dM, proj, inv_z = ev.state
@@ -165,22 +174,23 @@ class FlowProblem:
         # the seven weights written into one buffer (per-point temporaries and a stack would
         # each cost a pass over memory): a, a x′, a y′, a (x′² + y′²), w/q_z r, -w/q_z (x′ r_x + y′ r_y)
         wts = torch.empty(B, 7, w.shape[-1], dtype=w.dtype, device=w.device)
-        a, br, gz = wts[:, 0], wts[:, 4:6], wts[:, 6]
+        a, ax, ay, app, brx, bry, gz = wts.unbind(1)
+        x, y = proj.unbind(1)
         if inv_z is None:
             a.copy_(w)
-            torch.mul(r, w.unsqueeze(1), out=br)
+            torch.mul(r, w.unsqueeze(1), out=wts[:, 4:6])
         else:
             wi = w * inv_z
             torch.mul(wi, inv_z, out=a)
-            torch.mul(r, wi.unsqueeze(1), out=br)
+            torch.mul(r, wi.unsqueeze(1), out=wts[:, 4:6])
         torch.mul(proj, a.unsqueeze(1), out=wts[:, 1:3])
-        torch.mul(proj[:, 0], wts[:, 1], out=wts[:, 3]).addcmul_(proj[:, 1], wts[:, 2])
-        torch.mul(proj[:, 0], br[:, 0], out=gz).neg_().addcmul_(proj[:, 1], br[:, 1], value=-1.0)
-        S = wts @ self.moments.transpose(1, 2)  # (B, 7, 6)
-        AH = (S[:, :4].reshape(B, 24) @ _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
+        torch.mul(x, ax, out=app).addcmul_(y, ay)
+        torch.mul(x, brx, out=gz).neg_().addcmul_(y, bry, value=-1.0)
+        S = torch.bmm(wts, self.moments)  # (B, 7, 6)
+        AH = torch.mm(S[:, :4].reshape(B, 24), _moment_basis(w.dtype, w.device)).reshape(B, 9, 9)
         gH = S[:, 4:, 3:].reshape(B, 9, 1)  # rows x, y, z of M against p̃
         D = dM.reshape(B, P, 9)
-        return D @ AH @ D.transpose(1, 2), (D @ gH).squeeze(-1)
+        return torch.bmm(torch.bmm(D, AH), D.transpose(1, 2)), torch.bmm(D, gH).squeeze(-1)
 
 
 _BASIS: dict = {}
@@ -327,27 +337,38 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     defined — their mean end-point error (B,), whether they spread over at least 3 rows and
     columns (B,), and their share of the mask pixels where the model is defined (B,).
 
-    Works on the mask's pixels only (``points.every``): a road mask is a fraction of the image,
-    and full-size differences, norms and sums cost more than gathering them. The end-point
-    errors stay in the flow's dtype (in place on the fresh gathers); only the sums are float64
-    (python benchmarks/bench_fit.py: a float64 copy of the gathered flows cost more than the rest).
+    Works on the mask's pixels only (``points.every``), frame by frame: a road mask is a
+    fraction of the image, and full-size differences, norms and sums cost more than gathering
+    them from each frame's own contiguous flow. The end-point errors stay in the flow's dtype (in
+    place on the fresh gathers); only the sums are float64 (python benchmarks/bench_fit.py: a
+    float64 copy of the gathered flows cost more than the rest). A batch reads where each
+    frame's pixels start once (python benchmarks/bench_fit.py, batch 8: without, gathering the
+    whole batch at once through channel-first copies of both flows cost more than the rest of
+    the fit).
     """
     B, _, H, W = flow.shape
+    HW = H * W
     every = points.every
-
-    def channels(f: Tensor) -> Tensor:  # (2, B H W): a view for one frame
-        return f.transpose(0, 1).reshape(2, B * H * W)
-
-    at = every.expand(2, -1)
-    diff = channels(model_flow).gather(1, at).sub_(channels(flow).gather(1, at).to(model_flow.dtype))
-    epe = torch.hypot(diff[0], diff[1], out=diff[0])
-    use = model_valid.reshape(-1).gather(0, every)
-    inl = torch.le(epe, threshold).logical_and_(use)
-    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=flow.device).scatter_(0, every, inl)
+    bounds = [0, every.numel()] if B == 1 else points.bounds.tolist()
+    inliers = torch.zeros(B, HW, dtype=torch.bool, device=flow.device)
+    n_in, n_use, epe_in = [], [], []
+    for b in range(B):
+        idx = every[bounds[b]:bounds[b + 1]]
+        idx = idx - b * HW if b else idx
+        at = idx.expand(2, -1)
+        diff = model_flow[b].reshape(2, HW).gather(1, at).sub_(flow[b].reshape(2, HW).gather(1, at).to(model_flow.dtype))
+        epe = torch.hypot(diff[0], diff[1], out=diff[0])
+        use = model_valid[b].reshape(HW).gather(0, idx)
+        inl = torch.le(epe, threshold).logical_and_(use)
+        inliers[b].scatter_(0, idx, inl)
+        # (count_nonzero and masked_fill_: a bool sum or product first converts the flags)
+        n_in.append(torch.count_nonzero(inl))
+        n_use.append(torch.count_nonzero(use))
+        epe_in.append(epe.masked_fill_(inl.logical_not(), 0.0).sum(dtype=torch.float64))
+    n_in = torch.stack(n_in).to(torch.float64)
+    residual = torch.stack(epe_in) / n_in.clamp_min(1)
+    fraction = n_in / torch.stack(n_use).clamp_min(1)
     inliers = inliers.reshape(B, 1, H, W)
-    n_in = points.per_frame(inl)
-    residual = points.per_frame(epe.masked_fill_(inl.logical_not(), 0.0)) / n_in.clamp_min(1)
-    fraction = n_in / points.per_frame(use).clamp_min(1)
     in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
     spread = (in8.amax(3).flatten(1).sum(1) >= 3) & (in8.amax(2).flatten(1).sum(1) >= 3)
     return inliers, residual.to(model_flow.dtype), spread, fraction
@@ -366,7 +387,19 @@ _RESOLUTION = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
 
 
-def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow: Tensor,
+def _check_schedule(first: int | None, max_iter: int) -> list[int] | None:
+    """The solver's early-stop checks: after ``first`` iterations, then 1, 2, 4, ... more (a stage
+    that has not converged at its expected count usually needs one or two more iterations)."""
+    if first is None:
+        return None
+    out, gap = [first], 1
+    while out[-1] + gap < max_iter:
+        out.append(out[-1] + gap)
+        gap *= 2
+    return out
+
+
+def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pts: Tensor, flow: Tensor,
              sel: Tensor) -> Tensor:
     """Values (B, P) float64 of a start without a prior: the paper's model from the planar motion
     of back-projected points; the plane and the homography from a robust DLT homography (the plane
@@ -378,10 +411,12 @@ def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow
     pts, flow, sel = pts[..., ::k], flow[..., ::k], sel[..., ::k]
     if model.name == "paper":
         roll, pitch = values[:, model.index("roll")], values[:, model.index("pitch")]
-        lin, _ = planar_motion(camera.K, camera.K_inv(), roll, pitch, pts, flow, sel)
+        # (one robust step after least squares: the robust stage anneals from there; more steps
+        # here leave its iterations unchanged on the benchmarks' frames)
+        lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel, iterations=1)
         h = camera.height
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
-    H = homography_dlt(pts, flow, sel)
+    H = homography_dlt(camera.K, K_inv, pts, flow, sel)
     if model.name == "plane":
         cam = camera
         if model.mounting:  # the attitude to decompose with: the start's
@@ -391,7 +426,7 @@ def _initial(model: RoadModel, camera: Camera, values: Tensor, pts: Tensor, flow
         out = torch.stack([plane[n] for n in model.params], dim=-1)
         return torch.where(torch.isfinite(out), out, values)
     # homography: K⁻¹ H K normalised, minus the identity
-    G = camera.K_inv() @ H @ camera.K
+    G = K_inv @ H @ camera.K
     G = G / G[:, 2:3, 2:3]
     return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
 
@@ -403,7 +438,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
              robust: str = "cauchy", scale: float = 1.0, max_iter: int = 50, tol: float = 1e-6,
              max_points: int | None = 8192, inlier_threshold: float | None = None,
              min_points: int = 30, min_inlier_fraction: float = 0.25, polish: bool = True,
-             check_every: int | None = 2) -> RoadFit:
+             check_every: int | tuple[int, int] | None = (3, 1)) -> RoadFit:
     """Fit a road-motion model to a flow field inside a road mask.
 
     Args:
@@ -429,8 +464,11 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns), or an inlier share of the mask below the fraction, mark the frame as failed.
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
-        check_every: the solver's first early-stop check (one host read; then after twice as
-            many iterations, ...); None: run the fixed budget (no host read inside the loop).
+        check_every: each solver stage's first early-stop check (one host read; then after 1,
+            2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both. The
+            default (3, 1): the robust stage anneals its kernel over about two iterations and
+            converges in one more; the polish starts at the robust answer. None: run the fixed
+            budgets (no host read inside the loops).
 
     Returns:
         :class:`RoadFit`; parameters in float64 for float64 flow, else the camera's dtype
@@ -453,16 +491,22 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     model = get_road_model(model)
     check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
     check_bool(polish, "polish")
-    check_int(check_every, "check_every", minimum=1, optional=True)
     fixed, prior = check_names(fixed, "fixed"), check_mapping(prior, "prior")
     if init is not None and not isinstance(init, (Mapping, RoadFit)):
         raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
+    checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
+    expected = "an int >= 1, a pair of them (robust stage, polish) or None"
+    if len(checks) != 2 or any(k is not None and (not isinstance(k, int) or isinstance(k, bool)) for k in checks):
+        raise TypeError(f"check_every: expected {expected}, got {type(check_every).__name__} {check_every!r}")
+    if any(k is not None and k < 1 for k in checks):
+        raise ValueError(f"check_every: expected {expected}, got {check_every!r}")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow, camera.K)
     cam64 = camera.to(torch.float64)
+    K_inv = cam64.K_inv()
     thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
     fixed_names = fixed_parameters(model, fixed)
     free = torch.tensor([n not in fixed_names for n in model.params], device=flow.device)
@@ -476,24 +520,25 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         _, default = _pack_default(model, cam64)
         start, given = start_values(model, init, cam64, default)
         if not all(given):
-            guess = _initial(model, cam64, start, pts, obs, sel)
+            guess = _initial(model, cam64, K_inv, start, pts, obs, sel)
             start = torch.where(torch.tensor(given, device=flow.device), start, guess)
         mean, precision = prior_terms(model, prior, scale, B, torch.float64, flow.device) if prior else (None, None)
         mounting_fixed = all(n in fixed_names for n in model.mounting)
-        stages = [(robust, float(scale), init is None, _RESOLUTION)]
+        stages = [(robust, float(scale), init is None, _RESOLUTION, checks[0])]
         if polish and robust not in ("tukey", "l2"):
-            stages = [(robust, float(scale), init is None, _ROBUST_STAGE_RESOLUTION), ("tukey", thr, False, _RESOLUTION)]
+            stages = [(robust, float(scale), init is None, _ROBUST_STAGE_RESOLUTION, checks[0]),
+                      ("tukey", thr, False, _RESOLUTION, checks[1])]
         params = start
         iterations = torch.zeros(B, dtype=torch.long, device=flow.device)
-        for i, (kernel, s, anneal, resolution) in enumerate(stages):
+        for i, (kernel, s, anneal, resolution, first_check) in enumerate(stages):
             k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS) if i + 1 < len(stages) else 1
             problem = FlowProblem(model, cam64, pts[..., ::k].contiguous(), obs[..., ::k].contiguous(),
-                                  sel[..., ::k].contiguous(), mounting_fixed)
+                                  sel[..., ::k].contiguous(), mounting_fixed, K_inv)
             sol = solve(problem, params, free=free, prior_mean=mean,
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
-                        check_every=check_every)
+                        check_every=_check_schedule(first_check, max_iter))
             if i == 0:
                 params, converged = sol.params, sol.converged
             else:
@@ -504,9 +549,10 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         finite = torch.isfinite(params).all(-1)
         params = torch.where(finite.unsqueeze(-1), params, start)
         well_posed = _well_posed(sol, free)
-        M = model.matrix(cam64, params)
-        model_flow, model_valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, params).to(out_dtype),
-                                                (H, W), velocity=model.velocity)
+        M, _, horizon = model.evaluate(cam64.K, K_inv, cam64.height, params, False)
+        if horizon is None:
+            horizon = model.horizon_row(cam64, params)
+        model_flow, model_valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W), velocity=model.velocity)
         inliers, residual, spread, fraction = agreement(flow.detach(), model_flow, model_valid, points, thr)
     success = finite & converged & spread & well_posed & (count >= min_points) & (fraction >= min_inlier_fraction)
     return _result(model, camera, params, M, model_flow, model_valid, inliers, residual, success, iterations,
@@ -607,60 +653,3 @@ def _wheelbase(wheelbase: Tensor | float, flow: Tensor) -> Tensor:
     if not bool((torch.isfinite(wb) & (wb > 0)).all()):
         raise ValueError(f"wheelbase: expected values > 0, got {wb.tolist()}")
     return wb
-
-
-def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadFit:
-    """The ``"plane"`` parameters of road homographies (B, 3, 3) (pixels of t -> t+1).
-
-    A calibrated homography ``K⁻¹ H K ∝ R + t nᵀ / h`` has two physical decompositions in general;
-    the one reached from the camera's own roll and pitch (its calibrated attitude over the road)
-    is returned, and with the camera height h the translation is metric. The start decomposes H
-    with the road's normal of the camera's attitude
-    (:func:`~fsof_torch.geometry.road_models.plane_from_homography`); :func:`fit_road` then frees
-    the normal too, on the homography's own flow over a grid below the camera's horizon (exact
-    for an exact road homography; OpenCV's closed-form ``decomposeHomographyMat`` returns NaN for
-    the commonest road motion, a translation without rotation).
-
-    Args:
-        H: (B, 3, 3) road homographies (any scale), for the camera's K.
-        camera: K, height, and the roll and pitch to start from (batch 1 or B).
-        size: the grid's longer side in pixels (the camera is scaled to it).
-
-    Returns:
-        The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual`` says how
-        far the homography is from any rigid road motion, in grid pixels).
-    """
-    check_float_tensor(H, "H")
-    check_shape(H, "H", ("B", 3, 3))
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    B = H.shape[0]
-    if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (H's B), got {camera.batch_size}")
-    check_int(size, "size", minimum=8)
-    check_has_values(H, "H", "to decompose (the decomposition is a fit)")
-    check_has_values(camera.K, "camera", "to decompose a homography (the decomposition is a fit)")
-    if B == 0:
-        raise ValueError("H: expected a non-empty batch, got shape (0, 3, 3)")
-    H64 = H.detach().to(torch.float64)
-    usable = torch.isfinite(H64).all((1, 2)) & (H64[:, 2, 2] != 0) & (torch.linalg.det(H64).abs() > 0)
-    if not bool(usable.all()):
-        bad = (~usable).nonzero().flatten().tolist()
-        raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
-                         f"that are not: {H64[bad[0]].tolist()}")
-    cam = camera.to(torch.float64).expand(B).to(device=H.device)
-    # a virtual image around the principal point, scaled so that its longer side is ``size``
-    w0 = 2.0 * float(cam.cx.max()) + 1.0
-    h0 = 2.0 * float(cam.cy.max()) + 1.0
-    s = size / max(w0, h0)
-    grid = (max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8))
-    small = cam.scaled(s)
-    S = small.K @ cam.K_inv()
-    Hs = S @ H.to(torch.float64) @ torch.linalg.inv(S)
-    Hs = Hs / Hs[:, 2:3, 2:3]
-    horizon = ROAD_MODELS["paper"].horizon_row(small, torch.stack(
-        [torch.zeros_like(small.roll)] * 3 + [small.roll, small.pitch], dim=-1))
-    flow, valid = flow_from_map(Hs, horizon, grid)
-    start = plane_from_homography(Hs, small)
-    return fit_road(flow, valid, small, model="plane", fixed=(), init=start, robust="l2", polish=False,
-                    max_points=4096, min_inlier_fraction=0.0, tol=1e-12)

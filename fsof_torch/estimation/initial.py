@@ -1,11 +1,17 @@
-"""Initial guesses for the road fits, without a prior: the planar motion of back-projected points.
+"""Initial guesses for the road fits, without a prior: robust fits of models that are linear in
+their unknowns, by the library's one solver (Cauchy kernel, annealed from the spread of the
+zero-motion residuals).
 
-With the camera's attitude over the road fixed (its roll and pitch), a road pixel and its flow
-target back-project onto the road plane, where the paper's motion is a planar rigid motion:
-``x' = R_φ (x - d/h)`` on points (X/h, 1, Z/h). Leaving cos φ and sin φ free makes it linear in
-(cos φ, sin φ, t_x, t_z): a 2-D similarity, fitted robustly (Cauchy, annealed) by the library's one
-solver. Residuals are scaled back into roughly pixel units (by f_x times the ray's height), so
-the kernel's scale is in pixels.
+- :func:`planar_motion`, the paper's model: with the camera's attitude over the road fixed (its
+  roll and pitch), a road pixel and its flow target back-project onto the road plane, where the
+  paper's motion is a planar rigid motion ``x' = R_φ (x - d/h)`` on points (X/h, 1, Z/h). Leaving
+  cos φ and sin φ free makes it linear in (cos φ, sin φ, t_x, t_z): a 2-D similarity.
+- :func:`homography_dlt`, the models with as many parameters as a homography: the direct linear
+  transform in calibrated coordinates, whose unknowns are the entries of G = K⁻¹ H K - I (G's
+  last entry held at 0: the homography's scale).
+
+Both residuals are scaled back into roughly pixel units (by the focal length, and for the plane
+by the ray's height), so the kernel's scale is in pixels.
 """
 
 from __future__ import annotations
@@ -14,49 +20,72 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import mounting_matrix
-from .solver import ResidualProblem, solve
+from .solver import Evaluation, Solution, solve, spd_solve
 
-__all__ = ["planar_motion", "homography_dlt"]
+__all__ = ["LinearProblem", "planar_motion", "homography_dlt"]
+
+
+class LinearProblem:
+    """Residuals linear in the parameters, r = θᵀ J - target, with a constant J, for the solver.
+
+    Args:
+        J: (B, P, R, N) the derivatives of R residual components at N points by P parameters.
+        target: (B, R, N); use: (B, N) bool, the points that count.
+    """
+
+    def __init__(self, J: Tensor, target: Tensor, use: Tensor) -> None:
+        B, P, R, N = J.shape
+        self.J, self.target, self.use = J.reshape(B, P, R * N), target, use
+        self.count = use.sum(1)
+
+    def evaluate(self, params: Tensor) -> Evaluation:
+        r = torch.bmm(params.unsqueeze(1), self.J).reshape(self.target.shape) - self.target
+        return Evaluation(r.square().sum(1), self.use, r)
+
+    def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
+        B = w.shape[0]
+        Jw = self.J * w.repeat(1, ev.residual.shape[1]).unsqueeze(1)
+        return torch.bmm(Jw, self.J.transpose(1, 2)), torch.bmm(Jw, ev.residual.reshape(B, -1, 1)).squeeze(-1)
+
+
+def _robust_linear_fit(J: Tensor, target: Tensor, use: Tensor, scale: float, iterations: int) -> Solution:
+    """A robust fit of a :class:`LinearProblem`: least squares in one solve (the first step of
+    an annealed fit from any start), then ``iterations`` more with the Cauchy kernel annealed
+    from the spread of its residuals (a fixed budget: no host read)."""
+    problem = LinearProblem(J, target, use)
+    B, P = J.shape[:2]
+    A, g = problem.normal_equations(problem.evaluate(J.new_zeros(B, P)), use.to(J.dtype))
+    start = spd_solve(A, g.neg().unsqueeze(-1)).squeeze(-1).nan_to_num_(0.0, 0.0, 0.0)  # (0 where singular)
+    return solve(problem, start, kernel="cauchy", scale=scale, anneal=True, max_iter=iterations, check_every=None)
 
 
 def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Tensor, flow: Tensor,
-                  sel: Tensor, *, scale: float = 2.0, iterations: int = 3) -> tuple[Tensor, Tensor]:
+                  sel: Tensor, *, scale: float = 2.0, iterations: int = 2) -> tuple[Tensor, Tensor]:
     """(x_d/h, z_d/h, yaw) (B, 3) of the paper's motion from flow at road pixels.
 
     Args:
         K, K_inv: (B, 3, 3) float64; roll, pitch: (B,) the camera's attitude over the road.
         pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their flow (px); sel: (B, N) real points.
-        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget.
+        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
+            least-squares start (a start needs only a few).
 
     Returns:
         ``(params (B, 3), good (B,))``: good is False where the problem was degenerate (too few
         points below the horizon, collinear points); those frames get zero motion.
     """
     B = pts.shape[0]
-    A = mounting_matrix(roll, pitch).transpose(-1, -2) @ K_inv   # pixel -> road-aligned ray
-    x = A @ pts
-    xp = A @ torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1)
+    A = torch.bmm(mounting_matrix(roll, pitch).expand(B, 3, 3).transpose(1, 2), K_inv)  # pixel -> road-aligned ray
+    x = torch.bmm(A, pts)
+    xp = torch.bmm(A, torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1))
     ok = sel & (x[:, 1] > 1e-6) & (xp[:, 1] > 1e-6)
-    y0 = torch.where(ok, x[:, 1], 1.0)
-    y1 = torch.where(ok, xp[:, 1], 1.0)
-    X, Z = x[:, 0] / y0, x[:, 2] / y0
-    Xp, Zp = xp[:, 0] / y1, xp[:, 2] / y1
-    # ground errors times f_x y0 are roughly pixel errors
-    f = K[:, 0, 0].unsqueeze(-1) * y0
-    one, zero = torch.ones_like(X), torch.zeros_like(X)
+    # road points (X, 1, Z) = x / x_y; ground errors times f_x x_y are about pixel errors: the
+    # unknowns' coefficients f_x (x_x, x_z, x_y) and the targets f_x x_y (x'_x, x'_z) / x'_y
+    Xf, f, Zf = (x * K[:, 0:1, 0:1]).unbind(1)
+    zero = torch.zeros_like(f)
     # x' = c X - s Z + t_x, z' = s X + c Z + t_z: (B, P=4, R=2, N)
-    J = torch.stack([torch.stack([X, Z], 1), torch.stack([-Z, X], 1), torch.stack([one, zero], 1),
-                     torch.stack([zero, one], 1)], dim=1) * f.unsqueeze(1).unsqueeze(1)
-    target = torch.stack([Xp, Zp], dim=1) * f.unsqueeze(1)
-
-    Jf = J.reshape(B, 4, -1)
-
-    def residual(theta: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        return (theta.unsqueeze(1) @ Jf).reshape(target.shape) - target, J, ok
-
-    start = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=pts.dtype, device=pts.device).expand(B, 4)
-    sol = solve(ResidualProblem(residual, ok.sum(1)), start, kernel="cauchy", scale=scale, anneal=True,
-                max_iter=iterations, check_every=None)
+    J = torch.stack([Xf, Zf, -Zf, Xf, f, zero, zero, f], dim=1).reshape(B, 4, 2, -1)
+    target = xp[:, 0::2] * (f / torch.where(ok, xp[:, 1], 1.0)).unsqueeze(1)
+    sol = _robust_linear_fit(J, target, ok, scale, iterations)
     c, s, tx, tz = sol.params.unbind(-1)
     yaw = torch.atan2(s, c)
     cn, sn = torch.cos(yaw), torch.sin(yaw)
@@ -65,14 +94,39 @@ def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
     return torch.where(good.unsqueeze(-1), out, 0.0), good
 
 
-def homography_dlt(pts: Tensor, flow: Tensor, sel: Tensor, *, scale: float = 3.0) -> Tensor:
-    """The homography (B, 3, 3) taking pixels p̃ to p + flow, by kornia's iteratively re-weighted
-    DLT (Gaussian weights of the transfer error, standard deviation ``scale`` px) over the real
-    points ``sel``: a start for the models with as many parameters as a homography."""
-    from kornia.geometry.homography import find_homography_dlt_iterated
+def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Tensor, *,
+                   scale: float = 2.0, iterations: int = 4) -> Tensor:
+    """The homography (B, 3, 3) taking pixels p̃ to p + flow: a robust direct linear transform.
 
-    p1 = pts[:, :2].transpose(1, 2)
-    p2 = (pts[:, :2] + flow).transpose(1, 2)
-    H = find_homography_dlt_iterated(p1, p2, sel.to(pts.dtype), soft_inl_th=scale, n_iter=5)
+    In calibrated coordinates x = K⁻¹ p̃ and x' = K⁻¹ (p̃ + flow), the unknowns are the eight
+    entries δ of G = K⁻¹ H K - I (its last one 0), and the residuals
+    ``(g₁ - x'_x g₃) · x`` and ``(g₂ - x'_y g₃) · x`` (g_k the rows of I + δ) are linear in them;
+    times the focal length they are about pixels for the small motions between frames.
+
+    Args:
+        K, K_inv: (B, 3, 3) float64; pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their
+            flow (px); sel: (B, N) real points.
+        scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
+            least-squares start.
+
+    Returns:
+        (B, 3, 3), the identity where the fit is not finite.
+    """
+    B = pts.shape[0]
+    x = torch.bmm(K_inv, pts)
+    xp = torch.bmm(K_inv, torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1))
+    f = K[:, 0, 0].reshape(B, 1, 1)
+    xs, xps = x * f, xp[:, :2] * f
+    u, v, one = xs.unbind(1)
+    zero = torch.zeros_like(u)
+    X, Y = xp[:, 0], xp[:, 1]
+    # r = (x_x + δ₁·x - x'_x (1 + δ₃·x), x_y + δ₂·x - x'_y (1 + δ₃·x)) f, δ₃₃ = 0: (B, P=8, R=2, N)
+    J = torch.stack([u, zero, v, zero, one, zero, zero, u, zero, v, zero, one,
+                     -X * u, -Y * u, -X * v, -Y * v], dim=1).reshape(B, 8, 2, -1)
+    target = xps - xs[:, :2]
+    sol = _robust_linear_fit(J, target, sel, scale, iterations)
+    G = torch.cat([sol.params, torch.zeros_like(sol.params[:, :1])], dim=-1).reshape(B, 3, 3)
+    G = G + torch.eye(3, dtype=G.dtype, device=G.device)
+    H = torch.bmm(torch.bmm(K, G), K_inv)
     eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
     return torch.where(torch.isfinite(H).all(-1).all(-1)[:, None, None], H, eye)

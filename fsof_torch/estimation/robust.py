@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "check_kernel"]
+__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
@@ -33,14 +33,7 @@ def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Te
     check_kernel(kind)
     if kind == "l2":
         return torch.ones_like(r2)
-    z = r2 / (scale * scale)
-    if kind == "cauchy":
-        return 1.0 / (1.0 + z)
-    if kind == "soft_l1":
-        return torch.rsqrt(1.0 + z)
-    if kind == "huber":
-        return torch.where(z <= 1.0, 1.0, torch.rsqrt(z.clamp_min(torch.finfo(z.dtype).tiny)))
-    return torch.where(z < 1.0, (1.0 - z) ** 2, 0.0)
+    return _unit_kernel(r2 / (scale * scale), kind, cost=False)[1]
 
 
 def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
@@ -49,11 +42,71 @@ def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tens
     if kind == "l2":
         return r2
     c2 = scale * scale
-    z = r2 / c2
+    return c2 * _unit_kernel(r2 / c2, kind, weight=False)[0]
+
+
+def robust_terms(r2: Tensor, scale: Tensor, kind: str, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """Σ ρ(r²) over the points that count, and their IRLS weights, sharing the intermediate
+    terms: the solver needs both at every evaluation.
+
+    Args:
+        r2: (B, N) squared residual norms (finite everywhere).
+        scale: (B,) the kernel's scale, or (B, S): S scales at once.
+        mask: (B, N) 1.0 where a point counts, 0.0 where not (a product with it is cheaper than a
+            select).
+
+    Returns:
+        ``(cost (B,), weights (B, N))``, or (B, S) and (B, S, N) for S scales; the weights are 0
+        where the mask is.
+    """
+    if scale.dim() == 2:
+        r2, mask = r2.unsqueeze(1), mask.unsqueeze(1)
+    if kind == "l2":
+        return (r2 * mask).sum(-1).expand(scale.shape), mask.expand(*scale.shape, mask.shape[-1])
+    c2 = scale * scale
+    rho, w = _unit_kernel(r2 / c2.unsqueeze(-1), kind, in_place=True)
+    # every kernel is ρ(r²) = c² ρ₁(r² / c²): the scale multiplies the sum, not each point
+    return c2 * torch.linalg.vecdot(rho, mask), w.mul_(mask)
+
+
+def _unit_kernel(z: Tensor, kind: str, cost: bool = True, weight: bool = True,
+                 in_place: bool = False) -> tuple[Tensor | None, Tensor | None]:
+    """(ρ₁(z), w(z)) of the table above at unit scale (z = r² / c²), each where asked for
+    (``in_place``: z is the caller's scratch and may be overwritten)."""
+    rho = w = None
     if kind == "cauchy":
-        return c2 * torch.log1p(z)
-    if kind == "soft_l1":
-        return 2.0 * c2 * (torch.sqrt(1.0 + z) - 1.0)
-    if kind == "huber":
-        return torch.where(z <= 1.0, r2, c2 * (2.0 * torch.sqrt(z.clamp_min(torch.finfo(z.dtype).tiny)) - 1.0))
-    return c2 / 3.0 * (1.0 - (1.0 - z.clamp(max=1.0)) ** 3)
+        if weight:
+            w = (1.0 + z).reciprocal_()
+        if cost:
+            rho = z.log1p_() if in_place else torch.log1p(z)
+    elif kind == "soft_l1":
+        root = torch.sqrt(1.0 + z)
+        if weight:
+            w = root.reciprocal()
+        if cost:
+            rho = 2.0 * (root - 1.0)
+    elif kind == "huber":
+        root = torch.sqrt(z.clamp_min(torch.finfo(z.dtype).tiny))
+        inside = z <= 1.0
+        if weight:
+            w = torch.where(inside, 1.0, root.reciprocal())
+        if cost:
+            rho = torch.where(inside, z, 2.0 * root - 1.0)
+    else:  # tukey: t = 1 - r²/c² inside the cut, 0 beyond
+        t = (1.0 - z).clamp_min_(0.0)
+        t2 = t * t
+        if weight:
+            w = t2
+        if cost:
+            rho = (1.0 - t2 * t) / 3.0
+    return rho, w
+
+
+# ρ₁(10⁴) per kernel, computed once at import (no host read inside a fit)
+_FAR = {kind: float(robust_cost(torch.tensor(1e4, dtype=torch.float64), 1.0, kind)) for kind in ROBUST_KERNELS}
+
+
+def far_outlier_cost(kind: str) -> float:
+    """ρ(10⁴ c²) / c²: the cost of a residual a hundred scales out at unit scale (every kernel is
+    ρ(r²) = c² ρ₁(r² / c²)); the solver charges it for a point where the model is undefined."""
+    return _FAR[check_kernel(kind)]

@@ -39,6 +39,8 @@ class MaskPoints:
         """Per-frame sums (B,) float64 of values (M,) given at ``every``'s pixels (accumulated in
         float64 without a float64 copy of ``x``)."""
         if self.bounds.numel() == 2:  # one frame
+            if x.dtype == torch.bool:  # (a count: faster than a sum of converted flags)
+                return torch.count_nonzero(x).reshape(1).to(torch.float64)
             return x.sum(0, keepdim=True, dtype=torch.float64)
         c = torch.cat([x.new_zeros(1, dtype=torch.float64), x.cumsum(0, dtype=torch.float64)])
         return c[self.bounds[1:]] - c[self.bounds[:-1]]

@@ -8,30 +8,32 @@ The problem (B independent samples, P parameters each, N residual points per sam
 with ρ a robust kernel of scale c (:mod:`~fsof_torch.estimation.robust`), ``m`` the cost of a
 point where the model is not defined (that of a far outlier, so that a fit cannot shrink the
 model's domain to escape its residuals), and an optional Gaussian prior of mean μ and precision λ
-(in residual² per parameter²). Each iteration builds the IRLS normal equations Jᵀ W J and Jᵀ W r
-(the problem does, knowing its structure), adds the prior, scales them (Marquardt), solves the
-damped system by Cholesky (no host read), clamps the candidate to the bounds and
-keeps it per sample where E went down (else damps more).
+(in residual² per parameter²). Each iteration solves the damped normal equations
+(A + λ diag(A)) δ = -g by Cholesky (no host read), with A = Jᵀ W J + prior and g = Jᵀ W r the
+IRLS normal equations (the problem builds them, knowing its structure), clamps the candidate to
+the bounds and keeps it per sample where E went down (else damps more). Each candidate is
+evaluated once: its cost, its weights and its normal equations; a sample whose step was rejected
+keeps those of its current point.
 
-The kernel's scale can be annealed from the spread of the first residuals down to c (halving each
-iteration, or dropping to the current residuals' spread), so that a wrong start is not locked in
-by its own weights.
+The kernel's scale can be annealed from the spread of the first residuals down to c (halving with
+each accepted step, or dropping to the new residuals' spread), so that a wrong start is not
+locked in by its own weights.
 
 The loop runs a fixed budget of ``max_iter`` iterations with the convergence of each sample kept
 on the device; converged samples stop moving. After ``check_every`` iterations, then twice as many,
-four times...: one host read asks whether all have converged, to stop early
-(``check_every=None``: never, for a GPU loop without synchronisation).
+four times... (or after the iterations listed): one host read asks whether all have converged, to
+stop early (``check_every=None``: never, for a GPU loop without synchronisation).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, Callable, Protocol
+from typing import Any, Callable, Protocol, Sequence
 
 import torch
 from torch import Tensor
 
-from .robust import check_kernel, robust_cost, robust_weight
+from .robust import check_kernel, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
 
@@ -98,7 +100,8 @@ class Solution:
         cost: (B,) E / n at the estimate, with the kernel at its final scale.
         converged: (B,) bool.
         iterations: (B,) int64, iterations that moved the sample.
-        evaluation: the problem's :class:`Evaluation` at the estimate.
+        evaluation: the problem's :class:`Evaluation` at the estimate (its residuals and the
+            points that count; not the problem's state).
         weights: (B, N) the final IRLS weights (0 where not used).
         normal: (B, P, P) JᵀWJ + prior at the estimate (fixed parameters: identity rows).
         scale: (B,) the kernel's final scale.
@@ -159,12 +162,33 @@ def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float)
     return x.expand(B, P) if x.dim() else x.expand(B, P)
 
 
+def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> list[int]:
+    """The iterations after which :func:`solve` asks whether all samples converged."""
+    if check_every is None:
+        return []
+    if isinstance(check_every, int) and not isinstance(check_every, bool):
+        if check_every < 1:
+            raise ValueError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}")
+        out, k = [], check_every
+        while k < max_iter:
+            out.append(k)
+            k *= 2
+        return out
+    try:
+        out = sorted({int(k) for k in check_every})
+    except (TypeError, ValueError):
+        raise ValueError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}") from None
+    if out and out[0] < 1:
+        raise ValueError(f"check_every: expected iterations >= 1, got {check_every!r}")
+    return [k for k in out if k < max_iter]
+
+
 def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
           prior_mean: Tensor | None = None, prior_precision: Tensor | Callable[[Tensor], Tensor] | None = None,
           lower: Tensor | None = None, upper: Tensor | None = None, kernel: str = "cauchy",
-          scale: Tensor | float | Callable[[Evaluation], Tensor] = 1.0, anneal: bool = False, max_iter: int = 50, tol: float = 1e-6,
-          resolution: float = 0.0, check_every: int | None = 2, damping: float = 1e-4,
-          missing: str = "outlier") -> Solution:
+          scale: Tensor | float | Callable[[Evaluation], Tensor] = 1.0, anneal: bool = False, max_iter: int = 50,
+          tol: float = 1e-6, resolution: float = 0.0, check_every: int | Sequence[int] | None = 2,
+          damping: float = 1e-4, missing: str = "outlier") -> Solution:
     """Robust Levenberg–Marquardt for B independent samples (see the module docstring).
 
     Args:
@@ -179,8 +203,9 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         scale: the kernel's scale c (float or (B,)), in the residual's unit, or a function of the
             start's :class:`Evaluation` returning it (B,) (a scale from the residuals, without
             evaluating the start twice).
-        anneal: start the scale at max(c, 3 · median residual norm), then halve it every iteration
-            or drop it to 3 × the current median, whichever is smaller, down to c.
+        anneal: start the scale at max(c, 3 · median residual norm), then with every accepted
+            step halve it or drop it to 3 × the new residuals' median, whichever is smaller, down
+            to c (a rejected step is retried, more damped, at the same scale).
         max_iter: the iteration budget.
         tol: converged when a step changes no parameter by more than tol (1 + |p|), or E by less
             than tol E.
@@ -188,7 +213,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             this fraction of their robust RMS (below what the points can resolve); 0: off.
         check_every: stop early when all samples converged, checked (one host read each) after
             this many iterations, then after twice as many, four times...: a handful of reads for
-            any budget; None: always run ``max_iter``.
+            any budget; or the iterations after which to check (a sequence); None: always run
+            ``max_iter``.
         damping: the initial Levenberg–Marquardt damping.
         missing: what a point that does not count (not ``use``) costs: ``"outlier"``, as much as a
             far outlier (a flow fit must not shrink the model's domain to escape its residuals);
@@ -199,135 +225,156 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         :class:`Solution`.
     """
     check_kernel(kernel)
+    if missing not in ("outlier", "mean"):
+        raise ValueError(f"missing: expected 'outlier' or 'mean', got {missing!r}")
+    checks = _check_schedule(check_every, max_iter)
     B, P = params.shape
     dt, dev = params.dtype, params.device
-    eye = torch.eye(P, dtype=dt, device=dev)
     # optional parts cost nothing when absent (Python flags, not tensor tests)
     has_fixed = free is not None
     if has_fixed:
         fixed = ~free.to(dev).expand(B, P)
         fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
-        eye_fixed = eye * fixed.unsqueeze(-1)
+        eye_fixed = torch.eye(P, dtype=dt, device=dev) * fixed.unsqueeze(-1)
     has_bounds = lower is not None or upper is not None
     if has_bounds:
         lo = _expand(lower, B, P, params, -float("inf"))
         hi = _expand(upper, B, P, params, float("inf"))
         params = torch.minimum(torch.maximum(params, lo), hi)
     n = problem.count.to(dt).clamp_min(1)
+    far = far_outlier_cost(kernel)
 
-    if missing not in ("outlier", "mean"):
-        raise ValueError(f"missing: expected 'outlier' or 'mean', got {missing!r}")
-
-    def cost(ev: Evaluation, p: Tensor, s: Tensor, far: Tensor) -> Tensor:
-        rho = robust_cost(ev.r2, s.unsqueeze(-1), kernel).mul_(ev.use).sum(1)
+    def cost_and_weights(ev: Evaluation, mask: Tensor, used: Tensor, p: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+        """E / n (B,) and the IRLS weights (B, N) at the scale s (B,); ``mask``: 1.0 where a point
+        counts (B, N), ``used`` their number (B,). With s (B, S): E / n (B, S) and the weights
+        (B, S, N) at S scales at once."""
+        rho, w = robust_terms(ev.r2, s, kernel, mask)
+        nn, used = (n, used) if s.dim() == 1 else (n.unsqueeze(-1), used.unsqueeze(-1))
         if missing == "outlier":
-            total = rho + far * (n - ev.use.sum(1))
+            rho = torch.addcmul(rho, s * s * far, nn - used)
         else:
-            total = rho * (n / ev.use.sum(1).clamp_min(1))
+            rho = rho * (nn / used.clamp_min(1))
         if has_prior:
-            total = total + (lam_p * (p - mu).square()).sum(1)
-        return total / n
+            prior = (lam_p * (p - mu).square()).sum(1)
+            rho = rho + (prior if s.dim() == 1 else prior.unsqueeze(-1))
+        return rho / nn, w
 
-    def normal(ev: Evaluation, p: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-        w = robust_weight(ev.r2, s.unsqueeze(-1), kernel).mul_(ev.use)
+    def normal(ev: Evaluation, w: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         A, g = problem.normal_equations(ev, w)
         if has_prior:
             A = A + torch.diag_embed(lam_p)
             g = g + lam_p * (p - mu)
         if has_fixed:
             A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, 0.0, g)
-        return A, g, w
-
-    def far_cost(s: Tensor) -> Tensor:
-        """The cost of a point where the model is undefined: that of a far outlier."""
-        return robust_cost(1e4 * s * s, s, kernel)
+        return A, g
 
     def kernel_spread(ev: Evaluation) -> Tensor:
         """3 × the median residual norm (B,): the scale that keeps most points in the kernel."""
         med = torch.nanmedian(torch.where(ev.use, ev.r2, float("nan")), dim=1).values
         return 3.0 * torch.nan_to_num(med, nan=0.0).sqrt()
 
+    def resolved(w: Tensor, r2: Tensor, used: Tensor) -> Tensor:
+        """What a step must move the squared residuals by, summed over the points that count, to
+        matter (B,): resolution² × their robust mean square × their number."""
+        return (resolution ** 2) * torch.linalg.vecdot(w, r2) / w.sum(1).clamp_min(1e-300) * used
+
+    def counted(ev: Evaluation) -> tuple[Tensor, Tensor]:
+        """The points that count as a 0/1 mask (B, N) in the parameters' dtype, and their number."""
+        mask = ev.use.to(dt)
+        return mask, mask.sum(1)
+
     ev = problem.evaluate(params)
     if callable(scale):
         scale = scale(ev)
-    s_min = torch.as_tensor(scale, dtype=dt, device=dev).expand(B).clone()
+    s_min = (torch.full((B,), float(scale), dtype=dt, device=dev) if isinstance(scale, (int, float))
+             else torch.as_tensor(scale, dtype=dt, device=dev).expand(B).clone())
     has_prior = prior_precision is not None
     if has_prior:
         mu = _expand(prior_mean, B, P, params, 0.0)
         lam_p = _expand(prior_precision(s_min) if callable(prior_precision) else prior_precision, B, P, params, 0.0)
     s = torch.maximum(s_min, kernel_spread(ev)) if anneal else s_min
-    far = far_cost(s)
-    c = cost(ev, params, s, far)
-    A, g, w = normal(ev, params, s)
+    mask, used = counted(ev)
+    c, w = cost_and_weights(ev, mask, used, params, s)
+    A, g = normal(ev, w, params)
+    if resolution > 0:
+        bar = resolved(w, ev.r2, used)
+    # the current point's residuals and weights (the points that count: ``mask``)
+    r2, residual = ev.r2, ev.residual
     lam = torch.full((B,), damping, dtype=dt, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    next_check = check_every or 0
     for it in range(max_iter):
-        d = A.diagonal(dim1=-2, dim2=-1)
-        # a relative floor: a direction the data do not see must not be blown up to unit size
-        sc = torch.maximum(d, 1e-12 * d.amax(-1, keepdim=True)).clamp_min(1e-300).sqrt()
-        An = A / (sc.unsqueeze(-1) * sc.unsqueeze(-2))
-        step = spd_solve(An + lam.reshape(B, 1, 1) * eye, (g / sc).unsqueeze(-1))
-        delta = step.squeeze(-1).div_(sc).neg_()
+        active = ~done
         # no step for finished samples, and none from a singular system
-        delta = torch.where(done.unsqueeze(-1) | ~torch.isfinite(delta), 0.0, delta)
+        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam), 0.0)
         cand = params + delta
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
             delta = cand - params
         ev_c = problem.evaluate(cand)
-        c1 = cost(ev_c, cand, s, far)
-        ok = (c1 <= c) & ~done  # (False for a NaN cost)
-        small = ok & (c - c1 <= tol * c)
+        mask_c, used_c = counted(ev_c)
+        if anneal:
+            # the scale an accepted step carries on with: halved, or the new residuals' spread;
+            # the cost at the current scale decides, the weights are those at the next
+            at_scale = s <= s_min * (1 + 1e-12)
+            s_c = torch.where(at_scale, s, torch.maximum(s_min, torch.minimum(0.5 * s, kernel_spread(ev_c))))
+            costs, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, torch.stack([s, s_c], dim=-1))
+            (c1, c_next), w_c = costs.unbind(1), w_c[:, 1]
+        else:
+            c1, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, s)
+        ok = (c1 <= c) & active  # (False for a NaN cost)
+        small = ok & (c1 >= c * (1.0 - tol))
         if resolution > 0:
             # the step moved the residuals (RMS) by at most ``resolution`` of their robust RMS
-            if ev.residual is not None:
-                moved = (ev_c.residual - ev.residual).square_().sum(1).mul_(ev.use).sum(1)
-            else:
-                moved = (ev_c.r2.sqrt() - ev.r2.sqrt()).square_().mul_(ev.use).sum(1)
-            spread = (w * ev.r2).sum(1) / w.sum(1).clamp_min(1e-300)
             # (also a rejected step: below resolution the cost cannot reliably go down any more)
-            small = small | (~done & (moved <= resolution ** 2 * spread * ev.use.sum(1)))
-        params = torch.where(ok.unsqueeze(-1), cand, params)
-        ev = _select(ok, ev_c, ev)
-        iters += (~done).long()
-        tiny = (delta.abs() <= tol * (1.0 + params.abs())).all(-1)
+            if residual is not None:
+                moved = (ev_c.residual - residual).square_().sum(1)
+            else:
+                moved = (ev_c.r2.sqrt() - r2.sqrt()).square_()
+            # (a finished sample does not move: it stays finished)
+            small = small | (torch.linalg.vecdot(moved, mask) <= bar)
+        tiny = (delta.abs() <= tol * (1.0 + cand.abs())).all(-1)
         small = small | (tiny & (ok | (lam <= 1e-2)))
-        c = torch.where(ok, c1, c)
+        # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
+        A_c, g_c = normal(ev_c, w_c, cand)
+        keep = ok.unsqueeze(-1)
+        params = torch.where(keep, cand, params)
+        A, g = torch.where(keep.unsqueeze(-1), A_c, A), torch.where(keep, g_c, g)
+        w, mask, r2 = torch.where(keep, w_c, w), torch.where(keep, mask_c, mask), torch.where(keep, ev_c.r2, r2)
+        if residual is not None:
+            residual = torch.where(keep.unsqueeze(-1), ev_c.residual, residual)
+        if resolution > 0:
+            bar = torch.where(ok, resolved(w_c, ev_c.r2, used_c), bar)
+        c = torch.where(ok, c_next if anneal else c1, c)
+        iters += active
         lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
         stuck = ~ok & (lam > 1e8)
         if anneal:
-            at_scale = s <= s_min * (1 + 1e-12)
+            s = torch.where(ok, s_c, s)
             done = done | (at_scale & (small | stuck))
-            # halve, or drop to the spread of the current residuals when that is smaller
-            s_next = torch.where(at_scale, s, torch.maximum(s_min, torch.minimum(0.5 * s, kernel_spread(ev))))
-            changed = s_next < s
-            s = s_next
-            far = far_cost(s)
-            c = torch.where(changed, cost(ev, params, s, far), c)
         else:
             done = done | small | stuck
-        A, g, w = normal(ev, params, s)
-        if check_every and it + 1 == next_check and it + 1 < max_iter:
-            next_check *= 2
+        if checks and it + 1 == checks[0]:
+            checks.pop(0)
             if bool(done.all()):
                 break
-    return Solution(params, c, done, iters, ev, w, A, s)
+    # (the problem's state is not kept: the normal equations built from it are)
+    return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s)
+
+
+def _damped_step(A: Tensor, g: Tensor, lam: Tensor) -> Tensor:
+    """The Levenberg–Marquardt step δ (B, P) of (A + λ diag(A)) δ = -g (Marquardt's scaling: the
+    step does not depend on the parameters' units), 0 where the system is singular.
+
+    The diagonal has a relative floor: a direction the data do not see must not be blown up to
+    unit size.
+    """
+    d = A.diagonal(dim1=-2, dim2=-1)
+    d = torch.maximum(d, 1e-12 * d.amax(-1, keepdim=True))
+    step = spd_solve(A + torch.diag_embed(lam.unsqueeze(-1) * d), g.unsqueeze(-1))
+    return step.squeeze(-1).neg_().nan_to_num_(0.0, 0.0, 0.0)
 
 
 def _unit_diagonal(A: Tensor) -> Tensor:
     d = A.diagonal(dim1=-2, dim2=-1).clamp_min(torch.finfo(A.dtype).tiny).sqrt()
     return A / (d.unsqueeze(-1) * d.unsqueeze(-2))
-
-
-def _select(ok: Tensor, new: Evaluation, old: Evaluation) -> Evaluation:
-    """Per sample: ``new`` where ``ok`` else ``old`` (every tensor of the state, recursively)."""
-    def pick(a: Any, b: Any) -> Any:
-        if isinstance(a, Tensor):
-            return torch.where(ok.reshape(-1, *([1] * (a.dim() - 1))), a, b)
-        if isinstance(a, (tuple, list)):
-            return type(a)(pick(x, y) for x, y in zip(a, b))
-        return a
-    return Evaluation(pick(new.r2, old.r2), pick(new.use, old.use), pick(new.residual, old.residual),
-                      pick(new.state, old.state))

@@ -97,8 +97,8 @@ def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Te
 def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
     """Rotation matrices (B, A, 3, 3) for angles (B, A) about the given axes (one per column)."""
     E0, Ec, Es = _axis_bases(axes, angles.dtype, angles.device)
-    c, s = torch.cos(angles)[..., None, None], torch.sin(angles)[..., None, None]
-    return torch.addcmul(torch.addcmul(E0, c, Ec), s, Es)
+    a = angles.reshape(*angles.shape, 1, 1)
+    return torch.addcmul(torch.addcmul(E0, torch.cos(a), Ec), torch.sin(a), Es)
 
 
 def _axis_bases(axes: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
@@ -113,16 +113,42 @@ def _axis_bases(axes: tuple[int, ...], dtype: torch.dtype, device: torch.device)
     return out
 
 
-def _commutator(G: Tensor, C: Tensor) -> Tensor:
-    return G @ C - C @ G
+# Products of small matrices go through torch.bmm on (B, n, m) operands: the ``@`` of batched
+# 3×3 matrices costs several times the product itself in dispatch (broadcasting checks and
+# reshapes), and the fits evaluate these maps every solver iteration (python
+# benchmarks/bench_fit.py).
+
+def _mm(a: Tensor, b: Tensor) -> Tensor:
+    """a @ b for a (B, n, k) and b (B, k, m)."""
+    return torch.bmm(a, b)
 
 
-def _sandwich(camera_K: Tensor, K_inv: Tensor, C: Tensor) -> Tensor:
-    """K C K⁻¹ for C (B, ..., 3, 3)."""
-    extra = C.dim() - 3
-    K = camera_K.reshape(camera_K.shape[0], *([1] * extra), 3, 3)
-    Ki = K_inv.reshape(K_inv.shape[0], *([1] * extra), 3, 3)
-    return K @ C @ Ki
+def _sandwich_operator(L: Tensor, R: Tensor) -> Tensor:
+    """T (B, 9, 9) with vec(L X R) = T vec(X) (row-major vec) for L, R (B, 3, 3): the sandwich
+    as one linear map of X's nine entries (T[3a + b, 3i + j] = L[a, i] R[j, b])."""
+    B = L.shape[0]
+    return (L.reshape(B, 3, 1, 3, 1) * R.transpose(1, 2).reshape(B, 1, 3, 1, 3)).reshape(B, 9, 9)
+
+
+def _apply(T: Tensor, X: Tensor) -> Tensor:
+    """The sandwich T of :func:`_sandwich_operator` applied to matrices X (B, Q, 3, 3)."""
+    B, Q = X.shape[:2]
+    return _mm(X.reshape(B, Q, 9), T.transpose(1, 2)).reshape(B, Q, 3, 3)
+
+
+def _commutators(like: Tensor) -> Tensor:
+    """(9, 27): vec(X) (row-major, as a row) times this gives vec([G, X]) = vec(G X - X G) for
+    the generators G of the three axes (roll, pitch, yaw, in :data:`_ES`'s order); cached."""
+    key = ("commutators", like.dtype, like.device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    _, _, Es = _bases(like.dtype, like.device)
+    eye = torch.eye(3, dtype=like.dtype, device=like.device)
+    # vec(G X) = (G ⊗ I) vec(X), vec(X G) = (I ⊗ Gᵀ) vec(X)
+    out = torch.cat([(torch.kron(G, eye) - torch.kron(eye, G.T.contiguous())).T for G in Es], dim=1)
+    if not tracing():
+        _CACHE[key] = out
+    return out
 
 
 # -- the definitions ------------------------------------------------------------------------------
@@ -132,45 +158,81 @@ def _sandwich(camera_K: Tensor, K_inv: Tensor, C: Tensor) -> Tensor:
 # derivatives by its motion parameters; :func:`_mounted` does the rest, including the derivatives
 # by the roll θ and pitch β (d(R_c X R_cᵀ)/dangle = [G, R_c X R_cᵀ] with the angle's generator G).
 
-def _mounted(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, X: Tensor, dX: Tensor | None,
-             outer: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor | None, Tensor]:
-    """H = K R_c X R_cᵀ K⁻¹ (B, 3, 3), with ``dX`` (B, Q, 3, 3) dH by (motion..., roll, pitch)
-    (else None), and the horizon row (R_c e_y)ᵀ K⁻¹ (B, 1, 3).
+def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor | None, Rb: Tensor | None, stack: Tensor,
+             jacobian: bool, outer: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor | None, Tensor]:
+    """H = K R_c X R_cᵀ K⁻¹ (B, 3, 3) with R_c = Rt Rb (the camera's roll and pitch rotations,
+    (B, 3, 3) each), and the horizon row (R_c e_y)ᵀ K⁻¹ (B, 1, 3), from ``stack`` (B, 1 + Q, 3, 3):
+    X, then (with ``jacobian``) its derivatives by the Q motion parameters; with ``jacobian``
+    also dH (B, Q + 2, 3, 3) by (motion..., roll, pitch), else None.
 
-    ``outer``: the products (K R_c, R_cᵀ K⁻¹) of a mounting that is not being fitted, computed
-    once by the caller; the derivatives by roll and pitch are then 0 (python
+    By roll and pitch: d(R_c X R_cᵀ) = R_c [G̃, X] R_cᵀ with the angle's generator seen in the
+    road frame, G̃ = R_cᵀ G R_c: Rbᵀ G_z Rb for the roll and G_x itself for the pitch (a rotation
+    commutes with its own generator). So every derivative goes through the one sandwich.
+
+    ``outer``: :func:`mounting_products` of a mounting that is not being fitted, computed once by
+    the caller (Rt and Rb are then not used); the derivatives by roll and pitch are 0 (python
     benchmarks/bench_fit.py: a fit with the mounting fixed evaluates the map every iteration).
     """
-    B = X.shape[0]
+    B = stack.shape[0]
     if outer is not None:
-        L, R = outer
-        H = L @ X @ R
-        if dX is None:
-            return H, None, R[:, 1:2]
-        dH = L.unsqueeze(1) @ dX @ R.unsqueeze(1)
-        return H, torch.cat([dH, dH.new_zeros(B, 2, 3, 3)], dim=1), R[:, 1:2]
-    Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
-    Rc = Rt @ Rb
-    L, R = K @ Rc, Rc.transpose(-1, -2) @ K_inv
-    if dX is None:
-        return L @ X @ R, None, R[:, 1:2]
-    # the map and its motion derivatives through one pair of products; by roll and pitch,
-    # K [G, C] K⁻¹ = [K G K⁻¹, H] with the angle's generator G (pitch's seen through the roll).
-    # (python benchmarks/bench_fit.py: batched 3×3 products dominate the map's cost; these are
-    # half as many as sandwiching C and its derivatives separately)
-    HdH = L.unsqueeze(1) @ torch.cat([X.unsqueeze(1), dX], dim=1) @ R.unsqueeze(1)
-    _, _, Es = _bases(X.dtype, X.device)
-    G = torch.stack([Es[_ROLL].expand(B, 3, 3), Rt @ Es[_PITCH] @ Rt.transpose(-1, -2)], dim=1)
-    KGK = K.unsqueeze(1) @ G @ K_inv.unsqueeze(1)
-    H = HdH[:, :1]
-    return HdH[:, 0], torch.cat([HdH[:, 1:], _commutator(KGK, H)], dim=1), R[:, 1:2]
+        T, horizon = outer
+        if jacobian:  # (zero derivatives by the fixed roll and pitch)
+            stack = torch.cat([stack, stack.new_zeros(B, 2, 3, 3)], dim=1)
+    else:
+        Rc = _mm(Rt, Rb)
+        R = _mm(Rc.transpose(1, 2), K_inv)
+        T, horizon = _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
+        if jacobian:
+            # [G_x, X], [G_y, X], [G_z, X] at once; the roll's G̃ = Rbᵀ G_z Rb = cos β G_z - sin β G_y
+            comm = torch.mm(stack[:, 0].reshape(B, 9), _commutators(stack)).reshape(B, 3, 3, 3)
+            cos_b, sin_b = Rb[:, 2:3, 2:3].unsqueeze(1), Rb[:, 1:2, 2:3].unsqueeze(1)
+            roll = comm[:, _ROLL:_ROLL + 1] * cos_b - comm[:, _YAW:_YAW + 1] * sin_b
+            stack = torch.cat([stack, roll, comm[:, _PITCH:_PITCH + 1]], dim=1)
+    HdH = _apply(T, stack)
+    return HdH[:, 0], (HdH[:, 1:] if jacobian else None), horizon
+
+
+def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int, ...], roll: int,
+                        outer: object) -> tuple[list[Tensor], Tensor | None, Tensor | None]:
+    """The rotations of a model's motion angles (columns ``motion`` about ``axes``) and of the
+    camera's roll and pitch (columns ``roll``, ``roll + 1``; None when ``outer`` holds them): one
+    batch of rotation matrices."""
+    cols = list(motion) if outer is not None else list(motion) + [roll, roll + 1]
+    if not cols:
+        return [], None, None
+    # (a slice where the columns follow each other: cheaper than gathering them)
+    angles = values[:, cols[0]:cols[-1] + 1] if cols == list(range(cols[0], cols[-1] + 1)) else values[:, cols]
+    Rs = _rotations(angles, axes + (() if outer is not None else (_ROLL, _PITCH))).unbind(1)
+    if outer is not None:
+        return list(Rs), None, None
+    return list(Rs[:-2]), Rs[-2], Rs[-1]
 
 
 def mounting_products(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor) -> tuple[Tensor, Tensor]:
-    """(K R_c, R_cᵀ K⁻¹) (B, 3, 3) each, for ``outer=`` of :meth:`RoadModel.evaluate`."""
+    """What a fixed mounting contributes to every evaluation of a model's map, for ``outer=`` of
+    :meth:`RoadModel.evaluate`: the sandwich X -> K R_c X R_cᵀ K⁻¹ as a linear map of X's entries
+    (B, 9, 9), and the horizon row (B, 1, 3)."""
     Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
-    Rc = Rt @ Rb
-    return K @ Rc, Rc.transpose(-1, -2) @ K_inv
+    Rc = _mm(Rt, Rb)
+    R = _mm(Rc.transpose(-1, -2), K_inv)
+    return _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
+
+
+def _unit_y(like: Tensor) -> Tensor:
+    """e_y (3,) in ``like``'s dtype and device; cached in eager mode."""
+    return _unit_matrix(1, 1, like)[1]
+
+
+def _unit_matrix(i: int, j: int, like: Tensor) -> Tensor:
+    """e_i e_jᵀ (3, 3) in ``like``'s dtype and device; cached in eager mode."""
+    key = ("unit", i, j, like.dtype, like.device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    out = torch.zeros(3, 3, dtype=like.dtype, device=like.device)
+    out[i, j] = 1.0
+    if not tracing():
+        _CACHE[key] = out
+    return out
 
 
 def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
@@ -178,59 +240,101 @@ def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
     """The ``"plane"`` map: values (B, 8) = (pitch_change α, yaw φ, roll_change γ, x_d, y_d, z_d,
     roll θ, pitch β); X = R_v (I - d e_yᵀ / h), R_v = R_roll(γ) R_pitch(α) R_yaw(φ)."""
     B = values.shape[0]
-    R = _rotations(values[:, [2, 0, 1]], (_ROLL, _PITCH, _YAW))
-    Rg, Ra, Rp = R.unbind(1)
-    Rga = Rg @ Ra
-    Rv = Rga @ Rp
+    (Rg, Ra, Rp), Rt, Rb = _mounting_rotations(values, (2, 0, 1), (_ROLL, _PITCH, _YAW), 6, outer)
+    Rga = _mm(Rg, Ra)
+    Rv = _mm(Rga, Rp)
     # only the middle column changes, by -R_v d / h
-    ey = values.new_tensor([0.0, 1.0, 0.0])
-    shift = (Rv @ (values[:, 3:6] / h.unsqueeze(-1)).unsqueeze(-1)).squeeze(-1)
-    X = Rv - shift.unsqueeze(-1) * ey
-    dX = None
+    ey = _unit_y(values)
+    shift = _mm(Rv, (values[:, 3:6] / h.unsqueeze(-1)).unsqueeze(-1))
+    X = Rv - shift * ey
+    stack = X.unsqueeze(1)
     if jacobian:
         _, _, Es = _bases(values.dtype, values.device)
-        Gz, Gx, Gy = Es[_ROLL], Es[_PITCH], Es[_YAW]
         # d R_v / d angle = G_left R_v: roll outermost, pitch seen through the roll, yaw through both
-        G_left = torch.stack([Rg @ Gx @ Rg.transpose(-1, -2), Rga @ Gy @ Rga.transpose(-1, -2),
-                              Gz.expand(B, 3, 3)], dim=1)
-        dX_d = -(Rv.transpose(-1, -2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey  # column 1: -R_v e_k / h
-        dX = torch.cat([G_left @ X.unsqueeze(1), dX_d], dim=1)
-    return _mounted(K, K_inv, values[:, 6], values[:, 7], X, dX, outer)
+        G_left = torch.stack([_mm(_mm(Rg, Es[_PITCH].expand(B, 3, 3)), Rg.transpose(1, 2)),
+                              _mm(_mm(Rga, Es[_YAW].expand(B, 3, 3)), Rga.transpose(1, 2)),
+                              Es[_ROLL].expand(B, 3, 3)], dim=1)
+        dX_angles = _mm(G_left.reshape(B, 9, 3), X).reshape(B, 3, 3, 3)
+        dX_d = -(Rv.transpose(1, 2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey  # column 1: -R_v e_k / h
+        stack = torch.cat([stack, dX_angles, dX_d], dim=1)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
+
+
+# The paper's X and its derivatives by (x_d, z_d, φ) are linear in nine monomials of its motion,
+# (1, c, s, c a, c b, c / h, s a, s b, s / h) with c, s = cos φ, sin φ and a, b = x_d / h, z_d / h:
+#
+#   X       = [[c, -(c a - s b), -s], [0, 1, 0], [s, -(s a + c b), c]]
+#   dX/dx_d = [[0, -c / h, 0], [0, 0, 0], [0, -s / h, 0]]
+#   dX/dz_d = [[0, s / h, 0], [0, 0, 0], [0, -c / h, 0]]
+#   dX/dφ   = G_y X = [[-s, s a + c b, -c], [0, 0, 0], [c, -(c a - s b), -s]]
+#
+# so the four maps are one product of the monomials with a constant basis (the fits evaluate them
+# every solver iteration; python benchmarks/bench_fit.py: building them matrix by matrix took a
+# third of the refinement step's fit).
+_PAPER_MONOMIALS = ("1", "c", "s", "ca", "cb", "c/h", "sa", "sb", "s/h")
+_PAPER_MAPS = (  # {entry (row-major) of [X, dX/dx_d, dX/dz_d, dX/dφ]: {monomial: coefficient}}
+    {0: {"c": 1}, 1: {"ca": -1, "sb": 1}, 2: {"s": -1}, 4: {"1": 1}, 6: {"s": 1}, 7: {"sa": -1, "cb": -1},
+     8: {"c": 1}},
+    {1: {"c/h": -1}, 7: {"s/h": -1}},
+    {1: {"s/h": 1}, 7: {"c/h": -1}},
+    {0: {"s": -1}, 1: {"sa": 1, "cb": 1}, 2: {"c": -1}, 6: {"c": 1}, 7: {"ca": -1, "sb": 1}, 8: {"s": -1}},
+)
+
+
+def _coefficients(monomials: tuple[str, ...], maps: tuple[dict, ...]) -> list[list[float]]:
+    """(monomials, 9 · maps) coefficients of :data:`_PAPER_MAPS`-like tables, as nested lists."""
+    table = [[0.0] * (9 * len(maps)) for _ in monomials]
+    for k, entries in enumerate(maps):
+        for entry, coefficients in entries.items():
+            for monomial, c in coefficients.items():
+                table[monomials.index(monomial)][9 * k + entry] = float(c)
+    return table
+
+
+_PAPER_BASIS = _coefficients(_PAPER_MONOMIALS, _PAPER_MAPS)
+
+
+def _paper_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
+    """(9, 36): the maps [X, dX/dx_d, dX/dz_d, dX/dφ] (row-major) from the monomials above;
+    cached in eager mode (a constant of the graph when tracing)."""
+    key = ("paper", dtype, device)
+    if key in _CACHE and not tracing():
+        return _CACHE[key]
+    basis = torch.tensor(_PAPER_BASIS, dtype=dtype, device=device)
+    if not tracing():
+        _CACHE[key] = basis
+    return basis
 
 
 def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
            outer: tuple[Tensor, Tensor] | None = None):
     """The ``"paper"`` map: values (B, 5) = (x_d, z_d, yaw, roll, pitch); X = R_yaw(φ) (I - d e_yᵀ / h)
     with d = (x_d, 0, z_d): the ``"plane"`` map with no pitch or roll change and y_d = 0."""
-    x_d, z_d, yaw = values[:, 0], values[:, 1], values[:, 2]
-    c, s = torch.cos(yaw), torch.sin(yaw)
-    a, b = x_d / h, z_d / h
-    z, o = torch.zeros_like(c), torch.ones_like(c)
-    u, v = c * a - s * b, s * a + c * b
-    entries = [c, -u, -s, z, o, z, s, -v, c]
-    if jacobian:
-        ih = 1.0 / h
-        entries += [z, -c * ih, z, z, z, z, z, -s * ih, z,        # d/dx_d
-                    z, s * ih, z, z, z, z, z, -c * ih, z,         # d/dz_d
-                    -s, v, -c, z, z, z, c, -u, -s]                # d/dyaw
-    maps = torch.stack(entries, dim=-1).reshape(-1, len(entries) // 9, 3, 3)
-    return _mounted(K, K_inv, values[:, 3], values[:, 4], maps[:, 0], maps[:, 1:] if jacobian else None, outer)
+    B = values.shape[0]
+    _, Rt, Rb = _mounting_rotations(values, (), (), 3, outer)
+    yaw = values[:, 2:3]
+    one = torch.ones_like(yaw)
+    cs = torch.cat([torch.cos(yaw), torch.sin(yaw)], dim=-1)                   # (c, s)
+    lin = torch.cat([values[:, :2], one], dim=-1) / h.unsqueeze(-1)             # (a, b, 1 / h)
+    monomials = torch.cat([one, cs, (cs.unsqueeze(-1) * lin.unsqueeze(1)).reshape(B, 6)], dim=-1)
+    basis = _paper_basis(values.dtype, values.device)
+    stack = torch.mm(monomials, basis if jacobian else basis[:, :9]).reshape(B, -1, 3, 3)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
 
 
 def _velocity(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
               outer: tuple[Tensor, Tensor] | None = None):
     """The ``"velocity"`` map G (1/s): values (B, 4) = (speed, yaw_rate, roll, pitch);
     X = d/dt [R_yaw(φ̇ t) (I - (0, 0, v t) e_yᵀ / h)] at t = 0 = φ̇ G_y - v e_z e_yᵀ / h."""
-    speed, yaw_rate = values[:, 0], values[:, 1]
-    z = torch.zeros_like(speed)
-    k = -1.0 / h
+    B = values.shape[0]
+    _, Rt, Rb = _mounting_rotations(values, (), (), 2, outer)
+    _, _, Es = _bases(values.dtype, values.device)
     # d X / d speed = -e_z e_yᵀ / h, d X / d yaw_rate = G_y: constant in the motion
-    entries = [z, z, -yaw_rate, z, z, z, yaw_rate, speed * k, z]
-    if jacobian:
-        o = torch.ones_like(speed)
-        entries += [z, z, z, z, z, z, z, k, z, z, z, -o, z, z, z, o, z, z]
-    maps = torch.stack(entries, dim=-1).reshape(-1, len(entries) // 9, 3, 3)
-    return _mounted(K, K_inv, values[:, 2], values[:, 3], maps[:, 0], maps[:, 1:] if jacobian else None, outer)
+    dX_speed = _unit_matrix(2, 1, values) * (-1.0 / h).reshape(B, 1, 1)
+    Gy = Es[_YAW].expand(B, 3, 3)
+    X = values[:, 0].reshape(B, 1, 1) * dX_speed + values[:, 1].reshape(B, 1, 1) * Gy
+    stack = torch.stack([X, dX_speed, Gy], dim=1) if jacobian else X.unsqueeze(1)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
 
 
 def _homography(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
@@ -239,11 +343,12 @@ def _homography(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: b
     B = values.shape[0]
     G = torch.eye(3, dtype=values.dtype, device=values.device) + torch.cat(
         [values, torch.zeros_like(values[:, :1])], dim=-1).reshape(B, 3, 3)
-    H = _sandwich(K, K_inv, G)
+    T = _sandwich_operator(K, K_inv)
+    H = _apply(T, G.unsqueeze(1))[:, 0]
     if not jacobian:
         return H, None, None
-    E = torch.eye(9, dtype=values.dtype, device=values.device)[:8].reshape(1, 8, 3, 3)
-    return H, _sandwich(K, K_inv, E.expand(B, 8, 3, 3)), None
+    # H is linear in the values: its derivatives are T's first eight columns
+    return H, T[:, :, :8].transpose(1, 2).reshape(B, 8, 3, 3), None
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,74 @@
+"""The ``"plane"`` parameters of a road homography: a closed-form start and a fit on its flow.
+
+Fitting is iterative and data dependent: it is not differentiable; its results are detached.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .._check import check_float_tensor, check_has_values, check_int, check_shape
+from ..geometry.camera import Camera
+from ..geometry.road_flow import flow_from_map
+from ..geometry.road_models import ROAD_MODELS, plane_from_homography
+from .flow_fit import RoadFit, fit_road
+
+__all__ = ["decompose_homography"]
+
+
+def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadFit:
+    """The ``"plane"`` parameters of road homographies (B, 3, 3) (pixels of t -> t+1).
+
+    A calibrated homography ``K⁻¹ H K ∝ R + t nᵀ / h`` has two physical decompositions in general;
+    the one reached from the camera's own roll and pitch (its calibrated attitude over the road)
+    is returned, and with the camera height h the translation is metric. The start decomposes H
+    with the road's normal of the camera's attitude
+    (:func:`~fsof_torch.geometry.road_models.plane_from_homography`); :func:`fit_road` then frees
+    the normal too, on the homography's own flow over a grid below the camera's horizon (exact
+    for an exact road homography; OpenCV's closed-form ``decomposeHomographyMat`` returns NaN for
+    the commonest road motion, a translation without rotation).
+
+    Args:
+        H: (B, 3, 3) road homographies (any scale), for the camera's K.
+        camera: K, height, and the roll and pitch to start from (batch 1 or B).
+        size: the grid's longer side in pixels (the camera is scaled to it).
+
+    Returns:
+        The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual`` says how
+        far the homography is from any rigid road motion, in grid pixels).
+    """
+    check_float_tensor(H, "H")
+    check_shape(H, "H", ("B", 3, 3))
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    B = H.shape[0]
+    if camera.batch_size not in (1, B):
+        raise ValueError(f"camera: expected batch 1 or {B} (H's B), got {camera.batch_size}")
+    check_int(size, "size", minimum=8)
+    check_has_values(H, "H", "to decompose (the decomposition is a fit)")
+    check_has_values(camera.K, "camera", "to decompose a homography (the decomposition is a fit)")
+    if B == 0:
+        raise ValueError("H: expected a non-empty batch, got shape (0, 3, 3)")
+    H64 = H.detach().to(torch.float64)
+    usable = torch.isfinite(H64).all((1, 2)) & (H64[:, 2, 2] != 0) & (torch.linalg.det(H64).abs() > 0)
+    if not bool(usable.all()):
+        bad = (~usable).nonzero().flatten().tolist()
+        raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
+                         f"that are not: {H64[bad[0]].tolist()}")
+    cam = camera.to(torch.float64).expand(B).to(device=H.device)
+    # a virtual image around the principal point, scaled so that its longer side is ``size``
+    w0 = 2.0 * float(cam.cx.max()) + 1.0
+    h0 = 2.0 * float(cam.cy.max()) + 1.0
+    s = size / max(w0, h0)
+    grid = (max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8))
+    small = cam.scaled(s)
+    S = small.K @ cam.K_inv()
+    Hs = S @ H.to(torch.float64) @ torch.linalg.inv(S)
+    Hs = Hs / Hs[:, 2:3, 2:3]
+    horizon = ROAD_MODELS["paper"].horizon_row(small, torch.stack(
+        [torch.zeros_like(small.roll)] * 3 + [small.roll, small.pitch], dim=-1))
+    flow, valid = flow_from_map(Hs, horizon, grid)
+    start = plane_from_homography(Hs, small)
+    return fit_road(flow, valid, small, model="plane", fixed=(), init=start, robust="l2", polish=False,
+                    max_points=4096, min_inlier_fraction=0.0, tol=1e-12)
