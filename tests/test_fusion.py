@@ -308,7 +308,7 @@ def test_nan_in_another_level_than_the_finest():
 def test_odometry_wrong_batch_size():
     pred, mask, cam, _ = make_case(B=2)
     odo = {"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}
-    with pytest.raises(ValueError, match=r"odometry\['z_d'\]: expected .* shape \(2,\)"):
+    with pytest.raises(ValueError, match=r"odometry\['z_d'\]: expected .* shape \(1,\) or \(2,\) \(the flow's batch\)"):
         FreespaceRefiner()(pred, mask, cam, odo)
 
 

@@ -527,6 +527,22 @@ def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, di
     return model, params
 
 
+def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: torch.device | str, *,
+                      name: str = "odometry", batch_of: str = "the flow's batch") -> tuple[RoadModel, dict[str, Tensor]]:
+    """:func:`road_motion`'s ``(model, params)`` with every parameter a tensor of shape
+    (``batch``,) of ``dtype`` on ``device`` (a float or a batch of 1 broadcast); ``batch_of`` names
+    the batch in the error a wrong batch size raises."""
+    model, params = road_motion(odometry, name)
+    out = {}
+    for key, value in params.items():
+        t = as_batch_param(value, f"{name}[{key!r}]")
+        if t.shape[0] not in (1, batch):
+            raise ValueError(f"{name}[{key!r}]: expected a float or a tensor of shape (1,) or ({batch},) "
+                             f"({batch_of}), got shape {tuple(t.shape)}")
+        out[key] = t.to(device=device, dtype=dtype).expand(batch)
+    return model, out
+
+
 def rotation_angles(R: Tensor) -> Tensor:
     """(pitch_change α, yaw φ, roll_change γ) (B, 3) of rotations R = R_roll(γ) R_pitch(α) R_yaw(φ).
 

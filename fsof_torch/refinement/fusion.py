@@ -33,11 +33,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import (as_batch_param, check_float_tensor, check_has_values, check_mask, check_names, check_number,
+from .._check import (check_float_tensor, check_has_values, check_mask, check_names, check_number,
                       check_shape, check_size, skip_values, tracing)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import road_motion
+from ..geometry.road_models import road_motion, road_motion_batch
 from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
@@ -216,21 +216,6 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
 
 # -- odometry ---------------------------------------------------------------------------------
 
-def _odometry_tensors(odometry: object, B: int, dtype: torch.dtype,
-                      device: torch.device) -> tuple[str, dict[str, Tensor]]:
-    """The caller's road motion (any form :func:`~fsof_torch.geometry.road_models.road_motion`
-    takes) as its model's name and parameters, tensors of shape (B,) (batch 1 broadcast)."""
-    model, values = road_motion(odometry)
-    out = {}
-    for k, v in values.items():
-        t = as_batch_param(v, f"odometry[{k!r}]")
-        if t.shape[0] not in (1, B):
-            raise ValueError(f"odometry[{k!r}]: expected a float or a tensor of shape ({B},) "
-                             f"(the flow's batch) or (1,), got shape {tuple(t.shape)}")
-        out[k] = t.to(device=device, dtype=dtype).expand(B)
-    return model.name, out
-
-
 def _camera_subset(camera: Camera, index: Tensor) -> Camera:
     return Camera(camera.K[index], camera.height[index], camera.roll[index], camera.pitch[index])
 
@@ -399,7 +384,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     cam_model = camera
     motion_model, odo = "paper", None
     if odometry is not None:
-        motion_model, odo = _odometry_tensors(odometry, B, geo_dtype, device)
+        given, odo = road_motion_batch(odometry, B, geo_dtype, device)
+        motion_model = given.name
     if estimating:
         chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
         est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
@@ -512,8 +498,8 @@ def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, 
             f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
             ims = None if images is None else tuple(im[index] for im in images)
             if odometry is not None:
-                _, values = _odometry_tensors(odometry, B, dtype, device)
-                odo = {"model": road_motion(odometry)[0].name, **{k: v[index] for k, v in values.items()}}
+                given, values = road_motion_batch(odometry, B, dtype, device)
+                odo = {"model": given.name, **{k: v[index] for k, v in values.items()}}
         result = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
     ok = result.success.to(device=device, dtype=torch.bool)
     params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}

@@ -46,7 +46,6 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (
-    as_batch_param,
     autocast_off,
     check_data_range,
     check_finite,
@@ -59,7 +58,7 @@ from .._check import (
 )
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import road_motion
+from ..geometry.road_models import road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 
@@ -507,18 +506,10 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             target = fitted.flow.detach()
             model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
         else:
-            model, params = road_motion(odometry)
-            values = {}
-            for key, v in params.items():
-                t = as_batch_param(v, f"odometry[{key!r}]")
-                if t.shape[0] not in (1, B):
-                    raise ValueError(f"odometry[{key!r}]: expected a float or a tensor of shape (1,) or "
-                                     f"({B},) (the flows' batch), got shape {tuple(t.shape)}")
-                values[key] = t
             geo = torch.promote_types(work, camera.dtype)
+            model, values = road_motion_batch(odometry, B, geo, device, batch_of="the flows' batch")
             cam = camera.to(device=device, dtype=geo)
-            target, model_valid = road_flow(
-                cam, {k: t.to(device=device, dtype=geo) for k, t in values.items()}, size, model=model)
+            target, model_valid = road_flow(cam, values, size, model=model)
         target = target.to(device=device, dtype=work).expand(B, 2, *size)
         counted_model = road & model_valid.to(device)
         rho = _PENALTY_FNS[penalty]
