@@ -139,48 +139,54 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                                     fit_pitch=cfg.fit_pitch, warn=False) if v == "fit"
                 else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False) for v in cfg.variants}
     records: list[dict] = []
-    bar = tqdm(specs, desc="refine", unit="pair", disable=not cfg.progress, file=sys.stderr, dynamic_ncols=True)
-    for spec in bar:
-        bar.set_postfix_str(f"{spec.name}: checking earlier results")
-        pair_fp = input_fingerprint(spec)
-        # a variant that rests on the clip's fit depends on every frame of the clip
-        input_fp = {v: pair_fp + ":" + cfg.clip_fingerprint if _uses_clip(v, cfg) else pair_fp for v in cfg.variants}
-        done = {(s, v): read_record(cfg, s, v, spec, input_fp[v]) for s in cfg.sources for v in cfg.variants}
-        todo = [s for s in cfg.sources
-                if cfg.overwrite or any(done[(s, v)] is None for v in cfg.variants)
-                or (cfg.figures and not figure_path(cfg, s, spec.name).is_file())]
-        for s in cfg.sources:
-            if s not in todo:
-                records += [{**done[(s, v)], "resumed": True} for v in cfg.variants]
-        if not todo:
-            continue
-        bar.set_postfix_str(f"{spec.name}: loading the pair")
-        pair = _to_device(spec.load(), cfg.device)
-        cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
-        for source in todo:
-            bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
-            pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
-            bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
-            road, road_from, road_info = road_mask(pair, pred, cam, cfg)
-            before = flow_maps(pair, pred)
-            flows, maps = {}, {}
-            for variant in cfg.variants:
-                bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")
-                record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
-                                                  _camera_for(variant, cam, cfg), variant, before, spec.name)
-                record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
-                               "road": road_from, **road_info, "rank": rank, "fingerprint": cfg.fingerprint,
-                               "input_fingerprint": input_fp[variant]})
-                p = paths(cfg, source, variant, spec.name)
-                finite = torch.isfinite(flow).all(dim=0, keepdim=True)
-                write_kitti_flow(p["flow"], torch.nan_to_num(flow).cpu(), finite.cpu())
-                write_json(p["record"], record)
-                records.append({**record, "resumed": False})
-                flows[variant], maps[variant] = flow, after
-            if cfg.figures:
-                bar.set_postfix_str(f"{spec.name}: drawing the figure ({source})")
-                _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps)
-    bar.close()
+    figures: dict[tuple, Any] = {}  # a PairFigure per layout, redrawn for every pair
+    try:
+        bar = tqdm(specs, desc="refine", unit="pair", disable=not cfg.progress, file=sys.stderr, dynamic_ncols=True)
+        for spec in bar:
+            bar.set_postfix_str(f"{spec.name}: checking earlier results")
+            pair_fp = input_fingerprint(spec)
+            # a variant that rests on the clip's fit depends on every frame of the clip
+            input_fp = {v: pair_fp + ":" + cfg.clip_fingerprint if _uses_clip(v, cfg) else pair_fp
+                        for v in cfg.variants}
+            done = {(s, v): read_record(cfg, s, v, spec, input_fp[v]) for s in cfg.sources for v in cfg.variants}
+            todo = [s for s in cfg.sources
+                    if cfg.overwrite or any(done[(s, v)] is None for v in cfg.variants)
+                    or (cfg.figures and not figure_path(cfg, s, spec.name).is_file())]
+            for s in cfg.sources:
+                if s not in todo:
+                    records += [{**done[(s, v)], "resumed": True} for v in cfg.variants]
+            if not todo:
+                continue
+            bar.set_postfix_str(f"{spec.name}: loading the pair")
+            pair = _to_device(spec.load(), cfg.device)
+            cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
+            for source in todo:
+                bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
+                pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
+                bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
+                road, road_from, road_info = road_mask(pair, pred, cam, cfg)
+                before = flow_maps(pair, pred)
+                flows, maps = {}, {}
+                for variant in cfg.variants:
+                    bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")
+                    record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
+                                                      _camera_for(variant, cam, cfg), variant, before, spec.name)
+                    record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
+                                   "road": road_from, **road_info, "rank": rank, "fingerprint": cfg.fingerprint,
+                                   "input_fingerprint": input_fp[variant]})
+                    p = paths(cfg, source, variant, spec.name)
+                    # the maps hold the flow with NaN and inf replaced, and where it was finite
+                    write_kitti_flow(p["flow"], after["flow"].cpu(), after["finite"].cpu())
+                    write_json(p["record"], record)
+                    records.append({**record, "resumed": False})
+                    flows[variant], maps[variant] = flow, after
+                if cfg.figures:
+                    bar.set_postfix_str(f"{spec.name}: drawing the figure ({source})")
+                    _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps, figures)
+        bar.close()
+    finally:  # the figures kept open for redrawing
+        for figure in figures.values():
+            figure.close()
     return records
 
 
@@ -248,8 +254,10 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
 
 
 def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, road: Tensor,
-            before: dict, flows: dict[str, Tensor], maps: dict[str, dict]) -> None:
-    from fsof_torch.evaluation.figures import pair_figure, save_figure
+            before: dict, flows: dict[str, Tensor], maps: dict[str, dict], figures: dict[tuple, Any]) -> None:
+    """Write the pair's figure, redrawing the PairFigure of its layout in ``figures`` (built on
+    first use): building a figure costs matplotlib more than redrawing it."""
+    from fsof_torch.evaluation.figures import PairFigure, save_figure
 
     gt = pair.get("flow") is not None
     columns = {f"before ({source})": (pred, before)}
@@ -257,13 +265,15 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
     cpu = lambda t: t.detach().cpu()  # noqa: E731
     panels = {k: error_panel(m) for k, (_, m) in columns.items()}
     label = next(iter(panels.values()))[2]
-    fig = pair_figure(images=(cpu(pair["image1"]), cpu(pair["image2"])),
-                      flows={k: cpu(f) for k, (f, _) in columns.items()},
-                      errors={k: (cpu(e), cpu(v)) for k, (e, v, _) in panels.items()},
-                      road=cpu(road), max_flow=max_flow(pair, pred, road), error_vmax=5.0 if gt else 0.5,
-                      error_label=label,
-                      title=f"pair {name}, flow source '{source}': flow and error before and after "
-                            f"refinement (mode '{cfg.mode}'); error: "
-                            + ("|flow − ground truth|" if gt else
-                               "census distance of I1 and I2 warped by the flow, 0–1"))
-    save_figure(fig, figure_path(cfg, source, name))
+    content = dict(images=(cpu(pair["image1"]), cpu(pair["image2"])),
+                   flows={k: cpu(f) for k, (f, _) in columns.items()},
+                   errors={k: (cpu(e), cpu(v)) for k, (e, v, _) in panels.items()}, road=cpu(road))
+    layout = PairFigure.layout_of(**content, error_vmax=5.0 if gt else 0.5, error_label=label)
+    if layout not in figures:
+        figures[layout] = PairFigure(*layout)
+    fig = figures[layout].update(**content, max_flow=max_flow(pair, pred, road),
+                                 title=f"pair {name}, flow source '{source}': flow and error before and after "
+                                       f"refinement (mode '{cfg.mode}'); error: "
+                                       + ("|flow − ground truth|" if gt else
+                                          "census distance of I1 and I2 warped by the flow, 0–1"))
+    save_figure(fig, figure_path(cfg, source, name), close=False)

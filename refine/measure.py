@@ -140,11 +140,13 @@ def _labels(classes: Tensor, own: Tensor, n_classes: int) -> tuple[Tensor, list[
 
 
 def _class_sums(labels: Tensor, values: Tensor, n_classes: int) -> list[float]:
-    """Float64 sum of ``values`` (1, H, W) per class of :func:`_labels`: one ``bincount`` pass
-    per map, whatever the number of regions (a masked sum per metric and region, 36 per flow,
-    cost twice as much on a KITTI frame)."""
+    """Float64 sum of ``values`` (1, H, W) per class of :func:`_labels`: one pass per map,
+    whatever the number of regions (a masked sum per metric and region, 36 per flow, cost twice as
+    much on a KITTI frame). ``scatter_add_`` adds in pixel order, as ``bincount`` with weights
+    does (the same sums, bit for bit), in half its time on the CPU."""
     weights = values.reshape(-1).to(torch.float64)
-    return torch.bincount(labels, weights=weights, minlength=n_classes + 1)[:n_classes].tolist()
+    sums = torch.zeros(n_classes + 1, dtype=torch.float64, device=weights.device)
+    return sums.scatter_add_(0, labels, weights)[:n_classes].tolist()
 
 
 def compare(before: dict[str, Tensor], after: dict[str, Tensor], road: Tensor) -> tuple[dict, dict]:

@@ -7,6 +7,7 @@ Every source is built, and its weights loaded, before the first pair is processe
 
 from __future__ import annotations
 
+import functools
 import importlib
 import importlib.util
 import inspect
@@ -137,7 +138,7 @@ def _contract(net: nn.Module, spec: NetSpec) -> str:
                    f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
 
 
-def net_flow(net: nn.Module, contract: str, image1: Tensor, image2: Tensor) -> Tensor:
+def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor) -> Tensor:
     """Run a network of the given contract on one pair ((3, H, W) RGB 0..255) and return its
     final full-size flow (2, H, W) float32. Sizes are padded as RAFT does when the contract
     needs it (torchvision, raft: to a multiple of 8) and the output cropped back."""
@@ -174,7 +175,9 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
         if weights is not None:
             load_state_dict(testnet, weights, "--testnet-weights")
         testnet.eval().to(device)
-        return lambda pair, _file: net_flow(testnet, "raft", pair["image1"], pair["image2"])
+        # the job keeps the last flow only: the iterations before it are not upsampled
+        final = functools.partial(testnet, final_only=True)
+        return lambda pair, _file: net_flow(final, "raft", pair["image1"], pair["image2"])
     if name == "net":
         if net is None:
             raise JobError("--source net needs --net module:callable")

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from fsof_torch._check import (
+    all_finite,
     as_batch_param,
     autocast_off,
     check_bool,
@@ -50,6 +51,43 @@ def test_check_float_tensor():
         check_float_tensor([1.0], "x")
     with pytest.raises(TypeError, match="x: expected a floating-point tensor, got dtype torch.int32"):
         check_float_tensor(torch.zeros(2, dtype=torch.int32), "x")
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+def test_all_finite_agrees_with_isfinite(dtype, bad):
+    """all_finite (minimum and maximum in one pass) gives torch.isfinite(x).all() wherever the bad
+    value sits (first, last, middle, in the vectorised body and in the tail of a row), on
+    contiguous tensors and on strided views, alone or beside another non-finite value."""
+    g = torch.Generator().manual_seed(0)
+    x = (torch.randn(3, 17, 33, generator=g) * 1e3).to(dtype)
+    for view in (x, x[:, ::2, 1:], x.transpose(0, 2)):
+        assert all_finite(view) is True and bool(torch.isfinite(view).all())
+    for index in [(0, 0, 0), (2, 16, 32), (1, 5, 7), (1, 5, 31)]:
+        y = x.clone()
+        y[index] = bad
+        for view in (y, y.transpose(0, 2), y[:, :, 1:]):
+            assert all_finite(view) == bool(torch.isfinite(view).all())
+        assert all_finite(y) is False
+    for other in [float("nan"), float("inf"), float("-inf")]:
+        y = x.clone()
+        y[0, 0, 0], y[2, 16, 32] = bad, other
+        assert all_finite(y) is False
+
+
+def test_all_finite_other_dtypes_and_edges():
+    assert all_finite(torch.empty(0)) is True and all_finite(torch.empty(0, 3, dtype=torch.float64)) is True
+    assert all_finite(torch.arange(5)) is True and all_finite(torch.ones(3, dtype=torch.bool)) is True
+    assert all_finite(torch.tensor(2.5)) is True and all_finite(torch.tensor(float("nan"))) is False
+    for z in [complex(float("nan"), 0.0), complex(0.0, float("inf")), complex(float("-inf"), 1.0)]:
+        c = torch.tensor([1 + 2j, z])
+        assert all_finite(c) is False and all_finite(c[:1]) is True
+    for dtype in (torch.float16, torch.float32, torch.float64):
+        info = torch.finfo(dtype)
+        edge = torch.tensor([info.max, -info.max, info.tiny, -0.0], dtype=dtype)
+        assert all_finite(edge) is True  # the largest finite values are finite (a sum would overflow)
+    x = torch.randn(4, requires_grad=True)
+    assert all_finite(x) is True and x.grad is None
 
 
 def test_check_finite_and_positive():

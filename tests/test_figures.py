@@ -10,6 +10,7 @@ import torch
 pytest.importorskip("matplotlib")
 
 from fsof_torch.evaluation.figures import (  # noqa: E402
+    PairFigure,
     clip_summary_figure,
     colour_wheel,
     pair_figure,
@@ -169,3 +170,76 @@ def test_save_figure_writes_png_and_closes(tmp_path, figure):
     path = save_figure(figure, tmp_path / "f.png")
     assert path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert not plt.fignum_exists(figure.number)
+
+
+def _pixels(fig):
+    import numpy as np
+
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba()).copy()
+
+
+def _content(seed, road_rows):
+    g = torch.Generator().manual_seed(seed)
+    flow = torch.randn(2, H, W, generator=g) * 3
+    flow[:, 4, 7] = float("nan")
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, road_rows:, 5:85] = True
+    err = torch.rand(1, H, W, generator=g) * 8
+    valid = torch.rand(1, H, W, generator=g) > 0.1
+    return dict(images=tuple(torch.rand(3, H, W, generator=g) * 255 for _ in range(2)),
+                flows={f"before (s{seed})": flow, "after": flow * 0.5, "after, no error": flow},
+                errors={f"before (s{seed})": (err, valid), "after": (err * 0.1, valid)},
+                road=road, error_vmax=5.0, error_label="end-point error (px)")
+
+
+def test_pair_figure_redrawn_equals_a_fresh_one(tmp_path):
+    """A PairFigure drawn for one pair and updated for another shows exactly the pixels of a
+    figure built afresh for the second pair (titles, outline, colour wheel, error maps all follow),
+    and its PNG holds those pixels."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+    from PIL import Image
+
+    first, second = _content(1, 12), _content(2, 20)
+    fresh = pair_figure(**second, max_flow=9.0, title="second")
+    reused = PairFigure(*PairFigure.layout_of(**first))
+    try:
+        reused.update(**{k: v for k, v in first.items() if not k.startswith("error_")}, max_flow=4.0, title="first")
+        _pixels(reused.figure)
+        content = {k: v for k, v in second.items() if not k.startswith("error_")}
+        fig = reused.update(**content, max_flow=9.0, title="second")
+        assert fig is reused.figure and fig.get_suptitle() == "second"
+        expected = _pixels(fresh)
+        assert (_pixels(fig) == expected).all()
+        path = save_figure(fig, tmp_path / "a.png", close=False)
+        assert plt.fignum_exists(fig.number)
+        assert (np.asarray(Image.open(path).convert("RGBA")) == expected).all()  # PNG is lossless
+        # another layout (no images column, an error panel fewer) is refused, naming what differs
+        with pytest.raises(ValueError, match=r"flows: this pair's layout .* differs from the figure's"):
+            reused.update(**{**content, "images": None}, max_flow=9.0, title="x")
+        with pytest.raises(ValueError, match="layout"):
+            reused.update(**{**content, "errors": {"after": content["errors"]["after"]}}, max_flow=9.0, title="x")
+    finally:
+        reused.close()
+        plt.close(fresh)
+    assert not plt.fignum_exists(reused.figure.number)
+
+
+def test_pair_figure_error_map_without_values_is_black():
+    """Pixels without an error value show the colour map's "bad" colour (black), as before."""
+    content = _content(3, 15)
+    err, valid = content["errors"]["after"]
+    valid = valid.clone()
+    valid[:, :10] = False
+    fig = pair_figure(**{**content, "errors": {**content["errors"], "after": (err, valid)}}, max_flow=5.0, title="t")
+    try:
+        ax = next(ax for ax in _image_axes(fig) if ax.get_title() == "end-point error, after")
+        shown = ax.get_images()[0]
+        data = shown.get_array()
+        assert data.mask[:10].all() and not data.mask[10:].all()  # NaN is masked, as a masked array was
+        assert shown.cmap.get_bad().tolist() == [0.0, 0.0, 0.0, 1.0]
+    finally:
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)

@@ -140,6 +140,23 @@ class TestExceptions:
             write_kitti_flow(tmp_path / "f.png", nan, torch.ones(1, 2, 2, dtype=torch.bool))
         assert not (tmp_path / "f.png").exists()
 
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
+    def test_non_finite_only_matters_at_valid_pixels(self, tmp_path, bad):
+        """A non-finite value at an invalid pixel is written as 0; the same value at a valid
+        pixel raises, whichever channel holds it."""
+        flow = torch.tensor([[[1.0, 2.0], [3.0, 4.0]], [[0.5, 0.25], [-1.0, 6.0]]])
+        valid = torch.tensor([[[True, False], [True, True]]])
+        flow[0, 0, 1] = bad
+        write_kitti_flow(tmp_path / "f.png", flow, valid)
+        back, back_valid = read_kitti_flow(tmp_path / "f.png")
+        assert torch.equal(back_valid, valid) and back[:, 0, 1].eq(0).all()
+        assert torch.equal(back[:, valid[0]], flow[:, valid[0]])
+        for channel in (0, 1):
+            worse = flow.clone()
+            worse[channel, 1, 0] = bad
+            with pytest.raises(ValueError, match="finite values at valid pixels"):
+                write_kitti_flow(tmp_path / "g.png", worse, valid)
+
     def test_out_of_range_invalid_pixels_are_fine(self, tmp_path):
         flow = torch.full((2, 2, 2), 1e6)
         write_kitti_flow(tmp_path / "f.png", flow, torch.zeros(1, 2, 2, dtype=torch.bool))

@@ -193,6 +193,23 @@ def test_ssim_against_kornia_on_interior():
     torch.testing.assert_close(emap, ref)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_maps_of_a_crop_equal_those_of_its_copy(dtype):
+    """A crop of larger images (a strided view, as the refine job passes) gives the maps of the
+    same pixels copied into contiguous memory, bit for bit: every kind takes one path, whatever
+    the images' memory layout."""
+    g = torch.Generator().manual_seed(2)
+    big1, big2 = ((torch.rand(1, 3, 40, 70, generator=g, dtype=torch.float64) * 255).to(dtype) for _ in range(2))
+    flow = (torch.randn(1, 2, 30, 50, generator=g, dtype=torch.float64) * 2).to(dtype)
+    crop1, crop2 = big1[..., 5:35, 10:60], big2[..., 5:35, 10:60]
+    assert not crop1.is_contiguous()
+    kinds = ("l1", "ssim", "census", "soft_census")
+    views = photometric_error_maps(crop1, crop2, flow, kinds=kinds)
+    copies = photometric_error_maps(crop1.contiguous(), crop2.contiguous(), flow, kinds=kinds)
+    for kind in kinds:
+        assert torch.equal(views[kind][0], copies[kind][0]) and torch.equal(views[kind][1], copies[kind][1]), kind
+
+
 def test_census_of_constant_and_monotone_images():
     flat = torch.full((1, 1, 9, 9), 50.0)
     assert census_transform(flat, radius=2).abs().max() == 0

@@ -542,6 +542,26 @@ def test_compare_census_and_ssim_on_the_pixels_both_flows_define(refined_pair):
     assert after["census_road"] < before["census_road"] and after["epe_road"] < 1e-6
 
 
+def test_class_sums_add_in_pixel_order():
+    """The per-class float64 sums equal bincount's with weights and a plain loop that adds the
+    pixels in order, bit for bit (values of mixed magnitude, where the order of additions shows)."""
+    from refine.measure import _class_sums, _labels
+
+    g = torch.Generator().manual_seed(5)
+    classes = torch.randint(0, 4, (1, 23, 31), generator=g)
+    own = torch.rand(1, 23, 31, generator=g) > 0.2
+    values = (torch.rand(1, 23, 31, generator=g) * 10.0 ** torch.randint(-6, 7, (1, 23, 31), generator=g)).float()
+    labels, counts = _labels(classes, own, 4)
+    sums = _class_sums(labels, values, 4)
+    weights = values.reshape(-1).double()
+    assert sums == torch.bincount(labels, weights=weights, minlength=5)[:4].tolist()
+    loop = [0.0] * 5
+    for label, value in zip(labels.tolist(), weights.tolist()):
+        loop[label] += value
+    assert sums == loop[:4]
+    assert counts == [int(((classes == c) & own).sum()) for c in range(4)]
+
+
 def test_error_panel_is_epe_with_ground_truth_else_census(refined_pair):
     """A figure shows end-point error where there is ground truth; without it the census distance
     (not L1, which exposure changes and brightness-matching flows fool)."""

@@ -72,6 +72,77 @@ def test_sequence_shares_frames_and_equals_pairs():
         torch.testing.assert_close(single[key], seq[2][key], atol=0, rtol=0)
 
 
+_PIXEL_KEYS = ("image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", "depth", "moving")
+
+
+def _frames_rendered(monkeypatch) -> list[int]:
+    """The frame indices the renderer casts pixel-centre rays for, in order (one per new frame)."""
+    import fsof_torch.data.scene.render as render
+
+    rendered: list[int] = []
+    cast = render.cast_rays
+
+    def counting(scene, k, *args, **kwargs):
+        if kwargs.get("grid", True):
+            rendered.append(k)
+        return cast(scene, k, *args, **kwargs)
+
+    monkeypatch.setattr(render, "cast_rays", counting)
+    return rendered
+
+
+def test_consecutive_calls_render_the_shared_frame_once(monkeypatch):
+    """render_pair(k) then render_pair(k + 1) renders frame k + 1 once; any other call (the same
+    pair again, a gap, another seed, size or dtype) renders both its frames."""
+    render_pair("cvc-simple", 0, size=TINY, seed=7)
+    rendered = _frames_rendered(monkeypatch)
+    calls = [((1,), {}, [2]), ((2,), {}, [3]), ((2,), {}, [2, 3]), ((5,), {}, [5, 6]),
+             ((6,), {"seed": 8}, [6, 7]), ((7,), {"dtype": torch.float64}, [7, 8]), ((8,), {}, [8, 9])]
+    for args, kwargs, frames in calls:
+        rendered.clear()
+        render_pair("cvc-simple", *args, **{"size": TINY, "seed": 7, **kwargs})
+        assert rendered == frames, (args, kwargs)
+    rendered.clear()
+    render_sequence("cvc-simple", 2, size=TINY, seed=7, start=10)
+    render_sequence("cvc-simple", 2, size=TINY, seed=7, start=12)
+    assert rendered == [10, 11, 12, 13, 14]
+
+
+def test_kept_frame_gives_the_same_pixels_and_shares_no_tensor():
+    """Pairs rendered one call at a time, in any order, equal a fresh sequence's bit for bit, and
+    writing into every tensor of a returned pair (the camera's too) changes no later pair."""
+    seq = render_sequence("cvc-complex", 4, size=TINY, seed=3, dtype=torch.float64)
+    fresh = [{k: p[k].clone() for k in _PIXEL_KEYS} | {"K": p["camera"].K.clone()} for p in seq]
+    for index in (0, 1, 2, 1, 2, 3, 0):
+        pair = render_pair("cvc-complex", index, size=TINY, seed=3, dtype=torch.float64)
+        for key in _PIXEL_KEYS:
+            assert torch.equal(pair[key], fresh[index][key]), (index, key)
+        assert torch.equal(pair["camera"].K, fresh[index]["K"])
+        for key in _PIXEL_KEYS:  # a caller's in-place edits
+            pair[key].logical_not_() if pair[key].dtype == torch.bool else pair[key].add_(1000)
+        pair["camera"].K.mul_(2)
+    other = render_pair("cvc-complex", 1, size=TINY, seed=4, dtype=torch.float64)  # its own frames
+    assert not torch.equal(other["image1"], fresh[1]["image1"])
+
+
+def test_threads_rendering_pairs_in_order_get_the_same_pixels():
+    """Threads that render pairs 0, 1, 2 of one scene at the same time (each taking or keeping the
+    shared frame) get exactly the pixels of one sequence."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    seq = render_sequence("cvc-simple", 3, size=TINY, seed=11)
+
+    def run(_):
+        return [render_pair("cvc-simple", i, size=TINY, seed=11) for i in range(3)]
+
+    with ThreadPoolExecutor(4) as pool:
+        results = list(pool.map(run, range(4)))
+    for pairs in results:
+        for pair, ref in zip(pairs, seq):
+            for key in _PIXEL_KEYS:
+                assert torch.equal(pair[key], ref[key]), key
+
+
 def test_same_seed_same_pixels_other_seed_other_scene():
     a = render_pair("default", 1, seed=3, size=TINY)
     b = render_pair("default", 1, seed=3, size=TINY)

@@ -55,6 +55,31 @@ def test_iters_override():
         assert len(net(image1, image2)) == 4
 
 
+@pytest.mark.parametrize("B,H,W,iters", [(2, 40, 56, 3), (1, 37, 61, 1), (1, 9, 13, 2)])
+def test_final_only_is_the_last_flow(B, H, W, iters):
+    """final_only (RAFT's test mode) returns the very flow that is last in the full list, bit for
+    bit, and the same gradients flow from it into the weights."""
+    net = TinyRAFT(seed=0, iters=iters).eval()
+    image1, image2 = _pair(B, H, W)
+    with torch.no_grad():
+        full = net(image1, image2)
+        final = net(image1, image2, final_only=True)
+    assert len(full) == iters and len(final) == 1 and torch.equal(final[0], full[-1])
+    grads = []
+    for kwargs in ({}, {"final_only": True}):
+        net.zero_grad()
+        net(image1, image2, **kwargs)[-1].square().mean().backward()
+        grads.append({n: p.grad.clone() for n, p in net.named_parameters() if p.grad is not None})
+    assert grads[0].keys() == grads[1].keys() and all(torch.equal(grads[0][n], grads[1][n]) for n in grads[0])
+
+
+def test_final_only_checked():
+    net = TinyRAFT(seed=0, iters=2)
+    image1, image2 = _pair(1, 16, 16)
+    with pytest.raises(TypeError, match="final_only: expected a bool, got int"):
+        net(image1, image2, final_only=1)
+
+
 def test_batch_elements_independent():
     """Instance norm and padding act per image: a sample's flow does not depend on its batch mates."""
     net = TinyRAFT(seed=0, iters=2).eval()

@@ -175,6 +175,65 @@ def test_matches_grid_sample_reference(dtype):
     torch.testing.assert_close(warped, ref, atol=tol, rtol=0)
 
 
+def _taps_reference(image, flow, padding_mode):
+    """Independent exact reference: the four integer corners read by indexing (zeros or the
+    nearest edge pixel outside the image), mixed with torch.lerp as the warp documents."""
+    B, C, H, W = image.shape
+    v, u = torch.meshgrid(torch.arange(H, dtype=flow.dtype), torch.arange(W, dtype=flow.dtype), indexing="ij")
+    x, y = u + flow[:, 0], v + flow[:, 1]
+    x0, y0 = torch.floor(x), torch.floor(y)
+    fx, fy = (x - x0).unsqueeze(1), (y - y0).unsqueeze(1)
+
+    def tap(dx, dy):
+        xi, yi = (x0 + dx).long(), (y0 + dy).long()
+        inside = ((xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)).unsqueeze(1)
+        xc, yc = xi.clamp(0, W - 1), yi.clamp(0, H - 1)
+        b = torch.arange(B).view(B, 1, 1)
+        picked = image.permute(0, 2, 3, 1)[b, yc, xc].permute(0, 3, 1, 2)
+        return picked if padding_mode == "border" else torch.where(inside, picked, torch.zeros_like(picked))
+
+    top = torch.lerp(tap(0, 0), tap(1, 0), fx)
+    return torch.lerp(top, torch.lerp(tap(0, 1), tap(1, 1), fx), fy)
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+@pytest.mark.parametrize("align_corners", [True, False])
+@pytest.mark.parametrize("size", [(24, 40), (2, 9), (7, 3), (375, 1242)])
+def test_corner_taps_equal_indexing_reference(dtype, padding_mode, align_corners, size):
+    """The four taps, sampled on one grid built from the first corner, are the image's own pixels
+    (or the padding), bit for bit: flows reaching far outside the image, whole and fractional."""
+    H, W = size
+    image = _image(B=2, H=H, W=W, dtype=dtype)
+    flow = _flow(B=2, H=H, W=W, scale=0.6 * max(H, W), dtype=dtype)
+    flow[:, :, : H // 2] = flow[:, :, : H // 2].round()
+    warped, _ = warp_backward(image, flow, align_corners=align_corners, padding_mode=padding_mode)
+    assert torch.equal(warped, _taps_reference(image, flow, padding_mode))
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+@pytest.mark.parametrize("align_corners", [True, False])
+@pytest.mark.parametrize("size", [(24, 40), (1, 9), (7, 1), (375, 1242)])
+def test_corner_taps_equal_four_pixel_maps(dtype, padding_mode, align_corners, size):
+    """The corners sampled from one normalised corner plus a pixel's step equal, bit for bit, the
+    four corner pixel maps normalised one by one and sampled by kornia's remap (the warp's former
+    path), also on 1-pixel axes and for corners far outside the image."""
+    from fsof_torch.evaluation.warp import _sample_corners, _sample_nearest
+
+    H, W = size
+    B = 2
+    image = _image(B=B, H=H, W=W, dtype=dtype)
+    g = torch.Generator().manual_seed(3)
+    x0 = torch.floor((torch.rand(B, H, W, generator=g, dtype=torch.float64) * 3 - 1) * W).to(dtype)
+    y0 = torch.floor((torch.rand(B, H, W, generator=g, dtype=torch.float64) * 3 - 1) * H).to(dtype)
+    x0[0, 0, 0], y0[0, 0, 0] = -1.0, -1.0  # the corners straddling the top-left edge
+    corner = torch.tensor([[0, 1, 0, 1], [0, 0, 1, 1]], dtype=dtype)
+    xs = (x0.unsqueeze(1) + corner[0].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
+    ys = (y0.unsqueeze(1) + corner[1].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
+    old = _sample_nearest(image, xs, ys, align_corners=align_corners, padding_mode=padding_mode)
+    new = _sample_corners(image, x0, y0, align_corners=align_corners, padding_mode=padding_mode)
+    assert torch.equal(new, old)
+
+
 def test_align_corners_does_not_change_result():
     image, flow = _image(B=2), _flow(B=2)
     a = warp_backward(image, flow, align_corners=True)

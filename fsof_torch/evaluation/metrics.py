@@ -42,7 +42,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, result_dtype, skip_values
+from .._check import all_finite, check_float_tensor, check_shape, result_dtype, skip_values
 
 __all__ = [
     "flow_error_maps",
@@ -151,8 +151,8 @@ def _maps(est: Tensor, gt: Tensor) -> dict[str, Tensor]:
 
 def _check_counted(flow_est: Tensor, e_e: Tensor, sel: Tensor) -> None:
     """Raise where an estimate is not finite, or its error overflows, at a counted pixel."""
-    if skip_values(flow_est, e_e):
-        return
+    if skip_values(flow_est, e_e) or (all_finite(flow_est) and all_finite(e_e)):
+        return  # the common case: one reduction each, no per-pixel test
     bad_est = ~torch.isfinite(flow_est).all(dim=1, keepdim=True) & sel
     overflow = ~torch.isfinite(e_e) & sel
     n_bad, n_over = torch.stack([bad_est.sum(), overflow.sum()]).tolist()

@@ -66,6 +66,33 @@ def _sample_nearest(image: Tensor, x: Tensor, y: Tensor, *, align_corners: bool,
                  padding_mode=padding_mode, align_corners=align_corners, normalized_coordinates=True)
 
 
+def _sample_corners(image: Tensor, x0: Tensor, y0: Tensor, *, align_corners: bool,
+                    padding_mode: str) -> Tensor:
+    """image (B, C, H, W) at the four integer corners (x0, y0), (x0+1, y0), (x0, y0+1),
+    (x0+1, y0+1) of every pixel (x0, y0 (B, H, W), integer-valued) -> (B, C, 4H, W), the corners
+    stacked along rows in that order.
+
+    One nearest-neighbour ``grid_sample`` call over a grid built by normalising the first corner
+    once and adding a pixel's step for the others: a quarter of the normalising and stacking that
+    four pixel maps handed to kornia's ``remap`` cost. A step's rounding moves a sample point by
+    far less than the half pixel that would change its nearest tap, so the taps are the same
+    (tests/test_warp.py checks them against indexing)."""
+    B, _, H, W = image.shape
+    base = torch.stack([normalize_coordinates(x0, W, align_corners=align_corners),
+                        normalize_coordinates(y0, H, align_corners=align_corners)], dim=-1)  # (B, H, W, 2)
+    one = torch.ones((), dtype=base.dtype, device=base.device)
+    zero = torch.zeros((), dtype=base.dtype, device=base.device)
+    step_x = (normalize_coordinates(one, W, align_corners=align_corners)
+              - normalize_coordinates(zero, W, align_corners=align_corners))
+    step_y = (normalize_coordinates(one, H, align_corners=align_corners)
+              - normalize_coordinates(zero, H, align_corners=align_corners))
+    steps = torch.stack([torch.stack([zero, zero]), torch.stack([step_x, zero]),
+                         torch.stack([zero, step_y]), torch.stack([step_x, step_y])])  # (4, 2)
+    grid = (base.unsqueeze(1) + steps.view(1, 4, 1, 1, 2)).reshape(B, 4 * H, W, 2)
+    return torch.nn.functional.grid_sample(image, grid, mode="nearest", padding_mode=padding_mode,
+                                           align_corners=align_corners)
+
+
 def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
                   mode: str = "bilinear", padding_mode: str = "zeros") -> tuple[Tensor, Tensor]:
     """Sample ``image`` at ``p + flow(p)``: the second frame warped back onto the first.
@@ -111,7 +138,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
 
     out_dtype = torch.promote_types(image.dtype, flow.dtype)
     work = result_dtype(image, flow)
-    B, _, H, W = image.shape
+    H, W = image.shape[-2:]
     # Geometry in at least float32: a bfloat16 pixel coordinate is off by up to 4 px at u = 1000.
     with autocast_off(image):
         img = image.to(work)
@@ -131,11 +158,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
             fx = (x - x0).unsqueeze(1)  # exact in floating point, carries the flow's gradient
             fy = (y - y0).unsqueeze(1)
             # The four corners stacked along rows: one sampler call instead of four.
-            corner = torch.tensor([[0, 1, 0, 1], [0, 0, 1, 1]], dtype=work, device=image.device)
-            xs = (x0.unsqueeze(1) + corner[0].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
-            ys = (y0.unsqueeze(1) + corner[1].view(1, 4, 1, 1)).reshape(B, 4 * H, W)
-            taps = _sample_nearest(img, xs, ys, align_corners=align_corners,
-                                   padding_mode=padding_mode)
+            taps = _sample_corners(img, x0, y0, align_corners=align_corners, padding_mode=padding_mode)
             t00, t10, t01, t11 = taps.split(H, dim=2)
             # lerp returns its start exactly at weight 0 and its end at weight 1.
             top = torch.lerp(t00, t10, fx)

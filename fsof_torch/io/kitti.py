@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_chw_flow, check_has_values
+from .._check import all_finite, as_chw_flow, check_has_values
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .images import read_image_array, write_image_array
@@ -75,9 +75,8 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
     """
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
-    finite = torch.isfinite(flow).all(dim=0)
     if valid is None:
-        valid_hw = finite
+        valid_hw = torch.isfinite(flow).all(dim=0)
     else:
         if isinstance(valid, np.ndarray):
             valid = torch.from_numpy(valid)
@@ -87,7 +86,8 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
         if tuple(valid.shape) not in ((1, height, width), (height, width)):
             raise ValueError(f"valid: expected shape (1, {height}, {width}) to match flow, got {tuple(valid.shape)}")
         valid_hw = valid.detach().cpu().reshape(height, width)
-        if not bool(finite[valid_hw].all()):
+        # the per-pixel test only when some value is not finite (one reduction otherwise)
+        if not all_finite(flow) and not bool((torch.isfinite(flow).all(dim=0) | ~valid_hw).all()):
             raise ValueError("flow: expected finite values at valid pixels, got NaN or inf")
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
     if bool(valid_hw.any()):

@@ -84,7 +84,8 @@ class _ConvGRU(nn.Module):
 
 
 class _UpdateBlock(nn.Module):
-    """Correlation + flow + context -> new hidden state, flow increment, upsampling weights."""
+    """Correlation + flow + context -> new hidden state and flow increment; upsampling weights
+    from a hidden state (:meth:`mask`, needed only for the flows that are upsampled)."""
 
     def __init__(self, corr_planes: int, hidden_dim: int, context_dim: int, motion_dim: int = 64) -> None:
         super().__init__()
@@ -96,13 +97,17 @@ class _UpdateBlock(nn.Module):
         self.flow_head = nn.Sequential(_conv(hidden_dim, 64), nn.ReLU(), _conv(64, 2))
         self.mask_head = nn.Sequential(_conv(hidden_dim, 64), nn.ReLU(), nn.Conv2d(64, 9 * STRIDE**2, 1))
 
-    def forward(self, hidden: Tensor, context: Tensor, corr: Tensor, flow: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    def forward(self, hidden: Tensor, context: Tensor, corr: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
         c = F.relu(self.convc(corr))
         f = F.relu(self.convf2(F.relu(self.convf1(flow))))
         motion = torch.cat([F.relu(self.convm(torch.cat([c, f], dim=1))), flow], dim=1)
         hidden = self.gru(hidden, torch.cat([context, motion], dim=1))
+        return hidden, self.flow_head(hidden)
+
+    def mask(self, hidden: Tensor) -> Tensor:
+        """Convex upsampling weights (logits, (B, 9 STRIDE², h, w)) from a hidden state."""
         # RAFT scales the mask logits by 1/4 to balance their gradients against the flow head's.
-        return hidden, self.flow_head(hidden), 0.25 * self.mask_head(hidden)
+        return 0.25 * self.mask_head(hidden)
 
 
 def _correlation_pyramid(fmap1: Tensor, fmap2: Tensor, levels: int) -> list[Tensor]:
@@ -198,15 +203,20 @@ class TinyRAFT(nn.Module):
             self.cnet = _Encoder(hidden_dim + context_dim, norm=False)
             self.update = _UpdateBlock(corr_levels * (2 * corr_radius + 1) ** 2, hidden_dim, context_dim)
 
-    def forward(self, image1: Tensor, image2: Tensor, iters: int | None = None) -> list[Tensor]:
+    def forward(self, image1: Tensor, image2: Tensor, iters: int | None = None, *,
+                final_only: bool = False) -> list[Tensor]:
         """Flow from ``image1`` to ``image2``.
 
         Args:
             image1, image2: (B, 3, H, W) RGB on 0..255, any H and W.
             iters: refinement iterations (default: the constructor's).
+            final_only: upsample only the last iteration's flow (RAFT's ``test_mode``): the same
+                estimate, without the upsampling weights and full-size flows of the iterations
+                before it, which only a training loss uses.
 
         Returns:
             ``iters`` flows (B, 2, H, W) in pixels, coarse to refined; the last is the estimate.
+            With ``final_only``, a list of that one flow.
         """
         check_float_tensor(image1, "image1")
         check_float_tensor(image2, "image2")
@@ -215,6 +225,8 @@ class TinyRAFT(nn.Module):
         iters = self.iters if iters is None else iters
         if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
             raise ValueError(f"iters: expected a positive int, got {iters!r}")
+        if not isinstance(final_only, bool):
+            raise TypeError(f"final_only: expected a bool, got {type(final_only).__name__}")
         if not skip_values(image1, image2):
             lo1, hi1, lo2, hi2 = torch.stack([image1.detach().amin(), image1.detach().amax(),
                                               image2.detach().amin(), image2.detach().amax()]).tolist()
@@ -240,12 +252,14 @@ class TinyRAFT(nn.Module):
         coords0 = torch.stack([xs, ys]).expand(B, 2, h, w)
         flow = torch.zeros_like(coords0)
         flows = []
-        for _ in range(iters):
+        for i in range(iters):
             # As RAFT: each iteration learns its own increment; no gradient through the lookup position.
             flow = flow.detach()
             corr = _lookup(pyramid, coords0 + flow, self.corr_radius)
-            hidden, delta, mask = self.update(hidden, context, corr, flow)
+            hidden, delta = self.update(hidden, context, corr, flow)
             flow = flow + delta
-            up = _convex_upsample(flow, mask)
+            if final_only and i < iters - 1:
+                continue
+            up = _convex_upsample(flow, self.update.mask(hidden))
             flows.append(up[:, :, pad[2]:pad[2] + H, pad[0]:pad[0] + W])
         return flows

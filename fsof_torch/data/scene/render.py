@@ -4,6 +4,7 @@ the public :func:`render_pair`, :func:`render_sequence` and :func:`collate`."""
 from __future__ import annotations
 
 import math
+import threading
 from typing import Any
 
 import torch
@@ -20,12 +21,13 @@ __all__ = ["render_pair", "render_sequence", "collate"]
 
 
 class _Renderer:
-    """Frame cache for one scene: images and pixel-centre casts per frame index."""
+    """Frame cache for one scene: images and pixel-centre casts per frame index (``frames``: frames
+    rendered earlier, e.g. the one :func:`render_sequence` kept)."""
 
-    def __init__(self, scene: Scene) -> None:
+    def __init__(self, scene: Scene, frames: dict[int, dict[str, Any]] | None = None) -> None:
         self.scene = scene
         self.H, self.W = scene.size
-        self._frames: dict[int, dict[str, Any]] = {}
+        self._frames: dict[int, dict[str, Any]] = dict(frames or {})
 
     def frame(self, k: int) -> dict[str, Any]:
         if k in self._frames:
@@ -101,7 +103,7 @@ class _Renderer:
         road_pose, plane = road_motion(scene, k)
         return {
             "image1": f0["image"],
-            "image2": f1["image"].clone(),  # the next pair's image1: no aliasing between pairs
+            "image2": f1["image"].clone(),  # the next pair's image1 (or the kept frame's): no aliasing
             "flow": gt["flow"],
             "valid": gt["valid"],
             "flow_velocity": gt["flow_velocity"],
@@ -119,6 +121,34 @@ class _Renderer:
             "plane": plane,
             "index": k,
         }
+
+
+# The last frame of the last render_sequence call (render_pair is one): a caller that renders
+# pair k, then pair k + 1 (SceneDataset, the refine job) renders the frame they share once (5
+# frames for 4 pairs, not 8). Frames are deterministic, so the pixels do not depend on whether the
+# frame came from here. A call takes the frame out under the lock (no two threads share one) and
+# puts its own last frame back at its end. That frame's tensors were never handed to a caller (a
+# pair's image2 is a copy), and the call that takes it hands them to its caller and keeps none, so
+# no caller's tensor aliases a kept one; each call builds its own Scene (its camera is handed out
+# uncopied). Holds one frame (about 39 MB at 375x1242) until a call on another scene replaces it.
+_KEPT: dict[str, Any] = {}
+_KEPT_LOCK = threading.Lock()
+
+
+def _take_kept(key: tuple, index: int) -> dict[str, Any] | None:
+    """The kept frame when it is frame ``index`` of the scene ``key`` (then no longer kept)."""
+    with _KEPT_LOCK:
+        if _KEPT.get("key") != (key, index):
+            return None
+        frame = _KEPT["frame"]
+        _KEPT.clear()
+        return frame
+
+
+def _keep(key: tuple, index: int, frame: dict[str, Any]) -> None:
+    with _KEPT_LOCK:
+        _KEPT.clear()
+        _KEPT.update(key=(key, index), frame=frame)
 
 
 def _camera_to_world(A: list[list[float]], c: list[float]) -> Tensor:
@@ -174,8 +204,11 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     """Render ``num_pairs`` consecutive pairs (frames start..start+num_pairs) of one sequence.
 
     Consecutive pairs share frames (frame t+1 of pair i is frame t of pair i+1); each pair equals
-    ``render_pair(preset, start + i, ...)``. ``progress=True`` shows a tqdm bar. Other arguments
-    as in :func:`render_pair`.
+    ``render_pair(preset, start + i, ...)``. So do consecutive calls: the last frame of a call is
+    kept (one frame of one scene, about 39 MB at 375×1242, for any thread) and is the first frame
+    of a call on the same scene that starts there, so rendering pair 0, then pair 1, ... one call
+    at a time renders each frame once. No returned tensor is shared with another call's.
+    ``progress=True`` shows a tqdm bar. Other arguments as in :func:`render_pair`.
     """
     _check_dtype(dtype)
     for name, value in (("num_pairs", num_pairs), ("start", start), ("seed", seed)):
@@ -189,12 +222,17 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
         size = check_size(size)
         overrides["size"] = size
     cfg = scene_config(preset, **overrides)
-    renderer = _Renderer(Scene(cfg, seed, dtype))
+    key = (cfg, seed, dtype)
+    kept = _take_kept(key, start)
+    renderer = _Renderer(Scene(cfg, seed, dtype), None if kept is None else {start: kept})
     indices = range(start, start + num_pairs)
     if progress:
         from tqdm.auto import tqdm
         indices = tqdm(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
-    return [renderer.pair(k) for k in indices]
+    pairs = [renderer.pair(k) for k in indices]
+    last = start + num_pairs
+    _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work
+    return pairs
 
 
 def collate(pairs: list[dict[str, Any]]) -> dict[str, Any]:
