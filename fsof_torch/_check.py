@@ -11,6 +11,7 @@ skip them too, so shape inference runs through the library).
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import numbers
 from collections.abc import Iterable, Mapping
@@ -226,16 +227,28 @@ def check_mapping(x: object, name: str) -> dict:
     return dict(x)
 
 
-def check_keywords(options: Mapping[str, object], name: str, fn: object,
-                   reserved: Sequence[str] = ()) -> None:
-    """``options`` are keyword arguments that will be forwarded to ``fn``: a name ``fn`` does not
-    take, or one the caller sets itself (``reserved``), raises now rather than at the first call."""
+@functools.lru_cache(maxsize=64)
+def _keyword_names(fn: object) -> frozenset[str] | None:
+    """The names ``fn`` takes by keyword (None: it takes any, ``**kwargs``), looked up once per
+    function (``inspect.signature`` costs about 0.1 ms, and the refiner checks its options at
+    every call)."""
     import inspect
 
     params = inspect.signature(fn).parameters
     if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values()):
+        return None
+    return frozenset(n for n, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD))
+
+
+def check_keywords(options: Mapping[str, object], name: str, fn: object,
+                   reserved: Sequence[str] = ()) -> None:
+    """``options`` are keyword arguments that will be forwarded to ``fn``: a name ``fn`` does not
+    take, or one the caller sets itself (``reserved``), raises now rather than at the first call."""
+    if not options:
         return
-    taken = {n for n, p in params.items() if p.kind in (p.KEYWORD_ONLY, p.POSITIONAL_OR_KEYWORD)}
+    taken = _keyword_names(fn)
+    if taken is None:
+        return
     unknown = sorted(set(options) - taken)
     if unknown:
         raise TypeError(f"{name}: unknown options {unknown} of {fn.__name__}; expected some of {sorted(taken - set(reserved))}")
