@@ -378,9 +378,13 @@ def _lambda1(camera: Camera, du: Tensor, dv: Tensor) -> Tensor:
     return du / camera.fx.reshape(-1, 1, 1, 1) * st + dv / camera.fy.reshape(-1, 1, 1, 1) * ct
 
 
-def _radial(scale: Tensor, valid: Tensor, du: Tensor, dv: Tensor) -> tuple[Tensor, Tensor]:
+def _radial(scale: Tensor, valid: Tensor, du: Tensor, dv: Tensor, B: int) -> tuple[Tensor, Tensor]:
+    """The radial flow ``scale · (u - u_0, v - v_0)`` (B, 2, H, W), 0 where not ``valid``, and
+    ``valid`` (B, 1, H, W), from broadcastable (·, 1, H, W) pieces."""
+    shape = (B, 1, *du.shape[-2:])
+    scale, valid = scale.expand(shape), valid.expand(shape)
     scale = torch.where(valid, scale, torch.zeros_like(scale))
-    return torch.cat([scale * du, scale * dv], dim=1), valid
+    return torch.cat([scale * du.expand(shape), scale * dv.expand(shape)], dim=1), valid
 
 
 def displacement_flow_straight(camera: Camera, z_d: Tensor | float,
@@ -398,8 +402,7 @@ def displacement_flow_straight(camera: Camera, z_d: Tensor | float,
     den = h - lam1 * zd  # = (h / z_d - λ1) z_d, sign-safe for z_d -> 0
     valid = (lam1 > 0) & (den > 0)
     scale = lam1 * zd / torch.where(valid, den, torch.ones_like(den))
-    return _radial(scale.expand(B, 1, *size), valid.expand(B, 1, *size), du.expand(B, 1, *size),
-                   dv.expand(B, 1, *size))
+    return _radial(scale, valid, du, dv, B)
 
 
 def displacement_flow_straight_level(camera: Camera, z_d: Tensor | float,
@@ -414,8 +417,7 @@ def displacement_flow_straight_level(camera: Camera, z_d: Tensor | float,
     den = hf - zd * dv  # = (h f_y / (v - v0) - z_d)(v - v0)
     valid = (dv > 0) & (den > 0)
     scale = zd * dv / torch.where(valid, den, torch.ones_like(den))
-    return _radial(scale.expand(B, 1, *size), valid.expand(B, 1, *size), du.expand(B, 1, *size),
-                   dv.expand(B, 1, *size))
+    return _radial(scale, valid, du, dv, B)
 
 
 def velocity_flow_straight(camera: Camera, speed: Tensor | float,
@@ -427,8 +429,7 @@ def velocity_flow_straight(camera: Camera, speed: Tensor | float,
     lam1 = _lambda1(camera, du, dv)
     valid = lam1 > 0
     scale = p["speed"].reshape(-1, 1, 1, 1) * lam1 / camera.height.reshape(-1, 1, 1, 1)
-    return _radial(scale.expand(B, 1, *size), valid.expand(B, 1, *size), du.expand(B, 1, *size),
-                   dv.expand(B, 1, *size))
+    return _radial(scale, valid, du, dv, B)
 
 
 def velocity_flow_straight_level(camera: Camera, speed: Tensor | float,
@@ -439,8 +440,7 @@ def velocity_flow_straight_level(camera: Camera, speed: Tensor | float,
     du, dv = _centred(camera, size, camera.dtype)
     valid = dv > 0
     scale = p["speed"].reshape(-1, 1, 1, 1) * dv / (camera.height * camera.fy).reshape(-1, 1, 1, 1)
-    return _radial(scale.expand(B, 1, *size), valid.expand(B, 1, *size), du.expand(B, 1, *size),
-                   dv.expand(B, 1, *size))
+    return _radial(scale, valid, du, dv, B)
 
 
 def vflow_curve(v: Tensor, z_d: Tensor | float, height: Tensor | float, fy: Tensor | float,
