@@ -89,9 +89,12 @@ def road_flow(camera: Camera, params: Mapping[str, Tensor | float] | None, size:
     check_camera(camera)
     with autocast_off(camera.K):
         camera, values = pack_params(model, camera, params)
-        M = model.matrix(camera, values)
+        # the map and the horizon row in one evaluation (one K⁻¹, the mounting's rotations once)
+        M, _, horizon = model.evaluate(camera.K, camera.K_inv(), camera.height, values, False)
         _check_map(M, size, model, values)
-        return flow_from_map(M, model.horizon_row(camera, values), size, velocity=model.velocity)
+        if horizon is None:
+            horizon = model.horizon_row(camera, values)
+        return flow_from_map(M, horizon, size, velocity=model.velocity)
 
 
 def _check_map(M: Tensor, size: tuple[int, int], model: RoadModel, values: Tensor) -> None:
