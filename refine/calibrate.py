@@ -5,6 +5,7 @@ pair's motion for the ``sequence`` variant.
 The pairs must be consecutive frames of one clip (pair k's second image is pair k+1's first); the
 road masks are the pairs' own, or detected on a DIS flow where the road is ``auto``. Poses, where
 the pairs have them, give the metric scale (the images give the translation over the height only).
+The clip is streamed: its memory is a few frames plus the packed road masks, whatever its length.
 """
 
 from __future__ import annotations
@@ -12,8 +13,9 @@ from __future__ import annotations
 import math
 import sys
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -34,9 +36,60 @@ class ClipFit:
     success: dict[str, bool]
 
 
+class ClipFrames:
+    """The clip's N + 1 frames, loaded from its N pairs on demand: frame k < N is pair k's first
+    image, frame N the last pair's second. The last pair loaded is kept (and only its two
+    images), so reading the frames in order, as :func:`fsof_torch.fit_sequence` does, loads each
+    pair once."""
+
+    def __init__(self, specs: Sequence[PairSpec]):
+        self.specs = specs
+        self._index: int | None = None
+        self._images: tuple[Tensor, Tensor] | None = None
+
+    def __len__(self) -> int:
+        return len(self.specs) + 1
+
+    def __getitem__(self, j: int) -> Tensor:
+        if not 0 <= j <= len(self.specs):
+            raise IndexError(f"frame {j} of a clip of {len(self)} frames")
+        k = min(j, len(self.specs) - 1)
+        if self._index != k:
+            self._index, self._images = None, None  # freed before the next pair loads
+            pair = self.specs[k].load()
+            self._index, self._images = k, (pair["image1"], pair["image2"])
+        return self._images[0 if j == k else 1]
+
+
+class PackedMasks:
+    """Road masks kept 8 pixels a byte (``numpy.packbits``): a 375×1242 mask takes 58 kB instead of
+    466 kB as a bool tensor, so the masks of a clip of thousands of pairs fit in memory; each is
+    unpacked to (1, H, W) bool when indexed (0.02 ms at that size)."""
+
+    def __init__(self) -> None:
+        self._packed: list[tuple[np.ndarray, tuple[int, ...]]] = []
+
+    def append(self, mask: Tensor) -> None:
+        m = mask.detach().to("cpu", torch.bool)
+        self._packed.append((np.packbits(m.numpy().reshape(-1)), tuple(m.shape)))
+
+    def __len__(self) -> int:
+        return len(self._packed)
+
+    def __getitem__(self, k: int) -> Tensor:
+        bits, shape = self._packed[k]
+        return torch.from_numpy(np.unpackbits(bits, count=math.prod(shape)).view(np.bool_).reshape(shape))
+
+
 def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], Tensor], *,
              progress: bool = True) -> ClipFit:
     """Fit the road motion of the clip made by ``specs`` (see the module docstring).
+
+    The clip streams: one pass loads each pair to check that it follows the previous one and to
+    find its road mask (``road_for`` is called once per pair; the masks are kept packed, see
+    :class:`PackedMasks`), then each of :func:`fsof_torch.fit_sequence`'s two passes loads each
+    pair once more (:class:`ClipFrames`). Memory stays at a few frames plus the masks and a few
+    numbers per pair, whatever the clip's length.
 
     Args:
         specs: the clip's pairs, in order.
@@ -48,27 +101,34 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
 
     if len(specs) < 2:
         raise JobError("sequence: a clip needs at least 2 pairs (3 frames)")
-    pairs = [spec.load() for spec in tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)]
-    for k in range(len(pairs) - 1):
-        if not torch.equal(pairs[k]["image2"], pairs[k + 1]["image1"]):
-            raise JobError(f"sequence: pairs {specs[k].name} and {specs[k + 1].name} are not consecutive frames "
+    masks = PackedMasks()
+    relative_poses: list[Tensor | None] = []
+    previous = None  # the previous pair's second image, which must be this pair's first
+    for k, spec in enumerate(tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)):
+        pair = spec.load()
+        if previous is not None and not torch.equal(previous, pair["image1"]):
+            raise JobError(f"sequence: pairs {specs[k - 1].name} and {spec.name} are not consecutive frames "
                            f"of one clip (the second image of one is not the first of the next); use "
                            f"--odometry photometric for separate pairs")
-    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
-    masks = [road_for(p).reshape(1, *frames[0].shape[-2:]).to(torch.bool) for p in pairs]
+        previous = pair["image2"]
+        masks.append(road_for(pair).reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
+        pose = pair.get("relative_pose")
+        relative_poses.append(None if pose is None else pose.to(torch.float64))
+        del pair
+    del previous
     poses = None
-    if all(p.get("relative_pose") is not None for p in pairs):
+    if all(p is not None for p in relative_poses):
         # camera-to-world poses from the relative ones: P_{k+1} = P_k inverse(cam1_T_cam0)
         P = [torch.eye(4, dtype=torch.float64)]
-        for p in pairs:
-            P.append(P[-1] @ torch.linalg.inv(p["relative_pose"].to(torch.float64)))
+        for pose in relative_poses:
+            P.append(P[-1] @ torch.linalg.inv(pose))
         poses = torch.stack(P)
     cam = camera.to(torch.float64)
-    seq = fit_sequence(frames, masks, cam, poses=poses, progress=progress)
+    seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress)
     motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
               for i, spec in enumerate(specs)}
     mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}
     if "height" in seq.mounting:
         mounting["height_m"] = seq.mounting["height"]
-    success = {spec.name: bool(f.success.all()) for spec, f in zip(specs, seq.fits)}
+    success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
     return ClipFit(motion, seq.camera, mounting, success)

@@ -226,6 +226,134 @@ def test_a_clip_uses_the_sequence_and_a_changed_frame_redoes_the_clip(tmp_path, 
     assert all(r.stat().st_mtime_ns != t for r, t in zip(recs, stamps))
 
 
+def _mounting_values(scene_pairs) -> dict[str, float]:
+    """The values of the job's mounting options, as the job parses them."""
+    m = _mounting(scene_pairs)
+    return {option: float(value) for option, value in zip(m[::2], m[1::2])}
+
+
+def _dataset_and_camera(user_folder, scene_pairs, **options):
+    """The user folder's pairs and camera, read by the library's dataset with the job's mounting
+    options."""
+    from fsof_torch.datasets import ImageFolderDataset
+
+    m = _mounting_values(scene_pairs)
+    dataset = ImageFolderDataset(user_folder / "images", user_folder / "calib.txt", camera_height=m["--height"],
+                                 roll=math.radians(m["--roll-deg"]), pitch=math.radians(m["--pitch-deg"]),
+                                 road=user_folder / "road", camera_dtype=torch.float64, **options)
+    items = [dataset[i] for i in range(len(dataset))]
+    return items, dataset.camera
+
+
+def _list_fit(items, camera, poses=None):
+    """The clip's fit of its frames held as a list (the reference for the streamed fit)."""
+    from fsof_torch import fit_sequence
+
+    frames = [it["image1"] for it in items] + [items[-1]["image2"]]
+    return fit_sequence(frames, [it["road"] for it in items], camera.to(torch.float64), poses=poses)
+
+
+def test_a_clip_run_reports_the_fit_of_its_frames_reading_each_pair_a_few_times(tmp_path, user_folder,
+                                                                                 scene_pairs, monkeypatch):
+    """--odometry sequence streams the clip: each pair is read once for its road mask, once per
+    pass of the clip's fit and once for its refinement; the calibrated mounting and each pair's
+    success are those of fit_sequence on the list of the clip's frames."""
+    from fsof_torch.datasets import ImageFolderDataset
+
+    reads: dict[int, int] = {}
+    getitem = ImageFolderDataset.__getitem__
+
+    def counted(self, i):
+        reads[i] = reads.get(i, 0) + 1
+        return getitem(self, i)
+
+    monkeypatch.setattr(ImageFolderDataset, "__getitem__", counted)
+    out = tmp_path / "out"
+    assert main(_user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis",
+                      "--odometry", "sequence", *_mounting(scene_pairs))) == 0
+    monkeypatch.undo()
+    assert reads == {0: 4, 1: 4}
+    items, camera = _dataset_and_camera(user_folder, scene_pairs)
+    seq = _list_fit(items, camera)
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["calibrated_mounting"] == {"roll_deg": math.degrees(seq.mounting["roll"]),
+                                              "pitch_deg": math.degrees(seq.mounting["pitch"])}
+    for i in range(len(items)):
+        rec = json.loads((out / "dis" / "sequence" / "pairs" / f"{i:06d}.json").read_text())
+        assert rec["clip_fit_success"] is bool(seq.fits[i].success.all())
+
+
+def test_fit_clip_loads_each_pair_three_times_and_fits_like_a_list(user_folder, scene_pairs):
+    """refine.calibrate.fit_clip: one load per pair for its road mask (road_for called once), one per
+    pass of fit_sequence; the motion, mounting (with the poses' height) and success of the list
+    of frames."""
+    from dataclasses import replace
+
+    from refine.calibrate import fit_clip
+    from refine.inputs import user_pairs
+
+    m = _mounting_values(scene_pairs)
+    specs, camera = user_pairs(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None,
+                               height=m["--height"], roll_deg=m["--roll-deg"], pitch_deg=m["--pitch-deg"],
+                               poses=user_folder / "poses.txt", flows=None, road=str(user_folder / "road"), gt=None)
+    loads = {s.name: 0 for s in specs}
+    roads = []
+
+    def counted(spec):
+        def load():
+            loads[spec.name] += 1
+            return spec.load()
+        return replace(spec, load=load)
+
+    def road_for(pair):
+        roads.append(pair["road"])
+        return pair["road"]
+
+    clip = fit_clip([counted(s) for s in specs], camera, road_for, progress=False)
+    assert loads == {s.name: 3 for s in specs} and len(roads) == len(specs)
+    items, _ = _dataset_and_camera(user_folder, scene_pairs, poses=user_folder / "poses.txt")
+    # the poses as fit_clip chains them: camera-to-world with the world at the first camera
+    P = [torch.eye(4, dtype=torch.float64)]
+    for it in items:
+        P.append(P[-1] @ torch.linalg.inv(it["relative_pose"]))
+    seq = _list_fit(items, camera, torch.stack(P))
+    for i, s in enumerate(specs):
+        assert clip.motion[s.name] == {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
+        assert clip.success[s.name] is bool(seq.fits[i].success.all())
+    assert clip.mounting == {"roll_deg": math.degrees(seq.mounting["roll"]),
+                             "pitch_deg": math.degrees(seq.mounting["pitch"]), "height_m": seq.mounting["height"]}
+
+
+def test_clip_frames_and_packed_masks():
+    """ClipFrames: frame k < N is pair k's first image, frame N the last pair's second, one pair
+    cached; PackedMasks give back the masks bit for bit (sizes not a multiple of 8)."""
+    from refine.calibrate import ClipFrames, PackedMasks
+    from refine.inputs import PairSpec
+
+    g = torch.Generator().manual_seed(0)
+    images = [torch.rand(3, 5, 7, generator=g) for _ in range(4)]
+    loads = []
+
+    def spec(k):
+        def load():
+            loads.append(k)
+            return {"image1": images[k], "image2": images[k + 1]}
+        return PairSpec(f"{k:06d}", load)
+
+    frames = ClipFrames([spec(k) for k in range(3)])
+    assert len(frames) == 4
+    assert all(frames[j] is images[j] for j in range(4)) and loads == [0, 1, 2]
+    assert frames[3] is images[3] and frames[0] is images[0] and loads == [0, 1, 2, 0]
+    with pytest.raises(IndexError):
+        frames[4]
+    masks = PackedMasks()
+    originals = [torch.rand(1, 5, 7, generator=g) < 0.5 for _ in range(3)]
+    for mask in originals:
+        masks.append(mask)
+    assert len(masks) == 3
+    assert all(masks[k].dtype == torch.bool and torch.equal(masks[k], originals[k]) for k in range(3))
+
+
 def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
     """--calibrate-pitch from the images alone: every variant refines with the calibrated camera."""
     out = tmp_path / "out"

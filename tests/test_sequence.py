@@ -1,7 +1,9 @@
 """fit_sequence: the mounting calibrated over a clip without poses, the height from poses, the
-attitude track; smooth_attitude against an independent least-squares solution."""
+attitude track; a lazy clip read a pair at a time, with the results of a list of frames;
+smooth_attitude against an independent least-squares solution and a dense solve."""
 
 import math
+import weakref
 
 import numpy as np
 import pytest
@@ -27,6 +29,45 @@ def test_smooth_attitude_matches_numpy_least_squares():
     track, sigma = smooth_attitude(torch.tensor(att), torch.tensor(chg), torch.tensor(sa), torch.tensor(sc))
     np.testing.assert_allclose(track.numpy(), expected, atol=1e-10)
     np.testing.assert_allclose(sigma.numpy(), std, rtol=1e-6)
+
+
+def _dense_smooth(att, chg, sa, sc):
+    """The normal equations of smooth_attitude's least squares, dense (N + 1) × (N + 1), solved
+    and inverted by torch.linalg (with the same 1e-12 ridge)."""
+    N = att.shape[0]
+    wa, wc = 1 / sa.square(), 1 / sc.square()
+    A = torch.zeros(N + 1, N + 1, dtype=torch.float64)
+    b = torch.zeros(N + 1, dtype=torch.float64)
+    for k in range(N):
+        A[k, k] += wa[k]
+        b[k] += wa[k] * att[k]
+        A[k:k + 2, k:k + 2] += wc[k] * torch.tensor([[1.0, -1.0], [-1.0, 1.0]], dtype=torch.float64)
+        b[k] -= wc[k] * chg[k]
+        b[k + 1] += wc[k] * chg[k]
+    A += 1e-12 * torch.eye(N + 1, dtype=torch.float64)
+    return torch.linalg.solve(A, b), torch.linalg.inv(A).diagonal().sqrt()
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_smooth_attitude_matches_a_dense_solve(seed):
+    """Random clips of 1 to 40 pairs, some measurements with infinite σ (they do not count); every
+    stretch joined by finite changes keeps one finite attitude, as _track guarantees (a frame no
+    measurement reaches rests on the ridge alone: the last one when its change is infinite)."""
+    g = torch.Generator().manual_seed(seed)
+    N = 1 if seed == 0 else int(torch.randint(1, 41, (1,), generator=g))
+    f64 = dict(dtype=torch.float64)
+    att, chg = 0.01 * torch.randn(N, generator=g, **f64), 0.002 * torch.randn(N, generator=g, **f64)
+    sa = 0.005 + 0.015 * torch.rand(N, generator=g, **f64)
+    sc = 0.0005 + 0.0015 * torch.rand(N, generator=g, **f64)
+    if N > 1:
+        sa[1:] = torch.where(torch.rand(N - 1, generator=g) < 0.3, math.inf, sa[1:])
+        sc = torch.where(torch.rand(N, generator=g) < 0.2, math.inf, sc)
+        sa[1:] = torch.where(sc[:-1].isinf(), 0.01, sa[1:])  # a stretch after a broken link starts measured
+    track, sigma = smooth_attitude(att, chg, sa, sc)
+    expected, std = _dense_smooth(att, chg, sa, sc)
+    assert track.shape == sigma.shape == (N + 1,) and track.dtype == sigma.dtype == torch.float64
+    torch.testing.assert_close(track, expected, rtol=1e-10, atol=1e-10 * float(expected.abs().max()))
+    torch.testing.assert_close(sigma, std, rtol=1e-10, atol=0)
 
 
 def test_smooth_attitude_ignores_infinite_sigma():
@@ -73,6 +114,42 @@ def test_fit_sequence_calibrates_the_mounting_and_height(body_motion_clip, body_
         assert epe < 1.0, (k, epe)
         assert seq.params["z_d"][k] == pytest.approx(float(seq.fits[k].params["z_d"][0]))
     assert set(seq.first_pass) == set(seq.params)
+
+
+class LazySequence:
+    """Tensors made on demand (a fresh copy on ``seq[k]``): it counts the reads, and, through weak
+    references, the tensors it made that are still alive when it makes another."""
+
+    def __init__(self, items):
+        self.items, self.reads, self.alive, self.most_alive = items, [0] * len(items), [], 0
+
+    def __len__(self):
+        return len(self.items)
+
+    def __getitem__(self, k):
+        self.reads[k] += 1
+        item = self.items[k].clone()
+        self.alive = [r for r in self.alive if r() is not None] + [weakref.ref(item)]
+        self.most_alive = max(self.most_alive, len(self.alive))
+        return item
+
+
+def test_fit_sequence_reads_a_lazy_clip_a_pair_at_a_time(body_motion_clip, body_motion_fit):
+    """Frames and masks made on demand: each read once per pass, in order, at most the two frames
+    of a pair alive at once; with keep_fits=False no fit is kept, and the results are those of the
+    list of frames."""
+    pairs, frames, poses = body_motion_clip
+    clip, masks = LazySequence(frames), LazySequence([p["road"] for p in pairs])
+    seq = fit_sequence(clip, masks, pairs[0]["camera"], poses=poses, keep_fits=False)
+    assert clip.reads == [2] * len(frames) and masks.reads == [2] * len(pairs)
+    assert clip.most_alive <= 2 and masks.most_alive <= 1
+    assert seq.fits == []
+    ref = body_motion_fit
+    for got, want in ((seq.params, ref.params), (seq.first_pass, ref.first_pass)):
+        assert set(got) == set(want) and all(torch.equal(got[k], want[k]) for k in want)
+    assert seq.mounting == ref.mounting
+    assert torch.equal(seq.success, torch.stack([f.success.all() for f in ref.fits]))
+    assert seq.success.dtype == torch.bool and seq.success.shape == (len(pairs),)
 
 
 def test_fit_sequence_without_poses_has_no_height(body_motion_clip):

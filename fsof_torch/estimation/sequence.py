@@ -18,6 +18,11 @@ previous pair's motion and a constant-velocity prediction besides zero motion. T
 
 Frames are (B=1 per frame) images (3 or 1, H, W) on 0..255; masks (1, H, W) bool (one for the clip,
 or one per pair). Not differentiable.
+
+**Memory.** The frames and masks are read in order, one pair at a time, and each frame once per
+pass, so a lazy sequence that loads frame k on ``frames[k]`` keeps a clip of any length in the
+memory of a few frames; between pairs only each pair's parameters and success are kept (and, with
+``keep_fits``, the final pass's full :class:`~fsof_torch.estimation.flow_fit.RoadFit`).
 """
 
 from __future__ import annotations
@@ -43,12 +48,15 @@ class SequenceFit:
 
     Attributes:
         fits: one :class:`~fsof_torch.estimation.flow_fit.RoadFit` per pair (the second pass,
-            with the smoothed attitude, or the first with ``passes=1``).
-        params: ``{name: (N,)}`` the pairs' parameters.
+            with the smoothed attitude, or the first with ``passes=1``); empty with
+            ``keep_fits=False`` (each holds a full-size flow and two masks: 4.7 MB a pair at
+            375×1242 in float32, 8.4 MB with a float64 camera).
+        params: ``{name: (N,)}`` the pairs' parameters (float64).
         mounting: ``{"roll": float, "pitch": float}`` the calibrated attitude (radians), and
             ``"height"`` (metres) when poses gave the scale.
         camera: the input camera with the calibrated roll, pitch (and height).
         first_pass: ``{name: (N,)}`` the per-pair parameters before calibration, for reference.
+        success: (N,) bool, whether each pair's fit succeeded (of the same pass as ``params``).
     """
 
     fits: list[RoadFit]
@@ -56,6 +64,7 @@ class SequenceFit:
     mounting: dict[str, float]
     camera: Camera
     first_pass: dict[str, Tensor]
+    success: Tensor
 
 
 def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | float,
@@ -65,25 +74,44 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     minimise Σ ((a_k − attitude_k) / σ_a)² + Σ ((a_{k+1} − a_k − change_k) / σ_c)². The last
     frame's attitude rests on the changes alone. Measurements with infinite σ do not count.
 
+    The normal equations are tridiagonal (each term ties at most two neighbouring frames), so the
+    track and the diagonal of its covariance take O(N) time and memory: an LDLᵀ factorisation,
+    forward and back substitution, and the covariance's diagonal by the backward recursion
+    Σ_kk = 1 / D_k + l_k² Σ_{k+1,k+1} (a sum of positive terms: no cancellation).
+
     Returns the track (N + 1,) and its standard deviations (N + 1,) (float64)."""
     N = attitude.shape[0]
     dt = torch.float64
     wa = 1.0 / torch.as_tensor(attitude_sigma, dtype=dt).expand(N).square()
     wc = 1.0 / torch.as_tensor(change_sigma, dtype=dt).expand(N).square()
-    A = torch.zeros(N + 1, N + 1, dtype=dt)
+    att, chg = attitude.to(dt).cpu(), change.to(dt).cpu()
+    wa, wc = wa.cpu(), wc.cpu()
+    # the matrix: diagonal `diag` (N + 1,), off-diagonal −wc (N,); (a_{k+1} − a_k − c_k)² wc adds
+    # the 2 × 2 block [[1, −1], [−1, 1]] wc. A tiny ridge keeps a frame no measurement reaches
+    # (all its σ infinite) solvable.
+    diag = torch.zeros(N + 1, dtype=dt)
+    diag[:N] += wa
+    diag[:N] += wc
+    diag[1:] += wc
+    diag += 1e-12
     b = torch.zeros(N + 1, dtype=dt)
-    idx = torch.arange(N)
-    A[idx, idx] += wa
-    b[idx] += wa * attitude.to(dt)
-    # (a_{k+1} − a_k − c_k)² wc: the 2 × 2 block [[1, −1], [−1, 1]] wc
-    A[idx, idx] += wc
-    A[idx + 1, idx + 1] += wc
-    A[idx, idx + 1] -= wc
-    A[idx + 1, idx] -= wc
-    b[idx] -= wc * change.to(dt)
-    b[idx + 1] += wc * change.to(dt)
-    cov = torch.linalg.inv(A + 1e-12 * torch.eye(N + 1, dtype=dt))
-    return cov @ b, cov.diagonal().sqrt()
+    b[:N] += wa * att
+    b[:N] -= wc * chg
+    b[1:] += wc * chg
+    a, e, rhs = diag.tolist(), (-wc).tolist(), b.tolist()
+    # A = L D Lᵀ, L unit lower bidiagonal with L[k+1, k] = l_k; forward substitution alongside
+    D, l, y = [a[0]], [], [rhs[0]]
+    for k in range(N):
+        l.append(e[k] / D[k])
+        D.append(a[k + 1] - l[k] * e[k])
+        y.append(rhs[k + 1] - l[k] * y[k])
+    x, var = [0.0] * (N + 1), [0.0] * (N + 1)
+    x[N], var[N] = y[N] / D[N], 1.0 / D[N]
+    for k in range(N - 1, -1, -1):
+        x[k] = y[k] / D[k] - l[k] * x[k + 1]
+        var[k] = 1.0 / D[k] + l[k] * l[k] * var[k + 1]
+    device = attitude.device
+    return torch.tensor(x, dtype=dt, device=device), torch.tensor(var, dtype=dt, device=device).sqrt()
 
 
 def _robust_mean(x: Tensor, ok: Tensor) -> float:
@@ -95,30 +123,49 @@ def _robust_mean(x: Tensor, ok: Tensor) -> float:
     return float(v[keep].mean())
 
 
-def _stack(fits: Sequence[RoadFit]) -> dict[str, Tensor]:
-    return {k: torch.cat([f.params[k].detach().double().reshape(-1) for f in fits]) for k in fits[0].params}
+@dataclass
+class _PairRecord:
+    """What a pass keeps of a pair's fit: its parameters ({name: (1,)}) and whether it succeeded."""
+
+    params: dict[str, Tensor]
+    success: bool
+
+
+def _stack(records: Sequence[_PairRecord]) -> dict[str, Tensor]:
+    return {k: torch.cat([r.params[k].double().reshape(-1) for r in records]) for k in records[0].params}
+
+
+def _batched(x: Tensor) -> Tensor:
+    return x if x.dim() == 4 else x.unsqueeze(0)
 
 
 @torch.no_grad()
 def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], camera: Camera, *,
                  poses: Tensor | None = None, flows: Sequence[Tensor] | None = None,
                  passes: int = 2, attitude_deg: float = 1.0, body_rotation_deg: float = 0.3,
-                 progress: bool = False, **options: Any) -> SequenceFit:
+                 keep_fits: bool = True, progress: bool = False, **options: Any) -> SequenceFit:
     """Fit the ``"plane"`` road motion of every pair of a clip, calibrating the camera's attitude
     over the road without poses (see the module docstring).
 
     Args:
-        frames: N + 1 images, each (C, H, W) or (1, C, H, W), 0..255.
-        mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool for the clip,
-            or a sequence of N.
+        frames: N + 1 images, each (C, H, W) or (1, C, H, W), 0..255: any sequence with ``len()``
+            and indexing, e.g. a list or a lazy object that loads frame k on ``frames[k]``. Each
+            pass reads every frame once, in order (``frames[0]``, ``frames[1]``, ...), and holds
+            at most the two frames of the pair it is fitting.
+        mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
+            clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
         poses: optional (N + 1, 4, 4) camera-to-world poses: their translations give the metric
             scale, hence the camera height (the images give d / h only).
-        flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar motion.
+        flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar
+            motion (a sequence read like ``frames``).
         passes: 1 (per-pair fits only) or 2 (with the calibrated attitude).
         attitude_deg: the prior's standard deviation of the per-frame attitude around the
             calibrated mounting (the body's pitching and rolling), degrees.
         body_rotation_deg: the standard deviation of the body's pitch and roll change per frame.
+        keep_fits: keep the final pass's :class:`~fsof_torch.estimation.flow_fit.RoadFit` of every
+            pair in ``SequenceFit.fits`` (False: ``fits`` is empty and no full-size map outlives
+            its pair; the parameters and ``success`` are the same).
         progress: show a progress bar.
         **options: further keyword arguments of :func:`~fsof_torch.estimation.image_fit.fit_image`.
 
@@ -132,11 +179,13 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if not isinstance(camera, Camera) or camera.batch_size != 1:
         raise TypeError("camera: expected a fsof_torch.Camera of batch 1")
     N = len(frames) - 1
-    imgs = [f if f.dim() == 4 else f.unsqueeze(0) for f in frames]
-    masks = [mask] * N if isinstance(mask, Tensor) else list(mask)
-    if len(masks) != N:
-        raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(masks)}")
-    masks = [m.reshape(1, 1, *m.shape[-2:]) for m in masks]
+    if not isinstance(mask, Tensor) and len(mask) != N:
+        raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(mask)}")
+
+    def mask_of(k: int) -> Tensor:
+        m = mask if isinstance(mask, Tensor) else mask[k]
+        return m.reshape(1, 1, *m.shape[-2:])
+
     if poses is not None:
         poses = torch.as_tensor(poses)
         if poses.shape != (N + 1, 4, 4) or not poses.is_floating_point():
@@ -153,27 +202,30 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
 
     attitude = ("roll", "pitch", "roll_change", "pitch_change")
 
-    def run(cam: Camera, label: str, track: dict[str, tuple[Tensor, Tensor]] | None = None) -> list[RoadFit]:
+    def run(cam: Camera, label: str, track: dict[str, tuple[Tensor, Tensor]] | None = None,
+            keep: bool = False) -> tuple[list[_PairRecord], list[RoadFit]]:
         from tqdm.auto import tqdm
 
+        records: list[_PairRecord] = []
         fits: list[RoadFit] = []
+        image2 = None
         for k in tqdm(range(N), desc=f"road motion: {label}", unit="pair", disable=not progress):
             starts: list[dict] = []
             prior = calibration_prior(model, cam, mounting_deg=attitude_deg, body_rotation_deg=body_rotation_deg)
-            if fits:
-                prev = {n: fits[-1].params[n] for n in motion}
+            if records:
+                prev = {n: records[-1].params[n] for n in motion}
                 starts.append(prev)
-                if len(fits) > 1:  # constant velocity: the motion changes as it did
-                    starts.append({n: 2 * fits[-1].params[n] - fits[-2].params[n] for n in motion})
-                if fits[-1].success.all():  # the previous motion, loosely: a car changes speed gently
+                if len(records) > 1:  # constant velocity: the motion changes as it did
+                    starts.append({n: 2 * records[-1].params[n] - records[-2].params[n] for n in motion})
+                if records[-1].success:  # the previous motion, loosely: a car changes speed gently
                     z = prev["z_d"].abs()
                     prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
                                  yaw=(prev["yaw"], 1.0 * DEG))
+            road = mask_of(k)
             if flows is not None:
                 from ..refinement.estimators import planar_start
 
-                f = flows[k] if flows[k].dim() == 4 else flows[k].unsqueeze(0)
-                starts.append(planar_start(f.to(torch.float64), masks[k], cam))
+                starts.append(planar_start(_batched(flows[k]).to(torch.float64), road, cam))
             init = None
             if track is not None:  # the attitude and its change: start at the smoothed track, tied to it
                 init = {}
@@ -183,13 +235,20 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior[n] = (init[n], sigma[k:k + 1])
                     prior[n + "_change"] = (init[n + "_change"], 0.1 * body_rotation_deg * DEG)
                 starts = [{n: v for n, v in st.items() if n not in attitude} for st in starts]
-            fits.append(fit_image(imgs[k], imgs[k + 1], masks[k], cam, model=model, init=init,
-                                  starts=starts, prior=prior, **options))
-        return fits
+            # each frame is read once per pass, in order: the last pair's second frame is this one's first
+            image1 = image2 if image2 is not None else _batched(frames[k])
+            image2 = _batched(frames[k + 1])
+            fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
+                            **options)
+            records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all())))
+            if keep:
+                fits.append(fit)
+            del image1, road, fit  # none outlives its pair: freed before the next pair is read
+        return records, fits
 
-    first = run(camera, "first pass")
+    first, fits = run(camera, "first pass", keep=keep_fits and passes == 1)
     raw = _stack(first)
-    ok = torch.cat([f.success.reshape(-1) for f in first])
+    ok = torch.tensor([r.success for r in first])
     roll0, pitch0 = _robust_mean(raw["roll"], ok), _robust_mean(raw["pitch"], ok)
     mounting = {"roll": roll0, "pitch": pitch0}
     cam = camera.replace(roll=roll0, pitch=pitch0)
@@ -206,10 +265,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                                  "poses do not move where the images do")
             mounting["height"] = height
             cam = cam.replace(height=height)
-    fits = first
+    records = first
     if passes == 2:
-        fits = run(cam, "smoothed attitude", _track(raw, ok, attitude_deg, body_rotation_deg))
-    return SequenceFit(fits, _stack(fits), mounting, cam, raw)
+        records, fits = run(cam, "smoothed attitude", _track(raw, ok, attitude_deg, body_rotation_deg),
+                            keep=keep_fits)
+    success = torch.tensor([r.success for r in records])
+    return SequenceFit(fits, _stack(records), mounting, cam, raw, success)
 
 
 def _track(params: dict[str, Tensor], ok: Tensor, attitude_deg: float,
