@@ -154,27 +154,24 @@ def test_feature_init_from_flow_fit_is_used():
 
 # -- real data ---------------------------------------------------------------------------------
 
-def _kitti(shared_data):
+def _kitti(shared_data, kitti15_ground_truth):
+    """The KITTI pair's ground truth (the conftest fixture) with its RGB images and their greys."""
     cv2 = pytest.importorskip("cv2")
     import numpy as np
 
-    folder = shared_data / "kitti15_000000"
-    if not folder.is_dir():
-        pytest.skip("kitti15_000000 is absent")
-    from fsof_torch.io import read_image, read_kitti_flow, read_road_mask
+    from fsof_torch.io import read_image
 
-    cam = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    gt, valid = read_kitti_flow(folder / "flow_noc_10.png")
-    road = read_road_mask(folder / "road.json", size=tuple(gt.shape[-2:]))
+    cam, gt, valid, road = kitti15_ground_truth
+    folder = shared_data / "kitti15_000000"
     rgb = [read_image(folder / f"image_1{i}.png")[None] for i in (0, 1)]
     grey = [cv2.cvtColor(im[0].permute(1, 2, 0).numpy().astype(np.uint8), cv2.COLOR_RGB2GRAY) for im in rgb]
-    return cam, gt[None].double(), valid[None], road[None], rgb, grey
+    return cam, gt, valid, road, rgb, grey
 
 
-def test_real_kitti_dis_then_photometric(shared_data):
+def test_real_kitti_dis_then_photometric(shared_data, kitti15_ground_truth):
     """No ground truth used: DIS flow, a flow fit, then the photometric fit; EPE vs GT ≤ 1 px."""
     cv2 = pytest.importorskip("cv2")
-    cam, gt, valid, road, (image1, image2), (g1, g2) = _kitti(shared_data)
+    cam, gt, valid, road, (image1, image2), (g1, g2) = _kitti(shared_data, kitti15_ground_truth)
     dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(g1, g2, None)
     flow_dis = torch.from_numpy(dis).permute(2, 0, 1)[None].double()
     use = (road & valid)[:, 0]
