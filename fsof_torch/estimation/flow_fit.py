@@ -463,9 +463,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             3 × scale); also the polish's Tukey cut.
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns), or an inlier share of the mask below the fraction, mark the frame as failed.
-        polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold
-            (it ends when its next step is predicted to move the residuals by less than 1 % of
-            their robust RMS: the solver's ``anticipate``).
+        polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both. The
             default (3, 1): the robust stage anneals its kernel over about two iterations and
