@@ -538,7 +538,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
-                        anticipate=i > 0, check_every=_check_schedule(first_check, max_iter))
+                        check_every=_check_schedule(first_check, max_iter))
             if i == 0:
                 params, converged = sol.params, sol.converged
             else:

@@ -187,9 +187,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
           prior_mean: Tensor | None = None, prior_precision: Tensor | Callable[[Tensor], Tensor] | None = None,
           lower: Tensor | None = None, upper: Tensor | None = None, kernel: str = "cauchy",
           scale: Tensor | float | Callable[[Evaluation], Tensor] = 1.0, anneal: bool = False, max_iter: int = 50,
-          tol: float = 1e-6, resolution: float = 0.0, anticipate: bool = False,
-          check_every: int | Sequence[int] | None = 2, damping: float = 1e-4,
-          missing: str = "outlier") -> Solution:
+          tol: float = 1e-6, resolution: float = 0.0, check_every: int | Sequence[int] | None = 2,
+          damping: float = 1e-4, missing: str = "outlier") -> Solution:
     """Robust Levenberg–Marquardt for B independent samples (see the module docstring).
 
     Args:
@@ -212,12 +211,6 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             than tol E.
         resolution: also converged when a step (accepted or not) moves the residuals by at most
             this fraction of their robust RMS (below what the points can resolve); 0: off.
-        anticipate: with ``resolution``, also converged after an accepted step when the next
-            step is predicted (Gauss–Newton's quadratic model, from the normal equations already
-            built) to move the weighted residuals by at most that fraction: saves the step that
-            would only confirm convergence. For a stage that starts near its answer with a fixed
-            kernel (a polish); an annealed or slowly crawling robust fit should measure its
-            steps instead.
         check_every: stop early when all samples converged, checked (one host read each) after
             this many iterations, then after twice as many, four times...: a handful of reads for
             any budget; or the iterations after which to check (a sequence); None: always run
@@ -310,11 +303,10 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     lam = torch.full((B,), damping, dtype=dt, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    step = None  # the next step, where ``anticipate`` computed it already
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
-        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam) if step is None else step, 0.0)
+        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam), 0.0)
         cand = params + delta
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
@@ -357,11 +349,6 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         iters += active
         lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
         stuck = ~ok & (lam > 1e8)
-        if anticipate and resolution > 0:
-            step = _damped_step(A, g, lam)
-            # the next step's movement of the weighted residuals, as the quadratic model predicts
-            # it (-g·δ = δᵀ (A + λ D) δ, the Newton decrement), against resolution² × their sum
-            small = small | (ok & (torch.linalg.vecdot(g, step).neg_() <= (resolution ** 2) * torch.linalg.vecdot(w, r2)))
         if anneal:
             s = torch.where(ok, s_c, s)
             done = done | (at_scale & (small | stuck))
