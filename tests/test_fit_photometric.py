@@ -152,6 +152,31 @@ def test_feature_init_from_flow_fit_is_used():
     assert abs(float(fit.z_d) - 0.7) < 5e-3
 
 
+def test_early_stop_checks_change_no_result_and_read_the_host_at_most_once_per_iteration():
+    """Converged samples stop moving, so the checks only decide when a level's loop ends: the
+    fit with the default checks equals the fixed budgets (``check_every=None``), parameters and
+    iteration counts alike, and reads the host at most once per iteration more."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from fsof_torch.estimation.image_fit import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, torch.tensor([0.02, -0.01]), torch.tensor([0.7, 0.5]),
+                                             torch.tensor([0.01, 0.0]), B=2)
+    fits, reads = {}, {}
+    for checks in (3, None):
+        with profile(activities=[ProfilerActivity.CPU]) as prof:
+            fits[checks] = fit_image(image1, image2, mask, cam, max_iter=8, check_every=checks)
+        reads[checks] = sum(e.name == "aten::_local_scalar_dense" for e in prof.events())
+    checked, fixed = fits[3], fits[None]
+    for name in checked.params:
+        assert torch.equal(checked.params[name], fixed.params[name]), name
+    assert torch.equal(checked.iterations, fixed.iterations)
+    assert bool(checked.success.all())
+    assert int(checked.iterations.max()) < 8 * 3  # some of the 3 levels (96, 48, 24 rows) stopped early
+    assert 0 < reads[3] - reads[None] <= int(checked.iterations.max()), reads
+
+
 # -- real data ---------------------------------------------------------------------------------
 
 def _kitti(shared_data, kitti15_ground_truth):

@@ -272,7 +272,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, data_range: float = 255.0,
-              check_every: int | None = 2) -> RoadFit:
+              check_every: int | None = 3) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -316,7 +316,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask, mark the
             frame as failed (as does a diverged or ill-conditioned fit).
         data_range: the images' range (255.0 or 1.0).
-        check_every: the solver's early-stop check (see :func:`~fsof_torch.estimation.solver.solve`).
+        check_every: each level asks whether all samples converged (one host read) after this
+            many iterations and then after every further one, so that no level runs on after
+            its samples converged (python benchmarks/bench_image_fit.py); the levels need 3 or
+            more. None: every level runs ``max_iter`` iterations, without a host read.
 
     Returns:
         :class:`~fsof_torch.estimation.flow_fit.RoadFit` of the model; ``residual`` and
@@ -388,6 +391,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         bound_lo = None if lo is None else torch.cat([lo, torch.full((B, 2), -math.inf, dtype=torch.float64, device=dev)], 1)
         bound_hi = None if hi is None else torch.cat([hi, torch.full((B, 2), math.inf, dtype=torch.float64, device=dev)], 1)
 
+        checks = None if check_every is None else range(check_every, max_iter)
+
         def run(level: int, reps: int, params: Tensor, band: float | None) -> Solution:
             problem = _level_problem(model, _level_camera(cam64, level), _band(pyramid[level], band), masks[level],
                                      gradient_fraction, max_points, reps)
@@ -398,7 +403,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                          scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
                          # a coarse level only has to land in the next one's basin
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
-                         check_every=check_every, missing="mean")
+                         check_every=checks, missing="mean")
 
         iterations = torch.zeros(B, dtype=torch.long, device=dev)
         sol = None
