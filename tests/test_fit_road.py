@@ -374,3 +374,25 @@ def test_fit_displacement_reads_the_host_at_most_5_times(batch):
     assert bool(fit.success.all())
     assert sum(counts.values()) <= 5, counts
     assert counts["aten::nonzero"] == 1 and counts["aten::linalg_solve"] == 0, counts
+
+
+@pytest.mark.parametrize("model", ["paper", "plane", "homography"])
+def test_early_stop_checks_change_no_result(model):
+    """The checks only end the loops (converged samples stop moving): the default schedule gives
+    the same fit as the fixed budgets. On this frame each stage converges within its first two
+    checks: at most 4 host reads more than the fixed budgets (which make none in their loops)."""
+    flow, mask = kitti_frame_with_a_car()
+    cam = Camera(torch.tensor(KITTI_K, dtype=torch.float32), 1.65)
+    fit_road(flow, mask, cam, model=model)  # warm-up: constants cached on the first call
+    fits = {}
+
+    def call(checks):
+        fits[checks] = fit_road(flow, mask, cam, model=model, check_every=checks)
+
+    reads = {checks: sum(host_reads(lambda: call(checks)).values()) for checks in ("auto", None)}
+    fit, fixed = fits["auto"], fits[None]
+    assert bool(fit.success.all()) and bool(fixed.success.all())
+    for name in fit.params:
+        assert torch.equal(fit.params[name], fixed.params[name]), name
+    assert torch.equal(fit.iterations, fixed.iterations)
+    assert 0 < reads["auto"] - reads[None] <= 4, reads
