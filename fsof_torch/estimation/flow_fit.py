@@ -468,10 +468,11 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             1, 2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both.
-            ``"auto"``: (3, 1) where the robust stage anneals its kernel from the paper's planar
-            start (about two iterations, and one more to converge; the velocity model from rest
-            likewise), (2, 1) from the robust DLT start of the plane and the homography, which
-            lands closer; the polish starts at the robust answer. The checks change no result
+            ``"auto"``: (3, 1) where the robust stage anneals its kernel from a start of another
+            model (the paper's planar motion, the plane decomposed from a DLT homography; about
+            two iterations, and one more to converge; the velocity model from rest likewise),
+            (2, 1) for the homography, whose start (a robust DLT) is already of its own model;
+            the polish starts at the robust answer. The checks change no result
             (converged samples stop moving): they only end the loops. None: run the fixed
             budgets (no host read inside the loops).
 
@@ -503,8 +504,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     if isinstance(check_every, str) and check_every == "auto":
         # (python benchmarks/bench_fit.py: the robust stage converges after 3 iterations from the
-        # paper's start, after 2 from the DLT's)
-        check_every = (2 if model.name in ("plane", "homography") and init is None else 3, 1)
+        # paper's planar start and from the plane decomposed from the DLT, after 2 from the DLT
+        # itself)
+        check_every = (2 if model.name == "homography" and init is None else 3, 1)
     checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
     expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"
     if len(checks) != 2 or any(k is not None and (not isinstance(k, int) or isinstance(k, bool)) for k in checks):
