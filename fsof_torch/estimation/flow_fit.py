@@ -390,14 +390,14 @@ _ROBUST_STAGE_RESOLUTION = 0.1
 def _check_schedule(first: int | None, max_iter: int) -> list[int] | None:
     """The solver's early-stop checks: after ``first`` iterations, then 1, 1, 2, 4, ... more (a
     stage that has not converged at its expected count usually needs one or two more iterations:
-    each is checked, so that none runs after all samples converged; python
-    benchmarks/bench_refine.py, whose polish converges after 3 iterations)."""
+    each of those is checked, so that none runs after all samples converged)."""
     if first is None:
         return None
-    out, gap, again = [first], 1, True
+    out, gap = [first], 1
     while out[-1] + gap < max_iter:
         out.append(out[-1] + gap)
-        gap, again = (gap, False) if again else (gap * 2, False)
+        if len(out) > 2:  # the gaps: 1, 1, then doubling
+            gap *= 2
     return out
 
 
@@ -502,10 +502,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
-    if isinstance(check_every, str) and check_every == "auto":
-        # (python benchmarks/bench_fit.py: the robust stage converges after 3 iterations from the
-        # paper's planar start and from the plane decomposed from the DLT, after 2 from the DLT
-        # itself)
+    if check_every == "auto":
+        # the homography's start, a robust DLT, is of its own model: its robust stage has less to do
         check_every = (2 if model.name == "homography" and init is None else 3, 1)
     checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
     expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"

@@ -318,8 +318,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         data_range: the images' range (255.0 or 1.0).
         check_every: each level asks whether all samples converged (one host read) after this
             many iterations and then after every further one, so that no level runs on after
-            its samples converged (python benchmarks/bench_image_fit.py); the levels need 3 or
-            more. None: every level runs ``max_iter`` iterations, without a host read.
+            its samples converged; the checks change no result. None: every level runs
+            ``max_iter`` iterations, without a host read.
 
     Returns:
         :class:`~fsof_torch.estimation.flow_fit.RoadFit` of the model; ``residual`` and
