@@ -189,3 +189,17 @@ def test_every_contract_name_is_importable_from_fsof_torch():
     for name in top:
         obj = getattr(fsof_torch, name)
         importlib.import_module(getattr(obj, "__module__", None) or obj.__name__)
+
+
+def test_importing_the_library_and_the_jobs_leaves_torch_compile_unloaded():
+    """``import fsof_torch`` (and the jobs' modules) must not load torch._dynamo, the compiler's
+    1.5 s import: code that only runs under torch.compile marks itself while compiling (a
+    ``@torch.compiler.disable`` decorator at import time would load it for every user)."""
+    import subprocess
+    import sys
+
+    code = ("import sys, fsof_torch, refine.__main__, eval.__main__; "
+            "print(sorted(m for m in sys.modules if m.startswith('torch._dynamo')))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=PACKAGE.parent)
+    assert out.stdout.strip() == "[]", out.stdout[:500]

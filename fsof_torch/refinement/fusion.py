@@ -466,11 +466,18 @@ def _needs_grad(camera: Camera) -> bool:
         t.requires_grad for t in (camera.K, camera.height, camera.roll, camera.pitch))
 
 
-# Estimation is iterative, data dependent and detached: under torch.compile it runs eagerly, and the
-# geometry and fusion around it compile (tests/test_fusion_backends.py, docs/reliability.md).
-@torch.compiler.disable
-def _estimate(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
-              images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
+def _estimate(*args: Any, **kwargs: Any):
+    """Estimation is iterative, data dependent and detached: under torch.compile it runs eagerly,
+    and the geometry and fusion around it compile (tests/test_fusion_backends.py,
+    docs/reliability.md). ``torch.compiler.disable`` is applied only while compiling: as a
+    decorator it would import torch._dynamo with the library (1.5 s of every job's start)."""
+    if tracing():
+        return torch.compiler.disable(_estimate_eager)(*args, **kwargs)
+    return _estimate_eager(*args, **kwargs)
+
+
+def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
+                    images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
 
     Returns None when no sample can be estimated, else ``(fit, success (B,), params {name: (B,)},
