@@ -6,8 +6,9 @@ For each setting (``fit_image`` keyword arguments, JSON), the ``"plane"`` fit of
 - the shared KITTI 2015 pair 000000 (road.json; EPE over the road pixels with ground truth);
 - three pairs of the shared straight KITTI odometry clip (0, 4, 8; road census distance of the
   fitted road flow, image 1 against image 2 warped, 7×7 census / 48);
-- the synthetic ``default`` scene (pairs 0 and 2) and ``body-motion`` preset (pairs 0–2), road EPE
-  over the valid road pixels.
+- the synthetic ``default`` scene (pairs 0 and 2), ``body-motion`` preset (pairs 0–2), and the
+  ``default`` scene in a sharp turn (``steering=0.1``: 2.6° of yaw per frame, 26°/s at 10 Hz;
+  pairs 0 and 2), road EPE over the valid road pixels.
 
     python benchmarks/image_fit_settings.py                       # the settings below
     python benchmarks/image_fit_settings.py '{"highpass": 3.0}' '{"highpass": null}'
@@ -36,7 +37,8 @@ def main(argv: list[str]) -> None:
     torch.set_num_threads(1)
     settings = [json.loads(a) for a in (argv or SETTINGS)]
     synthetic = {"default": [render_pair("default", i, seed=0) for i in (0, 2)],
-                 "body-motion": render_sequence("body-motion", 3, seed=0)}
+                 "body-motion": render_sequence("body-motion", 3, seed=0),
+                 "turning": [render_pair("default", i, seed=0, steering=0.1) for i in (0, 2)]}
     real = {}
     k15 = SHARED / "kitti15_000000"
     if k15.is_dir():
@@ -54,8 +56,8 @@ def main(argv: list[str]) -> None:
     def epe(flow, gt, mask):
         return float((flow - gt).norm(dim=0)[mask].mean())
 
-    print("| setting | KITTI pair EPE (px) | clip census | default EPE (px) | body-motion EPE (px) |")
-    print("|---|---|---|---|---|")
+    print("| setting | KITTI pair EPE (px) | clip census | default EPE (px) | body-motion EPE (px) | turning EPE (px) |")
+    print("|---|---|---|---|---|---|")
     for kw in settings:
         cols = []
         if "kitti" in real:
