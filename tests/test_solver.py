@@ -93,6 +93,34 @@ def test_no_host_read_without_checks_and_fixed_budget():
     assert "aten::_local_scalar_dense" not in names and "aten::nonzero" not in names
 
 
+@pytest.mark.parametrize("first", [1, 2, 3, 5])
+def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
+    """An int ``check_every`` k checks after k iterations, then after 1, 1, 2, 4, ... more: the loop
+    ends at the first check at or after the iteration where every sample converged, and the
+    result is the fixed budget's."""
+    base, truth, _, _ = line_problem(noise=0.01, outliers=0.1)
+    calls = []
+
+    def counted(p):
+        calls.append(1)
+        return base.fn(p)
+
+    problem = ResidualProblem(counted, base.count)
+    start = torch.zeros(2, 2, dtype=torch.float64)
+    full = solve(problem, start, kernel="cauchy", max_iter=40, check_every=None)
+    converged_at = int(full.iterations.max())  # converged samples stop counting iterations
+    assert bool(full.converged.all()) and converged_at < 20
+    schedule, gap = [first], 1  # the schedule written out: k, k+1, k+2, k+4, k+8, ...
+    while schedule[-1] < 40:
+        schedule.append(schedule[-1] + gap)
+        gap = gap * 2 if len(schedule) > 2 else gap
+    stop = next(k for k in schedule if k >= converged_at)
+    calls.clear()
+    sol = solve(problem, start, kernel="cauchy", max_iter=40, check_every=first)
+    assert len(calls) == 1 + stop  # the start, then one candidate per iteration
+    assert torch.equal(sol.params, full.params) and torch.equal(sol.iterations, full.iterations)
+
+
 def test_covariance_of_linear_least_squares():
     problem, truth, x, y = line_problem(B=1, N=400, noise=0.05, seed=3)
     sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", max_iter=10)

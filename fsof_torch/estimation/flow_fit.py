@@ -387,20 +387,6 @@ _RESOLUTION = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
 
 
-def _check_schedule(first: int | None, max_iter: int) -> list[int] | None:
-    """The solver's early-stop checks: after ``first`` iterations, then 1, 1, 2, 4, ... more (a
-    stage that has not converged at its expected count usually needs one or two more iterations:
-    each of those is checked, so that none runs after all samples converged)."""
-    if first is None:
-        return None
-    out, gap = [first], 1
-    while out[-1] + gap < max_iter:
-        out.append(out[-1] + gap)
-        if len(out) > 2:  # the gaps: 1, 1, then doubling
-            gap *= 2
-    return out
-
-
 def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pts: Tensor, flow: Tensor,
              sel: Tensor) -> Tensor:
     """Values (B, P) float64 of a start without a prior: the paper's model from the planar motion
@@ -547,7 +533,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
-                        check_every=_check_schedule(first_check, max_iter))
+                        check_every=first_check)
             if i == 0:
                 params, converged = sol.params, sol.converged
             else:

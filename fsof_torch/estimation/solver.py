@@ -20,9 +20,10 @@ each accepted step, or dropping to the new residuals' spread), so that a wrong s
 locked in by its own weights.
 
 The loop runs a fixed budget of ``max_iter`` iterations with the convergence of each sample kept
-on the device; converged samples stop moving. After ``check_every`` iterations, then twice as many,
-four times... (or after the iterations listed): one host read asks whether all have converged, to
-stop early (``check_every=None``: never, for a GPU loop without synchronisation).
+on the device; converged samples stop moving. After ``check_every`` iterations, then after 1, 1, 2,
+4, ... more (or after the iterations listed): one host read asks whether all have converged, to
+stop early (``check_every=None``: never, for a GPU loop without synchronisation). The checks change
+no result: they only end the loop.
 """
 
 from __future__ import annotations
@@ -163,17 +164,20 @@ def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float)
 
 
 def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> list[int]:
-    """The iterations after which :func:`solve` asks whether all samples converged."""
+    """The iterations after which :func:`solve` asks whether all samples converged: an int k gives
+    k, then 1, 1, 2, 4, ... more (a stage that has not converged when expected usually needs one or
+    two more iterations: each of those is checked, and then the gaps double)."""
     if check_every is None:
         return []
     if isinstance(check_every, int) and not isinstance(check_every, bool):
         if check_every < 1:
             raise ValueError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}")
-        out, k = [], check_every
-        while k < max_iter:
-            out.append(k)
-            k *= 2
-        return out
+        out, gap = [check_every], 1
+        while out[-1] + gap < max_iter:
+            out.append(out[-1] + gap)
+            if len(out) > 2:  # the gaps: 1, 1, then doubling
+                gap *= 2
+        return [k for k in out if k < max_iter]
     try:
         out = sorted({int(k) for k in check_every})
     except (TypeError, ValueError):
@@ -212,8 +216,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         resolution: also converged when a step (accepted or not) moves the residuals by at most
             this fraction of their robust RMS (below what the points can resolve); 0: off.
         check_every: stop early when all samples converged, checked (one host read each) after
-            this many iterations, then after twice as many, four times...: a handful of reads for
-            any budget; or the iterations after which to check (a sequence); None: always run
+            this many iterations, then after 1, 1, 2, 4, ... more: a handful of reads for any
+            budget; or the iterations after which to check (a sequence); None: always run
             ``max_iter``.
         damping: the initial Levenberg–Marquardt damping.
         missing: what a point that does not count (not ``use``) costs: ``"outlier"``, as much as a
