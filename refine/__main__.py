@@ -334,7 +334,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
 def _fit_clip(specs, camera, cfg, built: dict, device):
     """The clip's road motion and calibrated camera (refine.calibrate); road masks the pairs' own,
-    or detected on DIS's flow where the road is auto."""
+    or detected on DIS's flow where the road is auto (the refinement of every source then uses
+    those detections: each pair's road is detected once)."""
     import torch
 
     from .calibrate import fit_clip
@@ -343,11 +344,12 @@ def _fit_clip(specs, camera, cfg, built: dict, device):
 
     dis = built.get("dis") or make_source("dis", weights=None, net=None, device=device)
 
-    def road_for(pair: dict) -> torch.Tensor:
+    def road_for(pair: dict) -> tuple[torch.Tensor, dict]:
         if pair.get("road") is not None and not cfg.road_auto:
-            return pair["road"]
+            return pair["road"], {}
         cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
-        return road_mask(pair, dis(pair, None), cam, cfg)[0]
+        road, _, info = road_mask(pair, dis(pair, None), cam, cfg)
+        return road, info
 
     cam = camera if camera is not None else specs[0].load()["camera"]
     return fit_clip(specs, cam, road_for, progress=cfg.progress)

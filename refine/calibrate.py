@@ -28,12 +28,21 @@ from .inputs import JobError, PairSpec
 class ClipFit:
     """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
     ``camera`` the calibrated camera, ``mounting`` {"roll", "pitch" (degrees), "height" (m) with
-    poses}, ``success[name]`` whether the pair's fit succeeded."""
+    poses}, ``success[name]`` whether the pair's fit succeeded; and the road masks the fit used
+    (packed), with what ``road_for`` reported about each (:meth:`road`)."""
 
     motion: dict[str, dict[str, Any]]
     camera: Camera
     mounting: dict[str, float]
     success: dict[str, bool]
+    masks: PackedMasks
+    road_info: dict[str, tuple[int, dict[str, Any]]]
+
+    def road(self, name: str) -> tuple[Tensor, dict[str, Any]]:
+        """Pair ``name``'s road mask (1, H, W) bool, as the clip's fit used it, and what was
+        recorded about it (with ``--road auto``: the detection's flag, reason and coverage)."""
+        k, info = self.road_info[name]
+        return self.masks[k], info
 
 
 class ClipFrames:
@@ -94,7 +103,8 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     Args:
         specs: the clip's pairs, in order.
         camera: the nominal camera (batch 1): intrinsics, height, roll and pitch.
-        road_for: a loaded pair -> its road mask (1, H, W) bool.
+        road_for: a loaded pair -> its road mask (1, H, W) bool and what to record about it (a
+            dict), kept with the masks (:meth:`ClipFit.road`).
         progress: progress bars.
     """
     from tqdm import tqdm
@@ -102,6 +112,7 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     if len(specs) < 2:
         raise JobError("sequence: a clip needs at least 2 pairs (3 frames)")
     masks = PackedMasks()
+    road_info: dict[str, tuple[int, dict[str, Any]]] = {}
     relative_poses: list[Tensor | None] = []
     previous = None  # the previous pair's second image, which must be this pair's first
     for k, spec in enumerate(tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)):
@@ -111,7 +122,9 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
                            f"of one clip (the second image of one is not the first of the next); use "
                            f"--odometry photometric for separate pairs")
         previous = pair["image2"]
-        masks.append(road_for(pair).reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
+        road, info = road_for(pair)
+        masks.append(road.reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
+        road_info[spec.name] = (k, info)
         pose = pair.get("relative_pose")
         relative_poses.append(None if pose is None else pose.to(torch.float64))
         del pair
@@ -131,4 +144,4 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     if "height" in seq.mounting:
         mounting["height_m"] = seq.mounting["height"]
     success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
-    return ClipFit(motion, seq.camera, mounting, success)
+    return ClipFit(motion, seq.camera, mounting, success, masks, road_info)

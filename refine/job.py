@@ -164,7 +164,11 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
                 pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
                 bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
-                road, road_from, road_info = road_mask(pair, pred, cam, cfg)
+                if cfg.road_auto and cfg.clip is not None:  # detected once, for the clip's fit
+                    road, road_info = cfg.clip.road(spec.name)
+                    road, road_from = road.to(pred.device), "auto"
+                else:
+                    road, road_from, road_info = road_mask(pair, pred, cam, cfg)
                 before = flow_maps(pair, pred)
                 flows, maps = {}, {}
                 for variant in cfg.variants:

@@ -307,10 +307,13 @@ def test_fit_clip_loads_each_pair_three_times_and_fits_like_a_list(user_folder, 
 
     def road_for(pair):
         roads.append(pair["road"])
-        return pair["road"]
+        return pair["road"], {"index": len(roads) - 1}
 
     clip = fit_clip([counted(s) for s in specs], camera, road_for, progress=False)
     assert loads == {s.name: 3 for s in specs} and len(roads) == len(specs)
+    for k, s in enumerate(specs):  # the masks the fit used, and what road_for said, by pair
+        mask, info = clip.road(s.name)
+        assert torch.equal(mask, roads[k].reshape(mask.shape).bool()) and info == {"index": k}
     items, _ = _dataset_and_camera(user_folder, scene_pairs, poses=user_folder / "poses.txt")
     # the poses as fit_clip chains them: camera-to-world with the world at the first camera
     P = [torch.eye(4, dtype=torch.float64)]
@@ -369,17 +372,33 @@ def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
     assert rec["pitch"] == pytest.approx(math.radians(pitch), abs=1e-9) or rec["refined"] is False
 
 
-def test_calibrate_pitch_with_auto_road(tmp_path, user_folder, scene_pairs):
-    """--calibrate-pitch with --road auto: the clip's masks are found in the images first."""
+def test_calibrate_pitch_with_auto_road(tmp_path, user_folder, scene_pairs, monkeypatch):
+    """--calibrate-pitch with --road auto: the clip's masks are found in the images first, once
+    per pair: the refinement of every source uses those detections (and records them)."""
+    import fsof_torch
+
+    detected = []
+    detect_road = fsof_torch.detect_road
+
+    def counting(*args, **kwargs):
+        det = detect_road(*args, **kwargs)
+        detected.append(int(det.mask.sum()))
+        return det
+
+    monkeypatch.setattr(fsof_torch, "detect_road", counting)
     out = tmp_path / "out"
-    args = _user(user_folder, out, "--road", "auto", "--source", "dis", "--odometry", "photometric",
+    args = _user(user_folder, out, "--road", "auto", "--source", "dis,testnet", "--odometry", "photometric",
                  "--calibrate-pitch")
     assert main(args) == 0
     summary = json.loads((out / "report.json").read_text())
     true = math.degrees(float(scene_pairs[0]["camera"].pitch[0]))
     assert abs(summary["calibrated_mounting"]["pitch_deg"] - true) < 1.0
-    rec = json.loads((out / "dis" / "photometric" / "pairs" / "000000.json").read_text())
-    assert rec["road"] == "auto" and "road_flag" in rec
+    assert len(detected) == len(scene_pairs)  # once per pair, not once more per source
+    for source in ("dis", "testnet"):
+        for k in range(len(scene_pairs)):
+            rec = json.loads((out / source / "photometric" / "pairs" / f"{k:06d}.json").read_text())
+            assert rec["road"] == "auto" and "road_flag" in rec
+            assert rec["road_auto_pixels"] == detected[k]
 
 
 def test_stale_temporaries_are_removed(tmp_path):
