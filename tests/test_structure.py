@@ -192,8 +192,8 @@ def test_every_contract_name_is_importable_from_fsof_torch():
 
 
 def test_importing_the_library_and_the_jobs_leaves_torch_compile_unloaded():
-    """``import fsof_torch`` (and the jobs' modules) must not load torch._dynamo, the compiler's
-    1.5 s import: code that only runs under torch.compile marks itself while compiling (a
+    """``import fsof_torch`` (and the jobs' modules) must not load torch._dynamo (the compiler: a
+    slow import): code that only runs under torch.compile marks itself while compiling (a
     ``@torch.compiler.disable`` decorator at import time would load it for every user)."""
     import subprocess
     import sys

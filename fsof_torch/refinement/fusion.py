@@ -470,7 +470,7 @@ def _estimate(*args: Any, **kwargs: Any):
     """Estimation is iterative, data dependent and detached: under torch.compile it runs eagerly,
     and the geometry and fusion around it compile (tests/test_fusion_backends.py,
     docs/reliability.md). ``torch.compiler.disable`` is applied only while compiling: as a
-    decorator it would import torch._dynamo with the library (1.5 s of every job's start)."""
+    decorator it would import torch._dynamo, the compiler (a slow import), with the library."""
     if tracing():
         return torch.compiler.disable(_estimate_eager)(*args, **kwargs)
     return _estimate_eager(*args, **kwargs)
