@@ -150,6 +150,16 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     assert rr.main(["--data", str(tmp_path / "data"), "--pairs", "1", "--no-ecc", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "| DIS | 1 |" in printed and "| ECC homography |" not in printed
+    # frames two apart: one pair (0, 2), and frame 2 has no pose
+    assert rr.main(["--data", str(tmp_path / "data"), "--step", "2", "--no-ecc", "--no-sequence", "--no-progress",
+                    "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "1 pair(s), frames 2 apart" in printed and "| DIS | 1 |" in printed and "poses" not in printed
+    report = json.loads(out.read_text())
+    assert report["step"] == 2 and [p["pair"] for p in report["clip"]["pairs"]] == ["000000"]
+    with pytest.raises(SystemExit) as exit_:
+        rr.main(["--data", str(tmp_path / "data"), "--step", "0"])
+    assert exit_.value.code == 2 and "--step: expected >= 1, got 0" in capsys.readouterr().err
 
 
 def test_main_without_data_exits_2(rr, tmp_path, capsys):

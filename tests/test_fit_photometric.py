@@ -95,6 +95,9 @@ def test_exceptions():
     (dict(bounds=(torch.zeros(1, 5), torch.ones(1, 5))), ValueError, r"bounds \(lower\): expected shape \(1, 8\)"),
     (dict(check_every=0), ValueError, "check_every: expected an int >= 1, got 0"),
     (dict(fixed=3), TypeError, "fixed: expected None, a name or a sequence of names, got int 3"),
+    (dict(forward_starts=2.0), TypeError, "forward_starts: expected a list or tuple of numbers .* got float 2.0"),
+    (dict(forward_starts=[1.0, float("nan")]), ValueError, "forward_starts: expected a finite number, got nan"),
+    (dict(forward_starts=["fast"]), TypeError, "forward_starts: expected a number, got str 'fast'"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image

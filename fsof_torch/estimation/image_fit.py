@@ -20,7 +20,8 @@ per frame, its vertical motion is centimetres).
 - **Cheap iterations**: the sample points are fixed per level; an iteration evaluates the model's
   3×3 map, samples the second image and its gradients at the points (one ``grid_sample``) and
   uses the average of both images' gradients (efficient second-order minimisation).
-- **Several starts**, chosen by the robust image cost at the coarsest level: zero motion, and
+- **Several starts**, each solved at the coarsest level and chosen by the robust image cost both
+  ways (:mod:`~fsof_torch.estimation.starts`): zero motion, straight ahead at a few speeds, and
   whatever the caller gives (a fit to a network's flow, the previous frame's motion, a
   constant-velocity prediction).
 - **Bounds** that make absurd answers impossible, and the fit's own confidence: its robust
@@ -44,9 +45,10 @@ from .._check import (autocast_off, check_bool, check_fit_flags, check_float_ten
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
-from .flow_fit import RoadFit, check_fit_options, fixed_parameters, start_values
+from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
-from .sampling import MaskPoints, pixel_coordinates, sample_mask
+from .sampling import MaskPoints, pixel_coordinates, sample_mask, sample_points
+from .starts import check_forward_steps, start_list, starts_ahead, two_way_cost
 from .solver import Evaluation, Solution, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
@@ -107,23 +109,6 @@ def _grey(image: Tensor) -> Tensor:
     return image
 
 
-def _sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
-    """Bilinear samples of ``image`` (B, C, H, W) at pixel positions ``xy`` (B, 2, N) float64.
-
-    The iterations need the warped image only at the sample points, so they sample those points
-    (``grid_sample`` on a (B, 1, N) grid, with the corner-aligned normalisation written here)
-    instead of warping the whole frame. Returns (B, C, N) float64 and in-bounds flags (B, N).
-    """
-    B, C, H, W = image.shape
-    x, y = xy[:, 0], xy[:, 1]
-    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    gx = x * (2.0 / max(W - 1, 1)) - 1.0
-    gy = y * (2.0 / max(H - 1, 1)) - 1.0
-    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1).to(image.dtype)  # (B, 1, N, 2)
-    out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[:, :, 0].to(torch.float64), inb
-
-
 def _with_gradient(image: Tensor) -> Tensor:
     """``image`` (B, 1, H, W) and its central-difference gradient: (B, 3, H, W) = (I, ∂I/∂x,
     ∂I/∂y), replicated at the border. Sampling this bilinearly gives the same numbers as central
@@ -180,7 +165,7 @@ class ImageProblem:
         ok = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
         inv_z = torch.where(ok, qz, 1.0).reciprocal()
         proj = q[:, :2] * inv_z.unsqueeze(1)
-        sample, inb = _sample_points(self.image2, proj)  # (B, 3, N): I_2 and its gradient
+        sample, inb = sample_points(self.image2, proj)  # (B, 3, N): I_2 and its gradient
         I2, grad2 = sample[:, 0], sample[:, 1:]
         use = ok & inb
         e = gain.unsqueeze(-1) * I2 + offset.unsqueeze(-1) - self.I1
@@ -255,13 +240,6 @@ def _check_bounds(bounds: object, model: RoadModel, B: int) -> None:
         raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
 
 
-def _start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
-    """Start values (B, P) float64: ``init`` over zero motion (the base), then each of ``starts``
-    over the base (a start gives some parameters; the others are the base's)."""
-    base, _ = start_values(model, init, camera, default)
-    return [base] + [start_values(model, s, camera, base)[0] for s in starts]
-
-
 @torch.no_grad()
 def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               model: str | RoadModel = "plane", fixed: object = None, init: Any = None,
@@ -272,7 +250,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, data_range: float = 255.0,
-              check_every: int | None = 3) -> RoadFit:
+              check_every: int | None = 3, forward_starts: Sequence[float] = (2.0, 4.0)) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -289,8 +267,14 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             parameters stay at it.
         starts: further start candidates, each a dict or fit whose parameters override ``init``'s
             (e.g. a fit to a network's flow, the previous frame's motion, a constant-velocity
-            prediction). Each is tried at the coarsest level; the one with the lowest robust
-            image cost goes on.
+            prediction). Each is solved at the coarsest level; the one with the lowest robust
+            image cost, both ways (image 1's road into image 2 and image 2's back,
+            :func:`~fsof_torch.estimation.starts.two_way_cost`) at the next finer level, goes on.
+        forward_starts: further starts straight ahead, by these many camera heights per frame
+            (z_d = k h; the other parameters as ``init``): from zero motion or a poor flow the fit
+            finds steps of up to about 1.5 heights, these find fast driving (at 10 Hz and a 1.65 m
+            high camera, 2 and 4 heights are 119 and 238 km/h). Not used where z_d is fixed;
+            ``()``: none.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -313,8 +297,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             from which the points are drawn.
         affine: also fit a gain and an offset between the frames' brightness.
         inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution.
-        min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask, mark the
-            frame as failed (as does a diverged or ill-conditioned fit).
+        min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask's points
+            that the model keeps inside image 2 (the others cannot be judged: at speed the road
+            near the car leaves the frame), mark the frame as failed (as does a diverged or
+            ill-conditioned fit).
         data_range: the images' range (255.0 or 1.0).
         check_every: each level asks whether all samples converged (one host read) after this
             many iterations and then after every further one, so that no level runs on after
@@ -344,6 +330,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
         raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
     check_bool(affine, "affine")
+    steps = check_forward_steps(forward_starts)
     fixed = check_names(fixed, "fixed")
     if isinstance(prior, str) and prior != "calibration":
         raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
@@ -380,7 +367,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             masks.append(-F.max_pool2d(-masks[-1].to(work), 3, stride=2, padding=1) > 0.5)
 
         _, default = pack_params(model, cam64, None)
-        candidates = _start_list(model, cam64, init, starts, default)
+        forward = starts_ahead(model, cam64, steps, fixed_names)
+        candidates = start_list(model, cam64, init, list(starts) + forward, default)
         S = len(candidates)
         ones, zeros = torch.ones(B, 1, dtype=torch.float64, device=dev), torch.zeros(B, 1, dtype=torch.float64, device=dev)
         params = torch.cat([torch.cat(candidates), ones.repeat(S, 1), zeros.repeat(S, 1)], dim=1)  # (S B, P + 2)
@@ -412,8 +400,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             sol = run(level, reps, params, highpass if level < band_levels else None)
             params = sol.params
             if reps > 1:
-                # the start with the lowest robust cost goes on (one common scale per frame)
-                best = sol.cost.reshape(reps, B).argmin(0)
+                # the start with the lowest two-way robust cost goes on (one common scale per frame)
+                judge = max(level - 1, 0)  # (a finer level: more points judge)
+                cost = two_way_cost(sol.params, model, _level_camera(cam64, judge), pyramid[judge], masks[judge],
+                                     robust, max_points, reps)
+                best = cost.reshape(reps, B).argmin(0)
                 params = params.reshape(reps, B, -1)[best, torch.arange(B, device=dev)]
                 iterations = iterations + sol.iterations.reshape(reps, B)[best, torch.arange(B, device=dev)]
                 sol = None if level == 0 else sol
@@ -581,7 +572,7 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
 def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints, gain: Tensor,
                          offset: Tensor, threshold: float) -> tuple[Tensor, Tensor, Tensor]:
     """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
-    |residual| (B,) and their share of the mask (B,)."""
+    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,)."""
     B, _, H, W = grey.shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")
@@ -595,7 +586,7 @@ def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: Mask
     inb = torch.empty_like(I1, dtype=torch.bool)
     for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
         run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
-        s, ok = _sample_points(grey[b:b + 1, 1:], xy[:, run].unsqueeze(0))
+        s, ok = sample_points(grey[b:b + 1, 1:], xy[:, run].unsqueeze(0))
         I2[run], inb[run] = s[0, 0], ok[0]
     ok = inb & valid.reshape(-1).gather(0, every)
     err = (gain[frame] * I2 + offset[frame] - I1).abs()
@@ -603,7 +594,7 @@ def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: Mask
     inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, every, inl).reshape(B, 1, H, W)
     n_in = points.per_frame(inl.to(torch.float64))
     residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
-    return inliers, residual, n_in / points.count.to(torch.float64).clamp_min(1)
+    return inliers, residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
 
 
 def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,

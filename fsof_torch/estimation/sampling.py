@@ -11,9 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MaskPoints", "sample_mask", "pixel_coordinates", "gather_pixels"]
+__all__ = ["MaskPoints", "sample_mask", "pixel_coordinates", "gather_pixels", "sample_points"]
 
 
 @dataclass
@@ -85,3 +86,20 @@ def gather_pixels(x: Tensor, pix: Tensor) -> Tensor:
     """``x`` (B, C, H, W) at flat pixel indices (B, N) -> (B, C, N)."""
     B, C = x.shape[:2]
     return x.reshape(B, C, -1).gather(2, pix.unsqueeze(1).expand(B, C, pix.shape[1]))
+
+
+def sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
+    """Bilinear samples of ``image`` (B, C, H, W) at pixel positions ``xy`` (B, 2, N) float64.
+
+    The iterations need the warped image only at the sample points, so they sample those points
+    (``grid_sample`` on a (B, 1, N) grid, with the corner-aligned normalisation written here)
+    instead of warping the whole frame. Returns (B, C, N) float64 and in-bounds flags (B, N).
+    """
+    B, C, H, W = image.shape
+    x, y = xy[:, 0], xy[:, 1]
+    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    gx = x * (2.0 / max(W - 1, 1)) - 1.0
+    gy = y * (2.0 / max(H - 1, 1)) - 1.0
+    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1).to(image.dtype)  # (B, 1, N, 2)
+    out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
+    return out[:, :, 0].to(torch.float64), inb
