@@ -5,7 +5,8 @@ against their torch / kornia equivalents.
 Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
 
 - DIS (the reference), ``fit_image`` (the default ``"plane"`` fit), the default refiner with the
-  images (estimation, model flow, gate, fusion), and the gate alone;
+  images (estimation, model flow, gate, fusion), and the gate alone; the fit and the refiner also
+  without the starts straight ahead (``forward_starts=()``), which find fast driving: their price;
 - a Gaussian blur σ = 4 (the band-pass) and the pyramid's decimation: OpenCV against kornia /
   torch (the fast paths ``gaussian_blur`` and ``image_pyramid`` take on the CPU).
 
@@ -58,6 +59,7 @@ def main() -> None:
     I1, I2, M = im1[None], im2[None], road[None]
     flow = dis_flow(im1, im2)[None]
     refiner = fs.FreespaceRefiner()
+    ahead_off = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(forward_starts=()))
     out = refiner(flow, M, cam, images=(I1, I2))
     gate = fs.ImageGate()
     grey = torch.cat([I1.mean(1, keepdim=True), I2.mean(1, keepdim=True)], 1)
@@ -72,7 +74,9 @@ def main() -> None:
     rows = {
         "DIS (MEDIUM), the reference": lambda: dis_flow(im1, im2),
         "fit_image (plane, defaults)": lambda: fs.fit_image(I1, I2, M, cam),
+        "fit_image, no starts ahead (forward_starts=())": lambda: fs.fit_image(I1, I2, M, cam, forward_starts=()),
         "FreespaceRefiner() with the images": lambda: refiner(flow, M, cam, images=(I1, I2)),
+        "the same, no starts ahead": lambda: ahead_off(flow, M, cam, images=(I1, I2)),
         "ImageGate() alone": lambda: gate(I1, I2, flow, out.flow_model, M),
         "Gaussian blur σ 4, OpenCV": lambda: gaussian_blur(grey, 4.0),
         "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),
