@@ -269,3 +269,28 @@ def test_odometry_clip_never_empty(shared_data):
         poly = _polygon(root / "road.json", tuple(im1.shape[-2:]))
         assert det.flag == ["ok"]
         assert float((det.mask & poly).sum() / poly.sum()) >= 0.6
+
+
+def test_odometry_clip_driven_fast(shared_data, monkeypatch):
+    """Frames 0 and 5 of the straight clip, 6 m apart: most of the seed leaves image 2, and the
+    seed's motion fit fails; on a seed twice as deep it finds the road."""
+    from fsof_torch.io.images import read_image
+
+    import fsof_torch.refinement.auto_road as auto_road
+
+    root = shared_data / "kitti_odometry_straight"
+    cam = Camera.from_kitti(root / "calib.txt", cam=0, height=1.65)
+    im1, im2 = (read_image(root / "image_l" / f"{j:06d}.png")[None, :1] for j in (0, 5))
+    depths = []
+    seed = auto_road.road_seed
+
+    def recorded(*args, **kwargs):
+        depths.append(kwargs.get("depth_m"))
+        return seed(*args, **kwargs)
+
+    monkeypatch.setattr(auto_road, "road_seed", recorded)
+    det = detect_road(im1, im2, cam)
+    poly = _polygon(root / "road.json", tuple(im1.shape[-2:]))
+    assert depths == [40.0]
+    assert det.flag == ["ok"]
+    assert float((det.mask & poly).sum() / poly.sum()) >= 0.6

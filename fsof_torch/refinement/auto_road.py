@@ -538,6 +538,12 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :hs, :ws] / 2 ** seed_level
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
         motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
+        if not bool(torch.as_tensor(getattr(motion, "success", True)).all()):
+            # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep
+            deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
+            again = estimator(flow_s, deeper, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
+            if bool(torch.as_tensor(getattr(again, "success", True)).all()):
+                motion = again
     grey = gaussian_blur(_pool(torch.cat([_grey(im1), _grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
 
     def judge(motion: Any) -> tuple[_Evidence, Tensor]:
