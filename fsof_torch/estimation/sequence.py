@@ -3,7 +3,8 @@ carried from pair to pair, and the attitude track smoothed.
 
 A clip of N + 1 frames gives N pairs. Each pair's road motion is fitted to its two images
 (:func:`~fsof_torch.estimation.image_fit.fit_image`, the ``"plane"`` model), started from the
-previous pair's motion and a constant-velocity prediction besides zero motion. Then:
+previous pair's motion and a constant-velocity prediction besides fit_image's own starts (zero
+motion, straight ahead). Then:
 
 1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
    the per-pair attitudes: the body's pitching and rolling averages out over a clip. With poses
