@@ -89,17 +89,18 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     at = rep(img.reshape(img.shape[0], 2, -1).gather(2, points.pix.unsqueeze(1).expand(-1, 2, -1)).to(torch.float64))
     errors, uses = [], []
     # forward: image 1's points into image 2; backward: image 2's points into image 1
-    for H, source, ref, sign in ((M, 1, 0, 1.0), (torch.linalg.inv_ex(M)[0], 0, 1, -1.0)):
+    for H, forward in ((M, True), (torch.linalg.inv_ex(M)[0], False)):
         p = H @ pts
         ok = sel & (p[:, 2] > 1e-9)
         p = p / torch.where(ok, p[:, 2], 1.0).unsqueeze(1)
-        ok = ok & ((horizon @ (pts if sign > 0 else p))[:, 0] > 0)  # on the road in front at t
-        sampled, inb = sample_points(rep(img[:, source:source + 1]), p[:, :2])
-        I2, I1 = (sampled[:, 0], at[:, 0]) if sign > 0 else (at[:, 1], sampled[:, 0])
+        ok = ok & ((horizon @ (pts if forward else p))[:, 0] > 0)  # on the road in front at t
+        sampled, inb = sample_points(rep(img[:, 1:] if forward else img[:, :1]), p[:, :2])
+        I2, I1 = (sampled[:, 0], at[:, 0]) if forward else (at[:, 1], sampled[:, 0])
         errors.append((gain * I2 + offset - I1).abs())
         uses.append(ok & inb)
     e, use = torch.cat(errors, 1), torch.cat(uses, 1)
     mad = torch.nanmedian(torch.where(use, e, float("nan")), dim=1).values
-    scale = (1.4826 * torch.nan_to_num(mad, nan=math.inf)).reshape(reps, -1).amin(0).clamp_min(2.0)
+    scale = (1.4826 * torch.nan_to_num(mad, nan=math.inf)).reshape(reps, -1).amin(0)
+    scale = torch.where(torch.isfinite(scale), scale.clamp_min(2.0), 2.0)  # (no point in view: any scale)
     rho, _ = robust_terms(e.square(), scale.repeat(reps), kernel, use.to(torch.float64))
     return rho / use.sum(1).clamp_min(1)
