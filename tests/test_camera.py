@@ -102,6 +102,14 @@ def test_to_expand_replace():
         cam.replace(focal=3.0)
 
 
+def test_repeat_orders_the_copies_as_tensor_repeat():
+    cam = Camera(_K(), torch.tensor([1.5, 1.7], dtype=torch.float64), roll=torch.tensor([0.01, 0.02], dtype=torch.float64))
+    r = cam.repeat(3)
+    assert r.batch_size == 6 and r.K.shape == (6, 3, 3)
+    assert r.height.tolist() == [1.5, 1.7] * 3 and r.roll.tolist() == [0.01, 0.02] * 3
+    assert cam.repeat(1) is cam
+
+
 def test_to_and_expand_without_change_return_the_camera_itself():
     """Like Tensor.to: no change, no copy (and no re-validation in the refiner's hot path)."""
     cam = Camera(_K(), 1.65, 0.01)

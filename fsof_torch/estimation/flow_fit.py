@@ -30,7 +30,8 @@ from .._check import (autocast_off, check_bool, check_fit_flags, check_float_ten
                       check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import RoadModel, get_road_model, mounting_products, plane_from_homography
+from ..geometry.road_models import (RoadModel, get_road_model, homography_values, mounting_products,
+                                    plane_from_homography)
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
@@ -413,10 +414,7 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         plane = plane_from_homography(H, cam)
         out = torch.stack([plane[n] for n in model.params], dim=-1)
         return torch.where(torch.isfinite(out), out, values)
-    # homography: K⁻¹ H K normalised, minus the identity
-    G = K_inv @ H @ camera.K
-    G = G / G[:, 2:3, 2:3]
-    return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
+    return homography_values(H, camera.K, K_inv)
 
 
 @torch.no_grad()

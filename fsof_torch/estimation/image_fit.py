@@ -272,9 +272,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             :func:`~fsof_torch.estimation.starts.two_way_cost`) at the next finer level, goes on.
         forward_starts: further starts straight ahead, by these many camera heights per frame
             (z_d = k h; the other parameters as ``init``): from zero motion or a poor flow the fit
-            finds steps of up to about 1.5 heights, these find fast driving (at 10 Hz and a 1.65 m
-            high camera, 2 and 4 heights are 119 and 238 km/h). Not used where z_d is fixed;
-            ``()``: none.
+            can land on a wrong motion when the car moves a few heights a frame; these find fast
+            driving (at 10 Hz and a 1.65 m high camera, 2 and 4 heights are 119 and 238 km/h).
+            Not used where z_d is fixed; ``()``: none.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -525,7 +525,7 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
             g1p.gather(2, order.unsqueeze(1).expand(-1, 2, -1))
     pts = pixel_coordinates(pix, w_l)
     rep = (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
-    cam = camera if reps == 1 else Camera._checked(rep(camera.K), rep(camera.height), rep(camera.roll), rep(camera.pitch))
+    cam = camera.repeat(reps)
     return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(_with_gradient(I2)), rep(sel))
 
 

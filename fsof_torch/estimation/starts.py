@@ -19,10 +19,10 @@ from torch import Tensor
 
 from .._check import check_number
 from ..geometry.camera import Camera
-from ..geometry.road_models import RoadModel, get_road_model, pack_params
+from ..geometry.road_models import RoadModel, get_road_model, homography_values, pack_params
 from .flow_fit import start_values
 from .robust import robust_terms
-from .sampling import pixel_coordinates, sample_mask, sample_points
+from .sampling import gather_pixels, pixel_coordinates, sample_mask, sample_points
 
 __all__ = ["start_list", "check_forward_steps", "starts_ahead", "two_way_cost"]
 
@@ -45,8 +45,9 @@ def check_forward_steps(steps: object) -> tuple[float, ...]:
 def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed: tuple[str, ...]) -> list[dict]:
     """Starts straight ahead by ``k`` camera heights per frame for each k of ``steps`` (at the
     camera's roll and pitch): a road's image motion scales with the distance over the height, and
-    from zero motion the fit finds a step of up to about 1.5 heights (2.4 m a frame at 1.65 m).
-    ``"homography"``: that motion's homography; none where the forward motion is held fixed."""
+    from zero motion or a poor flow the fit can land on a wrong motion when the car moves a few
+    heights a frame (tests/test_fit_starts.py). ``"homography"``: that motion's homography; none
+    where the forward motion is held fixed."""
     if not steps or "z_d" in fixed or (model.name == "homography" and fixed):
         return []
     if "z_d" in model.params:
@@ -54,14 +55,11 @@ def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed
     if model.name != "homography":
         return []
     plane = get_road_model("plane")
-    K, K_inv = camera.K, camera.K_inv()
     out = []
     for k in steps:
         _, values = pack_params(plane, camera, {"z_d": k * camera.height})
-        G = K_inv @ plane.matrix(camera, values) @ K  # I + the homography model's values
-        G = G / G[:, 2:3, 2:3]
-        eye = torch.eye(3, dtype=G.dtype, device=G.device)
-        out.append(dict(zip(model.params, (G - eye).reshape(-1, 9)[:, :8].unbind(1))))
+        H = plane.matrix(camera, values)
+        out.append(dict(zip(model.params, homography_values(H, camera.K, camera.K_inv()).unbind(1))))
     return out
 
 
@@ -80,13 +78,13 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     P = len(model.params)
     values, gain, offset = params[:, :P], params[:, P:P + 1], params[:, P + 1:]
     rep = (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
-    cam = camera if reps == 1 else Camera._checked(rep(camera.K), rep(camera.height), rep(camera.roll), rep(camera.pitch))
+    cam = camera.repeat(reps)
     M, _, horizon = model.evaluate(cam.K, cam.K_inv(), cam.height, values, False)
     if horizon is None:
         horizon = model.horizon_row(cam, values)
     points = sample_mask(mask, max_points)
     pts, sel = rep(pixel_coordinates(points.pix, img.shape[-1])), rep(points.sel)
-    at = rep(img.reshape(img.shape[0], 2, -1).gather(2, points.pix.unsqueeze(1).expand(-1, 2, -1)).to(torch.float64))
+    at = rep(gather_pixels(img, points.pix).to(torch.float64))  # (I1, I2) at the points
     errors, uses = [], []
     # forward: image 1's points into image 2; backward: image 2's points into image 1
     for H, forward in ((M, True), (torch.linalg.inv_ex(M)[0], False)):

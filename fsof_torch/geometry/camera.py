@@ -256,6 +256,14 @@ class Camera:
         return Camera._checked(self.K.expand(batch_size, 3, 3), self.height.expand(batch_size),
                                self.roll.expand(batch_size), self.pitch.expand(batch_size))
 
+    def repeat(self, times: int) -> "Camera":
+        """The batch repeated ``times`` times, as ``Tensor.repeat`` does (frame b of copy k is
+        frame k B + b; ``self`` for 1)."""
+        if times == 1:
+            return self
+        return Camera._checked(self.K.repeat(times, 1, 1), self.height.repeat(times), self.roll.repeat(times),
+                               self.pitch.repeat(times))
+
     @classmethod
     def _checked(cls, K: Tensor, height: Tensor, roll: Tensor, pitch: Tensor) -> "Camera":
         """A camera from values that already passed the checks of ``__post_init__`` (K (B, 3, 3),

@@ -64,6 +64,7 @@ __all__ = [
     "road_homography",
     "road_motion",
     "mounting_products",
+    "homography_values",
     "pack_params",
     "unpack_params",
     "rotation_angles",
@@ -587,6 +588,14 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
     a = rotation_angles(Rv)
     return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
             "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}
+
+
+def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
+    """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
+    the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity."""
+    G = K_inv @ H @ K
+    G = G / G[:, 2:3, 2:3]
+    return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
 
 
 def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
