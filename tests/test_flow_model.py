@@ -25,6 +25,7 @@ from fsof_torch.geometry.road_flow import (
     displacement_flow,
     displacement_flow_straight,
     displacement_flow_straight_level,
+    flow_from_map,
     pixel_grid,
     road_velocity_matrix,
     velocity_flow,
@@ -687,3 +688,36 @@ def test_autograd_and_inference_paths_agree(velocity):
     with torch.no_grad():
         nograd, _ = fn(cam, *q)
     torch.testing.assert_close(plain, nograd, rtol=0, atol=0)
+
+
+@settings(max_examples=40, deadline=None)
+@given(a=st.lists(st.floats(-1.0, 1.0), min_size=6, max_size=6),
+       m=st.lists(st.floats(-0.05, 0.05), min_size=18, max_size=18), velocity=st.booleans())
+def test_inference_path_rows_match_the_general_path(a, m, velocity):
+    """Without autograd on the CPU only a band of rows is computed (the rest zeroed): the same
+    flow and validity as the general path for horizons of any tilt and side (valid rows at the
+    bottom, at the top, none, all) and maps whose q_z changes sign in the image."""
+    H, W = 23, 31
+    horizon = torch.tensor(a, dtype=torch.float64).reshape(2, 1, 3) * torch.tensor([0.1, 0.1, 2.0], dtype=torch.float64)
+    M = torch.eye(3, dtype=torch.float64) + torch.tensor(m, dtype=torch.float64).reshape(2, 3, 3)
+    M[:, 2, :2] *= 0.2  # q_z = 1 + small terms, crossing 0 inside the image for some maps
+    plain, plain_valid = flow_from_map(M, horizon, (H, W), velocity=velocity)
+    graded, graded_valid = flow_from_map(M.clone().requires_grad_(), horizon, (H, W), velocity=velocity)
+    assert torch.equal(plain_valid, graded_valid)
+    torch.testing.assert_close(plain, graded.detach(), rtol=1e-12, atol=1e-12)
+    assert not plain[~plain_valid.expand_as(plain)].any()
+
+
+def test_inference_path_band_edge_cases():
+    """The band of computed rows: none valid (a horizon below the image), all valid, and the
+    valid side at the top (the road row's sign flipped) each match the general path."""
+    H, W = 12, 17
+    M = torch.eye(3, dtype=torch.float64).expand(3, 3, 3).clone()
+    M[:, 0, 2], M[:, 1, 1] = 0.3, 1.02
+    horizon = torch.tensor([[[0.0, 1.0, -100.0]], [[0.0, 1.0, 5.0]], [[0.01, -1.0, 6.5]]], dtype=torch.float64)
+    plain, plain_valid = flow_from_map(M, horizon, (H, W))
+    graded, graded_valid = flow_from_map(M.clone().requires_grad_(), horizon, (H, W))
+    assert torch.equal(plain_valid, graded_valid)
+    assert not plain_valid[0].any() and plain_valid[1].all() and plain_valid[2, 0, :6].any()
+    assert not plain_valid[2, 0, 8:].any()
+    torch.testing.assert_close(plain, graded.detach(), rtol=1e-12, atol=1e-12)

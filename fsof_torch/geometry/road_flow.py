@@ -245,25 +245,61 @@ def _flow_in_place(a: Tensor, row: Tensor, col: Tensor, u: Tensor, v: Tensor, a_
     """:func:`flow_from_map` without autograd: the same arithmetic in place, frame by frame,
     with q_z kept in the output's first plane until it is needed there: one (H, W) temporary in
     all, which stays in cache. Each fresh full-size tensor costs page faults on CPU, often more
-    than the arithmetic."""
+    than the arithmetic.
+
+    On the CPU only the rows that can hold a valid pixel are computed; the others are zeroed.
+    Both tests of validity are linear in the row, so those rows are one band, found from each
+    test's largest value along the row (one host read, free on the CPU; on other devices every
+    row is computed). python benchmarks/bench_model.py, "flow_from_map in place" against "in
+    place, every row": at 375×1242 with the KITTI camera 167 of the 375 rows lie above the
+    horizon, and the band makes the path about a quarter faster at batch 1, a third at batch 8.
+    """
     B, H, W = row.shape[0], v.shape[0], u.shape[0]
     tiny = torch.finfo(row.dtype).tiny
     flow = torch.empty(B, 2, H, W, dtype=row.dtype, device=row.device)
     valid = torch.empty(B, 1, H, W, dtype=torch.bool, device=row.device)
     ray_v, ray_u = a[:, 1:2] * v + a[:, 2:3], a[:, 0:1] * u
+    bands = _valid_rows(ray_v, ray_u, None if velocity else row[:, 2], None if velocity else col[:, 2])
     for b in range(B):
-        f = flow[b:b + 1]
-        edge = ray_v[b:b + 1].unsqueeze(-1) + ray_u[b:b + 1].unsqueeze(-2)  # the one temporary
+        top, end = bands[b] if bands is not None else (0, H)
+        if top > 0 or end < H:
+            flow[b, :, :top].zero_()
+            flow[b, :, end:].zero_()
+            valid[b, :, :top].zero_()
+            valid[b, :, end:].zero_()
+            if top >= end:
+                continue
+        rows = slice(top, end)
+        f = flow[b:b + 1, :, rows]
+        edge = ray_v[b:b + 1, rows].unsqueeze(-1) + ray_u[b:b + 1].unsqueeze(-2)  # the one temporary
         if not velocity:
-            qz = torch.add(row[b:b + 1, 2].unsqueeze(-1), col[b:b + 1, 2].unsqueeze(-2), out=f[:, 0])
+            qz = torch.add(row[b:b + 1, 2, rows].unsqueeze(-1), col[b:b + 1, 2].unsqueeze(-2), out=f[:, 0])
             torch.minimum(edge, qz, out=edge)
         mask = edge.sign_().clamp_min_(0).unsqueeze(1)  # 1 on the valid side, else 0
-        valid[b:b + 1].copy_(mask)
+        valid[b:b + 1, :, rows].copy_(mask)
         if not velocity:
             mask.div_(qz.clamp_min_(tiny).unsqueeze(1))  # now 1 / q_z or 0; q_z's plane is free
-        torch.add(a_v[b:b + 1].unsqueeze(-1), b_u[b:b + 1].unsqueeze(-2), out=f)
-        f.addcmul_(l_v[b:b + 1].unsqueeze(-1), r_u[b:b + 1].unsqueeze(-2), value=-1.0).mul_(mask)
+        torch.add(a_v[b:b + 1, :, rows].unsqueeze(-1), b_u[b:b + 1].unsqueeze(-2), out=f)
+        f.addcmul_(l_v[b:b + 1, :, rows].unsqueeze(-1), r_u[b:b + 1].unsqueeze(-2), value=-1.0).mul_(mask)
     return flow, valid
+
+
+def _valid_rows(ray_v: Tensor, ray_u: Tensor, qz_v: Tensor | None, qz_u: Tensor | None) -> list | None:
+    """Per frame ``(top, end)``: rows outside ``top:end`` hold no valid pixel (a pixel is valid
+    where ``ray_v[v] + ray_u[u] > 0`` and, unless None, ``qz_v[v] + qz_u[u] > 0``); None off the
+    CPU. Each test's largest value along row v is its row term plus the largest column term
+    (the same sum as the pixel's own at that column), so a row where it is not positive holds no
+    valid pixel; both are linear in v, so the other rows form one band."""
+    if ray_v.device.type != "cpu":
+        return None
+    rows = ray_v + ray_u.amax(-1, keepdim=True) > 0
+    if qz_v is not None:
+        rows &= qz_v + qz_u.amax(-1, keepdim=True) > 0
+    H = rows.shape[-1]
+    any_row = rows.any(-1)
+    top = torch.where(any_row, rows.to(torch.uint8).argmax(-1), H)
+    end = torch.where(any_row, H - rows.flip(-1).to(torch.uint8).argmax(-1), H)
+    return torch.stack([top, end], dim=-1).tolist()
 
 
 def _valid_mask(a: Tensor, row: Tensor, col: Tensor, u: Tensor, v: Tensor, velocity: bool) -> Tensor:
