@@ -21,11 +21,6 @@ one solver; ``none`` to skip): that git revision's package is imported beside th
 current one (the same load on a shared machine), for the default subsample, one frame and a
 batch of 8; the rows report both, their ratio and the largest parameter difference.
 
-``fit_displacement`` with the camera's roll and pitch fixed (the refiner's fit): the library
-computes the fixed mounting's products once per fit (``FlowProblem`` with ``mounting_fixed``),
-timed interleaved against the general path that evaluates them every iteration (the same class
-constructed with ``mounting_fixed=False``; the parameters are the same to rounding).
-
 After the table: the host reads of one call of each fit on the single frame, counted with
 torch.profiler (``aten::_local_scalar_dense``: ``.item()`` / ``bool(tensor)``; ``aten::nonzero``,
 which reads its result's size; ``aten::linalg_solve``, which reads its error code).
@@ -228,31 +223,6 @@ def main(argv: list[str] | None = None) -> int:
                                  max_param_diff=float(f"{diff:.3g}")))
             rows[-1].update(vs_baseline_median=round(med_b / med_a, 3), vs_baseline_min=round(min_b / min_a, 3))
 
-    # the fixed mounting's products once per fit, against the general path (evaluated every iteration)
-    import fsof_torch.estimation.flow_fit as flow_fit_module
-
-    fast_problem = flow_fit_module.FlowProblem
-
-    class GeneralProblem(fast_problem):
-        def __init__(self, model, camera, pts, flow, sel, mounting_fixed, K_inv=None):
-            super().__init__(model, camera, pts, flow, sel, False, K_inv)
-
-    def fixed_mounting(general: bool):
-        flow_fit_module.FlowProblem = GeneralProblem if general else fast_problem
-        try:
-            return fit_displacement(flow, mask, cam, fit_roll=False)
-        finally:
-            flow_fit_module.FlowProblem = fast_problem
-
-    diff = max(float((getattr(fixed_mounting(False), k) - getattr(fixed_mounting(True), k)).abs().max())
-               for k in ("x_d", "z_d", "yaw"))
-    (med_a, min_a, cpu_a), (med_b, min_b, cpu_b) = timed_pair(lambda: fixed_mounting(True),
-                                                              lambda: fixed_mounting(False), args.repeats)
-    for name, med, best, cpu in (("general", med_a, min_a, cpu_a), ("once", med_b, min_b, cpu_b)):
-        rows.append(dict(name=f"fit_displacement fixed mounting, {name}", frames=1, median_ms=round(med, 2),
-                         min_ms=round(best, 2), cpu_ms=round(cpu, 2), max_param_diff=float(f"{diff:.3g}")))
-    rows[-1].update(general_over_fast_median=round(med_a / med_b, 3), general_over_fast_min=round(min_a / min_b, 3))
-
     residual, u, v, target = scipy_problem(flow, mask)
     x0 = np.array([0.0, 0.5, 0.0, 0.0])
     sol = least_squares(residual, x0, loss="soft_l1", f_scale=1.0)
@@ -292,9 +262,6 @@ def main(argv: list[str] | None = None) -> int:
     if ratios:
         print(f"current / baseline {args.baseline} (interleaved): "
               + "; ".join(f"{label}: median {a:.3f}, min {b:.3f}" for label, a, b in ratios))
-    fast = next(r for r in rows if "general_over_fast_median" in r)
-    print(f"fixed mounting, general path / products once (interleaved): median "
-          f"{fast['general_over_fast_median']:.3f}, min {fast['general_over_fast_min']:.3f}")
     reads = {"fit_displacement": host_reads(lambda: fit_displacement(flow, mask, cam)),
              "fit_displacement batch 8": host_reads(lambda: fit_displacement(flow8, mask8, cam)),
              "fit_road plane": host_reads(lambda: fit_road(flow, mask, cam, model="plane")),

@@ -79,7 +79,7 @@ def kitti_table(folder: Path) -> None:
     rows.append(("SciPy least_squares homography, soft_l1 (reference)", float(err), ms, bool(sol.success), ""))
 
     print(f"KITTI 2015 training pair 000000: ground truth inside road.json, {int(use.sum())} valid pixels")
-    print(f"| method | e_E (px) | ms | success | parameters |")
+    print("| method | e_E (px) | ms | success | parameters |")
     print("|---|---|---|---|---|")
     for name, e, ms, ok, params in rows:
         print(f"| {name} | {e:.4f} | {ms:.0f} | {ok} | {params} |")

@@ -18,7 +18,6 @@ run resumes where it stopped (``--overwrite`` redoes everything).
 from __future__ import annotations
 
 import json
-import math
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path

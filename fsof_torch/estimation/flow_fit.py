@@ -30,7 +30,7 @@ from .._check import (autocast_off, check_bool, check_fit_flags, check_float_ten
                       check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import (RoadModel, get_road_model, homography_values, mounting_products,
+from ..geometry.road_models import (RoadModel, get_road_model, homography_values,
                                     plane_from_homography)
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
@@ -122,7 +122,7 @@ class FlowProblem:
     """
 
     def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, flow: Tensor, sel: Tensor,
-                 mounting_fixed: bool, K_inv: Tensor | None = None) -> None:
+                 K_inv: Tensor | None = None) -> None:
         self.model, self.camera, self.pts, self.sel = model, camera, pts, sel
         self.K, self.height = camera.K, camera.height
         self.K_inv = camera.K_inv() if K_inv is None else K_inv
@@ -131,21 +131,13 @@ class FlowProblem:
         u, v, one = pts.unbind(1)
         # p̃ p̃ᵀ's six entries and p̃ (last), point-major for the sums against the weights
         self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=-1)
-        self._outer = None
-        self._outer_pending = mounting_fixed and bool(model.mounting)
-        # the points below the horizon, where the horizon does not move (no mounting parameters
-        # being fitted): once
+        # the points below the horizon, for a model without mounting parameters: once
         self._below = None
         if not model.mounting:
             self._below = sel & (torch.bmm(model.horizon_row(camera, torch.zeros_like(camera.height)[:, None]), pts)[:, 0] > 0)
 
     def evaluate(self, params: Tensor) -> Evaluation:
-        if self._outer_pending:  # the mounting does not move: its products once
-            i, j = (self.model.index(n) for n in self.model.mounting)
-            self._outer = mounting_products(self.K, self.K_inv, params[:, i], params[:, j])
-            self._below = self.sel & (torch.bmm(self._outer[1], self.pts)[:, 0] > 0)
-            self._outer_pending = False
-        M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, params, True, self._outer)
+        M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, params, True)
         if self._below is None:
             q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)
             below = self.sel & (q[:, 3] > 0)
@@ -522,7 +514,6 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             guess = _initial(model, cam64, K_inv, start, pts, obs, sel)
             start = torch.where(torch.tensor(given, device=flow.device), start, guess)
         mean, precision = prior_terms(model, prior, scale, B, torch.float64, flow.device) if prior else (None, None)
-        mounting_fixed = all(n in fixed_names for n in model.mounting)
         stages = [(robust, float(scale), init is None, _RESOLUTION, checks[0])]
         if polish and robust not in ("tukey", "l2"):
             stages = [(robust, float(scale), init is None, _ROBUST_STAGE_RESOLUTION, checks[0]),
@@ -532,7 +523,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         for i, (kernel, s, anneal, resolution, first_check) in enumerate(stages):
             k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS) if i + 1 < len(stages) else 1
             problem = FlowProblem(model, cam64, pts[..., ::k].contiguous(), obs[..., ::k].contiguous(),
-                                  sel[..., ::k].contiguous(), mounting_fixed, K_inv)
+                                  sel[..., ::k].contiguous(), K_inv)
             sol = solve(problem, params, free=free, prior_mean=mean,
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,

@@ -63,7 +63,6 @@ __all__ = [
     "get_road_model",
     "road_homography",
     "road_motion",
-    "mounting_products",
     "homography_values",
     "pack_params",
     "unpack_params",
@@ -159,8 +158,8 @@ def _commutators(like: Tensor) -> Tensor:
 # derivatives by its motion parameters; :func:`_mounted` does the rest, including the derivatives
 # by the roll θ and pitch β (d(R_c X R_cᵀ)/dangle = [G, R_c X R_cᵀ] with the angle's generator G).
 
-def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor | None, Rb: Tensor | None, stack: Tensor,
-             jacobian: bool, outer: tuple[Tensor, Tensor] | None) -> tuple[Tensor, Tensor | None, Tensor]:
+def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor, Rb: Tensor, stack: Tensor,
+             jacobian: bool) -> tuple[Tensor, Tensor | None, Tensor]:
     """H = K R_c X R_cᵀ K⁻¹ (B, 3, 3) with R_c = Rt Rb (the camera's roll and pitch rotations,
     (B, 3, 3) each), and the horizon row (R_c e_y)ᵀ K⁻¹ (B, 1, 3), from ``stack`` (B, 1 + Q, 3, 3):
     X, then (with ``jacobian``) its derivatives by the Q motion parameters; with ``jacobian``
@@ -169,55 +168,30 @@ def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor | None, Rb: Tensor | None, sta
     By roll and pitch: d(R_c X R_cᵀ) = R_c [G̃, X] R_cᵀ with the angle's generator seen in the
     road frame, G̃ = R_cᵀ G R_c: Rbᵀ G_z Rb for the roll and G_x itself for the pitch (a rotation
     commutes with its own generator). So every derivative goes through the one sandwich.
-
-    ``outer``: :func:`mounting_products` of a mounting that is not being fitted, computed once by
-    the caller (Rt and Rb are then not used); the derivatives by roll and pitch are 0 (python
-    benchmarks/bench_fit.py, "fixed mounting" rows: the general path, evaluating them every
-    iteration, makes the refiner's fit about 5 % slower).
     """
     B = stack.shape[0]
-    if outer is not None:
-        T, horizon = outer
-        if jacobian:  # (zero derivatives by the fixed roll and pitch)
-            stack = torch.cat([stack, stack.new_zeros(B, 2, 3, 3)], dim=1)
-    else:
-        Rc = _mm(Rt, Rb)
-        R = _mm(Rc.transpose(1, 2), K_inv)
-        T, horizon = _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
-        if jacobian:
-            # [G_x, X], [G_y, X], [G_z, X] at once; the roll's G̃ = Rbᵀ G_z Rb = cos β G_z - sin β G_y
-            comm = torch.mm(stack[:, 0].reshape(B, 9), _commutators(stack)).reshape(B, 3, 3, 3)
-            cos_b, sin_b = Rb[:, 2:3, 2:3].unsqueeze(1), Rb[:, 1:2, 2:3].unsqueeze(1)
-            roll = comm[:, _ROLL:_ROLL + 1] * cos_b - comm[:, _YAW:_YAW + 1] * sin_b
-            stack = torch.cat([stack, roll, comm[:, _PITCH:_PITCH + 1]], dim=1)
+    Rc = _mm(Rt, Rb)
+    R = _mm(Rc.transpose(1, 2), K_inv)
+    T, horizon = _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
+    if jacobian:
+        # [G_x, X], [G_y, X], [G_z, X] at once; the roll's G̃ = Rbᵀ G_z Rb = cos β G_z - sin β G_y
+        comm = torch.mm(stack[:, 0].reshape(B, 9), _commutators(stack)).reshape(B, 3, 3, 3)
+        cos_b, sin_b = Rb[:, 2:3, 2:3].unsqueeze(1), Rb[:, 1:2, 2:3].unsqueeze(1)
+        roll = comm[:, _ROLL:_ROLL + 1] * cos_b - comm[:, _YAW:_YAW + 1] * sin_b
+        stack = torch.cat([stack, roll, comm[:, _PITCH:_PITCH + 1]], dim=1)
     HdH = _apply(T, stack)
     return HdH[:, 0], (HdH[:, 1:] if jacobian else None), horizon
 
 
-def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int, ...], roll: int,
-                        outer: object) -> tuple[list[Tensor], Tensor | None, Tensor | None]:
+def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int, ...],
+                        roll: int) -> tuple[list[Tensor], Tensor, Tensor]:
     """The rotations of a model's motion angles (columns ``motion`` about ``axes``) and of the
-    camera's roll and pitch (columns ``roll``, ``roll + 1``; None when ``outer`` holds them): one
-    batch of rotation matrices."""
-    cols = list(motion) if outer is not None else list(motion) + [roll, roll + 1]
-    if not cols:
-        return [], None, None
+    camera's roll and pitch (columns ``roll``, ``roll + 1``): one batch of rotation matrices."""
+    cols = list(motion) + [roll, roll + 1]
     # (a slice where the columns follow each other: cheaper than gathering them)
     angles = values[:, cols[0]:cols[-1] + 1] if cols == list(range(cols[0], cols[-1] + 1)) else values[:, cols]
-    Rs = _rotations(angles, axes + (() if outer is not None else (_ROLL, _PITCH))).unbind(1)
-    if outer is not None:
-        return list(Rs), None, None
+    Rs = _rotations(angles, axes + (_ROLL, _PITCH)).unbind(1)
     return list(Rs[:-2]), Rs[-2], Rs[-1]
-
-
-def mounting_products(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor) -> tuple[Tensor, Tensor]:
-    """What a fixed mounting contributes to every evaluation of a model's map, for ``outer=`` of
-    :meth:`RoadModel.evaluate`: the sandwich X -> K R_c X R_cᵀ K⁻¹ as a linear map of X's entries
-    (B, 9, 9), and the horizon row (B, 1, 3)."""
-    Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
-    Rc = _mm(Rt, Rb)
-    R = _mm(Rc.transpose(-1, -2), K_inv)
-    return _sandwich_operator(_mm(K, Rc), R), R[:, 1:2]
 
 
 def _unit_y(like: Tensor) -> Tensor:
@@ -237,12 +211,11 @@ def _unit_matrix(i: int, j: int, like: Tensor) -> Tensor:
     return out
 
 
-def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
-           outer: tuple[Tensor, Tensor] | None = None):
+def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
     """The ``"plane"`` map: values (B, 8) = (pitch_change α, yaw φ, roll_change γ, x_d, y_d, z_d,
     roll θ, pitch β); X = R_v (I - d e_yᵀ / h), R_v = R_roll(γ) R_pitch(α) R_yaw(φ)."""
     B = values.shape[0]
-    (Rg, Ra, Rp), Rt, Rb = _mounting_rotations(values, (2, 0, 1), (_ROLL, _PITCH, _YAW), 6, outer)
+    (Rg, Ra, Rp), Rt, Rb = _mounting_rotations(values, (2, 0, 1), (_ROLL, _PITCH, _YAW), 6)
     Rga = _mm(Rg, Ra)
     Rv = _mm(Rga, Rp)
     # only the middle column changes, by -R_v d / h
@@ -259,7 +232,7 @@ def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
         dX_angles = _mm(G_left.reshape(B, 9, 3), X).reshape(B, 3, 3, 3)
         dX_d = -(Rv.transpose(1, 2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey  # column 1: -R_v e_k / h
         stack = torch.cat([stack, dX_angles, dX_d], dim=1)
-    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian)
 
 
 # The paper's X and its derivatives by (x_d, z_d, φ) are linear in nine monomials of its motion,
@@ -308,12 +281,11 @@ def _paper_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
     return basis
 
 
-def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
-           outer: tuple[Tensor, Tensor] | None = None):
+def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
     """The ``"paper"`` map: values (B, 5) = (x_d, z_d, yaw, roll, pitch); X = R_yaw(φ) (I - d e_yᵀ / h)
     with d = (x_d, 0, z_d): the ``"plane"`` map with no pitch or roll change and y_d = 0."""
     B = values.shape[0]
-    _, Rt, Rb = _mounting_rotations(values, (), (), 3, outer)
+    _, Rt, Rb = _mounting_rotations(values, (), (), 3)
     yaw = values[:, 2:3]
     one = torch.ones_like(yaw)
     cs = torch.cat([torch.cos(yaw), torch.sin(yaw)], dim=-1)                   # (c, s)
@@ -321,26 +293,24 @@ def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
     monomials = torch.cat([one, cs, (cs.unsqueeze(-1) * lin.unsqueeze(1)).reshape(B, 6)], dim=-1)
     basis = _paper_basis(values.dtype, values.device)
     stack = torch.mm(monomials, basis if jacobian else basis[:, :9]).reshape(B, -1, 3, 3)
-    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian)
 
 
-def _velocity(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
-              outer: tuple[Tensor, Tensor] | None = None):
+def _velocity(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
     """The ``"velocity"`` map G (1/s): values (B, 4) = (speed, yaw_rate, roll, pitch);
     X = d/dt [R_yaw(φ̇ t) (I - (0, 0, v t) e_yᵀ / h)] at t = 0 = φ̇ G_y - v e_z e_yᵀ / h."""
     B = values.shape[0]
-    _, Rt, Rb = _mounting_rotations(values, (), (), 2, outer)
+    _, Rt, Rb = _mounting_rotations(values, (), (), 2)
     _, _, Es = _bases(values.dtype, values.device)
     # d X / d speed = -e_z e_yᵀ / h, d X / d yaw_rate = G_y: constant in the motion
     dX_speed = _unit_matrix(2, 1, values) * (-1.0 / h).reshape(B, 1, 1)
     Gy = Es[_YAW].expand(B, 3, 3)
     X = values[:, 0].reshape(B, 1, 1) * dX_speed + values[:, 1].reshape(B, 1, 1) * Gy
     stack = torch.stack([X, dX_speed, Gy], dim=1) if jacobian else X.unsqueeze(1)
-    return _mounted(K, K_inv, Rt, Rb, stack, jacobian, outer)
+    return _mounted(K, K_inv, Rt, Rb, stack, jacobian)
 
 
-def _homography(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool,
-                outer: tuple[Tensor, Tensor] | None = None):
+def _homography(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
     """The ``"homography"`` map: values (B, 8), the entries of K⁻¹ H K − I (its last entry 0)."""
     B = values.shape[0]
     G = torch.eye(3, dtype=values.dtype, device=values.device) + torch.cat(
@@ -382,13 +352,12 @@ class RoadModel:
         """The map (B, 3, 3) and its derivatives by the parameters (B, P, 3, 3)."""
         return self._fn(camera.K, camera.K_inv(), camera.height, values, True)[:2]
 
-    def evaluate(self, K: Tensor, K_inv: Tensor, height: Tensor, values: Tensor, jacobian: bool,
-                 outer: tuple[Tensor, Tensor] | None = None) -> tuple[Tensor, Tensor | None, Tensor | None]:
+    def evaluate(self, K: Tensor, K_inv: Tensor, height: Tensor, values: Tensor,
+                 jacobian: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """The map, its derivatives (with ``jacobian``) and the horizon row (:meth:`horizon_row`;
         None for a model without a mounting) from the camera's K (B, 3, 3), K⁻¹ and height (B,),
-        for loops that evaluate the map many times with one camera; ``outer``: the
-        :func:`mounting_products` of a mounting held fixed (its derivatives are then 0)."""
-        return self._fn(K, K_inv, height, values, jacobian, outer)
+        for loops that evaluate the map many times with one camera."""
+        return self._fn(K, K_inv, height, values, jacobian)
 
     def horizon_row(self, camera: Camera, values: Tensor) -> Tensor:
         """The row a (B, 1, 3) with ``a · p̃ > 0`` for pixels whose ray meets the road in front of

@@ -506,8 +506,6 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     Raises:
         TypeError, ValueError: bad input, naming the argument.
     """
-    import numpy as np
-
     if level is None and isinstance(image1, Tensor) and image1.dim() == 4:
         level = max(0, int(math.floor(math.log2(max(image1.shape[-2], 1) / _WORK_ROWS))))
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
