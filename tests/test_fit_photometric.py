@@ -98,6 +98,8 @@ def test_exceptions():
     (dict(forward_starts=2.0), TypeError, "forward_starts: expected a list or tuple of numbers .* got float 2.0"),
     (dict(forward_starts=[1.0, float("nan")]), ValueError, "forward_starts: expected a finite number, got nan"),
     (dict(forward_starts=["fast"]), TypeError, "forward_starts: expected a number, got str 'fast'"),
+    (dict(min_correlation=1.5), ValueError, r"min_correlation: expected a number in \[-1, 1\], got 1.5"),
+    (dict(min_correlation="high"), TypeError, "min_correlation: expected a number, got str 'high'"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
@@ -144,6 +146,49 @@ def test_feature_recovers_motion_from_zero_start(B):
     epe = (fit.flow.double() - flow).norm(dim=1)[mask[:, 0]].mean()
     assert float(epe) < 0.05
     torch.testing.assert_close(fit.z_d.double(), z_d, atol=5e-3, rtol=0.0)
+
+
+def _box_blur(image: torch.Tensor, k: int = 3) -> torch.Tensor:
+    """A k × k box blur of (B, C, H, W) images, borders replicated (written here, not the library's)."""
+    import torch.nn.functional as F
+
+    B, C, H, W = image.shape
+    padded = F.pad(image.reshape(B * C, 1, H, W), (k // 2,) * 4, mode="replicate")
+    return F.avg_pool2d(padded, k, stride=1).reshape(B, C, H, W)
+
+
+def test_feature_image2_blurred_still_succeeds():
+    """Image 2 a little blurred (3 × 3 box): its band of detail loses amplitude, which the fit's
+    gain absorbs; the inlier test compares the plain intensities with their own gain, so the
+    fit still succeeds (the fit's band gain applied to the intensities failed every frame)."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.6, 0.01)
+    fit = fit_image(image1, _box_blur(image2), mask, cam, model="paper")
+    assert float(fit.extras["gain"]) > 1.05  # the band's amplitude: image 2's detail is weaker
+    assert bool(fit.success)
+    assert float(fit.extras["inlier_fraction"]) > 0.9 and float(fit.extras["correlation"]) > 0.8
+    assert float((fit.flow.double() - flow).norm(dim=1)[mask[:, 0]].mean()) < 0.2
+
+
+def test_feature_a_wrong_motion_fails_on_correlation():
+    """Held at a wrong motion (every parameter fixed), the plain intensities of a smooth road
+    still match within the inlier threshold almost everywhere, but the images' detail does not
+    line up: the correlation test fails the frame. Held at the true motion, it succeeds."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.6, 0.0)
+    names = ("x_d", "z_d", "yaw", "roll", "pitch")
+    right = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": 0.6})
+    wrong = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": 0.3})
+    assert bool(right.success) and float(right.extras["correlation"]) > 0.85
+    assert not bool(wrong.success) and float(wrong.extras["correlation"]) < 0.5
+    assert float(wrong.extras["inlier_fraction"]) >= 0.25  # what the intensities alone would pass
+    relaxed = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": 0.3},
+                        min_correlation=-1.0)
+    assert bool(relaxed.success)
 
 
 def test_feature_init_from_flow_fit_is_used():

@@ -91,3 +91,22 @@ def test_real_clip_forward_motion_from_images(shared_data, first, second, gain):
     assert bool(fit.success[0])
     # the inlier share counts the road that stays in view (at 6 m a frame, about a quarter)
     assert float(fit.extras["inlier_fraction"][0]) > 0.4
+
+
+def test_real_clip_image2_blurred_refines(shared_data):
+    """Image 2 of a real pair a little blurred (a 3 × 3 box, as a change of focus or of motion
+    blur between the frames): the fit finds the motion of the poses and succeeds, and the
+    refiner uses it (once, the fit's band gain applied to the intensities failed such frames)."""
+    import torch.nn.functional as F
+
+    from fsof_torch import FreespaceRefiner
+
+    camera, frame, road, poses = _clip(shared_data)
+    image1 = frame(8)
+    image2 = F.avg_pool2d(F.pad(frame(9), (1, 1, 1, 1), mode="replicate"), 3, stride=1)
+    fit = fit_image(image1, image2, road, camera)
+    true_z = -float((torch.linalg.inv(poses[9]) @ poses[8])[2, 3])
+    assert abs(float(fit.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)
+    assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
+    out = FreespaceRefiner()(torch.zeros(1, 2, *road.shape[-2:]), road, camera, images=(image1, image2))
+    assert bool(out.refined[0])

@@ -249,8 +249,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               smooth_sigma: float = 0.0, highpass: float | None = 4.0, band_levels: int = 2,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
-              min_points: int = 100, min_inlier_fraction: float = 0.25, data_range: float = 255.0,
-              check_every: int | None = 3, forward_starts: Sequence[float] = (2.0, 4.0)) -> RoadFit:
+              min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
+              data_range: float = 255.0, check_every: int | None = 3,
+              forward_starts: Sequence[float] = (2.0, 4.0)) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -296,11 +297,17 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         gradient_fraction: the share of the road's pixels, those with the strongest gradient,
             from which the points are drawn.
         affine: also fit a gain and an offset between the frames' brightness.
-        inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution.
+        inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
+            image 2's intensities matched to image 1's by their own gain and offset.
         min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask's points
             that the model keeps inside image 2 (the others cannot be judged: at speed the road
             near the car leaves the frame), mark the frame as failed (as does a diverged or
             ill-conditioned fit).
+        min_correlation: the frame also fails where the fitted motion aligns the images' detail
+            (the finest level's band, or the intensities where ``highpass`` is None) with a
+            correlation below this over the mask's points in view. A plain road's intensities
+            match within ``inlier_threshold`` under almost any motion; its detail does not. At
+            0.5 the aligned images share as much of their detail's variance as they differ by.
         data_range: the images' range (255.0 or 1.0).
         check_every: each level asks whether all samples converged (one host read) after this
             many iterations and then after every further one, so that no level runs on after
@@ -310,7 +317,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     Returns:
         :class:`~fsof_torch.estimation.flow_fit.RoadFit` of the model; ``residual`` and
         ``inliers`` refer to the photometric residual (grey levels on 0..255); ``extras`` holds
-        ``gain`` and ``offset`` (B,).
+        ``gain`` and ``offset`` (B,) of the fit (of the finest level's band where it compares
+        bands), ``inlier_fraction`` and ``correlation`` (B,).
     """
     model = get_road_model(model)
     if model.velocity:
@@ -319,6 +327,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     check_kernel(robust)
     check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
                       min_points, min_inlier_fraction)
+    if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
+        raise ValueError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
     check_int(levels, "levels", minimum=1, optional=True)
     check_int(min_size, "min_size", minimum=2)
     check_int(band_levels, "band_levels", minimum=0)
@@ -381,8 +391,15 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
         checks = None if check_every is None else range(check_every, max_iter)
 
+        bands: dict = {}  # each level's compared images, once
+
+        def compared(level: int, band: float | None) -> Tensor:
+            if (level, band) not in bands:
+                bands[level, band] = _band(pyramid[level], band)
+            return bands[level, band]
+
         def run(level: int, reps: int, params: Tensor, band: float | None) -> Solution:
-            problem = _level_problem(model, _level_camera(cam64, level), _band(pyramid[level], band), masks[level],
+            problem = _level_problem(model, _level_camera(cam64, level), compared(level, band), masks[level],
                                      gradient_fraction, max_points, reps)
             rep = (lambda t: None if t is None else t.repeat(reps, 1))
             precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
@@ -419,14 +436,16 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         M = model.matrix(cam64, values)
         flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
         points = sample_mask(mask, max_points)
-        inliers, residual, fraction = _photometric_inliers(grey, flow, valid, points, gain, offset, inlier_threshold)
+        inliers, residual, fraction = _photometric_inliers(grey, flow, valid, points, inlier_threshold)
         n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
+        correlation = _detail_correlation(compared(0, highpass if band_levels > 0 else None), flow, valid, points)
     A = sol.normal[:, :P, :P]
     d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
     well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
     # (a fit that ran out of iterations at full resolution is still a fit: the refiner's gate
     # judges its flow; ``extras["converged"]`` tells)
-    success = finite & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
+    success = (finite & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
+               & (correlation >= min_correlation))
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
                               named.get("roll", camera.roll.to(out_dtype)), named.get("pitch", camera.pitch.to(out_dtype)))
@@ -435,6 +454,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                    iterations=iterations, covariance=sol.covariance()[:, :P, :P].to(out_dtype),
                    cost=sol.cost.to(out_dtype), extras={"gain": gain.to(out_dtype), "offset": offset.to(out_dtype),
                                                          "inlier_fraction": fraction.to(out_dtype),
+                                                         "correlation": correlation.to(out_dtype),
                                                          "converged": sol.converged})
 
 
@@ -569,11 +589,12 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
     return mean, inverse_variance
 
 
-def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints, gain: Tensor,
-                         offset: Tensor, threshold: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
-    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,)."""
-    B, _, H, W = grey.shape
+def _warped_samples(images: Tensor, flow: Tensor, valid: Tensor,
+                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """At every mask pixel (``points.every``): image 1's value, image 2's at the pixel moved by
+    the flow (bilinear), whether that lies inside image 2 where the flow is defined, and the
+    frame of the pixel; ``images`` (B, 2, H, W) holds both frames."""
+    B, _, H, W = images.shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")
     pixel = every - frame * H * W
@@ -581,20 +602,73 @@ def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: Mask
     v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
     f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     xy = torch.stack([u + f[0], v + f[1]])
-    I1 = grey[:, 0].reshape(-1).gather(0, every).to(torch.float64)
+    I1 = images[:, 0].reshape(-1).gather(0, every).to(torch.float64)
     I2 = torch.empty_like(I1)
     inb = torch.empty_like(I1, dtype=torch.bool)
     for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
         run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
-        s, ok = sample_points(grey[b:b + 1, 1:], xy[:, run].unsqueeze(0))
+        s, ok = sample_points(images[b:b + 1, 1:], xy[:, run].unsqueeze(0))
         I2[run], inb[run] = s[0, 0], ok[0]
-    ok = inb & valid.reshape(-1).gather(0, every)
+    return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
+
+
+def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints,
+                         threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
+    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,).
+
+    The residual compares the plain intensities, image 2's matched to image 1's by its own gain
+    and offset (:func:`_matched_gain`): the fit's gain and offset are those of the band-passed
+    images, whose amplitude a blur or a change of sharpness between the frames changes while the
+    plain intensities keep theirs.
+    """
+    B, _, H, W = grey.shape
+    I1, I2, ok, frame = _warped_samples(grey, flow, valid, points)
+    gain, offset = _matched_gain(I1, I2, ok, frame, points, threshold)
     err = (gain[frame] * I2 + offset[frame] - I1).abs()
     inl = ok & (err <= threshold)
-    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, every, inl).reshape(B, 1, H, W)
+    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, points.every, inl)
     n_in = points.per_frame(inl.to(torch.float64))
     residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
-    return inliers, residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+    return inliers.reshape(B, 1, H, W), residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+
+
+def _detail_correlation(images: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints) -> Tensor:
+    """(B,) the correlation (zero-mean, normalised) of image 1 and image 2 moved by the flow
+    over the mask's pixels in view, of ``images`` (B, 2, H, W) as the fit compared them (the
+    finest level's band); 0 where either has no variance there."""
+    x, y, ok, frame = _warped_samples(images, flow, valid, points)
+    w = ok.to(torch.float64)
+    n = points.per_frame(w).clamp_min(1.0)
+    x = x - (points.per_frame(w * x) / n)[frame]
+    y = y - (points.per_frame(w * y) / n)[frame]
+    sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
+    den = (sxx * syy).sqrt()
+    return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
+
+
+def _matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
+                  iterations: int = 2) -> tuple[Tensor, Tensor]:
+    """Per frame (B,) the gain and offset that match image 2's intensities ``I2`` to image 1's
+    ``I1`` (paired samples at ``ok`` points): their means and spreads matched, weighted robustly
+    (Cauchy weights at ``threshold`` of the residuals, ``iterations`` times).
+
+    Matching the spreads, not regressing one image on the other: under a wrong flow the samples
+    do not correspond, and a regression's gain would shrink toward 0, making any flow over a
+    plain road look right; the spreads' ratio stays the images' contrast ratio.
+    """
+    w = ok.to(torch.float64)
+    gain = offset = None
+    for _ in range(iterations + 1):
+        n = points.per_frame(w).clamp_min(1e-12)
+        m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
+        s1 = points.per_frame(w * (I1 - m1[frame]).abs()) / n
+        s2 = points.per_frame(w * (I2 - m2[frame]).abs()) / n
+        gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
+        offset = m1 - gain * m2
+        r = (gain[frame] * I2 + offset[frame] - I1) / threshold
+        w = ok.to(torch.float64) / (1.0 + r.square())
+    return gain, offset
 
 
 def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,
