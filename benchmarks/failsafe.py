@@ -2,7 +2,8 @@
 inside the road mask.
 
 1. Dark frames: the shared KITTI pair's images × gain plus Gaussian noise (σ grey levels), DIS on
-   them, through ``FreespaceRefiner()`` with the images: whether the pair was refined, what the gate
+   them, through ``FreespaceRefiner()`` with the images: whether the image fit succeeded and the
+   correlation of the images' detail under its motion, whether the pair was refined, what the gate
    found (informative, confirmed), and the road end-point error of DIS, of the model flow and of
    the output against the KITTI ground truth.
 2. Identical frames (a stopped car): the synthetic scene's image 1 twice; the estimated motion.
@@ -47,17 +48,22 @@ def main() -> None:
         m = road[0] & valid.reshape(road.shape[-2:]).bool()
         epe = lambda f: float((f - gt).norm(dim=0)[m].mean())  # noqa: E731
         print("Dark frames (KITTI pair × gain + noise σ):\n")
-        print("| gain | σ | refined | informative | confirmed | census model / DIS | EPE DIS | EPE model | EPE out |")
-        print("|---|---|---|---|---|---|---|---|---|")
+        print("| gain | σ | fit success | correlation | refined | informative | confirmed | census model / DIS "
+              "| EPE DIS | EPE model | EPE out |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|")
         for gain, sigma in ((1.0, 0.0), (0.2, 2.0), (0.2, 5.0), (0.1, 5.0), (0.05, 5.0)):
             g = torch.Generator().manual_seed(0)
             d1 = (im1 * gain + sigma * torch.randn(im1.shape, generator=g)).clamp(0, 255)
             d2 = (im2 * gain + sigma * torch.randn(im2.shape, generator=g)).clamp(0, 255)
             f = dis(d1, d2)
             out = refiner(f[None], road[None], cam, images=(d1[None], d2[None]))
-            gate = out.gate
-            print(f"| {gain} | {sigma} | {bool(out.refined[0])} | {bool(gate.informative[0])} | {bool(gate.confirmed[0])} | "
-                  f"{float(gate.cost_model[0]):.3f} / {float(gate.cost_prediction[0]):.3f} | {epe(f):.2f} | "
+            gate, fit = out.gate, out.fit
+            # (where the image fit failed, the gate judges nothing)
+            judged = (f"{float(gate.cost_model[0]):.3f} / {float(gate.cost_prediction[0]):.3f}"
+                      if int(gate.points[0]) else "not judged")
+            print(f"| {gain} | {sigma} | {bool(fit.success[0])} | {float(fit.extras['correlation'][0]):.2f} | "
+                  f"{bool(out.refined[0])} | {bool(gate.informative[0])} | {bool(gate.confirmed[0])} | "
+                  f"{judged} | {epe(f):.2f} | "
                   f"{epe(out.flow_model[0]):.2f} | {epe(out.flow[0]):.2f} |")
     p = render_pair("default", 5, seed=0)
     image = p["image1"][None]

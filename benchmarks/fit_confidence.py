@@ -1,0 +1,123 @@
+"""How ``fit_image``'s own confidence tells a right motion from a wrong one, measured.
+
+The image fit's ``success`` tests the images under the fitted motion over the mask's pixels that
+stay in view: the share of them whose plain intensities match (image 2's matched to image 1's by
+their own gain and offset) within ``inlier_threshold`` grey levels, and the correlation of the
+images' band of detail (``extras["correlation"]``, at least ``min_correlation`` = 0.5). This
+script prints both, and how many frames succeed:
+
+1. on the shared straight clip (every fifth pair, with road.json's polygon): the fit itself,
+   the fit on degraded images (image 2 blurred by a 3 × 3 box or a 5 × 1 horizontal one, image
+   2 darker by 0.7, both frames JPEG-compressed at quality 30, both with Gaussian noise σ = 4,
+   both dark: × 0.2 plus noise σ = 2), the fit at 6 m a frame (every fifth frame), and the
+   images judged at wrong motions: the fitted motion with its translation scaled by 0.5, 0 and
+   −1 (every parameter held: ``fixed=`` all, ``init=`` that motion);
+2. on the synthetic presets (pairs 0, 10, 20, 30 of each, the scene's road): the fit.
+
+    python benchmarks/fit_confidence.py [--data DIR]
+
+One thread; part 1 needs the straight clip (``../shared/data/kitti_odometry_straight``, or
+``--data`` naming it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import warnings
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry_straight"
+
+
+def box_blur(image: torch.Tensor, kx: int, ky: int) -> torch.Tensor:
+    """(B, C, H, W) blurred by a kx × ky box, borders replicated."""
+    padded = F.pad(image, (kx // 2, kx // 2, ky // 2, ky // 2), mode="replicate")
+    return F.avg_pool2d(padded, (ky, kx), stride=1)
+
+
+def jpeg(image: torch.Tensor, quality: int = 30) -> torch.Tensor:
+    """(1, 3, H, W) on 0..255 through OpenCV's JPEG codec."""
+    rgb = image[0].permute(1, 2, 0).clamp(0, 255).round().byte().numpy()
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(rgb[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    out = cv2.imdecode(buf, cv2.IMREAD_COLOR)[..., ::-1]
+    return torch.from_numpy(np.ascontiguousarray(out)).permute(2, 0, 1)[None].float()
+
+
+def row(name: str, fits: list) -> str:
+    corr = [float(f.extras["correlation"][0]) for f in fits]
+    share = [float(f.extras["inlier_fraction"][0]) for f in fits]
+    ok = sum(bool(f.success[0]) for f in fits)
+    return (f"| {name} | {len(fits)} | {ok} | {min(corr):.2f} / {statistics.median(corr):.2f} | "
+            f"{min(share):.2f} / {statistics.median(share):.2f} |")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=DEFAULT, help="the straight clip's folder")
+    args = parser.parse_args()
+    import fsof_torch as fs
+    from fsof_torch.estimation.image_fit import fit_image
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    warnings.simplefilter("ignore")
+    header = ("| condition | frames | success | correlation min / median | inlier share min / median |\n"
+              "|---|---|---|---|---|")
+    data = args.data
+    if data.is_dir():
+        cam = fs.Camera.from_kitti(data / "calib.txt", cam=0, height=1.65)
+        files = sorted((data / "image_l").glob("*.png"))
+        frame = (lambda k: fs.read_image(files[k])[None])
+        road = fs.read_road_mask(data / "road.json", size=tuple(frame(0).shape[-2:]))[None]
+        pairs = list(range(0, 45, 5))
+        g = torch.Generator().manual_seed(0)
+        noisy = (lambda x, s: (x + s * torch.randn(x.shape, generator=g)).clamp(0, 255))  # noqa: E731
+        variants = [
+            ("the fit", lambda a, b: (a, b)),
+            ("image 2 blurred, 3 × 3 box", lambda a, b: (a, box_blur(b, 3, 3))),
+            ("image 2 blurred, 5 × 1 box", lambda a, b: (a, box_blur(b, 5, 1))),
+            ("image 2 × 0.7", lambda a, b: (a, b * 0.7)),
+            ("both JPEG, quality 30", lambda a, b: (jpeg(a), jpeg(b))),
+            ("both with noise σ = 4", lambda a, b: (noisy(a, 4.0), noisy(b, 4.0))),
+            ("both dark: × 0.2, noise σ = 2", lambda a, b: (noisy(a * 0.2, 2.0), noisy(b * 0.2, 2.0))),
+        ]
+        print(f"Shared straight clip, pairs k -> k + 1 for k in {pairs} (road.json's polygon):\n")
+        print(header)
+        fitted = {}
+        for name, make in variants:
+            fits = []
+            for k in pairs:
+                a, b = make(frame(k), frame(k + 1))
+                fits.append(fit_image(a, b, road, cam))
+                if name == "the fit":
+                    fitted[k] = fits[-1]
+            print(row(name, fits), flush=True)
+        print(row("6 m a frame (k -> k + 5)", [fit_image(frame(k), frame(k + 5), road, cam) for k in pairs]))
+        names = tuple(fitted[pairs[0]].params)
+        for scale in (0.5, 0.0, -1.0):
+            fits = []
+            for k in pairs:
+                held = {n: v.double() for n, v in fitted[k].params.items()}
+                for n in ("x_d", "y_d", "z_d"):
+                    held[n] = held[n] * scale
+                fits.append(fit_image(frame(k), frame(k + 1), road, cam, fixed=names, init=held))
+            print(row(f"held at the fit's translation × {scale:g}", fits), flush=True)
+        print()
+    print("Synthetic presets, pairs 0, 10, 20, 30 (the scene's road):\n")
+    print(header)
+    for preset in fs.PRESETS:
+        fits = []
+        for i in (0, 10, 20, 30):
+            p = fs.render_pair(preset, i)
+            fits.append(fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"]))
+        print(row(preset, fits), flush=True)
+
+
+if __name__ == "__main__":
+    main()
