@@ -191,6 +191,24 @@ def test_feature_a_wrong_motion_fails_on_correlation():
     assert bool(relaxed.success)
 
 
+def test_feature_confidence_per_frame_of_a_batch():
+    """A batch of two frames, one held at the true motion and one at a wrong one: each frame's
+    correlation and inlier share are its own (those of the frame fitted alone)."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.6, 0.0)
+    names = ("x_d", "z_d", "yaw", "roll", "pitch")
+    z = torch.tensor([0.6, 0.3], dtype=torch.float64)
+    batch = fit_image(image1.expand(2, -1, -1, -1), image2.expand(2, -1, -1, -1), mask.expand(2, -1, -1, -1),
+                      cam, model="paper", fixed=names, init={"z_d": z})
+    assert batch.success.tolist() == [True, False]
+    for b in range(2):
+        alone = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": float(z[b])})
+        for key in ("correlation", "inlier_fraction"):
+            torch.testing.assert_close(batch.extras[key][b:b + 1], alone.extras[key], rtol=1e-9, atol=1e-12)
+
+
 def test_feature_init_from_flow_fit_is_used():
     cam = small_camera()
     image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.7, 0.01)
