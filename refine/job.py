@@ -252,7 +252,13 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
         record["odometry_given"] = _odometry("given", pair, camera, cfg, name)
     if out.fit is not None:
         record["fit_success"] = bool(out.fit.success.all())
-        record["fit_residual_px"] = float(out.fit.residual[0])
+        extras = out.fit.extras or {}
+        if "correlation" in extras:  # an image fit: its residual is photometric, and its image tests
+            record["fit_residual_grey"] = float(out.fit.residual[0])
+            record["fit_correlation"] = float(extras["correlation"][0])
+            record["fit_inlier_share"] = float(extras["inlier_fraction"][0])
+        else:
+            record["fit_residual_px"] = float(out.fit.residual[0])
     return record, flow, after
 
 

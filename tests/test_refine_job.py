@@ -99,6 +99,13 @@ def test_synthetic_default_pipeline(tmp_path, capsys):
     assert given["epe_road_after"] < 0.05 < given["epe_road_before"]
     rec = json.loads((out / "dis" / "given" / "pairs" / "000000.json").read_text())
     assert 0 < rec["after"]["photo_road_noc_n"] <= rec["after"]["photo_road_n"]
+    # the fits' own confidence: a flow fit's residual in pixels, an image fit's in grey levels
+    # with its two image tests
+    fitted = json.loads((out / "dis" / "fit" / "pairs" / "000000.json").read_text())
+    assert fitted["fit_success"] is True and fitted["fit_residual_px"] >= 0 and "fit_correlation" not in fitted
+    imaged = json.loads((out / "dis" / "photometric" / "pairs" / "000000.json").read_text())
+    assert imaged["fit_success"] is (imaged["fit_correlation"] >= 0.5 and imaged["fit_inlier_share"] >= 0.25)
+    assert imaged["fit_residual_grey"] >= 0 and "fit_residual_px" not in imaged
     # census and SSIM beside L1, road and overall, pooled over the pairs' pixels (KITTI style)
     summary = json.loads((out / "report.json").read_text())
     records = [r for r in summary["pairs"] if r["variant"] == "given"]
