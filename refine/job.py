@@ -7,7 +7,8 @@ Layout of ``--out``::
     OUT/report.md, OUT/report.json                 the report (written last)
     OUT/<source>/summary.png                       the clip over its pairs (figures on)
     OUT/<source>/figures/<pair>.png                before and after, flow and error (figures on)
-    OUT/<source>/<variant>/flow/<pair>.png         refined flow, KITTI 16-bit PNG
+    OUT/<source>/<variant>/flow/<pair>.png         refined flow, KITTI 16-bit PNG (pixels beyond its
+                                                   ±512 px marked invalid, counted in the record)
     OUT/<source>/<variant>/pairs/<pair>.json       metrics before/after, odometry, fingerprints
 
 A pair's JSON record is written last, atomically: its presence, with the run's fingerprint and
@@ -125,7 +126,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
 
     ``sources`` maps a source name to its callable (:func:`refine.sources.make_source`);
     ``camera`` replaces the pairs' own camera (e.g. with a calibrated pitch)."""
-    from fsof_torch.io import write_json, write_kitti_flow
+    from fsof_torch.io import write_json
     from tqdm import tqdm
 
     for source in cfg.sources:
@@ -178,8 +179,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                                    "road": road_from, **road_info, "rank": rank, "fingerprint": cfg.fingerprint,
                                    "input_fingerprint": input_fp[variant]})
                     p = paths(cfg, source, variant, spec.name)
-                    # the maps hold the flow with NaN and inf replaced, and where it was finite
-                    write_kitti_flow(p["flow"], after["flow"].cpu(), after["finite"].cpu())
+                    record["flow_png_dropped"] = _write_flow_png(p["flow"], after)
                     write_json(p["record"], record)
                     records.append({**record, "resumed": False})
                     flows[variant], maps[variant] = flow, after
@@ -191,6 +191,23 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
         for figure in figures.values():
             figure.close()
     return records
+
+
+def _write_flow_png(path: Path, after: dict) -> int:
+    """Write the refined flow as a KITTI 16-bit PNG; return how many of its finite pixels the
+    format cannot hold (beyond [-512, 511.98] px), which it marks invalid.
+
+    The road's flow reaches that far where the car moves fast: a road point a few metres ahead
+    passes under the camera and leaves the image by hundreds of pixels (a random network's flow
+    does too). The job's metrics are taken before, on the flow itself; the record counts them.
+    """
+    from fsof_torch.io import KITTI_FLOW_MAX, KITTI_FLOW_MIN, write_kitti_flow
+
+    # the maps hold the flow with NaN and inf replaced, and where it was finite
+    flow, finite = after["flow"].cpu(), after["finite"].cpu()
+    held = ((flow >= KITTI_FLOW_MIN) & (flow <= KITTI_FLOW_MAX)).all(dim=0, keepdim=True)
+    write_kitti_flow(path, flow, finite & held)
+    return int((finite & ~held).sum())
 
 
 def _to_device(pair: dict, device: str) -> dict:

@@ -779,3 +779,26 @@ def test_scene_noise_option(tmp_path, capsys):
         floors.append(row["photo_road_after"])
     assert floors[1] > floors[0]  # (at 48x160 the noise is area-scaled to about 0.5 grey levels)
     assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
+
+
+def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, scene_pairs):
+    """A predicted flow of 600 px on a band outside the road (a KITTI flow PNG holds ±512 px):
+    the job finishes, its metrics take the flow as it is, and the written PNG marks those pixels
+    invalid, which the record counts."""
+    from fsof_torch.io import read_kitti_flow, write_flow
+
+    flows = tmp_path / "far"
+    flows.mkdir()
+    for i, p in enumerate(scene_pairs):
+        far = p["flow"].clone()
+        far[0, :10] = 600.0  # the top rows: sky, never road
+        write_flow(flows / f"{i:06d}.flo", far)
+    out = tmp_path / "out"
+    rc = main(_user(user_folder, out, "--flows", str(flows), "--road", str(user_folder / "road"),
+                    "--odometry", "photometric", *_mounting(scene_pairs)))
+    assert rc == 0
+    rec = json.loads((out / "files" / "photometric" / "pairs" / "000000.json").read_text())
+    W = scene_pairs[0]["flow"].shape[-1]
+    assert rec["flow_png_dropped"] == 10 * W
+    written, valid = read_kitti_flow(out / "files" / "photometric" / "flow" / "000000.png")
+    assert not valid[..., :10, :].any() and valid[..., 10:, :].all()

@@ -26,6 +26,7 @@ from .flow import read_flow, write_flow
 from .images import read_image, read_image_array, write_image, write_image_array
 from .kitti import (
     KITTI_FLOW_MAX,
+    KITTI_FLOW_MIN,
     KITTI_FLOW_SCALE,
     read_kitti_flow,
     read_kitti_poses,
@@ -71,6 +72,7 @@ __all__ = [
     "CarlaRun",
     "FLO_MAGIC",
     "KITTI_FLOW_MAX",
+    "KITTI_FLOW_MIN",
     "KITTI_FLOW_SCALE",
     "SYNTHETIC_FORMAT",
     "atomic_path",

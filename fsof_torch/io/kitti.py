@@ -34,6 +34,7 @@ __all__ = [
     "write_kitti_calibration",
     "KITTI_FLOW_SCALE",
     "KITTI_FLOW_MAX",
+    "KITTI_FLOW_MIN",
 ]
 
 KITTI_FLOW_SCALE = 64.0
