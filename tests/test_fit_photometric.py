@@ -100,6 +100,7 @@ def test_exceptions():
     (dict(forward_starts=["fast"]), TypeError, "forward_starts: expected a number, got str 'fast'"),
     (dict(min_correlation=1.5), ValueError, r"min_correlation: expected a number in \[-1, 1\], got 1.5"),
     (dict(min_correlation="high"), TypeError, "min_correlation: expected a number, got str 'high'"),
+    (dict(retry_starts=-1), ValueError, "retry_starts: expected an int >= 0, got -1"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
@@ -207,6 +208,26 @@ def test_feature_confidence_per_frame_of_a_batch():
         alone = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": float(z[b])})
         for key in ("correlation", "inlier_fraction"):
             torch.testing.assert_close(batch.extras[key][b:b + 1], alone.extras[key], rtol=1e-9, atol=1e-12)
+
+
+def test_feature_runners_up_per_frame_of_a_batch():
+    """Where the winning start's fit fails (here every fit: the bar is out of reach), the
+    runner-up start is carried down too and each frame keeps the fit whose images correlate
+    best: a batch of two different pairs gives each pair's fit alone."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    first = synthetic_pair(cam, 0.02, 0.6, 0.01, seed=0)
+    second = synthetic_pair(cam, -0.03, 0.4, -0.01, seed=1)
+    options = dict(model="paper", min_correlation=0.9999, starts=[{"z_d": 0.9}], forward_starts=())
+    batch = fit_image(*(torch.cat([a, b]) for a, b in zip(first[:3], second[:3])), cam, **options)
+    for b, pair in enumerate((first, second)):
+        alone = fit_image(*pair[:3], cam, **options)
+        assert not bool(alone.success)
+        for name in ("x_d", "z_d", "yaw", "roll"):
+            torch.testing.assert_close(batch.params[name][b:b + 1], alone.params[name], rtol=1e-6, atol=1e-9)
+        torch.testing.assert_close(batch.extras["correlation"][b:b + 1], alone.extras["correlation"], rtol=1e-6, atol=1e-9)
+        assert int(batch.iterations[b]) == int(alone.iterations[0])
 
 
 def test_feature_init_from_flow_fit_is_used():

@@ -110,3 +110,26 @@ def test_real_clip_image2_blurred_refines(shared_data):
     assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
     out = FreespaceRefiner()(torch.zeros(1, 2, *road.shape[-2:]), road, camera, images=(image1, image2))
     assert bool(out.refined[0])
+
+
+def test_real_clip_a_failed_winner_falls_back_to_the_runner_up(shared_data):
+    """Frames 15 and 18 of the clip (3.6 m a frame), the road found in the images with DIS's flow
+    given: DIS lost the near road and its planar motion points backwards (about -5 m). On the
+    road seed, at half resolution, that start has the lowest two-way cost at the coarse level,
+    and its fit fails the image tests; the runner-up start is carried down instead and finds
+    the motion of the poses. Without runners-up the sample is flagged ``no_motion``."""
+    from refine.sources import dis_flow
+
+    from fsof_torch import ImageMotionEstimator, detect_road
+    from fsof_torch.refinement.estimators import planar_start
+
+    camera, frame, road, poses = _clip(shared_data)
+    image1, image2 = frame(15), frame(18)
+    flow = dis_flow(image1[0], image2[0])[None]
+    assert float(planar_start(flow, road, camera)["z_d"][0]) < 0  # the flow's motion points backwards
+    true_z = -float((torch.linalg.inv(poses[18]) @ poses[15])[2, 3])
+    alone = detect_road(image1, image2, camera, flow=flow, estimator=ImageMotionEstimator(retry_starts=0))
+    assert alone.flag == ["no_motion"]
+    det = detect_road(image1, image2, camera, flow=flow)
+    assert det.flag == ["ok"]
+    assert abs(float(det.motion.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)

@@ -47,7 +47,8 @@ from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
-from .sampling import MaskPoints, pixel_coordinates, sample_mask, sample_points
+from .sampling import pixel_coordinates, sample_mask, sample_points
+from .confidence import detail_correlation, photometric_inliers
 from .starts import check_forward_steps, start_list, starts_ahead, two_way_cost
 from .solver import Evaluation, Solution, positive_definite, solve
 
@@ -251,7 +252,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
               data_range: float = 255.0, check_every: int | None = 3,
-              forward_starts: Sequence[float] = (2.0, 4.0)) -> RoadFit:
+              forward_starts: Sequence[float] = (2.0, 4.0), retry_starts: int = 1) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -276,6 +277,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             can land on a wrong motion when the car moves a few heights a frame; these find fast
             driving (at 10 Hz and a 1.65 m high camera, 2 and 4 heights are 119 and 238 km/h).
             Not used where z_d is fixed; ``()``: none.
+        retry_starts: where the winning start's fit fails (below), up to this many runners-up,
+            in the order of their two-way cost, are carried down the pyramid in turn; a frame
+            keeps the first that succeeds (else the one whose images correlate best). The
+            two-way cost at a coarse level can prefer a wrong motion (a predicted flow that lost
+            the near road can point backwards); the tests at full resolution tell. 0: none.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -329,6 +335,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                       min_points, min_inlier_fraction)
     if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
         raise ValueError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
+    check_int(retry_starts, "retry_starts", minimum=0)
     check_int(levels, "levels", minimum=1, optional=True)
     check_int(min_size, "min_size", minimum=2)
     check_int(band_levels, "band_levels", minimum=0)
@@ -410,52 +417,81 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
                          check_every=checks, missing="mean")
 
-        iterations = torch.zeros(B, dtype=torch.long, device=dev)
-        sol = None
-        for level in reversed(range(n_levels)):
-            reps = S if S > 1 and level == n_levels - 1 else 1  # the starts compete at the coarsest
-            sol = run(level, reps, params, highpass if level < band_levels else None)
-            params = sol.params
-            if reps > 1:
-                # the start with the lowest two-way robust cost goes on (one common scale per frame)
-                judge = max(level - 1, 0)  # (a finer level: more points judge)
-                cost = two_way_cost(sol.params, model, _level_camera(cam64, judge), pyramid[judge], masks[judge],
-                                     robust, max_points, reps)
-                best = cost.reshape(reps, B).argmin(0)
-                params = params.reshape(reps, B, -1)[best, torch.arange(B, device=dev)]
-                iterations = iterations + sol.iterations.reshape(reps, B)[best, torch.arange(B, device=dev)]
-                sol = None if level == 0 else sol
-                continue
-            iterations = iterations + sol.iterations
-        if sol is None:  # a single level with several starts: one more solve on the winner
-            sol = run(0, 1, params, highpass)
-            params = sol.params
-        values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
-        finite = torch.isfinite(params).all(-1)
-        values = torch.where(finite.unsqueeze(-1), values, default)
-        M = model.matrix(cam64, values)
-        flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
-        points = sample_mask(mask, max_points)
-        inliers, residual, fraction = _photometric_inliers(grey, flow, valid, points, inlier_threshold)
-        n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
-        correlation = _detail_correlation(compared(0, highpass if band_levels > 0 else None), flow, valid, points)
-    A = sol.normal[:, :P, :P]
-    d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
-    well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
-    # (a fit that ran out of iterations at full resolution is still a fit: the refiner's gate
-    # judges its flow; ``extras["converged"]`` tells)
-    success = (finite & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
-               & (correlation >= min_correlation))
+        def band_of(level: int) -> float | None:
+            return highpass if level < band_levels else None
+
+        def descend(params: Tensor, top: int) -> tuple[Solution, Tensor, Tensor]:
+            """From ``params`` (B, P + 2) down the pyramid from level ``top`` to full resolution."""
+            iterations = torch.zeros(B, dtype=torch.long, device=dev)
+            sol = None
+            for level in range(top, -1, -1):
+                sol = run(level, 1, params, band_of(level))
+                params = sol.params
+                iterations = iterations + sol.iterations
+            return sol, params, iterations
+
+        def judged(sol: Solution, params: Tensor, iterations: Tensor) -> dict[str, Tensor]:
+            """The fit at full resolution and its tests (see ``success``)."""
+            values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
+            finite = torch.isfinite(params).all(-1)
+            values = torch.where(finite.unsqueeze(-1), values, default)
+            M = model.matrix(cam64, values)
+            flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
+            points = sample_mask(mask, max_points)
+            inliers, residual, fraction = photometric_inliers(grey, flow, valid, points, inlier_threshold)
+            n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
+            correlation = detail_correlation(compared(0, band_of(0)), flow, valid, points)
+            A = sol.normal[:, :P, :P]
+            d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
+            well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
+            # (a fit that ran out of iterations at full resolution is still a fit: the refiner's
+            # gate judges its flow; ``extras["converged"]`` tells)
+            success = (finite & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
+                       & (correlation >= min_correlation))
+            return {"values": values, "gain": gain, "offset": offset, "M": M, "flow": flow, "valid": valid,
+                    "inliers": inliers, "residual": residual, "fraction": fraction, "correlation": correlation,
+                    "success": success, "iterations": iterations, "covariance": sol.covariance()[:, :P, :P],
+                    "cost": sol.cost, "converged": sol.converged}
+
+        coarse = n_levels - 1
+        if S == 1:
+            fit = judged(*descend(params, coarse))
+        else:
+            # the starts compete at the coarsest level, ranked by their two-way robust cost at the
+            # next finer one (more points judge; one common kernel scale per frame)
+            sol = run(coarse, S, params, band_of(coarse))
+            judge = max(coarse - 1, 0)
+            cost = two_way_cost(sol.params, model, _level_camera(cam64, judge), pyramid[judge], masks[judge],
+                                robust, max_points, S)
+            order = cost.reshape(S, B).argsort(0)
+            frames = torch.arange(B, device=dev)
+            solved, moved = sol.params.reshape(S, B, -1), sol.iterations.reshape(S, B)
+            # below the coarsest level; a single level solves once more on the winner
+            top = coarse - 1 if coarse > 0 else 0
+            fit = None
+            for rank in range(min(S, 1 + retry_starts)):
+                if fit is not None and bool(fit["success"].all()):  # (one host read per runner-up)
+                    break
+                pick = order[rank]
+                sol, params, iterations = descend(solved[pick, frames], top)
+                fit_r = judged(sol, params, iterations + moved[pick, frames])
+                if fit is None:
+                    fit = fit_r
+                    continue
+                # a frame that failed takes the runner-up where it succeeds or its images correlate better
+                take = ~fit["success"] & (fit_r["success"] | (fit_r["correlation"] > fit["correlation"]))
+                fit = {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), fit_r[k], v) for k, v in fit.items()}
+    values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
                               named.get("roll", camera.roll.to(out_dtype)), named.get("pitch", camera.pitch.to(out_dtype)))
-    return RoadFit(model=model.name, params=named, homography=M.to(out_dtype), flow=flow, valid=valid,
-                   inliers=inliers, residual=residual.to(out_dtype), success=success, camera=cam_fit,
-                   iterations=iterations, covariance=sol.covariance()[:, :P, :P].to(out_dtype),
-                   cost=sol.cost.to(out_dtype), extras={"gain": gain.to(out_dtype), "offset": offset.to(out_dtype),
-                                                         "inlier_fraction": fraction.to(out_dtype),
-                                                         "correlation": correlation.to(out_dtype),
-                                                         "converged": sol.converged})
+    return RoadFit(model=model.name, params=named, homography=M.to(out_dtype), flow=fit["flow"], valid=fit["valid"],
+                   inliers=fit["inliers"], residual=fit["residual"].to(out_dtype), success=fit["success"],
+                   camera=cam_fit, iterations=fit["iterations"], covariance=fit["covariance"].to(out_dtype),
+                   cost=fit["cost"].to(out_dtype), extras={"gain": gain.to(out_dtype), "offset": offset.to(out_dtype),
+                                                           "inlier_fraction": fit["fraction"].to(out_dtype),
+                                                           "correlation": fit["correlation"].to(out_dtype),
+                                                           "converged": fit["converged"]})
 
 
 def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> list[Tensor]:
@@ -587,88 +623,6 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
         mean[:, i] = mu
         inverse_variance[:, i] = sigma.square().reciprocal()
     return mean, inverse_variance
-
-
-def _warped_samples(images: Tensor, flow: Tensor, valid: Tensor,
-                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """At every mask pixel (``points.every``): image 1's value, image 2's at the pixel moved by
-    the flow (bilinear), whether that lies inside image 2 where the flow is defined, and the
-    frame of the pixel; ``images`` (B, 2, H, W) holds both frames."""
-    B, _, H, W = images.shape
-    every = points.every
-    frame = torch.div(every, H * W, rounding_mode="floor")
-    pixel = every - frame * H * W
-    u = (pixel % W).to(torch.float64)
-    v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
-    f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
-    xy = torch.stack([u + f[0], v + f[1]])
-    I1 = images[:, 0].reshape(-1).gather(0, every).to(torch.float64)
-    I2 = torch.empty_like(I1)
-    inb = torch.empty_like(I1, dtype=torch.bool)
-    for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
-        run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
-        s, ok = sample_points(images[b:b + 1, 1:], xy[:, run].unsqueeze(0))
-        I2[run], inb[run] = s[0, 0], ok[0]
-    return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
-
-
-def _photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints,
-                         threshold: float) -> tuple[Tensor, Tensor, Tensor]:
-    """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
-    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,).
-
-    The residual compares the plain intensities, image 2's matched to image 1's by its own gain
-    and offset (:func:`_matched_gain`): the fit's gain and offset are those of the band-passed
-    images, whose amplitude a blur or a change of sharpness between the frames changes while the
-    plain intensities keep theirs.
-    """
-    B, _, H, W = grey.shape
-    I1, I2, ok, frame = _warped_samples(grey, flow, valid, points)
-    gain, offset = _matched_gain(I1, I2, ok, frame, points, threshold)
-    err = (gain[frame] * I2 + offset[frame] - I1).abs()
-    inl = ok & (err <= threshold)
-    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, points.every, inl)
-    n_in = points.per_frame(inl.to(torch.float64))
-    residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
-    return inliers.reshape(B, 1, H, W), residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
-
-
-def _detail_correlation(images: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints) -> Tensor:
-    """(B,) the correlation (zero-mean, normalised) of image 1 and image 2 moved by the flow
-    over the mask's pixels in view, of ``images`` (B, 2, H, W) as the fit compared them (the
-    finest level's band); 0 where either has no variance there."""
-    x, y, ok, frame = _warped_samples(images, flow, valid, points)
-    w = ok.to(torch.float64)
-    n = points.per_frame(w).clamp_min(1.0)
-    x = x - (points.per_frame(w * x) / n)[frame]
-    y = y - (points.per_frame(w * y) / n)[frame]
-    sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
-    den = (sxx * syy).sqrt()
-    return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
-
-
-def _matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
-                  iterations: int = 2) -> tuple[Tensor, Tensor]:
-    """Per frame (B,) the gain and offset that match image 2's intensities ``I2`` to image 1's
-    ``I1`` (paired samples at ``ok`` points): their means and spreads matched, weighted robustly
-    (Cauchy weights at ``threshold`` of the residuals, ``iterations`` times).
-
-    Matching the spreads, not regressing one image on the other: under a wrong flow the samples
-    do not correspond, and a regression's gain would shrink toward 0, making any flow over a
-    plain road look right; the spreads' ratio stays the images' contrast ratio.
-    """
-    w = ok.to(torch.float64)
-    gain = offset = None
-    for _ in range(iterations + 1):
-        n = points.per_frame(w).clamp_min(1e-12)
-        m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
-        s1 = points.per_frame(w * (I1 - m1[frame]).abs()) / n
-        s2 = points.per_frame(w * (I2 - m2[frame]).abs()) / n
-        gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
-        offset = m1 - gain * m2
-        r = (gain[frame] * I2 + offset[frame] - I1) / threshold
-        w = ok.to(torch.float64) / (1.0 + r.square())
-    return gain, offset
 
 
 def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,

@@ -1,0 +1,101 @@
+"""The image fit's own tests of a motion (:func:`~fsof_torch.estimation.image_fit.fit_image`'s
+``success``): how the two images compare once image 2 is moved back by the motion's flow, at
+every pixel of the road mask that stays in view.
+
+- :func:`photometric_inliers`: the share of those pixels whose plain intensities match within a
+  threshold, image 2's matched to image 1's by their own gain and offset (:func:`matched_gain`);
+- :func:`detail_correlation`: the correlation of the images' band of detail there. A plain
+  road's intensities match under almost any motion; its detail lines up only under the right
+  one (``python benchmarks/fit_confidence.py``).
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from .sampling import MaskPoints, sample_points
+
+__all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
+
+
+def warped_samples(images: Tensor, flow: Tensor, valid: Tensor,
+                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """At every mask pixel (``points.every``): image 1's value, image 2's at the pixel moved by
+    the flow (bilinear), whether that lies inside image 2 where the flow is defined, and the
+    frame of the pixel; ``images`` (B, 2, H, W) holds both frames."""
+    B, _, H, W = images.shape
+    every = points.every
+    frame = torch.div(every, H * W, rounding_mode="floor")
+    pixel = every - frame * H * W
+    u = (pixel % W).to(torch.float64)
+    v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
+    f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
+    xy = torch.stack([u + f[0], v + f[1]])
+    I1 = images[:, 0].reshape(-1).gather(0, every).to(torch.float64)
+    I2 = torch.empty_like(I1)
+    inb = torch.empty_like(I1, dtype=torch.bool)
+    for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
+        run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
+        s, ok = sample_points(images[b:b + 1, 1:], xy[:, run].unsqueeze(0))
+        I2[run], inb[run] = s[0, 0], ok[0]
+    return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
+
+
+def photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints,
+                         threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+    """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
+    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,).
+
+    The residual compares the plain intensities, image 2's matched to image 1's by its own gain
+    and offset (:func:`matched_gain`): the fit's gain and offset are those of the band-passed
+    images, whose amplitude a blur or a change of sharpness between the frames changes while the
+    plain intensities keep theirs.
+    """
+    B, _, H, W = grey.shape
+    I1, I2, ok, frame = warped_samples(grey, flow, valid, points)
+    gain, offset = matched_gain(I1, I2, ok, frame, points, threshold)
+    err = (gain[frame] * I2 + offset[frame] - I1).abs()
+    inl = ok & (err <= threshold)
+    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, points.every, inl)
+    n_in = points.per_frame(inl.to(torch.float64))
+    residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
+    return inliers.reshape(B, 1, H, W), residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+
+
+def detail_correlation(images: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints) -> Tensor:
+    """(B,) the correlation (zero-mean, normalised) of image 1 and image 2 moved by the flow
+    over the mask's pixels in view, of ``images`` (B, 2, H, W) as the fit compared them (the
+    finest level's band); 0 where either has no variance there."""
+    x, y, ok, frame = warped_samples(images, flow, valid, points)
+    w = ok.to(torch.float64)
+    n = points.per_frame(w).clamp_min(1.0)
+    x = x - (points.per_frame(w * x) / n)[frame]
+    y = y - (points.per_frame(w * y) / n)[frame]
+    sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
+    den = (sxx * syy).sqrt()
+    return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
+
+
+def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
+                  iterations: int = 2) -> tuple[Tensor, Tensor]:
+    """Per frame (B,) the gain and offset that match image 2's intensities ``I2`` to image 1's
+    ``I1`` (paired samples at ``ok`` points): their means and spreads matched, weighted robustly
+    (Cauchy weights at ``threshold`` of the residuals, ``iterations`` times).
+
+    Matching the spreads, not regressing one image on the other: under a wrong flow the samples
+    do not correspond, and a regression's gain would shrink toward 0, making any flow over a
+    plain road look right; the spreads' ratio stays the images' contrast ratio.
+    """
+    w = ok.to(torch.float64)
+    gain = offset = None
+    for _ in range(iterations + 1):
+        n = points.per_frame(w).clamp_min(1e-12)
+        m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
+        s1 = points.per_frame(w * (I1 - m1[frame]).abs()) / n
+        s2 = points.per_frame(w * (I2 - m2[frame]).abs()) / n
+        gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
+        offset = m1 - gain * m2
+        r = (gain[frame] * I2 + offset[frame] - I1) / threshold
+        w = ok.to(torch.float64) / (1.0 + r.square())
+    return gain, offset
