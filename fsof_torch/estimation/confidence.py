@@ -19,12 +19,12 @@ from .sampling import MaskPoints, sample_points
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
 
 
-def warped_samples(images: Tensor, flow: Tensor, valid: Tensor,
-                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """At every mask pixel (``points.every``): image 1's value, image 2's at the pixel moved by
-    the flow (bilinear), whether that lies inside image 2 where the flow is defined, and the
-    frame of the pixel; ``images`` (B, 2, H, W) holds both frames."""
-    B, _, H, W = images.shape
+def warped_samples(image1: Tensor, image2: Tensor, flow: Tensor, valid: Tensor,
+                   points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """At every mask pixel (``points.every``): image 1's values (C, M), image 2's (C, M) at the
+    pixel moved by the flow (bilinear), whether that lies inside image 2 where the flow is
+    defined (M,), and the frame of the pixel (M,); ``image1``, ``image2`` (B, C, H, W)."""
+    B, C, H, W = image1.shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")
     pixel = every - frame * H * W
@@ -32,42 +32,42 @@ def warped_samples(images: Tensor, flow: Tensor, valid: Tensor,
     v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
     f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     xy = torch.stack([u + f[0], v + f[1]])
-    I1 = images[:, 0].reshape(-1).gather(0, every).to(torch.float64)
+    I1 = image1.transpose(0, 1).reshape(C, -1).gather(1, every.expand(C, -1)).to(torch.float64)
     I2 = torch.empty_like(I1)
-    inb = torch.empty_like(I1, dtype=torch.bool)
+    inb = torch.empty(every.shape, dtype=torch.bool, device=every.device)
     for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
         run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
-        s, ok = sample_points(images[b:b + 1, 1:], xy[:, run].unsqueeze(0))
-        I2[run], inb[run] = s[0, 0], ok[0]
+        s, ok = sample_points(image2[b:b + 1], xy[:, run].unsqueeze(0))
+        I2[:, run], inb[run] = s[0], ok[0]
     return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
 
 
-def photometric_inliers(grey: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints,
-                         threshold: float) -> tuple[Tensor, Tensor, Tensor]:
+def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
+                        size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
-    |residual| (B,) and their share of the mask's pixels that the flow keeps inside image 2 (B,).
+    |residual| (B,), their share of the mask's pixels that the flow keeps inside image 2 (B,) and
+    their number (B,), from the intensities at those pixels (:func:`warped_samples`).
 
     The residual compares the plain intensities, image 2's matched to image 1's by its own gain
     and offset (:func:`matched_gain`): the fit's gain and offset are those of the band-passed
     images, whose amplitude a blur or a change of sharpness between the frames changes while the
     plain intensities keep theirs.
     """
-    B, _, H, W = grey.shape
-    I1, I2, ok, frame = warped_samples(grey, flow, valid, points)
+    B = points.bounds.numel() - 1
     gain, offset = matched_gain(I1, I2, ok, frame, points, threshold)
     err = (gain[frame] * I2 + offset[frame] - I1).abs()
     inl = ok & (err <= threshold)
-    inliers = torch.zeros(B * H * W, dtype=torch.bool, device=grey.device).scatter_(0, points.every, inl)
+    inliers = torch.zeros(B * size[0] * size[1], dtype=torch.bool, device=I1.device).scatter_(0, points.every, inl)
     n_in = points.per_frame(inl.to(torch.float64))
     residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
-    return inliers.reshape(B, 1, H, W), residual, n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+    fraction = n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+    return inliers.reshape(B, 1, *size), residual, fraction, n_in
 
 
-def detail_correlation(images: Tensor, flow: Tensor, valid: Tensor, points: MaskPoints) -> Tensor:
-    """(B,) the correlation (zero-mean, normalised) of image 1 and image 2 moved by the flow
-    over the mask's pixels in view, of ``images`` (B, 2, H, W) as the fit compared them (the
-    finest level's band); 0 where either has no variance there."""
-    x, y, ok, frame = warped_samples(images, flow, valid, points)
+def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints) -> Tensor:
+    """(B,) the correlation (zero-mean, normalised) of image 1's values ``x`` and image 2's ``y``
+    at the mask's pixels in view (``ok``; :func:`warped_samples`), of the images as the fit
+    compared them (the finest level's band); 0 where either has no variance there."""
     w = ok.to(torch.float64)
     n = points.per_frame(w).clamp_min(1.0)
     x = x - (points.per_frame(w * x) / n)[frame]

@@ -350,8 +350,7 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
         idx = idx - b * HW if b else idx
         at = idx.expand(2, -1)
         diff = model_flow[b].reshape(2, HW).gather(1, at).sub_(flow[b].reshape(2, HW).gather(1, at).to(model_flow.dtype))
-        # (|d|² then its root: about half the time of hypot, whose overflow guard a flow's
-        # differences do not need)
+        # (|d|² then its root: hypot's overflow guard is not needed for a flow's differences)
         epe = torch.mul(diff[0], diff[0], out=diff[0]).addcmul_(diff[1], diff[1]).sqrt_()
         use = model_valid[b].reshape(HW).gather(0, idx)
         inl = torch.le(epe, threshold).logical_and_(use)
@@ -401,8 +400,7 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
     # the plane's robust stage anneals its kernel from the decomposed start whatever its quality
     # (its first check comes after 3 iterations), so its DLT needs only to land in the basin: 2
-    # robust iterations (python benchmarks/bench_fit.py, "plane" row: 4 cost 1.3 ms more and
-    # saved no iteration there); the homography's robust stage starts at the DLT itself: 4
+    # robust iterations; the homography's robust stage starts at the DLT itself: 4
     H = homography_dlt(camera.K, K_inv, pts, flow, sel, iterations=2 if model.name == "plane" else 4)
     if model.name == "plane":
         cam = camera

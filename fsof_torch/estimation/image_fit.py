@@ -48,7 +48,7 @@ from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import pixel_coordinates, sample_mask, sample_points
-from .confidence import detail_correlation, photometric_inliers
+from .confidence import detail_correlation, photometric_inliers, warped_samples
 from .starts import check_forward_steps, start_list, starts_ahead, two_way_cost
 from .solver import Evaluation, Solution, positive_definite, solve
 
@@ -398,15 +398,17 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
         checks = None if check_every is None else range(check_every, max_iter)
 
-        bands: dict = {}  # each level's compared images, once
+        compared_levels: dict[int, Tensor] = {}
 
-        def compared(level: int, band: float | None) -> Tensor:
-            if (level, band) not in bands:
-                bands[level, band] = _band(pyramid[level], band)
-            return bands[level, band]
+        def compared(level: int) -> Tensor:
+            """The level's images as the fit compares them (the band of detail on the
+            ``band_levels`` finest), once."""
+            if level not in compared_levels:
+                compared_levels[level] = _band(pyramid[level], highpass if level < band_levels else None)
+            return compared_levels[level]
 
-        def run(level: int, reps: int, params: Tensor, band: float | None) -> Solution:
-            problem = _level_problem(model, _level_camera(cam64, level), compared(level, band), masks[level],
+        def run(level: int, reps: int, params: Tensor) -> Solution:
+            problem = _level_problem(model, _level_camera(cam64, level), compared(level), masks[level],
                                      gradient_fraction, max_points, reps)
             rep = (lambda t: None if t is None else t.repeat(reps, 1))
             precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
@@ -417,15 +419,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
                          check_every=checks, missing="mean")
 
-        def band_of(level: int) -> float | None:
-            return highpass if level < band_levels else None
-
         def descend(params: Tensor, top: int) -> tuple[Solution, Tensor, Tensor]:
             """From ``params`` (B, P + 2) down the pyramid from level ``top`` to full resolution."""
             iterations = torch.zeros(B, dtype=torch.long, device=dev)
             sol = None
             for level in range(top, -1, -1):
-                sol = run(level, 1, params, band_of(level))
+                sol = run(level, 1, params)
                 params = sol.params
                 iterations = iterations + sol.iterations
             return sol, params, iterations
@@ -437,10 +436,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             values = torch.where(finite.unsqueeze(-1), values, default)
             M = model.matrix(cam64, values)
             flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
-            points = sample_mask(mask, max_points)
-            inliers, residual, fraction = photometric_inliers(grey, flow, valid, points, inlier_threshold)
-            n_in = points.per_frame(inliers.reshape(-1).gather(0, points.every).to(torch.float64))
-            correlation = detail_correlation(compared(0, band_of(0)), flow, valid, points)
+            # the intensities and the compared band at every mask pixel in view, sampled at once
+            both = torch.stack([grey, compared(0)], dim=2).flatten(1, 2)  # (B, [I1, B1, I2, B2], H, W)
+            at1, at2, ok, frame = warped_samples(both[:, :2], both[:, 2:], flow, valid, points)
+            inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, frame, points,
+                                                                    inlier_threshold, (H, W))
+            correlation = detail_correlation(at1[1], at2[1], ok, frame, points)
             A = sol.normal[:, :P, :P]
             d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
             well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
@@ -453,13 +454,14 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                     "success": success, "iterations": iterations, "covariance": sol.covariance()[:, :P, :P],
                     "cost": sol.cost, "converged": sol.converged}
 
+        points = sample_mask(mask, max_points)
         coarse = n_levels - 1
         if S == 1:
             fit = judged(*descend(params, coarse))
         else:
             # the starts compete at the coarsest level, ranked by their two-way robust cost at the
             # next finer one (more points judge; one common kernel scale per frame)
-            sol = run(coarse, S, params, band_of(coarse))
+            sol = run(coarse, S, params)
             judge = max(coarse - 1, 0)
             cost = two_way_cost(sol.params, model, _level_camera(cam64, judge), pyramid[judge], masks[judge],
                                 robust, max_points, S)
@@ -468,19 +470,20 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             solved, moved = sol.params.reshape(S, B, -1), sol.iterations.reshape(S, B)
             # below the coarsest level; a single level solves once more on the winner
             top = coarse - 1 if coarse > 0 else 0
-            fit = None
-            for rank in range(min(S, 1 + retry_starts)):
-                if fit is not None and bool(fit["success"].all()):  # (one host read per runner-up)
-                    break
+
+            def carried(rank: int) -> dict[str, Tensor]:
                 pick = order[rank]
                 sol, params, iterations = descend(solved[pick, frames], top)
-                fit_r = judged(sol, params, iterations + moved[pick, frames])
-                if fit is None:
-                    fit = fit_r
-                    continue
+                return judged(sol, params, iterations + moved[pick, frames])
+
+            fit = carried(0)
+            for rank in range(1, min(S, 1 + retry_starts)):
+                if bool(fit["success"].all()):  # (one host read per runner-up)
+                    break
+                runner_up = carried(rank)
                 # a frame that failed takes the runner-up where it succeeds or its images correlate better
-                take = ~fit["success"] & (fit_r["success"] | (fit_r["correlation"] > fit["correlation"]))
-                fit = {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), fit_r[k], v) for k, v in fit.items()}
+                take = ~fit["success"] & (runner_up["success"] | (runner_up["correlation"] > fit["correlation"]))
+                fit = {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), runner_up[k], v) for k, v in fit.items()}
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
