@@ -121,6 +121,35 @@ def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
     assert torch.equal(sol.params, full.params) and torch.equal(sol.iterations, full.iterations)
 
 
+def test_predicted_step_ends_a_stage_without_the_step_that_would_not_matter():
+    """``predict``: after an accepted step the next one is predicted from the normal equations
+    there (δᵀ A δ, what it would move the weighted squared residuals by); below ``resolution``²
+    of their weighted sum the sample has converged."""
+    # least squares on a linear problem: the first step lands on the answer (short of it by the
+    # initial damping, 1e-4 of the way), and the step after it is predicted not to matter: one
+    # iteration instead of two, and the same answer to that damping
+    problem, truth, x, y = line_problem(noise=0.05)
+    start = torch.zeros(2, 2, dtype=torch.float64)
+    plain = solve(problem, start, kernel="l2", max_iter=10, resolution=0.01)
+    predicted = solve(problem, start, kernel="l2", max_iter=10, resolution=0.01, predict=True)
+    assert plain.iterations.tolist() == [2, 2] and predicted.iterations.tolist() == [1, 1]
+    torch.testing.assert_close(predicted.params, plain.params, rtol=2e-4, atol=0)
+    # a robust, annealed fit: fewer evaluations, and the line it ends on differs from the
+    # unpredicted one by well under the resolution's share of the noise
+    problem, truth, x, y = line_problem(noise=0.05, outliers=0.2)
+    plain = solve(problem, start, kernel="cauchy", scale=0.1, anneal=True, max_iter=40, resolution=0.05)
+    predicted = solve(problem, start, kernel="cauchy", scale=0.1, anneal=True, max_iter=40, resolution=0.05,
+                      predict=True)
+    assert bool(predicted.converged.all()) and bool((predicted.iterations < plain.iterations).all())
+    d = predicted.params - plain.params
+    moved = (d[:, :1] * x + d[:, 1:]).square().mean(1).sqrt()
+    assert bool((moved < 2 * 0.05 * 0.05).all()), moved
+    # a zero-residual problem is unaffected: the step predicted there removes the whole residual
+    problem, truth, _, _ = line_problem(noise=0.0)
+    sol = solve(problem, start, kernel="cauchy", scale=0.1, anneal=True, max_iter=60, resolution=0.05, predict=True)
+    torch.testing.assert_close(sol.params, truth, rtol=0, atol=1e-9)
+
+
 def test_covariance_of_linear_least_squares():
     problem, truth, x, y = line_problem(B=1, N=400, noise=0.05, seed=3)
     sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", max_iter=10)

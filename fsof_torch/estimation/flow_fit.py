@@ -448,13 +448,12 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             1, 2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both.
-            ``"auto"``: (3, 1) where the robust stage anneals its kernel from a start of another
-            model (the paper's planar motion, the plane decomposed from a DLT homography; about
-            two iterations, and one more to converge; the velocity model from rest likewise),
-            (2, 1) for the homography, whose start (a robust DLT) is already of its own model;
-            the polish starts at the robust answer. The checks change no result
-            (converged samples stop moving): they only end the loops. None: run the fixed
-            budgets (no host read inside the loops).
+            ``"auto"``: (2, 1). A stage ends where the next step, predicted from the normal
+            equations, would move the residuals by less than they resolve (the solver's
+            ``predict``): the robust stage, annealing its kernel from the start, usually after
+            two iterations, the polish, which starts at the robust answer, after one. The checks
+            change no result (converged samples stop moving): they only end the loops. None:
+            run the fixed budgets (no host read inside the loops).
 
     Returns:
         :class:`RoadFit`; parameters in float64 for float64 flow, else the camera's dtype
@@ -483,8 +482,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     if check_every == "auto":
-        # the homography's start, a robust DLT, is of its own model: its robust stage has less to do
-        check_every = (2 if model.name == "homography" and init is None else 3, 1)
+        check_every = (2, 1)
     checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
     expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"
     if len(checks) != 2 or any(k is not None and (not isinstance(k, int) or isinstance(k, bool)) for k in checks):
@@ -526,7 +524,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
-                        check_every=first_check)
+                        check_every=first_check, predict=True)
             if i == 0:
                 params, converged = sol.params, sol.converged
             else:

@@ -56,7 +56,8 @@ __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", 
            "image_pyramid", "gaussian_blur", "DEG"]
 
 DEG = math.pi / 180.0
-# a coarser level ends when a step moves the residuals by less than this fraction of their RMS
+# a coarser level ends when a step moves (or the next step is predicted to move) the residuals by
+# less than this fraction of their RMS
 _COARSE_RESOLUTION = 0.1
 
 
@@ -287,7 +288,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
             ``min_size``); ``max_iter``, ``tol``: the solver's budget and tolerance per level;
             ``resolution``: a level also ends when a step moves the residuals by less than this
-            fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`).
+            fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`); the
+            coarser levels, which only have to land in the next one's basin, at 0.1 or more, and
+            also where the next step is predicted to move them by less (the solver's ``predict``).
         smooth_sigma: Gaussian smoothing of the grey images (pixels) before the pyramid (0:
             none; a blur of fixed width does not commute with the road's magnification between
             the frames, and biases the fit at full resolution).
@@ -415,9 +418,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             return solve(problem, params, free=free, prior_mean=rep(prior_mean), prior_precision=precision,
                          lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust,
                          scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
-                         # a coarse level only has to land in the next one's basin
+                         # a coarse level only has to land in the next one's basin: it also ends
+                         # where the next step is predicted not to matter
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
-                         check_every=checks, missing="mean")
+                         check_every=checks, missing="mean", predict=level > 0)
 
         def descend(params: Tensor, top: int) -> tuple[Solution, Tensor, Tensor]:
             """From ``params`` (B, P + 2) down the pyramid from level ``top`` to full resolution."""

@@ -192,7 +192,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
           lower: Tensor | None = None, upper: Tensor | None = None, kernel: str = "cauchy",
           scale: Tensor | float | Callable[[Evaluation], Tensor] = 1.0, anneal: bool = False, max_iter: int = 50,
           tol: float = 1e-6, resolution: float = 0.0, check_every: int | Sequence[int] | None = 2,
-          damping: float = 1e-4, missing: str = "outlier") -> Solution:
+          damping: float = 1e-4, missing: str = "outlier", predict: bool = False) -> Solution:
     """Robust Levenberg–Marquardt for B independent samples (see the module docstring).
 
     Args:
@@ -215,6 +215,12 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             than tol E.
         resolution: also converged when a step (accepted or not) moves the residuals by at most
             this fraction of their robust RMS (below what the points can resolve); 0: off.
+        predict: with ``resolution``, also converged after an accepted step when the next step,
+            predicted from the normal equations there, would move the weighted residuals by at
+            most that fraction (the Gauss–Newton prediction δᵀ A δ): a stage then ends without
+            spending an evaluation on a step that would not matter. The answer differs from the
+            unpredicted one by about that skipped step; a zero-residual problem is unaffected
+            (the step predicted there removes the whole residual).
         check_every: stop early when all samples converged, checked (one host read each) after
             this many iterations, then after 1, 1, 2, 4, ... more: a handful of reads for any
             budget; or the iterations after which to check (a sequence); None: always run
@@ -358,6 +364,16 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             done = done | (at_scale & (small | stuck))
         else:
             done = done | small | stuck
+        if predict:
+            # the next step, predicted from the new normal equations: δᵀ A δ is what it would move
+            # the weighted squared residuals by (to first order); below resolution² of their
+            # weighted sum it is not worth an evaluation (at the final scale, where annealing)
+            nxt = _damped_step(A, g, lam)
+            moves = torch.linalg.vecdot(nxt, torch.bmm(A, nxt.unsqueeze(-1)).squeeze(-1))
+            settled = ok & (moves <= resolution ** 2 * torch.linalg.vecdot(w, r2))
+            if anneal:
+                settled = settled & (s <= s_min * (1 + 1e-12))
+            done = done | settled
         if checks and it + 1 == checks[0]:
             checks.pop(0)
             if bool(done.all()):
