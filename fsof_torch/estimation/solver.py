@@ -313,10 +313,11 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     lam = torch.full((B,), damping, dtype=dt, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
+    step = None  # the next step where ``predict`` has already solved for it
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
-        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam), 0.0)
+        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam) if step is None else step, 0.0)
         cand = params + delta
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
@@ -368,8 +369,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             # the next step, predicted from the new normal equations: δᵀ A δ is what it would move
             # the weighted squared residuals by (to first order); below resolution² of their
             # weighted sum it is not worth an evaluation (at the final scale, where annealing)
-            nxt = _damped_step(A, g, lam)
-            moves = torch.linalg.vecdot(nxt, torch.bmm(A, nxt.unsqueeze(-1)).squeeze(-1))
+            step = _damped_step(A, g, lam)
+            moves = torch.linalg.vecdot(step, torch.bmm(A, step.unsqueeze(-1)).squeeze(-1))
             settled = ok & (moves <= resolution ** 2 * torch.linalg.vecdot(w, r2))
             if anneal:
                 settled = settled & (s <= s_min * (1 + 1e-12))
