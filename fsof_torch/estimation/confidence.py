@@ -14,7 +14,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .sampling import MaskPoints, sample_points
+from .sampling import MaskPoints, pixel_coordinates, sample_points
 
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
 
@@ -27,11 +27,8 @@ def warped_samples(image1: Tensor, image2: Tensor, flow: Tensor, valid: Tensor,
     B, C, H, W = image1.shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")
-    pixel = every - frame * H * W
-    u = (pixel % W).to(torch.float64)
-    v = torch.div(pixel, W, rounding_mode="floor").to(torch.float64)
-    f = flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
-    xy = torch.stack([u + f[0], v + f[1]])
+    uv = pixel_coordinates((every - frame * H * W).unsqueeze(0), W)[0, :2]
+    xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     I1 = image1.transpose(0, 1).reshape(C, -1).gather(1, every.expand(C, -1)).to(torch.float64)
     I2 = torch.empty_like(I1)
     inb = torch.empty(every.shape, dtype=torch.bool, device=every.device)

@@ -398,9 +398,9 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel, iterations=1)
         h = camera.height
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
-    # the plane's robust stage anneals its kernel from the decomposed start whatever its quality
-    # (its first check comes after 3 iterations), so its DLT needs only to land in the basin: 2
-    # robust iterations; the homography's robust stage starts at the DLT itself: 4
+    # the plane's robust stage anneals its kernel from the decomposed start whatever its quality,
+    # so its DLT needs only to land in the basin: 2 robust iterations; the homography's robust
+    # stage starts at the DLT itself: 4
     H = homography_dlt(camera.K, K_inv, pts, flow, sel, iterations=2 if model.name == "plane" else 4)
     if model.name == "plane":
         cam = camera
