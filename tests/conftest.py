@@ -1,8 +1,12 @@
-"""Shared fixtures: dtypes with their tolerances, the shared real data folder, a KITTI-like camera."""
+"""Shared fixtures: dtypes with their tolerances, the shared real data folder, a KITTI-like camera,
+and the benchmark scripts as modules."""
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
+from types import ModuleType
+from typing import Callable
 
 import pytest
 import torch
@@ -18,6 +22,21 @@ def dtype(request) -> torch.dtype:
 @pytest.fixture
 def device() -> torch.device:
     return torch.device("cpu")
+
+
+def _load_benchmark(name: str) -> ModuleType:
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / f"{name}.py"
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="session")
+def load_benchmark() -> Callable[[str], ModuleType]:
+    """``load_benchmark(name)``: ``benchmarks/<name>.py`` imported as a module (the folder is not a
+    package)."""
+    return _load_benchmark
 
 
 def tolerance(dtype: torch.dtype) -> dict[str, float]:

@@ -4,8 +4,6 @@ ground truth, so the benchmark's "warped" rows isolate the geometry."""
 
 from __future__ import annotations
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,12 +13,8 @@ SIZE = (96, 320)
 
 
 @pytest.fixture(scope="module")
-def bench():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "image_formation.py"
-    spec = importlib.util.spec_from_file_location("image_formation", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def bench(load_benchmark):
+    return load_benchmark("image_formation")
 
 
 @pytest.mark.parametrize("preset, overrides", [("body-motion", {}), ("default", {"steering": 0.1})])

@@ -4,9 +4,7 @@ summary, and ``main`` on a tiny clip in the shared data's layout."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,12 +16,8 @@ POLYGON = [[60, 95], [150, 56], [195, 56], [205, 95]]
 
 
 @pytest.fixture(scope="module")
-def rr():
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "real_road.py"
-    spec = importlib.util.spec_from_file_location("real_road", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def rr(load_benchmark):
+    return load_benchmark("real_road")
 
 
 @pytest.fixture(scope="module")
