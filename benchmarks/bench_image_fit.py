@@ -7,8 +7,9 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
 - DIS (the reference), ``fit_image`` (the default ``"plane"`` fit), the default refiner with the
   images (estimation, model flow, gate, fusion), and the gate alone; the fit and the refiner also
   without the starts straight ahead (``forward_starts=()``), which find fast driving: their price;
-- a Gaussian blur σ = 4 (the band-pass) and the pyramid's decimation: OpenCV against kornia /
-  torch (the fast paths ``gaussian_blur`` and ``image_pyramid`` take on the CPU).
+- a Gaussian blur σ = 4 (the band-pass), the pyramid's decimation and the road mask's pyramid
+  (a 3 × 3 erosion at every second pixel): OpenCV against kornia / torch (the fast paths
+  ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU).
 
     python benchmarks/bench_image_fit.py [--repeats 15]
 
@@ -49,7 +50,7 @@ def main() -> None:
     from kornia.filters import gaussian_blur2d
 
     import fsof_torch as fs
-    from fsof_torch.estimation.image_fit import gaussian_blur, image_pyramid
+    from fsof_torch.estimation.image_fit import _mask_pyramid, gaussian_blur, image_pyramid
     from refine.sources import dis_flow
 
     torch.set_num_threads(1)
@@ -82,6 +83,9 @@ def main() -> None:
         "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),
         "pyramid, 5 levels, OpenCV": lambda: image_pyramid(grey, 5, 0.0),
         "pyramid, 5 levels, torch": lambda: [x := grey] + [x := torch_decimate(x) for _ in range(4)],
+        "mask pyramid, 5 levels, OpenCV": lambda: _mask_pyramid(M, 5),
+        "mask pyramid, 5 levels, torch": lambda: [m := M] + [m := -F.max_pool2d(-m.float(), 3, stride=2, padding=1) > 0.5
+                                                             for _ in range(4)],
     }
     times = {name: [] for name in rows}
     for name, fn in rows.items():

@@ -29,7 +29,7 @@ bool. Not differentiable (a decision); nothing is read back to the host.
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import NamedTuple, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -107,21 +107,30 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
     evidence either way, so it does not count. Returns the distance (B, N), the number of
     neighbours that count (B, N) and flags of points whose samples lie in both images (B, N).
     """
+    return _census_ring(grey1, grey2, x, y, (flow,), threshold)[0]
+
+
+def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequence[Tensor],
+                 threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """:func:`census_ring_distance` for several flows at the same points (image 1 sampled once)."""
     ring = grey1.new_tensor(_RING)  # (16, 2)
     R = ring.shape[0]
     xs = torch.cat([x.unsqueeze(1), x.unsqueeze(1) + ring[:, 0, None]], dim=1)  # (B, 17, N)
     ys = torch.cat([y.unsqueeze(1), y.unsqueeze(1) + ring[:, 1, None]], dim=1)
     B, _, N = xs.shape
     v1, in1 = _bilinear(grey1, xs.reshape(B, -1), ys.reshape(B, -1))
-    v2, in2 = _bilinear(grey2, (xs + flow[:, :1]).reshape(B, -1), (ys + flow[:, 1:]).reshape(B, -1))
     d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, 1 + R, N)[:, :1]
-    d2 = v2.reshape(B, R + 1, N)[:, 1:] - v2.reshape(B, 1 + R, N)[:, :1]
     clear = d1.abs() > threshold
-    t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
     n = clear.sum(1)
-    dist = ((torch.sign(d1) != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
-    ok = in1.reshape(B, R + 1, N).all(1) & in2.reshape(B, R + 1, N).all(1)
-    return dist, n, ok
+    in1 = in1.reshape(B, R + 1, N).all(1)
+    out = []
+    for flow in flows:
+        v2, in2 = _bilinear(grey2, (xs + flow[:, :1]).reshape(B, -1), (ys + flow[:, 1:]).reshape(B, -1))
+        d2 = v2.reshape(B, R + 1, N)[:, 1:] - v2.reshape(B, 1 + R, N)[:, :1]
+        t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
+        dist = ((torch.sign(d1) != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
+        out.append((dist, n, in1 & in2.reshape(B, R + 1, N).all(1)))
+    return out
 
 
 def _mean_and_error(v: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
@@ -213,8 +222,7 @@ class ImageGate:
         fp, fm = at(prediction), at(model)
         finite = torch.isfinite(fp).all(1)
         fp = torch.where(finite.unsqueeze(1), fp, fm)
-        d_pred, n_clear, ok_pred = census_ring_distance(g1, g2, x, y, fp, self.contrast)
-        d_model, _, ok_model = census_ring_distance(g1, g2, x, y, fm, self.contrast)
+        (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = _census_ring(g1, g2, x, y, (fp, fm), self.contrast)
         # points that count: real, textured, judged by both flows
         count = pts.sel & ok_pred & ok_model & finite & (n_clear >= self.min_neighbours)
         w = count.to(work)
