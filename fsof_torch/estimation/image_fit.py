@@ -268,7 +268,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
-              data_range: float = 255.0, check_every: int | None = 3,
+              data_range: float = 255.0, check_every: int | None = 2,
               forward_starts: Sequence[float] = (2.0, 4.0), retry_starts: int = 1) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
