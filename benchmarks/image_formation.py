@@ -11,7 +11,9 @@ defaults (the band of detail, 3000 points) and with plain intensities and 20 000
   the frames are the same, but the road's detail is image 1's, moved: nothing of it changes;
 - ``coarse asphalt``: the pair rendered with the asphalt's two finest noise octaves (cells 2 and
   5 cm) switched off. The renderer band-limits the texture per pixel footprint, so as the road
-  comes nearer those octaves fade in: image 2 near the car shows detail image 1 did not.
+  comes nearer those octaves fade in: image 2 near the car shows detail image 1 did not;
+- ``no cars``: the pair rendered without parked or moving cars (nothing occludes the road or
+  moves over it).
 
     python benchmarks/image_formation.py [--pairs 4]
 
@@ -74,15 +76,16 @@ def main() -> None:
         asphalt = scene_config(preset, **overrides).asphalt
         coarse = (0.0, 0.0) + tuple(asphalt[2:])
         indices = range(args.pairs) if scene == "body-motion" else range(0, 2 * args.pairs, 2)
-        if scene == "body-motion":  # consecutive pairs (they share frames: each rendered once)
-            rendered = render_sequence(preset, args.pairs, seed=0, **overrides)
-            coarse_pairs = render_sequence(preset, args.pairs, seed=0, asphalt=coarse, **overrides)
-        else:
-            rendered = [render_pair(preset, i, seed=0, **overrides) for i in indices]
-            coarse_pairs = [render_pair(preset, i, seed=0, asphalt=coarse, **overrides) for i in indices]
+        def render(**changes):
+            if scene == "body-motion":  # consecutive pairs (they share frames: each rendered once)
+                return render_sequence(preset, args.pairs, seed=0, **overrides, **changes)
+            return [render_pair(preset, i, seed=0, **overrides, **changes) for i in indices]
+
+        rendered = render()
         variants = {"rendered": [(p, p["image2"]) for p in rendered],
                     "warped": [(p, warped(p)) for p in rendered],
-                    "coarse asphalt": [(p, p["image2"]) for p in coarse_pairs]}
+                    "coarse asphalt": [(p, p["image2"]) for p in render(asphalt=coarse)],
+                    "no cars": [(p, p["image2"]) for p in render(parked_cars=0.0, moving_cars=0.0)]}
         for variant, items in variants.items():
             cells = []
             for options in FITS.values():
