@@ -549,21 +549,23 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
 def _mask_pyramid(mask: Tensor, levels: int) -> list[Tensor]:
     """The masks (B, 1, H, W) bool of the pyramid's levels (:func:`image_pyramid`): a pixel of a
     coarser level, centred on pixel 2i of the finer one, is in the mask where the finer one's 3 × 3
-    neighbourhood is (within the image). On the CPU OpenCV erodes (the same pixels as the min-pool
-    elsewhere, some 20 times faster at 1242 × 375)."""
+    neighbourhood is (within the image). On the CPU OpenCV erodes: the same pixels as the min-pool
+    used elsewhere, about 3 times faster (python benchmarks/bench_image_fit.py)."""
     out = [mask]
-    for _ in range(levels - 1):
-        m = out[-1]
-        if m.device.type == "cpu":
-            import cv2
-            import numpy as np
+    if mask.device.type != "cpu":
+        for _ in range(levels - 1):
+            out.append(-F.max_pool2d(-out[-1].to(torch.float32), 3, stride=2, padding=1) > 0.5)
+        return out
+    import cv2
+    import numpy as np
 
-            B, _, H, W = m.shape
-            # (a 3 x 3 erosion ignores the border, as the min-pool's padding does)
-            eroded = [cv2.erode(x, np.ones((3, 3), np.uint8)) for x in m.reshape(B, H, W).to(torch.uint8).numpy()]
-            out.append(torch.from_numpy(np.stack(eroded)[:, None, ::2, ::2].copy()).to(torch.bool))
-        else:
-            out.append(-F.max_pool2d(-m.to(torch.float32), 3, stride=2, padding=1) > 0.5)
+    kernel = np.ones((3, 3), np.uint8)
+    B = mask.shape[0]
+    for _ in range(levels - 1):
+        # (a 3 x 3 erosion ignores the border, as the min-pool's padding does)
+        planes = out[-1].reshape(B, *out[-1].shape[-2:]).to(torch.uint8).numpy()
+        eroded = np.stack([cv2.erode(x, kernel) for x in planes])[:, None, ::2, ::2]
+        out.append(torch.from_numpy(eroded.copy()).to(torch.bool))
     return out
 
 
@@ -621,10 +623,10 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
         pix, sel, I1p, g1p = pix.gather(1, order), sel.gather(1, order), I1p.gather(1, order), \
             g1p.gather(2, order.unsqueeze(1).expand(-1, 2, -1))
     pts = pixel_coordinates(pix, w_l)
-    if reps == 1:
-        return ImageProblem(model, camera, pts, I1p, g1p, _with_gradient(I2), sel)
-    rep = (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
-    return ImageProblem(model, camera.repeat(reps), rep(pts), rep(I1p), rep(g1p), rep(_with_gradient(I2)), rep(sel))
+    # (one start uses the level's tensors themselves, several a copy per start)
+    rep = (lambda t: t) if reps == 1 else (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
+    cam = camera if reps == 1 else camera.repeat(reps)
+    return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(_with_gradient(I2)), rep(sel))
 
 
 def _level_scale(scale: float | None, reps: int) -> float | Callable[[Evaluation], Tensor]:
