@@ -11,6 +11,8 @@ every pixel of the road mask that stays in view.
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import torch
 from torch import Tensor
 
@@ -19,23 +21,27 @@ from .sampling import MaskPoints, pixel_coordinates, sample_points
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
 
 
-def warped_samples(image1: Tensor, image2: Tensor, flow: Tensor, valid: Tensor,
+def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: Tensor, valid: Tensor,
                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """At every mask pixel (``points.every``): image 1's values (C, M), image 2's (C, M) at the
-    pixel moved by the flow (bilinear), whether that lies inside image 2 where the flow is
-    defined (M,), and the frame of the pixel (M,); ``image1``, ``image2`` (B, C, H, W)."""
-    B, C, H, W = image1.shape
+    """At every mask pixel (``points.every``): the values (C, M) of frame 1's images ``images1``
+    (a sequence of (B, C_i, H, W), their channels in order), those (C, M) of frame 2's
+    ``images2`` at the pixel moved by the flow (bilinear), whether that lies inside image 2 where
+    the flow is defined (M,), and the frame of the pixel (M,). The images are sampled one by one,
+    not stacked first (which would copy whole frames)."""
+    B, _, H, W = images1[0].shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")
     uv = pixel_coordinates((every - frame * H * W).unsqueeze(0), W)[0, :2]
     xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
-    I1 = image1.transpose(0, 1).reshape(C, -1).gather(1, every.expand(C, -1)).to(torch.float64)
-    I2 = torch.empty_like(I1)
+    I1 = torch.cat([im.transpose(0, 1).reshape(im.shape[1], -1).gather(1, every.expand(im.shape[1], -1))
+                    .to(torch.float64) for im in images1])
+    I2 = torch.empty(sum(im.shape[1] for im in images2), every.numel(), dtype=torch.float64, device=every.device)
     inb = torch.empty(every.shape, dtype=torch.bool, device=every.device)
     for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
         run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
-        s, ok = sample_points(image2[b:b + 1], xy[:, run].unsqueeze(0))
-        I2[:, run], inb[run] = s[0], ok[0]
+        at = xy[:, run].unsqueeze(0)
+        samples = [sample_points(im[b:b + 1], at) for im in images2]
+        I2[:, run], inb[run] = torch.cat([s[0] for s, _ in samples]), samples[0][1][0]
     return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
 
 

@@ -453,9 +453,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             values = torch.where(finite.unsqueeze(-1), values, default)
             M = model.matrix(cam64, values)
             flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
-            # the intensities and the compared band at every mask pixel in view, sampled at once
-            both = torch.stack([grey, compared(0)], dim=2).flatten(1, 2)  # (B, [I1, B1, I2, B2], H, W)
-            at1, at2, ok, frame = warped_samples(both[:, :2], both[:, 2:], flow, valid, points)
+            # the intensities and the compared band at every mask pixel in view
+            band = compared(0)
+            at1, at2, ok, frame = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
+                                                 points)
             inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, frame, points,
                                                                     inlier_threshold, (H, W))
             correlation = detail_correlation(at1[1], at2[1], ok, frame, points)
@@ -532,7 +533,7 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
         out = [[x.numpy() for x in level.reshape(B * C, *level.shape[-2:])]]
         for _ in range(levels - 1):
             out.append([cv2.pyrDown(x) for x in out[-1]])
-        return [torch.from_numpy(np.stack(planes)).reshape(B, C, *planes[0].shape) for planes in out]
+        return [level] + [torch.from_numpy(np.stack(planes)).reshape(B, C, *planes[0].shape) for planes in out[1:]]
     level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
     out = [level]
     taps = images.new_tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
@@ -591,12 +592,13 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     k = 2 * int(math.ceil(3 * sigma)) + 1
     if images.device.type == "cpu":
         import cv2
-        import numpy as np
 
         B, C, H, W = images.shape
-        planes = [cv2.GaussianBlur(x.numpy(), (k, k), sigma, borderType=cv2.BORDER_REFLECT_101)
-                  for x in images.detach().reshape(B * C, H, W)]
-        return torch.from_numpy(np.stack(planes)).reshape(B, C, H, W)
+        planes = images.detach().reshape(B * C, H, W)
+        out = torch.empty_like(planes)
+        for x, y in zip(planes.numpy(), out.numpy()):  # (each plane written in place, no stacking)
+            cv2.GaussianBlur(x, (k, k), sigma, dst=y, borderType=cv2.BORDER_REFLECT_101)
+        return out.reshape(B, C, H, W)
     from kornia.filters import gaussian_blur2d
 
     return gaussian_blur2d(images, (k, k), (sigma, sigma), border_type="reflect")

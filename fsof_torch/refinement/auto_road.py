@@ -56,7 +56,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape
+from .._check import all_finite, check_float_tensor, check_shape
 from ..estimation.image_fit import gaussian_blur
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
@@ -666,7 +666,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     image1, image2 = (im.detach().expand(B, -1, -1, -1) for im in (image1, image2))
     complete = odometry is not None and (road_motion(odometry)[0].name != "paper" or kw.get("fit") is not None)
     f = finest.detach()
-    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if bool(torch.isfinite(f).all()) else None,
+    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if all_finite(f) else None,
                       motion=odometry if complete else None, estimator=road_estimator,
                       odometry=None if complete else odometry, starts=kw.pop("starts", ()), **options)
     if warn and not all(det.ok.tolist()):

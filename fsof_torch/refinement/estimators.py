@@ -20,8 +20,8 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (check_bool, check_float_tensor, check_has_values, check_keywords, check_mask, check_names,
-                      check_shape)
+from .._check import (all_finite, check_bool, check_float_tensor, check_has_values, check_keywords, check_mask,
+                      check_names, check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
 from ..estimation.image_fit import fit_image
 from ..geometry.camera import Camera
@@ -146,7 +146,7 @@ class ImageMotionEstimator:
                 init = {**(init or {}), **planar}
                 starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
                 fixed = tuple(fixed or ()) + tuple(k for k in _PLANAR if k not in (fixed or ()))
-        elif self.flow_start and flow is not None and bool(torch.isfinite(flow).all()):
+        elif self.flow_start and flow is not None and all_finite(flow):
             starts.append(planar_start(flow, mask, camera))
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
                          **options)
