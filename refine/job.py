@@ -239,7 +239,7 @@ def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple
     with torch.no_grad():
         det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None] if finite else None)
     info = {"road_flag": det.flag[0], "road_reason": det.reason[0], "road_coverage": float(det.coverage[0]),
-            "road_auto_pixels": int(det.mask.sum())}
+            "road_auto_pixels": int(det.mask.sum()), "road_max_height_m": float(det.stats["max_height_m"][0])}
     return det.usable_mask[0], "auto", info
 
 

@@ -175,8 +175,9 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
 
 
 def auto_road_lines(summary: dict) -> list[str]:
-    """With ``--road auto``: how many pairs' roads were flagged (left unrefined), why, and the
-    coverage of the others (each pair's flag, reason and coverage are in report.json)."""
+    """With ``--road auto``: how many pairs' roads were flagged (left unrefined), why, the
+    coverage of the others and the steps their evidence could show (each pair's flag, reason,
+    coverage and step are in report.json)."""
     found = {r["pair"]: r for r in summary["pairs"] if "road_flag" in r}
     if not found:
         return []
@@ -185,6 +186,10 @@ def auto_road_lines(summary: dict) -> list[str]:
     line = (f"- Auto road (found in the images): {len(found) - len(flagged)} of {len(found)} pairs ok"
             + (f", covering {100 * sum(ok) / len(ok):.1f} % (min {100 * min(ok):.1f} %) of the image below the "
                f"horizon" if ok else ""))
+    steps = [r["road_max_height_m"] for r in found.values() if "road_max_height_m" in r]
+    if steps:  # the step the evidence had to show: larger where the vehicle drove slowly
+        line += "; the step the evidence could show: " + ", ".join(
+            f"{h:g} m ({steps.count(h)} pairs)" for h in sorted(set(steps)))
     return [line] + [f"  - flagged, left unrefined: {p}: {why}" for p, why in sorted(flagged.items())]
 
 

@@ -133,6 +133,35 @@ def test_textureless_frames_are_flagged(kitti_K):
     assert not bool(det.usable_mask.any())
 
 
+def test_a_step_the_images_show_at_driving_speed(scene_detection):
+    """At 12 m/s (1.2 m a frame) a max_height_m step shows over the seed: no larger one is used."""
+    assert scene_detection.flag == ["ok"]
+    assert scene_detection.stats["max_height_m"].tolist() == [0.3]
+
+
+def test_driving_slowly_the_step_is_doubled():
+    """At 2 m/s (0.2 m a frame) a 0.3 m step moves like the road within the noise over the whole
+    seed: with the step fixed the sample is flagged; by default the step is doubled until the seed
+    carries evidence (to 1.2 m here), the road is found, and the cars still stay out."""
+    from fsof_torch.data.scene import render_pair
+    from fsof_torch.data.scene.config import LABELS
+
+    p = render_pair("default", 0, speed=2.0, dt=0.1)
+    motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
+    cam = p["camera"].replace(height=p["plane"]["height"])
+    images = (p["image1"][None], p["image2"][None])
+    fixed = detect_road(*images, cam, motion=motion, slow_max_height_m=None)
+    assert fixed.flag[0] in ("static", "textureless") and fixed.stats["max_height_m"].tolist() == [0.3]
+    det = detect_road(*images, cam, motion=motion)
+    assert det.flag == ["ok"] and det.stats["max_height_m"].tolist() == [1.2]
+    road, cars = p["road"][None].bool(), (p["labels"] == LABELS["car"])[None]
+    assert iou(det.mask, road) > 0.8  # measured 0.831
+    assert float((det.mask & cars).sum() / det.mask.sum()) < 0.02  # measured 0.009
+    # capped below what shows here: the largest step allowed is tried, and the sample is flagged
+    capped = detect_road(*images, cam, motion=motion, slow_max_height_m=0.5)
+    assert capped.flag[0] in ("static", "textureless") and capped.stats["max_height_m"].tolist() == [0.5]
+
+
 def test_refiner_auto_leaves_flagged_samples_unrefined(scene_pair):
     """refine_flow(mask="auto") on identical frames: flagged, the prediction comes back unchanged,
     and the warning says why."""
@@ -198,6 +227,9 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(height_window=1), "height_window: expected an odd int >= 3"),
     (dict(min_height_m=0.0), "min_height_m: expected a finite number > 0"),
     (dict(max_height_m=0.05), r"max_height_m: expected >= min_height_m \(0.1\)"),
+    (dict(slow_max_height_m=0.2), r"slow_max_height_m: expected None or a finite number >= max_height_m \(0.3\)"),
+    (dict(slow_max_height_m=float("nan")), "slow_max_height_m: expected None or a finite number"),
+    (dict(slow_max_height_m=True), "slow_max_height_m: expected None or a finite number"),
     (dict(seed_depth_m=float("inf")), "seed_depth_m: expected a finite number > 0"),
     (dict(min_coverage=1.5), r"min_coverage: expected a fraction in \[0, 1\)"),
     (dict(estimator="fit"), "estimator: expected a callable road-motion estimator"),

@@ -452,6 +452,7 @@ def test_synthetic_road_auto(tmp_path):
     from fsof_torch.refinement.auto_road import FLAGS
 
     assert rec["road_flag"] in ("ok", *FLAGS) and 0.0 <= rec["road_coverage"] <= 1.0
+    assert rec["road_max_height_m"] >= 0.3  # the step the evidence could show
     assert (rec["road_flag"] == "ok") == (rec["road_reason"] == "")
     if rec["road_flag"] != "ok":  # a flagged road: nothing is refined and the prediction is kept
         assert rec["road_pixels"] == 0 and not rec["refined"]
@@ -459,6 +460,7 @@ def test_synthetic_road_auto(tmp_path):
         assert rec["after"]["epe_all"] == rec["before"]["epe_all"]
     report = (out / "report.md").read_text()
     assert "Auto road (found in the images):" in report
+    assert f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pairs)" in report
     assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
 
 

@@ -28,7 +28,10 @@ detection:
    - a window is road evidence when it is not off the road and it is *testable*: the parallax of
      a surface ``max_height_m`` high is at least ``3 τ`` there. Far away, where any height moves
      like the road within the noise, and on textureless or out-of-frame pixels there is no
-     evidence either way.
+     evidence either way. Where less than a tenth of the seed then carries evidence (driving
+     slowly: the parallax shrinks with the distance driven), the step is doubled, up to
+     ``slow_max_height_m``, until it does: lower kerbs then pass for road, cars and walls still
+     show.
 
 4. **Region.** The road evidence connected to the seed; pixels without evidence take the
    majority of the evidence around them where they are testable, else the decision found along
@@ -37,8 +40,9 @@ detection:
    a pixel too far to test that of the nearest testable one); then the component connected to the
    seed, with small enclosed holes filled.
 5. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
-   ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere: a stopped
-   vehicle, identical frames), ``"textureless"`` (no evidence in the seed: dark, flat frames),
+   ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
+   largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:
+   dark, flat frames),
    ``"implausible"`` (the seed itself does not move like a road: an obstacle close ahead),
    ``"empty"`` and ``"small"`` (less than ``min_coverage`` of the image below the horizon).
 
@@ -63,6 +67,7 @@ from ..geometry.camera import Camera, mounting_matrix
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_motion
 from .estimators import ImageMotionEstimator
+from .road_region import road_region
 
 __all__ = ["RoadDetection", "detect_road", "detect_road_padded", "road_seed", "refine_with_auto_road", "FLAGS"]
 
@@ -74,6 +79,8 @@ FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
 _CORRELATION = 4.0
 # a residual motion of more than this many times the seed's typical one is never the road's
 _MISFIT = 3.0
+# below this share of the seed's windows with evidence, the seed cannot be judged (flag "textureless")
+_MIN_EVIDENCE = 0.1
 # the working resolution: the coarsest level of at least this many rows (the windows, the smoothing
 # and the border margin are in its pixels)
 _WORK_ROWS = 150
@@ -81,7 +88,6 @@ _WORK_ROWS = 150
 _SIGMA = 1.0
 # pixels of image 2's border whose smoothed values mix in its padding (3 σ of the blur, plus one)
 _BORDER = 4
-_FILL = 'rays'
 
 
 @dataclass
@@ -101,6 +107,10 @@ class RoadDetection:
         evidence: (B, 1, h, w) int8 at the working resolution: 1 road, 0 off the road, -1 none.
         height: (B, 1, h, w) the windows' estimated height over the road plane (m; 0 where none).
         level: the working resolution is the images' / 2**level.
+        stats: per sample (B,): ``tau_px`` (the road model's typical misfit, px at the working
+            resolution), ``noise``, ``height_bias_m`` (the seed's height over the fitted plane),
+            ``seed_evidence`` (the share of the seed's windows with evidence) and ``max_height_m``
+            (the step evidence had to be able to show; see ``slow_max_height_m``).
     """
 
     mask: Tensor
@@ -254,13 +264,17 @@ class _Evidence:
     tau: Tensor       # (B,) the seed's typical residual motion (px at the level)
     noise: Tensor     # (B,) residual energy of textureless road (grey levels²)
     bias: Tensor      # (B,) the seed's height over the fitted plane (m)
+    max_height: Tensor  # (B,) the step a window had to be able to show to count (m)
 
 
 def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, parallax: Tensor, seed: Tensor,
-              gain: Tensor, *, window: int, height_window: int, min_height: float, max_height: float,
-              z: float, min_misfit: float) -> _Evidence:
+              gain: Tensor, *, window: int, height_window: int, min_height: float, max_heights: Sequence[float],
+              trusted: Sequence[bool], z: float, min_misfit: float) -> _Evidence:
     """The window tests of the module docstring, at one resolution. ``parallax`` (B, 2, h, w): the
-    flow of a surface ``min_height`` above the road minus the road's."""
+    flow of a surface ``min_height`` above the road minus the road's. ``max_heights``: the steps
+    evidence must be able to show, tried in turn per sample until the seed carries evidence (the
+    first, unless the parallax is too small for it: driving slowly); only the first where the
+    sample's motion is not ``trusted`` (a failed estimate: no larger step makes it a road)."""
     B = grey1.shape[0]
     warped, _ = warp_backward(grey2, flow)
     # samples near image 2's border see the smoothing's reflected padding: not evidence
@@ -302,7 +316,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
     good = torch.zeros_like(ok)
     bad = torch.zeros_like(ok)
     testable = torch.zeros_like(ok)
-    taus, noises, biases = [], [], []
+    taus, noises, biases, heights = [], [], [], []
     n_k, n_kh = k * k / _CORRELATION, kh * kh / _CORRELATION
     for b in range(B):
         s = seed[b] & ok[b]
@@ -317,9 +331,8 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         d2 = (E[b] - noise) / (0.5 * TA[b])
         se = torch.maximum(E[b], noise) * math.sqrt(2 / n_k) / (0.5 * TA[b])
         thr2 = torch.maximum(0.5 * Pb, floor) ** 2
-        test_b = 0.5 * Pb * (max_height / min_height) >= floor
         off_plane = d2 - z * se > thr2
-        on_plane = (d2 + z * se < thr2) & test_b
+        explained = d2 + z * se < thr2
 
         se_shift = (torch.maximum(left[b], noise) / (n_kh * Vg[b])).sqrt()
         se_h = min_height * se_shift / Pb.clamp_min(1e-9)
@@ -333,92 +346,21 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         raised = ((height[b] - bias).abs() - z * se_h > 0.5 * min_height)
         unexplained = (texture[b] > 4 * noise) & (Eh[b] > texture[b])
         bad[b] = ok[b] & off_plane | ok_h[b] & (raised | unexplained)
-        good[b] = ok[b] & on_plane & ~bad[b]
-        testable[b] = test_b
+        n_seed = s.sum().clamp_min(1)
+        for max_height in (max_heights if trusted[b] else max_heights[:1]):
+            # testable: a surface max_height high would show (its parallax at least the floor)
+            test_b = 0.5 * Pb * (max_height / min_height) >= floor
+            good[b] = ok[b] & explained & test_b & ~bad[b]
+            testable[b] = test_b
+            if (s & test_b).any() and ((s & (good[b] | bad[b])).sum() / n_seed) >= _MIN_EVIDENCE:
+                break
         taus.append(tau)
         noises.append(noise)
         biases.append(bias)
+        heights.append(max_height)
     height = torch.where(ok, height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
-    return _Evidence(good, bad, ok, testable, height, torch.stack(taus), torch.stack(noises), torch.stack(biases))
-
-
-# -- the region ---------------------------------------------------------------------------------
-
-def _components_touching(mask, touch, connectivity: int = 8):
-    """The connected components of a (h, w) bool array that contain a pixel of ``touch``."""
-    import cv2
-    import numpy as np
-
-    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=connectivity)
-    keep = np.zeros(count, dtype=bool)
-    keep[np.unique(labels[touch & mask])] = True
-    keep[0] = False
-    return keep[labels]
-
-
-def _along_rays(decisions, focus: tuple[float, float], inward, todo, steps: int = 16, reach: float = 8.0):
-    """Decisions (0 / 1) for the pixels ``todo`` (h, w) bool from a (h, w) int8 map (-1: none):
-    the nearest decision on each pixel's line through ``focus`` (x, y in pixels of the map),
-    towards the focus where ``inward`` (pixels that leave the frame: the decision of what will be
-    where they are), away from it elsewhere (pixels too far to test: the decision of the nearest
-    testable ones). Samples at focus + (p − focus) · s, s = reach^(∓i/steps), nearest first.
-    Returns (h, w) int8, -1 where no decision was found."""
-    import numpy as np
-
-    h, w = decisions.shape
-    out = np.full((h, w), -1, dtype=np.int8)
-    ys, xs = np.nonzero(todo)
-    if ys.size == 0:
-        return out
-    fx, fy = focus
-    factor = np.where(inward[ys, xs], -1.0, 1.0) * (math.log(reach) / steps)
-    found = np.full(ys.size, -1, dtype=np.int8)
-    dx, dy = xs - fx, ys - fy
-    for i in range(1, steps + 1):
-        s = np.exp(factor * i)
-        x = np.rint(fx + dx * s).astype(np.int64)
-        y = np.rint(fy + dy * s).astype(np.int64)
-        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (found < 0)
-        got = decisions[y[inside], x[inside]]
-        found[np.flatnonzero(inside)] = np.where(got >= 0, got, -1)
-    out[ys, xs] = found
-    return out
-
-
-def _region(good, bad, ok, testable, below, seed, focus: tuple[float, float] | None, window: int, max_hole: int):
-    """The road (h, w) bool from the window decisions (NumPy arrays; step 4 of the module)."""
-    import cv2
-    import numpy as np
-
-    closed = cv2.morphologyEx(good.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
-    core = _components_touching(closed & ~bad, seed)
-    if not core.any():
-        return core
-    off = bad | (good & ~core)
-    # stray off-road windows inside the road must not decide whole rays: only components of at
-    # least a window's area count
-    count, lab, stats, _ = cv2.connectedComponentsWithStats(off.astype(np.uint8), connectivity=8)
-    off = off & (stats[:, cv2.CC_STAT_AREA] >= window * window)[lab]
-    # undecided but testable (textureless): the majority of the decisions around
-    k = 2 * window + 1
-    n_road = cv2.boxFilter(core.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    n_off = cv2.boxFilter(off.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    local = below & ~core & ~off & testable & ok & (n_road + n_off > 0)
-    road = core | (local & (n_road > n_off))
-    off = off | (local & (n_road <= n_off))
-    if focus is not None:
-        decisions = np.full(road.shape, -1, dtype=np.int8)
-        decisions[off] = 0
-        decisions[road] = 1
-        filled = _along_rays(decisions, focus, below & ~ok, below & (decisions < 0))
-        road = road | (filled == 1)
-    road = _components_touching(road & below, seed, connectivity=4)
-    # enclosed holes (a manhole, a patch of shade without texture) are road
-    count, lab, stats, _ = cv2.connectedComponentsWithStats((~road).astype(np.uint8), connectivity=4)
-    fill = stats[:, cv2.CC_STAT_AREA] <= max_hole
-    fill[0] = False  # label 0: the road itself
-    fill[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
-    return road | fill[lab]
+    return _Evidence(good, bad, ok, testable, height, torch.stack(taus), torch.stack(noises), torch.stack(biases),
+                     torch.tensor(heights, dtype=torch.float64))
 
 
 # -- the detection ------------------------------------------------------------------------------
@@ -455,6 +397,11 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     if options["max_height_m"] < options["min_height_m"]:
         raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
                          f"got {options['max_height_m']!r}")
+    v = options["slow_max_height_m"]
+    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not (v < math.inf)
+                          or not v >= options["max_height_m"]):
+        raise ValueError(f"slow_max_height_m: expected None or a finite number >= max_height_m "
+                         f"({options['max_height_m']!r}), got {v!r}")
     v = options["min_coverage"]
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1):
         raise ValueError(f"min_coverage: expected a fraction in [0, 1), got {v!r}")
@@ -466,8 +413,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 motion: Any = None, estimator: Any = None, odometry: object = None, starts: Sequence[Any] = (),
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
-                max_height_m: float = 0.3, z: float = 2.0, window: int = 7, height_window: int = 15,
-                min_misfit_px: float = 0.5, min_coverage: float = 0.01) -> RoadDetection:
+                max_height_m: float = 0.3, slow_max_height_m: float | None = 1.2, z: float = 2.0, window: int = 7,
+                height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
     the road plane (see the module for the method).
 
@@ -491,6 +438,13 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         min_height_m: the smallest step the road must not take in (a kerb); surfaces more than half
             of it above or below the road plane are off the road.
         max_height_m: evidence counts where a surface this high would show (see the module).
+        slow_max_height_m: driving slowly, the parallax of a ``max_height_m`` step can sink below
+            what the images show over most of the seed (at KITTI's 10 Hz, below about 5 m/s). The
+            step is then doubled, up to this height, until a tenth of the seed carries evidence:
+            a kerb lower than the step used then passes for road, a car or a wall still shows. A
+            motion whose estimate failed keeps ``max_height_m``.
+            ``stats["max_height_m"]`` reports the step used per sample. None: never (such samples
+            are flagged ``"static"`` or ``"textureless"``).
         z: significance of every test, in standard errors.
         min_misfit_px: the least residual motion (pixels of the images) the road model is trusted
             to: a fitted road motion is not more accurate than about half a pixel on real images
@@ -510,7 +464,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         level = max(0, int(math.floor(math.log2(max(image1.shape[-2], 1) / _WORK_ROWS))))
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
-                   max_height_m=max_height_m, z=z, min_misfit_px=min_misfit_px, min_coverage=min_coverage)
+                   max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
+                   min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options)
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
@@ -543,6 +498,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             if bool(torch.as_tensor(getattr(again, "success", True)).all()):
                 motion = again
     grey = gaussian_blur(_pool(torch.cat([_grey(im1), _grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
+    # the steps the evidence must be able to show: max_height_m, doubled up to slow_max_height_m
+    heights = [float(max_height_m)]
+    while slow_max_height_m is not None and heights[-1] < slow_max_height_m:
+        heights.append(min(2 * heights[-1], float(slow_max_height_m)))
 
     def judge(motion: Any) -> tuple[_Evidence, Tensor]:
         model, params = _plane_motion(motion, camera)
@@ -554,14 +513,14 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
         ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, (raised - f).to(work), seed_l, gain,
                        window=window, height_window=height_window, min_height=min_height_m,
-                       max_height=max_height_m, z=z, min_misfit=min_misfit_px / 2 ** level)
+                       max_heights=heights, trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level)
         focus = _focus_of_expansion(model, params, cam_l)
         roads = []
         for b in range(B):
             fz = focus[b]
             fo = (float(fz[0] / fz[2]), float(fz[1] / fz[2])) if abs(float(fz[2])) > 1e-9 * float(fz.abs().max()) else None
             arrays = [t[b, 0].cpu().numpy() for t in (ev.good, ev.bad, ev.ok, ev.testable, below_l, seed_l)]
-            roads.append(torch.from_numpy(_region(*arrays, fo, window, max(1, (h * w) // 500))))
+            roads.append(torch.from_numpy(road_region(*arrays, fo, window, max(1, (h * w) // 500))))
         return ev, torch.stack(roads).unsqueeze(1).to(device)
 
     ev, road_l = judge(motion)
@@ -587,12 +546,20 @@ def _upsample(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
     return F.pad(m.to(torch.uint8), (0, W - m.shape[-1], 0, H - m.shape[-2]), mode="replicate").bool()
 
 
+def _succeeded(motion: Any, B: int) -> list[bool]:
+    """Per sample, whether the motion was estimated successfully (a given motion without a
+    ``success`` field counts as such)."""
+    success = getattr(motion, "success", None)
+    if success is None:
+        return [True] * B
+    return torch.as_tensor(success).reshape(-1).expand(B).tolist()
+
+
 def _report(mask: Tensor, motion: Any, seed: Tensor, road_l: Tensor, below_l: Tensor, ev: _Evidence, seed_l: Tensor,
             level: int, min_coverage: float) -> RoadDetection:
     """Coverage, the seed's agreement and the flags (step 5 of the module)."""
     B = mask.shape[0]
-    success = getattr(motion, "success", None)
-    success = torch.ones(B, dtype=torch.bool) if success is None else torch.as_tensor(success).reshape(-1).expand(B).cpu()
+    success = _succeeded(motion, B)
     pixels = road_l.flatten(1).sum(1).cpu()
     coverage = (pixels / below_l.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
     s = seed_l & ev.ok
@@ -609,7 +576,7 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, road_l: Tensor, below_l: Te
         elif int(n_test[b]) == 0:
             flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames): the road cannot be "
                                    "told from what stands on it")
-        elif float(evidence_share[b]) < 0.1:
+        elif float(evidence_share[b]) < _MIN_EVIDENCE:
             flag, why = "textureless", (f"only {100 * float(evidence_share[b]):.1f} % of the road ahead carries "
                                         f"evidence (dark or textureless frames)")
         elif float(agreement[b]) < 0.5:
@@ -629,7 +596,8 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, road_l: Tensor, below_l: Te
     return RoadDetection(mask=mask, flag=flags, reason=reasons, ok=ok, motion=motion, seed=seed,
                          coverage=coverage, seed_agreement=agreement, evidence=evidence, height=ev.height,
                          level=level, stats={"tau_px": ev.tau.cpu(), "noise": ev.noise.cpu(),
-                                             "height_bias_m": ev.bias.cpu(), "seed_evidence": evidence_share})
+                                             "height_bias_m": ev.bias.cpu(), "seed_evidence": evidence_share,
+                                             "max_height_m": ev.max_height})
 
 
 # -- the refiner's road="auto" ------------------------------------------------------------------

@@ -1,0 +1,93 @@
+"""Step 4 of the road detection (:mod:`fsof_torch.refinement.auto_road`): the road region from
+the windows' decisions, on NumPy arrays at the working resolution.
+
+The road evidence connected to the seed; pixels without evidence take the majority of the
+evidence around them where they are testable, else the decision found along their line through
+the focus of expansion (the road's edges, kerbs and verges run along those lines: a pixel that
+leaves the frame takes the decision of the pixel that will be where it is, a pixel too far to
+test that of the nearest testable one); then the component connected to the seed, with small
+enclosed holes filled.
+"""
+
+from __future__ import annotations
+
+import math
+
+__all__ = ["road_region"]
+
+
+def _components_touching(mask, touch, connectivity: int = 8):
+    """The connected components of a (h, w) bool array that contain a pixel of ``touch``."""
+    import cv2
+    import numpy as np
+
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=connectivity)
+    keep = np.zeros(count, dtype=bool)
+    keep[np.unique(labels[touch & mask])] = True
+    keep[0] = False
+    return keep[labels]
+
+
+def _along_rays(decisions, focus: tuple[float, float], inward, todo, steps: int = 16, reach: float = 8.0):
+    """Decisions (0 / 1) for the pixels ``todo`` (h, w) bool from a (h, w) int8 map (-1: none):
+    the nearest decision on each pixel's line through ``focus`` (x, y in pixels of the map),
+    towards the focus where ``inward`` (pixels that leave the frame: the decision of what will be
+    where they are), away from it elsewhere (pixels too far to test: the decision of the nearest
+    testable ones). Samples at focus + (p − focus) · s, s = reach^(∓i/steps), nearest first.
+    Returns (h, w) int8, -1 where no decision was found."""
+    import numpy as np
+
+    h, w = decisions.shape
+    out = np.full((h, w), -1, dtype=np.int8)
+    ys, xs = np.nonzero(todo)
+    if ys.size == 0:
+        return out
+    fx, fy = focus
+    factor = np.where(inward[ys, xs], -1.0, 1.0) * (math.log(reach) / steps)
+    found = np.full(ys.size, -1, dtype=np.int8)
+    dx, dy = xs - fx, ys - fy
+    for i in range(1, steps + 1):
+        s = np.exp(factor * i)
+        x = np.rint(fx + dx * s).astype(np.int64)
+        y = np.rint(fy + dy * s).astype(np.int64)
+        inside = (x >= 0) & (x < w) & (y >= 0) & (y < h) & (found < 0)
+        got = decisions[y[inside], x[inside]]
+        found[np.flatnonzero(inside)] = np.where(got >= 0, got, -1)
+    out[ys, xs] = found
+    return out
+
+
+def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float] | None, window: int, max_hole: int):
+    """The road (h, w) bool from the window decisions (NumPy arrays; step 4 of the module)."""
+    import cv2
+    import numpy as np
+
+    closed = cv2.morphologyEx(good.astype(np.uint8), cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8)) > 0
+    core = _components_touching(closed & ~bad, seed)
+    if not core.any():
+        return core
+    off = bad | (good & ~core)
+    # stray off-road windows inside the road must not decide whole rays: only components of at
+    # least a window's area count
+    count, lab, stats, _ = cv2.connectedComponentsWithStats(off.astype(np.uint8), connectivity=8)
+    off = off & (stats[:, cv2.CC_STAT_AREA] >= window * window)[lab]
+    # undecided but testable (textureless): the majority of the decisions around
+    k = 2 * window + 1
+    n_road = cv2.boxFilter(core.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    n_off = cv2.boxFilter(off.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    local = below & ~core & ~off & testable & ok & (n_road + n_off > 0)
+    road = core | (local & (n_road > n_off))
+    off = off | (local & (n_road <= n_off))
+    if focus is not None:
+        decisions = np.full(road.shape, -1, dtype=np.int8)
+        decisions[off] = 0
+        decisions[road] = 1
+        filled = _along_rays(decisions, focus, below & ~ok, below & (decisions < 0))
+        road = road | (filled == 1)
+    road = _components_touching(road & below, seed, connectivity=4)
+    # enclosed holes (a manhole, a patch of shade without texture) are road
+    count, lab, stats, _ = cv2.connectedComponentsWithStats((~road).astype(np.uint8), connectivity=4)
+    fill = stats[:, cv2.CC_STAT_AREA] <= max_hole
+    fill[0] = False  # label 0: the road itself
+    fill[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
+    return road | fill[lab]
