@@ -58,3 +58,15 @@ def test_dark_low_texture_frames_keep_the_prediction_and_are_flagged(scene):
     assert not bool(out.refined.any())
     assert not bool(out.gate.confirmed.any()) and not bool(out.gate.informative.any())
     assert torch.equal(out.flow, prediction)
+
+
+def test_dark_low_texture_frames_with_the_road_found_in_them_keep_the_prediction(scene):
+    """mask="auto" on the same dark frames: whatever the road detection says, the prediction comes
+    back unchanged, and a warning says so (a flagged road, or a refinement without evidence)."""
+    g = torch.Generator().manual_seed(0)
+    dark = [(scene[k] * 0.2 + 5.0 * torch.randn(scene[k].shape, generator=g)).clamp(0, 255) for k in ("image1", "image2")]
+    prediction = _dis(*dark)[None]
+    with pytest.warns(RuntimeWarning, match="left un"):
+        out = fs.FreespaceRefiner()(prediction, "auto", scene["camera"], images=(dark[0][None], dark[1][None]))
+    assert not bool(out.refined.any())
+    assert torch.equal(out.flow, prediction)

@@ -611,7 +611,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     predicted flow one start; the caller's planar odometry held fixed), or judges with the
     caller's complete road motion; the motion it settled on is then the refinement's (no second
     estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
-    detection comes back as ``RefineOutput.road``. Without images, the road is detected on the
+    detection comes back as ``RefineOutput.road``; samples whose road was found but that the
+    refinement left unchanged (a failed estimate, a gate without evidence) are warned about too. Without images, the road is detected on the
     prediction (:func:`fsof_torch.detect_freespace`), as before images were used.
     """
     import warnings
@@ -641,7 +642,13 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
         warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
                       RuntimeWarning, stacklevel=3)
+    # (the refinement's own warning would name the flagged samples a second time)
     out = refine(flow, det.usable_mask, camera, det.motion, images=(image1, image2), warn=False, **kw)
+    if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
+        kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
+        warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
+                      f"images gave no evidence for the model (see RefineOutput.refined and .gate)",
+                      RuntimeWarning, stacklevel=3)
     return out._replace(road=det, fit=det.motion if not complete else out.fit)
 
 
