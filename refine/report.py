@@ -189,7 +189,7 @@ def auto_road_lines(summary: dict) -> list[str]:
     steps = [r["road_max_height_m"] for r in found.values() if "road_max_height_m" in r]
     if steps:  # the step the evidence had to show: larger where the vehicle drove slowly
         line += "; the step the evidence could show: " + ", ".join(
-            f"{h:g} m ({steps.count(h)} pairs)" for h in sorted(set(steps)))
+            f"{h:g} m ({steps.count(h)} pair{'s' if steps.count(h) != 1 else ''})" for h in sorted(set(steps)))
     return [line] + [f"  - flagged, left unrefined: {p}: {why}" for p, why in sorted(flagged.items())]
 
 

@@ -460,7 +460,7 @@ def test_synthetic_road_auto(tmp_path):
         assert rec["after"]["epe_all"] == rec["before"]["epe_all"]
     report = (out / "report.md").read_text()
     assert "Auto road (found in the images):" in report
-    assert f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pairs)" in report
+    assert f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pair)" in report
     assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
 
 
