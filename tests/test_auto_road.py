@@ -139,16 +139,28 @@ def test_a_step_the_images_show_at_driving_speed(scene_detection):
     assert scene_detection.stats["max_height_m"].tolist() == [0.3]
 
 
-def test_driving_slowly_the_step_is_doubled():
+@pytest.fixture(scope="module")
+def slow_pair():
+    """The default scene at 2 m/s (0.2 m a frame at 10 Hz)."""
+    from fsof_torch.data.scene import render_pair
+
+    return render_pair("default", 0, speed=2.0, dt=0.1)
+
+
+def _exact(p):
+    """The scene's exact road motion and the camera at the plane's height."""
+    motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
+    return motion, p["camera"].replace(height=p["plane"]["height"])
+
+
+def test_driving_slowly_the_step_is_doubled(slow_pair):
     """At 2 m/s (0.2 m a frame) a 0.3 m step moves like the road within the noise over the whole
     seed: with the step fixed the sample is flagged; by default the step is doubled until the seed
     carries evidence (to 1.2 m here), the road is found, and the cars still stay out."""
-    from fsof_torch.data.scene import render_pair
     from fsof_torch.data.scene.config import LABELS
 
-    p = render_pair("default", 0, speed=2.0, dt=0.1)
-    motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
-    cam = p["camera"].replace(height=p["plane"]["height"])
+    p = slow_pair
+    motion, cam = _exact(p)
     images = (p["image1"][None], p["image2"][None])
     fixed = detect_road(*images, cam, motion=motion, slow_max_height_m=None)
     assert fixed.flag[0] in ("static", "textureless") and fixed.stats["max_height_m"].tolist() == [0.3]
@@ -160,6 +172,21 @@ def test_driving_slowly_the_step_is_doubled():
     # capped below what shows here: the largest step allowed is tried, and the sample is flagged
     capped = detect_road(*images, cam, motion=motion, slow_max_height_m=0.5)
     assert capped.flag[0] in ("static", "textureless") and capped.stats["max_height_m"].tolist() == [0.5]
+
+
+def test_each_sample_of_a_batch_takes_its_own_step(slow_pair, scene_pair):
+    """A batch of a slow pair and a fast one: each sample gets the step and the mask it gets alone."""
+    (m_slow, cam), (m_fast, cam_fast) = _exact(slow_pair), _exact(scene_pair)
+    assert torch.equal(cam.K, cam_fast.K) and torch.equal(cam.height, cam_fast.height)
+    alone = [detect_road(p["image1"][None], p["image2"][None], cam, motion=m)
+             for p, m in ((slow_pair, m_slow), (scene_pair, m_fast))]
+    both = detect_road(torch.stack([slow_pair["image1"], scene_pair["image1"]]),
+                       torch.stack([slow_pair["image2"], scene_pair["image2"]]), cam,
+                       motion={k: (v if k == "model" else torch.tensor([float(v), float(m_fast[k])]))
+                               for k, v in m_slow.items()})
+    assert both.stats["max_height_m"].tolist() == [1.2, 0.3] and both.flag == ["ok", "ok"]
+    for i, one in enumerate(alone):
+        assert torch.equal(both.mask[i], one.mask[0])
 
 
 def test_refiner_auto_leaves_flagged_samples_unrefined(scene_pair):
