@@ -42,9 +42,9 @@ detection:
 5. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
    ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
    largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:
-   dark, flat frames),
-   ``"implausible"`` (the seed itself does not move like a road: an obstacle close ahead),
-   ``"empty"`` and ``"small"`` (less than ``min_coverage`` of the image below the horizon).
+   dark, flat frames), ``"implausible"`` (the seed itself does not move like a road: an obstacle
+   close ahead), ``"empty"`` and ``"small"`` (less than ``min_coverage`` of the image below the
+   horizon).
 
 Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not differentiable
 (a segmentation); the caller's tensors are never modified.
