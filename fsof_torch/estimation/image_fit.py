@@ -518,7 +518,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> list[Tensor]:
     """A Gaussian pyramid of images (B, C, H, W): level 0 smoothed with ``smooth_sigma`` pixels,
     each next level the 5-tap binomial blur [1, 4, 6, 4, 1] / 16 of the one below, sampled at its
-    even pixels (OpenCV's ``pyrDown``): pixel i of level l is pixel 2^l i of level 0.
+    even pixels (OpenCV's ``pyrDown``): pixel i of level l is pixel 2^l i of level 0. With
+    ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy.
 
     On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
     KITTI frame in about 1.5 ms, some 50 times faster than the same convolutions in torch);
