@@ -5,12 +5,14 @@ Prints four tables, single thread:
 1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
    precision and recall against the scene's true road, mean and min per preset, and the flags;
    and the IoU when the scene's exact road motion is given (what the judging alone achieves).
-2. Real KITTI: the shared pair 000000 and every pair of the 51-frame straight clip. road.json is a
-   conservative polygon (the clip's: the ego lane only), so the figures are the share of the auto
-   mask inside the polygon and the share of the polygon the mask covers; mean and min over the
-   pairs, the number of empty and of flagged masks. Beside it, for reference, the flow-based
-   detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow, as the refine
-   job called it).
+2. Real KITTI: the shared pair 000000, the same pair through the 16 windows 4 pixels smaller than
+   the frame at offsets 0-3 from its top and left (``image_fit_settings.crops``: one frame's
+   figures are one draw of the fits' points), and every pair of the 51-frame straight clip.
+   road.json is a conservative polygon (the clip's: the ego lane only), so the figures are the
+   share of the auto mask inside the polygon and the share of the polygon the mask covers; mean
+   and min over the pairs, the number of empty and of flagged masks. Beside it, for reference,
+   the flow-based detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow,
+   as the refine job called it).
 3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
    estimates (on the seed at half size, again on the road), the detection judging a motion it is
    given (what it adds to a refiner that estimated the motion anyway), the default image motion
@@ -126,17 +128,23 @@ def real_pairs(root: Path):
     from fsof_torch import Camera
     from fsof_torch.io import read_image, read_road_mask
 
+    from image_fit_settings import crops
+
     k15 = root / "kitti15_000000"
     im1, im2 = (read_image(k15 / f"image_1{i}.png")[None] for i in (0, 1))
-    yield ("kitti15 000000", im1, im2, Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65),
-           read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool())
+    camera = Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    poly = read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool()
+    yield "kitti15 pair", im1, im2, camera, poly
+    # the same pair through the 16 windows 4 px smaller: the same scene, other draws of the points
+    for i, w in enumerate(crops({"camera": camera, "image1": im1, "image2": im2, "road": poly})):
+        yield f"kitti15 windows {i:02d}", w["image1"], w["image2"], w["camera"], w["road"]
     clip = root / "kitti_odometry_straight"
     cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
     files = sorted((clip / "image_l").glob("*.png"))
     frames = [read_image(f)[None, :1] for f in files]
     poly = read_road_mask(clip / "road.json", tuple(frames[0].shape[-2:])).reshape(1, 1, *frames[0].shape[-2:]).bool()
     for i in range(len(frames) - 1):
-        yield f"clip {i:02d}", frames[i], frames[i + 1], cam, poly
+        yield f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly
 
 
 def real_table(root: Path) -> None:
@@ -144,7 +152,7 @@ def real_table(root: Path) -> None:
 
     rows: dict[str, dict[str, list]] = {}
     for name, im1, im2, cam, poly in real_pairs(root):
-        group = "kitti15 pair" if name.startswith("kitti15") else "straight clip"
+        group = name.rstrip("0123456789 ")
         flow = dis(im1, im2)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
@@ -160,11 +168,11 @@ def real_table(root: Path) -> None:
             r["empty"] += n == 0
             r["flagged"] += flag not in ("", "ok")
     print("\nReal KITTI: share of the mask inside road.json's polygon, share of the polygon covered")
-    print(f"{'data':>14} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
+    print(f"{'data':>15} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
           f"{'cover min':>9} {'empty':>5} {'flagged':>7}")
     for group, methods in rows.items():
         for method, r in methods.items():
-            print(f"{group:>14} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
+            print(f"{group:>15} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
                   f"{min(r['inside']):10.3f} {statistics.mean(r['cover']):10.3f} {min(r['cover']):9.3f} "
                   f"{r['empty']:5d} {r['flagged'] if method.startswith('auto') else '-':>7}")
 
