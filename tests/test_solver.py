@@ -150,6 +150,49 @@ def test_predicted_step_ends_a_stage_without_the_step_that_would_not_matter():
     torch.testing.assert_close(sol.params, truth, rtol=0, atol=1e-9)
 
 
+def arctan_problem(offset: float = 0.5):
+    """One residual arctan(p - offset): Gauss–Newton from 2 away overshoots (to about -3.5 away,
+    a larger residual); every evaluated start is recorded."""
+    seen = []
+
+    def residual(p):
+        seen.append(p.clone())
+        d = p - offset
+        return torch.atan(d).reshape(1, 1, 1), (1.0 / (1.0 + d * d)).reshape(1, 1, 1, 1), torch.ones(1, 1, dtype=torch.bool)
+
+    return ResidualProblem(residual, torch.ones(1)), seen
+
+
+def test_rejected_step_is_retried_at_half_its_length():
+    """The cost a rejected step raised is least within its first half: the retry is that half (more
+    damping alone, ×8 from 1e-4, would take four more rejections to shorten the step enough)."""
+    problem, seen = arctan_problem()
+    start = torch.tensor([[2.5]], dtype=torch.float64)
+    sol = solve(problem, start, kernel="l2", max_iter=20, tol=1e-12)
+    first, retry = seen[1] - start, seen[2] - start
+    assert float(torch.atan(seen[1] - 0.5).abs()) > float(torch.atan(start - 0.5).abs())  # rejected
+    torch.testing.assert_close(retry, 0.5 * first, rtol=1e-12, atol=0)
+    assert float(torch.atan(seen[2] - 0.5).abs()) < float(torch.atan(start - 0.5).abs())  # accepted
+    torch.testing.assert_close(sol.params, torch.tensor([[0.5]], dtype=torch.float64), rtol=0, atol=1e-9)
+    assert bool(sol.converged.all())
+
+
+@pytest.mark.parametrize("resolution, ends", [(1.5, True), (0.9, False)])
+def test_rejected_step_within_twice_the_resolution_ends_the_sample(resolution, ends):
+    """A rejected step that moves the residuals by at most twice ``resolution`` of their RMS
+    (squared: four times the bar) ends the sample where it is: the best point along it, in its
+    first half, moves them by at most the resolution. Here the overshoot moves the one residual
+    from atan(2) to about -atan(3.54): 2.4, against its RMS of 1.1."""
+    problem, seen = arctan_problem()
+    start = torch.tensor([[2.5]], dtype=torch.float64)
+    sol = solve(problem, start, kernel="l2", max_iter=20, resolution=resolution)
+    assert bool(sol.converged.all())
+    if ends:  # after the one (rejected) iteration, where it started
+        assert sol.iterations.tolist() == [1] and torch.equal(sol.params, start)
+    else:  # the retry at half the step is accepted, and the fit goes on
+        assert int(sol.iterations) > 2 and abs(float(sol.params) - 0.5) < 0.1
+
+
 def test_covariance_of_linear_least_squares():
     problem, truth, x, y = line_problem(B=1, N=400, noise=0.05, seed=3)
     sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", max_iter=10)

@@ -11,9 +11,11 @@ model's domain to escape its residuals), and an optional Gaussian prior of mean 
 (in residual² per parameter²). Each iteration solves the damped normal equations
 (A + λ diag(A)) δ = -g by Cholesky (no host read), with A = Jᵀ W J + prior and g = Jᵀ W r the
 IRLS normal equations (the problem builds them, knowing its structure), clamps the candidate to
-the bounds and keeps it per sample where E went down (else damps more). Each candidate is
-evaluated once: its cost, its weights and its normal equations; a sample whose step was rejected
-keeps those of its current point.
+the bounds and keeps it per sample where E went down; else it damps more and retries the
+rejected step at half its length (E, which the step raised, is least within its first half,
+where more damping alone barely shortens a step while the damping is still small). Each
+candidate is evaluated once: its cost, its weights and its normal equations; a sample whose step
+was rejected keeps those of its current point.
 
 The kernel's scale can be annealed from the spread of the first residuals down to c (halving with
 each accepted step, or dropping to the new residuals' spread), so that a wrong start is not
@@ -209,12 +211,14 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             evaluating the start twice).
         anneal: start the scale at max(c, 3 · median residual norm), then with every accepted
             step halve it or drop it to 3 × the new residuals' median, whichever is smaller, down
-            to c (a rejected step is retried, more damped, at the same scale).
+            to c (a rejected step is retried, at half its length, at the same scale).
         max_iter: the iteration budget.
         tol: converged when a step changes no parameter by more than tol (1 + |p|), or E by less
             than tol E.
         resolution: also converged when a step (accepted or not) moves the residuals by at most
-            this fraction of their robust RMS (below what the points can resolve); 0: off.
+            this fraction of their robust RMS (below what the points can resolve), or a rejected
+            step by at most twice that (the cost, which it raised, is least within its first
+            half); 0: off.
         predict: with ``resolution``, also converged after an accepted step when the next step,
             predicted from the normal equations there, would move the weighted residuals by at
             most that fraction (the Gauss–Newton prediction δᵀ A δ): a stage then ends without
@@ -313,11 +317,11 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     lam = torch.full((B,), damping, dtype=dt, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    step = None  # the next step where ``predict`` has already solved for it
+    step = _damped_step(A, g, lam)
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
-        delta = torch.where(active.unsqueeze(-1), _damped_step(A, g, lam) if step is None else step, 0.0)
+        delta = torch.where(active.unsqueeze(-1), step, 0.0)
         cand = params + delta
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
@@ -342,8 +346,12 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
                 moved = (ev_c.residual - residual).square_().sum(1)
             else:
                 moved = (ev_c.r2.sqrt() - r2.sqrt()).square_()
-            # (a finished sample does not move: it stays finished)
-            small = small | (torch.linalg.vecdot(moved, mask) <= bar)
+            # (a finished sample does not move: it stays finished). A rejected step raised the
+            # cost: about quadratic along the step, it is least within the step's first half,
+            # which moves the residuals by at most a quarter of its squared move; where that is
+            # within the resolution, more damped retries cannot move them by more
+            moved = torch.linalg.vecdot(moved, mask)
+            small = small | (moved <= bar) | (~ok & (moved <= 4.0 * bar))
         tiny = (delta.abs() <= tol * (1.0 + cand.abs())).all(-1)
         small = small | (tiny & (ok | (lam <= 1e-2)))
         # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
@@ -365,11 +373,13 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             done = done | (at_scale & (small | stuck))
         else:
             done = done | small | stuck
+        # the next step: a rejected one retried at half its length (see the module docstring),
+        # else the damped step from the normal equations at the (new) point
+        step = torch.where((~ok & active).unsqueeze(-1), 0.5 * delta, _damped_step(A, g, lam))
         if predict:
-            # the next step, predicted from the new normal equations: δᵀ A δ is what it would move
-            # the weighted squared residuals by (to first order); below resolution² of their
-            # weighted sum it is not worth an evaluation (at the final scale, where annealing)
-            step = _damped_step(A, g, lam)
+            # the step predicted there: δᵀ A δ is what it would move the weighted squared
+            # residuals by (to first order); below resolution² of their weighted sum it is not
+            # worth an evaluation (at the final scale, where annealing)
             moves = torch.linalg.vecdot(step, torch.bmm(A, step.unsqueeze(-1)).squeeze(-1))
             settled = ok & (moves <= resolution ** 2 * torch.linalg.vecdot(w, r2))
             if anneal:
