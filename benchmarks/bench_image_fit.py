@@ -13,7 +13,11 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
   (a 3 × 3 erosion at every second pixel): OpenCV against kornia / torch (the fast paths
   ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU).
 
-    python benchmarks/bench_image_fit.py [--repeats 15]
+    python benchmarks/bench_image_fit.py [--repeats 15] [--baseline REV]
+
+With ``--baseline REV`` (a git revision, imported beside the current package by
+``baseline.py``), the rows are instead ``fit_image`` and the default refiner of that revision and
+of the current one, interleaved call by call, with their ratio.
 
 Uses the shared KITTI clip's first pair when ``../shared`` is there, else a synthetic pair.
 """
@@ -47,6 +51,7 @@ def pair():
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=15)
+    parser.add_argument("--baseline", metavar="REV", help="time against this git revision instead")
     args = parser.parse_args()
     import cv2
     from kornia.filters import gaussian_blur2d
@@ -75,6 +80,8 @@ def main() -> None:
         x = F.conv2d(F.pad(x, (0, 0, 2, 2), mode="reflect"), taps.reshape(1, 1, 5, 1))
         return x[..., ::2, ::2]
 
+    if args.baseline:
+        return against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
     rows = {
         "DIS (MEDIUM), the reference": lambda: dis_flow(im1, im2),
         "fit_image (plane, defaults)": lambda: fs.fit_image(I1, I2, M, cam),
@@ -92,14 +99,7 @@ def main() -> None:
         "mask pyramid, 5 levels, torch": lambda: [m := M] + [m := -F.max_pool2d(-m.float(), 3, stride=2, padding=1) > 0.5
                                                              for _ in range(4)],
     }
-    times = {name: [] for name in rows}
-    for name, fn in rows.items():
-        fn()
-    for _ in range(args.repeats):
-        for name, fn in rows.items():
-            t = time.perf_counter()
-            fn()
-            times[name].append(time.perf_counter() - t)
+    times = interleaved(rows, args.repeats)
     ref = np.median(times["DIS (MEDIUM), the reference"])
     print(f"{what}, {tuple(im1.shape[-2:])}, one thread, {args.repeats} interleaved repeats\n")
     print("| row | median ms | min ms | median / DIS |")
@@ -107,6 +107,45 @@ def main() -> None:
     for name, t in times.items():
         t = np.array(t) * 1e3
         print(f"| {name} | {np.median(t):.1f} | {t.min():.1f} | {np.median(t) / (ref * 1e3):.2f} |")
+
+
+def interleaved(rows: dict, repeats: int) -> dict[str, list[float]]:
+    """Wall times (s) of each row's call, the rows taking turns call by call after one warm-up."""
+    times = {name: [] for name in rows}
+    for fn in rows.values():
+        fn()
+    for _ in range(repeats):
+        for name, fn in rows.items():
+            t = time.perf_counter()
+            fn()
+            times[name].append(time.perf_counter() - t)
+    return times
+
+
+def against_baseline(rev: str, repeats: int, I1, I2, M, cam, flow, what: str) -> None:
+    """``fit_image`` and the default refiner of git revision ``rev`` against the current ones."""
+    from baseline import load_baseline
+
+    import fsof_torch as fs
+
+    base = load_baseline(rev)
+    base_cam = base.Camera(cam.K, cam.height, cam.roll, cam.pitch)
+    refiner, base_refiner = fs.FreespaceRefiner(), base.FreespaceRefiner()
+    rows = {
+        f"fit_image, {rev}": lambda: base.fit_image(I1, I2, M, base_cam),
+        "fit_image, current": lambda: fs.fit_image(I1, I2, M, cam),
+        f"FreespaceRefiner() with the images, {rev}": lambda: base_refiner(flow, M, base_cam, images=(I1, I2)),
+        "FreespaceRefiner() with the images, current": lambda: refiner(flow, M, cam, images=(I1, I2)),
+    }
+    times = interleaved(rows, repeats)
+    print(f"{what}, {tuple(I1.shape[-2:])}, one thread, {repeats} interleaved repeats, against {rev}\n")
+    print("| row | median ms | min ms | current / baseline |")
+    print("|---|---|---|---|")
+    names = list(rows)
+    for before, now in (names[:2], names[2:]):
+        a, b = np.median(times[before]) * 1e3, np.median(times[now]) * 1e3
+        print(f"| {before} | {a:.1f} | {min(times[before]) * 1e3:.1f} | |")
+        print(f"| {now} | {b:.1f} | {min(times[now]) * 1e3:.1f} | {b / a:.3f} |")
 
 
 if __name__ == "__main__":
