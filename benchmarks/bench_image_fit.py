@@ -66,6 +66,8 @@ def main() -> None:
     im1, im2, road, cam, what = pair()
     I1, I2, M = im1[None], im2[None], road[None]
     flow = dis_flow(im1, im2)[None]
+    if args.baseline:
+        return against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
     refiner = fs.FreespaceRefiner()
     ahead_off = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(forward_starts=()))
     more_points = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(max_points=10000))
@@ -80,8 +82,6 @@ def main() -> None:
         x = F.conv2d(F.pad(x, (0, 0, 2, 2), mode="reflect"), taps.reshape(1, 1, 5, 1))
         return x[..., ::2, ::2]
 
-    if args.baseline:
-        return against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
     rows = {
         "DIS (MEDIUM), the reference": lambda: dis_flow(im1, im2),
         "fit_image (plane, defaults)": lambda: fs.fit_image(I1, I2, M, cam),

@@ -612,8 +612,9 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     caller's complete road motion; the motion it settled on is then the refinement's (no second
     estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
     detection comes back as ``RefineOutput.road``; samples whose road was found but that the
-    refinement left unchanged (a failed estimate, a gate without evidence) are warned about too. Without images, the road is detected on the
-    prediction (:func:`fsof_torch.detect_freespace`), as before images were used.
+    refinement left unchanged (a failed estimate, a gate without evidence) are warned about too.
+    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`),
+    as before images were used.
     """
     import warnings
 
