@@ -40,6 +40,21 @@ def test_census_ring_distance_against_a_loop():
     assert bool(ok.all())
 
 
+
+def test_census_ring_points_count_only_with_all_samples_inside_both_images():
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    H, W = g1.shape[-2:]
+    x = torch.tensor([[2.0, 3.0, W - 4.0, W - 3.0, 50.0, 50.0, 50.0, 50.0]])
+    y = torch.tensor([[40.0, 40.0, 40.0, 40.0, 2.0, 3.0, H - 4.0, H - 3.0]])
+    for fx, fy in ((0.0, 0.0), (1.5, -0.5), (-2.25, 1.0)):
+        flow = torch.tensor([fx, fy]).reshape(1, 2, 1).expand(1, 2, x.shape[1])
+        _, _, ok = census_ring_distance(g1, g2, x, y, flow)
+        for i in range(x.shape[1]):
+            u, v = float(x[0, i]), float(y[0, i])
+            inside = all(0 <= u + dx <= W - 1 and 0 <= v + dy <= H - 1
+                         and 0 <= u + dx + fx <= W - 1 and 0 <= v + dy + fy <= H - 1 for dx, dy in [(0, 0)] + list(RING))
+            assert bool(ok[0, i]) == inside, (u, v, fx, fy)
+
 def _smooth_noise(amplitude, seed=0, H=96, W=192):
     """A flow error that varies smoothly over the image, as a network's does (B, 2, H, W)."""
     g = torch.Generator().manual_seed(seed)

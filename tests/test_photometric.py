@@ -15,6 +15,7 @@ from fsof_torch.evaluation.photometric import (
     photometric_error_map,
     photometric_error_maps,
     photometric_errors,
+    to_grey,
 )
 
 KINDS = ["l1", "ssim", "census", "soft_census"]
@@ -68,6 +69,18 @@ def test_public_names():
 
     assert {"photometric_error_maps", "photometric_errors"} <= set(fsof_torch.__all__)
 
+
+
+def test_to_grey_is_kornias_luma_for_rgb_and_the_image_itself_for_one_channel():
+    from kornia.color import rgb_to_grayscale
+
+    rgb = torch.rand(2, 3, 5, 7, generator=torch.Generator().manual_seed(0)) * 255
+    assert torch.equal(to_grey(rgb), rgb_to_grayscale(rgb))
+    weights = torch.tensor([0.299, 0.587, 0.114]).reshape(1, 3, 1, 1)
+    assert torch.allclose(to_grey(rgb), (rgb * weights).sum(1, keepdim=True), atol=1e-4)
+    grey = rgb[:, :1]
+    assert to_grey(grey) is grey
+    assert torch.equal(to_grey(rgb[:, :2]), rgb[:, :2].mean(1, keepdim=True))
 
 def test_module_twin():
     i1, i2, flow = _shifted_pair()

@@ -226,3 +226,27 @@ def test_sample_mask_even_stride_and_padding():
     assert torch.equal(pts.pix[0], ref)
     assert pts.sel[1].tolist() == [True] * 3 + [False] * 13 and pts.pix[1, :3].tolist() == [27, 28, 29]
     assert pts.per_frame(torch.ones(63, dtype=torch.float64)).tolist() == [60.0, 3.0]
+
+
+def test_mask_points_per_pixel_spreads_each_frames_value():
+    mask = torch.zeros(3, 1, 4, 5, dtype=torch.bool)
+    mask[0, 0, 1, :2] = True       # 2 pixels
+    mask[2, 0, 3] = True           # 5 pixels; frame 1 has none
+    pts = sample_mask(mask, 4)
+    v = torch.tensor([1.5, -2.0, 7.0], dtype=torch.float64)
+    frame = torch.div(pts.every, 20, rounding_mode="floor")
+    assert torch.equal(pts.per_pixel(v), v[frame])
+    assert pts.per_pixel(v).tolist() == [1.5] * 2 + [7.0] * 5
+    one = sample_mask(mask[2:], 4)
+    assert torch.equal(one.per_pixel(v[2:]), torch.full((5,), 7.0, dtype=torch.float64))
+
+
+def test_resample_mask_is_sample_mask_of_the_same_mask():
+    from fsof_torch.estimation.sampling import resample_mask
+
+    mask = torch.rand(2, 1, 9, 11, generator=torch.Generator().manual_seed(3)) > 0.4
+    pts = sample_mask(mask, 7)
+    for n in (1, 5, 30, None):
+        a, b = resample_mask(pts, (9, 11), n), sample_mask(mask, n)
+        for name in ("pix", "sel", "count", "every", "bounds"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), (n, name)

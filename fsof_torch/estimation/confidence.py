@@ -22,11 +22,11 @@ __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "match
 
 
 def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: Tensor, valid: Tensor,
-                   points: MaskPoints) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+                   points: MaskPoints) -> tuple[Tensor, Tensor, Tensor]:
     """At every mask pixel (``points.every``): the values (C, M) of frame 1's images ``images1``
     (a sequence of (B, C_i, H, W), their channels in order), those (C, M) of frame 2's
     ``images2`` at the pixel moved by the flow (bilinear), whether that lies inside image 2 where
-    the flow is defined (M,), and the frame of the pixel (M,). The images are sampled one by one,
+    the flow is defined (M,). The images are sampled one by one,
     not stacked first (which would copy whole frames)."""
     B, _, H, W = images1[0].shape
     every = points.every
@@ -42,10 +42,10 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
         at = xy[:, run].unsqueeze(0)
         samples = [sample_points(im[b:b + 1], at) for im in images2]
         I2[:, run], inb[run] = torch.cat([s[0] for s, _ in samples]), samples[0][1][0]
-    return I1, I2, inb & valid.reshape(-1).gather(0, every), frame
+    return I1, I2, inb & valid.reshape(-1).gather(0, every)
 
 
-def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
+def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, threshold: float,
                         size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Inliers (B, 1, H, W) at the mask's pixels (|photometric residual| ≤ threshold), their mean
     |residual| (B,), their share of the mask's pixels that the flow keeps inside image 2 (B,) and
@@ -57,8 +57,8 @@ def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, point
     plain intensities keep theirs.
     """
     B = points.bounds.numel() - 1
-    gain, offset = matched_gain(I1, I2, ok, frame, points, threshold)
-    err = (gain[frame] * I2 + offset[frame] - I1).abs()
+    gain, offset = matched_gain(I1, I2, ok, points, threshold)
+    err = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1).abs()
     inl = ok & (err <= threshold)
     inliers = torch.zeros(B * size[0] * size[1], dtype=torch.bool, device=I1.device).scatter_(0, points.every, inl)
     n_in = points.per_frame(inl.to(torch.float64))
@@ -67,20 +67,20 @@ def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, point
     return inliers.reshape(B, 1, *size), residual, fraction, n_in
 
 
-def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints) -> Tensor:
+def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, points: MaskPoints) -> Tensor:
     """(B,) the correlation (zero-mean, normalised) of image 1's values ``x`` and image 2's ``y``
     at the mask's pixels in view (``ok``; :func:`warped_samples`), of the images as the fit
     compared them (the finest level's band); 0 where either has no variance there."""
     w = ok.to(torch.float64)
     n = points.per_frame(w).clamp_min(1.0)
-    x = x - (points.per_frame(w * x) / n)[frame]
-    y = y - (points.per_frame(w * y) / n)[frame]
+    x = x - points.per_pixel(points.per_frame(w * x) / n)
+    y = y - points.per_pixel(points.per_frame(w * y) / n)
     sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
     den = (sxx * syy).sqrt()
     return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
 
 
-def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: MaskPoints, threshold: float,
+def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, threshold: float,
                   iterations: int = 2) -> tuple[Tensor, Tensor]:
     """Per frame (B,) the gain and offset that match image 2's intensities ``I2`` to image 1's
     ``I1`` (paired samples at ``ok`` points): their means and spreads matched, weighted robustly
@@ -95,10 +95,10 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, frame: Tensor, points: Mask
     for _ in range(iterations + 1):
         n = points.per_frame(w).clamp_min(1e-12)
         m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
-        s1 = points.per_frame(w * (I1 - m1[frame]).abs()) / n
-        s2 = points.per_frame(w * (I2 - m2[frame]).abs()) / n
+        s1 = points.per_frame(w * (I1 - points.per_pixel(m1)).abs()) / n
+        s2 = points.per_frame(w * (I2 - points.per_pixel(m2)).abs()) / n
         gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
         offset = m1 - gain * m2
-        r = (gain[frame] * I2 + offset[frame] - I1) / threshold
+        r = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1) / threshold
         w = ok.to(torch.float64) / (1.0 + r.square())
     return gain, offset

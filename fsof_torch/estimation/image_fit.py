@@ -42,12 +42,13 @@ from torch import Tensor
 
 from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_image_pair, check_int,
                       check_mapping, check_names, check_number, check_shape, result_dtype)
+from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
-from .sampling import pixel_coordinates, sample_mask, sample_points
+from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import detail_correlation, photometric_inliers, warped_samples
 from .starts import check_forward_steps, start_list, starts_ahead, two_way_cost
 from .solver import Evaluation, Solution, positive_definite, solve
@@ -101,14 +102,6 @@ def physical_bounds(model: str | RoadModel, camera: Camera) -> tuple[Tensor, Ten
         elif name in limits:
             lo[:, i], hi[:, i] = -limits[name], limits[name]
     return lo, hi
-
-
-def _grey(image: Tensor) -> Tensor:
-    if image.shape[1] == 3:
-        from kornia.color import rgb_to_grayscale
-
-        return rgb_to_grayscale(image)
-    return image
 
 
 def _with_gradient(image: Tensor) -> Tensor:
@@ -395,7 +388,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
     with autocast_off(image1):
         work = torch.float64 if image1.dtype == torch.float64 else torch.float32
-        grey = torch.cat([_grey(image1.detach().to(work)), _grey(image2.detach().to(work))], dim=1) * (255.0 / data_range)
+        grey = torch.cat([to_grey(image1.detach().to(work)), to_grey(image2.detach().to(work))], dim=1)
+        if data_range != 255.0:  # (grey levels on 0..255: the residuals' and thresholds' unit)
+            grey = grey * (255.0 / data_range)
         pyramid = image_pyramid(grey, n_levels, smooth_sigma)
         masks = _mask_pyramid(mask, n_levels)
 
@@ -413,6 +408,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         bound_hi = None if hi is None else torch.cat([hi, torch.full((B, 2), math.inf, dtype=torch.float64, device=dev)], 1)
 
         checks = None if check_every is None else range(check_every, max_iter)
+        # the mask's pixels (the tests at full resolution judge them all; the finest level's
+        # points are drawn from them)
+        points = sample_mask(mask, max_points)
 
         compared_levels: dict[int, Tensor] = {}
 
@@ -425,7 +423,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
         def run(level: int, reps: int, params: Tensor) -> Solution:
             problem = _level_problem(model, _level_camera(cam64, level), compared(level), masks[level],
-                                     gradient_fraction, max_points, reps)
+                                     gradient_fraction, max_points, reps, points if level == 0 else None)
             rep = (lambda t: None if t is None else t.repeat(reps, 1))
             precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
             return solve(problem, params, free=free, prior_mean=rep(prior_mean), prior_precision=precision,
@@ -455,11 +453,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
             # the intensities and the compared band at every mask pixel in view
             band = compared(0)
-            at1, at2, ok, frame = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
+            at1, at2, ok = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
                                                  points)
-            inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, frame, points,
+            inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, points,
                                                                     inlier_threshold, (H, W))
-            correlation = detail_correlation(at1[1], at2[1], ok, frame, points)
+            correlation = detail_correlation(at1[1], at2[1], ok, points)
             A = sol.normal[:, :P, :P]
             d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
             well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
@@ -472,7 +470,6 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                     "success": success, "iterations": iterations, "covariance": sol.covariance()[:, :P, :P],
                     "cost": sol.cost, "converged": sol.converged}
 
-        points = sample_mask(mask, max_points)
         coarse = n_levels - 1
         if S == 1:
             fit = judged(*descend(params, coarse))
@@ -583,7 +580,8 @@ def _band(img: Tensor, sigma: float | None) -> Tensor:
     detail, indifferent to smooth changes of lighting between the frames; None: the level itself."""
     if not sigma:
         return img
-    return img - gaussian_blur(img, sigma)
+    blurred = gaussian_blur(img, sigma)  # (a new tensor: the difference is written over it)
+    return torch.sub(img, blurred, out=blurred)
 
 
 def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
@@ -606,16 +604,16 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
 
 
 def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,
-                   max_points: int | None, reps: int) -> ImageProblem:
+                   max_points: int | None, reps: int, pixels: MaskPoints | None = None) -> ImageProblem:
     """The sample points of one pyramid level: road pixels of the level's mask, evenly spread, of
     which the ``gradient_fraction`` with the strongest gradient are kept (the points that carry
-    the information)."""
+    the information). ``pixels``: the mask's pixels where already known."""
     w_l = img.shape[-1]
     I1, I2 = img[:, :1], img[:, 1:]
     # (no more candidates than the level has pixels: coarse levels do not carry padding)
     n_candidates = None if max_points is None else min(int(math.ceil(max_points / gradient_fraction)),
                                                         img.shape[-2] * w_l)
-    points = sample_mask(mask, n_candidates)
+    points = sample_mask(mask, n_candidates) if pixels is None else resample_mask(pixels, mask.shape[-2:], n_candidates)
     I1p, g1p = _pixel_gradient(I1, points.pix)
     pix, sel = points.pix, points.sel
     if gradient_fraction < 1.0:

@@ -14,7 +14,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MaskPoints", "sample_mask", "pixel_coordinates", "gather_pixels", "sample_points"]
+__all__ = ["MaskPoints", "sample_mask", "resample_mask", "pixel_coordinates", "gather_pixels", "sample_points"]
 
 
 @dataclass
@@ -46,6 +46,13 @@ class MaskPoints:
         c = torch.cat([x.new_zeros(1, dtype=torch.float64), x.cumsum(0, dtype=torch.float64)])
         return c[self.bounds[1:]] - c[self.bounds[:-1]]
 
+    def per_pixel(self, v: Tensor) -> Tensor:
+        """Per-frame values (B,) spread to ``every``'s pixels (M,): each pixel its frame's value
+        (one frame: a broadcast view, no copy)."""
+        if self.bounds.numel() == 2:
+            return v.expand(self.every.numel())
+        return v.repeat_interleave(self.bounds.diff(), output_size=self.every.numel())
+
 
 def sample_mask(mask: Tensor, max_points: int | None) -> MaskPoints:
     """The pixels of a mask (B, 1, H, W) bool, and an even subsample of at most ``max_points``
@@ -56,22 +63,32 @@ def sample_mask(mask: Tensor, max_points: int | None) -> MaskPoints:
     stays on the device.
     """
     B, _, H, W = mask.shape
-    HW = H * W
     # one flat nonzero: a 2-D nonzero splits each index into (frame, pixel) by an int64 division
     every = mask.reshape(-1).nonzero().squeeze(1)
-    bounds = torch.searchsorted(every, torch.arange(B + 1, device=mask.device) * HW)
+    bounds = torch.searchsorted(every, torch.arange(B + 1, device=mask.device) * (H * W))
+    return _subsample(every, bounds, H * W, max_points)
+
+
+def resample_mask(points: MaskPoints, size: tuple[int, int], max_points: int | None) -> MaskPoints:
+    """:func:`sample_mask` of the same mask (of ``size`` (H, W)) with another ``max_points``,
+    from its pixels ``points`` (no second search of the mask)."""
+    return _subsample(points.every, points.bounds, size[0] * size[1], max_points)
+
+
+def _subsample(every: Tensor, bounds: Tensor, HW: int, max_points: int | None) -> MaskPoints:
+    B = bounds.numel() - 1
     count, start = bounds.diff(), bounds[:-1]
     N = max(int(count.max()) if B else 0, 1) if max_points is None else int(max_points)
-    j = torch.arange(N, device=mask.device).expand(B, N)
+    j = torch.arange(N, device=every.device).expand(B, N)
     n = count.unsqueeze(1)
     rank = torch.where(n > N, (j * n) // N, j)
     sel = rank < n
     if every.numel():
-        frame0 = torch.arange(B, device=mask.device).unsqueeze(1) * HW
+        frame0 = torch.arange(B, device=every.device).unsqueeze(1) * HW
         pix = every[(start.unsqueeze(1) + rank).clamp_max(every.numel() - 1)] - frame0
         pix = torch.where(sel, pix, 0)
     else:
-        pix = torch.zeros(B, N, dtype=torch.long, device=mask.device)
+        pix = torch.zeros(B, N, dtype=torch.long, device=every.device)
     return MaskPoints(pix, sel, count, every, bounds)
 
 

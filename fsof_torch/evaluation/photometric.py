@@ -53,19 +53,22 @@ from .._check import (
 from .warp import warp_backward
 
 __all__ = ["REPORTED_KINDS", "photometric_error", "photometric_error_map", "photometric_error_maps",
-           "photometric_errors", "census_transform", "PhotometricError"]
+           "photometric_errors", "census_transform", "PhotometricError", "to_grey"]
 
 _KINDS = ("l1", "ssim", "census", "soft_census")
 #: the kinds to report side by side (DESIGN.md §6): L1 alone ranks wrong flows first on real images
 REPORTED_KINDS = ("l1", "ssim", "census")
 
 
-def _grey(image: Tensor) -> Tensor:
-    """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB), the mean otherwise."""
+def to_grey(image: Tensor) -> Tensor:
+    """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB, kornia's
+    ``rgb_to_grayscale``), the image itself for C = 1 (not a copy), the mean otherwise."""
     if image.shape[1] == 3:
         from kornia.color import rgb_to_grayscale
 
         return rgb_to_grayscale(image)
+    if image.shape[1] == 1:
+        return image
     return image.mean(dim=1, keepdim=True)
 
 
@@ -91,7 +94,7 @@ def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.
     # whole signal, and bfloat16 keeps 3 significant digits of them.
     work = result_dtype(image)
     with autocast_off(image):
-        grey = _grey(image.to(work)) * (255.0 / data_range)
+        grey = to_grey(image.to(work)) * (255.0 / data_range)
         k = 2 * radius + 1
         # One-hot kernels pick each neighbour: the census as a single convolution.
         eye = torch.eye(k * k, dtype=grey.dtype, device=grey.device).reshape(k * k, 1, k, k)
@@ -217,7 +220,7 @@ def photometric_error_maps(image1: Tensor, image2: Tensor, flow: Tensor, mask: T
                 valid = _erode(in_bounds, window // 2)
             elif kind == "census":
                 # the order of grey levels is all the census sees: no scaling to 0-255 needed
-                error = _census_distance(_grey(im1), _grey(warped), census_radius)
+                error = _census_distance(to_grey(im1), to_grey(warped), census_radius)
                 valid = _erode(in_bounds, census_radius)
             else:
                 t1 = census_transform(im1, radius=census_radius, data_range=data_range)

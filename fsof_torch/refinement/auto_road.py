@@ -62,6 +62,7 @@ from torch import Tensor
 
 from .._check import all_finite, check_float_tensor, check_shape
 from ..estimation.image_fit import gaussian_blur
+from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
 from ..geometry.road_flow import road_flow
@@ -240,14 +241,6 @@ def _erode(mask: Tensor, k: int) -> Tensor:
         planes = [cv2.erode(p, kernel, borderType=cv2.BORDER_REPLICATE) for p in mask[:, 0].numpy().astype(np.uint8)]
         return torch.from_numpy(np.stack(planes)).unsqueeze(1) > 0
     return -F.max_pool2d(-mask.to(torch.float32), k, stride=1, padding=k // 2) > 0.5
-
-
-def _grey(image: Tensor) -> Tensor:
-    if image.shape[1] == 3:
-        from kornia.color import rgb_to_grayscale
-
-        return rgb_to_grayscale(image)
-    return image.mean(dim=1, keepdim=True)
 
 
 def _median(x: Tensor, fallback: float) -> Tensor:
@@ -497,7 +490,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             again = estimator(flow_s, deeper, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
             if bool(torch.as_tensor(getattr(again, "success", True)).all()):
                 motion = again
-    grey = gaussian_blur(_pool(torch.cat([_grey(im1), _grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
+    grey = gaussian_blur(_pool(torch.cat([to_grey(im1), to_grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
     # the steps the evidence must be able to show: max_height_m, doubled up to slow_max_height_m
     heights = [float(max_height_m)]
     while slow_max_height_m is not None and heights[-1] < slow_max_height_m:

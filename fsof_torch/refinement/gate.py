@@ -36,7 +36,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import check_float_tensor, check_has_values, check_mask, check_shape
-from ..estimation.sampling import sample_mask
+from ..estimation.sampling import MaskPoints, sample_mask
+from ..evaluation.photometric import to_grey
 
 __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
 
@@ -78,14 +79,6 @@ class GateResult(NamedTuple):
     textured: Tensor
 
 
-def _grey(image: Tensor) -> Tensor:
-    if image.shape[1] == 3:
-        from kornia.color import rgb_to_grayscale
-
-        return rgb_to_grayscale(image)
-    return image.mean(dim=1, keepdim=True)
-
-
 def _bilinear(image: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
     """``image`` (B, 1, H, W) at pixel positions x, y (B, N): values (B, N), in-bounds (B, N)."""
     H, W = image.shape[-2:]
@@ -112,17 +105,21 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
 
 def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequence[Tensor],
                  threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
-    """:func:`census_ring_distance` for several flows at the same points (image 1 sampled once)."""
+    """:func:`census_ring_distance` for several flows at the same points (image 1 read once)."""
     ring = grey1.new_tensor(_RING)  # (16, 2)
-    R = ring.shape[0]
+    R, r = ring.shape[0], 3  # the ring's radius
+    B, _, H, W = grey1.shape
     xs = torch.cat([x.unsqueeze(1), x.unsqueeze(1) + ring[:, 0, None]], dim=1)  # (B, 17, N)
     ys = torch.cat([y.unsqueeze(1), y.unsqueeze(1) + ring[:, 1, None]], dim=1)
-    B, _, N = xs.shape
-    v1, in1 = _bilinear(grey1, xs.reshape(B, -1), ys.reshape(B, -1))
-    d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, 1 + R, N)[:, :1]
+    N = xs.shape[-1]
+    # image 1 at whole pixels: its values themselves (clamped at the border, where the point
+    # does not count), all 17 inside where the centre is r pixels from the border
+    flat = (ys.long().clamp(0, H - 1) * W + xs.long().clamp(0, W - 1)).reshape(B, -1)
+    v1 = grey1.reshape(B, -1).gather(1, flat).reshape(B, R + 1, N)
+    in1 = (x >= r) & (x <= W - 1 - r) & (y >= r) & (y <= H - 1 - r)
+    d1 = v1[:, 1:] - v1[:, :1]
     clear = d1.abs() > threshold
     n = clear.sum(1)
-    in1 = in1.reshape(B, R + 1, N).all(1)
     out = []
     for flow in flows:
         v2, in2 = _bilinear(grey2, (xs + flow[:, :1]).reshape(B, -1), (ys + flow[:, 1:]).reshape(B, -1))
@@ -211,7 +208,7 @@ class ImageGate:
                          "a refiner with gate=None infers shapes on the meta device)")
         B, _, H, W = prediction.shape
         work = torch.promote_types(prediction.dtype, torch.float32)
-        g1, g2 = _grey(image1.detach().to(work)), _grey(image2.detach().to(work))
+        g1, g2 = to_grey(image1.detach().to(work)), to_grey(image2.detach().to(work))
         pts = sample_mask(mask, self.points)
         x = (pts.pix % W).to(work)
         y = torch.div(pts.pix, W, rounding_mode="floor").to(work)
@@ -243,13 +240,13 @@ class ImageGate:
         cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
         use_model = mask & model_used.reshape(B, 1, 1, 1) & cell_model
         if self.objects:
-            use_model = use_model & ~self._objects(prediction, model, mask, pts.pix, delta, d_pred, w)
+            use_model = use_model & ~self._objects(prediction, model, pts, delta, d_pred, w)
         evidence_map = torch.where(mask, evidence * model_used.reshape(B, 1, 1, 1), 0.0)
         textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
         return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
                           confirmed, informative, textured)
 
-    def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pix: Tensor, delta: Tensor, d_pred: Tensor,
+    def _objects(self, prediction: Tensor, model: Tensor, pts: MaskPoints, delta: Tensor, d_pred: Tensor,
                  w: Tensor) -> Tensor:
         """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
         than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
@@ -259,9 +256,15 @@ class ImageGate:
         import numpy as np
 
         B, _, H, W = prediction.shape
-        gap = (prediction.detach() - model.detach()).square().sum(1).masked_fill_(~mask[:, 0], 0.0)
-        gap = gap.to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
-        pix_np = pix.to("cpu").numpy()
+
+        def at_mask(f: Tensor) -> Tensor:
+            return f.detach().transpose(0, 1).reshape(2, -1).gather(1, pts.every.expand(2, -1))
+
+        # the flows' squared difference at the mask's pixels (there only), 0 elsewhere
+        inside = (at_mask(prediction) - at_mask(model)).square().sum(0)
+        gap = inside.new_zeros(B * H * W).index_put_((pts.every,), inside)
+        gap = gap.reshape(B, H, W).to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
+        pix_np = pts.pix.to("cpu").numpy()
         kept = np.zeros((B, H, W), dtype=bool)
         # a region of large differences inside one of small ones (a car beside a patch of road
         # the prediction got slightly wrong) stands apart at a higher threshold
@@ -272,7 +275,7 @@ class ImageGate:
             if L == 1:
                 break  # no region apart at this threshold, nor at higher ones
             at = torch.from_numpy(np.take_along_axis(labels.reshape(B, -1), pix_np, axis=1).astype(np.int64))
-            at = at.to(pix.device)  # each point's region (0: the flows agree)
+            at = at.to(pts.pix.device)  # each point's region (0: the flows agree)
 
             def per_region(v: Tensor) -> Tensor:
                 return torch.zeros(B, L, dtype=v.dtype, device=v.device).scatter_add_(1, at, v)
@@ -286,7 +289,7 @@ class ImageGate:
             keep = keep.to("cpu").numpy()
             if keep.any():
                 kept |= np.stack([keep[b][labels[b]] for b in range(B)])
-        return torch.from_numpy(kept).to(mask.device).unsqueeze(1)
+        return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
     def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
