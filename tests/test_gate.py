@@ -109,14 +109,20 @@ def test_a_model_as_good_as_the_prediction_is_used():
     assert bool(out.model_used.all()) and bool(out.use_model.all())
 
 
-def test_a_small_object_keeps_its_flow():
+def _object_pair():
+    """The textured pair with an object of 20 x 24 pixels moving by (-2, 0), image2 showing it
+    there; the prediction has the object's flow and a smooth error elsewhere."""
     g1, g2, true = _pair()
-    # an object of 20 x 24 pixels moving by (-2, 0): image2 shows it there
     obj = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
     obj[..., 50:70, 60:84] = True
     g2 = g2.clone()
     g2[..., 50:70, 58:82] = g1[..., 50:70, 60:84]
     prediction = torch.where(obj, torch.tensor([-2.0, 0.0]).reshape(1, 2, 1, 1), true + _smooth_noise(2.0))
+    return g1, g2, true, obj, prediction
+
+
+def test_a_small_object_keeps_its_flow():
+    g1, g2, true, obj, prediction = _object_pair()
     mask = torch.ones_like(obj)
     out = ImageGate(grid=(2, 4))(g1, g2, prediction, true.clone(), mask)
     # the object keeps the prediction although its cell is mostly background
@@ -124,6 +130,21 @@ def test_a_small_object_keeps_its_flow():
     coarse = ImageGate(grid=(2, 4), objects=False)(g1, g2, prediction, true.clone(), mask)
     assert bool((coarse.use_model & obj).any())
 
+
+
+def test_a_small_object_keeps_its_flow_in_a_mask_over_part_of_a_batch():
+    g1, g2, true, obj, prediction = _object_pair()
+    # frame 0: a mask around the object; frame 1: the same images without the object in its mask
+    mask = torch.zeros(2, 1, 96, 192, dtype=torch.bool)
+    mask[0, :, 30:90, 40:150] = True
+    mask[1, :, 5:45, 100:190] = True
+    out = ImageGate(grid=(2, 4))(g1.expand(2, -1, -1, -1), g2.expand(2, -1, -1, -1),
+                                 prediction.expand(2, -1, -1, -1), true.expand(2, -1, -1, -1).clone(), mask)
+    assert not bool((out.use_model[:1] & obj)[..., 53:67, 63:81].any())
+    assert not bool((out.use_model & ~mask).any())
+    alone = ImageGate(grid=(2, 4))(g1, g2, prediction, true.clone(), mask[:1])
+    assert torch.equal(out.use_model[:1], alone.use_model)
+    assert bool(out.use_model[1, :, 5:45, 100:190].float().mean() > 0.9)
 
 def test_the_gate_leaves_its_inputs_alone():
     g1, g2, true = _pair()

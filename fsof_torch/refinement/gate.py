@@ -79,16 +79,6 @@ class GateResult(NamedTuple):
     textured: Tensor
 
 
-def _bilinear(image: Tensor, x: Tensor, y: Tensor) -> tuple[Tensor, Tensor]:
-    """``image`` (B, 1, H, W) at pixel positions x, y (B, N): values (B, N), in-bounds (B, N)."""
-    H, W = image.shape[-2:]
-    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
-    grid = torch.stack([x * (2.0 / max(W - 1, 1)) - 1.0, y * (2.0 / max(H - 1, 1)) - 1.0], dim=-1)
-    out = F.grid_sample(image, grid.unsqueeze(1).to(image.dtype), mode="bilinear", padding_mode="border",
-                        align_corners=True)
-    return out[:, 0, 0], inb
-
-
 def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flow: Tensor,
                          threshold: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
     """Ternary census distance of the points (x, y) (B, N) of image 1 (integer pixels) against
@@ -105,28 +95,42 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
 
 def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequence[Tensor],
                  threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
-    """:func:`census_ring_distance` for several flows at the same points (image 1 read once)."""
-    ring = grey1.new_tensor(_RING)  # (16, 2)
-    R, r = ring.shape[0], 3  # the ring's radius
+    """:func:`census_ring_distance` for several flows at the same points (image 1 read once).
+
+    All 17 samples of a point lie inside an image where its centre lies ``r`` = 3 pixels (the
+    ring's radius) inside it: the tests, the indices and the sampling grid are formed per point
+    and the ring's offsets added to them."""
     B, _, H, W = grey1.shape
-    xs = torch.cat([x.unsqueeze(1), x.unsqueeze(1) + ring[:, 0, None]], dim=1)  # (B, 17, N)
-    ys = torch.cat([y.unsqueeze(1), y.unsqueeze(1) + ring[:, 1, None]], dim=1)
-    N = xs.shape[-1]
-    # image 1 at whole pixels: its values themselves (clamped at the border, where the point
-    # does not count), all 17 inside where the centre is r pixels from the border
-    flat = (ys.long().clamp(0, H - 1) * W + xs.long().clamp(0, W - 1)).reshape(B, -1)
-    v1 = grey1.reshape(B, -1).gather(1, flat).reshape(B, R + 1, N)
-    in1 = (x >= r) & (x <= W - 1 - r) & (y >= r) & (y <= H - 1 - r)
-    d1 = v1[:, 1:] - v1[:, :1]
+    N, r = x.shape[-1], 3
+    dx, dy = (torch.tensor([0] + [d[k] for d in _RING], device=x.device) for k in (0, 1))  # (17,)
+    R = dx.numel() - 1
+
+    def inside(u: Tensor, v: Tensor) -> Tensor:
+        return (u >= r) & (u <= W - 1 - r) & (v >= r) & (v <= H - 1 - r)
+
+    # image 1 at whole pixels: its values themselves (the indices clamped where the point does
+    # not count)
+    centre = (y.clamp(r, H - 1 - r) * W + x.clamp(r, W - 1 - r)).long()
+    flat = (centre.unsqueeze(1) + (dy * W + dx).unsqueeze(-1)).clamp_(0, H * W - 1)
+    v1 = grey1.reshape(B, -1).gather(1, flat.reshape(B, -1))
+    d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, R + 1, N)[:, :1]
     clear = d1.abs() > threshold
+    order1 = torch.sign(d1)
     n = clear.sum(1)
+    in1 = inside(x, y)
+    # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
+    sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
+    ring = torch.stack([dx * sx, dy * sy], dim=-1).to(grey2.dtype).unsqueeze(1)  # (17, 1, 2)
     out = []
     for flow in flows:
-        v2, in2 = _bilinear(grey2, (xs + flow[:, :1]).reshape(B, -1), (ys + flow[:, 1:]).reshape(B, -1))
-        d2 = v2.reshape(B, R + 1, N)[:, 1:] - v2.reshape(B, 1 + R, N)[:, :1]
+        x2, y2 = x + flow[:, 0], y + flow[:, 1]
+        at = torch.stack([x2 * sx - 1.0, y2 * sy - 1.0], dim=-1).to(grey2.dtype).unsqueeze(1) + ring  # (B, 17, N, 2)
+        v2 = F.grid_sample(grey2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
+                           align_corners=True).reshape(B, R + 1, N)
+        d2 = v2[:, 1:] - v2[:, :1]
         t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
-        dist = ((torch.sign(d1) != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
-        out.append((dist, n, in1 & in2.reshape(B, R + 1, N).all(1)))
+        dist = ((order1 != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
+        out.append((dist, n, in1 & inside(x2, y2)))
     return out
 
 
@@ -256,24 +260,33 @@ class ImageGate:
         import numpy as np
 
         B, _, H, W = prediction.shape
+        kept = np.zeros((B, H, W), dtype=bool)
+        if pts.every.numel() == 0:
+            return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
         def at_mask(f: Tensor) -> Tensor:
             return f.detach().transpose(0, 1).reshape(2, -1).gather(1, pts.every.expand(2, -1))
 
-        # the flows' squared difference at the mask's pixels (there only), 0 elsewhere
+        # the flows' squared difference at the mask's pixels, 0 elsewhere, over the mask's bounding
+        # box (the batch's, one host read): the regions lie inside it
+        frame, pixel = torch.div(pts.every, H * W, rounding_mode="floor"), pts.every % (H * W)
+        row, col = torch.div(pixel, W, rounding_mode="floor"), pixel % W
+        top, bottom, left, right = torch.stack([row.min(), row.max(), col.min(), col.max()]).tolist()
+        h, w_box = bottom - top + 1, right - left + 1
         inside = (at_mask(prediction) - at_mask(model)).square().sum(0)
-        gap = inside.new_zeros(B * H * W).index_put_((pts.every,), inside)
-        gap = gap.reshape(B, H, W).to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
-        pix_np = pts.pix.to("cpu").numpy()
-        kept = np.zeros((B, H, W), dtype=bool)
+        gap = inside.new_zeros(B * h * w_box).index_put_(((frame * h + row - top) * w_box + col - left,), inside)
+        gap = gap.reshape(B, h, w_box).to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
+        # the judged points in the box (padding points, which carry no weight, clamped into it)
+        px, py = pts.pix % W - left, torch.div(pts.pix, W, rounding_mode="floor") - top
+        pix_np = (py.clamp(0, h - 1) * w_box + px.clamp(0, w_box - 1)).to("cpu").numpy()
         # a region of large differences inside one of small ones (a car beside a patch of road
         # the prediction got slightly wrong) stands apart at a higher threshold
         for threshold in (self.object_px, 2 * self.object_px, 4 * self.object_px):
-            labels = np.stack([cv2.connectedComponents((g > threshold ** 2).astype(np.uint8), connectivity=8)[1]
-                               for g in gap])
-            L = int(labels.max()) + 1
+            found = [cv2.connectedComponents((g > threshold ** 2).astype(np.uint8), connectivity=8) for g in gap]
+            L = max(n for n, _ in found)
             if L == 1:
                 break  # no region apart at this threshold, nor at higher ones
+            labels = np.stack([lab for _, lab in found])
             at = torch.from_numpy(np.take_along_axis(labels.reshape(B, -1), pix_np, axis=1).astype(np.int64))
             at = at.to(pts.pix.device)  # each point's region (0: the flows agree)
 
@@ -288,7 +301,7 @@ class ImageGate:
             keep[:, 0] = False
             keep = keep.to("cpu").numpy()
             if keep.any():
-                kept |= np.stack([keep[b][labels[b]] for b in range(B)])
+                kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep[b][labels[b]] for b in range(B)])
         return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
     def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
