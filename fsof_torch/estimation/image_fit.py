@@ -519,7 +519,7 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy.
 
     On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
-    KITTI frame in about 1.5 ms, some 50 times faster than the same convolutions in torch);
+    KITTI frame in about 1 ms, some 60 times faster than the same convolutions in torch);
     elsewhere torch does the same arithmetic.
     """
     if images.device.type == "cpu":
@@ -586,7 +586,7 @@ def _band(img: Tensor, sigma: float | None) -> Tensor:
 
 def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     """Gaussian blur of images (B, C, H, W), reflected at the border (a kernel of ±3 σ): OpenCV
-    on the CPU (python benchmarks/bench_image_fit.py: about 5x faster than kornia's at σ = 4),
+    on the CPU (python benchmarks/bench_image_fit.py: about 6x faster than kornia's at σ = 4),
     kornia elsewhere."""
     k = 2 * int(math.ceil(3 * sigma)) + 1
     if images.device.type == "cpu":
