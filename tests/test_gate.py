@@ -41,6 +41,17 @@ def test_census_ring_distance_against_a_loop():
 
 
 
+
+def test_census_ring_reads_image_1_at_whole_pixels():
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    x, y = torch.tensor([[10.0, 50.0]]), torch.tensor([[20.0, 40.0]])
+    flow = torch.tensor([[[1.25, -2.5], [0.5, 3.0]]])
+    whole = census_ring_distance(g1, g2, x, y, flow)
+    # a fraction of the point is dropped for image 1; image 2 is still read at x + flow
+    frac = census_ring_distance(g1, g2, x + 0.75, y + 0.5, flow - torch.tensor([0.75, 0.5]).reshape(1, 2, 1))
+    for a, b in zip(whole, frac):
+        assert torch.allclose(a.float(), b.float(), atol=1e-6)
+
 def test_census_ring_points_count_only_with_all_samples_inside_both_images():
     g1, g2 = _texture(seed=1), _texture(seed=2)
     H, W = g1.shape[-2:]

@@ -81,8 +81,9 @@ class GateResult(NamedTuple):
 
 def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flow: Tensor,
                          threshold: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
-    """Ternary census distance of the points (x, y) (B, N) of image 1 (integer pixels) against
-    image 2 at x + flow (flow (B, 2, N)), over the 16 ring neighbours.
+    """Ternary census distance of the points (x, y) (B, N) of image 1 (whole pixels: image 1 is
+    read there, not interpolated; a fraction is dropped) against image 2 at x + flow (flow
+    (B, 2, N), bilinear), over the 16 ring neighbours.
 
     A neighbour counts where its order relative to the centre is clear in image 1 (a difference
     above ``threshold`` grey levels); the distance is the fraction of those whose order differs in
@@ -110,14 +111,15 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
 
     # image 1 at whole pixels: its values themselves (the indices clamped where the point does
     # not count)
-    centre = (y.clamp(r, H - 1 - r) * W + x.clamp(r, W - 1 - r)).long()
+    x1, y1 = x.trunc(), y.trunc()
+    centre = y1.clamp(r, H - 1 - r).long() * W + x1.clamp(r, W - 1 - r).long()
     flat = (centre.unsqueeze(1) + (dy * W + dx).unsqueeze(-1)).clamp_(0, H * W - 1)
     v1 = grey1.reshape(B, -1).gather(1, flat.reshape(B, -1))
     d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, R + 1, N)[:, :1]
     clear = d1.abs() > threshold
     order1 = torch.sign(d1)
     n = clear.sum(1)
-    in1 = inside(x, y)
+    in1 = inside(x1, y1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
     sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
     ring = torch.stack([dx * sx, dy * sy], dim=-1).to(grey2.dtype).unsqueeze(1)  # (17, 1, 2)
