@@ -63,7 +63,8 @@ def test_census_ring_points_count_only_with_all_samples_inside_both_images():
         for i in range(x.shape[1]):
             u, v = float(x[0, i]), float(y[0, i])
             inside = all(0 <= u + dx <= W - 1 and 0 <= v + dy <= H - 1
-                         and 0 <= u + dx + fx <= W - 1 and 0 <= v + dy + fy <= H - 1 for dx, dy in [(0, 0)] + list(RING))
+                         and 0 <= u + dx + fx <= W - 1 and 0 <= v + dy + fy <= H - 1
+                         for dx, dy in [(0, 0)] + list(RING))
             assert bool(ok[0, i]) == inside, (u, v, fx, fy)
 
 def _smooth_noise(amplitude, seed=0, H=96, W=192):

@@ -25,9 +25,9 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
                    points: MaskPoints) -> tuple[Tensor, Tensor, Tensor]:
     """At every mask pixel (``points.every``): the values (C, M) of frame 1's images ``images1``
     (a sequence of (B, C_i, H, W), their channels in order), those (C, M) of frame 2's
-    ``images2`` at the pixel moved by the flow (bilinear), whether that lies inside image 2 where
-    the flow is defined (M,). The images are sampled one by one,
-    not stacked first (which would copy whole frames)."""
+    ``images2`` at the pixel moved by the flow (bilinear), and whether that lies inside image 2
+    where the flow is defined (M,). The images are sampled one by one, not stacked first (which
+    would copy whole frames)."""
     B, _, H, W = images1[0].shape
     every = points.every
     frame = torch.div(every, H * W, rounding_mode="floor")

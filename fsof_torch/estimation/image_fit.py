@@ -454,9 +454,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             # the intensities and the compared band at every mask pixel in view
             band = compared(0)
             at1, at2, ok = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
-                                                 points)
-            inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, points,
-                                                                    inlier_threshold, (H, W))
+                                          points)
+            inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, points, inlier_threshold,
+                                                                    (H, W))
             correlation = detail_correlation(at1[1], at2[1], ok, points)
             A = sol.normal[:, :P, :P]
             d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()

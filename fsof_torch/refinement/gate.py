@@ -126,7 +126,8 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
     out = []
     for flow in flows:
         x2, y2 = x + flow[:, 0], y + flow[:, 1]
-        at = torch.stack([x2 * sx - 1.0, y2 * sy - 1.0], dim=-1).to(grey2.dtype).unsqueeze(1) + ring  # (B, 17, N, 2)
+        centre2 = torch.stack([x2 * sx - 1.0, y2 * sy - 1.0], dim=-1).to(grey2.dtype)
+        at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
         v2 = F.grid_sample(grey2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
                            align_corners=True).reshape(B, R + 1, N)
         d2 = v2[:, 1:] - v2[:, :1]
@@ -277,7 +278,8 @@ class ImageGate:
         h, w_box = bottom - top + 1, right - left + 1
         inside = (at_mask(prediction) - at_mask(model)).square().sum(0)
         gap = inside.new_zeros(B * h * w_box).index_put_(((frame * h + row - top) * w_box + col - left,), inside)
-        gap = gap.reshape(B, h, w_box).to("cpu").numpy()  # connected regions on the CPU (OpenCV): one transfer per call
+        # connected regions on the CPU (OpenCV): one transfer per call
+        gap = gap.reshape(B, h, w_box).to("cpu").numpy()
         # the judged points in the box (padding points, which carry no weight, clamped into it)
         px, py = pts.pix % W - left, torch.div(pts.pix, W, rounding_mode="floor") - top
         pix_np = (py.clamp(0, h - 1) * w_box + px.clamp(0, w_box - 1)).to("cpu").numpy()
