@@ -245,10 +245,10 @@ class ImageGate:
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
         cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
-        use_model = mask & model_used.reshape(B, 1, 1, 1) & cell_model
+        use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
         if self.objects:
             use_model = use_model & ~self._objects(prediction, model, pts, delta, d_pred, w)
-        evidence_map = torch.where(mask, evidence * model_used.reshape(B, 1, 1, 1), 0.0)
+        evidence_map = torch.where(mask, evidence, 0.0)
         textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
         return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
                           confirmed, informative, textured)
@@ -311,8 +311,8 @@ class ImageGate:
     def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The decision on one grid of cells: where the model is used (B, 1, H, W) bool, the
-        evidence for it (B, 1, H, W), the cells with enough points and the cells that keep the
-        prediction (B,) each."""
+        evidence for it (B, 1, H, W; 0 in a sample whose model is not used), the cells with enough
+        points and the cells that keep the prediction (B,) each."""
         (H, W), (rows, cols), B, min_points = size, self.grid, delta.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
         cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
@@ -328,10 +328,11 @@ class ImageGate:
         enough = n >= min_points
         cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
         evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
-                               torch.where(model_used, 0.5, 0.0).unsqueeze(1))
+                               torch.where(model_used, 0.5, 0.0).unsqueeze(1)) * model_used.unsqueeze(1)
 
         def to_pixels(c: Tensor) -> Tensor:
-            m = c.reshape(B, 1, rows, cols).repeat_interleave(ch, dim=2).repeat_interleave(cw, dim=3)
+            # each cell's value over its ch x cw pixels (one copy: a broadcast view, reshaped)
+            m = c.reshape(B, 1, rows, 1, cols, 1).expand(B, 1, rows, ch, cols, cw).reshape(B, 1, rows * ch, cols * cw)
             return m[..., :H, :W]
 
         return to_pixels(cell_model), to_pixels(evidence), enough.sum(1), (enough & ~cell_model).sum(1)
