@@ -519,7 +519,7 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy.
 
     On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
-    KITTI frame in about 1 ms, some 60 times faster than the same convolutions in torch);
+    KITTI frame in about 1 ms, some 70 times faster than the same convolutions in torch);
     elsewhere torch does the same arithmetic.
     """
     if images.device.type == "cpu":
