@@ -23,7 +23,9 @@ prediction everywhere: on dark, noisy or textureless frames the census is noise 
 and replacing the prediction would rest on the model alone.
 
 Images are (B, C, H, W) on 0..255 (grey or RGB); flows (B, 2, H, W) in pixels; masks (B, 1, H, W)
-bool. Not differentiable (a decision); nothing is read back to the host.
+bool. Not differentiable (a decision). Host reads: the mask's pixels (one ``nonzero``) and, with
+``objects``, the object test, whose connected regions OpenCV finds on the CPU (the mask's bounding
+box, the flows' difference over it and each region's decision); the values are not checked.
 """
 
 from __future__ import annotations
@@ -200,9 +202,9 @@ class ImageGate:
     def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
                  mask: Tensor) -> GateResult:
         """Judge ``prediction`` against ``model`` (each (B, 2, H, W) px) by ``image1`` and ``image2``
-        (B, 1 or 3, H, W) on 0..255 inside ``mask`` (B, 1, H, W) bool. Values are not checked
-        (nothing is read back to the host): a point where an image or a flow is not finite gives no
-        evidence either way. The gate samples the mask's pixels (data dependent): on the meta
+        (B, 1 or 3, H, W) on 0..255 inside ``mask`` (B, 1, H, W) bool. Values are not checked (no
+        host read for them): a point where an image or a flow is not finite gives no evidence
+        either way. The gate samples the mask's pixels (data dependent): on the meta
         device it raises a ValueError."""
         dims = check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"))
         check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
