@@ -23,12 +23,17 @@ SSIM dissimilarity and L1 (0-255); the road end-point error where there is groun
 time per pair on one thread (for ECC and the refiner: on top of DIS, whose flow they start from); the
 pairs more than 0.01 census worse than DIS; and the mean census difference to ECC.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--no-ecc] [--no-sequence] [--json PATH]``
+With ``--yaw-deg D`` every pair is turned: image 2 is seen by a camera that also turns by D degrees
+about the road's normal between the frames (:func:`turned`; exact at every depth, as a pure
+rotation is a homography), the real street's texture in a turn of known motion.
+
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--json PATH]``
 """
 
 from __future__ import annotations
 
 import argparse
+import itertools
 import math
 import sys
 import time
@@ -103,14 +108,16 @@ def ecc_flow(pair: dict, flow_dis: Tensor) -> tuple[Tensor, dict]:
     return torch.where(valid, flow, flow_dis), {"ecc_failed": not ok}
 
 
-def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None) -> tuple[Tensor, dict]:
-    """The default ``FreespaceRefiner()`` on DIS's flow, with the images, and ``odometry``."""
-    from fsof_torch import FreespaceRefiner
+def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: Any) -> tuple[Tensor, dict]:
+    """The default ``FreespaceRefiner()`` on DIS's flow, with the images, and ``odometry``
+    (``options``: the image estimator's, ``ImageMotionEstimator(**options)``)."""
+    from fsof_torch import FreespaceRefiner, ImageMotionEstimator
 
     images = (pair["image1"][None], pair["image2"][None])
+    refiner = FreespaceRefiner(estimator=ImageMotionEstimator(**options)) if options else FreespaceRefiner()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an unrefined pair is counted, not warned about
-        out = FreespaceRefiner()(flow_dis[None], pair["road"][None], pair["camera"], odometry, images=images)
+        out = refiner(flow_dis[None], pair["road"][None], pair["camera"], odometry, images=images)
     return out.flow[0].detach(), {"refined": bool(out.refined[0])}
 
 
@@ -137,6 +144,13 @@ METHODS: dict[str, tuple[str | None, Callable[[dict, Tensor], tuple[Tensor, dict
     "refiner, poses (paper's planar)": ("relative_pose",
                                         lambda pair, dis: refiner_flow(pair, dis, paper_odometry(pair))),
 }
+
+
+#: ``--no-turn-screen``: the default refiner without the image fit's screen of turns, and both
+#: without the start from DIS's flow (the images alone, as where a network's flow misses a turn)
+TURN_ROWS = {"refiner, turn_starts=()": {"turn_starts": ()},
+             "refiner, flow_start=False": {"flow_start": False},
+             "refiner, flow_start=False, turn_starts=()": {"flow_start": False, "turn_starts": ()}}
 
 
 def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable]:
@@ -280,6 +294,59 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) ->
     return [(p.name, loader(i)) for i, p in enumerate(dataset.pairs) if i % step == 0]
 
 
+def turned(pair: dict, yaw_deg: float) -> dict:
+    """``pair`` seen by a camera that also turns by ``yaw_deg`` degrees about the road's normal
+    between the frames (positive: to the right, the road models' yaw): image 2 resampled through
+    the rotation's homography K Rᵀ K⁻¹ (bilinear, OpenCV), both frames cropped to the largest
+    window in which the turned image 2 is defined, the camera cropped with them, and the
+    ground-truth flow and relative pose composed with the turn."""
+    import cv2
+    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+    from fsof_torch.geometry.camera import mounting_matrix
+
+    cam = pair["camera"].to(torch.float64)
+    K = cam.K.reshape(-1, 3, 3)[0]
+    normal = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0, :, 1]  # e_y on the road
+    R = axis_angle_to_rotation_matrix((normal * math.radians(yaw_deg))[None])[0]
+    H = K @ R.T @ torch.linalg.inv(K)  # image 2's pixels -> the turned camera's
+    rows, cols = pair["image2"].shape[-2:]
+    v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),
+                          indexing="ij")
+    source = torch.einsum("ij,jhw->ihw", torch.linalg.inv(H), torch.stack([u, v, torch.ones_like(u)]))
+    x, y = source[0] / source[2], source[1] / source[2]
+    eps = 1e-6  # (the rounding of H)
+    defined = (source[2] > 0) & (x >= -eps) & (x <= cols - 1 + eps) & (y >= -eps) & (y <= rows - 1 + eps)
+    # the largest window, with up to a fifth of the rows cut at the top and at the bottom, in
+    # which every pixel of the turned image 2 is defined (a turn tilts the image's edges)
+    best = (0, 0, 0, 0, 0)
+    for top, bottom in itertools.product(range(0, rows // 5 + 1, max(1, rows // 20)), repeat=2):
+        r0, r1 = top, rows - bottom
+        full = defined[r0:r1].all(0).nonzero().flatten()
+        if full.numel() and (r1 - r0) * full.numel() > best[0]:
+            best = ((r1 - r0) * full.numel(), r0, r1, int(full[0]), int(full[-1]) + 1)
+    area, r0, r1, c0, c1 = best
+    if area == 0:
+        raise ValueError(f"--yaw-deg: {yaw_deg}° leaves no window of image 2 defined")
+    image2 = pair["image2"].to(torch.float32).permute(1, 2, 0).contiguous().numpy()
+    warped = cv2.warpPerspective(image2, H.numpy(), (cols, rows), flags=cv2.INTER_LINEAR)
+    out = {**pair, "camera": pair["camera"].cropped(c0, r0, cols - c1, rows - r1)}
+    out["image1"] = pair["image1"][..., r0:r1, c0:c1].contiguous()
+    out["image2"] = torch.from_numpy(warped[r0:r1, c0:c1]).permute(2, 0, 1).to(pair["image2"].dtype).contiguous()
+    for key in ("road", "valid"):
+        if pair.get(key) is not None:
+            out[key] = pair[key][..., r0:r1, c0:c1].contiguous()
+    if pair.get("flow") is not None:
+        f = pair["flow"].to(torch.float64)
+        q = torch.einsum("ij,jhw->ihw", H, torch.stack([u + f[0], v + f[1], torch.ones_like(u)]))
+        out["flow"] = torch.stack([q[0] / q[2] - u, q[1] / q[2] - v])[..., r0:r1, c0:c1].to(pair["flow"].dtype).contiguous()
+    if pair.get("relative_pose") is not None:
+        turn = torch.eye(4, dtype=torch.float64)
+        turn[:3, :3] = R.T
+        out["relative_pose"] = turn @ pair["relative_pose"].to(torch.float64)
+    return out
+
+
 def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dict, progress: bool) -> dict:
     """Every pair of a data set through :func:`run_pair`; the summary rows and the per-pair results."""
     from tqdm import tqdm
@@ -307,6 +374,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step", type=int, default=1,
                         help="clip pairs this many frames apart, every step-th frame (default 1; 3: about "
                              "130 km/h at 10 Hz instead of 43)")
+    parser.add_argument("--yaw-deg", type=float, default=0.0,
+                        help="turn every pair by this many degrees of yaw (image 2 resampled; default 0)")
+    parser.add_argument("--no-turn-screen", action="store_true",
+                        help="also run the refiner without its screen of turns (turn_starts=()), and both "
+                             "without the start from DIS's flow (flow_start=False)")
     parser.add_argument("--json", type=Path, help="write every number (per pair too) here")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -319,7 +391,13 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     methods = {k: v for k, v in METHODS.items() if not (args.no_ecc and k == "ECC homography")}
-    report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step}
+    if args.no_turn_screen:
+        for name, options in TURN_ROWS.items():
+            methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
+    if not math.isfinite(args.yaw_deg) or abs(args.yaw_deg) >= 45:
+        parser.error(f"--yaw-deg: expected a number of degrees within (-45, 45), got {args.yaw_deg}")
+    report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
+                              "yaw_deg": args.yaw_deg}
     found = False
     for key, title, folder, pairs in (
             ("kitti15", "KITTI 2015 pair 000000 (ground truth: road EPE over road ∩ valid)", "kitti15_000000",
@@ -332,13 +410,17 @@ def main(argv: list[str] | None = None) -> int:
             continue
         found = True
         data, run_methods = pairs(root), dict(methods)
-        if key == "clip" and not args.no_sequence and len(data) > 1:
+        if args.yaw_deg:
+            data = [(name, lambda load=load: turned(load(), args.yaw_deg)) for name, load in data]
+        # (turned, image 2 of a pair is not image 1 of the next: no clip to fit)
+        if key == "clip" and not args.no_sequence and not args.yaw_deg and len(data) > 1:
             name, method = clip_method(data, not args.no_progress)
             run_methods[name] = (None, method)
         result = measure(key, data, run_methods, not args.no_progress)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
-        print(f"\n{title}: {len(result['pairs'])} pair(s){step}\n")
+        turn = f", turned by {args.yaw_deg:g}° of yaw" if args.yaw_deg else ""
+        print(f"\n{title}: {len(result['pairs'])} pair(s){step}{turn}\n")
         print(table(result["rows"]))
     if not found:
         print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}", file=sys.stderr)

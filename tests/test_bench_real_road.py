@@ -5,6 +5,7 @@ summary, and ``main`` on a tiny clip in the shared data's layout."""
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -117,8 +118,9 @@ def test_summarize_counts_worse_pairs_and_the_difference_to_ecc(rr):
     assert "| refiner (no odometry) | 3 | 0.2400 |" in text and "1 (max +0.015)" in text
 
 
-def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
-    """Three frames, two poses (the second pair has none, as the real clip's last), a polygon."""
+def _tiny_clip(scenes, tmp_path):
+    """Three frames, two poses (the second pair has none, as the real clip's last), a polygon, in
+    the shared data's layout under ``tmp_path / "data"``."""
     from fsof_torch.io import write_image, write_kitti_calibration, write_kitti_poses
 
     root = tmp_path / "data" / "kitti_odometry_straight"
@@ -129,6 +131,10 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     write_kitti_calibration(root / "calib.txt", p0["camera"].K[0], cam=0, style="odometry")
     write_kitti_poses(root / "poses.txt", torch.stack([p0["pose1"], p0["pose2"]]))
     (root / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+
+
+def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
+    _tiny_clip(scenes, tmp_path)
     out = tmp_path / "real_road.json"
     assert rr.main(["--data", str(tmp_path / "data"), "--json", str(out), "--no-progress"]) == 0
     printed = capsys.readouterr()
@@ -159,3 +165,71 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
 def test_main_without_data_exits_2(rr, tmp_path, capsys):
     assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
     assert "--data: no kitti15_000000/ or kitti_odometry_straight/" in capsys.readouterr().err
+
+
+def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(rr, scenes):
+    """Written separately: the road's normal in the camera R_c e_y, the turn by Rodrigues' formula,
+    image 2's pixels mapped by H = K Rᵀ K⁻¹; the window's offset read off the cropped camera."""
+    import torch.nn.functional as F
+
+    from fsof_torch import plane_from_pose
+    from fsof_torch.geometry.camera import mounting_matrix
+
+    p = scenes[0]
+    pair = {k: p[k] for k in ("image1", "image2", "road", "camera", "flow", "valid")}
+    pair["relative_pose"] = torch.linalg.inv(p["pose2"]) @ p["pose1"]
+    yaw = 6.0
+    t = rr.turned(pair, yaw)
+    cam = p["camera"].to(torch.float64)
+    K = cam.K[0]
+    c0, r0 = (K[:2, 2] - t["camera"].to(torch.float64).K[0, :2, 2]).round().long().tolist()
+    h, w = t["image1"].shape[-2:]
+    assert torch.equal(t["image1"], p["image1"][..., r0:r0 + h, c0:c0 + w])
+    assert torch.equal(t["road"], p["road"][..., r0:r0 + h, c0:c0 + w]) and w > SIZE[1] // 2
+    n = mounting_matrix(cam.roll, cam.pitch)[0] @ torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    N = torch.tensor([[0.0, -n[2], n[1]], [n[2], 0.0, -n[0]], [-n[1], n[0], 0.0]], dtype=torch.float64)
+    a = math.radians(yaw)
+    R = torch.eye(3, dtype=torch.float64) + math.sin(a) * N + (1 - math.cos(a)) * N @ N
+    H = K @ R.T @ torch.linalg.inv(K)
+    # the flow: π(H (p + f(p))) − p at every pixel of the window
+    v, u = torch.meshgrid(torch.arange(r0, r0 + h, dtype=torch.float64), torch.arange(c0, c0 + w, dtype=torch.float64),
+                          indexing="ij")
+    f = p["flow"][..., r0:r0 + h, c0:c0 + w].to(torch.float64)
+    q = torch.einsum("ij,jhw->ihw", H, torch.stack([u + f[0], v + f[1], torch.ones_like(u)]))
+    ref = torch.stack([q[0] / q[2] - u, q[1] / q[2] - v])
+    assert torch.allclose(t["flow"].to(torch.float64), ref, atol=1e-3)
+    # image 2: the original sampled at H⁻¹ y (OpenCV's bilinear weights are in 1/32 px)
+    s = torch.einsum("ij,jhw->ihw", torch.linalg.inv(H), torch.stack([u, v, torch.ones_like(u)]))
+    grid = torch.stack([s[0] / s[2] / (SIZE[1] - 1), s[1] / s[2] / (SIZE[0] - 1)], dim=-1) * 2 - 1
+    sampled = F.grid_sample(p["image2"][None].to(torch.float64), grid[None], align_corners=True)[0]
+    diff = (t["image2"].to(torch.float64) - sampled).abs()
+    assert float(diff.mean()) < 0.5 and float(diff.max()) < 8.0
+    # the pose turns by the same yaw, and the plane motion's other parameters stay
+    before = plane_from_pose(pair["relative_pose"][None].double(), cam)
+    after = plane_from_pose(t["relative_pose"][None].double(), t["camera"].to(torch.float64))
+    assert float(after["yaw"] - before["yaw"]) == pytest.approx(a, abs=1e-9)
+    for k in ("x_d", "z_d", "pitch_change", "roll_change"):
+        assert float(after[k]) == pytest.approx(float(before[k]), abs=1e-9)
+    # no turn: the whole frame, the pair itself
+    same = rr.turned(pair, 0.0)
+    assert torch.equal(same["image1"], pair["image1"]) and torch.equal(same["road"], pair["road"])
+    assert torch.allclose(same["flow"], pair["flow"], atol=1e-4)
+    assert float((same["image2"] - pair["image2"]).abs().max()) < 1e-3
+
+
+def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, capsys):
+    _tiny_clip(scenes, tmp_path)
+    out = tmp_path / "turned.json"
+    assert rr.main(["--data", str(tmp_path / "data"), "--yaw-deg", "4", "--no-ecc", "--no-turn-screen",
+                    "--no-progress", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "2 pair(s), turned by 4° of yaw" in printed
+    report = json.loads(out.read_text())
+    assert report["yaw_deg"] == 4.0
+    # turned, image 2 of a pair is not image 1 of the next: no clip fit
+    assert {r["method"] for r in report["clip"]["rows"]} == {"DIS", "refiner (no odometry)", *rr.TURN_ROWS,
+                                                            "refiner, poses ('plane')", "refiner, poses (paper's planar)"}
+    with pytest.raises(SystemExit) as exit_:
+        rr.main(["--data", str(tmp_path / "data"), "--yaw-deg", "50"])
+    assert exit_.value.code == 2 and "--yaw-deg: expected a number of degrees within (-45, 45), got 50" in \
+        capsys.readouterr().err

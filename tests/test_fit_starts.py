@@ -1,7 +1,10 @@
-"""Where an image fit starts: straight-ahead starts for fast driving, and the two-way image cost
-by which the starts compete (fsof_torch.estimation.starts)."""
+"""Where an image fit starts: straight-ahead starts for fast driving, the two-way image cost by
+which the starts compete, and the screen of turns where they all fail
+(fsof_torch.estimation.starts)."""
 
 from __future__ import annotations
+
+import math
 
 import pytest
 import torch
@@ -133,3 +136,66 @@ def test_real_clip_a_failed_winner_falls_back_to_the_runner_up(shared_data):
     det = detect_road(image1, image2, camera, flow=flow)
     assert det.flag == ["ok"]
     assert abs(float(det.motion.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)
+
+
+# -- sharp turns: the screen of turns ---------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def turned_pair(load_benchmark):
+    """The default scene driven straight (1.2 m a frame), image 2 seen by a camera turned by 8° of
+    yaw about the road's normal (benchmarks/real_road.py's ``turned``: a pure rotation, exact at
+    every depth): a sharp turn, 80°/s at 10 Hz."""
+    p = render_pair("default", 0, size=(188, 621), steering=0.0)
+    assert float(p["odometry"]["yaw"]) == 0.0
+    return load_benchmark("real_road").turned({k: p[k] for k in ("image1", "image2", "road", "camera", "flow",
+                                                                  "valid")}, 8.0)
+
+
+def test_a_sharp_turn_is_found_by_the_screen_of_turns(turned_pair):
+    t = turned_pair
+    images, road = (t["image1"][None], t["image2"][None]), t["road"][None]
+    fit = fit_image(*images, road, t["camera"])
+    truth = (t["road"] & t["valid"])[0]
+    epe = (fit.flow[0] - t["flow"]).norm(dim=0)[truth].mean()
+    assert bool(fit.success[0]) and float(epe) < 1.5
+    assert abs(float(fit.params["yaw"][0]) - math.radians(8.0)) < math.radians(0.2)
+    assert abs(float(fit.params["z_d"][0]) - 1.2) < 0.1
+    # why the screen is there: every start straight ahead (zero motion, 2 and 4 heights) fails
+    alone = fit_image(*images, road, t["camera"], turn_starts=())
+    assert not bool(alone.success[0])
+
+
+def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned_pair):
+    from fsof_torch.estimation.image_fit import _level_camera, _levels, _mask_pyramid, image_pyramid
+    from fsof_torch.estimation.starts import TURN_STARTS, turning_start
+    from fsof_torch.evaluation.photometric import to_grey
+
+    t = turned_pair
+    grey = torch.cat([to_grey(t["image1"][None]), to_grey(t["image2"][None])], dim=1)
+    n = _levels(*grey.shape[-2:], None, 16)
+    level, mask = image_pyramid(grey, n, 0.0)[-1], _mask_pyramid(t["road"][None], n)[-1]
+    camera = _level_camera(t["camera"].to(torch.float64), n - 1)
+    plane = get_road_model("plane")
+    _, base = pack_params(plane, camera, None)
+    values = turning_start(plane, camera, base, level, mask, TURN_STARTS, 1.0, (), "cauchy", 3000)
+    # 8° lies nearest the screen's 9°; one camera height ahead; roll and pitch are the start's
+    assert math.degrees(float(values[0, plane.index("yaw")])) == pytest.approx(9.0)
+    assert float(values[0, plane.index("z_d")]) == pytest.approx(float(camera.height[0]))
+    assert torch.equal(values[:, 6:], base[:, 6:])
+    assert turning_start(plane, camera, base, level, mask, (), 1.0, (), "cauchy", 3000) is None
+    assert turning_start(plane, camera, base, level, mask, TURN_STARTS, 1.0, ("yaw",), "cauchy", 3000) is None
+    # the homography model screens the plane motion's homographies
+    hom = get_road_model("homography")
+    _, hbase = pack_params(hom, camera, None)
+    h = turning_start(hom, camera, hbase, level, mask, (9.0,), 1.0, (), "cauchy", 3000)
+    H = hom.matrix(camera, h)[0]
+    ref = road_homography(camera, {"yaw": math.radians(9.0), "z_d": float(camera.height[0])}, model="plane")[0]
+    assert torch.allclose(H / H[2, 2], ref / ref[2, 2], atol=1e-9)
+    assert turning_start(hom, camera, hbase, level, mask, (9.0,), 1.0, ("h11",), "cauchy", 3000) is None
+
+
+@pytest.mark.parametrize("turns, error", [("3", TypeError), ((3.0, float("nan")), ValueError), (None, TypeError)])
+def test_turn_starts_are_checked(turns, error):
+    p = render_pair("default", 0, size=(96, 320))
+    with pytest.raises(error, match="turn_starts"):
+        fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"], turn_starts=turns)

@@ -50,7 +50,8 @@ from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import detail_correlation, photometric_inliers, warped_samples
-from .starts import check_forward_steps, start_list, starts_ahead, two_way_cost
+from .starts import (TURN_SPEED, TURN_STARTS, better_fit, check_forward_steps, check_turn_steps, start_list,
+                     starts_ahead, turning_start, two_way_cost)
 from .solver import Evaluation, Solution, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
@@ -262,7 +263,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               gradient_fraction: float = 0.5, affine: bool = True, inlier_threshold: float = 10.0,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
               data_range: float = 255.0, check_every: int | None = 2,
-              forward_starts: Sequence[float] = (2.0, 4.0), retry_starts: int = 1) -> RoadFit:
+              forward_starts: Sequence[float] = (2.0, 4.0), turn_starts: Sequence[float] = TURN_STARTS,
+              retry_starts: int = 1) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -287,6 +289,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             can land on a wrong motion when the car moves a few heights a frame; these find fast
             driving (at 10 Hz and a 1.65 m high camera, 2 and 4 heights are 119 and 238 km/h).
             Not used where z_d is fixed; ``()``: none.
+        turn_starts: where the fit from every start (and runner-up) fails (below), the turn among
+            these (degrees of yaw per frame, at one camera height ahead) whose motion best aligns
+            the coarsest level's images (a screen: one batched cost, no fit) is solved from the
+            coarsest level too, and a frame takes it where it succeeds or its images correlate
+            better. A sharp turn moves the whole image sideways, beyond the basin of the starts
+            straight ahead, and often beyond what a network's flow finds. Costs nothing where
+            the fit succeeds; not used where the yaw is fixed; ``()``: none.
         retry_starts: where the winning start's fit fails (below), up to this many runners-up,
             in the order of their two-way cost, are carried down the pyramid in turn; a frame
             keeps the first that succeeds (else the one whose images correlate best). The
@@ -360,6 +369,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
     check_bool(affine, "affine")
     steps = check_forward_steps(forward_starts)
+    turns = check_turn_steps(turn_starts)
     fixed = check_names(fixed, "fixed")
     if isinstance(prior, str) and prior != "calibration":
         raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
@@ -495,10 +505,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             for rank in range(1, min(S, 1 + retry_starts)):
                 if bool(fit["success"].all()):  # (one host read per runner-up)
                     break
-                runner_up = carried(rank)
-                # a frame that failed takes the runner-up where it succeeds or its images correlate better
-                take = ~fit["success"] & (runner_up["success"] | (runner_up["correlation"] > fit["correlation"]))
-                fit = {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), runner_up[k], v) for k, v in fit.items()}
+                fit = better_fit(fit, carried(rank))
+        if turns and not bool(fit["success"].all()):  # (one host read)
+            # every start failed somewhere: the best turn of the screen, solved from the coarsest level
+            turning = turning_start(model, _level_camera(cam64, coarse), candidates[0], pyramid[coarse],
+                                    masks[coarse], turns, TURN_SPEED, fixed_names, robust, max_points)
+            if turning is not None:
+                fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)))
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),

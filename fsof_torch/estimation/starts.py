@@ -6,7 +6,9 @@ candidates: the caller's ``init`` and ``starts`` (a network's flow, the previous
 a constant-velocity guess) and starts straight ahead at a few speeds (:func:`starts_ahead`),
 so that fast driving is found from zero motion or a poor flow. They are compared by
 :func:`two_way_cost`, which also maps image 2's road back into image 1: a motion that pushes most
-of image 1's road out of view cannot win on the few points it keeps.
+of image 1's road out of view cannot win on the few points it keeps. Where the fits from all of
+them fail, :func:`turning_start` screens a few turns for one more start: a sharp turn moves the
+whole image sideways, beyond the basin of a start straight ahead.
 """
 
 from __future__ import annotations
@@ -24,7 +26,17 @@ from .flow_fit import start_values
 from .robust import robust_terms
 from .sampling import gather_pixels, pixel_coordinates, sample_mask, sample_points
 
-__all__ = ["start_list", "check_forward_steps", "starts_ahead", "two_way_cost"]
+__all__ = ["start_list", "check_forward_steps", "check_turn_steps", "starts_ahead", "turning_start", "two_way_cost",
+           "better_fit", "TURN_STARTS"]
+
+#: The turns (degrees of yaw per frame) screened for a start where every other start failed
+#: (:func:`turning_start`). A car's yaw rate stays below about 70°/s (tyre grip of about 0.8 g at
+#: its tightest turn, about 5 m radius: sqrt(a / r) ≈ 1.25 rad/s), 7° a frame at 10 Hz, 12° at
+#: 6 Hz; the 3° steps lie within the basin of a start at the coarsest level (python
+#: benchmarks/real_road.py --yaw-deg).
+TURN_STARTS = (-12.0, -9.0, -6.0, -3.0, 3.0, 6.0, 9.0, 12.0)
+#: the distance ahead (camera heights per frame) at which the turns are screened
+TURN_SPEED = 1.0
 
 
 def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
@@ -40,6 +52,14 @@ def check_forward_steps(steps: object) -> tuple[float, ...]:
         raise TypeError(f"forward_starts: expected a list or tuple of numbers (camera heights per frame), "
                         f"got {type(steps).__name__} {steps!r}")
     return tuple(check_number(k, "forward_starts") for k in steps)
+
+
+def check_turn_steps(turns: object) -> tuple[float, ...]:
+    """``turn_starts``: a list or tuple of finite numbers (degrees of yaw per frame)."""
+    if not isinstance(turns, (list, tuple)):
+        raise TypeError(f"turn_starts: expected a list or tuple of numbers (degrees of yaw per frame), "
+                        f"got {type(turns).__name__} {turns!r}")
+    return tuple(check_number(k, "turn_starts") for k in turns)
 
 
 def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed: tuple[str, ...]) -> list[dict]:
@@ -61,6 +81,39 @@ def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed
         H = plane.matrix(camera, values)
         out.append(dict(zip(model.params, homography_values(H, camera.K, camera.K_inv()).unbind(1))))
     return out
+
+
+def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, mask: Tensor,
+                  turns: Sequence[float], speed: float, fixed: tuple[str, ...], kernel: str,
+                  max_points: int | None) -> Tensor | None:
+    """The start (B, P), among turns by each of ``turns`` degrees of yaw per frame at ``speed``
+    camera heights ahead, whose motion best aligns one pyramid level ``img`` (B, 2, h, w) (its
+    camera: ``camera``; road ``mask``) by :func:`two_way_cost`: a screen, not a fit, so one batched
+    cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
+    the basin of a start straight ahead (a few pixels of the coarsest level) within a few degrees
+    a frame; a network's flow often misses such a shift too. Roll and pitch (and, for the
+    ``"homography"``, every other motion) are ``base``'s; None where the yaw is held fixed (or
+    any homography parameter is) or there are no ``turns``."""
+    if not turns or "yaw" in fixed or (model.name == "homography" and fixed):
+        return None
+    B, T = base.shape[0], len(turns)
+    yaw = torch.tensor([math.radians(t) for t in turns], dtype=torch.float64, device=base.device).repeat_interleave(B)
+    h = camera.height.to(torch.float64).repeat(T)
+    cam = camera.repeat(T)
+    if model.name == "homography":
+        plane = get_road_model("plane")
+        _, values = pack_params(plane, cam, {"yaw": yaw, "z_d": speed * h})
+        values = homography_values(plane.matrix(cam, values), cam.K, cam.K_inv())
+    else:
+        values = base.repeat(T, 1)
+        values[:, model.params.index("yaw")] = yaw
+        if "z_d" not in fixed:
+            values[:, model.params.index("z_d")] = speed * h
+    ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
+    cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
+                        kernel, max_points, T)
+    best = cost.reshape(T, B).argmin(0)
+    return values.reshape(T, B, -1)[best, torch.arange(B, device=base.device)]
 
 
 def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, kernel: str,
@@ -102,3 +155,11 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     scale = torch.where(torch.isfinite(scale), scale.clamp_min(2.0), 2.0)  # (no point in view: any scale)
     rho, _ = robust_terms(e.square(), scale.repeat(reps), kernel, use.to(torch.float64))
     return rho / use.sum(1).clamp_min(1)
+
+
+def better_fit(fit: dict[str, Tensor], other: dict[str, Tensor]) -> dict[str, Tensor]:
+    """Two fits of the same frames (dicts of (B, ...) tensors with ``success`` and
+    ``correlation``): ``fit`` where it succeeded; elsewhere ``other`` where that succeeds or its
+    images correlate better."""
+    take = ~fit["success"] & (other["success"] | (other["correlation"] > fit["correlation"]))
+    return {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), other[k], v) for k, v in fit.items()}
