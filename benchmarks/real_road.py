@@ -25,9 +25,11 @@ pairs more than 0.01 census worse than DIS; and the mean census difference to EC
 
 With ``--yaw-deg D`` every pair is turned: image 2 is seen by a camera that also turns by D degrees
 about the road's normal between the frames (:func:`turned`; exact at every depth, as a pure
-rotation is a homography), the real street's texture in a turn of known motion.
+rotation is a homography), the real street's texture in a turn of known motion;
+``--pitch-change-deg`` and ``--roll-change-deg`` likewise rotate it about the car's lateral and
+forward axes, as the body pitches (braking, a bump) and rolls.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -294,9 +296,11 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) ->
     return [(p.name, loader(i)) for i, p in enumerate(dataset.pairs) if i % step == 0]
 
 
-def turned(pair: dict, yaw_deg: float) -> dict:
+def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> dict:
     """``pair`` seen by a camera that also turns by ``yaw_deg`` degrees about the road's normal
-    between the frames (positive: to the right, the road models' yaw): image 2 resampled through
+    between the frames (positive: to the right, the road models' yaw), then by ``pitch_deg`` and
+    ``roll_deg`` about the car's lateral and forward axes (the ``"plane"`` model's pitch_change
+    and roll_change, in its signs): image 2 resampled through
     the rotation's homography K Rᵀ K⁻¹ (bilinear, OpenCV), both frames cropped to the largest
     window in which the turned image 2 is defined, the camera cropped with them, and the
     ground-truth flow and relative pose composed with the turn."""
@@ -307,8 +311,11 @@ def turned(pair: dict, yaw_deg: float) -> dict:
 
     cam = pair["camera"].to(torch.float64)
     K = cam.K.reshape(-1, 3, 3)[0]
-    normal = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0, :, 1]  # e_y on the road
-    R = axis_angle_to_rotation_matrix((normal * math.radians(yaw_deg))[None])[0]
+    # the car's axes in the camera: lateral, down (the road's normal) and forward
+    axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
+    angles = torch.tensor([pitch_deg, yaw_deg, roll_deg], dtype=torch.float64).deg2rad()
+    Rs = axis_angle_to_rotation_matrix(axes * angles.unsqueeze(-1))
+    R = Rs[1] @ Rs[0] @ Rs[2]
     H = K @ R.T @ torch.linalg.inv(K)  # image 2's pixels -> the turned camera's
     rows, cols = pair["image2"].shape[-2:]
     v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),
@@ -327,7 +334,7 @@ def turned(pair: dict, yaw_deg: float) -> dict:
             best = ((r1 - r0) * full.numel(), r0, r1, int(full[0]), int(full[-1]) + 1)
     area, r0, r1, c0, c1 = best
     if area == 0:
-        raise ValueError(f"--yaw-deg: {yaw_deg}° leaves no window of image 2 defined")
+        raise ValueError(f"the turn ({yaw_deg}°, {pitch_deg}°, {roll_deg}°) leaves no window of image 2 defined")
     image2 = pair["image2"].to(torch.float32).permute(1, 2, 0).contiguous().numpy()
     warped = cv2.warpPerspective(image2, H.numpy(), (cols, rows), flags=cv2.INTER_LINEAR)
     out = {**pair, "camera": pair["camera"].cropped(c0, r0, cols - c1, rows - r1)}
@@ -376,6 +383,10 @@ def main(argv: list[str] | None = None) -> int:
                              "130 km/h at 10 Hz instead of 43)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
                         help="turn every pair by this many degrees of yaw (image 2 resampled; default 0)")
+    parser.add_argument("--pitch-change-deg", type=float, default=0.0,
+                        help="pitch every pair's camera by this many degrees between the frames (default 0)")
+    parser.add_argument("--roll-change-deg", type=float, default=0.0,
+                        help="roll every pair's camera by this many degrees between the frames (default 0)")
     parser.add_argument("--no-turn-screen", action="store_true",
                         help="also run the refiner without its screen of turns (turn_starts=()), and both "
                              "without the start from DIS's flow (flow_start=False)")
@@ -394,10 +405,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.no_turn_screen:
         for name, options in TURN_ROWS.items():
             methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
-    if not math.isfinite(args.yaw_deg) or abs(args.yaw_deg) >= 45:
-        parser.error(f"--yaw-deg: expected a number of degrees within (-45, 45), got {args.yaw_deg}")
+    turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
+    for name, value in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
+        if not math.isfinite(value) or abs(value) >= 45:
+            parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
-                              "yaw_deg": args.yaw_deg}
+                              "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
+                              "roll_change_deg": args.roll_change_deg}
     found = False
     for key, title, folder, pairs in (
             ("kitti15", "KITTI 2015 pair 000000 (ground truth: road EPE over road ∩ valid)", "kitti15_000000",
@@ -410,17 +424,17 @@ def main(argv: list[str] | None = None) -> int:
             continue
         found = True
         data, run_methods = pairs(root), dict(methods)
-        if args.yaw_deg:
-            data = [(name, lambda load=load: turned(load(), args.yaw_deg)) for name, load in data]
+        if any(turn):
+            data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
         # (turned, image 2 of a pair is not image 1 of the next: no clip to fit)
-        if key == "clip" and not args.no_sequence and not args.yaw_deg and len(data) > 1:
+        if key == "clip" and not args.no_sequence and not any(turn) and len(data) > 1:
             name, method = clip_method(data, not args.no_progress)
             run_methods[name] = (None, method)
         result = measure(key, data, run_methods, not args.no_progress)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
-        turn = f", turned by {args.yaw_deg:g}° of yaw" if args.yaw_deg else ""
-        print(f"\n{title}: {len(result['pairs'])} pair(s){step}{turn}\n")
+        turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
+        print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}\n")
         print(table(result["rows"]))
     if not found:
         print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}", file=sys.stderr)

@@ -210,6 +210,13 @@ def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(
     assert float(after["yaw"] - before["yaw"]) == pytest.approx(a, abs=1e-9)
     for k in ("x_d", "z_d", "pitch_change", "roll_change"):
         assert float(after[k]) == pytest.approx(float(before[k]), abs=1e-9)
+    # pitched and rolled too: the "plane" model's yaw, pitch_change and roll_change add exactly
+    t = rr.turned(pair, yaw, 1.5, -1.0)
+    after = plane_from_pose(t["relative_pose"][None].double(), t["camera"].to(torch.float64))
+    for k, added in (("yaw", yaw), ("pitch_change", 1.5), ("roll_change", -1.0)):
+        assert float(after[k] - before[k]) == pytest.approx(math.radians(added), abs=1e-9)
+    for k in ("x_d", "y_d", "z_d"):
+        assert float(after[k]) == pytest.approx(float(before[k]), abs=1e-9)
     # no turn: the whole frame, the pair itself
     same = rr.turned(pair, 0.0)
     assert torch.equal(same["image1"], pair["image1"]) and torch.equal(same["road"], pair["road"])
@@ -229,7 +236,11 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
     # turned, image 2 of a pair is not image 1 of the next: no clip fit
     assert {r["method"] for r in report["clip"]["rows"]} == {"DIS", "refiner (no odometry)", *rr.TURN_ROWS,
                                                             "refiner, poses ('plane')", "refiner, poses (paper's planar)"}
-    with pytest.raises(SystemExit) as exit_:
-        rr.main(["--data", str(tmp_path / "data"), "--yaw-deg", "50"])
-    assert exit_.value.code == 2 and "--yaw-deg: expected a number of degrees within (-45, 45), got 50" in \
-        capsys.readouterr().err
+    assert rr.main(["--data", str(tmp_path / "data"), "--pitch-change-deg", "1", "--roll-change-deg", "-0.5",
+                    "--no-ecc", "--no-progress", "--pairs", "1"]) == 0
+    assert "1 pair(s), turned by 1° of pitch, -0.5° of roll" in capsys.readouterr().out
+    for flag, value in (("--yaw-deg", "50"), ("--pitch-change-deg", "nan"), ("--roll-change-deg", "-45")):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), flag, value])
+        assert exit_.value.code == 2 and f"{flag}: expected a number of degrees within (-45, 45), got" in \
+            capsys.readouterr().err
