@@ -57,7 +57,7 @@ def main() -> None:
     from kornia.filters import gaussian_blur2d
 
     import fsof_torch as fs
-    from fsof_torch.estimation.image_fit import _mask_pyramid, gaussian_blur, image_pyramid
+    from fsof_torch.estimation.pyramid import gaussian_blur, image_pyramid, mask_pyramid
     from refine.sources import dis_flow
 
     torch.set_num_threads(1)
@@ -95,7 +95,7 @@ def main() -> None:
         "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),
         "pyramid, 5 levels, OpenCV": lambda: image_pyramid(grey, 5, 0.0),
         "pyramid, 5 levels, torch": lambda: [x := grey] + [x := torch_decimate(x) for _ in range(4)],
-        "mask pyramid, 5 levels, OpenCV": lambda: _mask_pyramid(M, 5),
+        "mask pyramid, 5 levels, OpenCV": lambda: mask_pyramid(M, 5),
         "mask pyramid, 5 levels, torch": lambda: [m := M] + [m := -F.max_pool2d(-m.float(), 3, stride=2, padding=1) > 0.5
                                                              for _ in range(4)],
     }

@@ -166,15 +166,15 @@ def test_a_sharp_turn_is_found_by_the_screen_of_turns(turned_pair):
 
 
 def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned_pair):
-    from fsof_torch.estimation.image_fit import _level_camera, _levels, _mask_pyramid, image_pyramid
+    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
     from fsof_torch.estimation.starts import TURN_STARTS, turning_start
     from fsof_torch.evaluation.photometric import to_grey
 
     t = turned_pair
     grey = torch.cat([to_grey(t["image1"][None]), to_grey(t["image2"][None])], dim=1)
-    n = _levels(*grey.shape[-2:], None, 16)
-    level, mask = image_pyramid(grey, n, 0.0)[-1], _mask_pyramid(t["road"][None], n)[-1]
-    camera = _level_camera(t["camera"].to(torch.float64), n - 1)
+    n = pyramid_levels(*grey.shape[-2:], None, 16)
+    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(t["road"][None], n)[-1]
+    camera = level_camera(t["camera"].to(torch.float64), n - 1)
     plane = get_road_model("plane")
     _, base = pack_params(plane, camera, None)
     values = turning_start(plane, camera, base, level, mask, TURN_STARTS, 1.0, (), "cauchy", 3000)

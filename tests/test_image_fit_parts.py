@@ -9,7 +9,8 @@ import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fsof_torch.estimation.image_fit import _mask_pyramid, _with_gradient
+from fsof_torch.estimation.image_fit import _with_gradient
+from fsof_torch.estimation.pyramid import mask_pyramid
 
 sizes = st.tuples(st.integers(1, 3), st.integers(1, 40), st.integers(1, 40))
 
@@ -20,7 +21,7 @@ def test_mask_pyramid_is_a_min_pool_at_every_second_pixel(shape, density, seed):
     B, H, W = shape
     g = torch.Generator().manual_seed(seed)
     mask = torch.rand(B, 1, H, W, generator=g) < density
-    levels = _mask_pyramid(mask, 4)
+    levels = mask_pyramid(mask, 4)
     assert len(levels) == 4 and levels[0] is mask
     for fine, coarse in zip(levels, levels[1:]):
         h, w = fine.shape[-2:]

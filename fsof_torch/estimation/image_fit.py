@@ -37,7 +37,6 @@ import math
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
-import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_image_pair, check_int,
@@ -50,6 +49,7 @@ from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import detail_correlation, photometric_inliers, warped_samples
+from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .starts import (TURN_SPEED, TURN_STARTS, better_fit, check_forward_steps, check_turn_steps, start_list,
                      starts_ahead, turning_start, two_way_cost)
 from .solver import Evaluation, Solution, positive_definite, solve
@@ -195,14 +195,6 @@ class ImageProblem:
         J = ev.state[:, :, 0]  # (B, P + 2, N)
         Jw = J * w.unsqueeze(1)
         return Jw @ J.transpose(1, 2), (Jw @ ev.residual.transpose(1, 2)).squeeze(-1)
-
-
-def _levels(H: int, W: int, levels: int | None, min_size: int) -> int:
-    if levels is None:
-        levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
-    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
-        raise ValueError(f"levels: expected None or an int >= 1, got {levels!r}")
-    return levels
 
 
 def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
@@ -391,7 +383,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     dev = image1.device
     camera = camera.expand(B).to(device=dev)
     cam64 = camera.to(torch.float64)
-    n_levels = _levels(H, W, levels, min_size)
+    n_levels = pyramid_levels(H, W, levels, min_size)
     fixed_names = fixed_parameters(model, fixed)
     P = len(model.params)
     free = torch.tensor([n not in fixed_names for n in model.params] + [affine, affine], device=dev)
@@ -402,7 +394,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         if data_range != 255.0:  # (grey levels on 0..255: the residuals' and thresholds' unit)
             grey = grey * (255.0 / data_range)
         pyramid = image_pyramid(grey, n_levels, smooth_sigma)
-        masks = _mask_pyramid(mask, n_levels)
+        masks = mask_pyramid(mask, n_levels)
 
         _, default = pack_params(model, cam64, None)
         forward = starts_ahead(model, cam64, steps, fixed_names)
@@ -428,11 +420,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             """The level's images as the fit compares them (the band of detail on the
             ``band_levels`` finest), once."""
             if level not in compared_levels:
-                compared_levels[level] = _band(pyramid[level], highpass if level < band_levels else None)
+                compared_levels[level] = band(pyramid[level], highpass if level < band_levels else None)
             return compared_levels[level]
 
         def run(level: int, reps: int, params: Tensor) -> Solution:
-            problem = _level_problem(model, _level_camera(cam64, level), compared(level), masks[level],
+            problem = _level_problem(model, level_camera(cam64, level), compared(level), masks[level],
                                      gradient_fraction, max_points, reps, points if level == 0 else None)
             rep = (lambda t: None if t is None else t.repeat(reps, 1))
             precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
@@ -488,7 +480,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             # next finer one (more points judge; one common kernel scale per frame)
             sol = run(coarse, S, params)
             judge = max(coarse - 1, 0)
-            cost = two_way_cost(sol.params, model, _level_camera(cam64, judge), pyramid[judge], masks[judge],
+            cost = two_way_cost(sol.params, model, level_camera(cam64, judge), pyramid[judge], masks[judge],
                                 robust, max_points, S)
             order = cost.reshape(S, B).argsort(0)
             frames = torch.arange(B, device=dev)
@@ -508,7 +500,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 fit = better_fit(fit, carried(rank))
         if turns and not bool(fit["success"].all()):  # (one host read)
             # every start failed somewhere: the best turn of the screen, solved from the coarsest level
-            turning = turning_start(model, _level_camera(cam64, coarse), candidates[0], pyramid[coarse],
+            turning = turning_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse],
                                     masks[coarse], turns, TURN_SPEED, fixed_names, robust, max_points)
             if turning is not None:
                 fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)))
@@ -523,97 +515,6 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                                                            "inlier_fraction": fit["fraction"].to(out_dtype),
                                                            "correlation": fit["correlation"].to(out_dtype),
                                                            "converged": fit["converged"]})
-
-
-def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> list[Tensor]:
-    """A Gaussian pyramid of images (B, C, H, W): level 0 smoothed with ``smooth_sigma`` pixels,
-    each next level the 5-tap binomial blur [1, 4, 6, 4, 1] / 16 of the one below, sampled at its
-    even pixels (OpenCV's ``pyrDown``): pixel i of level l is pixel 2^l i of level 0. With
-    ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy.
-
-    On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
-    KITTI frame in about 1 ms, some 70 times faster than the same convolutions in torch);
-    elsewhere torch does the same arithmetic.
-    """
-    if images.device.type == "cpu":
-        import cv2
-        import numpy as np
-
-        B, C = images.shape[:2]
-        level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
-        out = [[x.numpy() for x in level.reshape(B * C, *level.shape[-2:])]]
-        for _ in range(levels - 1):
-            out.append([cv2.pyrDown(x) for x in out[-1]])
-        return [level] + [torch.from_numpy(np.stack(planes)).reshape(B, C, *planes[0].shape) for planes in out[1:]]
-    level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
-    out = [level]
-    taps = images.new_tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
-    for _ in range(levels - 1):
-        x = out[-1]
-        C = x.shape[1]
-        x = F.pad(x, (2, 2, 2, 2), mode="reflect")
-        x = F.conv2d(x, taps.reshape(1, 1, 1, 5).expand(C, 1, 1, 5), groups=C)
-        x = F.conv2d(x, taps.reshape(1, 1, 5, 1).expand(C, 1, 5, 1), groups=C)
-        out.append(x[..., ::2, ::2].contiguous())
-    return out
-
-
-def _mask_pyramid(mask: Tensor, levels: int) -> list[Tensor]:
-    """The masks (B, 1, H, W) bool of the pyramid's levels (:func:`image_pyramid`): a pixel of a
-    coarser level, centred on pixel 2i of the finer one, is in the mask where the finer one's 3 × 3
-    neighbourhood is (within the image). On the CPU OpenCV erodes: the same pixels as the min-pool
-    used elsewhere, about 3 times faster (python benchmarks/bench_image_fit.py)."""
-    out = [mask]
-    if mask.device.type != "cpu":
-        for _ in range(levels - 1):
-            out.append(-F.max_pool2d(-out[-1].to(torch.float32), 3, stride=2, padding=1) > 0.5)
-        return out
-    import cv2
-    import numpy as np
-
-    kernel = np.ones((3, 3), np.uint8)
-    B = mask.shape[0]
-    for _ in range(levels - 1):
-        # (a 3 x 3 erosion ignores the border, as the min-pool's padding does)
-        planes = out[-1].reshape(B, *out[-1].shape[-2:]).to(torch.uint8).numpy()
-        eroded = np.stack([cv2.erode(x, kernel) for x in planes])[:, None, ::2, ::2]
-        out.append(torch.from_numpy(eroded.copy()).to(torch.bool))
-    return out
-
-
-def _level_camera(camera: Camera, level: int) -> Camera:
-    """The camera of pyramid level ``level``: pixel i there is pixel 2^level i of level 0."""
-    s = 0.5 ** level
-    S = torch.tensor([[s, 0.0, 0.0], [0.0, s, 0.0], [0.0, 0.0, 1.0]], dtype=camera.dtype, device=camera.device)
-    return Camera._checked(S @ camera.K, camera.height, camera.roll, camera.pitch)
-
-
-def _band(img: Tensor, sigma: float | None) -> Tensor:
-    """Each level minus its Gaussian blur of ``sigma`` pixels (of that level): the level's band of
-    detail, indifferent to smooth changes of lighting between the frames; None: the level itself."""
-    if not sigma:
-        return img
-    blurred = gaussian_blur(img, sigma)  # (a new tensor: the difference is written over it)
-    return torch.sub(img, blurred, out=blurred)
-
-
-def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
-    """Gaussian blur of images (B, C, H, W), reflected at the border (a kernel of ±3 σ): OpenCV
-    on the CPU (python benchmarks/bench_image_fit.py: about 6x faster than kornia's at σ = 4),
-    kornia elsewhere."""
-    k = 2 * int(math.ceil(3 * sigma)) + 1
-    if images.device.type == "cpu":
-        import cv2
-
-        B, C, H, W = images.shape
-        planes = images.detach().reshape(B * C, H, W)
-        out = torch.empty_like(planes)
-        for x, y in zip(planes.numpy(), out.numpy()):  # (each plane written in place, no stacking)
-            cv2.GaussianBlur(x, (k, k), sigma, dst=y, borderType=cv2.BORDER_REFLECT_101)
-        return out.reshape(B, C, H, W)
-    from kornia.filters import gaussian_blur2d
-
-    return gaussian_blur2d(images, (k, k), (sigma, sigma), border_type="reflect")
 
 
 def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,

@@ -61,7 +61,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import all_finite, check_float_tensor, check_shape
-from ..estimation.image_fit import gaussian_blur
+from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
