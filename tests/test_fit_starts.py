@@ -199,3 +199,24 @@ def test_turn_starts_are_checked(turns, error):
     p = render_pair("default", 0, size=(96, 320))
     with pytest.raises(error, match="turn_starts"):
         fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"], turn_starts=turns)
+
+
+# -- a jolt of the body: the retry without the coarsest level's prior --------------------------------
+
+def test_a_pitch_jolt_is_found_by_the_retry_without_the_coarse_prior(load_benchmark):
+    """The default scene driven straight, image 2 pitched by 3° (a bump; benchmarks/real_road.py's
+    ``turned``): ten standard deviations of the calibration prior's 0.3°, which holds the coarsest
+    level's few points near no pitch change and every start fails; without that prior at the
+    coarsest level the fit finds it, and the finer levels keep the prior."""
+    p = render_pair("default", 0, size=(188, 621), steering=0.0)
+    t = load_benchmark("real_road").turned({k: p[k] for k in ("image1", "image2", "road", "camera", "flow", "valid")},
+                                           0.0, 3.0, 0.0)
+    images, road = (t["image1"][None], t["image2"][None]), t["road"][None]
+    fit = fit_image(*images, road, t["camera"])
+    truth = (t["road"] & t["valid"])[0]
+    assert bool(fit.success[0]) and float((fit.flow[0] - t["flow"]).norm(dim=0)[truth].mean()) < 1.0
+    assert abs(float(fit.params["pitch_change"][0]) - math.radians(3.0)) < math.radians(0.1)
+    alone = fit_image(*images, road, t["camera"], retry_without_prior=False)
+    assert not bool(alone.success[0])
+    with pytest.raises(TypeError, match="retry_without_prior"):
+        fit_image(*images, road, t["camera"], retry_without_prior="yes")

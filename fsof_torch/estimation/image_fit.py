@@ -256,7 +256,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
               data_range: float = 255.0, check_every: int | None = 2,
               forward_starts: Sequence[float] = (2.0, 4.0), turn_starts: Sequence[float] = TURN_STARTS,
-              retry_starts: int = 1) -> RoadFit:
+              retry_starts: int = 1, retry_without_prior: bool = True) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -293,6 +293,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             keeps the first that succeeds (else the one whose images correlate best). The
             two-way cost at a coarse level can prefer a wrong motion (a predicted flow that lost
             the near road can point backwards); the tests at full resolution tell. 0: none.
+        retry_without_prior: where the fit still fails (and after the turns), the starts compete
+            once more without the prior at the coarsest level (the finer levels keep it), and a
+            frame takes that fit where it succeeds or its images correlate better. A jolt of the
+            body (2° of pitch in a frame) lies beyond what the prior lets the coarsest level's few
+            points reach; at speed the same prior keeps the coarse fits plausible, so it stays.
+            Costs nothing where the fit succeeds.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -349,6 +355,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
         raise ValueError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
     check_int(retry_starts, "retry_starts", minimum=0)
+    check_bool(retry_without_prior, "retry_without_prior")
     check_int(levels, "levels", minimum=1, optional=True)
     check_int(min_size, "min_size", minimum=2)
     check_int(band_levels, "band_levels", minimum=0)
@@ -423,25 +430,28 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 compared_levels[level] = band(pyramid[level], highpass if level < band_levels else None)
             return compared_levels[level]
 
-        def run(level: int, reps: int, params: Tensor) -> Solution:
+        def run(level: int, reps: int, params: Tensor, prior: bool = True) -> Solution:
             problem = _level_problem(model, level_camera(cam64, level), compared(level), masks[level],
                                      gradient_fraction, max_points, reps, points if level == 0 else None)
-            rep = (lambda t: None if t is None else t.repeat(reps, 1))
-            precision = None if inverse_variance is None else (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
+            rep = (lambda t: None if t is None or not prior else t.repeat(reps, 1))
+            precision = None if rep(inverse_variance) is None else \
+                (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
             return solve(problem, params, free=free, prior_mean=rep(prior_mean), prior_precision=precision,
-                         lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust,
+                         lower=bound_lo if reps == 1 or bound_lo is None else bound_lo.repeat(reps, 1),
+                         upper=bound_hi if reps == 1 or bound_hi is None else bound_hi.repeat(reps, 1), kernel=robust,
                          scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
                          # a coarse level only has to land in the next one's basin: it also ends
                          # where the next step is predicted not to matter
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
                          check_every=checks, missing="mean", predict=level > 0)
 
-        def descend(params: Tensor, top: int) -> tuple[Solution, Tensor, Tensor]:
-            """From ``params`` (B, P + 2) down the pyramid from level ``top`` to full resolution."""
+        def descend(params: Tensor, top: int, prior: bool = True) -> tuple[Solution, Tensor, Tensor]:
+            """From ``params`` (B, P + 2) down the pyramid from level ``top`` to full resolution (the
+            prior at ``top`` with ``prior``, at the finer levels always)."""
             iterations = torch.zeros(B, dtype=torch.long, device=dev)
             sol = None
             for level in range(top, -1, -1):
-                sol = run(level, 1, params)
+                sol = run(level, 1, params, prior or level != top)
                 params = sol.params
                 iterations = iterations + sol.iterations
             return sol, params, iterations
@@ -473,12 +483,15 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                     "cost": sol.cost, "converged": sol.converged}
 
         coarse = n_levels - 1
-        if S == 1:
-            fit = judged(*descend(params, coarse))
-        else:
+
+        def compete(prior: bool) -> dict[str, Tensor]:
+            """The starts solved at the coarsest level (with its prior where ``prior``), the winner
+            carried down, and runners-up where it fails."""
+            if S == 1:
+                return judged(*descend(params, coarse, prior))
             # the starts compete at the coarsest level, ranked by their two-way robust cost at the
             # next finer one (more points judge; one common kernel scale per frame)
-            sol = run(coarse, S, params)
+            sol = run(coarse, S, params, prior)
             judge = max(coarse - 1, 0)
             cost = two_way_cost(sol.params, model, level_camera(cam64, judge), pyramid[judge], masks[judge],
                                 robust, max_points, S)
@@ -490,7 +503,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
             def carried(rank: int) -> dict[str, Tensor]:
                 pick = order[rank]
-                sol, params, iterations = descend(solved[pick, frames], top)
+                sol, params, iterations = descend(solved[pick, frames], top, prior or coarse > 0)
                 return judged(sol, params, iterations + moved[pick, frames])
 
             fit = carried(0)
@@ -498,12 +511,18 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 if bool(fit["success"].all()):  # (one host read per runner-up)
                     break
                 fit = better_fit(fit, carried(rank))
+            return fit
+
+        fit = compete(True)
         if turns and not bool(fit["success"].all()):  # (one host read)
             # every start failed somewhere: the best turn of the screen, solved from the coarsest level
             turning = turning_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse],
                                     masks[coarse], turns, TURN_SPEED, fixed_names, robust, max_points)
             if turning is not None:
                 fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)))
+        if retry_without_prior and prior_mean is not None and not bool(fit["success"].all()):  # (one host read)
+            # still failed: the images alone choose the basin at the coarsest level
+            fit = better_fit(fit, compete(False))
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
