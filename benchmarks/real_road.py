@@ -29,7 +29,7 @@ rotation is a homography), the real street's texture in a turn of known motion;
 ``--pitch-change-deg`` and ``--roll-change-deg`` likewise rotate it about the car's lateral and
 forward axes, as the body pitches (braking, a bump) and rolls.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -153,6 +153,9 @@ METHODS: dict[str, tuple[str | None, Callable[[dict, Tensor], tuple[Tensor, dict
 TURN_ROWS = {"refiner, turn_starts=()": {"turn_starts": ()},
              "refiner, flow_start=False": {"flow_start": False},
              "refiner, flow_start=False, turn_starts=()": {"flow_start": False, "turn_starts": ()}}
+#: ``--no-prior-retry``: the default refiner without the image fit's retry without the coarsest
+#: level's prior
+PRIOR_ROWS = {"refiner, retry_without_prior=False": {"retry_without_prior": False}}
 
 
 def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable]:
@@ -390,6 +393,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-turn-screen", action="store_true",
                         help="also run the refiner without its screen of turns (turn_starts=()), and both "
                              "without the start from DIS's flow (flow_start=False)")
+    parser.add_argument("--no-prior-retry", action="store_true",
+                        help="also run the refiner without its retry without the coarsest level's prior "
+                             "(retry_without_prior=False)")
     parser.add_argument("--json", type=Path, help="write every number (per pair too) here")
     parser.add_argument("--no-progress", action="store_true")
     args = parser.parse_args(argv)
@@ -402,9 +408,9 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     methods = {k: v for k, v in METHODS.items() if not (args.no_ecc and k == "ECC homography")}
-    if args.no_turn_screen:
-        for name, options in TURN_ROWS.items():
-            methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
+    extra = {**(TURN_ROWS if args.no_turn_screen else {}), **(PRIOR_ROWS if args.no_prior_retry else {})}
+    for name, options in extra.items():
+        methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
     turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
     for name, value in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
         if not math.isfinite(value) or abs(value) >= 45:

@@ -237,8 +237,10 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
     assert {r["method"] for r in report["clip"]["rows"]} == {"DIS", "refiner (no odometry)", *rr.TURN_ROWS,
                                                             "refiner, poses ('plane')", "refiner, poses (paper's planar)"}
     assert rr.main(["--data", str(tmp_path / "data"), "--pitch-change-deg", "1", "--roll-change-deg", "-0.5",
-                    "--no-ecc", "--no-progress", "--pairs", "1"]) == 0
-    assert "1 pair(s), turned by 1° of pitch, -0.5° of roll" in capsys.readouterr().out
+                    "--no-ecc", "--no-progress", "--pairs", "1", "--no-prior-retry"]) == 0
+    printed = capsys.readouterr().out
+    assert "1 pair(s), turned by 1° of pitch, -0.5° of roll" in printed
+    assert "| refiner, retry_without_prior=False | 1 |" in printed
     for flag, value in (("--yaw-deg", "50"), ("--pitch-change-deg", "nan"), ("--roll-change-deg", "-45")):
         with pytest.raises(SystemExit) as exit_:
             rr.main(["--data", str(tmp_path / "data"), flag, value])
