@@ -8,7 +8,7 @@ import warnings
 import pytest
 import torch
 
-from fsof_torch import Camera, ImageMotionEstimator
+from fsof_torch import Camera
 from fsof_torch.refinement.auto_road import FLAGS, RoadDetection, detect_road, road_seed
 from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
 
@@ -331,11 +331,8 @@ def test_odometry_clip_never_empty(shared_data):
 
 
 def test_odometry_clip_driven_fast(shared_data, monkeypatch):
-    """Frames 0 and 5 of the straight clip, 6 m apart: most of the seed leaves image 2. With the
-    image fit's retry without the coarsest level's prior, the seed's motion fit finds the poses'
-    forward motion; without it, the fit fails on the seed, and on a seed twice as deep it finds
-    the road."""
-    from fsof_torch.io import read_kitti_poses
+    """Frames 0 and 5 of the straight clip, 6 m apart: most of the seed leaves image 2, and the
+    seed's motion fit fails; on a seed twice as deep it finds the road."""
     from fsof_torch.io.images import read_image
 
     import fsof_torch.refinement.auto_road as auto_road
@@ -343,8 +340,6 @@ def test_odometry_clip_driven_fast(shared_data, monkeypatch):
     root = shared_data / "kitti_odometry_straight"
     cam = Camera.from_kitti(root / "calib.txt", cam=0, height=1.65)
     im1, im2 = (read_image(root / "image_l" / f"{j:06d}.png")[None, :1] for j in (0, 5))
-    poses = read_kitti_poses(root / "poses.txt").double()
-    true_z = -float((torch.linalg.inv(poses[5]) @ poses[0])[2, 3])
     depths = []
     seed = auto_road.road_seed
 
@@ -353,11 +348,8 @@ def test_odometry_clip_driven_fast(shared_data, monkeypatch):
         return seed(*args, **kwargs)
 
     monkeypatch.setattr(auto_road, "road_seed", recorded)
-    poly = _polygon(root / "road.json", tuple(im1.shape[-2:]))
     det = detect_road(im1, im2, cam)
-    assert depths == [] and det.flag == ["ok"]
-    assert abs(float(det.motion.params["z_d"][0]) - true_z) < 0.05 * true_z
-    assert float((det.mask & poly).sum() / poly.sum()) >= 0.6
-    det = detect_road(im1, im2, cam, estimator=ImageMotionEstimator(retry_without_prior=False))
-    assert depths == [40.0] and det.flag == ["ok"]
+    poly = _polygon(root / "road.json", tuple(im1.shape[-2:]))
+    assert depths == [40.0]
+    assert det.flag == ["ok"]
     assert float((det.mask & poly).sum() / poly.sum()) >= 0.6

@@ -295,10 +295,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             the near road can point backwards); the tests at full resolution tell. 0: none.
         retry_without_prior: where the fit still fails (and after the turns), the starts compete
             once more without the prior at the coarsest level (the finer levels keep it), and a
-            frame takes that fit where it succeeds or its images correlate better. A jolt of the
-            body (2° of pitch in a frame) lies beyond what the prior lets the coarsest level's few
-            points reach; at speed the same prior keeps the coarse fits plausible, so it stays.
-            Costs nothing where the fit succeeds.
+            frame takes that fit where it succeeds with its detail correlating at least halfway
+            from ``min_correlation`` to 1 (without the prior's guard a fit needs clearer
+            evidence), or where its images correlate better. A jolt of the body (2° of pitch in a
+            frame) lies beyond what the prior lets the coarsest level's few points reach; at speed
+            the same prior keeps the coarse fits plausible, so it stays. Costs nothing where the
+            fit succeeds.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -521,8 +523,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             if turning is not None:
                 fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)))
         if retry_without_prior and prior_mean is not None and not bool(fit["success"].all()):  # (one host read)
-            # still failed: the images alone choose the basin at the coarsest level
-            fit = better_fit(fit, compete(False))
+            # still failed: the images alone choose the basin at the coarsest level; without the
+            # prior's guard such a fit must line the detail up clearly, halfway from the bar to 1
+            retried = compete(False)
+            clear = retried["correlation"] >= 0.5 * (1.0 + min_correlation)
+            fit = better_fit(fit, {**retried, "success": retried["success"] & clear})
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
