@@ -330,6 +330,26 @@ def test_odometry_clip_never_empty(shared_data):
         assert float((det.mask & poly).sum() / poly.sum()) >= 0.6
 
 
+def test_odometry_clip_fast_seed_needs_a_clear_fit_without_the_prior(shared_data):
+    """Frames 4 and 8 of the straight clip, 4.8 m apart, with DIS's flow: the seed's fit fails,
+    and without the prior at the coarsest level it passes the correlation bar of 0.5 with a
+    wrong motion (the car nearly standing); a fit found that way must correlate clearly (0.75), so
+    it is not taken and the deeper seed finds the poses' motion."""
+    from refine.sources import dis_flow
+
+    from fsof_torch.io import read_kitti_poses
+    from fsof_torch.io.images import read_image
+
+    root = shared_data / "kitti_odometry_straight"
+    cam = Camera.from_kitti(root / "calib.txt", cam=0, height=1.65)
+    im1, im2 = (read_image(root / "image_l" / f"{j:06d}.png")[None] for j in (4, 8))
+    poses = read_kitti_poses(root / "poses.txt").double()
+    true_z = -float((torch.linalg.inv(poses[8]) @ poses[4])[2, 3])
+    det = detect_road(im1, im2, cam, flow=dis_flow(im1[0], im2[0])[None])
+    assert det.flag == ["ok"]
+    assert abs(float(det.motion.params["z_d"][0]) - true_z) < 0.05 * true_z
+
+
 def test_odometry_clip_driven_fast(shared_data, monkeypatch):
     """Frames 0 and 5 of the straight clip, 6 m apart: most of the seed leaves image 2, and the
     seed's motion fit fails; on a seed twice as deep it finds the road."""

@@ -435,12 +435,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         def run(level: int, reps: int, params: Tensor, prior: bool = True) -> Solution:
             problem = _level_problem(model, level_camera(cam64, level), compared(level), masks[level],
                                      gradient_fraction, max_points, reps, points if level == 0 else None)
-            rep = (lambda t: None if t is None or not prior else t.repeat(reps, 1))
-            precision = None if rep(inverse_variance) is None else \
-                (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance))
-            return solve(problem, params, free=free, prior_mean=rep(prior_mean), prior_precision=precision,
-                         lower=bound_lo if reps == 1 or bound_lo is None else bound_lo.repeat(reps, 1),
-                         upper=bound_hi if reps == 1 or bound_hi is None else bound_hi.repeat(reps, 1), kernel=robust,
+            rep = (lambda t: None if t is None else t.repeat(reps, 1))
+            prior = prior and inverse_variance is not None
+            precision = (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance)) if prior else None
+            return solve(problem, params, free=free, prior_mean=rep(prior_mean) if prior else None,
+                         prior_precision=precision, lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust,
                          scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
                          # a coarse level only has to land in the next one's basin: it also ends
                          # where the next step is predicted not to matter

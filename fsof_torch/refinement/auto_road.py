@@ -606,8 +606,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
     detection comes back as ``RefineOutput.road``; samples whose road was found but that the
     refinement left unchanged (a failed estimate, a gate without evidence) are warned about too.
-    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`),
-    as before images were used.
+    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
     """
     import warnings
 
