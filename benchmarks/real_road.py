@@ -4,8 +4,9 @@ For the shared KITTI 2015 pair 000000 (ground truth) and the shared straight odo
 pairs, poses), per pair:
 
 - ``DIS``: OpenCV DIS optical flow, ``PRESET_MEDIUM``, on grey uint8 images;
-- ``ECC homography``: ``cv2.findTransformECC`` with ``MOTION_HOMOGRAPHY`` (template image 1, input
-  image 2, grey float32, ``inputMask`` the road, Gaussian 5, 100 iterations or 1e-6), started from a
+- ``ECC homography``: ``cv2.findTransformECCWithMask`` (OpenCV >= 4.13) with ``MOTION_HOMOGRAPHY``
+  (template image 1, input image 2, grey float32, the template's mask the road as drawn on image 1,
+  Gaussian 5, 100 iterations or 1e-6), started from a
   RANSAC homography fitted to DIS's flow on the road pixels (``cv2.findHomography``, 3 px); the
   warp maps pixels of image 1 to image 2, so its road flow is π(H p̃) − p. Where ECC fails
   (``cv2.error``) the RANSAC start is kept and the failure counted;
@@ -96,8 +97,11 @@ def ecc_homography(image1: Tensor, image2: Tensor, road: Tensor, flow_dis: Tenso
     g2 = grey_uint8(image2).astype(np.float32)
     mask = road[0].to(torch.uint8).numpy()
     try:
-        # a float64 warp raises inside OpenCV: float32 it is
-        _, warp = cv2.findTransformECC(g1, g2, H0.astype(np.float32), cv2.MOTION_HOMOGRAPHY, ECC_CRITERIA, mask, 5)
+        # The road is drawn on image 1, ECC's template: its mask is the template's (findTransformECC's
+        # own mask is the input image's, warped each iteration). A float64 warp raises inside
+        # OpenCV: float32 it is.
+        _, warp = cv2.findTransformECCWithMask(g1, g2, mask, np.ones_like(mask), H0.astype(np.float32),
+                                               cv2.MOTION_HOMOGRAPHY, ECC_CRITERIA, 5)
     except cv2.error:
         return H0, False
     return warp.astype(np.float64), True
@@ -405,6 +409,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--step: expected >= 1, got {args.step}")
     import cv2
 
+    if not args.no_ecc and not hasattr(cv2, "findTransformECCWithMask"):
+        parser.error(f"the ECC homography needs OpenCV >= 4.13 (cv2.findTransformECCWithMask), got "
+                     f"{cv2.__version__}: upgrade opencv-python-headless or pass --no-ecc")
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     methods = {k: v for k, v in METHODS.items() if not (args.no_ecc and k == "ECC homography")}
