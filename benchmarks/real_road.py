@@ -28,9 +28,11 @@ With ``--yaw-deg D`` every pair is turned: image 2 is seen by a camera that also
 about the road's normal between the frames (:func:`turned`; exact at every depth, as a pure
 rotation is a homography), the real street's texture in a turn of known motion;
 ``--pitch-change-deg`` and ``--roll-change-deg`` likewise rotate it about the car's lateral and
-forward axes, as the body pitches (braking, a bump) and rolls.
+forward axes, as the body pitches (braking, a bump) and rolls. With ``--exposure-gain G`` image 2
+of every pair is G times as bright (:func:`exposed`: clipped to 0..255 and rounded), as where
+the camera's exposure changes between the frames (a shadow, a tunnel's mouth).
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -361,6 +363,13 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
     return out
 
 
+def exposed(pair: dict, gain: float) -> dict:
+    """``pair`` with image 2 ``gain`` times as bright: clipped to 0..255 and rounded, as an 8-bit
+    camera records a change of exposure between the frames."""
+    image2 = (pair["image2"].to(torch.float32) * gain).clamp(0, 255).round()
+    return {**pair, "image2": image2.to(pair["image2"].dtype)}
+
+
 def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dict, progress: bool) -> dict:
     """Every pair of a data set through :func:`run_pair`; the summary rows and the per-pair results."""
     from tqdm import tqdm
@@ -394,6 +403,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="pitch every pair's camera by this many degrees between the frames (default 0)")
     parser.add_argument("--roll-change-deg", type=float, default=0.0,
                         help="roll every pair's camera by this many degrees between the frames (default 0)")
+    parser.add_argument("--exposure-gain", type=float, default=1.0,
+                        help="make every pair's image 2 this many times as bright (clipped to 0..255; default 1)")
     parser.add_argument("--no-turn-screen", action="store_true",
                         help="also run the refiner without its screen of turns (turn_starts=()), and both "
                              "without the start from DIS's flow (flow_start=False)")
@@ -422,9 +433,11 @@ def main(argv: list[str] | None = None) -> int:
     for name, value in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
         if not math.isfinite(value) or abs(value) >= 45:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
+    if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
+        parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
-                              "roll_change_deg": args.roll_change_deg}
+                              "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain}
     found = False
     for key, title, folder, pairs in (
             ("kitti15", "KITTI 2015 pair 000000 (ground truth: road EPE over road ∩ valid)", "kitti15_000000",
@@ -439,15 +452,19 @@ def main(argv: list[str] | None = None) -> int:
         data, run_methods = pairs(root), dict(methods)
         if any(turn):
             data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
-        # (turned, image 2 of a pair is not image 1 of the next: no clip to fit)
-        if key == "clip" and not args.no_sequence and not any(turn) and len(data) > 1:
+        if args.exposure_gain != 1.0:
+            data = [(name, lambda load=load: exposed(load(), args.exposure_gain)) for name, load in data]
+        # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
+        changed = any(turn) or args.exposure_gain != 1.0
+        if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
             name, method = clip_method(data, not args.no_progress)
             run_methods[name] = (None, method)
         result = measure(key, data, run_methods, not args.no_progress)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
-        print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}\n")
+        gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
+        print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}{gain}\n")
         print(table(result["rows"]))
     if not found:
         print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}", file=sys.stderr)

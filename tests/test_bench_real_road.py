@@ -98,14 +98,32 @@ def test_ecc_fits_the_road_plane_better_than_dis(results):
     assert results["ECC homography"]["census"] < results["DIS"]["census"]
 
 
-def test_poses_as_odometry_improve_on_dis(results):
+def test_poses_as_odometry_give_the_true_road_flow(rr, pair):
     """inverse(P_{i+1}) @ P_i as the plane model's motion, or projected on the paper's planar
-    motion (the scene's road has no body motion), gives the true road flow; the gate keeps DIS
-    where the images prefer it, so the refined road is better than DIS's, not exact."""
+    motion (the scene's road has no body motion), maps the road as the ray-cast flow does."""
+    from fsof_torch import road_homography
+
+    road = pair["road"][0] & pair["valid"][0]
+    cam = pair["camera"].to(torch.float64)
+    plane = {k: v for k, v in rr.plane_odometry(pair).items() if k != "model"}
+    ego = rr.paper_odometry(pair)
+    for model, params in (("plane", plane), ("paper", {"x_d": ego.x_d, "z_d": ego.z_d, "yaw": ego.yaw})):
+        H = road_homography(cam, params, model=model)[0]
+        flow, _ = rr.homography_flow(H.numpy(), SIZE)
+        assert float((flow - pair["flow"])[:, road].norm(dim=0).max()) < 0.05, model
+
+
+def test_poses_as_odometry_never_worse_than_dis(results):
+    """The gate keeps DIS where the images prefer it. On this small pair the exact road flow's
+    census is close to DIS's (the rendered detail changes between the frames), so whether the
+    gate takes the model can turn on DIS's last decimals: it is never worse, and the paper's
+    planar motion, whose pitch and roll the images fit, is refined and better."""
+    dis = results["DIS"]
     for name in ("refiner, poses ('plane')", "refiner, poses (paper's planar)"):
         r = results[name]
-        assert r["refined"] and r["epe"] < results["DIS"]["epe"], name
-        assert r["census"] < results["DIS"]["census"]
+        assert r["census"] <= dis["census"] + 1e-6 and r["epe"] <= dis["epe"] + 1e-6, name
+    r = results["refiner, poses (paper's planar)"]
+    assert r["refined"] and r["epe"] < dis["epe"] and r["census"] < dis["census"]
 
 
 def test_road_errors_are_the_library_figures_of_the_combined_flow(rr, pair):
@@ -276,4 +294,34 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
         with pytest.raises(SystemExit) as exit_:
             rr.main(["--data", str(tmp_path / "data"), flag, value])
         assert exit_.value.code == 2 and f"{flag}: expected a number of degrees within (-45, 45), got" in \
+            capsys.readouterr().err
+
+
+def test_exposed_scales_image_2_as_an_8_bit_camera_records_it(rr, pair):
+    out = rr.exposed(pair, 1.5)
+    expected = torch.clamp(pair["image2"].to(torch.float64) * 1.5, 0, 255).round()
+    assert torch.equal(out["image2"].to(torch.float64), expected) and out["image2"].dtype == pair["image2"].dtype
+    assert out["image1"] is pair["image1"] and out["flow"] is pair["flow"]
+    assert float(out["image2"].max()) == 255.0  # bright texture saturates
+    before = pair["image2"].clone()
+    rr.exposed(pair, 0.5)
+    assert torch.equal(pair["image2"], before)  # the caller's pair is left as it was
+
+
+def test_main_with_an_exposure_change(rr, scenes, tmp_path, capsys):
+    _tiny_clip(scenes, tmp_path)
+    out = tmp_path / "exposed.json"
+    assert rr.main(["--data", str(tmp_path / "data"), "--exposure-gain", "0.6", "--no-ecc", "--no-progress",
+                    "--json", str(out)]) == 0
+    assert "2 pair(s), image 2 0.6 times as bright" in capsys.readouterr().out
+    report = json.loads(out.read_text())
+    assert report["exposure_gain"] == 0.6
+    # image 2 of a pair is not image 1 of the next: no clip fit
+    assert "refiner, clip motion (fit_sequence)" not in {r["method"] for r in report["clip"]["rows"]}
+    refined = [p["refiner (no odometry)"]["refined"] for p in report["clip"]["pairs"]]
+    assert all(refined)  # census and the fit's gain do not mind the darker image 2
+    for value in ("0", "nan", "11"):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), "--exposure-gain", value])
+        assert exit_.value.code == 2 and "--exposure-gain: expected a factor within [0.1, 10], got" in \
             capsys.readouterr().err
