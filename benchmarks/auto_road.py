@@ -157,7 +157,7 @@ def real_table(root: Path) -> None:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             det = detect_road(im1, im2, cam, flow=flow)
-            # the flow-based detection as the refine job called it before images were used
+            # the flow-based detection (detect_freespace on DIS's flow), for comparison
             old = detect_freespace(flow.to(cam.dtype), cam, bottom_rows=max(1, im1.shape[-2] // 8), threshold=1.0,
                                    relative_threshold=0.1)
         for method, m, flag in (("auto road (images)", det.mask, det.flag[0]), ("flow-based (DIS)", old, "")):

@@ -247,12 +247,21 @@ def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(
     q = torch.einsum("ij,jhw->ihw", H, torch.stack([u + f[0], v + f[1], torch.ones_like(u)]))
     ref = torch.stack([q[0] / q[2] - u, q[1] / q[2] - v])
     assert torch.allclose(t["flow"].to(torch.float64), ref, atol=1e-3)
-    # image 2: the original sampled at H⁻¹ y (OpenCV's bilinear weights are in 1/32 px)
+    # image 2: the original sampled at H⁻¹ y (Lanczos there, bicubic here: close, not equal),
+    # within 0..255, and as sharp as the original (bilinear weights would blur it)
     s = torch.einsum("ij,jhw->ihw", torch.linalg.inv(H), torch.stack([u, v, torch.ones_like(u)]))
     grid = torch.stack([s[0] / s[2] / (SIZE[1] - 1), s[1] / s[2] / (SIZE[0] - 1)], dim=-1) * 2 - 1
-    sampled = F.grid_sample(p["image2"][None].to(torch.float64), grid[None], align_corners=True)[0]
+    original = p["image2"][None].to(torch.float64)
+    sampled = F.grid_sample(original, grid[None], mode="bicubic", align_corners=True)[0].clamp(0, 255)
     diff = (t["image2"].to(torch.float64) - sampled).abs()
-    assert float(diff.mean()) < 0.5 and float(diff.max()) < 8.0
+    assert float(diff.mean()) < 1.0 and float(diff.max()) < 16.0
+    assert 0 <= float(t["image2"].min()) <= float(t["image2"].max()) <= 255
+
+    def detail(x: torch.Tensor) -> float:  # mean absolute difference of neighbouring columns
+        return float((x[..., 1:] - x[..., :-1]).abs().mean())
+
+    bilinear = F.grid_sample(original, grid[None], mode="bilinear", align_corners=True)[0]
+    assert detail(t["image2"].double()) > 0.95 * detail(original[0, :, r0:r0 + h, c0:c0 + w]) > detail(bilinear)
     # the pose turns by the same yaw, and the plane motion's other parameters stay
     before = plane_from_pose(pair["relative_pose"][None].double(), cam)
     after = plane_from_pose(t["relative_pose"][None].double(), t["camera"].to(torch.float64))

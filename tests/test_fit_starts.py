@@ -163,7 +163,12 @@ def test_a_sharp_turn_is_found_by_the_screen_of_turns(turned_pair):
     epe = (fit.flow[0] - t["flow"]).norm(dim=0)[truth].mean()
     assert bool(fit.success[0]) and float(epe) < 1.5
     assert abs(float(fit.params["yaw"][0]) - math.radians(8.0)) < math.radians(0.2)
-    assert abs(float(fit.params["z_d"][0]) - 1.2) < 0.1
+    # the distance driven as the same pair unturned gives it (1.2 m; at this size the images put
+    # both about 1.10 m)
+    p = render_pair("default", 0, size=(188, 621), steering=0.0)
+    straight = fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"])
+    assert abs(float(fit.params["z_d"][0]) - float(straight.params["z_d"][0])) < 0.02
+    assert abs(float(fit.params["z_d"][0]) - 1.2) < 0.15
     # why the screen is there: every start straight ahead (zero motion, 2 and 4 heights) fails
     alone = fit_image(*images, road, t["camera"], turn_starts=())
     assert not bool(alone.success[0])
