@@ -334,3 +334,21 @@ def test_main_with_an_exposure_change(rr, scenes, tmp_path, capsys):
             rr.main(["--data", str(tmp_path / "data"), "--exposure-gain", value])
         assert exit_.value.code == 2 and "--exposure-gain: expected a factor within [0.1, 10], got" in \
             capsys.readouterr().err
+
+
+def test_a_false_fit_success_is_caught_by_the_gate(rr, shared_data):
+    """Frame 32 of the clip with image 2 pitched by -2° (a hard jolt): DIS's flow says 8 m ahead,
+    and the image fit reports success at a motion far ahead of the true 1.2 m with its detail
+    correlating only weakly (above the bar of 0.5, far below a right fit's 0.95). The gate finds
+    that the model explains the road's census worse than DIS and keeps DIS: the refined road is
+    no worse than DIS's. (If the fit finds the true motion, the refined road must be better.)"""
+    folder = shared_data / "kitti_odometry_straight"
+    if not folder.is_dir():
+        pytest.skip("kitti_odometry_straight is absent")
+    pairs = dict(rr.odometry_clip(folder, 1.65, 0.0, 1))
+    pair = {**rr.turned(pairs["000032"](), 0.0, -2.0, 0.0), "name": "000032"}
+    results = rr.run_pair(pair, {"refiner (no odometry)": rr.METHODS["refiner (no odometry)"]})
+    dis, refined = results["DIS"], results["refiner (no odometry)"]
+    assert refined["census"] <= dis["census"] + 1e-6
+    if refined["refined"]:
+        assert refined["census"] < dis["census"] - 0.05
