@@ -12,7 +12,7 @@ from fsof_torch.data.datasets import SyntheticFlowDataset, collate
 from fsof_torch.geometry.egomotion import ego_motion_from_pose
 from fsof_torch.io import read_kitti_poses
 
-scene = pytest.importorskip("fsof_torch.data.scene")
+import fsof_torch.data.scene as scene
 
 
 @pytest.fixture(scope="module")

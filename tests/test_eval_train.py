@@ -7,7 +7,6 @@ import json
 import pytest
 import torch
 
-pytest.importorskip("fsof_torch.data.scene")
 
 from eval import train  # noqa: E402
 from eval.__main__ import main as eval_main  # noqa: E402

@@ -7,7 +7,6 @@ from __future__ import annotations
 import pytest
 import torch
 
-pytest.importorskip("matplotlib")
 
 from fsof_torch.evaluation.figures import (  # noqa: E402
     PairFigure,
