@@ -27,13 +27,21 @@ Prints four tables, single thread:
    ``slow_max_height_m=None`` (the step kept at max_height_m: such pairs are flagged and left
    unrefined).
 
+With ``--yaw-deg D`` (``--pitch-change-deg``, ``--roll-change-deg``) the real pairs of tables 2 and 3
+are seen as by a camera that also turns between the frames (``real_road.turned``: image 2
+resampled through the rotation's homography, both frames and the polygon cropped to where it is
+defined): the real street's texture in a turn of known motion.
+
 Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow]
+     [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D]
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import statistics
+import sys
 import time
 import warnings
 from pathlib import Path
@@ -123,35 +131,45 @@ def slow_table() -> None:
               f"{e[0]:6.3f} {e[1]:8.3f}  {counts:<19} | {e[2]:20.3f}  {counts_fixed}")
 
 
-def real_pairs(root: Path):
-    """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs."""
+def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)):
+    """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs;
+    with a ``turn`` (yaw, pitch change, roll change in degrees), image 2 as a camera that also
+    turns so between the frames sees it, both frames and the polygon cropped to where it is
+    defined (``real_road.turned``)."""
     from fsof_torch import Camera
     from fsof_torch.io import read_image, read_road_mask
 
     from image_fit_settings import crops
+    from real_road import turned
+
+    def view(name, im1, im2, camera, poly):
+        if not any(turn):
+            return name, im1, im2, camera, poly
+        t = turned({"image1": im1[0], "image2": im2[0], "road": poly[0], "camera": camera}, *turn)
+        return name, t["image1"][None], t["image2"][None], t["camera"], t["road"][None]
 
     k15 = root / "kitti15_000000"
     im1, im2 = (read_image(k15 / f"image_1{i}.png")[None] for i in (0, 1))
     camera = Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65)
     poly = read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool()
-    yield "kitti15 pair", im1, im2, camera, poly
+    yield view("kitti15 pair", im1, im2, camera, poly)
     # the same pair through the 16 windows 4 px smaller: the same scene, other draws of the points
     for i, w in enumerate(crops({"camera": camera, "image1": im1, "image2": im2, "road": poly})):
-        yield f"kitti15 windows {i:02d}", w["image1"], w["image2"], w["camera"], w["road"]
+        yield view(f"kitti15 windows {i:02d}", w["image1"], w["image2"], w["camera"], w["road"])
     clip = root / "kitti_odometry_straight"
     cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
     files = sorted((clip / "image_l").glob("*.png"))
     frames = [read_image(f)[None, :1] for f in files]
     poly = read_road_mask(clip / "road.json", tuple(frames[0].shape[-2:])).reshape(1, 1, *frames[0].shape[-2:]).bool()
     for i in range(len(frames) - 1):
-        yield f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly
+        yield view(f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly)
 
 
-def real_table(root: Path) -> None:
+def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
     from fsof_torch import detect_freespace, detect_road
 
     rows: dict[str, dict[str, list]] = {}
-    for name, im1, im2, cam, poly in real_pairs(root):
+    for name, im1, im2, cam, poly in real_pairs(root, turn):
         group = name.rstrip("0123456789 ")
         flow = dis(im1, im2)
         with warnings.catch_warnings():
@@ -167,7 +185,8 @@ def real_table(root: Path) -> None:
             r["cover"].append(float((m & poly).sum() / poly.sum()))
             r["empty"] += n == 0
             r["flagged"] += flag not in ("", "ok")
-    print("\nReal KITTI: share of the mask inside road.json's polygon, share of the polygon covered")
+    turned = f", image 2 turned by yaw {turn[0]:g}°, pitch {turn[1]:g}°, roll {turn[2]:g}°" if any(turn) else ""
+    print(f"\nReal KITTI{turned}: share of the mask inside road.json's polygon, share of the polygon covered")
     print(f"{'data':>15} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
           f"{'cover min':>9} {'empty':>5} {'flagged':>7}")
     for group, methods in rows.items():
@@ -186,11 +205,11 @@ def timed(fn, repeat: int) -> float:
     return 1000 * statistics.median(times)
 
 
-def time_table(root: Path, repeat: int) -> None:
+def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
     from fsof_torch import detect_road, refine_flow
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
-    name, im1, im2, cam, poly = next(real_pairs(root))
+    name, im1, im2, cam, poly = next(real_pairs(root, turn))
     flow = dis(im1, im2)
     motion = detect_road(im1, im2, cam, flow=flow).motion
     estimator = ImageMotionEstimator()
@@ -221,7 +240,16 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--no-synthetic", action="store_true")
     parser.add_argument("--no-slow", action="store_true")
+    parser.add_argument("--yaw-deg", type=float, default=0.0,
+                        help="the real pairs' image 2 as seen by a camera also turned by this yaw (real_road.py's)")
+    parser.add_argument("--pitch-change-deg", type=float, default=0.0, help="likewise, a pitch change")
+    parser.add_argument("--roll-change-deg", type=float, default=0.0, help="likewise, a roll change")
     args = parser.parse_args(argv)
+    turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
+    if not all(math.isfinite(a) and abs(a) <= 30 for a in turn):
+        print(f"--yaw-deg, --pitch-change-deg, --roll-change-deg: expected finite degrees within ±30, got {turn}",
+              file=sys.stderr)
+        return 2
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     if not args.no_synthetic:
@@ -231,8 +259,8 @@ def main(argv=None) -> int:
     if not args.data.is_dir():
         print(f"\n{args.data} is absent: no real-data tables")
         return 0
-    real_table(args.data)
-    time_table(args.data, args.repeat)
+    real_table(args.data, turn)
+    time_table(args.data, args.repeat, turn)
     return 0
 
 

@@ -38,7 +38,6 @@ Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--ste
 from __future__ import annotations
 
 import argparse
-import itertools
 import math
 import sys
 import time
@@ -305,14 +304,16 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) ->
     return [(p.name, loader(i)) for i, p in enumerate(dataset.pairs) if i % step == 0]
 
 
-def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> dict:
+def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0,
+           window: tuple[int, int, int, int] | None = None) -> dict:
     """``pair`` seen by a camera that also turns by ``yaw_deg`` degrees about the road's normal
     between the frames (positive: to the right, the road models' yaw), then by ``pitch_deg`` and
     ``roll_deg`` about the car's lateral and forward axes (the ``"plane"`` model's pitch_change
     and roll_change, in its signs): image 2 resampled through the rotation's homography
     K Rᵀ K⁻¹ (Lanczos, OpenCV; clipped to 0..255), both frames cropped to the largest
     window in which the turned image 2 is defined, the camera cropped with them, and the
-    ground-truth flow and relative pose composed with the turn."""
+    ground-truth flow and relative pose composed with the turn. ``window``: (r0, r1, c0, c1) to
+    crop to instead, inside the defined region."""
     import cv2
     from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
@@ -335,20 +336,17 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
     defined = (source[2] > 0) & (x >= -eps) & (x <= cols - 1 + eps) & (y >= -eps) & (y <= rows - 1 + eps)
     # the largest window, with up to a fifth of the rows cut at the top and at the bottom, in
     # which every pixel of the turned image 2 is defined (a turn tilts the image's edges)
-    best = (0, 0, 0, 0, 0)
-    for top, bottom in itertools.product(range(0, rows // 5 + 1, max(1, rows // 20)), repeat=2):
-        r0, r1 = top, rows - bottom
-        full = defined[r0:r1].all(0).nonzero().flatten()
-        if full.numel() and (r1 - r0) * full.numel() > best[0]:
-            best = ((r1 - r0) * full.numel(), r0, r1, int(full[0]), int(full[-1]) + 1)
-    area, r0, r1, c0, c1 = best
-    if area == 0:
+    r0, r1, c0, c1 = defined_window(defined) if window is None else window
+    if r1 <= r0 or c1 <= c0:
         raise ValueError(f"the turn ({yaw_deg}°, {pitch_deg}°, {roll_deg}°) leaves no window of image 2 defined")
+    if not bool(defined[r0:r1, c0:c1].all()) or min(r0, c0) < 0:
+        raise ValueError(f"window: {window} reaches beyond where the turned image 2 is defined")
     image2 = pair["image2"].to(torch.float32).permute(1, 2, 0).contiguous().numpy()
     # Lanczos (8 × 8 taps), clipped to 0..255 (its overshoot): bilinear weights would blur image 2
     # against image 1 by up to half its finest detail, and that blur, not the turn, would show in
     # the census and in the auto road
     warped = cv2.warpPerspective(image2, H.numpy(), (cols, rows), flags=cv2.INTER_LANCZOS4).clip(0, 255)
+    warped = warped.reshape(rows, cols, -1)  # (OpenCV drops a single channel's axis)
     out = {**pair, "camera": pair["camera"].cropped(c0, r0, cols - c1, rows - r1)}
     out["image1"] = pair["image1"][..., r0:r1, c0:c1].contiguous()
     out["image2"] = torch.from_numpy(warped[r0:r1, c0:c1]).permute(2, 0, 1).to(pair["image2"].dtype).contiguous()
@@ -364,6 +362,36 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
         turn[:3, :3] = R.T
         out["relative_pose"] = turn @ pair["relative_pose"].to(torch.float64)
     return out
+
+
+def defined_window(defined: torch.Tensor) -> tuple[int, int, int, int]:
+    """The largest window (r0, r1, c0, c1) in which ``defined`` (rows, cols) bool holds everywhere,
+    with up to a fifth of the rows cut at the top and at the bottom, each cut any number of rows (a
+    turn bends the top and bottom rows by fractions of a pixel: a cut in coarse steps would take
+    the nearest road with them), and the longest run of columns full between the cuts. (0, 0, 0, 0)
+    where none."""
+    rows = defined.shape[0]
+    half = rows // 2
+    index = torch.arange(rows).unsqueeze(1)
+    # per column, the rows a window must start below and end above (undefined pixels lie in the
+    # top or the bottom half; a window's ends lie within a fifth of the rows of the frame's)
+    start = torch.where(~defined[:half], index[:half] + 1, 0).amax(0)
+    end = torch.where(~defined[half:], index[half:], rows).amin(0)
+    cuts = torch.arange(rows // 5 + 1)
+    full = (start <= cuts[:, None, None]) & (end >= rows - cuts[None, :, None])  # (top, bottom, column)
+    # the run of full columns ending at each column
+    run = torch.zeros(full.shape, dtype=torch.long)
+    run[..., 0] = full[..., 0]
+    for c in range(1, full.shape[-1]):
+        run[..., c] = (run[..., c - 1] + 1) * full[..., c]
+    longest, last = run.max(-1)
+    area = (rows - cuts[:, None] - cuts[None, :]) * longest
+    best = int(area.flatten().argmax())  # (the first of equal areas: the fewest rows cut at the top)
+    top, bottom = divmod(best, len(cuts))
+    if int(area[top, bottom]) == 0:
+        return 0, 0, 0, 0
+    c1 = int(last[top, bottom]) + 1
+    return top, rows - bottom, c1 - int(longest[top, bottom]), c1
 
 
 def exposed(pair: dict, gain: float) -> dict:

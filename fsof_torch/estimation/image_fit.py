@@ -256,7 +256,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
               data_range: float = 255.0, check_every: int | None = 2,
               forward_starts: Sequence[float] = (2.0, 4.0), turn_starts: Sequence[float] = TURN_STARTS,
-              retry_starts: int = 1, retry_without_prior: bool = True) -> RoadFit:
+              retry_starts: int = 2, retry_without_prior: bool = True) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
     Args:
@@ -281,26 +281,33 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             can land on a wrong motion when the car moves a few heights a frame; these find fast
             driving (at 10 Hz and a 1.65 m high camera, 2 and 4 heights are 119 and 238 km/h).
             Not used where z_d is fixed; ``()``: none.
-        turn_starts: where the fit from every start (and runner-up) fails (below), the turn among
-            these (degrees of yaw per frame, at one camera height ahead) whose motion best aligns
-            the coarsest level's images (a screen: one batched cost, no fit) is solved from the
-            coarsest level too, and a frame takes it where it succeeds or its images correlate
+        turn_starts: where the fit from every start (and runner-up) fails or succeeds only weakly
+            (below), the turn among these (degrees of yaw per frame, at one camera height ahead)
+            whose motion best aligns the coarsest level's images (a screen: one batched cost, no
+            fit) is solved from the coarsest level too; a failed frame takes it where it succeeds
+            or its images correlate better, a weak success where it succeeds and correlates
             better. A sharp turn moves the whole image sideways, beyond the basin of the starts
             straight ahead, and often beyond what a network's flow finds. Costs nothing where
-            the fit succeeds; not used where the yaw is fixed; ``()``: none.
-        retry_starts: where the winning start's fit fails (below), up to this many runners-up,
-            in the order of their two-way cost, are carried down the pyramid in turn; a frame
-            keeps the first that succeeds (else the one whose images correlate best). The
-            two-way cost at a coarse level can prefer a wrong motion (a predicted flow that lost
-            the near road can point backwards); the tests at full resolution tell. 0: none.
-        retry_without_prior: where the fit still fails (and after the turns), the starts compete
-            once more without the prior at the coarsest level (the finer levels keep it), and a
-            frame takes that fit where it succeeds with its detail correlating at least halfway
-            from ``min_correlation`` to 1 (without the prior's guard a fit needs clearer
-            evidence), or where its images correlate better. A jolt of the body (2° of pitch in a
-            frame) lies beyond what the prior lets the coarsest level's few points reach; at speed
-            the same prior keeps the coarse fits plausible, so it stays. Costs nothing where the
-            fit succeeds.
+            the fit succeeds clearly; not used where the yaw is fixed; ``()``: none.
+        retry_starts: where the winning start's fit fails (below), or succeeds only weakly (its
+            detail correlating below halfway from ``min_correlation`` to 1), up to this many
+            runners-up, in the order of their two-way cost, are carried down the pyramid in
+            turn. A runner-up overrules the coarse cost's ranking, so it counts as a success only
+            where its detail correlates clearly (at least halfway); a failed frame keeps the
+            first that does (else the one whose images correlate best), a weak success gives way
+            to one that correlates better. The two-way cost at a coarse level can prefer a wrong
+            motion (a predicted flow that lost the near road can point backwards; a jolt of the
+            body can send a start far ahead, where a blurred level matches the few points in
+            view); the tests at full resolution tell. Costs nothing where the winner succeeds
+            clearly. 0: none.
+        retry_without_prior: where the fit still fails or succeeds only weakly (and after the
+            turns), the starts compete once more without the prior at the coarsest level (the
+            finer levels keep it); a frame takes that fit where it succeeds with its detail
+            correlating at least halfway from ``min_correlation`` to 1 (without the prior's guard
+            a fit needs clearer evidence), and a failed frame also where its images correlate
+            better. A jolt of the body (2° of pitch in a frame) lies beyond what the prior lets
+            the coarsest level's few points reach; at speed the same prior keeps the coarse fits
+            plausible, so it stays. Costs nothing where the fit succeeds clearly.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -484,10 +491,21 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                     "cost": sol.cost, "converged": sol.converged}
 
         coarse = n_levels - 1
+        # a fit whose detail correlates at least halfway from the bar to 1 lines it up clearly;
+        # a weaker success meets the runners-up, and one without the prior needs it (below)
+        clear = 0.5 * (1.0 + min_correlation)
+
+        def settled(fit: dict[str, Tensor]) -> bool:
+            """Every frame's fit succeeded clearly (one host read): a weak success goes on too."""
+            return bool((fit["success"] & (fit["correlation"] >= clear)).all())
+
+        def clearly(fit: dict[str, Tensor]) -> dict[str, Tensor]:
+            """``fit`` with only its clear successes counted as successes."""
+            return {**fit, "success": fit["success"] & (fit["correlation"] >= clear)}
 
         def compete(prior: bool) -> dict[str, Tensor]:
             """The starts solved at the coarsest level (with its prior where ``prior``), the winner
-            carried down, and runners-up where it fails."""
+            carried down, and runners-up where it fails or succeeds weakly."""
             if S == 1:
                 return judged(*descend(params, coarse, prior))
             # the starts compete at the coarsest level, ranked by their two-way robust cost at the
@@ -509,24 +527,24 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
             fit = carried(0)
             for rank in range(1, min(S, 1 + retry_starts)):
-                if bool(fit["success"].all()):  # (one host read per runner-up)
+                if settled(fit):  # (one host read per runner-up)
                     break
-                fit = better_fit(fit, carried(rank))
+                # a runner-up overrules the coarse cost's ranking: it succeeds only clearly
+                fit = better_fit(fit, clearly(carried(rank)), clear)
             return fit
 
         fit = compete(True)
-        if turns and not bool(fit["success"].all()):  # (one host read)
-            # every start failed somewhere: the best turn of the screen, solved from the coarsest level
+        if turns and not settled(fit):
+            # every start failed (or succeeded weakly) somewhere: the best turn of the screen,
+            # solved from the coarsest level
             turning = turning_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse],
                                     masks[coarse], turns, TURN_SPEED, fixed_names, robust, max_points)
             if turning is not None:
-                fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)))
-        if retry_without_prior and prior_mean is not None and not bool(fit["success"].all()):  # (one host read)
-            # still failed: the images alone choose the basin at the coarsest level; without the
-            # prior's guard such a fit must line the detail up clearly, halfway from the bar to 1
-            retried = compete(False)
-            clear = retried["correlation"] >= 0.5 * (1.0 + min_correlation)
-            fit = better_fit(fit, {**retried, "success": retried["success"] & clear})
+                fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)), clear)
+        if retry_without_prior and prior_mean is not None and not settled(fit):
+            # still failed (or weak): the images alone choose the basin at the coarsest level;
+            # without the prior's guard such a fit must line the detail up clearly
+            fit = better_fit(fit, clearly(compete(False)), clear)
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),

@@ -157,9 +157,13 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     return rho / use.sum(1).clamp_min(1)
 
 
-def better_fit(fit: dict[str, Tensor], other: dict[str, Tensor]) -> dict[str, Tensor]:
+def better_fit(fit: dict[str, Tensor], other: dict[str, Tensor], clear: float | None = None) -> dict[str, Tensor]:
     """Two fits of the same frames (dicts of (B, ...) tensors with ``success`` and
     ``correlation``): ``fit`` where it succeeded; elsewhere ``other`` where that succeeds or its
-    images correlate better."""
+    images correlate better. With ``clear``, a success whose detail correlates below ``clear``
+    (a weak one) gives way to a success of ``other`` that correlates better."""
     take = ~fit["success"] & (other["success"] | (other["correlation"] > fit["correlation"]))
+    if clear is not None:
+        take |= fit["success"] & (fit["correlation"] < clear) & other["success"] & (
+            other["correlation"] > fit["correlation"])
     return {k: torch.where(take.reshape(-1, *([1] * (v.dim() - 1))), other[k], v) for k, v in fit.items()}

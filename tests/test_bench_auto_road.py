@@ -1,0 +1,53 @@
+"""``benchmarks/auto_road.py``'s turned real pairs: the real street's texture in a turn of known
+motion, through ``real_road.turned`` (tested in test_bench_real_road.py)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
+
+
+@pytest.fixture
+def bench(load_benchmark, monkeypatch):
+    monkeypatch.syspath_prepend(str(BENCHMARKS))  # (its sibling modules, as when run as a script)
+    return load_benchmark("auto_road")
+
+
+def test_turned_real_pairs_are_real_road_turned(bench, load_benchmark, shared_data):
+    if not (shared_data / "kitti15_000000").is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    name, im1, im2, camera, poly = next(bench.real_pairs(shared_data))
+    name_t, t1, t2, camera_t, poly_t = next(bench.real_pairs(shared_data, (6.0, 0.5, -0.5)))
+    assert name_t == name
+    ref = load_benchmark("real_road").turned({"image1": im1[0], "image2": im2[0], "road": poly[0], "camera": camera},
+                                             6.0, 0.5, -0.5)
+    for got, want in ((t1, ref["image1"]), (t2, ref["image2"]), (poly_t, ref["road"])):
+        assert got.shape == (1, *want.shape) and torch.equal(got[0], want)
+    assert torch.equal(camera_t.K, ref["camera"].K)
+    # cropped to where the turned image 2 is defined, and image 2 itself changed
+    assert t1.shape[-1] < im1.shape[-1] and t1.shape[-2:] == t2.shape[-2:] == poly_t.shape[-2:]
+    assert not torch.equal(t2, im2[..., :t2.shape[-2], :t2.shape[-1]])
+
+
+@pytest.mark.parametrize("option", ["--yaw-deg", "--pitch-change-deg", "--roll-change-deg"])
+@pytest.mark.parametrize("value", ["nan", "45"])
+def test_turn_options_out_of_range_exit_2(bench, option, value, capsys):
+    assert bench.main(["--no-synthetic", "--no-slow", option, value]) == 2
+    assert option in capsys.readouterr().err
+
+
+def test_a_grey_pair_turns_as_the_same_channel_of_a_colour_pair(load_benchmark):
+    """The straight clip's frames are grey (one channel), which OpenCV's warp returns without its
+    channel axis."""
+    from fsof_torch.data.scene import render_pair
+
+    rr = load_benchmark("real_road")
+    pair = render_pair("default", 0, size=(96, 320))
+    grey = {**pair, "image1": pair["image1"][:1], "image2": pair["image2"][:1]}
+    colour, one = rr.turned(pair, 6.0, 1.0), rr.turned(grey, 6.0, 1.0)
+    assert one["image2"].shape == (1, *colour["image2"].shape[-2:])
+    assert torch.equal(one["image2"][0], colour["image2"][0]) and torch.equal(one["image1"][0], colour["image1"][0])
