@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -373,3 +374,29 @@ def test_odometry_clip_driven_fast(shared_data, monkeypatch):
     assert depths == [40.0]
     assert det.flag == ["ok"]
     assert float((det.mask & poly).sum() / poly.sum()) >= 0.6
+
+
+def test_region_keeps_an_undecided_seed_as_road():
+    """A plain lane: the windows at its edges are road evidence, its middle has none (no texture)
+    and the majority around it does not reach; the seed's pixels without a decision are road (the
+    seed's assumption), seed pixels with off-road evidence (a car) stay out."""
+    from fsof_torch.refinement.road_region import road_region
+
+    h, w = 40, 60
+    below = np.zeros((h, w), bool)
+    below[10:] = True
+    seed = np.zeros((h, w), bool)
+    seed[25:, 20:40] = True
+    good = np.zeros((h, w), bool)
+    good[10:, 18:21] = good[10:, 39:42] = True  # the lane's edges
+    bad = np.zeros((h, w), bool)
+    bad[10:, :15] = bad[10:, 45:] = True  # verges
+    ok = np.ones((h, w), bool)
+    testable = np.ones((h, w), bool)
+    road = road_region(good, bad, ok, testable, below, seed, None, 3, 4)
+    assert road[25:, 20:40].all()  # the seed, undecided in its middle
+    assert not road[:, :15].any() and not road[:, 45:].any()
+    car = bad.copy()
+    car[30:36, 26:34] = True  # off-road evidence inside the seed (its neighbours take the majority)
+    road = road_region(good, car, ok, testable, below, seed, None, 3, 4)
+    assert not road[30:36, 26:34].any() and road[25:27, 20:40].all() and road[39, 20:40].all()

@@ -34,11 +34,13 @@ detection:
      show.
 
 4. **Region.** The road evidence connected to the seed; pixels without evidence take the
-   majority of the evidence around them where they are testable, else the decision found along
-   their line through the focus of expansion (the road's edges, kerbs and verges run along those
-   lines: a pixel that leaves the frame takes the decision of the pixel that will be where it is,
-   a pixel too far to test that of the nearest testable one); then the component connected to the
-   seed, with small enclosed holes filled.
+   majority of the evidence around them where they are testable; the seed's pixels still
+   undecided are road (the seed's assumption, which its evidence tests: a plain lane without
+   texture stays road); the others take the decision found along their line through the focus
+   of expansion (the road's edges, kerbs and verges run along those lines: a pixel that leaves
+   the frame takes the decision of the pixel that will be where it is, a pixel too far to test
+   that of the nearest testable one); then the component connected to the seed, with small
+   enclosed holes filled.
 5. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
    ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
    largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:

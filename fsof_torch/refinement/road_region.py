@@ -2,11 +2,12 @@
 the windows' decisions, on NumPy arrays at the working resolution.
 
 The road evidence connected to the seed; pixels without evidence take the majority of the
-evidence around them where they are testable, else the decision found along their line through
-the focus of expansion (the road's edges, kerbs and verges run along those lines: a pixel that
-leaves the frame takes the decision of the pixel that will be where it is, a pixel too far to
-test that of the nearest testable one); then the component connected to the seed, with small
-enclosed holes filled.
+evidence around them where they are testable, the seed's pixels without a decision are road (the
+seed's assumption), and the others take the decision found along their line through the focus of
+expansion (the road's edges, kerbs and verges run along those lines: a pixel that leaves the
+frame takes the decision of the pixel that will be where it is, a pixel too far to test that of
+the nearest testable one); then the component connected to the seed, with small enclosed holes
+filled.
 """
 
 from __future__ import annotations
@@ -78,6 +79,9 @@ def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float]
     local = below & ~core & ~off & testable & ok & (n_road + n_off > 0)
     road = core | (local & (n_road > n_off))
     off = off | (local & (n_road <= n_off))
+    # the seed is road by assumption (its evidence tests it: an implausible seed is flagged): where
+    # nothing there says otherwise (a plain lane without texture), it stays road
+    road = road | (seed & below & ~off)
     if focus is not None:
         decisions = np.full(road.shape, -1, dtype=np.int8)
         decisions[off] = 0
