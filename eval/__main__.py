@@ -19,7 +19,8 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m eval", description=__doc__.split("\n")[0])
+    parser = argparse.ArgumentParser(prog="python -m eval", description="the evaluation job: the paper's "
+                                     "experiments and the test net's training, one subcommand each")
     sub = parser.add_subparsers(dest="command", metavar="SUBCOMMAND")
     for name, (_, help_text) in SUBCOMMANDS.items():
         sub.add_parser(name, help=help_text, add_help=False)

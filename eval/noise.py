@@ -30,19 +30,19 @@ DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/noise"), metavar="DIR",
                         help="output folder for the PNGs and noise.json (default runs/noise)")
-    parser.add_argument("--json", type=Path, nargs="?", const=None, default=None, metavar="PATH",
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/noise.json")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="render size of the CVC12-like scenes (default 375 1242; --quick: 96 320)")
     parser.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
-                        help="noise levels for the fit-robustness curve, px")
+                        help="noise levels for the fit-robustness curve, px (default 0, 1/64, ..., 4; --quick: 0, 1/32, 0.5, 2)")
     parser.add_argument("--pose-sigmas", type=float, nargs="+", default=None, metavar="S",
-                        help="noise levels for the pose-estimation curves, px")
+                        help="noise levels for the pose-estimation curves, px (default 0, 0.25, 0.5, 1, 2, 4, 8; --quick: 0, 1, 4)")
     parser.add_argument("--pose-size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="virtual image size of the pose experiment (default 375 1242; --quick: 120 400)")
     parser.add_argument("--trials", type=int, default=None, metavar="N",
                         help="random poses per noise level (default 32; --quick: 3)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of the scenes, the noise and the poses")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the scenes, the noise and the poses (default 0)")
     parser.add_argument("--quick", action="store_true", help="small and fast: one scenario, few σ, small images")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")

@@ -230,6 +230,11 @@ def run(args: argparse.Namespace) -> int:
     if args.no_kitti:
         tables.discard("kitti")
     if "kitti" in tables and not (args.kitti / "flow_noc_10.png").is_file():
+        if args.kitti != DEFAULT_KITTI or "kitti" in (args.only or ()):
+            # asked for: an error, not an empty table
+            option = "--kitti" if args.kitti != DEFAULT_KITTI else "--only kitti"
+            print(f"error: {option}: no KITTI sample (flow_noc_10.png) at {str(args.kitti)!r}", file=sys.stderr)
+            return 2
         print(f"note: no KITTI sample at {args.kitti}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
     rolls = (0, 5, -5) if args.quick else (0, 5, -5, 10, -10)

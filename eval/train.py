@@ -24,6 +24,7 @@ holds ``--batch / N`` of them). Rank 0 evaluates, prints and writes the outputs.
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import time
@@ -46,8 +47,8 @@ __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluat
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=150, help="optimiser steps per run (default 150)")
     parser.add_argument("--seed", type=int, default=0,
-                        help="seed of the net, the batches and the training scenes (held-out: seed + 1000)")
-    parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.data.scene.PRESETS)")
+                        help="seed of the net, the batches and the training scenes (held-out: seed + 1000; default 0)")
+    parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.data.scene.PRESETS; default: default)")
     parser.add_argument("--size", type=int, nargs=2, default=(64, 224), metavar=("H", "W"),
                         help="image size of the rendered pairs (default 64 224)")
     parser.add_argument("--batch", type=int, default=4, help="pairs per step (default 4)")
@@ -55,7 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--freespace-weight", type=float, default=0.1,
                         help="weight of the freespace term in the second run (default 0.1)")
     parser.add_argument("--odometry", choices=("given", "fit"), default="given",
-                        help="freespace term from the pairs' odometry, or fitted to the prediction")
+                        help="freespace term from the pairs' odometry, or fitted to the prediction (default: given)")
     parser.add_argument("--iters", type=int, default=4, help="GRU iterations of the test net (default 4)")
     parser.add_argument("--train-pairs", type=int, default=24, help="training pairs rendered (default 24)")
     parser.add_argument("--test-pairs", type=int, default=6, help="held-out pairs rendered (default 6)")
@@ -234,11 +235,36 @@ def _photometric_row(name: str, m: dict) -> str:
             f"{m['all']['census']:>11.4f} {m['all']['ssim']:>9.4f} {m['all']['l1']:>8.2f}")
 
 
+def _bad_input(args: argparse.Namespace) -> str | None:
+    """The first bad option as a message naming it, or None."""
+    from fsof_torch.data.scene import PRESETS
+
+    for option in ("steps", "batch", "train_pairs", "test_pairs", "iters"):
+        if getattr(args, option) < 1:
+            return f"--{option.replace('_', '-')}: expected at least 1, got {getattr(args, option)}"
+    if min(args.size) < 16:
+        return f"--size: expected H, W >= 16, got {list(args.size)}"
+    for option in ("lr", "freespace_weight"):
+        if not (math.isfinite(getattr(args, option)) and getattr(args, option) > 0):
+            return f"--{option.replace('_', '-')}: expected a finite number > 0, got {getattr(args, option)}"
+    if args.threads < 0:
+        return f"--threads: expected >= 0 (0: torch's default), got {args.threads}"
+    if args.preset not in PRESETS:
+        return f"--preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}"
+    try:
+        device = torch.device(args.device)
+    except RuntimeError:
+        return f"--device: not a torch device: {args.device!r}"
+    if device.type == "cuda" and not torch.cuda.is_available():
+        return f"--device: {args.device!r} requested but CUDA is not available"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
-    if args.steps < 1 or args.batch < 1 or args.train_pairs < 1 or args.test_pairs < 1:
-        raise SystemExit("--steps, --batch, --train-pairs and --test-pairs must be positive")
-    if args.freespace_weight <= 0:
-        raise SystemExit(f"--freespace-weight must be > 0 (the second run uses it), got {args.freespace_weight}")
+    bad = _bad_input(args)
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device(args.device)
@@ -254,7 +280,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ranks) -> int:
     if args.batch % ranks.world_size:
-        raise SystemExit(f"--batch: {args.batch} pairs cannot be shared evenly by {ranks.world_size} processes")
+        print(f"error: --batch: {args.batch} pairs cannot be shared evenly by {ranks.world_size} processes",
+              file=sys.stderr)
+        return 2
     if device.type == "cuda" and device.index is None and ranks.distributed:
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
     progress = not args.no_progress and ranks.rank == 0

@@ -48,7 +48,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="row residual below which a row is an inlier of the curve (default 0.5)")
     parser.add_argument("--relative-threshold", type=float, default=0.05, metavar="FRAC",
                         help="relative row threshold: max(PX, FRAC·|F_v|) (default 0.05)")
-    parser.add_argument("--out", type=Path, default=Path("runs/vflow"), metavar="DIR", help="output folder")
+    parser.add_argument("--out", type=Path, default=Path("runs/vflow"), metavar="DIR",
+                        help="output folder (default runs/vflow)")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/vflow.json")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -175,11 +176,19 @@ def run(args: argparse.Namespace) -> int:
         if not args.flow.is_file():
             print(f"error: --flow: no file at {str(args.flow)!r}", file=sys.stderr)
             return 2
-        flow, valid = read_flow(args.flow)
+        try:
+            flow, valid = read_flow(args.flow)
+        except ValueError as err:
+            print(f"error: --flow: {err}", file=sys.stderr)
+            return 2
         flow, valid = flow[None].double(), valid[None]
         mask = valid
         if args.mask is not None:
-            mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
+            try:
+                mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
+            except (ValueError, FileNotFoundError) as err:
+                print(f"error: --mask: {err}", file=sys.stderr)
+                return 2
         info["source"] = {"flow": str(args.flow), "mask": str(args.mask) if args.mask else None,
                           "size": list(flow.shape[-2:])}
     bar.update(1)

@@ -74,7 +74,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
     g.add_argument("--road", metavar="DIR|FILE.json|auto", help="road masks: PNG folder (named like the pairs), "
-                   "a polygon JSON, or auto (found in the images: docs/auto-road.md)")
+                   "a polygon JSON, or auto (found in the images: docs/auto-road.md); required with --images; "
+                   "synthetic scenes and the KITTI samples have their own, or take auto")
     g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
     g = p.add_argument_group("shared KITTI samples")
@@ -84,8 +85,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = p.add_argument_group("flow networks")
     g.add_argument("--source", type=_list(SOURCES), default=None,
-                   help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet; "
-                        "with --net: net; with --flows: the files)")
+                   help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet on "
+                        "synthetic data, dis on real data; with --net: net; with --flows: the files)")
     g.add_argument("--testnet-weights", type=Path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
     g.add_argument("--net", metavar="MODULE:CALLABLE",
                    help="your flow network: a factory returning an nn.Module (e.g. mypkg.models:make_raft)")
@@ -97,15 +98,17 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = p.add_argument_group("refinement")
     g.add_argument("--odometry", type=_list(VARIANTS), default=None,
-                   help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: "
-                        "given,fit,photometric on synthetic data; given with --poses, else fit)")
+                   help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: synthetic "
+                        "data: given,fit,photometric; --images: sequence for a clip, photometric for "
+                        "KITTI *_10/*_11 pairs or a single pair, plus given_images with --poses; "
+                        "--kitti15: fit,photometric; --kitti-odometry: given,sequence,photometric)")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
     g.add_argument("--scale", type=float, default=2.0, help="Cauchy scale in px for --mode confidence (default: %(default)s)")
-    g.add_argument("--fit-roll", action="store_true", help="also fit the camera roll")
-    g.add_argument("--fit-pitch", action="store_true", help="also fit the camera pitch")
+    g.add_argument("--fit-roll", action="store_true", help="variant fit: also fit the camera roll")
+    g.add_argument("--fit-pitch", action="store_true", help="variant fit: also fit the camera pitch")
     g.add_argument("--calibrate-pitch", action="store_true",
-                   help="calibrate the camera's pitch and roll over the road from the clip's images (with --poses "
-                        "also its height) and refine every variant with it")
+                   help="calibrate the camera's pitch and roll over the road from the clip's images (with poses, "
+                        "--poses or the odometry sample's, also its height) and refine every variant with it")
 
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, default=None,
@@ -142,6 +145,38 @@ def default_out(args: argparse.Namespace) -> Path:
     return DEFAULT_OUT / name
 
 
+def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
+    """Options that the chosen input does not use are refused, not silently ignored (``real``:
+    the real-data input chosen, None for the synthetic scenes)."""
+    from .inputs import JobError
+
+    if real is not None:
+        synthetic = {"--preset": args.preset != "default", "--num-pairs": args.num_pairs != DEFAULT_PAIRS,
+                     "--size": tuple(args.size) != DEFAULT_SIZE, "--seed": args.seed != 0,
+                     "--scene-noise": args.scene_noise is not None}
+        for option, given in synthetic.items():
+            if given:
+                raise JobError(f"{option}: applies to the synthetic scenes, not to --{real.replace('_', '-')}")
+    if real == "images":
+        return
+    what = "the synthetic scenes have their own camera" if real is None else \
+        f"--{real.replace('_', '-')} has its own calibration{' and poses' if real == 'kitti_odometry' else ''}"
+    own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg != 0.0,
+           "--height": real is None and args.height != 1.65,
+           "--pitch-deg": real != "kitti_odometry" and args.pitch_deg != 0.0}
+    if real is not None:
+        own.update({"--calib": args.calib is not None, "--calib-size": args.calib_size is not None,
+                    "--poses": args.poses is not None, "--gt": args.gt is not None})
+    for option, given in own.items():
+        if given:
+            raise JobError(f"{option}: applies to --images ({what})")
+    if real is not None and args.road not in (None, "auto"):
+        raise JobError(f"--road: --{real.replace('_', '-')} uses its own road.json, or 'auto'")
+    given = [v for v in args.odometry or () if v.startswith("given")]
+    if real == "kitti15" and given:
+        raise JobError(f"--odometry {given[0]}: the KITTI 2015 pair has no poses; use fit or photometric")
+
+
 def _configure(args: argparse.Namespace):
     """Options -> (pair specs, camera, config parts, input identity), checked before any work."""
     from .inputs import JobError, kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
@@ -157,6 +192,9 @@ def _configure(args: argparse.Namespace):
         raise JobError("--checkpoint needs --net (the network the state_dict is for)")
     if args.net_contract != "auto" and args.net is None:
         raise JobError("--net-contract needs --net")
+    if args.net is not None and args.flows is not None:
+        raise JobError("--net and --flows: give one of them (the flows are another network's predictions)")
+    _refuse_unused(args, chosen[0] if chosen else None)
     notes: list[str] = []
     camera = None
     calibrate = args.calibrate_pitch
@@ -224,6 +262,13 @@ def _configure(args: argparse.Namespace):
                     "noise": args.scene_noise}
     if "net" in sources and args.net is None:
         raise JobError("--source net needs --net module:callable")
+    if args.testnet_weights is not None and "testnet" not in sources:
+        raise JobError(f"--testnet-weights: the run has no testnet source (sources: {','.join(sources)})")
+    for flag in ("fit_roll", "fit_pitch"):
+        if getattr(args, flag) and "fit" not in variants:
+            raise JobError(f"--{flag.replace('_', '-')}: applies to the variant fit, which this run does not do "
+                           f"(--odometry {','.join(variants)})")
+
     if "testnet" in sources and args.testnet_weights is None:
         notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
                      "it shows the wrapper on a RAFT-style output.")

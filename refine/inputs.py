@@ -83,7 +83,8 @@ def options_of(options: dict[str, str] | str) -> Iterator[None]:
     except (ValueError, TypeError, FileNotFoundError) as err:
         argument, sep, rest = str(err).partition(": ")
         if not (sep and re.fullmatch(r"[a-z_0-9]+", argument)):
-            raise  # not a message about an argument: a bug, shown as such
+            raise  # not a message about an argument: raised as it came (the job's main reports
+            # a ValueError or FileNotFoundError with exit 2, anything else as a traceback)
         if isinstance(options, str):
             raise JobError(f"{options}: {err}") from None
         if argument not in options:
@@ -137,6 +138,16 @@ def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, 
 
 # -- user data -----------------------------------------------------------------------------------
 
+def check_mounting(height: float, roll_deg: float = 0.0, pitch_deg: float = 0.0) -> None:
+    """``--height`` (m, > 0), ``--roll-deg`` and ``--pitch-deg``: finite, checked before any
+    dataset is built (so that a bad value is named by its own option)."""
+    for name, value in (("--height", height), ("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
+        if not math.isfinite(value):
+            raise JobError(f"{name}: expected a finite number, got {value}")
+    if not height > 0:
+        raise JobError(f"--height: expected > 0 m, got {height}")
+
+
 def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, roll_deg: float,
                pitch_deg: float, poses: Path | None, flows: Path | None, road: str | None,
                gt: Path | None, calib_size: tuple[int, int] | None = None) -> tuple[list[PairSpec], Camera]:
@@ -146,11 +157,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
     load)."""
     from fsof_torch.data.folders import match_files
 
-    for name, value in (("--height", height), ("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
-        if not math.isfinite(value):
-            raise JobError(f"{name}: expected a finite number, got {value}")
-    if not height > 0:
-        raise JobError(f"--height: expected > 0 m, got {height}")
+    check_mounting(height, roll_deg, pitch_deg)
     if road is None:
         raise JobError("--road: user data needs road masks: a folder of PNGs, a polygon JSON, or 'auto'")
     with options_of(USER_OPTIONS):
@@ -176,6 +183,7 @@ def kitti15_pairs(root: Path, *, height: float) -> tuple[list[PairSpec], Camera]
     from fsof_torch.datasets import KittiSampleDataset
 
     need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt", "flow_noc_10.png", "road.json"]
+    check_mounting(height)
     missing = [n for n in need if not (root / n).is_file()]
     if missing:
         raise JobError(f"--kitti15: {str(root)!r} lacks {missing}")
@@ -189,6 +197,7 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float) -> tupl
     (cam 0), calib.txt (P0), poses.txt, road.json; the frames that have a pose."""
     from fsof_torch.datasets import KittiOdometryDataset
 
+    check_mounting(height, pitch_deg=pitch_deg)
     for n in ("image_l", "calib.txt", "poses.txt", "road.json"):
         if not (root / n).exists():
             raise JobError(f"--kitti-odometry: {str(root)!r} lacks {n}")

@@ -46,6 +46,10 @@ def test_tables_bad_arguments(tmp_path, capsys):
     assert "--pairs" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main(["tables", "--only", "nope"])
+    # a KITTI sample asked for but absent: an error, not an empty table
+    assert main(["tables", "--kitti", str(tmp_path / "none"), "--out", str(tmp_path), "--no-progress"]) == 2
+    assert f"--kitti: no KITTI sample (flow_noc_10.png) at {str(tmp_path / 'none')!r}" in capsys.readouterr().err
+    assert not (tmp_path / "tables.json").exists()
 
 
 def test_paper_figures_and_formatting():

@@ -43,9 +43,19 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     net.load_state_dict(torch.load(out / "tinyraft_unsupervised_freespace.pt"))
 
 
-def test_train_job_rejects_bad_options():
-    with pytest.raises(SystemExit, match="--freespace-weight must be > 0"):
-        train.main(["--freespace-weight", "0", "--steps", "1"])
+@pytest.mark.parametrize("argv, message", [
+    (["--freespace-weight", "0"], "--freespace-weight: expected a finite number > 0, got 0.0"),
+    (["--steps", "0"], "--steps: expected at least 1, got 0"),
+    (["--test-pairs", "-1"], "--test-pairs: expected at least 1"),
+    (["--size", "8", "64"], "--size: expected H, W >= 16"),
+    (["--lr", "nan"], "--lr: expected a finite number > 0"),
+    (["--preset", "nope"], "--preset: unknown preset 'nope'"),
+    (["--device", "bogus"], "--device: not a torch device: 'bogus'"),
+])
+def test_train_job_rejects_bad_options(capsys, argv, message):
+    """Exit 2 with a message naming the option, before anything is rendered or trained."""
+    assert eval_main(["train", *argv, "--steps" if "--steps" not in argv else "--batch", "1"]) == 2
+    assert message in capsys.readouterr().err
 
 
 def test_dispatcher_help(capsys):

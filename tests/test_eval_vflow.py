@@ -52,3 +52,14 @@ def test_vflow_bad_arguments(tmp_path, capsys):
     assert main(["vflow", "--flow", str(tmp_path / "missing.flo"), "--out", str(tmp_path)]) == 2
     assert "--flow" in capsys.readouterr().err
     assert main(["vflow", "--preset", "nope", "--out", str(tmp_path), "--no-progress"]) == 2
+    # a file that is not a flow, a mask that is not an image: exit 2 naming the option
+    (tmp_path / "bad.flo").write_bytes(b"12345")
+    assert main(["vflow", "--flow", str(tmp_path / "bad.flo"), "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "error: --flow:" in capsys.readouterr().err
+    from fsof_torch.io import write_flow
+
+    flow = tmp_path / "good.flo"
+    write_flow(flow, torch.zeros(2, 32, 48))
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "bad.png"), "--out", str(tmp_path), "--no-progress"])
+    assert rc == 2 and "error: --mask:" in capsys.readouterr().err

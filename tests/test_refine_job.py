@@ -804,3 +804,35 @@ def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, sce
     assert rec["flow_png_dropped"] == 10 * W
     written, valid = read_kitti_flow(out / "files" / "photometric" / "flow" / "000000.png")
     assert not valid[..., :10, :].any() and valid[..., 10:, :].all()
+
+
+def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsys):
+    """An option the chosen input would ignore exits 2 naming it, before any work."""
+    out = ["--out", str(tmp_path / "o"), "--no-progress"]
+    user = _user(user_folder, tmp_path / "o", "--road", "auto")
+    for extra, option in ((["--preset", "crest"], "--preset"), (["--num-pairs", "2"], "--num-pairs"),
+                          (["--seed", "3"], "--seed"), (["--scene-noise", "1"], "--scene-noise"),
+                          (TINY[:2], "--size")):
+        assert f"{option}: applies to the synthetic scenes, not to --images" in _err(capsys, [*user, *extra])
+    for extra, option in ((["--cam", "2"], "--cam"), (["--roll-deg", "1"], "--roll-deg"),
+                          (["--height", "1.5"], "--height"), (["--pitch-deg", "1"], "--pitch-deg")):
+        assert f"{option}: applies to --images (the synthetic scenes have their own camera)" in _err(
+            capsys, [*out, *TINY, *extra])
+    kitti15, odometry = ["--kitti15", str(tmp_path / "k15"), *out], ["--kitti-odometry", str(tmp_path / "odo"), *out]
+    for argv, option in (([*kitti15, "--calib", str(user_folder / "calib.txt")], "--calib"),
+                         ([*kitti15, "--pitch-deg", "1"], "--pitch-deg"),
+                         ([*odometry, "--roll-deg", "1"], "--roll-deg"),
+                         ([*odometry, "--poses", str(user_folder / "poses.txt")], "--poses"),
+                         ([*odometry, "--gt", str(user_folder / "gt")], "--gt")):
+        assert f"{option}: applies to --images (--" in _err(capsys, argv)
+    assert "--road: --kitti15 uses its own road.json" in _err(capsys, [*kitti15, "--road", str(user_folder / "road")])
+    assert "--odometry given: the KITTI 2015 pair has no poses" in _err(capsys, [*kitti15, "--odometry", "fit,given"])
+    # a bad mounting value is named by its own option, not by the sample's
+    assert "--height: expected > 0 m" in _err(capsys, [*kitti15, "--height", "-1"])
+    assert "--pitch-deg: expected a finite number" in _err(capsys, [*odometry, "--pitch-deg", "nan"])
+    assert "--testnet-weights: the run has no testnet source" in _err(
+        capsys, [*user, "--testnet-weights", str(tmp_path / "w.pt")])
+    assert "--fit-roll: applies to the variant fit" in _err(capsys, [*user, "--fit-roll"])
+    assert "--net and --flows: give one of them" in _err(
+        capsys, [*user, "--net", "mypkg:make", "--flows", str(user_folder / "flows")])
+    assert not (tmp_path / "o").exists()
