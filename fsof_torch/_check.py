@@ -44,6 +44,7 @@ __all__ = [
     "skip_values",
     "result_dtype",
     "autocast_off",
+    "batch_choices",
     "check_has_values",
     "as_chw_flow",
 ]
@@ -282,7 +283,8 @@ def check_data_range(data_range: object, name: str = "data_range") -> float:
 
 
 def check_image_range(image: Tensor, name: str, data_range: float) -> None:
-    """Finite values in [0, data_range] up to 1% (catches 0-255 images passed as 0-1 and NaN pixels).
+    """Finite values in [0, data_range] up to 1% (catches 0-255 images passed as 0-1, 0-1 images
+    passed as 0-255, and NaN pixels).
 
     A NaN pixel would spread through bilinear taps and filter windows into its neighbours' values,
     so an image must be finite everywhere, not only where it is evaluated."""
@@ -298,6 +300,11 @@ def check_image_range(image: Tensor, name: str, data_range: float) -> None:
         raise ValueError(
             f"{name}: expected values in [0, data_range={data_range:g}], got values in "
             f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
+    if data_range > 1.5 and 0.0 < hi <= 1.0:
+        # (a 0..255 frame whose brightest pixel is at most 1 grey level is no image to judge)
+        raise ValueError(f"{name}: values in [{lo:g}, {hi:g}] look like 0..1 images, expected 0..{data_range:g}: "
+                         f"scale them by {data_range:g}, or pass data_range=1.0 where the function takes it "
+                         f"(the refiner and its gate take 0..255 images)")
 
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
@@ -335,8 +342,18 @@ def check_all_finite(named: dict[str, Tensor]) -> None:
             check_finite(t, name)
 
 
+def batch_choices(B: int) -> str:
+    """The batch sizes an argument may have beside a batch of B, for messages: ``"1 or B"``
+    (``"1"`` where B is 1)."""
+    return "1" if B == 1 else f"1 or {B}"
+
+
 def resolve_batch(named: dict[str, int]) -> int:
-    """The common batch size of arguments whose sizes are 1 or B; raise on a mismatch."""
+    """The common batch size of arguments whose sizes are 1 or B; raise on a mismatch or an empty
+    batch (nothing to compute: the geometry of no frame)."""
+    empty = [n for n, b in named.items() if b < 1]
+    if empty:
+        raise ValueError(f"{empty[0]}: expected a batch of at least 1, got {named[empty[0]]}")
     sizes = {n: b for n, b in named.items() if b != 1}
     if len(set(sizes.values())) > 1:
         listing = ", ".join(f"{n}={b}" for n, b in sizes.items())

@@ -285,12 +285,22 @@ def test_bad_inputs_are_named(kitti_K):
         detect_road(im, im, cam, flow=torch.zeros(1, 3, 64, 200))
     with pytest.raises(ValueError, match="image1"):
         detect_road(im * 10, im, cam)  # beyond 0..255
+    with pytest.raises(ValueError, match=r"image1: expected images of at least 16x16 pixels .*got shape \(1, 3, 8, 200\)"):
+        detect_road(im[..., :8, :], im[..., :8, :], cam)
     with pytest.raises(TypeError, match="image1"):
         detect_road(im.to(torch.uint8), im, cam)
     with pytest.raises(ValueError, match="mask: expected a bool tensor .* or 'auto', got 'road'"):
         refine_flow(torch.zeros(1, 2, 64, 200), "road", cam, images=(im, im))
     with pytest.raises(ValueError, match="width_m: expected a finite number of metres > 0"):
         road_seed(cam, (64, 200), width_m=-1.0)
+    # the refiner's "auto" checks its images as with a given mask
+    flow = torch.zeros(1, 2, 64, 200)
+    with pytest.raises(TypeError, match="images: expected a pair .image1, image2., got Tensor"):
+        refine_flow(flow, "auto", cam, images=im)
+    with pytest.raises(TypeError, match="images: expected a pair .image1, image2., got tuple"):
+        refine_flow(flow, "auto", cam, images=(im, im, im))
+    with pytest.raises(ValueError, match=r"images\[0\]: expected shape \(1, C, 64, 200\)"):
+        refine_flow(flow, "auto", cam, images=(torch.cat([im, im]), torch.cat([im, im])))
 
 
 # -- real data ------------------------------------------------------------------------------------

@@ -164,6 +164,9 @@ def test_kitti_files_in_tmp_path(tmp_path):
     assert Camera.from_kitti(tmp_path / "calib.txt", cam=2).cy.tolist() == [190.0]
     cam = Camera.from_kitti(tmp_path / "calib_unlabelled.txt", cam=1, dtype=torch.float32)
     assert cam.dtype == torch.float32 and cam.fx.tolist() == pytest.approx([707.0912])
+    for half in (torch.float16, torch.bfloat16):  # a float32 camera, its values not rounded to half
+        cam = Camera.from_kitti(tmp_path / "calib.txt", cam=0, dtype=half)
+        assert cam.dtype == torch.float32 and cam.fx.tolist() == [pytest.approx(707.0912, abs=1e-4)]
     cam = Camera.from_projection(P, 1.5)
     assert cam.cx.tolist() == [609.5593] and cam.height.tolist() == [1.5]
 
@@ -386,3 +389,43 @@ def test_meta_camera_cannot_move_to_a_real_device():
     with pytest.raises(ValueError, match="camera: a camera on the meta device has shapes but no values to move to another device"):
         cam.to("cpu")
     assert cam.to(torch.float64).device.type == "meta"
+
+
+def test_camera_geometry_keeps_its_precision_under_autocast():
+    """Under a bfloat16 autocast the camera's transforms, its mounting and what is built on them
+    give what they give without it: geometry never runs in half precision."""
+    from fsof_torch import ego_motion_from_pose, mounting_matrix, road_flow
+
+    cam = Camera(torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]]), 1.65,
+                 0.013, -0.021)
+    T = torch.eye(4)
+    T[:3, 3] = torch.tensor([0.03, -0.01, -1.2])
+    odometry = {"x_d": 0.05, "z_d": 1.2, "yaw": 0.01}
+
+    def compute():
+        return {"scaled": cam.scaled(0.5).K, "cropped": cam.cropped(3, 5).K, "padded": cam.padded(3, 0, 3, 1).K,
+                "mounting": cam.mounting(), "matrix": mounting_matrix(cam.roll, cam.pitch),
+                "horizon": cam.horizon_row(), "pose": torch.stack(ego_motion_from_pose(T[None], cam)[:3]),
+                "flow": road_flow(cam.scaled(0.5), odometry, (188, 621))[0]}
+
+    plain = compute()
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        cast = compute()
+    for name, value in plain.items():
+        assert cast[name].dtype == value.dtype == torch.float32, name
+        assert torch.equal(cast[name], value), name
+
+
+def test_an_empty_camera_batch_is_refused():
+    """A batch of no cameras, or an expansion to none, is an error naming it (not a crash later
+    in the geometry)."""
+    from fsof_torch import road_flow
+
+    cam = Camera(torch.tensor([[700.0, 0, 320], [0, 700.0, 120], [0, 0, 1]]), 1.65)
+    with pytest.raises(ValueError, match="K: expected a batch of at least 1, got 0"):
+        Camera(cam.K.expand(0, 3, 3), 1.65)
+    for size in (0, -1, 1.5, True):
+        with pytest.raises(ValueError, match=f"batch_size: expected an int >= 1, got {size!r}"):
+            cam.expand(size)
+    with pytest.raises(ValueError, match="x_d: expected a batch of at least 1, got 0"):
+        road_flow(cam, {k: torch.zeros(0) for k in ("x_d", "z_d", "yaw")}, (48, 160))

@@ -174,6 +174,14 @@ def test_check_shape_rejects_empty_images():
     assert check_shape(torch.zeros(1, 0), "x", ("B", "N"), nonempty=()) == {"B": 1, "N": 0}
 
 
+def test_resolve_batch_refuses_an_empty_batch():
+    from fsof_torch._check import resolve_batch
+
+    assert resolve_batch({"K": 1, "x_d": 3}) == 3
+    with pytest.raises(ValueError, match="x_d: expected a batch of at least 1, got 0"):
+        resolve_batch({"K": 1, "x_d": 0})
+
+
 def test_value_checks_skip_meta_tensors():
     meta = torch.full((3,), float("nan"), device="meta")
     assert skip_values(meta) and not skip_values(torch.zeros(1))

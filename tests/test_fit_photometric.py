@@ -68,7 +68,7 @@ def test_exceptions():
         fit_photometric(image1, image2, mask.float(), cam)
     bad = image1.clone()
     bad[0, 0, 50, 50] = float("nan")
-    with pytest.raises(ValueError, match="image1: expected finite values"):
+    with pytest.raises(ValueError, match="image1: expected finite pixel values"):
         fit_photometric(bad, image2, mask, cam)
     with pytest.raises(ValueError, match="robust: expected one of"):
         fit_photometric(image1, image2, mask, cam, robust="nope")

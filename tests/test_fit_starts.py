@@ -288,3 +288,26 @@ def test_a_pitch_jolt_is_found_by_the_retry_without_the_coarse_prior(load_benchm
     assert not bool(alone.success[0])
     with pytest.raises(TypeError, match="retry_without_prior"):
         fit_image(*images, road, t["camera"], retry_without_prior="yes")
+
+
+def test_start_names_and_values_are_checked():
+    """A start or init with a name of no road model (a typo) or a value that is not a number is
+    an error naming it (``starts[i]`` or ``init``), not silently left aside; another model's
+    parameters (a fit of another model as a start) still are."""
+    from fsof_torch import fit_displacement
+
+    p = render_pair("default", 0, size=(48, 160))
+    im1, im2, flow, road, cam = p["image1"][None], p["image2"][None], p["flow"][None].float(), p["road"][None], p["camera"]
+    with pytest.raises(ValueError, match=r"init: unknown parameters \['bogus'\]; expected some of the 'plane' model's"):
+        fit_image(im1, im2, road, cam, init={"bogus": 1.0})
+    with pytest.raises(ValueError, match=r"starts\[1\]: unknown parameters \['zd'\]"):
+        fit_image(im1, im2, road, cam, starts=[{"z_d": 1.0}, {"zd": 1.0}])
+    with pytest.raises(ValueError, match=r"starts\[0\]: expected a finite z_d, got \[nan\]"):
+        fit_image(im1, im2, road, cam, starts=[{"z_d": float("nan")}])
+    with pytest.raises(TypeError, match="init: expected a number or a tensor for x_d, got str 'a'"):
+        fit_image(im1, im2, road, cam, init={"x_d": "a"})
+    with pytest.raises(ValueError, match=r"init: unknown parameters \['bogus'\]; expected some of the 'paper' model's"):
+        fit_displacement(flow, road, cam, init={"bogus": 1.0})
+    # a plane-model start for the paper model: its pitch and roll changes are not the model's
+    fit = fit_displacement(flow, road, cam, init={"z_d": 1.0, "pitch_change": 0.001})
+    assert bool(fit.success.all())

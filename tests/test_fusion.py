@@ -292,6 +292,21 @@ def test_nan_prediction_inside_and_outside_mask():
         assert torch.isfinite(out.flow[~torch.isnan(bad)]).all()
 
 
+def test_a_prediction_not_finite_anywhere_in_the_mask_is_replaced_given_odometry():
+    """With odometry the model flow needs no predicted pixel: a mask whose every prediction is
+    NaN is still refined (the model replaces them, as the warning says), not left NaN."""
+    pred, mask, cam, gt = make_case()
+    bad = pred.clone()
+    bad[mask.expand_as(bad)] = float("nan")
+    with pytest.warns(RuntimeWarning, match="replaced by the model flow"):
+        out = FreespaceRefiner()(bad, mask, cam, ODO)
+    assert bool(out.refined.all())
+    inside = mask.expand_as(bad)
+    assert torch.isfinite(out.flow[inside]).all()
+    torch.testing.assert_close(out.flow[inside], gt.float()[inside], rtol=0, atol=1e-4)
+    assert torch.equal(out.flow[~inside], pred[~inside])
+
+
 def test_nan_in_another_level_than_the_finest():
     """The finest flow's finiteness decides the fast path only for that level: a NaN in a
     coarser level of a list still gets the model inside the mask in confidence mode."""
@@ -330,7 +345,7 @@ def test_bad_options_and_flows():
         FreespaceRefiner()(pred[:, :1], mask, cam, ODO)
     with pytest.raises(TypeError, match="flow: expected a flow tensor"):
         FreespaceRefiner()("flow", mask, cam, ODO)
-    with pytest.raises(ValueError, match="camera: expected batch 1 or 1"):
+    with pytest.raises(ValueError, match="camera: expected batch 1 "):
         FreespaceRefiner()(pred, mask, make_camera(B=2), ODO)
 
 
@@ -599,6 +614,20 @@ def test_estimator_options_checked_when_built():
         ImageMotionEstimator(flow_start="x")
     with pytest.raises(TypeError, match=r"options: options \['starts'\] are set by the caller itself"):
         ImageMotionEstimator(starts=[])
+
+
+def test_image_estimator_inputs_are_checked_images_first():
+    from fsof_torch.refinement.estimators import ImageMotionEstimator
+
+    pred, mask, cam, _ = make_case()
+    image = torch.rand(1, 3, H, W) * 255
+    estimator = ImageMotionEstimator()
+    with pytest.raises(ValueError, match=rf"flow: expected shape \(B, 2, H, W\) with H={H}"):
+        estimator(pred[..., :-4, :], mask, cam, images=(image, image))
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with B >= 1"):
+        estimator(pred[:0], mask[:0], cam, images=(image[:0], image[:0]))
+    with pytest.raises(ValueError, match=r"image1: values in .* look like 0..1 images, expected 0..255: scale them by 255"):
+        FreespaceRefiner()(pred, mask, cam, images=(image / 255, image / 255))
 
 
 def test_gate_arguments_named():

@@ -180,3 +180,23 @@ def test_gate_options_are_checked(kwargs, match):
 def test_gate_flags_are_checked(kwargs, match):
     with pytest.raises(TypeError, match=match):
         ImageGate(**kwargs)
+
+
+def test_gate_inputs_are_checked_images_first():
+    """The frames fix the size: a flow or mask of another size is the one named; an empty batch
+    is refused; bfloat16 flows are judged like float32 ones (the object test's host copy)."""
+    from fsof_torch import render_pair
+
+    p = render_pair("default", 0, size=(48, 160))
+    im1, im2, flow, road = p["image1"][None], p["image2"][None], p["flow"][None].float(), p["road"][None]
+    gate = ImageGate()
+    with pytest.raises(ValueError, match=r"prediction: expected shape \(B, 2, H, W\) with H=48"):
+        gate(im1, im2, flow[..., :40, :], flow, road)
+    with pytest.raises(ValueError, match=r"model: expected shape \(B, 2, H, W\) with W=160"):
+        gate(im1, im2, flow, flow[..., :100], road)
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with B >= 1"):
+        gate(im1[:0], im2[:0], flow[:0], flow[:0], road[:0])
+    model = flow + 0.5
+    plain = gate(im1, im2, flow, model, road)
+    half = gate(im1.bfloat16(), im2.bfloat16(), flow.bfloat16(), model.bfloat16(), road)
+    assert half.use_model.shape == plain.use_model.shape and half.cost_model.dtype == torch.float32

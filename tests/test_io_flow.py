@@ -66,6 +66,9 @@ class TestExceptions:
             read_flow(tmp_path / "i.npy")
         with pytest.raises(FileNotFoundError):
             read_flow(tmp_path / "none.npy")
+        np.save(tmp_path / "e.npy", np.zeros((2, 0, 5), np.float32))  # as .flo: no empty flow
+        with pytest.raises(ValueError, match=r"e\.npy' holds an empty flow of shape \(2, 0, 5\)"):
+            read_flow(tmp_path / "e.npy")
 
     def test_zero_byte_and_npz_npy(self, tmp_path):
         """A zero-byte .npy once raised a bare EOFError."""

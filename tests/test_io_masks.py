@@ -108,6 +108,13 @@ class TestExceptions:
         bad = _write_json(tmp_path / "d.json", {"size": [3, 3], "road_polygon": [[0, 0], [1, 1]]})
         with pytest.raises(ValueError, match="at least three"):
             read_road_mask(bad)
+        # a corrupt size would ask for terabytes; a file nested past Python's recursion limit
+        huge = _write_json(tmp_path / "e.json", {"size": [1000000, 1000000], "road_polygon": [[0, 0], [9, 0], [9, 9]]})
+        with pytest.raises(ValueError, match=r"\['size'\]: expected sides \[H, W\] of at most 65536 pixels"):
+            read_road_mask(huge)
+        (tmp_path / "f.json").write_text("[" * 100000 + "]" * 100000)
+        with pytest.raises(ValueError, match="nested too deeply"):
+            read_road_mask(tmp_path / "f.json")
 
     def test_writer_errors(self, tmp_path):
         with pytest.raises(TypeError, match="bool tensor"):

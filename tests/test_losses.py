@@ -254,6 +254,11 @@ def test_errors_name_the_argument():
         photometric_loss(image1, image2, flow, road.float())
     with pytest.raises(ValueError, match=r"road: expected shape .*H=48"):
         freespace_flow_loss(flow, road[..., :10, :], cam, odo)
+    # an empty batch: nothing to average (not a NaN mean)
+    with pytest.raises(ValueError, match=r"flows\[0\]: expected shape \(B, 2, H, W\) with B >= 1"):
+        freespace_flow_loss(flow[:0], road[:0], cam, odo)
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\) with B >= 1"):
+        photometric_loss(image1[:0], image2[:0], flow[:0])
     with pytest.raises(ValueError, match="penalty: expected one of"):
         freespace_flow_loss(flow, road, cam, odo, penalty="huber")
     with pytest.raises(ValueError, match="odometry: missing keys"):

@@ -99,6 +99,12 @@ def test_range_check_catches_wrong_data_range():
         photometric_error(i1 / 255, i2, flow, data_range=1.0)
     with pytest.raises(ValueError, match="image1: expected values in"):
         photometric_error(i1 - 128, i2, flow)
+    # 0..1 images with the default 0..255 range: refused, not judged as almost black frames
+    for call in (lambda: photometric_error(i1 / 255, i2 / 255, flow),
+                 lambda: photometric_errors(i1 / 255, i2 / 255, flow),
+                 lambda: PhotometricError()(i1 / 255, i2 / 255, flow)):
+        with pytest.raises(ValueError, match=r"image1: values in \[.*\] look like 0..1 images, expected 0..255: scale them by 255, or pass data_range=1.0"):
+            call()
 
 
 def test_bad_arguments():

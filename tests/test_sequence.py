@@ -173,6 +173,9 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(frames[:1], road, cam)
     with pytest.raises(ValueError, match="passes"):
         fit_sequence(frames[:3], road, cam, passes=3)
+    for name in ("attitude_deg", "body_rotation_deg"):
+        with pytest.raises(ValueError, match=f"{name}: expected a finite number of degrees > 0"):
+            fit_sequence(frames[:3], road, cam, **{name: 0.0})
     with pytest.raises(ValueError, match="mask: expected one mask or 2"):
         fit_sequence(frames[:3], [road] * 3, cam)
     with pytest.raises(ValueError, match="flows: expected 2"):
@@ -186,3 +189,20 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(frames[:3], road, two)
     with pytest.raises(ValueError, match="poses"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))
+    # each item is checked as it is read (named by its index), before any fit
+    H, W = frames[0].shape[-2:]
+    with pytest.raises(TypeError, match="frames: expected a sequence of tensors"):
+        fit_sequence(None, road, cam)
+    with pytest.raises(TypeError, match="mask: expected a sequence of tensors"):
+        fit_sequence(frames[:3], None, cam)
+    with pytest.raises(ValueError, match=r"frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) \(an image\), "
+                                          r"got \(2, 3, "):
+        fit_sequence([torch.stack([f, f]) for f in frames[:3]], road, cam)
+    with pytest.raises(ValueError, match=rf"frames\[1\]: expected shape \(C, {H}, {W}\)"):
+        fit_sequence([frames[0], frames[1][..., :-8], frames[2]], road, cam)
+    with pytest.raises(ValueError, match=rf"mask: expected shape \(1, {H}, {W}\) or \(1, 1, {H}, {W}\)"):
+        fit_sequence(frames[:3], road[None].expand(2, -1, -1, -1), cam)
+    with pytest.raises(TypeError, match=r"mask\[0\]: expected a bool tensor, got dtype torch.float32"):
+        fit_sequence(frames[:3], [road.float(), road.float()], cam)
+    with pytest.raises(ValueError, match=rf"flows\[0\]: expected shape \(2, {H}, {W}\)"):
+        fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, H - 8, W), torch.zeros(2, H, W)])

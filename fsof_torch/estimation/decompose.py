@@ -8,7 +8,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_int, check_shape
+from .._check import batch_choices, check_float_tensor, check_has_values, check_int, check_shape
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import ROAD_MODELS, plane_from_homography
@@ -44,7 +44,7 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     B = H.shape[0]
     if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (H's B), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(B)} (H's B), got {camera.batch_size}")
     check_int(size, "size", minimum=8)
     check_has_values(H, "H", "to decompose (the decomposition is a fit)")
     check_has_values(camera.K, "camera", "to decompose a homography (the decomposition is a fit)")

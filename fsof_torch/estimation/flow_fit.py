@@ -26,11 +26,11 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values,
+from .._check import (autocast_off, batch_choices, check_bool, check_fit_flags, check_float_tensor, check_has_values,
                       check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import (RoadModel, get_road_model, homography_values,
+from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
                                     plane_from_homography)
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
@@ -230,7 +230,7 @@ def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera,
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
-        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the flow's B), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(dims['B'])} (the flow's B), got {camera.batch_size}")
     if dims["B"] == 0 or dims["H"] == 0 or dims["W"] == 0:
         raise ValueError(f"flow: expected a non-empty batch and image, got shape {tuple(flow.shape)}")
     camera = camera.expand(dims["B"]).to(device=flow.device)
@@ -267,26 +267,38 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
         raise ValueError(f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
 
 
-def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor) -> tuple[Tensor, list[bool]]:
-    """Start values (B, P) float64: ``init``'s (a :class:`RoadFit` of the same model or a dict of
-    any of the model's parameters) over ``default``; and (P,) flags of the names given."""
+def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor,
+                 what: str = "init") -> tuple[Tensor, list[bool]]:
+    """Start values (B, P) float64: ``init``'s (a :class:`RoadFit` or a dict of any of the model's
+    parameters) over ``default``; and (P,) flags of the names given. Another road model's
+    parameters (a fit of another model as a start) are left aside; a name of no road model (a
+    typo) is an error naming ``what``."""
     B, P = default.shape
     given = [False] * P
     if init is None:
         return default, given
     values = init.params if isinstance(init, RoadFit) else init
     if not isinstance(values, Mapping):
-        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
+        raise TypeError(f"{what}: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
+    known = {"model"} | {n for m in ROAD_MODELS.values() for n in m.params}  # (a road motion's own form)
+    unknown = sorted(str(n) for n in values if n not in known)
+    if unknown:
+        raise ValueError(f"{what}: unknown parameters {unknown}; expected some of the {model.name!r} model's "
+                         f"{model.params}")
     out = default.clone()
     for i, name in enumerate(model.params):
         value = values.get(name)
         if value is None:
             continue
-        t = torch.as_tensor(value, dtype=torch.float64, device=default.device).detach().reshape(-1)
+        try:
+            t = torch.as_tensor(value, dtype=torch.float64, device=default.device).detach().reshape(-1)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{what}: expected a number or a tensor for {name}, got {type(value).__name__} "
+                            f"{value!r:.40}") from None
         if t.numel() not in (1, B):
-            raise ValueError(f"init: expected {name} of batch 1 or {B}, got {t.numel()} values")
+            raise ValueError(f"{what}: expected {name} of batch {batch_choices(B)}, got {t.numel()} values")
         if not bool(torch.isfinite(t).all()):
-            raise ValueError(f"init: expected a finite {name}, got {t.tolist()}")
+            raise ValueError(f"{what}: expected a finite {name}, got {t.tolist()}")
         out[:, i] = t.expand(B)
         given[i] = True
     return out, given
@@ -635,7 +647,7 @@ def _wheelbase(wheelbase: Tensor | float, flow: Tensor) -> Tensor:
     else:
         raise TypeError(f"wheelbase: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
     if isinstance(flow, Tensor) and flow.dim() == 4 and wb.numel() not in (1, flow.shape[0]):
-        raise ValueError(f"wheelbase: expected batch 1 or {flow.shape[0]}, got {wb.numel()} values")
+        raise ValueError(f"wheelbase: expected batch {batch_choices(flow.shape[0])}, got {wb.numel()} values")
     if not bool((torch.isfinite(wb) & (wb > 0)).all()):
         raise ValueError(f"wheelbase: expected values > 0, got {wb.tolist()}")
     return wb

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._check import check_bool, check_has_values, check_mapping
+from .._check import batch_choices, check_bool, check_has_values, check_mapping
 from ..geometry.camera import Camera
 from .flow_fit import fit_displacement
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
@@ -103,7 +103,7 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     dims, use = check_flow_mask(flow, mask)
     B, H, W = dims["B"], dims["H"], dims["W"]
     if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (from flow), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(B)} (from flow), got {camera.batch_size}")
     for name, value in (("threshold", threshold), ("relative_threshold", relative_threshold),
                         ("seed_threshold", seed_threshold),
                         ("seed_relative_threshold", seed_relative_threshold),

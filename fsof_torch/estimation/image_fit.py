@@ -39,8 +39,9 @@ from typing import Any, Callable, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, check_bool, check_fit_flags, check_float_tensor, check_has_values, check_image_pair, check_int,
-                      check_mapping, check_names, check_number, check_shape, result_dtype)
+from .._check import (autocast_off, batch_choices, check_bool, check_data_range, check_fit_flags, check_float_tensor,
+                      check_has_values, check_image_pair, check_image_range, check_int, check_mapping, check_names,
+                      check_number, check_shape, result_dtype)
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
@@ -211,20 +212,10 @@ def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
-        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the images' B), got {camera.batch_size}")
-    if not (isinstance(data_range, (int, float)) and not isinstance(data_range, bool)
-            and math.isfinite(data_range) and data_range > 0):
-        raise ValueError(f"data_range: expected a finite number > 0, got {data_range!r}")
-    for name, img in (("image1", image1), ("image2", image2)):
-        lo, hi = torch.aminmax(img.detach())
-        lo, hi = float(lo), float(hi)
-        if not (math.isfinite(lo) and math.isfinite(hi)):
-            raise ValueError(f"{name}: expected finite values, got NaN or inf")
-        if lo < -0.01 * data_range or hi > 1.01 * data_range:
-            raise ValueError(f"{name}: expected values in [0, data_range={data_range:g}], got [{lo:g}, {hi:g}]")
-        if data_range > 1.5 and 0.0 < hi <= 1.0:
-            raise ValueError(f"{name}: values in [{lo:g}, {hi:g}] look like 0..1 images; pass data_range=1.0 "
-                             f"(expected 0..{data_range:g})")
+        raise ValueError(f"camera: expected batch {batch_choices(dims['B'])} (the images' B), got {camera.batch_size}")
+    data_range = check_data_range(data_range)
+    check_image_range(image1, "image1", data_range)
+    check_image_range(image2, "image2", data_range)
     return dims, mask
 
 

@@ -35,6 +35,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
+from .._check import check_keywords
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model
 from .flow_fit import RoadFit
@@ -136,8 +137,18 @@ def _stack(records: Sequence[_PairRecord]) -> dict[str, Tensor]:
     return {k: torch.cat([r.params[k].double().reshape(-1) for r in records]) for k in records[0].params}
 
 
-def _batched(x: Tensor) -> Tensor:
-    return x if x.dim() == 4 else x.unsqueeze(0)
+def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tuple[int, int] | None = None) -> Tensor:
+    """One frame, mask or flow of a clip as (1, C, H, W), checked: C in ``channels``, (H, W) the
+    clip's ``size`` where known (items are read lazily, one by one)."""
+    if not isinstance(x, Tensor):
+        raise TypeError(f"{name}: expected a tensor ({what}), got {type(x).__name__}")
+    y = x.unsqueeze(0) if x.dim() == 3 else x
+    if (y.dim() != 4 or y.shape[0] != 1 or y.shape[1] not in channels or min(y.shape[-2:]) < 1
+            or (size is not None and tuple(y.shape[-2:]) != size)):
+        c = "C" if len(channels) > 1 else str(channels[0])
+        hw = "H, W" if size is None else f"{size[0]}, {size[1]}"
+        raise ValueError(f"{name}: expected shape ({c}, {hw}) or (1, {c}, {hw}) ({what}), got {tuple(x.shape)}")
+    return y
 
 
 @torch.no_grad()
@@ -173,19 +184,33 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     Returns:
         :class:`SequenceFit`.
     """
+    for name, value in (("frames", frames), ("mask", mask), ("flows", flows)):
+        if not isinstance(value, Tensor) and not (hasattr(value, "__len__") and hasattr(value, "__getitem__")):
+            if name != "flows" or value is not None:
+                raise TypeError(f"{name}: expected a sequence of tensors (a list, or an object with len() and "
+                                f"indexing), got {type(value).__name__}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
     if passes not in (1, 2):
         raise ValueError(f"passes: expected 1 or 2, got {passes!r}")
+    for name, value in (("attitude_deg", attitude_deg), ("body_rotation_deg", body_rotation_deg)):
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+            raise ValueError(f"{name}: expected a finite number of degrees > 0 (a standard deviation), got {value!r}")
     if not isinstance(camera, Camera) or camera.batch_size != 1:
         raise TypeError("camera: expected a fsof_torch.Camera of batch 1")
     N = len(frames) - 1
     if not isinstance(mask, Tensor) and len(mask) != N:
         raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(mask)}")
 
-    def mask_of(k: int) -> Tensor:
+    def mask_of(k: int, size: tuple[int, int]) -> Tensor:
+        name = "mask" if isinstance(mask, Tensor) else f"mask[{k}]"
         m = mask if isinstance(mask, Tensor) else mask[k]
-        return m.reshape(1, 1, *m.shape[-2:])
+        if isinstance(m, Tensor) and m.dim() == 2:
+            m = m.unsqueeze(0)
+        m = _item(m, name, "the road of the pair's first frame", (1,), size)
+        if m.dtype != torch.bool:
+            raise TypeError(f"{name}: expected a bool tensor, got dtype {m.dtype}")
+        return m
 
     if poses is not None:
         poses = torch.as_tensor(poses)
@@ -196,6 +221,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             raise ValueError("poses: expected finite values, got NaN or inf")
     if flows is not None and len(flows) != N:
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
+    check_keywords(options, "options", fit_image, reserved=("init", "starts", "prior"))
     model = get_road_model(options.pop("model", "plane"))
     if model.name != "plane":
         raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
@@ -222,11 +248,16 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     z = prev["z_d"].abs()
                     prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
                                  yaw=(prev["yaw"], 1.0 * DEG))
-            road = mask_of(k)
+            # each frame is read once per pass, in order: the last pair's second frame is this one's first
+            image1 = image2 if image2 is not None else _item(frames[k], f"frames[{k}]", "an image", (1, 3))
+            size = tuple(image1.shape[-2:])
+            image2 = _item(frames[k + 1], f"frames[{k + 1}]", "an image of the clip's size", (1, 3), size)
+            road = mask_of(k, size)
             if flows is not None:
                 from ..refinement.estimators import planar_start
 
-                starts.append(planar_start(_batched(flows[k]).to(torch.float64), road, cam))
+                flow = _item(flows[k], f"flows[{k}]", "a flow of the frames' size", (2,), size)
+                starts.append(planar_start(flow.to(torch.float64), road, cam))
             init = None
             if track is not None:  # the attitude and its change: start at the smoothed track, tied to it
                 init = {}
@@ -236,9 +267,6 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior[n] = (init[n], sigma[k:k + 1])
                     prior[n + "_change"] = (init[n + "_change"], 0.1 * body_rotation_deg * DEG)
                 starts = [{n: v for n, v in st.items() if n not in attitude} for st in starts]
-            # each frame is read once per pass, in order: the last pair's second frame is this one's first
-            image1 = image2 if image2 is not None else _batched(frames[k])
-            image2 = _batched(frames[k + 1])
             fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
                             **options)
             records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all())))

@@ -43,7 +43,7 @@ def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any
     """Start values (B, P) float64: ``init`` over zero motion (the base), then each of ``starts``
     over the base (a start gives some parameters; the others are the base's)."""
     base, _ = start_values(model, init, camera, default)
-    return [base] + [start_values(model, s, camera, base)[0] for s in starts]
+    return [base] + [start_values(model, s, camera, base, f"starts[{i}]")[0] for i, s in enumerate(starts)]
 
 
 def check_forward_steps(steps: object) -> tuple[float, ...]:

@@ -23,6 +23,7 @@ from torch import Tensor
 
 from .._check import (
     as_batch_param,
+    autocast_off,
     check_finite,
     check_float_tensor,
     check_positive,
@@ -62,7 +63,8 @@ def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
     if roll.dim() and pitch.dim():
         resolve_batch({"roll": roll.shape[0], "pitch": pitch.shape[0]})
     dtype = torch.promote_types(Rr.dtype, Rp.dtype)
-    return Rr.to(dtype) @ Rp.to(dtype)
+    with autocast_off(Rr):  # (the angles' own precision, also under autocast)
+        return Rr.to(dtype) @ Rp.to(dtype)
 
 
 def camera_value_bounds(dtype: torch.dtype) -> tuple[float, float]:
@@ -215,7 +217,8 @@ class Camera:
 
         Pixels strictly below this row (larger v) see the road in front of the camera.
         """
-        A = self.mounting().transpose(-1, -2) @ self.K_inv()  # rows: vehicle-frame ray of p̃
+        with autocast_off(self.K):
+            A = self.mounting().transpose(-1, -2) @ self.K_inv()  # rows: vehicle-frame ray of p̃
         u = self.cx if u is None else u
         # ray_y = A[1,0] u + A[1,1] v + A[1,2] = 0
         return -(A[:, 1, 0] * u + A[:, 1, 2]) / A[:, 1, 1]
@@ -249,6 +252,8 @@ class Camera:
     def expand(self, batch_size: int) -> "Camera":
         """The same camera for ``batch_size`` frames (from a batch of 1; ``self`` if it has
         that batch already)."""
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"batch_size: expected an int >= 1, got {batch_size!r}")
         if self.batch_size == batch_size:
             return self
         if self.batch_size != 1:
@@ -299,7 +304,8 @@ class Camera:
         S = torch.tensor([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]],
                          dtype=self.dtype, device=self.device)
         try:
-            return self.replace(K=S @ self.K)
+            with autocast_off(self.K):
+                return self.replace(K=S @ self.K)
         except ValueError as err:
             raise ValueError(f"sx, sy: the camera resized by ({sx!r}, {sy!r}) is out of range: {err}") from None
 
@@ -334,7 +340,8 @@ class Camera:
             return self
         T = torch.tensor([[1.0, 0.0, float(du)], [0.0, 1.0, float(dv)], [0.0, 0.0, 1.0]],
                          dtype=self.dtype, device=self.device)
-        return Camera._checked(T @ self.K, self.height, self.roll, self.pitch)
+        with autocast_off(self.K):
+            return Camera._checked(T @ self.K, self.height, self.roll, self.pitch)
 
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,
@@ -350,8 +357,12 @@ class Camera:
     def from_kitti(cls, path: str | os.PathLike, cam: int = 2, height: float = 1.65,
                    roll: float = 0.0, pitch: float = 0.0, dtype: torch.dtype = torch.float64) -> "Camera":
         """From a KITTI calibration file: raw ``calib_cam_to_cam.txt`` (``P_rect_0{cam}``) or
-        odometry ``calib.txt`` (``P{cam}``). The height is not in the file (KITTI: about 1.65 m)."""
+        odometry ``calib.txt`` (``P{cam}``). The height is not in the file (KITTI: about 1.65 m).
+        A half precision ``dtype`` gives a float32 camera, as the constructor does (the file's
+        values are not rounded to half precision on the way)."""
         P = read_kitti_calibration(path, cam)
+        if dtype in (torch.float16, torch.bfloat16):
+            dtype = torch.float32
         return cls.from_projection(torch.as_tensor(P, dtype=dtype), height, roll, pitch)
 
 

@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import as_batch_param, check_finite, check_positive, resolve_batch, result_dtype
+from .._check import as_batch_param, autocast_off, check_finite, check_positive, resolve_batch, result_dtype
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
@@ -40,7 +40,8 @@ def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
     P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
     resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
     dtype = result_dtype(P0, P1)
-    return torch.linalg.inv(P1.to(dtype)) @ P0.to(dtype)
+    with autocast_off(P0):
+        return torch.linalg.inv(P1.to(dtype)) @ P0.to(dtype)
 
 
 def as_pose_4x4(T: Tensor, name: str) -> Tensor:
@@ -88,6 +89,11 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
     if camera is not None and not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera or None, got {type(camera).__name__}")
     T = relative_pose(cam1_T_cam0, pose1) if pose1 is not None else as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
+    with autocast_off(T):  # (geometry in the inputs' precision, also under autocast)
+        return _planar_projection(T, camera)
+
+
+def _planar_projection(T: Tensor, camera: Camera | None) -> EgoMotion:
     R, t = T[:, :3, :3], T[:, :3, 3]
     if camera is not None:
         Rc = camera.mounting().to(T.dtype)

@@ -128,8 +128,12 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
     return torch.from_numpy(canvas > 0).unsqueeze(0)
 
 
+_MAX_SIDE = 1 << 16  # pixels a side: beyond any camera's frame (a corrupt size would fill memory)
+
+
 def _check_size(size: object, name: str) -> tuple[int, int]:
-    """(H, W): two positive ints (a float such as 375.0 or 375.5 is rejected, not truncated)."""
+    """(H, W): two positive ints (a float such as 375.0 or 375.5 is rejected, not truncated), at
+    most 65536 each."""
     if not isinstance(size, (list, tuple)) or len(size) != 2:
         raise ValueError(f"{name}: expected [H, W] (two positive integers), got {size!r:.60}")
     for s in size:
@@ -137,6 +141,8 @@ def _check_size(size: object, name: str) -> tuple[int, int]:
             raise TypeError(f"{name}: expected integer sides [H, W], got {size!r:.60}")
         if s <= 0:
             raise ValueError(f"{name}: expected positive sides [H, W], got {list(size)!r}")
+        if s > _MAX_SIDE:
+            raise ValueError(f"{name}: expected sides [H, W] of at most {_MAX_SIDE} pixels, got {list(size)!r:.60}")
     return int(size[0]), int(size[1])
 
 
@@ -196,6 +202,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
                              f"{err.start})") from None
         except json.JSONDecodeError as err:
             raise ValueError(f"{where} is not valid JSON: {err}") from None
+        except RecursionError:
+            raise ValueError(f"{where} is nested too deeply to be a road polygon file") from None
         named = _polygons_from_json(obj, where)
         own = obj.get("size") if isinstance(obj, dict) else None
         if own is None and size is None:

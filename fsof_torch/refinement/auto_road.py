@@ -62,7 +62,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import all_finite, check_float_tensor, check_shape
+from .._check import all_finite, batch_choices, check_float_tensor, check_keywords, check_shape
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -365,16 +365,21 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     from .._check import check_data_range, check_image_pair, check_image_range
 
     dims = check_image_pair(image1, image2)
+    if dims["B"] < 1:
+        raise ValueError(f"image1: expected a batch of at least 1, got shape {tuple(image1.shape)}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
-        raise ValueError(f"camera: expected batch 1 or {dims['B']} (the images' B), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(dims['B'])} (the images' B), got {camera.batch_size}")
     if flow is not None:
         check_float_tensor(flow, "flow")
         check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
     data_range = check_data_range(data_range)
     check_image_range(image1, "image1", data_range)
     check_image_range(image2, "image2", data_range)
+    if min(dims["H"], dims["W"]) < 16:
+        raise ValueError(f"image1: expected images of at least 16x16 pixels (the evidence's windows), got shape "
+                         f"{tuple(image1.shape)}")
     for name in ("level", "seed_level"):
         v = options[name]
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
@@ -617,6 +622,12 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
 
     if mask != "auto":
         raise ValueError(f"mask: expected a bool tensor (B, 1, H, W) or 'auto', got {mask!r}")
+    # (options the detection does not take, or that the refiner sets itself, raise here, named)
+    if images is not None:
+        check_keywords(dict(road_options or {}), "road_options", detect_road,
+                       reserved=("flow", "motion", "estimator", "odometry", "starts"))
+    else:
+        check_keywords(dict(road_options or {}), "road_options", detect_freespace)
     _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
     options = dict(road_options or {})
     if images is None:

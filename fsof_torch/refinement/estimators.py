@@ -124,17 +124,21 @@ class ImageMotionEstimator:
         if not isinstance(images, (tuple, list)) or len(images) != 2:
             raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
         image1, image2 = images
+        # (the images first: a flow of another size is named, not the frames)
+        dims: dict[str, int] = {}
+        for name, image in (("image1", image1), ("image2", image2)):
+            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims, nonempty=("B", "H", "W"))
         check_has_values(image1, "image1", "to fit (a fit is iterative and data dependent)")
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
         check_mask(mask, "mask")
         if flow is not None:  # (the flow is only a start: fit_image checks the rest)
-            dims = check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"))
-            for name, image in (("image1", image1), ("image2", image2)):
-                check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims)
+            check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"), dims)
             if mask.dim() != 4 or mask.shape[0] not in (1, dims["B"]) or tuple(mask.shape[1:]) != (1, dims["H"], dims["W"]):
                 raise ValueError(f"mask: expected shape ({dims['B']}, 1, {dims['H']}, {dims['W']}) (the flow's; batch 1 "
                                  f"is broadcast), got {tuple(mask.shape)}")
+        if not isinstance(starts, (list, tuple)):
+            raise TypeError(f"starts: expected a list or tuple of start candidates, got {type(starts).__name__}")
         options = dict(self.options)
         starts = list(starts)
         fixed = options.pop("fixed", None)

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import (check_float_tensor, check_has_values, check_mask, check_names, check_number,
+from .._check import (batch_choices, check_float_tensor, check_has_values, check_mask, check_names, check_number,
                       check_shape, check_size, skip_values, tracing)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
@@ -320,12 +320,6 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                          fit_options=fit_options, photometric_options=photometric_options, starts=starts)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
-        return refine_with_auto_road(
-            refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
-            road_estimator=images and _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options),
-            estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
-            fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
     flow_keys = check_names(flow_keys, "flow_keys")
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
@@ -336,6 +330,14 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     for name, f in flows:
         if f.shape[0] != B:
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
+    if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
+        images = _check_images(images, finest)
+        return refine_with_auto_road(
+            refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
+            road_estimator=None if images is None else _estimator(estimator, fit, images, fit_roll, fit_pitch,
+                                                                  fit_options, photometric_options),
+            estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
+            fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
     if not isinstance(mask, Tensor):
         raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {type(mask).__name__}")
     if mask.dtype != torch.bool:
@@ -343,7 +345,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[0] not in (1, B) or tuple(mask.shape[-2:]) != (H, W):
         raise ValueError(f"mask: expected shape ({B}, 1, {H}, {W}) (the finest flow's size), got {tuple(mask.shape)}")
     if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (the flow's batch), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's batch), got {camera.batch_size}")
     images = _check_images(images, finest)
     if fit == "photometric" and images is None:
         raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
@@ -377,8 +379,12 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     given_model = None if odometry is None else road_motion(odometry)[0].name
     # the paper's planar odometry leaves the rest of the road's motion to the images
     estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
-    # min_pixels guards estimation; with odometry given any mask pixel can be refined.
-    refined = counts >= (min_pixels if odometry is None else 1)
+    # min_pixels guards estimation; with odometry given any mask pixel can be refined, also one
+    # whose prediction is not finite (the model flow needs no prediction)
+    if odometry is None:
+        refined = counts >= min_pixels
+    else:
+        refined = (counts if all_finite else mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)) >= 1
 
     fit_result = None
     cam_model = camera

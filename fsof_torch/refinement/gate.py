@@ -206,12 +206,14 @@ class ImageGate:
         host read for them): a point where an image or a flow is not finite gives no evidence
         either way. The gate samples the mask's pixels (data dependent): on the meta
         device it raises a ValueError."""
-        dims = check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"))
-        check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
+        # (the images first: a flow or mask of another size is named, not the frames)
+        dims: dict[str, int] = {}
         for name, image in (("image1", image1), ("image2", image2)):
-            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims)
+            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims, nonempty=("B", "H", "W"))
             if image.shape[1] not in (1, 3):
                 raise ValueError(f"{name}: expected 1 or 3 channels (grey or RGB), got shape {tuple(image.shape)}")
+        check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"), dims)
+        check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
         check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"), dims)
         check_has_values(prediction, "prediction", "to judge by the images (the gate samples the mask's pixels; "
                          "a refiner with gate=None infers shapes on the meta device)")
@@ -281,7 +283,7 @@ class ImageGate:
         inside = (at_mask(prediction) - at_mask(model)).square().sum(0)
         gap = inside.new_zeros(B * h * w_box).index_put_(((frame * h + row - top) * w_box + col - left,), inside)
         # connected regions on the CPU (OpenCV): one transfer per call
-        gap = gap.reshape(B, h, w_box).to("cpu").numpy()
+        gap = gap.reshape(B, h, w_box).to("cpu", torch.float32).numpy()  # (NumPy has no bfloat16)
         # the judged points in the box (padding points, which carry no weight, clamped into it)
         px, py = pts.pix % W - left, torch.div(pts.pix, W, rounding_mode="floor") - top
         pix_np = (py.clamp(0, h - 1) * w_box + px.clamp(0, w_box - 1)).to("cpu").numpy()

@@ -47,6 +47,7 @@ from torch import Tensor, nn
 
 from .._check import (
     autocast_off,
+    batch_choices,
     check_data_range,
     check_finite,
     check_float_tensor,
@@ -104,7 +105,7 @@ def _as_flow_list(flows: Tensor | Sequence[Tensor], name: str = "flows") -> list
 
 def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
     check_float_tensor(flow, name)
-    check_shape(flow, name, ("B", 2, "H", "W"), dims)
+    check_shape(flow, name, ("B", 2, "H", "W"), dims, nonempty=("B", "H", "W"))
 
 
 def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int]) -> None:
@@ -486,7 +487,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     _check_mask(road, "road", dims)
     B, size = dims["B"], (dims["H"], dims["W"])
     if camera.batch_size not in (1, B):
-        raise ValueError(f"camera: expected batch 1 or {B} (the flows' batch), got {camera.batch_size}")
+        raise ValueError(f"camera: expected batch {batch_choices(B)} (the flows' batch), got {camera.batch_size}")
     last = fw[-1]
     work = result_dtype(*fw)
     device = last.device
