@@ -14,6 +14,7 @@ import contextlib
 import functools
 import math
 import numbers
+import os
 from collections.abc import Iterable, Mapping
 from typing import ContextManager, Sequence
 
@@ -43,6 +44,7 @@ __all__ = [
     "tracing",
     "skip_values",
     "result_dtype",
+    "as_path",
     "autocast_off",
     "batch_choices",
     "check_has_values",
@@ -340,6 +342,15 @@ def check_all_finite(named: dict[str, Tensor]) -> None:
     if not all_finite(flat):
         for name, t in named.items():
             check_finite(t, name)
+
+
+def as_path(path: object, name: str = "path") -> "os.PathLike":
+    """``path`` as a ``pathlib.Path``: a str or an os.PathLike, else a TypeError naming it."""
+    from pathlib import Path
+
+    if isinstance(path, bool) or not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__} {path!r:.60}")
+    return Path(path)
 
 
 def batch_choices(B: int) -> str:

@@ -429,3 +429,10 @@ def test_an_empty_camera_batch_is_refused():
             cam.expand(size)
     with pytest.raises(ValueError, match="x_d: expected a batch of at least 1, got 0"):
         road_flow(cam, {k: torch.zeros(0) for k in ("x_d", "z_d", "yaw")}, (48, 160))
+
+
+def test_from_projection_names_a_bad_matrix():
+    with pytest.raises(TypeError, match="P: expected a .3, 4. or .B, 3, 4. tensor or array of numbers, got str 'abc'"):
+        Camera.from_projection("abc", 1.65)
+    with pytest.raises(ValueError, match=r"P: expected shape \(3, 4\) or \(B, 3, 4\), got \(4,\)"):
+        Camera.from_projection(torch.zeros(4), 1.65)

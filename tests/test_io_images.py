@@ -64,6 +64,13 @@ class TestExceptions:
         with pytest.raises(FileNotFoundError, match="no file"):
             read_image(tmp_path / "nope.png")
 
+    def test_a_path_that_is_not_a_path_is_named(self):
+        import fsof_torch as fs
+
+        for read in (fs.read_image, fs.read_flow, fs.read_road_mask, fs.read_kitti_flow, fs.Camera.from_kitti):
+            with pytest.raises(TypeError, match="path: expected a file path .str or os.PathLike., got NoneType"):
+                read(None)
+
     def test_write_checks(self, tmp_path):
         with pytest.raises(ValueError, match=r"0\.\.255 scale"):
             write_image(tmp_path / "a.png", torch.full((3, 4, 4), 300.0))

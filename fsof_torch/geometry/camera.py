@@ -16,12 +16,12 @@ import math
 import numbers
 import os
 from dataclasses import dataclass, fields
-from pathlib import Path
 
 import torch
 from torch import Tensor
 
 from .._check import (
+    as_path,
     as_batch_param,
     autocast_off,
     check_finite,
@@ -348,8 +348,12 @@ class Camera:
                         pitch: Tensor | float = 0.0) -> "Camera":
         """From a rectified 3×4 projection matrix (KITTI ``P_rect_0N`` / ``P0``): K = P[:, :3]."""
         if not isinstance(P, Tensor):
-            P = torch.as_tensor(P, dtype=torch.float64)
-        if P.shape[-2:] != (3, 4):
+            try:
+                P = torch.as_tensor(P, dtype=torch.float64)
+            except (TypeError, ValueError, RuntimeError):
+                raise TypeError(f"P: expected a (3, 4) or (B, 3, 4) tensor or array of numbers, got "
+                                f"{type(P).__name__} {P!r:.60}") from None
+        if P.dim() < 2 or P.shape[-2:] != (3, 4):
             raise ValueError(f"P: expected shape (3, 4) or (B, 3, 4), got {tuple(P.shape)}")
         return cls(P[..., :3].clone(), height, roll, pitch)
 
@@ -393,7 +397,7 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
     (key ``P{cam}``, or unlabelled rows in order).
     """
-    path = Path(path)
+    path = as_path(path)
     cam = check_camera_index(cam)
     if not path.is_file():
         raise FileNotFoundError(f"path: no calibration file at {str(path)!r}")

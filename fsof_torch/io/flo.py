@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_chw_flow
+from .._check import as_path, as_chw_flow
 from .atomic import atomic_path
 
 __all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
@@ -31,7 +31,7 @@ def read_flo(path: str | os.PathLike) -> Tensor:
     path for a wrong magic number, a non-positive size or a file whose length does not match the
     size in its header.
     """
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no file at {str(path)!r}")
     data = path.read_bytes()
@@ -58,7 +58,7 @@ def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
     _, height, width = flow.shape
     array = flow.detach().cpu().to(torch.float32).numpy().transpose(1, 2, 0)
     header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
-    path = Path(path)
+    path = as_path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header)
         f.write(np.ascontiguousarray(array, dtype="<f4").tobytes())

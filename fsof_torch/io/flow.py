@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from .atomic import write_bytes
-from .._check import as_chw_flow
+from .._check import as_path, as_chw_flow
 from .flo import read_flo, write_flo
 from .kitti import read_kitti_flow, write_kitti_flow
 
@@ -26,7 +26,7 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
     ``.npy``: an array (2, H, W) or (H, W, 2) (a 2 on both ends is read as (2, H, W)); valid
     where finite. Non-valid pixels hold 0.
     """
-    path = Path(path)
+    path = as_path(path)
     suffix = path.suffix.lower()
     if suffix == ".png":
         return read_kitti_flow(path)
@@ -64,7 +64,7 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
     given ``valid`` is stored by writing NaN at invalid pixels (``read_flow`` gives them back as
     not valid).
     """
-    path = Path(path)
+    path = as_path(path)
     suffix = path.suffix.lower()
     if suffix == ".png":
         return write_kitti_flow(path, flow, valid)

@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_has_values
+from .._check import as_path, check_has_values
 from .atomic import atomic_path
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
@@ -24,7 +24,7 @@ _PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its fixed CRC
 
 
 def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no file at {str(path)!r}")
     return path, path.read_bytes()
@@ -59,7 +59,7 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     atomically; the format comes from the suffix (.png, .jpg, .tif, ...)."""
     import cv2
 
-    path = Path(path)
+    path = as_path(path)
     if not path.suffix or not cv2.haveImageWriter(str(path)):
         raise ValueError(f"path: OpenCV has no image writer for the suffix {path.suffix!r} of {str(path)!r} "
                          f"(use .png, .jpg, .tif, .bmp, ...)")

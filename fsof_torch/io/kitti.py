@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import all_finite, as_chw_flow, check_has_values
+from .._check import as_path, all_finite, as_chw_flow, check_has_values
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .images import read_image_array, write_image_array
@@ -112,7 +112,7 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
     length, non-finite values, or a 3×3 block that is not a rotation (|RᵀR − I| > 1e-3 or
     det R <= 0: an all-zero block is singular).
     """
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no poses file at {str(path)!r}")
     try:

@@ -35,7 +35,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_has_values
+from .._check import as_path, check_has_values
 from .images import read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
@@ -188,7 +188,7 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
     """
     import cv2
 
-    path = Path(path)
+    path = as_path(path)
     if size is not None:
         size = _check_size(list(size) if isinstance(size, (tuple, torch.Size)) else size, "size")
     if path.suffix.lower() == ".json":

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_chw_flow, check_finite, result_dtype, skip_values
+from .._check import as_path, as_chw_flow, check_finite, result_dtype, skip_values
 from .images import read_image_array, write_image_array
 
 __all__ = [
@@ -84,7 +84,7 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
 
 
 def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
     rows = []
@@ -156,7 +156,7 @@ def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
 
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
     """``colors.txt`` → ``{class name: (r, g, b)}`` in file order."""
-    path = Path(path)
+    path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
     colors: dict[str, tuple[int, int, int]] = {}
