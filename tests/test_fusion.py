@@ -630,6 +630,29 @@ def test_image_estimator_inputs_are_checked_images_first():
         FreespaceRefiner()(pred, mask, cam, images=(image / 255, image / 255))
 
 
+def test_estimator_options_that_would_be_left_aside_are_refused():
+    """fit_roll, fit_pitch, fit_options and photometric_options apply to the estimator that
+    fit= builds; where another one runs they are an error, not silently ignored."""
+    from fsof_torch.refinement.estimators import ImageMotionEstimator
+
+    pred, mask, cam, _ = make_case()
+    image = torch.rand(1, 3, H, W) * 255
+    images = (image, image)
+    with pytest.raises(ValueError, match="fit_roll: applies with fit='flow' or 'photometric'; here the default image "
+                                         "estimator runs"):
+        refine_flow(pred, mask, cam, images=images, fit_roll=True)
+    with pytest.raises(ValueError, match="fit_options: applies with fit='flow'; here an estimator is given"):
+        refine_flow(pred, mask, cam, images=images, estimator=ImageMotionEstimator(), fit_options={"max_iter": 5})
+    with pytest.raises(ValueError, match="photometric_options: applies with fit='photometric'; here fit='flow'"):
+        refine_flow(pred, mask, cam, fit="flow", photometric_options={"max_iter": 5})
+    with pytest.raises(ValueError, match="fit_options: applies with fit='flow'; here fit='photometric'"):
+        refine_flow(pred, mask, cam, images=images, fit="photometric", fit_options={"max_iter": 5})
+    # where they apply they are taken: the roll is fitted (held at the camera's without the flag)
+    rolled = refine_flow(pred, mask, cam, fit_roll=True, fit_options={"max_iter": 30})
+    held = refine_flow(pred, mask, cam)
+    assert float(held.fit.params["roll"][0]) == float(cam.roll[0]) != float(rolled.fit.params["roll"][0])
+
+
 def test_gate_arguments_named():
     from fsof_torch.refinement.gate import ImageGate
 

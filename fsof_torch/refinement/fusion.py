@@ -232,6 +232,23 @@ def _estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit
     """The road-motion estimator to use: the caller's; one built from the older ``fit=``
     options; or the default: the image estimator where there are images, else a fit to the
     prediction."""
+    if fit not in (None, *_FITS):
+        raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
+    # the older options apply to the estimator they build; set where another one runs, they
+    # would be left aside silently
+    chosen = "estimator" if estimator is not None else (fit or ("flow" if images is None else "images"))
+    uses = {"fit_roll": ("flow", "photometric"), "fit_pitch": ("flow", "photometric"),
+            "fit_options": ("flow",), "photometric_options": ("photometric",)}
+    given = {"fit_roll": fit_roll, "fit_pitch": fit_pitch, "fit_options": bool(fit_options),
+             "photometric_options": bool(photometric_options)}
+    for name, applies in uses.items():
+        if given[name] and chosen not in applies:
+            where = {"estimator": "an estimator is given: set its own options",
+                     "images": "the default image estimator runs (images given, fit=None): pass "
+                               "estimator=ImageMotionEstimator(...) with its options",
+                     "flow": "fit='flow' (or no images) fits the flow",
+                     "photometric": "fit='photometric' takes photometric_options"}[chosen]
+            raise ValueError(f"{name}: applies with fit={' or '.join(repr(a) for a in applies)}; here {where}")
     if estimator is not None:
         if fit is not None:
             raise ValueError("fit: give an estimator or fit=, not both")
@@ -239,8 +256,6 @@ def _estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit
             raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
         return estimator
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
-    if fit not in (None, *_FITS):
-        raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
     if fit == "flow" or (fit is None and images is None):
         return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
     if fit == "photometric":  # the paper's model fitted to the images, started from the flow fit
@@ -304,7 +319,10 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
             estimator (``fit="flow"``: the paper's model fitted to the prediction with
             ``fit_displacement``'s options; ``fit="photometric"``: fitted to the images, started
-            from that flow fit).
+            from that flow fit). ``fit_roll`` and ``fit_pitch`` apply to both, ``fit_options`` to
+            ``"flow"`` (also the default without images), ``photometric_options`` to
+            ``"photometric"``; set where another estimator runs (one given, or the default image
+            estimator) they raise a ValueError instead of being left aside.
 
     Returns:
         :class:`RefineOutput`. Pixels outside the (resampled) mask, where the gate keeps the
