@@ -242,3 +242,31 @@ def test_pair_figure_error_map_without_values_is_black():
         import matplotlib.pyplot as plt
 
         plt.close(fig)
+
+
+def test_clip_summary_shows_each_angle_once_in_degrees():
+    """A plane-model record carries its attitude over the road in ``odometry`` and the camera
+    the refinement used beside it: one panel each, titled apart, where they differ; the same
+    value is one panel. Angle changes are in degrees."""
+    import matplotlib.pyplot as plt
+
+    recs = []
+    for i, v in ((0, "sequence"), (1, "sequence"), (0, "photometric"), (1, "photometric")):
+        own = 0.0144 if v == "sequence" else 0.02 + 0.001 * i  # photometric: its camera is its estimate
+        recs.append({"pair": f"{i:06d}", "variant": v, "before": {"census_road": 0.3}, "after": {"census_road": 0.2},
+                     "odometry": {"z_d": 1.2, "pitch_change": 0.001, "roll": 0.02 + 0.001 * i, "pitch": -0.02},
+                     "roll": own, "pitch": -0.02})
+    fig = clip_summary_figure(recs, errors={"census_road": "census distance (0-1), road"}, title="clip")
+    try:
+        titles = [ax.get_title() for ax in fig.axes if ax.get_visible()]
+        assert len(titles) == len(set(titles))
+        assert "estimated motion: camera roll over the road" in titles
+        assert "camera roll (the refinement's mounting)" in titles  # the sequence's calibrated camera
+        assert "camera pitch (the refinement's mounting)" not in titles  # the same as the estimate
+        mount = next(ax for ax in fig.axes if ax.get_title() == "camera roll (the refinement's mounting)")
+        assert [ln.get_label() for ln in mount.get_lines()] == ["sequence"]  # photometric's is its estimate
+        change = next(ax for ax in fig.axes if ax.get_title() == "estimated motion: pitch change")
+        assert change.get_ylabel() == "pitch change (deg)"
+        assert change.get_lines()[0].get_ydata()[0] == pytest.approx(0.001 * 180 / 3.141592653589793)
+    finally:
+        plt.close(fig)

@@ -47,8 +47,12 @@ _OUTLINE = ({"color": "black", "linewidth": 2.0, "linestyle": "-"},
 
 _UNITS = {"x_d": ("lateral motion x_d", "m", 1.0), "z_d": ("forward motion z_d", "m", 1.0),
           "y_d": ("vertical motion y_d", "m", 1.0), "yaw": ("yaw", "deg", 180 / math.pi),
-          "roll": ("camera roll", "deg", 180 / math.pi), "pitch": ("camera pitch", "deg", 180 / math.pi),
-          "d_roll": ("roll change", "deg", 180 / math.pi), "d_pitch": ("pitch change", "deg", 180 / math.pi)}
+          "roll": ("camera roll over the road", "deg", 180 / math.pi),
+          "pitch": ("camera pitch over the road", "deg", 180 / math.pi),
+          "roll_change": ("roll change", "deg", 180 / math.pi), "pitch_change": ("pitch change", "deg", 180 / math.pi),
+          "speed": ("speed", "m/s", 1.0), "yaw_rate": ("yaw rate", "deg/s", 180 / math.pi)}
+# the camera the refinement used (a record's own "roll" / "pitch", radians): its mounting
+_MOUNTING = {"roll": "camera roll (the refinement's mounting)", "pitch": "camera pitch (the refinement's mounting)"}
 
 
 def _pyplot():
@@ -345,8 +349,9 @@ def _error_cmap():
 
 def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping[str, str], title: str) -> Any:
     """A clip's pairs over time: each error before and after refinement per variant, and every
-    estimated field of the records' ``odometry`` (and ``roll``, ``pitch``, plus the given
-    odometry as a reference line).
+    estimated field of the records' ``odometry`` (angles in degrees; the given odometry as a
+    reference line), and the records' own ``roll``, ``pitch`` (the camera the refinement used)
+    where they are not the estimated attitude itself.
 
     Args:
         records: the job's per-pair records of one flow source (``pair``, ``variant``,
@@ -364,17 +369,20 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     variants = list(dict.fromkeys(r["variant"] for r in records))
     fields = list(dict.fromkeys(k for r in records for k in r.get("odometry", {})
                                 if isinstance(r["odometry"][k], (int, float))))
-    mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float)) for r in records)]
+    # the mounting the refinement used, where it is not the estimated attitude itself
+    mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float))
+                                                    and r.get(k) != r.get("odometry", {}).get(k) for r in records)]
     error_keys = [k for k in errors if any(k in r.get("before", {}) for r in records)]
-    panels = [*error_keys, *fields, *mounting]
+    panels = [*error_keys, *fields, *(("mounting", k) for k in mounting)]
     ncol = 2
     nrow = max(1, math.ceil(len(panels) / ncol))
-    height = 2.6 * nrow + 0.9
+    height = 2.6 * nrow + 1.1
     fig, axes = plt.subplots(nrow, ncol, figsize=(11, height), dpi=FIGURE_DPI, squeeze=False, sharex=True)
-    # a fixed layout: tight_layout would draw the figure once more to measure its texts
-    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.75 / height, top=1 - 0.65 / height,
+    # a fixed layout (tight_layout would draw the figure once more to measure its texts), in
+    # inches from the edges: the title above the first row's panel titles
+    fig.subplots_adjust(left=0.08, right=0.98, bottom=0.75 / height, top=1 - 0.85 / height,
                         wspace=0.25, hspace=0.45)
-    fig.suptitle(title, fontsize=10)
+    fig.suptitle(title, fontsize=10, y=1 - 0.2 / height, va="top")
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
     x_of = lambda rs: [index[r["pair"]] for r in rs]  # noqa: E731
     for k, panel in enumerate(panels):
@@ -396,20 +404,31 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
             name = re.sub(r" \([^)]*\)", "", errors[panel])  # the unit is on the y axis
             ax.set_title(f"{name}: before and after refinement", fontsize=9)
         else:
-            name, unit, scale = _UNITS.get(panel, (panel, "", 1.0))
+            own = isinstance(panel, tuple)  # ("mounting", key): the record's own camera
+            key = panel[1] if own else panel
+            name, unit, scale = _UNITS.get(key, (key, "", 1.0))
+            if own:
+                name = _MOUNTING[key]
+
+            def value(r: Mapping[str, Any]) -> Any:
+                # (the mounting panel: only where the camera used is not the variant's own estimate)
+                estimate = r.get("odometry", {}).get(key)
+                return (r.get(key) if r.get(key) != estimate else None) if own else estimate
+
             for c, v in enumerate(variants):
                 rs = sorted((r for r in records if r["variant"] == v), key=lambda r: index[r["pair"]])
-                rs = [r for r in rs if isinstance(_field(r, panel), (int, float))]
-                ax.plot(x_of(rs), [scale * _field(r, panel) for r in rs], color=colours[c % len(colours)],
-                        marker="o", ms=3, label=v)
-            given = {r["pair"]: r["odometry_given"][panel] for r in records
-                     if isinstance(r.get("odometry_given"), Mapping) and panel in r["odometry_given"]}
+                rs = [r for r in rs if isinstance(value(r), (int, float))]
+                if rs:  # (the colour stays the variant's on every panel)
+                    ax.plot(x_of(rs), [scale * value(r) for r in rs], color=colours[c % len(colours)],
+                            marker="o", ms=3, label=v)
+            given = {r["pair"]: r["odometry_given"][key] for r in records
+                     if not own and isinstance(r.get("odometry_given"), Mapping) and key in r["odometry_given"]}
             if given:
                 xs = sorted(given, key=index.get)
                 ax.plot([index[p] for p in xs], [scale * given[p] for p in xs], color="black", linestyle="--",
                         marker="x", ms=4, label="given (odometry / poses)")
             ax.set_ylabel(f"{name} ({unit})" if unit else name, fontsize=8)
-            ax.set_title(("estimated mounting: " if panel in mounting else "estimated motion: ") + name, fontsize=9)
+            ax.set_title(("" if own else "estimated motion: ") + name, fontsize=9)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=7, loc="best")
@@ -422,12 +441,6 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
             ax.set_xticklabels(pairs, rotation=30, fontsize=6)
         ax.tick_params(labelbottom=True)
     return fig
-
-
-def _field(record: Mapping[str, Any], key: str) -> Any:
-    if key in record.get("odometry", {}):
-        return record["odometry"][key]
-    return record.get(key)
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, close: bool = True) -> Path:
