@@ -137,16 +137,20 @@ def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
     d = true[:, :2].norm(dim=-1)
     yaw = torch.rad2deg(true[:, 2].abs())
     for k, sigma in enumerate(s):
-        axes[0].scatter(d.tolist(), diff[k, :, :2].norm(dim=-1).tolist(), s=10, label=f"σ={sigma:g}")
-        axes[1].scatter(yaw.tolist(), torch.rad2deg(diff[k, :, 2].abs()).tolist(), s=10, label=f"σ={sigma:g}")
+        axes[0].scatter(d.tolist(), diff[k, :, :2].norm(dim=-1).tolist(), s=10, label=f"flow noise σ={sigma:g} px")
+        axes[1].scatter(yaw.tolist(), torch.rad2deg(diff[k, :, 2].abs()).tolist(), s=10,
+                        label=f"flow noise σ={sigma:g} px")
     axes[0].set_xlabel("‖d‖ (m)")
     axes[0].set_ylabel("‖d error‖ (m)")
+    axes[0].set_title("translation error against the distance driven")
     axes[1].set_xlabel("|yaw| (deg)")
     axes[1].set_ylabel("|yaw error| (deg)")
+    axes[1].set_title("yaw error against the yaw")
     for ax in axes:
         ax.set_yscale("log")
         ax.grid(True, alpha=0.3)
         ax.legend(fontsize=7)
+    fig.suptitle(f"pose from noisy flow, per random pose ({res.settings['trials']} per σ)")
     fig.tight_layout()
     fig.savefig(scatter_path, dpi=110)
     plt.close(fig)

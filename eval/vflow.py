@@ -64,8 +64,9 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     H = hist.shape[0]
     fig, ax = plt.subplots(figsize=(6, 5))
     lo, hi = float(edges[0]), float(edges[-1])
-    ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
-              extent=(lo, hi, H - 0.5, -0.5), interpolation="nearest")
+    shown = ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
+                      extent=(lo, hi, H - 0.5, -0.5), interpolation="nearest")
+    fig.colorbar(shown, ax=ax, label="log(1 + pixels in the row's bin)")
     rows = curve.row_support[0] > 0
     v = torch.arange(H, dtype=torch.float64)
     inl = curve.row_inliers[0]
