@@ -293,7 +293,7 @@ def check_image_range(image: Tensor, name: str, data_range: float) -> None:
     if skip_values(image) or image.numel() == 0:
         return
     d = image.detach()
-    lo, hi = torch.stack([d.amin(), d.amax()]).tolist()  # NaN propagates through both
+    lo, hi = torch.stack(torch.aminmax(d)).tolist()  # one pass, one host read; NaN propagates through both
     if not (math.isfinite(lo) and math.isfinite(hi)):
         bad = d[~torch.isfinite(d)].flatten()[:3].tolist()
         raise ValueError(f"{name}: expected finite pixel values, got {bad} (NaN or inf); "
