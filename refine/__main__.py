@@ -20,6 +20,7 @@ from pathlib import Path
 DEFAULT_PAIRS = 4
 DEFAULT_SIZE = (375, 1242)
 DEFAULT_OUT = Path("refine_out")
+DEFAULT_HEIGHT = 1.65  # m, KITTI's camera over the road
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -67,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
                    help="image size the calibration is for (default: the file's S_rect row, else checked loosely)")
     g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
-    g.add_argument("--height", type=float, default=1.65, help="camera height above the road, m (default: %(default)s)")
+    g.add_argument("--height", type=float, default=DEFAULT_HEIGHT, help="camera height above the road, m (default: %(default)s)")
     g.add_argument("--roll-deg", type=float, default=0.0, help="camera roll, degrees (default: 0)")
     g.add_argument("--pitch-deg", type=float, default=0.0, help="camera pitch, degrees (default: 0)")
     g.add_argument("--poses", type=Path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
@@ -162,7 +163,7 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
     what = "the synthetic scenes have their own camera" if real is None else \
         f"--{real.replace('_', '-')} has its own calibration{' and poses' if real == 'kitti_odometry' else ''}"
     own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg != 0.0,
-           "--height": real is None and args.height != 1.65,
+           "--height": real is None and args.height != DEFAULT_HEIGHT,
            "--pitch-deg": real != "kitti_odometry" and args.pitch_deg != 0.0}
     if real is not None:
         own.update({"--calib": args.calib is not None, "--calib-size": args.calib_size is not None,
@@ -268,7 +269,6 @@ def _configure(args: argparse.Namespace):
         if getattr(args, flag) and "fit" not in variants:
             raise JobError(f"--{flag.replace('_', '-')}: applies to the variant fit, which this run does not do "
                            f"(--odometry {','.join(variants)})")
-
     if "testnet" in sources and args.testnet_weights is None:
         notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
                      "it shows the wrapper on a RAFT-style output.")
