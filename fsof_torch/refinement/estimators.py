@@ -20,7 +20,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (all_finite, check_bool, check_float_tensor, check_has_values, check_keywords, check_mask,
+from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_keywords, check_mask,
                       check_names, check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
 from ..estimation.image_fit import fit_image
@@ -131,6 +131,8 @@ class ImageMotionEstimator:
         check_has_values(image1, "image1", "to fit (a fit is iterative and data dependent)")
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+        if camera.batch_size not in (1, dims["B"]):
+            raise ValueError(f"camera: expected batch {batch_choices(dims['B'])} (the images' B), got {camera.batch_size}")
         check_mask(mask, "mask")
         if flow is not None:  # (the flow is only a start: fit_image checks the rest)
             check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"), dims)
