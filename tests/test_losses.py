@@ -265,6 +265,14 @@ def test_errors_name_the_argument():
         freespace_flow_loss(flow, road, cam, {"z_d": 1.0})
     with pytest.raises(ValueError, match="odometry: expected a dict of x_d, z_d, yaw or 'fit'"):
         freespace_flow_loss(flow, road, cam, "given")
+    # the fit's options are checked by name where they are given, not at the fit
+    with pytest.raises(TypeError, match=r"fit_options: unknown options \['bogus'\] of fit_road"):
+        FreespaceFlowLoss(odometry="fit", fit_options={"bogus": 1})
+    with pytest.raises(TypeError, match=r"fit_options: unknown options \['fit_roll'\] of fit_road"):
+        FreespaceFlowLoss(odometry="fit", fit_options={"model": "plane", "fit_roll": True})
+    with pytest.raises(TypeError, match=r"fit_options: unknown options \['bogus'\]"):
+        freespace_flow_loss(flow, road, cam, "fit", fit_options={"bogus": 1})
+    FreespaceFlowLoss(odometry="fit", fit_options={"fit_roll": True, "max_iter": 5})  # fit_displacement's
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
         freespace_flow_loss(flow, road, None, odo)
     with pytest.raises(ValueError, match="odometry: this FreespaceFlowLoss was built with odometry='given'"):

@@ -52,6 +52,8 @@ from .._check import (
     check_finite,
     check_float_tensor,
     check_image_range,
+    check_keywords,
+    check_mapping,
     check_number,
     check_shape,
     result_dtype,
@@ -101,6 +103,21 @@ def _as_flow_list(flows: Tensor | Sequence[Tensor], name: str = "flows") -> list
         raise TypeError(f"{name}: expected a tensor (B, 2, H, W) or a non-empty list of them, got "
                         f"{type(flows).__name__}" + (" of length 0" if isinstance(flows, (list, tuple)) else ""))
     return list(flows)
+
+
+def _check_fit_options(fit_options: Mapping[str, object] | None) -> dict[str, object]:
+    """``fit_options`` for ``odometry="fit"``: ``fit_road``'s keyword arguments (with a
+    ``"model"``), or ``fit_displacement``'s (``fit_road``'s with ``fit_roll`` / ``fit_pitch`` in
+    place of ``model`` / ``fixed``); unknown names raise now, named, not at the fit."""
+    from ..estimation.flow_fit import fit_road
+
+    options = dict(check_mapping(fit_options, "fit_options") or {})
+    if "model" in options:
+        check_keywords(options, "fit_options", fit_road, reserved=("flow", "mask", "camera"))
+    else:
+        check_keywords({k: v for k, v in options.items() if k not in ("fit_roll", "fit_pitch")}, "fit_options",
+                       fit_road, reserved=("flow", "mask", "camera", "fixed"))
+    return options
 
 
 def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
@@ -498,7 +515,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
                 raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
             from ..estimation.flow_fit import fit_displacement, fit_road
 
-            options = dict(fit_options or {})
+            options = _check_fit_options(fit_options)
             fit = fit_road if "model" in options else fit_displacement  # (the paper's by default)
             with torch.no_grad():
                 fit_mask = road & finite[-1]
@@ -599,6 +616,7 @@ class FreespaceFlowLoss(nn.Module):
         scale = _check_scale(scale)
         _check_reduction(reduction)
         sequence_weights(1, gamma)
+        _check_fit_options(fit_options)
         self.mode = odometry
         self.options = dict(penalty=penalty, scale=scale, gamma=gamma,
                             fit_options=dict(fit_options or {}), reduction=reduction)
