@@ -379,11 +379,9 @@ def defined_window(defined: torch.Tensor) -> tuple[int, int, int, int]:
     end = torch.where(~defined[half:], index[half:], rows).amin(0)
     cuts = torch.arange(rows // 5 + 1)
     full = (start <= cuts[:, None, None]) & (end >= rows - cuts[None, :, None])  # (top, bottom, column)
-    # the run of full columns ending at each column
-    run = torch.zeros(full.shape, dtype=torch.long)
-    run[..., 0] = full[..., 0]
-    for c in range(1, full.shape[-1]):
-        run[..., c] = (run[..., c - 1] + 1) * full[..., c]
+    # the run of full columns ending at each column: its distance from the last column not full
+    column = torch.arange(full.shape[-1])
+    run = column - torch.where(full, -1, column).cummax(-1).values
     longest, last = run.max(-1)
     area = (rows - cuts[:, None] - cuts[None, :]) * longest
     best = int(area.flatten().argmax())  # (the first of equal areas: the fewest rows cut at the top)

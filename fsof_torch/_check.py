@@ -15,6 +15,7 @@ import functools
 import math
 import numbers
 import os
+from pathlib import Path
 from collections.abc import Iterable, Mapping
 from typing import ContextManager, Sequence
 
@@ -344,10 +345,8 @@ def check_all_finite(named: dict[str, Tensor]) -> None:
             check_finite(t, name)
 
 
-def as_path(path: object, name: str = "path") -> "os.PathLike":
+def as_path(path: object, name: str = "path") -> Path:
     """``path`` as a ``pathlib.Path``: a str or an os.PathLike, else a TypeError naming it."""
-    from pathlib import Path
-
     if isinstance(path, bool) or not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__} {path!r:.60}")
     return Path(path)
@@ -408,11 +407,12 @@ def as_chw_flow(flow: object, name: str) -> Tensor:
 
 
 def check_image_pair(image1: object, image2: object) -> dict[str, int]:
-    """Two frames (B, C, H, W) float of one shape, grey (C = 1) or RGB (C = 3): their dims."""
+    """Two frames (B, C, H, W) float of one shape, grey (C = 1) or RGB (C = 3), B, H and W at least
+    1: their dims."""
     for name, img in (("image1", image1), ("image2", image2)):
         check_float_tensor(img, name)
-    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
-    check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
+    dims = check_shape(image1, "image1", ("B", "C", "H", "W"), nonempty=("B", "H", "W"))
+    check_shape(image2, "image2", ("B", "C", "H", "W"), dims, nonempty=("B", "H", "W"))
     if dims["C"] not in (1, 3):
         raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
     return dims

@@ -667,7 +667,7 @@ def test_gate_arguments_named():
         gate(image[..., :-1], image[..., :-1], pred[..., :-1], gt.float(), mask)  # once an IndexError
     with pytest.raises(TypeError, match="mask: expected a bool tensor .* got dtype torch.uint8"):
         gate(image, image, pred, gt.float(), mask.to(torch.uint8))  # once accepted
-    with pytest.raises(ValueError, match="image1: expected 1 or 3 channels"):
+    with pytest.raises(ValueError, match="image1: expected 1 .grey. or 3 .RGB. channels"):
         gate(image[:, :2], image[:, :2], pred, gt.float(), mask)
     with pytest.raises(ValueError, match="prediction: a tensor on the meta device has shapes but no values to judge"):
         gate(image.to("meta"), image.to("meta"), pred.to("meta"), gt.float().to("meta"), mask.to("meta"))

@@ -70,6 +70,8 @@ class TestExceptions:
         for read in (fs.read_image, fs.read_flow, fs.read_road_mask, fs.read_kitti_flow, fs.Camera.from_kitti):
             with pytest.raises(TypeError, match="path: expected a file path .str or os.PathLike., got NoneType"):
                 read(None)
+        with pytest.raises(TypeError, match="path: expected a file path .str or os.PathLike., got NoneType"):
+            fs.write_flow(None, torch.zeros(2, 4, 4))  # the writers, through atomic_path
 
     def test_write_checks(self, tmp_path):
         with pytest.raises(ValueError, match=r"0\.\.255 scale"):

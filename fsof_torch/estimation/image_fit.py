@@ -201,8 +201,8 @@ class ImageProblem:
 def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
                   data_range: float) -> tuple[dict, Tensor]:
     dims = check_image_pair(image1, image2)
-    if dims["B"] == 0 or dims["H"] < 2 or dims["W"] < 2:
-        raise ValueError(f"image1: expected a non-empty batch of images of at least 2x2 pixels, got {tuple(image1.shape)}")
+    if dims["H"] < 2 or dims["W"] < 2:
+        raise ValueError(f"image1: expected images of at least 2x2 pixels, got {tuple(image1.shape)}")
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
         raise TypeError(f"mask: expected a bool tensor of shape (B, 1, H, W), got "
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")

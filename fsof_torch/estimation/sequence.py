@@ -184,11 +184,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     Returns:
         :class:`SequenceFit`.
     """
-    for name, value in (("frames", frames), ("mask", mask), ("flows", flows)):
-        if not isinstance(value, Tensor) and not (hasattr(value, "__len__") and hasattr(value, "__getitem__")):
-            if name != "flows" or value is not None:
-                raise TypeError(f"{name}: expected a sequence of tensors (a list, or an object with len() and "
-                                f"indexing), got {type(value).__name__}")
+    given = {"frames": frames, "mask": mask, **({} if flows is None else {"flows": flows})}
+    for name, value in given.items():  # (a mask may also be one tensor for the clip)
+        if not (isinstance(value, Tensor) or hasattr(value, "__len__") and hasattr(value, "__getitem__")):
+            raise TypeError(f"{name}: expected a sequence of tensors (a list, or an object with len() and "
+                            f"indexing), got {type(value).__name__}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
     if passes not in (1, 2):

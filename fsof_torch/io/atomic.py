@@ -22,6 +22,8 @@ import secrets
 from pathlib import Path
 from typing import Any, Iterator
 
+from .._check import as_path
+
 __all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable", "remove_stale_temporaries"]
 
 #: the names :func:`atomic_path` gives its temporary files
@@ -41,7 +43,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
         ...     tmp.write_text("hello")
     """
-    path = Path(path)
+    path = as_path(path)
     folder = path.parent
     if not folder.is_dir():
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")

@@ -365,8 +365,6 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     from .._check import check_data_range, check_image_pair, check_image_range
 
     dims = check_image_pair(image1, image2)
-    if dims["B"] < 1:
-        raise ValueError(f"image1: expected a batch of at least 1, got shape {tuple(image1.shape)}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
@@ -614,31 +612,28 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     detection comes back as ``RefineOutput.road``; samples whose road was found but that the
     refinement left unchanged (a failed estimate, a gate without evidence) are warned about too.
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
+    ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch), or None.
     """
     import warnings
 
     from ..estimation.freespace import detect_freespace
-    from .contracts import collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
+    from .contracts import collect_flows, finest_flow
 
     if mask != "auto":
         raise ValueError(f"mask: expected a bool tensor (B, 1, H, W) or 'auto', got {mask!r}")
+    options = dict(road_options or {})
     # (options the detection does not take, or that the refiner sets itself, raise here, named)
     if images is not None:
-        check_keywords(dict(road_options or {}), "road_options", detect_road,
-                       reserved=("flow", "motion", "estimator", "odometry", "starts"))
+        check_keywords(options, "road_options", detect_road, reserved=("flow", "motion", "estimator", "odometry", "starts"))
     else:
-        check_keywords(dict(road_options or {}), "road_options", detect_freespace)
+        check_keywords(options, "road_options", detect_freespace)
     _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
-    options = dict(road_options or {})
     if images is None:
         with torch.no_grad():
             road = detect_freespace(finest.detach().to(camera.dtype), camera.to(device=finest.device), **options)
         return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
-    if is_ptlflow_inputs(images):
-        images = images_from_ptlflow(images)
     image1, image2 = images
     B = finest.shape[0]
-    image1, image2 = (im.detach().expand(B, -1, -1, -1) for im in (image1, image2))
     complete = odometry is not None and (road_motion(odometry)[0].name != "paper" or kw.get("fit") is not None)
     f = finest.detach()
     det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if all_finite(f) else None,

@@ -20,8 +20,8 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_keywords, check_mask,
-                      check_names, check_shape)
+from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_image_pair,
+                      check_keywords, check_mask, check_names, check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
 from ..estimation.image_fit import fit_image
 from ..geometry.camera import Camera
@@ -125,9 +125,7 @@ class ImageMotionEstimator:
             raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
         image1, image2 = images
         # (the images first: a flow of another size is named, not the frames)
-        dims: dict[str, int] = {}
-        for name, image in (("image1", image1), ("image2", image2)):
-            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims, nonempty=("B", "H", "W"))
+        dims = check_image_pair(image1, image2)
         check_has_values(image1, "image1", "to fit (a fit is iterative and data dependent)")
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")

@@ -391,18 +391,15 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             if n_bad:
                 warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left "
                               f"out of the estimation and replaced by the model flow", RuntimeWarning, stacklevel=3)
-    # (a uint8 sum into int32: the sum converts its input first, and a bool sum or
-    # count_nonzero converts to int64, a copy twice the size)
-    counts = fit_mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)
     given_model = None if odometry is None else road_motion(odometry)[0].name
     # the paper's planar odometry leaves the rest of the road's motion to the images
     estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
-    # min_pixels guards estimation; with odometry given any mask pixel can be refined, also one
-    # whose prediction is not finite (the model flow needs no prediction)
-    if odometry is None:
-        refined = counts >= min_pixels
-    else:
-        refined = (counts if all_finite else mask.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32)) >= 1
+    # min_pixels guards estimation, which uses the finite predicted pixels; with odometry given
+    # any mask pixel can be refined, also one whose prediction is not finite (the model flow
+    # needs no prediction). (A uint8 sum into int32: the sum converts its input first, and a
+    # bool sum or count_nonzero converts to int64, a copy twice the size.)
+    counted = fit_mask if odometry is None else mask
+    refined = counted.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32) >= (min_pixels if odometry is None else 1)
 
     fit_result = None
     cam_model = camera

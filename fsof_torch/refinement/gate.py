@@ -37,7 +37,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_mask, check_shape
+from .._check import check_float_tensor, check_has_values, check_image_pair, check_mask, check_shape
 from ..estimation.sampling import MaskPoints, sample_mask
 from ..evaluation.photometric import to_grey
 
@@ -207,11 +207,7 @@ class ImageGate:
         either way. The gate samples the mask's pixels (data dependent): on the meta
         device it raises a ValueError."""
         # (the images first: a flow or mask of another size is named, not the frames)
-        dims: dict[str, int] = {}
-        for name, image in (("image1", image1), ("image2", image2)):
-            check_shape(check_float_tensor(image, name), name, ("B", "C", "H", "W"), dims, nonempty=("B", "H", "W"))
-            if image.shape[1] not in (1, 3):
-                raise ValueError(f"{name}: expected 1 or 3 channels (grey or RGB), got shape {tuple(image.shape)}")
+        dims = check_image_pair(image1, image2)
         check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"), dims)
         check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
         check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"), dims)
