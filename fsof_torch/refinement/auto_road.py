@@ -606,7 +606,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     function ``refine`` is passed in: it builds on this module).
 
     With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
-    predicted flow one start; the caller's planar odometry held fixed), or judges with the
+    predicted flow one start; the caller's planar odometry held fixed, or priors with
+    ``odometry_sigma``), or judges with the
     caller's complete road motion; the motion it settled on is then the refinement's (no second
     estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
     detection comes back as ``RefineOutput.road``; samples whose road was found but that the

@@ -8,9 +8,9 @@ to trust it):
   paper's approach; it inherits the flow's failures on weak road texture);
 - :class:`ImageMotionEstimator` fits it to the two images directly
   (:func:`~fsof_torch.estimation.image_fit.fit_image`), the network's flow being one start among
-  several; given the vehicle's planar odometry, that is held fixed and the images estimate what
-  odometry does not measure (the body's pitch and roll changes, its vertical motion, the camera's
-  attitude over the road).
+  several; given the vehicle's planar odometry, that is held fixed (or, with ``odometry_sigma``,
+  a prior) and the images estimate what odometry does not measure (the body's pitch and roll
+  changes, its vertical motion, the camera's attitude over the road).
 """
 
 from __future__ import annotations
@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 
 from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_image_pair,
-                      check_keywords, check_mask, check_names, check_shape)
+                      check_keywords, check_mapping, check_mask, check_names, check_number, check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
-from ..estimation.image_fit import fit_image
+from ..estimation.image_fit import calibration_prior, fit_image
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
 
@@ -101,19 +101,31 @@ class ImageMotionEstimator:
         flow_start: also start from the planar motion of the predicted flow (when one is given,
             :func:`planar_start`); the start with the lowest robust image cost wins at the
             coarsest level.
+        odometry_sigma: how far the images may move a given planar odometry. None (default):
+            not at all, x_d, z_d and yaw are held at the odometry. A dict of standard deviations
+            for some of ``"x_d"``, ``"z_d"`` (metres a frame) and ``"yaw"`` (radians a frame):
+            those become Gaussian priors centred on the odometry (added to ``prior``), the fit
+            starts from the odometry alone (no starts straight ahead, unless ``forward_starts``
+            is given), and the others stay fixed. Real odometry is off by a few tenths of a
+            degree of yaw or a percent of the step, and the camera's height over the road
+            changes as the body moves: held fixed, such errors bend the rest of the fit
+            (docs/real-roads.md measures it on KITTI's poses).
         **options: further keyword arguments of ``fit_image`` (``prior``, ``bounds``,
             ``max_points``, ``levels``, ...).
 
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
-    fixed and the images estimate the rest of the model's parameters.
+    fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
+    parameters.
     """
 
-    def __init__(self, *, model: str = "plane", flow_start: bool = True, **options: Any) -> None:
+    def __init__(self, *, model: str = "plane", flow_start: bool = True,
+                 odometry_sigma: Mapping[str, float] | None = None, **options: Any) -> None:
         self.model = get_road_model(model).name
         if get_road_model(model).velocity:
             raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
         self.flow_start = check_bool(flow_start, "flow_start")
         check_keywords(options, "options", fit_image, reserved=("model", "starts"))
+        self.odometry_sigma = _odometry_sigma(odometry_sigma, self.model, options.get("fixed"))
         self.options = dict(options)
 
     def __call__(self, flow: Tensor | None, mask: Tensor, camera: Camera, *,
@@ -146,14 +158,53 @@ class ImageMotionEstimator:
         if odometry is not None:
             planar = planar_odometry(odometry)
             if planar is not None:
-                # the odometry fixes the planar motion; the images add what it does not measure
+                # the odometry fixes the planar motion (or centres priors on it); the images add
+                # what it does not measure
                 init = {**(init or {}), **planar}
                 starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
-                fixed = tuple(fixed or ()) + tuple(k for k in _PLANAR if k not in (fixed or ()))
+                held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
+                fixed = tuple(fixed or ()) + tuple(k for k in held if k not in (fixed or ()))
+                if self.odometry_sigma:
+                    options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
+                                                            planar, self.odometry_sigma)
+                    options.setdefault("forward_starts", ())
         elif self.flow_start and flow is not None and all_finite(flow):
             starts.append(planar_start(flow, mask, camera))
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
                          **options)
 
     def __repr__(self) -> str:
-        return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start})"
+        sigma = f", odometry_sigma={self.odometry_sigma!r}" if self.odometry_sigma else ""
+        return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start}{sigma})"
+
+
+def _odometry_sigma(sigma: object, model: str, fixed: object) -> dict[str, float]:
+    """``odometry_sigma`` checked: {name: sigma > 0} of some of the model's planar parameters."""
+    if sigma is None:
+        return {}
+    sigma = check_mapping(sigma, "odometry_sigma")
+    for name, value in sigma.items():
+        if name not in _PLANAR or name not in get_road_model(model).params:
+            raise ValueError(f"odometry_sigma: expected some of {_PLANAR} (the planar odometry), got {name!r}")
+        check_number(value, f"odometry_sigma[{name!r}]", positive=True)
+        if name in (check_names(fixed, "fixed") or ()):
+            raise ValueError(f"odometry_sigma[{name!r}]: the parameter is also in fixed={fixed!r}")
+    return {k: float(v) for k, v in sigma.items()}
+
+
+def _with_odometry_prior(prior: object, model: str, camera: Camera, planar: Mapping[str, Any],
+                         sigma: Mapping[str, float]) -> dict[str, tuple[Any, Any]]:
+    """``fit_image``'s ``prior`` (``"calibration"``, None or a dict) with Gaussian priors of
+    widths ``sigma`` centred on the planar odometry added."""
+    if prior == "calibration":
+        base = calibration_prior(model, camera.to(torch.float64))
+    elif prior is None:
+        base = {}
+    elif isinstance(prior, Mapping):
+        base = dict(prior)
+    else:  # (fit_image names a bad value)
+        return prior
+    both = sorted(set(base) & set(sigma))
+    if both:
+        raise ValueError(f"prior: {both} also given a prior by odometry_sigma; give each parameter one prior")
+    return {**base, **{k: (planar[k], sigma[k]) for k in sigma}}

@@ -1,0 +1,88 @@
+"""The refiner's road-motion estimators: what ImageMotionEstimator does with a given odometry."""
+
+import math
+
+import pytest
+import torch
+
+from fsof_torch import FreespaceRefiner, ImageMotionEstimator, endpoint_error, render_pair
+
+DEG = math.pi / 180
+SIGMA = {"x_d": 0.05, "z_d": 0.05, "yaw": 0.2 * DEG}
+
+
+@pytest.fixture(scope="module")
+def body_pair():
+    """A body-motion pair at half size and an odometry off as wheel odometry can be: the step 5 %
+    long, the yaw 0.3° a frame too far left."""
+    p = render_pair("body-motion", 1, size=(188, 621))
+    odometry = dict(p["odometry"])
+    odometry["z_d"] = odometry["z_d"] * 1.05
+    odometry["yaw"] = odometry["yaw"] + 0.3 * DEG
+    return p, odometry
+
+
+def refined(p, odometry, estimator):
+    road = p["road"][None]
+    flow = torch.zeros(1, 2, *road.shape[-2:])
+    out = FreespaceRefiner(estimator=estimator)(flow, road, p["camera"], odometry,
+                                                images=(p["image1"][None], p["image2"][None]))
+    assert bool(out.refined[0])
+    epe = float(endpoint_error(out.flow, p["flow"][None], road, p["valid"][None])[0])
+    return {k: float(v[0]) for k, v in out.fit.params.items()}, epe
+
+
+def test_planar_odometry_held_by_default_and_moved_within_odometry_sigma(body_pair):
+    p, odometry = body_pair
+    truth = p["plane"]
+    held, epe_held = refined(p, odometry, ImageMotionEstimator())
+    for k in ("x_d", "z_d", "yaw"):
+        assert held[k] == pytest.approx(odometry[k], abs=1e-6)
+
+    moved, epe_moved = refined(p, odometry, ImageMotionEstimator(odometry_sigma=SIGMA))
+    # the images take the yaw and the step back to the truth; the road flow follows
+    assert abs(moved["yaw"] - truth["yaw"]) < 0.05 * DEG < abs(odometry["yaw"] - truth["yaw"])
+    assert abs(moved["z_d"] / truth["z_d"] - 1) < 0.03 < abs(odometry["z_d"] / truth["z_d"] - 1)
+    assert epe_moved < 0.5 < epe_held
+
+    # only the yaw given a width: the step stays the odometry's
+    yaw_only, _ = refined(p, odometry, ImageMotionEstimator(odometry_sigma={"yaw": 0.2 * DEG}))
+    assert yaw_only["z_d"] == pytest.approx(odometry["z_d"], abs=1e-6)
+    assert yaw_only["x_d"] == pytest.approx(odometry["x_d"], abs=1e-6)
+    assert abs(yaw_only["yaw"] - odometry["yaw"]) > 0.05 * DEG
+
+
+def test_odometry_sigma_is_a_prior_on_top_of_the_calibration_prior(body_pair):
+    """A width of a millionth of a degree is the odometry held; the calibration's prior on the
+    attitude stays (the estimate equals the one with the yaw fixed)."""
+    p, odometry = body_pair
+    tight, _ = refined(p, odometry, ImageMotionEstimator(odometry_sigma={"yaw": 1e-6 * DEG}))
+    held, _ = refined(p, odometry, ImageMotionEstimator())
+    assert tight["yaw"] == pytest.approx(odometry["yaw"], abs=1e-7)
+    for k in ("pitch", "roll", "pitch_change", "roll_change", "z_d"):
+        assert tight[k] == pytest.approx(held[k], abs=2e-4)
+
+
+def test_odometry_sigma_checked():
+    with pytest.raises(ValueError, match=r"odometry_sigma: expected some of \('x_d', 'z_d', 'yaw'\) \(the planar "
+                                         r"odometry\), got 'pitch'"):
+        ImageMotionEstimator(odometry_sigma={"pitch": 0.01})
+    with pytest.raises(ValueError, match=r"odometry_sigma\['yaw'\]: expected a positive number \(> 0\), got -0.1"):
+        ImageMotionEstimator(odometry_sigma={"yaw": -0.1})
+    with pytest.raises(TypeError, match=r"odometry_sigma\['z_d'\]: expected a number, got str '5'"):
+        ImageMotionEstimator(odometry_sigma={"z_d": "5"})
+    with pytest.raises(TypeError, match="odometry_sigma: expected None or a dict with string keys, got float 0.1"):
+        ImageMotionEstimator(odometry_sigma=0.1)
+    with pytest.raises(ValueError, match=r"odometry_sigma\['yaw'\]: the parameter is also in fixed=\('yaw',\)"):
+        ImageMotionEstimator(odometry_sigma={"yaw": 0.01}, fixed=("yaw",))
+    with pytest.raises(ValueError, match=r"odometry_sigma: expected some of .* got 'z_d'"):
+        ImageMotionEstimator(model="homography", odometry_sigma={"z_d": 0.05})
+    assert repr(ImageMotionEstimator(odometry_sigma={"yaw": 0.5})) == (
+        "ImageMotionEstimator(model='plane', flow_start=True, odometry_sigma={'yaw': 0.5})")
+
+
+def test_a_parameter_given_two_priors_is_refused(body_pair):
+    p, odometry = body_pair
+    estimator = ImageMotionEstimator(odometry_sigma={"yaw": 0.01}, prior={"yaw": (0.0, 0.1)})
+    with pytest.raises(ValueError, match=r"prior: \['yaw'\] also given a prior by odometry_sigma"):
+        refined(p, odometry, estimator)
