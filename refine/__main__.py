@@ -103,6 +103,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "data: given,fit,photometric; --images: sequence for a clip, photometric for "
                         "KITTI *_10/*_11 pairs or a single pair, plus given_images with --poses; "
                         "--kitti15: fit,photometric; --kitti-odometry: given,sequence,photometric)")
+    g.add_argument("--odometry-sigma", type=float, nargs=3, metavar=("X_M", "Z_M", "YAW_DEG"), default=None,
+                   help="variant given_images: let the images move the odometry's planar motion, within these "
+                        "widths a frame (sideways and forward in metres, yaw in degrees; e.g. 0.05 0.05 0.2 "
+                        "for wheel odometry); default: held fixed")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
     g.add_argument("--scale", type=float, default=2.0, help="Cauchy scale in px for --mode confidence (default: %(default)s)")
     g.add_argument("--fit-roll", action="store_true", help="variant fit: also fit the camera roll")
@@ -176,6 +180,22 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
     given = [v for v in args.odometry or () if v.startswith("given")]
     if real == "kitti15" and given:
         raise JobError(f"--odometry {given[0]}: the KITTI 2015 pair has no poses; use fit or photometric")
+
+
+def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str, float] | None:
+    """``--odometry-sigma X_M Z_M YAW_DEG`` -> ``ImageMotionEstimator``'s ``odometry_sigma``
+    (radians for the yaw), checked; None where not given."""
+    from .inputs import JobError
+
+    if widths is None:
+        return None
+    if "given_images" not in variants:
+        raise JobError(f"--odometry-sigma: applies to the variant given_images, which this run does not use "
+                       f"(--odometry {','.join(variants)})")
+    if not all(math.isfinite(w) and w > 0 for w in widths):
+        raise JobError(f"--odometry-sigma: expected three finite widths > 0 (X_M Z_M YAW_DEG), got "
+                       f"{' '.join(f'{w:g}' for w in widths)}")
+    return {"x_d": widths[0], "z_d": widths[1], "yaw": math.radians(widths[2])}
 
 
 def _configure(args: argparse.Namespace):
@@ -316,12 +336,17 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         if importlib.util.find_spec("matplotlib") is None:
             raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
     specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
+    odometry_sigma = _odometry_sigma(args.odometry_sigma, variants)
+    if odometry_sigma is not None:
+        x, z, yaw = args.odometry_sigma
+        notes.append(f"Variant given_images: the images may move the odometry's planar motion within {x:g} m "
+                     f"sideways, {z:g} m forward and {yaw:g}° of yaw a frame (Gaussian priors).")
     net_spec = NetSpec(args.net, args.net_contract, args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
 
     identity = {"version": __version__, "input": input_identity, "sources": sources, "variants": variants,
                 "mode": args.mode, "scale": args.scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
-                "road": args.road, "calibrate_pitch": calibrate,
+                "road": args.road, "calibrate_pitch": calibrate, "odometry_sigma": odometry_sigma,
                 "testnet_weights": file_digest(args.testnet_weights) if args.testnet_weights is not None
                 and "testnet" in sources else None,
                 "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources,
@@ -339,7 +364,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     fp = resume.fingerprint(identity)
     cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=args.scale,
                     fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto", calibrate=calibrate,
-                    overwrite=args.overwrite, figures=not args.no_figures,
+                    odometry_sigma=odometry_sigma, overwrite=args.overwrite, figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
                     fingerprint=fp, device=str(device))
     if calibrate or "sequence" in variants or "given_pitch" in variants:

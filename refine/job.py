@@ -27,15 +27,16 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from fsof_torch import Camera, FreespaceRefiner
+from fsof_torch import Camera, FreespaceRefiner, ImageMotionEstimator
 
 from .inputs import JobError, PairSpec, odometry_from_pose
 from .measure import compare, error_panel, flow_maps, max_flow
 
 VARIANTS = ("given", "given_images", "given_pitch", "fit", "photometric", "sequence")
 VARIANT_HELP = {"given": "odometry given (scene / poses), the paper's model alone",
-                "given_images": "odometry given fixes the planar motion, the images estimate the rest "
-                                "(the camera's attitude over the road, its changes, vertical motion)",
+                "given_images": "odometry given fixes the planar motion (with --odometry-sigma: within those "
+                                "widths), the images estimate the rest (the camera's attitude over the road, its "
+                                "changes, vertical motion)",
                 "given_pitch": "odometry given, with the camera's mounting calibrated over the clip",
                 "fit": "ego-motion fitted to the predicted flow",
                 "photometric": "road motion estimated from the two images (the refiner's default with images)",
@@ -60,6 +61,7 @@ class JobConfig:
     progress: bool = True
     title: str = "refine"
     calibrate: bool = False
+    odometry_sigma: dict | None = None  # given_images: ImageMotionEstimator's (None: the odometry held fixed)
     clip: Any = None  # refine.calibrate.ClipFit: the clip's road motion and calibrated camera
     clip_fingerprint: str = ""  # the inputs of every pair of the clip
     notes: list[str] = field(default_factory=list)
@@ -137,6 +139,9 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
             figure_path(cfg, source, "x").parent.mkdir(parents=True, exist_ok=True)
     refiners = {v: FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, fit="flow", fit_roll=cfg.fit_roll,
                                     fit_pitch=cfg.fit_pitch, warn=False) if v == "fit"
+                else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False,
+                                      estimator=ImageMotionEstimator(odometry_sigma=cfg.odometry_sigma))
+                if v == "given_images" and cfg.odometry_sigma
                 else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False) for v in cfg.variants}
     records: list[dict] = []
     figures: dict[tuple, Any] = {}  # a PairFigure per layout, redrawn for every pair

@@ -783,6 +783,32 @@ def test_scene_noise_option(tmp_path, capsys):
     assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
 
 
+def test_odometry_sigma_lets_the_images_move_the_odometry(tmp_path, capsys):
+    """given_images holds the odometry's planar motion; with --odometry-sigma the images move it,
+    the report says so, and a rerun with other widths is another run."""
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given_images", "--no-figures", *TINY]
+
+    def used(out):
+        rec = json.loads((out / "dis" / "given_images" / "pairs" / "000000.json").read_text())
+        return rec["odometry"], rec["odometry_given"]
+
+    assert main([*base, "--out", str(tmp_path / "held")]) == 0
+    motion, given = used(tmp_path / "held")
+    assert all(motion[k] == pytest.approx(given[k], abs=1e-6) for k in ("x_d", "z_d", "yaw"))
+    sigma = ["--odometry-sigma", "0.05", "0.05", "0.2"]
+    assert main([*base, *sigma, "--out", str(tmp_path / "moved")]) == 0
+    motion, given = used(tmp_path / "moved")
+    assert abs(motion["z_d"] - given["z_d"]) > 1e-3
+    assert "within 0.05 m sideways, 0.05 m forward and 0.2° of yaw" in (tmp_path / "moved" / "report.md").read_text()
+    err = _err(capsys, [*base, "--odometry-sigma", "0.05", "0.05", "0.5", "--out", str(tmp_path / "moved")])
+    assert "another run" in err and "odometry_sigma" in err
+    assert "--odometry-sigma: applies to the variant given_images, which this run does not use (--odometry " \
+           "photometric)" in _err(capsys, [*TINY, *sigma, "--odometry", "photometric", "--out", str(tmp_path / "o")])
+    assert "--odometry-sigma: expected three finite widths > 0 (X_M Z_M YAW_DEG), got 0.05 -1 0.2" in _err(
+        capsys, [*base, "--odometry-sigma", "0.05", "-1", "0.2", "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()
+
+
 def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, scene_pairs):
     """A predicted flow of 600 px on a band outside the road (a KITTI flow PNG holds ±512 px):
     the job finishes, its metrics take the flow as it is, and the written PNG marks those pixels
