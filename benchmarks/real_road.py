@@ -15,7 +15,9 @@ pairs, poses), per pair:
 - on the clip, the refiner with the clip's road motion from its images (``fsof_torch.fit_sequence``,
   no poses), and with the ground-truth poses as odometry: the ``"plane"`` model's motion
   (``fsof_torch.plane_from_pose``) and the paper's planar motion
-  (``fsof_torch.ego_motion_from_pose``), on the pairs whose two frames have a pose.
+  (``fsof_torch.ego_motion_from_pose``), on the pairs whose two frames have a pose; the latter
+  held fixed (the default), and as the centres of priors the images may move it from
+  (``ImageMotionEstimator(odometry_sigma=ODOMETRY_SIGMA)``).
 
 Each method's road flow replaces DIS's inside the road polygon (road.json), DIS's flow stays
 elsewhere. Printed per data set and method: the mean over pairs of the road's census distance (7×7
@@ -30,9 +32,11 @@ rotation is a homography), the real street's texture in a turn of known motion;
 ``--pitch-change-deg`` and ``--roll-change-deg`` likewise rotate it about the car's lateral and
 forward axes, as the body pitches (braking, a bump) and rolls. With ``--exposure-gain G`` image 2
 of every pair is G times as bright (:func:`exposed`: clipped to 0..255 and rounded), as where
-the camera's exposure changes between the frames (a shadow, a tunnel's mouth).
+the camera's exposure changes between the frames (a shadow, a tunnel's mouth). With
+``--odometry-error SCALE YAW_DEG`` the poses' odometry is made wrong as wheel odometry is: its
+translation SCALE times as long, its yaw YAW_DEG degrees a frame off.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -129,18 +133,31 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
 
 
 def plane_odometry(pair: dict) -> dict:
-    """The ground-truth relative pose as the ``"plane"`` model's motion."""
+    """The ground-truth relative pose as the ``"plane"`` model's motion (with ``--odometry-error``,
+    its translation scaled and its yaw shifted)."""
     from fsof_torch import plane_from_pose
 
     T = pair["relative_pose"][None].to(torch.float64)
-    return {"model": "plane", **plane_from_pose(T, pair["camera"].to(torch.float64))}
+    motion = plane_from_pose(T, pair["camera"].to(torch.float64))
+    scale, yaw = pair.get("odometry_error", (1.0, 0.0))
+    motion.update({k: motion[k] * scale for k in ("x_d", "y_d", "z_d")}, yaw=motion["yaw"] + math.radians(yaw))
+    return {"model": "plane", **motion}
 
 
 def paper_odometry(pair: dict):
-    """The ground-truth relative pose projected on the paper's planar motion (x_d, z_d, yaw)."""
+    """The ground-truth relative pose projected on the paper's planar motion (x_d, z_d, yaw) (with
+    ``--odometry-error``, its translation scaled and its yaw shifted)."""
     from fsof_torch import ego_motion_from_pose
 
-    return ego_motion_from_pose(pair["relative_pose"][None].to(torch.float64), pair["camera"].to(torch.float64))
+    motion = ego_motion_from_pose(pair["relative_pose"][None].to(torch.float64), pair["camera"].to(torch.float64))
+    scale, yaw = pair.get("odometry_error", (1.0, 0.0))
+    return motion._replace(x_d=motion.x_d * scale, z_d=motion.z_d * scale, yaw=motion.yaw + math.radians(yaw))
+
+
+#: the widths the images may move the poses' planar motion by (``ImageMotionEstimator``'s
+#: ``odometry_sigma``): about what wheel odometry is off by in a frame at city speed (a few
+#: percent of a metre's step, a yaw-rate bias of a few tenths of a degree a second and more)
+ODOMETRY_SIGMA = {"x_d": 0.05, "z_d": 0.05, "yaw": math.radians(0.2)}
 
 
 #: name -> (what it needs, method(pair, dis flow) -> (flow, info)); DIS itself is measured apart
@@ -150,6 +167,8 @@ METHODS: dict[str, tuple[str | None, Callable[[dict, Tensor], tuple[Tensor, dict
     "refiner, poses ('plane')": ("relative_pose", lambda pair, dis: refiner_flow(pair, dis, plane_odometry(pair))),
     "refiner, poses (paper's planar)": ("relative_pose",
                                         lambda pair, dis: refiner_flow(pair, dis, paper_odometry(pair))),
+    "refiner, poses (paper's planar) as priors": (
+        "relative_pose", lambda pair, dis: refiner_flow(pair, dis, paper_odometry(pair), odometry_sigma=ODOMETRY_SIGMA)),
 }
 
 
@@ -434,6 +453,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="roll every pair's camera by this many degrees between the frames (default 0)")
     parser.add_argument("--exposure-gain", type=float, default=1.0,
                         help="make every pair's image 2 this many times as bright (clipped to 0..255; default 1)")
+    parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
+                        help="make the poses' odometry wrong as wheel odometry is: its translation SCALE times as "
+                             "long, its yaw YAW_DEG degrees a frame more (default 1 0: as measured)")
     parser.add_argument("--no-turn-screen", action="store_true",
                         help="also run the refiner without its screen of turns (turn_starts=()), and both "
                              "without the start from DIS's flow (flow_start=False)")
@@ -464,9 +486,14 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
+    scale, yaw_error = args.odometry_error
+    if not (math.isfinite(scale) and 0.5 <= scale <= 2 and math.isfinite(yaw_error) and abs(yaw_error) < 45):
+        parser.error(f"--odometry-error: expected a scale within [0.5, 2] and degrees within (-45, 45), got "
+                     f"{scale} {yaw_error}")
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
-                              "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain}
+                              "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
+                              "odometry_error": [scale, yaw_error]}
     found = False
     for key, title, folder, pairs in (
             ("kitti15", "KITTI 2015 pair 000000 (ground truth: road EPE over road ∩ valid)", "kitti15_000000",
@@ -483,6 +510,8 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
         if args.exposure_gain != 1.0:
             data = [(name, lambda load=load: exposed(load(), args.exposure_gain)) for name, load in data]
+        if (scale, yaw_error) != (1.0, 0.0):
+            data = [(name, lambda load=load: {**load(), "odometry_error": (scale, yaw_error)}) for name, load in data]
         # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
         changed = any(turn) or args.exposure_gain != 1.0
         if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
@@ -493,6 +522,8 @@ def main(argv: list[str] | None = None) -> int:
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
+        if (scale, yaw_error) != (1.0, 0.0) and key == "clip":
+            gain += f", odometry's steps {scale:g} times as long and its yaw {yaw_error:+g}° a frame off"
         print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}{gain}\n")
         print(table(result["rows"]))
     if not found:

@@ -192,7 +192,8 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     report = json.loads(out.read_text())
     rows = {r["method"]: r for r in report["clip"]["rows"]}
     assert set(rows) == {"DIS", "ECC homography", "refiner (no odometry)", "refiner, poses ('plane')",
-                         "refiner, poses (paper's planar)", "refiner, clip motion (fit_sequence)"}
+                         "refiner, poses (paper's planar)", "refiner, poses (paper's planar) as priors",
+                         "refiner, clip motion (fit_sequence)"}
     for r in rows.values():
         assert 0 <= r["census"] <= 1 and r["seconds"] >= 0 and "epe" not in r
     assert [p["pair"] for p in report["clip"]["pairs"]] == ["000000", "000001"]
@@ -293,7 +294,8 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
     assert report["yaw_deg"] == 4.0
     # turned, image 2 of a pair is not image 1 of the next: no clip fit
     assert {r["method"] for r in report["clip"]["rows"]} == {"DIS", "refiner (no odometry)", *rr.TURN_ROWS,
-                                                            "refiner, poses ('plane')", "refiner, poses (paper's planar)"}
+                                                            "refiner, poses ('plane')", "refiner, poses (paper's planar)",
+                                                            "refiner, poses (paper's planar) as priors"}
     assert rr.main(["--data", str(tmp_path / "data"), "--pitch-change-deg", "1", "--roll-change-deg", "-0.5",
                     "--no-ecc", "--no-progress", "--pairs", "1", "--no-prior-retry"]) == 0
     printed = capsys.readouterr().out
@@ -315,6 +317,38 @@ def test_exposed_scales_image_2_as_an_8_bit_camera_records_it(rr, pair):
     before = pair["image2"].clone()
     rr.exposed(pair, 0.5)
     assert torch.equal(pair["image2"], before)  # the caller's pair is left as it was
+
+
+def test_odometry_error_scales_the_translation_and_shifts_the_yaw(rr, pair):
+    """--odometry-error SCALE YAW_DEG: both forms of the poses' odometry, translation SCALE times as
+    long and yaw YAW_DEG degrees more, the rest as measured."""
+    wrong = {**pair, "odometry_error": (1.03, -0.2)}
+    plane, plane_wrong = rr.plane_odometry(pair), rr.plane_odometry(wrong)
+    for k in ("x_d", "y_d", "z_d"):
+        assert float(plane_wrong[k]) == pytest.approx(1.03 * float(plane[k]), rel=1e-12)
+    assert float(plane_wrong["yaw"] - plane["yaw"]) == pytest.approx(math.radians(-0.2), abs=1e-12)
+    for k in ("pitch_change", "roll_change", "pitch", "roll"):
+        assert torch.equal(plane_wrong[k], plane[k])
+    ego, ego_wrong = rr.paper_odometry(pair), rr.paper_odometry(wrong)
+    assert float(ego_wrong.z_d) == pytest.approx(1.03 * float(ego.z_d), rel=1e-12)
+    assert float(ego_wrong.x_d) == pytest.approx(1.03 * float(ego.x_d), rel=1e-12)
+    assert float(ego_wrong.yaw - ego.yaw) == pytest.approx(math.radians(-0.2), abs=1e-12)
+
+
+def test_main_with_wrong_odometry(rr, scenes, tmp_path, capsys):
+    _tiny_clip(scenes, tmp_path)
+    out = tmp_path / "wrong.json"
+    assert rr.main(["--data", str(tmp_path / "data"), "--odometry-error", "1.05", "0.3", "--no-ecc", "--no-sequence",
+                    "--no-progress", "--json", str(out)]) == 0
+    assert "odometry's steps 1.05 times as long and its yaw +0.3° a frame off" in capsys.readouterr().out
+    report = json.loads(out.read_text())
+    assert report["odometry_error"] == [1.05, 0.3]
+    rows = {r["method"]: r for r in report["clip"]["rows"]}
+    assert rows["refiner, poses (paper's planar) as priors"]["pairs"] == 1
+    for value in (["0.4", "0"], ["1", "nan"], ["1", "50"]):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), "--odometry-error", *value])
+        assert exit_.value.code == 2 and "--odometry-error: expected a scale within [0.5, 2]" in capsys.readouterr().err
 
 
 def test_main_with_an_exposure_change(rr, scenes, tmp_path, capsys):
