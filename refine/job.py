@@ -121,6 +121,17 @@ def _odometry(variant: str, pair: dict, camera: Camera, cfg: JobConfig | None = 
     return pair["odometry"]
 
 
+def _refiner(variant: str, cfg: JobConfig) -> FreespaceRefiner:
+    """The refiner of a variant: ``fit`` fits the flow; ``given_images`` with ``--odometry-sigma``
+    lets the images move the odometry; the others are the default refiner."""
+    common = {"mode": cfg.mode, "scale": cfg.scale, "warn": False}
+    if variant == "fit":
+        return FreespaceRefiner(fit="flow", fit_roll=cfg.fit_roll, fit_pitch=cfg.fit_pitch, **common)
+    if variant == "given_images" and cfg.odometry_sigma:
+        return FreespaceRefiner(estimator=ImageMotionEstimator(odometry_sigma=cfg.odometry_sigma), **common)
+    return FreespaceRefiner(**common)
+
+
 def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int = 0,
               camera: Camera | None = None) -> list[dict]:
     """Process every (pair, source, variant) of ``specs`` not yet finished; return their records
@@ -137,12 +148,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 p.parent.mkdir(parents=True, exist_ok=True)
         if cfg.figures:
             figure_path(cfg, source, "x").parent.mkdir(parents=True, exist_ok=True)
-    refiners = {v: FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, fit="flow", fit_roll=cfg.fit_roll,
-                                    fit_pitch=cfg.fit_pitch, warn=False) if v == "fit"
-                else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False,
-                                      estimator=ImageMotionEstimator(odometry_sigma=cfg.odometry_sigma))
-                if v == "given_images" and cfg.odometry_sigma
-                else FreespaceRefiner(mode=cfg.mode, scale=cfg.scale, warn=False) for v in cfg.variants}
+    refiners = {v: _refiner(v, cfg) for v in cfg.variants}
     records: list[dict] = []
     figures: dict[tuple, Any] = {}  # a PairFigure per layout, redrawn for every pair
     try:
