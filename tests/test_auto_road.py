@@ -227,12 +227,20 @@ def test_refiner_auto_without_images_uses_the_flow(kitti_K):
     """Without images the road comes from the prediction (detect_freespace), as before."""
     from fsof_torch import displacement_flow
 
+    from fsof_torch import detect_freespace
+
     cam = Camera(kitti_K, 1.65).scaled(320 / 1242, 96 / 375)
-    flow, _ = displacement_flow(cam, 0.0, 1.0, 0.0, (96, 320))
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (96, 320))
+    flow = flow.float()
+    flow[..., 60:85, 140:180] = 0.0  # a car ahead at the ego vehicle's speed: no flow
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        out = refine_flow(flow.float(), "auto", cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, gate=None)
-    assert out.road is None and bool(out.mask.any())
+        out = refine_flow(flow, "auto", cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, gate=None)
+    assert out.road is None and torch.equal(out.mask, detect_freespace(flow, cam))
+    road = valid.clone()
+    road[..., 60:85, 140:180] = False
+    assert not bool(out.mask[..., 60:85, 140:180].any())
+    assert float((out.mask & road).sum() / (out.mask | road).sum()) > 0.95
 
 
 # -- inputs ---------------------------------------------------------------------------------------
@@ -264,19 +272,20 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(motion={"model": "velocity", "speed": 1.0}), "motion: expected a displacement model"),
 ])
 def test_bad_options_are_named(kitti_K, kwargs, match):
-    im = torch.rand(1, 3, 64, 200) * 255
+    im = torch.rand(1, 3, 64, 200, generator=torch.Generator().manual_seed(0)) * 255
     cam = Camera(kitti_K, 1.65).scaled(200 / 1242, 64 / 375)
     with pytest.raises((ValueError, TypeError), match=match):
         detect_road(im, im, cam, **kwargs)
 
 
 def test_bad_inputs_are_named(kitti_K):
-    im = torch.rand(1, 3, 64, 200) * 255
+    im = torch.rand(1, 3, 64, 200, generator=torch.Generator().manual_seed(0)) * 255
     cam = Camera(kitti_K, 1.65).scaled(200 / 1242, 64 / 375)
     with pytest.raises(ValueError, match=r"image2: expected shape"):
         detect_road(im, im[..., :100], cam)
     with pytest.raises(ValueError, match="image1: expected 1 .grey. or 3 .RGB. channels"):
-        detect_road(torch.rand(1, 2, 64, 200), torch.rand(1, 2, 64, 200), cam)
+        two_channels = torch.rand(1, 2, 64, 200, generator=torch.Generator().manual_seed(0))
+        detect_road(two_channels, two_channels, cam)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
         detect_road(im, im, kitti_K)
     with pytest.raises(ValueError, match=r"camera: expected batch 1 or 2"):

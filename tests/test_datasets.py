@@ -127,6 +127,7 @@ class TestKittiLayout:
         K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
         item = KittiFlowDataset(root, flow="occ", K=K, camera_height=1.7)[0]
         assert item["flow"] is None and item["valid"] is None and float(item["camera"].height) == pytest.approx(1.7)
+        torch.testing.assert_close(item["camera"].K[0], K)
         assert KittiFlowDataset(root)[0]["camera"] is None
 
     def test_reads_the_synthetic_layout(self, synthetic_root):

@@ -44,8 +44,9 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
 def test_tables_bad_arguments(tmp_path, capsys):
     assert main(["tables", "--pairs", "0", "--out", str(tmp_path)]) == 2
     assert "--pairs" in capsys.readouterr().err
-    with pytest.raises(SystemExit):
+    with pytest.raises(SystemExit) as exit_:
         main(["tables", "--only", "nope"])
+    assert exit_.value.code == 2 and "argument --only: invalid choice: 'nope'" in capsys.readouterr().err
     # a KITTI sample asked for but absent: an error, not an empty table
     assert main(["tables", "--kitti", str(tmp_path / "none"), "--out", str(tmp_path), "--no-progress"]) == 2
     assert f"--kitti: no KITTI sample (flow_noc_10.png) at {str(tmp_path / 'none')!r}" in capsys.readouterr().err

@@ -16,7 +16,7 @@ def test_vflow_preset(tmp_path, capsys):
     data = json.loads((out / "vflow.json").read_text())
     assert {"source", "curve", "freespace", "files"} <= set(data)
     assert data["curve"]["success"] and abs(data["curve"]["z_d_m"] - data["curve"]["z_d_m_true"]) < 0.05
-    assert 0.0 <= data["freespace"]["iou"] <= 1.0
+    assert data["freespace"]["iou"] >= 0.9  # (0.966 measured)
     for name in ("vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"):
         assert (out / name).stat().st_size > 1000
     assert "V-flow curve" in capsys.readouterr().out
@@ -52,6 +52,7 @@ def test_vflow_bad_arguments(tmp_path, capsys):
     assert main(["vflow", "--flow", str(tmp_path / "missing.flo"), "--out", str(tmp_path)]) == 2
     assert "--flow" in capsys.readouterr().err
     assert main(["vflow", "--preset", "nope", "--out", str(tmp_path), "--no-progress"]) == 2
+    assert "--preset: unknown preset 'nope'" in capsys.readouterr().err
     # a file that is not a flow, a mask that is not an image: exit 2 naming the option
     (tmp_path / "bad.flo").write_bytes(b"12345")
     assert main(["vflow", "--flow", str(tmp_path / "bad.flo"), "--out", str(tmp_path), "--no-progress"]) == 2

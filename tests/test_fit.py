@@ -371,6 +371,11 @@ def test_feature_init_from_a_previous_result():
     assert bool(again.success) and int(again.iterations) <= 3
     again2 = fit_displacement(flow, road_mask(valid), cam, init=dict(z_d=0.5))
     assert abs(float(again2.z_d) - 1.0) < 1e-8
+    # the start is the init: one step from z_d = 0.5 has not arrived (the default start, from the
+    # flow itself, is exact here), one step from the previous result stays there
+    one_step = fit_displacement(flow, road_mask(valid), cam, init=dict(z_d=0.5), max_iter=1)
+    assert abs(float(one_step.z_d) - 1.0) > 0.01
+    assert abs(float(fit_displacement(flow, road_mask(valid), cam, init=first, max_iter=1).z_d) - 1.0) < 1e-8
 
 
 def test_feature_velocity_noise_free_recovery():

@@ -262,10 +262,13 @@ def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned
     assert turning_start(hom, camera, hbase, level, mask, (9.0,), 1.0, ("h11",), "cauchy", 3000) is None
 
 
-@pytest.mark.parametrize("turns, error", [("3", TypeError), ((3.0, float("nan")), ValueError), (None, TypeError)])
-def test_turn_starts_are_checked(turns, error):
+@pytest.mark.parametrize("turns, error, match", [
+    ("3", TypeError, r"turn_starts: expected a list or tuple of numbers \(degrees of yaw per frame\), got str '3'"),
+    ((3.0, float("nan")), ValueError, "turn_starts: expected a finite number, got nan"),
+    (None, TypeError, r"turn_starts: expected a list or tuple of numbers \(degrees of yaw per frame\), got NoneType")])
+def test_turn_starts_are_checked(turns, error, match):
     p = render_pair("default", 0, size=(96, 320))
-    with pytest.raises(error, match="turn_starts"):
+    with pytest.raises(error, match=match):
         fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"], turn_starts=turns)
 
 
@@ -286,7 +289,7 @@ def test_a_pitch_jolt_is_found_by_the_retry_without_the_coarse_prior(load_benchm
     assert abs(float(fit.params["pitch_change"][0]) - math.radians(3.0)) < math.radians(0.1)
     alone = fit_image(*images, road, t["camera"], retry_without_prior=False)
     assert not bool(alone.success[0])
-    with pytest.raises(TypeError, match="retry_without_prior"):
+    with pytest.raises(TypeError, match="retry_without_prior: expected True or False, got str 'yes'"):
         fit_image(*images, road, t["camera"], retry_without_prior="yes")
 
 

@@ -620,7 +620,7 @@ def test_image_estimator_inputs_are_checked_images_first():
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
     pred, mask, cam, _ = make_case()
-    image = torch.rand(1, 3, H, W) * 255
+    image = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0)) * 255
     estimator = ImageMotionEstimator()
     with pytest.raises(ValueError, match=rf"flow: expected shape \(B, 2, H, W\) with H={H}"):
         estimator(pred[..., :-4, :], mask, cam, images=(image, image))
@@ -638,7 +638,7 @@ def test_estimator_options_that_would_be_left_aside_are_refused():
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
     pred, mask, cam, _ = make_case()
-    image = torch.rand(1, 3, H, W) * 255
+    image = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0)) * 255
     images = (image, image)
     with pytest.raises(ValueError, match="fit_roll: applies with fit='flow' or 'photometric'; here the default image "
                                          "estimator runs"):
@@ -659,7 +659,7 @@ def test_gate_arguments_named():
     from fsof_torch.refinement.gate import ImageGate
 
     pred, mask, _, gt = make_case()
-    image = torch.rand(1, 3, H, W) * 255
+    image = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0)) * 255
     gate = ImageGate()
     with pytest.raises(TypeError, match="image1: expected a torch.Tensor, got int"):
         gate(5, image, pred, gt.float(), mask)  # once an AttributeError

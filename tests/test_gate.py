@@ -167,16 +167,21 @@ def test_the_gate_leaves_its_inputs_alone():
 
 
 @pytest.mark.parametrize("kwargs, match", [
-    (dict(grid=(0, 4)), "grid"), (dict(grid=3), "grid"), (dict(points=0), "points"),
-    (dict(z=-1.0), "z"), (dict(object_px=0.0), "object_px"), (dict(temperature=0.0), "temperature"),
-    (dict(min_points_fine=0), "min_points_fine"),
+    (dict(grid=(0, 4)), r"grid: expected \(rows, columns\) of positive integers, got \(0, 4\)"),
+    (dict(grid=3), r"grid: expected \(rows, columns\) of positive integers, got 3"),
+    (dict(points=0), "points: expected a positive integer, got 0"),
+    (dict(z=-1.0), "z: expected a finite number >= 0, got -1.0"),
+    (dict(object_px=0.0), "object_px: expected a finite number > 0, got 0.0"),
+    (dict(temperature=0.0), "temperature: expected > 0, got 0.0"),
+    (dict(min_points_fine=0), "min_points_fine: expected a positive integer, got 0"),
 ])
 def test_gate_options_are_checked(kwargs, match):
     with pytest.raises(ValueError, match=match):
         ImageGate(**kwargs)
 
 
-@pytest.mark.parametrize("kwargs, match", [(dict(objects=1), "objects"), (dict(require_evidence="yes"), "require")])
+@pytest.mark.parametrize("kwargs, match", [(dict(objects=1), "objects: expected a bool, got 1"),
+                                           (dict(require_evidence="yes"), "require_evidence: expected a bool, got 'yes'")])
 def test_gate_flags_are_checked(kwargs, match):
     with pytest.raises(TypeError, match=match):
         ImageGate(**kwargs)
@@ -196,7 +201,11 @@ def test_gate_inputs_are_checked_images_first():
         gate(im1, im2, flow, flow[..., :100], road)
     with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with B >= 1"):
         gate(im1[:0], im2[:0], flow[:0], flow[:0], road[:0])
-    model = flow + 0.5
-    plain = gate(im1, im2, flow, model, road)
-    half = gate(im1.bfloat16(), im2.bfloat16(), flow.bfloat16(), model.bfloat16(), road)
-    assert half.use_model.shape == plain.use_model.shape and half.cost_model.dtype == torch.float32
+    # a prediction 1.5 px off and the true flow as the model: the model is used where the road is
+    prediction = flow + 1.5
+    plain = gate(im1, im2, prediction, flow, road)
+    half = gate(im1.bfloat16(), im2.bfloat16(), prediction.bfloat16(), flow.bfloat16(), road)
+    assert bool(plain.use_model.any()) and bool(plain.model_used.all())
+    assert torch.equal(half.use_model, plain.use_model) and half.cost_model.dtype == torch.float32
+    torch.testing.assert_close(half.cost_model, plain.cost_model, rtol=0.02, atol=0)
+    torch.testing.assert_close(half.cost_prediction, plain.cost_prediction, rtol=0.02, atol=0)

@@ -81,7 +81,7 @@ class TestExceptions:
             read_flo(tmp_path / "neg.flo")
 
     def test_missing_and_bad_input(self, tmp_path):
-        with pytest.raises(FileNotFoundError):
+        with pytest.raises(FileNotFoundError, match=r"path: no file at '.*none\.flo'"):
             read_flo(tmp_path / "none.flo")
         with pytest.raises(ValueError, match=r"expected shape \(2, H, W\)"):
             write_flo(tmp_path / "x.flo", torch.zeros(3, 4, 4))

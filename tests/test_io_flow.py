@@ -64,7 +64,7 @@ class TestExceptions:
             read_flow(tmp_path / "s.npy")
         with pytest.raises(ValueError, match=r"i\.npy.*int32"):
             read_flow(tmp_path / "i.npy")
-        with pytest.raises(FileNotFoundError):
+        with pytest.raises(FileNotFoundError, match=r"path: no file at '.*none\.npy'"):
             read_flow(tmp_path / "none.npy")
         np.save(tmp_path / "e.npy", np.zeros((2, 0, 5), np.float32))  # as .flo: no empty flow
         with pytest.raises(ValueError, match=r"e\.npy' holds an empty flow of shape \(2, 0, 5\)"):

@@ -41,7 +41,7 @@ class TestSmoke:
         assert back[~valid.expand(2, -1, -1)].eq(0).all()
 
     def test_values_on_the_grid_are_exact(self, tmp_path):
-        flow = torch.randint(-512 * 64, 512 * 64, (2, 7, 5)).double() / 64
+        flow = torch.randint(-512 * 64, 512 * 64, (2, 7, 5), generator=torch.Generator().manual_seed(0)).double() / 64
         write_kitti_flow(tmp_path / "f.png", flow)
         back, valid = read_kitti_flow(tmp_path / "f.png")
         assert valid.all() and torch.equal(back.double(), flow)
@@ -87,7 +87,11 @@ class TestFeature:
         assert back.shape == (2, 4, 4) and back.dtype == torch.float64
         torch.testing.assert_close(back, torch.stack([P0, P1]), atol=1e-12, rtol=1e-11)
         ego = ego_motion_from_pose(back[:1], pose1=back[1:])
-        assert abs(float(ego.z_d) - 1.2 * c - 0.1 * s) < 1e-3
+        # frame t is the world here: d is P1's translation, and p(t+1) = R_y(0.01)^T (p(t) - d) is
+        # DESIGN.md's R_phi (p - d) with phi = 0.01
+        assert float(ego.x_d) == pytest.approx(0.1, abs=1e-12)
+        assert float(ego.z_d) == pytest.approx(1.2, abs=1e-12)
+        assert float(ego.yaw) == pytest.approx(0.01, abs=1e-12)
 
     def test_poses_other_row_forms(self, tmp_path):
         T = torch.eye(4, dtype=torch.float64)

@@ -104,5 +104,5 @@ class TestExceptions:
         (tmp_path / "i2.txt").write_text("0 1 1 1 1 1\n")
         with pytest.raises(ValueError, match="no rows for camera 0"):
             read_vkitti2_intrinsics(tmp_path / "i2.txt", camera=0)
-        with pytest.raises(FileNotFoundError):
+        with pytest.raises(FileNotFoundError, match=r"path: no extrinsic\.txt at '.*none\.txt'"):
             read_vkitti2_extrinsics(tmp_path / "none.txt")

@@ -171,7 +171,7 @@ def test_fit_sequence_errors(body_motion_clip):
     cam, road = pairs[0]["camera"], pairs[0]["road"]
     with pytest.raises(ValueError, match="frames: expected at least 2"):
         fit_sequence(frames[:1], road, cam)
-    with pytest.raises(ValueError, match="passes"):
+    with pytest.raises(ValueError, match="passes: expected 1 or 2, got 3"):
         fit_sequence(frames[:3], road, cam, passes=3)
     for name in ("attitude_deg", "body_rotation_deg"):
         with pytest.raises(ValueError, match=f"{name}: expected a finite number of degrees > 0"):
@@ -180,14 +180,15 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(frames[:3], [road] * 3, cam)
     with pytest.raises(ValueError, match="flows: expected 2"):
         fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, 8, 8)])
-    with pytest.raises(TypeError, match="camera"):
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera of batch 1"):
         fit_sequence(frames[:3], road, "cam")
-    with pytest.raises(ValueError, match="model"):
+    with pytest.raises(ValueError, match="model: a clip is fitted with the 'plane' model"):
         fit_sequence(frames[:3], road, cam, model="paper")
     two = Camera(cam.K.expand(2, -1, -1), height=1.65)
-    with pytest.raises(TypeError, match="camera"):
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera of batch 1"):
         fit_sequence(frames[:3], road, two)
-    with pytest.raises(ValueError, match="poses"):
+    with pytest.raises(ValueError, match=r"poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
+                                         r"got torch.float32 \(2, 4, 4\)"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))
     # each item is checked as it is read (named by its index), before any fit
     H, W = frames[0].shape[-2:]

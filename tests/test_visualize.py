@@ -221,5 +221,7 @@ def test_save_pngs_roundtrip(tmp_path):
 
 
 def test_save_into_missing_folder_fails_cleanly(tmp_path):
-    with pytest.raises(FileNotFoundError):
+    """A missing folder is named and not created; nothing is written."""
+    with pytest.raises(FileNotFoundError, match=r"path: the folder of '.*missing/flow\.png' does not exist"):
         save_flow_png(tmp_path / "missing" / "flow.png", _flow()[0])
+    assert os.listdir(tmp_path) == []
