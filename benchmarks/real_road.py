@@ -129,7 +129,8 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an unrefined pair is counted, not warned about
         out = refiner(flow_dis[None], pair["road"][None], pair["camera"], odometry, images=images)
-    return out.flow[0].detach(), {"refined": bool(out.refined[0])}
+    motion = {"z_d": float(out.odometry["z_d"][0]), "yaw_deg": math.degrees(float(out.odometry["yaw"][0]))}
+    return out.flow[0].detach(), {"refined": bool(out.refined[0]), "motion": motion}
 
 
 def plane_odometry(pair: dict) -> dict:
@@ -266,6 +267,22 @@ def summarize(per_pair: list[dict[str, dict]]) -> list[dict[str, Any]]:
                 row[flag] = sum(bool(r[name].get(flag)) for r in runs)
         rows.append(row)
     return rows
+
+
+def images_against_poses(per_pair: list[dict[str, dict]]) -> str | None:
+    """Where the images and the poses disagree: over the pairs that both the refiner without
+    odometry and the one with the poses' planar motion held refined, the images' forward step
+    over the poses' (at the nominal camera height) and the images' yaw minus the poses'."""
+    images, poses = "refiner (no odometry)", "refiner, poses (paper's planar)"
+    both = [(r[images]["motion"], r[poses]["motion"]) for r in per_pair
+            if images in r and poses in r and r[images]["refined"] and r[poses]["refined"]]
+    if not both:
+        return None
+    ratio = np.array([a["z_d"] / b["z_d"] for a, b in both])
+    yaw = np.array([a["yaw_deg"] - b["yaw_deg"] for a, b in both])
+    return (f"The images against the poses ({len(both)} pairs): forward step x {ratio.min():.3f} to "
+            f"{ratio.max():.3f} (median {np.median(ratio):.3f}); yaw {yaw.min():+.3f}° to {yaw.max():+.3f}° a frame "
+            f"(median |difference| {np.median(np.abs(yaw)):.3f}°)")
 
 
 def table(rows: list[dict[str, Any]]) -> str:
@@ -526,6 +543,9 @@ def main(argv: list[str] | None = None) -> int:
             gain += f", odometry's steps {scale:g} times as long and its yaw {yaw_error:+g}° a frame off"
         print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}{gain}\n")
         print(table(result["rows"]))
+        disagreement = images_against_poses(result["pairs"])
+        if disagreement is not None:
+            print("\n" + disagreement)
     if not found:
         print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}", file=sys.stderr)
         return 2

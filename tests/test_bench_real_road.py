@@ -335,6 +335,21 @@ def test_odometry_error_scales_the_translation_and_shifts_the_yaw(rr, pair):
     assert float(ego_wrong.yaw - ego.yaw) == pytest.approx(math.radians(-0.2), abs=1e-12)
 
 
+def test_images_against_poses_over_the_pairs_both_refined(rr):
+    images, poses = "refiner (no odometry)", "refiner, poses (paper's planar)"
+
+    def pair(z_images, yaw_images, z_poses, yaw_poses, refined=True):
+        return {images: {"refined": True, "motion": {"z_d": z_images, "yaw_deg": yaw_images}},
+                poses: {"refined": refined, "motion": {"z_d": z_poses, "yaw_deg": yaw_poses}}}
+
+    per_pair = [pair(1.2, 0.1, 1.0, 0.0), pair(0.9, -0.2, 1.0, 0.1), pair(3.0, 5.0, 1.0, 0.0, refined=False),
+                {images: {"refined": True, "motion": {"z_d": 1.0, "yaw_deg": 0.0}}}]
+    assert rr.images_against_poses(per_pair) == (
+        "The images against the poses (2 pairs): forward step x 0.900 to 1.200 (median 1.050); yaw -0.300° to "
+        "+0.100° a frame (median |difference| 0.200°)")
+    assert rr.images_against_poses(per_pair[2:]) is None
+
+
 def test_main_with_wrong_odometry(rr, scenes, tmp_path, capsys):
     _tiny_clip(scenes, tmp_path)
     out = tmp_path / "wrong.json"
