@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .sampling import MaskPoints, pixel_coordinates, sample_points
+from .sampling import MaskPoints, points_grid, sample_at_grid
 
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
 
@@ -30,8 +30,8 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
     would copy whole frames)."""
     B, _, H, W = images1[0].shape
     every = points.every
-    frame = torch.div(every, H * W, rounding_mode="floor")
-    uv = pixel_coordinates((every - frame * H * W).unsqueeze(0), W)[0, :2]
+    pix = every % (H * W)  # (the pixel within its frame)
+    uv = torch.stack([(pix % W).to(torch.float64), torch.div(pix, W, rounding_mode="floor").to(torch.float64)])
     xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     I1 = torch.cat([im.transpose(0, 1).reshape(im.shape[1], -1).gather(1, every.expand(im.shape[1], -1))
                     .to(torch.float64) for im in images1])
@@ -39,9 +39,16 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
     inb = torch.empty(every.shape, dtype=torch.bool, device=every.device)
     for b in range(B):  # (B is small; the points of a frame are one contiguous run of ``every``)
         run = slice(int(points.bounds[b]), int(points.bounds[b + 1]))
+        # (one grid for all of image 2's images: they share the frame's size)
         at = xy[:, run].unsqueeze(0)
-        samples = [sample_points(im[b:b + 1], at) for im in images2]
-        I2[:, run], inb[run] = torch.cat([s[0] for s, _ in samples]), samples[0][1][0]
+        grid, inb_b = points_grid(at, (H, W), images2[0].dtype)
+        inb[run] = inb_b[0]
+        channel = 0
+        for im in images2:
+            C = im.shape[1]
+            g = grid if im.dtype == grid.dtype else points_grid(at, (H, W), im.dtype)[0]
+            I2[channel:channel + C, run] = sample_at_grid(im[b:b + 1], g)[0]
+            channel += C
     return I1, I2, inb & valid.reshape(-1).gather(0, every)
 
 
@@ -90,7 +97,7 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
     do not correspond, and a regression's gain would shrink toward 0, making any flow over a
     plain road look right; the spreads' ratio stays the images' contrast ratio.
     """
-    w = ok.to(torch.float64)
+    w = usable = ok.to(torch.float64)
     gain = offset = None
     for _ in range(iterations + 1):
         n = points.per_frame(w).clamp_min(1e-12)
@@ -100,5 +107,5 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
         gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
         offset = m1 - gain * m2
         r = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1) / threshold
-        w = ok.to(torch.float64) / (1.0 + r.square())
+        w = usable / (1.0 + r.square())
     return gain, offset

@@ -393,7 +393,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     n_levels = pyramid_levels(H, W, levels, min_size)
     fixed_names = fixed_parameters(model, fixed)
     P = len(model.params)
-    free = torch.tensor([n not in fixed_names for n in model.params] + [affine, affine], device=dev)
+    # (None where every parameter is free: the solver then skips the fixed parameters' masking)
+    free = (None if not fixed_names and affine else
+            torch.tensor([n not in fixed_names for n in model.params] + [affine, affine], device=dev))
 
     with autocast_off(image1):
         work = torch.float64 if image1.dtype == torch.float64 else torch.float32

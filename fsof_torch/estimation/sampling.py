@@ -14,7 +14,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MaskPoints", "sample_mask", "resample_mask", "pixel_coordinates", "gather_pixels", "sample_points"]
+__all__ = ["MaskPoints", "sample_mask", "resample_mask", "pixel_coordinates", "gather_pixels", "sample_points",
+           "points_grid", "sample_at_grid"]
 
 
 @dataclass
@@ -112,11 +113,23 @@ def sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
     (``grid_sample`` on a (B, 1, N) grid, with the corner-aligned normalisation written here)
     instead of warping the whole frame. Returns (B, C, N) float64 and in-bounds flags (B, N).
     """
-    B, C, H, W = image.shape
+    grid, inb = points_grid(xy, image.shape[-2:], image.dtype)
+    return sample_at_grid(image, grid), inb
+
+
+def points_grid(xy: Tensor, size: tuple[int, int], dtype: torch.dtype) -> tuple[Tensor, Tensor]:
+    """The ``grid_sample`` grid (B, 1, N, 2) of ``dtype`` of pixel positions ``xy`` (B, 2, N) in
+    images of ``size`` (H, W), and their in-bounds flags (B, N) (:func:`sample_points` in two
+    parts: images of one size sampled at the same points share the grid)."""
+    H, W = size
     x, y = xy[:, 0], xy[:, 1]
     inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
     gx = x * (2.0 / max(W - 1, 1)) - 1.0
     gy = y * (2.0 / max(H - 1, 1)) - 1.0
-    grid = torch.stack([gx, gy], dim=-1).unsqueeze(1).to(image.dtype)  # (B, 1, N, 2)
+    return torch.stack([gx, gy], dim=-1).unsqueeze(1).to(dtype), inb
+
+
+def sample_at_grid(image: Tensor, grid: Tensor) -> Tensor:
+    """Bilinear samples (B, C, N) float64 of ``image`` (B, C, H, W) at a grid of :func:`points_grid`."""
     out = F.grid_sample(image, grid, mode="bilinear", padding_mode="border", align_corners=True)
-    return out[:, :, 0].to(torch.float64), inb
+    return out[:, :, 0].to(torch.float64)

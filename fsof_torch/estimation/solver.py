@@ -276,7 +276,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     def normal(ev: Evaluation, w: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         A, g = problem.normal_equations(ev, w)
         if has_prior:
-            A = A + torch.diag_embed(lam_p)
+            A = A + lam_diag
             g = g + lam_p * (p - mu)
         if has_fixed:
             A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, 0.0, g)
@@ -306,6 +306,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     if has_prior:
         mu = _expand(prior_mean, B, P, params, 0.0)
         lam_p = _expand(prior_precision(s_min) if callable(prior_precision) else prior_precision, B, P, params, 0.0)
+        lam_diag = torch.diag_embed(lam_p)  # (constant: built once, added to every normal matrix)
     s = torch.maximum(s_min, kernel_spread(ev)) if anneal else s_min
     mask, used = counted(ev)
     c, w = cost_and_weights(ev, mask, used, params, s)
