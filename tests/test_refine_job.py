@@ -356,7 +356,7 @@ def test_clip_frames_and_packed_masks():
     assert len(frames) == 4
     assert all(frames[j] is images[j] for j in range(4)) and loads == [0, 1, 2]
     assert frames[3] is images[3] and frames[0] is images[0] and loads == [0, 1, 2, 0]
-    with pytest.raises(IndexError):
+    with pytest.raises(IndexError, match="frame 4 of a clip of 4 frames"):
         frames[4]
     masks = PackedMasks()
     originals = [torch.rand(1, 5, 7, generator=g) < 0.5 for _ in range(3)]
