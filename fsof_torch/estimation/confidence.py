@@ -16,7 +16,7 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .sampling import MaskPoints, points_grid, sample_at_grid
+from .sampling import MaskPoints, pixel_coordinates, points_grid, sample_at_grid
 
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
 
@@ -30,8 +30,7 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
     would copy whole frames)."""
     B, _, H, W = images1[0].shape
     every = points.every
-    pix = every % (H * W)  # (the pixel within its frame)
-    uv = torch.stack([(pix % W).to(torch.float64), torch.div(pix, W, rounding_mode="floor").to(torch.float64)])
+    uv = pixel_coordinates((every % (H * W)).unsqueeze(0), W)[0, :2]  # (the pixel within its frame)
     xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     I1 = torch.cat([im.transpose(0, 1).reshape(im.shape[1], -1).gather(1, every.expand(im.shape[1], -1))
                     .to(torch.float64) for im in images1])
