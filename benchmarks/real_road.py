@@ -34,9 +34,11 @@ forward axes, as the body pitches (braking, a bump) and rolls. With ``--exposure
 of every pair is G times as bright (:func:`exposed`: clipped to 0..255 and rounded), as where
 the camera's exposure changes between the frames (a shadow, a tunnel's mouth). With
 ``--odometry-error SCALE YAW_DEG`` the poses' odometry is made wrong as wheel odometry is: its
-translation SCALE times as long, its yaw YAW_DEG degrees a frame off.
+translation SCALE times as long, its yaw YAW_DEG degrees a frame off. With ``--resize FACTOR``
+every pair is first seen at FACTOR times the resolution (:func:`resized`), as where a network runs
+on smaller frames; its end-point errors are in the resized frames' pixels.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -130,7 +132,10 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
         warnings.simplefilter("ignore")  # an unrefined pair is counted, not warned about
         out = refiner(flow_dis[None], pair["road"][None], pair["camera"], odometry, images=images)
     motion = {"z_d": float(out.odometry["z_d"][0]), "yaw_deg": math.degrees(float(out.odometry["yaw"][0]))}
-    return out.flow[0].detach(), {"refined": bool(out.refined[0]), "motion": motion}
+    info = {"refined": bool(out.refined[0]), "motion": motion, "model_flow": out.flow_model[0].detach()}
+    if out.gate is not None:
+        info["cells_kept"] = int(out.gate.cells_kept[0])
+    return out.flow[0].detach(), info
 
 
 def plane_odometry(pair: dict) -> dict:
@@ -242,7 +247,11 @@ def run_pair(pair: dict, methods: dict) -> dict[str, dict]:
         t0 = time.process_time()
         flow, info = method(pair, dis)
         seconds = time.process_time() - t0
+        model_flow = info.pop("model_flow", None)
         results[name] = {**road_errors(pair, flow, dis), "seconds": seconds, **info}
+        if model_flow is not None and "epe" in results[name] and results[name].get("refined"):
+            # the model flow on the whole road, before the gate kept the prediction anywhere
+            results[name]["epe_model"] = road_errors(pair, model_flow, dis)["epe"]
     return results
 
 
@@ -253,7 +262,7 @@ def summarize(per_pair: list[dict[str, dict]]) -> list[dict[str, Any]]:
     for name in names:
         runs = [r for r in per_pair if name in r]
         row: dict[str, Any] = {"method": name, "pairs": len(runs)}
-        for key in ("census", "ssim", "l1", "epe", "seconds"):
+        for key in ("census", "ssim", "l1", "epe", "epe_model", "seconds"):
             values = [r[name][key] for r in runs if key in r[name]]
             if values:
                 row[key] = float(np.mean(values))
@@ -265,6 +274,8 @@ def summarize(per_pair: list[dict[str, dict]]) -> list[dict[str, Any]]:
         for flag in ("ecc_failed", "refined"):
             if any(flag in r[name] for r in runs):
                 row[flag] = sum(bool(r[name].get(flag)) for r in runs)
+        if any("cells_kept" in r[name] for r in runs):
+            row["cells_kept"] = sum(r[name].get("cells_kept", 0) for r in runs)
         rows.append(row)
     return rows
 
@@ -299,6 +310,10 @@ def table(rows: list[dict[str, Any]]) -> str:
             notes.append(f"ECC failed on {r['ecc_failed']}")
         if "refined" in r:
             notes.append(f"refined {r['refined']}/{r['pairs']}")
+        if r.get("cells_kept"):
+            notes.append(f"the gate kept the prediction in {r['cells_kept']} cell(s)")
+        if "epe_model" in r:
+            notes.append(f"model alone EPE {r['epe_model']:.2f}")
         worse = "–" if r["method"] == "DIS" else f"{r['worse_than_dis']} (max {r['max_worse_than_dis']:+.3f})"
         lines.append("| " + " | ".join([r["method"], str(r["pairs"]), f(r.get("census"), 4), f(r.get("ssim"), 4),
                                          f(r.get("l1"), 2), f(r.get("epe"), 2), f(r.get("seconds"), 3), worse,
@@ -435,6 +450,35 @@ def exposed(pair: dict, gain: float) -> dict:
     return {**pair, "image2": image2.to(pair["image2"].dtype)}
 
 
+def resized(pair: dict, factor: float) -> dict:
+    """``pair`` as a camera of ``factor`` times the resolution records it (a network run on smaller
+    frames): both frames resized by OpenCV's area interpolation and rounded to 8 bits, the road
+    where it covers at least half of a new pixel, the camera scaled (:meth:`Camera.scaled`), and
+    the ground-truth flow, where there is any, averaged over each new pixel's valid old ones and
+    scaled (valid where at least half of them are): the road's flow is smooth, so its mean over
+    a pixel is its value at the pixel's centre to first order."""
+    import cv2
+
+    rows, cols = pair["image1"].shape[-2:]
+    h, w = max(1, round(rows * factor)), max(1, round(cols * factor))
+
+    def area(x: Tensor) -> Tensor:  # (C, H, W) -> (C, h, w) float32
+        a = x.to(torch.float32).permute(1, 2, 0).contiguous().numpy()
+        return torch.from_numpy(cv2.resize(a, (w, h), interpolation=cv2.INTER_AREA).reshape(h, w, -1)).permute(2, 0, 1)
+
+    out = {**pair, "camera": pair["camera"].scaled(w / cols, h / rows)}
+    for key in ("image1", "image2"):
+        out[key] = area(pair[key]).clamp(0, 255).round().to(pair[key].dtype).contiguous()
+    out["road"] = area(pair["road"]) >= 0.5
+    if pair.get("flow") is not None:
+        share = area(pair["valid"])
+        total = area(pair["flow"].to(torch.float32) * pair["valid"])
+        mean = total / share.clamp_min(1e-6)
+        out["flow"] = torch.stack([mean[0] * (w / cols), mean[1] * (h / rows)]).to(pair["flow"].dtype).contiguous()
+        out["valid"] = share >= 0.5
+    return out
+
+
 def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dict, progress: bool) -> dict:
     """Every pair of a data set through :func:`run_pair`; the summary rows and the per-pair results."""
     from tqdm import tqdm
@@ -468,6 +512,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="pitch every pair's camera by this many degrees between the frames (default 0)")
     parser.add_argument("--roll-change-deg", type=float, default=0.0,
                         help="roll every pair's camera by this many degrees between the frames (default 0)")
+    parser.add_argument("--resize", type=float, default=1.0, metavar="FACTOR",
+                        help="resize every frame by this factor first (area interpolation; ground truth "
+                             "averaged; default 1)")
     parser.add_argument("--exposure-gain", type=float, default=1.0,
                         help="make every pair's image 2 this many times as bright (clipped to 0..255; default 1)")
     parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
@@ -503,6 +550,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
+    if not (math.isfinite(args.resize) and 0.1 <= args.resize <= 1):
+        parser.error(f"--resize: expected a factor within [0.1, 1], got {args.resize}")
     scale, yaw_error = args.odometry_error
     if not (math.isfinite(scale) and 0.5 <= scale <= 2 and math.isfinite(yaw_error) and abs(yaw_error) < 45):
         parser.error(f"--odometry-error: expected a scale within [0.5, 2] and degrees within (-45, 45), got "
@@ -510,6 +559,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
+                              "resize": args.resize,
                               "odometry_error": [scale, yaw_error]}
     found = False
     for key, title, folder, pairs in (
@@ -523,6 +573,8 @@ def main(argv: list[str] | None = None) -> int:
             continue
         found = True
         data, run_methods = pairs(root), dict(methods)
+        if args.resize != 1.0:
+            data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
             data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
         if args.exposure_gain != 1.0:
@@ -539,6 +591,8 @@ def main(argv: list[str] | None = None) -> int:
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
+        if args.resize != 1.0:
+            gain += f", resized by {args.resize:g} (EPE in its pixels)"
         if (scale, yaw_error) != (1.0, 0.0) and key == "clip":
             gain += f", odometry's steps {scale:g} times as long and its yaw {yaw_error:+g}° a frame off"
         print(f"\n{title}: {len(result['pairs'])} pair(s){step}{', turned by ' + turns if turns else ''}{gain}\n")

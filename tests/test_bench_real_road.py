@@ -126,6 +126,27 @@ def test_poses_as_odometry_never_worse_than_dis(results):
     assert r["refined"] and r["epe"] < dis["epe"] and r["census"] < dis["census"]
 
 
+def test_refiner_reports_the_model_flows_own_error_and_the_cells_kept(rr, pair, results):
+    """The notes' figures: the gate's cells that kept DIS's flow, as the refiner's gate result
+    counts them, and the model flow's own road error, from ``flow_model`` before the gate; where
+    the gate keeps no cell and no sample, the refined road is the model's."""
+    from fsof_torch import FreespaceRefiner, endpoint_error
+    from refine.sources import dis_flow
+
+    dis = dis_flow(pair["image1"], pair["image2"])
+    out = FreespaceRefiner()(dis[None], pair["road"][None], pair["camera"], None,
+                             images=(pair["image1"][None], pair["image2"][None]))
+    r = results["refiner (no odometry)"]
+    assert r["refined"] and r["cells_kept"] == int(out.gate.cells_kept[0])
+    model = torch.where(pair["road"][None], out.flow_model, dis[None])
+    expected = endpoint_error(model, pair["flow"][None], pair["road"][None], pair["valid"][None])
+    assert r["epe_model"] == pytest.approx(float(expected[0]), rel=1e-5)
+    if bool(out.gate.use_model[0][pair["road"]].all()):
+        assert r["epe_model"] == pytest.approx(r["epe"], rel=1e-5)
+    assert "model_flow" not in r  # the tensor is not kept in the results
+    assert "epe_model" not in results["DIS"] and "epe_model" not in results["ECC homography"]
+
+
 def test_road_errors_are_the_library_figures_of_the_combined_flow(rr, pair):
     """Inside the road the method's flow, DIS's elsewhere; census, SSIM and L1 as
     ``photometric_error`` gives them, EPE over road ∩ valid ground truth."""
@@ -165,6 +186,13 @@ def test_summarize_counts_worse_pairs_and_the_difference_to_ecc(rr):
     assert rows["DIS"]["worse_than_dis"] == 0
     text = rr.table(rr.summarize(per_pair))
     assert "| refiner (no odometry) | 3 | 0.2400 |" in text and "1 (max +0.015)" in text
+    # the refiner's notes: pairs refined, the gate's cells kept over the pairs, the model's own EPE
+    per_pair[0]["refiner (no odometry)"].update(refined=True, cells_kept=2, epe=0.5, epe_model=0.4)
+    per_pair[1]["refiner (no odometry)"].update(refined=True, cells_kept=1)
+    per_pair[2]["refiner (no odometry)"].update(refined=False)
+    ref = {r["method"]: r for r in rr.summarize(per_pair)}["refiner (no odometry)"]
+    assert ref["refined"] == 2 and ref["cells_kept"] == 3 and ref["epe_model"] == pytest.approx(0.4)
+    assert "refined 2/3; the gate kept the prediction in 3 cell(s); model alone EPE 0.40 |" in rr.table([ref])
 
 
 def _tiny_clip(scenes, tmp_path):
@@ -180,6 +208,15 @@ def _tiny_clip(scenes, tmp_path):
     write_kitti_calibration(root / "calib.txt", p0["camera"].K[0], cam=0, style="odometry")
     write_kitti_poses(root / "poses.txt", torch.stack([p0["pose1"], p0["pose2"]]))
     (root / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+
+
+def _main_on_tiny_clip(rr, scenes, tmp_path, capsys, *options):
+    """``main`` on the tiny clip with ``options`` (no ECC, no progress): what it printed and its
+    JSON report."""
+    _tiny_clip(scenes, tmp_path)
+    out = tmp_path / "report.json"
+    assert rr.main(["--data", str(tmp_path / "data"), *options, "--no-ecc", "--no-progress", "--json", str(out)]) == 0
+    return capsys.readouterr().out, json.loads(out.read_text())
 
 
 def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
@@ -284,13 +321,8 @@ def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(
 
 
 def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, capsys):
-    _tiny_clip(scenes, tmp_path)
-    out = tmp_path / "turned.json"
-    assert rr.main(["--data", str(tmp_path / "data"), "--yaw-deg", "4", "--no-ecc", "--no-turn-screen",
-                    "--no-progress", "--json", str(out)]) == 0
-    printed = capsys.readouterr().out
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--yaw-deg", "4", "--no-turn-screen")
     assert "2 pair(s), turned by 4° of yaw" in printed
-    report = json.loads(out.read_text())
     assert report["yaw_deg"] == 4.0
     # turned, image 2 of a pair is not image 1 of the next: no clip fit
     assert {r["method"] for r in report["clip"]["rows"]} == {"DIS", "refiner (no odometry)", *rr.TURN_ROWS,
@@ -317,6 +349,57 @@ def test_exposed_scales_image_2_as_an_8_bit_camera_records_it(rr, pair):
     before = pair["image2"].clone()
     rr.exposed(pair, 0.5)
     assert torch.equal(pair["image2"], before)  # the caller's pair is left as it was
+
+
+def test_resized_pair_averages_the_ground_truth_over_each_new_pixel(rr, pair):
+    """--resize: a linear flow field's mean over a 2 x 2 block is its value at the block's centre,
+    which is the new pixel's centre; a block with fewer than half of its pixels valid is not
+    valid, one with half averages those only."""
+    rows, cols = SIZE
+    v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),
+                          indexing="ij")
+    flow = torch.stack([0.5 + 0.02 * u - 0.01 * v, -1.0 + 0.03 * v + 0.005 * u]).to(torch.float32)
+    valid = torch.ones(1, rows, cols, dtype=torch.bool)
+    valid[0, 10, 20] = valid[0, 10, 21] = valid[0, 11, 20] = False  # block (5, 10): 1 of 4 valid
+    valid[0, 20, 40] = valid[0, 21, 41] = False  # block (10, 20): 2 of 4, (20, 41) and (21, 40)
+    flow[:, 20, 40] = flow[:, 21, 41] = 1e4  # (what invalid pixels hold must not count)
+    given = {**pair, "flow": flow, "valid": valid}
+    before = {k: given[k].clone() for k in ("image1", "image2", "road", "flow", "valid")}
+    out = rr.resized(given, 0.5)
+    for k, t in before.items():
+        assert torch.equal(given[k], t)  # the caller's pair is left as it was
+    h, w = rows // 2, cols // 2
+    assert out["image1"].shape == (3, h, w) and out["road"].shape == (1, h, w) and out["flow"].shape == (2, h, w)
+    vv, uu = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    uc, vc = 2 * uu + 0.5, 2 * vv + 0.5  # the new pixel's centre in the old pixels
+    expected = 0.5 * torch.stack([0.5 + 0.02 * uc - 0.01 * vc, -1.0 + 0.03 * vc + 0.005 * uc])
+    ok = out["valid"][0]
+    assert not bool(ok[5, 10]) and bool(ok[10, 20]) and int((~ok).sum()) == 1
+    assert torch.allclose(out["flow"].to(torch.float64)[:, ok], expected[:, ok], atol=1e-4)
+    old = flow.to(torch.float64)[:, [20, 21], [41, 40]].mean(1)  # the two valid pixels of block (10, 20)
+    assert torch.allclose(out["flow"][:, 10, 20].to(torch.float64), 0.5 * old, atol=1e-4)
+    # the frames: block means rounded to 8 bits, the dtype kept; the road where half a block is
+    im = pair["image1"].to(torch.float64).reshape(3, h, 2, w, 2).mean((2, 4))
+    assert (out["image1"].to(torch.float64) - im).abs().max() <= 0.5 + 1e-4 and out["image1"].dtype == pair["image1"].dtype
+    assert torch.equal(out["image1"], out["image1"].round())
+    share = pair["road"].to(torch.float64).reshape(1, h, 2, w, 2).mean((2, 4))
+    assert torch.equal(out["road"], share >= 0.5)
+    # the camera as Camera.scaled gives it (its own tests check the convention)
+    assert torch.equal(out["camera"].K, pair["camera"].scaled(0.5).K)
+    without = rr.resized({k: x for k, x in pair.items() if k not in ("flow", "valid")}, 0.5)
+    assert "flow" not in without and without["image2"].shape == (3, h, w)
+
+
+def test_main_resized(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--resize", "0.75")
+    assert "2 pair(s), resized by 0.75 (EPE in its pixels)" in printed
+    assert report["resize"] == 0.75
+    # resized alike, the frames still make a clip
+    assert "refiner, clip motion (fit_sequence)" in {r["method"] for r in report["clip"]["rows"]}
+    for value in ("0", "nan", "1.5"):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), "--resize", value])
+        assert exit_.value.code == 2 and "--resize: expected a factor within [0.1, 1], got" in capsys.readouterr().err
 
 
 def test_odometry_error_scales_the_translation_and_shifts_the_yaw(rr, pair):
@@ -351,12 +434,9 @@ def test_images_against_poses_over_the_pairs_both_refined(rr):
 
 
 def test_main_with_wrong_odometry(rr, scenes, tmp_path, capsys):
-    _tiny_clip(scenes, tmp_path)
-    out = tmp_path / "wrong.json"
-    assert rr.main(["--data", str(tmp_path / "data"), "--odometry-error", "1.05", "0.3", "--no-ecc", "--no-sequence",
-                    "--no-progress", "--json", str(out)]) == 0
-    assert "odometry's steps 1.05 times as long and its yaw +0.3° a frame off" in capsys.readouterr().out
-    report = json.loads(out.read_text())
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--odometry-error", "1.05", "0.3",
+                                         "--no-sequence")
+    assert "odometry's steps 1.05 times as long and its yaw +0.3° a frame off" in printed
     assert report["odometry_error"] == [1.05, 0.3]
     rows = {r["method"]: r for r in report["clip"]["rows"]}
     assert rows["refiner, poses (paper's planar) as priors"]["pairs"] == 1
@@ -367,12 +447,8 @@ def test_main_with_wrong_odometry(rr, scenes, tmp_path, capsys):
 
 
 def test_main_with_an_exposure_change(rr, scenes, tmp_path, capsys):
-    _tiny_clip(scenes, tmp_path)
-    out = tmp_path / "exposed.json"
-    assert rr.main(["--data", str(tmp_path / "data"), "--exposure-gain", "0.6", "--no-ecc", "--no-progress",
-                    "--json", str(out)]) == 0
-    assert "2 pair(s), image 2 0.6 times as bright" in capsys.readouterr().out
-    report = json.loads(out.read_text())
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--exposure-gain", "0.6")
+    assert "2 pair(s), image 2 0.6 times as bright" in printed
     assert report["exposure_gain"] == 0.6
     # image 2 of a pair is not image 1 of the next: no clip fit
     assert "refiner, clip motion (fit_sequence)" not in {r["method"] for r in report["clip"]["rows"]}
