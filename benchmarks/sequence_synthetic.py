@@ -1,13 +1,15 @@
 """Road motion of a synthetic clip with body motion from its images alone: per-pair image fits
 against fit_sequence (the mounting calibrated over the clip, the motion carried forward, the
-attitude track smoothed), on the ``body-motion`` preset whose road flow and attitude are exact.
+attitude track smoothed), on the ``body-motion`` preset (or ``--preset NAME``) whose road flow and
+attitude are exact (on the graded ``crest`` and ``dip`` the attitude is over the road under the
+wheels, and no plane is the whole road).
 
 Prints, per pair, the road end-point error (px, valid road pixels) of the single-pair fit
 (``fit_image`` at the nominal camera) and of the clip's fit, and the error of the camera's pitch
 and roll relative to the road (degrees) of the clip's fit; then the means and the calibrated
 mounting against the clip's mean attitude, and the time per pair (single thread).
 
-    python benchmarks/sequence_synthetic.py [--pairs 8] [--seed 0] [--options '{"highpass": null}']
+    python benchmarks/sequence_synthetic.py [--preset body-motion] [--pairs 8] [--seed 0] [--options '{"highpass": null}']
 
 ``--options`` passes keyword arguments of ``fit_image`` (JSON) to both fits.
 """
@@ -22,9 +24,13 @@ import time
 import numpy as np
 import torch
 
+from fsof_torch import PRESETS
+
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--preset", default="body-motion", choices=PRESETS,
+                        help="the synthetic scene (default body-motion)")
     parser.add_argument("--pairs", type=int, default=8)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--options", default="{}", help="fit_image keyword arguments as JSON")
@@ -36,7 +42,8 @@ def main() -> None:
     from fsof_torch import fit_image, fit_sequence
     from fsof_torch.data.scene import render_sequence
 
-    pairs = render_sequence("body-motion", args.pairs, seed=args.seed, progress=True)
+    pairs = render_sequence(args.preset, args.pairs, seed=args.seed, progress=True)
+    print(f"preset {args.preset}, {args.pairs} pairs, seed {args.seed}")
     frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
     camera = pairs[0]["camera"]
     t = time.perf_counter()
