@@ -9,6 +9,8 @@ zero-motion residuals).
 - :func:`homography_dlt`, the models with as many parameters as a homography: the direct linear
   transform in calibrated coordinates, whose unknowns are the entries of G = K⁻¹ H K - I (G's
   last entry held at 0: the homography's scale).
+- :func:`planar_start`, a predicted flow's planar motion: :func:`planar_motion` on an even
+  sample of the mask's pixels, in metres (the start a network's flow gives the image fit).
 
 Both residuals are scaled back into roughly pixel units (by the focal length, and for the plane
 by the ray's height), so the kernel's scale is in pixels.
@@ -19,10 +21,11 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from ..geometry.camera import mounting_matrix
+from ..geometry.camera import Camera, mounting_matrix
+from .sampling import gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, Solution, solve, spd_solve
 
-__all__ = ["LinearProblem", "planar_motion", "homography_dlt"]
+__all__ = ["LinearProblem", "planar_motion", "planar_start", "homography_dlt"]
 
 
 class LinearProblem:
@@ -130,3 +133,16 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
     H = torch.bmm(torch.bmm(K, G), K_inv)
     eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
     return torch.where(torch.isfinite(H).all(-1).all(-1)[:, None, None], H, eye)
+
+
+def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:
+    """A quick start from a predicted flow: x_d, z_d, yaw (B,) of the planar motion of its
+    back-projected road points (:func:`planar_motion`, robust), at the camera's roll and pitch;
+    zero motion where that is degenerate."""
+    pts = sample_mask(mask.expand(flow.shape[0], -1, -1, -1), points)
+    xy = pixel_coordinates(pts.pix, flow.shape[-1])
+    f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow.detach(), pts.pix).to(torch.float64), 0.0)
+    cam = camera.to(torch.float64).expand(flow.shape[0])
+    lin, _ = planar_motion(cam.K, cam.K_inv(), cam.roll, cam.pitch, xy, f, pts.sel)
+    h = cam.height
+    return {"x_d": lin[:, 0] * h, "z_d": lin[:, 1] * h, "yaw": lin[:, 2]}

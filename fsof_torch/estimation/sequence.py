@@ -40,6 +40,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model
 from .flow_fit import RoadFit
 from .image_fit import DEG, calibration_prior, fit_image
+from .initial import planar_start
 
 __all__ = ["SequenceFit", "fit_sequence", "smooth_attitude"]
 
@@ -254,8 +255,6 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             image2 = _item(frames[k + 1], f"frames[{k + 1}]", "an image of the clip's size", (1, 3), size)
             road = mask_of(k, size)
             if flows is not None:
-                from ..refinement.estimators import planar_start
-
                 flow = _item(flows[k], f"flows[{k}]", "a flow of the frames' size", (2,), size)
                 starts.append(planar_start(flow.to(torch.float64), road, cam))
             init = None

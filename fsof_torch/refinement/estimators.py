@@ -24,6 +24,7 @@ from .._check import (all_finite, batch_choices, check_bool, check_float_tensor,
                       check_keywords, check_mapping, check_mask, check_names, check_number, check_shape)
 from ..estimation.flow_fit import RoadFit, fit_road
 from ..estimation.image_fit import calibration_prior, fit_image
+from ..estimation.initial import planar_start
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
 
@@ -40,22 +41,6 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     if not all(k in model.params for k in _PLANAR):
         return None
     return {k: params.get(k, 0.0) for k in _PLANAR}
-
-
-def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:
-    """A quick start from a predicted flow: x_d, z_d, yaw (B,) of the planar motion of its
-    back-projected road points (:func:`~fsof_torch.estimation.initial.planar_motion`, robust), at
-    the camera's roll and pitch; zero motion where that is degenerate."""
-    from ..estimation.initial import planar_motion
-    from ..estimation.sampling import gather_pixels, pixel_coordinates, sample_mask
-
-    pts = sample_mask(mask.expand(flow.shape[0], -1, -1, -1), points)
-    xy = pixel_coordinates(pts.pix, flow.shape[-1])
-    f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow.detach(), pts.pix).to(torch.float64), 0.0)
-    cam = camera.to(torch.float64).expand(flow.shape[0])
-    lin, _ = planar_motion(cam.K, cam.K_inv(), cam.roll, cam.pitch, xy, f, pts.sel)
-    h = cam.height
-    return {"x_d": lin[:, 0] * h, "z_d": lin[:, 1] * h, "yaw": lin[:, 2]}
 
 
 class FlowMotionEstimator:
