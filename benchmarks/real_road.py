@@ -216,7 +216,7 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
 def road_errors(pair: dict, flow: Tensor, flow_dis: Tensor) -> dict[str, float]:
     """Road census, SSIM, L1 (and EPE with ground truth) of ``flow`` inside the road, DIS's flow
     elsewhere (the windows of census and SSIM near the polygon's edge see both)."""
-    from fsof_torch import endpoint_error, photometric_errors
+    from fsof_torch import photometric_errors
 
     road = pair["road"][None]
     combined = torch.where(road, flow[None], flow_dis[None])
@@ -224,10 +224,18 @@ def road_errors(pair: dict, flow: Tensor, flow_dis: Tensor) -> dict[str, float]:
     out = {kind: float(mean[0]) for kind, (mean, _) in errors.items()}
     out["n_census"] = int(errors["census"][1][0])
     if pair.get("flow") is not None:
-        gt, valid = pair["flow"], pair["valid"]
-        epe, n = endpoint_error(combined, gt[None].to(combined.dtype), road, valid[None], return_count=True)
-        out["epe"], out["n_epe"] = float(epe[0]), int(n[0])
+        out["epe"], out["n_epe"] = road_epe(pair, flow)
     return out
+
+
+def road_epe(pair: dict, flow: Tensor) -> tuple[float, int]:
+    """The end-point error of ``flow`` (2, H, W) over the road pixels with ground truth, and their
+    number."""
+    from fsof_torch import endpoint_error
+
+    epe, n = endpoint_error(flow[None], pair["flow"][None].to(flow.dtype), pair["road"][None], pair["valid"][None],
+                            return_count=True)
+    return float(epe[0]), int(n[0])
 
 
 def run_pair(pair: dict, methods: dict) -> dict[str, dict]:
@@ -251,7 +259,7 @@ def run_pair(pair: dict, methods: dict) -> dict[str, dict]:
         results[name] = {**road_errors(pair, flow, dis), "seconds": seconds, **info}
         if model_flow is not None and "epe" in results[name] and results[name].get("refined"):
             # the model flow on the whole road, before the gate kept the prediction anywhere
-            results[name]["epe_model"] = road_errors(pair, model_flow, dis)["epe"]
+            results[name]["epe_model"] = road_epe(pair, model_flow)[0]
     return results
 
 
