@@ -38,7 +38,11 @@ translation SCALE times as long, its yaw YAW_DEG degrees a frame off. With ``--r
 every pair is first seen at FACTOR times the resolution (:func:`resized`), as where a network runs
 on smaller frames; its end-point errors are in the resized frames' pixels.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
+With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
+(another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
+poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
+
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -333,24 +337,26 @@ def table(rows: list[dict[str, Any]]) -> str:
 # -- the data -------------------------------------------------------------------------------------
 
 def kitti15(root: Path, height: float) -> list[tuple[str, Callable[[], dict]]]:
-    """The KITTI 2015 pair: images, camera (P_rect_02), road.json, ground truth."""
+    """A KITTI 2015 pair (``kitti15_000000``'s layout): images, camera (P_rect_02), road.json,
+    ground truth where flow_noc_10.png is there; named after its folder."""
     from fsof_torch.datasets import KittiSampleDataset
 
     dataset = KittiSampleDataset(root, camera_height=height, camera_dtype=torch.float64)
-    return [("kitti15_000000", lambda: dataset[0])]
+    return [(dataset.pairs[0].name, lambda: dataset[0])]
 
 
 def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) -> list[tuple[str, Callable[[], dict]]]:
     """The straight clip: pairs of images ``step`` frames apart, (0, step), (step, 2 step), ...
     (every ``step``-th frame: the clip driven ``step`` times as fast, or recorded at 1 / ``step``
-    of its rate), with the relative pose inverse(P_{i+step}) @ P_i where poses.txt has both frames."""
+    of its rate), with the relative pose inverse(P_{i+step}) @ P_i where poses.txt has both frames
+    (none without poses.txt: the methods that need poses are left out)."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
 
     dataset = ImageFolderDataset(root / "image_l", root / "calib.txt", cam=0, camera_height=height,
                                  pitch=math.radians(pitch_deg), road=root / "road.json", camera_dtype=torch.float64,
                                  step=step)
-    poses = read_kitti_poses(root / "poses.txt")
+    poses = read_kitti_poses(root / "poses.txt") if (root / "poses.txt").is_file() else torch.empty(0, 4, 4)
 
     def loader(i: int) -> Callable[[], dict]:
         def with_pose() -> dict:
@@ -505,6 +511,13 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
                         help="folder holding kitti15_000000/ and kitti_odometry_straight/ (default: ../shared/data)")
+    parser.add_argument("--pair", type=Path, metavar="DIR",
+                        help="another KITTI 2015 pair in kitti15_000000's layout (image_10.png, image_11.png, "
+                             "calib_cam_to_cam.txt, road.json; flow_noc_10.png where there is ground truth), "
+                             "instead of --data's")
+    parser.add_argument("--clip", type=Path, metavar="DIR",
+                        help="another KITTI odometry clip in kitti_odometry_straight's layout (image_l/, calib.txt, "
+                             "road.json; poses.txt where there are poses), instead of --data's")
     parser.add_argument("--pairs", type=int, default=None, help="only the first N pairs of the clip")
     parser.add_argument("--no-ecc", action="store_true", help="leave out the ECC homography")
     parser.add_argument("--no-sequence", action="store_true", help="leave out the clip's fit_sequence method")
@@ -570,12 +583,31 @@ def main(argv: list[str] | None = None) -> int:
                               "resize": args.resize,
                               "odometry_error": [scale, yaw_error]}
     found = False
-    for key, title, folder, pairs in (
-            ("kitti15", "KITTI 2015 pair 000000 (ground truth: road EPE over road ∩ valid)", "kitti15_000000",
-             lambda root: kitti15(root, args.height)),
-            ("clip", "KITTI odometry straight clip (no ground-truth flow)", "kitti_odometry_straight",
-             lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step)[:args.pairs])):
-        root = args.data / folder
+    if args.pair is None and args.clip is None:
+        folders = {"kitti15": args.data / "kitti15_000000", "clip": args.data / "kitti_odometry_straight"}
+    else:
+        folders = {k: v for k, v in (("kitti15", args.pair), ("clip", args.clip)) if v is not None}
+        need = {"kitti15": ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"),
+                "clip": ("image_l", "calib.txt", "road.json")}
+        for key, root in folders.items():
+            option = "--pair" if key == "kitti15" else "--clip"
+            missing = [n for n in need[key] if not (root / n).exists()]
+            if missing:
+                print(f"error: {option}: {str(root)!r} lacks {', '.join(missing)} (the figures are over the road "
+                      f"polygon of road.json)", file=sys.stderr)
+                return 2
+    for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
+                       ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step)[:args.pairs])):
+        root = folders.get(key)
+        if root is None:
+            continue
+        if key == "kitti15":
+            truth = ("ground truth: road EPE over road ∩ valid" if (root / "flow_noc_10.png").is_file()
+                     else "no ground-truth flow")
+            title = f"KITTI 2015 pair {root.name} ({truth})"
+        else:
+            title = f"KITTI odometry clip {root.name} ({'' if (root / 'poses.txt').is_file() else 'no poses, '}" \
+                    f"no ground-truth flow)"
         if not root.is_dir():
             print(f"{title}: {root} not found, skipped", file=sys.stderr)
             continue

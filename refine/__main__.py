@@ -79,10 +79,13 @@ def build_parser() -> argparse.ArgumentParser:
                    "synthetic scenes and the KITTI samples have their own, or take auto")
     g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
-    g = p.add_argument_group("shared KITTI samples")
-    g.add_argument("--kitti15", type=Path, metavar="PATH", help="kitti15_000000 folder: DIS refined with fitted ego-motion vs ground truth")
+    g = p.add_argument_group("KITTI folders in the shared samples' layouts")
+    g.add_argument("--kitti15", type=Path, metavar="PATH",
+                   help="a folder like kitti15_000000 (a KITTI 2015 pair): DIS refined with ego-motion fitted to "
+                        "the flow and to the images, against its ground truth where present")
     g.add_argument("--kitti-odometry", type=Path, metavar="PATH",
-                   help="kitti_odometry_straight folder: DIS refined with the poses, and with a calibrated pitch")
+                   help="a folder like kitti_odometry_straight (a KITTI odometry clip with poses): DIS refined with "
+                        "the poses, with the clip's fit and with the images; road.json optional with --road auto")
 
     g = p.add_argument_group("flow networks")
     g.add_argument("--source", type=_list(SOURCES), default=None,
@@ -198,6 +201,11 @@ def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str
     return {"x_d": widths[0], "z_d": widths[1], "yaw": math.radians(widths[2])}
 
 
+def _sample_road(road: str | None) -> str:
+    """Where a KITTI sample's road mask comes from, for the report's notes."""
+    return "found in the images of each pair (--road auto)" if road == "auto" else "the folder's hand-drawn road.json"
+
+
 def _configure(args: argparse.Namespace):
     """Options -> (pair specs, camera, config parts, input identity), checked before any work."""
     from .inputs import JobError, kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
@@ -221,18 +229,21 @@ def _configure(args: argparse.Namespace):
     calibrate = args.calibrate_pitch
     default_sources = ["net"] if args.net is not None else None
     if args.kitti15 is not None:
-        specs, camera = kitti15_pairs(args.kitti15, height=args.height)
-        title = "refine: KITTI 2015 pair 000000"
+        specs, camera = kitti15_pairs(args.kitti15, height=args.height, road_auto=args.road == "auto")
+        title = f"refine: KITTI 2015 pair {specs[0].name}"
         sources = args.source or default_sources or ["dis"]
         variants = args.odometry or ["fit", "photometric"]
-        notes.append("Road mask: the hand-drawn road.json; ground truth: flow_noc_10.png (sparse).")
+        truth = "flow_noc_10.png (sparse)" if (args.kitti15 / "flow_noc_10.png").is_file() else \
+            "none (no flow_noc_10.png): image errors only"
+        notes.append(f"Road mask: {_sample_road(args.road)}; ground truth: {truth}.")
         identity = {"kind": "kitti15", "root": str(args.kitti15.resolve()), "height": args.height}
     elif args.kitti_odometry is not None:
-        specs, camera = kitti_odometry_pairs(args.kitti_odometry, height=args.height, pitch_deg=args.pitch_deg)
-        title = "refine: KITTI odometry clip"
+        specs, camera = kitti_odometry_pairs(args.kitti_odometry, height=args.height, pitch_deg=args.pitch_deg,
+                                             road_auto=args.road == "auto")
+        title = f"refine: KITTI odometry clip {args.kitti_odometry.resolve().name}"
         sources = args.source or default_sources or ["dis"]
         variants = args.odometry or ["given", "sequence", "photometric"]
-        notes.append("Road mask: the hand-drawn road.json (ego lane); no ground-truth flow: photometric error only.")
+        notes.append(f"Road mask: {_sample_road(args.road)}; no ground-truth flow: image errors only.")
         identity = {"kind": "kitti_odometry", "root": str(args.kitti_odometry.resolve()), "height": args.height,
                     "pitch_deg": args.pitch_deg}
     elif args.images is not None:

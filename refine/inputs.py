@@ -177,30 +177,38 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
 
 # -- the shared KITTI samples --------------------------------------------------------------------
 
-def kitti15_pairs(root: Path, *, height: float) -> tuple[list[PairSpec], Camera]:
-    """``kitti15_000000`` (``fsof_torch.datasets.KittiSampleDataset``): image_10/image_11,
-    calib_cam_to_cam.txt (P_rect_02), flow_noc_10.png (ground truth), road.json."""
+def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tuple[list[PairSpec], Camera]:
+    """A KITTI 2015 pair in the layout of ``kitti15_000000`` (``fsof_torch.datasets.KittiSampleDataset``):
+    image_10/image_11, calib_cam_to_cam.txt (P_rect_02), road.json (not needed with ``road_auto``:
+    the job detects the road), flow_noc_10.png (ground truth, where present). The pair is named
+    after the folder."""
     from fsof_torch.datasets import KittiSampleDataset
 
-    need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt", "flow_noc_10.png", "road.json"]
+    need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt"] + ([] if road_auto else ["road.json"])
     check_mounting(height)
     missing = [n for n in need if not (root / n).is_file()]
     if missing:
-        raise JobError(f"--kitti15: {str(root)!r} lacks {missing}")
+        hint = "" if road_auto or missing != ["road.json"] else " (or pass --road auto)"
+        raise JobError(f"--kitti15: {str(root)!r} lacks {missing}{hint}")
     with options_of("--kitti15"):
         dataset = KittiSampleDataset(root, cam=2, camera_height=height, camera_dtype=torch.float64)
-    return [_spec("kitti15_000000", dataset, 0, "--kitti15", _file_identity(dataset, 0))], dataset.camera
+    name = dataset.pairs[0].name
+    return [_spec(name, dataset, 0, "--kitti15", _file_identity(dataset, 0))], dataset.camera
 
 
-def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float) -> tuple[list[PairSpec], Camera]:
-    """``kitti_odometry_straight`` (``fsof_torch.datasets.KittiOdometryDataset``): image_l/
-    (cam 0), calib.txt (P0), poses.txt, road.json; the frames that have a pose."""
+def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
+                         road_auto: bool = False) -> tuple[list[PairSpec], Camera]:
+    """A KITTI odometry clip in the layout of ``kitti_odometry_straight``
+    (``fsof_torch.datasets.KittiOdometryDataset``): image_l/ (cam 0), calib.txt (P0), poses.txt,
+    road.json (not needed with ``road_auto``: the job detects the road); the frames that have a
+    pose."""
     from fsof_torch.datasets import KittiOdometryDataset
 
     check_mounting(height, pitch_deg=pitch_deg)
-    for n in ("image_l", "calib.txt", "poses.txt", "road.json"):
+    for n in ("image_l", "calib.txt", "poses.txt") + (() if road_auto else ("road.json",)):
         if not (root / n).exists():
-            raise JobError(f"--kitti-odometry: {str(root)!r} lacks {n}")
+            hint = " (or pass --road auto)" if n == "road.json" else ""
+            raise JobError(f"--kitti-odometry: {str(root)!r} lacks {n}{hint}")
     with options_of("--kitti-odometry"):
         dataset = KittiOdometryDataset(root, cam=0, camera_height=height, pitch=math.radians(pitch_deg),
                                        camera_dtype=torch.float64)

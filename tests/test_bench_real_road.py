@@ -249,6 +249,41 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     assert exit_.value.code == 2 and "--step: expected >= 1, got 0" in capsys.readouterr().err
 
 
+def test_main_on_other_kitti_folders(rr, scenes, tmp_path, capsys):
+    """--pair and --clip name other folders in the samples' layouts, run instead of --data's: a
+    pair without ground truth (no EPE) and a clip without poses (no pose methods) are judged by
+    their images; each is titled by its folder. A folder without road.json exits 2 naming it."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    _tiny_clip(scenes, tmp_path)
+    clip = tmp_path / "data" / "kitti_odometry_straight"
+    (clip / "poses.txt").unlink()
+    pair = tmp_path / "another_pair"
+    pair.mkdir()
+    write_image(pair / "image_10.png", scenes[1]["image1"])
+    write_image(pair / "image_11.png", scenes[1]["image2"])
+    write_kitti_calibration(pair / "calib_cam_to_cam.txt", scenes[1]["camera"].K[0], cam=2)
+    (pair / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+    out = tmp_path / "report.json"
+    assert rr.main(["--pair", str(pair), "--clip", str(clip), "--no-ecc", "--no-progress", "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert "KITTI 2015 pair another_pair (no ground-truth flow): 1 pair(s)" in printed
+    assert "KITTI odometry clip kitti_odometry_straight (no poses, no ground-truth flow): 2 pair(s)" in printed
+    report = json.loads(out.read_text())
+    assert [p["pair"] for p in report["kitti15"]["pairs"]] == ["another_pair"]
+    for key in ("kitti15", "clip"):
+        methods = {r["method"] for r in report[key]["rows"]}
+        assert "refiner (no odometry)" in methods and not any("poses" in m for m in methods)
+        assert all("epe" not in r for r in report[key]["rows"])
+    # only what is named runs: the clip alone
+    assert rr.main(["--clip", str(clip), "--no-ecc", "--no-sequence", "--no-progress", "--json", str(out)]) == 0
+    assert set(json.loads(out.read_text())) >= {"clip"} and "kitti15" not in json.loads(out.read_text())
+    capsys.readouterr()
+    (pair / "road.json").unlink()
+    assert rr.main(["--pair", str(pair), "--no-progress"]) == 2
+    assert f"--pair: {str(pair)!r} lacks road.json" in capsys.readouterr().err
+
+
 def test_main_without_data_exits_2(rr, tmp_path, capsys):
     assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
     assert "--data: no kitti15_000000/ or kitti_odometry_straight/" in capsys.readouterr().err

@@ -214,6 +214,33 @@ def test_kitti_odometry_pairs_are_the_odometry_dataset(odometry_folder, scene):
         assert set(item["pose_residual"]) == {"y_d", "rotation"}
 
 
+def test_kitti_samples_without_road_json_need_road_auto(kitti15_folder, odometry_folder):
+    """Another KITTI pair or clip in the samples' layouts may come without a road polygon: with
+    --road auto (``road_auto``) it loads (the road left to the job's detection), otherwise the
+    error names the missing file and the way out. Without flow_noc_10.png the pair has no ground
+    truth, and it is named after its folder."""
+    from refine.inputs import JobError, kitti15_pairs, kitti_odometry_pairs
+
+    for folder in (kitti15_folder, odometry_folder):
+        (folder / "road.json").unlink()
+    with pytest.raises(JobError, match=r"^--kitti15: '.*' lacks \['road.json'\] \(or pass --road auto\)$"):
+        kitti15_pairs(kitti15_folder, height=1.65)
+    with pytest.raises(JobError, match=r"^--kitti-odometry: '.*' lacks road.json \(or pass --road auto\)$"):
+        kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)
+    item = kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0, road_auto=True)[0][1].load()
+    assert item["road"] is None and item["relative_pose"] is not None
+    renamed = kitti15_folder.rename(kitti15_folder.parent / "kitti15_000042")
+    (renamed / "flow_noc_10.png").unlink()
+    specs, _ = kitti15_pairs(renamed, height=1.65, road_auto=True)
+    item = specs[0].load()
+    check_item(item)
+    assert [s.name for s in specs] == ["kitti15_000042"]
+    assert item["road"] is None and item["flow"] is None and item["valid"] is None
+    (renamed / "image_11.png").unlink()
+    with pytest.raises(JobError, match=r"lacks \['image_11.png'\]$"):  # no hint: road.json is not the problem
+        kitti15_pairs(renamed, height=1.65, road_auto=True)
+
+
 def test_every_item_has_the_contract_keys_in_order(user_folder, kitti15_folder, odometry_folder):
     from refine.inputs import kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
 

@@ -838,6 +838,29 @@ def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, sce
     assert not valid[..., :10, :].any() and valid[..., 10:, :].all()
 
 
+def test_kitti_odometry_clip_without_road_json_takes_road_auto(tmp_path, user_folder, capsys):
+    """Another clip in the KITTI odometry sample's layout, without a road polygon: refused with a
+    message naming road.json and --road auto, and run with --road auto (the road found in the
+    images, recorded per pair; the report's title and notes name the clip and the road's origin)."""
+    import shutil
+
+    clip = tmp_path / "other_street"
+    shutil.copytree(user_folder / "images", clip / "image_l")
+    for name in ("calib.txt", "poses.txt"):
+        shutil.copy(user_folder / name, clip / name)
+    out = tmp_path / "out"
+    argv = ["--kitti-odometry", str(clip), "--odometry", "photometric", "--out", str(out), "--no-progress",
+            "--no-figures"]
+    assert "lacks road.json (or pass --road auto)" in _err(capsys, argv)
+    assert main([*argv, "--road", "auto"]) == 0
+    for pair in ("000000", "000001"):
+        rec = json.loads((out / "dis" / "photometric" / "pairs" / f"{pair}.json").read_text())
+        assert rec["road"] == "auto" and (rec["road_flag"] == "ok") == (rec["road_reason"] == "")
+    report = (out / "report.md").read_text()
+    assert "refine: KITTI odometry clip other_street" in report
+    assert "Road mask: found in the images of each pair (--road auto)" in report
+
+
 def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsys):
     """An option the chosen input would ignore exits 2 naming it, before any work."""
     out = ["--out", str(tmp_path / "o"), "--no-progress"]
