@@ -419,3 +419,78 @@ def test_region_keeps_an_undecided_seed_as_road():
     car[30:36, 26:34] = True  # off-road evidence inside the seed (its neighbours take the majority)
     road = road_region(good, car, ok, testable, below, seed, None, 3, 4)
     assert not road[30:36, 26:34].any() and road[25:27, 20:40].all() and road[39, 20:40].all()
+
+
+def _edge_scene(h: int = 60, w: int = 120, edge: int = 70, seed_value: int = 0):
+    """A textured road (left of column ``edge``) beside a dark, flat obstacle (right of it) under a
+    bright sky (rows 0-9, above the horizon), as uint8 RGB; the seed is the road's bottom left."""
+    g = np.random.default_rng(seed_value)
+    image = np.empty((h, w, 3), np.uint8)
+    image[:, :edge] = (110 + 8 * g.standard_normal((h, edge, 1))).clip(0, 255).astype(np.uint8)
+    image[:, edge:] = 20
+    image[:10] = 230  # the sky above the horizon
+    below = np.zeros((h, w), bool)
+    below[10:] = True
+    seed = np.zeros((h, w), bool)
+    seed[40:, :30] = True
+    return image, below, seed
+
+
+@pytest.mark.parametrize("offset", [-8, -3, 3, 8])
+def test_follow_edges_moves_the_boundary_onto_the_edge(offset):
+    """The windows' boundary ``offset`` pixels off the obstacle's edge (short of it: straddling
+    windows; past it: the obstacle's own windows taken in): within the radius it lands on the
+    edge, column for column; nothing above the horizon or beyond the radius changes."""
+    from fsof_torch.refinement.road_region import follow_edges
+
+    edge = 70
+    image, below, seed = _edge_scene(edge=edge)
+    road = below.copy()
+    road[:, edge + offset:] = False
+    out = follow_edges(road, image, below, seed, radius=10)
+    truth = below.copy()
+    truth[:, edge:] = False
+    assert out.dtype == bool and out.shape == road.shape
+    # (the watershed's one-pixel lines, at the edge and at the horizon, keep the old decision)
+    assert (out[11:, :edge - 1] == truth[11:, :edge - 1]).all()
+    assert not out[:10].any() and not out[:, edge + 1:].any()
+    # with no edge to follow (a uniform obstacle-free image) the boundary stays within the radius
+    flat = np.full_like(image, 100)
+    moved = follow_edges(road, flat, below, seed, radius=10)
+    band = np.zeros_like(road)
+    band[:, edge + offset - 11:edge + offset + 11] = True
+    assert (moved == road)[~band].all()
+
+
+def test_follow_edges_keeps_what_it_cannot_judge():
+    """A road narrower than twice the radius has no pixel sure to be road: returned as it is (the
+    same object); so is an empty road; radius 0 changes nothing. The result is connected to the seed."""
+    from fsof_torch.refinement.road_region import follow_edges
+
+    image, below, seed = _edge_scene()
+    thin = np.zeros_like(below)
+    thin[40:, 5:20] = True
+    assert follow_edges(thin, image, below, seed, radius=10) is thin
+    empty = np.zeros_like(below)
+    assert follow_edges(empty, image, below, seed, radius=10) is empty
+    road = below.copy()
+    road[:, 60:] = False
+    assert follow_edges(road, image, below, seed, radius=0) is road
+    island = road.copy()
+    island[12:14, 100:102] = True  # far from the seed and too small for a marker: not road
+    assert not follow_edges(island, image, below, seed, radius=10)[:, 100:].any()
+
+
+def test_detect_road_edges_option(scene_pair, scene_detection):
+    """``edges=False``: the windows' boundary, blocks of the working resolution; the default moves
+    it onto the edges and matches the true road better on this pair (cars, kerbs)."""
+    p = scene_pair
+    plain = detect_road(p["image1"][None], p["image2"][None], p["camera"], edges=False)
+    m = plain.mask[0, 0, :-1]  # (375 rows: the last row copies its neighbour)
+    blocks = m.reshape(187, 2, 621, 2)
+    assert bool((blocks == blocks[:, :1, :, :1]).all())
+    true = p["road"][None].bool()
+    assert iou(scene_detection.mask, true) > iou(plain.mask, true)
+    assert plain.flag == scene_detection.flag == ["ok"]
+    with pytest.raises(TypeError, match="edges: expected True or False, got str .yes."):
+        detect_road(p["image1"][None], p["image2"][None], p["camera"], edges="yes")

@@ -62,7 +62,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import all_finite, batch_choices, check_float_tensor, check_keywords, check_shape
+from .._check import all_finite, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -70,7 +70,7 @@ from ..geometry.camera import Camera, mounting_matrix
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_motion
 from .estimators import ImageMotionEstimator
-from .road_region import road_region
+from .road_region import follow_edges, road_region
 
 __all__ = ["RoadDetection", "detect_road", "detect_road_padded", "road_seed", "refine_with_auto_road", "FLAGS"]
 
@@ -412,7 +412,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
                 max_height_m: float = 0.3, slow_max_height_m: float | None = 1.2, z: float = 2.0, window: int = 7,
-                height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01) -> RoadDetection:
+                height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01,
+                edges: bool = True) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
     the road plane (see the module for the method).
 
@@ -451,6 +452,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             the height tests (the height needs more pixels).
         min_coverage: a road smaller than this share of the image below the horizon is flagged
             ``"small"``.
+        edges: within half a height window of the boundary the windows found (in pixels of the
+            images), the boundary follows image 1's edges (a marker-controlled watershed,
+            :func:`~fsof_torch.refinement.road_region.follow_edges`). False: the windows' boundary.
 
     Returns:
         :class:`RoadDetection`.
@@ -465,6 +469,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
                    min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options)
+    edges = check_bool(edges, "edges")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
     B, H, W = dims["B"], dims["H"], dims["W"]
@@ -530,8 +535,15 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         if bool(torch.as_tensor(ok_again).all()):
             motion = again
             ev, road_l = judge(motion)
-    mask = _upsample(road_l, level, (H, W))
-    return _report(mask, motion, _upsample(seed_l, level, (H, W)), road_l, below_l, ev, seed_l, level, min_coverage)
+    mask, seed, below = (_upsample(m, level, (H, W)) for m in (road_l, seed_l, below_l))
+    if edges:
+        radius = (height_window // 2 + 1) * 2 ** level
+        rgb = im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1
+        rgb = rgb.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
+        arrays = [t[:, 0].cpu().numpy() for t in (mask, below, seed)]
+        mask = torch.stack([torch.from_numpy(follow_edges(m, im, bl, sd, radius))
+                            for m, im, bl, sd in zip(arrays[0], rgb, arrays[1], arrays[2])]).unsqueeze(1).to(device)
+    return _report(mask, motion, seed, below, ev, seed_l, level, min_coverage)
 
 
 def _upsample(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
@@ -553,13 +565,13 @@ def _succeeded(motion: Any, B: int) -> list[bool]:
     return torch.as_tensor(success).reshape(-1).expand(B).tolist()
 
 
-def _report(mask: Tensor, motion: Any, seed: Tensor, road_l: Tensor, below_l: Tensor, ev: _Evidence, seed_l: Tensor,
+def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidence, seed_l: Tensor,
             level: int, min_coverage: float) -> RoadDetection:
     """Coverage, the seed's agreement and the flags (step 5 of the module)."""
     B = mask.shape[0]
     success = _succeeded(motion, B)
-    pixels = road_l.flatten(1).sum(1).cpu()
-    coverage = (pixels / below_l.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
+    pixels = mask.flatten(1).sum(1).cpu()
+    coverage = (pixels / below.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
     s = seed_l & ev.ok
     n_seed = s.flatten(1).sum(1).cpu().clamp_min(1)
     n_good = (s & ev.good).flatten(1).sum(1).cpu()

@@ -7,14 +7,15 @@ seed's assumption), and the others take the decision found along their line thro
 expansion (the road's edges, kerbs and verges run along those lines: a pixel that leaves the
 frame takes the decision of the pixel that will be where it is, a pixel too far to test that of
 the nearest testable one); then the component connected to the seed, with small enclosed holes
-filled.
+filled. At full resolution, :func:`follow_edges` then lets the boundary follow image 1's edges
+where the windows cannot place it.
 """
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["road_region"]
+__all__ = ["road_region", "follow_edges"]
 
 
 def _components_touching(mask, touch, connectivity: int = 8):
@@ -95,3 +96,36 @@ def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float]
     fill[0] = False  # label 0: the road itself
     fill[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
     return road | fill[lab]
+
+
+def follow_edges(road, image, below, seed, radius: int):
+    """The road (H, W) bool with its boundary moved onto image 1's edges within ``radius`` pixels.
+
+    A window's decision holds for its centre but is made by all of its pixels: near a car's base
+    or a kerb the windows that straddle it are off the road, and the boundary they draw lies up to
+    a window's half-width from the edge where road meets obstacle. Here the pixels farther than
+    ``radius`` inside the road and outside it keep their decision, and a marker-controlled
+    watershed on ``image`` (H, W, 3) uint8 (``cv2.watershed``) gives each pixel between them the
+    side it is reached from without crossing an edge. Pixels on the watershed's lines keep their
+    decision; the result is the road below the horizon (``below``) connected to ``seed``. A road
+    with no pixel farther than ``radius`` from its boundary is returned as it is.
+    """
+    import cv2
+    import numpy as np
+
+    if radius < 1 or not road.any():
+        return road
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
+    inside = cv2.erode(road.astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    outside = cv2.erode((~road).astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    if not inside.any():
+        return road
+    markers = np.zeros(road.shape, dtype=np.int32)
+    markers[inside] = 1
+    markers[outside] = 2
+    # (cv2.watershed makes the image's outermost pixels lines: flooded on a copy one pixel larger)
+    markers = cv2.copyMakeBorder(markers, 1, 1, 1, 1, cv2.BORDER_REPLICATE)
+    padded = cv2.copyMakeBorder(np.ascontiguousarray(image), 1, 1, 1, 1, cv2.BORDER_REPLICATE)
+    labels = cv2.watershed(padded, markers)[1:-1, 1:-1]
+    moved = ((labels == 1) | ((labels == -1) & road)) & below
+    return _components_touching(moved, seed, connectivity=4)
