@@ -4,13 +4,15 @@ Prints four tables, single thread:
 
 1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
    precision and recall against the scene's true road, mean and min per preset, and the flags;
-   and the IoU when the scene's exact road motion is given (what the judging alone achieves).
+   the IoU of the windows' own boundary (``edges=False``, judged with the same motion); and the
+   IoU when the scene's exact road motion is given (what the judging alone achieves).
 2. Real KITTI: the shared pair 000000, the same pair through the 16 windows 4 pixels smaller than
    the frame at offsets 0-3 from its top and left (``image_fit_settings.crops``: one frame's
    figures are one draw of the fits' points), and every pair of the 51-frame straight clip.
    road.json is a conservative polygon (the clip's: the ego lane only), so the figures are the
    share of the auto mask inside the polygon and the share of the polygon the mask covers; mean
-   and min over the pairs, the number of empty and of flagged masks. Beside it, for reference,
+   and min over the pairs, the number of empty and of flagged masks; the same for the windows' own
+   boundary (``edges=False``, judged with the same motion). Beside it, for reference,
    the flow-based detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow,
    as the refine job called it).
 3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
@@ -69,9 +71,9 @@ def synthetic_table() -> None:
     print("Synthetic scenes, 375 x 1242, pairs " + ", ".join(map(str, PAIRS)))
     print("(exact motion: the scene's own road motion given, nothing estimated)")
     print(f"{'preset':>12} {'IoU mean':>9} {'IoU min':>8} {'precision':>10} {'recall':>7} "
-          f"{'exact motion: IoU mean':>23} {'min':>6}  flags")
+          f"{'edges=False: IoU mean':>22} {'exact motion: IoU mean':>23} {'min':>6}  flags")
     for preset in PRESETS:
-        ious, precisions, recalls, exact, flags = [], [], [], [], []
+        ious, precisions, recalls, plain, exact, flags = [], [], [], [], [], []
         for index in PAIRS:
             p = render_pair(preset, index)
             t = p["road"][None].bool()
@@ -81,13 +83,16 @@ def synthetic_table() -> None:
             precisions.append(float((m & t).sum() / m.sum().clamp_min(1)))
             recalls.append(float((m & t).sum() / t.sum()))
             flags += det.flag
+            m = detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=det.motion, edges=False).mask
+            plain.append(float((m & t).sum() / (m | t).sum()))
             motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
             cam = p["camera"].replace(height=p["plane"]["height"])
             m = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion).mask
             exact.append(float((m & t).sum() / (m | t).sum()))
         counts = {f: flags.count(f) for f in sorted(set(flags))}
         print(f"{preset:>12} {statistics.mean(ious):9.3f} {min(ious):8.3f} {statistics.mean(precisions):10.3f} "
-              f"{statistics.mean(recalls):7.3f} {statistics.mean(exact):23.3f} {min(exact):6.3f}  {counts}")
+              f"{statistics.mean(recalls):7.3f} {statistics.mean(plain):22.3f} {statistics.mean(exact):23.3f} "
+              f"{min(exact):6.3f}  {counts}")
 
 
 SLOW = (("default", 2.0), ("default", 3.0), ("default", 4.0), ("default", 5.0), ("carla-turning", None))
@@ -175,10 +180,12 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             det = detect_road(im1, im2, cam, flow=flow)
+            plain = detect_road(im1, im2, cam, motion=det.motion, edges=False)
             # the flow-based detection (detect_freespace on DIS's flow), for comparison
             old = detect_freespace(flow.to(cam.dtype), cam, bottom_rows=max(1, im1.shape[-2] // 8), threshold=1.0,
                                    relative_threshold=0.1)
-        for method, m, flag in (("auto road (images)", det.mask, det.flag[0]), ("flow-based (DIS)", old, "")):
+        for method, m, flag in (("auto road (images)", det.mask, det.flag[0]),
+                                ("edges=False", plain.mask, plain.flag[0]), ("flow-based (DIS)", old, "")):
             r = rows.setdefault(group, {}).setdefault(method, {"inside": [], "cover": [], "empty": 0, "flagged": 0})
             n = int(m.sum())
             r["inside"].append(float((m & poly).sum()) / max(n, 1))
@@ -193,7 +200,7 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -
         for method, r in methods.items():
             print(f"{group:>15} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
                   f"{min(r['inside']):10.3f} {statistics.mean(r['cover']):10.3f} {min(r['cover']):9.3f} "
-                  f"{r['empty']:5d} {r['flagged'] if method.startswith('auto') else '-':>7}")
+                  f"{r['empty']:5d} {'-' if method.startswith('flow') else r['flagged']:>7}")
 
 
 def timed(fn, repeat: int) -> float:

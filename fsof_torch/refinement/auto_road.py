@@ -41,7 +41,11 @@ detection:
    the frame takes the decision of the pixel that will be where it is, a pixel too far to test
    that of the nearest testable one); then the component connected to the seed, with small
    enclosed holes filled.
-5. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
+5. **Edges** (``edges``), at full resolution: the windows that straddle a car's base or a kerb
+   are off the road, so the region's boundary lies up to half a window from the edge where the
+   road ends. Within half a height window of it the boundary follows image 1's edges (a
+   marker-controlled watershed, :func:`~fsof_torch.refinement.road_region.follow_edges`).
+6. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
    ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
    largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:
    dark, flat frames), ``"implausible"`` (the seed itself does not move like a road: an obstacle
@@ -567,7 +571,7 @@ def _succeeded(motion: Any, B: int) -> list[bool]:
 
 def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidence, seed_l: Tensor,
             level: int, min_coverage: float) -> RoadDetection:
-    """Coverage, the seed's agreement and the flags (step 5 of the module)."""
+    """Coverage, the seed's agreement and the flags (step 6 of the module)."""
     B = mask.shape[0]
     success = _succeeded(motion, B)
     pixels = mask.flatten(1).sum(1).cpu()
