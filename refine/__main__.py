@@ -105,7 +105,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: synthetic "
                         "data: given,fit,photometric; --images: sequence for a clip, photometric for "
                         "KITTI *_10/*_11 pairs or a single pair, plus given_images with --poses; "
-                        "--kitti15: fit,photometric; --kitti-odometry: given,sequence,photometric)")
+                        "--kitti15: fit,photometric; --kitti-odometry: given,given_images,sequence,photometric)")
     g.add_argument("--odometry-sigma", type=float, nargs=3, metavar=("X_M", "Z_M", "YAW_DEG"), default=None,
                    help="variant given_images: let the images move the odometry's planar motion, within these "
                         "widths a frame (sideways and forward in metres, yaw in degrees; e.g. 0.05 0.05 0.2 "
@@ -242,7 +242,7 @@ def _configure(args: argparse.Namespace):
                                              road_auto=args.road == "auto")
         title = f"refine: KITTI odometry clip {args.kitti_odometry.resolve().name}"
         sources = args.source or default_sources or ["dis"]
-        variants = args.odometry or ["given", "sequence", "photometric"]
+        variants = args.odometry or ["given", "given_images", "sequence", "photometric"]
         notes.append(f"Road mask: {_sample_road(args.road)}; no ground-truth flow: image errors only.")
         identity = {"kind": "kitti_odometry", "root": str(args.kitti_odometry.resolve()), "height": args.height,
                     "pitch_deg": args.pitch_deg}

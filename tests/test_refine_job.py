@@ -849,10 +849,12 @@ def test_kitti_odometry_clip_without_road_json_takes_road_auto(tmp_path, user_fo
     for name in ("calib.txt", "poses.txt"):
         shutil.copy(user_folder / name, clip / name)
     out = tmp_path / "out"
-    argv = ["--kitti-odometry", str(clip), "--odometry", "photometric", "--out", str(out), "--no-progress",
-            "--no-figures"]
+    argv = ["--kitti-odometry", str(clip), "--out", str(out), "--no-progress", "--no-figures"]
     assert "lacks road.json (or pass --road auto)" in _err(capsys, argv)
     assert main([*argv, "--road", "auto"]) == 0
+    # the default variants: the paper's model on the poses, the poses with the images, the clip's
+    # fit, the images alone
+    assert set(_rows(out / "report.json")) == {("dis", v) for v in ("given", "given_images", "sequence", "photometric")}
     for pair in ("000000", "000001"):
         rec = json.loads((out / "dis" / "photometric" / "pairs" / f"{pair}.json").read_text())
         assert rec["road"] == "auto" and (rec["road_flag"] == "ok") == (rec["road_reason"] == "")
