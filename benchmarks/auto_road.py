@@ -4,15 +4,15 @@ Prints four tables, single thread:
 
 1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
    precision and recall against the scene's true road, mean and min per preset, and the flags;
-   the IoU of the windows' own boundary (``edges=False``, judged with the same motion); and the
+   the IoU with ``edges=False`` (the windows' own boundary, for the refit and the result); and the
    IoU when the scene's exact road motion is given (what the judging alone achieves).
 2. Real KITTI: the shared pair 000000, the same pair through the 16 windows 4 pixels smaller than
    the frame at offsets 0-3 from its top and left (``image_fit_settings.crops``: one frame's
    figures are one draw of the fits' points), and every pair of the 51-frame straight clip.
    road.json is a conservative polygon (the clip's: the ego lane only), so the figures are the
    share of the auto mask inside the polygon and the share of the polygon the mask covers; mean
-   and min over the pairs, the number of empty and of flagged masks; the same for the windows' own
-   boundary (``edges=False``, judged with the same motion). Beside it, for reference,
+   and min over the pairs, the number of empty and of flagged masks; the same with ``edges=False``
+   (the windows' own boundary, for the refit and the result). Beside it, for reference,
    the flow-based detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow,
    as the refine job called it).
 3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
@@ -83,7 +83,7 @@ def synthetic_table() -> None:
             precisions.append(float((m & t).sum() / m.sum().clamp_min(1)))
             recalls.append(float((m & t).sum() / t.sum()))
             flags += det.flag
-            m = detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=det.motion, edges=False).mask
+            m = detect_road(p["image1"][None], p["image2"][None], p["camera"], edges=False).mask
             plain.append(float((m & t).sum() / (m | t).sum()))
             motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
             cam = p["camera"].replace(height=p["plane"]["height"])
@@ -180,7 +180,7 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             det = detect_road(im1, im2, cam, flow=flow)
-            plain = detect_road(im1, im2, cam, motion=det.motion, edges=False)
+            plain = detect_road(im1, im2, cam, flow=flow, edges=False)
             # the flow-based detection (detect_freespace on DIS's flow), for comparison
             old = detect_freespace(flow.to(cam.dtype), cam, bottom_rows=max(1, im1.shape[-2] // 8), threshold=1.0,
                                    relative_threshold=0.1)

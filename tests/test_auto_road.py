@@ -493,7 +493,6 @@ def test_detect_road_edges_option(scene_pair, scene_detection):
     assert iou(scene_detection.mask, true) > iou(plain.mask, true)
     assert plain.flag == scene_detection.flag == ["ok"]
     # judged again with the motion it found, nothing is estimated and the same road comes out
-    # (benchmarks/auto_road.py's edges=False column takes it so)
     again = detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=plain.motion, edges=False)
     assert torch.equal(again.mask, plain.mask)
     with pytest.raises(TypeError, match="edges: expected True or False, got str .yes."):

@@ -457,7 +457,8 @@ def test_synthetic_road_auto(tmp_path, size):
     assert rec["road"] == "auto"
     assert rec["road_max_height_m"] >= 0.3  # the step the evidence could show
     if size == "48x160":
-        assert rec["road_flag"] == "textureless" and rec["road_reason"] != ""
+        # (no parallax or texture the 48 x 160 images can show: either flag, with its reason)
+        assert rec["road_flag"] in ("textureless", "static") and rec["road_reason"] != ""
         assert rec["road_pixels"] == 0 and 0.0 <= rec["road_coverage"] <= 1.0 and not rec["refined"]
         assert rec["after"]["epe_all"] == rec["before"]["epe_all"]
     else:

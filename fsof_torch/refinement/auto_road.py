@@ -10,7 +10,8 @@ detection:
    ``seed_depth_m``, seen below the horizon (:func:`road_seed`).
 2. **Motion.** The road's motion fitted to the images in the seed (an image estimator, the
    predicted flow one start), or the caller's. With ``refit`` the motion is fitted again on the
-   detected road and the road detected again: the seed alone pins the motion poorly far from it.
+   detected road (its boundary on the edges, step 5) and the road detected again: the seed alone
+   pins the motion poorly far from it.
 3. **Evidence**, per window, at a working resolution (``level``): image 2 is warped by the road
    flow, and the residual against image 1 is compared with what noise and the model's own misfit
    explain, both measured in the seed (nothing is tuned to particular frames):
@@ -431,7 +432,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
             ``starts`` go to it.
         refit: after the first detection, estimate the motion again on the detected road (started
-            from the first) and detect again. Only where the motion was estimated here.
+            from the first; with ``edges``, its boundary on the edges) and detect again. Only where
+            the motion was estimated here.
         level: the evidence is judged on images averaged over 2**level pixels; default: the
             coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows). The windows
             and the smoothing are in pixels of that level.
@@ -530,24 +532,33 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             roads.append(torch.from_numpy(road_region(*arrays, fo, window, max(1, (h * w) // 500))))
         return ev, torch.stack(roads).unsqueeze(1).to(device)
 
+    seed, below = _upsample(seed_l, level, (H, W)), _upsample(below_l, level, (H, W))
+    rgb = None
+
+    def full_size(road_l: Tensor) -> Tensor:
+        """The road at the images' size; with ``edges``, its boundary on image 1's edges."""
+        nonlocal rgb
+        mask = _upsample(road_l, level, (H, W))
+        if not edges:
+            return mask
+        if rgb is None:
+            rgb = (im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1).clamp(0, 255).round().to(torch.uint8)
+            rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
+        radius = (height_window // 2 + 1) * 2 ** level
+        m, bl, sd = (t[:, 0].cpu().numpy() for t in (mask, below, seed))
+        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], bl[b], sd[b], radius))
+                            for b in range(B)]).unsqueeze(1).to(device)
+
     ev, road_l = judge(motion)
     if estimated and refit and bool(road_l.any()):
-        mask = _upsample(road_l, level, (H, W))
+        mask = full_size(road_l)
         again = estimator(None if flow is None else flow.detach().to(work), mask, camera, images=(im1, im2),
                           odometry=odometry, starts=(motion, *starts))
         ok_again = getattr(again, "success", torch.ones(B, dtype=torch.bool))
         if bool(torch.as_tensor(ok_again).all()):
             motion = again
             ev, road_l = judge(motion)
-    mask, seed, below = (_upsample(m, level, (H, W)) for m in (road_l, seed_l, below_l))
-    if edges:
-        radius = (height_window // 2 + 1) * 2 ** level
-        rgb = im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1
-        rgb = rgb.clamp(0, 255).round().to(torch.uint8).permute(0, 2, 3, 1).cpu().numpy()
-        arrays = [t[:, 0].cpu().numpy() for t in (mask, below, seed)]
-        mask = torch.stack([torch.from_numpy(follow_edges(m, im, bl, sd, radius))
-                            for m, im, bl, sd in zip(arrays[0], rgb, arrays[1], arrays[2])]).unsqueeze(1).to(device)
-    return _report(mask, motion, seed, below, ev, seed_l, level, min_coverage)
+    return _report(full_size(road_l), motion, seed, below, ev, seed_l, level, min_coverage)
 
 
 def _upsample(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
