@@ -34,7 +34,8 @@ are seen as by a camera that also turns between the frames (``real_road.turned``
 resampled through the rotation's homography, both frames and the polygon cropped to where it is
 defined): the real street's texture in a turn of known motion.
 
-Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow]
+Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow] [--no-real]
+     [--pairs 0 10 20 30]
      [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D]
 """
 
@@ -65,16 +66,16 @@ def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
     return torch.from_numpy(flow).permute(2, 0, 1)[None]
 
 
-def synthetic_table() -> None:
+def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
     from fsof_torch import detect_road, render_pair
 
-    print("Synthetic scenes, 375 x 1242, pairs " + ", ".join(map(str, PAIRS)))
+    print("Synthetic scenes, 375 x 1242, pairs " + ", ".join(map(str, pairs)))
     print("(exact motion: the scene's own road motion given, nothing estimated)")
     print(f"{'preset':>12} {'IoU mean':>9} {'IoU min':>8} {'precision':>10} {'recall':>7} "
           f"{'edges=False: IoU mean':>22} {'exact motion: IoU mean':>23} {'min':>6}  flags")
     for preset in PRESETS:
         ious, precisions, recalls, plain, exact, flags = [], [], [], [], [], []
-        for index in PAIRS:
+        for index in pairs:
             p = render_pair(preset, index)
             t = p["road"][None].bool()
             det = detect_road(p["image1"][None], p["image2"][None], p["camera"])
@@ -247,6 +248,10 @@ def main(argv=None) -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--no-synthetic", action="store_true")
     parser.add_argument("--no-slow", action="store_true")
+    parser.add_argument("--no-real", action="store_true", help="leave out the real-data tables")
+    parser.add_argument("--pairs", type=int, nargs="+", default=list(PAIRS),
+                        help="the synthetic presets' pairs (default: 0 10 20 30; other pairs check that a "
+                             "change helps beyond these)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
                         help="the real pairs' image 2 as seen by a camera also turned by this yaw (real_road.py's)")
     parser.add_argument("--pitch-change-deg", type=float, default=0.0, help="likewise, a pitch change")
@@ -257,12 +262,17 @@ def main(argv=None) -> int:
         print(f"--yaw-deg, --pitch-change-deg, --roll-change-deg: expected finite degrees within ±30, got {turn}",
               file=sys.stderr)
         return 2
+    if any(k < 0 for k in args.pairs):
+        print(f"--pairs: expected pair indices >= 0, got {args.pairs}", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     if not args.no_synthetic:
-        synthetic_table()
+        synthetic_table(tuple(args.pairs))
     if not args.no_slow:
         slow_table()
+    if args.no_real:
+        return 0
     if not args.data.is_dir():
         print(f"\n{args.data} is absent: no real-data tables")
         return 0

@@ -51,3 +51,8 @@ def test_a_grey_pair_turns_as_the_same_channel_of_a_colour_pair(load_benchmark):
     colour, one = rr.turned(pair, 6.0, 1.0), rr.turned(grey, 6.0, 1.0)
     assert one["image2"].shape == (1, *colour["image2"].shape[-2:])
     assert torch.equal(one["image2"][0], colour["image2"][0]) and torch.equal(one["image1"][0], colour["image1"][0])
+
+
+def test_negative_pairs_exit_2(bench, capsys):
+    assert bench.main(["--no-slow", "--no-real", "--pairs", "5", "-1"]) == 2
+    assert "--pairs: expected pair indices >= 0, got [5, -1]" in capsys.readouterr().err
