@@ -17,7 +17,8 @@ Prints four tables, single thread:
    as the refine job called it).
 3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
    estimates (on the seed at half size, again on the road), the detection judging a motion it is
-   given (what it adds to a refiner that estimated the motion anyway), the default image motion
+   given (what it adds to a refiner that estimated the motion anyway; also with ``edges=False``:
+   what following the edges costs), the default image motion
    estimate on a given mask (the refiner's own estimation), and refine_flow on DIS flow with
    mask="auto" against the same with the polygon as mask; medians of --repeat runs.
 
@@ -227,6 +228,7 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
             "detect_road, own motion (seed + road fit)": lambda: detect_road(im1, im2, cam, flow=flow),
             "detect_road, own motion, no refit": lambda: detect_road(im1, im2, cam, flow=flow, refit=False),
             "detect_road, motion given (the judging)": lambda: detect_road(im1, im2, cam, motion=motion),
+            "the same, edges=False": lambda: detect_road(im1, im2, cam, motion=motion, edges=False),
             "reference: image motion estimate on the polygon": lambda: estimator(flow, poly, cam, images=(im1, im2)),
             "refine_flow(DIS, polygon, images)": lambda: refine_flow(flow, poly, cam, images=(im1, im2)),
             "refine_flow(DIS, 'auto', images)": lambda: refine_flow(flow, "auto", cam, images=(im1, im2)),
