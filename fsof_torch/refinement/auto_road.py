@@ -533,20 +533,19 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         return ev, torch.stack(roads).unsqueeze(1).to(device)
 
     seed, below = _upsample(seed_l, level, (H, W)), _upsample(below_l, level, (H, W))
-    rgb = None
+    if edges:  # (image 1 as 8-bit RGB, the horizon and the seed on the host, once)
+        rgb = (im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1).clamp(0, 255).round().to(torch.uint8)
+        rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
+        below_np, seed_np = below[:, 0].cpu().numpy(), seed[:, 0].cpu().numpy()
+        radius = (height_window // 2 + 1) * 2 ** level
 
     def full_size(road_l: Tensor) -> Tensor:
         """The road at the images' size; with ``edges``, its boundary on image 1's edges."""
-        nonlocal rgb
         mask = _upsample(road_l, level, (H, W))
         if not edges:
             return mask
-        if rgb is None:
-            rgb = (im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1).clamp(0, 255).round().to(torch.uint8)
-            rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
-        radius = (height_window // 2 + 1) * 2 ** level
-        m, bl, sd = (t[:, 0].cpu().numpy() for t in (mask, below, seed))
-        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], bl[b], sd[b], radius))
+        m = mask[:, 0].cpu().numpy()
+        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], below_np[b], seed_np[b], radius))
                             for b in range(B)]).unsqueeze(1).to(device)
 
     ev, road_l = judge(motion)
