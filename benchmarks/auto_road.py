@@ -271,15 +271,14 @@ def main(argv=None) -> int:
     cv2.setNumThreads(1)
     if not args.no_synthetic:
         synthetic_table(tuple(args.pairs))
+    if not args.no_real:
+        if args.data.is_dir():
+            real_table(args.data, turn)
+            time_table(args.data, args.repeat, turn)
+        else:
+            print(f"\n{args.data} is absent: no real-data tables")
     if not args.no_slow:
         slow_table()
-    if args.no_real:
-        return 0
-    if not args.data.is_dir():
-        print(f"\n{args.data} is absent: no real-data tables")
-        return 0
-    real_table(args.data, turn)
-    time_table(args.data, args.repeat, turn)
     return 0
 
 
