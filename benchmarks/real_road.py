@@ -348,8 +348,9 @@ def kitti15(root: Path, height: float) -> list[tuple[str, Callable[[], dict]]]:
 def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) -> list[tuple[str, Callable[[], dict]]]:
     """The straight clip: pairs of images ``step`` frames apart, (0, step), (step, 2 step), ...
     (every ``step``-th frame: the clip driven ``step`` times as fast, or recorded at 1 / ``step``
-    of its rate), with the relative pose inverse(P_{i+step}) @ P_i where poses.txt has both frames
-    (none without poses.txt: the methods that need poses are left out)."""
+    of its rate), with the relative pose inverse(P_b) @ P_a of its frames a and b where poses.txt
+    has both (line n for frame NNNNNN = n, by the file names, not by position; none without
+    poses.txt: the methods that need poses are left out)."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
 
@@ -358,11 +359,16 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) ->
                                  step=step)
     poses = read_kitti_poses(root / "poses.txt") if (root / "poses.txt").is_file() else torch.empty(0, 4, 4)
 
+    def frame(path: Path) -> int | None:
+        return int(path.stem) if path.stem.isdigit() else None
+
     def loader(i: int) -> Callable[[], dict]:
+        a, b = frame(dataset.pairs[i].image1), frame(dataset.pairs[i].image2)
+
         def with_pose() -> dict:
             pair = dataset[i]
-            j = i + step
-            pair["relative_pose"] = torch.linalg.inv(poses[j]) @ poses[i] if j < len(poses) else None
+            known = a is not None and b is not None and max(a, b) < len(poses)
+            pair["relative_pose"] = torch.linalg.inv(poses[b]) @ poses[a] if known else None
             return pair
         return with_pose
 
@@ -604,9 +610,10 @@ def main(argv: list[str] | None = None) -> int:
         if key == "kitti15":
             truth = ("ground truth: road EPE over road ∩ valid" if (root / "flow_noc_10.png").is_file()
                      else "no ground-truth flow")
-            title = f"KITTI 2015 pair {root.name} ({truth})"
+            title = f"KITTI 2015 pair {root.resolve().name} ({truth})"
         else:
-            title = f"KITTI odometry clip {root.name} ({'' if (root / 'poses.txt').is_file() else 'no poses, '}" \
+            posed = "" if (root / "poses.txt").is_file() else "no poses, "
+            title = f"KITTI odometry clip {root.resolve().name} ({posed}" \
                     f"no ground-truth flow)"
         if not root.is_dir():
             print(f"{title}: {root} not found, skipped", file=sys.stderr)

@@ -284,6 +284,29 @@ def test_main_on_other_kitti_folders(rr, scenes, tmp_path, capsys):
     assert f"--pair: {str(pair)!r} lacks road.json" in capsys.readouterr().err
 
 
+def test_clip_poses_are_matched_to_frames_by_name(rr, scenes, tmp_path):
+    """Line n of poses.txt is frame NNNNNN = n: a clip whose frames start later (or skip one) takes
+    each pair's poses by its frames' names, never by the pair's position."""
+    from fsof_torch.io import write_kitti_poses
+
+    _tiny_clip(scenes, tmp_path)
+    clip = tmp_path / "data" / "kitti_odometry_straight"
+    for old, new in ((2, 7), (1, 5), (0, 4)):  # frames 4, 5, 7
+        (clip / "image_l" / f"{old:06d}.png").rename(clip / "image_l" / f"{new:06d}.png")
+    angles = torch.arange(8, dtype=torch.float64) * 0.01
+    poses = torch.eye(4, dtype=torch.float64).repeat(8, 1, 1)
+    c, s = angles.cos(), angles.sin()
+    poses[:, 0, 0], poses[:, 0, 2], poses[:, 2, 0], poses[:, 2, 2] = c, s, -s, c
+    poses[:, 2, 3] = torch.arange(8, dtype=torch.float64) ** 2  # every step different
+    write_kitti_poses(clip / "poses.txt", poses)
+    pairs = rr.odometry_clip(clip, 1.65, 0.0)
+    assert [name for name, _ in pairs] == ["000004", "000005"]
+    for (name, load), (a, b) in zip(pairs, ((4, 5), (5, 7))):
+        torch.testing.assert_close(load()["relative_pose"], torch.linalg.inv(poses[b]) @ poses[a], rtol=0, atol=1e-9)
+    write_kitti_poses(clip / "poses.txt", poses[:6])  # frame 7 has no pose
+    assert rr.odometry_clip(clip, 1.65, 0.0)[1][1]()["relative_pose"] is None
+
+
 def test_main_without_data_exits_2(rr, tmp_path, capsys):
     assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
     assert "--data: no kitti15_000000/ or kitti_odometry_straight/" in capsys.readouterr().err

@@ -245,7 +245,8 @@ class KittiSampleDataset(ImageFolderDataset):
                          camera_height=camera_height, roll=roll, pitch=pitch,
                          road=road if road.is_file() else None, dtype=dtype, camera_dtype=camera_dtype,
                          ground_truth=ground_truth)
-        self.pairs = [replace(self.pairs[0], name=f.name, gt=gt if gt.is_file() else None)]
+        # (named after the folder itself: ``.`` or ``sub/..`` has no name of its own)
+        self.pairs = [replace(self.pairs[0], name=f.resolve().name or "kitti15", gt=gt if gt.is_file() else None)]
 
 
 class KittiOdometryDataset(ImageFolderDataset):
