@@ -101,11 +101,13 @@ def _spec(name: str, dataset, i: int, options: dict[str, str] | str, identity: C
 
 
 def _file_identity(dataset: ImageFolderDataset, i: int, flow: Path | None = None) -> Callable[[], dict[str, Any]]:
-    """The pair's identity for resuming: the contents of its images, flow, ground-truth and road
-    files, and its two poses (a changed file or pose redoes the pair)."""
+    """The pair's identity for resuming: the contents of its images, flow, ground-truth, road
+    (its own mask or the dataset's one polygon) and calibration files, and its two poses (a
+    changed file or pose redoes the pair)."""
     def describe() -> dict[str, Any]:
         p = dataset.pairs[i]
-        files = {"image1": p.image1, "image2": p.image2, "flow": flow, "gt": p.gt, "road": p.road}
+        files = {"image1": p.image1, "image2": p.image2, "flow": flow, "gt": p.gt,
+                 "road": p.road if p.road is not None else dataset.road_file, "calib": dataset.calib}
         P = dataset.poses
         return {"files": {k: file_digest(f) for k, f in files.items() if f is not None},
                 "poses": torch.cat([P[p.frame1].flatten(), P[p.frame2].flatten()]).tolist() if P is not None else None}

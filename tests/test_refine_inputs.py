@@ -265,7 +265,8 @@ def test_a_changed_file_changes_only_its_pairs_identity(user_folder, scene):
         return [s.identity() for s in specs]
 
     first = identities()
-    assert set(first[0]["files"]) == {"image1", "image2", "flow", "gt", "road"} and len(first[0]["poses"]) == 32
+    assert set(first[0]["files"]) == {"image1", "image2", "flow", "gt", "road", "calib"}
+    assert len(first[0]["poses"]) == 32
     assert identities() == first  # the same files, the same identities
     write_image(user_folder / "images" / "000003.png", scene[2]["image2"].flip(-1))  # pair 000002's second frame
     second = identities()
@@ -273,6 +274,38 @@ def test_a_changed_file_changes_only_its_pairs_identity(user_folder, scene):
     write_flow(user_folder / "flows" / "000000.flo", scene[0]["flow"])  # pair 000000's prediction
     third = identities()
     assert third[1:] == second[1:] and third[0]["files"]["flow"] != second[0]["files"]["flow"]
+
+
+def test_kitti_samples_identity_follows_their_polygon_and_calibration(kitti15_folder, odometry_folder):
+    """The samples keep one road polygon and one calibration for all pairs: a changed road.json or
+    calibration file changes every pair's identity (a resumed run redoes them)."""
+    from refine.inputs import kitti15_pairs, kitti_odometry_pairs
+
+    def identities():
+        return ([s.identity() for s in kitti15_pairs(kitti15_folder, height=1.65)[0]]
+                + [s.identity() for s in kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)[0]])
+
+    first = identities()
+    assert all({"road", "calib"} <= set(i["files"]) for i in first)
+    for folder in (kitti15_folder, odometry_folder):
+        (folder / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON[:3]}))
+    second = identities()
+    assert all(a["files"]["road"] != b["files"]["road"] and a["files"]["calib"] == b["files"]["calib"]
+               for a, b in zip(first, second))
+    for calib in (kitti15_folder / "calib_cam_to_cam.txt", odometry_folder / "calib.txt"):
+        calib.write_text(calib.read_text() + "\n")
+    third = identities()
+    assert all(a["files"]["calib"] != b["files"]["calib"] for a, b in zip(second, third))
+
+
+def test_kitti15_pair_of_the_working_folder_is_named_after_it(kitti15_folder, monkeypatch):
+    """``--kitti15 .`` names the pair after the folder itself, not after the empty name of ``.``."""
+    from refine.inputs import kitti15_pairs
+
+    monkeypatch.chdir(kitti15_folder)
+    specs, _ = kitti15_pairs(Path("."), height=1.65)
+    assert [s.name for s in specs] == ["kitti15_000000"]
+    assert KittiSampleDataset(Path(".")).pairs[0].name == "kitti15_000000"
 
 
 def test_dataset_errors_name_the_option(user_folder, tmp_path):
