@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch import Camera
+from fsof_torch import Camera, road_flow
 from fsof_torch.refinement.auto_road import FLAGS, RoadDetection, detect_road, road_seed
 from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
 
@@ -123,6 +123,45 @@ def test_identical_frames_are_flagged_static(scene_pair):
     assert det.flag == ["static"] and not bool(det.ok.any())
     assert "parallax" in det.reason[0]
     assert not bool(det.usable_mask.any())
+
+
+def test_batch_refits_each_sample_as_alone(scene_pair, scene_detection):
+    """The motion is fitted again on the road sample by sample: a stopped sample beside a moving
+    one (no road, so no second fit there) leaves the moving one's result as it is alone, and keeps
+    its own flag; both motions come at the images' size."""
+    p = scene_pair
+    im1, im2 = p["image1"][None], p["image2"][None]
+    alone_static = detect_road(im1, im1.clone(), p["camera"])
+    both = detect_road(torch.cat([im1, im1]), torch.cat([im2, im1.clone()]), p["camera"])
+    assert both.flag == ["ok", alone_static.flag[0]]
+    assert torch.equal(both.mask[0], scene_detection.mask[0])
+    for name, value in scene_detection.motion.params.items():
+        assert torch.allclose(both.motion.params[name][0], value[0], atol=1e-6), name
+        assert torch.allclose(both.motion.params[name][1], alone_static.motion.params[name][0], atol=1e-6), name
+    H, W = im1.shape[-2:]
+    assert tuple(both.motion.flow.shape) == (2, 2, H, W) and tuple(both.motion.inliers.shape) == (2, 1, H, W)
+    # the stopped sample's motion, brought to the images' size, is the same motion
+    lifted = road_flow(both.motion.camera.expand(2), {k: v for k, v in both.motion.params.items()},
+                        (H, W), model=both.motion.model)[0]
+    assert torch.allclose(both.motion.flow[1], lifted[1].to(both.motion.flow.dtype), atol=1e-3)
+
+
+def test_where_motion_chooses_sample_by_sample(kitti_K):
+    """Two results of one batch: tensors with the batch dimension chosen per sample (cameras'
+    parameters too), the rest the same in both; results that differ otherwise are named."""
+    from fsof_torch.estimation.combine import where_motion
+
+    take = torch.tensor([True, False])
+    rolls = torch.tensor([0.1, 0.2], dtype=kitti_K.dtype)
+    a = {"model": "plane", "z_d": torch.tensor([1.0, 2.0]), "camera": Camera(kitti_K, 1.65, roll=rolls)}
+    b = {"model": "plane", "z_d": torch.tensor([3.0, 4.0]), "camera": Camera(kitti_K, 1.5, roll=0.3)}
+    out = where_motion(take, a, b)
+    assert out["model"] == "plane" and out["z_d"].tolist() == [1.0, 4.0]
+    assert out["camera"].roll.tolist() == pytest.approx([0.1, 0.3])
+    assert out["camera"].height.tolist() == pytest.approx([1.65, 1.5])
+    assert a["z_d"].tolist() == [1.0, 2.0] and b["z_d"].tolist() == [3.0, 4.0]  # the inputs as they were
+    with pytest.raises(ValueError, match=r"^estimator: .*combined sample by sample \(str and str\)$"):
+        where_motion(take, {**a, "model": "plane"}, {**b, "model": "paper"})
 
 
 def test_textureless_frames_are_flagged(kitti_K):

@@ -72,6 +72,7 @@ from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
+from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_motion
 from .estimators import ImageMotionEstimator
@@ -553,9 +554,14 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         mask = full_size(road_l)
         again = estimator(None if flow is None else flow.detach().to(work), mask, camera, images=(im1, im2),
                           odometry=odometry, starts=(motion, *starts))
-        ok_again = getattr(again, "success", torch.ones(B, dtype=torch.bool))
-        if bool(torch.as_tensor(ok_again).all()):
+        # per sample: a road found and fitted again (a sample without road keeps its seed fit,
+        # as it would alone)
+        ok_again = torch.tensor(_succeeded(again, B)) & road_l.flatten(1).any(1).cpu()
+        if bool(ok_again.all()):
             motion = again
+        elif bool(ok_again.any()):
+            motion = where_motion(ok_again.to(device), again, fit_at_size(motion, camera, (H, W)))
+        if bool(ok_again.any()):
             ev, road_l = judge(motion)
     return _report(full_size(road_l), motion, seed, below, ev, seed_l, level, min_coverage)
 
