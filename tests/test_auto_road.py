@@ -146,24 +146,6 @@ def test_batch_refits_each_sample_as_alone(scene_pair, scene_detection):
     assert torch.allclose(both.motion.flow[1], lifted[1].to(both.motion.flow.dtype), atol=1e-3)
 
 
-def test_where_motion_chooses_sample_by_sample(kitti_K):
-    """Two results of one batch: tensors with the batch dimension chosen per sample (cameras'
-    parameters too), the rest the same in both; results that differ otherwise are named."""
-    from fsof_torch.estimation.combine import where_motion
-
-    take = torch.tensor([True, False])
-    rolls = torch.tensor([0.1, 0.2], dtype=kitti_K.dtype)
-    a = {"model": "plane", "z_d": torch.tensor([1.0, 2.0]), "camera": Camera(kitti_K, 1.65, roll=rolls)}
-    b = {"model": "plane", "z_d": torch.tensor([3.0, 4.0]), "camera": Camera(kitti_K, 1.5, roll=0.3)}
-    out = where_motion(take, a, b)
-    assert out["model"] == "plane" and out["z_d"].tolist() == [1.0, 4.0]
-    assert out["camera"].roll.tolist() == pytest.approx([0.1, 0.3])
-    assert out["camera"].height.tolist() == pytest.approx([1.65, 1.5])
-    assert a["z_d"].tolist() == [1.0, 2.0] and b["z_d"].tolist() == [3.0, 4.0]  # the inputs as they were
-    with pytest.raises(ValueError, match=r"^estimator: .*combined sample by sample \(str and str\)$"):
-        where_motion(take, {**a, "model": "plane"}, {**b, "model": "paper"})
-
-
 def test_textureless_frames_are_flagged(kitti_K):
     """Flat grey frames carry no evidence: flagged, never an 'ok' road."""
     im = torch.full((1, 3, 96, 320), 90.0)

@@ -1,0 +1,49 @@
+"""fsof_torch.estimation.combine: road-motion results of one batch combined sample by sample."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from fsof_torch import Camera, fit_image, road_flow
+from fsof_torch.estimation.combine import fit_at_size, where_motion
+from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def test_where_motion_chooses_sample_by_sample(kitti_K):
+    """Two results of one batch: tensors with the batch dimension chosen per sample (cameras'
+    parameters too), the rest the same in both; results that differ otherwise are named."""
+    take = torch.tensor([True, False])
+    rolls = torch.tensor([0.1, 0.2], dtype=kitti_K.dtype)
+    a = {"model": "plane", "z_d": torch.tensor([1.0, 2.0]), "camera": Camera(kitti_K, 1.65, roll=rolls)}
+    b = {"model": "plane", "z_d": torch.tensor([3.0, 4.0]), "camera": Camera(kitti_K, 1.5, roll=0.3)}
+    out = where_motion(take, a, b)
+    assert out["model"] == "plane" and out["z_d"].tolist() == [1.0, 4.0]
+    assert out["camera"].roll.tolist() == pytest.approx([0.1, 0.3])
+    assert out["camera"].height.tolist() == pytest.approx([1.65, 1.5])
+    assert a["z_d"].tolist() == [1.0, 2.0] and b["z_d"].tolist() == [3.0, 4.0]  # the inputs as they were
+    with pytest.raises(ValueError, match=r"^estimator: .*combined sample by sample \(str and str\)$"):
+        where_motion(take, {**a, "model": "plane"}, {**b, "model": "paper"})
+
+
+def test_fit_at_size_is_the_same_motion_at_full_size():
+    """A fit at half size, brought to full size: the flow is the road's flow of its parameters at
+    full size (road_flow, written separately), with the fit's attitude; the rest as fitted."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    grey = torch.cat([p["image1"].mean(0, keepdim=True), p["image2"].mean(0, keepdim=True)])[None]
+    half = image_pyramid(grey, 2)[1]
+    fit = fit_image(half[:, :1], half[:, 1:], mask_pyramid(p["road"][None], 2)[1], level_camera(p["camera"], 1))
+    full = fit_at_size(fit, p["camera"], (96, 320))
+    assert tuple(full.flow.shape) == (1, 2, 96, 320) and tuple(full.inliers.shape) == (1, 1, 96, 320)
+    expected, valid = road_flow(p["camera"].to(torch.float64), {k: v.double() for k, v in fit.params.items()},
+                                (96, 320), model=fit.model)
+    assert torch.equal(full.valid, valid)
+    torch.testing.assert_close(full.flow[valid.expand_as(full.flow)].double(), expected[valid.expand_as(expected)],
+                               rtol=0, atol=1e-4)
+    assert full.params is fit.params and torch.equal(full.success, fit.success)
+    assert torch.allclose(full.camera.K, p["camera"].K.to(full.camera.dtype))
+    assert fit_at_size(full, p["camera"], (96, 320)) is full  # already at that size
