@@ -7,6 +7,8 @@ from collections import OrderedDict
 from typing import NamedTuple
 
 import pytest
+import warnings
+
 import torch
 import torch.nn.functional as F
 
@@ -263,3 +265,27 @@ class TestFreespaceRefinedContracts:
         with pytest.raises(ValueError, match="mask: expected the images' size"):
             x = scene["image1"] / 127.5 - 1
             model(x, x, camera=scene["camera"], mask=scene["road"][..., :-1])
+        # the camera is checked before the padding moves it; a bad range or road option is named
+        # when the wrapper is built, not after the network ran
+        for camera in (None, scene["camera"].K):
+            with pytest.raises(TypeError, match=r"^camera: expected a fsof_torch.Camera, got"):
+                model(x, x, camera=camera, mask=scene["road"])
+        for bad in ((0,), "ab", None, (0, True)):
+            with pytest.raises(TypeError, match=r"^image_range: expected \(low, high\), two numbers"):
+                FreespaceRefined(net, image_range=bad)
+        with pytest.raises(TypeError, match=r"^road_options: unknown options \['bogus'\] of detect_road"):
+            FreespaceRefined(net, road="auto", road_options={"bogus": 1})
+
+    def test_padded_info_maps_are_at_the_input_size(self, scene):
+        """With the padding, every map of the returned info (the gate's and the found road's too)
+        comes at the input size, as the refined flow does."""
+        net = TorchvisionRAFTStandIn().eval()
+        model = FreespaceRefined(net, road="auto", pad=InputPadder(8), image_range=(-1.0, 1.0))
+        x1, x2 = scene["image1"] / 127.5 - 1, scene["image2"] / 127.5 - 1
+        with torch.no_grad(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            _, info = model(x1, x2, camera=scene["camera"], num_flow_updates=3, return_info=True)
+        assert info.gate is not None and info.road is not None
+        for name, t in (("gate.use_model", info.gate.use_model), ("gate.evidence", info.gate.evidence),
+                        ("road.mask", info.road.mask), ("road.seed", info.road.seed), ("mask", info.mask)):
+            assert tuple(t.shape[-2:]) == SIZE, name

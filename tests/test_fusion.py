@@ -628,7 +628,7 @@ def test_image_estimator_inputs_are_checked_images_first():
         estimator(pred[:0], mask[:0], cam, images=(image[:0], image[:0]))
     with pytest.raises(ValueError, match=r"camera: expected batch 1 \(the images' B\), got 3"):
         estimator(pred, mask, cam.expand(3), images=(image, image))
-    with pytest.raises(ValueError, match=r"image1: values in .* look like 0..1 images, expected 0..255: scale them by 255"):
+    with pytest.raises(ValueError, match=r"images\[0\]: values in .* look like 0..1 images, expected 0..255"):
         FreespaceRefiner()(pred, mask, cam, images=(image / 255, image / 255))
 
 

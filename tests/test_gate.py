@@ -166,17 +166,25 @@ def test_the_gate_leaves_its_inputs_alone():
     assert all(torch.equal(a, b) for a, b in zip(args, before))
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(grid=(0, 4)), r"grid: expected \(rows, columns\) of positive integers, got \(0, 4\)"),
-    (dict(grid=3), r"grid: expected \(rows, columns\) of positive integers, got 3"),
-    (dict(points=0), "points: expected a positive integer, got 0"),
-    (dict(z=-1.0), "z: expected a finite number >= 0, got -1.0"),
-    (dict(object_px=0.0), "object_px: expected a finite number > 0, got 0.0"),
-    (dict(temperature=0.0), "temperature: expected > 0, got 0.0"),
-    (dict(min_points_fine=0), "min_points_fine: expected a positive integer, got 0"),
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(grid=(0, 4)), ValueError, r"^grid: expected an int >= 1, got 0"),
+    (dict(grid=3), TypeError, r"^grid: expected \(rows, columns\) of positive integers, got 3"),
+    (dict(grid=(2.0, 4)), TypeError, r"^grid: expected an int, got float 2.0"),
+    (dict(points=0), ValueError, r"^points: expected an int >= 1, got 0"),
+    (dict(points=2.0), TypeError, r"^points: expected an int, got float 2.0"),
+    (dict(z=-1.0), ValueError, r"^z: expected a number >= 0, got -1.0"),
+    (dict(z=None), TypeError, r"^z: expected a number, got NoneType None"),
+    (dict(margin=True), TypeError, r"^margin: expected a number, got bool True"),
+    (dict(object_px=0.0), ValueError, r"^object_px: expected a positive number \(> 0\), got 0.0"),
+    (dict(temperature=0.0), ValueError, r"^temperature: expected a positive number \(> 0\), got 0.0"),
+    (dict(contrast=float("inf")), ValueError, r"^contrast: expected a finite number, got inf"),
+    (dict(min_points_fine=0), ValueError, r"^min_points_fine: expected an int >= 1, got 0"),
+    (dict(min_neighbours=2.5), TypeError, r"^min_neighbours: expected an int, got float 2.5"),
+    (dict(min_neighbours=True), TypeError, r"^min_neighbours: expected an int, got bool True"),
+    (dict(min_neighbours=17), ValueError, r"^min_neighbours: expected at most 16 \(the ring's neighbours\)"),
 ])
-def test_gate_options_are_checked(kwargs, match):
-    with pytest.raises(ValueError, match=match):
+def test_gate_options_are_checked(kwargs, error, match):
+    with pytest.raises(error, match=match):
         ImageGate(**kwargs)
 
 

@@ -1,6 +1,7 @@
 """Road-motion results of one batch combined sample by sample: a fit of a coarser resolution
-brought to the images' size, and per sample one of two results (for example a second fit where it
-succeeded, the first elsewhere), so that a sample in a batch gets what it would get alone."""
+brought to the images' size, per sample one of two results (for example a second fit where it
+succeeded, the first elsewhere), and some samples of a result (the starts of the samples that are
+estimated), so that a sample in a batch gets what it would get alone."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import get_road_model
 from .flow_fit import RoadFit
 
-__all__ = ["fit_at_size", "where_motion"]
+__all__ = ["fit_at_size", "where_motion", "select_samples"]
 
 
 def fit_at_size(fit: Any, camera: Camera, size: tuple[int, int]) -> Any:
@@ -56,3 +57,22 @@ def where_motion(take: Tensor, a: Any, b: Any) -> Any:
         return a
     raise ValueError(f"estimator: its results of one batch cannot be combined sample by sample "
                      f"({type(a).__name__} and {type(b).__name__})")
+
+
+def select_samples(x: Any, index: Tensor, B: int) -> Any:
+    """The samples ``index`` of a motion, fit or start of batch ``B`` (tensors whose first
+    dimension is ``B``, also inside dicts, cameras and dataclasses such as a
+    :class:`~fsof_torch.estimation.flow_fit.RoadFit`); anything else (a value for the whole batch,
+    a batch of 1 that is broadcast) as it is."""
+    if isinstance(x, Tensor):
+        return x[index] if x.dim() >= 1 and x.shape[0] == B else x
+    if isinstance(x, dict):
+        return {k: select_samples(v, index, B) for k, v in x.items()}
+    if isinstance(x, tuple) and hasattr(x, "_fields"):  # a NamedTuple (an EgoMotion)
+        return type(x)(*(select_samples(v, index, B) for v in x))
+    if isinstance(x, Camera):
+        x = x.expand(B)
+        return Camera._checked(*(getattr(x, n)[index] for n in ("K", "height", "roll", "pitch")))
+    if is_dataclass(x) and not isinstance(x, type):
+        return replace(x, **{f.name: select_samples(getattr(x, f.name), index, B) for f in fields(x) if f.init})
+    return x

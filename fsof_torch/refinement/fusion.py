@@ -34,10 +34,11 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mask, check_names, check_number,
-                      check_shape, check_size, skip_values, tracing)
+                      check_image_range, check_shape, check_size, skip_values, tracing)
+from ..estimation.combine import select_samples, where_motion
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import road_motion, road_motion_batch
+from ..geometry.road_models import get_road_model, road_motion, road_motion_batch
 from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
@@ -177,7 +178,8 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
     where the two flows disagree, it decides, w = w_flow + (1 − w_flow) · evidence."""
     flow_model = flow_model.to(flow_pred.dtype)
     if mode == "replace":
-        weight = mask.to(flow_pred.dtype)
+        # (B, 1, H, W) also where the mask is one for the batch
+        weight = mask.expand(flow_pred.shape[0], 1, -1, -1).to(flow_pred.dtype)
         return torch.where(mask, flow_model, flow_pred), weight
     if all_finite:
         diff = flow_pred - flow_model
@@ -218,6 +220,16 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
 
 def _camera_subset(camera: Camera, index: Tensor) -> Camera:
     return Camera(camera.K[index], camera.height[index], camera.roll[index], camera.pitch[index])
+
+
+def _planar_as(model: str, planar: Mapping[str, Tensor], camera: Camera) -> dict[str, Tensor]:
+    """Planar odometry (x_d, z_d, yaw; roll and pitch where given, else the camera's) as the
+    parameters of the ``"paper"`` or ``"plane"`` model (no vertical motion, no pitch or roll
+    change): the same road motion."""
+    zero = torch.zeros_like(planar["z_d"])
+    full = {"roll": camera.roll.to(zero.dtype).expand_as(zero), "pitch": camera.pitch.to(zero.dtype).expand_as(zero),
+            "y_d": zero, "pitch_change": zero, "roll_change": zero, **planar}
+    return {k: full[k] for k in get_road_model(model).params}
 
 
 def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
@@ -278,6 +290,7 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
         if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
             raise ValueError(f"images[{i}]: expected shape ({B}, C, {H}, {W}) (the finest flow's size), "
                              f"got {tuple(im.shape)}")
+        check_image_range(im, f"images[{i}]", 255.0)
     return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
 
 
@@ -404,6 +417,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     fit_result = None
     cam_model = camera
     motion_model, odo = "paper", None
+    reuse_fit_flow = True
     if odometry is not None:
         given, odo = road_motion_batch(odometry, B, geo_dtype, device)
         motion_model = given.name
@@ -416,10 +430,20 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             if odometry is None:
                 motion_model, odo, cam_model = est_model, values, est_camera
                 refined = refined & ok
-            elif bool(ok.all()):
-                motion_model, odo, cam_model = est_model, values, est_camera
-            else:  # where the images say nothing, the odometry alone
-                fit_result = None
+            else:
+                # the planar motion the estimate held is the caller's: its tensors, with their graph
+                values = {k: torch.where(v == odo[k].detach(), odo[k], v) if k in ("x_d", "z_d", "yaw") else v
+                          for k, v in values.items()}
+                if bool(ok.all()):
+                    motion_model, odo, cam_model = est_model, values, est_camera
+                elif bool(ok.any()) and est_model in ("paper", "plane"):
+                    # where the images say nothing, the odometry alone, sample by sample
+                    motion_model, odo = est_model, where_motion(ok, values, _planar_as(est_model, odo, camera))
+                    cam_model = camera.replace(roll=torch.where(ok, est_camera.roll, camera.roll),
+                                               pitch=torch.where(ok, est_camera.pitch, camera.pitch))
+                    reuse_fit_flow = False
+                else:  # the odometry alone
+                    fit_result = None
         elif odometry is None:
             refined = torch.zeros_like(refined)
             odo = {k: torch.zeros(B, dtype=geo_dtype, device=device) for k in ("x_d", "z_d", "yaw")}
@@ -428,10 +452,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     def usable(m: Tensor, ok: Tensor) -> Tensor:
         return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
-    if fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model):
+    if (reuse_fit_flow and fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model)
+            and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
         # The estimate evaluated this very model flow at the finest size (same parameters): reuse
-        # it instead of a second full-size evaluation. Not when the camera carries a graph: then
-        # the model flow must be differentiable with respect to it.
+        # it instead of a second full-size evaluation. Not when the camera or the odometry carries
+        # a graph: then the model flow must be differentiable with respect to it.
         cache[(H, W)] = (fit_result.flow.to(device=device, dtype=geo_dtype), fit_result.valid.to(device))
 
     def model_flow(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
@@ -478,6 +503,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     weight = weights.get((H, W))
     if weight is None:  # pragma: no cover - the finest level is always visited
         weight = fuse_mask.to(finest.dtype)
+    odo = {k: torch.where(refined, v, torch.zeros_like(v)) for k, v in odo.items()}  # (0 where not refined)
     return RefineOutput(refined_flow, odo, fit_result, weight, fuse_mask, refined, cam_model, f_model_finest,
                         motion_model, gate_result)
 
@@ -528,6 +554,7 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
             if odometry is not None:
                 given, values = road_motion_batch(odometry, B, dtype, device)
                 odo = {"model": given.name, **{k: v[index] for k, v in values.items()}}
+            starts = tuple(select_samples(s, index, B) for s in starts)
         result = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
     ok = result.success.to(device=device, dtype=torch.bool)
     params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}

@@ -37,7 +37,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_image_pair, check_mask, check_shape
+from .._check import (check_float_tensor, check_has_values, check_image_pair, check_int, check_mask, check_number,
+                      check_shape)
 from ..estimation.sampling import MaskPoints, sample_mask
 from ..evaluation.photometric import to_grey
 
@@ -174,26 +175,26 @@ class ImageGate:
                  min_points_fine: int = 4, points: int = 6000, min_points: int = 12,
                  margin: float = 0.0, z: float = 2.0, occlusion: float = 0.35, temperature: float = 0.02,
                  contrast: float = 2.0, min_neighbours: int = 4, require_evidence: bool = True) -> None:
-        if (not isinstance(grid, (tuple, list)) or len(grid) != 2
-                or any(isinstance(v, bool) or not isinstance(v, int) or v < 1 for v in grid)):
-            raise ValueError(f"grid: expected (rows, columns) of positive integers, got {grid!r}")
+        if not isinstance(grid, (tuple, list)) or len(grid) != 2:
+            raise TypeError(f"grid: expected (rows, columns) of positive integers, got {grid!r}")
+        grid = tuple(check_int(v, "grid", minimum=1) for v in grid)
         if not isinstance(objects, bool):
             raise TypeError(f"objects: expected a bool, got {objects!r}")
-        if not (isinstance(object_px, (int, float)) and math.isfinite(object_px) and object_px > 0):
-            raise ValueError(f"object_px: expected a finite number > 0, got {object_px!r}")
-        for name, value in (("points", points), ("min_points", min_points), ("min_points_fine", min_points_fine)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive integer, got {value!r}")
-        for name, value in (("margin", margin), ("z", z), ("occlusion", occlusion), ("temperature", temperature),
-                            ("contrast", contrast), ("min_neighbours", min_neighbours)):
-            if not (isinstance(value, (int, float)) and math.isfinite(value)) or value < 0:
-                raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-        if temperature <= 0:
-            raise ValueError(f"temperature: expected > 0, got {temperature!r}")
-        self.grid, self.points, self.min_points = tuple(grid), points, min_points
-        self.objects, self.object_px, self.min_points_fine = objects, float(object_px), min_points_fine
-        self.margin, self.occlusion, self.temperature = float(margin), float(occlusion), float(temperature)
-        self.z, self.contrast, self.min_neighbours = float(z), float(contrast), int(min_neighbours)
+        points, min_points, min_points_fine = (check_int(v, name, minimum=1) for name, v in (
+            ("points", points), ("min_points", min_points), ("min_points_fine", min_points_fine)))
+        # (every neighbour of the ring, or fewer: more could never be met, and refining would stop)
+        min_neighbours = check_int(min_neighbours, "min_neighbours", minimum=0)
+        if min_neighbours > len(_RING):
+            raise ValueError(f"min_neighbours: expected at most {len(_RING)} (the ring's neighbours), "
+                             f"got {min_neighbours}")
+        self.grid, self.points, self.min_points, self.min_points_fine = grid, points, min_points, min_points_fine
+        self.objects, self.object_px = objects, check_number(object_px, "object_px", positive=True)
+        self.margin, self.occlusion = (check_number(v, n, nonnegative=True) for n, v in (("margin", margin),
+                                                                                         ("occlusion", occlusion)))
+        self.temperature = check_number(temperature, "temperature", positive=True)
+        self.z = check_number(z, "z", nonnegative=True)
+        self.contrast = check_number(contrast, "contrast", nonnegative=True)
+        self.min_neighbours = min_neighbours
         if not isinstance(require_evidence, bool):
             raise TypeError(f"require_evidence: expected a bool, got {require_evidence!r}")
         self.require_evidence = require_evidence

@@ -5,14 +5,16 @@ contracts; see :mod:`fsof_torch.refinement.contracts`)."""
 from __future__ import annotations
 
 import math
+import numbers
+from dataclasses import replace
 from typing import Any, Mapping
 
 import torch
 from torch import Tensor, nn
 
-from .._check import check_float_tensor
+from .._check import check_float_tensor, check_keywords
 from ..geometry.camera import Camera
-from .auto_road import detect_road_padded
+from .auto_road import detect_road, detect_road_padded
 from .contracts import InputPadder, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner
 
@@ -46,8 +48,8 @@ class FreespaceRefined(nn.Module):
     or ``model(inputs, *, camera, ...)`` with a ptlflow dict. Returns the net's output with its
     forward flows refined (same structure), or ``(output, RefineOutput)`` with
     ``return_info=True``. The mask (B, 1, H, W) bool and the camera refer to the input images'
-    size. With ``pad`` the RefineOutput's maps are cropped to the input size and its camera
-    is the input's (the padding undone).
+    size. With ``pad`` the RefineOutput's maps (also the gate's and the found road's masks) are
+    cropped to the input size and its camera is the input's (the padding undone).
     """
 
     def __init__(self, net: nn.Module, refiner: FreespaceRefiner | None = None, *,
@@ -62,9 +64,15 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"road: expected None or 'auto', got {road!r}")
         if pad is not None and not isinstance(pad, InputPadder):
             raise TypeError(f"pad: expected an InputPadder or None, got {type(pad).__name__}")
+        if (not isinstance(image_range, (tuple, list)) or len(image_range) != 2
+                or any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in image_range)):
+            raise TypeError(f"image_range: expected (low, high), two numbers, got {image_range!r}")
         lo, hi = (float(v) for v in image_range)
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise ValueError(f"image_range: expected finite (low, high) with high > low, got {image_range!r}")
+        # (named now, not at the first call after the network has run)
+        check_keywords(road_options or {}, "road_options", detect_road,
+                       reserved=("image1", "image2", "camera", "flow"))
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
@@ -103,6 +111,8 @@ class FreespaceRefined(nn.Module):
                             f"got {len(inputs)} positional argument(s)")
         if padding is not None and padding.is_zero:
             padding = None
+        if not isinstance(camera, Camera):  # (before the padding moves it)
+            raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
         if padding is not None:
             camera = padding.camera(camera)
             image1, image2 = (padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
@@ -126,7 +136,12 @@ class FreespaceRefined(nn.Module):
         flow = padding.unpad_output(info.flow, padded_size)
         if not return_info:
             return flow
+        gate, road = info.gate, info.road
+        if gate is not None:  # its maps at the input size too (its per-sample counts as they are)
+            gate = gate._replace(use_model=padding.unpad(gate.use_model), evidence=padding.unpad(gate.evidence))
+        if road is not None:
+            road = replace(road, mask=padding.unpad(road.mask), seed=padding.unpad(road.seed))
         info = info._replace(flow=flow, weight=padding.unpad(info.weight), mask=padding.unpad(info.mask),
-                             flow_model=padding.unpad(info.flow_model),
+                             flow_model=padding.unpad(info.flow_model), gate=gate, road=road,
                              camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
         return flow, info

@@ -1,0 +1,140 @@
+"""The refiner with images (fsof_torch.refinement.fusion): odometry and images sample by sample,
+gradients to a held odometry, starts of the estimated samples, the images' own checks, and the
+odometry reported for samples left unrefined."""
+
+from __future__ import annotations
+
+import warnings
+
+import pytest
+import torch
+
+from fsof_torch.data.scene import render_pair
+from fsof_torch.refinement.fusion import FreespaceRefiner
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+SIZE = (96, 320)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    p = render_pair("default", 1, size=SIZE)
+    noise = 2.0 * torch.randn(p["flow"].shape, generator=torch.Generator().manual_seed(0))
+    return {**p, "pred": (p["flow"] + noise)[None]}
+
+
+def _two(scene, black_second: bool = True):
+    """A batch of two copies of the scene; the second's image 2 black (nothing to estimate from)."""
+    i1 = torch.stack([scene["image1"]] * 2)
+    i2 = torch.stack([scene["image2"]] * 2)
+    if black_second:
+        i2[1] = 0.0
+    return scene["pred"].expand(2, -1, -1, -1).clone(), torch.stack([scene["road"]] * 2), i1, i2
+
+
+def _planar(scene, B: int, requires_grad: bool = False) -> dict:
+    return {k: torch.full((B,), float(scene["odometry"][k]), requires_grad=requires_grad)
+            for k in ("x_d", "z_d", "yaw")}
+
+
+def _quiet(fn, *args, **kwargs):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return fn(*args, **kwargs)
+
+
+def test_planar_odometry_with_images_is_decided_sample_by_sample(scene):
+    """Where the images give no estimate for one sample, that sample takes the planar odometry
+    alone and the others keep their image estimate, each as it would alone."""
+    pred, road, i1, i2 = _two(scene)
+    refiner = FreespaceRefiner()
+    both = _quiet(refiner, pred, road, scene["camera"], _planar(scene, 2), images=(i1, i2))
+    for b in range(2):
+        alone = _quiet(refiner, pred[b:b + 1], road[b:b + 1], scene["camera"], _planar(scene, 1),
+                       images=(i1[b:b + 1], i2[b:b + 1]))
+        torch.testing.assert_close(both.flow[b], alone.flow[0], rtol=0, atol=1e-3)
+        assert bool(both.refined[b]) == bool(alone.refined[0])
+    assert both.model == "plane" and both.fit is not None and both.fit.success.tolist() == [True, False]
+    # the second sample's model flow is the planar odometry's, with the camera's attitude
+    assert float(both.camera.roll[1]) == pytest.approx(float(scene["camera"].roll[0]))
+    assert float(both.camera.pitch[1]) == pytest.approx(float(scene["camera"].pitch[0]))
+    planar_only = FreespaceRefiner(gate=None)(pred[1:], road[1:], scene["camera"], _planar(scene, 1))
+    assert planar_only.model == "paper"
+    torch.testing.assert_close(both.flow_model[1], planar_only.flow_model[0], rtol=0, atol=1e-4)
+
+
+def test_gradient_reaches_a_planar_odometry_held_with_images(scene):
+    """The images estimate the rest of the motion; the planar odometry they hold is the caller's
+    own tensors: the loss's gradient with respect to it is that of the same complete motion given
+    directly (no estimate)."""
+    road = scene["road"][None]
+    images = (scene["image1"][None], scene["image2"][None])
+    odo = _planar(scene, 1, requires_grad=True)
+    out = FreespaceRefiner()(scene["pred"], road, scene["camera"], odo, images=images)
+    assert out.model == "plane" and bool(out.refined[0])
+    loss = (out.flow - scene["flow"][None]).abs().mean()
+    loss.backward()
+    direct = {k: v.detach().clone().requires_grad_(k in ("x_d", "z_d", "yaw")) for k, v in out.odometry.items()}
+    again = FreespaceRefiner()(scene["pred"], road, out.camera, {"model": out.model, **direct}, images=images)
+    (again.flow - scene["flow"][None]).abs().mean().backward()
+    for k in ("x_d", "z_d", "yaw"):
+        assert odo[k].grad is not None and bool(torch.isfinite(odo[k].grad).all()), k
+        torch.testing.assert_close(odo[k].grad, direct[k].grad, rtol=1e-5, atol=1e-7)
+    assert float(odo["z_d"].grad.abs()) > 0
+
+
+def test_starts_follow_the_samples_that_are_estimated(scene):
+    """A start of the whole batch (per-sample tensors, or the previous fit) is cut down with it
+    where some samples have no road: the others are estimated as alone."""
+    pred, road, i1, i2 = _two(scene, black_second=False)
+    road[1] = False
+    refiner = FreespaceRefiner()
+    previous = refiner(pred, torch.stack([scene["road"]] * 2), scene["camera"], images=(i1, i2)).fit
+    start = {"model": "plane", **{k: torch.full((2,), float(v)) for k, v in scene["plane"].items() if k != "height"}}
+    for s in (start, previous):
+        out = _quiet(refiner, pred, road, scene["camera"], images=(i1, i2), starts=(s,))
+        assert out.refined.tolist() == [True, False]
+        assert torch.equal(out.flow[1], pred[1])
+        params = previous.params if s is previous else {k: v for k, v in s.items() if k != "model"}
+        first = {"model": "plane", **{k: v[:1] for k, v in params.items()}}
+        alone = refiner(pred[:1], road[:1], scene["camera"], images=(i1[:1], i2[:1]), starts=(first,))
+        torch.testing.assert_close(out.flow[0], alone.flow[0], rtol=0, atol=1e-3)
+
+
+@pytest.mark.parametrize("how", ["0..1", "nan"])
+def test_images_are_checked_without_an_estimate(scene, how):
+    """With the complete motion given, nothing estimates from the images, yet the gate judges by
+    them: they are checked all the same (finite, on 0..255)."""
+    motion = {"model": "plane", **{k: v for k, v in scene["plane"].items() if k != "height"}}
+    image1, image2 = scene["image1"][None].clone(), scene["image2"][None]
+    if how == "0..1":
+        image1, image2 = image1 / 255, image2 / 255
+        match = r"^images\[0\]: values in .* look like 0..1 images, expected 0..255"
+    else:
+        image1[0, 0, 5, 5] = float("nan")
+        match = r"^images\[0\]: expected finite pixel values"
+    with pytest.raises(ValueError, match=match):
+        FreespaceRefiner()(scene["pred"], scene["road"][None], scene["camera"], motion, images=(image1, image2))
+
+
+def test_odometry_of_samples_left_unrefined_is_zero(scene):
+    """RefineOutput.odometry holds 0 for the samples that were not refined, as documented."""
+    pred, road, i1, i2 = _two(scene)
+    out = _quiet(FreespaceRefiner(), pred, road, scene["camera"], images=(i1, i2))
+    assert out.refined.tolist() == [True, False]
+    assert all(float(v[1]) == 0.0 for v in out.odometry.values())
+    assert float(out.odometry["z_d"][0]) > 0.5
+
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_fuse_flow_weight_has_the_flows_batch(mode):
+    """A mask of batch 1 is broadcast: the weight is (B, 1, H, W) in both modes, as documented."""
+    from fsof_torch.refinement.fusion import fuse_flow
+
+    pred = torch.randn(3, 2, 8, 10, generator=torch.Generator().manual_seed(0))
+    mask = torch.zeros(1, 1, 8, 10, dtype=torch.bool)
+    mask[..., 2:5, 3:7] = True
+    out, weight = fuse_flow(pred, torch.zeros_like(pred), mask, mode=mode)
+    assert tuple(weight.shape) == (3, 1, 8, 10) and tuple(out.shape) == (3, 2, 8, 10)
+    assert bool((weight[:, :, ~mask[0, 0]] == 0).all())
