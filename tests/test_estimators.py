@@ -86,3 +86,31 @@ def test_a_parameter_given_two_priors_is_refused(body_pair):
     estimator = ImageMotionEstimator(odometry_sigma={"yaw": 0.01}, prior={"yaw": (0.0, 0.1)})
     with pytest.raises(ValueError, match=r"prior: \['yaw'\] also given a prior by odometry_sigma"):
         refined(p, odometry, estimator)
+
+
+def test_held_odometry_holds_over_a_previous_fit_given_as_start():
+    """A previous pair's fit as a start (a RoadFit, not a dict) gets the held planar motion too:
+    the fit returns the odometry's x_d, z_d, yaw, whatever the start says."""
+    from fsof_torch import fit_image
+
+    p = render_pair("default", 0, size=(96, 320))
+    images, road = (p["image1"][None], p["image2"][None]), p["road"][None]
+    previous = fit_image(images[0], images[1], road, p["camera"])
+    odometry = {"x_d": 0.0, "z_d": 0.8, "yaw": 0.0}  # held, though the previous fit says about 1.08 m
+    assert float(previous.params["z_d"][0]) > 1.0
+    for start in (previous, dict(previous.params)):
+        fit = ImageMotionEstimator()(None, road, p["camera"], images=images, odometry=odometry, starts=[start])
+        assert {k: float(fit.params[k][0]) for k in odometry} == pytest.approx(odometry, abs=1e-6)
+
+
+def test_odometry_errors_name_the_odometry():
+    """A non-finite odometry, or one a homography cannot hold, is named as the odometry (not as the
+    fit's init or fixed parameters it becomes)."""
+    p = render_pair("default", 0, size=(96, 320))
+    images, road = (p["image1"][None], p["image2"][None]), p["road"][None]
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected finite values, got nan"):
+        ImageMotionEstimator()(None, road, p["camera"], images=images,
+                               odometry={"x_d": math.nan, "z_d": 1.0, "yaw": 0.0})
+    with pytest.raises(ValueError, match=r"^odometry: the 'homography' model has no planar motion"):
+        ImageMotionEstimator(model="homography")(None, road, p["camera"], images=images,
+                                                 odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})

@@ -75,6 +75,25 @@ def test_smooth_attitude_ignores_infinite_sigma():
     chg = torch.zeros(3, dtype=torch.float64)
     track, _ = smooth_attitude(att, chg, torch.tensor([1.0, math.inf, 1.0]), 1.0)
     assert torch.allclose(track, torch.zeros(4, dtype=torch.float64), atol=1e-9)
+    # a measurement that does not count may be anything, NaN too
+    att[1] = math.nan
+    again, _ = smooth_attitude(att, chg, torch.tensor([1.0, math.inf, 1.0]), 1.0)
+    assert torch.equal(again, track)
+
+
+@pytest.mark.parametrize("args, error, match", [
+    ((torch.zeros(3), torch.zeros(4), 1.0, 1.0), ValueError, r"^change: expected 3 values \(attitude's\), got 4"),
+    ((torch.zeros(2, 3), torch.zeros(2, 3), 1.0, 1.0), ValueError, r"^attitude: expected a 1-D tensor"),
+    (([0.0, 0.0], torch.zeros(2), 1.0, 1.0), TypeError, r"^attitude: expected a torch.Tensor, got list"),
+    ((torch.zeros(3), torch.zeros(3), 0.0, 1.0), ValueError, r"^attitude_sigma: expected values > 0"),
+    ((torch.zeros(3), torch.zeros(3), 1.0, math.nan), ValueError, r"^change_sigma: expected values > 0"),
+    ((torch.zeros(3), torch.zeros(3), torch.ones(2), 1.0), ValueError, r"^attitude_sigma: expected a number or a ten"),
+    ((torch.zeros(3), torch.zeros(3), True, 1.0), TypeError, r"^attitude_sigma: expected a number"),
+    ((torch.tensor([0.0, math.nan, 0.0]), torch.zeros(3), 1.0, 1.0), ValueError, r"^attitude: expected finite values"),
+])
+def test_smooth_attitude_refuses_bad_input(args, error, match):
+    with pytest.raises(error, match=match):
+        smooth_attitude(*args)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -199,7 +218,7 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(ValueError, match=r"frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) \(an image\), "
                                           r"got \(2, 3, "):
         fit_sequence([torch.stack([f, f]) for f in frames[:3]], road, cam)
-    with pytest.raises(ValueError, match=rf"frames\[1\]: expected shape \(C, {H}, {W}\)"):
+    with pytest.raises(ValueError, match=rf"frames\[1\]: expected shape \(3, {H}, {W}\)"):
         fit_sequence([frames[0], frames[1][..., :-8], frames[2]], road, cam)
     with pytest.raises(ValueError, match=rf"mask: expected shape \(1, {H}, {W}\) or \(1, 1, {H}, {W}\)"):
         fit_sequence(frames[:3], road[None].expand(2, -1, -1, -1), cam)
@@ -207,3 +226,15 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(frames[:3], [road.float(), road.float()], cam)
     with pytest.raises(ValueError, match=rf"flows\[0\]: expected shape \(2, {H}, {W}\)"):
         fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, H - 8, W), torch.zeros(2, H, W)])
+    for name in ("image1", "image2"):  # fit_image's arguments the clip sets itself
+        with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+            fit_sequence(frames[:3], road, cam, **{name: frames[0]})
+    # a bad frame is named by its index (not as the pair's image1 / image2 of the fit it feeds)
+    bad = frames[1].clone()
+    bad[0, 0, 0] = math.nan
+    for frame, error, match in ((frames[1].to(torch.uint8), TypeError, r"^frames\[1\]: expected a floating-point"),
+                                (frames[1][:1], ValueError, r"^frames\[1\]: expected shape \(3, "),
+                                (bad, ValueError, r"^frames\[1\]: expected finite pixel values"),
+                                (frames[1] / 255, ValueError, r"^frames\[1\]: values in .* look like 0..1 images")):
+        with pytest.raises(error, match=match):
+            fit_sequence([frames[0], frame, frames[2]], road, cam)

@@ -35,7 +35,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_keywords
+from .._check import check_float_tensor, check_image_range, check_keywords
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model
 from .flow_fit import RoadFit
@@ -83,12 +83,31 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     Σ_kk = 1 / D_k + l_k² Σ_{k+1,k+1} (a sum of positive terms: no cancellation).
 
     Returns the track (N + 1,) and its standard deviations (N + 1,) (float64)."""
+    for name, x in (("attitude", attitude), ("change", change)):
+        check_float_tensor(x, name)
+        if x.dim() != 1:
+            raise ValueError(f"{name}: expected a 1-D tensor (one value per pair), got shape {tuple(x.shape)}")
     N = attitude.shape[0]
+    if change.shape[0] != N:
+        raise ValueError(f"change: expected {N} values (attitude's), got {change.shape[0]}")
     dt = torch.float64
-    wa = 1.0 / torch.as_tensor(attitude_sigma, dtype=dt).expand(N).square()
-    wc = 1.0 / torch.as_tensor(change_sigma, dtype=dt).expand(N).square()
+    sigmas = []
+    for name, given in (("attitude_sigma", attitude_sigma), ("change_sigma", change_sigma)):
+        if isinstance(given, bool) or not isinstance(given, (Tensor, float, int)):
+            raise TypeError(f"{name}: expected a number or a tensor of {N} values, got {type(given).__name__}")
+        sigma = torch.as_tensor(given, dtype=dt)
+        if sigma.dim() > 1 or sigma.numel() not in (1, N):
+            raise ValueError(f"{name}: expected a number or a tensor of {N} values, got shape {tuple(sigma.shape)}")
+        if not bool((sigma > 0).all()):  # (NaN fails too; inf is allowed: that measurement does not count)
+            raise ValueError(f"{name}: expected values > 0 (inf: the measurement does not count), got {sigma!r}")
+        sigmas.append(sigma.expand(N).cpu())
+    wa, wc = (1.0 / s.square() for s in sigmas)
     att, chg = attitude.to(dt).cpu(), change.to(dt).cpu()
-    wa, wc = wa.cpu(), wc.cpu()
+    # a measurement that does not count contributes nothing, whatever its value (also NaN)
+    for w, x, name in ((wa, att, "attitude"), (wc, chg, "change")):
+        if not bool(torch.isfinite(x[w > 0]).all()):
+            raise ValueError(f"{name}: expected finite values where the sigma is finite, got {x.tolist()}")
+    att, chg = torch.where(wa > 0, att, 0.0), torch.where(wc > 0, chg, 0.0)
     # the matrix: diagonal `diag` (N + 1,), off-diagonal −wc (N,); (a_{k+1} − a_k − c_k)² wc adds
     # the 2 × 2 block [[1, −1], [−1, 1]] wc. A tiny ridge keeps a frame no measurement reaches
     # (all its σ infinite) solvable.
@@ -149,6 +168,15 @@ def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tupl
         c = "C" if len(channels) > 1 else str(channels[0])
         hw = "H, W" if size is None else f"{size[0]}, {size[1]}"
         raise ValueError(f"{name}: expected shape ({c}, {hw}) or (1, {c}, {hw}) ({what}), got {tuple(x.shape)}")
+    return y
+
+
+def _frame(x: object, name: str, channels: tuple[int, ...], size: tuple[int, int] | None = None) -> Tensor:
+    """One frame of a clip (:func:`_item`): a float image on 0..255, of the clip's channels and
+    size, named by its index where it is not."""
+    what = "an image" if size is None else f"an image of the clip's {channels[0]} channel(s) and size"
+    y = _item(check_float_tensor(x, name) if isinstance(x, Tensor) else x, name, what, channels, size)
+    check_image_range(y, name, 255.0)
     return y
 
 
@@ -222,7 +250,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             raise ValueError("poses: expected finite values, got NaN or inf")
     if flows is not None and len(flows) != N:
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
-    check_keywords(options, "options", fit_image, reserved=("init", "starts", "prior"))
+    check_keywords(options, "options", fit_image, reserved=("image1", "image2", "init", "starts", "prior"))
     model = get_road_model(options.pop("model", "plane"))
     if model.name != "plane":
         raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
@@ -250,9 +278,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
                                  yaw=(prev["yaw"], 1.0 * DEG))
             # each frame is read once per pass, in order: the last pair's second frame is this one's first
-            image1 = image2 if image2 is not None else _item(frames[k], f"frames[{k}]", "an image", (1, 3))
+            image1 = image2 if image2 is not None else _frame(frames[k], f"frames[{k}]", (1, 3))
             size = tuple(image1.shape[-2:])
-            image2 = _item(frames[k + 1], f"frames[{k + 1}]", "an image of the clip's size", (1, 3), size)
+            image2 = _frame(frames[k + 1], f"frames[{k + 1}]", (image1.shape[1],), size)
             road = mask_of(k, size)
             if flows is not None:
                 flow = _item(flows[k], f"flows[{k}]", "a flow of the frames' size", (2,), size)

@@ -143,9 +143,16 @@ class ImageMotionEstimator:
         if odometry is not None:
             planar = planar_odometry(odometry)
             if planar is not None:
+                if not all(k in get_road_model(self.model).params for k in _PLANAR):
+                    raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
+                                     f"hold; estimate it from the images alone (odometry=None) or use model='plane'")
+                for k, v in planar.items():  # (named here: below they become the fit's init)
+                    if not all_finite(torch.as_tensor(v)):
+                        raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
                 # the odometry fixes the planar motion (or centres priors on it); the images add
-                # what it does not measure
+                # what it does not measure, from every start (a previous fit's too)
                 init = {**(init or {}), **planar}
+                starts = [s.motion() if isinstance(s, RoadFit) else s for s in starts]
                 starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
                 held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
                 fixed = tuple(fixed or ()) + tuple(k for k in held if k not in (fixed or ()))
