@@ -39,6 +39,14 @@ class TestSmoke:
         mask = read_road_mask(tmp_path / "c.png")
         assert mask.shape == (1, 3, 4) and int(mask.sum()) == 1 and bool(mask[0, 1, 2])
 
+    def test_alpha_channel_is_not_road(self, tmp_path):
+        bgra = np.zeros((4, 6, 4), np.uint8)
+        bgra[2:, :, :3] = 255  # the white bottom half is road
+        bgra[..., 3] = 255  # opaque everywhere
+        cv2.imwrite(str(tmp_path / "rgba.png"), bgra)
+        mask = read_road_mask(tmp_path / "rgba.png")
+        assert mask[0, 2:].all() and not mask[0, :2].any()
+
     def test_png_resized_nearest(self, tmp_path):
         mask = torch.zeros(1, 4, 6, dtype=torch.bool)
         mask[0, 2:] = True
@@ -87,6 +95,14 @@ class TestFeature:
         path = _write_json(tmp_path / "p.json", {"polygons": [[[0, 0], [2, 0], [2, 2]], [[5, 5], [7, 5], [7, 7]]]})
         mask = read_road_mask(path, size=(8, 8))
         assert bool(mask[0, 0, 2]) and bool(mask[0, 5, 7]) and not bool(mask[0, 7, 0])
+
+    def test_overlapping_polygons_fill_their_union(self):
+        """Two squares that overlap: their overlap is filled, as each of them is (a union, not the
+        even-odd rule of one fillPoly call, which would leave it a hole)."""
+        a, b = [[1, 1], [6, 1], [6, 6], [1, 6]], [[3, 3], [8, 3], [8, 8], [3, 8]]
+        mask = rasterize_polygons([a, b], (10, 10))
+        assert torch.equal(mask, rasterize_polygons([a], (10, 10)) | rasterize_polygons([b], (10, 10)))
+        assert bool(mask[0, 4, 4]) and int(mask.sum()) == 36 + 36 - 16
 
     def test_mask_from_colors(self):
         rgb = torch.zeros(3, 2, 3)

@@ -415,6 +415,29 @@ def test_census_distance_is_the_hamming_distance_of_census_bits():
     assert float(err[0, 0][valid[0, 0]].max()) == 0.0  # a monotonic brightness change costs nothing
 
 
+@pytest.mark.parametrize("radius", [7, 8, 10])
+def test_census_distance_of_wide_windows(radius):
+    """More than 255 neighbours (radius 8 and up) are counted without overflow: the inverted image
+    flips every bit that differs, against a count written out here."""
+    g = torch.Generator().manual_seed(5)
+    i1 = torch.rand(1, 1, 30, 34, generator=g, dtype=torch.float64) * 255
+    i2 = 255 - i1
+    err, valid = photometric_error_map(i1, i2, torch.zeros(1, 2, 30, 34, dtype=torch.float64), kind="census",
+                                       census_radius=radius)
+    a, b = i1[0, 0].numpy(), i2[0, 0].numpy()
+    k = 2 * radius + 1
+
+    def bits(x):
+        p = np.pad(x, radius, mode="edge")
+        return np.stack([p[dy:dy + 30, dx:dx + 34] > x for dy in range(k) for dx in range(k)
+                         if (dy, dx) != (radius, radius)])
+
+    ref = (bits(a) != bits(b)).sum(0) / (k * k - 1)
+    v = valid[0, 0].numpy()
+    assert v.any() and ref[v].mean() > 0.9
+    np.testing.assert_allclose(err[0, 0].numpy()[v], ref[v])
+
+
 # --- several kinds at once ---------------------------------------------------------------------
 
 def test_several_kinds_equal_one_kind_at_a_time():

@@ -166,13 +166,14 @@ def _census_distance(grey1: Tensor, grey2: Tensor, radius: int) -> Tensor:
     replicated) of two (B, 1, H, W) grey images, divided by the (2r+1)² − 1 neighbours.
 
     The bits are compared one neighbour offset at a time on shifted views (a few operations per
-    pixel and offset, counted in uint8): a tenth of the time of the one-hot convolution that
+    pixel and offset, counted in small integers): a tenth of the time of the one-hot convolution that
     :func:`census_transform` uses to build all offsets at once."""
     H, W = grey1.shape[-2:]
     pad = (radius, radius, radius, radius)
     p1, p2 = F.pad(grey1, pad, mode="replicate"), F.pad(grey2, pad, mode="replicate")
     k = 2 * radius + 1
-    count = torch.zeros(grey1.shape, dtype=torch.uint8, device=grey1.device)
+    # (uint8 holds the count of up to 255 neighbours: radius 7; a wider window counts in int16)
+    count = torch.zeros(grey1.shape, dtype=torch.uint8 if k * k - 1 <= 255 else torch.int16, device=grey1.device)
     for dy in range(k):
         for dx in range(k):
             if dy == radius and dx == radius:

@@ -107,7 +107,9 @@ def _clip(poly: np.ndarray, lo: tuple[float, float], hi: tuple[float, float]) ->
 def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tuple[int, int]) -> Tensor:
     """Fill polygons of pixel coordinates (u, v) into a (1, H, W) bool mask (``cv2.fillPoly``).
 
-    A pixel is filled where its centre is inside a polygon (up to the 1/16 px vertex grid).
+    The mask is the union of the polygons, each filled on its own (where two overlap, both fill).
+    A pixel is filled where its centre is inside a polygon, and also where the polygon's outline
+    passes through it (OpenCV draws the outline's pixels too), up to the 1/16 px vertex grid.
     Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px work.
     """
     import cv2
@@ -123,8 +125,8 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
         clipped = _clip(_as_polygon(poly, f"polygons[{k}]"), lo, hi)
         if len(clipped) >= 3:
             pts.append(np.round(clipped * (1 << _SHIFT)).astype(np.int32))
-    if pts:
-        cv2.fillPoly(canvas, pts, 1, lineType=cv2.LINE_8, shift=_SHIFT)
+    for p in pts:  # (one call for all would fill their overlaps by the even-odd rule: as holes)
+        cv2.fillPoly(canvas, [p], 1, lineType=cv2.LINE_8, shift=_SHIFT)
     return torch.from_numpy(canvas > 0).unsqueeze(0)
 
 
@@ -175,8 +177,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
     """A road mask as (1, H, W) bool.
 
     Args:
-        path: a PNG (any channel nonzero = road) or a polygon JSON (the formats in the module
-            docstring).
+        path: a PNG (any colour channel nonzero = road; an alpha channel is ignored) or a polygon
+            JSON (the formats in the module docstring).
         size: (H, W) wanted. A PNG of another size is resized with nearest-neighbour sampling. A
             JSON's polygon is drawn at its own ``"size"`` scaled to ``size`` (pixel centres map as
             ``u' + 0.5 = s (u + 0.5)``); a JSON without ``"size"`` needs ``size``.
@@ -219,6 +221,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         return rasterize_polygons(polygons, target)
     array = read_image_array(path, what="road mask image")
     if array.ndim == 3:
+        # the alpha channel (grey + alpha, BGRA) is opacity, not road: an opaque mask would be all road
+        if array.shape[2] in (2, 4):
+            array = array[:, :, :-1]
         array = array.max(axis=2)
     mask = array > 0
     if size is not None and mask.shape != size:
