@@ -206,6 +206,12 @@ def _sample_road(road: str | None) -> str:
     return "found in the images of each pair (--road auto)" if road == "auto" else "the folder's hand-drawn road.json"
 
 
+def _poses_option(args: argparse.Namespace) -> str:
+    """The option the pairs' poses come from, which errors about them name."""
+    return "--kitti-odometry" if args.kitti_odometry is not None else "--poses" if args.images is not None \
+        else "--preset"
+
+
 def _configure(args: argparse.Namespace):
     """Options -> (pair specs, camera, config parts, input identity), checked before any work."""
     from .inputs import JobError, kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
@@ -303,9 +309,11 @@ def _configure(args: argparse.Namespace):
     if "testnet" in sources and args.testnet_weights is None:
         notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
                      "it shows the wrapper on a RAFT-style output.")
-    if (calibrate or "sequence" in variants or "given_pitch" in variants) and len(specs) < 2:
-        raise JobError("--calibrate-pitch / --odometry sequence / given_pitch: a clip of at least 2 pairs is needed, "
-                       f"got {len(specs)}")
+    from .calibrate import check_clip, clip_options
+
+    needed_by = clip_options(calibrate, variants)
+    if needed_by:
+        check_clip(specs, needed_by=needed_by, poses_option=_poses_option(args))
     return specs, camera, title, sources, variants, calibrate, notes, identity
 
 
@@ -378,10 +386,13 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
                     odometry_sigma=odometry_sigma, overwrite=args.overwrite, figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
                     fingerprint=fp, device=str(device))
-    if calibrate or "sequence" in variants or "given_pitch" in variants:
+    from .calibrate import clip_options
+
+    needed_by = clip_options(calibrate, variants)
+    if needed_by:
         from .job import input_fingerprint
 
-        cfg.clip = _fit_clip(specs, camera, cfg, built, device)
+        cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
         cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
         m = cfg.clip.mounting
         notes.append(f"Mounting calibrated over the clip from its images: pitch {m['pitch_deg']:.2f}°, roll "
@@ -413,7 +424,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     return 0
 
 
-def _fit_clip(specs, camera, cfg, built: dict, device):
+def _fit_clip(specs, camera, cfg, built: dict, device, *, needed_by: str, poses_option: str):
     """The clip's road motion and calibrated camera (refine.calibrate); road masks the pairs' own,
     or detected on DIS's flow where the road is auto (the refinement of every source then uses
     those detections: each pair's road is detected once)."""
@@ -433,7 +444,7 @@ def _fit_clip(specs, camera, cfg, built: dict, device):
         return road, info
 
     cam = camera if camera is not None else specs[0].load()["camera"]
-    return fit_clip(specs, cam, road_for, progress=cfg.progress)
+    return fit_clip(specs, cam, road_for, progress=cfg.progress, needed_by=needed_by, poses_option=poses_option)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -2,7 +2,8 @@
 mounting calibrated over the clip (its pitch and roll over the road; with poses, the height), each
 pair's motion for the ``sequence`` variant.
 
-The pairs must be consecutive frames of one clip (pair k's second image is pair k+1's first); the
+The pairs must be consecutive frames of one clip (pair k's second image is pair k+1's first, and
+where every frame is named by a number, the numbers follow each other: :func:`check_clip`); the
 road masks are the pairs' own, or detected on a DIS flow where the road is ``auto``. Poses, where
 the pairs have them, give the metric scale (the images give the translation over the height only).
 The clip is streamed: its memory is a few frames plus the packed road masks, whatever its length.
@@ -21,7 +22,46 @@ from torch import Tensor
 
 from fsof_torch import Camera, fit_sequence
 
-from .inputs import JobError, PairSpec
+from .inputs import JobError, PairSpec, options_of
+
+STILL_M = 1e-6  # a pose step below this (metres) is no motion: the poses give the clip no scale
+
+
+def clip_options(calibrate: bool, variants: Sequence[str]) -> str:
+    """The options that make the job fit the clip, as its errors name them (e.g.
+    ``--calibrate-pitch and --odometry sequence``); "" where none does."""
+    needed = ["--calibrate-pitch"] if calibrate else []
+    uses = [v for v in variants if v in ("sequence", "given_pitch")]
+    if uses:
+        needed.append(f"--odometry {','.join(uses)}")
+    return " and ".join(needed)
+
+
+def _separately(needed_by: str) -> str:
+    return f"without {needed_by} the pairs are refined one by one (e.g. --odometry photometric)"
+
+
+def check_clip(specs: Sequence[PairSpec], *, needed_by: str = "--odometry sequence",
+               poses_option: str = "--poses") -> None:
+    """What the clip's fit needs that is known without loading a pair, checked before any work:
+    at least 2 pairs; where every frame is named by a number, no gap in the numbers (the fit
+    carries each pair's motion to the next as a prior, so a dropped frame would be fitted as one
+    step); where the pairs have poses, poses that move (they give the clip's scale). Errors name
+    ``needed_by`` (the options that need the clip) or ``poses_option`` (where the poses come from)."""
+    if len(specs) < 2:
+        raise JobError(f"{needed_by}: the clip's fit needs a clip of at least 2 pairs (3 frames), got {len(specs)}")
+    frames = [s.frames for s in specs]
+    if all(f is not None and f[0].isdigit() and f[1].isdigit() for f in frames):
+        for spec, (a, b) in zip(specs, frames):
+            if int(b) != int(a) + 1:
+                raise JobError(f"{needed_by}: pair {spec.name} goes from frame {a} to frame {b}, not to the next "
+                               f"frame (a gap in the frame numbers, or frames out of order): the clip's fit needs "
+                               f"every frame of one clip; {_separately(needed_by)}")
+    if all(s.poses is not None for s in specs):
+        steps = torch.stack([(s.poses[1, :3, 3] - s.poses[0, :3, 3]).norm() for s in specs])
+        if not bool((steps > STILL_M).any()):
+            raise JobError(f"{poses_option}: the poses do not move (no pair's step exceeds {STILL_M:g} m), so they "
+                           f"give the clip's fit ({needed_by}) no scale: give poses that move with the camera")
 
 
 @dataclass
@@ -91,7 +131,7 @@ class PackedMasks:
 
 
 def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], Tensor], *,
-             progress: bool = True) -> ClipFit:
+             progress: bool = True, needed_by: str = "--odometry sequence", poses_option: str = "--poses") -> ClipFit:
     """Fit the road motion of the clip made by ``specs`` (see the module docstring).
 
     The clip streams: one pass loads each pair to check that it follows the previous one and to
@@ -106,11 +146,12 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         road_for: a loaded pair -> its road mask (1, H, W) bool and what to record about it (a
             dict), kept with the masks (:meth:`ClipFit.road`).
         progress: progress bars.
+        needed_by: the options that need the clip, which its errors name (:func:`clip_options`).
+        poses_option: the option the poses come from, which the errors about them name.
     """
     from tqdm import tqdm
 
-    if len(specs) < 2:
-        raise JobError("sequence: a clip needs at least 2 pairs (3 frames)")
+    check_clip(specs, needed_by=needed_by, poses_option=poses_option)
     masks = PackedMasks()
     road_info: dict[str, tuple[int, dict[str, Any]]] = {}
     relative_poses: list[Tensor | None] = []
@@ -118,9 +159,9 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     for k, spec in enumerate(tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)):
         pair = spec.load()
         if previous is not None and not torch.equal(previous, pair["image1"]):
-            raise JobError(f"sequence: pairs {specs[k - 1].name} and {spec.name} are not consecutive frames "
-                           f"of one clip (the second image of one is not the first of the next); use "
-                           f"--odometry photometric for separate pairs")
+            raise JobError(f"{needed_by}: pairs {specs[k - 1].name} and {spec.name} are not consecutive frames "
+                           f"of one clip (the second image of one is not the first of the next); "
+                           f"{_separately(needed_by)}")
         previous = pair["image2"]
         road, info = road_for(pair)
         masks.append(road.reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
@@ -137,7 +178,8 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
             P.append(P[-1] @ torch.linalg.inv(pose))
         poses = torch.stack(P)
     cam = camera.to(torch.float64)
-    seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress)
+    with options_of({"poses": poses_option}):  # e.g. poses that move where the images do not
+        seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress)
     motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
               for i, spec in enumerate(specs)}
     mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}

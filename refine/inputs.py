@@ -7,8 +7,9 @@ What stays here is the job's own: checking its options (a bad one exits 2 with a
 naming the option and the file: the datasets' errors name their argument, and are renamed to the
 option that gave it), matching ``--flows`` to the pairs by name (the datasets' matcher), and each
 pair's identity for resuming (the contents of its files, its poses). Pairs load lazily, so a
-resumed run does not read or render finished pairs; everything that can be checked without
-loading every pair is checked before any work (the datasets check it when they are made).
+resumed run does not read or render finished pairs (but the clip's fit, ``refine.calibrate``,
+reads every pair again); everything that can be checked without loading every pair is checked
+before any work (the datasets check it when they are made).
 """
 
 from __future__ import annotations
@@ -40,13 +41,18 @@ class PairSpec:
     ``load()`` returns the dataset's item (``fsof_torch.data.items``: ``image1``, ``image2``
     (3, H, W) float32 0..255, ``camera`` (batch 1, float64), ``flow``/``valid`` ground truth,
     ``road`` (None: detected), ``odometry``, ``relative_pose``, ...). ``identity()`` describes
-    the pair's inputs (file contents, poses, render index) for the resume fingerprint.
+    the pair's inputs (file contents, poses, render index) for the resume fingerprint. Known
+    without loading, where the input has them: ``frames``, the stems of its two image files, and
+    ``poses``, its two frames' camera-to-world poses (2, 4, 4) float64 (for the clip's checks,
+    ``refine.calibrate.check_clip``).
     """
 
     name: str
     load: Callable[[], dict[str, Any]]
     flow_files: dict[str, Path] = field(default_factory=dict)
     identity: Callable[[], dict[str, Any]] = dict
+    frames: tuple[str, str] | None = None
+    poses: Tensor | None = None
 
 
 def file_digest(path: Path) -> str:
@@ -85,8 +91,10 @@ def options_of(options: dict[str, str] | str) -> Iterator[None]:
         if not (sep and re.fullmatch(r"[a-z_0-9]+", argument)):
             raise  # not a message about an argument: raised as it came (the job's main reports
             # a ValueError or FileNotFoundError with exit 2, anything else as a traceback)
+        # a reader's own argument inside the dataset's ("poses: path: line 2 of ...") means nothing to the user
+        rest = rest.removeprefix("path: ")
         if isinstance(options, str):
-            raise JobError(f"{options}: {err}") from None
+            raise JobError(f"{options}: {argument}: {rest}") from None
         if argument not in options:
             raise
         raise JobError(f"{options[argument]}: {rest.replace('calib_size=(H, W)', '--calib-size HxW')}") from None
@@ -97,7 +105,13 @@ def _spec(name: str, dataset, i: int, options: dict[str, str] | str, identity: C
     def load() -> dict[str, Any]:
         with options_of(options):
             return dataset[i]
-    return PairSpec(name, load, flow_files or {}, identity)
+    frames = poses = None
+    if isinstance(dataset, ImageFolderDataset):  # a folder's: its files and poses are known without loading
+        p = dataset.pairs[i]
+        frames = (p.image1.stem, p.image2.stem)
+        if dataset.poses is not None:
+            poses = torch.stack([dataset.poses[p.frame1], dataset.poses[p.frame2]]).to(torch.float64)
+    return PairSpec(name, load, flow_files or {}, identity, frames, poses)
 
 
 def _file_identity(dataset: ImageFolderDataset, i: int, flow: Path | None = None) -> Callable[[], dict[str, Any]]:

@@ -10,8 +10,9 @@ images and flow, road and ground-truth files, its poses).
 
 Resuming: a record counts as finished only when both fingerprints match the current run's.
 A rerun into a folder that holds a run of another identity stops with a message naming what
-differs (``--overwrite`` deletes that run's outputs first). The number of pairs is not part of
-the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one.
+differs (``--overwrite`` deletes that run's outputs first), unless that run left nothing but its
+manifest (it stopped before its first record: its manifest is replaced). The number of pairs is
+not part of the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one.
 """
 
 from __future__ import annotations
@@ -104,10 +105,24 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     return []
 
 
+def _no_results(out: Path, old: dict) -> bool:
+    """Whether ``out`` holds nothing of the run of manifest ``old`` but the manifest and empty
+    output folders (a run that stopped before its first record, e.g. on an error in the clip's fit)."""
+    outputs = old.get("outputs") if isinstance(old.get("outputs"), list) else []
+    for p in out.iterdir():
+        if p.name in (LOCK, MANIFEST):
+            continue
+        if p.name in outputs and p.is_dir() and not any(q.is_file() for q in p.rglob("*")):
+            continue
+        return False
+    return True
+
+
 def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
     """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
-    ``overwrite`` clear) a folder that holds another run; write the manifest. Call under
-    :func:`locked`. Returns the manifest (with ``fingerprint``)."""
+    ``overwrite`` clear) a folder that holds the results of another run, replace the manifest of
+    one that left none; write the manifest. Call under :func:`locked`. Returns the manifest (with
+    ``fingerprint``)."""
     from fsof_torch.io import remove_stale_temporaries, write_json
 
     out.mkdir(parents=True, exist_ok=True)
@@ -121,7 +136,7 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
         except (json.JSONDecodeError, UnicodeDecodeError):
             old = {"fingerprint": None, "identity": "unreadable"}
     if old is not None and old.get("fingerprint") != fp:
-        if not overwrite:
+        if not overwrite and not _no_results(out, old):
             diffs = _differences(old.get("identity"), json.loads(json.dumps(identity, default=str)))
             raise JobError(f"--out: {str(out)!r} holds the results of another run ("
                            + "; ".join(diffs[:4]) + ("; ..." if len(diffs) > 4 else "")

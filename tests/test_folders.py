@@ -80,6 +80,27 @@ def test_step_frame_list_poses_tensor_and_no_calibration(clip):
                                rtol=0, atol=1e-12)
 
 
+def test_a_poses_file_has_exactly_one_line_per_image(clip, tmp_path):
+    """A poses file is read by position (line i: image i), so one with more lines than images, such as
+    a KITTI poses file (line n for frame n) for frames cut from a longer sequence, is refused: read
+    by position, the pair of frames 2 and 3 would take the motion of lines 0 and 1. A tensor (the
+    KITTI odometry dataset's poses, already selected for its frames) may be longer."""
+    root, poses = clip
+    frames = sorted((root / "images").iterdir())
+    longer = torch.cat([poses, poses[-1:] @ _motion(0.05)])
+    write_kitti_poses(tmp_path / "poses.txt", longer)
+    with pytest.raises(ValueError, match=r"^poses: .*poses\.txt' has 5 poses for 4 images: one line per image, "
+                                         r"line i for image i in sorted order.*must be cut to these frames"):
+        ImageFolderDataset(root / "images", poses=tmp_path / "poses.txt")
+    with pytest.raises(ValueError, match=r"has 4 poses for 2 images"):  # frames 000002, 000003 of the clip
+        ImageFolderDataset(frames[2:], poses=root / "poses.txt")
+    write_kitti_poses(tmp_path / "cut.txt", poses[2:])  # cut to those frames: line i is image i
+    item = ImageFolderDataset(frames[2:], poses=tmp_path / "cut.txt")[0]
+    torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[3]) @ poses[2], rtol=0, atol=1e-12)
+    ds = ImageFolderDataset(frames, poses=longer)
+    torch.testing.assert_close(ds[2]["relative_pose"], torch.linalg.inv(poses[3]) @ poses[2], rtol=0, atol=1e-12)
+
+
 def test_one_road_file_for_every_pair(clip, tmp_path):
     root, _ = clip
     (tmp_path / "road.json").write_text(json.dumps({"size": [2 * SIZE[0], 2 * SIZE[1]],

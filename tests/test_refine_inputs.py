@@ -355,3 +355,97 @@ def test_the_sequence_variant_refuses_pairs_that_are_not_one_clip(tmp_path, user
                "--out", str(tmp_path / "out")])
     err = capsys.readouterr().err
     assert rc == 2 and "sequence: pairs 000000 and 000001 are not consecutive frames" in err
+
+
+def test_poses_errors_name_the_option_and_not_the_readers_argument(user_folder, tmp_path):
+    """A poses file with more lines than images stops the job under --poses; a reader's own
+    argument (``path``) inside the dataset's error is dropped when the job renames it."""
+    from fsof_torch.io import read_kitti_poses, write_kitti_poses
+    from refine.inputs import JobError, options_of, user_pairs
+
+    args = dict(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None, height=1.65,
+                roll_deg=0.0, pitch_deg=0.0, flows=None, road="auto", gt=None)
+    P = read_kitti_poses(user_folder / "poses.txt")
+    write_kitti_poses(tmp_path / "kitti.txt", torch.cat([P[:1], P]))  # line n for frame n, one frame before
+    with pytest.raises(JobError, match=r"^--poses: '.*kitti\.txt' has 5 poses for 4 images: one line per image"):
+        user_pairs(**args, poses=tmp_path / "kitti.txt")
+    rows = (user_folder / "poses.txt").read_text().splitlines()
+    rows[1] = "1 2 3"
+    (tmp_path / "bad.txt").write_text("\n".join(rows) + "\n")
+    with pytest.raises(JobError, match=r"^--poses: line 2 of '.*bad\.txt' has 3 numbers") as err:
+        user_pairs(**args, poses=tmp_path / "bad.txt")
+    assert "path" not in str(err.value)
+    with pytest.raises(JobError, match=r"^--kitti-odometry: poses: line 2 of 'x'$"):
+        with options_of("--kitti-odometry"):
+            raise ValueError("poses: path: line 2 of 'x'")
+
+
+def test_the_clip_refuses_a_gap_in_the_frame_numbers_before_any_work(tmp_path, user_folder, capsys):
+    """Frames 0, 1, 3, 4 (frame 2 dropped): the clip's fit would carry the motion across the gap
+    as a prior and fit that pair as one step, so the variants that fit the clip stop, naming the
+    pair and the option, before any work."""
+    from refine.calibrate import check_clip
+    from refine.inputs import JobError, user_pairs
+    from refine.__main__ import main
+
+    images = user_folder / "images"
+    for i in (3, 2):  # 000002 -> 000003, 000003 -> 000004
+        (images / f"{i:06d}.png").rename(images / f"{i + 1:06d}.png")
+    args = dict(images=images, calib=user_folder / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                pitch_deg=0.0, poses=user_folder / "poses.txt", flows=None, road="auto", gt=None)
+    specs, _ = user_pairs(**args)
+    assert [s.frames for s in specs] == [("000000", "000001"), ("000001", "000003"), ("000003", "000004")]
+    with pytest.raises(JobError, match=r"^--odometry sequence: pair 000001 goes from frame 000001 to frame "
+                                       r"000003, not to the next frame \(a gap in the frame numbers"):
+        check_clip(specs)
+    base = ["--images", str(images), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+            "--poses", str(user_folder / "poses.txt"), "--no-figures", "--no-progress"]
+    for extra, option in ((["--odometry", "given,given_pitch"], "--odometry given_pitch"),
+                          (["--odometry", "given", "--calibrate-pitch"], "--calibrate-pitch"),
+                          ([], "--odometry sequence")):
+        out = tmp_path / f"out{len(extra)}"
+        assert main([*base, *extra, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {option}: pair 000001 goes from frame 000001 to frame 000003"), err
+        assert f"without {option} the pairs are refined one by one" in err
+        assert not (out / "run.json").exists()
+
+
+def test_an_error_in_the_clips_fit_names_its_option_and_leaves_the_folder_for_the_corrected_run(
+        tmp_path, user_folder, scene, capsys):
+    """KITTI flow pairs with --calibrate-pitch: the clip's fit finds they are not one clip and names
+    --calibrate-pitch (the run is already photometric); the corrected run into the same folder is
+    not refused as another run's, since the failed one left no record."""
+    from fsof_torch.io import write_image
+    from refine.__main__ import main
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    for name, p in (("000000", scene[0]), ("000001", scene[2])):
+        write_image(folder / f"{name}_10.png", p["image1"])
+        write_image(folder / f"{name}_11.png", p["image2"])
+    out = tmp_path / "out"
+    base = ["--images", str(folder), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+            "--source", "dis", "--no-figures", "--no-progress", "--out", str(out)]
+    assert main([*base, "--calibrate-pitch"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --calibrate-pitch: pairs 000000 and 000001 are not consecutive frames"), err
+    assert "use --odometry photometric" not in err and "without --calibrate-pitch" in err
+    assert main(base) == 0, capsys.readouterr().err
+    assert json.loads((out / "report.json").read_text())["rows"][0]["pairs"] == 2
+
+
+def test_a_kitti_odometry_clip_whose_poses_do_not_move_stops_under_its_option(tmp_path, odometry_folder, capsys):
+    """The odometry clip's poses give the clip's fit its scale: poses that stand still stop the job
+    under --kitti-odometry (where they come from) before any work."""
+    from fsof_torch.io import read_kitti_poses, write_kitti_poses
+    from refine.__main__ import main
+
+    P = read_kitti_poses(odometry_folder / "poses.txt")
+    write_kitti_poses(odometry_folder / "poses.txt", P[[0] * len(P)])
+    out = tmp_path / "out"
+    assert main(["--kitti-odometry", str(odometry_folder), "--source", "dis", "--no-figures", "--no-progress",
+                 "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --kitti-odometry: the poses do not move"), err
+    assert "(--odometry sequence)" in err and not (out / "run.json").exists()

@@ -199,6 +199,50 @@ def test_rerun_with_other_inputs_is_refused(tmp_path, capsys, user_folder, scene
     assert (out / "report.json").read_text() == before
 
 
+def test_a_folder_with_another_runs_manifest_but_no_results_is_taken(tmp_path):
+    """A run stopped before its first record (e.g. on an error in the clip's fit) leaves only its
+    manifest and empty output folders: a run of other options takes the folder; one with a
+    record (or a report) of the other run is refused."""
+    from refine import resume
+    from refine.inputs import JobError
+
+    out = tmp_path / "out"
+    resume.prepare(out, {"mode": "replace", "outputs": ["dis"]}, overwrite=False)
+    (out / "dis" / "given" / "pairs").mkdir(parents=True)
+    manifest = resume.prepare(out, {"mode": "confidence", "outputs": ["dis"]}, overwrite=False)
+    assert json.loads((out / "run.json").read_text()) == manifest and manifest["identity"]["mode"] == "confidence"
+    assert not (out / "dis").exists()
+    (out / "dis" / "given" / "pairs").mkdir(parents=True)
+    (out / "dis" / "given" / "pairs" / "000000.json").write_text("{}")
+    with pytest.raises(JobError, match=r"^--out: .* holds the results of another run \(mode: "):
+        resume.prepare(out, {"mode": "replace", "outputs": ["dis"]}, overwrite=False)
+    (out / "dis" / "given" / "pairs" / "000000.json").unlink()
+    (out / "report.md").write_text("")
+    with pytest.raises(JobError, match=r"holds the results of another run"):
+        resume.prepare(out, {"mode": "replace", "outputs": ["dis"]}, overwrite=False)
+
+
+def test_poses_that_give_the_clip_no_scale_stop_under_poses(tmp_path, user_folder, scene_pairs, capsys):
+    """Poses that do not move are refused under --poses before any work; poses that move too little
+    for the clip's fit to take a scale from them stop it under --poses (not the library's
+    ``poses:``), and the corrected run into the same folder is not refused as another run's."""
+    from fsof_torch.io import read_kitti_poses, write_kitti_poses
+
+    P = read_kitti_poses(user_folder / "poses.txt")
+    write_kitti_poses(tmp_path / "still.txt", P[[0, 0, 0]])
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", *_mounting(scene_pairs))
+    err = _err(capsys, [*args, "--poses", str(tmp_path / "still.txt")])
+    assert err.startswith("error: --poses: the poses do not move (no pair's step exceeds 1e-06 m), so they give "
+                          "the clip's fit (--odometry sequence) no scale"), err
+    assert not (out / "run.json").exists()
+    write_kitti_poses(tmp_path / "half.txt", P[[0, 0, 2]])  # the first pair stands still: the median step is 0
+    err = _err(capsys, [*args, "--poses", str(tmp_path / "half.txt"), "--odometry", "sequence"])
+    assert err.startswith("error: --poses: their translations give no scale"), err
+    assert main([*args, "--poses", str(user_folder / "poses.txt"), "--odometry", "sequence"]) == 0
+    assert "height_m" in json.loads((out / "report.json").read_text())["calibrated_mounting"]
+
+
 def test_changed_input_file_redoes_that_pair(tmp_path, user_folder, scene_pairs):
     out = tmp_path / "out"
     args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry", "fit",

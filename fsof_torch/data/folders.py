@@ -202,8 +202,9 @@ class ImageFolderDataset(Dataset):
             None: items without a camera.
         cam: camera index in ``calib`` (default: 2 where the file has it, else 0).
         camera_height: metres above the road; ``roll``, ``pitch``: the mounting in radians.
-        poses: camera-to-world poses, one per frame in order: a KITTI poses file, or an (N, 4, 4)
-            float tensor. Items then carry ``relative_pose`` (``inverse(P_j) @ P_i``), its planar
+        poses: camera-to-world poses, one per frame in order: a KITTI poses file of exactly one line
+            per frame (line i for frame i in sorted order), or an (N, 4, 4) float tensor (N at least
+            the frames). Items then carry ``relative_pose`` (``inverse(P_j) @ P_i``), its planar
             ``odometry`` under the camera's mounting and ``pose_residual``.
         road: a folder of masks matched by name, or one mask file (PNG, or a polygon JSON drawn at
             the images' size) for every pair.
@@ -286,8 +287,14 @@ class ImageFolderDataset(Dataset):
             except ValueError as err:
                 raise ValueError(f"poses: {err}") from None
             where = repr(str(path))
-        if P.shape[0] < need:
-            raise ValueError(f"poses: {where} has {P.shape[0]} poses for {need} images")
+        if isinstance(poses, Tensor):
+            if P.shape[0] < need:
+                raise ValueError(f"poses: {where} has {P.shape[0]} poses for {need} images")
+        elif P.shape[0] != len(self.frames):
+            # line i is image i: a file with more lines would be read by position, silently
+            raise ValueError(f"poses: {where} has {P.shape[0]} poses for {len(self.frames)} images: one line "
+                             f"per image, line i for image i in sorted order, so a poses file of a longer "
+                             f"sequence (KITTI: line n for frame n) must be cut to these frames")
         return P
 
     def _check_calibrated_size(self, image: Path) -> None:
