@@ -18,6 +18,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -162,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from eval.pose import pose_estimation_experiment
 
+    from .paths import bad_file, bad_folder, first_bad, make_parent
     from .tables import format_table
 
     quick = args.quick
@@ -171,8 +173,8 @@ def run(args: argparse.Namespace) -> int:
     pose_sigmas = args.pose_sigmas or ([0.0, 1.0, 4.0] if quick else list(DEFAULT_POSE_SIGMAS))
     trials = args.trials if args.trials is not None else (3 if quick else 32)
     for name, values in (("--sigmas", sigmas), ("--pose-sigmas", pose_sigmas)):
-        if any(not (s >= 0) for s in values):
-            print(f"error: {name}: expected values >= 0, got {values}", file=sys.stderr)
+        if any(not (math.isfinite(s) and s >= 0) for s in values):
+            print(f"error: {name}: expected finite values >= 0, got {values}", file=sys.stderr)
             return 2
     if trials < 1:
         print(f"error: --trials: expected at least 1, got {trials}", file=sys.stderr)
@@ -181,6 +183,12 @@ def run(args: argparse.Namespace) -> int:
         if min(sz) < 16:
             print(f"error: {name}: expected H, W >= 16, got {list(sz)}", file=sys.stderr)
             return 2
+    figures = [] if args.no_plots else ["noise_robustness.png", "pose_errors.png", "pose_scatter.png"]
+    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["noise.json"])),
+                    bad_file(args.json, "--json"))
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     scenarios = [("complex", 1)] if quick else [("simple", 1), ("simple", 4), ("complex", 1), ("complex", 4)]
 
     with tqdm(total=len(scenarios) * len(sigmas), desc="noise robustness", unit="fit",
@@ -216,6 +224,6 @@ def run(args: argparse.Namespace) -> int:
               "pose_trials": {"true": pose.true_pose, "estimated": pose.estimated_pose},
               "files": {k: str(v) for k, v in files.items()}}
     json_path = args.json if args.json is not None else args.out / "noise.json"
-    write_json(json_path, result)
+    write_json(make_parent(json_path), result)
     print(f"\nwrote {json_path}" + "".join(f", {p}" for p in files.values()))
     return 0

@@ -19,7 +19,8 @@ import torch
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.data.scene.PRESETS); default: default")
     parser.add_argument("--pairs", type=int, default=4, metavar="N", help="number of frame pairs (default 4)")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder (created)")
+    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+                        help="output folder: a new or empty one (created); a folder holding files is refused")
     parser.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
                         help="image size (default: the preset's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
@@ -52,6 +53,8 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
     from fsof_torch.data.scene import PRESETS, render_pair
 
+    from .paths import bad_file, bad_folder, first_bad, make_parent
+
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
         return 2
@@ -61,6 +64,15 @@ def run(args: argparse.Namespace) -> int:
     size = tuple(args.size) if args.size is not None else None
     if size is not None and min(size) <= 0:
         print(f"error: --size: expected positive H W, got {args.size}", file=sys.stderr)
+        return 2
+    bad = first_bad(bad_folder(args.out, "--out"), bad_file(args.json, "--json"))
+    if bad is None and args.out.is_dir() and any(args.out.iterdir()):
+        held = sorted(p.name for p in args.out.iterdir())
+        # pairs of an older, longer run would stay beside the new ones and be read back with them
+        listed = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
+        bad = f"--out: {str(args.out)!r} already holds files ({listed}); give a new or empty folder"
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
     dtype = torch.float64 if args.float64 else torch.float32
     rows: list[dict] = []
@@ -84,5 +96,5 @@ def run(args: argparse.Namespace) -> int:
               f"{_fmt(r['road_pct']):>8} {r['max_flow_px']:>10.2f}")
     print("files: " + ", ".join(f"{k}/ {v}" for k, v in summary["files"].items()) + ", poses.txt, meta.json")
     if args.json is not None:
-        write_json(args.json, {**summary, **meta, "pairs": rows})
+        write_json(make_parent(args.json), {**summary, **meta, "pairs": rows})
     return 0

@@ -108,9 +108,17 @@ def _merge(acc: dict | None, m: dict) -> dict:
     return acc
 
 
-def _finish(acc: dict) -> dict:
-    n = max(acc["n_pixels"], 1)
-    return {k: acc[k] / n for k in METRICS} | {"n_pixels": acc["n_pixels"]}
+def _finish(acc: dict, what: str) -> dict:
+    """Pixel-weighted means; over no pixel the metrics are None (printed '-', JSON null), with a
+    warning, rather than zeros that read as a perfect fit."""
+    n = acc["n_pixels"]
+    return {k: acc[k] / n for k in METRICS} | {"n_pixels": n} if n else _no_pixels(what)
+
+
+def _no_pixels(what: str) -> dict:
+    print(f"warning: {what}: no road pixel with valid ground truth and model flow; its metrics are '-'",
+          file=sys.stderr)
+    return {k: None for k in METRICS} | {"n_pixels": 0}
 
 
 # -- the three tables -------------------------------------------------------------------------------
@@ -136,7 +144,7 @@ def cvc12_table(size, pairs: int, seed: int, bar=None) -> list[dict]:
                 if bar is not None:
                     bar.update(1)
             paper = PAPER_CVC12[(scenario, speed)]
-            rows.append({"scenario": scenario, "speed": f"x{speed}", **_finish(acc),
+            rows.append({"scenario": scenario, "speed": f"x{speed}", **_finish(acc, f"CVC12-like {scenario} x{speed}"),
                          "z_d_abs_error_m": sum(z_err) / len(z_err), "fits_ok": f"{ok}/{pairs}",
                          "paper_e_A": paper[0], "paper_e_E": paper[1]})
     return rows
@@ -165,28 +173,46 @@ def carla_table(size, pairs: int, seed: int, rolls, bar=None) -> list[dict]:
                 if bar is not None:
                     bar.update(1)
             paper = PAPER_CARLA[(direction, roll_deg)]
-            rows.append({"direction": direction, "roll_deg": roll_deg, **_finish(acc),
+            rows.append({"direction": direction, "roll_deg": roll_deg,
+                         **_finish(acc, f"CARLA-like {direction} roll {roll_deg}"),
                          "roll_abs_error_deg": sum(roll_err) / len(roll_err), "fits_ok": f"{ok}/{pairs}",
                          "paper_e_A": paper[0], "paper_e_E": paper[1]})
     return rows
 
 
-def kitti_table(folder: Path, bar=None) -> list[dict]:
+def load_kitti(folder: Path) -> dict:
+    """The KITTI sample of the KITTI table: ``flow``, ``valid``, ``road`` (1, 1, H, W) and ``camera``
+    from ``flow_noc_10.png``, ``road.json`` and ``calib_cam_to_cam.txt``. Raises ValueError (or
+    FileNotFoundError) naming the file, and ValueError when the road holds no valid pixel."""
     from fsof_torch.geometry.camera import Camera
-    from fsof_torch.estimation.flow_fit import fit_displacement
     from fsof_torch.io import read_kitti_flow, read_road_mask
-    from fsof_torch.evaluation.metrics import flow_metrics
 
     flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
     H, W = flow.shape[-2:]
-    road = read_road_mask(folder / "road.json", size=(H, W))
+    try:
+        road = read_road_mask(folder / "road.json", size=(H, W))
+    except TypeError as err:  # a malformed polygon
+        raise ValueError(str(err)) from None
     camera = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    flow, valid, road = flow[None].double(), valid[None], road[None]
+    if not bool((road & valid).any()):
+        raise ValueError(f"{str(folder / 'road.json')!r} covers no pixel with valid ground truth in "
+                         f"{str(folder / 'flow_noc_10.png')!r}")
+    return {"flow": flow[None].double(), "valid": valid[None], "road": road[None], "camera": camera}
+
+
+def kitti_table(sample: dict, bar=None) -> list[dict]:
+    """The KITTI table's rows for the sample of :func:`load_kitti`."""
+    from fsof_torch.estimation.flow_fit import fit_displacement
+    from fsof_torch.evaluation.metrics import flow_metrics
+
+    flow, valid, road, camera = sample["flow"], sample["valid"], sample["road"], sample["camera"]
     rows = []
     for name, fit_pitch in (("paper model", False), ("with pitch", True)):
         fit = fit_displacement(flow, road & valid, camera, fit_roll=True, fit_pitch=fit_pitch)
         m = flow_metrics(fit.flow, flow, mask=road, valid=valid & fit.valid)
-        rows.append({"model": name, **{k: float(m[k]) for k in METRICS}, "n_pixels": int(m["n_pixels"]),
+        n = int(m["n_pixels"])
+        metrics = {k: float(m[k]) for k in METRICS} | {"n_pixels": n} if n else _no_pixels(f"KITTI {name}")
+        rows.append({"model": name, **metrics,
                      "x_d": float(fit.x_d[0]), "z_d": float(fit.z_d[0]), "yaw_deg": math.degrees(float(fit.yaw[0])),
                      "roll_deg": math.degrees(float(fit.roll[0])), "pitch_deg": math.degrees(float(fit.pitch[0])),
                      "success": bool(fit.success.all()),
@@ -218,6 +244,8 @@ def run(args: argparse.Namespace) -> int:
 
     from fsof_torch.io import write_json, write_text
 
+    from .paths import bad_file, bad_folder, first_bad, make_parent
+
     size = tuple(args.size) if args.size is not None else ((96, 320) if args.quick else (375, 1242))
     pairs = args.pairs if args.pairs is not None else (1 if args.quick else 3)
     if min(size) < 16:
@@ -237,6 +265,18 @@ def run(args: argparse.Namespace) -> int:
             return 2
         print(f"note: no KITTI sample at {args.kitti}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
+    bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
+                    bad_file(args.json, "--json"))
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
+    kitti = None
+    if "kitti" in tables:  # all of the sample's files, before the synthetic tables
+        try:
+            kitti = load_kitti(args.kitti)
+        except (ValueError, FileNotFoundError) as err:
+            print(f"error: --kitti: {err}", file=sys.stderr)
+            return 2
     rolls = (0, 5, -5) if args.quick else (0, 5, -5, 10, -10)
     total = (8 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
         + (2 if "kitti" in tables else 0)
@@ -250,7 +290,7 @@ def run(args: argparse.Namespace) -> int:
         if "carla" in tables:
             result["carla"] = carla_table(size, pairs, args.seed, rolls, bar)
         if "kitti" in tables:
-            result["kitti"] = kitti_table(args.kitti, bar)
+            result["kitti"] = kitti_table(kitti, bar)
 
     sections = [("cvc12", "CVC12-like (displacement model, e_A rad, e_E px)", CVC_COLUMNS),
                 ("carla", "CARLA-like (velocity model, flow in px/s)", CARLA_COLUMNS),
@@ -265,7 +305,7 @@ def run(args: argparse.Namespace) -> int:
             md += [KITTI_PAPER_NOTE, ""]
     args.out.mkdir(parents=True, exist_ok=True)
     json_path = args.json if args.json is not None else args.out / "tables.json"
-    write_json(json_path, result)
+    write_json(make_parent(json_path), result)
     write_text(args.out / "tables.md", "\n".join(md))
     print(f"\nwrote {json_path} and {args.out / 'tables.md'}")
     return 0

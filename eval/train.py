@@ -41,6 +41,8 @@ from fsof_torch.evaluation.photometric import photometric_error_maps
 from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
+from eval.paths import bad_file, bad_folder, first_bad, make_parent
+
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net"]
 
 
@@ -235,6 +237,14 @@ def _photometric_row(name: str, m: dict) -> str:
             f"{m['all']['census']:>11.4f} {m['all']['ssim']:>9.4f} {m['all']['l1']:>8.2f}")
 
 
+RUNS = ("unsupervised", "unsupervised+freespace")
+
+
+def _net_file(run: str) -> str:
+    """The file name of a run's state_dict in ``--out``."""
+    return f"tinyraft_{run.replace('+', '_')}.pt"
+
+
 def _bad_input(args: argparse.Namespace) -> str | None:
     """The first bad option as a message naming it, or None."""
     from fsof_torch.data.scene import PRESETS
@@ -257,7 +267,9 @@ def _bad_input(args: argparse.Namespace) -> str | None:
         return f"--device: not a torch device: {args.device!r}"
     if device.type == "cuda" and not torch.cuda.is_available():
         return f"--device: {args.device!r} requested but CUDA is not available"
-    return None
+    # the outputs, before the rendering and the training
+    return first_bad(bad_folder(args.out, "--out", [_net_file(name) for name in RUNS]),
+                     bad_file(args.json, "--json"), bad_file(args.dump_first_step, "--dump-first-step"))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -297,7 +309,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     logs: dict[str, dict] = {}
     nets = {}
     first_steps: dict[str, dict] = {}
-    for name, weight in (("unsupervised", 0.0), ("unsupervised+freespace", args.freespace_weight)):
+    for name, weight in zip(RUNS, (0.0, args.freespace_weight)):
         first_steps[name] = {}
         net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name,
                              first_step=first_steps[name], **common)
@@ -306,7 +318,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     if ranks.rank != 0:
         return 0
     if args.dump_first_step is not None:
-        torch.save({"world_size": ranks.world_size, **first_steps}, args.dump_first_step)
+        torch.save({"world_size": ranks.world_size, **first_steps}, make_parent(args.dump_first_step))
     results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
     for name, net in nets.items():
         results[name] = evaluate_net(net, test)
@@ -341,11 +353,11 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
         "render_seconds": render_s,
     }
     if args.json is not None:
-        write_json(args.json, report)
+        write_json(make_parent(args.json), report)
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         for name, net in nets.items():
-            torch.save(net.state_dict(), args.out / f"tinyraft_{name.replace('+', '_')}.pt")
+            torch.save(net.state_dict(), args.out / _net_file(name))
     return 0
 
 

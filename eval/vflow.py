@@ -138,15 +138,27 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
+    from .paths import bad_file, bad_folder, first_bad, make_parent
+
     if args.bins < 2:
         print(f"error: --bins: expected at least 2, got {args.bins}", file=sys.stderr)
         return 2
-    if not (args.inlier_threshold >= 0 and args.relative_threshold >= 0):
-        print(f"error: --inlier-threshold/--relative-threshold: expected values >= 0, got "
-              f"{args.inlier_threshold}, {args.relative_threshold}", file=sys.stderr)
-        return 2
+    for option, value in (("--inlier-threshold", args.inlier_threshold),
+                          ("--relative-threshold", args.relative_threshold)):
+        if not (math.isfinite(value) and value >= 0):
+            print(f"error: {option}: expected a finite number >= 0, got {value}", file=sys.stderr)
+            return 2
     if args.size is not None and min(args.size) < 16:
         print(f"error: --size: expected H, W >= 16, got {args.size}", file=sys.stderr)
+        return 2
+    if args.index < 0:
+        print(f"error: --index: expected a pair index >= 0, got {args.index}", file=sys.stderr)
+        return 2
+    figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
+    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
+                    bad_file(args.json, "--json"))
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
     steps = ["load", "V-flow map", "curve fit", "plots"]
     preset = args.preset if args.flow is None else None
@@ -187,11 +199,22 @@ def run(args: argparse.Namespace) -> int:
         if args.mask is not None:
             try:
                 mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
-            except (ValueError, FileNotFoundError) as err:
+            except (ValueError, TypeError, FileNotFoundError) as err:
                 print(f"error: --mask: {err}", file=sys.stderr)
                 return 2
         info["source"] = {"flow": str(args.flow), "mask": str(args.mask) if args.mask else None,
                           "size": list(flow.shape[-2:])}
+    if not bool(mask.any()):
+        # nothing to histogram or fit: a bad input, not a failed fit
+        if args.mask is not None and preset is None:
+            bad = f"--mask: {str(args.mask)!r} covers no pixel where {str(args.flow)!r} has valid flow"
+        elif preset is None:
+            bad = f"--flow: {str(args.flow)!r} has no valid flow pixel"
+        else:
+            bad = f"--preset: pair {args.index} of {preset!r} has no valid {'road ' if args.road_only else ''}pixel"
+        bar.close()
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     bar.update(1)
     unit = "px" if args.model == "displacement" else "px/s"
     hist, edges = vflow_map(flow, mask, bins=args.bins)
@@ -255,8 +278,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"  freespace IoU with the road: {info['freespace']['iou']:.4f}")
     info["files"] = {k: str(v) for k, v in files.items()}
     json_path = args.json if args.json is not None else args.out / "vflow.json"
-    write_json(json_path, info)
+    write_json(make_parent(json_path), info)
     print(f"wrote {json_path}" + "".join(f", {p}" for p in files.values()))
-    if not math.isfinite(c["a"]):
+    if not (c["success"] and math.isfinite(c["a"])):
+        print("the V-flow curve could not be fitted (success false: too few inlier rows or no finite curve)",
+              file=sys.stderr)
         return 1
     return 0

@@ -35,3 +35,23 @@ def test_noise_json_path_no_plots(tmp_path):
 def test_noise_bad_arguments(tmp_path, capsys):
     assert main(["noise", "--sigmas", "-1", "--out", str(tmp_path)]) == 2
     assert "--sigmas" in capsys.readouterr().err
+
+
+def test_noise_non_finite_sigmas_exit_2(tmp_path, capsys):
+    for option in ("--sigmas", "--pose-sigmas"):
+        assert main(["noise", option, "0", "inf", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        assert f"error: {option}: expected finite values >= 0" in capsys.readouterr().err
+    assert main(["noise", "--sigmas", "nan", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert not (tmp_path / "o").exists()
+
+
+def test_noise_output_paths_checked_before_the_work(tmp_path, capsys):
+    (tmp_path / "afile").write_text("")
+    assert main(["noise", "--quick", "--out", str(tmp_path / "afile"), "--no-progress"]) == 2
+    assert "error: --out: " in capsys.readouterr().err
+    assert main(["noise", "--quick", "--out", str(tmp_path / "o"), "--json", str(tmp_path / "afile" / "n.json"),
+                 "--no-progress"]) == 2
+    assert "error: --json: " in capsys.readouterr().err
+    (tmp_path / "o" / "pose_errors.png").mkdir(parents=True)
+    assert main(["noise", "--quick", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert "pose_errors.png' is a folder" in capsys.readouterr().err

@@ -91,3 +91,29 @@ def test_bad_arguments(tmp_path, capsys):
     assert "unknown preset 'nope'" in capsys.readouterr().err
     assert main(["synth", "--pairs", "0", "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+
+
+def test_refuses_a_folder_holding_files(written, capsys):
+    """A second run into a used folder would leave the first run's extra pairs beside its own."""
+    _, out, _ = written
+    before = (out / "meta.json").read_text()
+    rc = main(["synth", "--preset", "cvc-simple", "--pairs", "1", "--out", str(out), "--size", "32", "96",
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"error: --out: {str(out)!r} already holds files" in err and "new or empty folder" in err
+    assert (out / "meta.json").read_text() == before and len(SyntheticFlowDataset(out)) == 2
+
+
+def test_output_paths_checked_first(tmp_path, capsys):
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "empty").mkdir()
+    assert main(["synth", "--pairs", "1", "--out", str(tmp_path / "afile"), "--no-progress"]) == 2
+    assert "error: --out: " in capsys.readouterr().err
+    rc = main(["synth", "--pairs", "1", "--out", str(tmp_path / "s"), "--json", str(tmp_path / "empty"),
+               "--no-progress"])
+    assert rc == 2 and "error: --json: " in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+    # an empty folder is fine, and a --json in a folder not made yet is created
+    rc = main(["synth", "--pairs", "1", "--size", "24", "64", "--out", str(tmp_path / "empty"),
+               "--json", str(tmp_path / "new" / "s.json"), "--no-progress"])
+    assert rc == 0 and (tmp_path / "new" / "s.json").is_file() and len(SyntheticFlowDataset(tmp_path / "empty")) == 1

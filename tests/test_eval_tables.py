@@ -60,3 +60,57 @@ def test_paper_figures_and_formatting():
     cols = [("a", "name", "s"), ("b", "value", ".2f")]
     assert format_table(rows, cols).splitlines()[2].split() == ["x", "1.23"]
     assert markdown_table(rows, cols).splitlines()[3] == "| yy | - |"
+
+
+def _kitti_copy(tmp_path, shared_data, road=None):
+    import shutil
+
+    folder = tmp_path / "k"
+    folder.mkdir()
+    for name in ("flow_noc_10.png", "calib_cam_to_cam.txt", "road.json"):
+        shutil.copy(shared_data / "kitti15_000000" / name, folder / name)
+    if road is not None:
+        (folder / "road.json").write_text(road)
+    return folder
+
+
+@pytest.mark.parametrize("road, remove, message", [
+    ('{"size": [375, 1242]}', None, "has no 'road_polygon'"),
+    ('{"size": [375, 1242], "polygons": 5}', None, "expected a list of polygons"),
+    (None, "calib_cam_to_cam.txt", "calib_cam_to_cam.txt"),
+    (None, "road.json", "road.json"),
+    ('{"size": [375, 1242], "road_polygon": [[0, 0], [100, 0], [100, 20]]}', None, "covers no pixel with valid"),
+])
+def test_tables_kitti_files_checked_before_the_synthetic_tables(tmp_path, shared_data, capsys, road, remove, message):
+    folder = _kitti_copy(tmp_path, shared_data, road)
+    if remove:
+        (folder / remove).unlink()
+    rc = main(["tables", "--quick", "--size", "32", "64", "--kitti", str(folder), "--out", str(tmp_path / "o"),
+               "--no-progress"])
+    captured = capsys.readouterr()
+    assert rc == 2 and "error: --kitti: " in captured.err and message in captured.err
+    assert "CVC12-like" not in captured.out and not (tmp_path / "o").exists()
+
+
+def test_tables_output_paths_checked_first(tmp_path, capsys):
+    (tmp_path / "afile").write_text("")
+    assert main(["tables", "--quick", "--no-kitti", "--out", str(tmp_path / "afile"), "--no-progress"]) == 2
+    assert "error: --out: " in capsys.readouterr().err
+    rc = main(["tables", "--quick", "--no-kitti", "--out", str(tmp_path / "o"),
+               "--json", str(tmp_path / "afile" / "t.json"), "--no-progress"])
+    captured = capsys.readouterr()
+    assert rc == 2 and "error: --json: " in captured.err and "CVC12-like" not in captured.out
+
+
+def test_tables_no_pixels_print_a_dash_not_zeros(capsys):
+    from eval.tables import CVC_COLUMNS, _finish, _merge
+
+    def metrics(value, n):
+        return {**dict.fromkeys(("e_A", "e_E", "e_U", "e_V", "Fl"), value), "n_pixels": n}
+
+    row = {"scenario": "simple", "speed": "x1", **_finish(_merge(None, metrics(0.0, 0)), "CVC12-like simple x1")}
+    assert row["e_E"] is None and row["n_pixels"] == 0
+    assert "warning: CVC12-like simple x1: no road pixel" in capsys.readouterr().err
+    cells = format_table([row], CVC_COLUMNS).splitlines()[2].split()
+    assert cells[2] == "-" and cells[4] == "-"
+    assert _finish(_merge(None, metrics(0.5, 4)), "x")["e_E"] == 0.5

@@ -58,6 +58,23 @@ def test_train_job_rejects_bad_options(capsys, argv, message):
     assert message in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("option, where, message", [
+    ("--out", "afile", "--out: '{tmp}/afile' is a file; expected a folder"),
+    ("--json", "afile/t.json", "--json: '{tmp}/afile' is a file, so '{tmp}/afile/t.json' cannot be created"),
+    ("--json", "folder", "--json: '{tmp}/folder' is a folder; expected a file path"),
+    ("--dump-first-step", "folder", "--dump-first-step: '{tmp}/folder' is a folder"),
+    ("--out", "nets", "--out: '{tmp}/nets/tinyraft_unsupervised.pt' is a folder, where the job writes a file"),
+])
+def test_train_job_checks_output_paths_first(tmp_path, capsys, monkeypatch, option, where, message):
+    """An output that cannot be written: exit 2 naming the option, before anything is rendered."""
+    (tmp_path / "afile").write_text("")
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "nets" / "tinyraft_unsupervised.pt").mkdir(parents=True)
+    monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before the paths were checked"))
+    assert eval_main(["train", "--steps", "1", option, str(tmp_path / where), "--no-progress"]) == 2
+    assert message.format(tmp=tmp_path) in capsys.readouterr().err
+
+
 def test_dispatcher_help(capsys):
     with pytest.raises(SystemExit) as exc:
         eval_main(["train", "--help"])

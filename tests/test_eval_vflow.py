@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import pytest
 import torch
 
 from eval.__main__ import main
@@ -64,3 +65,83 @@ def test_vflow_bad_arguments(tmp_path, capsys):
     (tmp_path / "bad.png").write_bytes(b"not a png")
     rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "bad.png"), "--out", str(tmp_path), "--no-progress"])
     assert rc == 2 and "error: --mask:" in capsys.readouterr().err
+
+
+def _small_flow(tmp_path, rows=None):
+    """A 32x48 road-plane flow file; ``rows``: keep only those rows valid (NaN elsewhere)."""
+    from fsof_torch.geometry.camera import Camera
+    from fsof_torch.geometry.road_flow import displacement_flow
+    from fsof_torch.io import write_flow
+
+    cam = Camera(torch.tensor([[60.0, 0, 24], [0, 60.0, 4], [0, 0, 1]]), 1.5)
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (32, 48))
+    valid = valid[0].clone()
+    if rows is not None:
+        keep = torch.zeros_like(valid)
+        keep[:, rows] = True
+        valid &= keep
+    path = tmp_path / "f.npy"
+    write_flow(path, flow[0], valid)
+    return path
+
+
+@pytest.mark.parametrize("polygon_json, message", [
+    ('{"size": [32, 48], "polygons": 5}', "error: --mask: "),  # malformed
+    ('{"size": [32, 48], "road_polygon": [[-9, -9], [-5, -9], [-5, -5]]}', "covers no pixel where"),  # outside
+])
+def test_vflow_bad_or_empty_mask_exits_2(tmp_path, capsys, polygon_json, message):
+    flow = _small_flow(tmp_path)
+    (tmp_path / "m.json").write_text(polygon_json)
+    rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.json"), "--out", str(tmp_path / "o"),
+               "--no-progress"])
+    assert rc == 2 and message in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_vflow_flow_without_valid_pixels_exits_2(tmp_path, capsys):
+    from fsof_torch.io import write_flow
+
+    write_flow(tmp_path / "nan.npy", torch.full((2, 32, 48), float("nan")))
+    rc = main(["vflow", "--flow", str(tmp_path / "nan.npy"), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "error: --flow: " in err and "has no valid flow pixel" in err
+
+
+def test_vflow_failed_fit_exits_1(tmp_path, capsys):
+    flow = _small_flow(tmp_path, rows=[30])  # one row: too few for the curve
+    rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--no-progress"])
+    data = json.loads((tmp_path / "o" / "vflow.json").read_text())
+    assert rc == 1 and data["curve"]["success"] is False
+    assert (tmp_path / "o" / "vflow_map.png").is_file()
+    assert "could not be fitted" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--inlier-threshold", "inf"], "--inlier-threshold: expected a finite number >= 0, got inf"),
+    (["--inlier-threshold", "nan"], "--inlier-threshold: expected a finite number >= 0, got nan"),
+    (["--relative-threshold", "inf"], "--relative-threshold: expected a finite number >= 0, got inf"),
+    (["--preset", "cvc-simple", "--index", "-1"], "--index: expected a pair index >= 0, got -1"),
+])
+def test_vflow_bad_numbers_exit_2(tmp_path, capsys, argv, message):
+    rc = main(["vflow", *argv, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and f"error: {message}" in capsys.readouterr().err
+
+
+def test_vflow_output_paths_checked_before_the_work(tmp_path, capsys):
+    flow = _small_flow(tmp_path)
+    (tmp_path / "afile").write_text("")
+    for argv, message in ((["--json", str(tmp_path / "afile" / "v.json")], "--json: "),
+                          (["--json", str(tmp_path)], "--json: "),
+                          (["--out", str(tmp_path / "afile")], "--out: ")):
+        out = ["--out", str(tmp_path / "o")] if argv[0] == "--json" else []
+        rc = main(["vflow", "--flow", str(flow), *out, *argv, "--no-progress"])
+        err = capsys.readouterr().err
+        assert rc == 2 and f"error: {message}" in err, err
+        assert not (tmp_path / "o").exists()
+    (tmp_path / "o" / "vflow_map.png").mkdir(parents=True)
+    rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and "vflow_map.png' is a folder" in capsys.readouterr().err
+    # a --json in a folder not made yet: created
+    rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o2"), "--json", str(tmp_path / "new" / "v.json"),
+               "--no-progress"])
+    assert rc == 0 and (tmp_path / "new" / "v.json").is_file()

@@ -475,7 +475,8 @@ WRITERS: list[Entry] = [
           {"flow": "flow_chw", "valid": "mask_chw"}),
     Entry("write_kitti_flow", lambda path, flow, valid: fio.write_kitti_flow(path / "f.png", flow, valid),
           {"flow": "flow_chw", "valid": "mask_chw"}),
-    Entry("write_vkitti2_flow", lambda path, flow: fio.write_vkitti2_flow(path / "f.png", flow), {"flow": "flow_chw"}),
+    Entry("write_vkitti2_flow", lambda path, flow, valid: fio.write_vkitti2_flow(path / "f.png", flow, valid),
+          {"flow": "flow_chw", "valid": "mask_chw"}),
     Entry("write_carla_flow", lambda path, flow: fio.write_carla_flow(path / "f.tif", flow), {"flow": "flow_chw"}),
     Entry("write_image", lambda path, image: fio.write_image(path / "i.png", image), {"image": "image_chw"}),
     Entry("write_road_mask", lambda path, mask: fio.write_road_mask(path / "m.png", mask), {"mask": "mask_chw"}),
@@ -609,12 +610,39 @@ def _valid_files(folder) -> dict[str, tuple[Callable, Any]]:
         "read_depth_png": (fio.read_depth_png, fio.write_depth_png(folder / "d.png", torch.rand(1, 5, 7, generator=g) * 50)),
         "read_kitti_poses": (fio.read_kitti_poses, fio.write_kitti_poses(folder / "p.txt", torch.eye(4).repeat(2, 1, 1))),
         "read_kitti_calibration": (fio.read_kitti_calibration, fio.write_kitti_calibration(folder / "c.txt", torch.eye(3))),
+        "read_vkitti2_intrinsics": (fio.read_vkitti2_intrinsics, fio.write_text(
+            folder / "intrinsic.txt", "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 725.0 725.0 620.5 187.0\n")),
+        "read_vkitti2_extrinsics": (fio.read_vkitti2_extrinsics, fio.write_text(
+            folder / "extrinsic.txt", "frame cameraID r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1\n"
+            "0 0 1 0 0 0.5 0 1 0 -1 0 0 1 2.5 0 0 0 1\n")),
+        "read_vkitti2_colors": (fio.read_vkitti2_colors, fio.write_text(
+            folder / "colors.txt", "Category r g b\nTerrain 210 0 200\nRoad 100 60 100\n")),
+        "read_synthetic_params": (_read_params_file, _params_file(folder)),
     }
+
+
+def _params_file(folder) -> Any:
+    """A pair's params JSON, as the synthetic layout writes it."""
+    camera = Camera(torch.tensor([[50.0, 0.0, 20.0], [0.0, 50.0, 10.0], [0.0, 0.0, 1.0]]), 1.65)
+    flow = torch.zeros(2, 5, 7)
+    pair = {"image1": torch.zeros(3, 5, 7), "image2": torch.zeros(3, 5, 7), "flow": flow,
+            "valid": torch.ones(1, 5, 7, dtype=torch.bool), "camera": camera,
+            "odometry": {"x_d": 0.1, "z_d": 1.0, "yaw": 0.01}, "velocity": {"speed": 10.0, "steering": 0.0}}
+    return fio.write_synthetic_pair(folder / "layout", 0, pair)["params"]
+
+
+def _read_params_file(path) -> dict:
+    """read_synthetic_params on a file anywhere: copied in as pair 0 of a layout beside it."""
+    root = path.parent / "layout"
+    (root / "params").mkdir(parents=True, exist_ok=True)
+    (root / "params" / "000000.json").write_bytes(path.read_bytes())
+    return fio.read_synthetic_params(root, 0)
 
 
 READERS = ["read_flo", "read_flow[.npy]", "read_kitti_flow", "read_vkitti2_flow", "read_carla_flow", "read_image",
            "read_road_mask[.png]", "read_road_mask[.json]", "read_label_map", "read_depth_png", "read_kitti_poses",
-           "read_kitti_calibration"]
+           "read_kitti_calibration", "read_vkitti2_intrinsics", "read_vkitti2_extrinsics", "read_vkitti2_colors",
+           "read_synthetic_params"]
 
 
 @pytest.mark.parametrize("reader", READERS)

@@ -199,6 +199,20 @@ class TestExceptions:
         with pytest.raises(ValueError, match=rf"path: line 3 of '.*p\.txt' is not a rigid pose: .*{why}"):
             read_kitti_poses(tmp_path / "p.txt")
 
+    def test_write_no_poses(self, tmp_path):
+        with pytest.raises(ValueError, match=r"poses: expected at least one pose, got shape \(0, 3, 4\)"):
+            write_kitti_poses(tmp_path / "p.txt", torch.zeros(0, 3, 4))
+        assert not list(tmp_path.iterdir())
+
+    @pytest.mark.parametrize("text, row", [("P_rect_02: nan 0 600 0 0 720 180 0 0 0 1 0\n", "P_rect_02"),
+                                           ("P2: 720 0 600 0 0 inf 180 0 0 0 1 0\n", "P2"),
+                                           ("1 0 0 0 0 1 0 0 0 0 1 0\n" * 2 + "720 0 600 0 0 720 -inf 0 0 0 1 0\n",
+                                            "unlabelled row 3")])
+    def test_calibration_non_finite(self, tmp_path, text, row):
+        (tmp_path / "c.txt").write_text(text)
+        with pytest.raises(ValueError, match=rf"path: the {row} row of '.*c\.txt' holds NaN or inf"):
+            read_kitti_calibration(tmp_path / "c.txt")
+
     def test_calibration_writer_camera_index(self, tmp_path):
         for cam in ("x", 4, 1.0):
             with pytest.raises(ValueError, match=rf"cam: expected 0..3, got {cam!r}"):

@@ -149,3 +149,71 @@ class TestExceptions:
         pair["camera"] = pair["camera"].expand(2)
         with pytest.raises(ValueError, match="batch 1"):
             write_synthetic_pair(tmp_path, 0, pair)
+
+    def test_files_of_another_size_than_the_images(self, tmp_path):
+        from fsof_torch.io import write_kitti_flow, write_road_mask
+
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        write_road_mask(tmp_path / "road" / "000000_10.png", torch.ones(1, 20, 20, dtype=torch.bool))
+        with pytest.raises(ValueError, match=r"path: '.*road/000000_10\.png' is 20x20; .* is 24x40"):
+            read_synthetic_pair(tmp_path, 0)
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        write_kitti_flow(tmp_path / "flow_occ" / "000000_10.png", torch.zeros(2, 24, 41))
+        with pytest.raises(ValueError, match=r"path: '.*flow_occ/000000_10\.png' is 24x41"):
+            read_synthetic_pair(tmp_path, 0)
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        write_depth_png(tmp_path / "depth" / "000000_10.png", torch.ones(1, 23, 40))
+        with pytest.raises(ValueError, match=r"path: '.*depth/000000_10\.png' is 23x40"):
+            read_synthetic_pair(tmp_path, 0)
+
+    @pytest.mark.parametrize("edit, message", [
+        (lambda p: p.pop("odometry"), r"has no entry \['odometry'\]"),
+        (lambda p: p["odometry"].pop("z_d"), r"has no entry \['odometry'\]\['z_d'\]"),
+        (lambda p: p["camera"].pop("height"), r"has no entry \['camera'\]\['height'\]"),
+        (lambda p: p["camera"].update(K=[[1, 0], [0, 1]]), r"\['camera'\]\['K'\] is not a 3×3 list"),
+        (lambda p: p["odometry"].update(yaw="left"), r"\['odometry'\]\['yaw'\] is not a finite number: 'left'"),
+        (lambda p: p.update(velocity=[1, 2]), r"\['velocity'\] is not an object of numbers"),
+        (lambda p: p.update(pose1=[[1, 2]]), r"\['pose1'\] is not a 4×4 list of numbers"),
+    ])
+    def test_params_without_what_a_pair_has(self, tmp_path, edit, message):
+        from fsof_torch.io import read_synthetic_params
+
+        write_synthetic_sequence(tmp_path, [_pair(0, with_poses=True)])
+        path = tmp_path / "params" / "000000.json"
+        params = json.loads(path.read_text())
+        edit(params)
+        path.write_text(json.dumps(params))
+        with pytest.raises(ValueError, match=r"path: '.*000000\.json'" + ".*" + message):
+            read_synthetic_pair(tmp_path, 0)
+        if "velocity" not in message and "pose1" not in message:
+            with pytest.raises(ValueError, match=message):
+                read_synthetic_params(tmp_path, 0)
+
+    def test_binary_params_file(self, tmp_path):
+        from fsof_torch.io import read_synthetic_params
+
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        (tmp_path / "params" / "000000.json").write_bytes(b"\xff\xfe\x00")
+        with pytest.raises(ValueError, match=r"path: '.*000000\.json' is not a text \(UTF-8\) JSON file"):
+            read_synthetic_params(tmp_path, 0)
+
+
+class TestStalePairs:
+    def test_meta_num_pairs_bounds_the_pairs(self, tmp_path):
+        """A shorter sequence written over a longer one: meta.json's count, not the leftover files."""
+        from fsof_torch.data.datasets import SyntheticFlowDataset
+
+        write_synthetic_sequence(tmp_path, [_pair(i) for i in range(3)])
+        write_synthetic_sequence(tmp_path, [_pair(5)])
+        assert (tmp_path / "params" / "000002.json").is_file()
+        assert synthetic_pair_indices(tmp_path) == [0]
+        assert len(SyntheticFlowDataset(tmp_path)) == 1
+        (tmp_path / "meta.json").unlink()  # without it, every params file counts
+        assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
+
+    @pytest.mark.parametrize("text", ['{"num_pairs": "2"}', '{"format": "x"}', "[1]", "{"])
+    def test_bad_meta(self, tmp_path, text):
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        (tmp_path / "meta.json").write_text(text)
+        with pytest.raises(ValueError, match=r"path: '.*meta\.json'"):
+            synthetic_pair_indices(tmp_path)

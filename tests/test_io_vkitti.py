@@ -106,3 +106,29 @@ class TestExceptions:
             read_vkitti2_intrinsics(tmp_path / "i2.txt", camera=0)
         with pytest.raises(FileNotFoundError, match=r"path: no extrinsic\.txt at '.*none\.txt'"):
             read_vkitti2_extrinsics(tmp_path / "none.txt")
+
+    def test_writer_checks_valid_as_the_kitti_writer(self, tmp_path):
+        flow = torch.zeros(2, 4, 5)
+        with pytest.raises(TypeError, match=r"valid: expected a bool tensor of shape \(1, H, W\), got torch.uint8"):
+            write_vkitti2_flow(tmp_path / "a.png", flow, torch.ones(1, 4, 5, dtype=torch.uint8))
+        with pytest.raises(ValueError, match=r"valid: expected shape \(1, 4, 5\) to match flow, got \(1, 2, 10\)"):
+            write_vkitti2_flow(tmp_path / "b.png", flow, torch.ones(1, 2, 10, dtype=torch.bool))
+        flow[:, 1, 1] = float("nan")
+        with pytest.raises(ValueError, match="flow: expected finite values at valid pixels"):
+            write_vkitti2_flow(tmp_path / "c.png", flow, torch.ones(1, 4, 5, dtype=torch.bool))
+        assert not list(tmp_path.iterdir())
+        valid = torch.ones(1, 4, 5, dtype=torch.bool)
+        valid[0, 1, 1] = False  # NaN where not valid is fine, and written as invalid
+        _, back_valid = read_vkitti2_flow(write_vkitti2_flow(tmp_path / "d.png", flow, valid))
+        assert torch.equal(back_valid, valid)
+
+    @pytest.mark.parametrize("reader", [read_vkitti2_intrinsics, read_vkitti2_extrinsics, read_vkitti2_colors])
+    def test_binary_text_files(self, tmp_path, reader):
+        (tmp_path / "t.txt").write_bytes(b"\xff\xfe\x00\x01")
+        with pytest.raises(ValueError, match=r"path: '.*t\.txt' is not a text file"):
+            reader(tmp_path / "t.txt")
+
+    def test_non_finite_table_values(self, tmp_path):
+        (tmp_path / "intrinsic.txt").write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 nan 1 1 1\n")
+        with pytest.raises(ValueError, match=r"line 2 of '.*intrinsic\.txt' holds NaN or inf"):
+            read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")

@@ -395,7 +395,8 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     """The 3×4 rectified projection matrix of camera ``cam`` from a KITTI calibration file.
 
     Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
-    (key ``P{cam}``, or unlabelled rows in order).
+    (key ``P{cam}``, or unlabelled rows in order). Raises ValueError naming the path (and the
+    row) for a missing or malformed row, or one holding NaN or inf.
     """
     path = as_path(path)
     cam = check_camera_index(cam)
@@ -428,14 +429,18 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     for key in (f"P_rect_0{cam}", f"P{cam}"):
         if key in rows:
             values = rows[key]
+            row = key
             break
     else:
         if cam < len(unlabelled):
             values = unlabelled[cam]
+            row = f"unlabelled row {cam + 1}"
         else:
             raise ValueError(f"path: {str(path)!r} has no P_rect_0{cam} or P{cam} row")
     if len(values) != 12:
         raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
+    if not all(math.isfinite(x) for x in values):
+        raise ValueError(f"path: the {row} row of {str(path)!r} holds NaN or inf: {values}")
     return torch.tensor(values, dtype=torch.float64).reshape(3, 4)
 
 

@@ -75,21 +75,7 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
     invalid pixels are written as 0 flow, whatever they held (NaN included).
     """
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
-    _, height, width = flow.shape
-    if valid is None:
-        valid_hw = torch.isfinite(flow).all(dim=0)
-    else:
-        if isinstance(valid, np.ndarray):
-            valid = torch.from_numpy(valid)
-        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
-            raise TypeError(f"valid: expected a bool tensor of shape (1, H, W), got "
-                            f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
-        if tuple(valid.shape) not in ((1, height, width), (height, width)):
-            raise ValueError(f"valid: expected shape (1, {height}, {width}) to match flow, got {tuple(valid.shape)}")
-        valid_hw = valid.detach().cpu().reshape(height, width)
-        # the per-pixel test only when some value is not finite (one reduction otherwise)
-        if not all_finite(flow) and not bool((torch.isfinite(flow).all(dim=0) | ~valid_hw).all()):
-            raise ValueError("flow: expected finite values at valid pixels, got NaN or inf")
+    valid_hw = flow_valid_pixels(flow, valid)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
     if bool(valid_hw.any()):
         lo, hi = float(stored.min()), float(stored.max())
@@ -99,6 +85,34 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
     coded = (stored * KITTI_FLOW_SCALE + _OFFSET).round().clamp(0, 65535).to(torch.int32).numpy().astype(np.uint16)
     bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
     return write_image_array(path, bgr)
+
+
+def flow_valid_pixels(flow: Tensor, valid: Tensor | np.ndarray | None) -> Tensor:
+    """The (H, W) bool pixels a flow writer stores as valid, checked (shared by the flow writers).
+
+    Args:
+        flow: (2, H, W) float flow.
+        valid: (1, H, W) or (H, W) bool, or None: every pixel with a finite flow.
+
+    Raises TypeError for a ``valid`` that is not bool, ValueError for one of another size than
+    ``flow`` or for NaN or inf flow at a valid pixel.
+    """
+    _, height, width = flow.shape
+    if valid is None:
+        return torch.isfinite(flow).all(dim=0)
+    if isinstance(valid, np.ndarray):
+        valid = torch.from_numpy(valid)
+    if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
+        raise TypeError(f"valid: expected a bool tensor of shape (1, H, W), got "
+                        f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
+    if tuple(valid.shape) not in ((1, height, width), (height, width)):
+        raise ValueError(f"valid: expected shape (1, {height}, {width}) to match flow, got {tuple(valid.shape)}")
+    check_has_values(valid, "valid")
+    valid_hw = valid.detach().cpu().reshape(height, width)
+    # the per-pixel test only when some value is not finite (one reduction otherwise)
+    if not all_finite(flow) and not bool((torch.isfinite(flow).all(dim=0) | ~valid_hw).all()):
+        raise ValueError("flow: expected finite values at valid pixels, got NaN or inf")
+    return valid_hw
 
 
 def read_kitti_poses(path: str | os.PathLike) -> Tensor:
@@ -172,6 +186,8 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
         poses = poses.unsqueeze(0)
     if poses.dim() != 3 or tuple(poses.shape[-2:]) not in ((4, 4), (3, 4)):
         raise ValueError(f"poses: expected shape (N, 4, 4) or (N, 3, 4), got {tuple(poses.shape)}")
+    if poses.shape[0] == 0:
+        raise ValueError(f"poses: expected at least one pose, got shape {tuple(poses.shape)}")
     check_has_values(poses, "poses")
     if not bool(torch.isfinite(poses).all()):
         raise ValueError("poses: expected finite values, got NaN or inf")

@@ -6,7 +6,7 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
     ROOT/
         meta.json                  what wrote the folder: format, version, preset, seed, size, N,
                                    and this file list; written last (a folder without it is
-                                   incomplete)
+                                   incomplete); the reader takes pairs 0 .. N - 1 only
         image_2/000000_10.png      frame t, 8-bit RGB (rendered 0..255 values rounded)
         image_2/000000_11.png      frame t+1
         flow_occ/000000_10.png     forward flow t -> t+1, KITTI 16-bit flow PNG (1/64 px); its
@@ -221,8 +221,9 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     """Write rendered pairs 0, 1, ... into ``root`` (created), then ``poses.txt`` and ``meta.json``.
 
     ``pairs`` may be a generator (rendering lazily, so that the progress bar, on stderr when
-    ``progress``, counts rendering too). Returns a summary: ``root``, ``num_pairs``, ``size``,
-    ``files`` (count per folder), ``bytes``.
+    ``progress``, counts rendering too). Files already in ``root`` are left alone; the pairs of
+    an older, longer sequence there are not read back (``meta.json`` bounds the pairs). Returns a
+    summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
     """
     from tqdm import tqdm
 
@@ -273,23 +274,77 @@ def _extend_rendered_poses(poses: list[Tensor] | None, pair: Mapping[str, Any]) 
 
 
 def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
-    """Indices of the pairs in a synthetic layout folder (from ``params/*.json``), sorted."""
+    """Indices of the pairs in a synthetic layout folder (from ``params/*.json``), sorted.
+
+    Where ``meta.json`` exists, only the pairs ``0 .. num_pairs - 1`` it lists count: files of
+    pairs beyond them (left by an older, longer run) are not pairs of this sequence.
+    """
     root = Path(root)
     if not (root / "params").is_dir():
         raise FileNotFoundError(f"root: {str(root)!r} has no params/ folder (not a synthetic layout written by "
                                 f"write_synthetic_sequence / python -m eval synth)")
-    return sorted(int(p.stem) for p in (root / "params").glob("*.json") if p.stem.isdigit())
+    indices = sorted(int(p.stem) for p in (root / "params").glob("*.json") if p.stem.isdigit())
+    meta = root / "meta.json"
+    if meta.is_file():
+        count = _read_json_file(meta).get("num_pairs")
+        if isinstance(count, bool) or not isinstance(count, int) or count < 0:
+            raise ValueError(f"path: {str(meta)!r} has no 'num_pairs' entry holding a whole number >= 0, got {count!r}")
+        indices = [i for i in indices if i < count]
+    return indices
+
+
+def _read_json_file(path: Path) -> dict:
+    """A JSON object from a UTF-8 file, or ValueError naming the path."""
+    try:
+        obj = json.loads(path.read_bytes().decode("utf-8"))
+    except UnicodeDecodeError as err:
+        raise ValueError(f"path: {str(path)!r} is not a text (UTF-8) JSON file (undecodable byte at offset "
+                         f"{err.start})") from None
+    except (json.JSONDecodeError, RecursionError) as err:
+        raise ValueError(f"path: {str(path)!r} is not valid JSON: {err}") from None
+    if not isinstance(obj, dict):
+        raise ValueError(f"path: {str(path)!r} holds a JSON {type(obj).__name__}; expected an object")
+    return obj
+
+
+def _number(params: dict, path: Path, *keys: str) -> float:
+    """The finite number at ``params[keys[0]][keys[1]]...``, or ValueError naming the path and the entry."""
+    value: Any = params
+    for depth, key in enumerate(keys):
+        if not isinstance(value, dict) or key not in value:
+            entry = "".join(f"[{k!r}]" for k in keys[:depth + 1])
+            raise ValueError(f"path: {str(path)!r} has no entry {entry}")
+        value = value[key]
+    entry = "".join(f"[{k!r}]" for k in keys)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ValueError(f"path: {str(path)!r}{entry} is not a finite number: {value!r}")
+    return float(value)
 
 
 def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
-    """The params JSON of pair ``index``."""
+    """The params JSON of pair ``index``.
+
+    Raises ValueError naming the path for a file that is not UTF-8 JSON, or that lacks an entry
+    every pair has (``camera``: ``K`` 3×3 and ``height``; ``odometry``: ``x_d``, ``z_d``, ``yaw``),
+    or holds there something other than finite numbers; FileNotFoundError for a missing file.
+    """
     path = Path(root) / "params" / f"{pair_name(index)}.json"
     if not path.is_file():
         raise FileNotFoundError(f"index: no params file {str(path)!r}")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as err:
-        raise ValueError(f"path: {str(path)!r} is not valid JSON: {err}") from err
+    params = _read_json_file(path)
+    _number(params, path, "camera", "height")
+    K = params["camera"].get("K")
+    if not (isinstance(K, list) and len(K) == 3 and all(isinstance(row, list) and len(row) == 3 for row in K)):
+        raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of numbers")
+    for row in range(3):
+        for col in range(3):
+            value = K[row][col]
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+                raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of finite numbers: "
+                                 f"{value!r} at [{row}][{col}]")
+    for key in ("x_d", "z_d", "yaw"):
+        _number(params, path, "odometry", key)
+    return params
 
 
 def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dtype = torch.float32,
@@ -305,35 +360,57 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     root = Path(root)
     name = pair_name(index)
     params = read_synthetic_params(root, index)
+    params_path = root / "params" / f"{name}.json"
+    path = root / "image_2" / f"{name}_10.png"
+    image1 = read_image(path)
+    size = tuple(image1.shape[-2:])
+
+    def same_size(tensor: Tensor, path: Path) -> Tensor:
+        if tuple(tensor.shape[-2:]) != size:
+            raise ValueError(f"path: {str(path)!r} is {tensor.shape[-2]}x{tensor.shape[-1]}; the pair's frame "
+                             f"image_2/{name}_10.png is {size[0]}x{size[1]}")
+        return tensor
+
+    path = root / "image_2" / f"{name}_11.png"
+    try:
+        camera = camera_from_params(params, dtype)
+    except (ValueError, TypeError) as err:
+        raise ValueError(f"path: {str(params_path)!r} holds a camera that is not valid: {err}") from None
     sample: dict[str, Any] = {
-        "image1": read_image(root / "image_2" / f"{name}_10.png").to(dtype),
-        "image2": read_image(root / "image_2" / f"{name}_11.png").to(dtype),
-        "camera": camera_from_params(params, dtype),
+        "image1": image1.to(dtype),
+        "image2": same_size(read_image(path), path).to(dtype),
+        "camera": camera,
         "index": int(index),
         "name": name,
     }
     if not ground_truth:
         return sample
-    flow, valid = read_kitti_flow(root / "flow_occ" / f"{name}_10.png")
-    sample["flow"], sample["valid"] = flow.to(dtype), valid
+    path = root / "flow_occ" / f"{name}_10.png"
+    flow, valid = read_kitti_flow(path)
+    sample["flow"], sample["valid"] = same_size(flow, path).to(dtype), valid
     path = root / "flow_velocity" / f"{name}_10.flo"
     if path.is_file():
-        fv = read_flo(path)
+        fv = same_size(read_flo(path), path)
         sample["flow_velocity"] = torch.nan_to_num(fv, nan=0.0).to(dtype)
     path = root / "road" / f"{name}_10.png"
     if path.is_file():
-        sample["road"] = read_road_mask(path)
+        sample["road"] = same_size(read_road_mask(path), path)
     path = root / "semantic" / f"{name}_10.png"
     if path.is_file():
-        sample["labels"] = read_label_map(path)
+        sample["labels"] = same_size(read_label_map(path), path)
     path = root / "depth" / f"{name}_10.png"
     if path.is_file():
-        sample["depth"] = read_depth_png(path)[0].to(dtype)
+        sample["depth"] = same_size(read_depth_png(path)[0], path).to(dtype)
     sample["odometry"] = {k: float(params["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
     for key in ("velocity", "road_pose", "plane"):
         if key in params:
-            sample[key] = {k: float(v) for k, v in params[key].items()}
+            if not isinstance(params[key], dict):
+                raise ValueError(f"path: {str(params_path)!r}[{key!r}] is not an object of numbers")
+            sample[key] = {k: _number(params, params_path, key, k) for k in params[key]}
     for key in ("pose1", "pose2"):
         if key in params:
-            sample[key] = torch.tensor(params[key], dtype=torch.float64)
+            try:
+                sample[key] = torch.tensor(params[key], dtype=torch.float64).reshape(4, 4)
+            except (ValueError, TypeError, RuntimeError):
+                raise ValueError(f"path: {str(params_path)!r}[{key!r}] is not a 4×4 list of numbers") from None
     return sample

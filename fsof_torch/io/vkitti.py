@@ -26,6 +26,7 @@ from torch import Tensor
 
 from .._check import as_path, as_chw_flow, check_finite, result_dtype, skip_values
 from .images import read_image_array, write_image_array
+from .kitti import flow_valid_pixels
 
 __all__ = [
     "read_vkitti2_flow",
@@ -65,13 +66,13 @@ def read_vkitti2_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
 def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | None = None) -> Path:
     """Write a (2, H, W) flow in the Virtual KITTI 2 PNG encoding, atomically.
 
-    ``valid`` (1, H, W) bool defaults to the finite pixels. Valid flow must lie within
+    ``valid`` (1, H, W) or (H, W) bool defaults to the finite pixels; flow must be finite at valid
+    pixels (invalid pixels are written as 0 flow, whatever they held). Valid flow must lie within
     ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding.
     """
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
-    finite = torch.isfinite(flow).all(dim=0)
-    valid_hw = finite if valid is None else valid.detach().cpu().reshape(height, width)
+    valid_hw = flow_valid_pixels(flow, valid)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
     scale = torch.tensor([width - 1, height - 1], dtype=torch.float64).clamp_min(1).view(2, 1, 1)
     norm = stored / scale
@@ -88,7 +89,7 @@ def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
     if not path.is_file():
         raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
     rows = []
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(_read_text(path, what).splitlines(), 1):
         parts = line.split()
         if not parts:
             continue
@@ -97,12 +98,23 @@ def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
         if len(parts) != columns:
             raise ValueError(f"path: line {n} of {str(path)!r} has {len(parts)} columns; a VKITTI2 {what} has {columns}")
         try:
-            rows.append([float(x) for x in parts])
+            values = [float(x) for x in parts]
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a row of numbers: {line[:60]!r}") from err
+        if not all(np.isfinite(values)):
+            raise ValueError(f"path: line {n} of {str(path)!r} holds NaN or inf: {line[:60]!r}")
+        rows.append(values)
     if not rows:
         raise ValueError(f"path: {str(path)!r} holds no rows")
     return np.asarray(rows, dtype=np.float64)
+
+
+def _read_text(path: Path, what: str) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"path: {str(path)!r} is not a text file (a VKITTI2 {what}; undecodable byte at offset "
+                         f"{err.start})") from None
 
 
 def _is_number(text: str) -> bool:
@@ -160,7 +172,7 @@ def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, in
     if not path.is_file():
         raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
     colors: dict[str, tuple[int, int, int]] = {}
-    for n, line in enumerate(path.read_text().splitlines(), 1):
+    for n, line in enumerate(_read_text(path, "colors.txt").splitlines(), 1):
         parts = line.split()
         if not parts or (n == 1 and parts[0] == "Category"):
             continue

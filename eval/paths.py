@@ -1,0 +1,58 @@
+"""The evaluation job's output paths, checked before any work, as the refine job checks its own:
+a folder option names a folder or a path that can be created; a file option names no folder and a
+path whose missing folders can be created (the job creates them when it writes). Each check
+returns the error message, naming the option, or None."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Iterable
+
+
+def _creatable(path: Path, option: str) -> str | None:
+    """The nearest existing parent of ``path`` is a folder that can be written into."""
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created"
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return f"{option}: the folder {str(parent)!r} is not writable, so {str(path)!r} cannot be created"
+            return None
+    return None
+
+
+def bad_file(path: Path | None, option: str) -> str | None:
+    """``path`` (None: not asked for) can be written as a file."""
+    if path is None:
+        return None
+    if path.is_dir():
+        return f"{option}: {str(path)!r} is a folder; expected a file path"
+    return _creatable(path, option)
+
+
+def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str | None:
+    """``path`` (None: not asked for) is a folder or can be created, and none of the ``files`` the
+    job writes into it is a folder."""
+    if path is None:
+        return None
+    if path.exists() and not path.is_dir():
+        return f"{option}: {str(path)!r} is a file; expected a folder (it is created if missing)"
+    bad = _creatable(path, option)
+    if bad is not None:
+        return bad
+    for name in files:
+        if (path / name).is_dir():
+            return f"{option}: {str(path / name)!r} is a folder, where the job writes a file"
+    return None
+
+
+def first_bad(*messages: str | None) -> str | None:
+    """The first message that is not None."""
+    return next((m for m in messages if m is not None), None)
+
+
+def make_parent(path: Path) -> Path:
+    """Create the folders above ``path`` (checked by :func:`bad_file` before the work)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return path
