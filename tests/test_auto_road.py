@@ -146,6 +146,24 @@ def test_batch_refits_each_sample_as_alone(scene_pair, scene_detection):
     assert torch.allclose(both.motion.flow[1], lifted[1].to(both.motion.flow.dtype), atol=1e-3)
 
 
+def test_a_seed_out_of_view_is_flagged_empty_with_its_reason(scene_pair):
+    """A seed nearer than the camera sees (here 2 m, with the road in view from about 5 m) leaves
+    nothing to judge: flagged "empty", saying why, not "static" (the vehicle moves)."""
+    p = scene_pair
+    motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
+    cam = p["camera"].replace(height=p["plane"]["height"])
+    det = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion, seed_depth_m=2.0)
+    assert det.flag == ["empty"] and "seed" in det.reason[0] and not bool(det.usable_mask.any())
+
+
+@pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion"])
+def test_refiner_road_options_the_refiner_sets_are_refused(scene_pair, name):
+    p = scene_pair
+    with pytest.raises(TypeError, match=rf"road_options: options \['{name}'\] are set by the caller itself"):
+        refine_flow(p["flow"][None], "auto", p["camera"], images=(p["image1"][None], p["image2"][None]),
+                    road_options={name: None})
+
+
 def test_textureless_frames_are_flagged(kitti_K):
     """Flat grey frames carry no evidence: flagged, never an 'ok' road."""
     im = torch.full((1, 3, 96, 320), 90.0)

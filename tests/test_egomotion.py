@@ -226,3 +226,11 @@ def test_ackermann_on_the_meta_device_follows_its_tensors():
     speed = torch.empty(3, device="meta")
     out = ego_motion_from_ackermann(speed, 0.1, 2.7, 0.1)
     assert out.x_d.device.type == "meta" and out.x_d.shape == (3,)
+
+
+@pytest.mark.parametrize("steering", [math.pi / 2, -2.0, float("nan")])
+def test_ackermann_refuses_steering_across_the_car(steering):
+    """|δ_f| ≥ π/2 has no Ackermann motion (velocity_flow refuses it too); before, a yaw of
+    millions of radians came back."""
+    with pytest.raises(ValueError, match=r"^steering: "):
+        ego_motion_from_ackermann(10.0, steering, 2.7, 0.1)

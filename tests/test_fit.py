@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 
 import pytest
 import torch
@@ -415,3 +416,28 @@ def test_real_kitti_ground_truth_fit(kitti15_ground_truth):
     assert epe_to(fit_p.flow, flow, use) <= e_E + 1e-6
     # plausible ego-motion of a car at ~50 km/h and 10 Hz
     assert 1.0 < float(fit.z_d) < 1.8 and abs(float(fit.roll)) < 0.02
+
+
+def test_decompose_a_camera_cropped_past_its_principal_point():
+    """A crop that leaves the principal point above and left of the image (Camera.cropped allows
+    it) is decomposed as any other (it raised about a scale the caller never gave)."""
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5).cropped(100, 30)
+    assert float(cam.cx[0]) < 0 and float(cam.cy[0]) < 0
+    H = road_homography(cam, {"z_d": 1.0, "yaw": 0.01}, model="plane")
+    dec = decompose_homography(H, cam)
+    assert float(dec.params["z_d"][0]) == pytest.approx(1.0, abs=1e-6)
+    assert float(dec.params["yaw"][0]) == pytest.approx(0.01, abs=1e-8)
+
+
+@pytest.mark.parametrize("steering, error, match", [
+    ("x", TypeError, r"^init: expected numbers or tensors for steering and speed"),
+    (float("nan"), ValueError, r"^init: expected a finite steering"),
+    (math.pi / 2, ValueError, r"^init: expected a finite steering with \|δ_f\| < π/2"),
+])
+def test_fit_velocity_init_steering_is_named(steering, error, match):
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5)
+    flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, (48, 160))
+    with pytest.raises(error, match=match):
+        fit_velocity(flow, valid, cam, 2.7, init={"steering": steering, "speed": 12.0})

@@ -396,3 +396,21 @@ def test_early_stop_checks_change_no_result(model):
         assert torch.equal(fit.params[name], fixed.params[name]), name
     assert torch.equal(fit.iterations, fixed.iterations)
     assert 0 < reads["auto"] - reads[None] <= 4, reads
+
+
+@pytest.mark.parametrize("model", ["plane", "homography"])
+def test_a_degenerate_frame_gets_in_a_batch_what_it_gets_alone(model):
+    """A one-row mask does not determine the motion: its start is the identity, not the rounding
+    of a singular system, which differs with the batch's other frames."""
+    from fsof_torch import displacement_flow
+
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5, roll=0.01)
+    flow, valid = displacement_flow(cam, 0.05, 1.0, 0.01, (48, 160))
+    row = torch.zeros_like(valid)
+    row[0, 0, 40, :] = True
+    alone = fit_road(flow, row, cam, model=model)
+    both = fit_road(flow.expand(2, -1, -1, -1), torch.cat([valid, row]), cam, model=model)
+    for name, value in alone.params.items():
+        torch.testing.assert_close(both.params[name][1], value[0], rtol=0, atol=1e-9)
+    assert not bool(alone.success[0]) and bool(both.success[0])

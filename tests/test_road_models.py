@@ -22,6 +22,7 @@ from fsof_torch.geometry.road_flow import RoadFlow, displacement_flow, road_flow
 from fsof_torch.geometry.road_models import (
     ROAD_MODELS,
     pack_params,
+    plane_from_homography,
     plane_from_pose,
     road_homography,
     road_motion,
@@ -233,6 +234,25 @@ def test_geometry_in_float32_under_autocast():
     assert out.dtype == torch.float32
     assert torch.equal(valid, valid2)
     torch.testing.assert_close(out, ref, rtol=0, atol=1e-3)
+
+
+def test_pose_and_homography_conversions_in_float32_under_autocast():
+    """plane_from_pose and plane_from_homography compute in float32 under a bfloat16 autocast (a
+    bfloat16 pose put z_d 3 mm a metre off; det had no bfloat16 kernel)."""
+    cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), 1.65, 0.01, -0.01)
+    T = torch.eye(4)
+    T[2, 3], T[1, 3] = -1.2, 0.018
+    H = road_homography(cam, {"z_d": 1.2, "yaw": 0.01}, model="plane")
+    plain_pose, plain_h = plane_from_pose(T, cam), plane_from_homography(H, cam)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        pose, h = plane_from_pose(T, cam), plane_from_homography(H, cam)
+    for got, ref in ((pose, plain_pose), (h, plain_h)):
+        for k, v in ref.items():
+            assert got[k].dtype == torch.float32 and torch.equal(got[k], v), k
+    with pytest.raises(ValueError, match=r"^H: expected a float tensor of shape \(B, 3, 3\), got torch.float32"):
+        plane_from_homography(H[0], cam)
+    with pytest.raises(TypeError, match=r"^camera: expected a fsof_torch.Camera, got Tensor"):
+        plane_from_homography(H, cam.K)
 
 
 # -- conversions --------------------------------------------------------------------------------------

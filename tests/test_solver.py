@@ -204,6 +204,30 @@ def test_covariance_of_linear_least_squares():
     torch.testing.assert_close(sol.covariance()[0], sigma2 * torch.linalg.inv(J.T @ J), rtol=1e-8, atol=1e-15)
 
 
+def test_covariance_of_fixed_and_of_singular_problems():
+    """A fixed parameter has 0 rows and columns; a sample whose problem is singular (every point
+    at one x: the slope unknowable) has +inf variances on its free parameters, never NaN; the
+    other sample keeps its covariance."""
+    problem, truth, x, y = line_problem(B=2, N=50, noise=0.05, seed=1)
+    free = torch.tensor([True, False])  # the slope estimated, the offset held
+    sol = solve(problem, truth.clone(), kernel="l2", max_iter=10, free=free)
+    cov = sol.covariance()
+    assert bool((cov[:, 1, :] == 0).all()) and bool((cov[:, :, 1] == 0).all()) and bool((cov[:, 0, 0] > 0).all())
+    x0 = torch.zeros(2, 50, dtype=torch.float64)
+    x0[0] = x[0]
+    J = torch.stack([x0, torch.ones_like(x0)], dim=1).unsqueeze(2)
+    use = torch.ones(2, 50, dtype=torch.bool)
+
+    def residual(p):  # sample 1's x are all 0: its slope is not determined
+        return ((p[:, :1] * x0 + p[:, 1:]) - y).unsqueeze(1), J, use
+
+    sol = solve(ResidualProblem(residual, use.sum(1)), torch.zeros(2, 2, dtype=torch.float64), kernel="l2",
+                max_iter=10)
+    cov = sol.covariance()
+    assert bool(torch.isfinite(cov[0]).all())
+    assert cov[1].diagonal().tolist() == [float("inf"), float("inf")] and float(cov[1, 0, 1]) == 0.0
+
+
 def test_robust_kernels_match_scipy_losses():
     scipy_ls = importlib.import_module("scipy.optimize._lsq.least_squares")  # the module, not the function
     r2 = torch.linspace(0, 9, 50, dtype=torch.float64)

@@ -373,3 +373,21 @@ class TestDetectFreespace:
             free = detect_freespace(flow, pair["camera"], mask=valid, threshold=0.05, relative_threshold=0.02)
             ious.append(_iou(free[0], pair["road"] & pair["valid"]))
         assert min(ious) >= 0.9, ious
+
+
+def test_row_dominant_flow_and_curve_of_a_frame_as_alone():
+    """A frame's histogram range is its own: beside a faster frame (larger flows) it gets the
+    peaks and the curve it gets alone."""
+    cam = _camera()
+    g = torch.Generator().manual_seed(0)
+    slow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    fast, _ = displacement_flow(cam, 0.0, 3.0, 0.0, SIZE)
+    slow = slow + 0.05 * torch.randn(slow.shape, generator=g, dtype=slow.dtype)
+    fast = fast + 0.05 * torch.randn(fast.shape, generator=g, dtype=fast.dtype)
+    both, masks = torch.cat([slow, fast]), torch.cat([valid, valid])
+    for statistic in ("peak", "median"):
+        alone, n_alone = row_dominant_flow(slow, valid, statistic=statistic)
+        batch, n_batch = row_dominant_flow(both, masks, statistic=statistic)
+        assert torch.equal(batch[:1], alone) and torch.equal(n_batch[:1], n_alone), statistic
+    curve, curve_alone = fit_vflow_curve(both, masks), fit_vflow_curve(slow, valid)
+    assert float(curve.a[0]) == pytest.approx(float(curve_alone.a[0]), abs=1e-12)

@@ -57,9 +57,10 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
                          f"that are not: {H64[bad[0]].tolist()}")
     cam = camera.to(torch.float64).expand(B).to(device=H.device)
-    # a virtual image around the principal point, scaled so that its longer side is ``size``
-    w0 = 2.0 * float(cam.cx.max()) + 1.0
-    h0 = 2.0 * float(cam.cy.max()) + 1.0
+    # a virtual image around the principal point, scaled so that its longer side is ``size`` (the
+    # principal point's distance from the corner, also where a crop put it above or left of the image)
+    w0 = 2.0 * float(cam.cx.abs().max()) + 1.0
+    h0 = 2.0 * float(cam.cy.abs().max()) + 1.0
     s = size / max(w0, h0)
     grid = (max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8))
     small = cam.scaled(s)

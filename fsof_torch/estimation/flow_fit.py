@@ -64,7 +64,9 @@ class RoadFit:
             parameters are finite but not to be trusted.
         camera: the input camera with the fitted roll and pitch.
         iterations: (B,) int64 solver iterations.
-        covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones).
+        covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
+            the fit is singular, as on an empty or one-pixel mask, +inf on the free parameters'
+            diagonal and 0 elsewhere, never NaN).
         cost: (B,) the robust cost per point at the end.
         extras: further per-frame values of a fit (e.g. the velocity model's steering angle).
     """
@@ -625,8 +627,13 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     wb = _wheelbase(wheelbase, flow)
     if isinstance(init, Mapping) and init.get("steering") is not None and init.get("yaw_rate") is None:
         init = dict(init)
-        steer = torch.as_tensor(init.pop("steering"), dtype=torch.float64)
-        speed = torch.as_tensor(init.get("speed", 0.0), dtype=torch.float64)
+        given = {"steering": init.pop("steering"), "speed": init.get("speed", 0.0)}
+        try:
+            steer, speed = (torch.as_tensor(v, dtype=torch.float64).cpu() for v in given.values())
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"init: expected numbers or tensors for steering and speed, got {given!r}") from None
+        if not bool(torch.isfinite(steer).all()) or not bool((steer.abs() < math.pi / 2).all()):
+            raise ValueError(f"init: expected a finite steering with |δ_f| < π/2 rad, got {steer.tolist()}")
         init["yaw_rate"] = speed * torch.tan(steer) / wb.to(torch.float64).cpu()
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     fit = fit_road(flow, mask, camera, model="velocity", fixed=fixed, init=init, scale=scale, **options)

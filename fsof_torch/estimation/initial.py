@@ -113,7 +113,8 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
             least-squares start.
 
     Returns:
-        (B, 3, 3), the identity where the fit is not finite.
+        (B, 3, 3), the identity where the fit is not finite or not determined (fewer than four
+        points, or points that do not fix the eight entries: all on one row or one line).
     """
     B = pts.shape[0]
     x = torch.bmm(K_inv, pts)
@@ -132,7 +133,9 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
     G = G + torch.eye(3, dtype=G.dtype, device=G.device)
     H = torch.bmm(torch.bmm(K, G), K_inv)
     eye = torch.eye(3, dtype=H.dtype, device=H.device).expand_as(H)
-    return torch.where(torch.isfinite(H).all(-1).all(-1)[:, None, None], H, eye)
+    # (a system that does not fix H leaves it to rounding, which differs with the batch's other frames)
+    good = torch.isfinite(H).all(-1).all(-1) & sol.well_conditioned(1e-9) & (sel.sum(1) >= 4)
+    return torch.where(good[:, None, None], H, eye)
 
 
 def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:

@@ -30,6 +30,7 @@ no result: they only end the loop.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence
 
@@ -108,6 +109,7 @@ class Solution:
         weights: (B, N) the final IRLS weights (0 where not used).
         normal: (B, P, P) JᵀWJ + prior at the estimate (fixed parameters: identity rows).
         scale: (B,) the kernel's final scale.
+        free: (B, P) bool, the parameters estimated (None: all of them).
     """
 
     params: Tensor
@@ -118,6 +120,7 @@ class Solution:
     weights: Tensor
     normal: Tensor
     scale: Tensor
+    free: Tensor | None = None
 
     def conditioning(self) -> Tensor:
         """The smallest eigenvalue of the normal matrix scaled to a unit diagonal (B,): near 0
@@ -130,14 +133,23 @@ class Solution:
 
     def covariance(self) -> Tensor:
         """(B, P, P) parameter covariance: the inverse normal matrix times the weighted residual
-        variance per degree of freedom (0 rows and columns for fixed parameters)."""
+        variance per degree of freedom; 0 rows and columns for fixed parameters. Where the
+        problem is singular (an empty mask, one pixel, one row), the free parameters' variances
+        are +inf and the rest 0: nothing is known of them (never NaN)."""
         w, ev = self.weights, self.evaluation
+        B, P = self.params.shape
         R = 1 if ev.residual is None else ev.residual.shape[1]
         # weights as fractional counts: a down-weighted outlier counts for its weight
-        dof = (R * w.sum(1) - self.params.shape[1]).clamp_min(1.0)
+        dof = (R * w.sum(1) - P).clamp_min(1.0)
         sigma2 = (w * ev.r2).sum(1) / dof
-        eye = torch.eye(self.normal.shape[-1], dtype=self.normal.dtype, device=self.normal.device)
-        return spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
+        eye = torch.eye(P, dtype=self.normal.dtype, device=self.normal.device)
+        cov = spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
+        free = torch.ones(B, P, dtype=torch.bool, device=cov.device) if self.free is None else self.free.expand(B, P)
+        both = free.unsqueeze(-1) & free.unsqueeze(-2)
+        cov = torch.where(both, cov, 0.0)
+        singular = ~torch.isfinite(cov).flatten(1).all(1)
+        unknown = torch.diag_embed(torch.where(free, math.inf, 0.0).to(cov.dtype))
+        return torch.where(singular.reshape(B, 1, 1), unknown, cov)
 
 
 # Small symmetric positive definite systems by Cholesky and two triangular solves: on the CPU,
@@ -391,7 +403,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             if bool(done.all()):
                 break
     # (the problem's state is not kept: the normal equations built from it are)
-    return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s)
+    return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s, ~fixed if has_fixed else None)
 
 
 def _damped_step(A: Tensor, g: Tensor, lam: Tensor) -> Tensor:

@@ -147,6 +147,9 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     the support is the number of those pixels. ``statistic="median"``: the median of the row's
     vertical flows in the mask; the support is the row's pixel count.
 
+    Each frame's histogram range is its own (where ``min_flow`` / ``max_flow`` are not given):
+    a frame gets the values it gets alone, whatever the batch's other frames hold.
+
     Returns:
         ``value`` (B, H) in the flow's unit (0 where a row has no pixel) and ``support`` (B, H),
         the number of pixels behind each value (0: no value).
@@ -154,6 +157,10 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     if statistic not in ("peak", "median"):
         raise ValueError(f"statistic: expected 'peak' or 'median', got {statistic!r}")
     dims, use = check_flow_mask(flow, mask)
+    if statistic == "peak" and dims["B"] > 1 and (min_flow is None or max_flow is None):
+        parts = [row_dominant_flow(flow[b:b + 1], use[b:b + 1], statistic="peak", bins=bins, max_flow=max_flow,
+                                   min_flow=min_flow) for b in range(dims["B"])]
+        return torch.cat([v for v, _ in parts]), torch.cat([n for _, n in parts])
     dtype = result_dtype(flow)
     fv = flow[:, 1].to(dtype)
     use = use[:, 0]

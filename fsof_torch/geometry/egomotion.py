@@ -13,7 +13,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import as_batch_param, autocast_off, check_finite, check_positive, resolve_batch, result_dtype
+from .._check import (as_batch_param, autocast_off, check_finite, check_positive, resolve_batch, result_dtype,
+                      tracing)
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
@@ -130,6 +131,9 @@ def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
     p = {n: as_batch_param(v, n, dtype, device) for n, v in named.items()}
     resolve_batch({n: t.shape[0] for n, t in p.items()})
     check_positive(p["wheelbase"], "wheelbase")
+    # (as velocity_flow: at ±π/2 the wheels stand across the car and tan δ_f has no meaning)
+    if not tracing() and p["steering"].device.type != "meta" and not bool((p["steering"].abs() < torch.pi / 2).all()):
+        raise ValueError(f"steering: expected |δ_f| < π/2 rad, got {p['steering'].tolist()}")
     arc = p["speed"] * p["dt"]
     yaw = arc * torch.tan(p["steering"]) / p["wheelbase"]
     # (1 - cos φ) / φ = (φ / 2) sinc²(φ / 2π); sin φ / φ = sinc(φ / π) (torch.sinc is normalised)

@@ -547,14 +547,15 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     T = as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     B = resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
-    T = T.expand(B, 4, 4)
-    cam = camera.to(T.dtype).expand(B)
-    Rc = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH))
-    Rc = Rc[:, 0] @ Rc[:, 1]
-    R, t = T[:, :3, :3], T[:, :3, 3:]
-    Rv = Rc.transpose(-1, -2) @ R @ Rc
-    d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
-    a = rotation_angles(Rv)
+    with autocast_off(T):  # (geometry in at least float32, also under autocast)
+        T = T.expand(B, 4, 4).to(result_dtype(T))
+        cam = camera.to(T.dtype).expand(B)
+        Rc = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH))
+        Rc = Rc[:, 0] @ Rc[:, 1]
+        R, t = T[:, :3, :3], T[:, :3, 3:]
+        Rv = Rc.transpose(-1, -2) @ R @ Rc
+        d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
+        a = rotation_angles(Rv)
     return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
             "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}
 
@@ -576,7 +577,18 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
     (Procrustes), and t = h (G n / λ − R n). :func:`fsof_torch.decompose_homography` refines this
     start by a fit that frees the normal too.
     """
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    if not isinstance(H, Tensor) or not H.is_floating_point() or H.dim() != 3 or tuple(H.shape[1:]) != (3, 3):
+        got = f"{H.dtype} {tuple(H.shape)}" if isinstance(H, Tensor) else type(H).__name__
+        raise ValueError(f"H: expected a float tensor of shape (B, 3, 3), got {got}")
+    check_all_finite({"H": H})
     B = resolve_batch({"H": H.shape[0], "camera": camera.batch_size})
+    with autocast_off(H):  # (geometry in at least float32, also under autocast; det has no bfloat16)
+        return _plane_from_homography(H.to(result_dtype(H)), camera, B)
+
+
+def _plane_from_homography(H: Tensor, camera: Camera, B: int) -> dict[str, Tensor]:
     cam = camera.to(H.dtype).expand(B)
     G = cam.K_inv() @ H.expand(B, 3, 3) @ cam.K
     Rt, Rb = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)

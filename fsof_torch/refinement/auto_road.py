@@ -50,8 +50,8 @@ detection:
    ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
    largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:
    dark, flat frames), ``"implausible"`` (the seed itself does not move like a road: an obstacle
-   close ahead), ``"empty"`` and ``"small"`` (less than ``min_coverage`` of the image below the
-   horizon).
+   close ahead), ``"empty"`` (no road, or a seed with no pixel in the image) and ``"small"`` (less
+   than ``min_coverage`` of the image below the horizon).
 
 Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not differentiable
 (a segmentation); the caller's tensors are never modified.
@@ -78,9 +78,10 @@ from ..geometry.road_models import plane_from_homography, road_motion
 from .estimators import ImageMotionEstimator
 from .road_region import follow_edges, road_region
 
-__all__ = ["RoadDetection", "detect_road", "detect_road_padded", "road_seed", "refine_with_auto_road", "FLAGS"]
+__all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS"]
 
-#: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies)
+#: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies; a seed with
+#: no pixel in the image is "empty" before any other test)
 FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
 
 # windows count as independent pixels / this factor: the smoothing (σ = 1 px) correlates
@@ -389,7 +390,8 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         if isinstance(v, bool) or not isinstance(v, int) or v < 0:
             raise ValueError(f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}")
         if min(dims["H"], dims["W"]) >> v < 16:
-            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images")
+            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
+                             f"(with the default seed_level=1, images need at least 32x32 pixels)")
     for name in ("window", "height_window"):
         v = options[name]
         if isinstance(v, bool) or not isinstance(v, int) or v < 3 or v % 2 == 0:
@@ -600,8 +602,12 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
     agreement = (n_good / (n_good + n_bad).clamp_min(1)).to(torch.float64)
     evidence_share = ((n_good + n_bad) / n_seed).to(torch.float64)
     flags, reasons = [], []
+    in_view = seed_l.flatten(1).any(1).cpu()
     for b in range(B):
-        if not bool(success[b]):
+        if not bool(in_view[b]):
+            flag, why = "empty", ("the seed (the road ahead within seed_width_m and seed_depth_m) has no pixel in the "
+                                  "image: check the camera's height and pitch, or a deeper seed_depth_m")
+        elif not bool(success[b]):
             flag, why = "no_motion", "the road's motion could not be estimated from the images"
         elif int(n_test[b]) == 0:
             flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames): the road cannot be "
@@ -657,9 +663,10 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     options = dict(road_options or {})
     # (options the detection does not take, or that the refiner sets itself, raise here, named)
     if images is not None:
-        check_keywords(options, "road_options", detect_road, reserved=("flow", "motion", "estimator", "odometry", "starts"))
+        check_keywords(options, "road_options", detect_road,
+                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts"))
     else:
-        check_keywords(options, "road_options", detect_freespace)
+        check_keywords(options, "road_options", detect_freespace, reserved=("flow", "camera"))
     _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
     if images is None:
         with torch.no_grad():
@@ -684,16 +691,3 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
                       f"images gave no evidence for the model (see RefineOutput.refined and .gate)",
                       RuntimeWarning, stacklevel=3)
     return out._replace(road=det, fit=det.motion if not complete else out.fit)
-
-
-def detect_road_padded(padding: Any, image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor,
-                       **options: Any) -> RoadDetection:
-    """:func:`detect_road` on padded inputs (a :class:`~fsof_torch.refinement.contracts.Padding`
-    or None, and the padded images, camera and flow), judged on the images as they came (the
-    replicated border is not road); its masks are padded back with False."""
-    if padding is None:
-        return detect_road(image1, image2, camera, flow=flow.detach(), **options)
-    det = detect_road(padding.unpad(image1), padding.unpad(image2),
-                      camera.cropped(padding.left, padding.top, padding.right, padding.bottom),
-                      flow=padding.unpad(flow.detach()), **options)
-    return RoadDetection(**{**det.__dict__, "mask": padding.pad(det.mask), "seed": padding.pad(det.seed)})

@@ -14,7 +14,7 @@ from torch import Tensor, nn
 
 from .._check import check_float_tensor, check_keywords
 from ..geometry.camera import Camera
-from .auto_road import detect_road, detect_road_padded
+from .auto_road import RoadDetection, detect_road
 from .contracts import InputPadder, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner
 
@@ -145,3 +145,16 @@ class FreespaceRefined(nn.Module):
                              flow_model=padding.unpad(info.flow_model), gate=gate, road=road,
                              camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
         return flow, info
+
+
+def detect_road_padded(padding: Any, image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor,
+                       **options: Any) -> RoadDetection:
+    """:func:`detect_road` on padded inputs (a :class:`~fsof_torch.refinement.contracts.Padding`
+    or None, and the padded images, camera and flow), judged on the images as they came (the
+    replicated border is not road); its masks are padded back with False."""
+    if padding is None:
+        return detect_road(image1, image2, camera, flow=flow.detach(), **options)
+    det = detect_road(padding.unpad(image1), padding.unpad(image2),
+                      camera.cropped(padding.left, padding.top, padding.right, padding.bottom),
+                      flow=padding.unpad(flow.detach()), **options)
+    return RoadDetection(**{**det.__dict__, "mask": padding.pad(det.mask), "seed": padding.pad(det.seed)})
