@@ -252,6 +252,8 @@ def _bad_input(args: argparse.Namespace) -> str | None:
     for option in ("steps", "batch", "train_pairs", "test_pairs", "iters"):
         if getattr(args, option) < 1:
             return f"--{option.replace('_', '-')}: expected at least 1, got {getattr(args, option)}"
+    if args.batch > args.train_pairs:  # a global batch is drawn from the training pairs without repeats
+        return f"--batch: expected at most --train-pairs ({args.train_pairs}), got {args.batch}"
     if min(args.size) < 16:
         return f"--size: expected H, W >= 16, got {list(args.size)}"
     for option in ("lr", "freespace_weight"):

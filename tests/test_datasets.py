@@ -232,7 +232,11 @@ class TestScene:
         for key in ("image1", "image2", "flow", "valid", "road", "labels", "depth", "pose2"):
             assert torch.equal(item[key], p[key]), key
         assert item["odometry"] == p["odometry"] and item["plane"] == p["plane"]
-        assert item["camera"].dtype == torch.float64 and torch.equal(item["camera"].K, p["camera"].K.double())
+        # the float64 camera of a float32 render is the scene's own, not its float32 copy cast back
+        k64 = render_pair("default", 1, seed=1, size=SIZE, noise=0.0, dtype=torch.float64)["camera"].K
+        assert item["camera"].dtype == torch.float64 and torch.equal(item["camera"].K, k64)
+        assert not torch.equal(k64, p["camera"].K.double())  # float32 rounds this K
+        assert ds[0]["camera"].K is not ds[1]["camera"].K  # every item its own tensors
         bare = SceneDataset("default", 1, size=SIZE, ground_truth=False)[0]
         assert set(bare) == set(ITEM_KEYS) and bare["flow"] is None and bare["road"] is None
 
@@ -245,6 +249,17 @@ class TestScene:
             SceneDataset("default", 0)
         with pytest.raises(IndexError, match="out of range"):
             SceneDataset("default", 2, size=SIZE)[2]
+        # the arguments every item would use are checked at construction, not at the first item
+        with pytest.raises(TypeError, match=r"size: expected \(H, W\), got \(48,\)"):
+            SceneDataset("default", 1, size=(48,))
+        with pytest.raises(ValueError, match="size: expected positive sides"):
+            SceneDataset("default", 1, size=(0, 16))
+        with pytest.raises(TypeError, match="dtype: expected torch.float32 or torch.float64, got torch.float16"):
+            SceneDataset("default", 1, size=SIZE, dtype=torch.float16)
+        with pytest.raises(TypeError, match="camera_dtype: expected torch.float32 or torch.float64, got 'f64'"):
+            SceneDataset("default", 1, size=SIZE, camera_dtype="f64")
+        with pytest.raises(TypeError, match="ground_truth: expected True or False"):
+            SceneDataset("default", 1, size=SIZE, ground_truth="no")
 
 
 class TestContract:

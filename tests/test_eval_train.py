@@ -75,6 +75,13 @@ def test_train_job_checks_output_paths_first(tmp_path, capsys, monkeypatch, opti
     assert message.format(tmp=tmp_path) in capsys.readouterr().err
 
 
+def test_train_job_rejects_batch_larger_than_train_pairs(capsys, monkeypatch):
+    """A batch is drawn from the training pairs without repeats: more than there are exits 2 before rendering."""
+    monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before --batch was checked"))
+    assert eval_main(["train", "--steps", "1", "--batch", "5", "--train-pairs", "4", "--no-progress"]) == 2
+    assert "error: --batch: expected at most --train-pairs (4), got 5" in capsys.readouterr().err
+
+
 def test_dispatcher_help(capsys):
     with pytest.raises(SystemExit) as exc:
         eval_main(["train", "--help"])

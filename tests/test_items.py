@@ -114,3 +114,37 @@ def test_collate_keeps_keys_absent_in_every_item_and_refuses_a_mix():
     b["road"] = torch.ones(1, H, W, dtype=torch.bool)
     with pytest.raises(ValueError, match=r"samples: 'road' is None in item 0 but not in item 1"):
         collate([a, b])
+
+
+@pytest.mark.parametrize("order", [(torch.float32, torch.float64), (torch.float64, torch.float32)])
+def test_collate_gives_the_odometry_the_cameras_promoted_dtype(order):
+    odo = {"x_d": 0.1, "z_d": 1.0, "yaw": 0.01}
+    batch = collate([_item(camera=Camera(torch.eye(3, dtype=dt), 1.5), odometry=odo) for dt in order])
+    assert batch["camera"].dtype == torch.float64
+    assert all(v.dtype == torch.float64 for v in batch["odometry"].values())
+
+
+def test_collate_names_the_key_and_the_item():
+    a = _item(odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, flow=torch.zeros(2, H, W),
+              valid=torch.ones(1, H, W, dtype=torch.bool))
+    with pytest.raises(TypeError, match="samples: expected a non-empty list of dicts, got dict"):
+        collate(a)
+    with pytest.raises(ValueError, match="samples: expected a non-empty list of dicts"):
+        collate([])
+    with pytest.raises(TypeError, match="samples: item 0 is a NoneType, expected a dict"):
+        collate([None])
+    with pytest.raises(TypeError, match="samples: item 1 is a str, expected a dict"):
+        collate([a, "b"])
+    b = {**a, "odometry": {"x_d": 0.0, "z_d": 1.0}}
+    with pytest.raises(ValueError, match=r"samples: 'odometry' of item 1 has keys \['x_d', 'z_d'\], "
+                                         r"but \['x_d', 'yaw', 'z_d'\] in item 0"):
+        collate([a, b])
+    b = {**a, "odometry": {"x_d": 0.0, "z_d": "1", "yaw": 0.0}}
+    with pytest.raises(TypeError, match="samples: 'odometry' of item 1 has values that are not numbers"):
+        collate([a, b])
+    b = {**a, "flow": a["flow"].numpy()}
+    with pytest.raises(TypeError, match="samples: 'flow' of item 1 is a ndarray, but a Tensor in item 0"):
+        collate([a, b])
+    b = {**a, "camera": torch.eye(3)}
+    with pytest.raises(TypeError, match="samples: 'camera' of item 1 is a Tensor, but a Camera in item 0"):
+        collate([a, b])

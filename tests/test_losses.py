@@ -282,6 +282,11 @@ def test_errors_name_the_argument():
         FreespaceFlowLoss()(flow, road, cam)
     with pytest.raises(ValueError, match="smooth_order: expected 1 or 2"):
         UnsupervisedFlowLoss(smooth_order=3)
+    # a truthy string or number is no flag: "False" would switch the occlusion mask on
+    with pytest.raises(TypeError, match="occlusion: expected True or False, got str 'False'"):
+        UnsupervisedFlowLoss(occlusion="False")
+    with pytest.raises(TypeError, match="occlusion: expected True or False, got int 0"):
+        unsupervised_flow_loss(flow, image1, image2, flows_backward=flow, occlusion=0)
     with pytest.raises(TypeError, match="flows: expected a tensor"):
         unsupervised_flow_loss([], image1, image2)
     with pytest.raises(ValueError, match="flows_backward: expected 2 estimates"):

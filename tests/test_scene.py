@@ -165,7 +165,8 @@ def test_scene_config_overrides():
     (dict(preset=3), TypeError, "preset: expected a preset name"),
     (dict(colour="red"), TypeError, "unknown overrides"),
     (dict(dtype=torch.float16), TypeError, "dtype: expected torch.float32 or torch.float64"),
-    (dict(index=-1), ValueError, "index: expected >= 0"),
+    (dict(index=-1), ValueError, "index: expected an int >= 0, got -1"),
+    (dict(index=1.5), TypeError, "index: expected an int, got float 1.5"),
     (dict(size=(0, 10)), ValueError, "size: expected positive sides"),
     (dict(size=(10.5, 10)), TypeError, "size: expected integer sides"),
     (dict(supersample=0), ValueError, "supersample: expected an integer >= 1"),
@@ -176,6 +177,8 @@ def test_scene_config_overrides():
     (dict(noise=-1.0), ValueError, "noise: expected >= 0"),
     (dict(asphalt=(1.0, 2.0)), ValueError, "asphalt: expected 7 finite amplitudes"),
     (dict(roll=1.0), ValueError, "roll, pitch: expected"),
+    (dict(adaptive="False"), TypeError, "adaptive: expected True or False, got str 'False'"),
+    (dict(buildings=1), TypeError, "buildings: expected True or False, got int 1"),
 ])
 def test_render_pair_errors(kwargs, error, match):
     kwargs = {"preset": "default", "size": TINY, **kwargs}
@@ -184,8 +187,12 @@ def test_render_pair_errors(kwargs, error, match):
 
 
 def test_render_sequence_errors():
-    with pytest.raises(ValueError, match="num_pairs: expected >= 1"):
+    with pytest.raises(ValueError, match="num_pairs: expected an int >= 1"):
         render_sequence("default", 0, size=SMALL)
+    with pytest.raises(ValueError, match="start: expected an int >= 0, got -1"):
+        render_sequence("default", 1, start=-1, size=SMALL)
+    with pytest.raises(TypeError, match="start: expected an int, got float 1.5"):
+        render_sequence("default", 1, start=1.5, size=SMALL)
     with pytest.raises(TypeError, match="num_pairs: expected an int"):
         render_sequence("default", 1.5, size=SMALL)
     with pytest.raises(ValueError, match="pairs: expected a non-empty list"):

@@ -37,9 +37,11 @@ def test_parameter_count_small():
 
 # -- cardinality ---------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("B,H,W", [(1, 37, 61), (3, 40, 72), (2, 9, 13)])
-def test_any_size_and_batch(B, H, W):
-    net = TinyRAFT(seed=1, iters=2)
+@pytest.mark.parametrize("B,H,W", [(1, 37, 61), (3, 40, 72), (2, 9, 13), (2, 8, 8), (1, 1, 1), (1, 3, 8)])
+@pytest.mark.parametrize("training", [False, True])
+def test_any_size_and_batch(B, H, W, training):
+    """Images of at most 8 x 8 pixels too (one feature pixel, which instance norm refuses, unless widened)."""
+    net = TinyRAFT(seed=1, iters=2).train(training)
     image1, image2 = _pair(B, H, W)
     with torch.no_grad():
         flows = net(image1, image2)
@@ -128,6 +130,13 @@ def test_rejects_bad_inputs():
         net(image1, image2, iters=0)
     with pytest.raises(ValueError, match="corr_radius: expected a positive int"):
         TinyRAFT(corr_radius=0)
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, 3, H, W\) with B >= 1, got \(0, 3, 16, 16\)"):
+        net(image1[:0], image2[:0])
+    # a float seed is not rounded to another net's, and a string is named
+    with pytest.raises(TypeError, match="seed: expected an int, got float 1.5"):
+        TinyRAFT(seed=1.5)
+    with pytest.raises(TypeError, match="seed: expected an int, got str 'a'"):
+        TinyRAFT(seed="a")
 
 
 def test_correlation_volume_is_rafts():

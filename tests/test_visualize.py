@@ -111,6 +111,44 @@ def test_exceptions():
         overlay_mask(torch.zeros(3, 4, 4), torch.ones(1, 4, 4, dtype=torch.bool), alpha=2.0)
 
 
+@pytest.mark.parametrize("data_range, error, match", [
+    (0, ValueError, "data_range: expected a positive finite number"),
+    (-255.0, ValueError, "data_range: expected a positive finite number"),
+    (float("nan"), ValueError, "data_range: expected a positive finite number"),
+    ("255", TypeError, "data_range: expected a positive finite number"),
+])
+def test_overlay_checks_data_range(data_range, error, match):
+    """Not a division by zero, nor a silently black image."""
+    with pytest.raises(error, match=match):
+        overlay_mask(torch.full((3, 4, 4), 9.0), torch.ones(1, 4, 4, dtype=torch.bool), data_range=data_range)
+
+
+def test_overlay_refuses_non_finite_images():
+    """A NaN pixel is no black pixel."""
+    image = torch.full((3, 4, 4), 9.0)
+    image[1, 2, 3] = float("nan")
+    with pytest.raises(ValueError, match=r"image: expected finite values, got \[nan\]"):
+        overlay_mask(image, torch.zeros(1, 4, 4, dtype=torch.bool))
+
+
+@pytest.mark.parametrize("max_flow, match", [
+    (torch.tensor(float("nan")), r"max_flow: expected finite values, got \[nan\]"),
+    (torch.tensor(float("inf")), "max_flow: expected finite values"),
+    (torch.tensor(-2.0), r"max_flow: expected values > 0, got \[-2.0\]"),
+    (torch.tensor([1.0, 0.0, 2.0]), r"max_flow: expected values > 0, got \[0.0\]"),
+    (torch.tensor([1.0, 2.0]), r"max_flow: expected a tensor of 1 or 3 elements \(one per sample\), got shape \(2,\)"),
+])
+def test_flow_to_color_checks_a_tensor_max_flow(max_flow, match):
+    """Not an all-black (NaN) or all-white (negative) picture, nor a raw broadcasting error."""
+    with pytest.raises(ValueError, match=match):
+        flow_to_color(_flow(B=3), max_flow)
+    with pytest.raises(TypeError, match="max_flow: expected a real tensor, got dtype torch.bool"):
+        flow_to_color(_flow(B=3), torch.tensor(True))
+    # one value or one per sample
+    assert torch.equal(flow_to_color(_flow(B=3), torch.tensor(2.0)), flow_to_color(_flow(B=3), 2.0))
+    assert flow_to_color(_flow(B=3), torch.tensor([1.0, 2.0, 3.0])).shape == (3, 3, 20, 30)
+
+
 def test_save_rejects_batches(tmp_path):
     with pytest.raises(ValueError, match="expected a single image"):
         save_flow_png(tmp_path / "f.png", _flow(B=2))

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_int
+from .._check import check_bool, check_int, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
@@ -91,21 +91,35 @@ class SceneDataset(Dataset):
         preset: a name of :data:`fsof_torch.scene.PRESETS` or a ``SceneConfig``.
         num_pairs: the sequence's length in pairs.
         seed: the scene's seed; size: ``(H, W)`` (default: the preset's).
-        dtype: float32 or float64 for the rendering; ``camera_dtype`` of the camera (default ``dtype``).
+        dtype: float32 or float64 for the rendering; ``camera_dtype`` of the camera (default ``dtype``;
+            cast from the scene's float64 camera, so float64 keeps its digits under a float32 render).
         ground_truth: False -> images, camera, index and name only.
         **overrides: fields of ``SceneConfig`` (``noise=0.5``, ``speed_factor=2``, ...).
+
+    Every argument is checked here (a bad preset, override, size or dtype raises at construction,
+    not at the first item).
     """
 
     def __init__(self, preset: Any = "default", num_pairs: int = 4, *, seed: int = 0,
                  size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True, **overrides: Any):
         from .scene import scene_config
+        from .scene.world import Scene
 
-        scene_config(preset, **overrides)  # a bad preset or override fails here, not at the first item
         self.num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
         self.seed = check_int(seed, "seed")
+        size = None if size is None else check_size(size)
+        camera_dtype = dtype if camera_dtype is None else camera_dtype
+        for name, value in (("dtype", dtype), ("camera_dtype", camera_dtype)):
+            if value not in (torch.float32, torch.float64):
+                raise TypeError(f"{name}: expected torch.float32 or torch.float64, got {value!r}")
+        check_bool(ground_truth, "ground_truth")
+        # a bad preset or override fails here, not at the first item
+        cfg = scene_config(preset, **overrides, **({} if size is None else {"size": size}))
+        # the calibrated camera is the same for every pair: cast from float64, not from a rounded copy
+        self._camera64 = Scene(cfg, self.seed, torch.float64).camera64
         self.preset, self.size, self.overrides = preset, size, overrides
-        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype or dtype, ground_truth
+        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
     def __len__(self) -> int:
         return self.num_pairs
@@ -115,7 +129,7 @@ class SceneDataset(Dataset):
 
         i = check_index(index, len(self))
         p = render_pair(self.preset, i, seed=self.seed, size=self.size, dtype=self.dtype, **self.overrides)
-        p.update(index=i, name=f"{i:06d}", camera=p["camera"].to(self.camera_dtype))
+        p.update(index=i, name=f"{i:06d}", camera=self._camera64.to(self.camera_dtype, copy=True))
         return as_item(p if self.ground_truth else _images_and_camera(p))
 
 

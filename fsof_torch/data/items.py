@@ -152,24 +152,72 @@ def concat_cameras(cameras: Sequence[Camera]) -> Camera:
                   torch.cat([c.roll for c in parts]), torch.cat([c.pitch for c in parts]))
 
 
-def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
-    """Batch a list of dataset items (for ``DataLoader(..., collate_fn=collate)``).
+def _kind(value: Any) -> str:
+    """What :func:`collate` does with a value, in words: every item must give a key the same kind."""
+    if isinstance(value, Tensor):
+        return "a tensor"
+    if isinstance(value, Camera):
+        return "a Camera"
+    if isinstance(value, Mapping):
+        return "a dict"
+    return "not a tensor, Camera or dict"
 
-    Tensors -> stacked (B, ...); Camera -> one Camera of batch B; dicts of numbers (odometry,
-    velocity) -> dicts of (B,) tensors (the cameras' dtype, else float64); a key that is None in
-    every item -> None; anything else (index, name) -> a list. The same rules serve
-    :func:`fsof_torch.scene.collate`, so rendered pairs and items read from disk batch alike. Every
-    item must have the same keys, and a key None in one item must be None in all.
-    """
+
+def _check_samples(samples: object) -> list[str]:
+    """``samples`` a non-empty list or tuple of dicts with the same keys, each key of the same kind
+    (and a dict's of the same keys) in every item where it is not None: the keys."""
+    if not isinstance(samples, (list, tuple)):
+        raise TypeError(f"samples: expected a non-empty list of dicts, got {type(samples).__name__}")
     if not samples:
-        raise ValueError("samples: expected a non-empty list of dicts")
+        raise ValueError("samples: expected a non-empty list of dicts, got an empty one")
+    for i, s in enumerate(samples):
+        if not isinstance(s, Mapping):
+            raise TypeError(f"samples: item {i} is a {type(s).__name__}, expected a dict")
     keys = list(samples[0].keys())
     for i, s in enumerate(samples[1:], 1):
         if set(s.keys()) != set(keys):
             diff = sorted(set(s.keys()) ^ set(keys))
             raise ValueError(f"samples: item {i} has different keys from item 0 (differing: {diff})")
+    for key in keys:
+        given = [(i, s[key]) for i, s in enumerate(samples) if s[key] is not None]
+        if not given:
+            continue
+        i0, first = given[0]
+        for i, v in given[1:]:
+            if _kind(v) != _kind(first):
+                raise TypeError(f"samples: {key!r} of item {i} is a {type(v).__name__}, but a {type(first).__name__} "
+                                f"in item {i0} (a key holds tensors, Cameras, dicts or other values in every item)")
+            if isinstance(first, Mapping) and set(v) != set(first):
+                raise ValueError(f"samples: {key!r} of item {i} has keys {sorted(v)}, but {sorted(first)} "
+                                 f"in item {i0}")
+        if isinstance(first, Mapping) and all(isinstance(x, numbers.Real) for x in first.values()):
+            for i, v in given[1:]:
+                bad = {k: x for k, x in v.items() if not isinstance(x, numbers.Real)}
+                if bad:
+                    raise TypeError(f"samples: {key!r} of item {i} has values that are not numbers {bad!r}, "
+                                    f"but numbers in item {i0}")
+    return keys
+
+
+def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+    """Batch a list of dataset items (for ``DataLoader(..., collate_fn=collate)``).
+
+    Tensors -> stacked (B, ...); Camera -> one Camera of batch B (dtype promoted, as
+    :func:`concat_cameras`); dicts of numbers (odometry, velocity) -> dicts of (B,) tensors (the
+    cameras' promoted dtype, else float64); a key that is None in every item -> None; anything else
+    (index, name) -> a list. The same rules serve :func:`fsof_torch.scene.collate`, so rendered pairs
+    and items read from disk batch alike. ``samples`` must be a non-empty list or tuple of dicts with
+    the same keys; a key None in one item must be None in all, and a key must hold the same kind of
+    value (tensor, Camera, dict with the same keys, or other) in every item (a ValueError or
+    TypeError naming the key and the item otherwise).
+    """
+    keys = _check_samples(samples)
     cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
-    float_dtype = cams[0].dtype if cams else torch.float64
+    float_dtype = torch.float64
+    if cams:
+        float_dtype = cams[0].dtype
+        for cam in cams[1:]:
+            float_dtype = torch.promote_types(float_dtype, cam.dtype)
     batch: dict[str, Any] = {}
     for key in keys:
         values = [s[key] for s in samples]
@@ -189,7 +237,7 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             batch[key] = torch.stack(values)
         elif isinstance(first, Camera):
             batch[key] = concat_cameras(values)
-        elif isinstance(first, Mapping) and all(isinstance(x, numbers.Number) for x in first.values()):
+        elif isinstance(first, Mapping) and all(isinstance(x, numbers.Real) for x in first.values()):
             batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype) for k in first}
         else:
             batch[key] = list(values)

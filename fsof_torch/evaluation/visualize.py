@@ -21,7 +21,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_number, check_shape
+from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_number,
+                      check_positive, check_shape)
 
 __all__ = [
     "make_colorwheel",
@@ -81,8 +82,8 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
 
     Args:
         flow: (B, 2, H, W) or (2, H, W), pixels, channel 0 = u.
-        max_flow: the magnitude shown at full saturation: a float, a (B,) tensor, or None for
-            each sample's largest valid magnitude. Longer vectors are drawn darker (×0.75), as in
+        max_flow: the magnitude shown at full saturation (finite, > 0): a float, a tensor of one or
+            B values, or None for each sample's largest valid magnitude. Longer vectors are drawn darker (×0.75), as in
             the reference code.
         valid: optional (B, 1, H, W) bool; invalid (and non-finite) pixels are black.
 
@@ -107,7 +108,14 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     if max_flow is None:
         scale = rad.flatten(1).amax(dim=1)
     elif isinstance(max_flow, Tensor):
-        scale = max_flow.detach().to(work).reshape(-1).expand(B)
+        if max_flow.dtype == torch.bool or max_flow.is_complex():
+            raise TypeError(f"max_flow: expected a real tensor, got dtype {max_flow.dtype}")
+        if max_flow.numel() not in (1, B):
+            raise ValueError(f"max_flow: expected a tensor of {batch_choices(B)} elements (one per sample), "
+                             f"got shape {tuple(max_flow.shape)}")
+        check_finite(max_flow, "max_flow")  # NaN would draw every pixel black, a negative one white
+        check_positive(max_flow, "max_flow")
+        scale = max_flow.detach().to(dtype=work, device=flow.device).reshape(-1).expand(B)
     else:
         scale = torch.full((B,), check_number(max_flow, "max_flow", positive=True), dtype=work,
                            device=flow.device)
@@ -179,7 +187,8 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
     """Blend ``color`` into ``image`` where ``mask`` is True.
 
     Args:
-        image: (B, C, H, W) or (C, H, W), C = 3 (RGB) or 1 (grey), values in [0, data_range].
+        image: (B, C, H, W) or (C, H, W), C = 3 (RGB) or 1 (grey), finite values in [0, data_range].
+        data_range: the images' maximum (finite, > 0): 255.0 for 0-255 images, 1.0 for 0-1 images.
         mask: (B, 1, H, W) or (1, H, W) bool.
         color: RGB 0..255. alpha: its weight inside the mask, in [0, 1].
 
@@ -199,6 +208,8 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
         raise ValueError(f"alpha: expected a value in [0, 1], got {alpha!r}")
     if len(color) != 3:
         raise ValueError(f"color: expected an (R, G, B) triple, got {color!r}")
+    data_range = check_data_range(data_range)
+    check_finite(image, "image")  # a NaN pixel would be drawn as 0, black, as if it were one
     img = image.detach().float().expand(B, 3, H, W) * (255.0 / data_range)
     c = torch.tensor([float(x) for x in color], device=image.device).view(1, 3, 1, 1)
     out = torch.where(mask, (1 - alpha) * img + alpha * c, img)

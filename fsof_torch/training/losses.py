@@ -48,6 +48,7 @@ from torch import Tensor, nn
 from .._check import (
     autocast_off,
     batch_choices,
+    check_bool,
     check_data_range,
     check_finite,
     check_float_tensor,
@@ -376,6 +377,7 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
         raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
     _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
                    smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
+    check_bool(occlusion, "occlusion")
     data_range = check_data_range(data_range)
     fw = _as_flow_list(flows, "flows")
     bw = None if flows_backward is None else _as_flow_list(flows_backward, "flows_backward")
@@ -576,6 +578,7 @@ class UnsupervisedFlowLoss(nn.Module):
             raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
         _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
                        smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
+        check_bool(occlusion, "occlusion")
         data_range = check_data_range(data_range)
         self.options = dict(gamma=gamma, l1_weight=l1_weight, ssim_weight=ssim_weight,
                             census_weight=census_weight, smooth_weight=smooth_weight,

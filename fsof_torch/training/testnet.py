@@ -8,7 +8,8 @@ full resolution after every iteration. About 0.4 M parameters, so it trains on a
 
 Convention: images (B, 3, H, W) RGB on 0..255 (normalised inside); flow (B, 2, H, W) in pixels,
 channel 0 = u, forward from ``image1`` to ``image2``. Any H, W: the net pads to a multiple of 8
-(replicating the border) and crops its outputs back.
+(replicating the border; at most 8 x 8 pixels to 8 x 16, since instance norm needs two feature
+pixels) and crops its outputs back.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_shape, skip_values
+from .._check import check_float_tensor, check_int, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -192,6 +193,7 @@ class TinyRAFT(nn.Module):
                             ("corr_radius", corr_radius)):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
+        seed = check_int(seed, "seed")
         self.iters = iters
         self.hidden_dim = hidden_dim
         self.context_dim = context_dim
@@ -208,7 +210,8 @@ class TinyRAFT(nn.Module):
         """Flow from ``image1`` to ``image2``.
 
         Args:
-            image1, image2: (B, 3, H, W) RGB on 0..255, any H and W.
+            image1, image2: (B, 3, H, W) RGB on 0..255, B >= 1, any H and W >= 1 (images of at
+                most 8 x 8 pixels are padded to 8 x 16 inside, as instance norm needs two feature pixels).
             iters: refinement iterations (default: the constructor's).
             final_only: upsample only the last iteration's flow (RAFT's ``test_mode``): the same
                 estimate, without the upsampling weights and full-size flows of the iterations
@@ -220,8 +223,8 @@ class TinyRAFT(nn.Module):
         """
         check_float_tensor(image1, "image1")
         check_float_tensor(image2, "image2")
-        dims = check_shape(image1, "image1", ("B", 3, "H", "W"))
-        check_shape(image2, "image2", ("B", 3, "H", "W"), dims)
+        dims = check_shape(image1, "image1", ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
+        check_shape(image2, "image2", ("B", 3, "H", "W"), dims, nonempty=("B", "H", "W"))
         iters = self.iters if iters is None else iters
         if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
             raise ValueError(f"iters: expected a positive int, got {iters!r}")
@@ -238,6 +241,8 @@ class TinyRAFT(nn.Module):
         x = torch.cat([image1, image2], dim=0).to(weight.dtype) / 127.5 - 1.0
         # Pad symmetrically to a multiple of the stride; replicate so the border carries no edge.
         ph, pw = (-H) % STRIDE, (-W) % STRIDE
+        if H + ph == STRIDE and W + pw == STRIDE:
+            pw += STRIDE  # instance norm needs 2 feature pixels: H, W <= 8 would give 1, so widen by a stride
         pad = (pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)
         x = F.pad(x, pad, mode="replicate")
 

@@ -10,7 +10,7 @@ import math
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from ..._check import check_size
+from ..._check import check_bool, check_size
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
            "scene_config", "ASPHALT_CELLS"]
@@ -224,6 +224,8 @@ def _validate(cfg: SceneConfig) -> None:
                              f"got {amps!r}")
     if isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int) or cfg.supersample < 1:
         raise ValueError(f"supersample: expected an integer >= 1, got {cfg.supersample!r}")
+    for name in ("adaptive", "buildings"):
+        check_bool(getattr(cfg, name), name)  # a truthy string such as "False" would pass as True
     if cfg.size is not None:
         check_size(cfg.size)
     check_size(cfg.base_size, "base_size")

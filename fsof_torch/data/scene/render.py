@@ -10,7 +10,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..._check import check_size
+from ..._check import check_int, check_size
 from .config import MARKING, ROAD, SKY, SceneConfig, scene_config
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
@@ -195,6 +195,7 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         of the rigid motion t -> t+1 over that plane (:func:`.ground_truth.road_motion`, DESIGN.md
         §10); ``index`` int.
     """
+    check_int(index, "index", minimum=0)  # checked here, so that the error names this function's argument
     return render_sequence(preset, 1, seed=seed, size=size, dtype=dtype, start=index, **overrides)[0]
 
 
@@ -211,13 +212,9 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     ``progress=True`` shows a tqdm bar. Other arguments as in :func:`render_pair`.
     """
     _check_dtype(dtype)
-    for name, value in (("num_pairs", num_pairs), ("start", start), ("seed", seed)):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise TypeError(f"{name}: expected an int, got {value!r}")
-    if num_pairs < 1:
-        raise ValueError(f"num_pairs: expected >= 1, got {num_pairs}")
-    if start < 0:
-        raise ValueError(f"index: expected >= 0, got {start}")
+    num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
+    start = check_int(start, "start", minimum=0)
+    seed = check_int(seed, "seed")
     if size is not None:
         size = check_size(size)
         overrides["size"] = size
@@ -237,7 +234,7 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
 
 def collate(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     """Stack rendered pairs into a batch: tensors get a leading B, cameras are concatenated,
-    ``odometry`` / ``velocity`` floats become (B,) tensors (of the cameras' dtype), ints a list.
+    ``odometry`` / ``velocity`` floats become (B,) tensors (of the cameras' promoted dtype), ints a list.
 
     The rules of :func:`fsof_torch.datasets.collate`, so rendered pairs and pairs read from disk
     batch alike.
