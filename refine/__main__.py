@@ -418,7 +418,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         write_clip_summaries(summary, cfg)
     table = write_report(summary, cfg, args.json)
     print(f"\n{title}\n\n{table}\n")
-    for n in notes:
+    for n in summary["notes"]:
         print(f"- {n}")
     print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0

@@ -171,23 +171,25 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
             bar.set_postfix_str(f"{spec.name}: loading the pair")
             pair = _to_device(spec.load(), cfg.device)
             cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
+            bar.set_postfix_str(f"{spec.name}: road mask")
+            road, road_from, road_info, dis_pred = _pair_road(pair, cam, cfg, sources, spec.name)
             for source in todo:
                 bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
-                pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
-                bar.set_postfix_str(f"{spec.name}: road mask and errors before ({source})")
-                if cfg.road_auto and cfg.clip is not None:  # detected once, for the clip's fit
-                    road, road_info = cfg.clip.road(spec.name)
-                    road, road_from = road.to(pred.device), "auto"
+                if source == "dis" and dis_pred is not None:  # already predicted for the road
+                    pred = dis_pred
                 else:
-                    road, road_from, road_info = road_mask(pair, pred, cam, cfg)
+                    pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
+                bar.set_postfix_str(f"{spec.name}: errors before ({source})")
                 before = flow_maps(pair, pred)
+                finite_share = float(before["finite"].to(torch.float64).mean())
                 flows, maps = {}, {}
                 for variant in cfg.variants:
                     bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")
                     record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
                                                       _camera_for(variant, cam, cfg), variant, before, spec.name)
                     record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
-                                   "road": road_from, **road_info, "rank": rank, "fingerprint": cfg.fingerprint,
+                                   "road": road_from, **road_info, "prediction_finite": finite_share,
+                                   "rank": rank, "fingerprint": cfg.fingerprint,
                                    "input_fingerprint": input_fp[variant]})
                     p = paths(cfg, source, variant, spec.name)
                     record["flow_png_dropped"] = _write_flow_png(p["flow"], after)
@@ -237,6 +239,28 @@ def input_fingerprint(spec: PairSpec) -> str:
     from .resume import fingerprint
 
     return fingerprint({"pair": spec.name, **spec.identity()})
+
+
+def _pair_road(pair: dict, camera: Camera, cfg: JobConfig, sources: dict,
+               name: str) -> tuple[Tensor, str, dict, Tensor | None]:
+    """The pair's road mask, where it came from and what was recorded about it, shared by every
+    flow source; and DIS's flow where it was predicted for it (the ``dis`` source's, when the run
+    has one: reused, not predicted again).
+
+    With ``--road auto`` the road is detected once per pair, started from DIS's flow: from the
+    clip's fit where the job fits the clip (which detected it so), else here. Every source is then
+    refined and measured on the same road, and the report's detection summary is the pair's."""
+    if cfg.road_auto and cfg.clip is not None:
+        road, road_info = cfg.clip.road(name)
+        return road.to(cfg.device), "auto", road_info, None
+    if pair.get("road") is not None and not cfg.road_auto:
+        return pair["road"].to(torch.bool), "given", {}, None
+    from .sources import dis_flow
+
+    dis = sources.get("dis") or (lambda p, _file: dis_flow(p["image1"], p["image2"]))
+    dis_pred = dis(pair, None).to(cfg.device)
+    road, road_from, road_info = road_mask(pair, dis_pred, camera, cfg)
+    return road, road_from, road_info, dis_pred if "dis" in sources else None
 
 
 def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str, dict]:

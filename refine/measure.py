@@ -156,8 +156,9 @@ def compare(before: dict[str, Tensor], after: dict[str, Tensor], road: Tensor) -
     and both are defined (sample point, and window, inside image2; so that a flow that pushes
     pixels out of the image is not rewarded for it), inside the road and overall: keys
     ``census_road``, ``ssim_all``, ``photo_road`` (L1), ... each with its pixel count
-    (``..._n``). With ground truth: e_E / e_A / Fl over the valid ground-truth pixels where both
-    flows are finite (KITTI style: ``epe_road``, ``epe_all``, ``ae_*``, ``fl_*``), and each
+    (``..._n``; the metric None where that count is 0). With ground truth: e_E / e_A / Fl over the
+    valid ground-truth pixels where both flows are finite (KITTI style: ``epe_road``, ``epe_all``,
+    ``ae_*``, ``fl_*``), and each
     photometric kind once more over those pixels (``census_road_noc``, ``photo_all_noc``, ...): a
     pixel occluded in image 2 has no true match, so no flow explains its brightness and the error
     there rewards a flow that points at a look-alike instead (on the synthetic scene the exact
@@ -184,7 +185,8 @@ def compare(before: dict[str, Tensor], after: dict[str, Tensor], road: Tensor) -
             sums = _class_sums(labels, maps[name], n_classes)
             for region, members in column_regions.items():
                 n = sum(counts[c] for c in members)
-                stage[f"{prefix}_{region}"] = sum(sums[c] for c in members) / max(n, 1)
+                # over no pixel (e.g. a flow that is NaN everywhere) a metric has no value, not 0
+                stage[f"{prefix}_{region}"] = sum(sums[c] for c in members) / n if n else None
                 stage[f"{prefix}_{region}_n"] = n
     return out
 

@@ -69,17 +69,20 @@ def summarize(metrics: torch.Tensor, extra: torch.Tensor, records: list[dict], c
             continue
         row: dict[str, Any] = {"source": source, "variant": variant, "pairs": processed,
                                "refined": int(extra[:, j, _REFINED].sum())}
+        # the metrics the records hold (ground-truth ones only with ground truth), measured or not
+        held = {k for r in records if (r["source"], r["variant"]) == (source, variant) for k in r["before"]}
         for k, (key, _) in enumerate(METRICS):
             pooled = []
             for s in range(len(STAGES)):
                 total, count = _ordered_sum(metrics[:, j, k, s, 0]), _ordered_sum(metrics[:, j, k, s, 1])
                 pooled.append(total / count if count else None)
             b, a = pooled
-            if b is None or a is None:
+            if (b is None or a is None) and key not in held:
                 continue
+            # None (printed '–'): no pixel of any pair was measurable, e.g. the source's flow was NaN
             row[f"{key}_before"] = b
             row[f"{key}_after"] = a
-            row[f"{key}_change_pct"] = 100.0 * (a - b) / b if b else None
+            row[f"{key}_change_pct"] = 100.0 * (a - b) / b if a is not None and b else None
         n = _ordered_sum(extra[:, j, _ZD_N])
         if n:
             row["z_d_abs_error_m"] = _ordered_sum(extra[:, j, _ZD_ERR]) / n
@@ -89,8 +92,26 @@ def summarize(metrics: torch.Tensor, extra: torch.Tensor, records: list[dict], c
     return {"title": cfg.title, "mode": cfg.mode, "scale_px": cfg.scale, "sources": cfg.sources,
             "variants": cfg.variants, "fit_roll": cfg.fit_roll, "fit_pitch": cfg.fit_pitch,
             "road": "auto" if cfg.road_auto else "given", "world_size": world_size,
-            "fingerprint": cfg.fingerprint, "identity": identity, "rows": rows, "notes": cfg.notes,
+            "fingerprint": cfg.fingerprint, "identity": identity, "rows": rows,
+            "notes": cfg.notes + unmeasured_notes(rows, records, cfg.sources),
             "records_resumed": resumed, "records_computed": len(records) - resumed, "pairs": records}
+
+
+def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) -> list[str]:
+    """Warnings for the report: each flow source whose flow was NaN or inf at every pixel of a pair
+    (nothing of that pair could be measured or refined), and what a '–' in the table means."""
+    notes = []
+    for source in sources:
+        pairs = sorted({r["pair"] for r in records if r["source"] == source and r.get("prediction_finite") == 0.0})
+        if pairs:
+            total = len({r["pair"] for r in records if r["source"] == source})
+            shown = ", ".join(pairs[:8]) + (", ..." if len(pairs) > 8 else "")
+            notes.append(f"Warning: flow source '{source}' gave no finite flow (NaN or inf at every pixel) on "
+                         f"{len(pairs)} of {total} pair(s) ({shown}): no metric could be measured there.")
+    if any(k.endswith("_before") and v is None for r in rows for k, v in r.items()):
+        notes.append("'–': measured over no pixel (none where both the prediction and the refined flow are "
+                     "finite and defined; e.g. the source gave no finite flow).")
+    return notes
 
 
 def _ordered_sum(values: torch.Tensor) -> float:
@@ -200,8 +221,10 @@ def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:
     from fsof_torch.evaluation.figures import clip_summary_figure, save_figure
 
     written = []
+    nan = lambda m: {k: float("nan") if v is None else v for k, v in m.items()}  # noqa: E731  (unmeasured)
     for source in cfg.sources:
-        records = [r for r in summary["pairs"] if r["source"] == source]
+        records = [{**r, "before": nan(r["before"]), "after": nan(r["after"])}
+                   for r in summary["pairs"] if r["source"] == source]
         if not records:
             continue
         errors = {f"{prefix}_road": f"{label}, road" for prefix, _, label in PHOTO}

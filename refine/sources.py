@@ -138,27 +138,47 @@ def _contract(net: nn.Module, spec: NetSpec) -> str:
                    f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
 
 
-def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor) -> Tensor:
+def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor, *,
+             option: str = "--net") -> Tensor:
     """Run a network of the given contract on one pair ((3, H, W) RGB 0..255) and return its
     final full-size flow (2, H, W) float32. Sizes are padded as RAFT does when the contract
-    needs it (torchvision, raft: to a multiple of 8) and the output cropped back."""
-    from fsof_torch.refinement.contracts import InputPadder, collect_flows, finest_flow, ptlflow_inputs
+    needs it (torchvision, raft: to a multiple of 8) and the output cropped back.
 
-    im1, im2 = image1[None], image2[None]
+    The network gets copies of the images (one that normalises its inputs in place leaves the
+    pair as it was), in the dtype of its first floating parameter where it has one. A forward that
+    raises, and an output that holds no flow, are JobErrors naming ``option``.
+    """
+    from fsof_torch.refinement.contracts import (DEFAULT_FLOW_KEYS, InputPadder, collect_flows, finest_flow,
+                                                 ptlflow_inputs)
+
+    dtype = next((p.dtype for p in net.parameters() if p.is_floating_point()), torch.float32) \
+        if isinstance(net, nn.Module) else torch.float32
+    im1, im2 = image1[None].to(dtype, copy=True), image2[None].to(dtype, copy=True)
     size = tuple(im1.shape[-2:])
     padding = InputPadder(8).padding(size)
     with torch.no_grad():
-        if contract == "ptlflow":
-            output = net(ptlflow_inputs(im1, im2))  # ptlflow's models pad internally
-        else:
-            if contract == "torchvision":
-                im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0
-            output = net(padding.pad(im1), padding.pad(im2))
-            output = padding.unpad_output(output, padding.padded_size(size))
-        flows = collect_flows(output, "--net output")
+        try:
+            if contract == "ptlflow":
+                output = net(ptlflow_inputs(im1, im2))  # ptlflow's models pad internally
+            else:
+                if contract == "torchvision":
+                    im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0
+                output = net(padding.pad(im1), padding.pad(im2))
+        except Exception as err:  # the user's code: any type
+            raise JobError(f"{option}: the network raised {type(err).__name__}: "
+                           f"{str(err).splitlines()[0] if str(err) else ''} (contract {contract})") from None
+        try:
+            if contract != "ptlflow":
+                output = padding.unpad_output(output, padding.padded_size(size))
+            flows = collect_flows(output, "output")
+        except (TypeError, ValueError) as err:
+            raise JobError(f"{option}: {err}") from None
+    if not flows:
+        raise JobError(f"{option}: its output holds no flow (a {type(output).__name__}; a dict needs one of the "
+                       f"keys {', '.join(DEFAULT_FLOW_KEYS[:3])}, ...)")
     _, flow = finest_flow(flows)
     if tuple(flow.shape[-2:]) != size:
-        raise JobError(f"--net: the network's finest flow is {tuple(flow.shape[-2:])}, the images {size}")
+        raise JobError(f"{option}: the network's finest flow is {tuple(flow.shape[-2:])}, the images {size}")
     return flow[0].to(torch.float32)
 
 
@@ -177,7 +197,8 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
         testnet.eval().to(device)
         # the job keeps the last flow only: the iterations before it are not upsampled
         final = functools.partial(testnet, final_only=True)
-        return lambda pair, _file: net_flow(final, "raft", pair["image1"], pair["image2"])
+        return lambda pair, _file: net_flow(final, "raft", pair["image1"], pair["image2"],
+                                            option="--source testnet")
     if name == "net":
         if net is None:
             raise JobError("--source net needs --net module:callable")

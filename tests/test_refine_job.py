@@ -515,6 +515,37 @@ def test_synthetic_road_auto(tmp_path, size):
     assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
 
 
+def test_road_auto_is_detected_once_per_pair_from_dis_for_every_source(tmp_path, monkeypatch):
+    """--road auto without a clip fit: each pair's road is detected once, from DIS's flow, and
+    every source is refined on it (its records, and the report's summary, are the pair's)."""
+    import fsof_torch
+
+    detected = []
+    detect_road = fsof_torch.detect_road
+
+    def counting(*args, **kwargs):
+        det = detect_road(*args, **kwargs)
+        detected.append((int(det.mask.sum()), float(det.coverage[0])))
+        return det
+
+    monkeypatch.setattr(fsof_torch, "detect_road", counting)
+    base = ["--num-pairs", "2", "--odometry", "given", "--road", "auto", "--no-figures", "--no-progress",
+            "--size", "96x320"]
+    assert main([*base, "--source", "dis,testnet", "--out", str(tmp_path / "both")]) == 0
+    assert len(detected) == 2  # once per pair, not once more per source
+    by_source = {}
+    for r in json.loads((tmp_path / "both" / "report.json").read_text())["pairs"]:
+        by_source.setdefault(r["source"], []).append((r["road_auto_pixels"], r["road_coverage"]))
+    assert by_source["dis"] == by_source["testnet"] == detected
+    # the road of a run without the dis source is DIS's too, not the random test net's
+    first = list(detected)
+    assert main([*base, "--source", "testnet", "--out", str(tmp_path / "testnet")]) == 0
+    records = json.loads((tmp_path / "testnet" / "report.json").read_text())["pairs"]
+    assert [(r["road_auto_pixels"], r["road_coverage"]) for r in records] == detected[2:] == first
+    # (the synthetic road at this size is found: both pairs ok)
+    assert "2 of 2 pairs ok" in (tmp_path / "both" / "report.md").read_text()
+
+
 def test_user_data_flow_files_poses_and_gt(tmp_path, user_folder, scene_pairs):
     out = tmp_path / "out"
     rc = main(_user(user_folder, out, "--poses", str(user_folder / "poses.txt"), "--flows", str(user_folder / "flows"),
@@ -692,6 +723,21 @@ def test_evaluate_noc_leaves_out_occluded_pixels():
     # without ground truth there is nothing to tell occlusion by
     before, _ = evaluate({"image1": image1, "image2": image2}, zero, zero, road)
     assert "photo_road_noc" not in before
+
+
+def test_a_metric_over_no_pixel_has_no_value():
+    """A flow that is NaN everywhere leaves no pixel to measure: the metrics are None, not 0."""
+    from refine.measure import evaluate
+
+    H, W = 6, 8
+    image = torch.full((3, H, W), 100.0)
+    nan = torch.full((2, H, W), float("nan"))
+    road = torch.ones(1, H, W, dtype=torch.bool)
+    pair = {"image1": image, "image2": image.clone(), "flow": torch.zeros(2, H, W),
+            "valid": torch.ones(1, H, W, dtype=torch.bool)}
+    for m in evaluate(pair, nan, nan.clone(), road):
+        for key in ("census_road", "ssim_all", "photo_road_noc", "epe_road", "fl_all"):
+            assert m[key] is None and m[f"{key}_n"] == 0, key
 
 
 @pytest.fixture(scope="module")

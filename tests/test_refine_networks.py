@@ -45,6 +45,70 @@ class TwoImages(torch.nn.Module):
 
 def two_images():
     return TwoImages()
+
+
+class Zeros(torch.nn.Module):
+    flow_contract = "raft"
+
+    def forward(self, image1, image2):
+        return [torch.zeros(image1.shape[0], 2, *image1.shape[-2:])]
+
+
+class InPlace(Zeros):
+    """Normalises its inputs in place, as some RAFT ports do."""
+
+    def forward(self, image1, image2):
+        image1.div_(255.0)
+        image2.div_(255.0)
+        return super().forward(image1, image2)
+
+
+class AllNaN(Zeros):
+    def forward(self, image1, image2):
+        return [super().forward(image1, image2)[0] * float("nan")]
+
+
+class Double(Zeros):
+    """Float64 weights: the images must come in float64."""
+
+    def __init__(self):
+        super().__init__()
+        self.conv = torch.nn.Conv2d(6, 2, 3, padding=1).double()
+        torch.nn.init.zeros_(self.conv.weight)
+        torch.nn.init.zeros_(self.conv.bias)
+
+    def forward(self, image1, image2):
+        return [self.conv(torch.cat([image1, image2], 1))]
+
+
+class Raises(Zeros):
+    def forward(self, image1, image2):
+        raise RuntimeError("boom inside forward")
+
+
+class ReturnsDict(Zeros):
+    def forward(self, image1, image2):
+        return {"foo": 1}
+
+
+def in_place():
+    return InPlace()
+
+
+def all_nan():
+    return AllNaN()
+
+
+def double():
+    return Double()
+
+
+def raises():
+    return Raises()
+
+
+def returns_dict():
+    return ReturnsDict()
 '''
 
 
@@ -139,6 +203,51 @@ def test_explicit_contract(tmp_path, user_module):
     summary = _run(tmp_path, "--net", f"{user_module}:two_images", "--net-contract", "raft")
     (record,) = summary["pairs"]
     assert record["before"]["epe_road"] > 1.0 > 1e-3 > record["after"]["epe_road"]
+
+
+def test_the_network_gets_copies_of_the_images(user_module, pair):
+    """A network that normalises its inputs in place leaves the pair's images as they were."""
+    import importlib
+
+    from refine.sources import net_flow
+
+    # a multiple of 8: no padding, which would hand the network a new tensor anyway
+    image1, image2 = (pair[k][:, :40, :144].clone() for k in ("image1", "image2"))
+    original = image1.clone(), image2.clone()
+    flow = net_flow(importlib.import_module(user_module).in_place(), "raft", image1, image2)
+    assert flow.shape == (2, 40, 144)
+    assert torch.equal(image1, original[0]) and torch.equal(image2, original[1])
+
+
+def test_a_float64_network_gets_float64_images(tmp_path, user_module):
+    summary = _run(tmp_path, "--net", f"{user_module}:double")
+    (record,) = summary["pairs"]
+    assert record["prediction_finite"] == 1.0
+    assert record["before"]["epe_road"] > 1.0 > 1e-3 > record["after"]["epe_road"]  # zero flow, then refined
+
+
+def test_a_network_that_fails_on_a_pair_exits_2_naming_net(tmp_path, user_module, capsys):
+    for name, message in (("raises", "--net: the network raised RuntimeError: boom inside forward"),
+                          ("returns_dict", "--net: its output holds no flow")):
+        assert main(["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
+                     "--out", str(tmp_path / name), "--net", f"{user_module}:{name}"]) == 2
+        assert message in capsys.readouterr().err
+
+
+def test_a_network_whose_flow_is_nan_everywhere(tmp_path, user_module):
+    """No pixel to measure: the records hold None, the report prints '–' rows and warns, naming
+    the source."""
+    out = tmp_path / "out"
+    summary = _run(tmp_path, "--net", f"{user_module}:all_nan")
+    (record,) = summary["pairs"]
+    assert record["prediction_finite"] == 0.0
+    assert record["before"]["census_all"] is None and record["before"]["census_all_n"] == 0
+    (row,) = summary["rows"]
+    assert row["census_road_before"] is None and row["epe_all_after"] is None
+    report = (out / "report.md").read_text()
+    assert "| net | given | 1/1 | census distance (0-1) | – | – | – | – | – | – |" in report
+    assert "flow source 'net' gave no finite flow (NaN or inf at every pixel) on 1 of 1 pair(s) (000000)" in report
+    assert "'–': measured over no pixel" in report
 
 
 # -- torchrun -------------------------------------------------------------------------------------
