@@ -101,6 +101,9 @@ def test_exceptions():
     (dict(min_correlation=1.5), ValueError, r"min_correlation: expected a number in \[-1, 1\], got 1.5"),
     (dict(min_correlation="high"), TypeError, "min_correlation: expected a number, got str 'high'"),
     (dict(retry_starts=-1), ValueError, "retry_starts: expected an int >= 0, got -1"),
+    # a prior's mean and sigma: numbers, of batch 1 or B (a raw torch error before)
+    (dict(prior={"roll": ("a", 0.1)}), TypeError, r"prior\['roll'\]: expected numbers or tensors \(mean, sigma\)"),
+    (dict(prior={"roll": (torch.zeros(3), 0.1)}), ValueError, r"prior\['roll'\]: expected a mean and a sigma of batch"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
@@ -301,3 +304,16 @@ def test_real_kitti_dis_then_photometric(shared_data, kitti15_ground_truth):
     assert bool(fit.success)
     assert e_fit <= 1.0, (e_dis, e_fit)
     assert e_dis > 5.0  # DIS itself is far off on this road (about 14 px)
+
+
+def test_calibration_prior_and_physical_bounds_check_their_arguments():
+    from fsof_torch.estimation.image_fit import calibration_prior, physical_bounds
+
+    cam = small_camera()
+    with pytest.raises(ValueError, match=r"^mounting_deg: expected a positive number \(> 0\), got -1.0"):
+        calibration_prior("plane", cam, mounting_deg=-1.0)
+    with pytest.raises(TypeError, match=r"^vertical_m: expected a number, got str 'a'"):
+        calibration_prior("plane", cam, vertical_m="a")
+    for fn in (calibration_prior, physical_bounds):
+        with pytest.raises(TypeError, match=r"^camera: expected a fsof_torch.Camera, got NoneType"):
+            fn("plane", None)

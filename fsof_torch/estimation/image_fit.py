@@ -74,6 +74,10 @@ def calibration_prior(model: str | RoadModel, camera: Camera, *, mounting_deg: f
     that have one (none for the homography model).
     """
     model = get_road_model(model)
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    mounting_deg, body_rotation_deg, vertical_m = (check_number(v, n, positive=True) for n, v in (
+        ("mounting_deg", mounting_deg), ("body_rotation_deg", body_rotation_deg), ("vertical_m", vertical_m)))
     out: dict[str, tuple[Tensor, float]] = {}
     if "roll" in model.params:
         out["roll"] = (camera.roll, mounting_deg * DEG)
@@ -91,6 +95,8 @@ def physical_bounds(model: str | RoadModel, camera: Camera) -> tuple[Tensor, Ten
     below 5° per frame, yaw below 30° per frame, the translation below 20 camera heights per frame
     (y_d below 0.3). The homography model has none."""
     model = get_road_model(model)
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     B = camera.batch_size
     h = camera.height.to(torch.float64)
     lo = torch.full((B, len(model.params)), -math.inf, dtype=torch.float64, device=camera.device)
@@ -608,8 +614,14 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
             mu, sigma = value
         except (TypeError, ValueError):
             raise ValueError(f"prior[{name!r}]: expected (mean, sigma), got {value!r}") from None
-        mu = torch.as_tensor(mu, dtype=torch.float64, device=device)
-        sigma = torch.as_tensor(sigma, dtype=torch.float64, device=device)
+        try:
+            mu = torch.as_tensor(mu, dtype=torch.float64, device=device).reshape(-1)
+            sigma = torch.as_tensor(sigma, dtype=torch.float64, device=device).reshape(-1)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"prior[{name!r}]: expected numbers or tensors (mean, sigma), got {value!r}") from None
+        if mu.numel() not in (1, B) or sigma.numel() not in (1, B):
+            raise ValueError(f"prior[{name!r}]: expected a mean and a sigma of batch 1 or {B}, got "
+                             f"{mu.numel()} and {sigma.numel()} values")
         if not bool(torch.isfinite(mu).all()) or not bool((sigma > 0).all()):
             raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
         i = model.params.index(name)
