@@ -44,6 +44,7 @@ batches items for a ``DataLoader``.
 
 from __future__ import annotations
 
+import functools
 import numbers
 from typing import Any, Mapping, Sequence
 
@@ -213,11 +214,7 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     """
     keys = _check_samples(samples)
     cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
-    float_dtype = torch.float64
-    if cams:
-        float_dtype = cams[0].dtype
-        for cam in cams[1:]:
-            float_dtype = torch.promote_types(float_dtype, cam.dtype)
+    float_dtype = functools.reduce(torch.promote_types, [c.dtype for c in cams]) if cams else torch.float64
     batch: dict[str, Any] = {}
     for key in keys:
         values = [s[key] for s in samples]

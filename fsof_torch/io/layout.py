@@ -334,14 +334,10 @@ def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
     params = _read_json_file(path)
     _number(params, path, "camera", "height")
     K = params["camera"].get("K")
-    if not (isinstance(K, list) and len(K) == 3 and all(isinstance(row, list) and len(row) == 3 for row in K)):
-        raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of numbers")
-    for row in range(3):
-        for col in range(3):
-            value = K[row][col]
-            if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-                raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of finite numbers: "
-                                 f"{value!r} at [{row}][{col}]")
+    rows = isinstance(K, list) and len(K) == 3 and all(isinstance(r, list) and len(r) == 3 for r in K)
+    if not rows or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+                           for r in K for v in r):
+        raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of finite numbers: {K!r}")
     for key in ("x_d", "z_d", "yaw"):
         _number(params, path, "odometry", key)
     return params

@@ -38,7 +38,7 @@ from .._check import (batch_choices, check_float_tensor, check_has_values, check
 from ..estimation.combine import select_samples, where_motion
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import get_road_model, road_motion, road_motion_batch
+from ..geometry.road_models import get_road_model, pack_params, road_motion, road_motion_batch
 from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
@@ -218,18 +218,12 @@ def resize_mask(mask: Tensor, size: tuple[int, int]) -> Tensor:
 
 # -- odometry ---------------------------------------------------------------------------------
 
-def _camera_subset(camera: Camera, index: Tensor) -> Camera:
-    return Camera(camera.K[index], camera.height[index], camera.roll[index], camera.pitch[index])
-
-
 def _planar_as(model: str, planar: Mapping[str, Tensor], camera: Camera) -> dict[str, Tensor]:
     """Planar odometry (x_d, z_d, yaw; roll and pitch where given, else the camera's) as the
     parameters of the ``"paper"`` or ``"plane"`` model (no vertical motion, no pitch or roll
     change): the same road motion."""
-    zero = torch.zeros_like(planar["z_d"])
-    full = {"roll": camera.roll.to(zero.dtype).expand_as(zero), "pitch": camera.pitch.to(zero.dtype).expand_as(zero),
-            "y_d": zero, "pitch_change": zero, "roll_change": zero, **planar}
-    return {k: full[k] for k in get_road_model(model).params}
+    _, values = pack_params(model, camera, planar)
+    return dict(zip(get_road_model(model).params, values.unbind(1)))
 
 
 def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
@@ -549,11 +543,11 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
         ims = images
         odo = odometry
         if subset:
-            f, m, cam_d = f[index], m[index], _camera_subset(cam_d, index)
+            f, m, cam_d = f[index], m[index], select_samples(cam_d, index, B)
             ims = None if images is None else tuple(im[index] for im in images)
             if odometry is not None:
                 given, values = road_motion_batch(odometry, B, dtype, device)
-                odo = {"model": given.name, **{k: v[index] for k, v in values.items()}}
+                odo = {"model": given.name, **select_samples(values, index, B)}
             starts = tuple(select_samples(s, index, B) for s in starts)
         result = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
     ok = result.success.to(device=device, dtype=torch.bool)

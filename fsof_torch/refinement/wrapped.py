@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import replace
 from typing import Any, Mapping
 
 import torch
@@ -14,7 +13,7 @@ from torch import Tensor, nn
 
 from .._check import check_float_tensor, check_keywords
 from ..geometry.camera import Camera
-from .auto_road import RoadDetection, detect_road
+from .auto_road import detect_road
 from .contracts import InputPadder, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner
 
@@ -113,22 +112,25 @@ class FreespaceRefined(nn.Module):
             padding = None
         if not isinstance(camera, Camera):  # (before the padding moves it)
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+        if mask is None and self.road != "auto":
+            raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
+                             "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
+        road = None
+        if mask is None:  # found in the images as they came (a replicated border is not road)
+            finest = finest_flow(collect_flows(output, "output", self.refiner.flow_keys))[1].detach()
+            road = detect_road(image1, image2, camera, flow=finest if padding is None else padding.unpad(finest),
+                               **self.road_options)
+            # its mask, and its motion unless the caller's odometry is given
+            mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
         if padding is not None:
             camera = padding.camera(camera)
             image1, image2 = (padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
-            if mask is not None:
+            if road is None:
                 if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
                     raise TypeError(f"mask: expected a bool tensor (B, 1, H, W), got {getattr(mask, 'dtype', type(mask).__name__)}")
                 if tuple(mask.shape[-2:]) != size:
                     raise ValueError(f"mask: expected the images' size {size}, got shape {tuple(mask.shape)}")
-                mask = padding.pad(mask)
-        if mask is None and self.road != "auto":
-            raise ValueError("mask: expected a road mask (B, 1, H, W) bool, got None "
-                             "(pass mask=..., or build FreespaceRefined(..., road='auto'))")
-        road = None if mask is not None else detect_road_padded(padding, image1, image2, camera, finest_flow(
-            collect_flows(output, "output", self.refiner.flow_keys))[1], **self.road_options)  # (images as they came)
-        if road is not None:  # its mask, and its motion unless the caller's odometry is given
-            mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
+            mask = padding.pad(mask)
         info = self.refiner(output, mask, camera, odometry, images=(image1, image2))._replace(road=road)
         if padding is None:
             return (info.flow, info) if return_info else info.flow
@@ -136,25 +138,10 @@ class FreespaceRefined(nn.Module):
         flow = padding.unpad_output(info.flow, padded_size)
         if not return_info:
             return flow
-        gate, road = info.gate, info.road
+        gate = info.gate
         if gate is not None:  # its maps at the input size too (its per-sample counts as they are)
             gate = gate._replace(use_model=padding.unpad(gate.use_model), evidence=padding.unpad(gate.evidence))
-        if road is not None:
-            road = replace(road, mask=padding.unpad(road.mask), seed=padding.unpad(road.seed))
         info = info._replace(flow=flow, weight=padding.unpad(info.weight), mask=padding.unpad(info.mask),
-                             flow_model=padding.unpad(info.flow_model), gate=gate, road=road,
+                             flow_model=padding.unpad(info.flow_model), gate=gate,
                              camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
         return flow, info
-
-
-def detect_road_padded(padding: Any, image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor,
-                       **options: Any) -> RoadDetection:
-    """:func:`detect_road` on padded inputs (a :class:`~fsof_torch.refinement.contracts.Padding`
-    or None, and the padded images, camera and flow), judged on the images as they came (the
-    replicated border is not road); its masks are padded back with False."""
-    if padding is None:
-        return detect_road(image1, image2, camera, flow=flow.detach(), **options)
-    det = detect_road(padding.unpad(image1), padding.unpad(image2),
-                      camera.cropped(padding.left, padding.top, padding.right, padding.bottom),
-                      flow=padding.unpad(flow.detach()), **options)
-    return RoadDetection(**{**det.__dict__, "mask": padding.pad(det.mask), "seed": padding.pad(det.seed)})
