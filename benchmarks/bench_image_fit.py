@@ -11,7 +11,9 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
   more accurate, ``image_fit_settings.py``): its price;
 - a Gaussian blur σ = 4 (the band-pass), the pyramid's decimation and the road mask's pyramid
   (a 3 × 3 erosion at every second pixel): OpenCV against kornia / torch (the fast paths
-  ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU).
+  ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU); and both frames
+  converted to grey, in place into one tensor (``to_grey``, as the fit does) against kornia's
+  ``rgb_to_grayscale`` and a concatenation.
 
     python benchmarks/bench_image_fit.py [--repeats 15] [--baseline REV]
 
@@ -54,10 +56,12 @@ def main() -> None:
     parser.add_argument("--baseline", metavar="REV", help="time against this git revision instead")
     args = parser.parse_args()
     import cv2
+    from kornia.color import rgb_to_grayscale
     from kornia.filters import gaussian_blur2d
 
     import fsof_torch as fs
     from fsof_torch.estimation.pyramid import gaussian_blur, image_pyramid, mask_pyramid
+    from fsof_torch.evaluation.photometric import to_grey
     from refine.sources import dis_flow
 
     torch.set_num_threads(1)
@@ -77,6 +81,11 @@ def main() -> None:
     k = 2 * int(np.ceil(3 * 4.0)) + 1
     taps = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
 
+    def grey_in_place():
+        pair = I1.new_empty((1, 2, *I1.shape[-2:]))
+        to_grey(I1, out=pair[:, :1])
+        return to_grey(I2, out=pair[:, 1:])
+
     def torch_decimate(x):
         x = F.conv2d(F.pad(x.reshape(-1, 1, *x.shape[-2:]), (2, 2, 0, 0), mode="reflect"), taps.reshape(1, 1, 1, 5))
         x = F.conv2d(F.pad(x, (0, 0, 2, 2), mode="reflect"), taps.reshape(1, 1, 5, 1))
@@ -95,6 +104,8 @@ def main() -> None:
         "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),
         "pyramid, 5 levels, OpenCV": lambda: image_pyramid(grey, 5, 0.0),
         "pyramid, 5 levels, torch": lambda: [x := grey] + [x := torch_decimate(x) for _ in range(4)],
+        "both frames to grey, in place (to_grey)": grey_in_place,
+        "both frames to grey, kornia rgb_to_grayscale": lambda: torch.cat([rgb_to_grayscale(I1), rgb_to_grayscale(I2)], 1),
         "mask pyramid, 5 levels, OpenCV": lambda: mask_pyramid(M, 5),
         "mask pyramid, 5 levels, torch": lambda: [m := M] + [m := -F.max_pool2d(-m.float(), 3, stride=2, padding=1) > 0.5
                                                              for _ in range(4)],

@@ -82,6 +82,30 @@ def test_to_grey_is_kornias_luma_for_rgb_and_the_image_itself_for_one_channel():
     assert to_grey(grey) is grey
     assert torch.equal(to_grey(rgb[:, :2]), rgb[:, :2].mean(1, keepdim=True))
 
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16, torch.float16])
+def test_to_grey_in_place_is_kornias_bit_for_bit(dtype):
+    """The in-place conversion (no autograd) gives kornia's values exactly, in every floating
+    dtype and memory layout, and writes into ``out`` (one channel of a pair's tensor) without
+    touching the rest; with autograd it is kornia's own, with its graph."""
+    from kornia.color import rgb_to_grayscale
+
+    rgb = (torch.rand(2, 3, 9, 13, generator=torch.Generator().manual_seed(1)) * 255).to(dtype)
+    expected = rgb_to_grayscale(rgb)
+    assert torch.equal(to_grey(rgb), expected)
+    assert torch.equal(to_grey(rgb.to(memory_format=torch.channels_last)), expected)
+    pair = torch.full((2, 2, 9, 13), 7.0, dtype=dtype)
+    before = rgb.clone()
+    assert to_grey(rgb, out=pair[:, 1:]).data_ptr() == pair[:, 1:].data_ptr()
+    assert torch.equal(pair[:, 1:], expected) and bool((pair[:, 0] == 7).all())
+    assert torch.equal(rgb, before)
+    with_grad = rgb.float().requires_grad_()
+    grey = to_grey(with_grad)
+    assert grey.requires_grad and torch.equal(grey, rgb_to_grayscale(with_grad))
+    with pytest.raises(ValueError, match="out: not supported"):
+        to_grey(with_grad, out=torch.empty(2, 1, 9, 13))
+
+
 def test_module_twin():
     i1, i2, flow = _shifted_pair()
     m = PhotometricError(kind="census")

@@ -405,7 +405,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
     with autocast_off(image1):
         work = torch.float64 if image1.dtype == torch.float64 else torch.float32
-        grey = torch.cat([to_grey(image1.detach().to(work)), to_grey(image2.detach().to(work))], dim=1)
+        # (both frames' grey written into one tensor: no copy of two)
+        grey = image1.new_empty((B, 2, H, W), dtype=work)
+        to_grey(image1.detach().to(work), out=grey[:, :1])
+        to_grey(image2.detach().to(work), out=grey[:, 1:])
         if data_range != 255.0:  # (grey levels on 0..255: the residuals' and thresholds' unit)
             grey = grey * (255.0 / data_range)
         pyramid = image_pyramid(grey, n_levels, smooth_sigma)

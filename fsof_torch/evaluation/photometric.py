@@ -58,18 +58,46 @@ __all__ = ["REPORTED_KINDS", "photometric_error", "photometric_error_map", "phot
 _KINDS = ("l1", "ssim", "census", "soft_census")
 #: the kinds to report side by side (DESIGN.md §6): L1 alone ranks wrong flows first on real images
 REPORTED_KINDS = ("l1", "ssim", "census")
+#: ITU-R BT.601 luma weights (R, G, B), kornia's ``rgb_to_grayscale``
+_LUMA = (0.299, 0.587, 0.114)
 
 
-def to_grey(image: Tensor) -> Tensor:
+def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
     """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB, kornia's
-    ``rgb_to_grayscale``), the image itself for C = 1 (not a copy), the mean otherwise."""
+    ``rgb_to_grayscale``), the image itself for C = 1 (not a copy), the mean otherwise.
+
+    ``out``: a (B, 1, H, W) tensor of the image's dtype to write the grey image into (such as
+    one channel of a pair's tensor), returned; not with autograd.
+
+    A floating RGB image without autograd is converted with kornia's operations in place, into
+    one tensor (kornia's three each allocate a full-size one): the same values bit for bit, at
+    about a third of the time at KITTI's size (``python benchmarks/bench_image_fit.py``).
+    """
+    grad = torch.is_grad_enabled() and image.requires_grad
+    if out is not None and grad:
+        raise ValueError("out: not supported for an image that requires grad")
+    if image.shape[1] == 3 and image.is_floating_point() and not grad:
+        # kornia's weights (rounded to the image's dtype, as 0-dim tensors: usable with an image
+        # on any device) and its order: r w_r, then + g w_g and + b w_b (addcmul), so the same
+        # rounding
+        w_r, w_g, w_b = torch.tensor(_LUMA, dtype=image.dtype).unbind()
+        r, g, b = image.unbind(dim=1)
+        grey = torch.empty_like(r).unsqueeze(1) if out is None else out
+        plane = grey[:, 0]
+        torch.mul(r, w_r, out=plane)
+        plane.addcmul_(g, w_g).addcmul_(b, w_b)
+        return grey
     if image.shape[1] == 3:
         from kornia.color import rgb_to_grayscale
 
-        return rgb_to_grayscale(image)
-    if image.shape[1] == 1:
-        return image
-    return image.mean(dim=1, keepdim=True)
+        grey = rgb_to_grayscale(image)
+    elif image.shape[1] == 1:
+        grey = image
+    else:
+        grey = image.mean(dim=1, keepdim=True)
+    if out is None:
+        return grey
+    return out.copy_(grey)
 
 
 def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.0) -> Tensor:
