@@ -24,6 +24,8 @@ from pathlib import Path
 
 import torch
 
+from fsof_torch.io.atomic import atomic_path
+
 DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
 DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
@@ -99,7 +101,8 @@ def _plot_robustness(rows: list[dict], path: Path) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -128,7 +131,8 @@ def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
     fig.suptitle(f"pose from noisy flow ({res.settings['trials']} random poses per σ, "
                  f"{int(res.num_pixels)} road pixels)")
     fig.tight_layout()
-    fig.savefig(errors_path, dpi=110)
+    with atomic_path(errors_path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
     # Per-trial errors against the size of the motion (the paper's "varying displacements, yaw").
@@ -153,7 +157,8 @@ def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
         ax.legend(fontsize=7)
     fig.suptitle(f"pose from noisy flow, per random pose ({res.settings['trials']} per σ)")
     fig.tight_layout()
-    fig.savefig(scatter_path, dpi=110)
+    with atomic_path(scatter_path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 

@@ -35,6 +35,7 @@ import torch
 
 from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import write_json
+from fsof_torch.io.atomic import atomic_path
 from fsof_torch.training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
 from fsof_torch.evaluation.metrics import flow_metrics
 from fsof_torch.evaluation.photometric import photometric_error_maps
@@ -320,7 +321,8 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     if ranks.rank != 0:
         return 0
     if args.dump_first_step is not None:
-        torch.save({"world_size": ranks.world_size, **first_steps}, make_parent(args.dump_first_step))
+        with atomic_path(make_parent(args.dump_first_step)) as tmp:
+            torch.save({"world_size": ranks.world_size, **first_steps}, tmp)
     results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
     for name, net in nets.items():
         results[name] = evaluate_net(net, test)
@@ -359,7 +361,8 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         for name, net in nets.items():
-            torch.save(net.state_dict(), args.out / _net_file(name))
+            with atomic_path(args.out / _net_file(name)) as tmp:
+                torch.save(net.state_dict(), tmp)
     return 0
 
 

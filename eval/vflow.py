@@ -25,6 +25,8 @@ from pathlib import Path
 
 import torch
 
+from fsof_torch.io.atomic import atomic_path
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
@@ -84,7 +86,8 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     ax.set_title("V-flow map (log count per row and bin)")
     ax.legend(loc="lower right", fontsize=7)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -104,7 +107,8 @@ def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, 
     ax.set_title(title)
     ax.set_axis_off()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 
@@ -128,7 +132,8 @@ def _plot_freespace(image: torch.Tensor, free: torch.Tensor, road: torch.Tensor,
     ax.set_title(f"freespace from flow (green; red: road missed), IoU with the road {iou:.3f}")
     ax.set_axis_off()
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
+    with atomic_path(path) as tmp:  # (never half a figure)
+        fig.savefig(tmp, dpi=110)
     plt.close(fig)
 
 

@@ -145,3 +145,21 @@ def test_vflow_output_paths_checked_before_the_work(tmp_path, capsys):
     rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o2"), "--json", str(tmp_path / "new" / "v.json"),
                "--no-progress"])
     assert rc == 0 and (tmp_path / "new" / "v.json").is_file()
+
+
+def test_vflow_figure_that_fails_to_save_leaves_no_file(tmp_path, monkeypatch):
+    """A figure is written atomically: a write that fails part way leaves neither half a PNG
+    nor a temporary file behind."""
+    import matplotlib.figure
+
+    from eval.vflow import _plot_image
+
+    def half_then_fail(self, fname, *args, **kwargs):
+        with open(fname, "wb") as f:
+            f.write(b"\x89PNG half")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half_then_fail)
+    with pytest.raises(OSError, match="disk full"):
+        _plot_image(torch.zeros(4, 6), torch.ones(4, 6, dtype=torch.bool), tmp_path / "fv.png", "t", "viridis")
+    assert list(tmp_path.iterdir()) == []
