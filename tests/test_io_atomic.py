@@ -30,6 +30,17 @@ class TestSmoke:
             tmp.write_bytes(b"data")
         assert (tmp_path / "x.png").read_bytes() == b"data"
 
+    def test_empty_text_and_bytes_are_files(self, tmp_path):
+        """An empty file is data for the raw writers (it once raised 'nothing was written')."""
+        write_text(tmp_path / "old.txt", "old")
+        write_text(tmp_path / "old.txt", "")
+        write_bytes(tmp_path / "e.bin", b"")
+        assert (tmp_path / "old.txt").read_bytes() == b"" and (tmp_path / "e.bin").read_bytes() == b""
+        assert _leftovers(tmp_path) == []
+        with atomic_path(tmp_path / "x.txt", allow_empty=True):
+            pass
+        assert (tmp_path / "x.txt").read_bytes() == b""
+
     def test_write_json_converts_tensors_and_arrays(self, tmp_path):
         obj = {"t": torch.tensor([1.5, 2.0]), "a": np.arange(3), "s": np.float32(0.5), "n": None, "p": tmp_path}
         write_json(tmp_path / "x.json", obj)
@@ -69,6 +80,17 @@ class TestExceptions:
     def test_json_rejects_unknown_objects(self, tmp_path):
         with pytest.raises(TypeError, match="cannot write a object"):
             to_jsonable(object())
+
+    @pytest.mark.parametrize("obj, first, second", [({1: "a", "1": "b"}, "1", "'1'"),
+                                                    ({"x": {"1": 0, 1: 1}}, "'1'", "1"),
+                                                    ({None: 0, "None": 1}, "None", "'None'")])
+    def test_json_keys_that_collide(self, tmp_path, obj, first, second):
+        """{1: "a", "1": "b"} once became {"1": "b"}."""
+        with pytest.raises(ValueError, match=rf"obj: the keys {first} and {second} both become the JSON key"):
+            to_jsonable(obj)
+        with pytest.raises(ValueError, match="both become the JSON key"):
+            write_json(tmp_path / "k.json", obj)
+        assert not (tmp_path / "k.json").exists()
 
     def test_json_non_finite_becomes_null(self, tmp_path):
         write_json(tmp_path / "nan.json", {"x": float("nan"), "t": torch.tensor([1.0, float("inf")])})

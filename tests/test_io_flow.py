@@ -57,6 +57,27 @@ class TestExceptions:
         with pytest.raises(ValueError, match=r"suffix '\.bmp'"):
             write_flow(tmp_path / "f.bmp", torch.zeros(2, 2, 2))
 
+    @pytest.mark.parametrize("suffix", [".flo", ".npy"])
+    @pytest.mark.parametrize("bad", [float("nan"), float("inf"), -1e9, 2e9])
+    def test_unstorable_flow_at_valid_pixels(self, tmp_path, suffix, bad):
+        """NaN, inf or |flow| >= 1e9 at a valid pixel was once written, and read back as invalid
+        (the .png writer raised)."""
+        flow, valid = _flow(3, 4)
+        valid[0, 1, 2] = True
+        flow[1, 1, 2] = bad
+        with pytest.raises(ValueError, match=r"flow: expected (finite values|\|flow\| < 1e\+09 px) at valid pixels"):
+            write_flow(tmp_path / f"f{suffix}", flow, valid)
+        assert list(tmp_path.iterdir()) == []
+        valid[0, 1, 2] = False  # at an invalid pixel it is fine
+        write_flow(tmp_path / f"f{suffix}", flow, valid)
+        assert torch.equal(read_flow(tmp_path / f"f{suffix}")[1], valid)
+
+    def test_float64_beyond_float32_at_a_valid_pixel(self, tmp_path):
+        """1e39 is finite in float64 but inf once stored as float32."""
+        flow = torch.full((2, 2, 2), 1e39, dtype=torch.float64)
+        with pytest.raises(ValueError, match="flow: expected finite values at valid pixels"):
+            write_flow(tmp_path / "f.flo", flow, torch.ones(1, 2, 2, dtype=torch.bool))
+
     def test_bad_npy(self, tmp_path):
         np.save(tmp_path / "s.npy", np.zeros((3, 4, 5), np.float32))
         np.save(tmp_path / "i.npy", np.zeros((2, 4, 5), np.int32))

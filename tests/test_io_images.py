@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import re
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from fsof_torch.io import read_image, read_image_array, write_image
+from fsof_torch.io import read_image, read_image_array, write_image, write_image_array
 
 
 def _ramp(h=24, w=40):
@@ -81,12 +84,57 @@ class TestExceptions:
         with pytest.raises(TypeError, match="torch.bool"):
             write_image(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.bool))
 
-    @pytest.mark.parametrize("name", ["x.xyz", "noext"])
+    @pytest.mark.parametrize("name", ["x.xyz", "noext", "x.pgm", "x.pbm", "x.jp2", "x.hdr", "x.pfm"])
     def test_unknown_image_suffix(self, tmp_path, name):
-        """write_image("x.xyz") once raised a cv2.error; nothing may be left behind."""
-        with pytest.raises(ValueError, match=r"path: OpenCV has no image writer for the suffix"):
+        """write_image("x.xyz") once raised a cv2.error; .pgm, .pbm and .jp2 (OpenCV writers that
+        refuse an RGB image) an OSError at encode time; .hdr and .pfm wrote float files that
+        read_image refuses. All are refused up front, naming the suffix; nothing is left behind."""
+        suffix = re.escape(repr(Path(name).suffix))
+        with pytest.raises(ValueError, match=rf"path: no image writer for the suffix {suffix} of"):
             write_image(tmp_path / name, torch.zeros(3, 4, 4))
         assert list(tmp_path.iterdir()) == []
+
+    @pytest.mark.parametrize("name", ["a.png", "a.PNG", "a.tif", "a.tiff", "a.jpg", "a.jpeg", "a.bmp", "a.webp"])
+    def test_every_writable_suffix_reads_back(self, tmp_path, name):
+        image = torch.zeros(3, 8, 8)
+        image[0], image[1], image[2] = 200, 100, 10
+        write_image(tmp_path / name, image)
+        tol = 3.0 if name.endswith(("jpg", "jpeg")) else 0.0  # JPEG is lossy: fine for an image
+        torch.testing.assert_close(read_image(tmp_path / name), image, atol=tol, rtol=0)
+
+
+class TestWriteImageArray:
+    """OpenCV converts what a format cannot hold to 8 bits, silently (float32 0.4, 300.7 -> 0, 255)."""
+
+    @pytest.mark.parametrize("dtype", [np.float32, np.float64, np.int32, np.int16, np.int64, np.bool_])
+    def test_png_refuses_other_than_8_and_16_bit(self, tmp_path, dtype):
+        with pytest.raises(ValueError, match=rf"array: a \.png file holds uint8/uint16 pixels, got {np.dtype(dtype).name}"):
+            write_image_array(tmp_path / "a.png", np.ones((2, 3), dtype))
+        assert list(tmp_path.iterdir()) == []
+
+    @pytest.mark.parametrize("suffix", [".jpg", ".jpeg", ".bmp", ".webp"])
+    def test_uint16_only_to_png_and_tif(self, tmp_path, suffix):
+        with pytest.raises(ValueError, match=rf"array: a \{suffix} file holds uint8 pixels, got uint16"):
+            write_image_array(tmp_path / f"a{suffix}", np.full((2, 3), 1000, np.uint16))
+        assert list(tmp_path.iterdir()) == []
+
+    @pytest.mark.parametrize("suffix, dtype", [(".png", np.uint16), (".tif", np.uint16), (".tiff", np.uint16),
+                                               (".tif", np.float32), (".bmp", np.uint8), (".png", np.uint8)])
+    @pytest.mark.parametrize("channels", [None, 3, 4])
+    def test_exact_round_trip(self, tmp_path, suffix, dtype, channels):
+        shape = (5, 7) if channels is None else (5, 7, channels)
+        top = 255 if dtype == np.uint8 else 65535
+        array = (np.random.default_rng(0).random(shape) * top).astype(dtype)
+        write_image_array(tmp_path / f"a{suffix}", array)
+        back = read_image_array(tmp_path / f"a{suffix}")
+        assert back.dtype == array.dtype and np.array_equal(back, array)
+
+    def test_shape_checked(self, tmp_path):
+        """Two channels once raised a bare cv2.error from the encoder."""
+        with pytest.raises(ValueError, match=r"array: expected shape \(H, W\) or \(H, W, C\) with C = 1, 3 or 4"):
+            write_image_array(tmp_path / "a.png", np.zeros((4, 4, 2), np.uint8))
+        with pytest.raises(TypeError, match="array: expected a NumPy array"):
+            write_image_array(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.uint8))
 
     def test_encoder_failing_midway_leaves_no_file(self, tmp_path, monkeypatch):
         write_image(tmp_path / "ref.png", _ramp())

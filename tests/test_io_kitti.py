@@ -144,6 +144,13 @@ class TestExceptions:
             write_kitti_flow(tmp_path / "f.png", nan, torch.ones(1, 2, 2, dtype=torch.bool))
         assert not (tmp_path / "f.png").exists()
 
+    @pytest.mark.parametrize("name", ["f.jpg", "f.tif", "f.bmp", "f"])
+    def test_flow_only_to_png(self, tmp_path, name):
+        """write_kitti_flow("f.jpg") once wrote an 8-bit JPEG that no reader takes as flow."""
+        with pytest.raises(ValueError, match=r"path: a KITTI flow is written as \.png; got the suffix"):
+            write_kitti_flow(tmp_path / name, torch.zeros(2, 4, 4))
+        assert list(tmp_path.iterdir()) == []
+
     @pytest.mark.parametrize("bad", [float("nan"), float("inf"), float("-inf")])
     def test_non_finite_only_matters_at_valid_pixels(self, tmp_path, bad):
         """A non-finite value at an invalid pixel is written as 0; the same value at a valid

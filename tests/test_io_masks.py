@@ -182,7 +182,82 @@ _MALFORMED = {
 }
 
 
+class TestLossless:
+    """Masks and labels once went to any suffix OpenCV writes: label 300 read back from a .bmp or
+    .jpg as 255, a .jpg mask grew 64 road pixels to 132."""
+
+    @pytest.mark.parametrize("name", ["l.bmp", "l.jpg", "l.tif", "l.webp", "l.ppm", "l"])
+    def test_label_map_only_to_png(self, tmp_path, name):
+        with pytest.raises(ValueError, match=rf"path: a label map is written as \.png; got the suffix"):
+            write_label_map(tmp_path / name, torch.tensor([[0, 7, 300, 1000]]))
+        assert list(tmp_path.iterdir()) == []
+
+    @pytest.mark.parametrize("name", ["m.jpg", "m.bmp", "m.hdr", "m.webp"])
+    def test_road_mask_only_to_png(self, tmp_path, name):
+        with pytest.raises(ValueError, match=rf"path: a road mask is written as \.png; got the suffix"):
+            write_road_mask(tmp_path / name, torch.ones(1, 4, 4, dtype=torch.bool))
+        assert list(tmp_path.iterdir()) == []
+
+    def test_upper_case_png_suffix(self, tmp_path):
+        labels = torch.tensor([[0, 7, 300, 1000]])
+        write_label_map(tmp_path / "l.PNG", labels)
+        assert torch.equal(read_label_map(tmp_path / "l.PNG"), labels)
+
+
+class TestColors:
+    @pytest.mark.parametrize("color", [(-1, -1, -1), (256, 0, 0), (0, 0, 300)])
+    def test_components_out_of_range(self, color):
+        """(-1, -1, -1) once matched NaN pixels (replaced by -1 inside)."""
+        rgb = torch.full((3, 1, 2), 5.0)
+        rgb[:, 0, 0] = float("nan")
+        with pytest.raises(ValueError, match=r"colors\[1\]: expected components in 0\.\.255"):
+            mask_from_colors(rgb, [(5, 5, 5), color])
+        with pytest.raises(ValueError, match=r"colors\[0\]: expected components in 0\.\.255"):
+            mask_from_colors(np.zeros((1, 2, 3), np.uint8), [color])
+
+    def test_uint16_array_takes_16_bit_colours(self):
+        rgb = np.zeros((1, 2, 3), np.uint16)
+        rgb[0, 1] = (300, 0, 65535)
+        assert mask_from_colors(rgb, [(300, 0, 65535)]).tolist() == [[[False, True]]]
+        with pytest.raises(ValueError, match=r"colors\[0\]: expected components in 0\.\.65535"):
+            mask_from_colors(rgb, [(65536, 0, 0)])
+
+
 class TestPolygonJson:
+    @pytest.mark.parametrize("obj, size, msg", [
+        ({"size": [10, 10], "polygons": []}, None, r"\['polygons'\]: holds no polygon"),
+        ({"size": [10, 10], "polygons": {}}, None, r"\['polygons'\]: holds no polygon"),
+        ({"size": [10, 10], "road_polygons": []}, None, r"\['road_polygons'\]: holds no polygon"),
+        ([], (10, 10), r": holds no polygon"),
+    ])
+    def test_no_polygon(self, tmp_path, obj, size, msg):
+        """These once read as an all-False mask."""
+        path = _write_json(tmp_path / "road.json", obj)
+        with pytest.raises(ValueError, match=rf"path: '.*road\.json'{msg}"):
+            read_road_mask(path, size=size)
+
+    @pytest.mark.parametrize("keys", [("road_polygon", "polygons"), ("road_polygon", "polygon"),
+                                      ("road_polygons", "polygons")])
+    def test_two_polygon_entries(self, tmp_path, keys):
+        """A file with 'road_polygon' and 'polygons' once filled one and dropped the other."""
+        obj = {"size": [10, 10]}
+        for key in keys:
+            obj[key] = _TRIANGLE if key in ("road_polygon", "polygon") else [_TRIANGLE]
+        path = _write_json(tmp_path / "road.json", obj)
+        with pytest.raises(ValueError, match=rf"path: '.*road\.json': has both '{keys[0]}' and '{keys[1]}' entries"):
+            read_road_mask(path)
+
+    def test_scaled_coordinates_beyond_the_limit_name_the_file(self, tmp_path):
+        """A coordinate within ±1e15 px that scaling pushes beyond it once raised from
+        rasterize_polygons as 'polygons[0][0]', without the file."""
+        big = [[-1e15, -1e15], [1e15, -1e15], [1e15, 1e15], [-1e15, 1e15]]
+        path = _write_json(tmp_path / "road.json", {"size": [1, 1], "road_polygon": big})
+        with pytest.raises(ValueError, match=r"path: '.*road\.json'\['road_polygon'\]\[0\]: coordinates beyond "
+                                             r"±1e\+15 px are not pixels, got \[-1e\+15, -1e\+15\] scaled from "
+                                             r"size \[1, 1\] to \[65536, 2\]"):
+            read_road_mask(path, size=(65536, 2))
+        assert read_road_mask(path).all()  # at its own size the polygon is fine
+
     @pytest.mark.parametrize("case", list(_MALFORMED))
     def test_malformed(self, tmp_path, case):
         obj, err, msg = _MALFORMED[case]

@@ -31,13 +31,15 @@ TEMPORARY_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp(\.[^.]*)?$")
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
+def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; on success rename it onto ``path``.
 
     The temporary file lives in the same folder (so ``os.replace`` is a rename on one file
     system) and keeps the suffix of ``path`` (so encoders that pick the format from the file
     name, such as ``cv2.imwrite``, still work). If the body raises, the temporary file is removed
-    and the exception propagates; ``path`` is untouched.
+    and the exception propagates; ``path`` is untouched. A body that leaves the file empty is an
+    OSError ("nothing was written": an encoder that failed quietly) unless ``allow_empty``, for
+    writers of raw bytes and text, where an empty file is data.
 
     Example:
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
@@ -50,7 +52,7 @@ def atomic_path(path: str | os.PathLike) -> Iterator[Path]:
     tmp = _create_temporary(folder, path)
     try:
         yield tmp
-        if not tmp.is_file() or tmp.stat().st_size == 0:
+        if not tmp.is_file() or (tmp.stat().st_size == 0 and not allow_empty):
             raise OSError(f"path: nothing was written for {str(path)!r}")
         # flush to the disk before the rename, so that a power loss cannot leave an empty file
         with open(tmp, "rb+") as f:
@@ -100,27 +102,36 @@ def remove_stale_temporaries(folder: str | os.PathLike, *, recursive: bool = Tru
 
 
 def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` atomically; returns the path."""
-    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    """Write ``data`` to ``path`` atomically (empty data gives an empty file); returns the path."""
+    with atomic_path(path, allow_empty=True) as tmp, open(tmp, "wb") as f:
         f.write(data)
     return Path(path)
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically; returns the path."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (``""`` gives an empty file); returns the path."""
     return write_bytes(path, text.encode("utf-8"))
 
 
 def to_jsonable(obj: Any) -> Any:
     """``obj`` with tensors, NumPy arrays and scalars, paths and tuples made JSON-serialisable.
 
-    Non-finite floats (NaN, ±inf) become ``None`` (JSON ``null``): strict JSON has no NaN.
+    Non-finite floats (NaN, ±inf) become ``None`` (JSON ``null``): strict JSON has no NaN. Dict
+    keys become strings; two keys that give the same string (``1`` and ``"1"``) are a ValueError
+    naming them, rather than one silently replacing the other.
     """
     import numpy as np
     import torch
 
     if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
+        out, keys = {}, {}
+        for k, v in obj.items():
+            key = str(k)
+            if key in keys:
+                raise ValueError(f"obj: the keys {keys[key]!r} and {k!r} both become the JSON key {key!r}")
+            keys[key] = k
+            out[key] = to_jsonable(v)
+        return out
     if isinstance(obj, (list, tuple)):
         return [to_jsonable(v) for v in obj]
     if isinstance(obj, torch.Tensor):

@@ -13,9 +13,11 @@ from torch import Tensor
 from .atomic import write_bytes
 from .._check import as_path, as_chw_flow
 from .flo import read_flo, write_flo
-from .kitti import read_kitti_flow, write_kitti_flow
+from .kitti import flow_valid_pixels, read_kitti_flow, write_kitti_flow
 
 __all__ = ["read_flow", "write_flow"]
+
+_UNKNOWN = 1e9  # |flow| from here up is unknown flow (Middlebury writes 1e10), read as not valid
 
 
 def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
@@ -53,7 +55,7 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
         flow = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
     else:
         raise ValueError(f"path: unknown flow file suffix {path.suffix!r} in {str(path)!r}; expected .png, .flo or .npy")
-    valid = (torch.isfinite(flow) & (flow.abs() < 1e9)).all(dim=0, keepdim=True)
+    valid = (torch.isfinite(flow) & (flow.abs() < _UNKNOWN)).all(dim=0, keepdim=True)
     return torch.where(valid, flow, torch.zeros_like(flow)), valid
 
 
@@ -62,7 +64,8 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
 
     ``.png``: KITTI (``valid`` kept, flow to 1/64 px). ``.flo`` and ``.npy``: float32, exact; a
     given ``valid`` is stored by writing NaN at invalid pixels (``read_flow`` gives them back as
-    not valid).
+    not valid). Flow at valid pixels must be finite and below 1e9 px in magnitude after the
+    float32 cast (else ValueError naming ``flow``): :func:`read_flow` would read it as not valid.
     """
     path = as_path(path)
     suffix = path.suffix.lower()
@@ -70,13 +73,13 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
         return write_kitti_flow(path, flow, valid)
     flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
     if valid is not None:
-        if isinstance(valid, np.ndarray):
-            valid = torch.from_numpy(valid)
-        if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
-            raise TypeError("valid: expected a bool tensor of shape (1, H, W)")
-        if tuple(valid.shape) not in ((1, *flow.shape[1:]), tuple(flow.shape[1:])):
-            raise ValueError(f"valid: expected shape (1, {flow.shape[1]}, {flow.shape[2]}) to match flow, got {tuple(valid.shape)}")
-        flow = torch.where(valid.reshape(1, *flow.shape[1:]).cpu(), flow, torch.full_like(flow, float("nan")))
+        valid_hw = flow_valid_pixels(flow, valid)  # checks valid, and finite flow where it is valid
+        large = flow.abs().amax(dim=0) >= _UNKNOWN
+        if bool((large & valid_hw).any()):
+            value = float(flow.abs().amax(dim=0)[large & valid_hw].max())
+            raise ValueError(f"flow: expected |flow| < {_UNKNOWN:g} px at valid pixels (a .flo/.npy file marks "
+                             f"larger values unknown), got {value:.4g}")
+        flow = torch.where(valid_hw, flow, torch.full_like(flow, float("nan")))
     if suffix == ".flo":
         return write_flo(path, flow)
     if suffix == ".npy":

@@ -3,6 +3,10 @@
 Convention: images are returned as (3, H, W) float32 RGB on the 0..255 scale (OpenCV's BGR order
 is undone here, once). PNG files are checked before decoding: the signature and the closing
 ``IEND`` chunk must be there, so a truncated file raises instead of decoding to a partial image.
+
+Writing takes the formats in :data:`WRITABLE_DTYPES` only, each with the pixel types it stores
+exactly: OpenCV would otherwise convert what a format cannot hold to 8 bits (clipping labels
+above 255, rounding float data) or write a file the readers here refuse (.hdr, .pfm: float).
 """
 
 from __future__ import annotations
@@ -54,15 +58,58 @@ def read_image_array(path: str | os.PathLike, *, what: str = "image") -> np.ndar
     return array
 
 
+#: the suffixes :func:`write_image_array` writes, and the pixel types each stores exactly and reads
+#: back as such (.jpg is lossy in its values, not in its type: for images, never for data)
+WRITABLE_DTYPES: dict[str, tuple[type, ...]] = {
+    ".png": (np.uint8, np.uint16),
+    ".tif": (np.uint8, np.uint16, np.float32),
+    ".tiff": (np.uint8, np.uint16, np.float32),
+    ".jpg": (np.uint8,),
+    ".jpeg": (np.uint8,),
+    ".bmp": (np.uint8,),
+    ".webp": (np.uint8,),
+}
+
+
+def check_image_suffix(path: str | os.PathLike, suffixes: tuple[str, ...], what: str) -> Path:
+    """``path`` as a Path if its suffix (any case) is one of ``suffixes``, else a ValueError naming
+    it; ``what`` says what the file holds ("label map", ...). Shared by the writers of data
+    images (masks, labels, flow), which must not go to a lossy or 8-bit-only format."""
+    path = as_path(path)
+    if path.suffix.lower() not in suffixes:
+        raise ValueError(f"path: a {what} is written as {' or '.join(suffixes)}; got the suffix "
+                         f"{path.suffix!r} of {str(path)!r}")
+    return path
+
+
 def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
-    """Encode ``array`` (OpenCV layout: (H, W) or (H, W, C) in BGR(A) order) to ``path``
-    atomically; the format comes from the suffix (.png, .jpg, .tif, ...)."""
+    """Encode ``array`` (OpenCV layout: (H, W) or (H, W, C), C = 1, 3 or 4, in BGR(A) order) to
+    ``path`` atomically; the format comes from the suffix.
+
+    Only pixel types the format stores exactly are written (:data:`WRITABLE_DTYPES`): uint8 to
+    .png, .tif/.tiff, .jpg/.jpeg, .bmp, .webp; uint16 to .png and .tif/.tiff; float32 to
+    .tif/.tiff. Anything else is a ValueError naming ``array`` and the suffix, raised before a file
+    is written (OpenCV would silently convert it to 8 bits). Another suffix is a ValueError naming
+    ``path``.
+    """
     import cv2
 
     path = as_path(path)
-    if not path.suffix or not cv2.haveImageWriter(str(path)):
-        raise ValueError(f"path: OpenCV has no image writer for the suffix {path.suffix!r} of {str(path)!r} "
-                         f"(use .png, .jpg, .tif, .bmp, ...)")
+    suffix = path.suffix.lower()
+    if suffix not in WRITABLE_DTYPES or not cv2.haveImageWriter(str(path)):
+        known = ", ".join(s for s in WRITABLE_DTYPES if cv2.haveImageWriter("x" + s))
+        raise ValueError(f"path: no image writer for the suffix {path.suffix!r} of {str(path)!r} "
+                         f"(the formats written and read back here: {known})")
+    if not isinstance(array, np.ndarray):
+        raise TypeError(f"array: expected a NumPy array (H, W) or (H, W, C), got {type(array).__name__}")
+    if not (array.ndim == 2 or (array.ndim == 3 and array.shape[2] in (1, 3, 4))) or min(array.shape[:2]) < 1:
+        raise ValueError(f"array: expected shape (H, W) or (H, W, C) with C = 1, 3 or 4 and H, W >= 1, "
+                         f"got {array.shape}")
+    allowed = WRITABLE_DTYPES[suffix]
+    if array.dtype not in allowed:
+        raise ValueError(f"array: a {suffix} file holds {'/'.join(np.dtype(d).name for d in allowed)} pixels, "
+                         f"got {array.dtype} for {str(path)!r} (OpenCV would convert it to 8 bits); "
+                         f"uint16 goes to .png or .tif, float32 to .tif")
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), array):
             raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
@@ -93,7 +140,8 @@ def read_image(path: str | os.PathLike) -> Tensor:
 
 
 def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
-    """Write an image atomically as 8-bit (PNG, JPEG, ... by suffix).
+    """Write an image atomically as 8-bit, in a format :func:`read_image` reads back (by suffix:
+    .png, .tif/.tiff, .jpg/.jpeg, .bmp, .webp; another suffix is a ValueError naming ``path``).
 
     Args:
         image: (3, H, W) RGB, or (1, H, W) / (H, W) grey, float on the 0..255 scale (rounded to

@@ -23,7 +23,7 @@ from torch import Tensor
 from .._check import as_path, all_finite, as_chw_flow, check_has_values
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
-from .images import read_image_array, write_image_array
+from .images import check_image_suffix, read_image_array, write_image_array
 
 __all__ = [
     "read_kitti_flow",
@@ -72,8 +72,10 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
         valid: (1, H, W) or (H, W) bool; default: every pixel with a finite flow.
 
     Flow is rounded to 1/64 px. Valid pixels must lie in [-512, 511.98] px (else ValueError);
-    invalid pixels are written as 0 flow, whatever they held (NaN included).
+    invalid pixels are written as 0 flow, whatever they held (NaN included). ``path`` must end in
+    .png (the format is a 16-bit PNG).
     """
+    path = check_image_suffix(path, (".png",), "KITTI flow")
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     valid_hw = flow_valid_pixels(flow, valid)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))

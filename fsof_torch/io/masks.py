@@ -2,7 +2,8 @@
 
 Polygon JSON. Coordinates are pixels (u right, v down, origin at the centre of the top-left
 pixel); a polygon is a list of at least three ``[u, v]`` points (finite numbers). A file holds
-one of these (several polygons are filled as a union):
+exactly one of these, with at least one polygon (several polygons are filled as a union; two of
+the keys below, or none of their polygons, is a ValueError):
 
 1. ``{"size": [H, W], "road_polygon": [[u, v], ...]}`` (or ``"polygon"``): one polygon. Other
    keys (``"image"``, ``"note"``, ...) are ignored. This is the format of ``shared/data/*/road.json``.
@@ -19,7 +20,8 @@ ValueError or TypeError that names the file and the offending entry. Polygons ma
 outside the image: they are clipped to the image (Sutherland–Hodgman, in float64) before they
 are rasterised with ``cv2.fillPoly`` at 1/16 px vertex precision, so a polygon enclosing the
 image at ±2e8 px fills it instead of overflowing OpenCV's 32-bit fixed-point vertices.
-Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected.
+Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected, in the file
+and after :func:`read_road_mask` scales them to its ``size``.
 """
 
 from __future__ import annotations
@@ -36,7 +38,7 @@ import torch
 from torch import Tensor
 
 from .._check import as_path, check_has_values
-from .images import read_image_array, write_image_array
+from .images import check_image_suffix, read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
            "read_label_map", "write_label_map"]
@@ -151,25 +153,35 @@ def _check_size(size: object, name: str) -> tuple[int, int]:
 def _polygons_from_json(obj: Any, where: str) -> list[tuple[str, Any]]:
     """(name, polygon) pairs of a parsed polygon JSON (formats 1-4 of the module docstring)."""
     if isinstance(obj, list):
+        if not obj:
+            raise ValueError(f"{where}: holds no polygon (an empty list; an empty mask is a PNG, not a polygon file)")
         return [(f"{where}[{i}]", p) for i, p in enumerate(obj)]
     if not isinstance(obj, dict):
         raise TypeError(f"{where}: expected a JSON object {{'size': [H, W], 'road_polygon': [...]}} or a "
                         f"list of polygons, got {type(obj).__name__} {obj!r:.60}")
-    for key in _ONE:
-        if key in obj:
-            return [(f"{where}[{key!r}]", obj[key])]
-    for key in _MANY:
-        if key in obj:
-            value = obj[key]
-            if isinstance(value, dict):
-                return [(f"{where}[{key!r}][{name!r}]", p) for name, p in value.items()]
-            if not isinstance(value, list):
-                raise TypeError(f"{where}[{key!r}]: expected a list of polygons or a dict of named polygons, "
-                                f"got {type(value).__name__}")
-            return [(f"{where}[{key!r}][{i}]", p) for i, p in enumerate(value)]
-    named = [(f"{where}[{name!r}]", p) for name, p in obj.items() if name != "size"]
+    keys = [key for key in _ONE + _MANY if key in obj]
+    if len(keys) > 1:
+        # which one was meant is a guess: filling one and dropping the other would hide the mistake
+        raise ValueError(f"{where}: has both {keys[0]!r} and {keys[1]!r} entries; expected one of "
+                         f"'road_polygon', 'polygon', 'polygons', 'road_polygons'")
+    if not keys:
+        named = [(f"{where}[{name!r}]", p) for name, p in obj.items() if name != "size"]
+        if not named:
+            raise ValueError(f"{where}: has no 'road_polygon', 'polygon' or 'polygons' entry (nor named polygons)")
+        return named
+    key = keys[0]
+    value = obj[key]
+    if key in _ONE:
+        return [(f"{where}[{key!r}]", value)]
+    if isinstance(value, dict):
+        named = [(f"{where}[{key!r}][{name!r}]", p) for name, p in value.items()]
+    elif isinstance(value, list):
+        named = [(f"{where}[{key!r}][{i}]", p) for i, p in enumerate(value)]
+    else:
+        raise TypeError(f"{where}[{key!r}]: expected a list of polygons or a dict of named polygons, "
+                        f"got {type(value).__name__}")
     if not named:
-        raise ValueError(f"{where}: has no 'road_polygon', 'polygon' or 'polygons' entry (nor named polygons)")
+        raise ValueError(f"{where}[{key!r}]: holds no polygon (an empty mask is a PNG, not a polygon file)")
     return named
 
 
@@ -185,7 +197,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
 
     Raises:
         ValueError / TypeError naming ``path`` (and the entry) for a file that is not valid
-        UTF-8 JSON, a missing or malformed size, a malformed polygon; FileNotFoundError for a
+        UTF-8 JSON, a missing or malformed size, a malformed polygon, two polygon entries or no
+        polygon, a vertex beyond ±1e15 px once scaled to ``size``; FileNotFoundError for a
         missing file.
     """
     import cv2
@@ -217,7 +230,14 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         for name, poly in named:
             arr = _as_polygon(poly, name)
             # pixel centres map as u' + 0.5 = s (u + 0.5)
-            polygons.append(np.stack([sx * (arr[:, 0] + 0.5) - 0.5, sy * (arr[:, 1] + 0.5) - 0.5], axis=1))
+            scaled = np.stack([sx * (arr[:, 0] + 0.5) - 0.5, sy * (arr[:, 1] + 0.5) - 0.5], axis=1)
+            far = np.flatnonzero((np.abs(scaled) > _MAX_COORD).any(axis=1))
+            if far.size:
+                i = int(far[0])
+                raise ValueError(f"{name}[{i}]: coordinates beyond ±{_MAX_COORD:g} px are not pixels, got "
+                                 f"[{arr[i, 0]:.6g}, {arr[i, 1]:.6g}] scaled from size {list(own)} to "
+                                 f"{list(target)}: [{scaled[i, 0]:.6g}, {scaled[i, 1]:.6g}]")
+            polygons.append(scaled)
         return rasterize_polygons(polygons, target)
     array = read_image_array(path, what="road mask image")
     if array.ndim == 3:
@@ -232,7 +252,11 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
 
 
 def write_road_mask(path: str | os.PathLike, mask: Tensor) -> Path:
-    """Write a (1, H, W) or (H, W) bool mask as an 8-bit PNG (road = 255), atomically."""
+    """Write a (1, H, W) or (H, W) bool mask as an 8-bit PNG (road = 255), atomically.
+
+    ``path`` must end in .png (a JPEG would blur the mask's edges into road).
+    """
+    path = check_image_suffix(path, (".png",), "road mask")
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
         raise TypeError(f"mask: expected a bool tensor of shape (1, H, W), got "
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
@@ -249,7 +273,9 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
 
     Args:
         rgb: (3, H, W) RGB tensor (0..255, as :func:`fsof_torch.io.read_image` gives) or an
-            (H, W, 3) uint8 RGB array.
+            (H, W, 3) integer RGB array (uint8; uint16 for 16-bit colours).
+        colors: (r, g, b) triples of integers in 0..255 (0..65535 for a uint16 array); another
+            value is a ValueError naming it (it could match no pixel, or a NaN one).
     """
     if isinstance(rgb, Tensor):
         if rgb.dim() != 3 or rgb.shape[0] != 3:
@@ -258,10 +284,12 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
         # non-finite values match no colour
         array = torch.nan_to_num(rgb.detach().cpu().double(), nan=-1.0, posinf=-1.0, neginf=-1.0)
         array = array.round().to(torch.int64).permute(1, 2, 0).numpy()
+        top = 255
     elif isinstance(rgb, np.ndarray):
         if rgb.ndim != 3 or rgb.shape[2] != 3 or not np.issubdtype(rgb.dtype, np.integer):
             raise ValueError(f"rgb: expected an integer (H, W, 3) array, got {rgb.dtype} of shape {rgb.shape}")
         array = rgb.astype(np.int64)
+        top = 65535 if rgb.dtype == np.uint16 else 255
     else:
         raise TypeError(f"rgb: expected a (3, H, W) tensor or an (H, W, 3) uint8 array, got {type(rgb).__name__}")
     mask = np.zeros(array.shape[:2], dtype=bool)
@@ -269,6 +297,8 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
         if not (isinstance(color, (tuple, list)) and len(color) == 3
                 and all(isinstance(c, numbers.Integral) and not isinstance(c, bool) for c in color)):
             raise ValueError(f"colors[{i}]: expected an (r, g, b) triple of integers, got {color!r}")
+        if not all(0 <= c <= top for c in color):
+            raise ValueError(f"colors[{i}]: expected components in 0..{top}, got {tuple(color)!r}")
         mask |= (array == np.asarray(color, dtype=np.int64).reshape(1, 1, 3)).all(axis=2)
     return torch.from_numpy(mask).unsqueeze(0)
 
@@ -283,7 +313,11 @@ def read_label_map(path: str | os.PathLike) -> Tensor:
 
 
 def write_label_map(path: str | os.PathLike, labels: Tensor) -> Path:
-    """Write (H, W) integer labels as a PNG atomically: 8-bit when all labels fit, else 16-bit."""
+    """Write (H, W) integer labels as a PNG atomically: 8-bit when all labels fit, else 16-bit.
+
+    ``path`` must end in .png (other formats are lossy or 8-bit only: label 300 would read back as 255).
+    """
+    path = check_image_suffix(path, (".png",), "label map")
     if not isinstance(labels, Tensor) or labels.is_floating_point() or labels.dtype == torch.bool:
         raise TypeError(f"labels: expected an integer tensor of shape (H, W), got "
                         f"{labels.dtype if isinstance(labels, Tensor) else type(labels).__name__}")
