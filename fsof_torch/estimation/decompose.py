@@ -32,11 +32,14 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     Args:
         H: (B, 3, 3) road homographies (any scale), for the camera's K.
         camera: K, height, and the roll and pitch to start from (batch 1 or B).
-        size: the grid's longer side in pixels (the camera is scaled to it).
+        size: the grid's longer side in pixels (each sample's camera is scaled to it: its grid
+            is a virtual image around its own principal point, whatever its batch-mates').
 
     Returns:
         The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual`` says how
-        far the homography is from any rigid road motion, in grid pixels).
+        far the homography is from any rigid road motion, in the sample's grid pixels; ``fit.camera``
+        is the scaled camera). ``fit.flow`` and ``fit.valid`` lie on a canvas as large as the
+        batch's largest grid, each sample's grid at its top left (not valid beyond it).
     """
     check_float_tensor(H, "H")
     check_shape(H, "H", ("B", 3, 3))
@@ -57,19 +60,37 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
                          f"that are not: {H64[bad[0]].tolist()}")
     cam = camera.to(torch.float64).expand(B).to(device=H.device)
-    # a virtual image around the principal point, scaled so that its longer side is ``size`` (the
-    # principal point's distance from the corner, also where a crop put it above or left of the image)
-    w0 = 2.0 * float(cam.cx.abs().max()) + 1.0
-    h0 = 2.0 * float(cam.cy.abs().max()) + 1.0
-    s = size / max(w0, h0)
-    grid = (max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8))
-    small = cam.scaled(s)
+    # each sample's own virtual image around its principal point, scaled so that its longer side
+    # is ``size`` (the principal point's distance from the corner, also where a crop put it above
+    # or left of the image): a sample's grid, and its residual in that grid's pixels, do not
+    # depend on its batch-mates (one host read for the grids' sizes)
+    scales, grids = [], []
+    for cx, cy in zip(cam.cx.abs().tolist(), cam.cy.abs().tolist()):
+        w0, h0 = 2.0 * cx + 1.0, 2.0 * cy + 1.0
+        s = size / max(w0, h0)
+        scales.append(s)
+        grids.append((max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8)))
+    # (Camera.scaled's resize, one factor per sample)
+    s = torch.tensor(scales, dtype=torch.float64, device=H.device)
+    one, zero = torch.ones_like(s), torch.zeros_like(s)
+    resize = torch.stack([s, zero, 0.5 * s - 0.5, zero, s, 0.5 * s - 0.5, zero, zero, one], dim=-1).reshape(B, 3, 3)
+    small = cam.replace(K=resize @ cam.K)
     S = small.K @ cam.K_inv()
     Hs = S @ H.to(torch.float64) @ torch.linalg.inv(S)
     Hs = Hs / Hs[:, 2:3, 2:3]
     horizon = ROAD_MODELS["paper"].horizon_row(small, torch.stack(
         [torch.zeros_like(small.roll)] * 3 + [small.roll, small.pitch], dim=-1))
-    flow, valid = flow_from_map(Hs, horizon, grid)
+    # one canvas for the batch, each sample's points only in its own grid at its top left (the
+    # mask's raster order, and so the fit's sample of points, is then the sample's own)
+    canvas = (max(g[0] for g in grids), max(g[1] for g in grids))
+    rows = torch.tensor([g[0] for g in grids], device=H.device)
+    cols = torch.tensor([g[1] for g in grids], device=H.device)
+    inside = ((torch.arange(canvas[0], device=H.device) < rows[:, None])[:, None, :, None]
+              & (torch.arange(canvas[1], device=H.device) < cols[:, None])[:, None, None, :])
+    flow, valid = flow_from_map(Hs, horizon, canvas)
     start = plane_from_homography(Hs, small)
-    return fit_road(flow, valid, small, model="plane", fixed=(), init=start, robust="l2", polish=False,
-                    max_points=4096, min_inlier_fraction=0.0, tol=1e-12)
+    fit = fit_road(flow, valid & inside, small, model="plane", fixed=(), init=start, robust="l2", polish=False,
+                   max_points=4096, min_inlier_fraction=0.0, tol=1e-12)
+    fit.valid = fit.valid & inside
+    fit.flow = torch.where(inside, fit.flow, 0.0)
+    return fit

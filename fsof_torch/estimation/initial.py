@@ -21,6 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._check import batch_choices, check_float_tensor, check_has_values, check_int, check_mask, check_shape
 from ..geometry.camera import Camera, mounting_matrix
 from .sampling import gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, Solution, solve, spd_solve
@@ -141,11 +142,36 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
 def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:
     """A quick start from a predicted flow: x_d, z_d, yaw (B,) of the planar motion of its
     back-projected road points (:func:`planar_motion`, robust), at the camera's roll and pitch;
-    zero motion where that is degenerate."""
-    pts = sample_mask(mask.expand(flow.shape[0], -1, -1, -1), points)
-    xy = pixel_coordinates(pts.pix, flow.shape[-1])
-    f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow.detach(), pts.pix).to(torch.float64), 0.0)
-    cam = camera.to(torch.float64).expand(flow.shape[0])
+    zero motion where that is degenerate.
+
+    Args:
+        flow: (B, 2, H, W) float, forward flow in pixels; pixels where it is NaN or inf are left
+            out of the mask.
+        mask: (B, 1, H, W) bool road pixels (batch 1 is broadcast).
+        camera: the flow's camera (batch 1 or B).
+        points: how many of each frame's mask pixels to sample (evenly).
+    """
+    check_float_tensor(flow, "flow")
+    dims = check_shape(flow, "flow", ("B", 2, "H", "W"))
+    B, H, W = dims["B"], dims["H"], dims["W"]
+    check_mask(mask, "mask")
+    if mask.dim() != 4 or mask.shape[0] not in (1, B) or tuple(mask.shape[1:]) != (1, H, W):
+        raise ValueError(f"mask: expected shape ({B}, 1, {H}, {W}) (the flow's; batch 1 is broadcast), "
+                         f"got {tuple(mask.shape)}")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    if camera.batch_size not in (1, B):
+        raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's B), got {camera.batch_size}")
+    check_int(points, "points", minimum=1)
+    check_has_values(flow, "flow", "to start a fit (the start is a fit)")
+    if B == 0:
+        raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
+    flow = flow.detach()
+    # (a NaN or inf would spread through the normal equations and zero the whole frame's start)
+    pts = sample_mask(mask & torch.isfinite(flow).all(1, keepdim=True), points)
+    xy = pixel_coordinates(pts.pix, W)
+    f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow, pts.pix).to(torch.float64), 0.0)
+    cam = camera.to(torch.float64).expand(B)
     lin, _ = planar_motion(cam.K, cam.K_inv(), cam.roll, cam.pitch, xy, f, pts.sel)
     h = cam.height
     return {"x_d": lin[:, 0] * h, "z_d": lin[:, 1] * h, "yaw": lin[:, 2]}

@@ -29,33 +29,73 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     """A Gaussian pyramid of images (B, C, H, W): level 0 smoothed with ``smooth_sigma`` pixels,
     each next level the 5-tap binomial blur [1, 4, 6, 4, 1] / 16 of the one below, sampled at its
     even pixels (OpenCV's ``pyrDown``): pixel i of level l is pixel 2^l i of level 0. With
-    ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy.
+    ``smooth_sigma`` 0, level 0 is ``images`` itself, not a copy. Borders are reflected without
+    repeating the edge (OpenCV's ``BORDER_REFLECT_101``) at any size, a level of one pixel too.
 
     On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
     KITTI frame in about 1 ms, some 70 times faster than the same convolutions in torch);
-    elsewhere torch does the same arithmetic.
+    elsewhere torch does the same arithmetic. The coarser levels are not differentiable on the CPU.
     """
-    if images.device.type == "cpu":
-        import cv2
-        import numpy as np
-
-        B, C = images.shape[:2]
-        level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
-        out = [[x.numpy() for x in level.reshape(B * C, *level.shape[-2:])]]
-        for _ in range(levels - 1):
-            out.append([cv2.pyrDown(x) for x in out[-1]])
-        return [level] + [torch.from_numpy(np.stack(planes)).reshape(B, C, *planes[0].shape) for planes in out[1:]]
     level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
-    out = [level]
-    taps = images.new_tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
+    if images.device.type == "cpu":
+        return [level] + _pyramid_cv2(level, levels)
+    return [level] + _pyramid_torch(level, levels)
+
+
+def _pyramid_cv2(level: Tensor, levels: int) -> list[Tensor]:
+    """Levels 1 to ``levels`` - 1 below ``level`` by OpenCV's ``pyrDown``, in ``level``'s dtype."""
+    import cv2
+    import numpy as np
+
+    B, C, H, W = level.shape
+    planes = _cv2_planes(level)
+    out = [[x.numpy() for x in planes]]
     for _ in range(levels - 1):
-        x = out[-1]
-        C = x.shape[1]
-        x = F.pad(x, (2, 2, 2, 2), mode="reflect")
-        x = F.conv2d(x, taps.reshape(1, 1, 1, 5).expand(C, 1, 1, 5), groups=C)
-        x = F.conv2d(x, taps.reshape(1, 1, 5, 1).expand(C, 1, 5, 1), groups=C)
-        out.append(x[..., ::2, ::2].contiguous())
+        out.append([cv2.pyrDown(x) for x in out[-1]])
+    return [torch.from_numpy(np.stack(p)).reshape(B, C, *p[0].shape).to(level.dtype) for p in out[1:]]
+
+
+def _pyramid_torch(level: Tensor, levels: int) -> list[Tensor]:
+    """:func:`_pyramid_cv2`'s levels by torch convolutions (any device)."""
+    out = []
+    taps = level.new_tensor([1.0, 4.0, 6.0, 4.0, 1.0]) / 16.0
+    x = level
+    for _ in range(levels - 1):
+        x = _separable_reflect101(x, taps)[..., ::2, ::2].contiguous()
+        out.append(x)
     return out
+
+
+def _cv2_planes(images: Tensor) -> Tensor:
+    """The planes (B C, H, W) of images as OpenCV takes them: detached, C-contiguous, float32
+    for the 16-bit floats (which OpenCV and NumPy refuse)."""
+    planes = images.detach().reshape(-1, *images.shape[-2:])
+    if planes.dtype in (torch.float16, torch.bfloat16):
+        planes = planes.to(torch.float32)
+    return planes.contiguous()
+
+
+def _reflect101(x: Tensor, dim: int, pad: int) -> Tensor:
+    """``x`` padded by ``pad`` on both sides of ``dim``, reflected without repeating the edge
+    (OpenCV's ``BORDER_REFLECT_101``), folded again and again where ``pad`` exceeds the side
+    (``F.pad``'s reflection refuses a pad as long as the side)."""
+    n = x.shape[dim]
+    i = torch.arange(-pad, n + pad, device=x.device)
+    if n == 1:
+        i = torch.zeros_like(i)
+    else:  # reflect-101 is periodic with period 2 (n - 1)
+        period = 2 * (n - 1)
+        i = i.remainder(period)
+        i = torch.where(i < n, i, period - i)
+    return x.index_select(dim, i)
+
+
+def _separable_reflect101(x: Tensor, taps: Tensor) -> Tensor:
+    """Images (B, C, H, W) filtered by the odd 1-D ``taps`` along rows, then along columns, with
+    reflect-101 borders."""
+    C, k = x.shape[1], taps.numel()
+    x = F.conv2d(_reflect101(x, 3, k // 2), taps.reshape(1, 1, 1, k).expand(C, 1, 1, k), groups=C)
+    return F.conv2d(_reflect101(x, 2, k // 2), taps.reshape(1, 1, k, 1).expand(C, 1, k, 1), groups=C)
 
 
 def mask_pyramid(mask: Tensor, levels: int) -> list[Tensor]:
@@ -94,23 +134,39 @@ def band(img: Tensor, sigma: float | None) -> Tensor:
     if not sigma:
         return img
     blurred = gaussian_blur(img, sigma)  # (a new tensor: the difference is written over it)
+    if img.requires_grad or blurred.requires_grad:  # (out= does not record gradients)
+        return img - blurred
     return torch.sub(img, blurred, out=blurred)
 
 
 def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
-    """Gaussian blur of images (B, C, H, W), reflected at the border (a kernel of ±3 σ): OpenCV
-    on the CPU (python benchmarks/bench_image_fit.py: about 6x faster than kornia's at σ = 4),
-    kornia elsewhere."""
-    k = 2 * int(math.ceil(3 * sigma)) + 1
+    """Gaussian blur of images (B, C, H, W), reflected at the border without repeating the edge
+    (OpenCV's ``BORDER_REFLECT_101``, at any size; a kernel of ±3 σ): OpenCV on the CPU (python
+    benchmarks/bench_image_fit.py: about 6x faster than kornia's at σ = 4; not differentiable),
+    torch convolutions with kornia's kernel elsewhere. 16-bit floats are filtered in float32."""
     if images.device.type == "cpu":
-        import cv2
+        return _gaussian_blur_cv2(images, sigma)
+    return _gaussian_blur_torch(images, sigma)
 
-        B, C, H, W = images.shape
-        planes = images.detach().reshape(B * C, H, W)
-        out = torch.empty_like(planes)
-        for x, y in zip(planes.numpy(), out.numpy()):  # (each plane written in place, no stacking)
-            cv2.GaussianBlur(x, (k, k), sigma, dst=y, borderType=cv2.BORDER_REFLECT_101)
-        return out.reshape(B, C, H, W)
-    from kornia.filters import gaussian_blur2d
 
-    return gaussian_blur2d(images, (k, k), (sigma, sigma), border_type="reflect")
+def _kernel_size(sigma: float) -> int:
+    return 2 * int(math.ceil(3 * sigma)) + 1
+
+
+def _gaussian_blur_cv2(images: Tensor, sigma: float) -> Tensor:
+    import cv2
+
+    k = _kernel_size(sigma)
+    planes = _cv2_planes(images)
+    out = torch.empty(planes.shape, dtype=planes.dtype)  # (C-contiguous, whatever the input's layout)
+    for x, y in zip(planes.numpy(), out.numpy()):  # (each plane written in place, no stacking)
+        cv2.GaussianBlur(x, (k, k), sigma, dst=y, borderType=cv2.BORDER_REFLECT_101)
+    return out.reshape(images.shape).to(images.dtype)
+
+
+def _gaussian_blur_torch(images: Tensor, sigma: float) -> Tensor:
+    from kornia.filters import get_gaussian_kernel1d
+
+    x = images.to(torch.float32) if images.dtype in (torch.float16, torch.bfloat16) else images
+    taps = get_gaussian_kernel1d(_kernel_size(sigma), x.new_tensor([[sigma]])).reshape(-1)
+    return _separable_reflect101(x, taps).to(images.dtype)

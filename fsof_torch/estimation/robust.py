@@ -17,6 +17,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._check import check_number, skip_values
+
 __all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
@@ -28,9 +30,27 @@ def check_kernel(kind: object) -> str:
     return kind
 
 
+def _check_scale(scale: object) -> None:
+    """``scale``: a finite number > 0, or a real tensor of them (one host read: the public
+    functions check it, :func:`robust_terms` inside the solver's loop does not)."""
+    if not isinstance(scale, Tensor):
+        check_number(scale, "scale", positive=True)
+        return
+    if scale.dtype == torch.bool or scale.is_complex():
+        raise TypeError(f"scale: expected a number or a real tensor, got dtype {scale.dtype}")
+    if skip_values(scale):
+        return
+    good = torch.isfinite(scale) & (scale > 0)
+    if not bool(good.all()):
+        bad = scale[~good].flatten()[:3].tolist()
+        raise ValueError(f"scale: expected finite values > 0, got {bad}")
+
+
 def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
-    """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (any shape; ``scale`` broadcasts)."""
+    """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (any shape; ``scale``, a finite
+    number > 0 or a tensor of them, broadcasts)."""
     check_kernel(kind)
+    _check_scale(scale)
     if kind == "l2":
         return torch.ones_like(r2)
     return _unit_kernel(r2 / (scale * scale), kind, cost=False)[1]
@@ -39,6 +59,7 @@ def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Te
 def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
     """ρ(r²) (same shape as ``r2``), matching :func:`robust_weight`."""
     check_kernel(kind)
+    _check_scale(scale)
     if kind == "l2":
         return r2
     c2 = scale * scale

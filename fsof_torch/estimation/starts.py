@@ -91,9 +91,12 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
     camera: ``camera``; road ``mask``) by :func:`two_way_cost`: a screen, not a fit, so one batched
     cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
     the basin of a start straight ahead (a few pixels of the coarsest level) within a few degrees
-    a frame; a network's flow often misses such a shift too. Roll and pitch (and, for the
-    ``"homography"``, every other motion) are ``base``'s; None where the yaw is held fixed (or
-    any homography parameter is) or there are no ``turns``."""
+    a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
+    ``base`` with that yaw and (unless held fixed) z_d at ``speed`` heights, the rest (roll and
+    pitch among them) ``base``'s; for the ``"homography"`` it is built from the camera alone (not
+    from ``base``'s values): the homography of the ``"plane"`` model's turn and step at ``camera``'s
+    roll and pitch, every other motion zero. None where the yaw is held fixed (or any homography
+    parameter is) or there are no ``turns``."""
     if not turns or "yaw" in fixed or (model.name == "homography" and fixed):
         return None
     B, T = base.shape[0], len(turns)

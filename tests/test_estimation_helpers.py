@@ -1,0 +1,289 @@
+"""The estimation package's helpers at their edges: a batch's homography decompositions each as if
+alone, the pyramid's torch filters against OpenCV's at any image size, the CPU filters on any
+layout and float dtype, the flow's planar start on broken pixels and wrong inputs, the robust
+kernels' scale, and the turn screen's starts (fsof_torch.estimation: decompose, pyramid,
+initial, robust, starts)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch import Camera, decompose_homography, road_flow, road_homography
+from fsof_torch.estimation import pyramid as P
+from fsof_torch.estimation.initial import planar_start
+from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
+from fsof_torch.estimation.starts import turning_start
+from fsof_torch.geometry.road_models import get_road_model, pack_params
+
+K_KITTI = [[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]]
+
+
+# -- decompose_homography ------------------------------------------------------------------------
+
+def _two_cameras() -> Camera:
+    K = torch.tensor(K_KITTI, dtype=torch.float64)
+    K2 = K.clone()
+    K2[0, 2], K2[1, 2] = 200.0, 100.0  # a crop: the principal point elsewhere, a smaller virtual image
+    return Camera(torch.stack([K, K2]), torch.full((2,), 1.65, dtype=torch.float64),
+                  torch.full((2,), 0.01, dtype=torch.float64), torch.full((2,), -0.02, dtype=torch.float64))
+
+
+@pytest.mark.parametrize("perturb", [False, True], ids=["rigid", "not_rigid"])
+def test_decompose_homography_batch_gives_each_sample_its_own_result(perturb):
+    cam = _two_cameras()
+    H = road_homography(cam, {"z_d": 1.2, "pitch_change": 0.002, "y_d": 0.01, "yaw": 0.01}, model="plane")
+    if perturb:  # no rigid road motion: the residual is the distance to the nearest one
+        H = H.clone()
+        H[:, 0, 1] += 0.02
+        H[:, 2, 0] += 2e-5
+    both = decompose_homography(H, cam)
+    for i in range(2):
+        alone = decompose_homography(H[i:i + 1], Camera(cam.K[i:i + 1], cam.height[i:i + 1],
+                                                        cam.roll[i:i + 1], cam.pitch[i:i + 1]))
+        for k, v in alone.params.items():
+            torch.testing.assert_close(both.params[k][i:i + 1], v, atol=1e-9, rtol=1e-9)
+        # the residual is in the sample's own grid pixels (not a grid shared with its batch-mates)
+        torch.testing.assert_close(both.residual[i:i + 1], alone.residual, atol=1e-9, rtol=1e-9)
+        torch.testing.assert_close(both.camera.K[i:i + 1], alone.camera.K, atol=0.0, rtol=0.0)
+        h, w = alone.valid.shape[-2:]
+        assert torch.equal(both.valid[i:i + 1, :, :h, :w], alone.valid)
+        assert not bool(both.valid[i, :, h:].any()) and not bool(both.valid[i, :, :, w:].any())
+        torch.testing.assert_close(both.flow[i:i + 1, :, :h, :w], alone.flow, atol=1e-9, rtol=0.0)
+        assert float(both.flow[i, :, h:].abs().sum()) == 0.0 and float(both.flow[i, :, :, w:].abs().sum()) == 0.0
+    if perturb:  # (measured alone: 1.43 and 2.45 grid pixels; the grid shared before gave the second 1.06)
+        assert both.residual.tolist() == pytest.approx([1.4324, 2.4545], abs=1e-3)
+    else:
+        assert float(both.residual.max()) < 1e-9
+        assert both.params["z_d"].tolist() == pytest.approx([1.2, 1.2], abs=1e-9)
+    # each grid's longer side is ``size``
+    assert max(both.valid.shape[-2:]) == 192
+
+
+# -- the pyramid's torch path (what a GPU tensor takes) against OpenCV's -------------------------
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 6])
+def test_reflect101_padding_is_numpys_reflect_at_any_pad(n):
+    x = torch.arange(float(n)).reshape(1, 1, 1, n)
+    for pad in (0, 1, 2, n - 1, n, n + 1, 3 * n + 2):
+        want = np.pad(np.arange(float(n)), pad, mode="reflect")  # (reflect-101: the edge not repeated)
+        assert P._reflect101(x, 3, pad).flatten().tolist() == want.tolist(), (n, pad)
+        assert P._reflect101(x.transpose(2, 3), 2, pad).flatten().tolist() == want.tolist(), (n, pad)
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 7), (2, 2), (3, 5), (5, 3), (8, 8), (12, 40), (13, 2)])
+def test_torch_path_matches_opencv_on_tiny_images(size):
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 3, *size, generator=g)
+    for sigma in (0.5, 1.0, 4.0):  # (σ = 4: a kernel of 25 taps, a pad of 12 >= either side)
+        torch.testing.assert_close(P._gaussian_blur_torch(x, sigma), P._gaussian_blur_cv2(x, sigma),
+                                   atol=2e-6, rtol=0.0)
+    cv, th = P._pyramid_cv2(x, 5), P._pyramid_torch(x, 5)  # (down to levels of one pixel)
+    assert [t.shape for t in th] == [t.shape for t in cv]
+    assert th[-1].shape[-2:] == ((size[0] + 15) // 16, (size[1] + 15) // 16)
+    for a, b in zip(th, cv):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=0.0)
+    # the public functions take the OpenCV path on the CPU
+    assert torch.equal(P.gaussian_blur(x, 4.0), P._gaussian_blur_cv2(x, 4.0))
+    assert all(torch.equal(a, b) for a, b in zip(P.image_pyramid(x, 5, 0.0)[1:], cv))
+
+
+def test_torch_blur_is_kornias_where_kornia_can_pad():
+    from kornia.filters import gaussian_blur2d
+
+    x = torch.rand(2, 1, 30, 40, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    for sigma in (1.0, 4.0):
+        k = 2 * math.ceil(3 * sigma) + 1
+        torch.testing.assert_close(P._gaussian_blur_torch(x, sigma),
+                                   gaussian_blur2d(x, (k, k), (sigma, sigma), border_type="reflect"),
+                                   atol=1e-12, rtol=0.0)
+
+
+# -- the CPU path on any layout, float dtype and autograd state ------------------------------------
+
+def _layouts(x):
+    return {
+        "channels_last": x.contiguous(memory_format=torch.channels_last),
+        "transposed": x.transpose(-1, -2).contiguous().transpose(-1, -2),  # dense, not contiguous
+        "strided": torch.stack([x, x], dim=-1)[..., 0],
+    }
+
+
+def test_cpu_filters_take_any_dense_or_strided_layout():
+    x = torch.rand(2, 3, 20, 30, generator=torch.Generator().manual_seed(2)) * 255
+    blur, pyr, bnd = P.gaussian_blur(x, 2.0), P.image_pyramid(x, 3, 1.0), P.band(x, 4.0)
+    for name, y in _layouts(x).items():
+        assert torch.equal(P.gaussian_blur(y, 2.0), blur), name
+        assert all(torch.equal(a, b) for a, b in zip(P.image_pyramid(y, 3, 1.0), pyr)), name
+        assert all(torch.equal(a, b) for a, b in zip(P.image_pyramid(y, 3, 0.0)[1:], P.image_pyramid(x, 3, 0.0)[1:]))
+        assert torch.equal(P.band(y, 4.0), bnd), name
+        assert torch.equal(y, _layouts(x)[name])  # the caller's tensor is not written
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_cpu_filters_take_16_bit_floats(dtype):
+    x = torch.rand(1, 2, 20, 30, generator=torch.Generator().manual_seed(3))
+    y = x.to(dtype)
+    ref = y.to(torch.float32)  # the same values, filtered in float32, rounded back
+    tol = dict(atol=0.0, rtol=0.0)
+    torch.testing.assert_close(P.gaussian_blur(y, 2.0), P.gaussian_blur(ref, 2.0).to(dtype), **tol)
+    for smooth in (0.0, 1.0):
+        got = P.image_pyramid(y, 3, smooth)
+        assert [t.dtype for t in got] == [dtype] * 3
+        assert [t.shape[-2:] for t in got] == [(20, 30), (10, 15), (5, 8)]
+        assert got[0] is y if smooth == 0 else torch.equal(got[0], P.gaussian_blur(ref, smooth).to(dtype))
+        # the coarser levels from level 0 in float32, each rounded back
+        for a, b in zip(got[1:], P.image_pyramid(got[0].to(torch.float32), 3, 0.0)[1:]):
+            torch.testing.assert_close(a, b.to(dtype), **tol)
+    torch.testing.assert_close(P.band(y, 4.0), P.band(y, 4.0).to(torch.float32).to(dtype), **tol)
+    assert P.band(y, 4.0).dtype == dtype
+
+
+def test_cpu_filters_take_a_tensor_requiring_grad():
+    x = torch.rand(1, 1, 20, 30, generator=torch.Generator().manual_seed(4))
+    xg = x.clone().requires_grad_()
+    torch.testing.assert_close(P.gaussian_blur(xg, 2.0), P.gaussian_blur(x, 2.0), atol=0.0, rtol=0.0)
+    for smooth in (0.0, 1.0):
+        for a, b in zip(P.image_pyramid(xg, 3, smooth), P.image_pyramid(x, 3, smooth)):
+            torch.testing.assert_close(a.detach(), b, atol=0.0, rtol=0.0)
+    assert P.image_pyramid(xg, 3, 0.0)[0] is xg  # level 0 is the images themselves
+    b = P.band(xg, 4.0)
+    torch.testing.assert_close(b.detach(), P.band(x, 4.0), atol=0.0, rtol=0.0)
+    b.sum().backward()  # (the blur is a constant on the CPU: d band / d img = 1)
+    assert torch.equal(xg.grad, torch.ones_like(x))
+
+
+# -- planar_start --------------------------------------------------------------------------------
+
+SIZE = (60, 160)
+
+
+def _small_flow():
+    cam = Camera(torch.tensor(K_KITTI, dtype=torch.float64), 1.65, roll=0.01, pitch=-0.02).scaled(0.125)
+    truth = {"x_d": 0.05, "z_d": 1.1, "yaw": 0.01}
+    flow, valid = road_flow(cam, truth, SIZE, model="paper")
+    return flow.to(torch.float32), valid, cam, truth
+
+
+def test_planar_start_leaves_out_non_finite_flow():
+    flow, mask, cam, truth = _small_flow()
+    clean = planar_start(flow, mask, cam)
+    assert [float(clean[k]) for k in truth] == pytest.approx(list(truth.values()), abs=1e-4)
+    pixels = mask[0, 0].nonzero()
+    (y0, x0), (y1, x1) = pixels[0].tolist(), pixels[len(pixels) // 2].tolist()
+    broken = flow.clone()
+    broken[0, :, y0, x0] = float("nan")
+    broken[0, 1, y1, x1] = float("inf")  # (one component is enough to spoil the pixel)
+    without = mask.clone()
+    without[0, 0, y0, x0] = without[0, 0, y1, x1] = False
+    for points in (2048, 100):  # (all the mask's pixels; an even subsample of them)
+        got, want = planar_start(broken, mask, cam, points), planar_start(flow, without, cam, points)
+        for k in truth:
+            torch.testing.assert_close(got[k], want[k], atol=1e-12, rtol=0.0)
+            assert float(got[k]) == pytest.approx(truth[k], abs=1e-3)
+    assert torch.isnan(broken[0, 0, y0, x0])  # the caller's flow is not repaired in place
+
+
+def test_planar_start_batch_and_broadcast_mask():
+    flow, mask, cam, truth = _small_flow()
+    got = planar_start(torch.cat([flow, flow]), mask, cam.expand(2))  # (mask batch 1: broadcast)
+    for k in truth:
+        assert got[k].shape == (2,)
+        assert got[k].tolist() == pytest.approx([truth[k]] * 2, abs=1e-4)
+
+
+def test_planar_start_names_wrong_inputs():
+    flow, mask, cam, _ = _small_flow()
+    H, W = SIZE
+    with pytest.raises(ValueError, match=rf"mask: expected shape \(1, 1, {H}, {W}\).*got \(1, 1, {H - 10}, {W}\)"):
+        planar_start(flow, mask[..., 10:, :], cam)  # (it was a silently wrong motion)
+    with pytest.raises(ValueError, match=rf"mask: expected shape \(1, 1, {H}, {W - 1}\)"):
+        planar_start(flow[..., :-1], mask, cam)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(2, 1"):
+        planar_start(torch.cat([flow, flow]), torch.cat([mask, mask, mask]), cam)
+    with pytest.raises(ValueError, match=r"mask: expected shape .*got \(1, 60, 160\)"):
+        planar_start(flow, mask[0], cam)
+    with pytest.raises(TypeError, match="mask: expected a bool tensor"):
+        planar_start(flow, mask.float(), cam)
+    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\), got \(2, 60, 160\)"):
+        planar_start(flow[0], mask, cam)
+    with pytest.raises(TypeError, match="flow: expected a floating-point tensor, got dtype torch.int64"):
+        planar_start(flow.long(), mask, cam)
+    with pytest.raises(TypeError, match="flow: expected a torch.Tensor, got ndarray"):
+        planar_start(flow.numpy(), mask, cam)
+    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera, got NoneType"):
+        planar_start(flow, mask, None)
+    with pytest.raises(ValueError, match="camera: expected batch 1 or 2 .*got 3"):
+        planar_start(torch.cat([flow, flow]), mask, cam.expand(3))
+    with pytest.raises(ValueError, match="points: expected an int >= 1, got 0"):
+        planar_start(flow, mask, cam, 0)
+    with pytest.raises(ValueError, match=r"flow: expected a non-empty batch, got shape \(0, 2, 60, 160\)"):
+        planar_start(flow[:0], mask, cam)
+
+
+# -- robust_weight / robust_cost: the scale ------------------------------------------------------
+
+@pytest.mark.parametrize("kind", ROBUST_KERNELS)
+def test_robust_kernels_check_the_scale(kind):
+    r2 = torch.tensor([0.0, 1.0, 4.0], dtype=torch.float64)
+    for fn in (robust_weight, robust_cost):
+        with pytest.raises(ValueError, match=r"scale: expected a positive number \(> 0\), got 0.0"):
+            fn(r2, 0.0, kind)
+        with pytest.raises(ValueError, match=r"scale: expected a positive number \(> 0\), got -2"):
+            fn(r2, -2, kind)  # (it was the kernel of scale 2)
+        with pytest.raises(ValueError, match="scale: expected a finite number, got nan"):
+            fn(r2, float("nan"), kind)
+        with pytest.raises(ValueError, match="scale: expected a finite number, got inf"):
+            fn(r2, float("inf"), kind)
+        with pytest.raises(TypeError, match="scale: expected a number, got str '2'"):
+            fn(r2, "2", kind)
+        with pytest.raises(TypeError, match="scale: expected a number, got bool True"):
+            fn(r2, True, kind)
+        with pytest.raises(ValueError, match=r"scale: expected finite values > 0, got \[0.0, nan\]"):
+            fn(r2, torch.tensor([[2.0], [0.0], [float("nan")]], dtype=torch.float64), kind)
+        with pytest.raises(TypeError, match="scale: expected a number or a real tensor, got dtype torch.bool"):
+            fn(r2, torch.tensor(True), kind)
+        if kind == "l2":  # (no scale in least squares: checked all the same)
+            continue
+        # a tensor of scales broadcasts, each row its own scale's kernel
+        scales = torch.tensor([[1.5], [3.0]], dtype=torch.float64)
+        got = fn(r2, scales, kind)
+        assert got.shape == (2, 3)
+        for i, c in enumerate((1.5, 3.0)):
+            torch.testing.assert_close(got[i], fn(r2, c, kind), atol=0.0, rtol=0.0)
+
+
+def test_robust_kernel_values_at_a_checked_scale():
+    r2 = torch.tensor([0.0, 1.0, 4.0, 16.0], dtype=torch.float64)
+    torch.testing.assert_close(robust_weight(r2, 2, "cauchy"), 1 / (1 + r2 / 4))
+    torch.testing.assert_close(robust_cost(r2, torch.tensor(2.0, dtype=torch.float64), "cauchy"),
+                               4 * torch.log1p(r2 / 4))
+
+
+# -- turning_start: what its starts are made of ----------------------------------------------------
+
+def test_turning_start_takes_base_for_yaw_models_and_the_camera_for_the_homography():
+    cam = Camera(torch.tensor(K_KITTI, dtype=torch.float64), 1.65, roll=0.01, pitch=-0.02).scaled(0.125)
+    flow, valid = road_flow(cam, {"x_d": 0.0, "z_d": 1.0, "yaw": math.radians(3.0)}, SIZE, model="paper")
+    g = torch.Generator().manual_seed(5)
+    img = torch.rand(1, 2, *SIZE, generator=g, dtype=torch.float64)
+    turns = (-3.0, 3.0)
+    for name in ("paper", "homography"):
+        model = get_road_model(name)
+        _, base = pack_params(model, cam, None)
+        moved = base.clone()
+        moved[:, 0] += 0.05
+        a = turning_start(model, cam, base, img, valid, turns, 1.0, (), "cauchy", 500)
+        b = turning_start(model, cam, moved, img, valid, turns, 1.0, (), "cauchy", 500)
+        if name == "homography":  # the camera's turn and step alone: base's values play no part
+            assert torch.equal(a, b)
+            assert not torch.equal(a, base)
+        else:  # base with the turn's yaw and step's z_d; the rest, roll and pitch too, base's
+            i_yaw, i_z = model.params.index("yaw"), model.params.index("z_d")
+            assert abs(abs(float(a[0, i_yaw])) - math.radians(3.0)) < 1e-12
+            assert float(a[0, i_z]) == pytest.approx(1.65, abs=1e-12)
+            keep = [i for i in range(len(model.params)) if i not in (i_yaw, i_z)]
+            assert torch.equal(a[0, keep], base[0, keep]) and torch.equal(b[0, keep], moved[0, keep])
