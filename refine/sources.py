@@ -156,10 +156,12 @@ def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Ten
     im1, im2 = image1[None].to(dtype, copy=True), image2[None].to(dtype, copy=True)
     size = tuple(im1.shape[-2:])
     padding = InputPadder(8).padding(size)
+    # (built before the network runs: a failure here is the images', not the network's)
+    inputs = ptlflow_inputs(im1, im2) if contract == "ptlflow" else None
     with torch.no_grad():
         try:
             if contract == "ptlflow":
-                output = net(ptlflow_inputs(im1, im2))  # ptlflow's models pad internally
+                output = net(inputs)  # ptlflow's models pad internally
             else:
                 if contract == "torchvision":
                     im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0

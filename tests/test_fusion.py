@@ -578,7 +578,7 @@ def test_fuse_flow_nonfinite_model_outside_the_mask_is_harmless():
     (dict(min_pixels=2.5), TypeError, "min_pixels: expected an int, got float 2.5"),  # once accepted
     (dict(min_pixels=0), ValueError, "min_pixels: expected an int >= 1, got 0"),
     (dict(warn="x"), TypeError, "warn: expected True or False, got str 'x'"),
-    (dict(flow_keys=5), TypeError, "flow_keys: expected None, a name or a sequence of names, got int 5"),
+    (dict(flow_keys=5), TypeError, r"flow_keys: expected a key or a sequence of keys \(str\) .*, got int 5"),
     (dict(fit_roll="x"), TypeError, "fit_roll: expected True or False, got str 'x'"),
     (dict(fit_options=5), TypeError, "fit_options: expected None or a dict with string keys, got int 5"),
     (dict(fit_options={"bogus": 1}), TypeError, r"fit_options: unknown options \['bogus'\] of fit_road"),

@@ -33,7 +33,8 @@ level at 1/8 of the padded size has the K of the padded camera scaled by 1/8.
 
 from __future__ import annotations
 
-import math
+import copy
+from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
 
@@ -41,13 +42,15 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, tracing
+from .._check import check_data_range, check_float_tensor, check_image_range, check_size, tracing
 from ..geometry.camera import Camera
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
     "InputPadder",
+    "PAD_MODES",
     "Padding",
+    "check_flow_keys",
     "collect_flows",
     "finest_flow",
     "images_from_ptlflow",
@@ -63,6 +66,21 @@ DEFAULT_FLOW_KEYS = ("flow", "flows", "flows_fw", "flows_12", "flow_12", "flow_p
 
 
 # -- output structures ------------------------------------------------------------------------
+
+def check_flow_keys(flow_keys: object, name: str = "flow_keys") -> tuple[str, ...]:
+    """The dict keys of forward flows: one key or a sequence of keys -> a tuple of str, read once
+    (a generator is consumed here, not seen empty later). None is an error, not the default:
+    pass :data:`DEFAULT_FLOW_KEYS`, or leave the argument out."""
+    if isinstance(flow_keys, str):
+        return (flow_keys,)
+    if flow_keys is not None and isinstance(flow_keys, Iterable) and not isinstance(flow_keys, (Mapping, bytes, Tensor)):
+        keys = tuple(flow_keys)
+        if all(isinstance(k, str) for k in keys):
+            return keys
+        flow_keys = keys
+    raise TypeError(f"{name}: expected a key or a sequence of keys (str) of the forward flows "
+                    f"(default DEFAULT_FLOW_KEYS), got {type(flow_keys).__name__} {flow_keys!r}")
+
 
 def _check_flow(x: Tensor, name: str) -> None:
     stack = x.dim() == 5
@@ -86,7 +104,7 @@ def collect_flows(output: Any, name: str = "flow",
     no empty dimension. A dict contributes only its ``flow_keys`` values.
     """
     out: list[tuple[str, Tensor]] = []
-    _collect(output, name, tuple(flow_keys), out)
+    _collect(output, name, check_flow_keys(flow_keys), out)
     return out
 
 
@@ -112,21 +130,41 @@ def map_flows(output: Any, fn: Callable[[Tensor], Tensor],
               flow_keys: tuple[str, ...] = DEFAULT_FLOW_KEYS) -> Any:
     """The structure with every flow ``f`` replaced by ``fn(f)`` ((B, 2, H, W) in and out).
 
-    Containers keep their type (list, tuple, NamedTuple, dict subclass); a 5-D stack is mapped
-    prediction by prediction; dict values outside ``flow_keys`` are the same objects.
+    Containers keep their type (list, tuple, NamedTuple, dict subclass with its state, such as a
+    ``defaultdict``'s ``default_factory``); a 5-D stack is mapped prediction by prediction; dict
+    values outside ``flow_keys`` are the same objects.
     """
-    flow_keys = tuple(flow_keys)
+    return _map_flows(output, fn, check_flow_keys(flow_keys))
+
+
+def _map_flows(output: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...]) -> Any:
     if isinstance(output, Tensor):
         if output.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
             return torch.stack([fn(output[:, n]) for n in range(output.shape[1])], dim=1)
         return fn(output)
     if isinstance(output, tuple) and hasattr(output, "_fields"):  # a NamedTuple
-        return type(output)(*(map_flows(v, fn, flow_keys) for v in output))
+        return type(output)(*(_map_flows(v, fn, flow_keys) for v in output))
     if isinstance(output, (list, tuple)):
-        return type(output)(map_flows(v, fn, flow_keys) for v in output)
-    items = {k: (map_flows(v, fn, flow_keys) if k in flow_keys else v) for k, v in output.items()}
+        return type(output)(_map_flows(v, fn, flow_keys) for v in output)
+    return _same_mapping(output, {k: (_map_flows(v, fn, flow_keys) if k in flow_keys else v)
+                                  for k, v in output.items()})
+
+
+def _same_mapping(obj: Mapping, items: dict) -> Mapping:
+    """A new mapping of ``obj``'s type holding ``items``. A dict subclass is copied and refilled:
+    its constructor may take other arguments (``defaultdict(factory, items)``), and a copy keeps
+    its type and state; another Mapping is built from the items where its constructor takes them,
+    else a plain dict comes back."""
+    if isinstance(obj, dict):
+        try:
+            out = copy.copy(obj)  # (shallow: the values are the caller's objects until replaced)
+            out.clear()
+            out.update(items)
+            return out
+        except (TypeError, AttributeError, NotImplementedError):  # a subclass that refuses it
+            pass
     try:
-        return type(output)(items)
+        return type(obj)(items)
     except TypeError:  # a Mapping type without a dict constructor
         return items
 
@@ -154,11 +192,7 @@ def _map_tensors(obj: Any, fn: Callable[[Tensor], Tensor]) -> Any:
     if isinstance(obj, (list, tuple)):
         return type(obj)(_map_tensors(v, fn) for v in obj)
     if isinstance(obj, Mapping):
-        items = {k: _map_tensors(v, fn) for k, v in obj.items()}
-        try:
-            return type(obj)(items)
-        except TypeError:
-            return items
+        return _same_mapping(obj, {k: _map_tensors(v, fn) for k, v in obj.items()})
     return obj
 
 
@@ -189,16 +223,20 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     """ptlflow's input dict from two RGB images: ``{"images": (B, 2, 3, H, W)}``, BGR in [0, 1].
 
     Args:
-        image1, image2: (B, 3, H, W) RGB on 0..``data_range``.
+        image1, image2: (B, 3, H, W) RGB on 0..``data_range`` (finite; checked as the refiner
+            checks its images: 0..1 images with the default ``data_range=255.0`` are an error, not
+            near-black input).
+        data_range: the images' maximum, 255.0 for 0..255 images, 1.0 for 0..1.
     """
+    data_range = check_data_range(data_range)
     for name, im in (("image1", image1), ("image2", image2)):
         check_float_tensor(im, name)
         if im.dim() != 4 or im.shape[1] != 3:
             raise ValueError(f"{name}: expected shape (B, 3, H, W) RGB, got {tuple(im.shape)}")
     if image1.shape != image2.shape:
         raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
-    if not (float(data_range) > 0 and math.isfinite(float(data_range))):
-        raise ValueError(f"data_range: expected a finite value > 0, got {data_range!r}")
+    for name, im in (("image1", image1), ("image2", image2)):
+        check_image_range(im, name, data_range)
     pair = torch.stack([image1, image2], dim=1) / float(data_range)
     return {"images": pair.flip(2)}  # RGB -> BGR along the channel axis
 
@@ -212,6 +250,10 @@ def images_from_ptlflow(inputs: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
 
 
 # -- padding ------------------------------------------------------------------------------------
+
+#: How :meth:`Padding.pad` extends an image (``F.pad``'s modes).
+PAD_MODES = ("replicate", "reflect", "constant")
+
 
 @dataclass(frozen=True)
 class Padding:
@@ -240,14 +282,23 @@ class Padding:
         return size[0] + self.top + self.bottom, size[1] + self.left + self.right
 
     def pad(self, x: Tensor, *, mode: str = "replicate") -> Tensor:
-        """Pad the last two dimensions of ``x`` (any leading dimensions, e.g. ptlflow's
-        (B, 2, 3, H, W)). ``mode``: ``"replicate"`` (RAFT's, for images) or ``"constant"`` (zeros;
-        False for a bool mask)."""
+        """Pad the last two dimensions of ``x`` (H, W) with any leading dimensions: none, (C, H, W),
+        (B, C, H, W), ptlflow's (B, 2, 3, H, W). ``mode``: ``"replicate"`` (RAFT's, for images),
+        ``"reflect"`` or ``"constant"`` (zeros); a bool mask is always padded with False."""
+        if mode not in PAD_MODES:
+            raise ValueError(f"mode: expected one of {PAD_MODES}, got {mode!r}")
+        if not isinstance(x, Tensor):
+            raise TypeError(f"x: expected a tensor (..., H, W), got {type(x).__name__}")
+        if x.dim() < 2:
+            raise ValueError(f"x: expected at least 2 dimensions (..., H, W), got shape {tuple(x.shape)}")
         if self.is_zero:
             return x
         pads = (self.left, self.right, self.top, self.bottom)
         if mode == "constant" or x.dtype == torch.bool:
             return F.pad(x, pads)
+        # (F.pad's replicate and reflect pad H and W of a (C, H, W) or (B, C, H, W) tensor only)
+        if x.dim() == 2:
+            return F.pad(x[None], pads, mode=mode)[0]
         lead = x.shape[:-3] if x.dim() > 4 else None
         y = x.reshape(-1, *x.shape[-3:]) if lead is not None else x
         y = F.pad(y, pads, mode=mode)
@@ -289,15 +340,21 @@ class InputPadder:
             raise ValueError(f"stride: expected a positive int, got {stride!r}")
         if mode not in ("sintel", "kitti"):
             raise ValueError(f"mode: expected 'sintel' or 'kitti', got {mode!r}")
-        if pad_mode not in ("replicate", "constant", "reflect"):
+        if pad_mode not in PAD_MODES:
             raise ValueError(f"pad_mode: expected 'replicate', 'constant' or 'reflect', got {pad_mode!r}")
         self.stride = stride
         self.mode = mode
         self.pad_mode = pad_mode
 
     def padding(self, size: tuple[int, int]) -> Padding:
-        """The :class:`Padding` of an image of ``size = (H, W)``."""
-        H, W = int(size[0]), int(size[1])
+        """The :class:`Padding` of an image of ``size = (H, W)``: two ints >= 1 (a tuple, a list
+        or a ``torch.Size`` of two). Unlike RAFT's ``InputPadder(dims)``, which takes the whole
+        shape, an image's shape is refused: pass ``image.shape[-2:]`` (a (B, C, H, W) shape read as
+        (H, W) would pad by B and C)."""
+        if isinstance(size, (tuple, list, torch.Size)) and len(size) > 2:
+            raise TypeError(f"size: expected (H, W), got {tuple(size)!r}; for an image's shape pass "
+                            f"image.shape[-2:]")
+        H, W = check_size(size, "size")
         ph, pw = (-H) % self.stride, (-W) % self.stride
         if self.mode == "sintel":
             return Padding(pw // 2, pw - pw // 2, ph // 2, ph - ph // 2)

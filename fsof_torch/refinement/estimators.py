@@ -50,7 +50,9 @@ class FlowMotionEstimator:
         model: the road model (default the paper's).
         fixed: parameters held at the camera's / start values (default: the camera's roll and
             pitch, which a network's flow pins poorly).
-        **options: further keyword arguments of :func:`~fsof_torch.fit_road`.
+        **options: further keyword arguments of :func:`~fsof_torch.fit_road` (not its inputs
+            ``flow``, ``mask``, ``camera``, nor ``model``, ``fixed``, ``init``, which the
+            estimator passes itself: a TypeError names them).
     """
 
     def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = ("roll", "pitch"),
@@ -58,7 +60,8 @@ class FlowMotionEstimator:
         self.model = get_road_model(model).name
         self.fixed = check_names(fixed, "fixed")
         # (the options' values are checked by fit_road at the first call; their names now)
-        check_keywords(options, "options", fit_road, reserved=("model", "fixed", "init"))
+        # (the inputs too: passed by the call, they would clash there as "multiple values")
+        check_keywords(options, "options", fit_road, reserved=("flow", "mask", "camera", "model", "fixed", "init"))
         self.options = dict(options)
 
     def __call__(self, flow: Tensor, mask: Tensor, camera: Camera, *, images: Any = None,
@@ -96,7 +99,9 @@ class ImageMotionEstimator:
             changes as the body moves: held fixed, such errors bend the rest of the fit
             (docs/real-roads.md measures it on KITTI's poses).
         **options: further keyword arguments of ``fit_image`` (``prior``, ``bounds``,
-            ``max_points``, ``levels``, ...).
+            ``max_points``, ``levels``, ...; not its inputs ``image1``, ``image2``, ``mask``,
+            ``camera``, nor ``model``, ``starts``, which the estimator passes itself: a
+            TypeError names them).
 
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
     fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
@@ -109,7 +114,8 @@ class ImageMotionEstimator:
         if get_road_model(model).velocity:
             raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
         self.flow_start = check_bool(flow_start, "flow_start")
-        check_keywords(options, "options", fit_image, reserved=("model", "starts"))
+        check_keywords(options, "options", fit_image,
+                       reserved=("image1", "image2", "mask", "camera", "model", "starts"))
         self.odometry_sigma = _odometry_sigma(odometry_sigma, self.model, options.get("fixed"))
         self.options = dict(options)
 

@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_has_values, check_mask, check_names, check_number,
+from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_number,
                       check_image_range, check_shape, check_size, skip_values, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..geometry.camera import Camera
@@ -309,9 +309,15 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             motion (with ``"model"``, or a fit) is used as it is; the planar odometry of the
             paper's model, with images, fixes the planar motion while the images estimate the
             body's pitch and roll changes, its vertical motion and the camera's attitude (the
-            plain planar model where that estimate fails).
+            plain planar model where that estimate fails). Nothing is estimated, and the
+            estimator and its options (``fit_roll``, ``fit_pitch``, ``fit_options``,
+            ``photometric_options``) go unused, with a complete motion, with planar odometry
+            and no images, and with planar odometry and ``fit=`` set; they are still checked,
+            as without odometry, so a refiner configured with an estimator may be given
+            odometry on some calls.
         estimator: the road-motion estimator (:mod:`fsof_torch.refinement.estimators`); default:
             :class:`ImageMotionEstimator` with images, :class:`FlowMotionEstimator` without.
+            Called only where the motion is estimated (see ``odometry``).
         gate: an :class:`~fsof_torch.refinement.gate.ImageGate`, ``"auto"`` (the default gate where
             there are images), or None (no gate: the model replaces the whole mask).
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
@@ -321,15 +327,23 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
         starts: further start candidates for an image estimator (e.g. the previous frame's motion).
         min_pixels: without odometry, samples with fewer usable mask pixels are not refined.
-        flow_keys: the dict keys whose values are forward flows to refine.
+        flow_keys: the dict keys whose values are forward flows to refine: one key or a sequence
+            of keys (read once; None is a TypeError, the default is :data:`DEFAULT_FLOW_KEYS`).
         warn: warn when samples are left unchanged or non-finite predictions are masked.
         fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
             estimator (``fit="flow"``: the paper's model fitted to the prediction with
             ``fit_displacement``'s options; ``fit="photometric"``: fitted to the images, started
             from that flow fit). ``fit_roll`` and ``fit_pitch`` apply to both, ``fit_options`` to
             ``"flow"`` (also the default without images), ``photometric_options`` to
-            ``"photometric"``; set where another estimator runs (one given, or the default image
-            estimator) they raise a ValueError instead of being left aside.
+            ``"photometric"``; set where another estimator would run (one given, or the default
+            image estimator) they raise a ValueError instead of being left aside, also where
+            ``odometry`` makes estimation unnecessary. Names the fits receive from the refiner
+            (``flow``, ``mask``, ``camera``, ``image1``, ``image2``, ``model``, ...) raise a
+            TypeError.
+        road_options: keyword arguments of the road detection of ``mask="auto"``
+            (:func:`~fsof_torch.refinement.auto_road.detect_road` with images,
+            :func:`~fsof_torch.detect_freespace` without); a mapping with string keys, or None.
+            Given with a mask tensor (no detection runs) they raise a ValueError.
 
     Returns:
         :class:`RefineOutput`. Pixels outside the (resampled) mask, where the gate keeps the
@@ -340,12 +354,12 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     Non-finite predicted values: they are left out of the estimation; inside the mask the model
     replaces them (both modes); outside the mask they are returned as they came.
     """
-    check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
-                         flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
-                         fit_options=fit_options, photometric_options=photometric_options, starts=starts)
+    flow_keys = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+                                     flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
+                                     fit_options=fit_options, photometric_options=photometric_options, starts=starts)
+    road_options = check_mapping(road_options, "road_options")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    flow_keys = check_names(flow_keys, "flow_keys")
     flows = collect_flows(flow, "flow", flow_keys)
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
@@ -357,10 +371,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = _check_images(images, finest)
+        # (the options are checked before the detection, also where it estimates nothing itself)
+        chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
         return refine_with_auto_road(
             refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
-            road_estimator=None if images is None else _estimator(estimator, fit, images, fit_roll, fit_pitch,
-                                                                  fit_options, photometric_options),
+            road_estimator=None if images is None else chosen,
             estimator=estimator, gate=gate, mode=mode, scale=scale, starts=starts, min_pixels=min_pixels, flow_keys=flow_keys,
             fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options, photometric_options=photometric_options)
     if not isinstance(mask, Tensor):
@@ -369,11 +384,17 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         raise TypeError(f"mask: expected a bool tensor (threshold a probability map first), got dtype {mask.dtype}")
     if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[0] not in (1, B) or tuple(mask.shape[-2:]) != (H, W):
         raise ValueError(f"mask: expected shape ({B}, 1, {H}, {W}) (the finest flow's size), got {tuple(mask.shape)}")
+    if road_options:
+        raise ValueError(f"road_options: apply to the road detection of mask='auto'; with a mask tensor nothing is "
+                         f"detected, got road_options={road_options!r}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's batch), got {camera.batch_size}")
     images = _check_images(images, finest)
     if fit == "photometric" and images is None:
         raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
+    # Built (and so checked) also where odometry leaves nothing to estimate: an option that does
+    # not fit the estimator raises whether or not this call's odometry makes it unused.
+    chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
     device = finest.device
     mask = mask.to(device).expand(B, 1, H, W)
     # The model flow is computed in the prediction's dtype (half lifted to float32): float32
@@ -416,7 +437,6 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         given, odo = road_motion_batch(odometry, B, geo_dtype, device)
         motion_model = given.name
     if estimating:
-        chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
         est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
                         starts=starts, all_finite=all_finite)
         if est is not None:
@@ -573,9 +593,11 @@ class FreespaceRefiner(nn.Module):
             ``"confidence"`` (a blend by the flows' disagreement and the images' evidence).
         scale: Cauchy scale in pixels (finest level) for ``confidence``.
         min_pixels: without odometry, fewer usable mask pixels leave the sample unchanged.
-        flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`).
+        flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`; one key
+            or a sequence of keys, not None).
         fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
-            estimator (see :func:`refine_flow`).
+            estimator (see :func:`refine_flow`). They are checked against the estimator at every
+            call, also one whose odometry leaves nothing to estimate (the estimator then unused).
 
     Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None, starts=()) -> RefineOutput``.
 
@@ -592,9 +614,10 @@ class FreespaceRefiner(nn.Module):
                  fit_options: Mapping[str, Any] | None = None,
                  photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
-        check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
-                             flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
-                             fit_options=fit_options, photometric_options=photometric_options)
+        flow_keys = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale,
+                                         min_pixels=min_pixels, flow_keys=flow_keys, warn=warn, fit=fit,
+                                         fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options,
+                                         photometric_options=photometric_options)
         self.estimator = estimator
         self.gate = gate
         self.mode = mode
@@ -605,7 +628,7 @@ class FreespaceRefiner(nn.Module):
         self.fit_options = dict(fit_options or {})
         self.photometric_options = dict(photometric_options or {})
         self.min_pixels = int(min_pixels)
-        self.flow_keys = check_names(flow_keys, "flow_keys")
+        self.flow_keys = flow_keys
         self.warn = warn
 
     def forward(self, flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,

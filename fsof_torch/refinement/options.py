@@ -7,29 +7,36 @@ from __future__ import annotations
 
 from typing import Any
 
-from .._check import check_bool, check_int, check_keywords, check_mapping, check_names, check_number
+from .._check import check_bool, check_int, check_keywords, check_mapping, check_number
 from ..estimation.flow_fit import fit_road
 from ..estimation.image_fit import fit_image
+from .contracts import check_flow_keys
 from .gate import ImageGate
 
-__all__ = ["MODES", "FITS", "check_refine_options"]
+__all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "check_refine_options"]
 
 #: How the model flow and the prediction are fused.
 MODES = ("replace", "confidence")
 #: The older way to choose the estimator (``fit=``).
 FITS = ("flow", "photometric")
+#: What the refiner passes ``fit_road`` / ``fit_image`` itself (their positional inputs and the
+#: model it chose): refused in ``fit_options`` / ``photometric_options`` by name, where Python
+#: would raise "got multiple values for argument" at the first call.
+FIT_RESERVED = ("flow", "mask", "camera", "model", "fixed", "init")
+PHOTOMETRIC_RESERVED = ("image1", "image2", "mask", "camera", "model", "fixed", "starts")
 
 
 def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: object, min_pixels: object,
                          flow_keys: object, warn: object, fit: object, fit_roll: object, fit_pitch: object,
-                         fit_options: object, photometric_options: object, starts: object = ()) -> None:
+                         fit_options: object, photometric_options: object, starts: object = ()) -> tuple[str, ...]:
     """The options of :func:`refine_flow` and :class:`FreespaceRefiner` (named errors, quoting
-    what came), checked before any work."""
+    what came), checked before any work. Returns ``flow_keys`` as a tuple (read once: pass this on,
+    not the caller's iterable, which may be a generator)."""
     if mode not in MODES:
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
     check_number(scale, "scale", positive=True)
     check_int(min_pixels, "min_pixels", minimum=1)
-    check_names(flow_keys, "flow_keys")
+    flow_keys = check_flow_keys(flow_keys)
     check_bool(warn, "warn")
     check_bool(fit_roll, "fit_roll")
     check_bool(fit_pitch, "fit_pitch")
@@ -44,7 +51,7 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     if not (gate is None or isinstance(gate, ImageGate) or (isinstance(gate, str) and gate == "auto")):
         raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
     # the options of the older fit= choice go to fit_road / fit_image with these set by the refiner
-    check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road,
-                   reserved=("model", "fixed", "init"))
+    check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road, reserved=FIT_RESERVED)
     check_keywords(check_mapping(photometric_options, "photometric_options"), "photometric_options", fit_image,
-                   reserved=("model", "fixed", "starts"))
+                   reserved=PHOTOMETRIC_RESERVED)
+    return flow_keys

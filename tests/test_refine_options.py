@@ -1,0 +1,350 @@
+"""The refiner's options and the network contracts at their edges: options checked whatever the
+call estimates, flow_keys read once, padding sizes and modes, forwarded options that name the
+fits' inputs, road_options, dict subclasses, the wrapper's checks before the network runs, and
+ptlflow's input range."""
+
+from __future__ import annotations
+
+import collections
+import warnings
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.refinement.contracts import (
+    InputPadder,
+    Padding,
+    collect_flows,
+    map_flows,
+    ptlflow_inputs,
+)
+from fsof_torch.refinement.estimators import FlowMotionEstimator, ImageMotionEstimator
+from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
+from fsof_torch.refinement.wrapped import FreespaceRefined
+
+H, W = 48, 120
+ODO = {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01}
+
+
+def make_case(B: int = 1):
+    """A camera, the model flow of ODO, a noisy prediction, the road mask (below row 24) and two
+    0..255 images."""
+    g = torch.Generator().manual_seed(0)
+    K = torch.tensor([[90.0, 0, 60.0], [0, 90.0, 14.0], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K.expand(B, 3, 3), 1.65)
+    gt, valid = displacement_flow(Camera(K, 1.65), ODO["x_d"], ODO["z_d"], ODO["yaw"], (H, W))
+    gt, valid = gt.expand(B, 2, H, W), valid.expand(B, 1, H, W)
+    pred = (gt + torch.randn(gt.shape, generator=g, dtype=gt.dtype)).float()
+    mask = valid.clone()
+    mask[..., : H // 2, :] = False
+    image = torch.rand(B, 3, H, W, generator=g) * 255
+    return pred, mask, cam, (image, image.roll(1, dims=-1))
+
+
+class Spy:
+    """A road-motion estimator that counts its calls (the flow fit inside)."""
+
+    def __init__(self) -> None:
+        self.calls = 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return FlowMotionEstimator()(*args, **kwargs)
+
+
+# -- the estimator's options are checked whether or not odometry leaves anything to estimate ---------
+
+@pytest.mark.parametrize("odometry, images, options, message", [
+    # planar odometry, no images: the flow fit would run, which takes no photometric_options
+    ("planar", False, dict(photometric_options={"max_iter": 3}),
+     "photometric_options: applies with fit='photometric'; here fit='flow'"),
+    # a complete motion, images: the default image estimator would run, which takes no fit_roll
+    ("complete", True, dict(fit_roll=True),
+     "fit_roll: applies with fit='flow' or 'photometric'; here the default image estimator runs"),
+    # planar odometry with fit= set: nothing is estimated, but fit='flow' takes no photometric_options
+    ("planar", True, dict(fit="flow", photometric_options={"max_iter": 3}),
+     "photometric_options: applies with fit='photometric'; here fit='flow'"),
+    # an estimator given, with odometry: its options are its own
+    ("planar", False, dict(estimator=FlowMotionEstimator(), fit_options={"max_iter": 3}),
+     "fit_options: applies with fit='flow'; here an estimator is given"),
+])
+def test_inconsistent_estimator_options_raise_also_with_odometry(odometry, images, options, message):
+    """Once these passed silently whenever the odometry made estimation unnecessary."""
+    pred, mask, cam, pair = make_case()
+    odo = {"model": "plane", **ODO} if odometry == "complete" else ODO
+    with pytest.raises(ValueError, match=message):
+        refine_flow(pred, mask, cam, odo, images=pair if images else None, **options)
+    with pytest.raises(ValueError, match=message):
+        FreespaceRefiner(**options)(pred, mask, cam, odo, images=pair if images else None)
+
+
+def test_an_estimator_with_odometry_is_left_unused_not_refused():
+    """A refiner configured with an estimator may be given odometry on some batches: then the
+    estimator is not called, and nothing raises."""
+    pred, mask, cam, _ = make_case()
+    spy = Spy()
+    refiner = FreespaceRefiner(estimator=spy, gate=None, warn=False)
+    out = refiner(pred, mask, cam, ODO)
+    assert spy.calls == 0 and out.fit is None and bool(out.refined.all())
+    out = refiner(pred, mask, cam)
+    assert spy.calls == 1 and out.fit is not None
+
+
+def test_options_checked_before_the_road_is_detected():
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match="photometric_options: applies with fit='photometric'; here fit='flow'"):
+        refine_flow(pred, "auto", cam, ODO, photometric_options={"max_iter": 3})
+
+
+# -- flow_keys ------------------------------------------------------------------------------------------
+
+def test_flow_keys_none_is_refused_by_name():
+    """Once a raw ``TypeError: 'NoneType' object is not iterable`` from inside contracts.py."""
+    pred, mask, cam, _ = make_case()
+    message = r"^flow_keys: expected a key or a sequence of keys \(str\) .*, got NoneType None$"
+    with pytest.raises(TypeError, match=message):
+        refine_flow(pred, mask, cam, ODO, flow_keys=None)
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefiner(flow_keys=None)
+    with pytest.raises(TypeError, match=message):
+        collect_flows({"flow": pred}, "flow", None)
+    with pytest.raises(TypeError, match=message):
+        map_flows({"flow": pred}, lambda f: f, None)
+    with pytest.raises(TypeError, match=r"^flow_keys: .*got tuple \('flows', 3\)$"):
+        refine_flow(pred, mask, cam, ODO, flow_keys=["flows", 3])
+
+
+def test_flow_keys_generator_is_read_once():
+    """A generator was consumed by the option check, and then no flow was found."""
+    pred, mask, cam, _ = make_case()
+    output = {"flows": pred[:, None], "other": pred[:, None]}
+    expected = refine_flow(output, mask, cam, ODO, flow_keys=("flows",))
+    out = refine_flow(output, mask, cam, ODO, flow_keys=(k for k in ["flows"]))
+    assert torch.equal(out.flow["flows"], expected.flow["flows"])
+    assert not torch.equal(out.flow["flows"], pred[:, None]) and out.flow["other"] is output["other"]
+    refiner = FreespaceRefiner(flow_keys=(k for k in ["flows"]))
+    assert refiner.flow_keys == ("flows",)
+    assert torch.equal(refiner(output, mask, cam, ODO).flow["flows"], expected.flow["flows"])
+
+
+# -- forwarded options that name the fits' own inputs -----------------------------------------------------
+
+@pytest.mark.parametrize("name", ["flow", "mask", "camera"])
+def test_fit_options_naming_the_fits_inputs_are_refused(name):
+    """Once accepted, then "fit_road() got multiple values for argument" at the first call."""
+    pred, mask, cam, _ = make_case()
+    message = rf"fit_options: options \['{name}'\] are set by the caller itself, not through fit_options"
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefiner(fit_options={name: None})
+    with pytest.raises(TypeError, match=message):
+        refine_flow(pred, mask, cam, fit_options={name: None})
+    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+        FlowMotionEstimator(**{name: None})
+
+
+@pytest.mark.parametrize("name", ["image1", "image2", "mask", "camera"])
+def test_photometric_options_naming_the_fits_inputs_are_refused(name):
+    pred, mask, cam, pair = make_case()
+    message = rf"photometric_options: options \['{name}'\] are set by the caller itself"
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefiner(fit="photometric", photometric_options={name: None})
+    with pytest.raises(TypeError, match=message):
+        refine_flow(pred, mask, cam, images=pair, fit="photometric", photometric_options={name: None})
+    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+        ImageMotionEstimator(**{name: None})
+
+
+# -- road_options --------------------------------------------------------------------------------------
+
+def test_road_options_with_a_mask_tensor_are_refused():
+    """Once silently ignored: a mask tensor detects nothing."""
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(ValueError, match=r"^road_options: apply to the road detection of mask='auto'; with a mask "
+                                         r"tensor nothing is detected, got road_options=\{'window': 5\}$"):
+        refine_flow(pred, mask, cam, ODO, road_options={"window": 5})
+    # none given, or an empty mapping: nothing to leave aside
+    for empty in (None, {}):
+        assert bool(refine_flow(pred, mask, cam, ODO, road_options=empty).refined.all())
+
+
+@pytest.mark.parametrize("bad, shown", [(5, "int 5"), ([("window", 5)], r"list \[\('window', 5\)\]")])
+def test_road_options_not_a_mapping_named(bad, shown):
+    """Once a raw TypeError from inside auto_road.py."""
+    pred, mask, cam, pair = make_case()
+    message = rf"^road_options: expected None or a dict with string keys, got {shown}$"
+    with pytest.raises(TypeError, match=message):
+        refine_flow(pred, "auto", cam, ODO, images=pair, road_options=bad)
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefined(Net(), road="auto", road_options=bad)
+
+
+def test_wrapper_road_options_need_road_auto():
+    with pytest.raises(ValueError, match=r"^road_options: apply to the road detection of road='auto'; with "
+                                         r"road=None nothing is detected, got road_options=\{'window': 5\}$"):
+        FreespaceRefined(Net(), road=None, road_options={"window": 5})
+    assert FreespaceRefined(Net(), road="auto", road_options={"window": 5}).road_options == {"window": 5}
+
+
+# -- dict subclasses keep their type --------------------------------------------------------------------
+
+def test_map_flows_keeps_a_defaultdict_and_its_factory():
+    """A defaultdict came back as a plain dict (its constructor takes the factory first)."""
+    flow, occ = torch.zeros(1, 2, 4, 6), torch.zeros(1, 1, 4, 6)
+    output = collections.defaultdict(list, {"flows": flow[:, None], "occ": occ})
+    mapped = map_flows(output, lambda f: f + 1)
+    assert type(mapped) is collections.defaultdict and mapped.default_factory is list
+    assert mapped is not output and output["flows"] is not mapped["flows"]
+    assert torch.equal(mapped["flows"], flow[:, None] + 1) and mapped["occ"] is occ
+    assert torch.equal(output["flows"], flow[:, None])  # the caller's dict as it was
+    assert mapped["missing"] == []  # the factory works
+
+    ordered = collections.OrderedDict([("occ", occ), ("flow_up", flow), ("flow_low", flow[..., ::2, ::2])])
+    mapped = map_flows(ordered, lambda f: f + 1)
+    assert type(mapped) is collections.OrderedDict and list(mapped) == ["occ", "flow_up", "flow_low"]
+    assert float(mapped["flow_low"].min()) == 1.0 and mapped["occ"] is occ
+
+
+def test_refiner_and_padding_keep_a_defaultdict():
+    pred, mask, cam, _ = make_case()
+    out = refine_flow(collections.defaultdict(list, {"flows": pred[:, None]}), mask, cam, ODO)
+    assert type(out.flow) is collections.defaultdict and out.flow.default_factory is list
+    padded = Padding(1, 1, 0, 0)
+    cropped = padded.unpad_output(collections.defaultdict(int, {"flows": torch.zeros(1, 1, 2, 4, 8)}), (4, 8))
+    assert type(cropped) is collections.defaultdict and cropped.default_factory is int
+    assert cropped["flows"].shape == (1, 1, 2, 4, 6)
+
+
+# -- InputPadder.padding and Padding.pad ------------------------------------------------------------------
+
+def test_padding_size_is_a_pair_of_positive_ints():
+    padder = InputPadder(8)
+    assert padder.padding(torch.Size([61, 122])) == padder.padding((61, 122)) == Padding(3, 3, 1, 2)
+    assert padder.padding(torch.zeros(1, 3, 61, 122).shape[-2:]) == Padding(3, 3, 1, 2)
+    # RAFT's InputPadder takes the whole shape; read as (H, W) it would pad by B and C
+    with pytest.raises(TypeError, match=r"^size: expected \(H, W\), got \(1, 3, 64, 100\); for an image's shape "
+                                        r"pass image.shape\[-2:\]$"):
+        padder.padding(torch.Size([1, 3, 64, 100]))
+    with pytest.raises(ValueError, match=r"^size: expected positive sides \(H, W\), got \(0, -3\)$"):
+        padder.padding((0, -3))
+    with pytest.raises(TypeError, match=r"^size: expected integer sides \(H, W\), got \(61.5, 122\)$"):
+        padder.padding((61.5, 122))
+    with pytest.raises(TypeError, match=r"^size: expected \(H, W\), got 61$"):
+        padder.padding(61)
+
+
+@pytest.mark.parametrize("mode", ["replicate", "reflect", "constant"])
+def test_pad_a_2d_tensor(mode):
+    """Once a raw NotImplementedError from F.pad in replicate and reflect modes."""
+    x = torch.arange(30, dtype=torch.float32).reshape(5, 6)
+    p = Padding(1, 2, 3, 4)
+    y = p.pad(x, mode=mode)
+    assert y.shape == (12, 9)
+    assert torch.equal(y, F.pad(x[None, None], (1, 2, 3, 4), mode=mode)[0, 0])
+    assert torch.equal(p.unpad(y), x)
+
+
+def test_pad_mode_and_dims_checked():
+    x = torch.zeros(1, 3, 5, 6)
+    for p in (Padding(1, 2, 3, 4), Padding()):  # (also where nothing is padded)
+        with pytest.raises(ValueError, match=r"^mode: expected one of \('replicate', 'reflect', 'constant'\), "
+                                             r"got 'zeros'$"):
+            p.pad(x, mode="zeros")
+    with pytest.raises(ValueError, match=r"^x: expected at least 2 dimensions \(..., H, W\), got shape \(6,\)$"):
+        Padding(1, 1, 1, 1).pad(torch.zeros(6))
+
+
+# -- the wrapper checks the caller's mask and camera before the network runs ------------------------------
+
+class Net(nn.Module):
+    """Zero flow at the input size; counts its calls."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.calls = 0
+
+    def forward(self, image1, image2):
+        self.calls += 1
+        return [torch.zeros(image1.shape[0], 2, *image1.shape[-2:])]
+
+
+SMALL = (45, 118)  # padded by InputPadder(8) to (48, 120)
+
+
+@pytest.mark.parametrize("kw, error, message", [
+    (dict(camera=None), TypeError, r"^camera: expected a fsof_torch.Camera, got NoneType$"),
+    (dict(mask=None), ValueError, r"^mask: expected a road mask \(B, 1, H, W\) bool, got None"),
+    (dict(mask="uint8"), TypeError, r"^mask: expected a bool tensor \(B, 1, H, W\), got dtype torch.uint8$"),
+    # the caller's shapes, never the padded (48, 120)
+    (dict(mask="short"), ValueError, r"^mask: expected shape \(1, 1, 45, 118\) \(the images' batch and size; "
+                                     r"batch 1 is broadcast\), got \(1, 1, 44, 118\)$"),
+    (dict(mask="3d"), ValueError, r"^mask: expected shape \(1, 1, 45, 118\) .*, got \(1, 45, 118\)$"),
+    (dict(camera="batch 3"), ValueError, r"^camera: expected batch 1 \(the images' batch\), got 3$"),
+])
+@pytest.mark.parametrize("contract", ["two images", "ptlflow"])
+def test_wrapper_checks_before_the_network_runs(kw, error, message, contract):
+    """These were found after the network had run, and with ``pad`` a wrong mask was reported
+    with the padded size."""
+    _, mask, cam, (image1, image2) = make_case()
+    image1, image2 = image1[..., :SMALL[0], :SMALL[1]], image2[..., :SMALL[0], :SMALL[1]]
+    mask = mask[..., :SMALL[0], :SMALL[1]]
+    given = {"mask": mask, "camera": cam, **kw}
+    given["mask"] = {"uint8": mask.to(torch.uint8), "short": mask[..., 1:, :], "3d": mask[:, 0]}.get(
+        given["mask"], given["mask"])
+    given["camera"] = cam.expand(3) if given["camera"] == "batch 3" else given["camera"]
+    net = Net()
+    model = FreespaceRefined(net, FreespaceRefiner(gate=None, warn=False), pad=InputPadder(8))
+    inputs = (ptlflow_inputs(image1, image2),) if contract == "ptlflow" else (image1, image2)
+    if contract == "ptlflow":
+        model.net = PtlflowNet(net)
+    with pytest.raises(error, match=message):
+        model(*inputs, odometry=ODO, **given)
+    assert net.calls == 0
+    # and the same wrapper with the right arguments runs the network once
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        model(*inputs, odometry=ODO, mask=mask, camera=cam)
+    assert net.calls == 1
+
+
+class PtlflowNet(nn.Module):
+    def __init__(self, net: Net) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, inputs):
+        images = inputs["images"]
+        return {"flows": self.net(images[:, 0], images[:, 1])[0][:, None]}
+
+
+def test_wrapper_images_of_two_shapes_named_before_the_network_runs():
+    _, _, cam, (image1, image2) = make_case()
+    net = Net()
+    with pytest.raises(ValueError, match=r"^image2: expected the shape of image1 \(1, 3, 48, 120\), "
+                                         r"got \(1, 3, 47, 120\)$"):
+        FreespaceRefined(net)(image1, image2[..., 1:, :], camera=cam, mask=torch.ones(1, 1, H, W, dtype=torch.bool))
+    assert net.calls == 0
+
+
+# -- ptlflow_inputs checks the images' range ---------------------------------------------------------------
+
+def test_ptlflow_inputs_checks_range_and_finiteness():
+    """0..1 images once became near-black ptlflow inputs, and NaN passed."""
+    _, _, _, (image1, image2) = make_case()
+    with pytest.raises(ValueError, match=r"^image1: values in \[.*\] look like 0..1 images, expected 0..255"):
+        ptlflow_inputs(image1 / 255, image2 / 255)
+    torch.testing.assert_close(ptlflow_inputs(image1 / 255, image2 / 255, data_range=1.0)["images"],
+                               ptlflow_inputs(image1, image2)["images"])
+    bad = image2.clone()
+    bad[0, 1, 3, 4] = float("nan")
+    with pytest.raises(ValueError, match=r"^image2: expected finite pixel values, got \[nan\]"):
+        ptlflow_inputs(image1, bad)
+    with pytest.raises(ValueError, match=r"^image1: expected values in \[0, data_range=255\], got values in"):
+        ptlflow_inputs(image1 * 2, image2)
+    with pytest.raises(ValueError, match=r"^data_range: expected a positive finite number .*, got 0"):
+        ptlflow_inputs(image1, image2, data_range=0)
+    with pytest.raises(TypeError, match=r"^data_range: expected a positive finite number .*, got '255'"):
+        ptlflow_inputs(image1, image2, data_range="255")
