@@ -56,6 +56,8 @@ import torch
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data"
 PRESETS = ("default", "body-motion", "crest", "dip")
 PAIRS = (0, 10, 20, 30)
+KITTI15 = ("kitti15_000000", ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"))
+CLIP = ("kitti_odometry_straight", ("image_l", "calib.txt", "road.json"))
 
 
 def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
@@ -138,11 +140,12 @@ def slow_table() -> None:
               f"{e[0]:6.3f} {e[1]:8.3f}  {counts:<19} | {e[2]:20.3f}  {counts_fixed}")
 
 
-def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)):
-    """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs;
-    with a ``turn`` (yaw, pitch change, roll change in degrees), image 2 as a camera that also
-    turns so between the frames sees it, both frames and the polygon cropped to where it is
-    defined (``real_road.turned``)."""
+def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *, kitti15: bool = True,
+               clip: bool = True):
+    """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs
+    (those of the two asked for); with a ``turn`` (yaw, pitch change, roll change in degrees),
+    image 2 as a camera that also turns so between the frames sees it, both frames and the polygon
+    cropped to where it is defined (``real_road.turned``)."""
     from fsof_torch import Camera
     from fsof_torch.io import read_image, read_road_mask
 
@@ -155,28 +158,32 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)):
         t = turned({"image1": im1[0], "image2": im2[0], "road": poly[0], "camera": camera}, *turn)
         return name, t["image1"][None], t["image2"][None], t["camera"], t["road"][None]
 
-    k15 = root / "kitti15_000000"
-    im1, im2 = (read_image(k15 / f"image_1{i}.png")[None] for i in (0, 1))
-    camera = Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65)
-    poly = read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool()
-    yield view("kitti15 pair", im1, im2, camera, poly)
-    # the same pair through the 16 windows 4 px smaller: the same scene, other draws of the points
-    for i, w in enumerate(crops({"camera": camera, "image1": im1, "image2": im2, "road": poly})):
-        yield view(f"kitti15 windows {i:02d}", w["image1"], w["image2"], w["camera"], w["road"])
-    clip = root / "kitti_odometry_straight"
-    cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
-    files = sorted((clip / "image_l").glob("*.png"))
-    frames = [read_image(f)[None, :1] for f in files]
-    poly = read_road_mask(clip / "road.json", tuple(frames[0].shape[-2:])).reshape(1, 1, *frames[0].shape[-2:]).bool()
-    for i in range(len(frames) - 1):
-        yield view(f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly)
+    if kitti15:
+        k15 = root / KITTI15[0]
+        im1, im2 = (read_image(k15 / f"image_1{i}.png")[None] for i in (0, 1))
+        camera = Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65)
+        poly = read_road_mask(k15 / "road.json", tuple(im1.shape[-2:])).reshape(1, 1, *im1.shape[-2:]).bool()
+        yield view("kitti15 pair", im1, im2, camera, poly)
+        # the same pair through the 16 windows 4 px smaller: the same scene, other draws of the points
+        for i, w in enumerate(crops({"camera": camera, "image1": im1, "image2": im2, "road": poly})):
+            yield view(f"kitti15 windows {i:02d}", w["image1"], w["image2"], w["camera"], w["road"])
+    if clip:
+        folder = root / CLIP[0]
+        cam = Camera.from_kitti(folder / "calib.txt", cam=0, height=1.65)
+        files = sorted((folder / "image_l").glob("*.png"))
+        frames = [read_image(f)[None, :1] for f in files]
+        size = tuple(frames[0].shape[-2:])
+        poly = read_road_mask(folder / "road.json", size).reshape(1, 1, *size).bool()
+        for i in range(len(frames) - 1):
+            yield view(f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly)
 
 
-def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *, kitti15: bool = True,
+               clip: bool = True) -> None:
     from fsof_torch import detect_freespace, detect_road
 
     rows: dict[str, dict[str, list]] = {}
-    for name, im1, im2, cam, poly in real_pairs(root, turn):
+    for name, im1, im2, cam, poly in real_pairs(root, turn, kitti15=kitti15, clip=clip):
         group = name.rstrip("0123456789 ")
         flow = dis(im1, im2)
         with warnings.catch_warnings():
@@ -218,7 +225,7 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
     from fsof_torch import detect_road, refine_flow
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
-    name, im1, im2, cam, poly = next(real_pairs(root, turn))
+    name, im1, im2, cam, poly = next(real_pairs(root, turn, clip=False))
     flow = dis(im1, im2)
     motion = detect_road(im1, im2, cam, flow=flow).motion
     estimator = ImageMotionEstimator()
@@ -245,11 +252,16 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
 def main(argv=None) -> int:
     import cv2
 
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT)
-    parser.add_argument("--repeat", type=int, default=3)
-    parser.add_argument("--no-synthetic", action="store_true")
-    parser.add_argument("--no-slow", action="store_true")
+    from cli import data_folder, description, positive_int, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/ "
+                             "(default: ../shared/data beside the repository)")
+    parser.add_argument("--repeat", type=positive_int, default=3,
+                        help="timed runs per row of the time table (default 3)")
+    parser.add_argument("--no-synthetic", action="store_true", help="leave out the synthetic presets' table")
+    parser.add_argument("--no-slow", action="store_true", help="leave out the table of driving slowly")
     parser.add_argument("--no-real", action="store_true", help="leave out the real-data tables")
     parser.add_argument("--pairs", type=int, nargs="+", default=list(PAIRS),
                         help="the synthetic presets' pairs (default: 0 10 20 30; other pairs check that a "
@@ -267,16 +279,21 @@ def main(argv=None) -> int:
     if any(k < 0 for k in args.pairs):
         print(f"--pairs: expected pair indices >= 0, got {args.pairs}", file=sys.stderr)
         return 2
+    data = None if args.no_real else data_folder(parser, args.data, DEFAULT)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     if not args.no_synthetic:
         synthetic_table(tuple(args.pairs))
-    if not args.no_real:
-        if args.data.is_dir():
-            real_table(args.data, turn)
-            time_table(args.data, args.repeat, turn)
+    if data is not None:
+        if data.is_dir():
+            kitti15 = present(data / KITTI15[0], KITTI15[1], f"KITTI pair {KITTI15[0]}")
+            clip = present(data / CLIP[0], CLIP[1], f"KITTI clip {CLIP[0]}")
+            if kitti15 or clip:
+                real_table(data, turn, kitti15=kitti15, clip=clip)
+            if kitti15:
+                time_table(data, args.repeat, turn)
         else:
-            print(f"\n{args.data} is absent: no real-data tables")
+            print(f"\n{data} is absent: no real-data tables")
     if not args.no_slow:
         slow_table()
     return 0

@@ -22,10 +22,14 @@ import warnings
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--backend", default="inductor", choices=["inductor", "aot_eager", "eager"])
+    from cli import description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--backend", default="inductor", choices=["inductor", "aot_eager", "eager"],
+                        help="torch.compile's backend (default inductor)")
     parser.add_argument("--cold", action="store_true", help="start from an empty inductor cache")
-    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--repeats", type=positive_int, default=5,
+                        help="timed calls for the eager and later compiled medians (default 5)")
     args = parser.parse_args(argv)
     if args.cold:  # (before torch reads its configuration)
         os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="fsof_inductor_")

@@ -157,14 +157,17 @@ def paper_flow(uv, roll, xd, zd, yaw, h=1.65):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--repeats", type=int, default=10)
-    parser.add_argument("--json", type=str, default=None, help="write the rows as JSON here")
+    from cli import baseline_revision, description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--repeats", type=positive_int, default=10, help="timed calls per row (default 10)")
+    parser.add_argument("--json", type=str, default=None, metavar="PATH", help="write the rows as JSON here")
     parser.add_argument("--no-curve-fit", action="store_true", help="skip the curve_fit row")
-    parser.add_argument("--baseline", type=str, default=DEFAULT_BASELINE,
+    parser.add_argument("--baseline", type=str, default=None, metavar="REV",
                         help="a git revision whose fit_displacement is timed interleaved with the current one "
-                             f"(default {DEFAULT_BASELINE}; 'none' to skip)")
+                             f"(default {DEFAULT_BASELINE}, left out where git or it is unavailable; 'none' to skip)")
     args = parser.parse_args(argv)
+    args.baseline = baseline_revision(parser, args.baseline, DEFAULT_BASELINE)
     torch.set_num_threads(1)
 
     from scipy.optimize import curve_fit, least_squares
@@ -207,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
         add(f"fit_road model={model!r} (max_points=8192)", lambda: fit_road(flow, mask, cam, model=model),
             args.repeats, check=check)
 
-    if args.baseline and args.baseline.lower() != "none":
+    if args.baseline is not None:
         base = load_baseline(args.baseline)
         base_cam = base.Camera(torch.tensor(K, dtype=torch.float32), 1.65)
         for label, (f, m, frames_) in {"1 frame": (flow, mask, 1), "batch 8": (flow8, mask8, 8)}.items():

@@ -41,8 +41,8 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odomet
 def pair():
     import fsof_torch as fs
 
-    if SHARED.is_dir():
-        files = sorted((SHARED / "image_l").glob("*.png"))
+    files = sorted((SHARED / "image_l").glob("*.png"))
+    if len(files) >= 2 and (SHARED / "road.json").is_file() and (SHARED / "calib.txt").is_file():
         im1, im2 = fs.read_image(files[0]), fs.read_image(files[1])
         road = fs.read_road_mask(SHARED / "road.json", size=tuple(im1.shape[-2:]))
         return im1, im2, road, fs.Camera.from_kitti(SHARED / "calib.txt", cam=0, height=1.65), "KITTI clip pair 0"
@@ -50,11 +50,14 @@ def pair():
     return p["image1"], p["image2"], p["road"], p["camera"], "synthetic default pair 0"
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=15)
+def main(argv: list[str] | None = None) -> int:
+    from cli import baseline_revision, description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--repeats", type=positive_int, default=15, help="interleaved timed calls per row (default 15)")
     parser.add_argument("--baseline", metavar="REV", help="time against this git revision instead")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
+    args.baseline = baseline_revision(parser, args.baseline)
     import cv2
     from kornia.color import rgb_to_grayscale
     from kornia.filters import gaussian_blur2d
@@ -71,7 +74,8 @@ def main() -> None:
     I1, I2, M = im1[None], im2[None], road[None]
     flow = dis_flow(im1, im2)[None]
     if args.baseline:
-        return against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
+        against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
+        return 0
     refiner = fs.FreespaceRefiner()
     ahead_off = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(forward_starts=()))
     more_points = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(max_points=10000))
@@ -118,6 +122,7 @@ def main() -> None:
     for name, t in times.items():
         t = np.array(t) * 1e3
         print(f"| {name} | {np.median(t):.1f} | {t.min():.1f} | {np.median(t) / (ref * 1e3):.2f} |")
+    return 0
 
 
 def interleaved(rows: dict, repeats: int) -> dict[str, list[float]]:
@@ -160,4 +165,4 @@ def against_baseline(rev: str, repeats: int, I1, I2, M, cam, flow, what: str) ->
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -208,18 +208,18 @@ def print_table(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--repeats", type=int, default=40, help="timed calls per row (default 40)")
-    parser.add_argument("--warmup", type=int, default=3, help="untimed calls first (default 3)")
-    parser.add_argument("--batch", type=int, nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
-    parser.add_argument("--size", type=int, nargs=2, default=[375, 1242], metavar=("H", "W"),
+    from cli import description, nonnegative_int, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--repeats", type=positive_int, default=40, help="timed calls per row (default 40)")
+    parser.add_argument("--warmup", type=nonnegative_int, default=3, help="untimed calls first (default 3)")
+    parser.add_argument("--batch", type=positive_int, nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
+    parser.add_argument("--size", type=positive_int, nargs=2, default=[375, 1242], metavar=("H", "W"),
                         help="image size (default 375 1242)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile rows")
     parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
     args = parser.parse_args(argv)
-    if args.threads < 1 or args.repeats < 1 or args.warmup < 0 or min(args.batch) < 1 or min(args.size) < 1:
-        parser.error("--threads, --repeats, --batch and --size must be positive, --warmup >= 0")
     result = run(args)
     print_table(result)
     if args.json:

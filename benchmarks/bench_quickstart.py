@@ -39,9 +39,12 @@ def _parse(text: str) -> dict[str, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--runs", type=int, default=2, help="runs started side by side (default 2)")
-    parser.add_argument("--args", default="", help="extra options for each run (default: none, the Quick start)")
+    from cli import description, positive_int, shell_words
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--runs", type=positive_int, default=2, help="runs started side by side (default 2)")
+    parser.add_argument("--args", type=shell_words, default="",
+                        help="extra options for each run (default: none, the Quick start)")
     args = parser.parse_args(argv)
     time_bin = shutil.which("time") or "/usr/bin/time"
     if not Path(time_bin).is_file():

@@ -127,13 +127,18 @@ def build_case(dtype: torch.dtype = torch.float32):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--repeats", type=int, default=15, help="timed calls per case and round")
-    parser.add_argument("--rounds", type=int, default=3, help="rounds over all cases")
-    parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument("--baseline", type=str, default="09d064e",
-                        help="a git revision to time against the current version (interleaved); 'none' to skip")
+    from baseline import DEFAULT_BASELINE
+    from cli import baseline_revision, description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--repeats", type=positive_int, default=15, help="timed calls per case and round (default 15)")
+    parser.add_argument("--rounds", type=positive_int, default=3, help="rounds over all cases (default 3)")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the results as JSON here")
+    parser.add_argument("--baseline", type=str, default=None, metavar="REV",
+                        help="a git revision to time against the current version (interleaved; default "
+                             f"{DEFAULT_BASELINE}, left out where git or it is unavailable); 'none' to skip")
     args = parser.parse_args(argv)
+    args.baseline = baseline_revision(parser, args.baseline, DEFAULT_BASELINE)
     torch.set_num_threads(1)
 
     import cv2
@@ -178,15 +183,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name:<{width}}  {r['median_ms']:9.2f}  {r['min_ms']:6.2f}  {r['page_faults_per_call']:16.0f}")
     print(f"(fitted z_d {float(fitted.odometry['z_d'][0]):.4f} m for a true {odo['z_d']}; target for the full "
           f"step: <= 15 ms)")
-    against = None
-    if args.baseline and args.baseline.lower() != "none":
-        against = baseline_table(args.baseline, (camera, odo, flow, mask, size), args.repeats, args.rounds)
-    if args.json is not None:
+    report = {"size": list(size), "road_pixels": int(mask.sum()), "threads": 1, "torch": torch.__version__,
+              "results": results, "baseline": args.baseline or "none", "against_baseline": None}
+    if args.json is not None:  # (before the baseline's table, which may fail to import that revision)
         from fsof_torch.io import write_json
 
-        write_json(args.json, {"size": list(size), "road_pixels": int(mask.sum()), "threads": 1,
-                               "torch": torch.__version__, "results": results, "baseline": args.baseline,
-                               "against_baseline": against})
+        write_json(args.json, report)
+    if args.baseline is not None:
+        report["against_baseline"] = baseline_table(args.baseline, (camera, odo, flow, mask, size), args.repeats,
+                                                    args.rounds)
+        if args.json is not None:
+            write_json(args.json, report)
     return 0
 
 

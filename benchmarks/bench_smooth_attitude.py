@@ -53,12 +53,15 @@ def timed(fn, repeats: int) -> tuple[float, object]:
     return statistics.median(times), out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--sizes", type=int, nargs="+", default=[100, 1000, 10000], help="pairs N")
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--sizes", type=positive_int, nargs="+", default=[100, 1000, 10000],
+                        help="clip lengths N in pairs (default 100 1000 10000)")
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per solve (default 5)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 
     from fsof_torch.estimation.sequence import smooth_attitude
@@ -80,7 +83,8 @@ def main() -> None:
         dsigma = float(((sigma - sigma_d) / sigma_d).abs().max())
         print(f"{N:6d} {1e3 * t_dense:10.2f} {1e3 * t_fast:9.2f} {t_dense / t_fast:8.1f} "
               f"{(N + 1) ** 2 * 8 / 1e6:9.1f} {dtrack:13.2e} {dsigma:11.2e}", flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

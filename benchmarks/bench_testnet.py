@@ -34,9 +34,11 @@ def _median_times(fn, repeats: int) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--iters", type=int, default=6, help="GRU iterations (TinyRAFT's default: 6)")
+    from cli import description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--repeats", type=positive_int, default=5, help="timed forward passes per row (default 5)")
+    parser.add_argument("--iters", type=positive_int, default=6, help="GRU iterations (TinyRAFT's default: 6)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     net = TinyRAFT(seed=0, iters=args.iters).eval()

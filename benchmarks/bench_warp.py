@@ -10,6 +10,7 @@ warp. Single thread, warm-up, median of repeats, milliseconds. Run: python bench
 
 from __future__ import annotations
 
+import argparse
 import statistics
 import time
 
@@ -41,7 +42,10 @@ def median_ms(fn, repeats=7, warmup=2):
     return statistics.median(times)
 
 
-def main() -> int:
+def main(argv: list[str] | None = None) -> int:
+    from cli import description
+
+    argparse.ArgumentParser(description=description(__doc__)).parse_args(argv)
     torch.set_num_threads(1)
     g = torch.Generator().manual_seed(0)
     print(f"{'size':>16} {'pass':>9} {'warp_backward':>14} {'kornia remap':>13} {'ratio':>6}")

@@ -1,8 +1,8 @@
 """Peak memory of the refine job on clips of user images of growing length, one thread.
 
-Writes a clip of the synthetic ``default`` scene (``--frames`` frames at ``--size``) in the layout of
-a folder of your own (``images/``, ``calib.txt``, ``road/``; docs/jobs.md), then runs, for each
-length, the job on the clip's first frames as a user would::
+Writes a clip of the synthetic ``default`` scene (as many frames as the longest of ``--lengths``,
+at ``--size``) in the layout of a folder of your own (``images/``, ``calib.txt``, ``road/``;
+docs/jobs.md), then runs, for each length, the job on the clip's first frames as a user would::
 
     python -m refine --images DIR/images --calib DIR/calib.txt --road DIR/road \\
         --height H --roll-deg R --pitch-deg P --source dis --odometry sequence \\
@@ -118,17 +118,19 @@ def run_job(code: Path, clip: Path, out: Path, mounting: list[str]) -> tuple[flo
     return usage.ru_maxrss / 1024, wall  # ru_maxrss: KiB on Linux
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--lengths", type=int, nargs="+", default=[11, 26, 51], help="clip lengths in frames")
-    parser.add_argument("--size", default="375x1242", help="HxW (default: KITTI's)")
-    parser.add_argument("--seed", type=int, default=0)
+def main(argv: list[str] | None = None) -> int:
+    from cli import baseline_revision, description, int_at_least, size_hw
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--lengths", type=int_at_least(3), nargs="+", default=[11, 26, 51],
+                        help="clip lengths in frames, each at least 3 (default 11 26 51)")
+    parser.add_argument("--size", type=size_hw, default=(375, 1242), metavar="HxW", help="HxW (default: KITTI's)")
+    parser.add_argument("--seed", type=int, default=0, help="the scene's seed (default 0)")
     parser.add_argument("--keep", type=Path, default=None, help="write the clip here (kept) instead of a temporary folder")
     parser.add_argument("--baseline", default=None, metavar="REV", help="also run the job of this git revision")
-    args = parser.parse_args()
-    if min(args.lengths) < 3:
-        parser.error("--lengths: a clip needs at least 3 frames")
-    size = tuple(int(x) for x in args.size.lower().split("x"))
+    args = parser.parse_args(argv)
+    args.baseline = baseline_revision(parser, args.baseline, paths=("fsof_torch", "refine"))
+    size = args.size
     work = Path(tempfile.mkdtemp(prefix="clip_memory_"))
     try:
         clip = args.keep if args.keep is not None else work / "clip"
@@ -154,7 +156,8 @@ def main() -> None:
             print(f"{label:>10} {n:6d} {rss:11.0f} {rss / first:6.2f} {wall:7.1f} {wall / (n - 1):6.2f}")
     finally:
         shutil.rmtree(work, ignore_errors=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -18,12 +18,14 @@ One thread; needs ``../shared`` for part 1.
 
 from __future__ import annotations
 
+import argparse
 import warnings
 from pathlib import Path
 
 import torch
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
+KITTI15 = ("image_10.png", "image_11.png", "flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 
 
 def dis(image1, image2):
@@ -32,7 +34,10 @@ def dis(image1, image2):
     return dis_flow(image1, image2)
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, present
+
+    argparse.ArgumentParser(description=description(__doc__)).parse_args(argv)
     import fsof_torch as fs
     from fsof_torch.data.scene import render_pair
 
@@ -40,7 +45,7 @@ def main() -> None:
     warnings.simplefilter("ignore")
     refiner = fs.FreespaceRefiner()
     k15 = SHARED / "kitti15_000000"
-    if k15.is_dir():
+    if present(k15, KITTI15, "KITTI pair kitti15_000000 (part 1, dark frames)"):
         im1, im2 = fs.read_image(k15 / "image_10.png"), fs.read_image(k15 / "image_11.png")
         gt, valid = fs.read_kitti_flow(k15 / "flow_noc_10.png")
         road = fs.read_road_mask(k15 / "road.json", size=tuple(im1.shape[-2:]))
@@ -85,7 +90,8 @@ def main() -> None:
         r = p["road"][0] & valid
         print(f"| {index} | {int(car.sum())} | {100 * changed:.0f} % | {float(e0[car & valid].mean()):.2f} / "
               f"{float(e1[car & valid].mean()):.2f} | {float(e0[r].mean()):.2f} / {float(e1[r].mean()):.2f} |")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -33,6 +33,7 @@ import torch
 import torch.nn.functional as F
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry_straight"
+CLIP = ("calib.txt", "image_l", "road.json")
 
 
 def box_blur(image: torch.Tensor, kx: int, ky: int) -> torch.Tensor:
@@ -57,10 +58,14 @@ def row(name: str, fits: list) -> str:
             f"{min(share):.2f} / {statistics.median(share):.2f} |")
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT, help="the straight clip's folder")
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> int:
+    from cli import data_folder, description, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the straight clip's folder (default: ../shared/data/kitti_odometry_straight)")
+    args = parser.parse_args(argv)
+    data = data_folder(parser, args.data, DEFAULT, CLIP)
     import fsof_torch as fs
     from fsof_torch.estimation.image_fit import fit_image
 
@@ -69,8 +74,7 @@ def main() -> None:
     warnings.simplefilter("ignore")
     header = ("| condition | frames | success | correlation min / median | inlier share min / median |\n"
               "|---|---|---|---|---|")
-    data = args.data
-    if data.is_dir():
+    if present(data, CLIP, "KITTI clip (part 1)"):
         cam = fs.Camera.from_kitti(data / "calib.txt", cam=0, height=1.65)
         files = sorted((data / "image_l").glob("*.png"))
         frame = (lambda k: fs.read_image(files[k])[None])
@@ -117,7 +121,8 @@ def main() -> None:
             p = fs.render_pair(preset, i)
             fits.append(fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"]))
         print(row(preset, fits), flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -23,6 +23,7 @@ from fsof_torch.geometry.camera import Camera
 from fsof_torch import fit_displacement, fit_photometric
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
+NEED = ("calib_cam_to_cam.txt", "flow_noc_10.png", "road.json", "image_10.png", "image_11.png")
 
 
 def load(folder: Path):
@@ -39,10 +40,16 @@ def load(folder: Path):
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT)
-    parser.add_argument("--json", type=str, default=None)
+    from cli import data_folder, description, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
+    parser.add_argument("--json", type=str, default=None, metavar="PATH", help="also write the rows as JSON here")
     args = parser.parse_args(argv)
+    args.data = data_folder(parser, args.data, DEFAULT, NEED)
+    if not present(args.data, NEED, "KITTI pair kitti15_000000"):
+        return 0
     import cv2
 
     torch.set_num_threads(1)

@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
+NEED = ("calib_cam_to_cam.txt", "flow_noc_10.png", "road.json")
 
 
 def kitti_table(folder: Path) -> None:
@@ -141,18 +142,21 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT)
-    parser.add_argument("--pairs", type=int, nargs="+", default=[0, 30])
-    parser.add_argument("--size", type=int, nargs=2, default=[375, 1242])
-    parser.add_argument("--skip-kitti", action="store_true")
+    from cli import data_folder, description, nonnegative_int, positive_int, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
+    parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 30],
+                        help="pair indices of the synthetic tables (default 0 30)")
+    parser.add_argument("--size", type=positive_int, nargs=2, default=[375, 1242], metavar=("H", "W"),
+                        help="the synthetic pairs' size (default 375 1242)")
+    parser.add_argument("--skip-kitti", action="store_true", help="leave out the KITTI table")
     args = parser.parse_args(argv)
+    data = None if args.skip_kitti else data_folder(parser, args.data, DEFAULT, NEED)
     torch.set_num_threads(1)
-    if not args.skip_kitti:
-        if args.data.is_dir():
-            kitti_table(args.data)
-        else:
-            print(f"(KITTI table skipped: {args.data} is absent)")
+    if data is not None and present(data, NEED, "KITTI pair kitti15_000000 (the KITTI table)"):
+        kitti_table(data)
     scene_tables(args.pairs, tuple(args.size))
     return 0
 

@@ -23,8 +23,8 @@ Without ``../shared`` the real columns are skipped. One thread.
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,8 @@ SETTINGS = ['{}', '{"max_points": 10000}', '{"highpass": null}', '{"highpass": n
             '{"highpass": 5.0, "smooth_sigma": 1.0}', '{"highpass": 3.0}', '{"highpass": 3.0, "smooth_sigma": 1.0}',
             '{"highpass": 10.0}']
 SHIFT = 4
+KITTI15 = ("image_10.png", "image_11.png", "flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
+CLIP = ("image_l", "calib.txt", "road.json")
 
 
 def crops(sample: dict, shift: int = SHIFT) -> list[dict]:
@@ -60,7 +62,14 @@ def road_epe(flow: torch.Tensor, sample: dict) -> float:
     return float((flow - sample["flow"]).norm(dim=0)[road].mean())
 
 
-def main(argv: list[str]) -> None:
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, json_object, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("settings", type=json_object, nargs="*", metavar="SETTING",
+                        help="fit_image keyword arguments as a JSON object, one row each (default: the settings "
+                             "of the documented table)")
+    args = parser.parse_args(argv)
     from fsof_torch import Camera, fit_image, photometric_error, read_image, read_kitti_flow, read_road_mask
     from fsof_torch.data.scene import render_pair, render_sequence
 
@@ -70,20 +79,20 @@ def main(argv: list[str]) -> None:
         cv2.setNumThreads(1)
     except ImportError:  # (only the real columns read images with OpenCV)
         pass
-    settings = [json.loads(a) for a in (argv or SETTINGS)]
+    settings = args.settings or [json.loads(a) for a in SETTINGS]
     synthetic = {"default": [render_pair("default", i, seed=0) for i in (0, 2, 10, 20)],
                  "body-motion": render_sequence("body-motion", 4, seed=0),
                  "turning": [render_pair("default", i, seed=0, steering=0.1) for i in (0, 2, 10)]}
     real = {}
     k15 = SHARED / "kitti15_000000"
-    if k15.is_dir():
+    if present(k15, KITTI15, "KITTI pair kitti15_000000 (the KITTI columns)"):
         im1, im2 = read_image(k15 / "image_10.png"), read_image(k15 / "image_11.png")
         gt, valid = read_kitti_flow(k15 / "flow_noc_10.png")
         road = read_road_mask(k15 / "road.json", size=tuple(im1.shape[-2:]))
         real["kitti"] = {"camera": Camera.from_kitti(k15 / "calib_cam_to_cam.txt", cam=2, height=1.65),
                          "image1": im1, "image2": im2, "road": road, "flow": gt, "valid": valid}
     clip = SHARED / "kitti_odometry_straight"
-    if clip.is_dir():
+    if present(clip, CLIP, "KITTI clip kitti_odometry_straight (the clip column)"):
         files = sorted((clip / "image_l").glob("*.png"))
         cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
         road = read_road_mask(clip / "road.json", size=tuple(read_image(files[0]).shape[-2:]))
@@ -117,7 +126,8 @@ def main(argv: list[str]) -> None:
         for pairs in synthetic.values():
             cols.append(f"{np.mean([road_epe(fit(p, kw), p) for p in pairs]):.3f}")
         print(f"| `{json.dumps(kw)}` | " + " | ".join(cols) + " |", flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    raise SystemExit(main())

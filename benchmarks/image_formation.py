@@ -58,10 +58,12 @@ def epe(fit, pair: dict) -> float:
     return float((fit.flow[0] - pair["flow"]).norm(dim=0)[road].mean())
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--pairs", type=int, default=4)
-    args = parser.parse_args()
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--pairs", type=positive_int, default=4, help="pairs of each scene (default 4)")
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
     import cv2
 
@@ -93,7 +95,8 @@ def main() -> None:
                           for p, image2 in items]
                 cells.append(f"{' / '.join(f'{e:.3f}' for e in errors)} | {np.mean(errors):.3f}")
             print(f"| {scene} | {variant} | " + " | ".join(cells) + " |", flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

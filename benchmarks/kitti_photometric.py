@@ -22,6 +22,7 @@ from fsof_torch.evaluation.metrics import flow_metrics
 from fsof_torch.evaluation.photometric import photometric_errors
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
+NEED = ("flow_noc_10.png", "road.json", "image_10.png", "image_11.png")
 
 
 def read_pair(folder: Path):
@@ -51,9 +52,15 @@ def dis_flow(folder: Path) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=DEFAULT)
+    from cli import data_folder, description, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
     args = parser.parse_args(argv)
+    args.data = data_folder(parser, args.data, DEFAULT, NEED)
+    if not present(args.data, NEED, "KITTI pair kitti15_000000"):
+        return 0
     torch.set_num_threads(1)
     i1, i2, gt, valid, road = read_pair(args.data)
     flows = {"zero": torch.zeros_like(gt), "ground truth": gt, "truth, filled": filled(gt, valid),

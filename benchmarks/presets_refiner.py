@@ -25,16 +25,19 @@ import warnings
 import torch
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, finite_float, nonnegative_int
     from fsof_torch.data.scene import PRESETS
 
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--pairs", type=int, nargs="+", default=[0, 6, 12])
-    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--odometry-error", type=float, nargs=2, metavar=("SCALE", "YAW_DEG"), default=None,
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 6, 12],
+                        help="pair indices of each preset's sequence (default 0 6 12)")
+    parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS),
+                        help="the synthetic presets (default: all)")
+    parser.add_argument("--seed", type=int, default=0, help="the scenes' seed (default 0)")
+    parser.add_argument("--odometry-error", type=finite_float, nargs=2, metavar=("SCALE", "YAW_DEG"), default=None,
                         help="also refine with the scene's odometry made this wrong, held and as priors")
-    args = parser.parse_args()
+    args = parser.parse_args(argv)
     torch.set_num_threads(1)
     import cv2
 
@@ -78,7 +81,8 @@ def main() -> None:
         dis, ref, model, held, prior = (sums / max(count, 1)).tolist()
         print(f"{preset:<16} {dis:7.3f} {ref:8.3f} {model:7.3f}  {refined}/{len(args.pairs)}"
               + (f"{'':>12}{held:7.3f} {prior:7.3f}" if with_odometry else ""), flush=True)
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

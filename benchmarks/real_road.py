@@ -554,12 +554,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="also run the refiner without its retry without the coarsest level's prior "
                              "(retry_without_prior=False)")
     parser.add_argument("--json", type=Path, help="write every number (per pair too) here")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     if args.pairs is not None and args.pairs < 1:
         parser.error(f"--pairs: expected >= 1, got {args.pairs}")
     if args.step < 1:
         parser.error(f"--step: expected >= 1, got {args.step}")
+    if not (math.isfinite(args.height) and args.height > 0):
+        parser.error(f"--height: expected a positive height in m, got {args.height}")
+    if not (math.isfinite(args.pitch_deg) and abs(args.pitch_deg) < 45):
+        parser.error(f"--pitch-deg: expected a number of degrees within (-45, 45), got {args.pitch_deg}")
     import cv2
 
     if not args.no_ecc and not hasattr(cv2, "findTransformECCWithMask"):

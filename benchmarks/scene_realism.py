@@ -31,6 +31,9 @@ BANDS = (("far", 190, 230), ("mid", 230, 300), ("near", 300, 370))
 STATS = (("mean", "median grey"), ("std", "std, row-detrended"), ("b1", "band-pass I − G1"),
          ("b2", "band-pass G1 − G2"), ("b4", "band-pass G2 − G4"), ("grad", "median gradient magnitude"))
 OLD_DEFAULT = dict(speed=8.0, asphalt=None, noise=0.0)  # the default preset before it was made realistic
+DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data"
+KITTI15 = ("kitti15_000000", ("image_10.png", "image_11.png", "road.json", "flow_noc_10.png"))
+CLIP = ("kitti_odometry_straight", ("road.json", *(f"image_l/{i:06d}.png" for i in (0, 10, 20, 30))))
 
 
 def _robust_std(x: np.ndarray) -> float:
@@ -87,9 +90,14 @@ def _dis(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, default=Path(__file__).resolve().parents[1].parent / "shared" / "data")
+    from cli import data_folder, description, present
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--data", type=Path, default=None, metavar="DIR",
+                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/ "
+                             "(default: ../shared/data beside the repository)")
     args = parser.parse_args(argv)
+    data = data_folder(parser, args.data, DEFAULT)
     torch.set_num_threads(1)
     import cv2
 
@@ -97,18 +105,26 @@ def main(argv: list[str] | None = None) -> int:
     from fsof_torch.io import read_kitti_flow, read_road_mask
     from fsof_torch.data.scene import SENSOR_NOISE, render_pair, render_sequence
 
-    k15, odo = args.data / "kitti15_000000", args.data / "kitti_odometry_straight"
-    real15 = []
-    for f in ("image_10.png", "image_11.png"):
-        g = cv2.cvtColor(cv2.imread(str(k15 / f)).astype(np.float32), cv2.COLOR_BGR2GRAY)
-        real15.append(road_statistics(g, _polygon(k15 / "road.json", g.shape)))
-    real_odo = []
-    for i in (0, 10, 20, 30):
-        g = cv2.imread(str(odo / "image_l" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
-        real_odo.append(road_statistics(g, _polygon(odo / "road.json", g.shape)))
-    columns = {"KITTI flow 000000": _median(real15), "KITTI odometry clip": _median(real_odo)}
-    columns["real (mean of the two)"] = {b: {q: (columns["KITTI flow 000000"][b][q] + columns["KITTI odometry clip"][b][q]) / 2
-                                             for q, _ in STATS} for b, _, _ in BANDS}
+    k15, odo = data / KITTI15[0], data / CLIP[0]
+    has_k15 = present(k15, KITTI15[1], f"KITTI pair {KITTI15[0]}")
+    has_odo = present(odo, CLIP[1], f"KITTI clip {CLIP[0]}")
+    columns = {}
+    if has_k15:
+        real15 = []
+        for f in ("image_10.png", "image_11.png"):
+            g = cv2.cvtColor(cv2.imread(str(k15 / f)).astype(np.float32), cv2.COLOR_BGR2GRAY)
+            real15.append(road_statistics(g, _polygon(k15 / "road.json", g.shape)))
+        columns["KITTI flow 000000"] = _median(real15)
+    if has_odo:
+        real_odo = []
+        for i in (0, 10, 20, 30):
+            g = cv2.imread(str(odo / "image_l" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+            real_odo.append(road_statistics(g, _polygon(odo / "road.json", g.shape)))
+        columns["KITTI odometry clip"] = _median(real_odo)
+    if has_k15 and has_odo:
+        both = (columns["KITTI flow 000000"], columns["KITTI odometry clip"])
+        columns["real (mean of the two)"] = {b: {q: (both[0][b][q] + both[1][b][q]) / 2 for q, _ in STATS}
+                                             for b, _, _ in BANDS}
     for name, kw in (("rendered default", {}), ("rendered default + sensor noise", dict(noise=SENSOR_NOISE)),
                      ("rendered old default", OLD_DEFAULT)):
         rendered = []
@@ -122,13 +138,14 @@ def main(argv: list[str] | None = None) -> int:
         for q, label in STATS:
             print(f"| {b} ({top}–{bottom - 1}) | {label} | " + " | ".join(f"{c[b][q]:.2f}" for c in columns.values()) + " |")
 
-    a, b = (cv2.cvtColor(cv2.imread(str(k15 / f)), cv2.COLOR_BGR2GRAY) for f in ("image_10.png", "image_11.png"))
-    gt, valid = read_kitti_flow(k15 / "flow_noc_10.png")
-    m = (valid & read_road_mask(k15 / "road.json", size=a.shape))[0].numpy()
-    gt = gt.permute(1, 2, 0).numpy()
-    e = np.linalg.norm(_dis(a, b) - gt, axis=2)[m]
     print("\nDIS medium road end-point error\n| data | mean px | median px | mean road GT flow px |\n|---|---|---|---|")
-    print(f"| KITTI flow 000000 | {e.mean():.2f} | {np.median(e):.2f} | {np.linalg.norm(gt, axis=2)[m].mean():.2f} |")
+    if has_k15:
+        a, b = (cv2.cvtColor(cv2.imread(str(k15 / f)), cv2.COLOR_BGR2GRAY) for f in ("image_10.png", "image_11.png"))
+        gt, valid = read_kitti_flow(k15 / "flow_noc_10.png")
+        m = (valid & read_road_mask(k15 / "road.json", size=a.shape))[0].numpy()
+        gt = gt.permute(1, 2, 0).numpy()
+        e = np.linalg.norm(_dis(a, b) - gt, axis=2)[m]
+        print(f"| KITTI flow 000000 | {e.mean():.2f} | {np.median(e):.2f} | {np.linalg.norm(gt, axis=2)[m].mean():.2f} |")
     cases = (("default, pairs 0–9", {}), (f"default with noise={SENSOR_NOISE}", dict(noise=SENSOR_NOISE)),
              ("default with speed=8.0", dict(speed=8.0)), ("old default, pairs 0–9", OLD_DEFAULT))
     for name, kw in cases:

@@ -17,7 +17,6 @@ mounting against the clip's mean attitude, and the time per pair (single thread)
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import time
 
@@ -27,17 +26,20 @@ import torch
 from fsof_torch import PRESETS
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def main(argv: list[str] | None = None) -> int:
+    from cli import description, json_object, positive_int
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--preset", default="body-motion", choices=PRESETS,
                         help="the synthetic scene (default body-motion)")
-    parser.add_argument("--pairs", type=int, default=8)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--options", default="{}", help="fit_image keyword arguments as JSON")
-    parser.add_argument("--threads", type=int, default=1)
-    args = parser.parse_args()
+    parser.add_argument("--pairs", type=positive_int, default=8, help="pairs of the clip (default 8)")
+    parser.add_argument("--seed", type=int, default=0, help="the scene's seed (default 0)")
+    parser.add_argument("--options", type=json_object, default={}, metavar="JSON",
+                        help="fit_image keyword arguments as a JSON object")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
-    options = json.loads(args.options)
+    options = args.options
 
     from fsof_torch import fit_image, fit_sequence
     from fsof_torch.data.scene import render_sequence
@@ -72,7 +74,8 @@ def main() -> None:
           f"roll {seq.mounting['roll'] * deg:+.3f} deg (clip mean {true_roll:+.3f}); nominal pitch "
           f"{float(camera.pitch) * deg:+.3f}, roll {float(camera.roll) * deg:+.3f}")
     print(f"time per pair: single fit {t_single * 1e3:.0f} ms, clip (two passes) {t_seq * 1e3:.0f} ms")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())
