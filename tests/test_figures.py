@@ -105,6 +105,55 @@ def test_road_outline_traces_the_mask():
     assert poly[:, 0].min() == 2 and poly[:, 0].max() == 8 and poly[:, 1].min() == 4 and poly[:, 1].max() == 7
 
 
+def test_road_outline_takes_one_bool_mask_of_any_accepted_shape():
+    road = torch.zeros(10, 12, dtype=torch.bool)
+    road[4:8, 2:9] = True
+    (want,) = road_outline(road)
+    for shaped in (road[None], road[None, None]):
+        (got,) = road_outline(shaped)
+        assert (got == want).all()
+
+
+@pytest.mark.parametrize("mask, error, match", [
+    (torch.full((1, 10, 12), 0.7), TypeError, r"mask: expected a bool tensor, got dtype torch.float32"),
+    (torch.ones(1, 10, 12, dtype=torch.uint8), TypeError, r"mask: expected a bool tensor, got dtype torch.uint8"),
+    ([[True]], TypeError, r"mask: expected a bool tensor, got list"),
+    (torch.ones(2, 1, 10, 12, dtype=torch.bool), ValueError,
+     r"mask: expected shape \(H, W\), \(1, H, W\) or \(1, 1, H, W\), got \(2, 1, 10, 12\)"),
+    (torch.ones(3, 10, 12, dtype=torch.bool), ValueError, r"mask: expected shape .* got \(3, 10, 12\)"),
+    (torch.ones(12, dtype=torch.bool), ValueError, r"mask: expected shape .* got \(12,\)"),
+])
+def test_road_outline_refuses_other_masks(mask, error, match):
+    """A float mask gave no outline at all, silently; a batch of masks a reshape error."""
+    with pytest.raises(error, match=match):
+        road_outline(mask)
+
+
+@pytest.mark.parametrize("vmax, error, match", [
+    (float("nan"), ValueError, "error_vmax: expected a finite number, got nan"),
+    (float("inf"), ValueError, "error_vmax: expected a finite number, got inf"),
+    (0.0, ValueError, r"error_vmax: expected a positive number \(> 0\), got 0.0"),
+    (-1.0, ValueError, r"error_vmax: expected a positive number \(> 0\), got -1.0"),
+    ("5", TypeError, "error_vmax: expected a number, got str '5'"),
+    (None, TypeError, "error_vmax: expected a number, got NoneType None"),
+])
+def test_error_vmax_is_a_finite_positive_number(vmax, error, match):
+    """NaN drew a colour bar 'saturates at nan' over a made-up scale; 0 and -1 saturated every
+    error map white. pair_figure, PairFigure.layout_of and PairFigure refuse them by name."""
+    import matplotlib.pyplot as plt
+
+    flow, road, _, err, valid = _pair()
+    content = dict(flows={"before": flow}, errors={"before": (err, valid)}, road=road, error_label="epe (px)")
+    open_before = plt.get_fignums()
+    with pytest.raises(error, match=match):
+        pair_figure(**content, max_flow=2.0, error_vmax=vmax, title="t")
+    with pytest.raises(error, match=match):
+        PairFigure.layout_of(**content, images=None, error_vmax=vmax)
+    with pytest.raises(error, match=match):
+        PairFigure((H, W), (True,), False, vmax, "epe (px)")
+    assert plt.get_fignums() == open_before  # refused before a figure is opened
+
+
 def test_colour_wheel_is_the_flow_coding():
     wheel = colour_wheel(4.0, size=21)
     assert wheel.shape == (21, 21, 3) and wheel.dtype == torch.uint8

@@ -243,6 +243,31 @@ def test_composite_reports_each_term_and_weighted_total():
     assert torch.isfinite(flow.grad).all()
 
 
+@pytest.mark.parametrize("weight, error, match", [
+    (float("nan"), ValueError, r"terms\['census'\] weight: expected a finite number, got nan"),
+    (float("inf"), ValueError, r"terms\['census'\] weight: expected a finite number, got inf"),
+    (-1.0, ValueError, r"terms\['census'\] weight: expected a number >= 0, got -1.0"),
+    ("2", TypeError, r"terms\['census'\] weight: expected a number, got str '2'"),
+    (True, TypeError, r"terms\['census'\] weight: expected a number, got bool True"),
+    (None, TypeError, r"terms\['census'\] weight: expected a number, got NoneType None"),
+])
+def test_composite_weights_are_finite_numbers_at_least_zero(weight, error, match):
+    """A NaN, inf or negative weight made the total NaN, inf or a reward; '2' and True passed
+    as 2.0 and 1.0 (float() of them). Each is refused, naming the term."""
+    term = lambda flows: flows[-1].abs().mean() + 1.0  # noqa: E731
+    with pytest.raises(error, match=match):
+        CompositeLoss({"smooth": (1.0, term), "census": (weight, term)})
+
+
+def test_composite_weights_accept_zero_ints_and_0d_tensors():
+    term = lambda flows: flows[-1].abs().mean() + 1.0  # noqa: E731
+    loss = CompositeLoss({"a": (0, term), "b": (3, term), "c": (torch.tensor(0.5), term)})
+    assert loss.weights == {"a": 0.0, "b": 3.0, "c": 0.5}
+    assert all(type(w) is float for w in loss.weights.values())
+    total, values = loss([torch.zeros(1, 2, 4, 4)])
+    assert total.item() == pytest.approx(3.5) and values["a"].item() == 1.0
+
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_errors_name_the_argument():

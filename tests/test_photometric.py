@@ -462,6 +462,23 @@ def test_census_distance_of_wide_windows(radius):
     np.testing.assert_allclose(err[0, 0].numpy()[v], ref[v])
 
 
+def test_census_distance_beyond_the_int16_count():
+    """Radius 91 has 183² - 1 = 33488 neighbours, more than int16 holds (radius 90: 32760): a
+    pixel whose every neighbour bit flips has the distance 1.0, not a wrapped-around negative
+    count (it was -0.957)."""
+    i1 = torch.full((1, 1, 200, 200), 100.0)
+    i2 = i1.clone()
+    i1[..., 100, 100], i2[..., 100, 100] = 0.0, 255.0  # darkest, then brightest of its window
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # 33488 small shifted comparisons: 3 s on one thread, 30 s on two contending ones
+    try:
+        err, valid = photometric_error_map(i1, i2, torch.zeros(1, 2, 200, 200), kind="census", census_radius=91)
+    finally:
+        torch.set_num_threads(threads)
+    assert bool(valid[0, 0, 100, 100]) and err[0, 0, 100, 100].item() == 1.0
+    assert err[0, 0][valid[0, 0]].min().item() >= 0.0
+
+
 # --- several kinds at once ---------------------------------------------------------------------
 
 def test_several_kinds_equal_one_kind_at_a_time():

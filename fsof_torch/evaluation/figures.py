@@ -25,6 +25,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
+from .._check import check_number
 from .visualize import flow_to_color
 
 __all__ = [
@@ -82,11 +83,19 @@ def _factor(width: int, panel_pixels: float) -> int:
 
 
 def road_outline(mask: Tensor) -> list[Any]:
-    """The outline of a bool road mask ((1, H, W) or (H, W)) as closed polygons of (u, v) pixel
-    coordinates (NumPy (N, 2) arrays), from ``cv2.findContours``."""
+    """The outline of a bool road mask ((H, W), (1, H, W) or (1, 1, H, W)) as closed polygons of
+    (u, v) pixel coordinates (NumPy (N, 2) arrays), from ``cv2.findContours``.
+
+    A mask of another dtype (a float map gives no outline at all) or shape (a batch of masks)
+    raises TypeError or ValueError naming ``mask``."""
     import cv2
     import numpy as np
 
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask: expected a bool tensor, got {got} (threshold a soft mask first)")
+    if not 2 <= mask.dim() <= 4 or any(n != 1 for n in mask.shape[:-2]):
+        raise ValueError(f"mask: expected shape (H, W), (1, H, W) or (1, 1, H, W), got {tuple(mask.shape)}")
     m = mask.reshape(mask.shape[-2:]).detach().to(torch.uint8).cpu().numpy()
     contours, _ = cv2.findContours(m, cv2.RETR_LIST, cv2.CHAIN_APPROX_SIMPLE)
     out = []
@@ -191,8 +200,8 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
             (a title of ``flows`` missing here leaves that panel empty); invalid pixels are black.
         road: (1, H, W) bool road mask, drawn as an outline on every panel.
         max_flow: flow magnitude at full colour saturation, px (one scale for all columns).
-        error_vmax: error at the top of the colour bar; larger errors saturate (the bar's arrow,
-            drawn white in the maps).
+        error_vmax: error at the top of the colour bar, a finite number > 0 (ValueError naming
+            it otherwise); larger errors saturate (the bar's arrow, drawn white in the maps).
         error_label: the error's name and unit for the colour bar, e.g. "end-point error (px)".
         title: the figure's title.
         images: optional ``(image1, image2)`` (3, H, W) RGB 0..255, shown as a first column.
@@ -231,7 +240,8 @@ class PairFigure:
         import numpy as np
 
         plt = _pyplot()
-        self.layout = (tuple(size), tuple(with_errors), bool(images), float(error_vmax), error_label)
+        error_vmax = _check_vmax(error_vmax)
+        self.layout = (tuple(size), tuple(with_errors), bool(images), error_vmax, error_label)
         H, W = size
         ncol = len(with_errors) + bool(images)
         panel_w = 4.2
@@ -281,7 +291,7 @@ class PairFigure:
                   images: Any, error_vmax: float, error_label: str) -> tuple:
         """The layout of a :func:`pair_figure` call, as :class:`PairFigure` takes it (hashable)."""
         return (tuple(road.shape[-2:]), tuple(name in errors for name in flows), images is not None,
-                float(error_vmax), error_label)
+                _check_vmax(error_vmax), error_label)
 
     def update(self, *, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, Tensor]], road: Tensor,
                max_flow: float, title: str, images: tuple[Tensor, Tensor] | None = None,
@@ -332,6 +342,12 @@ class PairFigure:
     def close(self) -> None:
         """Close the figure (pyplot keeps it open until then)."""
         _pyplot().close(self.figure)
+
+
+def _check_vmax(error_vmax: object) -> float:
+    """The error maps' saturation value: a finite number > 0 (NaN drew a bar "saturates at nan"
+    over a made-up scale, 0 or a negative value maps saturated white everywhere)."""
+    return check_number(error_vmax, "error_vmax", positive=True)
 
 
 def _invalid_handle():

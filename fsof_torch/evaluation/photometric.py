@@ -200,14 +200,17 @@ def _census_distance(grey1: Tensor, grey2: Tensor, radius: int) -> Tensor:
     pad = (radius, radius, radius, radius)
     p1, p2 = F.pad(grey1, pad, mode="replicate"), F.pad(grey2, pad, mode="replicate")
     k = 2 * radius + 1
-    # (uint8 holds the count of up to 255 neighbours: radius 7; a wider window counts in int16)
-    count = torch.zeros(grey1.shape, dtype=torch.uint8 if k * k - 1 <= 255 else torch.int16, device=grey1.device)
+    # the smallest integer type that holds the count of k² - 1 neighbours: uint8 up to radius 7,
+    # int16 up to radius 90, int32 beyond (an int16 count wraps to negative distances there)
+    n = k * k - 1
+    dtype = torch.uint8 if n <= 255 else torch.int16 if n <= 32767 else torch.int32
+    count = torch.zeros(grey1.shape, dtype=dtype, device=grey1.device)
     for dy in range(k):
         for dx in range(k):
             if dy == radius and dx == radius:
                 continue
             count += (p1[..., dy:dy + H, dx:dx + W] > grey1) != (p2[..., dy:dy + H, dx:dx + W] > grey2)
-    return count.to(grey1.dtype) / (k * k - 1)
+    return count.to(grey1.dtype) / n
 
 
 def photometric_error_maps(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None,
@@ -290,9 +293,9 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         kind: ``"l1"`` (grey levels, 0-255 scale), ``"ssim"`` ((1 - SSIM)/2), ``"census"`` (the
             Hamming distance of census transforms / the neighbour count) or ``"soft_census"``.
         data_range: the images' range (255.0 or 1.0): a finite number > 0. Values outside
-            [0, 1.01 * data_range], and NaN or inf pixels anywhere in either image, raise
-            ValueError naming the image (a NaN pixel would spread through the warp's taps and the
-            SSIM and census windows into its neighbours).
+            [-0.01, 1.01] × data_range (1% either side, for rounding and resampling overshoot),
+            and NaN or inf pixels anywhere in either image, raise ValueError naming the image (a
+            NaN pixel would spread through the warp's taps and the SSIM and census windows).
         window: odd SSIM window size (taps of the σ = 1.5 Gaussian); ``"ssim"`` needs H and W
             larger than ``window // 2`` (the reflection padding).
         census_radius: census neighbourhood radius r ((2r+1)² offsets).

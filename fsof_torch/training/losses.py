@@ -3,7 +3,7 @@
 Every term exists as a plain function and as an ``nn.Module`` twin, and accepts either one flow
 (B, 2, H, W) or a RAFT-style list of flows, coarse to refined, weighted γ^(N-1-i) as RAFT does
 (the last estimate has weight 1; the weights are not normalised). :class:`CompositeLoss` adds
-terms with weights and reports each term's value separately.
+terms with weights and reports each term's value separately (:mod:`.composite`, imported here).
 
 - :func:`unsupervised_flow_loss` (ARFlow / UFlow style): photometric error of the second image
   warped back by the flow (L1 + SSIM, optionally census) over pixels that are in bounds and pass
@@ -21,13 +21,13 @@ Precision: the arithmetic of every term runs in at least float32, also under ``t
 flow 3.3 instead of 0, and to flatten SSIM's variances and the census comparisons). A loss comes
 back in the prediction's dtype lifted to at least float32, as autocast's own losses do.
 
-Non-finite values. Images must be finite everywhere and in [0, ``data_range``] (ValueError
-naming the image otherwise); flows given to the unsupervised loss must be finite (ValueError
-naming ``flows[i]``). In the freespace term, a NaN or inf predicted pixel outside the road mask
-does not count and gets a zero gradient; one inside the mask is left out as well, with a
-``RuntimeWarning`` that counts them (a network's prediction may diverge at a few pixels; the
-term must not turn every gradient of the batch into NaN). Large finite values give large finite
-penalties: the penalties are written without squaring the residual where it could overflow.
+Non-finite values. Images must be finite everywhere and within [-0.01, 1.01] × ``data_range``
+(0..``data_range`` with 1% either side for rounding; ValueError naming the image otherwise);
+flows given to the unsupervised loss must be finite (ValueError naming ``flows[i]``). In the
+freespace term, a NaN or inf predicted pixel outside the road mask does not count and gets a zero
+gradient; one inside the mask is left out as well, with a ``RuntimeWarning`` that counts them (a
+network's prediction may diverge at a few pixels; the term must not turn every gradient of the
+batch into NaN). Large finite values give large finite penalties, never squaring the residual.
 
 Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared on 0..1; flow
 (B, 2, H, W) in pixels, channel 0 = u, forward from ``image1`` to ``image2``; backward flow from
@@ -36,7 +36,6 @@ Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared 
 
 from __future__ import annotations
 
-import inspect
 import math
 import warnings
 from collections.abc import Mapping, Sequence
@@ -65,6 +64,7 @@ from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
+from .composite import CompositeLoss  # (defined there; a name of this module's contract)
 
 __all__ = [
     "sequence_weights",
@@ -137,7 +137,7 @@ def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int]) -> None:
 
 
 def _check_images(images: dict[str, Tensor], dims: dict[str, int], data_range: float) -> None:
-    """Float (B, C, H, W) images with one shape, finite and within [0, data_range]."""
+    """Float (B, C, H, W) images with one shape, finite and within [-0.01, 1.01] × data_range."""
     for name, img in images.items():
         check_float_tensor(img, name)
         check_shape(img, name, ("B", "C", "H", "W"), dims)
@@ -635,66 +635,3 @@ class FreespaceFlowLoss(nn.Module):
 
     def extra_repr(self) -> str:
         return f"odometry={self.mode!r}, " + ", ".join(f"{k}={v!r}" for k, v in self.options.items())
-
-
-class CompositeLoss(nn.Module):
-    """A weighted sum of loss terms, each reported separately.
-
-    Args:
-        terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
-            receives, from the inputs given to ``forward``, those whose names are parameters of
-            its ``forward`` (or of the function itself), so one batch dict can feed all terms.
-
-    ``forward(flows, inputs=None, **more)`` -> ``(total, values)``: the weighted sum (a scalar
-    with gradient) and ``{name: unweighted value}`` (detached scalars).
-
-    Example:
-        >>> loss = CompositeLoss({"unsupervised": (1.0, UnsupervisedFlowLoss()),
-        ...                       "freespace": (0.1, FreespaceFlowLoss())})
-        >>> total, values = loss(flows, batch, flows_backward=flows_bw)  # doctest: +SKIP
-    """
-
-    def __init__(self, terms: Mapping[str, tuple[float, object]]) -> None:
-        super().__init__()
-        if not isinstance(terms, Mapping) or not terms:
-            raise TypeError(f"terms: expected a non-empty dict {{name: (weight, term)}}, got {terms!r}")
-        self.weights: dict[str, float] = {}
-        self._names: dict[str, tuple[set[str], bool]] = {}
-        modules = {}
-        for name, entry in terms.items():
-            if not (isinstance(entry, (tuple, list)) and len(entry) == 2 and callable(entry[1])):
-                raise TypeError(f"terms[{name!r}]: expected (weight, callable term), got {entry!r}")
-            weight, term = entry
-            self.weights[name] = float(weight)
-            if isinstance(term, nn.Module):
-                modules[name] = term
-            else:
-                setattr(self, f"_fn_{name}", term)
-            self._names[name] = _accepted_names(term)
-        self.terms = nn.ModuleDict(modules)
-
-    def _term(self, name: str):
-        return self.terms[name] if name in self.terms else getattr(self, f"_fn_{name}")
-
-    def forward(self, flows: Tensor | Sequence[Tensor], inputs: Mapping[str, object] | None = None,
-                **more: object) -> tuple[Tensor, dict[str, Tensor]]:
-        given = {**dict(inputs or {}), **more}
-        total = 0.0
-        values: dict[str, Tensor] = {}
-        for name, weight in self.weights.items():
-            accepted, takes_all = self._names[name]
-            kwargs = given if takes_all else {k: v for k, v in given.items() if k in accepted}
-            value = self._term(name)(flows, **kwargs)
-            values[name] = value.detach()
-            total = total + weight * value
-        return total, values
-
-
-def _accepted_names(term: object) -> tuple[set[str], bool]:
-    """Keyword names ``term`` accepts after ``flows``, and whether it takes ``**kwargs``."""
-    fn = term.forward if isinstance(term, nn.Module) else term
-    params = list(inspect.signature(fn).parameters.values())[1:]
-    takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
-    names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
-                                                   inspect.Parameter.KEYWORD_ONLY)}
-    return names, takes_all

@@ -12,10 +12,11 @@ from __future__ import annotations
 
 from typing import Any, Mapping
 
+import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, tracing
+from .._check import check_float_tensor, check_int, tracing
 from ..refinement.contracts import InputPadder
 from .testnet import TinyRAFT
 
@@ -52,8 +53,10 @@ class PtlflowRAFTStandIn(nn.Module):
         check_float_tensor(images, "inputs['images']")
         if images.dim() != 5 or images.shape[1] != 2 or images.shape[2] != 3:
             raise ValueError(f"inputs['images']: expected shape (B, 2, 3, H, W), got {tuple(images.shape)}")
-        if not tracing() and not (float(images.min()) >= 0.0 and float(images.max()) <= 1.0):
-            raise ValueError("inputs['images']: expected BGR values in [0, 1]")
+        if not tracing():
+            lo, hi = _value_range(images)
+            if not (lo >= 0.0 and hi <= 1.0):  # (false for NaN, which the range then shows)
+                raise ValueError(f"inputs['images']: expected BGR values in [0, 1], got [{lo:.4g}, {hi:.4g}]")
         H, W = images.shape[-2:]
         padding = self.padder.padding((H, W))
         rgb = padding.pad(images).flip(2) * 255.0      # BGR [0, 1] -> RGB 0..255, padded
@@ -68,7 +71,8 @@ class TorchvisionRAFTStandIn(nn.Module):
     ``forward(image1, image2, num_flow_updates=4)`` with (B, 3, H, W) RGB in [-1, 1] (what the
     transforms of ``Raft_Large_Weights`` produce) and H, W divisible by 8 (else a ValueError, as
     torchvision raises); returns a list of ``num_flow_updates`` flows (B, 2, H, W), the last the
-    estimate.
+    estimate (``num_flow_updates``: an int >= 1, checked under its own name; values outside
+    [-1, 1] or NaN raise ValueError quoting the range that came).
     """
 
     flow_contract = "torchvision"  # read by the refine job's --net (see docs/jobs.md)
@@ -88,12 +92,20 @@ class TorchvisionRAFTStandIn(nn.Module):
         h, w = image1.shape[-2:]
         if h % 8 or w % 8:
             raise ValueError(f"input image H and W should be divisible by 8, instead got {h} (h) and {w} (w)")
+        check_int(num_flow_updates, "num_flow_updates", minimum=1)
         if not tracing():
-            lo = min(float(image1.min()), float(image2.min()))
-            hi = max(float(image1.max()), float(image2.max()))
-            if lo < -1.0 or hi > 1.0:
+            lo, hi = _value_range(image1, image2)
+            if not (lo >= -1.0 and hi <= 1.0):  # (false for NaN, which the range then shows)
                 raise ValueError(f"image1, image2: expected RGB values in [-1, 1], got [{lo:.4g}, {hi:.4g}]")
         return self.net((image1 + 1.0) * 127.5, (image2 + 1.0) * 127.5, iters=num_flow_updates)
+
+
+def _value_range(*images: Tensor) -> tuple[float, float]:
+    """The smallest and largest value of the images, NaN where any value is NaN (Python's min and
+    max would drop a NaN depending on the order of their arguments)."""
+    lo = torch.tensor([float(im.detach().amin()) for im in images], dtype=torch.float64).amin()
+    hi = torch.tensor([float(im.detach().amax()) for im in images], dtype=torch.float64).amax()
+    return float(lo), float(hi)
 
 
 def ptlflow_raft(seed: int = 0) -> PtlflowRAFTStandIn:
