@@ -87,13 +87,16 @@ def kitti_table(folder: Path) -> None:
 
 
 def _bands(mask: np.ndarray) -> list[tuple[str, np.ndarray, str]]:
+    """The road's far band (its first 30 rows), its near band (the frame's last 60 rows) and the
+    rows between, row counts at 375 rows scaled to the frame's height."""
     H = mask.shape[0]
+    n_far, n_near = max(1, round(30 * H / 375)), max(1, round(60 * H / 375))
     rows = np.nonzero(mask)[0]
-    top = np.sort(np.unique(rows))[:30].max()
+    top = min(np.sort(np.unique(rows))[:n_far].max(), H - n_near - 1)
     rr = np.arange(H)[:, None].repeat(mask.shape[1], 1)
     return [("far", mask & (rr <= top), f"{int(rows.min())}-{int(top)}"),
-            ("middle", mask & (rr > top) & (rr < H - 60), f"{int(top) + 1}-{H - 61}"),
-            ("near", mask & (rr >= H - 60), f"{H - 60}-{H - 1}")]
+            ("middle", mask & (rr > top) & (rr < H - n_near), f"{int(top) + 1}-{H - n_near - 1}"),
+            ("near", mask & (rr >= H - n_near), f"{H - n_near}-{H - 1}")]
 
 
 def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
@@ -133,8 +136,9 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
             beyond.append((preset, index, int((m & ~defined).sum()), int(m.sum()),
                            int(np.nonzero(m)[0].min()), int(np.nonzero(m & defined)[0].min())))
             for band, sel, span in _bands(m & defined):
-                print(f"| {preset} | {index} | {band} ({span}) | {int(sel.sum())} | "
-                      f"{err[sel].mean():.3g} / {err[sel].max():.3g} |")
+                # (a band can hold no road pixel on small frames)
+                errors = f"{err[sel].mean():.3g} / {err[sel].max():.3g}" if sel.any() else "–"
+                print(f"| {preset} | {index} | {band} ({span}) | {int(sel.sum())} | {errors} |")
     for preset, index, n, total, top, top_defined in beyond:
         if n:
             print(f"{preset} pair {index}: {n} of {total} road pixels lie beyond the fitted plane's horizon "
