@@ -142,7 +142,7 @@ def band(img: Tensor, sigma: float | None) -> Tensor:
 def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     """Gaussian blur of images (B, C, H, W), reflected at the border without repeating the edge
     (OpenCV's ``BORDER_REFLECT_101``, at any size; a kernel of ±3 σ): OpenCV on the CPU (python
-    benchmarks/bench_image_fit.py: about 6x faster than kornia's at σ = 4; not differentiable),
+    benchmarks/bench_image_fit.py: about 2.5x faster than kornia's at σ = 4; not differentiable),
     torch convolutions with kornia's kernel elsewhere. 16-bit floats are filtered in float32."""
     if images.device.type == "cpu":
         return _gaussian_blur_cv2(images, sigma)
