@@ -61,7 +61,9 @@ class RoadFit:
         residual: (B,) mean residual over the inliers (0 when none).
         success: (B,) bool: converged, on enough well-spread inliers making up at least the
             minimum share of the mask, with a well-conditioned problem. Where False the
-            parameters are finite but not to be trusted.
+            parameters are finite but not to be trusted. (Where a polish does not converge, the
+            robust stage's parameters are returned, with that stage's covariance and cost, and
+            success is False.)
         camera: the input camera with the fitted roll and pitch.
         iterations: (B,) int64 solver iterations.
         covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
@@ -339,10 +341,11 @@ def prior_terms(model: RoadModel, prior: Mapping[str, tuple[float, float]] | Non
 
 
 def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: MaskPoints,
-              threshold: float) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+              threshold: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Inliers (B, 1, H, W) — mask pixels within ``threshold`` px of the model flow where it is
     defined — their mean end-point error (B,), whether they spread over at least 3 rows and
-    columns (B,), and their share of the mask pixels where the model is defined (B,).
+    columns (B,), their share of the mask pixels where the model is defined (B,), and their
+    number (B,) float64.
 
     Works on the mask's pixels only (``points.every``), frame by frame: a road mask is a
     fraction of the image, and full-size differences, norms and sums cost more than gathering
@@ -379,7 +382,7 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     inliers = inliers.reshape(B, 1, H, W)
     in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
     spread = (in8.amax(3).flatten(1).sum(1) >= 3) & (in8.amax(2).flatten(1).sum(1) >= 3)
-    return inliers, residual.to(model_flow.dtype), spread, fraction
+    return inliers, residual.to(model_flow.dtype), spread, fraction, n_in
 
 
 # -- the fit ---------------------------------------------------------------------------------------
@@ -395,16 +398,37 @@ _RESOLUTION = 0.01
 _ROBUST_STAGE_RESOLUTION = 0.1
 
 
+def _robust_points(pts: Tensor, obs: Tensor, sel: Tensor, count: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
+    """The start's and the robust stage's points: an even stride of about
+    ``_ROBUST_STAGE_POINTS`` of the sampled points (B, ·, N). ``count`` None: N is the sampled
+    number (``max_points``), one stride for all; else (N the largest mask's count, the others
+    padded) each frame's stride from its own count (one host read), so that a frame's points do
+    not depend on its batch-mates."""
+    N = pts.shape[-1]
+    k = max(1, N // _ROBUST_STAGE_POINTS)
+    if count is not None:
+        counts = count.tolist()
+        ks = [max(1, n // _ROBUST_STAGE_POINTS) for n in counts]
+        if len(set(ks)) > 1:  # (one stride for all: the slices below, as for a frame alone)
+            kept = [-(-n // kb) for n, kb in zip(counts, ks)]
+            j = torch.arange(max(kept), device=pts.device)
+            idx = (j * torch.tensor(ks, device=pts.device).unsqueeze(1)).clamp_max(N - 1)
+            at = idx.unsqueeze(1)
+            return (pts.gather(2, at.expand(-1, pts.shape[1], -1)), obs.gather(2, at.expand(-1, obs.shape[1], -1)),
+                    sel.gather(1, idx) & (j < torch.tensor(kept, device=pts.device).unsqueeze(1)))
+        k = ks[0]
+    return pts[..., ::k], obs[..., ::k], sel[..., ::k]
+
+
 def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pts: Tensor, flow: Tensor,
              sel: Tensor) -> Tensor:
-    """Values (B, P) float64 of a start without a prior: the paper's model from the planar motion
-    of back-projected points; the plane and the homography from a robust DLT homography (the plane
-    decomposed with the road's normal from the camera's roll and pitch); the velocity model,
-    linear in its motion, from rest."""
+    """Values (B, P) float64 of a start without a prior, from the robust stage's points
+    (:func:`_robust_points`): the paper's model from the planar motion of back-projected points;
+    the plane and the homography from a robust DLT homography (the plane decomposed with the
+    road's normal from the camera's roll and pitch); the velocity model, linear in its motion,
+    from rest."""
     if model.velocity:
         return values
-    k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS)
-    pts, flow, sel = pts[..., ::k], flow[..., ::k], sel[..., ::k]
     if model.name == "paper":
         roll, pitch = values[:, model.index("roll")], values[:, model.index("pitch")]
         # (one robust step after least squares: the robust stage anneals from there; more steps
@@ -459,7 +483,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             3 × scale); also the polish's Tukey cut.
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns), or an inlier share of the mask below the fraction, mark the frame as failed.
-        polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold.
+        polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold
+            (where it does not converge: the robust fit's parameters, ``success=False``).
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             1, 2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both.
             ``"auto"``: (2, 1). A stage ends where the next step, predicted from the normal
@@ -520,8 +545,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         obs = torch.where(sel.unsqueeze(1), obs, 0.0)
         _, default = _pack_default(model, cam64)
         start, given = start_values(model, init, cam64, default)
+        coarse = _robust_points(pts, obs, sel, count if max_points is None else None)
         if not all(given):
-            guess = _initial(model, cam64, K_inv, start, pts, obs, sel)
+            guess = _initial(model, cam64, K_inv, start, *coarse)
             start = torch.where(torch.tensor(given, device=flow.device), start, guess)
         mean, precision = prior_terms(model, prior, scale, B, torch.float64, flow.device) if prior else (None, None)
         stages = [(robust, float(scale), init is None, _RESOLUTION, checks[0])]
@@ -531,32 +557,36 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         params = start
         iterations = torch.zeros(B, dtype=torch.long, device=flow.device)
         for i, (kernel, s, anneal, resolution, first_check) in enumerate(stages):
-            k = max(1, pts.shape[-1] // _ROBUST_STAGE_POINTS) if i + 1 < len(stages) else 1
-            problem = FlowProblem(model, cam64, pts[..., ::k].contiguous(), obs[..., ::k].contiguous(),
-                                  sel[..., ::k].contiguous(), K_inv)
+            last = i + 1 == len(stages)
+            points_used = (pts, obs, sel) if last else coarse
+            problem = FlowProblem(model, cam64, *(x.contiguous() for x in points_used), K_inv)
             sol = solve(problem, params, free=free, prior_mean=mean,
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
-                        tol=max(tol, 1e-4) if i + 1 < len(stages) else tol, resolution=resolution,
+                        tol=tol if last else max(tol, 1e-4), resolution=resolution,
                         check_every=first_check, predict=True)
+            well_posed, covariance, cost = _well_posed(sol, free), sol.covariance(), sol.cost
             if i == 0:
-                params, converged = sol.params, sol.converged
+                params, converged, first = sol.params, sol.converged, (well_posed, covariance, cost)
             else:
-                # the polish is kept where it converged to a finite answer
-                take = sol.converged & torch.isfinite(sol.params).all(-1)
-                params = torch.where(take.unsqueeze(-1), sol.params, params)
+                # the polish is kept where it converged to a finite answer; elsewhere the robust
+                # stage's answer, with its own tests, covariance and cost, and no success: the fit
+                # did not converge (that stage only has to land in the polish's basin)
+                converged = sol.converged & torch.isfinite(sol.params).all(-1)
+                params = torch.where(converged.unsqueeze(-1), sol.params, params)
+                well_posed, cost = torch.where(converged, well_posed, first[0]), torch.where(converged, cost, first[2])
+                covariance = torch.where(converged.reshape(B, 1, 1), covariance, first[1])
             iterations = iterations + sol.iterations
         finite = torch.isfinite(params).all(-1)
         params = torch.where(finite.unsqueeze(-1), params, start)
-        well_posed = _well_posed(sol, free)
         M, _, horizon = model.evaluate(cam64.K, K_inv, cam64.height, params, False)
         if horizon is None:
             horizon = model.horizon_row(cam64, params)
         model_flow, model_valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W), velocity=model.velocity)
-        inliers, residual, spread, fraction = agreement(flow.detach(), model_flow, model_valid, points, thr)
-    success = finite & converged & spread & well_posed & (count >= min_points) & (fraction >= min_inlier_fraction)
+        inliers, residual, spread, fraction, n_in = agreement(flow.detach(), model_flow, model_valid, points, thr)
+    success = finite & converged & spread & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
     return _result(model, camera, params, M, model_flow, model_valid, inliers, residual, success, iterations,
-                   sol, out_dtype)
+                   covariance, cost, out_dtype)
 
 
 def _pack_default(model: RoadModel, camera: Camera) -> tuple[Camera, Tensor]:
@@ -579,15 +609,16 @@ def _well_posed(sol: Any, free: Tensor) -> Tensor:
 
 
 def _result(model: RoadModel, camera: Camera, params: Tensor, M: Tensor, flow: Tensor, valid: Tensor,
-            inliers: Tensor, residual: Tensor, success: Tensor, iterations: Tensor, sol: Any,
-            dtype: torch.dtype) -> RoadFit:
+            inliers: Tensor, residual: Tensor, success: Tensor, iterations: Tensor, covariance: Tensor,
+            cost: Tensor, dtype: torch.dtype) -> RoadFit:
     named = {n: params[:, i].to(dtype) for i, n in enumerate(model.params)}
-    roll = named.get("roll", camera.roll.to(dtype))
-    pitch = named.get("pitch", camera.pitch.to(dtype))
-    cam_fit = Camera._checked(camera.K.to(dtype), camera.height.to(dtype), roll, pitch)
+    # (detached: the caller's camera may carry a gradient, and results are detached)
+    roll = named.get("roll", camera.roll.detach().to(dtype))
+    pitch = named.get("pitch", camera.pitch.detach().to(dtype))
+    cam_fit = Camera._checked(camera.K.detach().to(dtype), camera.height.detach().to(dtype), roll, pitch)
     return RoadFit(model=model.name, params=named, homography=M.to(dtype), flow=flow, valid=valid,
                    inliers=inliers, residual=residual, success=success, camera=cam_fit, iterations=iterations,
-                   covariance=sol.covariance().to(dtype), cost=sol.cost.to(dtype))
+                   covariance=covariance.to(dtype), cost=cost.to(dtype))
 
 
 def fit_displacement(flow: Tensor, mask: Tensor, camera: Camera, *, fit_roll: bool = True,

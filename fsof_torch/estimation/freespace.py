@@ -68,7 +68,8 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
        rows, whose flow leaves the image) (OpenCV ``cv2.connectedComponents`` on the CPU: exact and fast,
        where kornia's iterative ``connected_components`` needs as many passes as the longest
        path); then a morphological closing with a ``close_kernel`` square (kornia; 0 or 1: none)
-       and filling of enclosed holes smaller than ``max_hole_fraction`` of the image.
+       and filling of enclosed holes smaller than ``max_hole_fraction`` of the image (neither
+       claims a pixel outside ``mask``, of non-finite flow, or where the model is undefined).
 
     Not differentiable (a segmentation). Frames whose fits fail get an empty freespace.
     Limitation: the V-flow seed takes the dominant plane of each row; where a parallel plane
@@ -150,7 +151,9 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         freespace = closed & use & fit.valid
     if max_hole_fraction > 0:
         freespace = _fill_small_holes(freespace, int(max_hole_fraction * H * W))
-    freespace = freespace & success.reshape(B, 1, 1, 1)
+    # Neither closing nor hole filling may claim masked-out or NaN-flow pixels, nor pixels where
+    # the model is not defined.
+    freespace = freespace & use & fit.valid & success.reshape(B, 1, 1, 1)
     if return_details:
         return FreespaceDetection(freespace=freespace, agreement=agreement, seed=seed,
                                   curve=curve, fit=fit, success=success)

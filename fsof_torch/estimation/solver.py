@@ -37,6 +37,7 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
+from .._check import check_float_tensor, check_shape, skip_values
 from .robust import check_kernel, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
@@ -103,7 +104,8 @@ class Solution:
         params: (B, P) the estimate.
         cost: (B,) E / n at the estimate, with the kernel at its final scale.
         converged: (B,) bool.
-        iterations: (B,) int64, iterations that moved the sample.
+        iterations: (B,) int64, iterations run while the sample was active (not yet converged):
+            accepted steps and rejected (retried) ones alike.
         evaluation: the problem's :class:`Evaluation` at the estimate (its residuals and the
             points that count; not the problem's state).
         weights: (B, N) the final IRLS weights (0 where not used).
@@ -134,8 +136,10 @@ class Solution:
     def covariance(self) -> Tensor:
         """(B, P, P) parameter covariance: the inverse normal matrix times the weighted residual
         variance per degree of freedom; 0 rows and columns for fixed parameters. Where the
-        problem is singular (an empty mask, one pixel, one row), the free parameters' variances
-        are +inf and the rest 0: nothing is known of them (never NaN)."""
+        problem is singular (an empty mask, one pixel, one row: the normal matrix's Cholesky
+        fails, or its unit-diagonal form has no eigenvalue above 1e4 × the dtype's epsilon,
+        about 2e-12 in float64, below which its inverse is rounding noise), the free parameters'
+        variances are +inf and the rest 0: nothing is known of them (never NaN)."""
         w, ev = self.weights, self.evaluation
         B, P = self.params.shape
         R = 1 if ev.residual is None else ev.residual.shape[1]
@@ -147,7 +151,11 @@ class Solution:
         free = torch.ones(B, P, dtype=torch.bool, device=cov.device) if self.free is None else self.free.expand(B, P)
         both = free.unsqueeze(-1) & free.unsqueeze(-2)
         cov = torch.where(both, cov, 0.0)
-        singular = ~torch.isfinite(cov).flatten(1).all(1)
+        # a Cholesky that fails leaves finite garbage in the solve: its status and the
+        # unit-diagonal matrix's smallest eigenvalue decide, not the finiteness of the result
+        margin = 1e4 * torch.finfo(self.normal.dtype).eps
+        singular = (~torch.isfinite(cov).flatten(1).all(1) | ~positive_definite(self.normal)
+                    | ~positive_definite(_unit_diagonal(self.normal), margin))
         unknown = torch.diag_embed(torch.where(free, math.inf, 0.0).to(cov.dtype))
         return torch.where(singular.reshape(B, 1, 1), unknown, cov)
 
@@ -157,8 +165,12 @@ class Solution:
 # (a workspace or error query), which the triangular solves and cholesky_ex do not.
 
 def spd_solve(A: Tensor, b: Tensor) -> Tensor:
-    """x with A x = b for symmetric positive definite A (B, P, P) and b (B, P, K); NaN or inf
-    where A is not positive definite."""
+    """x with A x = b for symmetric positive definite A (B, P, P) and b (B, P, K).
+
+    Where A is not positive definite the result is meaningless: NaN, inf or finite values
+    (``cholesky_ex`` reports the failure in its status, which is not read here, and its factor is
+    then not meaningful); tell such systems apart with :func:`positive_definite`, not by the
+    result's finiteness."""
     L, _ = torch.linalg.cholesky_ex(A)
     return torch.linalg.solve_triangular(L.mT, torch.linalg.solve_triangular(L, b, upper=False), upper=True)
 
@@ -168,6 +180,26 @@ def positive_definite(A: Tensor, margin: float | Tensor = 0.0) -> Tensor:
     eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
     _, info = torch.linalg.cholesky_ex(A - margin * eye)
     return info == 0
+
+
+def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, computed: bool) -> Tensor:
+    """A tensor scale (or a scale function's result) as (B,). A given tensor is checked finite and
+    > 0 (one host read: NaN, 0 or a negative scale would give a NaN cost that the loop takes for
+    convergence); a function's result only for its shape (no host read: the function, such as the
+    image fit's scale from the residuals, owns its values)."""
+    what = "scale: expected the function to return" if computed else "scale: expected"
+    try:
+        s = torch.as_tensor(scale, dtype=dt, device=dev)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{what} a float or a (B,) tensor, got {type(scale).__name__}") from None
+    if s.dim() > 1 or s.numel() not in (1, B):
+        raise ValueError(f"{what} a float or a ({B},) tensor (B of params), got shape {tuple(s.shape)}")
+    s = s.reshape(-1).expand(B).clone()
+    if not computed and not skip_values(s):
+        bad = ~(torch.isfinite(s) & (s > 0))
+        if bool(bad.any()):
+            raise ValueError(f"{what} finite values > 0, got {s[bad][:3].tolist()}")
+    return s
 
 
 def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float) -> Tensor:
@@ -211,7 +243,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
 
     Args:
         problem: a :class:`Problem`.
-        params: (B, P) the start (float64 recommended; the normal equations use its dtype).
+        params: (B, P) float, the start (float64 recommended; the normal equations use its dtype).
         free: (P,) or (B, P) bool, the parameters to estimate (default all); the others stay.
         prior_mean, prior_precision: (P,) or (B, P): a Gaussian prior λ (p - μ)² per parameter
             (precision 0: none); the precision may be a function of the scale (B,) returning it
@@ -220,7 +252,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         kernel: a name of :data:`~fsof_torch.estimation.robust.ROBUST_KERNELS`.
         scale: the kernel's scale c (float or (B,)), in the residual's unit, or a function of the
             start's :class:`Evaluation` returning it (B,) (a scale from the residuals, without
-            evaluating the start twice).
+            evaluating the start twice); finite and > 0 (a given tensor is checked by one host
+            read before the loop; a function must return such values: its result is not read).
         anneal: start the scale at max(c, 3 · median residual norm), then with every accepted
             step halve it or drop it to 3 × the new residuals' median, whichever is smaller, down
             to c (a rejected step is retried, at half its length, at the same scale).
@@ -254,6 +287,10 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     if missing not in ("outlier", "mean"):
         raise ValueError(f"missing: expected 'outlier' or 'mean', got {missing!r}")
     checks = _check_schedule(check_every, max_iter)
+    check_float_tensor(params, "params")
+    check_shape(params, "params", ("B", "P"), nonempty=())
+    if isinstance(scale, bool) or (isinstance(scale, (int, float)) and not (math.isfinite(scale) and scale > 0)):
+        raise ValueError(f"scale: expected a finite number > 0, got {scale!r}")
     B, P = params.shape
     dt, dev = params.dtype, params.device
     # optional parts cost nothing when absent (Python flags, not tensor tests)
@@ -310,10 +347,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         return mask, mask.sum(1)
 
     ev = problem.evaluate(params)
-    if callable(scale):
-        scale = scale(ev)
     s_min = (torch.full((B,), float(scale), dtype=dt, device=dev) if isinstance(scale, (int, float))
-             else torch.as_tensor(scale, dtype=dt, device=dev).expand(B).clone())
+             else _checked_scale(scale(ev) if callable(scale) else scale, B, dt, dev, callable(scale)))
     has_prior = prior_precision is not None
     if has_prior:
         mu = _expand(prior_mean, B, P, params, 0.0)

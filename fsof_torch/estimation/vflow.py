@@ -226,7 +226,9 @@ class VFlowCurve:
             undefined).
         fitted_valid: (B, 1, H, W) bool, where the curve is defined (below v0).
         residual: (B,) mean absolute row residual over the inlier rows (flow unit).
-        success: (B,) bool: finite parameters from enough inlier rows.
+        success: (B,) bool: finite parameters from enough inlier rows, on a curve that is
+            determined: a ≠ 0 and the curve beyond the row threshold on at least one inlier row
+            (flow without curvature, e.g. none at all, leaves the horizon v0 arbitrary).
     """
 
     model: str
@@ -274,10 +276,12 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         hypotheses: number of RANSAC samples per frame.
         iterations: Gauss–Newton iterations.
         min_inlier_rows: fewer inlier rows mark the frame as failed.
-        seed: seeds the RANSAC sampling (same call, same result).
+        seed: seeds the RANSAC sampling (same call, same result); each frame's draws depend only
+            on its own rows and the seed (a frame gets in a batch what it gets alone).
 
     Returns:
-        :class:`VFlowCurve`; frames that could not be fitted have ``success`` False and a = 0.
+        :class:`VFlowCurve`; frames that could not be fitted, or whose rows draw no curve (see
+        ``success``), have ``success`` False and a = v0 = 0.
 
     Example:
         >>> from fsof_torch.flow_model import displacement_flow
@@ -317,7 +321,10 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     inl = usable & ((y - f).abs() <= thr)
     n_inl = inl.sum(-1)
     residual = torch.where(inl, (y - f).abs(), torch.zeros_like(y)).sum(-1) / n_inl.clamp_min(1)
-    success = (n_inl >= min_inlier_rows) & torch.isfinite(a) & torch.isfinite(v0)
+    # a curve within the row threshold of 0 on every inlier row (a = 0: no motion, no curvature)
+    # explains them no better than no curve: its horizon v0 is arbitrary
+    drawn = (a != 0) & (inl & (f.abs() > thr)).any(-1)
+    success = (n_inl >= min_inlier_rows) & drawn & torch.isfinite(a) & torch.isfinite(v0)
     a = torch.where(success, a, torch.zeros_like(a))
     v0 = torch.where(success, v0, torch.zeros_like(v0))
     fitted, _, _, ok = _curve(v, a.unsqueeze(-1), v0.unsqueeze(-1), model)
@@ -333,9 +340,13 @@ def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, m
                  hypotheses: int, seed: int) -> tuple[Tensor, Tensor]:
     """Best (a, v0) per frame over 3-row samples of the linearised curve, (B,) each."""
     B, H = y.shape
-    gen = torch.Generator(device=y.device).manual_seed(int(seed))
+    gen = torch.Generator(device=y.device)
     prob = usable.double() + 1e-12  # an all-unusable frame still samples (and then fails)
-    idx = torch.multinomial(prob, 3 * hypotheses, replacement=True, generator=gen).reshape(B, hypotheses, 3)
+    # each frame draws from the generator seeded afresh: its samples depend on its own rows and
+    # the seed only (in a batch it draws what it draws alone)
+    draws = [torch.multinomial(prob[b:b + 1], 3 * hypotheses, replacement=True,
+                               generator=gen.manual_seed(int(seed))) for b in range(B)]
+    idx = torch.cat(draws).reshape(B, hypotheses, 3)
     vs, ys = v.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3), y.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3)
     if model == "velocity":
         A = torch.stack([vs * vs, vs, torch.ones_like(vs)], dim=-1)
