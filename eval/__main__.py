@@ -40,6 +40,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog=f"python -m eval {name}", description=SUBCOMMANDS[name][1])
     module.add_arguments(parser)
     args = parser.parse_args(argv[1:])
+    if getattr(args, "seed", None) is not None:
+        # (the scenes' seed range, checked before any work: exit 2 naming the option)
+        from fsof_torch.data.scene.config import check_seed
+
+        try:
+            check_seed(args.seed)
+        except ValueError as err:
+            print(f"error: --{err}", file=sys.stderr)
+            return 2
     return int(module.run(args) or 0)
 
 

@@ -51,6 +51,7 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     (["--lr", "nan"], "--lr: expected a finite number > 0"),
     (["--preset", "nope"], "--preset: unknown preset 'nope'"),
     (["--device", "bogus"], "--device: not a torch device: 'bogus'"),
+    (["--seed", "-1"], "--seed: expected an int in [0, 2**62), got -1"),
 ])
 def test_train_job_rejects_bad_options(capsys, argv, message):
     """Exit 2 with a message naming the option, before anything is rendered or trained."""

@@ -155,7 +155,8 @@ def test_user_pairs_are_the_image_folder_dataset(user_folder, scene):
                                    rtol=0, atol=1e-9)
         for k in ("x_d", "z_d", "yaw"):
             assert item["odometry"][k] == pytest.approx(p["odometry"][k], abs=1e-6)
-        assert item["camera"] is camera
+        # (each item's own copy: editing one item's camera must not change the others')
+        assert item["camera"] is not camera and torch.equal(item["camera"].K, camera.K)
     torch.testing.assert_close(camera.K, scene[0]["camera"].K.double(), rtol=0, atol=1e-4)
 
 

@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_bool, check_int, check_size
+from .._check import check_int, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
@@ -44,7 +44,7 @@ from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
 from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, check_index
-from .items import ITEM_KEYS, as_item, check_item, collate, concat_cameras, make_item
+from .items import ITEM_KEYS, as_item, check_item, check_item_options, collate, concat_cameras, make_item
 
 __all__ = [
     "ITEM_KEYS",
@@ -90,7 +90,7 @@ class SceneDataset(Dataset):
     Args:
         preset: a name of :data:`fsof_torch.scene.PRESETS` or a ``SceneConfig``.
         num_pairs: the sequence's length in pairs.
-        seed: the scene's seed; size: ``(H, W)`` (default: the preset's).
+        seed: the scene's seed (an int in [0, 2**62)); size: ``(H, W)`` (default: the preset's).
         dtype: float32 or float64 for the rendering; ``camera_dtype`` of the camera (default ``dtype``;
             cast from the scene's float64 camera, so float64 keeps its digits under a float32 render).
         ground_truth: False -> images, camera, index and name only.
@@ -104,16 +104,13 @@ class SceneDataset(Dataset):
                  size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True, **overrides: Any):
         from .scene import scene_config
+        from .scene.config import check_seed
         from .scene.world import Scene
 
         self.num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
-        self.seed = check_int(seed, "seed")
+        self.seed = check_seed(seed)
         size = None if size is None else check_size(size)
-        camera_dtype = dtype if camera_dtype is None else camera_dtype
-        for name, value in (("dtype", dtype), ("camera_dtype", camera_dtype)):
-            if value not in (torch.float32, torch.float64):
-                raise TypeError(f"{name}: expected torch.float32 or torch.float64, got {value!r}")
-        check_bool(ground_truth, "ground_truth")
+        camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         # a bad preset or override fails here, not at the first item
         cfg = scene_config(preset, **overrides, **({} if size is None else {"size": size}))
         # the calibrated camera is the same for every pair: cast from float64, not from a rounded copy
@@ -147,6 +144,7 @@ class SyntheticFlowDataset(Dataset):
 
     def __init__(self, root: str | os.PathLike, *, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
+        camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         self.root = _folder(root)
         self.indices = synthetic_pair_indices(self.root)
         if not self.indices:
@@ -192,6 +190,7 @@ class KittiFlowDataset(Dataset):
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         if flow not in ("noc", "occ"):
             raise ValueError(f"flow: expected 'noc' or 'occ', got {flow!r}")
+        camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         self.root = _folder(root)
         images = self.root / image_dir
         if not images.is_dir():
@@ -202,7 +201,7 @@ class KittiFlowDataset(Dataset):
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
         self.cam, self.camera_height, self.K = cam, float(camera_height), K
-        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype or dtype, ground_truth
+        self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
     def __len__(self) -> int:
         return len(self.names)
@@ -250,6 +249,7 @@ class KittiSampleDataset(ImageFolderDataset):
     def __init__(self, folder: str | os.PathLike, *, cam: int = 2, camera_height: float = KITTI_HEIGHT,
                  roll: float = 0.0, pitch: float = 0.0, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
+        check_item_options(dtype, camera_dtype, ground_truth)  # before the files, as every dataset does
         self.folder = f = _folder(folder, "folder")
         for file in ("image_10.png", "image_11.png"):
             if not (f / file).is_file():
@@ -280,6 +280,7 @@ class KittiOdometryDataset(ImageFolderDataset):
                  camera_height: float = KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
                  dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
                  ground_truth: bool = True):
+        check_item_options(dtype, camera_dtype, ground_truth)  # ground_truth decides below whether poses are needed
         self.folder = _folder(folder, "folder")
         step = check_int(step, "step", minimum=1)
         images = self.folder / image_dir
@@ -315,9 +316,9 @@ class CarlaRunDataset(Dataset):
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
+        self.camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         self.run = CarlaRun(run)
         self.camera_height, self.dtype, self.ground_truth = float(camera_height), dtype, ground_truth
-        self.camera_dtype = camera_dtype or dtype
 
     def __len__(self) -> int:
         return max(len(self.run) - 1, 0)

@@ -40,7 +40,7 @@ from ..io.flow import read_flow
 from ..io.images import read_image
 from ..io.kitti import read_kitti_poses
 from ..io.masks import read_road_mask
-from .items import make_item
+from .items import check_item_options, make_item
 
 __all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
            "check_index", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
@@ -226,6 +226,7 @@ class ImageFolderDataset(Dataset):
                  gt: str | os.PathLike | None = None, calib_size: tuple[int, int] | None = None, step: int = 1,
                  dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
                  ground_truth: bool = True):
+        camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         if isinstance(images, (str, os.PathLike)):
             self.frames = list_images(images)
         else:
@@ -247,7 +248,7 @@ class ImageFolderDataset(Dataset):
             camera64, used = _read_camera(self.calib, check_int(cam, "cam", optional=True), camera_height,
                                           roll, pitch)
             self._camera64 = camera64
-            self.camera = camera64.to(camera_dtype or dtype)
+            self.camera = camera64.to(camera_dtype)
             self.calib_size = self.calib_size or calibration_size(self.calib, used)
         else:
             self._camera64 = None
@@ -353,8 +354,10 @@ class ImageFolderDataset(Dataset):
                 truth["flow"], truth["valid"] = self._checked("gt", pair.gt, flow).to(self.dtype), valid
             if self.poses is not None:
                 truth.update(self._motion(pair))
+        # each item its own camera: editing one item's K must not change the next item's
+        camera = None if self.camera is None else self.camera.to(self.camera.dtype, copy=True)
         return make_item(image1.to(self.dtype), image2.to(self.dtype), index=i, name=pair.name,
-                         camera=self.camera, **truth)
+                         camera=camera, **truth)
 
     def _motion(self, pair: FramePair) -> dict[str, Any]:
         """The pair's relative pose, its planar odometry under the camera's mounting and the rest."""

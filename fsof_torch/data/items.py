@@ -51,9 +51,22 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
+from .._check import check_bool
 from ..geometry.camera import Camera
 
-__all__ = ["ITEM_KEYS", "ODOMETRY_KEYS", "as_item", "make_item", "check_item", "collate", "concat_cameras"]
+__all__ = ["ITEM_KEYS", "ODOMETRY_KEYS", "as_item", "make_item", "check_item", "check_item_options", "collate",
+           "concat_cameras"]
+
+def check_item_options(dtype: object, camera_dtype: object, ground_truth: object) -> torch.dtype:
+    """The options every dataset takes: ``dtype`` and ``camera_dtype`` float32 or float64 (None:
+    ``dtype``), ``ground_truth`` a bool (TypeError naming the argument). Returns the camera dtype."""
+    camera_dtype = dtype if camera_dtype is None else camera_dtype
+    for name, value in (("dtype", dtype), ("camera_dtype", camera_dtype)):
+        if value not in (torch.float32, torch.float64):
+            raise TypeError(f"{name}: expected torch.float32 or torch.float64, got {value!r}")
+    check_bool(ground_truth, "ground_truth")  # a truthy string such as "no" would pass as True
+    return camera_dtype
+
 
 #: the keys of every item, in order
 ITEM_KEYS = ("image1", "image2", "camera", "flow", "valid", "road", "odometry", "relative_pose", "index", "name")

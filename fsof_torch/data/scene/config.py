@@ -7,13 +7,14 @@ Every field of :class:`SceneConfig` can be overridden by keyword in
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
-from ..._check import check_bool, check_size
+from ..._check import check_bool, check_int, check_size
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
-           "scene_config", "ASPHALT_CELLS"]
+           "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "check_seed", "arc_length"]
 
 #: Semantic label ids of ``labels``.
 LABELS: dict[str, int] = {"sky": 0, "road": 1, "marking": 2, "kerb": 3, "pavement": 4,
@@ -31,6 +32,32 @@ KITTI_SIZE = (375, 1242)
 # the label ids by name, for the modules that cast, shade and label
 SKY, ROAD, MARKING, KERB, PAVEMENT, BUILDING, CAR = (
     LABELS[k] for k in ("sky", "road", "marking", "kerb", "pavement", "building", "car"))
+
+#: The most anything may move in one frame (m): the ego vehicle (its arc length) and the moving cars'
+#: base speed times dt. 100 m a frame is 1000 m/s at 10 Hz, 25× the fastest documented scene (CVC ×4:
+#: 20 m/s, cars 80 m/s); beyond it the scene would generate objects along an unbounded stretch of road.
+MAX_TRAVEL = 100.0
+
+#: Scene seeds are ints in [0, MAX_SEED): the generators are seeded with 2·seed + 1 and
+#: seed·1 000 003 mod 2**63, so a larger or a negative seed would overflow or alias a valid one.
+MAX_SEED = 2 ** 62
+
+
+def check_seed(seed: object) -> int:
+    """A scene seed: an int with 0 <= seed < :data:`MAX_SEED`, else TypeError / ValueError naming ``seed``."""
+    seed = check_int(seed, "seed")
+    if not 0 <= seed < MAX_SEED:
+        raise ValueError(f"seed: expected an int in [0, 2**62), got {seed!r}")
+    return seed
+
+
+def arc_length(x_d: float, z_d: float, yaw: float) -> float:
+    """The signed length (m) of the circular arc with chord (x_d, z_d) (m) turning by ``yaw`` (rad,
+    |yaw| < π): negative when z_d < 0 (backwards)."""
+    chord = math.hypot(x_d, z_d)
+    arc = chord * (yaw / 2) / math.sin(yaw / 2) if abs(yaw) > 1e-12 else chord
+    return math.copysign(arc, z_d)
+
 
 #: Cell sizes (m) of the seven asphalt noise octaves (:attr:`SceneConfig.asphalt`).
 ASPHALT_CELLS = (0.02, 0.05, 0.12, 0.3, 0.75, 2.0, 5.0)
@@ -184,8 +211,24 @@ def scene_config(preset: str | SceneConfig = "default", **overrides: Any) -> Sce
     if unknown:
         raise TypeError(f"render_pair: unknown overrides {unknown}; expected some of {sorted(known)}")
     cfg = replace(cfg, **overrides)
+    # K as nested float tuples: a tensor or an array would not compare in the frame cache's key
+    cfg = replace(cfg, K=_as_K(cfg.K))
     _validate(cfg)
     return cfg
+
+
+def _as_K(K: Any) -> tuple:
+    """K (nested sequences, a tensor or an array of 3×3 finite numbers) as a tuple of float tuples."""
+    try:
+        rows = [list(r.tolist() if hasattr(r, "tolist") else r) for r in (K.tolist() if hasattr(K, "tolist") else K)]
+    except (TypeError, ValueError, RuntimeError, NotImplementedError):
+        rows = None
+    if (rows is None or len(rows) != 3 or any(len(r) != 3 for r in rows)
+            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+                       for r in rows for v in r)):
+        raise ValueError(f"K: expected a 3×3 matrix of finite numbers (nested sequences, a tensor or an array), "
+                         f"got {K!r}")
+    return tuple(tuple(float(v) for v in r) for r in rows)
 
 
 def _validate(cfg: SceneConfig) -> None:
@@ -215,6 +258,7 @@ def _validate(cfg: SceneConfig) -> None:
     if all(explicit):
         for n in ("x_d", "z_d", "yaw"):
             real(n)
+    _validate_travel(cfg)
     if cfg.asphalt is not None:
         amps = cfg.asphalt
         if (not isinstance(amps, (tuple, list)) or len(amps) != len(ASPHALT_CELLS)
@@ -230,6 +274,31 @@ def _validate(cfg: SceneConfig) -> None:
         check_size(cfg.size)
     check_size(cfg.base_size, "base_size")
     _validate_road_motion(cfg, real)
+
+
+def _validate_travel(cfg: SceneConfig) -> None:
+    """At most :data:`MAX_TRAVEL` metres a frame for the ego vehicle and for the moving cars, whose base
+    speed is max(|v|, 5 m/s) · speed_factor (:func:`.objects.block_objects`), v the ego speed."""
+    if cfg.x_d is not None:
+        if not abs(cfg.yaw) < math.pi:
+            raise ValueError(f"yaw: expected |yaw| < π rad per frame, got {cfg.yaw!r}")
+        travel = abs(arc_length(float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)))
+        if not travel <= MAX_TRAVEL:
+            raise ValueError(f"x_d, z_d: expected a travel (arc length) <= {MAX_TRAVEL:g} m per frame, got "
+                             f"{travel!r} m from x_d={cfg.x_d!r}, z_d={cfg.z_d!r}, yaw={cfg.yaw!r}")
+        speed, names = travel / cfg.dt, "speed_factor, dt (with x_d, z_d)"
+    else:
+        speed = abs(cfg.speed * cfg.speed_factor)
+        if not speed * cfg.dt <= MAX_TRAVEL:
+            raise ValueError(f"speed, speed_factor, dt: expected a travel |speed · speed_factor · dt| <= "
+                             f"{MAX_TRAVEL:g} m per frame, got {speed * cfg.dt!r} m from speed={cfg.speed!r}, "
+                             f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
+        names = "speed, speed_factor, dt"
+    traffic = max(speed, 5.0) * cfg.speed_factor * cfg.dt
+    if not traffic <= MAX_TRAVEL:
+        raise ValueError(f"{names}: expected the moving cars' base travel max(|v|, 5 m/s) · speed_factor · dt <= "
+                         f"{MAX_TRAVEL:g} m per frame (v the ego speed), got {traffic!r} m from "
+                         f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
 
 
 def _validate_road_motion(cfg: SceneConfig, real) -> None:

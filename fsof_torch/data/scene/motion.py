@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from ...geometry.egomotion import ego_motion_from_ackermann
-from .config import SceneConfig
+from .config import SceneConfig, arc_length
 
 
 @dataclass(frozen=True)
@@ -40,18 +40,16 @@ def motion_from_config(cfg: SceneConfig) -> Motion:
     motion from speed and steering)."""
     if cfg.x_d is not None:
         x_d, z_d, yaw = float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)
-        chord = math.hypot(x_d, z_d)
-        # arc length of the circular arc with this chord and turning angle
-        arc = chord * (yaw / 2) / math.sin(yaw / 2) if abs(yaw) > 1e-12 else chord
-        arc = math.copysign(arc, z_d)  # backwards when z_d < 0
+        arc = arc_length(x_d, z_d, yaw)
         speed = arc / cfg.dt
         steering = math.atan(cfg.wheelbase * yaw / arc) if arc != 0 else 0.0
-        return Motion(x_d, z_d, yaw, speed, steering, cfg.wheelbase, cfg.dt)
+        return Motion(x_d, z_d, yaw, speed, steering, float(cfg.wheelbase), float(cfg.dt))
     speed = cfg.speed * cfg.speed_factor
     ego = ego_motion_from_ackermann(torch.tensor([speed], dtype=torch.float64), cfg.steering,
                                     cfg.wheelbase, cfg.dt)
-    return Motion(float(ego.x_d[0]), float(ego.z_d[0]), float(ego.yaw[0]), speed, cfg.steering,
-                  cfg.wheelbase, cfg.dt)
+    # floats, as the pair's ``velocity`` documents, whatever number types the configuration holds
+    return Motion(float(ego.x_d[0]), float(ego.z_d[0]), float(ego.yaw[0]), float(speed), float(cfg.steering),
+                  float(cfg.wheelbase), float(cfg.dt))
 
 
 def ego_poses(motion: Motion, last: int) -> list[tuple[float, float, float]]:

@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ..._check import check_int, check_size
-from .config import MARKING, ROAD, SKY, SceneConfig, scene_config
+from .config import MARKING, ROAD, SKY, SceneConfig, check_seed, scene_config
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
 from .shading import sensor_noise, shade
@@ -173,7 +173,8 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
     Args:
         preset: a name of :data:`PRESETS` or a :class:`SceneConfig`.
         index: the pair's position in the sequence (frame t = index).
-        seed: scene seed (object layout, colours, textures); same seed, same pixels.
+        seed: scene seed (object layout, colours, textures), an int in [0, 2**62); same seed, same
+            pixels.
         size: ``(H, W)`` of the images; K is scaled from the KITTI-like 375×1242 (default).
         dtype: float32 or float64 for every tensor (geometry is exact either way up to rounding).
         **overrides: fields of :class:`SceneConfig` (``speed_factor=4``, ``roll=math.radians(5)``,
@@ -214,7 +215,7 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     _check_dtype(dtype)
     num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
     start = check_int(start, "start", minimum=0)
-    seed = check_int(seed, "seed")
+    seed = check_seed(seed)
     if size is not None:
         size = check_size(size)
         overrides["size"] = size

@@ -1,0 +1,123 @@
+"""Argument checks of the scene renderer and the datasets: K, motion bounds, seeds, the dataset options,
+and what each item owns (its camera) and holds (floats in ``velocity``)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from fsof_torch.data.datasets import (CarlaRunDataset, KittiFlowDataset, KittiOdometryDataset, KittiSampleDataset,
+                                      SceneDataset, SyntheticFlowDataset)
+from fsof_torch.data.folders import ImageFolderDataset
+from fsof_torch.data.scene.config import MAX_TRAVEL
+from fsof_torch.io import write_image, write_kitti_calibration
+from fsof_torch.scene import KITTI_K, PRESETS, render_pair, scene_config
+
+TINY = (8, 24)
+
+
+# -- K -------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("make", [lambda: torch.tensor(KITTI_K, dtype=torch.float64), lambda: np.array(KITTI_K)],
+                         ids=["tensor", "array"])
+def test_K_as_tensor_or_array_renders_twice_like_the_tuple(make):
+    ref = render_pair("cvc-simple", 1, size=TINY)
+    first = render_pair("cvc-simple", 0, size=TINY, K=make())
+    second = render_pair("cvc-simple", 1, size=TINY, K=make())  # takes the frame the first call kept
+    assert torch.equal(second["image1"], ref["image1"]) and torch.equal(second["flow"], ref["flow"])
+    assert torch.equal(first["image2"], second["image1"])
+    assert scene_config("default", K=make()).K == KITTI_K
+
+
+@pytest.mark.parametrize("K", [None, "abc", ((1, 2), (3, 4)), ((math.nan, 0, 600), (0, 700, 170), (0, 0, 1)),
+                               ((True, 0, 0), (0, 1, 0), (0, 0, 1)), torch.ones(3, 4)])
+def test_bad_K_names_K(K):
+    with pytest.raises(ValueError, match="K: expected a 3×3 matrix of finite numbers"):
+        scene_config("default", K=K)
+
+
+# -- motion bounds -----------------------------------------------------------------------------
+@pytest.mark.parametrize("overrides, match", [
+    (dict(dt=1e9), "speed, speed_factor, dt: expected a travel"),
+    (dict(speed_factor=1e12), "speed, speed_factor, dt: expected a travel"),
+    (dict(speed=0.0, speed_factor=1e12), "speed, speed_factor, dt: expected the moving cars' base travel"),
+    (dict(x_d=0.0, z_d=1.0, yaw=2 * math.pi), "yaw: expected |yaw| < π rad per frame"),
+    (dict(x_d=0.0, z_d=1.0, yaw=-math.pi), "yaw: expected |yaw| < π rad per frame"),
+    (dict(x_d=0.0, z_d=-1e3, yaw=0.0), "x_d, z_d: expected a travel"),
+    (dict(x_d=0.0, z_d=1.0, yaw=0.0, speed_factor=1e6), "speed_factor, dt .with x_d, z_d.: expected the moving"),
+])
+def test_motion_beyond_the_per_frame_bound_is_refused(overrides, match):
+    with pytest.raises(ValueError, match=match):
+        scene_config("default", **overrides)
+
+
+def test_every_preset_and_documented_speed_is_within_the_bound():
+    for name in PRESETS:
+        for factor in (1, 4):
+            scene_config(name, speed_factor=factor)
+    scene_config("default", speed=MAX_TRAVEL / 0.1, dt=0.1)  # exactly at the bound
+    scene_config("default", x_d=0.0, z_d=2.0, yaw=3.0)
+
+
+# -- seeds -------------------------------------------------------------------------------------
+@pytest.mark.parametrize("seed", [-1, 2 ** 62, 2 ** 63, 2 ** 64])
+def test_seed_out_of_range_names_seed(seed):
+    with pytest.raises(ValueError, match=r"seed: expected an int in \[0, 2\*\*62\)"):
+        render_pair("cvc-simple", 0, size=TINY, seed=seed)
+    with pytest.raises(ValueError, match="seed: expected an int in"):
+        SceneDataset("cvc-simple", 1, size=TINY, seed=seed)
+
+
+def test_largest_seed_renders_and_differs_from_seed_zero():
+    top = render_pair("cvc-simple", 0, size=TINY, seed=2 ** 62 - 1)
+    assert not torch.equal(top["image1"], render_pair("cvc-simple", 0, size=TINY, seed=0)["image1"])
+    with pytest.raises(TypeError, match="seed: expected an int"):
+        render_pair("cvc-simple", 0, size=TINY, seed=1.5)
+
+
+# -- dataset options ---------------------------------------------------------------------------
+DATASETS = {
+    "SyntheticFlowDataset": lambda p, **kw: SyntheticFlowDataset(p, **kw),
+    "ImageFolderDataset": lambda p, **kw: ImageFolderDataset([p / "a.png", p / "b.png"], **kw),
+    "KittiFlowDataset": lambda p, **kw: KittiFlowDataset(p, **kw),
+    "KittiSampleDataset": lambda p, **kw: KittiSampleDataset(p, **kw),
+    "KittiOdometryDataset": lambda p, **kw: KittiOdometryDataset(p, **kw),
+    "CarlaRunDataset": lambda p, **kw: CarlaRunDataset(p, **kw),
+    "SceneDataset": lambda p, **kw: SceneDataset("cvc-simple", 1, size=TINY, **kw),
+}
+
+
+@pytest.mark.parametrize("name", sorted(DATASETS))
+@pytest.mark.parametrize("options, match", [
+    (dict(dtype=torch.int64), "dtype: expected torch.float32 or torch.float64"),
+    (dict(dtype="float32"), "dtype: expected torch.float32 or torch.float64"),
+    (dict(camera_dtype=torch.float16), "camera_dtype: expected torch.float32 or torch.float64"),
+    (dict(ground_truth="no"), "ground_truth: expected True or False"),
+])
+def test_every_dataset_checks_dtype_camera_dtype_ground_truth_first(tmp_path, name, options, match):
+    with pytest.raises(TypeError, match=match):  # checked before any file is looked at (none exists here)
+        DATASETS[name](tmp_path / "missing", **options)
+
+
+# -- items own their camera --------------------------------------------------------------------
+def test_image_folder_items_do_not_share_a_camera(tmp_path):
+    for i in range(3):
+        write_image(tmp_path / f"{i:06d}.png", torch.full((3, *TINY), 10.0 * i))
+    K = torch.tensor([[30.0, 0.0, 11.5], [0.0, 30.0, 3.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    write_kitti_calibration(tmp_path / "calib.txt", K, cam=0, style="odometry")
+    ds = ImageFolderDataset(sorted(tmp_path.glob("*.png")), tmp_path / "calib.txt")
+    first = ds[0]
+    first["camera"].K[0, 0, 0] = 999.0
+    assert float(ds[1]["camera"].K[0, 0, 0]) == 30.0 and float(ds[0]["camera"].K[0, 0, 0]) == 30.0
+    assert ds[0]["camera"].K is not ds[0]["camera"].K
+
+
+# -- velocity holds floats ---------------------------------------------------------------------
+@pytest.mark.parametrize("overrides", [dict(wheelbase=3, dt=1, speed=2, speed_factor=1, steering=0),
+                                       dict(wheelbase=3, dt=1, x_d=0, z_d=1, yaw=0)])
+def test_velocity_and_odometry_hold_floats(overrides):
+    p = render_pair("cvc-simple", 0, size=TINY, **overrides)
+    assert all(type(v) is float for v in p["velocity"].values()), p["velocity"]
+    assert all(type(v) is float for v in p["odometry"].values()), p["odometry"]
