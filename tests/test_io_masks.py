@@ -188,13 +188,13 @@ class TestLossless:
 
     @pytest.mark.parametrize("name", ["l.bmp", "l.jpg", "l.tif", "l.webp", "l.ppm", "l"])
     def test_label_map_only_to_png(self, tmp_path, name):
-        with pytest.raises(ValueError, match=rf"path: a label map is written as \.png; got the suffix"):
+        with pytest.raises(ValueError, match=r"path: a label map is written as \.png; got the suffix"):
             write_label_map(tmp_path / name, torch.tensor([[0, 7, 300, 1000]]))
         assert list(tmp_path.iterdir()) == []
 
     @pytest.mark.parametrize("name", ["m.jpg", "m.bmp", "m.hdr", "m.webp"])
     def test_road_mask_only_to_png(self, tmp_path, name):
-        with pytest.raises(ValueError, match=rf"path: a road mask is written as \.png; got the suffix"):
+        with pytest.raises(ValueError, match=r"path: a road mask is written as \.png; got the suffix"):
             write_road_mask(tmp_path / name, torch.ones(1, 4, 4, dtype=torch.bool))
         assert list(tmp_path.iterdir()) == []
 
