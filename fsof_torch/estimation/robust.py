@@ -19,7 +19,8 @@ from torch import Tensor
 
 from .._check import check_number, skip_values
 
-__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel"]
+__all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel",
+           "check_scale"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
@@ -30,9 +31,10 @@ def check_kernel(kind: object) -> str:
     return kind
 
 
-def _check_scale(scale: object) -> None:
+def check_scale(scale: object) -> None:
     """``scale``: a finite number > 0, or a real tensor of them (one host read: the public
-    functions check it, :func:`robust_terms` inside the solver's loop does not)."""
+    functions and :func:`~fsof_torch.estimation.solver.solve`, once, check it; :func:`robust_terms`
+    inside the solver's loop does not)."""
     if not isinstance(scale, Tensor):
         check_number(scale, "scale", positive=True)
         return
@@ -50,7 +52,7 @@ def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Te
     """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (any shape; ``scale``, a finite
     number > 0 or a tensor of them, broadcasts)."""
     check_kernel(kind)
-    _check_scale(scale)
+    check_scale(scale)
     if kind == "l2":
         return torch.ones_like(r2)
     return _unit_kernel(r2 / (scale * scale), kind, cost=False)[1]
@@ -59,7 +61,7 @@ def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Te
 def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
     """ρ(r²) (same shape as ``r2``), matching :func:`robust_weight`."""
     check_kernel(kind)
-    _check_scale(scale)
+    check_scale(scale)
     if kind == "l2":
         return r2
     c2 = scale * scale

@@ -37,8 +37,8 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape, skip_values
-from .robust import check_kernel, far_outlier_cost, robust_terms
+from .._check import check_float_tensor, check_shape
+from .robust import check_kernel, check_scale, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
 
@@ -195,10 +195,8 @@ def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, co
     if s.dim() > 1 or s.numel() not in (1, B):
         raise ValueError(f"{what} a float or a ({B},) tensor (B of params), got shape {tuple(s.shape)}")
     s = s.reshape(-1).expand(B).clone()
-    if not computed and not skip_values(s):
-        bad = ~(torch.isfinite(s) & (s > 0))
-        if bool(bad.any()):
-            raise ValueError(f"{what} finite values > 0, got {s[bad][:3].tolist()}")
+    if not computed:
+        check_scale(s)  # (robust.py's check of a scale: finite values > 0, one host read)
     return s
 
 
