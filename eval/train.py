@@ -40,11 +40,15 @@ from fsof_torch.training.losses import CompositeLoss, FreespaceFlowLoss, Unsuper
 from fsof_torch.evaluation.metrics import flow_metrics
 from fsof_torch.evaluation.photometric import photometric_error_maps
 from fsof_torch.data.scene import collate, render_sequence
+from fsof_torch.data.scene.config import MAX_SEED
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 from eval.paths import bad_file, bad_folder, first_bad, make_parent
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net"]
+
+# the held-out scenes' seed: --seed + HELD_OUT
+HELD_OUT = 1000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -262,6 +266,8 @@ def _bad_input(args: argparse.Namespace) -> str | None:
             return f"--{option.replace('_', '-')}: expected a finite number > 0, got {getattr(args, option)}"
     if args.threads < 0:
         return f"--threads: expected >= 0 (0: torch's default), got {args.threads}"
+    if args.seed + HELD_OUT >= MAX_SEED:  # (the held-out scenes' seed is in the scenes' range too)
+        return f"--seed: expected at most 2**62 - {HELD_OUT + 1} (the held-out seed is --seed + {HELD_OUT}), got {args.seed}"
     if args.preset not in PRESETS:
         return f"--preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}"
     try:
@@ -304,7 +310,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     size = tuple(args.size)
     t0 = time.perf_counter()
     train = render_pairs(args.preset, args.train_pairs, seed=args.seed, size=size, progress=progress)
-    test = render_pairs(args.preset, args.test_pairs, seed=args.seed + 1000, size=size, progress=progress)
+    test = render_pairs(args.preset, args.test_pairs, seed=args.seed + HELD_OUT, size=size, progress=progress)
     render_s = time.perf_counter() - t0
 
     common = dict(steps=args.steps, seed=args.seed, batch=args.batch, lr=args.lr, iters=args.iters,
@@ -332,7 +338,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
               for region in ("road", "non_road", "all")}
     print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
           f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
-          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + 1000})"
+          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + HELD_OUT})"
           + (f"; {ranks.world_size} processes (DDP)" if ranks.distributed else ""))
     print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
     for name, m in results.items():

@@ -52,6 +52,9 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     (["--preset", "nope"], "--preset: unknown preset 'nope'"),
     (["--device", "bogus"], "--device: not a torch device: 'bogus'"),
     (["--seed", "-1"], "--seed: expected an int in [0, 2**62), got -1"),
+    # (the held-out scenes' seed, --seed + 1000, must be a scene seed too)
+    (["--seed", str(2**62 - 1000)], f"--seed: expected at most 2**62 - 1001 (the held-out seed is --seed + 1000), "
+                                    f"got {2**62 - 1000}"),
 ])
 def test_train_job_rejects_bad_options(capsys, argv, message):
     """Exit 2 with a message naming the option, before anything is rendered or trained."""
