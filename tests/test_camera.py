@@ -436,3 +436,52 @@ def test_from_projection_names_a_bad_matrix():
         Camera.from_projection("abc", 1.65)
     with pytest.raises(ValueError, match=r"P: expected shape \(3, 4\) or \(B, 3, 4\), got \(4,\)"):
         Camera.from_projection(torch.zeros(4), 1.65)
+
+
+def test_cameras_compare_by_identity_and_hash():
+    """Cameras hold tensors: ``==`` compares identity (as nn.Module does) instead of raising on a
+    tensor's truth value, and a camera can key a dict."""
+    a, b = Camera(_K(), 1.65), Camera(_K(), 1.65)
+    assert a == a and a != b and not (a == b)
+    assert {a: 1, b: 2}[b] == 2 and len({a, b, a}) == 2
+    assert a in [b, a] and b not in [a]
+    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in ("K", "height", "roll", "pitch"))
+
+
+def test_cast_to_half_precision_keeps_the_values():
+    """A half precision target gives a float32 camera without rounding through half precision
+    (bfloat16 once turned f_x 721.54 into 720)."""
+    cam = Camera(_K(), 1.65, 0.0123, -0.021)
+    for half in (torch.float16, torch.bfloat16):
+        c = cam.to(half)
+        assert c.dtype == torch.float32
+        for name in ("K", "height", "roll", "pitch"):
+            assert torch.equal(getattr(c, name), getattr(cam, name).float()), name
+        c32 = cam.to(torch.float32)
+        assert c32.to(half) is c32 and c32.to(dtype=half, device="cpu") is c32
+    assert cam.to(torch.zeros(1, dtype=torch.bfloat16)).K[0, 0, 0].item() == pytest.approx(721.5377, abs=1e-4)
+    copied = cam.to(cam.dtype, copy=True)  # as Tensor.to: a copy even without a change
+    assert copied is not cam and torch.equal(copied.K, cam.K) and copied.K.data_ptr() != cam.K.data_ptr()
+
+
+def test_repeat_needs_a_positive_int():
+    cam = Camera(_K(), 1.65)
+    for times in (0, -1):
+        with pytest.raises(ValueError, match=f"^times: expected an int >= 1, got {times}"):
+            cam.repeat(times)
+    for times in (2.0, True, "2"):
+        with pytest.raises(TypeError, match="^times: expected an int, got"):
+            cam.repeat(times)
+    assert cam.repeat(2).batch_size == 2
+
+
+def test_padded_and_cropped_check_the_new_principal_point():
+    """A shift beyond the dtype's bounds once stored NaN in K (padded(10**39, 0) in float32)."""
+    cam = Camera(_K(dtype=torch.float32), 1.65)
+    with pytest.raises(ValueError, match=r"^left, top: the camera padded by \(10{39}, 0\) px is out of range: "
+                                         r"K: expected finite values"):
+        cam.padded(10 ** 39, 0)
+    with pytest.raises(ValueError, match=r"^left, top: the camera cropped by \(0, 67108864\) px is out of range: "
+                                         r"K: expected \|principal point\|"):
+        cam.cropped(0, 2 ** 26)
+    assert cam.padded(2 ** 20, 3).cx.item() == pytest.approx(609.5593 + 2 ** 20)

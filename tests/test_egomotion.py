@@ -234,3 +234,18 @@ def test_ackermann_refuses_steering_across_the_car(steering):
     millions of radians came back."""
     with pytest.raises(ValueError, match=r"^steering: "):
         ego_motion_from_ackermann(10.0, steering, 2.7, 0.1)
+
+
+def test_relative_pose_names_a_singular_pose1():
+    """A finite but singular pose1 once raised torch's _LinAlgError, naming no argument."""
+
+    pose0 = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
+    pose1 = pose0.clone()
+    pose1[0, 2, 3] = 1.5
+    pose1[1, :3, :3] = 0.0
+    with pytest.raises(ValueError, match=r"^pose1: expected invertible poses, got samples \[1\] that are singular"):
+        relative_pose(pose0, pose1)
+    with pytest.raises(ValueError, match=r"^pose1: expected invertible poses"):
+        ego_motion_from_pose(pose0, pose1=pose1)
+    T = relative_pose(pose0[:1], pose1[:1])
+    assert T[0, 2, 3].item() == -1.5 and float(ego_motion_from_pose(pose0[:1], pose1=pose1[:1]).z_d) == 1.5

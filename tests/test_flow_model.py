@@ -261,7 +261,7 @@ def test_exception_values():
         velocity_flow(cam, 10.0, 0.0, 0.0, (6, 9))
     with pytest.raises(ValueError, match="steering: expected"):
         velocity_flow(cam, 10.0, 2.0, 2.7, (6, 9))
-    with pytest.raises(ValueError, match="wheelbase: expected > 0"):
+    with pytest.raises(ValueError, match="wheelbase: expected a positive number"):
         VelocityFlow((6, 9), wheelbase=-1.0)
 
 
@@ -721,3 +721,40 @@ def test_inference_path_band_edge_cases():
     assert not plain_valid[0].any() and plain_valid[1].all() and plain_valid[2, 0, :6].any()
     assert not plain_valid[2, 0, 8:].any()
     torch.testing.assert_close(plain, graded.detach(), rtol=1e-12, atol=1e-12)
+
+
+def test_vflow_curve_computes_half_precision_rows_in_float32():
+    """Half precision rows are lifted to float32 (float16 arithmetic overflowed to inf in 151 of
+    720 rows of a 720p camera); numbers and sequences are taken as tensors."""
+    v = torch.arange(720.0)
+    ref = vflow_curve(v.double(), 1.5, 1.5, 1000.0, 360.0)
+    assert float(ref.max()) == pytest.approx(201.0624, abs=1e-4)
+    for half in (torch.float16, torch.bfloat16):
+        out = vflow_curve(v.to(half), 1.5, 1.5, 1000.0, 360.0)
+        want = vflow_curve(v.to(half).double(), 1.5, 1.5, 1000.0, 360.0)  # the same rows, exactly
+        assert out.dtype == torch.float32
+        torch.testing.assert_close(out.double(), want, rtol=1e-6, atol=1e-5)
+    assert vflow_curve(v.float(), 1.5, 1.5, 1000.0, 360.0).dtype == torch.float32
+    # all numbers: the default dtype; a list of rows: a tensor of them
+    assert float(vflow_curve(50.0, 1.0, 1.65, 150.0, 40.0)) == pytest.approx(100.0 / (247.5 - 10.0), rel=1e-6)
+    torch.testing.assert_close(vflow_curve([39.0, 50.0], 1.0, 1.65, 150.0, 40.0),
+                               torch.tensor([0.0, 100.0 / 237.5]))
+    for bad in ("abc", None, True):
+        with pytest.raises(TypeError, match="^z_d: expected a tensor or a number"):
+            vflow_curve(v, bad, 1.65, 150.0, 40.0)
+
+
+def test_velocity_flow_module_checks_its_wheelbase_when_built():
+    """VelocityFlow takes the wheelbase velocity_flow takes (a float or a (B,) tensor) and checks
+    it when built, naming it (a tensor of two once failed in float(), True was taken as 1 m, inf
+    failed only at forward)."""
+    cam = _kitti_scaled(12, 20, roll=0.02)
+    wheelbase = torch.tensor([2.5, 3.0], dtype=torch.float64)
+    module = VelocityFlow((12, 20), wheelbase=wheelbase)
+    torch.testing.assert_close(module(cam, 8.0, 0.05), velocity_flow(cam, 8.0, 0.05, wheelbase, (12, 20)),
+                               rtol=0, atol=0)
+    assert "wheelbase" not in module.state_dict()
+    for bad, error in ((True, TypeError), ("abc", TypeError), (None, TypeError), (float("inf"), ValueError),
+                       (0.0, ValueError), (torch.tensor([2.5, 0.0]), ValueError), (torch.tensor([float("nan")]), ValueError)):
+        with pytest.raises(error, match="^wheelbase: expected"):
+            VelocityFlow((12, 20), wheelbase=bad)

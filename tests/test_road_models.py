@@ -310,3 +310,123 @@ def test_bad_inputs_name_the_argument():
         road_flow("cam", {"z_d": 1.0}, SIZE)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera, got list"):
         plane_from_pose(torch.eye(4, dtype=torch.float64)[None], [1.0, 2.0])  # once an AttributeError
+
+
+# -- constants, autocast, devices ---------------------------------------------------------------------
+
+def test_constants_first_built_under_inference_mode_serve_autograd(monkeypatch):
+    """The maps' cached constants are built outside inference mode: a first call under
+    torch.inference_mode once cached inference tensors, and every later differentiable call
+    failed ("Inference tensors cannot be saved for backward")."""
+    import fsof_torch.geometry.road_models as road_models
+
+    cam = Camera(torch.tensor(K_SMALL), 1.65, 0.01)
+    cases = [("paper", {"z_d": 1.0, "yaw": 0.02}), ("plane", {"z_d": 1.0, "pitch_change": 0.01}),
+             ("velocity", {"speed": 1.0, "yaw_rate": 0.1})]
+
+    def grads():
+        out = []
+        for model, p in cases:
+            roll = torch.tensor([0.02], requires_grad=True)
+            road_flow(cam, {**p, "roll": roll}, SIZE, model=model)[0].sum().backward()
+            out.append(roll.grad)
+        return out
+
+    want = grads()
+    monkeypatch.setattr(road_models, "_CACHE", {})
+    with torch.inference_mode():
+        for model, p in cases:
+            road_flow(cam, p, SIZE, model=model)
+            ROAD_MODELS[model].matrix_and_jacobian(*pack_params(model, cam, p))
+    assert road_models._CACHE and not any(t.is_inference() for v in road_models._CACHE.values()
+                                          for t in (v if isinstance(v, tuple) else (v,)))
+    for got, ref in zip(grads(), want):
+        assert torch.equal(got, ref) and float(ref.abs()) > 0
+
+
+def test_model_maps_stay_float32_under_autocast():
+    """RoadModel.matrix, matrix_and_jacobian, evaluate, horizon_row and homography_values keep
+    their inputs' precision under a bfloat16 autocast (bfloat16 moved the flow 3.9 px)."""
+    from fsof_torch.geometry.road_models import homography_values
+
+    cam = Camera(torch.tensor([[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]]), 1.65, 0.01, -0.015)
+    for name, p in [("paper", {"x_d": 0.05, "z_d": 1.2, "yaw": 0.01}), ("plane", {"z_d": 1.2, "y_d": 0.01}),
+                    ("velocity", {"speed": 9.0, "yaw_rate": 0.1})]:
+        model = ROAD_MODELS[name]
+        c, values = pack_params(model, cam, p)
+
+        def compute():
+            M, J = model.matrix_and_jacobian(c, values)
+            return {"matrix": model.matrix(c, values), "M": M, "J": J,
+                    "evaluate": model.evaluate(c.K, c.K_inv(), c.height, values, True)[1],
+                    "horizon": model.horizon_row(c, values),
+                    "values": homography_values(M, c.K, c.K_inv())}
+
+        plain = compute()
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            cast = compute()
+        for key, ref in plain.items():
+            assert cast[key].dtype == torch.float32 and torch.equal(cast[key], ref), (name, key)
+
+
+def test_pose_conversions_follow_the_inputs_device():
+    """The camera follows the pose or homography to its device (the meta device stands in for
+    a GPU here: a CPU camera beside them once raised inside torch)."""
+    from fsof_torch import ego_motion_from_pose
+
+    cam = camera(roll=0.01, pitch=0.02)
+    T = torch.eye(4, dtype=torch.float64, device="meta")[None]
+    H = torch.eye(3, dtype=torch.float64, device="meta")[None]
+    for out in (plane_from_pose(T, cam), plane_from_homography(H, cam), ego_motion_from_pose(T, cam)._asdict()):
+        assert all(v.device.type == "meta" for v in out.values() if v is not None)
+    meta_cam = Camera(cam.K.to("meta"), 1.65)
+    with pytest.raises(ValueError, match="^camera: a camera on the meta device has shapes but no values"):
+        plane_from_homography(torch.eye(3, dtype=torch.float64)[None], meta_cam)
+
+
+# -- plane_from_homography: singular homographies, gradients ------------------------------------------
+
+def test_plane_from_homography_rejects_singular_homographies():
+    """A singular H once raised torch's _LinAlgError from the SVD, naming no argument."""
+    cam = camera(roll=0.02, pitch=-0.03)
+    good = road_homography(cam, {"z_d": 1.3, "yaw": 0.02}, model="plane")
+    rank2 = torch.tensor([[[1.0, 0, 0], [0, 1, 0], [0, 0, 0]]], dtype=torch.float64)
+    for H, bad in ((torch.zeros(1, 3, 3, dtype=torch.float64), [0]), (rank2, [0]),
+                   (torch.cat([good, rank2]), [1])):
+        with pytest.raises(ValueError, match=rf"^H: expected invertible matrices, got samples \{bad}"):
+            plane_from_homography(H, cam)
+    # any scale and sign of an invertible one is fine, also one whose determinant underflows
+    for scale in (-2.5, 1e-120):
+        assert float(plane_from_homography(scale * good, cam)["z_d"]) == pytest.approx(1.3, abs=1e-12)
+
+
+def test_plane_from_homography_gradients():
+    """Gradients through the decomposition are finite and right: straight motion, where the
+    rotation step's SVD had three equal singular values, gave NaN; a turn gave gradients a few
+    percent off."""
+    K = torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.65, 0.01, -0.02)
+
+    def motion(H):
+        return tuple(v for k, v in plane_from_homography(H, cam).items() if k not in ("roll", "pitch"))
+
+    for p in ({"z_d": 1.2}, {"z_d": 1.2, "yaw": 0.02, "pitch_change": 0.003, "x_d": 0.1}):
+        H = road_homography(cam, p, model="plane").requires_grad_()
+        assert torch.autograd.gradcheck(motion, (H,), atol=1e-6, rtol=1e-4, fast_mode=False)
+        sum(v.sum() for v in motion(H)).backward()
+        assert torch.isfinite(H.grad).all() and float(H.grad.abs().max()) > 0
+
+
+def test_nearest_rotation_is_the_polar_factor():
+    """The rotation step against an SVD's U Vᵀ, for matrices near and far from a rotation."""
+    from fsof_torch.geometry.road_models import _nearest_rotation
+
+    g = torch.Generator().manual_seed(0)
+    for spread in (1e-3, 0.5, 1e3, 1e8):
+        Q1 = torch.linalg.qr(torch.randn(20, 3, 3, generator=g, dtype=torch.float64))[0]
+        Q2 = torch.linalg.qr(torch.randn(20, 3, 3, generator=g, dtype=torch.float64))[0]
+        s = 1.0 + spread * torch.rand(20, 3, generator=g, dtype=torch.float64)
+        M = Q1 @ torch.diag_embed(s) @ Q2
+        M = M * torch.sign(torch.linalg.det(M)).reshape(-1, 1, 1)
+        U, _, Vh = torch.linalg.svd(M)
+        torch.testing.assert_close(_nearest_rotation(M), U @ Vh, rtol=0, atol=1e-12)

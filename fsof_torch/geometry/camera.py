@@ -26,6 +26,7 @@ from .._check import (
     autocast_off,
     check_finite,
     check_float_tensor,
+    check_int,
     check_positive,
     resolve_batch,
     result_dtype,
@@ -107,7 +108,7 @@ def _check_camera_values(K: Tensor, height: Tensor) -> None:
                          f"(beyond it the road geometry overflows or underflows), got {height.tolist()}")
 
 
-@dataclass
+@dataclass(eq=False)
 class Camera:
     """Intrinsics and mounting of a road-facing camera, for B frames.
 
@@ -120,6 +121,9 @@ class Camera:
     All four are stored as tensors of one float dtype and device (the promoted dtype of the
     tensors given; Python floats follow it): ``K`` (B, 3, 3), the others (B,), with B the common
     batch size (arguments of batch 1 are broadcast).
+
+    Cameras are compared by identity, as ``nn.Module`` s are (``a == b`` only for the same
+    object; hashable, so usable as a dict key): compare values with ``torch.equal`` on the fields.
 
     Example:
         >>> cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]]), 1.65)
@@ -227,23 +231,29 @@ class Camera:
     def to(self, *args, **kwargs) -> "Camera":
         """A copy moved / cast like ``Tensor.to`` (``self`` when nothing changes, as there).
 
-        A half precision dtype gives a float32 camera, as the constructor does; a cast to a
-        narrower dtype checks the values against that dtype's bounds (:func:`camera_value_bounds`)."""
+        A half precision dtype gives a float32 camera, as the constructor does (the values are
+        not rounded to half precision on the way); a cast to a narrower dtype checks the values
+        against that dtype's bounds (:func:`camera_value_bounds`)."""
+        # (the arguments as nn.Module.to reads them, Tensor.to's copy aside: the target dtype is
+        # known before any cast)
+        copy = kwargs.pop("copy", False)
+        device, dtype, non_blocking, _ = torch._C._nn._parse_to(*args, **kwargs)
+        if dtype in (torch.float16, torch.bfloat16):
+            dtype = torch.float32
+        fields_ = (self.K, self.height, self.roll, self.pitch)
         try:
-            moved = [t.to(*args, **kwargs) for t in (self.K, self.height, self.roll, self.pitch)]
+            moved = [t.to(device=device or t.device, dtype=dtype or t.dtype, non_blocking=non_blocking, copy=copy)
+                     for t in fields_]
         except NotImplementedError:  # torch: "Cannot copy out of meta tensor; no data!"
             if self.device.type != "meta":
                 raise
             raise ValueError("camera: a camera on the meta device has shapes but no values to move to another "
                              "device; build it there (or keep every input on meta)") from None
-        if all(a is b for a, b in zip(moved, (self.K, self.height, self.roll, self.pitch))):
+        if all(a is b for a, b in zip(moved, fields_)):
             return self
         # a cast to a non-float dtype goes through the checks (and fails there)
         if not moved[0].is_floating_point():
             return Camera(*moved)
-        if moved[0].dtype in (torch.float16, torch.bfloat16):
-            # as the constructor does: half precision cameras are kept in float32
-            moved = [t.to(torch.float32) for t in moved]
         if torch.finfo(moved[0].dtype).max < torch.finfo(self.dtype).max:
             # a narrower dtype has narrower bounds (a float64 focal of 1e10 px is out of float32's)
             _check_camera_values(moved[0], moved[1])
@@ -262,8 +272,9 @@ class Camera:
                                self.roll.expand(batch_size), self.pitch.expand(batch_size))
 
     def repeat(self, times: int) -> "Camera":
-        """The batch repeated ``times`` times, as ``Tensor.repeat`` does (frame b of copy k is
-        frame k B + b; ``self`` for 1)."""
+        """The batch repeated ``times`` times (an int >= 1), as ``Tensor.repeat`` does (frame b of
+        copy k is frame k B + b; ``self`` for 1)."""
+        times = check_int(times, "times", minimum=1)
         if times == 1:
             return self
         return Camera._checked(self.K.repeat(times, 1, 1), self.height.repeat(times), self.roll.repeat(times),
@@ -323,7 +334,7 @@ class Camera:
         ``camera.padded(3, 0, 3, 1)`` moves c_x by 3 px.
         """
         amounts = _pixel_amounts("padded", left=left, top=top, right=right, bottom=bottom)
-        return self._shifted(amounts["left"], amounts["top"])
+        return self._shifted(amounts["left"], amounts["top"], "padded")
 
     def cropped(self, left: int, top: int, right: int = 0, bottom: int = 0) -> "Camera":
         """The camera for the image with ``left`` columns and ``top`` rows cut away at the left and
@@ -333,15 +344,24 @@ class Camera:
         point may fall outside the crop (an off-centre crop), which is valid.
         """
         amounts = _pixel_amounts("cropped", left=left, top=top, right=right, bottom=bottom)
-        return self._shifted(-amounts["left"], -amounts["top"])
+        return self._shifted(-amounts["left"], -amounts["top"], "cropped")
 
-    def _shifted(self, du: int, dv: int) -> "Camera":
+    def _shifted(self, du: int, dv: int, method: str) -> "Camera":
         if du == 0 and dv == 0:
             return self
         T = torch.tensor([[1.0, 0.0, float(du)], [0.0, 1.0, float(dv)], [0.0, 0.0, 1.0]],
                          dtype=self.dtype, device=self.device)
         with autocast_off(self.K):
-            return Camera._checked(T @ self.K, self.height, self.roll, self.pitch)
+            K = T @ self.K
+        # the moved principal point must stay within the dtype's bounds (a shift of 1e39 px is
+        # inf in float32, and K's product would hold NaN)
+        try:
+            check_finite(K, "K")
+            _check_camera_values(K, self.height)
+        except ValueError as err:
+            raise ValueError(f"left, top: the camera {method} by ({abs(du)}, {abs(dv)}) px is out of range: "
+                             f"{err}") from None
+        return Camera._checked(K, self.height, self.roll, self.pitch)
 
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,

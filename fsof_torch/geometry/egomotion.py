@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from .._check import (as_batch_param, autocast_off, check_finite, check_positive, resolve_batch, result_dtype,
-                      tracing)
+                      skip_values, tracing)
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
@@ -37,12 +37,18 @@ class EgoMotion(NamedTuple):
 
 
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
-    """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)."""
+    """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)
+    (``pose1`` invertible in the dtype of the result: a ValueError names its samples that are not)."""
     P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
     resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
     dtype = result_dtype(P0, P1)
     with autocast_off(P0):
-        return torch.linalg.inv(P1.to(dtype)) @ P0.to(dtype)
+        P1_inv, info = torch.linalg.inv_ex(P1.to(dtype))
+        if not skip_values(info) and bool((info != 0).any()):
+            bad = (info != 0).nonzero().flatten().tolist()
+            raise ValueError(f"pose1: expected invertible poses, got samples {bad} that are singular, "
+                             f"e.g. {P1[bad[0]].tolist()}")
+        return P1_inv @ P0.to(dtype)
 
 
 def as_pose_4x4(T: Tensor, name: str) -> Tensor:
@@ -97,8 +103,8 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
 def _planar_projection(T: Tensor, camera: Camera | None) -> EgoMotion:
     R, t = T[:, :3, :3], T[:, :3, 3]
     if camera is not None:
-        Rc = camera.mounting().to(T.dtype)
         resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
+        Rc = camera.to(device=T.device, dtype=T.dtype).mounting()  # (the camera follows the pose)
     else:
         Rc = torch.eye(3, dtype=T.dtype, device=T.device).expand(1, 3, 3)
     # p_c1 = R p_c0 + t and p_c1 = R_c R_φ R_cᵀ p_c0 - R_c R_φ d  =>  R_v = R_cᵀ R R_c ≈ R_φ, t_v = R_cᵀ t = -R_φ d

@@ -26,6 +26,7 @@ from .._check import (
     autocast_off,
     as_batch_param,
     check_all_finite,
+    check_number,
     check_positive,
     check_size,
     resolve_batch,
@@ -369,14 +370,20 @@ class DisplacementFlow(nn.Module):
 
 
 class VelocityFlow(nn.Module):
-    """``nn.Module`` twin of :func:`velocity_flow` for a fixed output size and wheelbase."""
+    """``nn.Module`` twin of :func:`velocity_flow` for a fixed output size and wheelbase.
 
-    def __init__(self, size: tuple[int, int], wheelbase: float = 2.7) -> None:
+    ``wheelbase`` (metres, finite, > 0) as :func:`velocity_flow` takes it: a float, or a (B,)
+    tensor (then a buffer that moves with the module, not saved in its state dict)."""
+
+    def __init__(self, size: tuple[int, int], wheelbase: Tensor | float = 2.7) -> None:
         super().__init__()
         self.size = check_size(size)
-        if not (float(wheelbase) > 0):
-            raise ValueError(f"wheelbase: expected > 0 metres, got {wheelbase!r}")
-        self.wheelbase = float(wheelbase)
+        if isinstance(wheelbase, Tensor):
+            wheelbase = as_batch_param(wheelbase, "wheelbase")
+            check_positive(wheelbase, "wheelbase")
+            self.register_buffer("wheelbase", wheelbase, persistent=False)
+        else:
+            self.wheelbase = check_number(wheelbase, "wheelbase", positive=True)
 
     def forward(self, camera: Camera, speed: Tensor | float,
                 steering: Tensor | float) -> tuple[Tensor, Tensor]:
@@ -482,15 +489,33 @@ def velocity_flow_straight_level(camera: Camera, speed: Tensor | float,
     return _radial(scale, valid, du, dv, B)
 
 
-def vflow_curve(v: Tensor, z_d: Tensor | float, height: Tensor | float, fy: Tensor | float,
+def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, fy: Tensor | float,
                 cy: Tensor | float) -> Tensor:
     """The vertical road flow of eq. 24 as a function of the row: ``F_v(v) = z_d (v-v_0)² / (h f_y - z_d (v-v_0))``.
 
     This is the curve the V-flow analysis fits. Rows at or above the horizon (v ≤ v_0), or where
-    the road point is behind the camera at t+1, give 0. Broadcasts like ordinary tensor arithmetic.
+    the road point is behind the camera at t+1, give 0. Each argument is a tensor, a number or a
+    sequence of numbers; they broadcast like ordinary tensor arithmetic. The result is in the
+    promoted dtype of the tensor arguments with half precision lifted to float32, as the rest of
+    the geometry (the default dtype when none is a float tensor), on their device: a half
+    precision row index computed in its own precision overflows (z_d (v-v_0)² beyond 65504).
     """
-    dv = v - cy
-    den = height * fy - z_d * dv
+    named = {"v": v, "z_d": z_d, "height": height, "fy": fy, "cy": cy}
+    floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
+    dtype = result_dtype(*floats) if floats else torch.get_default_dtype()
+    device = next((x.device for x in named.values() if isinstance(x, Tensor)), None)
+    args = {}
+    for name, x in named.items():
+        if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):
+            raise TypeError(f"{name}: expected a real tensor or number, got dtype {x.dtype}")
+        if isinstance(x, bool) or isinstance(x, (str, bytes)) or x is None:
+            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}")
+        try:
+            args[name] = torch.as_tensor(x, dtype=dtype, device=device if not isinstance(x, Tensor) else x.device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
+    dv = args["v"] - args["cy"]
+    den = args["height"] * args["fy"] - args["z_d"] * dv
     ok = (dv > 0) & (den > 0)
-    out = z_d * dv * dv / torch.where(ok, den, torch.ones_like(den))
+    out = args["z_d"] * dv * dv / torch.where(ok, den, torch.ones_like(den))
     return torch.where(ok, out, torch.zeros_like(out))

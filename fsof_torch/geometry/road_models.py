@@ -48,14 +48,17 @@ Example:
 
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass
-from typing import Mapping
+from typing import Callable, ContextManager, Mapping
 
 import torch
 from torch import Tensor
 
-from .._check import autocast_off, as_batch_param, check_all_finite, resolve_batch, result_dtype, tracing
+from .._check import (autocast_off, as_batch_param, check_all_finite, resolve_batch, result_dtype, skip_values,
+                      tracing)
 from .camera import Camera, check_camera
+from .egomotion import as_pose_4x4
 
 __all__ = [
     "RoadModel",
@@ -83,15 +86,36 @@ _ROLL, _PITCH, _YAW = 0, 1, 2
 _CACHE: dict = {}
 
 
-def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
-    """(E0, Ec, Es), each (3, 3, 3) indexed by axis (roll, pitch, yaw); cached in eager mode."""
-    key = (dtype, device)
-    if key in _CACHE and not tracing():
-        return _CACHE[key]
-    out = tuple(torch.tensor(b, dtype=dtype, device=device).reshape(3, 3, 3) for b in (_E0, _EC, _ES))
-    if not tracing():
-        _CACHE[key] = out
+def _constant(key: tuple, build: Callable[[], object]) -> object:
+    """The constant ``build()`` of the maps, cached per ``key`` (which holds its dtype and device)
+    in eager mode; built afresh while tracing (a constant of the graph).
+
+    Built outside inference mode and autograd: a constant first made under
+    ``torch.inference_mode`` would be an inference tensor, and autograd refuses to save one for
+    backward in every later differentiable call."""
+    if tracing():
+        return build()
+    out = _CACHE.get(key)
+    if out is None:
+        with torch.inference_mode(False), torch.no_grad():
+            out = _CACHE[key] = build()
     return out
+
+
+def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+    """(E0, Ec, Es), each (3, 3, 3) indexed by axis (roll, pitch, yaw); cached."""
+    return _constant(("bases", dtype, device), lambda: tuple(
+        torch.tensor(b, dtype=dtype, device=device).reshape(3, 3, 3) for b in (_E0, _EC, _ES)))
+
+
+def _autocast_off_if_on(x: Tensor) -> ContextManager:
+    """:func:`autocast_off` where autocast is on for ``x``'s device, else nothing: the maps run in
+    their inputs' dtype, and the solvers evaluate them every iteration (inside their own
+    autocast_off), where entering the context again would cost more than a small map."""
+    device_type = x.device.type
+    if torch.amp.is_autocast_available(device_type) and torch.is_autocast_enabled(device_type):
+        return autocast_off(x)
+    return contextlib.nullcontext()
 
 
 def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
@@ -102,15 +126,9 @@ def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
 
 
 def _axis_bases(axes: tuple[int, ...], dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
-    """The bases (E0, Ec, Es) of :func:`_bases` for the given axes, each (A, 3, 3); cached in
-    eager mode (the map is evaluated every solver iteration: indexing them each time showed)."""
-    key = (axes, dtype, device)
-    if key in _CACHE and not tracing():
-        return _CACHE[key]
-    out = tuple(b[list(axes)] for b in _bases(dtype, device))
-    if not tracing():
-        _CACHE[key] = out
-    return out
+    """The bases (E0, Ec, Es) of :func:`_bases` for the given axes, each (A, 3, 3); cached (the
+    map is evaluated every solver iteration: indexing them each time showed)."""
+    return _constant((axes, dtype, device), lambda: tuple(b[list(axes)] for b in _bases(dtype, device)))
 
 
 # Products of small matrices go through torch.bmm on (B, n, m) operands: the ``@`` of batched
@@ -139,16 +157,13 @@ def _apply(T: Tensor, X: Tensor) -> Tensor:
 def _commutators(like: Tensor) -> Tensor:
     """(9, 27): vec(X) (row-major, as a row) times this gives vec([G, X]) = vec(G X - X G) for
     the generators G of the three axes (roll, pitch, yaw, in :data:`_ES`'s order); cached."""
-    key = ("commutators", like.dtype, like.device)
-    if key in _CACHE and not tracing():
-        return _CACHE[key]
-    _, _, Es = _bases(like.dtype, like.device)
-    eye = torch.eye(3, dtype=like.dtype, device=like.device)
-    # vec(G X) = (G ⊗ I) vec(X), vec(X G) = (I ⊗ Gᵀ) vec(X)
-    out = torch.cat([(torch.kron(G, eye) - torch.kron(eye, G.T.contiguous())).T for G in Es], dim=1)
-    if not tracing():
-        _CACHE[key] = out
-    return out
+    def build() -> Tensor:
+        _, _, Es = _bases(like.dtype, like.device)
+        eye = torch.eye(3, dtype=like.dtype, device=like.device)
+        # vec(G X) = (G ⊗ I) vec(X), vec(X G) = (I ⊗ Gᵀ) vec(X)
+        return torch.cat([(torch.kron(G, eye) - torch.kron(eye, G.T.contiguous())).T for G in Es], dim=1)
+
+    return _constant(("commutators", like.dtype, like.device), build)
 
 
 # -- the definitions ------------------------------------------------------------------------------
@@ -195,20 +210,18 @@ def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int
 
 
 def _unit_y(like: Tensor) -> Tensor:
-    """e_y (3,) in ``like``'s dtype and device; cached in eager mode."""
+    """e_y (3,) in ``like``'s dtype and device; cached."""
     return _unit_matrix(1, 1, like)[1]
 
 
 def _unit_matrix(i: int, j: int, like: Tensor) -> Tensor:
-    """e_i e_jᵀ (3, 3) in ``like``'s dtype and device; cached in eager mode."""
-    key = ("unit", i, j, like.dtype, like.device)
-    if key in _CACHE and not tracing():
-        return _CACHE[key]
-    out = torch.zeros(3, 3, dtype=like.dtype, device=like.device)
-    out[i, j] = 1.0
-    if not tracing():
-        _CACHE[key] = out
-    return out
+    """e_i e_jᵀ (3, 3) in ``like``'s dtype and device; cached."""
+    def build() -> Tensor:
+        out = torch.zeros(3, 3, dtype=like.dtype, device=like.device)
+        out[i, j] = 1.0
+        return out
+
+    return _constant(("unit", i, j, like.dtype, like.device), build)
 
 
 def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
@@ -270,15 +283,8 @@ _PAPER_BASIS = _coefficients(_PAPER_MONOMIALS, _PAPER_MAPS)
 
 
 def _paper_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
-    """(9, 36): the maps [X, dX/dx_d, dX/dz_d, dX/dφ] (row-major) from the monomials above;
-    cached in eager mode (a constant of the graph when tracing)."""
-    key = ("paper", dtype, device)
-    if key in _CACHE and not tracing():
-        return _CACHE[key]
-    basis = torch.tensor(_PAPER_BASIS, dtype=dtype, device=device)
-    if not tracing():
-        _CACHE[key] = basis
-    return basis
+    """(9, 36): the maps [X, dX/dx_d, dX/dz_d, dX/dφ] (row-major) from the monomials above; cached."""
+    return _constant(("paper", dtype, device), lambda: torch.tensor(_PAPER_BASIS, dtype=dtype, device=device))
 
 
 def _paper(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
@@ -346,18 +352,22 @@ class RoadModel:
 
     def matrix(self, camera: Camera, values: Tensor) -> Tensor:
         """The map (B, 3, 3) for values (B, P) (float; the camera's K and height, batch B)."""
-        return self._fn(camera.K, camera.K_inv(), camera.height, values, False)[0]
+        return self.evaluate(camera.K, camera.K_inv(), camera.height, values, False)[0]
 
     def matrix_and_jacobian(self, camera: Camera, values: Tensor) -> tuple[Tensor, Tensor]:
         """The map (B, 3, 3) and its derivatives by the parameters (B, P, 3, 3)."""
-        return self._fn(camera.K, camera.K_inv(), camera.height, values, True)[:2]
+        return self.evaluate(camera.K, camera.K_inv(), camera.height, values, True)[:2]
 
     def evaluate(self, K: Tensor, K_inv: Tensor, height: Tensor, values: Tensor,
                  jacobian: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:
         """The map, its derivatives (with ``jacobian``) and the horizon row (:meth:`horizon_row`;
         None for a model without a mounting) from the camera's K (B, 3, 3), K⁻¹ and height (B,),
-        for loops that evaluate the map many times with one camera."""
-        return self._fn(K, K_inv, height, values, jacobian)
+        for loops that evaluate the map many times with one camera.
+
+        In the dtype of the values and the camera (as :meth:`matrix` and
+        :meth:`matrix_and_jacobian`), also under ``torch.autocast``."""
+        with _autocast_off_if_on(values):
+            return self._fn(K, K_inv, height, values, jacobian)
 
     def horizon_row(self, camera: Camera, values: Tensor) -> Tensor:
         """The row a (B, 1, 3) with ``a · p̃ > 0`` for pixels whose ray meets the road in front of
@@ -368,9 +378,10 @@ class RoadModel:
             roll, pitch = values[:, i], values[:, j]
         else:
             roll, pitch = camera.roll.to(values), camera.pitch.to(values)
-        Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
-        n = (Rt @ Rb)[:, :, 1:2]  # the road's normal in the camera frame (pointing down)
-        return n.transpose(-1, -2) @ camera.K_inv().to(values)
+        with _autocast_off_if_on(values):
+            Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
+            n = (Rt @ Rb)[:, :, 1:2]  # the road's normal in the camera frame (pointing down)
+            return n.transpose(-1, -2) @ camera.K_inv().to(values)
 
     def index(self, name: str) -> int:
         return self.params.index(name)
@@ -541,15 +552,13 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
         ``{"pitch_change", "yaw", "roll_change", "x_d", "y_d", "z_d", "roll", "pitch"}`` of (B,):
         R_v = R_cᵀ R R_c and d = -R_vᵀ R_cᵀ t (DESIGN.md §10).
     """
-    from .egomotion import as_pose_4x4
-
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     T = as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     B = resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
     with autocast_off(T):  # (geometry in at least float32, also under autocast)
         T = T.expand(B, 4, 4).to(result_dtype(T))
-        cam = camera.to(T.dtype).expand(B)
+        cam = camera.to(device=T.device, dtype=T.dtype).expand(B)  # (the camera follows the pose)
         Rc = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH))
         Rc = Rc[:, 0] @ Rc[:, 1]
         R, t = T[:, :3, :3], T[:, :3, 3:]
@@ -562,10 +571,12 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
 
 def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
     """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
-    the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity."""
-    G = K_inv @ H @ K
-    G = G / G[:, 2:3, 2:3]
-    return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
+    the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity (in the promoted dtype
+    of the three, also under ``torch.autocast``)."""
+    with _autocast_off_if_on(H):
+        G = K_inv @ H @ K
+        G = G / G[:, 2:3, 2:3]
+        return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
 
 
 def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
@@ -574,8 +585,12 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
 
     With n known, ``G = K⁻¹ H K = λ (R + t nᵀ / h)`` maps the two directions m ⟂ n by λ R alone:
     λ is their stretch (its sign that of det G), R the rotation closest to what it does to them
-    (Procrustes), and t = h (G n / λ − R n). :func:`fsof_torch.decompose_homography` refines this
-    start by a fit that frees the normal too.
+    (Procrustes, by :func:`_nearest_rotation`), and t = h (G n / λ − R n).
+    :func:`fsof_torch.decompose_homography` refines this start by a fit that frees the normal too.
+
+    H may have any scale and sign but must be invertible (a ValueError names the samples that
+    are not, or are too close to singular for the dtype). The result is differentiable in H and in the camera's tensors, and on H's device
+    (the camera's tensors are moved there).
     """
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
@@ -584,12 +599,59 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
         raise ValueError(f"H: expected a float tensor of shape (B, 3, 3), got {got}")
     check_all_finite({"H": H})
     B = resolve_batch({"H": H.shape[0], "camera": camera.batch_size})
+    _check_invertible(H, "H")
     with autocast_off(H):  # (geometry in at least float32, also under autocast; det has no bfloat16)
-        return _plane_from_homography(H.to(result_dtype(H)), camera, B)
+        out = _plane_from_homography(H.to(result_dtype(H)), camera, B)
+    if not skip_values(H):
+        finite = torch.isfinite(torch.stack(list(out.values()), dim=-1)).all(-1)
+        if not bool(finite.all()):
+            bad = (~finite).nonzero().flatten().tolist()
+            raise ValueError(f"H: samples {bad} are too close to singular to decompose in {out['z_d'].dtype}, "
+                             f"e.g. {H[bad[0]].tolist()}")
+    return out
+
+
+def _check_invertible(M: Tensor, name: str) -> None:
+    """A ValueError naming ``name`` and the samples of the finite (B, n, n) matrices ``M`` that are
+    singular: a determinant of exactly 0, in float64 with each column scaled to a largest entry of
+    1 (so that no scale, as pixels against unitless entries, underflows or overflows it). Skipped
+    where values cannot be read (:func:`~fsof_torch._check.skip_values`)."""
+    if skip_values(M):
+        return
+    M64 = M.detach().to(torch.float64)
+    scaled = M64 / M64.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
+    singular = torch.linalg.det(scaled) == 0
+    if bool(singular.any()):
+        bad = singular.nonzero().flatten().tolist()
+        raise ValueError(f"{name}: expected invertible matrices, got samples {bad} that are singular, "
+                         f"e.g. {M64[bad[0]].tolist()}")
+
+
+def _nearest_rotation(M: Tensor) -> Tensor:
+    """The rotation closest to M (B, 3, 3) with det M > 0 (Frobenius norm; M's polar factor),
+    by the scaled Newton iteration X <- (γ X + (γ X)⁻ᵀ) / 2 (Higham, *Functions of Matrices*,
+    §8.6): quadratic near a rotation, which an exact road homography gives at once.
+
+    Differentiable throughout (unlike an SVD, whose backward divides by differences of the
+    singular values: NaN for M a rotation, where all three are 1, and inaccurate near one). The
+    inverse transpose is the cofactor matrix over the determinant (cross products of columns).
+    A fixed count of iterations, with no host read: 12 reach float64's precision for condition
+    numbers up to 1e12 or so."""
+    X = M
+    for _ in range(12):
+        c0, c1, c2 = X.unbind(-1)
+        cof = torch.stack([torch.linalg.cross(c1, c2, dim=-1), torch.linalg.cross(c2, c0, dim=-1),
+                           torch.linalg.cross(c0, c1, dim=-1)], dim=-1)
+        det = (c0 * cof[..., 0]).sum(-1).reshape(-1, 1, 1)
+        inv_t = cof / det
+        gamma = (inv_t.square().sum((-2, -1), keepdim=True) / X.square().sum((-2, -1), keepdim=True)).sqrt().sqrt()
+        X = 0.5 * (gamma * X + inv_t / gamma)
+    return X
 
 
 def _plane_from_homography(H: Tensor, camera: Camera, B: int) -> dict[str, Tensor]:
-    cam = camera.to(H.dtype).expand(B)
+    cam = camera.to(device=H.device, dtype=H.dtype).expand(B)  # (the camera follows H)
+    H = H / H.abs().amax(dim=(-2, -1), keepdim=True)  # (any scale: det G must not underflow)
     G = cam.K_inv() @ H.expand(B, 3, 3) @ cam.K
     Rt, Rb = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
     Rc = Rt @ Rb
@@ -597,12 +659,10 @@ def _plane_from_homography(H: Tensor, camera: Camera, B: int) -> dict[str, Tenso
     a1, a2 = G @ m1, G @ m2
     lam = 0.5 * (a1.norm(dim=1) + a2.norm(dim=1)) * torch.sign(torch.linalg.det(G)).unsqueeze(-1)  # (B, 1)
     r1, r2 = a1 / lam.unsqueeze(-1), a2 / lam.unsqueeze(-1)
-    # R R_c maps (m1, n, m2), the columns of R_c (m2 × m1 = n), to (r1, r2 × r1, r2)
+    # R R_c maps (m1, n, m2), the columns of R_c (m2 × m1 = n), to (r1, r2 × r1, r2); that target
+    # has det |r1|² |r2|² - (r1 · r2)² > 0 (r1, r2 independent for an invertible G)
     target = torch.cat([r1, torch.linalg.cross(r2, r1, dim=1), r2], dim=2)
-    U, _, Vh = torch.linalg.svd(target @ Rc.transpose(-1, -2))
-    D = torch.ones(B, 3, dtype=H.dtype, device=H.device)
-    D[:, 2] = torch.sign(torch.linalg.det(U @ Vh))
-    R = U @ torch.diag_embed(D) @ Vh
+    R = _nearest_rotation(target @ Rc.transpose(-1, -2))
     t = cam.height.reshape(B, 1, 1) * ((G @ n) / lam.unsqueeze(-1) - R @ n)
     Rv = Rc.transpose(-1, -2) @ R @ Rc
     d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
