@@ -12,6 +12,7 @@ from torch import nn
 from fsof_torch.geometry.camera import Camera
 from fsof_torch.geometry.egomotion import EgoMotion
 from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.refinement.gate import GateResult, ImageGate
 from fsof_torch.refinement.fusion import (
     FreespaceRefiner,
     RefineOutput,
@@ -318,6 +319,85 @@ def test_nan_in_another_level_than_the_finest():
     assert bool(coarse_mask[0, 0, 20, 5])
     assert torch.isfinite(out.flow[0][0, :, 20, 5]).all()
     assert torch.isfinite(out.flow[1]).all()
+
+
+class _KeepsRows(ImageGate):
+    """A gate that keeps the prediction from row 36 down, and everywhere in the samples ``reject``."""
+
+    def __init__(self, reject=()):
+        super().__init__()
+        self.reject = reject
+
+    def __call__(self, image1, image2, prediction, model, mask):
+        B = prediction.shape[0]
+        used = torch.tensor([b not in self.reject for b in range(B)])
+        use = mask & used.reshape(B, 1, 1, 1)
+        use[..., 36:, :] = False
+        zeros = torch.zeros(B)
+        return GateResult(use, use.float(), zeros, zeros, zeros.long(), zeros.long(), zeros.long(), used,
+                          used, used, zeros)
+
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_nan_where_the_gate_keeps_the_prediction_takes_the_model(mode):
+    """In a refined sample a NaN predicted pixel inside the mask gets the model flow also where
+    the gate keeps the prediction (in every level); in a sample the gate leaves unchanged it stays,
+    and the warning says how many were replaced and how many left."""
+    pred, mask, cam, gt = make_case(B=2)
+    bad = pred.clone()
+    bad[:, :, 40, 10] = float("nan")  # inside the mask, where the gate keeps the prediction
+    bad[:, :, 30, 10] = float("nan")  # inside the mask, where the gate uses the model
+    low = F.interpolate(pred, scale_factor=0.5, mode="bilinear", align_corners=False) * 0.5
+    low[:, :, 22, 5] = float("nan")  # row 44 at full size: kept by the gate
+    image = torch.rand(2, 1, H, W, generator=torch.Generator().manual_seed(0)) * 255
+    # ODO as a complete motion: nothing to estimate from the images, which only the gate reads
+    motion = {"model": "plane", **ODO, "pitch_change": 0.0, "roll_change": 0.0, "y_d": 0.0, "roll": 0.0, "pitch": 0.0}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = FreespaceRefiner(mode=mode, gate=_KeepsRows(reject=(1,)))([low, bad], mask, cam, motion,
+                                                                         images=(image, image))
+    messages = [str(w.message) for w in caught]
+    assert "flow: 4 non-finite predicted pixels inside the mask, left out of the estimation; 2 replaced by the " \
+           "model flow; 2 left as they came (in samples left unchanged, or where the model flow is undefined)" \
+        in messages
+    assert out.refined.tolist() == [True, False]
+    torch.testing.assert_close(out.flow[1][0, :, 40, 10], gt[0, :, 40, 10].float(), rtol=0, atol=1e-4)
+    torch.testing.assert_close(out.flow[1][0, :, 30, 10], gt[0, :, 30, 10].float(), rtol=0, atol=1e-4)
+    assert bool(out.mask[0, 0, 40, 10]) and float(out.weight[0, 0, 40, 10]) == 1.0
+    assert torch.isfinite(out.flow[0][0]).all() and torch.isfinite(out.flow[1][0]).all()
+    # elsewhere in the kept rows the finite prediction comes back bit for bit
+    kept = mask[0, 0].clone()
+    kept[:36] = False
+    kept[40, 10] = False
+    assert torch.equal(out.flow[1][0][:, kept], pred[0][:, kept]) and not bool(out.mask[0, 0, kept].any())
+    # the sample the gate leaves unchanged: as it came, NaN included
+    torch.testing.assert_close(out.flow[1][1], bad[1], rtol=0, atol=0, equal_nan=True)
+    torch.testing.assert_close(out.flow[0][1], low[1], rtol=0, atol=0, equal_nan=True)
+
+
+def test_a_bfloat16_prediction_is_the_float32_result_rounded():
+    """Confidence fusion blends in float32: a bfloat16 prediction comes back as the float32
+    prediction's result rounded to bfloat16 (and the weight likewise)."""
+    pred, mask, cam, gt = make_case(noise=2.0)
+    half = pred.bfloat16()
+    for mode in ("replace", "confidence"):
+        a = refine_flow(half, mask, cam, ODO, mode=mode)
+        b = refine_flow(half.float(), mask, cam, ODO, mode=mode)
+        assert a.flow.dtype == torch.bfloat16
+        assert torch.equal(a.flow, b.flow.bfloat16()) and torch.equal(a.weight, b.weight.bfloat16())
+    fused, weight = fuse_flow(half, gt.float(), mask, mode="confidence")
+    plain, plain_weight = fuse_flow(half.float(), gt.float(), mask, mode="confidence")
+    assert torch.equal(fused, plain.bfloat16()) and torch.equal(weight, plain_weight.bfloat16())
+
+
+def test_images_on_another_device_than_the_flow_are_named():
+    """The meta device stands in for another one: the images are named before any use."""
+    pred, mask, cam, _ = make_case()
+    image = torch.rand(1, 3, H, W, generator=torch.Generator().manual_seed(0)) * 255
+    for images in ((image.to("meta"), image), (image, image.to("meta"))):
+        which = 0 if images[0].device.type == "meta" else 1
+        with pytest.raises(ValueError, match=rf"^images\[{which}\]: expected the device of the flow \(cpu\), got meta"):
+            refine_flow(pred, mask, cam, ODO, images=images)
 
 
 def test_odometry_wrong_batch_size():

@@ -138,3 +138,23 @@ def test_fuse_flow_weight_has_the_flows_batch(mode):
     out, weight = fuse_flow(pred, torch.zeros_like(pred), mask, mode=mode)
     assert tuple(weight.shape) == (3, 1, 8, 10) and tuple(out.shape) == (3, 2, 8, 10)
     assert bool((weight[:, :, ~mask[0, 0]] == 0).all())
+
+
+def test_nan_predictions_in_a_sample_the_gate_leaves_unchanged(scene):
+    """With the complete motion given and image 2 of the second sample black, the gate leaves that
+    sample unchanged: its NaN predicted pixels inside the mask come back NaN, the first sample's
+    get the model flow, and the warning counts both (it no longer claims all were replaced)."""
+    pred, road, i1, i2 = _two(scene)
+    ys, xs = road[0, 0].nonzero(as_tuple=True)
+    pick = torch.arange(0, ys.numel(), 97)[:10]
+    pred[:, :, ys[pick], xs[pick]] = float("nan")
+    motion = {"model": "plane", **{k: v for k, v in scene["plane"].items() if k != "height"}}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = FreespaceRefiner()(pred, road, scene["camera"], motion, images=(i1, i2))
+    assert out.refined.tolist() == [True, False]
+    assert ("flow: 20 non-finite predicted pixels inside the mask, left out of the estimation; 10 replaced by "
+            "the model flow; 10 left as they came") in "\n".join(str(w.message) for w in caught)
+    torch.testing.assert_close(out.flow[0][:, ys[pick], xs[pick]], out.flow_model[0][:, ys[pick], xs[pick]],
+                               rtol=0, atol=0)
+    torch.testing.assert_close(out.flow[1], pred[1], rtol=0, atol=0, equal_nan=True)

@@ -176,6 +176,7 @@ def test_the_gate_leaves_its_inputs_alone():
     (dict(z=None), TypeError, r"^z: expected a number, got NoneType None"),
     (dict(margin=True), TypeError, r"^margin: expected a number, got bool True"),
     (dict(object_px=0.0), ValueError, r"^object_px: expected a positive number \(> 0\), got 0.0"),
+    (dict(object_px=1e200), ValueError, r"^object_px: expected at most 1e\+06 pixels, got 1e\+200"),
     (dict(temperature=0.0), ValueError, r"^temperature: expected a positive number \(> 0\), got 0.0"),
     (dict(contrast=float("inf")), ValueError, r"^contrast: expected a finite number, got inf"),
     (dict(min_points_fine=0), ValueError, r"^min_points_fine: expected an int >= 1, got 0"),
@@ -217,3 +218,85 @@ def test_gate_inputs_are_checked_images_first():
     assert torch.equal(half.use_model, plain.use_model) and half.cost_model.dtype == torch.float32
     torch.testing.assert_close(half.cost_model, plain.cost_model, rtol=0.02, atol=0)
     torch.testing.assert_close(half.cost_prediction, plain.cost_prediction, rtol=0.02, atol=0)
+
+
+def test_the_largest_object_threshold_runs():
+    """object_px is bounded where it is set: the largest allowed one judges (its squared
+    thresholds are finite), a larger one is refused there rather than overflowing in the call."""
+    g1, g2, true = _pair()
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    out = ImageGate(object_px=1e6)(g1, g2, true + 1.0, true.clone(), mask)
+    assert bool(out.model_used.all()) and bool(out.use_model.all())
+
+
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_non_finite_image_pixels_are_no_evidence(bad):
+    """Both flows true: wherever the images are finite they explain them exactly (distance 0).
+    Points that read a NaN or inf pixel in either image do not count; they neither raise the
+    cost nor throw the model away, even with 45 % of image 2 not finite."""
+    g1, g2, true = _pair()
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    gate = ImageGate(objects=False)
+    clean = gate(g1, g2, true, true.clone(), mask)
+    assert float(clean.cost_model) == 0.0 and float(clean.cost_prediction) == 0.0
+    for which in (0, 1):
+        images = [g1.clone(), g2.clone()]
+        images[which][..., 20:60, 40:120] = bad
+        out = gate(*images, true, true.clone(), mask)
+        assert float(out.cost_model) == 0.0 and float(out.cost_prediction) == 0.0, which
+        assert 0 < int(out.points) < int(clean.points)
+        assert bool(out.informative.all()) and bool(out.model_used.all())
+    g2_bad = g2.clone()
+    g2_bad[..., :, :86] = bad
+    out = ImageGate()(g1, g2_bad, true, true.clone(), mask)
+    assert float(out.cost_model) == 0.0 and bool(out.model_used.all()) and bool(out.use_model.all())
+    # census_ring_distance flags the points themselves: the first one's ring at its end point reads the patch
+    x, y = torch.tensor([[30.0, 30.0]]), torch.tensor([[18.0, 10.0]])
+    images = [g1.clone(), g2.clone()]
+    images[1][..., 20:60, 40:120] = bad
+    _, _, ok = census_ring_distance(*images, x, y, torch.tensor([[[12.0, 12.0], [0.0, 0.0]]]))
+    assert ok.tolist() == [[False, True]]
+
+
+def test_gate_arguments_on_another_device_are_named():
+    """Every argument is checked against the prediction's device (the meta device stands in for
+    another one): each is named, instead of torch's device error deep inside."""
+    g1, g2, true = _pair()
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    args = {"image1": g1, "image2": g2, "prediction": true, "model": true.clone(), "mask": mask}
+    for name in ("image1", "image2", "model", "mask"):
+        moved = {**args, name: args[name].to("meta")}
+        with pytest.raises(ValueError, match=f"^{name}: a tensor on the meta device has shapes but no values"):
+            ImageGate()(*moved.values())
+
+
+@pytest.mark.parametrize("which, bad, error, match", [
+    ("grey1", lambda g: g.expand(1, 3, -1, -1), ValueError, r"^grey1: expected shape \(B, 1, H, W\), got \(1, 3, 96, 192\)"),
+    ("grey2", lambda g: g[..., :90, :], ValueError, r"^grey2: expected shape \(B, 1, H, W\) with H=96"),
+    ("grey1", lambda g: g.to(torch.uint8), TypeError, r"^grey1: expected a floating-point tensor, got dtype torch.uint8"),
+    ("x", lambda x: x[0], ValueError, r"^x: expected shape \(B, N\), got \(3,\)"),
+    ("x", lambda x: x > 0, TypeError, r"^x: expected float or integer pixel coordinates, got dtype torch.bool"),
+    ("y", lambda y: y[:, :2], ValueError, r"^y: expected shape \(B, N\) with N=3"),
+    ("y", lambda y: y.tolist(), TypeError, r"^y: expected a tensor \(B, N\) of pixel coordinates, got list"),
+    ("flow", lambda f: f.transpose(1, 2), ValueError, r"^flow: expected shape \(B, 2, N\), got \(1, 3, 2\)"),
+    ("flow", lambda f: f.expand(2, -1, -1), ValueError, r"^flow: expected shape \(B, 2, N\) with B=1"),
+    ("flow", lambda f: f.to("meta"), ValueError, r"^flow: expected the device of grey1 \(cpu\), got meta"),
+    ("threshold", lambda t: -1.0, ValueError, r"^threshold: expected a number >= 0, got -1.0"),
+])
+def test_census_ring_distance_checks_its_arguments(which, bad, error, match):
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    args = {"grey1": g1, "grey2": g2, "x": torch.tensor([[10.0, 50.0, 90.0]]), "y": torch.tensor([[20.0, 40.0, 60.0]]),
+            "flow": torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]]), "threshold": 2.0}
+    args[which] = bad(args[which])
+    with pytest.raises(error, match=match):
+        census_ring_distance(**args)
+
+
+def test_census_ring_distance_takes_integer_coordinates():
+    """Integer coordinates are whole pixels: the same as float ones."""
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    ints = census_ring_distance(g1, g2, torch.tensor([[10, 50, 90]]), torch.tensor([[20, 40, 60]]),
+                                torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]]))
+    floats = census_ring_distance(g1, g2, torch.tensor([[10.0, 50.0, 90.0]]), torch.tensor([[20.0, 40.0, 60.0]]),
+                                  torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]]))
+    assert all(torch.equal(a, b) for a, b in zip(ints, floats))

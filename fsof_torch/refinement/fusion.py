@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_number,
-                      check_image_range, check_shape, check_size, skip_values, tracing)
+                      check_image_range, check_shape, check_size, result_dtype, skip_values, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
@@ -124,7 +124,7 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
 
     Args:
         flow_pred: (B, 2, H, W) predicted flow, pixels.
-        flow_model: (B, 2, H, W) model flow, pixels (same size; its dtype is cast to flow_pred's).
+        flow_model: (B, 2, H, W) model flow, pixels (same size; any float dtype).
         mask: (B, 1, H, W) bool, where the model applies (road ∩ model defined).
         mode: ``"replace"`` (the paper: inside the mask the flow is the model flow) or
             ``"confidence"`` (``w · model + (1 − w) · pred`` with the Cauchy weight
@@ -134,8 +134,10 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
 
     Returns:
         ``(flow, weight)``: the fused flow (B, 2, H, W) in flow_pred's dtype and the model's
-        weight (B, 1, H, W) (0 outside the mask). Non-finite predicted pixels inside the mask
-        get the model flow (weight 1); outside the mask they stay as they are.
+        weight (B, 1, H, W) (0 outside the mask). The fusion runs in flow_pred's dtype, half
+        precision in float32 (the result rounded once: a bfloat16 prediction gets the float32
+        result rounded to bfloat16). Non-finite predicted pixels inside the mask get the model
+        flow (weight 1); outside the mask they stay as they are.
 
     Raises:
         TypeError: a mask that is not bool (threshold a probability or 0/1 map first), or flows
@@ -176,25 +178,28 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
     """:func:`fuse_flow`; ``all_finite``: the caller knows flow_pred is finite everywhere;
     ``evidence`` (B, 1, H, W): the images' evidence for the model in [0, 1] (confidence mode):
     where the two flows disagree, it decides, w = w_flow + (1 − w_flow) · evidence."""
-    flow_model = flow_model.to(flow_pred.dtype)
+    dtype = flow_pred.dtype
     if mode == "replace":
         # (B, 1, H, W) also where the mask is one for the batch
-        weight = mask.expand(flow_pred.shape[0], 1, -1, -1).to(flow_pred.dtype)
-        return torch.where(mask, flow_model, flow_pred), weight
+        weight = mask.expand(flow_pred.shape[0], 1, -1, -1).to(dtype)
+        return torch.where(mask, flow_model.to(dtype), flow_pred), weight
+    # half precision blends in float32 and is rounded once: the float32 result, rounded
+    work = result_dtype(flow_pred)
+    pred, flow_model = flow_pred.to(work), flow_model.to(work)
     if all_finite:
-        diff = flow_pred - flow_model
+        diff = pred - flow_model
         w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
     else:
-        finite = torch.isfinite(flow_pred).all(dim=1, keepdim=True)
+        finite = torch.isfinite(pred).all(dim=1, keepdim=True)
         # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0.
-        safe_pred = torch.where(finite, flow_pred, flow_model)
+        safe_pred = torch.where(finite, pred, flow_model)
         diff = safe_pred - flow_model
         w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
         w = torch.where(finite, w, torch.ones_like(w))
     if evidence is not None:
         w = w + (1 - w) * evidence.to(w.dtype)
-    blended = flow_model + (1 - w) * diff  # = w · model + (1 − w) · pred
-    weight = torch.where(mask, w, torch.zeros_like(w))
+    blended = (flow_model + (1 - w) * diff).to(dtype)  # = w · model + (1 − w) · pred
+    weight = torch.where(mask, w, torch.zeros_like(w)).to(dtype)
     return torch.where(mask, blended, flow_pred), weight
 
 
@@ -281,6 +286,8 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
     B, _, H, W = finest.shape
     for i, im in enumerate(images):
         check_float_tensor(im, f"images[{i}]")
+        if im.device != finest.device:
+            raise ValueError(f"images[{i}]: expected the device of the flow ({finest.device}), got {im.device}")
         if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
             raise ValueError(f"images[{i}]: expected shape ({B}, C, {H}, {W}) (the finest flow's size), "
                              f"got {tuple(im.shape)}")
@@ -323,8 +330,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
             evidence per region decides where the flows disagree); ``scale`` the Cauchy scale in
             pixels of the finest level (coarser levels scale it with their size).
-        images: ``(image1, image2)`` (B, C, H, W) on 0..255 at the finest size, or ptlflow's input
-            dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
+        images: ``(image1, image2)`` (B, C, H, W) on 0..255 at the finest size, on the flow's
+            device, or ptlflow's input dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
         starts: further start candidates for an image estimator (e.g. the previous frame's motion).
         min_pixels: without odometry, samples with fewer usable mask pixels are not refined.
         flow_keys: the dict keys whose values are forward flows to refine: one key or a sequence
@@ -346,13 +353,16 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             Given with a mask tensor (no detection runs) they raise a ValueError.
 
     Returns:
-        :class:`RefineOutput`. Pixels outside the (resampled) mask, where the gate keeps the
+        :class:`RefineOutput`. Pixels outside the (resampled) mask, where the gate keeps a finite
         prediction, and samples left unchanged, are bit for bit the prediction; the caller's
         tensors are never modified. The result is differentiable with respect to the prediction
         and, when given, to the camera and the odometry (estimation itself is detached).
 
-    Non-finite predicted values: they are left out of the estimation; inside the mask the model
-    replaces them (both modes); outside the mask they are returned as they came.
+    Non-finite predicted values: they are left out of the estimation; inside the mask of a
+    refined sample the model replaces them wherever it is defined (both modes, every level, also
+    where the gate keeps the prediction); in a sample left unchanged, where the model flow is
+    undefined, and outside the mask they are returned as they came. The warning counts the
+    pixels inside the mask replaced and left.
     """
     flow_keys = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
                                      flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
@@ -414,11 +424,6 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     else:
         finite = torch.isfinite(finest).all(dim=1, keepdim=True)
         fit_mask = mask & finite
-        if warn and not tracing():
-            n_bad = int((mask & ~finite).sum())
-            if n_bad:
-                warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask; they are left "
-                              f"out of the estimation and replaced by the model flow", RuntimeWarning, stacklevel=3)
     given_model = None if odometry is None else road_motion(odometry)[0].name
     # the paper's planar odometry leaves the rest of the road's motion to the images
     estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
@@ -482,20 +487,36 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
 
     f_model_finest, valid_finest = model_flow((H, W))
     fuse_mask = usable(mask & valid_finest, refined)
+    region = fuse_mask  # where the model flow applies in the samples it refines
     gate_result = None
     the_gate = ImageGate() if gate == "auto" and images is not None else (None if gate in ("auto", None) else gate)
     if the_gate is not None:
         if images is None:
             raise ValueError("images: a gate judges the flows by the images; pass images=(image1, image2)")
         gate_result = the_gate(images[0], images[1], finest, f_model_finest, fuse_mask)
+        region = fuse_mask & gate_result.model_used.reshape(B, 1, 1, 1)
         fuse_mask = gate_result.use_model
         refined = refined & gate_result.model_used
+    gated = fuse_mask  # the gate's decision (coarser levels resample it)
+    if not all_finite:
+        # a non-finite prediction explains nothing: in a refined sample the model replaces it
+        # wherever the model is defined, also where the gate keeps the prediction
+        fuse_mask = fuse_mask | (region & ~finite)
+        if warn and not tracing():
+            n_bad, n_replaced = torch.stack([(mask & ~finite).sum(), (fuse_mask & ~finite).sum()]).tolist()
+            if n_bad:
+                left = "" if n_replaced == n_bad else (f"; {n_bad - n_replaced} left as they came (in samples left "
+                                                       f"unchanged, or where the model flow is undefined)")
+                warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask, left out of the "
+                              f"estimation; {n_replaced} replaced by the model flow{left}", RuntimeWarning,
+                              stacklevel=3)
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
         warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, or images without "
                       f"evidence for the model: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
 
-    masks: dict[tuple[int, int], Tensor] = {(H, W): fuse_mask}
+    masks: dict[tuple[int, int], Tensor] = {(H, W): gated}
+    regions: dict[tuple[int, int], Tensor] = {(H, W): region}
     weights: dict[tuple[int, int], Tensor] = {}
     evidence = gate_result.evidence if gate_result is not None and mode == "confidence" else None
 
@@ -503,12 +524,20 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         size = (f.shape[-2], f.shape[-1])
         f_model, valid = model_flow(size)
         if size not in masks:
-            masks[size] = resize_mask(fuse_mask, size) & valid
+            masks[size] = resize_mask(gated, size) & valid
+        m = masks[size]
+        if f is finest:
+            m = fuse_mask
+        elif gate_result is not None and (skip_values(f) or not bool(torch.isfinite(f.detach().sum()))):
+            # this level's own non-finite pixels, where the gate keeps the prediction (see above)
+            if size not in regions:
+                regions[size] = resize_mask(region, size) & valid
+            m = m | (regions[size] & ~torch.isfinite(f).all(dim=1, keepdim=True))
         # The Cauchy scale is in pixels of the level: a coarse level's flow is proportionally smaller.
         c = scale * math.sqrt(size[0] * size[1] / (H * W))
         ev = None if evidence is None else (evidence if size == (H, W) else F.interpolate(evidence, size=size, mode="area"))
         # (the finiteness test above covered the finest prediction itself, not the other levels)
-        out, w = _fuse(f, f_model, masks[size], mode, c, all_finite=all_finite and f is finest, evidence=ev)
+        out, w = _fuse(f, f_model, m, mode, c, all_finite=all_finite and f is finest, evidence=ev)
         if size == (H, W):
             weights[size] = w
         return out

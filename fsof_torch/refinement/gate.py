@@ -47,6 +47,7 @@ __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
 # 16 neighbours on a ring of radius 3 (a Bresenham circle, as the FAST corner detector's)
 _RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
          (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
+_MAX_OBJECT_PX = 1e6
 
 
 class GateResult(NamedTuple):
@@ -88,12 +89,30 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
     read there, not interpolated; a fraction is dropped) against image 2 at x + flow (flow
     (B, 2, N), bilinear), over the 16 ring neighbours.
 
+    ``grey1``, ``grey2``: (B, 1, H, W) float grey images
+    (:func:`~fsof_torch.evaluation.photometric.to_grey` converts RGB); ``x``, ``y``: (B, N) float or
+    integer pixel coordinates; ``flow``: (B, 2, N) float pixels; all on one device.
+
     A neighbour counts where its order relative to the centre is clear in image 1 (a difference
-    above ``threshold`` grey levels); the distance is the fraction of those whose order differs in
-    image 2 (there: sign of the difference, 0 within the threshold). Weak texture carries no
-    evidence either way, so it does not count. Returns the distance (B, N), the number of
-    neighbours that count (B, N) and flags of points whose samples lie in both images (B, N).
+    above ``threshold`` grey levels, a number >= 0); the distance is the fraction of those whose
+    order differs in image 2 (there: sign of the difference, 0 within the threshold). Weak texture
+    carries no evidence either way, so it does not count. Returns the distance (B, N), the number
+    of neighbours that count (B, N) and flags of points whose samples lie in both images and are
+    finite there, at a finite flow (B, N): a point flagged False is no evidence either way.
     """
+    dims = check_shape(check_float_tensor(grey1, "grey1"), "grey1", ("B", 1, "H", "W"))
+    check_shape(check_float_tensor(grey2, "grey2"), "grey2", ("B", 1, "H", "W"), dims)
+    for name, t in (("x", x), ("y", y)):
+        if not isinstance(t, Tensor):
+            raise TypeError(f"{name}: expected a tensor (B, N) of pixel coordinates, got {type(t).__name__}")
+        if t.dtype == torch.bool or t.is_complex():
+            raise TypeError(f"{name}: expected float or integer pixel coordinates, got dtype {t.dtype}")
+        check_shape(t, name, ("B", "N"), dims)
+    check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "N"), dims)
+    for name, t in (("grey2", grey2), ("x", x), ("y", y), ("flow", flow)):
+        if t.device != grey1.device:
+            raise ValueError(f"{name}: expected the device of grey1 ({grey1.device}), got {t.device}")
+    threshold = check_number(threshold, "threshold", nonnegative=True)
     return _census_ring(grey1, grey2, x, y, (flow,), threshold)[0]
 
 
@@ -103,7 +122,8 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
 
     All 17 samples of a point lie inside an image where its centre lies ``r`` = 3 pixels (the
     ring's radius) inside it: the tests, the indices and the sampling grid are formed per point
-    and the ring's offsets added to them."""
+    and the ring's offsets added to them. A point with a non-finite sample in either image is
+    flagged as outside: a NaN or inf pixel orders against nothing."""
     B, _, H, W = grey1.shape
     N, r = x.shape[-1], 3
     dx, dy = (torch.tensor([0] + [d[k] for d in _RING], device=x.device) for k in (0, 1))  # (17,)
@@ -122,7 +142,7 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
     clear = d1.abs() > threshold
     order1 = torch.sign(d1)
     n = clear.sum(1)
-    in1 = inside(x1, y1)
+    in1 = inside(x1, y1) & torch.isfinite(v1).reshape(B, R + 1, N).all(1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
     sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
     ring = torch.stack([dx * sx, dy * sy], dim=-1).to(grey2.dtype).unsqueeze(1)  # (17, 1, 2)
@@ -136,7 +156,8 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
         d2 = v2[:, 1:] - v2[:, :1]
         t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
         dist = ((order1 != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
-        out.append((dist, n, in1 & inside(x2, y2)))
+        # (a non-finite flow lies inside no image: its comparisons are False)
+        out.append((dist, n, in1 & inside(x2, y2) & torch.isfinite(v2).all(1)))
     return out
 
 
@@ -155,9 +176,9 @@ class ImageGate:
     Args (keyword-only):
         grid: (rows, columns) of cells over the image (their evidence drives confidence fusion).
         objects: also test the connected regions where the flows differ by more than
-            ``object_px``, 2 or 4 times that (objects smaller than a cell, such as a car inside the
-            mask); a region
-            keeps the prediction on ``min_points_fine`` points or more.
+            ``object_px`` (pixels, > 0 and at most 1e6), 2 or 4 times that (objects smaller than a
+            cell, such as a car inside the mask); a region keeps the prediction on
+            ``min_points_fine`` points or more.
         points: mask pixels per sample that are judged (an even subsample).
         min_points: a cell with fewer points follows its sample's decision.
         margin, z: the model may be worse than the prediction by ``margin`` census distance plus
@@ -188,7 +209,11 @@ class ImageGate:
             raise ValueError(f"min_neighbours: expected at most {len(_RING)} (the ring's neighbours), "
                              f"got {min_neighbours}")
         self.grid, self.points, self.min_points, self.min_points_fine = grid, points, min_points, min_points_fine
-        self.objects, self.object_px = objects, check_number(object_px, "object_px", positive=True)
+        # (no flow differs by more than an image's size; the test squares 4 times the threshold)
+        object_px = check_number(object_px, "object_px", positive=True)
+        if object_px > _MAX_OBJECT_PX:
+            raise ValueError(f"object_px: expected at most {_MAX_OBJECT_PX:g} pixels, got {object_px!r}")
+        self.objects, self.object_px = objects, object_px
         self.margin, self.occlusion = (check_number(v, n, nonnegative=True) for n, v in (("margin", margin),
                                                                                          ("occlusion", occlusion)))
         self.temperature = check_number(temperature, "temperature", positive=True)
@@ -205,15 +230,19 @@ class ImageGate:
         """Judge ``prediction`` against ``model`` (each (B, 2, H, W) px) by ``image1`` and ``image2``
         (B, 1 or 3, H, W) on 0..255 inside ``mask`` (B, 1, H, W) bool. Values are not checked (no
         host read for them): a point where an image or a flow is not finite gives no evidence
-        either way. The gate samples the mask's pixels (data dependent): on the meta
-        device it raises a ValueError."""
+        either way. All five on one device (else a ValueError naming the argument). The gate
+        samples the mask's pixels (data dependent): on the meta device it raises a ValueError."""
         # (the images first: a flow or mask of another size is named, not the frames)
         dims = check_image_pair(image1, image2)
         check_shape(check_float_tensor(prediction, "prediction"), "prediction", ("B", 2, "H", "W"), dims)
         check_shape(check_float_tensor(model, "model"), "model", ("B", 2, "H", "W"), dims)
         check_shape(check_mask(mask, "mask"), "mask", ("B", 1, "H", "W"), dims)
-        check_has_values(prediction, "prediction", "to judge by the images (the gate samples the mask's pixels; "
-                         "a refiner with gate=None infers shapes on the meta device)")
+        named = {"prediction": prediction, "image1": image1, "image2": image2, "model": model, "mask": mask}
+        for name, t in named.items():
+            check_has_values(t, name, "to judge by the images (the gate samples the mask's pixels; "
+                             "a refiner with gate=None infers shapes on the meta device)")
+            if t.device != prediction.device:
+                raise ValueError(f"{name}: expected the device of prediction ({prediction.device}), got {t.device}")
         B, _, H, W = prediction.shape
         work = torch.promote_types(prediction.dtype, torch.float32)
         g1, g2 = to_grey(image1.detach().to(work)), to_grey(image2.detach().to(work))
