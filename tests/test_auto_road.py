@@ -29,6 +29,16 @@ def scene_pair():
 
 
 @pytest.fixture(scope="module")
+def small_pair(scene_pair):
+    """The same pair averaged over 4 x 4 pixels (93 x 310: fast), its flow and camera."""
+    import torch.nn.functional as F
+
+    p = scene_pair
+    im1, im2, flow = (F.avg_pool2d(p[k][None], 4) for k in ("image1", "image2", "flow"))
+    return {"image1": im1, "image2": im2, "flow": flow / 4, "camera": p["camera"].scaled(0.25)}
+
+
+@pytest.fixture(scope="module")
 def scene_detection(scene_pair):
     p = scene_pair
     return detect_road(p["image1"][None], p["image2"][None], p["camera"])
@@ -144,6 +154,138 @@ def test_batch_refits_each_sample_as_alone(scene_pair, scene_detection):
     lifted = road_flow(both.motion.camera.expand(2), {k: v for k, v in both.motion.params.items()},
                         (H, W), model=both.motion.model)[0]
     assert torch.allclose(both.motion.flow[1], lifted[1].to(both.motion.flow.dtype), atol=1e-3)
+
+
+class _FailingFits:
+    """A flow estimator (a noisy flow: each seed gives its own fit) whose fits of the samples
+    listed per call are marked failed; records the starts each call gets."""
+
+    def __init__(self, *failed: tuple[int, ...]):
+        from fsof_torch.refinement.estimators import FlowMotionEstimator
+
+        self.failed, self.starts = failed, []
+        self.inner = FlowMotionEstimator(model="plane")
+
+    def __call__(self, flow, mask, camera, **kw):
+        import dataclasses
+
+        fit = self.inner(flow, mask, camera, **kw)
+        success = fit.success.clone()
+        call = len(self.starts)
+        success[list(self.failed[call] if call < len(self.failed) else ())] = False
+        self.starts.append(len(kw["starts"]))
+        return dataclasses.replace(fit, success=success)
+
+
+def test_deeper_seed_retry_per_sample(small_pair):
+    """The fit on a seed twice as deep replaces a sample's motion only where that sample's seed fit
+    failed and its deeper fit succeeds: each sample of a batch (here the same pair three times)
+    gets the motion, the mask and the flag it gets alone. Sample 0's seed fit succeeds (it keeps
+    it, though its deeper fit succeeds too); sample 1's fails and its deeper one succeeds (it takes
+    that, though sample 2's deeper fit fails); sample 2's both fail ("no_motion")."""
+    p = small_pair
+    im1, im2 = p["image1"], p["image2"]
+    flow = p["flow"] + 0.5 * torch.randn(1, 2, *im1.shape[-2:], generator=torch.Generator().manual_seed(3))
+    alone = [detect_road(im1, im2, p["camera"], flow=flow, refit=False, edges=False, estimator=_FailingFits(*f))
+             for f in ([()], [(0,)], [(0,), (0,)])]
+    three = detect_road(torch.cat([im1] * 3), torch.cat([im2] * 3), p["camera"], flow=torch.cat([flow] * 3),
+                        refit=False, edges=False, estimator=_FailingFits((1, 2), (2,)))
+    assert [a.flag[0] for a in alone] == three.flag == ["ok", "ok", "no_motion"]
+    seed_fit, deeper_fit = (float(a.motion.params["z_d"][0]) for a in alone[:2])
+    assert abs(seed_fit - deeper_fit) > 1e-5  # (the two fits differ: the test tells them apart)
+    for b, one in enumerate(alone):
+        assert torch.equal(three.mask[b], one.mask[0])
+        for name, value in one.motion.params.items():
+            assert float(three.motion.params[name][b]) == pytest.approx(float(value[0]), abs=1e-9), name
+
+
+def test_estimated_motion_comes_at_the_images_size(small_pair):
+    """The motion estimated here comes at the images' size (flow, validity, camera) whether or not
+    it was fitted again on the road: a stopped vehicle (no road, no refit), refit=False, and the
+    refiner's "auto" on it."""
+    p = small_pair
+    im1, im2 = p["image1"], p["image2"]
+    H, W = im1.shape[-2:]
+    for det in (detect_road(im1, im1.clone(), p["camera"]), detect_road(im1, im2, p["camera"], refit=False)):
+        fit = det.motion
+        assert tuple(fit.flow.shape) == (1, 2, H, W) and tuple(fit.valid.shape) == (1, 1, H, W)
+        assert torch.allclose(fit.camera.K, p["camera"].K.to(fit.camera.K.dtype))
+        # its flow is its parameters' at the images' size
+        full = road_flow(fit.camera.to(torch.float64), fit.params, (H, W), model=fit.model)[0]
+        assert torch.allclose(fit.flow, full.to(fit.flow.dtype), atol=1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine_flow(p["flow"], "auto", p["camera"], images=(im1, im1.clone()))
+    assert out.road.flag == ["static"] and tuple(out.fit.flow.shape) == (1, 2, H, W)
+
+
+def test_a_homography_motion_is_decomposed_in_its_own_pixels(scene_pair):
+    """A "homography" estimator's fit on the half-size seed: judged with the plane it is (the
+    fit's homography in the pixels it was fitted in), it finds the road; the motion comes at the
+    images' size, and its plane is the scene's."""
+    from fsof_torch.geometry.road_models import plane_from_homography
+    from fsof_torch.refinement.estimators import FlowMotionEstimator
+
+    p = scene_pair
+    det = detect_road(p["image1"][None], p["image2"][None], p["camera"], flow=p["flow"][None], refit=False,
+                      estimator=FlowMotionEstimator(model="homography", fixed=None))
+    assert det.flag == ["ok"] and det.motion.model == "homography"
+    assert iou(det.mask, p["road"][None].bool()) > 0.85  # measured 0.951 (0.389 with the plane misread)
+    assert tuple(det.motion.flow.shape[-2:]) == tuple(p["image1"].shape[-2:])
+    plane = plane_from_homography(det.motion.homography.double(), p["camera"].to(torch.float64))
+    assert float(plane["z_d"][0]) == pytest.approx(p["plane"]["z_d"], rel=0.02)
+
+
+def test_a_seed_that_leaves_image_2_or_disagrees_is_not_static(scene_pair):
+    """"static" is no parallax and nothing in the seed that disagrees: a motion that carries the
+    whole seed out of image 2 leaves nothing to judge ("empty", saying so), and a motion of no
+    movement on frames that moved is contradicted by the images (none of the seed's evidence
+    agrees: "implausible", or "textureless" where little of it is evidence)."""
+    p = scene_pair
+    motion, cam = _exact(p)
+    images = (p["image1"][None], p["image2"][None])
+    gone = detect_road(*images, cam, motion={**motion, "z_d": 20.0})
+    assert gone.flag == ["empty"] and "image 2" in gone.reason[0]
+    assert float(gone.stats["seed_evidence"][0]) == 0.0
+    still = detect_road(*images, cam, motion={**motion, "x_d": 0.0, "z_d": 0.0, "yaw": 0.0})
+    assert still.flag[0] in ("textureless", "implausible") and float(still.seed_agreement[0]) == 0.0
+    # the same motion on frames that did not move: static
+    assert detect_road(images[0], images[0].clone(), cam, motion={**motion, "x_d": 0.0, "z_d": 0.0,
+                                                                    "yaw": 0.0}).flag == ["static"]
+
+
+def test_default_level_fits_tall_narrow_images(scene_pair):
+    """The default working level keeps 16 pixels either way: a 620 x 40 strip is judged at level 1
+    (its rows alone would ask for 2, and 40 >> 2 is too narrow), 375 x 1242 at level 1."""
+    import torch.nn.functional as F
+
+    p = scene_pair
+    strip = [F.interpolate(p[k][None][..., 590:630], size=(620, 40), mode="bilinear").clamp(0, 255)
+             for k in ("image1", "image2")]
+    cam = p["camera"].cropped(590, 0, 1242 - 630, 0).scaled(1.0, 620 / 375)
+    motion, _ = _exact(p)
+    det = detect_road(*strip, cam.replace(height=p["plane"]["height"]), motion=motion)
+    assert det.level == 1 and det.mask.shape == (1, 1, 620, 40) and det.flag[0] in FLAGS + ("ok",)
+    assert detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=motion).level == 1
+
+
+def test_starts_are_read_once_and_checked(scene_pair):
+    """``starts`` is read once: an iterator gives the seed's fit and the refit the same starts
+    (the refit the seed's fit first); what is not a sequence is named."""
+    p = scene_pair
+    motion, cam = _exact(p)
+    seen = []
+
+    def exact(flow, mask, camera, **kw):
+        seen.append(len(kw["starts"]))
+        return motion
+
+    images = (p["image1"][None], p["image2"][None])
+    det = detect_road(*images, cam, estimator=exact, starts=(m for m in (motion,)))
+    assert seen == [1, 2] and det.flag == ["ok"]
+    for bad in (5, motion, "plane"):
+        with pytest.raises(TypeError, match="starts: expected a sequence of start candidates"):
+            detect_road(*images, cam, starts=bad)
 
 
 def test_a_seed_out_of_view_is_flagged_empty_with_its_reason(scene_pair):
@@ -331,6 +473,11 @@ def test_bad_inputs_are_named(kitti_K):
         detect_road(torch.cat([im, im]), torch.cat([im, im]), Camera(kitti_K.expand(3, 3, 3), 1.65))
     with pytest.raises(ValueError, match="flow: expected shape"):
         detect_road(im, im, cam, flow=torch.zeros(1, 3, 64, 200))
+    with pytest.raises(ValueError, match=r"motion: expected parameters of batch 1 .the images' B., got shapes "
+                                         r"\{'x_d': \(\), 'z_d': \(3,\), 'yaw': \(\)\}"):
+        detect_road(im, im, cam, motion={"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0})
+    with pytest.raises(ValueError, match=r"motion\['z_d'\]: expected finite"):
+        detect_road(im, im, cam, motion={"x_d": 0.0, "z_d": float("nan"), "yaw": 0.0})
     with pytest.raises(ValueError, match="image1"):
         detect_road(im * 10, im, cam)  # beyond 0..255
     with pytest.raises(ValueError, match=r"image1: expected images of at least 16x16 pixels .*got shape \(1, 3, 8, 200\)"):

@@ -9,49 +9,31 @@ detection:
    ground points within ``seed_width_m / 2`` of the camera's axis and nearer than
    ``seed_depth_m``, seen below the horizon (:func:`road_seed`).
 2. **Motion.** The road's motion fitted to the images in the seed (an image estimator, the
-   predicted flow one start), or the caller's. With ``refit`` the motion is fitted again on the
-   detected road (its boundary on the edges, step 5) and the road detected again: the seed alone
-   pins the motion poorly far from it.
+   predicted flow one start; where that fails, on a seed twice as deep), or the caller's. With
+   ``refit`` the motion is fitted again on the detected road (its boundary on the edges, step 5)
+   and the road detected again: the seed alone pins the motion poorly far from it. Sample by
+   sample: each keeps the fits it would get alone.
 3. **Evidence**, per window, at a working resolution (``level``): image 2 is warped by the road
    flow, and the residual against image 1 is compared with what noise and the model's own misfit
-   explain, both measured in the seed (nothing is tuned to particular frames):
-
-   - *misalignment*: the residual energy above the noise, over the window's gradient energy, is
-     the window's squared residual motion in pixels. A window is off the road when that motion
-     is significantly (``z`` standard errors) larger than half the parallax of a surface
-     ``min_height_m`` above the road (the decision boundary between the road and such a surface)
-     and than ``3 τ``, τ the seed's typical residual motion (the model's own misfit);
-   - *height*: a Lucas–Kanade step along the direction in which a raised surface would move
-     (the parallax direction) gives the window's height over the road plane in metres; a window
-     whose height differs significantly from the seed's by more than ``min_height_m / 2`` is off
-     the road (a kerb, a pavement, a verge), and so is a textured window whose residual is larger
-     than its own texture (nothing lines up);
-   - a window is road evidence when it is not off the road and it is *testable*: the parallax of
-     a surface ``max_height_m`` high is at least ``3 τ`` there. Far away, where any height moves
-     like the road within the noise, and on textureless or out-of-frame pixels there is no
-     evidence either way. Where less than a tenth of the seed then carries evidence (driving
-     slowly: the parallax shrinks with the distance driven), the step is doubled, up to
-     ``slow_max_height_m``, until it does: lower kerbs then pass for road, cars and walls still
-     show.
-
-4. **Region.** The road evidence connected to the seed; pixels without evidence take the
-   majority of the evidence around them where they are testable; the seed's pixels still
-   undecided are road (the seed's assumption, which its evidence tests: a plain lane without
-   texture stays road); the others take the decision found along their line through the focus
-   of expansion (the road's edges, kerbs and verges run along those lines: a pixel that leaves
-   the frame takes the decision of the pixel that will be where it is, a pixel too far to test
-   that of the nearest testable one); then the component connected to the seed, with small
-   enclosed holes filled.
+   τ explain, both measured in the seed (nothing is tuned to particular frames). A window is off
+   the road where its residual motion (*misalignment*: the residual energy above the noise over
+   its gradient energy) is significantly (``z`` standard errors) larger than half the parallax of
+   a surface ``min_height_m`` high and than ``3 τ``; where its *height* over the road plane (a
+   Lucas–Kanade step along the parallax direction) differs significantly from the seed's by more
+   than ``min_height_m / 2`` (a kerb, a pavement, a verge); or where, textured, its residual
+   exceeds its own texture (nothing lines up). It is road evidence where it is not off the road
+   and *testable*: a surface ``max_height_m`` high would move by at least ``3 τ`` there. Where
+   less than a tenth of the seed carries evidence (driving slowly), the step is doubled, up to
+   ``slow_max_height_m``, until it does: lower kerbs then pass for road, cars and walls still show.
+4. **Region** (:mod:`~fsof_torch.refinement.road_region`). The road evidence connected to the
+   seed; pixels without evidence take the majority around them, the seed's assumption (road) or
+   the decision along their line through the focus of expansion; small enclosed holes filled.
 5. **Edges** (``edges``), at full resolution: the windows that straddle a car's base or a kerb
    are off the road, so the region's boundary lies up to half a window from the edge where the
    road ends. Within half a height window of it the boundary follows image 1's edges (a
    marker-controlled watershed, :func:`~fsof_torch.refinement.road_region.follow_edges`).
-6. **Flags.** A sample whose road cannot be trusted is flagged, never silently returned:
-   ``"no_motion"`` (the motion estimate failed), ``"static"`` (no parallax anywhere, even for the
-   largest step: a stopped vehicle, identical frames), ``"textureless"`` (no evidence in the seed:
-   dark, flat frames), ``"implausible"`` (the seed itself does not move like a road: an obstacle
-   close ahead), ``"empty"`` (no road, or a seed with no pixel in the image) and ``"small"`` (less
-   than ``min_coverage`` of the image below the horizon).
+6. **Flags** (:data:`FLAGS`). A sample whose road cannot be trusted is flagged with the reason,
+   never silently returned (docs/auto-road.md, "Flags").
 
 Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not differentiable
 (a segmentation); the caller's tensors are never modified.
@@ -60,6 +42,7 @@ Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Sequence
 
@@ -74,18 +57,18 @@ from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import plane_from_homography, road_motion
+from ..geometry.road_models import plane_from_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator
 from .road_region import follow_edges, road_region
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS"]
 
-#: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies; a seed with
-#: no pixel in the image is "empty" before any other test)
+#: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies; "empty" also
+#: first, for a seed with no pixel in the image, and right after "no_motion", for a seed none of whose windows
+#: is seen whole in image 2)
 FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
 
-# windows count as independent pixels / this factor: the smoothing (σ = 1 px) correlates
-# neighbours over about 2 × 2 pixels
+# windows count as independent pixels / this factor: the smoothing (σ = 1 px) correlates neighbours over 2 × 2
 _CORRELATION = 4.0
 # a residual motion of more than this many times the seed's typical one is never the road's
 _MISFIT = 3.0
@@ -110,7 +93,8 @@ class RoadDetection:
         flag: per sample ``"ok"`` or one of :data:`FLAGS`.
         reason: per sample, a sentence saying why it was flagged (``""`` when ok).
         ok: (B,) bool, ``flag == "ok"``.
-        motion: the road motion the mask was judged with (a fit result of any road model).
+        motion: the road motion the mask was judged with (a fit result of any road model; one
+            estimated here comes at the images' size, whichever fit each sample kept).
         seed: (B, 1, H, W) bool, the geometric seed.
         coverage: (B,) the mask's share of the image below the horizon.
         seed_agreement: (B,) of the seed's windows with evidence, the share that is road evidence.
@@ -188,7 +172,8 @@ def _pool(x: Tensor, level: int) -> Tensor:
 
 def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
     """The motion as a model with metric translation (``"paper"`` or ``"plane"``): a
-    ``"homography"`` is decomposed with the camera's attitude."""
+    ``"homography"`` is decomposed with the camera's attitude, and with the fit's own camera where
+    it has one (its homography is in the pixels of the images it was fitted to), else ``camera``."""
     model, params = road_motion(motion, "motion")
     if model.name in ("paper", "plane"):
         return model.name, params
@@ -196,7 +181,9 @@ def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
         H = getattr(motion, "homography", None)
         if H is None:
             raise ValueError("motion: a 'homography' motion needs its homography (a fit result)")
-        return "plane", plane_from_homography(H.to(torch.float64), camera.to(torch.float64))
+        own = getattr(motion, "camera", None)
+        cam = own if isinstance(own, Camera) else camera
+        return "plane", plane_from_homography(H.to(torch.float64), cam.to(torch.float64))
     raise ValueError(f"motion: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
 
 
@@ -258,14 +245,15 @@ def _median(x: Tensor, fallback: float) -> Tensor:
 
 @dataclass
 class _Evidence:
-    good: Tensor      # (B, 1, h, w) bool
+    good: Tensor        # (B, 1, h, w) bool
     bad: Tensor
-    ok: Tensor        # the warp is defined over the window
+    misaligned: Tensor  # off the road by the residual alone (the height needs parallax: static is judged by this)
+    ok: Tensor          # the warp is defined over the window
     testable: Tensor
     height: Tensor
-    tau: Tensor       # (B,) the seed's typical residual motion (px at the level)
-    noise: Tensor     # (B,) residual energy of textureless road (grey levels²)
-    bias: Tensor      # (B,) the seed's height over the fitted plane (m)
+    tau: Tensor         # (B,) the seed's typical residual motion (px at the level)
+    noise: Tensor       # (B,) residual energy of textureless road (grey levels²)
+    bias: Tensor        # (B,) the seed's height over the fitted plane (m)
     max_height: Tensor  # (B,) the step a window had to be able to show to count (m)
 
 
@@ -317,6 +305,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
 
     good = torch.zeros_like(ok)
     bad = torch.zeros_like(ok)
+    misaligned = torch.zeros_like(ok)
     testable = torch.zeros_like(ok)
     taus, noises, biases, heights = [], [], [], []
     n_k, n_kh = k * k / _CORRELATION, kh * kh / _CORRELATION
@@ -347,7 +336,8 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         se_h = min_height * (se_shift ** 2 + spread ** 2).sqrt() / Pb.clamp_min(1e-9)
         raised = ((height[b] - bias).abs() - z * se_h > 0.5 * min_height)
         unexplained = (texture[b] > 4 * noise) & (Eh[b] > texture[b])
-        bad[b] = ok[b] & off_plane | ok_h[b] & (raised | unexplained)
+        misaligned[b] = ok[b] & off_plane | ok_h[b] & unexplained
+        bad[b] = misaligned[b] | ok_h[b] & raised
         n_seed = s.sum().clamp_min(1)
         for max_height in (max_heights if trusted[b] else max_heights[:1]):
             # testable: a surface max_height high would show (its parallax at least the floor)
@@ -361,8 +351,8 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         biases.append(bias)
         heights.append(max_height)
     height = torch.where(ok, height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
-    return _Evidence(good, bad, ok, testable, height, torch.stack(taus), torch.stack(noises), torch.stack(biases),
-                     torch.tensor(heights, dtype=torch.float64))
+    return _Evidence(good, bad, misaligned, ok, testable, height, torch.stack(taus), torch.stack(noises),
+                     torch.stack(biases), torch.tensor(heights, dtype=torch.float64))
 
 
 # -- the detection ------------------------------------------------------------------------------
@@ -430,16 +420,17 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         camera: intrinsics at the images' resolution, height, calibrated roll and pitch (batch 1 or B).
         flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start).
         motion: the road motion to judge with (a fit result, or a dict with a ``"model"`` key and
-            its parameters); default: estimated on the seed.
+            its parameters; batch 1 or B); default: estimated on the seed.
         estimator: the road-motion estimator (the refiner's protocol, default
             :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
-            ``starts`` go to it.
+            ``starts`` (a sequence of start candidates: fit results or dicts of parameters) go to it.
         refit: after the first detection, estimate the motion again on the detected road (started
             from the first; with ``edges``, its boundary on the edges) and detect again. Only where
             the motion was estimated here.
         level: the evidence is judged on images averaged over 2**level pixels; default: the
-            coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows). The windows
-            and the smoothing are in pixels of that level.
+            coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows) and 16 pixels
+            wide and high (0 for images narrower than 32 pixels). The windows and the smoothing are
+            in pixels of that level.
         seed_level: the first estimate, on the seed, runs on images averaged over 2**seed_level
             pixels (the motion's parameters do not depend on the resolution).
         seed_width_m, seed_depth_m: the seed (:func:`road_seed`).
@@ -451,8 +442,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             step is then doubled, up to this height, until a tenth of the seed carries evidence:
             a kerb lower than the step used then passes for road, a car or a wall still shows. A
             motion whose estimate failed keeps ``max_height_m``.
-            ``stats["max_height_m"]`` reports the step used per sample. None: never (such samples
-            are flagged ``"static"`` or ``"textureless"``).
+            ``stats["max_height_m"]`` reports the step used per sample. None: never (flagged).
         z: significance of every test, in standard errors.
         min_misfit_px: the least residual motion (pixels of the images) the road model is trusted
             to: a fitted road motion is not more accurate than about half a pixel on real images
@@ -471,8 +461,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     Raises:
         TypeError, ValueError: bad input, naming the argument.
     """
-    if level is None and isinstance(image1, Tensor) and image1.dim() == 4:
-        level = max(0, int(math.floor(math.log2(max(image1.shape[-2], 1) / _WORK_ROWS))))
+    if level is None and isinstance(image1, Tensor) and image1.dim() == 4:  # (16 pixels either way at least)
+        rows, side = image1.shape[-2], min(image1.shape[-2:])
+        level = max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / 16))))
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
@@ -481,8 +472,16 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     edges = check_bool(edges, "edges")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
+        raise TypeError(f"starts: expected a sequence of start candidates, got {type(starts).__name__} {starts!r:.60}")
+    starts = tuple(starts)  # (read once: an iterator would leave the refit none)
     B, H, W = dims["B"], dims["H"], dims["W"]
     device = image1.device
+    if motion is not None:  # (a parameter per sample, or one for all; finite)
+        shapes = {k: tuple(getattr(v, "shape", ())) for k, v in road_motion(motion, "motion")[1].items()}
+        if any(math.prod(shape) not in (1, B) for shape in shapes.values()):
+            raise ValueError(f"motion: expected parameters of batch {batch_choices(B)} (the images' B), got shapes {shapes}")
+        road_motion_batch(motion, B, torch.float64, device, name="motion", batch_of="the images' B")
     work = torch.float64 if image1.dtype == torch.float64 else torch.float32
     camera = camera.to(device=device).expand(B)
     # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are
@@ -502,13 +501,18 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         seed_s = seed_l if seed_level == level else road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m)
         flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :hs, :ws] / 2 ** seed_level
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
-        motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
-        if not bool(torch.as_tensor(getattr(motion, "success", True)).all()):
-            # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep
+        motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=starts)
+        failed = ~torch.tensor(_succeeded(motion, B))
+        if bool(failed.any()):
+            # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
+            # per sample where the first failed and this one succeeds (the others keep their own)
             deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
-            again = estimator(flow_s, deeper, cam_s, images=images_s, odometry=odometry, starts=tuple(starts))
-            if bool(torch.as_tensor(getattr(again, "success", True)).all()):
-                motion = again
+            again = estimator(flow_s, deeper, cam_s, images=images_s, odometry=odometry, starts=starts)
+            take = failed & torch.tensor(_succeeded(again, B))
+            if bool(take.any()):
+                motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
+        # the fit at the images' size (its homography, flow and camera; its parameters are the same)
+        motion = fit_at_size(motion, camera, (H, W))
     grey = gaussian_blur(_pool(torch.cat([to_grey(im1), to_grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
     # the steps the evidence must be able to show: max_height_m, doubled up to slow_max_height_m
     heights = [float(max_height_m)]
@@ -559,11 +563,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         # per sample: a road found and fitted again (a sample without road keeps its seed fit,
         # as it would alone)
         ok_again = torch.tensor(_succeeded(again, B)) & road_l.flatten(1).any(1).cpu()
-        if bool(ok_again.all()):
-            motion = again
-        elif bool(ok_again.any()):
-            motion = where_motion(ok_again.to(device), again, fit_at_size(motion, camera, (H, W)))
         if bool(ok_again.any()):
+            motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
             ev, road_l = judge(motion)
     return _report(full_size(road_l), motion, seed, below, ev, seed_l, level, min_coverage)
 
@@ -595,10 +596,12 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
     pixels = mask.flatten(1).sum(1).cpu()
     coverage = (pixels / below.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
     s = seed_l & ev.ok
-    n_seed = s.flatten(1).sum(1).cpu().clamp_min(1)
+    n_judged = s.flatten(1).sum(1).cpu()
+    n_seed = n_judged.clamp_min(1)
     n_good = (s & ev.good).flatten(1).sum(1).cpu()
     n_bad = (s & ev.bad).flatten(1).sum(1).cpu()
     n_test = (s & ev.testable).flatten(1).sum(1).cpu()
+    n_moved = (s & ev.misaligned).flatten(1).sum(1).cpu()
     agreement = (n_good / (n_good + n_bad).clamp_min(1)).to(torch.float64)
     evidence_share = ((n_good + n_bad) / n_seed).to(torch.float64)
     flags, reasons = [], []
@@ -609,7 +612,11 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
                                   "image: check the camera's height and pitch, or a deeper seed_depth_m")
         elif not bool(success[b]):
             flag, why = "no_motion", "the road's motion could not be estimated from the images"
-        elif int(n_test[b]) == 0:
+        elif int(n_judged[b]) == 0:
+            flag, why = "empty", ("no window of the seed is seen whole in image 2 under the motion (frames too far "
+                                  "apart for the seed, a wrong motion, or windows larger than the seed's view): "
+                                  "nothing to judge the road ahead by; check the motion, or a deeper seed_depth_m")
+        elif int(n_test[b]) == 0 and int(n_moved[b]) == 0:
             flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames): the road cannot be "
                                    "told from what stands on it")
         elif float(evidence_share[b]) < _MIN_EVIDENCE:
@@ -645,11 +652,11 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
 
     With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
     predicted flow one start; the caller's planar odometry held fixed, or priors with
-    ``odometry_sigma``), or judges with the
-    caller's complete road motion; the motion it settled on is then the refinement's (no second
-    estimate). Flagged samples are left unrefined, with a warning that gives the reason, and the
-    detection comes back as ``RefineOutput.road``; samples whose road was found but that the
-    refinement left unchanged (a failed estimate, a gate without evidence) are warned about too.
+    ``odometry_sigma``), or judges with the caller's complete road motion; the motion it settled
+    on is then the refinement's (no second estimate). Flagged samples are left unrefined, with a
+    warning that gives the reason, and the detection comes back as ``RefineOutput.road``; samples
+    whose road was found but that the refinement left unchanged (a failed estimate, a gate
+    without evidence) are warned about too.
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
     ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch), or None.
     """
