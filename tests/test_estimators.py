@@ -114,3 +114,85 @@ def test_odometry_errors_name_the_odometry():
     with pytest.raises(ValueError, match=r"^odometry: the 'homography' model has no planar motion"):
         ImageMotionEstimator(model="homography")(None, road, p["camera"], images=images,
                                                  odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
+
+
+@pytest.fixture(scope="module")
+def small_pair():
+    p = render_pair("default", 0, size=(96, 320))
+    return p, (p["image1"][None], p["image2"][None]), p["road"][None]
+
+
+def _calls(monkeypatch, run=True):
+    """What ImageMotionEstimator passes to fit_image (each call's keyword arguments); the fits run
+    where ``run``."""
+    import fsof_torch.refinement.estimators as estimators
+
+    calls, fit_image = [], estimators.fit_image
+
+    def spy(*args, **kwargs):
+        calls.append(kwargs)
+        return fit_image(*args, **kwargs) if run else None
+
+    monkeypatch.setattr(estimators, "fit_image", spy)
+    return calls
+
+
+def test_held_odometry_takes_a_fixed_name_and_a_fit_as_init(small_pair, monkeypatch):
+    """``fixed`` as one name (as fit_image takes it) and ``init`` as a previous fit (RoadFit) both
+    combine with the held planar odometry: the name stays one parameter, the fit's parameters are
+    the init under the odometry's."""
+    p, images, road = small_pair
+    calls = _calls(monkeypatch)
+    odometry = {"x_d": 0.0, "z_d": 1.0, "yaw": 0.01}
+    fit = ImageMotionEstimator(fixed="roll")(None, road, p["camera"], images=images, odometry=odometry)
+    assert calls[-1]["fixed"] == ("roll", "x_d", "z_d", "yaw")
+    assert float(fit.params["roll"][0]) == pytest.approx(float(p["camera"].roll[0]), abs=1e-7)
+    assert {k: float(fit.params[k][0]) for k in odometry} == pytest.approx(odometry, abs=1e-6)
+
+    previous = fit  # (a RoadFit, as a previous pair's)
+    fit = ImageMotionEstimator(init=previous)(None, road, p["camera"], images=images, odometry=odometry)
+    init = calls[-1]["init"]
+    assert set(init) == set(previous.params)
+    for k, v in init.items():
+        assert float(torch.as_tensor(v).reshape(-1)[0]) == pytest.approx(
+            odometry[k] if k in odometry else float(previous.params[k][0]))
+    assert {k: float(fit.params[k][0]) for k in odometry} == pytest.approx(odometry, abs=1e-6)
+
+
+def test_flow_start_is_each_frames_own(small_pair, monkeypatch):
+    """A frame's flow start is the same alone or next to a frame whose flow has a NaN pixel (that
+    frame's start leaves the pixel out)."""
+    from fsof_torch.refinement.estimators import planar_start
+
+    p, images, road = small_pair
+    flow = p["flow"][None].float()
+    bad = flow.clone()
+    bad[0, :, 0, 0] = math.nan
+    calls = _calls(monkeypatch, run=False)
+    ImageMotionEstimator()(torch.cat([flow, bad]), road, p["camera"], images=tuple(torch.cat([x, x]) for x in images))
+    (start,) = calls[-1]["starts"]
+    alone = planar_start(flow, road, p["camera"])
+    for k in ("x_d", "z_d", "yaw"):
+        assert float(start[k][0]) == pytest.approx(float(alone[k][0]), rel=1e-9, abs=1e-12), k
+        assert float(start[k][1]) == pytest.approx(float(alone[k][0]), rel=1e-3, abs=1e-6), k
+    assert float(alone["z_d"][0]) == pytest.approx(p["odometry"]["z_d"], rel=0.05)
+
+
+def test_homography_odometry_is_a_start_and_keeps_the_flow_start(small_pair, monkeypatch):
+    """An odometry without planar motion (a homography) holds nothing: for a homography estimator
+    it is one more start; the flow's start stays, as without odometry."""
+    from fsof_torch.geometry.road_models import get_road_model
+
+    p, images, road = small_pair
+    flow = p["flow"][None].float()
+    odometry = {"model": "homography", **{n: 0.01 * i for i, n in enumerate(get_road_model("homography").params)}}
+    calls = _calls(monkeypatch, run=False)
+    for model in ("homography", "plane"):
+        ImageMotionEstimator(model=model)(flow, road, p["camera"], images=images, odometry=odometry)
+        kw = calls[-1]
+        assert kw["fixed"] is None and kw["init"] is None
+        starts = kw["starts"]
+        assert len(starts) == (2 if model == "homography" else 1)
+        if model == "homography":
+            assert starts[0] == {k: v for k, v in odometry.items() if k != "model"}
+        assert float(starts[-1]["z_d"][0]) == pytest.approx(p["odometry"]["z_d"], rel=0.05)  # the flow's

@@ -233,6 +233,47 @@ def test_feature_runners_up_per_frame_of_a_batch():
         assert int(batch.iterations[b]) == int(alone.iterations[0])
 
 
+def test_feature_fixed_parameters_stay_at_init_in_every_start_and_beyond_the_bounds():
+    """A start's value of a fixed parameter gives way to init's (the default's where init has
+    none), and the bounds clamp only the free parameters: every parameter held at a motion
+    beyond the physical bounds (z_d over 20 heights, pitch 17° off the calibration) stays there."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.02, 0.6, 0.01)
+    # init turned far off (it loses), the start at the motion but at another attitude (it wins)
+    options = dict(forward_starts=(), turn_starts=())
+    paper = fit_image(image1, image2, mask, cam, model="paper", init={"pitch": 0.01, "yaw": 0.4},
+                      starts=[{"z_d": 0.6, "yaw": 0.01, "pitch": 0.05}], **options)
+    assert float(paper.params["pitch"]) == 0.01
+    assert bool(paper.success) and abs(float(paper.params["yaw"]) - 0.01) < 1e-3
+    plane = fit_image(image1, image2, mask, cam, fixed=("roll", "pitch"), init={"yaw": 0.4},
+                      starts=[{"z_d": 0.6, "yaw": 0.01, "roll": 0.04, "pitch": 0.05}], **options)
+    assert float(plane.params["roll"]) == 0.0 and float(plane.params["pitch"]) == 0.0
+    assert bool(plane.success) and abs(float(plane.params["z_d"]) - 0.6) < 0.01
+    names = ("x_d", "z_d", "yaw", "roll", "pitch")
+    held = fit_image(image1, image2, mask, cam, model="paper", fixed=names, init={"z_d": 40.0, "pitch": -0.3})
+    assert float(held.params["z_d"]) == 40.0 and float(held.params["pitch"]) == -0.3
+    assert not bool(held.success)
+
+
+def test_feature_all_road_pixels_a_frames_fit_is_its_own():
+    """With max_points=None (every road pixel a candidate) a frame's fit is the same alone as
+    next to a frame with a larger road."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.02, 0.6, 0.01)
+    small = mask.clone()
+    small[..., :, :128] = False
+    options = dict(model="paper", max_points=None, forward_starts=(), turn_starts=())
+    alone = fit_image(image1, image2, small, cam, **options)
+    both = fit_image(image1.expand(2, -1, -1, -1), image2.expand(2, -1, -1, -1), torch.cat([mask, small]), cam,
+                     **options)
+    for name in ("x_d", "z_d", "yaw", "roll"):
+        torch.testing.assert_close(both.params[name][1:], alone.params[name], rtol=1e-9, atol=1e-12)
+
+
 def test_feature_init_from_flow_fit_is_used():
     cam = small_camera()
     image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.7, 0.01)

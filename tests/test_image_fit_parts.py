@@ -1,16 +1,20 @@
 """The image fit's building blocks against formulas written here: the road mask's pyramid (a
-3 × 3 min-pool at every second pixel) and the image's central-difference gradient (replicated
-border), on random masks and images of any size."""
+3 × 3 min-pool at every second pixel), the image's central-difference gradient (replicated
+border), on random masks and images of any size, and the points a level keeps."""
 
 from __future__ import annotations
+
+import math
 
 import torch
 import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from fsof_torch.estimation.image_fit import _with_gradient
+from fsof_torch import Camera
+from fsof_torch.estimation.image_fit import _level_problem, _pixel_gradient, _with_gradient
 from fsof_torch.estimation.pyramid import mask_pyramid
+from fsof_torch.geometry.road_models import get_road_model
 
 sizes = st.tuples(st.integers(1, 3), st.integers(1, 40), st.integers(1, 40))
 
@@ -46,3 +50,45 @@ def test_image_gradient_is_the_central_difference_with_a_replicated_border(shape
     before = image.clone()
     _with_gradient(image)
     assert torch.equal(image, before)
+
+
+def _points(problem, b):
+    """The (u, v) of frame ``b``'s points of a level, sorted."""
+    uv = problem.pts[b, :2, problem.sel[b]].T.tolist()
+    return sorted(map(tuple, uv))
+
+
+@settings(max_examples=30, deadline=None)
+@given(st.integers(4, 30), st.integers(4, 40), st.floats(0.05, 1.0), st.sampled_from([0.3, 0.5, 0.7, 1.0]),
+       st.sampled_from([None, 5, 40, 300]), st.integers(0, 2**31 - 1))
+def test_level_points_follow_the_documented_rule_whatever_the_batch(H, W, density, fraction, max_points, seed):
+    """A frame's points at a level: with ``max_points`` the k = round(fraction n) strongest
+    gradients of n = min(ceil(max_points / fraction), H W) candidates (all of the road where it has
+    no more than k pixels); with None the round(fraction × count) strongest of all its road
+    pixels. Either way the same points alone as next to a frame with a larger road."""
+    g = torch.Generator().manual_seed(seed)
+    img = torch.rand(2, 2, H, W, generator=g, dtype=torch.float64) * 255
+    mask = torch.rand(1, 1, H, W, generator=g) < density
+    full = torch.ones_like(mask)
+    cam = Camera(torch.tensor([[50.0, 0, W / 2], [0, 50.0, 1.0], [0, 0, 1]], dtype=torch.float64), 1.65)
+    model = get_road_model("plane")
+    alone = _level_problem(model, cam, img[:1], mask, fraction, max_points, 1)
+    both = _level_problem(model, cam.expand(2), img, torch.cat([mask, full]), fraction, max_points, 1)
+    assert _points(alone, 0) == _points(both, 0)
+    count = int(mask.sum())
+    if max_points is None:
+        kept = max(1, round(fraction * count)) if fraction < 1 else count
+    else:
+        n = min(math.ceil(max_points / fraction), H * W)
+        kept = min(count, max(1, round(fraction * n)) if fraction < 1 else n)
+    assert int(alone.sel.sum()) == min(kept, count)
+    # the kept points are the strongest gradients among the candidates (all the road when they
+    # are all candidates)
+    if count and fraction < 1 and (max_points is None or count <= min(math.ceil(max_points / fraction), H * W)):
+        # (the gradient the selection ranks by: central differences, one-sided at the border)
+        grad = _pixel_gradient(img[:1, :1], torch.arange(H * W)[None])[1][0].abs().sum(0).reshape(H, W)
+        chosen = {(int(u), int(v)) for u, v in _points(alone, 0)}
+        inside = [(grad[v, u].item(), (u, v)) for v, u in mask[0, 0].nonzero().tolist()]
+        weakest_kept = min(s for s, uv in inside if uv in chosen)
+        strongest_left = max((s for s, uv in inside if uv not in chosen), default=-1.0)
+        assert weakest_kept >= strongest_left

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from fsof_torch import Camera
-from fsof_torch.data.scene import render_sequence
+from fsof_torch.data.scene import render_pair, render_sequence
 from fsof_torch.estimation.sequence import SequenceFit, fit_sequence, smooth_attitude
 
 
@@ -133,6 +133,7 @@ def test_fit_sequence_calibrates_the_mounting_and_height(body_motion_clip, body_
         assert epe < 1.0, (k, epe)
         assert seq.params["z_d"][k] == pytest.approx(float(seq.fits[k].params["z_d"][0]))
     assert set(seq.first_pass) == set(seq.params)
+    assert 0 < seq.calibrated_from <= len(pairs)
 
 
 class LazySequence:
@@ -238,3 +239,57 @@ def test_fit_sequence_errors(body_motion_clip):
                                 (frames[1] / 255, ValueError, r"^frames\[1\]: values in .* look like 0..1 images")):
         with pytest.raises(error, match=match):
             fit_sequence([frames[0], frame, frames[2]], road, cam)
+
+
+def test_fit_sequence_takes_frames_on_the_given_data_range(body_motion_clip):
+    """Frames on 0..1 with data_range=1.0 (fit_image's option) fit as the same frames on 0..255."""
+    pairs, frames, _ = body_motion_clip
+    options = dict(passes=1, max_points=500)
+    on_255 = fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], **options)
+    on_1 = fit_sequence([f / 255 for f in frames[:3]], pairs[0]["road"], pairs[0]["camera"], data_range=1.0,
+                        **options)
+    for name, value in on_255.params.items():
+        torch.testing.assert_close(on_1.params[name], value, rtol=1e-4, atol=1e-6)
+    with pytest.raises(ValueError, match=r"^frames\[0\]: "):  # (0..255 frames checked against the range given)
+        fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], data_range=1.0, **options)
+
+
+def test_fit_sequence_one_pass_with_poses_gives_metres_at_the_calibrated_height(body_motion_clip):
+    """With poses and passes=1 the translations (params and fits) are in metres at the returned
+    camera's height, the fits' cameras at that height: the pass without poses, scaled."""
+    pairs, frames, poses = body_motion_clip
+    nominal = pairs[0]["camera"]
+    options = dict(passes=1, max_points=1000)
+    plain = fit_sequence(frames[:3], pairs[0]["road"], nominal, **options)
+    # poses of a world 1.5 times larger: the camera 1.5 times higher than the nominal height
+    larger = poses[:3].clone()
+    larger[:, :3, 3] *= 1.5
+    metric = fit_sequence(frames[:3], pairs[0]["road"], nominal, poses=larger, **options)
+    ratio = metric.mounting["height"] / float(nominal.height[0])
+    assert ratio == pytest.approx(1.5, rel=0.02)
+    assert float(metric.camera.height[0]) == pytest.approx(metric.mounting["height"])
+    for name, value in plain.params.items():
+        scale = ratio if name in ("x_d", "y_d", "z_d") else 1.0
+        torch.testing.assert_close(metric.params[name], value * scale, rtol=1e-6, atol=1e-9)  # (float32 fits)
+        torch.testing.assert_close(metric.first_pass[name], value, rtol=0, atol=0)
+    for k, (fit, before) in enumerate(zip(metric.fits, plain.fits)):
+        assert torch.equal(fit.camera.height, metric.camera.height.to(fit.camera.height))
+        assert float(fit.params["z_d"][0]) == pytest.approx(float(metric.params["z_d"][k]))
+        assert float(fit.params["z_d"][0]) == pytest.approx(1.5 * pairs[k]["plane"]["z_d"], rel=0.03)
+        assert torch.equal(fit.flow, before.flow) and torch.equal(fit.homography, before.homography)
+        i = list(fit.params).index("z_d")
+        assert float(fit.covariance[0, i, i]) == pytest.approx(float(before.covariance[0, i, i]) * ratio ** 2)
+
+
+def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
+    """Noise frames: no pair's fit succeeds, so nothing is calibrated: the input camera's roll and
+    pitch stay (not a mean of failed fits), and with keep_fits the fits are still there."""
+    p = render_pair("default", 0, size=(64, 160))
+    g = torch.Generator().manual_seed(0)
+    frames = [torch.rand(3, 64, 160, generator=g) * 255 for _ in range(3)]
+    camera = p["camera"].replace(roll=0.01, pitch=-0.02)
+    seq = fit_sequence(frames, p["road"], camera, keep_fits=True)
+    assert seq.calibrated_from == 0 and not bool(seq.success.any())
+    assert seq.mounting == {"roll": float(camera.roll[0]), "pitch": float(camera.pitch[0])}
+    assert torch.equal(seq.camera.roll, camera.roll) and torch.equal(seq.camera.pitch, camera.pitch)
+    assert len(seq.fits) == 2

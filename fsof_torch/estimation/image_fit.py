@@ -15,8 +15,9 @@ per frame, its vertical motion is centimetres).
 
 - **Coarse to fine** over an image pyramid (kornia), each level starting where the coarser one
   ended.
-- **Pixel selection weighted by gradient**: at each level the road pixels whose gradient is
-  above the road's median (they carry the information), an even subsample of them.
+- **Pixel selection weighted by gradient**: at each level, of road pixels evenly spread over
+  the mask, those with the strongest gradient (they carry the information; ``max_points`` and
+  ``gradient_fraction`` in :func:`fit_image`).
 - **Cheap iterations**: the sample points are fixed per level; an iteration evaluates the model's
   3×3 map, samples the second image and its gradients at the points (one ``grid_sample``) and
   uses the average of both images' gradients (efficient second-order minimisation).
@@ -263,15 +264,15 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         camera: intrinsics at the images' resolution, known height, and the calibrated roll and
             pitch (start, and centre of the prior and the bounds).
         model: ``"plane"`` (default), ``"paper"`` or ``"homography"``.
-        fixed: parameter names held at their start (default: none for ``"plane"`` and
-            ``"homography"``, the pitch for ``"paper"``).
+        fixed: parameter names held at ``init``'s values (default: none for ``"plane"`` and
+            ``"homography"``, the pitch for ``"paper"``), in every start, and not bounded.
         init: the first start (a :class:`RoadFit` of the same model or a dict of any of its
             parameters; the others at zero motion and the camera's roll and pitch); fixed
             parameters stay at it.
-        starts: further start candidates, each a dict or fit whose parameters override ``init``'s
-            (e.g. a fit to a network's flow, the previous frame's motion, a constant-velocity
-            prediction). Each is solved at the coarsest level; the one with the lowest robust
-            image cost, both ways (image 1's road into image 2 and image 2's back,
+        starts: further start candidates, each a dict or fit whose parameters override ``init``'s,
+            except the fixed ones (e.g. a fit to a network's flow, the previous frame's motion, a
+            constant-velocity prediction). Each is solved at the coarsest level; the one with the
+            lowest robust image cost, both ways (image 1's road into image 2 and image 2's back,
             :func:`~fsof_torch.estimation.starts.two_way_cost`) at the next finer level, goes on.
         forward_starts: further starts straight ahead, by these many camera heights per frame
             (z_d = k h; the other parameters as ``init``): from zero motion or a poor flow the fit
@@ -306,7 +307,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             the coarsest level's few points reach; at speed the same prior keeps the coarse fits
             plausible, so it stays. Costs nothing where the fit succeeds clearly.
         prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
-        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P).
+        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P); they
+            hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
             ``min_size``); ``max_iter``, ``tol``: the solver's budget and tolerance per level;
             ``resolution``: a level also ends when a step moves the residuals by less than this
@@ -324,9 +326,15 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             widths on real and synthetic frames.
         robust, scale: the kernel and its scale in grey levels (default: 1.4826 × the median
             absolute residual at each level's start, at least 2).
-        max_points: road pixels per frame and level that enter the iterations.
-        gradient_fraction: the share of the road's pixels, those with the strongest gradient,
-            from which the points are drawn.
+        max_points, gradient_fraction: the points per frame and level that enter the
+            iterations: the ``max_points`` road pixels with the strongest gradient among up to
+            ``max_points / gradient_fraction`` evenly spread over the mask (on a level of fewer
+            pixels than that, ``gradient_fraction`` of its pixel count instead of
+            ``max_points``); all of a level's road pixels where it has no more than that many.
+            ``max_points=None``: of all of each frame's road pixels, the ``gradient_fraction``
+            share with the strongest gradient (slower; a frame's points do not depend on the
+            rest of the batch). ``gradient_fraction=1``: up to ``max_points`` road pixels evenly
+            spread, whatever their gradient.
         affine: also fit a gain and an offset between the frames' brightness.
         inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
             image 2's intensities matched to image 1's by their own gain and offset.
@@ -417,6 +425,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         _, default = pack_params(model, cam64, None)
         forward = starts_ahead(model, cam64, steps, fixed_names)
         candidates = start_list(model, cam64, init, list(starts) + forward, default)
+        held = torch.tensor([n in fixed_names for n in model.params], device=dev)
+        if fixed_names:  # (fixed parameters stay at init's value, else the default's, in every start)
+            candidates = [torch.where(held, candidates[0], c) for c in candidates]
         S = len(candidates)
         ones, zeros = torch.ones(B, 1, dtype=torch.float64, device=dev), torch.zeros(B, 1, dtype=torch.float64, device=dev)
         params = torch.cat([torch.cat(candidates), ones.repeat(S, 1), zeros.repeat(S, 1)], dim=1)  # (S B, P + 2)
@@ -424,8 +435,11 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         # each level weighs the prior by its residuals' noise: precision noise² / σ²
         prior_mean, inverse_variance = _prior(model, prior_spec, B, dev)
         lo, hi = physical_bounds(model, cam64) if bounds == "physical" else (bounds or (None, None))
-        bound_lo = None if lo is None else torch.cat([lo, torch.full((B, 2), -math.inf, dtype=torch.float64, device=dev)], 1)
-        bound_hi = None if hi is None else torch.cat([hi, torch.full((B, 2), math.inf, dtype=torch.float64, device=dev)], 1)
+        # the bounds hold the free parameters: fixed ones (and the gain and offset) are not clamped
+        unbounded = torch.cat([held, torch.ones(2, dtype=torch.bool, device=dev)])
+        pad = torch.zeros(B, 2, dtype=torch.float64, device=dev)  # (the gain and offset: replaced)
+        bound_lo = None if lo is None else torch.where(unbounded, -math.inf, torch.cat([lo.to(dev, torch.float64), pad], 1))
+        bound_hi = None if hi is None else torch.where(unbounded, math.inf, torch.cat([hi.to(dev, torch.float64), pad], 1))
 
         checks = None if check_every is None else range(check_every, max_iter)
         # the mask's pixels (the tests at full resolution judge them all; the finest level's
@@ -562,9 +576,18 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
 def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,
                    max_points: int | None, reps: int, pixels: MaskPoints | None = None) -> ImageProblem:
-    """The sample points of one pyramid level: road pixels of the level's mask, evenly spread, of
-    which the ``gradient_fraction`` with the strongest gradient are kept (the points that carry
-    the information). ``pixels``: the mask's pixels where already known."""
+    """The sample points of one pyramid level (the points that carry the information): the k road
+    pixels of each frame with the strongest gradient among its candidates, where
+
+    - with ``max_points``, the candidates are up to n = min(⌈max_points / gradient_fraction⌉,
+      h w) road pixels evenly spread, and k = round(gradient_fraction n) (``max_points``, or
+      ``gradient_fraction`` of a level smaller than n): a frame whose road has no more than k
+      pixels at the level keeps all of them;
+    - with None, the candidates are all the frame's road pixels and k is round(gradient_fraction
+      × their count), at least 1 (ties in raster order): a frame's points do not depend on its
+      batch-mates.
+
+    ``pixels``: the mask's pixels where already known."""
     w_l = img.shape[-1]
     I1, I2 = img[:, :1], img[:, 1:]
     # (no more candidates than the level has pixels: coarse levels do not carry padding)
@@ -577,7 +600,16 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
         # of each frame's candidates, the strongest gradients (padding never wins)
         keep = max(1, int(round(gradient_fraction * pix.shape[1])))
         strength = torch.where(sel, g1p.abs().sum(1), -1.0)
-        order = strength.topk(keep, dim=1).indices.sort(dim=1).values
+        if max_points is None:
+            # the candidates are padded to the largest count in the batch: each frame keeps its
+            # own share (a stable order: the same points whatever the padding)
+            ranked = strength.sort(dim=1, descending=True, stable=True).indices[:, :keep]
+            own = (gradient_fraction * points.count.to(torch.float64)).round().clamp_min(1)
+            within = torch.arange(keep, device=pix.device) < own.unsqueeze(1)  # (B, keep), rank order
+            sel = sel & torch.zeros_like(sel).scatter_(1, ranked, within)
+        else:
+            ranked = strength.topk(keep, dim=1).indices
+        order = ranked.sort(dim=1).values
         pix, sel, I1p, g1p = pix.gather(1, order), sel.gather(1, order), I1p.gather(1, order), \
             g1p.gather(2, order.unsqueeze(1).expand(-1, 2, -1))
     pts = pixel_coordinates(pix, w_l)

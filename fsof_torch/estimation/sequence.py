@@ -8,7 +8,11 @@ motion, straight ahead). Then:
 
 1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
    the per-pair attitudes: the body's pitching and rolling averages out over a clip. With poses
-   (metric translations), the camera height follows as well: only d / h is observable from images.
+   (metric translations), the camera height follows as well (only d / h is observable from
+   images), and the translations returned are in metres at that height. Failed fits calibrate
+   nothing: where no pair's fit succeeds, the input camera's mounting stays and the second pass,
+   which would only repeat the first, is skipped (with ``keep_fits`` the first runs again to keep
+   its fits).
 2. **Smoothing.** The camera's attitude over the road at frame k+1 is its attitude at frame k
    plus the body's pitch and roll change between them (on a flat road, to first order). Each pair
    measures both; a weighted least-squares track over the clip makes them consistent, with the
@@ -17,8 +21,8 @@ motion, straight ahead). Then:
    prior of the track's own uncertainty (its attitude and attitude change); its translation and
    yaw are started from (and loosely tied to) the previous pair's motion.
 
-Frames are (B=1 per frame) images (3 or 1, H, W) on 0..255; masks (1, H, W) bool (one for the clip,
-or one per pair). Not differentiable.
+Frames are (B=1 per frame) images (3 or 1, H, W) on 0..``data_range`` (255 unless given, as
+fit_image's option); masks (1, H, W) bool (one for the clip, or one per pair). Not differentiable.
 
 **Memory.** The frames and masks are read in order, one pair at a time, and each frame once per
 pass, so a lazy sequence that loads frame k on ``frames[k]`` keeps a clip of any length in the
@@ -29,15 +33,15 @@ memory of a few frames; between pairs only each pair's parameters and success ar
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_image_range, check_keywords
+from .._check import check_data_range, check_float_tensor, check_image_range, check_keywords
 from ..geometry.camera import Camera
-from ..geometry.road_models import get_road_model
+from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit
 from .image_fit import DEG, calibration_prior, fit_image
 from .initial import planar_start
@@ -54,12 +58,16 @@ class SequenceFit:
             with the smoothed attitude, or the first with ``passes=1``); empty with
             ``keep_fits=False`` (each holds a full-size flow and two masks: 4.7 MB a pair at
             375×1242 in float32, 8.4 MB with a float64 camera).
-        params: ``{name: (N,)}`` the pairs' parameters (float64).
+        params: ``{name: (N,)}`` the pairs' parameters (float64; translations in metres at
+            ``camera``'s height, like the fits').
         mounting: ``{"roll": float, "pitch": float}`` the calibrated attitude (radians), and
             ``"height"`` (metres) when poses gave the scale.
         camera: the input camera with the calibrated roll, pitch (and height).
-        first_pass: ``{name: (N,)}`` the per-pair parameters before calibration, for reference.
+        first_pass: ``{name: (N,)}`` the per-pair parameters before calibration (fitted with the
+            input camera: translations at its height), for reference.
         success: (N,) bool, whether each pair's fit succeeded (of the same pass as ``params``).
+        calibrated_from: how many first-pass fits the mounting comes from; 0 where none
+            succeeded: the mounting is then the input camera's, and the second pass is skipped.
     """
 
     fits: list[RoadFit]
@@ -68,6 +76,7 @@ class SequenceFit:
     camera: Camera
     first_pass: dict[str, Tensor]
     success: Tensor
+    calibrated_from: int
 
 
 def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | float,
@@ -137,8 +146,9 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
 
 
 def _robust_mean(x: Tensor, ok: Tensor) -> float:
-    """The mean of the values within 3 median absolute deviations of their median (success only)."""
-    v = x[ok] if bool(ok.any()) else x
+    """The mean of the values within 3 median absolute deviations of their median (success only:
+    ``ok`` has at least one)."""
+    v = x[ok]
     med = v.median()
     mad = (v - med).abs().median().clamp_min(1e-9)
     keep = (v - med).abs() <= 3 * 1.4826 * mad
@@ -171,12 +181,13 @@ def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tupl
     return y
 
 
-def _frame(x: object, name: str, channels: tuple[int, ...], size: tuple[int, int] | None = None) -> Tensor:
-    """One frame of a clip (:func:`_item`): a float image on 0..255, of the clip's channels and
-    size, named by its index where it is not."""
+def _frame(x: object, name: str, data_range: float, channels: tuple[int, ...],
+           size: tuple[int, int] | None = None) -> Tensor:
+    """One frame of a clip (:func:`_item`): a float image on 0..``data_range``, of the clip's
+    channels and size, named by its index where it is not."""
     what = "an image" if size is None else f"an image of the clip's {channels[0]} channel(s) and size"
     y = _item(check_float_tensor(x, name) if isinstance(x, Tensor) else x, name, what, channels, size)
-    check_image_range(y, name, 255.0)
+    check_image_range(y, name, data_range)
     return y
 
 
@@ -189,10 +200,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     over the road without poses (see the module docstring).
 
     Args:
-        frames: N + 1 images, each (C, H, W) or (1, C, H, W), 0..255: any sequence with ``len()``
-            and indexing, e.g. a list or a lazy object that loads frame k on ``frames[k]``. Each
-            pass reads every frame once, in order (``frames[0]``, ``frames[1]``, ...), and holds
-            at most the two frames of the pair it is fitting.
+        frames: N + 1 images, each (C, H, W) or (1, C, H, W), on 0..``data_range`` (an option
+            of fit_image, 255 unless given): any sequence with ``len()`` and indexing, e.g. a
+            list or a lazy object that loads frame k on ``frames[k]``. Each pass reads every
+            frame once, in order (``frames[0]``, ``frames[1]``, ...), and holds at most the two
+            frames of the pair it is fitting.
         mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
@@ -200,7 +212,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             scale, hence the camera height (the images give d / h only).
         flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar
             motion (a sequence read like ``frames``).
-        passes: 1 (per-pair fits only) or 2 (with the calibrated attitude).
+        passes: 1 (per-pair fits only; with poses, their translations and cameras rescaled to the
+            calibrated height) or 2 (fitted again with the calibrated attitude and height).
         attitude_deg: the prior's standard deviation of the per-frame attitude around the
             calibrated mounting (the body's pitching and rolling), degrees.
         body_rotation_deg: the standard deviation of the body's pitch and roll change per frame.
@@ -252,6 +265,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
     check_keywords(options, "options", fit_image, reserved=("image1", "image2", "init", "starts", "prior"))
     model = get_road_model(options.pop("model", "plane"))
+    data_range = check_data_range(options.get("data_range", 255.0))
     if model.name != "plane":
         raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
     motion = [n for n in model.params if n not in model.mounting]
@@ -278,9 +292,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
                                  yaw=(prev["yaw"], 1.0 * DEG))
             # each frame is read once per pass, in order: the last pair's second frame is this one's first
-            image1 = image2 if image2 is not None else _frame(frames[k], f"frames[{k}]", (1, 3))
+            image1 = image2 if image2 is not None else _frame(frames[k], f"frames[{k}]", data_range, (1, 3))
             size = tuple(image1.shape[-2:])
-            image2 = _frame(frames[k + 1], f"frames[{k + 1}]", (image1.shape[1],), size)
+            image2 = _frame(frames[k + 1], f"frames[{k + 1}]", data_range, (image1.shape[1],), size)
             road = mask_of(k, size)
             if flows is not None:
                 flow = _item(flows[k], f"flows[{k}]", "a flow of the frames' size", (2,), size)
@@ -305,7 +319,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     first, fits = run(camera, "first pass", keep=keep_fits and passes == 1)
     raw = _stack(first)
     ok = torch.tensor([r.success for r in first])
-    roll0, pitch0 = _robust_mean(raw["roll"], ok), _robust_mean(raw["pitch"], ok)
+    calibrated_from = int(ok.sum())
+    if calibrated_from:
+        roll0, pitch0 = _robust_mean(raw["roll"], ok), _robust_mean(raw["pitch"], ok)
+    else:  # failed fits calibrate nothing: the input camera's mounting stays
+        roll0, pitch0 = float(camera.roll[0]), float(camera.pitch[0])
     mounting = {"roll": roll0, "pitch": pitch0}
     cam = camera.replace(roll=roll0, pitch=pitch0)
     if poses is not None:
@@ -322,11 +340,35 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             mounting["height"] = height
             cam = cam.replace(height=height)
     records = first
-    if passes == 2:
+    if passes == 2 and calibrated_from:
         records, fits = run(cam, "smoothed attitude", _track(raw, ok, attitude_deg, body_rotation_deg),
                             keep=keep_fits)
+    elif passes == 2 and keep_fits:  # nothing calibrated: the first pass again, for its fits
+        records, fits = run(cam, "first pass, kept", keep=True)
+    elif "height" in mounting:  # the first pass's translations, in the metric height's units
+        ratio = mounting["height"] / float(camera.height[0])
+        records = [_PairRecord(_metric(r.params, model, ratio), r.success) for r in first]
+        fits = [_metric_fit(fit, model, ratio, cam.height) for fit in fits]
     success = torch.tensor([r.success for r in records])
-    return SequenceFit(fits, _stack(records), mounting, cam, raw, success)
+    return SequenceFit(fits, _stack(records), mounting, cam, raw, success, calibrated_from)
+
+
+def _metric(params: dict[str, Tensor], model: RoadModel, ratio: float) -> dict[str, Tensor]:
+    """``params`` with the translations (metres) scaled by ``ratio`` (the images fix d / h only:
+    at a camera height ``ratio`` times the one fitted at, the same motion)."""
+    metres = {n for n, unit in zip(model.params, model.units) if unit == "m"}
+    return {n: v * ratio if n in metres else v for n, v in params.items()}
+
+
+def _metric_fit(fit: RoadFit, model: RoadModel, ratio: float, height: Tensor) -> RoadFit:
+    """:func:`_metric` of a fit: its parameters, their covariance, and its camera at ``height``
+    (the map and the flow stay the same)."""
+    cov = fit.covariance
+    if cov is not None:
+        scale = torch.tensor([ratio if unit == "m" else 1.0 for unit in model.units], dtype=cov.dtype, device=cov.device)
+        cov = cov * scale.unsqueeze(-1) * scale
+    camera = fit.camera.replace(height=height.to(fit.camera.height))
+    return replace(fit, params=_metric(fit.params, model, ratio), covariance=cov, camera=camera)
 
 
 def _track(params: dict[str, Tensor], ok: Tensor, attitude_deg: float,

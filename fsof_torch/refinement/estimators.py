@@ -105,7 +105,10 @@ class ImageMotionEstimator:
 
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
     fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
-    parameters.
+    parameters: every start (``init`` and ``starts``, fits among them) takes the odometry's x_d, z_d
+    and yaw, and ``fixed`` is extended by those held. An odometry without a planar motion (a
+    general homography) holds nothing: it is one more start where it is of the estimator's own
+    model, and the predicted flow's start is used as without odometry.
     """
 
     def __init__(self, *, model: str = "plane", flow_start: bool = True,
@@ -144,29 +147,34 @@ class ImageMotionEstimator:
             raise TypeError(f"starts: expected a list or tuple of start candidates, got {type(starts).__name__}")
         options = dict(self.options)
         starts = list(starts)
-        fixed = options.pop("fixed", None)
+        fixed = check_names(options.pop("fixed", None), "fixed")
         init = options.pop("init", None)
+        planar = None
         if odometry is not None:
+            odometry_model, odometry_params = road_motion(odometry)
             planar = planar_odometry(odometry)
-            if planar is not None:
-                if not all(k in get_road_model(self.model).params for k in _PLANAR):
-                    raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
-                                     f"hold; estimate it from the images alone (odometry=None) or use model='plane'")
-                for k, v in planar.items():  # (named here: below they become the fit's init)
-                    if not all_finite(torch.as_tensor(v)):
-                        raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
-                # the odometry fixes the planar motion (or centres priors on it); the images add
-                # what it does not measure, from every start (a previous fit's too)
-                init = {**(init or {}), **planar}
-                starts = [s.motion() if isinstance(s, RoadFit) else s for s in starts]
-                starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
-                held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
-                fixed = tuple(fixed or ()) + tuple(k for k in held if k not in (fixed or ()))
-                if self.odometry_sigma:
-                    options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
-                                                            planar, self.odometry_sigma)
-                    options.setdefault("forward_starts", ())
-        elif self.flow_start and flow is not None and all_finite(flow):
+            if planar is None and odometry_model.name == self.model:
+                # a general motion of the estimator's own model (a homography): nothing to hold,
+                # one more start (as FlowMotionEstimator starts from it)
+                starts.insert(0, _finite_odometry(odometry_params))
+        if planar is not None:
+            if not all(k in get_road_model(self.model).params for k in _PLANAR):
+                raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
+                                 f"hold; estimate it from the images alone (odometry=None) or use model='plane'")
+            _finite_odometry(planar)  # (named here: below they become the fit's init)
+            # the odometry fixes the planar motion (or centres priors on it); the images add
+            # what it does not measure, from every start (a previous fit's too)
+            init = {**(init.params if isinstance(init, RoadFit) else (init or {})), **planar}
+            starts = [s.motion() if isinstance(s, RoadFit) else s for s in starts]
+            starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
+            held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
+            fixed = (fixed or ()) + tuple(k for k in held if k not in (fixed or ()))
+            if self.odometry_sigma:
+                options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
+                                                        planar, self.odometry_sigma)
+                options.setdefault("forward_starts", ())
+        elif self.flow_start and flow is not None:
+            # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own)
             starts.append(planar_start(flow, mask, camera))
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
                          **options)
@@ -174,6 +182,14 @@ class ImageMotionEstimator:
     def __repr__(self) -> str:
         sigma = f", odometry_sigma={self.odometry_sigma!r}" if self.odometry_sigma else ""
         return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start}{sigma})"
+
+
+def _finite_odometry(values: Mapping[str, Any]) -> Mapping[str, Any]:
+    """``values`` (an odometry's parameters), checked finite: a ValueError names the odometry's key."""
+    for k, v in values.items():
+        if not all_finite(torch.as_tensor(v)):
+            raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
+    return values
 
 
 def _odometry_sigma(sigma: object, model: str, fixed: object) -> dict[str, float]:
