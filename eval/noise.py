@@ -38,9 +38,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="render size of the CVC12-like scenes (default 375 1242; --quick: 96 320)")
     parser.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
-                        help="noise levels for the fit-robustness curve, px (default 0, 1/64, ..., 4; --quick: 0, 1/32, 0.5, 2)")
+                        help="noise levels for the fit-robustness curve, px, each at most 1e4 "
+                             "(default 0, 1/64, ..., 4; --quick: 0, 1/32, 0.5, 2)")
     parser.add_argument("--pose-sigmas", type=float, nargs="+", default=None, metavar="S",
-                        help="noise levels for the pose-estimation curves, px (default 0, 0.25, 0.5, 1, 2, 4, 8; --quick: 0, 1, 4)")
+                        help="noise levels for the pose-estimation curves, px, each at most 1e4 "
+                             "(default 0, 0.25, 0.5, 1, 2, 4, 8; --quick: 0, 1, 4)")
     parser.add_argument("--pose-size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="virtual image size of the pose experiment (default 375 1242; --quick: 120 400)")
     parser.add_argument("--trials", type=int, default=None, metavar="N",
@@ -71,9 +73,14 @@ def noise_robustness(size, sigmas, scenarios, seed: int, bar=None) -> list[dict]
             fit = fit_displacement(noisy, mask, camera, fit_roll=True, scale=max(1.0, 2.0 * sigma))
             clean = flow_metrics(fit.flow, flow, mask=road, valid=valid & fit.valid)
             observed = flow_metrics(fit.flow, noisy, mask=road, valid=valid & fit.valid)
-            rows.append({"scenario": scenario, "speed": f"x{speed}", "sigma": float(sigma),
-                         "e_E": clean["e_E"], "e_A": clean["e_A"], "e_E_vs_noisy": observed["e_E"],
-                         "e_A_vs_noisy": observed["e_A"], "z_d_abs_error_m": abs(float(fit.z_d[0]) - pair["odometry"]["z_d"]),
+            errors = {"e_E": clean["e_E"], "e_A": clean["e_A"], "e_E_vs_noisy": observed["e_E"],
+                      "e_A_vs_noisy": observed["e_A"]}
+            if not clean["n_pixels"]:  # over no pixel: None (printed '-'), not a 0 that reads as perfect
+                print(f"warning: {scenario} x{speed}, sigma {sigma:g}: the fitted model covers no road pixel; "
+                      "its errors are '-'", file=sys.stderr)
+                errors = dict.fromkeys(errors)
+            rows.append({"scenario": scenario, "speed": f"x{speed}", "sigma": float(sigma), **errors,
+                         "z_d_abs_error_m": abs(float(fit.z_d[0]) - pair["odometry"]["z_d"]),
                          "success": bool(fit.success.all()), "n_pixels": clean["n_pixels"]})
             if bar is not None:
                 bar.update(1)
@@ -91,8 +98,8 @@ def _plot_robustness(rows: list[dict], path: Path) -> None:
     for scenario, speed in keys:
         sel = [r for r in rows if r["scenario"] == scenario and r["speed"] == speed]
         s = [r["sigma"] for r in sel]
-        axes[0].plot(s, [r["e_E"] for r in sel], marker="o", label=f"{scenario} {speed}")
-        axes[1].plot(s, [r["e_A"] for r in sel], marker="o", label=f"{scenario} {speed}")
+        for ax, key in zip(axes, ("e_E", "e_A")):  # (a row over no pixel: a gap in the curve)
+            ax.plot(s, [math.nan if r[key] is None else r[key] for r in sel], marker="o", label=f"{scenario} {speed}")
     for ax, name in zip(axes, ("e_E of the fitted model vs clean GT (px)", "e_A vs clean GT (rad)")):
         ax.set_xscale("symlog", linthresh=1 / 64)
         ax.set_yscale("log")
@@ -166,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from fsof_torch.io import write_json
-    from eval.pose import pose_estimation_experiment
+    from eval.pose import MAX_SIGMA, pose_estimation_experiment
 
     from .paths import bad_file, bad_folder, first_bad, make_parent
     from .tables import format_table
@@ -178,8 +185,8 @@ def run(args: argparse.Namespace) -> int:
     pose_sigmas = args.pose_sigmas or ([0.0, 1.0, 4.0] if quick else list(DEFAULT_POSE_SIGMAS))
     trials = args.trials if args.trials is not None else (3 if quick else 32)
     for name, values in (("--sigmas", sigmas), ("--pose-sigmas", pose_sigmas)):
-        if any(not (math.isfinite(s) and s >= 0) for s in values):
-            print(f"error: {name}: expected finite values >= 0, got {values}", file=sys.stderr)
+        if any(not (math.isfinite(s) and 0 <= s <= MAX_SIGMA) for s in values):
+            print(f"error: {name}: expected values in [0, {MAX_SIGMA:g}] px, got {values}", file=sys.stderr)
             return 2
     if trials < 1:
         print(f"error: --trials: expected at least 1, got {trials}", file=sys.stderr)

@@ -19,7 +19,11 @@ from torch import Tensor
 
 from fsof_torch import Camera, displacement_flow
 
-__all__ = ["PoseEstimationResult", "pose_estimation_experiment", "default_pose_camera"]
+__all__ = ["PoseEstimationResult", "pose_estimation_experiment", "default_pose_camera", "MAX_SIGMA"]
+
+#: The largest noise level σ (px) taken: noise wider than any image (10 000 px) leaves no flow to
+#: fit, and far beyond it the noisy flow overflows (float32 near 1e38) and so does the fit.
+MAX_SIGMA = 1e4
 
 # The KITTI rectified left colour camera (P_rect_02 of drive 2011_09_26) at 375 × 1242, h = 1.65 m.
 _KITTI_K = ((721.5377, 0.0, 609.5593), (0.0, 721.5377, 172.854), (0.0, 0.0, 1.0))
@@ -92,10 +96,10 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
 
     Args:
         sigmas: noise levels σ in pixels (standard deviation of the Gaussian noise added to each
-            flow component), each >= 0.
+            flow component), each in [0, ``MAX_SIGMA``] (1e4).
         trials: number of random poses (the same poses are used for every σ).
         camera: the camera (batch 1) at ``size``; default :func:`default_pose_camera`.
-        size: ``(H, W)`` of the virtual image.
+        size: ``(H, W)`` of the virtual image, two ints >= 2.
         box: ``(top, bottom, left, right)`` pixel box (rows top..bottom-1, columns
             left..right-1) sampling the road; default: rows from 15 % of the way between the
             horizon and the bottom, to the bottom; columns from 15 % to 85 % of the width.
@@ -120,8 +124,15 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
     from fsof_torch import fit_displacement
 
     sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
-    if not sig or not all(math.isfinite(s) and s >= 0 for s in sig):
-        raise ValueError(f"sigmas: expected a non-empty list of finite values >= 0, got {sigmas!r}")
+    if not sig or not all(math.isfinite(s) and 0 <= s <= MAX_SIGMA for s in sig):
+        raise ValueError(f"sigmas: expected a non-empty list of values in [0, {MAX_SIGMA:g}] px, got {sigmas!r}")
+    if (not isinstance(size, (tuple, list)) or len(size) != 2
+            or any(isinstance(n, bool) or not isinstance(n, int) for n in size)):
+        raise TypeError(f"size: expected (H, W), two ints, got {size!r}")
+    if min(size) < 2:
+        raise ValueError(f"size: expected H, W >= 2, got {tuple(size)!r}")
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
     for name, value in (("trials", trials), ("chunk", chunk)):
         if isinstance(value, bool) or not isinstance(value, int) or value < 1:
             raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")

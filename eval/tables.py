@@ -53,7 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--pairs", type=int, default=None, metavar="N",
                         help="frame pairs per synthetic scenario (default 3; --quick: 1)")
     parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
-    parser.add_argument("--kitti", type=Path, default=DEFAULT_KITTI, metavar="DIR",
+    # (None: not given; the shared sample then, skipped with a note where it is absent)
+    parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
                         help=f"KITTI flow sample folder (default {DEFAULT_KITTI})")
     parser.add_argument("--no-kitti", action="store_true", help="skip the real-KITTI table")
     parser.add_argument("--only", choices=("cvc12", "carla", "kitti"), action="append", default=None,
@@ -239,6 +240,20 @@ KITTI_PAPER_NOTE = ("paper (its KITTI frames): straight e_A 0.036, e_E 0.921, e_
                     "turning e_A 0.050, e_E 1.005, e_U 0.599, e_V 0.814")
 
 
+def _unused_option(args: argparse.Namespace) -> str | None:
+    """An option given that this run does not use, or one that leaves no table to make, as a
+    message naming it, or None: refused rather than silently ignored."""
+    if args.no_kitti and args.only:
+        return (f"--no-kitti: not with --only, which names the tables to make "
+                f"(--only {' --only '.join(args.only)})")
+    if args.kitti is not None and args.no_kitti:
+        return "--kitti: applies to the KITTI table, which --no-kitti skips"
+    if args.kitti is not None and args.only and "kitti" not in args.only:
+        return (f"--kitti: applies to the KITTI table, which this run does not make "
+                f"(--only {' --only '.join(args.only)})")
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -254,16 +269,21 @@ def run(args: argparse.Namespace) -> int:
     if pairs < 1:
         print(f"error: --pairs: expected at least 1, got {pairs}", file=sys.stderr)
         return 2
+    bad = _unused_option(args)
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     tables = set(args.only or ("cvc12", "carla", "kitti"))
     if args.no_kitti:
         tables.discard("kitti")
-    if "kitti" in tables and not (args.kitti / "flow_noc_10.png").is_file():
-        if args.kitti != DEFAULT_KITTI or "kitti" in (args.only or ()):
+    kitti_folder = DEFAULT_KITTI if args.kitti is None else args.kitti
+    if "kitti" in tables and not (kitti_folder / "flow_noc_10.png").is_file():
+        if args.kitti is not None or "kitti" in (args.only or ()):
             # asked for: an error, not an empty table
-            option = "--kitti" if args.kitti != DEFAULT_KITTI else "--only kitti"
-            print(f"error: {option}: no KITTI sample (flow_noc_10.png) at {str(args.kitti)!r}", file=sys.stderr)
+            option = "--kitti" if args.kitti is not None else "--only kitti"
+            print(f"error: {option}: no KITTI sample (flow_noc_10.png) at {str(kitti_folder)!r}", file=sys.stderr)
             return 2
-        print(f"note: no KITTI sample at {args.kitti}; skipping the KITTI table", file=sys.stderr)
+        print(f"note: no KITTI sample at {kitti_folder}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
     bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
                     bad_file(args.json, "--json"))
@@ -273,7 +293,7 @@ def run(args: argparse.Namespace) -> int:
     kitti = None
     if "kitti" in tables:  # all of the sample's files, before the synthetic tables
         try:
-            kitti = load_kitti(args.kitti)
+            kitti = load_kitti(kitti_folder)
         except (ValueError, FileNotFoundError) as err:
             print(f"error: --kitti: {err}", file=sys.stderr)
             return 2
@@ -282,7 +302,7 @@ def run(args: argparse.Namespace) -> int:
         + (2 if "kitti" in tables else 0)
 
     result: dict = {"settings": {"size": list(size), "pairs": pairs, "seed": args.seed, "quick": bool(args.quick),
-                                 "rolls_deg": list(rolls), "kitti": str(args.kitti) if "kitti" in tables else None}}
+                                 "rolls_deg": list(rolls), "kitti": str(kitti_folder) if "kitti" in tables else None}}
     md = ["# Freespace model fitted to ground-truth flow (python -m eval tables)", ""]
     with tqdm(total=total, desc="tables", unit="fit", disable=args.no_progress) as bar:
         if "cvc12" in tables:
@@ -294,7 +314,7 @@ def run(args: argparse.Namespace) -> int:
 
     sections = [("cvc12", "CVC12-like (displacement model, e_A rad, e_E px)", CVC_COLUMNS),
                 ("carla", "CARLA-like (velocity model, flow in px/s)", CARLA_COLUMNS),
-                ("kitti", f"Real KITTI ({args.kitti.name}, GT inside road.json)", KITTI_COLUMNS)]
+                ("kitti", f"Real KITTI ({kitti_folder.name}, GT inside road.json)", KITTI_COLUMNS)]
     for key, title, columns in sections:
         if key not in result:
             continue

@@ -45,7 +45,7 @@ from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 from eval.paths import bad_file, bad_folder, first_bad, make_parent
 
-__all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net"]
+__all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr"]
 
 # the held-out scenes' seed: --seed + HELD_OUT
 HELD_OUT = 1000
@@ -140,6 +140,26 @@ def build_loss(freespace_weight: float, odometry: str = "given") -> CompositeLos
     return CompositeLoss(terms)
 
 
+def one_cycle_lr(step: int, steps: int, lr: float) -> float:
+    """The learning rate of step ``step`` (0-based) of ``steps``: RAFT's one-cycle schedule in miniature.
+
+    A linear warm-up from ``lr / 25`` over the first 5 % of the steps, then a linear decay to
+    ``lr / 25 / 1e4`` at the last step: the values of torch's ``OneCycleLR(max_lr=lr,
+    total_steps=steps, pct_start=0.05, anneal_strategy="linear")``, bit for bit, wherever that
+    schedule is defined with a warm-up (more than 20 steps). With at most 20 steps the warm-up is
+    shorter than a step, so there is none: the first step runs at ``lr`` (where ``OneCycleLR``
+    divides by zero at 20 steps, and below 20 starts part-way down, a single step at ``lr / 25 /
+    1e4``, which trains nothing).
+    """
+    start_lr, min_lr = lr / 25.0, lr / 25.0 / 1e4
+    warm_end = max(float(0.05 * steps) - 1, 0.0)  # the step at which the warm-up reaches lr
+    if step <= warm_end and warm_end > 0:
+        return (lr - start_lr) * ((step - 0.0) / (warm_end - 0.0)) + start_lr
+    last = steps - 1
+    pct = (step - warm_end) / (last - warm_end) if last > warm_end else 0.0
+    return (min_lr - lr) * pct + lr
+
+
 def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, freespace_weight: float,
               iters: int, odometry: str = "given", progress: bool = True, desc: str = "train",
               ranks: Ranks = Ranks(), device: torch.device | str = "cpu",
@@ -166,15 +186,14 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
         model = DistributedDataParallel(net, device_ids=[device.index] if device.type == "cuda" else None)
     loss_fn = build_loss(freespace_weight, odometry)
     optimiser = torch.optim.AdamW(net.parameters(), lr=lr, weight_decay=1e-5)
-    # Short warm-up, then linear decay: RAFT's one-cycle schedule in miniature.
-    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=lr, total_steps=steps, pct_start=0.05,
-                                                   anneal_strategy="linear", cycle_momentum=False)
     gen = torch.Generator().manual_seed(seed)
     n = data["image1"].shape[0]
     values: dict[str, float] = {}
     start = time.perf_counter()
     bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
     for step in bar:
+        for group in optimiser.param_groups:
+            group["lr"] = one_cycle_lr(step, steps, lr)
         idx = torch.randperm(n, generator=gen)[:batch]  # the global batch, the same on every process
         b = _to(_select(data, idx[ranks.rank::ranks.world_size]), device)
         local = b["image1"].shape[0]
@@ -191,7 +210,6 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
                                                                for k, p in net.named_parameters() if p.grad is not None})
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         optimiser.step()
-        schedule.step()
         values = {"total": float(reported[0]), **{k: float(v) for k, v in zip(terms, reported[1:])}}
         bar.set_postfix({k: f"{v:.3g}" for k, v in values.items()})
     net.eval()
@@ -215,31 +233,57 @@ def evaluate_net(net: TinyRAFT, data: dict, *, chunk: int = 4) -> dict:
     flow metrics over the valid ground-truth pixels (``e_E``, ``Fl``, ...), and the photometric
     error of image 1 against image 2 warped by the estimate (``census``, ``ssim``, ``l1``, pooled
     over every pixel whose sample point, and window, falls inside image 2, with ``n_photometric``
-    per kind): a net trained on a photometric loss of L1 and SSIM is judged by census too."""
+    per kind): a net trained on a photometric loss of L1 and SSIM is judged by census too.
+
+    A figure over no pixel is None (JSON null, printed '-'), not 0, which would read as perfect:
+    the flow metrics of a region with no valid ground truth, a photometric error where every
+    estimate's sample point (or window) leaves image 2."""
     flows = torch.cat([net(data["image1"][i:i + chunk], data["image2"][i:i + chunk])[-1]
                        for i in range(0, data["image1"].shape[0], chunk)])
     road, valid, gt = data["road"], data["valid"], data["flow"]
     photo = photometric_error_maps(data["image1"], data["image2"], flows)
     out = {}
     for region, mask in (("road", road), ("non_road", ~road), ("all", None)):
-        out[region] = flow_metrics(flows, gt, mask, valid)
+        metrics = flow_metrics(flows, gt, mask, valid)
+        out[region] = metrics if metrics["n_pixels"] else {k: None for k in metrics} | {"n_pixels": 0}
         for kind, (error, ok) in photo.items():
             counted = ok if mask is None else ok & mask
             n = int(counted.sum())
             total = torch.where(counted, error, torch.zeros_like(error)).sum(dtype=torch.float64)
-            out[region][kind] = float(total) / max(n, 1)
+            out[region][kind] = float(total) / n if n else None
             out[region][f"n_{kind}"] = n
     return out
 
 
+def _warn_no_pixels(results: dict) -> None:
+    """A warning on stderr for every figure over no pixel (None: printed '-')."""
+    for run, metrics in results.items():
+        for region, m in metrics.items():
+            if m["n_pixels"] == 0:
+                print(f"warning: {run}, {region}: no pixel with valid ground truth; its flow metrics are '-'",
+                      file=sys.stderr)
+            empty = [kind for kind in ("census", "ssim", "l1") if m[kind] is None]
+            if empty:
+                print(f"warning: {run}, {region}: no pixel whose sample point (or window) stays inside image 2; "
+                      f"its {', '.join(empty)} are '-'", file=sys.stderr)
+
+
+def _cell(value: float | None, spec: str, scale: float = 1.0) -> str:
+    """``value * scale`` formatted with ``spec`` (a width and a format), or '-' right-aligned when None."""
+    width = spec.split(".")[0].lstrip(">+")
+    return f"{'-':>{width}}" if value is None else format(scale * value, spec)
+
+
 def _row(name: str, m: dict) -> str:
-    return (f"{name:<22} {m['road']['e_E']:>9.3f} {m['non_road']['e_E']:>13.3f} {m['all']['e_E']:>8.3f} "
-            f"{100 * m['road']['Fl']:>9.1f} {100 * m['non_road']['Fl']:>13.1f}")
+    return (f"{name:<22} {_cell(m['road']['e_E'], '>9.3f')} {_cell(m['non_road']['e_E'], '>13.3f')} "
+            f"{_cell(m['all']['e_E'], '>8.3f')} {_cell(m['road']['Fl'], '>9.1f', 100)} "
+            f"{_cell(m['non_road']['Fl'], '>13.1f', 100)}")
 
 
 def _photometric_row(name: str, m: dict) -> str:
-    return (f"{name:<22} {m['road']['census']:>11.4f} {m['road']['ssim']:>9.4f} {m['road']['l1']:>8.2f} "
-            f"{m['all']['census']:>11.4f} {m['all']['ssim']:>9.4f} {m['all']['l1']:>8.2f}")
+    return (f"{name:<22} {_cell(m['road']['census'], '>11.4f')} {_cell(m['road']['ssim'], '>9.4f')} "
+            f"{_cell(m['road']['l1'], '>8.2f')} {_cell(m['all']['census'], '>11.4f')} "
+            f"{_cell(m['all']['ssim'], '>9.4f')} {_cell(m['all']['l1'], '>8.2f')}")
 
 
 RUNS = ("unsupervised", "unsupervised+freespace")
@@ -333,8 +377,10 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     for name, net in nets.items():
         results[name] = evaluate_net(net, test)
 
+    _warn_no_pixels(results)
     base, free = results["unsupervised"], results["unsupervised+freespace"]
-    change = {region: (free[region]["e_E"] - base[region]["e_E"]) / max(base[region]["e_E"], 1e-12)
+    change = {region: None if None in (base[region]["e_E"], free[region]["e_E"])
+              else (free[region]["e_E"] - base[region]["e_E"]) / max(base[region]["e_E"], 1e-12)
               for region in ("road", "non_road", "all")}
     print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
           f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
@@ -343,8 +389,9 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
     for name, m in results.items():
         print(_row(name, m))
-    print(f"{'change with freespace':<22} {100 * change['road']:>+8.1f}% {100 * change['non_road']:>+12.1f}% "
-          f"{100 * change['all']:>+7.1f}%")
+    percent = {region: _cell(value, spec, 100) + ("%" if value is not None else " ")
+               for (region, value), spec in zip(change.items(), (">+8.1f", ">+12.1f", ">+7.1f"))}
+    print(f"{'change with freespace':<22} {percent['road']} {percent['non_road']} {percent['all']}")
     print("photometric error of image 1 against image 2 warped by the estimate (census distance, "
           "SSIM dissimilarity, L1 on 0-255; lower is better; L1 alone rewards a flow bent to match brightness):")
     print(f"{'run':<22} {'road census':>11} {'road SSIM':>9} {'road L1':>8} {'all census':>11} {'all SSIM':>9} {'all L1':>8}")

@@ -27,6 +27,10 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
+# The largest --index: 10 000 pairs are over 15 minutes of driving at 10 Hz, and the scene is laid
+# out up to the pair asked for, so time and memory grow with the index.
+MAX_INDEX = 10_000
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
@@ -34,8 +38,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--flow", type=Path, default=None, metavar="FILE", help="a flow file (.png KITTI, .flo, .npy)")
     parser.add_argument("--mask", type=Path, default=None, metavar="FILE",
                         help="road mask for --flow (PNG or polygon JSON); default: the flow's valid pixels")
-    parser.add_argument("--index", type=int, default=0, help="pair index of the preset (default 0)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    # (None: not given, so that a preset-only option given with --flow is refused, even at its default)
+    parser.add_argument("--index", type=int, default=None,
+                        help=f"pair index of the preset, 0 to {MAX_INDEX} (default 0)")
+    parser.add_argument("--seed", type=int, default=None, help="scene seed of the preset (default 0)")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="render size of the preset (default: the preset's)")
     parser.add_argument("--model", choices=("displacement", "velocity"), default="displacement",
@@ -91,8 +97,23 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     plt.close(fig)
 
 
+def _colour_range(values: torch.Tensor) -> tuple[float, float]:
+    """The colour range of an F_v map on a diverging colour map: ±max |F_v|, so that every value
+    is shown and its sign reads at a glance (F_v < 0 above the horizon, > 0 below, 0 on it)."""
+    bound = max(float(values.abs().max()), 1e-6)
+    return -bound, bound
+
+
+def _extend(values: torch.Tensor, vmin: float, vmax: float) -> str:
+    """The colour bar's ``extend``: an arrow at each end where ``values`` are clipped."""
+    below, above = bool((values < vmin).any()), bool((values > vmax).any())
+    return {(False, False): "neither", (True, False): "min", (False, True): "max", (True, True): "both"}[(below, above)]
+
+
 def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, cmap: str,
-                vmin: float | None = None, vmax: float | None = None) -> None:
+                vmin: float, vmax: float, label: str) -> None:
+    """``img`` where ``valid``, coloured on [vmin, vmax]; the colour bar (labelled ``label``, with
+    its unit) has an arrow at each end where the shown values are clipped."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -103,7 +124,7 @@ def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, 
     H, W = img.shape
     fig, ax = plt.subplots(figsize=(min(12.0, 2 + 8 * W / max(H, W)), min(8.0, 1.5 + 8 * H / max(H, W))))
     im = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-    fig.colorbar(im, ax=ax, fraction=0.03)
+    fig.colorbar(im, ax=ax, fraction=0.03, label=label, extend=_extend(img[valid], vmin, vmax))
     ax.set_title(title)
     ax.set_axis_off()
     fig.tight_layout()
@@ -137,6 +158,20 @@ def _plot_freespace(image: torch.Tensor, free: torch.Tensor, road: torch.Tensor,
     plt.close(fig)
 
 
+def _unused_option(args: argparse.Namespace) -> str | None:
+    """An option given that the chosen input does not use, as a message naming it, or None: it is
+    refused rather than silently ignored (``--preset`` with ``--flow``: argparse refuses it)."""
+    if args.flow is not None:
+        given = {"--road-only": args.road_only, "--index": args.index is not None, "--seed": args.seed is not None,
+                 "--size": args.size is not None}
+        for option, is_given in given.items():
+            if is_given:
+                return f"{option}: applies to a rendered --preset, not to --flow"
+    elif args.mask is not None:
+        return "--mask: applies to --flow; a rendered preset has its own road mask (--road-only uses it)"
+    return None
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -156,8 +191,14 @@ def run(args: argparse.Namespace) -> int:
     if args.size is not None and min(args.size) < 16:
         print(f"error: --size: expected H, W >= 16, got {args.size}", file=sys.stderr)
         return 2
-    if args.index < 0:
-        print(f"error: --index: expected a pair index >= 0, got {args.index}", file=sys.stderr)
+    bad = _unused_option(args)
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
+    index = 0 if args.index is None else args.index
+    seed = 0 if args.seed is None else args.seed
+    if not 0 <= index <= MAX_INDEX:
+        print(f"error: --index: expected a pair index in [0, {MAX_INDEX}], got {index}", file=sys.stderr)
         return 2
     figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
     bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
@@ -180,13 +221,13 @@ def run(args: argparse.Namespace) -> int:
         if preset not in PRESETS:
             print(f"error: --preset: unknown preset {preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
             return 2
-        pair = render_pair(preset, args.index, seed=args.seed, size=tuple(args.size) if args.size else None,
+        pair = render_pair(preset, index, seed=seed, size=tuple(args.size) if args.size else None,
                            dtype=torch.float64)
         key = "flow" if args.model == "displacement" else "flow_velocity"
         flow, valid, road = pair[key][None], pair["valid"][None], pair["road"][None]
         camera = pair["camera"]
         mask = valid & road if args.road_only else valid
-        info["source"] = {"preset": preset, "index": args.index, "seed": args.seed, "odometry": pair["odometry"],
+        info["source"] = {"preset": preset, "index": index, "seed": seed, "odometry": pair["odometry"],
                           "velocity": pair["velocity"], "size": list(flow.shape[-2:])}
     else:
         from fsof_torch.io import read_flow, read_road_mask
@@ -216,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
         elif preset is None:
             bad = f"--flow: {str(args.flow)!r} has no valid flow pixel"
         else:
-            bad = f"--preset: pair {args.index} of {preset!r} has no valid {'road ' if args.road_only else ''}pixel"
+            bad = f"--preset: pair {index} of {preset!r} has no valid {'road ' if args.road_only else ''}pixel"
         bar.close()
         print(f"error: {bad}", file=sys.stderr)
         return 2
@@ -258,12 +299,14 @@ def run(args: argparse.Namespace) -> int:
 
     args.out.mkdir(parents=True, exist_ok=True)
     _plot_map(hist[0], edges, curve, files["vflow_map"], unit)
-    vmax = float(fv[mask].abs().max()) if mask.any() else 1.0
-    _plot_image(fv[0, 0], mask[0, 0], files["fv_observed"], f"observed F_v ({unit}) in the mask", "viridis", 0.0, vmax)
+    # Observed and fitted on one scale, the observed values' (the mask holds a pixel: checked above).
+    lo, hi = _colour_range(fv[mask])
+    _plot_image(fv[0, 0], mask[0, 0], files["fv_observed"], f"observed F_v ({unit}) in the mask", "RdBu_r", lo, hi,
+                f"F_v ({unit}; < 0 above the horizon)")
     _plot_image(curve.fitted[0, 0], curve.fitted_valid[0, 0], files["fv_fitted"], f"fitted F_v ({unit})",
-                "viridis", 0.0, vmax)
+                "RdBu_r", lo, hi, f"F_v ({unit})")
     _plot_image(err[0, 0], in_fit[0, 0], files["fv_error"], f"|observed - fitted F_v| ({unit})", "inferno", 0.0,
-                max(1.0, float(err[in_fit].quantile(0.95))) if in_fit.any() else 1.0)
+                max(1.0, float(err[in_fit].quantile(0.95))) if in_fit.any() else 1.0, f"|F_v error| ({unit})")
     if "freespace" in steps:
         _plot_freespace(pair["image1"], free[0], truth[0], files["freespace"], info["freespace"]["iou"])
     bar.update(1)

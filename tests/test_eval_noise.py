@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from eval.__main__ import main
 
 
@@ -40,9 +42,30 @@ def test_noise_bad_arguments(tmp_path, capsys):
 def test_noise_non_finite_sigmas_exit_2(tmp_path, capsys):
     for option in ("--sigmas", "--pose-sigmas"):
         assert main(["noise", option, "0", "inf", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
-        assert f"error: {option}: expected finite values >= 0" in capsys.readouterr().err
+        assert f"error: {option}: expected values in [0, 10000] px" in capsys.readouterr().err
     assert main(["noise", "--sigmas", "nan", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert not (tmp_path / "o").exists()
+
+
+def test_noise_sigmas_above_the_bound_exit_2(tmp_path, capsys, monkeypatch):
+    """A huge finite σ (the fit's kernel scale 2σ overflowed to inf at 1e308; the pose experiment's
+    float32 flow at 1e39) exits 2 naming the option, before any work; the bound itself is taken."""
+    import eval.noise as noise
+
+    for option, value in (("--sigmas", "1e308"), ("--pose-sigmas", "1e39"), ("--sigmas", "10000.5")):
+        assert main(["noise", option, "0", value, "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+        assert f"error: {option}: expected values in [0, 10000] px, got [0.0, {float(value)}]" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+    class Reached(Exception):
+        pass
+
+    def stop(size, sigmas, *args, **kwargs):
+        raise Reached(sigmas)
+
+    monkeypatch.setattr(noise, "noise_robustness", stop)
+    with pytest.raises(Reached, match=r"\[10000.0\]"):
+        main(["noise", "--sigmas", "1e4", "--pose-sigmas", "1e4", "--out", str(tmp_path / "o"), "--no-progress"])
 
 
 def test_noise_output_paths_checked_before_the_work(tmp_path, capsys):
@@ -55,3 +78,17 @@ def test_noise_output_paths_checked_before_the_work(tmp_path, capsys):
     (tmp_path / "o" / "pose_errors.png").mkdir(parents=True)
     assert main(["noise", "--quick", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
     assert "pose_errors.png' is a folder" in capsys.readouterr().err
+
+
+def test_noise_row_over_no_pixel_is_none_with_a_warning(capsys):
+    """A fit that covers no road pixel (σ at the bound here) reports its errors as None, printed
+    '-', with a warning: not the 0.0 of flow_metrics over no pixel, which reads as a perfect fit."""
+    from eval.noise import noise_robustness
+    from eval.tables import format_table
+
+    clean, lost = noise_robustness((48, 160), [0.0, 1e4], [("complex", 1)], 0)
+    assert clean["n_pixels"] > 0 and clean["e_E"] < 1e-6
+    assert lost["n_pixels"] == 0
+    assert [lost[k] for k in ("e_E", "e_A", "e_E_vs_noisy", "e_A_vs_noisy")] == [None] * 4
+    assert "warning: complex x1, sigma 10000: the fitted model covers no road pixel" in capsys.readouterr().err
+    assert format_table([lost], [("e_E", "e_E px", ".2e")]).splitlines()[-1].strip() == "-"

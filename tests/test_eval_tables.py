@@ -114,3 +114,40 @@ def test_tables_no_pixels_print_a_dash_not_zeros(capsys):
     cells = format_table([row], CVC_COLUMNS).splitlines()[2].split()
     assert cells[2] == "-" and cells[4] == "-"
     assert _finish(_merge(None, metrics(0.5, 4)), "x")["e_E"] == 0.5
+
+
+@pytest.mark.parametrize("argv, message", [
+    # no table left to make: refused, not a tables.md without a table
+    (["--only", "kitti", "--no-kitti"], "--no-kitti: not with --only, which names the tables to make (--only kitti)"),
+    (["--only", "cvc12", "--no-kitti"], "--no-kitti: not with --only"),
+    # a --kitti folder the run would not read: refused, even where it holds no sample
+    (["--only", "cvc12", "--kitti", "{tmp}/none"],
+     "--kitti: applies to the KITTI table, which this run does not make (--only cvc12)"),
+    (["--only", "cvc12", "--only", "carla", "--kitti", "{tmp}"], "(--only cvc12 --only carla)"),
+    (["--no-kitti", "--kitti", "{tmp}/none"], "--kitti: applies to the KITTI table, which --no-kitti skips"),
+])
+def test_tables_options_that_do_not_apply_exit_2(tmp_path, capsys, monkeypatch, argv, message):
+    import eval.tables as tables
+
+    for table in ("cvc12_table", "carla_table", "kitti_table"):
+        monkeypatch.setattr(tables, table, lambda *a, **k: pytest.fail("a table was made"))
+    argv = [a.format(tmp=tmp_path) for a in argv]
+    assert main(["tables", "--quick", *argv, "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("error: --") and message in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_tables_default_kitti_folder_given_explicitly_counts_as_asked_for(tmp_path, capsys, monkeypatch):
+    """--kitti naming the default folder is a folder asked for: without the sample it exits 2,
+    where the default left implicit is skipped with a note."""
+    import eval.tables as tables
+
+    monkeypatch.setattr(tables, "DEFAULT_KITTI", tmp_path / "none")
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: [])
+    monkeypatch.setattr(tables, "carla_table", lambda *a, **k: [])
+    assert main(["tables", "--quick", "--kitti", str(tmp_path / "none"), "--out", str(tmp_path / "o"),
+                 "--no-progress"]) == 2
+    assert "error: --kitti: no KITTI sample" in capsys.readouterr().err
+    assert main(["tables", "--quick", "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    assert "note: no KITTI sample at" in capsys.readouterr().err

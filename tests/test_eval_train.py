@@ -145,3 +145,79 @@ def test_evaluate_net_pools_photometric_errors_over_pixels(keep_threads):
             pooled = float((mean.double() * count).sum() / count.sum())
             assert metrics[region][kind] == pytest.approx(pooled, rel=1e-6)
             assert metrics[region][f"n_{kind}"] == int(count.sum())
+
+
+def _torch_one_cycle(steps: int, lr: float) -> list[float]:
+    """The learning rates torch's OneCycleLR gives the job's settings, step by step."""
+    param = torch.nn.Parameter(torch.zeros(1))
+    optimiser = torch.optim.AdamW([param], lr=lr, weight_decay=1e-5)
+    schedule = torch.optim.lr_scheduler.OneCycleLR(optimiser, max_lr=lr, total_steps=steps, pct_start=0.05,
+                                                   anneal_strategy="linear", cycle_momentum=False)
+    rates = []
+    for _ in range(steps):
+        rates.append(optimiser.param_groups[0]["lr"])
+        optimiser.step()
+        schedule.step()
+    return rates
+
+
+@pytest.mark.parametrize("steps", [21, 39, 40, 150, 151, 400])
+@pytest.mark.parametrize("lr", [1e-3, 3e-4])
+def test_one_cycle_lr_is_torchs_schedule_bit_for_bit(steps, lr):
+    """Where OneCycleLR has a warm-up (more than 20 steps; the default 150) the job's schedule is
+    its values exactly, so results at those settings are unchanged."""
+    assert [train.one_cycle_lr(step, steps, lr) for step in range(steps)] == _torch_one_cycle(steps, lr)
+
+
+def test_one_cycle_lr_short_runs_start_at_the_full_rate():
+    """At most 20 steps: no warm-up (shorter than a step); OneCycleLR divided by zero at 20 and,
+    below, ran a single step at lr / 25 / 1e4, which trained nothing."""
+    lr = 1e-3
+    assert train.one_cycle_lr(0, 1, lr) == lr
+    assert [train.one_cycle_lr(s, 2, lr) for s in range(2)] == [lr, pytest.approx(lr / 25 / 1e4)]
+    rates = [train.one_cycle_lr(s, 20, lr) for s in range(20)]
+    assert rates[0] == lr and rates[-1] == pytest.approx(lr / 25 / 1e4)
+    assert all(a > b for a, b in zip(rates, rates[1:]))  # a linear decay
+    assert rates[10] == pytest.approx(lr + (lr / 25 / 1e4 - lr) * 10 / 19)
+    with pytest.raises(ZeroDivisionError):  # (what the job used to do at 20 steps)
+        _torch_one_cycle(20, lr)
+
+
+def test_train_net_single_step_trains(keep_threads):
+    """--steps 1 moves the weights at the full learning rate (it used to run at 4e-9)."""
+    torch.set_num_threads(1)
+    data = train.render_pairs("default", 2, seed=0, size=(32, 64))
+    net, _ = train.train_net(data, steps=1, seed=0, batch=2, lr=1e-3, freespace_weight=0.0, iters=1,
+                             progress=False)
+    start = TinyRAFT(seed=0, iters=1).state_dict()
+    moved = max(float((p - start[k]).abs().max()) for k, p in net.state_dict().items() if p.is_floating_point())
+    assert moved > 1e-4  # AdamW's first step moves a weight by about lr
+
+
+def test_figures_over_no_pixel_are_none_and_print_a_dash(capsys):
+    """A photometric error over no pixel (every sample point leaves image 2) and the flow metrics of
+    a region without valid ground truth are None (JSON null), printed '-' with a warning: not 0,
+    which reads as perfect."""
+    data = train.render_pairs("default", 1, seed=5, size=(32, 64))
+    data["valid"] = data["valid"] & ~data["road"]  # no ground truth on the road
+
+    def far_away(image1, image2):  # every sample point 1e4 px off image 2
+        return [torch.full((image1.shape[0], 2, *image1.shape[-2:]), 1e4)]
+
+    metrics = train.evaluate_net(far_away, data)
+    for region in ("road", "non_road", "all"):
+        assert [metrics[region][k] for k in ("census", "ssim", "l1")] == [None] * 3
+        assert [metrics[region][f"n_{k}"] for k in ("census", "ssim", "l1")] == [0] * 3
+    assert metrics["road"]["n_pixels"] == 0 and metrics["road"]["e_E"] is None and metrics["road"]["Fl"] is None
+    assert metrics["non_road"]["e_E"] > 1e3
+    results = {"unsupervised": metrics}
+    train._warn_no_pixels(results)
+    err = capsys.readouterr().err
+    assert "warning: unsupervised, road: no pixel with valid ground truth; its flow metrics are '-'" in err
+    assert "warning: unsupervised, all: no pixel whose sample point (or window) stays inside image 2; " \
+           "its census, ssim, l1 are '-'" in err
+    assert train._photometric_row("x", metrics).split() == ["x", "-", "-", "-", "-", "-", "-"]
+    row = train._row("x", metrics).split()
+    assert row[1] == "-" and row[4] == "-" and float(row[2]) > 1e3
+    filled = {**metrics, "road": {**metrics["road"], "e_E": 1.0, "Fl": 0.5}}  # '-' keeps the columns aligned
+    assert len(train._row("x", metrics)) == len(train._row("x", filled))

@@ -120,7 +120,10 @@ def test_vflow_failed_fit_exits_1(tmp_path, capsys):
     (["--inlier-threshold", "inf"], "--inlier-threshold: expected a finite number >= 0, got inf"),
     (["--inlier-threshold", "nan"], "--inlier-threshold: expected a finite number >= 0, got nan"),
     (["--relative-threshold", "inf"], "--relative-threshold: expected a finite number >= 0, got inf"),
-    (["--preset", "cvc-simple", "--index", "-1"], "--index: expected a pair index >= 0, got -1"),
+    (["--preset", "cvc-simple", "--index", "-1"], "--index: expected a pair index in [0, 10000], got -1"),
+    # (the scene is laid out up to the pair asked for: 1e9 ran out of memory)
+    (["--preset", "cvc-simple", "--index", "10001"], "--index: expected a pair index in [0, 10000], got 10001"),
+    (["--index", "1000000000"], "--index: expected a pair index in [0, 10000], got 1000000000"),
 ])
 def test_vflow_bad_numbers_exit_2(tmp_path, capsys, argv, message):
     rc = main(["vflow", *argv, "--out", str(tmp_path / "o"), "--no-progress"])
@@ -161,5 +164,60 @@ def test_vflow_figure_that_fails_to_save_leaves_no_file(tmp_path, monkeypatch):
 
     monkeypatch.setattr(matplotlib.figure.Figure, "savefig", half_then_fail)
     with pytest.raises(OSError, match="disk full"):
-        _plot_image(torch.zeros(4, 6), torch.ones(4, 6, dtype=torch.bool), tmp_path / "fv.png", "t", "viridis")
+        _plot_image(torch.zeros(4, 6), torch.ones(4, 6, dtype=torch.bool), tmp_path / "fv.png", "t", "viridis",
+                    0.0, 1.0, "F_v (px)")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--road-only"], "--road-only: applies to a rendered --preset, not to --flow"),
+    (["--index", "0"], "--index: applies to a rendered --preset, not to --flow"),  # (its default, given)
+    (["--index", "3"], "--index: applies to a rendered --preset, not to --flow"),
+    (["--seed", "0"], "--seed: applies to a rendered --preset, not to --flow"),
+    (["--size", "32", "48"], "--size: applies to a rendered --preset, not to --flow"),
+])
+def test_vflow_preset_options_with_flow_exit_2(tmp_path, capsys, argv, message):
+    """An option of the rendered scene given with --flow is refused, not silently ignored."""
+    flow = _small_flow(tmp_path)
+    rc = main(["vflow", "--flow", str(flow), *argv, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and f"error: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("preset", [["--preset", "cvc-simple"], []])
+def test_vflow_mask_with_a_preset_exits_2(tmp_path, capsys, monkeypatch, preset):
+    """--mask with a rendered preset (given or the default one) is refused before rendering: the
+    preset's own road mask would be used."""
+    import fsof_torch.data.scene as scene
+
+    monkeypatch.setattr(scene, "render_pair", lambda *a, **k: pytest.fail("rendered before --mask was refused"))
+    (tmp_path / "m.json").write_text('{"size": [32, 48], "road_polygon": [[0, 20], [47, 20], [47, 31]]}')
+    rc = main(["vflow", *preset, "--mask", str(tmp_path / "m.json"), "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and "error: --mask: applies to --flow" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_vflow_observed_map_shows_negative_flow(tmp_path, monkeypatch):
+    """fv_observed.png's colours cover every observed F_v, the negative values above the horizon
+    too (a range from 0 drew them as 0); the fitted map shares the scale, and a colour bar has an
+    arrow at an end where its values are clipped; units in the labels."""
+    import eval.vflow as vflow
+
+    calls = {}
+    plot = vflow._plot_image
+
+    def record(img, valid, path, title, cmap, vmin, vmax, label):
+        calls[path.name] = (img[valid], vmin, vmax, label, vflow._extend(img[valid], vmin, vmax))
+        plot(img, valid, path, title, cmap, vmin, vmax, label)
+
+    monkeypatch.setattr(vflow, "_plot_image", record)
+    assert main(["vflow", "--preset", "cvc-complex", "--size", "64", "200", "--out", str(tmp_path), "--no-progress"]) == 0
+    shown, vmin, vmax, label, extend = calls["fv_observed.png"]
+    assert float(shown.min()) < -1.0  # the pixels above the horizon (-1.4 px at this size)
+    assert vmin <= float(shown.min()) and float(shown.max()) <= vmax and extend == "neither"
+    assert vmin == -vmax and label.startswith("F_v (px")
+    assert calls["fv_fitted.png"][1:3] == (vmin, vmax)
+    error, _, error_max, error_label, error_extend = calls["fv_error.png"]
+    assert float(error.max()) > error_max and error_extend == "max" and error_label == "|F_v error| (px)"
+    assert vflow._extend(torch.tensor([-2.0, 0.5]), -1.0, 1.0) == "min"
+    assert vflow._extend(torch.tensor([-2.0, 3.0]), -1.0, 1.0) == "both"

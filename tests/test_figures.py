@@ -319,3 +319,58 @@ def test_clip_summary_shows_each_angle_once_in_degrees():
         assert change.get_lines()[0].get_ydata()[0] == pytest.approx(0.001 * 180 / 3.141592653589793)
     finally:
         plt.close(fig)
+
+
+def _bad_pair_cases():
+    flow, road, images, err, valid = _pair()
+    small = torch.zeros(1, H // 2, W // 2)
+    return [
+        # a flow of another size was stretched over the panel silently
+        ({"flows": {"before": torch.zeros(2, H // 2, W // 2), "after": flow}}, ValueError,
+         rf"flows\['before'\]: expected shape \(2, H, W\) with H={H} \(from an earlier argument\), got \(2, 15, 45\)"),
+        ({"flows": {"before": flow[None], "after": flow}}, ValueError, r"flows\['before'\]: expected shape \(2, H, W\)"),
+        ({"flows": {"before": torch.zeros(3, H, W), "after": flow}}, ValueError, r"flows\['before'\]: expected shape"),
+        ({"flows": {"before": flow.long(), "after": flow}}, TypeError, r"flows\['before'\]: expected a floating-point"),
+        ({"errors": {"before": (small, valid), "after": (err, valid)}}, ValueError, r"errors\['before'\]\[0\]: expected shape"),
+        # a float validity map, or one of another size: a raw RuntimeError deep inside torch before
+        ({"errors": {"before": (err, valid.float()), "after": (err, valid)}}, TypeError,
+         r"errors\['before'\]\[1\]: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
+        ({"errors": {"before": (err, small.bool()), "after": (err, valid)}}, ValueError, r"errors\['before'\]\[1\]: expected shape"),
+        ({"errors": {"other": (err, valid)}}, ValueError, r"errors\['other'\]: no flow column of that name"),
+        ({"valid": torch.ones(1, H // 2, W // 2, dtype=torch.bool)}, ValueError, r"valid: expected shape \(1, H, W\) with H=30"),
+        ({"valid": valid.float()}, TypeError, r"valid: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
+        ({"road": road.float()}, TypeError, r"road: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
+        ({"road": road[0]}, ValueError, r"road: expected shape \(1, H, W\), got \(30, 90\)"),
+        ({"images": (images[0], torch.rand(3, H // 2, W // 2) * 255)}, ValueError, r"images\[1\]: expected shape \(3, H, W\) with H=30"),
+        ({"images": (images[0] / 255, images[1] / 255)}, ValueError, r"images\[0\]: values in .* look like 0..1 images"),
+        ({"images": (images[0], images[1].bool())}, TypeError, r"images\[1\]: expected a real tensor \(3, H, W\) on 0..255"),
+    ]
+
+
+@pytest.mark.parametrize("case", range(len(_bad_pair_cases())))
+def test_pair_figure_checks_every_map_against_the_road(case):
+    """Every flow, error map, validity map and image must have the road's (H, W) and its dtype:
+    pair_figure, PairFigure.layout_of and PairFigure.update refuse one that does not, naming it,
+    before a figure is opened."""
+    import matplotlib.pyplot as plt
+
+    change, error, match = _bad_pair_cases()[case]
+    flow, road, images, err, valid = _pair()
+    content = dict(flows={"before": flow, "after": flow}, errors={"before": (err, valid), "after": (err, valid)},
+                   road=road, images=images)
+    content.update(change)
+    open_before = plt.get_fignums()
+    with pytest.raises(error, match=match):
+        pair_figure(**content, max_flow=5.0, error_vmax=5.0, error_label="epe (px)", title="t")
+    assert plt.get_fignums() == open_before
+    if "valid" not in change:  # (layout_of takes no valid)
+        with pytest.raises(error, match=match):
+            PairFigure.layout_of(**content, error_vmax=5.0, error_label="epe (px)")
+    good = dict(flows={"before": flow, "after": flow}, errors={"before": (err, valid), "after": (err, valid)},
+                road=road, images=images)
+    figure = PairFigure(*PairFigure.layout_of(**good, error_vmax=5.0, error_label="epe (px)"))
+    try:
+        with pytest.raises(error, match=match):
+            figure.update(**content, max_flow=5.0, title="t")
+    finally:
+        figure.close()

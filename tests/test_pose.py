@@ -85,3 +85,26 @@ def test_errors():
         pose_estimation_experiment([0.0], box=(100, 50, 0, 10), size=SMALL)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
         pose_estimation_experiment([0.0], camera="kitti", size=SMALL)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    # a side of 0 named the camera's scale factor sx; an int size failed to unpack
+    ({"size": (10, 0)}, ValueError, r"size: expected H, W >= 2, got \(10, 0\)"),
+    ({"size": (-5, 20)}, ValueError, r"size: expected H, W >= 2, got \(-5, 20\)"),
+    ({"size": 48}, TypeError, r"size: expected \(H, W\), two ints, got 48"),
+    ({"size": (40.0, 120)}, TypeError, r"size: expected \(H, W\), two ints, got \(40.0, 120\)"),
+    ({"size": (40, 120, 3)}, TypeError, r"size: expected \(H, W\)"),
+    # a σ whose noise overflows float32 (1e39) or leaves no flow to fit
+    ({"sigmas": [0.0, 1e39]}, ValueError, r"sigmas: expected a non-empty list of values in \[0, 10000\] px"),
+    ({"dtype": torch.int32}, TypeError, r"dtype: expected a floating-point torch.dtype, got torch.int32"),
+])
+def test_bad_size_sigmas_and_dtype_are_named(kwargs, error, match):
+    kwargs = {"sigmas": [0.0], "size": (40, 120), **kwargs}
+    with pytest.raises(error, match=match):
+        pose_estimation_experiment(kwargs.pop("sigmas"), trials=1, **kwargs)
+
+
+def test_smallest_size_and_largest_sigma_run():
+    res = pose_estimation_experiment([0.0, 1e4], trials=1, size=(2, 8))
+    assert res.num_pixels > 0 and float(res.translation_error[0]) < 1e-5
+    assert math.isfinite(float(res.translation_error[1]))

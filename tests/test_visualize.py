@@ -263,3 +263,18 @@ def test_save_into_missing_folder_fails_cleanly(tmp_path):
     with pytest.raises(FileNotFoundError, match=r"path: the folder of '.*missing/flow\.png' does not exist"):
         save_flow_png(tmp_path / "missing" / "flow.png", _flow()[0])
     assert os.listdir(tmp_path) == []
+
+
+@pytest.mark.parametrize("image, data_range, match", [
+    # a 0-255 image said to be 0-1: drawn white everywhere before
+    (torch.full((3, 4, 4), 100.0), 1.0, r"image: expected values in \[0, data_range=1\], got values in \[100, 100\]"),
+    (torch.full((3, 4, 4), -20.0), 255.0, r"image: expected values in \[0, data_range=255\]"),
+    # a 0-1 image said to be 0-255: drawn black
+    (torch.full((3, 4, 4), 0.4), 255.0, r"image: values in \[0.4, 0.4\] look like 0..1 images"),
+])
+def test_overlay_checks_the_image_range(image, data_range, match):
+    with pytest.raises(ValueError, match=match):
+        overlay_mask(image, torch.zeros(1, 4, 4, dtype=torch.bool), data_range=data_range)
+    # the documented range is taken, up to 1 %
+    assert overlay_mask(torch.full((3, 4, 4), 1.005), torch.zeros(1, 4, 4, dtype=torch.bool),
+                        data_range=1.0).eq(255).all()

@@ -234,6 +234,32 @@ def test_corner_taps_equal_four_pixel_maps(dtype, padding_mode, align_corners, s
     assert torch.equal(new, old)
 
 
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+@pytest.mark.parametrize("mode", ["bilinear", "nearest"])
+@pytest.mark.parametrize("size", [(1, 9), (7, 1), (1, 1)])
+def test_one_pixel_axis_gives_the_same_result_for_both_align_corners(mode, padding_mode, size):
+    """On a 1-pixel-high or -wide image both flags give one result, bit for bit: a tap outside
+    reads the padding (with the corner-aligned scale, undefined on such an axis, it read the only
+    pixel); the identity and whole-pixel shifts stay exact."""
+    H, W = size
+    image = _image(B=2, H=H, W=W, dtype=torch.float64)
+    flow = _flow(B=2, H=H, W=W, scale=3.0, dtype=torch.float64)
+    flow[:, :, :, : W // 2 + 1] = flow[:, :, :, : W // 2 + 1].round()
+    a = warp_backward(image, flow, align_corners=True, mode=mode, padding_mode=padding_mode)
+    b = warp_backward(image, flow, align_corners=False, mode=mode, padding_mode=padding_mode)
+    assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+    if mode == "bilinear":
+        assert torch.equal(a[0], _taps_reference(image, flow, padding_mode))
+    # one row (column) down (right) of a 1-row (1-column) image: every tap outside, zeros padding reads 0
+    step = torch.zeros(1, 2, H, W, dtype=torch.float64)
+    step[:, 1 if H == 1 else 0] = 1.0
+    for align_corners in (True, False):
+        warped, ok = warp_backward(image[:1], step, align_corners=align_corners, mode=mode, padding_mode="zeros")
+        assert not ok.any() and torch.equal(warped, torch.zeros_like(warped))
+        warped, ok = warp_backward(image[:1], torch.zeros_like(step), align_corners=align_corners, mode=mode)
+        assert ok.all() and torch.equal(warped, image[:1])
+
+
 def test_align_corners_does_not_change_result():
     image, flow = _image(B=2), _flow(B=2)
     a = warp_backward(image, flow, align_corners=True)

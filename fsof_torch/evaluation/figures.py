@@ -25,7 +25,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_number
+from .._check import check_float_tensor, check_image_range, check_number, check_shape
 from .visualize import flow_to_color
 
 __all__ = [
@@ -198,7 +198,9 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
             column each, in order. Non-finite pixels are black.
         errors: column title -> ``(error map (1, H, W), valid (1, H, W) bool)`` for the second row
             (a title of ``flows`` missing here leaves that panel empty); invalid pixels are black.
-        road: (1, H, W) bool road mask, drawn as an outline on every panel.
+        road: (1, H, W) bool road mask, drawn as an outline on every panel; every other map and
+            image has its (H, W) (ValueError or TypeError naming the argument otherwise, e.g.
+            ``flows['before']``).
         max_flow: flow magnitude at full colour saturation, px (one scale for all columns).
         error_vmax: error at the top of the colour bar, a finite number > 0 (ValueError naming
             it otherwise); larger errors saturate (the bar's arrow, drawn white in the maps).
@@ -212,6 +214,7 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
         a colour bar; every panel has the road outline, pixel axes and a title. (To draw many
         pairs, :class:`PairFigure` builds the figure once and redraws it.)
     """
+    _check_pair(flows, errors, road, images, valid)  # (valid too, before a figure is opened)
     figure = PairFigure(*PairFigure.layout_of(flows=flows, errors=errors, road=road, images=images,
                                               error_vmax=error_vmax, error_label=error_label))
     return figure.update(flows=flows, errors=errors, road=road, max_flow=max_flow, title=title,
@@ -289,7 +292,9 @@ class PairFigure:
     @staticmethod
     def layout_of(*, flows: Mapping[str, Tensor], errors: Mapping[str, Any], road: Tensor,
                   images: Any, error_vmax: float, error_label: str) -> tuple:
-        """The layout of a :func:`pair_figure` call, as :class:`PairFigure` takes it (hashable)."""
+        """The layout of a :func:`pair_figure` call, as :class:`PairFigure` takes it (hashable).
+        The maps and images are checked as :func:`pair_figure` checks them."""
+        _check_pair(flows, errors, road, images, None)
         return (tuple(road.shape[-2:]), tuple(name in errors for name in flows), images is not None,
                 _check_vmax(error_vmax), error_label)
 
@@ -303,6 +308,7 @@ class PairFigure:
         without error panels, images or none): build another :class:`PairFigure` for it."""
         import numpy as np
 
+        _check_pair(flows, errors, road, images, valid)
         size, with_errors, has_images, _, label = self.layout
         got = (tuple(road.shape[-2:]), tuple(name in errors for name in flows), images is not None)
         if got != (size, with_errors, has_images):
@@ -342,6 +348,45 @@ class PairFigure:
     def close(self) -> None:
         """Close the figure (pyplot keeps it open until then)."""
         _pyplot().close(self.figure)
+
+
+def _check_pair(flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, Tensor]], road: Tensor,
+                images: tuple[Tensor, Tensor] | None, valid: Tensor | None) -> None:
+    """Every map and image of a pair figure at the road's (H, W), with its dtype: a flow of
+    another size was stretched over the panel silently, a valid map of another size or dtype
+    failed deep inside torch."""
+    _check_bool(road, "road")
+    dims = check_shape(road, "road", (1, "H", "W"))
+    for name, flow in flows.items():
+        check_float_tensor(flow, f"flows[{name!r}]")
+        check_shape(flow, f"flows[{name!r}]", (2, "H", "W"), dims)
+    for name, entry in errors.items():
+        if name not in flows:
+            raise ValueError(f"errors[{name!r}]: no flow column of that name; flows has {list(flows)}")
+        if not isinstance(entry, (tuple, list)) or len(entry) != 2:
+            raise TypeError(f"errors[{name!r}]: expected (error map, valid), got {type(entry).__name__}")
+        check_float_tensor(entry[0], f"errors[{name!r}][0]")
+        check_shape(entry[0], f"errors[{name!r}][0]", (1, "H", "W"), dims)
+        _check_bool(entry[1], f"errors[{name!r}][1]")
+        check_shape(entry[1], f"errors[{name!r}][1]", (1, "H", "W"), dims)
+    if images is not None:
+        if not isinstance(images, (tuple, list)) or len(images) != 2:
+            raise TypeError(f"images: expected (image1, image2), got {type(images).__name__}")
+        for k, image in enumerate(images):
+            if not isinstance(image, Tensor) or image.dtype == torch.bool or image.is_complex():
+                got = f"dtype {image.dtype}" if isinstance(image, Tensor) else type(image).__name__
+                raise TypeError(f"images[{k}]: expected a real tensor (3, H, W) on 0..255, got {got}")
+            check_shape(image, f"images[{k}]", (3, "H", "W"), dims)
+            check_image_range(image.float(), f"images[{k}]", 255.0)
+    if valid is not None:
+        _check_bool(valid, "valid")
+        check_shape(valid, "valid", (1, "H", "W"), dims)
+
+
+def _check_bool(mask: object, name: str) -> None:
+    if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
+        got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"{name}: expected a bool tensor (1, H, W), got {got} (threshold a soft map first)")
 
 
 def _check_vmax(error_vmax: object) -> float:

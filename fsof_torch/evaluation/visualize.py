@@ -21,8 +21,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_number,
-                      check_positive, check_shape)
+from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_image_range,
+                      check_number, check_positive, check_shape)
 
 __all__ = [
     "make_colorwheel",
@@ -187,7 +187,9 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
     """Blend ``color`` into ``image`` where ``mask`` is True.
 
     Args:
-        image: (B, C, H, W) or (C, H, W), C = 3 (RGB) or 1 (grey), finite values in [0, data_range].
+        image: (B, C, H, W) or (C, H, W), C = 3 (RGB) or 1 (grey), finite values in [0, data_range]
+            (up to 1 %; ValueError naming ``image`` otherwise, and for a 0..1 image passed with
+            ``data_range=255``).
         data_range: the images' maximum (finite, > 0): 255.0 for 0-255 images, 1.0 for 0-1 images.
         mask: (B, 1, H, W) or (1, H, W) bool.
         color: RGB 0..255. alpha: its weight inside the mask, in [0, 1].
@@ -210,6 +212,8 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
         raise ValueError(f"color: expected an (R, G, B) triple, got {color!r}")
     data_range = check_data_range(data_range)
     check_finite(image, "image")  # a NaN pixel would be drawn as 0, black, as if it were one
+    # a 0-255 image passed with data_range=1.0 was drawn white, a 0-1 one at 255 black
+    check_image_range(image, "image", data_range)
     img = image.detach().float().expand(B, 3, H, W) * (255.0 / data_range)
     c = torch.tensor([float(x) for x in color], device=image.device).view(1, 3, 1, 1)
     out = torch.where(mask, (1 - alpha) * img + alpha * c, img)

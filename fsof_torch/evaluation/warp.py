@@ -11,14 +11,17 @@ corner-aligned (``align_corners=True``) convention whatever flag reaches ``grid_
 pixel map sampled with ``align_corners=False`` (kornia's default) is shifted by half a pixel
 (kornia issue #4504; measured here: an identity map changes the KITTI image 000000_10 by up to
 191 grey levels, 3.7 on average). This module therefore normalises the coordinates itself, in
-one place (:func:`normalize_coordinates`), with the same ``align_corners`` it passes to kornia.
+one place (:func:`normalize_coordinates`), and samples with one convention whatever
+``align_corners`` the caller gives: edge-aligned (``align_corners=False``), the one whose
+normalisation is defined on a 1-pixel-wide or -high axis too (where the corner-aligned scale
+divides by zero, and a tap one pixel outside would read the only pixel instead of the padding).
 
 Even then, ``grid_sample`` un-normalises in floating point, and the round trip pixel -> [-1, 1]
 -> pixel is not exact in float32 (an identity map changed that image by up to 0.016 grey levels).
 So bilinear sampling is done as four nearest-neighbour taps at the integer corners (robust to
 that rounding) weighted by the fractional parts, which are exact: the identity flow returns the
 image bit for bit, whole-pixel shifts equal ``torch.roll`` on the interior, and the result does
-not depend on ``align_corners`` at all. The price: about 2-3x the time of a single bilinear
+not depend on ``align_corners`` at all, on any image size. The price: about 2-3x the time of a single bilinear
 kornia ``remap`` for forward + backward, more for a forward pass alone (one CPU thread;
 ``python benchmarks/bench_warp.py`` prints the table).
 """
@@ -33,6 +36,8 @@ from .._check import autocast_off, check_finite, check_float_tensor, check_shape
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
 _MODES = ("bilinear", "nearest")
+# The sampler's convention, whatever the caller's align_corners (see the module docstring).
+_SAMPLE_ALIGN_CORNERS = False
 _PADDING = ("zeros", "border")
 
 
@@ -102,8 +107,9 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
             pixel would reach every output pixel whose bilinear taps touch it, so a non-finite
             value anywhere raises ValueError (replace or inpaint such pixels first).
         flow: (B, 2, H, W) float, pixels, channel 0 = u (right), channel 1 = v (down); finite.
-        align_corners: the normalisation convention handed to kornia / ``grid_sample``; this
-            function normalises with the same flag, so both values give the same result.
+        align_corners: kept for the signature of kornia / ``grid_sample``: both values give the
+            same result, bit for bit and on any image size (the taps are sampled at integer pixel
+            positions with one convention; a tap outside the image reads the padding).
         mode: ``"bilinear"`` (differentiable in image and flow) or ``"nearest"`` (differentiable
             in the image only; the flow gets no gradient).
         padding_mode: what a tap outside the image reads: ``"zeros"`` or ``"border"``
@@ -151,14 +157,14 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
 
         if mode == "nearest":
             warped = _sample_nearest(img, torch.round(x).detach(), torch.round(y).detach(),
-                                     align_corners=align_corners, padding_mode=padding_mode)
+                                     align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
         else:
             x0 = torch.floor(x).detach()
             y0 = torch.floor(y).detach()
             fx = (x - x0).unsqueeze(1)  # exact in floating point, carries the flow's gradient
             fy = (y - y0).unsqueeze(1)
             # The four corners stacked along rows: one sampler call instead of four.
-            taps = _sample_corners(img, x0, y0, align_corners=align_corners, padding_mode=padding_mode)
+            taps = _sample_corners(img, x0, y0, align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
             t00, t10, t01, t11 = taps.split(H, dim=2)
             # lerp returns its start exactly at weight 0 and its end at weight 1.
             top = torch.lerp(t00, t10, fx)
