@@ -21,6 +21,7 @@ DEFAULT_PAIRS = 4
 DEFAULT_SIZE = (375, 1242)
 DEFAULT_OUT = Path("refine_out")
 DEFAULT_HEIGHT = 1.65  # m, KITTI's camera over the road
+DEFAULT_SCALE = 2.0  # px, the Cauchy scale of --mode confidence
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -111,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "widths a frame (sideways and forward in metres, yaw in degrees; e.g. 0.05 0.05 0.2 "
                         "for wheel odometry); default: held fixed")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
-    g.add_argument("--scale", type=float, default=2.0, help="Cauchy scale in px for --mode confidence (default: %(default)s)")
+    g.add_argument("--scale", type=float, default=None,
+                   help=f"Cauchy scale in px, for --mode confidence only (default: {DEFAULT_SCALE:g})")
     g.add_argument("--fit-roll", action="store_true", help="variant fit: also fit the camera roll")
     g.add_argument("--fit-pitch", action="store_true", help="variant fit: also fit the camera pitch")
     g.add_argument("--calibrate-pitch", action="store_true",
@@ -221,8 +223,11 @@ def _configure(args: argparse.Namespace):
         raise JobError(f"choose one input: got --{' and --'.join(c.replace('_', '-') for c in chosen)}")
     if args.flows is not None and args.images is None:
         raise JobError("--flows needs --images (the pairs the flows belong to)")
-    if not (args.scale > 0 and math.isfinite(args.scale)):
-        raise JobError(f"--scale: expected a finite value > 0 px, got {args.scale}")
+    if args.scale is not None:
+        if args.mode != "confidence":
+            raise JobError(f"--scale: applies to --mode confidence, not to --mode {args.mode} (which uses no scale)")
+        if not (args.scale > 0 and math.isfinite(args.scale)):
+            raise JobError(f"--scale: expected a finite value > 0 px, got {args.scale}")
     if args.checkpoint is not None and args.net is None:
         raise JobError("--checkpoint needs --net (the network the state_dict is for)")
     if args.net_contract != "auto" and args.net is None:
@@ -300,6 +305,12 @@ def _configure(args: argparse.Namespace):
                     "noise": args.scene_noise}
     if "net" in sources and args.net is None:
         raise JobError("--source net needs --net module:callable")
+    if "net" not in sources:  # (--checkpoint and --net-contract without --net are refused above)
+        given = [o for o, v in (("--net", args.net is not None), ("--checkpoint", args.checkpoint is not None),
+                                ("--net-contract", args.net_contract != "auto")) if v]
+        if given:
+            raise JobError(f"{' and '.join(given)}: the run has no net source (sources: {','.join(sources)}); "
+                           f"add net to --source")
     if args.testnet_weights is not None and "testnet" not in sources:
         raise JobError(f"--testnet-weights: the run has no testnet source (sources: {','.join(sources)})")
     for flag in ("fit_roll", "fit_pitch"):
@@ -324,7 +335,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
     from . import distributed, resume
     from .inputs import JobError, file_digest
-    from .job import JobConfig, run_pairs
+    from .job import JobConfig
     from .measure import PHOTO
     from .report import pair_table, summarize, write_clip_summaries, write_report
     from .sources import NetSpec, make_source, net_identity
@@ -341,6 +352,15 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         raise JobError(f"--device: not a torch device: {args.device!r}") from None
     if device.type == "cuda" and not torch.cuda.is_available():
         raise JobError(f"--device: {args.device!r} requested but CUDA is not available")
+    if device.type == "meta":
+        raise JobError(f"--device: {args.device!r} holds no data (shapes only); give cpu or cuda")
+    if device.type != "cuda" or device.index is not None:  # (bare cuda: the process's GPU, set below)
+        try:
+            torch.empty(0, device=device)
+        except Exception as err:  # torch raises RuntimeError, AssertionError, NotImplementedError, ...
+            first = str(err).splitlines()[0].split(". ")[0] if str(err) else ""
+            raise JobError(f"--device: cannot place a tensor on {args.device!r} ({type(err).__name__}: {first})") \
+                from None
     world = distributed.init(device.type)
     stack.callback(distributed.finish, world)
     if device.type == "cuda" and device.index is None:
@@ -363,8 +383,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     net_spec = NetSpec(args.net, args.net_contract, args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
 
+    # replace uses no scale: the default's in the identity, as for a confidence run without --scale
+    scale = DEFAULT_SCALE if args.scale is None else args.scale
     identity = {"version": __version__, "input": input_identity, "sources": sources, "variants": variants,
-                "mode": args.mode, "scale": args.scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
+                "mode": args.mode, "scale": scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
                 "road": args.road, "calibrate_pitch": calibrate, "odometry_sigma": odometry_sigma,
                 "testnet_weights": file_digest(args.testnet_weights) if args.testnet_weights is not None
                 and "testnet" in sources else None,
@@ -381,7 +403,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     if error is not None:
         raise JobError(error)
     fp = resume.fingerprint(identity)
-    cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=args.scale,
+    cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=scale,
                     fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto", calibrate=calibrate,
                     odometry_sigma=odometry_sigma, overwrite=args.overwrite, figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
@@ -394,14 +416,12 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
         cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
         cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
-        m = cfg.clip.mounting
-        notes.append(f"Mounting calibrated over the clip from its images: pitch {m['pitch_deg']:.2f}°, roll "
-                     f"{m['roll_deg']:.2f}°" + (f", height {m['height_m']:.3f} m (scale from the poses)"
-                                                if "height_m" in m else "")
-                     + ("; every variant uses it." if calibrate else "; variants sequence / given_pitch use it."))
+        notes.append(_mounting_note(cfg.clip, calibrate, len(specs)))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
-    records = run_pairs(distributed.shard(specs, world), cfg, built, rank=world.rank)
+    records = _run_shard(specs, cfg, built, world)
+    if records is None:
+        return 2  # another process stopped on its pairs' input, and rank 0 reports it
     names = [s.name for s in specs]
     metrics, extra = pair_table(records, names, cfg)
     metrics, extra = distributed.all_reduce_sum(metrics, world), distributed.all_reduce_sum(extra, world)
@@ -412,8 +432,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     key = {(s, v): j for j, (s, v) in enumerate((s, v) for s in sources for v in variants)}
     records = sorted((r for rs in gathered for r in rs), key=lambda r: (order[r["pair"]], key[(r["source"], r["variant"])]))
     summary = summarize(metrics, extra, records, cfg, world_size=world.world_size, identity=identity)
-    if cfg.clip is not None:
-        summary["calibrated_mounting"] = cfg.clip.mounting
+    if cfg.clip is not None:  # (None where no pair's fit succeeded: the nominal mounting was kept)
+        summary["calibrated_mounting"] = cfg.clip.mounting if cfg.clip.fitted else None
     if cfg.figures:
         write_clip_summaries(summary, cfg)
     table = write_report(summary, cfg, args.json)
@@ -422,6 +442,49 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         print(f"- {n}")
     print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0
+
+
+def _mounting_note(clip, calibrate: bool, pairs: int) -> str:
+    """The report's note on the clip's calibrated mounting, or on its absence where no pair's fit
+    over the clip succeeded (the nominal mounting is kept, ``refine.calibrate.fit_clip``)."""
+    m = clip.mounting
+    users = "every variant" if calibrate else "variants sequence / given_pitch"
+    if not clip.fitted:
+        return (f"Mounting not calibrated: no pair's fit over the clip succeeded (0 of {pairs}); {users} "
+                f"use{'s' if calibrate else ''} the nominal mounting (pitch {m['pitch_deg']:.2f}°, roll "
+                f"{m['roll_deg']:.2f}°)" + (", so --calibrate-pitch changed nothing." if calibrate else "."))
+    return (f"Mounting calibrated over the clip from its images (the fits of {clip.fitted} of {pairs} pairs): pitch "
+            f"{m['pitch_deg']:.2f}°, roll {m['roll_deg']:.2f}°"
+            + (f", height {m['height_m']:.3f} m (scale from the poses)" if "height_m" in m else "")
+            + f"; {users} use{'s' if calibrate else ''} it.")
+
+
+def _run_shard(specs, cfg, built: dict, world) -> list[dict] | None:
+    """Run this process's share of the pairs (``refine.job.run_pairs``). Under torchrun, an input
+    error on one process's pairs (a corrupt file, say) stops every process before the collectives
+    the others would otherwise wait in: the processes exchange their errors, the one that failed
+    raises its own (a JobError), rank 0 the first one (naming its rank), the others return None."""
+    from . import distributed
+    from .inputs import JobError
+    from .job import run_pairs
+
+    error = None
+    try:
+        records = run_pairs(distributed.shard(specs, world), cfg, built, rank=world.rank)
+    except (JobError, FileNotFoundError, ValueError) as err:
+        if not world.distributed:
+            raise
+        error, records = str(err), None
+    if world.distributed:
+        failed = [(rank, e) for rank, e in enumerate(distributed.gather_objects(error, world)) if e is not None]
+        if error is not None:
+            raise JobError(error)
+        if failed and world.is_main:
+            rank, first = failed[0]
+            raise JobError(f"{first} (on rank {rank})")
+        if failed:
+            return None
+    return records
 
 
 def _fit_clip(specs, camera, cfg, built: dict, device, *, needed_by: str, poses_option: str):

@@ -67,9 +67,11 @@ def check_clip(specs: Sequence[PairSpec], *, needed_by: str = "--odometry sequen
 @dataclass
 class ClipFit:
     """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
-    ``camera`` the calibrated camera, ``mounting`` {"roll", "pitch" (degrees), "height" (m) with
-    poses}, ``success[name]`` whether the pair's fit succeeded; and the road masks the fit used
-    (packed), with what ``road_for`` reported about each (:meth:`road`)."""
+    ``camera`` the calibrated camera, ``mounting`` {"roll_deg", "pitch_deg", "height_m" with
+    poses}, ``success[name]`` whether the pair's fit succeeded, ``fitted`` how many pairs' first fits
+    the mounting was calibrated from; and the road masks the fit used (packed), with what
+    ``road_for`` reported about each (:meth:`road`). Where no pair's first fit succeeded
+    (``fitted`` 0) nothing is calibrated: ``camera`` and ``mounting`` are the nominal ones."""
 
     motion: dict[str, dict[str, Any]]
     camera: Camera
@@ -77,6 +79,7 @@ class ClipFit:
     success: dict[str, bool]
     masks: PackedMasks
     road_info: dict[str, tuple[int, dict[str, Any]]]
+    fitted: int
 
     def road(self, name: str) -> tuple[Tensor, dict[str, Any]]:
         """Pair ``name``'s road mask (1, H, W) bool, as the clip's fit used it, and what was
@@ -182,8 +185,12 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress)
     motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
               for i, spec in enumerate(specs)}
+    success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
+    fitted = seq.calibrated_from
+    if not fitted:  # failed fits calibrate nothing: the nominal camera stays
+        mounting = {"roll_deg": math.degrees(float(cam.roll[0])), "pitch_deg": math.degrees(float(cam.pitch[0]))}
+        return ClipFit(motion, cam, mounting, success, masks, road_info, 0)
     mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}
     if "height" in seq.mounting:
         mounting["height_m"] = seq.mounting["height"]
-    success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
-    return ClipFit(motion, seq.camera, mounting, success, masks, road_info)
+    return ClipFit(motion, seq.camera, mounting, success, masks, road_info, fitted)

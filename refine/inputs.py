@@ -128,6 +128,20 @@ def _file_identity(dataset: ImageFolderDataset, i: int, flow: Path | None = None
     return describe
 
 
+MIN_SIDE = 16  # pixels: DIS needs 12; --size asks for 16
+
+
+def check_image_size(dataset: ImageFolderDataset, option: str) -> None:
+    """The pairs' images (the first pair's size: the others must match it) have sides of at least
+    ``MIN_SIDE`` pixels, as ``--size`` asks of the synthetic scenes: DIS and the road's fits need
+    them. Else a JobError naming ``option``, the file and its size."""
+    H, W = dataset.size
+    if min(H, W) < MIN_SIDE:
+        first = dataset.pairs[0].image1
+        raise JobError(f"{option}: {str(first)!r} is {H}x{W}; the job needs images with sides of at least "
+                       f"{MIN_SIDE} pixels")
+
+
 # -- synthetic -----------------------------------------------------------------------------------
 
 def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int] | None,
@@ -181,6 +195,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
                                      pitch=math.radians(pitch_deg), poses=poses,
                                      road=None if road == "auto" else road, gt=gt, calib_size=calib_size,
                                      camera_dtype=torch.float64)
+    check_image_size(dataset, "--images")
     names = [p.name for p in dataset.pairs]
     stems = {p.name: [p.image1.stem] for p in dataset.pairs}
     with options_of({"flows": "--flows"}):
@@ -195,7 +210,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
 
 def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tuple[list[PairSpec], Camera]:
     """A KITTI 2015 pair in the layout of ``kitti15_000000`` (``fsof_torch.datasets.KittiSampleDataset``):
-    image_10/image_11, calib_cam_to_cam.txt (P_rect_02), road.json (not needed with ``road_auto``:
+    image_10/image_11, calib_cam_to_cam.txt (P_rect_02), road.json (not read with ``road_auto``:
     the job detects the road), flow_noc_10.png (ground truth, where present). The pair is named
     after the folder."""
     from fsof_torch.datasets import KittiSampleDataset
@@ -207,7 +222,9 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
         hint = "" if road_auto or missing != ["road.json"] else " (or pass --road auto)"
         raise JobError(f"--kitti15: {str(root)!r} lacks {missing}{hint}")
     with options_of("--kitti15"):
-        dataset = KittiSampleDataset(root, cam=2, camera_height=height, camera_dtype=torch.float64)
+        dataset = KittiSampleDataset(root, cam=2, camera_height=height, camera_dtype=torch.float64,
+                                     road_json=not road_auto)
+    check_image_size(dataset, "--kitti15")
     name = dataset.pairs[0].name
     return [_spec(name, dataset, 0, "--kitti15", _file_identity(dataset, 0))], dataset.camera
 
@@ -216,7 +233,7 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
                          road_auto: bool = False) -> tuple[list[PairSpec], Camera]:
     """A KITTI odometry clip in the layout of ``kitti_odometry_straight``
     (``fsof_torch.datasets.KittiOdometryDataset``): image_l/ (cam 0), calib.txt (P0), poses.txt,
-    road.json (not needed with ``road_auto``: the job detects the road); the frames that have a
+    road.json (not read with ``road_auto``: the job detects the road); the frames that have a
     pose."""
     from fsof_torch.datasets import KittiOdometryDataset
 
@@ -227,7 +244,8 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
             raise JobError(f"--kitti-odometry: {str(root)!r} lacks {n}{hint}")
     with options_of("--kitti-odometry"):
         dataset = KittiOdometryDataset(root, cam=0, camera_height=height, pitch=math.radians(pitch_deg),
-                                       camera_dtype=torch.float64)
+                                       camera_dtype=torch.float64, road_json=not road_auto)
+    check_image_size(dataset, "--kitti-odometry")
     specs = [_spec(p.name, dataset, i, "--kitti-odometry", _file_identity(dataset, i))
              for i, p in enumerate(dataset.pairs)]
     return specs, dataset.camera

@@ -89,6 +89,8 @@ def read_record(cfg: JobConfig, source: str, variant: str, spec: PairSpec, input
         record = json.loads(p["record"].read_text())
     except (json.JSONDecodeError, UnicodeDecodeError):
         return None
+    if not isinstance(record, dict):  # JSON, but not a record: redone, as an unreadable one
+        return None
     if record.get("fingerprint") != cfg.fingerprint or record.get("input_fingerprint") != input_fp:
         return None
     return record

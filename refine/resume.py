@@ -105,10 +105,18 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
     return []
 
 
+def _outputs(old: dict) -> list[str]:
+    """The output folders a manifest names (none where its ``outputs`` is not a list of names)."""
+    outputs = old.get("outputs")
+    if isinstance(outputs, list) and all(isinstance(o, str) for o in outputs):
+        return outputs
+    return []
+
+
 def _no_results(out: Path, old: dict) -> bool:
     """Whether ``out`` holds nothing of the run of manifest ``old`` but the manifest and empty
     output folders (a run that stopped before its first record, e.g. on an error in the clip's fit)."""
-    outputs = old.get("outputs") if isinstance(old.get("outputs"), list) else []
+    outputs = _outputs(old)
     for p in out.iterdir():
         if p.name in (LOCK, MANIFEST):
             continue
@@ -134,6 +142,8 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
         try:
             old = json.loads(manifest_path.read_text())
         except (json.JSONDecodeError, UnicodeDecodeError):
+            old = None
+        if not isinstance(old, dict):  # not JSON, or JSON but not a manifest (``[]``, ``5``)
             old = {"fingerprint": None, "identity": "unreadable"}
     if old is not None and old.get("fingerprint") != fp:
         if not overwrite and not _no_results(out, old):
@@ -141,7 +151,7 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
             raise JobError(f"--out: {str(out)!r} holds the results of another run ("
                            + "; ".join(diffs[:4]) + ("; ..." if len(diffs) > 4 else "")
                            + "); give another --out, or --overwrite to replace them")
-        for sub in old.get("outputs", []):
+        for sub in _outputs(old):
             target = (out / sub).resolve()
             if target.parent == out.resolve() and target.is_dir():
                 shutil.rmtree(target)

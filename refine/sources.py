@@ -213,7 +213,10 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
         def read(pair: dict, file: Path | None) -> Tensor:
             if file is None:
                 raise JobError("--flows: no flow file for this pair")
-            flow, valid = read_flow(file)
+            try:
+                flow, valid = read_flow(file)
+            except (ValueError, FileNotFoundError) as err:  # a reader's message names its argument: path
+                raise JobError(f"--flows: {str(err).removeprefix('path: ')}") from None
             size = tuple(pair["image1"].shape[-2:])
             if tuple(flow.shape[-2:]) != size:
                 raise JobError(f"--flows: {file.name} is {tuple(flow.shape[-2:])}, the images {size}")

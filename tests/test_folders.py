@@ -5,6 +5,7 @@ the errors that name the argument and the file."""
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 import torch
@@ -127,8 +128,44 @@ def test_kitti_flow_pairs_pair_by_name(tmp_path):
     assert [p.name for p in ds.pairs] == ["000002", "000004"] and ds[1]["image2"].eq(2.0).all()
     with pytest.raises(ValueError, match="step: KITTI flow pairs"):
         ImageFolderDataset(tmp_path, step=2)
-    write_image(tmp_path / "000009_10.png", torch.zeros(3, *SIZE))  # without its _11: one clip of frames
-    assert not kitti_flow_layout(sorted(tmp_path.iterdir()))
+    assert not kitti_flow_layout([tmp_path / "000002.png", tmp_path / "000010.png"])  # frames of a clip
+
+
+@pytest.mark.parametrize("extra, orphans", [
+    (["000009_10"], "000009_10.png"),  # a _10 without its _11
+    (["000009_11"], "000009_11.png"),  # a _11 without its _10
+    (["000003"], "000003.png"),  # a clip's frame beside the pairs
+    (["000009_11", "000010_10"], "000009_11.png, 000010_10.png"),  # as one clip: 000009_11 -> 000010_10
+])
+def test_kitti_flow_pairs_must_be_complete(tmp_path, extra, orphans):
+    """A folder with any NAME_10 / NAME_11 pairs by name: an image without its partner stops the
+    dataset, naming the folder and every such image, never paired across scenes nor dropped."""
+    for t in ("10", "11"):
+        write_image(tmp_path / f"000002_{t}.png", torch.zeros(3, *SIZE))
+    for name in extra:
+        write_image(tmp_path / f"{name}.png", torch.zeros(3, *SIZE))
+    message = (rf"^images: '{re.escape(str(tmp_path))}' holds KITTI flow pairs \(NAME_10 / NAME_11, paired by name\), but "
+               rf"{len(extra)} image\(s\) have no partner: {orphans}; ")
+    with pytest.raises(ValueError, match=message):
+        ImageFolderDataset(tmp_path)
+    with pytest.raises(ValueError, match=message):
+        frame_pairs(sorted(tmp_path.iterdir()))
+
+
+def test_frames_numbered_without_padding_pair_by_number(tmp_path):
+    """Frames named 0, 5, 10, 15, 20 are a clip in that order (not the names' order 0, 10, 15, 20,
+    5); names that are not all numbers keep the names' order."""
+    from fsof_torch.data.folders import list_images
+
+    for n in (0, 5, 10, 15, 20):
+        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), float(n)))
+    assert [p.stem for p in list_images(tmp_path)] == ["0", "5", "10", "15", "20"]
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == ["0", "5", "10", "15"]
+    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in range(4)] == [
+        (0.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0)]
+    write_image(tmp_path / "a.png", torch.zeros(3, *SIZE))
+    assert [p.stem for p in list_images(tmp_path)] == ["0", "10", "15", "20", "5", "a"]
 
 
 def test_files_match_by_name_never_by_position(clip):

@@ -451,3 +451,88 @@ def test_a_kitti_odometry_clip_whose_poses_do_not_move_stops_under_its_option(tm
     err = capsys.readouterr().err
     assert err.startswith("error: --kitti-odometry: the poses do not move"), err
     assert "(--odometry sequence)" in err and not (out / "run.json").exists()
+
+
+def test_kitti_flow_pairs_with_a_missing_partner_stop_under_images(tmp_path, user_folder, scene, capsys):
+    """KITTI flow pairs pair by name: a folder where one pair lacks its _11 is refused under
+    --images, naming the image, not read as one clip (000000_11 -> 000001_10, across scenes)."""
+    from fsof_torch.io import write_image
+    from refine.__main__ import main
+
+    folder = tmp_path / "pairs"
+    folder.mkdir()
+    write_image(folder / "000000_10.png", scene[0]["image1"])
+    write_image(folder / "000000_11.png", scene[0]["image2"])
+    write_image(folder / "000001_10.png", scene[2]["image1"])
+    out = tmp_path / "out"
+    assert main(["--images", str(folder), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+                 "--no-figures", "--no-progress", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --images: {str(folder)!r} holds KITTI flow pairs (NAME_10 / NAME_11, paired "
+                          f"by name), but 1 image(s) have no partner: 000001_10.png; "), err
+    assert not out.exists()
+
+
+def test_images_too_small_for_the_job_stop_under_their_option(tmp_path, user_folder):
+    """Images of 6x8 pixels (DIS needs 12, --size asks 16): refused before any work, naming the
+    option, the file and its size, for a folder and for the KITTI samples' layouts."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+    from refine.inputs import JobError, kitti15_pairs, kitti_odometry_pairs, user_pairs
+
+    K = torch.tensor([[8.0, 0.0, 3.5], [0.0, 8.0, 2.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    images = tmp_path / "tiny"
+    images.mkdir()
+    for i in range(3):
+        write_image(images / f"{i:06d}.png", torch.full((3, 6, 8), 40.0 * i))
+    write_kitti_calibration(tmp_path / "calib.txt", K, cam=0, style="odometry")
+    with pytest.raises(JobError, match=r"^--images: '.*000000\.png' is 6x8; the job needs images with sides of "
+                                       r"at least 16 pixels$"):
+        user_pairs(images=images, calib=tmp_path / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                   pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+    k15 = tmp_path / "k15"
+    k15.mkdir()
+    for t in ("10", "11"):
+        write_image(k15 / f"image_{t}.png", torch.zeros(3, 15, 40))
+    write_kitti_calibration(k15 / "calib_cam_to_cam.txt", K * torch.tensor([[5.0], [3.0], [1.0]], dtype=K.dtype),
+                            cam=2)
+    with pytest.raises(JobError, match=r"^--kitti15: '.*image_10\.png' is 15x40; "):
+        kitti15_pairs(k15, height=1.65, road_auto=True)
+    odo = tmp_path / "odo"
+    (odo / "image_l").mkdir(parents=True)
+    for p in images.iterdir():
+        (odo / "image_l" / p.name).write_bytes(p.read_bytes())
+    (odo / "calib.txt").write_bytes((tmp_path / "calib.txt").read_bytes())
+    (odo / "poses.txt").write_bytes((user_folder / "poses.txt").read_bytes())
+    with pytest.raises(JobError, match=r"^--kitti-odometry: '.*000000\.png' is 6x8; "):
+        kitti_odometry_pairs(odo, height=1.65, pitch_deg=0.0, road_auto=True)
+    # 16 pixels pass
+    for i in range(3):
+        write_image(images / f"{i:06d}.png", torch.full((3, 16, 16), 40.0 * i))
+    write_kitti_calibration(tmp_path / "calib.txt", torch.tensor([[8.0, 0, 7.5], [0, 8.0, 7.5], [0, 0, 1]],
+                                                                 dtype=torch.float64), cam=0, style="odometry")
+    specs, _ = user_pairs(images=images, calib=tmp_path / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                          pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+    assert tuple(specs[0].load()["image1"].shape) == (3, 16, 16)
+
+
+def test_with_road_auto_the_samples_road_json_is_not_read(kitti15_folder, odometry_folder):
+    """--road auto: a broken road.json in a KITTI sample's folder is not read (the road is found in
+    the images), nor part of the pairs' identity; without it, the broken file stops the job."""
+    from refine.inputs import JobError, kitti15_pairs, kitti_odometry_pairs
+
+    for folder in (kitti15_folder, odometry_folder):
+        (folder / "road.json").write_text("{bad")
+    with pytest.raises(JobError, match=r"^--kitti15: road: '.*road\.json' is not a usable road mask"):
+        kitti15_pairs(kitti15_folder, height=1.65)
+    with pytest.raises(JobError, match=r"^--kitti-odometry: road: '.*road\.json' is not a usable road mask"):
+        kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)
+    for specs in (kitti15_pairs(kitti15_folder, height=1.65, road_auto=True)[0],
+                  kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0, road_auto=True)[0]):
+        item = specs[0].load()
+        assert item["road"] is None and item["image1"].shape[-2:] == SIZE
+        assert "road" not in specs[0].identity()["files"] and "calib" in specs[0].identity()["files"]
+    # the datasets' own switch, checked as a flag
+    assert KittiSampleDataset(kitti15_folder, road_json=False)[0]["road"] is None
+    assert KittiOdometryDataset(odometry_folder, road_json=False)[1]["road"] is None
+    with pytest.raises(TypeError, match=r"^road_json: expected True or False, got str 'no'"):
+        KittiOdometryDataset(odometry_folder, road_json="no")

@@ -426,11 +426,21 @@ def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
         assert rec["refined"] and rec["pitch"] == pytest.approx(math.radians(pitch), abs=1e-9)
 
 
-def test_calibrate_pitch_with_auto_road(tmp_path, user_folder, scene_pairs, monkeypatch):
+@pytest.mark.parametrize("size", [SIZE, (96, 320)])
+def test_calibrate_pitch_with_auto_road(tmp_path, size, monkeypatch):
     """--calibrate-pitch with --road auto: the clip's masks are found in the images first, once
-    per pair: the refinement of every source uses those detections (and records them)."""
+    per pair: the refinement of every source uses those detections (and records them). At 48 x 160
+    the road is too faint to find (the pairs are flagged), no pair's fit succeeds and nothing is
+    calibrated (the report says so); at 96 x 320 the clip calibrates the camera's pitch."""
     import fsof_torch
+    from fsof_torch.data.scene import render_pair
+    from fsof_torch.io import write_image, write_kitti_calibration
 
+    pairs = [render_pair("default", i, size=size) for i in range(2)]
+    (tmp_path / "images").mkdir()
+    for i, im in enumerate([pairs[0]["image1"], pairs[0]["image2"], pairs[1]["image2"]]):
+        write_image(tmp_path / "images" / f"{i:06d}.png", im)
+    write_kitti_calibration(tmp_path / "calib.txt", pairs[0]["camera"].K[0], cam=0, style="odometry")
     detected = []
     detect_road = fsof_torch.detect_road
 
@@ -441,18 +451,54 @@ def test_calibrate_pitch_with_auto_road(tmp_path, user_folder, scene_pairs, monk
 
     monkeypatch.setattr(fsof_torch, "detect_road", counting)
     out = tmp_path / "out"
-    args = _user(user_folder, out, "--road", "auto", "--source", "dis,testnet", "--odometry", "photometric",
+    args = _user(tmp_path, out, "--road", "auto", "--source", "dis,testnet", "--odometry", "photometric",
                  "--calibrate-pitch")
     assert main(args) == 0
     summary = json.loads((out / "report.json").read_text())
-    true = math.degrees(float(scene_pairs[0]["camera"].pitch[0]))
-    assert abs(summary["calibrated_mounting"]["pitch_deg"] - true) < 1.0
-    assert len(detected) == len(scene_pairs)  # once per pair, not once more per source
+    true = math.degrees(float(pairs[0]["camera"].pitch[0]))
+    if size == SIZE:
+        assert summary["calibrated_mounting"] is None
+        assert any(n.startswith("Mounting not calibrated: no pair's fit over the clip succeeded (0 of 2)")
+                   for n in summary["notes"])
+    else:
+        assert abs(summary["calibrated_mounting"]["pitch_deg"] - true) < 1.0
+        assert any(n.startswith("Mounting calibrated over the clip from its images (the fits of 2 of 2 pairs)")
+                   for n in summary["notes"])
+    assert len(detected) == len(pairs)  # once per pair, not once more per source
     for source in ("dis", "testnet"):
-        for k in range(len(scene_pairs)):
+        for k in range(len(pairs)):
             rec = json.loads((out / source / "photometric" / "pairs" / f"{k:06d}.json").read_text())
             assert rec["road"] == "auto" and "road_flag" in rec
             assert rec["road_auto_pixels"] == detected[k]
+            assert (rec["road_flag"] == "ok") == (size != SIZE)
+
+
+def test_a_clip_whose_fits_all_fail_keeps_the_nominal_mounting(tmp_path, user_folder, monkeypatch):
+    """Where no pair's fit over the clip succeeds nothing is calibrated: --calibrate-pitch refines
+    with the nominal camera (pitch and roll 0 here), and the report says so instead of stating a
+    calibrated mounting."""
+    import dataclasses
+
+    import refine.calibrate
+
+    fit_sequence = refine.calibrate.fit_sequence
+
+    def failing(*args, **kwargs):
+        seq = fit_sequence(*args, **kwargs)
+        return dataclasses.replace(seq, success=torch.zeros_like(seq.success), calibrated_from=0)
+
+    monkeypatch.setattr(refine.calibrate, "fit_sequence", failing)
+    out = tmp_path / "out"
+    assert main(_user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry",
+                      "fit", "--calibrate-pitch")) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["calibrated_mounting"] is None
+    assert ("Mounting not calibrated: no pair's fit over the clip succeeded (0 of 2); every variant uses the "
+            "nominal mounting (pitch 0.00°, roll 0.00°), so --calibrate-pitch changed nothing.") in summary["notes"]
+    assert not any(n.startswith("Mounting calibrated") for n in summary["notes"])
+    for name in ("000000", "000001"):
+        rec = json.loads((out / "dis" / "fit" / "pairs" / f"{name}.json").read_text())
+        assert rec["pitch"] == 0.0 and rec["roll"] == 0.0
 
 
 def test_stale_temporaries_are_removed(tmp_path):
@@ -984,3 +1030,143 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
     assert "--net and --flows: give one of them" in _err(
         capsys, [*user, "--net", "mypkg:make", "--flows", str(user_folder / "flows")])
     assert not (tmp_path / "o").exists()
+
+
+def test_net_options_without_the_net_source_are_refused(tmp_path, user_folder, capsys):
+    """--net, --checkpoint and --net-contract with sources that leave out net would be ignored:
+    refused before any work, naming them."""
+    out = tmp_path / "o"
+    user = _user(user_folder, out, "--road", "auto", "--source", "dis")
+    assert _err(capsys, [*user, "--net", "mypkg:make"]).startswith(
+        "error: --net: the run has no net source (sources: dis); add net to --source")
+    assert _err(capsys, [*user, "--net", "mypkg:make", "--checkpoint", str(tmp_path / "w.pt"), "--net-contract",
+                         "raft"]).startswith("error: --net and --checkpoint and --net-contract: the run has no net "
+                                             "source (sources: dis)")
+    assert _err(capsys, ["--source", "dis,testnet", "--net", "mypkg:make", "--out", str(out), *TINY]).startswith(
+        "error: --net: the run has no net source (sources: dis,testnet)")
+    assert not out.exists()
+
+
+def test_scale_applies_to_confidence_only(tmp_path, capsys):
+    """--scale with --mode replace (which has no scale) is refused; a confidence run without it
+    uses 2 px and has the fingerprint of one given --scale 2."""
+    out = tmp_path / "out"
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert _err(capsys, [*base, "--scale", "7"]).startswith(
+        "error: --scale: applies to --mode confidence, not to --mode replace")
+    assert _err(capsys, [*base, "--mode", "confidence", "--scale", "0"]).startswith(
+        "error: --scale: expected a finite value > 0 px, got 0.0")
+    assert not out.exists()
+    assert main([*base, "--mode", "confidence"]) == 0
+    first = json.loads((out / "report.json").read_text())
+    assert first["scale_px"] == 2.0 and first["identity"]["scale"] == 2.0
+    assert main([*base, "--mode", "confidence", "--scale", "2"]) == 0
+    again = json.loads((out / "report.json").read_text())
+    assert again["fingerprint"] == first["fingerprint"] and again["records_resumed"] == 1
+    assert "another run (scale: 2.0 -> 3.0)" in _err(capsys, [*base, "--mode", "confidence", "--scale", "3"])
+
+
+@pytest.mark.parametrize("device, message", [
+    ("meta", "--device: 'meta' holds no data (shapes only); give cpu or cuda"),
+    ("mps", "--device: cannot place a tensor on 'mps' ("),
+])
+def test_a_device_that_cannot_hold_the_job_is_refused_before_any_work(tmp_path, capsys, device, message):
+    out = tmp_path / "out"
+    err = _err(capsys, ["--num-pairs", "1", "--source", "dis", "--no-figures", "--device", device,
+                        "--out", str(out), *TINY])
+    assert err.startswith(f"error: {message}"), err
+    assert not out.exists()
+
+
+def test_a_corrupt_flow_file_is_named_under_flows(tmp_path, user_folder, scene_pairs, capsys):
+    (user_folder / "flows" / "000001.npy").unlink()
+    (user_folder / "flows" / "000001.png").write_bytes(b"garbage\n")
+    err = _err(capsys, _user(user_folder, tmp_path / "out", "--flows", str(user_folder / "flows"), "--road",
+                             str(user_folder / "road"), "--odometry", "given", "--poses",
+                             str(user_folder / "poses.txt"), *_mounting(scene_pairs)))
+    assert err.startswith(f"error: --flows: {str(user_folder / 'flows' / '000001.png')!r} is not a PNG file"), err
+
+
+@pytest.mark.parametrize("manifest", ["[]", "5", '{"fingerprint": "x", "outputs": 5}',
+                                      '{"fingerprint": "x", "outputs": ["dis", 5]}'])
+def test_a_manifest_that_is_json_but_not_a_manifest(tmp_path, manifest):
+    """run.json holding JSON that is not a manifest (a list, a number, outputs not a list of names)
+    reads as an unreadable one: a folder without results is taken, one with results refused unless
+    --overwrite, never a traceback."""
+    from refine import resume
+    from refine.inputs import JobError
+
+    out = tmp_path / "out"
+    out.mkdir()
+    identity = {"mode": "replace", "outputs": ["dis"]}
+    (out / "run.json").write_text(manifest)
+    assert resume.prepare(out, identity, overwrite=False)["identity"] == identity
+    (out / "run.json").write_text(manifest)
+    (out / "report.md").write_text("")
+    with pytest.raises(JobError, match=r"^--out: .* holds the results of another run"):
+        resume.prepare(out, identity, overwrite=False)
+    assert resume.prepare(out, identity, overwrite=True)["fingerprint"] == resume.fingerprint(identity)
+    assert not (out / "report.md").exists()
+
+
+def test_a_record_that_is_json_but_not_a_record_is_redone(tmp_path):
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(args) == 0
+    record = out / "dis" / "given" / "pairs" / "000000.json"
+    done = json.loads(record.read_text())
+    for text in ("[]", "5", '"x"'):
+        record.write_text(text)
+        assert main(args) == 0
+        summary = json.loads((out / "report.json").read_text())
+        assert summary["records_resumed"] == 0 and summary["records_computed"] == 1
+        assert json.loads(record.read_text())["after"] == done["after"]
+
+
+def test_an_input_error_on_another_process_stops_this_one_with_its_message(tmp_path, capsys, monkeypatch):
+    """Under torchrun the processes exchange their pairs' input errors before the collectives:
+    rank 0, whose pairs were fine, stops with the other rank's message (exit 2) instead of waiting
+    in the all-reduce; another rank whose pairs were fine stops quietly (exit 2); the rank that
+    failed reports its own. (The world is simulated: its collectives return what the other rank
+    would give: ``elsewhere``.)"""
+    from refine import distributed, inputs
+
+    other = "--flows: 'flows/000001.png' is not a PNG file"
+    calls, elsewhere = [], {}
+
+    def gather(obj, world):
+        calls.append(obj)
+        return [obj, elsewhere["error"]] if world.rank == 0 else [elsewhere["error"], obj]
+
+    monkeypatch.setattr(distributed, "gather_objects", gather)
+    monkeypatch.setattr(distributed, "broadcast_object", lambda obj, world: obj)
+    monkeypatch.setattr(distributed, "all_reduce_sum", lambda values, world: values.clone())
+    base = ["--num-pairs", "2", "--source", "dis", "--odometry", "given", "--no-figures", *TINY]
+    elsewhere["error"] = other
+    for rank in (0, 1):
+        monkeypatch.setattr(distributed, "init", lambda device, rank=rank: distributed.World(rank, 2, rank, "gloo"))
+        out = tmp_path / f"r{rank}"
+        assert main([*base, "--out", str(out)]) == 2
+        err = capsys.readouterr().err
+        assert err == (f"error: {other} (on rank 1)\n" if rank == 0 else ""), err
+        assert calls == [None]  # its own pairs went well; nothing else was gathered
+        assert (out / "dis" / "given" / "pairs" / f"{rank:06d}.json").is_file()
+        assert not (out / "report.json").exists()
+        calls.clear()
+
+    # rank 1 of 2, whose pair (000001) fails to load: it reports its own error
+    synthetic_pairs = inputs.synthetic_pairs
+    message = "--size: pair 000001 cannot be rendered (simulated)"
+
+    def broken():
+        raise inputs.JobError(message)
+
+    def pairs(*args, **kwargs):
+        specs = synthetic_pairs(*args, **kwargs)
+        specs[1].load = broken
+        return specs
+
+    monkeypatch.setattr(inputs, "synthetic_pairs", pairs)
+    elsewhere["error"] = None
+    assert _err(capsys, [*base, "--out", str(tmp_path / "r1b")]) == f"error: {message}\n"
+    assert calls == [message]

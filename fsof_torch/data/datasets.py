@@ -36,7 +36,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_int, check_size
+from .._check import check_bool, check_int, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
@@ -243,13 +243,16 @@ class KittiSampleDataset(ImageFolderDataset):
     ``image_11.png``, and where present ``calib_cam_to_cam.txt`` (camera ``cam``, with its
     ``S_rect`` size checked), ``flow_noc_10.png`` (ground truth), ``road.json``. The pair is named
     after the folder. No odometry (KITTI flow does not publish it). ``camera_height`` in metres,
-    ``roll`` and ``pitch`` in radians; the other arguments as in :class:`ImageFolderDataset`.
+    ``roll`` and ``pitch`` in radians; ``road_json=False``: the folder's ``road.json`` is not read
+    (items without ``road``, for a caller that finds the road itself); the other arguments as in
+    :class:`ImageFolderDataset`.
     """
 
     def __init__(self, folder: str | os.PathLike, *, cam: int = 2, camera_height: float = KITTI_HEIGHT,
                  roll: float = 0.0, pitch: float = 0.0, dtype: torch.dtype = torch.float32,
-                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
+                 camera_dtype: torch.dtype | None = None, ground_truth: bool = True, road_json: bool = True):
         check_item_options(dtype, camera_dtype, ground_truth)  # before the files, as every dataset does
+        road_json = check_bool(road_json, "road_json")
         self.folder = f = _folder(folder, "folder")
         for file in ("image_10.png", "image_11.png"):
             if not (f / file).is_file():
@@ -257,8 +260,8 @@ class KittiSampleDataset(ImageFolderDataset):
         calib, road, gt = f / "calib_cam_to_cam.txt", f / "road.json", f / "flow_noc_10.png"
         super().__init__([f / "image_10.png", f / "image_11.png"], calib if calib.is_file() else None, cam=cam,
                          camera_height=camera_height, roll=roll, pitch=pitch,
-                         road=road if road.is_file() else None, dtype=dtype, camera_dtype=camera_dtype,
-                         ground_truth=ground_truth)
+                         road=road if road_json and road.is_file() else None, dtype=dtype,
+                         camera_dtype=camera_dtype, ground_truth=ground_truth)
         # (named after the folder itself: ``.`` or ``sub/..`` has no name of its own)
         self.pairs = [replace(self.pairs[0], name=f.resolve().name or "kitti15", gt=gt if gt.is_file() else None)]
 
@@ -273,14 +276,16 @@ class KittiOdometryDataset(ImageFolderDataset):
     first frame. ``odometry`` is :func:`fsof_torch.egomotion.ego_motion_from_pose` of the pair's
     ``relative_pose`` under the camera's mounting (``roll``, ``pitch`` in radians, default 0);
     ``pose_residual`` what the planar model drops (``y_d`` in metres, rotation residual angle in
-    radians). The other arguments as in :class:`ImageFolderDataset`.
+    radians). ``road_json=False``: ``road.json`` is not read (items without ``road``, for a caller
+    that finds the road itself). The other arguments as in :class:`ImageFolderDataset`.
     """
 
     def __init__(self, folder: str | os.PathLike, *, image_dir: str = "image_l", cam: int = 0, step: int = 1,
                  camera_height: float = KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
                  dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
-                 ground_truth: bool = True):
+                 ground_truth: bool = True, road_json: bool = True):
         check_item_options(dtype, camera_dtype, ground_truth)  # ground_truth decides below whether poses are needed
+        road_json = check_bool(road_json, "road_json")
         self.folder = _folder(folder, "folder")
         step = check_int(step, "step", minimum=1)
         images = self.folder / image_dir
@@ -301,8 +306,8 @@ class KittiOdometryDataset(ImageFolderDataset):
             raise ValueError(f"folder: {str(self.folder)!r} has no frame pairs with poses (step {step})")
         road = self.folder / "road.json"
         super().__init__(frames, self.folder / "calib.txt", cam=cam, camera_height=camera_height, roll=roll,
-                         pitch=pitch, poses=poses, road=road if road.is_file() else None, step=step, dtype=dtype,
-                         camera_dtype=camera_dtype, ground_truth=ground_truth)
+                         pitch=pitch, poses=poses, road=road if road_json and road.is_file() else None, step=step,
+                         dtype=dtype, camera_dtype=camera_dtype, ground_truth=ground_truth)
 
 
 class CarlaRunDataset(Dataset):

@@ -2,9 +2,11 @@
 ground-truth flows matched to the pairs by name: the layout of your own recordings, which
 ``python -m refine --images`` reads through :class:`ImageFolderDataset`.
 
-Pairs: consecutive frames (i, i + step) of the folder sorted by name, each named after its first
-frame; or, where the frames are KITTI flow pairs (``NAME_10`` / ``NAME_11``), those pairs, named
-``NAME``.
+Pairs: consecutive frames (i, i + step) of the folder sorted by name (by number where every name
+is a number: ``5.png`` before ``10.png``), each named after its first frame; or, where any frame's
+name ends in ``_10`` or ``_11``, KITTI flow pairs (``NAME_10`` / ``NAME_11``) by name, named
+``NAME``: every image of such a folder must then be in a complete pair (an image without its
+partner is an error naming it, never paired with another scene's frame nor dropped).
 
 Files are matched to pairs by name only, never by position (:func:`match_files`): the pair ``NAME``
 takes ``NAME.<ext>`` (or its first image's stem) from a folder; a pair without such a file, or
@@ -64,22 +66,47 @@ def check_index(index: int, length: int) -> int:
 
 
 def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
-    """The image files of ``folder`` sorted by name (at least 2; ``name`` is the argument the
-    errors name)."""
+    """The image files of ``folder`` in frame order (at least 2; ``name`` is the argument the
+    errors name): by number where every file's name is a number (``0.png``, ``5.png``,
+    ``10.png``: frames numbered without zero padding), else by name."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
     images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    if all(re.fullmatch(r"[0-9]+", p.stem) for p in images):
+        images.sort(key=lambda p: int(p.stem))  # (stable: equal numbers, 5 and 05, stay by name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
 
 
+def _kitti_partner(stem: str) -> str | None:
+    """The other image's name of a KITTI flow pair (``NAME_10`` <-> ``NAME_11``); None for others."""
+    if stem.endswith("_10"):
+        return stem[:-3] + "_11"
+    if stem.endswith("_11"):
+        return stem[:-3] + "_10"
+    return None
+
+
 def kitti_flow_layout(images: Iterable[Path]) -> bool:
-    """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``), not one clip."""
-    stems = {Path(p).stem for p in images}
-    kitti = [s for s in stems if re.fullmatch(r".*_10", s)]
-    return bool(kitti) and all(s[:-3] + "_11" in stems for s in kitti)
+    """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``, paired by name), not one
+    clip: whether any image's name ends in ``_10`` or ``_11``. Every image of such a layout must
+    be in a complete pair: one without its partner (a ``NAME_10`` without ``NAME_11``, or another
+    image beside the pairs) raises a ValueError naming ``images``, the folder and the images."""
+    paths = [Path(p) for p in images]
+    stems = {p.stem for p in paths}
+    if not any(_kitti_partner(s) is not None for s in stems):
+        return False
+    orphans = [p for p in paths if _kitti_partner(p.stem) not in stems]
+    if orphans:
+        folders = sorted({str(p.parent) for p in paths})
+        where = repr(folders[0]) if len(folders) == 1 else f"{len(paths)} images"
+        shown = ", ".join(p.name for p in orphans[:5]) + (", ..." if len(orphans) > 5 else "")
+        raise ValueError(f"images: {where} holds KITTI flow pairs (NAME_10 / NAME_11, paired by name), but "
+                         f"{len(orphans)} image(s) have no partner: {shown}; give each NAME_10 its NAME_11 and "
+                         f"move other images out (frames of a clip: names that do not end in _10 or _11)")
+    return True
 
 
 def frame_pairs(images: Sequence[Path], step: int = 1) -> list[tuple[str, int, int]]:
@@ -92,7 +119,7 @@ def frame_pairs(images: Sequence[Path], step: int = 1) -> list[tuple[str, int, i
             raise ValueError(f"step: KITTI flow pairs (NAME_10 / NAME_11) pair by name; expected 1, got {step}")
         position = {Path(p).stem: i for i, p in enumerate(images)}
         return [(s[:-3], position[s], position[s[:-3] + "_11"])
-                for s in sorted(s for s in position if re.fullmatch(r".*_10", s))]
+                for s in sorted(s for s in position if s.endswith("_10"))]
     return [(Path(images[i]).stem, i, i + step) for i in range(len(images) - step)]
 
 
