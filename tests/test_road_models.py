@@ -26,6 +26,7 @@ from fsof_torch.geometry.road_models import (
     plane_from_pose,
     road_homography,
     road_motion,
+    road_motion_batch,
     rotation_angles,
 )
 
@@ -294,6 +295,10 @@ def test_road_motion_forms_and_errors():
         road_motion({"model": "bicycle"})
     with pytest.raises(TypeError, match="odometry: expected a dict"):
         road_motion(3.0)
+    # a batch of 1 allows one shape, and the message says so (once "(1,) or (1,)")
+    with pytest.raises(ValueError, match=r"odometry\['z_d'\]: expected a float or a tensor of shape \(1,\) \(the "
+                                         r"flow's batch\), got shape \(3,\)"):
+        road_motion_batch({"model": "plane", "z_d": torch.ones(3)}, 1, torch.float32, "cpu")
 
 
 def test_bad_inputs_name_the_argument():

@@ -519,8 +519,9 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
     for key, value in params.items():
         t = as_batch_param(value, f"{name}[{key!r}]", finite=False)
         if t.shape[0] not in (1, batch):
-            raise ValueError(f"{name}[{key!r}]: expected a float or a tensor of shape (1,) or ({batch},) "
-                             f"({batch_of}), got shape {tuple(t.shape)}")
+            shapes = "(1,)" if batch == 1 else f"(1,) or ({batch},)"
+            raise ValueError(f"{name}[{key!r}]: expected a float or a tensor of shape {shapes} ({batch_of}), got "
+                             f"shape {tuple(t.shape)}")
         out[key] = t.to(device=device, dtype=dtype).expand(batch)
     # one finiteness check for all (in the dtype they are used in: a value it cannot hold fails)
     check_all_finite({f"{name}[{key!r}]": t for key, t in out.items()})
