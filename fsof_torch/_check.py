@@ -383,9 +383,10 @@ def result_dtype(*tensors: Tensor) -> torch.dtype:
 
 def autocast_off(x: Tensor) -> ContextManager:
     """``torch.autocast(enabled=False)`` for ``x``'s device type: the caller casts to its working
-    dtype (:func:`result_dtype`) itself. A no-op where autocast does not exist (the meta device)."""
+    dtype (:func:`result_dtype`) itself. A no-op where autocast is off already or does not exist
+    (the meta device): the road models' maps enter it at every solver iteration."""
     device_type = x.device.type
-    if not torch.amp.is_autocast_available(device_type):
+    if not (torch.amp.is_autocast_available(device_type) and torch.is_autocast_enabled(device_type)):
         return contextlib.nullcontext()
     return torch.autocast(device_type=device_type, enabled=False)
 

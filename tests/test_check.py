@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import pytest
 import torch
 
@@ -227,6 +229,9 @@ def test_autocast_off_restores_float32_arithmetic():
         assert (a @ a).dtype == torch.bfloat16
         with autocast_off(a):
             assert (a @ a).dtype == torch.float32
+        assert (a @ a).dtype == torch.bfloat16  # (restored on leaving)
+    # with autocast off already, nothing to switch off: no context entered
+    assert isinstance(autocast_off(a), contextlib.nullcontext)
 
 
 def test_option_checks_name_the_option_and_quote_the_value():

@@ -48,9 +48,8 @@ Example:
 
 from __future__ import annotations
 
-import contextlib
 from dataclasses import dataclass
-from typing import Callable, ContextManager, Mapping
+from typing import Callable, Mapping
 
 import torch
 from torch import Tensor
@@ -106,16 +105,6 @@ def _bases(dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Te
     """(E0, Ec, Es), each (3, 3, 3) indexed by axis (roll, pitch, yaw); cached."""
     return _constant(("bases", dtype, device), lambda: tuple(
         torch.tensor(b, dtype=dtype, device=device).reshape(3, 3, 3) for b in (_E0, _EC, _ES)))
-
-
-def _autocast_off_if_on(x: Tensor) -> ContextManager:
-    """:func:`autocast_off` where autocast is on for ``x``'s device, else nothing: the maps run in
-    their inputs' dtype, and the solvers evaluate them every iteration (inside their own
-    autocast_off), where entering the context again would cost more than a small map."""
-    device_type = x.device.type
-    if torch.amp.is_autocast_available(device_type) and torch.is_autocast_enabled(device_type):
-        return autocast_off(x)
-    return contextlib.nullcontext()
 
 
 def _rotations(angles: Tensor, axes: tuple[int, ...]) -> Tensor:
@@ -366,7 +355,7 @@ class RoadModel:
 
         In the dtype of the values and the camera (as :meth:`matrix` and
         :meth:`matrix_and_jacobian`), also under ``torch.autocast``."""
-        with _autocast_off_if_on(values):
+        with autocast_off(values):
             return self._fn(K, K_inv, height, values, jacobian)
 
     def horizon_row(self, camera: Camera, values: Tensor) -> Tensor:
@@ -378,7 +367,7 @@ class RoadModel:
             roll, pitch = values[:, i], values[:, j]
         else:
             roll, pitch = camera.roll.to(values), camera.pitch.to(values)
-        with _autocast_off_if_on(values):
+        with autocast_off(values):
             Rt, Rb = _rotations(torch.stack([roll, pitch], dim=-1), (_ROLL, _PITCH)).unbind(1)
             n = (Rt @ Rb)[:, :, 1:2]  # the road's normal in the camera frame (pointing down)
             return n.transpose(-1, -2) @ camera.K_inv().to(values)
@@ -574,7 +563,7 @@ def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
     """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
     the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity (in the promoted dtype
     of the three, also under ``torch.autocast``)."""
-    with _autocast_off_if_on(H):
+    with autocast_off(H):
         G = K_inv @ H @ K
         G = G / G[:, 2:3, 2:3]
         return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
