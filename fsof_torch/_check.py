@@ -323,6 +323,9 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
         elif x.dim() != 1:
             raise ValueError(f"{name}: expected a scalar or shape (B,), got {_fmt_shape(tuple(x.shape))}")
         if dtype is not None or device is not None:
+            if device is not None and x.device.type == "meta" and torch.device(device).type != "meta":
+                raise ValueError(f"{name}: a tensor on the meta device has no values to move to {device} (the "
+                                 f"computation's device); give it on {device}")
             x = x.to(dtype=dtype or x.dtype, device=device or x.device)
     elif isinstance(x, numbers.Real) and not isinstance(x, bool):
         x = torch.tensor([float(x)], dtype=dtype or torch.get_default_dtype(), device=device)

@@ -142,6 +142,12 @@ def test_as_batch_param():
         as_batch_param(True, "x")
     with pytest.raises(ValueError, match="x: expected finite values"):
         as_batch_param(float("nan"), "x")
+    # a shapes-only tensor cannot be moved to a real device (once torch's "Cannot copy out of meta
+    # tensor", naming nothing), and stays where the computation is on meta too
+    meta = torch.ones(2, device="meta")
+    with pytest.raises(ValueError, match="x: a tensor on the meta device has no values to move to cpu"):
+        as_batch_param(meta, "x", device=torch.device("cpu"))
+    assert as_batch_param(meta, "x", torch.float64, torch.device("meta"), finite=False).device.type == "meta"
 
 
 def test_resolve_batch():

@@ -309,6 +309,8 @@ def test_bad_inputs_name_the_argument():
         road_flow(cam.expand(2), {"z_d": torch.ones(3, dtype=torch.float64)}, SIZE)
     with pytest.raises(ValueError, match="z_d: expected finite"):
         road_flow(cam, {"z_d": float("nan")}, SIZE)
+    with pytest.raises(ValueError, match="z_d: a tensor on the meta device has no values to move to cpu"):
+        road_flow(cam, {"z_d": torch.ones(1, dtype=torch.float64, device="meta")}, SIZE)
     with pytest.raises(ValueError, match="overflows"):
         road_flow(Camera(torch.tensor(K_SMALL), 1.65), {"x_d": 1e37}, SIZE)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
