@@ -5,21 +5,10 @@ returns the error message, naming the option, or None."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 from typing import Iterable
 
-
-def _creatable(path: Path, option: str) -> str | None:
-    """The nearest existing parent of ``path`` is a folder that can be written into."""
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                return f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created"
-            if not os.access(parent, os.W_OK | os.X_OK):
-                return f"{option}: the folder {str(parent)!r} is not writable, so {str(path)!r} cannot be created"
-            return None
-    return None
+from fsof_torch.io.atomic import creation_error
 
 
 def bad_file(path: Path | None, option: str) -> str | None:
@@ -28,7 +17,7 @@ def bad_file(path: Path | None, option: str) -> str | None:
         return None
     if path.is_dir():
         return f"{option}: {str(path)!r} is a folder; expected a file path"
-    return _creatable(path, option)
+    return creation_error(path, option)
 
 
 def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str | None:
@@ -38,7 +27,7 @@ def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str
         return None
     if path.exists() and not path.is_dir():
         return f"{option}: {str(path)!r} is a file; expected a folder (it is created if missing)"
-    bad = _creatable(path, option)
+    bad = creation_error(path, option)
     if bad is not None:
         return bad
     for name in files:

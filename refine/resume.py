@@ -25,6 +25,8 @@ import shutil
 from pathlib import Path
 from typing import Any, Iterator
 
+from fsof_torch.io.atomic import creation_error
+
 from .inputs import JobError
 
 MANIFEST = "run.json"
@@ -41,12 +43,10 @@ def fingerprint(identity: Any) -> str:
 
 
 def _creatable(path: Path, option: str) -> None:
-    """The nearest existing parent of ``path`` is a folder (so ``path`` can be created)."""
-    for parent in path.parents:
-        if parent.exists():
-            if not parent.is_dir():
-                raise JobError(f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created")
-            return
+    """``path`` can be created (:func:`fsof_torch.io.atomic.creation_error`), else a JobError."""
+    bad = creation_error(path, option)
+    if bad is not None:
+        raise JobError(bad)
 
 
 def check_out_path(out: Path) -> None:

@@ -137,3 +137,18 @@ class TestStaleTemporaries:
 
     def test_missing_folder_is_empty(self, tmp_path):
         assert remove_stale_temporaries(tmp_path / "none") == []
+
+
+def test_creation_error_names_the_option(tmp_path, monkeypatch):
+    """A path can be created where its nearest existing parent is a folder the process can write
+    into; otherwise the message says why, naming the option."""
+    import fsof_torch.io.atomic as atomic
+    from fsof_torch.io.atomic import creation_error
+
+    assert creation_error(tmp_path / "a" / "b.json", "--json") is None
+    (tmp_path / "f").write_text("x")
+    assert creation_error(tmp_path / "f" / "b.json", "--json") == (
+        f"--json: {str(tmp_path / 'f')!r} is a file, so {str(tmp_path / 'f' / 'b.json')!r} cannot be created")
+    monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)
+    assert creation_error(tmp_path / "a", "--out") == (
+        f"--out: the folder {str(tmp_path)!r} is not writable, so {str(tmp_path / 'a')!r} cannot be created")

@@ -525,6 +525,23 @@ def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
     assert "another refine run" in err and str(os.getpid()) in err
 
 
+def test_outputs_under_a_folder_that_cannot_be_written_are_refused_first(tmp_path, capsys, monkeypatch):
+    """--out and --json under a folder the process cannot write into: exit 2 naming the option,
+    before any work (as the eval job checks its own; the test runs as any user, so the folder's
+    permission is what os.access reports)."""
+    import fsof_torch.io.atomic as atomic
+
+    locked_dir = tmp_path / "locked"
+    locked_dir.mkdir()
+    monkeypatch.setattr(atomic.os, "access", lambda path, mode: Path(path) != locked_dir)
+    base = ["--num-pairs", "1", "--source", "dis", "--no-figures", *TINY]
+    err = _err(capsys, [*base, "--out", str(locked_dir / "out")])
+    assert f"--out: the folder {str(locked_dir)!r} is not writable" in err
+    err = _err(capsys, [*base, "--out", str(tmp_path / "out"), "--json", str(locked_dir / "r.json")])
+    assert f"--json: the folder {str(locked_dir)!r} is not writable" in err
+    assert not (tmp_path / "out").exists()
+
+
 def test_testnet_source_confidence_mode(tmp_path):
     out = tmp_path / "out"
     rc = main(["--num-pairs", "1", "--source", "testnet", "--odometry", "given", "--mode", "confidence",

@@ -24,7 +24,8 @@ from typing import Any, Iterator
 
 from .._check import as_path
 
-__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable", "remove_stale_temporaries"]
+__all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable", "remove_stale_temporaries",
+           "creation_error"]
 
 #: the names :func:`atomic_path` gives its temporary files
 TEMPORARY_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp(\.[^.]*)?$")
@@ -160,3 +161,18 @@ def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
     returns the path."""
     text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
     return write_text(path, text + "\n")
+
+
+def creation_error(path: str | os.PathLike, option: str) -> str | None:
+    """Why ``path`` cannot be created (its nearest existing parent is a file, or a folder that
+    cannot be written into), as a message naming ``option``; None where it can. The jobs check
+    their outputs with it before any work."""
+    path = Path(path)
+    for parent in path.parents:
+        if parent.exists():
+            if not parent.is_dir():
+                return f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created"
+            if not os.access(parent, os.W_OK | os.X_OK):
+                return f"{option}: the folder {str(parent)!r} is not writable, so {str(path)!r} cannot be created"
+            return None
+    return None
