@@ -435,7 +435,8 @@ def _radial(scale: Tensor, valid: Tensor, du: Tensor, dv: Tensor, B: int) -> tup
 
 def displacement_flow_straight(camera: Camera, z_d: Tensor | float,
                                size: tuple[int, int]) -> tuple[Tensor, Tensor]:
-    """Paper eq. 22: straight motion (φ = 0, x_d = 0) with roll; the camera's pitch is ignored.
+    """Paper eq. 22: straight motion (φ = 0, x_d = 0) with roll; the camera's pitch is ignored, and
+    so is its skew (as in all four special cases: the paper's equations).
 
     ``f_d = λ1 / (h / z_d - λ1) · (u - u_0, v - v_0)``.
     """
