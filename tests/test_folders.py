@@ -152,6 +152,31 @@ def test_kitti_flow_pairs_must_be_complete(tmp_path, extra, orphans):
         frame_pairs(sorted(tmp_path.iterdir()))
 
 
+def test_a_clip_with_a_frame_named_like_kitti_stays_a_clip(tmp_path):
+    """frame_00 ... frame_10: one name ends in _10, but no pair is complete and not every name is
+    a KITTI pair's: a clip of 10 pairs, as it always was."""
+    for n in range(11):
+        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), float(n)))
+    images = sorted(tmp_path.iterdir())
+    assert not kitti_flow_layout(images)
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == [f"frame_{n:02d}" for n in range(10)]
+    assert float(ds[9]["image2"][0, 0, 0]) == 10.0
+
+
+@pytest.mark.parametrize("names, orphans", [
+    (["000009_11", "000010_10"], "000009_11.png, 000010_10.png"),  # only KITTI names, no pair
+    (["000002_09", "000002_10", "000002_11", "000002_12"], "000002_09.png, 000002_12.png"),  # multiview frames
+])
+def test_kitti_names_without_complete_pairs_or_beside_them_are_refused(tmp_path, names, orphans):
+    """Every name a KITTI pair's, or a complete pair beside other frames: KITTI pairs, and the
+    images without a partner are named (never paired across scenes, never dropped)."""
+    for name in names:
+        write_image(tmp_path / f"{name}.png", torch.zeros(3, *SIZE))
+    with pytest.raises(ValueError, match=rf"have no partner: {orphans}; "):
+        ImageFolderDataset(tmp_path)
+
+
 def test_frames_numbered_without_padding_pair_by_number(tmp_path):
     """Frames named 0, 5, 10, 15, 20 are a clip in that order (not the names' order 0, 10, 15, 20,
     5); names that are not all numbers keep the names' order."""

@@ -91,12 +91,16 @@ def _kitti_partner(stem: str) -> str | None:
 
 def kitti_flow_layout(images: Iterable[Path]) -> bool:
     """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``, paired by name), not one
-    clip: whether any image's name ends in ``_10`` or ``_11``. Every image of such a layout must
-    be in a complete pair: one without its partner (a ``NAME_10`` without ``NAME_11``, or another
-    image beside the pairs) raises a ValueError naming ``images``, the folder and the images."""
+    clip: every image's name ends in ``_10`` or ``_11``, or at least one complete pair is there.
+    Every image of such a layout must be in a complete pair: one without its partner (a
+    ``NAME_10`` without ``NAME_11``, or another image beside the pairs, such as the other frames
+    of KITTI's multiview folders) raises a ValueError naming ``images``, the folder and the
+    images. A clip whose frames merely include a name ending in ``_10`` (``frame_00`` to
+    ``frame_10``) stays a clip."""
     paths = [Path(p) for p in images]
     stems = {p.stem for p in paths}
-    if not any(_kitti_partner(s) is not None for s in stems):
+    paired = [s for s in stems if _kitti_partner(s) in stems]
+    if not paired and not all(_kitti_partner(s) is not None for s in stems):
         return False
     orphans = [p for p in paths if _kitti_partner(p.stem) not in stems]
     if orphans:
