@@ -374,6 +374,14 @@ def test_model_maps_stay_float32_under_autocast():
             cast = compute()
         for key, ref in plain.items():
             assert cast[key].dtype == torch.float32 and torch.equal(cast[key], ref), (name, key)
+    # homography_values in the promoted dtype, half precision lifted (mixed dtypes once raised
+    # torch's "expected scalar type Double but found Float")
+    M = ROAD_MODELS["plane"].matrix(*pack_params(ROAD_MODELS["plane"], cam, {"z_d": 1.2}))
+    ref = homography_values(M.double(), cam.K.double(), cam.K_inv().double())
+    mixed = homography_values(M, cam.K.double(), cam.K_inv())
+    assert mixed.dtype == torch.float64 and torch.allclose(mixed, ref, atol=1e-6)
+    half = homography_values(M.half(), cam.K, cam.K_inv())
+    assert half.dtype == torch.float32 and torch.allclose(half, ref.float(), atol=2e-2)
 
 
 def test_pose_conversions_follow_the_inputs_device():
@@ -437,3 +445,8 @@ def test_nearest_rotation_is_the_polar_factor():
         M = M * torch.sign(torch.linalg.det(M)).reshape(-1, 1, 1)
         U, _, Vh = torch.linalg.svd(M)
         torch.testing.assert_close(_nearest_rotation(M), U @ Vh, rtol=0, atol=1e-12)
+        # float32 is iterated in float64 (in float32 a condition number of 1e6 gave a wrong rotation)
+        R32 = _nearest_rotation(M.float())
+        assert R32.dtype == torch.float32
+        torch.testing.assert_close(R32.double(), torch.linalg.svd(M.float().double())[0] @
+                                   torch.linalg.svd(M.float().double())[2], rtol=0, atol=1e-6)

@@ -562,9 +562,10 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
 def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
     """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
     the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity (in the promoted dtype
-    of the three, also under ``torch.autocast``)."""
+    of the three, half precision lifted to float32, also under ``torch.autocast``)."""
+    dtype = result_dtype(H, K, K_inv)
     with autocast_off(H):
-        G = K_inv @ H @ K
+        G = K_inv.to(dtype) @ H.to(dtype) @ K.to(dtype)
         G = G / G[:, 2:3, 2:3]
         return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
 
@@ -625,9 +626,11 @@ def _nearest_rotation(M: Tensor) -> Tensor:
     Differentiable throughout (unlike an SVD, whose backward divides by differences of the
     singular values: NaN for M a rotation, where all three are 1, and inaccurate near one). The
     inverse transpose is the cofactor matrix over the determinant (cross products of columns).
-    A fixed count of iterations, with no host read: 12 reach float64's precision for condition
-    numbers up to 1e12 or so."""
-    X = M
+    A fixed count of iterations, with no host read, in float64 whatever M's dtype (the result in
+    M's): 12 reach float64's precision for condition numbers up to about 1e11 (measured against
+    the SVD's polar factor; beyond, the cofactors lose the small singular directions), far
+    beyond the near-rotations road homographies give."""
+    X = M.to(torch.float64)
     for _ in range(12):
         c0, c1, c2 = X.unbind(-1)
         cof = torch.stack([torch.linalg.cross(c1, c2, dim=-1), torch.linalg.cross(c2, c0, dim=-1),
@@ -636,7 +639,7 @@ def _nearest_rotation(M: Tensor) -> Tensor:
         inv_t = cof / det
         gamma = (inv_t.square().sum((-2, -1), keepdim=True) / X.square().sum((-2, -1), keepdim=True)).sqrt().sqrt()
         X = 0.5 * (gamma * X + inv_t / gamma)
-    return X
+    return X.to(M.dtype)
 
 
 def _plane_from_homography(H: Tensor, camera: Camera, B: int) -> dict[str, Tensor]:
