@@ -414,3 +414,27 @@ def test_a_degenerate_frame_gets_in_a_batch_what_it_gets_alone(model):
     for name, value in alone.params.items():
         torch.testing.assert_close(both.params[name][1], value[0], rtol=0, atol=1e-9)
     assert not bool(alone.success[0]) and bool(both.success[0])
+
+
+def test_a_degenerate_plane_start_falls_back_for_its_frame_only(monkeypatch):
+    """The "plane" start decomposes each frame's DLT homography; one that comes out singular (a
+    degenerate point set) keeps that frame's start instead of stopping the batch (the
+    decomposition refuses singular homographies), and its batch-mate fits as it would alone."""
+    import fsof_torch.estimation.flow_fit as flow_fit
+
+    p = render_pair("default", 0, size=(96, 320))
+    flow = p["flow"][None].expand(2, -1, -1, -1).clone()
+    mask = (p["road"] & p["valid"])[None].expand(2, -1, -1, -1).clone()
+    alone = fit_road(flow[:1], mask[:1], p["camera"], model="plane")
+    dlt = flow_fit.homography_dlt
+
+    def singular_second(*args, **kwargs):
+        H = dlt(*args, **kwargs).clone()
+        H[1] = 0.0
+        return H
+
+    monkeypatch.setattr(flow_fit, "homography_dlt", singular_second)
+    fit = fit_road(flow, mask, p["camera"], model="plane")
+    assert fit.success.tolist() == [True, True]
+    assert fit.params["z_d"][0] == alone.params["z_d"][0]
+    assert float(fit.params["z_d"][1]) == pytest.approx(1.2, abs=1e-3)

@@ -445,9 +445,13 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         if model.mounting:  # the attitude to decompose with: the start's
             cam = Camera._checked(camera.K, camera.height, values[:, model.index("roll")],
                                   values[:, model.index("pitch")])
-        plane = plane_from_homography(H, cam)
+        # a frame whose DLT is degenerate (not finite, or singular: plane_from_homography refuses
+        # it) keeps its start; the others are decomposed as they would be alone
+        usable = torch.isfinite(H).all(dim=(-2, -1)) & (torch.linalg.det(H) != 0)
+        eye = torch.eye(3, dtype=H.dtype, device=H.device)
+        plane = plane_from_homography(torch.where(usable.reshape(-1, 1, 1), H, eye), cam)
         out = torch.stack([plane[n] for n in model.params], dim=-1)
-        return torch.where(torch.isfinite(out), out, values)
+        return torch.where(torch.isfinite(out) & usable.unsqueeze(-1), out, values)
     return homography_values(H, camera.K, K_inv)
 
 
