@@ -627,9 +627,9 @@ def _nearest_rotation(M: Tensor) -> Tensor:
     singular values: NaN for M a rotation, where all three are 1, and inaccurate near one). The
     inverse transpose is the cofactor matrix over the determinant (cross products of columns).
     A fixed count of iterations, with no host read, in float64 whatever M's dtype (the result in
-    M's): 12 reach float64's precision for condition numbers up to about 1e11 (measured against
-    the SVD's polar factor; beyond, the cofactors lose the small singular directions), far
-    beyond the near-rotations road homographies give."""
+    M's): 12 agree with the SVD's polar factor to 1e-12 for condition numbers up to 1e8 (tested),
+    far beyond the near-rotations road homographies give; towards 1e12 the cofactors lose the
+    small singular directions."""
     X = M.to(torch.float64)
     for _ in range(12):
         c0, c1, c2 = X.unbind(-1)
