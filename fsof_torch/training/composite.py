@@ -25,6 +25,10 @@ class CompositeLoss(nn.Module):
             its ``forward`` (or of the function itself), so one batch dict can feed all terms.
             Each weight is a finite number >= 0: a bool, a string or any other non-number raises
             TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``.
+            Any name works; the ``nn.Module`` terms are submodules under ``terms.<name>``, except
+            where the name cannot be a submodule's (empty, containing ``"."``, not a string, or an
+            attribute of ``nn.ModuleDict`` such as ``"values"``): then under ``terms._term<i>``,
+            ``i`` the term's position. Results always carry the given names.
 
     ``forward(flows, inputs=None, **more)`` -> ``(total, values)``: the weighted sum (a scalar
     with gradient) and ``{name: unweighted value}`` (detached scalars).
@@ -42,21 +46,35 @@ class CompositeLoss(nn.Module):
             raise TypeError(f"terms: expected a non-empty dict {{name: (weight, term)}}, got {terms!r}")
         self.weights: dict[str, float] = {}
         self._names: dict[str, tuple[set[str], bool]] = {}
-        modules = {}
+        self._functions: dict[str, object] = {}   # the terms that are not modules
+        self._keys: dict[str, str] = {}           # term name -> its key in self.terms
+        entries = []
         for name, entry in terms.items():
             if not (isinstance(entry, (tuple, list)) and len(entry) == 2 and callable(entry[1])):
                 raise TypeError(f"terms[{name!r}]: expected (weight, callable term), got {entry!r}")
             weight, term = entry
             self.weights[name] = check_number(weight, f"terms[{name!r}] weight", nonnegative=True)
-            if isinstance(term, nn.Module):
-                modules[name] = term
-            else:
-                setattr(self, f"_fn_{name}", term)
             self._names[name] = _accepted_names(term)
+            entries.append((name, term))
+        probe = nn.ModuleDict()
+        taken = {name for name in self.weights if _module_key(name, probe)}
+        modules = {}
+        for i, (name, term) in enumerate(entries):
+            if not isinstance(term, nn.Module):
+                self._functions[name] = term
+                continue
+            key = name
+            if not _module_key(name, probe):
+                key = f"_term{i}"
+                while key in taken:  # (a given name that happens to read "_term<i>")
+                    key = "_" + key
+                taken.add(key)
+            self._keys[name] = key
+            modules[key] = term
         self.terms = nn.ModuleDict(modules)
 
     def _term(self, name: str):
-        return self.terms[name] if name in self.terms else getattr(self, f"_fn_{name}")
+        return self.terms[self._keys[name]] if name in self._keys else self._functions[name]
 
     def forward(self, flows: Tensor | Sequence[Tensor], inputs: Mapping[str, object] | None = None,
                 **more: object) -> tuple[Tensor, dict[str, Tensor]]:
@@ -70,6 +88,11 @@ class CompositeLoss(nn.Module):
             values[name] = value.detach()
             total = total + weight * value
         return total, values
+
+
+def _module_key(name: object, probe: nn.ModuleDict) -> bool:
+    """Whether ``name`` can key a submodule of ``probe`` (an empty ``nn.ModuleDict``)."""
+    return isinstance(name, str) and name != "" and "." not in name and not hasattr(probe, name)
 
 
 def _accepted_names(term: object) -> tuple[set[str], bool]:

@@ -52,6 +52,7 @@ from .._check import (
     check_finite,
     check_float_tensor,
     check_image_range,
+    check_int,
     check_keywords,
     check_mapping,
     check_number,
@@ -159,12 +160,21 @@ def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     return total / weight.flatten(1).sum(dim=1).clamp_min(1.0)
 
 
-def sequence_weights(n: int, gamma: float) -> list[float]:
-    """RAFT's weights γ^(n-1-i), i = 0..n-1, for a list of n estimates (the last gets 1)."""
-    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
-        raise ValueError(f"n: expected a positive number of estimates, got {n!r}")
-    if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not 0.0 < gamma <= 1.0:
+def _check_gamma(gamma: object) -> float:
+    """RAFT's decay γ: a real number (a numpy or 0-d tensor one too) with 0 < γ <= 1 -> float."""
+    value = check_number(gamma, "gamma", finite=False)
+    if not 0.0 < value <= 1.0:  # (false for NaN)
         raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
+    return value
+
+
+def sequence_weights(n: int, gamma: float) -> list[float]:
+    """RAFT's weights γ^(n-1-i), i = 0..n-1, for a list of n estimates (the last gets 1).
+
+    ``n``: an int >= 1; ``gamma``: a number with 0 < γ <= 1 (Python, numpy or a 0-d tensor).
+    """
+    n = check_int(n, "n", minimum=1)
+    gamma = _check_gamma(gamma)
     return [gamma ** (n - 1 - i) for i in range(n)]
 
 
@@ -255,7 +265,8 @@ def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor 
         reduction: ``"mean"`` over the batch, ``"sum"``, or ``"none"`` for (B,).
 
     Returns:
-        A scalar, or (B,) for ``reduction="none"``; 0 where no pixel counts. In at least float32.
+        A scalar, or (B,) for ``reduction="none"``; 0 where no pixel counts or every weight is 0
+        (with zero gradients into ``flow``, as ``0 * loss``). In at least float32.
     """
     _check_reduction(reduction)
     _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight)
@@ -296,6 +307,8 @@ def _photometric(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | No
             dist = (t1 - t2).square()
             ham = (dist / (0.1 + dist)).sum(dim=1, keepdim=True)
             err = err + census_weight * (ham.abs() + 0.01).pow(0.4)
+        if not (l1_weight or ssim_weight or census_weight):
+            err = err + 0.0 * flow[:, :1]  # no term: a zero that keeps the flow's graph (zero gradients)
         return _masked_mean(err, weight)
 
 
@@ -312,8 +325,9 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` for (B,).
 
     Returns:
-        Mean weighted |difference| in pixels (x and y directions averaged); 0 for images too
-        small to have differences of that order. In at least float32.
+        Mean weighted |difference| in pixels, the x and y directions averaged; a direction
+        without differences of that order (y in an image of ``order`` rows) is left out of the
+        average, and an image with none in either direction gives 0. In at least float32.
     """
     _check_reduction(reduction)
     if order not in (1, 2) or isinstance(order, bool):
@@ -340,10 +354,12 @@ def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, dat
             fx, _ = _image_gradients(fx)
             _, fy = _image_gradients(fy)
             wx, wy = wx[..., :, :-1], wy[..., :-1, :]
-        # Images of width or height below order + 1 have no differences: their term is 0.
+        # A side shorter than order + 1 has no differences along it: that direction's sum is 0 and
+        # it is not averaged in (an image with neither gives 0, still on the flow's graph).
         sx = (wx * fx.abs()).flatten(1).sum(dim=1) / max(fx[0, 0].numel(), 1) / 2
         sy = (wy * fy.abs()).flatten(1).sum(dim=1) / max(fy[0, 0].numel(), 1) / 2
-        return (sx + sy) / 2
+        directions = int(fx[0, 0].numel() > 0) + int(fy[0, 0].numel() > 0)
+        return (sx + sy) / max(directions, 1)
 
 
 def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor, *,
@@ -444,10 +460,11 @@ _PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": _l1}
 
 
 def _check_scale(scale: object) -> float:
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
-        raise (TypeError if not isinstance(scale, (int, float)) else ValueError)(
-            f"scale: expected a finite residual scale > 0 px, got {scale!r}")
-    return float(scale)
+    """The residual scale: a real number (a numpy or 0-d tensor one too), finite and > 0 -> float."""
+    value = check_number(scale, "scale", finite=False)
+    if not 0 < value < math.inf:  # (false for NaN)
+        raise ValueError(f"scale: expected a finite residual scale > 0 px, got {scale!r}")
+    return value
 
 
 def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
@@ -573,7 +590,7 @@ class UnsupervisedFlowLoss(nn.Module):
                  alpha2: float = 0.5, data_range: float = 255.0, reduction: str = "mean") -> None:
         super().__init__()
         _check_reduction(reduction)
-        sequence_weights(1, gamma)
+        gamma = _check_gamma(gamma)
         if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
             raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
         _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
@@ -618,7 +635,7 @@ class FreespaceFlowLoss(nn.Module):
             raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
         scale = _check_scale(scale)
         _check_reduction(reduction)
-        sequence_weights(1, gamma)
+        gamma = _check_gamma(gamma)
         _check_fit_options(fit_options)
         self.mode = odometry
         self.options = dict(penalty=penalty, scale=scale, gamma=gamma,

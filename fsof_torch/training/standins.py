@@ -16,7 +16,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_int, tracing
+from .._check import check_float_tensor, check_int, check_shape, tracing
 from ..refinement.contracts import InputPadder
 from .testnet import TinyRAFT
 
@@ -26,7 +26,8 @@ __all__ = ["PtlflowRAFTStandIn", "TorchvisionRAFTStandIn", "ptlflow_raft", "torc
 class PtlflowRAFTStandIn(nn.Module):
     """ptlflow's RAFT contract (in eval mode).
 
-    ``forward(inputs)`` with ``inputs["images"]`` (B, 2, 3, H, W), BGR in [0, 1], any H and W.
+    ``forward(inputs)`` with ``inputs["images"]`` (B, 2, 3, H, W), BGR in [0, 1], any B, H and
+    W >= 1 (an empty batch or side raises ValueError naming ``inputs['images']``).
     Like ptlflow's RAFT it pads the images to a multiple of 8 (replicating the border, split
     between both sides), converts BGR to RGB and returns
 
@@ -51,8 +52,7 @@ class PtlflowRAFTStandIn(nn.Module):
             raise TypeError(f"inputs: expected ptlflow's dict {{'images': (B, 2, 3, H, W)}}, got {type(inputs).__name__}")
         images = inputs["images"]
         check_float_tensor(images, "inputs['images']")
-        if images.dim() != 5 or images.shape[1] != 2 or images.shape[2] != 3:
-            raise ValueError(f"inputs['images']: expected shape (B, 2, 3, H, W), got {tuple(images.shape)}")
+        check_shape(images, "inputs['images']", ("B", 2, 3, "H", "W"), nonempty=("B", "H", "W"))
         if not tracing():
             lo, hi = _value_range(images)
             if not (lo >= 0.0 and hi <= 1.0):  # (false for NaN, which the range then shows)
@@ -69,10 +69,11 @@ class TorchvisionRAFTStandIn(nn.Module):
     """torchvision's RAFT contract.
 
     ``forward(image1, image2, num_flow_updates=4)`` with (B, 3, H, W) RGB in [-1, 1] (what the
-    transforms of ``Raft_Large_Weights`` produce) and H, W divisible by 8 (else a ValueError, as
-    torchvision raises); returns a list of ``num_flow_updates`` flows (B, 2, H, W), the last the
-    estimate (``num_flow_updates``: an int >= 1, checked under its own name; values outside
-    [-1, 1] or NaN raise ValueError quoting the range that came).
+    transforms of ``Raft_Large_Weights`` produce), B >= 1 and H, W >= 1 divisible by 8 (else a
+    ValueError, as torchvision raises for sides not divisible by 8); returns a list of
+    ``num_flow_updates`` flows (B, 2, H, W), the last the estimate (``num_flow_updates``: an int
+    >= 1, checked under its own name; values outside [-1, 1] or NaN raise ValueError quoting the
+    range that came).
     """
 
     flow_contract = "torchvision"  # read by the refine job's --net (see docs/jobs.md)
@@ -84,8 +85,7 @@ class TorchvisionRAFTStandIn(nn.Module):
     def forward(self, image1: Tensor, image2: Tensor, num_flow_updates: int = 4) -> list[Tensor]:
         for name, im in (("image1", image1), ("image2", image2)):
             check_float_tensor(im, name)
-            if im.dim() != 4 or im.shape[1] != 3:
-                raise ValueError(f"{name}: expected shape (B, 3, H, W), got {tuple(im.shape)}")
+            check_shape(im, name, ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
         if image1.shape != image2.shape:
             raise ValueError(f"input images should have the same shape, instead got ({tuple(image1.shape)}) "
                              f"!= ({tuple(image2.shape)})")

@@ -139,7 +139,9 @@ def _correlation_pyramid(fmap1: Tensor, fmap2: Tensor, levels: int) -> list[Tens
 def _lookup(pyramid: list[Tensor], coords: Tensor, radius: int) -> Tensor:
     """Bilinear samples of every level in a (2r+1)² window around ``coords`` (B, 2, h, w), x first.
 
-    Returns (B, levels (2r+1)², h, w); windows reaching outside the volume read zeros.
+    As RAFT's lookup, the window of a level pooled k times is centred on ``coords / 2**k`` (a
+    level repeated for a tiny image keeps the pooling of the one it repeats). Returns
+    (B, levels (2r+1)², h, w); windows reaching outside the volume read zeros.
     """
     B, _, h, w = coords.shape
     d = torch.arange(-radius, radius + 1, dtype=coords.dtype, device=coords.device)
@@ -147,10 +149,20 @@ def _lookup(pyramid: list[Tensor], coords: Tensor, radius: int) -> Tensor:
     delta = torch.stack(torch.meshgrid(d, d, indexing="xy"), dim=-1).reshape(1, 2 * radius + 1, 2 * radius + 1, 2)
     centre = coords.permute(0, 2, 3, 1).reshape(B * h * w, 1, 1, 2)
     out = []
+    pooled = 0
     for level, corr in enumerate(pyramid):
+        if level > 0 and corr.shape[-2:] != pyramid[level - 1].shape[-2:]:
+            pooled += 1  # every pooling halves both sides (floor), so a pooled level changes shape
+        pts = centre / 2**pooled + delta  # pixel positions at this level
         hl, wl = corr.shape[-2:]
-        scale = torch.tensor([max(wl - 1, 1), max(hl - 1, 1)], dtype=coords.dtype, device=coords.device)
-        pts = centre * (wl / w) + delta  # pixel positions at this level (pooling by 2 per level)
+        if hl == 1 or wl == 1:
+            # align_corners=True puts every sample of a one-pixel side on that pixel; a zero border
+            # makes the window read zeros outside it, as elsewhere
+            px, py = int(wl == 1), int(hl == 1)
+            corr = F.pad(corr, (px, px, py, py))
+            pts = pts + torch.tensor([px, py], dtype=coords.dtype, device=coords.device)
+            hl, wl = corr.shape[-2:]
+        scale = torch.tensor([wl - 1, hl - 1], dtype=coords.dtype, device=coords.device)
         grid = 2 * pts / scale - 1
         sampled = F.grid_sample(corr, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
         out.append(sampled.reshape(B, h, w, -1))
@@ -170,8 +182,9 @@ class TinyRAFT(nn.Module):
     """A miniature RAFT: list of full-resolution flows, one per refinement iteration.
 
     Args:
-        seed: the weights are drawn from ``torch.manual_seed(seed)`` inside a forked RNG, so the
-            same seed gives the same net and the global random state is left untouched.
+        seed: an int with 0 <= seed < 2**64; the weights are drawn from ``torch.manual_seed(seed)``
+            inside a forked RNG, so the same seed gives the same net and the global random state
+            is left untouched.
         iters: default number of GRU iterations (the length of the returned list).
         feature_dim: channels of the matching features.
         hidden_dim, context_dim: channels of the GRU state and of the context features.
@@ -194,6 +207,8 @@ class TinyRAFT(nn.Module):
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name}: expected a positive int, got {value!r}")
         seed = check_int(seed, "seed")
+        if not 0 <= seed < 2**64:  # torch.manual_seed's range; a negative seed would alias a large one
+            raise ValueError(f"seed: expected an int with 0 <= seed < 2**64, got {seed!r}")
         self.iters = iters
         self.hidden_dim = hidden_dim
         self.context_dim = context_dim
