@@ -58,7 +58,7 @@ def test_every_preset_and_documented_speed_is_within_the_bound():
         for factor in (1, 4):
             scene_config(name, speed_factor=factor)
     scene_config("default", speed=MAX_TRAVEL / 0.1, dt=0.1)  # exactly at the bound
-    scene_config("default", x_d=0.0, z_d=2.0, yaw=3.0)
+    scene_config("default", x_d=0.0, z_d=30.0, yaw=3.0)  # a path radius of 15 m: the ego vehicle keeps its lane
 
 
 # -- seeds -------------------------------------------------------------------------------------

@@ -1,15 +1,16 @@
 """Procedural driving scenes with exact ground truth, rendered by vectorised torch ray casting.
 
 The scenes test the road-flow formula instead of repeating it: every ground-truth quantity comes
-from the 3D geometry (ray / plane / box intersections, rigid motions, pinhole projection), never
+from the 3D geometry (ray / surface / box intersections, rigid motions, pinhole projection), never
 from :func:`fsof_torch.flow_model.displacement_flow`.
 
-Scene: a road (the plane y = h of the vehicle frame) with lane markings, raised pavements behind
-kerbs, building façades, parked and moving cars (a body box and a cabin box each) and a sky at
-infinity. The road is straight, or an arc whose curvature matches the ego vehicle's steering so
-that a turning car stays in its lane. Textures are multi-scale value noise from a seeded
-generator, band-limited per pixel (octaves finer than the pixel footprint fade out) so that
-frames warp onto each other and optical flow can track the road.
+Scene: a road (the plane y = h of the world frame; on a graded road the surface y = h - g(s))
+with lane markings, raised pavements behind kerbs, building façades, parked and moving cars (a body
+box and a cabin box each) and a sky at infinity. The road is straight, or an arc concentric with
+the ego vehicle's path so that a turning car stays in the centre of its lane (the configuration
+keeps the path's radius at least 8 m and more than half a lane width). Textures are multi-scale
+value noise from a seeded generator, band-limited per pixel (octaves finer than the pixel
+footprint fade out) so that frames warp onto each other and optical flow can track the road.
 
 Frames (DESIGN.md §2): the world frame is the vehicle frame of frame 0 (x right, y down,
 z forward, origin at the camera, road at y = h). A pose (c, ψ) maps world points into a local
@@ -41,7 +42,8 @@ Ground truth per pair (frames t = index, t+1):
   body motion or a grade, the rates of the camera's attitude and height as well) and, for moving
   cars, the car's own velocity.
 * ``depth``: camera z in metres (0 on the sky); ``labels``: see :data:`LABELS`; ``road``: road
-  or marking pixels (the plane y = h, the freespace).
+  or marking pixels, the freespace (on the road surface: the plane y = h, or y = h - g(s) on a
+  crest or a dip).
 * ``road_pose``, ``plane``: the camera over the road's tangent plane at t and its rigid motion
   to t+1 (:func:`.ground_truth.road_motion`).
 

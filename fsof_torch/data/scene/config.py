@@ -14,7 +14,8 @@ from typing import Any
 from ..._check import check_bool, check_int, check_size
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
-           "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "check_seed", "arc_length"]
+           "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "MIN_TURN_RADIUS", "MAX_BODY_HZ",
+           "MAX_GRADE_START", "check_seed", "arc_length", "path_curvature"]
 
 #: Semantic label ids of ``labels``.
 LABELS: dict[str, int] = {"sky": 0, "road": 1, "marking": 2, "kerb": 3, "pavement": 4,
@@ -38,6 +39,18 @@ SKY, ROAD, MARKING, KERB, PAVEMENT, BUILDING, CAR = (
 #: 20 m/s, cars 80 m/s); beyond it the scene would generate objects along an unbounded stretch of road.
 MAX_TRAVEL = 100.0
 
+#: The tightest turn a scene drives (m): the ego path's radius 1 / |κ| (:func:`path_curvature`) is at
+#: least this, so the road (concentric with the path, the ego vehicle in its right lane) stays drivable.
+MIN_TURN_RADIUS = 8.0
+
+#: The highest body-oscillation frequency (Hz): far above every mode of a car body (heave and pitch
+#: about 1-2 Hz, wheel hop 10-15 Hz); beyond some 1e307 Hz the phase 2π f τ would overflow to NaN.
+MAX_BODY_HZ = 1000.0
+
+#: The farthest start of the vertical curve from the scene's start (m, either way): 100 km, a thousand
+#: frames at :data:`MAX_TRAVEL`; the closed-form ray casting squares distances to it.
+MAX_GRADE_START = 1e5
+
 #: Scene seeds are ints in [0, MAX_SEED): the generators are seeded with 2·seed + 1 and
 #: seed·1 000 003 mod 2**63, so a larger or a negative seed would overflow or alias a valid one.
 MAX_SEED = 2 ** 62
@@ -59,6 +72,17 @@ def arc_length(x_d: float, z_d: float, yaw: float) -> float:
     return math.copysign(arc, z_d)
 
 
+def path_curvature(cfg: SceneConfig) -> float:
+    """The curvature κ (1/m, > 0 turning right) of the ego vehicle's path: tan(steering) / wheelbase, or
+    with explicit odometry yaw / arc (0 when the arc is under 1 mm: a turn on the spot keeps a straight
+    road). The road is concentric with this path (:class:`.road.Road`)."""
+    if cfg.x_d is not None:
+        # the arc as the Motion holds it: speed = arc / dt, times dt
+        arc = arc_length(float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)) / cfg.dt * float(cfg.dt)
+        return float(cfg.yaw) / arc if abs(arc) > 1e-3 else 0.0
+    return math.tan(float(cfg.steering)) / float(cfg.wheelbase)
+
+
 #: Cell sizes (m) of the seven asphalt noise octaves (:attr:`SceneConfig.asphalt`).
 ASPHALT_CELLS = (0.02, 0.05, 0.12, 0.3, 0.75, 2.0, 5.0)
 
@@ -72,7 +96,11 @@ class SceneConfig:
     ego vehicle and of the moving cars: the paper's CVC ×1 / ×4). Or explicit odometry per pair:
     ``x_d``, ``z_d`` (m) and ``yaw`` (rad), all three given (then speed and steering are derived
     from the circular arc through the motion: speed = signed arc length / dt, steering =
-    atan(l · yaw / arc length); exact for Ackermann motion, an approximation otherwise).
+    atan(l · yaw / arc length); exact for Ackermann motion, an approximation otherwise). The road is
+    concentric with the ego path (:func:`path_curvature`), whose radius l / |tan(steering)| (or
+    arc / |yaw|) must be at least :data:`MIN_TURN_RADIUS` = 8 m and more than lane_width / 2, so that
+    the vehicle stays in the centre of its lane (|steering| up to atan(l / 8 m), about 0.325 rad at
+    l = 2.7 m).
 
     Camera: ``height`` (m), ``roll``, ``pitch`` (rad), ``K`` (3×3 at ``base_size``), ``size``
     (rendered (H, W); K is scaled to it). Anti-aliasing: ``supersample`` (ss × ss rays per pixel)
@@ -80,11 +108,13 @@ class SceneConfig:
     analytically, so pixel centres suffice elsewhere), or at every pixel with ``adaptive=False``.
 
     Scene: ``lane_width``, ``parking_width`` (a parking strip on each side, 0 for none),
-    ``pavement_width``, ``kerb_height`` (m); ``buildings`` (bool); ``parked_cars`` (mean number
-    per 40 m and side); ``moving_cars`` (mean number per 40 m, half oncoming); ``texture``
-    (contrast multiplier of the procedural textures); ``asphalt`` (grey-level amplitude of each
-    of the seven asphalt noise octaves, cells 2 cm, 5 cm, 12 cm, 30 cm, 75 cm, 2 m, 5 m; None for
-    the built-in (25, 25, 22, 18, 14, 13, 11)).
+    ``pavement_width``, ``kerb_height`` (m; the kerb top stays below the camera: kerb_height <
+    height - body_height on a level road, times (1 - G²) / sqrt(1 + G²) on a grade whose steepest
+    grade is G); ``buildings`` (bool); ``parked_cars`` (mean number per 40 m and side);
+    ``moving_cars`` (mean number per 40 m, half oncoming); ``texture`` (contrast multiplier of the
+    procedural textures); ``asphalt`` (grey-level amplitude of each of the seven asphalt noise
+    octaves, cells 2 cm, 5 cm, 12 cm, 30 cm, 75 cm, 2 m, 5 m; None for the built-in
+    (25, 25, 22, 18, 14, 13, 11)).
 
     Camera sensor: ``noise`` (standard deviation, grey levels on 0..255, of independent Gaussian
     noise added to every pixel of every frame, the same on the three channels; seeded by the
@@ -95,14 +125,16 @@ class SceneConfig:
     Vehicle body motion over the road (0 for none): ``body_pitch``, ``body_roll`` (rad) and
     ``body_height`` (m) are the amplitudes of a sinusoidal oscillation of the camera's pitch, roll
     and height relative to the road, at the frequencies ``body_pitch_hz``, ``body_roll_hz``,
-    ``body_height_hz`` (Hz) and phases drawn from the scene seed. With ±1°, ±1°, ±2 cm at
+    ``body_height_hz`` (Hz, at most :data:`MAX_BODY_HZ` = 1000) and phases drawn from the scene
+    seed. With ±1°, ±1°, ±2 cm at
     dt = 0.1 s the default frequencies give mean per-frame changes of (4/π) a sin(π f dt) =
     0.084°, 0.092° and 0.97 cm, as measured on KITTI ground truth (0.085°, 0.09°, about 1 cm).
 
     Road grade (0 for a level road): the road's elevation g(s) along the arc length s rises by
     ``grade_before`` metres per metre up to ``grade_start`` (m), then the grade changes linearly
     to ``grade_after`` over ``grade_length`` metres (a parabolic vertical curve: a crest when the
-    grade falls, a dip when it rises), g(0) = 0. Needs a straight road (``steering=0``, or
+    grade falls, a dip when it rises), g(0) = 0; |grade_start| <= :data:`MAX_GRADE_START` = 100 km.
+    Needs a straight road (``steering=0``, or
     ``yaw=0`` with explicit odometry): ray casting is then closed-form.
     """
 
@@ -259,6 +291,7 @@ def _validate(cfg: SceneConfig) -> None:
         for n in ("x_d", "z_d", "yaw"):
             real(n)
     _validate_travel(cfg)
+    _validate_lane(cfg)
     if cfg.asphalt is not None:
         amps = cfg.asphalt
         if (not isinstance(amps, (tuple, list)) or len(amps) != len(ASPHALT_CELLS)
@@ -301,11 +334,35 @@ def _validate_travel(cfg: SceneConfig) -> None:
                          f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
 
 
+def _validate_lane(cfg: SceneConfig) -> None:
+    """A turn the ego vehicle drives in the centre of its lane: the path's radius 1 / |κ|
+    (:func:`path_curvature`) at least :data:`MIN_TURN_RADIUS` and more than lane_width / 2, so that the
+    lane (centre line to lane line) lies on one side of the turn's centre and the road, concentric with
+    the path, bends the way the vehicle turns."""
+    kappa = path_curvature(cfg)
+    if abs(kappa) < 1e-9:  # a straight road (Road's threshold)
+        return
+    radius = 1.0 / abs(kappa)
+    if abs(kappa) <= 1.0 / MIN_TURN_RADIUS and radius > cfg.lane_width / 2:
+        return
+    if cfg.x_d is None:
+        names, what = "steering, wheelbase", f"wheelbase / |tan(steering)| from steering={cfg.steering!r}, " \
+                                             f"wheelbase={cfg.wheelbase!r}"
+    else:
+        names, what = "x_d, z_d, yaw", f"arc / |yaw| from x_d={cfg.x_d!r}, z_d={cfg.z_d!r}, yaw={cfg.yaw!r}"
+    raise ValueError(f"{names}, lane_width: expected a turn that keeps the ego vehicle in its lane, a path radius "
+                     f">= {MIN_TURN_RADIUS:g} m and > lane_width / 2 = {cfg.lane_width / 2!r} m, got {radius!r} m "
+                     f"({what})")
+
+
 def _validate_road_motion(cfg: SceneConfig, real) -> None:
     """The body-motion and grade fields (``real`` reads a field as a finite float)."""
     for name in ("body_pitch", "body_roll", "body_height", "body_pitch_hz", "body_roll_hz", "body_height_hz"):
         if real(name) < 0:
             raise ValueError(f"{name}: expected >= 0, got {getattr(cfg, name)!r}")
+    for name in ("body_pitch_hz", "body_roll_hz", "body_height_hz"):
+        if not real(name) <= MAX_BODY_HZ:
+            raise ValueError(f"{name}: expected a frequency <= {MAX_BODY_HZ:g} Hz, got {getattr(cfg, name)!r}")
     for name in ("body_pitch", "body_roll"):
         if not real(name) < math.pi / 8:
             raise ValueError(f"{name}: expected an amplitude < π/8 rad, got {getattr(cfg, name)!r}")
@@ -318,12 +375,28 @@ def _validate_road_motion(cfg: SceneConfig, real) -> None:
     for name in ("grade_before", "grade_after"):
         if not abs(real(name)) <= 0.2:
             raise ValueError(f"{name}: expected a grade within ±0.2 m per m, got {getattr(cfg, name)!r}")
-    real("grade_start")
+    if not abs(real("grade_start")) <= MAX_GRADE_START:
+        raise ValueError(f"grade_start: expected within ±{MAX_GRADE_START:g} m of the start, got {cfg.grade_start!r}")
     if real("grade_length") <= 0:
         raise ValueError(f"grade_length: expected > 0, got {cfg.grade_length!r}")
+    _validate_kerb(cfg)
     if cfg.has_grade:
         turning = cfg.yaw != 0.0 if cfg.x_d is not None else cfg.steering != 0.0
         if turning:
             raise ValueError(f"grade_before, grade_after: a grade needs a straight road (steering=0, or yaw=0 with "
                              f"explicit odometry), got steering={cfg.steering!r}, yaw={cfg.yaw!r}")
 
+
+def _validate_kerb(cfg: SceneConfig) -> None:
+    """The kerb top below the camera at every heave (the ray casting meets the pavement from above).
+    The camera is H >= height - body_height over the road along its normal; on a grade the road under
+    the camera is at least H (1 - G²) / sqrt(1 + G²) below it (G the steepest grade; the slope under
+    the vehicle and under the camera may differ across the vertical curve), on a level road H."""
+    steep = max(abs(cfg.grade_before), abs(cfg.grade_after))
+    clearance = (cfg.height - cfg.body_height) * (1 - steep * steep) / math.sqrt(1 + steep * steep)
+    if not cfg.kerb_height < clearance:
+        bound = "height - body_height" if steep == 0 else \
+            f"(height - body_height) (1 - G²) / sqrt(1 + G²), G = {steep!r} the steepest grade,"
+        raise ValueError(f"kerb_height: expected the kerb top below the camera at its lowest, kerb_height < {bound} "
+                         f"= {clearance!r} m, got {cfg.kerb_height!r} (height={cfg.height!r}, "
+                         f"body_height={cfg.body_height!r})")

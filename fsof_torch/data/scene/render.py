@@ -209,7 +209,9 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     ``render_pair(preset, start + i, ...)``. So do consecutive calls: the last frame of a call is
     kept (one frame of one scene, about 39 MB at 375×1242, for any thread) and is the first frame
     of a call on the same scene that starts there, so rendering pair 0, then pair 1, ... one call
-    at a time renders each frame once. No returned tensor is shared with another call's.
+    at a time renders each frame once (a frame kept under ``torch.inference_mode()`` serves only calls
+    under it, and one kept outside only calls outside). No returned tensor is shared with another
+    call's. Any grad mode renders the same pixels and ground truth.
     ``progress=True`` shows a tqdm bar. Other arguments as in :func:`render_pair`.
     """
     _check_dtype(dtype)
@@ -220,7 +222,9 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
         size = check_size(size)
         overrides["size"] = size
     cfg = scene_config(preset, **overrides)
-    key = (cfg, seed, dtype)
+    # a frame kept under torch.inference_mode() holds inference tensors, which a caller outside
+    # it could neither write into nor use in autograd: kept frames serve calls in the same mode
+    key = (cfg, seed, dtype, torch.is_inference_mode_enabled())
     kept = _take_kept(key, start)
     renderer = _Renderer(Scene(cfg, seed, dtype), None if kept is None else {start: kept})
     indices = range(start, start + num_pairs)

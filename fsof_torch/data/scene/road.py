@@ -9,21 +9,18 @@ import math
 import torch
 from torch import Tensor
 
-from .config import SceneConfig
-from .motion import Motion
+from .config import SceneConfig, path_curvature
 
 
 class Road:
     """A straight road or an arc of constant curvature; lateral e (m, + right) and arc length s."""
 
-    def __init__(self, cfg: SceneConfig, motion: Motion) -> None:
+    def __init__(self, cfg: SceneConfig) -> None:
         self.e0 = cfg.lane_width / 2  # the ego vehicle drives in the centre of the right lane
-        # the ego path's curvature; explicit odometry without translation gets a straight road
-        kappa_v = math.tan(motion.steering) / motion.wheelbase
-        if cfg.x_d is not None:
-            arc = motion.speed * motion.dt
-            kappa_v = motion.yaw / arc if abs(arc) > 1e-3 else 0.0
-        kappa_v = max(-1 / 8.0, min(1 / 8.0, kappa_v))  # keep the lane a drivable arc (radius >= 8 m)
+        # the ego path's curvature; explicit odometry without translation gets a straight road.
+        # scene_config keeps the path's radius >= MIN_TURN_RADIUS and > e0, so the road below bends
+        # the way the vehicle turns and the vehicle stays in the centre of its lane
+        kappa_v = path_curvature(cfg)
         # concentric with the ego vehicle's circle: 1/κ_road = 1/κ_vehicle + e0
         self.kappa = 0.0 if abs(kappa_v) < 1e-9 else 1.0 / (1.0 / kappa_v + self.e0)
         if self.kappa != 0.0:

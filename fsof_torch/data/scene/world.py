@@ -49,7 +49,7 @@ class Scene:
     def __init__(self, cfg: SceneConfig, seed: int, dtype: torch.dtype) -> None:
         self.cfg, self.seed, self.dtype = cfg, int(seed), dtype
         self.motion = motion_from_config(cfg)
-        self.road = Road(cfg, self.motion)
+        self.road = Road(cfg)
         self.grade = Grade(cfg)
         self.body = BodyMotion(cfg, self.seed)
         # the camera's attitude, centre or height change beyond the planar motion
@@ -161,19 +161,22 @@ class Scene:
     def pose_rates(self, k: int) -> tuple[Tensor, Tensor]:
         """Time derivatives at frame k of the camera's attitude relative to the heading frame
         (3, 3, per s) and of its centre (3,, m/s, world), along the instantaneous ego motion
-        (speed v along the heading, yaw rate ω) and the body oscillation; float64."""
+        (speed v along the heading, yaw rate ω) and the body oscillation; float64. The same in
+        every grad mode: under ``torch.no_grad()`` or ``torch.inference_mode()`` (an evaluation
+        loop) the derivative is taken with autograd switched on locally, on tensors made here."""
         mot = self.motion
         psi = self.ego_pose(k)[2]
         rates = (mot.speed * math.sin(psi), mot.speed * math.cos(psi), mot.yaw_rate, 1.0)
         # d/ds of the pose along the motion (x + s ẋ, z + s ż, ψ + s ω, τ + s) at s = 0, by
         # reverse mode twice: g(w) = Jᵀ w, then dg/dw = J (forward-mode AD would load torch's
         # TorchScript decompositions on first use)
-        s = torch.zeros(1, dtype=torch.float64, requires_grad=True)
-        mount, centre = self._mounting(*(p + r * s for p, r in zip(self._planar_state(k), rates)))[:2]
-        out = torch.cat([mount.reshape(-1), centre])
-        w = torch.zeros_like(out, requires_grad=True)
-        (g,) = torch.autograd.grad(out, s, grad_outputs=w, create_graph=True)
-        (rate,) = torch.autograd.grad(g, w, torch.ones_like(g))
+        with torch.inference_mode(False), torch.enable_grad():
+            s = torch.zeros(1, dtype=torch.float64, requires_grad=True)
+            mount, centre = self._mounting(*(p + r * s for p, r in zip(self._planar_state(k), rates)))[:2]
+            out = torch.cat([mount.reshape(-1), centre])
+            w = torch.zeros_like(out, requires_grad=True)
+            (g,) = torch.autograd.grad(out, s, grad_outputs=w, create_graph=True)
+            (rate,) = torch.autograd.grad(g, w, torch.ones_like(g))
         return rate[:9].reshape(3, 3), rate[9:]
 
     def camera(self) -> Camera:

@@ -1,0 +1,165 @@
+"""The scene renderer in every grad mode, and the configuration bounds that keep a scene's geometry
+what its docs say: the ego vehicle in its lane, the kerb top below the camera, body frequencies and
+the vertical curve's start within physical ranges."""
+
+from __future__ import annotations
+
+import math
+import re
+
+import pytest
+import torch
+
+from fsof_torch.data.scene import PRESETS, render_pair, scene_config
+from fsof_torch.data.scene.config import MAX_BODY_HZ, MAX_GRADE_START, MIN_TURN_RADIUS, path_curvature
+from fsof_torch.data.scene.world import Scene
+from fsof_torch.geometry.camera import pitch_matrix, roll_matrix
+
+TINY = (12, 40)
+
+pytestmark = pytest.mark.usefixtures("one_thread")
+
+
+def _tensors(pair: dict) -> dict:
+    return {k: v for k, v in pair.items() if torch.is_tensor(v)}
+
+
+def _equal(a: dict, b: dict) -> bool:
+    ta, tb = _tensors(a), _tensors(b)
+    return ta.keys() == tb.keys() and all(torch.equal(ta[k], tb[k]) for k in ta) and a["plane"] == b["plane"]
+
+
+# -- grad modes ----------------------------------------------------------------------------------
+@pytest.mark.parametrize("mode", [torch.no_grad, torch.inference_mode])
+@pytest.mark.parametrize("preset", ["body-motion", "crest"])
+def test_riding_scenes_render_alike_in_every_grad_mode(mode, preset):
+    ref = render_pair(preset, 2, seed=4, size=TINY)
+    render_pair("cvc-simple", 0, size=TINY)  # another scene: nothing kept for the next call
+    with mode():
+        pair = render_pair(preset, 2, seed=4, size=TINY)
+    assert _equal(pair, ref)
+    assert bool(ref["flow_velocity"].abs().amax() > 0)
+    cfg = scene_config(preset, size=TINY)
+    with torch.enable_grad():
+        rates = Scene(cfg, 4, torch.float64).pose_rates(5)
+    with mode():
+        scene = Scene(cfg, 4, torch.float64)  # its tensors made in that mode too
+        got = scene.pose_rates(5)
+    assert all(torch.equal(g, r) for g, r in zip(got, rates))
+    assert not any(g.requires_grad for g in got) and bool(rates[1].abs().amax() > 1.0)  # ~12 m/s forward
+
+
+def test_a_frame_kept_under_inference_mode_is_not_handed_to_a_call_outside_it():
+    ref = render_pair("body-motion", 1, seed=2, size=TINY)
+    with torch.inference_mode():
+        render_pair("body-motion", 0, seed=2, size=TINY)  # keeps its frame 1
+    pair = render_pair("body-motion", 1, seed=2, size=TINY)
+    assert _equal(pair, ref) and not any(v.is_inference() for v in _tensors(pair).values())
+    pair["image1"] += 1.0  # a caller's own tensor: writable outside inference mode
+
+
+# -- the ego vehicle keeps its lane --------------------------------------------------------------
+@pytest.mark.parametrize("overrides, names", [
+    (dict(steering=0.4), "steering, wheelbase, lane_width"),           # radius 6.4 m: the vehicle left its lane
+    (dict(steering=-0.6, wheelbase=2.7), "steering, wheelbase, lane_width"),
+    (dict(steering=-0.4, lane_width=16.0), "steering, wheelbase, lane_width"),   # was a ZeroDivisionError
+    (dict(steering=-0.3, lane_width=20.0), "steering, wheelbase, lane_width"),   # the road bent the other way
+    (dict(steering=0.3, lane_width=20.0), "steering, wheelbase, lane_width"),    # the lane across the centre
+    (dict(x_d=0.0, z_d=2.0, yaw=0.5), "x_d, z_d, yaw, lane_width"),
+])
+def test_a_turn_that_leaves_the_lane_is_refused(overrides, names):
+    with pytest.raises(ValueError, match=f"^{names}: expected a turn that keeps the ego vehicle in its lane"):
+        scene_config("default", **overrides)
+    with pytest.raises(ValueError, match=f"^{names}:"):
+        render_pair("default", 0, size=TINY, **overrides)
+
+
+@pytest.mark.parametrize("overrides", [dict(steering=0.325), dict(steering=-0.3, lane_width=15.0),
+                                       dict(steering=0.3, speed=-5.0)])
+def test_an_accepted_turn_keeps_the_vehicle_in_the_centre_of_its_lane(overrides):
+    cfg = scene_config("default", **overrides)
+    kappa_v = math.tan(cfg.steering) / cfg.wheelbase
+    assert 1 / abs(kappa_v) >= MIN_TURN_RADIUS and path_curvature(cfg) == kappa_v
+    scene = Scene(cfg, 0, torch.float64)
+    assert scene.road.kappa * kappa_v > 0  # the road bends the way the vehicle turns
+    assert 1 / scene.road.kappa == pytest.approx(1 / kappa_v + cfg.lane_width / 2, rel=1e-12)
+    for k in (0, 5, 20, 40):
+        x, z, _ = scene.ego_pose(k)
+        e = float(scene.road.lateral(torch.tensor(x, dtype=torch.float64), torch.tensor(z, dtype=torch.float64)))
+        assert e == pytest.approx(cfg.lane_width / 2, abs=1e-9)
+
+
+def test_every_preset_and_benchmark_turn_is_accepted():
+    for name in PRESETS:
+        for factor in (1, 4):
+            scene_config(name, speed_factor=factor)
+    scene_config("default", steering=0.1)
+    scene_config("carla-turning", steering=-0.15, roll=0.05)
+
+
+# -- the kerb top below the camera ---------------------------------------------------------------
+@pytest.mark.parametrize("overrides, bound", [
+    (dict(kerb_height=2.0), 1.65),
+    (dict(kerb_height=1.65), 1.65),
+    (dict(kerb_height=1.0, body_height=0.8), 1.65 - 0.8),
+    (dict(kerb_height=1.6, steering=0.0, grade_before=-0.2, grade_after=0.2),
+     1.65 * 0.96 / math.sqrt(1.04)),
+])
+def test_a_kerb_reaching_the_camera_is_refused(overrides, bound):
+    with pytest.raises(ValueError, match="^kerb_height: expected the kerb top below the camera") as info:
+        scene_config("default", **overrides)
+    assert f"= {bound!r} m, got {overrides['kerb_height']!r}" in str(info.value)
+
+
+def test_the_highest_accepted_kerb_has_positive_depth_everywhere():
+    kw = dict(kerb_height=0.84, body_height=0.8, body_height_hz=1.25)  # 1 cm under the camera at its lowest
+    for k in range(0, 8):
+        pair = render_pair("default", k, seed=3, size=(24, 80), dtype=torch.float64, **kw)
+        depth, labels = pair["depth"][0], pair["labels"]
+        assert bool((depth[labels != 0] > 0).all()) and bool((depth[labels == 0] == 0).all())
+
+
+def test_the_camera_clearance_on_a_grade_is_at_least_the_bound():
+    """Across a short, steep dip the road under the camera (not under the vehicle) comes closest;
+    the bound (1 - G²) / sqrt(1 + G²) of the camera's height is met and nearly reached."""
+    cfg = scene_config("default", steering=0.0, speed=1.0, dt=0.01, grade_before=-0.2, grade_after=0.2,
+                       grade_start=1.0, grade_length=0.01, kerb_height=0.0)
+    scene = Scene(cfg, 0, torch.float64)
+    gaps = []
+    for k in range(0, 250):
+        c = scene.pose(k).c
+        gaps.append(cfg.height - scene.grade.elevation_at(c[2]) - c[1])
+    bound = cfg.height * 0.96 / math.sqrt(1.04)
+    assert bound <= min(gaps) < 1.01 * bound and max(gaps) > cfg.height
+
+
+# -- body frequencies and the vertical curve's start ---------------------------------------------
+@pytest.mark.parametrize("name", ["body_pitch_hz", "body_roll_hz", "body_height_hz"])
+def test_a_body_frequency_beyond_the_bound_is_refused(name):
+    for value in (1e308, MAX_BODY_HZ * 1.001):
+        with pytest.raises(ValueError, match=re.escape(f"{name}: expected a frequency <= 1000 Hz, got {value!r}")):
+            render_pair("body-motion", 0, size=TINY, **{name: value})
+    pair = render_pair("body-motion", 1, size=TINY, dtype=torch.float64, **{name: MAX_BODY_HZ})
+    assert all(bool(torch.isfinite(v).all()) for v in _tensors(pair).values() if v.is_floating_point())
+    assert all(math.isfinite(v) for v in pair["plane"].values()) and bool(pair["valid"].any())
+
+
+@pytest.mark.parametrize("value", [1e308, -1e308, 1.0001e5, -1e300])
+def test_a_grade_start_beyond_the_bound_is_refused(value):
+    message = f"grade_start: expected within ±100000 m of the start, got {value!r}"
+    with pytest.raises(ValueError, match=re.escape(message)):
+        render_pair("crest", 0, size=TINY, grade_start=value, grade_length=1e300)
+
+
+@pytest.mark.parametrize("start, length", [(MAX_GRADE_START, 1e-300), (-MAX_GRADE_START, 1e-300),
+                                           (-MAX_GRADE_START, 1e308), (MAX_GRADE_START, 60.0)])
+def test_a_grade_start_at_the_bound_renders_finite(start, length):
+    pair = render_pair("crest", 2, size=TINY, dtype=torch.float64, grade_start=start, grade_length=length)
+    assert all(bool(torch.isfinite(v).all()) for v in _tensors(pair).values() if v.is_floating_point())
+    assert all(math.isfinite(v) for v in pair["plane"].values()) and bool(pair["road"].any())
+    # the vehicle pitches with the grade before the curve, or after a curve passed 100 km back
+    # (still +3 % when the curve is 1e308 m long); the world-to-camera rotation is R_roll R_pitch
+    slope = 0.03 if start > 0 or length > 1e300 else -0.03
+    t = lambda x: torch.tensor([x], dtype=torch.float64)  # noqa: E731
+    A = (roll_matrix(t(math.pi / 180)) @ pitch_matrix(t(-math.pi / 180 + math.atan(slope))))[0]
+    assert torch.allclose(pair["pose1"][:3, :3], A.T, rtol=0, atol=1e-12)
