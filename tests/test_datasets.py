@@ -287,3 +287,80 @@ class TestContract:
                     assert set(item) == set(ITEM_KEYS), type(ds).__name__
         carla = CarlaRunDataset(run)[0]
         assert carla["flow"] is None and carla["valid"].shape == (1, 12, 16) and carla["name"] == "00000000"
+
+
+class TestPairChecks:
+    """KITTI and CARLA items: each holds its own camera, and every file of a pair has the size of
+    its first image (a file of another size was once returned as it was, breaking the contract)."""
+
+    def test_kitti_items_do_not_share_the_given_K(self, kitti_root):
+        root, _ = kitti_root
+        for p in (root / "calib_cam_to_cam").iterdir():
+            p.unlink()
+        K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
+        ds = KittiFlowDataset(root, K=K)
+        ds[0]["camera"].K[0, 0, 0] += 100.0  # editing one item's camera changes no other, nor K
+        assert float(ds[1]["camera"].K[0, 0, 0]) == 30.0 and float(K[0, 0]) == 30.0
+        K[0, 0] = 7.0  # nor does the caller's later edit change the items
+        assert float(ds[0]["camera"].K[0, 0, 0]) == 30.0
+        with pytest.raises(ValueError, match=r"^K: "):  # checked when the dataset is made
+            KittiFlowDataset(root, K=torch.eye(4))
+
+    @pytest.mark.parametrize("folder, file", [("image_2", "000001_11.png"), ("flow_noc", "000001_10.png"),
+                                              ("semantic", "000001_10.png"), ("road", "000001_10.png")])
+    def test_kitti_files_of_another_size_are_refused(self, kitti_root, folder, file):
+        root, _ = kitti_root
+        (root / folder).mkdir(exist_ok=True)
+        bigger = (SIZE[0] + 2, SIZE[1] + 3)
+        if folder == "flow_noc":
+            write_kitti_flow(root / folder / file, torch.ones(2, *bigger))
+        else:  # an image, a semantic label image, a road mask (nonzero = road)
+            write_image(root / folder / file, torch.full((3, *bigger), 255.0))
+        ds = KittiFlowDataset(root)
+        check_item(ds[0])
+        with pytest.raises(ValueError, match=rf"^root: '.*{folder}/{file}' is 26x43, but the pair's image "
+                                             rf"000001_10\.png is 24x40; every file of a pair needs its images' size"):
+            ds[1]
+
+    def test_kitti_road_pngs_of_the_image_size(self, kitti_root):
+        root, _ = kitti_root
+        (root / "road").mkdir()
+        road = torch.zeros(1, *SIZE, dtype=torch.bool)
+        road[:, 20:] = True
+        from fsof_torch.io import write_road_mask
+
+        write_road_mask(root / "road" / "000001_10.png", road)
+        assert torch.equal(KittiFlowDataset(root)[1]["road"], road)  # road/ before semantic/
+
+    @pytest.mark.parametrize("bad", ["rgb/00000001.png", "optical_flow/00000000.tif", "semantic/00000000.png"])
+    def test_carla_files_of_another_size_are_refused(self, tmp_path, bad):
+        run = tmp_path / "t10_s0_r0"
+        for sub in ("rgb", "optical_flow", "semantic"):
+            (run / sub).mkdir(parents=True)
+
+        def write(file, h):
+            if file.startswith("rgb"):
+                write_image(run / file, torch.zeros(3, h, 16))
+            elif file.startswith("optical_flow"):
+                write_carla_flow(run / file, torch.zeros(2, h, 16))
+            else:
+                cv2.imwrite(str(run / file), np.zeros((h, 16, 3), np.uint8))
+
+        for k in range(2):
+            for file in (f"rgb/{k:08d}.png", f"optical_flow/{k:08d}.tif", f"semantic/{k:08d}.png"):
+                write(file, 12)
+        check_item(CarlaRunDataset(run)[0])
+        write(bad, 14)
+        with pytest.raises(ValueError, match=rf"^run: '.*{bad}' is 14x16, but the pair's image 00000000\.png "
+                                             rf"is 12x16"):
+            CarlaRunDataset(run)[0]
+
+    def test_carla_frames_numbered_without_padding_pair_in_order(self, tmp_path):
+        """Frames 98, 99, 100: pairs (98, 99) and (99, 100), not the names' order 100, 98, 99."""
+        run = tmp_path / "t10_s0_r0"
+        (run / "rgb").mkdir(parents=True)
+        for k in (98, 99, 100):
+            write_image(run / "rgb" / f"{k}.png", torch.full((3, 4, 6), float(k)))
+        ds = CarlaRunDataset(run)
+        assert [(ds[i]["name"], float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0]))
+                for i in range(len(ds))] == [("98", 98.0, 99.0), ("99", 99.0, 100.0)]

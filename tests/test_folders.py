@@ -138,10 +138,12 @@ def test_kitti_flow_pairs_pair_by_name(tmp_path):
     (["000009_11", "000010_10"], "000009_11.png, 000010_10.png"),  # as one clip: 000009_11 -> 000010_10
 ])
 def test_kitti_flow_pairs_must_be_complete(tmp_path, extra, orphans):
-    """A folder with any NAME_10 / NAME_11 pairs by name: an image without its partner stops the
-    dataset, naming the folder and every such image, never paired across scenes nor dropped."""
-    for t in ("10", "11"):
-        write_image(tmp_path / f"000002_{t}.png", torch.zeros(3, *SIZE))
+    """A folder of KITTI flow pairs (here complete pairs under two names) pairs by name: an image
+    without its partner stops the dataset, naming the folder and every such image, never paired
+    across scenes nor dropped."""
+    for name in ("000002", "000004"):
+        for t in ("10", "11"):
+            write_image(tmp_path / f"{name}_{t}.png", torch.zeros(3, *SIZE))
     for name in extra:
         write_image(tmp_path / f"{name}.png", torch.zeros(3, *SIZE))
     message = (rf"^images: '{re.escape(str(tmp_path))}' holds KITTI flow pairs \(NAME_10 / NAME_11, paired by name\), but "
@@ -166,14 +168,37 @@ def test_a_clip_with_a_frame_named_like_kitti_stays_a_clip(tmp_path):
 
 @pytest.mark.parametrize("names, orphans", [
     (["000009_11", "000010_10"], "000009_11.png, 000010_10.png"),  # only KITTI names, no pair
-    (["000002_09", "000002_10", "000002_11", "000002_12"], "000002_09.png, 000002_12.png"),  # multiview frames
+    (["000002_09", "000002_10", "000002_11", "000002_12", "000003_09", "000003_10", "000003_11"],
+     "000002_09.png, 000002_12.png, 000003_09.png"),  # KITTI multiview frames of two scenes
 ])
 def test_kitti_names_without_complete_pairs_or_beside_them_are_refused(tmp_path, names, orphans):
-    """Every name a KITTI pair's, or a complete pair beside other frames: KITTI pairs, and the
-    images without a partner are named (never paired across scenes, never dropped)."""
+    """Every name a KITTI pair's, or complete pairs under two names beside other frames (KITTI's
+    multiview folders): KITTI pairs, and the images without a partner are named (never paired
+    across scenes, never dropped)."""
     for name in names:
         write_image(tmp_path / f"{name}.png", torch.zeros(3, *SIZE))
     with pytest.raises(ValueError, match=rf"have no partner: {orphans}; "):
+        ImageFolderDataset(tmp_path)
+
+
+@pytest.mark.parametrize("frames", [12, 21])
+def test_a_clip_of_one_name_through_10_and_11_stays_a_clip(tmp_path, frames):
+    """frame_00 ... frame_11 (or ... frame_20): frame_10 and frame_11 form a complete pair, but
+    every frame shares one name: a clip of frames - 1 pairs, not KITTI flow pairs whose other
+    frames are refused as orphans."""
+    for n in range(frames):
+        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), float(n)))
+    images = sorted(tmp_path.iterdir())
+    assert not kitti_flow_layout(images)
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == [f"frame_{n:02d}" for n in range(frames - 1)]
+    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in (9, 10)] == [
+        (9.0, 10.0), (10.0, 11.0)]
+    # a second name with its complete pair makes it KITTI's multiview layout: the clip's frames are refused
+    for t in ("10", "11"):
+        write_image(tmp_path / f"other_{t}.png", torch.zeros(3, *SIZE))
+    with pytest.raises(ValueError, match=rf"holds KITTI flow pairs .* {frames - 2} image\(s\) have no partner: "
+                                         rf"frame_00\.png, "):
         ImageFolderDataset(tmp_path)
 
 
@@ -262,3 +287,26 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
     write_road_mask(root / "road" / "000001.png", torch.ones(1, 10, 10, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"^road: 000001\.png is \(10, 10\), the images \(24, 40\)"):
         ImageFolderDataset(root / "images", road=root / "road")[1]
+
+
+@pytest.mark.parametrize("pose, edit, message", [
+    (1, lambda P: P.__setitem__((1, 0, 3), float("nan")), r"pose 1 of the tensor holds NaN or inf"),
+    (1, lambda P: P[1, :3, :3].mul_(3.0), r"pose 1 of the tensor is not a rigid pose: its 3×3 block is not a "
+                                           r"rotation \(\|RᵀR − I\| up to 8, det 27"),
+    (2, lambda P: P[2, :3, :3].zero_(), r"pose 2 of the tensor is not a rigid pose: .*det 0"),
+    (0, lambda P: P.__setitem__((0, 3, 0), 5.0), r"pose 0 of the tensor is not a rigid pose: its last row is "
+                                                  r"5 0 0 1, not 0 0 0 1"),
+])
+def test_a_poses_tensor_is_checked_as_a_poses_file_is(clip, pose, edit, message):
+    """A poses tensor gets the checks of a poses file (finite, last row 0 0 0 1, a rotation block):
+    a 3x scaled block was once accepted and gave a wrong odometry (z_d 1/3), NaN and an all-zero
+    block stopped only at the item, under another name."""
+    root, poses = clip
+    bad = poses.clone()
+    edit(bad)
+    with pytest.raises(ValueError, match=rf"^poses: {message}"):
+        ImageFolderDataset(root / "images", root / "calib.txt", poses=bad)
+    given = poses.clone()
+    ds = ImageFolderDataset(root / "images", root / "calib.txt", poses=given)
+    given[1, 2, 3] += 10.0  # the dataset holds its own copy
+    torch.testing.assert_close(ds[0]["relative_pose"], torch.linalg.inv(poses[1]) @ poses[0], rtol=0, atol=1e-12)

@@ -86,3 +86,55 @@ class TestExceptions:
         (tmp_path / "rgb").mkdir()
         with pytest.raises(ValueError, match="no PNG frames"):
             CarlaRun(tmp_path)
+
+
+def _two_channel_float_tiff(path, array):
+    """A minimal baseline little-endian TIFF of (H, W, 2) float32, chunky, one strip (OpenCV
+    cannot write one)."""
+    import struct
+
+    h, w, _ = array.shape
+    data = np.ascontiguousarray(array, "<f4").tobytes()
+    entries = []
+
+    def entry(tag, kind, count, value, raw=None):
+        entries.append(struct.pack("<HHI", tag, kind, count) + (raw if raw is not None else struct.pack("<I", value)))
+
+    data_offset = 8 + 2 + 12 * 11 + 4 + 8
+    entry(256, 4, 1, w)
+    entry(257, 4, 1, h)
+    entry(258, 3, 2, 0, struct.pack("<HH", 32, 32))  # bits per sample
+    entry(259, 3, 1, 1)  # no compression
+    entry(262, 3, 1, 1)  # black is zero
+    entry(273, 4, 1, data_offset)
+    entry(277, 3, 1, 2)  # samples per pixel
+    entry(278, 4, 1, h)
+    entry(279, 4, 1, len(data))
+    entry(284, 3, 1, 1)  # chunky
+    entry(339, 3, 2, 0, struct.pack("<HH", 3, 3))  # IEEE float samples
+    path.write_bytes(b"II*\x00" + struct.pack("<I", 8) + struct.pack("<H", 11) + b"".join(entries)
+                     + struct.pack("<I", 0) + b"\x00" * 8 + data)
+
+
+class TestLayoutLimits:
+    def test_a_two_channel_float_tiff_is_refused_by_name(self, tmp_path):
+        """The docstring once promised (H, W, 2) float32 TIFFs, which OpenCV does not decode."""
+        _two_channel_float_tiff(tmp_path / "two.tif", np.ones((3, 4, 2), np.float32))
+        with pytest.raises(ValueError, match=r"^path: OpenCV could not decode '.*two\.tif' as a CARLA flow TIFF "
+                                             r"\(single-channel float32 \(H, 2W\), x and y interleaved; OpenCV "
+                                             r"decodes no two-channel float32 TIFF\)"):
+            read_carla_flow(tmp_path / "two.tif")
+        cv2.imwrite(str(tmp_path / "three.tif"), np.ones((3, 4, 3), np.float32))
+        with pytest.raises(ValueError, match=r"^path: '.*three\.tif' has 3 channels; a CARLA flow TIFF is a "
+                                             r"single-channel \(H, 2W\) image"):
+            read_carla_flow(tmp_path / "three.tif")
+
+    def test_run_frames_in_number_order(self, tmp_path):
+        """Frames named without zero padding are in the order of their numbers (98, 99, 100), as
+        an image folder's; other names in the order of the names."""
+        (tmp_path / "rgb").mkdir()
+        for k in (100, 98, 99, 5):
+            cv2.imwrite(str(tmp_path / "rgb" / f"{k}.png"), np.zeros((2, 3, 3), np.uint8))
+        assert CarlaRun(tmp_path).frames == ["5", "98", "99", "100"]
+        cv2.imwrite(str(tmp_path / "rgb" / "a.png"), np.zeros((2, 3, 3), np.uint8))
+        assert CarlaRun(tmp_path).frames == ["100", "5", "98", "99", "a"]

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -43,11 +45,35 @@ class TestSmoke:
         assert torch.equal(back, flow)
 
     def test_middlebury_unknown_marker(self, tmp_path):
+        """A Middlebury file's 1e10 reads as unknown flow; write_flow stores unknown flow through
+        ``valid`` (NaN), and a 1e10 it would take for a valid pixel is refused, not written."""
+        from fsof_torch.io import write_flo
+
         flow, _ = _flow(3, 3)
         flow[:, 0, 0] = 1e10
-        write_flow(tmp_path / "f.flo", flow)
+        write_flo(tmp_path / "f.flo", flow)
         _, valid = read_flow(tmp_path / "f.flo")
         assert not bool(valid[0, 0, 0]) and int(valid.sum()) == 8
+        for suffix in (".flo", ".npy"):
+            write_flow(tmp_path / f"g{suffix}", flow, valid)
+            back, back_valid = read_flow(tmp_path / f"g{suffix}")
+            assert torch.equal(back_valid, valid) and torch.equal(back[:, valid[0]], flow[:, valid[0]])
+
+    @pytest.mark.parametrize("suffix", [".flo", ".npy"])
+    @pytest.mark.parametrize("value, dtype", [(2e9, torch.float32), (-1e9, torch.float32), (1e39, torch.float64)])
+    def test_unstorable_flow_without_valid_is_refused(self, tmp_path, suffix, value, dtype):
+        """Without ``valid`` every finite pixel is valid: |flow| >= 1e9 px (or float64 beyond
+        float32's range) there was once written and read back as not valid, silently."""
+        flow = torch.zeros(2, 2, 3, dtype=dtype)
+        flow[0, 1, 2] = value
+        with pytest.raises(ValueError, match=r"^flow: expected \|flow\| < 1e\+09 px at valid pixels after the "
+                                             r"float32 cast .*got " + re.escape(f"{abs(value):.4g}")):
+            write_flow(tmp_path / f"f{suffix}", flow)
+        assert list(tmp_path.iterdir()) == []
+        flow[0, 1, 2] = float("nan")  # non-finite pixels are the invalid ones
+        write_flow(tmp_path / f"f{suffix}", flow)
+        back, valid = read_flow(tmp_path / f"f{suffix}")
+        assert int(valid.sum()) == 5 and not bool(valid[0, 1, 2]) and back.eq(0).all()
 
 
 class TestExceptions:
@@ -75,7 +101,8 @@ class TestExceptions:
     def test_float64_beyond_float32_at_a_valid_pixel(self, tmp_path):
         """1e39 is finite in float64 but inf once stored as float32."""
         flow = torch.full((2, 2, 2), 1e39, dtype=torch.float64)
-        with pytest.raises(ValueError, match="flow: expected finite values at valid pixels"):
+        with pytest.raises(ValueError, match=r"flow: expected \|flow\| < 1e\+09 px at valid pixels after the "
+                                             r"float32 cast .*got 1e\+39"):
             write_flow(tmp_path / "f.flo", flow, torch.ones(1, 2, 2, dtype=torch.bool))
 
     def test_bad_npy(self, tmp_path):

@@ -171,3 +171,14 @@ class TestShared:
         assert image.shape == (3, 375, 1242) and 0 <= float(image.min()) and float(image.max()) <= 255
         grey = read_image(shared_data / "kitti_odometry_straight" / "image_l" / "000000.png")
         assert grey.shape == (3, 370, 1226) and torch.equal(grey[0], grey[2])
+
+
+def test_frame_order_by_number_where_every_name_is_one():
+    """The one rule of frame order, shared by image folders and CARLA runs."""
+    from fsof_torch.io.images import in_frame_order
+
+    assert [p.name for p in in_frame_order(["100.png", "98.png", "05.png", "5.png", "99.png"])] == [
+        "05.png", "5.png", "98.png", "99.png", "100.png"]
+    assert [p.name for p in in_frame_order(["b_2.png", "b_10.png", "a.png"])] == ["a.png", "b_10.png", "b_2.png"]
+    assert [p.name for p in in_frame_order(["2.png", "10.png", "x1.png"])] == ["10.png", "2.png", "x1.png"]
+    assert in_frame_order([]) == []

@@ -245,3 +245,58 @@ class TestShared:
         assert 1.0 < float(step.mean()) < 1.4  # "about 1.2 m per frame"
         P0 = read_kitti_calibration(folder / "calib.txt", 0)
         assert abs(float(P0[0, 0]) - 707.0912) < 1e-6
+
+
+class TestExactAndChecked:
+    @pytest.mark.parametrize("style", ["cam_to_cam", "odometry"])
+    def test_calibration_reads_back_exactly(self, tmp_path, style):
+        """Every float64 survives the file (``%.12e`` once kept 13 digits: K of images resized by
+        1/3 came back 3e-11 px off), for our reader and for a plain split-and-float reader."""
+        K = Camera(torch.tensor([[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]],
+                                dtype=torch.float64), 1.65).scaled(1 / 3, 1 / 3).K[0]
+        P = torch.cat([K, torch.tensor([[1e-300], [-2.5e17], [1 / 7]], dtype=torch.float64)], dim=1)
+        for written in (K, P):
+            write_kitti_calibration(tmp_path / "c.txt", written, style=style)
+            back = read_kitti_calibration(tmp_path / "c.txt", 2)
+            assert torch.equal(back[:, :written.shape[1]], written)
+            line = (tmp_path / "c.txt").read_text().splitlines()[-1]
+            plain = np.array([float(x) for x in line.split(":", 1)[1].split()]).reshape(3, 4)
+            assert np.array_equal(plain[:, :written.shape[1]], written.numpy())
+        assert "721.5377" in (write_kitti_calibration(tmp_path / "d.txt", torch.tensor(
+            [[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]], dtype=torch.float64))).read_text()
+        with pytest.raises(ValueError, match=r"^K: expected finite values"):
+            write_kitti_calibration(tmp_path / "e.txt", torch.tensor([[1.0, 0, float("nan")], [0, 1, 0], [0, 0, 1]]))
+        assert not (tmp_path / "e.txt").exists()
+
+    @pytest.mark.parametrize("edit, message", [
+        (lambda P: P[1, :3, :3].mul_(2.0), r"poses: pose 1 is not a rigid pose: its 3×3 block is not a rotation"),
+        (lambda P: P.__setitem__((1, 3, 0), 5.0), r"poses: pose 1 is not a rigid pose: its last row is 5 0 0 1"),
+        (lambda P: P.__setitem__((2, 0, 3), float("inf")), r"poses: pose 2 holds NaN or inf"),
+        (lambda P: (P[2, :3, :3].zero_(), P.__setitem__((1, 3, 3), 2.0)), r"poses: pose 1 is not a rigid pose: "
+                                                                           r"its last row is 0 0 0 2"),
+    ])
+    def test_poses_writer_refuses_what_the_reader_refuses(self, tmp_path, edit, message):
+        """The writer once wrote a non-rigid block (its reader refused the file) and dropped a last
+        row that was not 0 0 0 1 without a word; now the first bad pose is named, nothing written."""
+        P = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        P[:, 2, 3] = torch.tensor([0.0, 1.0, 2.0])
+        edit(P)
+        with pytest.raises(ValueError, match=rf"^{message}"):
+            write_kitti_poses(tmp_path / "p.txt", P)
+        with pytest.raises(ValueError, match=rf"^{message}"):
+            write_kitti_poses(tmp_path / "p.txt", P.float())
+        assert not list(tmp_path.iterdir())
+
+    def test_poses_reader_names_the_first_bad_line(self, tmp_path):
+        good = "1 0 0 0 0 1 0 0 0 0 1 0"
+        (tmp_path / "n.txt").write_text(f"{good}\n\n# comment\n1 0 0 nan 0 1 0 0 0 0 1 0\n{good}\n")
+        with pytest.raises(ValueError, match=r"^path: line 4 of '.*n\.txt' holds NaN or inf"):
+            read_kitti_poses(tmp_path / "n.txt")
+        # the first bad line, whatever is wrong with it: a scaled block on line 2 before a NaN on line 3
+        (tmp_path / "m.txt").write_text(f"{good}\n2 0 0 0 0 2 0 0 0 0 2 0\n1 0 0 inf 0 1 0 0 0 0 1 0\n")
+        with pytest.raises(ValueError, match=r"^path: line 2 of '.*m\.txt' is not a rigid pose"):
+            read_kitti_poses(tmp_path / "m.txt")
+        (tmp_path / "r.txt").write_text(f"{good}\n{good} 0.5 0 0 1\n")
+        with pytest.raises(ValueError, match=r"^path: line 2 of '.*r\.txt' is not a rigid pose: its last row is "
+                                             r"0\.5 0 0 1, not 0 0 0 1"):
+            read_kitti_poses(tmp_path / "r.txt")

@@ -132,3 +132,38 @@ class TestExceptions:
         (tmp_path / "intrinsic.txt").write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 nan 1 1 1\n")
         with pytest.raises(ValueError, match=r"line 2 of '.*intrinsic\.txt' holds NaN or inf"):
             read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")
+
+
+class TestRanges:
+    @pytest.mark.parametrize("shape, channel, name", [((3, 1), 0, "u"), ((1, 4), 1, "v")])
+    def test_a_one_pixel_side_stores_zero_flow_only(self, tmp_path, shape, channel, name):
+        """The reader scales by W - 1 (H - 1), 0 on a 1-pixel side: u = 0.75 there was once
+        written and read back as 0."""
+        flow = torch.zeros(2, *shape, dtype=torch.float64)
+        flow[1 - channel] = 0.5  # the other component stays in range (its side is 3 or 4 pixels)
+        back, valid = read_vkitti2_flow(write_vkitti2_flow(tmp_path / "ok.png", flow))
+        assert valid.all() and back[channel].eq(0).all()
+        assert float((back[1 - channel].double() - 0.5).abs().max()) <= (max(shape) - 1) / 65535
+        flow[channel, 0, 0] = 0.75
+        with pytest.raises(ValueError, match=rf"^flow: the Virtual KITTI 2 encoding holds \|u\| <= {shape[1] - 1}, "
+                                             rf"\|v\| <= {shape[0] - 1} px .*got \|{name}\| = 0\.75 at a valid pixel"):
+            write_vkitti2_flow(tmp_path / "bad.png", flow)
+        assert not (tmp_path / "bad.png").exists()
+        valid = torch.ones(1, *shape, dtype=torch.bool)
+        valid[0, 0, 0] = False  # where not valid, any value is fine (written as 0)
+        write_vkitti2_flow(tmp_path / "masked.png", flow, valid)
+
+    @pytest.mark.parametrize("row", ["Road 0 256 0", "Road -1 0 0", "Road 100 60 1000"])
+    def test_colour_components_beyond_a_byte_are_refused(self, tmp_path, row):
+        """(0, 256, 0) once packed to the code of (1, 0, 0): such a pixel was labelled Road."""
+        (tmp_path / "colors.txt").write_text(f"Category r g b\nTerrain 210 0 200\n{row}\n")
+        with pytest.raises(ValueError, match=rf"^path: line 3 of '.*colors\.txt' has a colour component outside "
+                                             rf"0\.\.255: '{row}'"):
+            read_vkitti2_colors(tmp_path / "colors.txt")
+        cv2.imwrite(str(tmp_path / "classgt_00000.png"), np.array([[[0, 0, 1], [0, 255, 0]]], np.uint8))
+        colors = {"Terrain": (210, 0, 200), "Road": tuple(int(x) for x in row.split()[1:])}
+        with pytest.raises(ValueError, match=rf"^colors\['Road'\]: expected three integers in 0\.\.255, got "
+                                             rf"\({', '.join(row.split()[1:])}\)"):
+            read_vkitti2_classes(tmp_path / "classgt_00000.png", colors)
+        labels = read_vkitti2_classes(tmp_path / "classgt_00000.png", {"Terrain": (210, 0, 200), "Road": (0, 255, 0)})
+        assert labels.tolist() == [[-1, 1]]  # RGB (1, 0, 0) is no class

@@ -74,6 +74,15 @@ def _folder(root: str | os.PathLike, name: str = "root") -> Path:
     return root
 
 
+def _fits(x: Tensor, path: Path, size: tuple[int, int], image: Path, root: str) -> Tensor:
+    """``x`` if its (H, W) is the pair's image size, else a ValueError that starts with ``root``
+    (the dataset's argument) and names the file and the image."""
+    if tuple(x.shape[-2:]) != tuple(size):
+        raise ValueError(f"{root}: {str(path)!r} is {x.shape[-2]}x{x.shape[-1]}, but the pair's image "
+                         f"{image.name} is {size[0]}x{size[1]}; every file of a pair needs its images' size")
+    return x
+
+
 def _images_and_camera(sample: dict[str, Any]) -> dict[str, Any]:
     """``sample`` reduced to what ``ground_truth=False`` keeps: images, camera, index, name."""
     return {k: sample[k] for k in ("image1", "image2", "camera", "index", "name")}
@@ -173,6 +182,8 @@ class KittiFlowDataset(Dataset):
     ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
     ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0)). No odometry (KITTI flow has none).
+    Every file of a pair (second image, flow, road) must have the size of its ``NAME_10.png``: one
+    of another size is a ValueError naming ``root`` and the file, never resized.
 
     Args:
         root: the folder (holding ``image_dir``).
@@ -180,7 +191,8 @@ class KittiFlowDataset(Dataset):
         image_dir: ``"image_2"`` (colour; KITTI 2012 calls it ``colored_0``).
         cam: camera index of the calibration row.
         camera_height: metres (not in KITTI's files; nominal 1.65).
-        K: (3, 3) intrinsics used where no calibration file is found.
+        K: (3, 3) intrinsics used where no calibration file is found (copied: each item's camera
+            holds its own K).
         dtype: float dtype of images and flow; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road.
     """
@@ -200,6 +212,9 @@ class KittiFlowDataset(Dataset):
         if not self.names:
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
+        if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
+            K = torch.as_tensor(K).detach().to("cpu", copy=True)
+            Camera(K.to(camera_dtype), float(camera_height))
         self.cam, self.camera_height, self.K = cam, float(camera_height), K
         self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
@@ -213,29 +228,33 @@ class KittiFlowDataset(Dataset):
             if path.is_file():
                 P = read_kitti_calibration(path, self.cam)
                 return Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
-        if self.K is not None:
-            return Camera(torch.as_tensor(self.K).to(self.camera_dtype), self.camera_height)
+        if self.K is not None:  # each item its own K: editing one changes no other, nor the caller's
+            return Camera(self.K.to(self.camera_dtype, copy=True), self.camera_height)
         return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         i = check_index(index, len(self))
         name = self.names[i]
         images = self.root / self.image_dir
-        image1 = read_image(images / f"{name}_10.png").to(self.dtype)
+        first = images / f"{name}_10.png"
+        image1 = read_image(first).to(self.dtype)
+        size = tuple(image1.shape[-2:])
+        second = images / f"{name}_11.png"
+        image2 = _fits(read_image(second), second, size, first, "root").to(self.dtype)
         truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.root / self.flow_dir / f"{name}_10.png"
             if path.is_file():
-                flow, truth["valid"] = read_kitti_flow(path)
-                truth["flow"] = flow.to(self.dtype)
+                flow, valid = read_kitti_flow(path)
+                truth["flow"], truth["valid"] = _fits(flow, path, size, first, "root").to(self.dtype), valid
             road = self.root / "road" / f"{name}_10.png"
             semantic = self.root / "semantic" / f"{name}_10.png"
             if road.is_file():
-                truth["road"] = read_road_mask(road, size=tuple(image1.shape[-2:]))
+                truth["road"] = _fits(read_road_mask(road), road, size, first, "root")
             elif semantic.is_file():
-                truth["road"] = mask_from_colors(read_image(semantic), [KITTI_ROAD_COLOR])
-        return make_item(image1, read_image(images / f"{name}_11.png").to(self.dtype), index=i, name=name,
-                         camera=self.camera(name), **truth)
+                colors = _fits(read_image(semantic), semantic, size, first, "root")
+                truth["road"] = mask_from_colors(colors, [KITTI_ROAD_COLOR])
+        return make_item(image1, image2, index=i, name=name, camera=self.camera(name), **truth)
 
 
 class KittiSampleDataset(ImageFolderDataset):
@@ -316,7 +335,9 @@ class CarlaRunDataset(Dataset):
     ``flow_velocity`` (an extra key) is the run's flow of frame k (the paper: instantaneous, px/s)
     and ``valid`` its validity; ``flow`` is None (CARLA gives velocities). ``road`` from the
     semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run name
-    (``r`` in degrees). Pairs are named after frame k.
+    (``r`` in degrees). Pairs are named after frame k. Every file of a pair (frame k + 1, flow,
+    semantic PNG) must have the size of frame k: one of another size is a ValueError naming ``run``
+    and the file.
     """
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
@@ -331,17 +352,19 @@ class CarlaRunDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, Any]:
         i = check_index(index, len(self))
         a, b = self.run.frames[i], self.run.frames[i + 1]
-        image1 = read_image(self.run.path("rgb", a)).to(self.dtype)
-        camera = carla_camera(tuple(image1.shape[-2:]), height=self.camera_height,
-                              roll=self.run.params.get("roll", 0.0), dtype=self.camera_dtype)
+        first, second = self.run.path("rgb", a), self.run.path("rgb", b)
+        image1 = read_image(first).to(self.dtype)
+        size = tuple(image1.shape[-2:])
+        image2 = _fits(read_image(second), second, size, first, "run").to(self.dtype)
+        camera = carla_camera(size, height=self.camera_height, roll=self.run.params.get("roll", 0.0),
+                              dtype=self.camera_dtype)
         truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.run.path("optical_flow", a)
             if path.is_file():
-                flow, truth["valid"] = read_carla_flow(path)
-                truth["flow_velocity"] = flow.to(self.dtype)
+                flow, valid = read_carla_flow(path)
+                truth["flow_velocity"], truth["valid"] = _fits(flow, path, size, first, "run").to(self.dtype), valid
             path = self.run.path("semantic", a)
             if path.is_file():
-                truth["road"] = read_carla_road(path)
-        return make_item(image1, read_image(self.run.path("rgb", b)).to(self.dtype), index=i, name=a,
-                         camera=camera, **truth)
+                truth["road"] = _fits(read_carla_road(path), path, size, first, "run")
+        return make_item(image1, image2, index=i, name=a, camera=camera, **truth)

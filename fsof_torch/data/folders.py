@@ -3,10 +3,12 @@ ground-truth flows matched to the pairs by name: the layout of your own recordin
 ``python -m refine --images`` reads through :class:`ImageFolderDataset`.
 
 Pairs: consecutive frames (i, i + step) of the folder sorted by name (by number where every name
-is a number: ``5.png`` before ``10.png``), each named after its first frame; or, where any frame's
-name ends in ``_10`` or ``_11``, KITTI flow pairs (``NAME_10`` / ``NAME_11``) by name, named
-``NAME``: every image of such a folder must then be in a complete pair (an image without its
-partner is an error naming it, never paired with another scene's frame nor dropped).
+is a number: ``5.png`` before ``10.png``), each named after its first frame; or KITTI flow pairs
+(``NAME_10`` / ``NAME_11``) by name, named ``NAME``, where every image's name ends in ``_10`` or
+``_11``, or where complete pairs stand under at least two different names
+(:func:`kitti_flow_layout`): every image of such a folder must then be in a complete pair (an
+image without its partner is an error naming it, never paired with another scene's frame nor
+dropped). A clip whose frames share one ``NAME`` (``frame_00`` ... ``frame_50``) is a clip.
 
 Files are matched to pairs by name only, never by position (:func:`match_files`): the pair ``NAME``
 takes ``NAME.<ext>`` (or its first image's stem) from a folder; a pair without such a file, or
@@ -26,7 +28,6 @@ from __future__ import annotations
 
 import numbers
 import os
-import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -35,12 +36,12 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_int, check_number, check_size
+from .._check import check_has_values, check_int, check_number, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..geometry.egomotion import ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import read_image
-from ..io.kitti import read_kitti_poses
+from ..io.images import in_frame_order, read_image
+from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
 
@@ -72,9 +73,7 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
-    images = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
-    if all(re.fullmatch(r"[0-9]+", p.stem) for p in images):
-        images.sort(key=lambda p: int(p.stem))  # (stable: equal numbers, 5 and 05, stay by name)
+    images = in_frame_order(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
@@ -91,16 +90,17 @@ def _kitti_partner(stem: str) -> str | None:
 
 def kitti_flow_layout(images: Iterable[Path]) -> bool:
     """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``, paired by name), not one
-    clip: every image's name ends in ``_10`` or ``_11``, or at least one complete pair is there.
-    Every image of such a layout must be in a complete pair: one without its partner (a
-    ``NAME_10`` without ``NAME_11``, or another image beside the pairs, such as the other frames
-    of KITTI's multiview folders) raises a ValueError naming ``images``, the folder and the
-    images. A clip whose frames merely include a name ending in ``_10`` (``frame_00`` to
-    ``frame_10``) stays a clip."""
+    clip: every image's name ends in ``_10`` or ``_11``, or complete pairs stand under at least two
+    different names ``NAME`` (KITTI's multiview folders: ``000000_00`` ... ``000000_20``,
+    ``000001_00`` ...). Every image of such a layout must be in a complete pair: one without its
+    partner (a ``NAME_10`` without ``NAME_11``, or another image beside the pairs, such as the
+    other frames of KITTI's multiview folders) raises a ValueError naming ``images``, the folder
+    and the images. A clip, whose complete pairs (if any) share one ``NAME`` (``frame_00`` to
+    ``frame_11``, ``NAME_00`` to ``NAME_50``), stays a clip."""
     paths = [Path(p) for p in images]
     stems = {p.stem for p in paths}
-    paired = [s for s in stems if _kitti_partner(s) in stems]
-    if not paired and not all(_kitti_partner(s) is not None for s in stems):
+    paired_names = {s[:-3] for s in stems if s.endswith("_10") and _kitti_partner(s) in stems}
+    if len(paired_names) < 2 and not all(_kitti_partner(s) is not None for s in stems):
         return False
     orphans = [p for p in paths if _kitti_partner(p.stem) not in stems]
     if orphans:
@@ -235,8 +235,10 @@ class ImageFolderDataset(Dataset):
         camera_height: metres above the road; ``roll``, ``pitch``: the mounting in radians.
         poses: camera-to-world poses, one per frame in order: a KITTI poses file of exactly one line
             per frame (line i for frame i in sorted order), or an (N, 4, 4) float tensor (N at least
-            the frames). Items then carry ``relative_pose`` (``inverse(P_j) @ P_i``), its planar
-            ``odometry`` under the camera's mounting and ``pose_residual``.
+            the frames; copied, and checked as a file is: finite, last row 0 0 0 1, each 3×3 block a
+            rotation, else a ValueError naming ``poses`` and the pose). Items then carry
+            ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
+            mounting and ``pose_residual``.
         road: a folder of masks matched by name, or one mask file (PNG, or a polygon JSON drawn at
             the images' size) for every pair.
         gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
@@ -309,7 +311,10 @@ class ImageFolderDataset(Dataset):
         if isinstance(poses, Tensor):
             if poses.dim() != 3 or poses.shape[-2:] != (4, 4) or not poses.is_floating_point():
                 raise ValueError(f"poses: expected an (N, 4, 4) float tensor, got {tuple(poses.shape)} {poses.dtype}")
-            P, where = poses.to(torch.float64), "the poses"
+            check_has_values(poses, "poses", "to pair frames")
+            # a copy in float64, checked as a poses file is: finite, last row 0 0 0 1, rotation blocks
+            P, where = poses.detach().to("cpu", torch.float64, copy=True), "the poses"
+            check_rigid_poses(P, lambda i: f"poses: pose {i} of the tensor")
         else:
             path = Path(poses)
             if not path.is_file():

@@ -15,8 +15,9 @@ Assumptions, where the paper and its code say nothing (checked against the offic
 
 - Flow TIFF: float32 in CARLA's normalised units, read by the official code as
   ``np.reshape(np.array(Image.open(path)), (H, W, 2))`` then ``u = x · W``, ``v = -y · H``: we
-  accept a single-channel (H, 2W) image with x, y interleaved (what that reshape implies) or a
-  two-channel (H, W, 2) one. The paper calls these values instantaneous velocities (px/s).
+  read a single-channel (H, 2W) image with x, y interleaved (what that reshape implies). A
+  two-channel float32 TIFF is not read: OpenCV, our image decoder, does not decode one (a
+  ValueError names the file). The paper calls these values instantaneous velocities (px/s).
 - Semantic PNG: road = RGB (128, 64, 128), road line = RGB (157, 234, 50) (CARLA's CityScapes
   palette); both count as road.
 - Camera: fx = fy = W / (2 tan(FOV / 2)) with FOV 90°, principal point (W / 2, H / 2), height
@@ -38,7 +39,7 @@ from torch import Tensor
 
 from ..geometry.camera import Camera
 from .._check import as_chw_flow
-from .images import read_image, read_image_array, write_image_array
+from .images import in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
 
 __all__ = [
@@ -61,19 +62,23 @@ CARLA_WHEELBASE = 2.7
 def read_carla_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
     """A CARLA flow TIFF of the paper's layout as ``(flow (2, H, W) float32, valid (1, H, W) bool)``.
 
-    ``u = x · W``, ``v = -y · H`` from CARLA's normalised flow (the official code's conversion);
-    valid where finite.
+    The file is a single-channel float32 (H, 2W) image, x and y interleaved (as
+    :func:`write_carla_flow` writes it); ``u = x · W``, ``v = -y · H`` from CARLA's normalised
+    flow (the official code's conversion); valid where finite. Another file (a two-channel
+    float32 TIFF, which OpenCV does not decode; another pixel type or channel count; an odd
+    width) is a ValueError naming the path.
     """
-    array = read_image_array(path, what="CARLA float32 flow TIFF")
+    array = read_image_array(path, what="CARLA flow TIFF (single-channel float32 (H, 2W), x and y interleaved; "
+                                        "OpenCV decodes no two-channel float32 TIFF)")
     if array.dtype != np.float32:
         raise ValueError(f"path: {str(path)!r} holds {array.dtype} values; a CARLA flow TIFF holds float32")
-    if array.ndim == 2:
-        if array.shape[1] % 2:
-            raise ValueError(f"path: {str(path)!r} is a single-channel {array.shape} image; a CARLA flow TIFF "
-                             f"interleaves x, y and so has an even width")
-        array = array.reshape(array.shape[0], array.shape[1] // 2, 2)
-    elif array.shape[2] != 2:
-        raise ValueError(f"path: {str(path)!r} has {array.shape[2]} channels; a CARLA flow TIFF has 2 (x, y)")
+    if array.ndim != 2:
+        raise ValueError(f"path: {str(path)!r} has {array.shape[2]} channels; a CARLA flow TIFF is a single-channel "
+                         f"(H, 2W) image, x and y interleaved")
+    if array.shape[1] % 2:
+        raise ValueError(f"path: {str(path)!r} is a single-channel {array.shape} image; a CARLA flow TIFF "
+                         f"interleaves x, y and so has an even width")
+    array = array.reshape(array.shape[0], array.shape[1] // 2, 2)
     height, width = array.shape[:2]
     flow = np.stack([array[:, :, 0] * width, -array[:, :, 1] * height]).astype(np.float32)
     valid = np.isfinite(flow).all(axis=0)
@@ -123,6 +128,9 @@ def parse_carla_run_name(name: str) -> dict[str, float]:
 class CarlaRun:
     """One run folder of the paper's CARLA layout: frame names and the paths of each frame's files.
 
+    ``frames`` are the stems of ``rgb/*.png`` in frame order: by number where every stem is a
+    number (``98``, ``99``, ``100``, unpadded), else by name.
+
     Example:
         >>> run = CarlaRun("data/CARLA/t10_s0_r-5")           # doctest: +SKIP
         >>> flow, valid = read_carla_flow(run.path("optical_flow", run.frames[0]))  # doctest: +SKIP
@@ -134,7 +142,7 @@ class CarlaRun:
         self.root = Path(root)
         if not (self.root / "rgb").is_dir():
             raise FileNotFoundError(f"root: {str(self.root)!r} has no rgb/ folder (expected the paper's CARLA layout)")
-        self.frames = sorted(p.stem for p in (self.root / "rgb").glob("*.png"))
+        self.frames = [p.stem for p in in_frame_order((self.root / "rgb").glob("*.png"))]
         if not self.frames:
             raise ValueError(f"root: {str(self.root / 'rgb')!r} holds no PNG frames")
         self.params = parse_carla_run_name(self.root.name)

@@ -23,10 +23,10 @@ _UNKNOWN = 1e9  # |flow| from here up is unknown flow (Middlebury writes 1e10), 
 def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
     """A flow file as ``(flow (2, H, W) float32 px, valid (1, H, W) bool)``, chosen by suffix.
 
-    ``.png``: KITTI flow PNG (valid from its B channel). ``.flo``: Middlebury; valid where the
-    flow is finite and below 1e9 in magnitude (Middlebury marks unknown flow with 1e10).
-    ``.npy``: an array (2, H, W) or (H, W, 2) (a 2 on both ends is read as (2, H, W)); valid
-    where finite. Non-valid pixels hold 0.
+    ``.png``: KITTI flow PNG (valid from its B channel). ``.flo``: Middlebury. ``.npy``: an array
+    (2, H, W) or (H, W, 2) (a 2 on both ends is read as (2, H, W)), read as float32. For both
+    ``.flo`` and ``.npy`` a pixel is valid where its flow is finite and below 1e9 px in magnitude
+    in both channels (Middlebury marks unknown flow with 1e10). Non-valid pixels hold 0.
     """
     path = as_path(path)
     suffix = path.suffix.lower()
@@ -64,21 +64,25 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
 
     ``.png``: KITTI (``valid`` kept, flow to 1/64 px). ``.flo`` and ``.npy``: float32, exact; a
     given ``valid`` is stored by writing NaN at invalid pixels (``read_flow`` gives them back as
-    not valid). Flow at valid pixels must be finite and below 1e9 px in magnitude after the
-    float32 cast (else ValueError naming ``flow``): :func:`read_flow` would read it as not valid.
+    not valid); without ``valid`` every pixel with a finite flow is valid and the others are
+    written as they are. Flow at valid pixels must be finite and below 1e9 px in magnitude after
+    the float32 cast (else ValueError naming ``flow``, before anything is written):
+    :func:`read_flow` would read it as not valid.
     """
     path = as_path(path)
     suffix = path.suffix.lower()
     if suffix == ".png":
         return write_kitti_flow(path, flow, valid)
-    flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    given = as_chw_flow(flow, "flow").detach().cpu()
+    # valid: checked (finite flow where it is valid), or every finite pixel, before the cast
+    valid_hw = torch.isfinite(given).all(dim=0) if valid is None else flow_valid_pixels(given, valid)
+    flow = given.to(torch.float32)
+    large = ~(flow.abs() < _UNKNOWN).all(dim=0) & valid_hw  # 1e9 and up, or beyond float32's range
+    if bool(large.any()):
+        value = float(given.double().abs().amax(dim=0)[large].max())
+        raise ValueError(f"flow: expected |flow| < {_UNKNOWN:g} px at valid pixels after the float32 cast (a "
+                         f".flo/.npy file marks larger values unknown), got {value:.4g}")
     if valid is not None:
-        valid_hw = flow_valid_pixels(flow, valid)  # checks valid, and finite flow where it is valid
-        large = flow.abs().amax(dim=0) >= _UNKNOWN
-        if bool((large & valid_hw).any()):
-            value = float(flow.abs().amax(dim=0)[large & valid_hw].max())
-            raise ValueError(f"flow: expected |flow| < {_UNKNOWN:g} px at valid pixels (a .flo/.npy file marks "
-                             f"larger values unknown), got {value:.4g}")
         flow = torch.where(valid_hw, flow, torch.full_like(flow, float("nan")))
     if suffix == ".flo":
         return write_flo(path, flow)

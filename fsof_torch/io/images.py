@@ -12,7 +12,9 @@ above 255, rounding float data) or write a file the readers here refuse (.hdr, .
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
+from typing import Iterable
 
 import numpy as np
 import torch
@@ -32,6 +34,16 @@ def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
     if not path.is_file():
         raise FileNotFoundError(f"path: no file at {str(path)!r}")
     return path, path.read_bytes()
+
+
+def in_frame_order(paths: Iterable[str | os.PathLike]) -> list[Path]:
+    """Frame files in frame order: by number where every file's stem is a number (``0.png``,
+    ``5.png``, ``10.png``, ``100.png``: frames numbered without zero padding), else by name. Equal
+    numbers (``5`` and ``05``) stay in the order of their names."""
+    paths = sorted(Path(p) for p in paths)
+    if all(re.fullmatch(r"[0-9]+", p.stem) for p in paths):
+        paths.sort(key=lambda p: int(p.stem))
+    return paths
 
 
 def read_image_array(path: str | os.PathLike, *, what: str = "image") -> np.ndarray:

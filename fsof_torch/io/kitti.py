@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,6 +31,7 @@ __all__ = [
     "write_kitti_flow",
     "read_kitti_poses",
     "write_kitti_poses",
+    "check_rigid_poses",
     "read_kitti_calibration",
     "write_kitti_calibration",
     "KITTI_FLOW_SCALE",
@@ -125,8 +127,9 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
     numbers with a leading frame index (which is dropped). ``#`` starts a comment.
 
     Raises ValueError naming the path (and the line) for a binary file, a row of the wrong
-    length, non-finite values, or a 3×3 block that is not a rotation (|RᵀR − I| > 1e-3 or
-    det R <= 0: an all-zero block is singular).
+    length, and (naming the first such line) non-finite values, a 16-number row whose last four
+    are not 0 0 0 1, or a 3×3 block that is not a rotation (|RᵀR − I| > 1e-3 or det R <= 0: an
+    all-zero block is singular); see :func:`check_rigid_poses`.
     """
     path = as_path(path)
     if not path.is_file():
@@ -157,28 +160,47 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
     if not rows:
         raise ValueError(f"path: {str(path)!r} holds no poses")
     poses = torch.tensor(rows, dtype=torch.float64).reshape(-1, 4, 4)
+    check_rigid_poses(poses, lambda i: f"path: line {lines[i]} of {str(path)!r}")
+    return poses
+
+
+def check_rigid_poses(poses: Tensor, describe: Callable[[int], str]) -> None:
+    """Check (N, 4, 4) camera-to-world poses the way :func:`read_kitti_poses` checks a file's: each
+    pose finite, its last row 0 0 0 1 (to 1e-9, 1e-5 relative) and its 3×3 block a rotation
+    (|RᵀR − I| ≤ 1e-3, det R > 0). Raises a ValueError whose message starts with ``describe(i)``
+    for the first pose ``i`` that fails (``"path: line 3 of 'poses.txt'"``, ``"poses: pose 2"``).
+    Shared by the poses reader and writer and by the datasets that take poses."""
+    poses = poses.detach().to("cpu", torch.float64)
+    finite = torch.isfinite(poses).flatten(1).all(dim=1)
+    values = torch.where(finite.view(-1, 1, 1), poses, torch.eye(4, dtype=torch.float64))  # (NaN compares False)
     bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
-    if not torch.allclose(poses[:, 3], bottom.expand(len(rows), 4), atol=1e-9):
-        raise ValueError(f"path: {str(path)!r} has 4×4 poses whose last row is not 0 0 0 1")
-    if not bool(torch.isfinite(poses).all()):
-        raise ValueError(f"path: {str(path)!r} holds non-finite pose values")
+    rigid_row = torch.isclose(values[:, 3], bottom.expand(len(values), 4), rtol=1e-5, atol=1e-9).all(dim=1)
     # The 3×3 block must be a rotation: an all-zero or scaled block is singular or not rigid, and
     # relative poses (its inverse) would be inf or wrong. KITTI's rows, printed to 7 digits, are
     # orthonormal to 2e-7; the tolerance leaves room for other writers' rounding.
-    R = poses[:, :3, :3]
+    R = values[:, :3, :3]
     error = (R.transpose(1, 2) @ R - torch.eye(3, dtype=R.dtype)).abs().flatten(1).amax(dim=1)
-    bad = ((error > _ROTATION_TOL) | (torch.linalg.det(R) <= 0)).nonzero().flatten()
-    if bad.numel():
-        i = int(bad[0])
-        raise ValueError(f"path: line {lines[i]} of {str(path)!r} is not a rigid pose: its 3×3 block is not a "
-                         f"rotation (|RᵀR − I| up to {float(error[i]):.3g}, det {float(torch.linalg.det(R[i])):.3g}; "
-                         f"an all-zero block is singular)")
-    return poses
+    det = torch.linalg.det(R)
+    bad = (~(finite & rigid_row & (error <= _ROTATION_TOL) & (det > 0))).nonzero().flatten()
+    if not bad.numel():
+        return
+    i = int(bad[0])  # the first bad pose, whatever is wrong with it
+    if not bool(finite[i]):
+        raise ValueError(f"{describe(i)} holds NaN or inf")
+    if not bool(rigid_row[i]):
+        raise ValueError(f"{describe(i)} is not a rigid pose: its last row is "
+                         f"{' '.join(f'{x:g}' for x in poses[i, 3].tolist())}, not 0 0 0 1")
+    raise ValueError(f"{describe(i)} is not a rigid pose: its 3×3 block is not a rotation (|RᵀR − I| up to "
+                     f"{float(error[i]):.3g}, det {float(det[i]):.3g}; an all-zero block is singular)")
 
 
 def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Path:
     """Write (N, 4, 4) or (N, 3, 4) camera-to-world poses in the KITTI odometry format, atomically
-    (12 numbers a row, ``%.12e``, so float64 values survive to about 1e-12 relative)."""
+    (12 numbers a row, ``%.12e``, so float64 values survive to about 1e-12 relative).
+
+    The poses must be what :func:`read_kitti_poses` reads back: finite, a rotation block, and for
+    (N, 4, 4) the last row 0 0 0 1 (the format does not store it); else a ValueError naming
+    ``poses`` and the first bad pose (:func:`check_rigid_poses`), before anything is written."""
     if isinstance(poses, np.ndarray):
         poses = torch.from_numpy(poses)
     if not isinstance(poses, Tensor) or not poses.is_floating_point():
@@ -191,9 +213,11 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
     if poses.shape[0] == 0:
         raise ValueError(f"poses: expected at least one pose, got shape {tuple(poses.shape)}")
     check_has_values(poses, "poses")
-    if not bool(torch.isfinite(poses).all()):
-        raise ValueError("poses: expected finite values, got NaN or inf")
-    rows = poses[:, :3, :].detach().cpu().double().reshape(-1, 12).tolist()
+    full = poses.detach().cpu().double()
+    if full.shape[1] == 3:  # the last row the format leaves out
+        full = torch.cat([full, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(full), 1, 4)], dim=1)
+    check_rigid_poses(full, lambda i: f"poses: pose {i}")
+    rows = full[:, :3, :].reshape(-1, 12).tolist()
     text = "".join(" ".join(f"{x:.12e}" for x in row) + "\n" for row in rows)
     return write_text(path, text)
 
@@ -209,7 +233,10 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
             ``"odometry"`` (``calib.txt`` rows ``PN:``; rows P0..P{cam} are all written with this
             projection, so files stay readable by tools that count rows).
 
-    :func:`fsof_torch.camera.read_kitti_calibration` reads the result back exactly (``%.12e``).
+    Numbers are written with Python's ``repr`` (the shortest text that reads back as the same
+    float64, e.g. ``721.5377``, ``240.51256666666666``), so
+    :func:`fsof_torch.camera.read_kitti_calibration` (and any reader of whitespace-separated
+    floats) reads the result back exactly.
     """
     if isinstance(K, np.ndarray):
         K = torch.from_numpy(K)
@@ -225,8 +252,10 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
         P = K.double()
     else:
         raise ValueError(f"K: expected shape (3, 3) or (3, 4), got {tuple(K.shape)}")
+    if not bool(torch.isfinite(P).all()):  # the reader refuses a row holding NaN or inf
+        raise ValueError(f"K: expected finite values, got {P[:, :3].tolist() if K.shape[1] == 3 else P.tolist()}")
     cam = check_camera_index(cam)
-    row = " ".join(f"{x:.12e}" for x in P.detach().cpu().reshape(-1).tolist())
+    row = " ".join(repr(x) for x in P.detach().cpu().reshape(-1).tolist())
     if style == "cam_to_cam":
         text = f"P_rect_0{cam}: {row}\n"
     elif style == "odometry":

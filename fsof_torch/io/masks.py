@@ -19,7 +19,9 @@ the keys below, or none of their polygons, is a ValueError):
 ValueError or TypeError that names the file and the offending entry. Polygons may reach far
 outside the image: they are clipped to the image (Sutherland–Hodgman, in float64) before they
 are rasterised with ``cv2.fillPoly`` at 1/16 px vertex precision, so a polygon enclosing the
-image at ±2e8 px fills it instead of overflowing OpenCV's 32-bit fixed-point vertices.
+image at ±2e8 px fills it instead of overflowing OpenCV's 32-bit fixed-point vertices. OpenCV's
+scan conversion decides the pixels near the outline to about 0.5 px inside and 1.3 px outside
+it (:func:`rasterize_polygons`).
 Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected, in the file
 and after :func:`read_road_mask` scales them to its ``size``.
 """
@@ -111,8 +113,15 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
 
     The mask is the union of the polygons, each filled on its own (where two overlap, both fill).
     A pixel is filled where its centre is inside a polygon, and also where the polygon's outline
-    passes through it (OpenCV draws the outline's pixels too), up to the 1/16 px vertex grid.
-    Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px work.
+    passes through it (OpenCV draws the outline's pixels too), within the tolerance of OpenCV's
+    scan conversion, which works at whole pixels (vertices on a 1/16 px grid, but the rows of
+    vertices and the outline's pixels rounded to whole pixels, and edges leaving the image cut at
+    whole pixels): a pixel whose centre lies up to about 0.5 px inside a polygon's outline may stay
+    empty, and one whose centre lies up to about 1.3 px outside it may be filled. Measured on
+    random triangles (distance of the pixel centre from the outline): at most 0.33 px inside and
+    1.13 px outside for triangles within the image, 0.52 px and 1.33 px for triangles reaching
+    beyond it. Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px
+    work.
     """
     import cv2
 

@@ -18,6 +18,7 @@ segmentation PNG (``classgt_XXXXX.png``) colours each pixel with its class colou
 from __future__ import annotations
 
 import os
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -68,17 +69,23 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
 
     ``valid`` (1, H, W) or (H, W) bool defaults to the finite pixels; flow must be finite at valid
     pixels (invalid pixels are written as 0 flow, whatever they held). Valid flow must lie within
-    ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding.
+    ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding: an image 1 pixel
+    wide (high) stores u = 0 (v = 0) only, since the reader scales by W - 1 = 0 (H - 1); else a
+    ValueError naming ``flow``.
     """
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
     valid_hw = flow_valid_pixels(flow, valid)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
-    scale = torch.tensor([width - 1, height - 1], dtype=torch.float64).clamp_min(1).view(2, 1, 1)
-    norm = stored / scale
-    if bool((norm.abs() > 1).any()):
-        raise ValueError(f"flow: the Virtual KITTI 2 encoding holds |u| <= {width - 1}, |v| <= {height - 1} px; "
-                         f"got a larger value at a valid pixel")
+    limit = torch.tensor([width - 1, height - 1], dtype=torch.float64).view(2, 1, 1)
+    beyond = stored.abs() > limit
+    if bool(beyond.any()):
+        channel = 0 if bool(beyond[0].any()) else 1
+        value = float(stored[channel][beyond[channel]].abs().max())
+        raise ValueError(f"flow: the Virtual KITTI 2 encoding holds |u| <= {width - 1}, |v| <= {height - 1} px "
+                         f"(the image's width and height less one); got |{'uv'[channel]}| = {value:.6g} at a "
+                         f"valid pixel")
+    norm = stored / limit.clamp_min(1)
     coded = ((norm + 1) / 2 * _MAX16).round().to(torch.int32).numpy().astype(np.uint16)
     bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
     return write_image_array(path, bgr)
@@ -167,7 +174,8 @@ def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
 
 
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
-    """``colors.txt`` → ``{class name: (r, g, b)}`` in file order."""
+    """``colors.txt`` → ``{class name: (r, g, b)}`` in file order; components are integers in
+    0..255 (else a ValueError naming the file and the line)."""
     path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
@@ -182,6 +190,8 @@ def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, in
             rgb = tuple(int(x) for x in parts[-3:])
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not 'Name r g b': {line[:60]!r}") from err
+        if not all(0 <= c <= 255 for c in rgb):  # packed into 24 bits, it would be another colour
+            raise ValueError(f"path: line {n} of {str(path)!r} has a colour component outside 0..255: {line[:60]!r}")
         colors[" ".join(parts[:-3])] = rgb
     if not colors:
         raise ValueError(f"path: {str(path)!r} holds no classes")
@@ -191,14 +201,28 @@ def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, in
 def read_vkitti2_classes(path: str | os.PathLike, colors: dict[str, tuple[int, int, int]]) -> Tensor:
     """A class segmentation PNG → (H, W) int64 class indices in the order of ``colors`` (-1: no class).
 
-    ``labels == list(colors).index("Road")`` is the road mask.
+    ``labels == list(colors).index("Road")`` is the road mask. Each colour of ``colors`` must be
+    three integers in 0..255 (else a ValueError naming ``colors[name]``).
     """
+    _check_colors(colors)
     array = read_image_array(path, what="Virtual KITTI 2 class segmentation PNG")
     if array.ndim != 3 or array.shape[2] < 3 or array.dtype != np.uint8:
         raise ValueError(f"path: {str(path)!r} is {array.dtype} with shape {array.shape}; expected an 8-bit colour PNG")
     rgb = array[:, :, 2::-1].astype(np.int64)
     code = (rgb[:, :, 0] << 16) | (rgb[:, :, 1] << 8) | rgb[:, :, 2]
     labels = np.full(code.shape, -1, dtype=np.int64)
-    for index, (r, g, b) in enumerate(colors.values()):
+    for index, rgb in enumerate(colors.values()):
+        r, g, b = (int(c) for c in rgb)  # (a NumPy uint8 would overflow when shifted)
         labels[code == ((r << 16) | (g << 8) | b)] = index
     return torch.from_numpy(labels)
+
+
+def _check_colors(colors: object) -> None:
+    """``colors`` a dict of class name -> (r, g, b), three ints in 0..255 (a component beyond them
+    would take another colour's code once packed into 24 bits)."""
+    if not isinstance(colors, Mapping):
+        raise TypeError(f"colors: expected a dict of class name -> (r, g, b), got {type(colors).__name__}")
+    for name, rgb in colors.items():
+        if (not isinstance(rgb, (tuple, list)) or len(rgb) != 3
+                or not all(isinstance(c, (int, np.integer)) and not isinstance(c, bool) and 0 <= c <= 255 for c in rgb)):
+            raise ValueError(f"colors[{name!r}]: expected three integers in 0..255, got {rgb!r}")
