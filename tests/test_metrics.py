@@ -459,3 +459,30 @@ def test_metrics_under_autocast_equal_float32():
         low = flow_metrics(est, gt)
         per = flow_metrics_per_sample(est, gt)
     assert low == exact and per["epe"].dtype == torch.float32
+
+
+@pytest.mark.parametrize("magnitude", [1e20, 1e25, 1e30, 3e38])
+def test_float32_angular_error_of_huge_flows(magnitude):
+    """e_A of a zero estimate against (m, 0) is atan2(m, 1) ≈ pi/2 and of (m, 0) against (0, m)
+    is pi/2 too: the cross product's components, about 1/m, are scaled before squaring (their
+    squares underflow float32, which gave 0 from about 1e22 px). e_E stays finite up to the
+    dtype's largest value."""
+    gt = torch.tensor([magnitude, 0.0]).view(1, 2, 1, 1)
+    zero = torch.zeros(1, 2, 1, 1)
+    assert angular_error(zero, gt).item() == pytest.approx(math.atan2(magnitude, 1.0), rel=1e-6)
+    half = gt / 2  # (the end-point errors below stay within float32)
+    across = torch.tensor([0.0, magnitude / 2]).view(1, 2, 1, 1)
+    assert angular_error(across, half).item() == pytest.approx(math.pi / 2, rel=1e-6)
+    assert angular_error(-half, half).item() == pytest.approx(math.pi, rel=1e-6)
+    assert endpoint_error(zero, gt).item() == pytest.approx(magnitude, rel=1e-6)
+
+
+def test_float32_angular_error_of_huge_flows_matches_float64():
+    g = torch.Generator().manual_seed(6)
+    est = (torch.randn(1, 2, 8, 8, generator=g, dtype=torch.float64) * 1e25).float()
+    gt = (torch.randn(1, 2, 8, 8, generator=g, dtype=torch.float64) * 1e25).float()
+    est[..., :2] = 0.0  # where one vector is (0, 0, 1), only the components of about 1/m remain
+    got = flow_error_maps(est, gt)[0]["e_A"]
+    ref = flow_error_maps(est.double(), gt.double())[0]["e_A"]
+    assert ref.min() > 0.01
+    torch.testing.assert_close(got.double(), ref, rtol=1e-5, atol=0)

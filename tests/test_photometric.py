@@ -515,7 +515,7 @@ def test_kinds_argument_is_checked():
     i1, i2, flow = _shifted_pair()
     with pytest.raises(TypeError, match=r"kinds: expected a non-empty tuple or list of kinds .*got 'census'"):
         photometric_error_maps(i1, i2, flow, kinds="census")
-    with pytest.raises(TypeError, match="kinds: expected a non-empty tuple or list"):
+    with pytest.raises(ValueError, match=r"kinds: expected at least one kind from .*, got \(\)"):
         photometric_errors(i1, i2, flow, kinds=())
     with pytest.raises(ValueError, match=r"kinds: expected kinds from .*, got 'l2'"):
         photometric_errors(i1, i2, flow, kinds=("l1", "l2"))
@@ -541,3 +541,50 @@ def test_windowed_validity_is_the_in_bounds_map_eroded_by_the_window(radius):
     _, valid = photometric_error_map(i1, i2, flow, kind="census", census_radius=radius)
     assert 0 < int(valid.sum()) < int(in_bounds.sum())
     assert torch.equal(valid, ref)
+
+
+@pytest.mark.parametrize("kind", ["l1", "census"])
+def test_module_returns_the_count_like_the_function(kind):
+    """PhotometricError(..., return_count=True) gives (mean, count); a flow that sends every
+    pixel out of image 2 gives the mean 0.0 with the count 0, the flag to check."""
+    i1, i2, flow = _shifted_pair(B=2)
+    module = PhotometricError(kind=kind)
+    mean, count = module(i1, i2, flow, return_count=True)
+    ref_mean, ref_count = photometric_error(i1, i2, flow, kind=kind, return_count=True)
+    assert torch.equal(mean, ref_mean) and torch.equal(count, ref_count)
+    assert count.dtype == torch.int64 and (count > 0).all()
+    assert torch.equal(module(i1, i2, flow), ref_mean)  # the default is unchanged: the mean alone
+    away = torch.full_like(flow, 100.0)
+    mean, count = module(i1, i2, away, return_count=True)
+    assert mean.tolist() == [0.0, 0.0] and count.tolist() == [0, 0]
+
+
+@pytest.mark.parametrize("call, error, match", [
+    (lambda i, f: photometric_errors(i, i, f, window=7.0), TypeError, "window: expected an int, got float 7.0"),
+    (lambda i, f: photometric_error(i, i, f, kind="ssim", window=True), TypeError, "window: expected an int"),
+    (lambda i, f: photometric_errors(i, i, f, census_radius="3"), TypeError, "census_radius: expected an int, got str '3'"),
+    (lambda i, f: photometric_error(i, i, f, census_radius=0), ValueError, "census_radius: expected an int >= 1"),
+    (lambda i, f: photometric_error(i, i, f, kind=["l1"]), TypeError, r"kind: expected a str, .* got list \['l1'\]"),
+    (lambda i, f: photometric_error_map(i, i, f, kind=None), TypeError, "kind: expected a str"),
+    (lambda i, f: photometric_errors(i, i, f, kinds=[]), ValueError, r"kinds: expected at least one kind .*got \[\]"),
+    (lambda i, f: photometric_errors(i, i, f, return_count="no"), TypeError, "return_count: expected True or False, got str 'no'"),
+    (lambda i, f: photometric_error(i, i, f, return_count=1), TypeError, "return_count: expected True or False, got int 1"),
+    (lambda i, f: PhotometricError()(i, i, f, return_count="yes"), TypeError, "return_count: expected True or False"),
+])
+def test_option_types_and_values_are_checked(call, error, match):
+    i1, _, flow = _shifted_pair()
+    with pytest.raises(error, match=match):
+        call(i1, flow)
+
+
+@pytest.mark.parametrize("options, error, match", [
+    ({"kind": "ssim", "window": 8}, ValueError, "window: expected an odd positive int, got 8"),
+    ({"window": 7.0}, TypeError, "window: expected an int, got float 7.0"),
+    ({"census_radius": 0}, ValueError, "census_radius: expected an int >= 1, got 0"),
+    ({"census_radius": "3"}, TypeError, "census_radius: expected an int"),
+    ({"kind": ["l1"]}, TypeError, "kind: expected a str"),
+    ({"align_corners": "yes"}, TypeError, "align_corners: expected True or False"),
+])
+def test_module_checks_its_options_at_construction(options, error, match):
+    with pytest.raises(error, match=match):
+        PhotometricError(**options)

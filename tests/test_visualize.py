@@ -278,3 +278,41 @@ def test_overlay_checks_the_image_range(image, data_range, match):
     # the documented range is taken, up to 1 %
     assert overlay_mask(torch.full((3, 4, 4), 1.005), torch.zeros(1, 4, 4, dtype=torch.bool),
                         data_range=1.0).eq(255).all()
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    ({"alpha": "half"}, TypeError, "alpha: expected a number, got str 'half'"),
+    ({"alpha": float("nan")}, ValueError, "alpha: expected a finite number"),
+    ({"color": (300, -40, 0)}, ValueError, r"color: expected values in 0..255, got \(300, -40, 0\)"),
+    ({"color": (0, 0, 255.5)}, ValueError, "color: expected values in 0..255"),
+    ({"color": (0, 255)}, ValueError, r"color: expected an \(R, G, B\) triple"),
+    ({"color": ("r", 0, 0)}, TypeError, "color: expected a number, got str 'r'"),
+    ({"color": 255}, TypeError, r"color: expected an \(R, G, B\) triple of numbers in 0..255, got int 255"),
+])
+def test_overlay_refuses_bad_alpha_and_color(kwargs, error, match):
+    """A colour outside 0..255 is refused, not clamped into another colour."""
+    with pytest.raises(error, match=match):
+        overlay_mask(torch.full((3, 4, 4), 9.0), torch.ones(1, 4, 4, dtype=torch.bool), **kwargs)
+
+
+def test_overlay_accepts_colour_lists_and_number_types():
+    image, mask = torch.full((1, 3, 2, 2), 100.0), torch.ones(1, 1, 2, 2, dtype=torch.bool)
+    out = overlay_mask(image, mask, color=[0, 255.0, torch.tensor(50)], alpha=torch.tensor(0.5))
+    assert out[0, :, 0, 0].tolist() == [50, 178, 75]
+
+
+def test_flow_to_color_of_huge_float32_flows():
+    """|f|² overflows float32 above about 1.8e19 px: the radius is formed after scaling by a
+    power of two, so the colours are the float64 ones (right = red at full saturation, a tiny
+    vector beside it white), not NaN cast to uint8."""
+    f = torch.zeros(2, 2, 1, 2)
+    f[0, 0, 0, 0] = 1e20
+    f[0, 0, 0, 1] = 1.0
+    f[1, 1, 0, 0] = -3e38  # up, near float32's largest value
+    f[1, 0, 0, 1] = 1e10
+    got = flow_to_color(f)
+    # float32 rounding may move a level by one, as for ordinary flows
+    assert (got.int() - flow_to_color(f.double()).int()).abs().max() <= 1
+    assert got[0, :, 0, 0].tolist() == [255, 0, 0] and got[0, :, 0, 1].tolist() == [255, 255, 255]
+    assert got[1, :, 0, 1].tolist() == [255, 255, 255]
+    assert (got[1, :, 0, 0].int() - torch.tensor([88, 0, 255])).abs().max() <= 1

@@ -372,3 +372,54 @@ def test_empty_image_rejected(shape):
     side = "H" if Hs == 0 else "W"
     with pytest.raises(ValueError, match=rf"image: expected shape \(B, C, H, W\) with {side} >= 1"):
         warp_backward(torch.zeros(shape), torch.zeros(B, 2, Hs, Ws))
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+def test_in_bounds_gradient_on_the_last_column_and_row_does_not_read_the_padding(padding_mode, dtype):
+    """A sample point exactly on the last column (row) is in bounds: its flow gradient is the
+    one-sided difference to the pixel before it, whatever the padding (before, it was
+    padding - I(W-1): -I(W-1) with zeros, 0 with border)."""
+    image = _image(C=2, H=4, W=5, dtype=dtype)
+    flow = torch.zeros(1, 2, 4, 5, dtype=dtype, requires_grad=True)
+    warped, in_bounds = warp_backward(image, flow, padding_mode=padding_mode)
+    assert in_bounds.all()
+    assert torch.equal(warped, image)  # the value is unchanged, bit for bit
+    (warped * in_bounds).sum().backward()
+    du_last = (image[0, :, :, 4] - image[0, :, :, 3]).sum(0)
+    dv_last = (image[0, :, 3, :] - image[0, :, 2, :]).sum(0)
+    torch.testing.assert_close(flow.grad[0, 0, :, 4], du_last, rtol=0, atol=1e-4)
+    torch.testing.assert_close(flow.grad[0, 1, 3, :], dv_last, rtol=0, atol=1e-4)
+    # inside, the forward difference as before
+    torch.testing.assert_close(flow.grad[0, 0, :, 1], (image[0, :, :, 2] - image[0, :, :, 1]).sum(0),
+                               rtol=0, atol=1e-4)
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+def test_samples_landing_on_the_last_column_take_its_values_and_no_padding_gradient(padding_mode):
+    """Flows that send every pixel to the last column and the last row: the values are that
+    pixel's, and the image gradient goes to it alone."""
+    H, W = 6, 7
+    image = _image(C=1, H=H, W=W).requires_grad_()
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float32), torch.arange(W, dtype=torch.float32),
+                          indexing="ij")
+    flow = torch.stack([(W - 1) - u, (H - 1) - v])[None].requires_grad_()
+    warped, ok = warp_backward(image, flow, padding_mode=padding_mode)
+    assert ok.all() and torch.equal(warped, image[..., H - 1:, W - 1:].expand_as(warped))
+    warped.sum().backward()
+    expected = torch.zeros_like(image)
+    expected[..., H - 1, W - 1] = H * W
+    assert torch.equal(image.grad, expected)
+    d = image.detach()[0, 0]
+    assert torch.allclose(flow.grad[0, 0], (d[H - 1, W - 1] - d[H - 1, W - 2]).expand(H, W))
+    assert torch.allclose(flow.grad[0, 1], (d[H - 1, W - 1] - d[H - 2, W - 1]).expand(H, W))
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+def test_one_pixel_axis_gives_in_bounds_points_no_padding_gradient(padding_mode):
+    """On a one-pixel-high image the only in-bounds row is 0, with no neighbour: d/dv is 0."""
+    image = _image(C=1, H=1, W=5)
+    flow = torch.zeros(1, 2, 1, 5, requires_grad=True)
+    warped, ok = warp_backward(image, flow, padding_mode=padding_mode)
+    assert ok.all() and torch.equal(warped, image)
+    warped.sum().backward()
+    assert torch.equal(flow.grad[0, 1], torch.zeros(1, 5))

@@ -23,8 +23,9 @@ the ground truth is finite (a NaN or inf ground-truth value marks the pixel inva
 valid channel does). Non-finite *estimates* at counted pixels raise ValueError naming
 ``flow_est``: a NaN cannot be scored, and scoring it as 0 or dropping it would let a broken
 network look good. Values are scaled by powers of two before squaring, so a float32 flow of
-1e20 px gives a finite e_E of the right size; a result beyond the dtype's range (an error above
-3.4e38 px in float32) raises ValueError instead of returning inf.
+1e20 px gives a finite e_E of the right size, and e_A stays right for flows whose cross-product
+terms (about 1/|F|) would underflow when squared; a result beyond the dtype's range (an error
+above 3.4e38 px in float32) raises ValueError instead of returning inf.
 
 Reductions:
 
@@ -112,24 +113,40 @@ def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
 
 
 def _pow2_scale(*xs: Tensor) -> Tensor:
-    """A power of two s >= 1 per pixel with |x| / s <= 1 for every x: dividing by it is exact (no
+    """A power of two s >= 1 per pixel with |x| / s < 2 for every x: dividing by it is exact (no
     rounding), so the scaled formulas give bit-identical results for ordinary flows and finite
-    ones for flows whose squares would overflow. Detached: the metrics do not depend on it."""
+    ones for flows whose squares would overflow (s itself stays finite up to the dtype's largest
+    value). Detached: the metrics do not depend on it."""
     m = xs[0].detach().abs()
     for x in xs[1:]:
         m = torch.maximum(m, x.detach().abs())
     _, exponent = torch.frexp(torch.clamp(m, min=1.0))  # m = mantissa · 2^exponent, mantissa in [0.5, 1)
-    return torch.ldexp(torch.ones_like(m), exponent)
+    return torch.ldexp(torch.ones_like(m), exponent - 1)
 
 
-def _norm(*components: Tensor) -> Tensor:
-    """Euclidean norm of components of magnitude <= 1 with a zero (not NaN) gradient at 0."""
+def _norm(*components: Tensor, rescale: bool = False) -> Tensor:
+    """Euclidean norm of components of magnitude <= 4 with a zero (not NaN) gradient at 0.
+
+    ``rescale``: divide the components by a power of two t (detached) that brings the largest to
+    [0.5, 1) before squaring, and multiply the root by t: exact, so bit for bit the plain
+    formula's result wherever that does not underflow. The cross product of the angular error
+    needs it: its terms are about 1/s for a flow of s px, and their squares underflow float32
+    from about 1e19 px (the other norms' components are about 1 or exactly 0)."""
+    t = None
+    if rescale:
+        m = components[0].detach().abs()
+        for c in components[1:]:
+            m = torch.maximum(m, c.detach().abs())
+        _, exponent = torch.frexp(m)  # m = mantissa · 2^exponent, mantissa in [0.5, 1); 0 -> 2^0
+        t = torch.ldexp(torch.ones_like(m), exponent)
+        components = tuple(c / t for c in components)
     sq = components[0] * components[0]
     for c in components[1:]:
         sq = sq + c * c
     positive = sq > 0
-    return torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))),
+    norm = torch.where(positive, torch.sqrt(torch.where(positive, sq, torch.ones_like(sq))),
                        torch.zeros_like(sq))
+    return norm if t is None else norm * t
 
 
 def _maps(est: Tensor, gt: Tensor) -> dict[str, Tensor]:
@@ -142,7 +159,7 @@ def _maps(est: Tensor, gt: Tensor) -> dict[str, Tensor]:
     du, dv = u1 - u2, v1 - v2
     # (u1 v2 - v1 u2 written in du, dv: the products of nearly equal flows cancel to rounding noise,
     # 0.6 relative error in float32 for errors of 1e-3 px on 20 px flows; their differences are exact)
-    cross_norm = _norm(dv * w, -du * w, v2 * du - u2 * dv)
+    cross_norm = _norm(dv * w, -du * w, v2 * du - u2 * dv, rescale=True)
     dot = u1 * u2 + v1 * v2 + w * w
     e_a = torch.atan2(cross_norm, dot)
     e_u, e_v = du.abs() * s, dv.abs() * s

@@ -44,9 +44,11 @@ from torch import Tensor, nn
 
 from .._check import (
     autocast_off,
+    check_bool,
     check_data_range,
     check_float_tensor,
     check_image_range,
+    check_int,
     check_shape,
     result_dtype,
 )
@@ -165,10 +167,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | N
             raise TypeError(f"mask: expected a bool tensor, got {got}")
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
     data_range = check_data_range(data_range)
-    if isinstance(window, bool) or not isinstance(window, int) or window < 1 or window % 2 == 0:
-        raise ValueError(f"window: expected an odd positive int, got {window!r}")
-    if isinstance(census_radius, bool) or not isinstance(census_radius, int) or census_radius < 1:
-        raise ValueError(f"census_radius: expected a positive int, got {census_radius!r}")
+    _check_window_options(window, census_radius)
     if "ssim" in kinds and min(dims["H"], dims["W"]) <= window // 2:
         # kornia pads the SSIM window by reflection, which needs more pixels than the window radius
         raise ValueError(f"image1: kind='ssim' with window={window} needs H and W >= {window // 2 + 1}, "
@@ -178,10 +177,29 @@ def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | N
     return data_range
 
 
+def _check_window_options(window: object, census_radius: object) -> None:
+    """``window``: an odd positive int; ``census_radius``: a positive int."""
+    check_int(window, "window", minimum=1)
+    if window % 2 == 0:
+        raise ValueError(f"window: expected an odd positive int, got {window!r}")
+    check_int(census_radius, "census_radius", minimum=1)
+
+
+def _check_kind(kind: object) -> str:
+    """``kind``: one of the known kinds (a string; a list of kinds is refused with a TypeError)."""
+    if not isinstance(kind, str):
+        raise TypeError(f"kind: expected a str, one of {_KINDS}, got {type(kind).__name__} {kind!r}")
+    if kind not in _KINDS:
+        raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+    return kind
+
+
 def _check_kinds(kinds: object) -> tuple[str, ...]:
     """``kinds`` as a tuple of distinct known kinds (a single string is refused: it is iterable)."""
-    if isinstance(kinds, str) or not isinstance(kinds, (tuple, list)) or not kinds:
+    if isinstance(kinds, str) or not isinstance(kinds, (tuple, list)):
         raise TypeError(f"kinds: expected a non-empty tuple or list of kinds from {_KINDS}, got {kinds!r}")
+    if not kinds:
+        raise ValueError(f"kinds: expected at least one kind from {_KINDS}, got {kinds!r}")
     bad = [k for k in kinds if k not in _KINDS]
     if bad:
         raise ValueError(f"kinds: expected kinds from {_KINDS}, got {bad[0]!r}")
@@ -307,8 +325,7 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
         valid: (B, 1, H, W) bool: sample point inside image2 (eroded by the window for ssim and
             census) and inside ``mask``.
     """
-    if kind not in _KINDS:
-        raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+    _check_kind(kind)
     return photometric_error_maps(image1, image2, flow, mask, kinds=(kind,), data_range=data_range,
                                   window=window, census_radius=census_radius,
                                   align_corners=align_corners)[kind]
@@ -333,6 +350,7 @@ def photometric_error(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor
         >>> photometric_error(i1, i2, torch.zeros(1, 2, 8, 8)).tolist()
         [10.0]
     """
+    check_bool(return_count, "return_count")
     error, valid = photometric_error_map(image1, image2, flow, mask, kind=kind,
                                          data_range=data_range, window=window,
                                          census_radius=census_radius, align_corners=align_corners)
@@ -364,6 +382,7 @@ def photometric_errors(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tenso
         >>> {k: round(v.item(), 3) for k, v in errors.items()}
         {'l1': 17.125, 'ssim': 0.115, 'census': 0.0}
     """
+    check_bool(return_count, "return_count")
     maps = photometric_error_maps(image1, image2, flow, mask, kinds=kinds, data_range=data_range,
                                   window=window, census_radius=census_radius, align_corners=align_corners)
     out = {}
@@ -381,25 +400,34 @@ def _mean(error: Tensor, valid: Tensor) -> tuple[Tensor, Tensor]:
 
 
 class PhotometricError(nn.Module):
-    """``nn.Module`` twin of :func:`photometric_error`: ``forward(image1, image2, flow, mask=None)``."""
+    """``nn.Module`` twin of :func:`photometric_error`:
+    ``forward(image1, image2, flow, mask=None, *, return_count=False)``.
+
+    The options are checked at construction (the image-size rule of ``"ssim"`` at each call).
+    ``return_count=True`` gives ``(mean, count)``, as the function does: a sample with no
+    counted pixel (an empty mask, or a flow that sends every pixel out of image 2) has the mean
+    0.0 and the count 0, the flag to check.
+    """
 
     def __init__(self, *, kind: str = "l1", data_range: float = 255.0, window: int = 7,
                  census_radius: int = 3, align_corners: bool = True) -> None:
         super().__init__()
-        if kind not in _KINDS:
-            raise ValueError(f"kind: expected one of {_KINDS}, got {kind!r}")
+        _check_kind(kind)
         data_range = check_data_range(data_range)
+        _check_window_options(window, census_radius)
+        check_bool(align_corners, "align_corners")
         self.kind = kind
         self.data_range = data_range
         self.window = window
         self.census_radius = census_radius
         self.align_corners = align_corners
 
-    def forward(self, image1: Tensor, image2: Tensor, flow: Tensor,
-                mask: Tensor | None = None) -> Tensor:
+    def forward(self, image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None,
+                *, return_count: bool = False) -> Tensor | tuple[Tensor, Tensor]:
         return photometric_error(image1, image2, flow, mask, kind=self.kind,
                                  data_range=self.data_range, window=self.window,
-                                 census_radius=self.census_radius, align_corners=self.align_corners)
+                                 census_radius=self.census_radius, align_corners=self.align_corners,
+                                 return_count=return_count)
 
     def extra_repr(self) -> str:
         return f"kind={self.kind!r}, data_range={self.data_range:g}"

@@ -81,7 +81,8 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     """Middlebury colour coding of a flow field.
 
     Args:
-        flow: (B, 2, H, W) or (2, H, W), pixels, channel 0 = u.
+        flow: (B, 2, H, W) or (2, H, W), pixels, channel 0 = u; any finite magnitude (the
+            radius is formed without overflow, also above 1.8e19 px in float32).
         max_flow: the magnitude shown at full saturation (finite, > 0): a float, a tensor of one or
             B values, or None for each sample's largest valid magnitude. Longer vectors are drawn darker (×0.75), as in
             the reference code.
@@ -104,7 +105,11 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     work = torch.float64 if flow.dtype == torch.float64 else torch.float32
     f = torch.where(ok, flow.detach().to(work), torch.zeros((), dtype=work, device=flow.device))
     u, v = f[:, 0:1], f[:, 1:2]
-    rad = torch.sqrt(u * u + v * v)
+    # |f| with u and v divided by a power of two t (to below 2) before squaring: exact, so the
+    # plain formula's value wherever that does not overflow, and finite for any finite flow
+    t = torch.ldexp(torch.ones_like(u), torch.frexp(torch.maximum(u.abs(), v.abs()))[1] - 1)
+    ut, vt = u / t, v / t
+    rad = torch.sqrt(ut * ut + vt * vt) * t
     if max_flow is None:
         scale = rad.flatten(1).amax(dim=1)
     elif isinstance(max_flow, Tensor):
@@ -192,7 +197,8 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
             ``data_range=255``).
         data_range: the images' maximum (finite, > 0): 255.0 for 0-255 images, 1.0 for 0-1 images.
         mask: (B, 1, H, W) or (1, H, W) bool.
-        color: RGB 0..255. alpha: its weight inside the mask, in [0, 1].
+        color: RGB, three numbers in 0..255 (ValueError outside: not clamped).
+        alpha: its weight inside the mask, a number in [0, 1].
 
     Returns:
         (B, 3, H, W) uint8 RGB: (1 - alpha) * image + alpha * color inside the mask, the image elsewhere.
@@ -206,18 +212,30 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
     mask = _as_batch(mask, "mask", 1)
     B, _, H, W = image.shape
     check_shape(mask, "mask", (B, 1, H, W))
-    if not 0.0 <= float(alpha) <= 1.0:
+    alpha = check_number(alpha, "alpha")
+    if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha: expected a value in [0, 1], got {alpha!r}")
-    if len(color) != 3:
-        raise ValueError(f"color: expected an (R, G, B) triple, got {color!r}")
+    color = _check_color(color)
     data_range = check_data_range(data_range)
     check_finite(image, "image")  # a NaN pixel would be drawn as 0, black, as if it were one
     # a 0-255 image passed with data_range=1.0 was drawn white, a 0-1 one at 255 black
     check_image_range(image, "image", data_range)
     img = image.detach().float().expand(B, 3, H, W) * (255.0 / data_range)
-    c = torch.tensor([float(x) for x in color], device=image.device).view(1, 3, 1, 1)
+    c = torch.tensor(color, device=image.device).view(1, 3, 1, 1)
     out = torch.where(mask, (1 - alpha) * img + alpha * c, img)
     return torch.round(out).clamp(0, 255).to(torch.uint8)
+
+
+def _check_color(color: object) -> tuple[float, float, float]:
+    """``color``: three numbers (R, G, B) in 0..255 (a value outside is refused, not clamped)."""
+    if isinstance(color, (str, bytes)) or not hasattr(color, "__len__"):
+        raise TypeError(f"color: expected an (R, G, B) triple of numbers in 0..255, got {type(color).__name__} {color!r}")
+    if len(color) != 3:
+        raise ValueError(f"color: expected an (R, G, B) triple, got {color!r}")
+    rgb = tuple(check_number(x, "color") for x in color)
+    if not all(0.0 <= x <= 255.0 for x in rgb):
+        raise ValueError(f"color: expected values in 0..255, got {color!r}")
+    return rgb
 
 
 def _write_png(path: str | os.PathLike, rgb: Tensor, name: str) -> Path:

@@ -98,6 +98,31 @@ def _sample_corners(image: Tensor, x0: Tensor, y0: Tensor, *, align_corners: boo
                                            align_corners=align_corners)
 
 
+def _corner_and_weight(x: Tensor, size: int) -> tuple[Tensor, Tensor]:
+    """The integer corner below the coordinates ``x`` along an axis of ``size`` pixels
+    (detached) and the weight of the corner above it, ``x - corner`` (exact, carries the flow's
+    gradient).
+
+    The corner is ``floor(x)``, except on the last pixel: a sample point exactly at ``size - 1``
+    takes the corner ``size - 2`` with weight 1. The value is the same (lerp returns its end
+    exactly at weight 1), but no in-bounds point then has a tap outside the image, in its value
+    or its gradient: the flow's gradient there is the one-sided difference I(size-1) - I(size-2),
+    whatever the padding. On a one-pixel axis the only in-bounds point is 0, which has no
+    neighbour to take a difference with: its weight is detached (gradient 0). Without a gradient
+    to the coordinates the plain ``floor(x)`` is taken (the same values, one pass less)."""
+    xd = x.detach()
+    if not x.requires_grad:
+        x0 = torch.floor(xd)
+        return x0, x - x0
+    last = xd == size - 1
+    if size > 1:
+        x0 = torch.floor(xd).masked_fill_(last, size - 2)
+        return x0, x - x0
+    x0 = torch.floor(xd)
+    weight = x - x0
+    return x0, torch.where(last, weight.detach(), weight)
+
+
 def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
                   mode: str = "bilinear", padding_mode: str = "zeros") -> tuple[Tensor, Tensor]:
     """Sample ``image`` at ``p + flow(p)``: the second frame warped back onto the first.
@@ -113,7 +138,10 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
         mode: ``"bilinear"`` (differentiable in image and flow) or ``"nearest"`` (differentiable
             in the image only; the flow gets no gradient).
         padding_mode: what a tap outside the image reads: ``"zeros"`` or ``"border"``
-            (the nearest edge pixel). Affects only pixels that ``in_bounds`` marks invalid.
+            (the nearest edge pixel). Affects only pixels that ``in_bounds`` marks invalid,
+            their values and gradients: an in-bounds sample point exactly on the last column
+            or row is interpolated towards the inside (the flow's gradient there is the
+            one-sided difference to the pixel before it).
 
     Returns:
         warped: (B, C, H, W), dtype the promotion of image's and flow's dtypes. Sampling and
@@ -159,10 +187,9 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
             warped = _sample_nearest(img, torch.round(x).detach(), torch.round(y).detach(),
                                      align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
         else:
-            x0 = torch.floor(x).detach()
-            y0 = torch.floor(y).detach()
-            fx = (x - x0).unsqueeze(1)  # exact in floating point, carries the flow's gradient
-            fy = (y - y0).unsqueeze(1)
+            x0, fx = _corner_and_weight(x, W)
+            y0, fy = _corner_and_weight(y, H)
+            fx, fy = fx.unsqueeze(1), fy.unsqueeze(1)
             # The four corners stacked along rows: one sampler call instead of four.
             taps = _sample_corners(img, x0, y0, align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
             t00, t10, t01, t11 = taps.split(H, dim=2)
