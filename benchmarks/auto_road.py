@@ -50,7 +50,6 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 import torch
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -61,12 +60,12 @@ CLIP = ("kitti_odometry_straight", ("image_l", "calib.txt", "road.json"))
 
 
 def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-    """OpenCV DIS (medium) on grey images: (1, 2, H, W)."""
-    import cv2
+    """OpenCV DIS (medium) on luma grey images, as the refine job computes it: (1, 2, H, W) from
+    (1, 3, H, W) RGB or (1, 1, H, W) grey images."""
+    from refine.sources import dis_flow
 
-    g = [np.clip(im[0].mean(0).numpy(), 0, 255).astype(np.uint8) for im in (image1, image2)]
-    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(g[0], g[1], None)
-    return torch.from_numpy(flow).permute(2, 0, 1)[None]
+    rgb = [im[0].expand(3, -1, -1) for im in (image1, image2)]
+    return dis_flow(*rgb)[None]
 
 
 def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:

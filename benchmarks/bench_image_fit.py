@@ -1,4 +1,5 @@
-"""Speed of the road-motion estimate from two images at 1242 × 375, one thread, beside OpenCV DIS
+"""Speed of the road-motion estimate from two KITTI frames (the shared clip's first pair, 1226 × 370),
+one thread, beside OpenCV DIS
 (MEDIUM) in the same run, and of the image operations the fit takes from OpenCV on the CPU
 against their torch / kornia equivalents.
 

@@ -41,7 +41,10 @@ def main(argv: list[str] | None = None) -> int:
     import fsof_torch as fs
     from fsof_torch.data.scene import render_pair
 
+    import cv2
+
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)
     warnings.simplefilter("ignore")
     refiner = fs.FreespaceRefiner()
     k15 = SHARED / "kitti15_000000"

@@ -36,9 +36,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="the scene's seed (default 0)")
     parser.add_argument("--options", type=json_object, default={}, metavar="JSON",
                         help="fit_image keyword arguments as a JSON object")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch and OpenCV threads (default 1)")
     args = parser.parse_args(argv)
+    import cv2
+
     torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
     options = args.options
 
     from fsof_torch import fit_image, fit_sequence
