@@ -112,33 +112,32 @@ def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
     return est, gt, sel
 
 
-def _pow2_scale(*xs: Tensor) -> Tensor:
-    """A power of two s >= 1 per pixel with |x| / s < 2 for every x: dividing by it is exact (no
-    rounding), so the scaled formulas give bit-identical results for ordinary flows and finite
-    ones for flows whose squares would overflow (s itself stays finite up to the dtype's largest
-    value). Detached: the metrics do not depend on it."""
+def pow2_scale(*xs: Tensor, at_least_one: bool = True) -> Tensor:
+    """A power of two s per element with |x| / s < 2 for every x (s >= 1 with ``at_least_one``):
+    dividing by it is exact (no rounding), so scaled formulas give bit-identical results for
+    ordinary values and finite ones where squares would overflow, or, without the floor of 1,
+    underflow (s itself stays finite up to the dtype's largest value). Detached: results do not
+    depend on it. The metrics' norms and :func:`~fsof_torch.evaluation.visualize.flow_to_color`
+    use it."""
     m = xs[0].detach().abs()
     for x in xs[1:]:
         m = torch.maximum(m, x.detach().abs())
-    _, exponent = torch.frexp(torch.clamp(m, min=1.0))  # m = mantissa · 2^exponent, mantissa in [0.5, 1)
+    if at_least_one:
+        m = torch.clamp(m, min=1.0)
+    _, exponent = torch.frexp(m)  # m = mantissa · 2^exponent, mantissa in [0.5, 1); 0 -> 2^0
     return torch.ldexp(torch.ones_like(m), exponent - 1)
 
 
 def _norm(*components: Tensor, rescale: bool = False) -> Tensor:
     """Euclidean norm of components of magnitude <= 4 with a zero (not NaN) gradient at 0.
 
-    ``rescale``: divide the components by a power of two t (detached) that brings the largest to
-    [0.5, 1) before squaring, and multiply the root by t: exact, so bit for bit the plain
-    formula's result wherever that does not underflow. The cross product of the angular error
-    needs it: its terms are about 1/s for a flow of s px, and their squares underflow float32
-    from about 1e19 px (the other norms' components are about 1 or exactly 0)."""
-    t = None
-    if rescale:
-        m = components[0].detach().abs()
-        for c in components[1:]:
-            m = torch.maximum(m, c.detach().abs())
-        _, exponent = torch.frexp(m)  # m = mantissa · 2^exponent, mantissa in [0.5, 1); 0 -> 2^0
-        t = torch.ldexp(torch.ones_like(m), exponent)
+    ``rescale``: divide the components by a power of two t (:func:`pow2_scale`, no floor) that
+    brings the largest below 2 before squaring, and multiply the root by t: exact, so bit for bit
+    the plain formula's result wherever that does not underflow. The cross product of the angular
+    error needs it: its terms are about 1/s for a flow of s px, and their squares underflow
+    float32 from about 1e19 px (the other norms' components are about 1 or exactly 0)."""
+    t = pow2_scale(*components, at_least_one=False) if rescale else None
+    if t is not None:
         components = tuple(c / t for c in components)
     sq = components[0] * components[0]
     for c in components[1:]:
@@ -150,7 +149,7 @@ def _norm(*components: Tensor, rescale: bool = False) -> Tensor:
 
 
 def _maps(est: Tensor, gt: Tensor) -> dict[str, Tensor]:
-    s = _pow2_scale(est[:, 0:1], est[:, 1:2], gt[:, 0:1], gt[:, 1:2])
+    s = pow2_scale(est[:, 0:1], est[:, 1:2], gt[:, 0:1], gt[:, 1:2])
     u1, v1 = est[:, 0:1] / s, est[:, 1:2] / s
     u2, v2 = gt[:, 0:1] / s, gt[:, 1:2] / s
     # a = (u1, v1, 1/s), b = (u2, v2, 1/s): the space-time vectors divided by s (the angle between

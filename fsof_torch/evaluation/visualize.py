@@ -23,6 +23,7 @@ from torch import Tensor
 
 from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_image_range,
                       check_number, check_positive, check_shape)
+from .metrics import pow2_scale
 
 __all__ = [
     "make_colorwheel",
@@ -107,7 +108,7 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     u, v = f[:, 0:1], f[:, 1:2]
     # |f| with u and v divided by a power of two t (to below 2) before squaring: exact, so the
     # plain formula's value wherever that does not overflow, and finite for any finite flow
-    t = torch.ldexp(torch.ones_like(u), torch.frexp(torch.maximum(u.abs(), v.abs()))[1] - 1)
+    t = pow2_scale(u, v, at_least_one=False)
     ut, vt = u / t, v / t
     rad = torch.sqrt(ut * ut + vt * vt) * t
     if max_flow is None:
