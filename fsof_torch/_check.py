@@ -361,6 +361,13 @@ def batch_choices(B: int) -> str:
     return "1" if B == 1 else f"1 or {B}"
 
 
+def check_batch(count: int, name: str, B: int) -> None:
+    """An argument of ``count`` values beside a batch of B has 1 or B of them (else a ValueError
+    naming it)."""
+    if count not in (1, B):
+        raise ValueError(f"{name}: expected batch {batch_choices(B)}, got {count} values")
+
+
 def resolve_batch(named: dict[str, int]) -> int:
     """The common batch size of arguments whose sizes are 1 or B; raise on a mismatch or an empty
     batch (nothing to compute: the geometry of no frame)."""

@@ -47,3 +47,21 @@ def test_fit_at_size_is_the_same_motion_at_full_size():
     assert full.params is fit.params and torch.equal(full.success, fit.success)
     assert torch.allclose(full.camera.K, p["camera"].K.to(full.camera.dtype))
     assert fit_at_size(full, p["camera"], (96, 320)) is full  # already at that size
+
+
+def test_fit_at_size_of_a_velocity_fit_is_its_velocity_flow():
+    """A velocity fit's map is the time derivative G (1/s), not a homography: brought to full size
+    its flow is the velocity flow in px/s (it was evaluated as a homography: millions of px off)."""
+    from fsof_torch import fit_velocity, velocity_flow
+
+    K = torch.tensor([[700.0, 0, 320], [0, 700, 90], [0, 0, 1]], dtype=torch.float64)
+    big = Camera(K, 1.65, roll=0.01)
+    flow, valid = velocity_flow(big.scaled(0.5), 10.0, 0.05, 2.7, (96, 320))
+    fit = fit_velocity(flow, valid, big.scaled(0.5), 2.7)
+    assert bool(fit.success)
+    full = fit_at_size(fit, big, (192, 640))
+    expected, expected_valid = velocity_flow(big, 10.0, 0.05, 2.7, (192, 640))
+    both = (full.valid & expected_valid).expand_as(expected)
+    # (the pixels on the horizon itself may round either way)
+    assert int((full.valid ^ expected_valid).sum()) <= 1 and int(both.sum()) > 0.4 * both.numel()
+    torch.testing.assert_close(full.flow[both], expected[both], rtol=0, atol=1e-9)

@@ -441,3 +441,39 @@ def test_fit_velocity_init_steering_is_named(steering, error, match):
     flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, (48, 160))
     with pytest.raises(error, match=match):
         fit_velocity(flow, valid, cam, 2.7, init={"steering": steering, "speed": 12.0})
+
+
+def test_exceptions_batch_of_priors_and_velocity_init_named():
+    """A prior or a velocity start of the wrong batch is a ValueError naming its key (it was
+    torch's RuntimeError about expanding or broadcasting)."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    flow3, valid3 = flow.expand(3, -1, -1, -1), valid.expand(3, -1, -1, -1)
+    two = torch.tensor([1.0, 1.0], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^prior\['z_d'\] mean: expected batch 1 or 3, got 2 values$"):
+        fit_road(flow3, valid3, cam, prior={"z_d": (two, 0.1)})
+    with pytest.raises(ValueError, match=r"^prior\['z_d'\] sigma: expected batch 1 or 3, got 2 values$"):
+        fit_road(flow3, valid3, cam, prior={"z_d": (1.0, 0.1 * two)})
+    with pytest.raises(ValueError, match=r"^prior\['yaw'\] mean: expected batch 1, got 2 values$"):
+        fit_road(flow, valid, cam, prior={"yaw": (two, 0.1)})
+    vflow, vvalid = velocity_flow(cam.expand(3), 10.0, 0.05, 2.7, SIZE)
+    with pytest.raises(ValueError, match=r"^init\['speed'\]: expected batch 1 or 3, got 2 values$"):
+        fit_velocity(vflow, vvalid, cam, 2.7, init={"steering": [0.05] * 3, "speed": [10.0, 10.0]})
+    with pytest.raises(ValueError, match=r"^init\['steering'\]: expected batch 1 or 3, got 2 values$"):
+        fit_velocity(vflow, vvalid, cam, 2.7, init={"steering": [0.05] * 2, "speed": 10.0})
+    # a prior and a start per frame, or one for all, as before
+    per_frame = fit_road(flow3, valid3, cam, prior={"z_d": (torch.ones(3, dtype=torch.float64), 0.1)})
+    assert per_frame.z_d.tolist() == pytest.approx([1.0] * 3, abs=1e-6)
+    fit = fit_velocity(vflow, vvalid, cam, 2.7, init={"steering": [0.05] * 3, "speed": 10.0})
+    assert fit.speed.tolist() == pytest.approx([10.0] * 3, abs=1e-6)
+
+
+def test_exceptions_odometry_of_a_model_without_it():
+    """RoadFit.odometry() of a fit whose model has no (x_d, z_d, yaw): a ValueError naming the
+    model (not a bare KeyError)."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    fit = fit_road(flow, valid, cam, model="homography")
+    with pytest.raises(ValueError, match=r"^odometry: a 'homography' fit has no x_d, z_d, yaw: \('h11',"):
+        fit.odometry()
+    assert fit_road(flow, valid, cam, model="plane").odometry()["z_d"].tolist() == pytest.approx([1.0], abs=1e-6)

@@ -104,6 +104,45 @@ class TestVFlowMap:
         with pytest.raises(ValueError, match="max_flow: expected > min_flow"):
             vflow_map(flow, min_flow=2.0, max_flow=1.0)
 
+    @pytest.mark.parametrize("lo, hi, bins", [(-1.3, 7.9, 7), (0.0, 37.99993986673388, 128), (-2.7, 41.3, 255)])
+    def test_values_on_an_edge_are_in_the_bin_above(self, lo, hi, bins):
+        """Bin k holds edges[k] <= F_v < edges[k+1], the last bin its upper edge too, as
+        numpy.histogram bins with these edges (the affine index put about one edge in seven into
+        the bin below, by rounding)."""
+        edges = vflow_map(torch.zeros(1, 2, 1, 1, dtype=torch.float64), bins=bins, min_flow=lo, max_flow=hi).edges
+        assert float(edges[0]) == lo and float(edges[-1]) == hi
+        flow = torch.zeros(1, 2, 1, bins + 1, dtype=torch.float64)
+        flow[0, 1, 0] = edges
+        hist, _ = vflow_map(flow, bins=bins, min_flow=lo, max_flow=hi)
+        ref, _ = np.histogram(edges.numpy(), bins=edges.numpy())
+        np.testing.assert_array_equal(hist[0, 0].numpy(), ref)
+        assert hist[0, 0].tolist() == [1.0] * (bins - 1) + [2.0]
+
+    def test_a_given_bound_is_kept(self):
+        """A max_flow at or below the data's default lower bound (or a min_flow above its upper
+        one) keeps its bound: the range lies beyond it, and no flow outside the requested range is
+        counted (the range was [0, 1], counting flows above max_flow=-2)."""
+        flow = torch.zeros(1, 2, 4, 5)
+        flow[:, 1] = torch.arange(4.0).reshape(4, 1) + 1.0  # F_v in 1 ... 4
+        hist, edges = vflow_map(flow, bins=4, max_flow=-2.0)
+        assert edges.tolist() == [-3.0, -2.75, -2.5, -2.25, -2.0] and float(hist.sum()) == 0.0
+        hist, edges = vflow_map(flow, bins=4, max_flow=1.0)  # the flows equal to max_flow count
+        assert edges.tolist() == [0.0, 0.25, 0.5, 0.75, 1.0] and float(hist.sum()) == 5.0
+        hist, edges = vflow_map(flow, bins=4, min_flow=10.0)
+        assert edges.tolist() == [10.0, 10.25, 10.5, 10.75, 11.0] and float(hist.sum()) == 0.0
+        hist, edges = vflow_map(flow, bins=4, min_flow=4.0)
+        assert edges.tolist() == [4.0, 4.25, 4.5, 4.75, 5.0] and float(hist.sum()) == 5.0
+        hist, edges = vflow_map(flow, bins=4, max_flow=2.5)  # a bound within the data, as before
+        assert float(edges[0]) == 0.0 and float(edges[-1]) == 2.5 and float(hist.sum()) == 10.0
+
+    @pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+    def test_half_precision_is_counted_in_float32(self, half):
+        _, flow, valid = _straight(torch.float32)
+        hist, edges = vflow_map(flow.to(half), valid, bins=32)
+        assert hist.dtype == torch.float32 and edges.dtype == torch.float32
+        ref, ref_edges = vflow_map(flow.to(half).float(), valid, bins=32)
+        assert torch.equal(hist, ref) and torch.equal(edges, ref_edges)
+
 
 # -- per-row statistic --------------------------------------------------------------------------
 
@@ -130,6 +169,14 @@ class TestRowDominant:
         value, support = row_dominant_flow(flow, mask, statistic="median")
         assert value[0].tolist() == [3.0, 5.0, 0.0]
         assert support[0].tolist() == [5.0, 5.0, 0.0]
+
+    def test_peak_neighbours_include_the_upper_edge(self):
+        """A flow on the last edge lies in the last bin, a neighbour of the one below it (the
+        affine index put it one bin further, out of the peak's neighbours)."""
+        flow = torch.zeros(1, 2, 1, 4, dtype=torch.float64)
+        flow[0, 1, 0] = torch.tensor([2.5, 2.5, 2.6, 4.0], dtype=torch.float64)
+        value, support = row_dominant_flow(flow, bins=4, min_flow=0.0, max_flow=4.0)
+        assert support.tolist() == [[4.0]] and float(value) == pytest.approx(2.9, abs=1e-12)
 
     def test_bad_statistic(self):
         with pytest.raises(ValueError, match="statistic: expected 'peak' or 'median'"):
@@ -259,6 +306,24 @@ class TestFitVFlowCurve:
         with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
             fit_vflow_curve(flow).scale("camera")
 
+    def test_seed_and_empty_batch_named(self):
+        """The seed is a Generator's (0 <= seed < 2**64; it raised int()'s or an overflow error,
+        and took 1.5 and -1); an empty batch is named (it was torch.cat's error)."""
+        _, flow, valid = _straight()
+        for seed, error, shown in (("x", TypeError, "str 'x'"), (1.5, TypeError, "float 1.5"),
+                                   (True, TypeError, "bool True")):
+            with pytest.raises(error, match=rf"^seed: expected an int, got {shown}$"):
+                fit_vflow_curve(flow, valid, seed=seed)
+        for seed in (-1, 2**64, 2**70):
+            with pytest.raises(ValueError, match=rf"^seed: expected an int with 0 <= seed < 2\*\*64, got {seed}$"):
+                fit_vflow_curve(flow, valid, seed=seed)
+        assert bool(fit_vflow_curve(flow, valid, seed=2**64 - 1).success)
+        empty = torch.zeros(0, 2, 8, 8, dtype=torch.float64)
+        with pytest.raises(ValueError, match=r"^flow: expected a non-empty batch, got shape \(0, 2, 8, 8\)$"):
+            fit_vflow_curve(empty)
+        with pytest.raises(ValueError, match=r"^flow: expected a non-empty batch, got shape \(0, 2, 8, 8\)$"):
+            detect_freespace(empty, _camera())
+
 
 # -- freespace detection --------------------------------------------------------------------------
 
@@ -336,6 +401,22 @@ class TestDetectFreespace:
             detect_freespace(flow, cam, fit_roll="yes")
         with pytest.raises(TypeError, match="fit_options: expected None or a dict with string keys, got int 5"):
             detect_freespace(flow, cam, fit_options=5)
+
+    @pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+    def test_agreement_of_half_precision_flow_in_float32(self, half):
+        """The agreement test of a half precision flow runs in float32, as the fit's model flow (it
+        rounded the model flow, the error and the tolerance to the flow's dtype: 16 and 4 of
+        about 5700 pixels differed here)."""
+        import fsof_torch.data.scene as scene
+
+        pair = scene.render_pair("default", 0, seed=0, size=(96, 320))
+        cam, flow, valid = pair["camera"], pair["flow"][None].to(half), pair["valid"][None]
+        det = detect_freespace(flow, cam, mask=valid, refits=0, return_details=True)
+        model = det.fit.flow
+        assert model.dtype == torch.float32
+        err = (flow.float() - model).norm(dim=1, keepdim=True)
+        tol = torch.clamp(0.03 * model.norm(dim=1, keepdim=True), min=0.25)
+        assert torch.equal(det.agreement, valid & det.fit.valid & (err <= tol))
 
     def test_meta_device_needs_values(self):
         """The detection and the V-flow curve are fits: a named error on the meta device, where

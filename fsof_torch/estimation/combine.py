@@ -32,7 +32,8 @@ def fit_at_size(fit: Any, camera: Camera, size: tuple[int, int]) -> Any:
     cam = camera.to(dt).expand(fit.flow.shape[0]).replace(roll=fit.camera.roll.to(dt), pitch=fit.camera.pitch.to(dt))
     values = torch.stack([fit.params[n].to(dt) for n in model.params], dim=1)
     M = model.matrix(cam, values)
-    flow, valid = flow_from_map(M.to(fit.flow.dtype), model.horizon_row(cam, values).to(fit.flow.dtype), size)
+    flow, valid = flow_from_map(M.to(fit.flow.dtype), model.horizon_row(cam, values).to(fit.flow.dtype), size,
+                                velocity=model.velocity)
     inliers = F.interpolate(fit.inliers.to(torch.uint8), size=size, mode="nearest").bool()
     return replace(fit, homography=M, flow=flow, valid=valid, inliers=inliers,
                    camera=cam.to(fit.camera.dtype))

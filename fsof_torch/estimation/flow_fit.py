@@ -26,8 +26,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, batch_choices, check_bool, check_fit_flags, check_float_tensor, check_has_values,
-                      check_mapping, check_names, check_shape, result_dtype)
+from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
+                      check_has_values, check_mapping, check_names, check_shape, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
@@ -95,7 +95,9 @@ class RoadFit:
         raise AttributeError(f"{type(self).__name__} of model {self.__dict__.get('model')!r} has no {name!r}")
 
     def odometry(self) -> dict[str, Tensor]:
-        """``dict(x_d=, z_d=, yaw=)`` of (B,) tensors (the paper's model)."""
+        """``dict(x_d=, z_d=, yaw=)`` of (B,) tensors (the paper's and the plane model; else ValueError)."""
+        if not all(k in self.params for k in ("x_d", "z_d", "yaw")):
+            raise ValueError(f"odometry: a {self.model!r} fit has no x_d, z_d, yaw: {tuple(self.params)}")
         return {k: self.params[k] for k in ("x_d", "z_d", "yaw")}
 
     def velocity(self) -> dict[str, Tensor]:
@@ -299,8 +301,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"{what}: expected a number or a tensor for {name}, got {type(value).__name__} "
                             f"{value!r:.40}") from None
-        if t.numel() not in (1, B):
-            raise ValueError(f"{what}: expected {name} of batch {batch_choices(B)}, got {t.numel()} values")
+        check_batch(t.numel(), f"{what}[{name!r}]", B)
         if not bool(torch.isfinite(t).all()):
             raise ValueError(f"{what}: expected a finite {name}, got {t.tolist()}")
         out[:, i] = t.expand(B)
@@ -328,10 +329,12 @@ def prior_terms(model: RoadModel, prior: Mapping[str, tuple[float, float]] | Non
             raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}")
         try:
             mu, sigma = spec
-            sigma = torch.as_tensor(sigma, dtype=dtype, device=device)
-            mu = torch.as_tensor(mu, dtype=dtype, device=device)
+            sigma = torch.as_tensor(sigma, dtype=dtype, device=device).reshape(-1)
+            mu = torch.as_tensor(mu, dtype=dtype, device=device).reshape(-1)
         except (TypeError, ValueError):
             raise ValueError(f"prior[{name!r}]: expected (mean, sigma), got {spec!r}") from None
+        for what, t in (("mean", mu), ("sigma", sigma)):
+            check_batch(t.numel(), f"prior[{name!r}] {what}", B)
         if not bool(torch.isfinite(mu).all()) or not bool((sigma > 0).all()):
             raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {spec!r}")
         i = model.params.index(name)
@@ -352,9 +355,8 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     them from each frame's own contiguous flow. The end-point errors stay in the flow's dtype (in
     place on the fresh gathers); only the sums are float64 (python benchmarks/bench_fit.py: a
     float64 copy of the gathered flows cost more than the rest). A batch reads where each
-    frame's pixels start once (python benchmarks/bench_fit.py, batch 8: without, gathering the
-    whole batch at once through channel-first copies of both flows cost more than the rest of
-    the fit).
+    frame's pixels start once (bench_fit.py, batch 8: gathering the whole batch through
+    channel-first copies of both flows cost more than the rest of the fit).
     """
     B, _, H, W = flow.shape
     HW = H * W
@@ -664,9 +666,12 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
         init = dict(init)
         given = {"steering": init.pop("steering"), "speed": init.get("speed", 0.0)}
         try:
-            steer, speed = (torch.as_tensor(v, dtype=torch.float64).cpu() for v in given.values())
+            steer, speed = (torch.as_tensor(v, dtype=torch.float64).cpu().reshape(-1) for v in given.values())
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"init: expected numbers or tensors for steering and speed, got {given!r}") from None
+        B = flow.shape[0] if isinstance(flow, Tensor) and flow.dim() == 4 else max(steer.numel(), speed.numel())
+        for key, t in (("steering", steer), ("speed", speed)):
+            check_batch(t.numel(), f"init[{key!r}]", B)
         if not bool(torch.isfinite(steer).all()) or not bool((steer.abs() < math.pi / 2).all()):
             raise ValueError(f"init: expected a finite steering with |δ_f| < π/2 rad, got {steer.tolist()}")
         init["yaw_rate"] = speed * torch.tan(steer) / wb.to(torch.float64).cpu()
@@ -688,8 +693,8 @@ def _wheelbase(wheelbase: Tensor | float, flow: Tensor) -> Tensor:
         wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
     else:
         raise TypeError(f"wheelbase: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
-    if isinstance(flow, Tensor) and flow.dim() == 4 and wb.numel() not in (1, flow.shape[0]):
-        raise ValueError(f"wheelbase: expected batch {batch_choices(flow.shape[0])}, got {wb.numel()} values")
+    if isinstance(flow, Tensor) and flow.dim() == 4:
+        check_batch(wb.numel(), "wheelbase", flow.shape[0])
     if not bool((torch.isfinite(wb) & (wb > 0)).all()):
         raise ValueError(f"wheelbase: expected values > 0, got {wb.tolist()}")
     return wb

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
-from .._check import batch_choices, check_bool, check_has_values, check_mapping
+from .._check import batch_choices, check_bool, check_has_values, check_mapping, result_dtype
 from ..geometry.camera import Camera
 from .flow_fit import fit_displacement
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
@@ -31,7 +31,9 @@ class FreespaceDetection:
             connectivity and hole filling).
         seed: (B, 1, H, W) bool, the pixels on the V-flow curve that seeded the model fit.
         curve: the :class:`VFlowCurve` of the seed.
-        fit: the ``FitResult`` of :func:`fsof_torch.fit.fit_displacement` on the seed.
+        fit: the ``FitResult`` of :func:`fsof_torch.fit.fit_displacement` behind ``agreement``:
+            the fit on the seed where ``refits=0``, else the last refit, on the pixels that agreed
+            with the fit before it (on the seed where fewer than 3 did).
         success: (B,) bool, frames where both fits succeeded (the others get an empty freespace).
     """
 
@@ -103,6 +105,8 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     dims, use = check_flow_mask(flow, mask)
     B, H, W = dims["B"], dims["H"], dims["W"]
+    if B == 0:
+        raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (from flow), got {camera.batch_size}")
     for name, value in (("threshold", threshold), ("relative_threshold", relative_threshold),
@@ -162,10 +166,12 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
 
 def _agreement(flow: Tensor, use: Tensor, fit, curve_success: Tensor, threshold: float,
                relative_threshold: float) -> tuple[Tensor, Tensor]:
-    """Pixels whose flow is within max(threshold, relative·‖model‖) of the fitted model flow."""
+    """Pixels whose flow is within max(threshold, relative·‖model‖) of the fitted model flow
+    (in the flow's dtype, half precision lifted to float32 as the fit's model flow is)."""
     B = flow.shape[0]
-    model_flow = fit.flow.to(flow.dtype)
-    err = (flow - model_flow).norm(dim=1, keepdim=True)
+    dtype = result_dtype(flow)
+    model_flow = fit.flow.to(dtype)
+    err = (flow.to(dtype) - model_flow).norm(dim=1, keepdim=True)
     tol = torch.clamp(relative_threshold * model_flow.norm(dim=1, keepdim=True), min=float(threshold))
     success = curve_success & fit.success.to(curve_success.device)
     return use & fit.valid & (err <= tol) & success.reshape(B, 1, 1, 1), success

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_shape, result_dtype
+from .._check import check_float_tensor, check_has_values, check_int, check_shape, result_dtype
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -47,7 +47,8 @@ class VFlowMap(NamedTuple):
     """``histogram`` (B, H, bins): per row, the (mask-weighted) count of pixels whose vertical
     flow falls in each bin; ``edges`` (bins + 1,): the bin edges in pixels (px/s for velocity
     flow), shared by the batch; bin k holds ``edges[k] <= F_v < edges[k+1]`` (the last bin
-    also holds its upper edge)."""
+    also holds its upper edge: ``edges[-1]`` is the range's upper bound itself), as
+    ``numpy.histogram`` bins."""
 
     histogram: Tensor
     edges: Tensor
@@ -81,11 +82,16 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
         bins: number of histogram bins (>= 2).
         max_flow, min_flow: the histogram range in the flow's unit. Defaults: the largest vertical
             flow in the mask over the whole batch, and min(0, the smallest one). Flows outside the
-            range are not counted.
+            range are not counted. Given both, ``max_flow > min_flow`` (else ValueError, as
+            ``numpy.histogram``'s ``range``). A given bound is always kept: where the data's
+            default for the other leaves no range (a ``max_flow`` at or below every flow and 0, a
+            ``min_flow`` at or above every flow), the other lies 1 beyond it, as for an empty or
+            constant map (whose range is [min, min + 1]), and the histogram holds no flow beyond
+            the given bound.
 
     Returns:
-        :class:`VFlowMap` ``(histogram (B, H, bins), edges (bins + 1,))``, histogram in the flow's
-        dtype (pixel counts).
+        :class:`VFlowMap` ``(histogram (B, H, bins), edges (bins + 1,))``, both in the flow's
+        dtype, float32 for half precision (pixel counts; the edges in the flow's unit).
 
     Example:
         >>> flow = torch.zeros(1, 2, 4, 5); flow[:, 1] = torch.arange(4.).reshape(4, 1)
@@ -101,16 +107,25 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
     fv = flow[:, 1].to(dtype)
     use = use[:, 0]
     lo, hi = _histogram_range(fv, use, min_flow, max_flow)
-    steps = torch.arange(bins + 1, dtype=dtype, device=flow.device) / bins
-    edges = lo + (hi - lo) * steps
+    steps = torch.arange(bins, dtype=dtype, device=flow.device) / bins
+    edges = torch.cat([lo + (hi - lo) * steps, hi.reshape(1)])
     inside = use & (fv >= lo) & (fv <= hi)
-    safe = torch.where(inside, fv, lo)
-    idx = ((safe - lo) / (hi - lo) * bins).floor().long().clamp_(0, bins - 1)
+    idx = _bin_index(torch.where(inside, fv, lo), edges)
     rows = torch.arange(B * H, device=flow.device).reshape(B, H, 1)
     flat = (rows * bins + idx).reshape(-1)
     hist = torch.zeros(B * H * bins, dtype=dtype, device=flow.device)
     hist.scatter_add_(0, flat, inside.to(dtype).reshape(-1))
     return VFlowMap(hist.reshape(B, H, bins), edges)
+
+
+def _bin_index(fv: Tensor, edges: Tensor) -> Tensor:
+    """The bin k of each value by comparison with the edges, ``edges[k] <= fv < edges[k+1]``, the
+    last bin holding its upper edge too (-1 below the edges, ``bins`` above them or NaN). (The
+    affine formula floor((fv - lo) / (hi - lo) · bins) put values on an edge into the bin below
+    it, by rounding, for about one edge in ten in float32.)"""
+    bins = edges.numel() - 1
+    k = torch.bucketize(fv.contiguous(), edges, right=True) - 1  # (a view of one channel is not)
+    return torch.where(fv == edges[-1], bins - 1, k)
 
 
 def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
@@ -132,9 +147,11 @@ def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
         lo = fv.new_tensor(float(min_flow))
     if min_flow is not None and max_flow is not None and not float(max_flow) > float(min_flow):
         raise ValueError(f"max_flow: expected > min_flow, got max_flow={max_flow!r}, min_flow={min_flow!r}")
-    # An empty or constant map still needs a non-empty range.
-    hi = torch.where(hi > lo, hi, lo + 1.0)
-    return lo, hi
+    # An empty or constant map, or a given bound that the data's default for the other does not
+    # leave a range with, still needs a non-empty range: the given bound stays, the other moves
+    if max_flow is not None and min_flow is None:
+        return torch.where(hi > lo, lo, hi - 1.0), hi
+    return lo, torch.where(hi > lo, hi, lo + 1.0)
 
 
 def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: str = "peak",
@@ -172,9 +189,7 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     hist, edges = vflow_map(flow, use.unsqueeze(1), bins=bins, max_flow=max_flow, min_flow=min_flow)
     peak = hist.argmax(-1, keepdim=True)  # (B, H, 1)
     lo, hi = edges[0], edges[-1]
-    idx = ((fv - lo) / (hi - lo) * bins).floor().clamp(-1, bins)
-    idx = torch.where(torch.isfinite(idx), idx, torch.full_like(idx, -10.0))
-    near = use & (fv >= lo) & (fv <= hi) & ((idx - peak.to(dtype)).abs() <= 1)
+    near = use & (fv >= lo) & (fv <= hi) & ((_bin_index(fv, edges) - peak).abs() <= 1)
     support = near.to(dtype).sum(-1)
     total = torch.where(near, fv, torch.zeros_like(fv)).sum(-1)
     value = total / support.clamp_min(1)
@@ -276,8 +291,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         hypotheses: number of RANSAC samples per frame.
         iterations: Gauss–Newton iterations.
         min_inlier_rows: fewer inlier rows mark the frame as failed.
-        seed: seeds the RANSAC sampling (same call, same result); each frame's draws depend only
-            on its own rows and the seed (a frame gets in a batch what it gets alone).
+        seed: an int with 0 <= seed < 2**64 (a torch.Generator's seeds), seeding the RANSAC
+            sampling (same call, same result); each frame's draws depend only on its own rows
+            and the seed (a frame gets in a batch what it gets alone).
 
     Returns:
         :class:`VFlowCurve`; frames that could not be fitted, or whose rows draw no curve (see
@@ -300,7 +316,12 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
         if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
             raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    seed = check_int(seed, "seed")
+    if not 0 <= seed < 2**64:  # a Generator's range; a negative seed would alias a large one
+        raise ValueError(f"seed: expected an int with 0 <= seed < 2**64, got {seed!r}")
     dims, _ = check_flow_mask(flow, mask)
+    if dims["B"] == 0:
+        raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
     check_has_values(flow, "flow", "to fit the V-flow curve to (a robust fit reads values)")
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow)
@@ -345,7 +366,7 @@ def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, m
     # each frame draws from the generator seeded afresh: its samples depend on its own rows and
     # the seed only (in a batch it draws what it draws alone)
     draws = [torch.multinomial(prob[b:b + 1], 3 * hypotheses, replacement=True,
-                               generator=gen.manual_seed(int(seed))) for b in range(B)]
+                               generator=gen.manual_seed(seed)) for b in range(B)]
     idx = torch.cat(draws).reshape(B, hypotheses, 3)
     vs, ys = v.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3), y.gather(1, idx.reshape(B, -1)).reshape(B, hypotheses, 3)
     if model == "velocity":
