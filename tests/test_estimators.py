@@ -1,11 +1,11 @@
-"""The refiner's road-motion estimators: what ImageMotionEstimator does with a given odometry."""
+"""The refiner's road-motion estimators: what they do with a given odometry, and their detached results."""
 
 import math
 
 import pytest
 import torch
 
-from fsof_torch import FreespaceRefiner, ImageMotionEstimator, endpoint_error, render_pair
+from fsof_torch import Camera, FlowMotionEstimator, FreespaceRefiner, ImageMotionEstimator, endpoint_error, render_pair
 
 DEG = math.pi / 180
 SIGMA = {"x_d": 0.05, "z_d": 0.05, "yaw": 0.2 * DEG}
@@ -196,3 +196,54 @@ def test_homography_odometry_is_a_start_and_keeps_the_flow_start(small_pair, mon
         if model == "homography":
             assert starts[0] == {k: v for k, v in odometry.items() if k != "model"}
         assert float(starts[-1]["z_d"][0]) == pytest.approx(p["odometry"]["z_d"], rel=0.05)  # the flow's
+
+
+# -- FlowMotionEstimator with planar odometry; detached results ------------------------------------------
+
+@pytest.fixture(scope="module")
+def noisy_pair():
+    p = render_pair("default", 0, size=(53, 94))
+    noise = torch.randn(p["flow"][None].shape, generator=torch.Generator().manual_seed(0))
+    return p, p["camera"].to(torch.float32), p["flow"][None] + 2.0 * noise
+
+
+def test_flow_estimator_holds_planar_odometry_and_the_refiner_keeps_its_graph(noisy_pair):
+    """With planar odometry and images the refiner asks the estimator for the rest of the motion:
+    FlowMotionEstimator re-fitted x_d, z_d and yaw to the prediction, so the caller's odometry was
+    replaced and got no gradient."""
+    p, cam, pred = noisy_pair
+    road = p["road"][None]
+    odometry = {k: torch.tensor([float(p["odometry"][k])], requires_grad=True) for k in ("x_d", "z_d", "yaw")}
+    fit = FlowMotionEstimator(model="plane")(pred, road, cam, odometry=odometry)
+    for k, v in odometry.items():
+        assert torch.equal(fit.params[k], v.detach()), k
+    assert not any(v.requires_grad for v in fit.params.values())
+    out = FreespaceRefiner(estimator=FlowMotionEstimator(), gate=None)(pred, road, cam, odometry,
+                                                                        images=(p["image1"][None], p["image2"][None]))
+    assert out.fit is not None and bool(out.refined.all())
+    for k, v in odometry.items():
+        assert torch.equal(out.odometry[k].detach(), v.detach()), k
+    out.flow.sum().backward()
+    assert all(float(v.grad.abs().sum()) > 0 for v in odometry.values())
+
+
+def test_flow_estimator_planar_odometry_needs_a_planar_model(noisy_pair):
+    p, cam, pred = noisy_pair
+    with pytest.raises(ValueError, match=r"^odometry: the 'homography' model has no planar motion \(x_d, z_d, yaw\) "
+                                         r"to hold; fit the flow alone \(odometry=None\)"):
+        FlowMotionEstimator(model="homography")(pred, p["road"][None], cam, odometry=p["odometry"])
+    with pytest.raises(ValueError, match=r"^odometry\['yaw'\]: expected finite values, got nan"):
+        FlowMotionEstimator()(pred, p["road"][None], cam, odometry={**p["odometry"], "yaw": float("nan")})
+
+
+def test_image_estimator_returns_a_detached_camera(noisy_pair):
+    """fit.camera.K kept the caller's graph (FlowMotionEstimator's fit is detached)."""
+    p, cam, pred = noisy_pair
+    K = cam.K.clone().requires_grad_(True)
+    camera = Camera(K, cam.height)
+    images = (p["image1"][None], p["image2"][None])
+    for odometry in (None, p["odometry"]):
+        fit = ImageMotionEstimator()(pred, p["road"][None], camera, images=images, odometry=odometry)
+        c = fit.camera
+        assert not any(t.requires_grad for t in (c.K, c.height, c.roll, c.pitch))
+        torch.testing.assert_close(c.K, K.detach(), rtol=0, atol=0)

@@ -569,7 +569,7 @@ def test_wrapper_road_auto():
     assert err(out[-1]) < err(Noisy()(None, None)[-1])
 
     flat = torch.full((1, 3, 188, 621), 80.0)
-    with pytest.warns(RuntimeWarning, match="left unchanged"):
+    with pytest.warns(RuntimeWarning, match="left unrefined"):
         out, info = model(flat, flat, camera=p["camera"], return_info=True)
     assert info.road.flag[0] != "ok" and not bool(info.mask.any())
     assert torch.equal(out[-1], Noisy()(None, None)[-1])

@@ -284,7 +284,8 @@ class Padding:
     def pad(self, x: Tensor, *, mode: str = "replicate") -> Tensor:
         """Pad the last two dimensions of ``x`` (H, W) with any leading dimensions: none, (C, H, W),
         (B, C, H, W), ptlflow's (B, 2, 3, H, W). ``mode``: ``"replicate"`` (RAFT's, for images),
-        ``"reflect"`` or ``"constant"`` (zeros); a bool mask is always padded with False."""
+        ``"reflect"`` (a side padded by less than the image's size there, else a ValueError) or
+        ``"constant"`` (zeros); a bool mask is always padded with False."""
         if mode not in PAD_MODES:
             raise ValueError(f"mode: expected one of {PAD_MODES}, got {mode!r}")
         if not isinstance(x, Tensor):
@@ -296,6 +297,11 @@ class Padding:
         pads = (self.left, self.right, self.top, self.bottom)
         if mode == "constant" or x.dtype == torch.bool:
             return F.pad(x, pads)
+        H, W = x.shape[-2:]
+        if mode == "reflect" and (max(self.left, self.right) >= W or max(self.top, self.bottom) >= H):
+            # (F.pad's reflection does not repeat the edge: it has H - 1 rows and W - 1 columns to mirror)
+            raise ValueError(f"x: mode='reflect' pads a side by less than the image's size there, got (H, W) = "
+                             f"({H}, {W}) and {self}; use mode='replicate' or 'constant'")
         # (F.pad's replicate and reflect pad H and W of a (C, H, W) or (B, C, H, W) tensor only)
         if x.dim() == 2:
             return F.pad(x[None], pads, mode=mode)[0]
@@ -328,7 +334,8 @@ class InputPadder:
         stride: the multiple (8 for RAFT and torchvision's RAFT; some ptlflow models need 32 or 64).
         mode: ``"sintel"`` (the padding split between both sides, the larger half right/bottom;
             ptlflow's ``pad_two_side=True``) or ``"kitti"`` (columns split, all rows at the bottom).
-        pad_mode: how images are extended, ``"replicate"`` (RAFT's) or ``"constant"``.
+        pad_mode: how images are extended, ``"replicate"`` (RAFT's), ``"reflect"`` (images
+            larger than the padding on each side) or ``"constant"`` (zeros).
 
     Example:
         >>> InputPadder(8, mode="kitti").padding((375, 1242))

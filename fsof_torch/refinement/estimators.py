@@ -5,7 +5,8 @@ returns a detached :class:`~fsof_torch.estimation.flow_fit.RoadFit` (its ``succe
 to trust it):
 
 - :class:`FlowMotionEstimator` fits a road model to the network's own flow inside the mask (the
-  paper's approach; it inherits the flow's failures on weak road texture);
+  paper's approach; it inherits the flow's failures on weak road texture); given planar odometry,
+  that is held fixed and the flow estimates the rest;
 - :class:`ImageMotionEstimator` fits it to the two images directly
   (:func:`~fsof_torch.estimation.image_fit.fit_image`), the network's flow being one start among
   several; given the vehicle's planar odometry, that is held fixed (or, with ``odometry_sigma``,
@@ -22,7 +23,7 @@ from torch import Tensor
 
 from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_image_pair,
                       check_keywords, check_mapping, check_mask, check_names, check_number, check_shape)
-from ..estimation.flow_fit import RoadFit, fit_road
+from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, fit_image
 from ..estimation.initial import planar_start
 from ..geometry.camera import Camera
@@ -53,6 +54,14 @@ class FlowMotionEstimator:
         **options: further keyword arguments of :func:`~fsof_torch.fit_road` (not its inputs
             ``flow``, ``mask``, ``camera``, nor ``model``, ``fixed``, ``init``, which the
             estimator passes itself: a TypeError names them).
+
+    Given the vehicle's planar odometry (x_d, z_d, yaw), that is held fixed at the odometry's values
+    (the fit's start, and ``fixed`` extended by them; the model must have them: ``"paper"`` or
+    ``"plane"``, else a ValueError) and the flow estimates the rest of the model's parameters (with
+    the default ``model="paper"`` and ``fixed``, nothing: the fit only judges the odometry's model
+    flow against the prediction, in ``success``). Another odometry (a general homography) is the
+    start where it is of the estimator's model. ``starts`` is not used: the fit has one start (the
+    odometry's, or the planar motion of the back-projected mask pixels).
     """
 
     def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = ("roll", "pitch"),
@@ -68,11 +77,21 @@ class FlowMotionEstimator:
                  odometry: object = None, starts: Sequence[Any] = ()) -> RoadFit:
         if flow is None:
             raise ValueError("flow: FlowMotionEstimator needs the predicted flow, got None")
-        init = None
+        fixed, init = self.fixed, None
         if odometry is not None:
             model, params = road_motion(odometry)
             init = params if model.name == self.model else None
-        return fit_road(flow, mask, camera, model=self.model, fixed=self.fixed, init=init, **self.options)
+            planar = planar_odometry(odometry)
+            if planar is not None:
+                # held at the odometry, as ImageMotionEstimator holds it: the fit estimates the rest
+                road_model = get_road_model(self.model)
+                if not all(k in road_model.params for k in _PLANAR):
+                    raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
+                                     f"hold; fit the flow alone (odometry=None) or use model='paper' or 'plane'")
+                init = {**(init or {}), **_finite_odometry(planar)}
+                fixed = fixed_parameters(road_model, fixed)
+                fixed = fixed + tuple(k for k in _PLANAR if k not in fixed)
+        return fit_road(flow, mask, camera, model=self.model, fixed=fixed, init=init, **self.options)
 
     def __repr__(self) -> str:
         return f"FlowMotionEstimator(model={self.model!r}, fixed={self.fixed!r})"
@@ -176,6 +195,8 @@ class ImageMotionEstimator:
         elif self.flow_start and flow is not None:
             # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own)
             starts.append(planar_start(flow, mask, camera))
+        # (on the camera's values: fit_image's result keeps its K and height, and results are detached)
+        camera = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(), camera.pitch.detach())
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
                          **options)
 

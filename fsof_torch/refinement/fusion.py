@@ -238,8 +238,8 @@ def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
 
 # -- the refinement ---------------------------------------------------------------------------
 
-def _estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
-               fit_options: Mapping[str, Any] | None, photometric_options: Mapping[str, Any] | None):
+def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
+                     fit_options: Mapping[str, Any] | None, photometric_options: Mapping[str, Any] | None):
     """The road-motion estimator to use: the caller's; one built from the older ``fit=``
     options; or the default: the image estimator where there are images, else a fit to the
     prediction."""
@@ -382,7 +382,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = _check_images(images, finest)
         # (the options are checked before the detection, also where it estimates nothing itself)
-        chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
+        chosen = select_estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
         return refine_with_auto_road(
             refine_flow, flow, mask, camera, odometry, images=images, road_options=road_options, warn=warn,
             road_estimator=None if images is None else chosen,
@@ -404,7 +404,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
     # Built (and so checked) also where odometry leaves nothing to estimate: an option that does
     # not fit the estimator raises whether or not this call's odometry makes it unused.
-    chosen = _estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
+    chosen = select_estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
     device = finest.device
     mask = mask.to(device).expand(B, 1, H, W)
     # The model flow is computed in the prediction's dtype (half lifted to float32): float32

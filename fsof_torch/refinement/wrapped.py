@@ -6,15 +6,18 @@ from __future__ import annotations
 
 import math
 import numbers
+from dataclasses import replace
 from typing import Any, Mapping
 
+import torch
 from torch import Tensor, nn
 
-from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask
+from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, skip_values
+from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
-from .auto_road import detect_road
-from .contracts import InputPadder, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
-from .fusion import FreespaceRefiner
+from .auto_road import detect_road, refine_with_auto_road
+from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
+from .fusion import FreespaceRefiner, RefineOutput, refine_flow, select_estimator
 
 __all__ = ["FreespaceRefined"]
 
@@ -26,13 +29,17 @@ class FreespaceRefined(nn.Module):
         net: a flow network, called as it expects to be called (see
             :mod:`fsof_torch.refinement.contracts`): ``net(image1, image2, **kw)`` (RAFT,
             torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
-            dict. It may return any structure :func:`refine_flow` accepts.
+            dict. It may return any structure :func:`refine_flow` accepts whose finest flow has the
+            (padded) input's size: a net that returns only a coarser flow (PWC-Net's 1/4) raises a
+            ValueError after it ran; upsample its flow to the input's size first.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
-        road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two images).
+        road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two
+            images, as ``refine_flow(flow, "auto", ...)`` finds it with the refiner's options: its
+            estimator, and the call's ``odometry``).
         road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`
-            (a mapping with string keys, or None), with ``road="auto"`` only: given with
-            ``road=None`` they raise a ValueError. A call that passes ``mask=`` detects nothing,
-            and leaves them unused.
+            (a mapping with string keys, or None), as ``refine_flow``'s ``road_options``, with
+            ``road="auto"`` only: given with ``road=None`` they raise a ValueError. A call that
+            passes ``mask=`` detects nothing, and leaves them unused.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
             so that its ``flow_small`` is refined on its true grid). The images are padded before
@@ -40,10 +47,13 @@ class FreespaceRefined(nn.Module):
             the output is refined on the padded grid, so a coarse level such as ``flow_small``
             (1/8 of the padded size) gets the padded camera scaled to it; then every output tensor
             of the padded full size is cropped back to the input size. Coarser levels stay on
-            their padded grid, as the network returned them.
+            their padded grid, as the network returned them. With ``road="auto"`` the road is found
+            in the images as they came (a replicated border is not road) and padded like a mask.
         image_range: ``(low, high)`` of the images passed as two tensors (the net's convention:
             (0, 255) for RAFT and TinyRAFT, (-1, 1) for torchvision's weights' transforms); the
-            refiner's photometric fit reads them as 0..255. ptlflow dicts are BGR in [0, 1].
+            refiner's photometric fit reads them as 0..255. They are checked against it before
+            the net runs (finite, within it up to 1 % of its width, and not all within its lowest
+            1/255, as 0..1 images given for 0..255 are). ptlflow dicts are BGR in [0, 1].
 
     Forward: ``model(image1, image2, *, camera, mask=None, odometry=None, return_info=False, **kw)``
     or ``model(inputs, *, camera, ...)`` with a ptlflow dict. Returns the net's output with its
@@ -52,7 +62,10 @@ class FreespaceRefined(nn.Module):
     the input images' size; both are checked against the images as they came, before the network
     runs (errors quote the caller's shapes, not the padded ones). With ``pad`` the RefineOutput's
     maps (also the gate's and the found road's masks) are cropped to the input size and its camera
-    is the input's (the padding undone).
+    is the input's (the padding undone); so is a :class:`~fsof_torch.estimation.flow_fit.RoadFit`
+    in ``fit``: its maps (``flow``, ``valid``, ``inliers``) cropped, its camera the input's, its
+    ``homography`` mapping the input's pixels (another estimator's result comes as it gave it,
+    on the padded grid).
     """
 
     def __init__(self, net: nn.Module, refiner: FreespaceRefiner | None = None, *,
@@ -78,7 +91,8 @@ class FreespaceRefined(nn.Module):
         if road_options and road != "auto":
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
-        check_keywords(road_options, "road_options", detect_road, reserved=("image1", "image2", "camera", "flow"))
+        check_keywords(road_options, "road_options", detect_road,
+                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts"))
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
@@ -118,6 +132,9 @@ class FreespaceRefined(nn.Module):
             if mask.dim() != 4 or mask.shape[1] != 1 or mask.shape[0] not in (1, B) or tuple(mask.shape[-2:]) != size:
                 raise ValueError(f"mask: expected shape ({B}, 1, {size[0]}, {size[1]}) (the images' batch and size; "
                                  f"batch 1 is broadcast), got {tuple(mask.shape)}")
+        if not ptlflow:  # (ptlflow's dict was checked above: BGR in [0, 1])
+            for name, im in (("image1", image1), ("image2", image2)):
+                _check_image_range(im, name, self.image_range)
         padding = self.pad.padding(size) if self.pad is not None else None
         if ptlflow:
             if padding is not None:
@@ -132,30 +149,101 @@ class FreespaceRefined(nn.Module):
             lo, hi = self.image_range
             if (lo, hi) != (0.0, 255.0):
                 image1, image2 = ((im - lo) * (255.0 / (hi - lo)) for im in (image1, image2))
+        padded_size = size if padding is None else padding.padded_size(size)
+        flow_keys = self.refiner.flow_keys
+        flows = collect_flows(output, "flow", flow_keys)
+        if not flows:  # (as refine_flow says it)
+            raise ValueError(f"flow: no flow found in the {type(output).__name__}; expected a value under "
+                             f"one of the keys {flow_keys} (set flow_keys)")
+        finest = finest_flow(flows)[1]
+        if tuple(finest.shape[-2:]) != padded_size:
+            given = f"{size[0]} x {size[1]}" + ("" if padded_size == size else
+                                               f" (padded to {padded_size[0]} x {padded_size[1]})")
+            raise ValueError(f"net: its finest flow is {finest.shape[-2]} x {finest.shape[-1]}, the input "
+                             f"{given}: the wrapper needs full-size output; upsample it (a PWC-style net's "
+                             f"1/4 flow: its size and its values by 4)")
         if padding is not None and padding.is_zero:
             padding = None
-        road = None
-        if mask is None:  # found in the images as they came (a replicated border is not road)
-            finest = finest_flow(collect_flows(output, "output", self.refiner.flow_keys))[1].detach()
-            road = detect_road(image1, image2, camera, flow=finest if padding is None else padding.unpad(finest),
-                               **self.road_options)
-            # its mask, and its motion unless the caller's odometry is given
-            mask, odometry = road.usable_mask, road.motion if odometry is None else odometry
-        if padding is not None:
-            camera = padding.camera(camera)
-            image1, image2 = (padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
-            mask = padding.pad(mask)
-        info = self.refiner(output, mask, camera, odometry, images=(image1, image2))._replace(road=road)
+        if mask is None:
+            info = self._refine_auto(output, finest, camera, odometry, (image1, image2), padding)
+        elif padding is None:
+            info = self.refiner(output, mask, camera, odometry, images=(image1, image2))
+        else:
+            images = tuple(padding.pad(im, mode=self.pad.pad_mode) for im in (image1, image2))
+            info = self.refiner(output, padding.pad(mask), padding.camera(camera), odometry, images=images)
         if padding is None:
             return (info.flow, info) if return_info else info.flow
-        padded_size = padding.padded_size(size)
         flow = padding.unpad_output(info.flow, padded_size)
         if not return_info:
             return flow
         gate = info.gate
         if gate is not None:  # its maps at the input size too (its per-sample counts as they are)
             gate = gate._replace(use_model=padding.unpad(gate.use_model), evidence=padding.unpad(gate.evidence))
+        # (the found road, and the motion found with it, are of the images as they came)
+        fit = info.fit if info.road is not None else _unpadded_fit(info.fit, padding)
         info = info._replace(flow=flow, weight=padding.unpad(info.weight), mask=padding.unpad(info.mask),
-                             flow_model=padding.unpad(info.flow_model), gate=gate,
+                             flow_model=padding.unpad(info.flow_model), gate=gate, fit=fit,
                              camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
         return flow, info
+
+    def _refine_auto(self, output: Any, finest: Tensor, camera: Camera, odometry: object,
+                     images: tuple[Tensor, Tensor], padding: Padding | None) -> RefineOutput:
+        """``refine_flow(output, "auto", camera, odometry, images=images)`` with the refiner's
+        options and ``road_options`` (:meth:`FreespaceRefiner.forward` takes no ``road_options``).
+        With ``padding`` the same steps (:func:`refine_with_auto_road`), the road found in the
+        images as they came and the output refined on the padded grid."""
+        r = self.refiner
+        options = dict(estimator=r.estimator, gate=r.gate, mode=r.mode, scale=r.scale, min_pixels=r.min_pixels,
+                       flow_keys=r.flow_keys, fit=r.fit, fit_roll=r.fit_roll, fit_pitch=r.fit_pitch,
+                       fit_options=r.fit_options, photometric_options=r.photometric_options)
+        if padding is None:
+            return refine_flow(output, "auto", camera, odometry, images=images, road_options=self.road_options,
+                               warn=r.warn, **options)
+        padded = tuple(padding.pad(im, mode=self.pad.pad_mode) for im in images)
+
+        def refine_padded(_: Tensor, mask: Tensor, camera: Camera, motion: object, *, images: Any,
+                          **kw: Any) -> RefineOutput:  # (the output itself, on the padded grid)
+            return refine_flow(output, padding.pad(mask), padding.camera(camera), motion, images=padded, **kw)
+
+        images = tuple(im.detach() for im in images)  # (as refine_flow passes them on)
+        # (the estimator refine_flow's "auto" path gives the detection)
+        road_estimator = select_estimator(r.estimator, r.fit, images, r.fit_roll, r.fit_pitch, r.fit_options,
+                                          r.photometric_options)
+        return refine_with_auto_road(refine_padded, padding.unpad(finest), "auto", camera, odometry, images=images,
+                                     road_estimator=road_estimator, road_options=self.road_options, warn=r.warn,
+                                     **options)
+
+
+def _check_image_range(image: Tensor, name: str, image_range: tuple[float, float]) -> None:
+    """The caller's image against ``image_range``, before the network runs: the refiner's test of
+    its 0..255 images (:func:`~fsof_torch._check.check_image_range`) in the caller's units."""
+    if skip_values(image) or image.numel() == 0:
+        return
+    d = image.detach()
+    a, b = torch.stack(torch.aminmax(d)).tolist()  # (NaN propagates through both)
+    if not (math.isfinite(a) and math.isfinite(b)):
+        raise ValueError(f"{name}: expected finite pixel values, got {d[~torch.isfinite(d)].flatten()[:3].tolist()} "
+                         f"(NaN or inf)")
+    lo, hi = image_range
+    span = hi - lo
+    if b > hi + 0.01 * span or a < lo - 0.01 * span:
+        raise ValueError(f"{name}: expected values in image_range=({lo:g}, {hi:g}), got values in [{a:g}, {b:g}]; "
+                         f"pass image_range=(low, high) of the images (the net's convention: (0, 255) for RAFT, "
+                         f"(-1, 1) for torchvision's transforms)")
+    if lo < b <= lo + span / 255.0:
+        raise ValueError(f"{name}: values in [{a:g}, {b:g}] fill at most 1/255 of image_range=({lo:g}, {hi:g}) (0..1 "
+                         f"images given for 0..255?): pass image_range=(0, 1) for 0..1 images, or scale them")
+
+
+def _unpadded_fit(fit: Any, padding: Padding) -> Any:
+    """A :class:`RoadFit` of the padded grid on the input's: its maps cropped, its camera the
+    input's, its homography (pixels t -> t+1) conjugated by the padding's shift; another result as it is."""
+    if not isinstance(fit, RoadFit):
+        return fit
+    shift = torch.eye(3, dtype=fit.homography.dtype, device=fit.homography.device)
+    shift[0, 2], shift[1, 2] = padding.left, padding.top  # (an input pixel p is p + shift on the padded grid)
+    unshift = shift.clone()
+    unshift[:2, 2] = -shift[:2, 2]
+    return replace(fit, flow=padding.unpad(fit.flow), valid=padding.unpad(fit.valid),
+                   inliers=padding.unpad(fit.inliers), homography=unshift @ fit.homography @ shift,
+                   camera=fit.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))

@@ -1,0 +1,208 @@
+"""``FreespaceRefined``: road="auto" is refine_flow's "auto" path (the refiner's estimator, the
+call's odometry, road_options), with and without padding; the net's output size and the images'
+range checked, named; with padding, the RefineOutput's fit on the input's grid."""
+
+from __future__ import annotations
+
+import re
+import warnings
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from fsof_torch import render_pair
+from fsof_torch.refinement.contracts import InputPadder, ptlflow_inputs
+from fsof_torch.refinement.estimators import ImageMotionEstimator
+from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
+from fsof_torch.refinement.wrapped import FreespaceRefined
+from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+
+def scene(size):
+    p = render_pair("default", 0, size=size)
+    noise = torch.randn(p["flow"][None].shape, generator=torch.Generator().manual_seed(0))
+    odometry = {k: float(p["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+    return dict(image1=p["image1"][None], image2=p["image2"][None], road=p["road"][None],
+                camera=p["camera"].to(torch.float32), odometry=odometry, pred=p["flow"][None] + 1.5 * noise)
+
+
+@pytest.fixture(scope="module")
+def wide():
+    return scene((120, 400))
+
+
+class Net(nn.Module):
+    """Returns ``[flow / 2, flow]`` of a fixed prediction, replicated to the size it is given
+    (the padded size with ``pad``); counts its calls."""
+
+    def __init__(self, pred: torch.Tensor) -> None:
+        super().__init__()
+        self.pred, self.calls = pred, 0
+
+    def forward(self, image1, image2):
+        self.calls += 1
+        dh, dw = image1.shape[-2] - self.pred.shape[-2], image1.shape[-1] - self.pred.shape[-1]
+        flow = F.pad(self.pred, (dw // 2, dw - dw // 2, dh // 2, dh - dh // 2), mode="replicate")
+        return [flow / 2, flow]
+
+
+class Counting(ImageMotionEstimator):
+    def __init__(self, **kw) -> None:
+        super().__init__(**kw)
+        self.calls = 0
+
+    def __call__(self, *args, **kwargs):
+        self.calls += 1
+        return super().__call__(*args, **kwargs)
+
+
+# -- road="auto" is refine_flow(flow, "auto", ...) -------------------------------------------------------
+
+@pytest.mark.parametrize("road_options", [None, {"window": 5}])
+def test_auto_road_is_refine_flow_auto_with_the_refiners_estimator_and_odometry(wide, road_options):
+    """The wrapper called detect_road without the estimator and the odometry, then refined with the
+    detection's motion: the refiner's estimator was never called and planar odometry ignored."""
+    s = wide
+    net = Net(s["pred"])
+    images = (s["image1"], s["image2"])
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        for odometry in (None, s["odometry"]):
+            estimator = Counting(model="paper")
+            model = FreespaceRefined(net, FreespaceRefiner(estimator=estimator), road="auto",
+                                     road_options=road_options)
+            flows, info = model(*images, camera=s["camera"], odometry=odometry, return_info=True)
+            assert estimator.calls > 0 and info.model == "paper"
+            expected = refine_flow(net(*images), "auto", s["camera"], odometry, images=images,
+                                   estimator=Counting(model="paper"), road_options=road_options)
+            assert torch.equal(info.road.mask, expected.road.mask)
+            assert torch.equal(flows[-1], expected.flow[-1]) and torch.equal(flows[0], expected.flow[0])
+            for k, v in expected.odometry.items():
+                assert torch.equal(info.odometry[k], v), k
+            if odometry is not None:  # held, as the refiner holds it
+                for k, v in odometry.items():
+                    assert float(info.odometry[k]) == pytest.approx(v, abs=1e-6), k
+
+
+@pytest.mark.parametrize("given", [False, True])
+def test_auto_road_with_pad_uses_the_estimator_and_the_odometry(wide, given):
+    s = wide
+    odometry = s["odometry"] if given else None
+    estimator = Counting(model="paper")
+    model = FreespaceRefined(Net(s["pred"][..., :117, :397]), FreespaceRefiner(estimator=estimator), road="auto",
+                             pad=InputPadder(8))
+    image1, image2 = s["image1"][..., :117, :397], s["image2"][..., :117, :397]
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        flows, info = model(image1, image2, camera=s["camera"], odometry=odometry, return_info=True)
+    assert estimator.calls > 0 and info.model == "paper"
+    assert tuple(flows[-1].shape[-2:]) == (117, 397) and tuple(info.road.mask.shape[-2:]) == (117, 397)
+    assert bool(info.refined.all()) and bool(info.mask.any())
+    for k, v in (odometry or {}).items():
+        assert float(info.odometry[k]) == pytest.approx(v, abs=1e-6), k
+
+
+def test_auto_road_without_a_flow_key_says_so():
+    """road='auto' said 'flow: expected at least one flow, got none'."""
+    s = scene((53, 94))
+
+    class DictNet(nn.Module):
+        def forward(self, a, b):
+            return {"flow_fw": [s["pred"]]}
+
+    for road, kw in (("auto", {}), (None, {"mask": s["road"]})):
+        with pytest.raises(ValueError, match=r"^flow: no flow found in the dict; expected a value under one of the "
+                                             r"keys \('flow', .*\) \(set flow_keys\)$"):
+            FreespaceRefined(DictNet(), road=road)(s["image1"], s["image2"], camera=s["camera"], **kw)
+
+
+# -- the net's output at the input's size ------------------------------------------------------------------
+
+@pytest.mark.parametrize("road, pad, given", [(None, None, "64 x 96"), ("auto", None, "64 x 96"),
+                                              (None, InputPadder(16), "60 x 90 (padded to 64 x 96)")])
+def test_a_net_with_only_a_coarse_flow_is_named(road, pad, given):
+    """A PWC-style net (the flow at 1/4) got contradictory mask-size errors."""
+    s = scene((60, 90) if pad is not None else (64, 96))
+
+    class QuarterNet(nn.Module):
+        def forward(self, a, b):
+            return torch.zeros(a.shape[0], 2, a.shape[-2] // 4, a.shape[-1] // 4)
+
+    mask = None if road == "auto" else s["road"]
+    message = rf"^net: its finest flow is 16 x 24, the input {re.escape(given)}: the wrapper needs full-size output"
+    with pytest.raises(ValueError, match=message + "; upsample it"):
+        FreespaceRefined(QuarterNet(), road=road, pad=pad)(s["image1"], s["image2"], camera=s["camera"], mask=mask)
+
+
+# -- the images' range, before the net runs ------------------------------------------------------------------
+
+@pytest.mark.parametrize("image_range, scale, message", [
+    ((0, 255), 1 / 255, r"^image1: values in \[0\.05\d*, 0\.9\d*\] fill at most 1/255 of image_range=\(0, 255\) "
+                        r"\(0\.\.1 images given for 0\.\.255\?\): pass image_range=\(0, 1\)"),
+    ((0, 1), 1.0, r"^image1: expected values in image_range=\(0, 1\), got values in \[13\.\d*, 232\.\d*\]; pass "
+                  r"image_range=\(low, high\) of the images"),
+])
+def test_images_checked_against_image_range_before_the_net(image_range, scale, message):
+    """The refiner found these after the net had run, named images[0], quoted converted values and
+    advised data_range=, which the wrapper does not take."""
+    s = scene((53, 94))
+    net = Net(s["pred"])
+    model = FreespaceRefined(net, FreespaceRefiner(), image_range=image_range)
+    with pytest.raises(ValueError, match=message):
+        model(s["image1"] * scale, s["image2"] * scale, camera=s["camera"], mask=s["road"])
+    bad = s["image2"].clone()
+    bad[..., 3, 4] = float("nan")
+    with pytest.raises(ValueError, match=r"^image2: expected finite pixel values, got \[nan, nan, nan\] "
+                                         r"\(NaN or inf\)$"):
+        FreespaceRefined(net)(s["image1"], bad, camera=s["camera"], mask=s["road"])
+    assert net.calls == 0
+    # images on the range stated run, as before
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        FreespaceRefined(net, image_range=(-1, 1))(s["image1"] / 127.5 - 1, s["image2"] / 127.5 - 1,
+                                                   camera=s["camera"], mask=s["road"])
+    assert net.calls == 1
+
+
+def test_reflect_padding_larger_than_the_image_is_named_before_the_net():
+    """torch's own RuntimeError came from F.pad."""
+    s = scene((53, 94))
+    net = Net(s["pred"])
+    image1, image2 = s["image1"][..., :3, :20], s["image2"][..., :3, :20]
+    with pytest.raises(ValueError, match=r"^x: mode='reflect' pads a side by less than the image's size there, "
+                                         r"got \(H, W\) = \(3, 20\) and Padding\(left=2, right=2, top=2, bottom=3\)"):
+        FreespaceRefined(net, pad=InputPadder(8, pad_mode="reflect"))(image1, image2, camera=s["camera"],
+                                                                      mask=s["road"][..., :3, :20])
+    assert net.calls == 0
+    # (a side padded by the size - 1 is what reflection can do)
+    x = torch.arange(6.0).reshape(1, 1, 3, 2)
+    assert torch.equal(InputPadder(4, pad_mode="reflect").padding((3, 2)).pad(x, mode="reflect"),
+                       F.pad(x, (1, 1, 0, 1), mode="reflect"))
+
+
+# -- with pad, the RefineOutput's fit on the input's grid -------------------------------------------------------
+
+def test_pad_gives_the_fit_on_the_input_grid():
+    """fit kept the padded grid's maps, camera and homography."""
+    s = scene((53, 94))
+    model = FreespaceRefined(PtlflowRAFTStandIn(seed=0).eval(), FreespaceRefiner(), pad=InputPadder(8))
+    with torch.no_grad(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        _, info = model(ptlflow_inputs(s["image1"], s["image2"]), camera=s["camera"], mask=s["road"],
+                        return_info=True)
+    fit = info.fit
+    for name in ("flow", "valid", "inliers"):
+        assert tuple(getattr(fit, name).shape[-2:]) == (53, 94), name
+    torch.testing.assert_close(fit.camera.K, s["camera"].K.reshape(fit.camera.K.shape), rtol=0, atol=0)
+    torch.testing.assert_close(fit.camera.K, info.camera.K, rtol=0, atol=0)
+    # its homography maps the input's pixels as the model flow moves them
+    v, u = torch.meshgrid(torch.arange(53.0), torch.arange(94.0), indexing="ij")
+    p = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1).double()
+    q = fit.homography[0].double() @ p
+    moved = (q[:2] / q[2] - p[:2]).reshape(2, 53, 94)
+    m = info.mask[0, 0]
+    assert bool(m.any())
+    torch.testing.assert_close(moved[:, m].float(), info.flow_model[0][:, m], rtol=0, atol=1e-3)
+    torch.testing.assert_close(fit.flow[0][:, m], info.flow_model[0][:, m], rtol=0, atol=1e-4)
