@@ -28,18 +28,25 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
+    says so), also for ``--help`` and for the errors argparse reports, rather than exiting."""
     argv = sys.argv[1:] if argv is None else list(argv)
-    if not argv or argv[0] not in SUBCOMMANDS:
-        parser = build_parser()
-        if argv and argv[0] not in ("-h", "--help"):
-            parser.error(f"unknown subcommand {argv[0]!r}; choose from {', '.join(SUBCOMMANDS)}")
-        parser.print_help()
-        return 0 if argv else 2
-    name = argv[0]
-    module = importlib.import_module(SUBCOMMANDS[name][0])
-    parser = argparse.ArgumentParser(prog=f"python -m eval {name}", description=SUBCOMMANDS[name][1])
-    module.add_arguments(parser)
-    args = parser.parse_args(argv[1:])
+    try:
+        if not argv or argv[0] not in SUBCOMMANDS:
+            parser = build_parser()
+            if not argv:
+                parser.error(f"missing SUBCOMMAND; choose from {', '.join(SUBCOMMANDS)}")
+            if argv[0] not in ("-h", "--help"):
+                parser.error(f"unknown subcommand {argv[0]!r}; choose from {', '.join(SUBCOMMANDS)}")
+            parser.print_help()
+            return 0
+        name = argv[0]
+        module = importlib.import_module(SUBCOMMANDS[name][0])
+        parser = argparse.ArgumentParser(prog=f"python -m eval {name}", description=SUBCOMMANDS[name][1])
+        module.add_arguments(parser)
+        args = parser.parse_args(argv[1:])
+    except SystemExit as exit_:  # argparse exits on --help and on bad options
+        return int(exit_.code or 0)
     if getattr(args, "seed", None) is not None:
         # (the scenes' seed range, checked before any work: exit 2 naming the option)
         from fsof_torch.data.scene.config import check_seed

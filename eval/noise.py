@@ -26,6 +26,8 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
+from .paths import MAX_SIDE
+
 DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
 DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
 
@@ -36,7 +38,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/noise.json")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
-                        help="render size of the CVC12-like scenes (default 375 1242; --quick: 96 320)")
+                        help=f"render size of the CVC12-like scenes, each side 16 to {MAX_SIDE} "
+                             "(default 375 1242; --quick: 96 320)")
     parser.add_argument("--sigmas", type=float, nargs="+", default=None, metavar="S",
                         help="noise levels for the fit-robustness curve, px, each at most 1e4 "
                              "(default 0, 1/64, ..., 4; --quick: 0, 1/32, 0.5, 2)")
@@ -44,7 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="noise levels for the pose-estimation curves, px, each at most 1e4 "
                              "(default 0, 0.25, 0.5, 1, 2, 4, 8; --quick: 0, 1, 4)")
     parser.add_argument("--pose-size", type=int, nargs=2, default=None, metavar=("H", "W"),
-                        help="virtual image size of the pose experiment (default 375 1242; --quick: 120 400)")
+                        help=f"virtual image size of the pose experiment, each side 16 to {MAX_SIDE} "
+                             "(default 375 1242; --quick: 120 400)")
     parser.add_argument("--trials", type=int, default=None, metavar="N",
                         help="random poses per noise level (default 32; --quick: 3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes, the noise and the poses (default 0)")
@@ -175,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from eval.pose import MAX_SIGMA, pose_estimation_experiment
 
-    from .paths import bad_file, bad_folder, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
     from .tables import format_table
 
     quick = args.quick
@@ -195,9 +199,13 @@ def run(args: argparse.Namespace) -> int:
         if min(sz) < 16:
             print(f"error: {name}: expected H, W >= 16, got {list(sz)}", file=sys.stderr)
             return 2
+        bad = bad_size(sz, name)
+        if bad is not None:
+            print(f"error: {bad}", file=sys.stderr)
+            return 2
     figures = [] if args.no_plots else ["noise_robustness.png", "pose_errors.png", "pose_scatter.png"]
     bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["noise.json"])),
-                    bad_file(args.json, "--json"))
+                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / f for f in figures]))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

@@ -1,7 +1,8 @@
-"""The evaluation job's output paths, checked before any work, as the refine job checks its own:
-a folder option names a folder or a path that can be created; a file option names no folder and a
-path whose missing folders can be created (the job creates them when it writes). Each check
-returns the error message, naming the option, or None."""
+"""The evaluation job's output paths and image sizes, checked before any work, as the refine job
+checks its own: a folder option names a folder or a path that can be created; a file option names
+no folder and a path whose missing folders can be created (the job creates them when it writes);
+``--json`` names none of the job's other outputs; a size has no side above :data:`MAX_SIDE`. Each
+check returns the error message, naming the option, or None."""
 
 from __future__ import annotations
 
@@ -9,6 +10,10 @@ from pathlib import Path
 from typing import Iterable
 
 from fsof_torch.io.atomic import creation_error
+
+#: The largest side (pixels) of a size option (``--size``, ``--pose-size``): beyond any camera's
+#: frame; a larger one only fills memory (a MemoryError or an allocator's RuntimeError).
+MAX_SIDE = 16384
 
 
 def bad_file(path: Path | None, option: str) -> str | None:
@@ -34,6 +39,26 @@ def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str
         if (path / name).is_dir():
             return f"{option}: {str(path / name)!r} is a folder, where the job writes a file"
     return None
+
+
+def bad_json_target(path: Path | None, outputs: Iterable[Path]) -> str | None:
+    """``--json`` (``path``, None: not asked for) names none of the files the job writes
+    (``outputs``): the JSON, written last, would replace it."""
+    if path is None:
+        return None
+    target = path.resolve()
+    for output in outputs:
+        if output.resolve() == target:
+            return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "
+                    f"give another path")
+    return None
+
+
+def bad_size(size: Iterable[int] | None, option: str) -> str | None:
+    """``size`` (H, W; None: not given) has no side above :data:`MAX_SIDE`."""
+    if size is None or max(size) <= MAX_SIDE:
+        return None
+    return f"{option}: expected H, W <= {MAX_SIDE}, got {list(size)}"
 
 
 def first_bad(*messages: str | None) -> str | None:

@@ -103,7 +103,8 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         box: ``(top, bottom, left, right)`` pixel box (rows top..bottom-1, columns
             left..right-1) sampling the road; default: rows from 15 % of the way between the
             horizon and the bottom, to the bottom; columns from 15 % to 85 % of the width.
-            Only pixels where the model is defined are used.
+            Only pixels where the model is defined are used; a box that leaves a trial none
+            (above the horizon, say) raises ValueError.
         z_range, x_range: uniform ranges of the forward and lateral displacement in metres.
         yaw_range_deg: uniform range of the yaw change in degrees.
         fit_roll: also fit the roll (the paper's experiment knows the camera; default False).
@@ -179,7 +180,14 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
             flow, valid = displacement_flow(cam, p[:, 0], p[:, 1], p[:, 2], (H, W))
             mask = valid & in_box
             if k == 0:
-                pixels.extend(mask.sum(dim=(1, 2, 3)).tolist())
+                counts = mask.sum(dim=(1, 2, 3))
+                if not bool(counts.all()):  # nothing to fit: its "errors" would be the fit's start
+                    if bar is not None:
+                        bar.close()
+                    trial = start + int((counts == 0).nonzero()[0, 0])
+                    raise ValueError(f"box: {(top, bottom, left, right)!r} holds no pixel where the model flow is "
+                                     f"defined (below the horizon) for trial {trial}; expected a box on the road")
+                pixels.extend(counts.tolist())
             # Drawn on the CPU generator so that results do not depend on the device.
             noise = torch.randn(flow.shape, generator=gen, dtype=torch.float64).to(dtype=dtype, device=flow.device)
             noisy = torch.where(mask, flow + s * noise, torch.zeros_like(flow))

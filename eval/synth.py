@@ -15,6 +15,8 @@ from pathlib import Path
 
 import torch
 
+from .paths import MAX_SIDE
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.data.scene.PRESETS); default: default")
@@ -22,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, type=Path, metavar="DIR",
                         help="output folder: a new or empty one (created); a folder holding files is refused")
     parser.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
-                        help="image size (default: the preset's)")
+                        help=f"image size, each side at most {MAX_SIDE} (default: the preset's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
     parser.add_argument("--float64", action="store_true", help="render in float64 (slower; flow is stored to 1/64 px anyway)")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH", help="also write the summary as JSON")
@@ -53,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
     from fsof_torch.data.scene import PRESETS, render_pair
 
-    from .paths import bad_file, bad_folder, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent
 
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
@@ -65,7 +67,10 @@ def run(args: argparse.Namespace) -> int:
     if size is not None and min(size) <= 0:
         print(f"error: --size: expected positive H W, got {args.size}", file=sys.stderr)
         return 2
-    bad = first_bad(bad_folder(args.out, "--out"), bad_file(args.json, "--json"))
+    bad = first_bad(bad_size(size, "--size"), bad_folder(args.out, "--out"), bad_file(args.json, "--json"))
+    if bad is None and args.json is not None and args.json.resolve().is_relative_to(args.out.resolve()):
+        # the layout's files (poses.txt, meta.json, ...) would replace it, or it one of them
+        bad = f"--json: {str(args.json)!r} is inside --out {str(args.out)!r}, which the job fills; give a path outside it"
     if bad is None and args.out.is_dir() and any(args.out.iterdir()):
         held = sorted(p.name for p in args.out.iterdir())
         # pairs of an older, longer run would stay beside the new ones and be read back with them

@@ -29,6 +29,8 @@ from pathlib import Path
 
 import torch
 
+from .paths import MAX_SIDE
+
 #: The paper's published figures (freespace-optical-flow.tex, Tables "CVC12", "CARLA", "KITTI").
 PAPER_CVC12 = {("simple", 1): (0.003, 0.609), ("simple", 4): (0.003, 0.704),
                ("complex", 1): (0.089, 0.534), ("complex", 4): (0.030, 0.244)}
@@ -48,18 +50,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder for tables.json and tables.md (default runs/tables)")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/tables.json")
+    # (the synthetic tables' options default to None: not given, so that one given to a run of
+    # the KITTI table alone is refused, even at its default)
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
-                        help="render size of the synthetic scenes (default 375 1242; --quick: 96 320)")
+                        help=f"render size of the synthetic scenes, each side 16 to {MAX_SIDE} "
+                             "(default 375 1242; --quick: 96 320)")
     parser.add_argument("--pairs", type=int, default=None, metavar="N",
                         help="frame pairs per synthetic scenario (default 3; --quick: 1)")
-    parser.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
+    parser.add_argument("--seed", type=int, default=None, help="scene seed of the synthetic scenes (default 0)")
     # (None: not given; the shared sample then, skipped with a note where it is absent)
     parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
                         help=f"KITTI flow sample folder (default {DEFAULT_KITTI})")
     parser.add_argument("--no-kitti", action="store_true", help="skip the real-KITTI table")
     parser.add_argument("--only", choices=("cvc12", "carla", "kitti"), action="append", default=None,
                         help="run only these tables (repeatable)")
-    parser.add_argument("--quick", action="store_true", help="small and fast: 96x320, one pair, rolls 0 and ±5°")
+    parser.add_argument("--quick", action="store_true",
+                        help="small and fast synthetic tables: 96x320, one pair, rolls 0 and ±5°")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -251,6 +257,13 @@ def _unused_option(args: argparse.Namespace) -> str | None:
     if args.kitti is not None and args.only and "kitti" not in args.only:
         return (f"--kitti: applies to the KITTI table, which this run does not make "
                 f"(--only {' --only '.join(args.only)})")
+    if args.only and not {"cvc12", "carla"} & set(args.only):
+        given = {"--size": args.size is not None, "--pairs": args.pairs is not None, "--seed": args.seed is not None,
+                 "--quick": args.quick}
+        for option, is_given in given.items():
+            if is_given:
+                return (f"{option}: applies to the synthetic tables (cvc12, carla), which this run does not "
+                        f"make (--only {' --only '.join(args.only)})")
     return None
 
 
@@ -259,19 +272,24 @@ def run(args: argparse.Namespace) -> int:
 
     from fsof_torch.io import write_json, write_text
 
-    from .paths import bad_file, bad_folder, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
 
-    size = tuple(args.size) if args.size is not None else ((96, 320) if args.quick else (375, 1242))
-    pairs = args.pairs if args.pairs is not None else (1 if args.quick else 3)
-    if min(size) < 16:
-        print(f"error: --size: expected H, W >= 16, got {list(size)}", file=sys.stderr)
-        return 2
-    if pairs < 1:
-        print(f"error: --pairs: expected at least 1, got {pairs}", file=sys.stderr)
-        return 2
     bad = _unused_option(args)
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
+        return 2
+    size = tuple(args.size) if args.size is not None else ((96, 320) if args.quick else (375, 1242))
+    pairs = args.pairs if args.pairs is not None else (1 if args.quick else 3)
+    seed = 0 if args.seed is None else args.seed
+    if min(size) < 16:
+        print(f"error: --size: expected H, W >= 16, got {list(size)}", file=sys.stderr)
+        return 2
+    bad = bad_size(size, "--size")
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
+    if pairs < 1:
+        print(f"error: --pairs: expected at least 1, got {pairs}", file=sys.stderr)
         return 2
     tables = set(args.only or ("cvc12", "carla", "kitti"))
     if args.no_kitti:
@@ -286,7 +304,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"note: no KITTI sample at {kitti_folder}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
     bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
-                    bad_file(args.json, "--json"))
+                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / "tables.md"]))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
@@ -301,14 +319,15 @@ def run(args: argparse.Namespace) -> int:
     total = (8 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
         + (2 if "kitti" in tables else 0)
 
-    result: dict = {"settings": {"size": list(size), "pairs": pairs, "seed": args.seed, "quick": bool(args.quick),
-                                 "rolls_deg": list(rolls), "kitti": str(kitti_folder) if "kitti" in tables else None}}
+    settings = {"size": list(size), "pairs": pairs, "seed": seed, "quick": bool(args.quick), "rolls_deg": list(rolls)}
+    result: dict = {"settings": {**(settings if tables & {"cvc12", "carla"} else {}),
+                                 "kitti": str(kitti_folder) if "kitti" in tables else None}}
     md = ["# Freespace model fitted to ground-truth flow (python -m eval tables)", ""]
     with tqdm(total=total, desc="tables", unit="fit", disable=args.no_progress) as bar:
         if "cvc12" in tables:
-            result["cvc12"] = cvc12_table(size, pairs, args.seed, bar)
+            result["cvc12"] = cvc12_table(size, pairs, seed, bar)
         if "carla" in tables:
-            result["carla"] = carla_table(size, pairs, args.seed, rolls, bar)
+            result["carla"] = carla_table(size, pairs, seed, rolls, bar)
         if "kitti" in tables:
             result["kitti"] = kitti_table(kitti, bar)
 

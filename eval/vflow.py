@@ -27,9 +27,14 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
+from .paths import MAX_SIDE
+
 # The largest --index: 10 000 pairs are over 15 minutes of driving at 10 Hz, and the scene is laid
 # out up to the pair asked for, so time and memory grow with the index.
 MAX_INDEX = 10_000
+# The largest --bins: finer than any flow's range needs; the map holds H × bins counts, and far
+# more bins only fill memory.
+MAX_BINS = 65_536
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -43,13 +48,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"pair index of the preset, 0 to {MAX_INDEX} (default 0)")
     parser.add_argument("--seed", type=int, default=None, help="scene seed of the preset (default 0)")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
-                        help="render size of the preset (default: the preset's)")
+                        help=f"render size of the preset, each side 16 to {MAX_SIDE} (default: the preset's)")
     parser.add_argument("--model", choices=("displacement", "velocity"), default="displacement",
                         help="curve of eq. 24 to fit; velocity uses the preset's px/s flow (default displacement)")
     parser.add_argument("--road-only", action="store_true",
                         help="preset: build the map from the road pixels only (default: all valid pixels, "
                              "so obstacles show in the map and the fit must be robust to them)")
-    parser.add_argument("--bins", type=int, default=256, help="histogram bins (default 256)")
+    parser.add_argument("--bins", type=int, default=256, help=f"histogram bins, 2 to {MAX_BINS} (default 256)")
     parser.add_argument("--statistic", choices=("peak", "median"), default="peak",
                         help="per-row dominant flow (default peak)")
     parser.add_argument("--inlier-threshold", type=float, default=0.5, metavar="PX",
@@ -178,10 +183,10 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
-    from .paths import bad_file, bad_folder, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
 
-    if args.bins < 2:
-        print(f"error: --bins: expected at least 2, got {args.bins}", file=sys.stderr)
+    if not 2 <= args.bins <= MAX_BINS:
+        print(f"error: --bins: expected 2 to {MAX_BINS}, got {args.bins}", file=sys.stderr)
         return 2
     for option, value in (("--inlier-threshold", args.inlier_threshold),
                           ("--relative-threshold", args.relative_threshold)):
@@ -190,6 +195,10 @@ def run(args: argparse.Namespace) -> int:
             return 2
     if args.size is not None and min(args.size) < 16:
         print(f"error: --size: expected H, W >= 16, got {args.size}", file=sys.stderr)
+        return 2
+    bad = bad_size(args.size, "--size")
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
         return 2
     bad = _unused_option(args)
     if bad is not None:
@@ -200,19 +209,19 @@ def run(args: argparse.Namespace) -> int:
     if not 0 <= index <= MAX_INDEX:
         print(f"error: --index: expected a pair index in [0, {MAX_INDEX}], got {index}", file=sys.stderr)
         return 2
-    figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
-    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
-                    bad_file(args.json, "--json"))
-    if bad is not None:
-        print(f"error: {bad}", file=sys.stderr)
-        return 2
     steps = ["load", "V-flow map", "curve fit", "plots"]
     preset = args.preset if args.flow is None else None
     if args.flow is None and preset is None:
         preset = "cvc-complex"
     if preset is not None and args.model == "displacement":
         steps.insert(3, "freespace")
-    bar = tqdm(total=len(steps), desc="vflow", unit="step", disable=args.no_progress)
+    figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
+    written = [args.out / f for f in figures if f != "freespace.png" or "freespace" in steps]
+    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
+                    bad_file(args.json, "--json"), bad_json_target(args.json, written))
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     info: dict = {}
     pair = camera = road = None
     if preset is not None:
@@ -258,9 +267,10 @@ def run(args: argparse.Namespace) -> int:
             bad = f"--flow: {str(args.flow)!r} has no valid flow pixel"
         else:
             bad = f"--preset: pair {index} of {preset!r} has no valid {'road ' if args.road_only else ''}pixel"
-        bar.close()
         print(f"error: {bad}", file=sys.stderr)
         return 2
+    # (opened after the input checks, so that an error line never prints inside the bar's line)
+    bar = tqdm(total=len(steps), desc="vflow", unit="step", disable=args.no_progress)
     bar.update(1)
     unit = "px" if args.model == "displacement" else "px/s"
     hist, edges = vflow_map(flow, mask, bins=args.bins)
@@ -272,13 +282,15 @@ def run(args: argparse.Namespace) -> int:
     fv = flow[:, 1:2]
     in_fit = mask & curve.fitted_valid
     err = (fv - curve.fitted).abs()
-    on_road = in_fit & road if road is not None else in_fit
+    # the road: the preset's, or --mask (a road mask); without one (--flow alone) no road figure
+    on_road = in_fit & road if road is not None else in_fit if args.mask is not None else None
     info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
                      "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
                      "inlier_rows": int(curve.row_inliers[0].sum()), "used_rows": int((curve.row_support[0] > 0).sum()),
                      "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
                      "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,
-                     "mean_abs_fv_error_road": float(err[on_road].mean()) if on_road.any() else None,
+                     "mean_abs_fv_error_road": float(err[on_road].mean())
+                     if on_road is not None and on_road.any() else None,
                      "unit": unit}
     if camera is not None:
         name = "z_d_m" if args.model == "displacement" else "speed_mps"
@@ -322,6 +334,9 @@ def run(args: argparse.Namespace) -> int:
     if c["mean_abs_fv_error_road"] is not None:
         print(f"  mean |F_v - fitted| on the road: {c['mean_abs_fv_error_road']:.4f} {unit}"
               f" (all mask pixels: {c['mean_abs_fv_error_mask']:.4f})")
+    elif c["mean_abs_fv_error_mask"] is not None:
+        print(f"  mean |F_v - fitted| over the flow's valid pixels where the curve is defined (no road mask): "
+              f"{c['mean_abs_fv_error_mask']:.4f} {unit}")
     if "freespace" in info:
         print(f"  freespace IoU with the road: {info['freespace']['iou']:.4f}")
     info["files"] = {k: str(v) for k, v in files.items()}

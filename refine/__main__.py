@@ -387,19 +387,26 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     scale = DEFAULT_SCALE if args.scale is None else args.scale
     identity = {"version": __version__, "input": input_identity, "sources": sources, "variants": variants,
                 "mode": args.mode, "scale": scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
-                "road": args.road, "calibrate_pitch": calibrate, "odometry_sigma": odometry_sigma,
+                # a road folder or file by its resolved path and contents in "input", however spelled
+                "road": args.road if args.road in (None, "auto") else "given",
+                "calibrate_pitch": calibrate, "odometry_sigma": odometry_sigma,
                 "testnet_weights": file_digest(args.testnet_weights) if args.testnet_weights is not None
                 and "testnet" in sources else None,
                 "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources,
                 "photometric": [kind for _, kind, _ in PHOTO]}
+    if device.type != "cpu":
+        # a GPU's kernels round otherwise (and a network's convolutions may run in TF32): its
+        # records are not the CPU's. (No key on the CPU: a CPU run's identity is as before.)
+        identity["device"] = device.type
     error = None
     if world.is_main:
         try:
             stack.enter_context(resume.locked(out))
+            identity = _earlier_road_spelling(out, identity)
             resume.prepare(out, identity, overwrite=args.overwrite)
         except JobError as err:
             error = str(err)
-    error = distributed.broadcast_object(error, world)
+    error, identity = distributed.broadcast_object((error, identity), world)
     if error is not None:
         raise JobError(error)
     fp = resume.fingerprint(identity)
@@ -442,6 +449,26 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         print(f"- {n}")
     print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0
+
+
+def _earlier_road_spelling(out: Path, identity: dict) -> dict:
+    """The identity of the run in ``out`` where it differs from ``identity`` only in ``road``
+    holding --road as it was typed, as earlier runs recorded it (e.g. ``"d/road"`` for
+    ``"given"``): the same road, whose resolved path and contents ``input`` pins, so that run's
+    records are reused. Else ``identity``."""
+    import json
+
+    from .resume import MANIFEST, fingerprint
+
+    try:
+        old = json.loads((out / MANIFEST).read_text()).get("identity")
+    except (OSError, ValueError, AttributeError):
+        return identity
+    typed = old.get("road") if isinstance(old, dict) else None
+    if (identity["road"] == "given" and isinstance(typed, str) and typed not in ("auto", "given")
+            and fingerprint({**old, "road": "given"}) == fingerprint(identity)):
+        return {**identity, "road": typed}
+    return identity
 
 
 def _mounting_note(clip, calibrate: bool, pairs: int) -> str:

@@ -43,7 +43,9 @@ def flow_maps(pair: dict, flow: Tensor, reference: dict[str, Tensor] | None = No
     census and L1 bit for bit, SSIM to float rounding of its convolutions).
     """
     finite = torch.isfinite(flow).all(dim=0, keepdim=True)
-    f = torch.nan_to_num(flow)
+    # inf as well as NaN to 0 (nan_to_num's default turns inf into the dtype's largest value,
+    # whose end-point error overflows); ``finite`` keeps these pixels out of every metric
+    f = torch.nan_to_num(flow, nan=0.0, posinf=0.0, neginf=0.0)
     if reference is None:
         return {"flow": f, "finite": finite, **_maps_in_box(pair, f, None)}
     changed = (f != reference["flow"]).any(dim=0, keepdim=True) | (finite != reference["finite"])

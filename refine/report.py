@@ -99,7 +99,8 @@ def summarize(metrics: torch.Tensor, extra: torch.Tensor, records: list[dict], c
 
 def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) -> list[str]:
     """Warnings for the report: each flow source whose flow was NaN or inf at every pixel of a pair
-    (nothing of that pair could be measured or refined), and what a '–' in the table means."""
+    (nothing of that pair could be measured or refined), and what a '–' or an 'n/a' in the table
+    means."""
     notes = []
     for source in sources:
         pairs = sorted({r["pair"] for r in records if r["source"] == source and r.get("prediction_finite") == 0.0})
@@ -111,7 +112,18 @@ def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) 
     if any(k.endswith("_before") and v is None for r in rows for k, v in r.items()):
         notes.append("'–': measured over no pixel (none where both the prediction and the refined flow are "
                      "finite and defined; e.g. the source gave no finite flow).")
+    if any(_no_relative_change(v, r.get(f"{k[:-len('_before')]}_after"))
+           for r in rows for k, v in r.items() if k.endswith("_before")):
+        notes.append("'n/a' in a Δ% column: the error before refinement is 0 (e.g. a source that is the ground "
+                     "truth itself), so there is no relative change (`null` in report.json); compare the "
+                     "values.")
     return notes
+
+
+def _no_relative_change(before: Any, after: Any) -> bool:
+    """A metric measured (not None) whose before is 0: no percentage of 0 (``change_pct`` None),
+    printed 'n/a', not the '–' of a metric measured over no pixel."""
+    return before == 0 and after is not None
 
 
 def _ordered_sum(values: torch.Tensor) -> float:
@@ -151,8 +163,9 @@ def table_markdown(summary: dict) -> str:
                 first = False
                 cells.append(name)
                 for key in (road, every):
-                    cells += [_fmt(r.get(f"{key}_before"), digits), _fmt(r.get(f"{key}_after"), digits),
-                              _fmt(r.get(f"{key}_change_pct"), 1)]
+                    before, after = r.get(f"{key}_before"), r.get(f"{key}_after")
+                    change = "n/a" if _no_relative_change(before, after) else _fmt(r.get(f"{key}_change_pct"), 1)
+                    cells += [_fmt(before, digits), _fmt(after, digits), change]
                 lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -92,3 +93,52 @@ def test_noise_row_over_no_pixel_is_none_with_a_warning(capsys):
     assert [lost[k] for k in ("e_E", "e_A", "e_E_vs_noisy", "e_A_vs_noisy")] == [None] * 4
     assert "warning: complex x1, sigma 10000: the fitted model covers no road pixel" in capsys.readouterr().err
     assert format_table([lost], [("e_E", "e_E px", ".2e")]).splitlines()[-1].strip() == "-"
+
+
+@pytest.mark.parametrize("plots, name, refused", [
+    ([], "pose_errors.png", True), ([], "noise_robustness.png", True), ([], "sub/../pose_scatter.png", True),
+    (["--no-plots"], "pose_errors.png", False),  # (not written without the plots)
+])
+def test_noise_json_naming_a_figure(tmp_path, capsys, monkeypatch, plots, name, refused):
+    """--json naming a figure the run writes is refused before any work (the JSON replaced it)."""
+    import eval.noise as noise
+
+    class Reached(Exception):
+        pass
+
+    def stop(*args, **kwargs):
+        raise Reached
+
+    monkeypatch.setattr(noise, "noise_robustness", stop)
+    argv = ["noise", "--quick", *plots, "--out", str(tmp_path / "o"), "--json", str(tmp_path / "o" / name),
+            "--no-progress"]
+    if not refused:
+        with pytest.raises(Reached):
+            main(argv)
+        return
+    assert main(argv) == 2
+    expected = f"error: --json: {str(tmp_path / 'o' / name)!r} names {name.split('/')[-1]}, a file the job writes into "
+    assert expected in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("option, size", [("--size", ["16385", "64"]), ("--pose-size", ["64", "100000000"])])
+def test_noise_sizes_bounded(tmp_path, capsys, monkeypatch, option, size):
+    import eval.noise as noise
+
+    monkeypatch.setattr(noise, "noise_robustness", lambda *a, **k: pytest.fail("rendered before the check"))
+    assert main(["noise", option, *size, "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert f"error: {option}: expected H, W <= 16384, got [{size[0]}, {size[1]}]" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("box", [(0, 1, 0, 1), (0, 10, 0, 120)])
+def test_pose_experiment_box_without_model_pixels_raises(box):
+    """A box above the horizon leaves no pixel to fit: ValueError naming box, not "errors" of a
+    fit over nothing (num_pixels 0 with finite errors)."""
+    from eval.pose import pose_estimation_experiment
+
+    with pytest.raises(ValueError, match=rf"^box: {re.escape(repr(box))} holds no pixel where the model flow is defined"):
+        pose_estimation_experiment([0.0], trials=2, size=(40, 120), box=box)
+    res = pose_estimation_experiment([0.0], trials=2, size=(40, 120), box=(30, 40, 0, 120))
+    assert res.num_pixels > 0

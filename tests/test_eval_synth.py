@@ -117,3 +117,37 @@ def test_output_paths_checked_first(tmp_path, capsys):
     rc = main(["synth", "--pairs", "1", "--size", "24", "64", "--out", str(tmp_path / "empty"),
                "--json", str(tmp_path / "new" / "s.json"), "--no-progress"])
     assert rc == 0 and (tmp_path / "new" / "s.json").is_file() and len(SyntheticFlowDataset(tmp_path / "empty")) == 1
+
+
+@pytest.mark.parametrize("inside", ["poses.txt", "meta.json", "extra/s.json", "../seq/s.json"])
+def test_refuses_a_json_inside_out(tmp_path, capsys, monkeypatch, inside):
+    """--json inside --out is refused before any work: the layout's files would replace it, or it
+    one of them (--json DIR/poses.txt destroyed the poses)."""
+    monkeypatch.setattr(scene, "render_pair", lambda *a, **k: pytest.fail("rendered before --json was checked"))
+    out = tmp_path / "seq"
+    rc = main(["synth", "--pairs", "1", "--out", str(out), "--json", str(out / inside), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and f"error: --json: {str(out / inside)!r} is inside --out {str(out)!r}" in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("size", [["16385", "64"], ["10000000", "10000000"]])
+def test_refuses_a_size_above_the_maximum(tmp_path, capsys, monkeypatch, size):
+    """Each --size side is at most 16384: beyond, exit 2 naming it before any folder is made (a
+    MemoryError traceback left an empty --out)."""
+    monkeypatch.setattr(scene, "render_pair", lambda *a, **k: pytest.fail("rendered before --size was checked"))
+    rc = main(["synth", "--pairs", "1", "--out", str(tmp_path / "s"), "--size", *size, "--no-progress"])
+    assert rc == 2 and f"error: --size: expected H, W <= 16384, got [{size[0]}, {size[1]}]" in capsys.readouterr().err
+    assert not (tmp_path / "s").exists()
+
+
+def test_jobs_doc_lists_what_synth_writes(written):
+    """docs/jobs.md's row for synth names every folder and file the job writes (params/ was left out)."""
+    from pathlib import Path
+
+    _, out, _ = written
+    doc = (Path(__file__).resolve().parents[1] / "docs" / "jobs.md").read_text()
+    row = next(line for line in doc.splitlines() if line.startswith("| `synth` |"))
+    written_names = sorted(p.name + ("/" if p.is_dir() else "") for p in out.iterdir())
+    assert "params/" in written_names
+    assert [n for n in written_names if f"`{n}" not in row] == []

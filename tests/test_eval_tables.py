@@ -35,6 +35,8 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
                "--out", str(tmp_path / "o"), "--json", str(path), "--no-progress"])
     assert rc == 0
     data = json.loads(path.read_text())
+    # no synthetic table: no synthetic settings recorded
+    assert data["settings"] == {"kitti": str(shared_data / "kitti15_000000")}
     assert [r["model"] for r in data["kitti"]] == ["paper model", "with pitch"]
     paper, pitch = data["kitti"]
     assert paper["e_E"] <= 0.40 and pitch["e_E"] <= paper["e_E"] + 1e-9
@@ -44,9 +46,8 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
 def test_tables_bad_arguments(tmp_path, capsys):
     assert main(["tables", "--pairs", "0", "--out", str(tmp_path)]) == 2
     assert "--pairs" in capsys.readouterr().err
-    with pytest.raises(SystemExit) as exit_:
-        main(["tables", "--only", "nope"])
-    assert exit_.value.code == 2 and "argument --only: invalid choice: 'nope'" in capsys.readouterr().err
+    assert main(["tables", "--only", "nope"]) == 2  # (argparse's error: returned, not raised)
+    assert "argument --only: invalid choice: 'nope'" in capsys.readouterr().err
     # a KITTI sample asked for but absent: an error, not an empty table
     assert main(["tables", "--kitti", str(tmp_path / "none"), "--out", str(tmp_path), "--no-progress"]) == 2
     assert f"--kitti: no KITTI sample (flow_noc_10.png) at {str(tmp_path / 'none')!r}" in capsys.readouterr().err
@@ -151,3 +152,79 @@ def test_tables_default_kitti_folder_given_explicitly_counts_as_asked_for(tmp_pa
     assert "error: --kitti: no KITTI sample" in capsys.readouterr().err
     assert main(["tables", "--quick", "--out", str(tmp_path / "o"), "--no-progress"]) == 0
     assert "note: no KITTI sample at" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--size", "20", "20"], "--size"), (["--pairs", "7"], "--pairs"), (["--seed", "5"], "--seed"),
+    (["--seed", "0"], "--seed"),  # (its default, given)
+    (["--pairs", "3"], "--pairs"), (["--quick"], "--quick"),
+])
+def test_tables_synthetic_options_without_a_synthetic_table_exit_2(tmp_path, capsys, monkeypatch, argv, option):
+    """--size, --pairs, --seed and --quick set the synthetic tables only: given to a run of the
+    KITTI table alone they are refused (they were ignored and recorded as the run's settings)."""
+    import eval.tables as tables
+
+    monkeypatch.setattr(tables, "load_kitti", lambda *a, **k: pytest.fail("the sample was read"))
+    rc = main(["tables", "--only", "kitti", *argv, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2
+    assert (f"error: {option}: applies to the synthetic tables (cvc12, carla), which this run does not make "
+            f"(--only kitti)") in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_tables_synthetic_options_with_a_synthetic_table(tmp_path, monkeypatch):
+    """With a synthetic table the same options are taken and recorded; the defaults too."""
+    import eval.tables as tables
+
+    calls = []
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: calls.append(a[:3]) or [])
+    assert main(["tables", "--only", "cvc12", "--size", "20", "24", "--pairs", "2", "--seed", "5",
+                 "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    assert main(["tables", "--only", "cvc12", "--out", str(tmp_path / "d"), "--no-progress"]) == 0
+    assert calls == [((20, 24), 2, 5), ((375, 1242), 3, 0)]
+    settings = json.loads((tmp_path / "o" / "tables.json").read_text())["settings"]
+    assert settings == {"size": [20, 24], "pairs": 2, "seed": 5, "quick": False, "rolls_deg": [0, 5, -5, 10, -10],
+                        "kitti": None}
+
+
+@pytest.mark.parametrize("name", ["tables.md", "sub/../tables.md"])
+def test_tables_json_naming_tables_md_exits_2(tmp_path, capsys, monkeypatch, name):
+    """--json naming DIR/tables.md is refused: one file would replace the other."""
+    import eval.tables as tables
+
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: pytest.fail("a table was made"))
+    target = tmp_path / "o" / name
+    rc = main(["tables", "--quick", "--only", "cvc12", "--out", str(tmp_path / "o"), "--json", str(target),
+               "--no-progress"])
+    assert rc == 2
+    assert f"error: --json: {str(target)!r} names tables.md, a file the job writes into " in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("size", [["16385", "64"], ["64", "100000000"]])
+def test_tables_size_bounded(tmp_path, capsys, monkeypatch, size):
+    import eval.tables as tables
+
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: pytest.fail("a table was made"))
+    rc = main(["tables", "--only", "cvc12", "--size", *size, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2
+    assert f"error: --size: expected H, W <= 16384, got [{size[0]}, {size[1]}]" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, code, stream, message", [
+    ([], 2, "err", "python -m eval: error: missing SUBCOMMAND; choose from synth, train, tables, noise, vflow"),
+    (["nope"], 2, "err", "python -m eval: error: unknown subcommand 'nope'"),
+    (["synth", "--out", "x", "--pairs", "x"], 2, "err", "argument --pairs: invalid int value: 'x'"),
+    (["tables", "--bogus"], 2, "err", "unrecognized arguments: --bogus"),
+    (["--help"], 0, "out", "SUBCOMMAND"),
+    (["tables", "--help"], 0, "out", "--only"),
+])
+def test_main_returns_the_exit_status(capsys, argv, code, stream, message):
+    """main(argv) -> int returns the status, as refine's main does: for a missing or unknown
+    subcommand, argparse's errors and --help too (they raised SystemExit)."""
+    assert main(argv) == code
+    captured = capsys.readouterr()
+    assert message in getattr(captured, stream)
+    if code:
+        assert captured.err.startswith("usage: python -m eval")

@@ -221,3 +221,83 @@ def test_vflow_observed_map_shows_negative_flow(tmp_path, monkeypatch):
     assert float(error.max()) > error_max and error_extend == "max" and error_label == "|F_v error| (px)"
     assert vflow._extend(torch.tensor([-2.0, 0.5]), -1.0, 1.0) == "min"
     assert vflow._extend(torch.tensor([-2.0, 3.0]), -1.0, 1.0) == "both"
+
+
+def test_vflow_road_figure_needs_a_road(tmp_path, capsys):
+    """--flow without --mask has no road: the road figure is null in the JSON and not printed as
+    "on the road" (it was the figure over every valid pixel); the figure over the fit's pixels is
+    printed as such. With --mask (the road) both figures are the mask's."""
+    flow = _small_flow(tmp_path)
+    assert main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    curve = json.loads((tmp_path / "o" / "vflow.json").read_text())["curve"]
+    assert curve["mean_abs_fv_error_road"] is None and curve["mean_abs_fv_error_mask"] is not None
+    out = capsys.readouterr().out
+    assert "on the road" not in out
+    assert "mean |F_v - fitted| over the flow's valid pixels where the curve is defined (no road mask): " in out
+    (tmp_path / "m.json").write_text('{"size": [32, 48], "road_polygon": [[0, 10], [47, 10], [47, 31], [0, 31]]}')
+    assert main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.json"), "--out", str(tmp_path / "m"),
+                 "--no-progress"]) == 0
+    curve = json.loads((tmp_path / "m" / "vflow.json").read_text())["curve"]
+    assert curve["mean_abs_fv_error_road"] == curve["mean_abs_fv_error_mask"] is not None
+    assert "on the road" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["--flow", "{flow}"], "fv_error.png"),
+    (["--preset", "cvc-simple", "--size", "32", "96"], "freespace.png"),
+    (["--preset", "cvc-simple", "--size", "32", "96"], "vflow_map.png"),
+])
+def test_vflow_json_naming_an_output_exits_2(tmp_path, capsys, argv, name):
+    """A --json naming a figure the job writes is refused (the JSON, written last, replaced it)."""
+    flow = _small_flow(tmp_path)
+    argv = [a.format(flow=flow) for a in argv]
+    target = tmp_path / "o" / ".." / "o" / name
+    rc = main(["vflow", *argv, "--out", str(tmp_path / "o"), "--json", str(target), "--no-progress"])
+    assert rc == 2
+    assert f"error: --json: {str(target)!r} names {name}, a file the job writes into " in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_vflow_json_may_name_a_figure_the_run_does_not_write(tmp_path):
+    """freespace.png is written for a preset's displacement flow only: with --flow the name is free."""
+    flow = _small_flow(tmp_path)
+    rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--json",
+               str(tmp_path / "o" / "freespace.png"), "--no-progress"])
+    assert rc == 0 and "curve" in json.loads((tmp_path / "o" / "freespace.png").read_text())
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--bins", "65537"], "--bins: expected 2 to 65536, got 65537"),
+    (["--bins", "1000000000000"], "--bins: expected 2 to 65536, got 1000000000000"),
+    (["--bins", "1"], "--bins: expected 2 to 65536, got 1"),
+    (["--size", "16385", "64"], "--size: expected H, W <= 16384, got [16385, 64]"),
+    (["--size", "64", "10000000"], "--size: expected H, W <= 16384, got [64, 10000000]"),
+])
+def test_vflow_bins_and_size_bounded(tmp_path, capsys, monkeypatch, argv, message):
+    """--bins and --size have maxima: a huge value exits 2 naming it, before any work (it raised
+    a MemoryError or RuntimeError traceback)."""
+    import fsof_torch.data.scene as scene
+
+    monkeypatch.setattr(scene, "render_pair", lambda *a, **k: pytest.fail("rendered before the check"))
+    rc = main(["vflow", *argv, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 2 and f"error: {message}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_vflow_bins_at_the_maximum(tmp_path):
+    flow = _small_flow(tmp_path)
+    rc = main(["vflow", "--flow", str(flow), "--bins", "65536", "--out", str(tmp_path / "o"), "--no-progress"])
+    assert rc == 0 and json.loads((tmp_path / "o" / "vflow.json").read_text())["curve"]["success"]
+
+
+def test_vflow_input_errors_print_before_the_progress_bar(tmp_path, capsys):
+    """The input checks come before the progress bar opens: an error line is never printed inside
+    the bar's line."""
+    flow = _small_flow(tmp_path)
+    (tmp_path / "m.json").write_text('{"size": [32, 48], "road_polygon": [[-9, -9], [-5, -9], [-5, -5]]}')
+    for argv in (["--flow", str(flow), "--mask", str(tmp_path / "m.json")],  # empty mask
+                 ["--flow", str(tmp_path / "missing.flo")], ["--flow", str(tmp_path / "m.json")],
+                 ["--preset", "nope"]):
+        rc = main(["vflow", *argv, "--out", str(tmp_path / "o")])
+        err = capsys.readouterr().err
+        assert rc == 2 and err.startswith("error: ") and "vflow:" not in err, err

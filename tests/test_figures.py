@@ -168,7 +168,8 @@ def _records():
     for i in range(3):
         for v, shift in (("given", 0.0), ("fit", 0.01)):
             recs.append({"pair": f"{i:06d}", "source": "dis", "variant": v,
-                         "before": {"epe_road": 2.0 + i, "census_road": 0.3},
+                         # each variant's before is measured on its own pixels: they differ
+                         "before": {"epe_road": 2.0 + i, "census_road": 0.3 + 2 * shift},
                          "after": {"epe_road": 0.1 * i + shift, "census_road": 0.2 + shift},
                          "odometry": {"x_d": 0.0 + shift, "z_d": 1.2 - shift, "yaw": 0.01, "y_d": 0.002 * i},
                          "roll": 0.01, "pitch": -0.02, "odometry_given": {"x_d": 0.0, "z_d": 1.2, "yaw": 0.01}})
@@ -201,7 +202,16 @@ def test_clip_summary_parts():
         bottom = [ax for ax in visible if ax.get_xlabel()]
         assert bottom and all(ax.get_xlabel() == "pair" for ax in bottom)
         labels = [t.get_text() for t in visible[0].get_legend().get_texts()]
-        assert labels == ["before (prediction)", "after, given", "after, fit"]
+        assert labels == ["before, given", "after, given", "before, fit", "after, fit"]
+        # each after against its own before: a dashed line in the variant's colour
+        lines = {ln.get_label(): ln for ln in visible[1].get_lines()}
+        assert list(lines["before, given"].get_ydata()) == pytest.approx([0.3] * 3)
+        assert list(lines["before, fit"].get_ydata()) == pytest.approx([0.32] * 3)
+        for v in ("given", "fit"):
+            before, after = lines[f"before, {v}"], lines[f"after, {v}"]
+            assert before.get_color() == after.get_color()
+            assert before.get_linestyle() == "--" and after.get_linestyle() == "-"
+        assert lines["after, given"].get_color() != lines["after, fit"].get_color()
         # yaw in degrees, with the given odometry as a reference line
         yaw = next(ax for ax in visible if "yaw" in ax.get_title())
         assert yaw.get_ylabel() == "yaw (deg)"

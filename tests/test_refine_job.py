@@ -199,6 +199,67 @@ def test_rerun_with_other_inputs_is_refused(tmp_path, capsys, user_folder, scene
     assert (out / "report.json").read_text() == before
 
 
+def test_the_same_road_folder_spelled_otherwise_is_the_same_run(tmp_path, user_folder, scene_pairs, monkeypatch):
+    """--road d/road, ./d/road and its absolute path name one folder (the input identity pins its
+    resolved path and contents): the rerun reuses every record. Another road folder is refused."""
+    import shutil
+
+    monkeypatch.chdir(user_folder.parent)
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--source", "dis", "--odometry", "fit", *_mounting(scene_pairs))
+    assert main([*args, "--road", "data/road"]) == 0
+    assert json.loads((out / "run.json").read_text())["identity"]["road"] == "given"
+    for road in ("./data/road", str(user_folder / "road"), "data/../data/road/"):
+        assert main([*args, "--road", road]) == 0, road
+        summary = json.loads((out / "report.json").read_text())
+        assert summary["records_resumed"] == 2 and summary["records_computed"] == 0, road
+    shutil.copytree(user_folder / "road", tmp_path / "road2")
+    assert main([*args, "--road", str(tmp_path / "road2")]) == 2
+
+
+def test_a_run_that_recorded_the_road_as_typed_is_resumed(tmp_path, user_folder, scene_pairs, monkeypatch, capsys):
+    """Earlier runs kept --road as it was typed in their identity: a rerun of the same road folder,
+    however spelled, reuses their records (a run of another road folder is refused naming it)."""
+    import shutil
+
+    from refine import resume
+
+    monkeypatch.chdir(user_folder.parent)
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--source", "dis", "--odometry", "fit", *_mounting(scene_pairs))
+    assert main([*args, "--road", "data/road"]) == 0
+    # turn the folder into one an earlier run wrote: the road as typed, in the manifest and records
+    manifest = json.loads((out / "run.json").read_text())
+    old = {**manifest["identity"], "road": "data/road"}
+    fp = resume.fingerprint(old)
+    (out / "run.json").write_text(json.dumps({**manifest, "fingerprint": fp, "identity": old}))
+    for rec in (out / "dis" / "fit" / "pairs").glob("*.json"):
+        rec.write_text(json.dumps({**json.loads(rec.read_text()), "fingerprint": fp}))
+    assert main([*args, "--road", str(user_folder / "road")]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 2 and summary["records_computed"] == 0
+    assert json.loads((out / "run.json").read_text())["fingerprint"] == fp
+    shutil.copytree(user_folder / "road", tmp_path / "other")
+    err = _err(capsys, [*args, "--road", str(tmp_path / "other")])
+    assert "holds the results of another run" in err and "input.road" in err
+
+
+def test_the_device_is_in_the_identity_off_the_cpu(tmp_path, capsys, monkeypatch):
+    """A GPU rounds otherwise: a --device cuda rerun of a CPU run is another run (refused naming
+    the device); on the CPU the identity holds no device key (runs from before it was recorded)."""
+    import refine.__main__ as cli
+
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(args) == 0
+    assert "device" not in json.loads((out / "run.json").read_text())["identity"]
+    if not torch.cuda.is_available():  # the identity of a cuda run, without a GPU: stop at the folder's check
+        monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+        monkeypatch.setattr(cli, "_run_shard", lambda *a, **k: pytest.fail("a cuda run reused the CPU's folder"))
+    err = _err(capsys, [*args, "--device", "cuda"])
+    assert "holds the results of another run" in err and 'device: null -> "cuda"' in err
+
+
 def test_a_folder_with_another_runs_manifest_but_no_results_is_taken(tmp_path):
     """A run stopped before its first record (e.g. on an error in the clip's fit) leaves only its
     manifest and empty output folders: a run of other options takes the folder; one with a
@@ -626,6 +687,34 @@ def test_user_data_flow_files_poses_and_gt(tmp_path, user_folder, scene_pairs):
         assert rec["odometry"][k] == pytest.approx(scene_pairs[0]["odometry"][k], abs=1e-6)
 
 
+def test_a_change_from_zero_prints_n_a_not_the_mark_of_no_pixel(tmp_path, user_folder, scene_pairs):
+    """A source that is the ground truth itself has end-point error 0 before refinement: no
+    percentage of 0 (``null`` in the JSON), printed 'n/a' with a note, not the '–' of a metric
+    measured over no pixel."""
+    import numpy as np
+
+    from fsof_torch.io import read_flow
+
+    (tmp_path / "exact").mkdir()
+    for i in range(2):
+        flow, _ = read_flow(user_folder / "gt" / f"{i:06d}.png")
+        np.save(tmp_path / "exact" / f"{i:06d}.npy", flow.numpy())
+    out = tmp_path / "out"
+    assert main(_user(user_folder, out, "--poses", str(user_folder / "poses.txt"), "--flows", str(tmp_path / "exact"),
+                      "--road", str(user_folder / "road"), "--gt", str(user_folder / "gt"), "--odometry", "given",
+                      *_mounting(scene_pairs))) == 0
+    row = _rows(out / "report.json")[("files", "given")]
+    assert row["epe_road_before"] == 0.0 and row["epe_road_after"] > 0.0 and row["epe_road_change_pct"] is None
+    report = (out / "report.md").read_text()
+    (line,) = [ln for ln in report.splitlines() if ln.startswith("|") and "end-point error" in ln]
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[4:7] == ["0.000", f'{row["epe_road_after"]:.3f}', "n/a"]
+    assert cells[7:10] == ["0.000", f'{row["epe_all_after"]:.3f}', "n/a"]
+    assert "–" not in line
+    assert report.count("'n/a' in a Δ% column: the error before refinement is 0") == 1
+    assert "'–': measured over no pixel" not in report  # every metric was measured
+
+
 def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
     poly = {"size": list(SIZE), "road_polygon": [[0, 47], [40, 36], [120, 36], [159, 47]]}
     (user_folder / "road.json").write_text(json.dumps(poly))
@@ -801,6 +890,30 @@ def test_a_metric_over_no_pixel_has_no_value():
     for m in evaluate(pair, nan, nan.clone(), road):
         for key in ("census_road", "ssim_all", "photo_road_noc", "epe_road", "fl_all"):
             assert m[key] is None and m[f"{key}_n"] == 0, key
+
+
+@pytest.mark.parametrize("value", [float("inf"), float("-inf")])
+def test_an_infinite_flow_is_left_out_like_nan(value):
+    """inf, at one pixel or everywhere, is left out as NaN is: the maps hold 0 there (not the
+    dtype's largest value, whose end-point error overflows) and the metrics the same numbers."""
+    from fsof_torch.data.scene import render_pair
+    from refine.measure import evaluate, flow_maps
+
+    p = render_pair("default", 0, size=SIZE)
+    pair = {"image1": p["image1"], "image2": p["image2"], "flow": p["flow"], "valid": p["valid"]}
+    y, x = (int(i) for i in (p["valid"] & p["road"])[0].nonzero()[0])
+    pred, with_nan = p["flow"] + 0.8, p["flow"] + 0.8
+    pred[:, y, x], with_nan[:, y, x] = value, float("nan")
+    maps = flow_maps(pair, pred)
+    assert maps["flow"][:, y, x].tolist() == [0.0, 0.0] and not maps["finite"][0, y, x]
+    assert torch.isfinite(maps["e_E"]).all()
+    refined = torch.where(p["road"], p["flow"], pred)
+    measured = evaluate(pair, pred, refined, p["road"])
+    assert measured == evaluate(pair, with_nan, torch.where(p["road"], p["flow"], with_nan), p["road"])
+    assert measured[0]["epe_road_n"] == int((p["valid"] & p["road"]).sum()) - 1
+    everywhere = torch.full_like(pred, value)
+    for m in evaluate(pair, everywhere, everywhere.clone(), p["road"]):
+        assert m["epe_road"] is None and m["epe_road_n"] == 0 and m["census_all"] is None
 
 
 @pytest.fixture(scope="module")

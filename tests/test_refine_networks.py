@@ -68,6 +68,30 @@ class AllNaN(Zeros):
         return [super().forward(image1, image2)[0] * float("nan")]
 
 
+class Inf(Zeros):
+    """inf at one pixel (on the road, with valid ground truth), or everywhere."""
+
+    def __init__(self, everywhere=False):
+        super().__init__()
+        self.everywhere = everywhere
+
+    def forward(self, image1, image2):
+        flow = super().forward(image1, image2)[0]
+        if self.everywhere:
+            flow[:] = float("inf")
+        else:
+            flow[:, :, -12, flow.shape[-1] // 2] = float("inf")
+        return [flow]
+
+
+def one_inf():
+    return Inf()
+
+
+def all_inf():
+    return Inf(everywhere=True)
+
+
 class Double(Zeros):
     """Float64 weights: the images must come in float64."""
 
@@ -248,6 +272,23 @@ def test_a_network_whose_flow_is_nan_everywhere(tmp_path, user_module):
     assert "| net | given | 1/1 | census distance (0-1) | – | – | – | – | – | – |" in report
     assert "flow source 'net' gave no finite flow (NaN or inf at every pixel) on 1 of 1 pair(s) (000000)" in report
     assert "'–': measured over no pixel" in report
+
+
+def test_a_network_whose_flow_is_inf_goes_on(tmp_path, user_module, pair):
+    """inf at one pixel: that pixel is left out of the metrics (the run does not stop on its
+    end-point error); inf everywhere: as NaN everywhere, '–' rows and a warning."""
+    summary = _run(tmp_path / "one", "--net", f"{user_module}:one_inf")
+    (record,) = summary["pairs"]
+    H, W = SIZE
+    assert record["prediction_finite"] == pytest.approx(1 - 1 / (H * W))
+    assert bool(pair["valid"][0, -12, W // 2] and pair["road"][0, -12, W // 2])  # the pixel counts, when finite
+    assert record["before"]["epe_road_n"] == int((pair["valid"] & pair["road"]).sum()) - 1
+    assert record["before"]["epe_road"] > 1.0 > 1e-3 > record["after"]["epe_road"]  # zero flow, then refined
+    summary = _run(tmp_path / "all", "--net", f"{user_module}:all_inf")
+    (record,) = summary["pairs"]
+    assert record["prediction_finite"] == 0.0 and record["before"]["epe_all"] is None
+    report = (tmp_path / "all" / "out" / "report.md").read_text()
+    assert "flow source 'net' gave no finite flow (NaN or inf at every pixel) on 1 of 1 pair(s)" in report
 
 
 # -- torchrun -------------------------------------------------------------------------------------

@@ -409,7 +409,8 @@ def _error_cmap():
 
 
 def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping[str, str], title: str) -> Any:
-    """A clip's pairs over time: each error before and after refinement per variant, and every
+    """A clip's pairs over time: each error before (dashed) and after (solid) refinement per variant,
+    in the variant's colour (each variant measures the prediction on its own pixels), and every
     estimated field of the records' ``odometry`` (angles in degrees; the given odometry as a
     reference line), and the records' own ``roll``, ``pitch`` (the camera the refinement used)
     where they are not the estimated attitude itself.
@@ -449,18 +450,16 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     for k, panel in enumerate(panels):
         ax = axes[k // ncol][k % ncol]
         if panel in error_keys:
-            before = {}
-            for r in records:
-                if panel in r.get("before", {}):
-                    before[r["pair"]] = r["before"][panel]
-            xs = sorted(before, key=index.get)
-            ax.plot([index[p] for p in xs], [before[p] for p in xs], color="black", marker="o", ms=3,
-                    linestyle="--", label="before (prediction)")
+            # a before line per variant (dashed, hollow markers) in the colour of its after: each
+            # variant measures the prediction on the pixels both its flows define, so the
+            # befores of a pair differ between variants
             for c, v in enumerate(variants):
-                rs = sorted((r for r in records if r["variant"] == v and panel in r.get("after", {})),
-                            key=lambda r: index[r["pair"]])
-                ax.plot(x_of(rs), [r["after"][panel] for r in rs], color=colours[c % len(colours)],
-                        marker="o", ms=3, label=f"after, {v}")
+                colour = colours[c % len(colours)]
+                for stage, style in (("before", {"linestyle": "--", "mfc": "none"}), ("after", {})):
+                    rs = sorted((r for r in records if r["variant"] == v and panel in r.get(stage, {})),
+                                key=lambda r: index[r["pair"]])
+                    ax.plot(x_of(rs), [r[stage][panel] for r in rs], color=colour, marker="o", ms=3,
+                            label=f"{stage}, {v}", **style)
             ax.set_ylabel(errors[panel], fontsize=8)
             name = re.sub(r" \([^)]*\)", "", errors[panel])  # the unit is on the y axis
             ax.set_title(f"{name}: before and after refinement", fontsize=9)
