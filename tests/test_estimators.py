@@ -159,6 +159,19 @@ def test_held_odometry_takes_a_fixed_name_and_a_fit_as_init(small_pair, monkeypa
     assert {k: float(fit.params[k][0]) for k in odometry} == pytest.approx(odometry, abs=1e-6)
 
 
+def test_held_odometry_keeps_the_models_default_fixed(small_pair, monkeypatch):
+    """Without ``fixed``, the model's own default stays held beside the odometry: the paper's
+    model holds the camera's pitch, with odometry as without."""
+    p, images, road = small_pair
+    calls = _calls(monkeypatch)
+    odometry = {"x_d": 0.0, "z_d": 1.0, "yaw": 0.01}
+    fit = ImageMotionEstimator(model="paper")(None, road, p["camera"], images=images, odometry=odometry)
+    assert calls[-1]["fixed"] == ("pitch", "x_d", "z_d", "yaw")
+    assert float(fit.params["pitch"][0]) == pytest.approx(float(p["camera"].pitch[0]), abs=1e-7)
+    ImageMotionEstimator()(None, road, p["camera"], images=images, odometry=odometry)
+    assert calls[-1]["fixed"] == ("x_d", "z_d", "yaw")  # (the plane model holds nothing by default)
+
+
 def test_flow_start_is_each_frames_own(small_pair, monkeypatch):
     """A frame's flow start is the same alone or next to a frame whose flow has a NaN pixel (that
     frame's start leaves the pixel out)."""

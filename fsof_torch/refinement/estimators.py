@@ -125,7 +125,8 @@ class ImageMotionEstimator:
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
     fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
     parameters: every start (``init`` and ``starts``, fits among them) takes the odometry's x_d, z_d
-    and yaw, and ``fixed`` is extended by those held. An odometry without a planar motion (a
+    and yaw, and ``fixed`` (None: the model's default, as ``fit_image`` holds it) is extended by
+    those held. An odometry without a planar motion (a
     general homography) holds nothing: it is one more start where it is of the estimator's own
     model, and the predicted flow's start is used as without odometry.
     """
@@ -187,7 +188,8 @@ class ImageMotionEstimator:
             starts = [s.motion() if isinstance(s, RoadFit) else s for s in starts]
             starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
             held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
-            fixed = (fixed or ()) + tuple(k for k in held if k not in (fixed or ()))
+            fixed = fixed_parameters(get_road_model(self.model), fixed)  # (None: the model's default)
+            fixed = fixed + tuple(k for k in held if k not in fixed)
             if self.odometry_sigma:
                 options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
                                                         planar, self.odometry_sigma)
