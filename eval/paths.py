@@ -41,12 +41,17 @@ def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str
     return None
 
 
-def bad_json_target(path: Path | None, outputs: Iterable[Path]) -> str | None:
+def bad_json_target(path: Path | None, outputs: Iterable[Path],
+                    inputs: dict[str, Path | None] | None = None) -> str | None:
     """``--json`` (``path``, None: not asked for) names none of the files the job writes
-    (``outputs``): the JSON, written last, would replace it."""
+    (``outputs``) or reads (``inputs``, by option; None where not given): the JSON, written last,
+    would replace it."""
     if path is None:
         return None
     target = path.resolve()
+    for option, given in (inputs or {}).items():
+        if given is not None and given.resolve() == target:
+            return f"--json: {str(path)!r} is the input {option}; give another path"
     for output in outputs:
         if output.resolve() == target:
             return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "

@@ -258,6 +258,16 @@ def test_vflow_json_naming_an_output_exits_2(tmp_path, capsys, argv, name):
     assert not (tmp_path / "o").exists()
 
 
+def test_vflow_json_naming_its_input_exits_2(tmp_path, capsys):
+    """A --json naming the input --flow is refused, and the flow file is left as it was."""
+    flow = _small_flow(tmp_path)
+    before = flow.read_bytes()
+    rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--json", str(flow), "--no-progress"])
+    assert rc == 2
+    assert f"error: --json: {str(flow)!r} is the input --flow; give another path" in capsys.readouterr().err
+    assert flow.read_bytes() == before and not (tmp_path / "o").exists()
+
+
 def test_vflow_json_may_name_a_figure_the_run_does_not_write(tmp_path):
     """freespace.png is written for a preset's displacement flow only: with --flow the name is free."""
     flow = _small_flow(tmp_path)
