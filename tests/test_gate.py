@@ -121,6 +121,68 @@ def test_a_model_as_good_as_the_prediction_is_used():
     assert bool(out.model_used.all()) and bool(out.use_model.all())
 
 
+
+def _wrong_at(true, pixels):
+    """``true`` with the flow off by (4, -3) px at the given (row, column) pixels."""
+    wrong = true.clone()
+    for r, c in pixels:
+        wrong[..., r, c] += torch.tensor([4.0, -3.0])
+    return wrong
+
+
+def _mean_and_standard_error(g1, g2, mask, prediction, model):
+    """The mean of d_model − d_pred (census_ring_distance) over the mask's points that count (in
+    both images for both flows, at least 4 clear neighbours) and its standard error std / sqrt(n),
+    with the costs of both flows."""
+    W = g1.shape[-1]
+    pix = mask.reshape(-1).nonzero().squeeze(1)
+    x, y = (pix % W).float()[None], torch.div(pix, W, rounding_mode="floor").float()[None]
+    d_pred, n, ok_pred = census_ring_distance(g1, g2, x, y, prediction.reshape(1, 2, -1)[:, :, pix])
+    d_model, _, ok_model = census_ring_distance(g1, g2, x, y, model.reshape(1, 2, -1)[:, :, pix])
+    count = (ok_pred & ok_model & (n >= 4))[0]
+    delta = (d_model - d_pred)[0, count].double().numpy()
+    se = delta.std() / np.sqrt(delta.size)
+    return delta.mean(), se, float(d_model[0, count].mean()), float(d_pred[0, count].mean())
+
+
+@pytest.mark.parametrize("bad, significant", [([(30, 50), (60, 120)], False),
+                                              ([(30, 50), (60, 120), (50, 80), (40, 140), (70, 30), (20, 100)], True)])
+def test_the_z_test_decides_whether_a_slightly_worse_model_is_used(bad, significant):
+    """The model is worse than the prediction at a few pixels only: its mean census disadvantage
+    is positive but, for two pixels, within z = 2 standard errors, so ImageGate(z=2) still uses
+    it while ImageGate(z=0) keeps the prediction; at six pixels the disadvantage exceeds 2 standard
+    errors and z=2 keeps the prediction as well. The mean and its standard error are computed here
+    from census_ring_distance, at every mask pixel (``points`` above the mask's size)."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 10:-10, 10:-10] = True
+    model = _wrong_at(true, bad)
+    mean, se, cost_model, cost_pred = _mean_and_standard_error(g1, g2, mask, true, model)
+    assert mean > 0 and (mean > 2 * se) == significant
+    for z, used in ((2.0, not significant), (0.0, False)):
+        out = ImageGate(z=z, objects=False, points=20000)(g1, g2, true, model, mask)
+        assert float(out.cost_model) == pytest.approx(cost_model, rel=1e-5)
+        assert float(out.cost_prediction) == pytest.approx(cost_pred, abs=1e-7)
+        assert bool(out.informative.all()) and not bool(out.confirmed.any())
+        assert bool(out.model_used.all()) == used, z
+        assert bool(out.use_model[mask].all()) == used and not bool(out.use_model[~mask].any()), z
+
+
+def test_the_z_test_decides_whether_a_slightly_better_model_is_confirmed():
+    """The prediction is worse than the model at two pixels only: the model's advantage is within
+    z = 2 standard errors (computed here), so ImageGate(z=2) does not confirm the model and
+    ImageGate(z=0) does; both use it (the images are informative)."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 10:-10, 10:-10] = True
+    prediction = _wrong_at(true, [(30, 50), (60, 120)])
+    mean, se, _, _ = _mean_and_standard_error(g1, g2, mask, prediction, true)
+    assert 0 < -mean < 2 * se
+    for z, confirmed in ((2.0, False), (0.0, True)):
+        out = ImageGate(z=z, objects=False, points=20000)(g1, g2, prediction, true, mask)
+        assert bool(out.confirmed.all()) == confirmed, z
+        assert bool(out.model_used.all()) and bool(out.use_model[mask].all())
+
 def _object_pair():
     """The textured pair with an object of 20 x 24 pixels moving by (-2, 0), image2 showing it
     there; the prediction has the object's flow and a smooth error elsewhere."""

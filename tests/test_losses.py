@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import math
 
+import numpy as np
 import pytest
 import torch
 
@@ -553,3 +554,157 @@ def test_one_pixel_images():
         photometric_loss(row, row, torch.zeros(1, 2, 1, 9))
     with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with H >= 1"):
         UnsupervisedFlowLoss()(torch.zeros(1, 2, 0, 4), image[..., :0, :4], image[..., :0, :4])
+
+
+# -- the terms against references written out here (numpy) ---------------------------------------
+
+def _np_pair(seed: int = 0, H: int = 9, W: int = 11):
+    """Two unrelated textured RGB images on 0..255 (float64 numpy, (3, H, W)): a pair with error."""
+    rng = np.random.default_rng(seed)
+    image1 = rng.uniform(0, 255, (3, H, W))
+    image2 = np.clip(0.7 * image1 + 0.3 * rng.uniform(0, 255, (3, H, W)) + 10, 0, 255)
+    return image1, image2
+
+
+def _t(a: np.ndarray) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(a)).unsqueeze(0)
+
+
+def _box3(a: np.ndarray) -> np.ndarray:
+    """Mean over 3x3 windows of (C, H, W), reflect-padded (the edge pixel not repeated)."""
+    p = np.pad(a, ((0, 0), (1, 1), (1, 1)), mode="reflect")
+    H, W = a.shape[-2:]
+    return sum(p[:, dy:dy + H, dx:dx + W] for dy in range(3) for dx in range(3)) / 9
+
+
+def test_photometric_ssim_term_matches_a_3x3_box_ssim_written_out():
+    """ssim_weight alone: (1 - SSIM)/2, SSIM over 3x3 box windows (reflect padding, c1 = 0.01²,
+    c2 = 0.03², images on 0..1), mean over channels, clipped to [0, 1], mean over pixels."""
+    a, b = _np_pair()
+    x, y = a / 255, b / 255
+    mx, my = _box3(x), _box3(y)
+    vx, vy, cxy = _box3(x * x) - mx ** 2, _box3(y * y) - my ** 2, _box3(x * y) - mx * my
+    c1, c2 = 0.01 ** 2, 0.03 ** 2
+    ssim = (2 * mx * my + c1) * (2 * cxy + c2) / ((mx ** 2 + my ** 2 + c1) * (vx + vy + c2))
+    want = np.clip((1 - ssim.mean(axis=0)) / 2, 0, 1).mean()
+    assert want > 0.05  # a pair with error
+    got = photometric_loss(_t(a), _t(b), torch.zeros(1, 2, *a.shape[-2:], dtype=torch.float64),
+                           l1_weight=0.0, ssim_weight=1.0)
+    assert float(got) == pytest.approx(want, rel=1e-9)
+
+
+def _np_soft_census(rgb: np.ndarray, radius: int = 3) -> np.ndarray:
+    """UFlow's soft census of an RGB image on 0..255 ((3, H, W)): per offset q - p of the
+    (2r+1)² window (border replicated), δ / sqrt(0.81 + δ²) of the BT.601 grey levels."""
+    grey = 0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
+    H, W = grey.shape
+    k = 2 * radius + 1
+    p = np.pad(grey, radius, mode="edge")
+    out = []
+    for dy in range(k):
+        for dx in range(k):
+            d = p[dy:dy + H, dx:dx + W] - grey
+            out.append(d / np.sqrt(0.81 + d * d))
+    return np.stack(out)
+
+
+def test_photometric_census_term_matches_the_uflow_formula_written_out():
+    """census_weight alone: (Σ_offsets d²/(0.1 + d²) + 0.01)^0.4 per pixel, d the difference of
+    the 7x7 soft census transforms, mean over pixels."""
+    a, b = _np_pair(seed=1)
+    d2 = (_np_soft_census(a) - _np_soft_census(b)) ** 2
+    want = ((d2 / (0.1 + d2)).sum(axis=0) + 0.01) ** 0.4
+    want = want.mean()
+    assert want > 1.0
+    got = photometric_loss(_t(a), _t(b), torch.zeros(1, 2, *a.shape[-2:], dtype=torch.float64),
+                           l1_weight=0.0, ssim_weight=0.0, census_weight=1.0)
+    assert float(got) == pytest.approx(want, rel=1e-9)
+    # on 0..1 images the same value (compared on the 0..255 scale)
+    on_1 = photometric_loss(_t(a / 255), _t(b / 255), torch.zeros(1, 2, *a.shape[-2:], dtype=torch.float64),
+                            l1_weight=0.0, ssim_weight=0.0, census_weight=1.0, data_range=1.0)
+    assert float(on_1) == pytest.approx(want, rel=1e-9)
+
+
+def _np_smoothness_first_order(flow: np.ndarray, image: np.ndarray, edge_weight: float) -> float:
+    """exp(-w · mean_c |∇I|) · |∇F| (I on 0..1, forward differences), mean over the flow's
+    channels and the pixels of each direction, the two directions averaged."""
+    img = image / 255
+    wx = np.exp(-edge_weight * np.abs(np.diff(img, axis=2)).mean(axis=0))
+    wy = np.exp(-edge_weight * np.abs(np.diff(img, axis=1)).mean(axis=0))
+    sx = (wx * np.abs(np.diff(flow, axis=2))).mean()
+    sy = (wy * np.abs(np.diff(flow, axis=1))).mean()
+    return (sx + sy) / 2
+
+
+def test_smoothness_is_edge_aware_as_documented():
+    """A flow step on an image edge: the first-order loss equals the edge-aware form written out,
+    and the edge makes it cheaper than without edge weights."""
+    rng = np.random.default_rng(2)
+    H_, W_ = 8, 10
+    image = rng.uniform(90, 110, (3, H_, W_))
+    image[:, :, 5:] += 120  # a strong vertical edge between columns 4 and 5 ...
+    flow = rng.normal(0, 0.05, (2, H_, W_))
+    flow[0, :, 5:] += 3.0  # ... where the flow jumps by 3 px
+    got = smoothness_loss(_t(flow), _t(image), order=1, edge_weight=10.0)
+    want = _np_smoothness_first_order(flow, image, 10.0)
+    assert float(got) == pytest.approx(want, rel=1e-9)
+    plain = smoothness_loss(_t(flow), _t(image), order=1, edge_weight=0.0)
+    assert float(plain) == pytest.approx(_np_smoothness_first_order(flow, image, 0.0), rel=1e-9)
+    assert float(got) < 0.5 * float(plain)
+
+
+def test_occlusion_mask_leaves_out_the_pixels_failing_the_forward_backward_check():
+    """image2 is image1 moved 2 px right, darker, with a patch of new content; the backward flow is
+    inconsistent (+5 px instead of -2) on that patch. With occlusion, the forward direction counts
+    only the pixels whose sample point lies off the patch (and in the image), the backward one only
+    the pixels off the patch: the L1 means over those pixels, computed here by hand."""
+    rng = np.random.default_rng(3)
+    H_, W_, s = 10, 16, 2
+    a = rng.uniform(20, 230, (3, H_, W_))
+    b = np.roll(a, s, axis=2) * 0.9 + 5.0
+    patch = (slice(3, 7), slice(8, 12))
+    b[:, patch[0], patch[1]] = rng.uniform(0, 255, (3, 4, 4))  # new content in image2
+    on_patch = np.zeros((H_, W_), dtype=bool)
+    on_patch[patch] = True
+    fw = np.zeros((2, H_, W_)); fw[0] = s
+    bw = np.zeros((2, H_, W_)); bw[0] = np.where(on_patch, 5.0, -s)
+    cols = np.arange(W_)[None, :].repeat(H_, 0)
+    rows = np.arange(H_)[:, None].repeat(W_, 1)
+    # forward: p -> p + 2 in image2; counts where inside image2 and not landing on the patch
+    fw_in = cols + s <= W_ - 1
+    land = np.zeros((H_, W_), dtype=bool)
+    land[fw_in] = on_patch[rows[fw_in], cols[fw_in] + s]
+    err_fw = np.zeros((H_, W_))
+    err_fw[fw_in] = np.abs(a[:, rows[fw_in], cols[fw_in]] - b[:, rows[fw_in], cols[fw_in] + s]).mean(axis=0) / 255
+    # backward: q -> q + bw(q) in image1; counts where inside image1 and off the patch
+    target = cols + bw[0].astype(int)
+    bw_in = (target >= 0) & (target <= W_ - 1)
+    err_bw = np.zeros((H_, W_))
+    err_bw[bw_in] = np.abs(b[:, rows[bw_in], cols[bw_in]] - a[:, rows[bw_in], target[bw_in]]).mean(axis=0) / 255
+
+    def mean(err, keep):
+        return err[keep].mean()
+
+    want_masked = (mean(err_fw, fw_in & ~land) + mean(err_bw, bw_in & ~on_patch)) / 2
+    want_unmasked = (mean(err_fw, fw_in) + mean(err_bw, bw_in)) / 2
+    options = dict(flows_backward=_t(bw), l1_weight=1.0, ssim_weight=0.0, smooth_weight=0.0)
+    masked = unsupervised_flow_loss(_t(fw), _t(a), _t(b), occlusion=True, **options)
+    unmasked = unsupervised_flow_loss(_t(fw), _t(a), _t(b), occlusion=False, **options)
+    assert float(masked) == pytest.approx(want_masked, rel=1e-9)
+    assert float(unmasked) == pytest.approx(want_unmasked, rel=1e-9)
+    assert want_unmasked > 1.5 * want_masked  # the patch's error is what the mask leaves out
+
+
+def test_forward_backward_mask_threshold_grows_with_the_flow():
+    """|F_f + F_b(p + F_f)|² < α1 (|F_f|² + |F_b(p + F_f)|²) + α2 at large flows (20 px): a
+    mismatch of 2 px (4 px² > α2 = 0.5) passes thanks to the relative term, one of 3 px does not."""
+    H_, W_ = 6, 40
+    fw = torch.zeros(1, 2, H_, W_, dtype=torch.float64)
+    fw[:, 0] = 20.0
+    for err, visible in ((2.0, True), (2.7, True), (2.9, False), (3.0, False)):
+        bw = torch.zeros_like(fw)
+        bw[:, 0] = -20.0 + err
+        diff, mag = err ** 2, 20.0 ** 2 + (20.0 - err) ** 2
+        assert (diff < 0.01 * mag + 0.5) == visible and diff > 0.5  # the relative term decides
+        mask = forward_backward_mask(fw, bw)
+        assert bool(mask[..., : W_ - 20].all()) == visible and not mask[..., W_ - 20:].any(), err

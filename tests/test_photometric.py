@@ -264,6 +264,57 @@ def test_census_of_constant_and_monotone_images():
     assert float(t[0, 3, 4, 4]) == pytest.approx(-10 / np.sqrt(0.81 + 100), rel=1e-6)
 
 
+
+def _np_soft_census_distance(rgb1: np.ndarray, rgb2: np.ndarray, radius: int) -> np.ndarray:
+    """UFlow's soft census distance of two RGB images on 0..255 ((3, H, W)), written out: BT.601
+    grey levels; per offset of the (2r+1)² window (border replicated) t = δ / sqrt(0.81 + δ²);
+    mean over the offsets of d² / (0.1 + d²), d = t1 − t2."""
+    H, W = rgb1.shape[-2:]
+    k = 2 * radius + 1
+    greys = [0.299 * im[0] + 0.587 * im[1] + 0.114 * im[2] for im in (rgb1, rgb2)]
+    pads = [np.pad(g, radius, mode="edge") for g in greys]
+    total = np.zeros((H, W))
+    for dy in range(k):
+        for dx in range(k):
+            t1, t2 = ((p[dy:dy + H, dx:dx + W] - g) / np.sqrt(0.81 + (p[dy:dy + H, dx:dx + W] - g) ** 2)
+                      for p, g in zip(pads, greys))
+            d2 = (t1 - t2) ** 2
+            total += d2 / (0.1 + d2)
+    return total / (k * k)
+
+
+@pytest.mark.parametrize("radius", [1, 3])
+def test_soft_census_against_the_formula_written_out(radius):
+    """kind="soft_census" (zero flow: every pixel valid) equals the soft census distance computed
+    by hand, on 0..255 images and on the same images on 0..1 with data_range=1."""
+    rng = np.random.default_rng(4)
+    a = rng.uniform(0, 255, (3, 9, 12))
+    b = np.clip(0.6 * a + 0.4 * rng.uniform(0, 255, (3, 9, 12)), 0, 255)
+    want = _np_soft_census_distance(a, b, radius)
+    assert 0.05 < want.mean() < 0.95
+    i1, i2 = torch.from_numpy(a)[None], torch.from_numpy(b)[None]
+    flow = torch.zeros(1, 2, 9, 12, dtype=torch.float64)
+    for scale, data_range in ((1.0, 255.0), (1 / 255, 1.0)):
+        emap, valid = photometric_error_map(i1 * scale, i2 * scale, flow, kind="soft_census",
+                                            data_range=data_range, census_radius=radius)
+        assert bool(valid.all())
+        np.testing.assert_allclose(emap[0, 0].numpy(), want, rtol=1e-9, atol=1e-12)
+
+
+def test_census_transform_compares_grey_levels_on_the_0_255_scale_for_any_data_range():
+    """census_transform of 0..1 images with data_range=1 is that of the same images × 255 with
+    data_range=255 (δ in grey levels of 0..255), not that of the 0..1 values."""
+    g = torch.Generator().manual_seed(5)
+    image = torch.rand(1, 3, 8, 10, generator=g, dtype=torch.float64)
+    on_1 = census_transform(image, radius=2, data_range=1.0)
+    on_255 = census_transform(image * 255, radius=2, data_range=255.0)
+    torch.testing.assert_close(on_1, on_255, rtol=1e-12, atol=1e-12)
+    grey = (0.299 * image[0, 0] + 0.587 * image[0, 1] + 0.114 * image[0, 2]) * 255
+    delta = grey[3, 5] - grey[4, 4]  # offset (dy, dx) = (-1, +1): channel 1 * 5 + 3 = 8
+    assert float(on_1[0, 8, 4, 4]) == pytest.approx(float(delta / torch.sqrt(0.81 + delta ** 2)), rel=1e-12)
+    # on 0..1 images compared as they are, the differences would be 255 times smaller
+    assert not torch.allclose(on_1, census_transform(image * 255, radius=2, data_range=255.0 * 255.0))
+
 def test_windowed_kinds_erode_out_of_bounds():
     i1, i2, flow = _shifted_pair()
     flow = torch.zeros_like(flow)

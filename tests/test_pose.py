@@ -32,10 +32,13 @@ def test_noise_free_is_exact():
 
 
 def test_sigma_one_pixel_meets_the_target():
-    """At σ = 1 px: mean absolute errors below 0.01 m and 0.05° (the paper: < 0.07 m, 0.3°)."""
+    """At σ = 1 px: mean absolute errors well below the paper's 0.07 m and 0.3° (0.00083 m and
+    0.0026° measured; 0.0007-0.001 m and 0.0028-0.0041° with seeds 1-4), bounded within a factor
+    of about 2 of the measured values from both sides: an experiment that adds less noise than
+    asked gives errors too small."""
     res = pose_estimation_experiment([1.0], trials=8, size=(188, 621))
-    assert float(res.translation_error[0]) < 0.01
-    assert float(res.yaw_error_deg[0]) < 0.05
+    assert 0.0004 < float(res.translation_error[0]) < 0.0017
+    assert 0.0013 < float(res.yaw_error_deg[0]) < 0.0053
     assert float(res.success_rate[0]) == 1.0
 
 

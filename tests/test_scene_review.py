@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import re
+from dataclasses import replace
 
 import pytest
 import torch
@@ -90,11 +91,17 @@ def test_an_accepted_turn_keeps_the_vehicle_in_the_centre_of_its_lane(overrides)
 
 
 def test_every_preset_and_benchmark_turn_is_accepted():
+    """Accepted as asked: the configuration is the preset with the overrides, nothing else changed."""
     for name in PRESETS:
         for factor in (1, 4):
-            scene_config(name, speed_factor=factor)
-    scene_config("default", steering=0.1)
-    scene_config("carla-turning", steering=-0.15, roll=0.05)
+            cfg = scene_config(name, speed_factor=factor)
+            assert cfg.speed_factor == factor
+            assert cfg == replace(PRESETS[name], speed_factor=factor)
+    cfg = scene_config("default", steering=0.1)
+    assert cfg.steering == 0.1 and cfg == replace(PRESETS["default"], steering=0.1)
+    cfg = scene_config("carla-turning", steering=-0.15, roll=0.05)
+    assert (cfg.steering, cfg.roll) == (-0.15, 0.05)
+    assert cfg == replace(PRESETS["carla-turning"], steering=-0.15, roll=0.05)
 
 
 # -- the kerb top below the camera ---------------------------------------------------------------

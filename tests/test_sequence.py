@@ -172,6 +172,41 @@ def test_fit_sequence_reads_a_lazy_clip_a_pair_at_a_time(body_motion_clip, body_
     assert seq.success.dtype == torch.bool and seq.success.shape == (len(pairs),)
 
 
+
+def test_fit_sequence_second_pass_starts_at_the_smoothed_track(body_motion_clip, monkeypatch):
+    """The second pass fits every pair again, started at the smoothed attitude track (computed here
+    with smooth_attitude from the first pass: attitude σ = attitude_deg for each successful pair,
+    change σ = 0.1 · body_rotation_deg) and tied to it by a prior of the track's σ; its fits are
+    the returned parameters, which differ from the first pass's."""
+    import fsof_torch.estimation.sequence as sequence
+
+    pairs, frames, _ = body_motion_clip
+    calls = []
+
+    def spy(*args, **kwargs):
+        fit = fit_image(*args, **kwargs)
+        calls.append((kwargs["init"], kwargs["prior"], {n: v.clone() for n, v in fit.params.items()}))
+        return fit
+
+    fit_image = sequence.fit_image
+    monkeypatch.setattr(sequence, "fit_image", spy)
+    n_pairs = 3
+    seq = fit_sequence(frames[:n_pairs + 1], pairs[0]["road"], pairs[0]["camera"], keep_fits=False, max_points=2000)
+    assert len(calls) == 2 * n_pairs and bool(seq.success.all())
+    assert all(init is None for init, _, _ in calls[:n_pairs])
+    deg = math.pi / 180
+    for name in ("roll", "pitch"):
+        track, sigma = smooth_attitude(seq.first_pass[name], seq.first_pass[name + "_change"], 1.0 * deg,
+                                       0.1 * 0.3 * deg)
+        for k, (init, prior, params) in enumerate(calls[n_pairs:]):
+            assert float(init[name]) == pytest.approx(float(track[k]), abs=1e-12)
+            assert float(init[name + "_change"]) == pytest.approx(float(track[k + 1] - track[k]), abs=1e-12)
+            mean, std = prior[name]
+            assert float(mean) == pytest.approx(float(track[k]), abs=1e-12)
+            assert float(std) == pytest.approx(float(sigma[k]), rel=1e-6)
+            assert float(seq.params[name][k]) == pytest.approx(float(params[name][0]), abs=1e-12)
+        assert not torch.equal(seq.params[name], seq.first_pass[name])
+
 def test_fit_sequence_without_poses_has_no_height(body_motion_clip):
     pairs, frames, _ = body_motion_clip
     seq = fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], passes=1, max_points=1000)
