@@ -33,11 +33,17 @@ def test_turned_real_pairs_are_real_road_turned(bench, load_benchmark, shared_da
     assert not torch.equal(t2, im2[..., :t2.shape[-2], :t2.shape[-1]])
 
 
-@pytest.mark.parametrize("option", ["--yaw-deg", "--pitch-change-deg", "--roll-change-deg"])
+TURN_OPTIONS = ("--yaw-deg", "--pitch-change-deg", "--roll-change-deg")
+
+
+@pytest.mark.parametrize("option", TURN_OPTIONS)
 @pytest.mark.parametrize("value", ["nan", "45"])
 def test_turn_options_out_of_range_exit_2(bench, option, value, capsys):
     assert bench.main(["--no-synthetic", "--no-slow", option, value]) == 2
-    assert option in capsys.readouterr().err
+    # the error's line (the last) names the option, and the value at the option's place in the turn
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    turn = tuple(float(value) if o == option else 0.0 for o in TURN_OPTIONS)
+    assert option in last and last.endswith(f"expected finite degrees within ±30, got {turn}"), last
 
 
 def test_a_grey_pair_turns_as_the_same_channel_of_a_colour_pair(load_benchmark):

@@ -74,19 +74,21 @@ class TestStructures:
         assert torch.equal(map_flows(stack, lambda f: f + 1), stack + 1)
 
     def test_errors_name_the_place(self):
-        with pytest.raises(ValueError, match=r"flow\['flows'\]: expected at least one prediction .* N = 0"):
+        # each message starts with the place it names (anchored: a message without it fails)
+        with pytest.raises(ValueError, match=r"^flow\['flows'\]: expected at least one prediction .* N = 0"):
             collect_flows({"flows": torch.zeros(1, 0, 2, 4, 6)})
-        with pytest.raises(ValueError, match=r"flow\[1\]: expected a flow of shape"):
+        with pytest.raises(ValueError, match=r"^flow\[1\]: expected a flow of shape .* got \(1, 3, 4, 6\)$"):
             collect_flows([torch.zeros(1, 2, 4, 6), torch.zeros(1, 3, 4, 6)])
-        with pytest.raises(ValueError, match=r"expected B, H and W of at least 1"):
+        with pytest.raises(ValueError, match=r"^flow: expected B, H and W of at least 1, got shape \(1, 2, 0, 6\)$"):
             collect_flows(torch.zeros(1, 2, 0, 6))
-        with pytest.raises(ValueError, match="non-empty list"):
+        with pytest.raises(ValueError, match=r"^flow: expected a non-empty list of flows"):
             collect_flows([])
-        with pytest.raises(TypeError, match="got str"):
+        with pytest.raises(TypeError, match=r"^flow: expected a flow tensor \(B, 2, H, W\), .* got str$"):
             collect_flows("flow")
 
     def test_refiner_rejects_empty_ptlflow_stack(self, scene):
-        with pytest.raises(ValueError, match=r"N = 0"):
+        with pytest.raises(ValueError, match=r"^flow\['flows'\]: expected at least one prediction in the "
+                                             r"\(B, N, 2, H, W\) stack, got N = 0 \(shape \(1, 0, 2, 53, 94\)\)$"):
             refine_flow({"flows": torch.zeros(1, 0, 2, *SIZE)}, scene["road"], scene["camera"], scene["odometry"])
 
 

@@ -38,8 +38,10 @@ SIZE = (24, 40)
 
 
 def _plane_pair(i, size=SIZE):
+    """Pair i: its own camera (focal length, height, roll) and odometry."""
     h, w = size
-    camera = Camera(torch.tensor([[40.0, 0, 19.5], [0, 40.0, 6.0], [0, 0, 1]]), 1.6, 0.02, 0.0)
+    f = 40.0 + 2.0 * i
+    camera = Camera(torch.tensor([[f, 0, 19.5], [0, f, 6.0], [0, 0, 1]]), 1.6 + 0.1 * i, 0.02 + 0.01 * i, 0.0)
     odo = {"x_d": 0.01 * i, "z_d": 0.8, "yaw": 0.002 * i}
     flow, valid = displacement_flow(camera, odo["x_d"], odo["z_d"], odo["yaw"], size)
     g = torch.Generator().manual_seed(i)
@@ -54,6 +56,22 @@ def synthetic_root(tmp_path):
     return tmp_path / "seq", pairs
 
 
+def _colour_image(r, g, b, size=SIZE):
+    """(3, H, W) integer values: channels r, g, b, each plus the column index (an RGB/BGR swap,
+    a channel out of order, changes the values)."""
+    x = torch.arange(size[1], dtype=torch.float32).expand(*size)
+    return torch.stack([x + r, x + g, x + b])
+
+
+def _uv_ramps(i, size=SIZE):
+    """(2, H, W) flow of distinct u and v (u a ramp along x, v one along y; multiples of 1/64, as
+    KITTI's PNG stores them): a u/v swap changes it."""
+    h, w = size
+    u = torch.arange(w, dtype=torch.float32).expand(h, w) * 0.25 - 3.0 + i
+    v = torch.arange(h, dtype=torch.float32)[:, None].expand(h, w) * -0.5 + 1.0 + i
+    return torch.stack([u, v])
+
+
 @pytest.fixture
 def kitti_root(tmp_path):
     """A KITTI 2015-like training folder with the paper's semantic hand labels (road = red)."""
@@ -63,12 +81,11 @@ def kitti_root(tmp_path):
     K = torch.tensor([[50.0, 0, 20.0], [0, 50.0, 8.0], [0, 0, 1]], dtype=torch.float64)
     for i in range(2):
         name = f"{i:06d}"
-        write_image(root / "image_2" / f"{name}_10.png", torch.full((3, *SIZE), 10.0 * i))
-        write_image(root / "image_2" / f"{name}_11.png", torch.full((3, *SIZE), 20.0))
-        flow = torch.full((2, *SIZE), 1.25 * (i + 1))
+        write_image(root / "image_2" / f"{name}_10.png", _colour_image(10 * i, 80 + 10 * i, 160 + 10 * i))
+        write_image(root / "image_2" / f"{name}_11.png", _colour_image(200, 20, 100))
         valid = torch.zeros(1, *SIZE, dtype=torch.bool)
         valid[:, 10:] = True
-        write_kitti_flow(root / "flow_noc" / f"{name}_10.png", flow, valid)
+        write_kitti_flow(root / "flow_noc" / f"{name}_10.png", _uv_ramps(i), valid)
         write_kitti_calibration(root / "calib_cam_to_cam" / f"{name}.txt", K)
         sem = np.zeros((*SIZE, 3), np.uint8)
         sem[15:, :, 2] = 255  # red in BGR
@@ -94,12 +111,24 @@ class TestSynthetic:
 
     def test_dataloader_batches(self, synthetic_root):
         root, _ = synthetic_root
-        batch = next(iter(DataLoader(SyntheticFlowDataset(root), batch_size=3, collate_fn=collate)))
+        ds = SyntheticFlowDataset(root)
+        batch = next(iter(DataLoader(ds, batch_size=3, collate_fn=collate)))
         assert batch["image1"].shape == (3, 3, *SIZE) and batch["flow"].shape == (3, 2, *SIZE)
         assert batch["valid"].shape == (3, 1, *SIZE) and batch["valid"].dtype == torch.bool
         assert batch["camera"].batch_size == 3
         assert batch["odometry"]["z_d"].shape == (3,) and batch["odometry"]["x_d"].dtype == torch.float32
         assert batch["index"] == [0, 1, 2] and batch["name"] == ["000000", "000001", "000002"]
+        # sample b of every key is item b's (each item its own odometry and camera)
+        items = [ds[i] for i in range(3)]
+        for key in ("x_d", "z_d", "yaw"):
+            assert batch["odometry"][key].tolist() == [torch.tensor(it["odometry"][key], dtype=torch.float32).item()
+                                                      for it in items], key
+        assert batch["odometry"]["x_d"].unique().numel() == 3
+        for b, it in enumerate(items):
+            assert torch.equal(batch["image1"][b], it["image1"]) and torch.equal(batch["flow"][b], it["flow"])
+            for field in ("K", "height", "roll", "pitch"):
+                assert torch.equal(getattr(batch["camera"], field)[b], getattr(it["camera"], field)[0]), (b, field)
+        assert batch["camera"].height.unique().numel() == 3
 
     def test_float64_and_no_ground_truth(self, synthetic_root):
         root, _ = synthetic_root
@@ -114,7 +143,16 @@ class TestKittiLayout:
         ds = KittiFlowDataset(root)
         assert len(ds) == 2 and ds.names == ["000000", "000001"]
         item = ds[1]
-        assert float(item["flow"][0, 12, 3]) == 2.5 and not bool(item["valid"][0, 0, 0])
+        # channel by channel: image 1 in RGB order, u and v each in its own channel
+        want = _colour_image(10, 90, 170)
+        for c in range(3):
+            assert torch.equal(item["image1"][c], want[c]), c
+        assert torch.equal(item["image2"], _colour_image(200, 20, 100))
+        assert torch.equal(item["valid"][0, 10:], torch.ones(SIZE[0] - 10, SIZE[1], dtype=torch.bool))
+        assert not item["valid"][0, :10].any()
+        want = _uv_ramps(1)
+        for c in range(2):
+            assert torch.equal(item["flow"][c, 10:], want[c, 10:]), "uv"[c]
         torch.testing.assert_close(item["camera"].K[0].double(), K)
         assert item["road"].shape == (1, *SIZE) and item["road"][0, 15:].all() and not item["road"][0, :15].any()
         batch = collate([ds[0], ds[1]])
@@ -153,17 +191,25 @@ class TestCarla:
             (run / sub).mkdir(parents=True)
         for k in range(3):
             name = f"{k:08d}"
-            write_image(run / "rgb" / f"{name}.png", torch.full((3, 12, 16), 5.0 * k))
-            write_carla_flow(run / "optical_flow" / f"{name}.tif", torch.full((2, 12, 16), 3.0))
-            sem = np.zeros((12, 16, 3), np.uint8)
-            sem[6:] = (128, 64, 128)
+            write_image(run / "rgb" / f"{name}.png", _colour_image(5 * k, 100 + 5 * k, 200 - 5 * k, (12, 16)))
+            write_carla_flow(run / "optical_flow" / f"{name}.tif", _uv_ramps(k, (12, 16)))
+            sem = np.zeros((12, 16, 3), np.uint8)  # (cv2 writes BGR)
+            sem[5] = (157, 234, 50)  # RGB (50, 234, 157): not road, the road line's colour reversed
+            sem[6:9] = (128, 64, 128)  # road (the same in either order)
+            sem[9:] = (50, 234, 157)  # RGB (157, 234, 50): road line
             cv2.imwrite(str(run / "semantic" / f"{name}.png"), sem)
         ds = CarlaRunDataset(run)
         assert len(ds) == 2
         item = ds[1]
-        assert item["image2"].eq(10.0).all() and item["flow_velocity"].sub(3.0).abs().max() < 1e-5
+        for c in range(3):  # channel by channel, in RGB order
+            assert torch.equal(item["image1"][c], _colour_image(5, 105, 195, (12, 16))[c]), c
+            assert torch.equal(item["image2"][c], _colour_image(10, 110, 190, (12, 16))[c]), c
+        for c in range(2):  # frame 1's flow, u and v each in its own channel
+            torch.testing.assert_close(item["flow_velocity"][c], _uv_ramps(1, (12, 16))[c], rtol=0, atol=1e-5)
         assert float(item["camera"].roll) == pytest.approx(math.radians(-5))
-        assert int(item["road"].sum()) == 6 * 16
+        road = torch.zeros(12, 16, dtype=torch.bool)
+        road[6:] = True
+        assert torch.equal(item["road"][0], road)
 
 
 class TestExceptions:

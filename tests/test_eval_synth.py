@@ -55,6 +55,27 @@ def test_dataset_reads_back_the_render(written):
     assert batch["flow"].shape == (2, 2, 48, 160) and batch["camera"].batch_size == 2
 
 
+def test_collate_keeps_each_item_with_its_own_values(written, tmp_path):
+    """Items of two sequences (other cameras, other odometry): sample b of the batch is item b."""
+    _, out, _ = written
+    rc = main(["synth", "--preset", "carla-turning", "--pairs", "1", "--out", str(tmp_path / "t"), "--size", "48",
+               "160", "--no-progress"])
+    assert rc == 0
+    ds, other = SyntheticFlowDataset(out), SyntheticFlowDataset(tmp_path / "t")
+    items = [other[0], ds[0], ds[1]]  # (the default preset's two pairs share their camera and odometry)
+    assert items[0]["odometry"] != items[2]["odometry"] and float(items[0]["camera"].height) != float(
+        items[2]["camera"].height)
+    batch = collate(items)
+    for key in ("x_d", "z_d", "yaw"):
+        want = torch.tensor([it["odometry"][key] for it in items], dtype=batch["odometry"][key].dtype)
+        assert torch.equal(batch["odometry"][key], want), key
+    for b, it in enumerate(items):
+        assert torch.equal(batch["image1"][b], it["image1"]) and torch.equal(batch["flow"][b], it["flow"]), b
+        for field in ("K", "height", "roll", "pitch"):
+            assert torch.equal(getattr(batch["camera"], field)[b], getattr(it["camera"], field)[0]), (b, field)
+    assert batch["name"] == [it["name"] for it in items]
+
+
 def test_poses_give_back_the_odometry(written):
     _, out, _ = written
     poses = read_kitti_poses(out / "poses.txt")
@@ -77,6 +98,9 @@ def test_stores_the_road_pose_and_plane_motion(tmp_path):
         assert ds[i]["road_pose"] == truth["road_pose"] and ds[i]["plane"] == truth["plane"]
     batch = collate([ds[0], ds[1]])
     assert batch["plane"]["pitch_change"].shape == (2,)
+    for key in ("pitch_change", "roll_change", "pitch", "height"):  # in the items' order (they differ)
+        assert batch["plane"][key].tolist() == [ds[0]["plane"][key], ds[1]["plane"][key]], key
+        assert ds[0]["plane"][key] != ds[1]["plane"][key], key
 
 
 def test_prints_a_table(tmp_path, capsys):

@@ -29,7 +29,11 @@ def test_vflow_velocity(tmp_path):
                "--out", str(out), "--json", str(tmp_path / "v.json"), "--no-progress"])
     assert rc == 0
     data = json.loads((tmp_path / "v.json").read_text())
-    assert "speed_mps" in data["curve"] and "freespace" not in data
+    assert "freespace" not in data
+    curve = data["curve"]
+    assert curve["success"] and curve["speed_mps_true"] == data["source"]["velocity"]["speed"] == 10.0
+    assert abs(curve["speed_mps"] - 10.0) < 0.5  # 9.876 measured
+    assert abs(curve["v0"] - curve["horizon_row_true"]) < 0.5  # 0.14 px measured
 
 
 def test_vflow_flow_file(tmp_path):

@@ -98,11 +98,21 @@ def test_road_is_an_outline_not_a_tint(figure):
 
 
 def test_road_outline_traces_the_mask():
+    """An L-shaped mask: the outline follows the notch (a bounding box would not)."""
+    import cv2
+    import numpy as np
+
     road = torch.zeros(1, 10, 12, dtype=torch.bool)
     road[0, 4:8, 2:9] = True
+    road[0, 4:6, 6:9] = False  # the notch: its concave corner is at (u, v) = (5..6, 5..6)
     (poly,) = road_outline(road)
     assert poly.shape[1] == 2 and (poly[0] == poly[-1]).all()
     assert poly[:, 0].min() == 2 and poly[:, 0].max() == 8 and poly[:, 1].min() == 4 and poly[:, 1].max() == 7
+    assert {(5.0, 4.0), (5.0, 5.0), (6.0, 6.0), (8.0, 6.0)} <= {tuple(p) for p in poly.tolist()}
+    # the polygon through the boundary pixels' centres, filled, is the mask again
+    filled = np.zeros((10, 12), np.uint8)
+    cv2.fillPoly(filled, [poly.astype(np.int32)], 1)
+    assert np.array_equal(filled.astype(bool), road[0].numpy())
 
 
 def test_road_outline_takes_one_bool_mask_of_any_accepted_shape():

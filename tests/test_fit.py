@@ -19,6 +19,7 @@ from fsof_torch.estimation.flow_fit import (
     fit_velocity,
     robust_weight,
 )
+from fsof_torch.estimation.sampling import sample_mask
 from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow
 from fsof_torch.geometry.road_models import road_homography
 
@@ -361,7 +362,13 @@ def test_feature_subsampling_is_deterministic_and_close():
     b = fit_displacement(noisy, mask, cam, max_points=500)
     full = fit_displacement(noisy, mask, cam, max_points=None)
     assert torch.equal(a.z_d, b.z_d)
-    assert abs(float(a.z_d - full.z_d)) < 0.02
+    # 500 of the mask's 6400 pixels give z_d within 6e-4 of all of them (the first 500 pixels in
+    # raster order, four rows under the horizon, 0.011 off)
+    assert abs(float(a.z_d - full.z_d)) < 0.003
+    # the kept pixels stride over the whole mask: its first row to its last
+    kept = sample_mask(mask, 500).pix[0] // SIZE[1]
+    rows = mask[0, 0].any(1).nonzero().squeeze(1)
+    assert int(kept.min()) == int(rows.min()) and int(kept.max()) == int(rows.max())
 
 
 def test_feature_init_from_a_previous_result():

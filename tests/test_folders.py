@@ -28,14 +28,28 @@ def _motion(yaw: float) -> torch.Tensor:
     return M
 
 
+def _frame(i: int) -> torch.Tensor:
+    """Frame i: channels 10 i, 60 + 10 i, 120 + 10 i, each plus the column index (an RGB/BGR swap
+    changes it)."""
+    x = torch.arange(SIZE[1], dtype=torch.float32).expand(*SIZE)
+    return torch.stack([x + 10.0 * i, x + 60.0 + 10.0 * i, x + 120.0 + 10.0 * i])
+
+
+def _flow(i: int) -> torch.Tensor:
+    """Pair i's flow: u a ramp along x, v one along y, distinct (a u/v swap changes it)."""
+    u = torch.arange(SIZE[1], dtype=torch.float32).expand(*SIZE) * 0.5 + i
+    v = torch.arange(SIZE[0], dtype=torch.float32)[:, None].expand(*SIZE) * -0.25 - i
+    return torch.stack([u, v])
+
+
 @pytest.fixture
 def clip(tmp_path):
-    """Four frames (frame i filled with 10 i), calib.txt, poses, road PNGs and flows per pair."""
+    """Four frames (:func:`_frame`), calib.txt, poses, road PNGs and flows (:func:`_flow`) per pair."""
     root = tmp_path / "clip"
     for d in ("images", "road", "gt"):
         (root / d).mkdir(parents=True)
     for i in range(4):
-        write_image(root / "images" / f"{i:06d}.png", torch.full((3, *SIZE), 10.0 * i))
+        write_image(root / "images" / f"{i:06d}.png", _frame(i))
     write_kitti_calibration(root / "calib.txt", K, cam=0, style="odometry")
     poses = [torch.eye(4, dtype=torch.float64)]
     for i in range(1, 4):  # camera-to-world: P_i = P_{i-1} M_i, turning by 0.01 i
@@ -46,7 +60,7 @@ def clip(tmp_path):
         road = torch.zeros(1, *SIZE, dtype=torch.bool)
         road[:, 12 + i:] = True
         write_road_mask(root / "road" / f"{i:06d}.png", road)
-        write_flow(root / "gt" / f"{i:06d}.flo", torch.full((2, *SIZE), 0.5 * i))
+        write_flow(root / "gt" / f"{i:06d}.flo", _flow(i))
     return root, poses
 
 
@@ -57,9 +71,13 @@ def test_consecutive_pairs_with_poses_road_and_ground_truth(clip):
     assert len(ds) == 3 and [p.name for p in ds.pairs] == ["000000", "000001", "000002"]
     item = ds[1]
     check_item(item)
-    assert item["image1"].eq(10.0).all() and item["image2"].eq(20.0).all() and item["name"] == "000001"
+    assert item["name"] == "000001"
+    for c in range(3):  # channel by channel, in RGB order
+        assert torch.equal(item["image1"][c], _frame(1)[c]) and torch.equal(item["image2"][c], _frame(2)[c]), c
     assert int(item["road"].sum()) == (SIZE[0] - 13) * SIZE[1]
-    assert item["flow"].eq(0.5).all() and item["valid"].all()
+    for c in range(2):  # u and v each in its own channel
+        assert torch.equal(item["flow"][c], _flow(1)[c]), "uv"[c]
+    assert item["valid"].all()
     torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[2]) @ poses[1], rtol=0, atol=1e-12)
     # forward by 1 m, turning by 0.02 rad, a level camera: the odometry by construction
     assert item["odometry"]["yaw"] == pytest.approx(0.02, abs=1e-12)

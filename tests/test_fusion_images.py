@@ -86,20 +86,49 @@ def test_gradient_reaches_a_planar_odometry_held_with_images(scene):
 
 def test_starts_follow_the_samples_that_are_estimated(scene):
     """A start of the whole batch (per-sample tensors, or the previous fit) is cut down with it
-    where some samples have no road: the others are estimated as alone."""
+    where some samples have no road: the others are estimated as alone, each from its own start
+    (not from the first samples' starts)."""
+    import dataclasses
+
+    from fsof_torch import ImageMotionEstimator
+
     pred, road, i1, i2 = _two(scene, black_second=False)
-    road[1] = False
-    refiner = FreespaceRefiner()
-    previous = refiner(pred, torch.stack([scene["road"]] * 2), scene["camera"], images=(i1, i2)).fit
-    start = {"model": "plane", **{k: torch.full((2,), float(v)) for k, v in scene["plane"].items() if k != "height"}}
+    road[0] = False  # the first sample has no road: the second is the one estimated
+    # the given start is the estimator's only one, so the start that sample 1 takes shows in its result
+    estimator = ImageMotionEstimator(flow_start=False, retry_starts=0, turn_starts=(), forward_starts=(),
+                                     retry_without_prior=False)
+    refiner = FreespaceRefiner(estimator=estimator)
+    truth = {k: float(v) for k, v in scene["plane"].items() if k != "height"}
+    # each sample its own start: the road-less first one far off (z_d 3 m), the second the truth
+    start = {"model": "plane", **{k: torch.tensor([3.0 if k == "z_d" else 0.0, v]) for k, v in truth.items()}}
+    fit = refiner(pred, torch.stack([scene["road"]] * 2), scene["camera"], images=(i1, i2)).fit
+    previous = dataclasses.replace(fit, params={k: torch.stack([torch.tensor(3.0 if k == "z_d" else 0.0), v[1]])
+                                                for k, v in fit.params.items()})
     for s in (start, previous):
         out = _quiet(refiner, pred, road, scene["camera"], images=(i1, i2), starts=(s,))
-        assert out.refined.tolist() == [True, False]
-        assert torch.equal(out.flow[1], pred[1])
+        assert out.refined.tolist() == [False, True]
+        assert torch.equal(out.flow[0], pred[0])
         params = previous.params if s is previous else {k: v for k, v in s.items() if k != "model"}
-        first = {"model": "plane", **{k: v[:1] for k, v in params.items()}}
-        alone = refiner(pred[:1], road[:1], scene["camera"], images=(i1[:1], i2[:1]), starts=(first,))
-        torch.testing.assert_close(out.flow[0], alone.flow[0], rtol=0, atol=1e-3)
+        second = {"model": "plane", **{k: v[1:] for k, v in params.items()}}
+        alone = refiner(pred[1:], road[1:], scene["camera"], images=(i1[1:], i2[1:]), starts=(second,))
+        torch.testing.assert_close(out.flow[1], alone.flow[0], rtol=0, atol=1e-3)
+        torch.testing.assert_close(out.odometry["z_d"][1], alone.odometry["z_d"][0], rtol=0, atol=1e-4)
+
+
+def test_planar_odometry_follows_the_samples_that_are_estimated(scene):
+    """The planar odometry of the whole batch is cut down with it as the starts are: the second
+    sample (the first has no road) is estimated with its own odometry, as alone."""
+    pred, road, i1, i2 = _two(scene, black_second=False)
+    road[0] = False
+    odo = _planar(scene, 2)
+    odo["z_d"] = torch.tensor([3.0, float(scene["odometry"]["z_d"])])  # each sample its own
+    refiner = FreespaceRefiner()
+    out = _quiet(refiner, pred, road, scene["camera"], odo, images=(i1, i2))
+    assert out.refined.tolist() == [False, True] and torch.equal(out.flow[0], pred[0])
+    alone = _quiet(refiner, pred[1:], road[1:], scene["camera"], {k: v[1:] for k, v in odo.items()},
+                   images=(i1[1:], i2[1:]))
+    torch.testing.assert_close(out.flow[1], alone.flow[0], rtol=0, atol=1e-3)
+    assert float(out.odometry["z_d"][1]) == pytest.approx(float(scene["odometry"]["z_d"]))
 
 
 @pytest.mark.parametrize("how", ["0..1", "nan"])

@@ -322,6 +322,9 @@ def _quiet(fn: Callable) -> Callable:
 
 # a road motion's errors name the parameter inside ``params`` (``z_d: expected finite values``)
 _MOTION_NAMES = ("mismatched batch sizes", "x_d", "y_d", "z_d", "yaw", "pitch_change")
+# and so do those of the odometry given to a refiner (``x_d, z_d, yaw, roll, pitch: the 'paper'
+# road map overflows ...``)
+_ODOMETRY_NAMES = ("x_d", "z_d", "yaw")
 
 TABLE: list[Entry] = [
     # geometry/camera, geometry/egomotion (the road flow itself is fuzzed with the flow models)
@@ -372,11 +375,12 @@ TABLE: list[Entry] = [
     *[Entry(f"refine_flow[{name}]", (lambda kw: _quiet(lambda flow, mask, camera, odometry, image1, image2: refine_flow(
         flow, mask, camera, odometry, images=(image1, image2), **kw)))(kw),
         {"flow": "flow", "mask": "mask", "camera": "camera", "odometry": "odometry", "image1": "image",
-         "image2": "image"}, check=_refine_check, also_named=("images",), examples=12)
+         "image2": "image"}, check=_refine_check, also_named=("images", *_ODOMETRY_NAMES), examples=12)
       for name, kw in (("odometry+images", {"min_pixels": 1}), ("odometry+images,confidence", {"mode": "confidence"}))],
     Entry("refine_flow[odometry]", _quiet(lambda flows, mask, camera, odometry: refine_flow(
         flows, mask, camera, odometry, mode="confidence")),
-          {"flows": "flows", "mask": "mask", "camera": "camera", "odometry": "odometry"}, check=_refine_check),
+          {"flows": "flows", "mask": "mask", "camera": "camera", "odometry": "odometry"}, check=_refine_check,
+          also_named=("flow", *_ODOMETRY_NAMES)),  # refine_flow's argument is ``flow`` (here a list)
     Entry("refine_flow[fit]", _quiet(lambda flow, mask, camera: refine_flow(flow, mask, camera, min_pixels=3)),
           {"flow": "flow", "mask": "mask", "camera": "camera"}, check=_refine_check, examples=15),
     Entry("FreespaceRefiner[images]", _quiet(lambda flow, mask, camera, image1, image2: FreespaceRefiner(
@@ -386,7 +390,7 @@ TABLE: list[Entry] = [
     Entry("FreespaceRefined", _quiet(lambda image1, image2, camera, mask, odometry: FreespaceRefined(
         _TINY, FreespaceRefiner(gate=None))(image1, image2, camera=camera, mask=mask, odometry=odometry)),
           {"image1": "image", "image2": "image", "camera": "camera", "mask": "mask", "odometry": "odometry"},
-          min_side=4, layout_invariant=False, examples=10),
+          also_named=_ODOMETRY_NAMES, min_side=4, layout_invariant=False, examples=10),
     # estimation: fits (flow, images, homographies), the V-flow, freespace
     Entry("fit_displacement", lambda flow, mask, camera: fit_displacement(flow, mask, camera, max_iter=5),
           {"flow": "flow", "mask": "mask", "camera": "camera"}, check=_fit_check, examples=15),
@@ -508,7 +512,7 @@ def calls(draw, entry: Entry):
 
 
 def _run(entry: Entry, args: dict, call: Callable[[], Any]) -> tuple[Any, BaseException | None]:
-    names = [*entry.args, *entry.also_named, "flows", "mask", "valid", "size", "image", "flow"]
+    names = [*entry.args, *entry.also_named]  # the entry's own: a generic name would let a wrong one pass
     try:
         return call(), None
     except entry.errors as err:
