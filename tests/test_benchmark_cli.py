@@ -56,6 +56,8 @@ BAD = [
     ("fit_road_models", ["--data", ABSENT], "--data"),
     ("fit_road_models", ["--size", "0", "10"], "--size"),
     ("fit_road_models", ["--pairs", "-1"], "--pairs"),
+    ("gate_chance", ["--draws", "0"], "--draws"),
+    ("gate_chance", ["--error", "0"], "--error"),
     ("image_fit_settings", ["{bad"], "SETTING"),
     ("image_fit_settings", ["[1, 2]"], "SETTING"),
     ("image_formation", ["--pairs", "0"], "--pairs"),
