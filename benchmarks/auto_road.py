@@ -271,10 +271,10 @@ def main(argv=None) -> int:
     parser.add_argument("--roll-change-deg", type=float, default=0.0, help="likewise, a roll change")
     args = parser.parse_args(argv)
     turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
-    if not all(math.isfinite(a) and abs(a) <= 30 for a in turn):
-        print(f"--yaw-deg, --pitch-change-deg, --roll-change-deg: expected finite degrees within ±30, got {turn}",
-              file=sys.stderr)
-        return 2
+    for option, degrees in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
+        if not (math.isfinite(degrees) and abs(degrees) <= 30):
+            print(f"{option}: expected finite degrees within ±30, got {degrees}", file=sys.stderr)
+            return 2
     if any(k < 0 for k in args.pairs):
         print(f"--pairs: expected pair indices >= 0, got {args.pairs}", file=sys.stderr)
         return 2
