@@ -662,11 +662,15 @@ class FreespaceRefiner(nn.Module):
 
     def forward(self, flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
-        return refine_flow(flow, mask, camera, odometry, estimator=self.estimator, gate=self.gate, mode=self.mode,
-                           scale=self.scale, images=images, starts=starts, min_pixels=self.min_pixels,
-                           flow_keys=self.flow_keys, warn=self.warn, fit=self.fit, fit_roll=self.fit_roll,
-                           fit_pitch=self.fit_pitch, fit_options=self.fit_options,
-                           photometric_options=self.photometric_options)
+        return refine_flow(flow, mask, camera, odometry, images=images, starts=starts, **self.refine_options())
+
+    def refine_options(self) -> dict[str, Any]:
+        """The keyword arguments of :func:`refine_flow` this refiner calls it with (beside the
+        call's own inputs): its options."""
+        return dict(estimator=self.estimator, gate=self.gate, mode=self.mode, scale=self.scale,
+                    min_pixels=self.min_pixels, flow_keys=self.flow_keys, warn=self.warn, fit=self.fit,
+                    fit_roll=self.fit_roll, fit_pitch=self.fit_pitch, fit_options=self.fit_options,
+                    photometric_options=self.photometric_options)
 
     def extra_repr(self) -> str:
         extra = f", scale={self.scale}" if self.mode == "confidence" else ""

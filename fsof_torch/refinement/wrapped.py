@@ -189,16 +189,15 @@ class FreespaceRefined(nn.Module):
     def _refine_auto(self, output: Any, finest: Tensor, camera: Camera, odometry: object,
                      images: tuple[Tensor, Tensor], padding: Padding | None) -> RefineOutput:
         """``refine_flow(output, "auto", camera, odometry, images=images)`` with the refiner's
-        options and ``road_options`` (:meth:`FreespaceRefiner.forward` takes no ``road_options``).
+        options (:meth:`FreespaceRefiner.refine_options`) and ``road_options``
+        (:meth:`FreespaceRefiner.forward` takes no ``road_options``).
         With ``padding`` the same steps (:func:`refine_with_auto_road`), the road found in the
         images as they came and the output refined on the padded grid."""
         r = self.refiner
-        options = dict(estimator=r.estimator, gate=r.gate, mode=r.mode, scale=r.scale, min_pixels=r.min_pixels,
-                       flow_keys=r.flow_keys, fit=r.fit, fit_roll=r.fit_roll, fit_pitch=r.fit_pitch,
-                       fit_options=r.fit_options, photometric_options=r.photometric_options)
+        options = r.refine_options()
         if padding is None:
             return refine_flow(output, "auto", camera, odometry, images=images, road_options=self.road_options,
-                               warn=r.warn, **options)
+                               **options)
         padded = tuple(padding.pad(im, mode=self.pad.pad_mode) for im in images)
 
         def refine_padded(_: Tensor, mask: Tensor, camera: Camera, motion: object, *, images: Any,
@@ -210,8 +209,7 @@ class FreespaceRefined(nn.Module):
         road_estimator = select_estimator(r.estimator, r.fit, images, r.fit_roll, r.fit_pitch, r.fit_options,
                                           r.photometric_options)
         return refine_with_auto_road(refine_padded, padding.unpad(finest), "auto", camera, odometry, images=images,
-                                     road_estimator=road_estimator, road_options=self.road_options, warn=r.warn,
-                                     **options)
+                                     road_estimator=road_estimator, road_options=self.road_options, **options)
 
 
 def _check_image_range(image: Tensor, name: str, image_range: tuple[float, float]) -> None:
