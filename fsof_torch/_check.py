@@ -1,4 +1,5 @@
-"""One place for input validation: typed errors that name the argument and quote what came.
+"""One place for input validation: typed errors that name the argument and quote what came (and
+the modes the package's code runs in: tracing, autocast, inference mode; at the end).
 
 Shape letters are bound across arguments: ``check_shape(flow, "flow", ("B", 2, "H", "W"), dims)``
 followed by ``check_shape(mask, "mask", ("B", 1, "H", "W"), dims)`` requires the same B, H, W.
@@ -11,13 +12,14 @@ skip them too, so shape inference runs through the library).
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import math
 import numbers
 import os
 from pathlib import Path
 from collections.abc import Iterable, Mapping
-from typing import ContextManager, Sequence
+from typing import Any, Callable, ContextManager, Sequence, TypeVar
 
 import torch
 from torch import Tensor
@@ -50,6 +52,8 @@ __all__ = [
     "batch_choices",
     "check_has_values",
     "as_chw_flow",
+    "inference",
+    "ordinary",
 ]
 
 
@@ -427,3 +431,56 @@ def check_image_pair(image1: object, image2: object) -> dict[str, int]:
     if dims["C"] not in (1, 3):
         raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
     return dims
+
+# -- estimation without autograd's bookkeeping ------------------------------------------------------
+#
+# The estimators run hundreds of small tensor operations per call and are not differentiable (their
+# results are detached). ``torch.inference_mode`` runs such code with less overhead per operation
+# than ``torch.no_grad`` (no version counters, no view tracking; python
+# benchmarks/bench_image_fit.py --baseline REV times a change). Its tensors, however, cannot be
+# saved for backward or changed in place outside inference mode, so results leave
+# :func:`inference` as ordinary tensors.
+
+_F = TypeVar("_F", bound=Callable[..., Any])
+
+
+def ordinary(x: Any) -> Any:
+    """``x`` with every inference tensor in it cloned into an ordinary one (outside inference
+    mode): a tensor, or the tensors held by dicts, lists, tuples (named ones too) and dataclass
+    instances, recursively. Ordinary tensors, such as inputs passed through, stay themselves;
+    containers are rebuilt (the input is not changed)."""
+    if isinstance(x, Tensor):
+        return x.clone() if x.is_inference() else x
+    if isinstance(x, dict):
+        return type(x)((k, ordinary(v)) for k, v in x.items())
+    if isinstance(x, tuple):
+        items = [ordinary(v) for v in x]
+        return type(x)(*items) if hasattr(x, "_fields") else type(x)(items)
+    if isinstance(x, list):
+        return [ordinary(v) for v in x]
+    if dataclasses.is_dataclass(x) and not isinstance(x, type) and hasattr(x, "__dict__"):
+        # (not through __init__: its checks ran when the instance was made)
+        out = object.__new__(type(x))
+        out.__dict__.update((k, ordinary(v)) for k, v in x.__dict__.items())
+        return out
+    return x
+
+
+def inference(fn: _F) -> _F:
+    """Decorator: run ``fn`` under ``torch.inference_mode`` and return :func:`ordinary` results.
+
+    Inside inference mode already, ``fn`` runs as it is (the caller wants inference tensors, or
+    converts them itself); while ``torch.compile`` traces, under ``torch.no_grad`` instead."""
+
+    @functools.wraps(fn)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        if torch.is_inference_mode_enabled():
+            return fn(*args, **kwargs)
+        if tracing():
+            with torch.no_grad():
+                return fn(*args, **kwargs)
+        with torch.inference_mode():
+            out = fn(*args, **kwargs)
+        return ordinary(out)
+
+    return wrapper  # type: ignore[return-value]

@@ -273,3 +273,51 @@ def test_check_keywords_against_the_receiving_function():
     check_fit_flags("fit_x", True, False, {"scale": 1.0})
     with pytest.raises(TypeError, match="fixed: fit_x sets the model and its fixed parameters itself"):
         check_fit_flags("fit_x", True, False, {"fixed": ()})
+
+
+# -- inference mode -------------------------------------------------------------------------------
+
+def test_ordinary_clones_inference_tensors_in_containers_and_keeps_the_rest():
+    import dataclasses
+    from typing import NamedTuple
+
+    from fsof_torch._check import ordinary
+
+    class Pair(NamedTuple):
+        a: torch.Tensor
+        b: object
+
+    @dataclasses.dataclass
+    class Box:
+        t: torch.Tensor
+        items: dict
+
+    given = torch.arange(3.0)
+    with torch.inference_mode():
+        made = torch.arange(3.0) * 2
+    x = {"made": made, "given": given, "list": [made, "text"], "pair": Pair(made, 7), "box": Box(made, {"g": given})}
+    out = ordinary(x)
+    for t in (out["made"], out["list"][0], out["pair"].a, out["box"].t):
+        assert not t.is_inference() and torch.equal(t, made)
+    assert out["given"] is given and out["box"].items["g"] is given  # (inputs passed through stay themselves)
+    assert isinstance(out["pair"], Pair) and out["pair"].b == 7 and out["list"][1] == "text"
+    assert isinstance(out["box"], Box) and out["box"] is not x["box"] and x["box"].t is made  # (the input unchanged)
+
+
+def test_inference_results_work_in_place_and_under_autograd():
+    from fsof_torch._check import inference
+
+    @inference
+    def scaled(x: torch.Tensor) -> dict:
+        assert torch.is_inference_mode_enabled()
+        return {"y": x * 2, "x": x}
+
+    x = torch.ones(3, requires_grad=True)
+    out = scaled(x)
+    assert out["x"] is x and not out["y"].is_inference() and not out["y"].requires_grad
+    out["y"].add_(1)  # (an inference tensor refuses this outside inference mode)
+    w = torch.ones(3, requires_grad=True)
+    (w * out["y"]).sum().backward()  # (and refuses to be saved for backward)
+    assert w.grad.tolist() == [3.0, 3.0, 3.0]
+    with torch.inference_mode():
+        assert scaled(x)["y"].is_inference()  # (inside inference mode: left as it is)

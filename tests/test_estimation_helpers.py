@@ -248,6 +248,17 @@ def test_planar_start_batch_and_broadcast_mask():
     for k in truth:
         assert got[k].shape == (2,)
         assert got[k].tolist() == pytest.approx([truth[k]] * 2, abs=1e-4)
+    # a non-finite pixel in the second frame only: left out of that frame's mask, not the first's
+    y0, x0 = mask[0, 0].nonzero()[0].tolist()
+    broken = torch.cat([flow, flow])
+    broken[1, 0, y0, x0] = float("nan")
+    without = mask.clone()
+    without[0, 0, y0, x0] = False
+    got = planar_start(broken, mask, cam.expand(2), 100)
+    first, second = planar_start(flow, mask, cam, 100), planar_start(flow, without, cam, 100)
+    for k in truth:
+        assert got[k].tolist() == pytest.approx([float(first[k]), float(second[k])], abs=1e-12, rel=0)
+        assert float(got[k][1]) == pytest.approx(truth[k], abs=1e-3)
 
 
 def test_planar_start_names_wrong_inputs():

@@ -17,26 +17,32 @@ def _texture(H=96, W=192, seed=0):
     return F.interpolate(noise, size=(H, W), mode="bicubic", align_corners=False).clamp(0, 255)
 
 
-def test_census_ring_distance_against_a_loop():
+@pytest.mark.parametrize("threshold", [2.0, 0.0, 10.0])
+def test_census_ring_distance_against_a_loop(threshold):
+    # (image 2 is sampled bilinearly: at a whole pixel its value can differ from the pixel's in
+    # the last bits, so a difference exactly at the threshold can fall either way; the textures'
+    # continuous values make such ties improbable)
     g1, g2 = _texture(seed=1), _texture(seed=2)
-    x = torch.tensor([[10.0, 50.0, 90.0]])
-    y = torch.tensor([[20.0, 40.0, 60.0]])
-    flow = torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]])  # whole pixels: no interpolation
-    dist, n, ok = census_ring_distance(g1, g2, x, y, flow, threshold=2.0)
+    g = torch.Generator().manual_seed(3)
+    x = torch.cat([torch.tensor([[10.0, 50.0, 90.0]]), torch.randint(5, 180, (1, 40), generator=g).float()], 1)
+    y = torch.cat([torch.tensor([[20.0, 40.0, 60.0]]), torch.randint(5, 84, (1, 40), generator=g).float()], 1)
+    flow = torch.randint(-2, 3, (1, 2, 43), generator=g).float()  # whole pixels: no interpolation
+    flow[0, :, :3] = torch.tensor([[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]])
+    dist, n, ok = census_ring_distance(g1, g2, x, y, flow, threshold=threshold)
     a, b = g1[0, 0].numpy(), g2[0, 0].numpy()
-    for i in range(3):
+    for i in range(x.shape[1]):
         u, v = int(x[0, i]), int(y[0, i])
         u2, v2 = u + int(flow[0, 0, i]), v + int(flow[0, 1, i])
         clear = differ = 0
         for dx, dy in RING:
             d1 = a[v + dy, u + dx] - a[v, u]
             d2 = b[v2 + dy, u2 + dx] - b[v2, u2]
-            if abs(d1) > 2.0:
+            if abs(d1) > threshold:
                 clear += 1
-                t2 = np.sign(d2) if abs(d2) > 2.0 else 0.0
+                t2 = np.sign(d2) if abs(d2) > threshold else 0.0
                 differ += int(np.sign(d1) != t2)
         assert int(n[0, i]) == clear
-        assert float(dist[0, i]) == pytest.approx(differ / clear)
+        assert float(dist[0, i]) == pytest.approx(differ / max(clear, 1))
     assert bool(ok.all())
 
 
@@ -206,6 +212,19 @@ def test_a_small_object_keeps_its_flow():
 
 
 
+@pytest.mark.parametrize("rows, cols", [((0, 70), (0, 84)), ((50, 96), (60, 192))])
+def test_an_object_at_the_corner_of_the_masks_box_keeps_its_flow(rows, cols):
+    # (the object's last row and column are the mask's last, or its first ones the mask's first:
+    # the regions are found over the mask's bounding box, which must take them in whole)
+    g1, g2, true, obj, prediction = _object_pair()
+    mask = torch.zeros_like(obj)
+    mask[..., rows[0]:rows[1], cols[0]:cols[1]] = True
+    # (one cell, mostly background: the cell alone uses the model on the object)
+    out = ImageGate(grid=(1, 1))(g1, g2, prediction, true.clone(), mask)
+    assert bool(ImageGate(grid=(1, 1), objects=False)(g1, g2, prediction, true.clone(), mask).use_model[obj].all())
+    assert not bool((out.use_model & obj).any())  # (all of it, its first and last rows and columns too)
+
+
 def test_a_small_object_keeps_its_flow_in_a_mask_over_part_of_a_batch():
     g1, g2, true, obj, prediction = _object_pair()
     # frame 0: a mask around the object; frame 1: the same images without the object in its mask
@@ -362,3 +381,38 @@ def test_census_ring_distance_takes_integer_coordinates():
     floats = census_ring_distance(g1, g2, torch.tensor([[10.0, 50.0, 90.0]]), torch.tensor([[20.0, 40.0, 60.0]]),
                                   torch.tensor([[[2.0, -3.0, 0.0], [1.0, 0.0, 4.0]]]))
     assert all(torch.equal(a, b) for a, b in zip(ints, floats))
+
+
+def test_gate_and_estimates_return_ordinary_tensors():
+    """The estimators run in inference mode; what they return is usable in place and in autograd."""
+    from fsof_torch import detect_road, fit_image, fit_road, render_pair
+    from fsof_torch.estimation.initial import planar_start
+
+    p = render_pair("default", 0, size=(48, 160))
+    I1, I2, road, cam = p["image1"][None], p["image2"][None], p["road"][None], p["camera"]
+    flow = p["flow"][None]
+    results = {"gate": ImageGate()(I1, I2, flow, flow, road), "fit_image": fit_image(I1, I2, road, cam),
+               "fit_road": fit_road(flow, road, cam), "planar_start": planar_start(flow, road, cam),
+               "detect_road": detect_road(I1, I2, cam, refit=False)}
+
+    def tensors(x):
+        if isinstance(x, torch.Tensor):
+            yield x
+        elif isinstance(x, dict):
+            for v in x.values():
+                yield from tensors(v)
+        elif isinstance(x, (list, tuple)):
+            for v in x:
+                yield from tensors(v)
+        elif hasattr(x, "__dict__"):
+            yield from tensors(vars(x))
+
+    for name, result in results.items():
+        found = list(tensors(result))
+        assert len(found) >= 3, name
+        assert not any(t.is_inference() for t in found), name
+    fit = results["fit_image"]
+    fit.flow.mul_(1.0)
+    w = torch.ones((), requires_grad=True)
+    (w * fit.flow).sum().backward()
+    assert w.grad is not None

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
-                      check_has_values, check_mapping, check_names, check_shape, result_dtype)
+                      check_has_values, check_mapping, check_names, check_shape, inference, result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
@@ -457,7 +457,7 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
     return homography_values(H, camera.K, K_inv)
 
 
-@torch.no_grad()
+@inference
 def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadModel = "paper",
              fixed: object = None, init: object = None,
              prior: Mapping[str, tuple[float, float]] | None = None, valid: Tensor | None = None,

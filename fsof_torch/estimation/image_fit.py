@@ -42,7 +42,7 @@ from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_bool, check_data_range, check_fit_flags, check_float_tensor,
                       check_has_values, check_image_pair, check_image_range, check_int, check_mapping, check_names,
-                      check_number, check_shape, result_dtype)
+                      check_number, check_shape, inference, result_dtype)
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
@@ -242,7 +242,7 @@ def _check_bounds(bounds: object, model: RoadModel, B: int) -> None:
         raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
 
 
-@torch.no_grad()
+@inference
 def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               model: str | RoadModel = "plane", fixed: object = None, init: Any = None,
               starts: Sequence[Any] = (), prior: Mapping[str, tuple[Any, Any]] | str | None = "calibration",

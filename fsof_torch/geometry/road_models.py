@@ -192,8 +192,14 @@ def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int
     """The rotations of a model's motion angles (columns ``motion`` about ``axes``) and of the
     camera's roll and pitch (columns ``roll``, ``roll + 1``): one batch of rotation matrices."""
     cols = list(motion) + [roll, roll + 1]
-    # (a slice where the columns follow each other: cheaper than gathering them)
-    angles = values[:, cols[0]:cols[-1] + 1] if cols == list(range(cols[0], cols[-1] + 1)) else values[:, cols]
+    # (a slice where the columns follow each other: cheaper than gathering them; else a cached
+    # index: indexing by a list builds one at every call)
+    if cols == list(range(cols[0], cols[-1] + 1)):
+        angles = values[:, cols[0]:cols[-1] + 1]
+    else:
+        index = _constant(("columns", tuple(cols), values.device),
+                          lambda: torch.tensor(cols, dtype=torch.long, device=values.device))
+        angles = values.index_select(1, index)
     Rs = _rotations(angles, axes + (_ROLL, _PITCH)).unbind(1)
     return list(Rs[:-2]), Rs[-2], Rs[-1]
 

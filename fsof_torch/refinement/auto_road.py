@@ -50,7 +50,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import all_finite, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape
+from .._check import all_finite, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape, inference
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -404,7 +404,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     return dims
 
 
-@torch.no_grad()
+@inference
 def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor | None = None,
                 motion: Any = None, estimator: Any = None, odometry: object = None, starts: Sequence[Any] = (),
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,

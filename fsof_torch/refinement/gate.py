@@ -38,7 +38,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (check_float_tensor, check_has_values, check_image_pair, check_int, check_mask, check_number,
-                      check_shape)
+                      check_shape, inference)
 from ..estimation.sampling import MaskPoints, sample_mask
 from ..evaluation.photometric import to_grey
 
@@ -140,7 +140,10 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
     v1 = grey1.reshape(B, -1).gather(1, flat.reshape(B, -1))
     d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, R + 1, N)[:, :1]
     clear = d1.abs() > threshold
-    order1 = torch.sign(d1)
+    # each clear neighbour's order (±1), 0 where not clear: a neighbour keeps its order in image 2
+    # where order1 · d2 > threshold (never where it is 0, nor at a NaN), which counts the
+    # ternary matches in one product and one comparison
+    order1 = torch.where(clear, torch.sign(d1), 0.0)
     n = clear.sum(1)
     in1 = inside(x1, y1) & torch.isfinite(v1).reshape(B, R + 1, N).all(1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
@@ -153,9 +156,8 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
         at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
         v2 = F.grid_sample(grey2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
                            align_corners=True).reshape(B, R + 1, N)
-        d2 = v2[:, 1:] - v2[:, :1]
-        t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
-        dist = ((order1 != t2) & clear).sum(1).to(grey1.dtype) / n.clamp_min(1)
+        kept = (order1 * (v2[:, 1:] - v2[:, :1]) > threshold).sum(1)
+        dist = (n - kept).to(grey1.dtype) / n.clamp_min(1)
         # (a non-finite flow lies inside no image: its comparisons are False)
         out.append((dist, n, in1 & inside(x2, y2) & torch.isfinite(v2).all(1)))
     return out
@@ -224,7 +226,7 @@ class ImageGate:
             raise TypeError(f"require_evidence: expected a bool, got {require_evidence!r}")
         self.require_evidence = require_evidence
 
-    @torch.no_grad()
+    @inference
     def __call__(self, image1: Tensor, image2: Tensor, prediction: Tensor, model: Tensor,
                  mask: Tensor) -> GateResult:
         """Judge ``prediction`` against ``model`` (each (B, 2, H, W) px) by ``image1`` and ``image2``
@@ -277,14 +279,14 @@ class ImageGate:
         cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
         if self.objects:
-            use_model = use_model & ~self._objects(prediction, model, pts, delta, d_pred, w)
+            use_model = use_model & ~self._objects(prediction, model, mask, pts, delta, d_pred, w)
         evidence_map = torch.where(mask, evidence, 0.0)
         textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
         return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
                           confirmed, informative, textured)
 
-    def _objects(self, prediction: Tensor, model: Tensor, pts: MaskPoints, delta: Tensor, d_pred: Tensor,
-                 w: Tensor) -> Tensor:
+    def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pts: MaskPoints, delta: Tensor,
+                 d_pred: Tensor, w: Tensor) -> Tensor:
         """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
         than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
         significantly better (a car inside the mask, whatever its shape and however it meets the
@@ -297,19 +299,20 @@ class ImageGate:
         if pts.every.numel() == 0:
             return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
-        def at_mask(f: Tensor) -> Tensor:
-            return f.detach().transpose(0, 1).reshape(2, -1).gather(1, pts.every.expand(2, -1))
-
         # the flows' squared difference at the mask's pixels, 0 elsewhere, over the mask's bounding
-        # box (the batch's, one host read): the regions lie inside it
-        frame, pixel = torch.div(pts.every, H * W, rounding_mode="floor"), pts.every % (H * W)
-        row, col = torch.div(pixel, W, rounding_mode="floor"), pixel % W
-        top, bottom, left, right = torch.stack([row.min(), row.max(), col.min(), col.max()]).tolist()
+        # box (the batch's: its first and last rows and columns, one host read): the regions lie
+        # inside it
+        # (as bytes: torch's reductions of bool tensors are several times slower)
+        m8 = mask.view(torch.uint8)
+        rows, cols = m8.amax(dim=(0, 1, 3)), m8.amax(dim=(0, 1, 2))  # (H,), (W,): 1 where the mask is
+        top, bottom, left, right = torch.stack([rows.argmax(), H - 1 - rows.flip(0).argmax(), cols.argmax(),
+                                                W - 1 - cols.flip(0).argmax()]).tolist()
         h, w_box = bottom - top + 1, right - left + 1
-        inside = (at_mask(prediction) - at_mask(model)).square().sum(0)
-        gap = inside.new_zeros(B * h * w_box).index_put_(((frame * h + row - top) * w_box + col - left,), inside)
+        box = (..., slice(top, bottom + 1), slice(left, right + 1))
+        gap = (prediction[box].detach() - model[box].detach()).square().sum(1)
+        gap = torch.where(mask[box][:, 0], gap, 0.0)
         # connected regions on the CPU (OpenCV): one transfer per call
-        gap = gap.reshape(B, h, w_box).to("cpu", torch.float32).numpy()  # (NumPy has no bfloat16)
+        gap = gap.to("cpu", torch.float32).numpy()  # (NumPy has no bfloat16)
         # the judged points in the box (padding points, which carry no weight, clamped into it)
         px, py = pts.pix % W - left, torch.div(pts.pix, W, rounding_mode="floor") - top
         pix_np = (py.clamp(0, h - 1) * w_box + px.clamp(0, w_box - 1)).to("cpu").numpy()
