@@ -6,7 +6,9 @@ against their torch / kornia equivalents.
 Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
 
 - DIS (the reference), ``fit_image`` (the default ``"plane"`` fit), the default refiner with the
-  images (estimation, model flow, gate, fusion), and the gate alone; the fit and the refiner also
+  images (estimation, model flow, gate, fusion), and the gate alone; ``fit_image`` also under
+  ``torch.no_grad`` instead of the inference mode it runs in (the price of autograd's bookkeeping
+  on its many small operations); the fit and the refiner also
   without the starts straight ahead (``forward_starts=()``), which find fast driving: their price;
   and both with ``max_points=10000`` (more points per level, steadier and on synthetic frames
   more accurate, ``image_fit_settings.py``): its price;
@@ -99,6 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = {
         "DIS (MEDIUM), the reference": lambda: dis_flow(im1, im2),
         "fit_image (plane, defaults)": lambda: fs.fit_image(I1, I2, M, cam),
+        "fit_image under torch.no_grad, not inference mode": lambda: under_no_grad(fs.fit_image, I1, I2, M, cam),
         "fit_image, no starts ahead (forward_starts=())": lambda: fs.fit_image(I1, I2, M, cam, forward_starts=()),
         "FreespaceRefiner() with the images": lambda: refiner(flow, M, cam, images=(I1, I2)),
         "the same, no starts ahead": lambda: ahead_off(flow, M, cam, images=(I1, I2)),
@@ -124,6 +127,13 @@ def main(argv: list[str] | None = None) -> int:
         t = np.array(t) * 1e3
         print(f"| {name} | {np.median(t):.1f} | {t.min():.1f} | {np.median(t) / (ref * 1e3):.2f} |")
     return 0
+
+
+def under_no_grad(fn, *args):
+    """``fn`` (a function of the library that runs in ``torch.inference_mode``) run under
+    ``torch.no_grad`` instead: the function itself, without its decorator."""
+    with torch.no_grad():
+        return fn.__wrapped__(*args)
 
 
 def interleaved(rows: dict, repeats: int) -> dict[str, list[float]]:

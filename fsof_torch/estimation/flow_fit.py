@@ -14,7 +14,7 @@ pulling on the estimate. The residual depends on the parameters only through the
 model, so the normal equations are sums over the pixels' moments (:class:`FlowProblem`), and the
 model's own derivatives do the rest.
 
-Fitting is iterative and data dependent: it is not differentiable; its results are detached.
+Fitting is iterative and data dependent: not differentiable (it runs in ``torch.inference_mode``).
 """
 
 from __future__ import annotations

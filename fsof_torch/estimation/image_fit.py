@@ -29,7 +29,8 @@ per frame, its vertical motion is centimetres).
   cost, its inlier share and its parameters' covariance.
 
 Images are (B, 1 or 3, H, W) on 0..``data_range`` (converted to grey and to the 0..255 scale);
-the mask marks road pixels of image 1. Not differentiable; results are detached.
+the mask marks road pixels of image 1. Not differentiable: it runs in ``torch.inference_mode`` and its
+results are ordinary, detached tensors.
 """
 
 from __future__ import annotations
