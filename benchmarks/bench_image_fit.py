@@ -18,13 +18,14 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
   converted to grey, in place into one tensor (``to_grey``, as the fit does) against kornia's
   ``rgb_to_grayscale`` and a concatenation.
 
-    python benchmarks/bench_image_fit.py [--repeats 15] [--baseline REV]
+    python benchmarks/bench_image_fit.py [--repeats 15] [--baseline REV] [--kitti15] [--data DIR]
 
 With ``--baseline REV`` (a git revision, imported beside the current package by
 ``baseline.py``), the rows are instead ``fit_image`` and the default refiner of that revision and
 of the current one, interleaved call by call, with their ratio.
 
-Uses the shared KITTI clip's first pair when ``../shared`` is there, else a synthetic pair.
+Uses the shared KITTI clip's first pair when ``../shared`` is there (with ``--kitti15``, the
+KITTI 2015 pair 000000 instead: 1242 × 375, a road polygon twice as large), else a synthetic pair.
 """
 
 from __future__ import annotations
@@ -38,17 +39,24 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry_straight"
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+KITTI15_FILES = ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json")
 
 
-def pair():
+def pair(data: Path = DATA, kitti15: bool = False):
     import fsof_torch as fs
 
-    files = sorted((SHARED / "image_l").glob("*.png"))
-    if len(files) >= 2 and (SHARED / "road.json").is_file() and (SHARED / "calib.txt").is_file():
+    if kitti15:
+        k15 = data / "kitti15_000000"
+        im1, im2 = fs.read_image(k15 / KITTI15_FILES[0]), fs.read_image(k15 / KITTI15_FILES[1])
+        road = fs.read_road_mask(k15 / "road.json", size=tuple(im1.shape[-2:]))
+        return im1, im2, road, fs.Camera.from_kitti(k15 / KITTI15_FILES[2], cam=2, height=1.65), "KITTI 2015 pair 000000"
+    clip = data / "kitti_odometry_straight"
+    files = sorted((clip / "image_l").glob("*.png"))
+    if len(files) >= 2 and (clip / "road.json").is_file() and (clip / "calib.txt").is_file():
         im1, im2 = fs.read_image(files[0]), fs.read_image(files[1])
-        road = fs.read_road_mask(SHARED / "road.json", size=tuple(im1.shape[-2:]))
-        return im1, im2, road, fs.Camera.from_kitti(SHARED / "calib.txt", cam=0, height=1.65), "KITTI clip pair 0"
+        road = fs.read_road_mask(clip / "road.json", size=tuple(im1.shape[-2:]))
+        return im1, im2, road, fs.Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65), "KITTI clip pair 0"
     p = fs.render_pair("default", 0)
     return p["image1"], p["image2"], p["road"], p["camera"], "synthetic default pair 0"
 
@@ -59,8 +67,15 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=15, help="interleaved timed calls per row (default 15)")
     parser.add_argument("--baseline", metavar="REV", help="time against this git revision instead")
+    parser.add_argument("--kitti15", action="store_true", help="the KITTI 2015 pair instead of the clip's first")
+    parser.add_argument("--data", metavar="DIR", type=Path, default=DATA,
+                        help="the folder holding kitti_odometry_straight/ and kitti15_000000/ (default: ../shared/data "
+                             "beside the repository; without the clip there, a synthetic pair)")
     args = parser.parse_args(argv)
     args.baseline = baseline_revision(parser, args.baseline)
+    missing = [n for n in KITTI15_FILES if not (args.data / "kitti15_000000" / n).is_file()]
+    if args.kitti15 and missing:
+        parser.error(f"--kitti15: {args.data / 'kitti15_000000'} lacks {', '.join(missing)} (see --data)")
     import cv2
     from kornia.color import rgb_to_grayscale
     from kornia.filters import gaussian_blur2d
@@ -73,7 +88,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     warnings.simplefilter("ignore")
-    im1, im2, road, cam, what = pair()
+    im1, im2, road, cam, what = pair(args.data, args.kitti15)
     I1, I2, M = im1[None], im2[None], road[None]
     flow = dis_flow(im1, im2)[None]
     if args.baseline:

@@ -32,6 +32,7 @@ BAD = [
     ("bench_fit", ["--baseline", "no-such-revision"], "--baseline"),
     ("bench_image_fit", ["--repeats", "0"], "--repeats"),
     ("bench_image_fit", ["--baseline", "no-such-revision"], "--baseline"),
+    ("bench_image_fit", ["--kitti15", "--data", ABSENT], "--kitti15"),
     ("bench_model", ["--batch", "1", "0"], "--batch"),
     ("bench_model", ["--warmup", "-1"], "--warmup"),
     ("bench_quickstart", ["--runs", "0"], "--runs"),
