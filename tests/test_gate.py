@@ -310,7 +310,7 @@ def test_the_largest_object_threshold_runs():
     assert bool(out.model_used.all()) and bool(out.use_model.all())
 
 
-@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf"), -float("inf")])
 def test_non_finite_image_pixels_are_no_evidence(bad):
     """Both flows true: wherever the images are finite they explain them exactly (distance 0).
     Points that read a NaN or inf pixel in either image do not count; they neither raise the

@@ -145,7 +145,7 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
     # ternary matches in one product and one comparison
     order1 = torch.where(clear, torch.sign(d1), 0.0)
     n = clear.sum(1)
-    in1 = inside(x1, y1) & torch.isfinite(v1).reshape(B, R + 1, N).all(1)
+    in1 = inside(x1, y1) & _finite_along(v1.reshape(B, R + 1, N), 1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
     sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
     ring = torch.stack([dx * sx, dy * sy], dim=-1).to(grey2.dtype).unsqueeze(1)  # (17, 1, 2)
@@ -159,8 +159,15 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
         kept = (order1 * (v2[:, 1:] - v2[:, :1]) > threshold).sum(1)
         dist = (n - kept).to(grey1.dtype) / n.clamp_min(1)
         # (a non-finite flow lies inside no image: its comparisons are False)
-        out.append((dist, n, in1 & inside(x2, y2) & torch.isfinite(v2).all(1)))
+        out.append((dist, n, in1 & inside(x2, y2) & _finite_along(v2, 1)))
     return out
+
+
+def _finite_along(x: Tensor, dim: int) -> Tensor:
+    """Whether every value of float ``x`` along ``dim`` is finite, by the largest magnitude there
+    (NaN propagates through ``amax``, an inf is its own maximum): on the CPU several times faster
+    than ``torch.isfinite(x).all(dim)``, whose bool reduction is slow."""
+    return x.abs().amax(dim) < math.inf
 
 
 def _mean_and_error(v: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
