@@ -432,12 +432,13 @@ def check_image_pair(image1: object, image2: object) -> dict[str, int]:
         raise ValueError(f"image1: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(image1.shape)}")
     return dims
 
+
 # -- estimation without autograd's bookkeeping ------------------------------------------------------
 #
 # The estimators run hundreds of small tensor operations per call and are not differentiable (their
 # results are detached). ``torch.inference_mode`` runs such code with less overhead per operation
 # than ``torch.no_grad`` (no version counters, no view tracking; python
-# benchmarks/bench_image_fit.py --baseline REV times a change). Its tensors, however, cannot be
+# benchmarks/bench_image_fit.py times fit_image both ways). Its tensors, however, cannot be
 # saved for backward or changed in place outside inference mode, so results leave
 # :func:`inference` as ordinary tensors.
 
