@@ -448,23 +448,32 @@ _F = TypeVar("_F", bound=Callable[..., Any])
 def ordinary(x: Any) -> Any:
     """``x`` with every inference tensor in it cloned into an ordinary one (outside inference
     mode): a tensor, or the tensors held by dicts, lists, tuples (named ones too) and dataclass
-    instances, recursively. Ordinary tensors, such as inputs passed through, stay themselves;
-    containers are rebuilt (the input is not changed)."""
+    instances, recursively. What holds no inference tensor stays itself (an input passed through,
+    a camera, which compares by identity); a container that holds one is rebuilt around the
+    clones (the input is not changed)."""
     if isinstance(x, Tensor):
         return x.clone() if x.is_inference() else x
     if isinstance(x, dict):
-        return type(x)((k, ordinary(v)) for k, v in x.items())
-    if isinstance(x, tuple):
+        items = {k: ordinary(v) for k, v in x.items()}
+        return x if _same(x.values(), items.values()) else type(x)(items)
+    if isinstance(x, (tuple, list)):
         items = [ordinary(v) for v in x]
+        if _same(x, items):
+            return x
         return type(x)(*items) if hasattr(x, "_fields") else type(x)(items)
-    if isinstance(x, list):
-        return [ordinary(v) for v in x]
     if dataclasses.is_dataclass(x) and not isinstance(x, type) and hasattr(x, "__dict__"):
+        items = {k: ordinary(v) for k, v in x.__dict__.items()}
+        if _same(x.__dict__.values(), items.values()):
+            return x
         # (not through __init__: its checks ran when the instance was made)
         out = object.__new__(type(x))
-        out.__dict__.update((k, ordinary(v)) for k, v in x.__dict__.items())
+        out.__dict__.update(items)
         return out
     return x
+
+
+def _same(before: Iterable[Any], after: Iterable[Any]) -> bool:
+    return all(a is b for a, b in zip(before, after))
 
 
 def inference(fn: _F) -> _F:

@@ -302,6 +302,12 @@ def test_ordinary_clones_inference_tensors_in_containers_and_keeps_the_rest():
     assert out["given"] is given and out["box"].items["g"] is given  # (inputs passed through stay themselves)
     assert isinstance(out["pair"], Pair) and out["pair"].b == 7 and out["list"][1] == "text"
     assert isinstance(out["box"], Box) and out["box"] is not x["box"] and x["box"].t is made  # (the input unchanged)
+    # what holds no inference tensor is returned itself, containers and dataclasses too (a camera
+    # compares by identity)
+    kept = Box(given, {"g": given})
+    assert ordinary(kept) is kept and ordinary(x)["box"].items is x["box"].items
+    plain = {"a": [given, (given, 1)], "b": kept}
+    assert ordinary(plain) is plain
 
 
 def test_inference_results_work_in_place_and_under_autograd():

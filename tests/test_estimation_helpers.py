@@ -242,6 +242,15 @@ def test_planar_start_leaves_out_non_finite_flow():
     assert torch.isnan(broken[0, 0, y0, x0])  # the caller's flow is not repaired in place
 
 
+def test_planar_start_carries_the_cameras_gradient():
+    # (the flow is detached, the camera is not: z_d = (z_d / h) h)
+    flow, mask, cam, truth = _small_flow()
+    height = torch.tensor([1.65], dtype=torch.float64, requires_grad=True)
+    got = planar_start(flow, mask, Camera(cam.K, height, cam.roll, cam.pitch))
+    got["z_d"].sum().backward()
+    assert float(height.grad) == pytest.approx(float(got["z_d"].detach()) / 1.65, rel=1e-12)
+
+
 def test_planar_start_batch_and_broadcast_mask():
     flow, mask, cam, truth = _small_flow()
     got = planar_start(torch.cat([flow, flow]), mask, cam.expand(2))  # (mask batch 1: broadcast)

@@ -438,3 +438,21 @@ def test_a_degenerate_plane_start_falls_back_for_its_frame_only(monkeypatch):
     assert fit.success.tolist() == [True, True]
     assert fit.params["z_d"][0] == alone.params["z_d"][0]
     assert float(fit.params["z_d"][1]) == pytest.approx(1.2, abs=1e-3)
+
+
+def test_cached_constants_are_ordinary_tensors_after_a_fit():
+    """The fits run in inference mode; the constants they cache for later calls are built outside
+    it (a cached inference tensor could not be saved for backward by a later differentiable call)."""
+    from fsof_torch.estimation import flow_fit
+    from fsof_torch.geometry import road_models
+
+    flow_fit._BASIS.clear()
+    road_models._CACHE.clear()
+    cam = kitti_camera(roll=0.01)
+    flow, valid = road_flow(cam.to(torch.float64), {"x_d": 0.05, "z_d": 1.1, "yaw": 0.01}, (96, 320), model="paper")
+    for model in ("paper", "plane"):
+        assert bool(fit_road(flow.float(), valid, cam, model=model).success.all())
+    cached = list(flow_fit._BASIS.values()) + [t for v in road_models._CACHE.values()
+                                               for t in (v if isinstance(v, tuple) else (v,))]
+    assert flow_fit._BASIS and cached
+    assert not any(isinstance(t, torch.Tensor) and t.is_inference() for t in cached)

@@ -161,3 +161,6 @@ def test_meta_device_estimation_is_data_dependent():
         refine_flow(**meta, odometry={"model": "plane", "z_d": 1.0}, images=meta_images)
     with pytest.raises(ValueError, match="camera: a camera on the meta device has shapes but no values to move"):
         refine_flow(pred, road, meta["camera"], odo)  # a meta camera beside real tensors
+    for given in (meta_images, None):  # (the road found in the images, or in the flow without them)
+        with pytest.raises(ValueError, match=r"flow: a tensor on the meta device .* to find the road in \(mask='auto'"):
+            refine_flow(meta["flow"], "auto", meta["camera"], images=given)

@@ -48,6 +48,38 @@ def test_census_ring_distance_against_a_loop(threshold):
 
 
 
+def test_census_ring_compares_image_2_in_its_own_dtype():
+    """A float16 image 2 beside a float32 image 1: image 2's differences are compared with the
+    threshold in float16 (the threshold rounded as they are), as the ternary census of image 2
+    alone would: the reference samples image 2 on the same corner-aligned grid and orders its
+    ring by sign and threshold in its dtype."""
+    # (image 2 dim, 0 to 4 grey levels: its float16 differences fall on the threshold's own value)
+    g1, g2 = _texture(seed=1), (_texture(seed=2) / 64).half()
+    g = torch.Generator().manual_seed(4)
+    x = torch.randint(5, 180, (1, 2000), generator=g).float()
+    y = torch.randint(5, 84, (1, 2000), generator=g).float()
+    flow = torch.rand(1, 2, 2000, generator=g) * 4 - 2
+    threshold = 2.05  # (2.05078125 in float16)
+    dist, n, _ = census_ring_distance(g1, g2, x, y, flow, threshold=threshold)
+    dx, dy = (torch.tensor([0] + [d[k] for d in RING]) for k in (0, 1))
+    v1 = g1[0, 0][(y.long() + dy.unsqueeze(-1)), (x.long() + dx.unsqueeze(-1))]  # (17, N)
+    d1 = v1[1:] - v1[:1]
+    sx, sy = 2.0 / (192 - 1), 2.0 / (96 - 1)
+    centre = torch.stack([(x + flow[:, 0]) * sx - 1.0, (y + flow[:, 1]) * sy - 1.0], dim=-1).half()
+    ring = torch.stack([dx * sx, dy * sy], dim=-1).half().unsqueeze(1)
+    v2 = F.grid_sample(g2, (centre.unsqueeze(1) + ring).reshape(1, 1, -1, 2), mode="bilinear",
+                       padding_mode="border", align_corners=True).reshape(17, -1)
+    d2 = v2[1:] - v2[:1]
+    t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
+    clear = d1.abs() > threshold
+    want = ((torch.sign(d1) != t2) & clear).sum(0).float() / clear.sum(0).clamp_min(1)
+    assert torch.equal(n[0], clear.sum(0))
+    assert torch.equal(dist[0], want)
+    # (the case is one where the dtype matters: compared in float32 some points would differ)
+    t32 = torch.where(d2.float().abs() > threshold, torch.sign(d2.float()), 0.0)
+    assert not torch.equal(((torch.sign(d1) != t32) & clear).sum(0).float() / clear.sum(0).clamp_min(1), want)
+
+
 def test_census_ring_reads_image_1_at_whole_pixels():
     g1, g2 = _texture(seed=1), _texture(seed=2)
     x, y = torch.tensor([[10.0, 50.0]]), torch.tensor([[20.0, 40.0]])
@@ -413,6 +445,8 @@ def test_gate_and_estimates_return_ordinary_tensors():
         assert not any(t.is_inference() for t in found), name
         for t in found:  # (a view made in inference mode would refuse this too)
             t.copy_(t.clone())
+    # (objects passed in come back themselves: a camera compares by identity)
+    assert detect_road(I1, I2, cam, motion=results["fit_image"]).motion is results["fit_image"]
     fit = results["fit_image"]
     w = torch.ones((), requires_grad=True)
     (w * fit.flow).sum().backward()

@@ -198,17 +198,17 @@ _BASIS: dict = {}
 def _moment_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
     """(24, 81): Jᵀ W J in M's entries (9 × 9) from the four moment sums (4 × 6): blocks
     [[S0, 0, −S1], [0, S0, −S2], [−S1, −S2, S3]], each S_k symmetric from (uu, uv, vv, u, v, 1)."""
-    key = (dtype, device)
-    if key not in _BASIS:
+    if (key := (dtype, device)) not in _BASIS:
         sym = ((0, 1, 3), (1, 2, 4), (3, 4, 5))
         blocks = {(0, 0): (0, 1.0), (1, 1): (0, 1.0), (0, 2): (1, -1.0), (2, 0): (1, -1.0),
                   (1, 2): (2, -1.0), (2, 1): (2, -1.0), (2, 2): (3, 1.0)}
-        ah = torch.zeros(24, 81, dtype=dtype)
-        for (bi, bj), (k, sign) in blocks.items():
-            for i in range(3):
-                for j in range(3):
-                    ah[6 * k + sym[i][j], (3 * bi + i) * 9 + 3 * bj + j] = sign
-        _BASIS[key] = ah.to(device)
+        with torch.inference_mode(False):  # (the fits run in inference mode; a cached constant must not)
+            ah = torch.zeros(24, 81, dtype=dtype)
+            for (bi, bj), (k, sign) in blocks.items():
+                for i in range(3):
+                    for j in range(3):
+                        ah[6 * k + sym[i][j], (3 * bi + i) * 9 + 3 * bj + j] = sign
+            _BASIS[key] = ah.to(device)
     return _BASIS[key]
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import batch_choices, check_float_tensor, check_has_values, check_int, check_mask, check_shape, inference
+from .._check import batch_choices, check_float_tensor, check_has_values, check_int, check_mask, check_shape
 from ..geometry.camera import Camera, mounting_matrix
 from .sampling import gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, Solution, solve, spd_solve
@@ -139,7 +139,6 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
     return torch.where(good[:, None, None], H, eye)
 
 
-@inference
 def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048) -> dict[str, Tensor]:
     """A quick start from a predicted flow: x_d, z_d, yaw (B,) of the planar motion of its
     back-projected road points (:func:`planar_motion`, robust), at the camera's roll and pitch;

@@ -381,6 +381,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = _check_images(images, finest)
+        if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
+            check_has_values(finest, "flow", "to find the road in (mask='auto'; give a mask tensor instead)")
         # (the options are checked before the detection, also where it estimates nothing itself)
         chosen = select_estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
         return refine_with_auto_road(

@@ -156,7 +156,10 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
         at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
         v2 = F.grid_sample(grey2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
                            align_corners=True).reshape(B, R + 1, N)
-        kept = (order1 * (v2[:, 1:] - v2[:, :1]) > threshold).sum(1)
+        # (in image 2's dtype, as its own differences are compared with the threshold: ±1 and 0
+        # are exact in any dtype, and so is the product)
+        d2 = v2[:, 1:] - v2[:, :1]
+        kept = (order1.to(d2.dtype) * d2 > threshold).sum(1)
         dist = (n - kept).to(grey1.dtype) / n.clamp_min(1)
         # (a non-finite flow lies inside no image: its comparisons are False)
         out.append((dist, n, in1 & inside(x2, y2) & _finite_along(v2, 1)))
