@@ -168,10 +168,20 @@ def _wrong_at(true, pixels):
     return wrong
 
 
+def _block_error(delta, x, y, block=16):
+    """The standard error of the mean of ``delta`` (n,) at pixels (x, y) from the sums of its
+    16 x 16 pixel blocks: sum_b (S_b - n_b mean)^2 / n^2 times G / (G - 1), G blocks holding
+    points (0 for a single block)."""
+    _, b = np.unique(np.stack([y // block, x // block]), axis=1, return_inverse=True)
+    S = np.bincount(b.ravel(), weights=delta - delta.mean())
+    G = S.size
+    return np.sqrt((S ** 2).sum() / delta.size ** 2 * G / max(G - 1, 1))
+
+
 def _mean_and_standard_error(g1, g2, mask, prediction, model):
     """The mean of d_model − d_pred (census_ring_distance) over the mask's points that count (in
-    both images for both flows, at least 4 clear neighbours) and its standard error std / sqrt(n),
-    with the costs of both flows."""
+    both images for both flows, at least 4 clear neighbours) and its standard error: the larger of
+    std / sqrt(n) and the blocks' (:func:`_block_error`), with the costs of both flows."""
     W = g1.shape[-1]
     pix = mask.reshape(-1).nonzero().squeeze(1)
     x, y = (pix % W).float()[None], torch.div(pix, W, rounding_mode="floor").float()[None]
@@ -179,7 +189,8 @@ def _mean_and_standard_error(g1, g2, mask, prediction, model):
     d_model, _, ok_model = census_ring_distance(g1, g2, x, y, model.reshape(1, 2, -1)[:, :, pix])
     count = (ok_pred & ok_model & (n >= 4))[0]
     delta = (d_model - d_pred)[0, count].double().numpy()
-    se = delta.std() / np.sqrt(delta.size)
+    se = max(delta.std() / np.sqrt(delta.size),
+             _block_error(delta, x[0, count].long().numpy(), y[0, count].long().numpy()))
     return delta.mean(), se, float(d_model[0, count].mean()), float(d_pred[0, count].mean())
 
 
@@ -220,6 +231,31 @@ def test_the_z_test_decides_whether_a_slightly_better_model_is_confirmed():
         out = ImageGate(z=z, objects=False, points=20000)(g1, g2, prediction, true, mask)
         assert bool(out.confirmed.all()) == confirmed, z
         assert bool(out.model_used.all()) and bool(out.use_model[mask].all())
+
+def test_evidence_from_one_patch_counts_as_its_blocks_not_its_points():
+    """The prediction is wrong in one patch of 16 x 32 pixels (two of the standard error's
+    blocks) and exact elsewhere, as is the model. Its many points there would make the model's
+    advantage significant at z = 2 as independent points (computed here), but neighbouring points
+    share their census rings and image content: the blocks' error is the larger one, and at z = 2
+    the model is not confirmed; at z = 1 it is (both from the reference here)."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:-8] = True
+    prediction = true.clone()
+    prediction[..., 32:48, 64:96] += torch.tensor([4.0, -3.0]).reshape(1, 2, 1, 1)
+    mean, se, _, _ = _mean_and_standard_error(g1, g2, mask, prediction, true)
+    pix = mask.reshape(-1).nonzero().squeeze(1)
+    x, y = (pix % 192).float()[None], torch.div(pix, 192, rounding_mode="floor").float()[None]
+    d_pred, n, ok_pred = census_ring_distance(g1, g2, x, y, prediction.reshape(1, 2, -1)[:, :, pix])
+    d_model, _, ok_model = census_ring_distance(g1, g2, x, y, true.reshape(1, 2, -1)[:, :, pix])
+    delta = (d_model - d_pred)[0, (ok_pred & ok_model & (n >= 4))[0]].double().numpy()
+    assert -mean > 2 * delta.std() / np.sqrt(delta.size)  # significant as independent points
+    assert -mean < 2 * se and -mean > 1 * se
+    for z, confirmed in ((2.0, False), (1.0, True)):
+        out = ImageGate(z=z, objects=False, points=20000)(g1, g2, prediction, true.clone(), mask)
+        assert bool(out.confirmed.all()) == confirmed, z
+        assert bool(out.informative.all()) and bool(out.model_used.all())
+
 
 def _object_pair():
     """The textured pair with an object of 20 x 24 pixels moving by (-2, 0), image2 showing it
@@ -451,3 +487,28 @@ def test_gate_and_estimates_return_ordinary_tensors():
     w = torch.ones((), requires_grad=True)
     (w * fit.flow).sum().backward()
     assert w.grad is not None
+
+
+def test_mean_and_error_from_blocks_against_numpy():
+    """Per frame of a batch, over the points of weight 1 only: the mean and the larger of the
+    points' and the blocks' standard errors (:func:`_block_error`, written apart); a frame whose
+    points all lie in one block has the points' error."""
+    from fsof_torch.refinement.gate import _mean_and_error
+
+    g = torch.Generator().manual_seed(5)
+    B, N, cols = 3, 400, 12
+    v = torch.rand(B, N, generator=g, dtype=torch.float64)
+    w = (torch.rand(B, N, generator=g) < 0.8).double()
+    x, y = torch.randint(0, cols * 16, (B, N), generator=g), torch.randint(0, 64, (B, N), generator=g)
+    x[2], y[2] = x[2] % 16, y[2] % 16  # frame 2: one block
+    v[1] += (x[1] // 16 % 2) * 0.5  # frame 1: blocks of two levels (their error is the larger)
+    block = (y // 16) * cols + x // 16
+    mean, se = _mean_and_error(v, w, block, 4 * cols)
+    for b in range(B):
+        keep = w[b].bool().numpy()
+        d, xb, yb = v[b].numpy()[keep], x[b].numpy()[keep], y[b].numpy()[keep]
+        points = d.std() / np.sqrt(d.size)
+        assert float(mean[b]) == pytest.approx(d.mean(), rel=1e-12)
+        assert float(se[b]) == pytest.approx(max(points, _block_error(d, xb, yb)), rel=1e-9)
+    assert float(se[1]) > 1.5 * float(v[1][w[1].bool()].std() / np.sqrt(float(w[1].sum())))
+    assert float(se[2]) == pytest.approx(float(_mean_and_error(v, w)[1][2]), rel=1e-12)

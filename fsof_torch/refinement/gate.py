@@ -13,7 +13,11 @@ errors of the difference (the model is the physically constrained estimate; the 
 to be clearly better) and the prediction explains the cell itself (its mean distance at most
 ``occlusion``: where neither flow does, the road is occluded in image 2 or the content is new,
 and the model's geometry is the better guess); so does every cell of a sample where that holds
-over the whole mask. Cells with too few points follow their sample's decision.
+over the whole mask. Cells with too few points follow their sample's decision. Over a sample's
+whole mask the standard error is the larger of the points' own and one from the sums of 16 x 16
+pixel blocks of points (neighbouring points' rings overlap and image content is correlated: they
+are not independent evidence); the cells and object regions take their points' own, which errs
+toward keeping the prediction.
 
 A sample is *confirmed* when over its whole mask the model explains the images better than the
 prediction by more than ``z`` standard errors, and *informative* when at least one of the two
@@ -48,6 +52,10 @@ __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
 _RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
          (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
 _MAX_OBJECT_PX = 1e6
+# the side (pixels) of the square blocks over which a sample's mean difference takes its standard
+# error: twice a point's footprint (the ring's diameter, and the pixel that bilinear sampling adds),
+# so that points whose census rings overlap mostly share a block
+_BLOCK = 2 * (2 * max(max(abs(dx), abs(dy)) for dx, dy in _RING) + 2)
 
 
 class GateResult(NamedTuple):
@@ -173,13 +181,27 @@ def _finite_along(x: Tensor, dim: int) -> Tensor:
     return x.abs().amax(dim) < math.inf
 
 
-def _mean_and_error(v: Tensor, w: Tensor) -> tuple[Tensor, Tensor]:
+def _mean_and_error(v: Tensor, w: Tensor, block: Tensor | None = None, blocks: int = 0) -> tuple[Tensor, Tensor]:
     """The weighted mean of ``v`` (B, N) over points of weight ``w`` (0 or 1) and its standard
-    error (B,) each."""
+    error (B,) each.
+
+    With ``block`` (B, N) int64, each point's block (of ``blocks``), the error is also estimated
+    from the blocks' sums (a cluster-robust error: points whose census footprints overlap, or whose
+    images are correlated, are not independent evidence), and the larger of the two is returned.
+    With G blocks holding points, the blocks' estimate is sum_b (S_b - n_b mean)^2 / n^2 times
+    G / (G - 1), S_b and n_b the block's weighted sum and weight; a single block gives 0 (the
+    points' estimate then stands)."""
     n = w.sum(1).clamp_min(1)
     mean = (v * w).sum(1) / n
-    var = ((v.square() * w).sum(1) / n - mean.square()).clamp_min(0)
-    return mean, (var / n).sqrt()
+    var = ((v.square() * w).sum(1) / n - mean.square()).clamp_min(0) / n
+    if block is not None:
+        def per_block(x: Tensor) -> Tensor:
+            return torch.zeros(v.shape[0], blocks, dtype=v.dtype, device=v.device).scatter_add_(1, block, x)
+
+        G = (per_block(w) > 0).sum(1)
+        clustered = per_block((v - mean.unsqueeze(1)) * w).square().sum(1) / n.square() * G / (G - 1).clamp_min(1)
+        var = torch.maximum(var, clustered)
+    return mean, var.sqrt()
 
 
 class ImageGate:
@@ -194,7 +216,8 @@ class ImageGate:
         points: mask pixels per sample that are judged (an even subsample).
         min_points: a cell with fewer points follows its sample's decision.
         margin, z: the model may be worse than the prediction by ``margin`` census distance plus
-            ``z`` standard errors of the difference and still be used.
+            ``z`` standard errors of the difference and still be used (over a sample's mask, the
+            errors from blocks of points where larger: see the module).
         occlusion: the prediction's mean distance above which it does not explain a cell either.
         temperature: the census difference over which the confidence evidence goes from 0.27 to
             0.73 (a logistic of (prediction − model) / temperature).
@@ -279,7 +302,11 @@ class ImageGate:
         # the prediction is kept only where it explains the images itself: where neither flow
         # does (occluded in image 2, new content), the model's geometry is the better guess
         # (no textured point at all is no evidence against the model either)
-        mean_all, se_all = _mean_and_error(delta, w)
+        # (the standard error from blocks of points: neighbouring points are not independent)
+        rows, cols = math.ceil(H / _BLOCK), math.ceil(W / _BLOCK)
+        block = torch.div(pts.pix, W * _BLOCK, rounding_mode="floor") * cols \
+            + torch.div(pts.pix % W, _BLOCK, rounding_mode="floor")
+        mean_all, se_all = _mean_and_error(delta, w, block, rows * cols)
         model_used = ~((mean_all > self.margin + self.z * se_all) & (cost_pred <= self.occlusion))
         # confirmed: the model better by z standard errors (no margin: the images decide)
         confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
