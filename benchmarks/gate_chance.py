@@ -4,18 +4,18 @@ Image 1 is a smooth random texture (96 × 192, grey levels 0..255); image 2 an u
 of the same kind, so no flow explains the pair. The prediction is a constant 3 px to the right,
 the model the same plus a flow error that varies smoothly over the image (up to ``--error`` px,
 as a network's does). Over ``--draws`` draws (each of both textures and of the error), per
-``z``: the number of draws whose images *confirm* the model (``out.confirmed``: the model better than the
-prediction over the mask by ``z`` standard errors) and whose model is used anywhere. Under
-independent points a one-sided test at z = 2 errs in about 2 % of draws; the judged points'
-census rings overlap and the textures are correlated over several pixels, so the gate takes a
-sample's standard error from blocks of points. The last two columns give the same counts with
-the points' own standard error alone (as if they were independent: the gate's blocks switched
-off for the comparison)
+``z``: the number of draws whose images *confirm* the model (``out.confirmed``: the model better
+than the prediction over the mask by ``z`` standard errors) and whose model is used anywhere.
+Under independent points a one-sided test at z = 2 errs in about 2 % of draws; the judged
+points' census rings overlap and the textures are correlated over several pixels, so the gate
+takes a sample's standard error from blocks of points. The last two columns give the same
+counts with the points' own standard error alone (as if they were independent: the gate's
+blocks switched off for the comparison)
 ([refinement.md](../docs/refinement.md#the-gate-never-worse-than-the-prediction-where-the-images-can-tell)).
 
     python benchmarks/gate_chance.py [--draws 100] [--error 2.0]
 
-One thread, a few seconds.
+One thread, about ten seconds.
 """
 
 from __future__ import annotations
@@ -61,7 +61,8 @@ def main(argv: list[str] | None = None) -> int:
     from cli import description, finite_float, positive_int
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--draws", type=positive_int, default=100, help="draws of the textures and the model's error (default 100)")
+    parser.add_argument("--draws", type=positive_int, default=100,
+                        help="draws of the textures and the model's error (default 100)")
     parser.add_argument("--error", type=finite_float, default=2.0, help="the model's largest error, px (default 2)")
     args = parser.parse_args(argv)
     if args.error <= 0:

@@ -232,6 +232,7 @@ def test_the_z_test_decides_whether_a_slightly_better_model_is_confirmed():
         assert bool(out.confirmed.all()) == confirmed, z
         assert bool(out.model_used.all()) and bool(out.use_model[mask].all())
 
+
 def test_evidence_from_one_patch_counts_as_its_blocks_not_its_points():
     """The prediction is wrong in one patch of 16 x 32 pixels (two of the standard error's
     blocks) and exact elsewhere, as is the model. Its many points there would make the model's
