@@ -299,14 +299,15 @@ class ImageGate:
         n_all = w.sum(1)
         cost_pred = (d_pred * w).sum(1) / n_all.clamp_min(1)
         cost_model = (d_model * w).sum(1) / n_all.clamp_min(1)
-        # the prediction is kept only where it explains the images itself: where neither flow
-        # does (occluded in image 2, new content), the model's geometry is the better guess
-        # (no textured point at all is no evidence against the model either)
-        # (the standard error from blocks of points: neighbouring points are not independent)
+        # the mean difference's standard error also from blocks of points (neighbouring points
+        # are not independent evidence)
         rows, cols = math.ceil(H / _BLOCK), math.ceil(W / _BLOCK)
         block = torch.div(pts.pix, W * _BLOCK, rounding_mode="floor") * cols \
             + torch.div(pts.pix % W, _BLOCK, rounding_mode="floor")
         mean_all, se_all = _mean_and_error(delta, w, block, rows * cols)
+        # the prediction is kept only where it explains the images itself: where neither flow
+        # does (occluded in image 2, new content), the model's geometry is the better guess
+        # (no textured point at all is no evidence against the model either)
         model_used = ~((mean_all > self.margin + self.z * se_all) & (cost_pred <= self.occlusion))
         # confirmed: the model better by z standard errors (no margin: the images decide)
         confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
