@@ -513,3 +513,39 @@ def test_mean_and_error_from_blocks_against_numpy():
         assert float(se[b]) == pytest.approx(max(points, _block_error(d, xb, yb)), rel=1e-9)
     assert float(se[1]) > 1.5 * float(v[1][w[1].bool()].std() / np.sqrt(float(w[1].sum())))
     assert float(se[2]) == pytest.approx(float(_mean_and_error(v, w)[1][2]), rel=1e-12)
+
+
+def test_the_gate_takes_each_points_block_by_row_and_column(monkeypatch):
+    """The standard error the gate uses over a sample's mask is the reference's (the larger of
+    the points' and the 16 x 16 px blocks' errors, :func:`_block_error`) on a frame of 53 x 77
+    pixels (neither side a multiple of 16, more block columns than rows, the masks reaching the
+    first and last columns of blocks) whose mask leaves a column of blocks empty; each frame of a
+    batch of two (different masks) alone."""
+    from fsof_torch.refinement import gate as gate_module
+
+    H, W = 53, 77
+    g1 = _texture(H, W, seed=3)
+    g2 = torch.roll(g1, shifts=3, dims=-1)
+    true = torch.zeros(1, 2, H, W)
+    true[:, 0] = 3.0
+    prediction = true + _smooth_noise(2.0, seed=4, H=H, W=W)
+    masks = torch.zeros(2, 1, H, W, dtype=torch.bool)
+    masks[0, :, 5:50] = True
+    masks[0, :, :, 32:48] = False  # (the third column of blocks empty)
+    masks[1, :, 10:53, 0:70] = True
+    seen = []
+    blocked = gate_module._mean_and_error
+
+    def spy(v, w, *blocks):
+        mean, se = blocked(v, w, *blocks)
+        seen.append((mean, se))
+        return mean, se
+
+    monkeypatch.setattr(gate_module, "_mean_and_error", spy)
+    ImageGate(objects=False, points=20000)(g1.expand(2, -1, -1, -1), g2.expand(2, -1, -1, -1),
+                                           prediction.expand(2, -1, -1, -1), true.expand(2, -1, -1, -1), masks)
+    (mean, se), = seen
+    for b in range(2):
+        ref_mean, ref_se, _, _ = _mean_and_standard_error(g1, g2, masks[b:b + 1], prediction, true)
+        assert float(mean[b]) == pytest.approx(ref_mean, rel=1e-5)
+        assert float(se[b]) == pytest.approx(ref_se, rel=1e-4)
