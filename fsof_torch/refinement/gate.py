@@ -181,6 +181,12 @@ def _finite_along(x: Tensor, dim: int) -> Tensor:
     return x.abs().amax(dim) < math.inf
 
 
+def _sum_by(index: Tensor, v: Tensor, n: int) -> Tensor:
+    """(B, n): the sums of ``v`` (B, N) over the points of each group, ``index`` (B, N) int64 in
+    [0, n)."""
+    return torch.zeros(v.shape[0], n, dtype=v.dtype, device=v.device).scatter_add_(1, index, v)
+
+
 def _mean_and_error(v: Tensor, w: Tensor, block: Tensor | None = None, blocks: int = 0) -> tuple[Tensor, Tensor]:
     """The weighted mean of ``v`` (B, N) over points of weight ``w`` (0 or 1) and its standard
     error (B,) each.
@@ -196,7 +202,7 @@ def _mean_and_error(v: Tensor, w: Tensor, block: Tensor | None = None, blocks: i
     var = ((v.square() * w).sum(1) / n - mean.square()).clamp_min(0) / n
     if block is not None:
         def per_block(x: Tensor) -> Tensor:
-            return torch.zeros(v.shape[0], blocks, dtype=v.dtype, device=v.device).scatter_add_(1, block, x)
+            return _sum_by(block, x, blocks)
 
         G = (per_block(w) > 0).sum(1)
         clustered = per_block((v - mean.unsqueeze(1)) * w).square().sum(1) / n.square() * G / (G - 1).clamp_min(1)
@@ -366,7 +372,7 @@ class ImageGate:
             at = at.to(pts.pix.device)  # each point's region (0: the flows agree)
 
             def per_region(v: Tensor) -> Tensor:
-                return torch.zeros(B, L, dtype=v.dtype, device=v.device).scatter_add_(1, at, v)
+                return _sum_by(at, v, L)
 
             n = per_region(w)
             diff = per_region(delta * w) / n.clamp_min(1)
@@ -389,7 +395,7 @@ class ImageGate:
         cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
 
         def per_cell(v: Tensor) -> Tensor:
-            return torch.zeros(B, rows * cols, dtype=v.dtype, device=v.device).scatter_add_(1, cell, v)
+            return _sum_by(cell, v, rows * cols)
 
         n = per_cell(w)
         diff = per_cell(delta * w) / n.clamp_min(1)  # > 0: the prediction explains the cell better
