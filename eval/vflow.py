@@ -288,6 +288,7 @@ def run(args: argparse.Namespace) -> int:
     info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
                      "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
                      "inlier_rows": int(curve.row_inliers[0].sum()), "used_rows": int((curve.row_support[0] > 0).sum()),
+                     "nfa": float(curve.nfa[0]),
                      "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
                      "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,
                      "mean_abs_fv_error_road": float(err[on_road].mean())
@@ -327,7 +328,8 @@ def run(args: argparse.Namespace) -> int:
 
     c = info["curve"]
     print(f"\nV-flow curve ({args.model}): a = {c['a']:.6e} 1/{'px' if args.model == 'displacement' else '(px s)'}, "
-          f"v0 = {c['v0']:.3f} px, success {c['success']}, inlier rows {c['inlier_rows']}/{c['used_rows']}")
+          f"v0 = {c['v0']:.3f} px, success {c['success']}, inlier rows {c['inlier_rows']}/{c['used_rows']}, "
+          f"false alarms {c['nfa']:.2g}")
     if camera is not None:
         name = "z_d_m" if args.model == "displacement" else "speed_mps"
         print(f"  {name}: fitted {c[name]:.4f}, true {c[name + '_true']:.4f}; horizon row: fitted {c['v0']:.3f}, "

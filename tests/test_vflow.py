@@ -295,6 +295,43 @@ class TestFitVFlowCurve:
         curve = fit_vflow_curve(flow, valid)
         torch.testing.assert_close(curve.scale(cam), torch.tensor([1.0], dtype=torch.float64), atol=0, rtol=1e-6)
 
+    def test_random_flow_is_no_curve(self):
+        """Noise draws no road: the curve RANSAC finds through a few of its rows is no more than
+        chance gives (fit_vflow_curve succeeded on 13 of these 15 frames while its only bar was 5
+        inlier rows), and only the chance bar rejects them."""
+        g = torch.Generator().manual_seed(0)
+        amplitude = torch.tensor([1.0, 2.0, 5.0, 10.0, 20.0]).repeat(3).reshape(15, 1, 1, 1)
+        flow = (2 * torch.rand(15, 2, 96, 320, generator=g) - 1) * amplitude
+        curve = fit_vflow_curve(flow)
+        assert not curve.success.any()
+        assert (curve.nfa >= 1).all()
+        lenient = fit_vflow_curve(flow, max_false_alarms=1e30)
+        assert lenient.success.sum() >= 10 and torch.equal(lenient.row_inliers, curve.row_inliers)
+        assert not detect_freespace(flow, _camera(torch.float32)).any()
+
+    def test_false_alarms_against_the_binomial_tail(self):
+        """``nfa`` = C(n, 3) P(Binomial(n - 3, p) >= k - 3), written out with math.comb, with p the
+        mean share of the usable rows' values inside each row's band around the curve."""
+        import math
+
+        cam, flow, valid = _straight(z_d=2.0, size=(48, 16))
+        flow = flow.clone()
+        g = torch.Generator().manual_seed(2)
+        noise_rows = torch.arange(18, 48, 2)        # every second road row replaced by a random value
+        flow[0, 1, noise_rows] = (30 * torch.rand(len(noise_rows), 1, generator=g, dtype=torch.float64)).expand(-1, 16)
+        curve = fit_vflow_curve(flow, valid)
+        assert bool(curve.success)
+        y, usable, inl = curve.row_value[0].tolist(), (curve.row_support[0] >= 3).tolist(), curve.row_inliers[0]
+        f = vflow_curve_model(torch.arange(48, dtype=torch.float64), curve.a, curve.v0).tolist()
+        thr = [max(0.5, 0.05 * abs(value)) for value in y]
+        rows = [v for v in range(48) if usable[v]]
+        n, k = len(rows), int(inl.sum())
+        p = sum(sum(abs(y[j] - f[v]) <= thr[j] for j in rows) / n for v in rows) / n
+        tail = sum(math.comb(n - 3, i) * p**i * (1 - p) ** (n - 3 - i) for i in range(k - 3, n - 2))
+        expected = math.comb(n, 3) * tail
+        assert 1e-12 < expected < 1, "the case should test a moderate number of false alarms"
+        assert float(curve.nfa) == pytest.approx(expected, rel=1e-9)
+
     def test_errors(self):
         flow = torch.zeros(1, 2, 8, 9)
         with pytest.raises(ValueError, match="model: expected one of"):
@@ -303,6 +340,9 @@ class TestFitVFlowCurve:
             fit_vflow_curve(flow, hypotheses=0)
         with pytest.raises(ValueError, match="inlier_threshold: expected a finite number"):
             fit_vflow_curve(flow, inlier_threshold=float("nan"))
+        for bad in (0, -1.0, float("inf"), True, "1"):
+            with pytest.raises(ValueError, match=rf"^max_false_alarms: expected a finite number > 0, got {bad!r}$"):
+                fit_vflow_curve(flow, max_false_alarms=bad)
         with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
             fit_vflow_curve(flow).scale("camera")
 

@@ -21,6 +21,7 @@ rows are indexed by the pixel-centre coordinate v = 0 … H-1; masks (B, 1, H, W
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -241,9 +242,14 @@ class VFlowCurve:
             undefined).
         fitted_valid: (B, 1, H, W) bool, where the curve is defined (below v0).
         residual: (B,) mean absolute row residual over the inlier rows (flow unit).
-        success: (B,) bool: finite parameters from enough inlier rows, on a curve that is
-            determined: a ≠ 0 and the curve beyond the row threshold on at least one inlier row
-            (flow without curvature, e.g. none at all, leaves the horizon v0 arbitrary).
+        nfa: (B,) the curve's number of false alarms: how many curves would be expected to
+            gather as many inlier rows by chance, were the usable rows' values shuffled
+            (a-contrario, as in ORSA; 1 with fewer than 3 usable rows, which draw no curve).
+            Near 0 for a road; 1 or more for noise.
+        success: (B,) bool: finite parameters from enough inlier rows, more than chance gives
+            (``nfa`` below ``max_false_alarms``), on a curve that is determined: a ≠ 0 and the
+            curve beyond the row threshold on at least one inlier row (flow without curvature,
+            e.g. none at all, leaves the horizon v0 arbitrary).
     """
 
     model: str
@@ -255,6 +261,7 @@ class VFlowCurve:
     fitted: Tensor
     fitted_valid: Tensor
     residual: Tensor
+    nfa: Tensor
     success: Tensor
 
     def scale(self, camera: Camera) -> Tensor:
@@ -268,7 +275,8 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
                     statistic: str = "peak", bins: int = 256, max_flow: float | None = None,
                     min_row_pixels: int = 3, inlier_threshold: float = 0.5,
                     relative_threshold: float = 0.05, hypotheses: int = 256,
-                    iterations: int = 20, min_inlier_rows: int = 5, seed: int = 0) -> VFlowCurve:
+                    iterations: int = 20, min_inlier_rows: int = 5, max_false_alarms: float = 1.0,
+                    seed: int = 0) -> VFlowCurve:
     """Robust fit of the eq. 24 curve to the per-row dominant vertical flow.
 
     Each row contributes one value (:func:`row_dominant_flow`: the V-flow map's peak or the row
@@ -291,6 +299,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         hypotheses: number of RANSAC samples per frame.
         iterations: Gauss–Newton iterations.
         min_inlier_rows: fewer inlier rows mark the frame as failed.
+        max_false_alarms: the a-contrario bar on chance (``nfa`` in :class:`VFlowCurve`): a curve
+            that this many or more curves would match as well on rows whose values were
+            shuffled fails. The default 1 is the usual a-contrario choice; lower is stricter.
         seed: an int with 0 <= seed < 2**64 (a torch.Generator's seeds), seeding the RANSAC
             sampling (same call, same result); each frame's draws depend only on its own rows
             and the seed (a frame gets in a batch what it gets alone).
@@ -316,6 +327,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
         if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
             raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
+    if isinstance(max_false_alarms, bool) or not (isinstance(max_false_alarms, (int, float))
+                                                  and 0 < float(max_false_alarms) < float("inf")):
+        raise ValueError(f"max_false_alarms: expected a finite number > 0, got {max_false_alarms!r}")
     seed = check_int(seed, "seed")
     if not 0 <= seed < 2**64:  # a Generator's range; a negative seed would alias a large one
         raise ValueError(f"seed: expected an int with 0 <= seed < 2**64, got {seed!r}")
@@ -345,7 +359,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     # a curve within the row threshold of 0 on every inlier row (a = 0: no motion, no curvature)
     # explains them no better than no curve: its horizon v0 is arbitrary
     drawn = (a != 0) & (inl & (f.abs() > thr)).any(-1)
-    success = (n_inl >= min_inlier_rows) & drawn & torch.isfinite(a) & torch.isfinite(v0)
+    nfa = _false_alarms(y, f, thr, usable, n_inl)
+    success = ((n_inl >= min_inlier_rows) & (nfa < max_false_alarms) & drawn
+               & torch.isfinite(a) & torch.isfinite(v0))
     a = torch.where(success, a, torch.zeros_like(a))
     v0 = torch.where(success, v0, torch.zeros_like(v0))
     fitted, _, _, ok = _curve(v, a.unsqueeze(-1), v0.unsqueeze(-1), model)
@@ -354,7 +370,33 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     ok = ok.reshape(B, 1, H, 1).expand(B, 1, H, W)
     return VFlowCurve(model=model, a=a.to(out_dtype), v0=v0.to(out_dtype), row_value=value,
                       row_support=support, row_inliers=inl, fitted=fitted, fitted_valid=ok,
-                      residual=residual.to(out_dtype), success=success)
+                      residual=residual.to(out_dtype), nfa=nfa.to(out_dtype), success=success)
+
+
+def _false_alarms(y: Tensor, f: Tensor, thr: Tensor, usable: Tensor, inliers: Tensor) -> Tensor:
+    """The curve's number of false alarms (a-contrario; Moisan and Stival's ORSA), (B,).
+
+    The null hypothesis: the usable rows' values in a random order. Under it row v is an inlier
+    with probability p_v, the share of the usable rows' values y_j inside row v's band around the
+    curve (``|y_j - f_v| <= thr_j``, the inlier test applied to y_j). A curve is drawn through 3
+    rows, so the count beyond them is at most Binomial(n - 3, mean p_v) in its upper tail
+    (Hoeffding 1956: of the sums of independent Bernoulli variables with one mean, the binomial
+    has the heaviest tail beyond the mean plus one), and C(n, 3) curves can be drawn:
+    NFA = C(n, 3) · P(Binomial(n - 3, p) >= k - 3), with n usable rows and k inliers.
+    """
+    B, H = y.shape
+    band = (y.unsqueeze(1) - f.unsqueeze(2)).abs() <= thr.unsqueeze(1)          # (B, v, j)
+    n = usable.sum(-1).double()
+    p_row = (band & usable.unsqueeze(1)).sum(-1).double() / n.clamp_min(1).unsqueeze(-1)
+    p = (torch.where(usable, p_row, torch.zeros_like(p_row)).sum(-1) / n.clamp_min(1)).clamp(0, 1)
+    trials = (n - 3).clamp_min(0).unsqueeze(-1)
+    j = torch.arange(H + 1, dtype=torch.float64, device=y.device).expand(B, H + 1)
+    log_pmf = (torch.lgamma(trials + 1) - torch.lgamma(j + 1) - torch.lgamma((trials - j).clamp_min(0) + 1)
+               + torch.special.xlogy(j, p.unsqueeze(-1)) + torch.special.xlog1py(trials - j, -p.unsqueeze(-1)))
+    tail = (j >= (inliers.double() - 3).unsqueeze(-1)) & (j <= trials)
+    log_tail = torch.logsumexp(torch.where(tail, log_pmf, torch.full_like(log_pmf, -torch.inf)), -1)
+    log_tests = torch.lgamma(n + 1) - torch.lgamma((n - 2).clamp_min(1)) - math.lgamma(4)   # log C(n, 3)
+    return torch.where(n >= 3, torch.exp(log_tests + log_tail), torch.ones_like(n))   # no curve: chance
 
 
 def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, model: str,
