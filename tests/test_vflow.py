@@ -496,6 +496,33 @@ class TestDetectFreespace:
         assert min(ious) >= 0.9, ious
 
 
+    @pytest.mark.parametrize("preset, index", [("carla-straight", 0), ("cvc-complex", 10)])
+    def test_no_plane_tilted_between_road_and_pavement(self, preset, index):
+        """The seed holds the road and the raised pavements beside it; with roll free, the fit
+        settled on a plane tilted between them (roll 0.6°) that agrees with neither whole (IoU
+        0.42 and 0.38). The camera's own roll, a second hypothesis, gathers more agreeing pixels
+        and is kept."""
+        import fsof_torch.data.scene as scene
+
+        pair = scene.render_pair(preset, index, seed=0, size=(128, 416), dtype=torch.float64)
+        flow, valid = pair["flow"].unsqueeze(0), pair["valid"].unsqueeze(0)
+        det = detect_freespace(flow, pair["camera"], mask=valid, threshold=0.05, relative_threshold=0.02,
+                               return_details=True)
+        assert _iou(det.freespace[0], pair["road"] & pair["valid"]) >= 0.95
+        assert abs(float(det.fit.roll)) < 1e-4 and float(det.fit.z_d) == pytest.approx(pair["odometry"]["z_d"], rel=1e-3)
+
+    def test_roll_fitted_where_the_camera_gives_it_wrong(self):
+        """The hypothesis of the camera's attitude does not pin a wrong one: the camera given level
+        on a scene whose mounting rolls 1°, the fitted roll wins."""
+        import fsof_torch.data.scene as scene
+
+        pair = scene.render_pair("default", 0, seed=0, size=(128, 416), dtype=torch.float64)
+        flow, valid, cam = pair["flow"].unsqueeze(0), pair["valid"].unsqueeze(0), pair["camera"]
+        level = cam.replace(roll=torch.zeros_like(cam.roll))
+        det = detect_freespace(flow, level, mask=valid, threshold=0.05, relative_threshold=0.02, return_details=True)
+        assert float(det.fit.roll) == pytest.approx(float(cam.roll), abs=1e-4) and float(cam.roll) > 0.017
+        assert _iou(det.freespace[0], pair["road"] & pair["valid"]) >= 0.95
+
 def test_row_dominant_flow_and_curve_of_a_frame_as_alone():
     """A frame's histogram range is its own: beside a faster frame (larger flows) it gets the
     peaks and the curve it gets alone."""

@@ -16,6 +16,7 @@ from torch import Tensor
 
 from .._check import batch_choices, check_bool, check_has_values, check_mapping, result_dtype
 from ..geometry.camera import Camera
+from .combine import where_motion
 from .flow_fit import fit_displacement
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
 
@@ -33,7 +34,8 @@ class FreespaceDetection:
         curve: the :class:`VFlowCurve` of the seed.
         fit: the ``FitResult`` of :func:`fsof_torch.fit.fit_displacement` behind ``agreement``:
             the fit on the seed where ``refits=0``, else the last refit, on the pixels that agreed
-            with the fit before it (on the seed where fewer than 3 did).
+            with the fit before it (on the seed where fewer than 3 did); per frame, of the
+            hypothesis kept (attitude fitted or the camera's).
         success: (B,) bool, frames where both fits succeeded (the others get an empty freespace).
     """
 
@@ -64,7 +66,10 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
        pitch if asked), which is robust to the seed's remaining outliers.
     3. Agreement: ``‖F - F_model‖ <= max(threshold, relative_threshold·‖F_model‖)`` where the
        model is defined; then ``refits`` times: refit on the agreeing pixels (started from the
-       previous fit) and test again.
+       previous fit) and test again. With roll or pitch fitted, steps 2 and 3 run a second time
+       with the camera's attitude held, and each frame keeps the hypothesis more pixels agree
+       with: the seed also holds planes parallel to the road (pavements), and a plane tilted
+       between road and pavement fits both while agreeing with neither whole.
     4. Connectivity: keep the 8-connected components of the agreement that touch the lowest
        ``bottom_rows`` rows holding a usable pixel (ground-truth validity often drops the last
        rows, whose flow leaves the image) (OpenCV ``cv2.connectedComponents`` on the CPU: exact and fast,
@@ -135,15 +140,30 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     # The fit's robust scale is the same statement about the flow's noise as the threshold.
     fit_kw = dict(fit_roll=fit_roll, fit_pitch=fit_pitch, scale=max(float(threshold), 1e-3))
     fit_kw.update(fit_options)
-    fit = fit_displacement(flow_safe, seed, camera, **fit_kw)
-    agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
-    for _ in range(refits):
-        # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
-        # tell them from road; refitting on the agreeing pixels removes their pull.
-        enough = agreement.flatten(1).sum(-1) >= 3
-        retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, seed)
-        fit = fit_displacement(flow_safe, retry, camera, init=fit, **fit_kw)
+
+    def fitted(options: dict):
+        fit = fit_displacement(flow_safe, seed, camera, **options)
         agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
+        for _ in range(refits):
+            # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
+            # tell them from road; refitting on the agreeing pixels removes their pull.
+            enough = agreement.flatten(1).sum(-1) >= 3
+            retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, seed)
+            fit = fit_displacement(flow_safe, retry, camera, init=fit, **options)
+            agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
+        return fit, agreement, success
+
+    fit, agreement, success = fitted(fit_kw)
+    if fit_kw.get("fit_roll") or fit_kw.get("fit_pitch"):
+        # The seed also holds planes parallel to the road beside it (pavements, parking strips),
+        # and with the attitude free a plane tilted between road and pavement can fit both while
+        # agreeing with neither whole. The camera's own attitude is the second hypothesis; per
+        # frame, the one more pixels agree with is kept (the larger consensus).
+        held = fitted({**fit_kw, "fit_roll": False, "fit_pitch": False})
+        take = held[1].flatten(1).sum(-1) > agreement.flatten(1).sum(-1)
+        fit = where_motion(take, held[0], fit)
+        agreement = torch.where(take.reshape(B, 1, 1, 1), held[1], agreement)
+        success = torch.where(take, held[2], success)
 
     freespace = _keep_bottom_connected(agreement, use, bottom_rows)
     if close_kernel > 1:
