@@ -241,6 +241,33 @@ class TestExceptions:
         assert c.batch_size == 3 and c.dtype == torch.float64 and c.roll.tolist() == [0.0, 0.1, 0.1]
 
 
+    @pytest.mark.parametrize("kwargs, error, message", [
+        ({"camera_height": "abc"}, TypeError, r"^camera_height: expected a number, got str 'abc'"),
+        ({"camera_height": -1.0}, ValueError, r"^camera_height: expected a positive number \(> 0\), got -1\.0"),
+        ({"camera_height": float("nan")}, ValueError, r"^camera_height: expected a finite number"),
+        ({"cam": 7}, ValueError, r"^cam: expected 0\.\.3, got 7"),
+        ({"image_dir": None}, TypeError, r"^image_dir: expected a file path .*got NoneType None"),
+    ])
+    def test_kitti_flow_arguments_checked_at_construction(self, kitti_root, kwargs, error, message):
+        """Not at the first item (camera_height=-1 and cam=7 were accepted until then)."""
+        with pytest.raises(error, match=message):
+            KittiFlowDataset(kitti_root[0], **kwargs)
+
+    @pytest.mark.parametrize("height, error, message", [
+        ("abc", TypeError, r"^camera_height: expected a number, got str 'abc'"),
+        (0.0, ValueError, r"^camera_height: expected a positive number \(> 0\), got 0\.0"),
+    ])
+    def test_carla_arguments_checked_at_construction(self, tmp_path, height, error, message):
+        run = tmp_path / "t10_s0_r-5"
+        (run / "rgb").mkdir(parents=True)
+        for k in range(2):
+            write_image(run / "rgb" / f"{k:08d}.png", _colour_image(0, 0, 0, (12, 16)))
+        with pytest.raises(error, match=message):
+            CarlaRunDataset(run, camera_height=height)
+        with pytest.raises(TypeError, match=r"^run: expected a file path"):
+            CarlaRunDataset(None)
+
+
 class TestShared:
     def test_kitti15_sample(self, shared_data):
         ds = KittiSampleDataset(shared_data / "kitti15_000000")

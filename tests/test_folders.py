@@ -328,3 +328,47 @@ def test_a_poses_tensor_is_checked_as_a_poses_file_is(clip, pose, edit, message)
     ds = ImageFolderDataset(root / "images", root / "calib.txt", poses=given)
     given[1, 2, 3] += 10.0  # the dataset holds its own copy
     torch.testing.assert_close(ds[0]["relative_pose"], torch.linalg.inv(poses[1]) @ poses[0], rtol=0, atol=1e-12)
+
+
+def test_two_files_of_one_frame_name_are_refused(clip, tmp_path):
+    """000000.png beside 000000.jpg was paired with its own copy, and two pairs shared one name
+    (and so one road and gt file); in a KITTI layout the last file of a name silently won."""
+    root, _ = clip
+    write_image(root / "images" / "000000.jpg", _frame(0))
+    message = r"^images: 000000\.jpg and 000000\.png share the frame name 000000"
+    with pytest.raises(ValueError, match=message):
+        ImageFolderDataset(root / "images")
+    frames = [root / "images" / n for n in ("000000.png", "000001.png", "000000.jpg")]
+    with pytest.raises(ValueError, match=r"^images: 000000\.png and 000000\.jpg share the frame name 000000"):
+        ImageFolderDataset(frames)
+    kitti = [tmp_path / n for n in ("a_10.png", "a_11.png", "a_11.jpg", "b_10.png", "b_11.png")]
+    with pytest.raises(ValueError, match=r"^images: a_11\.png and a_11\.jpg share the frame name a_11"):
+        frame_pairs(kitti)
+    assert frame_pairs([tmp_path / "a" / "0.png", tmp_path / "b" / "1.png"]) == [("0", 0, 1)]
+
+
+def test_a_malformed_camera_2_row_raises_not_falls_back_to_camera_0(clip, tmp_path):
+    """Without ``cam``, camera 0 is used only where the file has no camera-2 row: an 11-number
+    or NaN P_rect_02 once gave camera 0's intrinsics silently."""
+    root, _ = clip
+    p0 = "P_rect_00: 30 0 19.5 0 0 30 11.5 0 0 0 1 0\n"
+    calib = tmp_path / "cc.txt"
+    calib.write_text(p0 + "P_rect_02: 40 0 19.5 0 0 40 11.5 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"^calib: .*camera 2 in .*cc\.txt' has 11 numbers, expected 12"):
+        ImageFolderDataset(root / "images", calib)
+    calib.write_text(p0 + "P_rect_02: 40 0 19.5 0 0 40 nan 0 0 0 1 0\n")
+    with pytest.raises(ValueError, match=r"^calib: .*P_rect_02 row of .*cc\.txt' holds NaN or inf"):
+        ImageFolderDataset(root / "images", calib)
+    calib.write_text(p0)  # no camera-2 row: camera 0
+    assert float(ImageFolderDataset(root / "images", calib).camera.K[0, 0, 0]) == 30.0
+    calib.write_text(p0 + "P_rect_02: 40 0 19.5 0 0 40 11.5 0 0 0 1 0\n")
+    assert float(ImageFolderDataset(root / "images", calib).camera.K[0, 0, 0]) == 40.0
+
+
+def test_one_road_png_of_another_size_is_refused(clip, tmp_path):
+    """A single road PNG for every pair must have the images' size, as a folder's PNGs must (it
+    was resized silently); a polygon JSON is still drawn at the images' size."""
+    root, _ = clip
+    write_road_mask(tmp_path / "big.png", torch.ones(1, 2 * SIZE[0], 2 * SIZE[1], dtype=torch.bool))
+    with pytest.raises(ValueError, match=r"^road: big\.png is \(48, 80\), the images \(24, 40\)"):
+        ImageFolderDataset(root / "images", road=tmp_path / "big.png")

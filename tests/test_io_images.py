@@ -182,3 +182,13 @@ def test_frame_order_by_number_where_every_name_is_one():
     assert [p.name for p in in_frame_order(["b_2.png", "b_10.png", "a.png"])] == ["a.png", "b_10.png", "b_2.png"]
     assert [p.name for p in in_frame_order(["2.png", "10.png", "x1.png"])] == ["10.png", "2.png", "x1.png"]
     assert in_frame_order([]) == []
+
+
+def test_frame_order_refuses_two_files_of_one_frame_name():
+    """Two files of one frame name (a PNG and a JPEG export of one frame) would pair with each other."""
+    from fsof_torch.io.images import in_frame_order
+
+    with pytest.raises(ValueError, match=r"^images: 000000\.jpg and 000000\.png share the frame name 000000"):
+        in_frame_order(["000001.png", "000000.png", "000000.jpg"])
+    with pytest.raises(ValueError, match=r"^frames: 'a/5\.png' and 'b/5\.png' share the frame name 5"):
+        in_frame_order(["b/5.png", "a/5.png"], name="frames")

@@ -36,8 +36,8 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_bool, check_int, check_size
-from ..geometry.camera import Camera, read_kitti_calibration
+from .._check import as_path, check_bool, check_int, check_number, check_size
+from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
 from ..io.kitti import read_kitti_flow, read_kitti_poses
@@ -68,7 +68,7 @@ KITTI_ROAD_COLOR = (255, 0, 0)
 
 
 def _folder(root: str | os.PathLike, name: str = "root") -> Path:
-    root = Path(root)
+    root = as_path(root, name)
     if not root.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(root)!r}")
     return root
@@ -195,6 +195,9 @@ class KittiFlowDataset(Dataset):
             holds its own K).
         dtype: float dtype of images and flow; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road.
+
+    The arguments are checked here (``cam`` 0..3, ``camera_height`` a positive number, ``image_dir``
+    a folder name, ``K``), not at the first item; errors name the argument.
     """
 
     def __init__(self, root: str | os.PathLike, *, flow: str = "noc", image_dir: str = "image_2", cam: int = 2,
@@ -203,6 +206,9 @@ class KittiFlowDataset(Dataset):
         if flow not in ("noc", "occ"):
             raise ValueError(f"flow: expected 'noc' or 'occ', got {flow!r}")
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
+        cam = check_camera_index(cam)
+        camera_height = check_number(camera_height, "camera_height", positive=True)
+        image_dir = str(as_path(image_dir, "image_dir"))
         self.root = _folder(root)
         images = self.root / image_dir
         if not images.is_dir():
@@ -214,8 +220,8 @@ class KittiFlowDataset(Dataset):
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
         if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
             K = torch.as_tensor(K).detach().to("cpu", copy=True)
-            Camera(K.to(camera_dtype), float(camera_height))
-        self.cam, self.camera_height, self.K = cam, float(camera_height), K
+            Camera(K.to(camera_dtype), camera_height)
+        self.cam, self.camera_height, self.K = cam, camera_height, K
         self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
     def __len__(self) -> int:
@@ -337,14 +343,16 @@ class CarlaRunDataset(Dataset):
     semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run name
     (``r`` in degrees). Pairs are named after frame k. Every file of a pair (frame k + 1, flow,
     semantic PNG) must have the size of frame k: one of another size is a ValueError naming ``run``
-    and the file.
+    and the file. ``camera_height`` (metres, default 2.4) must be a positive number (checked here,
+    not at the first item).
     """
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         self.camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
-        self.run = CarlaRun(run)
-        self.camera_height, self.dtype, self.ground_truth = float(camera_height), dtype, ground_truth
+        self.camera_height = check_number(camera_height, "camera_height", positive=True)
+        self.run = CarlaRun(as_path(run, "run"))
+        self.dtype, self.ground_truth = dtype, ground_truth
 
     def __len__(self) -> int:
         return max(len(self.run) - 1, 0)

@@ -40,7 +40,7 @@ from .._check import check_has_values, check_int, check_number, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..geometry.egomotion import ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import in_frame_order, read_image
+from ..io.images import check_frame_names, in_frame_order, read_image
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
@@ -69,11 +69,13 @@ def check_index(index: int, length: int) -> int:
 def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     """The image files of ``folder`` in frame order (at least 2; ``name`` is the argument the
     errors name): by number where every file's name is a number (``0.png``, ``5.png``,
-    ``10.png``: frames numbered without zero padding), else by name."""
+    ``10.png``: frames numbered without zero padding), else by name. Two files of one frame name
+    (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
-    images = in_frame_order(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file())
+    images = in_frame_order((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+                            name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
@@ -116,8 +118,10 @@ def kitti_flow_layout(images: Iterable[Path]) -> bool:
 def frame_pairs(images: Sequence[Path], step: int = 1) -> list[tuple[str, int, int]]:
     """``(name, i, j)``: the pairs of ``images`` as positions in the list. Consecutive frames
     (i, i + step) named after frame i; KITTI flow pairs by name (``NAME_10`` / ``NAME_11`` ->
-    ``NAME``, step 1 only)."""
+    ``NAME``, step 1 only). Two images of one frame name (``000000.png`` and ``000000.jpg``,
+    whose pairs would share a name and its files) are a ValueError naming ``images``."""
     step = check_int(step, "step", minimum=1)
+    check_frame_names(images, "images")
     if kitti_flow_layout(images):
         if step != 1:
             raise ValueError(f"step: KITTI flow pairs (NAME_10 / NAME_11) pair by name; expected 1, got {step}")
@@ -178,21 +182,36 @@ def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | No
     return None
 
 
+def _has_camera_row(calib: Path, cam: int) -> bool:
+    """Whether a KITTI calibration file has a row for camera ``cam`` (``P_rect_0N:``, ``PN:``, or
+    an unlabelled row N + 1), well formed or not, as :func:`read_kitti_calibration` looks for it."""
+    try:
+        text = calib.read_text()
+    except UnicodeDecodeError:
+        return True  # the calibration reader reports the file
+    keys, unlabelled = set(), 0
+    for line in filter(None, map(str.strip, text.splitlines())):
+        key, sep, _ = line.partition(":")
+        if sep:
+            keys.add(key.strip())
+        else:
+            unlabelled += 1
+    return f"P_rect_0{cam}" in keys or f"P{cam}" in keys or unlabelled > cam
+
+
 def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch: float) -> tuple[Camera, int]:
     """A float64 camera from a KITTI calibration file and the camera index used: ``cam``, or
-    without it camera 2 (the left colour camera) where the file has it, else camera 0."""
+    without it camera 2 (the left colour camera) where the file has a row for it, else camera 0.
+    A camera-2 row that is there but malformed (11 numbers, NaN) raises, never falls back."""
     if not calib.is_file():
         raise FileNotFoundError(f"calib: no calibration file at {str(calib)!r}")
     if cam is not None and not 0 <= cam <= 3:
         raise ValueError(f"cam: expected 0..3, got {cam}")
-    for c in ([cam] if cam is not None else [2, 0]):
-        try:
-            P = read_kitti_calibration(calib, c)
-            break
-        except ValueError as err:
-            last = err
-    else:
-        raise ValueError(f"calib: {last}")
+    c = cam if cam is not None else (2 if _has_camera_row(calib, 2) else 0)
+    try:
+        P = read_kitti_calibration(calib, c)
+    except ValueError as err:
+        raise ValueError(f"calib: {err}") from None
     try:
         return Camera.from_projection(P, height, roll, pitch), c
     except ValueError as err:
@@ -239,8 +258,8 @@ class ImageFolderDataset(Dataset):
             rotation, else a ValueError naming ``poses`` and the pose). Items then carry
             ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
             mounting and ``pose_residual``.
-        road: a folder of masks matched by name, or one mask file (PNG, or a polygon JSON drawn at
-            the images' size) for every pair.
+        road: a folder of masks matched by name, or one mask file for every pair: a PNG of the
+            images' size (never resized), or a polygon JSON drawn at the images' size.
         gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
         calib_size: ``(H, W)`` the calibration is for (default: the file's ``S_rect`` row).
         step: pair frames (i, i + step) of a clip.
@@ -305,7 +324,11 @@ class ImageFolderDataset(Dataset):
         first = self.pairs[0].image1
         self.size = tuple(self._read_image(first).shape[-2:])
         self._check_calibrated_size(first)
-        self._road_mask = _read_road(self.road_file, self.size) if self.road_file is not None else None
+        self._road_mask: Tensor | None = None
+        if self.road_file is not None and self.road_file.suffix.lower() == ".json":
+            self._road_mask = _read_road(self.road_file, self.size)  # a polygon, drawn at the images' size
+        elif self.road_file is not None:  # a mask, never resized: it must have the images' size
+            self._road_mask = self._checked("road", self.road_file, _read_road(self.road_file, None))
 
     def _read_poses(self, poses: str | os.PathLike | Tensor, need: int) -> Tensor:
         if isinstance(poses, Tensor):

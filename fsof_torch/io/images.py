@@ -36,11 +36,26 @@ def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
     return path, path.read_bytes()
 
 
-def in_frame_order(paths: Iterable[str | os.PathLike]) -> list[Path]:
+def check_frame_names(paths: Iterable[str | os.PathLike], name: str = "images") -> None:
+    """Raise a ValueError naming ``name`` where two frame files share a frame name (stem), such as
+    ``000000.png`` and ``000000.jpg``: a frame's name names its pair and finds the pair's files by
+    name, so two frames of one name would pair with each other and share those files."""
+    seen: dict[str, Path] = {}
+    for p in map(Path, paths):
+        first = seen.get(p.stem)
+        if first is not None:
+            both = f"{first.name} and {p.name}" if first.parent == p.parent else f"{str(first)!r} and {str(p)!r}"
+            raise ValueError(f"{name}: {both} share the frame name {p.stem}; keep one file per frame")
+        seen[p.stem] = p
+
+
+def in_frame_order(paths: Iterable[str | os.PathLike], name: str = "images") -> list[Path]:
     """Frame files in frame order: by number where every file's stem is a number (``0.png``,
     ``5.png``, ``10.png``, ``100.png``: frames numbered without zero padding), else by name. Equal
-    numbers (``5`` and ``05``) stay in the order of their names."""
+    numbers (``5`` and ``05``) stay in the order of their names. Two files of one frame name
+    (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name`` (:func:`check_frame_names`)."""
     paths = sorted(Path(p) for p in paths)
+    check_frame_names(paths, name)
     if all(re.fullmatch(r"[0-9]+", p.stem) for p in paths):
         paths.sort(key=lambda p: int(p.stem))
     return paths
