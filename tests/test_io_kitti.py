@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 
 from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import (
+    KITTI_FLOW_MAX,
+    KITTI_FLOW_MIN,
     read_kitti_calibration,
     read_kitti_flow,
     read_kitti_poses,
@@ -167,6 +169,17 @@ class TestExceptions:
             worse[channel, 1, 0] = bad
             with pytest.raises(ValueError, match="finite values at valid pixels"):
                 write_kitti_flow(tmp_path / "g.png", worse, valid)
+
+    @pytest.mark.parametrize("value, shown", [(512.0001, r"512\.0001"), (-512.00001, r"-512\.00001"),
+                                              (511.99, r"511\.99")])
+    def test_out_of_range_message_shows_the_value(self, tmp_path, value, shown):
+        """The range is printed with enough digits to be outside the bound (not '[-512, 512]')."""
+        flow = torch.zeros(2, 2, 2, dtype=torch.float64)
+        flow[1, 0, 1] = value
+        with pytest.raises(ValueError, match=rf"got the range \[.*{shown}.*\] at valid pixels"):
+            write_kitti_flow(tmp_path / "f.png", flow)
+        flow[1, 0, 1] = KITTI_FLOW_MAX if value > 0 else KITTI_FLOW_MIN  # the bounds themselves are accepted
+        write_kitti_flow(tmp_path / "f.png", flow)
 
     def test_out_of_range_invalid_pixels_are_fine(self, tmp_path):
         flow = torch.full((2, 2, 2), 1e6)

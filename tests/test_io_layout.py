@@ -43,6 +43,13 @@ def _pair(index=0, size=(24, 40), roll=0.03, pitch=-0.01, with_poses=False):
     return pair
 
 
+def _eye4(row, col, value):
+    """A 4×4 identity list with one entry changed (a pose of a params JSON)."""
+    matrix = torch.eye(4, dtype=torch.float64).tolist()
+    matrix[row][col] = value
+    return matrix
+
+
 class TestSmoke:
     def test_pair_round_trip(self, tmp_path):
         pair = _pair()
@@ -153,18 +160,18 @@ class TestExceptions:
     def test_files_of_another_size_than_the_images(self, tmp_path):
         from fsof_torch.io import write_kitti_flow, write_road_mask
 
-        write_synthetic_sequence(tmp_path, [_pair(0)])
-        write_road_mask(tmp_path / "road" / "000000_10.png", torch.ones(1, 20, 20, dtype=torch.bool))
+        write_synthetic_sequence(tmp_path / "a", [_pair(0)])
+        write_road_mask(tmp_path / "a" / "road" / "000000_10.png", torch.ones(1, 20, 20, dtype=torch.bool))
         with pytest.raises(ValueError, match=r"path: '.*road/000000_10\.png' is 20x20; .* is 24x40"):
-            read_synthetic_pair(tmp_path, 0)
-        write_synthetic_sequence(tmp_path, [_pair(0)])
-        write_kitti_flow(tmp_path / "flow_occ" / "000000_10.png", torch.zeros(2, 24, 41))
+            read_synthetic_pair(tmp_path / "a", 0)
+        write_synthetic_sequence(tmp_path / "b", [_pair(0)])
+        write_kitti_flow(tmp_path / "b" / "flow_occ" / "000000_10.png", torch.zeros(2, 24, 41))
         with pytest.raises(ValueError, match=r"path: '.*flow_occ/000000_10\.png' is 24x41"):
-            read_synthetic_pair(tmp_path, 0)
-        write_synthetic_sequence(tmp_path, [_pair(0)])
-        write_depth_png(tmp_path / "depth" / "000000_10.png", torch.ones(1, 23, 40))
+            read_synthetic_pair(tmp_path / "b", 0)
+        write_synthetic_sequence(tmp_path / "c", [_pair(0)])
+        write_depth_png(tmp_path / "c" / "depth" / "000000_10.png", torch.ones(1, 23, 40))
         with pytest.raises(ValueError, match=r"path: '.*depth/000000_10\.png' is 23x40"):
-            read_synthetic_pair(tmp_path, 0)
+            read_synthetic_pair(tmp_path / "c", 0)
 
     @pytest.mark.parametrize("edit, message", [
         (lambda p: p.pop("odometry"), r"has no entry \['odometry'\]"),
@@ -174,6 +181,9 @@ class TestExceptions:
         (lambda p: p["odometry"].update(yaw="left"), r"\['odometry'\]\['yaw'\] is not a finite number: 'left'"),
         (lambda p: p.update(velocity=[1, 2]), r"\['velocity'\] is not an object of numbers"),
         (lambda p: p.update(pose1=[[1, 2]]), r"\['pose1'\] is not a 4×4 list of numbers"),
+        (lambda p: p.update(pose1=_eye4(0, 3, float("nan"))), r"\['pose1'\] holds NaN or inf"),
+        (lambda p: p.update(pose2=_eye4(0, 0, 5.0)), r"\['pose2'\] is not a rigid pose: its 3×3 block"),
+        (lambda p: p.update(pose2=_eye4(3, 3, 2.0)), r"\['pose2'\] is not a rigid pose: its last row"),
     ])
     def test_params_without_what_a_pair_has(self, tmp_path, edit, message):
         from fsof_torch.io import read_synthetic_params
@@ -185,7 +195,7 @@ class TestExceptions:
         path.write_text(json.dumps(params))
         with pytest.raises(ValueError, match=r"path: '.*000000\.json'" + ".*" + message):
             read_synthetic_pair(tmp_path, 0)
-        if "velocity" not in message and "pose1" not in message:
+        if "velocity" not in message and "pose" not in message:
             with pytest.raises(ValueError, match=message):
                 read_synthetic_params(tmp_path, 0)
 
@@ -200,16 +210,44 @@ class TestExceptions:
 
 class TestStalePairs:
     def test_meta_num_pairs_bounds_the_pairs(self, tmp_path):
-        """A shorter sequence written over a longer one: meta.json's count, not the leftover files."""
+        """Pairs beside a sequence (as an older, longer run left them): meta.json's count, not the files."""
         from fsof_torch.data.datasets import SyntheticFlowDataset
 
-        write_synthetic_sequence(tmp_path, [_pair(i) for i in range(3)])
         write_synthetic_sequence(tmp_path, [_pair(5)])
-        assert (tmp_path / "params" / "000002.json").is_file()
+        for index in (1, 2):
+            write_synthetic_pair(tmp_path, index, _pair(index))
         assert synthetic_pair_indices(tmp_path) == [0]
         assert len(SyntheticFlowDataset(tmp_path)) == 1
         (tmp_path / "meta.json").unlink()  # without it, every params file counts
         assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
+
+    def test_a_folder_that_holds_files_is_refused(self, tmp_path):
+        """Another run's optional files (road, depth, ...) or meta.json would be read as this run's."""
+        write_synthetic_sequence(tmp_path / "seq", [_pair(i) for i in range(3)])
+        rendered = []
+
+        def pairs():
+            for i in range(2):
+                rendered.append(i)
+                yield {k: v for k, v in _pair(i).items() if k not in ("road", "depth", "labels", "flow_velocity")}
+
+        with pytest.raises(ValueError, match=r"root: '.*seq' already holds files \(calib, depth, flow_occ, "
+                                             r"flow_velocity, \.\.\.\); give a new or empty folder"):
+            write_synthetic_sequence(tmp_path / "seq", pairs())
+        assert rendered == []  # refused before rendering anything
+        assert synthetic_pair_indices(tmp_path / "seq") == [0, 1, 2]
+        (tmp_path / "empty").mkdir()
+        assert write_synthetic_sequence(tmp_path / "empty", pairs())["num_pairs"] == 2
+        back = read_synthetic_pair(tmp_path / "empty", 0)
+        assert not {"road", "depth", "labels", "flow_velocity"} & set(back)
+
+    def test_only_ascii_digit_names_are_pairs(self, tmp_path):
+        """'².json' is not a pair (str.isdigit accepts it, int() does not)."""
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        for name in ("².json", "٣.json", "1a.json"):
+            (tmp_path / "params" / name).write_text("{}")
+        (tmp_path / "meta.json").unlink()
+        assert synthetic_pair_indices(tmp_path) == [0]
 
     @pytest.mark.parametrize("text", ['{"num_pairs": "2"}', '{"format": "x"}', "[1]", "{"])
     def test_bad_meta(self, tmp_path, text):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -106,6 +108,16 @@ class TestExceptions:
             read_vkitti2_intrinsics(tmp_path / "i2.txt", camera=0)
         with pytest.raises(FileNotFoundError, match=r"path: no extrinsic\.txt at '.*none\.txt'"):
             read_vkitti2_extrinsics(tmp_path / "none.txt")
+
+    @pytest.mark.parametrize("camera", ["0", 0.0, True, None])
+    @pytest.mark.parametrize("reader, columns", [(read_vkitti2_intrinsics, 6), (read_vkitti2_extrinsics, 18)])
+    def test_camera_not_an_int(self, tmp_path, reader, columns, camera):
+        """Not "has no rows for camera 0; it has cameras [0]" for the string '0'."""
+        values = "1 1 1 1" if columns == 6 else "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"  # K, or a 4×4 identity
+        (tmp_path / "t.txt").write_text(f"0 0 {values}\n")
+        with pytest.raises(TypeError, match=rf"camera: expected an int, got {re.escape(repr(camera))}$"):
+            reader(tmp_path / "t.txt", camera=camera)
+        assert len(reader(tmp_path / "t.txt", camera=np.int64(0))[0]) == 1
 
     def test_writer_checks_valid_as_the_kitti_writer(self, tmp_path):
         flow = torch.zeros(2, 4, 5)

@@ -85,7 +85,7 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
         lo, hi = float(stored.min()), float(stored.max())
         if lo < KITTI_FLOW_MIN or hi > KITTI_FLOW_MAX:
             raise ValueError(f"flow: a KITTI flow PNG holds [{KITTI_FLOW_MIN}, {KITTI_FLOW_MAX}] px, got the range "
-                             f"[{lo:.4g}, {hi:.4g}] at valid pixels")
+                             f"[{lo!r}, {hi!r}] at valid pixels")
     coded = (stored * KITTI_FLOW_SCALE + _OFFSET).round().clamp(0, 65535).to(torch.int32).numpy().astype(np.uint16)
     bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
     return write_image_array(path, bgr)

@@ -46,6 +46,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import re
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -58,7 +59,7 @@ from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
 from .images import read_image, read_image_array, write_image, write_image_array
-from .kitti import read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
+from .kitti import check_rigid_poses, read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
 from .masks import read_label_map, read_road_mask, write_label_map, write_road_mask
 
 __all__ = [
@@ -221,13 +222,18 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     """Write rendered pairs 0, 1, ... into ``root`` (created), then ``poses.txt`` and ``meta.json``.
 
     ``pairs`` may be a generator (rendering lazily, so that the progress bar, on stderr when
-    ``progress``, counts rendering too). Files already in ``root`` are left alone; the pairs of
-    an older, longer sequence there are not read back (``meta.json`` bounds the pairs). Returns a
+    ``progress``, counts rendering too). ``root`` must be new or empty (ValueError otherwise,
+    before any pair is rendered, as ``python -m eval synth`` does): files of an earlier run there
+    (a road mask, depth, ``meta.json``) would be read back as part of this one. Returns a
     summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
     """
     from tqdm import tqdm
 
     root = Path(root)
+    if root.is_dir() and any(root.iterdir()):
+        held = sorted(p.name for p in root.iterdir())
+        listed = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
+        raise ValueError(f"root: {str(root)!r} already holds files ({listed}); give a new or empty folder")
     root.mkdir(parents=True, exist_ok=True)
     extra = dict(meta or {})
     chained = [torch.eye(4, dtype=torch.float64)]
@@ -283,7 +289,7 @@ def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
     if not (root / "params").is_dir():
         raise FileNotFoundError(f"root: {str(root)!r} has no params/ folder (not a synthetic layout written by "
                                 f"write_synthetic_sequence / python -m eval synth)")
-    indices = sorted(int(p.stem) for p in (root / "params").glob("*.json") if p.stem.isdigit())
+    indices = sorted(int(p.stem) for p in (root / "params").glob("*.json") if re.fullmatch("[0-9]+", p.stem))
     meta = root / "meta.json"
     if meta.is_file():
         count = _read_json_file(meta).get("num_pairs")
@@ -351,7 +357,10 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     (1, H, W) bool, ``labels`` (H, W) int64, ``depth`` (1, H, W) m, ``camera`` (Camera, batch 1,
     ``dtype``), ``odometry``, ``velocity``, ``road_pose`` and ``plane`` (dicts of floats), ``pose1``,
     ``pose2`` (4, 4) float64, plus ``index`` and ``name``.
-    ``ground_truth=False`` reads only the images and the camera.
+    ``ground_truth=False`` reads only the images and the camera. A params entry that is not
+    finite numbers, or a ``pose1``/``pose2`` that is not a rigid pose (checked as
+    :func:`~fsof_torch.io.kitti.read_kitti_poses` checks a file's), is a ValueError naming the
+    path and the entry.
     """
     root = Path(root)
     name = pair_name(index)
@@ -409,4 +418,5 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
                 sample[key] = torch.tensor(params[key], dtype=torch.float64).reshape(4, 4)
             except (ValueError, TypeError, RuntimeError):
                 raise ValueError(f"path: {str(params_path)!r}[{key!r}] is not a 4×4 list of numbers") from None
+            check_rigid_poses(sample[key].unsqueeze(0), lambda _: f"path: {str(params_path)!r}[{key!r}]")
     return sample

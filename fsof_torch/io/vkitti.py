@@ -17,6 +17,7 @@ segmentation PNG (``classgt_XXXXX.png``) colours each pixel with its class colou
 
 from __future__ import annotations
 
+import numbers
 import os
 from collections.abc import Mapping
 from pathlib import Path
@@ -133,7 +134,9 @@ def _is_number(text: str) -> bool:
 
 
 def _select_camera(table: np.ndarray, camera: int, path) -> np.ndarray:
-    rows = table[table[:, 1] == camera]
+    if isinstance(camera, bool) or not isinstance(camera, numbers.Integral):
+        raise TypeError(f"camera: expected an int, got {camera!r}")
+    rows = table[table[:, 1] == int(camera)]
     if len(rows) == 0:
         cams = sorted({int(c) for c in table[:, 1]})
         raise ValueError(f"camera: {str(path)!r} has no rows for camera {camera}; it has cameras {cams}")
@@ -141,7 +144,10 @@ def _select_camera(table: np.ndarray, camera: int, path) -> np.ndarray:
 
 
 def read_vkitti2_intrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
-    """``intrinsic.txt`` of one camera → ``(frames (N,) int64, K (N, 3, 3) float64)``, sorted by frame."""
+    """``intrinsic.txt`` of one camera → ``(frames (N,) int64, K (N, 3, 3) float64)``, sorted by frame.
+
+    ``camera`` is the int cameraID (0 left, 1 right): TypeError for anything else (``"0"``, True).
+    """
     rows = _select_camera(_read_table(path, 6, "intrinsic.txt"), camera, path)
     K = np.zeros((len(rows), 3, 3))
     K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], 1.0
@@ -149,7 +155,8 @@ def read_vkitti2_intrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
 
 
 def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
-    """``extrinsic.txt`` of one camera → ``(frames (N,) int64, camera_T_world (N, 4, 4) float64)``."""
+    """``extrinsic.txt`` of one camera → ``(frames (N,) int64, camera_T_world (N, 4, 4) float64)``;
+    ``camera`` as in :func:`read_vkitti2_intrinsics`."""
     rows = _select_camera(_read_table(path, 18, "extrinsic.txt"), camera, path)
     T = rows[:, 2:].reshape(-1, 4, 4)
     if not np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
