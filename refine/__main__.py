@@ -75,8 +75,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--poses", type=Path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
     g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
-    g.add_argument("--road", metavar="DIR|FILE.json|auto", help="road masks: PNG folder (named like the pairs), "
-                   "a polygon JSON, or auto (found in the images: docs/auto-road.md); required with --images; "
+    g.add_argument("--road", metavar="DIR|FILE|auto", help="road masks: PNG folder (named like the pairs), "
+                   "one PNG of the images' size or a polygon JSON for every pair, or auto (found in the images: docs/auto-road.md); required with --images; "
                    "synthetic scenes and the KITTI samples have their own, or take auto")
     g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
