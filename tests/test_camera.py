@@ -87,6 +87,29 @@ def test_horizon_row_separates_valid_pixels():
     assert float(level.horizon_row()) == pytest.approx(18.0 + 55.0 * math.tan(0.02), abs=1e-9)
 
 
+def test_horizon_row_checks_u_as_a_per_frame_scalar():
+    """Once a raw RuntimeError (u of another batch), a raw TypeError ('left') and a silent NaN."""
+    cam = Camera(_K(50.0, 55.0, 30.0, 18.0), 1.5, 0.1, 0.02).expand(2)
+    with pytest.raises(ValueError, match=r"^u: expected a float or a tensor of shape \(1,\) or \(2,\) \(the "
+                                         r"camera's batch\), got shape \(3,\)$"):
+        cam.horizon_row(torch.tensor([0.0, 1.0, 2.0], dtype=torch.float64))
+    with pytest.raises(TypeError, match="^u: expected a float, or a tensor of shape .B,., got str"):
+        cam.horizon_row("left")
+    with pytest.raises(TypeError, match="^u: expected a float tensor or a Python number, got dtype torch.int64"):
+        cam.horizon_row(torch.tensor([1, 2]))
+    with pytest.raises(ValueError, match="^u: expected finite values"):
+        cam.horizon_row(float("nan"))
+    with pytest.raises(ValueError, match="^u: expected a scalar or shape .B,."):
+        cam.horizon_row(torch.zeros(2, 1, dtype=torch.float64))
+    # accepted forms give the values they gave: a float, 0-d, (1,) and (B,) tensors; a camera of
+    # batch 1 takes a u of any batch
+    want = cam.horizon_row(torch.tensor([7.0, 7.0], dtype=torch.float64))
+    for u in (7.0, 7, torch.tensor(7.0, dtype=torch.float64), torch.tensor([7.0], dtype=torch.float64)):
+        torch.testing.assert_close(cam.horizon_row(u), want, rtol=0.0, atol=0.0)
+    one = Camera(_K(50.0, 55.0, 30.0, 18.0), 1.5, 0.1, 0.02)
+    assert one.horizon_row(torch.tensor([0.0, 30.0, 59.0], dtype=torch.float64)).shape == (3,)
+
+
 def test_to_expand_replace():
     cam = Camera(_K(), 1.65, 0.01)
     c32 = cam.to(torch.float32)

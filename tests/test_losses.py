@@ -708,3 +708,73 @@ def test_forward_backward_mask_threshold_grows_with_the_flow():
         assert (diff < 0.01 * mag + 0.5) == visible and diff > 0.5  # the relative term decides
         mask = forward_backward_mask(fw, bw)
         assert bool(mask[..., : W_ - 20].all()) == visible and not mask[..., W_ - 20:].any(), err
+
+
+def _arflow_gradient(data: torch.Tensor):
+    """ARFlow's ``gradient`` (losses/flow_loss.py), as written there."""
+    D_dy = data[:, :, 1:] - data[:, :, :-1]
+    D_dx = data[:, :, :, 1:] - data[:, :, :, :-1]
+    return D_dx, D_dy
+
+
+def _arflow_smooth_grad_2nd(flo: torch.Tensor, image: torch.Tensor, alpha: float) -> torch.Tensor:
+    """ARFlow's ``smooth_grad_2nd`` (losses/flow_loss.py), as written there (image on 0..1)."""
+    img_dx, img_dy = _arflow_gradient(image)
+    weights_x = torch.exp(-torch.mean(torch.abs(img_dx), 1, keepdim=True) * alpha)
+    weights_y = torch.exp(-torch.mean(torch.abs(img_dy), 1, keepdim=True) * alpha)
+
+    dx, dy = _arflow_gradient(flo)
+    dx2, dxdy = _arflow_gradient(dx)
+    dydx, dy2 = _arflow_gradient(dy)
+
+    loss_x = weights_x[:, :, :, 1:] * dx2.abs()
+    loss_y = weights_y[:, :, 1:, :] * dy2.abs()
+
+    return loss_x.mean() / 2. + loss_y.mean() / 2.
+
+
+def test_smoothness_second_order_matches_arflow_smooth_grad_2nd():
+    """The second-order term weights the second difference centred on pixel i+1 (from i, i+1,
+    i+2) with the image gradient between i+1 and i+2, as ARFlow does ([..., 1:]), not [..., :-1]."""
+    g = torch.Generator().manual_seed(3)
+    image = torch.rand(2, 3, 12, 15, generator=g, dtype=torch.float64) * 255
+    flow = torch.randn(2, 2, 12, 15, generator=g, dtype=torch.float64) * 2
+    for alpha in (10.0, 3.0):
+        want = _arflow_smooth_grad_2nd(flow, image / 255, alpha)
+        torch.testing.assert_close(smoothness_loss(flow, image, order=2, edge_weight=alpha), want,
+                                   rtol=1e-12, atol=0.0)
+        per_sample = smoothness_loss(flow, image, order=2, edge_weight=alpha, reduction="none")
+        for b in range(2):
+            one = _arflow_smooth_grad_2nd(flow[b:b + 1], image[b:b + 1] / 255, alpha)
+            torch.testing.assert_close(per_sample[b], one, rtol=1e-12, atol=0.0)
+
+
+def test_freespace_rejects_a_velocity_motion_as_the_target():
+    """The "velocity" model's flow is px/s: a per-frame prediction cannot be compared with it
+    (its exact px/s flow would otherwise give a large loss, not 0)."""
+    cam = _camera()
+    model, valid = displacement_flow(cam, 0.0, 1.2, 0.0, (H, W))
+    for odometry in ({"model": "velocity", "speed": 12.0}, {"model": "velocity", "speed": 12.0, "yaw_rate": 0.1}):
+        with pytest.raises(ValueError, match=r"odometry: the 'velocity' model gives flow in px/s.*displacement model"):
+            freespace_flow_loss(model, valid, cam, odometry)
+        with pytest.raises(ValueError, match=r"odometry: the 'velocity' model gives flow in px/s"):
+            FreespaceFlowLoss()(model, valid, cam, odometry)
+    # a displacement model's motion over the frame interval is still taken, as before
+    assert freespace_flow_loss(model, valid, cam, {"model": "paper", "z_d": 1.2}) == pytest.approx(0.0, abs=1e-12)
+    assert freespace_flow_loss(model, valid, cam, {"model": "plane", "z_d": 1.2}) == pytest.approx(0.0, abs=1e-9)
+
+
+@pytest.mark.parametrize("fit_options, error, match", [
+    ({"bogus": 1}, TypeError, r"fit_options: unknown options \['bogus'\]"),
+    (42, TypeError, "fit_options: expected None or a dict"),
+])
+def test_freespace_checks_fit_options_with_a_given_odometry_as_its_module_does(fit_options, error, match):
+    cam = _camera()
+    model, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (H, W))
+    with pytest.raises(error, match=match):
+        freespace_flow_loss(model, valid, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, fit_options=fit_options)
+    with pytest.raises(error, match=match):
+        FreespaceFlowLoss(fit_options=fit_options)
+    # valid options that only odometry="fit" uses are accepted (unused) with a given odometry
+    assert freespace_flow_loss(model, valid, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0},
+                               fit_options={"fit_roll": True}) == pytest.approx(0.0, abs=1e-12)

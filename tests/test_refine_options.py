@@ -348,3 +348,23 @@ def test_ptlflow_inputs_checks_range_and_finiteness():
         ptlflow_inputs(image1, image2, data_range=0)
     with pytest.raises(TypeError, match=r"^data_range: expected a positive finite number .*, got '255'"):
         ptlflow_inputs(image1, image2, data_range="255")
+
+
+# -- a velocity motion is not a per-frame target ---------------------------------------------------------
+
+@pytest.mark.parametrize("mask_kind", ["tensor", "auto"])
+def test_velocity_odometry_is_refused_by_name(mask_kind):
+    """The "velocity" model's flow is px/s: once it replaced a per-frame prediction by it silently
+    (the road set to 10x its displacement at 10 Hz). With mask="auto" it raises before the road is
+    detected."""
+    pred, mask, cam, pair = make_case()
+    road = mask if mask_kind == "tensor" else "auto"
+    message = r"^odometry: the 'velocity' model gives flow in px/s, not the pixels per frame this needs"
+    for odo in ({"model": "velocity", "speed": 10.0}, {"model": "velocity", "speed": 10.0, "yaw_rate": 0.1}):
+        with pytest.raises(ValueError, match=message):
+            refine_flow(pred, road, cam, odo, images=pair)
+        with pytest.raises(ValueError, match=message):
+            FreespaceRefiner()(pred, road, cam, odo, images=pair if mask_kind == "auto" else None)
+    # the same motion over the frame interval, as a displacement model, is taken
+    out = refine_flow(pred, mask, cam, {"model": "paper", **ODO}, gate=None, warn=False)
+    assert bool(out.refined.all())

@@ -450,3 +450,19 @@ def test_nearest_rotation_is_the_polar_factor():
         assert R32.dtype == torch.float32
         torch.testing.assert_close(R32.double(), torch.linalg.svd(M.float().double())[0] @
                                    torch.linalg.svd(M.float().double())[2], rtol=0, atol=1e-6)
+
+
+def test_road_motion_displacement_refuses_the_velocity_model():
+    """Callers comparing with flow per frame ask for a displacement motion; others still take
+    the velocity model's."""
+    velocity = {"model": "velocity", "speed": 12.0, "yaw_rate": 0.1}
+    assert road_motion(velocity)[0].name == "velocity"
+    assert road_motion_batch(velocity, 2, torch.float64, "cpu")[0].name == "velocity"
+    message = r"^motion: the 'velocity' model gives flow in px/s, not the pixels per frame this needs"
+    with pytest.raises(ValueError, match=message):
+        road_motion(velocity, "motion", displacement=True)
+    with pytest.raises(ValueError, match=message):
+        road_motion_batch(velocity, 2, torch.float64, "cpu", name="motion", displacement=True)
+    for odometry in ({"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, {"model": "plane", "z_d": 1.0},
+                     {"model": "homography", "h11": 0.0}):
+        assert not road_motion(odometry, displacement=True)[0].velocity

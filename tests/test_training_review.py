@@ -1,7 +1,7 @@
 """Tests of the training modules' edge cases: the test net's correlation lookup at coarse levels
 and its seed range, the options of the loss terms given as numpy or 0-d tensor numbers, the
 smoothness of images with one direction only, losses without any term, the names of
-CompositeLoss's terms and empty inputs to the stand-ins."""
+CompositeLoss's terms, empty inputs to the stand-ins and which inputs of batch 1 broadcast."""
 
 from __future__ import annotations
 
@@ -210,3 +210,34 @@ def test_torchvision_standin_empty_images_are_named(shape, letter):
     net = TorchvisionRAFTStandIn().eval()
     with pytest.raises(ValueError, match=rf"^image1: expected shape \(B, 3, H, W\) with {letter} >= 1"):
         net(torch.zeros(shape), torch.zeros(shape))
+
+
+# -- which batch-1 inputs broadcast (docs/conventions.md) -------------------------------------------
+
+def test_conventions_state_which_batch_1_inputs_broadcast():
+    """docs/conventions.md said "a batch of 1 broadcasts against B" for every core function, but
+    image, flow and mask tensors must share B: what it says now is what the functions do."""
+    from pathlib import Path
+
+    from fsof_torch import Camera, fit_road, refine_flow, road_flow
+
+    text = " ".join((Path(__file__).resolve().parents[1] / "docs" / "conventions.md").read_text().split())
+    assert "a batch of 1 broadcasts against B." not in text
+    assert "Per-frame scalars and cameras of batch 1 broadcast against B; image, flow and mask tensors must share B" in text
+    assert "the road mask of the road fits (`fit_road`, `fit_image` and their wrappers) and of the refiner" in text
+
+    cam = Camera(torch.tensor([[60.0, 0.0, 40.0], [0.0, 60.0, 18.0], [0.0, 0.0, 1.0]], dtype=torch.float64), 1.65)
+    flow1, road1 = road_flow(cam, {"z_d": 1.0}, (24, 80))  # a camera and a mask of batch 1
+    flows = flow1.expand(2, 2, 24, 80)
+    image = torch.rand(2, 3, 24, 80, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 255
+    # the camera and per-frame scalars of batch 1 broadcast ...
+    odometry = {"x_d": 0.0, "z_d": torch.ones(1, dtype=torch.float64), "yaw": torch.zeros(2, dtype=torch.float64)}
+    assert freespace_flow_loss(flows, road1.expand(2, 1, 24, 80), cam, odometry).item() == pytest.approx(0.0, abs=1e-12)
+    # ... a mask of batch 1 against B = 2 does not, in the losses
+    with pytest.raises(ValueError, match=r"road: expected shape \(B, 1, H, W\) with B=2"):
+        freespace_flow_loss(flows, road1, cam, odometry)
+    with pytest.raises(ValueError, match=r"mask: expected shape \(B, 1, H, W\) with B=2"):
+        photometric_loss(image, image, flows, road1)
+    # the road fits and the refiner take one mask for every frame
+    assert fit_road(flows, road1, cam).flow.shape == (2, 2, 24, 80)
+    assert refine_flow(flows, road1, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, gate=None).flow.shape == (2, 2, 24, 80)

@@ -216,11 +216,22 @@ class Camera:
         """R_c (B, 3, 3): vehicle-frame vectors to camera-frame vectors."""
         return mounting_matrix(self.roll, self.pitch)
 
-    def horizon_row(self, u: float | Tensor = None) -> Tensor:
+    def horizon_row(self, u: float | Tensor | None = None) -> Tensor:
         """Row v of the horizon at column u (default: the principal point column), (B,).
 
         Pixels strictly below this row (larger v) see the road in front of the camera.
+
+        Args:
+            u: the column, pixels: a finite float or a float tensor of shape (1,) or (B,), B the
+                camera's batch (a camera of batch 1 takes any B); None for c_x.
         """
+        if u is not None:
+            # (a per-frame scalar like the camera's own, checked and named as they are)
+            dtype = torch.promote_types(self.dtype, u.dtype) if isinstance(u, Tensor) else self.dtype
+            u = as_batch_param(u, "u", dtype, self.device)
+            if self.batch_size not in (1, u.shape[0]) and u.shape[0] != 1:
+                raise ValueError(f"u: expected a float or a tensor of shape (1,) or ({self.batch_size},) (the "
+                                 f"camera's batch), got shape {tuple(u.shape)}")
         with autocast_off(self.K):
             A = self.mounting().transpose(-1, -2) @ self.K_inv()  # rows: vehicle-frame ray of p̃
         u = self.cx if u is None else u

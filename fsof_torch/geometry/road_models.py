@@ -469,7 +469,8 @@ def road_homography(camera: Camera, params: Mapping[str, Tensor | float] | None 
 
 # -- from other descriptions of the motion ---------------------------------------------------------
 
-def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, dict[str, object]]:
+def road_motion(odometry: object, name: str = "odometry", *,
+                displacement: bool = False) -> tuple[RoadModel, dict[str, object]]:
     """``(model, params)`` of a road motion given in any of the forms the library takes:
 
     - a dict of the paper's ``x_d``, ``z_d`` (metres) and ``yaw`` (radians);
@@ -478,6 +479,9 @@ def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, di
     - a fit result or anything with ``model`` and ``params`` attributes
       (:class:`~fsof_torch.estimation.flow_fit.RoadFit`);
     - an object with ``x_d``, ``z_d`` and ``yaw`` attributes (:class:`~fsof_torch.geometry.egomotion.EgoMotion`).
+
+    With ``displacement`` (a caller whose flow is pixels per frame: the freespace loss, the
+    refiner) the ``"velocity"`` model, whose flow is in px/s, raises a ValueError naming ``name``.
     """
     if isinstance(odometry, Mapping):
         if "model" in odometry:
@@ -498,6 +502,10 @@ def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, di
     else:
         raise TypeError(f"{name}: expected a dict of x_d, z_d, yaw (or with a 'model' key), a fit result or an "
                         f"EgoMotion, got {type(odometry).__name__}")
+    if displacement and model.velocity:
+        raise ValueError(f"{name}: the {model.name!r} model gives flow in px/s, not the pixels per frame this "
+                         f"needs; give the motion over the frame interval in a displacement model ('paper', 'plane' "
+                         f"or 'homography')")
     unknown = sorted(set(params) - set(model.params))
     if unknown:
         raise ValueError(f"{name}: unknown parameters {unknown} of model {model.name!r}; expected some of {model.params}")
@@ -505,11 +513,12 @@ def road_motion(odometry: object, name: str = "odometry") -> tuple[RoadModel, di
 
 
 def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: torch.device | str, *,
-                      name: str = "odometry", batch_of: str = "the flow's batch") -> tuple[RoadModel, dict[str, Tensor]]:
+                      name: str = "odometry", batch_of: str = "the flow's batch",
+                      displacement: bool = False) -> tuple[RoadModel, dict[str, Tensor]]:
     """:func:`road_motion`'s ``(model, params)`` with every parameter a tensor of shape
     (``batch``,) of ``dtype`` on ``device`` (a float or a batch of 1 broadcast); ``batch_of`` names
-    the batch in the error a wrong batch size raises."""
-    model, params = road_motion(odometry, name)
+    the batch in the error a wrong batch size raises; ``displacement`` as in :func:`road_motion`."""
+    model, params = road_motion(odometry, name, displacement=displacement)
     out = {}
     for key, value in params.items():
         t = as_batch_param(value, f"{name}[{key!r}]", finite=False)

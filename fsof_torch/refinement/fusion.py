@@ -312,12 +312,13 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         odometry: the motion from t to t+1, or None to estimate it. A road motion in any form
             :func:`~fsof_torch.geometry.road_models.road_motion` takes: a dict ``x_d, z_d, yaw``
             (metres, radians; floats or (B,) tensors), an :class:`EgoMotion`, a dict with a
-            ``"model"`` key and that model's parameters, or a fit result. A complete model's
-            motion (with ``"model"``, or a fit) is used as it is; the planar odometry of the
-            paper's model, with images, fixes the planar motion while the images estimate the
-            body's pitch and roll changes, its vertical motion and the camera's attitude (the
-            plain planar model where that estimate fails). Nothing is estimated, and the
-            estimator and its options (``fit_roll``, ``fit_pitch``, ``fit_options``,
+            ``"model"`` key and that model's parameters, or a fit result, of a displacement model
+            (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError). A
+            complete model's motion (with ``"model"``, or a fit) is used as it is; the planar
+            odometry of the paper's model, with images, fixes the planar motion while the images
+            estimate the body's pitch and roll changes, its vertical motion and the camera's
+            attitude (the plain planar model where that estimate fails). Nothing is estimated,
+            and the estimator and its options (``fit_roll``, ``fit_pitch``, ``fit_options``,
             ``photometric_options``) go unused, with a complete motion, with planar odometry
             and no images, and with planar odometry and ``fit=`` set; they are still checked,
             as without odometry, so a refiner configured with an estimator may be given
@@ -379,6 +380,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     for name, f in flows:
         if f.shape[0] != B:
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
+    # (before the road detection of mask="auto": a motion no refinement takes raises first)
+    given_model = None if odometry is None else road_motion(odometry, displacement=True)[0].name
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = _check_images(images, finest)
         if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
@@ -426,7 +429,6 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     else:
         finite = torch.isfinite(finest).all(dim=1, keepdim=True)
         fit_mask = mask & finite
-    given_model = None if odometry is None else road_motion(odometry)[0].name
     # the paper's planar odometry leaves the rest of the road's motion to the images
     estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
     # min_pixels guards estimation, which uses the finite predicted pixels; with odometry given

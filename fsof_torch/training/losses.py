@@ -320,7 +320,9 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
         flow: (B, 2, H, W) pixels, finite.
         image: (B, C, H, W) on 0..``data_range`` (finite, range checked), the frame the flow
             starts from.
-        order: 1 (first differences) or 2 (second differences).
+        order: 1 (first differences) or 2 (second differences; the one of columns i, i+1, i+2
+            weighted by the image gradient between i+1 and i+2, as ARFlow's ``smooth_grad_2nd``;
+            likewise for rows).
         edge_weight: w >= 0, per unit of image gradient on the 0..1 scale.
         reduction: ``"mean"``, ``"sum"`` or ``"none"`` for (B,).
 
@@ -353,7 +355,7 @@ def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, dat
         if order == 2:
             fx, _ = _image_gradients(fx)
             _, fy = _image_gradients(fy)
-            wx, wy = wx[..., :, :-1], wy[..., :-1, :]
+            wx, wy = wx[..., :, 1:], wy[..., 1:, :]  # as ARFlow's smooth_grad_2nd
         # A side shorter than order + 1 has no differences along it: that direction's sum is 0 and
         # it is not averaged in (an image with neither gives 0, still on the flow's graph).
         sx = (wx * fx.abs()).flatten(1).sum(dim=1) / max(fx[0, 0].numel(), 1) / 2
@@ -474,28 +476,31 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     """Robust distance between predicted flow and the freespace model flow inside the road mask.
 
     The target is the road flow (:func:`fsof_torch.road_flow`) of ``camera`` under ``odometry``,
-    any road model's motion; pixels count where ``road`` is True, the model is defined and the
-    prediction is finite. With ``odometry="fit"`` a road model (``fit_options["model"]``, default
-    the paper's) is fitted to the last (detached) estimate inside ``road`` and its flow,
-    detached, is the target; frames whose fit did not succeed count no pixel. The fitted target
-    only makes the road flow consistent with *some* plane motion: it suits fine-tuning a net
-    whose flow is roughly right; from scratch it did not help in ``python -m eval train``.
+    any displacement model's motion (not the ``"velocity"`` model's, in px/s); pixels count where
+    ``road`` is True, the model is defined and the prediction is finite. With ``odometry="fit"``
+    a road model (``fit_options["model"]``, default the paper's) is fitted to the last (detached)
+    estimate inside ``road`` and its flow, detached, is the target; frames whose fit did not
+    succeed count no pixel. The fitted target only makes the road flow consistent with *some*
+    plane motion: it suits fine-tuning a net whose flow is roughly right; from scratch it did not
+    help in ``python -m eval train``.
 
     Args:
         flows: (B, 2, H, W) pixels, or a list of them (weighted γ^(N-1-i)).
         road: (B, 1, H, W) bool freespace mask.
         camera: intrinsics (at the flow's resolution) and mounting, batch 1 or B.
-        odometry: the road motion: a dict with ``x_d``, ``z_d`` (metres) and ``yaw`` (radians),
-            floats or tensors of shape (1,) or (B,); a dict with a ``"model"`` key and that model's
-            parameters; a fit result; or ``"fit"`` (see
-            :func:`~fsof_torch.geometry.road_models.road_motion`).
+        odometry: the road motion from t to t+1: a dict with ``x_d``, ``z_d`` (metres) and
+            ``yaw`` (radians), floats or tensors of shape (1,) or (B,); a dict with a ``"model"``
+            key and a displacement model's parameters; a fit result; or ``"fit"`` (see
+            :func:`~fsof_torch.geometry.road_models.road_motion`). The ``"velocity"`` model (flow
+            in px/s, not pixels per frame) raises a ValueError.
         penalty: ``"charbonnier"`` (sqrt(r² + 1) - 1, as kornia's), ``"cauchy"`` (log(1 + r²/2),
             as kornia's) or ``"l1"``, on each component of the residual r = (F - F_model) / scale;
             evaluated without forming r² where it could overflow.
         scale: residual scale in pixels, finite and > 0; the penalty is quadratic below about
             ``scale``.
         fit_options: keyword arguments for ``fit_road`` (with a ``"model"``) or
-            ``fit_displacement`` (without) (``odometry="fit"`` only).
+            ``fit_displacement`` (without), used with ``odometry="fit"`` only; checked always
+            (a wrong name or type raises also with a given odometry, as in the module twin).
 
     Returns:
         Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
@@ -511,6 +516,8 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     if penalty not in _PENALTIES:
         raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
     scale = _check_scale(scale)
+    # (checked with a given odometry too, as FreespaceFlowLoss checks them: unused, but not wrong)
+    options = _check_fit_options(fit_options)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     fw = _as_flow_list(flows, "flows")
@@ -534,7 +541,6 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
                 raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
             from ..estimation.flow_fit import fit_displacement, fit_road
 
-            options = _check_fit_options(fit_options)
             fit = fit_road if "model" in options else fit_displacement  # (the paper's by default)
             with torch.no_grad():
                 fit_mask = road & finite[-1]
@@ -544,7 +550,8 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
         else:
             geo = torch.promote_types(work, camera.dtype)
-            model, values = road_motion_batch(odometry, B, geo, device, batch_of="the flows' batch")
+            model, values = road_motion_batch(odometry, B, geo, device, batch_of="the flows' batch",
+                                               displacement=True)
             cam = camera.to(device=device, dtype=geo)
             target, model_valid = road_flow(cam, values, size, model=model)
         target = target.to(device=device, dtype=work).expand(B, 2, *size)
