@@ -450,6 +450,8 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(seed_depth_m=float("inf")), "seed_depth_m: expected a finite number > 0"),
     (dict(min_coverage=1.5), r"min_coverage: expected a fraction in \[0, 1\)"),
     (dict(estimator="fit"), "estimator: expected a callable road-motion estimator"),
+    (dict(refit="no"), "refit: expected True or False, got str 'no'"),
+    (dict(refit=None), "refit: expected True or False, got NoneType None"),
     (dict(motion={"model": "velocity", "speed": 1.0}), "motion: expected a displacement model"),
 ])
 def test_bad_options_are_named(kitti_K, kwargs, match):
@@ -492,7 +494,7 @@ def test_bad_inputs_are_named(kitti_K):
     flow = torch.zeros(1, 2, 64, 200)
     with pytest.raises(TypeError, match="images: expected a pair .image1, image2., got Tensor"):
         refine_flow(flow, "auto", cam, images=im)
-    with pytest.raises(TypeError, match="images: expected a pair .image1, image2., got tuple"):
+    with pytest.raises(TypeError, match="images: expected a pair .image1, image2., got tuple of 3$"):
         refine_flow(flow, "auto", cam, images=(im, im, im))
     with pytest.raises(ValueError, match=r"images\[0\]: expected shape \(1, C, 64, 200\)"):
         refine_flow(flow, "auto", cam, images=(torch.cat([im, im]), torch.cat([im, im])))

@@ -260,3 +260,11 @@ def test_image_estimator_returns_a_detached_camera(noisy_pair):
         c = fit.camera
         assert not any(t.requires_grad for t in (c.K, c.height, c.roll, c.pitch))
         torch.testing.assert_close(c.K, K.detach(), rtol=0, atol=0)
+
+
+def test_image_estimator_names_what_came_for_images(small_pair):
+    """Not a pair: the message says what came (a tuple of 1 or 3 read as only "got tuple")."""
+    p, (im1, im2), road = small_pair
+    for images, shown in (((im1,), "tuple of 1"), ((im1, im2, im2), "tuple of 3"), (im1, "Tensor")):
+        with pytest.raises(TypeError, match=rf"^images: expected a pair \(image1, image2\), got {shown}$"):
+            ImageMotionEstimator()(None, road, p["camera"], images=images)

@@ -240,8 +240,17 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(ValueError, match="model: a clip is fitted with the 'plane' model"):
         fit_sequence(frames[:3], road, cam, model="paper")
     two = Camera(cam.K.expand(2, -1, -1), height=1.65)
-    with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera of batch 1"):
+    with pytest.raises(ValueError, match=r"^camera: expected batch 1 \(one camera for the clip\), got 2$"):
         fit_sequence(frames[:3], road, two)
+    with pytest.raises(TypeError, match="^camera: expected a fsof_torch.Camera of batch 1, got str$"):
+        fit_sequence(frames[:3], road, "cam")
+    # flags and the pass count are checked, not taken for their truth value (True == 1)
+    for bad in (True, 1.0, 2.0):
+        with pytest.raises(ValueError, match=f"^passes: expected 1 or 2, got {bad!r}$"):
+            fit_sequence(frames[:3], road, cam, passes=bad)
+    for name in ("keep_fits", "progress"):
+        with pytest.raises(TypeError, match=f"^{name}: expected True or False, got str 'no'$"):
+            fit_sequence(frames[:3], road, cam, **{name: "no"})
     with pytest.raises(ValueError, match=r"poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got torch.float32 \(2, 4, 4\)"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))

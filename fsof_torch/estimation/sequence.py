@@ -39,7 +39,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_data_range, check_float_tensor, check_image_range, check_keywords
+from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit
@@ -233,13 +233,16 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                             f"indexing), got {type(value).__name__}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
-    if passes not in (1, 2):
+    if isinstance(passes, bool) or not isinstance(passes, int) or passes not in (1, 2):
         raise ValueError(f"passes: expected 1 or 2, got {passes!r}")
+    keep_fits, progress = check_bool(keep_fits, "keep_fits"), check_bool(progress, "progress")
     for name, value in (("attitude_deg", attitude_deg), ("body_rotation_deg", body_rotation_deg)):
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
             raise ValueError(f"{name}: expected a finite number of degrees > 0 (a standard deviation), got {value!r}")
-    if not isinstance(camera, Camera) or camera.batch_size != 1:
-        raise TypeError("camera: expected a fsof_torch.Camera of batch 1")
+    if not isinstance(camera, Camera):
+        raise TypeError(f"camera: expected a fsof_torch.Camera of batch 1, got {type(camera).__name__}")
+    if camera.batch_size != 1:
+        raise ValueError(f"camera: expected batch 1 (one camera for the clip), got {camera.batch_size}")
     N = len(frames) - 1
     if not isinstance(mask, Tensor) and len(mask) != N:
         raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(mask)}")

@@ -469,7 +469,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
                    min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options)
-    edges = check_bool(edges, "edges")
+    edges, refit = check_bool(edges, "edges"), check_bool(refit, "refit")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):

@@ -148,7 +148,8 @@ class ImageMotionEstimator:
         if images is None:
             raise ValueError("images: ImageMotionEstimator needs images=(image1, image2), got None")
         if not isinstance(images, (tuple, list)) or len(images) != 2:
-            raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
+            raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}"
+                            + (f" of {len(images)}" if isinstance(images, (tuple, list)) else ""))
         image1, image2 = images
         # (the images first: a flow of another size is named, not the frames)
         dims = check_image_pair(image1, image2)

@@ -282,7 +282,8 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
     if is_ptlflow_inputs(images):
         images = images_from_ptlflow(images)
     if not isinstance(images, (tuple, list)) or len(images) != 2:
-        raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}")
+        raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}"
+                        + (f" of {len(images)}" if isinstance(images, (tuple, list)) else ""))
     B, _, H, W = finest.shape
     for i, im in enumerate(images):
         check_float_tensor(im, f"images[{i}]")
