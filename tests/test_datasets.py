@@ -313,6 +313,17 @@ class TestScene:
         bare = SceneDataset("default", 1, size=SIZE, ground_truth=False)[0]
         assert set(bare) == set(ITEM_KEYS) and bare["flow"] is None and bare["road"] is None
 
+    def test_items_do_not_follow_the_callers_overrides_changed_later(self):
+        from fsof_torch.data.scene import render_pair
+
+        amps = [25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0]
+        ds = SceneDataset("default", 1, size=SIZE, asphalt=amps)
+        ref = render_pair("default", 0, size=SIZE, asphalt=list(amps))
+        amps[:] = [80.0] * 7  # the caller reuses its list
+        item = ds[0]
+        assert torch.equal(item["image1"], ref["image1"]) and torch.equal(item["image2"], ref["image2"])
+        assert ds.config.asphalt == (25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0)
+
     def test_errors(self):
         with pytest.raises(ValueError, match="preset: expected one of"):
             SceneDataset("nope")

@@ -119,6 +119,33 @@ class TestFeature:
         torch.testing.assert_close(poses, offset @ torch.stack(chain), atol=1e-10, rtol=1e-10)
         torch.testing.assert_close(read_synthetic_pair(tmp_path, 1)["pose2"], pairs[1]["pose2"])
 
+    @pytest.mark.parametrize("preset", ["default", "crest", "body-motion"])
+    def test_rendered_poses_world_is_the_level_world_frame(self, tmp_path, preset):
+        from fsof_torch.data.scene import render_sequence
+
+        pairs = render_sequence(preset, 2, size=(12, 40))
+        write_synthetic_sequence(tmp_path, pairs, meta={"preset": preset, "seed": 0})
+        meta = json.loads((tmp_path / "meta.json").read_text())
+        # on a grade or with body motion the frame-0 camera is not at the world's origin: the label
+        # must hold for every preset
+        assert meta["poses_world"].startswith("renderer's level world frame")
+        assert "vehicle frame of frame 0" not in meta["poses_world"]
+        poses = read_kitti_poses(tmp_path / "poses.txt")
+        torch.testing.assert_close(poses[0], pairs[0]["pose1"], rtol=0, atol=1e-12)
+
+    def test_flow_velocity_reads_back_0_off_the_valid_pixels_as_documented(self, tmp_path):
+        from fsof_torch.data.scene import render_pair
+
+        pair = render_pair("crest", 0, size=(12, 40))
+        write_synthetic_pair(tmp_path, 0, pair)
+        back = read_synthetic_pair(tmp_path, 0)
+        valid = pair["valid"][0]
+        assert bool((~valid).any()) and bool((pair["flow_velocity"][:, ~valid] != 0).any())
+        assert bool((back["flow_velocity"][:, ~valid] == 0).all())
+        assert torch.equal(back["flow_velocity"][:, valid], pair["flow_velocity"][:, valid])
+        doc = " ".join(read_synthetic_pair.__doc__.split())
+        assert "(0 off the valid pixels, where the file holds NaN;" in doc
+
     def test_relative_pose_inverts_ego_motion(self):
         camera = Camera(torch.eye(3, dtype=torch.float64), 1.5, 0.1, -0.05)
         T = relative_pose_from_odometry(camera, 0.3, 1.1, math.radians(4))

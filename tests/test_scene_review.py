@@ -170,3 +170,83 @@ def test_a_grade_start_at_the_bound_renders_finite(start, length):
     t = lambda x: torch.tensor([x], dtype=torch.float64)  # noqa: E731
     A = (roll_matrix(t(math.pi / 180)) @ pitch_matrix(t(-math.pi / 180 + math.atan(slope))))[0]
     assert torch.allclose(pair["pose1"][:3, :3], A.T, rtol=0, atol=1e-12)
+
+
+# -- the configuration is immutable: a caller's list changed later changes nothing -----------------
+def test_asphalt_is_held_as_a_tuple_of_floats():
+    amps = [25, 24, 7, 3, 8, 22, 20.0]
+    cfg = scene_config("default", asphalt=amps)
+    assert isinstance(cfg.asphalt, tuple) and cfg.asphalt == (25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0)
+    assert all(type(a) is float for a in cfg.asphalt)
+    amps[0] = 80.0
+    assert cfg.asphalt[0] == 25.0
+
+
+def test_an_asphalt_list_changed_between_calls_does_not_reuse_the_old_frame():
+    amps = [25.0, 24.0, 7.0, 3.0, 8.0, 22.0, 20.0]
+    render_pair("default", 0, size=TINY, asphalt=amps)  # keeps frame 1, rendered with these amplitudes
+    amps[:] = [80.0] * 7  # the caller reuses its list for another scene
+    pair = render_pair("default", 1, size=TINY, asphalt=amps)
+    render_pair("cvc-simple", 0, size=TINY)  # another scene: nothing kept for the next call
+    fresh = render_pair("default", 1, size=TINY, asphalt=[80.0] * 7)
+    assert torch.equal(pair["image1"], fresh["image1"]) and torch.equal(pair["image2"], fresh["image2"])
+
+
+# -- car densities and texture contrast within physical ranges -----------------------------------
+@pytest.mark.parametrize("name", ["parked_cars", "moving_cars"])
+def test_a_car_density_beyond_the_bound_is_refused(name):
+    for value in (1e9, 100.5):  # 1e9 used to generate cars for minutes
+        message = f"{name}: expected a mean number of cars per 40 m <= 100, got {value!r}"
+        with pytest.raises(ValueError, match=re.escape(message)):
+            render_pair("default", 0, size=TINY, **{name: value})
+    pair = render_pair("default", 0, size=TINY, **{name: 100.0})
+    assert bool(torch.isfinite(pair["image1"]).all()) and bool((pair["labels"] == 6).any())
+
+
+@pytest.mark.parametrize("overrides, message", [
+    (dict(texture=1e38), "texture: expected a contrast multiplier <= 10000, got 1e+38"),
+    (dict(texture=10000.5), "texture: expected a contrast multiplier <= 10000, got 10000.5"),
+    (dict(asphalt=(1e39,) * 7), "asphalt: expected 7 amplitudes in [0, 10000] grey levels (one per octave), got "),
+    (dict(asphalt=(25.0,) * 6 + (1e300,)), "asphalt: expected 7 amplitudes in [0, 10000] grey levels"),
+    (dict(asphalt=(25.0,) * 6 + (-1.0,)), "asphalt: expected 7 amplitudes in [0, 10000] grey levels"),
+])
+def test_a_texture_contrast_beyond_the_bound_is_refused(overrides, message):
+    with pytest.raises(ValueError, match=re.escape(message)):
+        render_pair("default", 0, size=TINY, **overrides)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_highest_texture_contrast_renders_finite_grey_levels(dtype):
+    pair = render_pair("default", 0, size=TINY, dtype=dtype, texture=1e4, asphalt=(1e4,) * 7)
+    for key in ("image1", "image2"):
+        assert bool(((pair[key] >= 0) & (pair[key] <= 255)).all())  # False for NaN
+
+
+# -- speed_factor multiplies the cars' speed once ------------------------------------------------
+@pytest.mark.parametrize("preset", ["cvc-complex", "default"])
+def test_speed_factor_multiplies_the_moving_cars_speed_as_the_ego_speed(preset):
+    speeds, ego = {}, {}
+    for factor in (1.0, 2.0, 4.0):
+        scene = Scene(scene_config(preset, speed_factor=factor), 0, torch.float64)
+        speeds[factor] = [o.vs for b in range(4) for o in scene.blocks(b) if o.vs != 0.0]
+        ego[factor] = scene.motion.speed
+    assert speeds[1.0]
+    for factor in (2.0, 4.0):
+        assert ego[factor] == pytest.approx(factor * ego[1.0])
+        assert speeds[factor] == pytest.approx([factor * v for v in speeds[1.0]], rel=1e-12)
+
+
+def test_the_travel_bound_counts_speed_factor_once():
+    # 12 m/s at 10 Hz times 50: 60 m a frame for the ego vehicle and the cars' base speed
+    scene_config("default", speed_factor=50.0)
+    with pytest.raises(ValueError, match=re.escape("speed, speed_factor, dt: expected the moving cars' base travel")):
+        scene_config("default", speed=0.0, speed_factor=201.0)  # 5 m/s · 201 · 0.1 s > 100 m
+    scene_config("default", speed=0.0, speed_factor=200.0)
+
+
+# -- render_pair's overrides are SceneConfig fields only -----------------------------------------
+@pytest.mark.parametrize("overrides", [dict(start=3), dict(num_pairs=2), dict(progress=True), dict(wobble=1),
+                                       dict(progress=False, start=0)])
+def test_render_pair_refuses_what_is_not_a_scene_field(overrides):
+    with pytest.raises(TypeError, match=re.escape(f"render_pair: unknown overrides {sorted(overrides)}; expected")):
+        render_pair("default", 0, size=TINY, **overrides)

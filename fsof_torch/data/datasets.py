@@ -106,7 +106,9 @@ class SceneDataset(Dataset):
         **overrides: fields of ``SceneConfig`` (``noise=0.5``, ``speed_factor=2``, ...).
 
     Every argument is checked here (a bad preset, override, size or dtype raises at construction,
-    not at the first item).
+    not at the first item); the items render the checked configuration ``config`` (a
+    ``SceneConfig``), so an override the caller changes afterwards (an ``asphalt`` list) changes
+    nothing.
     """
 
     def __init__(self, preset: Any = "default", num_pairs: int = 4, *, seed: int = 0,
@@ -120,11 +122,12 @@ class SceneDataset(Dataset):
         self.seed = check_seed(seed)
         size = None if size is None else check_size(size)
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
-        # a bad preset or override fails here, not at the first item
-        cfg = scene_config(preset, **overrides, **({} if size is None else {"size": size}))
+        # a bad preset or override fails here, not at the first item; the items render this checked
+        # configuration (immutable), not the caller's overrides, which the caller may change later
+        self.config = scene_config(preset, **overrides, **({} if size is None else {"size": size}))
         # the calibrated camera is the same for every pair: cast from float64, not from a rounded copy
-        self._camera64 = Scene(cfg, self.seed, torch.float64).camera64
-        self.preset, self.size, self.overrides = preset, size, overrides
+        self._camera64 = Scene(self.config, self.seed, torch.float64).camera64
+        self.preset, self.size = preset, size
         self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
     def __len__(self) -> int:
@@ -134,7 +137,7 @@ class SceneDataset(Dataset):
         from .scene import render_pair
 
         i = check_index(index, len(self))
-        p = render_pair(self.preset, i, seed=self.seed, size=self.size, dtype=self.dtype, **self.overrides)
+        p = render_pair(self.config, i, seed=self.seed, dtype=self.dtype)
         p.update(index=i, name=f"{i:06d}", camera=self._camera64.to(self.camera_dtype, copy=True))
         return as_item(p if self.ground_truth else _images_and_camera(p))
 

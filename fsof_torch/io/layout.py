@@ -31,8 +31,11 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
                                    row i is the camera of ``{i:06d}_10``, row i + 1 the camera of
                                    ``{i:06d}_11``, so ``ego_motion_from_pose(P[i], camera,
                                    pose1=P[i+1])`` gives back the pair's odometry. They are the
-                                   renderer's ``pose1``/``pose2`` (world = vehicle frame of frame
-                                   0) when every pair has them and consecutive pairs share a frame;
+                                   renderer's ``pose1``/``pose2`` (world = the renderer's level
+                                   world frame: x right, y down, z along the road at its start, the
+                                   road at s = 0 is y = h; the vehicle frame of frame 0 only on a
+                                   level road without body motion) when every pair has them and
+                                   consecutive pairs share a frame;
                                    otherwise the chain of each pair's true relative motion
                                    (world = camera of the first frame). meta.json says which.
 
@@ -79,6 +82,11 @@ __all__ = [
 SYNTHETIC_FORMAT = "fsof-torch synthetic KITTI-like layout"
 _VERSION = 1
 _DEPTH_SCALE = 256.0
+# meta.json's poses_world when poses.txt holds the renderer's poses: the scene's world frame
+# (fsof_torch.data.scene.world), true of every preset; it is the camera of frame 0 only on a level
+# road without body motion
+_RENDERED_WORLD = ("renderer's level world frame (x right, y down along gravity, z along the road at its start; "
+                   "origin the camera height above the road under the vehicle at frame 0)")
 
 FILES = {
     "image_2/{name}_10.png": "frame t, 8-bit RGB",
@@ -255,7 +263,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     # otherwise the chain of the pairs' relative motions (world = camera of the first frame)
     poses = torch.stack(rendered) if rendered else torch.stack(chained)
     write_kitti_poses(root / "poses.txt", poses)
-    extra["poses_world"] = "renderer (vehicle frame of frame 0)" if rendered else "camera of the first frame"
+    extra["poses_world"] = _RENDERED_WORLD if rendered else "camera of the first frame"
     files = {folder: len(list((root / folder).glob("*"))) for folder in
              ("image_2", "flow_occ", "flow_velocity", "road", "semantic", "depth", "calib", "params")
              if (root / folder).is_dir()}
@@ -353,7 +361,9 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
                         ground_truth: bool = True) -> dict[str, Any]:
     """Read pair ``index`` of a synthetic layout folder as the dict :func:`fsof_torch.scene.render_pair`
     gives (keys where present on disk): ``image1``, ``image2`` (3, H, W) ``dtype`` 0..255,
-    ``flow`` (2, H, W) px, ``valid`` (1, H, W) bool, ``flow_velocity`` (2, H, W) px/s, ``road``
+    ``flow`` (2, H, W) px, ``valid`` (1, H, W) bool, ``flow_velocity`` (2, H, W) px/s (0 off the
+    valid pixels, where the file holds NaN; render_pair's values there, which are not ground truth,
+    are not written), ``road``
     (1, H, W) bool, ``labels`` (H, W) int64, ``depth`` (1, H, W) m, ``camera`` (Camera, batch 1,
     ``dtype``), ``odometry``, ``velocity``, ``road_pose`` and ``plane`` (dicts of floats), ``pose1``,
     ``pose2`` (4, 4) float64, plus ``index`` and ``name``.

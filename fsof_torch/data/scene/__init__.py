@@ -12,8 +12,9 @@ keeps the path's radius at least 8 m and more than half a lane width). Textures 
 value noise from a seeded generator, band-limited per pixel (octaves finer than the pixel
 footprint fade out) so that frames warp onto each other and optical flow can track the road.
 
-Frames (DESIGN.md §2): the world frame is the vehicle frame of frame 0 (x right, y down,
-z forward, origin at the camera, road at y = h). A pose (c, ψ) maps world points into a local
+Frames (DESIGN.md §2): the world frame is level (x right, y down, z along the road at its start,
+road at y = h under the vehicle at frame 0); on a level road without body motion it is the vehicle
+frame of frame 0 (origin at the camera). A pose (c, ψ) maps world points into a local
 frame as ``p_local = R_ψ (p_world - c)`` with ``R_ψ = [[cos ψ, 0, -sin ψ], [0, 1, 0],
 [sin ψ, 0, cos ψ]]``; the ego vehicle, the buildings and the cars all use it. The camera sees
 ``p_cam = R_roll R_pitch p_vehicle`` (:class:`fsof_torch.camera.Camera`).

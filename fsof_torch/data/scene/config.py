@@ -15,7 +15,8 @@ from ..._check import check_bool, check_int, check_size
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
            "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "MIN_TURN_RADIUS", "MAX_BODY_HZ",
-           "MAX_GRADE_START", "check_seed", "arc_length", "path_curvature"]
+           "MAX_GRADE_START", "MAX_CARS", "MAX_CONTRAST", "check_seed", "check_overrides", "arc_length",
+           "path_curvature", "traffic_speed"]
 
 #: Semantic label ids of ``labels``.
 LABELS: dict[str, int] = {"sky": 0, "road": 1, "marking": 2, "kerb": 3, "pavement": 4,
@@ -35,9 +36,20 @@ SKY, ROAD, MARKING, KERB, PAVEMENT, BUILDING, CAR = (
     LABELS[k] for k in ("sky", "road", "marking", "kerb", "pavement", "building", "car"))
 
 #: The most anything may move in one frame (m): the ego vehicle (its arc length) and the moving cars'
-#: base speed times dt. 100 m a frame is 1000 m/s at 10 Hz, 25× the fastest documented scene (CVC ×4:
-#: 20 m/s, cars 80 m/s); beyond it the scene would generate objects along an unbounded stretch of road.
+#: base speed (:func:`traffic_speed`) times dt. 100 m a frame is 1000 m/s at 10 Hz, 50× the fastest
+#: scene of the paper's tables (CVC ×4: the ego vehicle and the cars' base speed 20 m/s); beyond it the
+#: scene would generate objects along an unbounded stretch of road.
 MAX_TRAVEL = 100.0
+
+#: The most cars per 40 m block (``parked_cars`` per side, ``moving_cars`` over both lanes), as a
+#: Poisson mean: far more than fit (parked cars 6 m apart, about 7 a side; moving cars 7 m apart in a
+#: lane); beyond it every block would only draw cars that the spacing discards, at a cost per car.
+MAX_CARS = 100.0
+
+#: The most contrast of the procedural textures: ``texture`` (a multiplier of the built-in contrast)
+#: and each ``asphalt`` amplitude (grey levels) are at most 1e4, far beyond any useful contrast on grey
+#: levels 0..255; much larger values overflow the shading to inf (1e38 in float32), and inf · 0 to NaN.
+MAX_CONTRAST = 1e4
 
 #: The tightest turn a scene drives (m): the ego path's radius 1 / |κ| (:func:`path_curvature`) is at
 #: least this, so the road (concentric with the path, the ego vehicle in its right lane) stays drivable.
@@ -62,6 +74,27 @@ def check_seed(seed: object) -> int:
     if not 0 <= seed < MAX_SEED:
         raise ValueError(f"seed: expected an int in [0, 2**62), got {seed!r}")
     return seed
+
+
+def check_overrides(overrides: Any) -> None:
+    """TypeError naming :func:`render_pair` unless every key of ``overrides`` is a :class:`SceneConfig`
+    field (render_pair, render_sequence and :func:`scene_config` take the fields by keyword)."""
+    known = {f.name for f in fields(SceneConfig)}
+    unknown = sorted(set(overrides) - known)
+    if unknown:
+        raise TypeError(f"render_pair: unknown overrides {unknown}; expected some of {sorted(known)}")
+
+
+def traffic_speed(cfg: SceneConfig) -> float:
+    """The moving cars' base speed (m/s): max(|v|, 5 m/s) · speed_factor, v the ego speed at
+    speed_factor 1 (``speed``, or the arc through explicit odometry / dt), so that the cars' speed at
+    factor k is k times their speed at factor 1 (:func:`.objects.block_objects`: cars in the ego
+    vehicle's direction drive at 1.3 times it, oncoming cars at 0.8 times it)."""
+    if cfg.x_d is not None:
+        v = arc_length(float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)) / cfg.dt
+    else:
+        v = float(cfg.speed)
+    return max(abs(v), 5.0) * cfg.speed_factor
 
 
 def arc_length(x_d: float, z_d: float, yaw: float) -> float:
@@ -111,10 +144,11 @@ class SceneConfig:
     ``pavement_width``, ``kerb_height`` (m; the kerb top stays below the camera: kerb_height <
     height - body_height on a level road, times (1 - G²) / sqrt(1 + G²) on a grade whose steepest
     grade is G); ``buildings`` (bool); ``parked_cars`` (mean number per 40 m and side);
-    ``moving_cars`` (mean number per 40 m, half oncoming); ``texture`` (contrast multiplier of the
-    procedural textures); ``asphalt`` (grey-level amplitude of each of the seven asphalt noise
-    octaves, cells 2 cm, 5 cm, 12 cm, 30 cm, 75 cm, 2 m, 5 m; None for the built-in
-    (25, 25, 22, 18, 14, 13, 11)).
+    ``moving_cars`` (mean number per 40 m, half oncoming), each at most :data:`MAX_CARS` = 100;
+    ``texture`` (contrast multiplier of the procedural textures); ``asphalt`` (grey-level amplitude
+    of each of the seven asphalt noise octaves, cells 2 cm, 5 cm, 12 cm, 30 cm, 75 cm, 2 m, 5 m; a
+    sequence of numbers, held as a tuple of floats; None for the built-in
+    (25, 25, 22, 18, 14, 13, 11)); ``texture`` and each amplitude at most :data:`MAX_CONTRAST` = 1e4.
 
     Camera sensor: ``noise`` (standard deviation, grey levels on 0..255, of independent Gaussian
     noise added to every pixel of every frame, the same on the three channels; seeded by the
@@ -238,14 +272,15 @@ def scene_config(preset: str | SceneConfig = "default", **overrides: Any) -> Sce
         cfg = PRESETS[preset]
     else:
         raise TypeError(f"preset: expected a preset name or a SceneConfig, got {type(preset).__name__}")
-    known = {f.name for f in fields(SceneConfig)}
-    unknown = sorted(set(overrides) - known)
-    if unknown:
-        raise TypeError(f"render_pair: unknown overrides {unknown}; expected some of {sorted(known)}")
+    check_overrides(overrides)
     cfg = replace(cfg, **overrides)
     # K as nested float tuples: a tensor or an array would not compare in the frame cache's key
     cfg = replace(cfg, K=_as_K(cfg.K))
     _validate(cfg)
+    if cfg.asphalt is not None:
+        # a tuple, not the caller's list: a list changed after the call would change the
+        # configuration that keyed the kept frame (render.py) and the SceneDataset's items
+        cfg = replace(cfg, asphalt=tuple(float(a) for a in cfg.asphalt))
     return cfg
 
 
@@ -280,6 +315,12 @@ def _validate(cfg: SceneConfig) -> None:
                  "kerb_height", "texture", "noise"):
         if real(name) < 0:
             raise ValueError(f"{name}: expected >= 0, got {getattr(cfg, name)!r}")
+    for name in ("parked_cars", "moving_cars"):
+        if not real(name) <= MAX_CARS:
+            raise ValueError(f"{name}: expected a mean number of cars per 40 m <= {MAX_CARS:g}, "
+                             f"got {getattr(cfg, name)!r}")
+    if not real("texture") <= MAX_CONTRAST:
+        raise ValueError(f"texture: expected a contrast multiplier <= {MAX_CONTRAST:g}, got {cfg.texture!r}")
     if not abs(cfg.steering) < math.pi / 2:
         raise ValueError(f"steering: expected |δ_f| < π/2 rad, got {cfg.steering!r}")
     if not (abs(cfg.roll) < math.pi / 4 and abs(cfg.pitch) < math.pi / 4):
@@ -295,10 +336,10 @@ def _validate(cfg: SceneConfig) -> None:
     if cfg.asphalt is not None:
         amps = cfg.asphalt
         if (not isinstance(amps, (tuple, list)) or len(amps) != len(ASPHALT_CELLS)
-                or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and math.isfinite(a) and a >= 0
+                or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a <= MAX_CONTRAST
                            for a in amps)):
-            raise ValueError(f"asphalt: expected {len(ASPHALT_CELLS)} finite amplitudes >= 0 (one per octave), "
-                             f"got {amps!r}")
+            raise ValueError(f"asphalt: expected {len(ASPHALT_CELLS)} amplitudes in [0, {MAX_CONTRAST:g}] grey "
+                             f"levels (one per octave), got {amps!r}")
     if isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int) or cfg.supersample < 1:
         raise ValueError(f"supersample: expected an integer >= 1, got {cfg.supersample!r}")
     for name in ("adaptive", "buildings"):
@@ -311,7 +352,7 @@ def _validate(cfg: SceneConfig) -> None:
 
 def _validate_travel(cfg: SceneConfig) -> None:
     """At most :data:`MAX_TRAVEL` metres a frame for the ego vehicle and for the moving cars, whose base
-    speed is max(|v|, 5 m/s) · speed_factor (:func:`.objects.block_objects`), v the ego speed."""
+    speed is max(|v|, 5 m/s) · speed_factor (:func:`traffic_speed`), v the ego speed at speed_factor 1."""
     if cfg.x_d is not None:
         if not abs(cfg.yaw) < math.pi:
             raise ValueError(f"yaw: expected |yaw| < π rad per frame, got {cfg.yaw!r}")
@@ -319,7 +360,7 @@ def _validate_travel(cfg: SceneConfig) -> None:
         if not travel <= MAX_TRAVEL:
             raise ValueError(f"x_d, z_d: expected a travel (arc length) <= {MAX_TRAVEL:g} m per frame, got "
                              f"{travel!r} m from x_d={cfg.x_d!r}, z_d={cfg.z_d!r}, yaw={cfg.yaw!r}")
-        speed, names = travel / cfg.dt, "speed_factor, dt (with x_d, z_d)"
+        names = "speed_factor, dt (with x_d, z_d)"
     else:
         speed = abs(cfg.speed * cfg.speed_factor)
         if not speed * cfg.dt <= MAX_TRAVEL:
@@ -327,10 +368,10 @@ def _validate_travel(cfg: SceneConfig) -> None:
                              f"{MAX_TRAVEL:g} m per frame, got {speed * cfg.dt!r} m from speed={cfg.speed!r}, "
                              f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
         names = "speed, speed_factor, dt"
-    traffic = max(speed, 5.0) * cfg.speed_factor * cfg.dt
+    traffic = traffic_speed(cfg) * cfg.dt
     if not traffic <= MAX_TRAVEL:
         raise ValueError(f"{names}: expected the moving cars' base travel max(|v|, 5 m/s) · speed_factor · dt <= "
-                         f"{MAX_TRAVEL:g} m per frame (v the ego speed), got {traffic!r} m from "
+                         f"{MAX_TRAVEL:g} m per frame (v the ego speed at speed_factor 1), got {traffic!r} m from "
                          f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
 
 

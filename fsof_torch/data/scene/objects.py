@@ -7,8 +7,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .config import SceneConfig
-from .motion import Motion
+from .config import SceneConfig, traffic_speed
 
 BLOCK = 40.0  # metres of road per procedurally generated block of objects
 BUILDING_BOX, CAR_BODY, CAR_CABIN = 0, 1, 2
@@ -29,8 +28,7 @@ class SceneObject:
     seed: int          # texture variation
 
 
-def block_objects(cfg: SceneConfig, motion: Motion, seed: int, block: int,
-                  road_kappa: float = 0.0) -> list[SceneObject]:
+def block_objects(cfg: SceneConfig, seed: int, block: int, road_kappa: float = 0.0) -> list[SceneObject]:
     """The objects generated for road block ``block`` (arc length [40 b, 40 (b + 1)) at frame 0)."""
     g = torch.Generator().manual_seed((seed * 1_000_003 + block * 7919 + 12345) % (2 ** 63))
 
@@ -89,7 +87,7 @@ def block_objects(cfg: SceneConfig, motion: Motion, seed: int, block: int,
                 last = s
                 car(side * (cfg.lane_width + cfg.parking_width / 2), s_start + s, 0.0, side < 0)
     # one speed per lane and scene, cars spaced along s: moving cars never run into each other
-    base = max(abs(motion.speed), 5.0) * cfg.speed_factor
+    base = traffic_speed(cfg)
     taken: dict[float, list[float]] = {}
     for _ in range(count(cfg.moving_cars)):
         oncoming = uni(0.0, 1.0) < 0.5

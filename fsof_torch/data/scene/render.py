@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from ..._check import check_int, check_size
-from .config import MARKING, ROAD, SKY, SceneConfig, check_seed, scene_config
+from .config import MARKING, ROAD, SKY, SceneConfig, check_overrides, check_seed, scene_config
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
 from .shading import sensor_noise, shade
@@ -178,7 +178,9 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         size: ``(H, W)`` of the images; K is scaled from the KITTI-like 375×1242 (default).
         dtype: float32 or float64 for every tensor (geometry is exact either way up to rounding).
         **overrides: fields of :class:`SceneConfig` (``speed_factor=4``, ``roll=math.radians(5)``,
-            ``supersample=3``, ``x_d=, z_d=, yaw=`` …).
+            ``supersample=3``, ``x_d=, z_d=, yaw=`` …); any other name (``start``, ``num_pairs``,
+            ``progress`` of :func:`render_sequence` as well) is a TypeError "render_pair: unknown
+            overrides".
 
     Returns:
         dict with ``image1``, ``image2`` (3, H, W) RGB 0..255; ``flow`` (2, H, W) px, forward;
@@ -197,6 +199,7 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         §10); ``index`` int.
     """
     check_int(index, "index", minimum=0)  # checked here, so that the error names this function's argument
+    check_overrides(overrides)  # render_sequence's own keywords are not overrides either
     return render_sequence(preset, 1, seed=seed, size=size, dtype=dtype, start=index, **overrides)[0]
 
 

@@ -23,7 +23,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ...geometry.camera import Camera, mounting_matrix, pitch_matrix
-from .config import SceneConfig
+from .config import SceneConfig, traffic_speed
 from .motion import BodyMotion, ego_poses, motion_from_config, rot_y
 from .objects import BLOCK, SceneObject, block_objects
 from .road import Grade, Road
@@ -81,7 +81,7 @@ class Scene:
 
     def blocks(self, b: int) -> list[SceneObject]:
         if b not in self._blocks:
-            self._blocks[b] = block_objects(self.cfg, self.motion, self.seed, b, self.road.kappa)
+            self._blocks[b] = block_objects(self.cfg, self.seed, b, self.road.kappa)
         return self._blocks[b]
 
     def object_pose(self, o: SceneObject, k: int) -> tuple[list[float], float]:
@@ -109,7 +109,7 @@ class Scene:
             far = min(far, span - back)
         lo, hi = s_ego - back, s_ego + far
         t = k * self.motion.dt
-        vmax = max(self.motion.speed, 5.0) * self.cfg.speed_factor * 1.5
+        vmax = traffic_speed(self.cfg) * 1.5  # the fastest car: 1.3 times the base speed
         b0 = math.floor((lo - vmax * t) / BLOCK)
         b1 = math.floor((hi + vmax * t) / BLOCK)
         out = []
