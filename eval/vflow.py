@@ -347,7 +347,8 @@ def run(args: argparse.Namespace) -> int:
     write_json(make_parent(json_path), info)
     print(f"wrote {json_path}" + "".join(f", {p}" for p in files.values()))
     if not (c["success"] and math.isfinite(c["a"])):
-        print("the V-flow curve could not be fitted (success false: too few inlier rows or no finite curve)",
+        print("the V-flow curve could not be fitted (success false: too few inlier rows, no more than chance "
+              f"gives ({c['nfa']:.2g} false alarms), or no finite curve)",
               file=sys.stderr)
         return 1
     return 0

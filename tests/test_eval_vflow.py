@@ -111,6 +111,19 @@ def test_vflow_flow_without_valid_pixels_exits_2(tmp_path, capsys):
     assert rc == 2 and "error: --flow: " in err and "has no valid flow pixel" in err
 
 
+def test_vflow_noise_is_no_curve_and_says_why(tmp_path, capsys):
+    """Noise gathers a few rows on some curve; the job reports its false alarms and exits 1."""
+    from fsof_torch.io import write_flow
+
+    noise = 2 * torch.rand(2, 96, 320, generator=torch.Generator().manual_seed(1)) - 1
+    write_flow(tmp_path / "noise.npy", 5 * noise)
+    rc = main(["vflow", "--flow", str(tmp_path / "noise.npy"), "--out", str(tmp_path / "o"), "--no-progress"])
+    data = json.loads((tmp_path / "o" / "vflow.json").read_text())
+    err = capsys.readouterr().err
+    assert rc == 1 and data["curve"]["success"] is False and data["curve"]["nfa"] >= 1
+    assert f"no more than chance gives ({data['curve']['nfa']:.2g} false alarms)" in err
+
+
 def test_vflow_failed_fit_exits_1(tmp_path, capsys):
     flow = _small_flow(tmp_path, rows=[30])  # one row: too few for the curve
     rc = main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"), "--no-progress"])

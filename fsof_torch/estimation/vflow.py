@@ -242,10 +242,10 @@ class VFlowCurve:
             undefined).
         fitted_valid: (B, 1, H, W) bool, where the curve is defined (below v0).
         residual: (B,) mean absolute row residual over the inlier rows (flow unit).
-        nfa: (B,) the curve's number of false alarms: how many curves would be expected to
-            gather as many inlier rows by chance, were the usable rows' values shuffled
-            (a-contrario, as in ORSA; 1 with fewer than 3 usable rows, which draw no curve).
-            Near 0 for a road; 1 or more for noise.
+        nfa: (B,) the curve's number of false alarms: how many curves would be expected to fit
+            as many rows as well by chance, were the usable rows' values shuffled (a-contrario, as
+            in ORSA, at the best of 11 precisions of the inlier band; 1 with fewer than 3 usable
+            rows, which draw no curve). Near 0 for a road; 1 or more for noise.
         success: (B,) bool: finite parameters from enough inlier rows, more than chance gives
             (``nfa`` below ``max_false_alarms``), on a curve that is determined: a ≠ 0 and the
             curve beyond the row threshold on at least one inlier row (flow without curvature,
@@ -359,7 +359,7 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     # a curve within the row threshold of 0 on every inlier row (a = 0: no motion, no curvature)
     # explains them no better than no curve: its horizon v0 is arbitrary
     drawn = (a != 0) & (inl & (f.abs() > thr)).any(-1)
-    nfa = _false_alarms(y, f, thr, usable, n_inl)
+    nfa = _false_alarms(y, f, thr, usable)
     success = ((n_inl >= min_inlier_rows) & (nfa < max_false_alarms) & drawn
                & torch.isfinite(a) & torch.isfinite(v0))
     a = torch.where(success, a, torch.zeros_like(a))
@@ -373,29 +373,44 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
                       residual=residual.to(out_dtype), nfa=nfa.to(out_dtype), success=success)
 
 
-def _false_alarms(y: Tensor, f: Tensor, thr: Tensor, usable: Tensor, inliers: Tensor) -> Tensor:
+#: The precisions at which a curve's chance is judged: fractions of the rows' inlier band (as the
+#: line segment detector judges at a few precisions): a curve whose rows lie well inside the band
+#: is judged at the precision they reach, not only at the band's (a road of 1.5 px of flow whose
+#: rows all agree to 1e-6 px is no chance curve, though a 1 px band holds most of its values).
+_PRECISIONS = tuple(2.0 ** -i for i in range(11))
+
+
+def _false_alarms(y: Tensor, f: Tensor, thr: Tensor, usable: Tensor) -> Tensor:
     """The curve's number of false alarms (a-contrario; Moisan and Stival's ORSA), (B,).
 
-    The null hypothesis: the usable rows' values in a random order. Under it row v is an inlier
-    with probability p_v, the share of the usable rows' values y_j inside row v's band around the
-    curve (``|y_j - f_v| <= thr_j``, the inlier test applied to y_j). A curve is drawn through 3
-    rows, so the count beyond them is at most Binomial(n - 3, mean p_v) in its upper tail
-    (Hoeffding 1956: of the sums of independent Bernoulli variables with one mean, the binomial
-    has the heaviest tail beyond the mean plus one), and C(n, 3) curves can be drawn:
-    NFA = C(n, 3) · P(Binomial(n - 3, p) >= k - 3), with n usable rows and k inliers.
+    The null hypothesis: the usable rows' values in a random order. At a precision α (a fraction
+    of the inlier band), row v is an inlier when ``|y_v - f_v| <= α thr_v``; under the null
+    hypothesis with probability p_v, the share of the usable rows' values y_j inside row v's band
+    (``|y_j - f_v| <= α thr_j``, the inlier test applied to y_j). A curve is drawn through 3 rows,
+    so the count beyond them is at most Binomial(n - 3, mean p_v) in its upper tail (Hoeffding
+    1956: of the sums of independent Bernoulli variables with one mean, the binomial has the
+    heaviest tail beyond the mean plus one); C(n, 3) curves can be drawn, each judged at
+    len(_PRECISIONS) precisions: NFA = min over α of
+    len(_PRECISIONS) · C(n, 3) · P(Binomial(n - 3, p(α)) >= k(α) - 3), n usable rows, k(α) inliers.
     """
     B, H = y.shape
-    band = (y.unsqueeze(1) - f.unsqueeze(2)).abs() <= thr.unsqueeze(1)          # (B, v, j)
     n = usable.sum(-1).double()
-    p_row = (band & usable.unsqueeze(1)).sum(-1).double() / n.clamp_min(1).unsqueeze(-1)
-    p = (torch.where(usable, p_row, torch.zeros_like(p_row)).sum(-1) / n.clamp_min(1)).clamp(0, 1)
-    trials = (n - 3).clamp_min(0).unsqueeze(-1)
-    j = torch.arange(H + 1, dtype=torch.float64, device=y.device).expand(B, H + 1)
+    pairs = usable.unsqueeze(1) & usable.unsqueeze(2)                                 # (B, v, j)
+    gap = (y.unsqueeze(1) - f.unsqueeze(2)).abs() / thr.unsqueeze(1)                  # |y_j - f_v| / thr_j
+    misfit = (y - f).abs() / thr                                                      # (B, H)
+    alpha = torch.tensor(_PRECISIONS, dtype=y.dtype, device=y.device)
+    p = torch.stack([((gap <= a) & pairs).sum((1, 2)) for a in _PRECISIONS], -1).double()
+    p = (p / n.clamp_min(1).square().unsqueeze(-1)).clamp(0, 1)                       # (B, A)
+    k = ((misfit.unsqueeze(-1) <= alpha) & usable.unsqueeze(-1)).sum(1).double()      # (B, A)
+    trials = (n - 3).clamp_min(0).reshape(B, 1, 1)
+    j = torch.arange(H + 1, dtype=torch.float64, device=y.device).reshape(1, 1, H + 1)
+    q = p.unsqueeze(-1)
     log_pmf = (torch.lgamma(trials + 1) - torch.lgamma(j + 1) - torch.lgamma((trials - j).clamp_min(0) + 1)
-               + torch.special.xlogy(j, p.unsqueeze(-1)) + torch.special.xlog1py(trials - j, -p.unsqueeze(-1)))
-    tail = (j >= (inliers.double() - 3).unsqueeze(-1)) & (j <= trials)
-    log_tail = torch.logsumexp(torch.where(tail, log_pmf, torch.full_like(log_pmf, -torch.inf)), -1)
-    log_tests = torch.lgamma(n + 1) - torch.lgamma((n - 2).clamp_min(1)) - math.lgamma(4)   # log C(n, 3)
+               + torch.special.xlogy(j, q) + torch.special.xlog1py(trials - j, -q))  # (B, A, H + 1)
+    tail = (j >= (k - 3).unsqueeze(-1)) & (j <= trials)
+    log_tail = torch.logsumexp(torch.where(tail, log_pmf, torch.full_like(log_pmf, -torch.inf)), -1).amin(-1)
+    log_tests = (torch.lgamma(n + 1) - torch.lgamma((n - 2).clamp_min(1)) - math.lgamma(4)  # log C(n, 3)
+                 + math.log(len(_PRECISIONS)))
     return torch.where(n >= 3, torch.exp(log_tests + log_tail), torch.ones_like(n))   # no curve: chance
 
 
