@@ -394,3 +394,20 @@ def test_pair_figure_checks_every_map_against_the_road(case):
             figure.update(**content, max_flow=5.0, title="t")
     finally:
         figure.close()
+
+
+@pytest.mark.parametrize("max_flow, error, match", [
+    (float("nan"), ValueError, "max_flow: expected a finite number, got nan"),
+    (0.0, ValueError, r"max_flow: expected a positive number \(> 0\), got 0.0"),
+    ("2", TypeError, "max_flow: expected a number, got str '2'"),
+])
+def test_pair_figure_checks_max_flow_before_a_figure_is_opened(max_flow, error, match):
+    """max_flow was checked only while drawing, after pair_figure had opened its figure (left open)."""
+    import matplotlib.pyplot as plt
+
+    flow, road, _, err, valid = _pair()
+    open_before = plt.get_fignums()
+    with pytest.raises(error, match=match):
+        pair_figure(flows={"before": flow}, errors={"before": (err, valid)}, road=road, max_flow=max_flow,
+                    error_vmax=1.0, error_label="epe (px)", title="t")
+    assert plt.get_fignums() == open_before

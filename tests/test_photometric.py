@@ -639,3 +639,27 @@ def test_option_types_and_values_are_checked(call, error, match):
 def test_module_checks_its_options_at_construction(options, error, match):
     with pytest.raises(error, match=match):
         PhotometricError(**options)
+
+
+def test_to_grey_and_census_check_their_arguments():
+    """to_grey took an unbatched (3, H, W) image as (B=3, C=8) rows and silently averaged them,
+    and resized a caller's ``out`` of another shape; census_transform's radius 2.0 was a
+    ValueError where every other option of a wrong type is a TypeError."""
+    from fsof_torch.evaluation.photometric import to_grey
+
+    image = torch.rand(1, 3, 8, 8) * 255
+    with pytest.raises(ValueError, match=r"^image: expected shape \(B, C, H, W\), got \(3, 8, 8\)$"):
+        to_grey(image[0])
+    with pytest.raises(TypeError, match="^image: expected a tensor, got ndarray$"):
+        to_grey(image.numpy())
+    out = torch.zeros(1, 1, 4, 4)
+    with pytest.raises(ValueError, match=r"^out: expected shape \(B, 1, H, W\) with H=8"):
+        to_grey(image, out=out)
+    assert out.shape == (1, 1, 4, 4) and not out.any()
+    with pytest.raises(TypeError, match="^out: expected the image's dtype torch.float32, got torch.float64$"):
+        to_grey(image, out=torch.zeros(1, 1, 8, 8, dtype=torch.float64))
+    into = torch.zeros(1, 2, 8, 8)
+    assert to_grey(image, out=into[:, :1]).data_ptr() == into.data_ptr()
+    for radius, error in ((2.0, TypeError), (True, TypeError), (0, ValueError)):
+        with pytest.raises(error, match="^radius: expected an int"):
+            census_transform(image, radius=radius)

@@ -95,7 +95,7 @@ def test_public_names():
 # --- exceptions --------------------------------------------------------------------------------
 
 def test_exceptions():
-    with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
+    with pytest.raises(ValueError, match=r"flow: expected shape \(2, H, W\) or \(B, 2, H, W\), got \(1, 3, 4, 4\)"):
         flow_to_color(torch.zeros(1, 3, 4, 4))
     with pytest.raises(ValueError, match="max_flow: expected a positive"):
         flow_to_color(_flow(), -1.0)
@@ -316,3 +316,16 @@ def test_flow_to_color_of_huge_float32_flows():
     assert got[0, :, 0, 0].tolist() == [255, 0, 0] and got[0, :, 0, 1].tolist() == [255, 255, 255]
     assert got[1, :, 0, 1].tolist() == [255, 255, 255]
     assert (got[1, :, 0, 0].int() - torch.tensor([88, 0, 255])).abs().max() <= 1
+
+
+def test_colormap_and_shape_errors_name_what_came():
+    """A colour map that is not a name raised AttributeError ('int' object has no attribute
+    'upper'); a shape error quoted the shape with the batch dimension the function had added."""
+    error = torch.rand(1, 1, 4, 4)
+    for colormap in (3, None):
+        with pytest.raises(TypeError, match=f"^colormap: expected an OpenCV colour map name such as 'inferno', "
+                                            f"got {type(colormap).__name__} {colormap!r}$"):
+            error_to_color(error, 1.0, colormap=colormap)
+    with pytest.raises(ValueError, match=r"^flow: expected shape \(2, H, W\) or \(B, 2, H, W\), got \(3, 4, 4\)$"):
+        flow_to_color(torch.rand(3, 4, 4))
+    assert flow_to_color(torch.rand(2, 4, 4)).shape == (1, 3, 4, 4)

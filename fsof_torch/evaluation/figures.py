@@ -214,7 +214,8 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
         a colour bar; every panel has the road outline, pixel axes and a title. (To draw many
         pairs, :class:`PairFigure` builds the figure once and redraws it.)
     """
-    _check_pair(flows, errors, road, images, valid)  # (valid too, before a figure is opened)
+    _check_pair(flows, errors, road, images, valid)  # (valid and max_flow too, before a figure is opened)
+    check_number(max_flow, "max_flow", positive=True)
     figure = PairFigure(*PairFigure.layout_of(flows=flows, errors=errors, road=road, images=images,
                                               error_vmax=error_vmax, error_label=error_label))
     return figure.update(flows=flows, errors=errors, road=road, max_flow=max_flow, title=title,

@@ -68,13 +68,13 @@ def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device 
 
 def _as_batch(x: Tensor, name: str, channels: int | None) -> Tensor:
     """Accept (C, H, W) or (B, C, H, W) (and (H, W) for one channel); return (B, C, H, W)."""
-    if x.dim() == 2 and channels == 1:
-        x = x[None, None]
-    elif x.dim() == 3:
-        x = x[None]
-    pattern = ("B", channels if channels is not None else "C", "H", "W")
-    check_shape(x, name, pattern)
-    return x
+    c = channels if channels is not None else "C"
+    batched = x[None, None] if x.dim() == 2 and channels == 1 else x[None] if x.dim() == 3 else x
+    if batched.dim() != 4 or (channels is not None and batched.shape[1] != channels):
+        # (the shape that came, not the one with a batch dimension added)
+        raise ValueError(f"{name}: expected shape ({c}, H, W) or (B, {c}, H, W), got {tuple(x.shape)}")
+    check_shape(batched, name, ("B", c, "H", "W"))
+    return batched
 
 
 def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
@@ -149,6 +149,9 @@ def _colormap_lut(colormap: str) -> Tensor:
     import cv2
     import numpy as np
 
+    if not isinstance(colormap, str):
+        raise TypeError(f"colormap: expected an OpenCV colour map name such as 'inferno', got "
+                        f"{type(colormap).__name__} {colormap!r}")
     code = getattr(cv2, f"COLORMAP_{colormap.upper()}", None)
     if code is None:
         raise ValueError(f"colormap: expected an OpenCV colour map name such as 'inferno', got {colormap!r}")
