@@ -83,6 +83,8 @@ class TestExceptions:
     def test_run_checks(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no rgb/"):
             CarlaRun(tmp_path)
+        with pytest.raises(TypeError, match="^root: expected a file path .str or os.PathLike., got NoneType None$"):
+            CarlaRun(None)
         (tmp_path / "rgb").mkdir()
         with pytest.raises(ValueError, match="no PNG frames"):
             CarlaRun(tmp_path)

@@ -282,3 +282,19 @@ class TestStalePairs:
         (tmp_path / "meta.json").write_text(text)
         with pytest.raises(ValueError, match=r"path: '.*meta\.json'"):
             synthetic_pair_indices(tmp_path)
+
+
+@pytest.mark.parametrize("key, pose, match", [
+    ("pose1", torch.full((4, 4), float("nan"), dtype=torch.float64), "holds NaN or inf"),
+    ("pose2", 2 * torch.eye(4, dtype=torch.float64), "not a rigid pose"),
+    ("pose1", torch.eye(3, dtype=torch.float64), r"expected a 4×4 pose, got shape \(3, 3\)"),
+])
+def test_writer_refuses_poses_its_reader_refuses(tmp_path, key, pose, match):
+    """write_synthetic_pair wrote a pose that read_synthetic_pair then refused; now it refuses it
+    first, before any file is written."""
+    pair = dict(_pair(), **{key: pose})
+    with pytest.raises(ValueError, match=rf"^pair\[{key!r}\]"):
+        write_synthetic_pair(tmp_path / "out", 0, pair)
+    with pytest.raises(ValueError, match=match):
+        write_synthetic_pair(tmp_path / "out", 0, pair)
+    assert not (tmp_path / "out").exists()

@@ -91,6 +91,8 @@ def test_bad_mode():
         warp_backward(_image(), _flow(), padding_mode="reflection")
     with pytest.raises(ValueError, match="mode: expected one of"):
         WarpBackward(mode="area")
+    with pytest.raises(TypeError, match="^align_corners: expected True or False, got str 'x'$"):
+        WarpBackward(align_corners="x")  # (when built, not at its first forward)
 
 
 def test_nan_flow_rejected():

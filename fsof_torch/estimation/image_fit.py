@@ -321,7 +321,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             the frames, and biases the fit at full resolution).
         highpass, band_levels: the ``band_levels`` finest levels compare each image minus its
             Gaussian blur of ``highpass`` pixels (of that level): the detail, not the lighting,
-            which changes between real frames with exposure, vignetting and shade (None: the
+            which changes between real frames with exposure, vignetting and shade (None or 0: the
             intensities themselves; coarser levels always do, for a wide basin). A narrow band
             keeps the blur's mismatch under magnification small; docs/image-fit.md compares
             widths on real and synthetic frames.

@@ -31,7 +31,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._check import autocast_off, check_finite, check_float_tensor, check_shape, result_dtype
+from .._check import autocast_off, check_bool, check_finite, check_float_tensor, check_shape, result_dtype
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -206,6 +206,7 @@ class WarpBackward(nn.Module):
     def __init__(self, *, align_corners: bool = True, mode: str = "bilinear",
                  padding_mode: str = "zeros") -> None:
         super().__init__()
+        check_bool(align_corners, "align_corners")  # (here, not at the first forward)
         if mode not in _MODES:
             raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
         if padding_mode not in _PADDING:

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Camera
-from .._check import as_chw_flow
+from .._check import as_chw_flow, as_path
 from .images import in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
 
@@ -139,7 +139,7 @@ class CarlaRun:
     FOLDERS = {"rgb": ".png", "optical_flow": ".tif", "semantic": ".png"}
 
     def __init__(self, root: str | os.PathLike):
-        self.root = Path(root)
+        self.root = as_path(root, "root")
         if not (self.root / "rgb").is_dir():
             raise FileNotFoundError(f"root: {str(self.root)!r} has no rgb/ folder (expected the paper's CARLA layout)")
         self.frames = [p.stem for p in in_frame_order((self.root / "rgb").glob("*.png"))]

@@ -177,12 +177,19 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     (1, H, W) bool, ``camera`` (batch 1), ``odometry`` (x_d, z_d, yaw). Optional: ``road``,
     ``labels``, ``depth``, ``flow_velocity``, ``velocity``, ``pose1``, ``pose2``, ``road_pose``,
     ``plane``. ``extra`` goes into the params JSON (preset, seed, ...). Returns the written paths
-    by kind.
+    by kind. ``pose1`` and ``pose2`` must be rigid poses (ValueError before anything is written),
+    as :func:`read_synthetic_pair` requires.
     """
     root = Path(root)
     missing = [k for k in ("image1", "image2", "flow", "valid", "camera", "odometry") if k not in pair]
     if missing:
         raise ValueError(f"pair: missing keys {missing}; expected the dict of fsof_torch.scene.render_pair")
+    for key in ("pose1", "pose2"):  # checked before any file is written, as the reader checks them
+        if pair.get(key) is not None:
+            pose = torch.as_tensor(pair[key]).detach().to("cpu", torch.float64)
+            if pose.numel() != 16:
+                raise ValueError(f"pair[{key!r}]: expected a 4×4 pose, got shape {tuple(pose.shape)}")
+            check_rigid_poses(pose.reshape(1, 4, 4), lambda _: f"pair[{key!r}]")
     name = pair_name(index)
     out: dict[str, Path] = {}
 

@@ -126,7 +126,8 @@ class SceneConfig:
 
     Motion: ``speed`` (m/s, rear axle = camera), ``steering`` (front-wheel angle, rad),
     ``wheelbase`` (m), ``dt`` (s between frames), ``speed_factor`` (multiplies the speed of the
-    ego vehicle and of the moving cars: the paper's CVC ×1 / ×4). Or explicit odometry per pair:
+    ego vehicle and of the moving cars: the paper's CVC ×1 / ×4; with explicit odometry, the moving
+    cars' only: the odometry is the ego motion as given). Or explicit odometry per pair:
     ``x_d``, ``z_d`` (m) and ``yaw`` (rad), all three given (then speed and steering are derived
     from the circular arc through the motion: speed = signed arc length / dt, steering =
     atan(l · yaw / arc length); exact for Ackermann motion, an approximation otherwise). The road is
