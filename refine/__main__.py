@@ -337,7 +337,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     from .inputs import JobError, file_digest
     from .job import JobConfig
     from .measure import PHOTO
-    from .report import pair_table, summarize, write_clip_summaries, write_report
+    from .report import auto_road_lines, pair_table, summarize, write_clip_summaries, write_report
     from .sources import NetSpec, make_source, net_identity
 
     if args.threads < 1:
@@ -447,6 +447,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     print(f"\n{title}\n\n{table}\n")
     for n in summary["notes"]:
         print(f"- {n}")
+    for line in auto_road_lines(summary):  # --road auto: the flagged pairs and why, as in report.md
+        print(line)
     print(f"\nreport: {out / 'report.md'} and {out / 'report.json'}")
     return 0
 

@@ -142,6 +142,28 @@ def check_image_size(dataset: ImageFolderDataset, option: str) -> None:
                        f"{MIN_SIDE} pixels")
 
 
+def check_road_has_pixels(dataset: ImageFolderDataset, road: str) -> None:
+    """A given road (``--road``: one file, or a folder of masks) holds a road pixel inside the
+    images for some pair; else a JobError naming ``--road``, before any work: every pair would be
+    left unrefined. Reads the masks up to the first with a pixel (mostly one file). A mask that
+    cannot be read, or has another size, is left to its pair's load to name; pairs whose own
+    mask alone is empty are named in the report's notes (``refine.report.unmeasured_notes``)."""
+    from fsof_torch.io import read_road_mask
+
+    H, W = dataset.size
+    files = [dataset.road_file] if dataset.road_file is not None else [p.road for p in dataset.pairs]
+    for f in files:
+        try:  # a polygon is drawn at the images' size, as the dataset draws it
+            mask = read_road_mask(f, (H, W) if f.suffix.lower() == ".json" else None)
+        except (ValueError, TypeError, OSError):
+            return
+        if tuple(mask.shape[-2:]) != (H, W) or bool(mask.any()):
+            return
+    which = "" if dataset.road_file is not None else f" (the masks of all {len(files)} pairs are empty)"
+    raise JobError(f"--road: {road!r} holds no road pixel inside the {H}x{W} images{which}, so no pair could "
+                   f"be refined; give masks or a polygon that cover the road, or --road auto")
+
+
 # -- synthetic -----------------------------------------------------------------------------------
 
 def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, int] | None,
@@ -196,6 +218,8 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
                                      road=None if road == "auto" else road, gt=gt, calib_size=calib_size,
                                      camera_dtype=torch.float64)
     check_image_size(dataset, "--images")
+    if road != "auto":
+        check_road_has_pixels(dataset, road)
     names = [p.name for p in dataset.pairs]
     stems = {p.name: [p.image1.stem] for p in dataset.pairs}
     with options_of({"flows": "--flows"}):

@@ -4,8 +4,8 @@ before and after, write the refined flow, a figure and a per-pair record.
 Layout of ``--out``::
 
     OUT/run.json                                   the run's identity and fingerprint
-    OUT/report.md, OUT/report.json                 the report (written last)
-    OUT/<source>/summary.png                       the clip over its pairs (figures on)
+    OUT/report.md, OUT/report.json                 the report (removed first, written last)
+    OUT/<source>/summary.png                       the clip over its pairs (figures on; as the report)
     OUT/<source>/figures/<pair>.png                before and after, flow and error (figures on)
     OUT/<source>/<variant>/flow/<pair>.png         refined flow, KITTI 16-bit PNG (pixels beyond its
                                                    ±512 px marked invalid, counted in the record)
@@ -13,7 +13,9 @@ Layout of ``--out``::
 
 A pair's JSON record is written last, atomically: its presence, with the run's fingerprint and
 the pair's input fingerprint, marks the (source, variant, pair) as finished, so an interrupted
-run resumes where it stopped (``--overwrite`` redoes everything).
+run resumes where it stopped (``--overwrite`` redoes everything). A pair's figure is removed
+before its source's records are rewritten and drawn after them, so a figure never shows older
+records than the pair's (with figures on, a pair without its figure is redone).
 """
 
 from __future__ import annotations
@@ -184,6 +186,9 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 bar.set_postfix_str(f"{spec.name}: errors before ({source})")
                 before = flow_maps(pair, pred)
                 finite_share = float(before["finite"].to(torch.float64).mean())
+                # the figure of the records about to be replaced must not outlive them (with
+                # --no-figures, or should the run stop before drawing it): drawn again below
+                figure_path(cfg, source, spec.name).unlink(missing_ok=True)
                 flows, maps = {}, {}
                 for variant in cfg.variants:
                     bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")

@@ -18,6 +18,7 @@ import torch
 
 from .job import VARIANT_HELP, JobConfig
 from .measure import PHOTO
+from .resume import SUMMARY
 
 # (record key, label): each photometric kind inside the road and overall, and over the
 # non-occluded pixels where ground truth exists; end-point error where ground truth exists
@@ -99,8 +100,8 @@ def summarize(metrics: torch.Tensor, extra: torch.Tensor, records: list[dict], c
 
 def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) -> list[str]:
     """Warnings for the report: each flow source whose flow was NaN or inf at every pixel of a pair
-    (nothing of that pair could be measured or refined), and what a '–' or an 'n/a' in the table
-    means."""
+    (nothing of that pair could be measured or refined), the pairs whose given road mask is empty,
+    and what a '–' or an 'n/a' in the table means."""
     notes = []
     for source in sources:
         pairs = sorted({r["pair"] for r in records if r["source"] == source and r.get("prediction_finite") == 0.0})
@@ -109,9 +110,16 @@ def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) 
             shown = ", ".join(pairs[:8]) + (", ..." if len(pairs) > 8 else "")
             notes.append(f"Warning: flow source '{source}' gave no finite flow (NaN or inf at every pixel) on "
                          f"{len(pairs)} of {total} pair(s) ({shown}): no metric could be measured there.")
+    empty = sorted({r["pair"] for r in records if r.get("road") == "given" and r.get("road_pixels") == 0})
+    if empty:  # (a given road with no pixel on any pair stops the job first: refine.inputs)
+        total = len({r["pair"] for r in records})
+        shown = ", ".join(empty[:8]) + (", ..." if len(empty) > 8 else "")
+        notes.append(f"Warning: road mask empty: {shown} ({len(empty)} of {total} pair(s)): left unrefined, "
+                     f"nothing measured inside the road there.")
     if any(k.endswith("_before") and v is None for r in rows for k, v in r.items()):
         notes.append("'–': measured over no pixel (none where both the prediction and the refined flow are "
-                     "finite and defined; e.g. the source gave no finite flow).")
+                     "finite and defined, inside the road mask for a road column; e.g. the source gave no "
+                     "finite flow, or the road mask was empty).")
     if any(_no_relative_change(v, r.get(f"{k[:-len('_before')]}_after"))
            for r in rows for k, v in r.items() if k.endswith("_before")):
         notes.append("'n/a' in a Δ% column: the error before refinement is 0 (e.g. a source that is the ground "
@@ -244,7 +252,7 @@ def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:
         if any("epe_road" in r["before"] for r in records):
             errors = {"epe_road": "end-point error (px), road", **errors}
         fig = clip_summary_figure(records, errors=errors, title=f"{cfg.title}: flow source '{source}' over the pairs")
-        path = cfg.out / source / "summary.png"
+        path = cfg.out / source / SUMMARY
         save_figure(fig, path)
         written.append(path)
     return written

@@ -9,6 +9,8 @@ Each pair's record also stores the fingerprint of the pair's own inputs (the con
 images and flow, road and ground-truth files, its poses).
 
 Resuming: a record counts as finished only when both fingerprints match the current run's.
+Every run removes the report and clip summaries of the run before it first (they are written
+last), so a run that fails leaves no report that contradicts the records it rewrote.
 A rerun into a folder that holds a run of another identity stops with a message naming what
 differs (``--overwrite`` deletes that run's outputs first), unless that run left nothing but its
 manifest (it stopped before its first record: its manifest is replaced). The number of pairs is
@@ -32,6 +34,7 @@ from .inputs import JobError
 MANIFEST = "run.json"
 LOCK = ".refine.lock"
 REPORTS = ("report.md", "report.json")
+SUMMARY = "summary.png"  # per source
 
 
 def fingerprint(identity: Any) -> str:
@@ -129,8 +132,9 @@ def _no_results(out: Path, old: dict) -> bool:
 def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
     """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
     ``overwrite`` clear) a folder that holds the results of another run, replace the manifest of
-    one that left none; write the manifest. Call under :func:`locked`. Returns the manifest (with
-    ``fingerprint``)."""
+    one that left none; remove the earlier run's report and clip summaries (:func:`remove_reports`);
+    write the manifest. Call under :func:`locked`, before any record is written. Returns the
+    manifest (with ``fingerprint``)."""
     from fsof_torch.io import remove_stale_temporaries, write_json
 
     out.mkdir(parents=True, exist_ok=True)
@@ -155,15 +159,24 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
             target = (out / sub).resolve()
             if target.parent == out.resolve() and target.is_dir():
                 shutil.rmtree(target)
-        for name in REPORTS:
-            with contextlib.suppress(FileNotFoundError):
-                (out / name).unlink()
     elif old is None:
         leftovers = [p.name for p in out.iterdir() if p.name != LOCK]
         if leftovers and not overwrite:
             raise JobError(f"--out: {str(out)!r} already holds files ({', '.join(sorted(leftovers)[:4])}) "
                            f"but no refine run ({MANIFEST}); give a new or empty folder, or --overwrite "
                            f"to write into it anyway")
-    manifest = {"fingerprint": fp, "identity": identity, "outputs": identity.get("outputs", [])}
+    outputs = identity.get("outputs", [])
+    if old is not None:  # the earlier run's report would outlive the records this run rewrites
+        remove_reports(out, outputs)
+    manifest = {"fingerprint": fp, "identity": identity, "outputs": outputs}
     write_json(manifest_path, manifest)
     return manifest
+
+
+def remove_reports(out: Path, sources: list[str]) -> None:
+    """Remove the report (``report.md``, ``report.json``) and the clip summaries
+    (``<source>/summary.png``) of an earlier run in ``out``: they describe its records, which this
+    run may rewrite (and, should it fail, leave rewritten), and are written again last."""
+    for path in [out / name for name in REPORTS] + [out / s / SUMMARY for s in sources]:
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()

@@ -536,3 +536,32 @@ def test_with_road_auto_the_samples_road_json_is_not_read(kitti15_folder, odomet
     assert KittiOdometryDataset(odometry_folder, road_json=False)[1]["road"] is None
     with pytest.raises(TypeError, match=r"^road_json: expected True or False, got str 'no'"):
         KittiOdometryDataset(odometry_folder, road_json="no")
+
+
+def test_a_given_road_without_a_road_pixel_stops_under_road(user_folder, tmp_path):
+    """A polygon wholly outside the images, one all-zero mask for every pair or a folder of them:
+    every pair would go unrefined, so the job stops before any work naming --road. A folder where
+    only some masks are empty is taken (the report names those pairs); --road auto flags its own."""
+    from fsof_torch.io import write_road_mask
+    from refine.inputs import JobError, user_pairs
+
+    args = dict(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None, height=1.65,
+                roll_deg=0.0, pitch_deg=0.0, poses=None, flows=None, gt=None)
+    (tmp_path / "out.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": [[500, 500], [600, 500],
+                                                                                       [600, 600]]}))
+    with pytest.raises(JobError, match=r"^--road: '.*out\.json' holds no road pixel inside the 48x160 images, "
+                                       r"so no pair could be refined; .* or --road auto$"):
+        user_pairs(**args, road=str(tmp_path / "out.json"))
+    zero = torch.zeros(1, *SIZE, dtype=torch.bool)
+    write_road_mask(tmp_path / "zero.png", zero)
+    with pytest.raises(JobError, match=r"^--road: '.*zero\.png' holds no road pixel inside the 48x160 images,"):
+        user_pairs(**args, road=str(tmp_path / "zero.png"))
+    masks = sorted((user_folder / "road").iterdir())
+    write_road_mask(masks[1], zero)
+    assert len(user_pairs(**args, road=str(user_folder / "road"))[0]) == 3  # one empty mask of three: taken
+    for m in masks:
+        write_road_mask(m, zero)
+    with pytest.raises(JobError, match=r"^--road: '.*road' holds no road pixel inside the 48x160 images \(the "
+                                       r"masks of all 3 pairs are empty\), so no pair could be refined"):
+        user_pairs(**args, road=str(user_folder / "road"))
+    assert len(user_pairs(**args, road="auto")[0]) == 3

@@ -171,6 +171,52 @@ def test_resume_skips_finished_pairs(tmp_path):
     assert rec0.stat().st_mtime_ns != stamp0
 
 
+
+def test_a_redone_pairs_figure_never_shows_its_old_records(tmp_path, user_folder, scene_pairs):
+    """A pair's flow replaced, the rerun with --no-figures: the pair is redone and its figure (drawn
+    from the old flow) and the clip summary are gone, the other pair's figure is kept; the next
+    run with figures redraws the pair (its figure missing) and reuses the other."""
+    import numpy as np
+
+    out = tmp_path / "out"
+    args = ["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"),
+            "--road", str(user_folder / "road"), "--flows", str(user_folder / "flows"), "--odometry", "fit",
+            "--out", str(out), "--no-progress", *_mounting(scene_pairs)]
+    assert main(args) == 0
+    fig0, fig1, summary = (out / "files" / "figures" / "000000.png", out / "files" / "figures" / "000001.png",
+                           out / "files" / "summary.png")
+    stamp0 = fig0.stat().st_mtime_ns
+    assert fig1.is_file() and summary.is_file()
+    np.save(user_folder / "flows" / "000001.npy", np.zeros((2, *SIZE), np.float32))  # pair 1's flow replaced
+    assert main([*args, "--no-figures"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["records_computed"] == 1 and report["records_resumed"] == 1
+    assert not fig1.exists() and not summary.exists()
+    assert fig0.stat().st_mtime_ns == stamp0
+    assert main(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["records_computed"] == 1 and report["records_resumed"] == 1
+    assert fig1.is_file() and summary.is_file() and fig0.stat().st_mtime_ns == stamp0
+
+
+def test_a_rerun_that_fails_leaves_no_report_of_the_run_before(tmp_path, user_folder, scene_pairs, capsys):
+    """The rerun redoes pair 0 (its flow replaced) and stops on pair 1's broken flow file: the
+    earlier report, which no longer matches pair 0's record, is gone, not left beside it."""
+    from fsof_torch.io import write_flow
+
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--flows", str(user_folder / "flows"),
+                 "--odometry", "fit", *_mounting(scene_pairs))
+    assert main(args) == 0
+    assert (out / "report.md").is_file() and (out / "report.json").is_file()
+    rec0 = out / "files" / "fit" / "pairs" / "000000.json"
+    old = json.loads(rec0.read_text())
+    write_flow(user_folder / "flows" / "000000.flo", torch.zeros(2, *SIZE))
+    (user_folder / "flows" / "000001.npy").write_bytes(b"garbage")
+    assert "--flows:" in _err(capsys, args)
+    assert json.loads(rec0.read_text())["input_fingerprint"] != old["input_fingerprint"]  # pair 0 was redone
+    assert not (out / "report.md").exists() and not (out / "report.json").exists()
+
 def test_rerun_with_other_options_is_refused_then_replaced(tmp_path, capsys):
     """A finished folder and a rerun with another fusion mode: refused with what differs; with
     --overwrite the work is redone and the report describes the new run."""
@@ -616,10 +662,10 @@ def test_testnet_source_confidence_mode(tmp_path):
 
 
 @pytest.mark.parametrize("size", ["48x160", "96x320"])
-def test_synthetic_road_auto(tmp_path, size):
+def test_synthetic_road_auto(tmp_path, size, capsys):
     """--road auto: at 48 x 160 the road's detail is too faint to judge, and the pair is flagged
     and left as predicted; at 96 x 320 the road is found and refined. Flag, reason and coverage
-    are recorded per pair and in the report."""
+    are recorded per pair and in the report, and printed with it."""
     out = tmp_path / "out"
     rc = main(["--num-pairs", "1", "--source", "dis", "--odometry", "fit", "--road", "auto", "--no-figures",
                "--out", str(out), "--size", size, "--no-progress"])
@@ -632,6 +678,11 @@ def test_synthetic_road_auto(tmp_path, size):
         assert rec["road_flag"] in ("textureless", "static") and rec["road_reason"] != ""
         assert rec["road_pixels"] == 0 and 0.0 <= rec["road_coverage"] <= 1.0 and not rec["refined"]
         assert rec["after"]["epe_all"] == rec["before"]["epe_all"]
+        line = f"  - flagged, left unrefined: 000000: {rec['road_flag']} ({rec['road_reason']})"
+        printed, report = capsys.readouterr().out, (out / "report.md").read_text()
+        assert line in printed.splitlines() and line in report.splitlines()
+        # the road columns measured nothing: the '–' note names an empty road as a cause
+        assert "e.g. the source gave no finite flow, or the road mask was empty)" in report
     else:
         assert rec["road_flag"] == "ok" and rec["road_reason"] == ""
         assert rec["refined"] and rec["road_pixels"] > 0 and 0.0 < rec["road_coverage"] <= 1.0
@@ -727,6 +778,29 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
     assert rc == 0
     assert _rows(out / "report.json")[("dis", "sequence")]["pairs"] == 2
 
+
+
+def test_pairs_whose_road_mask_is_empty_are_named(tmp_path, user_folder, scene_pairs, capsys):
+    """One empty mask in the road folder: the run goes on, leaves that pair unrefined and names it
+    in the report's notes and on the console. Every mask empty: it stops under --road before any
+    work (refine.inputs), not with a report of nothing refined."""
+    from fsof_torch.io import write_road_mask
+
+    zero = torch.zeros(1, *SIZE, dtype=torch.bool)
+    write_road_mask(user_folder / "road" / "000001.png", zero)
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry", "fit",
+                 *_mounting(scene_pairs))
+    assert main(args) == 0
+    note = "- Warning: road mask empty: 000001 (1 of 2 pair(s)): left unrefined"
+    assert note in capsys.readouterr().out and note in (out / "report.md").read_text()
+    rec = json.loads((out / "dis" / "fit" / "pairs" / "000001.json").read_text())
+    assert rec["road_pixels"] == 0 and not rec["refined"]
+    write_road_mask(user_folder / "road" / "000000.png", zero)
+    err = _err(capsys, _user(user_folder, tmp_path / "out2", "--road", str(user_folder / "road"),
+                             *_mounting(scene_pairs)))
+    assert err.startswith("error: --road: ") and "holds no road pixel inside the 48x160 images" in err
+    assert not (tmp_path / "out2").exists()
 
 # -- errors ---------------------------------------------------------------------------------------
 
