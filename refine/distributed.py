@@ -12,6 +12,7 @@ Without torchrun (no ``WORLD_SIZE`` or ``WORLD_SIZE=1``) nothing here starts a p
 
 from __future__ import annotations
 
+import datetime
 import os
 from dataclasses import dataclass
 from typing import Any, Sequence, TypeVar
@@ -39,6 +40,10 @@ class World:
         return self.rank == 0
 
 
+#: How long a process waits for the others' pairs (torch.distributed's timeout).
+WAIT_FOR_OTHERS = datetime.timedelta(days=7)
+
+
 def init(device: str = "cpu") -> World:
     """Join the process group torchrun set up (gloo for ``device="cpu"``, nccl for CUDA), or
     return the single-process world."""
@@ -52,7 +57,10 @@ def init(device: str = "cpu") -> World:
     if backend == "nccl":
         torch.cuda.set_device(local_rank)
     if not dist.is_initialized():
-        dist.init_process_group(backend=backend)
+        # A process that finished its pairs waits for the others' in the gather: as long as the
+        # longest share takes, not the backends' default 10 to 30 minutes (a process that fails
+        # ends the run through torchrun, so no process waits on a dead one).
+        dist.init_process_group(backend=backend, timeout=WAIT_FOR_OTHERS)
     return World(rank=rank, world_size=world_size, local_rank=local_rank, backend=backend)
 
 

@@ -317,3 +317,23 @@ def test_torchrun_two_processes_write_the_single_process_report(tmp_path):
     assert ranks == {"000000": 0, "000001": 1, "000002": 0, "000003": 1}  # strided
     strip = lambda rs: [{k: v for k, v in r.items() if k != "rank"} for r in rs]  # noqa: E731
     assert strip(multi["pairs"]) == strip(single["pairs"])
+
+
+def test_processes_wait_for_the_others_longer_than_the_backend_default(monkeypatch):
+    """A process that finished its pairs waits in the gather for the others' pairs: with the
+    backend's default timeout (30 minutes for gloo) a long clip's uneven shares ended the run
+    without its report."""
+    import datetime
+
+    import torch.distributed as dist
+
+    from refine import distributed
+
+    seen = {}
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setattr(dist, "is_initialized", lambda: False)
+    monkeypatch.setattr(dist, "init_process_group", lambda **kwargs: seen.update(kwargs))
+    world = distributed.init("cpu")
+    assert world.rank == 1 and world.world_size == 2 and seen["backend"] == "gloo"
+    assert seen["timeout"] == distributed.WAIT_FOR_OTHERS >= datetime.timedelta(days=1)
