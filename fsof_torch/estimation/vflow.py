@@ -395,13 +395,19 @@ def _false_alarms(y: Tensor, f: Tensor, thr: Tensor, usable: Tensor) -> Tensor:
     """
     B, H = y.shape
     n = usable.sum(-1).double()
-    pairs = usable.unsqueeze(1) & usable.unsqueeze(2)                                 # (B, v, j)
-    gap = (y.unsqueeze(1) - f.unsqueeze(2)).abs() / thr.unsqueeze(1)                  # |y_j - f_v| / thr_j
-    misfit = (y - f).abs() / thr                                                      # (B, H)
+    beyond = torch.full_like(y, math.inf)  # (an unusable row's band, which no curve value reaches)
+    inside = []
+    for a in _PRECISIONS:
+        # the usable rows j with y_j - a thr_j <= f_v <= y_j + a thr_j, for every row v: those whose
+        # band starts at or below f_v less those whose band ends below it (sorted, not H × H pairs)
+        lo = torch.where(usable, y - a * thr, beyond).sort(-1).values
+        hi = torch.where(usable, y + a * thr, beyond).sort(-1).values
+        count = torch.searchsorted(lo, f, right=True) - torch.searchsorted(hi, f)   # (B, H)
+        inside.append(torch.where(usable, count, 0).sum(-1))
+    p = (torch.stack(inside, -1).double() / n.clamp_min(1).square().unsqueeze(-1)).clamp(0, 1)   # (B, A)
     alpha = torch.tensor(_PRECISIONS, dtype=y.dtype, device=y.device)
-    p = torch.stack([((gap <= a) & pairs).sum((1, 2)) for a in _PRECISIONS], -1).double()
-    p = (p / n.clamp_min(1).square().unsqueeze(-1)).clamp(0, 1)                       # (B, A)
-    k = ((misfit.unsqueeze(-1) <= alpha) & usable.unsqueeze(-1)).sum(1).double()      # (B, A)
+    near = (y - f).abs().unsqueeze(-1) <= alpha * thr.unsqueeze(-1)                  # (B, H, A)
+    k = (near & usable.unsqueeze(-1)).sum(1).double()                                 # (B, A)
     trials = (n - 3).clamp_min(0).reshape(B, 1, 1)
     j = torch.arange(H + 1, dtype=torch.float64, device=y.device).reshape(1, 1, H + 1)
     q = p.unsqueeze(-1)
