@@ -187,3 +187,73 @@ def test_nan_predictions_in_a_sample_the_gate_leaves_unchanged(scene):
     torch.testing.assert_close(out.flow[0][:, ys[pick], xs[pick]], out.flow_model[0][:, ys[pick], xs[pick]],
                                rtol=0, atol=0)
     torch.testing.assert_close(out.flow[1], pred[1], rtol=0, atol=0, equal_nan=True)
+
+
+def test_a_complete_paper_motion_is_used_as_it_is_with_images(scene):
+    """A fit result of the paper's model, or a dict with "model": "paper", is a complete motion:
+    used as it is (as the docs' table says), not taken for planar odometry to complete from the
+    images (its roll and pitch were replaced and the model switched to "plane")."""
+    from fsof_torch.estimation.flow_fit import fit_road
+
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    images = (scene["image1"][None], scene["image2"][None])
+    fit = fit_road(scene["flow"][None], road & scene["valid"][None], cam, model="paper")
+    given = {"model": "paper", **{k: float(scene["odometry"][k]) for k in ("x_d", "z_d", "yaw")},
+             "roll": 0.0175, "pitch": -0.0175}
+    for motion in (fit, given):
+        out = _quiet(FreespaceRefiner(gate=None), pred, road, cam, motion, images=images)
+        assert out.model == "paper" and out.fit is None
+        assert float(out.odometry["roll"]) == pytest.approx(float(torch.as_tensor(
+            motion.params["roll"] if motion is fit else motion["roll"])))
+    planar = {k: float(scene["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+    assert _quiet(FreespaceRefiner(gate=None), pred, road, cam, planar, images=images).model == "plane"
+
+
+def test_an_estimator_result_without_a_flow_of_this_size(scene):
+    """The docs ask an estimator's result for model, params, success and camera: one without a
+    ``flow`` raised AttributeError, one with a flow of another size a size mismatch; the model
+    flow is then computed, as for a given motion."""
+    from types import SimpleNamespace
+
+    from fsof_torch.estimation.flow_fit import fit_road
+
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    exact = fit_road(scene["flow"][None], road & scene["valid"][None], cam, model="paper")
+
+    def minimal(flow, mask, camera, **_):
+        return SimpleNamespace(model="paper", params=exact.params, success=exact.success, camera=exact.camera)
+
+    def half_size(flow, mask, camera, **_):  # every second pixel: u' = u / 2, flow halved
+        K = cam.K * torch.tensor([[0.5], [0.5], [1.0]], dtype=cam.K.dtype)
+        return fit_road(0.5 * scene["flow"][None, :, ::2, ::2], (road & scene["valid"][None])[..., ::2, ::2],
+                        cam.replace(K=K), model="paper")
+
+    reference = FreespaceRefiner(gate=None)(pred, road, cam, exact)
+    for estimator in (minimal, half_size):
+        out = _quiet(FreespaceRefiner(estimator=estimator, gate=None), pred, road, cam)
+        assert bool(out.refined.all())
+        torch.testing.assert_close(out.flow, reference.flow, atol=2e-3, rtol=0)
+
+
+def test_images_of_another_channel_count_and_a_ptlflow_dict_are_named(scene):
+    """RGB beside grey failed inside the estimator as 'image2'; a ptlflow dict given as images= was
+    named 'inputs'."""
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    i1 = scene["image1"][None]
+    with pytest.raises(ValueError, match=r"^images\[1\]: expected 1 \(grey\) or 3 \(RGB\) channels, as images\[0\] has"):
+        FreespaceRefiner()(pred, road, cam, images=(i1, i1.mean(1, keepdim=True)))
+    ptl = {"images": torch.stack([i1, i1], 1)}  # on 0..255, not ptlflow's 0..1
+    with pytest.raises(ValueError, match=r"^images\['images'\]: expected BGR values in \[0, 1\]"):
+        FreespaceRefiner()(pred, road, cam, images=ptl)
+
+
+def test_fuse_flow_takes_a_numpy_scale_as_the_refiner_does(scene):
+    import numpy as np
+
+    from fsof_torch.refinement.fusion import fuse_flow
+
+    pred, road = scene["pred"], scene["road"][None]
+    model = scene["flow"][None]
+    a = fuse_flow(pred, model, road, mode="confidence", scale=np.float32(2.0))
+    b = fuse_flow(pred, model, road, mode="confidence", scale=2.0)
+    torch.testing.assert_close(a, b)

@@ -65,6 +65,7 @@ __all__ = [
     "get_road_model",
     "road_homography",
     "road_motion",
+    "is_planar_odometry",
     "homography_values",
     "pack_params",
     "unpack_params",
@@ -510,6 +511,16 @@ def road_motion(odometry: object, name: str = "odometry", *,
     if unknown:
         raise ValueError(f"{name}: unknown parameters {unknown} of model {model.name!r}; expected some of {model.params}")
     return model, params
+
+
+def is_planar_odometry(odometry: object) -> bool:
+    """Whether ``odometry`` is planar odometry, the paper's ``x_d``, ``z_d`` and ``yaw`` alone (a
+    dict without a ``"model"`` key, or an :class:`~fsof_torch.geometry.egomotion.EgoMotion`),
+    which the refiner with images completes from them, rather than a complete road model's
+    motion (a dict with ``"model"``, also ``"paper"``, or a fit result), which it uses as it is."""
+    if isinstance(odometry, Mapping):
+        return "model" not in odometry
+    return not (hasattr(odometry, "model") and hasattr(odometry, "params"))
 
 
 def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: torch.device | str, *,

@@ -57,7 +57,7 @@ from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera, mounting_matrix
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import plane_from_homography, road_motion, road_motion_batch
+from ..geometry.road_models import is_planar_odometry, plane_from_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator
 from .road_region import follow_edges, road_region
 
@@ -681,7 +681,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
     image1, image2 = images
     B = finest.shape[0]
-    complete = odometry is not None and (road_motion(odometry)[0].name != "paper" or kw.get("fit") is not None)
+    complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
     f = finest.detach()
     det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if all_finite(f) else None,
                       motion=odometry if complete else None, estimator=road_estimator,

@@ -241,10 +241,11 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     return {"images": pair.flip(2)}  # RGB -> BGR along the channel axis
 
 
-def images_from_ptlflow(inputs: Mapping[str, Any]) -> tuple[Tensor, Tensor]:
+def images_from_ptlflow(inputs: Mapping[str, Any], name: str = "inputs") -> tuple[Tensor, Tensor]:
     """The first two images of a ptlflow input dict as (B, 3, H, W) RGB on 0..255 (the range
-    the refiner's photometric fit and freespace detection read)."""
-    images = _ptlflow_images(inputs)
+    the refiner's photometric fit and freespace detection read); ``name``: the argument the
+    errors name."""
+    images = _ptlflow_images(inputs, name)
     rgb = images[:, :2].flip(2) * 255.0
     return rgb[:, 0], rgb[:, 1]
 

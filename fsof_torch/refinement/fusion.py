@@ -26,6 +26,7 @@ them, with ptlflow's and torchvision's input conventions and RAFT-style padding.
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from typing import Any, Mapping, NamedTuple
 
@@ -38,7 +39,7 @@ from .._check import (batch_choices, check_float_tensor, check_has_values, check
 from ..estimation.combine import select_samples, where_motion
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import get_road_model, pack_params, road_motion, road_motion_batch
+from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
@@ -70,9 +71,10 @@ class RefineOutput(NamedTuple):
 
     Attributes:
         flow: the refined flow(s), in the structure that came in (tensor, list, tuple, dict).
-        odometry: the road motion used, a dict of its model's parameters, (B,) tensors: the
-            caller's, or the fitted ``x_d, z_d`` (metres), ``yaw`` (radians) of the paper's model
-            (0 for samples that were not refined).
+        odometry: the road motion used, a dict of its model's parameters (``model`` names the
+            model), (B,) tensors: the caller's, or the estimated ones (0 for samples that were
+            not refined): the ``"plane"`` model's eight with images, the paper's ``x_d, z_d``
+            (metres), ``yaw`` (radians) fitted to the flow without them.
         fit: the :class:`fsof_torch.fit.FitResult` when ego-motion was fitted, else None. With
             some masks empty it covers only the other samples (``refined`` says which).
         weight: (B, 1, H, W) the model's weight at the finest resolution: 1 where the model
@@ -148,9 +150,10 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    if isinstance(scale, bool) or not isinstance(scale, (int, float)) or not (0 < scale < math.inf):
-        raise (ValueError if isinstance(scale, (int, float)) else TypeError)(
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0 < float(scale) < math.inf):
+        raise (ValueError if isinstance(scale, numbers.Real) else TypeError)(
             f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    scale = float(scale)  # (a NumPy scalar too, as the refiner takes it)
     check_float_tensor(flow_pred, "flow_pred")
     check_float_tensor(flow_model, "flow_model")
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
@@ -280,7 +283,7 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
     if images is None:
         return None
     if is_ptlflow_inputs(images):
-        images = images_from_ptlflow(images)
+        images = images_from_ptlflow(images, "images")
     if not isinstance(images, (tuple, list)) or len(images) != 2:
         raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}"
                         + (f" of {len(images)}" if isinstance(images, (tuple, list)) else ""))
@@ -292,6 +295,9 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
         if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
             raise ValueError(f"images[{i}]: expected shape ({B}, C, {H}, {W}) (the finest flow's size), "
                              f"got {tuple(im.shape)}")
+        if im.shape[1] not in (1, 3) or im.shape[1] != images[0].shape[1]:
+            raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels, as images[0] has, got "
+                             f"shape {tuple(im.shape)}" + ("" if i == 0 else f" (images[0]: {tuple(images[0].shape)})"))
         check_image_range(im, f"images[{i}]", 255.0)
     return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
 
@@ -382,7 +388,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         if f.shape[0] != B:
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
     # (before the road detection of mask="auto": a motion no refinement takes raises first)
-    given_model = None if odometry is None else road_motion(odometry, displacement=True)[0].name
+    if odometry is not None:
+        road_motion(odometry, displacement=True)
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = _check_images(images, finest)
         if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
@@ -430,8 +437,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     else:
         finite = torch.isfinite(finest).all(dim=1, keepdim=True)
         fit_mask = mask & finite
-    # the paper's planar odometry leaves the rest of the road's motion to the images
-    estimating = odometry is None or (images is not None and given_model == "paper" and fit is None)
+    # planar odometry (the paper's x_d, z_d, yaw alone) leaves the rest of the road's motion to the
+    # images; a complete motion ("model" key, a fit result), also the paper model's, is used as it is
+    estimating = odometry is None or (images is not None and is_planar_odometry(odometry) and fit is None)
     # min_pixels guards estimation, which uses the finite predicted pixels; with odometry given
     # any mask pixel can be refined, also one whose prediction is not finite (the model flow
     # needs no prediction). (A uint8 sum into int32: the sum converts its input first, and a
@@ -476,12 +484,15 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     def usable(m: Tensor, ok: Tensor) -> Tensor:
         return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
-    if (reuse_fit_flow and fit_result is not None and fit_result.flow.shape[0] == B and not _needs_grad(cam_model)
-            and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
+    fit_flow, fit_valid = getattr(fit_result, "flow", None), getattr(fit_result, "valid", None)
+    if (reuse_fit_flow and isinstance(fit_flow, Tensor) and tuple(fit_flow.shape) == (B, 2, H, W)
+            and isinstance(fit_valid, Tensor) and tuple(fit_valid.shape) == (B, 1, H, W)
+            and not _needs_grad(cam_model) and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
         # The estimate evaluated this very model flow at the finest size (same parameters): reuse
         # it instead of a second full-size evaluation. Not when the camera or the odometry carries
         # a graph: then the model flow must be differentiable with respect to it.
-        cache[(H, W)] = (fit_result.flow.to(device=device, dtype=geo_dtype), fit_result.valid.to(device))
+        # (an estimator's result need not hold a flow, nor one of this size: then it is computed)
+        cache[(H, W)] = (fit_flow.to(device=device, dtype=geo_dtype), fit_valid.to(device))
 
     def model_flow(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
         if size not in cache:
