@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -98,7 +99,7 @@ class TestExceptions:
 
 
 class TestPermissions:
-    @pytest.mark.parametrize("umask", [0o022, 0o077, 0o002])
+    @pytest.mark.parametrize("umask", [0o022, 0o077, 0o002, 0o222, 0o277])
     def test_mode_follows_umask(self, tmp_path, umask):
         """Written files get 0o666 less the umask, as open() gives (not mkstemp's private 0o600)."""
         import os
@@ -110,6 +111,37 @@ class TestPermissions:
         finally:
             os.umask(old)
         assert stat.S_IMODE((tmp_path / "a.txt").stat().st_mode) == 0o666 & ~umask
+
+    @pytest.mark.parametrize("umask", [0o022, 0o222, 0o277])
+    def test_temporary_is_the_owners_to_write(self, tmp_path, umask):
+        """The writers reopen the temporary by name: under a umask that takes the owner's write bit
+        it was created read-only, and every write failed (for any user but root, who passes)."""
+        import os
+        import stat
+
+        old = os.umask(umask)
+        try:
+            with atomic_path(tmp_path / "a.bin") as tmp:
+                mode = stat.S_IMODE(tmp.stat().st_mode)
+                tmp.write_bytes(b"x")
+        finally:
+            os.umask(old)
+        assert mode == 0o600
+        assert stat.S_IMODE((tmp_path / "a.bin").stat().st_mode) == 0o666 & ~umask
+
+    def test_read_only_umask_writes_like_open(self, tmp_path):
+        """Under umask 0o222 a write succeeds and gives a read-only file, as open() does (for root,
+        who writes into read-only files, this passed before too: the mode test above is the one
+        that shows the fix as any user)."""
+        import stat
+
+        old = os.umask(0o222)
+        try:
+            write_bytes(tmp_path / "a.bin", b"hello")
+        finally:
+            os.umask(old)
+        assert (tmp_path / "a.bin").read_bytes() == b"hello"
+        assert stat.S_IMODE((tmp_path / "a.bin").stat().st_mode) == 0o444 and _leftovers(tmp_path) == []
 
 
 class TestStaleTemporaries:

@@ -80,6 +80,16 @@ class TestExceptions:
         with pytest.raises(ValueError, match=r"u8\.png.*uint8"):
             read_carla_flow(tmp_path / "u8.png")
 
+    def test_writer_takes_a_tiff_path_only(self, tmp_path):
+        # a .png failed with an error naming `array`, not an argument of write_carla_flow
+        for name in ("w.png", "w.flo", "w"):
+            with pytest.raises(ValueError, match=rf"^path: a CARLA flow file is a float32 TIFF; expected a \.tif or "
+                                                 rf"\.tiff path, got '.*{name}'$"):
+                write_carla_flow(tmp_path / name, _flow())
+        assert list(tmp_path.iterdir()) == []
+        write_carla_flow(tmp_path / "w.TIFF", _flow())
+        assert torch.allclose(read_carla_flow(tmp_path / "w.TIFF")[0], _flow(), atol=1e-5)
+
     def test_run_checks(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no rgb/"):
             CarlaRun(tmp_path)

@@ -88,3 +88,18 @@ class TestExceptions:
         with pytest.raises(TypeError, match="floating-point"):
             write_flo(tmp_path / "x.flo", torch.zeros(2, 4, 4, dtype=torch.int32))
         assert not (tmp_path / "x.flo").exists()
+
+    def test_float64_beyond_float32_is_refused(self, tmp_path):
+        # the cast stored 1e40 as inf (read back as invalid) without a word
+        flow = torch.zeros(2, 1, 2, dtype=torch.float64)
+        flow[0, 0, 0] = -1e40
+        with pytest.raises(ValueError, match=r"flow: a \.flo file stores float32, which cannot hold -1e\+40"):
+            write_flo(tmp_path / "x.flo", flow)
+        assert not (tmp_path / "x.flo").exists()
+
+    def test_non_finite_and_unknown_values_are_written_as_given(self, tmp_path):
+        flow = torch.tensor([[[float("nan"), float("inf")]], [[2e9, 0.1]]], dtype=torch.float64)
+        write_flo(tmp_path / "x.flo", flow)
+        back = read_flo(tmp_path / "x.flo")
+        assert torch.isnan(back[0, 0, 0]) and torch.isinf(back[0, 0, 1]) and back[1, 0, 0] == np.float32(2e9)
+        assert back[1, 0, 1] == np.float32(0.1)  # rounded to float32

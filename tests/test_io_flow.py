@@ -117,6 +117,10 @@ class TestExceptions:
         np.save(tmp_path / "e.npy", np.zeros((2, 0, 5), np.float32))  # as .flo: no empty flow
         with pytest.raises(ValueError, match=r"e\.npy' holds an empty flow of shape \(2, 0, 5\)"):
             read_flow(tmp_path / "e.npy")
+        # an empty (H, W, 2) array: the shape in the file, not the transposed (2, 0, 4)
+        np.save(tmp_path / "e.npy", np.zeros((0, 4, 2), np.float32))
+        with pytest.raises(ValueError, match=r"e\.npy' holds an empty flow of shape \(0, 4, 2\)"):
+            read_flow(tmp_path / "e.npy")
 
     def test_zero_byte_and_npz_npy(self, tmp_path):
         """A zero-byte .npy once raised a bare EOFError."""

@@ -6,6 +6,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -52,12 +53,36 @@ def _item(**changes):
 
 
 def test_make_item_has_every_key_in_order_and_floats():
-    item = _item(odometry={"x_d": torch.tensor(0.1), "z_d": 1, "yaw": 0.0, "extra": 5.0}, labels="x")
+    item = _item(odometry={"x_d": torch.tensor(0.1), "z_d": 1, "yaw": np.float32(0.0)}, labels="x")
     assert tuple(item) == (*ITEM_KEYS, "labels")
     assert item["odometry"] == {"x_d": pytest.approx(0.1), "z_d": 1.0, "yaw": 0.0}
     assert all(type(v) is float for v in item["odometry"].values())
     assert item["flow"] is None and item["road"] is None and item["relative_pose"] is None
     check_item(item)
+
+
+@pytest.mark.parametrize("change, error, match", [
+    ({"index": 2.9}, TypeError, r"index: expected an int, got float 2\.9"),
+    ({"index": True}, TypeError, r"index: expected an int, got bool True"),
+    ({"name": None}, TypeError, r"name: expected a str, got NoneType None"),
+    ({"odometry": [1, 2, 3]}, TypeError, r"odometry: expected a dict with keys \['x_d', 'z_d', 'yaw'\], got list"),
+    ({"odometry": {"x_d": 1.0, "z_d": 2.0}}, ValueError,
+     r"odometry: expected exactly the keys \['x_d', 'z_d', 'yaw'\], got \['x_d', 'z_d'\]"),
+    ({"odometry": {"x_d": 1.0, "z_d": 2.0, "yaw": 0.0, "extra": 5.0}}, ValueError, r"odometry: expected exactly"),
+    ({"odometry": {"x_d": "a", "z_d": 1, "yaw": 0}}, TypeError, r"odometry: expected real numbers, got str 'a' for 'x_d'"),
+    ({"odometry": {"x_d": 0.0, "z_d": True, "yaw": 0}}, TypeError, r"odometry: expected real numbers, got bool True"),
+    ({"odometry": {"x_d": 0.0, "z_d": 1.0, "yaw": float("nan")}}, ValueError,
+     r"odometry: expected finite values, got nan for 'yaw'"),
+])
+def test_make_item_refuses_what_it_would_have_converted(change, error, match):
+    # index=2.9 became 2, name=None became 'None', and bad odometry a bare KeyError / ValueError
+    with pytest.raises(error, match=match):
+        _item(**change)
+
+
+def test_make_item_takes_integer_indices_of_numpy():
+    item = _item(index=np.int64(4))
+    assert item["index"] == 4 and type(item["index"]) is int
 
 
 def test_as_item_fills_the_absent_keys_and_keeps_extras():
@@ -122,6 +147,46 @@ def test_collate_gives_the_odometry_the_cameras_promoted_dtype(order):
     batch = collate([_item(camera=Camera(torch.eye(3, dtype=dt), 1.5), odometry=odo) for dt in order])
     assert batch["camera"].dtype == torch.float64
     assert all(v.dtype == torch.float64 for v in batch["odometry"].values())
+
+
+def test_collate_refuses_a_camera_of_another_batch_than_1():
+    # concat_cameras took it: two items gave a camera of batch 3 beside images of batch 2
+    two = Camera(torch.eye(3).expand(2, 3, 3), 1.5)
+    for items_ in ([_item(camera=two), _item()], [_item(), _item(camera=two)]):
+        i = 0 if items_[0]["camera"] is two else 1
+        with pytest.raises(ValueError, match=rf"samples: 'camera' of item {i} is a Camera of batch 2; expected batch 1"):
+            collate(items_)
+
+
+@pytest.mark.parametrize("key, cast, match", [
+    ("valid", lambda v: v.to(torch.uint8), r"samples: 'valid' has dtype torch.bool in item 0 but torch.uint8 in item 1"),
+    ("flow", lambda v: v.to(torch.int64), r"samples: 'flow' has dtype torch.float32 in item 0 but torch.int64 in item 1"),
+    ("image1", lambda v: v.double(), r"samples: 'image1' has dtype torch.float32 in item 0 but torch.float64 in item 1"),
+    ("flow", lambda v: v.to("meta"), r"samples: 'flow' has device cpu in item 0 but meta in item 1"),
+])
+def test_collate_refuses_tensors_of_different_dtypes_or_devices(key, cast, match):
+    # torch.stack promoted the dtypes without a word (a bool and a uint8 mask gave a uint8 one)
+    a = _item(flow=torch.zeros(2, H, W), valid=torch.ones(1, H, W, dtype=torch.bool))
+    b = {**a, key: cast(a[key])}
+    with pytest.raises(ValueError, match=match):
+        collate([a, b])
+
+
+def test_collate_judges_every_items_dict_alike():
+    odo = {"x_d": 0.1, "z_d": 1.0, "yaw": 0.0}
+    tensors = {k: torch.tensor(v) for k, v in odo.items()}
+    # tensors in item 0 and floats in item 1 gave a list of dicts; the other order raised
+    for first, second, bad in ((tensors, odo, 0), (odo, tensors, 1)):
+        a, b = _item(index=0), _item(index=1)
+        a["odometry"], b["odometry"] = first, second
+        with pytest.raises(TypeError, match=rf"samples: 'odometry' of item {bad} has values that are not numbers .*, "
+                                            rf"but numbers only in item {1 - bad}"):
+            collate([a, b])
+    # the same kind in every item: dicts of numbers become (B,) tensors, other dicts a list
+    a, b = _item(index=0), _item(index=1)
+    a["odometry"], b["odometry"] = dict(tensors), dict(tensors)
+    assert isinstance(collate([a, b])["odometry"], list)
+    assert collate([_item(odometry=odo), _item(odometry=odo)])["odometry"]["x_d"].shape == (2,)
 
 
 def test_collate_names_the_key_and_the_item():

@@ -45,6 +45,7 @@ batches items for a ``DataLoader``.
 from __future__ import annotations
 
 import functools
+import math
 import numbers
 from typing import Any, Mapping, Sequence
 
@@ -79,13 +80,42 @@ def make_item(image1: Tensor, image2: Tensor, *, index: int, name: str, camera: 
               odometry: Mapping[str, float] | None = None, relative_pose: Tensor | None = None,
               **extras: Any) -> dict[str, Any]:
     """An item of the contract (see the module docstring): the keys of :data:`ITEM_KEYS` in order,
-    then ``extras``. ``odometry`` is reduced to ``x_d``, ``z_d``, ``yaw`` as Python floats."""
+    then ``extras``.
+
+    ``index`` must be an int (not a bool), ``name`` a str (TypeError otherwise); ``odometry`` a
+    dict with exactly the keys ``x_d``, ``z_d``, ``yaw`` of finite real numbers (Python or NumPy
+    scalars, 0-d tensors), stored as Python floats (a TypeError or ValueError naming ``odometry``
+    otherwise).
+    """
+    if isinstance(index, bool) or not isinstance(index, numbers.Integral):
+        raise TypeError(f"index: expected an int, got {type(index).__name__} {index!r}")
+    if not isinstance(name, str):
+        raise TypeError(f"name: expected a str, got {type(name).__name__} {name!r}")
     if odometry is not None:
-        odometry = {k: float(odometry[k]) for k in ODOMETRY_KEYS}
+        odometry = _odometry_floats(odometry)
     item = {"image1": image1, "image2": image2, "camera": camera, "flow": flow, "valid": valid, "road": road,
-            "odometry": odometry, "relative_pose": relative_pose, "index": int(index), "name": str(name)}
+            "odometry": odometry, "relative_pose": relative_pose, "index": int(index), "name": name}
     item.update(extras)
     return item
+
+
+def _odometry_floats(odometry: object) -> dict[str, float]:
+    """``odometry`` checked (exactly the keys of :data:`ODOMETRY_KEYS`, finite real values) as floats."""
+    if not isinstance(odometry, Mapping):
+        raise TypeError(f"odometry: expected a dict with keys {list(ODOMETRY_KEYS)}, got {type(odometry).__name__} "
+                        f"{odometry!r}")
+    if set(odometry) != set(ODOMETRY_KEYS):
+        raise ValueError(f"odometry: expected exactly the keys {list(ODOMETRY_KEYS)}, got {list(odometry)}")
+    out = {}
+    for k in ODOMETRY_KEYS:
+        v = odometry[k]
+        scalar_tensor = isinstance(v, Tensor) and v.dim() == 0 and v.dtype != torch.bool and not v.is_complex()
+        if not scalar_tensor and (isinstance(v, bool) or not isinstance(v, numbers.Real)):
+            raise TypeError(f"odometry: expected real numbers, got {type(v).__name__} {v!r} for {k!r}")
+        out[k] = float(v)
+        if not math.isfinite(out[k]):
+            raise ValueError(f"odometry: expected finite values, got {out[k]!r} for {k!r}")
+    return out
 
 
 def as_item(sample: Mapping[str, Any], **changes: Any) -> dict[str, Any]:
@@ -173,13 +203,19 @@ def _kind(value: Any) -> str:
     if isinstance(value, Camera):
         return "a Camera"
     if isinstance(value, Mapping):
-        return "a dict"
+        return "a dict of numbers" if _holds_numbers(value) else "a dict"
     return "not a tensor, Camera or dict"
+
+
+def _holds_numbers(d: Mapping[str, Any]) -> bool:
+    """Whether :func:`collate` batches the dict ``d`` into (B,) tensors: every value a real number."""
+    return all(isinstance(x, numbers.Real) for x in d.values())
 
 
 def _check_samples(samples: object) -> list[str]:
     """``samples`` a non-empty list or tuple of dicts with the same keys, each key of the same kind
-    (and a dict's of the same keys) in every item where it is not None: the keys."""
+    (a dict of numbers in every item or in none, with the same keys) in every item where it is not
+    None, every Camera of batch 1: the keys."""
     if not isinstance(samples, (list, tuple)):
         raise TypeError(f"samples: expected a non-empty list of dicts, got {type(samples).__name__}")
     if not samples:
@@ -197,19 +233,25 @@ def _check_samples(samples: object) -> list[str]:
         if not given:
             continue
         i0, first = given[0]
+        for i, v in given:
+            if isinstance(v, Camera) and v.batch_size != 1:
+                raise ValueError(f"samples: {key!r} of item {i} is a Camera of batch {v.batch_size}; expected batch 1 "
+                                 f"(an item holds one pair)")
         for i, v in given[1:]:
-            if _kind(v) != _kind(first):
+            if isinstance(v, Mapping) and isinstance(first, Mapping):
+                if set(v) != set(first):
+                    raise ValueError(f"samples: {key!r} of item {i} has keys {sorted(v)}, but {sorted(first)} "
+                                     f"in item {i0}")
+                if _holds_numbers(v) != _holds_numbers(first):
+                    # each item's dict is judged alike: item 0 alone must not decide how the others batch
+                    (j, other), (k, _) = ((i, v), (i0, first)) if _holds_numbers(first) else ((i0, first), (i, v))
+                    bad = {name: x for name, x in other.items() if not isinstance(x, numbers.Real)}
+                    raise TypeError(f"samples: {key!r} of item {j} has values that are not numbers {bad!r}, but "
+                                    f"numbers only in item {k} (a dict of numbers in every item becomes (B,) "
+                                    f"tensors, another dict in every item a list)")
+            elif _kind(v) != _kind(first):
                 raise TypeError(f"samples: {key!r} of item {i} is a {type(v).__name__}, but a {type(first).__name__} "
                                 f"in item {i0} (a key holds tensors, Cameras, dicts or other values in every item)")
-            if isinstance(first, Mapping) and set(v) != set(first):
-                raise ValueError(f"samples: {key!r} of item {i} has keys {sorted(v)}, but {sorted(first)} "
-                                 f"in item {i0}")
-        if isinstance(first, Mapping) and all(isinstance(x, numbers.Real) for x in first.values()):
-            for i, v in given[1:]:
-                bad = {k: x for k, x in v.items() if not isinstance(x, numbers.Real)}
-                if bad:
-                    raise TypeError(f"samples: {key!r} of item {i} has values that are not numbers {bad!r}, "
-                                    f"but numbers in item {i0}")
     return keys
 
 
@@ -222,8 +264,9 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     (index, name) -> a list. The same rules serve :func:`fsof_torch.scene.collate`, so rendered pairs
     and items read from disk batch alike. ``samples`` must be a non-empty list or tuple of dicts with
     the same keys; a key None in one item must be None in all, and a key must hold the same kind of
-    value (tensor, Camera, dict with the same keys, or other) in every item (a ValueError or
-    TypeError naming the key and the item otherwise).
+    value in every item: tensors of one shape, dtype and device (no promotion), Cameras of batch 1,
+    dicts with the same keys that hold only numbers in every item or in none, or other values (a
+    ValueError or TypeError naming the key and the item otherwise).
     """
     keys = _check_samples(samples)
     cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
@@ -244,10 +287,16 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             if len(shapes) > 1:
                 raise ValueError(f"samples: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
                                  f"or images of one size")
+            # torch.stack would promote dtypes (a bool mask beside a uint8 one becomes uint8) without a word
+            for what in ("dtype", "device"):
+                odd = next((i for i, v in enumerate(values) if getattr(v, what) != getattr(first, what)), None)
+                if odd is not None:
+                    raise ValueError(f"samples: {key!r} has {what} {getattr(first, what)} in item 0 but "
+                                     f"{getattr(values[odd], what)} in item {odd}; batch items of one {what}")
             batch[key] = torch.stack(values)
         elif isinstance(first, Camera):
             batch[key] = concat_cameras(values)
-        elif isinstance(first, Mapping) and all(isinstance(x, numbers.Real) for x in first.values()):
+        elif isinstance(first, Mapping) and _holds_numbers(first):  # then in every item (_check_samples)
             batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype) for k in first}
         else:
             batch[key] = list(values)

@@ -7,7 +7,10 @@ at the target path: never half a file. Every writer of :mod:`fsof_torch.io` goes
 The temporary file is named ``.<name>.<random>.tmp<suffix>`` (hidden, beside the target). A
 process killed between creating and renaming it (SIGKILL, power loss) leaves it behind;
 :func:`remove_stale_temporaries` removes such leftovers from a folder before a job writes there
-again. Files are created with mode ``0o666`` less the process's umask, like ``open()``.
+again. Files are created with mode ``0o666`` less the process's umask, like ``open()``: the
+temporary is the owner's to write (``0o600``) while it is written and gets that mode just before
+the rename, so a umask that takes the owner's write bit (``0o222``) gives read-only files, as
+``open()`` does, rather than a temporary nobody can write into.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import numbers
 import os
 import re
 import secrets
+import stat
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -50,7 +54,7 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     folder = path.parent
     if not folder.is_dir():
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
-    tmp = _create_temporary(folder, path)
+    tmp, mode = _create_temporary(folder, path)
     try:
         yield tmp
         if not tmp.is_file() or (tmp.stat().st_size == 0 and not allow_empty):
@@ -58,6 +62,7 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         # flush to the disk before the rename, so that a power loss cannot leave an empty file
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
@@ -65,19 +70,30 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         raise
 
 
-def _create_temporary(folder: Path, path: Path) -> Path:
-    """Create a new, empty ``.<name>.<random>.tmp<suffix>`` in ``folder``.
+def _create_temporary(folder: Path, path: Path) -> tuple[Path, int]:
+    """Create a new, empty ``.<name>.<random>.tmp<suffix>`` in ``folder``, mode ``0o600``; returns it
+    and the mode the written file gets.
 
-    ``os.open`` with mode 0o666 lets the umask decide the permissions, as for any file a program
-    creates (``tempfile.mkstemp`` would make every output private, mode 0o600)."""
+    ``os.open`` with mode 0o666 lets the umask decide the final permissions, as for any file a
+    program creates (``tempfile.mkstemp`` would make every output private, mode 0o600); reading
+    them back from the new file avoids ``os.umask``, which can only be read by setting it (racy
+    between threads). The writers reopen the temporary by name, so until the rename it is the
+    owner's to write: a umask of 0o222 would otherwise create it read-only."""
     for _ in range(100):
         tmp = folder / f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}"
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:  # pragma: no cover - 64 random bits
             continue
+        try:
+            mode = stat.S_IMODE(os.fstat(fd).st_mode)
+            os.fchmod(fd, 0o600)
+        except BaseException:
+            os.close(fd)
+            tmp.unlink()
+            raise
         os.close(fd)
-        return tmp
+        return tmp, mode
     raise FileExistsError(f"path: could not create a temporary file beside {str(path)!r}")  # pragma: no cover
 
 

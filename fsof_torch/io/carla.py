@@ -88,7 +88,14 @@ def read_carla_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
 
 def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
     """Write a (2, H, W) flow as the paper's CARLA TIFF (single-channel float32 (H, 2W), x and y
-    interleaved, ``x = u / W``, ``y = -v / H``), atomically. For tests and synthetic runs."""
+    interleaved, ``x = u / W``, ``y = -v / H``), atomically. For tests and synthetic runs.
+
+    ``path`` must end in ``.tif`` or ``.tiff`` (the only format here that stores float32); another
+    suffix is a ValueError naming ``path``, before anything is written."""
+    path = as_path(path)
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        raise ValueError(f"path: a CARLA flow file is a float32 TIFF; expected a .tif or .tiff path, got "
+                         f"{str(path)!r}")
     flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
     _, height, width = flow.shape
     xy = torch.stack([flow[0] / width, -flow[1] / height], dim=-1).numpy()

@@ -53,10 +53,23 @@ def read_flo(path: str | os.PathLike) -> Tensor:
 
 
 def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
-    """Write a (2, H, W) flow in pixels to a Middlebury ``.flo`` file atomically (float32, exact)."""
-    flow = as_chw_flow(flow, "flow")
+    """Write a (2, H, W) flow in pixels to a Middlebury ``.flo`` file atomically.
+
+    The file stores float32: float32 values are written exactly, others rounded to the nearest
+    float32. NaN and inf are written as they are, and so are values of 1e9 and above, which
+    :func:`read_flo` returns as stored but :func:`~fsof_torch.io.read_flow` reads as unknown flow
+    (Middlebury's convention; :func:`~fsof_torch.io.write_flow` refuses them at valid pixels). A
+    finite value beyond float32's range (about 3.4e38), which the cast would turn into inf, is a
+    ValueError naming ``flow``, before anything is written.
+    """
+    flow = as_chw_flow(flow, "flow").detach().cpu()
     _, height, width = flow.shape
-    array = flow.detach().cpu().to(torch.float32).numpy().transpose(1, 2, 0)
+    cast = flow.to(torch.float32)
+    overflow = torch.isfinite(flow) & ~torch.isfinite(cast)
+    if bool(overflow.any()):
+        raise ValueError(f"flow: a .flo file stores float32, which cannot hold {float(flow[overflow][0]):.4g} "
+                         f"(finite values up to {torch.finfo(torch.float32).max:.4g})")
+    array = cast.numpy().transpose(1, 2, 0)
     header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
     path = as_path(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:

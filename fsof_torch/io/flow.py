@@ -48,10 +48,10 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
             raise ValueError(f"path: {str(path)!r} holds an array of shape {array.shape}; expected (2, H, W) or (H, W, 2)")
         if not np.issubdtype(array.dtype, np.floating):
             raise ValueError(f"path: {str(path)!r} holds {array.dtype} values; expected floating-point flow")
+        if 0 in array.shape:  # checked before the transpose: the message quotes the file's shape
+            raise ValueError(f"path: {str(path)!r} holds an empty flow of shape {array.shape}; expected H, W >= 1")
         if array.shape[0] != 2:
             array = array.transpose(2, 0, 1)
-        if min(array.shape[1:]) < 1:
-            raise ValueError(f"path: {str(path)!r} holds an empty flow of shape {array.shape}; expected H, W >= 1")
         flow = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
     else:
         raise ValueError(f"path: unknown flow file suffix {path.suffix!r} in {str(path)!r}; expected .png, .flo or .npy")
