@@ -128,6 +128,9 @@ def test_check_item_wants_every_key_and_float_odometry():
     item["odometry"] = {"x_d": 0.0, "z_d": torch.tensor(1.0), "yaw": 0.0}
     with pytest.raises(TypeError, match=r"item\['odometry'\]: expected Python floats"):
         check_item(item)
+    item["odometry"] = {"x_d": 0.0, "z_d": float("nan"), "yaw": 0.0}  # (a NaN passed, then batched)
+    with pytest.raises(ValueError, match=r"item\['odometry'\]: expected finite values, got .*nan"):
+        check_item(item)
 
 
 def test_collate_keeps_keys_absent_in_every_item_and_refuses_a_mix():

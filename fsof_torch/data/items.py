@@ -144,7 +144,7 @@ def _check_tensor(item: Mapping[str, Any], key: str, shape: tuple, *, boolean: b
 def check_item(item: Mapping[str, Any]) -> None:
     """Check ``item`` against the contract: every key of :data:`ITEM_KEYS` present, tensors of
     the documented shapes and dtypes at the images' size, ``camera`` of batch 1, ``odometry``
-    floats; a ValueError or TypeError names the key and quotes what came."""
+    finite floats; a ValueError or TypeError names the key and quotes what came."""
     if not isinstance(item, Mapping):
         raise TypeError(f"item: expected a dict, got {type(item).__name__}")
     missing = [k for k in ITEM_KEYS if k not in item]
@@ -172,6 +172,8 @@ def check_item(item: Mapping[str, Any]) -> None:
             raise ValueError(f"item['odometry']: expected a dict with keys {list(ODOMETRY_KEYS)}, got {odometry!r}")
         if not all(isinstance(v, float) for v in odometry.values()):
             raise TypeError(f"item['odometry']: expected Python floats, got {odometry!r}")
+        if not all(math.isfinite(v) for v in odometry.values()):
+            raise ValueError(f"item['odometry']: expected finite values, got {odometry!r}")
     pose = item["relative_pose"]
     if pose is not None:
         if not isinstance(pose, Tensor) or tuple(pose.shape) != (4, 4) or pose.dtype != torch.float64:
