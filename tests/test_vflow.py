@@ -304,7 +304,7 @@ class TestFitVFlowCurve:
         flow = (2 * torch.rand(15, 2, 96, 320, generator=g) - 1) * amplitude
         curve = fit_vflow_curve(flow)
         assert not curve.success.any()
-        assert (curve.nfa >= 1).all()
+        assert (curve.nfa > 1e4).all()  # far beyond the bar of 1, not just beyond it
         lenient = fit_vflow_curve(flow, max_false_alarms=1e30)
         assert lenient.success.sum() >= 10 and torch.equal(lenient.row_inliers, curve.row_inliers)
         assert not detect_freespace(flow, _camera(torch.float32)).any()
