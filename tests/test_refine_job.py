@@ -201,21 +201,23 @@ def test_a_redone_pairs_figure_never_shows_its_old_records(tmp_path, user_folder
 
 def test_a_rerun_that_fails_leaves_no_report_of_the_run_before(tmp_path, user_folder, scene_pairs, capsys):
     """The rerun redoes pair 0 (its flow replaced) and stops on pair 1's broken flow file: the
-    earlier report, which no longer matches pair 0's record, is gone, not left beside it."""
+    earlier report (in --out and at --json), which no longer matches pair 0's record, is gone, not
+    left beside it."""
     from fsof_torch.io import write_flow
 
     out = tmp_path / "out"
+    extra = tmp_path / "elsewhere.json"  # --json outside --out: the same report, the same fate
     args = _user(user_folder, out, "--road", str(user_folder / "road"), "--flows", str(user_folder / "flows"),
-                 "--odometry", "fit", *_mounting(scene_pairs))
+                 "--odometry", "fit", "--json", str(extra), *_mounting(scene_pairs))
     assert main(args) == 0
-    assert (out / "report.md").is_file() and (out / "report.json").is_file()
+    assert (out / "report.md").is_file() and (out / "report.json").is_file() and extra.is_file()
     rec0 = out / "files" / "fit" / "pairs" / "000000.json"
     old = json.loads(rec0.read_text())
     write_flow(user_folder / "flows" / "000000.flo", torch.zeros(2, *SIZE))
     (user_folder / "flows" / "000001.npy").write_bytes(b"garbage")
     assert "--flows:" in _err(capsys, args)
     assert json.loads(rec0.read_text())["input_fingerprint"] != old["input_fingerprint"]  # pair 0 was redone
-    assert not (out / "report.md").exists() and not (out / "report.json").exists()
+    assert not (out / "report.md").exists() and not (out / "report.json").exists() and not extra.exists()
 
 def test_rerun_with_other_options_is_refused_then_replaced(tmp_path, capsys):
     """A finished folder and a rerun with another fusion mode: refused with what differs; with
