@@ -362,3 +362,68 @@ def test_turning_start_takes_base_for_yaw_models_and_the_camera_for_the_homograp
             assert float(a[0, i_z]) == pytest.approx(1.65, abs=1e-12)
             keep = [i for i in range(len(model.params)) if i not in (i_yaw, i_z)]
             assert torch.equal(a[0, keep], base[0, keep]) and torch.equal(b[0, keep], moved[0, keep])
+
+
+# -- robust_weight / robust_cost: r2 and the dtype -------------------------------------------------
+
+@pytest.mark.parametrize("fn", [robust_weight, robust_cost])
+def test_robust_kernels_check_r2(fn):
+    with pytest.raises(TypeError, match="r2: expected a torch.Tensor, got float"):
+        fn(4.0, 1.0, "cauchy")
+    with pytest.raises(TypeError, match="r2: expected a torch.Tensor, got list"):
+        fn([4.0], 1.0, "cauchy")
+    with pytest.raises(TypeError, match="r2: expected a floating-point tensor, got dtype torch.bool"):
+        fn(torch.tensor([True]), 1.0, "huber")
+    with pytest.raises(ValueError, match=r"r2: expected finite squared norms >= 0, got \[nan\]"):
+        fn(torch.tensor([1.0, float("nan")]), 1.0, "cauchy")
+    with pytest.raises(ValueError, match=r"r2: expected finite squared norms >= 0, got \[-3.0\]"):
+        fn(torch.tensor([-3.0]), 1.0, "tukey")  # (its weight was 16)
+    with pytest.raises(ValueError, match=r"r2: expected finite squared norms >= 0, got \[inf\]"):
+        fn(torch.tensor([float("inf")]), 1.0, "l2")
+
+
+@pytest.mark.parametrize("kind", ROBUST_KERNELS)
+def test_robust_kernels_name_the_kind_argument(kind):
+    for fn in (robust_weight, robust_cost):
+        with pytest.raises(ValueError, match=r"^kind: expected one of \('cauchy'"):
+            fn(torch.ones(2), 1.0, kind="gauss")
+        fn(torch.ones(2), 1.0, kind=kind)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+@pytest.mark.parametrize("kind", ROBUST_KERNELS)
+def test_robust_kernels_lift_16_bit_to_float32(dtype, kind):
+    """r² / c² overflowed float16 (a cost of inf, a weight of 0, at 30 scales out): the kernels
+    compute, and answer, in float32."""
+    r2 = torch.tensor([0.0, 0.5, 10.0, 1000.0], dtype=dtype)
+    for scale in (0.01, torch.tensor(0.01, dtype=dtype)):
+        for fn in (robust_weight, robust_cost):
+            got = fn(r2, scale, kind)
+            assert got.dtype == torch.float32, fn
+            want = fn(r2.to(torch.float32), scale if isinstance(scale, float) else scale.to(torch.float32), kind)
+            torch.testing.assert_close(got, want, rtol=0, atol=0)
+            assert bool(torch.isfinite(got).all())
+
+
+# -- pyramid_levels and image_pyramid: what they do -----------------------------------------------
+
+def test_pyramid_levels_rule_and_min_size():
+    """The rule the docstring states: floor(log2(min(H, W) / min_size)) + 1, at least 1 (halving
+    exactly; pyrDown's rounded-up sides may leave room for one more, as at 63 px)."""
+    for side, ms, n in [(375, 16, 5), (375, 24, 4), (63, 16, 2), (64, 16, 3), (127, 16, 3), (15, 16, 1), (1, 1, 1)]:
+        assert P.pyramid_levels(side, 2 * side, None, ms) == n, (side, ms)
+        assert P.pyramid_levels(2 * side, side, None, ms) == n, (side, ms)
+    assert P.pyramid_levels(375, 1242, 3, 16) == 3
+    for bad in (0, -4):
+        with pytest.raises(ValueError, match=f"min_size: expected an int >= 1, got {bad}"):
+            P.pyramid_levels(64, 64, None, bad)
+    with pytest.raises(TypeError, match="min_size: expected an int >= 1, got float 16.0"):
+        P.pyramid_levels(64, 64, None, 16.0)
+
+
+def test_image_pyramid_gradients_on_the_cpu():
+    """As its docstring says: on the CPU only an unsmoothed level 0 (``images`` itself) carries a
+    gradient; OpenCV's filters do not, level 0 smoothed included."""
+    x = torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(5), requires_grad=True)
+    assert [t.requires_grad for t in P.image_pyramid(x, 3, 0.0)] == [True, False, False]
+    assert [t.requires_grad for t in P.image_pyramid(x, 3, 1.0)] == [False, False, False]

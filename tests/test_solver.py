@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
+from fsof_torch.estimation.robust import ROBUST_KERNELS, far_outlier_cost, robust_cost, robust_weight
 from fsof_torch.estimation.sampling import sample_mask
 from fsof_torch.estimation.solver import ResidualProblem, solve
 
@@ -204,6 +204,21 @@ def test_covariance_of_linear_least_squares():
     torch.testing.assert_close(sol.covariance()[0], sigma2 * torch.linalg.inv(J.T @ J), rtol=1e-8, atol=1e-15)
 
 
+def test_covariance_counts_the_free_parameters_only():
+    """A fixed parameter takes no degree of freedom: with the offset held, the slope's variance is
+    rᵀr / (N - 1) (Jᵀ J)⁻¹ of the one-parameter fit, written out here (it was N - 2)."""
+    problem, truth, x, y = line_problem(B=1, N=5, noise=0.3, seed=2)
+    start = torch.tensor([[0.0, -1.0]], dtype=torch.float64)  # the offset held at its truth, -1
+    sol = solve(problem, start, free=torch.tensor([True, False]), kernel="l2", max_iter=20)
+    r = sol.params[0, 0] * x[0] - 1.0 - y[0]
+    J = x[0].unsqueeze(1)
+    ref = (r @ r) / (5 - 1) * torch.linalg.inv(J.T @ J)
+    torch.testing.assert_close(sol.covariance()[0, :1, :1], ref, rtol=1e-10, atol=0)
+    # every parameter free: N - 2, as before
+    both = solve(problem, start, free=torch.tensor([[True, True]]), kernel="l2", max_iter=20)
+    torch.testing.assert_close(both.covariance(), solve(problem, start, kernel="l2", max_iter=20).covariance())
+
+
 def test_covariance_of_fixed_and_of_singular_problems():
     """A fixed parameter has 0 rows and columns; a sample whose problem is singular (every point
     at one x: the slope unknowable) has +inf variances on its free parameters, never NaN; the
@@ -237,7 +252,7 @@ def test_robust_kernels_match_scipy_losses():
         getattr(scipy_ls, name)((r2 / c**2).numpy(), rho, cost_only=False)
         torch.testing.assert_close(robust_cost(r2, c, kind), c**2 * torch.from_numpy(rho[0]))
         torch.testing.assert_close(robust_weight(r2, c, kind), torch.from_numpy(rho[1]))
-    with pytest.raises(ValueError, match="robust: expected one of"):
+    with pytest.raises(ValueError, match="kind: expected one of"):  # (the kernels' argument)
         robust_weight(r2, c, "bisquare")
     assert set(ROBUST_KERNELS) == {"cauchy", "huber", "soft_l1", "tukey", "l2"}
 
@@ -276,3 +291,191 @@ def test_resample_mask_is_sample_mask_of_the_same_mask():
         a, b = resample_mask(pts, (9, 11), n), sample_mask(mask, n)
         for name in ("pix", "sel", "count", "every", "bounds"):
             assert torch.equal(getattr(a, name), getattr(b, name)), (n, name)
+
+
+# -- bounds: the constrained minimum ----------------------------------------------------------------
+
+def exponential_problem():
+    """a exp(-k t) + c0 with a tenth of the points gross outliers (Cauchy's territory); the data's
+    c0 (0.3) lies below the bound 0.35 used here, so that bound is active at the answer."""
+    g = torch.Generator().manual_seed(1)
+    t = torch.linspace(0, 3, 120, dtype=torch.float64)
+    y = 2.5 * torch.exp(-1.3 * t) + 0.3 + 0.02 * torch.randn(120, generator=g, dtype=torch.float64)
+    y[::10] += 3.0
+
+    def residual(p):
+        a, k, c0 = p[:, 0:1], p[:, 1:2], p[:, 2:3]
+        e = torch.exp(-k * t)
+        J = torch.stack([e, -a * t * e, torch.ones_like(e)], 1).unsqueeze(2)
+        return (a * e + c0 - y).unsqueeze(1), J, torch.ones(1, 120, dtype=torch.bool)
+
+    return ResidualProblem(residual, torch.tensor([120])), t, y
+
+
+@pytest.mark.parametrize("kernel, loss", [("cauchy", "cauchy"), ("soft_l1", "soft_l1"), ("huber", "huber")])
+def test_an_active_bound_holds_its_parameter_and_the_others_reach_the_constrained_minimum(kernel, loss):
+    """With c0's lower bound active, the step of the other parameters is the constrained one (c0
+    held at its bound), not the unconstrained step cut short by the clamp: the fit reaches SciPy's
+    bounded robust answer (a trust-region reflective method, independent of this solver), where it
+    once stopped 0.1 short of it and called that converged."""
+    from scipy.optimize import least_squares
+
+    problem, t, y = exponential_problem()
+    lower = torch.tensor([0.0, 0.0, 0.35], dtype=torch.float64)
+    upper = torch.tensor([10.0, 10.0, 1.0], dtype=torch.float64)
+    sol = solve(problem, torch.tensor([[1.0, 1.0, 0.5]], dtype=torch.float64), kernel=kernel, scale=0.1,
+                max_iter=200, tol=1e-12, lower=lower, upper=upper)
+    ref = least_squares(lambda p: p[0] * np.exp(-p[1] * t.numpy()) + p[2] - y.numpy(), [1.0, 1.0, 0.5], loss=loss,
+                        f_scale=0.1, bounds=(lower.numpy(), upper.numpy()), xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    assert abs(ref.x[2] - 0.35) < 1e-12  # (the bound is active at the reference answer)
+    assert bool(sol.converged.all())
+    torch.testing.assert_close(sol.params[0], torch.from_numpy(ref.x), rtol=0, atol=1e-6)
+    assert float(sol.params[0, 2]) == 0.35
+
+
+# -- precision: at least float32, autocast off ---------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_16_bit_params_are_solved_in_float32(dtype):
+    """Cholesky has no 16-bit kernel (it raised), and 16-bit normal equations would lose the fit:
+    the solver works, and answers, in float32."""
+    x = (torch.arange(-64, 65) / 64).to(dtype).unsqueeze(0)
+    y = 2.0 * x - 1.0  # (exact in 16 bits: on a grid of 1/64)
+    use = torch.ones(1, 129, dtype=torch.bool)
+
+    def residual(p):  # (the data in 16 bits, the residuals in the parameters' dtype)
+        return (p[:, :1] * x + p[:, 1:] - y).unsqueeze(1), torch.stack([x, torch.ones_like(x)], 1).unsqueeze(2).to(p.dtype), use
+
+    sol = solve(ResidualProblem(residual, use.sum(1)), torch.zeros(1, 2, dtype=dtype), kernel="l2", max_iter=20)
+    assert sol.params.dtype == sol.normal.dtype == sol.cost.dtype == torch.float32
+    torch.testing.assert_close(sol.params, torch.tensor([[2.0, -1.0]]), rtol=0, atol=1e-5)
+    assert bool(torch.isfinite(sol.covariance()).all())
+
+
+def test_autocast_does_not_reach_the_normal_equations():
+    """Under CPU autocast (bfloat16) the problem's matmuls built the normal equations in bfloat16
+    (a normal matrix off by 1e-3 relative, a covariance of inf): autocast is off inside, and the
+    answer is the one without it, bit for bit."""
+    problem, truth, _, _ = line_problem(B=1, N=2000, noise=0.01, seed=4)
+
+    def fn32(p):  # (the problem in float32)
+        r, J, use = problem.fn(p.double())
+        return r.float(), J.float(), use
+
+    problem32 = ResidualProblem(fn32, problem.count)
+    ref = solve(problem32, torch.zeros(1, 2), kernel="cauchy", max_iter=30, scale=0.05)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        sol = solve(problem32, torch.zeros(1, 2), kernel="cauchy", max_iter=30, scale=0.05)
+    assert sol.normal.dtype == torch.float32
+    assert torch.equal(sol.params, ref.params) and torch.equal(sol.normal, ref.normal)
+    torch.testing.assert_close(sol.covariance(), ref.covariance(), rtol=0, atol=0)
+
+
+# -- the arguments ----------------------------------------------------------------------------------
+
+NAN, INF = float("nan"), float("inf")
+
+
+@pytest.mark.parametrize("options, error, message", [
+    (dict(free=torch.tensor([1.0, 0.0])), TypeError, r"free: expected a bool tensor of shape \(2,\) or \(2, 2\), got dtype torch.float32"),
+    (dict(free=[True, False]), TypeError, "free: expected a bool tensor .* got list"),
+    (dict(free=torch.tensor([True, False, True])), ValueError, r"free: expected shape \(2,\) or \(2, 2\) \(B, P of params\), got \(3,\)"),
+    (dict(upper=torch.tensor([1.0, 2.0, 3.0])), ValueError, r"upper: expected a number or shape \(2,\) or \(2, 2\) .* got \(3,\)"),
+    (dict(lower=torch.tensor([True, False])), TypeError, "lower: expected a number or a real tensor .* got dtype torch.bool"),
+    (dict(prior_mean=torch.zeros(3), prior_precision=torch.ones(2)), ValueError, r"prior_mean: expected .* got \(3,\)"),
+    (dict(prior_precision=torch.ones(2, 3)), ValueError, r"prior_precision: expected .* got \(2, 3\)"),
+    (dict(prior_precision="1"), TypeError, "prior_precision: expected a number or a tensor"),
+    (dict(damping=-1.0), ValueError, r"damping: expected a positive number \(> 0\), got -1.0"),
+    (dict(max_iter=-1), ValueError, "max_iter: expected an int >= 0, got -1"),
+    (dict(max_iter=2.0), TypeError, "max_iter: expected an int, got float 2.0"),
+    (dict(tol=NAN), ValueError, "tol: expected a finite number, got nan"),
+    (dict(resolution=-0.1), ValueError, "resolution: expected a number >= 0, got -0.1"),
+    (dict(kernel="gauss"), ValueError, "kernel: expected one of"),
+    # values: told by the loop's first host read
+    (dict(lower=torch.tensor([5.0, 5.0]), upper=torch.tensor([-5.0, -5.0])), ValueError,
+     r"lower, upper: expected lower <= upper, got lower \[5.0, 5.0, 5.0\] above upper \[-5.0, -5.0, -5.0\]"),
+    (dict(lower=torch.tensor([NAN, -9.0])), ValueError, r"lower: expected values below \+inf \(not NaN\), got \[nan, nan\]"),
+    (dict(upper=torch.tensor([-INF, 9.0])), ValueError, r"upper: expected values above -inf \(not NaN\), got \[-inf, -inf\]"),
+    (dict(prior_precision=torch.tensor([-1e6, 0.0])), ValueError, r"prior_precision: expected finite values >= 0, got \[-1000000.0"),
+    (dict(prior_mean=torch.tensor([NAN, 0.0]), prior_precision=torch.ones(2)), ValueError,
+     r"prior_mean: expected finite values, got \[nan, nan\]"),
+    (dict(params=torch.tensor([[NAN, 0.0], [0.0, 0.0]], dtype=torch.float64)), ValueError,
+     r"params: expected finite start values, got \[nan\]"),
+    (dict(params=torch.tensor([[0.0, 0.0], [INF, 0.0]], dtype=torch.float64), max_iter=1), ValueError,
+     r"params: expected finite start values, got \[inf\]"),  # (no check in the loop: one after it)
+    (dict(params=torch.zeros(0, 2, dtype=torch.float64)), ValueError, r"params: expected shape \(B, P\) with B >= 1, got \(0, 2\)"),
+    (dict(params=torch.zeros(2, 0, dtype=torch.float64)), ValueError, r"params: expected shape \(B, P\) with P >= 1, got \(2, 0\)"),
+])
+def test_solve_names_a_bad_argument(options, error, message):
+    problem, _, _, _ = line_problem(B=2, N=50)
+    options = {"kernel": "l2", "max_iter": 30, **options}
+    with pytest.raises(error, match=message):
+        solve(problem, options.pop("params", torch.zeros(2, 2, dtype=torch.float64)), **options)
+
+
+def test_without_checks_the_values_are_the_callers():
+    """``check_every=None`` reads nothing, also not to check values (a GPU loop without a
+    synchronisation): a NaN start gives a NaN answer, as it is documented to."""
+    problem, _, _, _ = line_problem(B=2, N=50)
+    start = torch.tensor([[NAN, 0.0], [0.0, 0.0]], dtype=torch.float64)
+    sol = solve(problem, start, kernel="l2", max_iter=5, check_every=None)
+    assert bool(sol.params[0].isnan().any()) and bool(torch.isfinite(sol.params[1]).all())
+
+
+def test_no_points_and_annealing():
+    """A problem without points (N = 0): every point missing, whatever the kernel's annealing (the
+    median of no residuals raised)."""
+    def empty(p):
+        return torch.zeros(2, 1, 0, dtype=torch.float64), torch.zeros(2, 2, 1, 0, dtype=torch.float64), \
+            torch.zeros(2, 0, dtype=torch.bool)
+
+    problem = ResidualProblem(empty, torch.full((2,), 10))
+    for anneal in (False, True):
+        sol = solve(problem, torch.zeros(2, 2, dtype=torch.float64), kernel="cauchy", anneal=anneal)
+        assert torch.equal(sol.params, torch.zeros(2, 2, dtype=torch.float64))
+        torch.testing.assert_close(sol.cost, torch.full((2,), far_outlier_cost("cauchy"), dtype=torch.float64))
+
+
+# -- missing="mean" where no point counts ------------------------------------------------------------
+
+def test_mean_cost_where_no_point_counts_is_the_far_outliers():
+    """``missing="mean"``: the mean cost of no points was 0, so a step that moved every point out
+    of the model's domain was taken as the best fit. Where none counts, they all cost what far
+    outliers would (as with ``missing="outlier"``), and the fit stays where its points are."""
+    t = torch.linspace(0, 1, 40, dtype=torch.float64).expand(1, 40)
+
+    def residual(p):  # p - 5 at every point; the model is defined only while p < 3
+        return (p[:, :1] - 5.0 + 0.1 * t).unsqueeze(1), torch.ones(1, 1, 1, 40, dtype=torch.float64), \
+            (p[:, :1] < 3.0).expand(1, 40)
+
+    problem = ResidualProblem(residual, torch.tensor([40]))
+    outside = solve(problem, torch.full((1, 1), 4.0, dtype=torch.float64), kernel="cauchy", scale=2.0,
+                    missing="mean", max_iter=0)
+    assert float(outside.cost) == pytest.approx(4.0 * far_outlier_cost("cauchy"), rel=1e-12)  # (c² ρ₁(10⁴))
+    for missing in ("outlier", "mean"):
+        sol = solve(problem, torch.zeros(1, 1, dtype=torch.float64), kernel="cauchy", scale=1.0, missing=missing,
+                    max_iter=20)
+        assert float(sol.params) < 3.0 and bool(sol.evaluation.use.all()), missing
+        assert float(sol.cost) < far_outlier_cost("cauchy"), missing
+
+
+# -- sample_points: 16-bit images ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_16_bit_images_are_sampled_on_a_float32_grid(dtype):
+    """The grid was built in the image's dtype (across a KITTI frame a bfloat16 position is off
+    by up to 1.2 px, a float16 one by 0.15), and torch's CPU ``grid_sample`` returned 0 or garbage
+    in 16 bits: a 16-bit image is sampled as its float32 copy would be."""
+    from fsof_torch.estimation.sampling import points_grid, sample_points
+
+    H, W = 375, 1242
+    image = (torch.arange(W, dtype=torch.float32) / 4).expand(1, 1, H, W).to(dtype)
+    xy = torch.tensor([[[1000.3, 1100.7, 300.25], [200.0, 17.5, 3.0]]], dtype=torch.float64)
+    got, inb = sample_points(image, xy)
+    want, _ = sample_points(image.to(torch.float32), xy)
+    assert torch.equal(got, want) and inb.tolist() == [[True] * 3]
+    if dtype == torch.float16:  # (the ramp x / 4 is exact in float16 up to x = 2048)
+        torch.testing.assert_close(4 * got[0, 0], xy[0, 0], rtol=0, atol=1e-3)
+    grid, _ = points_grid(xy, (H, W), dtype)
+    assert grid.dtype == torch.float32
+    torch.testing.assert_close((grid[0, 0, :, 0].double() + 1) * (W - 1) / 2, xy[0, 0], rtol=0, atol=1e-3)

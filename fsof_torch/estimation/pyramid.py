@@ -5,6 +5,7 @@ levels, each level's camera and its band of detail. OpenCV filters on the CPU (m
 from __future__ import annotations
 
 import math
+import numbers
 
 import torch
 import torch.nn.functional as F
@@ -16,8 +17,16 @@ __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "b
 
 
 def pyramid_levels(H: int, W: int, levels: int | None, min_size: int) -> int:
-    """The number of levels: ``levels``, or halving until the shorter side would drop below
-    ``min_size``."""
+    """The number of levels: ``levels``, or floor(log2(min(H, W) / ``min_size``)) + 1 (at least
+    1): the levels whose shorter side, halved exactly at each level (min(H, W) / 2^l), is at
+    least ``min_size`` (an int >= 1). OpenCV's ``pyrDown`` rounds a side up ((s + 1) // 2), so a
+    level can be a pixel or so larger than that, and a side just short of a power of two times
+    ``min_size`` gets one level less than the rounded sides would allow (63 px with ``min_size``
+    16: 2 levels, 63 and 32 px, though a third of 16 px would still reach it)."""
+    if isinstance(min_size, bool) or not isinstance(min_size, numbers.Integral):
+        raise TypeError(f"min_size: expected an int >= 1, got {type(min_size).__name__} {min_size!r}")
+    if min_size < 1:
+        raise ValueError(f"min_size: expected an int >= 1, got {min_size!r}")
     if levels is None:
         levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
     if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
@@ -34,7 +43,10 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
 
     On the CPU OpenCV does the filtering (python benchmarks/bench_image_fit.py: five levels of a
     KITTI frame in about 1 ms, some 70 times faster than the same convolutions in torch);
-    elsewhere torch does the same arithmetic. The coarser levels are not differentiable on the CPU.
+    elsewhere torch does the same arithmetic. On the CPU no filtered level carries a gradient:
+    the coarser levels never, and level 0 neither where ``smooth_sigma`` > 0 (OpenCV's blur);
+    only level 0 with ``smooth_sigma`` 0, which is ``images`` itself. Elsewhere every level is
+    differentiable.
     """
     level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
     if images.device.type == "cpu":

@@ -17,7 +17,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import check_number, skip_values
+from .._check import check_float_tensor, check_number, result_dtype, skip_values
 
 __all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel",
            "check_scale"]
@@ -25,9 +25,11 @@ __all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "fa
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
 
-def check_kernel(kind: object) -> str:
+def check_kernel(kind: object, name: str = "robust") -> str:
+    """``kind``, a name of :data:`ROBUST_KERNELS`; the error names the caller's argument ``name``
+    (the fits' ``robust``, the solver's ``kernel``, the kernels' ``kind``)."""
     if kind not in ROBUST_KERNELS:
-        raise ValueError(f"robust: expected one of {ROBUST_KERNELS}, got {kind!r}")
+        raise ValueError(f"{name}: expected one of {ROBUST_KERNELS}, got {kind!r}")
     return kind
 
 
@@ -48,20 +50,39 @@ def check_scale(scale: object) -> None:
         raise ValueError(f"scale: expected finite values > 0, got {bad}")
 
 
+def _checked_r2(r2: object) -> Tensor:
+    """``r2``: a real float tensor of finite values >= 0 (one host read), lifted from half
+    precision to float32 (r² / c² overflows float16 at a few hundred scales)."""
+    check_float_tensor(r2, "r2")
+    if not skip_values(r2) and r2.numel():
+        lo, hi = torch.aminmax(r2.detach())
+        if not bool(torch.isfinite(hi) & (lo >= 0)):  # (NaN fails both)
+            bad = r2[~(torch.isfinite(r2) & (r2 >= 0))].flatten()[:3].tolist()
+            raise ValueError(f"r2: expected finite squared norms >= 0, got {bad}")
+    return r2.to(result_dtype(r2))
+
+
+def _lifted(scale: Tensor | float) -> Tensor | float:
+    return scale.to(result_dtype(scale)) if isinstance(scale, Tensor) and scale.is_floating_point() else scale
+
+
 def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
-    """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (any shape; ``scale``, a finite
-    number > 0 or a tensor of them, broadcasts)."""
-    check_kernel(kind)
+    """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (a float tensor of any shape,
+    finite and >= 0; ``scale``, a finite number > 0 or a tensor of them, broadcasts). Computed and
+    returned in at least float32 (half precision lifted)."""
+    check_kernel(kind, "kind")
     check_scale(scale)
+    r2, scale = _checked_r2(r2), _lifted(scale)
     if kind == "l2":
         return torch.ones_like(r2)
     return _unit_kernel(r2 / (scale * scale), kind, cost=False)[1]
 
 
 def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
-    """ρ(r²) (same shape as ``r2``), matching :func:`robust_weight`."""
-    check_kernel(kind)
+    """ρ(r²) (same shape as ``r2``), matching :func:`robust_weight` (its checks and dtype)."""
+    check_kernel(kind, "kind")
     check_scale(scale)
+    r2, scale = _checked_r2(r2), _lifted(scale)
     if kind == "l2":
         return r2
     c2 = scale * scale
@@ -70,7 +91,8 @@ def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tens
 
 def robust_terms(r2: Tensor, scale: Tensor, kind: str, mask: Tensor) -> tuple[Tensor, Tensor]:
     """Σ ρ(r²) over the points that count, and their IRLS weights, sharing the intermediate
-    terms: the solver needs both at every evaluation.
+    terms: the solver needs both at every evaluation. Unchecked (no host read inside the solver's
+    loop): the caller owns its values and dtype.
 
     Args:
         r2: (B, N) squared residual norms (finite everywhere).
@@ -132,4 +154,4 @@ _FAR = {kind: float(robust_cost(torch.tensor(1e4, dtype=torch.float64), 1.0, kin
 def far_outlier_cost(kind: str) -> float:
     """ρ(10⁴ c²) / c²: the cost of a residual a hundred scales out at unit scale (every kernel is
     ρ(r²) = c² ρ₁(r² / c²)); the solver charges it for a point where the model is undefined."""
-    return _FAR[check_kernel(kind)]
+    return _FAR[check_kernel(kind, "kind")]

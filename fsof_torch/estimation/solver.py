@@ -10,10 +10,12 @@ point where the model is not defined (that of a far outlier, so that a fit canno
 model's domain to escape its residuals), and an optional Gaussian prior of mean μ and precision λ
 (in residual² per parameter²). Each iteration solves the damped normal equations
 (A + λ diag(A)) δ = -g by Cholesky (no host read), with A = Jᵀ W J + prior and g = Jᵀ W r the
-IRLS normal equations (the problem builds them, knowing its structure), clamps the candidate to
-the bounds and keeps it per sample where E went down; else it damps more and retries the
-rejected step at half its length (E, which the step raised, is least within its first half,
-where more damping alone barely shortens a step while the damping is still small). Each
+IRLS normal equations (the problem builds them, knowing its structure), holding a parameter at
+a bound that the step would push out of it (a simple active set: its row and column decoupled,
+its gradient 0), clamps the candidate to the bounds and keeps it per sample where E went down;
+else it damps more and retries the rejected step at half its length (E, which the step raised, is
+least within its first half, where more damping alone barely shortens a step while the damping is
+still small). Each
 candidate is evaluated once: its cost, its weights and its normal equations; a sample whose step
 was rejected keeps those of its current point.
 
@@ -25,7 +27,10 @@ The loop runs a fixed budget of ``max_iter`` iterations with the convergence of 
 on the device; converged samples stop moving. After ``check_every`` iterations, then after 1, 1, 2,
 4, ... more (or after the iterations listed): one host read asks whether all have converged, to
 stop early (``check_every=None``: never, for a GPU loop without synchronisation). The checks change
-no result: they only end the loop.
+no result: they only end the loop. The first of them also tells the arguments' values (finite
+start, prior and bounds), decided on the device before the loop.
+
+The solver works in the start's dtype, half precision lifted to float32, with autocast off.
 """
 
 from __future__ import annotations
@@ -37,7 +42,8 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_shape
+from .._check import (autocast_off, check_float_tensor, check_int, check_number, check_shape, result_dtype,
+                      skip_values)
 from .robust import check_kernel, check_scale, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
@@ -135,7 +141,8 @@ class Solution:
 
     def covariance(self) -> Tensor:
         """(B, P, P) parameter covariance: the inverse normal matrix times the weighted residual
-        variance per degree of freedom; 0 rows and columns for fixed parameters. Where the
+        variance per degree of freedom (the points' weights minus the free parameters); 0 rows
+        and columns for fixed parameters. Where the
         problem is singular (an empty mask, one pixel, one row: the normal matrix's Cholesky
         fails, or its unit-diagonal form has no eigenvalue above 1e4 × the dtype's epsilon,
         about 2e-12 in float64, below which its inverse is rounding noise), the free parameters'
@@ -143,8 +150,10 @@ class Solution:
         w, ev = self.weights, self.evaluation
         B, P = self.params.shape
         R = 1 if ev.residual is None else ev.residual.shape[1]
-        # weights as fractional counts: a down-weighted outlier counts for its weight
-        dof = (R * w.sum(1) - P).clamp_min(1.0)
+        # weights as fractional counts: a down-weighted outlier counts for its weight; the fixed
+        # parameters took no degree of freedom
+        n_free = P if self.free is None else self.free.expand(B, P).sum(1)
+        dof = (R * w.sum(1) - n_free).clamp_min(1.0)
         sigma2 = (w * ev.r2).sum(1) / dof
         eye = torch.eye(P, dtype=self.normal.dtype, device=self.normal.device)
         cov = spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
@@ -200,11 +209,73 @@ def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, co
     return s
 
 
-def _expand(x: Tensor | float | None, B: int, P: int, like: Tensor, fill: float) -> Tensor:
+def _expand(x: Tensor | float | None, name: str, B: int, P: int, like: Tensor, fill: float) -> Tensor:
+    """A per-parameter argument (a number, (P,) or (B, P), or anything that broadcasts to (B, P))
+    as (B, P) of ``like``'s dtype and device; its type and shape checked (no host read)."""
     if x is None:
         return torch.full((B, P), fill, dtype=like.dtype, device=like.device)
-    x = torch.as_tensor(x, dtype=like.dtype, device=like.device)
-    return x.expand(B, P) if x.dim() else x.expand(B, P)
+    if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):
+        raise TypeError(f"{name}: expected a number or a real tensor of shape ({P},) or ({B}, {P}), got dtype {x.dtype}")
+    try:
+        t = torch.as_tensor(x, dtype=like.dtype, device=like.device)
+    except (TypeError, ValueError, RuntimeError):
+        raise TypeError(f"{name}: expected a number or a tensor of shape ({P},) or ({B}, {P}), "
+                        f"got {type(x).__name__}") from None
+    try:
+        fits = t.dim() <= 2 and torch.broadcast_shapes(t.shape, (B, P)) == (B, P)
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"{name}: expected a number or shape ({P},) or ({B}, {P}) (B, P of params), "
+                         f"got {tuple(t.shape)}")
+    return t.expand(B, P)
+
+
+def _check_free(free: object, B: int, P: int, dev: torch.device) -> Tensor:
+    """``free`` as (B, P) bool (no host read)."""
+    if not isinstance(free, Tensor) or free.dtype != torch.bool:
+        got = f"dtype {free.dtype}" if isinstance(free, Tensor) else type(free).__name__
+        raise TypeError(f"free: expected a bool tensor of shape ({P},) or ({B}, {P}), got {got}")
+    try:
+        fits = free.dim() <= 2 and torch.broadcast_shapes(free.shape, (B, P)) == (B, P)
+    except RuntimeError:
+        fits = False
+    if not fits:
+        raise ValueError(f"free: expected shape ({P},) or ({B}, {P}) (B, P of params), got {tuple(free.shape)}")
+    return free.to(dev).expand(B, P)
+
+
+def _first_bad(checks: list[tuple[str, Tensor]]) -> Tensor:
+    """0-d int64 on the device: 1 + the index of the first check whose flag (0-d bool) is False,
+    0 where all hold (decided without a host read: the loop's first host read carries it)."""
+    ok = torch.stack([flag for _, flag in checks])
+    return torch.where(ok.all(), 0, (~ok).to(torch.int64).argmax() + 1)
+
+
+def _raise_bad_value(name: str, values: dict[str, Tensor]) -> None:
+    """The error for the argument ``name`` whose values failed their check (host reads: the
+    error path only)."""
+    def some(x: Tensor, bad: Tensor) -> list:
+        return x[bad].flatten()[:3].tolist()
+
+    if name == "params":
+        x = values["params"]
+        raise ValueError(f"params: expected finite start values, got {some(x, ~torch.isfinite(x))}")
+    if name == "prior_mean":
+        x = values["prior_mean"]
+        raise ValueError(f"prior_mean: expected finite values, got {some(x, ~torch.isfinite(x))}")
+    if name == "prior_precision":
+        x = values["prior_precision"]
+        raise ValueError(f"prior_precision: expected finite values >= 0, got {some(x, ~(torch.isfinite(x) & (x >= 0)))}")
+    if name == "lower":
+        x = values["lower"]
+        raise ValueError(f"lower: expected values below +inf (not NaN), got {some(x, ~(x < math.inf))}")
+    if name == "upper":
+        x = values["upper"]
+        raise ValueError(f"upper: expected values above -inf (not NaN), got {some(x, ~(x > -math.inf))}")
+    lo, hi = values["lower"], values["upper"]
+    raise ValueError(f"lower, upper: expected lower <= upper, got lower {some(lo, lo > hi)} "
+                     f"above upper {some(hi, lo > hi)}")
 
 
 def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> list[int]:
@@ -241,12 +312,18 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
 
     Args:
         problem: a :class:`Problem`.
-        params: (B, P) float, the start (float64 recommended; the normal equations use its dtype).
+        params: (B, P) float, the start, finite (B, P >= 1; float64 recommended). The solver works
+            in its dtype, half precision lifted to float32, with autocast off (the normal
+            equations in bfloat16 would lose the fit), and returns the :class:`Solution` in it.
         free: (P,) or (B, P) bool, the parameters to estimate (default all); the others stay.
         prior_mean, prior_precision: (P,) or (B, P): a Gaussian prior λ (p - μ)² per parameter
-            (precision 0: none); the precision may be a function of the scale (B,) returning it
-            (a prior whose weight follows the residuals' noise).
-        lower, upper: (P,) or (B, P) bounds (±inf: none); the start is clamped into them.
+            (precision 0: none); the mean finite, the precision finite and >= 0; the precision
+            may be a function of the scale (B,) returning it (a prior whose weight follows the
+            residuals' noise; its result is not read).
+        lower, upper: (P,) or (B, P) bounds (±inf: none; lower <= upper, no NaN); the start is
+            clamped into them. A parameter at a bound that the step would push out of it is held
+            there for that step (a simple active set), so that the others still reach the
+            constrained minimum.
         kernel: a name of :data:`~fsof_torch.estimation.robust.ROBUST_KERNELS`.
         scale: the kernel's scale c (float or (B,)), in the residual's unit, or a function of the
             start's :class:`Evaluation` returning it (B,) (a scale from the residuals, without
@@ -255,9 +332,9 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         anneal: start the scale at max(c, 3 · median residual norm), then with every accepted
             step halve it or drop it to 3 × the new residuals' median, whichever is smaller, down
             to c (a rejected step is retried, at half its length, at the same scale).
-        max_iter: the iteration budget.
+        max_iter: the iteration budget (an int >= 0).
         tol: converged when a step changes no parameter by more than tol (1 + |p|), or E by less
-            than tol E.
+            than tol E (finite, >= 0).
         resolution: also converged when a step (accepted or not) moves the residuals by at most
             this fraction of their robust RMS (below what the points can resolve), or a rejected
             step by at most twice that (the cost, which it raised, is least within its first
@@ -271,39 +348,94 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         check_every: stop early when all samples converged, checked (one host read each) after
             this many iterations, then after 1, 1, 2, 4, ... more: a handful of reads for any
             budget; or the iterations after which to check (a sequence); None: always run
-            ``max_iter``.
-        damping: the initial Levenberg–Marquardt damping.
+            ``max_iter``. The values of ``params``, ``prior_mean``, ``prior_precision`` (a tensor),
+            ``lower`` and ``upper`` are checked by the first of these reads (or by one after the
+            loop where it makes none): a ValueError names the first bad one. With None nothing is
+            read, and their values are the caller's to vouch for (their types and shapes are
+            always checked).
+        damping: the initial Levenberg–Marquardt damping (> 0).
         missing: what a point that does not count (not ``use``) costs: ``"outlier"``, as much as a
             far outlier (a flow fit must not shrink the model's domain to escape its residuals);
             ``"mean"``, the mean cost of the points that count (an image fit, whose points may
-            rightly move out of the image).
+            rightly move out of the image), and where none counts, what they would all cost as
+            far outliers.
 
     Returns:
         :class:`Solution`.
     """
-    check_kernel(kernel)
+    check_kernel(kernel, "kernel")
     if missing not in ("outlier", "mean"):
         raise ValueError(f"missing: expected 'outlier' or 'mean', got {missing!r}")
+    max_iter = check_int(max_iter, "max_iter", minimum=0)
+    tol = check_number(tol, "tol", nonnegative=True)
+    resolution = check_number(resolution, "resolution", nonnegative=True)
+    damping = check_number(damping, "damping", positive=True)
     checks = _check_schedule(check_every, max_iter)
     check_float_tensor(params, "params")
-    check_shape(params, "params", ("B", "P"), nonempty=())
+    check_shape(params, "params", ("B", "P"), nonempty=("B", "P"))
     if isinstance(scale, bool) or (isinstance(scale, (int, float)) and not (math.isfinite(scale) and scale > 0)):
         raise ValueError(f"scale: expected a finite number > 0, got {scale!r}")
+    # (the problem's linear algebra too: autocast would build the normal equations in 16 bits)
+    with autocast_off(params):
+        return _solve(problem, params.to(result_dtype(params)), free, prior_mean, prior_precision, lower, upper,
+                      kernel, scale, anneal, max_iter, tol, resolution, checks, damping, missing, predict,
+                      check_values=check_every is not None and not skip_values(params))
+
+
+def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Tensor | None,
+           prior_precision: Tensor | Callable[[Tensor], Tensor] | None, lower: Tensor | None,
+           upper: Tensor | None, kernel: str, scale: Tensor | float | Callable[[Evaluation], Tensor],
+           anneal: bool, max_iter: int, tol: float, resolution: float, checks: list[int], damping: float,
+           missing: str, predict: bool, check_values: bool) -> Solution:
+    """:func:`solve`'s loop, its scalar arguments checked, ``params`` in the working dtype."""
     B, P = params.shape
     dt, dev = params.dtype, params.device
     # optional parts cost nothing when absent (Python flags, not tensor tests)
     has_fixed = free is not None
     if has_fixed:
-        fixed = ~free.to(dev).expand(B, P)
+        fixed = ~_check_free(free, B, P, dev)
         fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
         eye_fixed = torch.eye(P, dtype=dt, device=dev) * fixed.unsqueeze(-1)
     has_bounds = lower is not None or upper is not None
     if has_bounds:
-        lo = _expand(lower, B, P, params, -float("inf"))
-        hi = _expand(upper, B, P, params, float("inf"))
+        lo = _expand(lower, "lower", B, P, params, -float("inf"))
+        hi = _expand(upper, "upper", B, P, params, float("inf"))
+        off_diagonal = ~torch.eye(P, dtype=torch.bool, device=dev)
+    has_prior = prior_precision is not None
+    mu = None if prior_mean is None else _expand(prior_mean, "prior_mean", B, P, params, 0.0)
+    lam_given = (None if prior_precision is None or callable(prior_precision)
+                 else _expand(prior_precision, "prior_precision", B, P, params, 0.0))
+    # the arguments' values, decided on the device; the loop's first host read tells them
+    pending = None
+    if check_values:
+        flags = [("params", torch.isfinite(params).all())]
+        if mu is not None:
+            flags.append(("prior_mean", torch.isfinite(mu).all()))
+        if lam_given is not None:
+            flags.append(("prior_precision", (torch.isfinite(lam_given) & (lam_given >= 0)).all()))
+        if has_bounds:
+            flags += [("lower", (lo < math.inf).all()), ("upper", (hi > -math.inf).all()),
+                      ("lower, upper", (lo <= hi).all())]
+        values = {"params": params, "prior_mean": mu, "prior_precision": lam_given}
+        if has_bounds:
+            values.update(lower=lo, upper=hi)
+        pending = _first_bad(flags)
+
+    def report(bad: int) -> None:
+        if bad:
+            _raise_bad_value(flags[bad - 1][0], values)
+
+    if has_bounds:
         params = torch.minimum(torch.maximum(params, lo), hi)
     n = problem.count.to(dt).clamp_min(1)
     far = far_outlier_cost(kernel)
+
+    def evaluate(p: Tensor) -> Evaluation:
+        """The problem at p, its residuals in at least the working dtype."""
+        ev = problem.evaluate(p)
+        if torch.promote_types(ev.r2.dtype, dt) != ev.r2.dtype:
+            ev = Evaluation(ev.r2.to(dt), ev.use, None if ev.residual is None else ev.residual.to(dt), ev.state)
+        return ev
 
     def cost_and_weights(ev: Evaluation, mask: Tensor, used: Tensor, p: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
         """E / n (B,) and the IRLS weights (B, N) at the scale s (B,); ``mask``: 1.0 where a point
@@ -314,7 +446,9 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         if missing == "outlier":
             rho = torch.addcmul(rho, s * s * far, nn - used)
         else:
-            rho = rho * (nn / used.clamp_min(1))
+            # where no point counts, they all cost what far outliers would (not 0: a step that
+            # moved every point out of view would be the best fit)
+            rho = torch.where(used > 0, rho * (nn / used.clamp_min(1)), s * s * far * nn)
         if has_prior:
             prior = (lam_p * (p - mu).square()).sum(1)
             rho = rho + (prior if s.dim() == 1 else prior.unsqueeze(-1))
@@ -322,6 +456,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
 
     def normal(ev: Evaluation, w: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
         A, g = problem.normal_equations(ev, w)
+        A, g = A.to(torch.promote_types(A.dtype, dt)), g.to(torch.promote_types(g.dtype, dt))
         if has_prior:
             A = A + lam_diag
             g = g + lam_p * (p - mu)
@@ -329,8 +464,21 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, 0.0, g)
         return A, g
 
+    def damped_step(A: Tensor, g: Tensor, lam: Tensor, p: Tensor) -> Tensor:
+        """The step from p; a parameter at a bound that the descent direction -g points out of
+        is held there (its row and column decoupled, its diagonal kept for the damping's scale,
+        its gradient 0), so that the step is the other parameters' constrained one, not an
+        unconstrained one that the clamp then cuts short."""
+        if has_bounds:
+            hold = ((p <= lo) & (g > 0)) | ((p >= hi) & (g < 0))
+            A = torch.where((hold.unsqueeze(-1) | hold.unsqueeze(-2)) & off_diagonal, 0.0, A)
+            g = torch.where(hold, 0.0, g)
+        return _damped_step(A, g, lam)
+
     def kernel_spread(ev: Evaluation) -> Tensor:
         """3 × the median residual norm (B,): the scale that keeps most points in the kernel."""
+        if ev.r2.shape[1] == 0:  # (no points: no spread)
+            return torch.zeros(B, dtype=dt, device=dev)
         med = torch.nanmedian(torch.where(ev.use, ev.r2, float("nan")), dim=1).values
         return 3.0 * torch.nan_to_num(med, nan=0.0).sqrt()
 
@@ -344,13 +492,14 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         mask = ev.use.to(dt)
         return mask, mask.sum(1)
 
-    ev = problem.evaluate(params)
+    ev = evaluate(params)
     s_min = (torch.full((B,), float(scale), dtype=dt, device=dev) if isinstance(scale, (int, float))
              else _checked_scale(scale(ev) if callable(scale) else scale, B, dt, dev, callable(scale)))
-    has_prior = prior_precision is not None
     if has_prior:
-        mu = _expand(prior_mean, B, P, params, 0.0)
-        lam_p = _expand(prior_precision(s_min) if callable(prior_precision) else prior_precision, B, P, params, 0.0)
+        if mu is None:
+            mu = _expand(None, "prior_mean", B, P, params, 0.0)
+        lam_p = (_expand(prior_precision(s_min), "prior_precision", B, P, params, 0.0) if lam_given is None
+                 else lam_given)
         lam_diag = torch.diag_embed(lam_p)  # (constant: built once, added to every normal matrix)
     s = torch.maximum(s_min, kernel_spread(ev)) if anneal else s_min
     mask, used = counted(ev)
@@ -363,7 +512,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     lam = torch.full((B,), damping, dtype=dt, device=dev)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
-    step = _damped_step(A, g, lam)
+    step = damped_step(A, g, lam, params)
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
@@ -372,7 +521,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
             delta = cand - params
-        ev_c = problem.evaluate(cand)
+        ev_c = evaluate(cand)
         mask_c, used_c = counted(ev_c)
         if anneal:
             # the scale an accepted step carries on with: halved, or the new residuals' spread;
@@ -421,7 +570,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             done = done | small | stuck
         # the next step: a rejected one retried at half its length (see the module docstring),
         # else the damped step from the normal equations at the (new) point
-        step = torch.where((~ok & active).unsqueeze(-1), 0.5 * delta, _damped_step(A, g, lam))
+        step = torch.where((~ok & active).unsqueeze(-1), 0.5 * delta, damped_step(A, g, lam, params))
         if predict:
             # the step predicted there: δᵀ A δ is what it would move the weighted squared
             # residuals by (to first order); below resolution² of their weighted sum it is not
@@ -433,8 +582,16 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             done = done | settled
         if checks and it + 1 == checks[0]:
             checks.pop(0)
-            if bool(done.all()):
+            if pending is not None:  # (one host read: the arguments' values and convergence)
+                code = int(done.all() + 2 * pending)
+                pending = None
+                report(code // 2)
+                if code % 2:
+                    break
+            elif bool(done.all()):
                 break
+    if pending is not None:  # (the loop made no host read)
+        report(int(pending))
     # (the problem's state is not kept: the normal equations built from it are)
     return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s, ~fixed if has_fixed else None)
 
