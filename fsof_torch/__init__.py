@@ -3,9 +3,10 @@
 The road's optical flow in closed form from the camera (intrinsics, height, roll, pitch) and the
 ego-motion, as differentiable batched modules; fitting it to flow or images; refining a flow
 network's prediction with it; photometric and ground-truth evaluation; a training loss term.
-Submodules: ``camera``, ``flow_model``, ``egomotion``, ``fit``, ``vflow``, ``pose``, ``warp``,
-``photometric``, ``metrics``, ``fusion``, ``losses``, ``testnet``, ``scene``, ``io``,
-``datasets``, ``visualize``.
+Subpackages: ``geometry``, ``estimation``, ``refinement``, ``evaluation``, ``training``, ``data``,
+``io``. The flat module paths of earlier versions stay: ``camera``, ``flow_model``, ``egomotion``,
+``fit``, ``vflow``, ``warp``, ``photometric``, ``metrics``, ``fusion``, ``losses``, ``testnet``,
+``scene``, ``datasets``, ``visualize`` (below).
 """
 
 import sys as _sys
@@ -95,13 +96,18 @@ from .evaluation.warp import WarpBackward, warp_backward
 __version__ = "0.1.0"
 
 # The flat module paths of earlier versions (``fsof_torch.metrics``, ``fsof_torch.camera``, ...)
-# stay importable: each is an alias of the module that now holds it.
+# stay importable: each is an alias of the module that now holds it, in sys.modules and as an
+# attribute (``import fsof_torch.fit`` finds the module in sys.modules and sets no attribute).
+# ``fsof_torch.fit_photometric`` is the function; its module path stays in sys.modules only
+# (``from fsof_torch.fit_photometric import fit_image`` works; the attribute is the function).
 for _name, _module in {"camera": camera, "egomotion": egomotion, "flow_model": _road_flow,
-                       "fit": _flow_fit, "fit_photometric": _image_fit, "vflow": vflow,
+                       "fit": _flow_fit, "vflow": vflow,
                        "fusion": fusion, "warp": warp, "photometric": photometric, "metrics": metrics,
                        "visualize": visualize, "losses": losses, "testnet": testnet,
                        "datasets": datasets, "scene": scene}.items():
     _sys.modules.setdefault(f"{__name__}.{_name}", _module)
+    globals().setdefault(_name, _module)
+_sys.modules.setdefault(f"{__name__}.fit_photometric", _image_fit)
 del _name, _module
 
 __all__ = [

@@ -249,6 +249,17 @@ def test_flow_estimator_planar_odometry_needs_a_planar_model(noisy_pair):
         FlowMotionEstimator()(pred, p["road"][None], cam, odometry={**p["odometry"], "yaw": float("nan")})
 
 
+def test_flow_estimator_refuses_a_prior_on_what_the_odometry_holds(noisy_pair):
+    """A prior on x_d, z_d or yaw cannot act where planar odometry holds them: refused in the
+    estimator's words (it was silently ignored); without odometry it is a prior as before."""
+    p, cam, pred = noisy_pair
+    estimator = FlowMotionEstimator(model="plane", prior={"z_d": (1.0, 0.01)})
+    with pytest.raises(ValueError, match=r"^prior: 'z_d' is held at the odometry's value, so its prior would be "
+                                         r"ignored; drop it, or call without odometry$"):
+        estimator(pred, p["road"][None], cam, odometry=p["odometry"])
+    assert float(estimator(pred, p["road"][None], cam).z_d) == pytest.approx(1.0, abs=0.05)
+
+
 def test_image_estimator_returns_a_detached_camera(noisy_pair):
     """fit.camera.K kept the caller's graph (FlowMotionEstimator's fit is detached)."""
     p, cam, pred = noisy_pair

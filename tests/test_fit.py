@@ -450,6 +450,32 @@ def test_fit_velocity_init_steering_is_named(steering, error, match):
         fit_velocity(flow, valid, cam, 2.7, init={"steering": steering, "speed": 12.0})
 
 
+def test_a_prior_on_a_held_parameter_is_refused():
+    """A prior on a parameter the fit holds (the pitch by default, or one in ``fixed``) would be
+    ignored: a ValueError that says so (it was silently dropped, success True); freed, it acts."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    with pytest.raises(ValueError, match=r"^prior: 'pitch' is held at its start \(fixed=\('pitch',\)\), so its "
+                                         r"prior would be ignored; free it"):
+        fit_displacement(flow, valid, cam, prior={"pitch": (-0.017, 0.002)})
+    with pytest.raises(ValueError, match=r"^prior: 'roll' is held at its start"):
+        fit_road(flow, valid, cam, model="plane", fixed=("roll", "pitch"), prior={"roll": (0.01, 0.01)})
+    fit = fit_displacement(flow, valid, cam, fit_pitch=True, prior={"pitch": (0.0, 0.002)})
+    assert bool(fit.success) and float(fit.z_d) == pytest.approx(1.0, abs=1e-6)
+
+
+def test_detect_freespace_keeps_a_roll_prior_for_the_hypothesis_that_fits_the_roll():
+    """detect_freespace's second hypothesis holds the camera's roll and pitch: a caller's prior on
+    them belongs to the first, which fits them (passing it to both would be refused)."""
+    from fsof_torch import detect_freespace
+
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    road = valid & torch.isfinite(flow).all(1, keepdim=True)  # (a road everywhere below the horizon)
+    with_prior = detect_freespace(flow, cam, fit_options={"prior": {"roll": (0.0, 0.01)}})
+    assert float((with_prior & road).sum() / (with_prior | road).sum()) > 0.9
+
+
 def test_exceptions_batch_of_priors_and_velocity_init_named():
     """A prior or a velocity start of the wrong batch is a ValueError naming its key (it was
     torch's RuntimeError about expanding or broadcasting)."""
@@ -484,3 +510,79 @@ def test_exceptions_odometry_of_a_model_without_it():
     with pytest.raises(ValueError, match=r"^odometry: a 'homography' fit has no x_d, z_d, yaw: \('h11',"):
         fit.odometry()
     assert fit_road(flow, valid, cam, model="plane").odometry()["z_d"].tolist() == pytest.approx([1.0], abs=1e-6)
+
+
+def test_exceptions_a_batch_1_mask_is_quoted_as_passed():
+    """A batch-1 mask of the wrong size is quoted with the shape that came (the message quoted it
+    broadcast to the flow's batch, a shape the caller never passed)."""
+    cam = small_camera()
+    flow = torch.zeros(3, 2, 96, 320, dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^mask: expected shape \(B, 1, H, W\) with H=96 \(from an earlier "
+                                         r"argument\), got \(1, 1, 50, 320\)$"):
+        fit_road(flow, torch.ones(1, 1, 50, 320, dtype=torch.bool), cam)
+    with pytest.raises(ValueError, match=r"^mask: expected shape \(B, 1, H, W\) with B=3 .*got \(2, 1, 96, 320\)$"):
+        fit_road(flow, torch.ones(2, 1, 96, 320, dtype=torch.bool), cam)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+@pytest.mark.parametrize("B", [1, 2])
+def test_result_camera_is_a_copy_of_the_callers(dtype, B):
+    """fit.camera's K, height and held roll / pitch are the fit's own tensors: editing them in place
+    leaves the caller's camera alone (they shared its storage where the dtype matched) and works
+    for a batch-1 camera broadcast to the flow's batch (an expanded view refused the edit)."""
+    K = torch.tensor([[130.0, 0.0, 80.0], [0.0, 130.0, 16.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    cam = Camera(K, 1.65, 0.01, -0.02)
+    flow, valid = displacement_flow(cam, 0.02, 0.8, 0.01, SIZE)
+    flow, valid = flow.to(dtype).expand(B, -1, -1, -1), road_mask(valid).expand(B, -1, -1, -1)
+    before = [t.clone() for t in (K, cam.K, cam.height, cam.roll, cam.pitch)]
+    fits = [fit_displacement(flow, valid, cam, fit_roll=False),
+            fit_road(flow, valid, cam, model="homography")]  # (no roll / pitch of its own)
+    for fit in fits:
+        assert fit.camera.K.dtype == dtype and fit.camera.batch_size == B
+        fit.camera.K.mul_(0.5)
+        fit.camera.height.add_(1.0)
+        fit.camera.roll.zero_()
+        fit.camera.pitch.zero_()
+    for was, now in zip(before, (K, cam.K, cam.height, cam.roll, cam.pitch)):
+        assert torch.equal(was, now)
+
+
+def test_velocity_wheelbase_is_the_fits_own():
+    """fit.wheelbase is a (B,) tensor of the fit's own: not the caller's tensor (an edit of the
+    result changed it), nor a stride-0 view of a float wheelbase (which refused an in-place edit)."""
+    cam = small_camera()
+    flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, SIZE)
+    wheelbase = torch.tensor([2.7], dtype=torch.float64)
+    fit = fit_velocity(flow, road_mask(valid), cam, wheelbase)
+    fit.wheelbase.mul_(2.0)
+    assert wheelbase.tolist() == [2.7]
+    fit = fit_velocity(flow.expand(2, -1, -1, -1), road_mask(valid), cam, 2.7)
+    assert fit.wheelbase.shape == (2,) and fit.wheelbase.stride() == (1,)
+    fit.wheelbase[0] = 3.0
+    assert fit.wheelbase.tolist() == [3.0, 2.7]
+
+
+def test_held_roll_and_pitch_start_at_init_else_at_the_camera():
+    """A held roll / pitch is held at its start: init's value where init gives one, else the
+    camera's (as the docstring and docs/fitting.md say; they named the camera's alone)."""
+    from pathlib import Path
+
+    cam = small_camera(roll=0.005, pitch=0.003)
+    flow, valid = displacement_flow(small_camera(roll=0.02), 0.02, 0.8, 0.01, SIZE)
+    mask = road_mask(valid)
+    plain = fit_displacement(flow, mask, cam, fit_roll=False)
+    assert (float(plain.roll), float(plain.pitch)) == (0.005, 0.003)
+    started = fit_displacement(flow, mask, cam, fit_roll=False, init={"roll": 0.05})
+    assert (float(started.roll), float(started.pitch)) == (0.05, 0.003)
+    assert float(started.camera.roll) == 0.05
+    previous = fit_displacement(flow, mask, small_camera(roll=0.04), fit_roll=False)
+    assert float(fit_displacement(flow, mask, cam, fit_roll=False, init=previous).roll) == 0.04
+    for model in ("plane", "velocity"):
+        fit = fit_road(flow, mask, cam, model=model, fixed=("roll", "pitch"), init={"pitch": -0.01})
+        assert (float(fit.roll), float(fit.pitch)) == (0.005, -0.01), model
+    doc = " ".join(fit_road.__doc__.split())
+    assert "held at their start (``init``'s value where it gives one, else the default start: the camera's " \
+           "roll / pitch)" in doc
+    text = " ".join((Path(__file__).resolve().parents[1] / "docs" / "fitting.md").read_text().split())
+    assert "held at their start: `init`'s value where `init` gives one, else the default start (for the roll " \
+           "and pitch, the camera's)" in text

@@ -57,6 +57,23 @@ def test_smoke_result_type_and_shapes():
     assert fit.z_d.shape == (1,) and fit.flow.dtype == torch.float32
 
 
+def test_result_camera_is_a_copy_of_the_callers():
+    """fit.camera's K, height and held roll / pitch are the fit's own tensors: an in-place edit of
+    them leaves the caller's camera alone (they shared its storage where the dtype matched) and
+    works on a batch-1 camera broadcast to the images' batch (an expanded view refused it)."""
+    cam = small_camera(roll=0.01, pitch=-0.02).to(torch.float32)
+    image1, image2, mask, _ = (x.expand(2, -1, -1, -1) for x in synthetic_pair(small_camera(), 0.0, 0.3, 0.0))
+    before = [t.clone() for t in (cam.K, cam.height, cam.roll, cam.pitch)]
+    fit = fit_photometric(image1, image2, mask, cam, fit_roll=False, levels=1, max_iter=2)
+    assert fit.camera.K.dtype == torch.float32 and fit.camera.batch_size == 2
+    fit.camera.K.mul_(0.5)
+    fit.camera.height.add_(1.0)
+    fit.camera.roll.zero_()
+    fit.camera.pitch.zero_()
+    for was, now in zip(before, (cam.K, cam.height, cam.roll, cam.pitch)):
+        assert torch.equal(was, now)
+
+
 def test_exceptions():
     cam = small_camera()
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)

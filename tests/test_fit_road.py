@@ -456,3 +456,28 @@ def test_cached_constants_are_ordinary_tensors_after_a_fit():
                                                for t in (v if isinstance(v, tuple) else (v,))]
     assert flow_fit._BASIS and cached
     assert not any(isinstance(t, torch.Tensor) and t.is_inference() for t in cached)
+
+
+def test_the_dlt_starts_robust_steps_are_as_docs_fitting_says(monkeypatch):
+    """The DLT start takes two Cauchy steps for the plane and four for the homography, as
+    docs/fitting.md says (it said four for both)."""
+    from pathlib import Path
+
+    from fsof_torch.estimation import flow_fit
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs["iterations"])
+        return dlt(*args, **kwargs)
+
+    dlt = flow_fit.homography_dlt
+    monkeypatch.setattr(flow_fit, "homography_dlt", spy)
+    cam = kitti_camera()
+    flow, valid = road_flow(cam, {"z_d": 1.2}, SIZE, model="paper")
+    for model in ("plane", "homography"):
+        fit_road(flow, road_mask(valid), cam, model=model)
+    assert seen == [2, 4]
+    text = " ".join((Path(__file__).resolve().parents[1] / "docs" / "fitting.md").read_text().split())
+    assert "two for the plane's DLT" in text and "four for the homography's" in text
+    assert "four for the DLT)" not in text

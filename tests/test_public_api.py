@@ -44,3 +44,31 @@ def test_jobs_have_main_and_help(job, capsys):
         code = exc.code
     assert code in (0, None)
     assert "usage" in capsys.readouterr().out.lower()
+
+
+def test_the_flat_module_paths_are_modules_as_the_docstring_lists():
+    """Every flat module path the package docstring lists imports as the module that now holds it,
+    and is that module as an attribute too (``import fsof_torch.fit; fsof_torch.fit.fit_road`` was
+    an AttributeError); ``pose``, listed, was none. ``fsof_torch.fit_photometric`` is the function;
+    its module path serves ``from``-imports."""
+    import re
+    import sys
+
+    import fsof_torch.fit
+    import fsof_torch.flow_model
+
+    assert fsof_torch.fit.fit_road is fsof_torch.fit_road
+    assert fsof_torch.flow_model.road_flow is fsof_torch.road_flow
+    assert callable(fsof_torch.fit_photometric)
+    from fsof_torch.fit_photometric import fit_image
+
+    assert fit_image is fsof_torch.fit_image
+    doc = " ".join(fsof_torch.__doc__.split())
+    assert "``pose``" not in doc
+    listed = re.findall(r"``(\w+)``", doc.partition("The flat module paths of earlier versions stay:")[2])
+    assert {"fit", "flow_model", "camera", "metrics"} <= set(listed)
+    for name in listed:
+        module = importlib.import_module(f"fsof_torch.{name}")
+        assert sys.modules[f"fsof_torch.{name}"] is module and getattr(fsof_torch, name) is module, name
+    for sub in re.findall(r"``(\w+)``", doc.split("Subpackages:")[1].split(".")[0]):
+        assert importlib.import_module(f"fsof_torch.{sub}") is getattr(fsof_torch, sub), sub

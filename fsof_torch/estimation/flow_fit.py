@@ -64,7 +64,7 @@ class RoadFit:
             parameters are finite but not to be trusted. (Where a polish does not converge, the
             robust stage's parameters are returned, with that stage's covariance and cost, and
             success is False.)
-        camera: the input camera with the fitted roll and pitch.
+        camera: a copy of the input camera with the fit's roll and pitch (fitted or held).
         iterations: (B,) int64 solver iterations.
         covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
             the fit is singular, as on an empty or one-pixel mask, +inf on the free parameters'
@@ -222,9 +222,9 @@ def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera,
     dims = check_shape(flow, "flow", ("B", 2, "H", "W"))
     if not isinstance(mask, Tensor):
         raise TypeError(f"mask: expected a bool tensor of shape (B, 1, H, W), got {type(mask).__name__}")
-    if mask.dim() == 4 and mask.shape[0] == 1 and dims["B"] != 1:
-        mask = mask.expand(dims["B"], -1, -1, -1)
-    check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+    one = mask.dim() == 4 and mask.shape[0] == 1  # (batch 1 broadcasts: checked as it came, for the message)
+    check_shape(mask, "mask", ("B", 1, "H", "W"), {**dims, "B": 1} if one else dims)
+    mask = mask.expand(dims["B"], -1, -1, -1) if one else mask
     if mask.dtype != torch.bool:
         raise TypeError(f"mask: expected dtype torch.bool, got {mask.dtype}")
     if valid is not None:
@@ -433,14 +433,12 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         return values
     if model.name == "paper":
         roll, pitch = values[:, model.index("roll")], values[:, model.index("pitch")]
-        # (one robust step after least squares: the robust stage anneals from there; more steps
-        # here leave its iterations unchanged on the benchmarks' frames)
+        # (one robust step after least squares: the robust stage anneals from there)
         lin, _ = planar_motion(camera.K, K_inv, roll, pitch, pts, flow, sel, iterations=1)
         h = camera.height
         return torch.stack([lin[:, 0] * h, lin[:, 1] * h, lin[:, 2], roll, pitch], dim=-1)
-    # the plane's robust stage anneals its kernel from the decomposed start whatever its quality,
-    # so its DLT needs only to land in the basin: 2 robust iterations; the homography's robust
-    # stage starts at the DLT itself: 4
+    # the plane's robust stage anneals from the decomposed start: its DLT needs only to land in
+    # the basin (2 robust iterations); the homography's starts at the DLT itself (4)
     H = homography_dlt(camera.K, K_inv, pts, flow, sel, iterations=2 if model.name == "plane" else 4)
     if model.name == "plane":
         cam = camera
@@ -471,15 +469,16 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         flow: forward flow (B, 2, H, W) in pixels (px/s for ``model="velocity"``), any float dtype.
         mask: road pixels to fit (B, 1, H, W) bool (batch 1 broadcasts).
         camera: intrinsics at the flow's resolution, the height (known: only d/h is observable),
-            and the roll / pitch used where they are not fitted and as the start.
+            and the roll / pitch: the start where ``init`` gives none (so, held where not fitted).
         model: ``"paper"``, ``"plane"``, ``"homography"`` or ``"velocity"``
             (:data:`~fsof_torch.geometry.road_models.ROAD_MODELS`).
-        fixed: parameter names held at their start (default :data:`DEFAULT_FIXED`: the pitch of
+        fixed: names held at their start (``init``'s value where it gives one, else the default
+            start: the camera's roll / pitch); default :data:`DEFAULT_FIXED` (the pitch of
             the paper's and the velocity model).
         init: a start: a :class:`RoadFit` of the same model or a dict of any of its parameters;
             default: the planar motion of back-projected points (the velocity model: rest).
         prior: ``{name: (mean, sigma)}`` Gaussian priors (the parameters' units), weighed
-            against the residuals at the kernel's scale.
+            against the residuals at the kernel's scale; on fitted parameters only (ValueError).
         valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's); ANDed with mask.
         robust: the kernel (:data:`ROBUST_KERNELS`); ``scale``: its scale in pixels (px/s).
         max_iter, tol: the solver's budget and tolerance per stage.
@@ -541,6 +540,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     K_inv = cam64.K_inv()
     thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
     fixed_names = fixed_parameters(model, fixed)
+    if held := [n for n in model.params if n in fixed_names and n in (prior or {})]:
+        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={fixed_names!r}), so its prior would "
+                         f"be ignored; free it (fixed= without it, or fit_roll= / fit_pitch=True) or drop its prior")
     free = torch.tensor([n not in fixed_names for n in model.params], device=flow.device)
 
     with autocast_off(flow):
@@ -576,8 +578,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                 params, converged, first = sol.params, sol.converged, (well_posed, covariance, cost)
             else:
                 # the polish is kept where it converged to a finite answer; elsewhere the robust
-                # stage's answer, with its own tests, covariance and cost, and no success: the fit
-                # did not converge (that stage only has to land in the polish's basin)
+                # stage's answer, with its own tests, covariance and cost, and no success
                 converged = sol.converged & torch.isfinite(sol.params).all(-1)
                 params = torch.where(converged.unsqueeze(-1), sol.params, params)
                 well_posed, cost = torch.where(converged, well_posed, first[0]), torch.where(converged, cost, first[2])
@@ -618,10 +619,9 @@ def _result(model: RoadModel, camera: Camera, params: Tensor, M: Tensor, flow: T
             inliers: Tensor, residual: Tensor, success: Tensor, iterations: Tensor, covariance: Tensor,
             cost: Tensor, dtype: torch.dtype) -> RoadFit:
     named = {n: params[:, i].to(dtype) for i, n in enumerate(model.params)}
-    # (detached: the caller's camera may carry a gradient, and results are detached)
-    roll = named.get("roll", camera.roll.detach().to(dtype))
-    pitch = named.get("pitch", camera.pitch.detach().to(dtype))
-    cam_fit = Camera._checked(camera.K.detach().to(dtype), camera.height.detach().to(dtype), roll, pitch)
+    # (detached copies: results are detached, and not the caller's storage nor a batch-1 camera's expansion)
+    own = {n: getattr(camera, n).detach().to(dtype, copy=True) for n in ("K", "height", "roll", "pitch")}
+    cam_fit = Camera._checked(own["K"], own["height"], named.get("roll", own["roll"]), named.get("pitch", own["pitch"]))
     return RoadFit(model=model.name, params=named, homography=M.to(dtype), flow=flow, valid=valid,
                    inliers=inliers, residual=residual, success=success, camera=cam_fit, iterations=iterations,
                    covariance=covariance.to(dtype), cost=cost.to(dtype))
@@ -678,7 +678,7 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     fit = fit_road(flow, mask, camera, model="velocity", fixed=fixed, init=init, scale=scale, **options)
     speed, yaw_rate = fit.params["speed"], fit.params["yaw_rate"]
-    wb = wb.to(speed).expand_as(speed)
+    wb = wb.to(speed).expand_as(speed).clone()  # (the fit's own: not the caller's tensor, nor a stride-0 view)
     moving = speed.abs() > 1e-12
     steering = torch.where(moving, torch.atan(yaw_rate * wb / torch.where(moving, speed, 1.0)), 0.0)
     fit.extras.update(steering=steering, wheelbase=wb)

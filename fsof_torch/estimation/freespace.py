@@ -159,7 +159,9 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         # and with the attitude free a plane tilted between road and pavement can fit both while
         # agreeing with neither whole. The camera's own attitude is the second hypothesis; per
         # frame, the one more pixels agree with is kept (the larger consensus).
-        held = fitted({**fit_kw, "fit_roll": False, "fit_pitch": False})
+        # (a caller's prior on the roll or pitch is for the first hypothesis, which fits them)
+        attitude_free = {k: v for k, v in (fit_kw.get("prior") or {}).items() if k not in ("roll", "pitch")}
+        held = fitted({**fit_kw, "fit_roll": False, "fit_pitch": False, "prior": attitude_free or None})
         take = held[1].flatten(1).sum(-1) > agreement.flatten(1).sum(-1)
         fit = where_motion(take, held[0], fit)
         agreement = torch.where(take.reshape(B, 1, 1, 1), held[1], agreement)

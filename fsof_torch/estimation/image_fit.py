@@ -564,8 +564,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             fit = better_fit(fit, clearly(compete(False)), clear)
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
-    cam_fit = Camera._checked(camera.K.to(out_dtype), camera.height.to(out_dtype),
-                              named.get("roll", camera.roll.to(out_dtype)), named.get("pitch", camera.pitch.to(out_dtype)))
+    # (detached copies: results are detached, and not the caller's storage nor a batch-1 camera's expansion)
+    own = {n: getattr(camera, n).detach().to(out_dtype, copy=True) for n in ("K", "height", "roll", "pitch")}
+    cam_fit = Camera._checked(own["K"], own["height"], named.get("roll", own["roll"]), named.get("pitch", own["pitch"]))
     return RoadFit(model=model.name, params=named, homography=M.to(out_dtype), flow=fit["flow"], valid=fit["valid"],
                    inliers=fit["inliers"], residual=fit["residual"].to(out_dtype), success=fit["success"],
                    camera=cam_fit, iterations=fit["iterations"], covariance=fit["covariance"].to(out_dtype),

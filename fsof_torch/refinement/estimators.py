@@ -89,6 +89,9 @@ class FlowMotionEstimator:
                     raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
                                      f"hold; fit the flow alone (odometry=None) or use model='paper' or 'plane'")
                 init = {**(init or {}), **_finite_odometry(planar)}
+                if held := [k for k in _PLANAR if k in (self.options.get("prior") or {})]:
+                    raise ValueError(f"prior: {held[0]!r} is held at the odometry's value, so its prior would be "
+                                     f"ignored; drop it, or call without odometry")
                 fixed = fixed_parameters(road_model, fixed)
                 fixed = fixed + tuple(k for k in _PLANAR if k not in fixed)
         return fit_road(flow, mask, camera, model=self.model, fixed=fixed, init=init, **self.options)
