@@ -375,6 +375,46 @@ def test_nan_where_the_gate_keeps_the_prediction_takes_the_model(mode):
     torch.testing.assert_close(out.flow[0][1], low[1], rtol=0, atol=0, equal_nan=True)
 
 
+class _KeepsAll(ImageGate):
+    """A gate that uses the model over the whole mask by the sample's test, yet keeps the
+    prediction in every cell (as a gate whose cells and objects all favour the prediction)."""
+
+    def __call__(self, image1, image2, prediction, model, mask):
+        B = prediction.shape[0]
+        used, zeros = torch.ones(B, dtype=torch.bool), torch.zeros(B)
+        return GateResult(torch.zeros_like(mask), torch.zeros(mask.shape), zeros, zeros, zeros.long(),
+                          zeros.long(), zeros.long(), used, used, used, zeros)
+
+
+@pytest.mark.parametrize("mode", ["replace", "confidence"])
+def test_a_gate_that_keeps_the_prediction_everywhere_leaves_the_sample_unrefined(mode):
+    """model_used True but use_model nowhere: the sample comes back unchanged, refined is False,
+    its odometry 0, and the warning names it (once refined said True, silently)."""
+    pred, mask, cam, gt = make_case(B=2)
+    image = torch.rand(2, 1, H, W, generator=torch.Generator().manual_seed(0)) * 255
+    motion = {"model": "plane", **ODO, "pitch_change": 0.0, "roll_change": 0.0, "y_d": 0.0, "roll": 0.0, "pitch": 0.0}
+    with pytest.warns(RuntimeWarning, match=r"mask: samples \[0, 1\] left unchanged .*a gate that keeps the "
+                                            r"prediction everywhere"):
+        out = FreespaceRefiner(mode=mode, gate=_KeepsAll())(pred, mask, cam, motion, images=(image, image))
+    assert out.refined.tolist() == [False, False]
+    assert torch.equal(out.flow, pred) and not bool(out.mask.any()) and not bool(out.weight.any())
+    assert all(bool((v == 0).all()) for v in out.odometry.values())
+    # a NaN predicted pixel inside the mask is still replaced by the model (the gate's model_used):
+    # that sample changes there, and only there, so it is refined
+    bad = pred.clone()
+    bad[0, :, 40, 10] = float("nan")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = FreespaceRefiner(mode=mode, gate=_KeepsAll())(bad, mask, cam, motion, images=(image, image))
+    messages = [str(w.message) for w in caught]
+    assert any(m.startswith("mask: samples [1] left unchanged") for m in messages)
+    assert any("1 non-finite predicted pixels inside the mask" in m and "1 replaced" in m for m in messages)
+    assert out.refined.tolist() == [True, False]
+    changed = (out.flow != pred).any(1)
+    assert changed.nonzero().tolist() == [[0, 40, 10]] and bool(out.mask[0, 0, 40, 10])
+    torch.testing.assert_close(out.flow[0, :, 40, 10], gt[0, :, 40, 10].float(), rtol=0, atol=1e-4)
+
+
 def test_a_bfloat16_prediction_is_the_float32_result_rounded():
     """Confidence fusion blends in float32: a bfloat16 prediction comes back as the float32
     prediction's result rounded to bfloat16 (and the weight likewise)."""
@@ -763,6 +803,12 @@ def test_cauchy_weight_and_resize_mask_check_their_arguments():
             cauchy_weight(bad, 2.0)
     for scale, error in [(0.0, ValueError), (float("nan"), ValueError), ("2", TypeError), (None, TypeError)]:
         with pytest.raises(error, match="scale: expected"):
+            cauchy_weight(r2, scale)
+    # a tensor scale (elementwise): its values too (once 0 gave a NaN weight, -2 weights from a
+    # negative scale)
+    torch.testing.assert_close(cauchy_weight(r2, torch.tensor([1.0, 2.0])), torch.tensor([1.0, 0.5]))
+    for scale in (torch.tensor(0.0), torch.tensor(-2.0), torch.tensor(float("nan")), torch.tensor([1.0, float("inf")])):
+        with pytest.raises(ValueError, match=r"^scale: expected finite values > 0, got \["):
             cauchy_weight(r2, scale)
     mask = torch.ones(1, 1, 4, 6, dtype=torch.bool)
     assert resize_mask(mask, (2, 3)).shape == (1, 1, 2, 3)

@@ -51,8 +51,8 @@ def test_census_ring_distance_against_a_loop(threshold):
 def test_census_ring_compares_image_2_in_its_own_dtype():
     """A float16 image 2 beside a float32 image 1: image 2's differences are compared with the
     threshold in float16 (the threshold rounded as they are), as the ternary census of image 2
-    alone would: the reference samples image 2 on the same corner-aligned grid and orders its
-    ring by sign and threshold in its dtype."""
+    alone would: the reference samples image 2 on the same corner-aligned grid (in float32, its
+    values rounded to float16) and orders its ring by sign and threshold in its dtype."""
     # (image 2 dim, 0 to 4 grey levels: its float16 differences fall on the threshold's own value)
     g1, g2 = _texture(seed=1), (_texture(seed=2) / 64).half()
     g = torch.Generator().manual_seed(4)
@@ -65,10 +65,10 @@ def test_census_ring_compares_image_2_in_its_own_dtype():
     v1 = g1[0, 0][(y.long() + dy.unsqueeze(-1)), (x.long() + dx.unsqueeze(-1))]  # (17, N)
     d1 = v1[1:] - v1[:1]
     sx, sy = 2.0 / (192 - 1), 2.0 / (96 - 1)
-    centre = torch.stack([(x + flow[:, 0]) * sx - 1.0, (y + flow[:, 1]) * sy - 1.0], dim=-1).half()
-    ring = torch.stack([dx * sx, dy * sy], dim=-1).half().unsqueeze(1)
-    v2 = F.grid_sample(g2, (centre.unsqueeze(1) + ring).reshape(1, 1, -1, 2), mode="bilinear",
-                       padding_mode="border", align_corners=True).reshape(17, -1)
+    centre = torch.stack([(x + flow[:, 0]) * sx - 1.0, (y + flow[:, 1]) * sy - 1.0], dim=-1)
+    ring = torch.stack([dx * sx, dy * sy], dim=-1).float().unsqueeze(1)
+    v2 = F.grid_sample(g2.float(), (centre.unsqueeze(1) + ring).reshape(1, 1, -1, 2), mode="bilinear",
+                       padding_mode="border", align_corners=True).reshape(17, -1).half()
     d2 = v2[1:] - v2[:1]
     t2 = torch.where(d2.abs() > threshold, torch.sign(d2), 0.0)
     clear = d1.abs() > threshold
@@ -78,6 +78,22 @@ def test_census_ring_compares_image_2_in_its_own_dtype():
     # (the case is one where the dtype matters: compared in float32 some points would differ)
     t32 = torch.where(d2.float().abs() > threshold, torch.sign(d2.float()), 0.0)
     assert not torch.equal(((torch.sign(d1) != t32) & clear).sum(0).float() / clear.sum(0).clamp_min(1), want)
+
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
+def test_census_ring_samples_a_half_precision_image_2_at_float32_positions(dtype):
+    """Image 2 the same as image 1 (whole grey levels, exact in half precision) and zero flow: the
+    distance is 0 at every point, also across a KITTI-wide image, where a normalised position in
+    half precision is off by up to half a pixel."""
+    H, W = 32, 1242
+    g = torch.Generator().manual_seed(0)
+    img = F.interpolate(torch.rand(1, 1, H // 2, W // 2, generator=g) * 255, size=(H, W), mode="bicubic",
+                        align_corners=False).clamp(0, 255).round()
+    ys, xs = torch.meshgrid(torch.arange(4, H - 4), torch.arange(4, W - 4), indexing="ij")
+    x, y = xs.reshape(1, -1).float(), ys.reshape(1, -1).float()
+    dist, n, ok = census_ring_distance(img, img.to(dtype), x, y, torch.zeros(1, 2, x.shape[1]))
+    assert bool(ok.all()) and int((n >= 4).sum()) > 0.9 * x.shape[1]
+    assert float(dist.float().abs().max()) == 0.0
 
 
 def test_census_ring_reads_image_1_at_whole_pixels():
@@ -307,6 +323,97 @@ def test_a_small_object_keeps_its_flow_in_a_mask_over_part_of_a_batch():
     alone = ImageGate(grid=(2, 4))(g1, g2, prediction, true.clone(), mask[:1])
     assert torch.equal(out.use_model[:1], alone.use_model)
     assert bool(out.use_model[1, :, 5:45, 100:190].float().mean() > 0.9)
+
+def _cells_without_the_model(out, grid):
+    """(B, rows, columns) bool: the cells where the model is used at no pixel."""
+    B, _, H, W = out.use_model.shape
+    rows, cols = grid
+    ch, cw = -(-H // rows), -(-W // cols)
+    used = F.pad(out.use_model.to(torch.uint8), (0, cols * cw - W, 0, rows * ch - H))
+    return used.reshape(B, rows, ch, cols, cw).amax(dim=(2, 4)) == 0
+
+
+def test_an_object_region_does_not_overrule_the_evidence_of_its_parts():
+    """One connected region where the flows differ by 1.5 px over the whole mask: left of column
+    100 the model is wrong (the prediction exact), right of it the prediction is wrong. The
+    prediction wins on the region's average, yet the cells on the right, whose own points favour
+    the model by far, use the model (once the region kept the prediction everywhere); on the left
+    the prediction is kept; cells_kept counts the cells without a pixel of the model."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 12:84, 12:180] = True  # cells 1 to 6 of 8 rows, 1 to 14 of 16 columns, whole
+    prediction, model = true.clone(), true.clone()
+    model[:, 0, :, :100] += 1.5
+    prediction[:, 0, :, 100:] += 1.5
+    columns = torch.arange(192)
+    right, left = mask & (columns >= 108), mask & (columns < 96)
+    out = ImageGate()(g1, g2, prediction, model, mask)
+    assert bool(out.model_used.all()) and int(out.cells) == 6 * 14
+    assert bool(out.use_model[right].all())
+    assert not bool(out.use_model[left].any())
+    kept = _cells_without_the_model(out, (8, 16))[:, 1:7, 1:15]
+    assert int(out.cells_kept) == int(kept.sum()) >= 6 * 7  # (the 7 columns of cells left of column 96)
+
+
+def test_the_cells_kept_count_the_cells_an_object_region_keeps_whole():
+    """Image 2 noisy and few points: the model, 0.6 px wrong on the left half, is not shown worse
+    in most of the left cells alone, but the left half, an object region, keeps the prediction
+    as a whole. The cells it keeps whole are counted in cells_kept (once only the cells' own
+    decisions were, and cells_kept said 3 while the model was used in none of the 16 left cells)."""
+    g1, g2, true = _pair()
+    g2 = g2 + 15 * torch.randn(g2.shape, generator=torch.Generator().manual_seed(1))
+    mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
+    prediction, model = true.clone(), true.clone()
+    model[:, 0, :, :96] += 0.6
+    prediction[:, 0, :, 96:] += 0.45  # (below object_px: the left half is a region of its own)
+    left = mask & (torch.arange(192) < 96)
+    options = dict(grid=(4, 8), object_px=0.5, points=500)
+    cells = ImageGate(objects=False, **options)(g1, g2, prediction, model, mask)
+    out = ImageGate(**options)(g1, g2, prediction, model, mask)
+    assert bool(out.model_used.all()) and float(cells.use_model[left].float().mean()) > 0.5
+    assert not bool(out.use_model[left].any())
+    without = int(_cells_without_the_model(out, (4, 8)).sum())
+    # every cell with enough points and no pixel of the model; (32 - cells) cells have too few
+    assert without - (32 - int(out.cells)) <= int(out.cells_kept) <= without
+    assert int(out.cells_kept) >= int(cells.cells_kept) + 10
+
+
+def test_a_prediction_that_cannot_be_judged_loses_to_a_model_that_explains_the_images():
+    """A prediction that is NaN, or whose end points leave image 2, where the model explains the
+    images: the model wins there (the points counted only where both flows could be judged:
+    none, so the images were not informative and the sample kept its prediction)."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:-8] = True
+    plain = ImageGate()(g1, g2, true, true.clone(), mask)
+    for bad in (torch.full_like(true, float("nan")), true + torch.tensor([5000.0, 0.0]).reshape(1, 2, 1, 1),
+                true - torch.tensor([0.0, 200.0]).reshape(1, 2, 1, 1)):
+        prediction = torch.where(mask, bad, true)
+        out = ImageGate()(g1, g2, prediction, true.clone(), mask)
+        assert int(out.points) == int(plain.points) > 0
+        assert float(out.cost_model) == 0.0 and float(out.cost_prediction) == pytest.approx(0.35)
+        assert bool(out.informative.all()) and bool(out.confirmed.all()) and bool(out.model_used.all())
+        assert bool(out.use_model[mask].all()) and int(out.cells_kept) == 0
+    # half of the mask lost, the other half judged by both flows (both exact there): the model
+    half = torch.where(mask & (torch.arange(192) < 96), float("nan"), true)
+    out = ImageGate()(g1, g2, half, true.clone(), mask)
+    assert 0.15 < float(out.cost_prediction) < 0.2 and float(out.cost_model) == 0.0
+    assert bool(out.use_model[mask].all())
+
+
+def test_a_right_prediction_leaving_the_frame_is_not_overruled_by_a_wrong_model_inside():
+    """Near the border a right flow leaves image 2 while a wrong model stays inside and explains
+    nothing there: the unjudgeable prediction counts as just explaining its points (the
+    occlusion threshold), so the wrong model does not win them."""
+    g1, g2, true = _pair(shift=24)
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 192 - 24:-1] = True  # every true end point leaves image 2
+    model = torch.zeros_like(true)  # wrong by 24 px, inside the image
+    out = ImageGate()(g1, g2, true, model, mask)
+    assert int(out.points) > 0 and float(out.cost_model) > 0.35
+    assert float(out.cost_prediction) == pytest.approx(0.35)
+    assert not bool(out.use_model.any())
+
 
 def test_the_gate_leaves_its_inputs_alone():
     g1, g2, true = _pair()

@@ -136,6 +136,23 @@ def test_a_net_with_only_a_coarse_flow_is_named(road, pad, given):
         FreespaceRefined(QuarterNet(), road=road, pad=pad)(s["image1"], s["image2"], camera=s["camera"], mask=mask)
 
 
+@pytest.mark.parametrize("mask_batch", [1, 2])
+def test_a_net_that_returns_another_batch_is_named(mask_batch):
+    """A net that returns batch 1 for a batch of 2: the error names the net's output and quotes
+    both batches (once it blamed the caller's images[0] or mask)."""
+    s = scene((48, 96))
+    image1, image2 = s["image1"].expand(2, -1, -1, -1), s["image2"].expand(2, -1, -1, -1)
+
+    class OneFlowNet(nn.Module):
+        def forward(self, a, b):
+            return [torch.zeros(1, 2, *a.shape[-2:])]
+
+    mask = s["road"].expand(mask_batch, -1, -1, -1)
+    with pytest.raises(ValueError, match=r"^net: its finest flow has batch 1 \(shape \(1, 2, 48, 96\)\), the input "
+                                         r"images batch 2"):
+        FreespaceRefined(OneFlowNet())(image1, image2, camera=s["camera"], mask=mask, odometry=s["odometry"])
+
+
 # -- the images' range, before the net runs ------------------------------------------------------------------
 
 @pytest.mark.parametrize("image_range, scale, message", [

@@ -34,9 +34,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_number,
+from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask,
                       check_image_range, check_shape, check_size, result_dtype, skip_values, tracing)
 from ..estimation.combine import select_samples, where_motion
+from ..estimation.robust import check_scale
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
@@ -81,8 +82,8 @@ class RefineOutput(NamedTuple):
             replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
             ∩ model defined, for refined samples).
-        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit, a model
-            the images give no evidence for: see ``gate``).
+        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit, a model the
+            images give no evidence for, a gate that keeps the prediction everywhere: see ``gate``).
         camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
         flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
         model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
@@ -111,11 +112,11 @@ def cauchy_weight(residual_sq: Tensor, scale: float) -> Tensor:
 
     This is ρ'(r) / r for ρ(r) = c²/2 · log(1 + r²/c²): 1 at agreement, 1/2 at r = c, → 0 for
     large disagreement. Written on r² so the gradient is finite at r = 0. Elementwise: a NaN
-    residual gives a NaN weight, as ``torch`` functions do.
+    residual gives a NaN weight, as ``torch`` functions do. ``scale`` is a finite number > 0 (px),
+    or a tensor of them broadcast against the residuals (its values are not read while tracing).
     """
     check_float_tensor(residual_sq, "residual_sq")
-    if not isinstance(scale, Tensor):  # (a tensor scale is elementwise, like the residuals)
-        check_number(scale, "scale", positive=True)
+    check_scale(scale)  # (a tensor scale is elementwise, like the residuals)
     return 1.0 / (1.0 + residual_sq / (scale * scale))
 
 
@@ -526,10 +527,15 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                 warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask, left out of the "
                               f"estimation; {n_replaced} replaced by the model flow{left}", RuntimeWarning,
                               stacklevel=3)
+    if gate_result is not None:
+        # a sample where the gate keeps the prediction everywhere (no NaN replaced) comes back unchanged
+        refined = refined & fuse_mask.flatten(1).any(1)
+        region = region & refined.reshape(B, 1, 1, 1)
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, or images without "
-                      f"evidence for the model: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, images without evidence "
+                      f"for the model, or a gate that keeps the prediction everywhere: see RefineOutput.refined and "
+                      f".gate)", RuntimeWarning, stacklevel=3)
 
     masks: dict[tuple[int, int], Tensor] = {(H, W): gated}
     regions: dict[tuple[int, int], Tensor] = {(H, W): region}

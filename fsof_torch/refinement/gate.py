@@ -13,18 +13,28 @@ errors of the difference (the model is the physically constrained estimate; the 
 to be clearly better) and the prediction explains the cell itself (its mean distance at most
 ``occlusion``: where neither flow does, the road is occluded in image 2 or the content is new,
 and the model's geometry is the better guess); so does every cell of a sample where that holds
-over the whole mask. Cells with too few points follow their sample's decision. Over a sample's
+over the whole mask. Cells with too few points follow their sample's decision. A prediction that
+is not finite at a point, or whose end point leaves image 2, cannot be judged there: where the
+model can be judged the point counts, the prediction's distance taken as ``occlusion`` (a flow
+that just explains the point), so the model wins it only where it explains it. Over a sample's
 whole mask the standard error is the larger of the points' own and one from the sums of 16 x 16
 pixel blocks of points (neighbouring points' rings overlap and image content is correlated: they
 are not independent evidence); the cells and object regions take their points' own, which errs
-toward keeping the prediction.
+toward keeping the prediction (a region's part inside a cell too: its test can only hand the
+part back to the cell's decision).
+
+The object test (``objects``) judges the connected regions of the mask where the two flows
+differ by more than ``object_px`` (2 and 4 times that too) on their own: a region where the
+prediction explains the images significantly better keeps it, except in its part inside a cell
+whose own points significantly favour the model (a region's average does not overrule its parts).
 
 A sample is *confirmed* when over its whole mask the model explains the images better than the
 prediction by more than ``z`` standard errors, and *informative* when at least one of the two
-flows explains them (its mean distance at most ``occlusion``). With ``require_evidence`` (the
-default) a sample whose images are not informative and do not confirm the model keeps its
-prediction everywhere: on dark, noisy or textureless frames the census is noise for any flow,
-and replacing the prediction would rest on the model alone.
+flows explains them (its mean distance at most ``occlusion``; where the prediction cannot be
+judged anywhere, the model alone decides). With
+``require_evidence`` (the default) a sample whose images are not informative and do not confirm
+the model keeps its prediction everywhere: on dark, noisy or textureless frames the census is
+noise for any flow, and replacing the prediction would rest on the model alone.
 
 Images are (B, C, H, W) on 0..255 (grey or RGB); flows (B, 2, H, W) in pixels; masks (B, 1, H, W)
 bool. Not differentiable (a decision). Host reads: the mask's pixels (one ``nonzero``) and, with
@@ -65,10 +75,12 @@ class GateResult(NamedTuple):
         use_model: (B, 1, H, W) bool, mask pixels where the model flow is used.
         evidence: (B, 1, H, W) float in [0, 1], the image evidence for the model over the
             prediction per cell (0.5: no preference), for confidence fusion; 0 outside the mask.
-        cost_model, cost_prediction: (B,) mean census distances over the points that count.
-        points: (B,) the number of points that count.
+        cost_model, cost_prediction: (B,) mean census distances over the points that count
+            (the prediction's ``occlusion`` where it is not finite or leaves image 2).
+        points: (B,) the number of points that count: textured points the model can be judged
+            at, where the prediction can be judged too or is lost (not finite, or leaving image 2).
         cells, cells_kept: (B,) cells of the (coarse) grid with enough points, and of those the
-            cells that keep the prediction.
+            cells where the model is used at none of their pixels (after the object test).
         model_used: (B,) bool, False where the model is worse over the whole mask, or (with
             ``require_evidence``) where the images neither inform nor confirm.
         confirmed: (B,) bool, the model explains the images significantly better than the
@@ -107,6 +119,8 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
     carries no evidence either way, so it does not count. Returns the distance (B, N), the number
     of neighbours that count (B, N) and flags of points whose samples lie in both images and are
     finite there, at a finite flow (B, N): a point flagged False is no evidence either way.
+    Image 2 is interpolated at float32 positions at least (in half precision a position across a
+    wide image would be off by up to half a pixel), its values rounded to its dtype.
     """
     dims = check_shape(check_float_tensor(grey1, "grey1"), "grey1", ("B", 1, "H", "W"))
     check_shape(check_float_tensor(grey2, "grey2"), "grey2", ("B", 1, "H", "W"), dims)
@@ -155,15 +169,20 @@ def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequ
     n = clear.sum(1)
     in1 = inside(x1, y1) & _finite_along(v1.reshape(B, R + 1, N), 1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
+    # (the positions and the interpolation in float32 at least: in half precision a normalised
+    # coordinate is off by up to half a pixel across a KITTI-wide image; the values are then
+    # rounded to image 2's dtype)
+    sample = torch.promote_types(grey2.dtype, torch.float32)
+    g2 = grey2.to(sample)
     sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
-    ring = torch.stack([dx * sx, dy * sy], dim=-1).to(grey2.dtype).unsqueeze(1)  # (17, 1, 2)
+    ring = torch.stack([dx * sx, dy * sy], dim=-1).to(sample).unsqueeze(1)  # (17, 1, 2)
     out = []
     for flow in flows:
         x2, y2 = x + flow[:, 0], y + flow[:, 1]
-        centre2 = torch.stack([x2 * sx - 1.0, y2 * sy - 1.0], dim=-1).to(grey2.dtype)
+        centre2 = torch.stack([x2.to(sample) * sx - 1.0, y2.to(sample) * sy - 1.0], dim=-1)
         at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
-        v2 = F.grid_sample(grey2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
-                           align_corners=True).reshape(B, R + 1, N)
+        v2 = F.grid_sample(g2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
+                           align_corners=True).reshape(B, R + 1, N).to(grey2.dtype)
         # (in image 2's dtype, as its own differences are compared with the threshold: ±1 and 0
         # are exact in any dtype, and so is the product)
         d2 = v2[:, 1:] - v2[:, :1]
@@ -218,7 +237,8 @@ class ImageGate:
         objects: also test the connected regions where the flows differ by more than
             ``object_px`` (pixels, > 0 and at most 1e6), 2 or 4 times that (objects smaller than a
             cell, such as a car inside the mask); a region keeps the prediction on
-            ``min_points_fine`` points or more.
+            ``min_points_fine`` points or more, except in its part inside a cell whose own points
+            there (``min_points`` or more) favour the model by ``z`` standard errors.
         points: mask pixels per sample that are judged (an even subsample).
         min_points: a cell with fewer points follows its sample's decision.
         margin, z: the model may be worse than the prediction by ``margin`` census distance plus
@@ -296,10 +316,20 @@ class ImageGate:
 
         fp, fm = at(prediction), at(model)
         finite = torch.isfinite(fp).all(1)
+        # a prediction that is not finite, or whose end point leaves image 2, cannot be judged
+        # there: where the model can be judged, the prediction's distance is taken as the
+        # occlusion threshold (a flow that just explains the point): the model wins the point
+        # where it explains it (a wrong prediction far off the image, or NaN), not where a right
+        # prediction leaves the frame near its border and a wrong model stays inside
+        x2, y2 = x + fp[:, 0], y + fp[:, 1]
+        lost = ~((x2 >= 0) & (x2 <= W - 1) & (y2 >= 0) & (y2 <= H - 1))  # (also where not finite)
         fp = torch.where(finite.unsqueeze(1), fp, fm)
         (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = _census_ring(g1, g2, x, y, (fp, fm), self.contrast)
-        # points that count: real, textured, judged by both flows
-        count = pts.sel & ok_pred & ok_model & finite & (n_clear >= self.min_neighbours)
+        d_pred = torch.where(lost, self.occlusion, d_pred)
+        # points that count: real, textured, judged by the model and judged by the prediction or
+        # lost by it
+        judged = pts.sel & ok_model & ((ok_pred & finite) | lost)
+        count = judged & (n_clear >= self.min_neighbours)
         w = count.to(work)
         delta = d_model - d_pred  # > 0: the prediction explains the point better
         n_all = w.sum(1)
@@ -320,28 +350,42 @@ class ImageGate:
         informative = (n_all > 0) & (torch.minimum(cost_model, cost_pred) <= self.occlusion)
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
-        cell_model, evidence, enough, kept = self._cells(x, y, delta, d_pred, w, model_used, (H, W))
+        (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
+        cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
+        cell_model, evidence, enough, kept = self._cells(cell, delta, d_pred, w, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
-        if self.objects:
-            use_model = use_model & ~self._objects(prediction, model, mask, pts, delta, d_pred, w)
+        kept = (enough & kept).sum(1)
+        objects = self._objects(prediction, model, mask, pts, cell, delta, d_pred, w) if self.objects else None
+        if objects is not None:
+            use_model = use_model & ~objects
+            # the cells that keep the prediction, counted again: an object region may keep it in
+            # the whole of a cell that uses the model by its own test (a cell with enough points
+            # holds mask pixels)
+            pad = (0, cols * cw - W, 0, rows * ch - H)
+            used = F.pad(use_model.view(torch.uint8), pad).reshape(B, rows, ch, cols, cw).amax(dim=(2, 4))
+            kept = (enough & (used.reshape(B, -1) == 0)).sum(1)
         evidence_map = torch.where(mask, evidence, 0.0)
-        textured = n_all / (pts.sel & ok_pred & ok_model & finite).sum(1).clamp_min(1)
-        return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough, kept, model_used,
+        textured = n_all / judged.sum(1).clamp_min(1)
+        return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough.sum(1), kept, model_used,
                           confirmed, informative, textured)
 
-    def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pts: MaskPoints, delta: Tensor,
-                 d_pred: Tensor, w: Tensor) -> Tensor:
+    def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pts: MaskPoints, cell: Tensor,
+                 delta: Tensor, d_pred: Tensor, w: Tensor) -> Tensor | None:
         """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
         than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
         significantly better (a car inside the mask, whatever its shape and however it meets the
-        cells)."""
+        cells), less each region's part in a cell (``cell`` (B, N), each point's) whose own points,
+        ``min_points`` or more, significantly favour the model: a region's average does not
+        overrule its parts' evidence. None where no region keeps the prediction."""
         import cv2
         import numpy as np
 
         B, _, H, W = prediction.shape
-        kept = np.zeros((B, H, W), dtype=bool)
+        (grid_rows, grid_cols), C = self.grid, self.grid[0] * self.grid[1]
+        ch, cw = math.ceil(H / grid_rows), math.ceil(W / grid_cols)
         if pts.every.numel() == 0:
-            return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
+            return None
+        kept, box_cell = None, None
 
         # the flows' squared difference at the mask's pixels, 0 elsewhere, over the mask's bounding
         # box (the batch's: its first and last rows and columns, one host read): the regions lie
@@ -380,19 +424,37 @@ class ImageGate:
             keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
                     & (per_region(d_pred * w) / n.clamp_min(1) <= self.occlusion))
             keep[:, 0] = False
-            keep = keep.to("cpu").numpy()
-            if keep.any():
-                kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep[b][labels[b]] for b in range(B)])
-        return torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
+            if not bool(keep.any()):
+                continue
+            # each region's part in each cell: where its own points favour the model by z
+            # standard errors (no margin: the images decide, as for confirmed), the cell's
+            # decision stands there
+            piece = at * C + cell
 
-    def _cells(self, x: Tensor, y: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
+            def per_piece(v: Tensor) -> Tensor:
+                return _sum_by(piece, v, L * C)
+
+            n_p = per_piece(w)
+            diff_p = per_piece(delta * w) / n_p.clamp_min(1)
+            var_p = (per_piece(delta.square() * w) / n_p.clamp_min(1) - diff_p.square()).clamp_min(0)
+            favours = (n_p >= self.min_points) & (-diff_p > self.z * (var_p / n_p.clamp_min(1)).sqrt())
+            keep_p = (keep.unsqueeze(2) & ~favours.reshape(B, L, C)).to("cpu").numpy()
+            if kept is None:
+                kept = np.zeros((B, H, W), dtype=bool)
+                # each box pixel's cell
+                box_cell = (np.arange(top, bottom + 1)[:, None] // ch) * grid_cols \
+                    + np.arange(left, right + 1)[None, :] // cw
+            kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep_p[b][labels[b], box_cell] for b in range(B)])
+        return None if kept is None else torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
+
+    def _cells(self, cell: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-        """The decision on one grid of cells: where the model is used (B, 1, H, W) bool, the
-        evidence for it (B, 1, H, W; 0 in a sample whose model is not used), the cells with enough
-        points and the cells that keep the prediction (B,) each."""
+        """The decision on one grid of cells (``cell`` (B, N), each point's): where the model is
+        used (B, 1, H, W) bool, the evidence for it (B, 1, H, W; 0 in a sample whose model is not
+        used), and per cell (B, rows * columns) bool whether it has enough points and whether it
+        keeps the prediction."""
         (H, W), (rows, cols), B, min_points = size, self.grid, delta.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
-        cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
 
         def per_cell(v: Tensor) -> Tensor:
             return _sum_by(cell, v, rows * cols)
@@ -412,7 +474,7 @@ class ImageGate:
             m = c.reshape(B, 1, rows, 1, cols, 1).expand(B, 1, rows, ch, cols, cw).reshape(B, 1, rows * ch, cols * cw)
             return m[..., :H, :W]
 
-        return to_pixels(cell_model), to_pixels(evidence), enough.sum(1), (enough & ~cell_model).sum(1)
+        return to_pixels(cell_model), to_pixels(evidence), enough, ~cell_model.reshape(B, -1)
 
     def __repr__(self) -> str:
         return (f"ImageGate(grid={self.grid}, objects={self.objects}, points={self.points}, margin={self.margin}, "

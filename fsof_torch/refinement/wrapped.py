@@ -30,8 +30,9 @@ class FreespaceRefined(nn.Module):
             :mod:`fsof_torch.refinement.contracts`): ``net(image1, image2, **kw)`` (RAFT,
             torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
             dict. It may return any structure :func:`refine_flow` accepts whose finest flow has the
-            (padded) input's size: a net that returns only a coarser flow (PWC-Net's 1/4) raises a
-            ValueError after it ran; upsample its flow to the input's size first.
+            (padded) input's size and batch: a net that returns only a coarser flow (PWC-Net's 1/4),
+            or another batch than the images', raises a ValueError naming ``net`` after it ran;
+            upsample its flow to the input's size first.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
         road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two
             images, as ``refine_flow(flow, "auto", ...)`` finds it with the refiner's options: its
@@ -156,6 +157,9 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"flow: no flow found in the {type(output).__name__}; expected a value under "
                              f"one of the keys {flow_keys} (set flow_keys)")
         finest = finest_flow(flows)[1]
+        if finest.shape[0] != B:  # (before the refiner, which would blame the caller's mask or images)
+            raise ValueError(f"net: its finest flow has batch {finest.shape[0]} (shape {tuple(finest.shape)}), the "
+                             f"input images batch {B}: the wrapper needs one flow per image pair")
         if tuple(finest.shape[-2:]) != padded_size:
             given = f"{size[0]} x {size[1]}" + ("" if padded_size == size else
                                                f" (padded to {padded_size[0]} x {padded_size[1]})")
