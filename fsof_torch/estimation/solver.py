@@ -258,21 +258,13 @@ def _raise_bad_value(name: str, values: dict[str, Tensor]) -> None:
     def some(x: Tensor, bad: Tensor) -> list:
         return x[bad].flatten()[:3].tolist()
 
-    if name == "params":
-        x = values["params"]
-        raise ValueError(f"params: expected finite start values, got {some(x, ~torch.isfinite(x))}")
-    if name == "prior_mean":
-        x = values["prior_mean"]
-        raise ValueError(f"prior_mean: expected finite values, got {some(x, ~torch.isfinite(x))}")
-    if name == "prior_precision":
-        x = values["prior_precision"]
-        raise ValueError(f"prior_precision: expected finite values >= 0, got {some(x, ~(torch.isfinite(x) & (x >= 0)))}")
-    if name == "lower":
-        x = values["lower"]
-        raise ValueError(f"lower: expected values below +inf (not NaN), got {some(x, ~(x < math.inf))}")
-    if name == "upper":
-        x = values["upper"]
-        raise ValueError(f"upper: expected values above -inf (not NaN), got {some(x, ~(x > -math.inf))}")
+    expected = {"params": ("finite start values", torch.isfinite), "prior_mean": ("finite values", torch.isfinite),
+                "prior_precision": ("finite values >= 0", lambda x: torch.isfinite(x) & (x >= 0)),
+                "lower": ("values below +inf (not NaN)", lambda x: x < math.inf),
+                "upper": ("values above -inf (not NaN)", lambda x: x > -math.inf)}
+    if name in expected:
+        what, good = expected[name]
+        raise ValueError(f"{name}: expected {what}, got {some(values[name], ~good(values[name]))}")
     lo, hi = values["lower"], values["upper"]
     raise ValueError(f"lower, upper: expected lower <= upper, got lower {some(lo, lo > hi)} "
                      f"above upper {some(hi, lo > hi)}")
