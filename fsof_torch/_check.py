@@ -12,6 +12,7 @@ skip them too, so shape inference runs through the library).
 from __future__ import annotations
 
 import contextlib
+import copy
 import dataclasses
 import functools
 import math
@@ -54,6 +55,7 @@ __all__ = [
     "as_chw_flow",
     "inference",
     "ordinary",
+    "same_mapping",
 ]
 
 
@@ -173,16 +175,32 @@ def check_size(size: object, name: str = "size") -> tuple[int, int]:
     return out[0], out[1]
 
 
+def _float(x: numbers.Real, name: str) -> float:
+    """``float(x)``; a number beyond float's range (``10**400``, where float raises OverflowError)
+    is a ValueError naming ``name``."""
+    try:
+        return float(x)
+    except OverflowError:
+        raise ValueError(f"{name}: expected a finite number, got {_quote(x)}") from None
+
+
+def _quote(x: object) -> str:
+    """``repr(x)``, shortened where it is long (an int of 400 digits)."""
+    r = repr(x)
+    return r if len(r) <= 60 else f"{r[:20]}...{r[-8:]} ({len(r)} characters)"
+
+
 def check_number(x: object, name: str, *, positive: bool = False, nonnegative: bool = False,
                  finite: bool = True) -> float:
-    """A Python real (not a bool; a 0-d tensor is read) checked for finiteness and sign -> float."""
+    """A Python real (not a bool; a 0-d tensor is read) checked for finiteness and sign -> float.
+    A number beyond float's range is a ValueError, also with ``finite=False``."""
     if isinstance(x, Tensor) and x.dim() == 0 and x.dtype != torch.bool:
         if skip_values(x):
             raise ValueError(f"{name}: expected a Python number, got a tensor on the meta device")
         x = x.item()
     if isinstance(x, bool) or not isinstance(x, numbers.Real):
         raise TypeError(f"{name}: expected a number, got {type(x).__name__} {x!r}")
-    value = float(x)
+    value = _float(x, name)
     if finite and not math.isfinite(value):
         raise ValueError(f"{name}: expected a finite number, got {x!r}")
     if positive and not value > 0:
@@ -282,7 +300,7 @@ def check_data_range(data_range: object, name: str = "data_range") -> float:
     if isinstance(data_range, Tensor) and data_range.dim() == 0 and not skip_values(data_range):
         data_range = data_range.item()
     if (isinstance(data_range, bool) or not isinstance(data_range, numbers.Real)
-            or not (math.isfinite(float(data_range)) and float(data_range) > 0)):
+            or not (math.isfinite(_float(data_range, name)) and float(data_range) > 0)):
         raise (ValueError if isinstance(data_range, numbers.Real) else TypeError)(
             f"{name}: expected a positive finite number (the images' maximum: 1.0 for 0-1 images, "
             f"255.0 for 0-255 images), got {data_range!r}")
@@ -332,7 +350,7 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
                                  f"computation's device); give it on {device}")
             x = x.to(dtype=dtype or x.dtype, device=device or x.device)
     elif isinstance(x, numbers.Real) and not isinstance(x, bool):
-        x = torch.tensor([float(x)], dtype=dtype or torch.get_default_dtype(), device=device)
+        x = torch.tensor([_float(x, name)], dtype=dtype or torch.get_default_dtype(), device=device)
     else:
         raise TypeError(f"{name}: expected a float, or a tensor of shape (B,), got {type(x).__name__}")
     if finite:
@@ -406,10 +424,16 @@ def autocast_off(x: Tensor) -> ContextManager:
 
 
 def as_chw_flow(flow: object, name: str) -> Tensor:
-    """A flow as a (2, H, W) float tensor (from a tensor or array of that shape)."""
+    """A flow as a (2, H, W) float tensor (from a tensor or array of that shape; an array with
+    negative strides, such as ``a[::-1]``, or in a non-native byte order is copied, values kept)."""
     import numpy as np
 
     if isinstance(flow, np.ndarray):
+        # (torch.from_numpy takes neither negative strides nor a non-native byte order)
+        if any(stride < 0 for stride in flow.strides):
+            flow = np.ascontiguousarray(flow)
+        if not flow.dtype.isnative:
+            flow = flow.astype(flow.dtype.newbyteorder("="))
         flow = torch.from_numpy(flow)
     if not isinstance(flow, Tensor):
         raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
@@ -445,29 +469,59 @@ def check_image_pair(image1: object, image2: object) -> dict[str, int]:
 _F = TypeVar("_F", bound=Callable[..., Any])
 
 
+def same_mapping(obj: Mapping, items: dict) -> Mapping:
+    """A new mapping of ``obj``'s type holding ``items``. A dict subclass is copied and refilled:
+    its constructor may take other arguments (``defaultdict(factory, items)``), and a copy keeps
+    its type and state; another Mapping is built from the items where its constructor takes them,
+    else a plain dict comes back."""
+    if isinstance(obj, dict):
+        try:
+            out = copy.copy(obj)  # (shallow: the values are the caller's objects until replaced)
+            out.clear()
+            out.update(items)
+            return out
+        except (TypeError, AttributeError, NotImplementedError):  # a subclass that refuses it
+            pass
+    try:
+        return type(obj)(items)
+    except TypeError:  # a Mapping type without a dict constructor
+        return items
+
+
 def ordinary(x: Any) -> Any:
     """``x`` with every inference tensor in it cloned into an ordinary one (outside inference
-    mode): a tensor, or the tensors held by dicts, lists, tuples (named ones too) and dataclass
-    instances, recursively. What holds no inference tensor stays itself (an input passed through,
+    mode): a tensor, or the tensors held by dicts (subclasses such as a ``defaultdict`` keep their
+    type and state), lists, tuples (named ones too) and dataclass instances (with ``slots=True``
+    too), recursively. What holds no inference tensor stays itself (an input passed through,
     a camera, which compares by identity); a container that holds one is rebuilt around the
     clones (the input is not changed)."""
     if isinstance(x, Tensor):
         return x.clone() if x.is_inference() else x
     if isinstance(x, dict):
         items = {k: ordinary(v) for k, v in x.items()}
-        return x if _same(x.values(), items.values()) else type(x)(items)
+        if _same(x.values(), items.values()):
+            return x
+        return same_mapping(x, items)
     if isinstance(x, (tuple, list)):
         items = [ordinary(v) for v in x]
         if _same(x, items):
             return x
         return type(x)(*items) if hasattr(x, "_fields") else type(x)(items)
-    if dataclasses.is_dataclass(x) and not isinstance(x, type) and hasattr(x, "__dict__"):
-        items = {k: ordinary(v) for k, v in x.__dict__.items()}
-        if _same(x.__dict__.values(), items.values()):
+    if dataclasses.is_dataclass(x) and not isinstance(x, type):
+        # (a dataclass with slots=True has no __dict__: its fields are read one by one)
+        before = (x.__dict__ if hasattr(x, "__dict__")
+                  else {f.name: getattr(x, f.name) for f in dataclasses.fields(x)})
+        items = {k: ordinary(v) for k, v in before.items()}
+        if _same(before.values(), items.values()):
             return x
-        # (not through __init__: its checks ran when the instance was made)
-        out = object.__new__(type(x))
-        out.__dict__.update(items)
+        # (not through __init__ or dataclasses.replace: its checks ran when the instance was made)
+        if hasattr(x, "__dict__"):
+            out = object.__new__(type(x))
+            out.__dict__.update(items)
+            return out
+        out = copy.copy(x)
+        for k, v in items.items():
+            object.__setattr__(out, k, v)  # (a frozen one too)
         return out
     return x
 

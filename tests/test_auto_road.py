@@ -609,6 +609,30 @@ def test_region_keeps_an_undecided_seed_as_road():
     assert not road[30:36, 26:34].any() and road[25:27, 20:40].all() and road[39, 20:40].all()
 
 
+def test_region_fills_undecided_holes_but_not_off_road_pieces():
+    """An enclosed piece smaller than ``max_hole``: undecided (a manhole without texture) it is
+    filled; with off-road evidence of at least a window's area (a distant car) it stays out."""
+    from fsof_torch.refinement.road_region import road_region
+
+    h, w = 94, 311
+    below = np.zeros((h, w), bool)
+    below[30:] = True
+    seed = np.zeros((h, w), bool)
+    seed[80:, 140:170] = True
+    ok = below.copy()
+    testable = below.copy()
+    car = np.zeros((h, w), bool)
+    car[50:56, 150:158] = True  # 48 px, enclosed by road evidence
+    hole = np.zeros((h, w), bool)
+    hole[50:56, 60:68] = True  # 48 px without any decision
+    max_hole = (h * w) // 500
+    assert car.sum() <= max_hole and car.sum() >= 5 * 5
+    road = road_region(below & ~car & ~hole, car, ok, testable & ~hole, below, seed, None, 5, max_hole)
+    assert not road[car].any()
+    assert road[hole].all()
+    assert road[below & ~car].all()
+
+
 def _edge_scene(h: int = 60, w: int = 120, edge: int = 70, seed_value: int = 0):
     """A textured road (left of column ``edge``) beside a dark, flat obstacle (right of it) under a
     bright sky (rows 0-9, above the horizon), as uint8 RGB; the seed is the road's bottom left."""
@@ -671,15 +695,28 @@ def test_follow_edges_keeps_what_it_cannot_judge():
 
 def test_detect_road_edges_option(scene_pair, scene_detection):
     """``edges=False``: the windows' boundary, blocks of the working resolution; the default moves
-    it onto the edges and matches the true road better on this pair (cars, kerbs)."""
+    it onto the edges: fewer pixels off the road on this pair (cars, kerbs), and a better mean IoU
+    over the benchmark's pairs of the default scene (benchmarks/auto_road.py: 0.814 against 0.725;
+    on this pair alone, since enclosed off-road pieces stay out, 0.839 against 0.880)."""
+    from fsof_torch.data.scene import render_pair
+
     p = scene_pair
     plain = detect_road(p["image1"][None], p["image2"][None], p["camera"], edges=False)
     m = plain.mask[0, 0, :-1]  # (375 rows: the last row copies its neighbour)
     blocks = m.reshape(187, 2, 621, 2)
     assert bool((blocks == blocks[:, :1, :, :1]).all())
     true = p["road"][None].bool()
-    assert iou(scene_detection.mask, true) > iou(plain.mask, true)
+    assert int((scene_detection.mask & ~true).sum()) < int((plain.mask & ~true).sum())
     assert plain.flag == scene_detection.flag == ["ok"]
+    ious = {True: [], False: []}
+    for index in (0, 10, 20):  # (and this pair, 30)
+        q = render_pair("default", index)
+        for edges in (True, False):
+            found = detect_road(q["image1"][None], q["image2"][None], q["camera"], edges=edges)
+            ious[edges].append(iou(found.mask, q["road"][None].bool()))
+    ious[True].append(iou(scene_detection.mask, true))
+    ious[False].append(iou(plain.mask, true))
+    assert sum(ious[True]) > sum(ious[False])
     # judged again with the motion it found, nothing is estimated and the same road comes out
     again = detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=plain.motion, edges=False)
     assert torch.equal(again.mask, plain.mask)

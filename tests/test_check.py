@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import collections
 import contextlib
+import dataclasses
 
+import numpy as np
 import pytest
 import torch
 
 from fsof_torch._check import (
     all_finite,
     as_batch_param,
+    as_chw_flow,
     autocast_off,
     check_bool,
     check_data_range,
@@ -308,6 +312,72 @@ def test_ordinary_clones_inference_tensors_in_containers_and_keeps_the_rest():
     assert ordinary(kept) is kept and ordinary(x)["box"].items is x["box"].items
     plain = {"a": [given, (given, 1)], "b": kept}
     assert ordinary(plain) is plain
+
+
+@dataclasses.dataclass(slots=True)
+class _Slotted:
+    t: torch.Tensor
+    n: int = 3
+
+
+@dataclasses.dataclass(frozen=True, slots=True)
+class _FrozenSlotted:
+    t: torch.Tensor
+
+
+def test_ordinary_keeps_dict_subclasses_and_reads_slotted_dataclasses():
+    """A defaultdict raised 'first argument must be callable or None' (its constructor takes the
+    factory first); a slots=True dataclass (no __dict__) came back with its inference tensor."""
+    from fsof_torch._check import ordinary
+
+    with torch.inference_mode():
+        made = torch.arange(3.0) * 2
+    d = collections.defaultdict(list, {"a": made, "b": 1})
+    out = ordinary(d)
+    assert type(out) is collections.defaultdict and out.default_factory is list and out is not d
+    assert not out["a"].is_inference() and torch.equal(out["a"], made) and out["b"] == 1
+    assert d["a"] is made  # (the input unchanged)
+    o = ordinary(collections.OrderedDict([("b", made), ("a", 2)]))
+    assert type(o) is collections.OrderedDict and list(o) == ["b", "a"] and not o["b"].is_inference()
+    for cls in (_Slotted, _FrozenSlotted):
+        x = cls(made)
+        y = ordinary(x)
+        assert type(y) is cls and y is not x and not y.t.is_inference() and torch.equal(y.t, made)
+        assert x.t is made
+    assert ordinary(_Slotted(made, 5)).n == 5
+    kept = _Slotted(torch.zeros(2))
+    assert ordinary(kept) is kept
+
+
+def test_numbers_beyond_float_range_are_named():
+    """float(10**400) raised an OverflowError naming nothing."""
+    big = 10 ** 400
+    short = r"10000000000000000000\.\.\.00000000 \(401 characters\)$"
+    for finite in (True, False):
+        with pytest.raises(ValueError, match=rf"^x: expected a finite number, got {short}"):
+            check_number(big, "x", finite=finite)
+    with pytest.raises(ValueError, match=r"^x: expected a finite number, got -1000000000000000000\.\.\.00000000 "
+                                         r"\(402 characters\)$"):
+        check_number(-big, "x", nonnegative=True)
+    with pytest.raises(ValueError, match=rf"^data_range: expected a finite number, got {short}"):
+        check_data_range(big)
+    with pytest.raises(ValueError, match=rf"^height: expected a finite number, got {short}"):
+        as_batch_param(big, "height")
+    assert check_number(10 ** 300, "x") == 1e300 and check_data_range(255) == 255.0
+
+
+def test_as_chw_flow_takes_flipped_and_big_endian_arrays():
+    """torch.from_numpy refuses negative strides and a non-native byte order: its unnamed
+    ValueError came out of the flow writers. The values are kept."""
+    hw2 = np.arange(40, dtype=np.float32).reshape(4, 5, 2)
+    flipped = hw2.transpose(2, 0, 1)[::-1]  # (2, H, W), v and u swapped: a negative stride
+    assert torch.equal(as_chw_flow(flipped, "flow"), torch.from_numpy(flipped.copy()))
+    big = hw2.transpose(2, 0, 1).astype(">f4")
+    out = as_chw_flow(big, "flow")
+    assert out.dtype == torch.float32 and torch.equal(out, torch.from_numpy(hw2.transpose(2, 0, 1).copy()))
+    native = np.zeros((2, 4, 5), np.float32)
+    as_chw_flow(native, "flow").add_(1)  # (a native array is still read without a copy)
+    assert native[0, 0, 0] == 1.0
 
 
 def test_inference_results_work_in_place_and_under_autograd():

@@ -6,6 +6,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from typing import NamedTuple
 
+import numpy as np
 import pytest
 import warnings
 
@@ -86,6 +87,15 @@ class TestStructures:
         with pytest.raises(TypeError, match=r"^flow: expected a flow tensor \(B, 2, H, W\), .* got str$"):
             collect_flows("flow")
 
+    def test_map_errors_name_the_place(self):
+        """Once an AttributeError ('int' object has no attribute 'items') from inside map_flows."""
+        with pytest.raises(TypeError, match=r"^output: expected a flow tensor \(B, 2, H, W\), .* got int$"):
+            map_flows(3, lambda f: f)
+        with pytest.raises(TypeError, match=r"^output: expected a flow tensor .* got str$"):
+            map_flows("abc", lambda f: f)
+        with pytest.raises(TypeError, match=r"^output\['flows'\]\[1\]: expected a flow tensor .* got NoneType$"):
+            map_flows({"flows": [torch.zeros(1, 2, 4, 6), None]}, lambda f: f)
+
     def test_refiner_rejects_empty_ptlflow_stack(self, scene):
         with pytest.raises(ValueError, match=r"^flow\['flows'\]: expected at least one prediction in the "
                                              r"\(B, N, 2, H, W\) stack, got N = 0 \(shape \(1, 0, 2, 53, 94\)\)$"):
@@ -116,6 +126,20 @@ class TestPtlflowInputs:
         with pytest.raises(ValueError, match="image2: expected the shape of image1"):
             ptlflow_inputs(torch.zeros(1, 3, 5, 7), torch.zeros(1, 3, 5, 8))
 
+    def test_structure_errors_name_inputs(self):
+        """A tensor gave an IndexError, a dict without 'images' a bare KeyError."""
+        with pytest.raises(TypeError, match=r"^inputs: expected ptlflow's dict \{'images': .*\}, got Tensor$"):
+            images_from_ptlflow(torch.zeros(1, 2, 3, 5, 7))
+        with pytest.raises(TypeError, match=r"^inputs: expected ptlflow's dict .*, got a dict without 'images' "
+                                            r"\(keys \['imgs'\]\)$"):
+            images_from_ptlflow({"imgs": torch.zeros(1, 2, 3, 5, 7)})
+
+    @pytest.mark.parametrize("shape, letter", [((0, 3, 5, 6), "B"), ((1, 3, 0, 6), "H"), ((1, 3, 5, 0), "W")])
+    def test_empty_images_are_refused(self, shape, letter):
+        """An empty batch or side gave an empty ptlflow dict."""
+        with pytest.raises(ValueError, match=rf"^image1: expected shape \(B, 3, H, W\) with {letter} >= 1, got"):
+            ptlflow_inputs(torch.zeros(shape), torch.zeros(shape))
+
 
 # -- padding and the camera --------------------------------------------------------------------------
 
@@ -136,6 +160,36 @@ class TestPadding:
         assert torch.equal(y[..., 0, 0], x[..., 0, 0])  # replicated corner
         m = p.pad(torch.ones(1, 1, 5, 7, dtype=torch.bool))
         assert m.dtype == torch.bool and int(m.sum()) == 35
+
+    def test_unpad_checks_its_input(self):
+        """A tensor no larger than the padding was cropped to an empty one without a word."""
+        p = Padding(1, 2, 1, 2)
+        assert p.unpad(torch.zeros(1, 2, 4, 4)).shape == (1, 2, 1, 1)
+        with pytest.raises(ValueError, match=r"^x: expected a padded image larger than the padding "
+                                             r"Padding\(left=1, right=2, top=1, bottom=2\), got \(H, W\) = \(3, 3\)$"):
+            p.unpad(torch.zeros(1, 2, 3, 3))
+        with pytest.raises(ValueError, match=r"^x: expected a padded image larger .* got \(H, W\) = \(5, 3\)$"):
+            p.unpad(torch.zeros(5, 3))
+        with pytest.raises(ValueError, match=r"^x: expected at least 2 dimensions \(..., H, W\), got shape \(5,\)$"):
+            p.unpad(torch.zeros(5))
+        with pytest.raises(TypeError, match=r"^x: expected a tensor \(..., H, W\), got ndarray$"):
+            p.unpad(np.zeros((13, 21)))
+
+    def test_numpy_integers_are_ints(self):
+        """Padding(np.int64(1)) and InputPadder(np.int64(8)) were refused; a bool is not an int."""
+        p = Padding(np.int64(1), np.int32(2), np.uint8(0), 3)
+        assert p == Padding(1, 2, 0, 3) and all(type(v) is int for v in (p.left, p.right, p.top, p.bottom))
+        padder = InputPadder(np.int64(8), mode="kitti")
+        assert padder.stride == 8 and type(padder.stride) is int
+        assert padder.padding((375, 1242)) == Padding(3, 3, 0, 1)
+        with pytest.raises(TypeError, match=r"^left: expected an int, got bool True$"):
+            Padding(True)
+        with pytest.raises(ValueError, match=r"^bottom: expected an int >= 0, got -1$"):
+            Padding(0, 0, 0, -1)
+        with pytest.raises(TypeError, match=r"^stride: expected an int, got bool True$"):
+            InputPadder(True)
+        with pytest.raises(TypeError, match=r"^stride: expected an int, got float 8.0$"):
+            InputPadder(8.0)
 
     def test_camera_follows_padding(self, kitti_K):
         """The model flow of the padded camera on the padded grid is the original one, shifted."""

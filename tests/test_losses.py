@@ -269,6 +269,46 @@ def test_composite_weights_accept_zero_ints_and_0d_tensors():
     assert total.item() == pytest.approx(3.5) and values["a"].item() == 1.0
 
 
+def test_composite_zero_weight_terms_are_reported_not_summed():
+    """0 * inf is NaN: a zero-weight diagnostic term returning inf made the total NaN."""
+    flow = torch.ones(1, 2, 4, 4, requires_grad=True)
+    loss = CompositeLoss({"a": (2.0, lambda flows: flows[-1].sum()),
+                          "diag": (0.0, lambda flows: flows[-1].sum() / 0.0)})
+    total, values = loss([flow])
+    assert total.item() == 64.0 and values["diag"].item() == float("inf")
+    total.backward()
+    assert torch.equal(flow.grad, torch.full_like(flow, 2.0))
+    # every weight 0: a zero total that backward() accepts; no gradient reaches the flow
+    flow.grad = None
+    total, values = CompositeLoss({"diag": (0.0, lambda flows: flows[-1].sum() / 0.0)})([flow])
+    assert total.item() == 0.0 and values["diag"].item() == float("inf")
+    total.backward()
+    assert flow.grad is None
+
+
+def test_composite_terms_may_return_python_numbers():
+    """A float result crashed on .detach()."""
+    total, values = CompositeLoss({"a": (2.0, lambda flows: 0.5), "b": (1.0, lambda flows: flows.sum())})(
+        torch.ones(1, 2, 1, 1))
+    assert total.item() == 3.0 and values["a"].item() == 0.5 and isinstance(values["a"], torch.Tensor)
+
+
+def test_composite_bad_inputs_are_named():
+    """A list as inputs gave dict()'s 'dictionary update sequence' error, a missing input Python's
+    'missing 2 required positional arguments' without the term's name."""
+    flows = [torch.zeros(1, 2, 4, 4)]
+    loss = CompositeLoss({"a": (1.0, lambda flows: flows[0].sum())})
+    with pytest.raises(TypeError, match=r"^inputs: expected None or a mapping .*, got list$"):
+        loss(flows, [1, 2])
+    loss = CompositeLoss({"fs": (1.0, FreespaceFlowLoss())})
+    with pytest.raises(TypeError, match=r"^terms\['fs'\]: .*missing 2 required positional arguments: 'road' and "
+                                        r"'camera' \(inputs given: \['depth'\]\)$"):
+        loss(flows, {"depth": 1})
+    loss = CompositeLoss({"a": (1.0, lambda flows, **kw: flows[0].sum())})
+    with pytest.raises(TypeError, match=r"^terms\['a'\]: .*multiple values for argument 'flows'"):
+        loss(flows, {"flows": 1})
+
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_errors_name_the_argument():
@@ -391,6 +431,20 @@ def test_freespace_loss_of_the_exact_model_flow_is_zero_under_autocast(amp):
     with torch.autocast("cpu", dtype=amp):
         value = freespace_flow_loss(model64.float(), road, cam64, odo)
     assert value.item() <= 1e-12
+
+
+@pytest.mark.parametrize("amp, low, high", [(torch.bfloat16, 5e-5, 2e-4), (torch.float16, 5e-7, 5e-6)],
+                         ids=["bf16", "f16"])
+def test_freespace_loss_of_a_half_precision_prediction_is_its_rounding(amp, low, high):
+    """docs/training.md: exactly 0 holds for a float32 prediction only; the exact model flow held
+    in bfloat16 (float16) gives about 1e-4 (1.6e-6) with the Charbonnier penalty, flows <= 19 px."""
+    cam, odo, model, road = _road_case()
+    assert model[road.expand_as(model)].abs().max() < 19.0
+    with torch.autocast("cpu", dtype=amp):
+        exact = freespace_flow_loss(model, road, cam, odo)
+        rounded = freespace_flow_loss(model.to(amp), road, cam, odo)
+    assert exact.item() == 0.0
+    assert rounded.dtype == torch.float32 and low < rounded.item() < high
 
 
 @pytest.mark.parametrize("amp", [torch.bfloat16, torch.float16], ids=["bf16", "f16"])

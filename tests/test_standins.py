@@ -4,6 +4,7 @@ test_contracts.py)."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -34,6 +35,17 @@ def test_torchvision_num_flow_updates_gives_that_many_flows():
     with torch.no_grad():
         flows = net(_rgb(0), _rgb(1), num_flow_updates=1)
     assert len(flows) == 1 and flows[0].shape == (1, 2, 16, 24)
+
+
+def test_numpy_integers_are_accepted():
+    """np.int64 counts were refused: num_flow_updates was passed on unconverted and TinyRAFT
+    refused it under the name 'iters'; PtlflowRAFTStandIn(iters=np.int64(2)) likewise."""
+    net = TorchvisionRAFTStandIn().eval()
+    with torch.no_grad():
+        flows = net(_rgb(0), _rgb(1), num_flow_updates=np.int64(2))
+        expected = net(_rgb(0), _rgb(1), num_flow_updates=2)
+    assert len(flows) == 2 and torch.equal(flows[-1], expected[-1])
+    assert PtlflowRAFTStandIn(iters=np.int64(2)).net.iters == 2
 
 
 @pytest.mark.parametrize("which", ["image1", "image2"])

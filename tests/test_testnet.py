@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -126,10 +127,14 @@ def test_rejects_bad_inputs():
         net(image1.to(torch.uint8), image2)
     with pytest.raises(ValueError, match=r"expected values on 0\.\.255"):
         net(image1 * 2, image2)
-    with pytest.raises(ValueError, match="iters: expected a positive int"):
+    with pytest.raises(ValueError, match="iters: expected an int >= 1, got 0"):
         net(image1, image2, iters=0)
-    with pytest.raises(ValueError, match="corr_radius: expected a positive int"):
+    with pytest.raises(ValueError, match="corr_radius: expected an int >= 1, got 0"):
         TinyRAFT(corr_radius=0)
+    with pytest.raises(TypeError, match="iters: expected an int, got bool True"):
+        net(image1, image2, iters=True)
+    with pytest.raises(TypeError, match="feature_dim: expected an int, got float 32.0"):
+        TinyRAFT(feature_dim=32.0)
     with pytest.raises(ValueError, match=r"image1: expected shape \(B, 3, H, W\) with B >= 1, got \(0, 3, 16, 16\)"):
         net(image1[:0], image2[:0])
     # a float seed is not rounded to another net's, and a string is named
@@ -156,3 +161,17 @@ def test_correlation_volume_is_rafts():
     torch.testing.assert_close(pyramid[0].reshape(2, 4, 6, 4, 6), ref)
     torch.testing.assert_close(pyramid[1].reshape(2, 4, 6, 2, 3),
                                ref.reshape(2, 4, 6, 2, 2, 3, 2).mean(dim=(4, 6)))
+
+
+def test_numpy_integers_are_accepted_as_ints():
+    """np.int64 (from np.arange, a config array) was refused for iters and the sizes; the value
+    passed on is a Python int and the net is the one the same ints give."""
+    net = TinyRAFT(seed=0, iters=np.int64(2), feature_dim=np.int64(32), corr_radius=np.int32(2))
+    ref = TinyRAFT(seed=0, iters=2, feature_dim=32, corr_radius=2)
+    assert type(net.iters) is int and net.iters == 2 and type(net.corr_radius) is int
+    image1, image2 = _pair(1, 16, 16)
+    with torch.no_grad():
+        flows = net(image1, image2, iters=np.int64(3))
+        expected = ref(image1, image2, iters=3)
+    assert len(flows) == 3
+    assert torch.equal(flows[-1], expected[-1])

@@ -27,7 +27,7 @@ detection:
    ``slow_max_height_m``, until it does: lower kerbs then pass for road, cars and walls still show.
 4. **Region** (:mod:`~fsof_torch.refinement.road_region`). The road evidence connected to the
    seed; pixels without evidence take the majority around them, the seed's assumption (road) or
-   the decision along their line through the focus of expansion; small enclosed holes filled.
+   the decision along their line through the focus of expansion; small undecided holes filled.
 5. **Edges** (``edges``), at full resolution: the windows that straddle a car's base or a kerb
    are off the road, so the region's boundary lies up to half a window from the edge where the
    road ends. Within half a height window of it the boundary follows image 1's edges (a

@@ -33,7 +33,6 @@ level at 1/8 of the padded size has the K of the padded camera scaled by 1/8.
 
 from __future__ import annotations
 
-import copy
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, Callable, Mapping
@@ -42,7 +41,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_data_range, check_float_tensor, check_image_range, check_size, tracing
+from .._check import (check_data_range, check_float_tensor, check_image_range, check_int, check_shape, check_size,
+                      same_mapping, tracing)
 from ..geometry.camera import Camera
 
 __all__ = [
@@ -132,41 +132,26 @@ def map_flows(output: Any, fn: Callable[[Tensor], Tensor],
 
     Containers keep their type (list, tuple, NamedTuple, dict subclass with its state, such as a
     ``defaultdict``'s ``default_factory``); a 5-D stack is mapped prediction by prediction; dict
-    values outside ``flow_keys`` are the same objects.
+    values outside ``flow_keys`` are the same objects. Anything else where a flow is expected
+    raises TypeError naming its place (``output``, ``output['flows']``, ``output[1]``).
     """
-    return _map_flows(output, fn, check_flow_keys(flow_keys))
+    return _map_flows(output, fn, check_flow_keys(flow_keys), "output")
 
 
-def _map_flows(output: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...]) -> Any:
+def _map_flows(output: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...], name: str) -> Any:
     if isinstance(output, Tensor):
         if output.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
             return torch.stack([fn(output[:, n]) for n in range(output.shape[1])], dim=1)
         return fn(output)
     if isinstance(output, tuple) and hasattr(output, "_fields"):  # a NamedTuple
-        return type(output)(*(_map_flows(v, fn, flow_keys) for v in output))
+        return type(output)(*(_map_flows(v, fn, flow_keys, f"{name}[{i}]") for i, v in enumerate(output)))
     if isinstance(output, (list, tuple)):
-        return type(output)(_map_flows(v, fn, flow_keys) for v in output)
-    return _same_mapping(output, {k: (_map_flows(v, fn, flow_keys) if k in flow_keys else v)
-                                  for k, v in output.items()})
-
-
-def _same_mapping(obj: Mapping, items: dict) -> Mapping:
-    """A new mapping of ``obj``'s type holding ``items``. A dict subclass is copied and refilled:
-    its constructor may take other arguments (``defaultdict(factory, items)``), and a copy keeps
-    its type and state; another Mapping is built from the items where its constructor takes them,
-    else a plain dict comes back."""
-    if isinstance(obj, dict):
-        try:
-            out = copy.copy(obj)  # (shallow: the values are the caller's objects until replaced)
-            out.clear()
-            out.update(items)
-            return out
-        except (TypeError, AttributeError, NotImplementedError):  # a subclass that refuses it
-            pass
-    try:
-        return type(obj)(items)
-    except TypeError:  # a Mapping type without a dict constructor
-        return items
+        return type(output)(_map_flows(v, fn, flow_keys, f"{name}[{i}]") for i, v in enumerate(output))
+    if isinstance(output, Mapping):
+        return same_mapping(output, {k: (_map_flows(v, fn, flow_keys, f"{name}[{k!r}]") if k in flow_keys else v)
+                                      for k, v in output.items()})
+    raise TypeError(f"{name}: expected a flow tensor (B, 2, H, W), a list/tuple of them or a dict, "
+                    f"got {type(output).__name__}")
 
 
 def finest_flow(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
@@ -192,7 +177,7 @@ def _map_tensors(obj: Any, fn: Callable[[Tensor], Tensor]) -> Any:
     if isinstance(obj, (list, tuple)):
         return type(obj)(_map_tensors(v, fn) for v in obj)
     if isinstance(obj, Mapping):
-        return _same_mapping(obj, {k: _map_tensors(v, fn) for k, v in obj.items()})
+        return same_mapping(obj, {k: _map_tensors(v, fn) for k, v in obj.items()})
     return obj
 
 
@@ -204,6 +189,11 @@ def is_ptlflow_inputs(obj: object) -> bool:
 
 
 def _ptlflow_images(inputs: Mapping[str, Any], name: str = "inputs") -> Tensor:
+    if not isinstance(inputs, Mapping):
+        raise TypeError(f"{name}: expected ptlflow's dict {{'images': (B, 2, 3, H, W)}}, got {type(inputs).__name__}")
+    if "images" not in inputs:
+        raise TypeError(f"{name}: expected ptlflow's dict {{'images': (B, 2, 3, H, W)}}, got a "
+                        f"{type(inputs).__name__} without 'images' (keys {list(inputs)!r})")
     images = inputs["images"]
     check_float_tensor(images, f"{name}['images']")
     if images.dim() != 5 or images.shape[1] < 2 or images.shape[2] != 3:
@@ -223,16 +213,15 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     """ptlflow's input dict from two RGB images: ``{"images": (B, 2, 3, H, W)}``, BGR in [0, 1].
 
     Args:
-        image1, image2: (B, 3, H, W) RGB on 0..``data_range`` (finite; checked as the refiner
-            checks its images: 0..1 images with the default ``data_range=255.0`` are an error, not
-            near-black input).
+        image1, image2: (B, 3, H, W) RGB on 0..``data_range``, B, H and W at least 1 (finite;
+            checked as the refiner checks its images: 0..1 images with the default
+            ``data_range=255.0`` are an error, not near-black input).
         data_range: the images' maximum, 255.0 for 0..255 images, 1.0 for 0..1.
     """
     data_range = check_data_range(data_range)
     for name, im in (("image1", image1), ("image2", image2)):
         check_float_tensor(im, name)
-        if im.dim() != 4 or im.shape[1] != 3:
-            raise ValueError(f"{name}: expected shape (B, 3, H, W) RGB, got {tuple(im.shape)}")
+        check_shape(im, name, ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
     if image1.shape != image2.shape:
         raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
     for name, im in (("image1", image1), ("image2", image2)):
@@ -260,7 +249,8 @@ PAD_MODES = ("replicate", "reflect", "constant")
 class Padding:
     """Whole pixels added at each side of an image (``F.pad``'s (left, right, top, bottom)).
 
-    A pixel (u, v) of the image is (u + left, v + top) of the padded image.
+    A pixel (u, v) of the image is (u + left, v + top) of the padded image. Each side is an int
+    >= 0 (a NumPy integer too; a bool or a float raises TypeError).
     """
 
     left: int = 0
@@ -269,10 +259,8 @@ class Padding:
     bottom: int = 0
 
     def __post_init__(self) -> None:
-        for name in ("left", "right", "top", "bottom"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
-                raise ValueError(f"{name}: expected a whole number of pixels >= 0, got {value!r}")
+        for name in ("left", "right", "top", "bottom"):  # (NumPy integers too, stored as int)
+            object.__setattr__(self, name, check_int(getattr(self, name), name, minimum=0))
 
     @property
     def is_zero(self) -> bool:
@@ -312,8 +300,16 @@ class Padding:
         return y.reshape(*lead, *y.shape[-3:]) if lead is not None else y
 
     def unpad(self, x: Tensor) -> Tensor:
-        """Crop the padding off the last two dimensions of ``x`` (a view)."""
+        """Crop the padding off the last two dimensions of ``x`` (a view). ``x`` is a tensor
+        (..., H, W) larger than the padding (H > top + bottom, W > left + right), else a
+        ValueError naming ``x`` (not an empty crop)."""
+        if not isinstance(x, Tensor):
+            raise TypeError(f"x: expected a tensor (..., H, W), got {type(x).__name__}")
+        if x.dim() < 2:
+            raise ValueError(f"x: expected at least 2 dimensions (..., H, W), got shape {tuple(x.shape)}")
         H, W = x.shape[-2:]
+        if H <= self.top + self.bottom or W <= self.left + self.right:
+            raise ValueError(f"x: expected a padded image larger than the padding {self}, got (H, W) = ({H}, {W})")
         return x[..., self.top:H - self.bottom, self.left:W - self.right]
 
     def camera(self, camera: Camera) -> Camera:
@@ -332,7 +328,8 @@ class InputPadder:
     """RAFT's padding rule: pad H and W up to a multiple of ``stride``.
 
     Args:
-        stride: the multiple (8 for RAFT and torchvision's RAFT; some ptlflow models need 32 or 64).
+        stride: the multiple, an int >= 1 (8 for RAFT and torchvision's RAFT; some ptlflow models
+            need 32 or 64).
         mode: ``"sintel"`` (the padding split between both sides, the larger half right/bottom;
             ptlflow's ``pad_two_side=True``) or ``"kitti"`` (columns split, all rows at the bottom).
         pad_mode: how images are extended, ``"replicate"`` (RAFT's), ``"reflect"`` (images
@@ -344,8 +341,7 @@ class InputPadder:
     """
 
     def __init__(self, stride: int = 8, *, mode: str = "sintel", pad_mode: str = "replicate") -> None:
-        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:
-            raise ValueError(f"stride: expected a positive int, got {stride!r}")
+        stride = check_int(stride, "stride", minimum=1)  # (NumPy integers too; not a bool)
         if mode not in ("sintel", "kitti"):
             raise ValueError(f"mode: expected 'sintel' or 'kitti', got {mode!r}")
         if pad_mode not in PAD_MODES:

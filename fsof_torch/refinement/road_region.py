@@ -7,8 +7,8 @@ seed's assumption), and the others take the decision found along their line thro
 expansion (the road's edges, kerbs and verges run along those lines: a pixel that leaves the
 frame takes the decision of the pixel that will be where it is, a pixel too far to test that of
 the nearest testable one); then the component connected to the seed, with small enclosed holes
-filled. At full resolution, :func:`follow_edges` then lets the boundary follow image 1's edges
-where the windows cannot place it.
+that hold no off-road evidence filled. At full resolution, :func:`follow_edges` then lets the
+boundary follow image 1's edges where the windows cannot place it.
 """
 
 from __future__ import annotations
@@ -73,6 +73,7 @@ def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float]
     # least a window's area count
     count, lab, stats, _ = cv2.connectedComponentsWithStats(off.astype(np.uint8), connectivity=8)
     off = off & (stats[:, cv2.CC_STAT_AREA] >= window * window)[lab]
+    evidence = off  # off-road evidence: an enclosed piece that holds some is not a hole
     # undecided but testable (textureless): the majority of the decisions around
     k = 2 * window + 1
     n_road = cv2.boxFilter(core.astype(np.float32), -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
@@ -90,11 +91,13 @@ def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float]
         filled = _along_rays(decisions, focus, below & ~ok, below & (decisions < 0))
         road = road | (filled == 1)
     road = _components_touching(road & below, seed, connectivity=4)
-    # enclosed holes (a manhole, a patch of shade without texture) are road
+    # small enclosed holes without off-road evidence (a manhole, a patch of shade without
+    # texture) are road; a piece the windows found off the road (a distant car) stays out
     count, lab, stats, _ = cv2.connectedComponentsWithStats((~road).astype(np.uint8), connectivity=4)
     fill = stats[:, cv2.CC_STAT_AREA] <= max_hole
     fill[0] = False  # label 0: the road itself
     fill[np.unique(np.concatenate([lab[0], lab[-1], lab[:, 0], lab[:, -1]]))] = False
+    fill[np.unique(lab[evidence])] = False
     return road | fill[lab]
 
 

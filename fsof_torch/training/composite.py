@@ -9,6 +9,7 @@ from __future__ import annotations
 import inspect
 from collections.abc import Mapping, Sequence
 
+import torch
 from torch import Tensor, nn
 
 from .._check import check_number
@@ -31,7 +32,13 @@ class CompositeLoss(nn.Module):
             ``i`` the term's position. Results always carry the given names.
 
     ``forward(flows, inputs=None, **more)`` -> ``(total, values)``: the weighted sum (a scalar
-    with gradient) and ``{name: unweighted value}`` (detached scalars).
+    with gradient) and ``{name: unweighted value}`` (detached scalars; a term may return a tensor
+    or a Python number). ``inputs`` is None or a mapping (a batch dict), else TypeError naming
+    ``inputs``. A term of weight 0 is evaluated and reported but not added, so a diagnostic term
+    that returns inf or NaN leaves the total as it is (where every weight is 0 the total is a
+    zero that ``backward()`` accepts, and no gradient reaches the flows). A TypeError from a
+    term's call (an input it needs and was not given, one it does not take) is raised again
+    naming ``terms[name]``.
 
     Example:
         >>> from fsof_torch.training.losses import FreespaceFlowLoss, UnsupervisedFlowLoss
@@ -78,15 +85,26 @@ class CompositeLoss(nn.Module):
 
     def forward(self, flows: Tensor | Sequence[Tensor], inputs: Mapping[str, object] | None = None,
                 **more: object) -> tuple[Tensor, dict[str, Tensor]]:
-        given = {**dict(inputs or {}), **more}
+        if inputs is not None and not isinstance(inputs, Mapping):
+            raise TypeError(f"inputs: expected None or a mapping of named inputs (a batch dict), "
+                            f"got {type(inputs).__name__}")
+        given = {**(inputs or {}), **more}
         total = 0.0
         values: dict[str, Tensor] = {}
         for name, weight in self.weights.items():
             accepted, takes_all = self._names[name]
             kwargs = given if takes_all else {k: v for k, v in given.items() if k in accepted}
-            value = self._term(name)(flows, **kwargs)
+            try:
+                value = self._term(name)(flows, **kwargs)
+            except TypeError as exc:
+                raise TypeError(f"terms[{name!r}]: {exc} (inputs given: {sorted(map(str, given))})") from exc
+            value = torch.as_tensor(value)
             values[name] = value.detach()
-            total = total + weight * value
+            if weight:  # a weight-0 term is only reported: 0 * inf would make the total NaN
+                total = total + weight * value
+        if not isinstance(total, Tensor):  # every weight 0: nothing reaches the flows
+            dtype = value.dtype if value.is_floating_point() else torch.get_default_dtype()
+            total = torch.zeros((), dtype=dtype, device=value.device, requires_grad=True)
         return total, values
 
 

@@ -92,7 +92,7 @@ class TorchvisionRAFTStandIn(nn.Module):
         h, w = image1.shape[-2:]
         if h % 8 or w % 8:
             raise ValueError(f"input image H and W should be divisible by 8, instead got {h} (h) and {w} (w)")
-        check_int(num_flow_updates, "num_flow_updates", minimum=1)
+        num_flow_updates = check_int(num_flow_updates, "num_flow_updates", minimum=1)
         if not tracing():
             lo, hi = _value_range(image1, image2)
             if not (lo >= -1.0 and hi <= 1.0):  # (false for NaN, which the range then shows)

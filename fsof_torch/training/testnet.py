@@ -191,6 +191,8 @@ class TinyRAFT(nn.Module):
         corr_levels, corr_radius: correlation pyramid depth and lookup radius (in 1/8 pixels per
             level); the reach is about ``8 · corr_radius · 2^(corr_levels-1)`` pixels per iteration.
 
+    ``iters`` and the sizes are ints >= 1 (NumPy integers too; a bool or a float raises TypeError).
+
     Example:
         >>> net = TinyRAFT(seed=0, iters=4)
         >>> flows = net(torch.rand(1, 3, 64, 100) * 255, torch.rand(1, 3, 64, 100) * 255)
@@ -201,11 +203,10 @@ class TinyRAFT(nn.Module):
     def __init__(self, *, seed: int = 0, iters: int = 6, feature_dim: int = 64, hidden_dim: int = 48,
                  context_dim: int = 32, corr_levels: int = 3, corr_radius: int = 3) -> None:
         super().__init__()
-        for name, value in (("iters", iters), ("feature_dim", feature_dim), ("hidden_dim", hidden_dim),
-                            ("context_dim", context_dim), ("corr_levels", corr_levels),
-                            ("corr_radius", corr_radius)):
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name}: expected a positive int, got {value!r}")
+        iters, feature_dim, hidden_dim, context_dim, corr_levels, corr_radius = (
+            check_int(value, name, minimum=1) for name, value in (
+                ("iters", iters), ("feature_dim", feature_dim), ("hidden_dim", hidden_dim),
+                ("context_dim", context_dim), ("corr_levels", corr_levels), ("corr_radius", corr_radius)))
         seed = check_int(seed, "seed")
         if not 0 <= seed < 2**64:  # torch.manual_seed's range; a negative seed would alias a large one
             raise ValueError(f"seed: expected an int with 0 <= seed < 2**64, got {seed!r}")
@@ -240,9 +241,7 @@ class TinyRAFT(nn.Module):
         check_float_tensor(image2, "image2")
         dims = check_shape(image1, "image1", ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
         check_shape(image2, "image2", ("B", 3, "H", "W"), dims, nonempty=("B", "H", "W"))
-        iters = self.iters if iters is None else iters
-        if isinstance(iters, bool) or not isinstance(iters, int) or iters < 1:
-            raise ValueError(f"iters: expected a positive int, got {iters!r}")
+        iters = self.iters if iters is None else check_int(iters, "iters", minimum=1)
         if not isinstance(final_only, bool):
             raise TypeError(f"final_only: expected a bool, got {type(final_only).__name__}")
         if not skip_values(image1, image2):
