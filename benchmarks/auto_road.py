@@ -182,6 +182,7 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
     from fsof_torch import detect_freespace, detect_road
 
     rows: dict[str, dict[str, list]] = {}
+    pixels = (0, 0)  # the KITTI pair: its polygon, and the auto road outside it
     for name, im1, im2, cam, poly in real_pairs(root, turn, kitti15=kitti15, clip=clip):
         group = name.rstrip("0123456789 ")
         flow = dis(im1, im2)
@@ -200,6 +201,8 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
             r["cover"].append(float((m & poly).sum() / poly.sum()))
             r["empty"] += n == 0
             r["flagged"] += flag not in ("", "ok")
+            if name == "kitti15 pair" and method == "auto road (images)":
+                pixels = (int(poly.sum()), int((m & ~poly).sum()))
     turned = f", image 2 turned by yaw {turn[0]:g}°, pitch {turn[1]:g}°, roll {turn[2]:g}°" if any(turn) else ""
     print(f"\nReal KITTI{turned}: share of the mask inside road.json's polygon, share of the polygon covered")
     print(f"{'data':>15} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
@@ -209,6 +212,8 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
             print(f"{group:>15} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
                   f"{min(r['inside']):10.3f} {statistics.mean(r['cover']):10.3f} {min(r['cover']):9.3f} "
                   f"{r['empty']:5d} {'-' if method.startswith('flow') else r['flagged']:>7}")
+    if kitti15:
+        print(f"kitti15 pair: the polygon holds {pixels[0]} pixels of the frame; the auto road has {pixels[1]} outside it")
 
 
 def timed(fn, repeat: int) -> float:
