@@ -301,7 +301,8 @@ def check_data_range(data_range: object, name: str = "data_range") -> float:
         data_range = data_range.item()
     if (isinstance(data_range, bool) or not isinstance(data_range, numbers.Real)
             or not (math.isfinite(_float(data_range, name)) and float(data_range) > 0)):
-        raise (ValueError if isinstance(data_range, numbers.Real) else TypeError)(
+        wrong_type = isinstance(data_range, bool) or not isinstance(data_range, numbers.Real)
+        raise (TypeError if wrong_type else ValueError)(
             f"{name}: expected a positive finite number (the images' maximum: 1.0 for 0-1 images, "
             f"255.0 for 0-255 images), got {data_range!r}")
     return float(data_range)

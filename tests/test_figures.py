@@ -294,22 +294,62 @@ def test_pair_figure_redrawn_equals_a_fresh_one(tmp_path):
     assert not plt.fignum_exists(reused.figure.number)
 
 
-def test_pair_figure_error_map_without_values_is_black():
-    """Pixels without an error value show the colour map's "bad" colour (black), as before."""
+def test_pair_figure_pixels_without_a_value_are_grey_not_an_error_of_zero():
+    """Pixels without an error value were black, the colour of inferno's 0 (0, 0, 3), and a NaN
+    error at a valid pixel was drawn as 0: both now show mid grey, a colour the error map and the
+    flow wheel lack, in both rows, and the legend's swatch is that grey."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    NO_VALUE_RGB = (128, 128, 128)  # fsof_torch.evaluation.visualize.NO_VALUE_RGB
     content = _content(3, 15)
     err, valid = content["errors"]["after"]
-    valid = valid.clone()
-    valid[:, :10] = False
+    err, valid = err.clone(), valid.clone()
+    valid[:, :10] = False                 # rows 0-9: invalid
+    valid[:, 20:] = True
+    err[:, 20:, :5] = 0.0                 # valid, error 0
+    err[:, 20:, 5:10] = float("nan")      # valid, but no finite error
+    err[:, 20:, 10:15] = float("inf")
     fig = pair_figure(**{**content, "errors": {**content["errors"], "after": (err, valid)}}, max_flow=5.0, title="t")
     try:
         ax = next(ax for ax in _image_axes(fig) if ax.get_title() == "end-point error, after")
         shown = ax.get_images()[0]
-        data = shown.get_array()
-        assert data.mask[:10].all() and not data.mask[10:].all()  # NaN is masked, as a masked array was
-        assert shown.cmap.get_bad().tolist() == [0.0, 0.0, 0.0, 1.0]
+        rgb = shown.to_rgba(shown.get_array(), bytes=True)[..., :3]
+        assert (rgb[:10] == NO_VALUE_RGB).all()                    # invalid
+        assert (rgb[20:, 5:15] == NO_VALUE_RGB).all()              # NaN or inf at a valid pixel
+        zero = rgb[20:, :5].reshape(-1, 3)
+        assert (zero == zero[0]).all() and np.abs(zero[0].astype(int) - NO_VALUE_RGB).max() > 60
+        assert tuple(round(255 * c) for c in shown.cmap.get_bad()[:3]) == NO_VALUE_RGB
+        # the flow row: its NaN pixel (4, 7) shows the same grey
+        flow_ax = next(ax for ax in _image_axes(fig) if ax.get_title() == "flow, after")
+        assert flow_ax.get_images()[0].get_array()[4, 7].tolist() == list(NO_VALUE_RGB)
+        # the legend names it, with that colour
+        (legend,) = fig.legends
+        (handle,) = [h for h, t in zip(legend.legend_handles, legend.get_texts()) if "no value" in t.get_text()]
+        assert tuple(round(255 * c) for c in handle.get_facecolor()[:3]) == NO_VALUE_RGB
+        assert "not finite" in next(t.get_text() for t in legend.get_texts() if "no value" in t.get_text())
     finally:
-        import matplotlib.pyplot as plt
+        plt.close(fig)
 
+
+def test_clip_summary_keeps_the_records_order_of_pairs():
+    """Pair names were sorted as strings: frames numbered without zero padding went
+    '10', '15', '5' along the time axis."""
+    import matplotlib.pyplot as plt
+
+    names = ["5", "10", "15"]
+    records = [{"pair": n, "variant": "none", "before": {"epe_road": 1.0 + i}, "after": {"epe_road": 0.5 + i},
+                "odometry": {"z_d": 0.1 * (i + 1)}} for i, n in enumerate(names)]
+    fig = clip_summary_figure(records, errors={"epe_road": "end-point error (px), road"}, title="t")
+    try:
+        ax = fig.axes[0]
+        assert [t.get_text() for t in ax.get_xticklabels()] == names
+        lines = {ln.get_label(): ln for ln in ax.get_lines()}
+        assert list(lines["before, none"].get_ydata()) == [1.0, 2.0, 3.0]
+        assert list(lines["after, none"].get_xdata()) == [0, 1, 2]
+        motion = next(a for a in fig.axes if "z_d" in a.get_title())
+        assert list(motion.get_lines()[0].get_ydata()) == pytest.approx([0.1, 0.2, 0.3])
+    finally:
         plt.close(fig)
 
 

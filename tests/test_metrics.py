@@ -420,13 +420,43 @@ def test_accumulator_load_state_dict_refuses_impossible_sums_and_counts(index, v
     assert acc.compute("images") == before
 
 
+def test_accumulator_built_under_inference_mode_works_outside_it():
+    """An accumulator built or updated under torch.inference_mode held an inference tensor:
+    update, reset and merge outside it raised "Inplace update to inference tensor outside
+    InferenceMode". They work, with the same sums as an accumulator that never saw it."""
+    batches = _batches()
+    plain = FlowMetricAccumulator()
+    for est, gt, valid in batches:
+        plain.update(est, gt, valid=valid)
+    with torch.inference_mode():
+        acc = FlowMetricAccumulator()
+        acc.update(*batches[0][:2], valid=batches[0][2])
+    for est, gt, valid in batches[1:]:
+        acc.update(est, gt, valid=valid)
+    assert torch.equal(acc.state, plain.state)
+    assert acc.all_reduce().compute() == plain.compute()
+    with torch.inference_mode():
+        other = FlowMetricAccumulator()
+        other.update(*batches[0][:2], valid=batches[0][2])
+    merged = FlowMetricAccumulator().merge(other)  # a plain one takes an inference one, and back
+    assert other.merge(merged).n_pixels == 2 * merged.n_pixels
+    acc.reset()
+    assert acc.compute()["n_pixels"] == 0 and not acc.state.any()
+    with torch.inference_mode():  # and a plain accumulator updated under it keeps working outside
+        plain.update(*batches[0][:2], valid=batches[0][2])
+    plain.update(*batches[0][:2], valid=batches[0][2])
+    plain.reset()
+    assert plain.n_pixels == 0
+
+
 def _all_reduce_worker(rank: int, world: int, init: str, out: str) -> None:
     import torch.distributed as dist
 
     torch.set_num_threads(1)
     dist.init_process_group("gloo", init_method=init, rank=rank, world_size=world)
     try:
-        acc = FlowMetricAccumulator()
+        with torch.inference_mode():  # built as an evaluation loop would, updated outside too
+            acc = FlowMetricAccumulator()
         for i, (est, gt, valid) in enumerate(_batches()):
             if i % world == rank:  # strided shards, each batch on exactly one process
                 acc.update(est, gt, valid=valid)

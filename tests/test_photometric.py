@@ -443,7 +443,7 @@ def test_nonfinite_pixels_raise(kind, which, bad):
 @pytest.mark.parametrize("data_range", [float("nan"), 0.0, -1.0, float("inf"), "255", True])
 def test_data_range_must_be_a_positive_finite_number(data_range):
     image1, image2, flow = _shifted_pair()
-    err = TypeError if isinstance(data_range, str) else ValueError
+    err = TypeError if isinstance(data_range, (str, bool)) else ValueError  # (a bool is no number here)
     with pytest.raises(err, match=r"data_range: expected a positive finite number \(the images' maximum"):
         photometric_error(image1, image2, flow, data_range=data_range)
     with pytest.raises(err, match="data_range: expected a positive finite number"):
@@ -663,3 +663,39 @@ def test_to_grey_and_census_check_their_arguments():
     for radius, error in ((2.0, TypeError), (True, TypeError), (0, ValueError)):
         with pytest.raises(error, match="^radius: expected an int"):
             census_transform(image, radius=radius)
+
+
+def test_numpy_integer_window_and_radius_work_as_ints():
+    """check_int's result was discarded: a NumPy integer window passed the check and failed
+    inside kornia ("'numpy.int64' object is not iterable"), in the function and the module."""
+    i1, i2, flow = _shifted_pair()
+    for kind, options in (("ssim", {"window": 5}), ("census", {"census_radius": 2}),
+                          ("soft_census", {"census_radius": 2})):
+        want = photometric_error(i1, i2, flow, kind=kind, **options)
+        numpy_options = {k: np.int64(v) for k, v in options.items()}
+        assert torch.equal(photometric_error(i1, i2, flow, kind=kind, **numpy_options), want), kind
+        module = PhotometricError(kind=kind, **numpy_options)
+        assert all(type(getattr(module, k)) is int for k in options)
+        assert torch.equal(module(i1, i2, flow), want), kind
+    maps = photometric_error_maps(i1, i2, flow, kinds=("ssim", "census"), window=np.int32(5),
+                                  census_radius=np.int16(2))
+    assert torch.equal(maps["ssim"][0], photometric_error_map(i1, i2, flow, kind="ssim", window=5)[0])
+
+
+def test_census_ignores_gain_bias_and_increasing_grey_changes_not_per_channel_ones():
+    """The module docstring's claim, as stated: a gain and bias of a colour image and any
+    strictly increasing change of a grey image cost no census distance; a gamma applied to each
+    colour channel apart can reorder the luma and does cost (it is not "any monotonic change")."""
+    import fsof_torch.evaluation.photometric as module
+
+    g = torch.Generator().manual_seed(5)
+    rgb = torch.rand(1, 3, 32, 32, generator=g) * 255
+    zero = torch.zeros(1, 2, 32, 32)
+    gamma = lambda x: 255 * (x / 255) ** 0.5  # noqa: E731  (strictly increasing)
+    assert float(photometric_error(rgb, rgb * 0.5 + 40, zero, kind="census")) == 0.0
+    grey = rgb[:, :1].contiguous()
+    assert float(photometric_error(grey, gamma(grey), zero, kind="census")) == 0.0
+    assert float(photometric_error(rgb, gamma(rgb), zero, kind="census")) > 0.01
+    doc = " ".join(module.__doc__.split())
+    assert "any monotonic change of brightness" not in doc
+    assert "gain and bias" in doc and "strictly increasing change of the grey image" in doc

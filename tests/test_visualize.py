@@ -221,7 +221,25 @@ def test_error_to_color_uses_colormap_ends():
     np.testing.assert_array_equal(rgb[1], lut[128])     # round(5 / 10 * 255) = 128
     np.testing.assert_array_equal(rgb[2], lut[255])
     np.testing.assert_array_equal(rgb[3], lut[255])     # clipped at vmax
-    np.testing.assert_array_equal(rgb[4], [0, 0, 0])    # non-finite: black
+    np.testing.assert_array_equal(rgb[4], [128, 128, 128])    # non-finite: no value, mid grey
+
+
+def test_error_to_color_draws_no_value_apart_from_zero():
+    """Invalid and non-finite pixels were black, which reads as inferno's 0 (0, 0, 3): they are
+    mid grey (NO_VALUE_RGB), a colour the map lacks, whatever the error under them."""
+    import cv2
+
+    grey = (128, 128, 128)
+    err = torch.tensor([[0.0, 0.0, 3.0, float("nan"), float("inf"), float("-inf")]])
+    valid = torch.tensor([[True, False, False, True, True, True]])
+    rgb = error_to_color(err, 5.0, valid=valid)[0, :, 0].T.numpy()
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(256, 1), cv2.COLORMAP_INFERNO)[:, 0, ::-1]
+    np.testing.assert_array_equal(rgb[0], lut[0])                      # a valid 0
+    np.testing.assert_array_equal(rgb[1:], np.tile(grey, (5, 1)))  # no value
+    assert np.abs(lut.astype(int) - grey).max(axis=1).min() > 60  # not in the map
+    from fsof_torch.evaluation.visualize import NO_VALUE_RGB
+
+    assert NO_VALUE_RGB == grey
 
 
 def test_overlay_blends_inside_mask_only():

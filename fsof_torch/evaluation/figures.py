@@ -2,6 +2,8 @@
 
 Each figure has a title; flow images carry a colour-wheel legend with the magnitude at full
 saturation; error maps carry a colour bar with the unit and the value where the colours saturate;
+pixels without a value are mid grey in flows and error maps alike (a colour neither the flow
+wheel nor the error colour map holds: black would read as an error of 0), named in the legend;
 image panels have pixel axes; the road mask is drawn as a black-and-white dashed outline (no
 fill, so nothing under it changes colour and it cannot be taken for an object); before and after
 stand side by side. A clip gets a summary plot over its pairs: each error before and after, and
@@ -26,7 +28,7 @@ import torch
 from torch import Tensor
 
 from .._check import check_float_tensor, check_image_range, check_number, check_shape
-from .visualize import flow_to_color
+from .visualize import NO_VALUE_RGB, flow_to_color
 
 __all__ = [
     "FIGURE_DPI",
@@ -195,9 +197,10 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
 
     Args:
         flows: column title -> flow (2, H, W) px (e.g. ``{"before": ..., "after": ...}``); one
-            column each, in order. Non-finite pixels are black.
+            column each, in order. Non-finite pixels have no value (mid grey).
         errors: column title -> ``(error map (1, H, W), valid (1, H, W) bool)`` for the second row
-            (a title of ``flows`` missing here leaves that panel empty); invalid pixels are black.
+            (a title of ``flows`` missing here leaves that panel empty); invalid pixels, and
+            valid ones whose error is not finite, have no value (mid grey).
         road: (1, H, W) bool road mask, drawn as an outline on every panel; every other map and
             image has its (H, W) (ValueError or TypeError naming the argument otherwise, e.g.
             ``flows['before']``).
@@ -327,13 +330,17 @@ class PairFigure:
             if valid is not None:
                 ok = ok & valid
             # a reduced pixel shows no value when any of its pixels has none
-            rgb = flow_to_color(_reduce(torch.nan_to_num(f), factor), max_flow, valid=~_reduce(~ok, factor))[0]
+            ok_r = ~_reduce(~ok, factor)
+            rgb = flow_to_color(_reduce(torch.nan_to_num(f), factor), max_flow, valid=ok_r)[0]
+            rgb = torch.where(ok_r, rgb, torch.tensor(NO_VALUE_RGB, dtype=torch.uint8).view(3, 1, 1))
             shown.set_data(rgb.permute(1, 2, 0).numpy())
             ax.set_title(f"flow, {name}", fontsize=9)
             if error_panel is None:
                 continue
             err, ok_e = errors[name]
-            e = torch.where(ok_e, torch.nan_to_num(err.float(), nan=0.0), torch.zeros((), dtype=torch.float32))
+            # a valid pixel whose error is not finite has no value either (not an error of 0)
+            ok_e = ok_e & torch.isfinite(err)
+            e = torch.where(ok_e, err.float(), torch.zeros((), dtype=torch.float32))
             e = _reduce(e, factor)[0].numpy()
             ok_r = (~_reduce(~ok_e, factor))[0].numpy()
             # NaN where there is no value: drawn in the colour map's "bad" colour, as a masked
@@ -399,14 +406,20 @@ def _check_vmax(error_vmax: object) -> float:
 def _invalid_handle():
     from matplotlib.patches import Patch
 
-    return Patch(facecolor="black", edgecolor="grey", label="no value (invalid / out of view)")
+    return Patch(facecolor=_no_value_colour(), edgecolor="black", label="no value (invalid / out of view / not finite)")
+
+
+def _no_value_colour() -> tuple[float, float, float]:
+    """:data:`~fsof_torch.evaluation.visualize.NO_VALUE_RGB` as matplotlib's 0-1 RGB."""
+    return tuple(c / 255.0 for c in NO_VALUE_RGB)
 
 
 def _error_cmap():
     import matplotlib
 
-    # no value: black; beyond the saturation value: white, so it stands out of the map
-    return matplotlib.colormaps["inferno"].with_extremes(bad="black", over="white")
+    # no value: mid grey (inferno's 0 is near black); beyond the saturation value: white, so
+    # both stand out of the map
+    return matplotlib.colormaps["inferno"].with_extremes(bad=_no_value_colour(), over="white")
 
 
 def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping[str, str], title: str) -> Any:
@@ -419,15 +432,17 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     Args:
         records: the job's per-pair records of one flow source (``pair``, ``variant``,
             ``before``/``after`` metrics, ``odometry`` dict, ``roll``, ``pitch``, optionally
-            ``odometry_given``). Fields are read as they come: a field new to the records shows
-            up as a panel of its own.
+            ``odometry_given``), in time order: the pairs go along the x axis in the order they
+            first appear (their names are not sorted: '10' would come before '5'). Fields are
+            read as they come: a field new to the records shows up as a panel of its own.
         errors: the metrics plotted, one panel each, as record key -> name and unit, e.g.
             ``{"epe_road": "end-point error (px), road", "census_road": "census distance, road"}``
             (a key no record holds gets no panel).
         title: the figure's title.
     """
     plt = _pyplot()
-    pairs = sorted({r["pair"] for r in records})
+    # the records' order (the job's time order): sorting the names put '10' before '5'
+    pairs = list(dict.fromkeys(r["pair"] for r in records))
     index = {p: i for i, p in enumerate(pairs)}
     variants = list(dict.fromkeys(r["variant"] for r in records))
     fields = list(dict.fromkeys(k for r in records for k in r.get("odometry", {})

@@ -343,6 +343,10 @@ class FlowMetricAccumulator:
     an initialised group it returns a copy of this one. :meth:`merge` adds another accumulator
     (from a worker, or a saved state) by hand. Counts are held in float64, exact up to 2^53.
 
+    The sums are replaced, never written in place, so an accumulator built or updated under
+    ``torch.inference_mode`` (whose tensors refuse in-place writes outside it) keeps working
+    outside it, and the other way round.
+
     Example:
         >>> acc = FlowMetricAccumulator()
         >>> for est, gt, valid in batches:                            # doctest: +SKIP
@@ -364,7 +368,7 @@ class FlowMetricAccumulator:
         return int(self.state[-1])
 
     def reset(self) -> None:
-        self.state.zero_()
+        self.state = torch.zeros_like(self.state)
 
     def update(self, flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
                valid: Tensor | None = None) -> dict[str, Tensor]:
@@ -380,7 +384,7 @@ class FlowMetricAccumulator:
             has_pixels = (count > 0).to(torch.float64)
             batch = torch.cat([pixel_sums.sum(dim=1), count.sum().reshape(1).to(torch.float64),
                                (per_image * has_pixels).sum(dim=1), has_pixels.sum().reshape(1)])
-            self.state += batch.to(self.state.device)
+            self.state = self.state + batch.to(self.state.device)
         # the working dtype of the maps (at least float32), as flow_metrics_per_sample returns
         out = {k: per_image[i].to(maps[k].dtype) for i, k in enumerate(maps)}
         out = _with_aliases(out)
@@ -388,10 +392,10 @@ class FlowMetricAccumulator:
         return out
 
     def merge(self, other: "FlowMetricAccumulator") -> "FlowMetricAccumulator":
-        """Add the sums and counts of ``other`` to this accumulator (in place); returns self."""
+        """Add the sums and counts of ``other`` to this accumulator; returns self."""
         if not isinstance(other, FlowMetricAccumulator):
             raise TypeError(f"other: expected a FlowMetricAccumulator, got {type(other).__name__}")
-        self.state += other.state.to(self.state.device)
+        self.state = self.state + other.state.to(self.state.device)
         return self
 
     def all_reduce(self, group: object = None) -> "FlowMetricAccumulator":

@@ -11,8 +11,10 @@ Four kinds of ρ (DESIGN.md §6):
 - ``"census"``: the census distance (DESIGN.md §6): the census transform of the grey images (one
   bit per neighbour q of the (2r+1)² window: I(q) > I(p)), image 1 against image 2 warped by the
   flow, as the Hamming distance over the (2r+1)² − 1 neighbours (48 for r = 3). In [0, 1];
-  indifferent to any monotonic change of brightness between the frames. Not differentiable: the
-  measure to judge a flow by on real images.
+  indifferent to a gain and bias of brightness between the frames, and to any strictly increasing
+  change of the grey image (not to one applied to each colour channel apart, such as a gamma per
+  channel, which can reorder the luma). Not differentiable: the measure to judge a flow by on real
+  images.
 - ``"soft_census"``: the soft Hamming distance between soft census transforms, as in UFlow and
   ARFlow's ternary loss: per neighbour offset t = (I(q) − I(p)) / sqrt(0.81 + (I(q) − I(p))²) on
   the 0–255 scale, then mean over the (2r+1)² offsets of d² / (0.1 + d²) with d = t_1 − t_2. In
@@ -160,8 +162,9 @@ def _erode(valid: Tensor, radius: int) -> Tensor:
 
 
 def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None, kinds: tuple[str, ...],
-                  data_range: float, window: int, census_radius: int) -> float:
-    """Every argument check of the photometric functions; returns the checked ``data_range``."""
+                  data_range: float, window: int, census_radius: int) -> tuple[float, int, int]:
+    """Every argument check of the photometric functions; returns the checked ``data_range``,
+    ``window`` and ``census_radius`` (as Python numbers: kornia refuses a NumPy integer window)."""
     check_float_tensor(image1, "image1")
     check_float_tensor(image2, "image2")
     check_float_tensor(flow, "flow")
@@ -174,22 +177,23 @@ def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | N
             raise TypeError(f"mask: expected a bool tensor, got {got}")
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
     data_range = check_data_range(data_range)
-    _check_window_options(window, census_radius)
+    window, census_radius = _check_window_options(window, census_radius)
     if "ssim" in kinds and min(dims["H"], dims["W"]) <= window // 2:
         # kornia pads the SSIM window by reflection, which needs more pixels than the window radius
         raise ValueError(f"image1: kind='ssim' with window={window} needs H and W >= {window // 2 + 1}, "
                          f"got shape {tuple(image1.shape)} (pass a smaller odd window)")
     check_image_range(image1, "image1", data_range)
     check_image_range(image2, "image2", data_range)
-    return data_range
+    return data_range, window, census_radius
 
 
-def _check_window_options(window: object, census_radius: object) -> None:
-    """``window``: an odd positive int; ``census_radius``: a positive int."""
-    check_int(window, "window", minimum=1)
+def _check_window_options(window: object, census_radius: object) -> tuple[int, int]:
+    """``window``: an odd positive int; ``census_radius``: a positive int; both returned as
+    Python ints (a NumPy integer accepted)."""
+    window = check_int(window, "window", minimum=1)
     if window % 2 == 0:
         raise ValueError(f"window: expected an odd positive int, got {window!r}")
-    check_int(census_radius, "census_radius", minimum=1)
+    return window, check_int(census_radius, "census_radius", minimum=1)
 
 
 def _check_kind(kind: object) -> str:
@@ -260,7 +264,8 @@ def photometric_error_maps(image1: Tensor, image2: Tensor, flow: Tensor, mask: T
         [('l1', (1, 1, 8, 8), 64), ('ssim', (1, 1, 8, 8), 64), ('census', (1, 1, 8, 8), 64)]
     """
     kinds = _check_kinds(kinds)
-    data_range = _check_inputs(image1, image2, flow, mask, kinds, data_range, window, census_radius)
+    data_range, window, census_radius = _check_inputs(image1, image2, flow, mask, kinds, data_range, window,
+                                                      census_radius)
     work = result_dtype(image1, image2, flow)
     out: dict[str, tuple[Tensor, Tensor]] = {}
     with autocast_off(image1):
@@ -421,7 +426,7 @@ class PhotometricError(nn.Module):
         super().__init__()
         _check_kind(kind)
         data_range = check_data_range(data_range)
-        _check_window_options(window, census_radius)
+        window, census_radius = _check_window_options(window, census_radius)
         check_bool(align_corners, "align_corners")
         self.kind = kind
         self.data_range = data_range

@@ -6,7 +6,8 @@
   down yellow (255, 229, 0), left light blue (0, 209, 255), up violet (88, 0, 255), as in the
   Middlebury and KITTI figures.
 - :func:`error_to_color`: a scalar map (e.g. end-point or photometric error) through an OpenCV
-  colour map, from 0 to ``vmax``.
+  colour map, from 0 to ``vmax``; pixels without a value in mid grey (:data:`NO_VALUE_RGB`), a
+  colour the default map lacks (black would read as inferno's 0).
 - :func:`overlay_mask`: a mask blended in colour onto an image.
 
 The ``save_*_png`` functions write single images atomically (a temporary file in the same folder,
@@ -26,6 +27,7 @@ from .._check import (batch_choices, check_data_range, check_finite, check_float
 from .metrics import pow2_scale
 
 __all__ = [
+    "NO_VALUE_RGB",
     "make_colorwheel",
     "flow_to_color",
     "error_to_color",
@@ -39,6 +41,11 @@ __all__ = [
 # similar numbers of entries (red-yellow, yellow-green, green-cyan, cyan-blue, blue-magenta,
 # magenta-red).
 _WHEEL = (15, 6, 4, 11, 13, 6)
+
+#: the colour of an error map's pixels without a value (invalid or not finite): mid grey, which
+#: the default "inferno" map lacks (its nearest colour is 68 levels away in some channel), while
+#: its 0 is near black, as black is in most maps (avoid grey maps such as "bone" or "cividis")
+NO_VALUE_RGB = (128, 128, 128)
 
 
 def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> Tensor:
@@ -167,7 +174,8 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
     Args:
         error: (B, 1, H, W), (1, H, W) or (H, W), any unit (px, grey levels).
         vmax: the value shown at the top of the colour map (> 0), same unit.
-        valid: optional (B, 1, H, W) bool; invalid and non-finite pixels are black.
+        valid: optional (B, 1, H, W) bool; invalid and non-finite pixels have no value and are
+            drawn mid grey (:data:`NO_VALUE_RGB`), not black: black is inferno's 0.
         colormap: an OpenCV colour map name ("inferno", "jet", "turbo", "viridis", ...).
 
     Returns:
@@ -188,7 +196,8 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
     index = torch.round(e.clamp(0, float(vmax)) / float(vmax) * 255.0).long()
     lut = _colormap_lut(colormap).to(error.device)
     rgb = lut[index.squeeze(1)].permute(0, 3, 1, 2)
-    return torch.where(ok, rgb, torch.zeros_like(rgb))
+    no_value = torch.tensor(NO_VALUE_RGB, dtype=torch.uint8, device=error.device).view(1, 3, 1, 1)
+    return torch.where(ok, rgb, no_value)
 
 
 def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (0, 255, 0),
