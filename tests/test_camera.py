@@ -447,7 +447,7 @@ def test_an_empty_camera_batch_is_refused():
     cam = Camera(torch.tensor([[700.0, 0, 320], [0, 700.0, 120], [0, 0, 1]]), 1.65)
     with pytest.raises(ValueError, match="K: expected a batch of at least 1, got 0"):
         Camera(cam.K.expand(0, 3, 3), 1.65)
-    for size in (0, -1, 1.5, True):
+    for size in (0, -1):
         with pytest.raises(ValueError, match=f"batch_size: expected an int >= 1, got {size!r}"):
             cam.expand(size)
     with pytest.raises(ValueError, match="x_d: expected a batch of at least 1, got 0"):
@@ -508,3 +508,79 @@ def test_padded_and_cropped_check_the_new_principal_point():
                                          r"K: expected \|principal point\|"):
         cam.cropped(0, 2 ** 26)
     assert cam.padded(2 ** 20, 3).cx.item() == pytest.approx(609.5593 + 2 ** 20)
+
+
+def test_expand_takes_numpy_integers_and_refuses_bools_and_floats():
+    """Once expand(np.int64(3)) was refused while repeat took it, and expand(True) was a ValueError."""
+    import numpy as np
+
+    cam = Camera(_K(), 1.65)
+    assert cam.expand(np.int64(3)).batch_size == 3 and cam.expand(np.int32(1)) is cam
+    for size in (1.5, 2.0, True, "2"):
+        with pytest.raises(TypeError, match="^batch_size: expected an int, got"):
+            cam.expand(size)
+
+
+@pytest.mark.parametrize("name", ["roll", "pitch"])
+@pytest.mark.parametrize("value", [math.pi / 2, -math.pi / 2, 3.0, -1.7, 10.0])
+def test_angles_beyond_a_quarter_turn_are_refused(name, value):
+    """horizon_row says pixels below it see the road; with |roll| or |pitch| >= π/2 that was false
+    (roll 3: 2117 valid road pixels against 2683 below the row; pitch 1.7: none against all)."""
+    symbol = {"roll": "θ", "pitch": "β"}[name]
+    with pytest.raises(ValueError, match=rf"^{name}: expected \|{symbol}\| < π/2 rad .*, got \[{value!r}\]$"):
+        Camera(_K(), 1.65, **{name: value})
+    with pytest.raises(ValueError, match=f"^{name}: expected"):
+        Camera(_K(dtype=torch.float32), 1.65, **{name: torch.tensor([0.1, value], dtype=torch.float32)})
+    with pytest.raises(ValueError, match=f"^{name}: expected"):
+        Camera(_K(), 1.65).replace(**{name: value})
+    with pytest.raises(ValueError, match=f"^{name}: expected finite values"):  # NaN: its own message
+        Camera(_K(), 1.65, **{name: float("nan")})
+
+
+@pytest.mark.parametrize("roll, pitch", [(1.4, 0.0), (-1.3, 0.0), (0.0, 1.2), (0.0, -1.4), (0.7, -0.8)])
+def test_horizon_row_separates_the_road_for_every_accepted_angle(roll, pitch):
+    """Within the accepted quarter turn the horizon row's promise holds: the road flow's valid
+    pixels are exactly those strictly below it, column by column."""
+    K = _K(72.15, 72.15, 60.9, 17.3)
+    cam = Camera(K, 1.65, roll=roll, pitch=pitch)
+    size = (40, 120)
+    _, valid = displacement_flow(cam, 0.0, 0.01, 0.0, size)
+    rows = cam.horizon_row(torch.arange(size[1], dtype=torch.float64))
+    below = torch.arange(size[0], dtype=torch.float64)[:, None] > rows[None, :]
+    assert torch.equal(valid[0, 0], below)
+
+
+@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
+def test_rotation_matrices_of_half_precision_angles_are_computed_in_float32(half):
+    """Once a float16 angle gave a float16 rotation (orthonormal to 1e-3; bfloat16 6e-3)."""
+    roll, pitch = torch.tensor([0.3, 1.0], dtype=half), torch.tensor([0.05, -0.2], dtype=half)
+    for got, want in ((roll_matrix(roll), roll_matrix(roll.float())), (pitch_matrix(pitch), pitch_matrix(pitch.float())),
+                      (mounting_matrix(roll, pitch), mounting_matrix(roll.float(), pitch.float()))):
+        assert got.dtype == torch.float32
+        assert torch.equal(got, want)
+    M = mounting_matrix(roll, pitch).double()
+    assert (M @ M.transpose(-1, -2) - torch.eye(3, dtype=torch.float64)).abs().max() < 1e-6
+    # float32 and float64 angles keep their dtype (and values)
+    t = torch.tensor([0.3], dtype=torch.float64)
+    assert roll_matrix(t).dtype == torch.float64 and roll_matrix(t.float()).dtype == torch.float32
+
+
+def test_from_projection_and_from_kitti_name_their_own_arguments(tmp_path):
+    """A bad projection's errors named K (the constructor's argument), and from_kitti(dtype="float32")
+    raised torch's own TypeError naming as_tensor."""
+    bad = torch.tensor([[1.0, 0, 2, 0], [0, -1.0, 3, 0], [0, 0, 1.0, 0]], dtype=torch.float64)
+    with pytest.raises(ValueError, match=r"^P: its first three columns are K, expected focal lengths f_x, f_y > 0"):
+        Camera.from_projection(bad, 1.65)
+    with pytest.raises(TypeError, match="^P: expected a floating-point tensor, got dtype torch.int64"):
+        Camera.from_projection(torch.zeros(3, 4, dtype=torch.int64), 1.65)
+    with pytest.raises(ValueError, match=r"^P: expected shape \(3, 4\) or \(B, 3, 4\), got \(1, 2, 3, 4\)"):
+        Camera.from_projection(torch.zeros(1, 2, 3, 4), 1.65)
+    with pytest.raises(ValueError, match="^height: expected values > 0"):  # the other arguments keep their names
+        Camera.from_projection(torch.eye(3, 4, dtype=torch.float64), 0.0)
+    path = tmp_path / "calib.txt"
+    path.write_text(ODOMETRY_LABELLED)
+    for dtype in ("float32", torch.int32, 32):
+        with pytest.raises(TypeError, match=f"^dtype: expected a floating-point torch.dtype .*, got .*{dtype!s}"):
+            Camera.from_kitti(path, dtype=dtype)
+    assert Camera.from_kitti(path, dtype=torch.float32).dtype == torch.float32
+    assert Camera.from_kitti(path, dtype=None).dtype == torch.float64

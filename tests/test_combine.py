@@ -65,3 +65,20 @@ def test_fit_at_size_of_a_velocity_fit_is_its_velocity_flow():
     # (the pixels on the horizon itself may round either way)
     assert int((full.valid ^ expected_valid).sum()) <= 1 and int(both.sum()) > 0.4 * both.numel()
     torch.testing.assert_close(full.flow[both], expected[both], rtol=0, atol=1e-9)
+
+
+def test_fit_at_size_keeps_a_failed_fits_absurd_attitude_as_fitted():
+    """A failed flow fit's roll may drift beyond a quarter turn, which a user's Camera refuses:
+    brought to another size, the fit keeps it as fitted (the camera's check raised here)."""
+    from dataclasses import replace
+
+    from fsof_torch import fit_road
+
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 24], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.65)
+    flow, valid = road_flow(cam.scaled(0.5), {"z_d": 1.0}, (24, 80), model="paper")
+    fit = fit_road(flow, valid, cam.scaled(0.5), model="paper")
+    drifted = Camera._checked(fit.camera.K, fit.camera.height, torch.tensor([-1.91], dtype=torch.float64),
+                              fit.camera.pitch)
+    full = fit_at_size(replace(fit, camera=drifted, success=torch.tensor([False])), cam, (48, 160))
+    assert float(full.camera.roll) == -1.91 and tuple(full.flow.shape) == (1, 2, 48, 160)

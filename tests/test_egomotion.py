@@ -237,15 +237,88 @@ def test_ackermann_refuses_steering_across_the_car(steering):
 
 
 def test_relative_pose_names_a_singular_pose1():
-    """A finite but singular pose1 once raised torch's _LinAlgError, naming no argument."""
+    """A finite but singular pose1 once raised torch's _LinAlgError, naming no argument (now the
+    rigid check names it: a singular pose has no rotation block)."""
 
     pose0 = torch.eye(4, dtype=torch.float64).repeat(2, 1, 1)
     pose1 = pose0.clone()
     pose1[0, 2, 3] = 1.5
     pose1[1, :3, :3] = 0.0
-    with pytest.raises(ValueError, match=r"^pose1: expected invertible poses, got samples \[1\] that are singular"):
+    with pytest.raises(ValueError, match=r"^pose1: expected rigid transforms .*, got sample 1: its 3×3 block is not "
+                                         r"a rotation: \|RᵀR − I\| up to 1, det R = 0"):
         relative_pose(pose0, pose1)
-    with pytest.raises(ValueError, match=r"^pose1: expected invertible poses"):
+    with pytest.raises(ValueError, match=r"^pose1: expected rigid transforms"):
         ego_motion_from_pose(pose0, pose1=pose1)
     T = relative_pose(pose0[:1], pose1[:1])
     assert T[0, 2, 3].item() == -1.5 and float(ego_motion_from_pose(pose0[:1], pose1=pose1[:1]).z_d) == 1.5
+
+
+def _turn_pose(dtype=torch.float64):
+    T = torch.tensor(np.eye(4), dtype=dtype)
+    T[:3, :3] = torch.tensor(_R_yaw(0.05), dtype=dtype)
+    T[:3, 3] = torch.tensor([0.05, 0.0, -1.2], dtype=dtype)
+    return T
+
+
+def test_poses_that_are_not_rigid_are_refused():
+    """A transposed pose, a scaled or reflected rotation block and an all-zero block once gave
+    plausible numbers (a transposed pose: z_d = 0 and yaw of the wrong sign, without an error)."""
+    from fsof_torch import plane_from_pose
+
+    T = _turn_pose()
+    cam = Camera(torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]], dtype=torch.float64), 1.65)
+    with pytest.raises(ValueError, match=r"^cam1_T_cam0: expected rigid transforms .*, got sample 0: its bottom row is "
+                                         r"\[0.05, 0.0, -1.2, 1.0\], not 0 0 0 1 \(a transposed pose"):
+        ego_motion_from_pose(T.T)
+    with pytest.raises(ValueError, match=r"^cam1_T_cam0: expected rigid transforms .*its bottom row"):
+        plane_from_pose(T.T, cam)
+    scaled = T.clone()
+    scaled[:3, :3] *= 3.0
+    reflected = T.clone()
+    reflected[:3, :3] *= -1.0
+    for bad, what in ((scaled, r"\|RᵀR − I\| up to 8, det R = 27"), (reflected, "det R = -1"),
+                      (torch.zeros(3, 4, dtype=torch.float64), "det R = 0")):
+        with pytest.raises(ValueError, match=rf"^cam1_T_cam0: expected rigid transforms .*its 3×3 block is not a "
+                                             rf"rotation: .*{what}"):
+            ego_motion_from_pose(bad)
+    # the first bad sample of a batch is named; pose0 and pose1 by their names
+    with pytest.raises(ValueError, match="^cam1_T_cam0: expected rigid transforms .*, got sample 2:"):
+        ego_motion_from_pose(torch.stack([T, T, scaled, T]))
+    with pytest.raises(ValueError, match="^pose1: expected rigid transforms"):
+        relative_pose(T, 2 * T)
+    with pytest.raises(ValueError, match="^pose0: expected rigid transforms"):
+        relative_pose(scaled, T)
+
+
+def test_rigid_poses_pass_in_every_dtype_and_keep_their_results():
+    """The check accepts poses rounded as files and dtypes round them, and changes no result."""
+    T = _turn_pose()
+    want = ego_motion_from_pose(T)
+    assert float(want.z_d) == pytest.approx(1.2010, abs=1e-4) and float(want.yaw) == pytest.approx(0.05)
+    for dtype in (torch.float16, torch.bfloat16, torch.float32):
+        got = ego_motion_from_pose(T.to(dtype))
+        assert got.z_d.dtype == torch.float32
+        assert float(got.yaw) == pytest.approx(0.05, abs=5e-3)
+    # rounded to 4 digits (|RᵀR − I| about 1e-4): still a pose
+    rounded = ego_motion_from_pose(torch.round(T, decimals=4))
+    assert float(rounded.yaw) == pytest.approx(0.05, abs=1e-3)
+    plain = ego_motion_from_pose(T.float())
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the check's products in float32 too (bfloat16: 1e-2 off)
+        auto = ego_motion_from_pose(T.float())
+    assert torch.equal(auto.z_d, plain.z_d) and torch.equal(auto.yaw, plain.yaw)
+    # unchecked where there are no values (shape inference) or while tracing
+    assert ego_motion_from_pose((3 * T).to("meta")).z_d.shape == (1,)
+
+
+def test_kitti_text_poses_pass_the_rigid_check(shared_data):
+    """The shared KITTI odometry excerpt (poses printed to 7 digits, orthonormal to 2e-7): its
+    poses and their relative poses pass, in float64 and float32."""
+    path = shared_data / "kitti_odometry_straight" / "poses.txt"
+    if not path.is_file():
+        pytest.skip("no shared KITTI odometry poses")
+    P = torch.tensor(np.loadtxt(path).reshape(-1, 3, 4), dtype=torch.float64)
+    for dtype in (torch.float64, torch.float32):
+        Pd = P.to(dtype)
+        rel = relative_pose(Pd[:-1], Pd[1:])
+        ego = ego_motion_from_pose(rel)
+        assert torch.isfinite(ego.z_d).all() and (ego.z_d > 0.5).all()

@@ -758,3 +758,78 @@ def test_velocity_flow_module_checks_its_wheelbase_when_built():
                        (0.0, ValueError), (torch.tensor([2.5, 0.0]), ValueError), (torch.tensor([float("nan")]), ValueError)):
         with pytest.raises(error, match="^wheelbase: expected"):
             VelocityFlow((12, 20), wheelbase=bad)
+
+
+@pytest.mark.parametrize("name, value, message", [
+    ("height", -1.65, "height: expected values > 0"),
+    ("height", 0.0, "height: expected values > 0"),
+    ("fy", 0.0, "fy: expected values > 0"),
+    ("z_d", float("nan"), "z_d: expected finite values"),
+    ("cy", float("inf"), "cy: expected finite values"),
+    ("v", torch.tensor([float("nan"), 200.0, 250.0]), "v: expected finite values"),
+    ("height", torch.tensor([1.65, float("-inf")]), "height: expected finite values"),
+])
+def test_vflow_curve_refuses_values_without_a_curve(name, value, message):
+    """NaN or inf arguments, a negative or zero height and a zero focal length once gave 0 (no road
+    flow) without an error; the checks change nothing for valid arguments."""
+    args = {"v": torch.tensor([180.0, 200.0, 250.0]), "z_d": 1.2, "height": 1.65, "fy": 721.5, "cy": 172.9}
+    good = vflow_curve(**args)
+    torch.testing.assert_close(good, torch.tensor([0.0511797, 0.7610766, 6.4968910]), rtol=1e-6, atol=0.0)
+    with pytest.raises(ValueError, match=f"^{message}"):
+        vflow_curve(**{**args, name: value})
+    # not read where there are no values: shape inference on the meta device
+    assert vflow_curve(torch.empty(3, device="meta"), -1.0, 1.65, 0.0, 0.0).shape == (3,)
+
+
+def test_flow_from_map_checks_types_and_shapes_and_lifts_half_precision():
+    """Half precision maps were evaluated in half precision (2.5 px off on a KITTI frame), and a
+    map of (3, 3), a horizon of another batch or an empty size raised torch's own errors."""
+    cam = _kitti_scaled(60, 200)
+    from fsof_torch.geometry.road_models import ROAD_MODELS, pack_params
+    c2, values = pack_params("paper", cam, {"z_d": 1.2, "yaw": 0.01})
+    M = road_homography(cam, {"z_d": 1.2, "yaw": 0.01})
+    horizon = ROAD_MODELS["paper"].horizon_row(c2, values)
+    flow, valid = flow_from_map(M, horizon, (60, 200))
+    for half in (torch.float16, torch.bfloat16):
+        f16, v16 = flow_from_map(M.to(half), horizon.to(half), (60, 200))
+        want, want_valid = flow_from_map(M.to(half).float(), horizon.to(half), (60, 200))  # the same map, float32
+        assert f16.dtype == torch.float32 and torch.equal(f16, want) and torch.equal(v16, want_valid)
+    f16, v16 = flow_from_map(M.half(), horizon.half(), (60, 200))
+    common = (valid & v16).expand_as(flow)
+    assert (f16.double() - flow)[common].abs().max() < 0.05  # the half map's own rounding, not its arithmetic
+    # the accepted float32 and float64 inputs keep their results and dtypes
+    assert flow.dtype == torch.float64 and flow_from_map(M.float(), horizon.float(), (60, 200))[0].dtype == torch.float32
+    with pytest.raises(ValueError, match=r"^M: expected shape \(B, 3, 3\), got \(3, 3\)"):
+        flow_from_map(M[0], horizon, (4, 5))
+    with pytest.raises(TypeError, match="^M: expected a torch.Tensor, got list"):
+        flow_from_map(M.tolist(), horizon, (4, 5))
+    with pytest.raises(TypeError, match="^horizon: expected a floating-point tensor, got dtype torch.int64"):
+        flow_from_map(M, horizon.long(), (4, 5))
+    with pytest.raises(ValueError, match=r"^horizon: expected shape \(1, 1, 3\) beside M of batch 1, got \(2, 1, 3\)"):
+        flow_from_map(M, horizon.expand(2, 1, 3), (4, 5))
+    with pytest.raises(ValueError, match=r"^horizon: expected shape \(1 or 3, 1, 3\) beside M of batch 3, got \(1, 3\)"):
+        flow_from_map(M.expand(3, 3, 3), horizon[0], (4, 5))
+    for size in ((0, 5), (-2, 5)):
+        with pytest.raises(ValueError, match=r"^size: expected positive sides"):
+            flow_from_map(M, horizon, size)
+    with pytest.raises(TypeError, match="^velocity: expected True or False"):
+        flow_from_map(M, horizon, (4, 5), velocity=1)
+    # a horizon of batch 1 beside maps of batch B is broadcast, as before
+    f3, _ = flow_from_map(M.expand(3, 3, 3), horizon, (60, 200))
+    assert torch.equal(f3, flow.expand(3, -1, -1, -1))
+
+
+def test_flow_from_map_reads_nothing_from_the_host():
+    """Its checks look at types and shapes only: the fits evaluate maps without host reads (the
+    CPU inference path's one read of the valid rows' band aside, which the graded path skips)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    cam = _kitti_scaled(60, 200)
+    from fsof_torch.geometry.road_models import ROAD_MODELS, pack_params
+    c2, values = pack_params("paper", cam, {"z_d": 1.2})
+    M = road_homography(cam, {"z_d": 1.2}).requires_grad_()
+    horizon = ROAD_MODELS["paper"].horizon_row(c2, values)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        flow_from_map(M, horizon, (60, 200))
+    reads = [e.name for e in prof.events() if e.name in ("aten::_local_scalar_dense", "aten::nonzero", "aten::item")]
+    assert reads == []

@@ -466,3 +466,42 @@ def test_road_motion_displacement_refuses_the_velocity_model():
     for odometry in ({"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, {"model": "plane", "z_d": 1.0},
                      {"model": "homography", "h11": 0.0}):
         assert not road_motion(odometry, displacement=True)[0].velocity
+
+
+def test_matrix_checks_types_and_shapes_and_promotes_dtypes():
+    """matrix / matrix_and_jacobian once raised torch's own errors for values of another dtype
+    (float64 beside a float32 camera, float16), of the wrong width or rank, or of another batch."""
+    cam32 = camera(dtype=torch.float32)
+    m = ROAD_MODELS["paper"]
+    v64 = torch.tensor([[0.05, 1.2, 0.01, 0.02, -0.01]], dtype=torch.float64)
+    want = m.matrix(camera(dtype=torch.float64), v64)
+    got = m.matrix(cam32, v64)  # the camera lifted to the values' dtype
+    assert got.dtype == torch.float64
+    torch.testing.assert_close(got, m.matrix(cam32.to(torch.float64), v64), rtol=0.0, atol=0.0)
+    torch.testing.assert_close(got, want, rtol=1e-6, atol=1e-6)
+    for half in (torch.float16, torch.bfloat16):  # half precision values computed in float32
+        M, J = m.matrix_and_jacobian(cam32, v64.to(half))
+        M_ref, J_ref = m.matrix_and_jacobian(cam32, v64.to(half).float())
+        assert M.dtype == J.dtype == torch.float32 and torch.equal(M, M_ref) and torch.equal(J, J_ref)
+    # a camera of batch 1 beside values of batch B (and values of batch 1 beside a camera of B)
+    v3 = v64.expand(3, 5) * torch.tensor([[1.0], [0.5], [2.0]], dtype=torch.float64)
+    cam = camera()
+    torch.testing.assert_close(m.matrix(cam, v3), m.matrix(cam.expand(3), v3), rtol=0.0, atol=0.0)
+    torch.testing.assert_close(m.matrix(cam.expand(3), v64), m.matrix(cam, v64).expand(3, 3, 3), rtol=0.0, atol=0.0)
+    with pytest.raises(ValueError, match=r"^values: expected shape \(B, 5\), got \(1, 3\)"):
+        m.matrix(cam, v64[:, :3])
+    with pytest.raises(ValueError, match=r"^values: expected shape \(B, 8\).*got \(8,\)"):
+        ROAD_MODELS["plane"].matrix_and_jacobian(cam, torch.zeros(8, dtype=torch.float64))
+    with pytest.raises(ValueError, match="^mismatched batch sizes: camera=2, values=3"):
+        m.matrix(cam.expand(2), v3)
+    with pytest.raises(TypeError, match="^values: expected a floating-point tensor, got dtype torch.int64"):
+        m.matrix(cam, torch.zeros(1, 5, dtype=torch.int64))
+    with pytest.raises(TypeError, match="^camera: expected a fsof_torch.Camera, got Tensor"):
+        m.matrix(cam.K, v64)
+    # the values are the caller's: no check reads them (a NaN gives a NaN map, without a host read)
+    from torch.profiler import ProfilerActivity, profile
+
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        nan = m.matrix_and_jacobian(cam32, torch.full((1, 5), float("nan"), dtype=torch.float64))[0]
+    assert torch.isnan(nan).all()
+    assert not [e.name for e in prof.events() if e.name in ("aten::_local_scalar_dense", "aten::nonzero", "aten::item")]

@@ -29,7 +29,10 @@ def fit_at_size(fit: Any, camera: Camera, size: tuple[int, int]) -> Any:
         return fit
     model = get_road_model(fit.model)
     dt = fit.homography.dtype
-    cam = camera.to(dt).expand(fit.flow.shape[0]).replace(roll=fit.camera.roll.to(dt), pitch=fit.camera.pitch.to(dt))
+    cam = camera.to(dt).expand(fit.flow.shape[0])
+    # (the fit's angles, as fitted: a failed fit's may be absurd, and are not validated again)
+    cam = Camera._checked(cam.K, cam.height, *(a.to(cam.roll).expand_as(cam.roll)
+                                               for a in (fit.camera.roll, fit.camera.pitch)))
     values = torch.stack([fit.params[n].to(dt) for n in model.params], dim=1)
     M = model.matrix(cam, values)
     flow, valid = flow_from_map(M.to(fit.flow.dtype), model.horizon_row(cam, values).to(fit.flow.dtype), size,

@@ -38,11 +38,14 @@ __all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_ma
 
 
 def roll_matrix(roll: Tensor) -> Tensor:
-    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians.
+    """R_θ (B, 3, 3) of the paper for roll angles (B,) in radians, in the angles' dtype with half
+    precision lifted to float32 (as the rest of the geometry: a half precision rotation is off
+    by up to 1e-3, bfloat16 by 1e-2).
 
     Elementwise, as ``torch.cos``: a NaN or inf angle gives NaN entries (a :class:`Camera`
     rejects non-finite angles before they get here)."""
     check_float_tensor(roll, "roll")
+    roll = roll.to(result_dtype(roll))
     c, s = torch.cos(roll), torch.sin(roll)
     z, o = torch.zeros_like(roll), torch.ones_like(roll)
     return torch.stack([c, s, z, -s, c, z, z, z, o], dim=-1).reshape(*roll.shape, 3, 3)
@@ -50,8 +53,9 @@ def roll_matrix(roll: Tensor) -> Tensor:
 
 def pitch_matrix(pitch: Tensor) -> Tensor:
     """R_β (B, 3, 3) for pitch angles (B,) in radians (β > 0: the camera looks up); elementwise
-    like :func:`roll_matrix`."""
+    and in the angles' dtype (half precision lifted to float32) like :func:`roll_matrix`."""
     check_float_tensor(pitch, "pitch")
+    pitch = pitch.to(result_dtype(pitch))
     c, s = torch.cos(pitch), torch.sin(pitch)
     z, o = torch.zeros_like(pitch), torch.ones_like(pitch)
     return torch.stack([o, z, z, z, c, s, z, -s, c], dim=-1).reshape(*pitch.shape, 3, 3)
@@ -59,7 +63,7 @@ def pitch_matrix(pitch: Tensor) -> Tensor:
 
 def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
     """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame (roll and
-    pitch of batch 1 or B, in their promoted dtype)."""
+    pitch of batch 1 or B, in their promoted dtype, half precision lifted to float32)."""
     Rr, Rp = roll_matrix(roll), pitch_matrix(pitch)
     if roll.dim() and pitch.dim():
         resolve_batch({"roll": roll.shape[0], "pitch": pitch.shape[0]})
@@ -108,6 +112,20 @@ def _check_camera_values(K: Tensor, height: Tensor) -> None:
                          f"(beyond it the road geometry overflows or underflows), got {height.tolist()}")
 
 
+def _check_angles(roll: Tensor, pitch: Tensor) -> None:
+    """Finite roll and pitch within a quarter turn, |angle| < π/2 (one host read when they are)."""
+    if skip_values(roll, pitch):
+        return
+    if bool((roll.abs() < math.pi / 2).all() & (pitch.abs() < math.pi / 2).all()):  # False for NaN too
+        return
+    for name, t, symbol in (("roll", roll, "θ"), ("pitch", pitch, "β")):
+        check_finite(t, name)
+        bad = t[~(t.abs() < math.pi / 2)]
+        if bad.numel():
+            raise ValueError(f"{name}: expected |{symbol}| < π/2 rad (a camera upright and facing the road), got "
+                             f"{bad[:3].tolist()}")
+
+
 @dataclass(eq=False)
 class Camera:
     """Intrinsics and mounting of a road-facing camera, for B frames.
@@ -115,8 +133,12 @@ class Camera:
     Args:
         K: intrinsics (3, 3) or (B, 3, 3), pixels, at the resolution of the flow.
         height: camera height above the road in metres, a float or (B,) tensor, > 0.
-        roll: roll θ about the optical axis in radians, a float or (B,).
-        pitch: pitch β in radians (an extension of the paper; 0 reproduces it), a float or (B,).
+        roll: roll θ about the optical axis in radians, |θ| < π/2, a float or (B,).
+        pitch: pitch β in radians, |β| < π/2 (an extension of the paper; 0 reproduces it), a float
+            or (B,).
+
+    The angles stay within a quarter turn: beyond it the camera is upside down or looks away from
+    the road, and "below the horizon" (:meth:`horizon_row`) no longer means "on the road".
 
     All four are stored as tensors of one float dtype and device (the promoted dtype of the
     tensors given; Python floats follow it): ``K`` (B, 3, 3), the others (B,), with B the common
@@ -155,8 +177,9 @@ class Camera:
         device = K.device
         K = K.to(dtype)
         height = as_batch_param(self.height, "height", dtype, device)
-        roll = as_batch_param(self.roll, "roll", dtype, device)
-        pitch = as_batch_param(self.pitch, "pitch", dtype, device)
+        roll = as_batch_param(self.roll, "roll", dtype, device, finite=False)
+        pitch = as_batch_param(self.pitch, "pitch", dtype, device, finite=False)
+        _check_angles(roll, pitch)
         B = resolve_batch({"K": K.shape[0], "height": height.shape[0], "roll": roll.shape[0],
                            "pitch": pitch.shape[0]})
         check_finite(K, "K")
@@ -219,7 +242,9 @@ class Camera:
     def horizon_row(self, u: float | Tensor | None = None) -> Tensor:
         """Row v of the horizon at column u (default: the principal point column), (B,).
 
-        Pixels strictly below this row (larger v) see the road in front of the camera.
+        Pixels strictly below this row (larger v) see the road in front of the camera: so for
+        every camera built with |roll| and |pitch| < π/2, which the constructor requires (a
+        camera turned further would see the road above this row, or not at all).
 
         Args:
             u: the column, pixels: a finite float or a float tensor of shape (1,) or (B,), B the
@@ -271,10 +296,9 @@ class Camera:
         return Camera._checked(*moved)
 
     def expand(self, batch_size: int) -> "Camera":
-        """The same camera for ``batch_size`` frames (from a batch of 1; ``self`` if it has
-        that batch already)."""
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise ValueError(f"batch_size: expected an int >= 1, got {batch_size!r}")
+        """The same camera for ``batch_size`` frames (an int >= 1, a NumPy integer too; from a
+        batch of 1; ``self`` if it has that batch already)."""
+        batch_size = check_int(batch_size, "batch_size", minimum=1)
         if self.batch_size == batch_size:
             return self
         if self.batch_size != 1:
@@ -295,8 +319,9 @@ class Camera:
     def _checked(cls, K: Tensor, height: Tensor, roll: Tensor, pitch: Tensor) -> "Camera":
         """A camera from values that already passed the checks of ``__post_init__`` (K (B, 3, 3),
         the others (B,), one dtype and device): a cast, move or expansion of a valid camera, or
-        a valid camera's K and height with fitted, finite angles. Skips the validation, which
-        costs more than the fitting loop's iterations (it syncs to test the values)."""
+        a valid camera's K and height with fitted, finite angles (not checked against π/2 either).
+        Skips the validation, which costs more than the fitting loop's iterations (it syncs to
+        test the values)."""
         cam = object.__new__(cls)
         cam.K, cam.height, cam.roll, cam.pitch = K, height, roll, pitch
         return cam
@@ -377,16 +402,25 @@ class Camera:
     @classmethod
     def from_projection(cls, P: Tensor, height: Tensor | float, roll: Tensor | float = 0.0,
                         pitch: Tensor | float = 0.0) -> "Camera":
-        """From a rectified 3×4 projection matrix (KITTI ``P_rect_0N`` / ``P0``): K = P[:, :3]."""
+        """From a rectified 3×4 projection matrix (KITTI ``P_rect_0N`` / ``P0``): K = P[:, :3].
+
+        A P whose first three columns are no valid K raises the constructor's error naming ``P``."""
         if not isinstance(P, Tensor):
             try:
                 P = torch.as_tensor(P, dtype=torch.float64)
             except (TypeError, ValueError, RuntimeError):
                 raise TypeError(f"P: expected a (3, 4) or (B, 3, 4) tensor or array of numbers, got "
                                 f"{type(P).__name__} {P!r:.60}") from None
-        if P.dim() < 2 or P.shape[-2:] != (3, 4):
+        if P.dim() not in (2, 3) or P.shape[-2:] != (3, 4):
             raise ValueError(f"P: expected shape (3, 4) or (B, 3, 4), got {tuple(P.shape)}")
-        return cls(P[..., :3].clone(), height, roll, pitch)
+        if not P.is_floating_point():
+            raise TypeError(f"P: expected a floating-point tensor, got dtype {P.dtype}")
+        try:
+            return cls(P[..., :3].clone(), height, roll, pitch)
+        except ValueError as err:
+            if not str(err).startswith("K: "):
+                raise
+            raise ValueError(f"P: its first three columns are K, {str(err)[3:]}") from None
 
     @classmethod
     def from_kitti(cls, path: str | os.PathLike, cam: int = 2, height: float = 1.65,
@@ -394,7 +428,10 @@ class Camera:
         """From a KITTI calibration file: raw ``calib_cam_to_cam.txt`` (``P_rect_0{cam}``) or
         odometry ``calib.txt`` (``P{cam}``). The height is not in the file (KITTI: about 1.65 m).
         A half precision ``dtype`` gives a float32 camera, as the constructor does (the file's
-        values are not rounded to half precision on the way)."""
+        values are not rounded to half precision on the way); None is float64."""
+        if dtype is not None and not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise TypeError(f"dtype: expected a floating-point torch.dtype (torch.float64, torch.float32), "
+                            f"got {type(dtype).__name__} {dtype!r}")
         P = read_kitti_calibration(path, cam)
         if dtype in (torch.float16, torch.bfloat16):
             dtype = torch.float32

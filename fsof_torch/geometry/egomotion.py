@@ -37,22 +37,37 @@ class EgoMotion(NamedTuple):
 
 
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
-    """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4)
-    (``pose1`` invertible in the dtype of the result: a ValueError names its samples that are not)."""
+    """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4),
+    rigid (:func:`as_pose_4x4`: a ValueError names a pose that is not, and a singular one)."""
     P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
     resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
     dtype = result_dtype(P0, P1)
     with autocast_off(P0):
-        P1_inv, info = torch.linalg.inv_ex(P1.to(dtype))
-        if not skip_values(info) and bool((info != 0).any()):
-            bad = (info != 0).nonzero().flatten().tolist()
-            raise ValueError(f"pose1: expected invertible poses, got samples {bad} that are singular, "
-                             f"e.g. {P1[bad[0]].tolist()}")
-        return P1_inv @ P0.to(dtype)
+        # (rigid poses are invertible: inv_ex only spares the error handling while tracing)
+        return torch.linalg.inv_ex(P1.to(dtype))[0] @ P0.to(dtype)
+
+
+def _rigid_tolerance(dtype: torch.dtype) -> float:
+    """How far the 3×3 block of a pose of ``dtype`` may be from a rotation for :func:`as_pose_4x4`:
+    the largest entry of |RᵀR − I|.
+
+    5e-3, or 4 eps of a coarser dtype (bfloat16: 3.1e-2, its own rounding). The check is for gross
+    mistakes (a scaled or sheared block, an all-zero one), not rounding: KITTI's poses, printed
+    to 7 digits, are orthonormal to 2e-7 (the relative poses of the shared odometry excerpt to
+    5e-7, in float32 too), :func:`fsof_torch.io.read_kitti_poses` accepts 1e-3, and a relative
+    pose of two such poses (what :func:`relative_pose` makes of them) adds their errors."""
+    return max(5e-3, 4 * torch.finfo(dtype).eps)
 
 
 def as_pose_4x4(T: Tensor, name: str) -> Tensor:
-    """A rigid transform (B, 4, 4) or (B, 3, 4) (or unbatched) as float (B, 4, 4), validated."""
+    """A rigid transform (B, 4, 4) or (B, 3, 4) (or unbatched) as float (B, 4, 4), validated.
+
+    Finite, its 3×3 block R a rotation (|RᵀR − I| within :func:`_rigid_tolerance` of the input's
+    dtype, det R > 0) and, for (B, 4, 4), its bottom row 0 0 0 1 (as
+    :func:`fsof_torch.io.read_kitti_poses` checks it: to 1e-9, 1e-5 relative; a transposed pose
+    has its translation there), else a ValueError naming ``name`` and the first sample that is
+    not. So the pose is invertible. The values are not checked while tracing or on the meta
+    device."""
     if not isinstance(T, Tensor) or not T.is_floating_point():
         raise TypeError(f"{name}: expected a float tensor of shape (B, 4, 4) or (B, 3, 4), got "
                         f"{type(T).__name__ if not isinstance(T, Tensor) else T.dtype}")
@@ -60,12 +75,38 @@ def as_pose_4x4(T: Tensor, name: str) -> Tensor:
         raise ValueError(f"{name}: expected shape (B, 4, 4) or (B, 3, 4), got {tuple(T.shape)}")
     if T.dim() == 2:
         T = T.unsqueeze(0)
+    tol = _rigid_tolerance(T.dtype)
     T = T.to(result_dtype(T))  # linear algebra in at least float32 (torch has no half inverse)
     check_finite(T, name)
+    _check_rigid(T, name, tol)
     if T.shape[-2] == 3:
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 1, 4)
         T = torch.cat([T, bottom], dim=-2)
     return T
+
+
+def _check_rigid(T: Tensor, name: str, tol: float) -> None:
+    """Poses T (B, 3 or 4, 4), finite, are rigid within ``tol`` (one host read when they are)."""
+    if skip_values(T) or T.numel() == 0:
+        return
+    with autocast_off(T):
+        T = T.detach()
+        R = T[:, :3, :3]
+        error = (R.transpose(-1, -2) @ R - torch.eye(3, dtype=T.dtype, device=T.device)).abs().flatten(1).amax(1)
+        det = torch.linalg.det(R)
+        ok = (error <= tol) & (det > 0)
+        if T.shape[-2] == 4:
+            e4 = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device).expand(T.shape[0], 4)
+            ok &= torch.isclose(T[:, 3], e4, rtol=1e-5, atol=1e-9).all(1)
+        if bool(ok.all()):
+            return
+        i = int((~ok).nonzero()[0])
+    if float(error[i]) <= tol and float(det[i]) > 0:
+        what = f"its bottom row is {T[i, 3].tolist()}, not 0 0 0 1 (a transposed pose has its translation there)"
+    else:
+        what = f"its 3×3 block is not a rotation: |RᵀR − I| up to {float(error[i]):.3g}, det R = {float(det[i]):.3g}"
+    raise ValueError(f"{name}: expected rigid transforms (a rotation block, |RᵀR − I| <= {tol:g}, det R > 0, "
+                     f"and a bottom row 0 0 0 1), got sample {i}: {what}; {T[i].tolist()}")
 
 
 def _axis_angle(R: Tensor) -> Tensor:

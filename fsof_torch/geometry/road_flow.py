@@ -25,9 +25,14 @@ from torch import Tensor, nn
 from .._check import (
     autocast_off,
     as_batch_param,
+    batch_choices,
     check_all_finite,
+    check_bool,
+    check_finite,
+    check_float_tensor,
     check_number,
     check_positive,
+    check_shape,
     check_size,
     resolve_batch,
     result_dtype,
@@ -183,15 +188,20 @@ def flow_from_map(M: Tensor, horizon: Tensor, size: tuple[int, int], *,
     """Evaluate per-frame 3×3 maps on the pixel grid: the flow and where it is defined.
 
     Args:
-        M: (B, 3, 3) a road homography (pixels of t -> t+1) or, with ``velocity``, its time
+        M: (B, 3, 3) float, a road homography (pixels of t -> t+1) or, with ``velocity``, its time
             derivative G (1/s).
-        horizon: (B, 1, 3) the row a with ``a · p̃ > 0`` below the horizon
-            (:meth:`~fsof_torch.geometry.road_models.RoadModel.horizon_row`).
-        size: ``(H, W)``.
+        horizon: (B, 1, 3) or (1, 1, 3) float, the row a with ``a · p̃ > 0`` below the horizon
+            (:meth:`~fsof_torch.geometry.road_models.RoadModel.horizon_row`); only its sign
+            along the grid is used.
+        size: ``(H, W)``, positive ints.
 
     Returns:
-        ``flow`` (B, 2, H, W) (pixels, or px/s with ``velocity``), 0 where not defined, and
-        ``valid`` (B, 1, H, W) bool.
+        ``flow`` (B, 2, H, W) in M's dtype, half precision lifted to float32 (pixels, or px/s
+        with ``velocity``), 0 where not defined, and ``valid`` (B, 1, H, W) bool.
+
+    Types and shapes are checked (errors name ``M``, ``horizon``, ``size``); the values are not
+    (the maps come from the fits' loops, which this function must not slow with host reads): a
+    NaN or inf entry of M gives NaN flow. :func:`road_flow` checks the parameters it builds M from.
 
     ``q = M p̃`` is separable: ``q_k(u, v) = M[k,0] u + (M[k,1] v + M[k,2])``, so each per-pixel
     quantity is an outer sum (or product) of an (H,) and a (W,) vector, and the flow numerator
@@ -203,8 +213,15 @@ def flow_from_map(M: Tensor, horizon: Tensor, size: tuple[int, int], *,
     Where not valid the flow is exactly 0 with a denominator that cannot be 0, so neither the
     value nor its gradient can be inf or NaN.
     """
-    H, W = size
-    B = M.shape[0]
+    check_float_tensor(M, "M")
+    check_float_tensor(horizon, "horizon")
+    B = check_shape(M, "M", ("B", 3, 3), nonempty=("B",))["B"]
+    if horizon.dim() != 3 or tuple(horizon.shape[1:]) != (1, 3) or horizon.shape[0] not in (1, B):
+        raise ValueError(f"horizon: expected shape ({batch_choices(B)}, 1, 3) beside M of batch {B}, got "
+                         f"{tuple(horizon.shape)}")
+    H, W = check_size(size)
+    check_bool(velocity, "velocity")
+    M = M.to(result_dtype(M))  # (in float16 the flow was 2.5 px off on a KITTI frame)
     dtype, device = M.dtype, M.device
     a = horizon.expand(B, 1, 3)[:, 0].detach()  # only its sign is used
     u = torch.arange(W, dtype=dtype, device=device)
@@ -500,6 +517,10 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
     promoted dtype of the tensor arguments with half precision lifted to float32, as the rest of
     the geometry (the default dtype when none is a float tensor), on their device: a half
     precision row index computed in its own precision overflows (z_d (v-v_0)² beyond 65504).
+
+    Every value must be finite, ``height`` and ``fy`` positive: else a ValueError naming the
+    argument (a NaN row or a negative height would read as "no road flow" there; the values are
+    not checked while tracing).
     """
     named = {"v": v, "z_d": z_d, "height": height, "fy": fy, "cy": cy}
     floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
@@ -515,6 +536,10 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
             args[name] = torch.as_tensor(x, dtype=dtype, device=device if not isinstance(x, Tensor) else x.device)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
+    for name, x in args.items():
+        check_finite(x, name)
+    check_positive(args["height"], "height")
+    check_positive(args["fy"], "fy")
     dv = args["v"] - args["cy"]
     den = args["height"] * args["fy"] - args["z_d"] * dv
     ok = (dv > 0) & (den > 0)

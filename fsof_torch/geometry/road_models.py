@@ -54,8 +54,8 @@ from typing import Callable, Mapping
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, as_batch_param, check_all_finite, resolve_batch, result_dtype, skip_values,
-                      tracing)
+from .._check import (autocast_off, as_batch_param, check_all_finite, check_float_tensor, check_shape, resolve_batch,
+                      result_dtype, skip_values, tracing)
 from .camera import Camera, check_camera
 from .egomotion import as_pose_4x4
 
@@ -121,10 +121,9 @@ def _axis_bases(axes: tuple[int, ...], dtype: torch.dtype, device: torch.device)
     return _constant((axes, dtype, device), lambda: tuple(b[list(axes)] for b in _bases(dtype, device)))
 
 
-# Products of small matrices go through torch.bmm on (B, n, m) operands: the ``@`` of batched
-# 3×3 matrices costs several times the product itself in dispatch (broadcasting checks and
-# reshapes), and the fits evaluate these maps every solver iteration (python
-# benchmarks/bench_fit.py).
+# Products of small matrices go through torch.bmm on (B, n, m) operands: the ``@`` of batched 3×3
+# matrices costs several times the product itself in dispatch (broadcasting checks, reshapes), and
+# the fits evaluate these maps every solver iteration (python benchmarks/bench_fit.py).
 
 def _mm(a: Tensor, b: Tensor) -> Tensor:
     """a @ b for a (B, n, k) and b (B, k, m)."""
@@ -347,12 +346,23 @@ class RoadModel:
     _fn: object
 
     def matrix(self, camera: Camera, values: Tensor) -> Tensor:
-        """The map (B, 3, 3) for values (B, P) (float; the camera's K and height, batch B)."""
-        return self.evaluate(camera.K, camera.K_inv(), camera.height, values, False)[0]
+        """The map (B, 3, 3) for values (B, P) (columns in ``params`` order; camera and values of
+        batch 1 or B), in their promoted dtype, half precision lifted to float32. Types and shapes
+        are checked, not the values (the fits' loops must not wait for host reads): NaN in, NaN out."""
+        return self.evaluate(*self._inputs(camera, values), False)[0]
 
     def matrix_and_jacobian(self, camera: Camera, values: Tensor) -> tuple[Tensor, Tensor]:
-        """The map (B, 3, 3) and its derivatives by the parameters (B, P, 3, 3)."""
-        return self.evaluate(camera.K, camera.K_inv(), camera.height, values, True)[:2]
+        """The map (B, 3, 3) and its derivatives by the parameters (B, P, 3, 3), as :meth:`matrix`."""
+        return self.evaluate(*self._inputs(camera, values), True)[:2]
+
+    def _inputs(self, camera: Camera, values: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        """K, K⁻¹, height and values (B, P) of one batch and float dtype (no value read)."""
+        check_camera(camera)
+        check_shape(check_float_tensor(values, "values"), "values", ("B", len(self.params)))
+        B = resolve_batch({"camera": camera.batch_size, "values": values.shape[0]})
+        dtype = result_dtype(camera.K, values)
+        camera = (camera.to(dtype) if camera.dtype != dtype else camera).expand(B)  # (a cast: nothing read)
+        return camera.K, camera.K_inv(), camera.height, values.to(dtype).expand(B, -1)
 
     def evaluate(self, K: Tensor, K_inv: Tensor, height: Tensor, values: Tensor,
                  jacobian: bool) -> tuple[Tensor, Tensor | None, Tensor | None]:

@@ -472,8 +472,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                 elif bool(ok.any()) and est_model in ("paper", "plane"):
                     # where the images say nothing, the odometry alone, sample by sample
                     motion_model, odo = est_model, where_motion(ok, values, _planar_as(est_model, odo, camera))
-                    cam_model = camera.replace(roll=torch.where(ok, est_camera.roll, camera.roll),
-                                               pitch=torch.where(ok, est_camera.pitch, camera.pitch))
+                    cam_model = Camera._checked(camera.K, camera.height, torch.where(ok, est_camera.roll, camera.roll),
+                                                torch.where(ok, est_camera.pitch, camera.pitch))
                     reuse_fit_flow = False
                 else:  # the odometry alone
                     fit_result = None
@@ -626,9 +626,9 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
     success = torch.zeros(B, dtype=torch.bool, device=device).index_copy(0, index, ok)
     roll = camera.roll.index_copy(0, index, result.camera.roll.detach().to(device=device, dtype=dtype))
     pitch = camera.pitch.index_copy(0, index, result.camera.pitch.detach().to(device=device, dtype=dtype))
-    # the estimated attitude, attached to the caller's camera so K and height keep their graph
+    # the estimated attitude (a failed sample's as fitted) on the caller's K and height (their graph kept)
     cam_model = camera if torch.equal(roll, camera.roll) and torch.equal(pitch, camera.pitch) else \
-        camera.replace(roll=roll, pitch=pitch)
+        Camera._checked(camera.K, camera.height, roll, pitch)
     return result, success, params, result.model, cam_model
 
 
