@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     fig = pair_figure(flows=flows, errors=errors, road=road, max_flow=max_flow, error_vmax=5.0,
                       error_label="end-point error (px)", images=(image1, image2),
                       title="A synthetic pair: OpenCV DIS flow before and after freespace refinement "
-                            "(with the vehicle's odometry); error = |flow − ground truth|")
+                            "(with the vehicle's odometry)\nerror = |flow − ground truth|")
     path = save_figure(fig, args.out)
     print(f"wrote {path}")
     return 0
