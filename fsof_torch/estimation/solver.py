@@ -575,10 +575,10 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         if checks and it + 1 == checks[0]:
             checks.pop(0)
             if pending is not None:  # (one host read: the arguments' values and convergence)
-                code = int(done.all() + 2 * pending)
+                bad, all_done = divmod(int(2 * pending + done.all()), 2)  # (both in one int: one read)
                 pending = None
-                report(code // 2)
-                if code % 2:
+                report(bad)
+                if all_done:
                     break
             elif bool(done.all()):
                 break

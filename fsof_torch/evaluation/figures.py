@@ -441,7 +441,7 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
         title: the figure's title.
     """
     plt = _pyplot()
-    # the records' order (the job's time order): sorting the names put '10' before '5'
+    # the records' order, the job's time order (sorted names would put '10' before '5')
     pairs = list(dict.fromkeys(r["pair"] for r in records))
     index = {p: i for i, p in enumerate(pairs)}
     variants = list(dict.fromkeys(r["variant"] for r in records))

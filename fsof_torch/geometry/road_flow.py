@@ -28,7 +28,6 @@ from .._check import (
     batch_choices,
     check_all_finite,
     check_bool,
-    check_finite,
     check_float_tensor,
     check_number,
     check_positive,
@@ -536,8 +535,7 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
             args[name] = torch.as_tensor(x, dtype=dtype, device=device if not isinstance(x, Tensor) else x.device)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
-    for name, x in args.items():
-        check_finite(x, name)
+    check_all_finite(args)
     check_positive(args["height"], "height")
     check_positive(args["fy"], "fy")
     dv = args["v"] - args["cy"]
