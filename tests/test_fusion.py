@@ -705,6 +705,7 @@ def test_fuse_flow_nonfinite_model_outside_the_mask_is_harmless():
     (dict(photometric_options={"model": "plane"}), TypeError,
      r"photometric_options: options \['model'\] are set by the caller itself"),
     (dict(gate=5), TypeError, "gate: expected an ImageGate, 'auto' or None, got 5"),
+    (dict(gate="AUTO"), ValueError, "gate: expected an ImageGate, 'auto' or None, got 'AUTO'"),
 ])
 def test_refiner_options_named_and_quoted(options, error, message):
     pred, mask, cam, _ = make_case()

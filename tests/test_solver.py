@@ -459,6 +459,20 @@ def test_mean_cost_where_no_point_counts_is_the_far_outliers():
         assert float(sol.cost) < far_outlier_cost("cauchy"), missing
 
 
+def test_results_are_not_the_callers_tensors():
+    """``solve(max_iter=0).params`` and ``robust_cost(kind="l2")`` returned the caller's own
+    tensors: an in-place edit of the result changed the caller's start or residuals."""
+    t = torch.linspace(0, 1, 10, dtype=torch.float64).expand(1, 10)
+    problem = ResidualProblem(lambda p: ((p[:, :1] - t).unsqueeze(1), torch.ones(1, 1, 1, 10, dtype=torch.float64),
+                                         torch.ones(1, 10, dtype=torch.bool)), torch.tensor([10]))
+    start = torch.zeros(1, 1, dtype=torch.float64)
+    sol = solve(problem, start, max_iter=0)
+    assert torch.equal(sol.params, start) and sol.params.data_ptr() != start.data_ptr()
+    r2 = torch.rand(5, dtype=torch.float64)
+    cost = robust_cost(r2, 1.0, kind="l2")
+    assert torch.equal(cost, r2) and cost.data_ptr() != r2.data_ptr()
+
+
 # -- sample_points: 16-bit images ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

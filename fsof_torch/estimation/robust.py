@@ -84,7 +84,7 @@ def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tens
     check_scale(scale)
     r2, scale = _checked_r2(r2), _lifted(scale)
     if kind == "l2":
-        return r2
+        return r2.clone()  # (a result of its own, not the caller's tensor)
     c2 = scale * scale
     return c2 * _unit_kernel(r2 / c2, kind, weight=False)[0]
 

@@ -369,7 +369,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         raise ValueError(f"scale: expected a finite number > 0, got {scale!r}")
     # (the problem's linear algebra too: autocast would build the normal equations in 16 bits)
     with autocast_off(params):
-        return _solve(problem, params.to(result_dtype(params)), free, prior_mean, prior_precision, lower, upper,
+        # (a copy: with no accepted step, or max_iter=0, the result is not the caller's tensor)
+        return _solve(problem, params.to(result_dtype(params), copy=True), free, prior_mean, prior_precision, lower, upper,
                       kernel, scale, anneal, max_iter, tol, resolution, checks, damping, missing, predict,
                       check_values=check_every is not None and not skip_values(params))
 

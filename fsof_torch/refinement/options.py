@@ -48,7 +48,9 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
     if not isinstance(starts, (list, tuple)):
         raise TypeError(f"starts: expected a list of start candidates (dicts or fits), got {type(starts).__name__}")
-    if not (gate is None or isinstance(gate, ImageGate) or (isinstance(gate, str) and gate == "auto")):
+    if isinstance(gate, str) and gate != "auto":
+        raise ValueError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
+    if not (gate is None or isinstance(gate, ImageGate) or isinstance(gate, str)):
         raise TypeError(f"gate: expected an ImageGate, 'auto' or None, got {gate!r}")
     # the options of the older fit= choice go to fit_road / fit_image with these set by the refiner
     check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road, reserved=FIT_RESERVED)
