@@ -96,6 +96,29 @@ def test_smooth_attitude_refuses_bad_input(args, error, match):
         smooth_attitude(*args)
 
 
+def test_smooth_attitude_takes_numpy_numbers_and_refuses_sigmas_too_small_to_weigh():
+    att, chg = torch.tensor([0.01, 0.02]), torch.tensor([0.01, 0.0])
+    track, sigma = smooth_attitude(att, chg, np.float64(0.01), np.float32(0.001))
+    ref_track, ref_sigma = smooth_attitude(att, chg, 0.01, float(np.float32(0.001)))
+    assert torch.equal(track, ref_track) and torch.equal(sigma, ref_sigma)
+    # (1 / σ² overflowed to inf and the track came back NaN, without an error)
+    with pytest.raises(ValueError, match=r"^attitude_sigma: expected values of at least 1e-150 .*got 1e-200"):
+        smooth_attitude(att, chg, 1e-200, 1.0)
+
+
+def test_robust_mean_of_an_even_count_is_not_the_lower_value():
+    """torch's ``median`` takes the lower middle value: with two successful pairs the deviation
+    was 0 and the mounting came out as the smaller of their two attitudes, not their mean."""
+    from fsof_torch.estimation.sequence import _robust_mean
+
+    ok = torch.ones(2, dtype=torch.bool)
+    assert _robust_mean(torch.tensor([0.01, -0.01], dtype=torch.float64), ok) == pytest.approx(0.0, abs=1e-15)
+    # an outlier is still left out; a failed pair counts for nothing
+    x = torch.tensor([0.010, 0.011, 0.012, 0.013, 0.5, -7.0], dtype=torch.float64)
+    ok = torch.tensor([True, True, True, True, True, False])
+    assert _robust_mean(x, ok) == pytest.approx(0.0115, abs=1e-12)
+
+
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
@@ -254,6 +277,10 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(ValueError, match=r"poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got torch.float32 \(2, 4, 4\)"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))
+    # (torch's own message, naming nothing, for poses it could not convert)
+    with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
+                                         r"got list"):
+        fit_sequence(frames[:3], road, cam, poses=[[["a"] * 4] * 4] * 3)
     # each item is checked as it is read (named by its index), before any fit
     H, W = frames[0].shape[-2:]
     with pytest.raises(TypeError, match="frames: expected a sequence of tensors"):
@@ -311,6 +338,10 @@ def test_fit_sequence_one_pass_with_poses_gives_metres_at_the_calibrated_height(
     metric = fit_sequence(frames[:3], pairs[0]["road"], nominal, poses=larger, **options)
     ratio = metric.mounting["height"] / float(nominal.height[0])
     assert ratio == pytest.approx(1.5, rel=0.02)
+    # two pairs that succeed calibrate the mounting at the mean of their attitudes (once the lower one)
+    assert bool(plain.success.all())
+    for name in ("roll", "pitch"):
+        assert plain.mounting[name] == pytest.approx(float(plain.first_pass[name].double().mean()), abs=1e-9)
     assert float(metric.camera.height[0]) == pytest.approx(metric.mounting["height"])
     for name, value in plain.params.items():
         scale = ratio if name in ("x_d", "y_d", "z_d") else 1.0

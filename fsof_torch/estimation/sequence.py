@@ -33,6 +33,7 @@ memory of a few frames; between pairs only each pair's parameters and success ar
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
@@ -102,7 +103,7 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     dt = torch.float64
     sigmas = []
     for name, given in (("attitude_sigma", attitude_sigma), ("change_sigma", change_sigma)):
-        if isinstance(given, bool) or not isinstance(given, (Tensor, float, int)):
+        if isinstance(given, bool) or not isinstance(given, (Tensor, numbers.Real)):
             raise TypeError(f"{name}: expected a number or a tensor of {N} values, got {type(given).__name__}")
         sigma = torch.as_tensor(given, dtype=dt)
         if sigma.dim() > 1 or sigma.numel() not in (1, N):
@@ -111,6 +112,9 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
             raise ValueError(f"{name}: expected values > 0 (inf: the measurement does not count), got {sigma!r}")
         sigmas.append(sigma.expand(N).cpu())
     wa, wc = (1.0 / s.square() for s in sigmas)
+    for w, sigma, name in ((wa, sigmas[0], "attitude_sigma"), (wc, sigmas[1], "change_sigma")):
+        if not bool(torch.isfinite(w).all()):  # (1 / σ² beyond float64's range: the track came back NaN)
+            raise ValueError(f"{name}: expected values of at least 1e-150 (1 / σ² finite), got {sigma.min().item()!r}")
     att, chg = attitude.to(dt).cpu(), change.to(dt).cpu()
     # a measurement that does not count contributes nothing, whatever its value (also NaN)
     for w, x, name in ((wa, att, "attitude"), (wc, chg, "change")):
@@ -149,8 +153,10 @@ def _robust_mean(x: Tensor, ok: Tensor) -> float:
     """The mean of the values within 3 median absolute deviations of their median (success only:
     ``ok`` has at least one)."""
     v = x[ok]
-    med = v.median()
-    mad = (v - med).abs().median().clamp_min(1e-9)
+    # (the median of an even count is the mean of the middle two: torch's ``median`` takes the lower,
+    # which with two values made the deviation 0 and kept only the lower one)
+    med = v.quantile(0.5)
+    mad = (v - med).abs().quantile(0.5).clamp_min(1e-9)
     keep = (v - med).abs() <= 3 * 1.4826 * mad
     return float(v[keep].mean())
 
@@ -233,11 +239,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                             f"indexing), got {type(value).__name__}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
-    if isinstance(passes, bool) or not isinstance(passes, int) or passes not in (1, 2):
+    if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes not in (1, 2):
         raise ValueError(f"passes: expected 1 or 2, got {passes!r}")
+    passes = int(passes)
     keep_fits, progress = check_bool(keep_fits, "keep_fits"), check_bool(progress, "progress")
     for name, value in (("attitude_deg", attitude_deg), ("body_rotation_deg", body_rotation_deg)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value < math.inf):
             raise ValueError(f"{name}: expected a finite number of degrees > 0 (a standard deviation), got {value!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera of batch 1, got {type(camera).__name__}")
@@ -258,7 +265,13 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         return m
 
     if poses is not None:
-        poses = torch.as_tensor(poses)
+        if isinstance(poses, (list, tuple)) and all(isinstance(p, Tensor) for p in poses):
+            poses = torch.stack(poses) if poses else torch.empty(0)
+        try:
+            poses = torch.as_tensor(poses)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
+                            f"{type(poses).__name__} ({err})") from None
         if poses.shape != (N + 1, 4, 4) or not poses.is_floating_point():
             raise ValueError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                              f"{poses.dtype} {tuple(poses.shape)}")
@@ -336,7 +349,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         use = ok & (image_steps > 1e-3)
         if bool(use.any()):
             # metric step = (d / h) h: h = h_nominal · median(metric / image-derived)
-            height = float(camera.height[0]) * float((steps[use] / image_steps[use]).median())
+            height = float(camera.height[0]) * float((steps[use] / image_steps[use]).quantile(0.5))
             if not (math.isfinite(height) and height > 0):
                 raise ValueError(f"poses: their translations give no scale (camera height {height:g} m): the "
                                  "poses do not move where the images do")
