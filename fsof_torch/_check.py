@@ -424,18 +424,26 @@ def autocast_off(x: Tensor) -> ContextManager:
     return torch.autocast(device_type=device_type, enabled=False)
 
 
+def tensor_from_array(array: Any) -> Tensor:
+    """``torch.from_numpy`` of any NumPy array: one with negative strides (such as ``a[::-1]``, a
+    BGR-to-RGB view) or in a non-native byte order is copied first, values kept (torch takes
+    neither); others share their memory, as with ``from_numpy``."""
+    import numpy as np
+
+    if any(stride < 0 for stride in array.strides):
+        array = np.ascontiguousarray(array)
+    if not array.dtype.isnative:
+        array = array.astype(array.dtype.newbyteorder("="))
+    return torch.from_numpy(array)
+
+
 def as_chw_flow(flow: object, name: str) -> Tensor:
     """A flow as a (2, H, W) float tensor (from a tensor or array of that shape; an array with
     negative strides, such as ``a[::-1]``, or in a non-native byte order is copied, values kept)."""
     import numpy as np
 
     if isinstance(flow, np.ndarray):
-        # (torch.from_numpy takes neither negative strides nor a non-native byte order)
-        if any(stride < 0 for stride in flow.strides):
-            flow = np.ascontiguousarray(flow)
-        if not flow.dtype.isnative:
-            flow = flow.astype(flow.dtype.newbyteorder("="))
-        flow = torch.from_numpy(flow)
+        flow = tensor_from_array(flow)
     if not isinstance(flow, Tensor):
         raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")
     check_has_values(flow, name)
