@@ -204,6 +204,8 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
     t0 = time.process_time()
     seq = fit_sequence(frames, [p["road"] for p in loaded], loaded[0]["camera"].to(torch.float64), progress=progress)
     share = (time.process_time() - t0) / len(loaded)
+    print(f"fit_sequence calibrated the mounting at pitch {math.degrees(seq.mounting['pitch']):+.3f} deg, "
+          f"roll {math.degrees(seq.mounting['roll']):+.3f} deg (no poses)")
     motion = {name: {"model": "plane", **{k: v[i:i + 1] for k, v in seq.params.items()}}
               for i, (name, _) in enumerate(pairs)}
 
