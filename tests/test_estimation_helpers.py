@@ -2,7 +2,7 @@
 alone, the pyramid's torch filters against OpenCV's at any image size, the CPU filters on any
 layout and float dtype, the flow's planar start on broken pixels and wrong inputs, the robust
 kernels' scale, and the turn screen's starts (fsof_torch.estimation: decompose, pyramid,
-initial, robust, starts)."""
+initial, robust, starts, confidence)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,9 @@ import torch
 
 from fsof_torch import Camera, decompose_homography, road_flow, road_homography
 from fsof_torch.estimation import pyramid as P
-from fsof_torch.estimation.initial import planar_start
+from fsof_torch.estimation.confidence import warped_samples
+from fsof_torch.estimation.initial import homography_dlt, planar_motion, planar_start
+from fsof_torch.estimation.sampling import pixel_coordinates, sample_mask
 from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
 from fsof_torch.estimation.starts import turning_start
 from fsof_torch.geometry.road_models import get_road_model, pack_params
@@ -116,6 +118,18 @@ def test_decompose_homography_returns_the_inputs_dtype(dtype):
               fit.camera.roll):
         assert t.dtype == expected
     assert bool(fit.success) and float(fit.z_d) == pytest.approx(1.2, abs=1e-2 if dtype.itemsize == 2 else 1e-5)
+
+
+def test_decompose_homography_gives_the_homography_of_its_scaled_camera():
+    """As its docstring says: fit.homography is the plane's homography for fit.camera (the grid's
+    scaled camera), not H: S⁻¹ fit.homography S is H up to scale, S = fit.camera.K camera.K⁻¹."""
+    cam = _two_cameras()
+    H = road_homography(cam, {"z_d": 1.2, "yaw": 0.01, "x_d": 0.05}, model="plane")
+    fit = decompose_homography(H, cam)
+    S = fit.camera.K @ torch.linalg.inv(cam.K)
+    back = torch.linalg.inv(S) @ fit.homography @ S
+    torch.testing.assert_close(back / back[:, 2:, 2:], H / H[:, 2:, 2:], rtol=0, atol=1e-9)
+    assert float((fit.homography / fit.homography[:, 2:, 2:] - H / H[:, 2:, 2:]).abs().max()) > 1.0
 
 
 # -- the pyramid's torch path (what a GPU tensor takes) against OpenCV's -------------------------
@@ -297,6 +311,65 @@ def test_planar_start_names_wrong_inputs():
         planar_start(flow, mask, cam, 0)
     with pytest.raises(ValueError, match=r"flow: expected a non-empty batch, got shape \(0, 2, 60, 160\)"):
         planar_start(flow[:0], mask, cam)
+
+
+# -- planar_motion, homography_dlt: points that are not real -------------------------------------
+
+def test_linear_starts_ignore_whatever_the_points_that_are_not_real_hold():
+    """A NaN at a point marked not real (sel False: a frame's padding) does not reach the sums:
+    the result is that of the same points padded with zeros (it was the identity / zero motion,
+    the frame marked degenerate)."""
+    flow, mask, cam, truth = _small_flow()
+    flow = torch.cat([flow, flow]).to(torch.float64)
+    mask = torch.cat([mask, mask])
+    mask[1, :, :40] = False  # (fewer pixels in frame 1: its points end in padding)
+    points = sample_mask(mask, None)  # (every pixel: frame 1's run padded to frame 0's length)
+    assert bool(points.sel[0].all()) and not bool(points.sel[1].all())
+    pts = pixel_coordinates(points.pix, SIZE[1])
+    real = points.sel.unsqueeze(1)
+    zeros = torch.where(real, torch.gather(flow.flatten(2), 2, points.pix.unsqueeze(1).expand(-1, 2, -1)), 0.0)
+    nan_pts, nan_flow = torch.where(real, pts, float("nan")), torch.where(real, zeros, float("nan"))
+    c = cam.expand(2)
+    want, want_good = planar_motion(c.K, c.K_inv(), c.roll, c.pitch, pts, zeros, points.sel)
+    got, good = planar_motion(c.K, c.K_inv(), c.roll, c.pitch, nan_pts, nan_flow, points.sel)
+    assert bool(want_good.all()) and torch.equal(good, want_good) and torch.equal(got, want)
+    assert (want[:, 1] * 1.65).tolist() == pytest.approx([truth["z_d"]] * 2, abs=1e-6)
+    want = homography_dlt(c.K, c.K_inv(), pts, zeros, points.sel)
+    assert torch.equal(homography_dlt(c.K, c.K_inv(), nan_pts, nan_flow, points.sel), want)
+    assert not torch.equal(want[1], torch.eye(3, dtype=want.dtype))
+
+
+# -- warped_samples: one host read --------------------------------------------------------------
+
+def test_warped_samples_reads_the_frames_bounds_once():
+    """The frames' runs of points are read from the device once (one tolist), not twice per frame
+    (int(bounds[b]) was a host sync per read on a GPU)."""
+    from torch.overrides import TorchFunctionMode
+
+    class HostReads(TorchFunctionMode):
+        def __init__(self):
+            super().__init__()
+            self.reads = []
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            name = getattr(func, "__name__", "")
+            if name in ("__int__", "__index__", "__float__", "__bool__", "item", "tolist"):
+                self.reads.append(name)
+            return func(*args, **(kwargs or {}))
+
+    g = torch.Generator().manual_seed(0)
+    B, H, W = 3, 16, 20
+    image1, image2 = torch.rand(B, 1, H, W, generator=g), torch.rand(B, 2, H, W, generator=g)
+    flow = torch.randn(B, 2, H, W, generator=g)
+    points = sample_mask(torch.rand(B, 1, H, W, generator=g) > 0.3, None)
+    valid = torch.ones(B, 1, H, W, dtype=torch.bool)
+    with HostReads() as mode:
+        I1, I2, ok = warped_samples((image1,), (image2,), flow, valid, points)
+    assert mode.reads == ["tolist"]
+    # (the first point of frame 2's run: its own pixel of frame 2)
+    n = int(points.bounds[2])
+    v, u = divmod(int(points.every[n]) % (H * W), W)
+    assert torch.equal(I1[:, n], image1[2, :, v, u].double()) and I2.shape == (2, points.every.numel())
 
 
 # -- robust_weight / robust_cost: the scale ------------------------------------------------------

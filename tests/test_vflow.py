@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pytest
 import torch
@@ -449,9 +451,11 @@ class TestDetectFreespace:
         cam, flow, valid, road = self._scene()
         with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
             detect_freespace(flow, None)
-        with pytest.raises(ValueError, match="threshold: expected a finite number"):
+        with pytest.raises(ValueError, match="threshold: expected a number >= 0, got -1.0"):
             detect_freespace(flow, cam, threshold=-1.0)
-        with pytest.raises(ValueError, match="bottom_rows: expected an integer >= 1"):
+        with pytest.raises(ValueError, match="threshold: expected a finite number, got inf"):
+            detect_freespace(flow, cam, threshold=float("inf"))
+        with pytest.raises(ValueError, match="bottom_rows: expected an int >= 1, got 0"):
             detect_freespace(flow, cam, bottom_rows=0)
         with pytest.raises(ValueError, match="camera: expected batch 1 "):
             detect_freespace(flow, _camera(B=2))
@@ -540,6 +544,68 @@ class TestDetectFreespace:
         det = detect_freespace(flow, level, mask=valid, threshold=0.05, relative_threshold=0.02, return_details=True)
         assert float(det.fit.roll) == pytest.approx(float(cam.roll), abs=1e-4) and float(cam.roll) > 0.017
         assert _iou(det.freespace[0], pair["road"] & pair["valid"]) >= 0.95
+
+    def test_numpy_numbers_are_taken_and_a_bool_is_not_a_number(self):
+        """NumPy integers and floats are numbers (isinstance(x, (int, float)) refused np.int64 and
+        np.float32); True is no threshold (it passed as 1.0)."""
+        cam, flow, valid, road = self._scene()
+        plain = detect_freespace(flow, cam, threshold=0.25, bottom_rows=1, close_kernel=3, refits=1)
+        numpy = detect_freespace(flow, cam, threshold=np.float32(0.25), bottom_rows=np.int64(1),
+                                 close_kernel=np.int64(3), refits=np.int64(1))
+        assert torch.equal(numpy, plain) and _iou(plain, road) > 0.95
+        with pytest.raises(TypeError, match="threshold: expected a number, got bool True"):
+            detect_freespace(flow, cam, threshold=True)
+        with pytest.raises(TypeError, match="refits: expected an int, got float 1.0"):
+            detect_freespace(flow, cam, refits=1.0)
+
+    def test_options_for_the_fits_are_checked_before_any_fit(self, monkeypatch):
+        """curve_options and fit_options are checked against the receiving function's keywords at
+        entry: an unknown name, or one detect_freespace sets itself, is a named TypeError (it was
+        Python's "got multiple values" or "unexpected keyword", after the curve fit)."""
+        import fsof_torch.estimation.freespace as freespace
+
+        cam, flow, valid, road = self._scene()
+
+        @functools.wraps(fit_vflow_curve)  # (its keywords, which the check reads)
+        def no_fit(*args, **kwargs):
+            raise AssertionError("fitted before the options were checked")
+
+        monkeypatch.setattr(freespace, "fit_vflow_curve", no_fit)
+        for options, match in [
+            (dict(curve_options={"model": "velocity"}),
+             r"curve_options: options \['model'\] are set by the caller itself"),
+            (dict(curve_options={"bogus": 1}), r"curve_options: unknown options \['bogus'\] of fit_vflow_curve"),
+            (dict(fit_options={"bogus": 1}), r"fit_options: unknown options \['bogus'\] of fit_road"),
+            (dict(fit_options={"model": "plane"}), r"fit_options: options \['model'\] are set by the caller itself"),
+            (dict(fit_options={"fixed": ()}), r"fit_options: options \['fixed'\] are set by the caller itself"),
+            (dict(fit_options={"fit_roll": False}),
+             r"fit_options: options \['fit_roll'\] are detect_freespace's own arguments; pass fit_roll="),
+        ]:
+            with pytest.raises(TypeError, match=match):
+                freespace.detect_freespace(flow, cam, **options)
+
+    def test_fit_options_init_starts_the_fits_on_the_seed(self, monkeypatch):
+        """A caller's init starts each hypothesis' fit on the seed (without its roll where the
+        camera's attitude is held); each refit starts from the fit before it (with refits=1, the
+        default, init= crashed: "got multiple values for keyword argument 'init'")."""
+        import fsof_torch.estimation.freespace as freespace
+
+        cam, flow, valid, road = self._scene()
+        starts = []
+        fit_displacement = freespace.fit_displacement
+
+        def spy(*args, init=None, **kwargs):
+            starts.append((init, kwargs["fit_roll"]))
+            return fit_displacement(*args, init=init, **kwargs)
+
+        monkeypatch.setattr(freespace, "fit_displacement", spy)
+        init = {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01, "roll": 0.01}
+        free = freespace.detect_freespace(flow, cam, fit_options={"init": init})
+        assert _iou(free, road) > 0.95
+        # (roll fitted: fit, refit; then the camera's attitude held: fit, refit)
+        assert [roll for _, roll in starts] == [True, True, False, False]
+        assert starts[0][0] is init and starts[2][0] == {"x_d": 0.05, "z_d": 1.0, "yaw": 0.01}
+        assert all(isinstance(start, freespace.RoadFit) for start, _ in (starts[1], starts[3]))
 
 def test_row_dominant_flow_and_curve_of_a_frame_as_alone():
     """A frame's histogram range is its own: beside a faster frame (larger flows) it gets the

@@ -60,10 +60,13 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     Returns:
         The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual``: how far
         the plane's flow is from the homography's on the grid, in the sample's grid pixels;
-        ``fit.camera`` is the scaled camera; ``fit.iterations`` counts all its fits' iterations). ``fit.flow``
-        and ``fit.valid`` lie on a canvas as large as the batch's largest grid, each sample's grid
-        at its top left (not valid beyond it). Its values are in H's dtype promoted with the
-        camera's (float32 for half precision); the fit itself runs in float64.
+        ``fit.camera`` is the scaled camera; ``fit.iterations`` counts all its fits' iterations).
+        ``fit.homography`` is the plane's homography for ``fit.camera``, so in the grid's pixels
+        and not H: with ``S = fit.camera.K @ camera.K⁻¹``, ``S⁻¹ @ fit.homography @ S`` is H up
+        to scale (to the residual's precision). ``fit.flow`` and ``fit.valid`` lie on a canvas as
+        large as the batch's largest grid, each sample's grid at its top left (not valid beyond
+        it). Its values are in H's dtype promoted with the camera's (float32 for half precision);
+        the fit itself runs in float64.
     """
     check_float_tensor(H, "H")
     check_shape(H, "H", ("B", 3, 3))

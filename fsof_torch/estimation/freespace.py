@@ -9,18 +9,28 @@ Convention: flow (B, 2, H, W) in pixels, frame t to t+1; masks (B, 1, H, W) bool
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
 
-from .._check import batch_choices, check_bool, check_has_values, check_mapping, result_dtype
+from .._check import (batch_choices, check_bool, check_has_values, check_int, check_keywords, check_mapping,
+                      check_number, result_dtype)
 from ..geometry.camera import Camera
 from .combine import where_motion
-from .flow_fit import fit_displacement
+from .flow_fit import RoadFit, fit_displacement, fit_road
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
 
 __all__ = ["FreespaceDetection", "detect_freespace"]
+
+#: What detect_freespace passes the V-flow curve fit and the road fits itself: refused in
+#: ``curve_options`` / ``fit_options`` by name (Python would raise "got multiple values" only
+#: after the curve fit), as are ``fit_roll`` / ``fit_pitch``, its own arguments. ``fit_options``'
+#: ``init`` is taken: it starts the fits on the seed.
+CURVE_RESERVED = ("flow", "mask", "model")
+FIT_RESERVED = ("flow", "mask", "camera", "model", "fixed")
+
 
 @dataclass
 class FreespaceDetection:
@@ -99,8 +109,13 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         close_kernel: side of the closing's structuring element in pixels.
         max_hole_fraction: enclosed holes up to this fraction of H·W are filled.
         refits: number of refits on the agreeing pixels (step 3).
-        curve_options: extra keyword arguments for :func:`fit_vflow_curve`.
-        fit_options: extra keyword arguments for ``fit_displacement`` (e.g. ``scale``, ``max_points``).
+        curve_options: extra keyword arguments for :func:`fit_vflow_curve` (not ``model``, which
+            is the displacement model's).
+        fit_options: extra keyword arguments for ``fit_displacement`` (``fit_road``'s, e.g.
+            ``scale``, ``max_points``, ``prior``; not ``model``, ``fixed``, ``fit_roll`` or
+            ``fit_pitch``, which are this function's). An ``init`` starts each hypothesis' fit on
+            the seed (without its roll and pitch where the camera's attitude is held); the
+            refits start from the fit before them.
         return_details: return a :class:`FreespaceDetection` instead of the mask alone.
 
     Returns:
@@ -114,19 +129,23 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (from flow), got {camera.batch_size}")
-    for name, value in (("threshold", threshold), ("relative_threshold", relative_threshold),
-                        ("seed_threshold", seed_threshold),
-                        ("seed_relative_threshold", seed_relative_threshold),
-                        ("max_hole_fraction", max_hole_fraction)):
-        if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
-            raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-    for name, value, low in (("bottom_rows", bottom_rows, 1), ("close_kernel", close_kernel, 0),
-                             ("refits", refits, 0)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
-            raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+    threshold, relative_threshold, seed_threshold, seed_relative_threshold, max_hole_fraction = (
+        check_number(value, name, nonnegative=True) for name, value in (
+            ("threshold", threshold), ("relative_threshold", relative_threshold),
+            ("seed_threshold", seed_threshold), ("seed_relative_threshold", seed_relative_threshold),
+            ("max_hole_fraction", max_hole_fraction)))
+    bottom_rows = check_int(bottom_rows, "bottom_rows", minimum=1)
+    close_kernel = check_int(close_kernel, "close_kernel", minimum=0)
+    refits = check_int(refits, "refits", minimum=0)
     for name, value in (("fit_roll", fit_roll), ("fit_pitch", fit_pitch), ("return_details", return_details)):
         check_bool(value, name)
     curve_options, fit_options = check_mapping(curve_options, "curve_options"), check_mapping(fit_options, "fit_options")
+    check_keywords(curve_options, "curve_options", fit_vflow_curve, reserved=CURVE_RESERVED)
+    # (fit_displacement takes fit_road's options through **options: checked against fit_road's)
+    check_keywords({k: v for k, v in fit_options.items() if k not in ("fit_roll", "fit_pitch")}, "fit_options",
+                   fit_road, reserved=FIT_RESERVED)
+    if own := sorted(set(fit_options) & {"fit_roll", "fit_pitch"}):
+        raise TypeError(f"fit_options: options {own} are detect_freespace's own arguments; pass {own[0]}= itself")
     check_has_values(flow, "flow", "to detect freespace in (the detection fits the road model)")
     use = use & torch.isfinite(flow).all(dim=1, keepdim=True)
     flow_safe = torch.where(use, flow, torch.zeros_like(flow))
@@ -138,11 +157,12 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
 
     camera = camera.expand(B) if camera.batch_size != B else camera
     # The fit's robust scale is the same statement about the flow's noise as the threshold.
-    fit_kw = dict(fit_roll=fit_roll, fit_pitch=fit_pitch, scale=max(float(threshold), 1e-3))
+    fit_kw = dict(fit_roll=fit_roll, fit_pitch=fit_pitch, scale=max(threshold, 1e-3))
     fit_kw.update(fit_options)
+    init = fit_kw.pop("init", None)  # (the start of the fit on the seed; each refit starts from the fit before)
 
-    def fitted(options: dict):
-        fit = fit_displacement(flow_safe, seed, camera, **options)
+    def fitted(options: dict, init: object):
+        fit = fit_displacement(flow_safe, seed, camera, init=init, **options)
         agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         for _ in range(refits):
             # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
@@ -153,15 +173,16 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
             agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         return fit, agreement, success
 
-    fit, agreement, success = fitted(fit_kw)
-    if fit_kw.get("fit_roll") or fit_kw.get("fit_pitch"):
+    fit, agreement, success = fitted(fit_kw, init)
+    if fit_roll or fit_pitch:
         # The seed also holds planes parallel to the road beside it (pavements, parking strips),
         # and with the attitude free a plane tilted between road and pavement can fit both while
         # agreeing with neither whole. The camera's own attitude is the second hypothesis; per
         # frame, the one more pixels agree with is kept (the larger consensus).
-        # (a caller's prior on the roll or pitch is for the first hypothesis, which fits them)
-        attitude_free = {k: v for k, v in (fit_kw.get("prior") or {}).items() if k not in ("roll", "pitch")}
-        held = fitted({**fit_kw, "fit_roll": False, "fit_pitch": False, "prior": attitude_free or None})
+        # (a caller's prior on the roll or pitch, and its start of them, are for the first
+        # hypothesis, which fits them)
+        held_kw = {**fit_kw, "fit_roll": False, "fit_pitch": False, "prior": _without_attitude(fit_kw.get("prior"))}
+        held = fitted(held_kw, _without_attitude(init.params if isinstance(init, RoadFit) else init))
         take = held[1].flatten(1).sum(-1) > agreement.flatten(1).sum(-1)
         fit = where_motion(take, held[0], fit)
         agreement = torch.where(take.reshape(B, 1, 1, 1), held[1], agreement)
@@ -184,6 +205,14 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         return FreespaceDetection(freespace=freespace, agreement=agreement, seed=seed,
                                   curve=curve, fit=fit, success=success)
     return freespace
+
+
+def _without_attitude(values: object) -> object:
+    """A prior or start (a dict by parameter name) without roll and pitch (None where nothing is
+    left); anything else as it came (the fit names a wrong type)."""
+    if not isinstance(values, Mapping):
+        return values
+    return {k: v for k, v in values.items() if k not in ("roll", "pitch")} or None
 
 
 def _agreement(flow: Tensor, use: Tensor, fit, curve_success: Tensor, threshold: float,

@@ -63,13 +63,22 @@ def _robust_linear_fit(J: Tensor, target: Tensor, use: Tensor, scale: float, ite
     return solve(problem, start, kernel="cauchy", scale=scale, anneal=True, max_iter=iterations, check_every=None)
 
 
+def _real_points(pts: Tensor, flow: Tensor, sel: Tensor) -> tuple[Tensor, Tensor]:
+    """``pts`` and ``flow`` zeroed at the points that are not real (``sel`` False): padding may hold
+    anything, NaN too, which a zero weight does not keep out of the normal equations' sums (0 · NaN
+    is NaN) and which would make the whole frame degenerate."""
+    real = sel.unsqueeze(1)
+    return torch.where(real, pts, 0.0), torch.where(real, flow, 0.0)
+
+
 def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Tensor, flow: Tensor,
                   sel: Tensor, *, scale: float = 2.0, iterations: int = 2) -> tuple[Tensor, Tensor]:
     """(x_d/h, z_d/h, yaw) (B, 3) of the paper's motion from flow at road pixels.
 
     Args:
         K, K_inv: (B, 3, 3) float64; roll, pitch: (B,) the camera's attitude over the road.
-        pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their flow (px); sel: (B, N) real points.
+        pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their flow (px); sel: (B, N) real points
+            (the others, padding, may hold anything, NaN too).
         scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
             least-squares start (a start needs only a few).
 
@@ -78,6 +87,7 @@ def planar_motion(K: Tensor, K_inv: Tensor, roll: Tensor, pitch: Tensor, pts: Te
         points below the horizon, collinear points); those frames get zero motion.
     """
     B = pts.shape[0]
+    pts, flow = _real_points(pts, flow, sel)
     A = torch.bmm(mounting_matrix(roll, pitch).expand(B, 3, 3).transpose(1, 2), K_inv)  # pixel -> road-aligned ray
     x = torch.bmm(A, pts)
     xp = torch.bmm(A, torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1))
@@ -109,7 +119,7 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
 
     Args:
         K, K_inv: (B, 3, 3) float64; pts: (B, 3, N) homogeneous pixels; flow: (B, 2, N) their
-            flow (px); sel: (B, N) real points.
+            flow (px); sel: (B, N) real points (the others, padding, may hold anything, NaN too).
         scale: the Cauchy kernel's final scale (px); iterations: the solver's budget after the
             least-squares start.
 
@@ -118,6 +128,7 @@ def homography_dlt(K: Tensor, K_inv: Tensor, pts: Tensor, flow: Tensor, sel: Ten
         points, or points that do not fix the eight entries: all on one row or one line).
     """
     B = pts.shape[0]
+    pts, flow = _real_points(pts, flow, sel)
     x = torch.bmm(K_inv, pts)
     xp = torch.bmm(K_inv, torch.cat([pts[:, :2] + flow, pts[:, 2:]], dim=1))
     f = K[:, 0, 0].reshape(B, 1, 1)
