@@ -212,6 +212,29 @@ def test_kitti_exceptions(tmp_path):
         Camera.from_projection(torch.zeros(3, 3), 1.65)
 
 
+@pytest.mark.parametrize("text, cam, message", [
+    (CAM_TO_CAM + CAM_TO_CAM.splitlines()[5] + "\n", 2, r"line 7 of '.*' repeats the key 'P_rect_02' of line 6"),
+    (ODOMETRY_LABELLED + "P2: 1 0 1 0 0 1 1 0 0 0 1 0\n", 2, r"line 5 of '.*' repeats the key 'P2' of line 3"),
+    (ODOMETRY_LABELLED + "P2: 1 0 1 0 0 1 1 0 0 0 1 0\n", 0, r"line 5 of '.*' repeats the key 'P2' of line 3"),
+    ("".join(ODOMETRY_LABELLED.splitlines(True)[:2]) + ODOMETRY_UNLABELLED * 2, 2,
+     r"'.*' has no P_rect_02 or P2 row \(its unlabelled rows are not counted: the file labels its P rows\)"),
+])
+def test_kitti_calibration_repeated_or_mixed_rows(tmp_path, text, cam, message):
+    """A repeated key once took the last row, and unlabelled rows were counted by position even
+    beside labelled P rows (P0:, P1:, then rows taken as P2, P3)."""
+    (tmp_path / "calib.txt").write_text(text)
+    with pytest.raises(ValueError, match=rf"^path: {message}"):
+        read_kitti_calibration(tmp_path / "calib.txt", cam)
+
+
+def test_kitti_calibration_with_a_byte_order_mark(tmp_path):
+    """A UTF-8 byte-order mark once hid the key of the first row (P0 'missing')."""
+    (tmp_path / "calib.txt").write_bytes(("\ufeff" + ODOMETRY_LABELLED).encode("utf-8"))
+    assert read_kitti_calibration(tmp_path / "calib.txt", 0)[0, 0] == pytest.approx(707.0912)
+    (tmp_path / "unlabelled.txt").write_bytes(("\ufeff" + ODOMETRY_UNLABELLED).encode("utf-8"))
+    assert read_kitti_calibration(tmp_path / "unlabelled.txt", 0)[0, 0] == pytest.approx(707.0912)
+
+
 # --- scaled: rendering geometry ----------------------------------------------------------------------
 
 @pytest.mark.parametrize("sx, sy", [(3, 3), (3, 5), (5, 3)])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import cv2
 import numpy as np
@@ -100,6 +101,37 @@ class TestExceptions:
             CarlaRun(tmp_path)
 
 
+    @pytest.mark.parametrize("name, part", [("t10_s0_r+5", "r+5"), ("t10_s0_R-5", "R-5"), ("t10_s0_r-2.5e0", "r-2.5e0"),
+                                            ("t10_s0_r.5", "r.5"), ("t10_s0_r-5deg", "r-5deg"), ("t10_r", "r")])
+    def test_a_roll_that_does_not_parse(self, tmp_path, name, part):
+        """Such a part was once dropped without a word, and CarlaRunDataset used roll 0."""
+        with pytest.raises(ValueError, match=rf"^name: the run '{re.escape(name)}' has the part '{re.escape(part)}'; "
+                                             rf"expected the roll as 'r' and a number of degrees"):
+            parse_carla_run_name(name)
+        (tmp_path / name / "rgb").mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / name / "rgb" / "1.png"), np.zeros((2, 3, 3), np.uint8))
+        with pytest.raises(ValueError, match=rf"the run '{re.escape(name)}'"):
+            CarlaRun(tmp_path / name)
+
+    def test_a_roll_given_twice(self):
+        """'t10_s0_r-5_r5' once used the last one (5°)."""
+        with pytest.raises(ValueError, match=r"^name: the run 't10_s0_r-5_r5' gives the roll twice \('r-5', 'r5'\)"):
+            parse_carla_run_name("t10_s0_r-5_r5")
+        assert parse_carla_run_name("rain2_t1_r2.5") == {"rain": 2.0, "t": 1.0, "r": 2.5, "roll": math.radians(2.5)}
+
+    def test_grey_semantic_png(self, tmp_path):
+        """A single-channel PNG (CARLA's raw class IDs, road = 7) once gave an empty road mask."""
+        ids = np.full((3, 4), 7, np.uint8)
+        cv2.imwrite(str(tmp_path / "grey.png"), ids)
+        with pytest.raises(ValueError, match=r"^path: '.*grey\.png' has 1 channel\(s\); a CARLA semantic PNG is a "
+                                             r"colour image \(3 or 4 channels"):
+            read_carla_road(tmp_path / "grey.png")
+        rgba = np.zeros((3, 4, 4), np.uint8)
+        rgba[1:, :, :3] = (128, 64, 128)  # (BGR order: the road colour reads the same)
+        cv2.imwrite(str(tmp_path / "rgba.png"), rgba)
+        assert int(read_carla_road(tmp_path / "rgba.png").sum()) == 8
+
+
 def _two_channel_float_tiff(path, array):
     """A minimal baseline little-endian TIFF of (H, W, 2) float32, chunky, one strip (OpenCV
     cannot write one)."""
@@ -150,3 +182,14 @@ class TestLayoutLimits:
         assert CarlaRun(tmp_path).frames == ["5", "98", "99", "100"]
         cv2.imwrite(str(tmp_path / "rgb" / "a.png"), np.zeros((2, 3, 3), np.uint8))
         assert CarlaRun(tmp_path).frames == ["100", "5", "98", "99", "a"]
+
+    def test_run_frames_skip_hidden_files_and_folders(self, tmp_path):
+        """A macOS '._99.png', an atomic writer's temporary or a folder named like a frame was once
+        a frame: the order fell back to names (100, 5, 98, 99) and frames were paired wrongly."""
+        (tmp_path / "rgb").mkdir()
+        for k in (100, 98, 99, 5):
+            cv2.imwrite(str(tmp_path / "rgb" / f"{k}.png"), np.zeros((2, 3, 3), np.uint8))
+        (tmp_path / "rgb" / "._99.png").write_bytes(b"\x00\x05\x16\x07" + b"\x00" * 80)
+        (tmp_path / "rgb" / ".99.png.0123456789abcdef.tmp.png").write_bytes(b"")
+        (tmp_path / "rgb" / "101.png").mkdir()
+        assert CarlaRun(tmp_path).frames == ["5", "98", "99", "100"]

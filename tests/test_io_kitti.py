@@ -100,9 +100,35 @@ class TestFeature:
         T[:3, 3] = torch.tensor([1.0, 2.0, 3.0])
         twelve = " ".join(map(str, T[:3].reshape(-1).tolist()))
         sixteen = " ".join(map(str, T.reshape(-1).tolist()))
-        (tmp_path / "p.txt").write_text(f"# comment\n{twelve}\n\n0 {twelve}\n{sixteen}\n7 {sixteen}\n")
-        back = read_kitti_poses(tmp_path / "p.txt")
-        assert back.shape == (4, 4, 4) and torch.equal(back, T.expand(4, 4, 4))
+        for rows in ([twelve] * 2, [f"0 {twelve}", f"1 {twelve}"], [sixteen] * 2, [f"0 {sixteen}", f"1.0 {sixteen}"]):
+            (tmp_path / "p.txt").write_text(f"# comment\n{rows[0]}\n\n{rows[1]}\n")
+            back = read_kitti_poses(tmp_path / "p.txt")
+            assert back.shape == (2, 4, 4) and torch.equal(back, T.expand(2, 4, 4))
+
+    @pytest.mark.parametrize("indices, line, why", [
+        ((2, 0, 1), 1, "has the frame index '2'; expected 0"),
+        ((0, 5, 10), 2, "has the frame index '5'; expected 1"),
+        ((0, 0, 0), 2, "has the frame index '0'; expected 1"),
+        ((0.5, 1, 2), 1, "has the frame index '0.5'; expected 0"),
+        ((0, -3, 2), 2, "has the frame index '-3'; expected 1"),
+        ((None, 1, None), 2, "has 13 numbers but line 1 has 12; expected rows of one length"),
+        ((0, 1, "16"), 3, "has 17 numbers but line 1 has 13; expected rows of one length"),
+    ])
+    def test_poses_frame_index_counts_from_zero(self, tmp_path, indices, line, why):
+        """The leading frame index was once dropped unread, so poses paired with frames by position
+        whatever the indices said (out of order, gaps, repeats, fractions, rows with and without)."""
+        rows = []
+        for i, index in enumerate(indices):
+            pose = f"1 0 0 0 0 1 0 0 0 0 1 {i}"
+            rows.append(pose if index is None else f"{i} {pose} 0 0 0 1" if index == "16" else f"{index} {pose}")
+        (tmp_path / "p.txt").write_text("\n".join(rows) + "\n")
+        with pytest.raises(ValueError, match=rf"^path: line {line} of '.*p\.txt' {why}"):
+            read_kitti_poses(tmp_path / "p.txt")
+
+    def test_poses_with_a_byte_order_mark(self, tmp_path):
+        """A UTF-8 byte-order mark (Windows editors) once made line 1 'not a row of numbers'."""
+        (tmp_path / "p.txt").write_bytes("\ufeff0 1 0 0 0 0 1 0 0 0 0 1 5\n".encode("utf-8"))
+        assert read_kitti_poses(tmp_path / "p.txt")[0, 2, 3] == 5
 
     @pytest.mark.parametrize("style,cam", [("cam_to_cam", 2), ("odometry", 0), ("odometry", 2)])
     def test_calibration_round_trip(self, tmp_path, kitti_K, style, cam):
@@ -309,7 +335,26 @@ class TestExactAndChecked:
         (tmp_path / "m.txt").write_text(f"{good}\n2 0 0 0 0 2 0 0 0 0 2 0\n1 0 0 inf 0 1 0 0 0 0 1 0\n")
         with pytest.raises(ValueError, match=r"^path: line 2 of '.*m\.txt' is not a rigid pose"):
             read_kitti_poses(tmp_path / "m.txt")
-        (tmp_path / "r.txt").write_text(f"{good}\n{good} 0.5 0 0 1\n")
+        (tmp_path / "r.txt").write_text(f"{good} 0 0 0 1\n{good} 0.5 0 0 1\n")
         with pytest.raises(ValueError, match=r"^path: line 2 of '.*r\.txt' is not a rigid pose: its last row is "
                                              r"0\.5 0 0 1, not 0 0 0 1"):
             read_kitti_poses(tmp_path / "r.txt")
+
+    def test_writers_take_numpy_views_and_other_byte_orders(self, tmp_path):
+        """A negative-stride view (``a[::-1]``) or a big-endian array once failed with torch's
+        from_numpy error, which names no argument; the values are written as given."""
+        big = np.eye(4)[None].astype(">f8")
+        big[0, 2, 3] = 2.5
+        back = read_kitti_poses(write_kitti_poses(tmp_path / "p.txt", big))
+        assert back[0, 2, 3] == 2.5
+        flipped = np.stack([np.eye(4)] * 2)[::-1].copy()
+        flipped[0, 0, 3] = 1.0
+        assert read_kitti_poses(write_kitti_poses(tmp_path / "q.txt", flipped[::-1]))[1, 0, 3] == 1.0
+        K = np.array([[700.0, 0, 300], [0, 710, 200], [0, 0, 1]])
+        for array in (K.astype(">f8"), K[::-1].copy()[::-1]):
+            P = read_kitti_calibration(write_kitti_calibration(tmp_path / "c.txt", array), 2)
+            assert np.array_equal(P[:, :3].numpy(), K)
+        valid = np.zeros((3, 4), bool)
+        valid[0] = True
+        write_kitti_flow(tmp_path / "f.png", torch.zeros(2, 3, 4), valid[::-1])
+        assert read_kitti_flow(tmp_path / "f.png")[1][0].tolist() == valid[::-1].tolist()

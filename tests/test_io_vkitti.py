@@ -146,6 +146,52 @@ class TestExceptions:
             read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")
 
 
+_EXTRINSIC_HEADER = "frame cameraID r1,1 r1,2 r1,3 t1 r2,1 r2,2 r2,3 t2 r3,1 r3,2 r3,3 t3 0 0 0 1\n"
+_IDENTITY = "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1"
+
+
+class TestMalformedRows:
+    """Rows once accepted without a word: a frame number truncated (2.7 -> 2), a (frame, camera)
+    row kept twice, a scaled 'rotation' inverted into a wrong pose, focal lengths -1 and 0."""
+
+    @pytest.mark.parametrize("rows, line, message", [
+        (f"0 0 {_IDENTITY}\n2.7 0 {_IDENTITY}\n", 3,
+         r"starts with frame '2\.7', cameraID '0'; expected whole numbers >= 0"),
+        (f"-1 0 {_IDENTITY}\n", 2, r"starts with frame '-1', cameraID '0'; expected whole numbers >= 0"),
+        (f"0 0.5 {_IDENTITY}\n", 2, r"starts with frame '0', cameraID '0\.5'; expected whole numbers >= 0"),
+        (f"0 0 {_IDENTITY}\n0 1 {_IDENTITY}\n0 0 {_IDENTITY}\n", 4, r"repeats frame 0 of camera 0 \(line 2\)"),
+        (f"0 0 {_IDENTITY}\n1 0 2 0 0 0 0 2 0 0 0 0 2 5 0 0 0 1\n", 3,
+         r"is not a rigid pose: its 3×3 block is not a rotation \(\|RᵀR − I\| up to 3, det 8"),
+        (f"0 0 {_IDENTITY}\n1 0 1 0 0 0 0 1 0 0 0 0 1 0 0 0 0.5 1\n", 3,
+         r"is not a rigid pose: its last row is 0 0 0\.5 1"),
+    ])
+    def test_extrinsics(self, tmp_path, rows, line, message):
+        (tmp_path / "extrinsic.txt").write_text(_EXTRINSIC_HEADER + rows)
+        with pytest.raises(ValueError, match=rf"^path: line {line} of '.*extrinsic\.txt' {message}"):
+            read_vkitti2_extrinsics(tmp_path / "extrinsic.txt")
+
+    @pytest.mark.parametrize("row, fx, fy", [("0 0 -1 725 620 187", -1, 725), ("0 0 725 0 620 187", 725, 0)])
+    def test_focal_lengths(self, tmp_path, row, fx, fy):
+        header = "frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n"
+        (tmp_path / "intrinsic.txt").write_text(f"{header}1 0 725 725 620 187\n{row}\n")
+        with pytest.raises(ValueError, match=rf"^path: line 3 of '.*intrinsic\.txt' has the focal lengths "
+                                             rf"K\[0,0\] = {fx}, K\[1,1\] = {fy}; expected both > 0"):
+            read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")
+
+    def test_a_class_named_twice(self, tmp_path):
+        """The second 'Road' once took Sky's colour at Road's place in the dict."""
+        (tmp_path / "colors.txt").write_text("Category r g b\nRoad 100 60 100\nSky 90 200 255\nRoad 90 200 255\n")
+        with pytest.raises(ValueError, match=r"^path: line 4 of '.*colors\.txt' repeats the class 'Road' of line 2"):
+            read_vkitti2_colors(tmp_path / "colors.txt")
+
+    def test_byte_order_mark(self, tmp_path):
+        """A UTF-8 byte-order mark once turned colors.txt's header into a class row."""
+        (tmp_path / "colors.txt").write_bytes("\ufeffCategory r g b\nRoad 100 60 100\n".encode("utf-8"))
+        assert read_vkitti2_colors(tmp_path / "colors.txt") == {"Road": (100, 60, 100)}
+        (tmp_path / "intrinsic.txt").write_bytes("\ufeff0 0 725 725 620 187\n".encode("utf-8"))
+        assert read_vkitti2_intrinsics(tmp_path / "intrinsic.txt")[1][0, 0, 0] == 725
+
+
 class TestRanges:
     @pytest.mark.parametrize("shape, channel, name", [((3, 1), 0, "u"), ((1, 4), 1, "v")])
     def test_a_one_pixel_side_stores_zero_flow_only(self, tmp_path, shape, channel, name):

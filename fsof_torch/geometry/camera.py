@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import numbers
 import os
+import re
 from dataclasses import dataclass, fields
 
 import torch
@@ -463,28 +464,34 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     """The 3×4 rectified projection matrix of camera ``cam`` from a KITTI calibration file.
 
     Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
-    (key ``P{cam}``, or unlabelled rows in order). Raises ValueError naming the path (and the
-    row) for a missing or malformed row, or one holding NaN or inf.
+    (key ``P{cam}``, or, in a file without labelled ``P`` rows, unlabelled rows in order). A
+    UTF-8 byte-order mark is skipped. Raises ValueError naming the path (and the row) for a
+    missing or malformed row, one holding NaN or inf, or a key given twice (naming both lines).
     """
     path = as_path(path)
     cam = check_camera_index(cam)
     if not path.is_file():
         raise FileNotFoundError(f"path: no calibration file at {str(path)!r}")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
         raise ValueError(f"path: {str(path)!r} is not a text calibration file (undecodable byte at "
                          f"offset {err.start})") from None
     rows: dict[str, list[float]] = {}
+    key_lines: dict[str, int] = {}
     unlabelled: list[list[float]] = []
     for n, line in enumerate(text.splitlines(), 1):
         line = line.strip()
         if not line:
             continue
         key, sep, rest = line.partition(":")
+        key = key.strip()
+        if sep and key in key_lines:  # which of the two rows would be the calibration?
+            raise ValueError(f"path: line {n} of {str(path)!r} repeats the key {key!r} of line {key_lines[key]}; "
+                             f"expected each key once")
         try:
             if sep:
-                key = key.strip()
+                key_lines[key] = n
                 try:
                     rows[key] = [float(x) for x in rest.split()]
                 except ValueError:
@@ -494,17 +501,21 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
                 unlabelled.append([float(x) for x in line.split()])
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a calibration row: {line[:60]!r}") from err
+    labelled = any(re.fullmatch(r"P(_rect_)?[0-9]+", key) for key in rows)
     for key in (f"P_rect_0{cam}", f"P{cam}"):
         if key in rows:
             values = rows[key]
             row = key
             break
     else:
-        if cam < len(unlabelled):
+        # unlabelled rows count as P0, P1, ... only in a file that labels none of its P rows
+        if cam < len(unlabelled) and not labelled:
             values = unlabelled[cam]
             row = f"unlabelled row {cam + 1}"
         else:
-            raise ValueError(f"path: {str(path)!r} has no P_rect_0{cam} or P{cam} row")
+            raise ValueError(f"path: {str(path)!r} has no P_rect_0{cam} or P{cam} row"
+                             + (" (its unlabelled rows are not counted: the file labels its P rows)"
+                                if labelled and unlabelled else ""))
     if len(values) != 12:
         raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
     if not all(math.isfinite(x) for x in values):

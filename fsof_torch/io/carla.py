@@ -103,7 +103,17 @@ def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
 
 
 def read_carla_road(path: str | os.PathLike) -> Tensor:
-    """Road mask (1, H, W) bool from a CARLA semantic PNG: road or road-line pixels."""
+    """Road mask (1, H, W) bool from a CARLA semantic PNG: road or road-line pixels.
+
+    The PNG must be a colour image (3 or 4 channels, CityScapes palette): a single-channel one
+    (CARLA's raw class IDs saved as grey) would match no road colour, so it is a ValueError
+    naming the path."""
+    array = read_image_array(path, what="CARLA semantic PNG (colour, CityScapes palette)")
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels not in (3, 4):
+        raise ValueError(f"path: {str(path)!r} has {channels} channel(s); a CARLA semantic PNG is a colour image "
+                         f"(3 or 4 channels, CityScapes palette), not CARLA's raw class IDs")
+    # decoded again by read_image, the one definition of the conversion to RGB 0..255
     return mask_from_colors(read_image(path), CARLA_ROAD_COLORS)
 
 
@@ -118,13 +128,27 @@ def carla_camera(size: tuple[int, int], *, height: float = CARLA_CAMERA_HEIGHT, 
 
 
 _RUN_FIELD = re.compile(r"([A-Za-z]+)(-?\d+(?:\.\d+)?)")
+_ROLL_LIKE = re.compile(r"[rR](?![A-Za-z])")  # r or R, then no letter: meant as the roll
 
 
 def parse_carla_run_name(name: str) -> dict[str, float]:
-    """``"t10_s0_r-5"`` → ``{"t": 10.0, "s": 0.0, "r": -5.0, "roll": -5° in radians}``."""
+    """``"t10_s0_r-5"`` → ``{"t": 10.0, "s": 0.0, "r": -5.0, "roll": -5° in radians}``.
+
+    Parts that are no field (``foo``) are skipped. The roll must read ``r`` then a number
+    (``r-5``, ``r2.5``): a part that starts with ``r`` or ``R`` and no other letter but does not
+    (``r+5``, ``R-5``, ``r-5deg``, ``r.5``, ``r-2.5e0``), or a second roll part, is a ValueError
+    naming the run (it would otherwise be dropped and the roll taken as 0, or the last one)."""
     fields = {}
+    roll_part = None
     for part in str(name).split("_"):
         match = _RUN_FIELD.fullmatch(part)
+        if _ROLL_LIKE.match(part):
+            if not (match and match.group(1) == "r"):
+                raise ValueError(f"name: the run {str(name)!r} has the part {part!r}; expected the roll as 'r' "
+                                 f"and a number of degrees (r-5, r2.5)")
+            if roll_part is not None:
+                raise ValueError(f"name: the run {str(name)!r} gives the roll twice ({roll_part!r}, {part!r})")
+            roll_part = part
         if match:
             fields[match.group(1)] = float(match.group(2))
     if "r" in fields:
@@ -136,7 +160,8 @@ class CarlaRun:
     """One run folder of the paper's CARLA layout: frame names and the paths of each frame's files.
 
     ``frames`` are the stems of ``rgb/*.png`` in frame order: by number where every stem is a
-    number (``98``, ``99``, ``100``, unpadded), else by name.
+    number (``98``, ``99``, ``100``, unpadded), else by name. Only regular files count, and not
+    hidden ones (a name starting with ``.``, such as macOS's ``._99.png``).
 
     Example:
         >>> run = CarlaRun("data/CARLA/t10_s0_r-5")           # doctest: +SKIP
@@ -149,7 +174,10 @@ class CarlaRun:
         self.root = as_path(root, "root")
         if not (self.root / "rgb").is_dir():
             raise FileNotFoundError(f"root: {str(self.root)!r} has no rgb/ folder (expected the paper's CARLA layout)")
-        self.frames = [p.stem for p in in_frame_order((self.root / "rgb").glob("*.png"))]
+        # only regular, visible files: a hidden one (macOS ._NNN.png, an atomic writer's temporary)
+        # would change the frame order and so the pairs
+        frames = (p for p in (self.root / "rgb").glob("*.png") if p.is_file() and not p.name.startswith("."))
+        self.frames = [p.stem for p in in_frame_order(frames)]
         if not self.frames:
             raise ValueError(f"root: {str(self.root / 'rgb')!r} holds no PNG frames")
         self.params = parse_carla_run_name(self.root.name)

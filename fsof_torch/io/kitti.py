@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, all_finite, as_chw_flow, check_has_values
+from .._check import as_path, all_finite, as_chw_flow, check_has_values, tensor_from_array
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .images import check_image_suffix, read_image_array, write_image_array
@@ -105,7 +105,7 @@ def flow_valid_pixels(flow: Tensor, valid: Tensor | np.ndarray | None) -> Tensor
     if valid is None:
         return torch.isfinite(flow).all(dim=0)
     if isinstance(valid, np.ndarray):
-        valid = torch.from_numpy(valid)
+        valid = tensor_from_array(valid)
     if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
         raise TypeError(f"valid: expected a bool tensor of shape (1, H, W), got "
                         f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
@@ -124,37 +124,49 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
 
     Each non-empty line holds 12 numbers (the 3×4 [R | t] row by row). Also accepted, for other
     data sets written in the same spirit: 16 numbers (the full 4×4, last row 0 0 0 1), or 13 / 17
-    numbers with a leading frame index (which is dropped). ``#`` starts a comment.
+    numbers with a leading frame index. Poses pair with frames by position, so the indices must
+    be 0, 1, 2, ... in order, and every row of a file has the same length. ``#`` starts a
+    comment; a UTF-8 byte-order mark is skipped.
 
     Raises ValueError naming the path (and the line) for a binary file, a row of the wrong
-    length, and (naming the first such line) non-finite values, a 16-number row whose last four
-    are not 0 0 0 1, or a 3×3 block that is not a rotation (|RᵀR − I| > 1e-3 or det R <= 0: an
-    all-zero block is singular); see :func:`check_rigid_poses`.
+    length or of another length than the first row, a frame index out of sequence (a gap, a
+    repeat, a fraction, a negative number), and (naming the first such line) non-finite values,
+    a 16-number row whose last four are not 0 0 0 1, or a 3×3 block that is not a rotation
+    (|RᵀR − I| > 1e-3 or det R <= 0: an all-zero block is singular); see :func:`check_rigid_poses`.
     """
     path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no poses file at {str(path)!r}")
     try:
-        text = path.read_text()
+        text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
         raise ValueError(f"path: {str(path)!r} is not a text poses file (undecodable byte at offset "
                          f"{err.start})") from None
     rows = []
     lines = []
+    row_length = 0
     for n, line in enumerate(text.splitlines(), 1):
         line = line.split("#", 1)[0].strip()
         if not line:
             continue
+        numbers = line.replace(",", " ").split()
         try:
-            values = [float(x) for x in line.replace(",", " ").split()]
+            values = [float(x) for x in numbers]
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a row of numbers: {line[:60]!r}") from err
-        if len(values) in (13, 17):
+        if len(values) not in (12, 13, 16, 17):
+            raise ValueError(f"path: line {n} of {str(path)!r} has {len(values)} numbers; expected 12 (KITTI 3×4 pose)")
+        if rows and len(values) != row_length:
+            raise ValueError(f"path: line {n} of {str(path)!r} has {len(values)} numbers but line {lines[0]} has "
+                             f"{row_length}; expected rows of one length in a file")
+        row_length = len(values)
+        if len(values) in (13, 17):  # a leading frame index: the poses pair with frames by position
+            if values[0] != len(rows):
+                raise ValueError(f"path: line {n} of {str(path)!r} has the frame index {numbers[0]!r}; expected "
+                                 f"{len(rows)} (indices 0, 1, 2, ... in order: poses pair with frames by position)")
             values = values[1:]
         if len(values) == 12:
             values = values + [0.0, 0.0, 0.0, 1.0]
-        elif len(values) != 16:
-            raise ValueError(f"path: line {n} of {str(path)!r} has {len(values)} numbers; expected 12 (KITTI 3×4 pose)")
         rows.append(values)
         lines.append(n)
     if not rows:
@@ -202,7 +214,7 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
     (N, 4, 4) the last row 0 0 0 1 (the format does not store it); else a ValueError naming
     ``poses`` and the first bad pose (:func:`check_rigid_poses`), before anything is written."""
     if isinstance(poses, np.ndarray):
-        poses = torch.from_numpy(poses)
+        poses = tensor_from_array(poses)
     if not isinstance(poses, Tensor) or not poses.is_floating_point():
         raise TypeError(f"poses: expected a float tensor of shape (N, 4, 4), got "
                         f"{poses.dtype if isinstance(poses, Tensor) else type(poses).__name__}")
@@ -239,7 +251,7 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
     floats) reads the result back exactly.
     """
     if isinstance(K, np.ndarray):
-        K = torch.from_numpy(K)
+        K = tensor_from_array(K)
     if not isinstance(K, Tensor) or not K.is_floating_point():
         raise TypeError(f"K: expected a float tensor of shape (3, 3), got "
                         f"{K.dtype if isinstance(K, Tensor) else type(K).__name__}")

@@ -28,7 +28,7 @@ from torch import Tensor
 
 from .._check import as_path, as_chw_flow, check_finite, result_dtype, skip_values
 from .images import read_image_array, write_image_array
-from .kitti import flow_valid_pixels
+from .kitti import check_rigid_poses, flow_valid_pixels
 
 __all__ = [
     "read_vkitti2_flow",
@@ -92,11 +92,15 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
     return write_image_array(path, bgr)
 
 
-def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
+def _read_table(path: str | os.PathLike, columns: int, what: str) -> tuple[np.ndarray, np.ndarray]:
+    """A VKITTI2 table's rows (float64, one a row) and their line numbers. Each row starts with a
+    frame number and a cameraID, whole numbers >= 0, and no (frame, cameraID) pair comes twice."""
     path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
     rows = []
+    lines = []
+    seen: dict[tuple[float, float], int] = {}
     for n, line in enumerate(_read_text(path, what).splitlines(), 1):
         parts = line.split()
         if not parts:
@@ -111,15 +115,24 @@ def _read_table(path: str | os.PathLike, columns: int, what: str) -> np.ndarray:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a row of numbers: {line[:60]!r}") from err
         if not all(np.isfinite(values)):
             raise ValueError(f"path: line {n} of {str(path)!r} holds NaN or inf: {line[:60]!r}")
+        frame, camera = values[0], values[1]
+        if not (frame >= 0 and frame.is_integer() and camera >= 0 and camera.is_integer()):
+            raise ValueError(f"path: line {n} of {str(path)!r} starts with frame {parts[0]!r}, cameraID {parts[1]!r}; "
+                             f"expected whole numbers >= 0")
+        if (frame, camera) in seen:
+            raise ValueError(f"path: line {n} of {str(path)!r} repeats frame {int(frame)} of camera {int(camera)} "
+                             f"(line {seen[frame, camera]}); expected one row each")
+        seen[frame, camera] = n
         rows.append(values)
+        lines.append(n)
     if not rows:
         raise ValueError(f"path: {str(path)!r} holds no rows")
-    return np.asarray(rows, dtype=np.float64)
+    return np.asarray(rows, dtype=np.float64), np.asarray(lines, dtype=np.int64)
 
 
 def _read_text(path: Path, what: str) -> str:
     try:
-        return path.read_text(encoding="utf-8")
+        return path.read_text(encoding="utf-8-sig")  # (a byte-order mark is skipped)
     except UnicodeDecodeError as err:
         raise ValueError(f"path: {str(path)!r} is not a text file (a VKITTI2 {what}; undecodable byte at offset "
                          f"{err.start})") from None
@@ -133,22 +146,32 @@ def _is_number(text: str) -> bool:
     return True
 
 
-def _select_camera(table: np.ndarray, camera: int, path) -> np.ndarray:
+def _select_camera(table: tuple[np.ndarray, np.ndarray], camera: int, path) -> tuple[np.ndarray, np.ndarray]:
+    """The rows of ``camera`` and their line numbers, sorted by frame."""
     if isinstance(camera, bool) or not isinstance(camera, numbers.Integral):
         raise TypeError(f"camera: expected an int, got {camera!r}")
-    rows = table[table[:, 1] == int(camera)]
-    if len(rows) == 0:
-        cams = sorted({int(c) for c in table[:, 1]})
+    rows, lines = table
+    mine = rows[:, 1] == int(camera)
+    if not mine.any():
+        cams = sorted({int(c) for c in rows[:, 1]})
         raise ValueError(f"camera: {str(path)!r} has no rows for camera {camera}; it has cameras {cams}")
-    return rows[np.argsort(rows[:, 0], kind="stable")]
+    order = np.argsort(rows[mine, 0], kind="stable")
+    return rows[mine][order], lines[mine][order]
 
 
 def read_vkitti2_intrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
     """``intrinsic.txt`` of one camera → ``(frames (N,) int64, K (N, 3, 3) float64)``, sorted by frame.
 
     ``camera`` is the int cameraID (0 left, 1 right): TypeError for anything else (``"0"``, True).
+    A row whose frame or cameraID is no whole number >= 0, that repeats a (frame, cameraID), or
+    whose focal lengths K[0,0], K[1,1] are not > 0 is a ValueError naming the file and the line.
     """
-    rows = _select_camera(_read_table(path, 6, "intrinsic.txt"), camera, path)
+    rows, lines = _select_camera(_read_table(path, 6, "intrinsic.txt"), camera, path)
+    bad = (rows[:, 2] <= 0) | (rows[:, 3] <= 0)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"path: line {lines[i]} of {str(as_path(path))!r} has the focal lengths K[0,0] = "
+                         f"{rows[i, 2]:g}, K[1,1] = {rows[i, 3]:g}; expected both > 0")
     K = np.zeros((len(rows), 3, 3))
     K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = rows[:, 2], rows[:, 3], rows[:, 4], rows[:, 5], 1.0
     return torch.from_numpy(rows[:, 0].astype(np.int64)), torch.from_numpy(K)
@@ -156,11 +179,13 @@ def read_vkitti2_intrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
 
 def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[Tensor, Tensor]:
     """``extrinsic.txt`` of one camera → ``(frames (N,) int64, camera_T_world (N, 4, 4) float64)``;
-    ``camera`` as in :func:`read_vkitti2_intrinsics`."""
-    rows = _select_camera(_read_table(path, 18, "extrinsic.txt"), camera, path)
+    ``camera`` and the frame checks as in :func:`read_vkitti2_intrinsics`. Each matrix must be
+    rigid as :func:`fsof_torch.io.read_kitti_poses` requires of a pose (last row 0 0 0 1, a
+    rotation block: :func:`fsof_torch.io.check_rigid_poses`), else a ValueError naming the file
+    and the line."""
+    rows, lines = _select_camera(_read_table(path, 18, "extrinsic.txt"), camera, path)
     T = rows[:, 2:].reshape(-1, 4, 4)
-    if not np.allclose(T[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise ValueError(f"path: {str(path)!r} has extrinsic matrices whose last row is not 0 0 0 1")
+    check_rigid_poses(torch.from_numpy(T), lambda i: f"path: line {lines[i]} of {str(as_path(path))!r}")
     return torch.from_numpy(rows[:, 0].astype(np.int64)), torch.from_numpy(T)
 
 
@@ -182,11 +207,12 @@ def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
 
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
     """``colors.txt`` → ``{class name: (r, g, b)}`` in file order; components are integers in
-    0..255 (else a ValueError naming the file and the line)."""
+    0..255 and each class comes once (else a ValueError naming the file and the line)."""
     path = as_path(path)
     if not path.is_file():
         raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
     colors: dict[str, tuple[int, int, int]] = {}
+    lines: dict[str, int] = {}
     for n, line in enumerate(_read_text(path, "colors.txt").splitlines(), 1):
         parts = line.split()
         if not parts or (n == 1 and parts[0] == "Category"):
@@ -199,7 +225,12 @@ def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, in
             raise ValueError(f"path: line {n} of {str(path)!r} is not 'Name r g b': {line[:60]!r}") from err
         if not all(0 <= c <= 255 for c in rgb):  # packed into 24 bits, it would be another colour
             raise ValueError(f"path: line {n} of {str(path)!r} has a colour component outside 0..255: {line[:60]!r}")
-        colors[" ".join(parts[:-3])] = rgb
+        name = " ".join(parts[:-3])
+        if name in lines:  # (the dict would keep the first one's place with the second one's colour)
+            raise ValueError(f"path: line {n} of {str(path)!r} repeats the class {name!r} of line {lines[name]}; "
+                             f"expected each class once")
+        colors[name] = rgb
+        lines[name] = n
     if not colors:
         raise ValueError(f"path: {str(path)!r} holds no classes")
     return colors
