@@ -144,6 +144,60 @@ class TestPermissions:
         assert stat.S_IMODE((tmp_path / "a.bin").stat().st_mode) == 0o444 and _leftovers(tmp_path) == []
 
 
+    @pytest.mark.parametrize("mode", [0o600, 0o640, 0o444])
+    def test_file_written_over_keeps_its_mode(self, tmp_path, mode):
+        """open() keeps the mode of a file it writes over; a private 0o600 file once became 0o644."""
+        import stat
+
+        path = tmp_path / "secret.json"
+        path.write_text("{}")
+        os.chmod(path, mode)
+        old = os.umask(0o022)
+        try:
+            write_json(path, {"token": 1})
+        finally:
+            os.umask(old)
+        assert stat.S_IMODE(path.stat().st_mode) == mode and json.loads(path.read_text()) == {"token": 1}
+
+
+class TestTargets:
+    def test_symlink_is_written_through(self, tmp_path):
+        """open() writes into the file a link points to; the link was once replaced by a file."""
+        (tmp_path / "data").mkdir()
+        real = tmp_path / "data" / "real.txt"
+        real.write_text("old")
+        link = tmp_path / "link.txt"
+        link.symlink_to(real)
+        assert write_text(link, "new") == link
+        assert link.is_symlink() and real.read_text() == "new"
+        dangling = tmp_path / "dangling.txt"
+        dangling.symlink_to(tmp_path / "data" / "made.txt")
+        write_text(dangling, "made")
+        assert dangling.is_symlink() and (tmp_path / "data" / "made.txt").read_text() == "made"
+        assert _leftovers(tmp_path) == [] and _leftovers(tmp_path / "data") == []
+
+    @pytest.mark.parametrize("name", ["x" * 251 + ".txt", "x" * 226 + ".png", "ä" * 125 + ".json",
+                                      "a." + "s" * 253])
+    def test_longest_names_are_written(self, tmp_path, name):
+        """The temporary's name adds 22 bytes and the suffix to the target's: a 230-byte name once
+        failed with ENAMETOOLONG. The copy of the name is cut; the suffix stays where it fits."""
+        from fsof_torch.io.atomic import TEMPORARY_NAME
+
+        assert len(os.fsencode(name)) <= 255
+        with atomic_path(tmp_path / name) as tmp:
+            assert len(os.fsencode(tmp.name)) <= 255 and TEMPORARY_NAME.match(tmp.name)
+            assert tmp.suffix == (tmp_path / name).suffix or len(tmp_path.joinpath(name).suffix) > 200
+            tmp.write_bytes(b"1")
+        assert (tmp_path / name).read_bytes() == b"1" and _leftovers(tmp_path) == []
+
+    def test_folder_at_the_target(self, tmp_path):
+        """A folder where the file goes once failed in os.replace, quoting the temporary's name."""
+        (tmp_path / "out.txt").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*out\.txt' is a folder; expected a file path$"):
+            write_text(tmp_path / "out.txt", "x")
+        assert sorted(p.name for p in tmp_path.iterdir()) == ["out.txt"]
+
+
 class TestStaleTemporaries:
     def test_removes_only_leftovers_of_atomic_writes(self, tmp_path):
         """A killed writer leaves '.<name>.<16 hex>.tmp<suffix>'; other hidden or .tmp files stay."""

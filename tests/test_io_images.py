@@ -157,6 +157,70 @@ class TestWriteImageArray:
         assert sorted(p.name for p in tmp_path.iterdir()) == ["old.png", "ref.png"]
 
 
+class TestChannels:
+    """What OpenCV reads back: a .jpg drops the alpha, a grey .webp comes back with 3 channels, a
+    .webp with alpha loses the colour of its transparent pixels."""
+
+    @pytest.mark.parametrize("suffix, channels", [(s, c) for s, cs in {
+        ".png": (1, 3, 4), ".tif": (1, 3, 4), ".tiff": (1, 3, 4), ".bmp": (1, 3, 4), ".jpg": (1, 3), ".jpeg": (1, 3),
+        ".webp": (3,)}.items() for c in cs])
+    def test_allowed_channels_read_back(self, tmp_path, suffix, channels):
+        from fsof_torch.io.images import WRITABLE_CHANNELS
+
+        assert channels in WRITABLE_CHANNELS[suffix]
+        shape = (6, 5) if channels == 1 else (6, 5, channels)
+        array = (np.random.default_rng(0).random(shape) * 255).astype(np.uint8)
+        write_image_array(tmp_path / f"a{suffix}", array)
+        back = read_image_array(tmp_path / f"a{suffix}")
+        assert back.shape == shape
+        if suffix not in (".jpg", ".jpeg"):  # lossy in its values, not in its channels
+            assert np.array_equal(back, array)
+
+    @pytest.mark.parametrize("suffix", [".png", ".tif", ".bmp"])
+    def test_colour_under_transparent_pixels_kept(self, tmp_path, suffix):
+        array = (np.random.default_rng(0).random((16, 15, 4)) * 255).astype(np.uint8)
+        array[::2, :, 3] = 0
+        write_image_array(tmp_path / f"a{suffix}", array)
+        assert np.array_equal(read_image_array(tmp_path / f"a{suffix}"), array)
+
+    @pytest.mark.parametrize("suffix, shape", [(".jpg", (6, 5, 4)), (".jpeg", (6, 5, 4)), (".webp", (6, 5)),
+                                               (".webp", (6, 5, 1)), (".webp", (6, 5, 4))])
+    def test_other_channels_refused(self, tmp_path, suffix, shape):
+        channels = 1 if len(shape) == 2 else shape[2]
+        with pytest.raises(ValueError, match=rf"^array: a \{suffix} file keeps only .* channels .*, got {channels} "):
+            write_image_array(tmp_path / f"a{suffix}", np.zeros(shape, np.uint8))
+        assert list(tmp_path.iterdir()) == []
+
+    def test_grey_image_to_webp(self, tmp_path):
+        grey = _ramp()[:1]
+        write_image(tmp_path / "g.webp", grey)
+        assert read_image_array(tmp_path / "g.webp").shape == (24, 40, 3)
+        torch.testing.assert_close(read_image(tmp_path / "g.webp"), grey.expand(3, -1, -1))
+
+
+class TestArrays:
+    def test_write_image_takes_views_and_byte_orders(self, tmp_path):
+        """write_image called torch.from_numpy: an RGB view of a BGR array (negative strides) or a
+        big-endian array raised torch's ValueError."""
+        bgr = np.random.default_rng(0).integers(0, 256, (8, 10, 3)).astype(np.uint8)
+        rgb = bgr[:, :, ::-1].transpose(2, 0, 1)
+        write_image(tmp_path / "a.png", rgb)
+        assert np.array_equal(read_image_array(tmp_path / "a.png"), bgr)
+        big = rgb.astype(">f4")
+        write_image(tmp_path / "b.png", big)
+        assert np.array_equal(read_image_array(tmp_path / "b.png"), bgr)
+
+    def test_folder_in_place_of_a_file(self, tmp_path):
+        """A folder was 'no file at', as if nothing were there."""
+        (tmp_path / "a.png").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*a\.png' is a folder; expected a file$"):
+            read_image(tmp_path / "a.png")
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*a\.png' is a folder; expected a file path$"):
+            write_image(tmp_path / "a.png", _ramp())
+        with pytest.raises(FileNotFoundError, match="path: no file at"):
+            read_image(tmp_path / "b.png")
+
+
 class TestCardinality:
     @pytest.mark.parametrize("size", [(1, 1), (7, 3), (3, 7)])
     def test_sizes(self, tmp_path, size):

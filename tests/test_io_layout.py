@@ -298,3 +298,146 @@ def test_writer_refuses_poses_its_reader_refuses(tmp_path, key, pose, match):
     with pytest.raises(ValueError, match=match):
         write_synthetic_pair(tmp_path / "out", 0, pair)
     assert not (tmp_path / "out").exists()
+
+
+class TestWriterChecks:
+    """write_synthetic_pair once wrote what its readers cannot use, and meta= replaced the layout's
+    own entries of meta.json."""
+
+    @pytest.mark.parametrize("index, err, match", [(-1, ValueError, r"index: expected an int >= 0 .*got -1"),
+                                                   (2.7, TypeError, r"index: expected an int >= 0, got float 2\.7"),
+                                                   (True, TypeError, r"index: expected an int >= 0, got bool True")])
+    def test_index_is_an_int_from_0(self, tmp_path, index, err, match):
+        """-1 wrote '-00001.*' files no reader finds; 2.7 was written as pair 2."""
+        with pytest.raises(err, match=match):
+            write_synthetic_pair(tmp_path / "out", index, _pair())
+        assert not (tmp_path / "out").exists()
+        import numpy as np
+
+        write_synthetic_pair(tmp_path / "ok", np.int64(2), _pair())
+        assert synthetic_pair_indices(tmp_path / "ok") == [2]
+
+    @pytest.mark.parametrize("key", ["image2", "flow", "valid", "flow_velocity", "road", "labels", "depth"])
+    def test_every_tensor_has_the_size_of_the_images(self, tmp_path, key):
+        """A flow of 12x20 beside 24x40 images was written and refused only when read back."""
+        pair = _pair()
+        pair[key] = pair[key][..., :12, :20]
+        with pytest.raises(ValueError, match=rf"^pair\['{key}'\]: expected the size 24x40 of pair\['image1'\], got"):
+            write_synthetic_pair(tmp_path / "out", 0, pair)
+        assert not (tmp_path / "out").exists()
+
+    def test_extra_cannot_replace_the_params(self, tmp_path):
+        with pytest.raises(ValueError, match=r"^extra: \['camera', 'size'\] are keys the params JSON holds itself"):
+            write_synthetic_pair(tmp_path / "out", 0, _pair(), extra={"size": [1, 1], "camera": None, "preset": "x"})
+        assert not (tmp_path / "out").exists()
+
+    def test_meta_cannot_replace_the_layouts_entries(self, tmp_path):
+        """meta={'num_pairs': 1} once made a 3-pair sequence read back as 1 pair."""
+        rendered = []
+
+        def pairs():
+            for i in range(3):
+                rendered.append(i)
+                yield _pair(i)
+
+        with pytest.raises(ValueError, match=r"^meta: \['format', 'num_pairs'\] are entries meta\.json holds itself"):
+            write_synthetic_sequence(tmp_path / "seq", pairs(), meta={"num_pairs": 1, "format": "mine", "seed": 1})
+        assert rendered == [] and not (tmp_path / "seq").exists()
+
+
+class TestPosesChain:
+    """poses.txt's row i is the camera of pair i's first frame: true only of consecutive frames."""
+
+    def _posed_pairs(self, breaks):
+        pairs = [_pair(i, roll=0.0, pitch=0.0) for i in range(3)]
+        pose = torch.eye(4, dtype=torch.float64)
+        for i, p in enumerate(pairs):
+            if i == breaks:  # a gap: this pair starts 6 m further on
+                pose = pose.clone()
+                pose[2, 3] += 6.0
+            p["pose1"] = pose
+            pose = pose @ torch.linalg.inv(relative_pose_from_odometry(p["camera"], **p["odometry"]))
+            p["pose2"] = pose
+        return pairs
+
+    def test_pairs_that_are_not_consecutive_frames_get_no_poses_file(self, tmp_path):
+        """A broken chain was written as the chain of the pairs' relative motions, so row 2 was the
+        camera of 000001_11, 6 m off the camera of 000002_10."""
+        pairs = self._posed_pairs(breaks=2)
+        write_synthetic_sequence(tmp_path, pairs)
+        assert not (tmp_path / "poses.txt").exists()
+        meta = json.loads((tmp_path / "meta.json").read_text())
+        assert meta["poses_world"] is None
+        assert meta["poses_missing"].startswith("pair 2's pose1 is not pair 1's pose2: the pairs are not consecutive")
+        torch.testing.assert_close(read_synthetic_pair(tmp_path, 2)["pose1"], pairs[2]["pose1"])
+
+    def test_a_pair_without_poses_among_posed_ones(self, tmp_path):
+        pairs = self._posed_pairs(breaks=None)
+        del pairs[1]["pose1"], pairs[1]["pose2"]
+        write_synthetic_sequence(tmp_path, pairs)
+        assert not (tmp_path / "poses.txt").exists()
+        assert json.loads((tmp_path / "meta.json").read_text())["poses_missing"].startswith("pair 1 has no pose1/pose2")
+
+    def test_consecutive_pairs_keep_their_poses(self, tmp_path):
+        pairs = self._posed_pairs(breaks=None)
+        write_synthetic_sequence(tmp_path, pairs)
+        poses = read_kitti_poses(tmp_path / "poses.txt")
+        torch.testing.assert_close(poses, torch.stack([pairs[0]["pose1"]] + [p["pose2"] for p in pairs]))
+        assert "poses_missing" not in json.loads((tmp_path / "meta.json").read_text())
+
+
+class TestReaderChecks:
+    def test_each_pair_counts_once(self, tmp_path):
+        """'1.json' and '0000001.json' beside '000001.json' once made pair 1 count three times."""
+        write_synthetic_sequence(tmp_path, [_pair(i) for i in range(3)])
+        for name in ("1.json", "0000001.json", "00000.json"):
+            (tmp_path / "params" / name).write_bytes((tmp_path / "params" / "000001.json").read_bytes())
+        assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
+        (tmp_path / "meta.json").unlink()
+        assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
+        write_synthetic_pair(tmp_path, 1234567, _pair())  # beyond six digits, pair_name's own name
+        assert synthetic_pair_indices(tmp_path) == [0, 1, 2, 1234567]
+
+    @pytest.mark.parametrize("entry", ["height", "K", "roll", "pitch", "x_d", "pose1"])
+    def test_integers_beyond_float64(self, tmp_path, entry):
+        """JSON takes any integer: 10**400 raised OverflowError rather than the ValueError naming
+        the file and the entry."""
+        from fsof_torch.io import read_synthetic_params
+
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        path = tmp_path / "params" / "000000.json"
+        params = json.loads(path.read_text())
+        huge = 10 ** 400
+        if entry == "K":
+            params["camera"]["K"][0][0] = huge
+        elif entry == "x_d":
+            params["odometry"]["x_d"] = huge
+        elif entry == "pose1":
+            params["pose1"] = _eye4(0, 3, huge)
+        else:
+            params["camera"][entry] = huge
+        path.write_text(json.dumps(params))
+        where = {"K": r"\['camera'\]\['K'\] is not a 3×3 list of finite numbers", "x_d": r"\['odometry'\]\['x_d'\]",
+                 "pose1": r"\['pose1'\] is not a 4×4 list of numbers"}.get(entry, rf"\['camera'\]\['{entry}'\]")
+        with pytest.raises(ValueError, match=rf"^path: '.*000000\.json'{where}"):
+            read_synthetic_pair(tmp_path, 0)
+        if entry != "pose1":
+            with pytest.raises(ValueError, match=where):
+                read_synthetic_params(tmp_path, 0)
+        path.write_text('{"camera": {"height": ' + "1" * 5000 + "}}")
+        with pytest.raises(ValueError, match=r"^path: '.*000000\.json' is not valid JSON"):
+            read_synthetic_params(tmp_path, 0)
+
+    def test_folders_in_place_of_files(self, tmp_path):
+        """A folder was 'no params file', or skipped as a missing optional part."""
+        write_synthetic_sequence(tmp_path / "a", [_pair(0)])
+        (tmp_path / "a" / "road" / "000000_10.png").unlink()
+        (tmp_path / "a" / "road" / "000000_10.png").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*road/000000_10\.png' is a folder"):
+            read_synthetic_pair(tmp_path / "a", 0)
+        (tmp_path / "b" / "params" / "000000.json").mkdir(parents=True)
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*params/000000\.json' is a folder"):
+            read_synthetic_pair(tmp_path / "b", 0)
+        (tmp_path / "b" / "meta.json").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*meta\.json' is a folder"):
+            synthetic_pair_indices(tmp_path / "b")

@@ -273,6 +273,28 @@ class TestPolygonJson:
         with pytest.raises(ValueError, match=r"\['road_polygon'\]\[1\]: expected finite coordinates"):
             read_road_mask(tmp_path / "r.json")
 
+    def test_integers_beyond_float64(self, tmp_path):
+        """JSON takes any integer: 10**400 raised OverflowError from float(), and an integer of over
+        4300 digits Python's bare ValueError, neither naming the file."""
+        huge = "1" + "0" * 400
+        (tmp_path / "r.json").write_text('{"size": [10, 10], "road_polygon": [[0, 0], [9, 0], [' + huge + ', 9]]}')
+        with pytest.raises(ValueError, match=r"^path: '.*r\.json'\['road_polygon'\]\[2\]: coordinates beyond ±1e\+15"):
+            read_road_mask(tmp_path / "r.json")
+        with pytest.raises(ValueError, match=r"^polygons\[0\]\[2\]: coordinates beyond ±1e\+15 px"):
+            rasterize_polygons([[[0, 0], [9, 0], [-(10 ** 400), 9]]], (10, 10))
+        digits = "1" * 5000
+        (tmp_path / "r.json").write_text('{"size": [10, 10], "road_polygon": [[0, 0], [9, 0], [' + digits + ', 9]]}')
+        with pytest.raises(ValueError, match=r"^path: '.*r\.json' is not valid JSON: .*4300 digits"):
+            read_road_mask(tmp_path / "r.json")
+
+    def test_folder_in_place_of_the_file(self, tmp_path):
+        (tmp_path / "r.json").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*r\.json' is a folder; expected a file$"):
+            read_road_mask(tmp_path / "r.json")
+        (tmp_path / "r.png").mkdir()
+        with pytest.raises(IsADirectoryError, match=r"^path: '.*r\.png' is a folder"):
+            read_road_mask(tmp_path / "r.png")
+
     def test_binary_file(self, tmp_path):
         (tmp_path / "r.json").write_bytes(bytes(range(256)))
         with pytest.raises(ValueError, match=r"path: '.*r\.json' is not a text \(UTF-8\) JSON file"):

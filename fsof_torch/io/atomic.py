@@ -4,13 +4,20 @@ A crash (an exception, a killed process) while a file is written leaves the old 
 at the target path: never half a file. Every writer of :mod:`fsof_torch.io` goes through
 :func:`atomic_path`.
 
-The temporary file is named ``.<name>.<random>.tmp<suffix>`` (hidden, beside the target). A
-process killed between creating and renaming it (SIGKILL, power loss) leaves it behind;
-:func:`remove_stale_temporaries` removes such leftovers from a folder before a job writes there
-again. Files are created with mode ``0o666`` less the process's umask, like ``open()``: the
-temporary is the owner's to write (``0o600``) while it is written and gets that mode just before
-the rename, so a umask that takes the owner's write bit (``0o222``) gives read-only files, as
-``open()`` does, rather than a temporary nobody can write into.
+The temporary file is named ``.<name>.<random>.tmp<suffix>`` (hidden, beside the target; the copy
+of the target's name is cut where the whole would pass 255 bytes, so that every name a file system
+takes can be written). A process killed between creating and renaming it (SIGKILL, power loss)
+leaves it behind; :func:`remove_stale_temporaries` removes such leftovers from a folder before a
+job writes there again.
+
+Permissions follow ``open()``: a new file gets mode ``0o666`` less the process's umask, a file
+written over keeps its permission bits (a private ``0o600`` file stays private). The temporary is
+the owner's to write (``0o600``) while it is written and gets that mode just before the rename, so
+a umask that takes the owner's write bit (``0o222``) gives read-only files, as ``open()`` does,
+rather than a temporary nobody can write into. A target that is a symbolic link is written through
+it, as ``open()`` writes: the file it points to is replaced (its temporary lies beside that file)
+and the link stays. Unlike ``open()``, a file with several hard links is replaced under this name
+only: its other names keep the old content.
 """
 
 from __future__ import annotations
@@ -31,8 +38,9 @@ from .._check import as_path
 __all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonable", "remove_stale_temporaries",
            "creation_error"]
 
-#: the names :func:`atomic_path` gives its temporary files
+#: the names :func:`atomic_path` gives its temporary files (:func:`_temporary_name`)
 TEMPORARY_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp(\.[^.]*)?$")
+_NAME_MAX = 255  # bytes in a file name: ext4, XFS, Btrfs, APFS
 
 
 @contextlib.contextmanager
@@ -46,11 +54,19 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     OSError ("nothing was written": an encoder that failed quietly) unless ``allow_empty``, for
     writers of raw bytes and text, where an empty file is data.
 
+    As with ``open()``, a file written over keeps its permission bits (a new one gets ``0o666``
+    less the umask) and a symbolic link is written through: the file it points to is replaced.
+    A folder at ``path`` is an IsADirectoryError naming it, raised before anything is written.
+
     Example:
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
         ...     tmp.write_text("hello")
     """
     path = as_path(path)
+    if path.is_symlink():  # write through the link, as open() does, rather than replace the link
+        path = Path(os.path.realpath(path))
+    if path.is_dir():
+        raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a file path")
     folder = path.parent
     if not folder.is_dir():
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
@@ -62,6 +78,10 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         # flush to the disk before the rename, so that a power loss cannot leave an empty file
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
+        with contextlib.suppress(FileNotFoundError):
+            # open() keeps the permissions of a file it writes over (not its set-id bits: the
+            # kernel clears those on a write)
+            mode = stat.S_IMODE(path.stat().st_mode) & 0o777
         os.chmod(tmp, mode)
         os.replace(tmp, path)
     except BaseException:
@@ -70,9 +90,22 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         raise
 
 
+def _temporary_name(name: str, suffix: str) -> str:
+    """``.<name>.<16 random hex digits>.tmp<suffix>``, the copy of ``name`` cut to keep the whole
+    within 255 bytes (the longest file name of common file systems), so that a target whose name
+    is just short enough can be written. ``suffix`` is kept (encoders pick the format by it)
+    unless it alone leaves no room."""
+    token = secrets.token_hex(8)
+    if len(os.fsencode(f".x.{token}.tmp{suffix}")) > _NAME_MAX:
+        suffix = ""
+    while len(name) > 1 and len(os.fsencode(f".{name}.{token}.tmp{suffix}")) > _NAME_MAX:
+        name = name[:-1]
+    return f".{name}.{token}.tmp{suffix}"
+
+
 def _create_temporary(folder: Path, path: Path) -> tuple[Path, int]:
-    """Create a new, empty ``.<name>.<random>.tmp<suffix>`` in ``folder``, mode ``0o600``; returns it
-    and the mode the written file gets.
+    """Create a new, empty temporary (:func:`_temporary_name`) in ``folder``, mode ``0o600``;
+    returns it and the mode a new file gets.
 
     ``os.open`` with mode 0o666 lets the umask decide the final permissions, as for any file a
     program creates (``tempfile.mkstemp`` would make every output private, mode 0o600); reading
@@ -80,7 +113,7 @@ def _create_temporary(folder: Path, path: Path) -> tuple[Path, int]:
     between threads). The writers reopen the temporary by name, so until the rename it is the
     owner's to write: a umask of 0o222 would otherwise create it read-only."""
     for _ in range(100):
-        tmp = folder / f".{path.name}.{secrets.token_hex(8)}.tmp{path.suffix}"
+        tmp = folder / _temporary_name(path.name, path.suffix)
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:  # pragma: no cover - 64 random bits

@@ -20,7 +20,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, check_has_values
+from .._check import as_path, check_has_values, tensor_from_array
 from .atomic import atomic_path
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
@@ -29,10 +29,20 @@ _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its fixed CRC
 
 
-def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
+def existing_file(path: str | os.PathLike) -> Path:
+    """``path`` as a Path where a file is there: a FileNotFoundError where nothing is, an
+    IsADirectoryError where a folder is (each naming ``path``), rather than "no file" for a
+    folder that is there."""
     path = as_path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a file")
     if not path.is_file():
         raise FileNotFoundError(f"path: no file at {str(path)!r}")
+    return path
+
+
+def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:
+    path = existing_file(path)
     return path, path.read_bytes()
 
 
@@ -65,8 +75,9 @@ def read_image_array(path: str | os.PathLike, *, what: str = "image") -> np.ndar
     """Decode an image file exactly as stored (``cv2.IMREAD_UNCHANGED``): (H, W) or (H, W, C)
     uint8/uint16/float32, channels in OpenCV's BGR(A) order.
 
-    Raises ValueError naming the path for an empty, truncated or undecodable file. ``what`` says
-    in the message what the file was expected to be ("KITTI flow PNG", ...).
+    Raises ValueError naming the path for an empty, truncated or undecodable file,
+    FileNotFoundError for a missing one, IsADirectoryError for a folder. ``what`` says in the
+    message what the file was expected to be ("KITTI flow PNG", ...).
     """
     import cv2
 
@@ -97,6 +108,19 @@ WRITABLE_DTYPES: dict[str, tuple[type, ...]] = {
     ".webp": (np.uint8,),
 }
 
+#: the channel counts each suffix of :data:`WRITABLE_DTYPES` reads back as written (1: (H, W) or
+#: (H, W, 1), read back as (H, W)); OpenCV drops the alpha of a .jpg, makes a grey .webp BGR, and
+#: WebP drops the colour of transparent pixels (alpha 0)
+WRITABLE_CHANNELS: dict[str, tuple[int, ...]] = {
+    ".png": (1, 3, 4),
+    ".tif": (1, 3, 4),
+    ".tiff": (1, 3, 4),
+    ".jpg": (1, 3),
+    ".jpeg": (1, 3),
+    ".bmp": (1, 3, 4),
+    ".webp": (3,),
+}
+
 
 def check_image_suffix(path: str | os.PathLike, suffixes: tuple[str, ...], what: str) -> Path:
     """``path`` as a Path if its suffix (any case) is one of ``suffixes``, else a ValueError naming
@@ -115,8 +139,11 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
 
     Only pixel types the format stores exactly are written (:data:`WRITABLE_DTYPES`): uint8 to
     .png, .tif/.tiff, .jpg/.jpeg, .bmp, .webp; uint16 to .png and .tif/.tiff; float32 to
-    .tif/.tiff. Anything else is a ValueError naming ``array`` and the suffix, raised before a file
-    is written (OpenCV would silently convert it to 8 bits). Another suffix is a ValueError naming
+    .tif/.tiff. Only channel counts the format reads back are written (:data:`WRITABLE_CHANNELS`):
+    1, 3 or 4 to .png, .tif/.tiff, .bmp; 1 or 3 to .jpg/.jpeg (no alpha); 3 to .webp (no grey,
+    and no alpha: WebP drops the colour of transparent pixels). Anything else is a ValueError
+    naming ``array`` and the suffix, raised before a file is written (OpenCV would silently
+    convert it to 8 bits, drop the alpha or add channels). Another suffix is a ValueError naming
     ``path``.
     """
     import cv2
@@ -137,6 +164,12 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
         raise ValueError(f"array: a {suffix} file holds {'/'.join(np.dtype(d).name for d in allowed)} pixels, "
                          f"got {array.dtype} for {str(path)!r} (OpenCV would convert it to 8 bits); "
                          f"uint16 goes to .png or .tif, float32 to .tif")
+    channels = 1 if array.ndim == 2 else array.shape[2]
+    if channels not in WRITABLE_CHANNELS[suffix]:
+        allowed = " or ".join(map(str, WRITABLE_CHANNELS[suffix]))
+        raise ValueError(f"array: a {suffix} file keeps only {allowed} channels (others read back changed), "
+                         f"got {channels} (shape {array.shape}) for {str(path)!r}; any of 1, 3, 4 goes to "
+                         f".png, .tif or .bmp")
     with atomic_path(path) as tmp:
         if not cv2.imwrite(str(tmp), array):
             raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
@@ -171,11 +204,13 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
     .png, .tif/.tiff, .jpg/.jpeg, .bmp, .webp; another suffix is a ValueError naming ``path``).
 
     Args:
-        image: (3, H, W) RGB, or (1, H, W) / (H, W) grey, float on the 0..255 scale (rounded to
-            the nearest integer) or uint8. Values may exceed 0..255 by at most 0.5 (rounding).
+        image: (3, H, W) RGB, or (1, H, W) / (H, W) grey (written as three equal channels to
+            .webp, which stores no grey), float on the 0..255 scale (rounded to the nearest
+            integer) or uint8; a tensor or a NumPy array (any strides and byte order). Values may
+            exceed 0..255 by at most 0.5 (rounding).
     """
     if isinstance(image, np.ndarray):
-        image = torch.from_numpy(image)
+        image = tensor_from_array(image)
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor of shape (3, H, W), (1, H, W) or (H, W), got {type(image).__name__}")
     if image.dim() == 3 and image.shape[0] in (1, 3):
@@ -201,5 +236,7 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
             raise ValueError(f"image: expected values on the 0..255 scale, got the range [{lo:.4g}, {hi:.4g}]")
         array = values.round().clamp(0, 255).to(torch.uint8).numpy()
     array = array.transpose(1, 2, 0)
+    if array.shape[2] == 1 and 1 not in WRITABLE_CHANNELS.get(as_path(path).suffix.lower(), (1,)):
+        array = np.repeat(array, 3, axis=2)  # .webp stores no grey; read_image repeats grey to 3 channels anyway
     array = array[:, :, 0] if array.shape[2] == 1 else array[:, :, ::-1]
     return write_image_array(path, np.ascontiguousarray(array))

@@ -35,9 +35,11 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
                                    world frame: x right, y down, z along the road at its start, the
                                    road at s = 0 is y = h; the vehicle frame of frame 0 only on a
                                    level road without body motion) when every pair has them and
-                                   consecutive pairs share a frame;
-                                   otherwise the chain of each pair's true relative motion
-                                   (world = camera of the first frame). meta.json says which.
+                                   consecutive pairs share a frame; the chain of each pair's true
+                                   relative motion (world = camera of the first frame) when no
+                                   pair has them. meta.json's poses_world says which. Pairs with
+                                   poses that do not chain (not consecutive frames) get no
+                                   poses.txt: meta.json's poses_missing says why.
 
 Optional parts of a pair (velocity flow, labels, depth, velocity, poses, road pose, plane
 motion) are written when the pair has them, and read back when the files have them (folders
@@ -48,6 +50,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 import os
 import re
 from pathlib import Path
@@ -88,6 +91,11 @@ _DEPTH_SCALE = 256.0
 _RENDERED_WORLD = ("renderer's level world frame (x right, y down along gravity, z along the road at its start; "
                    "origin the camera height above the road under the vehicle at frame 0)")
 
+# the keys write_synthetic_pair writes into a pair's params JSON, and write_synthetic_sequence into
+# meta.json: `extra=` and `meta=` may not replace them
+_PARAMS_KEYS = ("index", "name", "size", "camera", "odometry", "velocity", "road_pose", "plane", "pose1", "pose2")
+_META_KEYS = ("format", "version", "num_pairs", "size", "poses_world", "poses_missing", "files", "layout")
+
 FILES = {
     "image_2/{name}_10.png": "frame t, 8-bit RGB",
     "image_2/{name}_11.png": "frame t+1, 8-bit RGB",
@@ -98,7 +106,7 @@ FILES = {
     "depth/{name}_10.png": "depth, uint16 = metres * 256, 0 = none",
     "calib/{name}.txt": "P_rect_02: K | 0",
     "params/{name}.json": "true camera, odometry, velocity, poses, road pose, plane motion",
-    "poses.txt": "N+1 camera-to-world poses (KITTI odometry format), chained",
+    "poses.txt": "N+1 camera-to-world poses (KITTI odometry format) of consecutive frames, when they chain",
 }
 
 
@@ -177,13 +185,31 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     (1, H, W) bool, ``camera`` (batch 1), ``odometry`` (x_d, z_d, yaw). Optional: ``road``,
     ``labels``, ``depth``, ``flow_velocity``, ``velocity``, ``pose1``, ``pose2``, ``road_pose``,
     ``plane``. ``extra`` goes into the params JSON (preset, seed, ...). Returns the written paths
-    by kind. ``pose1`` and ``pose2`` must be rigid poses (ValueError before anything is written),
-    as :func:`read_synthetic_pair` requires.
+    by kind.
+
+    Checked before anything is written, as :func:`read_synthetic_pair` and
+    :func:`synthetic_pair_indices` require: ``index`` is an int >= 0 (TypeError, ValueError naming
+    it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
+    ``pose1`` and ``pose2`` are rigid poses; ``extra`` holds none of the params' own keys (each
+    a ValueError naming the argument).
     """
     root = Path(root)
+    if isinstance(index, bool) or not isinstance(index, numbers.Integral):
+        raise TypeError(f"index: expected an int >= 0, got {type(index).__name__} {index!r:.60}")
+    if index < 0:
+        raise ValueError(f"index: expected an int >= 0 (the pair's file names), got {index}")
     missing = [k for k in ("image1", "image2", "flow", "valid", "camera", "odometry") if k not in pair]
     if missing:
         raise ValueError(f"pair: missing keys {missing}; expected the dict of fsof_torch.scene.render_pair")
+    size = tuple(getattr(pair["image1"], "shape", ())[-2:])
+    for key in ("image2", "flow", "valid", "flow_velocity", "road", "labels", "depth"):
+        shape = tuple(getattr(pair.get(key), "shape", ()))
+        if len(size) == 2 and len(shape) >= 2 and shape[-2:] != size:
+            raise ValueError(f"pair[{key!r}]: expected the size {size[0]}x{size[1]} of pair['image1'], "
+                             f"got shape {shape}")
+    clash = sorted(set(extra or {}) & set(_PARAMS_KEYS))
+    if clash:
+        raise ValueError(f"extra: {clash} are keys the params JSON holds itself; give other names")
     for key in ("pose1", "pose2"):  # checked before any file is written, as the reader checks them
         if pair.get(key) is not None:
             pose = torch.as_tensor(pair[key]).detach().to("cpu", torch.float64)
@@ -212,7 +238,7 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
         out["depth"] = write_depth_png(target("depth", f"{name}_10.png"), pair["depth"])
     camera: Camera = pair["camera"]
     out["calib"] = write_kitti_calibration(target("calib", f"{name}.txt"), camera.K[0].detach().cpu().double())
-    params = {
+    params = {  # keys: _PARAMS_KEYS
         "index": int(index),
         "name": name,
         "size": list(pair["flow"].shape[-2:]),
@@ -239,12 +265,26 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     ``pairs`` may be a generator (rendering lazily, so that the progress bar, on stderr when
     ``progress``, counts rendering too). ``root`` must be new or empty (ValueError otherwise,
     before any pair is rendered, as ``python -m eval synth`` does): files of an earlier run there
-    (a road mask, depth, ``meta.json``) would be read back as part of this one. Returns a
-    summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
+    (a road mask, depth, ``meta.json``) would be read back as part of this one. ``meta`` adds
+    entries to ``meta.json`` (``preset`` and ``seed`` also go into every params JSON); a key of
+    the layout's own (``format``, ``version``, ``num_pairs``, ``size``, ``poses_world``,
+    ``poses_missing``, ``files``, ``layout``) is a ValueError naming ``meta``, raised first.
+
+    ``poses.txt`` holds the renderer's ``pose1``/``pose2`` where every pair has them and each
+    pair's ``pose1`` is the previous pair's ``pose2`` (consecutive frames); the chain of the
+    pairs' relative motions (world = camera of the first frame) where no pair has poses (the
+    pairs are taken as consecutive frames). Where some pairs have poses and the chain breaks
+    (pairs that are not consecutive frames, or a pair without poses), no ``poses.txt`` is
+    written and ``meta.json``'s ``poses_missing`` says why (``poses_world`` is null).
+
+    Returns a summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
     """
     from tqdm import tqdm
 
     root = Path(root)
+    clash = sorted(set(meta or {}) & set(_META_KEYS))
+    if clash:
+        raise ValueError(f"meta: {clash} are entries meta.json holds itself; give other names")
     if root.is_dir() and any(root.iterdir()):
         held = sorted(p.name for p in root.iterdir())
         listed = ", ".join(held[:4]) + (", ..." if len(held) > 4 else "")
@@ -252,7 +292,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     root.mkdir(parents=True, exist_ok=True)
     extra = dict(meta or {})
     chained = [torch.eye(4, dtype=torch.float64)]
-    rendered: list[Tensor] | None = []
+    rendered: list[tuple[Tensor, Tensor] | None] = []
     size = None
     count = 0
     iterator = tqdm(pairs, total=total, desc=f"synth {root.name}", unit="pair", disable=not progress)
@@ -261,16 +301,19 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
         odo = pair["odometry"]
         T = relative_pose_from_odometry(pair["camera"], _float(odo["x_d"]), _float(odo["z_d"]), _float(odo["yaw"]))
         chained.append(chained[-1] @ torch.linalg.inv(T))
-        rendered = _extend_rendered_poses(rendered, pair)
+        has_poses = pair.get("pose1") is not None and pair.get("pose2") is not None
+        rendered.append(tuple(pair[k].detach().cpu().double().reshape(4, 4) for k in ("pose1", "pose2"))
+                        if has_poses else None)
         size = list(pair["flow"].shape[-2:])
         count += 1
     if count == 0:
         raise ValueError("pairs: got no pairs to write")
-    # the renderer's own poses when every pair has them and consecutive pairs share a frame;
-    # otherwise the chain of the pairs' relative motions (world = camera of the first frame)
-    poses = torch.stack(rendered) if rendered else torch.stack(chained)
-    write_kitti_poses(root / "poses.txt", poses)
-    extra["poses_world"] = _RENDERED_WORLD if rendered else "camera of the first frame"
+    poses, note = _sequence_poses(rendered, chained)
+    if poses is not None:
+        write_kitti_poses(root / "poses.txt", poses)
+        extra["poses_world"] = note
+    else:
+        extra["poses_world"], extra["poses_missing"] = None, note
     files = {folder: len(list((root / folder).glob("*"))) for folder in
              ("image_2", "flow_occ", "flow_velocity", "road", "semantic", "depth", "calib", "params")
              if (root / folder).is_dir()}
@@ -281,31 +324,41 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     return {"root": str(root), "num_pairs": count, "size": size, "files": files, "bytes": total_bytes}
 
 
-def _extend_rendered_poses(poses: list[Tensor] | None, pair: Mapping[str, Any]) -> list[Tensor] | None:
-    """Append a pair's ``pose1``/``pose2`` to a chain of camera-to-world poses; None once broken."""
-    if poses is None or pair.get("pose1") is None or pair.get("pose2") is None:
-        return None
-    p1 = pair["pose1"].detach().cpu().double().reshape(4, 4)
-    p2 = pair["pose2"].detach().cpu().double().reshape(4, 4)
-    if not poses:
-        return [p1, p2]
-    if not torch.allclose(poses[-1], p1, atol=1e-9, rtol=0):
-        return None
-    return poses + [p2]
+def _sequence_poses(rendered: list[tuple[Tensor, Tensor] | None],
+                    chained: list[Tensor]) -> tuple[Tensor | None, str]:
+    """The (N + 1, 4, 4) poses of ``poses.txt`` and their world frame, or None and why there are
+    none: the renderer's poses where they chain, the chained relative motions where no pair has
+    poses (nothing to check the pairs' order against)."""
+    if all(p is None for p in rendered):
+        return torch.stack(chained), "camera of the first frame"
+    for i, p in enumerate(rendered):
+        if p is None:
+            return None, f"pair {i} has no pose1/pose2 while others have: the chain of cameras is not known"
+        # row i is the camera of pair i's first frame: only consecutive frames chain
+        if i and not torch.allclose(rendered[i - 1][1], p[0], atol=1e-9, rtol=0):
+            return None, (f"pair {i}'s pose1 is not pair {i - 1}'s pose2: the pairs are not consecutive "
+                          f"frames, so no row can be the camera of both")
+    return torch.stack([rendered[0][0]] + [p[1] for p in rendered]), _RENDERED_WORLD
 
 
 def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
     """Indices of the pairs in a synthetic layout folder (from ``params/*.json``), sorted.
 
+    A file counts where its name is the one :func:`pair_name` gives (``000001.json``; not
+    ``1.json`` nor ``0000001.json``, which the readers would not open: each pair counts once).
     Where ``meta.json`` exists, only the pairs ``0 .. num_pairs - 1`` it lists count: files of
-    pairs beyond them (left by an older, longer run) are not pairs of this sequence.
+    pairs beyond them (left by an older, longer run) are not pairs of this sequence. A folder
+    named ``meta.json`` is an IsADirectoryError.
     """
     root = Path(root)
     if not (root / "params").is_dir():
         raise FileNotFoundError(f"root: {str(root)!r} has no params/ folder (not a synthetic layout written by "
                                 f"write_synthetic_sequence / python -m eval synth)")
-    indices = sorted(int(p.stem) for p in (root / "params").glob("*.json") if re.fullmatch("[0-9]+", p.stem))
+    indices = sorted(int(p.stem) for p in (root / "params").glob("*.json")
+                     if re.fullmatch("[0-9]+", p.stem) and p.stem == pair_name(int(p.stem)))
     meta = root / "meta.json"
+    if meta.is_dir():
+        raise IsADirectoryError(f"path: {str(meta)!r} is a folder; expected the layout's meta.json file")
     if meta.is_file():
         count = _read_json_file(meta).get("num_pairs")
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
@@ -321,7 +374,7 @@ def _read_json_file(path: Path) -> dict:
     except UnicodeDecodeError as err:
         raise ValueError(f"path: {str(path)!r} is not a text (UTF-8) JSON file (undecodable byte at offset "
                          f"{err.start})") from None
-    except (json.JSONDecodeError, RecursionError) as err:
+    except (ValueError, RecursionError) as err:  # JSONDecodeError, or an integer of over 4300 digits
         raise ValueError(f"path: {str(path)!r} is not valid JSON: {err}") from None
     if not isinstance(obj, dict):
         raise ValueError(f"path: {str(path)!r} holds a JSON {type(obj).__name__}; expected an object")
@@ -337,9 +390,20 @@ def _number(params: dict, path: Path, *keys: str) -> float:
             raise ValueError(f"path: {str(path)!r} has no entry {entry}")
         value = value[key]
     entry = "".join(f"[{k!r}]" for k in keys)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-        raise ValueError(f"path: {str(path)!r}{entry} is not a finite number: {value!r}")
+    if not _is_finite_number(value):
+        raise ValueError(f"path: {str(path)!r}{entry} is not a finite number: {value!r:.60}")
     return float(value)
+
+
+def _is_finite_number(value: Any) -> bool:
+    """A JSON number that is a finite float64 (not a bool; not an integer beyond float64's range,
+    which JSON allows)."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
@@ -347,18 +411,24 @@ def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
 
     Raises ValueError naming the path for a file that is not UTF-8 JSON, or that lacks an entry
     every pair has (``camera``: ``K`` 3×3 and ``height``; ``odometry``: ``x_d``, ``z_d``, ``yaw``),
-    or holds there something other than finite numbers; FileNotFoundError for a missing file.
+    or holds there (or in ``camera``'s ``roll``, ``pitch``) something other than finite numbers
+    (an integer beyond float64's range included); FileNotFoundError for a missing file,
+    IsADirectoryError for a folder in its place.
     """
     path = Path(root) / "params" / f"{pair_name(index)}.json"
+    if path.is_dir():
+        raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected the params JSON of pair {index}")
     if not path.is_file():
         raise FileNotFoundError(f"index: no params file {str(path)!r}")
     params = _read_json_file(path)
     _number(params, path, "camera", "height")
     K = params["camera"].get("K")
     rows = isinstance(K, list) and len(K) == 3 and all(isinstance(r, list) and len(r) == 3 for r in K)
-    if not rows or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
-                           for r in K for v in r):
-        raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of finite numbers: {K!r}")
+    if not rows or not all(_is_finite_number(v) for r in K for v in r):
+        raise ValueError(f"path: {str(path)!r}['camera']['K'] is not a 3×3 list of finite numbers: {K!r:.200}")
+    for key in ("roll", "pitch"):  # optional: folders of older versions may lack them
+        if key in params["camera"]:
+            _number(params, path, "camera", key)
     for key in ("x_d", "z_d", "yaw"):
         _number(params, path, "odometry", key)
     return params
@@ -411,17 +481,17 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     flow, valid = read_kitti_flow(path)
     sample["flow"], sample["valid"] = same_size(flow, path).to(dtype), valid
     path = root / "flow_velocity" / f"{name}_10.flo"
-    if path.is_file():
+    if path.exists():  # (a folder there is an error, not a missing part)
         fv = same_size(read_flo(path), path)
         sample["flow_velocity"] = torch.nan_to_num(fv, nan=0.0).to(dtype)
     path = root / "road" / f"{name}_10.png"
-    if path.is_file():
+    if path.exists():
         sample["road"] = same_size(read_road_mask(path), path)
     path = root / "semantic" / f"{name}_10.png"
-    if path.is_file():
+    if path.exists():
         sample["labels"] = same_size(read_label_map(path), path)
     path = root / "depth" / f"{name}_10.png"
-    if path.is_file():
+    if path.exists():
         sample["depth"] = same_size(read_depth_png(path)[0], path).to(dtype)
     sample["odometry"] = {k: float(params["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
     for key in ("velocity", "road_pose", "plane"):
@@ -433,7 +503,7 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
         if key in params:
             try:
                 sample[key] = torch.tensor(params[key], dtype=torch.float64).reshape(4, 4)
-            except (ValueError, TypeError, RuntimeError):
+            except (ValueError, TypeError, RuntimeError, OverflowError):
                 raise ValueError(f"path: {str(params_path)!r}[{key!r}] is not a 4×4 list of numbers") from None
             check_rigid_poses(sample[key].unsqueeze(0), lambda _: f"path: {str(params_path)!r}[{key!r}]")
     return sample

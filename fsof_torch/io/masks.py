@@ -40,7 +40,7 @@ import torch
 from torch import Tensor
 
 from .._check import as_path, check_has_values
-from .images import check_image_suffix, read_image_array, write_image_array
+from .images import check_image_suffix, existing_file, read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
            "read_label_map", "write_label_map"]
@@ -75,9 +75,13 @@ def _as_polygon(poly: object, where: str) -> np.ndarray:
         for c in point:
             if isinstance(c, bool) or not isinstance(c, numbers.Real):
                 raise TypeError(f"{where}[{i}]: expected numeric coordinates [u, v], got {point!r:.60}")
-            if not math.isfinite(float(c)):
+            try:
+                finite = math.isfinite(c)
+            except OverflowError:  # an integer beyond float64 (JSON allows any): finite, and far off
+                finite = True
+            if not finite:
                 raise ValueError(f"{where}[{i}]: expected finite coordinates, got {point!r:.60}")
-            if abs(float(c)) > _MAX_COORD:
+            if abs(c) > _MAX_COORD:  # exact for ints of any size
                 raise ValueError(f"{where}[{i}]: coordinates beyond ±{_MAX_COORD:g} px are not pixels, "
                                  f"got {point!r:.60}")
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
@@ -208,7 +212,7 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         ValueError / TypeError naming ``path`` (and the entry) for a file that is not valid
         UTF-8 JSON, a missing or malformed size, a malformed polygon, two polygon entries or no
         polygon, a vertex beyond ±1e15 px once scaled to ``size``; FileNotFoundError for a
-        missing file.
+        missing file, IsADirectoryError for a folder.
     """
     import cv2
 
@@ -216,15 +220,14 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
     if size is not None:
         size = _check_size(list(size) if isinstance(size, (tuple, torch.Size)) else size, "size")
     if path.suffix.lower() == ".json":
-        if not path.is_file():
-            raise FileNotFoundError(f"path: no file at {str(path)!r}")
+        existing_file(path)
         where = f"path: {str(path)!r}"
         try:
             obj = json.loads(path.read_bytes().decode("utf-8"))
         except UnicodeDecodeError as err:
             raise ValueError(f"{where} is not a text (UTF-8) JSON file (undecodable byte at offset "
                              f"{err.start})") from None
-        except json.JSONDecodeError as err:
+        except ValueError as err:  # JSONDecodeError, or an integer of over 4300 digits
             raise ValueError(f"{where} is not valid JSON: {err}") from None
         except RecursionError:
             raise ValueError(f"{where} is nested too deeply to be a road polygon file") from None
