@@ -161,6 +161,24 @@ def test_exceptions_options_of_fit_road_and_fit_velocity(fn):
             call(fixed=("speed",))
 
 
+def test_numpy_numbers_are_options_like_python_numbers():
+    """NumPy integers and floats were refused with messages that read as false ("expected an int
+    >= 1, got 5"); a bool is not a number."""
+    import numpy as np
+
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    plain = fit_road(flow, valid, cam, min_points=5, min_inlier_fraction=0.5, max_iter=20, check_every=(2, 1))
+    numpy = fit_road(flow, valid, cam, min_points=np.int64(5), min_inlier_fraction=np.float64(0.5),
+                     max_iter=np.int64(20), check_every=(np.int64(2), np.int32(1)))
+    for name, value in plain.params.items():
+        assert torch.equal(numpy.params[name], value), name
+    speed = fit_velocity(flow, valid, cam, np.float64(2.7)).extras["wheelbase"]
+    assert torch.equal(speed, torch.tensor([2.7], dtype=torch.float64))
+    with pytest.raises(ValueError, match="min_inlier_fraction: expected a number in \\[0, 1\\], got True"):
+        fit_road(flow, valid, cam, min_inlier_fraction=True)
+
+
 def test_exceptions_meta_device_fits_need_values():
     """Fitting is iterative and data dependent: on the meta device a named error, not .item()'s."""
     cam = small_camera()

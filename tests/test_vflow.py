@@ -233,6 +233,17 @@ class TestFitVFlowCurve:
         torch.testing.assert_close(curve.scale(cam), torch.tensor([12.0], dtype=torch.float64), atol=0, rtol=1e-6)
         torch.testing.assert_close(curve.v0, cam.cy, atol=0, rtol=1e-6)
 
+    def test_numpy_numbers_are_options_like_python_numbers(self):
+        import numpy as np
+
+        cam, flow, valid = _straight(z_d=1.0)
+        plain = fit_vflow_curve(flow, valid, hypotheses=50, iterations=10, inlier_threshold=0.5, max_false_alarms=1.0)
+        numpy = fit_vflow_curve(flow, valid, hypotheses=np.int64(50), iterations=np.int32(10),
+                                inlier_threshold=np.float32(0.5), max_false_alarms=np.float64(1.0))
+        assert torch.equal(plain.a, numpy.a) and torch.equal(plain.v0, numpy.v0)
+        with pytest.raises(ValueError, match="inlier_threshold: expected a finite number >= 0, got True"):
+            fit_vflow_curve(flow, valid, inlier_threshold=True)
+
     def test_float32(self):
         cam, flow, valid = _straight(torch.float32)
         curve = fit_vflow_curve(flow, valid)

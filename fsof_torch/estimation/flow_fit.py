@@ -20,6 +20,7 @@ Fitting is iterative and data dependent: not differentiable (it runs in ``torch.
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 from typing import Any, Mapping
 
@@ -255,7 +256,7 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
     check_kernel(robust)
 
     def positive(name: str, value: object, integer: bool = False, low: float = 0.0) -> None:
-        ok = (isinstance(value, int) if integer else isinstance(value, (int, float))) and not isinstance(value, bool)
+        ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
         if not ok or not math.isfinite(value) or not value > low:
             kind = "an int" if integer else "a finite number"
             raise ValueError(f"{name}: expected {kind} > {low:g}, got {value!r}")
@@ -267,9 +268,10 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
         positive("max_points", max_points, integer=True, low=15)
     if inlier_threshold is not None:
         positive("inlier_threshold", inlier_threshold)
-    if isinstance(min_points, bool) or not isinstance(min_points, int) or min_points < 1:
+    if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 1:
         raise ValueError(f"min_points: expected an int >= 1, got {min_points!r}")
-    if not (isinstance(min_inlier_fraction, (int, float)) and 0.0 <= min_inlier_fraction <= 1.0):
+    if isinstance(min_inlier_fraction, bool) or not (isinstance(min_inlier_fraction, numbers.Real)
+                                                     and 0.0 <= min_inlier_fraction <= 1.0):
         raise ValueError(f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
 
 
@@ -529,7 +531,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         check_every = (2, 1)
     checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
     expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"
-    if len(checks) != 2 or any(k is not None and (not isinstance(k, int) or isinstance(k, bool)) for k in checks):
+    if len(checks) != 2 or any(isinstance(k, bool) or not isinstance(k, (numbers.Integral, type(None))) for k in checks):
         raise TypeError(f"check_every: expected {expected}, got {type(check_every).__name__} {check_every!r}")
     if any(k is not None and k < 1 for k in checks):
         raise ValueError(f"check_every: expected {expected}, got {check_every!r}")
@@ -654,12 +656,10 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
                  scale: float = 10.0, **options: Any) -> RoadFit:
     """Fit the velocity model (paper eq. 21) to a flow field in pixels per second.
 
-    :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the
-    wheelbase l (metres, > 0, float or (B,)) only converts the yaw rate into a steering angle
-    δ_f = atan(φ̇ l / v_r) (0 at rest), reported as ``fit.steering`` beside ``fit.wheelbase``.
-    ``init`` may give a steering angle instead of a yaw rate. ``scale``: the kernel's scale in
-    px/s (default 10 px/s: 1 px at 10 Hz).
-    """
+    :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the wheelbase l
+    (metres, > 0, float or (B,)) only converts the yaw rate into a steering angle δ_f = atan(φ̇ l / v_r)
+    (0 at rest), reported as ``fit.steering`` beside ``fit.wheelbase``. ``init`` may give a steering
+    angle instead of a yaw rate. ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
     check_fit_flags("fit_velocity", fit_roll, fit_pitch, options)
     wb = _wheelbase(wheelbase, flow)
     if isinstance(init, Mapping) and init.get("steering") is not None and init.get("yaw_rate") is None:
@@ -689,7 +689,7 @@ def _wheelbase(wheelbase: Tensor | float, flow: Tensor) -> Tensor:
     if isinstance(wheelbase, Tensor):
         check_float_tensor(wheelbase, "wheelbase")
         wb = wheelbase.detach().reshape(-1)
-    elif isinstance(wheelbase, (int, float)) and not isinstance(wheelbase, bool):
+    elif isinstance(wheelbase, numbers.Real) and not isinstance(wheelbase, bool):
         wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
     else:
         raise TypeError(f"wheelbase: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")

@@ -36,6 +36,7 @@ The solver works in the start's dtype, half precision lifted to float32, with au
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Any, Callable, Protocol, Sequence
 
@@ -276,10 +277,10 @@ def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> l
     two more iterations: each of those is checked, and then the gaps double)."""
     if check_every is None:
         return []
-    if isinstance(check_every, int) and not isinstance(check_every, bool):
+    if isinstance(check_every, numbers.Integral) and not isinstance(check_every, bool):
         if check_every < 1:
             raise ValueError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}")
-        out, gap = [check_every], 1
+        out, gap = [int(check_every)], 1
         while out[-1] + gap < max_iter:
             out.append(out[-1] + gap)
             if len(out) > 2:  # the gaps: 1, 1, then doubling

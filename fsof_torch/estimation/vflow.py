@@ -22,6 +22,7 @@ rows are indexed by the pixel-centre coordinate v = 0 … H-1; masks (B, 1, H, W
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -322,12 +323,12 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
     for name, value, low in (("hypotheses", hypotheses, 1), ("iterations", iterations, 0),
                              ("min_row_pixels", min_row_pixels, 1), ("min_inlier_rows", min_inlier_rows, 3)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
             raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
     for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
-        if not (isinstance(value, (int, float)) and 0 <= float(value) < float("inf")):
+        if isinstance(value, bool) or not (isinstance(value, numbers.Real) and 0 <= float(value) < float("inf")):
             raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-    if isinstance(max_false_alarms, bool) or not (isinstance(max_false_alarms, (int, float))
+    if isinstance(max_false_alarms, bool) or not (isinstance(max_false_alarms, numbers.Real)
                                                   and 0 < float(max_false_alarms) < float("inf")):
         raise ValueError(f"max_false_alarms: expected a finite number > 0, got {max_false_alarms!r}")
     seed = check_int(seed, "seed")
