@@ -378,6 +378,17 @@ def as_path(path: object, name: str = "path") -> Path:
     return Path(path)
 
 
+def existing_file(path: object, what: str = "file") -> Path:
+    """``path`` as a Path where a file is there: a FileNotFoundError where nothing is ("no
+    {what} at"), an IsADirectoryError where a folder is, each naming ``path``."""
+    path = as_path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a {what}")
+    if not path.is_file():
+        raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
+    return path
+
+
 def batch_choices(B: int) -> str:
     """The batch sizes an argument may have beside a batch of B, for messages: ``"1 or B"``
     (``"1"`` where B is 1)."""

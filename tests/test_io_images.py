@@ -220,6 +220,17 @@ class TestArrays:
         with pytest.raises(FileNotFoundError, match="path: no file at"):
             read_image(tmp_path / "b.png")
 
+    def test_folder_in_place_of_a_text_or_flow_file(self, tmp_path):
+        """The poses, calibration and flow readers said "no file at" for a folder that is there."""
+        from fsof_torch.io import read_flow, read_kitti_calibration, read_kitti_poses
+
+        for name, read, what in (("poses.txt", read_kitti_poses, "poses file"),
+                                 ("calib.txt", read_kitti_calibration, "calibration file"),
+                                 ("f.flo", read_flow, "file"), ("f.npy", read_flow, "file")):
+            (tmp_path / name).mkdir()
+            with pytest.raises(IsADirectoryError, match=rf"^path: '.*{name}' is a folder; expected a {what}$"):
+                read(tmp_path / name)
+
 
 class TestCardinality:
     @pytest.mark.parametrize("size", [(1, 1), (7, 3), (3, 7)])

@@ -22,9 +22,9 @@ import torch
 from torch import Tensor
 
 from .._check import (
-    as_path,
     as_batch_param,
     autocast_off,
+    existing_file,
     check_finite,
     check_float_tensor,
     check_int,
@@ -468,10 +468,8 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     UTF-8 byte-order mark is skipped. Raises ValueError naming the path (and the row) for a
     missing or malformed row, one holding NaN or inf, or a key given twice (naming both lines).
     """
-    path = as_path(path)
+    path = existing_file(path, "calibration file")
     cam = check_camera_index(cam)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no calibration file at {str(path)!r}")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:

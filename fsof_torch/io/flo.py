@@ -14,7 +14,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, as_chw_flow
+from .._check import as_path, as_chw_flow, existing_file
 from .atomic import atomic_path
 
 __all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
@@ -31,10 +31,7 @@ def read_flo(path: str | os.PathLike) -> Tensor:
     path for a wrong magic number, a non-positive size or a file whose length does not match the
     size in its header.
     """
-    path = as_path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no file at {str(path)!r}")
-    data = path.read_bytes()
+    data = existing_file(path).read_bytes()
     if len(data) < _HEADER:
         raise ValueError(f"path: {str(path)!r} is too short for a .flo file ({len(data)} bytes, header needs 12)")
     magic = np.frombuffer(data, dtype="<f4", count=1)[0]

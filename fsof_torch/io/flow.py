@@ -11,7 +11,7 @@ import torch
 from torch import Tensor
 
 from .atomic import write_bytes
-from .._check import as_path, as_chw_flow
+from .._check import as_path, as_chw_flow, existing_file
 from .flo import read_flo, write_flo
 from .kitti import flow_valid_pixels, read_kitti_flow, write_kitti_flow
 
@@ -35,8 +35,7 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
     if suffix == ".flo":
         flow = read_flo(path)
     elif suffix == ".npy":
-        if not path.is_file():
-            raise FileNotFoundError(f"path: no file at {str(path)!r}")
+        existing_file(path)
         try:
             array = np.load(path, allow_pickle=False)
         except Exception as err:  # noqa: BLE001 - numpy's header parser raises EOFError, SyntaxError, ...

@@ -20,25 +20,13 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, check_has_values, tensor_from_array
+from .._check import as_path, check_has_values, existing_file, tensor_from_array
 from .atomic import atomic_path
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_END = b"IEND\xaeB`\x82"  # the IEND chunk type and its fixed CRC
-
-
-def existing_file(path: str | os.PathLike) -> Path:
-    """``path`` as a Path where a file is there: a FileNotFoundError where nothing is, an
-    IsADirectoryError where a folder is (each naming ``path``), rather than "no file" for a
-    folder that is there."""
-    path = as_path(path)
-    if path.is_dir():
-        raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a file")
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no file at {str(path)!r}")
-    return path
 
 
 def _read_bytes(path: str | os.PathLike) -> tuple[Path, bytes]:

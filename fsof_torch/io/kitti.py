@@ -21,7 +21,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, all_finite, as_chw_flow, check_has_values, tensor_from_array
+from .._check import all_finite, as_chw_flow, check_has_values, existing_file, tensor_from_array
 from ..geometry.camera import check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .images import check_image_suffix, read_image_array, write_image_array
@@ -134,9 +134,7 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
     a 16-number row whose last four are not 0 0 0 1, or a 3×3 block that is not a rotation
     (|RᵀR − I| > 1e-3 or det R <= 0: an all-zero block is singular); see :func:`check_rigid_poses`.
     """
-    path = as_path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no poses file at {str(path)!r}")
+    path = existing_file(path, "poses file")
     try:
         text = path.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError as err:
