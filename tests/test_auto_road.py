@@ -30,12 +30,14 @@ def scene_pair():
 
 @pytest.fixture(scope="module")
 def small_pair(scene_pair):
-    """The same pair averaged over 4 x 4 pixels (93 x 310: fast), its flow and camera."""
+    """The same pair averaged over 4 x 4 pixels (93 x 310: fast), its flow, camera, plane and road."""
     import torch.nn.functional as F
 
     p = scene_pair
     im1, im2, flow = (F.avg_pool2d(p[k][None], 4) for k in ("image1", "image2", "flow"))
-    return {"image1": im1, "image2": im2, "flow": flow / 4, "camera": p["camera"].scaled(0.25)}
+    road = F.avg_pool2d(p["road"][None].float(), 4) > 0.99
+    return {"image1": im1, "image2": im2, "flow": flow / 4, "camera": p["camera"].scaled(0.25), "plane": p["plane"],
+            "road": road}
 
 
 @pytest.fixture(scope="module")
@@ -122,6 +124,97 @@ def test_batch_of_two_equals_one_by_one(scene_pair):
                       motion={k: (torch.tensor([v, v]) if k != "model" else v) for k, v in motion.items()})
     assert torch.equal(two.mask[0], one.mask[0]) and torch.equal(two.mask[1], one.mask[0])
     assert two.flag == ["ok", "ok"]
+
+
+def test_a_fit_of_batch_1_judges_a_batch(small_pair):
+    """A fit result of batch 1 (with its exposure gain) as the motion of a batch of two: each
+    sample as alone (was: a RuntimeError reshaping the gain)."""
+    p = small_pair
+    fit = detect_road(p["image1"], p["image2"], p["camera"], level=0, refit=False).motion
+    assert tuple(fit.extras["gain"].shape) == (1,)
+    one = detect_road(p["image1"], p["image2"], p["camera"], motion=fit, level=0)
+    two = detect_road(torch.cat([p["image1"]] * 2), torch.cat([p["image2"]] * 2), p["camera"], motion=fit, level=0)
+    assert two.flag == one.flag * 2
+    assert torch.equal(two.mask[0], one.mask[0]) and torch.equal(two.mask[1], one.mask[0])
+
+
+def test_a_homography_given_by_its_parameters(small_pair):
+    """A "homography" motion as a dict of its parameters (no .homography) is built from them with
+    the images' camera: the same road as its fit (gain aside); the refiner's mask="auto" takes it
+    as odometry, and names ``odometry`` in its errors (was: refused, and errors naming ``motion``)."""
+    from dataclasses import replace
+
+    from fsof_torch.refinement.estimators import ImageMotionEstimator
+
+    p = small_pair
+    images = (p["image1"], p["image2"])
+    fit = ImageMotionEstimator(model="homography")(p["flow"], p["road"], p["camera"], images=images)
+    as_dict = {"model": "homography", **fit.params}
+    det = detect_road(*images, p["camera"], motion=as_dict)
+    assert det.flag == ["ok"]
+    assert torch.equal(det.mask, detect_road(*images, p["camera"], motion=replace(fit, extras={})).mask)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine_flow(p["flow"], "auto", p["camera"], as_dict, images=images)
+    assert out.road.flag == ["ok"] and torch.equal(out.road.mask, det.mask)
+    batch_3 = {"model": "paper", "x_d": torch.zeros(3), "z_d": torch.ones(3), "yaw": torch.zeros(3)}
+    with pytest.raises(ValueError, match=r"^odometry: expected parameters of batch 1 .the images' B."):
+        refine_flow(p["flow"], "auto", p["camera"], batch_3, images=images)
+
+
+def test_numpy_scalars_are_numbers(small_pair):
+    """NumPy integers and floats (from arrays, configs) are taken as the Python numbers they are."""
+    p = small_pair
+    motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
+    images = (p["image1"], p["image2"])
+    plain = detect_road(*images, p["camera"], motion=motion, level=0, window=7, min_height_m=0.1, seed_depth_m=20)
+    numpy = detect_road(*images, p["camera"], motion=motion, level=np.int64(0), window=np.int64(7),
+                        min_height_m=np.float32(0.1), seed_depth_m=np.int64(20), seed_level=np.int64(1))
+    assert numpy.flag == plain.flag and numpy.level == 0 and type(numpy.level) is int
+    assert float((numpy.mask ^ plain.mask).float().mean()) < 0.01  # (min_height_m: 0.1 in float32)
+    assert torch.equal(road_seed(p["camera"], (93, 310), width_m=np.int64(4), depth_m=np.float32(20.0)),
+                       road_seed(p["camera"], (93, 310), width_m=4.0, depth_m=20.0))
+
+
+@pytest.mark.parametrize("size, error, match", [
+    (93, TypeError, r"size: expected \(H, W\), got 93"),
+    ((93.7, 310.2), TypeError, r"size: expected integer sides \(H, W\), got \(93.7, 310.2\)"),
+    ((-5, 310), ValueError, r"size: expected positive sides \(H, W\), got \(-5, 310\)"),
+    (("a", 3), TypeError, "size: expected integer sides"),
+])
+def test_road_seed_checks_its_size(kitti_K, size, error, match):
+    with pytest.raises(error, match=match):
+        road_seed(Camera(kitti_K, 1.65), size)
+
+
+def test_autocast_leaves_the_smoothing_in_float32(scene_pair, monkeypatch):
+    """Under autocast the smoothing (off the CPU a conv2d, which autocast lowers) runs in the
+    working dtype: the same road as without (was: 487 pixels and 1318 windows apart). CPU
+    autocast with bfloat16 stands in for a GPU's float16, on the conv2d path."""
+    import fsof_torch.refinement.auto_road as auto_road
+    from fsof_torch.estimation.pyramid import _gaussian_blur_torch
+
+    monkeypatch.setattr(auto_road, "gaussian_blur", _gaussian_blur_torch)
+    motion, cam = _exact(scene_pair)
+    images = (scene_pair["image1"][None], scene_pair["image2"][None])
+    plain = detect_road(*images, cam, motion=motion)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        cast = detect_road(*images, cam, motion=motion)
+    assert torch.equal(cast.mask, plain.mask) and torch.equal(cast.evidence, plain.evidence)
+
+
+def test_small_images_with_a_motion_given(scene_pair):
+    """Images 16..31 px high are judged at level 0 when the motion is given (seed_level is not
+    used); estimating, the default seed_level=1 is refused by name (was: refused either way)."""
+    import torch.nn.functional as F
+
+    motion, _ = _exact(scene_pair)
+    im1, im2 = (F.interpolate(scene_pair[k][None], size=(24, 80), mode="area") for k in ("image1", "image2"))
+    cam = scene_pair["camera"].scaled(80 / 1242, 24 / 375)
+    det = detect_road(im1, im2, cam, motion=motion)
+    assert det.level == 0 and det.flag[0] in FLAGS + ("ok",)
+    with pytest.raises(ValueError, match=r"seed_level: 1 leaves fewer than 16 pixels of the 24x80 images"):
+        detect_road(im1, im2, cam)
 
 
 # -- flags ----------------------------------------------------------------------------------------
@@ -298,7 +391,7 @@ def test_a_seed_out_of_view_is_flagged_empty_with_its_reason(scene_pair):
     assert det.flag == ["empty"] and "seed" in det.reason[0] and not bool(det.usable_mask.any())
 
 
-@pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion"])
+@pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion", "data_range"])
 def test_refiner_road_options_the_refiner_sets_are_refused(scene_pair, name):
     p = scene_pair
     with pytest.raises(TypeError, match=rf"road_options: options \['{name}'\] are set by the caller itself"):
@@ -313,6 +406,35 @@ def test_textureless_frames_are_flagged(kitti_K):
     det = detect_road(im, im.clone(), cam)
     assert det.flag[0] in FLAGS and det.flag[0] != "ok" and det.reason[0]
     assert not bool(det.usable_mask.any())
+
+
+@pytest.mark.parametrize("grey", [90.0, 0.0])
+def test_flat_frames_with_a_motion_given_carry_no_evidence(scene_pair, grey):
+    """Flat frames under a road motion that moves (a step would have parallax everywhere): no
+    texture, so no window is road evidence, the sample is "textureless", and no height is
+    estimated (was: every testable window road evidence, "ok", heights down to -2 m)."""
+    motion, cam = _exact(scene_pair)
+    im = torch.full((1, 3, 94, 311), grey)
+    cam = cam.scaled(311 / 1242, 94 / 375)
+    det = detect_road(im, im.clone(), cam, motion=motion)
+    assert det.flag == ["textureless"] and not bool(det.usable_mask.any())
+    assert not bool((det.evidence == 1).any()) and not bool(det.height.any())
+    assert float(det.stats["seed_evidence"][0]) == 0.0
+
+
+def test_a_flat_patch_is_no_road_evidence(scene_pair):
+    """A blown-out (flat 255) patch over the parked car on the right, in both frames: none of its
+    inner windows is road evidence (was: 9103 of them, with the exact motion)."""
+    motion, cam = _exact(scene_pair)
+    im1, im2 = scene_pair["image1"][None].clone(), scene_pair["image2"][None].clone()
+    im1[..., 183:375, 857:1242] = 255.0
+    im2[..., 183:375, 857:1242] = 255.0
+    det = detect_road(im1, im2, cam, motion=motion)
+    assert det.level == 1
+    # (the patch at level 1, less half a window and the blur's reach, 3 σ, at its edges: along its
+    # top edge, which the road flow moves along, a window straddling it is rightly road evidence)
+    inner = det.evidence[..., 183 // 2 + 8:, 857 // 2 + 8:]
+    assert inner.numel() > 5000 and not bool((inner == 1).any())
 
 
 def test_a_step_the_images_show_at_driving_speed(scene_detection):
@@ -402,6 +524,29 @@ def test_refiner_auto_refines_inside_the_found_road(scene_pair):
     sel = out.mask & p["valid"][None] & p["road"][None]
     epe = lambda f: float((f - gt).norm(dim=1, keepdim=True)[sel].mean())  # noqa: E731
     assert epe(out.flow) < 0.5 * epe(pred)
+
+
+def test_refiner_auto_gradient_reaches_planar_odometry(small_pair):
+    """mask="auto" with planar odometry and images: the planar motion held is the caller's own
+    tensors, so a gradient reaches them, as with a mask tensor (was: none); the values are the
+    same as without a graph."""
+    p = small_pair
+    images = (p["image1"], p["image2"])
+    cam = p["camera"].replace(height=p["plane"]["height"])
+    values = {k: torch.tensor([p["plane"][k]], dtype=torch.float64) for k in ("x_d", "z_d", "yaw")}
+    odometry = {k: v.clone().requires_grad_() for k, v in values.items()}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine_flow(p["flow"] + 0.5, "auto", cam, odometry, images=images, gate=None)
+        plain = refine_flow(p["flow"] + 0.5, "auto", cam, values, images=images, gate=None)
+    assert out.road.flag == ["ok"] and bool(out.refined.all()) and out.flow.requires_grad
+    out.flow.sum().backward()
+    for k, v in odometry.items():
+        assert v.grad is not None and float(v.grad.abs().sum()) > 0, k
+    for k in ("x_d", "z_d", "yaw"):  # (the fit held them: the refinement's motion is the caller's values)
+        assert float(out.fit.params[k][0]) == pytest.approx(float(values[k][0]), rel=1e-6)
+    # (the model flow evaluated with a graph: float32 rounding apart)
+    assert torch.allclose(out.flow.detach(), plain.flow, atol=1e-3) and torch.equal(out.mask, plain.mask)
 
 
 def test_refiner_auto_without_images_uses_the_flow(kitti_K):

@@ -75,8 +75,11 @@ def test_odometry_sigma_checked():
         ImageMotionEstimator(odometry_sigma=0.1)
     with pytest.raises(ValueError, match=r"odometry_sigma\['yaw'\]: the parameter is also in fixed=\('yaw',\)"):
         ImageMotionEstimator(odometry_sigma={"yaw": 0.01}, fixed=("yaw",))
-    with pytest.raises(ValueError, match=r"odometry_sigma: expected some of .* got 'z_d'"):
+    # (the homography model has no planar motion: said so, not "expected some of x_d, z_d, yaw, got 'z_d'")
+    with pytest.raises(ValueError, match=r"odometry_sigma: the 'homography' model has no planar motion \(x_d, z_d, "
+                                         r"yaw\) to put a prior on; give odometry_sigma=None"):
         ImageMotionEstimator(model="homography", odometry_sigma={"z_d": 0.05})
+    assert ImageMotionEstimator(model="homography", odometry_sigma={}).odometry_sigma == {}
     assert repr(ImageMotionEstimator(odometry_sigma={"yaw": 0.5})) == (
         "ImageMotionEstimator(model='plane', flow_start=True, odometry_sigma={'yaw': 0.5})")
 

@@ -22,7 +22,8 @@ detection:
    Lucas–Kanade step along the parallax direction) differs significantly from the seed's by more
    than ``min_height_m / 2`` (a kerb, a pavement, a verge); or where, textured, its residual
    exceeds its own texture (nothing lines up). It is road evidence where it is not off the road
-   and *testable*: a surface ``max_height_m`` high would move by at least ``3 τ`` there. Where
+   and *testable* (a surface ``max_height_m`` high would move by at least ``3 τ``) with the texture
+   to show it (such a step's residual significantly above the noise: flat windows are not). Where
    less than a tenth of the seed carries evidence (driving slowly), the step is doubled, up to
    ``slow_max_height_m``, until it does: lower kerbs then pass for road, cars and walls still show.
 4. **Region** (:mod:`~fsof_torch.refinement.road_region`). The road evidence connected to the
@@ -42,24 +43,27 @@ Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not 
 from __future__ import annotations
 
 import math
+import numbers
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import all_finite, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape, inference
+from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape,
+                      check_size, inference)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
-from ..geometry.camera import Camera, mounting_matrix
+from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import is_planar_odometry, plane_from_homography, road_motion, road_motion_batch
+from ..geometry.road_models import (is_planar_odometry, plane_from_homography, road_homography, road_motion,
+                                    road_motion_batch)
 from .estimators import ImageMotionEstimator
-from .road_region import follow_edges, road_region
+from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS"]
 
@@ -79,6 +83,9 @@ _MIN_EVIDENCE = 0.1
 _WORK_ROWS = 150
 # the smoothing of the grey images at the working resolution (pixels)
 _SIGMA = 1.0
+# the least residual energy of 8-bit frames (grey levels², level 0): both frames' quantisation (1/12
+# each), smoothed (Σ w² = 1 / 4πσ²); a level averages 4**level pixels
+_QUANTISATION = 2 / 12 / (4 * math.pi * _SIGMA ** 2)
 # pixels of image 2's border whose smoothed values mix in its padding (3 σ of the blur, plus one)
 _BORDER = 4
 
@@ -99,7 +106,7 @@ class RoadDetection:
         coverage: (B,) the mask's share of the image below the horizon.
         seed_agreement: (B,) of the seed's windows with evidence, the share that is road evidence.
         evidence: (B, 1, h, w) int8 at the working resolution: 1 road, 0 off the road, -1 none.
-        height: (B, 1, h, w) the windows' estimated height over the road plane (m; 0 where none).
+        height: (B, 1, h, w) the windows' estimated height over the road plane (m; 0 where none: flat, or cut off).
         level: the working resolution is the images' / 2**level.
         stats: per sample (B,): ``tau_px`` (the road model's typical misfit, px at the working
             resolution), ``noise``, ``height_bias_m`` (the seed's height over the fitted plane),
@@ -154,10 +161,14 @@ def road_seed(camera: Camera, size: tuple[int, int], *, width_m: float = 4.0, de
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     for name, value in (("width_m", width_m), ("depth_m", depth_m)):
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value < math.inf):
+        if not _real(value) or not (0 < value < math.inf):
             raise ValueError(f"{name}: expected a finite number of metres > 0, got {value!r}")
-    X, Z, below = _ground(camera, (int(size[0]), int(size[1])))
-    return below & (X.abs() <= width_m / 2) & (Z <= depth_m)
+    X, Z, below = _ground(camera, check_size(size))
+    return below & (X.abs() <= float(width_m) / 2) & (Z <= float(depth_m))
+
+
+def _real(value: object) -> bool:  # (a Python or NumPy real number, not a bool)
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _level_camera(camera: Camera, level: int) -> Camera:
@@ -173,34 +184,19 @@ def _pool(x: Tensor, level: int) -> Tensor:
 def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
     """The motion as a model with metric translation (``"paper"`` or ``"plane"``): a
     ``"homography"`` is decomposed with the camera's attitude, and with the fit's own camera where
-    it has one (its homography is in the pixels of the images it was fitted to), else ``camera``."""
+    it has one (its homography is in the pixels of the images it was fitted to), else ``camera``;
+    one given by its parameters (calibrated: no resolution) is built with ``camera``."""
     model, params = road_motion(motion, "motion")
     if model.name in ("paper", "plane"):
         return model.name, params
     if model.name == "homography":
-        H = getattr(motion, "homography", None)
+        H, own = getattr(motion, "homography", None), getattr(motion, "camera", None)
+        cam = (own if isinstance(own, Camera) and H is not None else camera).to(torch.float64)
         if H is None:
-            raise ValueError("motion: a 'homography' motion needs its homography (a fit result)")
-        own = getattr(motion, "camera", None)
-        cam = own if isinstance(own, Camera) else camera
-        return "plane", plane_from_homography(H.to(torch.float64), cam.to(torch.float64))
+            H = road_homography(cam, {k: torch.as_tensor(v, device=cam.device) for k, v in params.items()},
+                                model="homography")
+        return "plane", plane_from_homography(H.to(torch.float64), cam)
     raise ValueError(f"motion: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
-
-
-def _focus_of_expansion(model: str, params: dict[str, Tensor], camera: Camera) -> Tensor:
-    """(B, 3) the homogeneous image point the camera moves towards (the epipole in image 1): the
-    camera centre at t+1, R_c d in the camera frame of t, projected by K."""
-    B = camera.batch_size
-    cam = camera.to(torch.float64)
-
-    def get(name: str, default: Tensor) -> Tensor:
-        v = params.get(name)
-        return default if v is None else torch.as_tensor(v, dtype=torch.float64, device=cam.device).expand(B)
-
-    zero = torch.zeros(B, dtype=torch.float64, device=cam.device)
-    d = torch.stack([get("x_d", zero), get("y_d", zero), get("z_d", zero)], dim=-1)
-    Rc = mounting_matrix(get("roll", cam.roll), get("pitch", cam.pitch))
-    return (cam.K @ (Rc @ d.unsqueeze(-1))).squeeze(-1)
 
 
 # -- image statistics ---------------------------------------------------------------------------
@@ -227,18 +223,6 @@ def _gradient(g: Tensor) -> tuple[Tensor, Tensor]:
     return 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]), 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1])
 
 
-def _erode(mask: Tensor, k: int) -> Tensor:
-    """(B, 1, h, w) bool eroded by a k × k square (outside the image counts as inside)."""
-    if mask.device.type == "cpu":
-        import cv2
-        import numpy as np
-
-        kernel = np.ones((k, k), np.uint8)
-        planes = [cv2.erode(p, kernel, borderType=cv2.BORDER_REPLICATE) for p in mask[:, 0].numpy().astype(np.uint8)]
-        return torch.from_numpy(np.stack(planes)).unsqueeze(1) > 0
-    return -F.max_pool2d(-mask.to(torch.float32), k, stride=1, padding=k // 2) > 0.5
-
-
 def _median(x: Tensor, fallback: float) -> Tensor:
     return x.median() if x.numel() else x.new_tensor(fallback)
 
@@ -259,9 +243,10 @@ class _Evidence:
 
 def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, parallax: Tensor, seed: Tensor,
               gain: Tensor, *, window: int, height_window: int, min_height: float, max_heights: Sequence[float],
-              trusted: Sequence[bool], z: float, min_misfit: float) -> _Evidence:
+              trusted: Sequence[bool], z: float, min_misfit: float, noise_floor: float) -> _Evidence:
     """The window tests of the module docstring, at one resolution. ``parallax`` (B, 2, h, w): the
-    flow of a surface ``min_height`` above the road minus the road's. ``max_heights``: the steps
+    flow of a surface ``min_height`` above the road minus the road's. ``noise_floor``: the least
+    residual energy the images' quantisation leaves (grey levels²). ``max_heights``: the steps
     evidence must be able to show, tried in turn per sample until the seed carries evidence (the
     first, unless the parallax is too small for it: driving slowly); only the first where the
     sample's motion is not ``trusted`` (a failed estimate: no larger step makes it a road)."""
@@ -273,9 +258,9 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
     y = torch.arange(h, dtype=flow.dtype, device=flow.device).reshape(h, 1) + flow[:, 1:]
     m = _BORDER
     defined = valid & (x >= m) & (x <= w - 1 - m) & (y >= m) & (y <= h - 1 - m)
-    ok = _erode(defined, window)
-    ok_h = _erode(defined, height_window)
-    g = gain.reshape(B, 1, 1, 1).to(grey1.dtype)
+    ok = erode_mask(defined, window)
+    ok_h = erode_mask(defined, height_window)
+    g = gain.reshape(-1).expand(B).reshape(B, 1, 1, 1).to(grey1.dtype)
     e = g * warped - grey1
     gx1, gy1 = _gradient(grey1)
     gx2, gy2 = _gradient(warped)
@@ -340,17 +325,20 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         bad[b] = misaligned[b] | ok_h[b] & raised
         n_seed = s.sum().clamp_min(1)
         for max_height in (max_heights if trusted[b] else max_heights[:1]):
-            # testable: a surface max_height high would show (its parallax at least the floor)
-            test_b = 0.5 * Pb * (max_height / min_height) >= floor
-            good[b] = ok[b] & explained & test_b & ~bad[b]
-            testable[b] = test_b
+            # testable: a surface max_height high would show (its parallax at least the floor); evidence
+            # where, also, the residual energy its step would add (½ TA step²) is significant (flat: none)
+            step = Pb * (max_height / min_height)
+            testable[b] = test_b = 0.5 * step >= floor
+            shows = 0.5 * TA[b] * step ** 2 > z * noise.clamp_min(noise_floor) * math.sqrt(2 / n_k)
+            good[b] = ok[b] & explained & test_b & shows & ~bad[b]
             if (s & test_b).any() and ((s & (good[b] | bad[b])).sum() / n_seed) >= _MIN_EVIDENCE:
                 break
         taus.append(tau)
         noises.append(noise)
         biases.append(bias)
         heights.append(max_height)
-    height = torch.where(ok, height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
+    # (none where the height window leaves image 2, or has no gradient along the parallax)
+    height = torch.where(ok_h & (Vg > 1e-12), height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
     return _Evidence(good, bad, misaligned, ok, testable, height, torch.stack(taus), torch.stack(noises),
                      torch.stack(biases), torch.tensor(heights, dtype=torch.float64))
 
@@ -358,7 +346,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
 # -- the detection ------------------------------------------------------------------------------
 
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
-                  options: dict[str, Any]) -> dict[str, int]:
+                  options: dict[str, Any], estimated: bool) -> dict[str, int]:
     from .._check import check_data_range, check_image_pair, check_image_range
 
     dims = check_image_pair(image1, image2)
@@ -377,31 +365,43 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
                          f"{tuple(image1.shape)}")
     for name in ("level", "seed_level"):
         v = options[name]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 0:
             raise ValueError(f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}")
-        if min(dims["H"], dims["W"]) >> v < 16:
+        if min(dims["H"], dims["W"]) >> v < 16 and (name == "level" or estimated):
             raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
-                             f"(with the default seed_level=1, images need at least 32x32 pixels)")
+                             f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
     for name in ("window", "height_window"):
         v = options[name]
-        if isinstance(v, bool) or not isinstance(v, int) or v < 3 or v % 2 == 0:
+        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 3 or v % 2 == 0:
             raise ValueError(f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}")
     for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
         v = options[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 < v < math.inf):
+        if not _real(v) or not (0 < v < math.inf):
             raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
     if options["max_height_m"] < options["min_height_m"]:
         raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
                          f"got {options['max_height_m']!r}")
     v = options["slow_max_height_m"]
-    if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not (v < math.inf)
-                          or not v >= options["max_height_m"]):
+    if v is not None and (not _real(v) or not (v < math.inf) or not v >= options["max_height_m"]):
         raise ValueError(f"slow_max_height_m: expected None or a finite number >= max_height_m "
                          f"({options['max_height_m']!r}), got {v!r}")
     v = options["min_coverage"]
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0 <= v < 1):
+    if not _real(v) or not (0 <= v < 1):
         raise ValueError(f"min_coverage: expected a fraction in [0, 1), got {v!r}")
+    ints = ("level", "seed_level", "window", "height_window")
+    options.update({k: int(v) if k in ints else float(v) for k, v in options.items() if v is not None})
     return dims
+
+
+def _check_motion(motion: Any, B: int, device: torch.device, name: str) -> None:
+    """A given road motion checked (displacement model, batch 1 or B, finite), errors naming ``name``."""
+    model, params = road_motion(motion, name)
+    if model.velocity:
+        raise ValueError(f"{name}: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
+    shapes = {k: tuple(getattr(v, "shape", ())) for k, v in params.items()}
+    if any(math.prod(shape) not in (1, B) for shape in shapes.values()):
+        raise ValueError(f"{name}: expected parameters of batch {batch_choices(B)} (the images' B), got shapes {shapes}")
+    road_motion_batch(motion, B, torch.float64, device, name=name, batch_of="the images' B")
 
 
 @inference
@@ -468,7 +468,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
                    min_coverage=min_coverage)
-    dims = _check_inputs(image1, image2, camera, flow, data_range, options)
+    dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
+    (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
+     z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
     edges, refit = check_bool(edges, "edges"), check_bool(refit, "refit")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
@@ -477,11 +479,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     starts = tuple(starts)  # (read once: an iterator would leave the refit none)
     B, H, W = dims["B"], dims["H"], dims["W"]
     device = image1.device
-    if motion is not None:  # (a parameter per sample, or one for all; finite)
-        shapes = {k: tuple(getattr(v, "shape", ())) for k, v in road_motion(motion, "motion")[1].items()}
-        if any(math.prod(shape) not in (1, B) for shape in shapes.values()):
-            raise ValueError(f"motion: expected parameters of batch {batch_choices(B)} (the images' B), got shapes {shapes}")
-        road_motion_batch(motion, B, torch.float64, device, name="motion", batch_of="the images' B")
+    if motion is not None:
+        _check_motion(motion, B, device, "motion")
     work = torch.float64 if image1.dtype == torch.float64 else torch.float32
     camera = camera.to(device=device).expand(B)
     # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are
@@ -513,11 +512,12 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
         # the fit at the images' size (its homography, flow and camera; its parameters are the same)
         motion = fit_at_size(motion, camera, (H, W))
-    grey = gaussian_blur(_pool(torch.cat([to_grey(im1), to_grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
+    with autocast_off(im1):  # (the smoothing in the working dtype; the tests' ops keep their inputs' dtype)
+        grey = gaussian_blur(_pool(torch.cat([to_grey(im1), to_grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
     # the steps the evidence must be able to show: max_height_m, doubled up to slow_max_height_m
-    heights = [float(max_height_m)]
+    heights = [max_height_m]
     while slow_max_height_m is not None and heights[-1] < slow_max_height_m:
-        heights.append(min(2 * heights[-1], float(slow_max_height_m)))
+        heights.append(min(2 * heights[-1], slow_max_height_m))
 
     def judge(motion: Any) -> tuple[_Evidence, Tensor]:
         model, params = _plane_motion(motion, camera)
@@ -528,9 +528,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         gain = getattr(motion, "extras", {}).get("gain") if hasattr(motion, "extras") else None
         gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
         ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, (raised - f).to(work), seed_l, gain,
-                       window=window, height_window=height_window, min_height=min_height_m,
-                       max_heights=heights, trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level)
-        focus = _focus_of_expansion(model, params, cam_l)
+                       window=window, height_window=height_window, min_height=min_height_m, max_heights=heights,
+                       trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level,
+                       noise_floor=_QUANTISATION / 4 ** level)
+        focus = focus_of_expansion(model, params, cam_l)
         roads = []
         for b in range(B):
             fz = focus[b]
@@ -539,7 +540,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             roads.append(torch.from_numpy(road_region(*arrays, fo, window, max(1, (h * w) // 500))))
         return ev, torch.stack(roads).unsqueeze(1).to(device)
 
-    seed, below = _upsample(seed_l, level, (H, W)), _upsample(below_l, level, (H, W))
+    seed, below = upsample_mask(seed_l, level, (H, W)), upsample_mask(below_l, level, (H, W))
     if edges:  # (image 1 as 8-bit RGB, the horizon and the seed on the host, once)
         rgb = (im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1).clamp(0, 255).round().to(torch.uint8)
         rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
@@ -548,7 +549,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
 
     def full_size(road_l: Tensor) -> Tensor:
         """The road at the images' size; with ``edges``, its boundary on image 1's edges."""
-        mask = _upsample(road_l, level, (H, W))
+        mask = upsample_mask(road_l, level, (H, W))
         if not edges:
             return mask
         m = mask[:, 0].cpu().numpy()
@@ -567,16 +568,6 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
             ev, road_l = judge(motion)
     return _report(full_size(road_l), motion, seed, below, ev, seed_l, level, min_coverage)
-
-
-def _upsample(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
-    """A working-resolution mask back at full size (each pixel its block; the rows and columns
-    the pooling dropped copy their neighbours)."""
-    if level == 0:
-        return road
-    m = road.repeat_interleave(2 ** level, dim=-2).repeat_interleave(2 ** level, dim=-1)
-    H, W = size
-    return F.pad(m.to(torch.uint8), (0, W - m.shape[-1], 0, H - m.shape[-2]), mode="replicate").bool()
 
 
 def _succeeded(motion: Any, B: int) -> list[bool]:
@@ -653,15 +644,16 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
     predicted flow one start; the caller's planar odometry held fixed, or priors with
     ``odometry_sigma``), or judges with the caller's complete road motion; the motion it settled
-    on is then the refinement's (no second estimate). Flagged samples are left unrefined, with a
-    warning that gives the reason, and the detection comes back as ``RefineOutput.road``; samples
-    whose road was found but that the refinement left unchanged (a failed estimate, a gate
-    without evidence) are warned about too.
+    on is the refinement's (no second estimate; a held planar odometry as the caller's tensors, so
+    a gradient reaches them). Flagged samples are left unrefined, with a warning that gives the
+    reason (one also names samples whose road was found but that the refinement left unchanged: a
+    failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
-    ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch), or None.
+    ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch, on 0..255), or None.
     """
     import warnings
 
+    from ..estimation.flow_fit import RoadFit
     from ..estimation.freespace import detect_freespace
     from .contracts import collect_flows, finest_flow
 
@@ -671,7 +663,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     # (options the detection does not take, or that the refiner sets itself, raise here, named)
     if images is not None:
         check_keywords(options, "road_options", detect_road,
-                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts"))
+                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts",
+                                 "data_range"))
     else:
         check_keywords(options, "road_options", detect_freespace, reserved=("flow", "camera"))
     _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
@@ -682,6 +675,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     image1, image2 = images
     B = finest.shape[0]
     complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
+    if complete:  # (checked here: detect_road's errors would name its `motion`)
+        _check_motion(odometry, B, finest.device, "odometry")
     f = finest.detach()
     det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if all_finite(f) else None,
                       motion=odometry if complete else None, estimator=road_estimator,
@@ -691,7 +686,12 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
                       RuntimeWarning, stacklevel=3)
     # (the refinement's own warning would name the flagged samples a second time)
-    out = refine(flow, det.usable_mask, camera, det.motion, images=(image1, image2), warn=False, **kw)
+    motion = det.motion
+    if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
+        _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
+        motion = replace(motion, params={k: torch.where(v == odo[k].to(v).detach(), odo[k].to(v), v) if k in odo else v
+                                         for k, v in motion.params.items()})
+    out = refine(flow, det.usable_mask, camera, motion, images=(image1, image2), warn=False, **kw)
     if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
         kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
         warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "

@@ -224,8 +224,11 @@ def _odometry_sigma(sigma: object, model: str, fixed: object) -> dict[str, float
     if sigma is None:
         return {}
     sigma = check_mapping(sigma, "odometry_sigma")
+    if sigma and not all(k in get_road_model(model).params for k in _PLANAR):
+        raise ValueError(f"odometry_sigma: the {model!r} model has no planar motion (x_d, z_d, yaw) to put a prior "
+                         f"on; give odometry_sigma=None, or use model='plane' or 'paper'")
     for name, value in sigma.items():
-        if name not in _PLANAR or name not in get_road_model(model).params:
+        if name not in _PLANAR:
             raise ValueError(f"odometry_sigma: expected some of {_PLANAR} (the planar odometry), got {name!r}")
         check_number(value, f"odometry_sigma[{name!r}]", positive=True)
         if name in (check_names(fixed, "fixed") or ()):

@@ -9,13 +9,22 @@ frame takes the decision of the pixel that will be where it is, a pixel too far 
 the nearest testable one); then the component connected to the seed, with small enclosed holes
 that hold no off-road evidence filled. At full resolution, :func:`follow_edges` then lets the
 boundary follow image 1's edges where the windows cannot place it.
+
+Also the detection's mask tensors: :func:`focus_of_expansion` (where the rays meet),
+:func:`erode_mask` (the windows seen whole) and :func:`upsample_mask` (back at full size).
 """
 
 from __future__ import annotations
 
 import math
 
-__all__ = ["road_region", "follow_edges"]
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..geometry.camera import Camera, mounting_matrix
+
+__all__ = ["road_region", "follow_edges", "focus_of_expansion", "erode_mask", "upsample_mask"]
 
 
 def _components_touching(mask, touch, connectivity: int = 8):
@@ -132,3 +141,41 @@ def follow_edges(road, image, below, seed, radius: int):
     labels = cv2.watershed(padded, markers)[1:-1, 1:-1]
     moved = ((labels == 1) | ((labels == -1) & road)) & below
     return _components_touching(moved, seed, connectivity=4)
+
+
+def focus_of_expansion(model: str, params: dict[str, Tensor], camera: Camera) -> Tensor:
+    """(B, 3) the homogeneous image point the camera moves towards (the epipole in image 1): the
+    camera centre at t+1, R_c d in the camera frame of t, projected by K."""
+    B = camera.batch_size
+    cam = camera.to(torch.float64)
+
+    def get(name: str, default: Tensor) -> Tensor:
+        v = params.get(name)
+        return default if v is None else torch.as_tensor(v, dtype=torch.float64, device=cam.device).expand(B)
+
+    zero = torch.zeros(B, dtype=torch.float64, device=cam.device)
+    d = torch.stack([get("x_d", zero), get("y_d", zero), get("z_d", zero)], dim=-1)
+    Rc = mounting_matrix(get("roll", cam.roll), get("pitch", cam.pitch))
+    return (cam.K @ (Rc @ d.unsqueeze(-1))).squeeze(-1)
+
+
+def erode_mask(mask: Tensor, k: int) -> Tensor:
+    """(B, 1, h, w) bool eroded by a k × k square (outside the image counts as inside)."""
+    if mask.device.type == "cpu":
+        import cv2
+        import numpy as np
+
+        kernel = np.ones((k, k), np.uint8)
+        planes = [cv2.erode(p, kernel, borderType=cv2.BORDER_REPLICATE) for p in mask[:, 0].numpy().astype(np.uint8)]
+        return torch.from_numpy(np.stack(planes)).unsqueeze(1) > 0
+    return -F.max_pool2d(-mask.to(torch.float32), k, stride=1, padding=k // 2) > 0.5
+
+
+def upsample_mask(road: Tensor, level: int, size: tuple[int, int]) -> Tensor:
+    """A working-resolution mask back at full size (each pixel its block; the rows and columns
+    the pooling dropped copy their neighbours)."""
+    if level == 0:
+        return road
+    m = road.repeat_interleave(2 ** level, dim=-2).repeat_interleave(2 ** level, dim=-1)
+    H, W = size
+    return F.pad(m.to(torch.uint8), (0, W - m.shape[-1], 0, H - m.shape[-2]), mode="replicate").bool()
