@@ -356,6 +356,15 @@ def test_fit_sequence_one_pass_with_poses_gives_metres_at_the_calibrated_height(
         assert float(fit.covariance[0, i, i]) == pytest.approx(float(before.covariance[0, i, i]) * ratio ** 2)
 
 
+def test_fit_sequence_poses_still_in_half_the_moving_pairs_give_no_scale(body_motion_clip):
+    """Poses that stand still in one of two pairs whose images move contradict them: the median
+    ratio would be half the other pair's (once the lower median gave 0), so no scale is taken."""
+    pairs, frames, poses = body_motion_clip
+    half = poses[[0, 0, 2]]
+    with pytest.raises(ValueError, match=r"^poses: their translations give no scale"):
+        fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=half, passes=1, max_points=500)
+
+
 def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
     """Noise frames: no pair's fit succeeds, so nothing is calibrated: the input camera's roll and
     pitch stay (not a mean of failed fits), and with keep_fits the fits are still there."""

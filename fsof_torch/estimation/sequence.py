@@ -348,9 +348,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
         use = ok & (image_steps > 1e-3)
         if bool(use.any()):
-            # metric step = (d / h) h: h = h_nominal · median(metric / image-derived)
-            height = float(camera.height[0]) * float((steps[use] / image_steps[use]).quantile(0.5))
-            if not (math.isfinite(height) and height > 0):
+            # metric step = (d / h) h: h = h_nominal · median(metric / image-derived); where the
+            # poses stand still in half the pairs whose images move, they give no scale
+            ratios = steps[use] / image_steps[use]
+            height = float(camera.height[0]) * float(ratios.quantile(0.5))
+            if not (math.isfinite(height) and height > 0) or 2 * int((ratios > 0).sum()) <= ratios.numel():
                 raise ValueError(f"poses: their translations give no scale (camera height {height:g} m): the "
                                  "poses do not move where the images do")
             mounting["height"] = height
