@@ -8,7 +8,9 @@ noisy flow (the paper's Fig. "noise robustness" and Fig. "vehicle pose estimatio
 2. Pose estimation (:func:`eval.pose.pose_estimation_experiment`): random displacement
    and yaw on a virtual road plane, the pose recovered from the noisy model flow alone.
 
-Writes ``noise_robustness.png``, ``pose_errors.png``, ``pose_scatter.png`` and ``noise.json``.
+Writes ``noise_robustness.png``, ``pose_errors.png``, ``pose_scatter.png`` (not with ``--no-plots``)
+and ``noise.json`` into ``--out``, from which the files of an earlier run are removed first, once
+the options are checked.
 
 Example::
 
@@ -174,12 +176,11 @@ def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from fsof_torch.io import write_json
     from eval.pose import MAX_SIGMA, pose_estimation_experiment
 
-    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
+    from .progress import progress_bar
     from .tables import format_table
 
     quick = args.quick
@@ -203,16 +204,20 @@ def run(args: argparse.Namespace) -> int:
         if bad is not None:
             print(f"error: {bad}", file=sys.stderr)
             return 2
-    figures = [] if args.no_plots else ["noise_robustness.png", "pose_errors.png", "pose_scatter.png"]
-    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["noise.json"])),
-                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / f for f in figures]))
+    figures = ["noise_robustness.png", "pose_errors.png", "pose_scatter.png"]
+    drawn = [] if args.no_plots else figures
+    bad = first_bad(bad_folder(args.out, "--out", drawn + ([] if args.json else ["noise.json"])),
+                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / f for f in drawn]))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
+    # an earlier run's files go (its plots with --no-plots, DIR/noise.json where this run writes
+    # its JSON elsewhere), not to be read as this run's
+    remove_outputs(args.out, figures + ["noise.json"])
     scenarios = [("complex", 1)] if quick else [("simple", 1), ("simple", 4), ("complex", 1), ("complex", 4)]
 
-    with tqdm(total=len(scenarios) * len(sigmas), desc="noise robustness", unit="fit",
-              disable=args.no_progress) as bar:
+    with progress_bar(total=len(scenarios) * len(sigmas), enabled=not args.no_progress, desc="noise robustness",
+                      unit="fit") as bar:
         robust_rows = noise_robustness(size, sigmas, scenarios, args.seed, bar)
     pose = pose_estimation_experiment(pose_sigmas, trials=trials, size=pose_size, seed=args.seed,
                                       progress=not args.no_progress)

@@ -2,7 +2,9 @@
 checks its own: a folder option names a folder or a path that can be created; a file option names
 no folder and a path whose missing folders can be created (the job creates them when it writes);
 ``--json`` names none of the job's other outputs; a size has no side above :data:`MAX_SIDE`. Each
-check returns the error message, naming the option, or None."""
+check returns the error message, naming the option, or None. Once the checks pass, a job removes
+the files an earlier run left in its folder (:func:`remove_outputs`), so that the folder never
+mixes two runs."""
 
 from __future__ import annotations
 
@@ -69,6 +71,16 @@ def bad_size(size: Iterable[int] | None, option: str) -> str | None:
 def first_bad(*messages: str | None) -> str | None:
     """The first message that is not None."""
     return next((m for m in messages if m is not None), None)
+
+
+def remove_outputs(folder: Path, names: Iterable[str]) -> None:
+    """Remove the files ``names`` from ``folder``, every file the job can write there, before the
+    job writes any: an earlier run's, which this run may not write again (a plot it skips, a JSON
+    it writes elsewhere), would stay beside the new ones and read as this run's."""
+    for name in names:
+        path = folder / name
+        if path.is_file() or path.is_symlink():  # (a folder of that name is not the job's: left)
+            path.unlink()
 
 
 def make_parent(path: Path) -> Path:

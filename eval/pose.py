@@ -111,7 +111,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         seed: seeds the poses and the noise.
         chunk: trials fitted per batch (bounds memory).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
-        progress: show a tqdm progress bar over σ.
+        progress: show a progress bar over σ and the trials (:func:`eval.progress.progress_bar`).
         **fit_options: passed to :func:`fsof_torch.estimation.flow_fit.fit_displacement`.
 
     Returns:
@@ -123,6 +123,8 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         True
     """
     from fsof_torch import fit_displacement
+
+    from .progress import progress_bar
 
     sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
     if not sig or not all(math.isfinite(s) and 0 <= s <= MAX_SIGMA for s in sig):
@@ -166,38 +168,30 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
     estimated = torch.zeros(len(sig), trials, 3, dtype=torch.float64)
     success = torch.zeros(len(sig), trials, dtype=torch.bool)
     pixels = []
-    bar = None
-    if progress:
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(sig) * trials, desc="pose estimation", unit="trial")
-    for k, s in enumerate(sig):
-        for start in range(0, trials, chunk):
-            pose = true[start:start + chunk]
-            n = pose.shape[0]
-            cam = camera.expand(n)
-            p = pose.to(dtype=dtype, device=camera.device)
-            flow, valid = displacement_flow(cam, p[:, 0], p[:, 1], p[:, 2], (H, W))
-            mask = valid & in_box
-            if k == 0:
-                counts = mask.sum(dim=(1, 2, 3))
-                if not bool(counts.all()):  # nothing to fit: its "errors" would be the fit's start
-                    if bar is not None:
-                        bar.close()
-                    trial = start + int((counts == 0).nonzero()[0, 0])
-                    raise ValueError(f"box: {(top, bottom, left, right)!r} holds no pixel where the model flow is "
-                                     f"defined (below the horizon) for trial {trial}; expected a box on the road")
-                pixels.extend(counts.tolist())
-            # Drawn on the CPU generator so that results do not depend on the device.
-            noise = torch.randn(flow.shape, generator=gen, dtype=torch.float64).to(dtype=dtype, device=flow.device)
-            noisy = torch.where(mask, flow + s * noise, torch.zeros_like(flow))
-            fit = fit_displacement(noisy, mask, cam, fit_roll=fit_roll, fit_pitch=False, **fit_options)
-            estimated[k, start:start + n] = torch.stack([fit.x_d, fit.z_d, fit.yaw], dim=-1).double().cpu()
-            success[k, start:start + n] = fit.success.cpu()
-            if bar is not None:
+    # (closed before an error is raised, so that its message never prints on the bar's line)
+    with progress_bar(total=len(sig) * trials, enabled=progress, desc="pose estimation", unit="trial") as bar:
+        for k, s in enumerate(sig):
+            for start in range(0, trials, chunk):
+                pose = true[start:start + chunk]
+                n = pose.shape[0]
+                cam = camera.expand(n)
+                p = pose.to(dtype=dtype, device=camera.device)
+                flow, valid = displacement_flow(cam, p[:, 0], p[:, 1], p[:, 2], (H, W))
+                mask = valid & in_box
+                if k == 0:
+                    counts = mask.sum(dim=(1, 2, 3))
+                    if not bool(counts.all()):  # nothing to fit: its "errors" would be the fit's start
+                        trial = start + int((counts == 0).nonzero()[0, 0])
+                        raise ValueError(f"box: {(top, bottom, left, right)!r} holds no pixel where the model flow "
+                                         f"is defined (below the horizon) for trial {trial}; expected a box on the road")
+                    pixels.extend(counts.tolist())
+                # Drawn on the CPU generator so that results do not depend on the device.
+                noise = torch.randn(flow.shape, generator=gen, dtype=torch.float64).to(dtype=dtype, device=flow.device)
+                noisy = torch.where(mask, flow + s * noise, torch.zeros_like(flow))
+                fit = fit_displacement(noisy, mask, cam, fit_roll=fit_roll, fit_pitch=False, **fit_options)
+                estimated[k, start:start + n] = torch.stack([fit.x_d, fit.z_d, fit.yaw], dim=-1).double().cpu()
+                success[k, start:start + n] = fit.success.cpu()
                 bar.update(n)
-    if bar is not None:
-        bar.close()
 
     diff = estimated - true.unsqueeze(0)
     return PoseEstimationResult(

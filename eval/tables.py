@@ -43,6 +43,8 @@ PAPER_KITTI = {"straight": (0.036, 0.921, 0.255, 0.465), "turning": (0.050, 1.00
 
 DEFAULT_KITTI = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti15_000000"
 METRICS = ("e_A", "e_E", "e_U", "e_V", "Fl")
+#: the files of the KITTI sample that the KITTI table reads (:func:`load_kitti`)
+KITTI_FILES = ("flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -65,7 +67,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--only", choices=("cvc12", "carla", "kitti"), action="append", default=None,
                         help="run only these tables (repeatable)")
     parser.add_argument("--quick", action="store_true",
-                        help="small and fast synthetic tables: 96x320, one pair, rolls 0 and ±5°")
+                        help="small and fast synthetic tables: 96x320, one pair, rolls 0 and ±5° (a --size "
+                             "or --pairs given replaces its size or pairs)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
@@ -268,11 +271,10 @@ def _unused_option(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from fsof_torch.io import write_json, write_text
 
-    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
+    from .progress import progress_bar
 
     bad = _unused_option(args)
     if bad is not None:
@@ -303,8 +305,10 @@ def run(args: argparse.Namespace) -> int:
             return 2
         print(f"note: no KITTI sample at {kitti_folder}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
+    # the sample's files that the KITTI table reads: --json may name none of them
+    inputs = {f"--kitti ({name})": kitti_folder / name for name in KITTI_FILES} if "kitti" in tables else {}
     bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
-                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / "tables.md"]))
+                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / "tables.md"], inputs))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
@@ -315,6 +319,9 @@ def run(args: argparse.Namespace) -> int:
         except (ValueError, FileNotFoundError) as err:
             print(f"error: --kitti: {err}", file=sys.stderr)
             return 2
+    # the inputs are good: an earlier run's files go (DIR/tables.json where this run writes its
+    # JSON elsewhere), not to be read as this run's
+    remove_outputs(args.out, ["tables.json", "tables.md"])
     rolls = (0, 5, -5) if args.quick else (0, 5, -5, 10, -10)
     total = (8 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
         + (2 if "kitti" in tables else 0)
@@ -323,7 +330,7 @@ def run(args: argparse.Namespace) -> int:
     result: dict = {"settings": {**(settings if tables & {"cvc12", "carla"} else {}),
                                  "kitti": str(kitti_folder) if "kitti" in tables else None}}
     md = ["# Freespace model fitted to ground-truth flow (python -m eval tables)", ""]
-    with tqdm(total=total, desc="tables", unit="fit", disable=args.no_progress) as bar:
+    with progress_bar(total=total, enabled=not args.no_progress, desc="tables", unit="fit") as bar:
         if "cvc12" in tables:
             result["cvc12"] = cvc12_table(size, pairs, seed, bar)
         if "carla" in tables:

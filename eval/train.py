@@ -43,7 +43,7 @@ from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.data.scene.config import MAX_SEED
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
-from eval.paths import bad_file, bad_folder, first_bad, make_parent
+from eval.paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr"]
 
@@ -174,7 +174,7 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
     Returns the net (in eval mode) and a log: the last step's term values (global means) and the
     wall time.
     """
-    from tqdm import tqdm
+    from eval.progress import progress_bar, show_values
 
     device = torch.device(device)
     net = TinyRAFT(seed=seed, iters=iters).to(device)
@@ -190,7 +190,7 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
     n = data["image1"].shape[0]
     values: dict[str, float] = {}
     start = time.perf_counter()
-    bar = tqdm(range(steps), desc=desc, disable=not progress, leave=False, dynamic_ncols=True)
+    bar = progress_bar(range(steps), enabled=progress, desc=desc, leave=False, dynamic_ncols=True)
     for step in bar:
         for group in optimiser.param_groups:
             group["lr"] = one_cycle_lr(step, steps, lr)
@@ -211,7 +211,7 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         optimiser.step()
         values = {"total": float(reported[0]), **{k: float(v) for k, v in zip(terms, reported[1:])}}
-        bar.set_postfix({k: f"{v:.3g}" for k, v in values.items()})
+        show_values(bar, {k: f"{v:.3g}" for k, v in values.items()})
     net.eval()
     return net, {"final_loss": values, "seconds": time.perf_counter() - start}
 
@@ -305,6 +305,9 @@ def _bad_input(args: argparse.Namespace) -> str | None:
         return f"--batch: expected at most --train-pairs ({args.train_pairs}), got {args.batch}"
     if min(args.size) < 16:
         return f"--size: expected H, W >= 16, got {list(args.size)}"
+    bad = bad_size(args.size, "--size")
+    if bad is not None:
+        return bad
     for option in ("lr", "freespace_weight"):
         if not (math.isfinite(getattr(args, option)) and getattr(args, option) > 0):
             return f"--{option.replace('_', '-')}: expected a finite number > 0, got {getattr(args, option)}"
@@ -314,15 +317,40 @@ def _bad_input(args: argparse.Namespace) -> str | None:
         return f"--seed: expected at most 2**62 - {HELD_OUT + 1} (the held-out seed is --seed + {HELD_OUT}), got {args.seed}"
     if args.preset not in PRESETS:
         return f"--preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}"
-    try:
-        device = torch.device(args.device)
-    except RuntimeError:
-        return f"--device: not a torch device: {args.device!r}"
-    if device.type == "cuda" and not torch.cuda.is_available():
-        return f"--device: {args.device!r} requested but CUDA is not available"
-    # the outputs, before the rendering and the training
+    bad = _bad_device(args.device)
+    if bad is not None:
+        return bad
+    # the outputs, before the rendering and the training: none may be another (the last written
+    # would replace the others)
+    nets = [args.out / _net_file(name) for name in RUNS] if args.out is not None else []
+    dump = args.dump_first_step
+    if dump is not None and any(dump.resolve() == net.resolve() for net in nets):
+        return f"--dump-first-step: {str(dump)!r} is a state_dict the job writes into --out; give another path"
     return first_bad(bad_folder(args.out, "--out", [_net_file(name) for name in RUNS]),
-                     bad_file(args.json, "--json"), bad_file(args.dump_first_step, "--dump-first-step"))
+                     bad_file(args.json, "--json"), bad_file(dump, "--dump-first-step"),
+                     bad_json_target(args.json, nets + ([dump] if dump is not None else [])))
+
+
+def _bad_device(text: str) -> str | None:
+    """``--device`` names a device that can hold the nets' tensors (as the refine job checks its
+    own), else the message naming it: a device torch does not know, CUDA where there is none,
+    ``meta`` (shapes without data), one that cannot place a tensor (``mps`` off a Mac, a GPU
+    index beyond the machine's)."""
+    try:
+        device = torch.device(text)
+    except RuntimeError:
+        return f"--device: not a torch device: {text!r}"
+    if device.type == "cuda" and not torch.cuda.is_available():
+        return f"--device: {text!r} requested but CUDA is not available"
+    if device.type == "meta":
+        return f"--device: {text!r} holds no data (shapes only); give cpu or cuda"
+    if device.type != "cuda" or device.index is not None:  # (bare cuda: the process's GPU, set later)
+        try:
+            torch.empty(0, device=device)
+        except Exception as err:  # torch raises RuntimeError, AssertionError, NotImplementedError, ...
+            first = str(err).splitlines()[0].split(". ")[0] if str(err) else ""
+            return f"--device: cannot place a tensor on {text!r} ({type(err).__name__}: {first})"
+    return None
 
 
 def run(args: argparse.Namespace) -> int:

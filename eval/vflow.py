@@ -7,7 +7,8 @@ Input: a synthetic preset (its ground-truth flow, road mask and camera) or a flo
 
 Writes ``vflow_map.png`` (the row histogram of F_v with the per-row dominant values and the fitted
 curve), ``fv_observed.png``, ``fv_fitted.png``, ``fv_error.png`` (|observed - fitted| in the mask),
-``freespace.png`` (preset with the displacement model only) and ``vflow.json``.
+``freespace.png`` (preset with the displacement model only) and ``vflow.json`` into ``--out``,
+from which the files of an earlier run are removed first, once the inputs are checked.
 
 Example::
 
@@ -178,12 +179,11 @@ def _unused_option(args: argparse.Namespace) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
-    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
+    from .progress import progress_bar
 
     if not 2 <= args.bins <= MAX_BINS:
         print(f"error: --bins: expected 2 to {MAX_BINS}, got {args.bins}", file=sys.stderr)
@@ -247,8 +247,8 @@ def run(args: argparse.Namespace) -> int:
             return 2
         try:
             flow, valid = read_flow(args.flow)
-        except ValueError as err:
-            print(f"error: --flow: {err}", file=sys.stderr)
+        except ValueError as err:  # (the reader's own argument, "path: ...", means nothing to the user)
+            print(f"error: --flow: {str(err).removeprefix('path: ')}", file=sys.stderr)
             return 2
         flow, valid = flow[None].double(), valid[None]
         mask = valid
@@ -256,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
             except (ValueError, TypeError, FileNotFoundError) as err:
-                print(f"error: --mask: {err}", file=sys.stderr)
+                print(f"error: --mask: {str(err).removeprefix('path: ')}", file=sys.stderr)
                 return 2
         info["source"] = {"flow": str(args.flow), "mask": str(args.mask) if args.mask else None,
                           "size": list(flow.shape[-2:])}
@@ -270,8 +270,11 @@ def run(args: argparse.Namespace) -> int:
             bad = f"--preset: pair {index} of {preset!r} has no valid {'road ' if args.road_only else ''}pixel"
         print(f"error: {bad}", file=sys.stderr)
         return 2
+    # the inputs are good: an earlier run's files go (freespace.png where this run draws none,
+    # DIR/vflow.json where it writes its JSON elsewhere), not to be read as this run's
+    remove_outputs(args.out, figures + ["vflow.json"])
     # (opened after the input checks, so that an error line never prints inside the bar's line)
-    bar = tqdm(total=len(steps), desc="vflow", unit="step", disable=args.no_progress)
+    bar = progress_bar(total=len(steps), enabled=not args.no_progress, desc="vflow", unit="step")
     bar.update(1)
     unit = "px" if args.model == "displacement" else "px/s"
     hist, edges = vflow_map(flow, mask, bins=args.bins)

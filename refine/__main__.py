@@ -22,6 +22,11 @@ DEFAULT_SIZE = (375, 1242)
 DEFAULT_OUT = Path("refine_out")
 DEFAULT_HEIGHT = 1.65  # m, KITTI's camera over the road
 DEFAULT_SCALE = 2.0  # px, the Cauchy scale of --mode confidence
+#: the defaults of the options that only some inputs use: the parser leaves them None (not given),
+#: so that one given to an input that does not use it is refused even at its default value
+#: (:func:`_refuse_unused`); :func:`_with_defaults` fills them in after that check
+DEFAULTS = {"preset": "default", "num_pairs": DEFAULT_PAIRS, "size": DEFAULT_SIZE, "seed": 0,
+            "height": DEFAULT_HEIGHT, "roll_deg": 0.0, "pitch_deg": 0.0}
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -55,11 +60,10 @@ def build_parser() -> argparse.ArgumentParser:
                "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
                "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
     g = p.add_argument_group("synthetic data (the default)")
-    g.add_argument("--preset", default="default", help="scene preset (default: %(default)s)")
-    g.add_argument("--num-pairs", type=int, default=DEFAULT_PAIRS, help="pairs to render (default: %(default)s)")
-    g.add_argument("--size", type=_size, default=DEFAULT_SIZE, metavar="HxW",
-                   help="image size (default: 375x1242, KITTI's)")
-    g.add_argument("--seed", type=int, default=0, help="scene seed (default: %(default)s)")
+    g.add_argument("--preset", help=f"scene preset (default: {DEFAULTS['preset']})")
+    g.add_argument("--num-pairs", type=int, help=f"pairs to render (default: {DEFAULT_PAIRS})")
+    g.add_argument("--size", type=_size, metavar="HxW", help="image size (default: 375x1242, KITTI's)")
+    g.add_argument("--seed", type=int, help="scene seed (default: 0)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
 
@@ -69,9 +73,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
                    help="image size the calibration is for (default: the file's S_rect row, else checked loosely)")
     g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
-    g.add_argument("--height", type=float, default=DEFAULT_HEIGHT, help="camera height above the road, m (default: %(default)s)")
-    g.add_argument("--roll-deg", type=float, default=0.0, help="camera roll, degrees (default: 0)")
-    g.add_argument("--pitch-deg", type=float, default=0.0, help="camera pitch, degrees (default: 0)")
+    g.add_argument("--height", type=float, help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
+    g.add_argument("--roll-deg", type=float, help="camera roll, degrees (default: 0)")
+    g.add_argument("--pitch-deg", type=float, help="camera pitch, degrees (default: 0)")
     g.add_argument("--poses", type=Path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
     g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
@@ -95,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--testnet-weights", type=Path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
     g.add_argument("--net", metavar="MODULE:CALLABLE",
                    help="your flow network: a factory returning an nn.Module (e.g. mypkg.models:make_raft)")
-    g.add_argument("--net-contract", choices=CONTRACTS, default="auto",
+    g.add_argument("--net-contract", choices=CONTRACTS,
                    help="how --net is called: ptlflow (dict, BGR [0,1]), torchvision (RGB [-1,1], list), "
                         "raft (RGB 0..255, list); default: from the network (see docs/contracts.md)")
     g.add_argument("--checkpoint", type=Path, metavar="FILE",
@@ -123,7 +127,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, default=None,
                    help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
-    g.add_argument("--json", type=Path, metavar="PATH", help="also write the report JSON here")
+    g.add_argument("--json", type=Path, metavar="PATH",
+                   help="also write the report JSON here (not an input, nor inside --out but OUT/report.json)")
     g.add_argument("--overwrite", action="store_true",
                    help="redo every pair; replace the results of another run in --out")
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
@@ -145,35 +150,43 @@ def default_out(args: argparse.Namespace) -> Path:
     elif args.kitti_odometry is not None:
         name = args.kitti_odometry.resolve().name
     else:
-        name = f"synthetic-{args.preset}"
+        name = f"synthetic-{args.preset or DEFAULTS['preset']}"
         if args.seed:
             name += f"-seed{args.seed}"
-        if tuple(args.size) != DEFAULT_SIZE:
+        if args.size is not None and tuple(args.size) != DEFAULT_SIZE:
             name += f"-{args.size[0]}x{args.size[1]}"
         if args.scene_noise is not None:
             name += f"-noise{args.scene_noise:g}"
     return DEFAULT_OUT / name
 
 
+def _input_paths(args: argparse.Namespace) -> dict[str, Path | None]:
+    """The files and folders the run reads, by option (None where not given): --json may name
+    none of them, nor a file inside one of the folders."""
+    road = Path(args.road) if args.road not in (None, "auto") else None
+    return {"--images": args.images, "--calib": args.calib, "--poses": args.poses, "--flows": args.flows,
+            "--road": road, "--gt": args.gt, "--kitti15": args.kitti15, "--kitti-odometry": args.kitti_odometry,
+            "--testnet-weights": args.testnet_weights, "--checkpoint": args.checkpoint}
+
+
 def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
-    """Options that the chosen input does not use are refused, not silently ignored (``real``:
-    the real-data input chosen, None for the synthetic scenes)."""
+    """Options that the chosen input does not use are refused when given, even at their default
+    value, not silently ignored (``real``: the real-data input chosen, None for the synthetic
+    scenes; ``args`` as parsed, before :func:`_with_defaults`)."""
     from .inputs import JobError
 
     if real is not None:
-        synthetic = {"--preset": args.preset != "default", "--num-pairs": args.num_pairs != DEFAULT_PAIRS,
-                     "--size": tuple(args.size) != DEFAULT_SIZE, "--seed": args.seed != 0,
-                     "--scene-noise": args.scene_noise is not None}
-        for option, given in synthetic.items():
-            if given:
-                raise JobError(f"{option}: applies to the synthetic scenes, not to --{real.replace('_', '-')}")
+        for option in ("preset", "num_pairs", "size", "seed", "scene_noise"):
+            if getattr(args, option) is not None:
+                raise JobError(f"--{option.replace('_', '-')}: applies to the synthetic scenes, not to "
+                               f"--{real.replace('_', '-')}")
     if real == "images":
         return
     what = "the synthetic scenes have their own camera" if real is None else \
         f"--{real.replace('_', '-')} has its own calibration{' and poses' if real == 'kitti_odometry' else ''}"
-    own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg != 0.0,
-           "--height": real is None and args.height != DEFAULT_HEIGHT,
-           "--pitch-deg": real != "kitti_odometry" and args.pitch_deg != 0.0}
+    own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg is not None,
+           "--height": real is None and args.height is not None,
+           "--pitch-deg": real != "kitti_odometry" and args.pitch_deg is not None}
     if real is not None:
         own.update({"--calib": args.calib is not None, "--calib-size": args.calib_size is not None,
                     "--poses": args.poses is not None, "--gt": args.gt is not None})
@@ -185,6 +198,12 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
     given = [v for v in args.odometry or () if v.startswith("given")]
     if real == "kitti15" and given:
         raise JobError(f"--odometry {given[0]}: the KITTI 2015 pair has no poses; use fit or photometric")
+
+
+def _with_defaults(args: argparse.Namespace) -> argparse.Namespace:
+    """A copy of ``args`` with the options of :data:`DEFAULTS` not given set to their defaults."""
+    filled = {k: v for k, v in DEFAULTS.items() if getattr(args, k) is None}
+    return argparse.Namespace(**{**vars(args), **filled})
 
 
 def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str, float] | None:
@@ -230,11 +249,12 @@ def _configure(args: argparse.Namespace):
             raise JobError(f"--scale: expected a finite value > 0 px, got {args.scale}")
     if args.checkpoint is not None and args.net is None:
         raise JobError("--checkpoint needs --net (the network the state_dict is for)")
-    if args.net_contract != "auto" and args.net is None:
+    if args.net_contract is not None and args.net is None:
         raise JobError("--net-contract needs --net")
     if args.net is not None and args.flows is not None:
         raise JobError("--net and --flows: give one of them (the flows are another network's predictions)")
     _refuse_unused(args, chosen[0] if chosen else None)
+    args = _with_defaults(args)
     notes: list[str] = []
     camera = None
     calibrate = args.calibrate_pitch
@@ -307,7 +327,7 @@ def _configure(args: argparse.Namespace):
         raise JobError("--source net needs --net module:callable")
     if "net" not in sources:  # (--checkpoint and --net-contract without --net are refused above)
         given = [o for o, v in (("--net", args.net is not None), ("--checkpoint", args.checkpoint is not None),
-                                ("--net-contract", args.net_contract != "auto")) if v]
+                                ("--net-contract", args.net_contract is not None)) if v]
         if given:
             raise JobError(f"{' and '.join(given)}: the run has no net source (sources: {','.join(sources)}); "
                            f"add net to --source")
@@ -368,7 +388,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
     out = args.out if args.out is not None else default_out(args)
     resume.check_out_path(out)
-    resume.check_json_path(args.json)
+    resume.check_json_path(args.json, out, _input_paths(args))
     if not args.no_figures:
         import importlib.util
 
@@ -380,7 +400,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         x, z, yaw = args.odometry_sigma
         notes.append(f"Variant given_images: the images may move the odometry's planar motion within {x:g} m "
                      f"sideways, {z:g} m forward and {yaw:g}° of yaw a frame (Gaussian priors).")
-    net_spec = NetSpec(args.net, args.net_contract, args.checkpoint) if args.net is not None else None
+    net_spec = NetSpec(args.net, args.net_contract or "auto", args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
 
     # replace uses no scale: the default's in the identity, as for a confidence run without --scale

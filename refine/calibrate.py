@@ -12,7 +12,6 @@ The clip is streamed: its memory is a few frames plus the packed road masks, wha
 from __future__ import annotations
 
 import math
-import sys
 from dataclasses import dataclass
 from typing import Any, Callable, Sequence
 
@@ -152,26 +151,27 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         needed_by: the options that need the clip, which its errors name (:func:`clip_options`).
         poses_option: the option the poses come from, which the errors about them name.
     """
-    from tqdm import tqdm
+    from .progress import progress_bar
 
     check_clip(specs, needed_by=needed_by, poses_option=poses_option)
     masks = PackedMasks()
     road_info: dict[str, tuple[int, dict[str, Any]]] = {}
     relative_poses: list[Tensor | None] = []
     previous = None  # the previous pair's second image, which must be this pair's first
-    for k, spec in enumerate(tqdm(specs, desc="clip: load", disable=not progress, file=sys.stderr)):
-        pair = spec.load()
-        if previous is not None and not torch.equal(previous, pair["image1"]):
-            raise JobError(f"{needed_by}: pairs {specs[k - 1].name} and {spec.name} are not consecutive frames "
-                           f"of one clip (the second image of one is not the first of the next); "
-                           f"{_separately(needed_by)}")
-        previous = pair["image2"]
-        road, info = road_for(pair)
-        masks.append(road.reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
-        road_info[spec.name] = (k, info)
-        pose = pair.get("relative_pose")
-        relative_poses.append(None if pose is None else pose.to(torch.float64))
-        del pair
+    with progress_bar(specs, enabled=progress, desc="clip: load") as bar:  # (closed before an error prints)
+        for k, spec in enumerate(bar):
+            pair = spec.load()
+            if previous is not None and not torch.equal(previous, pair["image1"]):
+                raise JobError(f"{needed_by}: pairs {specs[k - 1].name} and {spec.name} are not consecutive frames "
+                               f"of one clip (the second image of one is not the first of the next); "
+                               f"{_separately(needed_by)}")
+            previous = pair["image2"]
+            road, info = road_for(pair)
+            masks.append(road.reshape(1, *pair["image1"].shape[-2:]).to(torch.bool))
+            road_info[spec.name] = (k, info)
+            pose = pair.get("relative_pose")
+            relative_poses.append(None if pose is None else pose.to(torch.float64))
+            del pair
     del previous
     poses = None
     if all(p is not None for p in relative_poses):

@@ -21,7 +21,6 @@ records than the pair's (with figures on, a pair without its figure is redone).
 from __future__ import annotations
 
 import json
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -144,7 +143,8 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
     ``sources`` maps a source name to its callable (:func:`refine.sources.make_source`);
     ``camera`` replaces the pairs' own camera (e.g. with a calibrated pitch)."""
     from fsof_torch.io import write_json
-    from tqdm import tqdm
+
+    from .progress import progress_bar, show_step
 
     for source in cfg.sources:
         for variant in cfg.variants:
@@ -155,10 +155,10 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
     refiners = {v: _refiner(v, cfg) for v in cfg.variants}
     records: list[dict] = []
     figures: dict[tuple, Any] = {}  # a PairFigure per layout, redrawn for every pair
+    bar = progress_bar(specs, enabled=cfg.progress, desc="refine", unit="pair", dynamic_ncols=True)
     try:
-        bar = tqdm(specs, desc="refine", unit="pair", disable=not cfg.progress, file=sys.stderr, dynamic_ncols=True)
         for spec in bar:
-            bar.set_postfix_str(f"{spec.name}: checking earlier results")
+            show_step(bar, f"{spec.name}: checking earlier results")
             pair_fp = input_fingerprint(spec)
             # a variant that rests on the clip's fit depends on every frame of the clip
             input_fp = {v: pair_fp + ":" + cfg.clip_fingerprint if _uses_clip(v, cfg) else pair_fp
@@ -172,18 +172,18 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                     records += [{**done[(s, v)], "resumed": True} for v in cfg.variants]
             if not todo:
                 continue
-            bar.set_postfix_str(f"{spec.name}: loading the pair")
+            show_step(bar, f"{spec.name}: loading the pair")
             pair = _to_device(spec.load(), cfg.device)
             cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
-            bar.set_postfix_str(f"{spec.name}: road mask")
+            show_step(bar, f"{spec.name}: road mask")
             road, road_from, road_info, dis_pred = _pair_road(pair, cam, cfg, sources, spec.name)
             for source in todo:
-                bar.set_postfix_str(f"{spec.name}: predicting flow ({source})")
+                show_step(bar, f"{spec.name}: predicting flow ({source})")
                 if source == "dis" and dis_pred is not None:  # already predicted for the road
                     pred = dis_pred
                 else:
                     pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
-                bar.set_postfix_str(f"{spec.name}: errors before ({source})")
+                show_step(bar, f"{spec.name}: errors before ({source})")
                 before = flow_maps(pair, pred)
                 finite_share = float(before["finite"].to(torch.float64).mean())
                 # the figure of the records about to be replaced must not outlive them (with
@@ -191,7 +191,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 figure_path(cfg, source, spec.name).unlink(missing_ok=True)
                 flows, maps = {}, {}
                 for variant in cfg.variants:
-                    bar.set_postfix_str(f"{spec.name}: refining {source} with odometry '{variant}'")
+                    show_step(bar, f"{spec.name}: refining {source} with odometry '{variant}'")
                     record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
                                                       _camera_for(variant, cam, cfg), variant, before, spec.name)
                     record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
@@ -204,10 +204,10 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                     records.append({**record, "resumed": False})
                     flows[variant], maps[variant] = flow, after
                 if cfg.figures:
-                    bar.set_postfix_str(f"{spec.name}: drawing the figure ({source})")
+                    show_step(bar, f"{spec.name}: drawing the figure ({source})")
                     _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps, figures)
+    finally:  # the bar ends its line before any error is printed; the figures kept open for redrawing
         bar.close()
-    finally:  # the figures kept open for redrawing
         for figure in figures.values():
             figure.close()
     return records

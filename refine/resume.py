@@ -13,7 +13,9 @@ Every run removes the report and clip summaries of the run before it first (they
 last), so a run that fails leaves no report that contradicts the records it rewrote.
 A rerun into a folder that holds a run of another identity stops with a message naming what
 differs (``--overwrite`` deletes that run's outputs first), unless that run left nothing but its
-manifest (it stopped before its first record: its manifest is replaced). The number of pairs is
+manifest (it stopped before its first record: its manifest is replaced). A manifest that cannot
+be read, or names no outputs, beside other files stops every run, ``--overwrite`` too: which files
+are that run's is unknown, and the job deletes nothing it cannot name. The number of pairs is
 not part of the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one.
 """
 
@@ -59,12 +61,30 @@ def check_out_path(out: Path) -> None:
     _creatable(out, "--out")
 
 
-def check_json_path(path: Path | None) -> None:
-    """``--json`` must name a file that can be written (checked before any work)."""
+def check_json_path(path: Path | None, out: Path, inputs: dict[str, Path | None] | None = None) -> None:
+    """``--json`` must name a file that can be written, none of the run's inputs (``inputs``: the
+    files and folders the options name, by option; None where not given; a path inside an input
+    folder is refused too) and nothing inside ``out`` but ``OUT/report.json`` (the report the job
+    writes there anyway): the report, removed at the start and written last, would replace it.
+    Checked before any work."""
     if path is None:
         return
     if path.is_dir():
         raise JobError(f"--json: {str(path)!r} is a folder; expected a file path such as {str(path / 'report.json')!r}")
+    target = path.resolve()
+    for option, given in (inputs or {}).items():
+        if given is None:
+            continue
+        source = given.resolve()
+        if target == source:
+            raise JobError(f"--json: {str(path)!r} is the input {option}; give another path")
+        if target.is_relative_to(source):
+            raise JobError(f"--json: {str(path)!r} is inside the input {option} {str(given)!r}; give another path")
+    folder = out.resolve()
+    if target.is_relative_to(folder) and target != folder / REPORTS[1]:
+        # the manifest, the report, the records: the JSON would replace one of them, or they it
+        raise JobError(f"--json: {str(path)!r} is inside --out {str(out)!r}, which the job fills; give a path "
+                       f"outside it (the report is written to {str(out / REPORTS[1])!r} anyway)")
     _creatable(path, "--json")
 
 
@@ -132,7 +152,8 @@ def _no_results(out: Path, old: dict) -> bool:
 def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
     """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
     ``overwrite`` clear) a folder that holds the results of another run, replace the manifest of
-    one that left none; remove the earlier run's report and clip summaries (:func:`remove_reports`);
+    one that left none; refuse, even with ``overwrite``, one whose manifest names no outputs (it
+    cannot be read) beside other files; remove the earlier run's report and clip summaries (:func:`remove_reports`);
     write the manifest. Call under :func:`locked`, before any record is written. Returns the
     manifest (with ``fingerprint``)."""
     from fsof_torch.io import remove_stale_temporaries, write_json
@@ -150,6 +171,14 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
         if not isinstance(old, dict):  # not JSON, or JSON but not a manifest (``[]``, ``5``)
             old = {"fingerprint": None, "identity": "unreadable"}
     if old is not None and old.get("fingerprint") != fp:
+        if not _no_results(out, old) and not _outputs(old):
+            # --overwrite deletes the outputs a manifest names: this one names none, and the
+            # files beside it may be anyone's (deleting them all could lose what is not the job's)
+            raise JobError(f"--out: {str(out)!r} holds the results of another run whose manifest "
+                           f"{str(manifest_path)!r} cannot be read (not a refine manifest naming its outputs), "
+                           f"so the job cannot tell that run's files from others"
+                           f"{' and --overwrite deletes none of them' if overwrite else ''}; delete them (or "
+                           f"the folder) yourself, or give another --out")
         if not overwrite and not _no_results(out, old):
             diffs = _differences(old.get("identity"), json.loads(json.dumps(identity, default=str)))
             raise JobError(f"--out: {str(out)!r} holds the results of another run ("

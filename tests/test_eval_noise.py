@@ -142,3 +142,19 @@ def test_pose_experiment_box_without_model_pixels_raises(box):
         pose_estimation_experiment([0.0], trials=2, size=(40, 120), box=box)
     res = pose_estimation_experiment([0.0], trials=2, size=(40, 120), box=(30, 40, 0, 120))
     assert res.num_pixels > 0
+
+
+def test_noise_rerun_without_plots_leaves_no_plot_of_the_run_before(tmp_path):
+    """A rerun with --no-plots into the same folder removes the earlier run's PNGs, which would
+    read as this run's beside its noise.json; one with --json elsewhere removes DIR/noise.json."""
+    out = tmp_path / "o"
+    base = ["noise", "--quick", "--size", "32", "96", "--pose-size", "32", "96", "--trials", "1", "--sigmas", "0",
+            "--pose-sigmas", "0", "--out", str(out), "--no-progress"]
+    assert main(base) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["noise.json", "noise_robustness.png", "pose_errors.png",
+                                                    "pose_scatter.png"]
+    assert main([*base, "--no-plots", "--seed", "5"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["noise.json"]
+    assert json.loads((out / "noise.json").read_text())["settings"]["seed"] == 5
+    assert main([*base, "--no-plots", "--json", str(tmp_path / "n.json")]) == 0
+    assert list(out.iterdir()) == [] and (tmp_path / "n.json").is_file()

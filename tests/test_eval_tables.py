@@ -228,3 +228,50 @@ def test_main_returns_the_exit_status(capsys, argv, code, stream, message):
     assert message in getattr(captured, stream)
     if code:
         assert captured.err.startswith("usage: python -m eval")
+
+
+@pytest.mark.parametrize("name", ["road.json", "flow_noc_10.png", "calib_cam_to_cam.txt"])
+def test_tables_json_naming_a_kitti_file_exits_2(tmp_path, shared_data, capsys, name):
+    """--json naming a file of the --kitti sample that the KITTI table reads is refused before any
+    work, and the file is left as it was (the JSON, written last, replaced road.json)."""
+    folder = _kitti_copy(tmp_path, shared_data)
+    before = (folder / name).read_bytes()
+    rc = main(["tables", "--only", "kitti", "--kitti", str(folder), "--out", str(tmp_path / "o"),
+               "--json", str(folder / name), "--no-progress"])
+    assert rc == 2
+    assert f"error: --json: {str(folder / name)!r} is the input --kitti ({name}); give another path" \
+        in capsys.readouterr().err
+    assert (folder / name).read_bytes() == before and not (tmp_path / "o").exists()
+
+
+def test_tables_rerun_leaves_no_file_of_the_run_before(tmp_path, monkeypatch):
+    """A rerun into the same folder that writes its JSON elsewhere removes DIR/tables.json of the
+    run before, which would read as this run's beside the new tables.md."""
+    import eval.tables as tables
+
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: [])
+    monkeypatch.setattr(tables, "carla_table", lambda *a, **k: [])
+    out = tmp_path / "o"
+    assert main(["tables", "--only", "cvc12", "--pairs", "1", "--out", str(out), "--no-progress"]) == 0
+    assert json.loads((out / "tables.json").read_text())["settings"]["pairs"] == 1
+    assert main(["tables", "--only", "carla", "--pairs", "2", "--out", str(out), "--json", str(tmp_path / "t.json"),
+                 "--no-progress"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["tables.md"]
+    assert "CARLA-like" in (out / "tables.md").read_text()
+    assert json.loads((tmp_path / "t.json").read_text())["settings"]["pairs"] == 2
+
+
+def test_tables_quick_keeps_a_size_and_pairs_given(tmp_path, monkeypatch):
+    """--quick with --size or --pairs: the values given replace the quick ones (as documented),
+    and the JSON records what ran."""
+    import eval.tables as tables
+
+    calls = []
+    monkeypatch.setattr(tables, "cvc12_table", lambda *a, **k: calls.append(a[:3]) or [])
+    assert main(["tables", "--only", "cvc12", "--quick", "--size", "32", "96", "--out", str(tmp_path / "o"),
+                 "--no-progress"]) == 0
+    assert main(["tables", "--only", "cvc12", "--quick", "--pairs", "2", "--out", str(tmp_path / "p"),
+                 "--no-progress"]) == 0
+    assert calls == [((32, 96), 1, 0), ((96, 320), 2, 0)]
+    settings = json.loads((tmp_path / "o" / "tables.json").read_text())["settings"]
+    assert settings["size"] == [32, 96] and settings["pairs"] == 1 and settings["quick"]

@@ -219,3 +219,46 @@ def test_figures_over_no_pixel_are_none_and_print_a_dash(capsys):
     assert row[1] == "-" and row[4] == "-" and float(row[2]) > 1e3
     filled = {**metrics, "road": {**metrics["road"], "e_E": 1.0, "Fl": 0.5}}  # '-' keeps the columns aligned
     assert len(train._row("x", metrics)) == len(train._row("x", filled))
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--size", "20000", "64"], "--size: expected H, W <= 16384, got [20000, 64]"),
+    (["--device", "meta"], "--device: 'meta' holds no data (shapes only); give cpu or cuda"),
+    (["--device", "mps"], "--device: cannot place a tensor on 'mps' ("),
+])
+def test_train_job_checks_size_and_device_before_the_work(capsys, monkeypatch, argv, message):
+    """A huge --size, or a --device that cannot hold the nets, exits 2 naming it before anything is
+    rendered (a device ended in a traceback after the rendering, exit 1)."""
+    monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before the check"))
+    assert eval_main(["train", *argv, "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith(f"error: {message}")
+
+
+@pytest.mark.parametrize("json_name, dump_name", [
+    ("x.pt", "x.pt"), ("o/tinyraft_unsupervised.pt", None), ("o/tinyraft_unsupervised_freespace.pt", None),
+])
+def test_train_job_json_naming_another_output_exits_2(tmp_path, capsys, monkeypatch, json_name, dump_name):
+    """--json naming the --dump-first-step file or a state_dict the job writes into --out is
+    refused before any work (the files written later replaced the JSON, or it them)."""
+    monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before the check"))
+    target = tmp_path / json_name
+    argv = ["train", "--out", str(tmp_path / "o"), "--json", str(target), "--no-progress"]
+    if dump_name is not None:
+        argv += ["--dump-first-step", str(tmp_path / dump_name)]
+    assert eval_main(argv) == 2
+    assert capsys.readouterr().err.startswith(f"error: --json: {str(target)!r} names {target.name}, a file the job "
+                                              f"writes into ")
+    assert eval_main(["train", "--out", str(tmp_path / "o"), "--dump-first-step", str(tmp_path / "o" / "tinyraft_"
+                 "unsupervised.pt"), "--no-progress"]) == 2
+    assert "error: --dump-first-step: " in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_training_bar_in_a_log_is_rate_limited(keep_threads, capsys):
+    """With stderr not a terminal (a log, CI), the training bar is drawn when it opens and closes
+    within eval.progress.LOG_INTERVAL, not at every step with its loss terms."""
+    torch.set_num_threads(1)
+    data = train.render_pairs("default", 2, seed=0, size=(32, 64))
+    train.train_net(data, steps=4, seed=0, batch=1, lr=1e-3, freespace_weight=0.0, iters=1, progress=True)
+    err = capsys.readouterr().err
+    assert "train" in err and err.count("\r") <= 3, err

@@ -328,3 +328,39 @@ def test_vflow_input_errors_print_before_the_progress_bar(tmp_path, capsys):
         rc = main(["vflow", *argv, "--out", str(tmp_path / "o")])
         err = capsys.readouterr().err
         assert rc == 2 and err.startswith("error: ") and "vflow:" not in err, err
+
+
+def test_vflow_flow_and_mask_errors_quote_the_file_without_the_readers_argument(tmp_path, capsys):
+    """A reader's own argument ("path: ...") inside the message means nothing to the user: the
+    message reads "--flow: '<file>' ...", as the refine job's do."""
+    (tmp_path / "bad.flo").write_bytes(b"12345")
+    assert main(["vflow", "--flow", str(tmp_path / "bad.flo"), "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --flow: {str(tmp_path / 'bad.flo')!r} "), err
+    flow = _small_flow(tmp_path)
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    assert main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "bad.png"), "--out", str(tmp_path / "o"),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --mask: {str(tmp_path / 'bad.png')!r} "), err
+
+
+def test_vflow_rerun_leaves_no_file_of_the_run_before(tmp_path):
+    """A rerun into the same folder removes the earlier run's files that it does not write again:
+    freespace.png (a velocity run draws none), DIR/vflow.json (its JSON written elsewhere)."""
+    out = tmp_path / "o"
+    base = ["vflow", "--preset", "cvc-complex", "--size", "48", "160", "--out", str(out), "--no-progress"]
+    main(base)
+    assert {"freespace.png", "vflow.json"} <= {p.name for p in out.iterdir()}
+    main([*base, "--model", "velocity", "--json", str(tmp_path / "v.json")])
+    assert sorted(p.name for p in out.iterdir()) == ["fv_error.png", "fv_fitted.png", "fv_observed.png",
+                                                    "vflow_map.png"]
+    assert json.loads((tmp_path / "v.json").read_text())["curve"]["model"] == "velocity"
+
+
+def test_vflow_bar_in_a_log_is_rate_limited(tmp_path, capsys):
+    """With stderr not a terminal (a log, CI), the bar is drawn when it opens and closes within
+    eval.progress.LOG_INTERVAL, not at every step."""
+    assert main(["vflow", "--flow", str(_small_flow(tmp_path)), "--out", str(tmp_path / "o")]) == 0
+    err = capsys.readouterr().err
+    assert "vflow" in err and err.count("\r") <= 3, err

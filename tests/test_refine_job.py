@@ -1300,8 +1300,8 @@ def test_a_corrupt_flow_file_is_named_under_flows(tmp_path, user_folder, scene_p
                                       '{"fingerprint": "x", "outputs": ["dis", 5]}'])
 def test_a_manifest_that_is_json_but_not_a_manifest(tmp_path, manifest):
     """run.json holding JSON that is not a manifest (a list, a number, outputs not a list of names)
-    reads as an unreadable one: a folder without results is taken, one with results refused unless
-    --overwrite, never a traceback."""
+    reads as an unreadable one: a folder without results is taken, one with results refused, with
+    --overwrite too (it names no outputs to delete), never a traceback."""
     from refine import resume
     from refine.inputs import JobError
 
@@ -1312,10 +1312,28 @@ def test_a_manifest_that_is_json_but_not_a_manifest(tmp_path, manifest):
     assert resume.prepare(out, identity, overwrite=False)["identity"] == identity
     (out / "run.json").write_text(manifest)
     (out / "report.md").write_text("")
-    with pytest.raises(JobError, match=r"^--out: .* holds the results of another run"):
-        resume.prepare(out, identity, overwrite=False)
-    assert resume.prepare(out, identity, overwrite=True)["fingerprint"] == resume.fingerprint(identity)
-    assert not (out / "report.md").exists()
+    for overwrite in (False, True):
+        with pytest.raises(JobError, match=r"^--out: .* holds the results of another run whose manifest .* cannot "
+                                           r"be read"):
+            resume.prepare(out, identity, overwrite=overwrite)
+    assert (out / "report.md").exists() and (out / "run.json").read_text() == manifest
+
+
+def test_overwrite_over_an_unreadable_manifest_is_refused_and_deletes_nothing(tmp_path, capsys):
+    """--overwrite deletes the outputs the earlier run's manifest names: where run.json cannot be
+    read it names none, so the earlier run's folders would stay beside the new ones (and its
+    report): refused with exit 2 naming the manifest, every file left as it was."""
+    out = tmp_path / "out"
+    base = ["--num-pairs", "1", "--no-figures", "--out", str(out), *TINY]
+    assert main([*base, "--source", "dis", "--odometry", "given,fit"]) == 0
+    (out / "run.json").write_text("not json")
+    before = sorted(p.relative_to(out) for p in out.rglob("*"))
+    err = _err(capsys, [*base, "--source", "dis", "--odometry", "given", "--overwrite"])
+    assert err.startswith(f"error: --out: {str(out)!r} holds the results of another run whose manifest "
+                          f"{str(out / 'run.json')!r} cannot be read"), err
+    assert "--overwrite deletes none of them; delete them (or the folder) yourself, or give another --out" in err
+    assert sorted(p.relative_to(out) for p in out.rglob("*")) == before
+    assert (out / "dis" / "fit" / "pairs" / "000000.json").is_file()
 
 
 def test_a_record_that_is_json_but_not_a_record_is_redone(tmp_path):
@@ -1379,3 +1397,122 @@ def test_an_input_error_on_another_process_stops_this_one_with_its_message(tmp_p
     elsewhere["error"] = None
     assert _err(capsys, [*base, "--out", str(tmp_path / "r1b")]) == f"error: {message}\n"
     assert calls == [message]
+
+
+def test_json_naming_an_input_is_refused_and_the_input_kept(tmp_path, user_folder, capsys):
+    """--json naming a file the run reads (or a file inside a folder it reads) is refused before
+    any work, naming --json and the option: the job removes the --json file at its start, which
+    deleted the calibration or the road polygon."""
+    polygon = user_folder / "road.json"
+    polygon.write_text('{"size": [48, 160], "road_polygon": [[0, 47], [159, 47], [110, 28], [50, 28]]}')
+    weights = tmp_path / "w.pt"
+    weights.write_bytes(b"x")
+    out = tmp_path / "out"
+    for option, path, extra in (("--calib", user_folder / "calib.txt", ["--road", str(polygon)]),
+                                ("--road", polygon, ["--road", str(polygon)]),
+                                ("--poses", user_folder / "poses.txt", ["--road", "auto", "--poses",
+                                                                        str(user_folder / "poses.txt")]),
+                                ("--testnet-weights", weights, ["--road", "auto", "--source", "testnet",
+                                                                "--testnet-weights", str(weights)])):
+        before = path.read_bytes()
+        err = _err(capsys, [*_user(user_folder, out, *extra), "--json", str(path)])
+        assert err.startswith(f"error: --json: {str(path)!r} is the input {option}; give another path"), err
+        assert path.read_bytes() == before
+    inside = user_folder / "gt" / "000000.json"
+    err = _err(capsys, [*_user(user_folder, out, "--road", "auto", "--gt", str(user_folder / "gt")),
+                        "--json", str(inside)])
+    assert err.startswith(f"error: --json: {str(inside)!r} is inside the input --gt {str(user_folder / 'gt')!r}")
+    assert not out.exists() and not inside.exists()
+
+
+@pytest.mark.parametrize("name", ["report.md", "run.json", "dis/given/pairs/000000.json", "."])
+def test_json_inside_out_is_refused_but_its_report_json(tmp_path, capsys, name):
+    """--json inside --out would replace (or be replaced by) the job's own files: the Markdown
+    report, the manifest a later --overwrite reads, a record. Refused before any work; the one
+    exception is OUT/report.json, the report itself."""
+    from refine import resume
+    from refine.inputs import JobError
+
+    out = tmp_path / "out"
+    target = out / name
+    err = _err(capsys, ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures",
+                        "--out", str(out), "--json", str(target), *TINY])
+    assert err.startswith(f"error: --json: {str(target)!r} is inside --out {str(out)!r}, which the job fills"), err
+    assert not out.exists()
+    resume.check_json_path(out / "report.json", out)
+    resume.check_json_path(out / "sub" / ".." / "report.json", out)
+    with pytest.raises(JobError, match="is inside --out"):
+        resume.check_json_path(out / "sub" / ".." / "report.md", out)
+
+
+@pytest.mark.parametrize("argv, option", [
+    (["--kitti-odometry", "{odo}", "--num-pairs", "4"], "--num-pairs"),  # (4: the synthetic default)
+    (["--kitti-odometry", "{odo}", "--size", "375x1242"], "--size"),
+    (["--kitti-odometry", "{odo}", "--seed", "0"], "--seed"),
+    (["--kitti15", "{odo}", "--preset", "default"], "--preset"),
+    (["--num-pairs", "1", "--height", "1.65"], "--height"),
+    (["--num-pairs", "1", "--pitch-deg", "0"], "--pitch-deg"),
+    (["--num-pairs", "1", "--roll-deg", "0"], "--roll-deg"),
+    (["--kitti15", "{odo}", "--pitch-deg", "0"], "--pitch-deg"),
+    (["--num-pairs", "1", "--net-contract", "auto"], "--net-contract"),
+])
+def test_options_the_input_does_not_use_are_refused_at_their_default_too(tmp_path, capsys, argv, option):
+    """An option given for another input is refused when given, whatever its value: at its default
+    it was accepted and ignored (--num-pairs 4 with a 50-pair clip ran all 50 pairs)."""
+    argv = [a.format(odo=tmp_path / "odo") for a in argv]
+    err = _err(capsys, [*argv, "--out", str(tmp_path / "o"), "--no-progress"])
+    assert err.startswith(f"error: {option}"), err
+    assert "applies to" in err or "needs --net" in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
+    """On a terminal the bar is redrawn at every step; in a log (stderr not a terminal) only when
+    it opens and closes within refine.progress.LOG_INTERVAL, the steps shown at those redraws."""
+    import io
+    import sys
+
+    from refine.progress import progress_bar, show_step
+
+    class Stream(io.StringIO):
+        def __init__(self, tty):
+            super().__init__()
+            self.tty = tty
+
+        def isatty(self):
+            return self.tty
+
+    redraws = {}
+    for tty in (True, False):
+        monkeypatch.setattr(sys, "stderr", Stream(tty))
+        bar = progress_bar(range(3), desc="refine", unit="pair")
+        for i in bar:
+            for step in ("loading", "refining", "drawing"):
+                show_step(bar, f"{i:06d}: {step}")
+        bar.close()
+        redraws[tty] = sys.stderr.getvalue().count("\r")
+        assert "3/3" in sys.stderr.getvalue()
+    assert redraws[True] >= 9 and redraws[False] <= 3, redraws
+    monkeypatch.setattr(sys, "stderr", Stream(False))
+    bar = progress_bar(range(3), enabled=False)
+    list(bar)
+    assert sys.stderr.getvalue() == ""
+
+
+def test_a_run_logs_a_few_lines_of_progress_and_its_error_on_a_line_of_its_own(tmp_path, user_folder, scene_pairs,
+                                                                                capsys):
+    """A run with its bar on, stderr captured (not a terminal): a few redraws, not one per step;
+    an input error on a later pair is printed after the bar has ended its line."""
+    (user_folder / "flows" / "000001.npy").unlink()
+    (user_folder / "flows" / "000001.png").write_bytes(b"garbage\n")
+    argv = ["--images", str(user_folder / "images"), "--calib", str(user_folder / "calib.txt"), "--no-figures",
+            "--road", str(user_folder / "road"), "--odometry", "given", "--poses", str(user_folder / "poses.txt"),
+            *_mounting(scene_pairs), "--out", str(tmp_path / "out")]
+    assert main([*argv, "--flows", str(user_folder / "flows")]) == 2
+    err = capsys.readouterr().err
+    last = err.rstrip("\n").split("\n")[-1]
+    assert last.startswith("error: --flows: ") and "refine:" in err and err.count("\r") <= 3, err
+    (user_folder / "flows" / "000001.png").unlink()
+    assert main([*argv, "--overwrite"]) == 0
+    err = capsys.readouterr().err
+    assert "2/2" in err and err.count("\r") <= 3, err
