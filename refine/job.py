@@ -144,7 +144,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
     ``camera`` replaces the pairs' own camera (e.g. with a calibrated pitch)."""
     from fsof_torch.io import write_json
 
-    from .progress import progress_bar, show_step
+    from fsof_torch._progress import progress_bar, show_text
 
     for source in cfg.sources:
         for variant in cfg.variants:
@@ -158,7 +158,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
     bar = progress_bar(specs, enabled=cfg.progress, desc="refine", unit="pair", dynamic_ncols=True)
     try:
         for spec in bar:
-            show_step(bar, f"{spec.name}: checking earlier results")
+            show_text(bar, f"{spec.name}: checking earlier results")
             pair_fp = input_fingerprint(spec)
             # a variant that rests on the clip's fit depends on every frame of the clip
             input_fp = {v: pair_fp + ":" + cfg.clip_fingerprint if _uses_clip(v, cfg) else pair_fp
@@ -172,18 +172,18 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                     records += [{**done[(s, v)], "resumed": True} for v in cfg.variants]
             if not todo:
                 continue
-            show_step(bar, f"{spec.name}: loading the pair")
+            show_text(bar, f"{spec.name}: loading the pair")
             pair = _to_device(spec.load(), cfg.device)
             cam = (camera if camera is not None else pair["camera"]).to(torch.float64)
-            show_step(bar, f"{spec.name}: road mask")
+            show_text(bar, f"{spec.name}: road mask")
             road, road_from, road_info, dis_pred = _pair_road(pair, cam, cfg, sources, spec.name)
             for source in todo:
-                show_step(bar, f"{spec.name}: predicting flow ({source})")
+                show_text(bar, f"{spec.name}: predicting flow ({source})")
                 if source == "dis" and dis_pred is not None:  # already predicted for the road
                     pred = dis_pred
                 else:
                     pred = sources[source](pair, spec.flow_files.get("files")).to(cfg.device)
-                show_step(bar, f"{spec.name}: errors before ({source})")
+                show_text(bar, f"{spec.name}: errors before ({source})")
                 before = flow_maps(pair, pred)
                 finite_share = float(before["finite"].to(torch.float64).mean())
                 # the figure of the records about to be replaced must not outlive them (with
@@ -191,7 +191,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 figure_path(cfg, source, spec.name).unlink(missing_ok=True)
                 flows, maps = {}, {}
                 for variant in cfg.variants:
-                    show_step(bar, f"{spec.name}: refining {source} with odometry '{variant}'")
+                    show_text(bar, f"{spec.name}: refining {source} with odometry '{variant}'")
                     record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
                                                       _camera_for(variant, cam, cfg), variant, before, spec.name)
                     record.update({"pair": spec.name, "source": source, "variant": variant, "mode": cfg.mode,
@@ -204,7 +204,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                     records.append({**record, "resumed": False})
                     flows[variant], maps[variant] = flow, after
                 if cfg.figures:
-                    show_step(bar, f"{spec.name}: drawing the figure ({source})")
+                    show_text(bar, f"{spec.name}: drawing the figure ({source})")
                     _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps, figures)
     finally:  # the bar ends its line before any error is printed; the figures kept open for redrawing
         bar.close()

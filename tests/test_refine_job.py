@@ -1468,11 +1468,11 @@ def test_options_the_input_does_not_use_are_refused_at_their_default_too(tmp_pat
 
 def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
     """On a terminal the bar is redrawn at every step; in a log (stderr not a terminal) only when
-    it opens and closes within refine.progress.LOG_INTERVAL, the steps shown at those redraws."""
+    it opens and closes within fsof_torch._progress.LOG_INTERVAL, the steps shown at those redraws."""
     import io
     import sys
 
-    from refine.progress import progress_bar, show_step
+    from fsof_torch._progress import progress_bar, show_text
 
     class Stream(io.StringIO):
         def __init__(self, tty):
@@ -1488,7 +1488,7 @@ def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
         bar = progress_bar(range(3), desc="refine", unit="pair")
         for i in bar:
             for step in ("loading", "refining", "drawing"):
-                show_step(bar, f"{i:06d}: {step}")
+                show_text(bar, f"{i:06d}: {step}")
         bar.close()
         redraws[tty] = sys.stderr.getvalue().count("\r")
         assert "3/3" in sys.stderr.getvalue()

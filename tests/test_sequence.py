@@ -356,6 +356,29 @@ def test_fit_sequence_one_pass_with_poses_gives_metres_at_the_calibrated_height(
         assert float(fit.covariance[0, i, i]) == pytest.approx(float(before.covariance[0, i, i]) * ratio ** 2)
 
 
+def test_fit_sequence_bars_in_a_log_are_rate_limited(body_motion_clip, monkeypatch):
+    """Its passes' bars (tqdm on stderr) were redrawn as tqdm redraws on a terminal in a log too
+    (CI, a file): they are the library's rate-limited bars."""
+    import io
+    import sys
+
+    import fsof_torch._progress as progress
+
+    pairs, frames, _ = body_motion_clip
+    bars, original = [], progress.progress_bar
+
+    def recorded(*args, **options):
+        bars.append(original(*args, **options))
+        return bars[-1]
+
+    monkeypatch.setattr(progress, "progress_bar", recorded)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # (not a terminal)
+    fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], passes=2, max_points=500, progress=True)
+    log = sys.stderr.getvalue()
+    assert len(bars) == 2 and all(bar.mininterval == progress.LOG_INTERVAL for bar in bars)
+    assert "road motion: first pass" in log and "2/2" in log
+
+
 def test_fit_sequence_poses_still_in_half_the_moving_pairs_give_no_scale(body_motion_clip):
     """Poses that stand still in one of two pairs whose images move contradict them: the median
     ratio would be half the other pair's (once the lower median gave 0), so no scale is taken."""

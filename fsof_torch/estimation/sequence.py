@@ -290,12 +290,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
 
     def run(cam: Camera, label: str, track: dict[str, tuple[Tensor, Tensor]] | None = None,
             keep: bool = False) -> tuple[list[_PairRecord], list[RoadFit]]:
-        from tqdm.auto import tqdm
+        from .._progress import progress_bar
 
         records: list[_PairRecord] = []
         fits: list[RoadFit] = []
         image2 = None
-        for k in tqdm(range(N), desc=f"road motion: {label}", unit="pair", disable=not progress):
+        for k in progress_bar(range(N), enabled=progress, desc=f"road motion: {label}", unit="pair"):
             starts: list[dict] = []
             prior = calibration_prior(model, cam, mounting_deg=attitude_deg, body_rotation_deg=body_rotation_deg)
             if records:

@@ -279,7 +279,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
 
     Returns a summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
     """
-    from tqdm import tqdm
+    from .._progress import progress_bar
 
     root = Path(root)
     clash = sorted(set(meta or {}) & set(_META_KEYS))
@@ -295,7 +295,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
     rendered: list[tuple[Tensor, Tensor] | None] = []
     size = None
     count = 0
-    iterator = tqdm(pairs, total=total, desc=f"synth {root.name}", unit="pair", disable=not progress)
+    iterator = progress_bar(pairs, enabled=progress, total=total, desc=f"synth {root.name}", unit="pair")
     for index, pair in enumerate(iterator):
         write_synthetic_pair(root, index, pair, extra={k: v for k, v in extra.items() if k in ("preset", "seed")})
         odo = pair["odometry"]

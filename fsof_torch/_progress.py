@@ -1,0 +1,46 @@
+"""Progress bars of the library's long loops and of the jobs: tqdm on stderr, redrawn as tqdm
+redraws on a terminal (or as a notebook's widget), and in a log (stderr a file or a pipe, as under
+CI) at most every :data:`LOG_INTERVAL` seconds, with the text shown after the bar updated at those
+redraws only, so that a log holds a few lines of progress rather than one per step."""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, Iterable
+
+__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values"]
+
+#: seconds between two redraws of a bar whose stderr is not a terminal
+LOG_INTERVAL = 10.0
+
+
+def on_terminal() -> bool:
+    """Whether stderr, where the bars go, is a terminal."""
+    try:
+        return sys.stderr.isatty()
+    except (AttributeError, ValueError):  # no stderr, or a closed one
+        return False
+
+
+def progress_bar(iterable: Iterable | None = None, *, enabled: bool = True, **options: Any):
+    """A tqdm bar (``enabled``: shown at all; ``options``: tqdm's): a notebook's widget in a
+    notebook, else on stderr, rate-limited in a log."""
+    from tqdm import notebook
+    from tqdm.auto import tqdm
+
+    if issubclass(tqdm, notebook.tqdm):  # (a notebook's widget: no log to flood)
+        return tqdm(iterable, disable=not enabled, **options)
+    return tqdm(iterable, disable=not enabled, file=sys.stderr,
+                mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
+
+
+def show_text(bar, text: str) -> None:
+    """Show ``text`` (the step a loop is on) after the bar: at once on a terminal, at the bar's
+    next redraw in a log."""
+    bar.set_postfix_str(text, refresh=on_terminal())
+
+
+def show_values(bar, values: dict[str, str]) -> None:
+    """Show ``values`` (e.g. the loss terms) after the bar: at once on a terminal, at the bar's
+    next redraw in a log."""
+    bar.set_postfix(values, refresh=on_terminal())
