@@ -378,8 +378,8 @@ def photometric_errors(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tenso
 
     Args: as :func:`photometric_error_maps`, plus
         return_count: give ``(mean, count)`` per kind; the kinds with a window (ssim and the
-            census kinds) count fewer pixels than ``"l1"`` near the image border and wherever the
-            flow points out of image 2.
+            census kinds) count fewer pixels than ``"l1"`` within a window radius of any pixel
+            whose sample point leaves image 2 (the border itself is padded, not dropped).
 
     Returns:
         ``{kind: (B,) mean}`` (``{kind: ((B,) mean, (B,) int64 count)}`` with ``return_count``);
