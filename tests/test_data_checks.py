@@ -4,6 +4,7 @@ and what each item owns (its camera) and holds (floats in ``velocity``)."""
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -38,6 +39,54 @@ def test_bad_K_names_K(K):
         scene_config("default", K=K)
 
 
+@pytest.mark.parametrize("K, match", [
+    (((0.0, 0, 609.0), (0, 721.0, 172.0), (0, 0, 1)), r"^K: expected focal lengths f_x, f_y > 0"),
+    (((-721.0, 0, 609.0), (0, 721.0, 172.0), (0, 0, 1)), r"^K: expected focal lengths f_x, f_y > 0"),
+    (((721.0, 0, 609.0), (0, 721.0, 172.0), (0, 0, 2.0)), r"^K: expected an upper-triangular intrinsic matrix"),
+    (((721.0, 0, 609.0), (0, 721.0, 172.0), (0.001, 0, 1.0)), r"^K: expected an upper-triangular"),
+    (((721.0, 0, 609.0), (5.0, 721.0, 172.0), (0, 0, 1.0)), r"^K: expected an upper-triangular"),
+])
+def test_a_K_no_camera_takes_is_refused_by_scene_config(K, match):
+    """scene_config returned these as checked; the render then failed (or drew nothing)."""
+    with pytest.raises(ValueError, match=match):
+        scene_config("cvc-simple", K=K)
+
+
+def test_a_camera_height_beyond_the_cameras_bounds_is_refused():
+    with pytest.raises(ValueError, match=r"^height: expected a camera height in \[3.89e-62, 2.57e\+61\] m"):
+        scene_config("cvc-simple", height=1e300)
+
+
+@pytest.mark.parametrize("overrides", [dict(speed=np.float32(8.0)), dict(supersample=np.int64(2)),
+                                       dict(height=np.float64(1.5), noise=np.float32(0.5)),
+                                       dict(asphalt=np.array([25.0, 24, 7, 3, 8, 22, 20]))])
+def test_numpy_numbers_are_taken_as_python_numbers(overrides):
+    """np.float32 and np.int64 were refused: "speed: expected a finite number, got np.float32(8.0)"."""
+    cfg = scene_config("cvc-simple", **overrides)
+    for name, value in overrides.items():
+        got = getattr(cfg, name)
+        if name == "asphalt":
+            assert got == tuple(value.tolist()) and all(type(a) is float for a in got)
+        else:
+            assert got == value and type(got) is (int if name == "supersample" else float)
+    ref = render_pair("cvc-simple", 0, size=TINY, **{k: (v.tolist() if k == "asphalt" else v.item())
+                                                     for k, v in overrides.items()})
+    assert torch.equal(render_pair("cvc-simple", 0, size=TINY, **overrides)["image1"], ref["image1"])
+
+
+@pytest.mark.parametrize("value, error", [(True, "bool True"), (torch.tensor(8.0), "Tensor tensor(8.)"),
+                                          ("8", "str '8'")])
+def test_what_is_no_number_is_named(value, error):
+    with pytest.raises(ValueError, match=re.escape(f"speed: expected a finite number, got {error}")):
+        scene_config("cvc-simple", speed=value)
+
+
+def test_supersample_is_bounded():
+    scene_config("cvc-simple", supersample=16)
+    with pytest.raises(ValueError, match=r"^supersample: expected an integer in \[1, 16\], got 17"):
+        scene_config("cvc-simple", supersample=17)
+
+
 # -- motion bounds -----------------------------------------------------------------------------
 @pytest.mark.parametrize("overrides, match", [
     (dict(dt=1e9), "speed, speed_factor, dt: expected a travel"),
@@ -58,7 +107,9 @@ def test_every_preset_and_documented_speed_is_within_the_bound():
         for factor in (1, 4):
             scene_config(name, speed_factor=factor)
     scene_config("default", speed=MAX_TRAVEL / 0.1, dt=0.1)  # exactly at the bound
-    scene_config("default", x_d=0.0, z_d=30.0, yaw=3.0)  # a path radius of 15 m: the ego vehicle keeps its lane
+    # the chord of an arc of radius 15 m turning by 3 rad: the ego vehicle keeps its lane
+    chord = 2 * 15.0 * math.sin(1.5)
+    scene_config("default", x_d=chord * math.sin(1.5), z_d=chord * math.cos(1.5), yaw=3.0)
 
 
 # -- seeds -------------------------------------------------------------------------------------

@@ -268,6 +268,42 @@ class TestExceptions:
             CarlaRunDataset(None)
 
 
+    def test_carla_roll_from_the_folder_itself(self, tmp_path, monkeypatch):
+        """'.' or 'run/rgb/..' named no run: the roll of 't10_s0_r-5' came out 0."""
+        run = tmp_path / "t10_s0_r-5"
+        (run / "rgb").mkdir(parents=True)
+        for k in range(2):
+            write_image(run / "rgb" / f"{k}.png", _colour_image(0, 0, 0, (12, 16)))
+        monkeypatch.chdir(run)
+        for given in (run, ".", run / "rgb" / ".."):
+            ds = CarlaRunDataset(given)
+            assert math.degrees(float(ds[0]["camera"].roll)) == pytest.approx(-5.0), given
+            assert len(ds) == 1
+
+    def test_a_carla_run_of_one_frame_is_refused(self, tmp_path):
+        run = tmp_path / "t10_s0_r0"
+        (run / "rgb").mkdir(parents=True)
+        write_image(run / "rgb" / "0.png", _colour_image(0, 0, 0, (12, 16)))
+        with pytest.raises(ValueError, match=r"^run: '.*t10_s0_r0' holds no pairs \(1 frame in rgb/\)"):
+            CarlaRunDataset(run)  # was an empty dataset
+
+    @pytest.mark.parametrize("kwargs, message", [
+        ({"roll": 1.6}, r"^roll: expected \|θ\| < π/2 rad"),
+        ({"pitch": -1.6}, r"^pitch: expected \|β\| < π/2 rad"),
+        ({"camera_height": 1e300}, r"^camera_height: expected a camera height in \[3.89e-62, 2.57e\+61\] m"),
+        ({"camera_height": 1e10}, r"^camera_height: expected a camera height in \[2.98e-08, 3.36e\+07\] m "
+                                  r"for a torch.float32 camera"),
+    ])
+    def test_a_bad_mounting_names_the_argument_not_calib(self, shared_data, kwargs, message):
+        with pytest.raises(ValueError, match=message):
+            KittiSampleDataset(shared_data / "kitti15_000000", **kwargs)
+        with pytest.raises(ValueError, match=message):  # ("calib: '...' camera 2: roll: ..." before)
+            KittiOdometryDataset(shared_data / "kitti_odometry_straight", **kwargs)
+        if "camera_height" in kwargs:
+            with pytest.raises(ValueError, match=message):
+                KittiFlowDataset(shared_data / "kitti15_000000", **kwargs)
+
+
 class TestShared:
     def test_kitti15_sample(self, shared_data):
         ds = KittiSampleDataset(shared_data / "kitti15_000000")

@@ -7,10 +7,11 @@ from __future__ import annotations
 import json
 import re
 
+import numpy as np
 import pytest
 import torch
 
-from fsof_torch.data.folders import ImageFolderDataset, frame_pairs, kitti_flow_layout, match_files
+from fsof_torch.data.folders import ImageFolderDataset, check_index, frame_pairs, kitti_flow_layout, match_files
 from fsof_torch.data.items import check_item
 from fsof_torch.io import (read_kitti_poses, write_flow, write_image, write_kitti_calibration, write_kitti_poses,
                            write_road_mask)
@@ -305,6 +306,31 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
     write_road_mask(root / "road" / "000001.png", torch.ones(1, 10, 10, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"^road: 000001\.png is \(10, 10\), the images \(24, 40\)"):
         ImageFolderDataset(root / "images", road=root / "road")[1]
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"roll": 1.6}, r"^roll: expected \|θ\| < π/2 rad"),
+    ({"pitch": -1.6}, r"^pitch: expected \|β\| < π/2 rad"),
+    ({"camera_height": 1e10}, r"^camera_height: expected a camera height in \[2.98e-08, 3.36e\+07\] m"),
+])
+@pytest.mark.parametrize("with_calib", [True, False])
+def test_a_bad_mounting_names_the_argument(clip, kwargs, message, with_calib):
+    """The camera's errors came prefixed "calib: '...' camera 0:" (and without calib, unchecked)."""
+    root, _ = clip
+    with pytest.raises(ValueError, match=message):
+        ImageFolderDataset(root / "images", root / "calib.txt" if with_calib else None, **kwargs)
+
+
+@pytest.mark.parametrize("index, error, message", [
+    (True, TypeError, r"^index: expected an int, got bool True"),
+    (1.0, TypeError, r"^index: expected an int, got float 1\.0"),
+    ("0", TypeError, r"^index: expected an int, got str '0'"),
+    (3, IndexError, r"^index: 3 out of range for a dataset of 3 pairs"),
+])
+def test_check_index_refuses_a_bool_and_quotes_the_value(index, error, message):
+    with pytest.raises(error, match=message):
+        check_index(index, 3)
+    assert check_index(-1, 3) == 2 and check_index(np.int64(1), 3) == 1
 
 
 @pytest.mark.parametrize("pose, edit, message", [

@@ -53,8 +53,8 @@ def _item(**changes):
 
 
 def test_make_item_has_every_key_in_order_and_floats():
-    item = _item(odometry={"x_d": torch.tensor(0.1), "z_d": 1, "yaw": np.float32(0.0)}, labels="x")
-    assert tuple(item) == (*ITEM_KEYS, "labels")
+    item = _item(odometry={"x_d": torch.tensor(0.1), "z_d": 1, "yaw": np.float32(0.0)}, note="x")
+    assert tuple(item) == (*ITEM_KEYS, "note")
     assert item["odometry"] == {"x_d": pytest.approx(0.1), "z_d": 1.0, "yaw": 0.0}
     assert all(type(v) is float for v in item["odometry"].values())
     assert item["flow"] is None and item["road"] is None and item["relative_pose"] is None
@@ -108,6 +108,15 @@ def test_as_item_fills_the_absent_keys_and_keeps_extras():
     ({"image1": torch.zeros(1, H, W)}, ValueError, r"item\['image1'\]: expected a tensor of shape \(3, H, W\)"),
     ({"relative_pose": torch.eye(4)}, ValueError, r"item\['relative_pose'\]: expected a \(4, 4\) float64"),
     ({"camera": Camera(torch.eye(3).expand(2, 3, 3), 1.5)}, TypeError, r"item\['camera'\]: expected a Camera of batch 1"),
+    # the extras of the contract, where present (each passed before)
+    ({"flow_velocity": torch.zeros(2, H, W)}, ValueError, r"item\['valid'\]: None beside a ground-truth flow_velocity"),
+    ({"labels": torch.zeros(7, 7, dtype=torch.int64)}, ValueError,
+     r"item\['labels'\]: expected shape \(6, 10\), got \(7, 7\)"),
+    ({"labels": torch.zeros(H, W)}, TypeError, r"item\['labels'\]: expected a torch.int64 tensor, got torch.float32"),
+    ({"depth": torch.zeros(2, 9, 9)}, ValueError, r"item\['depth'\]: expected shape \(1, 6, 10\), got \(2, 9, 9\)"),
+    ({"depth": torch.zeros(1, H, W, dtype=torch.int32)}, TypeError, r"item\['depth'\]: expected a float tensor"),
+    ({"pose1": "not a pose"}, TypeError, r"item\['pose1'\]: expected a tensor of shape \(4, 4\), got str"),
+    ({"pose2": torch.eye(4)}, TypeError, r"item\['pose2'\]: expected a torch.float64 tensor, got torch.float32"),
 ])
 def test_check_item_names_the_key(change, error, match):
     item = _item()

@@ -125,6 +125,17 @@ def test_kept_frame_gives_the_same_pixels_and_shares_no_tensor():
     assert not torch.equal(other["image1"], fresh[1]["image1"])
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_pairs_of_one_sequence_do_not_share_a_camera(dtype):
+    """In float64 every pair held the scene's own Camera: editing pair 0's K changed pair 1's."""
+    seq = render_sequence("cvc-simple", 2, size=TINY, dtype=dtype)
+    a, b = seq[0]["camera"], seq[1]["camera"]
+    assert a is not b and a.K.data_ptr() != b.K.data_ptr() and a.dtype == dtype
+    fx = float(b.K[0, 0, 0])
+    a.K[0, 0, 0] = 1.0
+    assert float(b.K[0, 0, 0]) == fx
+
+
 def test_threads_rendering_pairs_in_order_get_the_same_pixels():
     """Threads that render pairs 0, 1, 2 of one scene at the same time (each taking or keeping the
     shared frame) get exactly the pixels of one sequence."""
@@ -169,7 +180,7 @@ def test_scene_config_overrides():
     (dict(index=1.5), TypeError, "index: expected an int, got float 1.5"),
     (dict(size=(0, 10)), ValueError, "size: expected positive sides"),
     (dict(size=(10.5, 10)), TypeError, "size: expected integer sides"),
-    (dict(supersample=0), ValueError, "supersample: expected an integer >= 1"),
+    (dict(supersample=0), ValueError, r"supersample: expected an integer in \[1, 16\]"),
     (dict(x_d=0.1), ValueError, "x_d, z_d, yaw: give all three or none"),
     (dict(steering=2.0), ValueError, "steering: expected"),
     (dict(height=-1.0), ValueError, "height: expected > 0"),
@@ -230,8 +241,8 @@ CROSS_CHECK = [
     ("carla-straight", {}), ("carla-straight", {"roll": 5 * DEG}), ("carla-straight", {"roll": -10 * DEG}),
     ("carla-turning", {}), ("carla-turning", {"roll": -5 * DEG}), ("carla-turning", {"roll": 10 * DEG}),
     ("carla-turning", {"roll": 3 * DEG, "pitch": -2 * DEG, "steering": -0.15}),
-    ("default", {"x_d": 0.05, "z_d": 1.2, "yaw": 0.02}),
-    ("cvc-complex", {"x_d": -0.03, "z_d": -0.7, "yaw": -0.01}),  # reversing
+    ("default", {"x_d": 1.2 * math.tan(0.01), "z_d": 1.2, "yaw": 0.02}),  # the chord of an arc: x_d = z_d tan(yaw / 2)
+    ("cvc-complex", {"x_d": -0.7 * math.tan(-0.005), "z_d": -0.7, "yaw": -0.01}),  # reversing
     ("default", {"speed": 0.0}),
 ]
 

@@ -13,6 +13,7 @@ import torch
 
 from fsof_torch.data.scene import PRESETS, render_pair, scene_config
 from fsof_torch.data.scene.config import MAX_BODY_HZ, MAX_GRADE_START, MIN_TURN_RADIUS, path_curvature
+from fsof_torch.data.scene.objects import BUILDING_BOX, CAR_BODY
 from fsof_torch.data.scene.world import Scene
 from fsof_torch.geometry.camera import pitch_matrix, roll_matrix
 
@@ -66,7 +67,7 @@ def test_a_frame_kept_under_inference_mode_is_not_handed_to_a_call_outside_it():
     (dict(steering=-0.4, lane_width=16.0), "steering, wheelbase, lane_width"),   # was a ZeroDivisionError
     (dict(steering=-0.3, lane_width=20.0), "steering, wheelbase, lane_width"),   # the road bent the other way
     (dict(steering=0.3, lane_width=20.0), "steering, wheelbase, lane_width"),    # the lane across the centre
-    (dict(x_d=0.0, z_d=2.0, yaw=0.5), "x_d, z_d, yaw, lane_width"),
+    (dict(x_d=2.0 * math.tan(0.25), z_d=2.0, yaw=0.5), "x_d, z_d, yaw, lane_width"),
 ])
 def test_a_turn_that_leaves_the_lane_is_refused(overrides, names):
     with pytest.raises(ValueError, match=f"^{names}: expected a turn that keeps the ego vehicle in its lane"):
@@ -250,3 +251,127 @@ def test_the_travel_bound_counts_speed_factor_once():
 def test_render_pair_refuses_what_is_not_a_scene_field(overrides):
     with pytest.raises(TypeError, match=re.escape(f"render_pair: unknown overrides {sorted(overrides)}; expected")):
         render_pair("default", 0, size=TINY, **overrides)
+
+
+# -- a turning road is a full circle: the objects do not jump at half a lap ------------------------
+@pytest.mark.parametrize("preset, overrides", [("default", dict(steering=0.1)), ("carla-turning", {}),
+                                               ("default", dict(steering=-0.1, speed=-8.0))])
+def test_the_objects_stay_the_same_across_the_half_lap(preset, overrides):
+    """The ego arc length came from an angle that jumps from +πR to -πR after half a lap: the pair
+    across the jump got another set of objects at t+1 (the default preset's pair 353)."""
+    scene = Scene(scene_config(preset, **overrides), 0, torch.float64)
+    lap = 2 * math.pi / abs(scene.road.kappa)
+    frames = math.ceil(0.75 * lap / abs(scene.motion.speed * scene.motion.dt))  # past the half lap
+    for k in range(frames):
+        before, after = {id(o) for o in scene.objects(k)}, {id(o) for o in scene.objects(k + 1)}
+        assert len(before & after) >= 0.8 * len(before), k  # a few leave or enter at the window's ends
+
+
+def test_frames_before_the_half_lap_see_the_objects_they_saw():
+    scene = Scene(scene_config("default"), 0, torch.float64)
+    for k in (0, 40, 352):
+        x, z, _ = scene.ego_pose(k)
+        plain = scene.road.R * math.atan2(z, -scene.road.sigma * (x - scene.road.cx))
+        assert scene.road.s_of(x, z, near=scene.ego_pose(k)[2] / scene.road.kappa) == plain
+
+
+# -- buildings stay behind the kerb on every accepted bend ---------------------------------------
+def _building_footprints(scene: Scene, blocks: range):
+    """(object, its lateral e, the lateral e of its footprint's four corners) of every building block."""
+    lateral = lambda x, z: float(scene.road.lateral(torch.tensor(x, dtype=torch.float64),  # noqa: E731
+                                                    torch.tensor(z, dtype=torch.float64)))
+    for b in blocks:
+        for o in scene.blocks(b):
+            if o.kind != BUILDING_BOX:
+                continue
+            (x, _, z), psi = scene.object_pose(o, 0)
+            c, s = math.cos(psi), math.sin(psi)
+            corners = [lateral(x + a * c + d * s, z - a * s + d * c)
+                       for a in (-o.half[0], o.half[0]) for d in (-o.half[2], o.half[2])]
+            yield o, lateral(x, z), corners
+
+
+@pytest.mark.parametrize("preset, overrides", [
+    ("carla-turning", {}), ("default", dict(steering=0.25)), ("default", dict(steering=-0.3)),
+    ("default", dict(steering=math.atan(2.7 / MIN_TURN_RADIUS) - 1e-6, pavement_width=10.0)),
+    ("default", dict(steering=0.2, pavement_width=0.0, parking_width=0.0)),
+])
+def test_buildings_stay_behind_the_kerb_on_a_bend(preset, overrides):
+    """Straight blocks up to 22 m long reached from inside a bend into the road, and a block whose
+    offset exceeded the bend's radius stood mirrored through its centre (in the lane)."""
+    cfg = scene_config(preset, **overrides)
+    scene = Scene(cfg, 0, torch.float64)
+    kerb = cfg.lane_width + cfg.parking_width
+    found = 0
+    for o, e, corners in _building_footprints(scene, range(-2, 4)):
+        found += 1
+        assert e == pytest.approx(o.e, abs=1e-9)  # where it was placed: not through the bend's centre
+        assert all(abs(c) >= kerb + cfg.pavement_width - 1e-9 for c in corners[::2] + corners[1::2]
+                   if math.copysign(1.0, c) != math.copysign(1.0, scene.road.kappa * o.e)), corners
+        assert all(math.copysign(1.0, c) == math.copysign(1.0, o.e) and abs(c) >= kerb - 1e-9 for c in corners)
+    assert found > 5
+
+
+def test_every_accepted_bend_renders_the_road_ahead_clear():
+    for steering in (0.25, 0.3, math.atan(2.7 / MIN_TURN_RADIUS) - 1e-6):
+        pair = render_pair("default", 0, size=(24, 80), steering=steering, parked_cars=0.0, moving_cars=0.0)
+        assert float((pair["labels"][12:] == 5).double().mean()) < 0.15  # once 57 % building at 0.25
+
+
+# -- explicit odometry is an arc the vehicle can drive -------------------------------------------
+@pytest.mark.parametrize("odometry, message", [
+    (dict(x_d=1.0, z_d=1.0, yaw=0.0),
+     re.escape("expected the chord of a circular arc, x_d = z_d tan(yaw / 2) = 0.0 m")),
+    (dict(x_d=0.05, z_d=1.2, yaw=0.02), "expected the chord of a circular arc"),  # a 1.8° crab
+    (dict(x_d=0.5, z_d=0.0, yaw=0.0), "expected the chord of a circular arc"),  # sideways
+    (dict(x_d=-0.013997265434895748, z_d=1.1990016053038177, yaw=-0.0006870412325024073),
+     "expected the chord of a circular arc"),  # the KITTI clip's pair 0: crossed the centre line by frame 130
+    (dict(x_d=0.0, z_d=0.0, yaw=0.05), "expected a turn along an arc of at least 1 mm .no turn on the spot., "
+                                       "got an arc of 0.0 m"),
+    (dict(x_d=0.0, z_d=0.0005, yaw=0.05), "expected a turn along an arc of at least 1 mm"),
+])
+def test_odometry_that_is_no_arc_is_refused(odometry, message):
+    """A sideways part of (x_d, z_d) made the vehicle drift across the road; a turn on the spot kept a
+    straight road and gave a flow_velocity of 0 beside a flow of 11 px."""
+    with pytest.raises(ValueError, match="^x_d, z_d, yaw: " + message):
+        scene_config("cvc-simple", **odometry)
+
+
+@pytest.mark.parametrize("preset, index", [("carla-turning", 0), ("default", 3), ("cvc-simple", 0)])
+def test_a_pairs_own_odometry_renders_the_same_motion(preset, index):
+    """Ackermann odometry (forwards and reversing) is an arc: accepted, and the vehicle keeps its lane."""
+    for sign in (1.0, -1.0):
+        odo = render_pair(preset, index, size=TINY, speed=sign * 6.0)["odometry"]
+        cfg = scene_config(preset, **odo)
+        scene = Scene(cfg, 0, torch.float64)
+        for k in (0, 50, 200):
+            x, z, _ = scene.ego_pose(k)
+            e = float(scene.road.lateral(torch.tensor(x, dtype=torch.float64), torch.tensor(z, dtype=torch.float64)))
+            assert e == pytest.approx(cfg.lane_width / 2, abs=1e-6)
+    scene_config(preset, x_d=0.0, z_d=0.0, yaw=0.0)  # standing still
+
+
+# -- cars in the ego lane are faster than the ego vehicle -----------------------------------------
+@pytest.mark.parametrize("speed_factor", [1.0, 0.5, 0.0])
+def test_no_slower_car_in_the_ego_lane_with_explicit_odometry(speed_factor):
+    """Explicit odometry keeps the ego speed at any speed_factor: with speed_factor < 1 / 1.3 the cars
+    ahead in its lane were slower, and the ego vehicle drove through them."""
+    cfg = scene_config("cvc-simple", x_d=0.0, z_d=1.2, yaw=0.0, speed_factor=speed_factor, moving_cars=3.0)
+    scene = Scene(cfg, 0, torch.float64)
+    cars = [o for b in range(-1, 12) for o in scene.blocks(b) if o.kind == CAR_BODY]
+    ahead = [o for o in cars if o.e > 0]
+    assert all(o.vs >= scene.motion.speed for o in ahead)
+    assert (len(ahead) > 3) == (speed_factor == 1.0) and len(cars) > 10
+    for k in range(0, 300, 3):  # the camera never over a car's footprint
+        cx, _, cz = scene.pose(k).c
+        for o in scene.objects(k):
+            if o.kind == CAR_BODY:
+                (x, _, z), _ = scene.object_pose(o, k)
+                assert abs(x - cx) > o.half[0] or abs(z - cz) > o.half[2], k
+
+
+def test_the_presets_lane_cars_are_kept():
+    for name in PRESETS:
+        cfg = scene_config(name, moving_cars=3.0)
+        scene = Scene(cfg, 0, torch.float64)
+        assert any(o.vs > 0 and o.e > 0 for b in range(1, 8) for o in scene.blocks(b)), name

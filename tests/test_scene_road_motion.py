@@ -126,7 +126,7 @@ def test_zero_amplitudes_reduce_to_today():
     (dict(grade_before=0.5), ValueError, "grade_before: expected a grade within"),
     (dict(grade_length=0.0), ValueError, "grade_length: expected > 0"),
     (dict(grade_before=0.02, steering=0.1), ValueError, "a grade needs a straight road"),
-    (dict(grade_after=0.02, x_d=0.0, z_d=1.0, yaw=0.01), ValueError, "a grade needs a straight road"),
+    (dict(grade_after=0.02, x_d=math.tan(0.005), z_d=1.0, yaw=0.01), ValueError, "a grade needs a straight road"),
 ])
 def test_errors(overrides, error, match):
     with pytest.raises(error, match=match):
@@ -138,7 +138,7 @@ def test_errors(overrides, error, match):
 @pytest.mark.parametrize("index, seed, overrides", [
     (0, 0, {}), (7, 1, {}), (3, 2, {"speed_factor": 2.0}),
     (5, 3, {"body_pitch": 3 * DEG, "body_roll": 2 * DEG, "body_height": 0.05, "body_pitch_hz": 1.3}),
-    (2, 4, {"x_d": 0.1, "z_d": 1.5, "yaw": -0.03}),
+    (2, 4, {"x_d": 1.5 * math.tan(-0.015), "z_d": 1.5, "yaw": -0.03}),
 ])
 def test_body_motion_road_flow_is_the_plane_homography(index, seed, overrides):
     pair = render_pair("body-motion", index, seed=seed, size=SMALL, dtype=torch.float64, **overrides)

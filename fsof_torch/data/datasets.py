@@ -36,14 +36,14 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import as_path, check_bool, check_int, check_number, check_size
+from .._check import as_path, check_bool, check_int, check_size
 from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import read_image
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
-from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, check_index
+from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, check_index, check_mounting
 from .items import ITEM_KEYS, as_item, check_item, check_item_options, collate, concat_cameras, make_item
 
 __all__ = [
@@ -199,8 +199,9 @@ class KittiFlowDataset(Dataset):
         dtype: float dtype of images and flow; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road.
 
-    The arguments are checked here (``cam`` 0..3, ``camera_height`` a positive number, ``image_dir``
-    a folder name, ``K``), not at the first item; errors name the argument.
+    The arguments are checked here (``cam`` 0..3, ``camera_height`` a positive number within the
+    camera's bounds, :func:`~fsof_torch.data.folders.check_mounting`; ``image_dir`` a folder name,
+    ``K``), not at the first item; errors name the argument.
     """
 
     def __init__(self, root: str | os.PathLike, *, flow: str = "noc", image_dir: str = "image_2", cam: int = 2,
@@ -210,7 +211,7 @@ class KittiFlowDataset(Dataset):
             raise ValueError(f"flow: expected 'noc' or 'occ', got {flow!r}")
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         cam = check_camera_index(cam)
-        camera_height = check_number(camera_height, "camera_height", positive=True)
+        camera_height = check_mounting(camera_height, 0.0, 0.0, camera_dtype)[0]
         image_dir = str(as_path(image_dir, "image_dir"))
         self.root = _folder(root)
         images = self.root / image_dir
@@ -346,19 +347,23 @@ class CarlaRunDataset(Dataset):
     semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run name
     (``r`` in degrees). Pairs are named after frame k. Every file of a pair (frame k + 1, flow,
     semantic PNG) must have the size of frame k: one of another size is a ValueError naming ``run``
-    and the file. ``camera_height`` (metres, default 2.4) must be a positive number (checked here,
-    not at the first item).
+    and the file. ``camera_height`` (metres, default 2.4) must be a positive number within the
+    camera's bounds (checked here, not at the first item). The run's name is that of the folder itself (``.`` or ``run/rgb/..``
+    is made absolute first); a run of fewer than two frames is a ValueError naming ``run``.
     """
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True):
         self.camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
-        self.camera_height = check_number(camera_height, "camera_height", positive=True)
-        self.run = CarlaRun(as_path(run, "run"))
+        self.camera_height = check_mounting(camera_height, 0.0, 0.0, self.camera_dtype)[0]
+        # absolute, '..' collapsed, symbolic links kept: the roll comes from the folder's own name
+        self.run = CarlaRun(Path(os.path.abspath(as_path(run, "run"))))
+        if len(self.run) < 2:
+            raise ValueError(f"run: {str(self.run.root)!r} holds no pairs ({len(self.run)} frame in rgb/)")
         self.dtype, self.ground_truth = dtype, ground_truth
 
     def __len__(self) -> int:
-        return max(len(self.run) - 1, 0)
+        return len(self.run) - 1
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         i = check_index(index, len(self))

@@ -46,7 +46,7 @@ from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
 
 __all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
-           "check_index", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
+           "check_index", "check_mounting", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
 FLOW_SUFFIXES = (".png", ".flo", ".npy")
@@ -58,12 +58,28 @@ _MASK_ERRORS = (ValueError, TypeError, KeyError, IndexError, ZeroDivisionError, 
 
 
 def check_index(index: int, length: int) -> int:
-    """A dataset index (negative counts from the end) -> its position, or IndexError / TypeError."""
-    if not isinstance(index, numbers.Integral):
-        raise TypeError(f"index: expected an int, got {type(index).__name__}")
+    """A dataset index (negative counts from the end) -> its position, or IndexError / TypeError (a
+    bool is no index)."""
+    if isinstance(index, bool) or not isinstance(index, numbers.Integral):
+        raise TypeError(f"index: expected an int, got {type(index).__name__} {index!r:.60}")
     if not -length <= index < length:
         raise IndexError(f"index: {index} out of range for a dataset of {length} pairs")
     return int(index) % length
+
+
+def check_mounting(camera_height: object, roll: object, pitch: object,
+                   dtype: torch.dtype = torch.float64) -> tuple[float, float, float]:
+    """``camera_height`` (m), ``roll`` and ``pitch`` (rad) as a :class:`Camera` of ``dtype`` takes
+    them (height within its bounds, |angle| < π/2), as floats; errors name the argument (checked
+    before any calibration is read, so that they never blame ``calib``)."""
+    camera_height = check_number(camera_height, "camera_height", positive=True)
+    roll, pitch = check_number(roll, "roll"), check_number(pitch, "pitch")
+    try:
+        Camera(torch.eye(3, dtype=torch.float64), camera_height, roll, pitch).to(dtype)  # (dtype's bounds)
+    except ValueError as err:
+        message = str(err)
+        raise ValueError("camera_" + message if message.startswith("height:") else message) from None
+    return camera_height, roll, pitch
 
 
 def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
@@ -268,7 +284,8 @@ class ImageFolderDataset(Dataset):
 
     Errors name the argument (``images``, ``calib``, ``cam``, ``poses``, ``road``, ``gt``) and the
     file: a ``FileNotFoundError`` for a missing file or folder, a ``ValueError`` for one that does
-    not fit.
+    not fit. ``camera_height``, ``roll`` and ``pitch`` are checked first, as the camera takes them
+    (:func:`check_mounting`; with ``calib=None`` too), with errors naming them.
     """
 
     def __init__(self, images: str | os.PathLike | Sequence[str | os.PathLike],
@@ -291,8 +308,7 @@ class ImageFolderDataset(Dataset):
         names = [n for n, _, _ in pairs]
         stems = {n: [self.frames[i].stem] for n, i, _ in pairs}
         self.dtype, self.ground_truth = dtype, ground_truth
-        camera_height = check_number(camera_height, "camera_height", positive=True)
-        roll, pitch = check_number(roll, "roll"), check_number(pitch, "pitch")
+        camera_height, roll, pitch = check_mounting(camera_height, roll, pitch, camera_dtype)
         self.calib = Path(calib) if calib is not None else None
         self.camera: Camera | None = None
         self.calib_size = check_size(calib_size, "calib_size") if calib_size is not None else None

@@ -129,7 +129,9 @@ def as_item(sample: Mapping[str, Any], **changes: Any) -> dict[str, Any]:
     return make_item(*images, index=index, name=name, **core, **d)
 
 
-def _check_tensor(item: Mapping[str, Any], key: str, shape: tuple, *, boolean: bool = False) -> None:
+def _check_tensor(item: Mapping[str, Any], key: str, shape: tuple, *, boolean: bool = False,
+                  dtype: torch.dtype | None = None) -> None:
+    """``item[key]`` a tensor of ``shape``: bool where ``boolean``, of ``dtype`` where given, else float."""
     x = item[key]
     if not isinstance(x, Tensor):
         raise TypeError(f"item[{key!r}]: expected a tensor of shape {shape}, got {type(x).__name__}")
@@ -137,14 +139,18 @@ def _check_tensor(item: Mapping[str, Any], key: str, shape: tuple, *, boolean: b
         raise ValueError(f"item[{key!r}]: expected shape {shape}, got {tuple(x.shape)}")
     if boolean and x.dtype != torch.bool:
         raise TypeError(f"item[{key!r}]: expected a bool tensor, got {x.dtype}")
-    if not boolean and not x.is_floating_point():
+    if dtype is not None and x.dtype != dtype:
+        raise TypeError(f"item[{key!r}]: expected a {dtype} tensor, got {x.dtype}")
+    if not boolean and dtype is None and not x.is_floating_point():
         raise TypeError(f"item[{key!r}]: expected a float tensor, got {x.dtype}")
 
 
 def check_item(item: Mapping[str, Any]) -> None:
     """Check ``item`` against the contract: every key of :data:`ITEM_KEYS` present, tensors of
-    the documented shapes and dtypes at the images' size, ``camera`` of batch 1, ``odometry``
-    finite floats; a ValueError or TypeError names the key and quotes what came."""
+    the documented shapes and dtypes at the images' size (the extras ``flow_velocity``,
+    ``moving``, ``labels``, ``depth``, ``pose1``, ``pose2`` too, where present), ``valid`` beside
+    ground truth (``flow`` or ``flow_velocity``), ``camera`` of batch 1, ``odometry`` finite
+    floats; a ValueError or TypeError names the key and quotes what came."""
     if not isinstance(item, Mapping):
         raise TypeError(f"item: expected a dict, got {type(item).__name__}")
     missing = [k for k in ITEM_KEYS if k not in item]
@@ -161,8 +167,13 @@ def check_item(item: Mapping[str, Any]) -> None:
                                    ("flow_velocity", 2, False), ("moving", 1, True)):
         if item.get(key) is not None:
             _check_tensor(item, key, (channels, H, W), boolean=boolean)
-    if item["flow"] is not None and item["valid"] is None:
-        raise ValueError("item['valid']: None beside a ground-truth flow; expected (1, H, W) bool")
+    for key, shape, dtype in (("labels", (H, W), torch.int64), ("depth", (1, H, W), None),
+                              ("pose1", (4, 4), torch.float64), ("pose2", (4, 4), torch.float64)):
+        if item.get(key) is not None:
+            _check_tensor(item, key, shape, dtype=dtype)
+    for key in ("flow", "flow_velocity"):
+        if item.get(key) is not None and item["valid"] is None:
+            raise ValueError(f"item['valid']: None beside a ground-truth {key}; expected (1, H, W) bool")
     camera = item["camera"]
     if camera is not None and not (isinstance(camera, Camera) and camera.batch_size == 1):
         raise TypeError(f"item['camera']: expected a Camera of batch 1 or None, got {camera!r}")

@@ -11,12 +11,15 @@ import numbers
 from dataclasses import dataclass, fields, replace
 from typing import Any
 
+import torch
+
 from ..._check import check_bool, check_int, check_size
+from ...geometry.camera import Camera
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
            "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "MIN_TURN_RADIUS", "MAX_BODY_HZ",
-           "MAX_GRADE_START", "MAX_CARS", "MAX_CONTRAST", "check_seed", "check_overrides", "arc_length",
-           "path_curvature", "traffic_speed"]
+           "MAX_GRADE_START", "MAX_CARS", "MAX_CONTRAST", "MAX_CRAB", "MAX_SUPERSAMPLE", "check_seed",
+           "check_overrides", "arc_length", "path_curvature", "traffic_speed", "ego_speed"]
 
 #: Semantic label ids of ``labels``.
 LABELS: dict[str, int] = {"sky": 0, "road": 1, "marking": 2, "kerb": 3, "pavement": 4,
@@ -54,6 +57,19 @@ MAX_CONTRAST = 1e4
 #: The tightest turn a scene drives (m): the ego path's radius 1 / |κ| (:func:`path_curvature`) is at
 #: least this, so the road (concentric with the path, the ego vehicle in its right lane) stays drivable.
 MIN_TURN_RADIUS = 8.0
+
+#: The most the chord (x_d, z_d) of explicit odometry may point off the circular arc's chord (rad):
+#: |atan(x_d / z_d) − yaw / 2| (:func:`arc_length`). The ego vehicle drives a circular arc (Ackermann
+#: motion without side slip), on which the chord points at half the turn; any other direction is a
+#: sideways drift that takes the vehicle off its lane by that angle times the distance driven (the
+#: planar odometry of the shared KITTI clip's first pair, 0.65° off its arc, crosses the centre line in
+#: about 130 frames). 1e-6 rad admits the rounding of float32 odometry and drifts less than 1 m in 1000 km.
+MAX_CRAB = 1e-6
+
+#: The most rays per pixel side (``supersample``): ss² rays resolve an edge pixel's coverage in steps
+#: of 1 / ss², 1 / 256 at 16, finer than one grey level of 0..255 between any two surfaces; beyond it
+#: the cost grows as ss² (every pixel with ``adaptive=False``) and no 8-bit image changes.
+MAX_SUPERSAMPLE = 16
 
 #: The highest body-oscillation frequency (Hz): far above every mode of a car body (heave and pitch
 #: about 1-2 Hz, wheel hop 10-15 Hz); beyond some 1e307 Hz the phase 2π f τ would overflow to NaN.
@@ -97,6 +113,14 @@ def traffic_speed(cfg: SceneConfig) -> float:
     return max(abs(v), 5.0) * cfg.speed_factor
 
 
+def ego_speed(cfg: SceneConfig) -> float:
+    """The ego vehicle's signed speed (m/s, < 0 reversing): speed · speed_factor, or with explicit
+    odometry the arc / dt (which ``speed_factor`` leaves as given)."""
+    if cfg.x_d is not None:
+        return arc_length(float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)) / cfg.dt
+    return float(cfg.speed) * cfg.speed_factor
+
+
 def arc_length(x_d: float, z_d: float, yaw: float) -> float:
     """The signed length (m) of the circular arc with chord (x_d, z_d) (m) turning by ``yaw`` (rad,
     |yaw| < π): negative when z_d < 0 (backwards)."""
@@ -107,12 +131,12 @@ def arc_length(x_d: float, z_d: float, yaw: float) -> float:
 
 def path_curvature(cfg: SceneConfig) -> float:
     """The curvature κ (1/m, > 0 turning right) of the ego vehicle's path: tan(steering) / wheelbase, or
-    with explicit odometry yaw / arc (0 when the arc is under 1 mm: a turn on the spot keeps a straight
-    road). The road is concentric with this path (:class:`.road.Road`)."""
+    with explicit odometry yaw / arc (0 without a turn; :func:`scene_config` refuses a turn along an
+    arc under 1 mm, a turn on the spot). The road is concentric with this path (:class:`.road.Road`)."""
     if cfg.x_d is not None:
         # the arc as the Motion holds it: speed = arc / dt, times dt
         arc = arc_length(float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)) / cfg.dt * float(cfg.dt)
-        return float(cfg.yaw) / arc if abs(arc) > 1e-3 else 0.0
+        return float(cfg.yaw) / arc if cfg.yaw != 0.0 and arc != 0.0 else 0.0
     return math.tan(float(cfg.steering)) / float(cfg.wheelbase)
 
 
@@ -128,18 +152,26 @@ class SceneConfig:
     ``wheelbase`` (m), ``dt`` (s between frames), ``speed_factor`` (multiplies the speed of the
     ego vehicle and of the moving cars: the paper's CVC ×1 / ×4; with explicit odometry, the moving
     cars' only: the odometry is the ego motion as given). Or explicit odometry per pair:
-    ``x_d``, ``z_d`` (m) and ``yaw`` (rad), all three given (then speed and steering are derived
-    from the circular arc through the motion: speed = signed arc length / dt, steering =
-    atan(l · yaw / arc length); exact for Ackermann motion, an approximation otherwise). The road is
-    concentric with the ego path (:func:`path_curvature`), whose radius l / |tan(steering)| (or
-    arc / |yaw|) must be at least :data:`MIN_TURN_RADIUS` = 8 m and more than lane_width / 2, so that
-    the vehicle stays in the centre of its lane (|steering| up to atan(l / 8 m), about 0.325 rad at
-    l = 2.7 m).
+    ``x_d``, ``z_d`` (m) and ``yaw`` (rad), all three given: the chord of a circular arc (Ackermann
+    motion), x_d = z_d tan(yaw / 2) within :data:`MAX_CRAB` = 1e-6 rad of direction, and an arc of
+    at least 1 mm where yaw ≠ 0 (no turn on the spot); speed and steering are derived from the arc:
+    speed = signed arc length / dt, steering = atan(l · yaw / arc length). A same-direction car in
+    the ego lane drives at 1.3 times the traffic speed (:func:`traffic_speed`); where that is slower
+    than the ego vehicle (explicit odometry with speed_factor < 1 / 1.3) the ego lane has none.
+    The road is concentric with the ego path (:func:`path_curvature`), whose radius
+    l / |tan(steering)| (or arc / |yaw|) must be at least :data:`MIN_TURN_RADIUS` = 8 m and more than
+    lane_width / 2, so that the vehicle stays in the centre of its lane (|steering| up to
+    atan(l / 8 m), about 0.325 rad at l = 2.7 m).
 
     Camera: ``height`` (m), ``roll``, ``pitch`` (rad), ``K`` (3×3 at ``base_size``), ``size``
-    (rendered (H, W); K is scaled to it). Anti-aliasing: ``supersample`` (ss × ss rays per pixel)
-    at geometric edges only when ``adaptive`` (textures and markings are band-limited
-    analytically, so pixel centres suffice elsewhere), or at every pixel with ``adaptive=False``.
+    (rendered (H, W); K is scaled to it); K, height, roll and pitch make a valid
+    :class:`~fsof_torch.geometry.camera.Camera` (float64) at both sizes. Anti-aliasing:
+    ``supersample`` (ss × ss rays per pixel, 1 <= ss <= :data:`MAX_SUPERSAMPLE` = 16) at geometric
+    edges only when ``adaptive`` (textures and markings are band-limited analytically, so pixel
+    centres suffice elsewhere), or at every pixel with ``adaptive=False``.
+
+    Numbers may be any real numbers (not bools): a NumPy scalar is held as a Python float
+    (``supersample`` as an int).
 
     Scene: ``lane_width``, ``parking_width`` (a parking strip on each side, 0 for none),
     ``pavement_width``, ``kerb_height`` (m; the kerb top stays below the camera: kerb_height <
@@ -276,7 +308,7 @@ def scene_config(preset: str | SceneConfig = "default", **overrides: Any) -> Sce
     check_overrides(overrides)
     cfg = replace(cfg, **overrides)
     # K as nested float tuples: a tensor or an array would not compare in the frame cache's key
-    cfg = replace(cfg, K=_as_K(cfg.K))
+    cfg = replace(cfg, K=_as_K(cfg.K), **_python_numbers(cfg))
     _validate(cfg)
     if cfg.asphalt is not None:
         # a tuple, not the caller's list: a list changed after the call would change the
@@ -299,11 +331,31 @@ def _as_K(K: Any) -> tuple:
     return tuple(tuple(float(v) for v in r) for r in rows)
 
 
+def _is_real(value: object) -> bool:
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)
+
+
+def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
+    """The fields that hold NumPy (or other) real scalars, as Python floats (``supersample`` an int),
+    and an ``asphalt`` array as a list: what the computations and the frame cache's key expect."""
+    out: dict[str, Any] = {}
+    for f in fields(cfg):
+        value = getattr(cfg, f.name)
+        if f.name == "supersample":
+            if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
+                out[f.name] = int(value)
+        elif _is_real(value) and type(value) not in (int, float):
+            out[f.name] = float(value)
+    if cfg.asphalt is not None and not isinstance(cfg.asphalt, (tuple, list, str)) and hasattr(cfg.asphalt, "tolist"):
+        out["asphalt"] = cfg.asphalt.tolist()
+    return out
+
+
 def _validate(cfg: SceneConfig) -> None:
     def real(name: str) -> float:
         value = getattr(cfg, name)
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
-            raise ValueError(f"{name}: expected a finite number, got {value!r}")
+        if not _is_real(value) or not math.isfinite(value):
+            raise ValueError(f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
         return float(value)
 
     for name in ("speed", "steering", "roll", "pitch", "speed_factor", "texture", "noise", "parked_cars",
@@ -333,22 +385,37 @@ def _validate(cfg: SceneConfig) -> None:
         for n in ("x_d", "z_d", "yaw"):
             real(n)
     _validate_travel(cfg)
+    _validate_arc(cfg)
     _validate_lane(cfg)
     if cfg.asphalt is not None:
         amps = cfg.asphalt
         if (not isinstance(amps, (tuple, list)) or len(amps) != len(ASPHALT_CELLS)
-                or not all(isinstance(a, (int, float)) and not isinstance(a, bool) and 0 <= a <= MAX_CONTRAST
-                           for a in amps)):
+                or not all(_is_real(a) and 0 <= a <= MAX_CONTRAST for a in amps)):
             raise ValueError(f"asphalt: expected {len(ASPHALT_CELLS)} amplitudes in [0, {MAX_CONTRAST:g}] grey "
                              f"levels (one per octave), got {amps!r}")
-    if isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int) or cfg.supersample < 1:
-        raise ValueError(f"supersample: expected an integer >= 1, got {cfg.supersample!r}")
+    if (isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int)
+            or not 1 <= cfg.supersample <= MAX_SUPERSAMPLE):
+        raise ValueError(f"supersample: expected an integer in [1, {MAX_SUPERSAMPLE}], got {cfg.supersample!r}")
     for name in ("adaptive", "buildings"):
         check_bool(getattr(cfg, name), name)  # a truthy string such as "False" would pass as True
     if cfg.size is not None:
         check_size(cfg.size)
     check_size(cfg.base_size, "base_size")
+    _validate_camera(cfg)
     _validate_road_motion(cfg, real)
+
+
+def _validate_camera(cfg: SceneConfig) -> None:
+    """K, height, roll and pitch as the scene builds its camera (:class:`.world.Scene`): a float64
+    :class:`Camera` at ``base_size`` and scaled to ``size``, whose errors name the field."""
+    camera = Camera(torch.tensor(cfg.K, dtype=torch.float64), float(cfg.height), float(cfg.roll), float(cfg.pitch))
+    size = tuple(cfg.size) if cfg.size is not None else tuple(cfg.base_size)
+    if size != tuple(cfg.base_size):
+        try:
+            camera.scaled(size[1] / cfg.base_size[1], size[0] / cfg.base_size[0])
+        except ValueError as err:
+            raise ValueError(f"size, base_size: K scaled from base_size {tuple(cfg.base_size)} to size {size}: "
+                             f"{err}") from None
 
 
 def _validate_travel(cfg: SceneConfig) -> None:
@@ -374,6 +441,26 @@ def _validate_travel(cfg: SceneConfig) -> None:
         raise ValueError(f"{names}: expected the moving cars' base travel max(|v|, 5 m/s) · speed_factor · dt <= "
                          f"{MAX_TRAVEL:g} m per frame (v the ego speed at speed_factor 1), got {traffic!r} m from "
                          f"speed_factor={cfg.speed_factor!r}, dt={cfg.dt!r}")
+
+
+def _validate_arc(cfg: SceneConfig) -> None:
+    """Explicit odometry that the ego vehicle drives as a circular arc (the road follows that arc):
+    a turn along at least 1 mm (a turn on the spot has no path, and no speed for the velocity
+    model), the chord pointing at yaw / 2 within :data:`MAX_CRAB` (forwards or backwards)."""
+    if cfg.x_d is None:
+        return
+    x_d, z_d, yaw = float(cfg.x_d), float(cfg.z_d), float(cfg.yaw)
+    given = f"x_d={cfg.x_d!r}, z_d={cfg.z_d!r}, yaw={cfg.yaw!r}"
+    arc = arc_length(x_d, z_d, yaw)
+    if yaw != 0.0 and not abs(arc) >= 1e-3:
+        raise ValueError(f"x_d, z_d, yaw: expected a turn along an arc of at least 1 mm (no turn on the spot), got "
+                         f"an arc of {arc!r} m from {given}")
+    direction = math.atan2(x_d, z_d) if z_d >= 0 else math.atan2(-x_d, -z_d)
+    if not abs(direction - yaw / 2) <= MAX_CRAB:
+        raise ValueError(f"x_d, z_d, yaw: expected the chord of a circular arc, x_d = z_d tan(yaw / 2) = "
+                         f"{z_d * math.tan(yaw / 2)!r} m (atan(x_d / z_d) = yaw / 2 within {MAX_CRAB:g} rad), got "
+                         f"{direction - yaw / 2!r} rad off from {given}: a sideways drift would take the ego "
+                         f"vehicle off its lane")
 
 
 def _validate_lane(cfg: SceneConfig) -> None:

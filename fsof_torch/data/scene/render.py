@@ -129,8 +129,8 @@ class _Renderer:
 # frame came from here. A call takes the frame out under the lock (no two threads share one) and
 # puts its own last frame back at its end. That frame's tensors were never handed to a caller (a
 # pair's image2 is a copy), and the call that takes it hands them to its caller and keeps none, so
-# no caller's tensor aliases a kept one; each call builds its own Scene (its camera is handed out
-# uncopied). Holds one frame (about 39 MB at 375x1242) until a call on another scene replaces it.
+# no caller's tensor aliases a kept one; each call builds its own Scene, and each pair gets its own
+# copy of the camera. Holds one frame (about 39 MB at 375x1242) until a call on another scene replaces it.
 _KEPT: dict[str, Any] = {}
 _KEPT_LOCK = threading.Lock()
 

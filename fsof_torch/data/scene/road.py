@@ -17,7 +17,7 @@ class Road:
 
     def __init__(self, cfg: SceneConfig) -> None:
         self.e0 = cfg.lane_width / 2  # the ego vehicle drives in the centre of the right lane
-        # the ego path's curvature; explicit odometry without translation gets a straight road.
+        # the ego path's curvature (0 standing still: scene_config refuses a turn on the spot).
         # scene_config keeps the path's radius >= MIN_TURN_RADIUS and > e0, so the road below bends
         # the way the vehicle turns and the vehicle stays in the centre of its lane
         kappa_v = path_curvature(cfg)
@@ -52,10 +52,14 @@ class Road:
         r = self.R - self.sigma * e
         return self.cx - self.sigma * r * math.cos(a), r * math.sin(a), self.kappa * s
 
-    def s_of(self, x: float, z: float) -> float:
+    def s_of(self, x: float, z: float, near: float = 0.0) -> float:
+        """The arc length s of the world point (x, z): on a bend (a full circle) the s of the lap
+        nearest ``near`` (m), unwrapped past the half lap where the angle jumps from π to -π."""
         if self.kappa == 0.0:
             return z
-        return self.R * math.atan2(z, -self.sigma * (x - self.cx))
+        s = self.R * math.atan2(z, -self.sigma * (x - self.cx))
+        lap = 2 * math.pi * self.R
+        return s + lap * round((near - s) / lap)
 
     def boundary_hit(self, e_b: Tensor, ox: float, oz: float, dx: Tensor, dz: Tensor,
                      t_lo: Tensor, t_hi: Tensor) -> Tensor:

@@ -99,8 +99,10 @@ class Scene:
     def objects(self, k: int) -> list[SceneObject]:
         """The objects near the ego vehicle at frame k: arc length from 30 m behind to 220 m ahead
         (less on tight circles, so that one lap never overlaps the next)."""
-        cx, cz, _ = self.ego_pose(k)
-        s_ego = self.road.s_of(cx, cz)
+        cx, cz, psi = self.ego_pose(k)
+        # the ego vehicle heads along the road: at s = ψ / κ, counted on from lap to lap (the
+        # angle about the bend's centre wraps at half a lap; the objects of s beyond it must not)
+        s_ego = self.road.s_of(cx, cz, near=psi / self.road.kappa if self.road.kappa != 0.0 else 0.0)
         back, far = 30.0, 220.0
         if self.road.kappa != 0.0:
             # on a closed circle keep less than one lap in view, or laps would overlap
@@ -180,4 +182,6 @@ class Scene:
         return rate[:9].reshape(3, 3), rate[9:]
 
     def camera(self) -> Camera:
-        return self.camera64.to(self.dtype)
+        """The calibrated camera in the scene's dtype, a copy of its own per call (a pair's camera
+        is the caller's to change)."""
+        return self.camera64.to(self.dtype, copy=True)
