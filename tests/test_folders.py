@@ -237,6 +237,18 @@ def test_frames_numbered_without_padding_pair_by_number(tmp_path):
     assert [p.stem for p in list_images(tmp_path)] == ["0", "10", "15", "20", "5", "a"]
 
 
+def test_hidden_files_are_no_frames(tmp_path):
+    """macOS's ``._N.png`` beside each frame (or a writer's hidden temporary) was a frame: the
+    names were then not all numbers, and the clip paired 0 -> 10 -> 5."""
+    from fsof_torch.data.folders import list_images
+
+    for n in (0, 5, 10):
+        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), float(n)))
+    (tmp_path / "._5.png").write_bytes(b"\x00\x05")
+    assert [p.name for p in list_images(tmp_path)] == ["0.png", "5.png", "10.png"]
+    assert [p.name for p in ImageFolderDataset(tmp_path).pairs] == ["0", "5"]
+
+
 def test_files_match_by_name_never_by_position(clip):
     root, _ = clip
     (root / "gt" / "000001.flo").rename(root / "gt" / "000007.flo")
@@ -389,6 +401,9 @@ def test_a_malformed_camera_2_row_raises_not_falls_back_to_camera_0(clip, tmp_pa
     assert float(ImageFolderDataset(root / "images", calib).camera.K[0, 0, 0]) == 30.0
     calib.write_text(p0 + "P_rect_02: 40 0 19.5 0 0 40 11.5 0 0 0 1 0\n")
     assert float(ImageFolderDataset(root / "images", calib).camera.K[0, 0, 0]) == 40.0
+    # an unlabelled row beside labelled P rows is not camera 2's: camera 0 (as the reader sees it)
+    calib.write_text(p0 + "1 0 0 0 0 1 0 0 0 0 1 0\n" * 3)
+    assert float(ImageFolderDataset(root / "images", calib).camera.K[0, 0, 0]) == 30.0
 
 
 def test_one_road_png_of_another_size_is_refused(clip, tmp_path):

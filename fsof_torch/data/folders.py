@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import numbers
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
@@ -83,15 +84,16 @@ def check_mounting(camera_height: object, roll: object, pitch: object,
 
 
 def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
-    """The image files of ``folder`` in frame order (at least 2; ``name`` is the argument the
-    errors name): by number where every file's name is a number (``0.png``, ``5.png``,
+    """The image files of ``folder`` in frame order (at least 2; hidden files, named ``.*``, left
+    out; ``name`` is the argument the errors name): by number where every file's name is a number (``0.png``, ``5.png``,
     ``10.png``: frames numbered without zero padding), else by name. Two files of one frame name
     (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
-    images = in_frame_order((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
-                            name)
+    # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
+    images = in_frame_order((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
+                             and not p.name.startswith(".")), name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
@@ -199,10 +201,11 @@ def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | No
 
 
 def _has_camera_row(calib: Path, cam: int) -> bool:
-    """Whether a KITTI calibration file has a row for camera ``cam`` (``P_rect_0N:``, ``PN:``, or
-    an unlabelled row N + 1), well formed or not, as :func:`read_kitti_calibration` looks for it."""
+    """Whether a KITTI calibration file has a row for camera ``cam`` (``P_rect_0N:``, ``PN:``, or,
+    in a file without labelled P rows, an unlabelled row N + 1), well formed or not, as
+    :func:`read_kitti_calibration` looks for it."""
     try:
-        text = calib.read_text()
+        text = calib.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         return True  # the calibration reader reports the file
     keys, unlabelled = set(), 0
@@ -212,7 +215,8 @@ def _has_camera_row(calib: Path, cam: int) -> bool:
             keys.add(key.strip())
         else:
             unlabelled += 1
-    return f"P_rect_0{cam}" in keys or f"P{cam}" in keys or unlabelled > cam
+    labelled = any(re.fullmatch(r"P(_rect_)?[0-9]+", k) for k in keys)
+    return f"P_rect_0{cam}" in keys or f"P{cam}" in keys or (unlabelled > cam and not labelled)
 
 
 def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch: float) -> tuple[Camera, int]:

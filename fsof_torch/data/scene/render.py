@@ -215,7 +215,7 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     at a time renders each frame once (a frame kept under ``torch.inference_mode()`` serves only calls
     under it, and one kept outside only calls outside). No returned tensor is shared with another
     call's. Any grad mode renders the same pixels and ground truth.
-    ``progress=True`` shows a tqdm bar. Other arguments as in :func:`render_pair`.
+    ``progress=True`` shows a tqdm bar (rate-limited where stderr is a log). Other arguments as in :func:`render_pair`.
     """
     _check_dtype(dtype)
     num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
@@ -232,8 +232,8 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     renderer = _Renderer(Scene(cfg, seed, dtype), None if kept is None else {start: kept})
     indices = range(start, start + num_pairs)
     if progress:
-        from tqdm.auto import tqdm
-        indices = tqdm(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
+        from ..._progress import progress_bar
+        indices = progress_bar(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
     pairs = [renderer.pair(k) for k in indices]
     last = start + num_pairs
     _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work
