@@ -180,7 +180,7 @@ def run(args: argparse.Namespace) -> int:
     from eval.pose import MAX_SIGMA, pose_estimation_experiment
 
     from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
-    from fsof_torch._progress import progress_bar
+    from fsof_torch.io.progress import progress_bar
     from .tables import format_table
 
     quick = args.quick

@@ -111,7 +111,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         seed: seeds the poses and the noise.
         chunk: trials fitted per batch (bounds memory).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
-        progress: show a progress bar over σ and the trials (:func:`fsof_torch._progress.progress_bar`).
+        progress: show a progress bar over σ and the trials (:func:`fsof_torch.io.progress.progress_bar`).
         **fit_options: passed to :func:`fsof_torch.estimation.flow_fit.fit_displacement`.
 
     Returns:
@@ -124,7 +124,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
     """
     from fsof_torch import fit_displacement
 
-    from fsof_torch._progress import progress_bar
+    from fsof_torch.io.progress import progress_bar
 
     sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
     if not sig or not all(math.isfinite(s) and 0 <= s <= MAX_SIGMA for s in sig):

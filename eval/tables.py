@@ -274,7 +274,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_text
 
     from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
-    from fsof_torch._progress import progress_bar
+    from fsof_torch.io.progress import progress_bar
 
     bad = _unused_option(args)
     if bad is not None:

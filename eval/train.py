@@ -174,7 +174,7 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
     Returns the net (in eval mode) and a log: the last step's term values (global means) and the
     wall time.
     """
-    from fsof_torch._progress import progress_bar, show_values
+    from fsof_torch.io.progress import progress_bar, show_values
 
     device = torch.device(device)
     net = TinyRAFT(seed=seed, iters=iters).to(device)

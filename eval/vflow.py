@@ -183,7 +183,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
     from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
-    from fsof_torch._progress import progress_bar
+    from fsof_torch.io.progress import progress_bar
 
     if not 2 <= args.bins <= MAX_BINS:
         print(f"error: --bins: expected 2 to {MAX_BINS}, got {args.bins}", file=sys.stderr)

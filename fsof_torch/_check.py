@@ -37,6 +37,8 @@ __all__ = [
     "check_number",
     "check_bool",
     "check_int",
+    "is_number",
+    "option_error",
     "check_names",
     "check_mapping",
     "check_keywords",
@@ -229,6 +231,18 @@ def check_int(x: object, name: str, *, minimum: int | None = None, optional: boo
     if minimum is not None and x < minimum:
         raise ValueError(f"{name}: expected an int >= {minimum}, got {x!r}")
     return int(x)
+
+
+def is_number(x: object, *, integer: bool = False) -> bool:
+    """Whether ``x`` is a Python or NumPy real number (an integer where ``integer``), not a bool."""
+    return not isinstance(x, bool) and isinstance(x, numbers.Integral if integer else numbers.Real)
+
+
+def option_error(value: object, message: str, *, integer: bool = False) -> Exception:
+    """The error to raise, with ``message``, for an option ``value`` that failed its check: a
+    TypeError where it is of the wrong type (not a number, or not an integer where ``integer``; a
+    bool is neither), else a ValueError (a number out of range, or NaN)."""
+    return (ValueError if is_number(value, integer=integer) else TypeError)(message)
 
 
 def check_names(x: object, name: str) -> tuple[str, ...] | None:

@@ -151,7 +151,7 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         needed_by: the options that need the clip, which its errors name (:func:`clip_options`).
         poses_option: the option the poses come from, which the errors about them name.
     """
-    from fsof_torch._progress import progress_bar
+    from fsof_torch.io.progress import progress_bar
 
     check_clip(specs, needed_by=needed_by, poses_option=poses_option)
     masks = PackedMasks()

@@ -144,7 +144,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
     ``camera`` replaces the pairs' own camera (e.g. with a calibrated pitch)."""
     from fsof_torch.io import write_json
 
-    from fsof_torch._progress import progress_bar, show_text
+    from fsof_torch.io.progress import progress_bar, show_text
 
     for source in cfg.sources:
         for variant in cfg.variants:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import collections
 import contextlib
 import dataclasses
+import re
 
 import numpy as np
 import pytest
@@ -397,3 +398,74 @@ def test_inference_results_work_in_place_and_under_autograd():
     assert w.grad.tolist() == [3.0, 3.0, 3.0]
     with torch.inference_mode():
         assert scaled(x)["y"].is_inference()  # (inside inference mode: left as it is)
+
+
+def test_option_error_tells_a_wrong_type_from_a_wrong_value():
+    from fsof_torch._check import is_number, option_error
+
+    assert is_number(np.float32(0.5)) and is_number(np.int64(3), integer=True) and not is_number(True)
+    assert not is_number(2.0, integer=True) and not is_number("1") and not is_number(torch.tensor(1.0))
+    for value, integer, error in ((-1, True, ValueError), (float("nan"), False, ValueError),
+                                  (np.int64(0), True, ValueError), ("1", False, TypeError),
+                                  (True, False, TypeError), (2.5, True, TypeError)):
+        err = option_error(value, "x: expected ...", integer=integer)
+        assert type(err) is error and str(err) == "x: expected ..."
+
+
+def _option_call(function: str, **option):
+    """``function`` called with tiny valid inputs and one option (its checks run before any work)."""
+    import fsof_torch as fs
+    from fsof_torch.estimation.pyramid import pyramid_levels
+    from fsof_torch.estimation.solver import ResidualProblem, solve
+    from fsof_torch.evaluation.warp import normalize_coordinates
+
+    cam = fs.Camera(torch.tensor([[130.0, 0.0, 80.0], [0.0, 130.0, 16.0], [0.0, 0.0, 1.0]], dtype=torch.float64), 1.65)
+    flow, valid = torch.zeros(1, 2, 32, 48), torch.ones(1, 1, 32, 48, dtype=torch.bool)
+    image = torch.full((1, 1, 32, 48), 100.0)
+    calls = {
+        "fit_road": lambda: fs.fit_road(flow, valid, cam, **option),
+        "fit_image": lambda: fs.fit_image(image, image, valid, cam, **option),
+        "detect_road": lambda: fs.detect_road(image, image, cam, **option),
+        "road_seed": lambda: fs.road_seed(cam, (32, 48), **option),
+        "vflow_map": lambda: fs.vflow_map(flow, valid, **option),
+        "fit_vflow_curve": lambda: fs.fit_vflow_curve(flow, valid, **option),
+        "fit_sequence": lambda: fs.fit_sequence([image] * 3, valid, cam, **option),
+        "solve": lambda: solve(ResidualProblem(lambda p: p[:, :, None], torch.ones(1)), torch.zeros(1, 2), **option),
+        "pyramid_levels": lambda: pyramid_levels(32, 48, min_size=4, **option),
+        "normalize_coordinates": lambda: normalize_coordinates(torch.zeros(3), align_corners=True, **option),
+    }
+    return calls[function]()
+
+
+# (function, option, a value of the wrong type, a number out of range): docs/reliability.md's promise
+@pytest.mark.parametrize("function, option, wrong_type, wrong_value", [
+    ("fit_road", "scale", "1", -1.0),
+    ("fit_road", "max_iter", 5.0, 0),
+    ("fit_road", "tol", True, float("nan")),
+    ("fit_road", "min_points", 1.5, 0),
+    ("fit_road", "min_inlier_fraction", "0.5", 1.5),
+    ("fit_image", "max_points", 100.5, 10),
+    ("detect_road", "z", "2", -2.0),
+    ("detect_road", "level", 1.5, -1),
+    ("detect_road", "window", 7.0, 4),
+    ("detect_road", "slow_max_height_m", "1.2", 0.1),
+    ("detect_road", "min_coverage", True, 1.0),
+    ("road_seed", "width_m", "4", float("inf")),
+    ("vflow_map", "bins", 1.5, 1),
+    ("vflow_map", "max_flow", "3", float("inf")),
+    ("fit_vflow_curve", "hypotheses", 2.5, 0),
+    ("fit_vflow_curve", "max_false_alarms", True, 0.0),
+    ("fit_sequence", "passes", True, 3),
+    ("fit_sequence", "attitude_deg", "1", 0.0),
+    ("fit_sequence", "body_rotation_deg", None, -0.3),
+    ("solve", "scale", True, float("nan")),
+    ("solve", "check_every", 2.5, 0),
+    ("pyramid_levels", "levels", 2.5, 0),
+    ("normalize_coordinates", "size", 4.0, 0),
+])
+def test_options_raise_type_error_for_a_wrong_type_and_value_error_for_a_wrong_value(
+        function, option, wrong_type, wrong_value):
+    with pytest.raises(TypeError, match=f"^{option}: expected .*, got {re.escape(repr(wrong_type))}$"):
+        _option_call(function, **{option: wrong_type})
+    with pytest.raises(ValueError, match=f"^{option}: expected .*, got {re.escape(repr(wrong_value))}$"):
+        _option_call(function, **{option: wrong_value})

@@ -256,7 +256,7 @@ def test_train_job_json_naming_another_output_exits_2(tmp_path, capsys, monkeypa
 
 def test_training_bar_in_a_log_is_rate_limited(keep_threads, capsys):
     """With stderr not a terminal (a log, CI), the training bar is drawn when it opens and closes
-    within fsof_torch._progress.LOG_INTERVAL, not at every step with its loss terms."""
+    within fsof_torch.io.progress.LOG_INTERVAL, not at every step with its loss terms."""
     torch.set_num_threads(1)
     data = train.render_pairs("default", 2, seed=0, size=(32, 64))
     train.train_net(data, steps=4, seed=0, batch=1, lr=1e-3, freespace_weight=0.0, iters=1, progress=True)

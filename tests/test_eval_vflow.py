@@ -360,7 +360,7 @@ def test_vflow_rerun_leaves_no_file_of_the_run_before(tmp_path):
 
 def test_vflow_bar_in_a_log_is_rate_limited(tmp_path, capsys):
     """With stderr not a terminal (a log, CI), the bar is drawn when it opens and closes within
-    fsof_torch._progress.LOG_INTERVAL, not at every step."""
+    fsof_torch.io.progress.LOG_INTERVAL, not at every step."""
     assert main(["vflow", "--flow", str(_small_flow(tmp_path)), "--out", str(tmp_path / "o")]) == 0
     err = capsys.readouterr().err
     assert "vflow" in err and err.count("\r") <= 3, err

@@ -175,7 +175,7 @@ def test_numpy_numbers_are_options_like_python_numbers():
         assert torch.equal(numpy.params[name], value), name
     speed = fit_velocity(flow, valid, cam, np.float64(2.7)).extras["wheelbase"]
     assert torch.equal(speed, torch.tensor([2.7], dtype=torch.float64))
-    with pytest.raises(ValueError, match="min_inlier_fraction: expected a number in \\[0, 1\\], got True"):
+    with pytest.raises(TypeError, match="min_inlier_fraction: expected a number in \\[0, 1\\], got True"):
         fit_road(flow, valid, cam, min_inlier_fraction=True)
 
 

@@ -1468,11 +1468,11 @@ def test_options_the_input_does_not_use_are_refused_at_their_default_too(tmp_pat
 
 def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
     """On a terminal the bar is redrawn at every step; in a log (stderr not a terminal) only when
-    it opens and closes within fsof_torch._progress.LOG_INTERVAL, the steps shown at those redraws."""
+    it opens and closes within fsof_torch.io.progress.LOG_INTERVAL, the steps shown at those redraws."""
     import io
     import sys
 
-    from fsof_torch._progress import progress_bar, show_text
+    from fsof_torch.io.progress import progress_bar, show_text
 
     class Stream(io.StringIO):
         def __init__(self, tty):

@@ -268,8 +268,8 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(TypeError, match="^camera: expected a fsof_torch.Camera of batch 1, got str$"):
         fit_sequence(frames[:3], road, "cam")
     # flags and the pass count are checked, not taken for their truth value (True == 1)
-    for bad in (True, 1.0, 2.0):
-        with pytest.raises(ValueError, match=f"^passes: expected 1 or 2, got {bad!r}$"):
+    for bad in (True, 1.0, 2.0):  # (a wrong type: TypeError; 3, a wrong value, above: ValueError)
+        with pytest.raises(TypeError, match=f"^passes: expected 1 or 2, got {bad!r}$"):
             fit_sequence(frames[:3], road, cam, passes=bad)
     for name in ("keep_fits", "progress"):
         with pytest.raises(TypeError, match=f"^{name}: expected True or False, got str 'no'$"):
@@ -362,7 +362,7 @@ def test_fit_sequence_bars_in_a_log_are_rate_limited(body_motion_clip, monkeypat
     import io
     import sys
 
-    import fsof_torch._progress as progress
+    import fsof_torch.io.progress as progress
 
     pairs, frames, _ = body_motion_clip
     bars, original = [], progress.progress_bar

@@ -91,6 +91,13 @@ class TestVFlowMap:
         assert hist.shape == (B, 20, 8)
         assert torch.all(hist.sum(-1) == 31)
 
+    def test_numpy_numbers_are_options_like_python_numbers(self):
+        """A NumPy integer ``bins`` and float bounds were refused ("expected an integer >= 2, got 8")."""
+        flow = torch.randn(2, 2, 20, 31, generator=torch.Generator().manual_seed(0))
+        plain = vflow_map(flow, bins=8, min_flow=-1.0, max_flow=2.5)
+        numpy = vflow_map(flow, bins=np.int64(8), min_flow=np.float32(-1.0), max_flow=np.float64(2.5))
+        assert torch.equal(plain.histogram, numpy.histogram) and torch.equal(plain.edges, numpy.edges)
+
     def test_errors(self):
         flow = torch.zeros(1, 2, 8, 9)
         with pytest.raises(ValueError, match=r"flow: expected shape \(B, 2, H, W\)"):
@@ -241,7 +248,7 @@ class TestFitVFlowCurve:
         numpy = fit_vflow_curve(flow, valid, hypotheses=np.int64(50), iterations=np.int32(10),
                                 inlier_threshold=np.float32(0.5), max_false_alarms=np.float64(1.0))
         assert torch.equal(plain.a, numpy.a) and torch.equal(plain.v0, numpy.v0)
-        with pytest.raises(ValueError, match="inlier_threshold: expected a finite number >= 0, got True"):
+        with pytest.raises(TypeError, match="inlier_threshold: expected a finite number >= 0, got True"):
             fit_vflow_curve(flow, valid, inlier_threshold=True)
 
     def test_float32(self):
@@ -371,8 +378,9 @@ class TestFitVFlowCurve:
             fit_vflow_curve(flow, hypotheses=0)
         with pytest.raises(ValueError, match="inlier_threshold: expected a finite number"):
             fit_vflow_curve(flow, inlier_threshold=float("nan"))
-        for bad in (0, -1.0, float("inf"), True, "1"):
-            with pytest.raises(ValueError, match=rf"^max_false_alarms: expected a finite number > 0, got {bad!r}$"):
+        for bad, error in ((0, ValueError), (-1.0, ValueError), (float("inf"), ValueError), (True, TypeError),
+                           ("1", TypeError)):
+            with pytest.raises(error, match=rf"^max_false_alarms: expected a finite number > 0, got {bad!r}$"):
                 fit_vflow_curve(flow, max_false_alarms=bad)
         with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
             fit_vflow_curve(flow).scale("camera")

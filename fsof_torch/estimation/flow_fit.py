@@ -28,7 +28,8 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
-                      check_has_values, check_mapping, check_names, check_shape, inference, result_dtype)
+                      check_has_values, check_mapping, check_names, check_shape, inference, is_number, option_error,
+                      result_dtype)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
@@ -256,10 +257,9 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
     check_kernel(robust)
 
     def positive(name: str, value: object, integer: bool = False, low: float = 0.0) -> None:
-        ok = isinstance(value, numbers.Integral if integer else numbers.Real) and not isinstance(value, bool)
-        if not ok or not math.isfinite(value) or not value > low:
+        if not is_number(value, integer=integer) or not math.isfinite(value) or not value > low:
             kind = "an int" if integer else "a finite number"
-            raise ValueError(f"{name}: expected {kind} > {low:g}, got {value!r}")
+            raise option_error(value, f"{name}: expected {kind} > {low:g}, got {value!r}", integer=integer)
 
     positive("scale", scale)
     positive("max_iter", max_iter, integer=True)
@@ -268,11 +268,11 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
         positive("max_points", max_points, integer=True, low=15)
     if inlier_threshold is not None:
         positive("inlier_threshold", inlier_threshold)
-    if isinstance(min_points, bool) or not isinstance(min_points, numbers.Integral) or min_points < 1:
-        raise ValueError(f"min_points: expected an int >= 1, got {min_points!r}")
-    if isinstance(min_inlier_fraction, bool) or not (isinstance(min_inlier_fraction, numbers.Real)
-                                                     and 0.0 <= min_inlier_fraction <= 1.0):
-        raise ValueError(f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
+    if not is_number(min_points, integer=True) or min_points < 1:
+        raise option_error(min_points, f"min_points: expected an int >= 1, got {min_points!r}", integer=True)
+    if not (is_number(min_inlier_fraction) and 0.0 <= min_inlier_fraction <= 1.0):
+        raise option_error(min_inlier_fraction,
+                           f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
 
 
 def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor,
@@ -506,9 +506,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         promoted with the flow's.
 
     Raises:
-        ValueError: wrong shapes, NaN/inf flow inside the mask, bad options. A frame whose mask
-        is empty, tiny, on one row, or whose geometry leaves the parameters undetermined gets
-        ``success=False`` (its parameters stay finite).
+        TypeError, ValueError: a wrong type (TypeError); wrong shapes, NaN/inf flow inside the
+        mask, a bad option value. A frame whose mask is empty, tiny, on one row, or whose geometry
+        leaves the parameters undetermined gets ``success=False`` (its parameters stay finite).
 
     Example:
         >>> cam = Camera(torch.tensor([[700., 0, 320], [0, 700, 90], [0, 0, 1]], dtype=torch.float64), 1.65)

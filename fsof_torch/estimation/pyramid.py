@@ -5,12 +5,12 @@ levels, each level's camera and its band of detail. OpenCV filters on the CPU (m
 from __future__ import annotations
 
 import math
-import numbers
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._check import is_number, option_error
 from ..geometry.camera import Camera
 
 __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "band", "gaussian_blur"]
@@ -23,15 +23,15 @@ def pyramid_levels(H: int, W: int, levels: int | None, min_size: int) -> int:
     level can be a pixel or so larger than that, and a side just short of a power of two times
     ``min_size`` gets one level less than the rounded sides would allow (63 px with ``min_size``
     16: 2 levels, 63 and 32 px, though a third of 16 px would still reach it)."""
-    if isinstance(min_size, bool) or not isinstance(min_size, numbers.Integral):
+    if not is_number(min_size, integer=True):
         raise TypeError(f"min_size: expected an int >= 1, got {type(min_size).__name__} {min_size!r}")
     if min_size < 1:
         raise ValueError(f"min_size: expected an int >= 1, got {min_size!r}")
     if levels is None:
         levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
-    if isinstance(levels, bool) or not isinstance(levels, int) or levels < 1:
-        raise ValueError(f"levels: expected None or an int >= 1, got {levels!r}")
-    return levels
+    if not is_number(levels, integer=True) or levels < 1:
+        raise option_error(levels, f"levels: expected None or an int >= 1, got {levels!r}", integer=True)
+    return int(levels)
 
 
 def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> list[Tensor]:

@@ -40,7 +40,7 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords
+from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords, option_error
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit
@@ -240,12 +240,13 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
     if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes not in (1, 2):
-        raise ValueError(f"passes: expected 1 or 2, got {passes!r}")
+        raise option_error(passes, f"passes: expected 1 or 2, got {passes!r}", integer=True)
     passes = int(passes)
     keep_fits, progress = check_bool(keep_fits, "keep_fits"), check_bool(progress, "progress")
     for name, value in (("attitude_deg", attitude_deg), ("body_rotation_deg", body_rotation_deg)):
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value < math.inf):
-            raise ValueError(f"{name}: expected a finite number of degrees > 0 (a standard deviation), got {value!r}")
+            raise option_error(value, f"{name}: expected a finite number of degrees > 0 (a standard deviation), "
+                                      f"got {value!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera of batch 1, got {type(camera).__name__}")
     if camera.batch_size != 1:
@@ -290,7 +291,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
 
     def run(cam: Camera, label: str, track: dict[str, tuple[Tensor, Tensor]] | None = None,
             keep: bool = False) -> tuple[list[_PairRecord], list[RoadFit]]:
-        from .._progress import progress_bar
+        from ..io.progress import progress_bar
 
         records: list[_PairRecord] = []
         fits: list[RoadFit] = []

@@ -43,8 +43,8 @@ from typing import Any, Callable, Protocol, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, check_float_tensor, check_int, check_number, check_shape, result_dtype,
-                      skip_values)
+from .._check import (autocast_off, check_float_tensor, check_int, check_number, check_shape, option_error,
+                      result_dtype, skip_values)
 from .robust import check_kernel, check_scale, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
@@ -288,8 +288,8 @@ def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> l
         return [k for k in out if k < max_iter]
     try:
         out = sorted({int(k) for k in check_every})
-    except (TypeError, ValueError):
-        raise ValueError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}") from None
+    except (TypeError, ValueError):  # (not a sequence, or of values int() refuses: a wrong type)
+        raise TypeError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}") from None
     if out and out[0] < 1:
         raise ValueError(f"check_every: expected iterations >= 1, got {check_every!r}")
     return [k for k in out if k < max_iter]
@@ -367,7 +367,7 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     check_float_tensor(params, "params")
     check_shape(params, "params", ("B", "P"), nonempty=("B", "P"))
     if isinstance(scale, bool) or (isinstance(scale, (int, float)) and not (math.isfinite(scale) and scale > 0)):
-        raise ValueError(f"scale: expected a finite number > 0, got {scale!r}")
+        raise option_error(scale, f"scale: expected a finite number > 0, got {scale!r}")
     # (the problem's linear algebra too: autocast would build the normal equations in 16 bits)
     with autocast_off(params):
         # (a copy: with no accepted step, or max_iter=0, the result is not the caller's tensor)

@@ -22,14 +22,13 @@ rows are indexed by the pixel-centre coordinate v = 0 … H-1; masks (B, 1, H, W
 from __future__ import annotations
 
 import math
-import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_int, check_shape, result_dtype
+from .._check import check_float_tensor, check_has_values, check_int, check_shape, is_number, option_error, result_dtype
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -102,8 +101,9 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
         [0, 1, 2, 3]
     """
     dims, use = check_flow_mask(flow, mask)
-    if isinstance(bins, bool) or not isinstance(bins, int) or bins < 2:
-        raise ValueError(f"bins: expected an integer >= 2, got {bins!r}")
+    if not is_number(bins, integer=True) or bins < 2:
+        raise option_error(bins, f"bins: expected an integer >= 2, got {bins!r}", integer=True)
+    bins = int(bins)  # (a NumPy integer too)
     B, H = dims["B"], dims["H"]
     dtype = result_dtype(flow)
     fv = flow[:, 1].to(dtype)
@@ -134,8 +134,8 @@ def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
                      max_flow: float | None) -> tuple[Tensor, Tensor]:
     """(lo, hi) as 0-d tensors; defaults from the data in the mask."""
     for name, value in (("min_flow", min_flow), ("max_flow", max_flow)):
-        if value is not None and not (isinstance(value, (int, float)) and abs(float(value)) < float("inf")):
-            raise ValueError(f"{name}: expected a finite number or None, got {value!r}")
+        if value is not None and not (is_number(value) and abs(float(value)) < float("inf")):
+            raise option_error(value, f"{name}: expected a finite number or None, got {value!r}")
     zero = fv.new_zeros(())
     if max_flow is None:
         hi = torch.where(use, fv, torch.full_like(fv, -float("inf"))).amax() if fv.numel() else zero
@@ -323,14 +323,13 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
     for name, value, low in (("hypotheses", hypotheses, 1), ("iterations", iterations, 0),
                              ("min_row_pixels", min_row_pixels, 1), ("min_inlier_rows", min_inlier_rows, 3)):
-        if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < low:
-            raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+        if not is_number(value, integer=True) or value < low:
+            raise option_error(value, f"{name}: expected an integer >= {low}, got {value!r}", integer=True)
     for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
-        if isinstance(value, bool) or not (isinstance(value, numbers.Real) and 0 <= float(value) < float("inf")):
-            raise ValueError(f"{name}: expected a finite number >= 0, got {value!r}")
-    if isinstance(max_false_alarms, bool) or not (isinstance(max_false_alarms, numbers.Real)
-                                                  and 0 < float(max_false_alarms) < float("inf")):
-        raise ValueError(f"max_false_alarms: expected a finite number > 0, got {max_false_alarms!r}")
+        if not (is_number(value) and 0 <= float(value) < float("inf")):
+            raise option_error(value, f"{name}: expected a finite number >= 0, got {value!r}")
+    if not (is_number(max_false_alarms) and 0 < float(max_false_alarms) < float("inf")):
+        raise option_error(max_false_alarms, f"max_false_alarms: expected a finite number > 0, got {max_false_alarms!r}")
     seed = check_int(seed, "seed")
     if not 0 <= seed < 2**64:  # a Generator's range; a negative seed would alias a large one
         raise ValueError(f"seed: expected an int with 0 <= seed < 2**64, got {seed!r}")

@@ -31,7 +31,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._check import autocast_off, check_bool, check_finite, check_float_tensor, check_shape, result_dtype
+from .._check import (autocast_off, check_bool, check_finite, check_float_tensor, check_shape, is_number, option_error,
+                      result_dtype)
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -51,8 +52,9 @@ def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> 
     coordinate stays NaN.
     """
     check_float_tensor(coords, "coords")
-    if isinstance(size, bool) or not isinstance(size, int) or size < 1:
-        raise ValueError(f"size: expected a positive int (pixels along the axis), got {size!r}")
+    if not is_number(size, integer=True) or size < 1:
+        raise option_error(size, f"size: expected a positive int (pixels along the axis), got {size!r}", integer=True)
+    size = int(size)
     if size == 1:
         return coords * 2.0
     if align_corners:

@@ -279,7 +279,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
 
     Returns a summary: ``root``, ``num_pairs``, ``size``, ``files`` (count per folder), ``bytes``.
     """
-    from .._progress import progress_bar
+    from .progress import progress_bar
 
     root = Path(root)
     clash = sorted(set(meta or {}) & set(_META_KEYS))

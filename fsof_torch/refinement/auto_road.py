@@ -43,7 +43,6 @@ Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not 
 from __future__ import annotations
 
 import math
-import numbers
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, Sequence
@@ -53,7 +52,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape,
-                      check_size, inference)
+                      check_size, inference, is_number, option_error)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -161,14 +160,10 @@ def road_seed(camera: Camera, size: tuple[int, int], *, width_m: float = 4.0, de
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     for name, value in (("width_m", width_m), ("depth_m", depth_m)):
-        if not _real(value) or not (0 < value < math.inf):
-            raise ValueError(f"{name}: expected a finite number of metres > 0, got {value!r}")
+        if not is_number(value) or not (0 < value < math.inf):
+            raise option_error(value, f"{name}: expected a finite number of metres > 0, got {value!r}")
     X, Z, below = _ground(camera, check_size(size))
     return below & (X.abs() <= float(width_m) / 2) & (Z <= float(depth_m))
-
-
-def _real(value: object) -> bool:  # (a Python or NumPy real number, not a bool)
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
 
 
 def _level_camera(camera: Camera, level: int) -> Camera:
@@ -365,29 +360,31 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
                          f"{tuple(image1.shape)}")
     for name in ("level", "seed_level"):
         v = options[name]
-        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 0:
-            raise ValueError(f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}")
+        if not is_number(v, integer=True) or v < 0:
+            raise option_error(v, f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}",
+                               integer=True)
         if min(dims["H"], dims["W"]) >> v < 16 and (name == "level" or estimated):
             raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
                              f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
     for name in ("window", "height_window"):
         v = options[name]
-        if not isinstance(v, numbers.Integral) or isinstance(v, bool) or v < 3 or v % 2 == 0:
-            raise ValueError(f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}")
+        if not is_number(v, integer=True) or v < 3 or v % 2 == 0:
+            raise option_error(v, f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}",
+                               integer=True)
     for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
         v = options[name]
-        if not _real(v) or not (0 < v < math.inf):
-            raise ValueError(f"{name}: expected a finite number > 0, got {v!r}")
+        if not is_number(v) or not (0 < v < math.inf):
+            raise option_error(v, f"{name}: expected a finite number > 0, got {v!r}")
     if options["max_height_m"] < options["min_height_m"]:
         raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
                          f"got {options['max_height_m']!r}")
     v = options["slow_max_height_m"]
-    if v is not None and (not _real(v) or not (v < math.inf) or not v >= options["max_height_m"]):
-        raise ValueError(f"slow_max_height_m: expected None or a finite number >= max_height_m "
-                         f"({options['max_height_m']!r}), got {v!r}")
+    if v is not None and (not is_number(v) or not (v < math.inf) or not v >= options["max_height_m"]):
+        raise option_error(v, f"slow_max_height_m: expected None or a finite number >= max_height_m "
+                              f"({options['max_height_m']!r}), got {v!r}")
     v = options["min_coverage"]
-    if not _real(v) or not (0 <= v < 1):
-        raise ValueError(f"min_coverage: expected a fraction in [0, 1), got {v!r}")
+    if not is_number(v) or not (0 <= v < 1):
+        raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
     ints = ("level", "seed_level", "window", "height_window")
     options.update({k: int(v) if k in ints else float(v) for k, v in options.items() if v is not None})
     return dims

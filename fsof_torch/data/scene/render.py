@@ -232,7 +232,7 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     renderer = _Renderer(Scene(cfg, seed, dtype), None if kept is None else {start: kept})
     indices = range(start, start + num_pairs)
     if progress:
-        from ..._progress import progress_bar
+        from ...io.progress import progress_bar
         indices = progress_bar(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
     pairs = [renderer.pair(k) for k in indices]
     last = start + num_pairs
