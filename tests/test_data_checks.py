@@ -77,8 +77,13 @@ def test_numpy_numbers_are_taken_as_python_numbers(overrides):
 @pytest.mark.parametrize("value, error", [(True, "bool True"), (torch.tensor(8.0), "Tensor tensor(8.)"),
                                           ("8", "str '8'")])
 def test_what_is_no_number_is_named(value, error):
-    with pytest.raises(ValueError, match=re.escape(f"speed: expected a finite number, got {error}")):
+    """A wrong type is a TypeError (it was a ValueError), a wrong value a ValueError."""
+    with pytest.raises(TypeError, match=re.escape(f"speed: expected a finite number, got {error}")):
         scene_config("cvc-simple", speed=value)
+    with pytest.raises(ValueError, match=re.escape("speed: expected a finite number, got float nan")):
+        scene_config("cvc-simple", speed=float("nan"))
+    with pytest.raises(TypeError, match=r"^supersample: expected an integer in \[1, 16\], got 2.0"):
+        scene_config("cvc-simple", supersample=2.0)
 
 
 def test_supersample_is_bounded():

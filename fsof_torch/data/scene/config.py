@@ -354,8 +354,9 @@ def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
 def _validate(cfg: SceneConfig) -> None:
     def real(name: str) -> float:
         value = getattr(cfg, name)
-        if not _is_real(value) or not math.isfinite(value):
-            raise ValueError(f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
+        if not _is_real(value) or not math.isfinite(value):  # (a TypeError for what is no number at all)
+            raise (ValueError if _is_real(value) else TypeError)(
+                f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
         return float(value)
 
     for name in ("speed", "steering", "roll", "pitch", "speed_factor", "texture", "noise", "parked_cars",
@@ -393,9 +394,10 @@ def _validate(cfg: SceneConfig) -> None:
                 or not all(_is_real(a) and 0 <= a <= MAX_CONTRAST for a in amps)):
             raise ValueError(f"asphalt: expected {len(ASPHALT_CELLS)} amplitudes in [0, {MAX_CONTRAST:g}] grey "
                              f"levels (one per octave), got {amps!r}")
-    if (isinstance(cfg.supersample, bool) or not isinstance(cfg.supersample, int)
-            or not 1 <= cfg.supersample <= MAX_SUPERSAMPLE):
-        raise ValueError(f"supersample: expected an integer in [1, {MAX_SUPERSAMPLE}], got {cfg.supersample!r}")
+    whole = isinstance(cfg.supersample, numbers.Integral) and not isinstance(cfg.supersample, bool)
+    if not (whole and 1 <= cfg.supersample <= MAX_SUPERSAMPLE):
+        raise (ValueError if whole else TypeError)(
+            f"supersample: expected an integer in [1, {MAX_SUPERSAMPLE}], got {cfg.supersample!r}")
     for name in ("adaptive", "buildings"):
         check_bool(getattr(cfg, name), name)  # a truthy string such as "False" would pass as True
     if cfg.size is not None:
