@@ -146,6 +146,7 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
     image 2 as a camera that also turns so between the frames sees it, both frames and the polygon
     cropped to where it is defined (``real_road.turned``)."""
     from fsof_torch import Camera
+    from fsof_torch.data.folders import list_images
     from fsof_torch.io import read_image, read_road_mask
 
     from image_fit_settings import crops
@@ -169,7 +170,7 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
     if clip:
         folder = root / CLIP[0]
         cam = Camera.from_kitti(folder / "calib.txt", cam=0, height=1.65)
-        files = sorted((folder / "image_l").glob("*.png"))
+        files = list_images(folder / "image_l")  # (in frame order, as the library pairs them)
         frames = [read_image(f)[None, :1] for f in files]
         size = tuple(frames[0].shape[-2:])
         poly = read_road_mask(folder / "road.json", size).reshape(1, 1, *size).bool()
@@ -256,12 +257,12 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
 def main(argv=None) -> int:
     import cv2
 
-    from cli import data_folder, description, positive_int, present
+    from cli import description, positive_int, present, samples_folder
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
-                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/ "
-                             "(default: ../shared/data beside the repository)")
+                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/, at least one "
+                             "(default: ../shared/data beside the repository, where both may be absent)")
     parser.add_argument("--repeat", type=positive_int, default=3,
                         help="timed runs per row of the time table (default 3)")
     parser.add_argument("--no-synthetic", action="store_true", help="leave out the synthetic presets' table")
@@ -283,7 +284,7 @@ def main(argv=None) -> int:
     if any(k < 0 for k in args.pairs):
         print(f"--pairs: expected pair indices >= 0, got {args.pairs}", file=sys.stderr)
         return 2
-    data = None if args.no_real else data_folder(parser, args.data, DEFAULT)
+    data = None if args.no_real else samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP]))
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     if not args.no_synthetic:

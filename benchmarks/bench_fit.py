@@ -32,7 +32,6 @@ Usage: ``python benchmarks/bench_fit.py [--repeats 10] [--json out.json] [--no-c
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import statistics
 import sys
@@ -157,17 +156,19 @@ def paper_flow(uv, roll, xd, zd, yaw, h=1.65):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import baseline_revision, description, positive_int
+    from cli import baseline_revision, description, json_path, positive_int, write_json
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=10, help="timed calls per row (default 10)")
-    parser.add_argument("--json", type=str, default=None, metavar="PATH", help="write the rows as JSON here")
+    parser.add_argument("--json", type=str, default=None, metavar="PATH",
+                        help="write the rows as JSON here (an earlier file there is removed at the start)")
     parser.add_argument("--no-curve-fit", action="store_true", help="skip the curve_fit row")
     parser.add_argument("--baseline", type=str, default=None, metavar="REV",
                         help="a git revision whose fit_displacement is timed interleaved with the current one "
                              f"(default {DEFAULT_BASELINE}, left out where git or it is unavailable; 'none' to skip)")
     args = parser.parse_args(argv)
     args.baseline = baseline_revision(parser, args.baseline, DEFAULT_BASELINE)
+    args.json = json_path(parser, args.json)
     torch.set_num_threads(1)
 
     from scipy.optimize import curve_fit, least_squares
@@ -273,10 +274,8 @@ def main(argv: list[str] | None = None) -> int:
     for name, counts in reads.items():
         kinds = ", ".join(f"{kind.removeprefix('aten::')} {n}" for kind, n in counts.items())
         print(f"  {name:<26} {sum(counts.values()):>3}  ({kinds})")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows, host_reads=reads), fh,
-                      indent=2)
+    if args.json is not None:
+        write_json(args.json, dict(n_pixels=n_pixels, size=SIZE, load_average=load, rows=rows, host_reads=reads))
     return 0
 
 

@@ -26,6 +26,7 @@ of the current one, interleaved call by call, with their ratio.
 
 Uses the shared KITTI clip's first pair when ``../shared`` is there (with ``--kitti15``, the
 KITTI 2015 pair 000000 instead: 1242 × 375, a road polygon twice as large), else a synthetic pair.
+A folder named by ``--data`` must hold the clip (with ``--kitti15``, the pair): no fallback there.
 """
 
 from __future__ import annotations
@@ -41,10 +42,12 @@ import torch.nn.functional as F
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 KITTI15_FILES = ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json")
+CLIP_FILES = ("image_l", "road.json", "calib.txt")
 
 
 def pair(data: Path = DATA, kitti15: bool = False):
     import fsof_torch as fs
+    from fsof_torch.data.folders import list_images
 
     if kitti15:
         k15 = data / "kitti15_000000"
@@ -52,8 +55,8 @@ def pair(data: Path = DATA, kitti15: bool = False):
         road = fs.read_road_mask(k15 / "road.json", size=tuple(im1.shape[-2:]))
         return im1, im2, road, fs.Camera.from_kitti(k15 / KITTI15_FILES[2], cam=2, height=1.65), "KITTI 2015 pair 000000"
     clip = data / "kitti_odometry_straight"
-    files = sorted((clip / "image_l").glob("*.png"))
-    if len(files) >= 2 and (clip / "road.json").is_file() and (clip / "calib.txt").is_file():
+    if all((clip / name).exists() for name in CLIP_FILES):
+        files = list_images(clip / "image_l")  # (the first pair in the library's frame order)
         im1, im2 = fs.read_image(files[0]), fs.read_image(files[1])
         road = fs.read_road_mask(clip / "road.json", size=tuple(im1.shape[-2:]))
         return im1, im2, road, fs.Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65), "KITTI clip pair 0"
@@ -62,20 +65,36 @@ def pair(data: Path = DATA, kitti15: bool = False):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import baseline_revision, description, positive_int
+    from cli import baseline_revision, data_folder, description, positive_int
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=15, help="interleaved timed calls per row (default 15)")
-    parser.add_argument("--baseline", metavar="REV", help="time against this git revision instead")
+    parser.add_argument("--baseline", metavar="REV",
+                        help="time against this git revision instead (one with fit_image: 0cbcee8 or later)")
     parser.add_argument("--kitti15", action="store_true", help="the KITTI 2015 pair instead of the clip's first")
-    parser.add_argument("--data", metavar="DIR", type=Path, default=DATA,
-                        help="the folder holding kitti_odometry_straight/ and kitti15_000000/ (default: ../shared/data "
-                             "beside the repository; without the clip there, a synthetic pair)")
+    parser.add_argument("--data", metavar="DIR", type=Path, default=None,
+                        help="the folder holding kitti_odometry_straight/ (with --kitti15: kitti15_000000/); "
+                             "default: ../shared/data beside the repository, and without the clip there, a "
+                             "synthetic pair")
     args = parser.parse_args(argv)
     args.baseline = baseline_revision(parser, args.baseline)
-    missing = [n for n in KITTI15_FILES if not (args.data / "kitti15_000000" / n).is_file()]
-    if args.kitti15 and missing:
-        parser.error(f"--kitti15: {args.data / 'kitti15_000000'} lacks {', '.join(missing)} (see --data)")
+    if args.kitti15:
+        data = data_folder(parser, args.data, DATA)
+        missing = [n for n in KITTI15_FILES if not (data / "kitti15_000000" / n).is_file()]
+        if missing:
+            parser.error(f"--kitti15: {data / 'kitti15_000000'} lacks {', '.join(missing)} (see --data)")
+    else:
+        data = data_folder(parser, args.data, DATA, tuple(f"kitti_odometry_straight/{n}" for n in CLIP_FILES))
+    base = None
+    if args.baseline:
+        from baseline import load_baseline
+
+        try:
+            base = load_baseline(args.baseline)
+        except Exception as err:  # noqa: BLE001 - any failure to import that revision is the option's
+            parser.error(f"--baseline: cannot import revision {args.baseline!r}: {type(err).__name__}: {err}")
+        if not hasattr(base, "fit_image"):
+            parser.error(f"--baseline: revision {args.baseline!r} has no fit_image to time (it came with 0cbcee8)")
     import cv2
     from kornia.color import rgb_to_grayscale
     from kornia.filters import gaussian_blur2d
@@ -88,11 +107,11 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     warnings.simplefilter("ignore")
-    im1, im2, road, cam, what = pair(args.data, args.kitti15)
+    im1, im2, road, cam, what = pair(data, args.kitti15)
     I1, I2, M = im1[None], im2[None], road[None]
     flow = dis_flow(im1, im2)[None]
-    if args.baseline:
-        against_baseline(args.baseline, args.repeats, I1, I2, M, cam, flow, what)
+    if base is not None:
+        against_baseline(base, args.baseline, args.repeats, I1, I2, M, cam, flow, what)
         return 0
     refiner = fs.FreespaceRefiner()
     ahead_off = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(forward_starts=()))
@@ -164,13 +183,11 @@ def interleaved(rows: dict, repeats: int) -> dict[str, list[float]]:
     return times
 
 
-def against_baseline(rev: str, repeats: int, I1, I2, M, cam, flow, what: str) -> None:
-    """``fit_image`` and the default refiner of git revision ``rev`` against the current ones."""
-    from baseline import load_baseline
-
+def against_baseline(base, rev: str, repeats: int, I1, I2, M, cam, flow, what: str) -> None:
+    """``fit_image`` and the default refiner of git revision ``rev`` (its package ``base``, from
+    ``baseline.load_baseline``) against the current ones."""
     import fsof_torch as fs
 
-    base = load_baseline(rev)
     base_cam = base.Camera(cam.K, cam.height, cam.roll, cam.pitch)
     refiner, base_refiner = fs.FreespaceRefiner(), base.FreespaceRefiner()
     rows = {

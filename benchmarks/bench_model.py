@@ -27,7 +27,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import platform
 import resource
@@ -208,23 +207,28 @@ def print_table(result: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, nonnegative_int, positive_int
+    from cli import description, json_path, nonnegative_int, positive_int, thread_count, write_json
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=thread_count, default=1,
+                        help="torch threads, at most this machine's CPUs (default 1)")
     parser.add_argument("--repeats", type=positive_int, default=40, help="timed calls per row (default 40)")
     parser.add_argument("--warmup", type=nonnegative_int, default=3, help="untimed calls first (default 3)")
-    parser.add_argument("--batch", type=positive_int, nargs="+", default=[1, 8], help="batch sizes (default 1 8)")
+    parser.add_argument("--batch", type=positive_int, nargs="+", default=[1, 8],
+                        help="batch sizes, each once (default 1 8)")
     parser.add_argument("--size", type=positive_int, nargs=2, default=[375, 1242], metavar=("H", "W"),
                         help="image size (default 375 1242)")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile rows")
-    parser.add_argument("--json", metavar="PATH", help="also write the results as JSON")
+    parser.add_argument("--json", metavar="PATH",
+                        help="also write the results as JSON (an earlier file there is removed at the start)")
     args = parser.parse_args(argv)
+    if len(set(args.batch)) < len(args.batch):
+        parser.error(f"--batch: expected distinct batch sizes, got {' '.join(map(str, args.batch))}")
+    args.json = json_path(parser, args.json)
     result = run(args)
     print_table(result)
-    if args.json:
-        with open(args.json, "w") as f:
-            json.dump(result, f, indent=2)
+    if args.json is not None:
+        write_json(args.json, result)
         print(f"wrote {args.json}")
     return 0
 

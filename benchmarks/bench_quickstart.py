@@ -8,7 +8,10 @@ and its children). Prints one row per run and the machine's core count. The job'
 what is measured (sources, odometry variants, figures, one intra-op thread), so rerun this after
 changing them.
 
-Run: ``python benchmarks/bench_quickstart.py [--runs 2] [--args "..."]``
+Run: ``python benchmarks/bench_quickstart.py [--runs 2] [--args "..."]``; ``--args`` takes the
+job's options as one string, split as a shell would, even a single option
+(``--args "--no-figures"``, or ``--args=--no-figures``). A run that fails is reported by its number
+with the end of its error output, and the script exits 1.
 """
 
 from __future__ import annotations
@@ -38,14 +41,25 @@ def _parse(text: str) -> dict[str, float]:
     return {"wall_s": seconds, "cpu_s": user + system, "user_s": user, "sys_s": system, "max_rss_mb": rss / 1024}
 
 
+def _joined(argv: list[str]) -> list[str]:
+    """``argv`` with ``--args VALUE`` written ``--args=VALUE``: argparse takes a separate value that
+    looks like an option (``--args "--no-figures"``) for an option of its own."""
+    out, rest = [], list(argv)
+    while rest:
+        word = rest.pop(0)
+        out.append(f"--args={rest.pop(0)}" if word == "--args" and rest else word)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from cli import description, positive_int, shell_words
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--runs", type=positive_int, default=2, help="runs started side by side (default 2)")
     parser.add_argument("--args", type=shell_words, default="",
-                        help="extra options for each run (default: none, the Quick start)")
-    args = parser.parse_args(argv)
+                        help='extra options for each run, one string split as a shell would ("--no-figures '
+                             '--num-pairs 2"; default: none, the Quick start)')
+    args = parser.parse_args(_joined(sys.argv[1:] if argv is None else argv))
     time_bin = shutil.which("time") or "/usr/bin/time"
     if not Path(time_bin).is_file():
         print("needs /usr/bin/time (GNU time)", file=sys.stderr)
@@ -60,13 +74,17 @@ def main(argv: list[str] | None = None) -> int:
             cmd = [time_bin, "-v", sys.executable, "-m", "refine", *shlex.split(args.args)]
             procs.append(subprocess.Popen(cmd, cwd=cwd, env=env, stdout=subprocess.DEVNULL,
                                           stderr=subprocess.PIPE, text=True))
-        rows = []
-        for p in procs:
-            _, err = p.communicate()
-            if p.returncode != 0:
-                print(err[-2000:], file=sys.stderr)
-                return 1
-            rows.append(_parse(err))
+        errors = [p.communicate()[1] for p in procs]  # (every run waited for before the folder goes)
+    failed = [(i, p.returncode) for i, p in enumerate(procs) if p.returncode != 0]
+    for i, code in failed:
+        # the job's own output, without time's report after it
+        job = re.split(r"Command exited with non-zero status|Command terminated by signal|\tCommand being timed:",
+                       errors[i])[0]
+        print(f"run {i} of {args.runs} failed (exit status {code}): python -m refine {args.args}\n"
+              f"{job[-2000:].rstrip()}", file=sys.stderr)
+    if failed:
+        return 1
+    rows = [_parse(err) for err in errors]
     print(f"python -m refine {args.args} ({args.runs} runs side by side, {os.cpu_count()} cores)")
     print(f"{'run':>4} {'wall s':>8} {'CPU s':>8} {'user s':>8} {'sys s':>7} {'max RSS MB':>11}")
     for i, r in enumerate(rows):

@@ -16,10 +16,10 @@ the fitted ego-motion (``FreespaceRefiner(fit="flow")``), that revision's (impor
 current package by ``baseline.py``) against the current one's, interleaved call by call over
 the rounds so that both see the same load, with their ratio.
 
-The flow is the model flow of a known motion plus 1 px Gaussian noise and 20% of the road mask
-replaced by an obstacle's flow (outliers for the robust fit); the road mask holds about 120 000
-pixels. Run: ``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--json PATH]
-[--baseline REV]``.
+The flow is the model flow of a known motion plus 1 px Gaussian noise, and a box of the road
+mask (rows 220–299, columns 700–999: 15 838 pixels, 12 % of the mask) replaced by an obstacle's
+flow (outliers for the robust fit); the road mask holds 133 822 pixels. Run:
+``python benchmarks/bench_refine.py [--repeats N] [--rounds R] [--json PATH] [--baseline REV]``.
 """
 
 from __future__ import annotations
@@ -118,7 +118,7 @@ def build_case(dtype: torch.dtype = torch.float32):
     flow = (gt + torch.randn(gt.shape, generator=g, dtype=gt.dtype)).to(dtype)
     rows = torch.arange(H).reshape(1, 1, H, 1)
     cols = torch.arange(W).reshape(1, 1, 1, W)
-    # a trapezoid of road in front of the car, about 120 000 pixels
+    # a trapezoid of road in front of the car, 133 822 pixels
     half = (rows - 190).clamp(min=0) * 3.3 + 60
     mask = valid & (rows >= 190) & ((cols - 610).abs() <= half)
     car = mask & (rows >= 220) & (rows < 300) & (cols >= 700) & (cols < 1000)
@@ -128,17 +128,19 @@ def build_case(dtype: torch.dtype = torch.float32):
 
 def main(argv: list[str] | None = None) -> int:
     from baseline import DEFAULT_BASELINE
-    from cli import baseline_revision, description, positive_int
+    from cli import baseline_revision, description, json_path, positive_int, write_json
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=15, help="timed calls per case and round (default 15)")
     parser.add_argument("--rounds", type=positive_int, default=3, help="rounds over all cases (default 3)")
-    parser.add_argument("--json", type=Path, default=None, metavar="PATH", help="write the results as JSON here")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+                        help="write the results as JSON here (an earlier file there is removed at the start)")
     parser.add_argument("--baseline", type=str, default=None, metavar="REV",
                         help="a git revision to time against the current version (interleaved; default "
                              f"{DEFAULT_BASELINE}, left out where git or it is unavailable); 'none' to skip")
     args = parser.parse_args(argv)
     args.baseline = baseline_revision(parser, args.baseline, DEFAULT_BASELINE)
+    args.json = json_path(parser, args.json)
     torch.set_num_threads(1)
 
     import cv2
@@ -186,8 +188,6 @@ def main(argv: list[str] | None = None) -> int:
     report = {"size": list(size), "road_pixels": int(mask.sum()), "threads": 1, "torch": torch.__version__,
               "results": results, "baseline": args.baseline or "none", "against_baseline": None}
     if args.json is not None:  # (before the baseline's table, which may fail to import that revision)
-        from fsof_torch.io import write_json
-
         write_json(args.json, report)
     if args.baseline is not None:
         report["against_baseline"] = baseline_table(args.baseline, (camera, odo, flow, mask, size), args.repeats,

@@ -31,12 +31,12 @@ def _median_ms(fn, repeats: int, warmup: int = 1) -> tuple[float, float]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, positive_int
+    from cli import MIN_SIDE, description, image_side, positive_int
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per row (default 5)")
-    parser.add_argument("--size", type=positive_int, nargs=2, default=(375, 1242), metavar=("H", "W"),
-                        help="image size (default 375 1242)")
+    parser.add_argument("--size", type=image_side, nargs=2, default=(375, 1242), metavar=("H", "W"),
+                        help=f"image size, each side at least {MIN_SIDE} (default 375 1242)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 

@@ -54,13 +54,14 @@ def timed(fn, repeats: int) -> tuple[float, object]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, positive_int
+    from cli import description, positive_int, thread_count
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--sizes", type=positive_int, nargs="+", default=[100, 1000, 10000],
                         help="clip lengths N in pairs (default 100 1000 10000)")
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per solve (default 5)")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=thread_count, default=1,
+                        help="torch threads, at most this machine's CPUs (default 1)")
     args = parser.parse_args(argv)
     torch.set_num_threads(args.threads)
 

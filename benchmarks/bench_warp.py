@@ -2,8 +2,8 @@
 and of the photometric error kinds built on it against the warp alone (reference).
 
 warp_backward samples bilinearly as four nearest-neighbour taps so that whole-pixel shifts are
-exact (see fsof_torch/warp.py); the first table prints what that costs. The second, at KITTI's
-size without gradient (evaluation): each kind of ``photometric_error_map`` (the warp included) and
+exact (see fsof_torch/evaluation/warp.py); the first table prints what that costs. The second, at
+KITTI's size without gradient (evaluation): each kind of ``photometric_error_map`` (the warp included) and
 ``photometric_error_maps`` with L1, SSIM and census at once (one warp), with the ratio to the
 warp. Single thread, warm-up, median of repeats, milliseconds. Run: python benchmarks/bench_warp.py
 """

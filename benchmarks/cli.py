@@ -1,6 +1,6 @@
 """What the benchmark scripts share on their command lines: argument types that reject a bad value
-while the arguments are parsed, before any work, the data folders they read and the git revision
-they time against.
+while the arguments are parsed, before any work, the data folders they read, the git revision
+they time against, the keyword arguments they forward and the ``--json`` file they write.
 
 A type here raises ``argparse.ArgumentTypeError``, so argparse exits with status 2, its usage line
 and the option's name: ``argument --repeats: expected an integer >= 1, got '0'``.
@@ -14,10 +14,11 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import shlex
 import subprocess
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -47,6 +48,35 @@ def int_at_least(minimum: int) -> Callable[[str], int]:
 positive_int = int_at_least(1)
 #: an index or a count that may be 0 (a pair index, warm-up calls)
 nonnegative_int = int_at_least(0)
+#: the smallest side of a synthetic image (``--size``): OpenCV's DIS needs 12 pixels, and the
+#: road models' tables need a few rows of road
+MIN_SIDE = 16
+#: a side of a synthetic image (``--size H W``), at least :data:`MIN_SIDE` pixels
+image_side = int_at_least(MIN_SIDE)
+
+
+def thread_count(text: str) -> int:
+    """An argparse type: a number of threads, from 1 to this machine's CPUs (``os.cpu_count()``;
+    far more threads than CPUs only slow a timing down, and torch crashes on a huge count)."""
+    cpus = os.cpu_count() or 1
+    value = int_at_least(1)(text)
+    if value > cpus:
+        raise argparse.ArgumentTypeError(f"expected at most {cpus} (this machine's CPUs), got {text!r}")
+    return value
+
+
+def scene_seed(text: str) -> int:
+    """An argparse type: a synthetic scene's seed, an integer in [0, 2**62) (the library's
+    ``MAX_SEED``)."""
+    from fsof_torch.data.scene.config import MAX_SEED
+
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or not 0 <= value < MAX_SEED:
+        raise argparse.ArgumentTypeError(f"expected an integer in [0, 2**62), got {text!r}")
+    return value
 
 
 def finite_float(text: str) -> float:
@@ -92,6 +122,55 @@ def shell_words(text: str) -> str:
     return text
 
 
+def check_options(parser: argparse.ArgumentParser, options: Mapping[str, Any], option: str, fn: Callable,
+                  reserved: tuple[str, ...] = ()) -> None:
+    """``options`` (keyword arguments of ``fn``, given as ``option``) checked before any work: a
+    name ``fn`` does not take, or one the script sets itself (``reserved``), is ``parser.error``
+    (exit 2) naming ``option``, not a TypeError after the rendering and the first fits."""
+    from fsof_torch._check import check_keywords
+
+    try:
+        check_keywords(options, option, fn, reserved)
+    except TypeError as err:
+        parser.error(str(err))
+
+
+def json_path(parser: argparse.ArgumentParser, given: str | os.PathLike | None,
+              inputs: Mapping[str, Path | None] | None = None) -> Path | None:
+    """``--json``'s path (None: not asked for), checked before any work, as the jobs check theirs:
+    a file path, not a folder, that can be created (its missing folders are created when it is
+    written, :func:`write_json`), neither one of the run's input folders (``inputs``, by option;
+    None where not given) nor inside one; else ``parser.error`` (exit 2).
+
+    The file an earlier run left there is removed at once: a run that fails later leaves no JSON
+    that reads as its own result."""
+    from fsof_torch.io.atomic import creation_error
+
+    if given is None:
+        return None
+    path = Path(given)
+    if path.is_dir():
+        parser.error(f"--json: {str(path)!r} is a folder; expected a file path such as {str(path / 'out.json')!r}")
+    bad = creation_error(path, "--json")
+    if bad is not None:
+        parser.error(bad)
+    for option, folder in (inputs or {}).items():
+        if folder is not None and path.resolve().is_relative_to(folder.resolve()):
+            parser.error(f"--json: {str(path)!r} is inside the input {option} {str(folder)!r}; give another path")
+    if path.is_file() or path.is_symlink():
+        path.unlink()
+    return path
+
+
+def write_json(path: Path, obj: Any) -> None:
+    """``obj`` written to ``path`` (checked by :func:`json_path`) as JSON, atomically, the missing
+    folders above it created (NaN and infinities as null: strict JSON)."""
+    from fsof_torch.io import write_json as write
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    write(path, obj)
+
+
 def data_folder(parser: argparse.ArgumentParser, given: Path | None, default: Path,
                 need: tuple[str, ...] = ()) -> Path:
     """The folder ``--data`` names, or ``default`` where it was not given.
@@ -107,6 +186,27 @@ def data_folder(parser: argparse.ArgumentParser, given: Path | None, default: Pa
     if missing:
         parser.error(f"--data: {str(given)!r} lacks {', '.join(missing)}")
     return given
+
+
+def samples_folder(parser: argparse.ArgumentParser, given: Path | None, default: Path,
+                   samples: Mapping[str, tuple[str, ...]]) -> Path:
+    """The folder ``--data`` names, or ``default`` where it was not given, for a script that runs on
+    whichever of ``samples`` (a sub-folder's name -> the files it needs) it holds.
+
+    A folder given must exist and hold at least one of the samples whole (``parser.error``, exit
+    2, naming what each lacks): a folder named by mistake is an error, not a run that skips every
+    sample. The default may lack them all (the script then leaves them out, :func:`present`).
+    """
+    data = data_folder(parser, given, default)
+    if given is None:
+        return data
+    lacking = []
+    for name, need in samples.items():
+        missing = [f for f in need if not (data / name / f).exists()]
+        if not missing:
+            return data
+        lacking.append(f"{name}/ not found" if not (data / name).is_dir() else f"{name}/ lacks {', '.join(missing)}")
+    parser.error(f"--data: {str(given)!r} holds none of the samples ({'; '.join(lacking)})")
 
 
 def present(folder: Path, need: tuple[str, ...], what: str) -> bool:

@@ -18,6 +18,8 @@ road mask), which the clip's streamed fit does three times per pair.
 extracted with ``git archive``) on the same clips, after the current one.
 
     python benchmarks/clip_memory.py [--lengths 11 26 51] [--size 375x1242] [--keep DIR] [--baseline REV]
+
+``--keep DIR`` (a new or empty folder) keeps the clip there.
 """
 
 from __future__ import annotations
@@ -119,16 +121,29 @@ def run_job(code: Path, clip: Path, out: Path, mounting: list[str]) -> tuple[flo
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import baseline_revision, description, int_at_least, size_hw
+    from cli import baseline_revision, description, int_at_least, scene_seed, size_hw
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--lengths", type=int_at_least(3), nargs="+", default=[11, 26, 51],
                         help="clip lengths in frames, each at least 3 (default 11 26 51)")
     parser.add_argument("--size", type=size_hw, default=(375, 1242), metavar="HxW", help="HxW (default: KITTI's)")
-    parser.add_argument("--seed", type=int, default=0, help="the scene's seed (default 0)")
-    parser.add_argument("--keep", type=Path, default=None, help="write the clip here (kept) instead of a temporary folder")
+    parser.add_argument("--seed", type=scene_seed, default=0, help="the scene's seed, in [0, 2**62) (default 0)")
+    parser.add_argument("--keep", type=Path, default=None, metavar="DIR",
+                        help="write the clip here (kept) instead of a temporary folder: a new or empty folder, "
+                             "so that no earlier clip's frames mix in")
     parser.add_argument("--baseline", default=None, metavar="REV", help="also run the job of this git revision")
     args = parser.parse_args(argv)
+    if args.keep is not None:
+        from fsof_torch.io.atomic import creation_error
+
+        if args.keep.exists() and not args.keep.is_dir():
+            parser.error(f"--keep: {str(args.keep)!r} is a file; expected a new or empty folder")
+        if args.keep.is_dir() and any(args.keep.iterdir()):
+            parser.error(f"--keep: {str(args.keep)!r} is not empty; expected a new or empty folder (an earlier "
+                         f"clip's frames would mix with this one's)")
+        bad = creation_error(args.keep, "--keep")
+        if bad is not None:
+            parser.error(bad)
     args.baseline = baseline_revision(parser, args.baseline, paths=("fsof_torch", "refine"))
     size = args.size
     work = Path(tempfile.mkdtemp(prefix="clip_memory_"))

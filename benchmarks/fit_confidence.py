@@ -67,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     data = data_folder(parser, args.data, DEFAULT, CLIP)
     import fsof_torch as fs
+    from fsof_torch.data.folders import list_images
     from fsof_torch.estimation.image_fit import fit_image
 
     torch.set_num_threads(1)
@@ -76,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
               "|---|---|---|---|---|")
     if present(data, CLIP, "KITTI clip (part 1)"):
         cam = fs.Camera.from_kitti(data / "calib.txt", cam=0, height=1.65)
-        files = sorted((data / "image_l").glob("*.png"))
+        files = list_images(data / "image_l")  # (in frame order, as the library pairs them)
         frame = (lambda k: fs.read_image(files[k])[None])
         road = fs.read_road_mask(data / "road.json", size=tuple(frame(0).shape[-2:]))[None]
         pairs = list(range(0, 45, 5))

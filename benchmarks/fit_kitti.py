@@ -11,7 +11,6 @@ Usage: ``python benchmarks/fit_kitti.py [--data ../shared/data/kitti15_000000] [
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import time
 from pathlib import Path
@@ -40,14 +39,16 @@ def load(folder: Path):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, present
+    from cli import data_folder, description, json_path, present, write_json
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
-    parser.add_argument("--json", type=str, default=None, metavar="PATH", help="also write the rows as JSON here")
+    parser.add_argument("--json", type=str, default=None, metavar="PATH",
+                        help="also write the rows as JSON here (an earlier file there is removed at the start)")
     args = parser.parse_args(argv)
     args.data = data_folder(parser, args.data, DEFAULT, NEED)
+    args.json = json_path(parser, args.json, {"--data": args.data})
     if not present(args.data, NEED, "KITTI pair kitti15_000000"):
         return 0
     import cv2
@@ -94,9 +95,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in rows:
         extra = {k: v for k, v in r.items() if k not in ("name", "e_E", "ms")}
         print(f"{r['name']:<58} {r['e_E']:>7.3f} {r['ms']:>8.1f}  {extra if extra else ''}")
-    if args.json:
-        with open(args.json, "w") as fh:
-            json.dump(dict(rows=rows), fh, indent=2)
+    if args.json is not None:
+        write_json(args.json, dict(rows=rows))
     return 0
 
 

@@ -146,15 +146,15 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, nonnegative_int, positive_int, present
+    from cli import MIN_SIDE, data_folder, description, image_side, nonnegative_int, present
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
     parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 30],
                         help="pair indices of the synthetic tables (default 0 30)")
-    parser.add_argument("--size", type=positive_int, nargs=2, default=[375, 1242], metavar=("H", "W"),
-                        help="the synthetic pairs' size (default 375 1242)")
+    parser.add_argument("--size", type=image_side, nargs=2, default=[375, 1242], metavar=("H", "W"),
+                        help=f"the synthetic pairs' size, each side at least {MIN_SIDE} (default 375 1242)")
     parser.add_argument("--skip-kitti", action="store_true", help="leave out the KITTI table")
     args = parser.parse_args(argv)
     data = None if args.skip_kitti else data_folder(parser, args.data, DEFAULT, NEED)

@@ -63,15 +63,19 @@ def road_epe(flow: torch.Tensor, sample: dict) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, json_object, present
+    from cli import check_options, description, json_object, present
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("settings", type=json_object, nargs="*", metavar="SETTING",
-                        help="fit_image keyword arguments as a JSON object, one row each (default: the settings "
-                             "of the documented table)")
+                        help="fit_image keyword arguments as a JSON object (not the images, mask or camera), one row "
+                             "each (default: the settings of the documented table)")
     args = parser.parse_args(argv)
     from fsof_torch import Camera, fit_image, photometric_error, read_image, read_kitti_flow, read_road_mask
+    from fsof_torch.data.folders import list_images
     from fsof_torch.data.scene import render_pair, render_sequence
+
+    for kw in args.settings:
+        check_options(parser, kw, "SETTING", fit_image, reserved=("image1", "image2", "mask", "camera"))
 
     torch.set_num_threads(1)
     try:
@@ -93,7 +97,7 @@ def main(argv: list[str] | None = None) -> int:
                          "image1": im1, "image2": im2, "road": road, "flow": gt, "valid": valid}
     clip = SHARED / "kitti_odometry_straight"
     if present(clip, CLIP, "KITTI clip kitti_odometry_straight (the clip column)"):
-        files = sorted((clip / "image_l").glob("*.png"))
+        files = list_images(clip / "image_l")  # (in frame order, as the library pairs them)
         cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
         road = read_road_mask(clip / "road.json", size=tuple(read_image(files[0]).shape[-2:]))
         real["clip"] = [(cam, read_image(files[i]), read_image(files[i + 1]), road) for i in (0, 4, 8)]

@@ -26,7 +26,7 @@ import torch
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, finite_float, nonnegative_int
+    from cli import description, finite_float, nonnegative_int, scene_seed
     from fsof_torch.data.scene import PRESETS
 
     parser = argparse.ArgumentParser(description=description(__doc__))
@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="pair indices of each preset's sequence (default 0 6 12)")
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS),
                         help="the synthetic presets (default: all)")
-    parser.add_argument("--seed", type=int, default=0, help="the scenes' seed (default 0)")
+    parser.add_argument("--seed", type=scene_seed, default=0, help="the scenes' seed, in [0, 2**62) (default 0)")
     parser.add_argument("--odometry-error", type=finite_float, nargs=2, metavar=("SCALE", "YAW_DEG"), default=None,
                         help="also refine with the scene's odometry made this wrong, held and as priors")
     args = parser.parse_args(argv)

@@ -192,11 +192,13 @@ TURN_ROWS = {"refiner, turn_starts=()": {"turn_starts": ()},
 PRIOR_ROWS = {"refiner, retry_without_prior=False": {"retry_without_prior": False}}
 
 
-def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable]:
+def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable, dict]:
     """The refiner with the clip's road motion from its images (``fsof_torch.fit_sequence``: the
     mounting calibrated over the clip, the motion carried forward, the attitude smoothed; no
     poses), each pair refined with its ``"plane"`` motion and the calibrated camera. Its time per
-    pair includes the clip fit's share (its CPU time over the clip / the pairs)."""
+    pair includes the clip fit's share (its CPU time over the clip / the pairs). Returns the
+    method's name, the method and the calibrated mounting (``pitch_deg``, ``roll_deg``), which it
+    prints."""
     from fsof_torch import fit_sequence
 
     loaded = [load() for _, load in pairs]
@@ -204,8 +206,9 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
     t0 = time.process_time()
     seq = fit_sequence(frames, [p["road"] for p in loaded], loaded[0]["camera"].to(torch.float64), progress=progress)
     share = (time.process_time() - t0) / len(loaded)
-    print(f"fit_sequence calibrated the mounting at pitch {math.degrees(seq.mounting['pitch']):+.3f} deg, "
-          f"roll {math.degrees(seq.mounting['roll']):+.3f} deg (no poses)")
+    mounting = {"pitch_deg": math.degrees(seq.mounting["pitch"]), "roll_deg": math.degrees(seq.mounting["roll"])}
+    print(f"fit_sequence calibrated the mounting at pitch {mounting['pitch_deg']:+.3f} deg, "
+          f"roll {mounting['roll_deg']:+.3f} deg (no poses)")
     motion = {name: {"model": "plane", **{k: v[i:i + 1] for k, v in seq.params.items()}}
               for i, (name, _) in enumerate(pairs)}
 
@@ -214,7 +217,7 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
         flow, info = refiner_flow({**pair, "camera": seq.camera}, dis, motion[pair["name"]])
         return flow, {**info, "seconds": time.process_time() - t + share}
 
-    return "refiner, clip motion (fit_sequence)", method
+    return "refiner, clip motion (fit_sequence)", method, mounting
 
 
 # -- measuring ------------------------------------------------------------------------------------
@@ -345,6 +348,19 @@ def kitti15(root: Path, height: float) -> list[tuple[str, Callable[[], dict]]]:
 
     dataset = KittiSampleDataset(root, camera_height=height, camera_dtype=torch.float64)
     return [(dataset.pairs[0].name, lambda: dataset[0])]
+
+
+def clip_frames(root: Path | None) -> int | None:
+    """The number of frames of the clip ``root`` (``image_l/``, in the library's frame order); None
+    where there is no clip to count (no folder, fewer than two images: the run reports it)."""
+    from fsof_torch.data.folders import list_images
+
+    if root is None or not (root / "image_l").is_dir():
+        return None
+    try:
+        return len(list_images(root / "image_l"))
+    except ValueError:
+        return None
 
 
 def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) -> list[tuple[str, Callable[[], dict]]]:
@@ -533,8 +549,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pitch-deg", type=float, default=0.0,
                         help="the clip's camera pitch for the refiner, degrees (default 0: the calibration has none)")
     parser.add_argument("--step", type=int, default=1,
-                        help="clip pairs this many frames apart, every step-th frame (default 1; 3: about "
-                             "130 km/h at 10 Hz instead of 43)")
+                        help="clip pairs this many frames apart, every step-th frame, at most the clip's frames "
+                             "less one (default 1; 3: about 130 km/h at 10 Hz instead of 43)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
                         help="turn every pair by this many degrees of yaw (image 2 resampled; default 0)")
     parser.add_argument("--pitch-change-deg", type=float, default=0.0,
@@ -555,7 +571,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-prior-retry", action="store_true",
                         help="also run the refiner without its retry without the coarsest level's prior "
                              "(retry_without_prior=False)")
-    parser.add_argument("--json", type=Path, help="write every number (per pair too) here")
+    parser.add_argument("--json", type=Path,
+                        help="write every number (per pair too; the options and fit_sequence's mounting too) here; "
+                             "an earlier file there is removed at the start")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     if args.pairs is not None and args.pairs < 1:
@@ -589,25 +607,39 @@ def main(argv: list[str] | None = None) -> int:
     if not (math.isfinite(scale) and 0.5 <= scale <= 2 and math.isfinite(yaw_error) and abs(yaw_error) < 45):
         parser.error(f"--odometry-error: expected a scale within [0.5, 2] and degrees within (-45, 45), got "
                      f"{scale} {yaw_error}")
+    need = {"kitti15": ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"),
+            "clip": ("image_l", "calib.txt", "road.json")}
+    if args.pair is None and args.clip is None:
+        folders = {"kitti15": args.data / "kitti15_000000", "clip": args.data / "kitti_odometry_straight"}
+        if not any(root.is_dir() for root in folders.values()):
+            print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}",
+                  file=sys.stderr)
+            return 2
+        option_of = {key: "--data" for key in folders}
+    else:
+        folders = {k: v for k, v in (("kitti15", args.pair), ("clip", args.clip)) if v is not None}
+        option_of = {"kitti15": "--pair", "clip": "--clip"}
+    for key, root in folders.items():
+        missing = [n for n in need[key] if not (root / n).exists()]
+        if missing and (root.is_dir() or option_of[key] != "--data"):  # (--data may lack one sample)
+            print(f"error: {option_of[key]}: {str(root)!r} lacks {', '.join(missing)} (the figures are over the road "
+                  f"polygon of road.json)", file=sys.stderr)
+            return 2
+    frames = clip_frames(folders.get("clip"))
+    if frames is not None and args.step >= frames:
+        parser.error(f"--step: expected at most {frames - 1} (the clip {str(folders['clip'])!r} has {frames} "
+                     f"frames), got {args.step}")
+    from cli import json_path, write_json
+
+    inputs = {"--data": args.data} if args.pair is None and args.clip is None else {"--pair": args.pair,
+                                                                                    "--clip": args.clip}
+    args.json = json_path(parser, args.json, inputs)
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
                               "resize": args.resize,
-                              "odometry_error": [scale, yaw_error]}
-    found = False
-    if args.pair is None and args.clip is None:
-        folders = {"kitti15": args.data / "kitti15_000000", "clip": args.data / "kitti_odometry_straight"}
-    else:
-        folders = {k: v for k, v in (("kitti15", args.pair), ("clip", args.clip)) if v is not None}
-        need = {"kitti15": ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"),
-                "clip": ("image_l", "calib.txt", "road.json")}
-        for key, root in folders.items():
-            option = "--pair" if key == "kitti15" else "--clip"
-            missing = [n for n in need[key] if not (root / n).exists()]
-            if missing:
-                print(f"error: {option}: {str(root)!r} lacks {', '.join(missing)} (the figures are over the road "
-                      f"polygon of road.json)", file=sys.stderr)
-                return 2
+                              "odometry_error": [scale, yaw_error],
+                              "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
                        ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step)[:args.pairs])):
         root = folders.get(key)
@@ -624,7 +656,6 @@ def main(argv: list[str] | None = None) -> int:
         if not root.is_dir():
             print(f"{title}: {root} not found, skipped", file=sys.stderr)
             continue
-        found = True
         data, run_methods = pairs(root), dict(methods)
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
@@ -636,10 +667,13 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: {**load(), "odometry_error": (scale, yaw_error)}) for name, load in data]
         # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
         changed = any(turn) or args.exposure_gain != 1.0
+        mounting = None
         if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
-            name, method = clip_method(data, not args.no_progress)
+            name, method, mounting = clip_method(data, not args.no_progress)
             run_methods[name] = (None, method)
         result = measure(key, data, run_methods, not args.no_progress)
+        if mounting is not None:
+            result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
@@ -653,14 +687,9 @@ def main(argv: list[str] | None = None) -> int:
         disagreement = images_against_poses(result["pairs"])
         if disagreement is not None:
             print("\n" + disagreement)
-    if not found:
-        print(f"error: --data: no kitti15_000000/ or kitti_odometry_straight/ in {str(args.data)!r}", file=sys.stderr)
-        return 2
     print(f"\nOne thread (torch and OpenCV); OpenCV {cv2.__version__}, torch {torch.__version__}. Means over the "
           f"pairs. 'CPU s / pair': the process's CPU time, for ECC and the refiner on top of DIS.")
     if args.json is not None:
-        from fsof_torch.io import write_json
-
         write_json(args.json, report)
     return 0
 

@@ -90,14 +90,14 @@ def _dis(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, present
+    from cli import description, present, samples_folder
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
-                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/ "
-                             "(default: ../shared/data beside the repository)")
+                        help="the folder that holds kitti15_000000/ and kitti_odometry_straight/, at least one "
+                             "(default: ../shared/data beside the repository, where both may be absent)")
     args = parser.parse_args(argv)
-    data = data_folder(parser, args.data, DEFAULT)
+    data = samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP]))
     torch.set_num_threads(1)
     import cv2
 

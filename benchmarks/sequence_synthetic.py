@@ -27,24 +27,30 @@ from fsof_torch import PRESETS
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, json_object, positive_int
+    from cli import check_options, description, json_object, positive_int, scene_seed, thread_count
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--preset", default="body-motion", choices=PRESETS,
                         help="the synthetic scene (default body-motion)")
     parser.add_argument("--pairs", type=positive_int, default=8, help="pairs of the clip (default 8)")
-    parser.add_argument("--seed", type=int, default=0, help="the scene's seed (default 0)")
+    parser.add_argument("--seed", type=scene_seed, default=0, help="the scene's seed, in [0, 2**62) (default 0)")
     parser.add_argument("--options", type=json_object, default={}, metavar="JSON",
-                        help="fit_image keyword arguments as a JSON object")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch and OpenCV threads (default 1)")
+                        help="fit_image keyword arguments as a JSON object (not those the script or "
+                             "fit_sequence sets: the images, mask, camera, init, starts, prior)")
+    parser.add_argument("--threads", type=thread_count, default=1,
+                        help="torch and OpenCV threads, at most this machine's CPUs (default 1)")
     args = parser.parse_args(argv)
+    from fsof_torch import fit_image, fit_sequence
+
+    # (the options go to both fits; fit_sequence sets these itself)
+    check_options(parser, args.options, "--options", fit_image,
+                  reserved=("image1", "image2", "mask", "camera", "init", "starts", "prior"))
     import cv2
 
     torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     options = args.options
 
-    from fsof_torch import fit_image, fit_sequence
     from fsof_torch.data.scene import render_sequence
 
     pairs = render_sequence(args.preset, args.pairs, seed=args.seed, progress=True)

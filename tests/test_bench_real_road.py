@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -19,7 +21,10 @@ POLYGON = [[60, 95], [150, 56], [195, 56], [205, 95]]
 
 @pytest.fixture(scope="module")
 def rr(load_benchmark):
-    return load_benchmark("real_road")
+    with pytest.MonkeyPatch.context() as patch:
+        # (main imports its sibling cli.py, as when run as a script)
+        patch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))
+        yield load_benchmark("real_road")
 
 
 @pytest.fixture(scope="module")
@@ -234,6 +239,13 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     for r in rows.values():
         assert 0 <= r["census"] <= 1 and r["seconds"] >= 0 and "epe" not in r
     assert [p["pair"] for p in report["clip"]["pairs"]] == ["000000", "000001"]
+    # the mounting fit_sequence printed, and the run's options
+    pitch, roll = (float(v) for v in re.search(r"calibrated the mounting at pitch (\S+) deg, roll (\S+) deg",
+                                                printed.out).groups())
+    mounting = report["clip"]["mounting"]
+    assert round(mounting["pitch_deg"], 3) == pitch and round(mounting["roll_deg"], 3) == roll
+    assert report["options"] == {**report["options"], "data": str(tmp_path / "data"), "pairs": None, "height": 1.65,
+                                 "pitch_deg": 0.0, "no_ecc": False, "pair": None, "clip": None, "json": str(out)}
     assert rr.main(["--data", str(tmp_path / "data"), "--pairs", "1", "--no-ecc", "--no-progress"]) == 0
     printed = capsys.readouterr().out
     assert "| DIS | 1 |" in printed and "| ECC homography |" not in printed
@@ -247,6 +259,34 @@ def test_main_on_a_tiny_clip_in_the_shared_layout(rr, scenes, tmp_path, capsys):
     with pytest.raises(SystemExit) as exit_:
         rr.main(["--data", str(tmp_path / "data"), "--step", "0"])
     assert exit_.value.code == 2 and "--step: expected >= 1, got 0" in capsys.readouterr().err
+
+
+def test_main_checks_the_step_and_the_json_path_before_any_work(rr, scenes, tmp_path, capsys, monkeypatch):
+    """--step must leave a pair in the clip; --json must name a file that can be written, and the file an
+    earlier run left there is removed once the options are checked: a run that fails later leaves none."""
+    _tiny_clip(scenes, tmp_path)
+    data = ["--data", str(tmp_path / "data"), "--no-ecc", "--no-progress"]
+    with pytest.raises(SystemExit) as exit_:
+        rr.main([*data, "--step", "3"])
+    assert exit_.value.code == 2
+    assert "--step: expected at most 2 (the clip" in capsys.readouterr().err
+    for bad, message in ((tmp_path, "is a folder"), (tmp_path / "data" / "x.json", "is inside the input --data")):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main([*data, "--json", str(bad)])
+        assert exit_.value.code == 2 and f"--json: {str(bad)!r} {message}" in capsys.readouterr().err
+    earlier = tmp_path / "report.json"
+    earlier.write_text('{"from": "an earlier run"}')
+    with pytest.raises(SystemExit):  # (refused: nothing ran, nothing removed)
+        rr.main([*data, "--step", "0", "--json", str(earlier)])
+    assert earlier.is_file()
+
+    def fails(*args, **kwargs):
+        raise RuntimeError("the run failed")
+
+    monkeypatch.setattr(rr, "measure", fails)
+    with pytest.raises(RuntimeError, match="the run failed"):
+        rr.main([*data, "--json", str(earlier)])
+    assert not earlier.exists()
 
 
 def test_main_on_other_kitti_folders(rr, scenes, tmp_path, capsys):
@@ -310,6 +350,11 @@ def test_clip_poses_are_matched_to_frames_by_name(rr, scenes, tmp_path):
 def test_main_without_data_exits_2(rr, tmp_path, capsys):
     assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
     assert "--data: no kitti15_000000/ or kitti_odometry_straight/" in capsys.readouterr().err
+    (tmp_path / "kitti15_000000").mkdir()  # (a sample's folder without its files)
+    (tmp_path / "kitti15_000000" / "road.json").write_text("{}")
+    assert rr.main(["--data", str(tmp_path), "--no-progress"]) == 2
+    assert (f"--data: {str(tmp_path / 'kitti15_000000')!r} lacks image_10.png, image_11.png, calib_cam_to_cam.txt"
+            in capsys.readouterr().err)
 
 
 def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(rr, scenes):

@@ -22,28 +22,47 @@ BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 SHARED_MODULES = {"baseline", "cli"}  # imported by the scripts, not scripts themselves
 SCRIPTS = sorted(p.stem for p in BENCHMARKS.glob("*.py") if p.stem not in SHARED_MODULES)
 ABSENT = "/nonexistent/fsof-benchmark-data"
+#: stands for a folder made for the test, holding file.txt (a file), nonempty/ (a folder with a
+#: file) and empty/ (a folder without the KITTI samples)
+TMP = "<tmp>"
 
 # (script, arguments, what stderr must name); every one exits 2
 BAD = [
     ("auto_road", ["--repeat", "0"], "--repeat"),
     ("auto_road", ["--data", ABSENT, "--no-synthetic", "--no-slow"], "--data"),
+    ("auto_road", ["--data", f"{TMP}/empty", "--no-synthetic", "--no-slow"], "--data"),
     ("bench_compile", ["--repeats", "0"], "--repeats"),
     ("bench_fit", ["--repeats", "0"], "--repeats"),
     ("bench_fit", ["--baseline", "no-such-revision"], "--baseline"),
     ("bench_image_fit", ["--repeats", "0"], "--repeats"),
     ("bench_image_fit", ["--baseline", "no-such-revision"], "--baseline"),
-    ("bench_image_fit", ["--kitti15", "--data", ABSENT], "--kitti15"),
+    ("bench_image_fit", ["--kitti15", "--data", ABSENT], "--data"),
+    ("bench_image_fit", ["--kitti15", "--data", f"{TMP}/empty"], "--kitti15"),
+    ("bench_image_fit", ["--data", ABSENT], "--data"),  # (no fallback on the synthetic pair)
+    ("bench_image_fit", ["--data", f"{TMP}/empty"], "--data"),
+    ("bench_image_fit", ["--baseline", "09d064e"], "--baseline"),  # (a revision without fit_image)
     ("bench_model", ["--batch", "1", "0"], "--batch"),
+    ("bench_model", ["--batch", "1", "1"], "--batch"),
     ("bench_model", ["--warmup", "-1"], "--warmup"),
+    ("bench_model", ["--threads", "100000"], "--threads"),
+    ("bench_model", ["--json", TMP], "--json"),  # (a folder)
+    ("bench_model", ["--json", f"{TMP}/file.txt/out.json"], "--json"),
+    ("bench_fit", ["--json", TMP], "--json"),
+    ("bench_fit", ["--json", f"{TMP}/file.txt/out.json"], "--json"),
+    ("bench_refine", ["--json", TMP], "--json"),
+    ("fit_kitti", ["--json", f"{TMP}/file.txt/out.json"], "--json"),
+    ("real_road", ["--json", TMP], "--json"),
     ("bench_quickstart", ["--runs", "0"], "--runs"),
     ("bench_quickstart", ["--args", "--pairs 'unclosed"], "--args"),
     ("bench_refine", ["--rounds", "0"], "--rounds"),
     ("bench_refine", ["--repeats", "-1"], "--repeats"),
     ("bench_refine", ["--baseline", "no-such-revision"], "--baseline"),
     ("bench_scene", ["--size", "0", "0"], "--size"),
+    ("bench_scene", ["--size", "1", "1"], "--size"),
     ("bench_scene", ["--repeats", "0"], "--repeats"),
     ("bench_smooth_attitude", ["--repeats", "0"], "--repeats"),
     ("bench_smooth_attitude", ["--threads", "0"], "--threads"),
+    ("bench_smooth_attitude", ["--threads", "100000"], "--threads"),
     ("bench_smooth_attitude", ["--sizes", "-5"], "--sizes"),
     ("bench_testnet", ["--repeats", "0"], "--repeats"),
     ("bench_testnet", ["--iters", "0"], "--iters"),
@@ -51,29 +70,42 @@ BAD = [
     ("clip_memory", ["--size", "abc"], "--size"),
     ("clip_memory", ["--lengths", "2"], "--lengths"),
     ("clip_memory", ["--baseline", "no-such-revision"], "--baseline"),
+    ("clip_memory", ["--seed", "-1"], "--seed"),
+    ("clip_memory", ["--keep", f"{TMP}/file.txt"], "--keep"),
+    ("clip_memory", ["--keep", f"{TMP}/nonempty"], "--keep"),  # (an earlier clip's frames would mix in)
     ("failsafe", ["--pairs", "3"], "--pairs"),  # (no options: unrecognised)
     ("fit_confidence", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", ABSENT], "--data"),
+    ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
     ("fit_road_models", ["--size", "0", "10"], "--size"),
+    ("fit_road_models", ["--size", "1", "1"], "--size"),
     ("fit_road_models", ["--pairs", "-1"], "--pairs"),
     ("gate_chance", ["--draws", "0"], "--draws"),
     ("gate_chance", ["--error", "0"], "--error"),
     ("image_fit_settings", ["{bad"], "SETTING"),
     ("image_fit_settings", ["[1, 2]"], "SETTING"),
+    ("image_fit_settings", ['{"bogus": 1}'], "SETTING"),
     ("image_formation", ["--pairs", "0"], "--pairs"),
     ("kitti_photometric", ["--data", ABSENT], "--data"),
     ("presets_refiner", ["--pairs", "-1"], "--pairs"),
     ("presets_refiner", ["--odometry-error", "nan", "0"], "--odometry-error"),
+    ("presets_refiner", ["--seed", "-1"], "--seed"),
     ("real_road", ["--pairs", "0"], "--pairs"),
     ("real_road", ["--height", "0"], "--height"),
     ("scene_realism", ["--data", ABSENT], "--data"),
+    ("scene_realism", ["--data", f"{TMP}/empty"], "--data"),  # (a folder named must hold a sample)
     ("scene_road_motion", ["--seeds", "0"], "--seeds"),
     ("scene_road_motion", ["--frames", "1"], "--frames"),
     ("sequence_synthetic", ["--options", "{bad"], "--options"),
     ("sequence_synthetic", ["--threads", "0"], "--threads"),
     ("sequence_synthetic", ["--pairs", "0"], "--pairs"),
+    ("sequence_synthetic", ["--seed", "-1"], "--seed"),
+    ("sequence_synthetic", ["--options", '{"bogus": 1}'], "--options"),
+    ("sequence_synthetic", ["--options", '{"init": {}}'], "--options"),  # (fit_sequence sets it)
 ]
+# a failing run of the job: exits 1 naming the run (the single option passed as documented)
+QUICKSTART_FAILS = ("bench_quickstart", ["--runs", "1", "--args", "--no-such-option"])
 
 # runs each (script, arguments) as `python benchmarks/<script>.py ARGS` would, in this one process
 DRIVER = r"""
@@ -118,23 +150,22 @@ def cli():
 
 
 @pytest.fixture(scope="module")
-def empty(tmp_path_factory) -> Path:
-    """A data folder without the KITTI samples."""
-    return tmp_path_factory.mktemp("no_samples")
-
-
-@pytest.fixture(scope="module")
-def runs(tmp_path_factory, empty) -> dict[tuple[str, tuple[str, ...]], dict]:
-    """{(script, arguments): its exit code, stdout and stderr} of BAD and of runs on ``empty``,
-    all from one process."""
+def runs(tmp_path_factory) -> dict[tuple[str, tuple[str, ...]], dict]:
+    """{(script, arguments): its exit code, stdout and stderr} of BAD and QUICKSTART_FAILS, all from
+    one process (``TMP`` in the arguments: a folder made for them)."""
     tmp = tmp_path_factory.mktemp("bench_cli")
-    cases = [(script, args) for script, args, _ in BAD]
-    cases += [("auto_road", ["--data", str(empty), "--no-synthetic", "--no-slow"]),
-              ("fit_kitti", ["--data", str(empty)])]
-    (tmp / "cases.json").write_text(json.dumps(cases))
+    folder = tmp / "paths"
+    (folder / "nonempty").mkdir(parents=True)
+    (folder / "nonempty" / "000000.png").write_bytes(b"")
+    (folder / "empty").mkdir()
+    (folder / "file.txt").write_text("a file\n")
+    cases = [(script, args) for script, args, _ in BAD] + [QUICKSTART_FAILS]
+    given = [(script, [a.replace(TMP, str(folder)) for a in args]) for script, args in cases]
+    (tmp / "cases.json").write_text(json.dumps(given))
     subprocess.run([sys.executable, "-c", DRIVER, str(BENCHMARKS), str(tmp / "cases.json"), str(tmp / "out.json")],
-                   check=True, timeout=300, cwd=BENCHMARKS.parent)
+                   check=True, timeout=400, cwd=BENCHMARKS.parent)
     results = json.loads((tmp / "out.json").read_text())
+    assert (folder / "file.txt").read_text() == "a file\n" and list((folder / "empty").iterdir()) == []
     return {(script, tuple(args)): result for (script, args), result in zip(cases, results)}
 
 
@@ -185,15 +216,34 @@ def test_a_bad_value_exits_2_naming_its_option(runs, script, args, option):
     assert ": error: " in last and option in last, result["stderr"]
 
 
-def test_absent_samples_are_skipped_with_a_note(runs, empty):
-    auto = runs[("auto_road", ("--data", str(empty), "--no-synthetic", "--no-slow"))]
-    assert auto["code"] in (0, None), auto
-    assert "KITTI pair kitti15_000000 absent: skipped" in auto["stdout"]
-    assert "KITTI clip kitti_odometry_straight absent: skipped" in auto["stdout"]
-    # a folder named explicitly must hold the pair
-    kitti = runs[("fit_kitti", ("--data", str(empty)))]
-    last = kitti["stderr"].strip().splitlines()[-1]
-    assert kitti["code"] == 2 and "--data" in last and "lacks" in last, kitti
+def test_a_folder_named_must_hold_what_the_script_reads(runs):
+    """Only the default data folder may lack the samples (they are then skipped with a note): a
+    folder named by --data is checked before any work."""
+    kitti = runs[("fit_kitti", ("--data", f"{TMP}/empty"))]
+    assert "lacks" in kitti["stderr"].strip().splitlines()[-1], kitti
+    for script, args in (("auto_road", ("--data", f"{TMP}/empty", "--no-synthetic", "--no-slow")),
+                         ("scene_realism", ("--data", f"{TMP}/empty"))):
+        last = runs[(script, args)]["stderr"].strip().splitlines()[-1]
+        assert ("holds none of the samples (kitti15_000000/ not found; kitti_odometry_straight/ not found)"
+                in last), last
+    assert "absent: skipped" not in runs[("auto_road", ("--data", f"{TMP}/empty", "--no-synthetic",
+                                                          "--no-slow"))]["stdout"]
+
+
+def test_a_failing_quickstart_run_is_named(runs):
+    script, args = QUICKSTART_FAILS
+    result = runs[(script, tuple(args))]
+    assert result["code"] == 1, result
+    assert "run 0 of 1 failed (exit status 2): python -m refine --no-such-option" in result["stderr"], result
+    assert "unrecognized arguments: --no-such-option" in result["stderr"]
+    assert "Command being timed" not in result["stderr"]  # (time's report left out)
+
+
+def test_quickstart_args_take_a_single_option(load_benchmark):
+    joined = load_benchmark("bench_quickstart")._joined
+    assert joined(["--runs", "1", "--args", "--no-figures"]) == ["--runs", "1", "--args=--no-figures"]
+    assert joined(["--args=--num-pairs 2", "--runs", "3"]) == ["--args=--num-pairs 2", "--runs", "3"]
+    assert joined(["--args"]) == ["--args"]  # (argparse then says it expects one argument)
 
 
 @pytest.mark.parametrize("text, value", [("1", 1), ("12", 12)])
@@ -263,3 +313,73 @@ def test_baseline_revision(cli, tmp_path, capsys, monkeypatch):
     with pytest.raises(SystemExit) as exit_:
         cli.baseline_revision(parser, "HEAD")
     assert exit_.value.code == 2
+
+
+def test_thread_count_seed_and_side(cli, monkeypatch):
+    monkeypatch.setattr(cli.os, "cpu_count", lambda: 4)
+    assert cli.thread_count("4") == 4
+    for bad, message in (("5", "at most 4"), ("0", ">= 1"), ("x", ">= 1")):
+        with pytest.raises(argparse.ArgumentTypeError, match=message):
+            cli.thread_count(bad)
+    assert cli.scene_seed("0") == 0 and cli.scene_seed(str(2**62 - 1)) == 2**62 - 1
+    for bad in ("-1", str(2**62), "1.5", "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"in \[0, 2\*\*62\)"):
+            cli.scene_seed(bad)
+    assert cli.image_side(str(cli.MIN_SIDE)) == cli.MIN_SIDE
+    with pytest.raises(argparse.ArgumentTypeError, match=f">= {cli.MIN_SIDE}"):
+        cli.image_side(str(cli.MIN_SIDE - 1))
+
+
+def _error(capsys, fn, *args) -> str:
+    """What ``fn(*args)`` says as ``parser.error`` (it exits 2)."""
+    with pytest.raises(SystemExit) as exit_:
+        fn(*args)
+    assert exit_.value.code == 2
+    return capsys.readouterr().err.strip().splitlines()[-1]
+
+
+def test_json_path_checks_the_path_and_removes_an_earlier_file(cli, tmp_path, capsys):
+    parser = argparse.ArgumentParser(prog="bench")
+    assert cli.json_path(parser, None) is None
+    earlier = tmp_path / "out.json"
+    earlier.write_text('{"from": "an earlier run"}')
+    assert cli.json_path(parser, str(earlier)) == earlier and not earlier.exists()
+    assert "is a folder" in _error(capsys, cli.json_path, parser, tmp_path)
+    (tmp_path / "file").write_text("")
+    assert "is a file, so" in _error(capsys, cli.json_path, parser, tmp_path / "file" / "out.json")
+    data = tmp_path / "data"
+    (data / "pair").mkdir(parents=True)
+    (data / "pair" / "road.json").write_text("{}")
+    last = _error(capsys, cli.json_path, parser, data / "pair" / "road.json", {"--data": data, "--clip": None})
+    assert "--json" in last and "inside the input --data" in last
+    assert (data / "pair" / "road.json").read_text() == "{}"  # (refused, not removed)
+    # missing folders are created when it is written; NaN is written as null
+    deep = cli.json_path(parser, tmp_path / "new" / "folder" / "out.json")
+    cli.write_json(deep, {"x": float("nan"), "rows": [1, 2]})
+    assert json.loads(deep.read_text()) == {"x": None, "rows": [1, 2]}
+
+
+def test_samples_folder_given_must_hold_one_sample(cli, tmp_path, capsys):
+    parser = argparse.ArgumentParser(prog="bench")
+    samples = {"pair": ("road.json", "image_10.png"), "clip": ("image_l",)}
+    default = tmp_path / "default"
+    assert cli.samples_folder(parser, None, default, samples) == default  # (the default may lack them)
+    (tmp_path / "pair").mkdir()
+    (tmp_path / "pair" / "road.json").write_text("{}")
+    last = _error(capsys, cli.samples_folder, parser, tmp_path, default, samples)
+    assert last.endswith(f"--data: {str(tmp_path)!r} holds none of the samples (pair/ lacks image_10.png; "
+                         "clip/ not found)"), last
+    (tmp_path / "clip" / "image_l").mkdir(parents=True)
+    assert cli.samples_folder(parser, tmp_path, default, samples) == tmp_path
+    assert "not found" in _error(capsys, cli.samples_folder, parser, tmp_path / "absent", default, samples)
+
+
+def test_check_options_names_the_option(cli, capsys):
+    def fit(image, *, highpass=4.0, init=None):
+        return image
+
+    parser = argparse.ArgumentParser(prog="bench")
+    cli.check_options(parser, {"highpass": None}, "--options", fit, reserved=("image", "init"))
+    last = _error(capsys, cli.check_options, parser, {"bogus": 1}, "--options", fit, ("image", "init"))
+    assert "--options: unknown options ['bogus'] of fit" in last
+    assert "--options" in _error(capsys, cli.check_options, parser, {"init": 1}, "--options", fit, ("image", "init"))
