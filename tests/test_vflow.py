@@ -411,6 +411,28 @@ def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
 
 
 class TestDetectFreespace:
+    def test_a_pavement_nearly_as_wide_as_the_road(self):
+        """docs/vflow.md's limitation: a pavement 12 cm higher (8 % more flow) that holds nearly as
+        many pixels of every row as the road enters the default seed band and can draw the fit."""
+        K = torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]], dtype=torch.float64)
+        cam = Camera(K, 1.65).scaled(0.5)
+        size = (188, 621)
+        road, valid = displacement_flow(cam, 0.0, 1.2, 0.0, size)
+        pavement, _ = displacement_flow(cam.replace(height=1.65 - 0.12), 0.0, 1.2, 0.0, size)
+
+        def iou(width, **options):
+            side = torch.zeros(1, 1, *size, dtype=torch.bool)
+            side[..., :width] = True
+            side[..., -width:] = True
+            free = detect_freespace(torch.where(side, pavement, road), cam, threshold=0.05, relative_threshold=0.02,
+                                    **options)
+            truth = valid & ~side
+            return float((free & truth).sum() / (free | truth).sum())
+
+        assert iou(130) > 0.98
+        assert iou(140) < 0.1
+        assert iou(140, seed_threshold=0.1, seed_relative_threshold=0.03) > 0.98
+
     def _scene(self, B=1):
         """Road flow of a turning motion with an obstacle standing on the road and a detached
         island of road-like flow above the obstacle."""

@@ -245,7 +245,8 @@ class Camera:
 
         Pixels strictly below this row (larger v) see the road in front of the camera: so for
         every camera built with |roll| and |pitch| < π/2, which the constructor requires (a
-        camera turned further would see the road above this row, or not at all).
+        camera turned further would see the road above this row, or not at all), and a skew s
+        with cos θ − sin θ · s / f_x > 0 (θ the roll; any real camera's skew of about 0).
 
         Args:
             u: the column, pixels: a finite float or a float tensor of shape (1,) or (B,), B the
