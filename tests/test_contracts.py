@@ -64,6 +64,18 @@ class TestStructures:
         name, finest = finest_flow(collect_flows(out))
         assert name == "flow['flows']" and torch.equal(finest, b[:, -1])
 
+    def test_finest_flow_prefers_a_final_flow_to_a_warm_start_of_its_size(self):
+        a, b, c = torch.zeros(1, 2, 4, 6), torch.ones(1, 2, 4, 6), torch.full((1, 2, 4, 6), 2.0)
+        for out in ({"flow_final": a, "flow_init": b}, {"flow_init": b, "flow_final": a},
+                    {"flows": a[:, None], "flow_low": [b], "flow_small": c}):
+            name, finest = finest_flow(collect_flows(out))
+            assert torch.equal(finest, a) and "flow_init" not in name, name
+        assert finest_flow(collect_flows({"flow_init": b}))[0] == "flow['flow_init']"
+        # otherwise the last among equals: a list's last (RAFT's final iterate), a dict's last
+        assert torch.equal(finest_flow(collect_flows([a, b, c]))[1], c)
+        assert torch.equal(finest_flow(collect_flows({"flow_up": b, "flow": c}))[1], c)
+        assert torch.equal(finest_flow(collect_flows({"flow_init": c, "flows": [a, b]}))[1], b)
+
     def test_map_keeps_containers_and_passes_other_values(self):
         occ = torch.zeros(1, 1, 4, 6)
         out = OrderedDict(flow_up=[torch.zeros(1, 2, 4, 6)], occ=occ, pair=Pair(torch.zeros(1, 2, 2, 3),

@@ -278,6 +278,20 @@ def test_all_false_mask_returns_prediction_with_warning(odometry):
     assert not bool(out.refined.any()) and not bool(out.mask.any())
 
 
+@pytest.mark.parametrize("images", [False, True])
+def test_a_mask_where_the_model_is_undefined_leaves_the_sample_unrefined_given_odometry(images):
+    """Once refined True with no warning: with odometry and no gate only a mask pixel was asked for."""
+    pred, mask, cam, _ = make_case(B=2)
+    mask = mask.clone()
+    mask[1] = False
+    mask[1, :, :10] = True  # wholly above the horizon (row 14): the road model is undefined there
+    kw = dict(gate=None, images=(torch.full((2, 1, H, W), 9.0), torch.full((2, 1, H, W), 9.0))) if images else {}
+    with pytest.warns(RuntimeWarning, match=r"samples \[1\] left unchanged"):
+        out = refine_flow(pred, mask, cam, {"model": "paper", **ODO}, **kw)
+    assert out.refined.tolist() == [True, False] and not bool(out.mask[1].any())
+    assert torch.equal(out.flow[1], pred[1]) and float(out.odometry["z_d"][1]) == 0.0
+
+
 def test_nan_prediction_inside_and_outside_mask():
     pred, mask, cam, gt = make_case()
     bad = pred.clone()
@@ -689,6 +703,20 @@ def test_fuse_flow_nonfinite_model_outside_the_mask_is_harmless():
         out, weight = fuse_flow(pred, model, mask, mode=mode)
         assert torch.equal(out[~mask.expand_as(out)], pred[~mask.expand_as(pred)])
         assert torch.isfinite(out).all() and torch.isfinite(weight).all()
+        # and in the gradient (confidence mode once gave NaN there: (1 − w) · diff of the NaN model)
+        p = pred.clone().requires_grad_(True)
+        grad, = torch.autograd.grad(fuse_flow(p, model, mask, mode=mode)[0].sum(), p)
+        assert torch.isfinite(grad).all()
+        assert torch.equal(grad[~mask.expand_as(grad)], torch.ones_like(grad)[~mask.expand_as(grad)])
+
+
+def test_the_refiner_fits_a_dicts_final_flow_not_its_warm_start():
+    """Once the refiner fitted (and gated against) a flow_init listed after flow_final."""
+    pred, mask, cam, gt = make_case()
+    alone = FreespaceRefiner()({"flow_final": pred}, mask, cam)
+    out = FreespaceRefiner()({"flow_final": pred, "flow_init": torch.zeros_like(pred)}, mask, cam)
+    assert torch.equal(out.flow["flow_final"], alone.flow["flow_final"])
+    assert road_epe(out.flow["flow_final"], gt, mask) < 0.3 * road_epe(pred, gt, mask)
 
 
 # -- options and helpers: named errors quoting what came ----------------------------------------------

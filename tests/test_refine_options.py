@@ -189,6 +189,16 @@ def test_wrapper_road_options_need_road_auto():
     assert FreespaceRefined(Net(), road="auto", road_options={"window": 5}).road_options == {"window": 5}
 
 
+def test_wrapper_road_options_data_range_refused_when_built():
+    """Once accepted here, and refused by refine_flow only after the network had run."""
+    message = r"^road_options: options \['data_range'\] are set by the caller itself, not through road_options$"
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefined(Net(), road="auto", road_options={"data_range": 1.0})
+    pred, _, cam, pair = make_case()
+    with pytest.raises(TypeError, match=message):
+        refine_flow(pred, "auto", cam, images=pair, road_options={"data_range": 1.0})
+
+
 # -- dict subclasses keep their type --------------------------------------------------------------------
 
 def test_map_flows_keeps_a_defaultdict_and_its_factory():

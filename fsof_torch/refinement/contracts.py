@@ -154,15 +154,23 @@ def _map_flows(output: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str
                     f"got {type(output).__name__}")
 
 
+#: dict keys of a start or a coarse estimate, not the network's answer (RAFT's ``flow_init`` is
+#: its warm start): a flow of the same size under another key is the one to fit.
+_SECONDARY_KEYS = ("flow_init", "flow_low", "flow_small")
+
+
 def finest_flow(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
-    """The flow to fit: the largest resolution; among equals the last (RAFT's final iterate);
+    """The flow to fit, from :func:`collect_flows`'s pairs: the largest resolution; among equals
+    one not under a dict's ``flow_init``, ``flow_low`` or ``flow_small`` (a warm start, a coarse
+    estimate), then the last (RAFT's final iterate: a list's last, a dict's last in its order);
     of a stack (B, N, 2, H, W) its last prediction. Returns ``(name, (B, 2, H, W))``."""
     best = None
     for name, f in flows:
         f4 = f[:, -1] if f.dim() == 5 else f
-        area = f4.shape[-2] * f4.shape[-1]
-        if best is None or area >= best[0]:
-            best = (area, name, f4)
+        # (the dict keys are in the names collect_flows gives: flow['flow_init'], flow['flows'][0])
+        rank = (f4.shape[-2] * f4.shape[-1], not any(f"[{k!r}]" in name for k in _SECONDARY_KEYS))
+        if best is None or rank >= best[0]:
+            best = (rank, name, f4)
     if best is None:
         raise ValueError("flow: expected at least one flow, got none")
     return best[1], best[2]

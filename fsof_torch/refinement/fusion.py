@@ -45,14 +45,8 @@ from .auto_road import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options
-from .contracts import (
-    DEFAULT_FLOW_KEYS,
-    collect_flows,
-    finest_flow,
-    images_from_ptlflow,
-    is_ptlflow_inputs,
-    map_flows,
-)
+from .contracts import (DEFAULT_FLOW_KEYS, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs,
+                        map_flows)
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
@@ -82,8 +76,9 @@ class RefineOutput(NamedTuple):
             replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
             ∩ model defined, for refined samples).
-        refined: (B,) bool, False for samples left unchanged (an empty mask, a failed fit, a model the
-            images give no evidence for, a gate that keeps the prediction everywhere: see ``gate``).
+        refined: (B,) bool, False for samples left unchanged (an empty mask, one where the model is
+            undefined, a failed fit, a model the images give no evidence for, a gate that keeps the
+            prediction everywhere: see ``gate``).
         camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
         flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
         model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
@@ -195,7 +190,9 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
         w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
     else:
         finite = torch.isfinite(pred).all(dim=1, keepdim=True)
-        # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0.
+        # Keep NaN out of the arithmetic (and of its gradient): the unused branch sees 0 (also
+        # fuse_flow's model flow outside the mask, which may be anything there).
+        flow_model = torch.where(mask, flow_model, 0.0)
         safe_pred = torch.where(finite, pred, flow_model)
         diff = safe_pred - flow_model
         w = cauchy_weight((diff * diff).sum(dim=1, keepdim=True), scale)
@@ -527,15 +524,16 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                 warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask, left out of the "
                               f"estimation; {n_replaced} replaced by the model flow{left}", RuntimeWarning,
                               stacklevel=3)
+    # a sample where the model applies nowhere (no mask pixel where it is defined, a gate that keeps
+    # the prediction everywhere; no NaN replaced) comes back unchanged, as odometry given or not
+    refined = refined & fuse_mask.flatten(1).any(1)
     if gate_result is not None:
-        # a sample where the gate keeps the prediction everywhere (no NaN replaced) comes back unchanged
-        refined = refined & fuse_mask.flatten(1).any(1)
         region = region & refined.reshape(B, 1, 1, 1)
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask, a failed estimate, images without evidence "
-                      f"for the model, or a gate that keeps the prediction everywhere: see RefineOutput.refined and "
-                      f".gate)", RuntimeWarning, stacklevel=3)
+        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined, a "
+                      f"failed estimate, images without evidence for the model, or a gate that keeps the prediction "
+                      f"everywhere: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
 
     masks: dict[tuple[int, int], Tensor] = {(H, W): gated}
     regions: dict[tuple[int, int], Tensor] = {(H, W): region}

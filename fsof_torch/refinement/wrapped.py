@@ -93,7 +93,8 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
         check_keywords(road_options, "road_options", detect_road,
-                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts"))
+                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts",
+                                 "data_range"))
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
