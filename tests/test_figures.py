@@ -353,6 +353,76 @@ def test_clip_summary_keeps_the_records_order_of_pairs():
         plt.close(fig)
 
 
+def _shown_x(ax):
+    """An axes' x label and its visible, non-empty x tick labels (after a draw)."""
+    ax.figure.canvas.draw()
+    return ax.get_xlabel(), [t.get_text() for t in ax.get_xticklabels() if t.get_visible() and t.get_text()]
+
+
+def test_clip_summary_labels_the_lowest_panel_of_each_column():
+    """With an odd number of panels the right column ends a row higher: its lowest panel had no
+    tick labels and no "pair" (only the hidden axes below it had them)."""
+    import matplotlib.pyplot as plt
+
+    records = [{"pair": str(100 + i), "variant": "fit", "before": {"epe_road": 1.0}, "after": {"epe_road": 0.5},
+                "odometry": {"x_d": 0.0, "z_d": 1.0}} for i in range(3)]
+    fig = clip_summary_figure(records, errors={"epe_road": "end-point error (px), road"}, title="t")
+    try:
+        top_left, right, bottom_left = [ax for ax in fig.axes if ax.get_visible()]
+        assert "x_d" in right.get_title() and "z_d" in bottom_left.get_title()
+        for ax in (right, bottom_left):
+            assert _shown_x(ax) == ("pair", ["100", "101", "102"]), ax.get_title()
+        assert _shown_x(top_left) == ("", [])
+    finally:
+        plt.close(fig)
+
+
+def test_clip_summary_of_many_pairs_ticks_whole_pairs_by_name():
+    """Beyond 12 pairs no ticks were set: matplotlib's own read -2.5 ... 20.0 under "pair"."""
+    import matplotlib.pyplot as plt
+
+    names = [str(100 + i) for i in range(20)]
+    records = [{"pair": n, "variant": "fit", "before": {"epe_road": 1.0}, "after": {"epe_road": 0.5},
+                "odometry": {"z_d": 1.0}} for n in names]
+    fig = clip_summary_figure(records, errors={"epe_road": "end-point error (px), road"}, title="t")
+    try:
+        for ax in fig.axes:
+            label, ticks = _shown_x(ax)
+            assert label == "pair" and 2 <= len(ticks) <= 13
+            assert set(ticks) <= set(names), ticks
+            assert [names.index(t) for t in ticks] == sorted(names.index(t) for t in ticks)
+    finally:
+        plt.close(fig)
+
+
+@pytest.mark.parametrize("flows, errors, xlabelled, ylabelled", [
+    # a flow column without an error panel is its column's lowest panel
+    (("before", "after"), ("after",), ["flow, before", "end-point error, after"],
+     ["flow, before", "end-point error, after"]),
+    # no error panel at all: the flow row carries the x axis
+    (("before",), (), ["flow, before"], ["flow, before"]),
+    (("a", "b", "c"), ("b",), ["flow, a", "end-point error, b", "flow, c"], ["flow, a", "end-point error, b"]),
+])
+def test_pair_figure_labels_the_panels_that_exist(flows, errors, xlabelled, ylabelled):
+    """Axis labels went by grid position: a flow panel with no error panel below had no x axis,
+    an error panel with none to its left no "v (px)"."""
+    import matplotlib.pyplot as plt
+
+    flow, road, _, err, valid = _pair()
+    fig = pair_figure(flows={n: flow for n in flows}, errors={n: (err, valid) for n in errors}, road=road,
+                      max_flow=6.0, error_vmax=5.0, error_label="end-point error (px)", title="t")
+    try:
+        fig.canvas.draw()
+        for ax in _image_axes(fig):
+            x_ticks = [t.get_text() for t in ax.get_xticklabels() if t.get_visible() and t.get_text()]
+            y_ticks = [t.get_text() for t in ax.get_yticklabels() if t.get_visible() and t.get_text()]
+            has_x, has_y = ax.get_title() in xlabelled, ax.get_title() in ylabelled
+            assert (ax.get_xlabel(), bool(x_ticks)) == (("u (px)", True) if has_x else ("", False)), ax.get_title()
+            assert (ax.get_ylabel(), bool(y_ticks)) == (("v (px)", True) if has_y else ("", False)), ax.get_title()
+    finally:
+        plt.close(fig)
+
+
 def test_clip_summary_shows_each_angle_once_in_degrees():
     """A plane-model record carries its attitude over the road in ``odometry`` and the camera
     the refinement used beside it: one panel each, titled apart, where they differ; the same

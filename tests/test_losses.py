@@ -520,6 +520,19 @@ def test_nonfinite_predictions_inside_the_road_are_left_out_with_a_warning():
     torch.testing.assert_close(value, freespace_flow_loss(off, keep, cam, odo), rtol=1e-6, atol=0)
 
 
+def test_fit_mode_warns_of_a_prediction_nan_on_the_whole_road():
+    """Once silent: a diverged sample makes its fit fail, and the count went over the fitted road."""
+    cam, odo, model, road = _road_case()
+    road = road.expand(2, 1, H, W).clone()
+    flow = (model + 0.3).expand(2, 2, H, W).clone()
+    flow[0] = float("nan")
+    n_road = int(road[0].sum())
+    with pytest.warns(RuntimeWarning, match=rf"left out of the freespace loss \(flows\[0\]: {n_road}\)"):
+        value = freespace_flow_loss(flow, road, cam, "fit", reduction="none")
+    assert value[0].item() == 0.0 and value[1].item() > 0
+    torch.testing.assert_close(value[1:], freespace_flow_loss(flow[1:], road[1:], cam, "fit", reduction="none"))
+
+
 def test_huge_finite_predictions_give_finite_penalties():
     """r = 1e20 px in float32: r² overflows; the penalties are written without forming it."""
     cam, odo, model, road = _road_case()

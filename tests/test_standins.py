@@ -37,6 +37,21 @@ def test_torchvision_num_flow_updates_gives_that_many_flows():
     assert len(flows) == 1 and flows[0].shape == (1, 2, 16, 24)
 
 
+def test_torchvision_default_update_count_differs_from_torchvision_and_says_so():
+    """The module said torchvision's contract was reproduced exactly, yet num_flow_updates
+    defaults to 4 where torchvision's RAFT.forward defaults to 12: the difference is stated."""
+    import inspect
+
+    from fsof_torch.training import standins
+
+    assert inspect.signature(TorchvisionRAFTStandIn.forward).parameters["num_flow_updates"].default == 4
+    for doc in (standins.__doc__, TorchvisionRAFTStandIn.__doc__):
+        text = " ".join(doc.split())
+        assert "num_flow_updates=12" in text and "4" in text
+    with torch.no_grad():
+        assert len(TorchvisionRAFTStandIn().eval()(_rgb(0), _rgb(1))) == 4
+
+
 def test_numpy_integers_are_accepted():
     """np.int64 counts were refused: num_flow_updates was passed on unconverted and TinyRAFT
     refused it under the name 'iters'; PtlflowRAFTStandIn(iters=np.int64(2)) likewise."""

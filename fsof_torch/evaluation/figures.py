@@ -265,12 +265,15 @@ class PairFigure:
         rows = (bottom + row_h + 0.11, bottom)
         h, w = -(-H // self.factor), -(-W // self.factor)  # the reduced pictures' size
         blank_rgb, blank_error = np.zeros((h, w, 3), dtype=np.uint8), np.full((h, w), np.nan)
+        # axis labels on the panels that exist: the lowest of each column, the left-most of each row
+        lower = [True] * bool(images) + [bool(e) for e in with_errors]  # a column's second-row panel
+        first_lower = lower.index(True) if any(lower) else None
 
         def panel(j: int, r: int, blank: Any, **kw: Any) -> tuple[Any, Any]:
             ax = fig.add_axes((left + j * (col_w + gap), rows[r], col_w, row_h))
             shown = ax.imshow(blank, interpolation="nearest", extent=extent, **kw)
             _draw_outline(ax, [])
-            _image_axes(ax, "", (H, W), xlabel=r == 1, ylabel=j == 0)
+            _image_axes(ax, "", (H, W), xlabel=r == 1 or not lower[j], ylabel=j == (0 if r == 0 else first_lower))
             return ax, shown
 
         self.image_panels = [panel(0, r, blank_rgb) for r in range(2)] if images else []
@@ -433,7 +436,8 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
         records: the job's per-pair records of one flow source (``pair``, ``variant``,
             ``before``/``after`` metrics, ``odometry`` dict, ``roll``, ``pitch``, optionally
             ``odometry_given``), in time order: the pairs go along the x axis in the order they
-            first appear (their names are not sorted: '10' would come before '5'). Fields are
+            first appear (their names are not sorted: '10' would come before '5'), named under
+            the lowest panel of each column (each pair up to 12, else about 12 of them). Fields are
             read as they come: a field new to the records shows up as a panel of its own.
         errors: the metrics plotted, one panel each, as record key -> name and unit, e.g.
             ``{"epe_road": "end-point error (px), road", "census_road": "census distance, road"}``
@@ -510,11 +514,21 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
         ax.legend(fontsize=7, loc="best")
     for k in range(len(panels), nrow * ncol):
         axes[k // ncol][k % ncol].set_visible(False)
-    for ax in axes[-1]:
+    # the pair axis under the lowest visible panel of each column (with an odd number of panels
+    # the right column ends a row higher); the axes share it, so one locator serves all
+    for c in range(min(ncol, len(panels))):
+        ax = axes[(len(panels) - 1 - c) // ncol][c]
         ax.set_xlabel("pair", fontsize=8)
         if len(pairs) <= 12:
             ax.set_xticks(range(len(pairs)))
             ax.set_xticklabels(pairs, rotation=30, fontsize=6)
+        else:  # whole positions only, named by their pair
+            from matplotlib.ticker import FuncFormatter, MaxNLocator
+
+            ax.xaxis.set_major_locator(MaxNLocator(nbins=12, integer=True))
+            ax.xaxis.set_major_formatter(FuncFormatter(
+                lambda x, _pos: pairs[round(x)] if x == round(x) and 0 <= x < len(pairs) else ""))
+            ax.tick_params(axis="x", labelrotation=30, labelsize=6)
         ax.tick_params(labelbottom=True)
     return fig
 

@@ -509,7 +509,8 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         autocast state.
 
     Non-finite predictions: outside ``road`` they do not count (zero gradient); inside, they are
-    left out too, with a ``RuntimeWarning`` giving their number. A penalty that overflows the
+    left out too, with a ``RuntimeWarning`` giving their number (with ``odometry="fit"`` counted
+    over the whole road, also where the fit failed). A penalty that overflows the
     working dtype (a prediction near its largest value) raises ValueError naming ``flows``.
     """
     _check_reduction(reduction)
@@ -556,12 +557,14 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             target, model_valid = road_flow(cam, values, size, model=model)
         target = target.to(device=device, dtype=work).expand(B, 2, *size)
         counted_model = road & model_valid.to(device)
+        # a diverged prediction makes the fit fail: its non-finite pixels are counted on the road
+        warn_region = road if isinstance(odometry, str) else counted_model
         rho = _PENALTY_FNS[penalty]
         total = torch.zeros(B, dtype=work, device=device)
         n_bad = []
         for w, f, ok in zip(weights, fw, finite):
             counted = counted_model & ok
-            n_bad.append((counted_model & ~ok).sum())
+            n_bad.append((warn_region & ~ok).sum())
             # the residual is 0 (and its gradient too) wherever the pixel does not count
             safe = torch.where(counted, f.to(work), target)
             per_pixel = rho((safe - target) / scale).sum(dim=1, keepdim=True)

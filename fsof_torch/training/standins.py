@@ -1,6 +1,8 @@
 """Stand-ins for the flow networks users bring: the I/O contracts of ptlflow's RAFT and of
 torchvision's RAFT, reproduced exactly (shapes, colour order, value range, padding), around the
-test net :class:`~fsof_torch.training.testnet.TinyRAFT`.
+test net :class:`~fsof_torch.training.testnet.TinyRAFT`. One default differs: the torchvision
+stand-in's ``num_flow_updates`` is 4, torchvision's ``RAFT.forward`` 12 (kept small so the
+tests and jobs that run it stay quick); pass ``num_flow_updates=12`` for torchvision's count.
 
 They exist to test code that wraps such networks (:class:`fsof_torch.FreespaceRefined`, the
 refine job's ``--net``) without installing ptlflow or torchvision or downloading weights. Their
@@ -73,7 +75,9 @@ class TorchvisionRAFTStandIn(nn.Module):
     ValueError, as torchvision raises for sides not divisible by 8); returns a list of
     ``num_flow_updates`` flows (B, 2, H, W), the last the estimate (``num_flow_updates``: an int
     >= 1, checked under its own name; values outside [-1, 1] or NaN raise ValueError quoting the
-    range that came).
+    range that came). The default of 4 updates is not torchvision's (``RAFT.forward`` defaults to
+    ``num_flow_updates=12``): it keeps the tests quick; pass 12 explicitly for torchvision's list
+    length.
     """
 
     flow_contract = "torchvision"  # read by the refine job's --net (see docs/jobs.md)
