@@ -121,6 +121,8 @@ def test_exceptions():
     # a prior's mean and sigma: numbers, of batch 1 or B (a raw torch error before)
     (dict(prior={"roll": ("a", 0.1)}), TypeError, r"prior\['roll'\]: expected numbers or tensors \(mean, sigma\)"),
     (dict(prior={"roll": (torch.zeros(3), 0.1)}), ValueError, r"prior\['roll'\]: expected a mean and a sigma of batch"),
+    (dict(prior={"roll": (0.0, 0.1), "pitch": (0.0, 0.0)}), ValueError,
+     r"prior\['pitch'\]: expected a finite mean and sigma > 0, got \(0.0, 0.0\)"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
@@ -129,6 +131,39 @@ def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
     with pytest.raises(error, match=message):
         fit_image(image1, image2, mask, cam, **options)
+
+
+def test_priors_are_judged_in_one_host_read(monkeypatch):
+    """Each prior entry's mean and sigma were read back on their own: ten host reads a fit for the
+    calibration prior of the plane model, whose values come from the checked camera."""
+    from fsof_torch.estimation.image_fit import _prior, calibration_prior
+    from fsof_torch.geometry.road_models import get_road_model
+
+    plane = get_road_model("plane")
+    spec = calibration_prior(plane, small_camera())
+    reads = []
+    for name in ("__bool__", "item", "tolist"):
+        original = getattr(torch.Tensor, name)
+        monkeypatch.setattr(torch.Tensor, name, lambda t, *a, _f=original, **k: reads.append(1) or _f(t, *a, **k))
+    mean, inverse_variance = _prior(plane, spec, 1, torch.device("cpu"))
+    monkeypatch.undo()
+    assert len(reads) == 1
+    assert (inverse_variance[0] > 0).tolist() == [n in spec for n in plane.params] + [False, False]
+
+
+def test_success_does_not_ask_convergence_and_the_docs_say_so():
+    """An image fit that ran out of iterations still succeeds where the image tests pass; the
+    docs said \"converged\" (RoadFit.success) and fit_image's Returns did not list ``converged``."""
+    from fsof_torch import fit_image
+    from fsof_torch.estimation.flow_fit import RoadFit
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    fit = fit_image(image1, image2, mask, cam, model="paper", max_iter=1, levels=1, forward_starts=(), turn_starts=(),
+                    retry_starts=0, retry_without_prior=False)
+    assert bool(fit.success[0]) and not bool(fit.extras["converged"][0])
+    assert "``converged`` (B,) bool" in fit_image.__doc__.split("Returns:")[1]
+    assert "Image fits: finite, well posed" in " ".join(RoadFit.__doc__.split())
 
 
 def test_exceptions_fit_photometric_flags_and_meta_device():

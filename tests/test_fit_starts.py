@@ -64,6 +64,29 @@ def test_fast_driving_is_found_from_zero_motion():
     assert float(alone.params["z_d"][0]) < 0.5 * true_z
 
 
+@pytest.mark.parametrize("size, options", [((60, 198), {}), ((188, 621), {"band_levels": 5}),
+                                           ((188, 621), {"levels": 2})])
+def test_starts_fitted_on_the_band_are_judged_on_the_intensities_with_their_own_gain(size, options):
+    """Where the coarsest level compares a band of detail (few levels, or ``band_levels`` >= their
+    count), the starts' gains and offsets are the band's: applied to the next level's intensities
+    they ranked the starts by that gain, and zero motion won (EPE 11 to 44 px; ``levels=2`` was
+    right and stays so). The two-way cost matches each candidate's gain and offset anew."""
+    from fsof_torch.estimation.starts import two_way_cost
+
+    p = render_pair("default", 0, size=size, speed_factor=4.0)
+    fit = fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"], **options)
+    road = (p["road"] & p["valid"])[0]
+    assert bool(fit.success[0]) and float((fit.flow[0] - p["flow"]).norm(dim=0)[road].mean()) < 6.0
+    # matched, the cost does not depend on the candidates' own gain and offset
+    plane, camera = get_road_model("plane"), p["camera"].to(torch.float64)
+    grey = torch.stack([p["image1"].mean(0), p["image2"].mean(0)])[None].to(torch.float64)
+    values = pack_params(plane, camera, {"z_d": 4.8})[1].repeat(2, 1)
+    affine = torch.tensor([[1.0, 0.0], [0.3, 40.0]], dtype=torch.float64)
+    args = (plane, camera, grey, p["road"][None], "cauchy", 3000, 2)
+    cost = two_way_cost(torch.cat([values, affine], 1), *args, match=True)
+    assert torch.allclose(cost[0], cost[1]) and not torch.allclose(*two_way_cost(torch.cat([values, affine], 1), *args))
+
+
 # -- real frames: the cases that once lost to a wrong start ------------------------------------------
 
 def _clip(shared_data):
@@ -296,7 +319,8 @@ def test_a_pitch_jolt_is_found_by_the_retry_without_the_coarse_prior(load_benchm
 def test_start_names_and_values_are_checked():
     """A start or init with a name of no road model (a typo) or a value that is not a number is
     an error naming it (``starts[i]`` or ``init``), not silently left aside; another model's
-    parameters (a fit of another model as a start) still are."""
+    parameters (a fit of another model as a start) still are, but a fit sharing none with the
+    model is an error too."""
     from fsof_torch import fit_displacement
 
     p = render_pair("default", 0, size=(48, 160))
@@ -314,3 +338,19 @@ def test_start_names_and_values_are_checked():
     # a plane-model start for the paper model: its pitch and roll changes are not the model's
     fit = fit_displacement(flow, road, cam, init={"z_d": 1.0, "pitch_change": 0.001})
     assert bool(fit.success.all())
+    # a fit of a model sharing no parameter was left aside whole: a plane fit with every parameter
+    # held at such an init came back all zero
+    from fsof_torch import fit_road
+
+    hom = fit_road(flow, road, cam, model="homography")
+    message = r"{}: a 'homography' fit shares no parameter with the 'plane' model's \('pitch_change'"
+    with pytest.raises(ValueError, match=message.format("init")):
+        fit_image(im1, im2, road, cam, init=hom, fixed=get_road_model("plane").params)
+    with pytest.raises(ValueError, match=message.format(r"starts\[1\]")):
+        fit_image(im1, im2, road, cam, starts=[{"z_d": 1.0}, hom])
+    with pytest.raises(ValueError, match="init: a 'homography' fit shares no parameter with the 'paper' model's"):
+        fit_road(flow, road, cam, model="paper", init=hom)
+    # a fit sharing some (a flow fit of the paper's model as a start of the plane) still starts them
+    paper = fit_displacement(flow, road, cam)
+    held = fit_image(im1, im2, road, cam, init=paper, fixed=("x_d", "z_d", "yaw"), forward_starts=())
+    assert all(torch.equal(held.params[n], paper.params[n]) for n in ("x_d", "z_d", "yaw"))

@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 import torch.nn.functional as F
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fsof_torch import Camera
-from fsof_torch.estimation.image_fit import _level_problem, _pixel_gradient, _with_gradient
+from fsof_torch.estimation.image_fit import _level_problem, _pixel_gradient, _with_gradient, gaussian_blur
 from fsof_torch.estimation.pyramid import mask_pyramid
 from fsof_torch.geometry.road_models import get_road_model
 
@@ -92,3 +93,15 @@ def test_level_points_follow_the_documented_rule_whatever_the_batch(H, W, densit
         weakest_kept = min(s for s, uv in inside if uv in chosen)
         strongest_left = max((s for s, uv in inside if uv not in chosen), default=-1.0)
         assert weakest_kept >= strongest_left
+
+
+@pytest.mark.parametrize("sigma, error, message", [
+    (-1.0, ValueError, "sigma: expected a number >= 0, got -1.0"),  # (OpenCV's assertion before)
+    (float("nan"), ValueError, "sigma: expected a finite number, got nan"),  # ('cannot convert float NaN')
+    ("4", TypeError, "sigma: expected a number, got str '4'")])
+def test_gaussian_blur_checks_its_sigma(sigma, error, message):
+    x = torch.rand(1, 1, 8, 9, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(error, match=message):
+        gaussian_blur(x, sigma)
+    y = gaussian_blur(x, 0.0)  # (0: the images as they are, in a tensor of their own)
+    assert torch.equal(y, x) and y.data_ptr() != x.data_ptr()

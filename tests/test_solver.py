@@ -473,6 +473,17 @@ def test_results_are_not_the_callers_tensors():
     assert torch.equal(cost, r2) and cost.data_ptr() != r2.data_ptr()
 
 
+def test_every_kernel_broadcasts_r2_with_the_scale():
+    """``l2`` returned ``r2``'s shape whatever the scale, every other kernel their broadcast."""
+    r2, scale = torch.rand(5, dtype=torch.float64), torch.full((3, 1), 1.5, dtype=torch.float64)
+    for kind in ROBUST_KERNELS:
+        cost, weight = robust_cost(r2, scale, kind), robust_weight(r2, scale, kind)
+        assert cost.shape == weight.shape == (3, 5), kind
+    torch.testing.assert_close(robust_cost(r2, scale, "l2"), r2.expand(3, 5), rtol=0, atol=0)
+    assert bool((robust_weight(r2, scale, "l2") == 1).all())
+    assert robust_cost(r2, 2.0, "l2").shape == robust_weight(r2, 2.0, "l2").shape == (5,)
+
+
 # -- sample_points: 16-bit images ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])

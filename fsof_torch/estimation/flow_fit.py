@@ -61,11 +61,11 @@ class RoadFit:
         inliers: (B, 1, H, W) bool: mask pixels where the model is defined and within the inlier
             threshold (flow fits: end-point residual in px; image fits: photometric residual).
         residual: (B,) mean residual over the inliers (0 when none).
-        success: (B,) bool: converged, on enough well-spread inliers making up at least the
-            minimum share of the mask, with a well-conditioned problem. Where False the
-            parameters are finite but not to be trusted. (Where a polish does not converge, the
-            robust stage's parameters are returned, with that stage's covariance and cost, and
-            success is False.)
+        success: (B,) bool; where False the parameters are finite but not to be trusted. Flow
+            fits: converged (a polish that does not converge returns the robust stage's
+            parameters, covariance and cost), on enough well-spread inliers making up at least
+            the minimum share of the mask, with a well-conditioned problem. Image fits: finite,
+            well posed and passing ``fit_image``'s image tests (``extras["converged"]`` tells).
         camera: a copy of the input camera with the fit's roll and pitch (fitted or held).
         iterations: (B,) int64 solver iterations.
         covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
@@ -280,7 +280,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     """Start values (B, P) float64: ``init``'s (a :class:`RoadFit` or a dict of any of the model's
     parameters) over ``default``; and (P,) flags of the names given. Another road model's
     parameters (a fit of another model as a start) are left aside; a name of no road model (a
-    typo) is an error naming ``what``."""
+    typo), or a fit sharing no parameter with the model, is an error naming ``what``."""
     B, P = default.shape
     given = [False] * P
     if init is None:
@@ -288,6 +288,8 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     values = init.params if isinstance(init, RoadFit) else init
     if not isinstance(values, Mapping):
         raise TypeError(f"{what}: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
+    if isinstance(init, RoadFit) and not set(values) & set(model.params):  # (else ignored: a silent default)
+        raise ValueError(f"{what}: a {init.model!r} fit shares no parameter with the {model.name!r} model's {model.params}")
     known = {"model"} | {n for m in ROAD_MODELS.values() for n in m.params}  # (a road motion's own form)
     unknown = sorted(str(n) for n in values if n not in known)
     if unknown:
@@ -403,11 +405,10 @@ _ROBUST_STAGE_RESOLUTION = 0.1
 
 
 def _robust_points(pts: Tensor, obs: Tensor, sel: Tensor, count: Tensor | None) -> tuple[Tensor, Tensor, Tensor]:
-    """The start's and the robust stage's points: an even stride of about
-    ``_ROBUST_STAGE_POINTS`` of the sampled points (B, ·, N). ``count`` None: N is the sampled
-    number (``max_points``), one stride for all; else (N the largest mask's count, the others
-    padded) each frame's stride from its own count (one host read), so that a frame's points do
-    not depend on its batch-mates."""
+    """The start's and the robust stage's points: an even stride of about ``_ROBUST_STAGE_POINTS``
+    of the sampled points (B, ·, N). ``count`` None: N is the sampled number (``max_points``), one
+    stride for all; else (N the largest mask's count, the others padded) each frame's stride from
+    its own count (one host read), so that a frame's points do not depend on its batch-mates."""
     N = pts.shape[-1]
     k = max(1, N // _ROBUST_STAGE_POINTS)
     if count is not None:
@@ -427,10 +428,9 @@ def _robust_points(pts: Tensor, obs: Tensor, sel: Tensor, count: Tensor | None) 
 def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pts: Tensor, flow: Tensor,
              sel: Tensor) -> Tensor:
     """Values (B, P) float64 of a start without a prior, from the robust stage's points
-    (:func:`_robust_points`): the paper's model from the planar motion of back-projected points;
+    (:func:`_robust_points`): the paper's model from the planar motion of back-projected points,
     the plane and the homography from a robust DLT homography (the plane decomposed with the
-    road's normal from the camera's roll and pitch); the velocity model, linear in its motion,
-    from rest."""
+    road's normal from the camera's roll and pitch), the velocity model from rest (it is linear)."""
     if model.velocity:
         return values
     if model.name == "paper":

@@ -267,14 +267,17 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         model: ``"plane"`` (default), ``"paper"`` or ``"homography"``.
         fixed: parameter names held at ``init``'s values (default: none for ``"plane"`` and
             ``"homography"``, the pitch for ``"paper"``), in every start, and not bounded.
-        init: the first start (a :class:`RoadFit` of the same model or a dict of any of its
-            parameters; the others at zero motion and the camera's roll and pitch); fixed
+        init: the first start (a dict of any of the model's parameters, or a :class:`RoadFit`:
+            another model's gives the parameters they share, and one sharing none is a
+            ValueError; the others at zero motion and the camera's roll and pitch); fixed
             parameters stay at it.
         starts: further start candidates, each a dict or fit whose parameters override ``init``'s,
             except the fixed ones (e.g. a fit to a network's flow, the previous frame's motion, a
             constant-velocity prediction). Each is solved at the coarsest level; the one with the
             lowest robust image cost, both ways (image 1's road into image 2 and image 2's back,
-            :func:`~fsof_torch.estimation.starts.two_way_cost`) at the next finer level, goes on.
+            :func:`~fsof_torch.estimation.starts.two_way_cost`) at the next finer level's
+            intensities (each with its gain and offset, matched anew where the coarsest level
+            compares a band of detail), goes on.
         forward_starts: further starts straight ahead, by these many camera heights per frame
             (z_d = k h; the other parameters as ``init``): from zero motion or a poor flow the fit
             can land on a wrong motion when the car moves a few heights a frame; these find fast
@@ -358,7 +361,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         :class:`~fsof_torch.estimation.flow_fit.RoadFit` of the model; ``residual`` and
         ``inliers`` refer to the photometric residual (grey levels on 0..255); ``extras`` holds
         ``gain`` and ``offset`` (B,) of the fit (of the finest level's band where it compares
-        bands), ``inlier_fraction`` and ``correlation`` (B,).
+        bands), ``inlier_fraction`` and ``correlation`` (B,), and ``converged`` (B,) bool: the
+        full-resolution level converged (``success`` does not ask it: a fit that ran out of
+        iterations is still judged by the image tests).
     """
     model = get_road_model(model)
     if model.velocity:
@@ -526,11 +531,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             if S == 1:
                 return judged(*descend(params, coarse, prior))
             # the starts compete at the coarsest level, ranked by their two-way robust cost at the
-            # next finer one (more points judge; one common kernel scale per frame)
+            # next finer one's intensities (more points judge; one common kernel scale per frame;
+            # gains and offsets fitted on a band of detail are matched to the intensities anew)
             sol = run(coarse, S, params, prior)
             judge = max(coarse - 1, 0)
             cost = two_way_cost(sol.params, model, level_camera(cam64, judge), pyramid[judge], masks[judge],
-                                robust, max_points, S)
+                                robust, max_points, S, match=compared(coarse) is not pyramid[coarse])
             order = cost.reshape(S, B).argsort(0)
             frames = torch.arange(B, device=dev)
             solved, moved = sol.params.reshape(S, B, -1), sol.iterations.reshape(S, B)
@@ -644,6 +650,7 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
     P = len(model.params)
     mean = torch.zeros(B, P + 2, dtype=torch.float64, device=device)
     inverse_variance = torch.zeros_like(mean)
+    good = []  # (each entry's values judged at the end, in one host read)
     for name, value in spec.items():
         if name not in model.params:
             raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}; expected some of {model.params}")
@@ -659,11 +666,13 @@ def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
         if mu.numel() not in (1, B) or sigma.numel() not in (1, B):
             raise ValueError(f"prior[{name!r}]: expected a mean and a sigma of batch 1 or {B}, got "
                              f"{mu.numel()} and {sigma.numel()} values")
-        if not bool(torch.isfinite(mu).all()) or not bool((sigma > 0).all()):
-            raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
+        good.append(torch.isfinite(mu).all() & (sigma > 0).all())
         i = model.params.index(name)
         mean[:, i] = mu
         inverse_variance[:, i] = sigma.square().reciprocal()
+    for (name, value), ok in zip(spec.items(), torch.stack(good).tolist()):
+        if not ok:
+            raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
     return mean, inverse_variance
 
 

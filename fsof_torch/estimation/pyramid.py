@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import is_number, option_error
+from .._check import check_number, is_number, option_error
 from ..geometry.camera import Camera
 
 __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "band", "gaussian_blur"]
@@ -155,7 +155,9 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     """Gaussian blur of images (B, C, H, W), reflected at the border without repeating the edge
     (OpenCV's ``BORDER_REFLECT_101``, at any size; a kernel of ±3 σ): OpenCV on the CPU (python
     benchmarks/bench_image_fit.py: about 2.5x faster than kornia's at σ = 4; not differentiable),
-    torch convolutions with kornia's kernel elsewhere. 16-bit floats are filtered in float32."""
+    torch convolutions with kornia's kernel elsewhere. 16-bit floats are filtered in float32.
+    ``sigma``: a number >= 0 (pixels; 0 leaves the images as they are, in a new tensor)."""
+    sigma = check_number(sigma, "sigma", nonnegative=True)
     if images.device.type == "cpu":
         return _gaussian_blur_cv2(images, sigma)
     return _gaussian_blur_torch(images, sigma)

@@ -68,24 +68,24 @@ def _lifted(scale: Tensor | float) -> Tensor | float:
 
 def robust_weight(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
     """IRLS weight w = dρ/d(r²) for squared residual norms ``r2`` (a float tensor of any shape,
-    finite and >= 0; ``scale``, a finite number > 0 or a tensor of them, broadcasts). Computed and
-    returned in at least float32 (half precision lifted)."""
+    finite and >= 0; ``scale``, a finite number > 0 or a tensor of them, broadcasts: the result
+    has their broadcast shape, whatever the kernel). Computed and returned in at least float32
+    (half precision lifted)."""
     check_kernel(kind, "kind")
     check_scale(scale)
     r2, scale = _checked_r2(r2), _lifted(scale)
-    if kind == "l2":
-        return torch.ones_like(r2)
-    return _unit_kernel(r2 / (scale * scale), kind, cost=False)[1]
+    z = r2 / (scale * scale)
+    return torch.ones_like(z) if kind == "l2" else _unit_kernel(z, kind, cost=False)[1]
 
 
 def robust_cost(r2: Tensor, scale: Tensor | float, kind: str = "cauchy") -> Tensor:
-    """ρ(r²) (same shape as ``r2``), matching :func:`robust_weight` (its checks and dtype)."""
+    """ρ(r²), matching :func:`robust_weight` (its checks, shape and dtype)."""
     check_kernel(kind, "kind")
     check_scale(scale)
     r2, scale = _checked_r2(r2), _lifted(scale)
-    if kind == "l2":
-        return r2.clone()  # (a result of its own, not the caller's tensor)
     c2 = scale * scale
+    if kind == "l2":  # (ρ = r², broadcast with the scale: a result of its own, not the caller's tensor)
+        return r2 * torch.ones_like(r2 / c2)
     return c2 * _unit_kernel(r2 / c2, kind, weight=False)[0]
 
 

@@ -120,11 +120,17 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
 
 
 def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, kernel: str,
-                  max_points: int | None, reps: int) -> Tensor:
+                  max_points: int | None, reps: int, match: bool = False) -> Tensor:
     """The robust image cost (B reps,) by which competing starts ``params`` (B reps, P + 2) are
     compared, on one pyramid level ``img`` (B, 2, h, w): the mean over image 1's road points
     mapped into image 2 and over image 2's points at the same pixels mapped back into image 1,
     with a kernel scale common to the candidates of a frame (that of the best aligned).
+
+    ``match``: each candidate's gain and offset are replaced by those matching the compared
+    intensities' means and spreads (as :func:`~fsof_torch.estimation.confidence.matched_gain`, not
+    a regression, whose gain shrinks under a wrong motion), for candidates whose own were fitted
+    on other images (the band of detail): applied to ``img``, those judge the band's gain, not the
+    alignment (tests/test_fit_starts.py).
 
     Image 1's points alone cannot judge a motion that moves most of them out of image 2: one that
     drives far ahead keeps only a few points near the horizon, which a blurred coarse level fits
@@ -141,7 +147,7 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     points = sample_mask(mask, max_points)
     pts, sel = rep(pixel_coordinates(points.pix, img.shape[-1])), rep(points.sel)
     at = rep(gather_pixels(img, points.pix).to(torch.float64))  # (I1, I2) at the points
-    errors, uses = [], []
+    pairs, uses = [], []
     # forward: image 1's points into image 2; backward: image 2's points into image 1
     for H, forward in ((M, True), (torch.linalg.inv_ex(M)[0], False)):
         p = H @ pts
@@ -149,10 +155,18 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
         p = p / torch.where(ok, p[:, 2], 1.0).unsqueeze(1)
         ok = ok & ((horizon @ (pts if forward else p))[:, 0] > 0)  # on the road in front at t
         sampled, inb = sample_points(rep(img[:, 1:] if forward else img[:, :1]), p[:, :2])
-        I2, I1 = (sampled[:, 0], at[:, 0]) if forward else (at[:, 1], sampled[:, 0])
-        errors.append((gain * I2 + offset - I1).abs())
+        pairs.append((sampled[:, 0], at[:, 0]) if forward else (at[:, 1], sampled[:, 0]))
         uses.append(ok & inb)
-    e, use = torch.cat(errors, 1), torch.cat(uses, 1)
+    I2, I1 = (torch.cat(x, 1) for x in zip(*pairs))
+    use = torch.cat(uses, 1)
+    if match:
+        w = use.to(torch.float64)
+        w = w / w.sum(1, keepdim=True).clamp_min(1)
+        m1, m2 = (w * I1).sum(1, keepdim=True), (w * I2).sum(1, keepdim=True)
+        s1, s2 = (w * (I1 - m1).abs()).sum(1, keepdim=True), (w * (I2 - m2).abs()).sum(1, keepdim=True)
+        gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
+        offset = m1 - gain * m2
+    e = (gain * I2 + offset - I1).abs()
     mad = torch.nanmedian(torch.where(use, e, float("nan")), dim=1).values
     scale = (1.4826 * torch.nan_to_num(mad, nan=math.inf)).reshape(reps, -1).amin(0)
     scale = torch.where(torch.isfinite(scale), scale.clamp_min(2.0), 2.0)  # (no point in view: any scale)
