@@ -64,7 +64,10 @@ from ..geometry.road_models import (is_planar_odometry, plane_from_homography, r
 from .estimators import ImageMotionEstimator
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
-__all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS"]
+__all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS", "ROAD_RESERVED"]
+
+#: detect_road's arguments the refiner sets itself: refused in ``road_options``, by name
+ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range")
 
 #: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies; "empty" also
 #: first, for a seed with no pixel in the image, and right after "no_motion", for a seed none of whose windows
@@ -659,9 +662,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     options = dict(road_options or {})
     # (options the detection does not take, or that the refiner sets itself, raise here, named)
     if images is not None:
-        check_keywords(options, "road_options", detect_road,
-                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts",
-                                 "data_range"))
+        check_keywords(options, "road_options", detect_road, reserved=ROAD_RESERVED)
     else:
         check_keywords(options, "road_options", detect_freespace, reserved=("flow", "camera"))
     _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))

@@ -15,7 +15,7 @@ from torch import Tensor, nn
 from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, skip_values
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
-from .auto_road import detect_road, refine_with_auto_road
+from .auto_road import ROAD_RESERVED, detect_road, refine_with_auto_road
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow, select_estimator
 
@@ -92,9 +92,7 @@ class FreespaceRefined(nn.Module):
         if road_options and road != "auto":
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
-        check_keywords(road_options, "road_options", detect_road,
-                       reserved=("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts",
-                                 "data_range"))
+        check_keywords(road_options, "road_options", detect_road, reserved=ROAD_RESERVED)
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
