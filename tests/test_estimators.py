@@ -52,6 +52,14 @@ def test_planar_odometry_held_by_default_and_moved_within_odometry_sigma(body_pa
     assert abs(yaw_only["yaw"] - odometry["yaw"]) > 0.05 * DEG
 
 
+def test_odometry_sigma_with_a_model_that_holds_a_parameter(body_pair):
+    """The paper model holds the pitch: the calibration prior it is given leaves it out (fit_image
+    refuses a prior on a held parameter)."""
+    p, odometry = body_pair
+    _, epe = refined(p, odometry, ImageMotionEstimator(model="paper", odometry_sigma={"yaw": 0.2 * DEG}))
+    assert math.isfinite(epe)
+
+
 def test_odometry_sigma_is_a_prior_on_top_of_the_calibration_prior(body_pair):
     """A width of a millionth of a degree is the odometry held; the calibration's prior on the
     attitude stays (the estimate equals the one with the yaw fixed)."""

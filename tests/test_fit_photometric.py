@@ -123,6 +123,8 @@ def test_exceptions():
     (dict(prior={"roll": (torch.zeros(3), 0.1)}), ValueError, r"prior\['roll'\]: expected a mean and a sigma of batch"),
     (dict(prior={"roll": (0.0, 0.1), "pitch": (0.0, 0.0)}), ValueError,
      r"prior\['pitch'\]: expected a finite mean and sigma > 0, got \(0.0, 0.0\)"),
+    # a prior on a held parameter was silently ignored (fit_road refuses it too)
+    (dict(fixed=("roll",), prior={"roll": (0.0, 0.1)}), ValueError, r"^prior: 'roll' is held at its start"),
 ])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
@@ -131,6 +133,20 @@ def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
     with pytest.raises(error, match=message):
         fit_image(image1, image2, mask, cam, **options)
+
+
+def test_the_calibration_prior_leaves_held_parameters_out():
+    """The calibration prior of the paper model (pitch held) and of a plane with its roll held: the
+    held parameters' priors had no effect; now they are not given (and given ones are refused), and
+    the fit is the same."""
+    from fsof_torch import fit_image
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    fit = fit_image(image1, image2, mask, cam, model="paper")
+    assert bool(fit.success)
+    held = fit_image(image1, image2, mask, cam, fixed=("roll",))
+    assert bool(held.success) and float(held.params["roll"]) == float(cam.roll)
 
 
 def test_priors_are_judged_in_one_host_read(monkeypatch):

@@ -310,7 +310,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             better. A jolt of the body (2° of pitch in a frame) lies beyond what the prior lets
             the coarsest level's few points reach; at speed the same prior keeps the coarse fits
             plausible, so it stays. Costs nothing where the fit succeeds clearly.
-        prior: ``"calibration"`` (:func:`calibration_prior`), None, or ``{name: (mean, sigma)}``.
+        prior: ``"calibration"`` (:func:`calibration_prior`, on the free parameters), None, or
+            ``{name: (mean, sigma)}`` (a prior on a held parameter is a ValueError: it would be ignored).
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P); they
             hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
@@ -412,6 +413,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     cam64 = camera.to(torch.float64)
     n_levels = pyramid_levels(H, W, levels, min_size)
     fixed_names = fixed_parameters(model, fixed)
+    if held := [n for n in fixed_names if isinstance(prior, Mapping) and n in prior]:
+        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={fixed_names!r}), so its prior would "
+                         f"be ignored; free it (fixed= without it) or drop its prior")
     P = len(model.params)
     # (None where every parameter is free: the solver then skips the fixed parameters' masking)
     free = (None if not fixed_names and affine else
@@ -437,7 +441,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         S = len(candidates)
         ones, zeros = torch.ones(B, 1, dtype=torch.float64, device=dev), torch.zeros(B, 1, dtype=torch.float64, device=dev)
         params = torch.cat([torch.cat(candidates), ones.repeat(S, 1), zeros.repeat(S, 1)], dim=1)  # (S B, P + 2)
-        prior_spec = calibration_prior(model, cam64) if prior == "calibration" else prior
+        prior_spec = ({n: v for n, v in calibration_prior(model, cam64).items() if n not in fixed_names}
+                      if prior == "calibration" else prior)  # (a held parameter's prior has no effect)
         # each level weighs the prior by its residuals' noise: precision noise² / σ²
         prior_mean, inverse_variance = _prior(model, prior_spec, B, dev)
         lo, hi = physical_bounds(model, cam64) if bounds == "physical" else (bounds or (None, None))

@@ -40,10 +40,11 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords, option_error
+from .._check import (check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords,
+                      check_names, option_error)
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
-from .flow_fit import RoadFit
+from .flow_fit import RoadFit, fixed_parameters
 from .image_fit import DEG, calibration_prior, fit_image
 from .initial import planar_start
 
@@ -286,6 +287,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if model.name != "plane":
         raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
     motion = [n for n in model.params if n not in model.mounting]
+    held = fixed_parameters(model, check_names(options.get("fixed"), "fixed"))
 
     attitude = ("roll", "pitch", "roll_change", "pitch_change")
 
@@ -325,6 +327,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior[n] = (init[n], sigma[k:k + 1])
                     prior[n + "_change"] = (init[n + "_change"], 0.1 * body_rotation_deg * DEG)
                 starts = [{n: v for n, v in st.items() if n not in attitude} for st in starts]
+            prior = {n: v for n, v in prior.items() if n not in held}  # (held: no prior, fit_image refuses it)
             fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
                             **options)
             records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all())))

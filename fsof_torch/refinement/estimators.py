@@ -196,7 +196,7 @@ class ImageMotionEstimator:
             fixed = fixed + tuple(k for k in held if k not in fixed)
             if self.odometry_sigma:
                 options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
-                                                        planar, self.odometry_sigma)
+                                                        planar, self.odometry_sigma, fixed)
                 options.setdefault("forward_starts", ())
         elif self.flow_start and flow is not None:
             # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own)
@@ -237,11 +237,12 @@ def _odometry_sigma(sigma: object, model: str, fixed: object) -> dict[str, float
 
 
 def _with_odometry_prior(prior: object, model: str, camera: Camera, planar: Mapping[str, Any],
-                         sigma: Mapping[str, float]) -> dict[str, tuple[Any, Any]]:
+                         sigma: Mapping[str, float], held: Sequence[str] = ()) -> dict[str, tuple[Any, Any]]:
     """``fit_image``'s ``prior`` (``"calibration"``, None or a dict) with Gaussian priors of
-    widths ``sigma`` centred on the planar odometry added."""
+    widths ``sigma`` centred on the planar odometry added (the calibration's on the ``held``
+    parameters left out: they would have no effect, and fit_image refuses them)."""
     if prior == "calibration":
-        base = calibration_prior(model, camera.to(torch.float64))
+        base = {n: v for n, v in calibration_prior(model, camera.to(torch.float64)).items() if n not in held}
     elif prior is None:
         base = {}
     elif isinstance(prior, Mapping):
