@@ -52,6 +52,14 @@ def test_planar_odometry_held_by_default_and_moved_within_odometry_sigma(body_pa
     assert abs(yaw_only["yaw"] - odometry["yaw"]) > 0.05 * DEG
 
 
+def test_a_prior_on_what_the_odometry_holds_names_the_odometry(body_pair):
+    """The odometry holds x_d: a prior on it would be ignored; the error said "free it (fixed=
+    without it)", which a caller of the estimator cannot do."""
+    p, odometry = body_pair
+    with pytest.raises(ValueError, match=r"^prior: 'x_d' is held at the odometry's value, .*odometry_sigma="):
+        refined(p, odometry, ImageMotionEstimator(prior={"x_d": (1.0, 0.1)}))
+
+
 def test_odometry_sigma_with_a_model_that_holds_a_parameter(body_pair):
     """The paper model holds the pitch: the calibration prior it is given leaves it out (fit_image
     refuses a prior on a held parameter)."""

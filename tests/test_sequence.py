@@ -102,7 +102,7 @@ def test_smooth_attitude_takes_numpy_numbers_and_refuses_sigmas_too_small_to_wei
     ref_track, ref_sigma = smooth_attitude(att, chg, 0.01, float(np.float32(0.001)))
     assert torch.equal(track, ref_track) and torch.equal(sigma, ref_sigma)
     # (1 / σ² overflowed to inf and the track came back NaN, without an error)
-    with pytest.raises(ValueError, match=r"^attitude_sigma: expected values of at least 1e-150 .*got 1e-200"):
+    with pytest.raises(ValueError, match=r"^attitude_sigma: expected values whose 1 / σ² is finite .*got 1e-200"):
         smooth_attitude(att, chg, 1e-200, 1.0)
 
 

@@ -115,7 +115,8 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     wa, wc = (1.0 / s.square() for s in sigmas)
     for w, sigma, name in ((wa, sigmas[0], "attitude_sigma"), (wc, sigmas[1], "change_sigma")):
         if not bool(torch.isfinite(w).all()):  # (1 / σ² beyond float64's range: the track came back NaN)
-            raise ValueError(f"{name}: expected values of at least 1e-150 (1 / σ² finite), got {sigma.min().item()!r}")
+            raise ValueError(f"{name}: expected values whose 1 / σ² is finite in float64 (about 1.3e-154 and "
+                             f"above), got {sigma.min().item()!r}")
     att, chg = attitude.to(dt).cpu(), change.to(dt).cpu()
     # a measurement that does not count contributes nothing, whatever its value (also NaN)
     for w, x, name in ((wa, att, "attitude"), (wc, chg, "change")):

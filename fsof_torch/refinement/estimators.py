@@ -192,6 +192,10 @@ class ImageMotionEstimator:
             starts = [s.motion() if isinstance(s, RoadFit) else s for s in starts]
             starts = [{**s, **planar} if isinstance(s, Mapping) else s for s in starts]
             held = tuple(k for k in _PLANAR if k not in self.odometry_sigma)
+            given = options.get("prior")
+            if isinstance(given, Mapping) and (on_held := [k for k in held if k in given]):
+                raise ValueError(f"prior: {on_held[0]!r} is held at the odometry's value, so its prior would be "
+                                 f"ignored; drop it, or give odometry_sigma={{{on_held[0]!r}: sigma}} instead")
             fixed = fixed_parameters(get_road_model(self.model), fixed)  # (None: the model's default)
             fixed = fixed + tuple(k for k in held if k not in fixed)
             if self.odometry_sigma:
