@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from ..._check import check_bool, check_int, check_size
+from ..._check import check_bool, check_int, check_size, is_number, option_error
 from ...geometry.camera import Camera
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
@@ -331,10 +331,6 @@ def _as_K(K: Any) -> tuple:
     return tuple(tuple(float(v) for v in r) for r in rows)
 
 
-def _is_real(value: object) -> bool:
-    return isinstance(value, numbers.Real) and not isinstance(value, bool)
-
-
 def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
     """The fields that hold NumPy (or other) real scalars, as Python floats (``supersample`` an int),
     and an ``asphalt`` array as a list: what the computations and the frame cache's key expect."""
@@ -344,7 +340,7 @@ def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
         if f.name == "supersample":
             if isinstance(value, numbers.Integral) and not isinstance(value, (bool, int)):
                 out[f.name] = int(value)
-        elif _is_real(value) and type(value) not in (int, float):
+        elif is_number(value) and type(value) not in (int, float):
             out[f.name] = float(value)
     if cfg.asphalt is not None and not isinstance(cfg.asphalt, (tuple, list, str)) and hasattr(cfg.asphalt, "tolist"):
         out["asphalt"] = cfg.asphalt.tolist()
@@ -354,9 +350,8 @@ def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
 def _validate(cfg: SceneConfig) -> None:
     def real(name: str) -> float:
         value = getattr(cfg, name)
-        if not _is_real(value) or not math.isfinite(value):  # (a TypeError for what is no number at all)
-            raise (ValueError if _is_real(value) else TypeError)(
-                f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
+        if not is_number(value) or not math.isfinite(value):
+            raise option_error(value, f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
         return float(value)
 
     for name in ("speed", "steering", "roll", "pitch", "speed_factor", "texture", "noise", "parked_cars",
@@ -391,7 +386,7 @@ def _validate(cfg: SceneConfig) -> None:
     if cfg.asphalt is not None:
         amps = cfg.asphalt
         if (not isinstance(amps, (tuple, list)) or len(amps) != len(ASPHALT_CELLS)
-                or not all(_is_real(a) and 0 <= a <= MAX_CONTRAST for a in amps)):
+                or not all(is_number(a) and 0 <= a <= MAX_CONTRAST for a in amps)):
             raise ValueError(f"asphalt: expected {len(ASPHALT_CELLS)} amplitudes in [0, {MAX_CONTRAST:g}] grey "
                              f"levels (one per octave), got {amps!r}")
     whole = isinstance(cfg.supersample, numbers.Integral) and not isinstance(cfg.supersample, bool)
