@@ -26,7 +26,6 @@ them, with ptlflow's and torchvision's input conventions and RAFT-style padding.
 from __future__ import annotations
 
 import math
-import numbers
 import warnings
 from typing import Any, Mapping, NamedTuple
 
@@ -35,7 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask,
-                      check_image_range, check_shape, check_size, result_dtype, skip_values, tracing)
+                      check_image_range, check_shape, check_size, is_number, option_error, result_dtype, skip_values,
+                      tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
 from ..geometry.camera import Camera
@@ -146,9 +146,8 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
-    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0 < float(scale) < math.inf):
-        raise (ValueError if isinstance(scale, numbers.Real) else TypeError)(
-            f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
+    if not is_number(scale) or not (0 < float(scale) < math.inf):
+        raise option_error(scale, f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
     scale = float(scale)  # (a NumPy scalar too, as the refiner takes it)
     check_float_tensor(flow_pred, "flow_pred")
     check_float_tensor(flow_model, "flow_model")
