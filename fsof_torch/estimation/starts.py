@@ -88,8 +88,9 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
                   max_points: int | None) -> Tensor | None:
     """The start (B, P), among turns by each of ``turns`` degrees of yaw per frame at ``speed``
     camera heights ahead, whose motion best aligns one pyramid level ``img`` (B, 2, h, w) (its
-    camera: ``camera``; road ``mask``) by :func:`two_way_cost`: a screen, not a fit, so one batched
-    cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
+    camera: ``camera``; road ``mask``) by :func:`two_way_cost`, each turn's gain and offset those
+    that match the compared intensities (``match``: a change of exposure between the frames does
+    not count): a screen, not a fit, so one batched cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
     the basin of a start straight ahead (a few pixels of the coarsest level) within a few degrees
     a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
     ``base`` with that yaw and (unless held fixed) z_d at ``speed`` heights, the rest (roll and
@@ -114,7 +115,7 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
             values[:, model.params.index("z_d")] = speed * h
     ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
     cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
-                        kernel, max_points, T)
+                        kernel, max_points, T, match=True)
     best = cost.reshape(T, B).argmin(0)
     return values.reshape(T, B, -1)[best, torch.arange(B, device=base.device)]
 
