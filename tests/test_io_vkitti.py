@@ -76,6 +76,21 @@ class TestFeature:
         torch.testing.assert_close(ego.z_d, torch.tensor([1.0], dtype=torch.float64))
         torch.testing.assert_close(ego.x_d, torch.tensor([0.0], dtype=torch.float64))
 
+    def test_camera_poses_must_be_rigid(self):
+        """A scaled, sheared or NaN extrinsic is refused (it inverted into a pose that is not one),
+        naming the first bad matrix; a rigid one inverts to its pose."""
+        E = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
+        E[:, :3, 3] = torch.tensor([0.0, 1.5, -2.0])
+        torch.testing.assert_close(vkitti2_camera_poses(E)[:, :3, 3], -E[:, :3, 3])
+        for bad, match in ((lambda e: e[1, :3, :3].mul_(2.0), r"matrix 1 is not a rigid pose: its 3×3 block"),
+                           (lambda e: e[2, 0, 1].fill_(0.5), r"matrix 2 is not a rigid pose: its 3×3 block"),
+                           (lambda e: e[1, 3, 2].fill_(1.0), r"matrix 1 is not a rigid pose: its last row"),
+                           (lambda e: e[0, 0, 0].fill_(float("nan")), r"matrix 0 holds NaN or inf")):
+            wrong = E.clone()
+            bad(wrong)
+            with pytest.raises(ValueError, match=r"camera_T_world: " + match):
+                vkitti2_camera_poses(wrong)
+
     def test_classes(self, tmp_path):
         (tmp_path / "colors.txt").write_text("Category r g b\nTerrain 210 0 200\nSky 90 200 255\nRoad 100 60 100\n")
         colors = read_vkitti2_colors(tmp_path / "colors.txt")

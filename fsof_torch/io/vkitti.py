@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, as_chw_flow, check_finite, result_dtype, skip_values
+from .._check import as_path, as_chw_flow, result_dtype, skip_values
 from .images import read_image_array, write_image_array
 from .kitti import check_rigid_poses, flow_valid_pixels
 
@@ -191,18 +191,18 @@ def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
 
 def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
     """Camera-to-world poses (N, 4, 4) (KITTI convention) from VKITTI2 world-to-camera extrinsics
-    (N, 4, 4), finite (in at least float32)."""
+    (N, 4, 4), in at least float32. Each must be a rigid pose (finite, last row 0 0 0 1, a rotation
+    block: :func:`fsof_torch.io.check_rigid_poses`, as :func:`read_vkitti2_extrinsics` checks a
+    file's), else a ValueError naming the first that is not."""
     if not isinstance(camera_T_world, Tensor) or not camera_T_world.is_floating_point():
         got = camera_T_world.dtype if isinstance(camera_T_world, Tensor) else type(camera_T_world).__name__
         raise TypeError(f"camera_T_world: expected a float tensor of shape (N, 4, 4), got {got}")
     if camera_T_world.dim() != 3 or tuple(camera_T_world.shape[-2:]) != (4, 4):
         raise ValueError(f"camera_T_world: expected shape (N, 4, 4), got {tuple(camera_T_world.shape)}")
-    check_finite(camera_T_world, "camera_T_world")
     T = camera_T_world.to(result_dtype(camera_T_world))
-    inverse = torch.linalg.inv_ex(T)
-    if not skip_values(T) and bool((inverse.info != 0).any()):
-        raise ValueError(f"camera_T_world: singular matrices at {(inverse.info != 0).nonzero().flatten().tolist()}")
-    return inverse.inverse
+    if not skip_values(T):
+        check_rigid_poses(T, lambda i: f"camera_T_world: matrix {i}")
+    return torch.linalg.inv_ex(T).inverse
 
 
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
