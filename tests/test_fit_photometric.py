@@ -342,6 +342,24 @@ def test_feature_all_road_pixels_a_frames_fit_is_its_own():
         torch.testing.assert_close(both.params[name][1:], alone.params[name], rtol=1e-9, atol=1e-12)
 
 
+@pytest.mark.parametrize("preset, index", [("default", 0), ("body-motion", 0), ("crest", 10)])
+def test_feature_identical_frames_of_a_batch_get_identical_fits(preset, index):
+    """Copies of one pair in a batch: the zero-motion start maps the road's bottom row onto the
+    image's last row to within rounding, which batched products round differently per frame;
+    with an exact in-bounds test some copies kept those points and others not, and their fits
+    ended up to 5 px apart (188 x 621 frames)."""
+    from fsof_torch import fit_image
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair(preset, index, size=(188, 621))
+    I1, I2, M = (p[k][None].expand(4, *p[k].shape).contiguous() for k in ("image1", "image2", "road"))
+    fit = fit_image(I1, I2, M, p["camera"])
+    assert bool(fit.success.all())
+    torch.testing.assert_close(fit.flow, fit.flow[:1].expand_as(fit.flow), rtol=0, atol=1e-6, equal_nan=True)
+    for name, value in fit.params.items():
+        torch.testing.assert_close(value, value[:1].expand_as(value), rtol=0, atol=1e-9)
+
+
 def test_feature_init_from_flow_fit_is_used():
     cam = small_camera()
     image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.7, 0.01)

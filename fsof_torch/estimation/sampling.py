@@ -106,6 +106,10 @@ def gather_pixels(x: Tensor, pix: Tensor) -> Tensor:
     return x.reshape(B, C, -1).gather(2, pix.unsqueeze(1).expand(B, C, pix.shape[1]))
 
 
+BORDER_SLACK = 1e-6
+"""Pixels beyond the image's border within which a sample point still counts as inside (rounding)."""
+
+
 def sample_points(image: Tensor, xy: Tensor) -> tuple[Tensor, Tensor]:
     """Bilinear samples of ``image`` (B, C, H, W) at pixel positions ``xy`` (B, 2, N) float64.
 
@@ -123,10 +127,17 @@ def points_grid(xy: Tensor, size: tuple[int, int], dtype: torch.dtype) -> tuple[
     ``size`` (H, W), in ``dtype`` (an image's; half precision lifted to float32: across a KITTI
     frame a float16 grid is off by up to 0.15 px, a bfloat16 one by up to 1.2 px), and their
     in-bounds flags (B, N) (:func:`sample_points` in two parts: images of one size sampled at the
-    same points share the grid)."""
+    same points share the grid).
+
+    A point counts as inside up to :data:`BORDER_SLACK` pixels beyond the border (sampled there at
+    the border): a motion that maps a border pixel onto the border computes it to within rounding,
+    and batched products round each frame of a batch differently, so an exact bound kept a
+    frame's border points in one copy of it and dropped them in another (identical frames of one
+    batch got fits up to 5 px apart, tests/test_fit_photometric.py)."""
     H, W = size
     x, y = xy[:, 0], xy[:, 1]
-    inb = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    s = BORDER_SLACK
+    inb = (x >= -s) & (x <= W - 1 + s) & (y >= -s) & (y <= H - 1 + s)
     gx = x * (2.0 / max(W - 1, 1)) - 1.0
     gy = y * (2.0 / max(H - 1, 1)) - 1.0
     return torch.stack([gx, gy], dim=-1).unsqueeze(1).to(_at_least_float32(dtype)), inb
