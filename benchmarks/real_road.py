@@ -519,10 +519,10 @@ def resized(pair: dict, factor: float) -> dict:
 
 def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dict, progress: bool) -> dict:
     """Every pair of a data set through :func:`run_pair`; the summary rows and the per-pair results."""
-    from tqdm import tqdm
+    from fsof_torch.io.progress import progress_bar
 
     per_pair = []
-    for i, (pair_name, load) in enumerate(tqdm(pairs, desc=name, unit="pair", disable=not progress, file=sys.stderr)):
+    for i, (pair_name, load) in enumerate(progress_bar(pairs, enabled=progress, desc=name, unit="pair")):
         pair = {**load(), "name": pair_name}
         if i == 0:
             run_pair(pair, methods)  # once untimed: first calls load code and allocate
