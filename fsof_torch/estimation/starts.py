@@ -88,8 +88,7 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
                   max_points: int | None) -> Tensor | None:
     """The start (B, P), among turns by each of ``turns`` degrees of yaw per frame at ``speed``
     camera heights ahead, whose motion best aligns one pyramid level ``img`` (B, 2, h, w) (its
-    camera: ``camera``; road ``mask``) by :func:`two_way_cost`, with the frames' own change of
-    exposure (:func:`exposure_change`, one for every turn): a screen, not a fit, so one batched
+    camera: ``camera``; road ``mask``) by :func:`two_way_cost`: a screen, not a fit, so one batched
     cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
     the basin of a start straight ahead (a few pixels of the coarsest level) within a few degrees
     a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
@@ -113,27 +112,11 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
         values[:, model.params.index("yaw")] = yaw
         if "z_d" not in fixed:
             values[:, model.params.index("z_d")] = speed * h
-    gain, offset = (x.repeat(T, 1) for x in exposure_change(img))
-    cost = two_way_cost(torch.cat([values, gain, offset], dim=1), model, camera, img, mask, kernel, max_points, T)
+    ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
+    cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
+                        kernel, max_points, T)
     best = cost.reshape(T, B).argmin(0)
     return values.reshape(T, B, -1)[best, torch.arange(B, device=base.device)]
-
-
-def exposure_change(img: Tensor) -> tuple[Tensor, Tensor]:
-    """The gain and offset (B, 1) that match image 2's intensities to image 1's over the whole of
-    one pyramid level ``img`` (B, 2, h, w), their means and mean absolute deviations matched (NaN
-    padding left out): the change of exposure between the frames, which a turn's image cost must
-    not count (30 grey levels more made every turn look worse than zero motion). One per frame,
-    whatever the motion: matched per candidate motion instead, the gain and offset also absorb
-    part of a wrong motion's misalignment and rank wrong turns first (tests/test_fit_starts.py)."""
-    flat = img.to(torch.float64).flatten(2)
-    mean = flat.nanmean(2, keepdim=True)
-    spread = (flat - mean).abs().nanmean(2)
-    m1, m2 = mean[:, 0], mean[:, 1]
-    s1, s2 = spread[:, :1], spread[:, 1:]
-    gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
-    gain = torch.nan_to_num(gain, nan=1.0)
-    return gain, torch.nan_to_num(m1 - gain * m2, nan=0.0)
 
 
 def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, kernel: str,
