@@ -134,10 +134,12 @@ def raycast_reference(K, h, roll, pitch, x_d, z_d, yaw, H, W):
     p = np.stack([u, v, np.ones_like(u)]).reshape(3, -1)
     ray_v = Rc.T @ np.linalg.solve(K, p)            # vehicle-frame direction of each pixel's ray
     in_front = ray_v[1] > 0                          # the ray goes down: meets the road ahead
-    t = np.where(in_front, h / np.where(in_front, ray_v[1], 1.0), np.nan)
-    P = ray_v * t                                    # road point, vehicle frame of time t (y = h)
-    P1 = _rot_yaw(yaw) @ (P - np.array([[x_d], [0.0], [z_d]]))
-    Pc1 = Rc @ P1                                    # camera frame of time t+1
+    # (a ray just below the horizon meets the road beyond float range: inf)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        t = np.where(in_front, h / np.where(in_front, ray_v[1], 1.0), np.nan)
+        P = ray_v * t                                # road point, vehicle frame of time t (y = h)
+        P1 = _rot_yaw(yaw) @ (P - np.array([[x_d], [0.0], [z_d]]))
+        Pc1 = Rc @ P1                                # camera frame of time t+1
     valid = in_front & (Pc1[2] > 0)
     with np.errstate(invalid="ignore", divide="ignore"):
         img = K @ Pc1
