@@ -271,6 +271,17 @@ def test_the_screen_of_turns_holds_under_a_change_of_exposure(turned_pair, gain,
     assert abs(float(fit.params["yaw"][0]) - math.radians(8.0)) < math.radians(0.2)
 
 
+def test_the_screen_of_turns_misses_the_turn_under_a_brightening(turned_pair):
+    """The limitation docs/image-fit.md states: image 2 of the 8° turn 30 grey levels brighter,
+    the screen on raw intensities does not find it, and the fit fails and says so."""
+    t = turned_pair
+    image2 = (t["image2"] + 30.0).clamp(0, 255).round()
+    fit = fit_image(t["image1"][None], image2[None], t["road"][None], t["camera"])
+    truth = (t["road"] & t["valid"])[0]
+    assert not bool(fit.success[0])
+    assert float((fit.flow[0] - t["flow"]).norm(dim=0)[truth].mean()) > 10.0
+
+
 @pytest.mark.parametrize("first", [3, 15])
 def test_real_clip_fast_and_turning_the_screen_ranks_the_turn_first(shared_data, load_benchmark,
                                                                                       first):
