@@ -218,6 +218,8 @@ def test_kitti_exceptions(tmp_path):
     (ODOMETRY_LABELLED + "P2: 1 0 1 0 0 1 1 0 0 0 1 0\n", 0, r"line 5 of '.*' repeats the key 'P2' of line 3"),
     ("".join(ODOMETRY_LABELLED.splitlines(True)[:2]) + ODOMETRY_UNLABELLED * 2, 2,
      r"'.*' has no P_rect_02 or P2 row \(its unlabelled rows are not counted: the file labels its P rows\)"),
+    (CAM_TO_CAM + ODOMETRY_LABELLED, 2, r"'.*' gives camera 2 twice, P_rect_02 \(line 6\) and P2 \(line 9\), with "
+                                        r"different values; expected one of them, or both the same$"),
 ])
 def test_kitti_calibration_repeated_or_mixed_rows(tmp_path, text, cam, message):
     """A repeated key once took the last row, and unlabelled rows were counted by position even
@@ -225,6 +227,19 @@ def test_kitti_calibration_repeated_or_mixed_rows(tmp_path, text, cam, message):
     (tmp_path / "calib.txt").write_text(text)
     with pytest.raises(ValueError, match=rf"^path: {message}"):
         read_kitti_calibration(tmp_path / "calib.txt", cam)
+
+
+def test_kitti_calibration_with_both_spellings_of_a_camera(tmp_path):
+    """P_rect_0N and PN for one camera: the same values are one calibration; different ones were
+    silently resolved to P_rect_0N (now an error, above). Other cameras' rows are not compared."""
+    same = CAM_TO_CAM + "P2: " + CAM_TO_CAM.splitlines()[5].partition(":")[2].strip() + "\n"
+    (tmp_path / "calib.txt").write_text(same)
+    assert read_kitti_calibration(tmp_path / "calib.txt", 2)[0, 3] == pytest.approx(44.85728)
+    (tmp_path / "other.txt").write_text(CAM_TO_CAM + ODOMETRY_LABELLED)
+    # (P_rect_00 and P0, P_rect_02 and P2 differ there; camera 1 has only P1)
+    assert read_kitti_calibration(tmp_path / "other.txt", 1)[0, 3] == pytest.approx(-379.8145)
+    with pytest.raises(ValueError, match=r"gives camera 0 twice, P_rect_00 \(line 5\) and P0 \(line 7\)"):
+        read_kitti_calibration(tmp_path / "other.txt", 0)
 
 
 def test_kitti_calibration_with_a_byte_order_mark(tmp_path):

@@ -467,7 +467,8 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
     (key ``P{cam}``, or, in a file without labelled ``P`` rows, unlabelled rows in order). A
     UTF-8 byte-order mark is skipped. Raises ValueError naming the path (and the row) for a
-    missing or malformed row, one holding NaN or inf, or a key given twice (naming both lines).
+    missing or malformed row, one holding NaN or inf, a key given twice, or both ``P_rect_0{cam}``
+    and ``P{cam}`` with different values (naming both lines).
     """
     path = existing_file(path, "calibration file")
     cam = check_camera_index(cam)
@@ -501,7 +502,12 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a calibration row: {line[:60]!r}") from err
     labelled = any(re.fullmatch(r"P(_rect_)?[0-9]+", key) for key in rows)
-    for key in (f"P_rect_0{cam}", f"P{cam}"):
+    rect, plain = f"P_rect_0{cam}", f"P{cam}"
+    if rect in rows and plain in rows and rows[rect] != rows[plain]:  # which is the calibration?
+        raise ValueError(f"path: {str(path)!r} gives camera {cam} twice, {rect} (line {key_lines[rect]}) and "
+                         f"{plain} (line {key_lines[plain]}), with different values; expected one of them, "
+                         f"or both the same")
+    for key in (rect, plain):
         if key in rows:
             values = rows[key]
             row = key
