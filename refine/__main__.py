@@ -166,7 +166,16 @@ def _input_paths(args: argparse.Namespace) -> dict[str, Path | None]:
     road = Path(args.road) if args.road not in (None, "auto") else None
     return {"--images": args.images, "--calib": args.calib, "--poses": args.poses, "--flows": args.flows,
             "--road": road, "--gt": args.gt, "--kitti15": args.kitti15, "--kitti-odometry": args.kitti_odometry,
-            "--testnet-weights": args.testnet_weights, "--checkpoint": args.checkpoint}
+            "--testnet-weights": args.testnet_weights, "--checkpoint": args.checkpoint,
+            "--net": _net_source(args.net)}
+
+
+def _net_source(factory: str | None) -> Path | None:
+    """The file, or for a package the folder, that ``--net``'s module is read from."""
+    from .sources import net_module_file
+
+    source = net_module_file(factory) if factory is not None else None
+    return source.parent if source is not None and source.name == "__init__.py" else source
 
 
 def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:

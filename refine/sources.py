@@ -226,6 +226,18 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
     raise JobError(f"--source: unknown flow source {name!r}; choose from {', '.join(SOURCES)} or give --flows")
 
 
+def net_module_file(factory: str) -> Path | None:
+    """The source file of the module of ``factory`` (``module:callable``), None where it has none
+    (a built-in or namespace module) or cannot be found."""
+    try:
+        found = importlib.util.find_spec(factory.partition(":")[0])
+    except (ImportError, ValueError):
+        return None
+    if found is not None and found.origin and Path(found.origin).is_file():
+        return Path(found.origin)
+    return None
+
+
 def net_identity(spec: NetSpec | None) -> dict[str, Any] | None:
     """What identifies a user's network for resuming: the factory, the contract, the checkpoint's
     contents and the source file of the factory's module."""
@@ -233,12 +245,7 @@ def net_identity(spec: NetSpec | None) -> dict[str, Any] | None:
         return None
     from .inputs import file_digest
 
-    module_file = None
-    try:
-        found = importlib.util.find_spec(spec.factory.partition(":")[0])
-        if found is not None and found.origin and Path(found.origin).is_file():
-            module_file = file_digest(Path(found.origin))
-    except (ImportError, ValueError):
-        pass
+    source = net_module_file(spec.factory)
+    module_file = file_digest(source) if source is not None else None
     return {"factory": spec.factory, "contract": spec.contract, "module_file": module_file,
             "checkpoint": file_digest(spec.checkpoint) if spec.checkpoint is not None and spec.checkpoint.is_file() else None}

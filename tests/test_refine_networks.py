@@ -222,6 +222,29 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert not (tmp_path / "o" / "run.json").exists()  # every check came before any work
 
 
+def test_json_naming_the_network_source_is_refused_and_the_source_kept(tmp_path, user_module, capsys):
+    """--json naming the file of --net's module, or a file inside its package's folder, is refused
+    before any work: the job removes the --json file at its start."""
+    source = tmp_path / f"{user_module}.py"
+    before = source.read_bytes()
+    package = tmp_path / f"{user_module}_pkg"
+    package.mkdir()
+    (package / "__init__.py").write_text("from " + user_module + " import ptlflow_raft  # noqa: F401\n")
+    (package / "nets.py").write_text("X = 1\n")
+    base = ["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
+            "--out", str(tmp_path / "o")]
+    for factory, target, option_path in ((f"{user_module}:ptlflow_raft", source, source),
+                                         (f"{user_module}_pkg:ptlflow_raft", package / "nets.py", package)):
+        assert main([*base, "--net", factory, "--json", str(target)]) == 2
+        err = capsys.readouterr().err
+        wanted = (f"is the input --net; give another path" if target == option_path else
+                  f"is inside the input --net {str(option_path)!r}; give another path")
+        assert err.startswith(f"error: --json: {str(target)!r} ") and wanted in err, err
+    assert source.read_bytes() == before and (package / "nets.py").read_text() == "X = 1\n"
+    assert not (tmp_path / "o").exists()
+    sys.modules.pop(f"{user_module}_pkg", None)
+
+
 def test_explicit_contract(tmp_path, user_module):
     """A two-image network with --net-contract raft runs (its flows are zero: refinement fixes the road)."""
     summary = _run(tmp_path, "--net", f"{user_module}:two_images", "--net-contract", "raft")
