@@ -237,7 +237,7 @@ def test_json_naming_the_network_source_is_refused_and_the_source_kept(tmp_path,
                                          (f"{user_module}_pkg:ptlflow_raft", package / "nets.py", package)):
         assert main([*base, "--net", factory, "--json", str(target)]) == 2
         err = capsys.readouterr().err
-        wanted = (f"is the input --net; give another path" if target == option_path else
+        wanted = ("is the input --net; give another path" if target == option_path else
                   f"is inside the input --net {str(option_path)!r}; give another path")
         assert err.startswith(f"error: --json: {str(target)!r} ") and wanted in err, err
     assert source.read_bytes() == before and (package / "nets.py").read_text() == "X = 1\n"
