@@ -45,7 +45,7 @@ box, the flows' difference over it and each region's decision); the values are n
 from __future__ import annotations
 
 import math
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -54,18 +54,16 @@ from torch import Tensor
 from .._check import (check_float_tensor, check_has_values, check_image_pair, check_int, check_mask, check_number,
                       check_shape, inference)
 from ..estimation.sampling import MaskPoints, sample_mask
+from ..evaluation.census import RING, census_ring_distance, census_ring_distances
 from ..evaluation.photometric import to_grey
 
 __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
 
-# 16 neighbours on a ring of radius 3 (a Bresenham circle, as the FAST corner detector's)
-_RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
-         (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
 _MAX_OBJECT_PX = 1e6
 # the side (pixels) of the square blocks over which a sample's mean difference takes its standard
 # error: twice a point's footprint (the ring's diameter, and the pixel that bilinear sampling adds),
 # so that points whose census rings overlap mostly share a block
-_BLOCK = 2 * (2 * max(max(abs(dx), abs(dy)) for dx, dy in _RING) + 2)
+_BLOCK = 2 * (2 * max(max(abs(dx), abs(dy)) for dx, dy in RING) + 2)
 
 
 class GateResult(NamedTuple):
@@ -101,103 +99,6 @@ class GateResult(NamedTuple):
     confirmed: Tensor
     informative: Tensor
     textured: Tensor
-
-
-def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flow: Tensor,
-                         threshold: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
-    """Ternary census distance of the points (x, y) (B, N) of image 1 (whole pixels: image 1 is
-    read there, not interpolated; a fraction is dropped) against image 2 at x + flow (flow
-    (B, 2, N), bilinear), over the 16 ring neighbours.
-
-    ``grey1``, ``grey2``: (B, 1, H, W) float grey images
-    (:func:`~fsof_torch.evaluation.photometric.to_grey` converts RGB); ``x``, ``y``: (B, N) float or
-    integer pixel coordinates; ``flow``: (B, 2, N) float pixels; all on one device.
-
-    A neighbour counts where its order relative to the centre is clear in image 1 (a difference
-    above ``threshold`` grey levels, a number >= 0); the distance is the fraction of those whose
-    order differs in image 2 (there: sign of the difference, 0 within the threshold). Weak texture
-    carries no evidence either way, so it does not count. Returns the distance (B, N), the number
-    of neighbours that count (B, N) and flags of points whose samples lie in both images and are
-    finite there, at a finite flow (B, N): a point flagged False is no evidence either way.
-    Image 2 is interpolated at float32 positions at least (in half precision a position across a
-    wide image would be off by up to half a pixel), its values rounded to its dtype.
-    """
-    dims = check_shape(check_float_tensor(grey1, "grey1"), "grey1", ("B", 1, "H", "W"))
-    check_shape(check_float_tensor(grey2, "grey2"), "grey2", ("B", 1, "H", "W"), dims)
-    for name, t in (("x", x), ("y", y)):
-        if not isinstance(t, Tensor):
-            raise TypeError(f"{name}: expected a tensor (B, N) of pixel coordinates, got {type(t).__name__}")
-        if t.dtype == torch.bool or t.is_complex():
-            raise TypeError(f"{name}: expected float or integer pixel coordinates, got dtype {t.dtype}")
-        check_shape(t, name, ("B", "N"), dims)
-    check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "N"), dims)
-    for name, t in (("grey2", grey2), ("x", x), ("y", y), ("flow", flow)):
-        if t.device != grey1.device:
-            raise ValueError(f"{name}: expected the device of grey1 ({grey1.device}), got {t.device}")
-    threshold = check_number(threshold, "threshold", nonnegative=True)
-    return _census_ring(grey1, grey2, x, y, (flow,), threshold)[0]
-
-
-def _census_ring(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequence[Tensor],
-                 threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
-    """:func:`census_ring_distance` for several flows at the same points (image 1 read once).
-
-    All 17 samples of a point lie inside an image where its centre lies ``r`` = 3 pixels (the
-    ring's radius) inside it: the tests, the indices and the sampling grid are formed per point
-    and the ring's offsets added to them. A point with a non-finite sample in either image is
-    flagged as outside: a NaN or inf pixel orders against nothing."""
-    B, _, H, W = grey1.shape
-    N, r = x.shape[-1], 3
-    dx, dy = (torch.tensor([0] + [d[k] for d in _RING], device=x.device) for k in (0, 1))  # (17,)
-    R = dx.numel() - 1
-
-    def inside(u: Tensor, v: Tensor) -> Tensor:
-        return (u >= r) & (u <= W - 1 - r) & (v >= r) & (v <= H - 1 - r)
-
-    # image 1 at whole pixels: its values themselves (the indices clamped where the point does
-    # not count)
-    x1, y1 = x.trunc(), y.trunc()
-    centre = y1.clamp(r, H - 1 - r).long() * W + x1.clamp(r, W - 1 - r).long()
-    flat = (centre.unsqueeze(1) + (dy * W + dx).unsqueeze(-1)).clamp_(0, H * W - 1)
-    v1 = grey1.reshape(B, -1).gather(1, flat.reshape(B, -1))
-    d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, R + 1, N)[:, :1]
-    clear = d1.abs() > threshold
-    # each clear neighbour's order (±1), 0 where not clear: a neighbour keeps its order in image 2
-    # where order1 · d2 > threshold (never where it is 0, nor at a NaN), which counts the
-    # ternary matches in one product and one comparison
-    order1 = torch.where(clear, torch.sign(d1), 0.0)
-    n = clear.sum(1)
-    in1 = inside(x1, y1) & _finite_along(v1.reshape(B, R + 1, N), 1)
-    # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
-    # (the positions and the interpolation in float32 at least: in half precision a normalised
-    # coordinate is off by up to half a pixel across a KITTI-wide image; the values are then
-    # rounded to image 2's dtype)
-    sample = torch.promote_types(grey2.dtype, torch.float32)
-    g2 = grey2.to(sample)
-    sx, sy = 2.0 / max(W - 1, 1), 2.0 / max(H - 1, 1)
-    ring = torch.stack([dx * sx, dy * sy], dim=-1).to(sample).unsqueeze(1)  # (17, 1, 2)
-    out = []
-    for flow in flows:
-        x2, y2 = x + flow[:, 0], y + flow[:, 1]
-        centre2 = torch.stack([x2.to(sample) * sx - 1.0, y2.to(sample) * sy - 1.0], dim=-1)
-        at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
-        v2 = F.grid_sample(g2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
-                           align_corners=True).reshape(B, R + 1, N).to(grey2.dtype)
-        # (in image 2's dtype, as its own differences are compared with the threshold: ±1 and 0
-        # are exact in any dtype, and so is the product)
-        d2 = v2[:, 1:] - v2[:, :1]
-        kept = (order1.to(d2.dtype) * d2 > threshold).sum(1)
-        dist = (n - kept).to(grey1.dtype) / n.clamp_min(1)
-        # (a non-finite flow lies inside no image: its comparisons are False)
-        out.append((dist, n, in1 & inside(x2, y2) & _finite_along(v2, 1)))
-    return out
-
-
-def _finite_along(x: Tensor, dim: int) -> Tensor:
-    """Whether every value of float ``x`` along ``dim`` is finite, by the largest magnitude there
-    (NaN propagates through ``amax``, an inf is its own maximum): one float reduction, where
-    ``torch.isfinite(x).all(dim)`` writes a bool per value and reduces those (slow on the CPU)."""
-    return x.abs().amax(dim) < math.inf
 
 
 def _sum_by(index: Tensor, v: Tensor, n: int) -> Tensor:
@@ -266,8 +167,8 @@ class ImageGate:
             ("points", points), ("min_points", min_points), ("min_points_fine", min_points_fine)))
         # (every neighbour of the ring, or fewer: more could never be met, and refining would stop)
         min_neighbours = check_int(min_neighbours, "min_neighbours", minimum=0)
-        if min_neighbours > len(_RING):
-            raise ValueError(f"min_neighbours: expected at most {len(_RING)} (the ring's neighbours), "
+        if min_neighbours > len(RING):
+            raise ValueError(f"min_neighbours: expected at most {len(RING)} (the ring's neighbours), "
                              f"got {min_neighbours}")
         self.grid, self.points, self.min_points, self.min_points_fine = grid, points, min_points, min_points_fine
         # (no flow differs by more than an image's size; the test squares 4 times the threshold)
@@ -324,7 +225,7 @@ class ImageGate:
         x2, y2 = x + fp[:, 0], y + fp[:, 1]
         lost = ~((x2 >= 0) & (x2 <= W - 1) & (y2 >= 0) & (y2 <= H - 1))  # (also where not finite)
         fp = torch.where(finite.unsqueeze(1), fp, fm)
-        (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = _census_ring(g1, g2, x, y, (fp, fm), self.contrast)
+        (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = census_ring_distances(g1, g2, x, y, (fp, fm), self.contrast)
         d_pred = torch.where(lost, self.occlusion, d_pred)
         # points that count: real, textured, judged by the model and judged by the prediction or
         # lost by it
