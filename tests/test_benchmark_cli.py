@@ -103,6 +103,8 @@ BAD = [
     ("sequence_synthetic", ["--seed", "-1"], "--seed"),
     ("sequence_synthetic", ["--options", '{"bogus": 1}'], "--options"),
     ("sequence_synthetic", ["--options", '{"init": {}}'], "--options"),  # (fit_sequence sets it)
+    ("turn_screen", ["--data", ABSENT], "--data"),
+    ("turn_screen", ["--data", f"{TMP}/empty"], "--data"),
 ]
 # a failing run of the job: exits 1 naming the run (the single option passed as documented)
 QUICKSTART_FAILS = ("bench_quickstart", ["--runs", "1", "--args", "--no-such-option"])

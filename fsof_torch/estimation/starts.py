@@ -20,6 +20,7 @@ import torch
 from torch import Tensor
 
 from .._check import check_number
+from ..evaluation.census import census_ring_distances
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model, homography_values, pack_params
 from .flow_fit import start_values
@@ -37,6 +38,8 @@ __all__ = ["start_list", "check_forward_steps", "check_turn_steps", "starts_ahea
 TURN_STARTS = (-12.0, -9.0, -6.0, -3.0, 3.0, 6.0, 9.0, 12.0)
 #: the distance ahead (camera heights per frame) at which the turns are screened
 TURN_SPEED = 1.0
+#: grey levels above which a neighbour's order is clear in the screen's census (the gate's default)
+CENSUS_CONTRAST = 2.0
 
 
 def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
@@ -85,13 +88,15 @@ def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed
 
 def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, mask: Tensor,
                   turns: Sequence[float], speed: float, fixed: tuple[str, ...], kernel: str,
-                  max_points: int | None) -> Tensor | None:
+                  max_points: int | None, census: bool = True) -> Tensor | None:
     """The start (B, P), among turns by each of ``turns`` degrees of yaw per frame at ``speed``
     camera heights ahead, whose motion best aligns one pyramid level ``img`` (B, 2, h, w) (its
-    camera: ``camera``; road ``mask``) by :func:`two_way_cost`: a screen, not a fit, so one batched
-    cost evaluation. A turn moves the whole image sideways, by about f tan(yaw) pixels, beyond
-    the basin of a start straight ahead (a few pixels of the coarsest level) within a few degrees
-    a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
+    camera: ``camera``; road ``mask``) by :func:`two_way_cost` with the census: a screen, not a fit,
+    so one batched cost evaluation, which an exposure change between the frames does not fool
+    (``census=False``: raw intensities instead, gain 1 and offset 0, for comparison:
+    benchmarks/turn_screen.py). A turn moves the whole image sideways, by about f tan(yaw) pixels,
+    beyond the basin of a start straight ahead (a few pixels of the coarsest level) within a few
+    degrees a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
     ``base`` with that yaw and (unless held fixed) z_d at ``speed`` heights, the rest (roll and
     pitch among them) ``base``'s; for the ``"homography"`` it is built from the camera alone (not
     from ``base``'s values): the homography of the ``"plane"`` model's turn and step at ``camera``'s
@@ -114,13 +119,13 @@ def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, m
             values[:, model.params.index("z_d")] = speed * h
     ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
     cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
-                        kernel, max_points, T)
+                        kernel, max_points, T, census=census)
     best = cost.reshape(T, B).argmin(0)
     return values.reshape(T, B, -1)[best, torch.arange(B, device=base.device)]
 
 
 def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, kernel: str,
-                  max_points: int | None, reps: int, match: bool = False) -> Tensor:
+                  max_points: int | None, reps: int, match: bool = False, census: bool = False) -> Tensor:
     """The robust image cost (B reps,) by which competing starts ``params`` (B reps, P + 2) are
     compared, on one pyramid level ``img`` (B, 2, h, w): the mean over image 1's road points
     mapped into image 2 and over image 2's points at the same pixels mapped back into image 1,
@@ -131,6 +136,17 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     a regression, whose gain shrinks under a wrong motion), for candidates whose own were fitted
     on other images (the band of detail): applied to ``img``, those judge the band's gain, not the
     alignment (tests/test_fit_starts.py).
+
+    ``census``: the mean ternary census distance over the compared points instead
+    (:func:`~fsof_torch.evaluation.census.census_ring_distance`, the gate's: the order of each point
+    against its ring of neighbours, at the level's resolution), for candidates that were never
+    fitted (the screen of turns). Gains and offsets are not used: the order of the grey levels
+    does not change with the exposure, where raw intensities under a change of exposure move
+    every residual alike and the robust kernel, its scale grown with them, no longer tells the
+    candidates apart; and nothing is estimated per candidate, so nothing can absorb part of a
+    wrong candidate's misalignment, as a gain or offset matched per candidate can
+    (tests/test_fit_starts.py). A candidate without a compared point costs 1, the largest
+    distance.
 
     Image 1's points alone cannot judge a motion that moves most of them out of image 2: one that
     drives far ahead keeps only a few points near the horizon, which a blurred coarse level fits
@@ -147,18 +163,29 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     points = sample_mask(mask, max_points)
     pts, sel = rep(pixel_coordinates(points.pix, img.shape[-1])), rep(points.sel)
     at = rep(gather_pixels(img, points.pix).to(torch.float64))  # (I1, I2) at the points
-    pairs, uses = [], []
+    pairs, uses, distances = [], [], []
     # forward: image 1's points into image 2; backward: image 2's points into image 1
     for H, forward in ((M, True), (torch.linalg.inv_ex(M)[0], False)):
         p = H @ pts
         ok = sel & (p[:, 2] > 1e-9)
         p = p / torch.where(ok, p[:, 2], 1.0).unsqueeze(1)
         ok = ok & ((horizon @ (pts if forward else p))[:, 0] > 0)  # on the road in front at t
+        if census:
+            own, other = (img[:, :1], img[:, 1:]) if forward else (img[:, 1:], img[:, :1])
+            (d, n, inside), = census_ring_distances(rep(own), rep(other), pts[:, 0], pts[:, 1],
+                                                    (p[:, :2] - pts[:, :2],), CENSUS_CONTRAST)
+            distances.append(d.to(torch.float64))
+            uses.append(ok & inside & (n > 0))
+            continue
         sampled, inb = sample_points(rep(img[:, 1:] if forward else img[:, :1]), p[:, :2])
         pairs.append((sampled[:, 0], at[:, 0]) if forward else (at[:, 1], sampled[:, 0]))
         uses.append(ok & inb)
-    I2, I1 = (torch.cat(x, 1) for x in zip(*pairs))
     use = torch.cat(uses, 1)
+    if census:
+        count = use.sum(1)
+        total = torch.where(use, torch.cat(distances, 1), 0.0).sum(1)
+        return torch.where(count > 0, total / count.clamp_min(1), 1.0)
+    I2, I1 = (torch.cat(x, 1) for x in zip(*pairs))
     if match:
         w = use.to(torch.float64)
         w = w / w.sum(1, keepdim=True).clamp_min(1)

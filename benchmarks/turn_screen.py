@@ -1,0 +1,157 @@
+"""The image fit's screen of turns under exposure changes: the turn it ranks first against the turn
+applied, ranked by the census (the screen's measure) and by raw intensities (gain 1, offset 0),
+for comparison.
+
+Where every start of an image fit fails, ``fit_image`` screens turns of ±3 to ±12° a frame at the
+coarsest pyramid level and solves the best (docs/image-fit.md, "Sharp turns"). This script runs
+the screen alone (``fsof_torch.estimation.starts.turning_start``, the fit's inputs to it) on:
+
+- synthetic pairs (``default`` 0 and 10, ``body-motion`` 3, ``crest`` 5, ``dip`` 7; 188 × 621,
+  driven straight), image 2 seen by a camera turned by ±5, ±8 and ±11° of yaw (``real_road.py``'s
+  ``turned``, exact at every depth), each with image 2 as recorded and changed in exposure:
+  gains 0.5, 0.6, 0.8, 1.5 and 2, offsets of ±30 and ±60 grey levels, gain 1.3 with +20 and 0.8
+  with −20, clipped to 0..255 and rounded as an 8-bit camera records it;
+- the shared KITTI clip's pairs (``../shared/data/kitti_odometry_straight``), turned by the
+  yaw a frame (and pitched and rolled) of each row, also two or three frames apart, with image 2
+  at the row's gain (``real_road.py``'s ``exposed``).
+
+Prints, per group, the cases and how many picks of each measure are the screened turn nearest
+the applied yaw (5° → 6°, 8° → 9°, 11° → 12°), and how many lie within 3° of it (a step of the
+screen: within the basin the fit is solved from, docs/image-fit.md).
+
+    python benchmarks/turn_screen.py [--no-real] [--data DIR]
+
+One thread. Without the clip (or with ``--no-real``) only the synthetic part runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import warnings
+from pathlib import Path
+from typing import Callable
+
+import torch
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+CLIP = ("image_l", "calib.txt", "road.json", "poses.txt")
+SYNTHETIC = (("default", 0), ("default", 10), ("body-motion", 3), ("crest", 5), ("dip", 7))
+YAWS = (-11.0, -8.0, -5.0, 5.0, 8.0, 11.0)
+EXPOSURES = ((1.0, 0.0), (0.5, 0.0), (0.6, 0.0), (0.8, 0.0), (1.5, 0.0), (2.0, 0.0), (1.0, 30.0), (1.0, -30.0),
+             (1.0, 60.0), (1.0, -60.0), (1.3, 20.0), (0.8, -20.0))
+#: (frames apart, yaw, pitch change, roll change in degrees a frame, image 2's gain)
+REAL = ((1, 3, 0, 0, 1), (1, 6, 0, 0, 1), (1, -6, 0, 0, 1), (1, 9, 0, 0, 1), (1, -9, 0, 0, 1), (1, 12, 0, 0, 1),
+        (1, -12, 0, 0, 1), (1, 6, 1, 1, 1), (1, -9, -1.5, 2, 1), (3, 6, 0, 0, 1), (2, -9, 0, 0, 1),
+        (1, 9, 0, 0, 0.6), (1, -9, 0, 0, 1.5), (1, 12, 0, 0, 2), (1, -12, 0, 0, 0.5), (1, 6, 1, 1, 1.5),
+        (1, -9, -1.5, 2, 0.7), (3, 6, 0, 0, 1.4), (2, -9, 0, 0, 0.6))
+
+
+def screened(pair: dict) -> dict[str, float]:
+    """The turn (degrees) the screen ranks first on ``pair`` (images, road, camera), by the census
+    and by raw intensities, from the coarsest level ``fit_image`` would screen on."""
+    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
+    from fsof_torch.estimation.starts import TURN_SPEED, TURN_STARTS, turning_start
+    from fsof_torch.evaluation.photometric import to_grey
+    from fsof_torch.geometry.road_models import get_road_model, pack_params
+
+    grey = torch.cat([to_grey(pair["image1"][None].float()), to_grey(pair["image2"][None].float())], dim=1)
+    n = pyramid_levels(*grey.shape[-2:], None, 16)
+    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(pair["road"][None], n)[-1]
+    camera = level_camera(pair["camera"].to(torch.float64), n - 1)
+    plane = get_road_model("plane")
+    _, base = pack_params(plane, camera, None)
+    yaw = plane.params.index("yaw")
+    return {name: math.degrees(float(turning_start(plane, camera, base, level, mask, TURN_STARTS, TURN_SPEED, (),
+                                                   "cauchy", 3000, census=census)[0, yaw]))
+            for name, census in (("census", True), ("intensities", False))}
+
+
+def count(right: dict[str, list[int]], picks: dict[str, float], yaw: float) -> None:
+    """Add the picks to ``right`` ({measure: [nearest the applied yaw, within 3° of it]})."""
+    from fsof_torch.estimation.starts import TURN_STARTS
+
+    nearest = min(TURN_STARTS, key=lambda t: abs(t - yaw))
+    for name, picked in picks.items():
+        right[name][0] += abs(picked - nearest) < 1e-6  # (degrees through radians: not exact)
+        right[name][1] += abs(picked - yaw) <= 3.0
+
+
+def synthetic_rows(rr, progress: Callable) -> list[tuple[str, int, dict[str, list[int]]]]:
+    """(exposure, cases, right picks by measure) over the synthetic pairs and turns."""
+    from fsof_torch.data.scene import render_pair
+
+    right = {e: {"census": [0, 0], "intensities": [0, 0]} for e in EXPOSURES}
+    cases = 0
+    for preset, index in progress(SYNTHETIC):
+        p = render_pair(preset, index, size=(188, 621), steering=0.0)
+        for yaw in YAWS:
+            t = rr.turned({k: p[k] for k in ("image1", "image2", "road", "camera", "flow", "valid")}, yaw)
+            cases += 1
+            for gain, offset in EXPOSURES:
+                image2 = (t["image2"] * gain + offset).clamp(0, 255).round()
+                count(right[(gain, offset)], screened({**t, "image2": image2}), yaw)
+    return [(f"gain {g:g}, offset {o:+g}", cases, right[(g, o)]) for g, o in EXPOSURES]
+
+
+def real_rows(rr, clip: Path, progress: Callable) -> list[tuple[str, int, dict[str, list[int]]]]:
+    """(turn and exposure, pairs, right picks by measure) over the clip's pairs."""
+    rows = []
+    for step, yaw, pitch, roll, gain in progress(REAL):
+        right, cases = {"census": [0, 0], "intensities": [0, 0]}, 0
+        for _, load in rr.odometry_clip(clip, 1.65, 0.0, step):
+            t = rr.turned(load(), yaw, pitch, roll)
+            if gain != 1:
+                t = rr.exposed(t, gain)
+            cases += 1
+            count(right, screened(t), yaw)
+        label = (f"{'' if step == 1 else f'{step} frames apart, '}yaw {yaw:+g}°"
+                 + (f", pitch {pitch:+g}°, roll {roll:+g}°" if pitch or roll else "") + f", gain {gain:g}")
+        rows.append((label, cases, right))
+    return rows
+
+
+def table(title: str, rows: list[tuple[str, int, dict[str, list[int]]]]) -> None:
+    print(f"\n{title}\n")
+    print("| case | cases | census: nearest turn | within 3° | intensities: nearest turn | within 3° |")
+    print("|---|---|---|---|---|---|")
+    for label, cases, right in rows + [("all", sum(c for _, c, _ in rows),
+                                        {m: [sum(r[m][k] for *_, r in rows) for k in (0, 1)]
+                                         for m in ("census", "intensities")})]:
+        (cn, cw), (iw_n, iw) = right["census"], right["intensities"]
+        print(f"| {label} | {cases} | {cn} | {cw} | {iw_n} | {iw} |")
+
+
+def main(argv: list[str] | None = None) -> int:
+    from cli import data_folder, description
+
+    parser = argparse.ArgumentParser(description=description(__doc__))
+    parser.add_argument("--no-real", action="store_true", help="leave out the shared KITTI clip")
+    parser.add_argument("--data", metavar="DIR", type=Path, default=None,
+                        help="the folder holding kitti_odometry_straight/ (default: ../shared/data beside the "
+                             "repository; without the clip there, the synthetic part only)")
+    args = parser.parse_args(argv)
+    data = None if args.no_real else data_folder(parser, args.data, DATA,
+                                                 tuple(f"kitti_odometry_straight/{n}" for n in CLIP))
+    import cv2
+    import real_road as rr
+
+    from fsof_torch.io.progress import progress_bar
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+    warnings.simplefilter("ignore")
+    table("Synthetic pairs (5 scenes × 6 turns), by image 2's exposure:",
+          synthetic_rows(rr, lambda items: progress_bar(items, desc="synthetic", unit="scene", leave=False)))
+    if data is not None:
+        clip = data / "kitti_odometry_straight"
+        if all((clip / n).exists() for n in CLIP):
+            table("The shared KITTI clip's pairs, turned:",
+                  real_rows(rr, clip, lambda rows: progress_bar(rows, desc="clip", unit="row", leave=False)))
+        else:
+            print(f"\nThe KITTI clip absent: skipped ({clip} lacks some of {', '.join(CLIP)})")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
