@@ -16,7 +16,8 @@ differs (``--overwrite`` deletes that run's outputs first), unless that run left
 manifest (it stopped before its first record: its manifest is replaced). A manifest that cannot
 be read, or names no outputs, beside other files stops every run, ``--overwrite`` too: which files
 are that run's is unknown, and the job deletes nothing it cannot name. The number of pairs is
-not part of the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one.
+not part of the identity: a longer run of the same inputs reuses the pairs it shares with a shorter one
+(and a shorter run reports only its own pairs, leaving the other records for a longer run later).
 """
 
 from __future__ import annotations

@@ -171,6 +171,25 @@ def test_resume_skips_finished_pairs(tmp_path):
     assert rec0.stat().st_mtime_ns != stamp0
 
 
+def test_a_shorter_rerun_reports_only_its_own_pairs(tmp_path):
+    """The number of pairs is not part of a run's identity: a run of 1 pair into the folder of a
+    run of 2 reuses pair 0 and reports it alone; pair 1's record stays, for a longer run later,
+    which reuses both."""
+    out = tmp_path / "out"
+    args = ["--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(["--num-pairs", "2", *args]) == 0
+    rec1 = out / "dis" / "given" / "pairs" / "000001.json"
+    stamp1 = rec1.stat().st_mtime_ns
+    assert main(["--num-pairs", "1", *args]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert [p["pair"] for p in summary["pairs"]] == ["000000"] and summary["rows"][0]["pairs"] == 1
+    assert summary["records_resumed"] == 1 and summary["records_computed"] == 0
+    assert rec1.is_file() and rec1.stat().st_mtime_ns == stamp1
+    assert main(["--num-pairs", "2", *args]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 2 and summary["records_computed"] == 0
+
+
 
 def test_a_redone_pairs_figure_never_shows_its_old_records(tmp_path, user_folder, scene_pairs):
     """A pair's flow replaced, the rerun with --no-figures: the pair is redone and its figure (drawn
