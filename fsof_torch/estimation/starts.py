@@ -20,7 +20,7 @@ import torch
 from torch import Tensor
 
 from .._check import check_number
-from ..evaluation.census import census_ring_distances
+from ..evaluation.census import CONTRAST, census_ring_distances
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model, homography_values, pack_params
 from .flow_fit import start_values
@@ -38,8 +38,6 @@ __all__ = ["start_list", "check_forward_steps", "check_turn_steps", "starts_ahea
 TURN_STARTS = (-12.0, -9.0, -6.0, -3.0, 3.0, 6.0, 9.0, 12.0)
 #: the distance ahead (camera heights per frame) at which the turns are screened
 TURN_SPEED = 1.0
-#: grey levels above which a neighbour's order is clear in the screen's census (the gate's default)
-CENSUS_CONTRAST = 2.0
 
 
 def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
@@ -162,7 +160,8 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
         horizon = model.horizon_row(cam, values)
     points = sample_mask(mask, max_points)
     pts, sel = rep(pixel_coordinates(points.pix, img.shape[-1])), rep(points.sel)
-    at = rep(gather_pixels(img, points.pix).to(torch.float64))  # (I1, I2) at the points
+    if not census:
+        at = rep(gather_pixels(img, points.pix).to(torch.float64))  # (I1, I2) at the points
     pairs, uses, distances = [], [], []
     # forward: image 1's points into image 2; backward: image 2's points into image 1
     for H, forward in ((M, True), (torch.linalg.inv_ex(M)[0], False)):
@@ -173,7 +172,7 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
         if census:
             own, other = (img[:, :1], img[:, 1:]) if forward else (img[:, 1:], img[:, :1])
             (d, n, inside), = census_ring_distances(rep(own), rep(other), pts[:, 0], pts[:, 1],
-                                                    (p[:, :2] - pts[:, :2],), CENSUS_CONTRAST)
+                                                    (p[:, :2] - pts[:, :2],), CONTRAST)
             distances.append(d.to(torch.float64))
             uses.append(ok & inside & (n > 0))
             continue

@@ -21,16 +21,19 @@ from torch import Tensor
 
 from .._check import check_float_tensor, check_number, check_shape
 
-__all__ = ["RING", "census_ring_distance", "census_ring_distances"]
+__all__ = ["RING", "CONTRAST", "census_ring_distance", "census_ring_distances"]
 
 #: the 16 neighbours (dx, dy) on a ring of radius 3 (a Bresenham circle, as the FAST corner
 #: detector's)
 RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
         (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
+#: the default grey levels above which a neighbour's order is clear (the gate's and the image
+#: fit's screen of turns)
+CONTRAST = 2.0
 
 
 def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flow: Tensor,
-                         threshold: float = 2.0) -> tuple[Tensor, Tensor, Tensor]:
+                         threshold: float = CONTRAST) -> tuple[Tensor, Tensor, Tensor]:
     """Ternary census distance of the points (x, y) (B, N) of image 1 (whole pixels: image 1 is
     read there, not interpolated; a fraction is dropped) against image 2 at x + flow (flow
     (B, 2, N), bilinear), over the 16 ring neighbours.
@@ -65,7 +68,7 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
 
 
 def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flows: Sequence[Tensor],
-                 threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
+                          threshold: float) -> list[tuple[Tensor, Tensor, Tensor]]:
     """:func:`census_ring_distance` for several flows at the same points (image 1 read once), without
     checking its arguments (for loops that have checked them).
 

@@ -54,7 +54,7 @@ from torch import Tensor
 from .._check import (check_float_tensor, check_has_values, check_image_pair, check_int, check_mask, check_number,
                       check_shape, inference)
 from ..estimation.sampling import MaskPoints, sample_mask
-from ..evaluation.census import RING, census_ring_distance, census_ring_distances
+from ..evaluation.census import CONTRAST, RING, census_ring_distance, census_ring_distances
 from ..evaluation.photometric import to_grey
 
 __all__ = ["ImageGate", "GateResult", "census_ring_distance"]
@@ -157,7 +157,7 @@ class ImageGate:
     def __init__(self, *, grid: tuple[int, int] = (8, 16), objects: bool = True, object_px: float = 1.0,
                  min_points_fine: int = 4, points: int = 6000, min_points: int = 12,
                  margin: float = 0.0, z: float = 2.0, occlusion: float = 0.35, temperature: float = 0.02,
-                 contrast: float = 2.0, min_neighbours: int = 4, require_evidence: bool = True) -> None:
+                 contrast: float = CONTRAST, min_neighbours: int = 4, require_evidence: bool = True) -> None:
         if not isinstance(grid, (tuple, list)) or len(grid) != 2:
             raise TypeError(f"grid: expected (rows, columns) of positive integers, got {grid!r}")
         grid = tuple(check_int(v, "grid", minimum=1) for v in grid)
