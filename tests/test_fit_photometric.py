@@ -152,7 +152,7 @@ def test_the_calibration_prior_leaves_held_parameters_out():
 def test_priors_are_judged_in_one_host_read(monkeypatch):
     """Each prior entry's mean and sigma were read back on their own: ten host reads a fit for the
     calibration prior of the plane model, whose values come from the checked camera."""
-    from fsof_torch.estimation.image_fit import _prior, calibration_prior
+    from fsof_torch.estimation.priors import calibration_prior, prior_arrays as _prior
     from fsof_torch.geometry.road_models import get_road_model
 
     plane = get_road_model("plane")

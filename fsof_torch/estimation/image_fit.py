@@ -52,6 +52,7 @@ from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import detail_correlation, photometric_inliers, warped_samples
+from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .starts import (TURN_SPEED, TURN_STARTS, better_fit, check_forward_steps, check_turn_steps, start_list,
                      starts_ahead, turning_start, two_way_cost)
@@ -60,58 +61,9 @@ from .solver import Evaluation, Solution, positive_definite, solve
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
            "image_pyramid", "gaussian_blur", "DEG"]
 
-DEG = math.pi / 180.0
 # a coarser level ends when a step moves (or the next step is predicted to move) the residuals by
 # less than this fraction of their RMS
 _COARSE_RESOLUTION = 0.1
-
-
-def calibration_prior(model: str | RoadModel, camera: Camera, *, mounting_deg: float = 1.0,
-                      body_rotation_deg: float = 0.3, vertical_m: float = 0.02) -> dict[str, tuple[Tensor, float]]:
-    """Gaussian priors from the calibration and the physics of a car (DESIGN.md §10).
-
-    The camera's roll and pitch relative to the road: the calibrated values ± ``mounting_deg``;
-    the body's pitch and roll change between frames: 0 ± ``body_rotation_deg``; its vertical
-    motion: 0 ± ``vertical_m``. Returns ``{name: (mean (B,), sigma)}`` for the model's parameters
-    that have one (none for the homography model).
-    """
-    model = get_road_model(model)
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    mounting_deg, body_rotation_deg, vertical_m = (check_number(v, n, positive=True) for n, v in (
-        ("mounting_deg", mounting_deg), ("body_rotation_deg", body_rotation_deg), ("vertical_m", vertical_m)))
-    out: dict[str, tuple[Tensor, float]] = {}
-    if "roll" in model.params:
-        out["roll"] = (camera.roll, mounting_deg * DEG)
-        out["pitch"] = (camera.pitch, mounting_deg * DEG)
-    for name, sigma in (("pitch_change", body_rotation_deg * DEG), ("roll_change", body_rotation_deg * DEG),
-                        ("y_d", vertical_m)):
-        if name in model.params:
-            out[name] = (torch.zeros_like(camera.height), sigma)
-    return out
-
-
-def physical_bounds(model: str | RoadModel, camera: Camera) -> tuple[Tensor, Tensor]:
-    """Bounds (B, P) each, beyond which a road-motion estimate has failed whatever the images say:
-    the camera's roll and pitch within 10° of the calibration, the body's pitch and roll change
-    below 5° per frame, yaw below 30° per frame, the translation below 20 camera heights per frame
-    (y_d below 0.3). The homography model has none."""
-    model = get_road_model(model)
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    B = camera.batch_size
-    h = camera.height.to(torch.float64)
-    lo = torch.full((B, len(model.params)), -math.inf, dtype=torch.float64, device=camera.device)
-    hi = -lo
-    limits = {"yaw": 30 * DEG, "pitch_change": 5 * DEG, "roll_change": 5 * DEG, "x_d": 20 * h, "z_d": 20 * h,
-              "y_d": 0.3 * h}
-    for i, name in enumerate(model.params):
-        if name in ("roll", "pitch"):
-            centre = getattr(camera, name).to(torch.float64)
-            lo[:, i], hi[:, i] = centre - 10 * DEG, centre + 10 * DEG
-        elif name in limits:
-            lo[:, i], hi[:, i] = -limits[name], limits[name]
-    return lo, hi
 
 
 def _with_gradient(image: Tensor) -> Tensor:
@@ -444,7 +396,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         prior_spec = ({n: v for n, v in calibration_prior(model, cam64).items() if n not in fixed_names}
                       if prior == "calibration" else prior)  # (a held parameter's prior has no effect)
         # each level weighs the prior by its residuals' noise: precision noise² / σ²
-        prior_mean, inverse_variance = _prior(model, prior_spec, B, dev)
+        prior_mean, inverse_variance = prior_arrays(model, prior_spec, B, dev)
         lo, hi = physical_bounds(model, cam64) if bounds == "physical" else (bounds or (None, None))
         # the bounds hold the free parameters: fixed ones (and the gain and offset) are not clamped
         unbounded = torch.cat([held, torch.ones(2, dtype=torch.bool, device=dev)])
@@ -645,40 +597,6 @@ def _level_scale(scale: float | None, reps: int) -> float | Callable[[Evaluation
         return s.reshape(reps, -1)[0].repeat(reps)
 
     return from_start
-
-
-def _prior(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
-           device: torch.device) -> tuple[Tensor | None, Tensor | None]:
-    """(mean, 1 / σ²) (B, P + 2) of Gaussian priors ``{name: (mean, sigma)}`` (zero where none)."""
-    if not spec:
-        return None, None
-    P = len(model.params)
-    mean = torch.zeros(B, P + 2, dtype=torch.float64, device=device)
-    inverse_variance = torch.zeros_like(mean)
-    good = []  # (each entry's values judged at the end, in one host read)
-    for name, value in spec.items():
-        if name not in model.params:
-            raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}; expected some of {model.params}")
-        try:
-            mu, sigma = value
-        except (TypeError, ValueError):
-            raise ValueError(f"prior[{name!r}]: expected (mean, sigma), got {value!r}") from None
-        try:
-            mu = torch.as_tensor(mu, dtype=torch.float64, device=device).reshape(-1)
-            sigma = torch.as_tensor(sigma, dtype=torch.float64, device=device).reshape(-1)
-        except (TypeError, ValueError, RuntimeError):
-            raise TypeError(f"prior[{name!r}]: expected numbers or tensors (mean, sigma), got {value!r}") from None
-        if mu.numel() not in (1, B) or sigma.numel() not in (1, B):
-            raise ValueError(f"prior[{name!r}]: expected a mean and a sigma of batch 1 or {B}, got "
-                             f"{mu.numel()} and {sigma.numel()} values")
-        good.append(torch.isfinite(mu).all() & (sigma > 0).all())
-        i = model.params.index(name)
-        mean[:, i] = mu
-        inverse_variance[:, i] = sigma.square().reciprocal()
-    for (name, value), ok in zip(spec.items(), torch.stack(good).tolist()):
-        if not ok:
-            raise ValueError(f"prior[{name!r}]: expected a finite mean and sigma > 0, got {value!r}")
-    return mean, inverse_variance
 
 
 def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,
