@@ -36,13 +36,16 @@ the camera's exposure changes between the frames (a shadow, a tunnel's mouth). W
 ``--odometry-error SCALE YAW_DEG`` the poses' odometry is made wrong as wheel odometry is: its
 translation SCALE times as long, its yaw YAW_DEG degrees a frame off. With ``--resize FACTOR``
 every pair is first seen at FACTOR times the resolution (:func:`resized`), as where a network runs
-on smaller frames; its end-point errors are in the resized frames' pixels.
+on smaller frames; its end-point errors are in the resized frames' pixels. With ``--reverse`` every
+pair's frames are swapped and the clip's pairs taken last to first (:func:`reversed_pair`): the
+backward flow a forward-backward check computes, or the street driven in reverse; there is no
+ground-truth flow then.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -190,6 +193,8 @@ TURN_ROWS = {"refiner, turn_starts=()": {"turn_starts": ()},
 #: ``--no-prior-retry``: the default refiner without the image fit's retry without the coarsest
 #: level's prior
 PRIOR_ROWS = {"refiner, retry_without_prior=False": {"retry_without_prior": False}}
+#: ``--no-reverse-screen``: the default refiner without the image fit's screen of steps backwards
+REVERSE_ROWS = {"refiner, reverse_starts=()": {"reverse_starts": ()}}
 
 
 def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> tuple[str, Callable, dict]:
@@ -481,6 +486,17 @@ def defined_window(defined: torch.Tensor) -> tuple[int, int, int, int]:
     return top, rows - bottom, c1 - int(longest[top, bottom]), c1
 
 
+def reversed_pair(pair: dict) -> dict:
+    """``pair`` with its frames swapped: the backward flow (image 2 to image 1, as a
+    forward-backward check computes it), or the same street driven in reverse. The relative pose
+    is inverted; the ground-truth flow, which is forward, is dropped (no end-point error); the road
+    polygon stays the one drawn on the forward pair's image 1, which the same road fills."""
+    out = {**pair, "image1": pair["image2"], "image2": pair["image1"], "flow": None, "valid": None}
+    if pair.get("relative_pose") is not None:
+        out["relative_pose"] = torch.linalg.inv(pair["relative_pose"].to(torch.float64))
+    return out
+
+
 def exposed(pair: dict, gain: float) -> dict:
     """``pair`` with image 2 ``gain`` times as bright: clipped to 0..255 and rounded, as an 8-bit
     camera records a change of exposure between the frames."""
@@ -562,6 +578,9 @@ def main(argv: list[str] | None = None) -> int:
                              "averaged; default 1)")
     parser.add_argument("--exposure-gain", type=float, default=1.0,
                         help="make every pair's image 2 this many times as bright (clipped to 0..255; default 1)")
+    parser.add_argument("--reverse", action="store_true",
+                        help="swap every pair's frames, and take the clip's pairs last to first: the backward "
+                             "flow, or the street driven in reverse (no ground-truth flow then)")
     parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
                         help="make the poses' odometry wrong as wheel odometry is: its translation SCALE times as "
                              "long, its yaw YAW_DEG degrees a frame more (default 1 0: as measured)")
@@ -571,6 +590,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-prior-retry", action="store_true",
                         help="also run the refiner without its retry without the coarsest level's prior "
                              "(retry_without_prior=False)")
+    parser.add_argument("--no-reverse-screen", action="store_true",
+                        help="also run the refiner without its screen of steps backwards (reverse_starts=())")
     parser.add_argument("--json", type=Path,
                         help="write every number (per pair too; the options and fit_sequence's mounting too) here; "
                              "an earlier file there is removed at the start")
@@ -592,7 +613,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     methods = {k: v for k, v in METHODS.items() if not (args.no_ecc and k == "ECC homography")}
-    extra = {**(TURN_ROWS if args.no_turn_screen else {}), **(PRIOR_ROWS if args.no_prior_retry else {})}
+    extra = {**(TURN_ROWS if args.no_turn_screen else {}), **(PRIOR_ROWS if args.no_prior_retry else {}),
+             **(REVERSE_ROWS if args.no_reverse_screen else {})}
     for name, options in extra.items():
         methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
     turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
@@ -637,7 +659,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
-                              "resize": args.resize,
+                              "resize": args.resize, "reverse": args.reverse,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
@@ -646,8 +668,8 @@ def main(argv: list[str] | None = None) -> int:
         if root is None:
             continue
         if key == "kitti15":
-            truth = ("ground truth: road EPE over road ∩ valid" if (root / "flow_noc_10.png").is_file()
-                     else "no ground-truth flow")
+            truth = ("ground truth: road EPE over road ∩ valid"
+                     if (root / "flow_noc_10.png").is_file() and not args.reverse else "no ground-truth flow")
             title = f"KITTI 2015 pair {root.resolve().name} ({truth})"
         else:
             posed = "" if (root / "poses.txt").is_file() else "no poses, "
@@ -657,6 +679,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{title}: {root} not found, skipped", file=sys.stderr)
             continue
         data, run_methods = pairs(root), dict(methods)
+        if args.reverse:  # (last to first: image 2 of a pair is image 1 of the next, a clip to fit)
+            data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
@@ -676,6 +700,8 @@ def main(argv: list[str] | None = None) -> int:
             result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
+        if args.reverse:
+            step += ", frames swapped (the backward flow)"
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
         if args.resize != 1.0:

@@ -443,6 +443,29 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
             capsys.readouterr().err
 
 
+def test_reversed_pair_swaps_the_frames_inverts_the_pose_and_drops_the_forward_truth(rr, pair):
+    before = {k: pair[k].clone() for k in ("image1", "image2", "relative_pose")}
+    out = rr.reversed_pair(pair)
+    assert out["image1"] is pair["image2"] and out["image2"] is pair["image1"]
+    assert out["flow"] is None and out["valid"] is None and out["road"] is pair["road"]
+    assert torch.allclose(out["relative_pose"] @ pair["relative_pose"].double(), torch.eye(4, dtype=torch.float64),
+                          atol=1e-12)
+    for k, v in before.items():
+        assert torch.equal(pair[k], v)  # the caller's pair is left as it was
+    assert rr.reversed_pair({**pair, "relative_pose": None})["relative_pose"] is None
+
+
+def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
+    assert "2 pair(s), frames swapped (the backward flow)" in printed
+    assert report["reverse"] is True
+    # last to first: image 2 of a pair is image 1 of the next, so the clip's fit runs
+    assert [p["pair"] for p in report["clip"]["pairs"]] == ["000001", "000000"]
+    methods = {r["method"] for r in report["clip"]["rows"]}
+    assert {"refiner, reverse_starts=()", "refiner, clip motion (fit_sequence)"} <= methods
+    assert all("epe" not in r for r in report["clip"]["rows"])
+
+
 def test_exposed_scales_image_2_as_an_8_bit_camera_records_it(rr, pair):
     out = rr.exposed(pair, 1.5)
     expected = torch.clamp(pair["image2"].to(torch.float64) * 1.5, 0, 255).round()
@@ -584,7 +607,8 @@ def test_a_false_fit_success_is_caught_by_the_gate(rr, shared_data):
     start = {"model": "paper", "x_d": 0.16943574931974922, "z_d": 8.034197668891988, "yaw": -0.004506969879176324}
     args = (dis, t["road"][None], t["camera"])
     images = (t["image1"][None], t["image2"][None])
-    alone = ImageMotionEstimator(flow_start=False, retry_starts=0, turn_starts=(), retry_without_prior=False)
+    alone = ImageMotionEstimator(flow_start=False, retry_starts=0, turn_starts=(), reverse_starts=(),
+                                 retry_without_prior=False)
     with pytest.warns(RuntimeWarning, match="left unchanged"):
         kept = refine_flow(*args, images=images, estimator=alone, starts=(start,))
     assert bool(kept.fit.success[0]) and float(kept.fit.params["z_d"][0]) > 10.0  # the false success

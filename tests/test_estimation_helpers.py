@@ -18,7 +18,7 @@ from fsof_torch.estimation.confidence import warped_samples
 from fsof_torch.estimation.initial import homography_dlt, planar_motion, planar_start
 from fsof_torch.estimation.sampling import pixel_coordinates, sample_mask
 from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
-from fsof_torch.estimation.starts import turning_start
+from fsof_torch.estimation.starts import screened_start, turn_moves
 from fsof_torch.geometry.road_models import get_road_model, pack_params
 
 K_KITTI = [[721.5, 0.0, 609.6], [0.0, 721.5, 172.9], [0.0, 0.0, 1.0]]
@@ -411,9 +411,9 @@ def test_robust_kernel_values_at_a_checked_scale():
                                4 * torch.log1p(r2 / 4))
 
 
-# -- turning_start: what its starts are made of ----------------------------------------------------
+# -- screened_start: what its starts are made of ----------------------------------------------------
 
-def test_turning_start_takes_base_for_yaw_models_and_the_camera_for_the_homography():
+def test_screened_start_takes_base_for_yaw_models_and_the_camera_for_the_homography():
     cam = Camera(torch.tensor(K_KITTI, dtype=torch.float64), 1.65, roll=0.01, pitch=-0.02).scaled(0.125)
     flow, valid = road_flow(cam, {"x_d": 0.0, "z_d": 1.0, "yaw": math.radians(3.0)}, SIZE, model="paper")
     g = torch.Generator().manual_seed(5)
@@ -424,8 +424,8 @@ def test_turning_start_takes_base_for_yaw_models_and_the_camera_for_the_homograp
         _, base = pack_params(model, cam, None)
         moved = base.clone()
         moved[:, 0] += 0.05
-        a = turning_start(model, cam, base, img, valid, turns, 1.0, (), "cauchy", 500)
-        b = turning_start(model, cam, moved, img, valid, turns, 1.0, (), "cauchy", 500)
+        a = screened_start(model, cam, base, img, valid, turn_moves(turns, ()), (), "cauchy", 500)
+        b = screened_start(model, cam, moved, img, valid, turn_moves(turns, ()), (), "cauchy", 500)
         if name == "homography":  # the camera's turn and step alone: base's values play no part
             assert torch.equal(a, b)
             assert not torch.equal(a, base)

@@ -167,6 +167,54 @@ def test_real_clip_forward_motion_from_images(shared_data, first, second, gain):
     assert float(fit.extras["inlier_fraction"][0]) > 0.4
 
 
+def test_synthetic_backward_flow_is_found_by_the_screened_steps_backwards():
+    """The default scene at 2.4 m a frame with its frames swapped (image 1 the later frame, its own
+    road): the backward flow, whose true road map is the inverse of the forward one. From zero
+    motion and the starts straight ahead the fit fails; the screen's steps backwards find it (the
+    road end-point error against that inverse map)."""
+    p = render_pair("default", 0, size=(188, 621), speed_factor=2.0)
+    road = render_pair("default", 1, size=(188, 621), speed_factor=2.0)["road"][None]
+    camera = p["camera"].to(torch.float64)
+    forward = road_homography(camera, {k: torch.tensor([v], dtype=torch.float64) for k, v in p["odometry"].items()},
+                              model="paper")[0]
+    v, u = torch.meshgrid(torch.arange(188, dtype=torch.float64), torch.arange(621, dtype=torch.float64), indexing="ij")
+    x = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
+    y = torch.linalg.inv(forward) @ x
+    truth = (y[:2] / y[2:] - x[:2]).reshape(2, 188, 621)
+
+    def error(fit) -> float:
+        return float((fit.flow[0].double() - truth).norm(dim=0)[road[0, 0]].mean())
+
+    images = (p["image2"][None], p["image1"][None])
+    fit = fit_image(*images, road, p["camera"])
+    assert bool(fit.success[0]) and error(fit) < 2.0
+    assert float(fit.params["z_d"][0]) < -1.8  # (2.4 m backwards)
+    alone = fit_image(*images, road, p["camera"], reverse_starts=())
+    assert not bool(alone.success[0]) and error(alone) > 10.0
+
+
+@pytest.mark.parametrize("first, second", [
+    (22, 21),  # the backward flow at 1.2 m a frame: from zero the fit settled at 0.5 m, weakly
+    (12, 10),  # 2.4 m a frame: every start straight ahead failed
+    (32, 30),
+])
+def test_real_clip_backward_flow_is_found_by_the_screened_steps_backwards(shared_data, first, second):
+    """The clip's frames swapped (the backward flow a forward-backward check computes, or the street
+    driven in reverse): the road moves away from the camera, where no start straight ahead lies
+    in the basin; the screen's steps backwards find the poses' motion, which the fit misses
+    without them."""
+    camera, frame, road, poses = _clip(shared_data)
+    images = (frame(first), frame(second))
+    true_z = -float((torch.linalg.inv(poses[second]) @ poses[first])[2, 3])
+    assert true_z < -1.0
+    fit = fit_image(*images, road, camera)
+    assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
+    assert abs(float(fit.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)
+    alone = fit_image(*images, road, camera, reverse_starts=())
+    assert abs(float(alone.params["z_d"][0]) - true_z) > 0.2 * abs(true_z)
+    assert float(alone.extras["correlation"][0]) < 0.75
+
+
 def test_real_clip_image2_blurred_refines(shared_data):
     """Image 2 of a real pair a little blurred (a 3 × 3 box, as a change of focus or of motion
     blur between the frames): the fit finds the motion of the poses and succeeds, and the
@@ -239,11 +287,12 @@ def test_real_clip_a_weak_success_gives_way_to_a_clear_runner_up(shared_data, lo
     start = {"model": "paper", **_JOLT_STARTS[first]}
     true_z = -float(pair["relative_pose"][2, 3])
     # the winner alone: a weak success far ahead
-    weak = fit_image(*args, starts=(start,), retry_starts=0, turn_starts=(), retry_without_prior=False)
+    weak = fit_image(*args, starts=(start,), retry_starts=0, turn_starts=(), reverse_starts=(),
+                     retry_without_prior=False)
     assert bool(weak.success[0]) and float(weak.extras["correlation"][0]) < 0.75
     assert float(weak.params["z_d"][0]) > 10 * true_z
     # the runners-up alone find the motion, and so does the default (every way on from a weak success)
-    for fit in (fit_image(*args, starts=(start,), turn_starts=(), retry_without_prior=False),
+    for fit in (fit_image(*args, starts=(start,), turn_starts=(), reverse_starts=(), retry_without_prior=False),
                 fit_image(*args, starts=(start,))):
         assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.9
         assert abs(float(fit.params["z_d"][0]) - true_z) < 0.05 * true_z
@@ -363,7 +412,7 @@ def test_real_clip_turning_pitching_and_rolling_the_screen_ranks_the_turn_first(
 
 def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned_pair):
     from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
-    from fsof_torch.estimation.starts import TURN_STARTS, turning_start
+    from fsof_torch.estimation.starts import REVERSE_STARTS, TURN_STARTS, reverse_moves, screened_start, turn_moves
     from fsof_torch.evaluation.photometric import to_grey
 
     t = turned_pair
@@ -373,21 +422,39 @@ def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned
     camera = level_camera(t["camera"].to(torch.float64), n - 1)
     plane = get_road_model("plane")
     _, base = pack_params(plane, camera, None)
-    values = turning_start(plane, camera, base, level, mask, TURN_STARTS, 1.0, (), "cauchy", 3000)
+    assert turn_moves(TURN_STARTS, ()) == [(t, 1.0) for t in TURN_STARTS]
+    values = screened_start(plane, camera, base, level, mask, turn_moves(TURN_STARTS, ()), (), "cauchy", 3000)
     # 8° lies nearest the screen's 9°; one camera height ahead; roll and pitch are the start's
     assert math.degrees(float(values[0, plane.index("yaw")])) == pytest.approx(9.0)
     assert float(values[0, plane.index("z_d")]) == pytest.approx(float(camera.height[0]))
     assert torch.equal(values[:, 6:], base[:, 6:])
-    assert turning_start(plane, camera, base, level, mask, (), 1.0, (), "cauchy", 3000) is None
-    assert turning_start(plane, camera, base, level, mask, TURN_STARTS, 1.0, ("yaw",), "cauchy", 3000) is None
+    assert screened_start(plane, camera, base, level, mask, [], (), "cauchy", 3000) is None
+    assert turn_moves(TURN_STARTS, ("yaw",)) == [] and reverse_moves(REVERSE_STARTS, ("z_d",)) == []
     # the homography model screens the plane motion's homographies
     hom = get_road_model("homography")
     _, hbase = pack_params(hom, camera, None)
-    h = turning_start(hom, camera, hbase, level, mask, (9.0,), 1.0, (), "cauchy", 3000)
+    h = screened_start(hom, camera, hbase, level, mask, [(9.0, 1.0)], (), "cauchy", 3000)
     H = hom.matrix(camera, h)[0]
     ref = road_homography(camera, {"yaw": math.radians(9.0), "z_d": float(camera.height[0])}, model="plane")[0]
     assert torch.allclose(H / H[2, 2], ref / ref[2, 2], atol=1e-9)
-    assert turning_start(hom, camera, hbase, level, mask, (9.0,), 1.0, ("h11",), "cauchy", 3000) is None
+    assert screened_start(hom, camera, hbase, level, mask, [(9.0, 1.0)], ("h11",), "cauchy", 3000) is None
+    # a step backwards: no yaw, z_d = -k h; a held yaw stays the start's
+    back = screened_start(plane, camera, base, level, mask, reverse_moves((2.0,), ()), (), "cauchy", 3000)
+    assert float(back[0, plane.index("yaw")]) == 0.0
+    assert float(back[0, plane.index("z_d")]) == pytest.approx(-2.0 * float(camera.height[0]))
+    turned = base.clone()
+    turned[:, plane.index("yaw")] = 0.1
+    held = screened_start(plane, camera, turned, level, mask, reverse_moves((2.0,), ()), ("yaw",), "cauchy", 3000)
+    assert float(held[0, plane.index("yaw")]) == pytest.approx(0.1)
+
+
+@pytest.mark.parametrize("steps, error, match", [
+    (1.0, TypeError, r"reverse_starts: expected a list or tuple of numbers \(camera heights per frame\), got float 1.0"),
+    ((1.0, float("inf")), ValueError, "reverse_starts: expected a finite number, got inf")])
+def test_reverse_starts_are_checked(steps, error, match):
+    p = render_pair("default", 0, size=(96, 320))
+    with pytest.raises(error, match=match):
+        fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"], reverse_starts=steps)
 
 
 @pytest.mark.parametrize("turns, error, match", [

@@ -54,8 +54,8 @@ from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask,
 from .confidence import detail_correlation, photometric_inliers, warped_samples
 from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
-from .starts import (TURN_SPEED, TURN_STARTS, better_fit, check_forward_steps, check_turn_steps, start_list,
-                     starts_ahead, turning_start, two_way_cost)
+from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, check_steps, reverse_moves, screened_start, start_list,
+                     starts_ahead, turn_moves, two_way_cost)
 from .solver import Evaluation, Solution, positive_definite, solve
 
 __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
@@ -207,6 +207,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               min_points: int = 100, min_inlier_fraction: float = 0.25, min_correlation: float = 0.5,
               data_range: float = 255.0, check_every: int | None = 2,
               forward_starts: Sequence[float] = (2.0, 4.0), turn_starts: Sequence[float] = TURN_STARTS,
+              reverse_starts: Sequence[float] = REVERSE_STARTS,
               retry_starts: int = 2, retry_without_prior: bool = True) -> RoadFit:
     """Fit a road model's motion by minimising the road's robust photometric error.
 
@@ -243,6 +244,19 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             better. A sharp turn moves the whole image sideways, beyond the basin of the starts
             straight ahead, and often beyond what a network's flow finds. Costs nothing where
             the fit succeeds clearly; not used where the yaw is fixed; ``()``: none.
+        reverse_starts: the last resort, where the fit still fails or succeeds only weakly after
+            the turns and the retry without the prior (below): the step straight backwards among
+            these (camera heights per frame: z_d = -k h, no yaw) that best aligns the coarsest
+            level's images, screened and taken as the turns are, but as a success only where its
+            detail correlates clearly (as the retry's). The backward flow of forward
+            driving (image 2 to image 1, as a forward-backward check computes it), or a car
+            reversing, moves the road away from the camera, opposite to every start straight
+            ahead; from zero motion the fit can land short of such a motion from about half a
+            camera height a frame. Screened apart from the turns, and last: on real turning
+            frames a step backwards could outrank the right turn, and on fast forward frames its
+            fit, descending forwards, could pass a wrong motion as a success before the retry
+            without the prior finds the right one. Costs nothing where the fit succeeds clearly;
+            not used where z_d is fixed; ``()``: none.
         retry_starts: where the winning start's fit fails (below), or succeeds only weakly (its
             detail correlating below halfway from ``min_correlation`` to 1), up to this many
             runners-up, in the order of their two-way cost, are carried down the pyramid in
@@ -340,8 +354,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
         raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
     check_bool(affine, "affine")
-    steps = check_forward_steps(forward_starts)
-    turns = check_turn_steps(turn_starts)
+    steps = check_steps(forward_starts, "forward_starts", "camera heights per frame")
+    turns = check_steps(turn_starts, "turn_starts", "degrees of yaw per frame")
+    reverse = check_steps(reverse_starts, "reverse_starts", "camera heights per frame")
     fixed = check_names(fixed, "fixed")
     if isinstance(prior, str) and prior != "calibration":
         raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
@@ -513,18 +528,35 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 fit = better_fit(fit, clearly(carried(rank)), clear)
             return fit
 
+        def screened(moves: list[tuple[float, float]], fit: dict[str, Tensor], only_clear: bool) -> dict[str, Tensor]:
+            """``fit``, or where it failed (or succeeded weakly) the best of the screened ``moves``
+            solved from the coarsest level, where that does better (:func:`better_fit`; with
+            ``only_clear``, only a clear success of it counts as one)."""
+            start = screened_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse], masks[coarse],
+                                   moves, fixed_names, robust, max_points)
+            if start is None:
+                return fit
+            other = judged(*descend(torch.cat([start, ones, zeros], dim=1), coarse))
+            return better_fit(fit, clearly(other) if only_clear else other, clear)
+
         fit = compete(True)
-        if turns and not settled(fit):
-            # every start failed (or succeeded weakly) somewhere: the best turn of the screen,
-            # solved from the coarsest level
-            turning = turning_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse],
-                                    masks[coarse], turns, TURN_SPEED, fixed_names, robust, max_points)
-            if turning is not None:
-                fit = better_fit(fit, judged(*descend(torch.cat([turning, ones, zeros], dim=1), coarse)), clear)
-        if retry_without_prior and prior_mean is not None and not settled(fit):
+        done = settled(fit)  # (one host read; once more after each way on that runs)
+        turning, backwards = turn_moves(turns, fixed_names), reverse_moves(reverse, fixed_names)
+        if turning and not done:
+            # every start failed (or succeeded weakly) somewhere: the best turn of the screen
+            fit = screened(turning, fit, False)
+            done = settled(fit)
+        if retry_without_prior and prior_mean is not None and not done:
             # still failed (or weak): the images alone choose the basin at the coarsest level;
             # without the prior's guard such a fit must line the detail up clearly
             fit = better_fit(fit, clearly(compete(False)), clear)
+            if backwards:
+                done = settled(fit)
+        if backwards and not done:
+            # the last resort: the best step backwards, which must line the detail up clearly
+            # (from a step backwards a fast forward fit can descend to a wrong motion that
+            # passes the bar)
+            fit = screened(backwards, fit, True)
     values, gain, offset, M = fit["values"], fit["gain"], fit["offset"], fit["M"]
     named = {n: values[:, i].to(out_dtype) for i, n in enumerate(model.params)}
     # (detached copies: results are detached, and not the caller's storage nor a batch-1 camera's expansion)

@@ -7,8 +7,10 @@ a constant-velocity guess) and starts straight ahead at a few speeds (:func:`sta
 so that fast driving is found from zero motion or a poor flow. They are compared by
 :func:`two_way_cost`, which also maps image 2's road back into image 1: a motion that pushes most
 of image 1's road out of view cannot win on the few points it keeps. Where the fits from all of
-them fail, :func:`turning_start` screens a few turns for one more start: a sharp turn moves the
-whole image sideways, beyond the basin of a start straight ahead.
+them fail, :func:`screened_start` screens a few turns for one more start, and where that fails
+too, a few steps backwards: a sharp turn moves the whole image sideways, and driving backwards
+(the backward flow of forward driving) moves the road away from the camera, both beyond the basin
+of a start straight ahead.
 """
 
 from __future__ import annotations
@@ -27,17 +29,23 @@ from .flow_fit import start_values
 from .robust import robust_terms
 from .sampling import gather_pixels, pixel_coordinates, sample_mask, sample_points
 
-__all__ = ["start_list", "check_forward_steps", "check_turn_steps", "starts_ahead", "turning_start", "two_way_cost",
-           "better_fit", "TURN_STARTS"]
+__all__ = ["start_list", "check_steps", "starts_ahead", "turn_moves", "reverse_moves", "screened_start", "two_way_cost",
+           "better_fit", "TURN_STARTS", "REVERSE_STARTS"]
 
 #: The turns (degrees of yaw per frame) screened for a start where every other start failed
-#: (:func:`turning_start`). A car's yaw rate stays below about 70°/s (tyre grip of about 0.8 g at
+#: (:func:`screened_start`). A car's yaw rate stays below about 70°/s (tyre grip of about 0.8 g at
 #: its tightest turn, about 5 m radius: sqrt(a / r) ≈ 1.25 rad/s), 7° a frame at 10 Hz, 12° at
 #: 6 Hz; the 3° steps lie within the basin of a start at the coarsest level (python
 #: benchmarks/real_road.py --yaw-deg).
 TURN_STARTS = (-12.0, -9.0, -6.0, -3.0, 3.0, 6.0, 9.0, 12.0)
 #: the distance ahead (camera heights per frame) at which the turns are screened
 TURN_SPEED = 1.0
+#: The steps straight backwards (camera heights per frame) screened after the turns: the backward
+#: flow of forward driving (image 2 to image 1, as a forward-backward check computes it) moves
+#: the road away from the camera, where no start straight ahead lies in its basin. 2 and 4
+#: mirror the starts straight ahead (``fit_image``'s ``forward_starts``); 1, as from zero motion
+#: the fit can land short from about half a camera height a frame backwards.
+REVERSE_STARTS = (1.0, 2.0, 4.0)
 
 
 def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any], default: Tensor) -> list[Tensor]:
@@ -47,20 +55,12 @@ def start_list(model: RoadModel, camera: Camera, init: Any, starts: Sequence[Any
     return [base] + [start_values(model, s, camera, base, f"starts[{i}]")[0] for i, s in enumerate(starts)]
 
 
-def check_forward_steps(steps: object) -> tuple[float, ...]:
-    """``forward_starts``: a list or tuple of finite numbers (camera heights per frame)."""
+def check_steps(steps: object, name: str, unit: str) -> tuple[float, ...]:
+    """``forward_starts``, ``reverse_starts`` or ``turn_starts`` (``name``): a list or tuple of
+    finite numbers (in ``unit``)."""
     if not isinstance(steps, (list, tuple)):
-        raise TypeError(f"forward_starts: expected a list or tuple of numbers (camera heights per frame), "
-                        f"got {type(steps).__name__} {steps!r}")
-    return tuple(check_number(k, "forward_starts") for k in steps)
-
-
-def check_turn_steps(turns: object) -> tuple[float, ...]:
-    """``turn_starts``: a list or tuple of finite numbers (degrees of yaw per frame)."""
-    if not isinstance(turns, (list, tuple)):
-        raise TypeError(f"turn_starts: expected a list or tuple of numbers (degrees of yaw per frame), "
-                        f"got {type(turns).__name__} {turns!r}")
-    return tuple(check_number(k, "turn_starts") for k in turns)
+        raise TypeError(f"{name}: expected a list or tuple of numbers ({unit}), got {type(steps).__name__} {steps!r}")
+    return tuple(check_number(k, name) for k in steps)
 
 
 def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed: tuple[str, ...]) -> list[dict]:
@@ -84,37 +84,52 @@ def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed
     return out
 
 
-def turning_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, mask: Tensor,
-                  turns: Sequence[float], speed: float, fixed: tuple[str, ...], kernel: str,
-                  max_points: int | None, census: bool = True) -> Tensor | None:
-    """The start (B, P), among turns by each of ``turns`` degrees of yaw per frame at ``speed``
-    camera heights ahead, whose motion best aligns one pyramid level ``img`` (B, 2, h, w) (its
-    camera: ``camera``; road ``mask``) by :func:`two_way_cost` with the census: a screen, not a fit,
-    so one batched cost evaluation, which an exposure change between the frames does not fool
-    (``census=False``: raw intensities instead, gain 1 and offset 0, for comparison:
+def turn_moves(turns: Sequence[float], fixed: tuple[str, ...]) -> list[tuple[float, float]]:
+    """The screen's turns (:func:`screened_start`): each of ``turns`` degrees of yaw per frame at
+    :data:`TURN_SPEED` camera heights ahead; none where the yaw is held fixed."""
+    return [] if "yaw" in fixed else [(float(t), TURN_SPEED) for t in turns]
+
+
+def reverse_moves(steps: Sequence[float], fixed: tuple[str, ...]) -> list[tuple[float, float]]:
+    """The screen's steps straight backwards (:func:`screened_start`): each of ``steps`` camera
+    heights per frame backwards, no yaw; none where z_d is held fixed."""
+    return [] if "z_d" in fixed else [(0.0, -float(k)) for k in steps]
+
+
+def screened_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, mask: Tensor,
+                   moves: Sequence[tuple[float, float]], fixed: tuple[str, ...], kernel: str,
+                   max_points: int | None, census: bool = True) -> Tensor | None:
+    """The start (B, P), among ``moves`` (degrees of yaw per frame, camera heights ahead per frame:
+    :func:`turn_moves`, :func:`reverse_moves`), whose motion best aligns one pyramid level ``img``
+    (B, 2, h, w) (its camera: ``camera``; road ``mask``) by :func:`two_way_cost` with the census: a
+    screen, not a fit, so one batched cost evaluation, which an exposure change between the frames
+    does not fool (``census=False``: raw intensities instead, gain 1 and offset 0, for comparison:
     benchmarks/turn_screen.py). A turn moves the whole image sideways, by about f tan(yaw) pixels,
     beyond the basin of a start straight ahead (a few pixels of the coarsest level) within a few
-    degrees a frame; a network's flow often misses such a shift too. For a model with a yaw, a start is
-    ``base`` with that yaw and (unless held fixed) z_d at ``speed`` heights, the rest (roll and
-    pitch among them) ``base``'s; for the ``"homography"`` it is built from the camera alone (not
-    from ``base``'s values): the homography of the ``"plane"`` model's turn and step at ``camera``'s
-    roll and pitch, every other motion zero. None where the yaw is held fixed (or any homography
-    parameter is) or there are no ``turns``."""
-    if not turns or "yaw" in fixed or (model.name == "homography" and fixed):
+    degrees a frame; a network's flow often misses such a shift too. Driving backwards (the
+    backward flow of forward driving) moves the road away from the camera, the other way from
+    every start straight ahead. For a model with a yaw, a start is ``base`` with the move's yaw
+    and z_d (k h), each where it is not held fixed, the rest (roll and pitch among them)
+    ``base``'s; for the ``"homography"`` it is built from the camera alone (not from ``base``'s
+    values): the homography of the ``"plane"`` model's move at ``camera``'s roll and pitch, every
+    other motion zero. None where there are no moves or a homography parameter is held."""
+    if not moves or (model.name == "homography" and fixed):
         return None
-    B, T = base.shape[0], len(turns)
-    yaw = torch.tensor([math.radians(t) for t in turns], dtype=torch.float64, device=base.device).repeat_interleave(B)
-    h = camera.height.to(torch.float64).repeat(T)
+    B, T = base.shape[0], len(moves)
+    dev = base.device
+    yaw = torch.tensor([math.radians(m[0]) for m in moves], dtype=torch.float64, device=dev).repeat_interleave(B)
+    ahead = torch.tensor([m[1] for m in moves], dtype=torch.float64, device=dev).repeat_interleave(B)
+    z_d = ahead * camera.height.to(torch.float64).repeat(T)
     cam = camera.repeat(T)
     if model.name == "homography":
         plane = get_road_model("plane")
-        _, values = pack_params(plane, cam, {"yaw": yaw, "z_d": speed * h})
+        _, values = pack_params(plane, cam, {"yaw": yaw, "z_d": z_d})
         values = homography_values(plane.matrix(cam, values), cam.K, cam.K_inv())
     else:
         values = base.repeat(T, 1)
-        values[:, model.params.index("yaw")] = yaw
-        if "z_d" not in fixed:
-            values[:, model.params.index("z_d")] = speed * h
+        for name, value in (("yaw", yaw), ("z_d", z_d)):
+            if name not in fixed:
+                values[:, model.params.index(name)] = value
     ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
     cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
                         kernel, max_points, T, census=census)
