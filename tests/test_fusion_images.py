@@ -257,3 +257,32 @@ def test_fuse_flow_takes_a_numpy_scale_as_the_refiner_does(scene):
     a = fuse_flow(pred, model, road, mode="confidence", scale=np.float32(2.0))
     b = fuse_flow(pred, model, road, mode="confidence", scale=2.0)
     torch.testing.assert_close(a, b)
+
+
+def test_a_backward_flow_is_refined_with_the_frames_swapped():
+    """ARFlow-style backward flows (image 2 to image 1, a pyramid list) refined by a call of their
+    own with the frames swapped and image 2's road (docs/contracts.md): the default scene at 2.4 m
+    a frame, the road receding from the camera. Against the true backward road flow (the inverse
+    of the forward road map) the road's error drops from DIS's 36 px to under two."""
+    from fsof_torch import road_homography
+    from refine.sources import dis_flow
+
+    size = (188, 621)
+    p = render_pair("default", 0, size=size, speed_factor=2.0)
+    road2 = render_pair("default", 1, size=size, speed_factor=2.0)["road"][None]
+    camera = p["camera"].to(torch.float64)
+    forward = road_homography(camera, {k: torch.tensor([v], dtype=torch.float64) for k, v in p["odometry"].items()},
+                              model="paper")[0]
+    v, u = torch.meshgrid(torch.arange(size[0], dtype=torch.float64), torch.arange(size[1], dtype=torch.float64),
+                          indexing="ij")
+    x = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
+    y = torch.linalg.inv(forward) @ x
+    truth = (y[:2] / y[2:] - x[:2]).reshape(2, *size)
+    backward = dis_flow(p["image2"], p["image1"])[None]
+    flows_bw = [torch.nn.functional.avg_pool2d(backward, 2) / 2, backward]  # (a coarse level and the finest)
+    out = FreespaceRefiner()(flows_bw, road2, p["camera"], images=(p["image2"][None], p["image1"][None]))
+    assert isinstance(out.flow, list) and bool(out.refined[0])
+    on_road = road2[0, 0]
+    before = float((backward[0].double() - truth).norm(dim=0)[on_road].mean())
+    after = float((out.flow[1][0].double() - truth).norm(dim=0)[on_road].mean())
+    assert after < 2.0 < before
