@@ -153,10 +153,10 @@ def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, 
     ``census``: the mean ternary census distance over the compared points instead
     (:func:`~fsof_torch.evaluation.census.census_ring_distance`, the gate's: the order of each point
     against its ring of neighbours, at the level's resolution), for candidates that were never
-    fitted (the screen of turns). Gains and offsets are not used: the order of the grey levels
-    does not change with the exposure, where raw intensities under a change of exposure move
-    every residual alike and the robust kernel, its scale grown with them, no longer tells the
-    candidates apart; and nothing is estimated per candidate, so nothing can absorb part of a
+    fitted (the screens of turns and of steps backwards). Gains and offsets are not used: the
+    order of the grey levels does not change with the exposure, where raw intensities under a
+    change of exposure move every residual alike and the robust kernel, its scale grown with
+    them, no longer tells the candidates apart; and nothing is estimated per candidate, so nothing can absorb part of a
     wrong candidate's misalignment, as a gain or offset matched per candidate can
     (tests/test_fit_starts.py). A candidate without a compared point costs 1, the largest
     distance.

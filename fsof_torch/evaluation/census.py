@@ -7,7 +7,7 @@ order is clear in image 1 count (a ternary census): weak texture, where a wrong 
 well as a right one by chance, is no evidence. A change of exposure that keeps the order of the
 grey levels (a gain, an offset, a clipped brightening elsewhere) leaves the distance alone. The
 never-worse gate (:class:`~fsof_torch.refinement.gate.ImageGate`) judges flows by it, and the
-image fit's screen of turns ranks its turns by it.
+image fit's screens rank their turns and steps backwards by it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ __all__ = ["RING", "CONTRAST", "census_ring_distance", "census_ring_distances"]
 RING = ((0, -3), (1, -3), (2, -2), (3, -1), (3, 0), (3, 1), (2, 2), (1, 3),
         (0, 3), (-1, 3), (-2, 2), (-3, 1), (-3, 0), (-3, -1), (-2, -2), (-1, -3))
 #: the default grey levels above which a neighbour's order is clear (the gate's and the image
-#: fit's screen of turns)
+#: fit's screens of turns and of steps backwards)
 CONTRAST = 2.0
 
 
