@@ -14,7 +14,7 @@ import torch
 
 from fsof_torch import Camera, decompose_homography, road_flow, road_homography
 from fsof_torch.estimation import pyramid as P
-from fsof_torch.estimation.confidence import warped_samples
+from fsof_torch.estimation.confidence import backward_correlation, warped_samples
 from fsof_torch.estimation.initial import homography_dlt, planar_motion, planar_start
 from fsof_torch.estimation.sampling import pixel_coordinates, sample_mask
 from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
@@ -500,3 +500,40 @@ def test_image_pyramid_gradients_on_the_cpu():
     x = torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(5), requires_grad=True)
     assert [t.requires_grad for t in P.image_pyramid(x, 3, 0.0)] == [True, False, False]
     assert [t.requires_grad for t in P.image_pyramid(x, 3, 1.0)] == [False, False, False]
+
+
+@pytest.mark.parametrize("speed", [1.0, 2.0])
+def test_backward_correlation_is_the_correlation_on_image_2s_side_by_opencvs_warp(speed):
+    """The detail correlation judged from image 2's side, against OpenCV: image 1's band warped into
+    image 2 by the road map (``cv2.warpPerspective``, bilinear), correlated with image 2's band at
+    image 2's pixels whose pre-image (rounded) is a road pixel of image 1 inside the frame. The
+    default scene's frames swapped (the road recedes) with their true road map, and the same map
+    at half the distance (the correlation drops)."""
+    import cv2
+
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(188, 621), speed_factor=speed)
+    road = render_pair("default", 1, size=(188, 621), speed_factor=speed)["road"][None]  # image 1 is frame 1
+    camera = p["camera"].to(torch.float64)
+    motion = {k: torch.tensor([v], dtype=torch.float64) for k, v in p["odometry"].items()}
+    grey = lambda im: (0.299 * im[0] + 0.587 * im[1] + 0.114 * im[2]).double()[None, None]  # noqa: E731
+    b1, b2 = P.band(grey(p["image2"]), 4.0), P.band(grey(p["image1"]), 4.0)
+    horizon = get_road_model("plane").horizon_row(camera, pack_params(get_road_model("plane"), camera, {})[1])
+    H, W = road.shape[-2:]
+    found = []
+    for scale in (1.0, 0.5):
+        M = torch.linalg.inv(road_homography(camera, {**motion, "z_d": motion["z_d"] * scale}, model="paper"))
+        got = float(backward_correlation(b1, b2, M, horizon, road)[0])
+        Mn = M[0].numpy()
+        warped = cv2.warpPerspective(b1[0, 0].numpy(), Mn, (W, H), flags=cv2.INTER_LINEAR)
+        v, u = np.mgrid[0:H, 0:W]
+        q = np.linalg.inv(Mn) @ np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
+        x, y = q[0] / q[2], q[1] / q[2]
+        ok = (q[2] > 0) & (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+        ui, vi = np.clip(np.round(x), 0, W - 1).astype(int), np.clip(np.round(y), 0, H - 1).astype(int)
+        ok &= road[0, 0].numpy()[vi, ui]
+        want = np.corrcoef(b2[0, 0].numpy().ravel()[ok], warped.ravel()[ok])[0, 1]
+        assert ok.sum() > 10_000 and got == pytest.approx(want, abs=0.01)
+        found.append(got)
+    assert found[0] > 0.7 and found[1] < found[0] - 0.1

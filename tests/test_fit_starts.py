@@ -193,6 +193,19 @@ def test_synthetic_backward_flow_is_found_by_the_screened_steps_backwards():
     assert not bool(alone.success[0]) and error(alone) > 10.0
 
 
+def _swapped_and_found(shared_data, first, second):
+    """The clip's frames ``first`` and ``second`` (earlier) as image 1 and image 2, checked to be
+    fitted by default to the poses' motion (within 5 %), with the detail correlating above 0.8:
+    the camera, the images, the road, that motion's z_d and the fit."""
+    camera, frame, road, poses = _clip(shared_data)
+    images = (frame(first), frame(second))
+    true_z = -float((torch.linalg.inv(poses[second]) @ poses[first])[2, 3])
+    fit = fit_image(*images, road, camera)
+    assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
+    assert abs(float(fit.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)
+    return camera, images, road, true_z, fit
+
+
 @pytest.mark.parametrize("first, second", [
     (22, 21),  # the backward flow at 1.2 m a frame: from zero the fit settled at 0.5 m, weakly
     (12, 10),  # 2.4 m a frame: every start straight ahead failed
@@ -203,16 +216,30 @@ def test_real_clip_backward_flow_is_found_by_the_screened_steps_backwards(shared
     driven in reverse): the road moves away from the camera, where no start straight ahead lies
     in the basin; the screen's steps backwards find the poses' motion, which the fit misses
     without them."""
-    camera, frame, road, poses = _clip(shared_data)
-    images = (frame(first), frame(second))
-    true_z = -float((torch.linalg.inv(poses[second]) @ poses[first])[2, 3])
+    camera, images, road, true_z, _ = _swapped_and_found(shared_data, first, second)
     assert true_z < -1.0
-    fit = fit_image(*images, road, camera)
-    assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
-    assert abs(float(fit.params["z_d"][0]) - true_z) < 0.05 * abs(true_z)
     alone = fit_image(*images, road, camera, reverse_starts=())
     assert abs(float(alone.params["z_d"][0]) - true_z) > 0.2 * abs(true_z)
     assert float(alone.extras["correlation"][0]) < 0.75
+
+
+@pytest.mark.parametrize("first, second", [
+    (4, 0),    # 4.8 m a frame backwards: from zero motion a weak success 9.4 m ahead
+    (16, 12),  # every start straight ahead failed
+    (28, 24),
+])
+def test_real_clip_fast_backward_flow_is_judged_from_image_2s_side(shared_data, first, second):
+    """Four frames of the clip swapped (4.8 m a frame backwards): the step backwards lands on the
+    poses' motion, but image 1's near road falls on image 2's far, smaller road there, and its
+    detail correlates below the clear bar (0.75) judged from image 1's side. The last resort judges
+    a step backwards both ways: from image 2's side the same motion lines up clearly."""
+    camera, images, road, true_z, fit = _swapped_and_found(shared_data, first, second)
+    assert true_z < -4.5
+    # the same motion judged from image 1's side only (a fit started there, nothing else tried)
+    one_way = fit_image(*images, road, camera, init=fit, forward_starts=(), turn_starts=(), reverse_starts=(),
+                        retry_without_prior=False)
+    assert float(one_way.params["z_d"][0]) == pytest.approx(float(fit.params["z_d"][0]), rel=0.01)
+    assert float(one_way.extras["correlation"][0]) < 0.75
 
 
 def test_real_clip_image2_blurred_refines(shared_data):

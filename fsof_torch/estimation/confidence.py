@@ -6,7 +6,9 @@ every pixel of the road mask that stays in view.
   threshold, image 2's matched to image 1's by their own gain and offset (:func:`matched_gain`);
 - :func:`detail_correlation`: the correlation of the images' band of detail there. A plain
   road's intensities match under almost any motion; its detail lines up only under the right
-  one (``python benchmarks/fit_confidence.py``).
+  one (``python benchmarks/fit_confidence.py``);
+- :func:`backward_correlation`: the same judged from image 2's side, for a road that recedes
+  between the frames (image 2 sees it farther away and smaller).
 """
 
 from __future__ import annotations
@@ -16,9 +18,9 @@ from typing import Sequence
 import torch
 from torch import Tensor
 
-from .sampling import MaskPoints, pixel_coordinates, points_grid, sample_at_grid
+from .sampling import MaskPoints, pixel_coordinates, points_grid, sample_at_grid, sample_mask
 
-__all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "matched_gain"]
+__all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "backward_correlation", "matched_gain"]
 
 
 def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: Tensor, valid: Tensor,
@@ -85,6 +87,33 @@ def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, points: MaskPoints) -> 
     sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
     den = (sxx * syy).sqrt()
     return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
+
+
+def backward_correlation(band1: Tensor, band2: Tensor, M: Tensor, horizon: Tensor, mask: Tensor) -> Tensor:
+    """(B,) :func:`detail_correlation` judged from image 2's side: at every pixel of image 2 onto
+    which the road map ``M`` (B, 3, 3; pixels of image 1 -> image 2) takes a pixel of image 1's
+    road ``mask`` (B, 1, H, W) bool (the pre-image, rounded to the nearest pixel, in the mask and
+    in front of camera 1 below the horizon row ``horizon`` (B, 1, 3)), image 2's band of detail
+    ``band2`` (B, 1, H, W) against image 1's ``band1`` at the pre-image (bilinear).
+
+    Where the road recedes between the frames (the backward flow of forward driving, a car
+    reversing) image 1's near, detailed road falls on image 2's far, smaller road, whose band holds
+    less of that detail: judged from image 1's side the right motion correlates less than a road
+    coming nearer does. Judged from image 2's side the roles swap, as for a road coming nearer."""
+    B, _, H, W = band1.shape
+    M = M.to(torch.float64)
+    grid = pixel_coordinates(torch.arange(H * W, device=M.device).unsqueeze(0), W)  # (1, 3, H W)
+    q = torch.linalg.solve(M, grid.expand(B, 3, H * W))  # the pre-images, homogeneous
+    ahead = (q[:, 2] > 1e-9) & ((horizon.to(torch.float64) @ q)[:, 0] > 0)
+    x1 = q[:, :2] / torch.where(ahead, q[:, 2], 1.0).unsqueeze(1)
+    u, v = x1.round().unbind(1)
+    inside = ahead & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
+    nearest = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
+    road2 = inside & mask.reshape(B, -1).gather(1, nearest)
+    flow = torch.where(ahead.unsqueeze(1), x1 - grid[:, :2], 0.0).reshape(B, 2, H, W)
+    points = sample_mask(road2.reshape(B, 1, H, W), 1)  # (every pixel of it; no subsample used)
+    at2, at1, ok = warped_samples((band2,), (band1,), flow, ahead.reshape(B, 1, H, W), points)
+    return detail_correlation(at2[0], at1[0], ok, points)
 
 
 def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, threshold: float,

@@ -51,7 +51,7 @@ from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
-from .confidence import detail_correlation, photometric_inliers, warped_samples
+from .confidence import backward_correlation, detail_correlation, photometric_inliers, warped_samples
 from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, check_steps, reverse_moves, screened_start, start_list,
@@ -244,19 +244,21 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             better. A sharp turn moves the whole image sideways, beyond the basin of the starts
             straight ahead, and often beyond what a network's flow finds. Costs nothing where
             the fit succeeds clearly; not used where the yaw is fixed; ``()``: none.
-        reverse_starts: the last resort, where the fit still fails or succeeds only weakly after
-            the turns and the retry without the prior (below): the step straight backwards among
-            these (camera heights per frame: z_d = -k h, no yaw) that best aligns the coarsest
-            level's images, screened and taken as the turns are, but as a success only where its
-            detail correlates clearly (as the retry's). The backward flow of forward
-            driving (image 2 to image 1, as a forward-backward check computes it), or a car
-            reversing, moves the road away from the camera, opposite to every start straight
-            ahead; from zero motion the fit can land short of such a motion from about half a
-            camera height a frame. Screened apart from the turns, and last: on real turning
-            frames a step backwards could outrank the right turn, and on fast forward frames its
-            fit, descending forwards, could pass a wrong motion as a success before the retry
-            without the prior finds the right one. Costs nothing where the fit succeeds clearly;
-            not used where z_d is fixed; ``()``: none.
+        reverse_starts: the last resort, where the fit still fails or succeeds only weakly after the
+            turns and the retry without the prior (below): the step straight backwards among these
+            (camera heights per frame: z_d = -k h, no yaw) that best aligns the coarsest level's
+            images, screened and taken as the turns are, but as a success only where its detail
+            correlates clearly (as the retry's), judged both ways: by the better of image 1's side and
+            image 2's (:func:`~fsof_torch.estimation.confidence.backward_correlation`; a receding
+            road's near detail in image 1 falls on image 2's far, smaller road, which holds less of
+            it; ``extras["correlation"]`` is then the better one). The backward flow of forward
+            driving (image 2 to image 1, as a forward-backward check computes it), or a car reversing,
+            moves the road away from the camera, opposite to every start straight ahead; from zero
+            motion the fit can land short of such a motion from about half a camera height a frame.
+            Screened apart from the turns, and last: on real turning frames a step backwards could
+            outrank the right turn, and on fast forward frames its fit, descending forwards, could
+            pass a wrong motion as a success before the retry without the prior finds the right one.
+            Costs nothing where the fit succeeds clearly; not used where z_d is fixed; ``()``: none.
         retry_starts: where the winning start's fit fails (below), or succeeds only weakly (its
             detail correlating below halfway from ``min_correlation`` to 1), up to this many
             runners-up, in the order of their two-way cost, are carried down the pyramid in
@@ -458,13 +460,15 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 iterations = iterations + sol.iterations
             return sol, params, iterations
 
-        def judged(sol: Solution, params: Tensor, iterations: Tensor) -> dict[str, Tensor]:
-            """The fit at full resolution and its tests (see ``success``)."""
+        def judged(sol: Solution, params: Tensor, iterations: Tensor, both_ways: bool = False) -> dict[str, Tensor]:
+            """The fit at full resolution and its tests (see ``success``); ``both_ways``: its
+            detail correlates by the better of image 1's side and image 2's (a receding road)."""
             values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
             finite = torch.isfinite(params).all(-1)
             values = torch.where(finite.unsqueeze(-1), values, default)
             M = model.matrix(cam64, values)
-            flow, valid = flow_from_map(M.to(out_dtype), model.horizon_row(cam64, values).to(out_dtype), (H, W))
+            horizon = model.horizon_row(cam64, values)
+            flow, valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W))
             # the intensities and the compared band at every mask pixel in view
             band = compared(0)
             at1, at2, ok = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
@@ -472,6 +476,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             inliers, residual, fraction, n_in = photometric_inliers(at1[0], at2[0], ok, points, inlier_threshold,
                                                                     (H, W))
             correlation = detail_correlation(at1[1], at2[1], ok, points)
+            if both_ways:
+                correlation = torch.maximum(correlation, backward_correlation(band[:, :1], band[:, 1:], M, horizon,
+                                                                              mask))
             A = sol.normal[:, :P, :P]
             d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
             well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
@@ -528,16 +535,16 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                 fit = better_fit(fit, clearly(carried(rank)), clear)
             return fit
 
-        def screened(moves: list[tuple[float, float]], fit: dict[str, Tensor], only_clear: bool) -> dict[str, Tensor]:
+        def screened(moves: list[tuple[float, float]], fit: dict[str, Tensor], backwards: bool) -> dict[str, Tensor]:
             """``fit``, or where it failed (or succeeded weakly) the best of the screened ``moves``
-            solved from the coarsest level, where that does better (:func:`better_fit`; with
-            ``only_clear``, only a clear success of it counts as one)."""
+            solved from the coarsest level, where that does better (:func:`better_fit`; steps
+            ``backwards``: judged both ways, and only a clear success of it counts as one)."""
             start = screened_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse], masks[coarse],
                                    moves, fixed_names, robust, max_points)
             if start is None:
                 return fit
-            other = judged(*descend(torch.cat([start, ones, zeros], dim=1), coarse))
-            return better_fit(fit, clearly(other) if only_clear else other, clear)
+            other = judged(*descend(torch.cat([start, ones, zeros], dim=1), coarse), both_ways=backwards)
+            return better_fit(fit, clearly(other) if backwards else other, clear)
 
         fit = compete(True)
         done = settled(fit)  # (one host read; once more after each way on that runs)
