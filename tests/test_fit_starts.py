@@ -242,6 +242,38 @@ def test_real_clip_fast_backward_flow_is_judged_from_image_2s_side(shared_data, 
     assert float(one_way.extras["correlation"][0]) < 0.75
 
 
+def _screen_ranks(images, road, camera) -> list[float]:
+    """z_d of the screen's steps backwards (:data:`REVERSE_STARTS`) in the order of its ranking,
+    at the coarsest level of the fit's pyramid, from zero motion."""
+    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
+    from fsof_torch.estimation.starts import REVERSE_STARTS, reverse_moves, screened_start
+    from fsof_torch.evaluation.photometric import to_grey
+
+    grey = torch.cat([to_grey(images[0]), to_grey(images[1])], dim=1)
+    n = pyramid_levels(*grey.shape[-2:], None, 16)
+    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(road, n)[-1]
+    cam = level_camera(camera.to(torch.float64), n - 1)
+    plane = get_road_model("plane")
+    _, base = pack_params(plane, cam, None)
+    moves = reverse_moves(REVERSE_STARTS, ())
+    return [float(screened_start(plane, cam, base, level, mask, moves, (), "cauchy", 3000, rank=r)[0, plane.index("z_d")])
+            for r in range(len(moves))]
+
+
+@pytest.mark.parametrize("first, second", [(12, 8), (32, 28)])
+def test_real_clip_fast_backward_flow_is_found_from_the_screens_second_step(shared_data, first, second):
+    """Four frames of the clip swapped (4.8 m a frame backwards): at the coarsest level the census
+    ranks a step that descends to a wrong motion first, and the next one finds the poses' motion.
+    The last resort solves the best two in turn."""
+    camera, images, road, true_z, fit = _swapped_and_found(shared_data, first, second)
+    ranked = _screen_ranks(images, road, camera)
+    assert sorted(ranked) == pytest.approx([-4 * 1.65, -2 * 1.65, -1.65])
+    only = dict(forward_starts=(), turn_starts=(), reverse_starts=(), retry_without_prior=False)
+    best = fit_image(*images, road, camera, init={"z_d": ranked[0]}, **only)
+    assert not (bool(best.success[0]) and float(best.extras["correlation"][0]) >= 0.75)
+    assert abs(float(best.params["z_d"][0]) - true_z) > 0.2 * abs(true_z)
+
+
 def test_real_clip_image2_blurred_refines(shared_data):
     """Image 2 of a real pair a little blurred (a 3 × 3 box, as a change of focus or of motion
     blur between the frames): the fit finds the motion of the poses and succeeds, and the
@@ -429,7 +461,8 @@ def test_real_clip_turning_pitching_and_rolling_the_screen_ranks_the_turn_first(
     pair = dict(rr.odometry_clip(folder, 1.65, 0.0, 1))["000017"]()
     t = rr.turned(pair, -9.0, -1.5, 2.0)
     images, road = (t["image1"][None], t["image2"][None]), t["road"][None]
-    assert not bool(fit_image(*images, road, t["camera"], turn_starts=()).success[0])
+    # (the steps backwards left out too: from the second of them the fit descends to this turn)
+    assert not bool(fit_image(*images, road, t["camera"], turn_starts=(), reverse_starts=()).success[0])
     fit = fit_image(*images, road, t["camera"])
     true_z = -float(pair["relative_pose"][2, 3])
     assert bool(fit.success[0]) and float(fit.extras["correlation"][0]) > 0.8
@@ -455,6 +488,11 @@ def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned
     assert math.degrees(float(values[0, plane.index("yaw")])) == pytest.approx(9.0)
     assert float(values[0, plane.index("z_d")]) == pytest.approx(float(camera.height[0]))
     assert torch.equal(values[:, 6:], base[:, 6:])
+    # ``rank``: every move once over the ranks, the best first; beyond the last, the last
+    ranked = [screened_start(plane, camera, base, level, mask, turn_moves(TURN_STARTS, ()), (), "cauchy", 3000,
+                             rank=r) for r in range(len(TURN_STARTS) + 1)]
+    assert torch.equal(ranked[0], values) and torch.equal(ranked[-1], ranked[-2])
+    assert sorted(round(math.degrees(float(v[0, plane.index("yaw")])), 6) for v in ranked[:-1]) == sorted(TURN_STARTS)
     assert screened_start(plane, camera, base, level, mask, [], (), "cauchy", 3000) is None
     assert turn_moves(TURN_STARTS, ("yaw",)) == [] and reverse_moves(REVERSE_STARTS, ("z_d",)) == []
     # the homography model screens the plane motion's homographies

@@ -64,6 +64,11 @@ __all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", 
 # a coarser level ends when a step moves (or the next step is predicted to move) the residuals by
 # less than this fraction of their RMS
 _COARSE_RESOLUTION = 0.1
+# the steps backwards solved in turn, best screened first: a receding road leaves much of image 1's
+# near road out of image 2's view, and at the coarsest level the census tells the steps apart less
+# surely than it does the turns (python benchmarks/turn_screen.py; tests/test_fit_starts.py, fast
+# backward frames whose best-ranked step descends to a wrong motion)
+_REVERSE_TRIES = 2
 
 
 def _with_gradient(image: Tensor) -> Tensor:
@@ -245,20 +250,22 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             straight ahead, and often beyond what a network's flow finds. Costs nothing where
             the fit succeeds clearly; not used where the yaw is fixed; ``()``: none.
         reverse_starts: the last resort, where the fit still fails or succeeds only weakly after the
-            turns and the retry without the prior (below): the step straight backwards among these
-            (camera heights per frame: z_d = -k h, no yaw) that best aligns the coarsest level's
-            images, screened and taken as the turns are, but as a success only where its detail
-            correlates clearly (as the retry's), judged both ways: by the better of image 1's side and
-            image 2's (:func:`~fsof_torch.estimation.confidence.backward_correlation`; a receding
-            road's near detail in image 1 falls on image 2's far, smaller road, which holds less of
-            it; ``extras["correlation"]`` is then the better one). The backward flow of forward
-            driving (image 2 to image 1, as a forward-backward check computes it), or a car reversing,
-            moves the road away from the camera, opposite to every start straight ahead; from zero
-            motion the fit can land short of such a motion from about half a camera height a frame.
-            Screened apart from the turns, and last: on real turning frames a step backwards could
-            outrank the right turn, and on fast forward frames its fit, descending forwards, could
-            pass a wrong motion as a success before the retry without the prior finds the right one.
-            Costs nothing where the fit succeeds clearly; not used where z_d is fixed; ``()``: none.
+            turns and the retry without the prior (below): the steps straight backwards among these
+            (camera heights per frame: z_d = -k h, no yaw) that best align the coarsest level's
+            images, screened as the turns are; the best two are solved in turn (the census ranks large
+            steps less surely: much of the near road leaves image 2's view), each taken as the turns
+            are but as a success only where its detail correlates clearly (as the retry's), judged
+            both ways: by the better of image 1's side and image 2's
+            (:func:`~fsof_torch.estimation.confidence.backward_correlation`; a receding road's near
+            detail in image 1 falls on image 2's far, smaller road, which holds less of it;
+            ``extras["correlation"]`` is then the better one). The backward flow of forward driving
+            (image 2 to image 1, as a forward-backward check computes it), or a car reversing, moves
+            the road away from the camera, opposite to every start straight ahead; from zero motion
+            the fit can land short of such a motion from about half a camera height a frame. Screened
+            apart from the turns, and last: on real turning frames a step backwards could outrank the
+            right turn, and on fast forward frames its fit, descending forwards, could pass a wrong
+            motion as a success before the retry without the prior finds the right one. Costs nothing
+            where the fit succeeds clearly; not used where z_d is fixed; ``()``: none.
         retry_starts: where the winning start's fit fails (below), or succeeds only weakly (its
             detail correlating below halfway from ``min_correlation`` to 1), up to this many
             runners-up, in the order of their two-way cost, are carried down the pyramid in
@@ -537,14 +544,19 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
         def screened(moves: list[tuple[float, float]], fit: dict[str, Tensor], backwards: bool) -> dict[str, Tensor]:
             """``fit``, or where it failed (or succeeded weakly) the best of the screened ``moves``
-            solved from the coarsest level, where that does better (:func:`better_fit`; steps
-            ``backwards``: judged both ways, and only a clear success of it counts as one)."""
-            start = screened_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse], masks[coarse],
-                                   moves, fixed_names, robust, max_points)
-            if start is None:
-                return fit
-            other = judged(*descend(torch.cat([start, ones, zeros], dim=1), coarse), both_ways=backwards)
-            return better_fit(fit, clearly(other) if backwards else other, clear)
+            solved from the coarsest level, where that does better (:func:`better_fit`). Steps
+            ``backwards``: the best two in turn, each judged both ways and taken only where it
+            succeeds clearly."""
+            for rank in range(_REVERSE_TRIES if backwards else 1):
+                if rank and settled(fit):  # (one host read)
+                    break
+                start = screened_start(model, level_camera(cam64, coarse), candidates[0], pyramid[coarse],
+                                       masks[coarse], moves, fixed_names, robust, max_points, rank=rank)
+                if start is None:
+                    return fit
+                other = judged(*descend(torch.cat([start, ones, zeros], dim=1), coarse), both_ways=backwards)
+                fit = better_fit(fit, clearly(other) if backwards else other, clear)
+            return fit
 
         fit = compete(True)
         done = settled(fit)  # (one host read; once more after each way on that runs)

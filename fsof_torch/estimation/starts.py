@@ -98,7 +98,7 @@ def reverse_moves(steps: Sequence[float], fixed: tuple[str, ...]) -> list[tuple[
 
 def screened_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, mask: Tensor,
                    moves: Sequence[tuple[float, float]], fixed: tuple[str, ...], kernel: str,
-                   max_points: int | None, census: bool = True) -> Tensor | None:
+                   max_points: int | None, census: bool = True, rank: int = 0) -> Tensor | None:
     """The start (B, P), among ``moves`` (degrees of yaw per frame, camera heights ahead per frame:
     :func:`turn_moves`, :func:`reverse_moves`), whose motion best aligns one pyramid level ``img``
     (B, 2, h, w) (its camera: ``camera``; road ``mask``) by :func:`two_way_cost` with the census: a
@@ -112,7 +112,8 @@ def screened_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, 
     and z_d (k h), each where it is not held fixed, the rest (roll and pitch among them)
     ``base``'s; for the ``"homography"`` it is built from the camera alone (not from ``base``'s
     values): the homography of the ``"plane"`` model's move at ``camera``'s roll and pitch, every
-    other motion zero. None where there are no moves or a homography parameter is held."""
+    other motion zero. ``rank``: the start ranked so (0: the best; at most the last). None where
+    there are no moves or a homography parameter is held."""
     if not moves or (model.name == "homography" and fixed):
         return None
     B, T = base.shape[0], len(moves)
@@ -133,8 +134,8 @@ def screened_start(model: RoadModel, camera: Camera, base: Tensor, img: Tensor, 
     ones = torch.ones(T * B, 1, dtype=torch.float64, device=base.device)
     cost = two_way_cost(torch.cat([values, ones, torch.zeros_like(ones)], dim=1), model, camera, img, mask,
                         kernel, max_points, T, census=census)
-    best = cost.reshape(T, B).argmin(0)
-    return values.reshape(T, B, -1)[best, torch.arange(B, device=base.device)]
+    ranked = cost.reshape(T, B).argsort(dim=0, stable=True)[min(rank, T - 1)]
+    return values.reshape(T, B, -1)[ranked, torch.arange(B, device=base.device)]
 
 
 def two_way_cost(params: Tensor, model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, kernel: str,
