@@ -537,3 +537,6 @@ def test_backward_correlation_is_the_correlation_on_image_2s_side_by_opencvs_war
         assert ok.sum() > 10_000 and got == pytest.approx(want, abs=0.01)
         found.append(got)
     assert found[0] > 0.7 and found[1] < found[0] - 0.1
+    # a singular map judges no pixel
+    singular = torch.zeros(1, 3, 3, dtype=torch.float64)
+    assert float(backward_correlation(b1, b2, singular, horizon, road)[0]) == 0.0

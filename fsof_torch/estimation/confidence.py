@@ -99,13 +99,15 @@ def backward_correlation(band1: Tensor, band2: Tensor, M: Tensor, horizon: Tenso
     Where the road recedes between the frames (the backward flow of forward driving, a car
     reversing) image 1's near, detailed road falls on image 2's far, smaller road, whose band holds
     less of that detail: judged from image 1's side the right motion correlates less than a road
-    coming nearer does. Judged from image 2's side the roles swap, as for a road coming nearer."""
+    coming nearer does. Judged from image 2's side the roles swap, as for a road coming nearer.
+    A map that is singular judges no pixel (0)."""
     B, _, H, W = band1.shape
     M = M.to(torch.float64)
     grid = pixel_coordinates(torch.arange(H * W, device=M.device).unsqueeze(0), W)  # (1, 3, H W)
-    q = torch.linalg.solve(M, grid.expand(B, 3, H * W))  # the pre-images, homogeneous
-    ahead = (q[:, 2] > 1e-9) & ((horizon.to(torch.float64) @ q)[:, 0] > 0)
-    x1 = q[:, :2] / torch.where(ahead, q[:, 2], 1.0).unsqueeze(1)
+    q, singular = torch.linalg.solve_ex(M, grid.expand(B, 3, H * W))  # the pre-images, homogeneous
+    ahead = ((singular == 0).unsqueeze(-1) & torch.isfinite(q).all(1) & (q[:, 2] > 1e-9)
+             & ((horizon.to(torch.float64) @ q)[:, 0] > 0))
+    x1 = torch.where(ahead.unsqueeze(1), q[:, :2] / torch.where(ahead, q[:, 2], 1.0).unsqueeze(1), 0.0)
     u, v = x1.round().unbind(1)
     inside = ahead & (u >= 0) & (u <= W - 1) & (v >= 0) & (v <= H - 1)
     nearest = (v.clamp(0, H - 1) * W + u.clamp(0, W - 1)).long()
