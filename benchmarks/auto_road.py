@@ -46,7 +46,6 @@ import argparse
 import math
 import statistics
 import sys
-import time
 import warnings
 from pathlib import Path
 
@@ -217,16 +216,8 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
         print(f"kitti15 pair: the polygon holds {pixels[0]} pixels of the frame; the auto road has {pixels[1]} outside it")
 
 
-def timed(fn, repeat: int) -> float:
-    times = []
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return 1000 * statistics.median(times)
-
-
 def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+    from cli import median_ms
     from fsof_torch import detect_road, refine_flow
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
@@ -246,7 +237,7 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
             "refine_flow(DIS, 'auto', images)": lambda: refine_flow(flow, "auto", cam, images=(im1, im2)),
             "reference: OpenCV DIS medium": lambda: dis(im1, im2),
         }
-        ms = {k: timed(f, repeat) for k, f in rows.items()}
+        ms = {k: median_ms(f, repeat) for k, f in rows.items()}
     ref = ms["reference: image motion estimate on the polygon"]
     print(f"\nTime per pair, {name}, {tuple(im1.shape[-2:])}, one thread, median of {repeat}")
     print(f"{'':>50} {'ms':>8} {'/ estimate':>10}")

@@ -1,6 +1,7 @@
 """What the benchmark scripts share on their command lines: argument types that reject a bad value
 while the arguments are parsed, before any work, the data folders they read, the git revision
-they time against, the keyword arguments they forward and the ``--json`` file they write.
+they time against, the keyword arguments they forward and the ``--json`` file they write; and the
+median time of a few calls (:func:`median_ms`).
 
 A type here raises ``argparse.ArgumentTypeError``, so argparse exits with status 2, its usage line
 and the option's name: ``argument --repeats: expected an integer >= 1, got '0'``.
@@ -16,7 +17,9 @@ import json
 import math
 import os
 import shlex
+import statistics
 import subprocess
+import time
 from pathlib import Path
 from typing import Any, Callable, Mapping
 
@@ -251,3 +254,13 @@ def baseline_revision(parser: argparse.ArgumentParser, given: str | None, defaul
         parser.error(f"--baseline: cannot use revision {rev!r} of {REPO}: {problem}")
     print(f"(no baseline: the default revision {rev!r} is unavailable here: {problem})")
     return None
+
+
+def median_ms(fn: Callable[[], Any], repeat: int = 3) -> float:
+    """The median wall time of ``repeat`` calls of ``fn``, in milliseconds."""
+    times = []
+    for _ in range(repeat):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return 1e3 * statistics.median(times)

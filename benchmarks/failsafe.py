@@ -4,8 +4,9 @@ inside the road mask.
 1. Dark frames: the shared KITTI pair's images × gain plus Gaussian noise (σ grey levels), DIS on
    them, through ``FreespaceRefiner()`` with the images: whether the image fit succeeded and the
    correlation of the images' detail under its motion, whether the pair was refined, what the gate
-   found (informative, confirmed), and the road end-point error of DIS, of the model flow and of
-   the output against the KITTI ground truth.
+   found (informative, confirmed), the road end-point error of DIS, of the model flow and of
+   the output against the KITTI ground truth, and the time of DIS and of the refiner (median of
+   three calls): a frame whose image fit fails tries every way on before giving up.
 2. Identical frames (a stopped car): the synthetic scene's image 1 twice; the estimated motion.
 3. A car inside the mask: the synthetic default scene's pairs 0, 5, 10 with the moving objects'
    pixels added to the road mask, DIS as the prediction: the share of car pixels whose flow
@@ -35,7 +36,7 @@ def dis(image1, image2):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, present
+    from cli import description, median_ms, present
 
     argparse.ArgumentParser(description=description(__doc__)).parse_args(argv)
     import fsof_torch as fs
@@ -57,14 +58,16 @@ def main(argv: list[str] | None = None) -> int:
         epe = lambda f: float((f - gt).norm(dim=0)[m].mean())  # noqa: E731
         print("Dark frames (KITTI pair × gain + noise σ):\n")
         print("| gain | σ | fit success | correlation | refined | informative | confirmed | census model / DIS "
-              "| EPE DIS | EPE model | EPE out |")
-        print("|---|---|---|---|---|---|---|---|---|---|---|")
+              "| EPE DIS | EPE model | EPE out | time DIS / refiner (ms) |")
+        print("|---|---|---|---|---|---|---|---|---|---|---|---|")
         for gain, sigma in ((1.0, 0.0), (0.2, 2.0), (0.2, 5.0), (0.1, 5.0), (0.05, 5.0)):
             g = torch.Generator().manual_seed(0)
             d1 = (im1 * gain + sigma * torch.randn(im1.shape, generator=g)).clamp(0, 255)
             d2 = (im2 * gain + sigma * torch.randn(im2.shape, generator=g)).clamp(0, 255)
             f = dis(d1, d2)
             out = refiner(f[None], road[None], cam, images=(d1[None], d2[None]))
+            t_dis = median_ms(lambda: dis(d1, d2))
+            t_ref = median_ms(lambda: refiner(f[None], road[None], cam, images=(d1[None], d2[None])))
             gate, fit = out.gate, out.fit
             # (where the image fit failed, the gate judges nothing)
             judged = (f"{float(gate.cost_model[0]):.3f} / {float(gate.cost_prediction[0]):.3f}"
@@ -72,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"| {gain} | {sigma} | {bool(fit.success[0])} | {float(fit.extras['correlation'][0]):.2f} | "
                   f"{bool(out.refined[0])} | {bool(gate.informative[0])} | {bool(gate.confirmed[0])} | "
                   f"{judged} | {epe(f):.2f} | "
-                  f"{epe(out.flow_model[0]):.2f} | {epe(out.flow[0]):.2f} |")
+                  f"{epe(out.flow_model[0]):.2f} | {epe(out.flow[0]):.2f} | {t_dis:.0f} / {t_ref:.0f} |")
     p = render_pair("default", 5, seed=0)
     image = p["image1"][None]
     out = refiner(torch.zeros(1, 2, *image.shape[-2:]), p["road"][None], p["camera"], images=(image, image))
