@@ -242,19 +242,27 @@ def test_real_clip_fast_backward_flow_is_judged_from_image_2s_side(shared_data, 
     assert float(one_way.extras["correlation"][0]) < 0.75
 
 
+def _coarsest(image1, image2, road, camera):
+    """What the fit's screens see: the coarsest level of its pyramid (default ``min_size``, no
+    pre-smoothing), (1, 2, h, w) grey, its road mask and camera (float64), and the ``"plane"``
+    model with its zero-motion values there."""
+    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
+    from fsof_torch.evaluation.photometric import to_grey
+
+    grey = torch.cat([to_grey(image1), to_grey(image2)], dim=1)
+    n = pyramid_levels(*grey.shape[-2:], None, 16)
+    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(road, n)[-1]
+    camera = level_camera(camera.to(torch.float64), n - 1)
+    plane = get_road_model("plane")
+    return level, mask, camera, plane, pack_params(plane, camera, None)[1]
+
+
 def _screen_ranks(images, road, camera) -> list[float]:
     """z_d of the screen's steps backwards (:data:`REVERSE_STARTS`) in the order of its ranking,
     at the coarsest level of the fit's pyramid, from zero motion."""
-    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
     from fsof_torch.estimation.starts import REVERSE_STARTS, reverse_moves, screened_start
-    from fsof_torch.evaluation.photometric import to_grey
 
-    grey = torch.cat([to_grey(images[0]), to_grey(images[1])], dim=1)
-    n = pyramid_levels(*grey.shape[-2:], None, 16)
-    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(road, n)[-1]
-    cam = level_camera(camera.to(torch.float64), n - 1)
-    plane = get_road_model("plane")
-    _, base = pack_params(plane, cam, None)
+    level, mask, cam, plane, base = _coarsest(*images, road, camera)
     moves = reverse_moves(REVERSE_STARTS, ())
     ranked = [screened_start(plane, cam, base, level, mask, moves, (), "cauchy", 3000, rank=r) for r in range(len(moves))]
     return [float(v[0, plane.index("z_d")]) for v in ranked]
@@ -471,17 +479,10 @@ def test_real_clip_turning_pitching_and_rolling_the_screen_ranks_the_turn_first(
 
 
 def test_the_screen_picks_the_nearest_turn_and_only_where_the_yaw_is_free(turned_pair):
-    from fsof_torch.estimation.pyramid import image_pyramid, level_camera, mask_pyramid, pyramid_levels
     from fsof_torch.estimation.starts import REVERSE_STARTS, TURN_STARTS, reverse_moves, screened_start, turn_moves
-    from fsof_torch.evaluation.photometric import to_grey
 
     t = turned_pair
-    grey = torch.cat([to_grey(t["image1"][None]), to_grey(t["image2"][None])], dim=1)
-    n = pyramid_levels(*grey.shape[-2:], None, 16)
-    level, mask = image_pyramid(grey, n, 0.0)[-1], mask_pyramid(t["road"][None], n)[-1]
-    camera = level_camera(t["camera"].to(torch.float64), n - 1)
-    plane = get_road_model("plane")
-    _, base = pack_params(plane, camera, None)
+    level, mask, camera, plane, base = _coarsest(t["image1"][None], t["image2"][None], t["road"][None], t["camera"])
     assert turn_moves(TURN_STARTS, ()) == [(t, 1.0) for t in TURN_STARTS]
     values = screened_start(plane, camera, base, level, mask, turn_moves(TURN_STARTS, ()), (), "cauchy", 3000)
     # 8° lies nearest the screen's 9°; one camera height ahead; roll and pitch are the start's
