@@ -1,11 +1,14 @@
 """Auto road (fsof_torch.detect_road): quality on synthetic scenes and the shared real data, and time.
 
-Prints four tables, single thread:
+Prints five tables, single thread (the first two from the synthetic presets):
 
 1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
    precision and recall against the scene's true road, mean and min per preset, and the flags;
    the IoU with ``edges=False`` (the windows' own boundary, for the refit and the result); and the
-   IoU when the scene's exact road motion is given (what the judging alone achieves).
+   IoU when the scene's exact road motion is given (what the judging alone achieves). Below it, the
+   true road split by what image 2 shows of it (``road_parts``: seen there, near the road's edge
+   or inside; occluded there; or out of its view), each part's share and the recall on it with
+   the estimated and the exact motion: two frames give the last two parts no evidence of their own.
 2. Real KITTI: the shared pair 000000, the same pair through the 16 windows 4 pixels smaller than
    the frame at offsets 0-3 from its top and left (``image_fit_settings.crops``: one frame's
    figures are one draw of the fits' points), and every pair of the 51-frame straight clip.
@@ -67,6 +70,37 @@ def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
     return dis_flow(*rgb)[None]
 
 
+PARTS = ("seen, near its edge", "seen, inside", "occluded", "out of view")
+# "near its edge": within the reach of the detection's step 5 (following the edges) at KITTI's size:
+# (height_window // 2 + 1) pixels at half size
+EDGE_PX = 16
+
+
+def road_parts(pair: dict, edge_px: int = EDGE_PX) -> dict[str, torch.Tensor]:
+    """The true road of a rendered pair (``render_pair``'s dict) split by what image 2 shows of
+    it, (1, 1, H, W) bool each, in :data:`PARTS`' order: seen in image 2 (its point visible there:
+    ``valid``), within ``edge_px`` pixels (a square's half side) of what is not road in image 1 or
+    of road hidden in image 2, or farther inside; ``"occluded"`` (the flow lands inside image 2 but
+    the point is hidden there, behind a car); ``"out of view"`` (the flow takes it outside image 2:
+    near the vehicle, or past the frame's side). Two frames give the last two no evidence of their
+    own."""
+    import cv2
+    import numpy as np
+
+    road, valid, flow = pair["road"].bool(), pair["valid"].bool(), pair["flow"]
+    H, W = road.shape[-2:]
+    road, valid = road.reshape(H, W), valid.reshape(H, W)
+    x = torch.arange(W, dtype=flow.dtype) + flow[0]
+    y = torch.arange(H, dtype=flow.dtype).reshape(H, 1) + flow[1]
+    inside = (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    occluded = road & ~valid & inside
+    edge = (~road | occluded).numpy().astype(np.uint8)
+    near = torch.from_numpy(cv2.dilate(edge, np.ones((2 * edge_px + 1,) * 2, np.uint8)) > 0)
+    seen = road & valid
+    parts = (seen & near, seen & ~near, occluded, road & ~valid & ~inside)
+    return {k: v.reshape(1, 1, H, W) for k, v in zip(PARTS, parts)}
+
+
 def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
     from fsof_torch import detect_road, render_pair
 
@@ -74,8 +108,11 @@ def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
     print("(exact motion: the scene's own road motion given, nothing estimated)")
     print(f"{'preset':>12} {'IoU mean':>9} {'IoU min':>8} {'precision':>10} {'recall':>7} "
           f"{'edges=False: IoU mean':>22} {'exact motion: IoU mean':>23} {'min':>6}  flags")
+    # per preset: the true road's pixels in each part, and those the detections found
+    shares = {}
     for preset in PRESETS:
         ious, precisions, recalls, plain, exact, flags = [], [], [], [], [], []
+        counts = {k: torch.zeros(3, dtype=torch.float64) for k in PARTS}  # (true, found, found exact)
         for index in pairs:
             p = render_pair(preset, index)
             t = p["road"][None].bool()
@@ -85,16 +122,30 @@ def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
             precisions.append(float((m & t).sum() / m.sum().clamp_min(1)))
             recalls.append(float((m & t).sum() / t.sum()))
             flags += det.flag
-            m = detect_road(p["image1"][None], p["image2"][None], p["camera"], edges=False).mask
-            plain.append(float((m & t).sum() / (m | t).sum()))
+            plain_mask = detect_road(p["image1"][None], p["image2"][None], p["camera"], edges=False).mask
+            plain.append(float((plain_mask & t).sum() / (plain_mask | t).sum()))
             motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
             cam = p["camera"].replace(height=p["plane"]["height"])
-            m = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion).mask
-            exact.append(float((m & t).sum() / (m | t).sum()))
-        counts = {f: flags.count(f) for f in sorted(set(flags))}
+            m_exact = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion).mask
+            exact.append(float((m_exact & t).sum() / (m_exact | t).sum()))
+            for k, part in road_parts(p).items():
+                counts[k] += torch.tensor([part.sum(), (part & m).sum(), (part & m_exact).sum()], dtype=torch.float64)
+        shares[preset] = counts
+        tally = {f: flags.count(f) for f in sorted(set(flags))}
         print(f"{preset:>12} {statistics.mean(ious):9.3f} {min(ious):8.3f} {statistics.mean(precisions):10.3f} "
               f"{statistics.mean(recalls):7.3f} {statistics.mean(plain):22.3f} {statistics.mean(exact):23.3f} "
-              f"{min(exact):6.3f}  {counts}")
+              f"{min(exact):6.3f}  {tally}")
+    print("\nThe true road by what image 2 shows of it (pooled over the pairs): each part's share of the"
+          "\nroad, and the recall on it, estimated motion / exact motion")
+    print(f"{'preset':>12} " + " ".join(f"{k + ': share':>26} {'recall':>13}" for k in PARTS))
+    for preset, counts in shares.items():
+        total = sum(float(c[0]) for c in counts.values())
+        cells = []
+        for k in PARTS:
+            n, found, found_exact = counts[k].tolist()
+            recall = f"{found / n:.3f} / {found_exact / n:.3f}" if n else "-"
+            cells.append(f"{n / total:26.3f} {recall:>13}")
+        print(f"{preset:>12} " + " ".join(cells))
 
 
 SLOW = (("default", 2.0), ("default", 3.0), ("default", 4.0), ("default", 5.0), ("carla-turning", None))

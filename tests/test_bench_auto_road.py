@@ -61,3 +61,39 @@ def test_a_grey_pair_turns_as_the_same_channel_of_a_colour_pair(load_benchmark):
 def test_negative_pairs_exit_2(bench, capsys):
     assert bench.main(["--no-slow", "--no-real", "--pairs", "5", "-1"]) == 2
     assert "--pairs: expected pair indices >= 0, got [5, -1]" in capsys.readouterr().err
+
+
+def test_road_parts_split_the_true_road_by_what_image_2_shows(bench):
+    """``road_parts``: seen in image 2 (``valid``) near the road's edge or inside it, occluded there
+    (the flow lands inside image 2 but the point is hidden) or out of its view (the flow leaves
+    image 2): disjoint, the whole road, each as defined, checked pixel by pixel against the
+    rendered flow and labels in NumPy."""
+    import numpy as np
+
+    from fsof_torch.data.scene import render_pair
+
+    pair = render_pair("default", 20, size=(96, 320))  # an oncoming car hides road in image 2
+    parts = bench.road_parts(pair, edge_px=4)
+    assert tuple(parts) == bench.PARTS
+    road = pair["road"].bool().reshape(1, 1, 96, 320)
+    near, inner, occluded, out = (parts[k] for k in bench.PARTS)
+    union = torch.zeros_like(road)
+    for k, part in parts.items():
+        assert part.shape == road.shape and part.any(), k
+        assert not (union & part).any(), k
+        union |= part
+    assert torch.equal(union, road)
+    flow = pair["flow"].double().numpy()
+    tx, ty = np.arange(320) + flow[0], np.arange(96)[:, None] + flow[1]
+    outside = (tx < 0) | (tx > 319) | (ty < 0) | (ty > 95)
+    valid = pair["valid"].reshape(96, 320).numpy()
+    r = road[0, 0].numpy()
+    assert np.array_equal(out[0, 0].numpy(), r & ~valid & outside)
+    assert np.array_equal(occluded[0, 0].numpy(), r & ~valid & ~outside)
+    # near the edge: a pixel not road, or road hidden in image 2, within 4 px (a 9 x 9 square)
+    hidden = ~r | occluded[0, 0].numpy()
+    ys, xs = np.nonzero(r & valid)
+    close = np.array([hidden[max(y - 4, 0):y + 5, max(x - 4, 0):x + 5].any() for y, x in zip(ys, xs)])
+    assert np.array_equal(near[0, 0].numpy()[ys, xs], close) and np.array_equal(inner[0, 0].numpy()[ys, xs], ~close)
+    # driving forwards, the road nearest the vehicle leaves image 2 at its bottom
+    assert r[-1].any() and np.array_equal(out[0, 0, -1].numpy(), r[-1]) and bool((ty[-1][r[-1]] > 95).all())
