@@ -290,7 +290,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P); they
             hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
-            ``min_size``); ``max_iter``, ``tol``: the solver's budget and tolerance per level;
+            ``min_size``; fewer leave the coarsest level too fine for a start to reach a motion
+            of tens of pixels there, and the fit can land far off: on the shared clip with two,
+            40 px and more, its successes weak, ``python benchmarks/fit_confidence.py``);
+            ``max_iter``, ``tol``: the solver's budget and tolerance per level;
             ``resolution``: a level also ends when a step moves the residuals by less than this
             fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`); the
             coarser levels, which only have to land in the next one's basin, at 0.1 or more, and
