@@ -67,7 +67,7 @@ def test_road_parts_split_the_true_road_by_what_image_2_shows(bench):
     """``road_parts``: seen in image 2 (``valid``) near the road's edge or inside it, occluded there
     (the flow lands inside image 2 but the point is hidden) or out of its view (the flow leaves
     image 2): disjoint, the whole road, each as defined, checked pixel by pixel against the
-    rendered flow and labels in NumPy."""
+    rendered flow, validity and road in NumPy."""
     import numpy as np
 
     from fsof_torch.data.scene import render_pair
