@@ -71,12 +71,19 @@ def dis(image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
 
 
 PARTS = ("seen, near its edge", "seen, inside", "occluded", "out of view")
-# "near its edge": within the reach of the detection's step 5 (following the edges) at KITTI's size:
-# (height_window // 2 + 1) pixels at half size
-EDGE_PX = 16
 
 
-def road_parts(pair: dict, edge_px: int = EDGE_PX) -> dict[str, torch.Tensor]:
+def edge_reach(level: int) -> int:
+    """How far (pixels of the images) the detection's step 5 moves the road's boundary onto image 1's
+    edges at its working ``level``: ``height_window // 2 + 1`` pixels there (16 at KITTI's size)."""
+    import inspect
+
+    from fsof_torch import detect_road
+
+    return (inspect.signature(detect_road).parameters["height_window"].default // 2 + 1) * 2 ** level
+
+
+def road_parts(pair: dict, edge_px: int) -> dict[str, torch.Tensor]:
     """The true road of a rendered pair (``render_pair``'s dict) split by what image 2 shows of
     it, (1, 1, H, W) bool each, in :data:`PARTS`' order: seen in image 2 (its point visible there:
     ``valid``), within ``edge_px`` pixels (a square's half side) of what is not road in image 1 or
@@ -128,7 +135,7 @@ def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
             cam = p["camera"].replace(height=p["plane"]["height"])
             m_exact = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion).mask
             exact.append(float((m_exact & t).sum() / (m_exact | t).sum()))
-            for k, part in road_parts(p).items():
+            for k, part in road_parts(p, edge_reach(det.level)).items():
                 counts[k] += torch.tensor([part.sum(), (part & m).sum(), (part & m_exact).sum()], dtype=torch.float64)
         shares[preset] = counts
         tally = {f: flags.count(f) for f in sorted(set(flags))}

@@ -97,3 +97,9 @@ def test_road_parts_split_the_true_road_by_what_image_2_shows(bench):
     assert np.array_equal(near[0, 0].numpy()[ys, xs], close) and np.array_equal(inner[0, 0].numpy()[ys, xs], ~close)
     # driving forwards, the road nearest the vehicle leaves image 2 at its bottom
     assert r[-1].any() and np.array_equal(out[0, 0, -1].numpy(), r[-1]) and bool((ty[-1][r[-1]] > 95).all())
+
+
+def test_edge_reach_is_step_5s_radius(bench):
+    """The "near its edge" band of ``road_parts`` is how far the detection's step 5 reaches: 16 px
+    at KITTI's size (working level 1), the figure docs/auto-road.md gives."""
+    assert bench.edge_reach(1) == 16 and bench.edge_reach(0) == 8
