@@ -14,12 +14,18 @@ script prints both, and how many frames succeed:
    fit, and whether its successes are weak, their detail correlating below 0.75), and the
    images judged at wrong motions: the fitted motion with its translation scaled by 0.5, 0 and
    −1 (every parameter held: ``fixed=`` all, ``init=`` that motion);
-2. on the synthetic presets (pairs 0, 10, 20, 30 of each, the scene's road): the fit.
+2. on the synthetic presets (pairs 0, 10, 20, 30 of each, the scene's road): the fit, and the
+   images judged at no translation (the fit's translation × 0, every parameter held, as in 1);
+   and the share of the road's band of detail near lane markings (pair 0);
+3. on thin bands of the road (the KITTI 2015 pair 000000 and the clip's first pair, their
+   polygons): the fit on the rows of a band only, 3, 9 and 21 rows ending 30 rows above the
+   polygon's lowest row, and 9 rows from 5 below its highest; its success, correlation and z_d,
+   and how far its flow lies from the fit on the whole polygon, in the band and over the polygon.
 
-    python benchmarks/fit_confidence.py [--data DIR]
+    python benchmarks/fit_confidence.py [--data DIR] [--kitti DIR]
 
 One thread; part 1 needs the straight clip (``../shared/data/kitti_odometry_straight``, or
-``--data`` naming it).
+``--data`` naming it), part 3 the KITTI pair (``../shared/data/kitti15_000000``, or ``--kitti``).
 """
 
 from __future__ import annotations
@@ -37,6 +43,8 @@ import torch.nn.functional as F
 
 DEFAULT = Path(__file__).resolve().parents[2] / "shared" / "data" / "kitti_odometry_straight"
 CLIP = ("calib.txt", "image_l", "road.json")
+KITTI = DEFAULT.parent / "kitti15_000000"
+PAIR = ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json")
 
 
 def box_blur(image: torch.Tensor, kx: int, ky: int) -> torch.Tensor:
@@ -61,14 +69,56 @@ def row(name: str, fits: list) -> str:
             f"{min(share):.2f} / {statistics.median(share):.2f} |")
 
 
+def marking_share(pair: dict) -> float:
+    """The share of the band of detail's energy (grey image 1 minus its Gaussian blur of 4 px, as
+    the fit compares it) inside a synthetic pair's road that lies within 12 px of a lane marking."""
+    from fsof_torch.data.scene import LABELS
+    from fsof_torch.estimation.pyramid import gaussian_blur
+    from fsof_torch.evaluation.photometric import to_grey
+
+    grey = to_grey(pair["image1"][None]).double()
+    detail = (grey - gaussian_blur(grey, 4.0))[0, 0].square()
+    marking = (pair["labels"] == LABELS["marking"]).float()[None, None]
+    near = F.max_pool2d(marking, 25, stride=1, padding=12)[0, 0] > 0
+    road = pair["road"][0]
+    return float(detail[road & near].sum() / detail[road].sum())
+
+
+def bands(name: str, image1: torch.Tensor, image2: torch.Tensor, road: torch.Tensor, camera) -> None:
+    """Part 3: the fit on thin bands of the road's rows against the fit on the whole road."""
+    from fsof_torch.estimation.image_fit import fit_image
+
+    whole = fit_image(image1, image2, road, camera)
+    rows = road[0, 0].any(1).nonzero().flatten()
+    low, high = int(rows.max()), int(rows.min())
+    index = torch.arange(road.shape[-2]).reshape(1, 1, -1, 1)
+    print(f"\n{name}: the whole polygon (rows {high} to {low}): success {bool(whole.success[0])}, correlation "
+          f"{float(whole.extras['correlation'][0]):.2f}, z_d {float(whole.params['z_d'][0]):.2f} m\n")
+    print("| band of the polygon | pixels | success | correlation | z_d (m) | flow off the whole fit: in the band / "
+          "over the polygon (px) |\n|---|---|---|---|---|---|")
+    for n, near in ((3, True), (9, True), (21, True), (9, False)):
+        # (near the car: n rows ending 30 above the polygon's lowest; far: n rows from 5 below its highest)
+        first = low - 30 - n + 1 if near else high + 5
+        band = road & (index >= first) & (index < first + n)
+        fit = fit_image(image1, image2, band, camera)
+        off = (fit.flow - whole.flow).norm(dim=1, keepdim=True)
+        both = whole.valid & fit.valid
+        print(f"| {n} rows, {'near the car' if near else 'far'} | {int(band.sum())} | {bool(fit.success[0])} | "
+              f"{float(fit.extras['correlation'][0]):.2f} | {float(fit.params['z_d'][0]):.2f} | "
+              f"{float(off[band & both].mean()):.2f} / {float(off[road & both].mean()):.1f} |", flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     from cli import data_folder, description, present
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the straight clip's folder (default: ../shared/data/kitti_odometry_straight)")
+    parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
+                        help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
     args = parser.parse_args(argv)
     data = data_folder(parser, args.data, DEFAULT, CLIP)
+    kitti = data_folder(parser, args.kitti, KITTI, PAIR)
     import fsof_torch as fs
     from fsof_torch.data.folders import list_images
     from fsof_torch.estimation.image_fit import fit_image
@@ -127,14 +177,33 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\nTwo levels only: off the default fit by {min(off):.0f} to {max(off):.0f} px (road mean); "
               f"{len(weak)} successes, correlating {max(weak, default=float('nan')):.2f} at most "
               f"(weak below {clear:g})\n")
-    print("Synthetic presets, pairs 0, 10, 20, 30 (the scene's road):\n")
+    print("Synthetic presets, pairs 0, 10, 20, 30 (the scene's road): the fit, and the images judged at no "
+          "translation (the fit's × 0, every parameter held)\n")
     print(header)
+    shares = []
     for preset in fs.PRESETS:
-        fits = []
+        fits, still = [], []
         for i in (0, 10, 20, 30):
             p = fs.render_pair(preset, i)
-            fits.append(fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"]))
-        print(row(preset, fits), flush=True)
+            images = (p["image1"][None], p["image2"][None], p["road"][None], p["camera"])
+            fits.append(fit_image(*images))
+            held = {n: v.double() * (0.0 if n in ("x_d", "y_d", "z_d") else 1.0) for n, v in fits[-1].params.items()}
+            still.append(fit_image(*images, fixed=tuple(held), init=held))
+        print(row(f"synthetic `{preset}`", fits), flush=True)
+        print(row(f"synthetic `{preset}`, held at no translation", still), flush=True)
+        shares.append(f"{preset} {marking_share(fs.render_pair(preset, 0)):.2f}")
+    print("\nShare of the road's band of detail (energy) within 12 px of a lane marking, pair 0: " + ", ".join(shares))
+    if present(kitti, PAIR, "KITTI 2015 pair (part 3)"):
+        read = (lambda name: fs.read_image(kitti / name)[None])  # noqa: E731
+        road = fs.read_road_mask(kitti / "road.json", size=tuple(read(PAIR[0]).shape[-2:]))[None]
+        bands("KITTI 2015 pair 000000", read(PAIR[0]), read(PAIR[1]), road,
+              fs.Camera.from_kitti(kitti / PAIR[2], cam=2, height=1.65))
+    if present(data, CLIP, "KITTI clip (part 3)"):
+        files = list_images(data / "image_l")
+        first = fs.read_image(files[0])[None]
+        bands("KITTI clip, pair 0", first, fs.read_image(files[1])[None],
+              fs.read_road_mask(data / "road.json", size=tuple(first.shape[-2:]))[None],
+              fs.Camera.from_kitti(data / "calib.txt", cam=0, height=1.65))
     return 0
 
 

@@ -502,6 +502,24 @@ def test_image_pyramid_gradients_on_the_cpu():
     assert [t.requires_grad for t in P.image_pyramid(x, 3, 1.0)] == [False, False, False]
 
 
+@pytest.mark.parametrize("call, error, match", [
+    (lambda x: P.image_pyramid(x, 0), ValueError, r"^levels: expected an int >= 1, got 0"),
+    (lambda x: P.image_pyramid(x, 2.5), TypeError, r"^levels: expected an int, got float 2.5"),
+    (lambda x: P.image_pyramid(x, 2, -1.0), ValueError, r"^smooth_sigma: expected a number >= 0, got -1.0"),
+    (lambda x: P.image_pyramid(x, 2, math.nan), ValueError, r"^smooth_sigma: expected a finite number, got nan"),
+    (lambda x: P.image_pyramid(x[0], 2), ValueError, r"^images: expected shape \(B, C, H, W\), got \(1, 16, 20\)"),
+    (lambda x: P.image_pyramid(x.long(), 2), TypeError, r"^images: expected a floating-point tensor, got dtype torch.int64"),
+    (lambda x: P.gaussian_blur(x > 0.5, 1.0), TypeError, r"^images: expected a floating-point tensor, got dtype torch.bool"),
+    (lambda x: P.gaussian_blur(x[..., :0, :], 1.0), ValueError, r"^images: expected shape \(B, C, H, W\) with H >= 1"),
+])
+def test_pyramid_and_blur_check_their_arguments(call, error, match):
+    """The public pyramid and blur name a bad argument (not OpenCV's or a reshape's error, nor a
+    pyramid of one level for ``levels`` 0, nor level 0 left unsmoothed for a negative sigma)."""
+    x = torch.rand(1, 1, 16, 20, generator=torch.Generator().manual_seed(0))
+    with pytest.raises(error, match=match):
+        call(x)
+
+
 @pytest.mark.parametrize("speed", [1.0, 2.0])
 def test_backward_correlation_is_the_correlation_on_image_2s_side_by_opencvs_warp(speed):
     """The detail correlation judged from image 2's side, against OpenCV: image 1's band warped into

@@ -444,3 +444,26 @@ def test_calibration_prior_and_physical_bounds_check_their_arguments():
     for fn in (calibration_prior, physical_bounds):
         with pytest.raises(TypeError, match=r"^camera: expected a fsof_torch.Camera, got NoneType"):
             fn("plane", None)
+    # the prior's means are copies: editing one leaves the camera as it was
+    prior = calibration_prior("plane", cam)
+    roll = cam.roll.clone()
+    prior["roll"][0].add_(1.0)
+    assert torch.equal(cam.roll, roll) and prior["roll"][0].data_ptr() != cam.roll.data_ptr()
+
+
+def test_a_band_of_one_or_two_rows_is_no_success():
+    """Inliers on fewer than 3 rows (or columns) fail the image fit, as they fail fit_road: on a
+    band of one or two rows of the default scene's road, the motion lands backwards (z_d < 0 for
+    a true 1.2 m) with its detail correlating above the bar (was: a success)."""
+    from fsof_torch import fit_image, render_pair
+
+    p = render_pair("default", 0, size=(94, 310))
+    im1, im2, road, cam = p["image1"][None], p["image2"][None], p["road"][None], p["camera"]
+    rows = torch.arange(94).reshape(1, 1, -1, 1)
+    for last in (80, 81):
+        fit = fit_image(im1, im2, road & (rows >= 80) & (rows <= last), cam)
+        assert int(fit.inliers[0, 0].any(1).sum()) == last - 79 and int(fit.inliers.sum()) >= 100
+        assert float(fit.extras["correlation"][0]) > 0.5 and float(fit.params["z_d"][0]) < 0
+        assert not bool(fit.success[0])
+    whole = fit_image(im1, im2, road, cam)
+    assert bool(whole.success[0]) and abs(float(whole.params["z_d"][0]) - p["odometry"]["z_d"]) < 0.15

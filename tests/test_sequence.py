@@ -400,3 +400,8 @@ def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
     assert seq.mounting == {"roll": float(camera.roll[0]), "pitch": float(camera.pitch[0])}
     assert torch.equal(seq.camera.roll, camera.roll) and torch.equal(seq.camera.pitch, camera.pitch)
     assert len(seq.fits) == 2
+    # the result's camera is its own (editing it leaves the caller's as it was)
+    K = camera.K.clone()
+    seq.camera.K.mul_(2.0)
+    seq.camera.height.add_(1.0)
+    assert torch.equal(camera.K, K) and torch.equal(camera.height, p["camera"].height)

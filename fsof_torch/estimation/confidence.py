@@ -20,7 +20,8 @@ from torch import Tensor
 
 from .sampling import MaskPoints, pixel_coordinates, points_grid, sample_at_grid, sample_mask
 
-__all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "backward_correlation", "matched_gain"]
+__all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "backward_correlation", "matched_gain",
+           "spread_out"]
 
 
 def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: Tensor, valid: Tensor,
@@ -140,3 +141,11 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
         r = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1) / threshold
         w = usable / (1.0 + r.square())
     return gain, offset
+
+
+def spread_out(inliers: Tensor, least: int = 3) -> Tensor:
+    """(B,) bool: the inliers (B, 1, H, W) lie on at least ``least`` rows and ``least`` columns (a
+    single row or column pins a road model's motion poorly: the road's texture along it matches
+    under many motions)."""
+    in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
+    return (in8.amax(3).flatten(1).sum(1) >= least) & (in8.amax(2).flatten(1).sum(1) >= least)

@@ -34,6 +34,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
                                     plane_from_homography)
+from .confidence import spread_out
 from .initial import homography_dlt, planar_motion
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
@@ -280,7 +281,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     """Start values (B, P) float64: ``init``'s (a :class:`RoadFit` or a dict of any of the model's
     parameters) over ``default``; and (P,) flags of the names given. Another road model's
     parameters (a fit of another model as a start) are left aside; a name of no road model (a
-    typo), or a fit sharing no parameter with the model, is an error naming ``what``."""
+    typo), or a fit or a motion naming its model that shares no parameter, is an error naming ``what``."""
     B, P = default.shape
     given = [False] * P
     if init is None:
@@ -288,8 +289,9 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     values = init.params if isinstance(init, RoadFit) else init
     if not isinstance(values, Mapping):
         raise TypeError(f"{what}: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
-    if isinstance(init, RoadFit) and not set(values) & set(model.params):  # (else ignored: a silent default)
-        raise ValueError(f"{what}: a {init.model!r} fit shares no parameter with the {model.name!r} model's {model.params}")
+    kind, named = ("fit", init.model) if isinstance(init, RoadFit) else ("motion", values.get("model"))  # (motion())
+    if named is not None and not set(values) & set(model.params):  # (else ignored: a silent default)
+        raise ValueError(f"{what}: a {named!r} {kind} shares no parameter with the {model.name!r} model's {model.params}")
     known = {"model"} | {n for m in ROAD_MODELS.values() for n in m.params}  # (a road motion's own form)
     unknown = sorted(str(n) for n in values if n not in known)
     if unknown:
@@ -386,9 +388,7 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     residual = torch.stack(epe_in) / n_in.clamp_min(1)
     fraction = n_in / torch.stack(n_use).clamp_min(1)
     inliers = inliers.reshape(B, 1, H, W)
-    in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
-    spread = (in8.amax(3).flatten(1).sum(1) >= 3) & (in8.amax(2).flatten(1).sum(1) >= 3)
-    return inliers, residual.to(model_flow.dtype), spread, fraction, n_in
+    return inliers, residual.to(model_flow.dtype), spread_out(inliers), fraction, n_in
 
 
 # -- the fit ---------------------------------------------------------------------------------------

@@ -51,7 +51,7 @@ from ..geometry.road_models import RoadModel, get_road_model, pack_params
 from .flow_fit import RoadFit, check_fit_options, fixed_parameters
 from .robust import check_kernel
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
-from .confidence import backward_correlation, detail_correlation, photometric_inliers, warped_samples
+from .confidence import backward_correlation, detail_correlation, photometric_inliers, spread_out, warped_samples
 from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, check_steps, reverse_moves, screened_start, start_list,
@@ -321,14 +321,16 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         affine: also fit a gain and an offset between the frames' brightness.
         inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
             image 2's intensities matched to image 1's by their own gain and offset.
-        min_points, min_inlier_fraction: fewer inliers, or a smaller share of the mask's points
+        min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
+            columns: a band that thin matches under many motions), or a smaller share of the mask's points
             that the model keeps inside image 2 (the others cannot be judged: at speed the road
             near the car leaves the frame), mark the frame as failed (as does a diverged or
             ill-conditioned fit).
         min_correlation: the frame also fails where the fitted motion aligns the images' detail
             (the finest level's band, or the intensities where ``highpass`` is None) with a
             correlation below this over the mask's points in view. A plain road's intensities
-            match within ``inlier_threshold`` under almost any motion; its detail does not. At
+            match within ``inlier_threshold`` under almost any motion; its detail does not, unless
+            it slides along itself (lane markings, a thin band of road: docs/image-fit.md). At
             0.5 the aligned images share as much of their detail's variance as they differ by.
         data_range: the images' range (255.0 or 1.0).
         check_every: each level asks whether all samples converged (one host read) after this
@@ -494,8 +496,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
             # (a fit that ran out of iterations at full resolution is still a fit: the refiner's
             # gate judges its flow; ``extras["converged"]`` tells)
-            success = (finite & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
-                       & (correlation >= min_correlation))
+            success = (finite & well_posed & (n_in >= min_points) & spread_out(inliers)
+                       & (fraction >= min_inlier_fraction) & (correlation >= min_correlation))
             return {"values": values, "gain": gain, "offset": offset, "M": M, "flow": flow, "valid": valid,
                     "inliers": inliers, "residual": residual, "fraction": fraction, "correlation": correlation,
                     "success": success, "iterations": iterations, "covariance": sol.covariance()[:, :P, :P],

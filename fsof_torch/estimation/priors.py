@@ -36,8 +36,9 @@ def calibration_prior(model: str | RoadModel, camera: Camera, *, mounting_deg: f
         ("mounting_deg", mounting_deg), ("body_rotation_deg", body_rotation_deg), ("vertical_m", vertical_m)))
     out: dict[str, tuple[Tensor, float]] = {}
     if "roll" in model.params:
-        out["roll"] = (camera.roll, mounting_deg * DEG)
-        out["pitch"] = (camera.pitch, mounting_deg * DEG)
+        # (copies: a prior edited in place must not change the camera)
+        out["roll"] = (camera.roll.clone(), mounting_deg * DEG)
+        out["pitch"] = (camera.pitch.clone(), mounting_deg * DEG)
     for name, sigma in (("pitch_change", body_rotation_deg * DEG), ("roll_change", body_rotation_deg * DEG),
                         ("y_d", vertical_m)):
         if name in model.params:

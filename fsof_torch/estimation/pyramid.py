@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_number, is_number, option_error
+from .._check import check_float_tensor, check_int, check_number, check_shape, is_number, option_error
 from ..geometry.camera import Camera
 
 __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "band", "gaussian_blur"]
@@ -48,6 +48,9 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     only level 0 with ``smooth_sigma`` 0, which is ``images`` itself. Elsewhere every level is
     differentiable.
     """
+    _check_images(images)
+    levels = check_int(levels, "levels", minimum=1)
+    smooth_sigma = check_number(smooth_sigma, "smooth_sigma", nonnegative=True)
     level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
     if images.device.type == "cpu":
         return [level] + _pyramid_cv2(level, levels)
@@ -157,10 +160,16 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     benchmarks/bench_image_fit.py: about 2.5x faster than kornia's at σ = 4; not differentiable),
     torch convolutions with kornia's kernel elsewhere. 16-bit floats are filtered in float32.
     ``sigma``: a number >= 0 (pixels; 0 leaves the images as they are, in a new tensor)."""
+    _check_images(images)
     sigma = check_number(sigma, "sigma", nonnegative=True)
     if images.device.type == "cpu":
         return _gaussian_blur_cv2(images, sigma)
     return _gaussian_blur_torch(images, sigma)
+
+
+def _check_images(images: object) -> None:
+    """``images``: a float tensor (B, C, H, W) with H, W >= 1 (else a TypeError / ValueError)."""
+    check_shape(check_float_tensor(images, "images"), "images", ("B", "C", "H", "W"))
 
 
 def _kernel_size(sigma: float) -> int:

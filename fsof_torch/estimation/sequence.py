@@ -373,6 +373,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         records = [_PairRecord(_metric(r.params, model, ratio), r.success) for r in first]
         fits = [_metric_fit(fit, model, ratio, cam.height) for fit in fits]
     success = torch.tensor([r.success for r in records])
+    # (a detached copy: results are detached, and not the caller's camera's storage)
+    cam = Camera._checked(*(t.detach().clone() for t in (cam.K, cam.height, cam.roll, cam.pitch)))
     return SequenceFit(fits, _stack(records), mounting, cam, raw, success, calibrated_from)
 
 
