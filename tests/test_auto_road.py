@@ -526,6 +526,34 @@ def test_refiner_auto_refines_inside_the_found_road(scene_pair):
     assert epe(out.flow) < 0.5 * epe(pred)
 
 
+def test_refiner_auto_non_finite_pixel_stays_in_its_sample():
+    """mask="auto": a NaN in one sample's prediction leaves the other sample's refinement as it is
+    alone (was: the whole batch lost its flow start), and the flow estimator takes the prediction
+    with it (was: an error that the flow was missing). The refinement reports the camera with the
+    roll and pitch the detection estimated, with which the model flow was computed."""
+    from fsof_torch.data.scene import render_pair
+
+    pairs = [render_pair("default", i, size=(96, 320)) for i in (0, 10)]
+    g = torch.Generator().manual_seed(0)
+    pred = torch.stack([p["flow"] + torch.randn(p["flow"].shape, generator=g) for p in pairs])
+    im1, im2 = (torch.stack([p[k] for p in pairs]) for k in ("image1", "image2"))
+    cam = pairs[0]["camera"]
+    bad = pred.clone()
+    bad[0, :, 60, 100] = math.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        alone = refine_flow(pred[1:], "auto", cam, images=(im1[1:], im2[1:]))
+        out = refine_flow(bad, "auto", cam, images=(im1, im2))
+        flow_fit = refine_flow(bad, "auto", cam, images=(im1, im2), fit="flow")
+    assert torch.equal(out.flow[1], alone.flow[0])
+    assert torch.equal(out.odometry["z_d"][1], alone.odometry["z_d"][0])
+    assert out.road.flag == ["ok", "ok"] and flow_fit.road.flag == ["ok", "ok"]
+    assert bool(torch.isfinite(out.flow[0][:, out.mask[0, 0]]).all())
+    for name in ("roll", "pitch"):
+        estimated = out.fit.params[name].to(out.camera.dtype)
+        assert torch.equal(getattr(out.camera, name), estimated) and not torch.equal(estimated, getattr(cam, name).expand(2))
+
+
 def test_refiner_auto_gradient_reaches_planar_odometry(small_pair):
     """mask="auto" with planar odometry and images: the planar motion held is the caller's own
     tensors, so a gradient reaches them, as with a mask tensor (was: none); the values are the
@@ -616,6 +644,10 @@ def test_bad_inputs_are_named(kitti_K):
         detect_road(two_channels, two_channels, cam)
     with pytest.raises(TypeError, match="camera: expected a fsof_torch.Camera"):
         detect_road(im, im, kitti_K)
+    # the surface tested above the road must lie below the camera (was: an error naming a height
+    # the caller never gave)
+    with pytest.raises(ValueError, match=r"min_height_m: expected below the camera's height \[0.0\d+\] m, got 0.1"):
+        detect_road(im, im, Camera(kitti_K, 0.09).scaled(200 / 1242, 64 / 375))
     with pytest.raises(ValueError, match=r"camera: expected batch 1 or 2"):
         detect_road(torch.cat([im, im]), torch.cat([im, im]), Camera(kitti_K.expand(3, 3, 3), 1.65))
     with pytest.raises(ValueError, match="flow: expected shape"):

@@ -133,6 +133,12 @@ def test_odometry_errors_name_the_odometry():
     with pytest.raises(ValueError, match=r"^odometry: the 'homography' model has no planar motion"):
         ImageMotionEstimator(model="homography")(None, road, p["camera"], images=images,
                                                  odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
+    # an odometry of another batch than the frames': named as the odometry, not as the fit's init
+    two = {"x_d": torch.zeros(2), "z_d": torch.ones(2), "yaw": torch.zeros(2)}
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1 \(the frames'\), got 2 values"):
+        ImageMotionEstimator()(None, road, p["camera"], images=images, odometry=two)
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1 \(the frames'\), got 2 values"):
+        FlowMotionEstimator()(p["flow"][None], road, p["camera"], odometry=two)
 
 
 @pytest.fixture(scope="module")
@@ -298,3 +304,20 @@ def test_image_estimator_names_what_came_for_images(small_pair):
     for images, shown in (((im1,), "tuple of 1"), ((im1, im2, im2), "tuple of 3"), (im1, "Tensor")):
         with pytest.raises(TypeError, match=rf"^images: expected a pair \(image1, image2\), got {shown}$"):
             ImageMotionEstimator()(None, road, p["camera"], images=images)
+
+
+def test_flow_estimator_leaves_non_finite_pixels_out_of_the_mask():
+    """A NaN or inf predicted pixel is no data: the flow fit leaves it out of the mask (as the
+    refiner does before it calls an estimator), the fit equal to one on the mask without it."""
+    p = render_pair("default", 0, size=(96, 320))
+    flow, road, cam = p["flow"][None].clone(), p["road"][None], p["camera"]
+    v, u = road[0, 0].nonzero()[100].tolist()
+    flow[0, 0, v, u], flow[0, 1, v + 1, u] = math.nan, math.inf
+    without = road.clone()
+    without[0, 0, v, u] = without[0, 0, v + 1, u] = False
+    fit = FlowMotionEstimator()(flow, road, cam)
+    reference = FlowMotionEstimator()(flow, without, cam)
+    assert bool(fit.success.all())
+    for name in ("x_d", "z_d", "yaw"):
+        assert torch.equal(fit.params[name], reference.params[name])
+    assert not bool(fit.inliers[0, 0, v, u]) and bool(road[0, 0, v, u])  # (the caller's mask kept)

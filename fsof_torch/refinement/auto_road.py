@@ -44,27 +44,26 @@ from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Sequence
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_keywords, check_shape,
-                      check_size, inference, is_number, option_error)
+from .._check import (autocast_off, batch_choices, check_bool, check_float_tensor, check_shape, check_size, inference,
+                      is_number, option_error)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import (is_planar_odometry, plane_from_homography, road_homography, road_motion,
-                                    road_motion_batch)
+from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
-__all__ = ["RoadDetection", "detect_road", "road_seed", "refine_with_auto_road", "FLAGS", "ROAD_RESERVED"]
+__all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
 
 #: detect_road's arguments the refiner sets itself: refused in ``road_options``, by name
 ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range")
@@ -378,6 +377,9 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         v = options[name]
         if not is_number(v) or not (0 < v < math.inf):
             raise option_error(v, f"{name}: expected a finite number > 0, got {v!r}")
+    if not bool((camera.height > options["min_height_m"]).all()):  # (the raised surface tested is below the camera)
+        raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
+                         f"got {options['min_height_m']!r}")
     if options["max_height_m"] < options["min_height_m"]:
         raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
                          f"got {options['max_height_m']!r}")
@@ -393,7 +395,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     return dims
 
 
-def _check_motion(motion: Any, B: int, device: torch.device, name: str) -> None:
+def check_motion(motion: Any, B: int, device: torch.device, name: str) -> None:
     """A given road motion checked (displacement model, batch 1 or B, finite), errors naming ``name``."""
     model, params = road_motion(motion, name)
     if model.velocity:
@@ -480,7 +482,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     B, H, W = dims["B"], dims["H"], dims["W"]
     device = image1.device
     if motion is not None:
-        _check_motion(motion, B, device, "motion")
+        check_motion(motion, B, device, "motion")
     work = torch.float64 if image1.dtype == torch.float64 else torch.float32
     camera = camera.to(device=device).expand(B)
     # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are
@@ -635,64 +637,3 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
 
 
 # -- the refiner's road="auto" ------------------------------------------------------------------
-
-def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odometry: object, *, images: Any,
-                          road_estimator: Any, road_options: dict[str, Any] | None, warn: bool, **kw: Any):
-    """``refine_flow(flow, "auto", ...)``: find the road, then refine inside it (the refiner's
-    function ``refine`` is passed in: it builds on this module).
-
-    With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
-    predicted flow one start; the caller's planar odometry held fixed, or priors with
-    ``odometry_sigma``), or judges with the caller's complete road motion; the motion it settled
-    on is the refinement's (no second estimate; a held planar odometry as the caller's tensors, so
-    a gradient reaches them). Flagged samples are left unrefined, with a warning that gives the
-    reason (one also names samples whose road was found but that the refinement left unchanged: a
-    failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
-    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
-    ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch, on 0..255), or None.
-    """
-    import warnings
-
-    from ..estimation.flow_fit import RoadFit
-    from ..estimation.freespace import detect_freespace
-    from .contracts import collect_flows, finest_flow
-
-    if mask != "auto":
-        raise ValueError(f"mask: expected a bool tensor (B, 1, H, W) or 'auto', got {mask!r}")
-    options = dict(road_options or {})
-    # (options the detection does not take, or that the refiner sets itself, raise here, named)
-    if images is not None:
-        check_keywords(options, "road_options", detect_road, reserved=ROAD_RESERVED)
-    else:
-        check_keywords(options, "road_options", detect_freespace, reserved=("flow", "camera"))
-    _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
-    if images is None:
-        with torch.no_grad():
-            road = detect_freespace(finest.detach().to(camera.dtype), camera.to(device=finest.device), **options)
-        return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
-    image1, image2 = images
-    B = finest.shape[0]
-    complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
-    if complete:  # (checked here: detect_road's errors would name its `motion`)
-        _check_motion(odometry, B, finest.device, "odometry")
-    f = finest.detach()
-    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f if all_finite(f) else None,
-                      motion=odometry if complete else None, estimator=road_estimator,
-                      odometry=None if complete else odometry, starts=kw.pop("starts", ()), **options)
-    if warn and not all(det.ok.tolist()):
-        bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
-        warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
-                      RuntimeWarning, stacklevel=3)
-    # (the refinement's own warning would name the flagged samples a second time)
-    motion = det.motion
-    if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
-        _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
-        motion = replace(motion, params={k: torch.where(v == odo[k].to(v).detach(), odo[k].to(v), v) if k in odo else v
-                                         for k, v in motion.params.items()})
-    out = refine(flow, det.usable_mask, camera, motion, images=(image1, image2), warn=False, **kw)
-    if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
-        kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
-                      f"images gave no evidence for the model (see RefineOutput.refined and .gate)",
-                      RuntimeWarning, stacklevel=3)
-    return out._replace(road=det, fit=det.motion if not complete else out.fit)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_image_pair,
-                      check_keywords, check_mapping, check_mask, check_names, check_number, check_shape)
+                      check_keywords, check_mapping, check_mask, check_names, check_number, check_shape, skip_values)
 from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, fit_image
 from ..estimation.initial import planar_start
@@ -59,7 +59,8 @@ class FlowMotionEstimator:
     (the fit's start, and ``fixed`` extended by them; the model must have them: ``"paper"`` or
     ``"plane"``, else a ValueError) and the flow estimates the rest of the model's parameters (with
     the default ``model="paper"`` and ``fixed``, nothing: the fit only judges the odometry's model
-    flow against the prediction, in ``success``). Another odometry (a general homography) is the
+    flow against the prediction, in ``success``). Pixels where the flow is NaN or inf are left out
+    of the mask. Another odometry (a general homography) is the
     start where it is of the estimator's model. ``starts`` is not used: the fit has one start (the
     odometry's, or the planar motion of the back-projected mask pixels).
     """
@@ -88,12 +89,17 @@ class FlowMotionEstimator:
                 if not all(k in road_model.params for k in _PLANAR):
                     raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
                                      f"hold; fit the flow alone (odometry=None) or use model='paper' or 'plane'")
-                init = {**(init or {}), **_finite_odometry(planar)}
+                init = {**(init or {}), **_finite_odometry(planar, check_float_tensor(flow, "flow").shape[0])}
                 if held := [k for k in _PLANAR if k in (self.options.get("prior") or {})]:
                     raise ValueError(f"prior: {held[0]!r} is held at the odometry's value, so its prior would be "
                                      f"ignored; drop it, or call without odometry")
                 fixed = fixed_parameters(road_model, fixed)
                 fixed = fixed + tuple(k for k in _PLANAR if k not in fixed)
+        check_float_tensor(flow, "flow")
+        if isinstance(mask, Tensor) and mask.dtype == torch.bool and not skip_values(flow) and not all_finite(flow):
+            # a non-finite predicted pixel is no data: left out of the mask, as the refiner leaves it
+            # out of the estimation (fit_road refuses one inside the mask)
+            mask = mask & torch.isfinite(flow).all(1, keepdim=True)
         return fit_road(flow, mask, camera, model=self.model, fixed=fixed, init=init, **self.options)
 
     def __repr__(self) -> str:
@@ -180,12 +186,12 @@ class ImageMotionEstimator:
             if planar is None and odometry_model.name == self.model:
                 # a general motion of the estimator's own model (a homography): nothing to hold,
                 # one more start (as FlowMotionEstimator starts from it)
-                starts.insert(0, _finite_odometry(odometry_params))
+                starts.insert(0, _finite_odometry(odometry_params, dims["B"]))
         if planar is not None:
             if not all(k in get_road_model(self.model).params for k in _PLANAR):
                 raise ValueError(f"odometry: the {self.model!r} model has no planar motion (x_d, z_d, yaw) to "
                                  f"hold; estimate it from the images alone (odometry=None) or use model='plane'")
-            _finite_odometry(planar)  # (named here: below they become the fit's init)
+            _finite_odometry(planar, dims["B"])  # (named here: below they become the fit's init)
             # the odometry fixes the planar motion (or centres priors on it); the images add
             # what it does not measure, from every start (a previous fit's too)
             init = {**(init.params if isinstance(init, RoadFit) else (init or {})), **planar}
@@ -215,11 +221,15 @@ class ImageMotionEstimator:
         return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start}{sigma})"
 
 
-def _finite_odometry(values: Mapping[str, Any]) -> Mapping[str, Any]:
-    """``values`` (an odometry's parameters), checked finite: a ValueError names the odometry's key."""
+def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:
+    """``values`` (an odometry's parameters), checked finite and of 1 or ``B`` values (the
+    frames'): a ValueError names the odometry's key (the fit would name its ``init``)."""
     for k, v in values.items():
-        if not all_finite(torch.as_tensor(v)):
+        t = torch.as_tensor(v)
+        if not all_finite(t):
             raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
+        if t.numel() not in (1, B):
+            raise ValueError(f"odometry[{k!r}]: expected batch {batch_choices(B)} (the frames'), got {t.numel()} values")
     return values
 
 

@@ -41,7 +41,7 @@ from ..estimation.robust import check_scale
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
-from .auto_road import refine_with_auto_road
+from .auto_refine import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options

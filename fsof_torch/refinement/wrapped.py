@@ -15,7 +15,8 @@ from torch import Tensor, nn
 from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, skip_values
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
-from .auto_road import ROAD_RESERVED, detect_road, refine_with_auto_road
+from .auto_refine import refine_with_auto_road
+from .auto_road import ROAD_RESERVED, detect_road
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow, select_estimator
 

@@ -1,0 +1,86 @@
+"""The refiner with ``mask="auto"``: the road found in the images (:func:`~fsof_torch.detect_road`),
+or on the prediction without them (:func:`~fsof_torch.detect_freespace`), then the refinement
+inside it, with the motion the detection settled on."""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import replace
+from typing import Any
+
+import torch
+
+from .._check import check_keywords
+from ..estimation.flow_fit import RoadFit
+from ..estimation.freespace import detect_freespace
+from ..geometry.camera import Camera
+from ..geometry.road_models import is_planar_odometry, road_motion_batch
+from .auto_road import ROAD_RESERVED, check_motion, detect_road
+from .contracts import collect_flows, finest_flow
+
+__all__ = ["refine_with_auto_road"]
+
+
+def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odometry: object, *, images: Any,
+                          road_estimator: Any, road_options: dict[str, Any] | None, warn: bool, **kw: Any):
+    """``refine_flow(flow, "auto", ...)``: find the road, then refine inside it (the refiner's
+    function ``refine`` is passed in: it builds on this module).
+
+    With images, :func:`detect_road` runs with the refiner's road-motion ``road_estimator`` (the
+    predicted flow one start; the caller's planar odometry held fixed, or priors with
+    ``odometry_sigma``), or judges with the caller's complete road motion; the motion it settled
+    on is the refinement's (no second estimate; a held planar odometry as the caller's tensors, so
+    a gradient reaches them). Flagged samples are left unrefined, with a warning that gives the
+    reason (one also names samples whose road was found but that the refinement left unchanged: a
+    failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
+    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
+    ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch, on 0..255), or None.
+    """
+    if mask != "auto":
+        raise ValueError(f"mask: expected a bool tensor (B, 1, H, W) or 'auto', got {mask!r}")
+    options = dict(road_options or {})
+    # (options the detection does not take, or that the refiner sets itself, raise here, named)
+    if images is not None:
+        check_keywords(options, "road_options", detect_road, reserved=ROAD_RESERVED)
+    else:
+        check_keywords(options, "road_options", detect_freespace, reserved=("flow", "camera"))
+    _, finest = finest_flow(collect_flows(flow, "flow", kw.get("flow_keys", ())))
+    if images is None:
+        with torch.no_grad():
+            road = detect_freespace(finest.detach().to(camera.dtype), camera.to(device=finest.device), **options)
+        return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
+    image1, image2 = images
+    B = finest.shape[0]
+    complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
+    if complete:  # (checked here: detect_road's errors would name its `motion`)
+        check_motion(odometry, B, finest.device, "odometry")
+    f = finest.detach()
+    # (a non-finite pixel is left out by the estimator, in its own sample only)
+    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f,
+                      motion=odometry if complete else None, estimator=road_estimator,
+                      odometry=None if complete else odometry, starts=kw.pop("starts", ()), **options)
+    if warn and not all(det.ok.tolist()):
+        bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
+        warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
+                      RuntimeWarning, stacklevel=3)
+    # (the refinement's own warning would name the flagged samples a second time)
+    motion = det.motion
+    if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
+        _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
+        motion = replace(motion, params={k: torch.where(v == odo[k].to(v).detach(), odo[k].to(v), v) if k in odo else v
+                                         for k, v in motion.params.items()})
+    out = refine(flow, det.usable_mask, camera, motion, images=(image1, image2), warn=False, **kw)
+    if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
+        kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
+        warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
+                      f"images gave no evidence for the model (see RefineOutput.refined and .gate)",
+                      RuntimeWarning, stacklevel=3)
+    cam = out.camera
+    if not complete and isinstance(det.motion, RoadFit) and {"roll", "pitch"} <= set(det.motion.params):
+        # the attitude the detection estimated (in the samples whose road it found), as the refiner
+        # reports an estimate's: the model flow was computed with it
+        ok = det.ok.to(cam.device)
+        roll, pitch = (torch.where(ok, det.motion.params[n].detach().to(getattr(cam, n)), getattr(cam, n))
+                       for n in ("roll", "pitch"))
+        cam = Camera._checked(cam.K, cam.height, roll, pitch)
+    return out._replace(road=det, fit=det.motion if not complete else out.fit, camera=cam)
