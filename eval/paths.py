@@ -46,14 +46,16 @@ def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str
 def bad_json_target(path: Path | None, outputs: Iterable[Path],
                     inputs: dict[str, Path | None] | None = None) -> str | None:
     """``--json`` (``path``, None: not asked for) names none of the files the job writes
-    (``outputs``) or reads (``inputs``, by option; None where not given): the JSON, written last,
-    would replace it."""
+    (``outputs``) or reads (``inputs``, by option; None where not given), nor a path inside an
+    input folder (a sample's other files): the JSON, written last, would replace it."""
     if path is None:
         return None
     target = path.resolve()
     for option, given in (inputs or {}).items():
         if given is not None and given.resolve() == target:
             return f"--json: {str(path)!r} is the input {option}; give another path"
+        if given is not None and given.is_dir() and target.is_relative_to(given.resolve()):
+            return f"--json: {str(path)!r} is inside the input {option} {str(given)!r}; give another path"
     for output in outputs:
         if output.resolve() == target:
             return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "

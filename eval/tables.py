@@ -305,8 +305,11 @@ def run(args: argparse.Namespace) -> int:
             return 2
         print(f"note: no KITTI sample at {kitti_folder}; skipping the KITTI table", file=sys.stderr)
         tables.discard("kitti")
-    # the sample's files that the KITTI table reads: --json may name none of them
+    # the sample's files that the KITTI table reads, and its folder: --json may name none of them
+    # nor the folder's other files (the sample's images)
     inputs = {f"--kitti ({name})": kitti_folder / name for name in KITTI_FILES} if "kitti" in tables else {}
+    if "kitti" in tables:
+        inputs["--kitti"] = kitti_folder
     bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
                     bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / "tables.md"], inputs))
     if bad is not None:

@@ -253,8 +253,15 @@ def run(args: argparse.Namespace) -> int:
         flow, valid = flow[None].double(), valid[None]
         mask = valid
         if args.mask is not None:
+            size = tuple(flow.shape[-2:])
             try:
-                mask = valid & read_road_mask(args.mask, size=tuple(flow.shape[-2:]))[None]
+                # a PNG mask of another size is more likely another pair's than one to stretch (a
+                # polygon JSON is drawn at the flow's size)
+                own = read_road_mask(args.mask) if args.mask.suffix.lower() != ".json" else None
+                if own is not None and tuple(own.shape[-2:]) != size:
+                    print(f"error: --mask: {str(args.mask)!r} is {tuple(own.shape[-2:])}, the flow {size}", file=sys.stderr)
+                    return 2
+                mask = valid & (own if own is not None else read_road_mask(args.mask, size=size))[None]
             except (ValueError, TypeError, FileNotFoundError) as err:
                 print(f"error: --mask: {str(err).removeprefix('path: ')}", file=sys.stderr)
                 return 2

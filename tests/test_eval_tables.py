@@ -244,6 +244,23 @@ def test_tables_json_naming_a_kitti_file_exits_2(tmp_path, shared_data, capsys, 
     assert (folder / name).read_bytes() == before and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("name", ["image_10.png", "new.json"])
+def test_tables_json_inside_the_kitti_folder_exits_2(tmp_path, shared_data, capsys, name):
+    """--json naming any other path inside the --kitti folder (its images, a new file) is refused
+    before any work, the folder left as it was (was: the sample's image replaced by the JSON)."""
+    import shutil
+
+    folder = _kitti_copy(tmp_path, shared_data)
+    shutil.copy(shared_data / "kitti15_000000" / "image_10.png", folder / "image_10.png")
+    before = sorted((p.name, p.read_bytes()) for p in folder.iterdir())
+    rc = main(["tables", "--only", "kitti", "--kitti", str(folder), "--out", str(tmp_path / "o"),
+               "--json", str(folder / name), "--no-progress"])
+    assert rc == 2
+    assert f"error: --json: {str(folder / name)!r} is inside the input --kitti {str(folder)!r}; give another path" \
+        in capsys.readouterr().err
+    assert sorted((p.name, p.read_bytes()) for p in folder.iterdir()) == before and not (tmp_path / "o").exists()
+
+
 def test_tables_rerun_leaves_no_file_of_the_run_before(tmp_path, monkeypatch):
     """A rerun into the same folder that writes its JSON elsewhere removes DIR/tables.json of the
     run before, which would read as this run's beside the new tables.md."""

@@ -102,6 +102,22 @@ def test_vflow_bad_or_empty_mask_exits_2(tmp_path, capsys, polygon_json, message
     assert not (tmp_path / "o").exists()
 
 
+def test_vflow_png_mask_of_another_size_exits_2(tmp_path, capsys):
+    """A PNG mask must have the flow's size (was: stretched to it, like another pair's mask would
+    be); a polygon JSON is drawn at the flow's size."""
+    from fsof_torch.io import write_image
+
+    flow = _small_flow(tmp_path)
+    write_image(tmp_path / "m.png", torch.full((1, 16, 24), 255, dtype=torch.uint8))
+    rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.png"), "--out", str(tmp_path / "o"),
+               "--no-progress"])
+    assert rc == 2 and "error: --mask: " in (err := capsys.readouterr().err) and "is (16, 24), the flow (32, 48)" in err
+    assert not (tmp_path / "o").exists()
+    write_image(tmp_path / "m.png", torch.full((1, 32, 48), 255, dtype=torch.uint8))
+    assert main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.png"), "--out", str(tmp_path / "o"),
+                 "--no-progress"]) == 0
+
+
 def test_vflow_flow_without_valid_pixels_exits_2(tmp_path, capsys):
     from fsof_torch.io import write_flow
 

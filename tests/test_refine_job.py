@@ -842,6 +842,12 @@ def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     assert "--flows needs --images" in _err(capsys, ["--flows", str(user_folder / "flows"), "--out", str(tmp_path / "o")])
     assert "unknown preset" in _err(capsys, ["--preset", "nope", "--out", str(tmp_path / "o")])
     assert main(["--mode", "blend"]) == 2  # argparse's own error
+    # a size beyond any camera's frame is refused before anything is written (was: a render that
+    # filled memory, a traceback and exit 1, run.json already in --out)
+    for option in ("--size", "--calib-size"):
+        assert main([option, "16x1000000", "--out", str(tmp_path / "huge")]) == 2
+        assert "expected sides of at most 16384 pixels, got '16x1000000'" in capsys.readouterr().err
+        assert not (tmp_path / "huge").exists()
 
 
 @pytest.mark.parametrize("option", ["--flows", "--road", "--gt"])
