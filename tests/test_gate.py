@@ -96,6 +96,25 @@ def test_census_ring_samples_a_half_precision_image_2_at_float32_positions(dtype
     assert float(dist.float().abs().max()) == 0.0
 
 
+def test_census_ring_end_points_of_integer_points_and_a_half_precision_flow_in_float32():
+    """Integer coordinates plus a float16 flow: the end point is formed in float32 (was: float16,
+    1001 + 0.25 rounded to 1001 on a wide image), the distance as with the flow in float32."""
+    H, W = 16, 1100
+    g = torch.Generator().manual_seed(3)
+    img = F.interpolate(torch.rand(1, 1, H // 2, W // 4, generator=g) * 255, size=(H, W), mode="bicubic",
+                        align_corners=False).clamp(0, 255).round()
+    # image 2: image 1 resampled a quarter pixel over (sub-pixel detail for the end point to resolve)
+    v, u = torch.meshgrid(torch.linspace(-1, 1, H), (torch.arange(W) + 0.25) * 2 / (W - 1) - 1, indexing="ij")
+    shifted = F.grid_sample(img, torch.stack([u, v], -1)[None], align_corners=True, padding_mode="border")
+    x, y = torch.tensor([[1001, 500]]), torch.tensor([[8, 8]])
+    flow = torch.full((1, 2, 2), 0.25)
+    flow[:, 1] = 0.0
+    half = census_ring_distance(img, shifted, x, y, flow.half())
+    single = census_ring_distance(img, shifted, x.float(), y.float(), flow)
+    for a, b in zip(half, single):
+        assert torch.equal(a.float(), b.float())
+
+
 def test_census_ring_reads_image_1_at_whole_pixels():
     g1, g2 = _texture(seed=1), _texture(seed=2)
     x, y = torch.tensor([[10.0, 50.0]]), torch.tensor([[20.0, 40.0]])
@@ -165,6 +184,24 @@ def test_images_without_evidence_leave_the_prediction():
     assert not bool(out.model_used.any()) and not bool(out.use_model.any())
     loose = ImageGate(require_evidence=False)(g1, noise, true, true.clone(), mask)
     assert bool(loose.model_used.all()) and bool(loose.use_model.all())
+
+
+def test_a_handful_of_points_is_no_evidence():
+    """A mask of a few points (fewer than ``min_points`` count) is not informative: a wrong model
+    does not replace a right prediction there (was: with two or three points their standard
+    error was so large that the model, worse on each, was used); with enough points it is found
+    worse."""
+    g1, g2, true = _pair()
+    g2 = g2 + 8 * torch.randn(g2.shape, generator=torch.Generator().manual_seed(0))  # (sensor noise)
+    model = true + torch.tensor([4.0, -3.0]).reshape(1, 2, 1, 1)
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 30:60, 40:150] = True
+    for points, informative in ((2, False), (3, False), (11, False), (6000, True)):
+        out = ImageGate(points=points)(g1, g2, true, model, mask)
+        assert bool(out.informative[0]) == informative, points
+        assert not bool(out.model_used[0]) and not bool(out.use_model.any())
+        assert float(out.cost_model[0]) > float(out.cost_prediction[0])
+    assert int(ImageGate(points=11)(g1, g2, true, model, mask).points[0]) == 11
 
 
 def test_a_model_as_good_as_the_prediction_is_used():

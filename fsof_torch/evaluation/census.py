@@ -36,7 +36,7 @@ def census_ring_distance(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, flo
                          threshold: float = CONTRAST) -> tuple[Tensor, Tensor, Tensor]:
     """Ternary census distance of the points (x, y) (B, N) of image 1 (whole pixels: image 1 is
     read there, not interpolated; a fraction is dropped) against image 2 at x + flow (flow
-    (B, 2, N), bilinear), over the 16 ring neighbours.
+    (B, 2, N), bilinear; the fraction kept), over the 16 ring neighbours.
 
     ``grey1``, ``grey2``: (B, 1, H, W) float grey images
     (:func:`~fsof_torch.evaluation.photometric.to_grey` converts RGB); ``x``, ``y``: (B, N) float or
@@ -108,7 +108,11 @@ def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, fl
     ring = torch.stack([dx * sx, dy * sy], dim=-1).to(sample).unsqueeze(1)  # (17, 1, 2)
     out = []
     for flow in flows:
-        x2, y2 = x + flow[:, 0], y + flow[:, 1]
+        # the end points in float32 at least (integer coordinates plus a half-precision flow
+        # would round them to half precision)
+        at_least = torch.promote_types(x.dtype if x.is_floating_point() else torch.float32, flow.dtype)
+        at_least = torch.promote_types(at_least, torch.float32)
+        x2, y2 = x.to(at_least) + flow[:, 0].to(at_least), y.to(at_least) + flow[:, 1].to(at_least)
         centre2 = torch.stack([x2.to(sample) * sx - 1.0, y2.to(sample) * sy - 1.0], dim=-1)
         at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
         v2 = F.grid_sample(g2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
