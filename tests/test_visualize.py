@@ -149,6 +149,20 @@ def test_flow_to_color_checks_a_tensor_max_flow(max_flow, match):
     assert flow_to_color(_flow(B=3), torch.tensor([1.0, 2.0, 3.0])).shape == (3, 3, 20, 30)
 
 
+def test_save_refuses_meta_tensors(tmp_path):
+    """A figure of a tensor on the meta device (shapes, no values) is a ValueError naming the
+    argument, as the docs say of the file writers (was: torch's NotImplementedError)."""
+    meta = "a tensor on the meta device has shapes but no values to write"
+    with pytest.raises(ValueError, match=f"^flow: {meta}"):
+        save_flow_png(tmp_path / "f.png", _flow().to("meta"), max_flow=1.0)
+    with pytest.raises(ValueError, match=f"^error_map: {meta}"):
+        save_error_png(tmp_path / "e.png", torch.zeros(8, 8, device="meta"), 1.0)
+    with pytest.raises(ValueError, match=f"^image: {meta}"):
+        save_overlay_png(tmp_path / "o.png", torch.zeros(3, 8, 8, device="meta"), torch.zeros(1, 8, 8, dtype=torch.bool,
+                                                                                              device="meta"))
+    assert not list(tmp_path.iterdir())
+
+
 def test_save_rejects_batches(tmp_path):
     with pytest.raises(ValueError, match="expected a single image"):
         save_flow_png(tmp_path / "f.png", _flow(B=2))

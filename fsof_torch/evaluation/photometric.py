@@ -325,8 +325,10 @@ def photometric_error_map(image1: Tensor, image2: Tensor, flow: Tensor, mask: Te
             Hamming distance of census transforms / the neighbour count) or ``"soft_census"``.
         data_range: the images' range (255.0 or 1.0): a finite number > 0. Values outside
             [-0.01, 1.01] × data_range (1% either side, for rounding and resampling overshoot),
-            and NaN or inf pixels anywhere in either image, raise ValueError naming the image (a
-            NaN pixel would spread through the warp's taps and the SSIM and census windows).
+            NaN or inf pixels anywhere in either image, and with data_range > 1.5 an image whose
+            brightest pixel lies in (0, 1] (a 0..1 image passed as 0..255), raise ValueError naming
+            the image (a NaN pixel would spread through the warp's taps and the SSIM and census
+            windows).
         window: odd SSIM window size (taps of the σ = 1.5 Gaussian); ``"ssim"`` needs H and W
             larger than ``window // 2`` (the reflection padding).
         census_radius: census neighbourhood radius r ((2r+1)² offsets).

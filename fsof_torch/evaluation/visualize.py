@@ -22,8 +22,8 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_image_range,
-                      check_number, check_positive, check_shape)
+from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_has_values,
+                      check_image_range, check_number, check_positive, check_shape)
 from .metrics import pow2_scale
 
 __all__ = [
@@ -258,6 +258,7 @@ def _write_png(path: str | os.PathLike, rgb: Tensor, name: str) -> Path:
 
     from ..io.atomic import write_bytes
 
+    check_has_values(rgb, name, "to write")  # (the colours of a meta tensor are shapes only)
     if rgb.dim() == 4:
         if rgb.shape[0] != 1:
             raise ValueError(f"{name}: expected a single image (batch 1) to save, got batch {rgb.shape[0]}")
