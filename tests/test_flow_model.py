@@ -198,6 +198,15 @@ def test_module_twins():
     assert "wheelbase=2.5" in repr(VelocityFlow((12, 20), wheelbase=2.5))
 
 
+def test_pixel_grid_checks_its_arguments():
+    with pytest.raises(ValueError, match=r"^size: expected positive sides \(H, W\), got \(-2, 3\)"):
+        pixel_grid((-2, 3), torch.float32)
+    with pytest.raises(TypeError, match=r"^size: expected integer sides \(H, W\), got \(2.5, 3\)"):
+        pixel_grid((2.5, 3), torch.float32)
+    with pytest.raises(TypeError, match=r"^dtype: expected a floating-point torch.dtype, got torch.int64"):
+        pixel_grid((2, 3), torch.int64)
+
+
 def test_pixel_grid():
     g = pixel_grid((2, 3), torch.float32)
     assert g.shape == (3, 6)

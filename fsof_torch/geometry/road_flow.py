@@ -59,8 +59,12 @@ __all__ = [
 
 
 def pixel_grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device | None = None) -> Tensor:
-    """Homogeneous pixel coordinates (3, H*W): rows u, v, 1, row-major over the image."""
-    H, W = size
+    """Homogeneous pixel coordinates (3, H*W): rows u, v, 1, row-major over the image.
+
+    ``size``: ``(H, W)`` positive ints; ``dtype``: a floating-point dtype."""
+    H, W = check_size(size)
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
     u = torch.arange(W, dtype=dtype, device=device).expand(H, W)
     v = torch.arange(H, dtype=dtype, device=device).unsqueeze(1).expand(H, W)
     return torch.stack([u, v, torch.ones_like(u)]).reshape(3, H * W)
