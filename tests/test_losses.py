@@ -291,6 +291,15 @@ def test_composite_terms_may_return_python_numbers():
     total, values = CompositeLoss({"a": (2.0, lambda flows: 0.5), "b": (1.0, lambda flows: flows.sum())})(
         torch.ones(1, 2, 1, 1))
     assert total.item() == 3.0 and values["a"].item() == 0.5 and isinstance(values["a"], torch.Tensor)
+    # only Python numbers weighted: a total that backward() accepts, as with every weight 0 (was:
+    # a tensor without a graph, whose backward() raised); no gradient reaches the flow
+    flow = torch.ones(1, 2, 1, 1, requires_grad=True)
+    total, _ = CompositeLoss({"a": (2.0, lambda flows: 0.25), "b": (0.0, lambda flows: flows[-1].sum())})([flow])
+    assert total.item() == 0.5
+    total.backward()
+    assert flow.grad is None
+    with torch.no_grad():  # (no graph asked for: none given)
+        assert not CompositeLoss({"a": (2.0, lambda flows: 0.25)})([flow])[0].requires_grad
 
 
 def test_composite_bad_inputs_are_named():

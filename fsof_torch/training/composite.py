@@ -35,8 +35,9 @@ class CompositeLoss(nn.Module):
     with gradient) and ``{name: unweighted value}`` (detached scalars; a term may return a tensor
     or a Python number). ``inputs`` is None or a mapping (a batch dict), else TypeError naming
     ``inputs``. A term of weight 0 is evaluated and reported but not added, so a diagnostic term
-    that returns inf or NaN leaves the total as it is (where every weight is 0 the total is a
-    zero that ``backward()`` accepts, and no gradient reaches the flows). A TypeError from a
+    that returns inf or NaN leaves the total as it is (where every weight is 0, or no weighted
+    term carries a gradient, such as terms that return Python numbers, the total is one that
+    ``backward()`` accepts, and no gradient reaches the flows). A TypeError from a
     term's call (an input it needs and was not given, one it does not take) is raised again
     naming ``terms[name]``.
 
@@ -105,6 +106,10 @@ class CompositeLoss(nn.Module):
         if not isinstance(total, Tensor):  # every weight 0: nothing reaches the flows
             dtype = value.dtype if value.is_floating_point() else torch.get_default_dtype()
             total = torch.zeros((), dtype=dtype, device=value.device, requires_grad=True)
+        elif torch.is_grad_enabled() and not total.requires_grad:
+            # the weighted terms carry no gradient (Python numbers): a total that backward() still
+            # accepts, as with every weight 0
+            total = total + torch.zeros((), dtype=total.dtype, device=total.device, requires_grad=True)
         return total, values
 
 
