@@ -31,6 +31,7 @@ from fsof_torch.io import (
     write_image,
     write_kitti_calibration,
     write_kitti_flow,
+    write_kitti_poses,
     write_synthetic_sequence,
 )
 
@@ -247,6 +248,10 @@ class TestExceptions:
         ({"camera_height": float("nan")}, ValueError, r"^camera_height: expected a finite number"),
         ({"cam": 7}, ValueError, r"^cam: expected 0\.\.3, got 7"),
         ({"image_dir": None}, TypeError, r"^image_dir: expected a file path .*got NoneType None"),
+        # (once TypeError "new(): invalid data type 'str'" and a ValueError from torch, naming no argument)
+        ({"K": "721"}, TypeError, r"^K: expected a \(3, 3\) tensor or array of numbers, got str '721'"),
+        ({"K": [[1, 2], [3]]}, TypeError, r"^K: expected a \(3, 3\) tensor or array of numbers, got list "
+                                          r"\[\[1, 2\], \[3\]\]"),
     ])
     def test_kitti_flow_arguments_checked_at_construction(self, kitti_root, kwargs, error, message):
         """Not at the first item (camera_height=-1 and cam=7 were accepted until then)."""
@@ -302,6 +307,36 @@ class TestExceptions:
         if "camera_height" in kwargs:
             with pytest.raises(ValueError, match=message):
                 KittiFlowDataset(shared_data / "kitti15_000000", **kwargs)
+
+
+def _odometry_clip(root, names):
+    """A KITTI odometry folder: image_l/NAME.png for each of ``names``, calib.txt, 4 poses."""
+    (root / "image_l").mkdir(parents=True)
+    for name in names:
+        write_image(root / "image_l" / f"{name}.png", _colour_image(0, 0, 0, (6, 8)))
+    poses = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    poses[:, 2, 3] = torch.arange(4.0)
+    write_kitti_poses(root / "poses.txt", poses)
+    write_kitti_calibration(root / "calib.txt", torch.tensor([[10.0, 0, 3.5], [0, 10, 2.5], [0, 0, 1]]), cam=0,
+                            style="odometry")
+    return root
+
+
+class TestOdometryFrames:
+    def test_two_files_of_one_frame_are_refused(self, tmp_path):
+        """2.png beside 000002.png was paired with it (a pair of one frame, z_d 0)."""
+        root = _odometry_clip(tmp_path / "odo", ["000000", "000001", "000002", "2", "000003"])
+        with pytest.raises(ValueError, match=r"^folder: '.*odo/image_l' has two files of frame 2, 000002\.png "
+                                             r"and 2\.png; keep one"):
+            KittiOdometryDataset(root)
+
+    def test_only_ascii_digit_names_are_frames(self, tmp_path):
+        """'\u00b2.png' passed str.isdigit and then failed int() ('invalid literal for int()')."""
+        root = _odometry_clip(tmp_path / "odo", ["000000", "000001", "000002", "000003", "\u00b2"])
+        ds = KittiOdometryDataset(root)
+        assert [(p.image1.name, p.image2.name) for p in ds.pairs] == [
+            ("000000.png", "000001.png"), ("000001.png", "000002.png"), ("000002.png", "000003.png")]
+        assert [ds[i]["odometry"]["z_d"] for i in range(3)] == pytest.approx([1.0, 1.0, 1.0])
 
 
 class TestShared:

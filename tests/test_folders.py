@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from fsof_torch.data.folders import ImageFolderDataset, check_index, frame_pairs, kitti_flow_layout, match_files
+from fsof_torch.data.folders import (ImageFolderDataset, calibration_size, check_index, frame_pairs,
+                                    kitti_flow_layout, match_files)
 from fsof_torch.data.items import check_item
 from fsof_torch.io import (read_kitti_poses, write_flow, write_image, write_kitti_calibration, write_kitti_poses,
                            write_road_mask)
@@ -282,6 +283,31 @@ def test_sizes_against_the_first_pair_and_the_calibration(clip, tmp_path):
                             cam=0, style="odometry")
     with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40, but the principal point .*middle third"):
         ImageFolderDataset(root / "images", tmp_path / "double.txt")
+
+
+@pytest.mark.parametrize("row", ["nan 48", "80 inf", "-80 48", "0 48", "80 0.2"])
+def test_size_row_not_two_sizes_names_calib(clip, tmp_path, row):
+    """NaN / inf in S_rect once raised from int(round(...)) (cannot convert float NaN to integer)."""
+    root, _ = clip
+    cam2cam = tmp_path / "calib_cam_to_cam.txt"
+    write_kitti_calibration(cam2cam, K, cam=2)
+    cam2cam.write_text(cam2cam.read_text() + f"S_rect_02: {row}\n")
+    with pytest.raises(ValueError, match=rf"^calib: '.*calib_cam_to_cam\.txt' has an S_rect_02 row that is not "
+                                         rf"'W H' \(two sizes of at least one pixel\): 'S_rect_02: {row}'"):
+        calibration_size(cam2cam, 2)
+    with pytest.raises(ValueError, match=r"^calib: .* has an S_rect_02 row that is not 'W H'"):
+        ImageFolderDataset(root / "images", cam2cam)
+
+
+def test_size_row_after_a_byte_order_mark(clip, tmp_path):
+    """A BOM before S_rect_02 once hid the row (read_text kept the BOM), so the size went unchecked."""
+    root, _ = clip
+    cam2cam = tmp_path / "calib_cam_to_cam.txt"
+    write_kitti_calibration(cam2cam, K, cam=2)
+    cam2cam.write_bytes(b"\xef\xbb\xbfS_rect_02: 8.000000e+01 4.800000e+01\n" + cam2cam.read_bytes())
+    assert calibration_size(cam2cam, 2) == (48, 80)
+    with pytest.raises(ValueError, match=r"is for 48x80 images"):
+        ImageFolderDataset(root / "images", cam2cam)
 
 
 def test_errors_name_the_argument_and_the_file(clip, tmp_path):

@@ -50,6 +50,12 @@ class TestSmoke:
 
 
 class TestExceptions:
+    def test_write_text_refuses_bytes(self, tmp_path):
+        """bytes once raised AttributeError ('bytes' object has no attribute 'encode')."""
+        with pytest.raises(TypeError, match=r"^text: expected a str, got bytes$"):
+            write_text(tmp_path / "t.txt", b"abc")
+        assert not (tmp_path / "t.txt").exists() and _leftovers(tmp_path) == []
+
     def test_failure_midway_leaves_no_file(self, tmp_path):
         with pytest.raises(RuntimeError, match="boom"):
             with atomic_path(tmp_path / "out.txt") as tmp:

@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import re
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -66,6 +68,22 @@ class TestExceptions:
     def test_missing(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no file"):
             read_image(tmp_path / "nope.png")
+
+    @pytest.mark.parametrize("reader", ["read_image", "read_kitti_flow", "read_road_mask", "read_label_map"])
+    def test_header_over_opencvs_pixel_limit(self, tmp_path, reader):
+        """A 150-byte PNG whose IHDR states 60000 x 60000 pixels (over OpenCV's 2**30) made
+        cv2.imdecode raise cv2.error, past every reader's ValueError."""
+        import fsof_torch.io
+
+        cv2.imwrite(str(tmp_path / "small.png"), np.zeros((2, 3), np.uint8))
+        data = bytearray((tmp_path / "small.png").read_bytes())
+        assert data[12:16] == b"IHDR"
+        data[16:24] = struct.pack(">II", 60000, 60000)  # width, height
+        data[29:33] = struct.pack(">I", zlib.crc32(bytes(data[12:29])) & 0xFFFFFFFF)
+        (tmp_path / "big.png").write_bytes(bytes(data))
+        with pytest.raises(ValueError, match=rf"^path: {re.escape(repr(str(tmp_path / 'big.png')))}: OpenCV "
+                                             r"refused to decode it"):
+            getattr(fsof_torch.io, reader)(tmp_path / "big.png")
 
     def test_a_path_that_is_not_a_path_is_named(self):
         import fsof_torch as fs

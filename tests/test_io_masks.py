@@ -130,6 +130,16 @@ class TestExceptions:
         huge = _write_json(tmp_path / "e.json", {"size": [1000000, 1000000], "road_polygon": [[0, 0], [9, 0], [9, 9]]})
         with pytest.raises(ValueError, match=r"\['size'\]: expected sides \[H, W\] of at most 65536 pixels"):
             read_road_mask(huge)
+        # sides within 65536 but 2**32 pixels in all: 4 GB allocated before the check on the product
+        square = _write_json(tmp_path / "g.json", {"size": [65536, 65536], "road_polygon": [[0, 0], [9, 0], [9, 9]]})
+        with pytest.raises(ValueError, match=r"g\.json'\['size'\]: expected at most 2\*\*28 = 268435456 pixels "
+                                             r"\(H \* W\), got \[65536, 65536\]"):
+            read_road_mask(square)
+        with pytest.raises(ValueError, match=r"^size: expected at most 2\*\*28"):
+            read_road_mask(tmp_path / "b.json", size=(16385, 16384))
+        from fsof_torch.io.masks import _check_size
+
+        assert _check_size([16384, 16384], "size") == (16384, 16384)  # 2**28 exactly is allowed
         (tmp_path / "f.json").write_text("[" * 100000 + "]" * 100000)
         with pytest.raises(ValueError, match="nested too deeply"):
             read_road_mask(tmp_path / "f.json")
@@ -235,6 +245,18 @@ class TestPolygonJson:
         path = _write_json(tmp_path / "road.json", obj)
         with pytest.raises(ValueError, match=rf"path: '.*road\.json'{msg}"):
             read_road_mask(path, size=size)
+
+    @pytest.mark.parametrize("text, key", [
+        ('{"size": [10, 10], "road_polygon": [[0, 0], [9, 0], [9, 9]], "road_polygon": [[0, 5], [5, 0], [9, 9]]}',
+         "road_polygon"),
+        ('{"size": [10, 10], "size": [20, 20], "road_polygon": [[0, 0], [9, 0], [9, 9]]}', "size"),
+        ('{"size": [10, 10], "polygons": {"a": [[0, 0], [9, 0], [9, 9]], "a": [[0, 5], [5, 0], [9, 9]]}}', "a"),
+    ])
+    def test_repeated_key(self, tmp_path, text, key):
+        """json.loads keeps the last of two equal keys: the first polygon was silently dropped."""
+        (tmp_path / "road.json").write_text(text)
+        with pytest.raises(ValueError, match=rf"^path: '.*road\.json' has the key '{key}' twice in one object"):
+            read_road_mask(tmp_path / "road.json")
 
     @pytest.mark.parametrize("keys", [("road_polygon", "polygons"), ("road_polygon", "polygon"),
                                       ("road_polygons", "polygons")])

@@ -28,6 +28,7 @@ stacked: use ``batch_size=1`` for KITTI, whose frames differ by a pixel or two.
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -223,7 +224,12 @@ class KittiFlowDataset(Dataset):
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
         if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
-            K = torch.as_tensor(K).detach().to("cpu", copy=True)
+            try:
+                K = torch.as_tensor(K)
+            except (TypeError, ValueError, RuntimeError):  # a str, a ragged list: as Camera.from_projection
+                raise TypeError(f"K: expected a (3, 3) tensor or array of numbers, got "
+                                f"{type(K).__name__} {K!r:.60}") from None
+            K = K.detach().to("cpu", copy=True)
             Camera(K.to(camera_dtype), camera_height)
         self.cam, self.camera_height, self.K = cam, camera_height, K
         self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
@@ -301,8 +307,10 @@ class KittiOdometryDataset(ImageFolderDataset):
 
     Folder: ``image_dir/NNNNNN.png`` frames, ``calib.txt`` (``P{cam}``), ``poses.txt``
     (camera-to-world, line n for frame n), optionally ``road.json`` (one polygon for the clip).
-    Only frames with a pose are used; pair ``i`` is frames (i, i + step) of those, named after its
-    first frame. ``odometry`` is :func:`fsof_torch.egomotion.ego_motion_from_pose` of the pair's
+    Frames are the files whose name is a number (ASCII digits); two files of one number
+    (``2.png`` and ``000002.png``) are a ValueError naming the folder and both. Only frames with a
+    pose are used; pair ``i`` is frames (i, i + step) of those, named after its first frame.
+    ``odometry`` is :func:`fsof_torch.egomotion.ego_motion_from_pose` of the pair's
     ``relative_pose`` under the camera's mounting (``roll``, ``pitch`` in radians, default 0);
     ``pose_residual`` what the planar model drops (``y_d`` in metres, rotation residual angle in
     radians). ``road_json=False``: ``road.json`` is not read (items without ``road``, for a caller
@@ -320,7 +328,13 @@ class KittiOdometryDataset(ImageFolderDataset):
         images = self.folder / image_dir
         if not images.is_dir():
             raise FileNotFoundError(f"folder: {str(self.folder)!r} has no {image_dir}/ folder")
-        frames = sorted((p for p in images.glob("*.png") if p.stem.isdigit()), key=lambda p: int(p.stem))
+        # ASCII digits only: str.isdigit takes '²', which int() refuses
+        frames = sorted((p for p in images.glob("*.png") if re.fullmatch(r"[0-9]+", p.stem)),
+                        key=lambda p: (int(p.stem), p.name))
+        for a, b in zip(frames, frames[1:]):
+            if int(a.stem) == int(b.stem):  # 2.png and 000002.png: which one is frame 2 is a guess
+                raise ValueError(f"folder: {str(images)!r} has two files of frame {int(a.stem)}, {a.name} and "
+                                 f"{b.name}; keep one")
         path, poses = self.folder / "poses.txt", None
         if ground_truth or path.is_file():
             try:

@@ -26,6 +26,7 @@ dataset is made; the other pairs' sizes when they load.
 
 from __future__ import annotations
 
+import math
 import numbers
 import os
 import re
@@ -182,10 +183,12 @@ def match_files(folder: str | os.PathLike, names: Sequence[str], *, what: str,
 
 def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | None:
     """The rectified image size (H, W) a KITTI ``calib_cam_to_cam.txt`` states for camera
-    ``cam`` (``S_rect_0N: W H``), or None when the file has no such row (odometry ``calib.txt``)."""
+    ``cam`` (``S_rect_0N: W H``), or None when the file has no such row (odometry ``calib.txt``).
+    A row that is not two finite sizes of at least one pixel is a ValueError naming ``calib``. A
+    byte-order mark is skipped, as :func:`read_kitti_calibration` skips it."""
     calib = Path(calib)
     try:
-        text = calib.read_text()
+        text = calib.read_text(encoding="utf-8-sig")
     except UnicodeDecodeError:
         return None  # the calibration reader reports the file
     for line in text.splitlines():
@@ -193,9 +196,11 @@ def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | No
         if sep and key.strip() == f"S_rect_0{cam}":
             try:
                 w, h = (float(x) for x in rest.split())
+                if not all(math.isfinite(v) and round(v) >= 1 for v in (w, h)):
+                    raise ValueError
             except ValueError:
-                raise ValueError(f"calib: {str(calib)!r} has an S_rect_0{cam} row that is not 'W H': "
-                                 f"{line.strip()[:60]!r}") from None
+                raise ValueError(f"calib: {str(calib)!r} has an S_rect_0{cam} row that is not 'W H' "
+                                 f"(two sizes of at least one pixel): {line.strip()[:60]!r}") from None
             return int(round(h)), int(round(w))
     return None
 

@@ -159,7 +159,10 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
 
 def write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically (``""`` gives an empty file); returns the path."""
+    """Write ``text`` (UTF-8) to ``path`` atomically (``""`` gives an empty file); returns the path.
+    ``text`` that is not a str (bytes: use :func:`write_bytes`) is a TypeError naming it."""
+    if not isinstance(text, str):
+        raise TypeError(f"text: expected a str, got {type(text).__name__}")
     return write_bytes(path, text.encode("utf-8"))
 
 

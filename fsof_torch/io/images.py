@@ -59,28 +59,39 @@ def in_frame_order(paths: Iterable[str | os.PathLike], name: str = "images") -> 
     return paths
 
 
+def _a(what: str) -> str:
+    """``what`` with its indefinite article ("an image", "a KITTI flow PNG")."""
+    return f"{'an' if what[:1].lower() in 'aeiou' else 'a'} {what}"
+
+
 def read_image_array(path: str | os.PathLike, *, what: str = "image") -> np.ndarray:
     """Decode an image file exactly as stored (``cv2.IMREAD_UNCHANGED``): (H, W) or (H, W, C)
     uint8/uint16/float32, channels in OpenCV's BGR(A) order.
 
-    Raises ValueError naming the path for an empty, truncated or undecodable file,
-    FileNotFoundError for a missing one, IsADirectoryError for a folder. ``what`` says in the
-    message what the file was expected to be ("KITTI flow PNG", ...).
+    Raises ValueError naming the path for an empty, truncated or undecodable file (also one whose
+    header states more pixels than OpenCV decodes, 2**30 by default), FileNotFoundError for a
+    missing one, IsADirectoryError for a folder. ``what`` says in the message what the file was
+    expected to be ("KITTI flow PNG", ...).
     """
     import cv2
 
     path, data = _read_bytes(path)
     if not data:
-        raise ValueError(f"path: {str(path)!r} is empty, expected a {what}")
+        raise ValueError(f"path: {str(path)!r} is empty, expected {_a(what)}")
     if data.startswith(_PNG_SIGNATURE):
         if data.rfind(_PNG_END) < 0:
             raise ValueError(f"path: {str(path)!r} is a truncated PNG (no IEND chunk, {len(data)} bytes); "
                              f"expected a complete {what}")
     elif path.suffix.lower() == ".png":
-        raise ValueError(f"path: {str(path)!r} is not a PNG file (bad signature {data[:8]!r}); expected a {what}")
-    array = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+        raise ValueError(f"path: {str(path)!r} is not a PNG file (bad signature {data[:8]!r}); expected {_a(what)}")
+    try:
+        array = cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as err:  # OpenCV raises (rather than returns None) for a header over its pixel limit
+        reason = (err.err or str(err)).strip()
+        raise ValueError(f"path: {str(path)!r}: OpenCV refused to decode it as {_a(what)} ({reason}: a header "
+                         f"stating more pixels than OpenCV decodes, or a corrupt one)") from None
     if array is None:
-        raise ValueError(f"path: OpenCV could not decode {str(path)!r} as a {what} (corrupt or unsupported file)")
+        raise ValueError(f"path: OpenCV could not decode {str(path)!r} as {_a(what)} (corrupt or unsupported file)")
     return array
 
 
@@ -116,7 +127,7 @@ def check_image_suffix(path: str | os.PathLike, suffixes: tuple[str, ...], what:
     images (masks, labels, flow), which must not go to a lossy or 8-bit-only format."""
     path = as_path(path)
     if path.suffix.lower() not in suffixes:
-        raise ValueError(f"path: a {what} is written as {' or '.join(suffixes)}; got the suffix "
+        raise ValueError(f"path: {_a(what)} is written as {' or '.join(suffixes)}; got the suffix "
                          f"{path.suffix!r} of {str(path)!r}")
     return path
 

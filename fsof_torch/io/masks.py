@@ -15,13 +15,15 @@ the keys below, or none of their polygons, is a ValueError):
    name a polygon).
 4. ``[[[u, v], ...], ...]``: a bare list of polygons (no size in the file: pass ``size``).
 
-``"size"`` is ``[H, W]``, two positive integers (not floats). Every malformed input raises a
-ValueError or TypeError that names the file and the offending entry. Polygons may reach far
-outside the image: they are clipped to the image (Sutherland–Hodgman, in float64) before they
-are rasterised with ``cv2.fillPoly`` at 1/16 px vertex precision, so a polygon enclosing the
-image at ±2e8 px fills it instead of overflowing OpenCV's 32-bit fixed-point vertices. OpenCV's
-scan conversion decides the pixels near the outline to about 0.5 px inside and 1.3 px outside
-it (:func:`rasterize_polygons`).
+``"size"`` is ``[H, W]``, two positive integers (not floats), at most 65536 each and 2**28
+pixels (H * W) in all, so that a corrupt size cannot allocate gigabytes (the same bound holds for
+the ``size`` argument). A key that one JSON object holds twice (two ``"road_polygon"`` entries) is
+a ValueError naming the file and the key. Every malformed input raises a ValueError or
+TypeError that names the file and the offending entry. Polygons may reach far outside the image:
+they are clipped to the image (Sutherland–Hodgman, in float64) before they are rasterised with
+``cv2.fillPoly`` at 1/16 px vertex precision, so a polygon enclosing the image at ±2e8 px fills it
+instead of overflowing OpenCV's 32-bit fixed-point vertices. OpenCV's scan conversion decides the
+pixels near the outline to about 0.5 px inside and 1.3 px outside it (:func:`rasterize_polygons`).
 Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected, in the file
 and after :func:`read_road_mask` scales them to its ``size``.
 """
@@ -125,7 +127,7 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
     random triangles (distance of the pixel centre from the outline): at most 0.33 px inside and
     1.13 px outside for triangles within the image, 0.52 px and 1.33 px for triangles reaching
     beyond it. Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px
-    work.
+    work. ``size`` (H, W) is at most 65536 a side and 2**28 pixels in all.
     """
     import cv2
 
@@ -146,11 +148,12 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
 
 
 _MAX_SIDE = 1 << 16  # pixels a side: beyond any camera's frame (a corrupt size would fill memory)
+_MAX_PIXELS = 1 << 28  # H * W: a 16384 x 16384 mask; 65536 x 65536 would allocate 4 GB
 
 
 def _check_size(size: object, name: str) -> tuple[int, int]:
     """(H, W): two positive ints (a float such as 375.0 or 375.5 is rejected, not truncated), at
-    most 65536 each."""
+    most 65536 each and 2**28 pixels (H * W) in all."""
     if not isinstance(size, (list, tuple)) or len(size) != 2:
         raise ValueError(f"{name}: expected [H, W] (two positive integers), got {size!r:.60}")
     for s in size:
@@ -160,7 +163,24 @@ def _check_size(size: object, name: str) -> tuple[int, int]:
             raise ValueError(f"{name}: expected positive sides [H, W], got {list(size)!r}")
         if s > _MAX_SIDE:
             raise ValueError(f"{name}: expected sides [H, W] of at most {_MAX_SIDE} pixels, got {list(size)!r:.60}")
+    if size[0] * size[1] > _MAX_PIXELS:
+        raise ValueError(f"{name}: expected at most 2**28 = {_MAX_PIXELS} pixels (H * W), got {list(size)!r}")
     return int(size[0]), int(size[1])
+
+
+class _RepeatedKey(ValueError):
+    """A key that one JSON object of a polygon file holds twice (``args[0]``)."""
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    """``json.loads``' object hook: a dict of ``pairs``, raising :class:`_RepeatedKey` where a key
+    comes twice (``json`` keeps the last silently: the polygon meant is a guess)."""
+    obj: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in obj:
+            raise _RepeatedKey(key)
+        obj[key] = value
+    return obj
 
 
 def _polygons_from_json(obj: Any, where: str) -> list[tuple[str, Any]]:
@@ -210,7 +230,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
 
     Raises:
         ValueError / TypeError naming ``path`` (and the entry) for a file that is not valid
-        UTF-8 JSON, a missing or malformed size, a malformed polygon, two polygon entries or no
+        UTF-8 JSON, a key given twice in one object, a missing or malformed size (or one of
+        over 2**28 pixels, as for ``size``), a malformed polygon, two polygon entries or no
         polygon, a vertex beyond ±1e15 px once scaled to ``size``; FileNotFoundError for a
         missing file, IsADirectoryError for a folder.
     """
@@ -223,7 +244,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         existing_file(path)
         where = f"path: {str(path)!r}"
         try:
-            obj = json.loads(path.read_bytes().decode("utf-8"))
+            obj = json.loads(path.read_bytes().decode("utf-8"), object_pairs_hook=_unique_keys)
+        except _RepeatedKey as err:
+            raise ValueError(f"{where} has the key {err.args[0]!r} twice in one object; keep one") from None
         except UnicodeDecodeError as err:
             raise ValueError(f"{where} is not a text (UTF-8) JSON file (undecodable byte at offset "
                              f"{err.start})") from None
