@@ -101,16 +101,21 @@ def test_synthetic_road_found(scene_pair, scene_detection):
     assert 0 < float(det.coverage[0]) < 1 and float(det.seed_agreement[0]) > 0.5
 
 
-def test_synthetic_road_with_the_true_motion_given(scene_pair):
-    """With the scene's own motion given nothing is estimated (an estimator that fails if called)."""
+def test_synthetic_road_with_the_true_motion_given(scene_pair, monkeypatch):
+    """With the scene's own motion given nothing is estimated (the default estimator fails if
+    called; an estimator given beside the motion is refused)."""
+    import fsof_torch.refinement.auto_road as auto_road
+
     p = scene_pair
     motion = {"model": "plane", **{k: v for k, v in p["plane"].items() if k != "height"}}
 
-    def no_estimate(*args, **kw):
-        raise AssertionError("the estimator must not be called when the motion is given")
+    class NoEstimate:
+        def __call__(self, *args, **kw):
+            raise AssertionError("the estimator must not be called when the motion is given")
 
+    monkeypatch.setattr(auto_road, "ImageMotionEstimator", NoEstimate)
     cam = p["camera"].replace(height=p["plane"]["height"])
-    det = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion, estimator=no_estimate)
+    det = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion)
     assert det.flag == ["ok"] and iou(det.mask, p["road"][None].bool()) >= 0.8
 
 
@@ -626,6 +631,11 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(refit="no"), "refit: expected True or False, got str 'no'"),
     (dict(refit=None), "refit: expected True or False, got NoneType None"),
     (dict(motion={"model": "velocity", "speed": 1.0}), "motion: expected a displacement model"),
+    # an estimate's inputs beside a motion to judge with would be ignored
+    *[(dict(motion={"model": "paper", "z_d": 1.0}, **{name: value}),
+       rf"^{name}: not used with motion given \(the motion is judged, not estimated\)")
+      for name, value in (("flow", torch.zeros(1, 2, 64, 200)), ("estimator", lambda *a, **k: None),
+                          ("odometry", {"z_d": 1.0}), ("starts", [{"z_d": 1.0}]))],
 ])
 def test_bad_options_are_named(kitti_K, kwargs, match):
     im = torch.rand(1, 3, 64, 200, generator=torch.Generator().manual_seed(0)) * 255

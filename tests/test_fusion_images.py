@@ -247,6 +247,21 @@ def test_images_of_another_channel_count_and_a_ptlflow_dict_are_named(scene):
         FreespaceRefiner()(pred, road, cam, images=ptl)
 
 
+def test_images_of_batch_1_serve_every_sample(scene):
+    """Images of batch 1 judge every sample of a batch of predictions (B predictions of one pair),
+    as the images repeated would; a batch that is neither 1 nor the flow's is named with both."""
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    preds = torch.cat([pred, pred + 0.5])
+    i1, i2 = scene["image1"][None], scene["image2"][None]
+    one = _quiet(FreespaceRefiner(), preds, road, cam, images=(i1, i2))
+    two = _quiet(FreespaceRefiner(), preds, road, cam, images=(i1.expand(2, -1, -1, -1), i2.expand(2, -1, -1, -1)))
+    assert torch.equal(one.flow, two.flow) and torch.equal(one.refined, two.refined)
+    H, W = SIZE
+    with pytest.raises(ValueError, match=rf"^images\[0\]: expected shape \(1 or 2, C, {H}, {W}\) \(the finest flow's size\), "
+                                         rf"got \(3, 3, {H}, {W}\)"):
+        FreespaceRefiner()(preds, road, cam, images=(torch.cat([i1] * 3), torch.cat([i2] * 3)))
+
+
 def test_fuse_flow_takes_a_numpy_scale_as_the_refiner_does(scene):
     import numpy as np
 

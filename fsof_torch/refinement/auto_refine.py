@@ -54,11 +54,13 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
     if complete:  # (checked here: detect_road's errors would name its `motion`)
         check_motion(odometry, B, finest.device, "odometry")
-    f = finest.detach()
-    # (a non-finite pixel is left out by the estimator, in its own sample only)
-    det = detect_road(image1, image2, camera.to(device=finest.device), flow=f,
-                      motion=odometry if complete else None, estimator=road_estimator,
-                      odometry=None if complete else odometry, starts=kw.pop("starts", ()), **options)
+    starts = kw.pop("starts", ())
+    # an estimate's inputs, where the motion is estimated (a non-finite pixel of the flow is left
+    # out by the estimator, in its own sample only)
+    estimate = {} if complete else {"flow": finest.detach(), "estimator": road_estimator, "odometry": odometry,
+                                    "starts": starts}
+    det = detect_road(image1, image2, camera.to(device=finest.device), motion=odometry if complete else None,
+                      **estimate, **options)
     if warn and not all(det.ok.tolist()):
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
         warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",

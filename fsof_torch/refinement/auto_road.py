@@ -422,7 +422,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         camera: intrinsics at the images' resolution, height, calibrated roll and pitch (batch 1 or B).
         flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start).
         motion: the road motion to judge with (a fit result, or a dict with a ``"model"`` key and
-            its parameters; batch 1 or B); default: estimated on the seed.
+            its parameters; batch 1 or B); default: estimated on the seed. Given, ``flow``,
+            ``estimator``, ``odometry`` and ``starts`` (an estimate's inputs) are refused.
         estimator: the road-motion estimator (the refiner's protocol, default
             :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
             ``starts`` (a sequence of start candidates: fit results or dicts of parameters) go to it.
@@ -483,6 +484,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     device = image1.device
     if motion is not None:
         check_motion(motion, B, device, "motion")
+        unused = [n for n, v in (("flow", flow), ("estimator", estimator), ("odometry", odometry)) if v is not None]
+        if unused or starts:  # (what only an estimate takes: given with the motion, it would be ignored)
+            raise ValueError(f"{(unused or ['starts'])[0]}: not used with motion given (the motion is judged, not "
+                             f"estimated); give one or the other")
     work = torch.float64 if image1.dtype == torch.float64 else torch.float32
     camera = camera.to(device=device).expand(B)
     # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are

@@ -290,7 +290,7 @@ def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
         if im.device != finest.device:
             raise ValueError(f"images[{i}]: expected the device of the flow ({finest.device}), got {im.device}")
         if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
-            raise ValueError(f"images[{i}]: expected shape ({B}, C, {H}, {W}) (the finest flow's size), "
+            raise ValueError(f"images[{i}]: expected shape ({batch_choices(B)}, C, {H}, {W}) (the finest flow's size), "
                              f"got {tuple(im.shape)}")
         if im.shape[1] not in (1, 3) or im.shape[1] != images[0].shape[1]:
             raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels, as images[0] has, got "
@@ -336,7 +336,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             evidence per region decides where the flows disagree); ``scale`` the Cauchy scale in
             pixels of the finest level (coarser levels scale it with their size).
         images: ``(image1, image2)`` (B, C, H, W) on 0..255 at the finest size, on the flow's
-            device, or ptlflow's input dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
+            device (batch 1 serves every sample: B predictions of one pair), or ptlflow's input
+            dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
         starts: further start candidates for an image estimator (e.g. the previous frame's motion).
         min_pixels: without odometry, samples with fewer usable mask pixels are not refined.
         flow_keys: the dict keys whose values are forward flows to refine: one key or a sequence
