@@ -294,7 +294,8 @@ def check_keywords(options: Mapping[str, object], name: str, fn: object,
         raise TypeError(f"{name}: unknown options {unknown} of {fn.__name__}; expected some of {sorted(taken - set(reserved))}")
     clash = sorted(set(options) & set(reserved))
     if clash:
-        raise TypeError(f"{name}: options {clash} are set by the caller itself, not through {name}")
+        raise TypeError(f"{name}: options {clash} of {fn.__name__} are set by the function that forwards {name} "
+                        f"to it, not through {name}")
 
 
 def check_fit_flags(fn: str, fit_roll: object, fit_pitch: object, options: Mapping[str, object]) -> None:

@@ -399,7 +399,7 @@ def test_a_seed_out_of_view_is_flagged_empty_with_its_reason(scene_pair):
 @pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion", "data_range"])
 def test_refiner_road_options_the_refiner_sets_are_refused(scene_pair, name):
     p = scene_pair
-    with pytest.raises(TypeError, match=rf"road_options: options \['{name}'\] are set by the caller itself"):
+    with pytest.raises(TypeError, match=rf"road_options: options \['{name}'\] of \w+ are set by the function that forwards"):
         refine_flow(p["flow"][None], "auto", p["camera"], images=(p["image1"][None], p["image2"][None]),
                     road_options={name: None})
 

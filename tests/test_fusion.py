@@ -731,7 +731,7 @@ def test_the_refiner_fits_a_dicts_final_flow_not_its_warm_start():
     (dict(fit_options=5), TypeError, "fit_options: expected None or a dict with string keys, got int 5"),
     (dict(fit_options={"bogus": 1}), TypeError, r"fit_options: unknown options \['bogus'\] of fit_road"),
     (dict(photometric_options={"model": "plane"}), TypeError,
-     r"photometric_options: options \['model'\] are set by the caller itself"),
+     r"photometric_options: options \['model'\] of \w+ are set by the function that forwards"),
     (dict(gate=5), TypeError, "gate: expected an ImageGate, 'auto' or None, got 5"),
     (dict(gate="AUTO"), ValueError, "gate: expected an ImageGate, 'auto' or None, got 'AUTO'"),
 ])
@@ -761,7 +761,7 @@ def test_estimator_options_checked_when_built():
         FlowMotionEstimator(bogus=1)
     with pytest.raises(TypeError, match="flow_start: expected True or False, got str 'x'"):
         ImageMotionEstimator(flow_start="x")
-    with pytest.raises(TypeError, match=r"options: options \['starts'\] are set by the caller itself"):
+    with pytest.raises(TypeError, match=r"options: options \['starts'\] of \w+ are set by the function that forwards"):
         ImageMotionEstimator(starts=[])
 
 

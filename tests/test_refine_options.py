@@ -137,24 +137,24 @@ def test_flow_keys_generator_is_read_once():
 def test_fit_options_naming_the_fits_inputs_are_refused(name):
     """Once accepted, then "fit_road() got multiple values for argument" at the first call."""
     pred, mask, cam, _ = make_case()
-    message = rf"fit_options: options \['{name}'\] are set by the caller itself, not through fit_options"
+    message = rf"fit_options: options \['{name}'\] of \w+ are set by .*, not through fit_options"
     with pytest.raises(TypeError, match=message):
         FreespaceRefiner(fit_options={name: None})
     with pytest.raises(TypeError, match=message):
         refine_flow(pred, mask, cam, fit_options={name: None})
-    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] of \w+ are set by the function that forwards"):
         FlowMotionEstimator(**{name: None})
 
 
 @pytest.mark.parametrize("name", ["image1", "image2", "mask", "camera"])
 def test_photometric_options_naming_the_fits_inputs_are_refused(name):
     pred, mask, cam, pair = make_case()
-    message = rf"photometric_options: options \['{name}'\] are set by the caller itself"
+    message = rf"photometric_options: options \['{name}'\] of \w+ are set by the function that forwards"
     with pytest.raises(TypeError, match=message):
         FreespaceRefiner(fit="photometric", photometric_options={name: None})
     with pytest.raises(TypeError, match=message):
         refine_flow(pred, mask, cam, images=pair, fit="photometric", photometric_options={name: None})
-    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+    with pytest.raises(TypeError, match=rf"options: options \['{name}'\] of \w+ are set by the function that forwards"):
         ImageMotionEstimator(**{name: None})
 
 
@@ -191,7 +191,7 @@ def test_wrapper_road_options_need_road_auto():
 
 def test_wrapper_road_options_data_range_refused_when_built():
     """Once accepted here, and refused by refine_flow only after the network had run."""
-    message = r"^road_options: options \['data_range'\] are set by the caller itself, not through road_options$"
+    message = r"^road_options: options \['data_range'\] of \w+ are set by .*, not through road_options$"
     with pytest.raises(TypeError, match=message):
         FreespaceRefined(Net(), road="auto", road_options={"data_range": 1.0})
     pred, _, cam, pair = make_case()

@@ -299,7 +299,7 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(ValueError, match=rf"flows\[0\]: expected shape \(2, {H}, {W}\)"):
         fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, H - 8, W), torch.zeros(2, H, W)])
     for name in ("image1", "image2"):  # fit_image's arguments the clip sets itself
-        with pytest.raises(TypeError, match=rf"options: options \['{name}'\] are set by the caller itself"):
+        with pytest.raises(TypeError, match=rf"options: options \['{name}'\] of \w+ are set by the function that forwards"):
             fit_sequence(frames[:3], road, cam, **{name: frames[0]})
     # a bad frame is named by its index (not as the pair's image1 / image2 of the fit it feeds)
     bad = frames[1].clone()

@@ -7,6 +7,7 @@ model with a Gaussian prior, SciPy's robust least squares.
 from __future__ import annotations
 
 import importlib
+import math
 
 import numpy as np
 import pytest
@@ -217,6 +218,19 @@ def test_covariance_counts_the_free_parameters_only():
     # every parameter free: N - 2, as before
     both = solve(problem, start, free=torch.tensor([[True, True]]), kernel="l2", max_iter=20)
     torch.testing.assert_close(both.covariance(), solve(problem, start, kernel="l2", max_iter=20).covariance())
+
+
+def test_covariance_of_an_exact_fit_is_unknown():
+    """As many points as free parameters: the fit is exact and says nothing of the noise, so the
+    variances are +inf (was: about 1e-25, 'known exactly'); one point more gives a finite one,
+    and a held parameter frees a degree of freedom."""
+    for N, free, finite in ((2, None, False), (3, None, True), (2, torch.tensor([True, False]), True)):
+        problem, truth, x, y = line_problem(B=1, N=N, noise=0.3, seed=4)
+        start = torch.tensor([[0.0, float(truth[0, 1])]], dtype=torch.float64)
+        cov = solve(problem, start, free=free, kernel="l2", max_iter=20).covariance()[0]
+        assert bool(torch.isfinite(cov).all()) == finite and not bool(cov.isnan().any()), (N, free)
+        if not finite:
+            assert bool((cov.diagonal() == math.inf).all())
 
 
 def test_covariance_of_fixed_and_of_singular_problems():

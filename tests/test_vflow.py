@@ -178,6 +178,10 @@ class TestRowDominant:
         value, support = row_dominant_flow(flow, mask, statistic="median")
         assert value[0].tolist() == [3.0, 5.0, 0.0]
         assert support[0].tolist() == [5.0, 5.0, 0.0]
+        # an even count: the mean of the middle two, as numpy.median (was: the lower, 2)
+        mask[0, 0, 0, 4] = False
+        value, support = row_dominant_flow(flow, mask, statistic="median")
+        assert float(value[0, 0]) == float(np.median([1.0, 2, 3, 4])) == 2.5 and float(support[0, 0]) == 4.0
 
     def test_peak_neighbours_include_the_upper_edge(self):
         """A flow on the last edge lies in the last bin, a neighbour of the one below it (the
@@ -614,11 +618,11 @@ class TestDetectFreespace:
         monkeypatch.setattr(freespace, "fit_vflow_curve", no_fit)
         for options, match in [
             (dict(curve_options={"model": "velocity"}),
-             r"curve_options: options \['model'\] are set by the caller itself"),
+             r"curve_options: options \['model'\] of \w+ are set by the function that forwards"),
             (dict(curve_options={"bogus": 1}), r"curve_options: unknown options \['bogus'\] of fit_vflow_curve"),
             (dict(fit_options={"bogus": 1}), r"fit_options: unknown options \['bogus'\] of fit_road"),
-            (dict(fit_options={"model": "plane"}), r"fit_options: options \['model'\] are set by the caller itself"),
-            (dict(fit_options={"fixed": ()}), r"fit_options: options \['fixed'\] are set by the caller itself"),
+            (dict(fit_options={"model": "plane"}), r"fit_options: options \['model'\] of \w+ are set by the function that forwards"),
+            (dict(fit_options={"fixed": ()}), r"fit_options: options \['fixed'\] of \w+ are set by the function that forwards"),
             (dict(fit_options={"fit_roll": False}),
              r"fit_options: options \['fit_roll'\] are detect_freespace's own arguments; pass fit_roll="),
         ]:

@@ -146,15 +146,19 @@ class Solution:
         and columns for fixed parameters. Where the
         problem is singular (an empty mask, one pixel, one row: the normal matrix's Cholesky
         fails, or its unit-diagonal form has no eigenvalue above 1e4 × the dtype's epsilon,
-        about 2e-12 in float64, below which its inverse is rounding noise), the free parameters'
-        variances are +inf and the rest 0: nothing is known of them (never NaN)."""
+        about 2e-12 in float64, below which its inverse is rounding noise), or where no degree of
+        freedom is left (the residuals' weight at most the free parameters: an exact fit says
+        nothing of the noise), the free parameters' variances are +inf and the rest 0: nothing is
+        known of them (never NaN)."""
         w, ev = self.weights, self.evaluation
         B, P = self.params.shape
         R = 1 if ev.residual is None else ev.residual.shape[1]
         # weights as fractional counts: a down-weighted outlier counts for its weight; the fixed
         # parameters took no degree of freedom
         n_free = P if self.free is None else self.free.expand(B, P).sum(1)
-        dof = (R * w.sum(1) - n_free).clamp_min(1.0)
+        dof = R * w.sum(1) - n_free
+        exact = dof <= 0  # (no more residuals' weight than free parameters: the noise is unknown)
+        dof = dof.clamp_min(1.0)
         sigma2 = (w * ev.r2).sum(1) / dof
         eye = torch.eye(P, dtype=self.normal.dtype, device=self.normal.device)
         cov = spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
@@ -165,7 +169,7 @@ class Solution:
         # unit-diagonal matrix's smallest eigenvalue decide, not the finiteness of the result
         margin = 1e4 * torch.finfo(self.normal.dtype).eps
         singular = (~torch.isfinite(cov).flatten(1).all(1) | ~positive_definite(self.normal)
-                    | ~positive_definite(_unit_diagonal(self.normal), margin))
+                    | ~positive_definite(_unit_diagonal(self.normal), margin) | exact)
         unknown = torch.diag_embed(torch.where(free, math.inf, 0.0).to(cov.dtype))
         return torch.where(singular.reshape(B, 1, 1), unknown, cov)
 
@@ -307,7 +311,8 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
         problem: a :class:`Problem`.
         params: (B, P) float, the start, finite (B, P >= 1; float64 recommended). The solver works
             in its dtype, half precision lifted to float32, with autocast off (the normal
-            equations in bfloat16 would lose the fit), and returns the :class:`Solution` in it.
+            equations in bfloat16 would lose the fit), and returns the :class:`Solution` in it
+            (in the problem's, where its residuals come in a wider dtype).
         free: (P,) or (B, P) bool, the parameters to estimate (default all); the others stay.
         prior_mean, prior_precision: (P,) or (B, P): a Gaussian prior λ (p - μ)² per parameter
             (precision 0: none); the mean finite, the precision finite and >= 0; the precision

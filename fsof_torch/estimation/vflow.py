@@ -164,7 +164,8 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     ``statistic="peak"``: the histogram's highest bin, refined to the mean of the flows falling
     in that bin and its two neighbours (so the value is not quantised to the bin width);
     the support is the number of those pixels. ``statistic="median"``: the median of the row's
-    vertical flows in the mask; the support is the row's pixel count.
+    vertical flows in the mask (of an even count, the mean of the middle two); the support is the
+    row's pixel count.
 
     Each frame's histogram range is its own (where ``min_flow`` / ``max_flow`` are not given):
     a frame gets the values it gets alone, whatever the batch's other frames hold.
@@ -185,7 +186,10 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     use = use[:, 0]
     if statistic == "median":
         nan = torch.full_like(fv, float("nan"))
-        value = torch.nanmedian(torch.where(use, fv, nan), dim=-1).values
+        # the median of an even count is the mean of the middle two: torch's nanmedian takes the
+        # lower, and the lower of the values negated is the upper one negated
+        row = torch.where(use, fv, nan)
+        value = 0.5 * (torch.nanmedian(row, dim=-1).values - torch.nanmedian(-row, dim=-1).values)
         support = use.to(dtype).sum(-1)
         return torch.where(support > 0, value, torch.zeros_like(value)), support
     hist, edges = vflow_map(flow, use.unsqueeze(1), bins=bins, max_flow=max_flow, min_flow=min_flow)
