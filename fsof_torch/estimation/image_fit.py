@@ -322,10 +322,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
             image 2's intensities matched to image 1's by their own gain and offset.
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
-            columns: a band that thin matches under many motions), or a smaller share of the mask's points
-            that the model keeps inside image 2 (the others cannot be judged: at speed the road
-            near the car leaves the frame), mark the frame as failed (as does a diverged or
-            ill-conditioned fit).
+            columns: a band that thin matches under many motions), or a smaller share of the
+            mask's points that the model keeps inside image 2 (the others cannot be judged: at
+            speed the road near the car leaves the frame), mark the frame as failed (as does a
+            diverged or ill-conditioned fit).
         min_correlation: the frame also fails where the fitted motion aligns the images' detail
             (the finest level's band, or the intensities where ``highpass`` is None) with a
             correlation below this over the mask's points in view. A plain road's intensities
