@@ -190,6 +190,9 @@ def test_scene_config_overrides():
     (dict(roll=1.0), ValueError, "roll, pitch: expected"),
     (dict(adaptive="False"), TypeError, "adaptive: expected True or False, got str 'False'"),
     (dict(buildings=1), TypeError, "buildings: expected True or False, got int 1"),
+    # (a frame's poses and objects are built from frame 0 on: an index of 10**9 filled memory)
+    (dict(index=100_000), ValueError, "index: expected at most 99999, got 100000"),
+    (dict(size=(16, 16385)), ValueError, r"size: expected sides of at most 16384 pixels, got \(16, 16385\)"),
 ])
 def test_render_pair_errors(kwargs, error, match):
     kwargs = {"preset": "default", "size": TINY, **kwargs}
@@ -208,6 +211,26 @@ def test_render_sequence_errors():
         render_sequence("default", 1.5, size=SMALL)
     with pytest.raises(ValueError, match="pairs: expected a non-empty list"):
         collate([])
+    with pytest.raises(ValueError, match=r"num_pairs: expected start \+ num_pairs \(the last frame\) at most 100000, "
+                                         r"got 99990 \+ 11"):
+        render_sequence("default", 11, start=99_990, size=SMALL)
+    with pytest.raises(TypeError, match="progress: expected True or False, got str 'False'"):
+        render_sequence("default", 1, size=SMALL, progress="False")
+    from fsof_torch.datasets import SceneDataset
+
+    with pytest.raises(ValueError, match="num_pairs: expected at most 100000, got 1000000000000"):
+        SceneDataset("default", 10**12)
+
+
+def test_rendering_under_autocast_is_rendering_without():
+    """Under CPU autocast the scene renders as without it (was: the moving cars' flow in bfloat16,
+    off by up to 0.18 px, and their validity changed on the cars' edges)."""
+    plain = render_pair("cvc-complex", 0, size=SMALL)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        under = render_pair("cvc-complex", 0, size=SMALL)
+    assert bool(plain["moving"].any())
+    for key in ("image1", "image2", "flow", "valid", "flow_velocity", "depth"):
+        assert torch.equal(under[key], plain[key]), key
 
 
 # -- cardinality ---------------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..._check import check_int, check_size
+from ..._check import autocast_off, check_bool, check_int, check_size
 from .config import MARKING, ROAD, SKY, SceneConfig, check_overrides, check_seed, scene_config
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
@@ -165,6 +165,13 @@ def _check_dtype(dtype: torch.dtype) -> None:
         raise TypeError(f"dtype: expected torch.float32 or torch.float64, got {dtype}")
 
 
+#: frames beyond this are refused: a frame's poses and objects are built from frame 0 on (time and
+#: memory grow with the index), and float32 geometry loses precision with the distance driven
+MAX_FRAME = 100_000
+#: pixels a side of ``size`` (as the jobs' sizes): a larger render only fills memory
+MAX_SIDE = 16_384
+
+
 def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: int = 0,
                 size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                 **overrides: Any) -> dict[str, Any]:
@@ -172,11 +179,15 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
 
     Args:
         preset: a name of :data:`PRESETS` or a :class:`SceneConfig`.
-        index: the pair's position in the sequence (frame t = index).
+        index: the pair's position in the sequence (frame t = index), below :data:`MAX_FRAME`
+            (100 000; long sequences are rendered best in float64: float32 geometry loses
+            precision with the distance driven).
         seed: scene seed (object layout, colours, textures), an int in [0, 2**62); same seed, same
             pixels.
-        size: ``(H, W)`` of the images; K is scaled from the KITTI-like 375×1242 (default).
-        dtype: float32 or float64 for every tensor (geometry is exact either way up to rounding).
+        size: ``(H, W)`` of the images, each side at most 16 384; K is scaled from the KITTI-like
+            375×1242 (default).
+        dtype: float32 or float64 for every tensor (geometry is exact either way up to rounding;
+            under ``torch.autocast`` the scene is rendered with autocast off).
         **overrides: fields of :class:`SceneConfig` (``speed_factor=4``, ``roll=math.radians(5)``,
             ``supersample=3``, ``x_d=, z_d=, yaw=`` …); any other name (``start``, ``num_pairs``,
             ``progress`` of :func:`render_sequence` as well) is a TypeError "render_pair: unknown
@@ -199,6 +210,8 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         §10); ``index`` int.
     """
     check_int(index, "index", minimum=0)  # checked here, so that the error names this function's argument
+    if index >= MAX_FRAME:
+        raise ValueError(f"index: expected at most {MAX_FRAME - 1}, got {index}")
     check_overrides(overrides)  # render_sequence's own keywords are not overrides either
     return render_sequence(preset, 1, seed=seed, size=size, dtype=dtype, start=index, **overrides)[0]
 
@@ -215,14 +228,21 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     at a time renders each frame once (a frame kept under ``torch.inference_mode()`` serves only calls
     under it, and one kept outside only calls outside). No returned tensor is shared with another
     call's. Any grad mode renders the same pixels and ground truth.
-    ``progress=True`` shows a tqdm bar (rate-limited where stderr is a log). Other arguments as in :func:`render_pair`.
+    ``progress=True`` shows a tqdm bar (rate-limited where stderr is a log). The last frame,
+    ``start + num_pairs``, is at most :data:`MAX_FRAME`. Other arguments as in :func:`render_pair`.
     """
     _check_dtype(dtype)
     num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
     start = check_int(start, "start", minimum=0)
+    if start + num_pairs > MAX_FRAME:
+        raise ValueError(f"num_pairs: expected start + num_pairs (the last frame) at most {MAX_FRAME}, got "
+                         f"{start} + {num_pairs}")
+    progress = check_bool(progress, "progress")
     seed = check_seed(seed)
     if size is not None:
         size = check_size(size)
+        if max(size) > MAX_SIDE:
+            raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {size}")
         overrides["size"] = size
     cfg = scene_config(preset, **overrides)
     # a frame kept under torch.inference_mode() holds inference tensors, which a caller outside
@@ -234,9 +254,10 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     if progress:
         from ...io.progress import progress_bar
         indices = progress_bar(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
-    pairs = [renderer.pair(k) for k in indices]
-    last = start + num_pairs
-    _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work
+    with autocast_off(torch.empty(0)):  # (the ground truth's products in the render dtype, not autocast's)
+        pairs = [renderer.pair(k) for k in indices]
+        last = start + num_pairs
+        _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work
     return pairs
 
 
