@@ -161,6 +161,9 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
         mask: (B, 1, H, W) bool road pixels (batch 1 is broadcast).
         camera: the flow's camera (batch 1 or B).
         points: how many of each frame's mask pixels to sample (evenly).
+
+    Returns:
+        ``{"x_d", "z_d", "yaw"}`` (B,) float64 (a start for the solvers, which work in float64).
     """
     check_float_tensor(flow, "flow")
     dims = check_shape(flow, "flow", ("B", 2, "H", "W"))
