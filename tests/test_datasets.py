@@ -164,6 +164,13 @@ class TestKittiLayout:
         for p in (root / "calib_cam_to_cam").iterdir():
             p.unlink()
         K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
+        # flow_noc/ alone, flow_occ/ asked for: named (a synthetic layout holds flow_occ/ alone, and
+        # flow="noc" read no flow from it, silently)
+        with pytest.raises(ValueError, match=r"^flow: .* has flow_noc/ but no flow_occ/; pass flow='noc'"):
+            KittiFlowDataset(root, flow="occ")
+        import shutil
+
+        shutil.rmtree(root / "flow_noc")  # neither: a test folder, no ground-truth flow
         item = KittiFlowDataset(root, flow="occ", K=K, camera_height=1.7)[0]
         assert item["flow"] is None and item["valid"] is None and float(item["camera"].height) == pytest.approx(1.7)
         torch.testing.assert_close(item["camera"].K[0], K)
@@ -173,7 +180,9 @@ class TestKittiLayout:
         root, pairs = synthetic_root
         item = KittiFlowDataset(root, flow="occ")[0]
         torch.testing.assert_close(item["camera"].K[0], pairs[0]["camera"].K[0])
-        assert torch.equal(item["road"], pairs[0]["road"])
+        assert torch.equal(item["road"], pairs[0]["road"]) and torch.equal(item["valid"], pairs[0]["valid"])
+        with pytest.raises(ValueError, match=r"has flow_occ/ but no flow_noc/; pass flow='occ'"):
+            KittiFlowDataset(root)
 
     def test_errors(self, tmp_path):
         with pytest.raises(ValueError, match="flow: expected 'noc' or 'occ'"):

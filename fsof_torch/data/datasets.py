@@ -187,7 +187,9 @@ class KittiFlowDataset(Dataset):
     evaluation folder, or a synthetic layout folder read as KITTI.
 
     Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it (named ``NAME``):
-    flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; absent -> None);
+    flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; both absent -> None, the
+    other one alone a ValueError: a synthetic layout holds ``flow_occ/`` only, its valid pixels the
+    non-occluded ones);
     the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
     ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
@@ -229,6 +231,11 @@ class KittiFlowDataset(Dataset):
         if not self.names:
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
+        other = "occ" if flow == "noc" else "noc"
+        if ground_truth and not (self.root / self.flow_dir).is_dir() and (self.root / f"flow_{other}").is_dir():
+            # (a test folder has neither; only the other one is another kind of ground truth, or a
+            # synthetic layout, whose flow_occ/ marks occluded pixels invalid: not no flow at all)
+            raise ValueError(f"flow: {str(self.root)!r} has flow_{other}/ but no flow_{flow}/; pass flow={other!r}")
         if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
             try:
                 K = torch.as_tensor(K)
