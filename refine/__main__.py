@@ -29,7 +29,8 @@ DEFAULTS = {"preset": "default", "num_pairs": DEFAULT_PAIRS, "size": DEFAULT_SIZ
             "height": DEFAULT_HEIGHT, "roll_deg": 0.0, "pitch_deg": 0.0}
 
 
-MAX_SIDE = 16384  # pixels a side of --size, --calib-size
+MAX_SIDE = 16384  # pixels a side of --size, --calib-size (as eval's paths.MAX_SIDE and the renderer's; the jobs
+#                   import the library, not each other)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -67,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("synthetic data (the default)")
     g.add_argument("--preset", help=f"scene preset (default: {DEFAULTS['preset']})")
     g.add_argument("--num-pairs", type=int, help=f"pairs to render (default: {DEFAULT_PAIRS})")
-    g.add_argument("--size", type=_size, metavar="HxW", help="image size (default: 375x1242, KITTI's)")
+    g.add_argument("--size", type=_size, metavar="HxW", help="image size, each side 16 to 16384 (default: 375x1242, KITTI's)")
     g.add_argument("--seed", type=int, help="scene seed (default: 0)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
@@ -76,7 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--images", type=Path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
     g.add_argument("--calib", type=Path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
-                   help="image size the calibration is for (default: the file's S_rect row, else checked loosely)")
+                   help="image size the calibration is for, each side 16 to 16384 (default: the file's S_rect row, "
+                        "else checked loosely)")
     g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
     g.add_argument("--height", type=float, help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
     g.add_argument("--roll-deg", type=float, help="camera roll, degrees (default: 0)")

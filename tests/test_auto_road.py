@@ -559,6 +559,32 @@ def test_refiner_auto_non_finite_pixel_stays_in_its_sample():
         assert torch.equal(getattr(out.camera, name), estimated) and not torch.equal(estimated, getattr(cam, name).expand(2))
 
 
+def test_auto_estimators_get_no_non_finite_pixel_in_their_masks():
+    """mask="auto" with a NaN in the prediction: a caller's estimator sees a finite flow inside
+    every mask it gets (the NaN pixel left out, as with a mask tensor); a meta camera and images
+    are named as having no values (the camera's height was read first: an unnamed RuntimeError)."""
+    from fsof_torch.data.scene import render_pair
+    from fsof_torch.refinement.estimators import ImageMotionEstimator
+
+    p = render_pair("default", 0, size=(96, 320))
+    pred = p["flow"][None].clone()
+    assert bool(p["road"][0, 80, 160])
+    pred[0, :, 80, 160] = math.nan
+    seen = []
+
+    def estimator(flow, mask, camera, **kw):
+        seen.append(bool(torch.isfinite(flow[mask.expand_as(flow)]).all()))
+        return ImageMotionEstimator()(flow, mask, camera, **kw)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        refine_flow(pred, "auto", p["camera"], images=(p["image1"][None], p["image2"][None]), estimator=estimator)
+    assert len(seen) >= 2 and all(seen)
+    meta = torch.zeros(1, 3, 48, 64, device="meta")
+    with pytest.raises(ValueError, match="^image1: a tensor on the meta device has shapes but no values"):
+        detect_road(meta, meta, p["camera"].scaled(64 / 320, 48 / 96).to(device="meta"))
+
+
 def test_refiner_auto_gradient_reaches_planar_odometry(small_pair):
     """mask="auto" with planar odometry and images: the planar motion held is the caller's own
     tensors, so a gradient reaches them, as with a mask tensor (was: none); the values are the

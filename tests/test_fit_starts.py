@@ -593,6 +593,8 @@ def test_start_names_and_values_are_checked():
         fit_image(im1, im2, road, cam, init=hom.motion(), fixed=get_road_model("plane").params)
     with pytest.raises(ValueError, match="init: a 'homography' motion shares no parameter with the 'paper' model's"):
         fit_road(flow, road, cam, model="paper", init={"model": "homography", "h11": 1.0})
+    # a motion of the model's own, with no parameter (zero motion), is a start as it was
+    assert bool(fit_road(flow, road, cam, model="paper", init={"model": "paper"}).success.all())
     # a fit sharing some (a flow fit of the paper's model as a start of the plane) still starts them
     paper = fit_displacement(flow, road, cam)
     held = fit_image(im1, im2, road, cam, init=paper, fixed=("x_d", "z_d", "yaw"), forward_starts=())

@@ -137,6 +137,8 @@ class TestExceptions:
             read_road_mask(square)
         with pytest.raises(ValueError, match=r"^size: expected at most 2\*\*28"):
             read_road_mask(tmp_path / "b.json", size=(16385, 16384))
+        with pytest.raises(ValueError, match=r"^size: expected at most 2\*\*28"):  # (int32 sides: no wrap-around)
+            read_road_mask(tmp_path / "b.json", size=(np.int32(65536), np.int32(65536)))
         from fsof_torch.io.masks import _check_size
 
         assert _check_size([16384, 16384], "size") == (16384, 16384)  # 2**28 exactly is allowed

@@ -290,7 +290,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     if not isinstance(values, Mapping):
         raise TypeError(f"{what}: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
     kind, named = ("fit", init.model) if isinstance(init, RoadFit) else ("motion", values.get("model"))  # (motion())
-    if named is not None and not set(values) & set(model.params):  # (else ignored: a silent default)
+    if named not in (None, model.name) and not set(values) & set(model.params):  # (else ignored: a silent default)
         raise ValueError(f"{what}: a {named!r} {kind} shares no parameter with the {model.name!r} model's {model.params}")
     known = {"model"} | {n for m in ROAD_MODELS.values() for n in m.params}  # (a road motion's own form)
     unknown = sorted(str(n) for n in values if n not in known)

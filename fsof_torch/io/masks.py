@@ -163,7 +163,7 @@ def _check_size(size: object, name: str) -> tuple[int, int]:
             raise ValueError(f"{name}: expected positive sides [H, W], got {list(size)!r}")
         if s > _MAX_SIDE:
             raise ValueError(f"{name}: expected sides [H, W] of at most {_MAX_SIDE} pixels, got {list(size)!r:.60}")
-    if size[0] * size[1] > _MAX_PIXELS:
+    if int(size[0]) * int(size[1]) > _MAX_PIXELS:  # (Python ints: NumPy int32 sides would wrap around)
         raise ValueError(f"{name}: expected at most 2**28 = {_MAX_PIXELS} pixels (H * W), got {list(size)!r}")
     return int(size[0]), int(size[1])
 

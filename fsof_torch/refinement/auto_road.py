@@ -51,8 +51,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (autocast_off, batch_choices, check_bool, check_float_tensor, check_shape, check_size, inference,
-                      is_number, option_error)
+from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_shape, check_size,
+                      inference, is_number, option_error, skip_values)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -377,7 +377,8 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         v = options[name]
         if not is_number(v) or not (0 < v < math.inf):
             raise option_error(v, f"{name}: expected a finite number > 0, got {v!r}")
-    if not bool((camera.height > options["min_height_m"]).all()):  # (the raised surface tested is below the camera)
+    if not skip_values(camera.height) and not bool((camera.height > options["min_height_m"]).all()):
+        # (the raised surface tested lies below the camera)
         raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
                          f"got {options['min_height_m']!r}")
     if options["max_height_m"] < options["min_height_m"]:
@@ -420,7 +421,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     Args:
         image1, image2: frames t and t+1, (B, 3, H, W) RGB or (B, 1, H, W) grey, on 0..``data_range``.
         camera: intrinsics at the images' resolution, height, calibrated roll and pitch (batch 1 or B).
-        flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start).
+        flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start;
+            its NaN or inf pixels left out of the estimator's masks, as the refiner leaves them out).
         motion: the road motion to judge with (a fit result, or a dict with a ``"model"`` key and
             its parameters; batch 1 or B); default: estimated on the seed. Given, ``flow``,
             ``estimator``, ``odometry`` and ``starts`` (an estimate's inputs) are refused.
@@ -501,19 +503,27 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     seed_l = below_l & (X.abs() <= seed_width_m / 2) & (Z <= seed_depth_m)
 
     estimated = motion is None
+    # a non-finite predicted pixel is no data: 0 in the estimator's flow and out of its masks (as
+    # the refiner leaves it out of the estimation), in its own sample only
+    flow = None if flow is None else flow.detach().to(work)
+    finite = None if flow is None or all_finite(flow) else torch.isfinite(flow).all(1, keepdim=True)
+    if finite is not None:
+        flow = torch.where(finite, flow, 0.0)
     if estimated:
         cam_s = _level_camera(camera, seed_level)
         hs, ws = H >> seed_level, W >> seed_level
         seed_s = seed_l if seed_level == level else road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m)
-        flow_s = None if flow is None else _pool(flow.detach().to(work), seed_level)[..., :hs, :ws] / 2 ** seed_level
+        flow_s = None if flow is None else _pool(flow, seed_level)[..., :hs, :ws] / 2 ** seed_level
+        finite_s = None if finite is None else _pool(finite.to(work), seed_level)[..., :hs, :ws] == 1
+        usable = (lambda m: m if finite_s is None else m & finite_s)  # noqa: E731
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
-        motion = estimator(flow_s, seed_s, cam_s, images=images_s, odometry=odometry, starts=starts)
+        motion = estimator(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
         failed = ~torch.tensor(_succeeded(motion, B))
         if bool(failed.any()):
             # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
             # per sample where the first failed and this one succeeds (the others keep their own)
             deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
-            again = estimator(flow_s, deeper, cam_s, images=images_s, odometry=odometry, starts=starts)
+            again = estimator(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
             take = failed & torch.tensor(_succeeded(again, B))
             if bool(take.any()):
                 motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
@@ -566,7 +576,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     ev, road_l = judge(motion)
     if estimated and refit and bool(road_l.any()):
         mask = full_size(road_l)
-        again = estimator(None if flow is None else flow.detach().to(work), mask, camera, images=(im1, im2),
+        again = estimator(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
                           odometry=odometry, starts=(motion, *starts))
         # per sample: a road found and fitted again (a sample without road keeps its seed fit,
         # as it would alone)
@@ -639,6 +649,3 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
                          level=level, stats={"tau_px": ev.tau.cpu(), "noise": ev.noise.cpu(),
                                              "height_bias_m": ev.bias.cpu(), "seed_evidence": evidence_share,
                                              "max_height_m": ev.max_height})
-
-
-# -- the refiner's road="auto" ------------------------------------------------------------------
