@@ -87,6 +87,10 @@ _SIGMA = 1.0
 # the least residual energy of 8-bit frames (grey levels², level 0): both frames' quantisation (1/12
 # each), smoothed (Σ w² = 1 / 4πσ²); a level averages 4**level pixels
 _QUANTISATION = 2 / 12 / (4 * math.pi * _SIGMA ** 2)
+# the gradient energy (TA) of white noise per its residual energy (E) through the σ = 1 smoothing and
+# the central differences: Σ (g'_k)² / (2 Σ g_k²) of the 1-D kernel g (OpenCV's, ±3 σ), g' its central
+# difference
+_NOISE_GRADIENT = 0.158
 # pixels of image 2's border whose smoothed values mix in its padding (3 σ of the blur, plus one)
 _BORDER = 4
 
@@ -326,7 +330,9 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
             # where, also, the residual energy its step would add (½ TA step²) is significant (flat: none)
             step = Pb * (max_height / min_height)
             testable[b] = test_b = 0.5 * step >= floor
-            shows = 0.5 * TA[b] * step ** 2 > z * noise.clamp_min(noise_floor) * math.sqrt(2 / n_k)
+            # (the gradient energy beyond what the noise itself has: flat frames' noise shows no step)
+            signal = (TA[b] - _NOISE_GRADIENT * noise * (1 + z * math.sqrt(2 / n_k))).clamp_min(0)
+            shows = 0.5 * signal * step ** 2 > z * noise.clamp_min(noise_floor) * math.sqrt(2 / n_k)
             good[b] = ok[b] & explained & test_b & shows & ~bad[b]
             if (s & test_b).any() and ((s & (good[b] | bad[b])).sum() / n_seed) >= _MIN_EVIDENCE:
                 break
