@@ -77,6 +77,8 @@ def main(argv: list[str] | None = None) -> int:
         change = 0.1 * deg * torch.randn(N, generator=g, **f64)
         # as fit_sequence's track: failed pairs' attitudes do not count (1 in 10 here)
         sa = torch.where(torch.rand(N, generator=g) < 0.1, torch.inf, 1.0 * deg).to(torch.float64)
+        if not bool(torch.isfinite(sa).any()):  # (at least one attitude counts, as smooth_attitude needs)
+            sa[0] = 1.0 * deg
         sc = torch.full((N,), 0.03 * deg, **f64)
         t_fast, (track, sigma) = timed(lambda: smooth_attitude(attitude, change, sa, sc), args.repeats)
         t_dense, (track_d, sigma_d) = timed(lambda: dense_smooth(attitude, change, sa, sc), args.repeats)

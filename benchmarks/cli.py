@@ -183,6 +183,8 @@ def data_folder(parser: argparse.ArgumentParser, given: Path | None, default: Pa
     """
     if given is None:
         return default
+    if given.exists() and not given.is_dir():
+        parser.error(f"--data: {str(given)!r} is a file; expected a folder")
     if not given.is_dir():
         parser.error(f"--data: {str(given)!r} not found")
     missing = [name for name in need if not (given / name).exists()]

@@ -207,7 +207,7 @@ def run(args: argparse.Namespace) -> int:
     figures = ["noise_robustness.png", "pose_errors.png", "pose_scatter.png"]
     drawn = [] if args.no_plots else figures
     bad = first_bad(bad_folder(args.out, "--out", drawn + ([] if args.json else ["noise.json"])),
-                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / f for f in drawn]))
+                    bad_file(args.json, "--json", args.out), bad_json_target(args.json, [args.out / f for f in drawn]))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

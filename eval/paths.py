@@ -18,12 +18,16 @@ from fsof_torch.io.atomic import creation_error
 MAX_SIDE = 16384
 
 
-def bad_file(path: Path | None, option: str) -> str | None:
-    """``path`` (None: not asked for) can be written as a file."""
+def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:
+    """``path`` (None: not asked for) can be written as a file, and is neither ``out`` (the job's
+    ``--out`` folder, None: none) nor a folder above it (``--out`` would be created as a folder
+    there)."""
     if path is None:
         return None
     if path.is_dir():
         return f"{option}: {str(path)!r} is a folder; expected a file path"
+    if out is not None and out.resolve().is_relative_to(path.resolve()):
+        return f"{option}: {str(path)!r} is --out {str(out)!r} or a folder above it; expected a file path outside it"
     return creation_error(path, option)
 
 

@@ -60,14 +60,16 @@ def run(args: argparse.Namespace) -> int:
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
         return 2
-    if args.pairs < 1:
-        print(f"error: --pairs: expected at least 1, got {args.pairs}", file=sys.stderr)
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    if not 1 <= args.pairs <= MAX_FRAME:  # (the scenes' frames end at MAX_FRAME)
+        print(f"error: --pairs: expected 1 to {MAX_FRAME}, got {args.pairs}", file=sys.stderr)
         return 2
     size = tuple(args.size) if args.size is not None else None
     if size is not None and min(size) <= 0:
         print(f"error: --size: expected positive H W, got {args.size}", file=sys.stderr)
         return 2
-    bad = first_bad(bad_size(size, "--size"), bad_folder(args.out, "--out"), bad_file(args.json, "--json"))
+    bad = first_bad(bad_size(size, "--size"), bad_folder(args.out, "--out"), bad_file(args.json, "--json", args.out))
     if bad is None and args.json is not None and args.json.resolve().is_relative_to(args.out.resolve()):
         # the layout's files (poses.txt, meta.json, ...) would replace it, or it one of them
         bad = f"--json: {str(args.json)!r} is inside --out {str(args.out)!r}, which the job fills; give a path outside it"

@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
     if "kitti" in tables:
         inputs["--kitti"] = kitti_folder
     bad = first_bad(bad_folder(args.out, "--out", ["tables.md"] + ([] if args.json else ["tables.json"])),
-                    bad_file(args.json, "--json"), bad_json_target(args.json, [args.out / "tables.md"], inputs))
+                    bad_file(args.json, "--json", args.out), bad_json_target(args.json, [args.out / "tables.md"], inputs))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

@@ -298,9 +298,14 @@ def _bad_input(args: argparse.Namespace) -> str | None:
     """The first bad option as a message naming it, or None."""
     from fsof_torch.data.scene import PRESETS
 
+    from fsof_torch.data.scene.render import MAX_FRAME
+
     for option in ("steps", "batch", "train_pairs", "test_pairs", "iters"):
         if getattr(args, option) < 1:
             return f"--{option.replace('_', '-')}: expected at least 1, got {getattr(args, option)}"
+    for option in ("train_pairs", "test_pairs"):  # (the scenes' frames end at MAX_FRAME)
+        if getattr(args, option) > MAX_FRAME:
+            return f"--{option.replace('_', '-')}: expected at most {MAX_FRAME}, got {getattr(args, option)}"
     if args.batch > args.train_pairs:  # a global batch is drawn from the training pairs without repeats
         return f"--batch: expected at most --train-pairs ({args.train_pairs}), got {args.batch}"
     if min(args.size) < 16:
@@ -313,6 +318,10 @@ def _bad_input(args: argparse.Namespace) -> str | None:
             return f"--{option.replace('_', '-')}: expected a finite number > 0, got {getattr(args, option)}"
     if args.threads < 0:
         return f"--threads: expected >= 0 (0: torch's default), got {args.threads}"
+    if args.threads > (os.cpu_count() or 1):  # (a huge count crashes torch's thread pool)
+        return f"--threads: expected at most this machine's {os.cpu_count() or 1} CPUs, got {args.threads}"
+    if args.seed < 0:  # (also where this module's main runs the job, without the eval command's check)
+        return f"--seed: expected an int in [0, 2**62), got {args.seed}"
     if args.seed + HELD_OUT >= MAX_SEED:  # (the held-out scenes' seed is in the scenes' range too)
         return f"--seed: expected at most 2**62 - {HELD_OUT + 1} (the held-out seed is --seed + {HELD_OUT}), got {args.seed}"
     if args.preset not in PRESETS:
@@ -326,8 +335,11 @@ def _bad_input(args: argparse.Namespace) -> str | None:
     dump = args.dump_first_step
     if dump is not None and any(dump.resolve() == net.resolve() for net in nets):
         return f"--dump-first-step: {str(dump)!r} is a state_dict the job writes into --out; give another path"
+    if (dump is not None and args.json is not None and args.json.resolve() != dump.resolve()
+            and args.json.resolve().is_relative_to(dump.resolve())):
+        return f"--json: {str(args.json)!r} lies under --dump-first-step {str(dump)!r}, a file; give another path"
     return first_bad(bad_folder(args.out, "--out", [_net_file(name) for name in RUNS]),
-                     bad_file(args.json, "--json"), bad_file(dump, "--dump-first-step"),
+                     bad_file(args.json, "--json", args.out), bad_file(dump, "--dump-first-step", args.out),
                      bad_json_target(args.json, nets + ([dump] if dump is not None else [])))
 
 
@@ -448,10 +460,11 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Run the job in-process: ``main(["--steps", "10", ...])``."""
-    parser = argparse.ArgumentParser(prog="python -m eval train", description=__doc__.split("\n")[0])
-    add_arguments(parser)
-    return run(parser.parse_args(argv))
+    """Run the job in-process: ``main(["--steps", "10", ...])``, as ``python -m eval train`` runs
+    it (its checks, and its status returned for ``--help`` and argparse's errors too)."""
+    from eval.__main__ import main as eval_main
+
+    return eval_main(["train", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
     written = [args.out / f for f in figures if f != "freespace.png" or "freespace" in steps]
     bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
-                    bad_file(args.json, "--json"),
+                    bad_file(args.json, "--json", args.out),
                     bad_json_target(args.json, written, {"--flow": args.flow, "--mask": args.mask}))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -378,6 +379,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
     if args.threads < 1:
         raise JobError(f"--threads: expected >= 1, got {args.threads}")
+    if args.threads > (os.cpu_count() or 1):  # (a huge count crashes torch's thread pool)
+        raise JobError(f"--threads: expected at most this machine's {os.cpu_count() or 1} CPUs, got {args.threads}")
     torch.set_num_threads(args.threads)
     import cv2
 

@@ -292,10 +292,12 @@ def test_data_folder_given_must_exist_and_hold_the_files(cli, tmp_path, capsys):
     (tmp_path / "pair").mkdir()
     (tmp_path / "pair" / "road.json").write_text("{}")
     assert cli.data_folder(parser, tmp_path / "pair", default, ("road.json",)) == tmp_path / "pair"
-    for given, message in ((tmp_path / "absent", "not found"), (tmp_path / "pair", "lacks calib.txt")):
+    for given, message in ((tmp_path / "absent", "not found"), (tmp_path / "pair", "lacks calib.txt"),
+                           (tmp_path / "pair" / "road.json", "is a file; expected a folder")):  # (was "not found")
         with pytest.raises(SystemExit) as exit_:
             cli.data_folder(parser, given, default, ("road.json", "calib.txt"))
-        assert exit_.value.code == 2 and "--data" in capsys.readouterr().err
+        err = capsys.readouterr().err
+        assert exit_.value.code == 2 and "--data" in err and message in err
     assert not cli.present(tmp_path / "pair", ("calib.txt",), "the pair")
     assert "the pair absent: skipped" in capsys.readouterr().out
     assert cli.present(tmp_path / "pair", ("road.json",), "the pair")

@@ -115,6 +115,14 @@ def test_bad_arguments(tmp_path, capsys):
     assert "unknown preset 'nope'" in capsys.readouterr().err
     assert main(["synth", "--pairs", "0", "--out", str(tmp_path / "x")]) == 2
     assert not (tmp_path / "x").exists()
+    capsys.readouterr()
+    # beyond the renderer's last frame (was: a traceback at frame 100 000, a half-written folder)
+    assert main(["synth", "--pairs", "100001", "--out", str(tmp_path / "x")]) == 2
+    assert "error: --pairs: expected 1 to 100000, got 100001" in capsys.readouterr().err
+    # --json as a folder above --out (was: the whole render, then an IsADirectoryError)
+    assert main(["synth", "--pairs", "1", "--out", str(tmp_path / "j" / "out"), "--json", str(tmp_path / "j")]) == 2
+    assert f"error: --json: {str(tmp_path / 'j')!r} is --out" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists() and not (tmp_path / "j").exists()
 
 
 def test_refuses_a_folder_holding_files(written, capsys):

@@ -225,6 +225,11 @@ def test_figures_over_no_pixel_are_none_and_print_a_dash(capsys):
     (["--size", "20000", "64"], "--size: expected H, W <= 16384, got [20000, 64]"),
     (["--device", "meta"], "--device: 'meta' holds no data (shapes only); give cpu or cuda"),
     (["--device", "mps"], "--device: cannot place a tensor on 'mps' ("),
+    # (a huge thread count crashed torch's pool; pairs beyond the renderer's last frame ended in a
+    # traceback after the work)
+    (["--threads", "100000000"], "--threads: expected at most this machine's"),
+    (["--train-pairs", "100001"], "--train-pairs: expected at most 100000, got 100001"),
+    (["--test-pairs", "100001"], "--test-pairs: expected at most 100000, got 100001"),
 ])
 def test_train_job_checks_size_and_device_before_the_work(capsys, monkeypatch, argv, message):
     """A huge --size, or a --device that cannot hold the nets, exits 2 naming it before anything is
@@ -252,6 +257,28 @@ def test_train_job_json_naming_another_output_exits_2(tmp_path, capsys, monkeypa
                  "unsupervised.pt"), "--no-progress"]) == 2
     assert "error: --dump-first-step: " in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--out", "{t}/o", "--json", "{t}/o"], "--json: '{t}/o' is --out '{t}/o' or a folder above it"),
+    (["--out", "{t}/o/sub", "--json", "{t}/o"], "--json: '{t}/o' is --out '{t}/o/sub' or a folder above it"),
+    (["--dump-first-step", "{t}/d", "--out", "{t}/d"], "--dump-first-step: '{t}/d' is --out '{t}/d' or a folder"),
+    (["--dump-first-step", "{t}/d", "--json", "{t}/d/x.json"], "--json: '{t}/d/x.json' lies under --dump-first-step"),
+])
+def test_train_job_outputs_that_would_collide_with_out_exit_2(tmp_path, capsys, monkeypatch, argv, message):
+    """An output file that is --out, a folder above it, or a path under the --dump-first-step file
+    exits 2 before any work (was: the whole run, then a FileExistsError or NotADirectoryError)."""
+    monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before the check"))
+    assert eval_main(["train", *(a.format(t=tmp_path) for a in argv), "--no-progress"]) == 2
+    assert capsys.readouterr().err.startswith(f"error: {message.format(t=tmp_path)}")
+
+
+def test_train_module_main_runs_the_eval_commands_checks(capsys):
+    """``python -m eval.train`` (this module's main) checks as ``python -m eval train`` does, and
+    returns argparse's status (was: a ValueError for a negative seed, SystemExit for --help)."""
+    assert train.main(["--seed", "-1", "--no-progress"]) == 2
+    assert "--seed" in capsys.readouterr().err
+    assert train.main(["--help"]) == 0 and train.main(["--steps", "x"]) == 2
 
 
 def test_training_bar_in_a_log_is_rate_limited(keep_threads, capsys):

@@ -844,6 +844,8 @@ def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     assert main(["--mode", "blend"]) == 2  # argparse's own error
     # a size beyond any camera's frame is refused before anything is written (was: a render that
     # filled memory, a traceback and exit 1, run.json already in --out)
+    assert main(["--threads", "100000000", "--out", str(tmp_path / "huge")]) == 2  # (crashed torch's pool)
+    assert "--threads: expected at most this machine's" in capsys.readouterr().err
     for option in ("--size", "--calib-size"):
         assert main([option, "16x1000000", "--out", str(tmp_path / "huge")]) == 2
         assert "expected sides of at most 16384 pixels, got '16x1000000'" in capsys.readouterr().err

@@ -79,6 +79,10 @@ def test_smooth_attitude_ignores_infinite_sigma():
     att[1] = math.nan
     again, _ = smooth_attitude(att, chg, torch.tensor([1.0, math.inf, 1.0]), 1.0)
     assert torch.equal(again, track)
+    # none counts: the changes fix the track only up to a constant (was: ZeroDivisionError, or
+    # standard deviations of 1e5 rad from the ridge)
+    with pytest.raises(ValueError, match=r"^attitude_sigma: expected at least one finite value"):
+        smooth_attitude(att, chg, math.inf, math.radians(0.03))
 
 
 @pytest.mark.parametrize("args, error, match", [
