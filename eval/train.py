@@ -335,9 +335,12 @@ def _bad_input(args: argparse.Namespace) -> str | None:
     dump = args.dump_first_step
     if dump is not None and any(dump.resolve() == net.resolve() for net in nets):
         return f"--dump-first-step: {str(dump)!r} is a state_dict the job writes into --out; give another path"
-    if (dump is not None and args.json is not None and args.json.resolve() != dump.resolve()
-            and args.json.resolve().is_relative_to(dump.resolve())):
-        return f"--json: {str(args.json)!r} lies under --dump-first-step {str(dump)!r}, a file; give another path"
+    if dump is not None and args.json is not None and args.json.resolve() != dump.resolve():
+        # (one a path under the other: the first written makes the other's folder a file, or its file a folder)
+        if args.json.resolve().is_relative_to(dump.resolve()):
+            return f"--json: {str(args.json)!r} lies under --dump-first-step {str(dump)!r}, a file; give another path"
+        if dump.resolve().is_relative_to(args.json.resolve()):
+            return f"--dump-first-step: {str(dump)!r} lies under --json {str(args.json)!r}, a file; give another path"
     return first_bad(bad_folder(args.out, "--out", [_net_file(name) for name in RUNS]),
                      bad_file(args.json, "--json", args.out), bad_file(dump, "--dump-first-step", args.out),
                      bad_json_target(args.json, nets + ([dump] if dump is not None else [])))

@@ -429,8 +429,8 @@ def test_flat_frames_with_a_motion_given_carry_no_evidence(scene_pair, grey):
 
 def test_flat_frames_of_sensor_noise_with_a_motion_given_carry_no_evidence(scene_pair):
     """Flat frames holding only independent 8-bit sensor noise: the noise's own gradient energy is
-    no texture for a step to show, so the sample is "textureless" (was: "ok" on 9 of 30 draws at
-    σ = 0.3, a road of 30 % of the image)."""
+    no texture for a step to show, so the sample is never "ok" ("textureless", or "static" where
+    no window is testable; was: "ok" on 9 of 30 draws at σ = 0.3, a road of 30 % of the image)."""
     motion, cam = _exact(scene_pair)
     cam = cam.scaled(320 / 1242, 96 / 375)
     flat = torch.full((1, 3, 96, 320), 128.0)
@@ -438,7 +438,7 @@ def test_flat_frames_of_sensor_noise_with_a_motion_given_carry_no_evidence(scene
         g = torch.Generator().manual_seed(seed)
         a, b = ((flat + 0.3 * torch.randn(flat.shape, generator=g)).round() for _ in range(2))
         det = detect_road(a, b, cam, motion=motion)
-        assert det.flag[0] != "ok" and not bool(det.usable_mask.any()), seed
+        assert det.flag[0] in ("textureless", "static") and not bool(det.usable_mask.any()), seed
 
 
 def test_a_flat_patch_is_no_road_evidence(scene_pair):

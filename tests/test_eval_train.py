@@ -264,6 +264,7 @@ def test_train_job_json_naming_another_output_exits_2(tmp_path, capsys, monkeypa
     (["--out", "{t}/o/sub", "--json", "{t}/o"], "--json: '{t}/o' is --out '{t}/o/sub' or a folder above it"),
     (["--dump-first-step", "{t}/d", "--out", "{t}/d"], "--dump-first-step: '{t}/d' is --out '{t}/d' or a folder"),
     (["--dump-first-step", "{t}/d", "--json", "{t}/d/x.json"], "--json: '{t}/d/x.json' lies under --dump-first-step"),
+    (["--json", "{t}/d", "--dump-first-step", "{t}/d/x.pt"], "--dump-first-step: '{t}/d/x.pt' lies under --json"),
 ])
 def test_train_job_outputs_that_would_collide_with_out_exit_2(tmp_path, capsys, monkeypatch, argv, message):
     """An output file that is --out, a folder above it, or a path under the --dump-first-step file

@@ -81,7 +81,8 @@ def test_smooth_attitude_ignores_infinite_sigma():
     assert torch.equal(again, track)
     # none counts: the changes fix the track only up to a constant (was: ZeroDivisionError, or
     # standard deviations of 1e5 rad from the ridge)
-    with pytest.raises(ValueError, match=r"^attitude_sigma: expected at least one finite value"):
+    with pytest.raises(ValueError, match=r"^attitude_sigma: expected at least one value whose 1 / σ² is > 0 .*, got "
+                                         r"smallest inf"):
         smooth_attitude(att, chg, math.inf, math.radians(0.03))
 
 

@@ -87,7 +87,8 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     pair's first frame (N,) and of its change to the next frame (N,), by weighted least squares:
     minimise Σ ((a_k − attitude_k) / σ_a)² + Σ ((a_{k+1} − a_k − change_k) / σ_c)². The last
     frame's attitude rests on the changes alone. Measurements with infinite σ do not count (at least
-    one attitude must: else a ValueError, the track being fixed only up to a constant).
+    one attitude must, its 1 / σ² above 0 in float64: else a ValueError, the track being fixed only
+    up to a constant).
 
     The normal equations are tridiagonal (each term ties at most two neighbouring frames), so the
     track and the diagonal of its covariance take O(N) time and memory: an LDLᵀ factorisation,
@@ -119,8 +120,9 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
             raise ValueError(f"{name}: expected values whose 1 / σ² is finite in float64 (about 1.3e-154 and "
                              f"above), got {sigma.min().item()!r}")
     if N and not bool((wa > 0).any()):  # (the changes alone fix the track up to a constant: singular)
-        raise ValueError("attitude_sigma: expected at least one finite value (an attitude that counts); with every "
-                         "one infinite the changes fix the track only up to a constant")
+        raise ValueError(f"attitude_sigma: expected at least one value whose 1 / σ² is > 0 in float64 (an attitude "
+                         f"that counts: the changes alone fix the track only up to a constant), got smallest "
+                         f"{sigmas[0].min().item()!r}")
     att, chg = attitude.to(dt).cpu(), change.to(dt).cpu()
     # a measurement that does not count contributes nothing, whatever its value (also NaN)
     for w, x, name in ((wa, att, "attitude"), (wc, chg, "change")):
