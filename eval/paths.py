@@ -11,11 +11,8 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Iterable
 
+from fsof_torch.data.scene.render import MAX_SIDE  # noqa: F401 (the largest side of a size option, the renderer's)
 from fsof_torch.io.atomic import creation_error
-
-#: The largest side (pixels) of a size option (``--size``, ``--pose-size``): beyond any camera's
-#: frame; a larger one only fills memory (a MemoryError or an allocator's RuntimeError).
-MAX_SIDE = 16384
 
 
 def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:

@@ -30,18 +30,16 @@ DEFAULTS = {"preset": "default", "num_pairs": DEFAULT_PAIRS, "size": DEFAULT_SIZ
             "height": DEFAULT_HEIGHT, "roll_deg": 0.0, "pitch_deg": 0.0}
 
 
-MAX_SIDE = 16384  # pixels a side of --size, --calib-size (as eval's paths.MAX_SIDE and the renderer's; the jobs
-#                   import the library, not each other)
-
-
 def _size(text: str) -> tuple[int, int]:
+    from fsof_torch.data.scene.render import MAX_SIDE  # (the renderer's bound, for --calib-size too)
+
     try:
         h, w = (int(x) for x in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected HxW such as 375x1242, got {text!r}") from None
     if h < 16 or w < 16:
         raise argparse.ArgumentTypeError(f"expected sides of at least 16 pixels, got {text!r}")
-    if max(h, w) > MAX_SIDE:  # (as eval's sizes: a larger render only fills memory)
+    if max(h, w) > MAX_SIDE:  # (a larger render only fills memory)
         raise argparse.ArgumentTypeError(f"expected sides of at most {MAX_SIDE} pixels, got {text!r}")
     return h, w
 

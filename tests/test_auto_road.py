@@ -441,6 +441,28 @@ def test_flat_frames_of_sensor_noise_with_a_motion_given_carry_no_evidence(scene
         assert det.flag[0] in ("textureless", "static") and not bool(det.usable_mask.any()), seed
 
 
+def test_the_noise_gradient_ratio_is_white_noises_through_the_smoothing():
+    """The ratio the texture test takes off (docs/auto-road.md: 0.158): OpenCV's own kernel gives
+    it, and so do two white-noise frames smoothed as detect_road smooths them: the variance of
+    their mean central-difference gradient per the variance of their difference."""
+    import cv2
+
+    from fsof_torch.estimation.pyramid import gaussian_blur
+    from fsof_torch.refinement.auto_road import _SIGMA, _noise_gradient
+
+    g = cv2.getGaussianKernel(7, 1.0).ravel()
+    dg = 0.5 * (np.pad(g, (0, 2)) - np.pad(g, (2, 0)))
+    assert _noise_gradient(_SIGMA) == pytest.approx((dg ** 2).sum() / (2 * (g ** 2).sum()), rel=1e-9)
+    assert round(_noise_gradient(_SIGMA), 3) == 0.158
+    gen = torch.Generator().manual_seed(0)
+    b1, b2 = (gaussian_blur(torch.randn(1, 1, 400, 400, generator=gen, dtype=torch.float64), _SIGMA)[0, 0, 8:-8, 8:-8]
+              for _ in range(2))
+    cx = lambda b: 0.5 * (b[1:-1, 2:] - b[1:-1, :-2])  # noqa: E731
+    cy = lambda b: 0.5 * (b[2:, 1:-1] - b[:-2, 1:-1])  # noqa: E731
+    TA = (0.5 * (cx(b1) + cx(b2))).var() + (0.5 * (cy(b1) + cy(b2))).var()
+    assert float(TA / (b2 - b1).var()) == pytest.approx(_noise_gradient(_SIGMA), rel=0.03)
+
+
 def test_a_flat_patch_is_no_road_evidence(scene_pair):
     """A blown-out (flat 255) patch over the parked car on the right, in both frames: none of its
     inner windows is road evidence (was: 9103 of them, with the exact motion)."""

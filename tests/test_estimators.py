@@ -135,9 +135,9 @@ def test_odometry_errors_name_the_odometry():
                                                  odometry={"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
     # an odometry of another batch than the frames': named as the odometry, not as the fit's init
     two = {"x_d": torch.zeros(2), "z_d": torch.ones(2), "yaw": torch.zeros(2)}
-    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1 \(the frames'\), got 2 values"):
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1, got 2 values"):
         ImageMotionEstimator()(None, road, p["camera"], images=images, odometry=two)
-    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1 \(the frames'\), got 2 values"):
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected batch 1, got 2 values"):
         FlowMotionEstimator()(p["flow"][None], road, p["camera"], odometry=two)
 
 

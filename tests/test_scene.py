@@ -218,7 +218,8 @@ def test_render_sequence_errors():
         render_sequence("default", 1, size=SMALL, progress="False")
     from fsof_torch.datasets import SceneDataset
 
-    with pytest.raises(ValueError, match="num_pairs: expected at most 100000, got 1000000000000"):
+    with pytest.raises(ValueError, match=r"num_pairs: expected start \+ num_pairs \(the last frame\) at most 100000, "
+                                         r"got 0 \+ 1000000000000"):
         SceneDataset("default", 10**12)
 
 

@@ -119,15 +119,12 @@ class SceneDataset(Dataset):
         from .scene.config import check_seed
         from .scene.world import Scene
 
-        from .scene.render import MAX_FRAME, MAX_SIDE
+        from .scene.render import check_extent
 
         self.num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
-        if self.num_pairs > MAX_FRAME:  # (render_pair's bound on the last frame)
-            raise ValueError(f"num_pairs: expected at most {MAX_FRAME}, got {self.num_pairs}")
         self.seed = check_seed(seed)
         size = None if size is None else check_size(size)
-        if size is not None and max(size) > MAX_SIDE:
-            raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {size}")
+        check_extent(self.num_pairs, 0, size)  # (the renderer's bounds, checked here, not at an item)
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         # a bad preset or override fails here, not at the first item; the items render this checked
         # configuration (immutable), not the caller's overrides, which the caller may change later

@@ -87,10 +87,21 @@ _SIGMA = 1.0
 # the least residual energy of 8-bit frames (grey levels², level 0): both frames' quantisation (1/12
 # each), smoothed (Σ w² = 1 / 4πσ²); a level averages 4**level pixels
 _QUANTISATION = 2 / 12 / (4 * math.pi * _SIGMA ** 2)
-# the gradient energy (TA) of white noise per its residual energy (E) through the σ = 1 smoothing and
-# the central differences: Σ (g'_k)² / (2 Σ g_k²) of the 1-D kernel g (OpenCV's, ±3 σ), g' its central
-# difference
-_NOISE_GRADIENT = 0.158
+
+
+def _noise_gradient(sigma: float) -> float:
+    """The gradient energy (TA) of white noise per its residual energy (E) through the smoothing of
+    ``sigma`` and the central differences: Σ (g'_k)² / (2 Σ g_k²) of the 1-D kernel g (the blur's:
+    sampled, normalised, ±3 σ), g' its central difference (0.158 at σ = 1)."""
+    r = math.ceil(3 * sigma)
+    g = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64).square() / (2 * sigma ** 2))
+    g = g / g.sum()
+    dg = 0.5 * (F.pad(g, (0, 2)) - F.pad(g, (2, 0)))  # (zero beyond the taps)
+    return float(dg.square().sum() / (2 * g.square().sum()))
+
+
+_NOISE_GRADIENT = _noise_gradient(_SIGMA)
+
 # pixels of image 2's border whose smoothed values mix in its padding (3 σ of the blur, plus one)
 _BORDER = 4
 

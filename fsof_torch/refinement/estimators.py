@@ -21,8 +21,9 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (all_finite, batch_choices, check_bool, check_float_tensor, check_has_values, check_image_pair,
-                      check_keywords, check_mapping, check_mask, check_names, check_number, check_shape, skip_values)
+from .._check import (all_finite, batch_choices, check_batch, check_bool, check_float_tensor, check_has_values,
+                      check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number, check_shape,
+                      skip_values)
 from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, fit_image
 from ..estimation.initial import planar_start
@@ -228,8 +229,7 @@ def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:
         t = torch.as_tensor(v)
         if not all_finite(t):
             raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
-        if t.numel() not in (1, B):
-            raise ValueError(f"odometry[{k!r}]: expected batch {batch_choices(B)} (the frames'), got {t.numel()} values")
+        check_batch(t.numel(), f"odometry[{k!r}]", B)
     return values
 
 

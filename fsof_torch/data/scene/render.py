@@ -168,8 +168,20 @@ def _check_dtype(dtype: torch.dtype) -> None:
 #: frames beyond this are refused: a frame's poses and objects are built from frame 0 on (time and
 #: memory grow with the index), and float32 geometry loses precision with the distance driven
 MAX_FRAME = 100_000
-#: pixels a side of ``size`` (as the jobs' sizes): a larger render only fills memory
+#: pixels a side of ``size`` (and of the jobs' size options): beyond any camera's frame, a larger
+#: render only fills memory
 MAX_SIDE = 16_384
+
+
+def check_extent(num_pairs: int, start: int = 0, size: tuple[int, int] | None = None) -> None:
+    """Frames ``start`` .. ``start + num_pairs`` within :data:`MAX_FRAME` and ``size``'s sides
+    within :data:`MAX_SIDE` (ValueErrors naming ``num_pairs`` and ``size``); the ints already
+    checked."""
+    if start + num_pairs > MAX_FRAME:
+        raise ValueError(f"num_pairs: expected start + num_pairs (the last frame) at most {MAX_FRAME}, got "
+                         f"{start} + {num_pairs}")
+    if size is not None and max(size) > MAX_SIDE:
+        raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {tuple(size)}")
 
 
 def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: int = 0,
@@ -234,16 +246,12 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     _check_dtype(dtype)
     num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
     start = check_int(start, "start", minimum=0)
-    if start + num_pairs > MAX_FRAME:
-        raise ValueError(f"num_pairs: expected start + num_pairs (the last frame) at most {MAX_FRAME}, got "
-                         f"{start} + {num_pairs}")
     progress = check_bool(progress, "progress")
     seed = check_seed(seed)
     if size is not None:
         size = check_size(size)
-        if max(size) > MAX_SIDE:
-            raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {size}")
         overrides["size"] = size
+    check_extent(num_pairs, start, size)
     cfg = scene_config(preset, **overrides)
     # a frame kept under torch.inference_mode() holds inference tensors, which a caller outside
     # it could neither write into nor use in autograd: kept frames serve calls in the same mode
