@@ -45,7 +45,8 @@ from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 from eval.paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
 
-__all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr"]
+__all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr",
+           "TrainingDiverged"]
 
 # the held-out scenes' seed: --seed + HELD_OUT
 HELD_OUT = 1000
@@ -75,6 +76,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--dump-first-step", type=Path, default=None, metavar="PATH",
                         help="save the first step's loss and gradients of each run here (torch.save), to "
                              "compare a distributed run with a single process")
+
+
+class TrainingDiverged(ValueError):
+    """Training produced a non-finite flow, loss or parameter: the run is stopped (message naming ``lr``)."""
 
 
 @dataclass(frozen=True)
@@ -173,6 +178,10 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
 
     Returns the net (in eval mode) and a log: the last step's term values (global means) and the
     wall time.
+
+    Raises:
+        TrainingDiverged: a step's flow, loss or updated parameters are not all finite (a learning
+            rate too large for the run diverges so); every process raises at the same step.
     """
     from fsof_torch.io.progress import progress_bar, show_values
 
@@ -199,21 +208,43 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
         local = b["image1"].shape[0]
         # Both directions in one pass: the backward flows feed the occlusion check.
         flows = model(torch.cat([b["image1"], b["image2"]]), torch.cat([b["image2"], b["image1"]]))
+        if not _finite_everywhere(flows, ranks):
+            raise _diverged(step, steps, lr, "the net's flow")
         fw = [f[:local] for f in flows]
         bw = [f[local:] for f in flows]
         total, terms = loss_fn(fw, b, flows_backward=bw)
         optimiser.zero_grad(set_to_none=True)
         total.backward()  # under DDP: gradients averaged over the processes
         reported = _mean_over_processes(torch.stack([total.detach(), *(v.detach() for v in terms.values())]), ranks)
+        if not bool(torch.isfinite(reported).all()):  # (the global means: the same on every process)
+            raise _diverged(step, steps, lr, "the loss")
         if step == 0 and first_step is not None:
             first_step.update(loss=float(reported[0]), grads={k: p.grad.detach().cpu().clone()
                                                                for k, p in net.named_parameters() if p.grad is not None})
         torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         optimiser.step()
+        if not _finite_everywhere(list(net.parameters()), ranks):
+            raise _diverged(step, steps, lr, "the net's parameters after the update")
         values = {"total": float(reported[0]), **{k: float(v) for k, v in zip(terms, reported[1:])}}
         show_values(bar, {k: f"{v:.3g}" for k, v in values.items()})
     net.eval()
     return net, {"final_loss": values, "seconds": time.perf_counter() - start}
+
+
+def _finite_everywhere(tensors: list[torch.Tensor], ranks: Ranks) -> bool:
+    """Whether every value of ``tensors`` is finite on every process (under DDP one all-reduce:
+    the processes stop at the same step, none waits for the others in a collective)."""
+    flag = torch.stack([torch.isfinite(t.detach()).all() for t in tensors]).all().to(torch.int32)
+    if ranks.distributed:
+        import torch.distributed as dist
+
+        dist.all_reduce(flag, op=dist.ReduceOp.MIN)
+    return bool(flag)
+
+
+def _diverged(step: int, steps: int, lr: float, what: str) -> TrainingDiverged:
+    return TrainingDiverged(f"lr: training diverged at step {step + 1} of {steps} ({what} not finite); the "
+                            f"learning rate {lr:g} is likely too large for this run: give a smaller one")
 
 
 def _mean_over_processes(values: torch.Tensor, ranks: Ranks) -> torch.Tensor:
@@ -407,8 +438,13 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     first_steps: dict[str, dict] = {}
     for name, weight in zip(RUNS, (0.0, args.freespace_weight)):
         first_steps[name] = {}
-        net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name,
-                             first_step=first_steps[name], **common)
+        try:
+            net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name,
+                                 first_step=first_steps[name], **common)
+        except TrainingDiverged as err:  # (before any output is written: nothing of this run is kept)
+            if ranks.rank == 0:
+                print(f"error: --{err} (run {name!r}; nothing written)", file=sys.stderr)
+            return 2
         logs[name] = log
         nets[name] = net.cpu()
     if ranks.rank != 0:

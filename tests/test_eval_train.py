@@ -49,6 +49,8 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     (["--test-pairs", "-1"], "--test-pairs: expected at least 1"),
     (["--size", "8", "64"], "--size: expected H, W >= 16"),
     (["--lr", "nan"], "--lr: expected a finite number > 0"),
+    (["--lr", "0"], "--lr: expected a finite number > 0, got 0.0"),
+    (["--lr", "-0.001"], "--lr: expected a finite number > 0, got -0.001"),
     (["--preset", "nope"], "--preset: unknown preset 'nope'"),
     (["--device", "bogus"], "--device: not a torch device: 'bogus'"),
     (["--seed", "-1"], "--seed: expected an int in [0, 2**62), got -1"),
@@ -84,6 +86,30 @@ def test_train_job_rejects_batch_larger_than_train_pairs(capsys, monkeypatch):
     monkeypatch.setattr(train, "render_pairs", lambda *a, **k: pytest.fail("rendered before --batch was checked"))
     assert eval_main(["train", "--steps", "1", "--batch", "5", "--train-pairs", "4", "--no-progress"]) == 2
     assert "error: --batch: expected at most --train-pairs (4), got 5" in capsys.readouterr().err
+
+
+def test_a_diverging_run_exits_2_naming_lr_and_writes_nothing(tmp_path, capsys, keep_threads):
+    """A learning rate far too large drives the net to NaN within a few steps: the job stops with a
+    message naming --lr (it used to end in a traceback from the loss), and writes no output."""
+    out, report = tmp_path / "nets", tmp_path / "train.json"
+    rc = train.main(["--lr", "1e6", "--steps", "5", "--size", "32", "64", "--batch", "2", "--iters", "1",
+                     "--train-pairs", "2", "--test-pairs", "1", "--threads", "1", "--no-progress",
+                     "--json", str(report), "--out", str(out), "--dump-first-step", str(tmp_path / "first.pt")])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "error: --lr: training diverged at step" in err and "learning rate 1e+06 is likely too large" in err, err
+    assert "run 'unsupervised'" in err and "Traceback" not in err
+    assert not report.exists() and not out.exists() and not (tmp_path / "first.pt").exists()
+
+
+def test_train_net_raises_on_non_finite_parameters(keep_threads):
+    """An update that leaves a parameter non-finite stops training at once: no NaN net is returned."""
+    torch.set_num_threads(1)
+    data = train.render_pairs("default", 2, seed=0, size=(32, 64))
+    with pytest.raises(train.TrainingDiverged, match=r"^lr: training diverged at step 1 of 1 \(the net's "
+                                                     r"parameters after the update not finite\)"):
+        train.train_net(data, steps=1, seed=0, batch=2, lr=float("inf"), freespace_weight=0.0, iters=1,
+                        progress=False)
 
 
 def test_dispatcher_help(capsys):
