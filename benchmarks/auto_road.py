@@ -306,7 +306,7 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
 def main(argv=None) -> int:
     import cv2
 
-    from cli import description, positive_int, present, samples_folder
+    from cli import description, pair_index, positive_int, present, samples_folder
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -317,7 +317,7 @@ def main(argv=None) -> int:
     parser.add_argument("--no-synthetic", action="store_true", help="leave out the synthetic presets' table")
     parser.add_argument("--no-slow", action="store_true", help="leave out the table of driving slowly")
     parser.add_argument("--no-real", action="store_true", help="leave out the real-data tables")
-    parser.add_argument("--pairs", type=int, nargs="+", default=list(PAIRS),
+    parser.add_argument("--pairs", type=pair_index, nargs="+", default=list(PAIRS),
                         help="the synthetic presets' pairs (default: 0 10 20 30; other pairs check that a "
                              "change helps beyond these)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
@@ -330,9 +330,6 @@ def main(argv=None) -> int:
         if not (math.isfinite(degrees) and abs(degrees) <= 30):
             print(f"{option}: expected finite degrees within ±30, got {degrees}", file=sys.stderr)
             return 2
-    if any(k < 0 for k in args.pairs):
-        print(f"--pairs: expected pair indices >= 0, got {args.pairs}", file=sys.stderr)
-        return 2
     data = None if args.no_real else samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP]))
     torch.set_num_threads(1)
     cv2.setNumThreads(1)

@@ -31,14 +31,17 @@ def description(doc: str) -> str:
     return doc.strip().split("\n\n")[0]
 
 
-def int_at_least(minimum: int) -> Callable[[str], int]:
-    """An argparse type: an integer ``>= minimum``."""
+def int_at_least(minimum: int, maximum: int | None = None, why: str = "") -> Callable[[str], int]:
+    """An argparse type: an integer ``>= minimum`` (and ``<= maximum`` where given; ``why``, said
+    in the message, is the maximum's reason)."""
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
             value = None
+        if maximum is not None and (value is None or not minimum <= value <= maximum):
+            raise argparse.ArgumentTypeError(f"expected an integer from {minimum} to {maximum}{why}, got {text!r}")
         if value is None or value < minimum:
             raise argparse.ArgumentTypeError(f"expected an integer >= {minimum}, got {text!r}")
         return value
@@ -56,6 +59,44 @@ nonnegative_int = int_at_least(0)
 MIN_SIDE = 16
 #: a side of a synthetic image (``--size H W``), at least :data:`MIN_SIDE` pixels
 image_side = int_at_least(MIN_SIDE)
+
+
+def pair_index(text: str) -> int:
+    """An argparse type: the index of a pair of a synthetic sequence, 0 to ``MAX_FRAME - 1`` (the
+    renderer's frames end at ``fsof_torch.data.scene.render.MAX_FRAME``; pair i ends at frame i + 1)."""
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    return int_at_least(0, MAX_FRAME - 1, f" (the renderer's frames end at {MAX_FRAME})")(text)
+
+
+def pair_count(minimum: int = 1, spacing: int = 1) -> Callable[[str], int]:
+    """An argparse type: a number n >= ``minimum`` of pairs of a synthetic sequence, ``spacing``
+    frames apart from pair 0 on, few enough that the last, pair ``(n - 1) * spacing``, ends within
+    the renderer's frames (``MAX_FRAME``: n at most 100 000 one frame apart, 50 000 two apart)."""
+
+    def parse(text: str) -> int:
+        from fsof_torch.data.scene.render import MAX_FRAME
+
+        apart = f"pairs {spacing} frames apart; " if spacing > 1 else ""
+        why = f" ({apart}the renderer's frames end at {MAX_FRAME})"
+        return int_at_least(minimum, (MAX_FRAME - 1) // spacing + 1, why)(text)
+
+    parse.__name__ = f"pair_count_{minimum}"
+    return parse
+
+
+def odometry_error(parser: argparse.ArgumentParser, given: tuple[float, float] | None) -> tuple[float, float] | None:
+    """``--odometry-error SCALE YAW_DEG`` (None: not given) checked before any work: a finite
+    SCALE within [0.5, 2] (wheel odometry's distances are off by percents; 0 or a negative scale
+    would be standing still or driving backwards) and YAW_DEG degrees a frame within (-45, 45);
+    else ``parser.error`` (exit 2)."""
+    if given is None:
+        return None
+    scale, yaw_deg = given
+    if not (math.isfinite(scale) and 0.5 <= scale <= 2 and math.isfinite(yaw_deg) and abs(yaw_deg) < 45):
+        parser.error(f"--odometry-error: expected a scale within [0.5, 2] and degrees within (-45, 45), got "
+                     f"{scale} {yaw_deg}")
+    return scale, yaw_deg
 
 
 def thread_count(text: str) -> int:

@@ -146,12 +146,12 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import MIN_SIDE, data_folder, description, image_side, nonnegative_int, present
+    from cli import MIN_SIDE, data_folder, description, image_side, pair_index, present
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
                         help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
-    parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 30],
+    parser.add_argument("--pairs", type=pair_index, nargs="+", default=[0, 30],
                         help="pair indices of the synthetic tables (default 0 30)")
     parser.add_argument("--size", type=image_side, nargs=2, default=[375, 1242], metavar=("H", "W"),
                         help=f"the synthetic pairs' size, each side at least {MIN_SIDE} (default 375 1242)")

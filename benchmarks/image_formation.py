@@ -59,10 +59,11 @@ def epe(fit, pair: dict) -> float:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, positive_int
+    from cli import description, pair_count
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--pairs", type=positive_int, default=4, help="pairs of each scene (default 4)")
+    parser.add_argument("--pairs", type=pair_count(spacing=2), default=4,
+                        help="pairs of each scene (default 4; the turning scene's are 2 frames apart)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
     import cv2

@@ -26,18 +26,20 @@ import torch
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, finite_float, nonnegative_int, scene_seed
+    from cli import description, finite_float, odometry_error, pair_index, scene_seed
     from fsof_torch.data.scene import PRESETS
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 6, 12],
+    parser.add_argument("--pairs", type=pair_index, nargs="+", default=[0, 6, 12],
                         help="pair indices of each preset's sequence (default 0 6 12)")
     parser.add_argument("--presets", nargs="+", default=list(PRESETS), choices=list(PRESETS),
                         help="the synthetic presets (default: all)")
     parser.add_argument("--seed", type=scene_seed, default=0, help="the scenes' seed, in [0, 2**62) (default 0)")
     parser.add_argument("--odometry-error", type=finite_float, nargs=2, metavar=("SCALE", "YAW_DEG"), default=None,
-                        help="also refine with the scene's odometry made this wrong, held and as priors")
+                        help="also refine with the scene's odometry made this wrong, held and as priors "
+                             "(SCALE within [0.5, 2], YAW_DEG within (-45, 45))")
     args = parser.parse_args(argv)
+    args.odometry_error = odometry_error(parser, args.odometry_error)
     torch.set_num_threads(1)
     import cv2
 

@@ -625,10 +625,9 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
     if not (math.isfinite(args.resize) and 0.1 <= args.resize <= 1):
         parser.error(f"--resize: expected a factor within [0.1, 1], got {args.resize}")
-    scale, yaw_error = args.odometry_error
-    if not (math.isfinite(scale) and 0.5 <= scale <= 2 and math.isfinite(yaw_error) and abs(yaw_error) < 45):
-        parser.error(f"--odometry-error: expected a scale within [0.5, 2] and degrees within (-45, 45), got "
-                     f"{scale} {yaw_error}")
+    from cli import odometry_error
+
+    scale, yaw_error = odometry_error(parser, args.odometry_error)
     need = {"kitti15": ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"),
             "clip": ("image_l", "calib.txt", "road.json")}
     if args.pair is None and args.clip is None:

@@ -120,14 +120,14 @@ def homography_mismatch(presets: list[str], indices: list[int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import description, int_at_least, nonnegative_int, positive_int
+    from cli import description, pair_count, pair_index, positive_int
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--frames", type=int_at_least(2), default=100,
+    parser.add_argument("--frames", type=pair_count(2), default=100,
                         help="frames per seed for the body-motion statistics (default 100; at least 2)")
     parser.add_argument("--seeds", type=positive_int, default=5,
                         help="seeds for the body-motion statistics (default 5)")
-    parser.add_argument("--pairs", type=nonnegative_int, nargs="+", default=[0, 30],
+    parser.add_argument("--pairs", type=pair_index, nargs="+", default=[0, 30],
                         help="pair indices of the crest and dip")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)

@@ -27,12 +27,12 @@ from fsof_torch import PRESETS
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import check_options, description, json_object, positive_int, scene_seed, thread_count
+    from cli import check_options, description, json_object, pair_count, scene_seed, thread_count
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--preset", default="body-motion", choices=PRESETS,
                         help="the synthetic scene (default body-motion)")
-    parser.add_argument("--pairs", type=positive_int, default=8, help="pairs of the clip (default 8)")
+    parser.add_argument("--pairs", type=pair_count(), default=8, help="pairs of the clip (default 8)")
     parser.add_argument("--seed", type=scene_seed, default=0, help="the scene's seed, in [0, 2**62) (default 0)")
     parser.add_argument("--options", type=json_object, default={}, metavar="JSON",
                         help="fit_image keyword arguments as a JSON object (not those the script or "

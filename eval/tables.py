@@ -290,8 +290,10 @@ def run(args: argparse.Namespace) -> int:
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
-    if pairs < 1:
-        print(f"error: --pairs: expected at least 1, got {pairs}", file=sys.stderr)
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    if not 1 <= pairs <= MAX_FRAME:  # (pairs 0 .. N - 1: the scenes' frames end at MAX_FRAME)
+        print(f"error: --pairs: expected 1 to {MAX_FRAME}, got {pairs}", file=sys.stderr)
         return 2
     tables = set(args.only or ("cvc12", "carla", "kitti"))
     if args.no_kitti:

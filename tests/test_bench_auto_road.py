@@ -58,9 +58,13 @@ def test_a_grey_pair_turns_as_the_same_channel_of_a_colour_pair(load_benchmark):
     assert torch.equal(one["image2"][0], colour["image2"][0]) and torch.equal(one["image1"][0], colour["image1"][0])
 
 
-def test_negative_pairs_exit_2(bench, capsys):
-    assert bench.main(["--no-slow", "--no-real", "--pairs", "5", "-1"]) == 2
-    assert "--pairs: expected pair indices >= 0, got [5, -1]" in capsys.readouterr().err
+@pytest.mark.parametrize("bad", ["-1", "100000"])
+def test_pair_indices_beyond_the_renderers_frames_exit_2(bench, capsys, bad):
+    with pytest.raises(SystemExit) as exit_:
+        bench.main(["--no-slow", "--no-real", "--pairs", "5", bad])
+    assert exit_.value.code == 2
+    assert (f"argument --pairs: expected an integer from 0 to 99999 (the renderer's frames end at 100000), "
+            f"got '{bad}'") in capsys.readouterr().err
 
 
 def test_road_parts_split_the_true_road_by_what_image_2_shows(bench):

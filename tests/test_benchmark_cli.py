@@ -29,6 +29,7 @@ TMP = "<tmp>"
 # (script, arguments, what stderr must name); every one exits 2
 BAD = [
     ("auto_road", ["--repeat", "0"], "--repeat"),
+    ("auto_road", ["--pairs", "100000", "--no-real", "--no-slow"], "--pairs"),  # (past the renderer's MAX_FRAME)
     ("auto_road", ["--data", ABSENT, "--no-synthetic", "--no-slow"], "--data"),
     ("auto_road", ["--data", f"{TMP}/empty", "--no-synthetic", "--no-slow"], "--data"),
     ("bench_compile", ["--repeats", "0"], "--repeats"),
@@ -81,15 +82,21 @@ BAD = [
     ("fit_road_models", ["--size", "0", "10"], "--size"),
     ("fit_road_models", ["--size", "1", "1"], "--size"),
     ("fit_road_models", ["--pairs", "-1"], "--pairs"),
+    ("fit_road_models", ["--pairs", "100000", "--skip-kitti"], "--pairs"),
     ("gate_chance", ["--draws", "0"], "--draws"),
     ("gate_chance", ["--error", "0"], "--error"),
     ("image_fit_settings", ["{bad"], "SETTING"),
     ("image_fit_settings", ["[1, 2]"], "SETTING"),
     ("image_fit_settings", ['{"bogus": 1}'], "SETTING"),
     ("image_formation", ["--pairs", "0"], "--pairs"),
+    ("image_formation", ["--pairs", "50001"], "--pairs"),  # (the turning scene's last pair: 100000)
     ("kitti_photometric", ["--data", ABSENT], "--data"),
     ("presets_refiner", ["--pairs", "-1"], "--pairs"),
+    ("presets_refiner", ["--pairs", "100000"], "--pairs"),
     ("presets_refiner", ["--odometry-error", "nan", "0"], "--odometry-error"),
+    ("presets_refiner", ["--odometry-error", "-1", "0"], "--odometry-error"),
+    ("presets_refiner", ["--odometry-error", "0", "0"], "--odometry-error"),
+    ("presets_refiner", ["--odometry-error", "1", "90"], "--odometry-error"),
     ("presets_refiner", ["--seed", "-1"], "--seed"),
     ("real_road", ["--pairs", "0"], "--pairs"),
     ("real_road", ["--height", "0"], "--height"),
@@ -97,9 +104,12 @@ BAD = [
     ("scene_realism", ["--data", f"{TMP}/empty"], "--data"),  # (a folder named must hold a sample)
     ("scene_road_motion", ["--seeds", "0"], "--seeds"),
     ("scene_road_motion", ["--frames", "1"], "--frames"),
+    ("scene_road_motion", ["--frames", "100001"], "--frames"),
+    ("scene_road_motion", ["--pairs", "100000"], "--pairs"),
     ("sequence_synthetic", ["--options", "{bad"], "--options"),
     ("sequence_synthetic", ["--threads", "0"], "--threads"),
     ("sequence_synthetic", ["--pairs", "0"], "--pairs"),
+    ("sequence_synthetic", ["--pairs", "100001"], "--pairs"),
     ("sequence_synthetic", ["--seed", "-1"], "--seed"),
     ("sequence_synthetic", ["--options", '{"bogus": 1}'], "--options"),
     ("sequence_synthetic", ["--options", '{"init": {}}'], "--options"),  # (fit_sequence sets it)
@@ -263,6 +273,36 @@ def test_nonnegative_int_takes_0(cli):
     assert cli.nonnegative_int("0") == 0
     with pytest.raises(argparse.ArgumentTypeError, match=">= 0, got '-1'"):
         cli.nonnegative_int("-1")
+
+
+def test_pair_types_end_at_the_renderers_last_frame(cli):
+    """A pair index or count past the renderer's frames (MAX_FRAME) is refused while parsing, naming
+    the bound (it used to end in a traceback from the renderer, after the work before it)."""
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    assert cli.pair_index("0") == 0 and cli.pair_index(str(MAX_FRAME - 1)) == MAX_FRAME - 1
+    for bad in ("-1", str(MAX_FRAME), "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"from 0 to {MAX_FRAME - 1} \(the renderer's frames "
+                                                             rf"end at {MAX_FRAME}\), got '{bad}'"):
+            cli.pair_index(bad)
+    assert cli.pair_count()(str(MAX_FRAME)) == MAX_FRAME and cli.pair_count(2)("2") == 2
+    with pytest.raises(argparse.ArgumentTypeError, match=f"from 1 to {MAX_FRAME} "):
+        cli.pair_count()(str(MAX_FRAME + 1))
+    with pytest.raises(argparse.ArgumentTypeError, match=f"from 2 to {MAX_FRAME} "):
+        cli.pair_count(2)("1")
+    # pairs 0, 2, ..., 2 (n - 1): the last may be MAX_FRAME - 2 or MAX_FRAME - 1, not MAX_FRAME
+    two = cli.pair_count(spacing=2)
+    assert two(str(MAX_FRAME // 2)) == MAX_FRAME // 2
+    with pytest.raises(argparse.ArgumentTypeError, match="pairs 2 frames apart"):
+        two(str(MAX_FRAME // 2 + 1))
+
+
+def test_odometry_error_bounds(cli, capsys):
+    parser = argparse.ArgumentParser(prog="bench")
+    assert cli.odometry_error(parser, None) is None
+    assert cli.odometry_error(parser, [1.03, -0.2]) == (1.03, -0.2)
+    for bad in ([0.0, 0.0], [-1.0, 0.0], [float("inf"), 0.0], [1.0, float("nan")], [1.0, 45.0], [2.5, 0.0]):
+        assert "--odometry-error: expected a scale within [0.5, 2]" in _error(capsys, cli.odometry_error, parser, bad)
 
 
 def test_size_json_and_float_types(cli):

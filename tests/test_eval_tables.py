@@ -43,6 +43,17 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
     assert {"e_A", "e_U", "e_V", "n_pixels", "paper_straight"} <= set(paper)
 
 
+def test_tables_pairs_end_at_the_renderers_last_frame(tmp_path, capsys, monkeypatch):
+    """--pairs past the renderer's frames (MAX_FRAME) exits 2 before any table is made (it used to
+    end in a traceback from the renderer after 100 000 pairs of work)."""
+    from eval import tables
+
+    for name in ("cvc12_table", "carla_table"):
+        monkeypatch.setattr(tables, name, lambda *a, **k: pytest.fail("a table ran with --pairs past MAX_FRAME"))
+    assert main(["tables", "--pairs", "100001", "--no-kitti", "--out", str(tmp_path / "t"), "--no-progress"]) == 2
+    assert "error: --pairs: expected 1 to 100000, got 100001" in capsys.readouterr().err
+
+
 def test_tables_bad_arguments(tmp_path, capsys):
     assert main(["tables", "--pairs", "0", "--out", str(tmp_path)]) == 2
     assert "--pairs" in capsys.readouterr().err
