@@ -682,6 +682,11 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(level=6), "level: 6 leaves fewer than 16 pixels"),
     (dict(window=4), "window: expected an odd int >= 3"),
     (dict(height_window=1), "height_window: expected an odd int >= 3"),
+    # a window at least the working image's side is never seen whole: the height test would be off
+    (dict(height_window=65), r"^height_window: expected less than the working image's side \(64 pixels: the "
+                             r"64x200 images at level 0\), got 65$"),
+    (dict(level=1, height_window=33), r"^height_window: expected less than the working image's side \(32 pixels: "
+                                      r"the 64x200 images at level 1\), got 33$"),
     (dict(min_height_m=0.0), "min_height_m: expected a finite number > 0"),
     (dict(max_height_m=0.05), r"max_height_m: expected >= min_height_m \(0.1\)"),
     (dict(slow_max_height_m=0.2), r"slow_max_height_m: expected None or a finite number >= max_height_m \(0.3\)"),

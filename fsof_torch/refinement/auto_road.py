@@ -390,6 +390,10 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         if not is_number(v, integer=True) or v < 3 or v % 2 == 0:
             raise option_error(v, f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}",
                                integer=True)
+    side = min(dims["H"], dims["W"]) >> options["level"]
+    if options["height_window"] >= side:  # (never seen whole: the height test would be off everywhere)
+        raise ValueError(f"height_window: expected less than the working image's side ({side} pixels: the "
+                         f"{dims['H']}x{dims['W']} images at level {options['level']}), got {options['height_window']!r}")
     for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
         v = options[name]
         if not is_number(v) or not (0 < v < math.inf):
@@ -470,7 +474,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             to: a fitted road motion is not more accurate than about half a pixel on real images
             (DESIGN.md §5), even where the seed, which it was fitted to, says less.
         window, height_window: window sides at the working resolution for the misalignment and
-            the height tests (the height needs more pixels).
+            the height tests (the height needs more pixels); ``height_window`` below the working
+            image's side (a ValueError otherwise: a window never seen whole tests no height).
         min_coverage: a road smaller than this share of the image below the horizon is flagged
             ``"small"``.
         edges: within half a height window of the boundary the windows found (in pixels of the
