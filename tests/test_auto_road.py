@@ -297,6 +297,39 @@ def test_deeper_seed_retry_per_sample(small_pair):
             assert float(three.motion.params[name][b]) == pytest.approx(float(value[0]), abs=1e-9), name
 
 
+class _NaNFits:
+    """A custom estimator with a bug: every fit's first parameter NaN in ``samples``, reported a success."""
+
+    def __init__(self, samples):
+        from fsof_torch.refinement.estimators import FlowMotionEstimator
+
+        self.inner, self.samples = FlowMotionEstimator(model="plane"), list(samples)
+
+    def __call__(self, flow, mask, camera, **kw):
+        import dataclasses
+
+        fit = self.inner(flow, mask, camera, **kw)
+        params = {k: v.clone() for k, v in fit.params.items()}
+        params[next(iter(params))][self.samples] = math.nan
+        return dataclasses.replace(fit, params=params, success=torch.ones_like(fit.success))
+
+
+def test_non_finite_estimated_parameters_are_a_failed_estimate(small_pair):
+    """An estimator's NaN parameters reported as a success are a failed estimate of that sample
+    ("no_motion", with a warning naming it; it used to raise a ValueError naming a parameter the
+    caller never gave); the other sample gets what it gets with the estimator without the bug."""
+    p = small_pair
+    im1, im2 = p["image1"], p["image2"]
+    flow = p["flow"] + 0.5 * torch.randn(1, 2, *im1.shape[-2:], generator=torch.Generator().manual_seed(3))
+    alone = detect_road(im1, im2, p["camera"], flow=flow, refit=False, edges=False, estimator=_NaNFits([]))
+    with pytest.warns(RuntimeWarning, match=r"estimator: samples \[0\] came back with non-finite parameters"):
+        two = detect_road(torch.cat([im1] * 2), torch.cat([im2] * 2), p["camera"], flow=torch.cat([flow] * 2),
+                          refit=False, edges=False, estimator=_NaNFits([0]))
+    assert two.flag == ["no_motion", alone.flag[0]] and alone.flag == ["ok"]
+    assert not bool(two.usable_mask[0].any()) and torch.equal(two.mask[1], alone.mask[0])
+    assert all(bool(torch.isfinite(v).all()) for v in two.motion.params.values())
+
+
 def test_estimated_motion_comes_at_the_images_size(small_pair):
     """The motion estimated here comes at the images' size (flow, validity, camera) whether or not
     it was fitted again on the road: a stopped vehicle (no road, no refit), refit=False, and the

@@ -1,6 +1,7 @@
 """The refiner's road-motion estimators: what they do with a given odometry, and their detached results."""
 
 import math
+import warnings
 
 import pytest
 import torch
@@ -321,3 +322,72 @@ def test_flow_estimator_leaves_non_finite_pixels_out_of_the_mask():
     for name in ("x_d", "z_d", "yaw"):
         assert torch.equal(fit.params[name], reference.params[name])
     assert not bool(fit.inliers[0, 0, v, u]) and bool(road[0, 0, v, u])  # (the caller's mask kept)
+
+
+class _NaNFirst:
+    """A custom estimator with a bug: the first sample's first parameter (and its model flow) NaN,
+    reported as a success."""
+
+    def __init__(self, inner):
+        self.inner = inner
+
+    def __call__(self, *args, **kwargs):
+        import dataclasses
+
+        fit = self.inner(*args, **kwargs)
+        params = {k: v.clone() for k, v in fit.params.items()}
+        params[next(iter(params))][0] = math.nan
+        flow = fit.flow.clone()
+        flow[0] = math.nan
+        return dataclasses.replace(fit, params=params, flow=flow, success=torch.ones_like(fit.success))
+
+
+def test_finite_estimate_marks_non_finite_samples_failed(noisy_pair):
+    """A sample whose parameters are not all finite is a failed estimate: success False, its
+    parameters 0, the input camera's attitude, a zero model flow nowhere valid and the identity
+    homography; the other samples and the estimator's own result stay as they are."""
+    from fsof_torch.refinement.estimators import finite_estimate
+
+    p, cam, flow = noisy_pair
+    flow, road = flow.expand(2, -1, -1, -1).clone(), p["road"][None].expand(2, -1, -1, -1)
+    cam = cam.expand(2)
+    good = FlowMotionEstimator()(flow, road, cam)
+    assert finite_estimate(good, cam) is good  # (all finite: the result itself)
+    bad = _NaNFirst(FlowMotionEstimator())(flow, road, cam)
+    with pytest.warns(RuntimeWarning, match=r"estimator: samples \[5\] came back with non-finite parameters "
+                                            r"\(NaN or inf; success \[True\]\): taken as failed estimates"):
+        out = finite_estimate(bad, cam, samples=[5, 6])
+    assert out.success.tolist() == [False, True] and bad.success.tolist() == [True, True]
+    assert math.isnan(float(bad.params["x_d"][0]))  # (the estimator's result left as it was)
+    for k, v in out.params.items():
+        assert float(v[0]) == 0.0 and torch.equal(v[1], good.params[k][1])
+    assert float(out.camera.roll[0]) == float(cam.roll[0]) and float(out.camera.pitch[0]) == float(cam.pitch[0])
+    assert not bool(out.flow[0].any()) and not bool(out.valid[0].any()) and torch.equal(out.flow[1], good.flow[1])
+    assert torch.equal(out.homography[0], torch.eye(3, dtype=out.homography.dtype))
+
+
+@pytest.mark.parametrize("with_images", [False, True])
+def test_refiner_takes_non_finite_estimated_parameters_as_a_failed_estimate(noisy_pair, with_images):
+    """A custom estimator's NaN parameters with success True: the sample keeps its prediction, is
+    reported unrefined, and a warning names it; no NaN reaches the flow, the odometry or the model
+    flow (it did: the odometry came back NaN, refined True). The other sample is refined as with the
+    estimator without the bug."""
+    p, cam, flow = noisy_pair
+    flow = flow.expand(2, -1, -1, -1).clone()
+    road = p["road"][None].expand(2, -1, -1, -1)
+    images = (torch.stack([p["image1"]] * 2), torch.stack([p["image2"]] * 2)) if with_images else None
+    inner = ImageMotionEstimator() if with_images else FlowMotionEstimator()
+    flows = [flow[..., ::2, ::2] / 2, flow]  # (a coarser level: its model flow computed from the parameters)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = FreespaceRefiner(estimator=_NaNFirst(inner))(flows, road, cam, images=images)
+    said = [str(w.message) for w in caught]
+    assert any(m.startswith("estimator: samples [0] came back with non-finite parameters") for m in said), said
+    assert any(m.startswith("mask: samples [0] left unchanged") for m in said), said
+    reference = FreespaceRefiner(estimator=inner)(flows, road, cam, images=images)
+    assert out.refined.tolist() == [False, True] and reference.refined.tolist() == [True, True]
+    for level, (f, ref) in enumerate(zip(out.flow, reference.flow)):
+        assert torch.equal(f[0], flows[level][0])
+        torch.testing.assert_close(f[1], ref[1], rtol=0, atol=1e-4)
+    assert all(bool(torch.isfinite(v).all()) for v in out.odometry.values())
+    assert bool(torch.isfinite(out.flow_model).all()) and not bool(out.mask[0].any())

@@ -60,7 +60,7 @@ from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
-from .estimators import ImageMotionEstimator
+from .estimators import ImageMotionEstimator, finite_estimate
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
@@ -518,6 +518,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     scale = 255.0 / float(data_range)
     im1, im2 = (im.detach().to(work) * scale for im in (image1, image2))
     estimator = estimator if estimator is not None else ImageMotionEstimator()
+
+    def estimate(f: Tensor | None, m: Tensor, cam: Camera, **kw: Any) -> Any:  # (non-finite parameters: failed)
+        return finite_estimate(estimator(f, m, cam, **kw), cam)
     # the geometry at the working resolution (the seed and the region live there)
     cam_l = _level_camera(camera, level)
     h, w = H >> level, W >> level
@@ -539,13 +542,13 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         finite_s = None if finite is None else _pool(finite.to(work), seed_level)[..., :hs, :ws] == 1
         usable = (lambda m: m if finite_s is None else m & finite_s)  # noqa: E731
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
-        motion = estimator(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
+        motion = estimate(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
         failed = ~torch.tensor(_succeeded(motion, B))
         if bool(failed.any()):
             # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
             # per sample where the first failed and this one succeeds (the others keep their own)
             deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
-            again = estimator(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
+            again = estimate(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
             take = failed & torch.tensor(_succeeded(again, B))
             if bool(take.any()):
                 motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
@@ -598,7 +601,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     ev, road_l = judge(motion)
     if estimated and refit and bool(road_l.any()):
         mask = full_size(road_l)
-        again = estimator(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
+        again = estimate(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
                           odometry=odometry, starts=(motion, *starts))
         # per sample: a road found and fitted again (a sample without road keeps its seed fit,
         # as it would alone)

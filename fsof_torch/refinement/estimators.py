@@ -16,6 +16,9 @@ to trust it):
 
 from __future__ import annotations
 
+import copy
+import dataclasses
+import warnings
 from typing import Any, Mapping, Sequence
 
 import torch
@@ -30,7 +33,7 @@ from ..estimation.initial import planar_start
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
 
-__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "planar_odometry", "planar_start"]
+__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "finite_estimate", "planar_odometry", "planar_start"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
 
@@ -43,6 +46,52 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     if not all(k in model.params for k in _PLANAR):
         return None
     return {k: params.get(k, 0.0) for k in _PLANAR}
+
+
+def finite_estimate(result: Any, camera: Camera, *, samples: Sequence[int] | None = None, warn: bool = True) -> Any:
+    """An estimator's ``result`` with every sample whose parameters, or roll and pitch, are not all
+    finite marked failed: a custom estimator's NaN is a failed estimate, never a motion to refine with.
+
+    Such a sample gets ``success`` False, parameters 0, the input ``camera``'s roll and pitch, and
+    (where the result holds them) a zero model flow, nowhere valid, and the identity homography; a
+    RuntimeWarning names the samples (``samples``: their indices in the caller's batch). ``result``
+    itself comes back where every sample is finite, else a copy (the estimator's object is left as
+    it is); so does a motion without ``success`` (a dict of parameters, which a detection takes as
+    given and checks where it uses it).
+    """
+    if not all(hasattr(result, name) for name in ("success", "params", "camera")):
+        return result
+    success = torch.as_tensor(result.success).to(torch.bool).reshape(-1)
+    values = [*result.params.values(), result.camera.roll, result.camera.pitch]
+    finite = torch.ones_like(success)
+    for v in values:
+        finite = finite & torch.isfinite(torch.as_tensor(v).detach()).reshape(-1).to(finite.device)
+    if bool(finite.all()):
+        return result
+    if warn:
+        bad = [samples[i] if samples is not None else i for i in (~finite).nonzero().flatten().tolist()]
+        warnings.warn(f"estimator: samples {bad} came back with non-finite parameters (NaN or inf; success "
+                      f"{success[~finite].tolist()}): taken as failed estimates", RuntimeWarning, stacklevel=3)
+
+    def keep(t: Tensor, fill: Any) -> Tensor:  # (the sample's own values where finite, else fill)
+        ok = finite.to(t.device).reshape(-1, *[1] * (t.dim() - 1))
+        return torch.where(ok, t, fill)
+
+    cam = result.camera
+    changes: dict[str, Any] = {
+        "success": success & finite, "params": {k: keep(torch.as_tensor(v), 0.0) for k, v in result.params.items()},
+        "camera": cam.replace(roll=keep(cam.roll, camera.roll.to(cam.roll)),
+                              pitch=keep(cam.pitch, camera.pitch.to(cam.pitch)))}
+    for name, fill in (("flow", 0.0), ("valid", False), ("homography", None)):
+        t = getattr(result, name, None)
+        if isinstance(t, Tensor) and t.dim() >= 1 and t.shape[0] == finite.numel():
+            changes[name] = keep(t, torch.eye(3, dtype=t.dtype, device=t.device) if fill is None else fill)
+    if dataclasses.is_dataclass(result):
+        return dataclasses.replace(result, **changes)
+    out = copy.copy(result)
+    for name, value in changes.items():
+        setattr(out, name, value)
+    return out
 
 
 class FlowMotionEstimator:

@@ -42,7 +42,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_refine import refine_with_auto_road
-from .estimators import FlowMotionEstimator, ImageMotionEstimator
+from .estimators import FlowMotionEstimator, ImageMotionEstimator, finite_estimate
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options
 from .contracts import (DEFAULT_FLOW_KEYS, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs,
@@ -454,7 +454,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         motion_model = given.name
     if estimating:
         est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
-                        starts=starts, all_finite=all_finite)
+                        starts=starts, all_finite=all_finite, warn=warn)
         if est is not None:
             fit_result, ok, values, est_model, est_camera = est
             if odometry is None:
@@ -587,12 +587,13 @@ def _estimate(*args: Any, **kwargs: Any):
 
 
 def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
-                    images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool):
+                    images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool,
+                    warn: bool = True):
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
 
     Returns None when no sample can be estimated, else ``(fit, success (B,), params {name: (B,)},
     model name, camera with the estimated roll and pitch)``; samples not estimated get zero
-    motion and success False.
+    motion and success False, as do those estimated with non-finite parameters (``finite_estimate``).
     """
     check_has_values(finest, "flow", "to estimate the road's motion from (for shape inference on the meta "
                      "device pass odometry=: planar odometry without images, or a model's full motion)")
@@ -618,7 +619,8 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
                 given, values = road_motion_batch(odometry, B, dtype, device)
                 odo = {"model": given.name, **select_samples(values, index, B)}
             starts = tuple(select_samples(s, index, B) for s in starts)
-        result = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
+        result = finite_estimate(estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts), cam_d,
+                                 samples=index.tolist(), warn=warn)
     ok = result.success.to(device=device, dtype=torch.bool)
     params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}
     success = torch.zeros(B, dtype=torch.bool, device=device).index_copy(0, index, ok)
