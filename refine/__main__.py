@@ -55,6 +55,8 @@ def _list(choices: tuple[str, ...]):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from fsof_torch.data.scene.render import MAX_SIDE
+
     from .job import VARIANTS
     from .sources import CONTRACTS, SOURCES
 
@@ -67,7 +69,7 @@ def build_parser() -> argparse.ArgumentParser:
     g = p.add_argument_group("synthetic data (the default)")
     g.add_argument("--preset", help=f"scene preset (default: {DEFAULTS['preset']})")
     g.add_argument("--num-pairs", type=int, help=f"pairs to render (default: {DEFAULT_PAIRS})")
-    g.add_argument("--size", type=_size, metavar="HxW", help="image size, each side 16 to 16384 (default: 375x1242, KITTI's)")
+    g.add_argument("--size", type=_size, metavar="HxW", help=f"image size, each side 16 to {MAX_SIDE} (default: 375x1242, KITTI's)")
     g.add_argument("--seed", type=int, help="scene seed (default: 0)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
@@ -76,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--images", type=Path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
     g.add_argument("--calib", type=Path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
-                   help="image size the calibration is for, each side 16 to 16384 (default: the file's S_rect row, "
+                   help=f"image size the calibration is for, each side 16 to {MAX_SIDE} (default: the file's S_rect row, "
                         "else checked loosely)")
     g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
     g.add_argument("--height", type=float, help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")

@@ -78,6 +78,18 @@ def test_help_exits_zero(capsys):
     assert "--kitti15" in out and "--net" in out and "--checkpoint" in out
 
 
+def test_help_states_the_size_bound_of_the_constant(capsys, monkeypatch):
+    """--size and --calib-size say the bound they check, the renderer's MAX_SIDE (the help held
+    the literal 16384 beside the imported constant)."""
+    import fsof_torch.data.scene.render as render
+
+    monkeypatch.setattr(render, "MAX_SIDE", 4096)
+    assert main(["--help"]) == 0
+    out = " ".join(capsys.readouterr().out.split())
+    assert "image size, each side 16 to 4096" in out and "calibration is for, each side 16 to 4096" in out
+    assert "16384" not in out
+
+
 def test_synthetic_default_pipeline(tmp_path, capsys):
     out = tmp_path / "out"
     old = os.umask(0o022)
