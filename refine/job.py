@@ -272,14 +272,14 @@ def _pair_road(pair: dict, camera: Camera, cfg: JobConfig, sources: dict,
 
 def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple[Tensor, str, dict]:
     """The road mask, where it came from, and with ``--road auto`` the detection's flag, reason and
-    coverage (recorded per pair: a flagged pair is left unrefined, never silently)."""
+    coverage (recorded per pair: a flagged pair is left unrefined, never silently). The detection
+    starts from ``pred`` whole: its non-finite pixels, if any, are left out by the library."""
     if pair.get("road") is not None and not cfg.road_auto:
         return pair["road"].to(torch.bool), "given", {}
     from fsof_torch import detect_road
 
-    finite = bool(torch.isfinite(pred).all())
     with torch.no_grad():
-        det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None] if finite else None)
+        det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None])
     info = {"road_flag": det.flag[0], "road_reason": det.reason[0], "road_coverage": float(det.coverage[0]),
             "road_auto_pixels": int(det.mask.sum()), "road_max_height_m": float(det.stats["max_height_m"][0])}
     return det.usable_mask[0], "auto", info

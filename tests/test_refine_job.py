@@ -694,6 +694,28 @@ def test_testnet_source_confidence_mode(tmp_path):
     assert summary["mode"] == "confidence" and any("random weights" in n for n in summary["notes"])
 
 
+def test_road_auto_starts_from_a_partly_non_finite_flow(monkeypatch):
+    """--road auto passes DIS's flow on with its NaN pixels (detect_road leaves them out, pixel by
+    pixel); the job used to drop the whole flow from the detection for one such pixel."""
+    import types
+
+    import fsof_torch
+    from fsof_torch.data.scene import render_pair
+    from refine.job import road_mask
+
+    p = render_pair("default", 1, size=(96, 320))
+    pred = p["flow"] + 0.5
+    pred[:, 80, 100] = float("nan")
+    seen, detect = [], fsof_torch.detect_road
+    monkeypatch.setattr(fsof_torch, "detect_road", lambda *a, **k: seen.append(k.get("flow")) or detect(*a, **k))
+    road, road_from, info = road_mask({"image1": p["image1"], "image2": p["image2"], "road": p["road"]}, pred,
+                                      p["camera"], types.SimpleNamespace(road_auto=True))
+    assert road_from == "auto" and len(seen) == 1 and seen[0] is not None
+    torch.testing.assert_close(seen[0][0], pred, rtol=0, atol=0, equal_nan=True)
+    direct = detect(p["image1"][None], p["image2"][None], p["camera"], flow=pred[None])
+    assert torch.equal(road, direct.usable_mask[0]) and info["road_flag"] == direct.flag[0] == "ok"
+
+
 @pytest.mark.parametrize("size", ["48x160", "96x320"])
 def test_synthetic_road_auto(tmp_path, size, capsys):
     """--road auto: at 48 x 160 the road's detail is too faint to judge, and the pair is flagged
