@@ -1,6 +1,6 @@
 """Property-based fuzzing of the public functions: every draw gives a finite, documented result or
 a ValueError / TypeError whose message names an argument. Never a silent NaN, never an internal
-error (RuntimeError, IndexError, ...).
+error (RuntimeError, IndexError, ...), and either way every tensor argument is left as it came.
 
 The suite is a table (:data:`TABLE`) of public functions, each with its arguments as roles
 (an image, a flow, a mask, a camera, ...). A draw builds a valid call with random sizes
@@ -528,8 +528,22 @@ def _contiguous(value: Any) -> Any:
     return value
 
 
+def _unchanged(args: dict, before: list[torch.Tensor]) -> None:
+    """No function modifies a tensor it is given (docs/conventions.md), on its error paths too."""
+    after = list(_tensors(args))
+    assert len(after) == len(before)
+    for old, new in zip(before, after):
+        assert new.dtype == old.dtype and new.shape == old.shape
+        if new.is_floating_point():  # (NaN where NaN was, every other value bit for bit)
+            assert torch.equal(new.isnan(), old.isnan()), "an argument was modified"
+            new, old = new.nan_to_num(0.0), old.nan_to_num(0.0)
+        assert torch.equal(new, old), "an argument was modified"
+
+
 def _property(entry: Entry, mutated: dict, target: str, how: str, invoke: Callable[[dict], Any]) -> None:
+    before = [t.clone() for t in _tensors(mutated)]
     result, err = _run(entry, mutated, lambda: invoke(mutated))
+    _unchanged(mutated, before)
     if err is None:
         entry.check(result, mutated)
         if how in LAYOUTS and entry.layout_invariant:
@@ -567,7 +581,9 @@ def test_writer(entry: Entry, tmp_path_factory):
     def run(case):
         args, mutated, _, how = case
         folder = tmp_path_factory.mktemp("w")
+        before = [t.clone() for t in _tensors(mutated)]
         _, err = _run(entry, mutated, lambda: entry.call(folder, **mutated))
+        _unchanged(mutated, before)
         left = [p.name for p in folder.iterdir()]
         assert len(left) <= 1 and not any(".tmp" in n for n in left), left
         assert (err is None) == (len(left) == 1), (err, left)
