@@ -301,3 +301,29 @@ def test_a_backward_flow_is_refined_with_the_frames_swapped():
     before = float((backward[0].double() - truth).norm(dim=0)[on_road].mean())
     after = float((out.flow[1][0].double() - truth).norm(dim=0)[on_road].mean())
     assert after < 2.0 < before
+
+
+def test_a_refiner_carries_nothing_from_one_call_to_the_next(scene):
+    """A refiner (and its default estimator and gate) holds no state between calls: pair B after
+    pair A gives, bit for bit, what a fresh refiner gives for B, and the same call twice gives the
+    same result. Pair A is another scene (with body motion), so its motion or its model flow carried
+    over into the call on B would show."""
+    other = render_pair("body-motion", 3, size=SIZE)
+    noise = 2.0 * torch.randn(other["flow"].shape, generator=torch.Generator().manual_seed(1))
+    a = ((other["flow"] + noise)[None], other["road"][None], other["camera"],
+         {"images": (other["image1"][None], other["image2"][None])})
+    b = (scene["pred"], scene["road"][None], scene["camera"], {"images": (scene["image1"][None], scene["image2"][None])})
+
+    def outputs(out):
+        fit = out.fit
+        return [out.flow, out.weight, out.mask, out.refined, out.flow_model, *out.odometry.values(),
+                out.gate.use_model, out.gate.evidence, fit.homography, *fit.params.values()]
+
+    for options in ({}, {"mode": "confidence"}):
+        used = FreespaceRefiner(**options)
+        _quiet(used, *a[:3], **a[3])
+        after_a = outputs(_quiet(used, *b[:3], **b[3]))
+        fresh = outputs(_quiet(FreespaceRefiner(**options), *b[:3], **b[3]))
+        again = outputs(_quiet(used, *b[:3], **b[3]))
+        for x, y, z in zip(after_a, fresh, again):
+            assert torch.equal(x, y) and torch.equal(x, z), options
