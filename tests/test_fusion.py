@@ -444,6 +444,23 @@ def test_a_bfloat16_prediction_is_the_float32_result_rounded():
     assert torch.equal(fused, plain.bfloat16()) and torch.equal(weight, plain_weight.bfloat16())
 
 
+def test_float_odometry_is_taken_at_the_flows_dtype():
+    """A float64 prediction with the odometry as Python floats: the model flow is the float64 one
+    (once off by up to 2.5e-6 px: the floats were rounded to float32 first)."""
+    pred, mask, _, _ = make_case()
+    pred, cam = pred.double(), make_camera()
+    plane = {"model": "plane", **ODO, "pitch_change": 0.003, "y_d": 0.02}
+    for odometry in (ODO, plane):
+        tensors = {k: (torch.tensor([v], dtype=torch.float64) if k != "model" else v) for k, v in odometry.items()}
+        for mode in ("replace", "confidence"):
+            a = refine_flow(pred, mask, cam, odometry, mode=mode, gate=None)
+            b = refine_flow(pred, mask, cam, tensors, mode=mode, gate=None)
+            assert a.flow.dtype == torch.float64
+            assert torch.equal(a.flow, b.flow) and torch.equal(a.flow_model, b.flow_model), (odometry, mode)
+    exact, _ = displacement_flow(cam, ODO["x_d"], ODO["z_d"], ODO["yaw"], (H, W))
+    assert torch.equal(refine_flow(pred, mask, cam, ODO).flow_model, exact)
+
+
 def test_images_on_another_device_than_the_flow_are_named():
     """The meta device stands in for another one: the images are named before any use."""
     pred, mask, cam, _ = make_case()

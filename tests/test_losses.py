@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from fsof_torch.geometry.camera import Camera
-from fsof_torch.geometry.road_flow import displacement_flow
+from fsof_torch.geometry.road_flow import displacement_flow, road_flow
 from fsof_torch.training.losses import (
     CompositeLoss,
     FreespaceFlowLoss,
@@ -440,6 +440,25 @@ def test_freespace_loss_of_the_exact_model_flow_is_zero_under_autocast(amp):
     with torch.autocast("cpu", dtype=amp):
         value = freespace_flow_loss(model64.float(), road, cam64, odo)
     assert value.item() <= 1e-12
+
+
+@pytest.mark.parametrize("model", ["paper", "plane"])
+def test_freespace_loss_takes_float_odometry_at_the_geometry_dtype(model):
+    """A float64 model flow with the odometry as Python floats: the loss of the exact model flow is
+    exactly 0 (once 4e-15: the floats were rounded to float32 before the float64 geometry)."""
+    cam = _camera(torch.float64)
+    odo = {"x_d": 0.1, "z_d": 1.2, "yaw": 0.01}
+    if model == "plane":
+        odo = {"model": "plane", **odo, "pitch_change": 0.003, "y_d": 0.02}
+    exact, valid = road_flow(cam, {k: v for k, v in odo.items() if k != "model"}, (H, W), model=model)
+    road = valid & (torch.arange(W) > W // 4)
+    assert exact.dtype == torch.float64 and road.sum() > 100
+    for penalty in _PENALTY_NAMES:
+        assert freespace_flow_loss(exact, road, cam, odo, penalty=penalty).item() == 0.0, penalty
+    # float32 flows with a float64 camera: the geometry in float64, the odometry with it
+    as_tensors = {k: (torch.tensor([v], dtype=torch.float64) if k != "model" else v) for k, v in odo.items()}
+    assert freespace_flow_loss(exact.float(), road, cam, odo).item() == freespace_flow_loss(
+        exact.float(), road, cam, as_tensors).item()
 
 
 @pytest.mark.parametrize("amp, low, high", [(torch.bfloat16, 5e-5, 2e-4), (torch.float16, 5e-7, 5e-6)],

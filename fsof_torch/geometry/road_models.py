@@ -542,12 +542,12 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
     model, params = road_motion(odometry, name, displacement=displacement)
     out = {}
     for key, value in params.items():
-        t = as_batch_param(value, f"{name}[{key!r}]", finite=False)
+        t = as_batch_param(value, f"{name}[{key!r}]", dtype, device, finite=False)  # (a float: exact in dtype)
         if t.shape[0] not in (1, batch):
             shapes = "(1,)" if batch == 1 else f"(1,) or ({batch},)"
             raise ValueError(f"{name}[{key!r}]: expected a float or a tensor of shape {shapes} ({batch_of}), got "
                              f"shape {tuple(t.shape)}")
-        out[key] = t.to(device=device, dtype=dtype).expand(batch)
+        out[key] = t.expand(batch)
     # one finiteness check for all (in the dtype they are used in: a value it cannot hold fails)
     check_all_finite({f"{name}[{key!r}]": t for key, t in out.items()})
     return model, out
