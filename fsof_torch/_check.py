@@ -54,6 +54,8 @@ __all__ = [
     "autocast_off",
     "batch_choices",
     "check_has_values",
+    "check_same_device",
+    "to_device",
     "as_chw_flow",
     "inference",
     "ordinary",
@@ -77,6 +79,24 @@ def check_has_values(x: object, name: str, purpose: str = "to write or convert")
     if isinstance(x, Tensor) and x.device.type == "meta":
         raise ValueError(f"{name}: a tensor on the meta device has shapes but no values {purpose}; "
                          f"move it to a real device first")
+
+
+def check_same_device(named: Mapping[str, Tensor | None]) -> None:
+    """The tensors of ``named`` (None left out) on the first one's device: a ValueError names the
+    first that is not (torch's own error would come from inside, naming neither)."""
+    items = [(name, t) for name, t in named.items() if t is not None]
+    for name, t in items[1:]:
+        if t.device != items[0][1].device:
+            raise ValueError(f"{name}: expected the device of {items[0][0]} ({items[0][1].device}), got {t.device}")
+
+
+def to_device(x: Tensor, name: str, device: torch.device | str) -> Tensor:
+    """``x`` moved to ``device``, the computation's (where a function takes an argument from
+    another device); a ValueError naming it where it has no values to move (the meta device)."""
+    if x.device.type == "meta" and torch.device(device).type != "meta":
+        raise ValueError(f"{name}: a tensor on the meta device has no values to move to {device} (the "
+                         f"computation's device); give it on {device}")
+    return x.to(device)
 
 
 def _fmt_shape(shape: Sequence[object]) -> str:
@@ -361,10 +381,7 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
         elif x.dim() != 1:
             raise ValueError(f"{name}: expected a scalar or shape (B,), got {_fmt_shape(tuple(x.shape))}")
         if dtype is not None or device is not None:
-            if device is not None and x.device.type == "meta" and torch.device(device).type != "meta":
-                raise ValueError(f"{name}: a tensor on the meta device has no values to move to {device} (the "
-                                 f"computation's device); give it on {device}")
-            x = x.to(dtype=dtype or x.dtype, device=device or x.device)
+            x = to_device(x, name, device or x.device).to(dtype or x.dtype)
     elif isinstance(x, numbers.Real) and not isinstance(x, bool):
         x = torch.tensor([_float(x, name)], dtype=dtype or torch.get_default_dtype(), device=device)
     else:

@@ -22,6 +22,7 @@ from fsof_torch._check import (
     check_finite,
     check_float_tensor,
     check_has_values,
+    check_same_device,
     check_image_range,
     check_int,
     check_keywords,
@@ -35,6 +36,7 @@ from fsof_torch._check import (
     result_dtype,
     skip_values,
     tracing,
+    to_device,
 )
 
 
@@ -469,3 +471,17 @@ def test_options_raise_type_error_for_a_wrong_type_and_value_error_for_a_wrong_v
         _option_call(function, **{option: wrong_type})
     with pytest.raises(ValueError, match=f"^{option}: expected .*, got {re.escape(repr(wrong_value))}$"):
         _option_call(function, **{option: wrong_value})
+
+
+def test_devices_are_checked_and_moved_with_the_argument_named():
+    """The meta device stands in for another one: the first tensor fixes the device, None is left
+    out; a tensor with no values to move (meta) is named, one with values moves."""
+    x, m = torch.zeros(2), torch.zeros(2, device="meta")
+    check_same_device({"a": x, "b": None, "c": x.clone()})
+    with pytest.raises(ValueError, match=r"^c: expected the device of a \(cpu\), got meta$"):
+        check_same_device({"a": x, "b": None, "c": m})
+    with pytest.raises(ValueError, match=r"^mask: a tensor on the meta device has no values to move to cpu"):
+        to_device(m, "mask", "cpu")
+    assert to_device(x, "x", "meta").device.type == "meta" and to_device(x, "x", x.device) is x
+    with pytest.raises(ValueError, match=r"^z_d: a tensor on the meta device has no values to move to cpu"):
+        as_batch_param(m, "z_d", torch.float64, torch.device("cpu"))

@@ -391,3 +391,18 @@ def test_refiner_takes_non_finite_estimated_parameters_as_a_failed_estimate(nois
         torch.testing.assert_close(f[1], ref[1], rtol=0, atol=1e-4)
     assert all(bool(torch.isfinite(v).all()) for v in out.odometry.values())
     assert bool(torch.isfinite(out.flow_model).all()) and not bool(out.mask[0].any())
+
+
+@pytest.mark.parametrize("estimator", [FlowMotionEstimator(), ImageMotionEstimator()], ids=["flow", "image"])
+def test_an_odometry_on_the_meta_device_is_named(estimator):
+    """A meta odometry with real flow and images: a ValueError naming its key (was torch's
+    'Tensor.item() cannot be called on meta tensors'); on meta throughout it is named too."""
+    p = render_pair("default", 0, size=(24, 80))
+    flow, road, images = p["flow"][None], p["road"][None], (p["image1"][None], p["image2"][None])
+    odometry = {"x_d": 0.0, "z_d": torch.tensor([1.0], device="meta"), "yaw": 0.0}
+    with pytest.raises(ValueError, match=r"^odometry\['z_d'\]: a tensor on the meta device has shapes but no values"):
+        estimator(flow, road, p["camera"], images=images, odometry=odometry)
+    meta = Camera(p["camera"].K.to("meta"), p["camera"].height.to("meta"))
+    with pytest.raises(ValueError, match="a tensor on the meta device has shapes but no values"):
+        estimator(flow.to("meta"), road.to("meta"), meta, images=tuple(im.to("meta") for im in images),
+                  odometry=odometry)

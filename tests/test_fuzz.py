@@ -747,3 +747,29 @@ def test_meta_device(entry: Entry):
     result = entry.call(**args)
     has_meta = any(t.device.type == "meta" for t in _tensors(args))
     assert not has_meta or all(t.device.type == "meta" for t in _tensors(result) if t.is_floating_point())
+
+
+def _one_to_meta(value: Any) -> list[Any]:
+    """The ways to put part of an argument on meta: the whole of it, or one tensor of a dict of
+    tensors (an odometry's ``z_d``)."""
+    if isinstance(value, dict):
+        return [{**value, k: _to_meta(torch.as_tensor(v, dtype=torch.float32).reshape(1))}
+                for k, v in value.items()][:1]
+    return [_to_meta(value)] if isinstance(value, (torch.Tensor, Camera, list)) else []
+
+
+@pytest.mark.parametrize("entry", TABLE, ids=[e.name for e in TABLE])
+def test_one_argument_on_another_device(entry: Entry):
+    """One argument on meta, the others on the CPU (as a CPU mask with CUDA flows): a named
+    ValueError or TypeError, or a result wholly on meta where the function moves the other
+    arguments to that one's device; never torch's error from inside, nor a CPU result computed
+    from a tensor without values."""
+    d = Draw(2, 6, 9, torch.Generator().manual_seed(0), "random")
+    args = {name: ROLES[role](d) for name, role in entry.args.items()}
+    for target in args:
+        for value in _one_to_meta(args[target]):
+            mixed = dict(args, **{target: value})
+            result, err = _run(entry, mixed, lambda: _quiet(entry.call)(**mixed))
+            if err is None:
+                devices = {t.device.type for t in _tensors(result) if t.is_floating_point()}
+                assert devices <= {"meta"}, f"{target} on meta gave a result on {devices}"

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
                       check_has_values, check_mapping, check_names, check_shape, inference, is_number, option_error,
-                      result_dtype)
+                      result_dtype, to_device)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
@@ -235,7 +235,7 @@ def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera,
             raise TypeError(f"valid: expected a bool tensor of shape (B, 1, H, W), got "
                             f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
         check_shape(valid, "valid", ("B", 1, "H", "W"), dims)
-        mask = mask & valid
+        mask = mask & to_device(valid, "valid", mask.device)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):

@@ -28,7 +28,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_int, check_shape, is_number, option_error, result_dtype
+from .._check import (check_float_tensor, check_has_values, check_int, check_same_device, check_shape, is_number,
+                      option_error, result_dtype)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -68,6 +69,7 @@ def check_flow_mask(flow: Tensor, mask: Tensor | None) -> tuple[dict[str, int], 
         if mask.dtype != torch.bool:
             raise TypeError(f"mask: expected dtype torch.bool, got {mask.dtype}")
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+        check_same_device({"flow": flow, "mask": mask})
         use = mask
     return dims, use & torch.isfinite(flow[:, 1:2])
 

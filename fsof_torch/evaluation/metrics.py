@@ -47,7 +47,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._check import all_finite, check_float_tensor, check_shape, result_dtype, skip_values
+from .._check import all_finite, check_float_tensor, check_shape, result_dtype, skip_values, to_device
 
 __all__ = [
     "flow_error_maps",
@@ -102,7 +102,7 @@ def _selection(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
     sel = torch.isfinite(flow_gt).all(dim=1, keepdim=True)
     for name, m in (("mask", mask), ("valid", valid)):
         if m is not None:
-            sel = sel & _check_mask(m, name, dims).to(flow_est.device)
+            sel = sel & to_device(_check_mask(m, name, dims), name, flow_est.device)
     work = result_dtype(flow_est, flow_gt)
     # Zero the flows outside the selection: ground truth may hold NaN or 1e9 where it is invalid,
     # and torch.where on the inputs keeps both the sums and the gradients finite.

@@ -51,6 +51,7 @@ from .._check import (
     check_float_tensor,
     check_image_range,
     check_int,
+    check_same_device,
     check_shape,
     result_dtype,
 )
@@ -176,6 +177,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | N
             got = mask.dtype if isinstance(mask, Tensor) else type(mask).__name__
             raise TypeError(f"mask: expected a bool tensor, got {got}")
         check_shape(mask, "mask", ("B", 1, "H", "W"), dims)
+    check_same_device({"image1": image1, "image2": image2, "flow": flow, "mask": mask})
     data_range = check_data_range(data_range)
     window, census_radius = _check_window_options(window, census_radius)
     if "ssim" in kinds and min(dims["H"], dims["W"]) <= window // 2:

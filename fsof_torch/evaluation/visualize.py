@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_has_values,
-                      check_image_range, check_number, check_positive, check_shape)
+                      check_image_range, check_number, check_positive, check_same_device, check_shape, to_device)
 from .metrics import pow2_scale
 
 __all__ = [
@@ -109,6 +109,7 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
             raise TypeError(f"valid: expected a bool tensor, got {got}")
         valid = _as_batch(valid, "valid", 1)
         check_shape(valid, "valid", (B, 1, H, W))
+        check_same_device({"flow": flow, "valid": valid})
         ok = ok & valid
     work = torch.float64 if flow.dtype == torch.float64 else torch.float32
     f = torch.where(ok, flow.detach().to(work), torch.zeros((), dtype=work, device=flow.device))
@@ -128,7 +129,7 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
                              f"got shape {tuple(max_flow.shape)}")
         check_finite(max_flow, "max_flow")  # NaN would draw every pixel black, a negative one white
         check_positive(max_flow, "max_flow")
-        scale = max_flow.detach().to(dtype=work, device=flow.device).reshape(-1).expand(B)
+        scale = to_device(max_flow.detach(), "max_flow", flow.device).to(work).reshape(-1).expand(B)
     else:
         scale = torch.full((B,), check_number(max_flow, "max_flow", positive=True), dtype=work,
                            device=flow.device)
@@ -191,6 +192,7 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
             raise TypeError(f"valid: expected a bool tensor, got {got}")
         valid = _as_batch(valid, "valid", 1)
         check_shape(valid, "valid", tuple(error.shape))
+        check_same_device({"error": error, "valid": valid})
         ok = ok & valid
     e = torch.where(ok, error.detach().float(), torch.zeros((), device=error.device))
     index = torch.round(e.clamp(0, float(vmax)) / float(vmax) * 255.0).long()
@@ -225,6 +227,7 @@ def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (
     mask = _as_batch(mask, "mask", 1)
     B, _, H, W = image.shape
     check_shape(mask, "mask", (B, 1, H, W))
+    check_same_device({"image": image, "mask": mask})
     alpha = check_number(alpha, "alpha")
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha: expected a value in [0, 1], got {alpha!r}")

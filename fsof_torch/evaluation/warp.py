@@ -31,8 +31,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
-from .._check import (autocast_off, check_bool, check_finite, check_float_tensor, check_shape, is_number, option_error,
-                      result_dtype)
+from .._check import (autocast_off, check_bool, check_finite, check_float_tensor, check_same_device, check_shape,
+                      is_number, option_error, result_dtype)
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -163,6 +163,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
     check_float_tensor(flow, "flow")
     dims = check_shape(image, "image", ("B", "C", "H", "W"))
     check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
+    check_same_device({"image": image, "flow": flow})
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
     if padding_mode not in _PADDING:

@@ -28,6 +28,7 @@ from .._check import (
     check_finite,
     check_float_tensor,
     check_int,
+    check_same_device,
     check_positive,
     resolve_batch,
     result_dtype,
@@ -66,6 +67,7 @@ def mounting_matrix(roll: Tensor, pitch: Tensor) -> Tensor:
     """R_c = R_θ R_β (B, 3, 3): rotates vehicle-frame vectors into the camera frame (roll and
     pitch of batch 1 or B, in their promoted dtype, half precision lifted to float32)."""
     Rr, Rp = roll_matrix(roll), pitch_matrix(pitch)
+    check_same_device({"roll": roll, "pitch": pitch})
     if roll.dim() and pitch.dim():
         resolve_batch({"roll": roll.shape[0], "pitch": pitch.shape[0]})
     dtype = torch.promote_types(Rr.dtype, Rp.dtype)

@@ -13,8 +13,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import (as_batch_param, autocast_off, check_finite, check_positive, resolve_batch, result_dtype,
-                      skip_values, tracing)
+from .._check import (as_batch_param, autocast_off, check_finite, check_positive, check_same_device, resolve_batch,
+                      result_dtype, skip_values, tracing)
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
@@ -40,6 +40,7 @@ def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
     """``cam1_T_cam0 = inverse(pose1) @ pose0`` for camera-to-world poses (B, 4, 4) or (B, 3, 4),
     rigid (:func:`as_pose_4x4`: a ValueError names a pose that is not, and a singular one)."""
     P0, P1 = as_pose_4x4(pose0, "pose0"), as_pose_4x4(pose1, "pose1")
+    check_same_device({"pose0": P0, "pose1": P1})
     resolve_batch({"pose0": P0.shape[0], "pose1": P1.shape[0]})
     dtype = result_dtype(P0, P1)
     with autocast_off(P0):

@@ -218,6 +218,8 @@ class ImageMotionEstimator:
         if camera.batch_size not in (1, dims["B"]):
             raise ValueError(f"camera: expected batch {batch_choices(dims['B'])} (the images' B), got {camera.batch_size}")
         check_mask(mask, "mask")
+        for name, t in (("image2", image2), ("mask", mask), ("camera", camera.K), ("flow", flow)):
+            check_has_values(t, name, "to fit (a fit is iterative and data dependent)")  # (with image1 on a device)
         if flow is not None:  # (the flow is only a start: fit_image checks the rest)
             check_shape(check_float_tensor(flow, "flow"), "flow", ("B", 2, "H", "W"), dims)
             if mask.dim() != 4 or mask.shape[0] not in (1, dims["B"]) or tuple(mask.shape[1:]) != (1, dims["H"], dims["W"]):
@@ -276,6 +278,7 @@ def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:
     frames'): a ValueError names the odometry's key (the fit would name its ``init``)."""
     for k, v in values.items():
         t = torch.as_tensor(v)
+        check_has_values(t, f"odometry[{k!r}]", "to fit (a fit is iterative and data dependent)")
         if not all_finite(t):
             raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
         check_batch(t.numel(), f"odometry[{k!r}]", B)

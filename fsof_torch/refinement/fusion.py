@@ -35,7 +35,7 @@ from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask,
                       check_image_range, check_shape, check_size, is_number, option_error, result_dtype, skip_values,
-                      tracing)
+                      to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
 from ..geometry.camera import Camera
@@ -417,7 +417,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     # not fit the estimator raises whether or not this call's odometry makes it unused.
     chosen = select_estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
     device = finest.device
-    mask = mask.to(device).expand(B, 1, H, W)
+    mask = to_device(mask, "mask", device).expand(B, 1, H, W)
     # The model flow is computed in the prediction's dtype (half lifted to float32): float32
     # evaluates the road homography to about 1e-3 px, far below any network's error, at half
     # the cost of float64; a float64 prediction gets float64 geometry.

@@ -56,6 +56,7 @@ from .._check import (
     check_keywords,
     check_mapping,
     check_number,
+    check_same_device,
     check_shape,
     result_dtype,
     skip_values,
@@ -204,6 +205,7 @@ def forward_backward_mask(flow_forward: Tensor, flow_backward: Tensor, *, alpha1
     dims: dict[str, int] = {}
     _check_flow(flow_forward, "flow_forward", dims)
     _check_flow(flow_backward, "flow_backward", dims)
+    check_same_device({"flow_forward": flow_forward, "flow_backward": flow_backward})
     check_finite(flow_forward, "flow_forward")
     check_finite(flow_backward, "flow_backward")
     _check_weights(alpha1=alpha1, alpha2=alpha2)
@@ -275,6 +277,7 @@ def photometric_loss(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor 
     _check_images({"image1": image1, "image2": image2}, dims, data_range)
     _check_flow(flow, "flow", dims)
     _check_mask(mask, "mask", dims)
+    check_same_device({"image1": image1, "image2": image2, "flow": flow, "mask": mask})
     check_finite(flow, "flow")
     _check_ssim_size(ssim_weight, dims, "image1", tuple(image1.shape))
     value = _photometric(image1, image2, flow, mask, l1_weight, ssim_weight, census_weight, data_range)
@@ -339,6 +342,7 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
     dims: dict[str, int] = {}
     _check_flow(flow, "flow", dims)
     _check_images({"image": image}, dims, data_range)
+    check_same_device({"flow": flow, "image": image})
     check_finite(flow, "flow")
     return _reduce(_smoothness(flow, image, order, edge_weight, data_range), reduction)
 
@@ -408,6 +412,8 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
         for i, f in enumerate(group):
             _check_flow(f, f"{prefix}[{i}]", dims)
             check_finite(f, f"{prefix}[{i}]")
+    check_same_device({"image1": image1, "image2": image2, **{f"flows[{i}]": f for i, f in enumerate(fw)},
+                       **{f"flows_backward[{i}]": f for i, f in enumerate(bw or [])}})
     _check_ssim_size(ssim_weight, dims, "image1", tuple(image1.shape))
     mask_fw = mask_bw = None
     if bw is not None and occlusion:
@@ -529,6 +535,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
     if road is None:
         raise TypeError("road: expected a bool tensor (B, 1, H, W) (the freespace mask), got None")
     _check_mask(road, "road", dims)
+    check_same_device({**{f"flows[{i}]": f for i, f in enumerate(fw)}, "road": road})
     B, size = dims["B"], (dims["H"], dims["W"])
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (the flows' batch), got {camera.batch_size}")

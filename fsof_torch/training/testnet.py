@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_int, check_shape, skip_values
+from .._check import check_float_tensor, check_int, check_same_device, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -241,6 +241,7 @@ class TinyRAFT(nn.Module):
         check_float_tensor(image2, "image2")
         dims = check_shape(image1, "image1", ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
         check_shape(image2, "image2", ("B", 3, "H", "W"), dims, nonempty=("B", "H", "W"))
+        check_same_device({"image1": image1, "image2": image2})
         iters = self.iters if iters is None else check_int(iters, "iters", minimum=1)
         if not isinstance(final_only, bool):
             raise TypeError(f"final_only: expected a bool, got {type(final_only).__name__}")
