@@ -131,6 +131,20 @@ def test_batch_of_two_equals_one_by_one(scene_pair):
     assert two.flag == ["ok", "ok"]
 
 
+def test_a_motion_of_python_floats_is_taken_in_float64(scene_pair):
+    """A motion given as Python floats is the same motion as float64 tensors of those values: it
+    is built in float64, not rounded to float32 on the way (with a float64 camera the judged
+    heights moved by about 1e-7 m)."""
+    p = scene_pair
+    values = {k: v for k, v in p["plane"].items() if k != "height"}
+    cam = p["camera"].replace(height=p["plane"]["height"]).to(torch.float64)
+    images = (p["image1"][None].double(), p["image2"][None].double())
+    floats = detect_road(*images, cam, motion={"model": "plane", **values})
+    tensors = detect_road(*images, cam, motion={"model": "plane", **{
+        k: torch.tensor([v], dtype=torch.float64) for k, v in values.items()}})
+    assert torch.equal(floats.height, tensors.height) and torch.equal(floats.mask, tensors.mask)
+
+
 def test_a_fit_of_batch_1_judges_a_batch(small_pair):
     """A fit result of batch 1 (with its exposure gain) as the motion of a batch of two: each
     sample as alone (was: a RuntimeError reshaping the gain)."""

@@ -205,7 +205,7 @@ def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
         H, own = getattr(motion, "homography", None), getattr(motion, "camera", None)
         cam = (own if isinstance(own, Camera) and H is not None else camera).to(torch.float64)
         if H is None:
-            H = road_homography(cam, {k: torch.as_tensor(v, device=cam.device) for k, v in params.items()},
+            H = road_homography(cam, {k: torch.as_tensor(v, dtype=torch.float64, device=cam.device) for k, v in params.items()},
                                 model="homography")
         return "plane", plane_from_homography(H.to(torch.float64), cam)
     raise ValueError(f"motion: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
@@ -563,7 +563,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
 
     def judge(motion: Any) -> tuple[_Evidence, Tensor]:
         model, params = _plane_motion(motion, camera)
-        params = {k: torch.as_tensor(v, device=device).to(torch.float64) for k, v in params.items()}
+        params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in params.items()}
         f, valid = road_flow(cam_l.to(torch.float64), params, (h, w), model=model)
         raised, _ = road_flow(cam_l.to(torch.float64).replace(height=cam_l.height.to(torch.float64) - min_height_m),
                               params, (h, w), model=model)
