@@ -63,7 +63,9 @@ def write_clip(root: Path, frames: int, size: tuple[int, int], seed: int) -> lis
 
 
 def prefix(clip: Path, root: Path, frames: int) -> None:
-    """A clip of the first ``frames`` frames of ``clip`` (symbolic links)."""
+    """A clip of the first ``frames`` frames of ``clip`` (symbolic links, to absolute paths: a
+    relative target would be read from the link's own folder)."""
+    clip = clip.resolve()
     for d in ("images", "road"):
         (root / d).mkdir(parents=True)
         for f in sorted((clip / d).iterdir())[:frames if d == "images" else frames - 1]:

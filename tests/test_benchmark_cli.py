@@ -427,3 +427,25 @@ def test_check_options_names_the_option(cli, capsys):
     last = _error(capsys, cli.check_options, parser, {"bogus": 1}, "--options", fit, ("image", "init"))
     assert "--options: unknown options ['bogus'] of fit" in last
     assert "--options" in _error(capsys, cli.check_options, parser, {"init": 1}, "--options", fit, ("image", "init"))
+
+
+def test_clip_memory_links_a_kept_clip_given_by_a_relative_path(tmp_path, monkeypatch):
+    """``clip_memory.py --keep DIR`` with a relative DIR: the shorter clips it links in a temporary
+    folder reach the kept frames (a relative link target, read from the link's own folder, reached
+    nothing, and the job found 0 images)."""
+    spec = importlib.util.spec_from_file_location("benchmarks_clip_memory", BENCHMARKS / "clip_memory.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    clip = tmp_path / "kept"
+    for d, names in (("images", ("000000.png", "000001.png", "000002.png")), ("road", ("000000.png", "000001.png"))):
+        (clip / d).mkdir(parents=True)
+        for name in names:
+            (clip / d / name).write_bytes(d.encode())
+    (clip / "calib.txt").write_text("P0: 1 0 0 0 0 1 0 0 0 0 1 0\n")
+    monkeypatch.chdir(tmp_path)
+    part = tmp_path / "elsewhere" / "clip2"
+    module.prefix(Path("kept"), part, 2)
+    assert sorted(p.name for p in (part / "images").iterdir()) == ["000000.png", "000001.png"]
+    assert [p.read_bytes() for p in sorted((part / "images").iterdir())] == [b"images", b"images"]
+    assert [p.read_bytes() for p in (part / "road").iterdir()] == [b"road"]
+    assert (part / "calib.txt").read_text().startswith("P0:")
