@@ -1,0 +1,324 @@
+"""The documentation tells the truth to a user who copies from it: every internal link reaches a
+file and a heading, every Python example of docs/*.md runs (fragments with the inputs their page
+says the user has), the signatures the pages write out are the code's, the options tables name
+the options with their defaults, and docs/jobs.md lists exactly the jobs' options."""
+
+import argparse
+import ast
+import contextlib
+import importlib
+import inspect
+import io
+import re
+import sys
+import types
+import unicodedata
+from pathlib import Path
+
+import pytest
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ROOT / "docs"
+PAGES = [ROOT / "README.md", *sorted(DOCS.glob("*.md"))]
+FENCE = re.compile(r"^([ \t]*)```(\w*)\n(.*?)^\1```", re.S | re.M)
+
+
+def _without_fences(text: str) -> str:
+    return FENCE.sub(lambda m: "\n" * m.group(0).count("\n"), text)
+
+
+def _anchors(page: Path) -> set[str]:
+    """GitHub's heading anchors: lower case, punctuation dropped (not - or _), spaces to hyphens,
+    a repeated heading numbered -1, -2, ..."""
+    out, seen = set(), {}
+    for m in re.finditer(r"^#{1,6}\s+(.*?)\s*#*\s*$", _without_fences(page.read_text()), re.M):
+        text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", m.group(1)).replace("`", "").replace("*", "")
+        anchor = "".join(c for c in text.strip().lower()
+                         if c in " -_" or unicodedata.category(c)[0] in "LN").replace(" ", "-")
+        n = seen.get(anchor, 0)
+        seen[anchor] = n + 1
+        out.add(anchor if n == 0 else f"{anchor}-{n}")
+    return out
+
+
+def test_the_anchor_rule_is_githubs():
+    assert _anchors(DOCS / "jobs.md") >= {"python--m-refine", "resuming-and-fingerprints", "long-clips"}
+    assert "why-l1-alone-misleads-and-what-to-report-beside-it" in _anchors(DOCS / "evaluation.md")
+
+
+def test_internal_links_reach_a_file_and_a_heading():
+    broken = []
+    for page in PAGES:
+        text = _without_fences(page.read_text())
+        for m in re.finditer(r"\]\(([^)\s]+)\)", text):
+            target = m.group(1)
+            if re.match(r"[a-z]+:", target):
+                continue
+            path, _, anchor = target.partition("#")
+            file = (page.parent / path).resolve() if path else page
+            line = text[:m.start()].count("\n") + 1
+            if not file.exists():
+                broken.append(f"{page.name}:{line}: no file {target}")
+            elif anchor and anchor not in _anchors(file):
+                broken.append(f"{page.name}:{line}: no heading #{anchor} in {file.name}")
+    assert not broken, broken
+
+
+# -- the Python examples -----------------------------------------------------------------------
+
+# What each page's text says the user already has, at a small size so that the examples run fast.
+PRELUDE = """
+import torch, fsof_torch, fsof_torch as fs
+pair = fs.render_pair("default", 0, size=SIZE)
+image1, image2 = pair["image1"][None], pair["image2"][None]
+frame1, frame2, rgb1, rgb2 = image1, image2, image1, image2
+road = mask = pair["road"][None]
+valid = flow_valid = pair["valid"][None]
+camera, odometry = pair["camera"], pair["odometry"]
+flow_gt = pair["flow"][None]
+flow = flow_est = flow_gt + torch.randn(flow_gt.shape, generator=torch.Generator().manual_seed(0))
+"""
+
+# the size of the user's data: the page's own where its examples render a pair for the fragments after
+PAGE_SIZE = {"refinement.md": (188, 621)}
+
+PAGE_PRELUDE = {
+    # a Lightning checkpoint of the ptlflow stand-in, for the extraction example
+    "contracts.md": """
+from fsof_torch.training.standins import ptlflow_raft
+torch.save({"state_dict": ptlflow_raft().state_dict(), "epoch": 1}, "raft-things.ckpt")
+""",
+    "data-formats.md": """
+open("lanes.json", "w").write("[[[0, 374], [300, 250], [500, 374]], [[700, 374], [800, 260], [1000, 374]]]")
+""",
+    "evaluation.md": """
+loader = [{"flow_est": flow, "flow_gt": flow_gt, "road": road, "valid": valid}] * 2
+""",
+    "fitting.md": """
+fs.io.write_kitti_calibration("calib_cam_to_cam.txt", camera.K[0])
+""",
+    "image-fit.md": """
+paths = []
+for k, p in enumerate(fs.render_sequence("default", 2, size=(96, 320))):
+    paths.append(f"{k:06d}.png")
+    fs.write_image(paths[-1], p["image1"])
+paths.append("000002.png")
+fs.write_image(paths[-1], p["image2"])
+""",
+    "training.md": """
+from eval.__main__ import main as eval_main
+assert eval_main(["synth", "--preset", "default", "--pairs", "4", "--out", "runs/synth", "--size", "64", "224",
+                  "--no-progress"]) == 0
+""",
+}
+
+# (page, block index): why the block cannot run here
+SKIP = {
+    ("refinement.md", 3): "its last line calls a ptlflow network (contracts.md's example runs one: the stand-in)",
+}
+
+
+def _fake_external_packages(monkeypatch):
+    """ptlflow and torchvision as the examples use them, backed by the library's stand-ins."""
+    from fsof_torch.training import standins
+
+    ptlflow = types.ModuleType("ptlflow")
+    ptlflow.get_model = lambda name: standins.ptlflow_raft()
+    weights = types.SimpleNamespace(transforms=lambda: (lambda a, b: (a / 127.5 - 1, b / 127.5 - 1)))
+    optical_flow = types.ModuleType("torchvision.models.optical_flow")
+    optical_flow.Raft_Large_Weights = types.SimpleNamespace(DEFAULT=weights)
+    optical_flow.raft_large = lambda weights=None: standins.torchvision_raft()
+    models = types.ModuleType("torchvision.models")
+    models.optical_flow = optical_flow
+    torchvision = types.ModuleType("torchvision")
+    torchvision.models = models
+    for name, module in (("ptlflow", ptlflow), ("torchvision", torchvision), ("torchvision.models", models),
+                         ("torchvision.models.optical_flow", optical_flow)):
+        monkeypatch.setitem(sys.modules, name, module)
+
+
+def _python_blocks(page: Path) -> list[tuple[int, str]]:
+    import textwrap
+
+    text = page.read_text()
+    return [(text[:m.start()].count("\n") + 1, textwrap.dedent(m.group(3)))
+            for m in FENCE.finditer(text) if m.group(2) == "python"]
+
+
+def _runs(code: str) -> bool:
+    try:
+        compile(code, "<block>", "exec")
+    except SyntaxError:
+        return False
+    return True
+
+
+EXAMPLE_PAGES = [p.name for p in sorted(DOCS.glob("*.md")) if any(_runs(c) for _, c in _python_blocks(p))]
+
+
+@pytest.mark.parametrize("name", EXAMPLE_PAGES)
+def test_the_python_examples_of_a_page_run(name, tmp_path, monkeypatch):
+    """Each page's Python blocks in order, in one namespace (a fragment sees the blocks before it),
+    from an empty folder, with the inputs the page's text gives the user."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.syspath_prepend(str(ROOT))
+    _fake_external_packages(monkeypatch)
+    torch.manual_seed(0)
+    namespace = {"__name__": "__main__"}
+    namespace["SIZE"] = PAGE_SIZE.get(name, (96, 320))
+    exec(PRELUDE + PAGE_PRELUDE.get(name, ""), namespace)
+    ran = 0
+    for index, (line, code) in enumerate(_python_blocks(DOCS / name)):
+        if (name, index) in SKIP or not _runs(code):
+            continue
+        try:
+            with contextlib.redirect_stdout(io.StringIO()):
+                exec(compile(code, f"{name}:{line}", "exec"), namespace)
+        except Exception as error:  # noqa: BLE001 - the report names the block
+            raise AssertionError(f"docs/{name}, the block at line {line}: {type(error).__name__}: {error}") from error
+        ran += 1
+    assert ran
+
+
+# -- signatures written out --------------------------------------------------------------------
+
+def _resolve(name: str):
+    import fsof_torch
+
+    parts = name.split(".")
+    if parts[0] in ("fs", "fsof_torch"):
+        parts = parts[1:]
+    obj = fsof_torch
+    for part in parts:
+        obj = getattr(obj, part, None)
+        if obj is None:
+            return None
+    return obj
+
+
+def _written_signatures():
+    """Signatures the pages write out: a Python block that is not code, or an inline span, of the
+    form ``name(params)`` with a bare ``*`` or ``**name`` among the params."""
+    for page in PAGES:
+        text = page.read_text()
+        spans = [code for _, code in _python_blocks(page) if not _runs(code)]
+        spans += re.findall(r"`([^`]+)`", _without_fences(text))
+        for span in spans:
+            m = re.fullmatch(r"\s*([A-Za-z_][\w.]*)\((.*)\)\s*", span, re.S)
+            if not m or not re.search(r"(^|,)\s*\*\*?\w*\s*(,|$)", m.group(2)):
+                continue
+            obj = _resolve(m.group(1))
+            if obj is None or not callable(obj):
+                continue
+            yield page.name, m.group(1), m.group(2), obj
+
+
+def _parse_params(params: str):
+    """(name, kind, default or ..., has_default) of each written parameter; `...` marks a partial list."""
+    partial = "..." in params or "…" in params
+    params = re.sub(r",?\s*(\.\.\.|…)", "", params)
+    params = re.sub(r"=\s*(?=,|$)", "=_unwritten", params.replace("\\|", "|"))
+    tree = ast.parse(f"def f({params}): pass").body[0].args
+    out = []
+    positional = tree.posonlyargs + tree.args
+    defaults = [None] * (len(positional) - len(tree.defaults)) + list(tree.defaults)
+    for arg, default in zip(positional, defaults):
+        out.append((arg.arg, "positional", default))
+    for arg, default in zip(tree.kwonlyargs, tree.kw_defaults):
+        out.append((arg.arg, "keyword", default))
+    if tree.vararg:
+        out.append((tree.vararg.arg, "var", None))
+    if tree.kwarg:
+        out.append((tree.kwarg.arg, "varkw", None))
+    return out, partial
+
+
+def test_written_signatures_are_the_codes():
+    found, wrong = 0, []
+    for page, name, params, obj in _written_signatures():
+        found += 1
+        code = inspect.signature(obj).parameters
+        code = {k: v for k, v in code.items() if k != "self"}
+        written, partial = _parse_params(params)
+        starred = bool(re.search(r"(^|,)\s*\*\s*(,|$)", params))
+        partial = partial or all(kind == "varkw" for _, kind, _ in written)  # `f(**options)`: a sketch
+        for pname, kind, default in written:
+            where = f"{page}: {name}: {pname}"
+            if kind == "varkw":  # the options: **kwargs, or the keyword parameters not written
+                partial = partial or not any(p.kind is p.VAR_KEYWORD for p in code.values())
+                continue
+            if pname not in code:
+                wrong.append(f"{where}: no such parameter")
+                continue
+            p = code[pname]
+            if starred and (kind == "keyword") != (p.kind is p.KEYWORD_ONLY):
+                wrong.append(f"{where}: written {kind}, the code's is {p.kind.name}")
+            if default is not None:
+                try:
+                    value = ast.literal_eval(default)
+                except ValueError:
+                    continue
+                if isinstance(value, list):
+                    value = tuple(value)
+                if p.default is p.empty or p.default != value:
+                    wrong.append(f"{where}: written default {value!r}, the code's {p.default!r}")
+        if not partial:
+            missing = [k for k, v in code.items() if v.kind not in (v.VAR_KEYWORD, v.VAR_POSITIONAL)
+                       and k not in {w[0] for w in written}]
+            if missing:
+                wrong.append(f"{page}: {name}: the code's {missing} are not written (add them, or '...')")
+    assert found >= 10
+    assert not wrong, wrong
+
+
+def test_the_options_table_of_detect_road_is_its_signature():
+    """docs/auto-road.md's table: every option of detect_road with its default."""
+    from fsof_torch import detect_road
+
+    text = (DOCS / "auto-road.md").read_text()
+    table = text[text.index("| option | default | meaning |"):]
+    table = table[:table.index("\n\n")]
+    rows = {}
+    for line in table.splitlines()[2:]:
+        names, defaults = (cell.strip() for cell in line.strip("|").split("|")[:2])
+        names = re.findall(r"`(\w+)`", names)
+        defaults = [d.strip() for d in defaults.split(",")] if len(names) > 1 else [defaults]
+        rows.update(zip(names, defaults * len(names) if len(defaults) == 1 else defaults))
+    params = {k: v for k, v in inspect.signature(detect_road).parameters.items()
+              if v.kind is v.KEYWORD_ONLY}
+    assert set(rows) == set(params)
+    for name, written in rows.items():
+        default = params[name].default
+        if written in ("auto", "image estimator"):  # None, (), or what the function picks
+            assert default is None or default == (), (name, default)
+        else:
+            assert ast.literal_eval(written) == default, (name, written, default)
+
+
+# -- the jobs' options ---------------------------------------------------------------------------
+
+def _options(parser: argparse.ArgumentParser) -> set[str]:
+    return {s for a in parser._actions for s in a.option_strings if s.startswith("--") and s != "--help"}
+
+
+def test_jobs_md_lists_the_refine_jobs_options():
+    from refine.__main__ import build_parser
+
+    text = (DOCS / "jobs.md").read_text()
+    table = text[text.index("### Options"):text.index("The odometry variants:")]
+    written = set(re.findall(r"^\| `(--[\w-]+)|, `(--[\w-]+)", table, re.M))
+    written = {a or b for a, b in written}
+    assert written == _options(build_parser())
+
+
+@pytest.mark.parametrize("name", ["synth", "train", "tables", "noise", "vflow"])
+def test_jobs_md_lists_each_eval_subcommands_options(name):
+    text = (DOCS / "jobs.md").read_text()
+    start = text.index(f"- `{name}`: ", text.index("Options:\n\n- `synth`"))
+    item = text[start:text.index("\n- ", start + 1)] if "\n- " in text[start + 1:] else text[start:]
+    item = item[:item.index("\n\n")] if "\n\n" in item else item
+    parser = argparse.ArgumentParser()
+    importlib.import_module(f"eval.{name}").add_arguments(parser)
+    assert set(re.findall(r"`(--[\w-]+)", item)) >= _options(parser)
+    assert set(re.findall(r"`(--[\w-]+)", item)) <= _options(parser) | {"--kitti15"}
