@@ -296,6 +296,13 @@ def test_the_options_table_of_detect_road_is_its_signature():
             assert ast.literal_eval(written) == default, (name, written, default)
 
 
+def test_benchmarks_md_lists_every_script():
+    text = (DOCS / "benchmarks.md").read_text()
+    table = text[text.index("| script | measures | figures |"):]
+    listed = set(re.findall(r"^\| `(\w+\.py)`", table[:table.index("\n\n")], re.M))
+    assert listed == {p.name for p in (ROOT / "benchmarks").glob("*.py")}
+
+
 # -- the jobs' options ---------------------------------------------------------------------------
 
 def _options(parser: argparse.ArgumentParser) -> set[str]:
