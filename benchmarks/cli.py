@@ -85,6 +85,20 @@ def pair_count(minimum: int = 1, spacing: int = 1) -> Callable[[str], int]:
     return parse
 
 
+def frame_count(minimum: int = 2) -> Callable[[str], int]:
+    """An argparse type: a number n >= ``minimum`` of frames of a synthetic clip, frames 0 .. n - 1
+    (the pairs 0 .. n - 2, one frame apart), few enough that the last ends within the renderer's
+    frames (``MAX_FRAME``: n at most 100 001)."""
+
+    def parse(text: str) -> int:
+        from fsof_torch.data.scene.render import MAX_FRAME
+
+        return int_at_least(minimum, MAX_FRAME + 1, f" (frames from 0; the renderer's frames end at {MAX_FRAME})")(text)
+
+    parse.__name__ = f"frame_count_{minimum}"
+    return parse
+
+
 def odometry_error(parser: argparse.ArgumentParser, given: tuple[float, float] | None) -> tuple[float, float] | None:
     """``--odometry-error SCALE YAW_DEG`` (None: not given) checked before any work: a finite
     SCALE within [0.5, 2] (wheel odometry's distances are off by percents; 0 or a negative scale

@@ -123,11 +123,12 @@ def run_job(code: Path, clip: Path, out: Path, mounting: list[str]) -> tuple[flo
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import baseline_revision, description, int_at_least, scene_seed, size_hw
+    from cli import baseline_revision, description, frame_count, scene_seed, size_hw
 
     parser = argparse.ArgumentParser(description=description(__doc__))
-    parser.add_argument("--lengths", type=int_at_least(3), nargs="+", default=[11, 26, 51],
-                        help="clip lengths in frames, each at least 3 (default 11 26 51)")
+    parser.add_argument("--lengths", type=frame_count(3), nargs="+", default=[11, 26, 51],
+                        help="clip lengths in frames, each from 3 to 100 001 (frames 0 to 100 000, the "
+                             "renderer's last) (default 11 26 51)")
     parser.add_argument("--size", type=size_hw, default=(375, 1242), metavar="HxW", help="HxW (default: KITTI's)")
     parser.add_argument("--seed", type=scene_seed, default=0, help="the scene's seed, in [0, 2**62) (default 0)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR",

@@ -70,6 +70,7 @@ BAD = [
     ("bench_warp", ["--repeats", "3"], "--repeats"),  # (no options: unrecognised)
     ("clip_memory", ["--size", "abc"], "--size"),
     ("clip_memory", ["--lengths", "2"], "--lengths"),
+    ("clip_memory", ["--lengths", "11", "100002"], "--lengths"),  # (its last frame past the renderer's MAX_FRAME)
     ("clip_memory", ["--baseline", "no-such-revision"], "--baseline"),
     ("clip_memory", ["--seed", "-1"], "--seed"),
     ("clip_memory", ["--keep", f"{TMP}/file.txt"], "--keep"),
@@ -295,6 +296,19 @@ def test_pair_types_end_at_the_renderers_last_frame(cli):
     assert two(str(MAX_FRAME // 2)) == MAX_FRAME // 2
     with pytest.raises(argparse.ArgumentTypeError, match="pairs 2 frames apart"):
         two(str(MAX_FRAME // 2 + 1))
+
+
+def test_frame_count_ends_at_the_renderers_last_frame(cli):
+    """A clip of n frames from frame 0 ends at frame n - 1: at most MAX_FRAME, so n at most
+    MAX_FRAME + 1 (a longer one ended in the renderer's traceback after rendering the frames)."""
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    three = cli.frame_count(3)
+    assert three("3") == 3 and three(str(MAX_FRAME + 1)) == MAX_FRAME + 1
+    for bad in ("2", str(MAX_FRAME + 2), "x"):
+        with pytest.raises(argparse.ArgumentTypeError, match=rf"from 3 to {MAX_FRAME + 1} \(frames from 0; the "
+                                                             rf"renderer's frames end at {MAX_FRAME}\), got '{bad}'"):
+            three(bad)
 
 
 def test_odometry_error_bounds(cli, capsys):
