@@ -344,6 +344,27 @@ def test_non_finite_estimated_parameters_are_a_failed_estimate(small_pair):
     assert all(bool(torch.isfinite(v).all()) for v in two.motion.params.values())
 
 
+def test_refiner_auto_warn_false_silences_the_detections_warnings(small_pair):
+    """refine_flow(mask="auto", warn=False): no warning at all, the detection's included (an
+    estimate's non-finite parameters: it used to warn, twice, though the caller asked for none),
+    as with a mask tensor; the same result as with the warnings, which name the sample."""
+    p = small_pair
+    im1, im2 = (torch.cat([p[k]] * 2) for k in ("image1", "image2"))
+    flow = torch.cat([p["flow"]] * 2)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        loud = refine_flow(flow, "auto", p["camera"], images=(im1, im2), estimator=_NaNFits([0]))
+    said = [str(w.message) for w in caught]
+    assert any(m.startswith("estimator: samples [0] came back with non-finite parameters") for m in said), said
+    assert any(m.startswith("mask: the road was not found in samples [0]") for m in said), said
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet = refine_flow(flow, "auto", p["camera"], images=(im1, im2), estimator=_NaNFits([0]), warn=False)
+    assert [str(w.message) for w in caught] == []
+    assert quiet.road.flag == loud.road.flag == ["no_motion", "ok"] and quiet.refined.tolist() == [False, True]
+    assert torch.equal(quiet.flow, loud.flow) and torch.equal(quiet.road.mask, loud.road.mask)
+
+
 def test_estimated_motion_comes_at_the_images_size(small_pair):
     """The motion estimated here comes at the images' size (flow, validity, camera) whether or not
     it was fitted again on the road: a stopped vehicle (no road, no refit), refit=False, and the

@@ -17,6 +17,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_models import is_planar_odometry, road_motion_batch
 from .auto_road import ROAD_RESERVED, check_motion, detect_road
 from .contracts import collect_flows, finest_flow
+from .estimators import finite_estimate
 
 __all__ = ["refine_with_auto_road"]
 
@@ -34,6 +35,9 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     reason (one also names samples whose road was found but that the refinement left unchanged: a
     failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
+    ``warn=False`` silences the detection's warnings too (an estimate's non-finite parameters,
+    :func:`~fsof_torch.refinement.estimators.finite_estimate`), as the refinement's own with a mask
+    tensor; the estimator's own warnings pass, as they do there.
     ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch, on 0..255), or None.
     """
     if mask != "auto":
@@ -57,8 +61,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     starts = kw.pop("starts", ())
     # an estimate's inputs, where the motion is estimated (a non-finite pixel of the flow is left
     # out by the estimator, in its own sample only)
-    estimate = {} if complete else {"flow": finest.detach(), "estimator": road_estimator, "odometry": odometry,
-                                    "starts": starts}
+    estimate = {} if complete else {"flow": finest.detach(), "estimator": road_estimator if warn else
+                                    _QuietFailures(road_estimator), "odometry": odometry, "starts": starts}
     det = detect_road(image1, image2, camera.to(device=finest.device), motion=odometry if complete else None,
                       **estimate, **options)
     if warn and not all(det.ok.tolist()):
@@ -86,3 +90,15 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
                        for n in ("roll", "pitch"))
         cam = Camera._checked(cam.K, cam.height, roll, pitch)
     return out._replace(road=det, fit=det.motion if not complete else out.fit, camera=cam)
+
+
+class _QuietFailures:
+    """``estimator`` with its non-finite samples taken as failed estimates without a warning
+    (``finite_estimate(..., warn=False)``): the detection, which takes them so itself with one,
+    then finds them failed already (``warn=False``). Its own warnings pass."""
+
+    def __init__(self, estimator: Any) -> None:
+        self.estimator = estimator
+
+    def __call__(self, flow: Any, mask: Any, camera: Camera, **kw: Any) -> Any:
+        return finite_estimate(self.estimator(flow, mask, camera, **kw), camera, warn=False)
