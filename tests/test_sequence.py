@@ -124,6 +124,23 @@ def test_robust_mean_of_an_even_count_is_not_the_lower_value():
     assert _robust_mean(x, ok) == pytest.approx(0.0115, abs=1e-12)
 
 
+def test_robust_mean_of_fewer_than_five_leaves_none_out():
+    """Of 3 or 4 values the median absolute deviation is set by the nearer outer value: pitches of
+    1.00, 1.05 and 1.30 degrees (a spread the body's pitching gives) calibrated at the mean of the
+    first two, 1.30 dropped. Below five they all count; from five on an outlier is still left out."""
+    from fsof_torch.estimation.sequence import _robust_mean
+
+    deg = torch.tensor([1.00, 1.05, 1.30], dtype=torch.float64) * math.pi / 180
+    assert _robust_mean(deg, torch.ones(3, dtype=torch.bool)) == pytest.approx(float(deg.mean()), abs=1e-15)
+    four = torch.tensor([1.00, 1.05, 1.05, 1.30], dtype=torch.float64) * math.pi / 180
+    assert _robust_mean(four, torch.ones(4, dtype=torch.bool)) == pytest.approx(float(four.mean()), abs=1e-15)
+    # (failed pairs count for nothing: three successful ones of five)
+    x = torch.tensor([1.00, 9.0, 1.05, 1.30, -9.0], dtype=torch.float64)
+    assert _robust_mean(x, torch.tensor([True, False, True, True, False])) == pytest.approx(3.35 / 3, abs=1e-12)
+    five = torch.tensor([1.00, 1.02, 1.04, 1.06, 3.0], dtype=torch.float64)
+    assert _robust_mean(five, torch.ones(5, dtype=torch.bool)) == pytest.approx(1.03, abs=1e-12)
+
+
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
