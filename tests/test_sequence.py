@@ -124,21 +124,25 @@ def test_robust_mean_of_an_even_count_is_not_the_lower_value():
     assert _robust_mean(x, ok) == pytest.approx(0.0115, abs=1e-12)
 
 
-def test_robust_mean_of_fewer_than_five_leaves_none_out():
+def test_robust_mean_of_fewer_than_five_is_their_median():
     """Of 3 or 4 values the median absolute deviation is set by the nearer outer value: pitches of
     1.00, 1.05 and 1.30 degrees (a spread the body's pitching gives) calibrated at the mean of the
-    first two, 1.30 dropped. Below five they all count; from five on an outlier is still left out."""
+    first two, 1.30 dropped by a deviation 1.05 alone set. Below five the median stands in, which a
+    far value does not move either; from five on an outlier is still left out."""
     from fsof_torch.estimation.sequence import _robust_mean
 
+    ones = lambda n: torch.ones(n, dtype=torch.bool)  # noqa: E731
     deg = torch.tensor([1.00, 1.05, 1.30], dtype=torch.float64) * math.pi / 180
-    assert _robust_mean(deg, torch.ones(3, dtype=torch.bool)) == pytest.approx(float(deg.mean()), abs=1e-15)
-    four = torch.tensor([1.00, 1.05, 1.05, 1.30], dtype=torch.float64) * math.pi / 180
-    assert _robust_mean(four, torch.ones(4, dtype=torch.bool)) == pytest.approx(float(four.mean()), abs=1e-15)
+    assert _robust_mean(deg, ones(3)) == pytest.approx(1.05 * math.pi / 180, abs=1e-15)
+    far = torch.tensor([1.00, 1.05, 7.0], dtype=torch.float64)  # (a fit that succeeded far off)
+    assert _robust_mean(far, ones(3)) == pytest.approx(1.05, abs=1e-15)
+    four = torch.tensor([1.00, 1.04, 1.06, 9.0], dtype=torch.float64)
+    assert _robust_mean(four, ones(4)) == pytest.approx(1.05, abs=1e-12)
     # (failed pairs count for nothing: three successful ones of five)
     x = torch.tensor([1.00, 9.0, 1.05, 1.30, -9.0], dtype=torch.float64)
-    assert _robust_mean(x, torch.tensor([True, False, True, True, False])) == pytest.approx(3.35 / 3, abs=1e-12)
+    assert _robust_mean(x, torch.tensor([True, False, True, True, False])) == pytest.approx(1.05, abs=1e-12)
     five = torch.tensor([1.00, 1.02, 1.04, 1.06, 3.0], dtype=torch.float64)
-    assert _robust_mean(five, torch.ones(5, dtype=torch.bool)) == pytest.approx(1.03, abs=1e-12)
+    assert _robust_mean(five, ones(5)) == pytest.approx(1.03, abs=1e-12)
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")

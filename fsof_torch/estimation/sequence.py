@@ -7,8 +7,8 @@ previous pair's motion and a constant-velocity prediction besides fit_image's ow
 motion, straight ahead). Then:
 
 1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
-   the per-pair attitudes (of fewer than five, the mean): the body's pitching and rolling averages
-   out over a clip. With poses
+   the per-pair attitudes (of fewer than five, their median): the body's pitching and rolling
+   averages out over a clip. With poses
    (metric translations), the camera height follows as well (only d / h is observable from
    images), and the translations returned are in metres at that height. Failed fits calibrate
    nothing: where no pair's fit succeeds, the input camera's mounting stays and the second pass,
@@ -158,20 +158,21 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     return torch.tensor(x, dtype=dt, device=device), torch.tensor(var, dtype=dt, device=device).sqrt()
 
 
-#: the fewest values of which :func:`_robust_mean` leaves any out. Of fewer, the median absolute
-#: deviation is set by the nearer of the two outer values (of 3 it is its deviation, of 4 the mean of
-#: it and the middle two's half-gap), which then judges the other: a good pair was dropped where it
-#: lay 4.4 (of 4: 2.2) times as far off, as the body's pitching and rolling can put it. From 5 on,
-#: the inner values can set it.
+#: the fewest values of which :func:`_robust_mean` leaves any out by their deviation. Of fewer, the
+#: median absolute deviation is set by the nearer of the two outer values (of 3 it is its deviation,
+#: of 4 the mean of it and the middle two's half-gap), which then judges the other: a good pair was
+#: dropped where it lay 4.4 (of 4: 2.2) times as far off, as the body's pitching and rolling can put
+#: it. Of fewer the median stands in, which one far value (a fit that succeeded at a wrong attitude)
+#: cannot move either; from 5 on, the inner values can set the deviation.
 _MIN_REJECT = 5
 
 
 def _robust_mean(x: Tensor, ok: Tensor) -> float:
-    """The mean of the values within 3 median absolute deviations of their median, of all of them
-    below ``_MIN_REJECT`` values (success only: ``ok`` has at least one)."""
+    """The mean of the values within 3 median absolute deviations of their median; below
+    ``_MIN_REJECT`` values their median (success only: ``ok`` has at least one)."""
     v = x[ok]
     if v.numel() < _MIN_REJECT:
-        return float(v.mean())
+        return float(v.quantile(0.5))
     # (the median of an even count is the mean of the middle two: torch's ``median`` takes the lower,
     # which with two values made the deviation 0 and kept only the lower one)
     med = v.quantile(0.5)
