@@ -36,11 +36,13 @@ Prints five tables, single thread (the first two from the synthetic presets):
 With ``--yaw-deg D`` (``--pitch-change-deg``, ``--roll-change-deg``) the real pairs of tables 2 and 3
 are seen as by a camera that also turns between the frames (``real_road.turned``: image 2
 resampled through the rotation's homography, both frames and the polygon cropped to where it is
-defined): the real street's texture in a turn of known motion.
+defined): the real street's texture in a turn of known motion. With ``--reverse`` the real pairs'
+frames are swapped (before any turn): the road recedes, as when reversing or in the backward flow;
+the polygon stays the forward pair's.
 
 Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow] [--no-real]
      [--pairs 0 10 20 30]
-     [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D]
+     [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--reverse]
 """
 
 from __future__ import annotations
@@ -197,11 +199,13 @@ def slow_table() -> None:
 
 
 def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *, kitti15: bool = True,
-               clip: bool = True):
+               clip: bool = True, reverse: bool = False):
     """(name, image1, image2, camera, polygon mask) of the shared KITTI pair and the clip's pairs
-    (those of the two asked for); with a ``turn`` (yaw, pitch change, roll change in degrees),
-    image 2 as a camera that also turns so between the frames sees it, both frames and the polygon
-    cropped to where it is defined (``real_road.turned``)."""
+    (those of the two asked for); with ``reverse``, each pair's frames swapped (the road receding:
+    reversing, or the backward flow; the polygon stays the one drawn on the forward pair's image 1,
+    as ``real_road.reversed_pair`` keeps it); with a ``turn`` (yaw, pitch change, roll change in
+    degrees), image 2 as a camera that also turns so between the frames sees it, both frames and
+    the polygon cropped to where it is defined (``real_road.turned``)."""
     from fsof_torch import Camera
     from fsof_torch.data.folders import list_images
     from fsof_torch.io import read_image, read_road_mask
@@ -210,6 +214,8 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
     from real_road import turned
 
     def view(name, im1, im2, camera, poly):
+        if reverse:
+            im1, im2 = im2, im1
         if not any(turn):
             return name, im1, im2, camera, poly
         t = turned({"image1": im1[0], "image2": im2[0], "road": poly[0], "camera": camera}, *turn)
@@ -236,12 +242,12 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
 
 
 def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *, kitti15: bool = True,
-               clip: bool = True) -> None:
+               clip: bool = True, reverse: bool = False) -> None:
     from fsof_torch import detect_freespace, detect_road
 
     rows: dict[str, dict[str, list]] = {}
     pixels = (0, 0)  # the KITTI pair: its polygon, and the auto road outside it
-    for name, im1, im2, cam, poly in real_pairs(root, turn, kitti15=kitti15, clip=clip):
+    for name, im1, im2, cam, poly in real_pairs(root, turn, kitti15=kitti15, clip=clip, reverse=reverse):
         group = name.rstrip("0123456789 ")
         flow = dis(im1, im2)
         with warnings.catch_warnings():
@@ -261,7 +267,8 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
             r["flagged"] += flag not in ("", "ok")
             if name == "kitti15 pair" and method == "auto road (images)":
                 pixels = (int(poly.sum()), int((m & ~poly).sum()))
-    turned = f", image 2 turned by yaw {turn[0]:g}°, pitch {turn[1]:g}°, roll {turn[2]:g}°" if any(turn) else ""
+    turned = (", frames swapped" if reverse else "") + (
+        f", image 2 turned by yaw {turn[0]:g}°, pitch {turn[1]:g}°, roll {turn[2]:g}°" if any(turn) else "")
     print(f"\nReal KITTI{turned}: share of the mask inside road.json's polygon, share of the polygon covered")
     print(f"{'data':>15} {'method':>19} {'pairs':>5} {'inside mean':>11} {'inside min':>10} {'cover mean':>10} "
           f"{'cover min':>9} {'empty':>5} {'flagged':>7}")
@@ -274,12 +281,13 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
         print(f"kitti15 pair: the polygon holds {pixels[0]} pixels of the frame; the auto road has {pixels[1]} outside it")
 
 
-def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0, 0.0, 0.0)) -> None:
+def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0, 0.0, 0.0),
+               reverse: bool = False) -> None:
     from cli import median_ms
     from fsof_torch import detect_road, refine_flow
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
-    name, im1, im2, cam, poly = next(real_pairs(root, turn, clip=False))
+    name, im1, im2, cam, poly = next(real_pairs(root, turn, clip=False, reverse=reverse))
     flow = dis(im1, im2)
     motion = detect_road(im1, im2, cam, flow=flow).motion
     estimator = ImageMotionEstimator()
@@ -324,6 +332,9 @@ def main(argv=None) -> int:
                         help="the real pairs' image 2 as seen by a camera also turned by this yaw (real_road.py's)")
     parser.add_argument("--pitch-change-deg", type=float, default=0.0, help="likewise, a pitch change")
     parser.add_argument("--roll-change-deg", type=float, default=0.0, help="likewise, a roll change")
+    parser.add_argument("--reverse", action="store_true",
+                        help="the real pairs' frames swapped: the road receding (reversing, or the backward "
+                             "flow; real_road.py's); with a turn, swapped first")
     args = parser.parse_args(argv)
     turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)
     for option, degrees in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
@@ -340,9 +351,9 @@ def main(argv=None) -> int:
             kitti15 = present(data / KITTI15[0], KITTI15[1], f"KITTI pair {KITTI15[0]}")
             clip = present(data / CLIP[0], CLIP[1], f"KITTI clip {CLIP[0]}")
             if kitti15 or clip:
-                real_table(data, turn, kitti15=kitti15, clip=clip)
+                real_table(data, turn, kitti15=kitti15, clip=clip, reverse=args.reverse)
             if kitti15:
-                time_table(data, args.repeat, turn)
+                time_table(data, args.repeat, turn, args.reverse)
         else:
             print(f"\n{data} is absent: no real-data tables")
     if not args.no_slow:

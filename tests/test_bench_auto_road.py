@@ -33,6 +33,21 @@ def test_turned_real_pairs_are_real_road_turned(bench, load_benchmark, shared_da
     assert not torch.equal(t2, im2[..., :t2.shape[-2], :t2.shape[-1]])
 
 
+def test_reversed_real_pairs_swap_the_frames_before_the_turn(bench, load_benchmark, shared_data):
+    """``--reverse``: each real pair's frames swapped, the forward pair's polygon kept (as
+    ``real_road.reversed_pair`` keeps it); with a turn, the swapped pair is turned."""
+    if not (shared_data / "kitti15_000000").is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    name, im1, im2, camera, poly = next(bench.real_pairs(shared_data))
+    name_r, r1, r2, camera_r, poly_r = next(bench.real_pairs(shared_data, reverse=True))
+    assert name_r == name and torch.equal(r1, im2) and torch.equal(r2, im1) and torch.equal(poly_r, poly)
+    assert torch.equal(camera_r.K, camera.K)
+    *_, t1, t2, _, poly_t = next(bench.real_pairs(shared_data, (6.0, 0.0, 0.0), reverse=True))
+    ref = load_benchmark("real_road").turned({"image1": im2[0], "image2": im1[0], "road": poly[0], "camera": camera},
+                                             6.0, 0.0, 0.0)
+    assert torch.equal(t1[0], ref["image1"]) and torch.equal(t2[0], ref["image2"]) and torch.equal(poly_t[0], ref["road"])
+
+
 TURN_OPTIONS = ("--yaw-deg", "--pitch-change-deg", "--roll-change-deg")
 
 
