@@ -14,9 +14,9 @@ import torch
 
 from fsof_torch import Camera, decompose_homography, road_flow, road_homography
 from fsof_torch.estimation import pyramid as P
-from fsof_torch.estimation.confidence import backward_correlation, warped_samples
+from fsof_torch.estimation.confidence import backward_correlation, detail_correlation, matched_gain, warped_samples
 from fsof_torch.estimation.initial import homography_dlt, planar_motion, planar_start
-from fsof_torch.estimation.sampling import pixel_coordinates, sample_mask
+from fsof_torch.estimation.sampling import pixel_coordinates, points_grid, sample_mask
 from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
 from fsof_torch.estimation.starts import screened_start, turn_moves
 from fsof_torch.geometry.road_models import get_road_model, pack_params
@@ -370,6 +370,54 @@ def test_warped_samples_reads_the_frames_bounds_once():
     n = int(points.bounds[2])
     v, u = divmod(int(points.every[n]) % (H * W), W)
     assert torch.equal(I1[:, n], image1[2, :, v, u].double()) and I2.shape == (2, points.every.numel())
+
+
+# -- the image fit's tests at every mask pixel: written in place, the plain formulas bit for bit ---
+
+def test_pixel_coordinates_and_points_grid_are_the_plain_formulas():
+    g = torch.Generator().manual_seed(0)
+    pix = torch.randint(0, 37 * 53, (2, 500), generator=g)
+    for dtype in (torch.float64, torch.float32):
+        plain = torch.stack([pix % 53, torch.div(pix, 53, rounding_mode="floor"), torch.ones_like(pix)], 1)
+        assert torch.equal(pixel_coordinates(pix, 53, dtype), plain.to(dtype))
+    xy = torch.rand(2, 2, 500, generator=g, dtype=torch.float64) * 60 - 5
+    plain = torch.stack([xy[:, 0] * (2.0 / 52) - 1.0, xy[:, 1] * (2.0 / 36) - 1.0], dim=-1).unsqueeze(1)
+    for dtype, grid_dtype in ((torch.float64, torch.float64), (torch.float32, torch.float32),
+                              (torch.float16, torch.float32)):
+        grid, inb = points_grid(xy, (37, 53), dtype)
+        assert torch.equal(grid, plain.to(grid_dtype))
+        assert torch.equal(inb, (xy[:, 0] >= -1e-6) & (xy[:, 0] <= 52 + 1e-6) & (xy[:, 1] >= -1e-6)
+                           & (xy[:, 1] <= 36 + 1e-6))
+
+
+@pytest.mark.parametrize("B", [1, 3])
+def test_matched_gain_and_detail_correlation_are_the_plain_formulas(B):
+    g = torch.Generator().manual_seed(1)
+    points = sample_mask(torch.rand(B, 1, 30, 40, generator=g) > 0.4, None)
+    M = points.every.numel()
+    I1 = torch.rand(M, generator=g, dtype=torch.float64) * 200
+    I2 = 0.8 * I1 + 20 + torch.randn(M, generator=g, dtype=torch.float64) * torch.rand(M, generator=g) * 30
+    ok = torch.rand(M, generator=g) > 0.2
+    kept = (I1.clone(), I2.clone())
+    w = usable = ok.to(torch.float64)
+    for _ in range(3):  # (matched_gain's defining passes, as plain tensor expressions)
+        n = points.per_frame(w).clamp_min(1e-12)
+        m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
+        s1 = points.per_frame(w * (I1 - points.per_pixel(m1)).abs()) / n
+        s2 = points.per_frame(w * (I2 - points.per_pixel(m2)).abs()) / n
+        gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
+        offset = m1 - gain * m2
+        w = usable / (1.0 + ((points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1) / 10.0).square())
+    got = matched_gain(I1, I2, ok, points, 10.0)
+    assert torch.equal(got[0], gain) and torch.equal(got[1], offset)
+    w = ok.to(torch.float64)
+    n = points.per_frame(w).clamp_min(1.0)
+    x = I1 - points.per_pixel(points.per_frame(w * I1) / n)
+    y = I2 - points.per_pixel(points.per_frame(w * I2) / n)
+    sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
+    den = (sxx * syy).sqrt()
+    assert torch.equal(detail_correlation(I1, I2, ok, points), torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0))
+    assert torch.equal(I1, kept[0]) and torch.equal(I2, kept[1])  # (the caller's values untouched)
 
 
 # -- robust_weight / robust_cost: the scale ------------------------------------------------------

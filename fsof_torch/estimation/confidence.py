@@ -33,7 +33,8 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
     would copy whole frames)."""
     B, _, H, W = images1[0].shape
     every = points.every
-    uv = pixel_coordinates((every % (H * W)).unsqueeze(0), W)[0, :2]  # (the pixel within its frame)
+    within = every if B == 1 else every % (H * W)  # (the pixel within its frame)
+    uv = pixel_coordinates(within.unsqueeze(0), W)[0, :2]
     xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
     I1 = torch.cat([im.transpose(0, 1).reshape(im.shape[1], -1).gather(1, every.expand(im.shape[1], -1))
                     .to(torch.float64) for im in images1])
@@ -80,12 +81,15 @@ def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, 
 def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, points: MaskPoints) -> Tensor:
     """(B,) the correlation (zero-mean, normalised) of image 1's values ``x`` and image 2's ``y``
     at the mask's pixels in view (``ok``; :func:`warped_samples`), of the images as the fit
-    compared them (the finest level's band); 0 where either has no variance there."""
+    compared them (the finest level's band); 0 where either has no variance there. Not
+    differentiable (the fit judges without autograd)."""
     w = ok.to(torch.float64)
     n = points.per_frame(w).clamp_min(1.0)
     x = x - points.per_pixel(points.per_frame(w * x) / n)
     y = y - points.per_pixel(points.per_frame(w * y) / n)
-    sxy, sxx, syy = points.per_frame(w * x * y), points.per_frame(w * x * x), points.per_frame(w * y * y)
+    wx, wy = w * x, w * y  # (weighted once: w x y, w x x and w y y multiply them on)
+    sxy = points.per_frame(wx * y)
+    sxx, syy = points.per_frame(wx.mul_(x)), points.per_frame(wy.mul_(y))
     den = (sxx * syy).sqrt()
     return torch.where(den > 0, sxy / den.clamp_min(1e-300), 0.0)
 
@@ -127,19 +131,26 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
 
     Matching the spreads, not regressing one image on the other: under a wrong flow the samples
     do not correspond, and a regression's gain would shrink toward 0, making any flow over a
-    plain road look right; the spreads' ratio stays the images' contrast ratio.
+    plain road look right; the spreads' ratio stays the images' contrast ratio. Not differentiable
+    (the fit judges without autograd).
     """
     w = usable = ok.to(torch.float64)
+    # the per-point terms written into one scratch tensor, and the weights into another: the fit
+    # judges every mask pixel, where a new tensor per term (some twenty per pass) cost more than
+    # the arithmetic (python benchmarks/bench_image_fit.py --baseline)
+    term = torch.empty_like(usable, dtype=torch.promote_types(torch.promote_types(I1.dtype, I2.dtype), usable.dtype))
+    weights = torch.empty_like(term)
     gain = offset = None
     for _ in range(iterations + 1):
         n = points.per_frame(w).clamp_min(1e-12)
-        m1, m2 = points.per_frame(w * I1) / n, points.per_frame(w * I2) / n
-        s1 = points.per_frame(w * (I1 - points.per_pixel(m1)).abs()) / n
-        s2 = points.per_frame(w * (I2 - points.per_pixel(m2)).abs()) / n
+        m1, m2 = points.per_frame(torch.mul(w, I1, out=term)) / n, points.per_frame(torch.mul(w, I2, out=term)) / n
+        s1 = points.per_frame(torch.sub(I1, points.per_pixel(m1), out=term).abs_().mul_(w)) / n  # Σ w |I1 - m1|
+        s2 = points.per_frame(torch.sub(I2, points.per_pixel(m2), out=term).abs_().mul_(w)) / n
         gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
         offset = m1 - gain * m2
-        r = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1) / threshold
-        w = usable / (1.0 + r.square())
+        # r = (gain I2 + offset - I1) / threshold, w = usable / (1 + r²)
+        r = torch.mul(I2, points.per_pixel(gain), out=term).add_(points.per_pixel(offset)).sub_(I1).div_(threshold)
+        w = torch.div(usable, r.square_().add_(1.0), out=weights)
     return gain, offset
 
 

@@ -95,9 +95,15 @@ def _subsample(every: Tensor, bounds: Tensor, HW: int, max_points: int | None) -
 
 def pixel_coordinates(pix: Tensor, width: int, dtype: torch.dtype = torch.float64) -> Tensor:
     """Homogeneous pixel coordinates (B, 3, N) (u, v, 1) of flat indices (B, N)."""
-    u = (pix % width).to(dtype)
-    v = torch.div(pix, width, rounding_mode="floor").to(dtype)
-    return torch.stack([u, v, torch.ones_like(u)], dim=1)
+    # (the column from the row: one integer division, not a division and a remainder; written
+    # into one tensor, not stacked: the image fit's tests take every mask pixel's, python
+    # benchmarks/bench_image_fit.py --baseline)
+    v = torch.div(pix, width, rounding_mode="floor")
+    out = torch.empty((pix.shape[0], 3, pix.shape[1]), dtype=dtype, device=pix.device)
+    torch.sub(pix, v * width, out=out[:, 0])
+    out[:, 1] = v
+    out[:, 2] = 1.0
+    return out
 
 
 def gather_pixels(x: Tensor, pix: Tensor) -> Tensor:
@@ -138,9 +144,11 @@ def points_grid(xy: Tensor, size: tuple[int, int], dtype: torch.dtype) -> tuple[
     x, y = xy[:, 0], xy[:, 1]
     s = BORDER_SLACK
     inb = (x >= -s) & (x <= W - 1 + s) & (y >= -s) & (y <= H - 1 + s)
-    gx = x * (2.0 / max(W - 1, 1)) - 1.0
-    gy = y * (2.0 / max(H - 1, 1)) - 1.0
-    return torch.stack([gx, gy], dim=-1).unsqueeze(1).to(_at_least_float32(dtype)), inb
+    # (each coordinate written into the grid in its dtype: no stacked copy in xy's dtype first)
+    grid = xy.new_empty((xy.shape[0], 1, xy.shape[2], 2), dtype=_at_least_float32(dtype))
+    grid[:, 0, :, 0] = x * (2.0 / max(W - 1, 1)) - 1.0
+    grid[:, 0, :, 1] = y * (2.0 / max(H - 1, 1)) - 1.0
+    return grid, inb
 
 
 def sample_at_grid(image: Tensor, grid: Tensor) -> Tensor:
