@@ -508,7 +508,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         if images is None:
             raise ValueError("images: a gate judges the flows by the images; pass images=(image1, image2)")
         gate_result = the_gate(images[0], images[1], finest, f_model_finest, fuse_mask)
-        region = fuse_mask & gate_result.model_used.reshape(B, 1, 1, 1)
+        region = usable(fuse_mask, gate_result.model_used)
         fuse_mask = gate_result.use_model
         refined = refined & gate_result.model_used
     gated = fuse_mask  # the gate's decision (coarser levels resample it)
@@ -526,9 +526,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                               stacklevel=3)
     # a sample where the model applies nowhere (no mask pixel where it is defined, a gate that keeps
     # the prediction everywhere; no NaN replaced) comes back unchanged, as odometry given or not
-    refined = refined & fuse_mask.flatten(1).any(1)
+    refined = refined & (fuse_mask.view(torch.uint8).flatten(1).amax(1) > 0)  # (bytes: a bool any() is slower)
     if gate_result is not None:
-        region = region & refined.reshape(B, 1, 1, 1)
+        region = usable(region, refined)
     if warn and not tracing() and not bool(refined.all()):
         bad = (~refined).nonzero().flatten().tolist()
         warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined, a "
