@@ -104,6 +104,58 @@ def test_same_seed_same_weights_and_rng_untouched():
     assert any(not torch.equal(pa, pc) for pa, pc in zip(a.state_dict().values(), c.state_dict().values()))
 
 
+def test_seeded_weights_of_concurrent_builds():
+    """Nets built in several threads at once, while another thread draws from the global random
+    state, are those a lone build gives; and that thread's numbers are its own seed's."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    lone = {s: TinyRAFT(seed=s, iters=1, feature_dim=8, hidden_dim=8, context_dim=8).state_dict() for s in range(4)}
+
+    def build(s):
+        return TinyRAFT(seed=s, iters=1, feature_dim=8, hidden_dim=8, context_dim=8).state_dict()
+
+    def draw():
+        torch.manual_seed(123)
+        return [torch.rand(100) for _ in range(300)]
+
+    with torch.random.fork_rng(devices=[]):  # (the global state as it was, after the test)
+        expected = draw()
+        for _ in range(3):
+            with ThreadPoolExecutor(5) as pool:
+                drawn = pool.submit(draw)
+                built = {s: pool.submit(build, s) for s in range(4)}
+                for s, future in built.items():
+                    state = future.result()
+                    assert all(torch.equal(state[k], lone[s][k]) for k in state), s
+                assert all(torch.equal(a, b) for a, b in zip(drawn.result(), expected))
+
+
+def test_a_build_seeds_no_accelerator(monkeypatch):
+    """The seed stays with the net: no device's global generator is seeded (torch.manual_seed
+    would seed every CUDA device's too)."""
+    seeded = []
+    monkeypatch.setattr(torch.cuda, "manual_seed_all", lambda seed: seeded.append(seed))
+    monkeypatch.setattr(torch.cuda, "manual_seed", lambda seed: seeded.append(seed))
+    state = torch.get_rng_state()
+    TinyRAFT(seed=7, iters=1)
+    assert seeded == [] and torch.equal(state, torch.get_rng_state())
+
+
+def test_weights_are_torchs_default_initialisation():
+    """The weights are the default initialisation of torch's layers drawn from the seed in the
+    order they are built (the same numbers as ``torch.manual_seed(seed)`` and building the net)."""
+    import torch.nn as nn
+
+    net = TinyRAFT(seed=11, iters=1)
+    convs = [m for m in net.modules() if isinstance(m, nn.Conv2d)]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(11)
+        again = [nn.Conv2d(m.in_channels, m.out_channels, m.kernel_size, stride=m.stride, padding=m.padding)
+                 for m in convs]
+    for i, (a, b) in enumerate(zip(convs, again)):
+        assert torch.equal(a.weight, b.weight) and torch.equal(a.bias, b.bias), i
+
+
 def test_state_dict_round_trip(tmp_path):
     a = TinyRAFT(seed=5, iters=2)
     torch.save(a.state_dict(), tmp_path / "net.pt")

@@ -14,6 +14,8 @@ pixels) and crops its outputs back.
 
 from __future__ import annotations
 
+import math
+
 import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
@@ -182,9 +184,10 @@ class TinyRAFT(nn.Module):
     """A miniature RAFT: list of full-resolution flows, one per refinement iteration.
 
     Args:
-        seed: an int with 0 <= seed < 2**64; the weights are drawn from ``torch.manual_seed(seed)``
-            inside a forked RNG, so the same seed gives the same net and the global random state
-            is left untouched.
+        seed: an int with 0 <= seed < 2**64; the weights are torch's default initialisation drawn
+            from a generator of the net's own seeded with it (the numbers ``torch.manual_seed(seed)``
+            and a build would draw), so the same seed gives the same net, also built in several
+            threads at once, and no global random state (CPU or CUDA) is read or changed.
         iters: default number of GRU iterations (the length of the returned list).
         feature_dim: channels of the matching features.
         hidden_dim, context_dim: channels of the GRU state and of the context features.
@@ -215,11 +218,25 @@ class TinyRAFT(nn.Module):
         self.context_dim = context_dim
         self.corr_levels = corr_levels
         self.corr_radius = corr_radius
-        with torch.random.fork_rng(devices=[]):
-            torch.manual_seed(seed)
+        device = torch.empty(0).device  # (the default device, a ``with torch.device(...)``'s)
+        with torch.device("meta"):  # (shapes only: nothing drawn)
             self.fnet = _Encoder(feature_dim, norm=True)
             self.cnet = _Encoder(hidden_dim + context_dim, norm=False)
             self.update = _UpdateBlock(corr_levels * (2 * corr_radius + 1) ** 2, hidden_dim, context_dim)
+        self.to_empty(device="cpu")
+        # torch's default initialisation of every convolution, in the order they were built, from a
+        # generator of the net's own: the numbers of ``torch.manual_seed(seed)`` and a build, without
+        # reading or seeding any global generator (another thread's draws, a build in another thread,
+        # the CUDA devices' seeds, which torch.manual_seed sets, are left alone)
+        generator = torch.Generator().manual_seed(seed)
+        with torch.no_grad():
+            for module in self.modules():
+                if isinstance(module, nn.Conv2d):
+                    nn.init.kaiming_uniform_(module.weight, a=math.sqrt(5), generator=generator)
+                    bound = 1 / math.sqrt(module.weight[0].numel())  # (1 / sqrt(fan_in), as nn.Conv2d)
+                    nn.init.uniform_(module.bias, -bound, bound, generator=generator)
+        if device.type != "cpu":
+            self.to(device)
 
     def forward(self, image1: Tensor, image2: Tensor, iters: int | None = None, *,
                 final_only: bool = False) -> list[Tensor]:
