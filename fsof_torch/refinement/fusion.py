@@ -694,7 +694,7 @@ class FreespaceRefiner(nn.Module):
                     fit_roll=self.fit_roll, fit_pitch=self.fit_pitch, fit_options=self.fit_options,
                     photometric_options=self.photometric_options)
 
-    def extra_repr(self) -> str:
-        extra = f", scale={self.scale}" if self.mode == "confidence" else ""
-        how = f"fit={self.fit!r}" if self.fit is not None else f"estimator={self.estimator!r}"
-        return f"mode={self.mode!r}{extra}, {how}, gate={self.gate!r}"
+    def extra_repr(self) -> str:  # mode (scale), the estimator (or fit) and the gate; the rest where not the default
+        o, default, how = self.refine_options(), FreespaceRefiner.__init__.__kwdefaults__, "fit" if self.fit else "estimator"
+        keys = ["mode", *(["scale"] if self.mode == "confidence" else []), how, "gate"]
+        return ", ".join(f"{k}={o[k]!r}" for k in keys + [k for k in o if k not in keys and o[k] not in (default[k], {})])

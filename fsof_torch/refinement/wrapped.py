@@ -190,6 +190,10 @@ class FreespaceRefined(nn.Module):
                              camera=info.camera.cropped(padding.left, padding.top, padding.right, padding.bottom))
         return flow, info
 
+    def extra_repr(self) -> str:
+        options = f", road_options={self.road_options!r}" if self.road_options else ""
+        return f"road={self.road!r}{options}, pad={self.pad!r}, image_range={self.image_range!r}"
+
     def _refine_auto(self, output: Any, finest: Tensor, camera: Camera, odometry: object,
                      images: tuple[Tensor, Tensor], padding: Padding | None) -> RefineOutput:
         """``refine_flow(output, "auto", camera, odometry, images=images)`` with the refiner's
