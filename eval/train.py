@@ -409,7 +409,12 @@ def run(args: argparse.Namespace) -> int:
     device = torch.device(args.device)
     ranks = _join_process_group(device)
     try:
-        return _train_and_report(args, device, ranks)
+        status = _train_and_report(args, device, ranks)
+        if ranks.distributed:  # (the others wait for rank 0's evaluation and report: a process group
+            import torch.distributed as dist  # torn down while a peer still holds it aborted a rank)
+
+            dist.barrier()
+        return status
     finally:
         if ranks.distributed:
             import torch.distributed as dist
