@@ -39,13 +39,15 @@ every pair is first seen at FACTOR times the resolution (:func:`resized`), as wh
 on smaller frames; its end-point errors are in the resized frames' pixels. With ``--reverse`` every
 pair's frames are swapped and the clip's pairs taken last to first (:func:`reversed_pair`): the
 backward flow a forward-backward check computes, or the street driven in reverse; there is no
-ground-truth flow then.
+ground-truth flow then. With ``--mirror`` every pair is mirrored left to right (:func:`mirrored`):
+the same street seen from its other side, its curves turning the other way, with the camera's
+principal point and mounting roll mirrored: a check that nothing favours one side.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -497,6 +499,30 @@ def reversed_pair(pair: dict) -> dict:
     return out
 
 
+def mirrored(pair: dict) -> dict:
+    """``pair`` mirrored left to right: the same street as a car driving on its other side would see
+    it, a curve turning the other way. Both frames, the road, the ground-truth flow (its horizontal
+    component negated) and its valid pixels flipped; the camera's principal point mirrored
+    (c_x' = W − 1 − c_x) and its mounting roll negated; the relative pose conjugated by the
+    reflection of the camera's x axis."""
+    flip = lambda x: x.flip(-1).contiguous()  # noqa: E731
+    cam = pair["camera"]
+    W = pair["image1"].shape[-1]
+    K = cam.K.clone()
+    K[..., 0, 2] = (W - 1) - K[..., 0, 2]
+    out = {**pair, "camera": cam.replace(K=K, roll=-cam.roll)}
+    for key in ("image1", "image2", "road", "valid"):
+        if pair.get(key) is not None:
+            out[key] = flip(pair[key])
+    if pair.get("flow") is not None:
+        f = flip(pair["flow"])
+        out["flow"] = torch.stack([-f[0], f[1]]).contiguous()
+    if pair.get("relative_pose") is not None:
+        S = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0], dtype=torch.float64))
+        out["relative_pose"] = S @ pair["relative_pose"].to(torch.float64) @ S
+    return out
+
+
 def exposed(pair: dict, gain: float) -> dict:
     """``pair`` with image 2 ``gain`` times as bright: clipped to 0..255 and rounded, as an 8-bit
     camera records a change of exposure between the frames."""
@@ -581,6 +607,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--reverse", action="store_true",
                         help="swap every pair's frames, and take the clip's pairs last to first: the backward "
                              "flow, or the street driven in reverse (no ground-truth flow then)")
+    parser.add_argument("--mirror", action="store_true",
+                        help="mirror every pair left to right first (frames, road, ground truth, camera, poses): "
+                             "the street seen from its other side")
     parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
                         help="make the poses' odometry wrong as wheel odometry is: its translation SCALE times as "
                              "long, its yaw YAW_DEG degrees a frame more (default 1 0: as measured)")
@@ -658,7 +687,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
-                              "resize": args.resize, "reverse": args.reverse,
+                              "resize": args.resize, "reverse": args.reverse, "mirror": args.mirror,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
@@ -680,6 +709,8 @@ def main(argv: list[str] | None = None) -> int:
         data, run_methods = pairs(root), dict(methods)
         if args.reverse:  # (last to first: image 2 of a pair is image 1 of the next, a clip to fit)
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
+        if args.mirror:
+            data = [(name, lambda load=load: mirrored(load())) for name, load in data]
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
@@ -701,6 +732,8 @@ def main(argv: list[str] | None = None) -> int:
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         if args.reverse:
             step += ", frames swapped (the backward flow)"
+        if args.mirror:
+            step += ", mirrored left to right"
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
         if args.resize != 1.0:

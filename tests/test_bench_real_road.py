@@ -455,6 +455,46 @@ def test_reversed_pair_swaps_the_frames_inverts_the_pose_and_drops_the_forward_t
     assert rr.reversed_pair({**pair, "relative_pose": None})["relative_pose"] is None
 
 
+def test_mirrored_pair_is_the_street_seen_from_its_other_side(rr, pair):
+    """Mirrored, the pair's ground truth is the mirrored camera's road flow under the mirrored
+    pose (as the original's is the original camera's), its pose's lateral step, yaw and roll
+    change turn over, and mirroring twice gives the pair back; the caller's pair is left alone."""
+    from fsof_torch import plane_from_pose, road_flow
+
+    before = {k: pair[k].clone() for k in ("image1", "image2", "road", "flow", "valid", "relative_pose")}
+    out = rr.mirrored(pair)
+    for k, v in before.items():
+        assert torch.equal(pair[k], v), k
+    W = pair["image1"].shape[-1]
+    assert torch.equal(out["image1"], pair["image1"].flip(-1)) and torch.equal(out["road"], pair["road"].flip(-1))
+    assert torch.equal(out["flow"][0], -pair["flow"][0].flip(-1)) and torch.equal(out["flow"][1], pair["flow"][1].flip(-1))
+    assert float(out["camera"].K[0, 0, 2]) == (W - 1) - float(pair["camera"].K[0, 0, 2])
+    assert float(out["camera"].roll[0]) == -float(pair["camera"].roll[0])
+    cams = [p["camera"].to(torch.float64) for p in (pair, out)]
+    motions = [plane_from_pose(p["relative_pose"][None].double(), c) for p, c in zip((pair, out), cams)]
+    for k, v in motions[0].items():
+        sign = -1.0 if k in ("yaw", "roll_change", "x_d", "roll") else 1.0
+        assert abs(float(motions[1][k]) - sign * float(v)) < 1e-12, k
+    # the model flow of each pose through each camera matches each pair's ground truth alike
+    errors = []
+    for p, c, m in zip((pair, out), cams, motions):
+        flow, valid = road_flow(c, m, tuple(p["image1"].shape[-2:]), model="plane")
+        on = p["road"] & p["valid"] & valid[0]
+        errors.append((flow[0] - p["flow"]).norm(dim=0)[on[0]])
+    assert float(errors[0].mean()) < 0.05
+    assert torch.allclose(errors[0].sort().values, errors[1].sort().values, atol=1e-4)
+    twice = rr.mirrored(out)
+    for k in before:
+        assert torch.allclose(twice[k].double(), pair[k].double(), atol=1e-12), k
+    assert torch.equal(twice["camera"].K, pair["camera"].K) and torch.equal(twice["camera"].roll, pair["camera"].roll)
+    assert rr.mirrored({**pair, "flow": None, "valid": None, "relative_pose": None})["flow"] is None
+
+
+def test_main_mirrored_says_so_and_records_it(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--mirror")
+    assert "2 pair(s), mirrored left to right" in printed and report["mirror"] is True
+
+
 def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
     assert "2 pair(s), frames swapped (the backward flow)" in printed

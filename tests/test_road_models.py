@@ -505,3 +505,33 @@ def test_matrix_checks_types_and_shapes_and_promotes_dtypes():
         nan = m.matrix_and_jacobian(cam32, torch.full((1, 5), float("nan"), dtype=torch.float64))[0]
     assert torch.isnan(nan).all()
     assert not [e.name for e in prof.events() if e.name in ("aten::_local_scalar_dense", "aten::nonzero", "aten::item")]
+
+
+# -- symmetry: the street seen from its other side ------------------------------------------------
+
+# the parameters whose sign a left-right reflection of the world (the camera's x axis) turns over
+MIRRORED = {"paper": ("x_d", "yaw", "roll"), "plane": ("yaw", "roll_change", "x_d", "roll"),
+            "velocity": ("yaw_rate", "roll")}
+
+
+@settings(max_examples=20, deadline=None)
+@given(p=plane_params, height=st.floats(1.0, 2.5), model=st.sampled_from(sorted(MIRRORED)))
+def test_mirrored_camera_and_motion_give_the_mirrored_road_flow(p, height, model):
+    """Mirrored left to right (the principal point to W - 1 - c_x, the lateral motion, yaw and
+    roll negated), every model's road flow is the original's, mirrored with its horizontal
+    component negated: the models favour neither side of the road (DESIGN.md §10's signs)."""
+    names = ROAD_MODELS[model].params
+    values = {"speed": 12.0, "yaw_rate": 10 * p["yaw"], **p}
+    params = {n: values[n] for n in names}
+    # (a principal point off the pixel grid: no pixel lies exactly on the horizon, where rounding
+    # would decide its validity differently on the two sides)
+    K = torch.tensor([[90.0, 0.0, 60.3], [0.0, 95.0, 14.2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam = Camera(K, height)
+    mirror_cam = cam.replace(K=K.clone().index_put_((torch.tensor(0), torch.tensor(2)),
+                                                    torch.tensor((SIZE[1] - 1) - 60.3, dtype=torch.float64)))
+    mirror_params = {n: -v if n in MIRRORED[model] else v for n, v in params.items()}
+    flow, valid = road_flow(cam, params, SIZE, model=model)
+    got, got_valid = road_flow(mirror_cam, mirror_params, SIZE, model=model)
+    assert torch.equal(got_valid, valid.flip(-1))
+    expected = flow.flip(-1) * torch.tensor([-1.0, 1.0], dtype=flow.dtype).reshape(1, 2, 1, 1)
+    assert torch.allclose(got[got_valid.expand_as(got)], expected[got_valid.expand_as(got)], atol=1e-9, rtol=1e-9)
