@@ -41,13 +41,16 @@ pair's frames are swapped and the clip's pairs taken last to first (:func:`rever
 backward flow a forward-backward check computes, or the street driven in reverse; there is no
 ground-truth flow then. With ``--mirror`` every pair is mirrored left to right (:func:`mirrored`):
 the same street seen from its other side, its curves turning the other way, with the camera's
-principal point and mounting roll mirrored: a check that nothing favours one side.
+principal point and mounting roll mirrored: a check that nothing favours one side. With
+``--mask-grow PX`` the methods are given the road polygon grown by PX pixels (negative: shrunk;
+:func:`grown`), as a loosely drawn or segmented road mask; the figures stay over the polygon, and
+where the mask reaches beyond it the notes give the census (and EPE) there.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -125,7 +128,7 @@ def ecc_homography(image1: Tensor, image2: Tensor, road: Tensor, flow_dis: Tenso
 
 def ecc_flow(pair: dict, flow_dis: Tensor) -> tuple[Tensor, dict]:
     """ECC's road flow (2, H, W) (DIS's where the homography maps behind the camera)."""
-    H, ok = ecc_homography(pair["image1"], pair["image2"], pair["road"], flow_dis)
+    H, ok = ecc_homography(pair["image1"], pair["image2"], given_mask(pair), flow_dis)
     flow, valid = homography_flow(H, tuple(flow_dis.shape[-2:]))
     return torch.where(valid, flow, flow_dis), {"ecc_failed": not ok}
 
@@ -139,7 +142,7 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
     refiner = FreespaceRefiner(estimator=ImageMotionEstimator(**options)) if options else FreespaceRefiner()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # an unrefined pair is counted, not warned about
-        out = refiner(flow_dis[None], pair["road"][None], pair["camera"], odometry, images=images)
+        out = refiner(flow_dis[None], given_mask(pair)[None], pair["camera"], odometry, images=images)
     motion = {"z_d": float(out.odometry["z_d"][0]), "yaw_deg": math.degrees(float(out.odometry["yaw"][0]))}
     info = {"refined": bool(out.refined[0]), "motion": motion, "model_flow": out.flow_model[0].detach()}
     if out.gate is not None:
@@ -211,7 +214,8 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
     loaded = [load() for _, load in pairs]
     frames = [p["image1"] for p in loaded] + [loaded[-1]["image2"]]
     t0 = time.process_time()
-    seq = fit_sequence(frames, [p["road"] for p in loaded], loaded[0]["camera"].to(torch.float64), progress=progress)
+    seq = fit_sequence(frames, [given_mask(p) for p in loaded], loaded[0]["camera"].to(torch.float64),
+                       progress=progress)
     share = (time.process_time() - t0) / len(loaded)
     mounting = {"pitch_deg": math.degrees(seq.mounting["pitch"]), "roll_deg": math.degrees(seq.mounting["roll"])}
     print(f"fit_sequence calibrated the mounting at pitch {mounting['pitch_deg']:+.3f} deg, "
@@ -229,18 +233,33 @@ def clip_method(pairs: list[tuple[str, Callable[[], dict]]], progress: bool) -> 
 
 # -- measuring ------------------------------------------------------------------------------------
 
+def given_mask(pair: dict) -> Tensor:
+    """The mask the methods are given: the road polygon, or with ``--mask-grow`` the polygon grown
+    or shrunk (:func:`grown`)."""
+    return pair.get("mask", pair["road"])
+
+
 def road_errors(pair: dict, flow: Tensor, flow_dis: Tensor) -> dict[str, float]:
     """Road census, SSIM, L1 (and EPE with ground truth) of ``flow`` inside the road, DIS's flow
-    elsewhere (the windows of census and SSIM near the polygon's edge see both)."""
-    from fsof_torch import photometric_errors
+    elsewhere (the windows of census and SSIM near the polygon's edge see both). A method's flow
+    counts inside the mask it was given (:func:`given_mask`); where that mask reaches beyond the
+    road, the census there (``ring_census``) and, with ground truth, the EPE there (``ring_epe``)."""
+    from fsof_torch import endpoint_error, photometric_errors
 
-    road = pair["road"][None]
-    combined = torch.where(road, flow[None], flow_dis[None])
-    errors = photometric_errors(pair["image1"][None], pair["image2"][None], combined, road, return_count=True)
+    road, given = pair["road"][None], given_mask(pair)[None]
+    combined = torch.where(given, flow[None], flow_dis[None])
+    images = pair["image1"][None], pair["image2"][None]
+    errors = photometric_errors(*images, combined, road, return_count=True)
     out = {kind: float(mean[0]) for kind, (mean, _) in errors.items()}
     out["n_census"] = int(errors["census"][1][0])
     if pair.get("flow") is not None:
-        out["epe"], out["n_epe"] = road_epe(pair, flow)
+        out["epe"], out["n_epe"] = road_epe(pair, combined[0])
+    ring = given & ~road
+    if bool(ring.any()):
+        out["ring_census"] = float(photometric_errors(*images, combined, ring, kinds=("census",))["census"][0])
+        if pair.get("flow") is not None:
+            out["ring_epe"] = float(endpoint_error(combined, pair["flow"][None].to(flow.dtype), ring,
+                                                   pair["valid"][None])[0])
     return out
 
 
@@ -286,7 +305,7 @@ def summarize(per_pair: list[dict[str, dict]]) -> list[dict[str, Any]]:
     for name in names:
         runs = [r for r in per_pair if name in r]
         row: dict[str, Any] = {"method": name, "pairs": len(runs)}
-        for key in ("census", "ssim", "l1", "epe", "epe_model", "seconds"):
+        for key in ("census", "ssim", "l1", "epe", "epe_model", "ring_census", "ring_epe", "seconds"):
             values = [r[name][key] for r in runs if key in r[name]]
             if values:
                 row[key] = float(np.mean(values))
@@ -338,6 +357,9 @@ def table(rows: list[dict[str, Any]]) -> str:
             notes.append(f"the gate kept the prediction in {r['cells_kept']} cell(s)")
         if "epe_model" in r:
             notes.append(f"model alone EPE {r['epe_model']:.2f}")
+        if "ring_census" in r:
+            ring_epe = f", EPE {r['ring_epe']:.2f}" if "ring_epe" in r else ""
+            notes.append(f"in the mask beyond the road: census {r['ring_census']:.4f}{ring_epe}")
         worse = "–" if r["method"] == "DIS" else f"{r['worse_than_dis']} (max {r['max_worse_than_dis']:+.3f})"
         lines.append("| " + " | ".join([r["method"], str(r["pairs"]), f(r.get("census"), 4), f(r.get("ssim"), 4),
                                          f(r.get("l1"), 2), f(r.get("epe"), 2), f(r.get("seconds"), 3), worse,
@@ -523,6 +545,27 @@ def mirrored(pair: dict) -> dict:
     return out
 
 
+def grown(pair: dict, pixels: int) -> dict:
+    """``pair`` with a ``mask`` for the methods: the road polygon grown by ``pixels`` (OpenCV's
+    dilation by a disc of that radius; negative: shrunk by the erosion), as a loosely drawn or
+    segmented road mask takes in kerbs, verges and cars or leaves out the road's edges. The
+    figures stay over the polygon (:func:`road_errors`)."""
+    import cv2
+
+    if pixels == 0:
+        return dict(pair)
+    road = pair["road"][0].numpy().astype(np.uint8)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * abs(pixels) + 1,) * 2)
+    mask = cv2.dilate(road, disc) if pixels > 0 else cv2.erode(road, disc)
+    if not mask.any():
+        raise EmptyMask(f"--mask-grow: a road polygon shrunk by {-pixels} px is empty: shrink it less")
+    return {**pair, "mask": torch.from_numpy(mask.astype(bool))[None]}
+
+
+class EmptyMask(ValueError):
+    """A road polygon shrunk to nothing (``--mask-grow``): the run stops with exit status 2."""
+
+
 def exposed(pair: dict, gain: float) -> dict:
     """``pair`` with image 2 ``gain`` times as bright: clipped to 0..255 and rounded, as an 8-bit
     camera records a change of exposure between the frames."""
@@ -610,6 +653,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror", action="store_true",
                         help="mirror every pair left to right first (frames, road, ground truth, camera, poses): "
                              "the street seen from its other side")
+    parser.add_argument("--mask-grow", type=int, default=0, metavar="PX",
+                        help="give the methods the road polygon grown by PX pixels (negative: shrunk), as a loose "
+                             "road mask; the figures stay over the polygon (default 0)")
     parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
                         help="make the poses' odometry wrong as wheel odometry is: its translation SCALE times as "
                              "long, its yaw YAW_DEG degrees a frame more (default 1 0: as measured)")
@@ -687,7 +733,7 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
-                              "resize": args.resize, "reverse": args.reverse, "mirror": args.mirror,
+                              "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow, "mirror": args.mirror,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
@@ -711,6 +757,8 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.mirror:
             data = [(name, lambda load=load: mirrored(load())) for name, load in data]
+        if args.mask_grow:
+            data = [(name, lambda load=load: grown(load(), args.mask_grow)) for name, load in data]
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
@@ -722,16 +770,23 @@ def main(argv: list[str] | None = None) -> int:
         # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
         changed = any(turn) or args.exposure_gain != 1.0
         mounting = None
-        if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
-            name, method, mounting = clip_method(data, not args.no_progress)
-            run_methods[name] = (None, method)
-        result = measure(key, data, run_methods, not args.no_progress)
+        try:
+            if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
+                name, method, mounting = clip_method(data, not args.no_progress)
+                run_methods[name] = (None, method)
+            result = measure(key, data, run_methods, not args.no_progress)
+        except EmptyMask as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
         if mounting is not None:
             result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
         if args.reverse:
             step += ", frames swapped (the backward flow)"
+        if args.mask_grow:
+            step += f", the methods given the polygon {'grown' if args.mask_grow > 0 else 'shrunk'} by " \
+                    f"{abs(args.mask_grow)} px"
         if args.mirror:
             step += ", mirrored left to right"
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)

@@ -495,6 +495,38 @@ def test_main_mirrored_says_so_and_records_it(rr, scenes, tmp_path, capsys):
     assert "2 pair(s), mirrored left to right" in printed and report["mirror"] is True
 
 
+def test_grown_gives_the_methods_a_looser_or_tighter_mask_and_the_figures_stay_on_the_road(rr, pair):
+    """``grown`` adds a ``mask`` (the polygon dilated or eroded by a disc), leaves the road polygon
+    and the caller's pair alone; the methods get it, the road figures stay over the polygon, and
+    the census (and EPE) in the mask beyond the road are reported."""
+    road = pair["road"].clone()
+    wide, narrow = rr.grown(pair, 4), rr.grown(pair, -2)
+    assert torch.equal(pair["road"], road) and "mask" not in pair and "mask" not in rr.grown(pair, 0)
+    assert torch.equal(wide["road"], road) and bool((wide["mask"] >= road).all()) and bool((wide["mask"] & ~road).any())
+    assert bool((narrow["mask"] <= road).all()) and bool((road & ~narrow["mask"]).any())
+    assert rr.given_mask(wide) is wide["mask"] and rr.given_mask(pair) is pair["road"]
+    with pytest.raises(rr.EmptyMask, match=r"^--mask-grow: a road polygon shrunk by 200 px is empty"):
+        rr.grown(pair, -200)
+    dis = pair["flow"] + 1.0
+    errors = rr.road_errors(wide, pair["flow"], dis)
+    on_road = rr.road_errors(pair, pair["flow"], dis)
+    # (the census windows at the polygon's edge see the flow beyond it: here the true one, not DIS's)
+    assert errors["epe"] == on_road["epe"] and errors["census"] <= on_road["census"]
+    assert errors["ring_epe"] == pytest.approx(0.0, abs=1e-6) and 0.0 <= errors["ring_census"] <= 1.0
+    assert "ring_census" not in on_road
+    # shrunk, the road outside the mask keeps DIS's flow (1.41 px off)
+    assert rr.road_errors(narrow, pair["flow"], dis)["epe"] > on_road["epe"] + 0.1
+
+
+def test_main_with_a_grown_mask_says_so_and_reports_beyond_the_road(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--mask-grow", "6", "--no-sequence")
+    assert "2 pair(s), the methods given the polygon grown by 6 px" in printed and report["mask_grow"] == 6
+    assert "in the mask beyond the road: census" in printed
+    assert all("ring_census" in r for r in report["clip"]["rows"] if r["method"] != "DIS")
+    assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "-300", "--no-ecc", "--no-progress"]) == 2
+    assert "error: --mask-grow: a road polygon shrunk by 300 px is empty" in capsys.readouterr().err
+
+
 def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
     assert "2 pair(s), frames swapped (the backward flow)" in printed
