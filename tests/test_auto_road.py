@@ -342,6 +342,15 @@ def test_non_finite_estimated_parameters_are_a_failed_estimate(small_pair):
     assert two.flag == ["no_motion", alone.flag[0]] and alone.flag == ["ok"]
     assert not bool(two.usable_mask[0].any()) and torch.equal(two.mask[1], alone.mask[0])
     assert all(bool(torch.isfinite(v).all()) for v in two.motion.params.values())
+    # warn=False: the same detection, without the warning
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet = detect_road(torch.cat([im1] * 2), torch.cat([im2] * 2), p["camera"], flow=torch.cat([flow] * 2),
+                            refit=False, edges=False, estimator=_NaNFits([0]), warn=False)
+    assert [str(w.message) for w in caught] == [] and quiet.flag == two.flag
+    assert torch.equal(quiet.mask, two.mask)
+    with pytest.raises(TypeError, match=r"^warn: expected True or False, got str 'no'"):
+        detect_road(im1, im2, p["camera"], warn="no")
 
 
 def test_refiner_auto_warn_false_silences_the_detections_warnings(small_pair):

@@ -17,7 +17,6 @@ from ..geometry.camera import Camera
 from ..geometry.road_models import is_planar_odometry, road_motion_batch
 from .auto_road import ROAD_RESERVED, check_motion, detect_road
 from .contracts import collect_flows, finest_flow
-from .estimators import finite_estimate
 
 __all__ = ["refine_with_auto_road"]
 
@@ -61,10 +60,10 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     starts = kw.pop("starts", ())
     # an estimate's inputs, where the motion is estimated (a non-finite pixel of the flow is left
     # out by the estimator, in its own sample only)
-    estimate = {} if complete else {"flow": finest.detach(), "estimator": road_estimator if warn else
-                                    _QuietFailures(road_estimator), "odometry": odometry, "starts": starts}
+    estimate = {} if complete else {"flow": finest.detach(), "estimator": road_estimator, "odometry": odometry,
+                                    "starts": starts}
     det = detect_road(image1, image2, camera.to(device=finest.device), motion=odometry if complete else None,
-                      **estimate, **options)
+                      warn=warn, **estimate, **options)
     if warn and not all(det.ok.tolist()):
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
         warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
@@ -91,14 +90,3 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         cam = Camera._checked(cam.K, cam.height, roll, pitch)
     return out._replace(road=det, fit=det.motion if not complete else out.fit, camera=cam)
 
-
-class _QuietFailures:
-    """``estimator`` with its non-finite samples taken as failed estimates without a warning
-    (``finite_estimate(..., warn=False)``): the detection, which takes them so itself with one,
-    then finds them failed already (``warn=False``). Its own warnings pass."""
-
-    def __init__(self, estimator: Any) -> None:
-        self.estimator = estimator
-
-    def __call__(self, flow: Any, mask: Any, camera: Camera, **kw: Any) -> Any:
-        return finite_estimate(self.estimator(flow, mask, camera, **kw), camera, warn=False)

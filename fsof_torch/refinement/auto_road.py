@@ -66,7 +66,8 @@ from .road_region import erode_mask, focus_of_expansion, follow_edges, road_regi
 __all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
 
 #: detect_road's arguments the refiner sets itself: refused in ``road_options``, by name
-ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range")
+ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range",
+                 "warn")
 
 #: the flags of :class:`RoadDetection`, in the order they are checked ("ok" when none applies; "empty" also
 #: first, for a seed with no pixel in the image, and right after "no_motion", for a seed none of whose windows
@@ -435,7 +436,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
                 max_height_m: float = 0.3, slow_max_height_m: float | None = 1.2, z: float = 2.0, window: int = 7,
                 height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01,
-                edges: bool = True) -> RoadDetection:
+                edges: bool = True, warn: bool = True) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
     the road plane (see the module for the method).
 
@@ -481,6 +482,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         edges: within half a height window of the boundary the windows found (in pixels of the
             images), the boundary follows image 1's edges (a marker-controlled watershed,
             :func:`~fsof_torch.refinement.road_region.follow_edges`). False: the windows' boundary.
+        warn: an estimated motion whose parameters are not all finite is a failed estimate (flagged
+            ``"no_motion"``) with a ``RuntimeWarning`` naming the samples; False: without it.
 
     Returns:
         :class:`RoadDetection`.
@@ -498,7 +501,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
      z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
-    edges, refit = check_bool(edges, "edges"), check_bool(refit, "refit")
+    edges, refit, warn = check_bool(edges, "edges"), check_bool(refit, "refit"), check_bool(warn, "warn")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
@@ -520,7 +523,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     estimator = estimator if estimator is not None else ImageMotionEstimator()
 
     def estimate(f: Tensor | None, m: Tensor, cam: Camera, **kw: Any) -> Any:  # (non-finite parameters: failed)
-        return finite_estimate(estimator(f, m, cam, **kw), cam)
+        return finite_estimate(estimator(f, m, cam, **kw), cam, warn=warn)
     # the geometry at the working resolution (the seed and the region live there)
     cam_l = _level_camera(camera, level)
     h, w = H >> level, W >> level
