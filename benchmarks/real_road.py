@@ -50,7 +50,7 @@ With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same l
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -370,12 +370,13 @@ def table(rows: list[dict[str, Any]]) -> str:
 
 # -- the data -------------------------------------------------------------------------------------
 
-def kitti15(root: Path, height: float) -> list[tuple[str, Callable[[], dict]]]:
-    """A KITTI 2015 pair (``kitti15_000000``'s layout): images, camera (P_rect_02), road.json,
-    ground truth where flow_noc_10.png is there; named after its folder."""
+def kitti15(root: Path, height: float, roll_deg: float = 0.0) -> list[tuple[str, Callable[[], dict]]]:
+    """A KITTI 2015 pair (``kitti15_000000``'s layout): images, camera (P_rect_02, ``height`` m
+    over the road, rolled by ``roll_deg``), road.json, ground truth where flow_noc_10.png is there;
+    named after its folder."""
     from fsof_torch.datasets import KittiSampleDataset
 
-    dataset = KittiSampleDataset(root, camera_height=height, camera_dtype=torch.float64)
+    dataset = KittiSampleDataset(root, camera_height=height, roll=math.radians(roll_deg), camera_dtype=torch.float64)
     return [(dataset.pairs[0].name, lambda: dataset[0])]
 
 
@@ -392,17 +393,20 @@ def clip_frames(root: Path | None) -> int | None:
         return None
 
 
-def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1) -> list[tuple[str, Callable[[], dict]]]:
+def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
+                  roll_deg: float = 0.0) -> list[tuple[str, Callable[[], dict]]]:
     """The straight clip: pairs of images ``step`` frames apart, (0, step), (step, 2 step), ...
     (every ``step``-th frame: the clip driven ``step`` times as fast, or recorded at 1 / ``step``
     of its rate), with the relative pose inverse(P_b) @ P_a of its frames a and b where poses.txt
     has both (line n for frame NNNNNN = n, by the file names, not by position; none without
-    poses.txt: the methods that need poses are left out)."""
+    poses.txt: the methods that need poses are left out). The camera: ``height`` m over the road,
+    pitched by ``pitch_deg`` and rolled by ``roll_deg``."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
 
     dataset = ImageFolderDataset(root / "image_l", root / "calib.txt", cam=0, camera_height=height,
-                                 pitch=math.radians(pitch_deg), road=root / "road.json", camera_dtype=torch.float64,
+                                 roll=math.radians(roll_deg), pitch=math.radians(pitch_deg), road=root / "road.json",
+                                 camera_dtype=torch.float64,
                                  step=step)
     poses = read_kitti_poses(root / "poses.txt") if (root / "poses.txt").is_file() else torch.empty(0, 4, 4)
 
@@ -633,6 +637,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--height", type=float, default=1.65, help="camera height, m (default 1.65)")
     parser.add_argument("--pitch-deg", type=float, default=0.0,
                         help="the clip's camera pitch for the refiner, degrees (default 0: the calibration has none)")
+    parser.add_argument("--roll-deg", type=float, default=0.0,
+                        help="the camera roll for the refiner on both data sets, degrees (default 0: the "
+                             "calibration has none)")
     parser.add_argument("--step", type=int, default=1,
                         help="clip pairs this many frames apart, every step-th frame, at most the clip's frames "
                              "less one (default 1; 3: about 130 km/h at 10 Hz instead of 43)")
@@ -680,6 +687,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--height: expected a positive height in m, got {args.height}")
     if not (math.isfinite(args.pitch_deg) and abs(args.pitch_deg) < 45):
         parser.error(f"--pitch-deg: expected a number of degrees within (-45, 45), got {args.pitch_deg}")
+    if not (math.isfinite(args.roll_deg) and abs(args.roll_deg) < 45):
+        parser.error(f"--roll-deg: expected a number of degrees within (-45, 45), got {args.roll_deg}")
     import cv2
 
     if not args.no_ecc and not hasattr(cv2, "findTransformECCWithMask"):
@@ -736,8 +745,9 @@ def main(argv: list[str] | None = None) -> int:
                               "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow, "mirror": args.mirror,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
-    for key, pairs in (("kitti15", lambda root: kitti15(root, args.height)),
-                       ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step)[:args.pairs])):
+    for key, pairs in (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
+                       ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
+                                                           args.roll_deg)[:args.pairs])):
         root = folders.get(key)
         if root is None:
             continue

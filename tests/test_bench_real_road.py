@@ -527,6 +527,28 @@ def test_main_with_a_grown_mask_says_so_and_reports_beyond_the_road(rr, scenes, 
     assert "error: --mask-grow: a road polygon shrunk by 300 px is empty" in capsys.readouterr().err
 
 
+def test_the_roll_given_reaches_both_data_sets_cameras(rr, scenes, tmp_path, capsys):
+    """``--roll-deg`` is the camera roll the refiner is given, on the clip (and the KITTI pair,
+    through the same dataset option); out of (-45, 45) it is refused before any work."""
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--roll-deg", "1.5", "--no-sequence")
+    pairs = rr.odometry_clip(tmp_path / "data" / "kitti_odometry_straight", 1.65, 0.5, roll_deg=-2.0)
+    cam = pairs[0][1]()["camera"]
+    assert float(cam.roll[0]) == pytest.approx(math.radians(-2.0)) and float(cam.pitch[0]) == pytest.approx(
+        math.radians(0.5))
+    assert report["options"]["roll_deg"] == 1.5 and "| refiner (no odometry) | 2 |" in printed
+    for bad in ("45", "nan"):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), "--roll-deg", bad])
+        assert exit_.value.code == 2 and "--roll-deg: expected a number of degrees within (-45, 45), got" in \
+            capsys.readouterr().err
+
+
+def test_the_roll_given_reaches_the_kitti_pairs_camera(rr, shared_data):
+    pair = rr.kitti15(shared_data / "kitti15_000000", 1.4, roll_deg=2.5)[0][1]()
+    assert float(pair["camera"].roll[0]) == pytest.approx(math.radians(2.5))
+    assert float(pair["camera"].height[0]) == pytest.approx(1.4)
+
+
 def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
     assert "2 pair(s), frames swapped (the backward flow)" in printed
