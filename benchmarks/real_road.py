@@ -147,6 +147,11 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
     info = {"refined": bool(out.refined[0]), "motion": motion, "model_flow": out.flow_model[0].detach()}
     if out.gate is not None:
         info["cells_kept"] = int(out.gate.cells_kept[0])
+        # (the JSON's per-pair results: the gate's mean ring census of each flow over the mask,
+        # and whether the images confirmed the model there)
+        info["gate"] = {"census_model": float(out.gate.cost_model[0]), "census_prediction":
+                        float(out.gate.cost_prediction[0]), "confirmed": bool(out.gate.confirmed[0]),
+                        "informative": bool(out.gate.informative[0])}
     return out.flow[0].detach(), info
 
 
@@ -767,14 +772,14 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.mirror:
             data = [(name, lambda load=load: mirrored(load())) for name, load in data]
-        if args.mask_grow:
-            data = [(name, lambda load=load: grown(load(), args.mask_grow)) for name, load in data]
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
             data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
         if args.exposure_gain != 1.0:
             data = [(name, lambda load=load: exposed(load(), args.exposure_gain)) for name, load in data]
+        if args.mask_grow:  # (last: the polygon as resized or turned)
+            data = [(name, lambda load=load: grown(load(), args.mask_grow)) for name, load in data]
         if (scale, yaw_error) != (1.0, 0.0):
             data = [(name, lambda load=load: {**load(), "odometry_error": (scale, yaw_error)}) for name, load in data]
         # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)

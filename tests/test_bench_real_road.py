@@ -149,6 +149,9 @@ def test_refiner_reports_the_model_flows_own_error_and_the_cells_kept(rr, pair, 
     if bool(out.gate.use_model[0][pair["road"]].all()):
         assert r["epe_model"] == pytest.approx(r["epe"], rel=1e-5)
     assert "model_flow" not in r  # the tensor is not kept in the results
+    assert r["gate"] == {"census_model": float(out.gate.cost_model[0]),
+                         "census_prediction": float(out.gate.cost_prediction[0]),
+                         "confirmed": bool(out.gate.confirmed[0]), "informative": bool(out.gate.informative[0])}
     assert "epe_model" not in results["DIS"] and "epe_model" not in results["ECC homography"]
 
 
@@ -523,6 +526,10 @@ def test_main_with_a_grown_mask_says_so_and_reports_beyond_the_road(rr, scenes, 
     assert "2 pair(s), the methods given the polygon grown by 6 px" in printed and report["mask_grow"] == 6
     assert "in the mask beyond the road: census" in printed
     assert all("ring_census" in r for r in report["clip"]["rows"] if r["method"] != "DIS")
+    # grown last, from the polygon as resized (or turned)
+    assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "3", "--resize", "0.5", "--yaw-deg", "2",
+                    "--no-ecc", "--no-progress"]) == 0
+    assert "grown by 3 px, turned by 2° of yaw, resized by 0.5" in capsys.readouterr().out
     assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "-300", "--no-ecc", "--no-progress"]) == 2
     assert "error: --mask-grow: a road polygon shrunk by 300 px is empty" in capsys.readouterr().err
 
