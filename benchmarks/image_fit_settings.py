@@ -13,10 +13,15 @@ For each setting (``fit_image`` keyword arguments, JSON), the ``"plane"`` fit of
   the ``default`` scene in a sharp turn (``steering=0.1``: 2.6° of yaw per frame, 26°/s at 10 Hz;
   pairs 0, 2, 10), road EPE over the valid road pixels.
 
-The time these settings cost: ``bench_image_fit.py`` (the default and ``max_points=10000``).
+With ``--mirror`` the real frames are mirrored left to right first (``real_road.mirrored``: the
+same street seen from its other side, the camera mirrored with it).
+
+The time these settings cost: ``bench_image_fit.py`` (the default, ``max_points=10000`` and
+20 000 evenly spread points).
 
     python benchmarks/image_fit_settings.py                       # the settings below
     python benchmarks/image_fit_settings.py '{"highpass": 3.0}' '{"highpass": null}'
+    python benchmarks/image_fit_settings.py --mirror '{}'
 
 Without ``../shared`` the real columns are skipped. One thread.
 """
@@ -33,7 +38,8 @@ import torch
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETTINGS = ['{}', '{"max_points": 10000}', '{"highpass": null}', '{"highpass": null, "smooth_sigma": 1.0}',
             '{"highpass": 5.0, "smooth_sigma": 1.0}', '{"highpass": 3.0}', '{"highpass": 3.0, "smooth_sigma": 1.0}',
-            '{"highpass": 10.0}']
+            '{"highpass": 10.0}', '{"gradient_fraction": 1.0}', '{"max_points": 20000, "gradient_fraction": 1.0}',
+            '{"max_points": null, "gradient_fraction": 1.0}']
 SHIFT = 4
 KITTI15 = ("image_10.png", "image_11.png", "flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 CLIP = ("image_l", "calib.txt", "road.json")
@@ -62,6 +68,20 @@ def road_epe(flow: torch.Tensor, sample: dict) -> float:
     return float((flow - sample["flow"]).norm(dim=0)[road].mean())
 
 
+def mirrored_samples(real: dict) -> dict:
+    """The real samples (``"kitti"``: a sample dict; ``"clip"``: (camera, image1, image2, road)
+    tuples) mirrored left to right (``real_road.mirrored``)."""
+    from real_road import mirrored
+
+    out = dict(real)
+    if "kitti" in real:
+        out["kitti"] = mirrored(real["kitti"])
+    if "clip" in real:
+        keys = ("camera", "image1", "image2", "road")
+        out["clip"] = [tuple(mirrored(dict(zip(keys, sample)))[k] for k in keys) for sample in real["clip"]]
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     from cli import check_options, description, json_object, present
 
@@ -69,6 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("settings", type=json_object, nargs="*", metavar="SETTING",
                         help="fit_image keyword arguments as a JSON object (not the images, mask or camera), one row "
                              "each (default: the settings of the documented table)")
+    parser.add_argument("--mirror", action="store_true", help="mirror the real frames left to right first")
     args = parser.parse_args(argv)
     from fsof_torch import Camera, fit_image, photometric_error, read_image, read_kitti_flow, read_road_mask
     from fsof_torch.data.folders import list_images
@@ -101,6 +122,8 @@ def main(argv: list[str] | None = None) -> int:
         cam = Camera.from_kitti(clip / "calib.txt", cam=0, height=1.65)
         road = read_road_mask(clip / "road.json", size=tuple(read_image(files[0]).shape[-2:]))
         real["clip"] = [(cam, read_image(files[i]), read_image(files[i + 1]), road) for i in (0, 4, 8)]
+    if args.mirror:
+        real = mirrored_samples(real)
 
     def fit(sample: dict, kw: dict) -> torch.Tensor:
         return fit_image(sample["image1"][None], sample["image2"][None], sample["road"][None], sample["camera"],

@@ -62,3 +62,26 @@ def test_road_epe_is_the_mean_error_over_road_pixels_with_ground_truth(bench):
     valid[0, 2, 1] = False
     sample = {"flow": truth, "road": road, "valid": valid}
     assert bench.road_epe(flow, sample) == pytest.approx((3.0 + 4.0) / 5)
+
+
+def test_mirrored_samples_mirror_the_real_frames_and_their_cameras(bench, monkeypatch):
+    """``--mirror``: the KITTI sample and each clip pair mirrored left to right, the cameras'
+    principal points mirrored with them; the samples given are left as they were."""
+    from pathlib import Path
+
+    from fsof_torch.data.scene import render_pair
+
+    monkeypatch.syspath_prepend(str(Path(__file__).resolve().parents[1] / "benchmarks"))  # (real_road)
+    p = render_pair("default", 2, size=SIZE)
+    sample = {k: p[k] for k in ("camera", "image1", "image2", "road", "flow", "valid")}
+    real = {"kitti": sample, "clip": [(p["camera"], p["image1"], p["image2"], p["road"])] * 2}
+    out = bench.mirrored_samples(real)
+    assert real["kitti"] is sample and real["clip"][0][1] is p["image1"]
+    assert torch.equal(out["kitti"]["image1"], p["image1"].flip(-1))
+    assert torch.equal(out["kitti"]["flow"][0], -p["flow"][0].flip(-1))
+    W = SIZE[1]
+    for cam, im1, im2, road in out["clip"]:
+        assert torch.equal(im1, p["image1"].flip(-1)) and torch.equal(im2, p["image2"].flip(-1))
+        assert torch.equal(road, p["road"].flip(-1))
+        assert float(cam.K[0, 0, 2]) == (W - 1) - float(p["camera"].K[0, 0, 2])
+    assert bench.mirrored_samples({}) == {}

@@ -67,3 +67,20 @@ def test_warped_image_2_is_image_1_moved_by_the_road_flow(bench, monkeypatch):
         monkeypatch.setattr(bench, "true_homography", lambda p, shift=shift: shift @ true_homography(p))
         off = error(bench.warped(pair))
         assert off > err, (du, dv, off, err)
+
+
+def test_from_truth_fits_stay_at_the_truth_where_image_2_is_image_1_moved(bench, capsys):
+    """``--from-truth``: fits started at the true motion at full resolution, one row per choice of
+    points; where image 2 is image 1 moved by the true road motion, every row stays within 0.2 px,
+    0.15° and 0.03 camera heights of the truth at this small size (the last row's mask without
+    the road beside the kerb)."""
+    from fsof_torch.data.scene import render_pair
+
+    pair = render_pair("body-motion", 3, size=(188, 621))  # (the attitude needs the rows)
+    moved = {**pair, "image2": bench.warped(pair)}
+    bench.from_truth([moved])
+    rows = [line for line in capsys.readouterr().out.splitlines() if line.startswith("| ") and "---" not in line][1:]
+    assert [r.split(" | ")[0][2:] for r in rows] == list(bench.FROM_TRUTH)
+    for r in rows:
+        e, pitch, roll, z = (float(c) for c in r.strip("| ").split(" | ")[1:])
+        assert e < 0.2 and pitch < 0.15 and roll < 0.15 and abs(z) < 0.03, r
