@@ -77,12 +77,21 @@ FROM_TRUTH = {"3000 points, strongest gradient of 6000 (default)": ({}, 0),
                                                                               "gradient_fraction": 1.0}, 8)}
 
 
-def from_truth(pairs: list[dict]) -> None:
-    """The ``--from-truth`` table (see the module)."""
+def off_kerb(pair: dict, pixels: int) -> torch.Tensor:
+    """The pair's road mask (1, H, W) without the pixels within ``pixels`` px of the kerb and the
+    pavement (its ``labels``)."""
     import torch.nn.functional as F
 
-    from fsof_torch import fit_image
     from fsof_torch.data.scene.config import KERB, PAVEMENT
+
+    labels = pair["labels"].reshape(1, *pair["labels"].shape[-2:])
+    raised = ((labels == KERB) | (labels == PAVEMENT)).to(torch.float32)
+    return pair["road"] & ~(F.max_pool2d(raised, 2 * pixels + 1, 1, pixels) > 0)
+
+
+def from_truth(pairs: list[dict]) -> None:
+    """The ``--from-truth`` table (see the module)."""
+    from fsof_torch import fit_image
     from fsof_torch.geometry.road_models import get_road_model
 
     model = get_road_model("plane")
@@ -93,10 +102,7 @@ def from_truth(pairs: list[dict]) -> None:
         for p in pairs:
             camera = p["camera"].to(torch.float64).replace(height=p["plane"]["height"])
             truth = {n: p["plane"][n] for n in model.params}
-            mask = p["road"]
-            if near_kerb:
-                raised = ((p["labels"] == KERB) | (p["labels"] == PAVEMENT)).to(torch.float32)
-                mask = mask & ~(F.max_pool2d(raised[None], 2 * near_kerb + 1, 1, near_kerb)[0] > 0)
+            mask = off_kerb(p, near_kerb) if near_kerb else p["road"]
             fit = fit_image(p["image1"][None].double(), p["image2"][None].double(), mask[None], camera, init=truth,
                             levels=1, prior=None, bounds=None, forward_starts=(), turn_starts=(), reverse_starts=(),
                             retry_starts=0, retry_without_prior=False, **options)

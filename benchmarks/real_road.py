@@ -262,7 +262,7 @@ def road_errors(pair: dict, flow: Tensor, flow_dis: Tensor) -> dict[str, float]:
     ring = given & ~road
     if bool(ring.any()):
         out["ring_census"] = float(photometric_errors(*images, combined, ring, kinds=("census",))["census"][0])
-        if pair.get("flow") is not None:
+        if pair.get("flow") is not None and bool((ring & pair["valid"][None]).any()):
             out["ring_epe"] = float(endpoint_error(combined, pair["flow"][None].to(flow.dtype), ring,
                                                    pair["valid"][None])[0])
     return out
@@ -534,13 +534,14 @@ def mirrored(pair: dict) -> dict:
     """``pair`` mirrored left to right: the same street as a car driving on its other side would see
     it, a curve turning the other way. Both frames, the road, the ground-truth flow (its horizontal
     component negated) and its valid pixels flipped; the camera's principal point mirrored
-    (c_x' = W − 1 − c_x) and its mounting roll negated; the relative pose conjugated by the
-    reflection of the camera's x axis."""
+    (c_x' = W − 1 − c_x, a skew negated) and its mounting roll negated (a roll given with
+    ``--roll-deg`` too); the relative pose conjugated by the reflection of the camera's x axis."""
     flip = lambda x: x.flip(-1).contiguous()  # noqa: E731
     cam = pair["camera"]
     W = pair["image1"].shape[-1]
     K = cam.K.clone()
     K[..., 0, 2] = (W - 1) - K[..., 0, 2]
+    K[..., 0, 1] = -K[..., 0, 1]  # (a skew turns over with the x axis)
     out = {**pair, "camera": cam.replace(K=K, roll=-cam.roll)}
     for key in ("image1", "image2", "road", "valid"):
         if pair.get(key) is not None:
@@ -569,6 +570,10 @@ def grown(pair: dict, pixels: int) -> dict:
     if not mask.any():
         raise EmptyMask(f"--mask-grow: a road polygon shrunk by {-pixels} px is empty: shrink it less")
     return {**pair, "mask": torch.from_numpy(mask.astype(bool))[None]}
+
+
+#: ``--mask-grow``'s largest growth or shrinkage (px): a road mask off by more is not a loose mask
+MAX_GROW = 100
 
 
 class EmptyMask(ValueError):
@@ -644,7 +649,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the clip's camera pitch for the refiner, degrees (default 0: the calibration has none)")
     parser.add_argument("--roll-deg", type=float, default=0.0,
                         help="the camera roll for the refiner on both data sets, degrees (default 0: the "
-                             "calibration has none)")
+                             "calibration has none); as --pitch-deg, it also tilts the axes of the turns that "
+                             "--yaw-deg, --pitch-change-deg and --roll-change-deg simulate")
     parser.add_argument("--step", type=int, default=1,
                         help="clip pairs this many frames apart, every step-th frame, at most the clip's frames "
                              "less one (default 1; 3: about 130 km/h at 10 Hz instead of 43)")
@@ -666,8 +672,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="mirror every pair left to right first (frames, road, ground truth, camera, poses): "
                              "the street seen from its other side")
     parser.add_argument("--mask-grow", type=int, default=0, metavar="PX",
-                        help="give the methods the road polygon grown by PX pixels (negative: shrunk), as a loose "
-                             "road mask; the figures stay over the polygon (default 0)")
+                        help=f"give the methods the road polygon grown by PX pixels (negative: shrunk; at most "
+                             f"{MAX_GROW} either way), as a loose road mask; the figures stay over the polygon "
+                             f"(default 0)")
     parser.add_argument("--odometry-error", nargs=2, type=float, default=(1.0, 0.0), metavar=("SCALE", "YAW_DEG"),
                         help="make the poses' odometry wrong as wheel odometry is: its translation SCALE times as "
                              "long, its yaw YAW_DEG degrees a frame more (default 1 0: as measured)")
@@ -712,6 +719,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
+    if abs(args.mask_grow) > MAX_GROW:
+        parser.error(f"--mask-grow: expected at most {MAX_GROW} pixels either way, got {args.mask_grow}")
     if not (math.isfinite(args.resize) and 0.1 <= args.resize <= 1):
         parser.error(f"--resize: expected a factor within [0.1, 1], got {args.resize}")
     from cli import odometry_error
@@ -747,27 +756,12 @@ def main(argv: list[str] | None = None) -> int:
     report: dict[str, Any] = {"threads": 1, "opencv": cv2.__version__, "torch": torch.__version__, "step": args.step,
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
-                              "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow, "mirror": args.mirror,
+                              "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow,
+                              "mirror": args.mirror,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
-    for key, pairs in (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
-                       ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
-                                                           args.roll_deg)[:args.pairs])):
-        root = folders.get(key)
-        if root is None:
-            continue
-        if key == "kitti15":
-            truth = ("ground truth: road EPE over road ∩ valid"
-                     if (root / "flow_noc_10.png").is_file() and not args.reverse else "no ground-truth flow")
-            title = f"KITTI 2015 pair {root.resolve().name} ({truth})"
-        else:
-            posed = "" if (root / "poses.txt").is_file() else "no poses, "
-            title = f"KITTI odometry clip {root.resolve().name} ({posed}" \
-                    f"no ground-truth flow)"
-        if not root.is_dir():
-            print(f"{title}: {root} not found, skipped", file=sys.stderr)
-            continue
-        data, run_methods = pairs(root), dict(methods)
+    def transformed(data: list[tuple[str, Callable[[], dict]]]) -> list[tuple[str, Callable[[], dict]]]:
+        """The data set's pairs as the options change them (each loaded when called)."""
         if args.reverse:  # (last to first: image 2 of a pair is image 1 of the next, a clip to fit)
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.mirror:
@@ -782,17 +776,43 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: grown(load(), args.mask_grow)) for name, load in data]
         if (scale, yaw_error) != (1.0, 0.0):
             data = [(name, lambda load=load: {**load(), "odometry_error": (scale, yaw_error)}) for name, load in data]
-        # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
-        changed = any(turn) or args.exposure_gain != 1.0
-        mounting = None
+        return data
+
+    loaders = (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
+               ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
+                                                   args.roll_deg)[:args.pairs]))
+    datasets = {key: transformed(pairs(folders[key])) for key, pairs in loaders
+                if folders.get(key) is not None and folders[key].is_dir()}
+    if args.mask_grow < 0:  # (a polygon shrunk to nothing is refused before any work: one pair each)
         try:
-            if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
-                name, method, mounting = clip_method(data, not args.no_progress)
-                run_methods[name] = (None, method)
-            result = measure(key, data, run_methods, not args.no_progress)
+            for data in datasets.values():
+                data[0][1]()
         except EmptyMask as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
+    for key, _ in loaders:
+        root = folders.get(key)
+        if root is None:
+            continue
+        if key == "kitti15":
+            truth = ("ground truth: road EPE over road ∩ valid"
+                     if (root / "flow_noc_10.png").is_file() and not args.reverse else "no ground-truth flow")
+            title = f"KITTI 2015 pair {root.resolve().name} ({truth})"
+        else:
+            posed = "" if (root / "poses.txt").is_file() else "no poses, "
+            title = f"KITTI odometry clip {root.resolve().name} ({posed}" \
+                    f"no ground-truth flow)"
+        if not root.is_dir():
+            print(f"{title}: {root} not found, skipped", file=sys.stderr)
+            continue
+        data, run_methods = datasets[key], dict(methods)
+        # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
+        changed = any(turn) or args.exposure_gain != 1.0
+        mounting = None
+        if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
+            name, method, mounting = clip_method(data, not args.no_progress)
+            run_methods[name] = (None, method)
+        result = measure(key, data, run_methods, not args.no_progress)
         if mounting is not None:
             result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result

@@ -473,7 +473,7 @@ def test_a_seed_out_of_view_is_flagged_empty_with_its_reason(scene_pair):
     assert det.flag == ["empty"] and "seed" in det.reason[0] and not bool(det.usable_mask.any())
 
 
-@pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion", "data_range"])
+@pytest.mark.parametrize("name", ["image1", "image2", "camera", "flow", "motion", "data_range", "warn"])
 def test_refiner_road_options_the_refiner_sets_are_refused(scene_pair, name):
     p = scene_pair
     with pytest.raises(TypeError, match=rf"road_options: options \['{name}'\] of \w+ are set by the function that forwards"):

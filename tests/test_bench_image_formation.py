@@ -84,3 +84,23 @@ def test_from_truth_fits_stay_at_the_truth_where_image_2_is_image_1_moved(bench,
     for r in rows:
         e, pitch, roll, z = (float(c) for c in r.strip("| ").split(" | ")[1:])
         assert e < 0.2 and pitch < 0.15 and roll < 0.15 and abs(z) < 0.03, r
+
+
+def test_off_kerb_leaves_out_the_road_beside_kerb_and_pavement_only(bench):
+    """The last ``--from-truth`` row's mask: the road less the pixels within r px (a square
+    window) of the kerb and the pavement, every one of them; the rest of the road stays."""
+    from fsof_torch.data.scene import render_pair
+    from fsof_torch.data.scene.config import KERB, PAVEMENT
+
+    pair = render_pair("body-motion", 3, size=SIZE)
+    r = 4
+    mask = bench.off_kerb(pair, r)
+    road = pair["road"][0]
+    assert bool((mask[0] <= road).all()) and int(road.sum()) - int(mask[0].sum()) > 50
+    raised = torch.nonzero((pair["labels"] == KERB) | (pair["labels"] == PAVEMENT))
+    for v, u in torch.nonzero(road & ~mask[0]).tolist():
+        assert bool(((raised[:, 0] - v).abs().le(r) & (raised[:, 1] - u).abs().le(r)).any())
+    near = torch.zeros_like(road)
+    for v, u in raised.tolist():
+        near[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = True
+    assert torch.equal(mask[0], road & ~near)

@@ -493,9 +493,13 @@ def test_mirrored_pair_is_the_street_seen_from_its_other_side(rr, pair):
     assert rr.mirrored({**pair, "flow": None, "valid": None, "relative_pose": None})["flow"] is None
 
 
-def test_main_mirrored_says_so_and_records_it(rr, scenes, tmp_path, capsys):
+def test_main_mirrored_says_so_and_records_it(rr, scenes, tmp_path, capsys, monkeypatch):
+    seen = []
+    mirrored = rr.mirrored
+    monkeypatch.setattr(rr, "mirrored", lambda pair: seen.append(pair["image1"].shape) or mirrored(pair))
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--mirror")
     assert "2 pair(s), mirrored left to right" in printed and report["mirror"] is True
+    assert len(seen) >= 2  # (every pair loaded through it)
 
 
 def test_grown_gives_the_methods_a_looser_or_tighter_mask_and_the_figures_stay_on_the_road(rr, pair):
@@ -517,6 +521,9 @@ def test_grown_gives_the_methods_a_looser_or_tighter_mask_and_the_figures_stay_o
     assert errors["epe"] == on_road["epe"] and errors["census"] <= on_road["census"]
     assert errors["ring_epe"] == pytest.approx(0.0, abs=1e-6) and 0.0 <= errors["ring_census"] <= 1.0
     assert "ring_census" not in on_road
+    # no ground truth beyond the road: no EPE there (not an empty mean of 0)
+    only_road = rr.road_errors({**wide, "valid": pair["valid"] & road}, pair["flow"], dis)
+    assert "ring_epe" not in only_road and "ring_census" in only_road
     # shrunk, the road outside the mask keeps DIS's flow (1.41 px off)
     assert rr.road_errors(narrow, pair["flow"], dis)["epe"] > on_road["epe"] + 0.1
 
@@ -530,14 +537,24 @@ def test_main_with_a_grown_mask_says_so_and_reports_beyond_the_road(rr, scenes, 
     assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "3", "--resize", "0.5", "--yaw-deg", "2",
                     "--no-ecc", "--no-progress"]) == 0
     assert "grown by 3 px, turned by 2° of yaw, resized by 0.5" in capsys.readouterr().out
-    assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "-300", "--no-ecc", "--no-progress"]) == 2
-    assert "error: --mask-grow: a road polygon shrunk by 300 px is empty" in capsys.readouterr().err
+    # a polygon shrunk to nothing is refused before any work
+    assert rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "-100", "--no-ecc", "--no-progress"]) == 2
+    said = capsys.readouterr()
+    assert "error: --mask-grow: a road polygon shrunk by 100 px is empty" in said.err and "| DIS |" not in said.out
+    with pytest.raises(SystemExit) as exit_:
+        rr.main(["--data", str(tmp_path / "data"), "--mask-grow", "101"])
+    assert exit_.value.code == 2 and "--mask-grow: expected at most 100 pixels either way, got 101" in \
+        capsys.readouterr().err
 
 
-def test_the_roll_given_reaches_both_data_sets_cameras(rr, scenes, tmp_path, capsys):
+def test_the_roll_given_reaches_both_data_sets_cameras(rr, scenes, tmp_path, capsys, monkeypatch):
     """``--roll-deg`` is the camera roll the refiner is given, on the clip (and the KITTI pair,
     through the same dataset option); out of (-45, 45) it is refused before any work."""
+    given = []
+    clip = rr.odometry_clip
+    monkeypatch.setattr(rr, "odometry_clip", lambda *a, **k: given.append(a[4:] or k["roll_deg"]) or clip(*a, **k))
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--roll-deg", "1.5", "--no-sequence")
+    assert given == [(1.5,)]  # (main hands the roll to the clip's loader)
     pairs = rr.odometry_clip(tmp_path / "data" / "kitti_odometry_straight", 1.65, 0.5, roll_deg=-2.0)
     cam = pairs[0][1]()["camera"]
     assert float(cam.roll[0]) == pytest.approx(math.radians(-2.0)) and float(cam.pitch[0]) == pytest.approx(

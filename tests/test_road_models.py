@@ -22,6 +22,7 @@ from fsof_torch.geometry.road_flow import RoadFlow, displacement_flow, road_flow
 from fsof_torch.geometry.road_models import (
     ROAD_MODELS,
     pack_params,
+    homography_values,
     plane_from_homography,
     plane_from_pose,
     road_homography,
@@ -510,8 +511,9 @@ def test_matrix_checks_types_and_shapes_and_promotes_dtypes():
 # -- symmetry: the street seen from its other side ------------------------------------------------
 
 # the parameters whose sign a left-right reflection of the world (the camera's x axis) turns over
+# (the homography's values, the entries of K⁻¹ H K − I, turn over where exactly one index is x's)
 MIRRORED = {"paper": ("x_d", "yaw", "roll"), "plane": ("yaw", "roll_change", "x_d", "roll"),
-            "velocity": ("yaw_rate", "roll")}
+            "velocity": ("yaw_rate", "roll"), "homography": ("h12", "h13", "h21", "h31")}
 
 
 @settings(max_examples=20, deadline=None)
@@ -521,12 +523,15 @@ def test_mirrored_camera_and_motion_give_the_mirrored_road_flow(p, height, model
     roll negated), every model's road flow is the original's, mirrored with its horizontal
     component negated: the models favour neither side of the road (DESIGN.md §10's signs)."""
     names = ROAD_MODELS[model].params
-    values = {"speed": 12.0, "yaw_rate": 10 * p["yaw"], **p}
-    params = {n: values[n] for n in names}
     # (a principal point off the pixel grid: no pixel lies exactly on the horizon, where rounding
     # would decide its validity differently on the two sides)
     K = torch.tensor([[90.0, 0.0, 60.3], [0.0, 95.0, 14.2], [0.0, 0.0, 1.0]], dtype=torch.float64)
     cam = Camera(K, height)
+    values = {"speed": 12.0, "yaw_rate": 10 * p["yaw"], **p}
+    if model == "homography":  # (the plane's map as a general homography)
+        H = road_homography(cam.replace(roll=p["roll"], pitch=p["pitch"]), p, model="plane")
+        values = dict(zip(names, homography_values(H, cam.K, cam.K_inv())[0].tolist()))
+    params = {n: values[n] for n in names}
     mirror_cam = cam.replace(K=K.clone().index_put_((torch.tensor(0), torch.tensor(2)),
                                                     torch.tensor((SIZE[1] - 1) - 60.3, dtype=torch.float64)))
     mirror_params = {n: -v if n in MIRRORED[model] else v for n, v in params.items()}
