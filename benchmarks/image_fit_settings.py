@@ -39,7 +39,7 @@ SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 SETTINGS = ['{}', '{"max_points": 10000}', '{"highpass": null}', '{"highpass": null, "smooth_sigma": 1.0}',
             '{"highpass": 5.0, "smooth_sigma": 1.0}', '{"highpass": 3.0}', '{"highpass": 3.0, "smooth_sigma": 1.0}',
             '{"highpass": 10.0}', '{"gradient_fraction": 1.0}', '{"max_points": 20000, "gradient_fraction": 1.0}',
-            '{"max_points": null, "gradient_fraction": 1.0}']
+            '{"max_points": null, "gradient_fraction": 1.0}', '{"fine_points": 20000}']
 SHIFT = 4
 KITTI15 = ("image_10.png", "image_11.png", "flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 CLIP = ("image_l", "calib.txt", "road.json")

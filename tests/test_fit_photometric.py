@@ -103,6 +103,8 @@ def test_exceptions():
     (dict(highpass=-1.0), ValueError, "highpass: expected a number >= 0, got -1.0"),
     (dict(band_levels=1.5), TypeError, "band_levels: expected an int, got float 1.5"),
     (dict(gradient_fraction="x"), TypeError, "gradient_fraction: expected a number, got str 'x'"),
+    (dict(fine_points=0), ValueError, "fine_points: expected an int >= 1, got 0"),
+    (dict(fine_points=2.5), TypeError, "fine_points: expected None or an int, got float 2.5"),
     (dict(affine="x"), TypeError, "affine: expected True or False, got str 'x'"),
     (dict(starts=5), TypeError, "starts: expected a list of starts"),
     (dict(starts=["x"]), TypeError, "starts: expected dicts of parameters or fits, got an element str 'x'"),
@@ -467,3 +469,30 @@ def test_a_band_of_one_or_two_rows_is_no_success():
         assert not bool(fit.success[0])
     whole = fit_image(im1, im2, road, cam)
     assert bool(whole.success[0]) and abs(float(whole.params["z_d"][0]) - p["odometry"]["z_d"]) < 0.15
+
+
+def test_fine_points_take_the_finest_levels_points_evenly_spread(monkeypatch):
+    """``fine_points``: the finest level's problems are built from that many evenly spread road
+    pixels (``gradient_fraction`` 1), every coarser level's as before; None builds every level
+    alike, and the fit is then the default's bit for bit."""
+    from fsof_torch import fit_image
+    from fsof_torch.estimation import image_fit
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    built = []
+    level_problem = image_fit._level_problem
+
+    def spy(model, camera, img, m, fraction, max_points, *rest):
+        built.append((img.shape[-2:] == image1.shape[-2:], fraction, max_points))
+        return level_problem(model, camera, img, m, fraction, max_points, *rest)
+
+    monkeypatch.setattr(image_fit, "_level_problem", spy)
+    plain = fit_image(image1, image2, mask, cam, max_points=500)
+    assert built and {b[1:] for b in built} == {(0.5, 500)}
+    built.clear()
+    fine = fit_image(image1, image2, mask, cam, max_points=500, fine_points=2000)
+    assert {b[1:] for b in built if b[0]} == {(1.0, 2000)} and {b[1:] for b in built if not b[0]} == {(0.5, 500)}
+    assert plain.success.all() and fine.success.all()
+    same = fit_image(image1, image2, mask, cam, max_points=500, fine_points=None)
+    assert all(torch.equal(same.params[k], plain.params[k]) for k in plain.params)
