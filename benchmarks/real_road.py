@@ -44,13 +44,15 @@ the same street seen from its other side, its curves turning the other way, with
 principal point and mounting roll mirrored: a check that nothing favours one side. With
 ``--mask-grow PX`` the methods are given the road polygon grown by PX pixels (negative: shrunk;
 :func:`grown`), as a loosely drawn or segmented road mask; the figures stay over the polygon, and
-where the mask reaches beyond it the notes give the census (and EPE) there.
+where the mask reaches beyond it the notes give the census (and EPE) there. With ``--crop TOP
+BOTTOM LEFT RIGHT`` every pair is first cut to a window (:func:`cropped`), as a pipeline cuts
+away the sky or the bonnet.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--crop TOP BOTTOM LEFT RIGHT] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -576,8 +578,13 @@ def grown(pair: dict, pixels: int) -> dict:
 MAX_GROW = 100
 
 
-class EmptyMask(ValueError):
-    """A road polygon shrunk to nothing (``--mask-grow``): the run stops with exit status 2."""
+class UnfitOption(ValueError):
+    """An option the data cannot take (a crop larger than the frame, a polygon shrunk to nothing):
+    found on one pair of each data set before any work, the run stops with exit status 2."""
+
+
+class EmptyMask(UnfitOption):
+    """A road polygon shrunk to nothing (``--mask-grow``)."""
 
 
 def exposed(pair: dict, gain: float) -> dict:
@@ -585,6 +592,23 @@ def exposed(pair: dict, gain: float) -> dict:
     camera records a change of exposure between the frames."""
     image2 = (pair["image2"].to(torch.float32) * gain).clamp(0, 255).round()
     return {**pair, "image2": image2.to(pair["image2"].dtype)}
+
+
+def cropped(pair: dict, top: int, bottom: int, left: int, right: int) -> dict:
+    """``pair`` cut to its window without ``top``, ``bottom``, ``left`` and ``right`` pixels at
+    those sides (the sky, the bonnet, a network's input crop): the frames, the road, the
+    ground-truth flow and its valid pixels sliced, the camera's principal point moved
+    (:meth:`Camera.cropped`); the motion is the same."""
+    rows, cols = pair["image1"].shape[-2:]
+    if top + bottom >= rows or left + right >= cols:
+        raise UnfitOption(f"--crop: {top} + {bottom} rows or {left} + {right} columns leave nothing of a "
+                          f"{rows} x {cols} frame")
+    window = (..., slice(top, rows - bottom), slice(left, cols - right))
+    out = {**pair, "camera": pair["camera"].cropped(left, top, right, bottom)}
+    for key in ("image1", "image2", "road", "valid", "flow"):
+        if pair.get(key) is not None:
+            out[key] = pair[key][window].contiguous()
+    return out
 
 
 def resized(pair: dict, factor: float) -> dict:
@@ -671,6 +695,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror", action="store_true",
                         help="mirror every pair left to right first (frames, road, ground truth, camera, poses): "
                              "the street seen from its other side")
+    parser.add_argument("--crop", type=int, nargs=4, default=(0, 0, 0, 0), metavar=("TOP", "BOTTOM", "LEFT", "RIGHT"),
+                        help="cut every pair to the window without so many pixels at each side first (the sky, the "
+                             "bonnet; default 0 0 0 0)")
     parser.add_argument("--mask-grow", type=int, default=0, metavar="PX",
                         help=f"give the methods the road polygon grown by PX pixels (negative: shrunk; at most "
                              f"{MAX_GROW} either way), as a loose road mask; the figures stay over the polygon "
@@ -719,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
+    if min(args.crop) < 0:
+        parser.error(f"--crop: expected pixels >= 0 at each side, got {' '.join(map(str, args.crop))}")
     if abs(args.mask_grow) > MAX_GROW:
         parser.error(f"--mask-grow: expected at most {MAX_GROW} pixels either way, got {args.mask_grow}")
     if not (math.isfinite(args.resize) and 0.1 <= args.resize <= 1):
@@ -757,7 +786,7 @@ def main(argv: list[str] | None = None) -> int:
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
                               "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow,
-                              "mirror": args.mirror,
+                              "mirror": args.mirror, "crop": list(args.crop),
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     def transformed(data: list[tuple[str, Callable[[], dict]]]) -> list[tuple[str, Callable[[], dict]]]:
@@ -766,6 +795,8 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.mirror:
             data = [(name, lambda load=load: mirrored(load())) for name, load in data]
+        if any(args.crop):
+            data = [(name, lambda load=load: cropped(load(), *args.crop)) for name, load in data]
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
@@ -783,11 +814,11 @@ def main(argv: list[str] | None = None) -> int:
                                                    args.roll_deg)[:args.pairs]))
     datasets = {key: transformed(pairs(folders[key])) for key, pairs in loaders
                 if folders.get(key) is not None and folders[key].is_dir()}
-    if args.mask_grow < 0:  # (a polygon shrunk to nothing is refused before any work: one pair each)
+    if args.mask_grow < 0 or any(args.crop):  # (refused before any work, by one pair of each data set)
         try:
             for data in datasets.values():
                 data[0][1]()
-        except EmptyMask as err:
+        except UnfitOption as err:
             print(f"error: {err}", file=sys.stderr)
             return 2
     for key, _ in loaders:
@@ -824,6 +855,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{abs(args.mask_grow)} px"
         if args.mirror:
             step += ", mirrored left to right"
+        if any(args.crop):
+            step += ", cut by {} / {} / {} / {} px at the top / bottom / left / right".format(*args.crop)
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
         if args.resize != 1.0:

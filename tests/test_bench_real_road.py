@@ -573,6 +573,43 @@ def test_the_roll_given_reaches_the_kitti_pairs_camera(rr, shared_data):
     assert float(pair["camera"].height[0]) == pytest.approx(1.4)
 
 
+def test_cropped_pair_is_the_same_motion_seen_through_a_window(rr, pair):
+    """``cropped``: frames, road, ground truth sliced, the principal point moved; the true road
+    motion through the cropped camera still gives the cropped ground truth; a crop leaving nothing
+    is refused, naming the option; the caller's pair is left alone."""
+    from fsof_torch import plane_from_pose, road_flow
+
+    before = pair["image1"].clone()
+    out = rr.cropped(pair, 10, 6, 20, 4)
+    H, W = SIZE
+    assert torch.equal(pair["image1"], before)
+    for key in ("image1", "image2", "road", "flow", "valid"):
+        assert torch.equal(out[key], pair[key][..., 10:H - 6, 20:W - 4]), key
+    K, K0 = out["camera"].K[0], pair["camera"].K[0]
+    assert float(K[0, 2]) == float(K0[0, 2]) - 20 and float(K[1, 2]) == float(K0[1, 2]) - 10
+    cam = out["camera"].to(torch.float64)
+    flow, valid = road_flow(cam, plane_from_pose(out["relative_pose"][None].double(), cam), (H - 16, W - 24),
+                            model="plane")
+    on = (out["road"] & out["valid"] & valid[0])[0]
+    assert float((flow[0] - out["flow"]).norm(dim=0)[on].mean()) < 0.05
+    with pytest.raises(rr.UnfitOption, match=r"^--crop: 50 \+ 46 rows or 0 \+ 0 columns leave nothing"):
+        rr.cropped(pair, 50, 46, 0, 0)
+
+
+def test_main_with_a_crop_says_so_and_refuses_one_leaving_nothing(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--crop", "8", "4", "0", "10", "--no-sequence")
+    assert "2 pair(s), cut by 8 / 4 / 0 / 10 px at the top / bottom / left / right" in printed
+    assert report["crop"] == [8, 4, 0, 10]
+    assert rr.main(["--data", str(tmp_path / "data"), "--crop", "60", "40", "0", "0", "--no-ecc", "--no-progress"]) == 2
+    said = capsys.readouterr()
+    assert "error: --crop: 60 + 40 rows or 0 + 0 columns leave nothing of a 96 x 320 frame" in said.err
+    assert "| DIS |" not in said.out
+    with pytest.raises(SystemExit) as exit_:
+        rr.main(["--data", str(tmp_path / "data"), "--crop", "0", "-1", "0", "0"])
+    assert exit_.value.code == 2 and "--crop: expected pixels >= 0 at each side, got 0 -1 0 0" in \
+        capsys.readouterr().err
+
+
 def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
     assert "2 pair(s), frames swapped (the backward flow)" in printed
