@@ -320,8 +320,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             rest of the batch). ``gradient_fraction=1``: up to ``max_points`` road pixels evenly
             spread, whatever their gradient.
         fine_points: at full resolution (the finest level) instead, up to this many road pixels
-            evenly spread, whatever their gradient: more points there put the fit nearer the
-            cost's minimum at the truth, at less time than more points at every level
+            evenly spread, whatever their gradient: the cost over more points has its minimum
+            nearer the truth, and more points there cost less time than more at every level
             (docs/image-fit.md, "Points spread evenly"). None: as the coarser levels.
         affine: also fit a gain and an offset between the frames' brightness.
         inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
