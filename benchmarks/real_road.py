@@ -46,13 +46,14 @@ principal point and mounting roll mirrored: a check that nothing favours one sid
 :func:`grown`), as a loosely drawn or segmented road mask; the figures stay over the polygon, and
 where the mask reaches beyond it the notes give the census (and EPE) there. With ``--crop TOP
 BOTTOM LEFT RIGHT`` every pair is first cut to a window (:func:`cropped`), as a pipeline cuts
-away the sky or the bonnet.
+away the sky or the bonnet. With ``--jpeg QUALITY`` both frames of every pair are stored as JPEG
+and read back (:func:`compressed`), as many cameras and data sets store them.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--crop TOP BOTTOM LEFT RIGHT] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--crop TOP BOTTOM LEFT RIGHT] [--jpeg QUALITY] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
 """
 
 from __future__ import annotations
@@ -147,6 +148,8 @@ def refiner_flow(pair: dict, flow_dis: Tensor, odometry: Any = None, **options: 
         out = refiner(flow_dis[None], given_mask(pair)[None], pair["camera"], odometry, images=images)
     motion = {"z_d": float(out.odometry["z_d"][0]), "yaw_deg": math.degrees(float(out.odometry["yaw"][0]))}
     info = {"refined": bool(out.refined[0]), "motion": motion, "model_flow": out.flow_model[0].detach()}
+    # (an estimate that succeeded, whether or not the gate then used it: its flow's own error counts)
+    info["estimated"] = bool(out.refined[0]) or (out.fit is not None and bool(out.fit.success[0]))
     if out.gate is not None:
         info["cells_kept"] = int(out.gate.cells_kept[0])
         # (the JSON's per-pair results: the gate's mean ring census of each flow over the mask,
@@ -297,10 +300,11 @@ def run_pair(pair: dict, methods: dict) -> dict[str, dict]:
         t0 = time.process_time()
         flow, info = method(pair, dis)
         seconds = time.process_time() - t0
-        model_flow = info.pop("model_flow", None)
+        model_flow, estimated = info.pop("model_flow", None), info.pop("estimated", True)
         results[name] = {**road_errors(pair, flow, dis), "seconds": seconds, **info}
-        if model_flow is not None and "epe" in results[name] and results[name].get("refined"):
-            # the model flow on the whole road, before the gate kept the prediction anywhere
+        if model_flow is not None and "epe" in results[name] and estimated:
+            # the model flow on the whole road, before the gate kept the prediction anywhere (also
+            # where the gate kept it everywhere: the estimate succeeded)
             results[name]["epe_model"] = road_epe(pair, model_flow)[0]
     return results
 
@@ -594,6 +598,25 @@ def exposed(pair: dict, gain: float) -> dict:
     return {**pair, "image2": image2.to(pair["image2"].dtype)}
 
 
+def compressed(pair: dict, quality: int) -> dict:
+    """``pair`` with both frames stored as JPEG at ``quality`` (OpenCV's encoder, 1..100) and read
+    back, as many cameras and data sets store their frames: the 8 × 8 blocks' quantisation
+    removes fine detail and adds its own."""
+    import cv2
+
+    def jpeg(image: Tensor) -> Tensor:
+        a = image.to(torch.float32).clamp(0, 255).round().to(torch.uint8).permute(1, 2, 0).numpy()
+        colour = a.shape[-1] == 3
+        ok, data = cv2.imencode(".jpg", a[..., ::-1] if colour else a[..., 0], [cv2.IMWRITE_JPEG_QUALITY, quality])
+        if not ok:
+            raise RuntimeError(f"OpenCV could not encode a frame as JPEG at quality {quality}")
+        b = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        b = b[..., ::-1] if colour else b[..., None]
+        return torch.from_numpy(np.ascontiguousarray(b)).permute(2, 0, 1).to(image.dtype)
+
+    return {**pair, "image1": jpeg(pair["image1"]), "image2": jpeg(pair["image2"])}
+
+
 def cropped(pair: dict, top: int, bottom: int, left: int, right: int) -> dict:
     """``pair`` cut to its window without ``top``, ``bottom``, ``left`` and ``right`` pixels at
     those sides (the sky, the bonnet, a network's input crop): the frames, the road, the
@@ -695,6 +718,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--mirror", action="store_true",
                         help="mirror every pair left to right first (frames, road, ground truth, camera, poses): "
                              "the street seen from its other side")
+    parser.add_argument("--jpeg", type=int, default=None, metavar="QUALITY",
+                        help="store every frame as JPEG at this quality (1..100) and read it back first (default: "
+                             "as given)")
     parser.add_argument("--crop", type=int, nargs=4, default=(0, 0, 0, 0), metavar=("TOP", "BOTTOM", "LEFT", "RIGHT"),
                         help="cut every pair to the window without so many pixels at each side first (the sky, the "
                              "bonnet; default 0 0 0 0)")
@@ -746,6 +772,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
+    if args.jpeg is not None and not 1 <= args.jpeg <= 100:
+        parser.error(f"--jpeg: expected a quality within [1, 100], got {args.jpeg}")
     if min(args.crop) < 0:
         parser.error(f"--crop: expected pixels >= 0 at each side, got {' '.join(map(str, args.crop))}")
     if abs(args.mask_grow) > MAX_GROW:
@@ -786,7 +814,7 @@ def main(argv: list[str] | None = None) -> int:
                               "yaw_deg": args.yaw_deg, "pitch_change_deg": args.pitch_change_deg,
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
                               "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow,
-                              "mirror": args.mirror, "crop": list(args.crop),
+                              "mirror": args.mirror, "crop": list(args.crop), "jpeg": args.jpeg,
                               "odometry_error": [scale, yaw_error],
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     def transformed(data: list[tuple[str, Callable[[], dict]]]) -> list[tuple[str, Callable[[], dict]]]:
@@ -803,6 +831,8 @@ def main(argv: list[str] | None = None) -> int:
             data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
         if args.exposure_gain != 1.0:
             data = [(name, lambda load=load: exposed(load(), args.exposure_gain)) for name, load in data]
+        if args.jpeg is not None:  # (after the frames are formed: what a camera stores)
+            data = [(name, lambda load=load: compressed(load(), args.jpeg)) for name, load in data]
         if args.mask_grow:  # (last: the polygon as resized or turned)
             data = [(name, lambda load=load: grown(load(), args.mask_grow)) for name, load in data]
         if (scale, yaw_error) != (1.0, 0.0):
@@ -855,6 +885,8 @@ def main(argv: list[str] | None = None) -> int:
                     f"{abs(args.mask_grow)} px"
         if args.mirror:
             step += ", mirrored left to right"
+        if args.jpeg is not None:
+            step += f", stored as JPEG at quality {args.jpeg}"
         if any(args.crop):
             step += ", cut by {} / {} / {} / {} px at the top / bottom / left / right".format(*args.crop)
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)

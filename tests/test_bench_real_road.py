@@ -610,6 +610,51 @@ def test_main_with_a_crop_says_so_and_refuses_one_leaving_nothing(rr, scenes, tm
         capsys.readouterr().err
 
 
+def test_compressed_pair_is_the_frames_through_a_jpeg_encoder(rr, pair):
+    """``compressed``: both frames through OpenCV's JPEG encoder and decoder (RGB and grey), the
+    rest of the pair as it was; lower quality strays further from the frames; the caller's pair
+    is left alone."""
+    import cv2
+
+    before = pair["image1"].clone()
+    fine, coarse = rr.compressed(pair, 95), rr.compressed(pair, 20)
+    assert torch.equal(pair["image1"], before) and fine["flow"] is pair["flow"] and fine["road"] is pair["road"]
+    for out in (fine, coarse):
+        assert out["image1"].shape == pair["image1"].shape and out["image1"].dtype == pair["image1"].dtype
+    error = lambda out: float((out["image2"] - pair["image2"].round()).abs().mean())  # noqa: E731
+    assert 0 < error(fine) < error(coarse)
+    # the same bytes as OpenCV's own round trip (BGR order on the way)
+    a = pair["image1"].round().to(torch.uint8).permute(1, 2, 0).numpy()[..., ::-1]
+    _, data = cv2.imencode(".jpg", np.ascontiguousarray(a), [cv2.IMWRITE_JPEG_QUALITY, 20])
+    ref = torch.from_numpy(np.ascontiguousarray(cv2.imdecode(data, cv2.IMREAD_UNCHANGED)[..., ::-1])).permute(2, 0, 1)
+    assert torch.equal(coarse["image1"], ref.to(pair["image1"].dtype))
+    grey = rr.compressed({**pair, "image1": pair["image1"][:1], "image2": pair["image2"][:1]}, 50)
+    assert grey["image1"].shape == (1, *SIZE)
+
+
+def test_main_with_jpeg_frames_says_so_and_checks_the_quality(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--jpeg", "60", "--no-sequence")
+    assert "2 pair(s), stored as JPEG at quality 60" in printed and report["jpeg"] == 60
+    for bad in ("0", "101"):
+        with pytest.raises(SystemExit) as exit_:
+            rr.main(["--data", str(tmp_path / "data"), "--jpeg", bad])
+        assert exit_.value.code == 2 and f"--jpeg: expected a quality within [1, 100], got {bad}" in \
+            capsys.readouterr().err
+
+
+def test_the_model_flows_own_error_is_reported_wherever_the_estimate_succeeded(rr, pair):
+    """A method whose estimate succeeded but whose flow the gate turned down everywhere still
+    reports its model flow's own road error; one whose estimate failed does not."""
+    truth = pair["flow"].clone()
+
+    def method(estimated):
+        return (None, lambda p, dis: (dis, {"refined": False, "estimated": estimated, "model_flow": truth}))
+
+    results = rr.run_pair(pair, {"kept": method(True), "failed": method(False)})
+    assert results["kept"]["epe_model"] == pytest.approx(0.0, abs=1e-6) and "epe_model" not in results["failed"]
+    assert "estimated" not in results["kept"] and "model_flow" not in results["kept"]
+
+
 def test_main_reversed_runs_the_clip_last_to_first(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--reverse", "--no-reverse-screen")
     assert "2 pair(s), frames swapped (the backward flow)" in printed
