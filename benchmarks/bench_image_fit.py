@@ -18,7 +18,9 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
   (a 3 × 3 erosion at every second pixel): OpenCV against kornia / torch (the fast paths
   ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU); and both frames
   converted to grey, in place into one tensor (``to_grey``, as the fit does) against kornia's
-  ``rgb_to_grayscale`` and a concatenation.
+  ``rgb_to_grayscale`` and a concatenation; and the road mask's pixels found by NumPy's
+  ``flatnonzero`` (``mask_pixels``, the CPU path of every sample of the mask's points) against
+  torch's ``nonzero``.
 
     python benchmarks/bench_image_fit.py [--repeats 15] [--baseline REV] [--kitti15] [--data DIR]
 
@@ -103,6 +105,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import fsof_torch as fs
     from fsof_torch.estimation.pyramid import gaussian_blur, image_pyramid, mask_pyramid
+    from fsof_torch.estimation.sampling import mask_pixels
     from fsof_torch.evaluation.photometric import to_grey
     from refine.sources import dis_flow
 
@@ -157,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
         "pyramid, 5 levels, torch": lambda: [x := grey] + [x := torch_decimate(x) for _ in range(4)],
         "both frames to grey, in place (to_grey)": grey_in_place,
         "both frames to grey, kornia rgb_to_grayscale": lambda: torch.cat([rgb_to_grayscale(I1), rgb_to_grayscale(I2)], 1),
+        "the road's pixels, NumPy flatnonzero (mask_pixels)": lambda: mask_pixels(M),
+        "the road's pixels, torch nonzero": lambda: M.reshape(-1).nonzero().squeeze(1),
         "mask pyramid, 5 levels, OpenCV": lambda: mask_pyramid(M, 5),
         "mask pyramid, 5 levels, torch": lambda: [m := M] + [m := -F.max_pool2d(-m.float(), 3, stride=2, padding=1) > 0.5
                                                              for _ in range(4)],

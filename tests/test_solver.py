@@ -307,6 +307,21 @@ def test_resample_mask_is_sample_mask_of_the_same_mask():
             assert torch.equal(getattr(a, name), getattr(b, name)), (n, name)
 
 
+
+def test_mask_pixels_matches_torch_nonzero():
+    """The CPU path (NumPy's flatnonzero) finds the same flat indices, in the same order and dtype,
+    as torch's nonzero: batches, an expanded (non-contiguous) mask, an empty and a full one."""
+    from fsof_torch.estimation.sampling import mask_pixels
+
+    g = torch.Generator().manual_seed(5)
+    masks = [torch.rand(3, 1, 17, 23, generator=g) > 0.6, (torch.rand(1, 1, 8, 9, generator=g) > 0.5).expand(4, 1, 8, 9),
+             torch.zeros(2, 1, 5, 6, dtype=torch.bool), torch.ones(1, 1, 4, 4, dtype=torch.bool),
+             (torch.rand(1, 1, 9, 12, generator=g) > 0.5)[..., ::2, 1::3]]
+    for mask in masks:
+        got, want = mask_pixels(mask), mask.reshape(-1).nonzero().squeeze(1)
+        assert got.dtype == torch.int64 and torch.equal(got, want), tuple(mask.shape)
+
+
 # -- bounds: the constrained minimum ----------------------------------------------------------------
 
 def exponential_problem():
