@@ -47,18 +47,22 @@ principal point and mounting roll mirrored: a check that nothing favours one sid
 where the mask reaches beyond it the notes give the census (and EPE) there. With ``--crop TOP
 BOTTOM LEFT RIGHT`` every pair is first cut to a window (:func:`cropped`), as a pipeline cuts
 away the sky or the bonnet. With ``--jpeg QUALITY`` both frames of every pair are stored as JPEG
-and read back (:func:`compressed`), as many cameras and data sets store them.
+and read back (:func:`compressed`), as many cameras and data sets store them. Each
+``--estimator OPTIONS`` (a JSON object of ``ImageMotionEstimator`` keyword arguments, such as
+``'{"smooth_sigma": 0.7}'``) adds a row: the refiner with that estimator, to compare settings on
+any of the above.
 
 With ``--pair DIR`` and ``--clip DIR`` it runs on other KITTI data in the same layouts instead
 (another KITTI 2015 pair, with or without ground truth; another odometry clip, with or without
 poses), e.g. a turning clip: ``python benchmarks/real_road.py --clip path/to/clip``.
 
-Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--crop TOP BOTTOM LEFT RIGHT] [--jpeg QUALITY] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--json PATH]``
+Run: ``python benchmarks/real_road.py [--data ../shared/data | --pair DIR --clip DIR] [--pairs N] [--step K] [--roll-deg D] [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--exposure-gain G] [--resize FACTOR] [--reverse] [--mirror] [--crop TOP BOTTOM LEFT RIGHT] [--jpeg QUALITY] [--mask-grow PX] [--odometry-error SCALE YAW_DEG] [--no-ecc] [--no-sequence] [--no-turn-screen] [--no-prior-retry] [--no-reverse-screen] [--estimator OPTIONS] [--json PATH]``
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import sys
 import time
@@ -678,6 +682,8 @@ def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dic
 
 
 def main(argv: list[str] | None = None) -> int:
+    from cli import json_object
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", type=Path, default=DEFAULT_DATA,
                         help="folder holding kitti15_000000/ and kitti_odometry_straight/ (default: ../shared/data)")
@@ -739,6 +745,9 @@ def main(argv: list[str] | None = None) -> int:
                              "(retry_without_prior=False)")
     parser.add_argument("--no-reverse-screen", action="store_true",
                         help="also run the refiner without its screen of steps backwards (reverse_starts=())")
+    parser.add_argument("--estimator", type=json_object, action="append", default=[], metavar="OPTIONS",
+                        help="add a row: the refiner with ImageMotionEstimator(**OPTIONS), a JSON object "
+                             "(repeatable), e.g. '{\"smooth_sigma\": 0.7}'")
     parser.add_argument("--json", type=Path,
                         help="write every number (per pair too; the options and fit_sequence's mounting too) here; "
                              "an earlier file there is removed at the start")
@@ -764,6 +773,18 @@ def main(argv: list[str] | None = None) -> int:
     methods = {k: v for k, v in METHODS.items() if not (args.no_ecc and k == "ECC homography")}
     extra = {**(TURN_ROWS if args.no_turn_screen else {}), **(PRIOR_ROWS if args.no_prior_retry else {}),
              **(REVERSE_ROWS if args.no_reverse_screen else {})}
+    from fsof_torch import Camera, ImageMotionEstimator
+
+    for options in args.estimator:  # (checked before any work: a bad name or value exits 2)
+        try:  # (the values are checked where the estimator is called: once on a blank 32 x 32 pair)
+            blank = torch.zeros(1, 1, 32, 32)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                ImageMotionEstimator(**options)(None, torch.ones(1, 1, 32, 32, dtype=torch.bool),
+                                                Camera(torch.tensor([[16.0, 0, 16], [0, 16, 16], [0, 0, 1]]), 1.65), images=(blank, blank))
+        except (TypeError, ValueError) as err:
+            parser.error(f"--estimator: {json.dumps(options)}: {err}")
+        extra[f"refiner, {json.dumps(options)}"] = options
     for name, options in extra.items():
         methods[name] = (None, lambda pair, dis, options=options: refiner_flow(pair, dis, **options))
     turn = (args.yaw_deg, args.pitch_change_deg, args.roll_change_deg)

@@ -880,3 +880,18 @@ def test_turned_window_of_nothing_defined_is_empty(rr):
     defined[:, 10] = False  # (a column undefined in the middle rows too)
     defined[0, :] = False
     assert rr.defined_window(defined) == _brute_window(defined) == (1, 20, 11, 30)
+
+
+def test_main_adds_a_row_per_estimator_given(rr, scenes, tmp_path, capsys, monkeypatch):
+    """``--estimator OPTIONS``: a row more each, the refiner with ``ImageMotionEstimator(**OPTIONS)``;
+    with no options the row is the default refiner's."""
+    given = []
+    refiner_flow = rr.refiner_flow
+    monkeypatch.setattr(rr, "refiner_flow", lambda pair, dis, odometry=None, **options:
+                        given.append(options) or refiner_flow(pair, dis, odometry, **options))
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--no-sequence", "--estimator", "{}",
+                                         "--estimator", '{"smooth_sigma": 1.0}')
+    rows = {r["method"]: r for r in report["clip"]["rows"]}
+    assert '| refiner, {"smooth_sigma": 1.0} | 2 |' in printed
+    assert rows["refiner, {}"]["census"] == rows["refiner (no odometry)"]["census"]
+    assert {"smooth_sigma": 1.0} in given and report["options"]["estimator"] == [{}, {"smooth_sigma": 1.0}]

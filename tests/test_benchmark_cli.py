@@ -53,6 +53,9 @@ BAD = [
     ("bench_refine", ["--json", TMP], "--json"),
     ("fit_kitti", ["--json", f"{TMP}/file.txt/out.json"], "--json"),
     ("real_road", ["--json", TMP], "--json"),
+    ("real_road", ["--estimator", "[1]"], "--estimator"),
+    ("real_road", ["--estimator", '{"bogus": 1}'], "--estimator"),
+    ("real_road", ["--estimator", '{"smooth_sigma": -1}'], "--estimator"),
     ("bench_quickstart", ["--runs", "0"], "--runs"),
     ("bench_quickstart", ["--args", "--pairs 'unclosed"], "--args"),
     ("bench_refine", ["--rounds", "0"], "--rounds"),
@@ -89,6 +92,8 @@ BAD = [
     ("image_fit_settings", ["{bad"], "SETTING"),
     ("image_fit_settings", ["[1, 2]"], "SETTING"),
     ("image_fit_settings", ['{"bogus": 1}'], "SETTING"),
+    ("image_fit_settings", ["--noise", "-1"], "--noise"),
+    ("image_fit_settings", ["--noise", "nan"], "--noise"),
     ("image_formation", ["--pairs", "0"], "--pairs"),
     ("image_formation", ["--pairs", "50001"], "--pairs"),  # (the turning scene's last pair: 100000)
     ("kitti_photometric", ["--data", ABSENT], "--data"),
