@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import json
 import math
 import os
 import sys
@@ -123,6 +124,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="variant given_images: let the images move the odometry's planar motion, within these "
                         "widths a frame (sideways and forward in metres, yaw in degrees; e.g. 0.05 0.05 0.2 "
                         "for wheel odometry); default: held fixed")
+    g.add_argument("--fit-options", metavar="JSON", default=None,
+                   help="fit_image keyword arguments for the road motion from the images (variants photometric, "
+                        "given_images, and the clip's fit for sequence, given_pitch and --calibrate-pitch), a JSON "
+                        "object, e.g. '{\"fine_points\": 20000, \"smooth_sigma\": 1.0}' (docs/real-roads.md, "
+                        "\"Settings for a real camera\"); default: the library's")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
     g.add_argument("--scale", type=float, default=None,
                    help=f"Cauchy scale in px, for --mode confidence only (default: {DEFAULT_SCALE:g})")
@@ -237,6 +243,52 @@ def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str
         raise JobError(f"--odometry-sigma: expected three finite widths > 0 (X_M Z_M YAW_DEG), got "
                        f"{' '.join(f'{w:g}' for w in widths)}")
     return {"x_d": widths[0], "z_d": widths[1], "yaw": math.radians(widths[2])}
+
+
+#: fit_image options the job sets itself (the images, the road, the camera and the model, the
+#: starts, the odometry's held parameters and the priors), which --fit-options may not give
+_JOB_FIT_KEYS = ("image1", "image2", "mask", "camera", "model", "init", "starts", "fixed", "prior", "data_range")
+
+
+def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict | None:
+    """``--fit-options JSON`` -> fit_image keyword arguments, checked before any work (names, and
+    values by one estimate on a blank 32 x 32 pair); None where not given."""
+    import json
+    import warnings
+
+    import torch
+
+    from fsof_torch import Camera, ImageMotionEstimator, fit_image
+    from fsof_torch._check import check_keywords
+
+    from .inputs import JobError
+
+    if text is None:
+        return None
+    try:
+        options = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise JobError(f"--fit-options: expected a JSON object of fit_image keyword arguments, got {text!r} ({err})") \
+            from None
+    if not isinstance(options, dict):
+        raise JobError(f"--fit-options: expected a JSON object of fit_image keyword arguments, got {text!r}")
+    uses = [v for v in variants if v in ("photometric", "given_images", "sequence", "given_pitch")]
+    if not uses and not calibrate:
+        raise JobError(f"--fit-options: applies to the road motion from the images (variants photometric, "
+                       f"given_images, sequence, given_pitch, or --calibrate-pitch), which this run does not use "
+                       f"(--odometry {','.join(variants)})")
+    try:
+        check_keywords(options, "--fit-options", fit_image, reserved=_JOB_FIT_KEYS)
+        blank = torch.zeros(1, 1, 32, 32)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ImageMotionEstimator(**options)(None, torch.ones(1, 1, 32, 32, dtype=torch.bool),
+                                            Camera(torch.tensor([[16.0, 0, 16], [0, 16, 16], [0, 0, 1]]), 1.65),
+                                            images=(blank, blank))
+    except (TypeError, ValueError) as err:
+        message = str(err)
+        raise JobError(message if message.startswith("--fit-options") else f"--fit-options: {message}") from None
+    return options
 
 
 def _sample_road(road: str | None) -> str:
@@ -419,6 +471,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         x, z, yaw = args.odometry_sigma
         notes.append(f"Variant given_images: the images may move the odometry's planar motion within {x:g} m "
                      f"sideways, {z:g} m forward and {yaw:g}° of yaw a frame (Gaussian priors).")
+    fit_options = _fit_options(args.fit_options, variants, calibrate)
+    if fit_options is not None:
+        notes.append(f"The road motion from the images with fit_image's options {json.dumps(fit_options)} "
+                     f"(--fit-options).")
     net_spec = NetSpec(args.net, args.net_contract or "auto", args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
 
@@ -433,6 +489,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
                 and "testnet" in sources else None,
                 "net": net_identity(net_spec) if "net" in sources else None, "outputs": sources,
                 "photometric": [kind for _, kind, _ in PHOTO]}
+    if fit_options is not None:  # (no key without it: a run without the option has the identity it had)
+        identity["fit_options"] = fit_options
     if device.type != "cpu":
         # a GPU's kernels round otherwise (and a network's convolutions may run in TF32): its
         # records are not the CPU's. (No key on the CPU: a CPU run's identity is as before.)
@@ -453,7 +511,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     fp = resume.fingerprint(identity)
     cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=scale,
                     fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto", calibrate=calibrate,
-                    odometry_sigma=odometry_sigma, overwrite=args.overwrite, figures=not args.no_figures,
+                    odometry_sigma=odometry_sigma, fit_options=fit_options or {}, overwrite=args.overwrite,
+                    figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
                     fingerprint=fp, device=str(device))
     from .calibrate import clip_options
@@ -577,7 +636,8 @@ def _fit_clip(specs, camera, cfg, built: dict, device, *, needed_by: str, poses_
         return road, info
 
     cam = camera if camera is not None else specs[0].load()["camera"]
-    return fit_clip(specs, cam, road_for, progress=cfg.progress, needed_by=needed_by, poses_option=poses_option)
+    return fit_clip(specs, cam, road_for, progress=cfg.progress, needed_by=needed_by, poses_option=poses_option,
+                    **cfg.fit_options)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -133,7 +133,8 @@ class PackedMasks:
 
 
 def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], Tensor], *,
-             progress: bool = True, needed_by: str = "--odometry sequence", poses_option: str = "--poses") -> ClipFit:
+             progress: bool = True, needed_by: str = "--odometry sequence", poses_option: str = "--poses",
+             **options: Any) -> ClipFit:
     """Fit the road motion of the clip made by ``specs`` (see the module docstring).
 
     The clip streams: one pass loads each pair to check that it follows the previous one and to
@@ -150,6 +151,8 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         progress: progress bars.
         needed_by: the options that need the clip, which its errors name (:func:`clip_options`).
         poses_option: the option the poses come from, which the errors about them name.
+        **options: further keyword arguments of :func:`fsof_torch.fit_sequence` (``--fit-options``:
+            fit_image's).
     """
     from fsof_torch.io.progress import progress_bar
 
@@ -182,7 +185,7 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
         poses = torch.stack(P)
     cam = camera.to(torch.float64)
     with options_of({"poses": poses_option}):  # e.g. poses that move where the images do not
-        seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress)
+        seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress, **options)
     motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
               for i, spec in enumerate(specs)}
     success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}

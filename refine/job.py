@@ -63,6 +63,7 @@ class JobConfig:
     title: str = "refine"
     calibrate: bool = False
     odometry_sigma: dict | None = None  # given_images: ImageMotionEstimator's (None: the odometry held fixed)
+    fit_options: dict = field(default_factory=dict)  # fit_image's, for the road motion from the images
     clip: Any = None  # refine.calibrate.ClipFit: the clip's road motion and calibrated camera
     clip_fingerprint: str = ""  # the inputs of every pair of the clip
     notes: list[str] = field(default_factory=list)
@@ -130,8 +131,10 @@ def _refiner(variant: str, cfg: JobConfig) -> FreespaceRefiner:
     common = {"mode": cfg.mode, "scale": cfg.scale, "warn": False}
     if variant == "fit":
         return FreespaceRefiner(fit="flow", fit_roll=cfg.fit_roll, fit_pitch=cfg.fit_pitch, **common)
-    if variant == "given_images" and cfg.odometry_sigma:
-        return FreespaceRefiner(estimator=ImageMotionEstimator(odometry_sigma=cfg.odometry_sigma), **common)
+    if (variant == "given_images" and cfg.odometry_sigma) or (variant in ("photometric", "given_images")
+                                                              and cfg.fit_options):
+        sigma = cfg.odometry_sigma if variant == "given_images" else None
+        return FreespaceRefiner(estimator=ImageMotionEstimator(odometry_sigma=sigma, **cfg.fit_options), **common)
     return FreespaceRefiner(**common)
 
 

@@ -1222,6 +1222,51 @@ def test_odometry_sigma_lets_the_images_move_the_odometry(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+
+def test_fit_options_reach_the_image_estimates_and_make_another_run(tmp_path, capsys, monkeypatch, user_folder,
+                                                                    scene_pairs):
+    """--fit-options JSON: fit_image's options for the variants that estimate from the images (the
+    refiner's estimator) and for the clip's fit (fit_sequence); the report says so, a rerun with
+    other options is another run, and bad options exit 2 before any work."""
+    import refine.calibrate as calibrate
+    import refine.job as job
+
+    seen = {"estimator": [], "sequence": []}
+    estimator, fit_sequence = job.ImageMotionEstimator, calibrate.fit_sequence
+
+    def recording_estimator(**options):
+        seen["estimator"].append(options)
+        return estimator(**options)
+
+    def recording_sequence(*args, **options):
+        seen["sequence"].append(options)
+        return fit_sequence(*args, **options)
+
+    monkeypatch.setattr(job, "ImageMotionEstimator", recording_estimator)
+    monkeypatch.setattr(calibrate, "fit_sequence", recording_sequence)
+    options = ["--fit-options", '{"max_points": 800, "smooth_sigma": 0.5}']
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "photometric", "--no-figures", *TINY]
+    assert main([*base, *options, "--out", str(tmp_path / "a")]) == 0
+    assert seen["estimator"] == [{"odometry_sigma": None, "max_points": 800, "smooth_sigma": 0.5}]
+    assert "fit_image's options {\"max_points\": 800, \"smooth_sigma\": 0.5} (--fit-options)" in \
+        (tmp_path / "a" / "report.md").read_text()
+    err = _err(capsys, [*base, "--fit-options", '{"max_points": 900}', "--out", str(tmp_path / "a")])
+    assert "another run" in err and "fit_options" in err
+    # the clip's fit takes them too
+    clip = _user(user_folder, tmp_path / "clip", "--road", str(user_folder / "road"), "--source", "dis",
+                 *_mounting(scene_pairs), *options)
+    assert main(clip) == 0
+    assert seen["sequence"] and all(o["max_points"] == 800 and o["smooth_sigma"] == 0.5 for o in seen["sequence"])
+    # checked before any work, naming the option
+    for bad, says in (('{"max_points": 800', "expected a JSON object"), ("[1, 2]", "expected a JSON object"),
+                      ('{"bogus": 1}', "unknown options ['bogus']"), ('{"camera": 1}', "camera"),
+                      ('{"smooth_sigma": -1}', "smooth_sigma: expected a number >= 0")):
+        err = _err(capsys, [*base, "--fit-options", bad, "--out", str(tmp_path / "o")])
+        assert err.startswith("error: --fit-options") and says in err, (bad, err)
+    err = _err(capsys, [*TINY, "--num-pairs", "1", "--odometry", "fit", *options, "--out", str(tmp_path / "o")])
+    assert "--fit-options: applies to the road motion from the images" in err
+    assert not (tmp_path / "o").exists()
+
 def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, scene_pairs):
     """A predicted flow of 600 px on a band outside the road (a KITTI flow PNG holds ±512 px):
     the job finishes, its metrics take the flow as it is, and the written PNG marks those pixels
