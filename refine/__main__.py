@@ -253,7 +253,6 @@ _JOB_FIT_KEYS = ("image1", "image2", "mask", "camera", "model", "init", "starts"
 def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict | None:
     """``--fit-options JSON`` -> fit_image keyword arguments, checked before any work (names, and
     values by one estimate on a blank 32 x 32 pair); None where not given."""
-    import json
     import warnings
 
     import torch

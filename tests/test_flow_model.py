@@ -141,7 +141,8 @@ def raycast_reference(K, h, roll, pitch, x_d, z_d, yaw, H, W):
         P1 = _rot_yaw(yaw) @ (P - np.array([[x_d], [0.0], [z_d]]))
         Pc1 = Rc @ P1                                # camera frame of time t+1
     valid = in_front & (Pc1[2] > 0)
-    with np.errstate(invalid="ignore", divide="ignore"):
+    # (a road point beyond float range, just below the horizon, overflows its projection too)
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
         img = K @ Pc1
         flow = img[:2] / img[2] - p[:2]
     flow = np.where(valid, flow, 0.0)

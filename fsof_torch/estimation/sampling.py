@@ -77,7 +77,7 @@ def mask_pixels(mask: Tensor) -> Tensor:
     division). On the CPU NumPy's ``flatnonzero`` finds them in half the time of torch's
     ``nonzero`` (a KITTI frame's road: ``python benchmarks/bench_image_fit.py``); elsewhere torch's."""
     flat = mask.reshape(-1)
-    if flat.device.type == "cpu" and not flat.requires_grad:
+    if flat.device.type == "cpu":
         return torch.from_numpy(np.flatnonzero(flat.numpy())).long()
     return flat.nonzero().squeeze(1)
 
