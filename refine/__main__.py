@@ -245,20 +245,16 @@ def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str
     return {"x_d": widths[0], "z_d": widths[1], "yaw": math.radians(widths[2])}
 
 
-#: fit_image options the job sets itself (the images, the road, the camera and the model, the
-#: starts, the odometry's held parameters and the priors), which --fit-options may not give
-_JOB_FIT_KEYS = ("image1", "image2", "mask", "camera", "model", "init", "starts", "fixed", "prior", "data_range")
+#: fit_image options the job sets itself (besides the images, the road and the camera: the model,
+#: the starts, the odometry's held parameters, the priors and the images' range), which
+#: --fit-options may not give
+_JOB_FIT_KEYS = ("model", "init", "starts", "fixed", "prior", "data_range")
 
 
 def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict | None:
-    """``--fit-options JSON`` -> fit_image keyword arguments, checked before any work (names, and
-    values by one estimate on a blank 32 x 32 pair); None where not given."""
-    import warnings
-
-    import torch
-
-    from fsof_torch import Camera, ImageMotionEstimator, fit_image
-    from fsof_torch._check import check_keywords
+    """``--fit-options JSON`` -> fit_image keyword arguments, checked (names and values) before any
+    work; None where not given."""
+    from fsof_torch.estimation.image_fit import check_image_fit_options
 
     from .inputs import JobError
 
@@ -277,13 +273,7 @@ def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict
                        f"given_images, sequence, given_pitch, or --calibrate-pitch), which this run does not use "
                        f"(--odometry {','.join(variants)})")
     try:
-        check_keywords(options, "--fit-options", fit_image, reserved=_JOB_FIT_KEYS)
-        blank = torch.zeros(1, 1, 32, 32)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            ImageMotionEstimator(**options)(None, torch.ones(1, 1, 32, 32, dtype=torch.bool),
-                                            Camera(torch.tensor([[16.0, 0, 16], [0, 16, 16], [0, 0, 1]]), 1.65),
-                                            images=(blank, blank))
+        check_image_fit_options(options, "--fit-options", reserved=_JOB_FIT_KEYS)
     except (TypeError, ValueError) as err:
         message = str(err)
         raise JobError(message if message.startswith("--fit-options") else f"--fit-options: {message}") from None

@@ -80,6 +80,18 @@ def test_odometry_sigma_is_a_prior_on_top_of_the_calibration_prior(body_pair):
         assert tight[k] == pytest.approx(held[k], abs=2e-4)
 
 
+def test_fit_image_options_checked_when_the_estimator_is_made():
+    """A bad value among fit_image's options is an error when the estimator is built (as a torch
+    module checks its arguments), not at the first refinement."""
+    with pytest.raises(ValueError, match="^smooth_sigma: expected a number >= 0, got -1"):
+        ImageMotionEstimator(smooth_sigma=-1)
+    with pytest.raises(ValueError, match=r"^min_correlation: expected a number in \[-1, 1\], got 2"):
+        ImageMotionEstimator(model="homography", min_correlation=2)
+    with pytest.raises(TypeError, match=r"^options: options \['starts'\] of fit_image are set by"):
+        ImageMotionEstimator(starts=[])
+    assert ImageMotionEstimator(fine_points=20000, smooth_sigma=1.0).options == {"fine_points": 20000,
+                                                                                 "smooth_sigma": 1.0}
+
 def test_odometry_sigma_checked():
     with pytest.raises(ValueError, match=r"odometry_sigma: expected some of \('x_d', 'z_d', 'yaw'\) \(the planar "
                                          r"odometry\), got 'pitch'"):

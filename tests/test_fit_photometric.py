@@ -91,7 +91,7 @@ def test_exceptions():
         fit_photometric(image1, image2, mask, cam, robust="nope")
 
 
-@pytest.mark.parametrize("options, error, message", [
+OPTION_ERRORS = [
     # once accepted silently, or failing far from the option (ZeroDivisionError, math domain error,
     # OpenCV's assertion, 'int' object is not iterable)
     (dict(inlier_threshold=float("nan")), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
@@ -127,7 +127,10 @@ def test_exceptions():
      r"prior\['pitch'\]: expected a finite mean and sigma > 0, got \(0.0, 0.0\)"),
     # a prior on a held parameter was silently ignored (fit_road refuses it too)
     (dict(fixed=("roll",), prior={"roll": (0.0, 0.1)}), ValueError, r"^prior: 'roll' is held at its start"),
-])
+]
+
+
+@pytest.mark.parametrize("options, error, message", OPTION_ERRORS)
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
 
@@ -136,6 +139,38 @@ def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     with pytest.raises(error, match=message):
         fit_image(image1, image2, mask, cam, **options)
 
+
+@pytest.mark.parametrize("options, error, message", [case for case in OPTION_ERRORS if not any(
+    word in case[2] for word in ("bounds", "prior\\[", "held"))])
+def test_check_image_fit_options_raises_what_fit_image_raises(options, error, message):
+    """The options alone, checked as fit_image checks them (what ImageMotionEstimator and
+    fit_sequence do when given options): the same error, before any image is seen. The checks
+    that need the batch (the bounds' shape, a prior's batch) and the held parameters come with
+    the images."""
+    from fsof_torch.estimation.image_fit import check_image_fit_options
+
+    with pytest.raises(error, match=message):
+        check_image_fit_options(options)
+
+
+def test_check_image_fit_options_names_and_bounds_of_any_batch():
+    from fsof_torch.estimation.image_fit import check_image_fit_options
+
+    check_image_fit_options({"fine_points": 20000, "smooth_sigma": 1.0, "bounds": (torch.zeros(3, 8), torch.ones(3, 8))})
+    with pytest.raises(TypeError, match=r"^opts: unknown options \['bogus'\] of fit_image"):
+        check_image_fit_options({"bogus": 1}, "opts")
+    with pytest.raises(TypeError, match=r"^opts: options \['camera'\] of fit_image are set by"):
+        check_image_fit_options({"camera": None}, "opts")
+    with pytest.raises(TypeError, match=r"^opts: options \['prior'\] of fit_image are set by"):
+        check_image_fit_options({"prior": None}, "opts", reserved=("prior",))
+    with pytest.raises(ValueError, match=r"bounds \(lower\): expected shape \(B, 8\)"):
+        check_image_fit_options({"bounds": (torch.zeros(2, 5), torch.ones(2, 5))})
+    with pytest.raises(ValueError, match=r"bounds: expected lower and upper of one shape"):
+        check_image_fit_options({"bounds": (torch.zeros(2, 8), torch.ones(3, 8))})
+    with pytest.raises(ValueError, match=r"bounds: expected lower <= upper"):
+        check_image_fit_options({"bounds": (torch.ones(1, 8), torch.zeros(1, 8))})
+    with pytest.raises(ValueError, match=r"^model: the image fit estimates a motion between two frames"):
+        check_image_fit_options({"model": "velocity"})
 
 def test_the_calibration_prior_leaves_held_parameters_out():
     """The calibration prior of the paper model (pitch held) and of a plane with its roll held: the

@@ -270,6 +270,18 @@ def test_fit_sequence_leaves_inputs_alone(body_motion_clip):
     assert all(torch.equal(a, b) for a, b in zip(before, frames[:3]))
 
 
+def test_fit_sequence_checks_fit_image_options_before_reading_a_frame(body_motion_clip):
+    """A bad value among the options it forwards to fit_image is an error at once, not after the
+    clip's first pairs were fitted: no frame is read."""
+    pairs, frames, _ = body_motion_clip
+    clip = LazySequence(frames)
+    for options, error, match in (({"smooth_sigma": -1.0}, ValueError, "^smooth_sigma: expected a number >= 0"),
+                                  ({"fine_points": 2.5}, TypeError, "^fine_points: expected None or an int"),
+                                  ({"prior": None}, TypeError, r"^options: options \['prior'\] of fit_image are set")):
+        with pytest.raises(error, match=match):
+            fit_sequence(clip, pairs[0]["road"], pairs[0]["camera"], **options)
+    assert clip.reads == [0] * len(frames)
+
 def test_fit_sequence_errors(body_motion_clip):
     pairs, frames, _ = body_motion_clip
     cam, road = pairs[0]["camera"], pairs[0]["road"]

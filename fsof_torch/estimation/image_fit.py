@@ -35,30 +35,30 @@ results are ordinary, detached tensors.
 
 from __future__ import annotations
 
+import inspect
 import math
 from typing import Any, Callable, Mapping, Sequence
 
 import torch
 from torch import Tensor
 
-from .._check import (autocast_off, batch_choices, check_bool, check_data_range, check_fit_flags, check_float_tensor,
-                      check_has_values, check_image_pair, check_image_range, check_int, check_mapping, check_names,
-                      check_number, check_shape, inference, result_dtype)
+from .._check import (autocast_off, batch_choices, check_data_range, check_fit_flags, check_has_values,
+                      check_image_pair, check_image_range, check_keywords, check_shape, inference, result_dtype)
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import RoadModel, get_road_model, pack_params
-from .flow_fit import RoadFit, check_fit_options, fixed_parameters
-from .robust import check_kernel
+from ..geometry.road_models import RoadModel, pack_params
+from .flow_fit import RoadFit, fixed_parameters
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import backward_correlation, detail_correlation, photometric_inliers, spread_out, warped_samples
 from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
-from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, check_steps, reverse_moves, screened_start, start_list,
-                     starts_ahead, turn_moves, two_way_cost)
+from .image_options import check_bounds, checked_options
+from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, reverse_moves, screened_start, start_list, starts_ahead,
+                     turn_moves, two_way_cost)
 from .solver import Evaluation, Solution, positive_definite, solve
 
-__all__ = ["fit_image", "fit_photometric", "ImageProblem", "calibration_prior", "physical_bounds",
+__all__ = ["fit_image", "fit_photometric", "check_image_fit_options", "ImageProblem", "calibration_prior", "physical_bounds",
            "image_pyramid", "gaussian_blur", "DEG"]
 
 # a coarser level ends when a step moves (or the next step is predicted to move) the residuals by
@@ -182,22 +182,6 @@ def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
     check_image_range(image1, "image1", data_range)
     check_image_range(image2, "image2", data_range)
     return dims, mask
-
-
-def _check_bounds(bounds: object, model: RoadModel, B: int) -> None:
-    """``"physical"``, None, or ``(lower, upper)`` float tensors (B, P) in the model's order."""
-    if bounds is None or (isinstance(bounds, str) and bounds == "physical"):
-        return
-    P = len(model.params)
-    if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
-        raise TypeError(f"bounds: expected 'physical', None or (lower, upper) tensors of shape ({B}, {P}), got {bounds!r}")
-    for name, t in zip(("lower", "upper"), bounds):
-        check_float_tensor(t, f"bounds ({name})")
-        if tuple(t.shape) != (B, P):
-            raise ValueError(f"bounds ({name}): expected shape ({B}, {P}) (batch, the {model.name!r} model's "
-                             f"parameters {model.params}), got {tuple(t.shape)}")
-    if not bool((bounds[0] <= bounds[1]).all()):
-        raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
 
 
 @inference
@@ -351,48 +335,18 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         full-resolution level converged (``success`` does not ask it: a fit that ran out of
         iterations is still judged by the image tests).
     """
-    model = get_road_model(model)
-    if model.velocity:
-        raise ValueError("model: the image fit estimates a motion between two frames; the 'velocity' model "
-                         "is a rate (fit its flow with fit_velocity instead)")
-    check_kernel(robust)
-    check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
-                      min_points, min_inlier_fraction)
-    if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
-        raise ValueError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
-    check_int(retry_starts, "retry_starts", minimum=0)
-    check_bool(retry_without_prior, "retry_without_prior")
-    check_int(levels, "levels", minimum=1, optional=True)
-    check_int(fine_points, "fine_points", minimum=1, optional=True)
-    check_int(min_size, "min_size", minimum=2)
-    check_int(band_levels, "band_levels", minimum=0)
-    check_int(check_every, "check_every", minimum=1, optional=True)
-    check_number(resolution, "resolution", nonnegative=True)
-    check_number(smooth_sigma, "smooth_sigma", nonnegative=True)
-    if highpass is not None:
-        check_number(highpass, "highpass", nonnegative=True)
-    if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
-        raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
-    check_bool(affine, "affine")
-    steps = check_steps(forward_starts, "forward_starts", "camera heights per frame")
-    turns = check_steps(turn_starts, "turn_starts", "degrees of yaw per frame")
-    reverse = check_steps(reverse_starts, "reverse_starts", "camera heights per frame")
-    fixed = check_names(fixed, "fixed")
-    if isinstance(prior, str) and prior != "calibration":
-        raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
-    if not isinstance(prior, str):
-        prior = check_mapping(prior, "prior")
-    if init is not None and not isinstance(init, (Mapping, RoadFit)):
-        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
-    if not isinstance(starts, (list, tuple)):
-        raise TypeError(f"starts: expected a list of starts (dicts of parameters or fits), got {type(starts).__name__}")
-    for x in starts:
-        if not isinstance(x, (Mapping, RoadFit)):
-            raise TypeError(f"starts: expected dicts of parameters or fits, got an element {type(x).__name__} {x!r}")
+    model, steps, turns, reverse, fixed, prior = checked_options(
+        model=model, fixed=fixed, init=init, starts=starts, prior=prior, levels=levels,
+        min_size=min_size, max_iter=max_iter, tol=tol, resolution=resolution, smooth_sigma=smooth_sigma,
+        highpass=highpass, band_levels=band_levels, robust=robust, scale=scale, max_points=max_points,
+        gradient_fraction=gradient_fraction, fine_points=fine_points, affine=affine, inlier_threshold=inlier_threshold,
+        min_points=min_points, min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation,
+        data_range=data_range, check_every=check_every, forward_starts=forward_starts, turn_starts=turn_starts,
+        reverse_starts=reverse_starts, retry_starts=retry_starts, retry_without_prior=retry_without_prior)
     for name, t in (("image1", image1), ("image2", image2), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, mask = _check_images(image1, image2, mask, camera, data_range)
-    _check_bounds(bounds, model, dims["B"])
+    check_bounds(bounds, model, dims["B"])
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(image1, camera.K)
     dev = image1.device
@@ -601,6 +555,24 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                                                            "inlier_fraction": fit["fraction"].to(out_dtype),
                                                            "correlation": fit["correlation"].to(out_dtype),
                                                            "converged": fit["converged"]})
+
+
+def check_image_fit_options(options: Mapping[str, Any], name: str = "options", reserved: Sequence[str] = ()) -> None:
+    """Keyword arguments for :func:`fit_image` (its options, not the images, mask or camera),
+    checked as it checks them, before any fit: a name it does not take, or one of ``reserved`` (set
+    by the caller), is a TypeError naming ``name``; a bad value the TypeError or ValueError that
+    fit_image would raise (the bounds' batch size aside). For estimators and clip fits that forward
+    options to it."""
+    check_keywords(options, name, fit_image, ("image1", "image2", "mask", "camera", *reserved))
+    given = {**_fit_image_defaults(), **options}
+    bounds = given.pop("bounds")
+    check_bounds(bounds, checked_options(**given).model)
+
+
+def _fit_image_defaults() -> dict[str, Any]:
+    """fit_image's keyword-only arguments and their defaults."""
+    params = inspect.signature(fit_image).parameters.values()
+    return {p.name: p.default for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY}
 
 
 def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,

@@ -41,12 +41,11 @@ from typing import Any, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (check_bool, check_data_range, check_float_tensor, check_image_range, check_keywords,
-                      check_names, option_error)
+from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_names, option_error
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
-from .image_fit import DEG, calibration_prior, fit_image
+from .image_fit import DEG, calibration_prior, check_image_fit_options, fit_image
 from .initial import planar_start
 
 __all__ = ["SequenceFit", "fit_sequence", "smooth_attitude"]
@@ -247,7 +246,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             pair in ``SequenceFit.fits`` (False: ``fits`` is empty and no full-size map outlives
             its pair; the parameters and ``success`` are the same).
         progress: show a progress bar.
-        **options: further keyword arguments of :func:`~fsof_torch.estimation.image_fit.fit_image`.
+        **options: further keyword arguments of :func:`~fsof_torch.estimation.image_fit.fit_image`,
+            their values checked before any frame is read.
 
     Returns:
         :class:`SequenceFit`.
@@ -300,7 +300,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             raise ValueError("poses: expected finite values, got NaN or inf")
     if flows is not None and len(flows) != N:
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
-    check_keywords(options, "options", fit_image, reserved=("image1", "image2", "init", "starts", "prior"))
+    # (the values too, before any frame is read)
+    check_image_fit_options(options, "options", reserved=("init", "starts", "prior"))
     model = get_road_model(options.pop("model", "plane"))
     data_range = check_data_range(options.get("data_range", 255.0))
     if model.name != "plane":

@@ -28,7 +28,7 @@ from .._check import (all_finite, batch_choices, check_batch, check_bool, check_
                       check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number, check_shape,
                       skip_values)
 from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
-from ..estimation.image_fit import calibration_prior, fit_image
+from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
@@ -179,7 +179,8 @@ class ImageMotionEstimator:
         **options: further keyword arguments of ``fit_image`` (``prior``, ``bounds``,
             ``max_points``, ``levels``, ...; not its inputs ``image1``, ``image2``, ``mask``,
             ``camera``, nor ``model``, ``starts``, which the estimator passes itself: a
-            TypeError names them).
+            TypeError names them). Their values are checked here, as fit_image checks them
+            (the bounds' batch size aside): a bad one is an error when the estimator is made.
 
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
     fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
@@ -196,8 +197,8 @@ class ImageMotionEstimator:
         if get_road_model(model).velocity:
             raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
         self.flow_start = check_bool(flow_start, "flow_start")
-        check_keywords(options, "options", fit_image,
-                       reserved=("image1", "image2", "mask", "camera", "model", "starts"))
+        # (the values too: a bad one is an error here, not at the first fit)
+        check_image_fit_options({"model": model, **options}, "options", reserved=("starts",))
         self.odometry_sigma = _odometry_sigma(odometry_sigma, self.model, options.get("fixed"))
         self.options = dict(options)
 

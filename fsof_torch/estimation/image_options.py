@@ -1,0 +1,106 @@
+"""The image fit's options, checked without images.
+
+:func:`~fsof_torch.estimation.image_fit.fit_image` checks its options with :func:`checked_options`
+before any work; the estimators and clip fits that forward options to it
+(:class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`,
+:func:`~fsof_torch.estimation.sequence.fit_sequence`) check them the same way where they are
+given (:func:`~fsof_torch.estimation.image_fit.check_image_fit_options`), so that a bad value is
+an error at once, not at the first fit of a clip.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, NamedTuple
+
+from .._check import check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
+from ..geometry.road_models import RoadModel, get_road_model
+from .flow_fit import RoadFit, check_fit_options
+from .robust import check_kernel
+from .starts import check_steps
+
+__all__ = ["ImageOptions", "checked_options", "check_bounds"]
+
+
+class ImageOptions(NamedTuple):
+    """What :func:`checked_options` returns that the fit uses: the road model, the starts straight
+    ahead, the turns and the steps backwards (checked sequences), the fixed names and the prior."""
+
+    model: RoadModel
+    steps: tuple
+    turns: tuple
+    reverse: tuple
+    fixed: Any
+    prior: Any
+
+
+def checked_options(*, model: Any, fixed: Any, init: Any, starts: Any, prior: Any, levels: Any,
+                    min_size: Any, max_iter: Any, tol: Any, resolution: Any, smooth_sigma: Any, highpass: Any,
+                    band_levels: Any, robust: Any, scale: Any, max_points: Any, gradient_fraction: Any,
+                    fine_points: Any, affine: Any, inlier_threshold: Any, min_points: Any, min_inlier_fraction: Any,
+                    min_correlation: Any, data_range: Any, check_every: Any, forward_starts: Any, turn_starts: Any,
+                    reverse_starts: Any, retry_starts: Any, retry_without_prior: Any) -> ImageOptions:
+    """fit_image's options (all of them but the images, mask, camera and bounds, which
+    :func:`check_bounds` checks against the batch) checked: a TypeError or ValueError naming the
+    first bad one."""
+    model = get_road_model(model)
+    if model.velocity:
+        raise ValueError("model: the image fit estimates a motion between two frames; the 'velocity' model "
+                         "is a rate (fit its flow with fit_velocity instead)")
+    check_kernel(robust)
+    check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
+                      min_points, min_inlier_fraction)
+    if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
+        raise ValueError(f"min_correlation: expected a number in [-1, 1], got {min_correlation!r}")
+    check_int(retry_starts, "retry_starts", minimum=0)
+    check_bool(retry_without_prior, "retry_without_prior")
+    check_int(levels, "levels", minimum=1, optional=True)
+    check_int(fine_points, "fine_points", minimum=1, optional=True)
+    check_int(min_size, "min_size", minimum=2)
+    check_int(band_levels, "band_levels", minimum=0)
+    check_int(check_every, "check_every", minimum=1, optional=True)
+    check_number(resolution, "resolution", nonnegative=True)
+    check_number(smooth_sigma, "smooth_sigma", nonnegative=True)
+    if highpass is not None:
+        check_number(highpass, "highpass", nonnegative=True)
+    if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
+        raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
+    check_bool(affine, "affine")
+    check_data_range(data_range)
+    steps = check_steps(forward_starts, "forward_starts", "camera heights per frame")
+    turns = check_steps(turn_starts, "turn_starts", "degrees of yaw per frame")
+    reverse = check_steps(reverse_starts, "reverse_starts", "camera heights per frame")
+    fixed = check_names(fixed, "fixed")
+    if isinstance(prior, str) and prior != "calibration":
+        raise ValueError(f"prior: expected 'calibration', None or {{name: (mean, sigma)}}, got {prior!r}")
+    if not isinstance(prior, str):
+        prior = check_mapping(prior, "prior")
+    if init is not None and not isinstance(init, (Mapping, RoadFit)):
+        raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
+    if not isinstance(starts, (list, tuple)):
+        raise TypeError(f"starts: expected a list of starts (dicts of parameters or fits), got {type(starts).__name__}")
+    for x in starts:
+        if not isinstance(x, (Mapping, RoadFit)):
+            raise TypeError(f"starts: expected dicts of parameters or fits, got an element {type(x).__name__} {x!r}")
+    return ImageOptions(model, steps, turns, reverse, fixed, prior)
+
+
+def check_bounds(bounds: object, model: RoadModel, B: int | None = None) -> None:
+    """``"physical"``, None, or ``(lower, upper)`` float tensors (B, P) in the model's order (any
+    B where ``B`` is None)."""
+    if bounds is None or (isinstance(bounds, str) and bounds == "physical"):
+        return
+    P = len(model.params)
+    rows = "B" if B is None else B
+    if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
+        raise TypeError(f"bounds: expected 'physical', None or (lower, upper) tensors of shape ({rows}, {P}), "
+                        f"got {bounds!r}")
+    for name, t in zip(("lower", "upper"), bounds):
+        check_float_tensor(t, f"bounds ({name})")
+        if t.dim() != 2 or t.shape[1] != P or (B is not None and t.shape[0] != B):
+            raise ValueError(f"bounds ({name}): expected shape ({rows}, {P}) (batch, the {model.name!r} model's "
+                             f"parameters {model.params}), got {tuple(t.shape)}")
+    if bounds[0].shape != bounds[1].shape:
+        raise ValueError(f"bounds: expected lower and upper of one shape, got {tuple(bounds[0].shape)} and "
+                         f"{tuple(bounds[1].shape)}")
+    if not bool((bounds[0] <= bounds[1]).all()):
+        raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
