@@ -452,6 +452,32 @@ def test_a_right_prediction_leaving_the_frame_is_not_overruled_by_a_wrong_model_
     assert not bool(out.use_model.any())
 
 
+def test_a_cell_whose_model_leaves_image_2_keeps_the_prediction_only_where_it_explains_it():
+    """The right cell's true end points mostly leave image 2 (a frame cut at its edge), and the
+    prediction there is wrong (no motion) but inside. On the few points whose model end point
+    stays inside, the prediction is right and the model 1 px off: judged there alone, the
+    prediction explained the cell, and the cell kept it whole. Whether the prediction explains
+    the cell itself counts every point it is judged at: it does not, and the cell takes the
+    model. The sample's evidence counts only the points both flows are judged at, as before."""
+    g1, g2, true = _pair(shift=40)
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:] = True
+    model, prediction = true.clone(), torch.zeros_like(true)  # no motion: wrong everywhere ...
+    right = torch.arange(192) >= 144  # the right cell of a (1, 4) grid
+    model[:, 0, :, right] += 1.0
+    prediction[:, 0, :, 144:149] = 40.0  # ... but where the model stays inside the right cell
+    gate = ImageGate(grid=(1, 4), objects=False)
+    out = gate(g1, g2, prediction, model, mask)
+    assert bool(out.confirmed.all()) and bool(out.model_used.all())
+    assert bool(out.use_model[mask & ~right].all())
+    # the right cell takes the model (1 px off there, the prediction 40 px off on most of it)
+    assert bool(out.use_model[mask & right].all()) and int(out.cells_kept) == 0
+    # the object test alike
+    assert bool(ImageGate(grid=(1, 4))(g1, g2, prediction, model, mask).use_model[mask & right].all())
+    # the sample's evidence: only the points both flows are judged at, as before
+    assert float(out.cost_prediction) > 0.35 and float(out.cost_model) < 0.1
+
+
 def test_the_gate_leaves_its_inputs_alone():
     g1, g2, true = _pair()
     args = [g1, g2, true, true + 1.0, torch.ones(1, 1, 96, 192, dtype=torch.bool)]

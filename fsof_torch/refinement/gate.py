@@ -11,7 +11,8 @@ flow matches as well as a right one by chance, is no evidence. A cell keeps the 
 the model's mean distance exceeds the prediction's by more than ``margin`` plus ``z`` standard
 errors of the difference (the model is the physically constrained estimate; the prediction has
 to be clearly better) and the prediction explains the cell itself (its mean distance at most
-``occlusion``: where neither flow does, the road is occluded in image 2 or the content is new,
+``occlusion``, over every point of the cell it can be judged at, also where the model's end point
+leaves image 2: where neither flow does, the road is occluded in image 2 or the content is new,
 and the model's geometry is the better guess); so does every cell of a sample where that holds
 over the whole mask. Cells with too few points follow their sample's decision. A prediction that
 is not finite at a point, or whose end point leaves image 2, cannot be judged there: where the
@@ -256,10 +257,18 @@ class ImageGate:
             model_used = model_used & (confirmed | informative)
         (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
         cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
-        cell_model, evidence, enough, kept = self._cells(cell, delta, d_pred, w, model_used, (H, W))
+        # whether the prediction explains a cell (or an object region) itself: its mean distance
+        # also over the points whose model end point leaves image 2 (the prediction judged there):
+        # a cell's few points that the model can be judged at, near an edge the road leaves
+        # through, do not speak for the prediction over the rest of the cell
+        x2m, y2m = x + fm[:, 0], y + fm[:, 1]
+        model_lost = ~((x2m >= 0) & (x2m <= W - 1) & (y2m >= 0) & (y2m <= H - 1)) & torch.isfinite(fm).all(1)
+        w_pred = (count | (pts.sel & model_lost & ok_pred & finite & (n_clear >= self.min_neighbours))).to(work)
+        cell_model, evidence, enough, kept = self._cells(cell, delta, d_pred, w, w_pred, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
         kept = (enough & kept).sum(1)
-        objects = self._objects(prediction, model, mask, pts, cell, delta, d_pred, w) if self.objects else None
+        objects = (self._objects(prediction, model, mask, pts, cell, delta, d_pred, w, w_pred) if self.objects
+                   else None)
         if objects is not None:
             use_model = use_model & ~objects
             # the cells that keep the prediction, counted again: an object region may keep it in
@@ -274,7 +283,7 @@ class ImageGate:
                           confirmed, informative, textured)
 
     def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pts: MaskPoints, cell: Tensor,
-                 delta: Tensor, d_pred: Tensor, w: Tensor) -> Tensor | None:
+                 delta: Tensor, d_pred: Tensor, w: Tensor, w_pred: Tensor) -> Tensor | None:
         """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
         than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
         significantly better (a car inside the mask, whatever its shape and however it meets the
@@ -329,7 +338,7 @@ class ImageGate:
             diff = per_region(delta * w) / n.clamp_min(1)
             var = (per_region(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
             keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
-                    & (per_region(d_pred * w) / n.clamp_min(1) <= self.occlusion))
+                    & (per_region(d_pred * w_pred) / per_region(w_pred).clamp_min(1) <= self.occlusion))
             keep[:, 0] = False
             if not bool(keep.any()):
                 continue
@@ -354,7 +363,7 @@ class ImageGate:
             kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep_p[b][labels[b], box_cell] for b in range(B)])
         return None if kept is None else torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
-    def _cells(self, cell: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, model_used: Tensor,
+    def _cells(self, cell: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, w_pred: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The decision on one grid of cells (``cell`` (B, N), each point's): where the model is
         used (B, 1, H, W) bool, the evidence for it (B, 1, H, W; 0 in a sample whose model is not
@@ -370,7 +379,7 @@ class ImageGate:
         diff = per_cell(delta * w) / n.clamp_min(1)  # > 0: the prediction explains the cell better
         var = (per_cell(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
         worse = (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt()) \
-            & (per_cell(d_pred * w) / n.clamp_min(1) <= self.occlusion)
+            & (per_cell(d_pred * w_pred) / per_cell(w_pred).clamp_min(1) <= self.occlusion)
         enough = n >= min_points
         cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
         evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
