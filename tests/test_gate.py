@@ -478,6 +478,26 @@ def test_a_cell_whose_model_leaves_image_2_keeps_the_prediction_only_where_it_ex
     assert float(out.cost_prediction) > 0.35 and float(out.cost_model) < 0.1
 
 
+def test_an_object_region_whose_model_leaves_image_2_keeps_the_prediction_only_where_it_explains_it():
+    """The object test alone (cells too small to decide: every cell follows its sample): a
+    region near the right edge where the flows differ, whose true end points mostly leave image 2,
+    the prediction right on the few points whose model end point stays inside (the model 1.5 px
+    off) and wrong (no motion) on the rest. Whether the prediction explains the region itself
+    counts every point it is judged at there: it does not, and the region takes the model."""
+    g1, g2, true = _pair(shift=40)
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:] = True
+    columns = torch.arange(192)
+    model, prediction = true.clone(), torch.zeros_like(true)  # no motion: wrong on the left ...
+    prediction[:, 0, :, 96:148] = 40.0  # ... right from the middle to where the model leaves
+    strip = columns >= 141
+    model[:, 0, :, strip] += 1.5
+    out = ImageGate(grid=(1, 2), min_points=10 ** 6)(g1, g2, prediction, model, mask)
+    assert bool(out.confirmed.all()) and bool(out.model_used.all()) and int(out.cells) == 0
+    assert bool(out.use_model[mask & (columns < 96)].all())
+    assert bool(out.use_model[mask & strip].all())
+
+
 def test_the_gate_leaves_its_inputs_alone():
     g1, g2, true = _pair()
     args = [g1, g2, true, true + 1.0, torch.ones(1, 1, 96, 192, dtype=torch.bool)]
