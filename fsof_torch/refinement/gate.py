@@ -289,7 +289,8 @@ class ImageGate:
         significantly better (a car inside the mask, whatever its shape and however it meets the
         cells), less each region's part in a cell (``cell`` (B, N), each point's) whose own points,
         ``min_points`` or more, significantly favour the model: a region's average does not
-        overrule its parts' evidence. None where no region keeps the prediction."""
+        overrule its parts' evidence. None where no region keeps the prediction. Whether the
+        prediction explains a region: its ``d_pred`` over the points of ``w_pred`` (as the cells')."""
         import cv2
         import numpy as np
 
@@ -368,7 +369,9 @@ class ImageGate:
         """The decision on one grid of cells (``cell`` (B, N), each point's): where the model is
         used (B, 1, H, W) bool, the evidence for it (B, 1, H, W; 0 in a sample whose model is not
         used), and per cell (B, rows * columns) bool whether it has enough points and whether it
-        keeps the prediction."""
+        keeps the prediction. ``delta`` is judged over the points of weight ``w``; whether the
+        prediction explains a cell, its ``d_pred`` over those of ``w_pred`` (also where only the
+        prediction can be judged)."""
         (H, W), (rows, cols), B, min_points = size, self.grid, delta.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
 
