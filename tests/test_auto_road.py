@@ -1053,3 +1053,24 @@ def test_detect_road_edges_option(scene_pair, scene_detection):
     assert torch.equal(again.mask, plain.mask)
     with pytest.raises(TypeError, match="edges: expected True or False, got str .yes."):
         detect_road(p["image1"][None], p["image2"][None], p["camera"], edges="yes")
+
+
+def test_follow_edges_reaches_an_edge_beyond_the_radius_outward():
+    """Windows that straddle an obstacle's edge are off the road, so the road's edge can lie
+    farther out than the windows' boundary than in: ``outward`` markers farther than ``radius``
+    let the boundary, 12 pixels short of the edge, land on it; with ``outward=radius`` (10) the
+    two columns beyond the outer markers' reach stay off."""
+    from fsof_torch.refinement.road_region import follow_edges
+
+    edge = 70
+    image, below, seed = _edge_scene(edge=edge)
+    road = below.copy()
+    road[:, edge - 12:] = False
+    truth = below.copy()
+    truth[:, edge:] = False
+    short = follow_edges(road, image, below, seed, radius=10)
+    assert not short[11:, edge - 2:edge].any()
+    out = follow_edges(road, image, below, seed, radius=10, outward=13)
+    assert (out[11:, :edge - 1] == truth[11:, :edge - 1]).all()
+    assert not out[:10].any() and not out[:, edge + 1:].any()
+    assert follow_edges(road, image, below, seed, radius=10, outward=10).tolist() == short.tolist()

@@ -110,13 +110,14 @@ def road_region(good, bad, ok, testable, below, seed, focus: tuple[float, float]
     return road | fill[lab]
 
 
-def follow_edges(road, image, below, seed, radius: int):
-    """The road (H, W) bool with its boundary moved onto image 1's edges within ``radius`` pixels.
+def follow_edges(road, image, below, seed, radius: int, outward: int | None = None):
+    """The road (H, W) bool with its boundary moved onto image 1's edges within ``radius`` pixels
+    (``outward``, default ``radius``, beyond it).
 
     A window's decision holds for its centre but is made by all of its pixels: near a car's base
     or a kerb the windows that straddle it are off the road, and the boundary they draw lies up to
     a window's half-width from the edge where road meets obstacle. Here the pixels farther than
-    ``radius`` inside the road and outside it keep their decision, and a marker-controlled
+    ``radius`` inside the road and than ``outward`` outside it keep their decision, and a marker-controlled
     watershed on ``image`` (H, W, 3) uint8 (``cv2.watershed``) gives each pixel between them the
     side it is reached from without crossing an edge. Pixels on the watershed's lines keep their
     decision; the result is the road below the horizon (``below``) connected to ``seed``. A road
@@ -129,6 +130,8 @@ def follow_edges(road, image, below, seed, radius: int):
         return road
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
     inside = cv2.erode(road.astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    if outward is not None and outward != radius:
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * outward + 1, 2 * outward + 1))
     outside = cv2.erode((~road).astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
     if not inside.any():
         return road
