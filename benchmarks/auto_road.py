@@ -76,8 +76,9 @@ PARTS = ("seen, near its edge", "seen, inside", "occluded", "out of view")
 
 
 def edge_reach(level: int) -> int:
-    """How far (pixels of the images) the detection's step 5 moves the road's boundary onto image 1's
-    edges at its working ``level``: ``height_window // 2 + 1`` pixels there (16 at KITTI's size)."""
+    """How far (pixels of the images) the detection's step 5 moves the road's boundary inwards onto
+    image 1's edges at its working ``level``: ``height_window // 2 + 1`` pixels there (16 at KITTI's
+    size; outwards one pixel of that level more)."""
     import inspect
 
     from fsof_torch import detect_road

@@ -1074,3 +1074,27 @@ def test_follow_edges_reaches_an_edge_beyond_the_radius_outward():
     assert (out[11:, :edge - 1] == truth[11:, :edge - 1]).all()
     assert not out[:10].any() and not out[:, edge + 1:].any()
     assert follow_edges(road, image, below, seed, radius=10, outward=10).tolist() == short.tolist()
+
+
+def test_the_edges_reach_one_smoothing_radius_beyond_half_a_window(scene_pair):
+    """The windows see images smoothed by 1 px at the working resolution, so an obstacle's edge
+    reaches windows up to half a height window plus one pixel away (there: 9 × 2 = 18 px of
+    these frames): the detection (the scene's own motion given) lets the boundary follow the
+    edges that far outward, and finds more of the road than with the band's half-width of 16 px
+    (the windows' boundary, ``edges=False``, through ``follow_edges`` with radius 16 alone): the
+    pixels it adds are mostly road."""
+    from fsof_torch.refinement.road_region import follow_edges
+
+    p = scene_pair
+    motion, cam = _exact(p)
+    det = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion)
+    plain = detect_road(p["image1"][None], p["image2"][None], cam, motion=motion, edges=False)
+    rgb = p["image1"].permute(1, 2, 0).round().to(torch.uint8).numpy()
+    below = road_seed(cam, tuple(p["image1"].shape[-2:]), width_m=1e6, depth_m=1e6)[0, 0].numpy()
+    args = (plain.mask[0, 0].numpy(), rgb, below, det.seed[0, 0].numpy(), 16)
+    assert torch.equal(det.mask[0, 0], torch.from_numpy(follow_edges(*args, 18)))
+    band = torch.from_numpy(follow_edges(*args))
+    true = p["road"][0].bool()
+    assert iou(det.mask[0, 0], true) > iou(band, true) + 0.005
+    added = det.mask[0, 0] & ~band
+    assert float((added & true).sum() / added.sum()) > 0.7  # (0.80 on this pair)

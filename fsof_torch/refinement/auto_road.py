@@ -31,8 +31,9 @@ detection:
    the decision along their line through the focus of expansion; small undecided holes filled.
 5. **Edges** (``edges``), at full resolution: the windows that straddle a car's base or a kerb
    are off the road, so the region's boundary lies up to half a window from the edge where the
-   road ends. Within half a height window of it the boundary follows image 1's edges (a
-   marker-controlled watershed, :func:`~fsof_torch.refinement.road_region.follow_edges`).
+   road ends. Within half a height window of it (outward, one smoothing radius more: the windows
+   see smoothed images) the boundary follows image 1's edges (a marker-controlled watershed,
+   :func:`~fsof_torch.refinement.road_region.follow_edges`); the refit's road keeps half a window.
 6. **Flags** (:data:`FLAGS`). A sample whose road cannot be trusted is flagged with the reason,
    never silently returned (docs/auto-road.md, "Flags").
 
@@ -480,7 +481,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         min_coverage: a road smaller than this share of the image below the horizon is flagged
             ``"small"``.
         edges: within half a height window of the boundary the windows found (in pixels of the
-            images), the boundary follows image 1's edges (a marker-controlled watershed,
+            images; outward, one pixel of the working resolution more), the boundary follows
+            image 1's edges (a marker-controlled watershed,
             :func:`~fsof_torch.refinement.road_region.follow_edges`). False: the windows' boundary.
         warn: an estimated motion whose parameters are not all finite is a failed estimate (flagged
             ``"no_motion"``) with a ``RuntimeWarning`` naming the samples; False: without it.
@@ -591,19 +593,22 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
         below_np, seed_np = below[:, 0].cpu().numpy(), seed[:, 0].cpu().numpy()
         radius = (height_window // 2 + 1) * 2 ** level
+        # the result's edge may lie one smoothing radius farther out: what the windows see is smoothed
+        reach = (height_window // 2 + 1 + math.ceil(_SIGMA)) * 2 ** level
 
-    def full_size(road_l: Tensor) -> Tensor:
-        """The road at the images' size; with ``edges``, its boundary on image 1's edges."""
+    def full_size(road_l: Tensor, outward: int | None = None) -> Tensor:
+        """The road at the images' size; with ``edges``, its boundary on image 1's edges (up to
+        ``outward`` pixels beyond the windows' boundary, default ``radius``)."""
         mask = upsample_mask(road_l, level, (H, W))
         if not edges:
             return mask
         m = mask[:, 0].cpu().numpy()
-        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], below_np[b], seed_np[b], radius))
+        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], below_np[b], seed_np[b], radius, outward))
                             for b in range(B)]).unsqueeze(1).to(device)
 
     ev, road_l = judge(motion)
     if estimated and refit and bool(road_l.any()):
-        mask = full_size(road_l)
+        mask = full_size(road_l)  # (the fit: the road within half a window of the windows' boundary)
         again = estimate(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
                           odometry=odometry, starts=(motion, *starts))
         # per sample: a road found and fitted again (a sample without road keeps its seed fit,
@@ -612,7 +617,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         if bool(ok_again.any()):
             motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
             ev, road_l = judge(motion)
-    return _report(full_size(road_l), motion, seed, below, ev, seed_l, level, min_coverage)
+    return _report(full_size(road_l, reach if edges else None), motion, seed, below, ev, seed_l, level, min_coverage)
 
 
 def _succeeded(motion: Any, B: int) -> list[bool]:
