@@ -197,8 +197,8 @@ class ImageMotionEstimator:
         if get_road_model(model).velocity:
             raise ValueError("model: the image estimator needs a displacement model, not 'velocity'")
         self.flow_start = check_bool(flow_start, "flow_start")
-        # (the values too: a bad one is an error here, not at the first fit)
-        check_image_fit_options({"model": model, **options}, "options", reserved=("starts",))
+        if options:  # (the values too: a bad one is an error here, not at the first fit)
+            check_image_fit_options({"model": self.model, **options}, "options", reserved=("starts",))
         self.odometry_sigma = _odometry_sigma(odometry_sigma, self.model, options.get("fixed"))
         self.options = dict(options)
 
