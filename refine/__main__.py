@@ -256,7 +256,9 @@ def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict
     work; None where not given."""
     from fsof_torch.estimation.image_fit import check_image_fit_options
 
+    from .calibrate import clip_options
     from .inputs import JobError
+    from .job import WITH_IMAGES
 
     if text is None:
         return None
@@ -267,8 +269,7 @@ def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict
             from None
     if not isinstance(options, dict):
         raise JobError(f"--fit-options: expected a JSON object of fit_image keyword arguments, got {text!r}")
-    uses = [v for v in variants if v in ("photometric", "given_images", "sequence", "given_pitch")]
-    if not uses and not calibrate:
+    if not set(WITH_IMAGES) & set(variants) and not clip_options(calibrate, variants):
         raise JobError(f"--fit-options: applies to the road motion from the images (variants photometric, "
                        f"given_images, sequence, given_pitch, or --calibrate-pitch), which this run does not use "
                        f"(--odometry {','.join(variants)})")

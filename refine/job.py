@@ -131,8 +131,7 @@ def _refiner(variant: str, cfg: JobConfig) -> FreespaceRefiner:
     common = {"mode": cfg.mode, "scale": cfg.scale, "warn": False}
     if variant == "fit":
         return FreespaceRefiner(fit="flow", fit_roll=cfg.fit_roll, fit_pitch=cfg.fit_pitch, **common)
-    if (variant == "given_images" and cfg.odometry_sigma) or (variant in ("photometric", "given_images")
-                                                              and cfg.fit_options):
+    if variant in ("photometric", "given_images"):  # (the refiner's own estimator, with the job's options)
         sigma = cfg.odometry_sigma if variant == "given_images" else None
         return FreespaceRefiner(estimator=ImageMotionEstimator(odometry_sigma=sigma, **cfg.fit_options), **common)
     return FreespaceRefiner(**common)

@@ -224,8 +224,12 @@ class ImageGate:
         # occlusion threshold (a flow that just explains the point): the model wins the point
         # where it explains it (a wrong prediction far off the image, or NaN), not where a right
         # prediction leaves the frame near its border and a wrong model stays inside
-        x2, y2 = x + fp[:, 0], y + fp[:, 1]
-        lost = ~((x2 >= 0) & (x2 <= W - 1) & (y2 >= 0) & (y2 <= H - 1))  # (also where not finite)
+        def leaves(f: Tensor) -> Tensor:
+            """(B, N) bool: the flow's end point leaves image 2 (also where it is not finite)."""
+            x2, y2 = x + f[:, 0], y + f[:, 1]
+            return ~((x2 >= 0) & (x2 <= W - 1) & (y2 >= 0) & (y2 <= H - 1))
+
+        lost = leaves(fp)
         fp = torch.where(finite.unsqueeze(1), fp, fm)
         (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = census_ring_distances(g1, g2, x, y, (fp, fm), self.contrast)
         d_pred = torch.where(lost, self.occlusion, d_pred)
@@ -261,8 +265,7 @@ class ImageGate:
         # also over the points whose model end point leaves image 2 (the prediction judged there):
         # a cell's few points that the model can be judged at, near an edge the road leaves
         # through, do not speak for the prediction over the rest of the cell
-        x2m, y2m = x + fm[:, 0], y + fm[:, 1]
-        model_lost = ~((x2m >= 0) & (x2m <= W - 1) & (y2m >= 0) & (y2m <= H - 1)) & torch.isfinite(fm).all(1)
+        model_lost = leaves(fm) & torch.isfinite(fm).all(1)
         w_pred = (count | (pts.sel & model_lost & ok_pred & finite & (n_clear >= self.min_neighbours))).to(work)
         cell_model, evidence, enough, kept = self._cells(cell, delta, d_pred, w, w_pred, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)

@@ -117,8 +117,8 @@ def follow_edges(road, image, below, seed, radius: int, outward: int | None = No
     A window's decision holds for its centre but is made by all of its pixels: near a car's base
     or a kerb the windows that straddle it are off the road, and the boundary they draw lies up to
     a window's half-width from the edge where road meets obstacle. Here the pixels farther than
-    ``radius`` inside the road and than ``outward`` outside it keep their decision, and a marker-controlled
-    watershed on ``image`` (H, W, 3) uint8 (``cv2.watershed``) gives each pixel between them the
+    ``radius`` inside the road, and than ``outward`` outside it, keep their decision, and a
+    marker-controlled watershed on ``image`` (H, W, 3) uint8 (``cv2.watershed``) gives each pixel between them the
     side it is reached from without crossing an edge. Pixels on the watershed's lines keep their
     decision; the result is the road below the horizon (``below``) connected to ``seed``. A road
     with no pixel farther than ``radius`` from its boundary is returned as it is.
@@ -128,11 +128,12 @@ def follow_edges(road, image, below, seed, radius: int, outward: int | None = No
 
     if radius < 1 or not road.any():
         return road
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1))
-    inside = cv2.erode(road.astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
-    if outward is not None and outward != radius:
-        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * outward + 1, 2 * outward + 1))
-    outside = cv2.erode((~road).astype(np.uint8), disc, borderType=cv2.BORDER_REPLICATE) > 0
+    def disc(r: int):
+        return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+    inside = cv2.erode(road.astype(np.uint8), disc(radius), borderType=cv2.BORDER_REPLICATE) > 0
+    outside = cv2.erode((~road).astype(np.uint8), disc(radius if outward is None else outward),
+                        borderType=cv2.BORDER_REPLICATE) > 0
     if not inside.any():
         return road
     markers = np.zeros(road.shape, dtype=np.int32)
