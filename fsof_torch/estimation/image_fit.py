@@ -138,7 +138,7 @@ class ImageProblem:
         if horizon is None:
             horizon = self.model.horizon_row(self.horizon_camera, values)
         B = M.shape[0]
-        q = torch.cat([M, horizon], dim=1) @ self.pts  # (B, 4, N): the mapped point, the horizon test
+        q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)  # (B, 4, N): the mapped point, the horizon test
         qz = q[:, 2]
         ok = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
         inv_z = torch.where(ok, qz, 1.0).reciprocal()
@@ -153,14 +153,14 @@ class ImageProblem:
         # = Σ_ij dM_ij c_i x_j, c = (g_x, g_y, −g · proj) / z, one (P x 9) @ (9 x N) product
         c = torch.cat([grad, -(grad * proj).sum(1, keepdim=True)], dim=1) * inv_z.unsqueeze(1)
         outer = (c.unsqueeze(2) * self.pts.unsqueeze(1)).reshape(B, 9, -1)
-        J_image = dM.reshape(B, P, 9) @ outer
+        J_image = torch.bmm(dM.reshape(B, P, 9), outer)
         J = torch.cat([J_image, I2.unsqueeze(1), torch.ones_like(I2).unsqueeze(1)], dim=1)
         return Evaluation(e.square(), use, e.unsqueeze(1), J.unsqueeze(2))
 
     def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
         J = ev.state[:, :, 0]  # (B, P + 2, N)
         Jw = J * w.unsqueeze(1)
-        return Jw @ J.transpose(1, 2), (Jw @ ev.residual.transpose(1, 2)).squeeze(-1)
+        return torch.bmm(Jw, J.transpose(1, 2)), torch.bmm(Jw, ev.residual.transpose(1, 2)).squeeze(-1)
 
 
 def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,

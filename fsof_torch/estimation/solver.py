@@ -214,6 +214,12 @@ def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, co
     return s
 
 
+def _broadcasts_to(shape: torch.Size, B: int, P: int) -> bool:
+    """``shape`` broadcasts to (B, P) (torch.broadcast_shapes, written out: it costs more than the
+    solver's setup otherwise does, and each fit level solves once)."""
+    return len(shape) <= 2 and all(n in (1, full) for n, full in zip(reversed(shape), (P, B)))
+
+
 def _expand(x: Tensor | float | None, name: str, B: int, P: int, like: Tensor, fill: float) -> Tensor:
     """A per-parameter argument (a number, (P,) or (B, P), or anything that broadcasts to (B, P))
     as (B, P) of ``like``'s dtype and device; its type and shape checked (no host read)."""
@@ -226,11 +232,7 @@ def _expand(x: Tensor | float | None, name: str, B: int, P: int, like: Tensor, f
     except (TypeError, ValueError, RuntimeError):
         raise TypeError(f"{name}: expected a number or a tensor of shape ({P},) or ({B}, {P}), "
                         f"got {type(x).__name__}") from None
-    try:
-        fits = t.dim() <= 2 and torch.broadcast_shapes(t.shape, (B, P)) == (B, P)
-    except RuntimeError:
-        fits = False
-    if not fits:
+    if not _broadcasts_to(t.shape, B, P):
         raise ValueError(f"{name}: expected a number or shape ({P},) or ({B}, {P}) (B, P of params), "
                          f"got {tuple(t.shape)}")
     return t.expand(B, P)
@@ -241,11 +243,7 @@ def _check_free(free: object, B: int, P: int, dev: torch.device) -> Tensor:
     if not isinstance(free, Tensor) or free.dtype != torch.bool:
         got = f"dtype {free.dtype}" if isinstance(free, Tensor) else type(free).__name__
         raise TypeError(f"free: expected a bool tensor of shape ({P},) or ({B}, {P}), got {got}")
-    try:
-        fits = free.dim() <= 2 and torch.broadcast_shapes(free.shape, (B, P)) == (B, P)
-    except RuntimeError:
-        fits = False
-    if not fits:
+    if not _broadcasts_to(free.shape, B, P):
         raise ValueError(f"free: expected shape ({P},) or ({B}, {P}) (B, P of params), got {tuple(free.shape)}")
     return free.to(dev).expand(B, P)
 
