@@ -5,7 +5,6 @@ called from several threads at once (docs/refinement.md, "In training and deploy
 from __future__ import annotations
 
 import copy
-import io
 import pickle
 import warnings
 from concurrent.futures import ThreadPoolExecutor
