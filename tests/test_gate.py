@@ -48,6 +48,25 @@ def test_census_ring_distance_against_a_loop(threshold):
 
 
 
+def test_census_ring_neighbour_not_finite_in_image_1_does_not_count():
+    """A ring neighbour that is NaN in image 1 has no clear order: it counts neither as clear nor as
+    kept (the distance is that of the finite neighbours), and the point is flagged."""
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    x, y, flow = torch.tensor([[50.0]]), torch.tensor([[40.0]]), torch.tensor([[[1.0], [-1.0]]])
+    bad = g1.clone()
+    bad[0, 0, 40 - 3, 50] = float("nan")  # the ring's first neighbour, (0, -3)
+    dist, n, ok = census_ring_distance(bad, g2, x, y, flow)
+    a, b = g1[0, 0].numpy(), g2[0, 0].numpy()
+    clear = differ = 0
+    for dx, dy in RING[1:]:
+        d1, d2 = a[40 + dy, 50 + dx] - a[40, 50], b[39 + dy, 51 + dx] - b[39, 51]
+        if abs(d1) > 2.0:
+            clear += 1
+            differ += int(np.sign(d1) != (np.sign(d2) if abs(d2) > 2.0 else 0.0))
+    assert clear > 0 and int(n) == clear and float(dist) == pytest.approx(differ / clear)
+    assert not bool(ok)
+
+
 def test_census_ring_compares_image_2_in_its_own_dtype():
     """A float16 image 2 beside a float32 image 1: image 2's differences are compared with the
     threshold in float16 (the threshold rounded as they are), as the ternary census of image 2

@@ -94,9 +94,11 @@ def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, fl
     clear = d1.abs() > threshold
     # each clear neighbour's order (±1), 0 where not clear: a neighbour keeps its order in image 2
     # where order1 · d2 > threshold (never where it is 0, nor at a NaN), which counts the
-    # ternary matches in one product and one comparison
-    order1 = torch.where(clear, torch.sign(d1), 0.0)
-    n = clear.sum(1)
+    # ternary matches in one product and one comparison (a NaN difference, never clear, leaves a
+    # NaN order, whose product compares False as 0's does). The counts (at most 16) are summed as
+    # bytes: a bool tensor's sum converts it to int64 first, several times slower.
+    order1 = torch.sign(d1).mul_(clear)
+    n = clear.view(torch.uint8).sum(1, dtype=torch.uint8).long()
     in1 = inside(x1, y1) & _finite_along(v1.reshape(B, R + 1, N), 1)
     # image 2, bilinear at the end points: corner-aligned normalised coordinates (grid_sample's)
     # (the positions and the interpolation in float32 at least: in half precision a normalised
@@ -113,14 +115,17 @@ def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, fl
         at_least = torch.promote_types(x.dtype if x.is_floating_point() else torch.float32, flow.dtype)
         at_least = torch.promote_types(at_least, torch.float32)
         x2, y2 = x.to(at_least) + flow[:, 0].to(at_least), y.to(at_least) + flow[:, 1].to(at_least)
-        centre2 = torch.stack([x2.to(sample) * sx - 1.0, y2.to(sample) * sy - 1.0], dim=-1)
-        at = centre2.unsqueeze(1) + ring  # (B, 17, N, 2)
+        # (B, 17, N, 2): each coordinate written into the grid (a broadcast sum over a last
+        # dimension of 2 is several times slower)
+        at = x2.new_empty((B, R + 1, N, 2), dtype=sample)
+        for k, (c, s) in enumerate(((x2, sx), (y2, sy))):
+            torch.add((c.to(sample) * s - 1.0).unsqueeze(1), ring[..., k], out=at[..., k])
         v2 = F.grid_sample(g2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
                            align_corners=True).reshape(B, R + 1, N).to(grey2.dtype)
         # (in image 2's dtype, as its own differences are compared with the threshold: ±1 and 0
         # are exact in any dtype, and so is the product)
         d2 = v2[:, 1:] - v2[:, :1]
-        kept = (order1.to(d2.dtype) * d2 > threshold).sum(1)
+        kept = (order1.to(d2.dtype) * d2 > threshold).view(torch.uint8).sum(1, dtype=torch.uint8)
         dist = (n - kept).to(grey1.dtype) / n.clamp_min(1)
         # (a non-finite flow lies inside no image: its comparisons are False)
         out.append((dist, n, in1 & inside(x2, y2) & _finite_along(v2, 1)))
