@@ -380,6 +380,13 @@ def test_pixel_coordinates_and_points_grid_are_the_plain_formulas():
     for dtype in (torch.float64, torch.float32):
         plain = torch.stack([pix % 53, torch.div(pix, 53, rounding_mode="floor"), torch.ones_like(pix)], 1)
         assert torch.equal(pixel_coordinates(pix, 53, dtype), plain.to(dtype))
+    # the first and last pixel of rows far down images of any width (the row found by a float
+    # division: exact, not one row off at a row's end)
+    for width in (1, 2, 53, 1242, 2**20 + 7, 2**31 - 1):
+        rows = torch.tensor([0, 1, 374, 2**20 - 1, 2**40 // width])
+        pix = torch.cat([rows * width, rows * width + width - 1]).unsqueeze(0)
+        plain = torch.stack([pix % width, torch.div(pix, width, rounding_mode="floor"), torch.ones_like(pix)], 1)
+        assert torch.equal(pixel_coordinates(pix, width), plain.double()), width
     xy = torch.rand(2, 2, 500, generator=g, dtype=torch.float64) * 60 - 5
     plain = torch.stack([xy[:, 0] * (2.0 / 52) - 1.0, xy[:, 1] * (2.0 / 36) - 1.0], dim=-1).unsqueeze(1)
     for dtype, grid_dtype in ((torch.float64, torch.float64), (torch.float32, torch.float32),
