@@ -41,8 +41,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (check_data_range, check_float_tensor, check_image_range, check_int, check_shape, check_size,
-                      same_mapping, tracing)
+from .._check import (batch_choices, check_data_range, check_float_tensor, check_image_range, check_int, check_shape,
+                      check_size, same_mapping, tracing)
 from ..geometry.camera import Camera
 
 __all__ = [
@@ -57,6 +57,7 @@ __all__ = [
     "is_ptlflow_inputs",
     "map_flows",
     "ptlflow_inputs",
+    "refiner_images",
 ]
 
 #: dict keys refined by default: the forward flows of ARFlow/PWC-Lite, ptlflow, RAFT wrappers.
@@ -245,6 +246,32 @@ def images_from_ptlflow(inputs: Mapping[str, Any], name: str = "inputs") -> tupl
     images = _ptlflow_images(inputs, name)
     rgb = images[:, :2].flip(2) * 255.0
     return rgb[:, 0], rgb[:, 1]
+
+
+def refiner_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
+    """The refiner's ``images``: a pair (image1, image2) (B or 1, 1 or 3, H, W) on 0..255, or
+    ptlflow's input dict, checked against its finest flow ``finest`` (B, 2, H, W) (their device,
+    size and range), detached and expanded to its batch; None stays None."""
+    if images is None:
+        return None
+    if is_ptlflow_inputs(images):
+        images = images_from_ptlflow(images, "images")
+    if not isinstance(images, (tuple, list)) or len(images) != 2:
+        raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}"
+                        + (f" of {len(images)}" if isinstance(images, (tuple, list)) else ""))
+    B, _, H, W = finest.shape
+    for i, im in enumerate(images):
+        check_float_tensor(im, f"images[{i}]")
+        if im.device != finest.device:
+            raise ValueError(f"images[{i}]: expected the device of the flow ({finest.device}), got {im.device}")
+        if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
+            raise ValueError(f"images[{i}]: expected shape ({batch_choices(B)}, C, {H}, {W}) (the finest flow's size), "
+                             f"got {tuple(im.shape)}")
+        if im.shape[1] not in (1, 3) or im.shape[1] != images[0].shape[1]:
+            raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels, as images[0] has, got "
+                             f"shape {tuple(im.shape)}" + ("" if i == 0 else f" (images[0]: {tuple(images[0].shape)})"))
+        check_image_range(im, f"images[{i}]", 255.0)
+    return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
 
 
 # -- padding ------------------------------------------------------------------------------------

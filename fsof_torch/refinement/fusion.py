@@ -33,11 +33,11 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask,
-                      check_image_range, check_shape, check_size, is_number, option_error, result_dtype, skip_values,
-                      to_device, tracing)
+from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
+                      check_size, is_number, option_error, result_dtype, skip_values, to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
+from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
@@ -45,8 +45,7 @@ from .auto_refine import refine_with_auto_road
 from .estimators import FlowMotionEstimator, ImageMotionEstimator, finite_estimate
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options
-from .contracts import (DEFAULT_FLOW_KEYS, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs,
-                        map_flows)
+from .contracts import DEFAULT_FLOW_KEYS, collect_flows, finest_flow, map_flows, refiner_images
 
 __all__ = [
     "DEFAULT_FLOW_KEYS",
@@ -276,27 +275,15 @@ def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: boo
     return ImageMotionEstimator()
 
 
-def _check_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
-    if images is None:
-        return None
-    if is_ptlflow_inputs(images):
-        images = images_from_ptlflow(images, "images")
-    if not isinstance(images, (tuple, list)) or len(images) != 2:
-        raise TypeError(f"images: expected a pair (image1, image2), got {type(images).__name__}"
-                        + (f" of {len(images)}" if isinstance(images, (tuple, list)) else ""))
-    B, _, H, W = finest.shape
-    for i, im in enumerate(images):
-        check_float_tensor(im, f"images[{i}]")
-        if im.device != finest.device:
-            raise ValueError(f"images[{i}]: expected the device of the flow ({finest.device}), got {im.device}")
-        if im.dim() != 4 or im.shape[0] not in (1, B) or tuple(im.shape[-2:]) != (H, W):
-            raise ValueError(f"images[{i}]: expected shape ({batch_choices(B)}, C, {H}, {W}) (the finest flow's size), "
-                             f"got {tuple(im.shape)}")
-        if im.shape[1] not in (1, 3) or im.shape[1] != images[0].shape[1]:
-            raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels, as images[0] has, got "
-                             f"shape {tuple(im.shape)}" + ("" if i == 0 else f" (images[0]: {tuple(images[0].shape)})"))
-        check_image_range(im, f"images[{i}]", 255.0)
-    return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
+def _grey_once(images: tuple[Tensor, Tensor] | None, estimator: Any, flow: Tensor) -> tuple | None:
+    """The frames for an image estimator and the gate, which both compare their grey levels and
+    convert them alike where the images share the flow's precision (float32 or float64): grey,
+    converted once for both. Otherwise (another estimator, other dtypes, or while compiling: the
+    estimator runs eagerly, and a conversion in the graph may round otherwise) as they came."""
+    if images is None or tracing() or not isinstance(estimator, ImageMotionEstimator) or not (
+            images[0].dtype == flow.dtype in (torch.float32, torch.float64)):
+        return images
+    return tuple(to_grey(im.to(flow.dtype)) for im in images)
 
 
 def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
@@ -329,7 +316,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             odometry on some calls.
         estimator: the road-motion estimator (:mod:`fsof_torch.refinement.estimators`); default:
             :class:`ImageMotionEstimator` with images, :class:`FlowMotionEstimator` without.
-            Called only where the motion is estimated (see ``odometry``).
+            Called only where the motion is estimated (see ``odometry``). An image estimator
+            gets the frames in grey where they share the flow's dtype (float32 or float64),
+            converted once for it and the gate, which both compare grey levels.
         gate: an :class:`~fsof_torch.refinement.gate.ImageGate`, ``"auto"`` (the default gate where
             there are images), or None (no gate: the model replaces the whole mask).
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
@@ -389,7 +378,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if odometry is not None:
         road_motion(odometry, displacement=True)
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
-        images = _check_images(images, finest)
+        images = refiner_images(images, finest)
         if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
             check_has_values(finest, "flow", "to find the road in (mask='auto'; give a mask tensor instead)")
         # (the options are checked before the detection, also where it estimates nothing itself)
@@ -410,12 +399,13 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                          f"detected, got road_options={road_options!r}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's batch), got {camera.batch_size}")
-    images = _check_images(images, finest)
+    images = refiner_images(images, finest)
     if fit == "photometric" and images is None:
         raise ValueError("images: fit='photometric' needs images=(image1, image2), got None")
     # Built (and so checked) also where odometry leaves nothing to estimate: an option that does
     # not fit the estimator raises whether or not this call's odometry makes it unused.
     chosen = select_estimator(estimator, fit, images, fit_roll, fit_pitch, fit_options, photometric_options)
+    images = _grey_once(images, chosen, finest)
     device = finest.device
     mask = to_device(mask, "mask", device).expand(B, 1, H, W)
     # The model flow is computed in the prediction's dtype (half lifted to float32): float32
