@@ -103,9 +103,11 @@ class GateResult(NamedTuple):
 
 
 def _sum_by(index: Tensor, v: Tensor, n: int) -> Tensor:
-    """(B, n): the sums of ``v`` (B, N) over the points of each group, ``index`` (B, N) int64 in
-    [0, n)."""
-    return torch.zeros(v.shape[0], n, dtype=v.dtype, device=v.device).scatter_add_(1, index, v)
+    """(B, n) or (B, K, n): the sums of ``v`` (B, N), or of each of its K rows (B, K, N), over the
+    points of each group, ``index`` (B, N) int64 in [0, n)."""
+    if v.dim() == 3:
+        index = index.unsqueeze(1).expand_as(v)
+    return torch.zeros(*v.shape[:-1], n, dtype=v.dtype, device=v.device).scatter_add_(-1, index, v)
 
 
 def _mean_and_error(v: Tensor, w: Tensor, block: Tensor | None = None, blocks: int = 0) -> tuple[Tensor, Tensor]:
@@ -267,11 +269,13 @@ class ImageGate:
         # through, do not speak for the prediction over the rest of the cell
         model_lost = leaves(fm) & torch.isfinite(fm).all(1)
         w_pred = (count | (pts.sel & model_lost & ok_pred & finite & (n_clear >= self.min_neighbours))).to(work)
-        cell_model, evidence, enough, kept = self._cells(cell, delta, d_pred, w, w_pred, model_used, (H, W))
+        # what the cells and the object regions sum over their points: the weights, the weighted
+        # differences and their squares, the prediction's weighted distances and their weights
+        terms = torch.stack([w, delta * w, delta.square() * w, d_pred * w_pred, w_pred], dim=1)  # (B, 5, N)
+        cell_model, evidence, enough, kept = self._cells(cell, terms, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
         kept = (enough & kept).sum(1)
-        objects = (self._objects(prediction, model, mask, pts, cell, delta, d_pred, w, w_pred) if self.objects
-                   else None)
+        objects = self._objects(prediction, model, mask, pts, cell, terms) if self.objects else None
         if objects is not None:
             use_model = use_model & ~objects
             # the cells that keep the prediction, counted again: an object region may keep it in
@@ -286,14 +290,15 @@ class ImageGate:
                           confirmed, informative, textured)
 
     def _objects(self, prediction: Tensor, model: Tensor, mask: Tensor, pts: MaskPoints, cell: Tensor,
-                 delta: Tensor, d_pred: Tensor, w: Tensor, w_pred: Tensor) -> Tensor | None:
+                 terms: Tensor) -> Tensor | None:
         """(B, 1, H, W) bool: the connected regions of the mask where the two flows differ by more
         than ``object_px`` (or 2 or 4 times that) and the prediction explains the images
         significantly better (a car inside the mask, whatever its shape and however it meets the
         cells), less each region's part in a cell (``cell`` (B, N), each point's) whose own points,
         ``min_points`` or more, significantly favour the model: a region's average does not
         overrule its parts' evidence. None where no region keeps the prediction. Whether the
-        prediction explains a region: its ``d_pred`` over the points of ``w_pred`` (as the cells')."""
+        prediction explains a region: its distance over the points of weight w_pred (as the
+        cells'); ``terms``: the sums' terms at the points (see :meth:`_cells`)."""
         import cv2
         import numpy as np
 
@@ -327,36 +332,27 @@ class ImageGate:
         # a region of large differences inside one of small ones (a car beside a patch of road
         # the prediction got slightly wrong) stands apart at a higher threshold
         for threshold in (self.object_px, 2 * self.object_px, 4 * self.object_px):
-            found = [cv2.connectedComponents((g > threshold ** 2).astype(np.uint8), connectivity=8) for g in gap]
+            found = [cv2.connectedComponents((g > threshold ** 2).view(np.uint8), connectivity=8) for g in gap]
             L = max(n for n, _ in found)
             if L == 1:
                 break  # no region apart at this threshold, nor at higher ones
-            labels = np.stack([lab for _, lab in found])
-            at = torch.from_numpy(np.take_along_axis(labels.reshape(B, -1), pix_np, axis=1).astype(np.int64))
-            at = at.to(pts.pix.device)  # each point's region (0: the flows agree)
-
-            def per_region(v: Tensor) -> Tensor:
-                return _sum_by(at, v, L)
-
-            n = per_region(w)
-            diff = per_region(delta * w) / n.clamp_min(1)
-            var = (per_region(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
+            # each point's region (0: the flows agree), read frame by frame (no stacked copy of the labels)
+            at = np.stack([labels.reshape(-1)[p] for (_, labels), p in zip(found, pix_np)]).astype(np.int64)
+            at = torch.from_numpy(at).to(pts.pix.device)
+            n, s, s2, s_pred, n_pred = _sum_by(at, terms, L).unbind(1)
+            diff = s / n.clamp_min(1)
+            var = (s2 / n.clamp_min(1) - diff.square()).clamp_min(0)
             keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
-                    & (per_region(d_pred * w_pred) / per_region(w_pred).clamp_min(1) <= self.occlusion))
+                    & (s_pred / n_pred.clamp_min(1) <= self.occlusion))
             keep[:, 0] = False
             if not bool(keep.any()):
                 continue
             # each region's part in each cell: where its own points favour the model by z
             # standard errors (no margin: the images decide, as for confirmed), the cell's
             # decision stands there
-            piece = at * C + cell
-
-            def per_piece(v: Tensor) -> Tensor:
-                return _sum_by(piece, v, L * C)
-
-            n_p = per_piece(w)
-            diff_p = per_piece(delta * w) / n_p.clamp_min(1)
-            var_p = (per_piece(delta.square() * w) / n_p.clamp_min(1) - diff_p.square()).clamp_min(0)
+            n_p, s_p, s2_p = _sum_by(at * C + cell, terms[:, :3], L * C).unbind(1)
+            diff_p = s_p / n_p.clamp_min(1)
+            var_p = (s2_p / n_p.clamp_min(1) - diff_p.square()).clamp_min(0)
             favours = (n_p >= self.min_points) & (-diff_p > self.z * (var_p / n_p.clamp_min(1)).sqrt())
             keep_p = (keep.unsqueeze(2) & ~favours.reshape(B, L, C)).to("cpu").numpy()
             if kept is None:
@@ -364,28 +360,27 @@ class ImageGate:
                 # each box pixel's cell
                 box_cell = (np.arange(top, bottom + 1)[:, None] // ch) * grid_cols \
                     + np.arange(left, right + 1)[None, :] // cw
-            kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep_p[b][labels[b], box_cell] for b in range(B)])
+            kept[:, top:bottom + 1, left:right + 1] |= np.stack([keep_p[b][labels, box_cell]
+                                                                  for b, (_, labels) in enumerate(found)])
         return None if kept is None else torch.from_numpy(kept).to(prediction.device).unsqueeze(1)
 
-    def _cells(self, cell: Tensor, delta: Tensor, d_pred: Tensor, w: Tensor, w_pred: Tensor, model_used: Tensor,
+    def _cells(self, cell: Tensor, terms: Tensor, model_used: Tensor,
                size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         """The decision on one grid of cells (``cell`` (B, N), each point's): where the model is
         used (B, 1, H, W) bool, the evidence for it (B, 1, H, W; 0 in a sample whose model is not
         used), and per cell (B, rows * columns) bool whether it has enough points and whether it
-        keeps the prediction. ``delta`` is judged over the points of weight ``w``; whether the
-        prediction explains a cell, its ``d_pred`` over those of ``w_pred`` (also where only the
-        prediction can be judged)."""
-        (H, W), (rows, cols), B, min_points = size, self.grid, delta.shape[0], self.min_points
+        keeps the prediction. ``terms`` (B, 5, N): at each point its weight w, w times the
+        difference ``delta`` of the distances, w times its square, and the prediction's distance
+        times its weight ``w_pred`` and w_pred: the difference is judged over the points of weight
+        w; whether the prediction explains a cell, its distance over those of w_pred (also where
+        only the prediction can be judged)."""
+        (H, W), (rows, cols), B, min_points = size, self.grid, terms.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
-
-        def per_cell(v: Tensor) -> Tensor:
-            return _sum_by(cell, v, rows * cols)
-
-        n = per_cell(w)
-        diff = per_cell(delta * w) / n.clamp_min(1)  # > 0: the prediction explains the cell better
-        var = (per_cell(delta.square() * w) / n.clamp_min(1) - diff.square()).clamp_min(0)
+        n, s, s2, s_pred, n_pred = _sum_by(cell, terms, rows * cols).unbind(1)
+        diff = s / n.clamp_min(1)  # > 0: the prediction explains the cell better
+        var = (s2 / n.clamp_min(1) - diff.square()).clamp_min(0)
         worse = (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt()) \
-            & (per_cell(d_pred * w_pred) / per_cell(w_pred).clamp_min(1) <= self.occlusion)
+            & (s_pred / n_pred.clamp_min(1) <= self.occlusion)
         enough = n >= min_points
         cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
         evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
