@@ -95,6 +95,24 @@ def test_level_points_follow_the_documented_rule_whatever_the_batch(H, W, densit
         assert weakest_kept >= strongest_left
 
 
+@pytest.mark.parametrize("B, H, W", [(2, 7, 9), (1, 1, 6), (1, 5, 1), (1, 2, 2)])
+def test_pixel_gradient_is_the_plain_central_difference(B, H, W):
+    """Values and gradients at pixels (the border's too) equal the plain formula bit for bit: half
+    the difference of the two neighbours, the difference with the one neighbour at the border,
+    0 across a single pixel."""
+    img = torch.rand(B, 1, H, W, generator=torch.Generator().manual_seed(0)) * 255
+    pix = torch.randint(0, H * W, (B, 40), generator=torch.Generator().manual_seed(1))
+    value, grad = _pixel_gradient(img, pix)
+    x = img[:, 0]
+    right, left = torch.cat([x[..., 1:], x[..., -1:]], -1), torch.cat([x[..., :1], x[..., :-1]], -1)
+    down, up = torch.cat([x[:, 1:], x[:, -1:]], 1), torch.cat([x[:, :1], x[:, :-1]], 1)
+    steps = lambda n: torch.tensor([2.0] * n).index_fill_(0, torch.tensor([0, n - 1]), 1.0 if n > 1 else 0.0)  # noqa: E731
+    gx = (right - left) / steps(W).clamp_min(1)
+    gy = (down - up) / steps(H).clamp_min(1).unsqueeze(-1)
+    at = lambda t: t.reshape(B, -1).gather(1, pix).double()  # noqa: E731
+    assert torch.equal(value, at(x)) and torch.equal(grad, torch.stack([at(gx), at(gy)], 1))
+
+
 @pytest.mark.parametrize("sigma, error, message", [
     (-1.0, ValueError, "sigma: expected a number >= 0, got -1.0"),  # (OpenCV's assertion before)
     (float("nan"), ValueError, "sigma: expected a finite number, got nan"),  # ('cannot convert float NaN')

@@ -103,13 +103,19 @@ def _pixel_gradient(image: Tensor, pix: Tensor) -> tuple[Tensor, Tensor]:
     """``image`` (B, 1, H, W) at flat pixel indices (B, N): values (B, N) and central-difference
     gradients (B, 2, N) (one-sided at the image border), gathered (no gradient image)."""
     H, W = image.shape[-2:]
-    flat = image.reshape(image.shape[0], -1)
-    u, v = pix % W, torch.div(pix, W, rounding_mode="floor")
-    at = lambda du, dv: flat.gather(1, (v + dv).clamp(0, H - 1) * W + (u + du).clamp(0, W - 1))  # noqa: E731
-    du = ((u + 1).clamp(max=W - 1) - (u - 1).clamp(min=0)).to(image.dtype)
-    dv = ((v + 1).clamp(max=H - 1) - (v - 1).clamp(min=0)).to(image.dtype)
-    g = torch.stack([(at(1, 0) - at(-1, 0)) / du.clamp_min(1), (at(0, 1) - at(0, -1)) / dv.clamp_min(1)], dim=1)
-    return flat.gather(1, pix).to(torch.float64), g.to(torch.float64)
+    B, N = pix.shape
+    v = torch.div(pix, W, rounding_mode="floor")
+    u = pix - v * W
+    # the neighbours' columns and rows, clamped into the image (one-sided differences at its
+    # border); the pixel and its four neighbours read in one gather
+    left, right = (u - 1).clamp_min(0), (u + 1).clamp_max(W - 1)
+    up, down = (v - 1).clamp_min(0), (v + 1).clamp_max(H - 1)
+    row = v * W
+    at = image.reshape(B, -1).gather(1, torch.cat([pix, row + right, row + left, down * W + u, up * W + u], dim=1))
+    at = at.reshape(B, 5, N)
+    du, dv = (right - left).to(image.dtype), (down - up).to(image.dtype)
+    g = torch.stack([(at[:, 1] - at[:, 2]) / du.clamp_min(1), (at[:, 3] - at[:, 4]) / dv.clamp_min(1)], dim=1)
+    return at[:, 0].to(torch.float64), g.to(torch.float64)
 
 
 class ImageProblem:
@@ -609,7 +615,7 @@ def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, 
             within = torch.arange(keep, device=pix.device) < own.unsqueeze(1)  # (B, keep), rank order
             sel = sel & torch.zeros_like(sel).scatter_(1, ranked, within)
         else:
-            ranked = strength.topk(keep, dim=1).indices
+            ranked = strength.topk(keep, dim=1, sorted=False).indices  # (the same set: raster order below)
         order = ranked.sort(dim=1).values
         pix, sel, I1p, g1p = pix.gather(1, order), sel.gather(1, order), I1p.gather(1, order), \
             g1p.gather(2, order.unsqueeze(1).expand(-1, 2, -1))
