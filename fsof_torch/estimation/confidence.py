@@ -34,10 +34,16 @@ def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: T
     B, _, H, W = images1[0].shape
     every = points.every
     within = every if B == 1 else every % (H * W)  # (the pixel within its frame)
-    uv = pixel_coordinates(within.unsqueeze(0), W)[0, :2]
-    xy = uv + flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1)).to(torch.float64)
-    I1 = torch.cat([im.transpose(0, 1).reshape(im.shape[1], -1).gather(1, every.expand(im.shape[1], -1))
-                    .to(torch.float64) for im in images1])
+    # (the flow added to the coordinates in place, frame 1's values written into one tensor: the
+    # fit's tests take every mask pixel's)
+    xy = pixel_coordinates(within.unsqueeze(0), W)[0, :2]
+    xy += flow.transpose(0, 1).reshape(2, -1).gather(1, every.expand(2, -1))  # (in float64)
+    I1 = torch.empty(sum(im.shape[1] for im in images1), every.numel(), dtype=torch.float64, device=every.device)
+    channel = 0
+    for im in images1:
+        C = im.shape[1]
+        I1[channel:channel + C] = im.transpose(0, 1).reshape(C, -1).gather(1, every.expand(C, -1))
+        channel += C
     I2 = torch.empty(sum(im.shape[1] for im in images2), every.numel(), dtype=torch.float64, device=every.device)
     inb = torch.empty(every.shape, dtype=torch.bool, device=every.device)
     bounds = points.bounds.tolist()  # (one host read, not two per frame)
@@ -72,9 +78,9 @@ def photometric_inliers(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, 
     err = (points.per_pixel(gain) * I2 + points.per_pixel(offset) - I1).abs()
     inl = ok & (err <= threshold)
     inliers = torch.zeros(B * size[0] * size[1], dtype=torch.bool, device=I1.device).scatter_(0, points.every, inl)
-    n_in = points.per_frame(inl.to(torch.float64))
+    n_in = points.per_frame(inl)  # (counted as flags: exact, as sums of 0 and 1 are)
     residual = points.per_frame(torch.where(inl, err, 0.0)) / n_in.clamp_min(1)
-    fraction = n_in / points.per_frame(ok.to(torch.float64)).clamp_min(1)
+    fraction = n_in / points.per_frame(ok).clamp_min(1)
     return inliers.reshape(B, 1, *size), residual, fraction, n_in
 
 
