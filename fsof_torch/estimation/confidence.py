@@ -89,7 +89,7 @@ def detail_correlation(x: Tensor, y: Tensor, ok: Tensor, points: MaskPoints) -> 
     at the mask's pixels in view (``ok``; :func:`warped_samples`), of the images as the fit
     compared them (the finest level's band); 0 where either has no variance there. Not
     differentiable (the fit judges without autograd)."""
-    w = ok.to(torch.float64)
+    w = ok.view(torch.uint8).to(torch.float64)  # (from bytes: torch converts bool several times slower)
     n = points.per_frame(w).clamp_min(1.0)
     x = x - points.per_pixel(points.per_frame(w * x) / n)
     y = y - points.per_pixel(points.per_frame(w * y) / n)
@@ -140,7 +140,7 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
     plain road look right; the spreads' ratio stays the images' contrast ratio. Not differentiable
     (the fit judges without autograd).
     """
-    w = usable = ok.to(torch.float64)
+    w = usable = ok.view(torch.uint8).to(torch.float64)  # (from bytes: torch converts bool several times slower)
     # the per-point terms written into one scratch tensor, and the weights into another: the fit
     # judges every mask pixel, where a new tensor per term (some twenty per pass) cost more than
     # the arithmetic (python benchmarks/bench_image_fit.py --baseline)

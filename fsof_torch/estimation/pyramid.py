@@ -129,10 +129,11 @@ def mask_pyramid(mask: Tensor, levels: int) -> list[Tensor]:
     kernel = np.ones((3, 3), np.uint8)
     B = mask.shape[0]
     for _ in range(levels - 1):
-        # (a 3 x 3 erosion ignores the border, as the min-pool's padding does)
-        planes = out[-1].reshape(B, *out[-1].shape[-2:]).to(torch.uint8).numpy()
+        # (a 3 x 3 erosion ignores the border, as the min-pool's padding does; the flags read
+        # and written as bytes, 0 and 1, without converting them)
+        planes = out[-1].reshape(B, *out[-1].shape[-2:]).view(torch.uint8).contiguous().numpy()
         eroded = np.stack([cv2.erode(x, kernel) for x in planes])[:, None, ::2, ::2]
-        out.append(torch.from_numpy(eroded.copy()).to(torch.bool))
+        out.append(torch.from_numpy(eroded.copy()).view(torch.bool))
     return out
 
 

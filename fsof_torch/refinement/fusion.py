@@ -177,8 +177,9 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
     where the two flows disagree, it decides, w = w_flow + (1 − w_flow) · evidence."""
     dtype = flow_pred.dtype
     if mode == "replace":
-        # (B, 1, H, W) also where the mask is one for the batch
-        weight = mask.expand(flow_pred.shape[0], 1, -1, -1).to(dtype)
+        # (B, 1, H, W) also where the mask is one for the batch; converted from bytes: torch
+        # converts bool to float several times slower
+        weight = mask.view(torch.uint8).expand(flow_pred.shape[0], 1, -1, -1).to(dtype)
         return torch.where(mask, flow_model.to(dtype), flow_pred), weight
     # half precision blends in float32 and is rounded once: the float32 result, rounded
     work = result_dtype(flow_pred)
