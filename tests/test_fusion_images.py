@@ -329,29 +329,36 @@ def test_a_refiner_carries_nothing_from_one_call_to_the_next(scene):
             assert torch.equal(x, y) and torch.equal(x, z), options
 
 
-def test_the_image_estimator_and_the_gate_compare_the_frames_grey_converted_once(scene):
+def test_the_image_estimator_and_the_gate_compare_the_frames_grey_converted_once(scene, monkeypatch):
     """The image estimator and the gate both compare grey levels: where the images share the flow's
     precision the refiner converts them once and hands both the grey frames (bit for bit the
-    result of RGB frames); another estimator, or images in another precision, get them as they
-    came."""
+    result of RGB frames); another estimator, a subclass of the image estimator (which may read
+    the colours), or images in another precision, get them as they came."""
     from fsof_torch.evaluation.photometric import to_grey
     from fsof_torch.refinement.estimators import ImageMotionEstimator
 
     seen = []
+    call = ImageMotionEstimator.__call__
 
-    class Spy(ImageMotionEstimator):
-        def __call__(self, flow, mask, camera, *, images=None, **kw):
-            seen.append(tuple(images[0].shape) + (images[0].dtype,))
-            return super().__call__(flow, mask, camera, images=images, **kw)
+    def spy(self, flow, mask, camera, *, images=None, **kw):
+        seen.append(tuple(images[0].shape) + (images[0].dtype,))
+        return call(self, flow, mask, camera, images=images, **kw)
 
+    monkeypatch.setattr(ImageMotionEstimator, "__call__", spy)
     i1, i2 = scene["image1"][None], scene["image2"][None]
     args = (scene["pred"], scene["road"][None], scene["camera"])
-    rgb = _quiet(FreespaceRefiner(estimator=Spy()), *args, images=(i1, i2))
+    rgb = _quiet(FreespaceRefiner(), *args, images=(i1, i2))
     grey = _quiet(FreespaceRefiner(), *args, images=(to_grey(i1), to_grey(i2)))
-    assert seen == [(1, 1, *SIZE, torch.float32)]
+    assert seen[0] == (1, 1, *SIZE, torch.float32)
     assert bool(rgb.refined.all()) and torch.equal(rgb.flow, grey.flow) and torch.equal(rgb.weight, grey.weight)
-    _quiet(FreespaceRefiner(estimator=Spy()), *args, images=(i1.double(), i2.double()))
-    assert seen[1] == (1, 3, *SIZE, torch.float64)  # (the gate works in the float32 flow's precision)
+    _quiet(FreespaceRefiner(), *args, images=(i1.double(), i2.double()))
+    assert seen[2] == (1, 3, *SIZE, torch.float64)  # (the gate works in the float32 flow's precision)
+
+    class Sub(ImageMotionEstimator):
+        pass
+
+    _quiet(FreespaceRefiner(estimator=Sub()), *args, images=(i1, i2))
+    assert seen[3] == (1, 3, *SIZE, torch.float32)
 
     class Other:
         def __call__(self, flow, mask, camera, *, images=None, **kw):
@@ -359,4 +366,4 @@ def test_the_image_estimator_and_the_gate_compare_the_frames_grey_converted_once
             return ImageMotionEstimator()(flow, mask, camera, images=images, **kw)
 
     _quiet(FreespaceRefiner(estimator=Other()), *args, images=(i1, i2))
-    assert seen[2] == (1, 3, *SIZE)
+    assert seen[4] == (1, 3, *SIZE)

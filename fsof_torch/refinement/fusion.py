@@ -279,9 +279,10 @@ def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: boo
 def _grey_once(images: tuple[Tensor, Tensor] | None, estimator: Any, flow: Tensor) -> tuple | None:
     """The frames for an image estimator and the gate, which both compare their grey levels and
     convert them alike where the images share the flow's precision (float32 or float64): grey,
-    converted once for both. Otherwise (another estimator, other dtypes, or while compiling: the
-    estimator runs eagerly, and a conversion in the graph may round otherwise) as they came."""
-    if images is None or tracing() or not isinstance(estimator, ImageMotionEstimator) or not (
+    converted once for both. Otherwise (another estimator, a subclass too, which may read the
+    colours; other dtypes; or while compiling: the estimator runs eagerly, and a conversion in
+    the graph may round otherwise) as they came."""
+    if images is None or tracing() or type(estimator) is not ImageMotionEstimator or not (
             images[0].dtype == flow.dtype in (torch.float32, torch.float64)):
         return images
     return tuple(to_grey(im.to(flow.dtype)) for im in images)
@@ -317,9 +318,10 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             odometry on some calls.
         estimator: the road-motion estimator (:mod:`fsof_torch.refinement.estimators`); default:
             :class:`ImageMotionEstimator` with images, :class:`FlowMotionEstimator` without.
-            Called only where the motion is estimated (see ``odometry``). An image estimator
-            gets the frames in grey where they share the flow's dtype (float32 or float64),
-            converted once for it and the gate, which both compare grey levels.
+            Called only where the motion is estimated (see ``odometry``). An
+            :class:`ImageMotionEstimator` (not a subclass) gets the frames in grey where they
+            share the flow's dtype (float32 or float64), converted once for it and the gate,
+            which both compare grey levels.
         gate: an :class:`~fsof_torch.refinement.gate.ImageGate`, ``"auto"`` (the default gate where
             there are images), or None (no gate: the model replaces the whole mask).
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
