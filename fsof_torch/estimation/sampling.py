@@ -110,8 +110,9 @@ def pixel_coordinates(pix: Tensor, width: int, dtype: torch.dtype = torch.float6
     # (written into one tensor, not stacked: the image fit's tests take every mask pixel's, python
     # benchmarks/bench_image_fit.py --baseline. The row by a float64 division, floored, the column
     # from it: the same whole numbers as an int64 division, which the CPU does not vectorise, in
-    # a quarter of the time; exact, as (i + 0.5) / width lies at least 0.5 / width from a whole
-    # number, farther than its rounding moves it for any index below 2^52)
+    # about a seventh of the time on the KITTI pair's 93 312 road pixels; exact, as (i + 0.5) /
+    # width lies at least 0.5 / width from a whole number, farther than its rounding moves it for
+    # any index below 2^52)
     out = torch.empty((pix.shape[0], 3, pix.shape[1]), dtype=torch.float64, device=pix.device)
     u, v = out[:, 0], out[:, 1]
     u.copy_(pix)

@@ -215,8 +215,8 @@ def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, co
 
 
 def _broadcasts_to(shape: torch.Size, B: int, P: int) -> bool:
-    """``shape`` broadcasts to (B, P) (torch.broadcast_shapes, written out: it costs more than the
-    solver's setup otherwise does, and each fit level solves once)."""
+    """``shape`` broadcasts to (B, P) (torch.broadcast_shapes written out: that is a Python
+    reference implementation of about 10 µs a call, and each fit level checks four arguments)."""
     return len(shape) <= 2 and all(n in (1, full) for n, full in zip(reversed(shape), (P, B)))
 
 
