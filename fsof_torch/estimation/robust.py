@@ -109,9 +109,15 @@ def robust_terms(r2: Tensor, scale: Tensor, kind: str, mask: Tensor) -> tuple[Te
     if kind == "l2":
         return (r2 * mask).sum(-1).expand(scale.shape), mask.expand(*scale.shape, mask.shape[-1])
     c2 = scale * scale
-    rho, w = _unit_kernel(r2 / c2.unsqueeze(-1), kind, in_place=True)
+    z = r2 / c2.unsqueeze(-1)
+    if kind == "cauchy":  # (w = mask / (1 + z): the weight and its mask in one division, the same bits)
+        w = torch.div(mask, z + 1.0)
+        rho = z.log1p_()
+    else:
+        rho, w = _unit_kernel(z, kind, in_place=True)
+        w = w.mul_(mask)
     # every kernel is ρ(r²) = c² ρ₁(r² / c²): the scale multiplies the sum, not each point
-    return c2 * torch.linalg.vecdot(rho, mask), w.mul_(mask)
+    return c2 * torch.linalg.vecdot(rho, mask), w
 
 
 def _unit_kernel(z: Tensor, kind: str, cost: bool = True, weight: bool = True,

@@ -426,6 +426,12 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         params = torch.minimum(torch.maximum(params, lo), hi)
     n = problem.count.to(dt).clamp_min(1)
     far = far_outlier_cost(kernel)
+    # the loop's numbers as 0-d tensors of the working dtype: a Python number is wrapped into a
+    # tensor at every op that takes it (about 0.6 µs each, 1 µs in a where). Products, sums,
+    # comparisons and selections only: a division by a Python number may be computed as a product
+    # by its reciprocal (CUDA's), which a tensor's is not, so the divisions keep theirs.
+    zero, half, one, four, eight, k_tol, k_tol1, k_lam_small, k_lam_stuck, k_res2 = torch.tensor(
+        [0.0, 0.5, 1.0, 4.0, 8.0, tol, 1.0 - tol, 1e-2, 1e8, resolution ** 2], dtype=dt, device=dev).unbind()
 
     def evaluate(p: Tensor) -> Evaluation:
         """The problem at p, its residuals in at least the working dtype."""
@@ -434,31 +440,34 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             ev = Evaluation(ev.r2.to(dt), ev.use, None if ev.residual is None else ev.residual.to(dt), ev.state)
         return ev
 
-    def cost_and_weights(ev: Evaluation, mask: Tensor, used: Tensor, p: Tensor, s: Tensor) -> tuple[Tensor, Tensor]:
+    def cost_and_weights(r2: Tensor, mask: Tensor, used: Tensor, d: Tensor | None, s: Tensor) -> tuple[Tensor, Tensor]:
         """E / n (B,) and the IRLS weights (B, N) at the scale s (B,); ``mask``: 1.0 where a point
-        counts (B, N), ``used`` their number (B,). With s (B, S): E / n (B, S) and the weights
-        (B, S, N) at S scales at once."""
-        rho, w = robust_terms(ev.r2, s, kernel, mask)
+        counts (B, N), ``used`` their number (B,); ``d``: the parameters' offset from the prior's
+        mean. With s (B, S): E / n (B, S) and the weights (B, S, N) at S scales at once."""
+        rho, w = robust_terms(r2, s, kernel, mask)
         nn, used = (n, used) if s.dim() == 1 else (n.unsqueeze(-1), used.unsqueeze(-1))
+        # (a fixed scale's far-outlier cost is computed once)
+        s_far = s * s * far if anneal else s_far_fixed
         if missing == "outlier":
-            rho = torch.addcmul(rho, s * s * far, nn - used)
+            rho = torch.addcmul(rho, s_far, nn - used)
         else:
             # where no point counts, they all cost what far outliers would (not 0: a step that
             # moved every point out of view would be the best fit)
-            rho = torch.where(used > 0, rho * (nn / used.clamp_min(1)), s * s * far * nn)
+            rho = torch.where(used > zero, rho * (nn / used.clamp_min(1)), s_far * nn if anneal else s_far_n)
         if has_prior:
-            prior = (lam_p * (p - mu).square()).sum(1)
+            prior = (lam_p * d.square()).sum(1)
             rho = rho + (prior if s.dim() == 1 else prior.unsqueeze(-1))
         return rho / nn, w
 
-    def normal(ev: Evaluation, w: Tensor, p: Tensor) -> tuple[Tensor, Tensor]:
+    def normal(ev: Evaluation, w: Tensor, d: Tensor | None) -> tuple[Tensor, Tensor]:
         A, g = problem.normal_equations(ev, w)
-        A, g = A.to(torch.promote_types(A.dtype, dt)), g.to(torch.promote_types(g.dtype, dt))
+        if A.dtype != dt or g.dtype != dt:
+            A, g = A.to(torch.promote_types(A.dtype, dt)), g.to(torch.promote_types(g.dtype, dt))
         if has_prior:
             A = A + lam_diag
-            g = g + lam_p * (p - mu)
+            g = g + lam_p * d
         if has_fixed:
-            A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, 0.0, g)
+            A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, zero, g)
         return A, g
 
     def damped_step(A: Tensor, g: Tensor, lam: Tensor, p: Tensor) -> Tensor:
@@ -467,9 +476,9 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         its gradient 0), so that the step is the other parameters' constrained one, not an
         unconstrained one that the clamp then cuts short."""
         if has_bounds:
-            hold = ((p <= lo) & (g > 0)) | ((p >= hi) & (g < 0))
-            A = torch.where((hold.unsqueeze(-1) | hold.unsqueeze(-2)) & off_diagonal, 0.0, A)
-            g = torch.where(hold, 0.0, g)
+            hold = ((p <= lo) & (g > zero)) | ((p >= hi) & (g < zero))
+            A = torch.where((hold.unsqueeze(-1) | hold.unsqueeze(-2)) & off_diagonal, zero, A)
+            g = torch.where(hold, zero, g)
         return _damped_step(A, g, lam)
 
     def kernel_spread(ev: Evaluation) -> Tensor:
@@ -479,14 +488,15 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         med = torch.nanmedian(torch.where(ev.use, ev.r2, float("nan")), dim=1).values
         return 3.0 * torch.nan_to_num(med, nan=0.0).sqrt()
 
-    def resolved(w: Tensor, r2: Tensor, used: Tensor) -> Tensor:
+    def resolved(wr2: Tensor, w: Tensor, used: Tensor) -> Tensor:
         """What a step must move the squared residuals by, summed over the points that count, to
-        matter (B,): resolution² × their robust mean square × their number."""
-        return (resolution ** 2) * torch.linalg.vecdot(w, r2) / w.sum(1).clamp_min(1e-300) * used
+        matter (B,): resolution² × their robust mean square (``wr2``: Σ w r², B) × their number."""
+        return k_res2 * wr2 / w.sum(1).clamp_min(1e-300) * used
 
     def counted(ev: Evaluation) -> tuple[Tensor, Tensor]:
         """The points that count as a 0/1 mask (B, N) in the parameters' dtype, and their number."""
-        mask = ev.use.to(dt)
+        # (bool's bytes read as uint8: the same 0/1 values, converted several times faster)
+        mask = (ev.use.view(torch.uint8) if ev.use.dtype == torch.bool else ev.use).to(dt)
         return mask, mask.sum(1)
 
     ev = evaluate(params)
@@ -498,12 +508,19 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         lam_p = (_expand(prior_precision(s_min), "prior_precision", B, P, params, 0.0) if lam_given is None
                  else lam_given)
         lam_diag = torch.diag_embed(lam_p)  # (constant: built once, added to every normal matrix)
-    s = torch.maximum(s_min, kernel_spread(ev)) if anneal else s_min
+    if anneal:
+        s = torch.maximum(s_min, kernel_spread(ev))
+        s_top = s_min * (1 + 1e-12)  # (at the final scale, within rounding)
+    else:
+        s = s_min
+        s_far_fixed = s * s * far
+        s_far_n = s_far_fixed * n
     mask, used = counted(ev)
-    c, w = cost_and_weights(ev, mask, used, params, s)
-    A, g = normal(ev, w, params)
+    d = params - mu if has_prior else None
+    c, w = cost_and_weights(ev.r2, mask, used, d, s)
+    A, g = normal(ev, w, d)
     if resolution > 0:
-        bar = resolved(w, ev.r2, used)
+        bar = resolved(torch.linalg.vecdot(w, ev.r2), w, used)
     # the current point's residuals and weights (the points that count: ``mask``)
     r2, residual = ev.r2, ev.residual
     lam = torch.full((B,), damping, dtype=dt, device=dev)
@@ -513,29 +530,32 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
-        delta = torch.where(active.unsqueeze(-1), step, 0.0)
+        delta = torch.where(active.unsqueeze(-1), step, zero)
         cand = params + delta
         if has_bounds:
             cand = torch.minimum(torch.maximum(cand, lo), hi)
             delta = cand - params
         ev_c = evaluate(cand)
         mask_c, used_c = counted(ev_c)
+        d_c = cand - mu if has_prior else None
         if anneal:
             # the scale an accepted step carries on with: halved, or the new residuals' spread;
             # the cost at the current scale decides, the weights are those at the next
-            at_scale = s <= s_min * (1 + 1e-12)
-            s_c = torch.where(at_scale, s, torch.maximum(s_min, torch.minimum(0.5 * s, kernel_spread(ev_c))))
-            costs, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, torch.stack([s, s_c], dim=-1))
+            at_scale = s <= s_top
+            s_c = torch.where(at_scale, s, torch.maximum(s_min, torch.minimum(half * s, kernel_spread(ev_c))))
+            costs, w_c = cost_and_weights(ev_c.r2, mask_c, used_c, d_c, torch.stack([s, s_c], dim=-1))
             (c1, c_next), w_c = costs.unbind(1), w_c[:, 1]
         else:
-            c1, w_c = cost_and_weights(ev_c, mask_c, used_c, cand, s)
+            c1, w_c = cost_and_weights(ev_c.r2, mask_c, used_c, d_c, s)
         ok = (c1 <= c) & active  # (False for a NaN cost)
-        small = ok & (c1 >= c * (1.0 - tol))
+        rejected = ~ok  # (or finished: then its step is never taken)
+        small = ok & (c1 >= c * k_tol1)
         if resolution > 0:
             # the step moved the residuals (RMS) by at most ``resolution`` of their robust RMS
             # (also a rejected step: below resolution the cost cannot reliably go down any more)
             if residual is not None:
-                moved = (ev_c.residual - residual).square_().sum(1)
+                moved = (ev_c.residual - residual).square_()
+                moved = moved[:, 0] if moved.shape[1] == 1 else moved.sum(1)
             else:
                 moved = (ev_c.r2.sqrt() - r2.sqrt()).square_()
             # (a finished sample does not move: it stays finished). A rejected step raised the
@@ -543,23 +563,25 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             # which moves the residuals by at most a quarter of its squared move; where that is
             # within the resolution, more damped retries cannot move them by more
             moved = torch.linalg.vecdot(moved, mask)
-            small = small | (moved <= bar) | (~ok & (moved <= 4.0 * bar))
-        tiny = (delta.abs() <= tol * (1.0 + cand.abs())).all(-1)
-        small = small | (tiny & (ok | (lam <= 1e-2)))
+            small = small | (moved <= bar) | (rejected & (moved <= four * bar))
+        tiny = (delta.abs() <= k_tol * (one + cand.abs())).all(-1)
+        small = small | (tiny & (ok | (lam <= k_lam_small)))
         # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
-        A_c, g_c = normal(ev_c, w_c, cand)
+        A_c, g_c = normal(ev_c, w_c, d_c)
         keep = ok.unsqueeze(-1)
         params = torch.where(keep, cand, params)
         A, g = torch.where(keep.unsqueeze(-1), A_c, A), torch.where(keep, g_c, g)
         w, mask, r2 = torch.where(keep, w_c, w), torch.where(keep, mask_c, mask), torch.where(keep, ev_c.r2, r2)
         if residual is not None:
             residual = torch.where(keep.unsqueeze(-1), ev_c.residual, residual)
+        if resolution > 0 or predict:
+            wr2_c = torch.linalg.vecdot(w_c, ev_c.r2)  # (Σ w r² where the step was taken)
         if resolution > 0:
-            bar = torch.where(ok, resolved(w_c, ev_c.r2, used_c), bar)
+            bar = torch.where(ok, resolved(wr2_c, w_c, used_c), bar)
         c = torch.where(ok, c_next if anneal else c1, c)
         iters += active
-        lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * 8.0)
-        stuck = ~ok & (lam > 1e8)
+        lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * eight)
+        stuck = rejected & (lam > k_lam_stuck)
         if anneal:
             s = torch.where(ok, s_c, s)
             done = done | (at_scale & (small | stuck))
@@ -567,15 +589,15 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             done = done | small | stuck
         # the next step: a rejected one retried at half its length (see the module docstring),
         # else the damped step from the normal equations at the (new) point
-        step = torch.where((~ok & active).unsqueeze(-1), 0.5 * delta, damped_step(A, g, lam, params))
+        step = torch.where(rejected.unsqueeze(-1), half * delta, damped_step(A, g, lam, params))
         if predict:
             # the step predicted there: δᵀ A δ is what it would move the weighted squared
             # residuals by (to first order); below resolution² of their weighted sum it is not
             # worth an evaluation (at the final scale, where annealing)
             moves = torch.linalg.vecdot(step, torch.bmm(A, step.unsqueeze(-1)).squeeze(-1))
-            settled = ok & (moves <= resolution ** 2 * torch.linalg.vecdot(w, r2))
+            settled = ok & (moves <= k_res2 * wr2_c)
             if anneal:
-                settled = settled & (s <= s_min * (1 + 1e-12))
+                settled = settled & (s <= s_top)
             done = done | settled
         if checks and it + 1 == checks[0]:
             checks.pop(0)
