@@ -436,7 +436,7 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     def evaluate(p: Tensor) -> Evaluation:
         """The problem at p, its residuals in at least the working dtype."""
         ev = problem.evaluate(p)
-        if torch.promote_types(ev.r2.dtype, dt) != ev.r2.dtype:
+        if ev.r2.dtype != dt and torch.promote_types(ev.r2.dtype, dt) != ev.r2.dtype:
             ev = Evaluation(ev.r2.to(dt), ev.use, None if ev.residual is None else ev.residual.to(dt), ev.state)
         return ev
 
@@ -453,7 +453,7 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         else:
             # where no point counts, they all cost what far outliers would (not 0: a step that
             # moved every point out of view would be the best fit)
-            rho = torch.where(used > zero, rho * (nn / used.clamp_min(1)), s_far * nn if anneal else s_far_n)
+            rho = torch.where(used > zero, rho * (nn / used), s_far * nn if anneal else s_far_n)  # (used = 0: not read)
         if has_prior:
             prior = (lam_p * d.square()).sum(1)
             rho = rho + (prior if s.dim() == 1 else prior.unsqueeze(-1))
@@ -549,7 +549,11 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             c1, w_c = cost_and_weights(ev_c.r2, mask_c, used_c, d_c, s)
         ok = (c1 <= c) & active  # (False for a NaN cost)
         rejected = ~ok  # (or finished: then its step is never taken)
-        small = ok & (c1 >= c * k_tol1)
+        # converged: after an accepted step, E changed by less than tol E or no parameter by more
+        # than tol (1 + |p|); after a rejected one, no parameter at small damping
+        tiny = (delta.abs() <= k_tol * (one + cand.abs())).all(-1)
+        small_ok = (c1 >= c * k_tol1) | tiny
+        small_rejected = tiny & (lam <= k_lam_small)
         if resolution > 0:
             # the step moved the residuals (RMS) by at most ``resolution`` of their robust RMS
             # (also a rejected step: below resolution the cost cannot reliably go down any more)
@@ -561,11 +565,11 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             # (a finished sample does not move: it stays finished). A rejected step raised the
             # cost: about quadratic along the step, it is least within the step's first half,
             # which moves the residuals by at most a quarter of its squared move; where that is
-            # within the resolution, more damped retries cannot move them by more
+            # within the resolution, more damped retries cannot move them by more (and a move
+            # within bar is within 4 bar: bar >= 0)
             moved = torch.linalg.vecdot(moved, mask)
-            small = small | (moved <= bar) | (rejected & (moved <= four * bar))
-        tiny = (delta.abs() <= k_tol * (one + cand.abs())).all(-1)
-        small = small | (tiny & (ok | (lam <= k_lam_small)))
+            small_ok = small_ok | (moved <= bar)
+            small_rejected = small_rejected | (moved <= four * bar)
         # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
         A_c, g_c = normal(ev_c, w_c, d_c)
         keep = ok.unsqueeze(-1)
@@ -581,12 +585,13 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         c = torch.where(ok, c_next if anneal else c1, c)
         iters += active
         lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * eight)
-        stuck = rejected & (lam > k_lam_stuck)
+        # (or stuck: rejected at a damping where no step moves any more)
+        converged = torch.where(ok, small_ok, small_rejected | (lam > k_lam_stuck))
         if anneal:
             s = torch.where(ok, s_c, s)
-            done = done | (at_scale & (small | stuck))
+            done = done | (at_scale & converged)
         else:
-            done = done | small | stuck
+            done = done | converged
         # the next step: a rejected one retried at half its length (see the module docstring),
         # else the damped step from the normal equations at the (new) point
         step = torch.where(rejected.unsqueeze(-1), half * delta, damped_step(A, g, lam, params))
