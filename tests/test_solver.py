@@ -426,6 +426,15 @@ NAN, INF = float("nan"), float("inf")
     (dict(lower=torch.tensor([NAN, -9.0])), ValueError, r"lower: expected values below \+inf \(not NaN\), got \[nan, nan\]"),
     (dict(upper=torch.tensor([-INF, 9.0])), ValueError, r"upper: expected values above -inf \(not NaN\), got \[-inf, -inf\]"),
     (dict(prior_precision=torch.tensor([-1e6, 0.0])), ValueError, r"prior_precision: expected finite values >= 0, got \[-1000000.0"),
+    (dict(lower=torch.tensor([INF, 0.0])), ValueError, r"lower: expected values below \+inf \(not NaN\), got \[inf, inf\]"),
+    (dict(upper=torch.tensor([0.0, NAN])), ValueError, r"upper: expected values above -inf \(not NaN\), got \[nan, nan\]"),
+    (dict(lower=-INF, upper=-INF), ValueError, r"upper: expected values above -inf \(not NaN\), got \[-inf, -inf, -inf\]"),
+    # the first bad argument is named
+    (dict(params=torch.tensor([[0.0, NAN], [0.0, 0.0]], dtype=torch.float64), lower=5.0, upper=-5.0,
+          prior_mean=torch.tensor([NAN, 0.0]), prior_precision=torch.ones(2)), ValueError,
+     r"params: expected finite start values, got \[nan\]"),
+    (dict(prior_precision=torch.tensor([NAN, 1.0]), lower=5.0, upper=-5.0), ValueError,
+     r"prior_precision: expected finite values >= 0, got \[nan, nan\]"),
     (dict(prior_mean=torch.tensor([NAN, 0.0]), prior_precision=torch.ones(2)), ValueError,
      r"prior_mean: expected finite values, got \[nan, nan\]"),
     (dict(params=torch.tensor([[NAN, 0.0], [0.0, 0.0]], dtype=torch.float64)), ValueError,
@@ -440,6 +449,18 @@ def test_solve_names_a_bad_argument(options, error, message):
     options = {"kernel": "l2", "max_iter": 30, **options}
     with pytest.raises(error, match=message):
         solve(problem, options.pop("params", torch.zeros(2, 2, dtype=torch.float64)), **options)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_bounds_at_the_largest_finite_numbers_are_valid(dtype):
+    """lower < +inf, upper > -inf and lower <= upper hold for bounds at the dtype's largest finite
+    numbers (decided in one comparison of the bounds clamped to them): no error."""
+    problem, _, _, _ = line_problem(B=2, N=50)
+    big = torch.finfo(dtype).max
+    for lower, upper in (([big, -INF], [INF, -big]), ([-big, -big], [big, big]), ([big, 0.0], [big, 0.0])):
+        sol = solve(problem, torch.zeros(2, 2, dtype=dtype), kernel="l2", max_iter=3,
+                    lower=torch.tensor(lower, dtype=dtype), upper=torch.tensor(upper, dtype=dtype))
+        assert sol.params.shape == (2, 2)
 
 
 def test_without_checks_the_values_are_the_callers():

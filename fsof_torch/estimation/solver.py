@@ -248,16 +248,26 @@ def _check_free(free: object, B: int, P: int, dev: torch.device) -> Tensor:
     return free.to(dev).expand(B, P)
 
 
-def _first_bad(checks: list[tuple[str, Tensor]]) -> Tensor:
-    """0-d int64 on the device: 1 + the index of the first check whose flag (0-d bool) is False,
-    0 where all hold (decided without a host read: the loop's first host read carries it)."""
-    ok = torch.stack([flag for _, flag in checks])
-    return torch.where(ok.all(), 0, (~ok).to(torch.int64).argmax() + 1)
+def _values_hold(values: dict[str, Tensor | None]) -> Tensor:
+    """0-d bool on the device: the given arguments' values hold (decided without a host read: the
+    loop's first host read carries it, and :func:`_raise_bad_value` then names the first that
+    fails). The bounds in one comparison: lower < +inf, upper > -inf and lower <= upper, none
+    NaN, exactly where max(lower, -big) <= min(upper, big), big the dtype's largest number."""
+    params, mu, lam, lo, hi = (values.get(k) for k in ("params", "prior_mean", "prior_precision", "lower", "upper"))
+    held = torch.isfinite(params).all()
+    if mu is not None:
+        held = held & torch.isfinite(mu).all()
+    if lam is not None:
+        held = held & (torch.isfinite(lam) & (lam >= 0)).all()
+    if lo is not None:
+        big = torch.finfo(lo.dtype).max
+        held = held & (lo.clamp_min(-big) <= hi.clamp_max(big)).all()
+    return held
 
 
-def _raise_bad_value(name: str, values: dict[str, Tensor]) -> None:
-    """The error for the argument ``name`` whose values failed their check (host reads: the
-    error path only)."""
+def _raise_bad_value(values: dict[str, Tensor | None]) -> None:
+    """The error for the first argument whose values fail their check (host reads: the error
+    path only)."""
     def some(x: Tensor, bad: Tensor) -> list:
         return x[bad].flatten()[:3].tolist()
 
@@ -265,9 +275,10 @@ def _raise_bad_value(name: str, values: dict[str, Tensor]) -> None:
                 "prior_precision": ("finite values >= 0", lambda x: torch.isfinite(x) & (x >= 0)),
                 "lower": ("values below +inf (not NaN)", lambda x: x < math.inf),
                 "upper": ("values above -inf (not NaN)", lambda x: x > -math.inf)}
-    if name in expected:
-        what, good = expected[name]
-        raise ValueError(f"{name}: expected {what}, got {some(values[name], ~good(values[name]))}")
+    for name, (what, good) in expected.items():
+        x = values.get(name)
+        if x is not None and not bool(good(x).all()):
+            raise ValueError(f"{name}: expected {what}, got {some(x, ~good(x))}")
     lo, hi = values["lower"], values["upper"]
     raise ValueError(f"lower, upper: expected lower <= upper, got lower {some(lo, lo > hi)} "
                      f"above upper {some(hi, lo > hi)}")
@@ -405,22 +416,10 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     # the arguments' values, decided on the device; the loop's first host read tells them
     pending = None
     if check_values:
-        flags = [("params", torch.isfinite(params).all())]
-        if mu is not None:
-            flags.append(("prior_mean", torch.isfinite(mu).all()))
-        if lam_given is not None:
-            flags.append(("prior_precision", (torch.isfinite(lam_given) & (lam_given >= 0)).all()))
-        if has_bounds:
-            flags += [("lower", (lo < math.inf).all()), ("upper", (hi > -math.inf).all()),
-                      ("lower, upper", (lo <= hi).all())]
         values = {"params": params, "prior_mean": mu, "prior_precision": lam_given}
         if has_bounds:
             values.update(lower=lo, upper=hi)
-        pending = _first_bad(flags)
-
-    def report(bad: int) -> None:
-        if bad:
-            _raise_bad_value(flags[bad - 1][0], values)
+        pending = _values_hold(values)
 
     if has_bounds:
         params = torch.minimum(torch.maximum(params, lo), hi)
@@ -607,15 +606,16 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         if checks and it + 1 == checks[0]:
             checks.pop(0)
             if pending is not None:  # (one host read: the arguments' values and convergence)
-                bad, all_done = divmod(int(2 * pending + done.all()), 2)  # (both in one int: one read)
+                held, all_done = divmod(int(2 * pending + done.all()), 2)  # (both in one int: one read)
                 pending = None
-                report(bad)
+                if not held:
+                    _raise_bad_value(values)
                 if all_done:
                     break
             elif bool(done.all()):
                 break
-    if pending is not None:  # (the loop made no host read)
-        report(int(pending))
+    if pending is not None and not bool(pending):  # (the loop made no host read)
+        _raise_bad_value(values)
     # (the problem's state is not kept: the normal equations built from it are)
     return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s, ~fixed if has_fixed else None)
 
