@@ -426,11 +426,13 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     n = problem.count.to(dt).clamp_min(1)
     far = far_outlier_cost(kernel)
     # the loop's numbers as 0-d tensors of the working dtype: a Python number is wrapped into a
-    # tensor at every op that takes it (about 0.6 µs each, 1 µs in a where). Products, sums,
-    # comparisons and selections only: a division by a Python number may be computed as a product
-    # by its reciprocal (CUDA's), which a tensor's is not, so the divisions keep theirs.
-    zero, half, one, four, eight, k_tol, k_tol1, k_lam_small, k_lam_stuck, k_res2 = torch.tensor(
-        [0.0, 0.5, 1.0, 4.0, 8.0, tol, 1.0 - tol, 1e-2, 1e8, resolution ** 2], dtype=dt, device=dev).unbind()
+    # tensor at every op that takes it (about 0.6 µs each, 1 µs in a where). Only where the other
+    # operand is in the working dtype, or the number is exact in it (the costs and normal equations
+    # may come in a wider dtype: a number rounded to the working one would change them), and not
+    # in divisions (one by a Python number may be computed as a product by its reciprocal, CUDA's).
+    zero, half, one, four, eight, k_tol, k_lam_small, k_lam_stuck = torch.tensor(
+        [0.0, 0.5, 1.0, 4.0, 8.0, tol, 1e-2, 1e8], dtype=dt, device=dev).unbind()
+    res2 = resolution ** 2
 
     def evaluate(p: Tensor) -> Evaluation:
         """The problem at p, its residuals in at least the working dtype."""
@@ -490,7 +492,7 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     def resolved(wr2: Tensor, w: Tensor, used: Tensor) -> Tensor:
         """What a step must move the squared residuals by, summed over the points that count, to
         matter (B,): resolution² × their robust mean square (``wr2``: Σ w r², B) × their number."""
-        return k_res2 * wr2 / w.sum(1).clamp_min(1e-300) * used
+        return res2 * wr2 / w.sum(1).clamp_min(1e-300) * used
 
     def counted(ev: Evaluation) -> tuple[Tensor, Tensor]:
         """The points that count as a 0/1 mask (B, N) in the parameters' dtype, and their number."""
@@ -551,14 +553,14 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         # converged: after an accepted step, E changed by less than tol E or no parameter by more
         # than tol (1 + |p|); after a rejected one, no parameter at small damping
         tiny = (delta.abs() <= k_tol * (one + cand.abs())).all(-1)
-        small_ok = (c1 >= c * k_tol1) | tiny
+        small_ok = (c1 >= c * (1.0 - tol)) | tiny
         small_rejected = tiny & (lam <= k_lam_small)
         if resolution > 0:
             # the step moved the residuals (RMS) by at most ``resolution`` of their robust RMS
             # (also a rejected step: below resolution the cost cannot reliably go down any more)
             if residual is not None:
                 moved = (ev_c.residual - residual).square_()
-                moved = moved[:, 0] if moved.shape[1] == 1 else moved.sum(1)
+                moved = moved.squeeze(1) if moved.shape[1] == 1 else moved.sum(1)
             else:
                 moved = (ev_c.r2.sqrt() - r2.sqrt()).square_()
             # (a finished sample does not move: it stays finished). A rejected step raised the
@@ -572,11 +574,12 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         # the candidate's normal equations; a rejected sample keeps its own (same point, same scale)
         A_c, g_c = normal(ev_c, w_c, d_c)
         keep = ok.unsqueeze(-1)
+        keep3 = keep.unsqueeze(-1)
         params = torch.where(keep, cand, params)
-        A, g = torch.where(keep.unsqueeze(-1), A_c, A), torch.where(keep, g_c, g)
+        A, g = torch.where(keep3, A_c, A), torch.where(keep, g_c, g)
         w, mask, r2 = torch.where(keep, w_c, w), torch.where(keep, mask_c, mask), torch.where(keep, ev_c.r2, r2)
         if residual is not None:
-            residual = torch.where(keep.unsqueeze(-1), ev_c.residual, residual)
+            residual = torch.where(keep3, ev_c.residual, residual)
         if resolution > 0 or predict:
             wr2_c = torch.linalg.vecdot(w_c, ev_c.r2)  # (Σ w r² where the step was taken)
         if resolution > 0:
@@ -584,25 +587,26 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         c = torch.where(ok, c_next if anneal else c1, c)
         iters += active
         lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * eight)
-        # (or stuck: rejected at a damping where no step moves any more)
-        converged = torch.where(ok, small_ok, small_rejected | (lam > k_lam_stuck))
-        if anneal:
-            s = torch.where(ok, s_c, s)
-            done = done | (at_scale & converged)
-        else:
-            done = done | converged
         # the next step: a rejected one retried at half its length (see the module docstring),
         # else the damped step from the normal equations at the (new) point
         step = torch.where(rejected.unsqueeze(-1), half * delta, damped_step(A, g, lam, params))
         if predict:
             # the step predicted there: δᵀ A δ is what it would move the weighted squared
             # residuals by (to first order); below resolution² of their weighted sum it is not
-            # worth an evaluation (at the final scale, where annealing)
+            # worth an evaluation (after an accepted step; at the final scale, where annealing)
             moves = torch.linalg.vecdot(step, torch.bmm(A, step.unsqueeze(-1)).squeeze(-1))
-            settled = ok & (moves <= k_res2 * wr2_c)
-            if anneal:
-                settled = settled & (s <= s_top)
-            done = done | settled
+            settled = moves <= res2 * wr2_c
+            if not anneal:
+                small_ok = small_ok | settled
+        # (or stuck: rejected at a damping where no step moves any more)
+        converged = torch.where(ok, small_ok, small_rejected | (lam > k_lam_stuck))
+        if anneal:
+            s = torch.where(ok, s_c, s)
+            done = done | (at_scale & converged)
+            if predict:
+                done = done | (ok & settled & (s <= s_top))
+        else:
+            done = done | converged
         if checks and it + 1 == checks[0]:
             checks.pop(0)
             if pending is not None:  # (one host read: the arguments' values and convergence)
