@@ -124,6 +124,48 @@ def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
     assert torch.equal(sol.params, full.params) and torch.equal(sol.iterations, full.iterations)
 
 
+@pytest.mark.parametrize("schedule", [range(3, 40), range(3, 40, 4), range(39, 2, -1), [9, 3, 3, 21], (5,)])
+def test_early_stop_checks_after_the_listed_iterations(schedule):
+    """A sequence ``check_every`` (a range included, rising or not) checks after the iterations it
+    lists: the loop ends at the first of them at or after the iteration where every sample
+    converged."""
+    base, truth, _, _ = line_problem(noise=0.01, outliers=0.1)
+    calls = []
+
+    def counted(p):
+        calls.append(1)
+        return base.fn(p)
+
+    problem = ResidualProblem(counted, base.count)
+    start = torch.zeros(2, 2, dtype=torch.float64)
+    full = solve(problem, start, kernel="cauchy", max_iter=40, check_every=None)
+    converged_at = int(full.iterations.max())
+    stop = min((k for k in schedule if k >= converged_at), default=40)
+    calls.clear()
+    sol = solve(problem, start, kernel="cauchy", max_iter=40, check_every=schedule)
+    assert len(calls) == 1 + stop
+    assert torch.equal(sol.params, full.params) and torch.equal(sol.iterations, full.iterations)
+
+
+@pytest.mark.parametrize("shape, ok", [((), True), ((1,), True), ((2,), True), ((1, 1), True), ((1, 2), True),
+                                       ((3, 1), True), ((3, 2), True), ((3,), False), ((2, 2), False),
+                                       ((1, 3), False), ((1, 1, 2), False)])
+def test_per_parameter_arguments_broadcast_to_b_p(shape, ok):
+    """``lower``, ``upper``, ``prior_mean``, ``prior_precision``: any shape that broadcasts to
+    (B, P) (here (3, 2)), no other."""
+    problem, _, _, _ = line_problem(B=3, N=50)
+    start = torch.zeros(3, 2, dtype=torch.float64)
+    for name in ("lower", "prior_mean"):
+        options = {name: torch.full(shape, -1.0, dtype=torch.float64)}
+        if name == "prior_mean":
+            options["prior_precision"] = 1.0
+        if ok:
+            assert solve(problem, start, kernel="l2", max_iter=2, **options).params.shape == (3, 2)
+        else:
+            with pytest.raises(ValueError, match=rf"{name}: expected a number or shape \(2,\) or \(3, 2\)"):
+                solve(problem, start, kernel="l2", max_iter=2, **options)
+
+
 def test_predicted_step_ends_a_stage_without_the_step_that_would_not_matter():
     """``predict``: after an accepted step the next one is predicted from the normal equations
     there (δᵀ A δ, what it would move the weighted squared residuals by); below ``resolution``²

@@ -217,7 +217,9 @@ def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, co
 def _broadcasts_to(shape: torch.Size, B: int, P: int) -> bool:
     """``shape`` broadcasts to (B, P) (torch.broadcast_shapes written out: that is a Python
     reference implementation of about 10 µs a call, and each fit level checks four arguments)."""
-    return len(shape) <= 2 and all(n in (1, full) for n, full in zip(reversed(shape), (P, B)))
+    if len(shape) == 2:
+        return shape[0] in (1, B) and shape[1] in (1, P)
+    return len(shape) == 0 or (len(shape) == 1 and shape[0] in (1, P))
 
 
 def _expand(x: Tensor | float | None, name: str, B: int, P: int, like: Tensor, fill: float) -> Tensor:
@@ -299,8 +301,9 @@ def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> l
             if len(out) > 2:  # the gaps: 1, 1, then doubling
                 gap *= 2
         return [k for k in out if k < max_iter]
-    try:
-        out = sorted({int(k) for k in check_every})
+    try:  # (a rising range is sorted already)
+        out = (list(check_every) if isinstance(check_every, range) and check_every.step > 0
+               else sorted({int(k) for k in check_every}))
     except (TypeError, ValueError):  # (not a sequence, or of values int() refuses: a wrong type)
         raise TypeError(f"check_every: expected an int >= 1, a sequence of them or None, got {check_every!r}") from None
     if out and out[0] < 1:
