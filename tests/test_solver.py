@@ -576,6 +576,31 @@ def test_every_kernel_broadcasts_r2_with_the_scale():
     assert robust_cost(r2, 2.0, "l2").shape == robust_weight(r2, 2.0, "l2").shape == (5,)
 
 
+@pytest.mark.parametrize("kind", ROBUST_KERNELS)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_robust_terms_are_the_kernels_weights_and_cost_over_the_mask(kind, dtype):
+    """``robust_terms`` (the solver's kernel, both terms at once): its weights are
+    ``robust_weight``'s times the mask, bit for bit; its cost the sum of ``robust_cost`` over the
+    mask; at one scale (B,) or S at once (B, S), each as if alone."""
+    from fsof_torch.estimation.robust import robust_terms
+
+    g = torch.Generator().manual_seed(3)
+    r2 = (torch.rand(2, 301, generator=g, dtype=torch.float64) * 9).square().to(dtype)
+    mask = (torch.rand(2, 301, generator=g) > 0.3).to(dtype)
+    scale = torch.tensor([0.7, 2.5], dtype=dtype)
+    cost, w = robust_terms(r2, scale, kind, mask)
+    assert w.dtype == cost.dtype == dtype and cost.shape == (2,) and w.shape == (2, 301)
+    assert torch.equal(w, robust_weight(r2, scale.unsqueeze(-1), kind) * mask)
+    torch.testing.assert_close(cost, (robust_cost(r2, scale.unsqueeze(-1), kind) * mask).sum(1))
+    scales = torch.stack([scale, 2 * scale], dim=-1)  # (B, S)
+    costs, ws = robust_terms(r2, scales, kind, mask)
+    assert costs.shape == (2, 2) and ws.shape == (2, 2, 301) and ws.dtype == dtype
+    for k in range(2):
+        single_cost, single_w = robust_terms(r2, scales[:, k].contiguous(), kind, mask)
+        assert torch.equal(ws[:, k], single_w)
+        torch.testing.assert_close(costs[:, k], single_cost)
+
+
 # -- sample_points: 16-bit images ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
