@@ -423,6 +423,23 @@ def test_16_bit_params_are_solved_in_float32(dtype):
     assert bool(torch.isfinite(sol.covariance()).all())
 
 
+@pytest.mark.parametrize("options", [dict(kernel="l2"), dict(kernel="cauchy", scale=0.05, anneal=True),
+                                     dict(kernel="huber", resolution=0.01, predict=True),
+                                     dict(kernel="cauchy", missing="mean", upper=torch.tensor([1.5, math.inf])),
+                                     dict(kernel="tukey", scale=0.5, free=torch.tensor([True, False]),
+                                          prior_mean=torch.tensor([1.0, 0.0]), prior_precision=torch.tensor([2.0, 0.0]))])
+def test_float32_params_with_float64_residuals_are_solved_in_float64(options):
+    """A problem whose residuals come wider than the parameters (float64 data, a float32 start)
+    is solved, and answers, in its dtype, as a float64 start would be (this raised: the points'
+    mask was made in the parameters' dtype)."""
+    problem, truth, _, _ = line_problem(noise=0.01)
+    with_64 = solve(problem, torch.zeros(2, 2, dtype=torch.float64), max_iter=40, **options)
+    sol = solve(problem, torch.zeros(2, 2, dtype=torch.float32), max_iter=40, **options)
+    assert sol.params.dtype == sol.cost.dtype == sol.normal.dtype == torch.float64
+    torch.testing.assert_close(sol.params, with_64.params, rtol=0, atol=1e-6)
+    assert torch.equal(sol.converged, with_64.converged)
+
+
 def test_autocast_does_not_reach_the_normal_equations():
     """Under CPU autocast (bfloat16) the problem's matmuls built the normal equations in bfloat16
     (a normal matrix off by 1e-3 relative, a covariance of inf): autocast is off inside, and the

@@ -498,9 +498,10 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         return res2 * wr2 / w.sum(1).clamp_min(1e-300) * used
 
     def counted(ev: Evaluation) -> tuple[Tensor, Tensor]:
-        """The points that count as a 0/1 mask (B, N) in the parameters' dtype, and their number."""
+        """The points that count as a 0/1 mask (B, N) in the residuals' dtype (the working one, or
+        the problem's where it is wider), and their number."""
         # (bool's bytes read as uint8: the same 0/1 values, converted several times faster)
-        mask = (ev.use.view(torch.uint8) if ev.use.dtype == torch.bool else ev.use).to(dt)
+        mask = (ev.use.view(torch.uint8) if ev.use.dtype == torch.bool else ev.use).to(ev.r2.dtype)
         return mask, mask.sum(1)
 
     ev = evaluate(params)
