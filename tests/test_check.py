@@ -13,6 +13,7 @@ import torch
 
 from fsof_torch._check import (
     all_finite,
+    known_finite,
     as_batch_param,
     as_chw_flow,
     autocast_off,
@@ -82,6 +83,22 @@ def test_all_finite_agrees_with_isfinite(dtype, bad):
         y = x.clone()
         y[0, 0, 0], y[2, 16, 32] = bad, other
         assert all_finite(y) is False
+
+
+def test_known_finite_answers_for_the_very_tensors_within_the_block():
+    """Within ``known_finite(x)`` all_finite(x) is True without reading x (the caller's promise: a
+    NaN there is not seen), for x itself only (not a copy, a view or another tensor), and only
+    within the block (nested blocks add to the outer one's)."""
+    x = torch.tensor([1.0, float("nan")])
+    y = torch.tensor([float("inf")])
+    assert all_finite(x) is False
+    with known_finite(x):
+        assert all_finite(x) is True
+        assert all_finite(x.clone()) is False and all_finite(x[1:]) is False and all_finite(y) is False
+        with known_finite(y):
+            assert all_finite(x) is True and all_finite(y) is True
+        assert all_finite(y) is False
+    assert all_finite(x) is False
 
 
 def test_all_finite_other_dtypes_and_edges():

@@ -26,7 +26,7 @@ from torch import Tensor
 
 from .._check import (all_finite, batch_choices, check_batch, check_bool, check_float_tensor, check_has_values,
                       check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number, check_shape,
-                      skip_values)
+                      inference, skip_values)
 from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
@@ -262,8 +262,9 @@ class ImageMotionEstimator:
                                                         planar, self.odometry_sigma, fixed)
                 options.setdefault("forward_starts", ())
         elif self.flow_start and flow is not None:
-            # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own)
-            starts.append(planar_start(flow, mask, camera))
+            # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own;
+            # in inference mode, as the fit that takes it runs: a start is no result of the call)
+            starts.append(inference(planar_start)(flow, mask, camera))
         # (on the camera's values: fit_image's result keeps its K and height, and results are detached)
         camera = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(), camera.pitch.detach())
         return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,

@@ -34,7 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
-                      check_size, is_number, option_error, result_dtype, skip_values, to_device, tracing)
+                      check_size, is_number, known_finite, option_error, result_dtype, skip_values, to_device,
+                      tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
 from ..evaluation.photometric import to_grey
@@ -612,8 +613,10 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
                 given, values = road_motion_batch(odometry, B, dtype, device)
                 odo = {"model": given.name, **select_samples(values, index, B)}
             starts = tuple(select_samples(s, index, B) for s in starts)
-        result = finite_estimate(estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts), cam_d,
-                                 samples=index.tolist(), warn=warn)
+        # (f is finite: the estimator's own test of it, e.g. a planar start's, need not read it again)
+        with known_finite(f):
+            estimate = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
+        result = finite_estimate(estimate, cam_d, samples=index.tolist(), warn=warn)
     ok = result.success.to(device=device, dtype=torch.bool)
     params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}
     success = torch.zeros(B, dtype=torch.bool, device=device).index_copy(0, index, ok)
