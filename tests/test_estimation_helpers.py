@@ -16,7 +16,7 @@ from fsof_torch import Camera, decompose_homography, road_flow, road_homography
 from fsof_torch.estimation import pyramid as P
 from fsof_torch.estimation.confidence import backward_correlation, detail_correlation, matched_gain, warped_samples
 from fsof_torch.estimation.initial import homography_dlt, planar_motion, planar_start
-from fsof_torch.estimation.sampling import pixel_coordinates, points_grid, sample_mask
+from fsof_torch.estimation.sampling import mask_pixels, pixel_coordinates, points_grid, reused_mask_pixels, sample_mask
 from fsof_torch.estimation.robust import ROBUST_KERNELS, robust_cost, robust_weight
 from fsof_torch.estimation.starts import screened_start, turn_moves
 from fsof_torch.geometry.road_models import get_road_model, pack_params
@@ -613,3 +613,45 @@ def test_backward_correlation_is_the_correlation_on_image_2s_side_by_opencvs_war
     # a singular map judges no pixel
     singular = torch.zeros(1, 3, 3, dtype=torch.float64)
     assert float(backward_correlation(b1, b2, singular, horizon, road)[0]) == 0.0
+
+
+def test_reused_mask_pixels_serves_the_same_mask_once_and_only_it():
+    """Within ``reused_mask_pixels`` a mask searched once (or a view of the same memory, shape and
+    strides) gets the pixels found then; another mask, another view of it, a mask written in place
+    since, and any mask outside the block are searched anew; the samples equal the plain ones."""
+    g = torch.Generator().manual_seed(0)
+    mask = torch.rand(2, 1, 30, 40, generator=g) > 0.6
+    plain = sample_mask(mask, 50)
+    with reused_mask_pixels():
+        first = mask_pixels(mask)
+        assert mask_pixels(mask) is first and mask_pixels(mask.expand(2, 1, 30, 40)) is first
+        with reused_mask_pixels():  # (nested: the outer memo serves)
+            assert mask_pixels(mask) is first
+        assert mask_pixels(mask[:1]) is not first and torch.equal(mask_pixels(mask[:1]), first[first < 1200])
+        other = mask.clone()
+        assert mask_pixels(other) is not first and torch.equal(mask_pixels(other), first)
+        again = sample_mask(mask, 50)
+        for name in ("pix", "sel", "count", "every", "bounds"):
+            assert torch.equal(getattr(again, name), getattr(plain, name)), name
+        mask[0, 0, 0, 0] = not bool(mask[0, 0, 0, 0])  # (written: searched anew)
+        changed = mask_pixels(mask)
+        assert changed is not first and torch.equal(changed, mask.reshape(-1).nonzero().squeeze(1))
+    assert mask_pixels(mask) is not changed
+
+
+def test_the_image_estimator_searches_its_mask_once(monkeypatch):
+    """The flow's planar start and the image fit sample the same mask: its pixels are found once
+    (one search of a full-size mask), the fit as without the reuse."""
+    import fsof_torch.estimation.sampling as sampling
+    from fsof_torch import ImageMotionEstimator, fit_image, render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    images, road, flow = (p["image1"][None], p["image2"][None]), p["road"][None], p["flow"][None].float()
+    sizes, flatnonzero = [], sampling.np.flatnonzero
+    monkeypatch.setattr(sampling.np, "flatnonzero", lambda a: sizes.append(a.size) or flatnonzero(a))
+    fit = ImageMotionEstimator()(flow, road, p["camera"], images=images)
+    assert sizes.count(road.numel()) == 1
+    monkeypatch.setattr(sampling.np, "flatnonzero", flatnonzero)
+    alone = fit_image(*images, road, p["camera"], starts=[planar_start(flow, road, p["camera"])])
+    for k in fit.params:
+        assert torch.equal(fit.params[k], alone.params[k]), k

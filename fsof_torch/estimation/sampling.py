@@ -8,6 +8,8 @@ search over the mask's pixels, so the number of points is fixed in advance.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 from dataclasses import dataclass
 
 import numpy as np
@@ -15,8 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-__all__ = ["MaskPoints", "sample_mask", "resample_mask", "pixel_coordinates", "gather_pixels", "sample_points",
-           "points_grid", "sample_at_grid"]
+__all__ = ["MaskPoints", "sample_mask", "resample_mask", "reused_mask_pixels", "pixel_coordinates", "gather_pixels",
+           "sample_points", "points_grid", "sample_at_grid"]
 
 
 @dataclass
@@ -76,10 +78,41 @@ def mask_pixels(mask: Tensor) -> Tensor:
     One flat search (a 2-D ``nonzero`` splits each index into (frame, pixel) by an int64
     division). On the CPU NumPy's ``flatnonzero`` finds them in half the time of torch's
     ``nonzero`` (a KITTI frame's road: ``python benchmarks/bench_image_fit.py``); elsewhere torch's."""
+    memo = _MASK_PIXELS.get()
+    if memo is not None:
+        # (the same memory seen the same way, unchanged since: a view's own version counter is its
+        # base's; inference tensors have none, and are not written in place where the memo is open)
+        key = (mask.data_ptr(), tuple(mask.shape), mask.stride(), mask.dtype, mask.device,
+               None if mask.is_inference() else mask._version)
+        if key in memo:
+            return memo[key][1]
     flat = mask.reshape(-1)
     if flat.device.type == "cpu":
-        return torch.from_numpy(np.flatnonzero(flat.numpy())).long()
-    return flat.nonzero().squeeze(1)
+        every = torch.from_numpy(np.flatnonzero(flat.numpy())).long()
+    else:
+        every = flat.nonzero().squeeze(1)
+    if memo is not None:
+        memo[key] = (mask, every)  # (the mask held: its memory is not reused while the memo is open)
+    return every
+
+
+_MASK_PIXELS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("mask_pixels", default=None)
+
+
+@contextlib.contextmanager
+def reused_mask_pixels():
+    """Within the block, :func:`mask_pixels` (and so :func:`sample_mask`) of a mask it has searched
+    already (the same memory, shape and strides, not written since) returns the pixels found then:
+    for steps that sample one mask in turn (a planar start and the image fit). Blocks nest (the
+    outermost one's memo serves); each thread or task has its own."""
+    if _MASK_PIXELS.get() is not None:
+        yield
+        return
+    token = _MASK_PIXELS.set({})
+    try:
+        yield
+    finally:
+        _MASK_PIXELS.reset(token)
 
 
 def resample_mask(points: MaskPoints, size: tuple[int, int], max_points: int | None) -> MaskPoints:

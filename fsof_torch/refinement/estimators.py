@@ -30,6 +30,7 @@ from .._check import (all_finite, batch_choices, check_batch, check_bool, check_
 from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
+from ..estimation.sampling import reused_mask_pixels
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model, road_motion
 
@@ -261,14 +262,17 @@ class ImageMotionEstimator:
                 options["prior"] = _with_odometry_prior(options.get("prior", "calibration"), self.model, camera,
                                                         planar, self.odometry_sigma, fixed)
                 options.setdefault("forward_starts", ())
-        elif self.flow_start and flow is not None:
-            # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own;
-            # in inference mode, as the fit that takes it runs: a start is no result of the call)
-            starts.append(inference(planar_start)(flow, mask, camera))
-        # (on the camera's values: fit_image's result keeps its K and height, and results are detached)
-        camera = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(), camera.pitch.detach())
-        return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
-                         **options)
+        # (the flow's start and the fit sample the same mask: its pixels found once)
+        with reused_mask_pixels():
+            if planar is None and self.flow_start and flow is not None:
+                # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own;
+                # in inference mode, as the fit that takes it runs: a start is no result of the call)
+                starts.append(inference(planar_start)(flow, mask, camera))
+            # (on the camera's values: fit_image's result keeps its K and height, and results are detached)
+            camera = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(),
+                                     camera.pitch.detach())
+            return fit_image(image1, image2, mask, camera, model=self.model, fixed=fixed, init=init, starts=starts,
+                             **options)
 
     def __repr__(self) -> str:
         sigma = f", odometry_sigma={self.odometry_sigma!r}" if self.odometry_sigma else ""
