@@ -43,9 +43,9 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_refine import refine_with_auto_road
-from .estimators import FlowMotionEstimator, ImageMotionEstimator, finite_estimate
+from .estimators import ImageMotionEstimator, finite_estimate
 from .gate import ImageGate
-from .options import FITS, MODES, check_refine_options
+from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, collect_flows, finest_flow, map_flows, refiner_images
 
 __all__ = [
@@ -238,44 +238,6 @@ def _scatter(values: Tensor, index: Tensor, B: int) -> Tensor:
 
 
 # -- the refinement ---------------------------------------------------------------------------
-
-def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
-                     fit_options: Mapping[str, Any] | None, photometric_options: Mapping[str, Any] | None):
-    """The road-motion estimator to use: the caller's; one built from the older ``fit=``
-    options; or the default: the image estimator where there are images, else a fit to the
-    prediction."""
-    if fit not in (None, *_FITS):
-        raise ValueError(f"fit: expected one of {_FITS} or None, got {fit!r}")
-    # the older options apply to the estimator they build; set where another one runs, they
-    # would be left aside silently
-    chosen = "estimator" if estimator is not None else (fit or ("flow" if images is None else "images"))
-    uses = {"fit_roll": ("flow", "photometric"), "fit_pitch": ("flow", "photometric"),
-            "fit_options": ("flow",), "photometric_options": ("photometric",)}
-    given = {"fit_roll": fit_roll, "fit_pitch": fit_pitch, "fit_options": bool(fit_options),
-             "photometric_options": bool(photometric_options)}
-    for name, applies in uses.items():
-        if given[name] and chosen not in applies:
-            where = {"estimator": "an estimator is given: set its own options",
-                     "images": "the default image estimator runs (images given, fit=None): pass "
-                               "estimator=ImageMotionEstimator(...) with its options",
-                     "flow": "fit='flow' (or no images) fits the flow",
-                     "photometric": "fit='photometric' takes photometric_options"}[chosen]
-            raise ValueError(f"{name}: applies with fit={' or '.join(repr(a) for a in applies)}; here {where}")
-    if estimator is not None:
-        if fit is not None:
-            raise ValueError("fit: give an estimator or fit=, not both")
-        if not callable(estimator):
-            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
-        return estimator
-    fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
-    if fit == "flow" or (fit is None and images is None):
-        return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
-    if fit == "photometric":  # the paper's model fitted to the images, started from the flow fit
-        options = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
-                   "max_iter": 20, "highpass": None, **dict(photometric_options or {})}
-        return ImageMotionEstimator(model="paper", fixed=fixed, **options)
-    return ImageMotionEstimator()
-
 
 def _grey_once(images: tuple[Tensor, Tensor] | None, estimator: Any, flow: Tensor) -> tuple | None:
     """The frames for an image estimator and the gate, which both compare their grey levels and

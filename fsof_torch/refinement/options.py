@@ -5,15 +5,16 @@ fits (checked against the receiving function's signature)."""
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Mapping
 
 from .._check import check_bool, check_int, check_keywords, check_mapping, check_number
 from ..estimation.flow_fit import fit_road
 from ..estimation.image_fit import fit_image
 from .contracts import check_flow_keys
+from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
 
-__all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "check_refine_options"]
+__all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "check_refine_options", "select_estimator"]
 
 #: How the model flow and the prediction are fused.
 MODES = ("replace", "confidence")
@@ -57,3 +58,41 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     check_keywords(check_mapping(photometric_options, "photometric_options"), "photometric_options", fit_image,
                    reserved=PHOTOMETRIC_RESERVED)
     return flow_keys
+
+
+def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
+                     fit_options: Mapping[str, Any] | None, photometric_options: Mapping[str, Any] | None):
+    """The road-motion estimator to use: the caller's; one built from the older ``fit=``
+    options; or the default: the image estimator where there are images, else a fit to the
+    prediction."""
+    if fit not in (None, *FITS):
+        raise ValueError(f"fit: expected one of {FITS} or None, got {fit!r}")
+    # the older options apply to the estimator they build; set where another one runs, they
+    # would be left aside silently
+    chosen = "estimator" if estimator is not None else (fit or ("flow" if images is None else "images"))
+    uses = {"fit_roll": ("flow", "photometric"), "fit_pitch": ("flow", "photometric"),
+            "fit_options": ("flow",), "photometric_options": ("photometric",)}
+    given = {"fit_roll": fit_roll, "fit_pitch": fit_pitch, "fit_options": bool(fit_options),
+             "photometric_options": bool(photometric_options)}
+    for name, applies in uses.items():
+        if given[name] and chosen not in applies:
+            where = {"estimator": "an estimator is given: set its own options",
+                     "images": "the default image estimator runs (images given, fit=None): pass "
+                               "estimator=ImageMotionEstimator(...) with its options",
+                     "flow": "fit='flow' (or no images) fits the flow",
+                     "photometric": "fit='photometric' takes photometric_options"}[chosen]
+            raise ValueError(f"{name}: applies with fit={' or '.join(repr(a) for a in applies)}; here {where}")
+    if estimator is not None:
+        if fit is not None:
+            raise ValueError("fit: give an estimator or fit=, not both")
+        if not callable(estimator):
+            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+        return estimator
+    fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
+    if fit == "flow" or (fit is None and images is None):
+        return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
+    if fit == "photometric":  # the paper's model fitted to the images, started from the flow fit
+        options = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
+                   "max_iter": 20, "highpass": None, **dict(photometric_options or {})}
+        return ImageMotionEstimator(model="paper", fixed=fixed, **options)
+    return ImageMotionEstimator()

@@ -18,7 +18,8 @@ from ..geometry.camera import Camera
 from .auto_refine import refine_with_auto_road
 from .auto_road import ROAD_RESERVED, detect_road
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
-from .fusion import FreespaceRefiner, RefineOutput, refine_flow, select_estimator
+from .fusion import FreespaceRefiner, RefineOutput, refine_flow
+from .options import select_estimator
 
 __all__ = ["FreespaceRefined"]
 
