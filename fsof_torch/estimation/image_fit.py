@@ -136,10 +136,15 @@ class ImageProblem:
         self.horizon_camera = camera
         self.count = sel.sum(1)
         self.P = len(model.params)
+        # (the iterations' constants, formed once: the points as the rows of the outer products,
+        # and the offset's column of the Jacobian)
+        self._pts_rows = pts.unsqueeze(1)  # (B, 1, 3, N)
+        self._ones = torch.ones_like(I1).unsqueeze(1)  # (B, 1, N)
 
     def evaluate(self, params: Tensor) -> Evaluation:
         P = self.P
-        values, gain, offset = params[:, :P], params[:, P], params[:, P + 1]
+        # (the gain and offset as columns (B, 1): broadcast against the points without reshaping)
+        values, gain, offset = params[:, :P], params[:, P:P + 1], params[:, P + 1:P + 2]
         M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, values, True)
         if horizon is None:
             horizon = self.model.horizon_row(self.horizon_camera, values)
@@ -147,24 +152,24 @@ class ImageProblem:
         q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)  # (B, 4, N): the mapped point, the horizon test
         qz = q[:, 2]
         ok = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
-        inv_z = torch.where(ok, qz, 1.0).reciprocal()
-        proj = q[:, :2] * inv_z.unsqueeze(1)
+        inv_z = torch.where(ok, qz, 1.0).reciprocal().unsqueeze(1)  # (B, 1, N)
+        proj = q[:, :2] * inv_z
         sample, inb = sample_points(self.image2, proj)  # (B, 3, N): I_2 and its gradient
         I2, grad2 = sample[:, 0], sample[:, 1:]
         use = ok & inb
-        e = gain.unsqueeze(-1) * I2 + offset.unsqueeze(-1) - self.I1
+        e = gain * I2 + offset - self.I1
         # efficient second-order minimisation: the mean of both images' gradients
-        grad = 0.5 * (self.grad1 + gain[:, None, None] * grad2)
+        grad = 0.5 * (self.grad1 + gain.unsqueeze(-1) * grad2)
         # ∂e/∂p = g · ∂proj/∂p with ∂proj/∂p = (dq_xy − proj dq_z) / z and dq = dM x:
         # = Σ_ij dM_ij c_i x_j, c = (g_x, g_y, −g · proj) / z, one (P x 9) @ (9 x N) product
-        c = torch.cat([grad, -(grad * proj).sum(1, keepdim=True)], dim=1) * inv_z.unsqueeze(1)
-        outer = (c.unsqueeze(2) * self.pts.unsqueeze(1)).reshape(B, 9, -1)
+        c = torch.cat([grad, -(grad * proj).sum(1, keepdim=True)], dim=1) * inv_z
+        outer = (c.unsqueeze(2) * self._pts_rows).reshape(B, 9, -1)
         J_image = torch.bmm(dM.reshape(B, P, 9), outer)
-        J = torch.cat([J_image, I2.unsqueeze(1), torch.ones_like(I2).unsqueeze(1)], dim=1)
-        return Evaluation(e.square(), use, e.unsqueeze(1), J.unsqueeze(2))
+        J = torch.cat([J_image, sample[:, :1], self._ones], dim=1)  # (by the gain: I_2; by the offset: 1)
+        return Evaluation(e.square(), use, e.unsqueeze(1), J)
 
     def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
-        J = ev.state[:, :, 0]  # (B, P + 2, N)
+        J = ev.state  # (B, P + 2, N)
         Jw = J * w.unsqueeze(1)
         return torch.bmm(Jw, J.transpose(1, 2)), torch.bmm(Jw, ev.residual.transpose(1, 2)).squeeze(-1)
 
