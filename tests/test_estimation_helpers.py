@@ -637,6 +637,12 @@ def test_reused_mask_pixels_serves_the_same_mask_once_and_only_it():
         changed = mask_pixels(mask)
         assert changed is not first and torch.equal(changed, mask.reshape(-1).nonzero().squeeze(1))
     assert mask_pixels(mask) is not changed
+    memo = {}  # (kept beyond a block: a later block given it reuses what the first found)
+    with reused_mask_pixels(memo):
+        kept = mask_pixels(mask)
+    assert mask_pixels(mask) is not kept
+    with reused_mask_pixels(memo):
+        assert mask_pixels(mask) is kept
 
 
 def test_the_image_estimator_searches_its_mask_once(monkeypatch):

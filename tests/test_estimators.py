@@ -454,3 +454,54 @@ def test_an_odometry_on_the_meta_device_is_named(estimator):
     with pytest.raises(ValueError, match="a tensor on the meta device has shapes but no values"):
         estimator(flow.to("meta"), road.to("meta"), meta, images=tuple(im.to("meta") for im in images),
                   odometry=odometry)
+
+
+def _tensors(obj, prefix="out"):
+    """Every tensor in a refiner's output (its fit's and gate's too), by name."""
+    import dataclasses
+
+    if isinstance(obj, torch.Tensor):
+        return {prefix: obj}
+    if isinstance(obj, Camera):
+        return {f"{prefix}.{n}": getattr(obj, n) for n in ("K", "height", "roll", "pitch")}
+    if hasattr(obj, "_fields"):
+        items = {k: getattr(obj, k) for k in obj._fields}
+    elif dataclasses.is_dataclass(obj):
+        items = {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+    elif isinstance(obj, dict):
+        items = obj
+    else:
+        return {}
+    return {k: v for name, item in items.items() for k, v in _tensors(item, f"{prefix}.{name}").items()}
+
+
+@pytest.mark.parametrize("above_horizon", [False, True])
+def test_the_refiner_searches_its_mask_once_for_the_estimate_and_the_gate(small_pair, monkeypatch, above_horizon):
+    """The planar start, the fit and the gate sample one mask: where the gate judges the very pixels
+    the estimate used, they are found once, else (a mask reaching above the horizon, where the
+    model is undefined: the gate judges fewer) twice; the output is the same bit for bit as with
+    every search made anew."""
+    import contextlib
+
+    import fsof_torch.estimation.sampling as sampling
+    import fsof_torch.refinement.estimators as estimators
+    import fsof_torch.refinement.fusion as fusion
+
+    p, images, road = small_pair
+    if above_horizon:
+        road = road.clone()
+        road[..., :3, 100:200] = True
+    flow = p["flow"][None].float()
+    sizes, flatnonzero = [], sampling.np.flatnonzero
+    monkeypatch.setattr(sampling.np, "flatnonzero", lambda a: sizes.append(a.size) or flatnonzero(a))
+    out = FreespaceRefiner()(flow, road, p["camera"], images=images)
+    assert out.gate is not None and sizes.count(road.numel()) == (2 if above_horizon else 1)
+    sizes.clear()
+    for module in (fusion, estimators):  # (every search made anew)
+        monkeypatch.setattr(module, "reused_mask_pixels", lambda memo=None: contextlib.nullcontext())
+    plain = FreespaceRefiner()(flow, road, p["camera"], images=images)
+    assert sizes.count(road.numel()) == 3
+    got, expected = _tensors(out), _tensors(plain)
+    assert got.keys() == expected.keys() and len(got) > 30
+    for name, t in expected.items():
+        assert torch.equal(got[name], t), name

@@ -100,15 +100,17 @@ _MASK_PIXELS: contextvars.ContextVar[dict | None] = contextvars.ContextVar("mask
 
 
 @contextlib.contextmanager
-def reused_mask_pixels():
+def reused_mask_pixels(memo: dict | None = None):
     """Within the block, :func:`mask_pixels` (and so :func:`sample_mask`) of a mask it has searched
     already (the same memory, shape and strides, not written since) returns the pixels found then:
-    for steps that sample one mask in turn (a planar start and the image fit). Blocks nest (the
-    outermost one's memo serves); each thread or task has its own."""
+    for steps that sample one mask in turn (a planar start and the image fit). ``memo``: a dict
+    (empty at first) that keeps the pixels found, and the masks searched, beyond the block: a later
+    block given it reuses them (steps apart, such as the refiner's estimate and its gate). Blocks
+    nest (the outermost one's memo serves); each thread or task has its own."""
     if _MASK_PIXELS.get() is not None:
         yield
         return
-    token = _MASK_PIXELS.set({})
+    token = _MASK_PIXELS.set({} if memo is None else memo)
     try:
         yield
     finally:

@@ -38,6 +38,7 @@ from .._check import (batch_choices, check_float_tensor, check_has_values, check
                       tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
+from ..estimation.sampling import reused_mask_pixels
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
@@ -402,6 +403,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     refined = counted.view(torch.uint8).flatten(1).sum(1, dtype=torch.int32) >= (min_pixels if odometry is None else 1)
 
     fit_result = None
+    pixels: dict = {}  # (the masks' pixels the estimate found: see the gate)
     cam_model = camera
     motion_model, odo = "paper", None
     reuse_fit_flow = True
@@ -410,7 +412,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         motion_model = given.name
     if estimating:
         est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
-                        starts=starts, all_finite=all_finite, warn=warn)
+                        starts=starts, all_finite=all_finite, warn=warn, pixels=pixels)
         if est is not None:
             fit_result, ok, values, est_model, est_camera = est
             if odometry is None:
@@ -463,7 +465,14 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if the_gate is not None:
         if images is None:
             raise ValueError("images: a gate judges the flows by the images; pass images=(image1, image2)")
-        gate_result = the_gate(images[0], images[1], finest, f_model_finest, fuse_mask)
+        # (where the estimate's mask holds the very pixels the gate judges, the gate gets that mask,
+        # whose pixels the estimate found: one pass to compare them instead of a second search)
+        judged = fuse_mask
+        if pixels and not tracing() and fit_mask.is_contiguous() and not bool(
+                (fuse_mask ^ fit_mask).view(torch.uint8).amax()):
+            judged = fit_mask
+        with reused_mask_pixels(pixels):
+            gate_result = the_gate(images[0], images[1], finest, f_model_finest, judged)
         region = usable(fuse_mask, gate_result.model_used)
         fuse_mask = gate_result.use_model
         refined = refined & gate_result.model_used
@@ -544,12 +553,14 @@ def _estimate(*args: Any, **kwargs: Any):
 
 def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Camera, refined: Tensor, *,
                     images: tuple[Tensor, Tensor] | None, odometry: object, starts: tuple, all_finite: bool,
-                    warn: bool = True):
+                    warn: bool = True, pixels: dict | None = None):
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
 
     Returns None when no sample can be estimated, else ``(fit, success (B,), params {name: (B,)},
     model name, camera with the estimated roll and pitch)``; samples not estimated get zero
     motion and success False, as do those estimated with non-finite parameters (``finite_estimate``).
+    ``pixels``: a dict that keeps the pixels of the masks the estimator searched
+    (:func:`~fsof_torch.estimation.sampling.reused_mask_pixels`).
     """
     check_has_values(finest, "flow", "to estimate the road's motion from (for shape inference on the meta "
                      "device pass odometry=: planar odometry without images, or a model's full motion)")
@@ -575,8 +586,9 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
                 given, values = road_motion_batch(odometry, B, dtype, device)
                 odo = {"model": given.name, **select_samples(values, index, B)}
             starts = tuple(select_samples(s, index, B) for s in starts)
-        # (f is finite: the estimator's own test of it, e.g. a planar start's, need not read it again)
-        with known_finite(f):
+        # (f is finite: the estimator's own test of it, e.g. a planar start's, need not read it again;
+        # the masks' pixels it finds are kept in ``pixels``)
+        with known_finite(f), reused_mask_pixels(pixels):
             estimate = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
         result = finite_estimate(estimate, cam_d, samples=index.tolist(), warn=warn)
     ok = result.success.to(device=device, dtype=torch.bool)
