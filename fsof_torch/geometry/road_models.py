@@ -180,7 +180,7 @@ def _mounted(K: Tensor, K_inv: Tensor, Rt: Tensor, Rb: Tensor, stack: Tensor,
     if jacobian:
         # [G_x, X], [G_y, X], [G_z, X] at once; the roll's G̃ = Rbᵀ G_z Rb = cos β G_z - sin β G_y
         comm = torch.mm(stack[:, 0].reshape(B, 9), _commutators(stack)).reshape(B, 3, 3, 3)
-        cos_b, sin_b = Rb[:, 2:3, 2:3].unsqueeze(1), Rb[:, 1:2, 2:3].unsqueeze(1)
+        cos_b, sin_b = Rb[:, None, 2:3, 2:3], Rb[:, None, 1:2, 2:3]
         roll = comm[:, _ROLL:_ROLL + 1] * cos_b - comm[:, _YAW:_YAW + 1] * sin_b
         stack = torch.cat([stack, roll, comm[:, _PITCH:_PITCH + 1]], dim=1)
     HdH = _apply(T, stack)
@@ -206,7 +206,7 @@ def _mounting_rotations(values: Tensor, motion: tuple[int, ...], axes: tuple[int
 
 def _unit_y(like: Tensor) -> Tensor:
     """e_y (3,) in ``like``'s dtype and device; cached."""
-    return _unit_matrix(1, 1, like)[1]
+    return _constant(("e_y", like.dtype, like.device), lambda: _unit_matrix(1, 1, like)[1])
 
 
 def _unit_matrix(i: int, j: int, like: Tensor) -> Tensor:
@@ -232,11 +232,11 @@ def _rigid(K: Tensor, K_inv: Tensor, h: Tensor, values: Tensor, jacobian: bool):
     X = Rv - shift * ey
     stack = X.unsqueeze(1)
     if jacobian:
-        _, _, Es = _bases(values.dtype, values.device)
+        # (the generators of pitch, yaw and roll, (B, 3, 3) each; cached per batch size)
+        Gp, Gy, Gr = _constant(("generators", B, values.dtype, values.device), lambda: tuple(
+            _bases(values.dtype, values.device)[2][i].expand(B, 3, 3) for i in (_PITCH, _YAW, _ROLL)))
         # d R_v / d angle = G_left R_v: roll outermost, pitch seen through the roll, yaw through both
-        G_left = torch.stack([_mm(_mm(Rg, Es[_PITCH].expand(B, 3, 3)), Rg.transpose(1, 2)),
-                              _mm(_mm(Rga, Es[_YAW].expand(B, 3, 3)), Rga.transpose(1, 2)),
-                              Es[_ROLL].expand(B, 3, 3)], dim=1)
+        G_left = torch.stack([_mm(_mm(Rg, Gp), Rg.transpose(1, 2)), _mm(_mm(Rga, Gy), Rga.transpose(1, 2)), Gr], dim=1)
         dX_angles = _mm(G_left.reshape(B, 9, 3), X).reshape(B, 3, 3, 3)
         dX_d = -(Rv.transpose(1, 2) / h.reshape(B, 1, 1)).unsqueeze(-1) * ey  # column 1: -R_v e_k / h
         stack = torch.cat([stack, dX_angles, dX_d], dim=1)
