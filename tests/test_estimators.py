@@ -234,35 +234,37 @@ def test_the_refiners_flow_start_is_the_public_one(small_pair, monkeypatch):
     start runs in inference mode (as the fit: fewer costs per operation): the start the fit gets is planar_start's own, bit for bit, an
     ordinary tensor; with a NaN in the flow the refiner's zeroed copy starts it."""
     import fsof_torch._check as _check
-    import fsof_torch.refinement.estimators as estimators
+    import fsof_torch.estimation.initial as initial
     from fsof_torch._check import all_finite
     from fsof_torch.refinement.estimators import planar_start
 
     p, images, road = small_pair
     flow = p["flow"][None].float()
     seen = []
-    def start(f, m, c):  # (whether the flow it gets is known finite: all_finite answers without a pass)
+
+    def finite(f):  # (whether planar_start's test is of a flow known finite: answered without a pass)
         seen.append((any(f is t for t in _check._KNOWN_FINITE.get()) and all_finite(f),
                      torch.is_inference_mode_enabled()))
-        return planar_start(f, m, c)
+        return all_finite(f)
 
-    monkeypatch.setattr(estimators, "planar_start", start)
+    monkeypatch.setattr(initial, "all_finite", finite)
     for holed in (False, True):
         f = flow.clone()
         if holed:
             f[0, :, 60, 100] = math.nan
         calls = _calls(monkeypatch, run=False)
+        seen.clear()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             with pytest.raises(AttributeError):  # (the spy returns no fit)
                 FreespaceRefiner()(f, road, p["camera"], images=images)
+        assert seen == [(True, True)]
         (start,) = calls[-1]["starts"]
         usable = road & torch.isfinite(f).all(1, keepdim=True)
         # (the refiner's geometry in the flow's dtype)
         expected = planar_start(torch.where(usable, f, 0.0), usable, p["camera"].to(torch.float32))
         for k in ("x_d", "z_d", "yaw"):
             assert torch.equal(start[k], expected[k]) and not start[k].is_inference(), k
-    assert seen == [(True, True), (True, True)]
 
 
 def test_homography_odometry_is_a_start_and_keeps_the_flow_start(small_pair, monkeypatch):

@@ -180,11 +180,13 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
     check_has_values(flow, "flow", "to start a fit (the start is a fit)")
     if B == 0:
         raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
-    flow = flow.detach()
     # (a NaN or inf would spread through the normal equations and zero the whole frame's start;
-    # the per-pixel test only where the flow holds one: all_finite is one pass and one host read)
+    # the per-pixel test only where the flow holds one: all_finite is one pass and one host read,
+    # none for the caller's very tensor where it is known finite)
+    finite = all_finite(flow)
+    flow = flow.detach()
     mask = mask.expand(B, 1, H, W)
-    if not all_finite(flow):
+    if not finite:
         mask = mask & torch.isfinite(flow).all(1, keepdim=True)
     pts = sample_mask(mask, points)
     xy = pixel_coordinates(pts.pix, W)
