@@ -13,7 +13,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fsof_torch import Camera
-from fsof_torch.estimation.image_fit import _level_problem, _pixel_gradient, _with_gradient, gaussian_blur
+from fsof_torch.estimation.image_fit import _grey_pair, _level_problem, _pixel_gradient, _with_gradient, gaussian_blur
 from fsof_torch.estimation.pyramid import mask_pyramid
 from fsof_torch.geometry.road_models import get_road_model
 
@@ -123,3 +123,46 @@ def test_gaussian_blur_checks_its_sigma(sigma, error, message):
         gaussian_blur(x, sigma)
     y = gaussian_blur(x, 0.0)  # (0: the images as they are, in a tensor of their own)
     assert torch.equal(y, x) and y.data_ptr() != x.data_ptr()
+
+
+@pytest.mark.parametrize("B", [1, 2])
+def test_grey_pair_is_taken_only_where_the_frames_are_one_tensors_channels(B):
+    """Two grey frames that are the channels 0 and 1 of one (B, 2, H, W) tensor are that tensor
+    (its memory, not a copy); frames in two tensors, in the other order, of another dtype, in
+    colour, or channels of a wider tensor are not (the fit converts them into a tensor of its own)."""
+    pair = torch.rand(B, 2, 5, 7)
+    got = _grey_pair(pair[:, :1], pair[:, 1:], torch.float32)
+    assert got is not None and got.data_ptr() == pair.data_ptr() and torch.equal(got, pair)
+    assert _grey_pair(pair[:, 1:], pair[:, :1], torch.float32) is None
+    assert _grey_pair(pair[:, :1].clone(), pair[:, 1:].clone(), torch.float32) is None
+    assert _grey_pair(pair[:, :1], pair[:, 1:], torch.float64) is None
+    wide = torch.rand(B, 3, 5, 7)
+    assert _grey_pair(wide[:, :1], wide[:, 1:2], torch.float32) is None
+    rgb = torch.rand(B, 6, 5, 7)
+    assert _grey_pair(rgb[:, :3], rgb[:, 3:], torch.float32) is None
+
+
+def test_the_refiners_grey_frames_reach_the_fit_without_a_copy(monkeypatch):
+    """The refiner converts both frames to grey into one tensor; its image fit takes that tensor
+    as its pair of frames (no conversion, no copy) and fits what it fits from separate greys."""
+    import warnings
+
+    import fsof_torch.estimation.image_fit as image_fit
+    import fsof_torch.refinement.estimators as estimators
+    from fsof_torch import FreespaceRefiner, fit_image, render_pair
+    from fsof_torch.evaluation.photometric import to_grey
+
+    p = render_pair("default", 0, size=(96, 320))
+    images, road, flow = (p["image1"][None], p["image2"][None]), p["road"][None], p["flow"][None].float()
+    fits, conversions, real = [], [], image_fit.to_grey
+    monkeypatch.setattr(image_fit, "to_grey", lambda *a, **k: conversions.append(1) or real(*a, **k))
+    monkeypatch.setattr(estimators, "fit_image", lambda *a, **k: fits.append((a, k)) or fit_image(*a, **k))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = FreespaceRefiner()(flow, road, p["camera"], images=images)
+    assert len(fits) == 1 and conversions == []
+    (image1, image2, *_), options = fits[0]
+    assert image2.data_ptr() == image1.data_ptr() + image1[0, 0].numel() * image1.element_size()
+    alone = fit_image(to_grey(images[0]), to_grey(images[1]), *fits[0][0][2:], **options)
+    for k in alone.params:
+        assert torch.equal(out.fit.params[k], alone.params[k].to(out.fit.params[k].dtype)), k

@@ -174,6 +174,20 @@ class ImageProblem:
         return torch.bmm(Jw, J.transpose(1, 2)), torch.bmm(Jw, ev.residual.transpose(1, 2)).squeeze(-1)
 
 
+def _grey_pair(image1: Tensor, image2: Tensor, dtype: torch.dtype) -> Tensor | None:
+    """The (B, 2, H, W) tensor of ``dtype`` (contiguous) whose two channels are grey frames
+    ``image1`` and ``image2`` (B, 1, H, W), where they are that (read as it is: not written), else
+    None."""
+    B, C, H, W = image1.shape
+    if not (C == 1 and image2.shape == image1.shape and image1.dtype == image2.dtype == dtype
+            and image1.device == image2.device and image1.stride() == image2.stride() == (2 * H * W, H * W, W, 1)):
+        return None
+    if image1.untyped_storage().data_ptr() != image2.untyped_storage().data_ptr() or \
+            image2.storage_offset() != image1.storage_offset() + H * W:
+        return None
+    return image1.detach().as_strided((B, 2, H, W), (2 * H * W, H * W, W, 1))
+
+
 def _check_images(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera,
                   data_range: float) -> tuple[dict, Tensor]:
     dims = check_image_pair(image1, image2)
@@ -375,10 +389,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
     with autocast_off(image1):
         work = torch.float64 if image1.dtype == torch.float64 else torch.float32
-        # (both frames' grey written into one tensor: no copy of two)
-        grey = image1.new_empty((B, 2, H, W), dtype=work)
-        to_grey(image1.detach().to(work), out=grey[:, :1])
-        to_grey(image2.detach().to(work), out=grey[:, 1:])
+        # (both frames' grey written into one tensor: no copy of two; none at all where the frames
+        # are already the two channels of one, as the refiner converts them)
+        grey = _grey_pair(image1, image2, work)
+        if grey is None:
+            grey = image1.new_empty((B, 2, H, W), dtype=work)
+            to_grey(image1.detach().to(work), out=grey[:, :1])
+            to_grey(image2.detach().to(work), out=grey[:, 1:])
         if data_range != 255.0:  # (grey levels on 0..255: the residuals' and thresholds' unit)
             grey = grey * (255.0 / data_range)
         pyramid = image_pyramid(grey, n_levels, smooth_sigma)

@@ -245,11 +245,16 @@ def _grey_once(images: tuple[Tensor, Tensor] | None, estimator: Any, flow: Tenso
     convert them alike where the images share the flow's precision (float32 or float64): grey,
     converted once for both. Otherwise (another estimator, a subclass too, which may read the
     colours; other dtypes; or while compiling: the estimator runs eagerly, and a conversion in
-    the graph may round otherwise) as they came."""
+    the graph may round otherwise) as they came. The two greys are the channels of one
+    (B, 2, H, W) tensor, which the image fit takes as its pair of frames without a copy."""
     if images is None or tracing() or type(estimator) is not ImageMotionEstimator or not (
             images[0].dtype == flow.dtype in (torch.float32, torch.float64)):
         return images
-    return tuple(to_grey(im.to(flow.dtype)) for im in images)
+    B, _, H, W = images[0].shape
+    pair = torch.empty((B, 2, H, W), dtype=flow.dtype, device=flow.device)
+    for i, im in enumerate(images):
+        to_grey(im, out=pair[:, i:i + 1])
+    return pair[:, :1], pair[:, 1:]
 
 
 def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
