@@ -166,3 +166,20 @@ def test_the_refiners_grey_frames_reach_the_fit_without_a_copy(monkeypatch):
     alone = fit_image(to_grey(images[0]), to_grey(images[1]), *fits[0][0][2:], **options)
     for k in alone.params:
         assert torch.equal(out.fit.params[k], alone.params[k].to(out.fit.params[k].dtype)), k
+
+
+def test_the_fits_flow_is_returned_as_it_was_made(monkeypatch):
+    """The fit's model flow and its mask are made outside inference mode: returned as they were made
+    (ordinary tensors, not copies made at the end), the values those made inside it."""
+    import fsof_torch.estimation.image_fit as image_fit
+    from fsof_torch import fit_image, render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    made, real = [], image_fit.flow_from_map
+    monkeypatch.setattr(image_fit, "flow_from_map", lambda *a, **k: made.append((a, real(*a, **k))) or made[-1][1])
+    fit = fit_image(p["image1"][None], p["image2"][None], p["road"][None], p["camera"])
+    (args, (flow, valid)), = [m for m in made if m[1][0].data_ptr() == fit.flow.data_ptr()]
+    assert valid.data_ptr() == fit.valid.data_ptr() and not fit.flow.is_inference() and not fit.valid.is_inference()
+    with torch.inference_mode():
+        inside = real(*args)
+    assert torch.equal(inside[0], fit.flow) and torch.equal(inside[1], fit.valid)

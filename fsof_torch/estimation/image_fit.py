@@ -470,7 +470,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             values = torch.where(finite.unsqueeze(-1), values, default)
             M = model.matrix(cam64, values)
             horizon = model.horizon_row(cam64, values)
-            flow, valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W))
+            # (made outside inference mode, without autograd: a result the fit returns is then
+            # not copied out of inference mode at its end; the same values)
+            with torch.inference_mode(False), torch.no_grad():
+                flow, valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W))
             # the intensities and the compared band at every mask pixel in view
             band = compared(0)
             at1, at2, ok = warped_samples((grey[:, :1], band[:, :1]), (grey[:, 1:], band[:, 1:]), flow, valid,
