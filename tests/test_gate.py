@@ -758,3 +758,22 @@ def test_the_gate_takes_each_points_block_by_row_and_column(monkeypatch):
         ref_mean, ref_se, _, _ = _mean_and_standard_error(g1, g2, masks[b:b + 1], prediction, true)
         assert float(mean[b]) == pytest.approx(ref_mean, rel=1e-5)
         assert float(se[b]) == pytest.approx(ref_se, rel=1e-4)
+
+
+def test_the_gates_evidence_map_is_returned_as_made():
+    """The full-size evidence map is made outside inference mode: an ordinary tensor returned as
+    made, not a copy of an inference tensor (no full-size float clone in the call)."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from fsof_torch import render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    image1, image2, road = p["image1"][None], p["image2"][None], p["road"][None]
+    flow = p["flow"][None].float()
+    ImageGate()(image1, image2, flow, flow, road)  # (warm-up)
+    with profile(activities=[ProfilerActivity.CPU], record_shapes=True) as prof:
+        result = ImageGate()(image1, image2, flow + 0.5, flow, road)
+    clones = [e for e in prof.events() if e.name == "aten::clone" and e.input_shapes
+              and list(e.input_shapes[0]) == [1, 1, 96, 320]]
+    assert len(clones) <= 1  # (the decision map's bool copy at most)
+    assert not result.evidence.is_inference() and result.evidence.shape == (1, 1, 96, 320)

@@ -284,7 +284,10 @@ class ImageGate:
             pad = (0, cols * cw - W, 0, rows * ch - H)
             used = F.pad(use_model.view(torch.uint8), pad).reshape(B, rows, ch, cols, cw).amax(dim=(2, 4))
             kept = (enough & (used.reshape(B, -1) == 0)).sum(1)
-        evidence_map = torch.where(mask, evidence, 0.0)
+        # (a full-size result, made outside inference mode without autograd: returned as made, not
+        # copied out of inference mode at the end; the same values)
+        with torch.inference_mode(False), torch.no_grad():
+            evidence_map = torch.where(mask, evidence, 0.0)
         textured = n_all / judged.sum(1).clamp_min(1)
         return GateResult(use_model, evidence_map, cost_model, cost_pred, n_all.long(), enough.sum(1), kept, model_used,
                           confirmed, informative, textured)
