@@ -96,12 +96,10 @@ def test_no_host_read_without_checks_and_fixed_budget():
     assert "aten::_local_scalar_dense" not in names and "aten::nonzero" not in names
 
 
-@pytest.mark.parametrize("first", [1, 2, 3, 5])
-def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
-    """An int ``check_every`` k checks after k iterations, then after 1, 1, 2, 4, ... more: the loop
-    ends at the first check at or after the iteration where every sample converged, and the
-    result is the fixed budget's."""
-    base, truth, _, _ = line_problem(noise=0.01, outliers=0.1)
+def counted_problem():
+    """A line problem with outliers whose evaluations are counted (``calls``), its start, and its
+    solution with the fixed budget of 40 iterations (no early stop)."""
+    base, _, _, _ = line_problem(noise=0.01, outliers=0.1)
     calls = []
 
     def counted(p):
@@ -110,7 +108,15 @@ def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
 
     problem = ResidualProblem(counted, base.count)
     start = torch.zeros(2, 2, dtype=torch.float64)
-    full = solve(problem, start, kernel="cauchy", max_iter=40, check_every=None)
+    return problem, start, calls, solve(problem, start, kernel="cauchy", max_iter=40, check_every=None)
+
+
+@pytest.mark.parametrize("first", [1, 2, 3, 5])
+def test_early_stop_checks_after_first_then_gaps_1_1_2_4(first):
+    """An int ``check_every`` k checks after k iterations, then after 1, 1, 2, 4, ... more: the loop
+    ends at the first check at or after the iteration where every sample converged, and the
+    result is the fixed budget's."""
+    problem, start, calls, full = counted_problem()
     converged_at = int(full.iterations.max())  # converged samples stop counting iterations
     assert bool(full.converged.all()) and converged_at < 20
     schedule, gap = [first], 1  # the schedule written out: k, k+1, k+2, k+4, k+8, ...
@@ -129,16 +135,7 @@ def test_early_stop_checks_after_the_listed_iterations(schedule):
     """A sequence ``check_every`` (a range included, rising or not) checks after the iterations it
     lists: the loop ends at the first of them at or after the iteration where every sample
     converged."""
-    base, truth, _, _ = line_problem(noise=0.01, outliers=0.1)
-    calls = []
-
-    def counted(p):
-        calls.append(1)
-        return base.fn(p)
-
-    problem = ResidualProblem(counted, base.count)
-    start = torch.zeros(2, 2, dtype=torch.float64)
-    full = solve(problem, start, kernel="cauchy", max_iter=40, check_every=None)
+    problem, start, calls, full = counted_problem()
     converged_at = int(full.iterations.max())
     stop = min((k for k in schedule if k >= converged_at), default=40)
     calls.clear()
