@@ -142,6 +142,24 @@ def test_grey_pair_is_taken_only_where_the_frames_are_one_tensors_channels(B):
     assert _grey_pair(rgb[:, :3], rgb[:, 3:], torch.float32) is None
 
 
+@pytest.mark.parametrize("options", [{}, {"smooth_sigma": 1.0}, {"highpass": None}, {"data_range": 1.0}])
+def test_a_callers_stacked_grey_pair_is_read_not_written(options):
+    """Frames that are the two channels of the caller's one tensor are fitted as they are (no
+    copy) and left as they came, with the result of the same frames given apart."""
+    from fsof_torch import fit_image, render_pair
+    from fsof_torch.evaluation.photometric import to_grey
+
+    p = render_pair("default", 0, size=(96, 320))
+    scale = options.get("data_range", 255.0) / 255.0
+    pair = torch.cat([to_grey(p["image1"][None]), to_grey(p["image2"][None])], dim=1) * scale
+    before = pair.clone()
+    stacked = fit_image(pair[:, :1], pair[:, 1:], p["road"][None], p["camera"], **options)
+    assert torch.equal(pair, before)
+    apart = fit_image(pair[:, :1].clone(), pair[:, 1:].clone(), p["road"][None], p["camera"], **options)
+    for k in apart.params:
+        assert torch.equal(stacked.params[k], apart.params[k]), k
+
+
 def test_the_refiners_grey_frames_reach_the_fit_without_a_copy(monkeypatch):
     """The refiner converts both frames to grey into one tensor; its image fit takes that tensor
     as its pair of frames (no conversion, no copy) and fits what it fits from separate greys."""
