@@ -32,6 +32,7 @@ __all__ = [
     "check_mask",
     "all_finite",
     "known_finite",
+    "known_images",
     "check_finite",
     "check_all_finite",
     "check_positive",
@@ -183,6 +184,24 @@ def known_finite(*tensors: Tensor):
         yield
     finally:
         _KNOWN_FINITE.reset(token)
+
+
+_KNOWN_IMAGES: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_images", default=())
+
+
+@contextlib.contextmanager
+def known_images(*images: Tensor):
+    """Within the block, :func:`check_image_range` of one of ``images`` (the very objects) on
+    0..255 passes without a pass over its values: for a caller that checked the images they come
+    from and hands them on to code that checks again (the refiner's frames for its estimator, which
+    may be their grey levels: a weighted mean of colours that were finite and in range is too, while
+    the "0..1" guess, which judges a frame by its brightest value, would take a dim frame's grey
+    for a 0..1 image that its colours were not). Scoped to the block (and to the thread or task)."""
+    token = _KNOWN_IMAGES.set(_KNOWN_IMAGES.get() + images)
+    try:
+        yield
+    finally:
+        _KNOWN_IMAGES.reset(token)
 
 
 def check_finite(x: Tensor, name: str) -> None:
@@ -371,6 +390,8 @@ def check_image_range(image: Tensor, name: str, data_range: float) -> None:
     so an image must be finite everywhere, not only where it is evaluated."""
     if skip_values(image) or image.numel() == 0:
         return
+    if data_range == 255.0 and any(image is t for t in _KNOWN_IMAGES.get()):
+        return  # (see known_images)
     d = image.detach()
     lo, hi = torch.stack(torch.aminmax(d)).tolist()  # one pass, one host read; NaN propagates through both
     if not (math.isfinite(lo) and math.isfinite(hi)):

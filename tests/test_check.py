@@ -14,6 +14,7 @@ import torch
 from fsof_torch._check import (
     all_finite,
     known_finite,
+    known_images,
     as_batch_param,
     as_chw_flow,
     autocast_off,
@@ -99,6 +100,23 @@ def test_known_finite_answers_for_the_very_tensors_within_the_block():
             assert all_finite(x) is True and all_finite(y) is True
         assert all_finite(y) is False
     assert all_finite(x) is False
+
+
+def test_known_images_pass_the_range_check_within_the_block_on_0_255_only():
+    """Within ``known_images(x)`` check_image_range(x) on 0..255 passes without reading x (the
+    caller checked what x comes from), for x itself only and only within the block; a check on
+    another range still runs (x was vouched for on 0..255, not on that)."""
+    dim = torch.full((1, 1, 4, 4), 0.9)  # (a frame whose brightest value is below 1 grey level)
+    with pytest.raises(ValueError, match="look like 0..1 images"):
+        check_image_range(dim, "image1", 255.0)
+    with known_images(dim):
+        check_image_range(dim, "image1", 255.0)
+        with pytest.raises(ValueError, match="look like 0..1 images"):
+            check_image_range(dim.clone(), "image1", 255.0)
+        with pytest.raises(ValueError, match=r"expected values in \[0, data_range=0.5\]"):
+            check_image_range(dim, "image1", 0.5)
+    with pytest.raises(ValueError, match="look like 0..1 images"):
+        check_image_range(dim, "image1", 255.0)
 
 
 def test_all_finite_other_dtypes_and_edges():

@@ -147,6 +147,24 @@ def test_images_are_checked_without_an_estimate(scene, how):
         FreespaceRefiner()(scene["pred"], scene["road"][None], scene["camera"], motion, images=(image1, image2))
 
 
+def test_a_dim_colour_frame_is_judged_by_its_colours_not_its_grey(scene):
+    """Frames on 0..255 whose brightest colour is a few grey levels while their grey stays below 1:
+    the refiner checks the colours (they pass), and its image estimate, which fits their grey
+    levels, does not take that grey for a 0..1 image (it raised "look like 0..1"). The fit on the
+    colours takes them too; the grey alone, handed to the fit, is still questioned."""
+    from fsof_torch import fit_image
+    from fsof_torch.evaluation.photometric import to_grey
+
+    image1, image2 = (torch.zeros_like(scene[k][None]) for k in ("image1", "image2"))
+    image1[:, 0], image2[:, 0] = (3.0 * (scene[k][None, 0] > 128) for k in ("image1", "image2"))
+    assert float(image1.amax()) == 3.0 and float(to_grey(image1).amax()) < 1.0
+    out = _quiet(FreespaceRefiner(), scene["pred"], scene["road"][None], scene["camera"], images=(image1, image2))
+    assert out.flow.shape == scene["pred"].shape and out.fit is not None
+    fit_image(image1, image2, scene["road"][None], scene["camera"])
+    with pytest.raises(ValueError, match="look like 0..1 images"):
+        fit_image(to_grey(image1), to_grey(image2), scene["road"][None], scene["camera"])
+
+
 def test_odometry_of_samples_left_unrefined_is_zero(scene):
     """RefineOutput.odometry holds 0 for the samples that were not refined, as documented."""
     pred, road, i1, i2 = _two(scene)

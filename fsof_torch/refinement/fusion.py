@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
-                      check_size, is_number, known_finite, option_error, result_dtype, skip_values, to_device,
-                      tracing)
+                      check_size, is_number, known_finite, known_images, option_error, result_dtype, skip_values,
+                      to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.robust import check_scale
 from ..estimation.sampling import reused_mask_pixels
@@ -591,9 +591,10 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
                 given, values = road_motion_batch(odometry, B, dtype, device)
                 odo = {"model": given.name, **select_samples(values, index, B)}
             starts = tuple(select_samples(s, index, B) for s in starts)
-        # (f is finite: the estimator's own test of it, e.g. a planar start's, need not read it again;
-        # the masks' pixels it finds are kept in ``pixels``)
-        with known_finite(f), reused_mask_pixels(pixels):
+        # (f is finite, and the images were checked on 0..255 (refiner_images; their grey levels
+        # too): the estimator's own tests of them need not read them again, nor guess a dim frame's
+        # grey for a 0..1 image; the masks' pixels it finds are kept in ``pixels``)
+        with known_finite(f), known_images(*(ims or ())), reused_mask_pixels(pixels):
             estimate = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
         result = finite_estimate(estimate, cam_d, samples=index.tolist(), warn=warn)
     ok = result.success.to(device=device, dtype=torch.bool)
