@@ -171,25 +171,27 @@ def all_finite(x: Tensor) -> bool:
 
 
 _KNOWN_FINITE: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_finite", default=())
+_KNOWN_IMAGES: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_images", default=())
 
 
 @contextlib.contextmanager
+def _known(var: contextvars.ContextVar, tensors: tuple[Tensor, ...]):
+    """``tensors`` added to the promises of ``var`` for the block (and the thread or task)."""
+    token = var.set(var.get() + tensors)
+    try:
+        yield
+    finally:
+        var.reset(token)
+
+
 def known_finite(*tensors: Tensor):
     """Within the block, :func:`all_finite` of one of ``tensors`` (the very objects) is True
     without a pass over its values: for a caller that has just established it and hands the tensors
     on to code that checks again (the refiner's flow for its estimator: a planar start's test of the
     whole flow, a pass and a host read). Scoped to the block (and to the thread or task)."""
-    token = _KNOWN_FINITE.set(_KNOWN_FINITE.get() + tensors)
-    try:
-        yield
-    finally:
-        _KNOWN_FINITE.reset(token)
+    return _known(_KNOWN_FINITE, tensors)
 
 
-_KNOWN_IMAGES: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_images", default=())
-
-
-@contextlib.contextmanager
 def known_images(*images: Tensor):
     """Within the block, :func:`check_image_range` of one of ``images`` (the very objects) on
     0..255 passes without a pass over its values: for a caller that checked the images they come
@@ -197,11 +199,7 @@ def known_images(*images: Tensor):
     may be their grey levels: a weighted mean of colours that were finite and in range is too, while
     the "0..1" guess, which judges a frame by its brightest value, would take a dim frame's grey
     for a 0..1 image that its colours were not). Scoped to the block (and to the thread or task)."""
-    token = _KNOWN_IMAGES.set(_KNOWN_IMAGES.get() + images)
-    try:
-        yield
-    finally:
-        _KNOWN_IMAGES.reset(token)
+    return _known(_KNOWN_IMAGES, images)
 
 
 def check_finite(x: Tensor, name: str) -> None:
