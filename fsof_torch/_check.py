@@ -33,6 +33,8 @@ __all__ = [
     "all_finite",
     "known_finite",
     "known_images",
+    "host_path",
+    "device_paths",
     "check_finite",
     "check_all_finite",
     "check_positive",
@@ -201,6 +203,27 @@ def known_images(*images: Tensor):
     for a 0..1 image that its colours were not). Scoped to the block (and to the thread or task)."""
     return _known(_KNOWN_IMAGES, images)
 
+
+def host_path(x: Tensor) -> bool:
+    """Whether work on ``x`` takes the CPU's path through NumPy or OpenCV (filters, erosions, a
+    mask's pixels), which other devices do with torch ops: True for a CPU tensor, unless
+    :func:`device_paths` is open."""
+    return x.device.type == "cpu" and not _DEVICE_PATHS.get()
+
+
+@contextlib.contextmanager
+def device_paths():
+    """Within the block, CPU tensors take the paths of other devices (torch ops where the CPU uses
+    NumPy or OpenCV): how the tests run a GPU's code on a machine without one. Scoped to the block
+    (and to the thread or task)."""
+    token = _DEVICE_PATHS.set(True)
+    try:
+        yield
+    finally:
+        _DEVICE_PATHS.reset(token)
+
+
+_DEVICE_PATHS: contextvars.ContextVar[bool] = contextvars.ContextVar("device_paths", default=False)
 
 def check_finite(x: Tensor, name: str) -> None:
     if skip_values(x):

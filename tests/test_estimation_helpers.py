@@ -160,6 +160,43 @@ def test_torch_path_matches_opencv_on_tiny_images(size):
     assert all(torch.equal(a, b) for a, b in zip(P.image_pyramid(x, 5, 0.0)[1:], cv))
 
 
+
+@pytest.mark.parametrize("size", [(1, 1), (2, 3), (7, 5), (30, 41)])
+def test_other_devices_paths_of_the_masks_and_filters_are_the_cpus(size):
+    """Under ``device_paths`` (what a GPU tensor takes, run on the CPU) each part gives what the
+    CPU's OpenCV or NumPy path gives, at the borders too: the mask pyramid's erosion (a min-pool),
+    the search of a mask's pixels (``nonzero``), the auto road's box means (two average pools,
+    the border replicated) and its erosion (a min-pool), and the road flow without the CPU's scan
+    of the rows that hold no valid pixel."""
+    from fsof_torch._check import device_paths
+    from fsof_torch.refinement.auto_road import _box
+    from fsof_torch.refinement.road_region import erode_mask
+
+    g = torch.Generator().manual_seed(size[0] * 100 + size[1])
+    mask = torch.rand(2, 1, *size, generator=g) > 0.3
+    x = torch.rand(2, 3, *size, generator=g)
+    cam = Camera(torch.tensor([[70.0, 0, 40], [0, 70, 20], [0, 0, 1]]), 1.65)  # (the horizon at row 20)
+    params = {"x_d": torch.tensor([0.1]), "z_d": torch.tensor([1.2]), "yaw": torch.tensor([0.01])}
+
+    def parts():
+        return (P.mask_pyramid(mask, 4), mask_pixels(mask), _box(x, 5), _box(x, 1), erode_mask(mask, 3),
+                erode_mask(mask, 5), road_flow(cam, params, (60, 80), model="paper")[0])
+
+    host = parts()
+    with device_paths():
+        other = parts()
+    for a, b in zip(host[0], other[0]):
+        assert torch.equal(a, b)
+    assert torch.equal(host[1], other[1])
+    for a, b in zip(host[2:4], other[2:4]):
+        torch.testing.assert_close(b, a, atol=2e-6, rtol=0.0)
+    assert torch.equal(host[4], other[4]) and torch.equal(host[5], other[5])
+    torch.testing.assert_close(other[6], host[6], atol=0.0, rtol=0.0, equal_nan=True)
+    # and the paths differ: outside the block the CPU's run, inside it the others'
+    with device_paths():
+        assert torch.equal(P.gaussian_blur(x, 4.0), P._gaussian_blur_torch(x, 4.0))
+    assert torch.equal(P.gaussian_blur(x, 4.0), P._gaussian_blur_cv2(x, 4.0))
+
 def test_torch_blur_is_kornias_where_kornia_can_pad():
     from kornia.filters import gaussian_blur2d
 

@@ -164,3 +164,68 @@ def test_meta_device_estimation_is_data_dependent():
     for given in (meta_images, None):  # (the road found in the images, or in the flow without them)
         with pytest.raises(ValueError, match=r"flow: a tensor on the meta device .* to find the road in \(mask='auto'"):
             refine_flow(meta["flow"], "auto", meta["camera"], images=given)
+
+
+# -- a GPU's paths, run on the CPU -------------------------------------------------------------------
+# On the CPU the pyramid, the blurs, the masks' erosions and pixel searches, and the auto road's box
+# filters go through OpenCV or NumPy; on any other device through torch ops. device_paths() sends
+# CPU tensors down the other devices' paths, so the code a GPU runs is tested end to end here.
+
+def _both_paths(fn):
+    from fsof_torch._check import device_paths
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        host = fn()
+        with device_paths():
+            other = fn()
+    return host, other
+
+
+def _same_refinement(host, other, atol: float) -> None:
+    torch.testing.assert_close(other.flow, host.flow, rtol=0, atol=atol)
+    assert torch.equal(other.mask, host.mask) and torch.equal(other.refined, host.refined)
+    for k, v in host.odometry.items():
+        torch.testing.assert_close(other.odometry[k], v, rtol=0, atol=1e-5)
+
+
+@pytest.mark.parametrize("case", ["images", "odometry+images"])
+def test_other_devices_paths_give_the_cpus_refinement(case):
+    """The image estimator and the gate down other devices' paths (torch filters instead of
+    OpenCV's) refine a rendered pair as the CPU's paths do: the filters' rounding apart (float32
+    sums in another order), the same road flow to 1e-3 px, the same pixels refined."""
+    pred, road, cam, images, odo = scene(B=2)
+    kw = CASES[case](odo, images)
+    host, other = _both_paths(lambda: run(FreespaceRefiner(), pred, road, cam, **kw))
+    assert bool(host.refined.all())
+    _same_refinement(host, other, atol=1e-3)
+
+
+def test_other_devices_paths_find_the_cpus_auto_road():
+    """``road="auto"`` down other devices' paths (box filters by average pools, erosions by
+    min-pools, blurs by convolutions) finds the road the CPU's paths find, and refines it alike."""
+    pred, _, cam, images, _ = scene(B=2)
+    host, other = _both_paths(lambda: refine_flow(pred, "auto", cam, images=images))
+    assert bool(host.mask.any()) and host.road.flag == ["ok", "ok"]
+    assert torch.equal(other.road.mask, host.road.mask)
+    _same_refinement(host, other, atol=1e-3)
+
+
+def test_other_devices_paths_on_the_kitti_pair(shared_data):
+    """The shared KITTI pair, DIS's flow refined by the default refiner and with the auto road:
+    other devices' paths give the CPU's flow to 1e-3 px (measured: 2.2e-4 at most), the same road and the
+    same pixels refined."""
+    from refine.sources import dis_flow
+
+    from fsof_torch.io.images import read_image
+    from fsof_torch.io.masks import read_road_mask
+
+    root = shared_data / "kitti15_000000"
+    im1, im2 = (read_image(root / f"image_1{i}.png") for i in (0, 1))
+    cam = Camera.from_kitti(root / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    road = read_road_mask(root / "road.json", tuple(im1.shape[-2:])).bool().reshape(1, 1, *im1.shape[-2:])
+    flow, images = dis_flow(im1, im2)[None], (im1[None], im2[None])
+    for mask in (road, "auto"):
+        host, other = _both_paths(lambda: refine_flow(flow, mask, cam, images=images))
+        assert bool(host.refined.any())
+        _same_refinement(host, other, atol=1e-3)

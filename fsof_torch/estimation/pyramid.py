@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_int, check_number, check_shape, is_number, option_error
+from .._check import check_float_tensor, check_int, check_number, check_shape, host_path, is_number, option_error
 from ..geometry.camera import Camera
 
 __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "band", "gaussian_blur"]
@@ -52,7 +52,7 @@ def image_pyramid(images: Tensor, levels: int, smooth_sigma: float = 1.0) -> lis
     levels = check_int(levels, "levels", minimum=1)
     smooth_sigma = check_number(smooth_sigma, "smooth_sigma", nonnegative=True)
     level = gaussian_blur(images, smooth_sigma) if smooth_sigma > 0 else images
-    if images.device.type == "cpu":
+    if host_path(images):
         return [level] + _pyramid_cv2(level, levels)
     return [level] + _pyramid_torch(level, levels)
 
@@ -119,7 +119,7 @@ def mask_pyramid(mask: Tensor, levels: int) -> list[Tensor]:
     neighbourhood is (within the image). On the CPU OpenCV erodes: the same pixels as the min-pool
     used elsewhere, about 3 times faster (python benchmarks/bench_image_fit.py)."""
     out = [mask]
-    if mask.device.type != "cpu":
+    if not host_path(mask):
         for _ in range(levels - 1):
             out.append(-F.max_pool2d(-out[-1].to(torch.float32), 3, stride=2, padding=1) > 0.5)
         return out
@@ -163,7 +163,7 @@ def gaussian_blur(images: Tensor, sigma: float) -> Tensor:
     ``sigma``: a number >= 0 (pixels; 0 leaves the images as they are, in a new tensor)."""
     _check_images(images)
     sigma = check_number(sigma, "sigma", nonnegative=True)
-    if images.device.type == "cpu":
+    if host_path(images):
         return _gaussian_blur_cv2(images, sigma)
     return _gaussian_blur_torch(images, sigma)
 

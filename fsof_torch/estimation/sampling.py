@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._check import host_path
+
 __all__ = ["MaskPoints", "sample_mask", "resample_mask", "reused_mask_pixels", "pixel_coordinates", "gather_pixels",
            "sample_points", "points_grid", "sample_at_grid"]
 
@@ -87,7 +89,7 @@ def mask_pixels(mask: Tensor) -> Tensor:
         if key in memo:
             return memo[key][1]
     flat = mask.reshape(-1)
-    if flat.device.type == "cpu":
+    if host_path(flat):
         every = torch.from_numpy(np.flatnonzero(flat.numpy())).long()
     else:
         every = flat.nonzero().squeeze(1)

@@ -33,6 +33,7 @@ from .._check import (
     check_positive,
     check_shape,
     check_size,
+    host_path,
     resolve_batch,
     result_dtype,
     tracing,
@@ -311,7 +312,7 @@ def _valid_rows(ray_v: Tensor, ray_u: Tensor, qz_v: Tensor | None, qz_u: Tensor 
     CPU. Each test's largest value along row v is its row term plus the largest column term
     (the same sum as the pixel's own at that column), so a row where it is not positive holds no
     valid pixel; both are linear in v, so the other rows form one band."""
-    if ray_v.device.type != "cpu":
+    if not host_path(ray_v):
         return None
     rows = ray_v + ray_u.amax(-1, keepdim=True) > 0
     if qz_v is not None:

@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_shape, check_size,
-                      inference, is_number, option_error, skip_values)
+                      host_path, inference, is_number, option_error, skip_values)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -218,7 +218,7 @@ def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
 def _box(x: Tensor, k: int) -> Tensor:
     """Mean over k × k windows of (B, C, h, w), the border replicated (OpenCV on the CPU: a
     running sum; elsewhere two 1-D average pools)."""
-    if x.device.type == "cpu":
+    if host_path(x):
         import cv2
         import numpy as np
 

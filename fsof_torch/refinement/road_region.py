@@ -22,6 +22,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from .._check import host_path
 from ..geometry.camera import Camera, mounting_matrix
 
 __all__ = ["road_region", "follow_edges", "focus_of_expansion", "erode_mask", "upsample_mask"]
@@ -165,7 +166,7 @@ def focus_of_expansion(model: str, params: dict[str, Tensor], camera: Camera) ->
 
 def erode_mask(mask: Tensor, k: int) -> Tensor:
     """(B, 1, h, w) bool eroded by a k × k square (outside the image counts as inside)."""
-    if mask.device.type == "cpu":
+    if host_path(mask):
         import cv2
         import numpy as np
 
