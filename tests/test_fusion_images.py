@@ -260,6 +260,11 @@ def test_images_of_another_channel_count_and_a_ptlflow_dict_are_named(scene):
     i1 = scene["image1"][None]
     with pytest.raises(ValueError, match=r"^images\[1\]: expected 1 \(grey\) or 3 \(RGB\) channels, as images\[0\] has"):
         FreespaceRefiner()(pred, road, cam, images=(i1, i1.mean(1, keepdim=True)))
+    # a first image of another count (RGBA) is named without a comparison with itself
+    rgba = torch.cat([i1, torch.full_like(i1[:, :1], 255.0)], 1)
+    with pytest.raises(ValueError, match=r"^images\[0\]: expected 1 \(grey\) or 3 \(RGB\) channels, got shape "
+                                         r"\(1, 4, \d+, \d+\)$"):
+        FreespaceRefiner()(pred, road, cam, images=(rgba, rgba))
     ptl = {"images": torch.stack([i1, i1], 1)}  # on 0..255, not ptlflow's 0..1
     with pytest.raises(ValueError, match=r"^images\['images'\]: expected BGR values in \[0, 1\]"):
         FreespaceRefiner()(pred, road, cam, images=ptl)

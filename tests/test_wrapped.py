@@ -183,6 +183,17 @@ def test_images_checked_against_image_range_before_the_net(image_range, scale, m
     assert net.calls == 1
 
 
+def test_images_of_another_channel_count_are_named_before_the_net():
+    """RGBA frames ran the net, then the refiner named them images[0] ('as images[0] has')."""
+    s = scene((53, 94))
+    net = Net(s["pred"])
+    rgba = [torch.cat([im, torch.full_like(im[:, :1], 255.0)], 1) for im in (s["image1"], s["image2"])]
+    with pytest.raises(ValueError, match=r"^image1: expected 1 \(grey\) or 3 \(RGB\) channels, got shape "
+                                         r"\(1, 4, 53, 94\)$"):
+        FreespaceRefined(net)(rgba[0], rgba[1], camera=s["camera"], mask=s["road"])
+    assert net.calls == 0
+
+
 def test_reflect_padding_larger_than_the_image_is_named_before_the_net():
     """torch's own RuntimeError came from F.pad."""
     s = scene((53, 94))

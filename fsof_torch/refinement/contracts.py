@@ -268,8 +268,9 @@ def refiner_images(images: Any, finest: Tensor) -> tuple[Tensor, Tensor] | None:
             raise ValueError(f"images[{i}]: expected shape ({batch_choices(B)}, C, {H}, {W}) (the finest flow's size), "
                              f"got {tuple(im.shape)}")
         if im.shape[1] not in (1, 3) or im.shape[1] != images[0].shape[1]:
-            raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels, as images[0] has, got "
-                             f"shape {tuple(im.shape)}" + ("" if i == 0 else f" (images[0]: {tuple(images[0].shape)})"))
+            raise ValueError(f"images[{i}]: expected 1 (grey) or 3 (RGB) channels"
+                             + ("" if i == 0 else ", as images[0] has") + f", got shape {tuple(im.shape)}"
+                             + ("" if i == 0 else f" (images[0]: {tuple(images[0].shape)})"))
         check_image_range(im, f"images[{i}]", 255.0)
     return tuple(im.detach().expand(B, -1, -1, -1) for im in images)
 

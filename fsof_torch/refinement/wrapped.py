@@ -114,6 +114,8 @@ class FreespaceRefined(nn.Module):
                 check_float_tensor(im, name)
                 if im.dim() != 4:
                     raise ValueError(f"{name}: expected shape (B, C, H, W), got {tuple(im.shape)}")
+                if im.shape[1] not in (1, 3):  # (the refiner's estimator and gate read grey or RGB)
+                    raise ValueError(f"{name}: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(im.shape)}")
             if image2.shape != image1.shape:
                 raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
         else:
