@@ -3,10 +3,11 @@ mounting calibrated over the clip (its pitch and roll over the road; with poses,
 pair's motion for the ``sequence`` variant.
 
 The pairs must be consecutive frames of one clip (pair k's second image is pair k+1's first, and
-where every frame is named by a number, the numbers follow each other: :func:`check_clip`); the
-road masks are the pairs' own, or detected on a DIS flow where the road is ``auto``. Poses, where
-the pairs have them, give the metric scale (the images give the translation over the height only).
-The clip is streamed: its memory is a few frames plus the packed road masks, whatever its length.
+where every frame is named by a number, or one text around a number, the numbers follow each
+other: :func:`check_clip`); the road masks are the pairs' own, or detected on a DIS flow where the
+road is ``auto``. Poses, where the pairs have them, give the metric scale (the images give the
+translation over the height only). The clip is streamed: its memory is a few frames plus the
+packed road masks, whatever its length.
 """
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ import torch
 from torch import Tensor
 
 from fsof_torch import Camera, fit_sequence
+from fsof_torch.io.images import frame_numbers
 
 from .inputs import JobError, PairSpec, options_of
 
@@ -43,16 +45,18 @@ def _separately(needed_by: str) -> str:
 def check_clip(specs: Sequence[PairSpec], *, needed_by: str = "--odometry sequence",
                poses_option: str = "--poses") -> None:
     """What the clip's fit needs that is known without loading a pair, checked before any work:
-    at least 2 pairs; where every frame is named by a number, no gap in the numbers (the fit
-    carries each pair's motion to the next as a prior, so a dropped frame would be fitted as one
-    step); where the pairs have poses, poses that move (they give the clip's scale). Errors name
+    at least 2 pairs; where every frame is named by a number (or one text around a number,
+    ``frame_9``, ``frame_10``: :func:`fsof_torch.io.images.frame_numbers`), no gap in the numbers
+    (the fit carries each pair's motion to the next as a prior, so a dropped frame would be fitted
+    as one step); where the pairs have poses, poses that move (they give the clip's scale). Errors name
     ``needed_by`` (the options that need the clip) or ``poses_option`` (where the poses come from)."""
     if len(specs) < 2:
         raise JobError(f"{needed_by}: the clip's fit needs a clip of at least 2 pairs (3 frames), got {len(specs)}")
     frames = [s.frames for s in specs]
-    if all(f is not None and f[0].isdigit() and f[1].isdigit() for f in frames):
-        for spec, (a, b) in zip(specs, frames):
-            if int(b) != int(a) + 1:
+    numbers = frame_numbers(n for f in frames for n in f) if all(f is not None for f in frames) else None
+    if numbers is not None:  # (frames named by a number: 000001, or one text around it: frame_1)
+        for spec, (a, b), (i, j) in zip(specs, frames, zip(numbers[::2], numbers[1::2])):
+            if j != i + 1:
                 raise JobError(f"{needed_by}: pair {spec.name} goes from frame {a} to frame {b}, not to the next "
                                f"frame (a gap in the frame numbers, or frames out of order): the clip's fit needs "
                                f"every frame of one clip; {_separately(needed_by)}")

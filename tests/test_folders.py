@@ -238,6 +238,31 @@ def test_frames_numbered_without_padding_pair_by_number(tmp_path):
     assert [p.stem for p in list_images(tmp_path)] == ["0", "10", "15", "20", "5", "a"]
 
 
+def test_frames_named_one_text_around_a_number_pair_by_number(tmp_path):
+    """Frames frame_0 ... frame_11 (numbers without padding after a common prefix) are a clip in
+    the order of their numbers: by name, frame_1 paired with frame_10, frame_11 with frame_2, and
+    each pair took the flow file named after its first frame (frame_1.flo for frame_1 -> frame_10)."""
+    from fsof_torch.data.folders import list_images
+
+    for n in range(12):
+        write_image(tmp_path / f"frame_{n}.png", torch.full((3, *SIZE), float(n)))
+    assert [p.stem for p in list_images(tmp_path)] == [f"frame_{n}" for n in range(12)]
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == [f"frame_{n}" for n in range(11)]
+    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in (1, 9, 10)] == [
+        (1.0, 2.0), (9.0, 10.0), (10.0, 11.0)]
+    from fsof_torch.io.images import frame_numbers
+
+    # one text around the last number, prefix and suffix shared by every name
+    assert frame_numbers(["cam0_9_rect", "cam0_10_rect"]) == [9, 10]
+    assert frame_numbers(["9_cam0", "10_cam0"]) == [9, 10]  # the number that differs, not the last
+    # other texts, a name without a number, and the decimals of a timestamp keep the names' order
+    assert frame_numbers(["left_9", "right_10"]) is None
+    assert frame_numbers(["frame_9", "frame_10", "notes"]) is None
+    assert frame_numbers(["1541234567.15", "1541234567.2"]) is None  # .15 s before .2 s, as named
+    assert frame_numbers(["000000_10", "000000_11", "000001_10"]) is None  # numbers differ in two places
+
+
 def test_hidden_files_are_no_frames(tmp_path):
     """macOS's ``._N.png`` beside each frame (or a writer's hidden temporary) was a frame: the
     names were then not all numbers, and the clip paired 0 -> 10 -> 5."""

@@ -413,6 +413,31 @@ def test_the_clip_refuses_a_gap_in_the_frame_numbers_before_any_work(tmp_path, u
         assert not (out / "run.json").exists()
 
 
+def test_the_clip_of_frames_named_around_a_number_is_in_number_order_and_refuses_a_gap(user_folder):
+    """Frames frame_0, frame_1, ... (no padding): the clip is in the order of the numbers, not of
+    the names (frame_1 -> frame_10), and a dropped frame stops the clip's fit as it does for frames
+    named by a number alone."""
+    from refine.calibrate import check_clip
+    from refine.inputs import JobError, user_pairs
+
+    images = user_folder / "images"
+    frames = sorted(images.iterdir())
+    for i, f in enumerate(frames):
+        f.rename(images / f"frame_{i * 5}.png")  # frame_0, frame_5, frame_10, frame_15
+    args = dict(images=images, calib=user_folder / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+    specs, _ = user_pairs(**args)
+    assert [s.frames for s in specs] == [("frame_0", "frame_5"), ("frame_5", "frame_10"), ("frame_10", "frame_15")]
+    with pytest.raises(JobError, match=r"^--odometry sequence: pair frame_0 goes from frame frame_0 to frame "
+                                       r"frame_5, not to the next frame"):
+        check_clip(specs)
+    for i in range(len(frames)):
+        (images / f"frame_{i * 5}.png").rename(images / f"frame_{i + 8}.png")  # frame_8 ... frame_11
+    specs, _ = user_pairs(**args)
+    assert [s.frames for s in specs] == [("frame_8", "frame_9"), ("frame_9", "frame_10"), ("frame_10", "frame_11")]
+    check_clip(specs)
+
+
 def test_an_error_in_the_clips_fit_names_its_option_and_leaves_the_folder_for_the_corrected_run(
         tmp_path, user_folder, scene, capsys):
     """KITTI flow pairs with --calibrate-pitch: the clip's fit finds they are not one clip and names

@@ -47,15 +47,40 @@ def check_frame_names(paths: Iterable[str | os.PathLike], name: str = "images") 
         seen[p.stem] = p
 
 
+def frame_numbers(stems: Iterable[str]) -> list[int] | None:
+    """The frame numbers of frame names (stems) that are one text around a number: every name a
+    number (``0``, ``5``, ``10``), or the same text and the same other numbers around one number
+    (``frame_9``, ``frame_10``; ``cam0_9_rect``, ``cam0_10_rect``; ``9_cam0``, ``10_cam0``; where
+    no number differs, the last). None where the names are not (other texts, no number, numbers
+    that differ in two places, or the decimals of a fraction, ``1541234567.15``, whose digits do
+    not count as a number)."""
+    parts = [re.split(r"([0-9]+)", s) for s in stems]  # text, number, text, ..., number, text
+    if not parts or any(len(p) < 3 or len(p) != len(parts[0]) for p in parts):
+        return None
+    first = parts[0]
+    if any(p[k] != first[k] for p in parts for k in range(0, len(first), 2)):
+        return None  # other texts
+    varying = [k for k in range(1, len(first), 2) if any(p[k] != first[k] for p in parts)]
+    if len(varying) > 1:
+        return None
+    k = varying[0] if varying else len(first) - 2
+    if k >= 3 and first[k - 1] == ".":  # the decimals of a number
+        return None
+    return [int(p[k]) for p in parts]
+
+
 def in_frame_order(paths: Iterable[str | os.PathLike], name: str = "images") -> list[Path]:
-    """Frame files in frame order: by number where every file's stem is a number (``0.png``,
-    ``5.png``, ``10.png``, ``100.png``: frames numbered without zero padding), else by name. Equal
-    numbers (``5`` and ``05``) stay in the order of their names. Two files of one frame name
+    """Frame files in frame order: by number where every file's stem is one text around a number
+    (:func:`frame_numbers`: ``0.png``, ``5.png``, ``10.png``, ``100.png``, or ``frame_9.png``
+    before ``frame_10.png``: frames numbered without zero padding), else by name. Equal numbers
+    (``5`` and ``05``) stay in the order of their names. Two files of one frame name
     (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name`` (:func:`check_frame_names`)."""
     paths = sorted(Path(p) for p in paths)
     check_frame_names(paths, name)
-    if all(re.fullmatch(r"[0-9]+", p.stem) for p in paths):
-        paths.sort(key=lambda p: int(p.stem))
+    numbers = frame_numbers(p.stem for p in paths)
+    if numbers is not None:
+        order = sorted(range(len(paths)), key=numbers.__getitem__)  # (stable: equal numbers by name)
+        paths = [paths[i] for i in order]
     return paths
 
 
