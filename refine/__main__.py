@@ -456,6 +456,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         if importlib.util.find_spec("matplotlib") is None:
             raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
     specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
+    resume.check_inputs_outside(out, sources, _input_paths(args))
     odometry_sigma = _odometry_sigma(args.odometry_sigma, variants)
     if odometry_sigma is not None:
         x, z, yaw = args.odometry_sigma

@@ -89,6 +89,33 @@ def check_json_path(path: Path | None, out: Path, inputs: dict[str, Path | None]
     _creatable(path, "--json")
 
 
+def check_inputs_outside(out: Path, outputs: list[str], inputs: dict[str, Path | None]) -> None:
+    """No input (``inputs``: the files and folders the options name, by option; None where not
+    given) lies where the run writes or deletes in ``out``: its manifest and reports, the folders
+    of its ``outputs`` (one per flow source), and those of the earlier run in ``out`` (which
+    ``--overwrite`` deletes). Else a JobError naming ``--out`` and the input, before any work:
+    the flows an earlier run refined, given again as ``--flows``, were deleted by ``--overwrite``
+    before they were read."""
+    folder = out.resolve()
+    earlier: list[str] = []
+    with contextlib.suppress(OSError, ValueError, AttributeError):
+        old = json.loads((out / MANIFEST).read_text())
+        earlier = _outputs(old) if isinstance(old, dict) else []
+    files = [folder / name for name in (MANIFEST, *REPORTS)]
+    folders = [folder / name for name in dict.fromkeys([*outputs, *earlier])]
+    for option, given in inputs.items():
+        if given is None:
+            continue
+        source = given.resolve()
+        for target in files + folders:
+            if source == target or (target in folders and source.is_relative_to(target)):
+                where = "" if source == target else f" inside {str(out / target.name)!r}"
+                what = "which the run writes" if target in files or target.name in outputs else \
+                    "an earlier run's output, which --overwrite deletes"
+                raise JobError(f"--out: {str(out)!r} holds the input {option} {str(given)!r}{where}, {what}; "
+                               f"give another --out, or move the input out of it")
+
+
 @contextlib.contextmanager
 def locked(out: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``out`` for the run (released when the process ends, even by

@@ -1531,6 +1531,36 @@ def test_json_naming_an_input_is_refused_and_the_input_kept(tmp_path, user_folde
     assert not out.exists() and not inside.exists()
 
 
+def test_an_input_inside_the_outputs_of_out_is_refused_and_kept(tmp_path, user_folder, capsys):
+    """Flows an earlier run refined, given again as --flows with that run's --out and --overwrite,
+    were deleted with the earlier run's outputs before they were read (the job then stopped on a
+    bare 'No such file or directory'). An input inside a folder the run writes, or an earlier
+    run's that --overwrite deletes, is refused before any work, naming --out and the input."""
+    out = tmp_path / "out"
+    base = _user(user_folder, out, "--road", "auto", "--odometry", "photometric", "--threads", "1")
+    assert main(base) == 0
+    refined = out / "dis" / "photometric" / "flow"
+    before = {p.name: p.read_bytes() for p in refined.iterdir()}
+    err = _err(capsys, [*base, "--flows", str(refined), "--overwrite"])
+    assert err.startswith(f"error: --out: {str(out)!r} holds the input --flows {str(refined)!r} inside "
+                          f"{str(out / 'dis')!r}, an earlier run's output, which --overwrite deletes"), err
+    assert {p.name: p.read_bytes() for p in refined.iterdir()} == before
+    assert json.loads((out / "run.json").read_text())["outputs"] == ["dis"]  # the earlier run's, untouched
+    # an input inside the folder of a source the run writes, without an earlier run there
+    (tmp_path / "out2" / "dis").mkdir(parents=True)
+    images = tmp_path / "out2" / "dis" / "images"
+    (user_folder / "images").rename(images)
+    err = _err(capsys, ["--images", str(images), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+                        "--out", str(tmp_path / "out2"), "--no-progress", "--no-figures"])
+    assert err.startswith(f"error: --out: {str(tmp_path / 'out2')!r} holds the input --images {str(images)!r} "
+                          f"inside {str(tmp_path / 'out2' / 'dis')!r}, which the run writes"), err
+    assert not (tmp_path / "out2" / "run.json").exists()
+    # a folder above the inputs stays an --out (the inputs' top-level files are not the job's)
+    assert main(["--images", str(images), "--calib", str(user_folder / "calib.txt"), "--road", "auto",
+                 "--odometry", "photometric", "--out", str(images), "--overwrite", "--no-progress",
+                 "--no-figures"]) == 0
+
+
 @pytest.mark.parametrize("name", ["report.md", "run.json", "dis/given/pairs/000000.json", "."])
 def test_json_inside_out_is_refused_but_its_report_json(tmp_path, capsys, name):
     """--json inside --out would replace (or be replaced by) the job's own files: the Markdown
