@@ -64,6 +64,20 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
     return None
 
 
+def bad_out_inputs(out: Path, names: Iterable[str], inputs: dict[str, Path | None]) -> str | None:
+    """None of the files ``names`` that the job writes into ``out``, or removes there before it
+    writes (:func:`remove_outputs`), is an input (``inputs``, by option; None where not given):
+    a flow file named like a figure, given with its folder as ``--out``, was deleted and replaced."""
+    for option, given in inputs.items():
+        if given is None:
+            continue
+        for name in names:
+            if (out / name).resolve() == given.resolve():
+                return (f"--out: {str(out)!r} holds the input {option} {str(given)!r} as {name}, a file the job "
+                        f"removes and writes there; give another --out")
+    return None
+
+
 def bad_size(size: Iterable[int] | None, option: str) -> str | None:
     """``size`` (H, W; None: not given) has no side above :data:`MAX_SIDE`."""
     if size is None or max(size) <= MAX_SIDE:

@@ -301,6 +301,31 @@ def test_vflow_json_naming_its_input_exits_2(tmp_path, capsys):
     assert flow.read_bytes() == before and not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("option, name", [("--flow", "fv_error.png"), ("--mask", "freespace.png")])
+def test_vflow_out_holding_its_input_as_an_output_exits_2(tmp_path, capsys, option, name):
+    """An --out that holds --flow or --mask under the name of a file the job writes (or removes
+    there as an earlier run's) is refused, and the input kept: the flow was deleted and replaced
+    by a figure."""
+    from fsof_torch.io import read_flow, write_flow, write_road_mask
+
+    flow = _small_flow(tmp_path)
+    out = tmp_path / "o"
+    out.mkdir()
+    given = out / name
+    if option == "--flow":
+        write_flow(given, *read_flow(flow))  # a KITTI flow PNG
+        argv = ["--flow", str(given)]
+    else:
+        write_road_mask(given, read_flow(flow)[1])
+        argv = ["--flow", str(flow), "--mask", str(given)]
+    before = given.read_bytes()
+    rc = main(["vflow", *argv, "--out", str(out), "--no-progress"])
+    assert rc == 2
+    assert (f"error: --out: {str(out)!r} holds the input {option} {str(given)!r} as {name}, a file the job removes "
+            f"and writes there; give another --out") in capsys.readouterr().err
+    assert given.read_bytes() == before and sorted(p.name for p in out.iterdir()) == [name]
+
+
 def test_vflow_json_may_name_a_figure_the_run_does_not_write(tmp_path):
     """freespace.png is written for a preset's displacement flow only: with --flow the name is free."""
     flow = _small_flow(tmp_path)
