@@ -43,7 +43,7 @@ from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.data.scene.config import MAX_SEED
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
-from eval.paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent
+from eval.paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr",
            "TrainingDiverged"]
@@ -429,6 +429,12 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
         return 2
     if device.type == "cuda" and device.index is None and ranks.distributed:
         device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    if ranks.rank == 0:  # an earlier run's files where this run writes go, not to be read as its own
+        if args.out is not None:  # (should this run stop, a diverged one say, it leaves none)
+            remove_outputs(args.out, [_net_file(name) for name in RUNS])
+        for path in (args.json, args.dump_first_step):
+            if path is not None:
+                remove_outputs(path.parent, [path.name])
     progress = not args.no_progress and ranks.rank == 0
     size = tuple(args.size)
     t0 = time.perf_counter()

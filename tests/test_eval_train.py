@@ -100,6 +100,18 @@ def test_a_diverging_run_exits_2_naming_lr_and_writes_nothing(tmp_path, capsys, 
     assert "error: --lr: training diverged at step" in err and "learning rate 1e+06 is likely too large" in err, err
     assert "run 'unsupervised'" in err and "Traceback" not in err
     assert not report.exists() and not out.exists() and not (tmp_path / "first.pt").exists()
+    # an earlier run's outputs at these paths go: they would read as this run's
+    out.mkdir()
+    earlier = [out / "tinyraft_unsupervised.pt", out / "tinyraft_unsupervised_freespace.pt", report,
+               tmp_path / "first.pt"]
+    for path in earlier:
+        path.write_bytes(b"an earlier run's")
+    (out / "mine.pt").write_bytes(b"not the job's")
+    rc = train.main(["--lr", "1e6", "--steps", "5", "--size", "32", "64", "--batch", "2", "--iters", "1",
+                     "--train-pairs", "2", "--test-pairs", "1", "--threads", "1", "--no-progress",
+                     "--json", str(report), "--out", str(out), "--dump-first-step", str(tmp_path / "first.pt")])
+    assert rc == 2 and "error: --lr: training diverged" in capsys.readouterr().err
+    assert [p for p in earlier if p.exists()] == [] and sorted(p.name for p in out.iterdir()) == ["mine.pt"]
 
 
 def test_train_net_raises_on_non_finite_parameters(keep_threads):
