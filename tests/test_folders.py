@@ -303,6 +303,12 @@ def test_sizes_against_the_first_pair_and_the_calibration(clip, tmp_path):
     cam2cam.write_text(cam2cam.read_text() + "S_rect_02: 8.000000e+01 4.800000e+01\n")
     with pytest.raises(ValueError, match=r"is for 48x80 images"):
         ImageFolderDataset(root / "images", cam2cam)
+    # a stated size that is not the file's own: the calibration of 48x80 images was taken for 24x40
+    with pytest.raises(ValueError, match=r"^calib_size: 24x40 is not the size .*calib_cam_to_cam\.txt' states for "
+                                         r"camera 2 \(S_rect_02: 48x80\); leave it out"):
+        ImageFolderDataset(root / "images", cam2cam, calib_size=SIZE)
+    with pytest.raises(ValueError, match=r"is for 48x80 images"):  # the file's own size, stated again
+        ImageFolderDataset(root / "images", cam2cam, calib_size=(48, 80))
     # a calibration for images twice as large: the principal point is a quarter image off centre
     write_kitti_calibration(tmp_path / "double.txt", K * torch.tensor([[2.0], [2.0], [1.0]], dtype=torch.float64),
                             cam=0, style="odometry")

@@ -329,6 +329,25 @@ def test_dataset_errors_name_the_option(user_folder, tmp_path):
         user_pairs(**{**args, "images": _resized(user_folder, tmp_path, 2.0)})
 
 
+def test_a_calib_size_that_is_not_the_files_own_exits_2(tmp_path, user_folder, scene, capsys):
+    """--calib-size that contradicts the calibration file's S_rect row was taken over it: the
+    projection of a 96x320 camera refined 48x160 images, without a word (the principal point check
+    is skipped where a size is stated). Now exit 2 naming --calib-size and both sizes."""
+    from fsof_torch.io import write_kitti_calibration
+    from refine.__main__ import main
+
+    cam2cam = tmp_path / "calib_cam_to_cam.txt"
+    write_kitti_calibration(cam2cam, scene[0]["camera"].K[0] * torch.tensor([[2.0], [2.0], [1.0]]), cam=2)
+    cam2cam.write_text(cam2cam.read_text() + f"S_rect_02: {2 * SIZE[1]} {2 * SIZE[0]}\n")
+    out = tmp_path / "out"
+    assert main(["--images", str(user_folder / "images"), "--calib", str(cam2cam), "--calib-size",
+                 f"{SIZE[0]}x{SIZE[1]}", "--road", "auto", "--out", str(out), "--no-progress", "--no-figures"]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --calib-size: {SIZE[0]}x{SIZE[1]} is not the size {str(cam2cam)!r} states for "
+                          f"camera 2 (S_rect_02: {2 * SIZE[0]}x{2 * SIZE[1]}); leave it out"), err
+    assert not out.exists()
+
+
 def _resized(user_folder: Path, tmp_path: Path, factor: float) -> Path:
     import torch.nn.functional as F
 

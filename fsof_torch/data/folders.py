@@ -289,7 +289,8 @@ class ImageFolderDataset(Dataset):
         road: a folder of masks matched by name, or one mask file for every pair: a PNG of the
             images' size (never resized), or a polygon JSON drawn at the images' size.
         gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
-        calib_size: ``(H, W)`` the calibration is for (default: the file's ``S_rect`` row).
+        calib_size: ``(H, W)`` the calibration is for (default: the file's ``S_rect`` row; one that
+            differs from the file's row is a ValueError naming ``calib_size``).
         step: pair frames (i, i + step) of a clip.
         dtype: float dtype of images and flows; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road, odometry, relative_pose.
@@ -329,7 +330,13 @@ class ImageFolderDataset(Dataset):
                                           roll, pitch)
             self._camera64 = camera64
             self.camera = camera64.to(camera_dtype)
-            self.calib_size = self.calib_size or calibration_size(self.calib, used)
+            stated = calibration_size(self.calib, used)
+            if self.calib_size is not None and stated not in (None, self.calib_size):
+                # the file's own size is the one its projection is for: another one is a mistake
+                raise ValueError(f"calib_size: {self.calib_size[0]}x{self.calib_size[1]} is not the size "
+                                 f"{str(self.calib)!r} states for camera {used} (S_rect_0{used}: "
+                                 f"{stated[0]}x{stated[1]}); leave it out, or give the calibration of that size")
+            self.calib_size = self.calib_size or stated
         else:
             self._camera64 = None
         self.poses = self._read_poses(poses, max(j for _, _, j in pairs) + 1) if poses is not None else None
