@@ -287,6 +287,8 @@ def test_files_match_by_name_never_by_position(clip):
         ImageFolderDataset(root / "images", road=root / "nothing")
     with pytest.raises(FileNotFoundError, match=r"^road: no file at .*none\.json"):
         ImageFolderDataset(root / "images", road=root / "none.json")
+    with pytest.raises(FileNotFoundError, match=r"^road: no file at .*none\.png"):  # (not 'no folder at')
+        ImageFolderDataset(root / "images", road=root / "none.png")
 
 
 def test_sizes_against_the_first_pair_and_the_calibration(clip, tmp_path):

@@ -345,7 +345,8 @@ class ImageFolderDataset(Dataset):
         self.road_file: Path | None = None
         if road is not None:
             rp = Path(road)
-            if rp.suffix.lower() == ".json" or rp.is_file():
+            # (a missing path named like a mask file, road.json or road.png, is a missing file)
+            if rp.suffix.lower() in (".json", *IMAGE_SUFFIXES) and not rp.is_dir() or rp.is_file():
                 if not rp.is_file():
                     raise FileNotFoundError(f"road: no file at {str(rp)!r}")
                 self.road_file = rp
