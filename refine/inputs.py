@@ -191,13 +191,18 @@ def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, 
 # -- user data -----------------------------------------------------------------------------------
 
 def check_mounting(height: float, roll_deg: float = 0.0, pitch_deg: float = 0.0) -> None:
-    """``--height`` (m, > 0), ``--roll-deg`` and ``--pitch-deg``: finite, checked before any
-    dataset is built (so that a bad value is named by its own option)."""
+    """``--height`` (m, > 0), ``--roll-deg`` and ``--pitch-deg``: finite, the angles within ±90°
+    (as the camera takes them: upright and facing the road), checked before any dataset is built
+    (so that a bad value is named by its own option, in its own unit)."""
     for name, value in (("--height", height), ("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
         if not math.isfinite(value):
             raise JobError(f"{name}: expected a finite number, got {value}")
     if not height > 0:
         raise JobError(f"--height: expected > 0 m, got {height}")
+    for name, value in (("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
+        if not abs(value) < 90:
+            raise JobError(f"{name}: expected an angle between -90 and 90 degrees (a camera upright and facing "
+                           f"the road), got {value:g}")
 
 
 def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, roll_deg: float,

@@ -1339,6 +1339,12 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
     # a bad mounting value is named by its own option, not by the sample's
     assert "--height: expected > 0 m" in _err(capsys, [*kitti15, "--height", "-1"])
     assert "--pitch-deg: expected a finite number" in _err(capsys, [*odometry, "--pitch-deg", "nan"])
+    # an angle the camera cannot take is named by its option, in degrees (it was 'pitch: ... rad, got [1.658]')
+    for argv, option, value in (([*odometry, "--pitch-deg", "90"], "--pitch-deg", "90"),
+                                ([*user, "--pitch-deg", "95"], "--pitch-deg", "95"),
+                                ([*user, "--roll-deg", "-120"], "--roll-deg", "-120")):
+        assert _err(capsys, argv).startswith(f"error: {option}: expected an angle between -90 and 90 degrees (a "
+                                             f"camera upright and facing the road), got {value}\n")
     assert "--testnet-weights: the run has no testnet source" in _err(
         capsys, [*user, "--testnet-weights", str(tmp_path / "w.pt")])
     assert "--fit-roll: applies to the variant fit" in _err(capsys, [*user, "--fit-roll"])
