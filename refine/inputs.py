@@ -246,6 +246,9 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
 
     need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt"] + ([] if road_auto else ["road.json"])
     check_mounting(height)
+    folders = [n for n in need if (root / n).is_dir()]
+    if folders:
+        raise JobError(f"--kitti15: {str(root / folders[0])!r} is a folder; expected a file")
     missing = [n for n in need if not (root / n).is_file()]
     if missing:
         hint = "" if road_auto or missing != ["road.json"] else " (or pass --road auto)"
@@ -268,7 +271,12 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
 
     check_mounting(height, pitch_deg=pitch_deg)
     for n in ("image_l", "calib.txt", "poses.txt") + (() if road_auto else ("road.json",)):
-        if not (root / n).exists():
+        path, folder = root / n, n == "image_l"
+        if path.exists() and not (path.is_dir() if folder else path.is_file()):
+            # (a folder road.json was no road at all: the road was detected, the report said road.json)
+            raise JobError(f"--kitti-odometry: {str(path)!r} is {'not a folder' if folder else 'a folder'}; "
+                           f"expected {'the folder of frames' if folder else 'a file'}")
+        if not path.exists():
             hint = " (or pass --road auto)" if n == "road.json" else ""
             raise JobError(f"--kitti-odometry: {str(root)!r} lacks {n}{hint}")
     with options_of("--kitti-odometry"):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -241,6 +242,30 @@ def test_kitti_samples_without_road_json_need_road_auto(kitti15_folder, odometry
     (renamed / "image_11.png").unlink()
     with pytest.raises(JobError, match=r"lacks \['image_11.png'\]$"):  # no hint: road.json is not the problem
         kitti15_pairs(renamed, height=1.65, road_auto=True)
+
+
+
+def test_a_folder_named_like_a_samples_file_is_named_not_taken(kitti15_folder, odometry_folder):
+    """A folder road.json in an odometry clip's folder passed the check for the file, and the
+    dataset, finding no road.json file, gave no road: the job detected it while the report said
+    the road came from road.json; a folder poses.txt ended in a traceback (IsADirectoryError)."""
+    from refine.inputs import JobError, kitti15_pairs, kitti_odometry_pairs
+
+    for folder, name in ((odometry_folder, "road.json"), (odometry_folder, "poses.txt"),
+                         (kitti15_folder, "road.json")):
+        path = folder / name
+        path.rename(folder / "moved")
+        path.mkdir()
+        with pytest.raises(JobError, match=rf"^--kitti(15|-odometry): '{re.escape(str(path))}' is a folder; "
+                                           rf"expected a file$"):
+            (kitti15_pairs(folder, height=1.65) if folder == kitti15_folder
+             else kitti_odometry_pairs(folder, height=1.65, pitch_deg=0.0))
+        path.rmdir()
+        (folder / "moved").rename(path)
+    (odometry_folder / "image_l").rename(odometry_folder / "moved")
+    (odometry_folder / "image_l").write_bytes(b"")
+    with pytest.raises(JobError, match=r"^--kitti-odometry: '.*image_l' is not a folder; expected the folder"):
+        kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)
 
 
 def test_every_item_has_the_contract_keys_in_order(user_folder, kitti15_folder, odometry_folder):
