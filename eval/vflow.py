@@ -264,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
                     print(f"error: --mask: {str(args.mask)!r} is {tuple(own.shape[-2:])}, the flow {size}", file=sys.stderr)
                     return 2
                 mask = valid & (own if own is not None else read_road_mask(args.mask, size=size))[None]
-            except (ValueError, TypeError, FileNotFoundError) as err:
+            except (ValueError, TypeError, FileNotFoundError, IsADirectoryError) as err:  # (a folder: a traceback)
                 print(f"error: --mask: {str(err).removeprefix('path: ')}", file=sys.stderr)
                 return 2
         info["source"] = {"flow": str(args.flow), "mask": str(args.mask) if args.mask else None,

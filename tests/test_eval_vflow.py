@@ -102,6 +102,18 @@ def test_vflow_bad_or_empty_mask_exits_2(tmp_path, capsys, polygon_json, message
     assert not (tmp_path / "o").exists()
 
 
+def test_vflow_mask_that_is_a_folder_exits_2(tmp_path, capsys):
+    """A folder as --mask ended in a traceback (IsADirectoryError), with exit status 1, the
+    status of a curve that could not be fitted."""
+    flow = _small_flow(tmp_path)
+    (tmp_path / "masks").mkdir()
+    rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "masks"), "--out", str(tmp_path / "o"),
+               "--no-progress"])
+    assert rc == 2
+    assert f"error: --mask: {str(tmp_path / 'masks')!r} is a folder" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_vflow_png_mask_of_another_size_exits_2(tmp_path, capsys):
     """A PNG mask must have the flow's size (was: stretched to it, like another pair's mask would
     be); a polygon JSON is drawn at the flow's size."""
