@@ -321,8 +321,8 @@ def run(args: argparse.Namespace) -> int:
     if "kitti" in tables:  # all of the sample's files, before the synthetic tables
         try:
             kitti = load_kitti(kitti_folder)
-        except (ValueError, FileNotFoundError) as err:
-            print(f"error: --kitti: {err}", file=sys.stderr)
+        except (ValueError, FileNotFoundError, IsADirectoryError) as err:  # (a folder: was a traceback)
+            print(f"error: --kitti: {str(err).removeprefix('path: ')}", file=sys.stderr)
             return 2
     # the inputs are good: an earlier run's files go (DIR/tables.json where this run writes its
     # JSON elsewhere), not to be read as this run's

@@ -91,12 +91,16 @@ def _kitti_copy(tmp_path, shared_data, road=None):
     ('{"size": [375, 1242], "polygons": 5}', None, "expected a list of polygons"),
     (None, "calib_cam_to_cam.txt", "calib_cam_to_cam.txt"),
     (None, "road.json", "road.json"),
+    (None, "road.json.folder", "road.json' is a folder"),
+    (None, "calib_cam_to_cam.txt.folder", "calib_cam_to_cam.txt' is a folder"),
     ('{"size": [375, 1242], "road_polygon": [[0, 0], [100, 0], [100, 20]]}', None, "covers no pixel with valid"),
 ])
 def test_tables_kitti_files_checked_before_the_synthetic_tables(tmp_path, shared_data, capsys, road, remove, message):
     folder = _kitti_copy(tmp_path, shared_data, road)
     if remove:
-        (folder / remove).unlink()
+        (folder / remove.removesuffix(".folder")).unlink()
+        if remove.endswith(".folder"):  # a folder where the file belongs: was an IsADirectoryError traceback
+            (folder / remove.removesuffix(".folder")).mkdir()
     rc = main(["tables", "--quick", "--size", "32", "64", "--kitti", str(folder), "--out", str(tmp_path / "o"),
                "--no-progress"])
     captured = capsys.readouterr()
