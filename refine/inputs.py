@@ -129,17 +129,34 @@ def _file_identity(dataset: ImageFolderDataset, i: int, flow: Path | None = None
 
 
 MIN_SIDE = 16  # pixels: DIS needs 12; --size asks for 16
+#: pixels: ``--road auto``'s detection (``detect_road``, which estimates the motion) starts on the
+#: images averaged over 2 x 2 pixels (its ``seed_level=1``), which needs 16 of them a side
+AUTO_ROAD_MIN_SIDE = 32
 
 
-def check_image_size(dataset: ImageFolderDataset, option: str) -> None:
+def check_image_size(dataset: ImageFolderDataset, option: str, road_auto: bool = False) -> None:
     """The pairs' images (the first pair's size: the others must match it) have sides of at least
     ``MIN_SIDE`` pixels, as ``--size`` asks of the synthetic scenes: DIS and the road's fits need
-    them. Else a JobError naming ``option``, the file and its size."""
+    them (with ``road_auto``, :data:`AUTO_ROAD_MIN_SIDE`). Else a JobError naming ``option``, the
+    file and its size."""
     H, W = dataset.size
+    first = dataset.pairs[0].image1
     if min(H, W) < MIN_SIDE:
-        first = dataset.pairs[0].image1
         raise JobError(f"{option}: {str(first)!r} is {H}x{W}; the job needs images with sides of at least "
                        f"{MIN_SIDE} pixels")
+    if road_auto:
+        check_auto_road_size((H, W), repr(str(first)))
+
+
+def check_auto_road_size(size: tuple[int, int], what: str) -> None:
+    """``--road auto`` needs images with sides of at least :data:`AUTO_ROAD_MIN_SIDE` pixels, else a
+    JobError naming ``--road`` and ``what`` (the images: a file, or the scene's size), before any
+    work (the detection raised on the first pair: 'seed_level: 1 leaves fewer than 16 pixels')."""
+    H, W = size
+    if min(H, W) < AUTO_ROAD_MIN_SIDE:
+        raise JobError(f"--road: auto finds the road on images with sides of at least {AUTO_ROAD_MIN_SIDE} pixels "
+                       f"(its first estimate works on them at half size); {what} is {H}x{W}: give larger "
+                       f"images, or the road instead of auto")
 
 
 def check_road_has_pixels(dataset: ImageFolderDataset, road: str) -> None:
@@ -181,6 +198,8 @@ def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, 
         raise JobError(f"--num-pairs: expected >= 1, got {num_pairs}")
     if noise is not None and not noise >= 0:
         raise JobError(f"--scene-noise: expected >= 0 grey levels, got {noise}")
+    if road == "auto" and size is not None:
+        check_auto_road_size(size, "--size")
     overrides = {} if noise is None else {"noise": float(noise)}
     with options_of({"size": "--size", "seed": "--seed", "noise": "--scene-noise"}):
         dataset = SceneDataset(preset, num_pairs, seed=seed, size=size, camera_dtype=torch.float64, **overrides)
@@ -222,7 +241,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
                                      pitch=math.radians(pitch_deg), poses=poses,
                                      road=None if road == "auto" else road, gt=gt, calib_size=calib_size,
                                      camera_dtype=torch.float64)
-    check_image_size(dataset, "--images")
+    check_image_size(dataset, "--images", road_auto=road == "auto")
     if road != "auto":
         check_road_has_pixels(dataset, road)
     names = [p.name for p in dataset.pairs]
@@ -256,7 +275,7 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
     with options_of("--kitti15"):
         dataset = KittiSampleDataset(root, cam=2, camera_height=height, camera_dtype=torch.float64,
                                      road_json=not road_auto)
-    check_image_size(dataset, "--kitti15")
+    check_image_size(dataset, "--kitti15", road_auto)
     name = dataset.pairs[0].name
     return [_spec(name, dataset, 0, "--kitti15", _file_identity(dataset, 0))], dataset.camera
 
@@ -282,7 +301,7 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
     with options_of("--kitti-odometry"):
         dataset = KittiOdometryDataset(root, cam=0, camera_height=height, pitch=math.radians(pitch_deg),
                                        camera_dtype=torch.float64, road_json=not road_auto)
-    check_image_size(dataset, "--kitti-odometry")
+    check_image_size(dataset, "--kitti-odometry", road_auto)
     specs = [_spec(p.name, dataset, i, "--kitti-odometry", _file_identity(dataset, i))
              for i, p in enumerate(dataset.pairs)]
     return specs, dataset.camera

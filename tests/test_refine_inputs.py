@@ -574,14 +574,18 @@ def test_images_too_small_for_the_job_stop_under_their_option(tmp_path, user_fol
     (odo / "poses.txt").write_bytes((user_folder / "poses.txt").read_bytes())
     with pytest.raises(JobError, match=r"^--kitti-odometry: '.*000000\.png' is 6x8; "):
         kitti_odometry_pairs(odo, height=1.65, pitch_deg=0.0, road_auto=True)
-    # 16 pixels pass
+    # 16 pixels pass with a given road (--road auto needs 32: its first estimate works at half size)
     for i in range(3):
         write_image(images / f"{i:06d}.png", torch.full((3, 16, 16), 40.0 * i))
     write_kitti_calibration(tmp_path / "calib.txt", torch.tensor([[8.0, 0, 7.5], [0, 8.0, 7.5], [0, 0, 1]],
                                                                  dtype=torch.float64), cam=0, style="odometry")
+    (tmp_path / "road.json").write_text('{"size": [16, 16], "road_polygon": [[0, 15], [15, 15], [8, 9]]}')
     specs, _ = user_pairs(images=images, calib=tmp_path / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
-                          pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
+                          pitch_deg=0.0, poses=None, flows=None, road=str(tmp_path / "road.json"), gt=None)
     assert tuple(specs[0].load()["image1"].shape) == (3, 16, 16)
+    with pytest.raises(JobError, match=r"^--road: auto finds the road on images with sides of at least 32 pixels"):
+        user_pairs(images=images, calib=tmp_path / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                   pitch_deg=0.0, poses=None, flows=None, road="auto", gt=None)
 
 
 def test_with_road_auto_the_samples_road_json_is_not_read(kitti15_folder, odometry_folder):

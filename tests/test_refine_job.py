@@ -685,6 +685,33 @@ def test_outputs_under_a_folder_that_cannot_be_written_are_refused_first(tmp_pat
     assert not (tmp_path / "out").exists()
 
 
+def test_road_auto_on_images_too_small_for_it_exits_2_before_any_work(tmp_path, scene_pairs, capsys):
+    """--road auto on images with a side under 32 pixels (the job takes 16) stopped on the first
+    pair with the library's 'seed_level: 1 leaves fewer than 16 pixels ...', naming no option, after
+    the run had begun; now exit 2 naming --road and the size before any work, as for a given road
+    such images run."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    err = _err(capsys, ["--size", "20x66", "--road", "auto", "--num-pairs", "2", "--out", str(tmp_path / "s"),
+                        "--no-progress", "--no-figures"])
+    assert err.startswith("error: --road: auto finds the road on images with sides of at least 32 pixels (its "
+                          "first estimate works on them at half size); --size is 20x66"), err
+    images = tmp_path / "images"
+    images.mkdir()
+    for i in range(3):
+        write_image(images / f"{i:06d}.png", scene_pairs[0]["image1"][:, :24, :80])
+    write_kitti_calibration(tmp_path / "calib.txt", torch.tensor([[40.0, 0, 39.5], [0, 40.0, 11.5], [0, 0, 1]]),
+                            cam=0, style="odometry")
+    base = ["--images", str(images), "--calib", str(tmp_path / "calib.txt"), "--out", str(tmp_path / "u"),
+            "--odometry", "photometric", "--no-progress", "--no-figures"]
+    err = _err(capsys, [*base, "--road", "auto"])
+    assert err.startswith(f"error: --road: auto finds the road on images with sides of at least 32 pixels (its "
+                          f"first estimate works on them at half size); {str(images / '000000.png')!r} is 24x80"), err
+    assert not (tmp_path / "s").exists() and not (tmp_path / "u").exists()
+    (tmp_path / "road.json").write_text('{"size": [24, 80], "road_polygon": [[0, 23], [79, 23], [40, 12]]}')
+    assert main([*base, "--road", str(tmp_path / "road.json")]) == 0
+
+
 def test_testnet_source_confidence_mode(tmp_path):
     out = tmp_path / "out"
     rc = main(["--num-pairs", "1", "--source", "testnet", "--odometry", "given", "--mode", "confidence",
