@@ -4,6 +4,8 @@ as an outline that leaves the pixels under it as they are."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 import torch
 
@@ -293,6 +295,52 @@ def test_pair_figure_redrawn_equals_a_fresh_one(tmp_path):
         plt.close(fresh)
     assert not plt.fignum_exists(reused.figure.number)
 
+
+
+def test_pair_figure_draws_maps_that_carry_autograd():
+    """A network's flow in training, its error map and images that carry autograd are drawn as
+    their values: the pixels of the same figure drawn from detached copies (they raised
+    "Can't call numpy() on Tensor that requires grad"). The caller's tensors keep their graph."""
+    import matplotlib.pyplot as plt
+
+    content = _content(4, 15)
+    weight = torch.ones((), requires_grad=True)
+    grad = {**content, "images": tuple(im * weight for im in content["images"]),
+            "flows": {k: f * weight for k, f in content["flows"].items()},
+            "errors": {k: (e * weight, v) for k, (e, v) in content["errors"].items()}}
+    plain, drawn = pair_figure(**content, max_flow=6.0, title="t"), pair_figure(**grad, max_flow=6.0, title="t")
+    try:
+        assert (_pixels(drawn) == _pixels(plain)).all()
+        assert all(f.requires_grad for f in grad["flows"].values())
+    finally:
+        plt.close(plain)
+        plt.close(drawn)
+
+
+@pytest.mark.parametrize("where", ["road", "flows['after']", "errors['after'][0]", "images[1]", "valid"])
+def test_pair_figure_refuses_meta_tensors_naming_them(where):
+    """A map or image on the meta device (shapes, no values) is a ValueError naming it, before a
+    figure is opened (a NotImplementedError from inside the road's outline before)."""
+    import matplotlib.pyplot as plt
+
+    content = {k: v for k, v in _content(5, 15).items() if not k.startswith("error_")}
+    content["valid"] = torch.ones(1, H, W, dtype=torch.bool)
+    meta = lambda t: t.to("meta")  # noqa: E731
+    if where == "road":
+        content["road"] = meta(content["road"])
+    elif where == "valid":
+        content["valid"] = meta(content["valid"])
+    elif where.startswith("flows"):
+        content["flows"] = {**content["flows"], "after": meta(content["flows"]["after"])}
+    elif where.startswith("errors"):
+        e, v = content["errors"]["after"]
+        content["errors"] = {**content["errors"], "after": (meta(e), v)}
+    else:
+        content["images"] = (content["images"][0], meta(content["images"][1]))
+    open_before = plt.get_fignums()
+    with pytest.raises(ValueError, match=re.escape(where) + ": a tensor on the meta device has shapes but no values to draw"):
+        pair_figure(**content, max_flow=5.0, error_vmax=5.0, error_label="epe (px)", title="t")
+    assert plt.get_fignums() == open_before
 
 def test_pair_figure_pixels_without_a_value_are_grey_not_an_error_of_zero():
     """Pixels without an error value were black, the colour of inferno's 0 (0, 0, 3), and a NaN

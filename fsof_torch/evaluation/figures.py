@@ -27,7 +27,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_image_range, check_number, check_shape
+from .._check import check_float_tensor, check_has_values, check_image_range, check_number, check_shape
 from .visualize import NO_VALUE_RGB, flow_to_color
 
 __all__ = [
@@ -212,6 +212,10 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
         images: optional ``(image1, image2)`` (3, H, W) RGB 0..255, shown as a first column.
         valid: optional (1, H, W) bool for the flow row (e.g. a flow file's valid pixels).
 
+        The maps and images may live on any device and carry autograd (a network's flow in
+        training): their values are drawn. On the meta device (shapes only) a ValueError names
+        the first one.
+
     Returns:
         the Figure: a row of flow panels with a colour-wheel legend, a row of error panels with
         a colour bar; every panel has the road outline, pixel axes and a title. (To draw many
@@ -316,6 +320,13 @@ class PairFigure:
         import numpy as np
 
         _check_pair(flows, errors, road, images, valid)
+        # drawn from the host: maps that carry autograd (a network's flow in training) or live on
+        # a GPU are taken as their values there
+        host = lambda t: None if t is None else t.detach().cpu()  # noqa: E731
+        flows = {k: host(f) for k, f in flows.items()}
+        errors = {k: (host(e), host(v)) for k, (e, v) in errors.items()}
+        road, valid = host(road), host(valid)
+        images = None if images is None else tuple(host(im) for im in images)
         size, with_errors, has_images, _, label = self.layout
         got = (tuple(road.shape[-2:]), tuple(name in errors for name in flows), images is not None)
         if got != (size, with_errors, has_images):
@@ -363,9 +374,9 @@ class PairFigure:
 
 def _check_pair(flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, Tensor]], road: Tensor,
                 images: tuple[Tensor, Tensor] | None, valid: Tensor | None) -> None:
-    """Every map and image of a pair figure at the road's (H, W), with its dtype: a flow of
-    another size was stretched over the panel silently, a valid map of another size or dtype
-    failed deep inside torch."""
+    """Every map and image of a pair figure at the road's (H, W), with its dtype and values: a
+    flow of another size was stretched over the panel silently, a valid map of another size or
+    dtype failed deep inside torch, a meta tensor in a NotImplementedError from the outline."""
     _check_bool(road, "road")
     dims = check_shape(road, "road", (1, "H", "W"))
     for name, flow in flows.items():
@@ -392,6 +403,11 @@ def _check_pair(flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, 
     if valid is not None:
         _check_bool(valid, "valid")
         check_shape(valid, "valid", (1, "H", "W"), dims)
+    named = {"road": road, "valid": valid, **{f"flows[{k!r}]": f for k, f in flows.items()},
+             **{f"errors[{k!r}][{i}]": t for k, entry in errors.items() for i, t in enumerate(entry)},
+             **{f"images[{k}]": im for k, im in enumerate(images or ())}}
+    for name, t in named.items():
+        check_has_values(t, name, "to draw")  # (the meta device's tensors: shapes only)
 
 
 def _check_bool(mask: object, name: str) -> None:
