@@ -566,11 +566,16 @@ def _earlier_road_spelling(out: Path, identity: dict) -> dict:
 
 def _mounting_note(clip, calibrate: bool, pairs: int) -> str:
     """The report's note on the clip's calibrated mounting, or on its absence where no pair's fit
-    over the clip succeeded (the nominal mounting is kept, ``refine.calibrate.fit_clip``)."""
+    over the clip succeeded, or none of those that did moves (the nominal mounting is kept,
+    ``refine.calibrate.fit_clip``)."""
     m = clip.mounting
     users = "every variant" if calibrate else "variants sequence / given_pitch"
     if not clip.fitted:
-        return (f"Mounting not calibrated: no pair's fit over the clip succeeded (0 of {pairs}); {users} "
+        succeeded = sum(bool(s) for s in clip.success.values())
+        why = (f"no pair's fit over the clip succeeded (0 of {pairs})" if not succeeded else
+               f"the {succeeded} of {pairs} pairs whose fits succeeded do not move (still frames measure no "
+               f"mounting)")
+        return (f"Mounting not calibrated: {why}; {users} "
                 f"use{'s' if calibrate else ''} the nominal mounting (pitch {m['pitch_deg']:.2f}°, roll "
                 f"{m['roll_deg']:.2f}°)" + (", so --calibrate-pitch changed nothing." if calibrate else "."))
     return (f"Mounting calibrated over the clip from its images (the fits of {clip.fitted} of {pairs} pairs): pitch "

@@ -72,9 +72,9 @@ class ClipFit:
     """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
     ``camera`` the calibrated camera, ``mounting`` {"roll_deg", "pitch_deg", "height_m" with
     poses}, ``success[name]`` whether the pair's fit succeeded, ``fitted`` how many pairs' first fits
-    the mounting was calibrated from; and the road masks the fit used (packed), with what
-    ``road_for`` reported about each (:meth:`road`). Where no pair's first fit succeeded
-    (``fitted`` 0) nothing is calibrated: ``camera`` and ``mounting`` are the nominal ones."""
+    the mounting was calibrated from (those that succeeded and move); and the road masks the fit
+    used (packed), with what ``road_for`` reported about each (:meth:`road`). Where no pair's first
+    fit succeeded on a pair that moves (``fitted`` 0) nothing is calibrated: ``camera`` and ``mounting`` are the nominal ones."""
 
     motion: dict[str, dict[str, Any]]
     camera: Camera
@@ -194,7 +194,7 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
               for i, spec in enumerate(specs)}
     success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
     fitted = seq.calibrated_from
-    if not fitted:  # failed fits calibrate nothing: the nominal camera stays
+    if not fitted:  # failed or still fits calibrate nothing: the nominal camera stays
         mounting = {"roll_deg": math.degrees(float(cam.roll[0])), "pitch_deg": math.degrees(float(cam.pitch[0]))}
         return ClipFit(motion, cam, mounting, success, masks, road_info, 0)
     mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}

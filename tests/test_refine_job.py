@@ -644,6 +644,23 @@ def test_a_clip_whose_fits_all_fail_keeps_the_nominal_mounting(tmp_path, user_fo
         assert rec["pitch"] == 0.0 and rec["roll"] == 0.0
 
 
+def test_the_mounting_note_of_a_clip_that_does_not_move_says_why():
+    """A clip whose fits succeed on still frames only calibrates nothing (they measure no mounting):
+    the note says so, not that no pair's fit succeeded."""
+    from types import SimpleNamespace
+
+    from refine.__main__ import _mounting_note
+
+    mounting = {"pitch_deg": 0.0, "roll_deg": 0.0}
+    still = SimpleNamespace(mounting=mounting, fitted=0, success={"000000": True, "000001": True})
+    assert _mounting_note(still, True, 2).startswith(
+        "Mounting not calibrated: the 2 of 2 pairs whose fits succeeded do not move (still frames measure no "
+        "mounting); every variant uses the nominal mounting (pitch 0.00°, roll 0.00°)")
+    failed = SimpleNamespace(mounting=mounting, fitted=0, success={"000000": False, "000001": False})
+    assert _mounting_note(failed, False, 2).startswith(
+        "Mounting not calibrated: no pair's fit over the clip succeeded (0 of 2); variants sequence / given_pitch")
+
+
 def test_stale_temporaries_are_removed(tmp_path):
     """A SIGKILL mid-write leaves hidden temporaries; the next run into the folder removes them."""
     out = tmp_path / "out"

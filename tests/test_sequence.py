@@ -443,3 +443,42 @@ def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
     seq.camera.K.mul_(2.0)
     seq.camera.height.add_(1.0)
     assert torch.equal(camera.K, K) and torch.equal(camera.height, p["camera"].height)
+
+
+def test_fit_sequence_pairs_that_do_not_move_calibrate_no_attitude(body_motion_clip, monkeypatch):
+    """A stop (a frame repeated): without a translation the road's normal does not enter the pair's
+    homography, and its fit's roll and pitch are where the prior put them, the input camera's. Such
+    pairs once calibrated the mounting too, dragging it towards the input camera's; they count
+    neither there nor as attitudes in the track (their rotation, the attitude change, does), and a
+    clip that never moves calibrates nothing."""
+    import fsof_torch.estimation.sequence as sequence
+
+    pairs, frames, _ = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    sigmas = []
+
+    def spy(attitude, change, attitude_sigma, change_sigma):
+        sigmas.append((attitude_sigma.clone(), change_sigma.clone()))
+        return smooth_attitude(attitude, change, attitude_sigma, change_sigma)
+
+    monkeypatch.setattr(sequence, "smooth_attitude", spy)
+    seq = fit_sequence([frames[0], frames[1], frames[1], frames[1], frames[2]], road, cam, keep_fits=False,
+                       max_points=1000)
+    moving = torch.tensor([True, False, False, True])
+    steps = torch.stack([seq.first_pass[n] for n in ("x_d", "y_d", "z_d")], -1).norm(dim=-1)
+    assert bool(seq.success.all()) and bool((steps[moving] > 0.5).all()) and bool((steps[~moving] < 1e-4).all())
+    assert seq.calibrated_from == 2
+    for name in ("roll", "pitch"):
+        still = seq.first_pass[name][~moving]  # (the prior's mean: the input camera's attitude)
+        torch.testing.assert_close(still, getattr(cam, name).double().expand(2), rtol=0, atol=1e-4)
+        # of two moving pairs, their median: the mean of the two
+        assert seq.mounting[name] == pytest.approx(float(seq.first_pass[name][moving].mean()), abs=1e-12)
+    assert len(sigmas) == 2
+    for attitude_sigma, change_sigma in sigmas:
+        assert bool(torch.isinf(attitude_sigma[~moving]).all()) and bool(torch.isfinite(attitude_sigma[moving]).all())
+        assert bool(torch.isfinite(change_sigma).all()) and torch.equal(change_sigma, change_sigma[:1].expand(4))
+    # a clip that never moves: nothing calibrated, the input camera's mounting kept, no second pass
+    still = fit_sequence([frames[0]] * 3, road, cam, keep_fits=False, max_points=1000)
+    assert bool(still.success.all()) and still.calibrated_from == 0
+    assert still.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
+    assert len(sigmas) == 2

@@ -11,13 +11,16 @@ motion, straight ahead). Then:
    averages out over a clip. With poses
    (metric translations), the camera height follows as well (only d / h is observable from
    images), and the translations returned are in metres at that height. Failed fits calibrate
-   nothing: where no pair's fit succeeds, the input camera's mounting stays and the second pass,
+   nothing, nor do pairs that do not move (a stop: without a translation the road's normal does
+   not enter the homography, and the fit's attitude is its prior's): where no pair's fit succeeds
+   and moves, the input camera's mounting stays and the second pass,
    which would only repeat the first, is skipped (with ``keep_fits`` the first runs again to keep
    its fits).
 2. **Smoothing.** The camera's attitude over the road at frame k+1 is its attitude at frame k
    plus the body's pitch and roll change between them (on a flat road, to first order). Each pair
    measures both; a weighted least-squares track over the clip makes them consistent, with the
-   changes (well measured) tying the noisy absolute attitudes together.
+   changes (well measured) tying the noisy absolute attitudes together. A pair that does not
+   move measures its change (a rotation) but not its attitude.
 3. **Second pass.** Every pair is fitted again, started at the smoothed track and tied to it by a
    prior of the track's own uncertainty (its attitude and attitude change); its translation and
    yaw are started from (and loosely tied to) the previous pair's motion.
@@ -68,8 +71,10 @@ class SequenceFit:
         first_pass: ``{name: (N,)}`` the per-pair parameters before calibration (fitted with the
             input camera: translations at its height), for reference.
         success: (N,) bool, whether each pair's fit succeeded (of the same pass as ``params``).
-        calibrated_from: how many first-pass fits the mounting comes from; 0 where none
-            succeeded: the mounting is then the input camera's, and the second pass is skipped.
+        calibrated_from: how many first-pass fits the mounting comes from (those that succeeded
+            and move: a fitted translation above 1 mm at the input camera's height); 0 where
+            there are none: the mounting is then the input camera's, and the second pass is
+            skipped.
     """
 
     fits: list[RoadFit]
@@ -156,6 +161,12 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     device = attitude.device
     return torch.tensor(x, dtype=dt, device=device), torch.tensor(var, dtype=dt, device=device).sqrt()
 
+
+#: a pair whose fitted translation (at the input camera's height) is at most this, in metres, does
+#: not move: it measures neither the camera's attitude over the road (the road's normal enters the
+#: homography only through the translation) nor the scale of poses. Still frames of a real clip
+#: (a frame repeated, with sensor noise) fit to a few 1e-4 m.
+_STILL_M = 1e-3
 
 #: the fewest values of which :func:`_robust_mean` leaves any out by their deviation. Of fewer, the
 #: median absolute deviation is set by the nearer of the two outer values (of 3 it is its deviation,
@@ -359,18 +370,21 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     first, fits = run(camera, "first pass", keep=keep_fits and passes == 1)
     raw = _stack(first)
     ok = torch.tensor([r.success for r in first])
-    calibrated_from = int(ok.sum())
+    image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
+    # a pair that does not move measures no attitude: with t = 0 the road's homography K R K⁻¹ holds no
+    # normal, and its fit's roll and pitch are where its prior put them (the input camera's)
+    attitude_ok = ok & (image_steps > _STILL_M)
+    calibrated_from = int(attitude_ok.sum())
     if calibrated_from:
-        roll0, pitch0 = _robust_mean(raw["roll"], ok), _robust_mean(raw["pitch"], ok)
-    else:  # failed fits calibrate nothing: the input camera's mounting stays
+        roll0, pitch0 = _robust_mean(raw["roll"], attitude_ok), _robust_mean(raw["pitch"], attitude_ok)
+    else:  # failed or still fits calibrate nothing: the input camera's mounting stays
         roll0, pitch0 = float(camera.roll[0]), float(camera.pitch[0])
     mounting = {"roll": roll0, "pitch": pitch0}
     cam = camera.replace(roll=roll0, pitch=pitch0)
     if poses is not None:
         P = torch.as_tensor(poses, dtype=torch.float64)
         steps = (P[1:N + 1, :3, 3] - P[:N, :3, 3]).norm(dim=-1)
-        image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
-        use = ok & (image_steps > 1e-3)
+        use = attitude_ok  # (the pairs that succeeded and move)
         if bool(use.any()):
             # metric step = (d / h) h: h = h_nominal · median(metric / image-derived); where the
             # poses stand still in half the pairs whose images move, they give no scale
@@ -383,8 +397,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             cam = cam.replace(height=height)
     records = first
     if passes == 2 and calibrated_from:
-        records, fits = run(cam, "smoothed attitude", _track(raw, ok, attitude_deg, body_rotation_deg),
-                            keep=keep_fits)
+        track = _track(raw, ok, attitude_ok, attitude_deg, body_rotation_deg)
+        records, fits = run(cam, "smoothed attitude", track, keep=keep_fits)
     elif passes == 2 and keep_fits:  # nothing calibrated: the first pass again, for its fits
         records, fits = run(cam, "first pass, kept", keep=True)
     elif "height" in mounting:  # the first pass's translations, in the metric height's units
@@ -415,11 +429,12 @@ def _metric_fit(fit: RoadFit, model: RoadModel, ratio: float, height: Tensor) ->
     return replace(fit, params=_metric(fit.params, model, ratio), covariance=cov, camera=camera)
 
 
-def _track(params: dict[str, Tensor], ok: Tensor, attitude_deg: float,
+def _track(params: dict[str, Tensor], ok: Tensor, attitude_ok: Tensor, attitude_deg: float,
            body_rotation_deg: float) -> dict[str, tuple[Tensor, Tensor]]:
     """Smoothed roll and pitch tracks (N + 1,) with their standard deviations; failed pairs do
-    not count."""
-    sa = torch.where(ok, attitude_deg * DEG, math.inf).double()
+    not count, and the attitudes only of the pairs in ``attitude_ok`` (those that move; a still
+    pair's rotation, its attitude change, is measured all the same)."""
+    sa = torch.where(attitude_ok, attitude_deg * DEG, math.inf).double()
     # the changes are measured far better than the attitudes; a failed pair's change says nothing
     sc = torch.where(ok, 0.1 * body_rotation_deg * DEG, 10 * body_rotation_deg * DEG).double()
     return {n: smooth_attitude(params[n], params[n + "_change"], sa, sc) for n in ("roll", "pitch")}
