@@ -482,3 +482,21 @@ def test_fit_sequence_pairs_that_do_not_move_calibrate_no_attitude(body_motion_c
     assert bool(still.success.all()) and still.calibrated_from == 0
     assert still.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
     assert len(sigmas) == 2
+
+
+def test_fit_sequence_holds_fixed_attitude_parameters_in_both_passes(body_motion_clip):
+    """``fixed`` (a fit_image option) holds parameters at the start. The second pass started the
+    attitude at the smoothed track, so it held them there: a held roll changed from pair to pair,
+    a held pitch change was not 0. They stay where the first pass held them: the camera's roll
+    (the mounting calibrated from it) and no change."""
+    pairs, frames, _ = body_motion_clip
+    cam = pairs[0]["camera"]
+    seq = fit_sequence(frames[:4], pairs[0]["road"], cam, fixed=("roll", "pitch_change"), keep_fits=False,
+                       max_points=1000)
+    assert bool(seq.success.all()) and seq.calibrated_from == 3
+    assert seq.mounting["roll"] == float(cam.roll[0])
+    for got in (seq.first_pass, seq.params):
+        assert torch.equal(got["roll"], cam.roll.double().expand(3))
+        assert torch.equal(got["pitch_change"], torch.zeros(3, dtype=torch.float64))
+    # the free attitude was fitted again, at the smoothed track
+    assert not torch.equal(seq.params["pitch"], seq.first_pass["pitch"])

@@ -258,7 +258,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             its pair; the parameters and ``success`` are the same).
         progress: show a progress bar.
         **options: further keyword arguments of :func:`~fsof_torch.estimation.image_fit.fit_image`,
-            their values checked before any frame is read.
+            their values checked before any frame is read. Parameters held by ``fixed`` stay where
+            the first pass holds them in both passes: no motion, the input camera's roll and pitch
+            (the mounting then calibrated to them), not the smoothed track.
 
     Returns:
         :class:`SequenceFit`.
@@ -358,6 +360,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                     prior[n] = (init[n], sigma[k:k + 1])
                     prior[n + "_change"] = (init[n + "_change"], 0.1 * body_rotation_deg * DEG)
                 starts = [{n: v for n, v in st.items() if n not in attitude} for st in starts]
+                # a held parameter stays where the first pass held it (the camera's roll or pitch, no
+                # change), not at the track: fit_image holds it at init's value
+                init = {n: v for n, v in init.items() if n not in held} or None
             prior = {n: v for n, v in prior.items() if n not in held}  # (held: no prior, fit_image refuses it)
             fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
                             **options)
