@@ -578,6 +578,34 @@ def test_huge_finite_predictions_give_finite_penalties():
         freespace_flow_loss(torch.full_like(model, 3e38), road, cam, odo, scale=0.01)
 
 
+def test_unsupervised_loss_of_flows_near_the_dtype_limit_is_an_error_not_inf():
+    """The smoothness sums flow differences: a float32 flow of 3e38 px at one pixel made the loss
+    inf (from finite input, silently); it is a ValueError naming the flows, as the freespace term's
+    overflow is. Large flows that fit stay finite, with finite gradients, and in float64 the same
+    flow is a finite loss."""
+    image = _textured(1, torch.float32)
+    for magnitude in (1e20, 3e38):
+        flow = torch.zeros(1, 2, H, W)
+        flow[0, 0, 20, 30] = magnitude
+        if magnitude == 1e20:
+            f = flow.clone().requires_grad_(True)
+            value = unsupervised_flow_loss(f, image, image, flows_backward=torch.zeros_like(flow))
+            (grad,) = torch.autograd.grad(value, f)
+            assert torch.isfinite(value) and value.item() > 1e15 and torch.isfinite(grad).all()
+            continue
+        before = flow.clone()
+        for call, name in ((lambda: unsupervised_flow_loss(flow, image, image), "flows"),
+                           (lambda: UnsupervisedFlowLoss()([torch.zeros_like(flow), flow], image, image), "flows"),
+                           (lambda: unsupervised_flow_loss(torch.zeros_like(flow), image, image, flows_backward=flow),
+                            "flows_backward"),
+                           (lambda: smoothness_loss(flow, image), "flow")):
+            with pytest.raises(ValueError, match=rf"^{name}: the \w+ loss overflows torch.float32 \(largest \|flow\| "
+                                                 rf"3e\+38 px\)"):
+                call()
+        assert torch.equal(flow, before)
+        assert torch.isfinite(unsupervised_flow_loss(flow.double(), image.double(), image.double()))
+
+
 def test_cauchy_penalty_is_continuous_at_its_switch():
     from fsof_torch.training.losses import _CAUCHY_SWITCH, _cauchy
 

@@ -23,7 +23,9 @@ back in the prediction's dtype lifted to at least float32, as autocast's own los
 
 Non-finite values. Images must be finite everywhere and within [-0.01, 1.01] × ``data_range``
 (0..``data_range`` with 1% either side for rounding; ValueError naming the image otherwise);
-flows given to the unsupervised loss must be finite (ValueError naming ``flows[i]``). In the
+flows given to the unsupervised loss must be finite (ValueError naming ``flows[i]``), and a loss
+that overflows the working dtype (flows near its largest value) is a ValueError naming the flows
+in either term, never inf. In the
 freespace term, a NaN or inf predicted pixel outside the road mask does not count and gets a zero
 gradient; one inside the mask is left out as well, with a ``RuntimeWarning`` that counts them (a
 network's prediction may diverge at a few pixels; the term must not turn every gradient of the
@@ -332,7 +334,9 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
     Returns:
         Mean weighted |difference| in pixels, the x and y directions averaged; a direction
         without differences of that order (y in an image of ``order`` rows) is left out of the
-        average, and an image with none in either direction gives 0. In at least float32.
+        average, and an image with none in either direction gives 0. In at least float32. A
+        mean that overflows the working dtype (a flow near its largest value) raises ValueError
+        naming ``flow``.
     """
     _check_reduction(reduction)
     if order not in (1, 2) or isinstance(order, bool):
@@ -344,7 +348,9 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
     _check_images({"image": image}, dims, data_range)
     check_same_device({"flow": flow, "image": image})
     check_finite(flow, "flow")
-    return _reduce(_smoothness(flow, image, order, edge_weight, data_range), reduction)
+    total = _smoothness(flow, image, order, edge_weight, data_range)
+    _check_no_overflow(total, {"flow": [flow]}, "smoothness loss")
+    return _reduce(total, reduction)
 
 
 def _smoothness(flow: Tensor, image: Tensor, order: int, edge_weight: float, data_range: float) -> Tensor:
@@ -392,7 +398,10 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
             photometric term (on the 0..1 scale).
 
     Returns:
-        A scalar, or (B,) for ``reduction="none"``, in at least float32 (also under autocast).
+        A scalar, or (B,) for ``reduction="none"``, in at least float32 (also under autocast). A
+        loss that overflows the working dtype (flows near its largest value: the smoothness sums
+        their differences) raises ValueError naming ``flows`` (or ``flows_backward``), as the
+        freespace term does.
     """
     _check_reduction(reduction)
     if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
@@ -435,7 +444,20 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
     total = direction(fw, image1, image2, mask_fw)
     if bw is not None:
         total = (total + direction(bw, image2, image1, mask_bw)) / 2
+    _check_no_overflow(total, {"flows": fw, **({} if bw is None else {"flows_backward": bw})}, "unsupervised loss")
     return _reduce(total, reduction)
+
+
+def _check_no_overflow(total: Tensor, flows: Mapping[str, Sequence[Tensor]], what: str) -> None:
+    """A ValueError naming the flows where ``total`` (B,), the loss of finite flows, is not finite:
+    the smoothness term's sums of flow differences overflow the working dtype for flows near its
+    largest value (a prediction that has diverged), which would otherwise come back as inf."""
+    if skip_values(total) or bool(torch.isfinite(total).all()):
+        return
+    largest = {name: max(float(f.detach().abs().amax()) for f in group) for name, group in flows.items()}
+    name = max(largest, key=largest.get)
+    raise ValueError(f"{name}: the {what} overflows {total.dtype} (largest |flow| {largest[name]:.3g} px); the "
+                     f"prediction has diverged, or compute the loss in float64")
 
 
 # -- the freespace term -------------------------------------------------------------------------
