@@ -181,7 +181,8 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
     """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
     ``overwrite`` clear) a folder that holds the results of another run, replace the manifest of
     one that left none; refuse, even with ``overwrite``, one whose manifest names no outputs (it
-    cannot be read) beside other files; remove the earlier run's report and clip summaries (:func:`remove_reports`);
+    cannot be read) beside other files; remove the earlier report and clip summaries (:func:`remove_reports`),
+    also those in a folder without a manifest that ``overwrite`` writes into;
     write the manifest. Call under :func:`locked`, before any record is written. Returns the
     manifest (with ``fingerprint``)."""
     from fsof_torch.io import remove_stale_temporaries, write_json
@@ -223,8 +224,10 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
                            f"but no refine run ({MANIFEST}); give a new or empty folder, or --overwrite "
                            f"to write into it anyway")
     outputs = identity.get("outputs", [])
-    if old is not None:  # the earlier run's report would outlive the records this run rewrites
-        remove_reports(out, outputs)
+    # the earlier run's report would outlive the records this run rewrites; so would that of a
+    # folder without a manifest that --overwrite writes into (and, with --no-figures, its clip
+    # summaries for good)
+    remove_reports(out, outputs)
     manifest = {"fingerprint": fp, "identity": identity, "outputs": outputs}
     write_json(manifest_path, manifest)
     return manifest

@@ -250,6 +250,23 @@ def test_a_rerun_that_fails_leaves_no_report_of_the_run_before(tmp_path, user_fo
     assert json.loads(rec0.read_text())["input_fingerprint"] != old["input_fingerprint"]  # pair 0 was redone
     assert not (out / "report.md").exists() and not (out / "report.json").exists() and not extra.exists()
 
+def test_overwrite_into_a_folder_without_a_manifest_removes_its_report_and_summaries(tmp_path):
+    """A folder of refine outputs whose run.json is gone, written into with --overwrite by a run of
+    other options with --no-figures: the earlier report and clip summary are removed when the run
+    starts, as after a run with a manifest; they no longer sat beside the new records (the
+    summary for good: a run without figures never writes it again)."""
+    out = tmp_path / "out"
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--out", str(out), *TINY]
+    assert main(base) == 0
+    summary_png = out / "dis" / "summary.png"
+    assert summary_png.is_file()
+    (out / "run.json").unlink()
+    assert main([*base, "--mode", "confidence", "--no-figures", "--overwrite"]) == 0
+    assert not summary_png.exists()
+    report = json.loads((out / "report.json").read_text())
+    assert report["mode"] == "confidence" and report["records_computed"] == 1
+
+
 def test_rerun_with_other_options_is_refused_then_replaced(tmp_path, capsys):
     """A finished folder and a rerun with another fusion mode: refused with what differs; with
     --overwrite the work is redone and the report describes the new run."""
