@@ -66,8 +66,7 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
     try:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch.load raises many types on foreign bytes (pickle, zip, EOF)
-        raise JobError(f"{option}: {str(path)!r} is not a state_dict file torch.load(weights_only=True) "
-                       f"can read ({type(err).__name__}: {str(err).splitlines()[0] if str(err) else ''})") from None
+        raise JobError(_load_failure(err, path, option)) from None
     if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
         state = state["state_dict"]  # a Lightning / ptlflow checkpoint keeps the weights here
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
@@ -83,6 +82,28 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
                   else str(err).splitlines()[-1].strip())
         raise JobError(f"{option}: {str(path)!r} does not fit {type(net).__name__}: {detail}") from None
     del result
+
+
+def _load_failure(err: Exception, path: Path, option: str) -> str:
+    """The message for a file ``torch.load(weights_only=True)`` refused: torch's own first line
+    ("Weights only load failed. ... Re-running `torch.load` with `weights_only` set to `False`
+    will likely succeed", with terminal colour codes) suggested what the job never does, said so
+    of bytes that are no checkpoint at all, and left out the reason; the reason is in its
+    ``WeightsUnpickler error:`` part (an object the file pickles, or the byte it stopped at)."""
+    import re
+
+    text = re.sub(r"\x1b\[[0-9;]*m", "", str(err))
+    _, found, rest = text.partition("WeightsUnpickler error:")
+    detail = rest.strip().splitlines()[0].strip() if found and rest.strip() else \
+        (text.splitlines()[0] if text else "")
+    pickled = re.match(r"Unsupported global: GLOBAL (\S+)", detail)
+    if pickled:  # a whole network, or a training checkpoint's objects beside its weights
+        return (f"{option}: {str(path)!r} holds a pickled {pickled.group(1)}, not only tensors; the job loads "
+                f"tensors alone (torch.load(weights_only=True): a checkpoint cannot run code): save the weights "
+                f"once as a state_dict from a file you trust, e.g. torch.save(model.state_dict(), ...) or "
+                f"torch.save(checkpoint['state_dict'], ...) (docs/contracts.md)")
+    return (f"{option}: {str(path)!r} is not a state_dict file torch.load(weights_only=True) can read "
+            f"({type(err).__name__}: {detail})")
 
 
 def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:

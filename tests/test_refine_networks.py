@@ -222,6 +222,33 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert not (tmp_path / "o" / "run.json").exists()  # every check came before any work
 
 
+def test_a_checkpoint_torch_load_refuses_is_named_with_its_reason(tmp_path, user_module, capsys):
+    """A whole pickled network, a training checkpoint with objects beside its weights, bytes that
+    are no checkpoint: exit 2 naming --checkpoint and the reason (the pickled class, the byte torch
+    stopped at), without torch's advice to load with weights_only=False (which the job never does,
+    and which cannot help bytes that are no checkpoint) or its terminal colour codes."""
+    import argparse
+
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    net = PtlflowRAFTStandIn(seed=0, iters=2)
+    torch.save(net, tmp_path / "whole.pt")
+    torch.save({"state_dict": net.state_dict(), "hyper_parameters": argparse.Namespace(lr=1e-4)},
+               tmp_path / "lightning.ckpt")
+    (tmp_path / "garbage.pt").write_bytes(b"not a checkpoint")
+    base = ["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
+            "--out", str(tmp_path / "o"), "--net", f"{user_module}:ptlflow_raft", "--checkpoint"]
+    for name, reason in (("whole.pt", "holds a pickled fsof_torch.training.standins.PtlflowRAFTStandIn, not only "
+                                      "tensors"),
+                         ("lightning.ckpt", "holds a pickled argparse.Namespace, not only tensors"),
+                         ("garbage.pt", "can read (UnpicklingError: Unsupported operand")):
+        assert main([*base, str(tmp_path / name)]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: --checkpoint: {str(tmp_path / name)!r} ") and reason in err, err
+        assert "weights_only` set to `False`" not in err and "\x1b" not in err, err
+    assert not (tmp_path / "o" / "run.json").exists()
+
+
 def test_json_naming_the_network_source_is_refused_and_the_source_kept(tmp_path, user_module, capsys):
     """--json naming the file of --net's module, or a file inside its package's folder, is refused
     before any work: the job removes the --json file at its start."""
