@@ -11,8 +11,9 @@ Layout of ``--out``::
                                                    ±512 px marked invalid, counted in the record)
     OUT/<source>/<variant>/pairs/<pair>.json       metrics before/after, odometry, fingerprints
 
-A pair's JSON record is written last, atomically: its presence, with the run's fingerprint and
-the pair's input fingerprint, marks the (source, variant, pair) as finished, so an interrupted
+A pair's JSON record is written last, atomically: its presence, with the run's fingerprint, the
+pair's input fingerprint and the digest of the flow file beside it (``flow_digest``, the file's
+current one), marks the (source, variant, pair) as finished, so an interrupted
 run resumes where it stopped (``--overwrite`` redoes everything). A pair's figure is removed
 before its source's records are rewritten and drawn after them, so a figure never shows older
 records than the pair's (with figures on, a pair without its figure is redone).
@@ -30,7 +31,7 @@ from torch import Tensor
 
 from fsof_torch import Camera, FreespaceRefiner, ImageMotionEstimator
 
-from .inputs import JobError, PairSpec, odometry_from_pose
+from .inputs import JobError, PairSpec, file_digest, odometry_from_pose
 from .measure import compare, error_panel, flow_maps, max_flow
 
 VARIANTS = ("given", "given_images", "given_pitch", "fit", "photometric", "sequence")
@@ -94,6 +95,10 @@ def read_record(cfg: JobConfig, source: str, variant: str, spec: PairSpec, input
     if not isinstance(record, dict):  # JSON, but not a record: redone, as an unreadable one
         return None
     if record.get("fingerprint") != cfg.fingerprint or record.get("input_fingerprint") != input_fp:
+        return None
+    # the flow beside it must be the one it was written with (not truncated, nor another run's
+    # copied in its place); a record of a version that did not store the digest is taken as it is
+    if "flow_digest" in record and record["flow_digest"] != file_digest(p["flow"]):
         return None
     return record
 
@@ -202,6 +207,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                                    "input_fingerprint": input_fp[variant]})
                     p = paths(cfg, source, variant, spec.name)
                     record["flow_png_dropped"] = _write_flow_png(p["flow"], after)
+                    record["flow_digest"] = file_digest(p["flow"])
                     write_json(p["record"], record)
                     records.append({**record, "resumed": False})
                     flows[variant], maps[variant] = flow, after

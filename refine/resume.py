@@ -8,7 +8,8 @@ refinement options, and the library's version. Its fingerprint is a hash of that
 Each pair's record also stores the fingerprint of the pair's own inputs (the contents of its
 images and flow, road and ground-truth files, its poses).
 
-Resuming: a record counts as finished only when both fingerprints match the current run's.
+Resuming: a record counts as finished only when both fingerprints match the current run's (and
+the flow file beside it is the one it was written with: ``refine.job.read_record``).
 Every run removes the report and clip summaries of the run before it first (they are written
 last), so a run that fails leaves no report that contradicts the records it rewrote.
 A rerun into a folder that holds a run of another identity stops with a message naming what

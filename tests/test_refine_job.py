@@ -183,6 +183,26 @@ def test_resume_skips_finished_pairs(tmp_path):
     assert rec0.stat().st_mtime_ns != stamp0
 
 
+def test_a_record_whose_flow_file_was_truncated_or_replaced_is_redone(tmp_path):
+    """The records are finished, but one flow file beside them was truncated and another replaced
+    by a flow of another run (here another variant's): those pairs are redone and their flows
+    written again, not reported as this run's beside files that do not hold them."""
+    out = tmp_path / "out"
+    args = ["--num-pairs", "2", "--source", "dis", "--odometry", "given,fit", "--no-figures", "--out", str(out),
+            *TINY]
+    assert main(args) == 0
+    flows = {n: out / "dis" / "given" / "flow" / f"{n}.png" for n in ("000000", "000001")}
+    written = {n: f.read_bytes() for n, f in flows.items()}
+    flows["000000"].write_bytes(written["000000"][:100])
+    flows["000001"].write_bytes((out / "dis" / "fit" / "flow" / "000001.png").read_bytes())
+    assert main(args) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 0 and summary["records_computed"] == 4
+    assert {n: f.read_bytes() for n, f in flows.items()} == written
+    assert main(args) == 0  # the flows it wrote itself: reused
+    assert json.loads((out / "report.json").read_text())["records_resumed"] == 4
+
+
 def test_a_shorter_rerun_reports_only_its_own_pairs(tmp_path):
     """The number of pairs is not part of a run's identity: a run of 1 pair into the folder of a
     run of 2 reuses pair 0 and reports it alone; pair 1's record stays, for a longer run later,
