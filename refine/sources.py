@@ -72,6 +72,12 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
         raise JobError(f"{option}: {str(path)!r} holds a {type(state).__name__}, not a state_dict "
                        f"(a dict of parameter names to tensors)")
+    if state and set(state) != set(net.state_dict()) and all(k.startswith("module.") for k in state):
+        # the weights of a network saved inside nn.DataParallel (RAFT's released checkpoints):
+        # every name starts with "module.", which the bare network's names lack
+        from torch.nn.modules.utils import consume_prefix_in_state_dict_if_present
+
+        consume_prefix_in_state_dict_if_present(state, "module.")  # (in place, on the dict just loaded)
     try:
         result = net.load_state_dict(state, strict=True)
     except RuntimeError as err:

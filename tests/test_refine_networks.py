@@ -191,6 +191,30 @@ def test_checkpoint_is_loaded(tmp_path, user_module, pair):
     assert summary["pairs"][0]["before"]["epe_road"] == pytest.approx(_epe_road(out["flows"][0, 0], pair), rel=1e-5)
 
 
+
+def test_a_dataparallel_checkpoint_is_loaded_without_its_module_prefix(tmp_path, user_module, pair):
+    """Weights saved from nn.DataParallel (RAFT's released checkpoints: every name starts with
+    "module.") load into the bare network as the same weights saved without it; a file whose
+    names are the network's own with "module." is not a prefix to strip when the network's own
+    names start with it (a wrapper module called "module")."""
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    other = PtlflowRAFTStandIn(seed=1, iters=2).eval()
+    torch.save(other.state_dict(), tmp_path / "plain.pt")
+    torch.save(torch.nn.DataParallel(other).state_dict(), tmp_path / "parallel.pt")
+    assert all(k.startswith("module.") for k in torch.load(tmp_path / "parallel.pt", weights_only=True))
+    runs = [_run(tmp_path / name, "--net", f"{user_module}:ptlflow_raft", "--checkpoint", str(tmp_path / f"{name}.pt"))
+            for name in ("plain", "parallel")]
+    assert runs[1]["pairs"][0]["before"] == runs[0]["pairs"][0]["before"]
+    wrapped = torch.nn.Sequential()
+    wrapped.add_module("module", torch.nn.Linear(2, 2))
+    state = wrapped.state_dict()
+    from refine.sources import load_state_dict
+
+    torch.save(state, tmp_path / "own.pt")
+    load_state_dict(wrapped, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
+    assert all(torch.equal(a, b) for a, b in zip(wrapped.state_dict().values(), state.values()))
+
 def test_torchvision_network_is_padded(tmp_path, user_module, pair):
     from fsof_torch.training.standins import TorchvisionRAFTStandIn
 
