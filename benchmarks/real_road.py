@@ -414,7 +414,8 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
     (every ``step``-th frame: the clip driven ``step`` times as fast, or recorded at 1 / ``step``
     of its rate), with the relative pose inverse(P_b) @ P_a of its frames a and b where poses.txt
     has both (line n for frame NNNNNN = n, by the file names, not by position; none without
-    poses.txt: the methods that need poses are left out). The camera: ``height`` m over the road,
+    poses.txt: the methods that need poses are left out; a poses.txt with no line for any frame
+    is a ValueError naming ``poses``). The camera: ``height`` m over the road,
     pitched by ``pitch_deg`` and rolled by ``roll_deg``."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
@@ -427,6 +428,13 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
 
     def frame(path: Path) -> int | None:
         return int(path.stem) if path.stem.isdigit() else None
+
+    if len(poses) and not any(n is not None and n < len(poses) for n in map(frame, dataset.frames)):
+        # (frames numbered from their place in a sequence, poses cut to the clip: no pair would
+        # have its poses, and the methods that need them would be left out unsaid)
+        raise ValueError(f"poses: {str(root / 'poses.txt')!r} has {len(poses)} poses (line n for frame NNNNNN = n), "
+                         f"none for the clip's frames {dataset.frames[0].name} to {dataset.frames[-1].name}: "
+                         f"give the sequence's poses from its first frame on, or number the frames as the lines")
 
     def loader(i: int) -> Callable[[], dict]:
         a, b = frame(dataset.pairs[i].image1), frame(dataset.pairs[i].image2)
@@ -593,6 +601,35 @@ class UnfitOption(ValueError):
 
 class EmptyMask(UnfitOption):
     """A road polygon shrunk to nothing (``--mask-grow``)."""
+
+
+class UnfitData(UnfitOption):
+    """A data folder the library cannot read (a calibration without the camera, frames of another
+    size than it or than each other, a malformed road.json or poses.txt): the library's message,
+    after the option that named the folder (``--clip``, ``--pair``, ``--data``); the run stops
+    with exit status 2, before any work where the first pair shows it."""
+
+
+def checked_data(option: str, read: Callable[[], list[tuple[str, Callable[[], dict]]]]
+                 ) -> list[tuple[str, Callable[[], dict]]]:
+    """``read()``'s pairs, the errors of reading the folder and of loading each pair (the
+    library's ``ValueError`` and ``FileNotFoundError``, which name the file) as :class:`UnfitData`
+    naming ``option``."""
+    def unfit(err: Exception) -> UnfitData:
+        return UnfitData(f"{option}: {err}")
+
+    try:
+        pairs = read()
+    except (ValueError, FileNotFoundError) as err:
+        raise unfit(err) from None
+
+    def load(inner: Callable[[], dict]) -> dict:
+        try:
+            return inner()
+        except (ValueError, FileNotFoundError) as err:
+            raise unfit(err) from None
+
+    return [(name, lambda inner=inner: load(inner)) for name, inner in pairs]
 
 
 def exposed(pair: dict, gain: float) -> dict:
@@ -859,15 +896,15 @@ def main(argv: list[str] | None = None) -> int:
     loaders = (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
                ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
                                                    args.roll_deg)[:args.pairs]))
-    datasets = {key: transformed(pairs(folders[key])) for key, pairs in loaders
-                if folders.get(key) is not None and folders[key].is_dir()}
-    if args.mask_grow < 0 or any(args.crop):  # (refused before any work, by one pair of each data set)
-        try:
-            for data in datasets.values():
-                data[0][1]()
-        except UnfitOption as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 2
+    try:  # (a folder the library cannot read, or an option its frames cannot take, is refused before any
+        # work, by one pair of each data set: a clip's later frames are read as it runs)
+        datasets = {key: transformed(checked_data(option_of[key], lambda root=folders[key], read=pairs: read(root)))
+                    for key, pairs in loaders if folders.get(key) is not None and folders[key].is_dir()}
+        for data in datasets.values():
+            data[0][1]()
+    except UnfitOption as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     for key, _ in loaders:
         root = folders.get(key)
         if root is None:
@@ -887,10 +924,14 @@ def main(argv: list[str] | None = None) -> int:
         # (turned or exposed, image 2 of a pair is not image 1 of the next: no clip to fit)
         changed = any(turn) or args.exposure_gain != 1.0
         mounting = None
-        if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
-            name, method, mounting = clip_method(data, not args.no_progress)
-            run_methods[name] = (None, method)
-        result = measure(key, data, run_methods, not args.no_progress)
+        try:  # (a later frame the library cannot read: the same error, no traceback)
+            if key == "clip" and not args.no_sequence and not changed and len(data) > 1:
+                name, method, mounting = clip_method(data, not args.no_progress)
+                run_methods[name] = (None, method)
+            result = measure(key, data, run_methods, not args.no_progress)
+        except UnfitData as err:
+            print(f"error: {err}", file=sys.stderr)
+            return 2
         if mounting is not None:
             result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result

@@ -895,3 +895,52 @@ def test_main_adds_a_row_per_estimator_given(rr, scenes, tmp_path, capsys, monke
     assert '| refiner, {"smooth_sigma": 1.0} | 2 |' in printed
     assert rows["refiner, {}"]["census"] == rows["refiner (no odometry)"]["census"]
     assert {"smooth_sigma": 1.0} in given and report["options"]["estimator"] == [{}, {"smooth_sigma": 1.0}]
+
+
+def test_main_refuses_folders_the_library_cannot_read(rr, scenes, tmp_path, capsys):
+    """A folder the library cannot read exits 2 with the option that named it and the library's
+    message, never a traceback: a clip's calibration without P0, a pair's frames of another size
+    than its calibration's S_rect, a clip whose later frame has another size (found as it runs),
+    a poses.txt with no line for any of the clip's frames."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    _tiny_clip(scenes, tmp_path)
+    clip = tmp_path / "data" / "kitti_odometry_straight"
+    run = ["--no-ecc", "--no-sequence", "--no-progress"]
+    calib = (clip / "calib.txt").read_text()
+    write_kitti_calibration(clip / "calib.txt", scenes[0]["camera"].K[0], cam=2, style="cam_to_cam")
+    assert rr.main(["--clip", str(clip), *run]) == 2
+    assert f"error: --clip: calib: path: {str(clip / 'calib.txt')!r} has no P_rect_00 or P0 row" in capsys.readouterr().err
+    (clip / "calib.txt").write_text(calib)
+    pair = tmp_path / "pair"
+    pair.mkdir()
+    write_image(pair / "image_10.png", scenes[1]["image1"])
+    write_image(pair / "image_11.png", scenes[1]["image2"])
+    write_kitti_calibration(pair / "calib_cam_to_cam.txt", scenes[1]["camera"].K[0], cam=2)
+    with open(pair / "calib_cam_to_cam.txt", "a") as f:  # (the calibration of frames 4 rows taller)
+        f.write(f"S_rect_02: {SIZE[1]} {SIZE[0] + 4}\n")
+    (pair / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": POLYGON}))
+    assert rr.main(["--pair", str(pair), *run]) == 2
+    assert f"error: --pair: images: image_10.png is {SIZE[0]}x{SIZE[1]} but the calibration" in capsys.readouterr().err
+    # the second pair's frame cut: the first pair loads, the run stops at the second
+    write_image(clip / "image_l" / "000002.png", scenes[1]["image2"][..., :-8, :])
+    assert rr.main(["--clip", str(clip), *run]) == 2
+    printed = capsys.readouterr()
+    assert f"error: --clip: images: 000002.png is {SIZE[0] - 8}x{SIZE[1]} but 000000.png" in printed.err
+    assert "Traceback" not in printed.err and "| DIS |" not in printed.out
+
+
+def test_main_refuses_poses_that_have_no_line_for_the_clips_frames(rr, scenes, tmp_path, capsys):
+    """Frames numbered from their place in a sequence with poses.txt cut to the clip: no frame has
+    its line, and the methods that need poses would be left out unsaid; exits 2 naming poses.txt."""
+    _tiny_clip(scenes, tmp_path)
+    clip = tmp_path / "data" / "kitti_odometry_straight"
+    for old in (2, 1, 0):
+        (clip / "image_l" / f"{old:06d}.png").rename(clip / "image_l" / f"{old + 100:06d}.png")
+    with pytest.raises(ValueError, match=r"^poses: .* has 2 poses \(line n for frame NNNNNN = n\), none for the "
+                                         r"clip's frames 000100.png to 000102.png"):
+        rr.odometry_clip(clip, 1.65, 0.0)
+    assert rr.main(["--clip", str(clip), "--no-ecc", "--no-sequence", "--no-progress"]) == 2
+    assert f"error: --clip: poses: {str(clip / 'poses.txt')!r} has 2 poses" in capsys.readouterr().err
+    (clip / "image_l" / "000100.png").rename(clip / "image_l" / "000001.png")  # (frame 1 has a pose: runs)
+    assert len(rr.odometry_clip(clip, 1.65, 0.0)) == 2
