@@ -40,6 +40,11 @@ defined): the real street's texture in a turn of known motion. With ``--reverse`
 frames are swapped (before any turn): the road recedes, as when reversing or in the backward flow;
 the polygon stays the forward pair's.
 
+The clip's frames are taken as the library reads them: a grey camera's (KITTI odometry's
+``image_0``) in its one channel, a colour camera's in colour, as the pair's. Samples the library
+cannot read (a calibration without the camera, frames of another size than its ``S_rect`` or
+than each other, a malformed road.json) exit 2 naming ``--data``, before any work.
+
 Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow] [--no-real]
      [--pairs 0 10 20 30]
      [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--reverse]
@@ -235,11 +240,41 @@ def real_pairs(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
         folder = root / CLIP[0]
         cam = Camera.from_kitti(folder / "calib.txt", cam=0, height=1.65)
         files = list_images(folder / "image_l")  # (in frame order, as the library pairs them)
-        frames = [read_image(f)[None, :1] for f in files]
+        frames = [one_channel_if_grey(read_image(f)[None]) for f in files]
         size = tuple(frames[0].shape[-2:])
         poly = read_road_mask(folder / "road.json", size).reshape(1, 1, *size).bool()
         for i in range(len(frames) - 1):
             yield view(f"straight clip {i:02d}", frames[i], frames[i + 1], cam, poly)
+
+
+def one_channel_if_grey(image: torch.Tensor) -> torch.Tensor:
+    """A frame (1, 3, H, W) as read (``read_image`` repeats a grey file's channel): its one channel
+    where the three are equal (the straight clip's grey camera), else its colour, as the KITTI
+    pair's frames are taken (never one colour channel of a colour clip)."""
+    return image[:, :1] if bool((image == image[:, :1]).all()) else image
+
+
+def unreadable(root: Path, kitti15: bool, clip: bool) -> str | None:
+    """What of the real samples in ``root`` (those asked for) the library cannot read, as its
+    datasets read them: the pair's frames against each other and the calibration's ``S_rect``, the
+    clip's frames against each other (every one of them), each calibration's camera, each
+    road.json; None where all can be. Checked before any work: the tables read them later."""
+    from fsof_torch.datasets import ImageFolderDataset, KittiSampleDataset
+    from fsof_torch.io import read_road_mask
+
+    try:
+        if kitti15:
+            pair = KittiSampleDataset(root / KITTI15[0], camera_height=1.65, ground_truth=False, road_json=False)[0]
+            read_road_mask(root / KITTI15[0] / "road.json", tuple(pair["image1"].shape[-2:]))
+        if clip:
+            folder = root / CLIP[0]
+            frames = ImageFolderDataset(folder / "image_l", folder / "calib.txt", cam=0, ground_truth=False)
+            for i in range(len(frames)):
+                size = tuple(frames[i]["image1"].shape[-2:])
+            read_road_mask(folder / "road.json", size)
+    except (ValueError, FileNotFoundError) as err:
+        return str(err)
+    return None
 
 
 def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *, kitti15: bool = True,
@@ -345,12 +380,17 @@ def main(argv=None) -> int:
     data = None if args.no_real else samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP]))
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    kitti15 = clip = False
+    if data is not None and data.is_dir():  # (what the real tables read, checked before any work)
+        kitti15 = present(data / KITTI15[0], KITTI15[1], f"KITTI pair {KITTI15[0]}")
+        clip = present(data / CLIP[0], CLIP[1], f"KITTI clip {CLIP[0]}")
+        problem = unreadable(data, kitti15, clip)
+        if problem is not None:
+            parser.error(f"--data: {problem}")
     if not args.no_synthetic:
         synthetic_table(tuple(args.pairs))
     if data is not None:
         if data.is_dir():
-            kitti15 = present(data / KITTI15[0], KITTI15[1], f"KITTI pair {KITTI15[0]}")
-            clip = present(data / CLIP[0], CLIP[1], f"KITTI clip {CLIP[0]}")
             if kitti15 or clip:
                 real_table(data, turn, kitti15=kitti15, clip=clip, reverse=args.reverse)
             if kitti15:

@@ -122,3 +122,74 @@ def test_edge_reach_is_step_5s_radius(bench):
     """The "near its edge" band of ``road_parts`` is how far the detection's step 5 reaches: 16 px
     at KITTI's size (working level 1), the figure docs/auto-road.md gives."""
     assert bench.edge_reach(1) == 16 and bench.edge_reach(0) == 8
+
+
+def _real_data(root: Path, colour_clip: bool = False) -> Path:
+    """A KITTI pair and a three-frame clip in the shared data's layout under ``root``, rendered
+    at 96 × 320; the clip's frames grey (one channel, as KITTI's grey cameras) or colour."""
+    import json
+
+    from fsof_torch.data.scene import render_pair
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    size, polygon = (96, 320), [[60, 95], [150, 56], [195, 56], [205, 95]]
+    p0, p1 = render_pair("default", 0, size=size), render_pair("default", 1, size=size)
+    pair, clip = root / "kitti15_000000", root / "kitti_odometry_straight"
+    (clip / "image_l").mkdir(parents=True)
+    pair.mkdir()
+    write_image(pair / "image_10.png", p0["image1"])
+    write_image(pair / "image_11.png", p0["image2"])
+    write_kitti_calibration(pair / "calib_cam_to_cam.txt", p0["camera"].K[0], cam=2)
+    for i, im in enumerate((p0["image1"], p0["image2"], p1["image2"])):
+        write_image(clip / "image_l" / f"{i:06d}.png", im if colour_clip else im.mean(0, keepdim=True).round())
+    write_kitti_calibration(clip / "calib.txt", p0["camera"].K[0], cam=0, style="odometry")
+    for folder in (pair, clip):
+        (folder / "road.json").write_text(json.dumps({"size": list(size), "road_polygon": polygon}))
+    return root
+
+
+@pytest.mark.parametrize("colour", [False, True])
+def test_a_colour_clip_is_judged_in_colour_a_grey_one_in_its_channel(bench, tmp_path, colour):
+    """The clip's frames as read: a grey camera's one channel (``read_image`` repeats it), a colour
+    camera's three (as the KITTI pair's), never its red channel alone."""
+    from fsof_torch.io import read_image
+
+    root = _real_data(tmp_path, colour_clip=colour)
+    clip = list(bench.real_pairs(root, kitti15=False))
+    assert [c[0] for c in clip] == ["straight clip 00", "straight clip 01"]
+    want = read_image(root / "kitti_odometry_straight" / "image_l" / "000001.png")
+    assert not colour or not torch.equal(want[0], want[1])
+    _, im1, im2, _, _ = clip[1]
+    assert im1.shape == (1, 3 if colour else 1, 96, 320) and torch.equal(im1[0], want[:im1.shape[1]])
+
+
+def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, capsys, monkeypatch):
+    """A --data folder whose samples the library cannot read (a pair's frames of another size than
+    its calibration's S_rect, a clip's calibration without P0, a clip frame of another size) exits
+    2 naming --data and what is wrong, before the synthetic table; a readable one passes."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    def no_work(*args, **kwargs):
+        raise AssertionError("the synthetic table ran")
+
+    monkeypatch.setattr(bench, "synthetic_table", no_work)
+    root = _real_data(tmp_path / "data")
+    pair, clip = root / "kitti15_000000", root / "kitti_odometry_straight"
+    calib = (pair / "calib_cam_to_cam.txt").read_text()
+    (pair / "calib_cam_to_cam.txt").write_text(calib + "S_rect_02: 320 100\n")  # (4 rows taller)
+    calib_clip = (clip / "calib.txt").read_text()
+    write_kitti_calibration(clip / "calib.txt", torch.eye(3, dtype=torch.float64) * 100 + 1, cam=2)
+    cut = torch.zeros(1, 90, 320)
+    for wrong, message in (("pair", "--data: images: image_10.png is 96x320 but the calibration"),
+                           ("calib", "--data: calib: path: "),
+                           ("frame", "--data: images: 000002.png is 90x320 but 000000.png is 96x320")):
+        if wrong == "calib":
+            (pair / "calib_cam_to_cam.txt").write_text(calib)
+        if wrong == "frame":
+            (clip / "calib.txt").write_text(calib_clip)
+            write_image(clip / "image_l" / "000002.png", cut)
+        with pytest.raises(SystemExit) as exit_:
+            bench.main(["--data", str(root), "--no-slow"])
+        assert exit_.value.code == 2
+        assert message in capsys.readouterr().err
+    assert bench.unreadable(_real_data(tmp_path / "readable"), True, True) is None
