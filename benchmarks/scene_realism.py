@@ -21,7 +21,6 @@ the ground truth on pairs 0–3, without sensor noise (the default) and with SEN
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import numpy as np
@@ -69,11 +68,12 @@ def _median(results: list[dict]) -> dict:
 
 
 def _polygon(path: Path, shape: tuple) -> np.ndarray:
-    import cv2
+    """A road.json's mask (H, W) bool at the frame's ``shape``, as the library reads it (any of its
+    polygon formats, drawn at its ``size``; the same pixels as the samples' own polygons filled by
+    ``cv2.fillPoly``); a file it cannot read is a ValueError naming it."""
+    from fsof_torch.io import read_road_mask
 
-    m = np.zeros(shape, np.uint8)
-    cv2.fillPoly(m, [np.array(json.loads(path.read_text())["road_polygon"], np.int32)], 1)
-    return m > 0
+    return read_road_mask(path, size=tuple(shape))[0].numpy()
 
 
 def _grey(image: torch.Tensor, *, uint8: bool = False) -> np.ndarray:
@@ -109,18 +109,28 @@ def main(argv: list[str] | None = None) -> int:
     has_k15 = present(k15, KITTI15[1], f"KITTI pair {KITTI15[0]}")
     has_odo = present(odo, CLIP[1], f"KITTI clip {CLIP[0]}")
     columns = {}
-    if has_k15:
-        real15 = []
-        for f in ("image_10.png", "image_11.png"):
-            g = cv2.cvtColor(cv2.imread(str(k15 / f)).astype(np.float32), cv2.COLOR_BGR2GRAY)
-            real15.append(road_statistics(g, _polygon(k15 / "road.json", g.shape)))
-        columns["KITTI flow 000000"] = _median(real15)
-    if has_odo:
-        real_odo = []
-        for i in (0, 10, 20, 30):
-            g = cv2.imread(str(odo / "image_l" / f"{i:06d}.png"), cv2.IMREAD_GRAYSCALE).astype(np.float32)
-            real_odo.append(road_statistics(g, _polygon(odo / "road.json", g.shape)))
-        columns["KITTI odometry clip"] = _median(real_odo)
+
+    def read(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+        image = cv2.imread(str(path), flags)
+        if image is None:
+            parser.error(f"--data: OpenCV cannot read {str(path)!r} as an image")
+        return image
+
+    try:  # (a road.json the library cannot read: exit 2 naming it, before the rendering)
+        if has_k15:
+            real15 = []
+            for f in ("image_10.png", "image_11.png"):
+                g = cv2.cvtColor(read(k15 / f).astype(np.float32), cv2.COLOR_BGR2GRAY)
+                real15.append(road_statistics(g, _polygon(k15 / "road.json", g.shape)))
+            columns["KITTI flow 000000"] = _median(real15)
+        if has_odo:
+            real_odo = []
+            for i in (0, 10, 20, 30):
+                g = read(odo / "image_l" / f"{i:06d}.png", cv2.IMREAD_GRAYSCALE).astype(np.float32)
+                real_odo.append(road_statistics(g, _polygon(odo / "road.json", g.shape)))
+            columns["KITTI odometry clip"] = _median(real_odo)
+    except ValueError as err:
+        parser.error(f"--data: {err}")
     if has_k15 and has_odo:
         both = (columns["KITTI flow 000000"], columns["KITTI odometry clip"])
         columns["real (mean of the two)"] = {b: {q: (both[0][b][q] + both[1][b][q]) / 2 for q, _ in STATS}
