@@ -269,6 +269,21 @@ def samples_folder(parser: argparse.ArgumentParser, given: Path | None, default:
     parser.error(f"--data: {str(given)!r} holds none of the samples ({'; '.join(lacking)})")
 
 
+def readable_pair(parser: argparse.ArgumentParser, folder: Path, option: str = "--data") -> None:
+    """The KITTI 2015 pair in ``folder`` (``kitti15_000000``'s layout) read as the library's
+    ``KittiSampleDataset`` reads it, before any work: the frames against each other and against
+    the calibration's ``S_rect`` (camera 2), road.json, flow_noc_10.png against the frames (each
+    where the folder has it). What it cannot read is ``parser.error`` (exit 2) naming ``option``
+    and the library's message, not a traceback or a silent run on frames the calibration is not
+    for."""
+    from fsof_torch.datasets import KittiSampleDataset
+
+    try:
+        KittiSampleDataset(folder)[0]
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(f"{option}: {err}")
+
+
 def present(folder: Path, need: tuple[str, ...], what: str) -> bool:
     """Whether ``folder`` holds every one of ``need``; if not, prints ``<what> absent: skipped``
     and what is missing."""

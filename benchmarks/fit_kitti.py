@@ -39,7 +39,7 @@ def load(folder: Path):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, json_path, present, write_json
+    from cli import data_folder, description, json_path, present, readable_pair, write_json
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -51,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     args.json = json_path(parser, args.json, {"--data": args.data})
     if not present(args.data, NEED, "KITTI pair kitti15_000000"):
         return 0
+    readable_pair(parser, args.data)
     import cv2
 
     torch.set_num_threads(1)

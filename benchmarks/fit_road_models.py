@@ -146,7 +146,7 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import MIN_SIDE, data_folder, description, image_side, pair_index, present
+    from cli import MIN_SIDE, data_folder, description, image_side, pair_index, present, readable_pair
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -160,6 +160,8 @@ def main(argv: list[str] | None = None) -> int:
     data = None if args.skip_kitti else data_folder(parser, args.data, DEFAULT, NEED)
     torch.set_num_threads(1)
     if data is not None and present(data, NEED, "KITTI pair kitti15_000000 (the KITTI table)"):
+        if all((data / f).is_file() for f in ("image_10.png", "image_11.png")):  # (the table reads no frames)
+            readable_pair(parser, data)
         kitti_table(data)
     scene_tables(args.pairs, tuple(args.size))
     return 0

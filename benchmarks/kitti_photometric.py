@@ -52,7 +52,7 @@ def dis_flow(folder: Path) -> torch.Tensor:
 
 
 def main(argv=None) -> int:
-    from cli import data_folder, description, present
+    from cli import data_folder, description, present, readable_pair
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -61,6 +61,7 @@ def main(argv=None) -> int:
     args.data = data_folder(parser, args.data, DEFAULT, NEED)
     if not present(args.data, NEED, "KITTI pair kitti15_000000"):
         return 0
+    readable_pair(parser, args.data)
     torch.set_num_threads(1)
     i1, i2, gt, valid, road = read_pair(args.data)
     flows = {"zero": torch.zeros_like(gt), "ground truth": gt, "truth, filled": filled(gt, valid),
