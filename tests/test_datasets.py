@@ -528,3 +528,19 @@ class TestPairChecks:
         ds = CarlaRunDataset(run)
         assert [(ds[i]["name"], float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0]))
                 for i in range(len(ds))] == [("98", 98.0, 99.0), ("99", 99.0, 100.0)]
+
+
+def test_kitti_hidden_files_are_no_pairs(kitti_root):
+    """macOS's AppleDouble files (``._NAME_10.png`` beside each frame, not PNGs) are no frames, as
+    in ImageFolderDataset and CarlaRun: they made pairs named ``._NAME`` that failed to load."""
+    root, _ = kitti_root
+    for p in list((root / "image_2").iterdir()):
+        (root / "image_2" / f"._{p.name}").write_bytes(b"\x00\x05\x16\x07" + bytes(60))
+    (root / "image_2" / "dir_10.png").mkdir()  # a folder named like a frame is no frame either
+    (root / "image_2" / "dir_11.png").mkdir()
+    ds = KittiFlowDataset(root)
+    assert ds.names == ["000000", "000001"]
+    for i, name in enumerate(ds.names):
+        item = ds[i]
+        check_item(item)
+        assert item["name"] == name and item["flow"] is not None

@@ -183,7 +183,8 @@ class KittiFlowDataset(Dataset):
     """Pairs of a KITTI flow layout: KITTI 2012/2015 training folders, the paper's KITTI
     evaluation folder, or a synthetic layout folder read as KITTI.
 
-    Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it (named ``NAME``):
+    Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it (named ``NAME``;
+    hidden files, named ``.*`` such as macOS's ``._NAME_10.png``, are no frames):
     flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; both absent -> None, the
     other one alone a ValueError: a synthetic layout holds ``flow_occ/`` only, its valid pixels the
     non-occluded ones);
@@ -223,8 +224,11 @@ class KittiFlowDataset(Dataset):
         images = self.root / image_dir
         if not images.is_dir():
             raise FileNotFoundError(f"root: {str(self.root)!r} has no {image_dir}/ folder")
+        # regular, visible files only: a hidden one (macOS's ``._000000_10.png`` beside each frame,
+        # a writer's temporary) is no frame, as in ImageFolderDataset and CarlaRun
         self.names = sorted(p.name[:-len("_10.png")] for p in images.glob("*_10.png")
-                            if (images / p.name.replace("_10.png", "_11.png")).is_file())
+                            if not p.name.startswith(".") and p.is_file()
+                            and (images / (p.name[:-len("_10.png")] + "_11.png")).is_file())
         if not self.names:
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"
