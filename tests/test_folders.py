@@ -5,6 +5,7 @@ the errors that name the argument and the file."""
 from __future__ import annotations
 
 import json
+import math
 import re
 
 import numpy as np
@@ -472,3 +473,20 @@ def test_one_road_png_of_another_size_is_refused(clip, tmp_path):
     write_road_mask(tmp_path / "big.png", torch.ones(1, 2 * SIZE[0], 2 * SIZE[1], dtype=torch.bool))
     with pytest.raises(ValueError, match=r"^road: big\.png is \(48, 80\), the images \(24, 40\)"):
         ImageFolderDataset(root / "images", road=tmp_path / "big.png")
+
+
+def test_odometry_without_a_calibration_takes_the_given_mounting(clip):
+    """``roll`` and ``pitch`` are the camera's mounting with ``calib=None`` too: the odometry is the
+    poses' planar part under them, as with a calibration (K plays no part), not a level camera's."""
+    root, poses = clip
+    mounting = {"roll": 0.05, "pitch": 0.1}
+    with_calib = ImageFolderDataset(root / "images", root / "calib.txt", poses=poses, **mounting)[1]
+    without = ImageFolderDataset(root / "images", poses=poses, **mounting)[1]
+    level = ImageFolderDataset(root / "images", poses=poses)[1]
+    assert without["camera"] is None
+    for key in ("odometry", "pose_residual"):
+        for name, value in with_calib[key].items():
+            assert without[key][name] == pytest.approx(value, rel=1e-12, abs=1e-15), (key, name)
+    # the mounting matters: a pitched camera sees the 1 m forward motion partly as y_d
+    assert abs(level["pose_residual"]["y_d"]) < 1e-12
+    assert abs(without["pose_residual"]["y_d"]) == pytest.approx(math.sin(0.1), rel=0.05)

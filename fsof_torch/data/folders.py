@@ -285,7 +285,7 @@ class ImageFolderDataset(Dataset):
             the frames; copied, and checked as a file is: finite, last row 0 0 0 1, each 3×3 block a
             rotation, else a ValueError naming ``poses`` and the pose). Items then carry
             ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
-            mounting and ``pose_residual``.
+            mounting (``roll``, ``pitch``; with ``calib=None`` too) and ``pose_residual``.
         road: a folder of masks matched by name, or one mask file for every pair: a PNG of the
             images' size (never resized), or a polygon JSON drawn at the images' size.
         gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
@@ -339,6 +339,10 @@ class ImageFolderDataset(Dataset):
             self.calib_size = self.calib_size or stated
         else:
             self._camera64 = None
+        # the mounting the odometry is projected under: the calibrated camera's, or without a
+        # calibration the given roll and pitch (not a level camera whatever was given)
+        self._mounting64 = self._camera64 if self._camera64 is not None else Camera(
+            torch.eye(3, dtype=torch.float64), camera_height, roll, pitch)
         self.poses = self._read_poses(poses, max(j for _, _, j in pairs) + 1) if poses is not None else None
 
         road_files: dict[str, Path] = {}
@@ -458,7 +462,7 @@ class ImageFolderDataset(Dataset):
         """The pair's relative pose, its planar odometry under the camera's mounting and the rest."""
         P = self.poses
         cam1_T_cam0 = relative_pose(P[pair.frame1][None], P[pair.frame2][None])[0]
-        ego = ego_motion_from_pose(cam1_T_cam0[None], self._camera64)
+        ego = ego_motion_from_pose(cam1_T_cam0[None], self._mounting64)
         return {"relative_pose": cam1_T_cam0,
                 "odometry": {"x_d": float(ego.x_d[0]), "z_d": float(ego.z_d[0]), "yaw": float(ego.yaw[0])},
                 "pose_residual": {"y_d": float(ego.y_d[0]), "rotation": float(ego.rotation_residual[0].norm())}}
