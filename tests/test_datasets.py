@@ -544,3 +544,16 @@ def test_kitti_hidden_files_are_no_pairs(kitti_root):
         item = ds[i]
         check_item(item)
         assert item["name"] == name and item["flow"] is not None
+
+
+def test_kitti_pair_missing_its_flow_file_is_an_error(kitti_root):
+    """A flow folder without one pair's file (deleted, not copied) raises naming it when the pair
+    loads: that pair's item had flow None, silently, beside pairs with ground truth."""
+    root, _ = kitti_root
+    ds = KittiFlowDataset(root)
+    (root / "flow_noc" / "000001_10.png").unlink()
+    assert ds[0]["flow"] is not None
+    with pytest.raises(FileNotFoundError, match=r"^root: '.*kitti' has flow_noc/ but no 000001_10\.png there "
+                                                r"for the pair 000001"):
+        ds[1]
+    assert KittiFlowDataset(root, ground_truth=False)[1]["flow"] is None  # no ground truth asked for

@@ -187,7 +187,8 @@ class KittiFlowDataset(Dataset):
     hidden files, named ``.*`` such as macOS's ``._NAME_10.png``, are no frames):
     flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; both absent -> None, the
     other one alone a ValueError: a synthetic layout holds ``flow_occ/`` only, its valid pixels the
-    non-occluded ones);
+    non-occluded ones; a pair without its file in the folder a FileNotFoundError naming ``root``
+    and the file, not a pair without ground truth);
     the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
     ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
@@ -274,8 +275,14 @@ class KittiFlowDataset(Dataset):
         truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.root / self.flow_dir / f"{name}_10.png"
-            if path.is_file():
-                flow, valid = read_kitti_flow(path)
+            if path.is_file() or (self.root / self.flow_dir).is_dir():
+                # (a flow folder without the pair's file is an error, not a pair without ground truth)
+                try:
+                    flow, valid = read_kitti_flow(path)
+                except FileNotFoundError:
+                    raise FileNotFoundError(f"root: {str(self.root)!r} has {self.flow_dir}/ but no {path.name} there "
+                                            f"for the pair {name}; every pair of a folder with ground truth needs "
+                                            f"its flow") from None
                 truth["flow"], truth["valid"] = _fits(flow, path, size, first, "root").to(self.dtype), valid
             road = self.root / "road" / f"{name}_10.png"
             semantic = self.root / "semantic" / f"{name}_10.png"
