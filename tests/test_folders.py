@@ -378,6 +378,11 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
     write_road_mask(root / "road" / "000001.png", torch.ones(1, 10, 10, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"^road: 000001\.png is \(10, 10\), the images \(24, 40\)"):
         ImageFolderDataset(root / "images", road=root / "road")[1]
+    # files removed after the dataset was made: named with the argument when the pair loads
+    ds = ImageFolderDataset(root / "images", gt=root / "gt")
+    (root / "gt" / "000002.flo").unlink()
+    with pytest.raises(FileNotFoundError, match=r"^gt: path: no file at '.*000002\.flo'"):
+        ds[2]
 
 
 @pytest.mark.parametrize("kwargs, message", [

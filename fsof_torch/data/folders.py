@@ -448,6 +448,8 @@ class ImageFolderDataset(Dataset):
             if pair.gt is not None:
                 try:
                     flow, valid = read_flow(pair.gt)
+                except FileNotFoundError as err:  # (removed since the dataset was made)
+                    raise FileNotFoundError(f"gt: {err}") from None
                 except ValueError as err:
                     raise ValueError(f"gt: {err}") from None
                 truth["flow"], truth["valid"] = self._checked("gt", pair.gt, flow).to(self.dtype), valid
