@@ -495,3 +495,29 @@ def test_odometry_without_a_calibration_takes_the_given_mounting(clip):
     # the mounting matters: a pitched camera sees the 1 m forward motion partly as y_d
     assert abs(level["pose_residual"]["y_d"]) < 1e-12
     assert abs(without["pose_residual"]["y_d"]) == pytest.approx(math.sin(0.1), rel=0.05)
+
+
+def test_frames_named_by_decimal_timestamps_pair_in_time_order(tmp_path):
+    """Frames named by their time in seconds (``9.967.png``, ``10.000.png``): by name 10.000 came
+    before 9.900, so the clip paired 10.033 -> 9.900 (backwards in time, across the whole clip)."""
+    from fsof_torch.data.folders import list_images
+    from fsof_torch.io.carla import CarlaRun
+
+    times = ["9.900", "9.933", "9.967", "10.000", "10.033"]
+    for k, t in enumerate(times):
+        write_image(tmp_path / f"{t}.png", torch.full((3, *SIZE), float(k)))
+    assert [p.stem for p in list_images(tmp_path)] == times
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == times[:-1]
+    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in range(4)] == [
+        (0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0)]
+    run = tmp_path / "run"
+    (run / "rgb").mkdir(parents=True)
+    for t in times:
+        write_image(run / "rgb" / f"{t}.png", torch.zeros(3, 4, 4))
+    assert CarlaRun(run).frames == times
+    # timestamps of one width keep the names' order, which is their time order
+    from fsof_torch.io.images import in_frame_order
+
+    stamps = ["1541234567.15", "1541234567.2", "1541234568.05"]
+    assert [p.stem for p in in_frame_order(f"{s}.png" for s in reversed(stamps))] == stamps

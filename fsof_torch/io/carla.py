@@ -160,7 +160,8 @@ class CarlaRun:
     """One run folder of the paper's CARLA layout: frame names and the paths of each frame's files.
 
     ``frames`` are the stems of ``rgb/*.png`` in frame order: by number where every stem is a
-    number (``98``, ``99``, ``100``, unpadded) or one text around a number (``f98``, ``f100``),
+    number (``98``, ``99``, ``100``, unpadded), one text around a number (``f98``, ``f100``) or
+    a decimal number (``9.967`` before ``10.000``),
     else by name. Only regular files count, and not
     hidden ones (a name starting with ``.``, such as macOS's ``._99.png``).
 

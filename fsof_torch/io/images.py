@@ -13,8 +13,9 @@ from __future__ import annotations
 
 import os
 import re
+from decimal import Decimal
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 import torch
@@ -69,15 +70,22 @@ def frame_numbers(stems: Iterable[str]) -> list[int] | None:
     return [int(p[k]) for p in parts]
 
 
+_DECIMAL = re.compile(r"[0-9]+(\.[0-9]+)?")  # a frame's time as its name: 9.967, 1541234567.15
+
+
 def in_frame_order(paths: Iterable[str | os.PathLike], name: str = "images") -> list[Path]:
     """Frame files in frame order: by number where every file's stem is one text around a number
     (:func:`frame_numbers`: ``0.png``, ``5.png``, ``10.png``, ``100.png``, or ``frame_9.png``
-    before ``frame_10.png``: frames numbered without zero padding), else by name. Equal numbers
-    (``5`` and ``05``) stay in the order of their names. Two files of one frame name
-    (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name`` (:func:`check_frame_names`)."""
+    before ``frame_10.png``: frames numbered without zero padding), or by value where every stem
+    is a decimal number (timestamps ``9.967.png`` before ``10.000.png``; by name they came after
+    it), else by name. Equal numbers (``5`` and ``05``) stay in the order of their names. Two
+    files of one frame name (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``
+    (:func:`check_frame_names`)."""
     paths = sorted(Path(p) for p in paths)
     check_frame_names(paths, name)
-    numbers = frame_numbers(p.stem for p in paths)
+    numbers: list[Any] | None = frame_numbers(p.stem for p in paths)
+    if numbers is None and paths and all(_DECIMAL.fullmatch(p.stem) for p in paths):
+        numbers = [Decimal(p.stem) for p in paths]  # (exact: 1541234567.15 and .150 are one time)
     if numbers is not None:
         order = sorted(range(len(paths)), key=numbers.__getitem__)  # (stable: equal numbers by name)
         paths = [paths[i] for i in order]
