@@ -410,6 +410,25 @@ def test_check_index_refuses_a_bool_and_quotes_the_value(index, error, message):
     assert check_index(-1, 3) == 2 and check_index(np.int64(1), 3) == 1
 
 
+@pytest.mark.parametrize("index, error", [
+    (torch.tensor(True), TypeError), (torch.tensor(1.0), TypeError), (torch.tensor([1]), TypeError),
+    (np.array(1.0), TypeError), (torch.tensor(3), IndexError)])
+def test_a_0d_integer_tensor_is_an_index_as_in_a_list(clip, index, error):
+    """A 0-d integer tensor or array indexes a dataset as it indexes a list (Subset(ds,
+    torch.randperm(n)) hands such indices over); a bool, float or 1-element tensor does not."""
+    from torch.utils.data import DataLoader, Subset
+
+    from fsof_torch.data.items import collate
+
+    root, _ = clip
+    ds = ImageFolderDataset(root / "images")
+    assert check_index(torch.tensor(-1), 3) == 2 and check_index(np.array(1, dtype=np.int32), 3) == 1
+    batch = next(iter(DataLoader(Subset(ds, torch.tensor([2, 0])), batch_size=2, collate_fn=collate)))
+    assert batch["index"] == [2, 0] and batch["name"] == ["000002", "000000"]
+    with pytest.raises(error, match=r"^index: "):
+        ds[index]
+
+
 @pytest.mark.parametrize("pose, edit, message", [
     (1, lambda P: P.__setitem__((1, 0, 3), float("nan")), r"pose 1 of the tensor holds NaN or inf"),
     (1, lambda P: P[1, :3, :3].mul_(3.0), r"pose 1 of the tensor is not a rigid pose: its 3×3 block is not a "

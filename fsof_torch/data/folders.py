@@ -36,6 +36,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import Dataset
@@ -63,12 +64,23 @@ _MASK_ERRORS = (ValueError, TypeError, KeyError, IndexError, ZeroDivisionError, 
 
 def check_index(index: int, length: int) -> int:
     """A dataset index (negative counts from the end) -> its position, or IndexError / TypeError (a
-    bool is no index)."""
+    bool is no index). An int, or what a list takes as one: a 0-d integer tensor or array (the
+    indices ``Subset(dataset, torch.randperm(n))`` hands over)."""
+    if _integer_scalar(index):
+        index = int(index)
     if isinstance(index, bool) or not isinstance(index, numbers.Integral):
         raise TypeError(f"index: expected an int, got {type(index).__name__} {index!r:.60}")
     if not -length <= index < length:
         raise IndexError(f"index: {index} out of range for a dataset of {length} pairs")
     return int(index) % length
+
+
+def _integer_scalar(index: object) -> bool:
+    """Whether ``index`` is a 0-d integer (not bool) tensor on a real device or NumPy array."""
+    if isinstance(index, Tensor):
+        return (index.dim() == 0 and not index.is_floating_point() and not index.is_complex()
+                and index.dtype != torch.bool and index.device.type != "meta")
+    return isinstance(index, np.ndarray) and index.ndim == 0 and np.issubdtype(index.dtype, np.integer)
 
 
 def check_mounting(camera_height: object, roll: object, pitch: object,
