@@ -264,6 +264,22 @@ def test_frames_named_one_text_around_a_number_pair_by_number(tmp_path):
     assert frame_numbers(["000000_10", "000000_11", "000001_10"]) is None  # numbers differ in two places
 
 
+def test_frames_of_every_suffix_write_image_writes_are_frames(tmp_path):
+    """A .webp frame (written by write_image, read by read_image) was no frame: a folder of them
+    held "0 image(s)", and one beside .png frames was left out, pairing its neighbours."""
+    from fsof_torch.data.folders import list_images
+    from fsof_torch.io.images import WRITABLE_DTYPES
+
+    for k, suffix in enumerate(sorted(WRITABLE_DTYPES)):
+        write_image(tmp_path / f"{k}{suffix}", torch.full((3, *SIZE), float(k)))
+    assert [p.name for p in list_images(tmp_path)] == [f"{k}{s}" for k, s in enumerate(sorted(WRITABLE_DTYPES))]
+    ds = ImageFolderDataset(tmp_path)
+    assert [p.name for p in ds.pairs] == [str(k) for k in range(len(WRITABLE_DTYPES) - 1)]
+    for k in range(len(ds)):  # frame k holds the value k (a .jpg within its rounding)
+        item = ds[k]
+        assert abs(float(item["image1"].mean()) - k) <= 1 and abs(float(item["image2"].mean()) - k - 1) <= 1, k
+
+
 def test_hidden_files_are_no_frames(tmp_path):
     """macOS's ``._N.png`` beside each frame (or a writer's hidden temporary) was a frame: the
     names were then not all numbers, and the clip paired 0 -> 10 -> 5."""

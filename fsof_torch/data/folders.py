@@ -53,7 +53,8 @@ from .items import check_item_options, make_item
 __all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
            "check_index", "check_mounting", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".ppm", ".pgm", ".tif", ".tiff")
+# every suffix write_image writes (.webp too: its frames were left out of a folder) and the PNM ones
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp", ".ppm", ".pgm", ".tif", ".tiff")
 FLOW_SUFFIXES = (".png", ".flo", ".npy")
 KITTI_HEIGHT = 1.65  # metres; KITTI's files do not record the camera height
 
