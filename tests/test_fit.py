@@ -455,6 +455,26 @@ def test_decompose_a_camera_cropped_past_its_principal_point():
     assert float(dec.params["yaw"][0]) == pytest.approx(0.01, abs=1e-8)
 
 
+@pytest.mark.parametrize("droll, dpitch", [(0.0, 0.0), (0.02, 0.03)], ids=["camera_attitude", "road_tilted"])
+def test_decompose_a_camera_whose_horizon_lies_below_its_image(droll, dpitch):
+    """A camera pitched up 0.4 rad sees its horizon 275 px below the principal point, beyond the
+    virtual image around it (2 c_y + 1 rows): the grid moves below the horizon, and the
+    decomposition is as exact as for any camera. (Its grid held no pixel: the closed form came back
+    with a residual of 0 over no pixel, y_d 0.059 for 0.01 on a road tilted 2 degrees.)"""
+    K = torch.tensor([[700.0, 0, 600], [0, 650, 180], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5, roll=0.0, pitch=0.4)
+    p = {"pitch_change": 0.004, "yaw": 0.03, "roll_change": -0.003, "x_d": 0.1, "y_d": 0.01, "z_d": 1.2,
+         "roll": droll, "pitch": 0.4 + dpitch}
+    H = road_homography(cam, p, model="plane")
+    dec = decompose_homography(H, cam)
+    assert bool(dec.success) and int(dec.valid.sum()) > 1000 and float(dec.residual) < 1e-9
+    for k, v in p.items():
+        assert float(dec.params[k]) == pytest.approx(v, abs=1e-8), k
+    S = dec.camera.K @ torch.linalg.inv(cam.K)  # (as the docstring says: H in the grid's pixels)
+    back = torch.linalg.inv(S) @ dec.homography @ S
+    torch.testing.assert_close(back / back[:, 2:, 2:], H / H[:, 2:, 2:], rtol=0, atol=1e-9)
+
+
 @pytest.mark.parametrize("steering, error, match", [
     ("x", TypeError, r"^init: expected numbers or tensors for steering and speed"),
     (float("nan"), ValueError, r"^init: expected a finite steering"),

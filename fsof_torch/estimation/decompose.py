@@ -55,7 +55,9 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         H: (B, 3, 3) road homographies (any scale), for the camera's K.
         camera: K, height, and the roll and pitch to start from (batch 1 or B).
         size: the grid's longer side in pixels (each sample's camera is scaled to it: its grid
-            is a virtual image around its own principal point, whatever its batch-mates').
+            is a virtual image around its own principal point, whatever its batch-mates'; for a
+            camera looking up so far that its horizon lies below that image, the image of the
+            same size just below the horizon).
 
     Returns:
         The :class:`RoadFit` of the ``"plane"`` model (``fit.params``; ``fit.residual``: how far
@@ -90,18 +92,26 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     # each sample's own virtual image around its principal point, scaled so that its longer side
     # is ``size`` (the principal point's distance from the corner, also where a crop put it above
     # or left of the image): a sample's grid, and its residual in that grid's pixels, do not
-    # depend on its batch-mates (one host read for the grids' sizes)
-    scales, grids = [], []
-    for cx, cy in zip(cam.cx.abs().tolist(), cam.cy.abs().tolist()):
+    # depend on its batch-mates (one host read for the grids' sizes). A camera looking up so far
+    # that its horizon lies below that image (no pixel of it sees the road) gets the image of the
+    # same size just below the horizon (else its grid would be empty: the closed form came back
+    # unrefined, with a residual of 0 over no pixel).
+    ends = torch.stack([cam.horizon_row(torch.zeros_like(cam.cx)), cam.horizon_row(2.0 * cam.cx.abs())], dim=-1)
+    scales, grids, tops = [], [], []
+    for cx, cy, rows in zip(cam.cx.abs().tolist(), cam.cy.abs().tolist(), ends.tolist()):
         w0, h0 = 2.0 * cx + 1.0, 2.0 * cy + 1.0
+        below = all(math.isfinite(r) for r in rows) and min(rows) >= h0 - 1.0  # (the horizon is a line)
+        tops.append(max(rows) if below else 0.0)
         s = size / max(w0, h0)
         scales.append(s)
         grids.append((max(int(round(h0 * s)), 8), max(int(round(w0 * s)), 8)))
-    # (Camera.scaled's resize, one factor per sample)
+    # (Camera.cropped's shift by ``tops`` rows, then Camera.scaled's resize, one factor per sample)
+    K_top = cam.K.clone()
+    K_top[:, 1, 2] -= torch.tensor(tops, dtype=torch.float64, device=H.device)
     s = torch.tensor(scales, dtype=torch.float64, device=H.device)
     one, zero = torch.ones_like(s), torch.zeros_like(s)
     resize = torch.stack([s, zero, 0.5 * s - 0.5, zero, s, 0.5 * s - 0.5, zero, zero, one], dim=-1).reshape(B, 3, 3)
-    small = cam.replace(K=resize @ cam.K)
+    small = cam.replace(K=resize @ K_top)
     S = small.K @ cam.K_inv()
     Hs = S @ H.to(torch.float64) @ torch.linalg.inv(S)
     Hs = Hs / Hs[:, 2:3, 2:3]
