@@ -50,6 +50,9 @@ __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluat
 
 # the held-out scenes' seed: --seed + HELD_OUT
 HELD_OUT = 1000
+#: the largest learning rate taken: AdamW's first step, lr / (1 - 0.9) = 10 lr, is a float32 scalar
+#: (at most 3.4e38; a rate within a rounding of that overflowed inside AdamW: a traceback)
+MAX_LR = 1e37
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -180,8 +183,10 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
     wall time.
 
     Raises:
-        TrainingDiverged: a step's flow, loss or updated parameters are not all finite (a learning
-            rate too large for the run diverges so); every process raises at the same step.
+        TrainingDiverged: a step's flow, loss, gradients' norm or updated parameters are not all
+            finite (a learning rate too large for the run diverges so; the message names ``lr``, or
+            ``freespace_weight`` where the first step's loss or gradients are not finite, before any
+            update); every process raises at the same step.
     """
     from fsof_torch.io.progress import progress_bar, show_values
 
@@ -217,11 +222,14 @@ def train_net(data: dict, *, steps: int, seed: int, batch: int, lr: float, frees
         total.backward()  # under DDP: gradients averaged over the processes
         reported = _mean_over_processes(torch.stack([total.detach(), *(v.detach() for v in terms.values())]), ranks)
         if not bool(torch.isfinite(reported).all()):  # (the global means: the same on every process)
-            raise _diverged(step, steps, lr, "the loss")
+            raise _diverged(step, steps, lr, "the loss", freespace_weight)
         if step == 0 and first_step is not None:
             first_step.update(loss=float(reported[0]), grads={k: p.grad.detach().cpu().clone()
                                                                for k, p in net.named_parameters() if p.grad is not None})
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        # (a norm that overflows would scale every gradient to 0 or NaN: the net silently untrained)
+        norm = torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
+        if not _finite_everywhere([norm], ranks):
+            raise _diverged(step, steps, lr, "the gradients' norm", freespace_weight)
         optimiser.step()
         if not _finite_everywhere(list(net.parameters()), ranks):
             raise _diverged(step, steps, lr, "the net's parameters after the update")
@@ -242,7 +250,14 @@ def _finite_everywhere(tensors: list[torch.Tensor], ranks: Ranks) -> bool:
     return bool(flag)
 
 
-def _diverged(step: int, steps: int, lr: float, what: str) -> TrainingDiverged:
+def _diverged(step: int, steps: int, lr: float, what: str, freespace_weight: float = 0.0) -> TrainingDiverged:
+    """The error naming what is likely too large: the learning rate, or, where the first step's loss
+    or gradients are not finite, before any update (which the learning rate plays no part in), the
+    freespace term's weight."""
+    if step == 0 and what != "the net's parameters after the update" and freespace_weight > 0:
+        return TrainingDiverged(f"freespace_weight: training diverged at step 1 of {steps} ({what} not finite) "
+                                f"before any update, which the learning rate plays no part in; the freespace "
+                                f"weight {freespace_weight:g} is likely too large for this run: give a smaller one")
     return TrainingDiverged(f"lr: training diverged at step {step + 1} of {steps} ({what} not finite); the "
                             f"learning rate {lr:g} is likely too large for this run: give a smaller one")
 
@@ -347,6 +362,9 @@ def _bad_input(args: argparse.Namespace) -> str | None:
     for option in ("lr", "freespace_weight"):
         if not (math.isfinite(getattr(args, option)) and getattr(args, option) > 0):
             return f"--{option.replace('_', '-')}: expected a finite number > 0, got {getattr(args, option)}"
+    if args.lr > MAX_LR:
+        return (f"--lr: expected at most {MAX_LR:g} (AdamW's first step is 10 × lr, which must fit the net's "
+                f"float32), got {args.lr:g}")
     if args.threads < 0:
         return f"--threads: expected >= 0 (0: torch's default), got {args.threads}"
     if args.threads > (os.cpu_count() or 1):  # (a huge count crashes torch's thread pool)
@@ -453,8 +471,9 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
             net, log = train_net(train, freespace_weight=weight, odometry=args.odometry, desc=name,
                                  first_step=first_steps[name], **common)
         except TrainingDiverged as err:  # (before any output is written: nothing of this run is kept)
-            if ranks.rank == 0:
-                print(f"error: --{err} (run {name!r}; nothing written)", file=sys.stderr)
+            if ranks.rank == 0:  # (the message names train_net's argument: lr or freespace_weight)
+                option, _, rest = str(err).partition(": ")
+                print(f"error: --{option.replace('_', '-')}: {rest} (run {name!r}; nothing written)", file=sys.stderr)
             return 2
         logs[name] = log
         nets[name] = net.cpu()

@@ -51,6 +51,9 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     (["--lr", "nan"], "--lr: expected a finite number > 0"),
     (["--lr", "0"], "--lr: expected a finite number > 0, got 0.0"),
     (["--lr", "-0.001"], "--lr: expected a finite number > 0, got -0.001"),
+    # (AdamW's first step, 10 × lr, overflowed float32 inside the optimiser: a traceback)
+    (["--lr", "1e300"], "--lr: expected at most 1e+37 (AdamW's first step is 10 × lr, which must fit the net's "
+                        "float32), got 1e+300"),
     (["--preset", "nope"], "--preset: unknown preset 'nope'"),
     (["--device", "bogus"], "--device: not a torch device: 'bogus'"),
     (["--seed", "-1"], "--seed: expected an int in [0, 2**62), got -1"),
@@ -112,6 +115,23 @@ def test_a_diverging_run_exits_2_naming_lr_and_writes_nothing(tmp_path, capsys, 
                      "--json", str(report), "--out", str(out), "--dump-first-step", str(tmp_path / "first.pt")])
     assert rc == 2 and "error: --lr: training diverged" in capsys.readouterr().err
     assert [p for p in earlier if p.exists()] == [] and sorted(p.name for p in out.iterdir()) == ["mine.pt"]
+
+
+@pytest.mark.parametrize("weight, what", [("1e300", "the loss"), ("1e20", "the gradients' norm")])
+def test_a_freespace_weight_too_large_exits_2_naming_it(tmp_path, capsys, keep_threads, weight, what):
+    """The first step's loss (1e300) or gradients' norm (1e20) not finite, before any update: the
+    learning rate plays no part, so the message names --freespace-weight (it named --lr and its
+    default 0.001); a norm that overflowed scaled every gradient to 0, and the untrained net was
+    reported as the run with the freespace term."""
+    report = tmp_path / "train.json"
+    rc = train.main(["--freespace-weight", weight, "--steps", "2", "--size", "32", "64", "--batch", "2",
+                     "--iters", "1", "--train-pairs", "2", "--test-pairs", "1", "--threads", "1", "--no-progress",
+                     "--json", str(report)])
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    assert (f"error: --freespace-weight: training diverged at step 1 of 2 ({what} not finite) before any update"
+            in err and f"the freespace weight {float(weight):g} is likely too large" in err), err
+    assert "run 'unsupervised+freespace'" in err and "--lr" not in err and not report.exists()
 
 
 def test_train_net_raises_on_non_finite_parameters(keep_threads):
