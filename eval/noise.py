@@ -32,6 +32,9 @@ from .paths import MAX_SIDE
 
 DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
 DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
+#: the most random poses per noise level: each trial's true and estimated pose go into noise.json
+#: (a count beyond memory ended in a traceback from the allocator, after the robustness fits)
+MAX_TRIALS = 100_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -52,7 +55,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"virtual image size of the pose experiment, each side 16 to {MAX_SIDE} "
                              "(default 375 1242; --quick: 120 400)")
     parser.add_argument("--trials", type=int, default=None, metavar="N",
-                        help="random poses per noise level (default 32; --quick: 3)")
+                        help=f"random poses per noise level, 1 to {MAX_TRIALS} (default 32; --quick: 3)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the scenes, the noise and the poses (default 0)")
     parser.add_argument("--quick", action="store_true", help="small and fast: one scenario, few σ, small images")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -193,8 +196,8 @@ def run(args: argparse.Namespace) -> int:
         if any(not (math.isfinite(s) and 0 <= s <= MAX_SIGMA) for s in values):
             print(f"error: {name}: expected values in [0, {MAX_SIGMA:g}] px, got {values}", file=sys.stderr)
             return 2
-    if trials < 1:
-        print(f"error: --trials: expected at least 1, got {trials}", file=sys.stderr)
+    if not 1 <= trials <= MAX_TRIALS:
+        print(f"error: --trials: expected 1 to {MAX_TRIALS}, got {trials}", file=sys.stderr)
         return 2
     for name, sz in (("--size", size), ("--pose-size", pose_size)):
         if min(sz) < 16:

@@ -40,6 +40,14 @@ def test_noise_bad_arguments(tmp_path, capsys):
     assert "--sigmas" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("trials", ["0", "100001", str(10**11)])
+def test_noise_trials_out_of_range_exit_2_before_any_work(tmp_path, capsys, trials):
+    """10**11 trials ended in a traceback from the allocator, after the robustness fits."""
+    assert main(["noise", "--quick", "--trials", trials, "--out", str(tmp_path / "o"), "--no-progress"]) == 2
+    assert f"error: --trials: expected 1 to 100000, got {trials}" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
 def test_noise_non_finite_sigmas_exit_2(tmp_path, capsys):
     for option in ("--sigmas", "--pose-sigmas"):
         assert main(["noise", option, "0", "inf", "--out", str(tmp_path / "o"), "--no-progress"]) == 2
