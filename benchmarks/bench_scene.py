@@ -36,7 +36,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--repeats", type=positive_int, default=5, help="timed calls per row (default 5)")
     parser.add_argument("--size", type=image_side, nargs=2, default=(375, 1242), metavar=("H", "W"),
-                        help=f"image size, each side at least {MIN_SIDE} (default 375 1242)")
+                        help=f"image size, each side {MIN_SIDE} to 16384 (default 375 1242)")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
 

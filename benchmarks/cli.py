@@ -57,8 +57,14 @@ nonnegative_int = int_at_least(0)
 #: the smallest side of a synthetic image (``--size``): OpenCV's DIS needs 12 pixels, and the
 #: road models' tables need a few rows of road
 MIN_SIDE = 16
-#: a side of a synthetic image (``--size H W``), at least :data:`MIN_SIDE` pixels
-image_side = int_at_least(MIN_SIDE)
+
+
+def image_side(text: str) -> int:
+    """An argparse type: a side of a synthetic image (``--size H W``), :data:`MIN_SIDE` to the
+    renderer's ``MAX_SIDE`` pixels (16 384: a side past it made the renderer raise, a traceback)."""
+    from fsof_torch.data.scene.render import MAX_SIDE
+
+    return int_at_least(MIN_SIDE, MAX_SIDE, " (the renderer's largest side)")(text)
 
 
 def pair_index(text: str) -> int:
@@ -149,14 +155,20 @@ def finite_float(text: str) -> float:
 
 
 def size_hw(text: str) -> tuple[int, int]:
-    """An argparse type: an image size written ``HxW`` (``375x1242``), both sides >= 1."""
+    """An argparse type: an image size written ``HxW`` (``375x1242``) of a synthetic scene, each side
+    from :data:`MIN_SIDE` (the refine job's smallest images) to the renderer's ``MAX_SIDE``."""
+    from fsof_torch.data.scene.render import MAX_SIDE
+
     parts = text.lower().split("x")
     try:
         size = tuple(int(p) for p in parts)
     except ValueError:
         size = ()
-    if len(size) != 2 or min(size) < 1:
+    if len(size) != 2:
         raise argparse.ArgumentTypeError(f"expected HxW with positive sides (such as 375x1242), got {text!r}")
+    if not MIN_SIDE <= min(size) <= max(size) <= MAX_SIDE:  # (past them: the job or the renderer failed late)
+        raise argparse.ArgumentTypeError(f"expected HxW with sides from {MIN_SIDE} to {MAX_SIDE} (such as "
+                                         f"375x1242), got {text!r}")
     return size
 
 
@@ -230,21 +242,22 @@ def write_json(path: Path, obj: Any) -> None:
 
 
 def data_folder(parser: argparse.ArgumentParser, given: Path | None, default: Path,
-                need: tuple[str, ...] = ()) -> Path:
-    """The folder ``--data`` names, or ``default`` where it was not given.
+                need: tuple[str, ...] = (), option: str = "--data") -> Path:
+    """The folder ``option`` (``--data``) names, or ``default`` where it was not given.
 
-    A folder given must exist and hold every one of ``need`` (``parser.error``, exit 2, otherwise);
-    the default may be absent: the script then leaves out what it lacks (:func:`present`).
+    A folder given must exist and hold every one of ``need`` (``parser.error``, exit 2, naming
+    ``option``, otherwise); the default may be absent: the script then leaves out what it lacks
+    (:func:`present`).
     """
     if given is None:
         return default
     if given.exists() and not given.is_dir():
-        parser.error(f"--data: {str(given)!r} is a file; expected a folder")
+        parser.error(f"{option}: {str(given)!r} is a file; expected a folder")
     if not given.is_dir():
-        parser.error(f"--data: {str(given)!r} not found")
+        parser.error(f"{option}: {str(given)!r} not found")
     missing = [name for name in need if not (given / name).exists()]
     if missing:
-        parser.error(f"--data: {str(given)!r} lacks {', '.join(missing)}")
+        parser.error(f"{option}: {str(given)!r} lacks {', '.join(missing)}")
     return given
 
 

@@ -129,7 +129,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--lengths", type=frame_count(3), nargs="+", default=[11, 26, 51],
                         help="clip lengths in frames, each from 3 to 100 001 (frames 0 to 100 000, the "
                              "renderer's last) (default 11 26 51)")
-    parser.add_argument("--size", type=size_hw, default=(375, 1242), metavar="HxW", help="HxW (default: KITTI's)")
+    parser.add_argument("--size", type=size_hw, default=(375, 1242), metavar="HxW",
+                        help="HxW, each side from 16 to 16384 (default: KITTI's)")
     parser.add_argument("--seed", type=scene_seed, default=0, help="the scene's seed, in [0, 2**62) (default 0)")
     parser.add_argument("--keep", type=Path, default=None, metavar="DIR",
                         help="write the clip here (kept) instead of a temporary folder: a new or empty folder, "

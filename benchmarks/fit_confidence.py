@@ -118,7 +118,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="the KITTI 2015 pair's folder (default: ../shared/data/kitti15_000000)")
     args = parser.parse_args(argv)
     data = data_folder(parser, args.data, DEFAULT, CLIP)
-    kitti = data_folder(parser, args.kitti, KITTI, PAIR)
+    kitti = data_folder(parser, args.kitti, KITTI, PAIR, option="--kitti")  # (its errors named --data)
     import fsof_torch as fs
     from fsof_torch.data.folders import list_images
     from fsof_torch.estimation.image_fit import fit_image

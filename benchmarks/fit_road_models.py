@@ -154,7 +154,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--pairs", type=pair_index, nargs="+", default=[0, 30],
                         help="pair indices of the synthetic tables (default 0 30)")
     parser.add_argument("--size", type=image_side, nargs=2, default=[375, 1242], metavar=("H", "W"),
-                        help=f"the synthetic pairs' size, each side at least {MIN_SIDE} (default 375 1242)")
+                        help=f"the synthetic pairs' size, each side {MIN_SIDE} to 16384 (default 375 1242)")
     parser.add_argument("--skip-kitti", action="store_true", help="leave out the KITTI table")
     args = parser.parse_args(argv)
     data = None if args.skip_kitti else data_folder(parser, args.data, DEFAULT, NEED)

@@ -72,6 +72,8 @@ BAD = [
     ("bench_testnet", ["--iters", "0"], "--iters"),
     ("bench_warp", ["--repeats", "3"], "--repeats"),  # (no options: unrecognised)
     ("clip_memory", ["--size", "abc"], "--size"),
+    ("clip_memory", ["--size", "15x64"], "--size"),  # (the job refused it after the clip was written)
+    ("clip_memory", ["--size", "16385x64"], "--size"),  # (the renderer raised: a traceback)
     ("clip_memory", ["--lengths", "2"], "--lengths"),
     ("clip_memory", ["--lengths", "11", "100002"], "--lengths"),  # (its last frame past the renderer's MAX_FRAME)
     ("clip_memory", ["--baseline", "no-such-revision"], "--baseline"),
@@ -80,11 +82,14 @@ BAD = [
     ("clip_memory", ["--keep", f"{TMP}/nonempty"], "--keep"),  # (an earlier clip's frames would mix in)
     ("failsafe", ["--pairs", "3"], "--pairs"),  # (no options: unrecognised)
     ("fit_confidence", ["--data", ABSENT], "--data"),
+    ("fit_confidence", ["--kitti", ABSENT], "--kitti"),  # (was named --data)
+    ("fit_confidence", ["--kitti", f"{TMP}/empty"], "--kitti"),
     ("fit_kitti", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
     ("fit_road_models", ["--size", "0", "10"], "--size"),
     ("fit_road_models", ["--size", "1", "1"], "--size"),
+    ("fit_road_models", ["--size", "16385", "16", "--skip-kitti"], "--size"),  # (the renderer raised)
     ("fit_road_models", ["--pairs", "-1"], "--pairs"),
     ("fit_road_models", ["--pairs", "100000", "--skip-kitti"], "--pairs"),
     ("gate_chance", ["--draws", "0"], "--draws"),
@@ -326,7 +331,8 @@ def test_odometry_error_bounds(cli, capsys):
 
 def test_size_json_and_float_types(cli):
     assert cli.size_hw("375x1242") == (375, 1242) and cli.size_hw("48X160") == (48, 160)
-    for bad in ("abc", "0x10", "10", "1x2x3"):
+    assert cli.size_hw("16x16384") == (16, 16384)
+    for bad in ("abc", "0x10", "10", "1x2x3", "15x64", "64x16385"):
         with pytest.raises(argparse.ArgumentTypeError, match="HxW"):
             cli.size_hw(bad)
     assert cli.json_object('{"highpass": null}') == {"highpass": None}
@@ -388,9 +394,10 @@ def test_thread_count_seed_and_side(cli, monkeypatch):
     for bad in ("-1", str(2**62), "1.5", "x"):
         with pytest.raises(argparse.ArgumentTypeError, match=r"in \[0, 2\*\*62\)"):
             cli.scene_seed(bad)
-    assert cli.image_side(str(cli.MIN_SIDE)) == cli.MIN_SIDE
-    with pytest.raises(argparse.ArgumentTypeError, match=f">= {cli.MIN_SIDE}"):
-        cli.image_side(str(cli.MIN_SIDE - 1))
+    assert cli.image_side(str(cli.MIN_SIDE)) == cli.MIN_SIDE and cli.image_side("16384") == 16384
+    for bad in (str(cli.MIN_SIDE - 1), "16385"):  # (16385: the renderer raised, a traceback)
+        with pytest.raises(argparse.ArgumentTypeError, match=f"from {cli.MIN_SIDE} to 16384"):
+            cli.image_side(bad)
 
 
 def _error(capsys, fn, *args) -> str:
