@@ -217,6 +217,8 @@ def run(args: argparse.Namespace) -> int:
     # an earlier run's files go (its plots with --no-plots, DIR/noise.json where this run writes
     # its JSON elsewhere), not to be read as this run's
     remove_outputs(args.out, figures + ["noise.json"])
+    if args.json is not None:  # (and its JSON elsewhere: a run that stops would leave it as its own)
+        remove_outputs(args.json.parent, [args.json.name])
     scenarios = [("complex", 1)] if quick else [("simple", 1), ("simple", 4), ("complex", 1), ("complex", 4)]
 
     with progress_bar(total=len(scenarios) * len(sigmas), enabled=not args.no_progress, desc="noise robustness",

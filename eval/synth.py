@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
     from fsof_torch.data.scene import PRESETS, render_pair
 
-    from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent
+    from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent, remove_outputs
 
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
@@ -81,6 +81,8 @@ def run(args: argparse.Namespace) -> int:
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
+    if args.json is not None:  # an earlier run's JSON there goes: a run that stops would leave it as its own
+        remove_outputs(args.json.parent, [args.json.name])
     dtype = torch.float64 if args.float64 else torch.float32
     rows: list[dict] = []
 

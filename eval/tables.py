@@ -327,6 +327,8 @@ def run(args: argparse.Namespace) -> int:
     # the inputs are good: an earlier run's files go (DIR/tables.json where this run writes its
     # JSON elsewhere), not to be read as this run's
     remove_outputs(args.out, ["tables.json", "tables.md"])
+    if args.json is not None:  # (and its JSON elsewhere: a run that stops would leave it as its own)
+        remove_outputs(args.json.parent, [args.json.name])
     rolls = (0, 5, -5) if args.quick else (0, 5, -5, 10, -10)
     total = (8 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
         + (2 if "kitti" in tables else 0)

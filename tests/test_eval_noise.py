@@ -166,3 +166,20 @@ def test_noise_rerun_without_plots_leaves_no_plot_of_the_run_before(tmp_path):
     assert json.loads((out / "noise.json").read_text())["settings"]["seed"] == 5
     assert main([*base, "--no-plots", "--json", str(tmp_path / "n.json")]) == 0
     assert list(out.iterdir()) == [] and (tmp_path / "n.json").is_file()
+
+
+def test_noise_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
+    """An earlier run's --json (elsewhere than --out) goes once the options are checked, as
+    DIR/noise.json does: a run stopped during the fits left it to be read as its own."""
+    from eval import noise
+
+    path = tmp_path / "n.json"
+    path.write_text('{"settings": "an earlier run"}')
+
+    def stop(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(noise, "noise_robustness", stop)
+    with pytest.raises(KeyboardInterrupt):
+        main(["noise", "--quick", "--trials", "1", "--out", str(tmp_path / "o"), "--json", str(path), "--no-progress"])
+    assert not path.exists()
