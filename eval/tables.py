@@ -193,7 +193,10 @@ def carla_table(size, pairs: int, seed: int, rolls, bar=None) -> list[dict]:
 def load_kitti(folder: Path) -> dict:
     """The KITTI sample of the KITTI table: ``flow``, ``valid``, ``road`` (1, 1, H, W) and ``camera``
     from ``flow_noc_10.png``, ``road.json`` and ``calib_cam_to_cam.txt``. Raises ValueError (or
-    FileNotFoundError) naming the file, and ValueError when the road holds no valid pixel."""
+    FileNotFoundError) naming the file, ValueError when the flow's size is not the one the
+    calibration states for camera 2 (``S_rect_02``, where it has that row: a cropped or resized
+    flow was fitted with another image's principal point), and when the road holds no valid pixel."""
+    from fsof_torch.data.folders import calibration_size
     from fsof_torch.geometry.camera import Camera
     from fsof_torch.io import read_kitti_flow, read_road_mask
 
@@ -204,6 +207,11 @@ def load_kitti(folder: Path) -> dict:
     except TypeError as err:  # a malformed polygon
         raise ValueError(str(err)) from None
     camera = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
+    calibrated = calibration_size(folder / "calib_cam_to_cam.txt", 2)  # (the file read: it is one)
+    if calibrated is not None and calibrated != (H, W):
+        raise ValueError(f"{str(folder / 'flow_noc_10.png')!r} is {H}x{W}, but "
+                         f"{str(folder / 'calib_cam_to_cam.txt')!r} is for {calibrated[0]}x{calibrated[1]} images "
+                         f"(S_rect_02); expected a flow of the calibrated size")
     if not bool((road & valid).any()):
         raise ValueError(f"{str(folder / 'road.json')!r} covers no pixel with valid ground truth in "
                          f"{str(folder / 'flow_noc_10.png')!r}")

@@ -108,6 +108,21 @@ def test_tables_kitti_files_checked_before_the_synthetic_tables(tmp_path, shared
     assert "CVC12-like" not in captured.out and not (tmp_path / "o").exists()
 
 
+def test_tables_kitti_flow_of_another_size_than_the_calibration_exits_2(tmp_path, shared_data, capsys):
+    """A flow cropped from the calibrated 375x1242 was fitted with the calibration's principal point
+    (the pitch moved from 0.04 to -0.36 degrees), silently: exit 2 naming --kitti and both sizes."""
+    import cv2
+
+    folder = _kitti_copy(tmp_path, shared_data)
+    flow = cv2.imread(str(folder / "flow_noc_10.png"), cv2.IMREAD_UNCHANGED)
+    cv2.imwrite(str(folder / "flow_noc_10.png"), flow[5:, 16:])
+    rc = main(["tables", "--only", "kitti", "--kitti", str(folder), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and (f"error: --kitti: {str(folder / 'flow_noc_10.png')!r} is 370x1226, but "
+                        f"{str(folder / 'calib_cam_to_cam.txt')!r} is for 375x1242 images (S_rect_02)") in err, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_tables_output_paths_checked_first(tmp_path, capsys):
     (tmp_path / "afile").write_text("")
     assert main(["tables", "--quick", "--no-kitti", "--out", str(tmp_path / "afile"), "--no-progress"]) == 2
