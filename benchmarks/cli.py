@@ -195,14 +195,20 @@ def shell_words(text: str) -> str:
 def check_options(parser: argparse.ArgumentParser, options: Mapping[str, Any], option: str, fn: Callable,
                   reserved: tuple[str, ...] = ()) -> None:
     """``options`` (keyword arguments of ``fn``, given as ``option``) checked before any work: a
-    name ``fn`` does not take, or one the script sets itself (``reserved``), is ``parser.error``
-    (exit 2) naming ``option``, not a TypeError after the rendering and the first fits."""
+    name ``fn`` does not take, or one the script sets itself (``reserved``), and for ``fit_image`` a
+    value it would refuse (``check_image_fit_options``), is ``parser.error`` (exit 2) naming
+    ``option``, not a TypeError or ValueError traceback after the rendering and the first fits."""
     from fsof_torch._check import check_keywords
+    from fsof_torch.estimation.image_fit import check_image_fit_options, fit_image
 
     try:
-        check_keywords(options, option, fn, reserved)
-    except TypeError as err:
-        parser.error(str(err))
+        if fn is fit_image:  # (its values too: '{"max_iter": -1}' raised from the first fit)
+            check_image_fit_options(options, option, reserved)
+        else:
+            check_keywords(options, option, fn, reserved)
+    except (TypeError, ValueError) as err:
+        message = str(err)
+        parser.error(message if message.startswith(f"{option}: ") else f"{option}: {message}")
 
 
 def json_path(parser: argparse.ArgumentParser, given: str | os.PathLike | None,

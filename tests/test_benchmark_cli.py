@@ -124,6 +124,10 @@ BAD = [
     ("sequence_synthetic", ["--seed", "-1"], "--seed"),
     ("sequence_synthetic", ["--options", '{"bogus": 1}'], "--options"),
     ("sequence_synthetic", ["--options", '{"init": {}}'], "--options"),  # (fit_sequence sets it)
+    # (a value fit_image refuses: a traceback from the first fit, after the rendering)
+    ("sequence_synthetic", ["--options", '{"max_iter": -1}'], "--options: max_iter"),
+    ("sequence_synthetic", ["--options", '{"levels": "x"}'], "--options: levels"),
+    ("image_fit_settings", ['{"inlier_threshold": -1}'], "SETTING: inlier_threshold"),
     ("turn_screen", ["--data", ABSENT], "--data"),
     ("turn_screen", ["--data", f"{TMP}/empty"], "--data"),
 ]
