@@ -84,6 +84,7 @@ BAD = [
     ("fit_confidence", ["--data", ABSENT], "--data"),
     ("fit_confidence", ["--kitti", ABSENT], "--kitti"),  # (was named --data)
     ("fit_confidence", ["--kitti", f"{TMP}/empty"], "--kitti"),
+    ("fit_confidence", ["--kitti", f"{TMP}/badpair"], "--kitti"),  # (read in part 3: a traceback)
     ("fit_kitti", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
@@ -186,6 +187,9 @@ def runs(tmp_path_factory) -> dict[tuple[str, tuple[str, ...]], dict]:
     (folder / "nonempty" / "000000.png").write_bytes(b"")
     (folder / "empty").mkdir()
     (folder / "file.txt").write_text("a file\n")
+    (folder / "badpair").mkdir()  # (a KITTI 2015 pair's files, none of them readable)
+    for name in ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"):
+        (folder / "badpair" / name).write_bytes(b"garbage")
     cases = [(script, args) for script, args, _ in BAD] + [QUICKSTART_FAILS]
     given = [(script, [a.replace(TMP, str(folder)) for a in args]) for script, args in cases]
     (tmp / "cases.json").write_text(json.dumps(given))
