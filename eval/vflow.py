@@ -282,6 +282,8 @@ def run(args: argparse.Namespace) -> int:
     # the inputs are good: an earlier run's files go (freespace.png where this run draws none,
     # DIR/vflow.json where it writes its JSON elsewhere), not to be read as this run's
     remove_outputs(args.out, figures + ["vflow.json"])
+    if args.json is not None:  # (and its JSON elsewhere: a run that stops would leave it as its own)
+        remove_outputs(args.json.parent, [args.json.name])
     # (opened after the input checks, so that an error line never prints inside the bar's line)
     bar = progress_bar(total=len(steps), enabled=not args.no_progress, desc="vflow", unit="step")
     bar.update(1)
