@@ -199,7 +199,8 @@ def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
     """The motion as a model with metric translation (``"paper"`` or ``"plane"``): a
     ``"homography"`` is decomposed with the camera's attitude, and with the fit's own camera where
     it has one (its homography is in the pixels of the images it was fitted to), else ``camera``;
-    one given by its parameters (calibrated: no resolution) is built with ``camera``."""
+    one given by its parameters (calibrated: no resolution) is built with ``camera``. (Its plane
+    gives the parallax of raised surfaces; the road is judged with the homography's own flow.)"""
     model, params = road_motion(motion, "motion")
     if model.name in ("paper", "plane"):
         return model.name, params
@@ -447,7 +448,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         flow: (B, 2, H, W) a predicted flow (pixels, t -> t+1), passed to the estimator (one start;
             its NaN or inf pixels left out of the estimator's masks, as the refiner leaves them out).
         motion: the road motion to judge with (a fit result, or a dict with a ``"model"`` key and
-            its parameters; batch 1 or B); default: estimated on the seed. Given, ``flow``,
+            its parameters; batch 1 or B; a ``"homography"`` is judged with its own flow, the plane
+            it decomposes into giving the parallax); default: estimated on the seed. Given, ``flow``,
             ``estimator``, ``odometry`` and ``starts`` (an estimate's inputs) are refused.
         estimator: the road-motion estimator (the refiner's protocol, default
             :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
@@ -572,9 +574,15 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         f, valid = road_flow(cam_l.to(torch.float64), params, (h, w), model=model)
         raised, _ = road_flow(cam_l.to(torch.float64).replace(height=cam_l.height.to(torch.float64) - min_height_m),
                               params, (h, w), model=model)
+        parallax = raised - f
+        own, own_params = road_motion(motion, "motion")
+        if own.name == "homography":  # (its own flow: the plane, with the camera's normal, only approximates it)
+            own_params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in own_params.items()}
+            f, own_valid = road_flow(cam_l.to(torch.float64), own_params, (h, w), model=own)
+            valid = valid & own_valid
         gain = getattr(motion, "extras", {}).get("gain") if hasattr(motion, "extras") else None
         gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
-        ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, (raised - f).to(work), seed_l, gain,
+        ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, parallax.to(work), seed_l, gain,
                        window=window, height_window=height_window, min_height=min_height_m, max_heights=heights,
                        trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level,
                        noise_floor=_QUANTISATION / 4 ** level)
