@@ -181,6 +181,16 @@ def test_a_homography_given_by_its_parameters(small_pair):
         refine_flow(p["flow"], "auto", p["camera"], batch_3, images=images)
 
 
+def test_a_misfit_floor_whose_square_overflows_is_flagged(small_pair):
+    """``min_misfit_px`` takes any finite number > 0: one whose square overflows the working dtype
+    (or a Python float) trusts the road model to nothing, so no window can test a height: the
+    sample is flagged (was: an OverflowError, or a RuntimeError from the clamp)."""
+    p = small_pair
+    for m in (1e20, 1e300):
+        det = detect_road(p["image1"], p["image2"], p["camera"], min_misfit_px=m)
+        assert det.flag == ["static"] and not bool(det.mask.any())
+
+
 def test_numpy_scalars_are_numbers(small_pair):
     """NumPy integers and floats (from arrays, configs) are taken as the Python numbers they are."""
     p = small_pair

@@ -316,7 +316,8 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         # adds little; the model's misfit τ: what the rest of the seed adds, per gradient energy
         noise = _median(E_s[T_s <= torch.quantile(T_s, 0.25)], 0.0) if T_s.numel() > 3 else E.new_tensor(0.0)
         hi = T_s >= _median(T_s, 0.0)
-        tau = (_median(2 * (E_s[hi] - noise) / T_s[hi], 0.0)).clamp_min(min_misfit ** 2).sqrt()
+        # (the floor as a tensor: a huge min_misfit_px is an infinite floor, no overflow error)
+        tau = torch.maximum(_median(2 * (E_s[hi] - noise) / T_s[hi], 0.0), E.new_tensor(min_misfit * min_misfit)).sqrt()
         floor = _MISFIT * tau
         Pb = P[b]
         d2 = (E[b] - noise) / (0.5 * TA[b])
