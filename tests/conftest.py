@@ -54,6 +54,21 @@ def one_thread():
     torch.set_num_threads(threads)
 
 
+
+@pytest.fixture
+def interrupted(monkeypatch) -> Callable[[object, str, Callable[[], object]], None]:
+    """``interrupted(owner, name, run)``: ``owner.name`` replaced by a function that raises
+    KeyboardInterrupt (a run interrupted there), then ``run()``, which must stop with it."""
+    def interrupt(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    def run_interrupted(owner: object, name: str, run: Callable[[], object]) -> None:
+        monkeypatch.setattr(owner, name, interrupt)
+        with pytest.raises(KeyboardInterrupt):
+            run()
+
+    return run_interrupted
+
 @pytest.fixture
 def shared_data() -> Path:
     """The folder of real KITTI samples beside the project; tests using it skip when absent."""

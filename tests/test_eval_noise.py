@@ -168,7 +168,7 @@ def test_noise_rerun_without_plots_leaves_no_plot_of_the_run_before(tmp_path):
     assert list(out.iterdir()) == [] and (tmp_path / "n.json").is_file()
 
 
-def test_noise_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
+def test_noise_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     """An earlier run's --json (elsewhere than --out) goes once the options are checked, as
     DIR/noise.json does: a run stopped during the fits left it to be read as its own."""
     from eval import noise
@@ -176,10 +176,6 @@ def test_noise_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
     path = tmp_path / "n.json"
     path.write_text('{"settings": "an earlier run"}')
 
-    def stop(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(noise, "noise_robustness", stop)
-    with pytest.raises(KeyboardInterrupt):
-        main(["noise", "--quick", "--trials", "1", "--out", str(tmp_path / "o"), "--json", str(path), "--no-progress"])
+    interrupted(noise, "noise_robustness", lambda: main(["noise", "--quick", "--trials", "1", "--out", str(tmp_path / "o"),
+                                                         "--json", str(path), "--no-progress"]))
     assert not path.exists()

@@ -185,16 +185,12 @@ def test_jobs_doc_lists_what_synth_writes(written):
     assert [n for n in written_names if f"`{n}" not in row] == []
 
 
-def test_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
+def test_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     """An earlier run's --json goes once the options are checked: a run stopped while rendering
     (an interrupt, an error) left it beside its own partial sequence, read as this run's summary."""
     path = tmp_path / "synth.json"
     path.write_text('{"preset": "an earlier run"}')
 
-    def stop(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(scene, "render_pair", stop)
-    with pytest.raises(KeyboardInterrupt):
-        main(["synth", "--pairs", "1", "--out", str(tmp_path / "s"), "--json", str(path), "--no-progress"])
+    interrupted(scene, "render_pair",
+                lambda: main(["synth", "--pairs", "1", "--out", str(tmp_path / "s"), "--json", str(path), "--no-progress"]))
     assert not path.exists()

@@ -324,7 +324,7 @@ def test_tables_quick_keeps_a_size_and_pairs_given(tmp_path, monkeypatch):
     assert settings["size"] == [32, 96] and settings["pairs"] == 1 and settings["quick"]
 
 
-def test_tables_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
+def test_tables_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     """An earlier run's --json (elsewhere than --out) goes once the options are checked, as
     DIR/tables.json does: a run stopped during the tables left it to be read as its own."""
     from eval import tables
@@ -333,11 +333,6 @@ def test_tables_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
     path.parent.mkdir()
     path.write_text('{"settings": "an earlier run"}')
 
-    def stop(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(tables, "cvc12_table", stop)
-    with pytest.raises(KeyboardInterrupt):
-        main(["tables", "--only", "cvc12", "--quick", "--out", str(tmp_path / "t"), "--json", str(path),
-              "--no-progress"])
+    interrupted(tables, "cvc12_table", lambda: main(["tables", "--only", "cvc12", "--quick", "--out", str(tmp_path / "t"),
+                                                    "--json", str(path), "--no-progress"]))
     assert not path.exists()

@@ -419,7 +419,7 @@ def test_vflow_bar_in_a_log_is_rate_limited(tmp_path, capsys):
     assert "vflow" in err and err.count("\r") <= 3, err
 
 
-def test_vflow_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
+def test_vflow_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     """An earlier run's --json (elsewhere than --out) goes once the inputs are checked, as
     DIR/vflow.json does: a run stopped during the curve fit left it to be read as its own."""
     import fsof_torch
@@ -427,11 +427,7 @@ def test_vflow_a_run_that_stops_leaves_no_earlier_json(tmp_path, monkeypatch):
     path = tmp_path / "v.json"
     path.write_text('{"curve": "an earlier run"}')
 
-    def stop(*args, **kwargs):
-        raise KeyboardInterrupt
-
-    monkeypatch.setattr(fsof_torch, "fit_vflow_curve", stop)
-    with pytest.raises(KeyboardInterrupt):
-        main(["vflow", "--flow", str(_small_flow(tmp_path)), "--out", str(tmp_path / "o"), "--json", str(path),
-              "--no-progress"])
+    flow = _small_flow(tmp_path)
+    interrupted(fsof_torch, "fit_vflow_curve", lambda: main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"),
+                                                           "--json", str(path), "--no-progress"]))
     assert not path.exists()
