@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 
 import numpy as np
 import pytest
@@ -186,21 +187,45 @@ def test_freespace_model_undefined_everywhere_is_zero():
     road = torch.zeros(1, 1, H, W, dtype=torch.bool)
     road[..., :5, :] = True
     flow = torch.randn(1, 2, H, W, dtype=torch.float64, generator=torch.Generator().manual_seed(0), requires_grad=True)
-    value = freespace_flow_loss(flow, road, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
+    with pytest.warns(RuntimeWarning, match="road: the road model is defined at none of the road pixels"):
+        value = freespace_flow_loss(flow, road, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
     value.backward()
     assert value.item() == 0.0 and torch.isfinite(flow.grad).all()
+
+
+def test_freespace_loss_warns_when_road_pixels_count_nothing():
+    """Road pixels that the model defines nowhere add 0 to the loss: odometry in millimetres (a
+    kilometre forward takes every visible road point behind the camera) and a fit that fails say
+    so; an empty mask and a sample whose road counts stay silent."""
+    cam = _camera()
+    road = torch.zeros(2, 1, H, W, dtype=torch.bool)
+    road[..., H // 2:, :] = True
+    flow = torch.zeros(2, 2, H, W, dtype=torch.float64)
+    millimetres = {"x_d": torch.tensor([0.0, 0.0]), "z_d": torch.tensor([1.0, 1000.0]), "yaw": 0.0}
+    with pytest.warns(RuntimeWarning, match="not in metres and radians") as caught:
+        value = freespace_flow_loss(flow, road, cam, millimetres, reduction="none")
+    assert len(caught) == 1 and value[0] > 0 and value[1] == 0
+    with pytest.warns(RuntimeWarning, match="a fit that failed"):
+        assert freespace_flow_loss(torch.full_like(flow, 1e4), road, cam, "fit").item() == 0.0
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        freespace_flow_loss(flow, torch.zeros_like(road), cam, millimetres)
+        freespace_flow_loss(flow, road, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
 
 
 # -- gradcheck -----------------------------------------------------------------------------------
 
 def test_gradcheck_freespace_and_smoothness():
-    cam = _camera()
+    # a 12 x 14 crop of the frame's road, below the horizon (row 18): every pixel counts
+    cam = _camera().cropped(33, 30)
     road = torch.ones(1, 1, 12, 14, dtype=torch.bool)
     # (seeded: the smoothness term's |gradient| has kinks where neighbours are equal; random
     # flows differ by far more than gradcheck's step)
     flow = torch.randn(1, 2, 12, 14, dtype=torch.float64, generator=torch.Generator().manual_seed(1), requires_grad=True)
     image = _textured(1)[..., :12, :14]
     odo = {"x_d": 0.1, "z_d": 0.5, "yaw": 0.01}
+    (grad,) = torch.autograd.grad(freespace_flow_loss(flow, road, cam, odo), flow)
+    assert (grad != 0).all()
     assert torch.autograd.gradcheck(lambda f: freespace_flow_loss(f, road, cam, odo), (flow,))
     assert torch.autograd.gradcheck(lambda f: freespace_flow_loss(f, road, cam, odo, penalty="cauchy"), (flow,))
     assert torch.autograd.gradcheck(lambda f: smoothness_loss(f, image), (flow,))
@@ -555,7 +580,8 @@ def test_fit_mode_warns_of_a_prediction_nan_on_the_whole_road():
     flow = (model + 0.3).expand(2, 2, H, W).clone()
     flow[0] = float("nan")
     n_road = int(road[0].sum())
-    with pytest.warns(RuntimeWarning, match=rf"left out of the freespace loss \(flows\[0\]: {n_road}\)"):
+    with (pytest.warns(RuntimeWarning, match="a fit that failed"),
+          pytest.warns(RuntimeWarning, match=rf"left out of the freespace loss \(flows\[0\]: {n_road}\)")):
         value = freespace_flow_loss(flow, road, cam, "fit", reduction="none")
     assert value[0].item() == 0.0 and value[1].item() > 0
     torch.testing.assert_close(value[1:], freespace_flow_loss(flow[1:], road[1:], cam, "fit", reduction="none"))

@@ -532,7 +532,8 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
 
     Returns:
         Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
-        for ``reduction="none"``; 0 for an empty mask. In the prediction's dtype, at least
+        for ``reduction="none"``; 0 for an empty mask (road pixels where the model is defined
+        nowhere: 0, with a ``RuntimeWarning`` naming ``road``). In the prediction's dtype, at least
         float32; the model flow and the penalty are computed in at least float32 whatever the
         autocast state.
 
@@ -599,7 +600,13 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             per_pixel = rho((safe - target) / scale).sum(dim=1, keepdim=True)
             total = total + w * _masked_mean(per_pixel, counted.to(work))
     if not skip_values(total, last):
-        *bad, finite_total = torch.stack([*n_bad, torch.isfinite(total).all()]).tolist()
+        # samples with road pixels of which the model defines none
+        undefined = (road.flatten(1).any(1) & ~counted_model.flatten(1).any(1)).sum()
+        *bad, n_undefined, finite_total = torch.stack([*n_bad, undefined, torch.isfinite(total).all()]).tolist()
+        if n_undefined:
+            warnings.warn("road: the road model is defined at none of the road pixels of a sample, which adds 0 to "
+                          "the freespace loss (odometry not in metres and radians, a camera that puts the road "
+                          "above the horizon, or with odometry='fit' a fit that failed)", RuntimeWarning, stacklevel=2)
         if any(bad):
             listing = ", ".join(f"flows[{i}]: {n}" for i, n in enumerate(bad) if n)
             warnings.warn(f"flows: non-finite predicted pixels inside the road mask are left out of the "
