@@ -796,6 +796,8 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(min_height_m=0.0), "min_height_m: expected a finite number > 0"),
     (dict(max_height_m=0.05), r"max_height_m: expected >= min_height_m \(0.1\)"),
     (dict(slow_max_height_m=0.2), r"slow_max_height_m: expected None or a finite number >= max_height_m \(0.3\)"),
+    (dict(max_height_m=5.0), r"slow_max_height_m: expected None or a finite number >= max_height_m \(5.0\), got 1.2 "
+                             r"\(a max_height_m above the default 1.2 needs slow_max_height_m as large, or None\)"),
     (dict(slow_max_height_m=float("nan")), "slow_max_height_m: expected None or a finite number"),
     (dict(slow_max_height_m=True), "slow_max_height_m: expected None or a finite number"),
     (dict(seed_depth_m=float("inf")), "seed_depth_m: expected a finite number > 0"),
@@ -882,6 +884,19 @@ def test_kitti_pair_road_inside_the_polygon(shared_data):
     covered = float((det.mask & poly).sum() / poly.sum())
     assert det.flag == ["ok"]
     assert inside >= 0.9 and covered >= 0.6  # measured 0.91 and 0.78 (docs/auto-road.md)
+
+
+def test_kitti_pair_with_the_pitch_far_off_is_static_and_says_the_calibration_may_be(shared_data):
+    """The shared KITTI pair moves, but with the camera's pitch given 8° off no step shows
+    parallax: flagged static, and the reason names the calibration beside a stopped vehicle."""
+    from fsof_torch.io.images import read_image
+
+    root = shared_data / "kitti15_000000"
+    im1, im2 = (read_image(root / f"image_1{i}.png")[None] for i in (0, 1))
+    cam = Camera.from_kitti(root / "calib_cam_to_cam.txt", cam=2, height=1.65, pitch=math.radians(8.0))
+    det = detect_road(im1, im2, cam)
+    assert det.flag == ["static"] and bool(det.motion.success.all())
+    assert "stopped vehicle" in det.reason[0] and "pitch or height is far off" in det.reason[0]
 
 
 def test_odometry_clip_never_empty(shared_data):

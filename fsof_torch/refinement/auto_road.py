@@ -79,6 +79,8 @@ FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
 _CORRELATION = 4.0
 # a residual motion of more than this many times the seed's typical one is never the road's
 _MISFIT = 3.0
+# detect_road's default slow_max_height_m (metres), named in its option error
+_SLOW_MAX_HEIGHT_M = 1.2
 # below this share of the seed's windows with evidence, the seed cannot be judged (flag "textureless")
 _MIN_EVIDENCE = 0.1
 # the working resolution: the coarsest level of at least this many rows (the windows, the smoothing
@@ -412,7 +414,8 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     v = options["slow_max_height_m"]
     if v is not None and (not is_number(v) or not (v < math.inf) or not v >= options["max_height_m"]):
         raise option_error(v, f"slow_max_height_m: expected None or a finite number >= max_height_m "
-                              f"({options['max_height_m']!r}), got {v!r}")
+                              f"({options['max_height_m']!r}), got {v!r} (a max_height_m above "
+                              f"the default {_SLOW_MAX_HEIGHT_M} needs slow_max_height_m as large, or None)")
     v = options["min_coverage"]
     if not is_number(v) or not (0 <= v < 1):
         raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
@@ -437,7 +440,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 motion: Any = None, estimator: Any = None, odometry: object = None, starts: Sequence[Any] = (),
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
-                max_height_m: float = 0.3, slow_max_height_m: float | None = 1.2, z: float = 2.0, window: int = 7,
+                max_height_m: float = 0.3, slow_max_height_m: float | None = _SLOW_MAX_HEIGHT_M, z: float = 2.0, window: int = 7,
                 height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01,
                 edges: bool = True, warn: bool = True) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
@@ -667,8 +670,8 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
                                   "apart for the seed, a wrong motion, or windows larger than the seed's view): "
                                   "nothing to judge the road ahead by; check the motion, or a deeper seed_depth_m")
         elif int(n_test[b]) == 0 and int(n_moved[b]) == 0:
-            flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames): the road cannot be "
-                                   "told from what stands on it")
+            flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames, or a camera whose "
+                                   "pitch or height is far off): the road cannot be told from what stands on it")
         elif float(evidence_share[b]) < _MIN_EVIDENCE:
             flag, why = "textureless", (f"only {100 * float(evidence_share[b]):.1f} % of the road ahead carries "
                                         f"evidence (dark or textureless frames)")
