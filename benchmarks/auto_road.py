@@ -350,7 +350,7 @@ def time_table(root: Path, repeat: int, turn: tuple[float, float, float] = (0.0,
 def main(argv=None) -> int:
     import cv2
 
-    from cli import description, pair_index, positive_int, present, samples_folder
+    from cli import description, pair_index, positive_int, present, reads_data, samples_folder
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -377,7 +377,8 @@ def main(argv=None) -> int:
         if not (math.isfinite(degrees) and abs(degrees) <= 30):
             print(f"{option}: expected finite degrees within ±30, got {degrees}", file=sys.stderr)
             return 2
-    data = None if args.no_real else samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP]))
+    reads = reads_data(parser, args.data, args.no_real, "--no-real")
+    data = samples_folder(parser, args.data, DEFAULT, dict([KITTI15, CLIP])) if reads else None
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
     kitti15 = clip = False

@@ -267,6 +267,14 @@ def data_folder(parser: argparse.ArgumentParser, given: Path | None, default: Pa
     return given
 
 
+def reads_data(parser: argparse.ArgumentParser, given: Path | None, skip: bool, flag: str) -> bool:
+    """Whether the real data is read: not with ``flag`` (``--no-real``, ``--skip-kitti``) set,
+    where a ``--data`` given as well would be dropped in silence (``parser.error``, exit 2)."""
+    if skip and given is not None:
+        parser.error(f"--data: {str(given)!r} is not read with {flag}; leave out one of the two")
+    return not skip
+
+
 def samples_folder(parser: argparse.ArgumentParser, given: Path | None, default: Path,
                    samples: Mapping[str, tuple[str, ...]]) -> Path:
     """The folder ``--data`` names, or ``default`` where it was not given, for a script that runs on

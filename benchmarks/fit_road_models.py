@@ -146,7 +146,7 @@ def scene_tables(pairs: list[int], size: tuple[int, int]) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import MIN_SIDE, data_folder, description, image_side, pair_index, present, readable_pair
+    from cli import MIN_SIDE, data_folder, description, image_side, pair_index, present, readable_pair, reads_data
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -157,7 +157,8 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"the synthetic pairs' size, each side {MIN_SIDE} to 16384 (default 375 1242)")
     parser.add_argument("--skip-kitti", action="store_true", help="leave out the KITTI table")
     args = parser.parse_args(argv)
-    data = None if args.skip_kitti else data_folder(parser, args.data, DEFAULT, NEED)
+    reads = reads_data(parser, args.data, args.skip_kitti, "--skip-kitti")
+    data = data_folder(parser, args.data, DEFAULT, NEED) if reads else None
     torch.set_num_threads(1)
     if data is not None and present(data, NEED, "KITTI pair kitti15_000000 (the KITTI table)"):
         if all((data / f).is_file() for f in ("image_10.png", "image_11.png")):  # (the table reads no frames)

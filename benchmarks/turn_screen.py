@@ -159,7 +159,7 @@ def table(title: str, rows: list[tuple[str, int, dict[str, list[int]]]]) -> None
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description
+    from cli import data_folder, description, reads_data
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--no-real", action="store_true", help="leave out the shared KITTI clip")
@@ -167,8 +167,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="the folder holding kitti_odometry_straight/ (default: ../shared/data beside the "
                              "repository; without the clip there, the synthetic part only)")
     args = parser.parse_args(argv)
-    data = None if args.no_real else data_folder(parser, args.data, DATA,
-                                                 tuple(f"kitti_odometry_straight/{n}" for n in CLIP))
+    reads = reads_data(parser, args.data, args.no_real, "--no-real")
+    data = data_folder(parser, args.data, DATA, tuple(f"kitti_odometry_straight/{n}" for n in CLIP)) if reads else None
     import cv2
     import real_road as rr
 

@@ -32,6 +32,7 @@ BAD = [
     ("auto_road", ["--pairs", "100000", "--no-real", "--no-slow"], "--pairs"),  # (past the renderer's MAX_FRAME)
     ("auto_road", ["--data", ABSENT, "--no-synthetic", "--no-slow"], "--data"),
     ("auto_road", ["--data", f"{TMP}/empty", "--no-synthetic", "--no-slow"], "--data"),
+    ("auto_road", ["--data", f"{TMP}/empty", "--no-real"], "is not read with --no-real"),  # (dropped in silence)
     ("bench_compile", ["--repeats", "0"], "--repeats"),
     ("bench_fit", ["--repeats", "0"], "--repeats"),
     ("bench_fit", ["--baseline", "no-such-revision"], "--baseline"),
@@ -88,6 +89,7 @@ BAD = [
     ("fit_kitti", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
+    ("fit_road_models", ["--data", f"{TMP}/empty", "--skip-kitti"], "is not read with --skip-kitti"),
     ("fit_road_models", ["--size", "0", "10"], "--size"),
     ("fit_road_models", ["--size", "1", "1"], "--size"),
     ("fit_road_models", ["--size", "16385", "16", "--skip-kitti"], "--size"),  # (the renderer raised)
@@ -131,6 +133,7 @@ BAD = [
     ("image_fit_settings", ['{"inlier_threshold": -1}'], "SETTING: inlier_threshold"),
     ("turn_screen", ["--data", ABSENT], "--data"),
     ("turn_screen", ["--data", f"{TMP}/empty"], "--data"),
+    ("turn_screen", ["--data", f"{TMP}/empty", "--no-real"], "is not read with --no-real"),
 ]
 # a failing run of the job: exits 1 naming the run (the single option passed as documented)
 QUICKSTART_FAILS = ("bench_quickstart", ["--runs", "1", "--args", "--no-such-option"])
