@@ -736,6 +736,28 @@ def test_the_refiner_fits_a_dicts_final_flow_not_its_warm_start():
     assert road_epe(out.flow["flow_final"], gt, mask) < 0.3 * road_epe(pred, gt, mask)
 
 
+@pytest.mark.parametrize("structure", ["final_init", "stack_nan"])
+def test_the_reported_weight_is_the_finest_flows_fusion(structure):
+    """RefineOutput.weight is the weight of the finest flow's fusion: once it was the weight of
+    the last full-size flow visited (a flow_init listed after flow_final). A ptlflow stack's finest
+    is a new view of the stack, found by its place (its NaN pixels replaced as a tensor's)."""
+    pred, mask, cam, _ = make_case()
+    if structure == "final_init":
+        flow, final = {"flow_final": pred, "flow_init": torch.zeros_like(pred)}, (lambda o: o["flow_final"])
+    else:
+        pred = pred.clone()
+        pred[..., 30:34, 50:60] = float("nan")  # inside the mask
+        flow, final = {"flows": torch.stack([torch.zeros_like(pred), pred], 1)}, (lambda o: o["flows"][:, -1])
+    for mode in ("replace", "confidence"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)
+            alone = refine_flow(pred, mask, cam, ODO, mode=mode)
+            out = refine_flow(flow, mask, cam, ODO, mode=mode)
+        assert torch.equal(final(out.flow).nan_to_num(-99.0), alone.flow.nan_to_num(-99.0))
+        assert torch.equal(out.weight, alone.weight), mode
+        assert torch.equal(out.mask, alone.mask)
+
+
 # -- options and helpers: named errors quoting what came ----------------------------------------------
 
 @pytest.mark.parametrize("options, error, message", [

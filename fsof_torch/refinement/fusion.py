@@ -341,7 +341,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if not flows:
         raise ValueError(f"flow: no flow found in the {type(flow).__name__}; expected a value under "
                          f"one of the keys {flow_keys} (set flow_keys)")
-    _, finest = finest_flow(flows)
+    finest_name, finest = finest_flow(flows)
     B, _, H, W = finest.shape
     for name, f in flows:
         if f.shape[0] != B:
@@ -510,13 +510,22 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     weights: dict[tuple[int, int], Tensor] = {}
     evidence = gate_result.evidence if gate_result is not None and mode == "confidence" else None
 
+    # the finest flow's place among the flows map_flows visits (collect_flows' order, a stack's
+    # predictions one by one; a stack's last is a new view, not the object finest_flow gave): its
+    # fusion is the one the gate decided and the one whose weight is reported
+    ends = torch.tensor([f.shape[1] if f.dim() == 5 else 1 for _, f in flows]).cumsum(0).tolist()
+    finest_visit = ends[[name for name, _ in flows].index(finest_name)] - 1
+    visits = [0]
+
     def refine_one(f: Tensor) -> Tensor:
+        is_finest = visits[0] == finest_visit
+        visits[0] += 1
         size = (f.shape[-2], f.shape[-1])
         f_model, valid = model_flow(size)
         if size not in masks:
             masks[size] = resize_mask(gated, size) & valid
         m = masks[size]
-        if f is finest:
+        if is_finest:
             m = fuse_mask
         elif gate_result is not None and (skip_values(f) or not bool(torch.isfinite(f.detach().sum()))):
             # this level's own non-finite pixels, where the gate keeps the prediction (see above)
@@ -527,15 +536,13 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         c = scale * math.sqrt(size[0] * size[1] / (H * W))
         ev = None if evidence is None else (evidence if size == (H, W) else F.interpolate(evidence, size=size, mode="area"))
         # (the finiteness test above covered the finest prediction itself, not the other levels)
-        out, w = _fuse(f, f_model, m, mode, c, all_finite=all_finite and f is finest, evidence=ev)
-        if size == (H, W):
+        out, w = _fuse(f, f_model, m, mode, c, all_finite=all_finite and is_finest, evidence=ev)
+        if is_finest:
             weights[size] = w
         return out
 
     refined_flow = map_flows(flow, refine_one, flow_keys)
-    weight = weights.get((H, W))
-    if weight is None:  # pragma: no cover - the finest level is always visited
-        weight = fuse_mask.to(finest.dtype)
+    weight = weights[(H, W)]  # (the finest is always visited)
     odo = {k: torch.where(refined, v, torch.zeros_like(v)) for k, v in odo.items()}  # (0 where not refined)
     return RefineOutput(refined_flow, odo, fit_result, weight, fuse_mask, refined, cam_model, f_model_finest,
                         motion_model, gate_result)
