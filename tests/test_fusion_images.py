@@ -390,3 +390,25 @@ def test_the_image_estimator_and_the_gate_compare_the_frames_grey_converted_once
 
     _quiet(FreespaceRefiner(estimator=Other()), *args, images=(i1, i2))
     assert seen[4] == (1, 3, *SIZE)
+
+
+@pytest.mark.parametrize("rows, cols", [(slice(60, 61), slice(0, 320)), (slice(40, 96), slice(100, 101)),
+                                        (slice(60, 61), slice(100, 101))])
+def test_frames_of_one_row_or_column_give_the_image_fit_nothing(scene, rows, cols):
+    """Once a ValueError quoting a grey 'image1' the caller never gave (the image fit's 2 x 2
+    minimum), and only where the image estimator ran: with odometry, or with 100 mask pixels or
+    more. The estimate fails instead: the odometry alone, or the sample left unchanged."""
+    box = (..., rows, cols)
+    pred = scene["pred"][box].contiguous()
+    images = tuple(scene[k][None][box].contiguous() for k in ("image1", "image2"))
+    camera = scene["camera"].cropped(cols.start, rows.start)
+    mask = torch.ones(1, 1, *pred.shape[-2:], dtype=torch.bool)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        alone = FreespaceRefiner(gate=None)(pred, mask, camera, scene["odometry"])
+        held = FreespaceRefiner(gate=None)(pred, mask, camera, scene["odometry"], images=images)
+        estimated = FreespaceRefiner()(pred, mask, camera, images=images)
+        gated = FreespaceRefiner()(pred, mask, camera, scene["odometry"], images=images)
+    assert held.refined.tolist() == [True] and held.fit is None and torch.equal(held.flow, alone.flow)
+    assert estimated.refined.tolist() == [False] and torch.equal(estimated.flow, pred)
+    assert gated.refined.tolist() == [False] and torch.equal(gated.flow, pred)  # (no evidence in such frames)

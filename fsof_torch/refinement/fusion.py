@@ -416,8 +416,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         given, odo = road_motion_batch(odometry, B, geo_dtype, device)
         motion_model = given.name
     if estimating:
-        est = _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
-                        starts=starts, all_finite=all_finite, warn=warn, pixels=pixels)
+        # frames of one row or one column hold nothing the image fit can use (its pyramid and image
+        # gradients need 2 x 2 pixels): its estimate fails there, as on an empty mask
+        flat = images is not None and min(H, W) < 2 and isinstance(chosen, ImageMotionEstimator)
+        est = None if flat else _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
+                                          starts=starts, all_finite=all_finite, warn=warn, pixels=pixels)
         if est is not None:
             fit_result, ok, values, est_model, est_camera = est
             if odometry is None:
