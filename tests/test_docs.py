@@ -88,6 +88,16 @@ PAGE_PRELUDE = {
     "contracts.md": """
 from fsof_torch.training.standins import ptlflow_raft
 torch.save({"state_dict": ptlflow_raft().state_dict(), "epoch": 1}, "raft-things.ckpt")
+class _PWCLite(torch.nn.Module):  # ARFlow's call: model(torch.cat([image1, image2], 1)) on 0..1
+    def __init__(self):
+        super().__init__()
+        self.raft = fs.TinyRAFT(seed=0, iters=2)
+
+    def forward(self, x, with_bk=False):
+        assert x.shape[1] == 6 and x.shape[-2] % 64 == x.shape[-1] % 64 == 0 and 0 <= x.min() <= x.max() <= 1
+        f = self.raft(x[:, :3] * 255, x[:, 3:] * 255)[-1]
+        return {"flows_fw": [f, torch.nn.functional.avg_pool2d(f, 2) / 2]}
+arflow = _PWCLite()
 """,
     "data-formats.md": """
 open("lanes.json", "w").write("[[[0, 374], [300, 250], [500, 374]], [[700, 374], [800, 260], [1000, 374]]]")

@@ -234,3 +234,49 @@ def test_pad_gives_the_fit_on_the_input_grid():
     assert bool(m.any())
     torch.testing.assert_close(moved[:, m].float(), info.flow_model[0][:, m], rtol=0, atol=1e-3)
     torch.testing.assert_close(fit.flow[0][:, m], info.flow_model[0][:, m], rtol=0, atol=1e-4)
+
+
+class PWCLiteLike(nn.Module):
+    """ARFlow's PWC-Lite contract: ``model(torch.cat([image1, image2], 1), with_bk=False)`` on 0..1,
+    sides divisible by 64; ``{"flows_fw": [finest, ...]}`` (and ``"flows_bw"`` with ``with_bk``)."""
+
+    def __init__(self, pred: torch.Tensor) -> None:
+        super().__init__()
+        self.pred = pred
+
+    def forward(self, x, with_bk=False):
+        assert x.shape[1] == 6 and x.shape[-2] % 64 == x.shape[-1] % 64 == 0 and 0 <= x.min() <= x.max() <= 1
+        dh, dw = x.shape[-2] - self.pred.shape[-2], x.shape[-1] - self.pred.shape[-1]
+        flow = F.pad(self.pred, (dw // 2, dw - dw // 2, dh // 2, dh - dh // 2), mode="replicate")
+        out = {"flows_fw": [flow, F.avg_pool2d(flow, 2) / 2]}
+        if with_bk:
+            out["flows_bw"] = [-flow]
+        return out
+
+
+class TwoFrames(nn.Module):  # (the adapter of docs/contracts.md)
+    def __init__(self, net: nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, image1, image2, **kw):
+        return self.net(torch.cat([image1, image2], 1) / 255.0, **kw)
+
+
+def test_arflows_call_needs_the_two_frame_adapter_the_docs_give(wide):
+    """The wrapper calls net(image1, image2): ARFlow's PWC-Lite takes the pair as one tensor on
+    0..1 (the docstring once listed it among the nets called with two images)."""
+    net = PWCLiteLike(wide["pred"])
+    args = (wide["image1"], wide["image2"])
+    kw = dict(camera=wide["camera"], mask=wide["road"], odometry=wide["odometry"])
+    with pytest.raises(AssertionError):  # (two images, 0..255: not its call)
+        FreespaceRefined(net, pad=InputPadder(64))(*args, **kw)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out, info = FreespaceRefined(TwoFrames(net), pad=InputPadder(64))(*args, with_bk=True, return_info=True, **kw)
+    assert info.refined.tolist() == [True]
+    fw, bw = out["flows_fw"][0], out["flows_bw"][0]
+    assert fw.shape == bw.shape == wide["pred"].shape and out["flows_fw"][1].shape[-2:] == (64, 224)
+    outside = ~info.mask.expand_as(fw)
+    assert torch.equal(fw[outside], wide["pred"][outside]) and not torch.equal(fw, wide["pred"])
+    assert torch.equal(bw, -wide["pred"])  # (backward flows come back as the network's)

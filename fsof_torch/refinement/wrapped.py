@@ -30,8 +30,9 @@ class FreespaceRefined(nn.Module):
     Args:
         net: a flow network, called as it expects to be called (see
             :mod:`fsof_torch.refinement.contracts`): ``net(image1, image2, **kw)`` (RAFT,
-            torchvision's RAFT, TinyRAFT, ARFlow) or ``net(inputs, **kw)`` with ptlflow's input
-            dict. It may return any structure :func:`refine_flow` accepts whose finest flow has the
+            torchvision's RAFT, TinyRAFT) or ``net(inputs, **kw)`` with ptlflow's input dict
+            (ARFlow's PWC-Lite, which takes the pair concatenated, ``net(torch.cat([image1,
+            image2], 1))`` on 0..1, needs a two-image adapter: docs/contracts.md). It may return any structure :func:`refine_flow` accepts whose finest flow has the
             (padded) input's size and batch: a net that returns only a coarser flow (PWC-Net's 1/4),
             or another batch than the images', raises a ValueError naming ``net`` after it ran;
             upsample its flow to the input's size first.
