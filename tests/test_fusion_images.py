@@ -174,6 +174,17 @@ def test_odometry_of_samples_left_unrefined_is_zero(scene):
     assert float(out.odometry["z_d"][0]) > 0.5
 
 
+def test_the_fit_covers_the_estimated_samples_not_the_refined_ones(scene):
+    """RefineOutput.fit holds every estimated sample, a failed one too (the docstring once said
+    that ``refined`` tells which samples it covers)."""
+    pred, road, i1, i2 = _two(scene)  # (the second's image 2 black: its estimate fails)
+    pred, road, i1, i2 = (torch.cat([t, t[:1]]) for t in (pred, road, i1, i2))
+    road[2] = False  # (not estimated)
+    out = _quiet(FreespaceRefiner(), pred, road, scene["camera"], images=(i1, i2))
+    assert out.refined.tolist() == [True, False, False]
+    assert out.fit.success.tolist() == [True, False]
+
+
 @pytest.mark.parametrize("mode", ["replace", "confidence"])
 def test_fuse_flow_weight_has_the_flows_batch(mode):
     """A mask of batch 1 is broadcast: the weight is (B, 1, H, W) in both modes, as documented."""

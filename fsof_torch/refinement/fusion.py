@@ -70,9 +70,13 @@ class RefineOutput(NamedTuple):
         odometry: the road motion used, a dict of its model's parameters (``model`` names the
             model), (B,) tensors: the caller's, or the estimated ones (0 for samples that were
             not refined): the ``"plane"`` model's eight with images, the paper's ``x_d, z_d``
-            (metres), ``yaw`` (radians) fitted to the flow without them.
-        fit: the :class:`fsof_torch.fit.FitResult` when ego-motion was fitted, else None. With
-            some masks empty it covers only the other samples (``refined`` says which).
+            (metres), ``yaw`` (radians) fitted to the flow without them (with the camera's
+            ``roll`` and ``pitch``, which that model also has).
+        fit: the :class:`fsof_torch.fit.FitResult` when ego-motion was fitted, else None. It
+            covers the samples that were estimated, in batch order: those with at least
+            ``min_pixels`` usable mask pixels (with odometry, one mask pixel). ``refined`` does not
+            say which: it is also False for an estimated sample whose estimate failed or whose
+            model the gate refused.
         weight: (B, 1, H, W) the model's weight at the finest resolution: 1 where the model
             replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
