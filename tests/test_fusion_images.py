@@ -264,6 +264,28 @@ def test_an_estimator_result_without_a_flow_of_this_size(scene):
         torch.testing.assert_close(out.flow, reference.flow, atol=2e-3, rtol=0)
 
 
+def test_a_custom_estimators_flow_field_is_not_taken_for_the_model_flow(scene):
+    """A result that is no RoadFit, with a full-size ``flow`` and ``valid`` of its own meaning (here
+    the flow and mask it was given), once replaced the model flow: the prediction came back as the
+    'refined' flow. Only a RoadFit's flow is its model flow; another result's motion is evaluated."""
+    from types import SimpleNamespace
+
+    from fsof_torch.estimation.flow_fit import fit_road
+
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    exact = fit_road(scene["flow"][None], road & scene["valid"][None], cam, model="paper")
+
+    def echoing(flow, mask, camera, **_):
+        return SimpleNamespace(model="paper", params=exact.params, success=exact.success, camera=exact.camera,
+                               flow=flow.clone(), valid=mask.clone())
+
+    reference = FreespaceRefiner(gate=None)(pred, road, cam, exact)
+    out = _quiet(FreespaceRefiner(estimator=echoing, gate=None), pred, road, cam)
+    assert bool(out.refined.all()) and not torch.equal(out.flow, pred)
+    torch.testing.assert_close(out.flow, reference.flow, atol=2e-3, rtol=0)
+    torch.testing.assert_close(out.flow_model, reference.flow_model, atol=2e-3, rtol=0)
+
+
 def test_images_of_another_channel_count_and_a_ptlflow_dict_are_named(scene):
     """RGB beside grey failed inside the estimator as 'image2'; a ptlflow dict given as images= was
     named 'inputs'."""

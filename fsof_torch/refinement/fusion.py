@@ -37,6 +37,7 @@ from .._check import (batch_choices, check_float_tensor, check_has_values, check
                       check_size, is_number, known_finite, known_images, option_error, result_dtype, skip_values,
                       to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
+from ..estimation.flow_fit import RoadFit
 from ..estimation.robust import check_scale
 from ..estimation.sampling import reused_mask_pixels
 from ..evaluation.photometric import to_grey
@@ -452,14 +453,15 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     def usable(m: Tensor, ok: Tensor) -> Tensor:
         return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
-    fit_flow, fit_valid = getattr(fit_result, "flow", None), getattr(fit_result, "valid", None)
+    # (a RoadFit's flow is its model flow; another result's "flow" may be anything: the input's)
+    fit_flow, fit_valid = (fit_result.flow, fit_result.valid) if isinstance(fit_result, RoadFit) else (None, None)
     if (reuse_fit_flow and isinstance(fit_flow, Tensor) and tuple(fit_flow.shape) == (B, 2, H, W)
             and isinstance(fit_valid, Tensor) and tuple(fit_valid.shape) == (B, 1, H, W)
             and not _needs_grad(cam_model) and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
         # The estimate evaluated this very model flow at the finest size (same parameters): reuse
         # it instead of a second full-size evaluation. Not when the camera or the odometry carries
         # a graph: then the model flow must be differentiable with respect to it.
-        # (an estimator's result need not hold a flow, nor one of this size: then it is computed)
+        # (a custom estimator's result need not be a RoadFit, nor its flow of this size: then it is computed)
         cache[(H, W)] = (fit_flow.to(device=device, dtype=geo_dtype), fit_valid.to(device))
 
     def model_flow(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
