@@ -280,3 +280,20 @@ def test_arflows_call_needs_the_two_frame_adapter_the_docs_give(wide):
     outside = ~info.mask.expand_as(fw)
     assert torch.equal(fw[outside], wide["pred"][outside]) and not torch.equal(fw, wide["pred"])
     assert torch.equal(bw, -wide["pred"])  # (backward flows come back as the network's)
+
+
+@pytest.mark.parametrize("odometry, message", [
+    ({"model": "velocity", "speed": 12.0}, "odometry: the 'velocity' model gives flow in px/s"),
+    ({"x_d": 0.0, "z_d": 1.2}, r"odometry: missing keys \['yaw'\]"),
+    ({"x_d": 0.0, "z_d": float("nan"), "yaw": 0.0}, r"odometry\['z_d'\]: expected finite"),
+    ({"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}, r"odometry\['z_d'\]: expected a float or a tensor of shape .*"
+                                                     r"\(the images' batch\), got shape \(3,\)"),
+])
+def test_a_bad_odometry_is_named_before_the_network_runs(wide, odometry, message):
+    """As the mask and the camera: a network's forward pass (seconds at KITTI size) once ran before
+    the refiner refused the odometry."""
+    net = Net(wide["pred"])
+    model = FreespaceRefined(net, pad=InputPadder(8))
+    with pytest.raises(ValueError, match=message):
+        model(wide["image1"], wide["image2"], camera=wide["camera"], mask=wide["road"], odometry=odometry)
+    assert net.calls == 0

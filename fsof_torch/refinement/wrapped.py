@@ -15,6 +15,7 @@ from torch import Tensor, nn
 from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, skip_values
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
+from ..geometry.road_models import road_motion_batch
 from .auto_refine import refine_with_auto_road
 from .auto_road import ROAD_RESERVED, detect_road
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
@@ -64,7 +65,7 @@ class FreespaceRefined(nn.Module):
     forward flows refined (same structure), or ``(output, RefineOutput)`` with
     ``return_info=True``. The mask (B, 1, H, W) bool (batch 1 broadcasts) and the camera refer to
     the input images' size; both are checked against the images as they came, before the network
-    runs (errors quote the caller's shapes, not the padded ones). With ``pad`` the RefineOutput's
+    runs (errors quote the caller's shapes, not the padded ones), as is ``odometry``. With ``pad`` the RefineOutput's
     maps (also the gate's and the found road's masks) are cropped to the input size and its camera
     is the input's (the padding undone); so is a :class:`~fsof_torch.estimation.flow_fit.RoadFit`
     in ``fit``: its maps (``flow``, ``valid``, ``inliers``) cropped, its camera the input's, its
@@ -140,6 +141,9 @@ class FreespaceRefined(nn.Module):
         if not ptlflow:  # (ptlflow's dict was checked above: BGR in [0, 1])
             for name, im in (("image1", image1), ("image2", image2)):
                 _check_image_range(im, name, self.image_range)
+        if odometry is not None:  # (its form, batch and values, as the refiner will check them)
+            road_motion_batch(odometry, B, torch.float64, image1.device, batch_of="the images' batch",
+                              displacement=True)
         padding = self.pad.padding(size) if self.pad is not None else None
         if ptlflow:
             if padding is not None:
