@@ -78,10 +78,12 @@ class RefineOutput(NamedTuple):
             ``min_pixels`` usable mask pixels (with odometry, one mask pixel). ``refined`` does not
             say which: it is also False for an estimated sample whose estimate failed or whose
             model the gate refused.
-        weight: (B, 1, H, W) the model's weight at the finest resolution: 1 where the model
-            replaced the prediction, 0 where the prediction was kept (always 0 outside the mask).
+        weight: (B, 1, H, W) the model's weight in the finest flow's fusion: 1 where the model
+            replaced the prediction, 0 where the prediction was kept (always 0 outside the mask);
+            with ``mode="confidence"`` the blend's weight in [0, 1].
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
-            ∩ model defined, for refined samples).
+            ∩ model defined, in refined samples, where the gate uses the model or the prediction
+            is not finite).
         refined: (B,) bool, False for samples left unchanged (an empty mask, one where the model is
             undefined, a failed fit, a model the images give no evidence for, a gate that keeps the
             prediction everywhere: see ``gate``).
