@@ -699,3 +699,17 @@ def test_census_ignores_gain_bias_and_increasing_grey_changes_not_per_channel_on
     doc = " ".join(module.__doc__.split())
     assert "any monotonic change of brightness" not in doc
     assert "gain and bias" in doc and "strictly increasing change of the grey image" in doc
+
+
+@pytest.mark.parametrize("kind", KINDS)
+def test_images_without_channels_are_refused_not_scored(kind):
+    """Images of shape (B, 0, H, W) have nothing to compare: the L1 and soft census errors were
+    NaN, the census distance a perfect 0.0 over every pixel and SSIM a RuntimeError from inside
+    torch; each now raises a ValueError naming image1, as to_grey and census_transform do."""
+    empty, flow = torch.zeros(1, 0, 8, 8), torch.zeros(1, 2, 8, 8)
+    with pytest.raises(ValueError, match=r"image1: expected shape \(B, C, H, W\) with C >= 1, got \(1, 0, 8, 8\)"):
+        photometric_error(empty, empty, flow, kind=kind)
+    with pytest.raises(ValueError, match=r"image: expected shape \(B, C, H, W\) with C >= 1"):
+        to_grey(empty)
+    with pytest.raises(ValueError, match=r"image: expected shape \(B, C, H, W\) with C >= 1"):
+        census_transform(empty)

@@ -81,7 +81,7 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
     """
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
-    dims = check_shape(image, "image", ("B", "C", "H", "W"))
+    dims = check_shape(image, "image", ("B", "C", "H", "W"), nonempty=("C", "H", "W"))  # (no channel: no grey)
     grad = torch.is_grad_enabled() and image.requires_grad
     if out is not None and grad:
         raise ValueError("out: not supported for an image that requires grad")
@@ -128,7 +128,7 @@ def census_transform(image: Tensor, *, radius: int = 3, data_range: float = 255.
         border offsets compare real pixels.
     """
     check_float_tensor(image, "image")
-    check_shape(image, "image", ("B", "C", "H", "W"))
+    check_shape(image, "image", ("B", "C", "H", "W"), nonempty=("C", "H", "W"))
     radius = check_int(radius, "radius", minimum=1)
     data_range = check_data_range(data_range)
     # At least float32, also under autocast: the comparisons of near-equal grey levels are the
@@ -169,7 +169,9 @@ def _check_inputs(image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | N
     check_float_tensor(image1, "image1")
     check_float_tensor(image2, "image2")
     check_float_tensor(flow, "flow")
-    dims = check_shape(image1, "image1", ("B", "C", "H", "W"))
+    # (an image without channels has no value to compare: its L1 and soft census were NaN, its
+    # census distance a perfect 0.0 over every pixel)
+    dims = check_shape(image1, "image1", ("B", "C", "H", "W"), nonempty=("C", "H", "W"))
     check_shape(image2, "image2", ("B", "C", "H", "W"), dims)
     check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
     if mask is not None:
