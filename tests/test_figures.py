@@ -569,3 +569,45 @@ def test_pair_figure_checks_max_flow_before_a_figure_is_opened(max_flow, error, 
         pair_figure(flows={"before": flow}, errors={"before": (err, valid)}, road=road, max_flow=max_flow,
                     error_vmax=1.0, error_label="epe (px)", title="t")
     assert plt.get_fignums() == open_before
+
+
+def test_pair_figure_draws_sparse_ground_truth_reduced_not_hidden():
+    """A wide frame is drawn reduced (a KITTI frame by 3): a drawn pixel had no value when any
+    pixel it covers had none, so sparse ground truth (KITTI's laser lines: 39 % of a road's pixels
+    valid, under 3 % of its 3 x 3 blocks entirely) came out almost all grey. A drawn pixel now
+    shows the mean of the valid pixels it covers, in the error row and in the flow row (a valid
+    map given); it has no value where none is valid, or where a valid pixel's value is not finite."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    Hk, Wk = 12, 960  # reduced by 3 (a panel is about 320 px wide)
+    g = torch.Generator().manual_seed(1)
+    flow = torch.randn(2, Hk, Wk, generator=g) * 2
+    err = torch.rand(1, Hk, Wk, generator=g) * 4
+    valid = torch.zeros(1, Hk, Wk, dtype=torch.bool)
+    valid[0, ::3] = True                 # every third row valid: no 3 x 3 block entirely
+    valid[0, :, 600:] = False            # none valid here
+    err[0, 3, 0], flow[0, 3, 3] = float("nan"), float("inf")  # valid pixels without a value
+    err[0, 1, 300] = float("nan")        # invalid: ignored
+    road = torch.zeros(1, Hk, Wk, dtype=torch.bool)
+    road[0, 6:, 100:800] = True
+    fig = pair_figure(flows={"f": flow}, errors={"f": (err, valid)}, road=road, max_flow=4.0, error_vmax=5.0,
+                      error_label="end-point error (px)", title="t", valid=valid)
+    try:
+        flow_ax, error_ax = (next(ax for ax in _image_axes(fig) if ax.get_title() == t)
+                             for t in ("flow, f", "end-point error, f"))
+        shown = np.ma.filled(error_ax.get_images()[0].get_array(), np.nan)
+        assert shown.shape == (4, 320)
+        has = ~np.isnan(shown)
+        assert has[:, 1:200].all() and not has[:, 200:].any() and not has[1, 0] and has[0, 0]
+        # the mean of the valid pixels of a 3 x 3 block: row 0 of the block
+        block = err[0, 3:6, 30:33]
+        assert shown[1, 10] == pytest.approx(float(block[0].double().mean()), rel=1e-9)
+        assert shown[0, 100] == pytest.approx(float(err[0, 0, 300:303].double().mean()), rel=1e-9)
+        rgb = flow_ax.get_images()[0].get_array()
+        grey = (rgb == np.array([128, 128, 128], dtype=np.uint8)).all(axis=-1)
+        assert grey[:, 200:].all() and grey[1, 1] and not grey[1, 0] and not grey[:, 2:200].any()
+        mean = flow[:, 3:6, 30:33][:, 0].double().mean(dim=1).view(2, 1, 1)
+        assert rgb[1, 10].tolist() == flow_to_color(mean, 4.0)[0, :, 0, 0].tolist()
+    finally:
+        plt.close(fig)
