@@ -238,6 +238,20 @@ def test_error_to_color_uses_colormap_ends():
     np.testing.assert_array_equal(rgb[4], [128, 128, 128])    # non-finite: no value, mid grey
 
 
+@pytest.mark.parametrize("vmax", [1e-50, 1e40])
+def test_error_to_color_takes_any_finite_positive_vmax(vmax):
+    """vmax is any finite number > 0, but a float32 error map failed outside float32's range: 1e40
+    raised a RuntimeError from inside the clamp, 1e-50 (0 in float32) gave 0 / 0 = NaN and an
+    IndexError from the colour table. Both now map 0 to the first colour and vmax to the last."""
+    import cv2
+
+    lut = cv2.applyColorMap(np.arange(256, dtype=np.uint8).reshape(256, 1), cv2.COLORMAP_INFERNO)[:, 0, ::-1]
+    # (float32 errors: 3e38 is 0.03 of 1e40, round(0.03 * 255) = 8; 1e-30 is far above 1e-50)
+    err, top = (torch.tensor([[0.0, 3e38]]), 8) if vmax > 1 else (torch.tensor([[0.0, 1e-30]]), 255)
+    rgb = error_to_color(err, vmax)[0, :, 0].T.numpy()
+    np.testing.assert_array_equal(rgb, np.stack([lut[0], lut[top]]))
+
+
 def test_error_to_color_draws_no_value_apart_from_zero():
     """Invalid and non-finite pixels were black, which reads as inferno's 0 (0, 0, 3): they are
     mid grey (NO_VALUE_RGB), a colour the map lacks, whatever the error under them."""

@@ -194,7 +194,10 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
         check_shape(valid, "valid", tuple(error.shape))
         check_same_device({"error": error, "valid": valid})
         ok = ok & valid
-    e = torch.where(ok, error.detach().float(), torch.zeros((), device=error.device))
+    # (in float64 where the device has it: in float32 a vmax beyond its range raised in the clamp,
+    # and one below its smallest number divided 0 by 0 into a NaN index)
+    work = torch.float32 if error.device.type == "mps" else torch.float64
+    e = torch.where(ok, error.detach().to(work), torch.zeros((), dtype=work, device=error.device))
     index = torch.round(e.clamp(0, float(vmax)) / float(vmax) * 255.0).long()
     lut = _colormap_lut(colormap).to(error.device)
     rgb = lut[index.squeeze(1)].permute(0, 3, 1, 2)
