@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
@@ -93,6 +94,9 @@ def test_bad_mode():
         WarpBackward(mode="area")
     with pytest.raises(TypeError, match="^align_corners: expected True or False, got str 'x'$"):
         WarpBackward(align_corners="x")  # (when built, not at its first forward)
+    # the function says what came as the module does: a NumPy bool was "expected a bool, got bool"
+    with pytest.raises(TypeError, match=r"^align_corners: expected True or False, got bool np\.True_$"):
+        warp_backward(_image(), _flow(), align_corners=np.True_)
 
 
 def test_nan_flow_rejected():

@@ -168,8 +168,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
     if padding_mode not in _PADDING:
         raise ValueError(f"padding_mode: expected one of {_PADDING}, got {padding_mode!r}")
-    if not isinstance(align_corners, bool):
-        raise TypeError(f"align_corners: expected a bool, got {type(align_corners).__name__}")
+    check_bool(align_corners, "align_corners")  # (the module's message: "got bool np.True_", not "got bool")
     check_finite(image, "image")
     check_finite(flow, "flow")
 
