@@ -777,3 +777,27 @@ def test_the_gates_evidence_map_is_returned_as_made():
               and list(e.input_shapes[0]) == [1, 1, 96, 320]]
     assert len(clones) <= 1  # (the decision map's bool copy at most)
     assert not result.evidence.is_inference() and result.evidence.shape == (1, 1, 96, 320)
+
+
+def test_census_ring_distance_under_exposure_changes_on_a_real_road(shared_data, kitti15_ground_truth):
+    """What the census module says of exposure: an offset or a brightening gain leaves the distance
+    of the exact (here: zero) flow at 0 (up to rounding), but a darkening gain g < 1 does not, as the threshold
+    applies in image 2 too: differences in (2, 2 / g] grey levels of image 1 fall to 2 or below.
+    On the road of the real KITTI frame 000000_10 (grey from RGB, every 7th road pixel) the
+    distance at g = 0.8 is 0.1 or more, at g = 0.5 a third or more."""
+    from fsof_torch.evaluation.photometric import to_grey
+    from fsof_torch.io import read_image
+
+    _, _, _, road = kitti15_ground_truth
+    grey = to_grey(read_image(shared_data / "kitti15_000000" / "image_10.png")[None])
+    y, x = road[0, 0].nonzero().T[:, ::7].double()
+    flow = torch.zeros(1, 2, x.numel())
+
+    def distance(image2):
+        d, _, ok = census_ring_distance(grey, image2, x[None], y[None], flow)
+        return float(d[ok].mean())
+
+    # (not exactly 0: image 2's samples at float32 grid positions move a difference just above
+    # the threshold to it now and then, 1e-4 of the neighbours)
+    assert max(distance(grey), distance(grey + 30.0), distance(grey * 1.3)) < 1e-3
+    assert 0.1 <= distance(grey * 0.8) <= 0.2 and distance(grey * 0.5) >= 0.33

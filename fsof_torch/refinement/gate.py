@@ -3,7 +3,8 @@ at least as well.
 
 Once the road model's flow is known, both it and the network's prediction are judged by how well
 they explain the two images, per sample and per local region of the mask (a grid of cells). The
-judge is a census distance (DESIGN.md §6), indifferent to exposure changes between the frames:
+judge is a census distance (DESIGN.md §6), indifferent to offsets and brightening between the
+frames (not to a darkening: :mod:`~fsof_torch.evaluation.census`):
 at an even subsample of the mask's pixels, the order of the pixel against a ring of 16 neighbours
 at radius 3 in image 1, against the same order in image 2 at the flow's end point (bilinear). Only
 neighbours whose order is clear in image 1 count (a ternary census): weak texture, where a wrong
