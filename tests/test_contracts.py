@@ -8,6 +8,7 @@ from typing import NamedTuple
 
 import numpy as np
 import pytest
+import re
 import warnings
 
 import torch
@@ -172,6 +173,16 @@ class TestPadding:
         assert torch.equal(y[..., 0, 0], x[..., 0, 0])  # replicated corner
         m = p.pad(torch.ones(1, 1, 5, 7, dtype=torch.bool))
         assert m.dtype == torch.bool and int(m.sum()) == 35
+
+    @pytest.mark.parametrize("mode", ["replicate", "reflect", "constant"])
+    @pytest.mark.parametrize("shape", [(2, 3, 0, 45), (2, 3, 33, 0), (0, 7)])
+    def test_pad_refuses_an_image_without_pixels(self, mode, shape):
+        """An image without rows or columns raised torch's RuntimeError from inside F.pad
+        (replicate), or came back as a made-up image of zeros (constant)."""
+        with pytest.raises(ValueError, match=rf"^x: expected an image with H, W >= 1, got shape {re.escape(str(shape))}$"):
+            Padding(1, 2, 3, 4).pad(torch.zeros(shape), mode=mode)
+        with pytest.raises(ValueError, match=r"^x: expected an image with H, W >= 1"):
+            Padding().pad(torch.zeros(shape), mode=mode)
 
     def test_unpad_checks_its_input(self):
         """A tensor no larger than the padding was cropped to an empty one without a word."""

@@ -310,13 +310,16 @@ class Padding:
         """Pad the last two dimensions of ``x`` (H, W) with any leading dimensions: none, (C, H, W),
         (B, C, H, W), ptlflow's (B, 2, 3, H, W). ``mode``: ``"replicate"`` (RAFT's, for images),
         ``"reflect"`` (a side padded by less than the image's size there, else a ValueError) or
-        ``"constant"`` (zeros); a bool mask is always padded with False."""
+        ``"constant"`` (zeros); a bool mask is always padded with False. An image without rows or
+        columns (H or W 0) is a ValueError naming ``x``."""
         if mode not in PAD_MODES:
             raise ValueError(f"mode: expected one of {PAD_MODES}, got {mode!r}")
         if not isinstance(x, Tensor):
             raise TypeError(f"x: expected a tensor (..., H, W), got {type(x).__name__}")
         if x.dim() < 2:
             raise ValueError(f"x: expected at least 2 dimensions (..., H, W), got shape {tuple(x.shape)}")
+        if min(x.shape[-2:]) < 1:  # (no pixel to replicate or reflect, nor an image to pad with zeros)
+            raise ValueError(f"x: expected an image with H, W >= 1, got shape {tuple(x.shape)}")
         if self.is_zero:
             return x
         pads = (self.left, self.right, self.top, self.bottom)
