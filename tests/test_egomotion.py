@@ -109,6 +109,15 @@ def test_pose_batch():
         ego_motion_from_pose(Ts, cam.expand(2))
 
 
+def test_pose_empty_batch_refused_with_or_without_a_camera():
+    """Without a camera an empty batch of poses gave an empty EgoMotion, where relative_pose,
+    plane_from_pose and the same call with a camera raise."""
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.02)
+    for args in ((), (cam,)):
+        with pytest.raises(ValueError, match=r"^cam1_T_cam0: expected a batch of at least 1, got 0$"):
+            ego_motion_from_pose(torch.eye(4, dtype=torch.float64).expand(0, 4, 4), *args)
+
+
 def test_pose_and_flow_agree():
     """The flow of the decomposed planar motion equals the projection of road points moved by the pose."""
     H, W = 30, 50

@@ -144,8 +144,9 @@ def ego_motion_from_pose(cam1_T_cam0: Tensor, camera: Camera | None = None,
 
 def _planar_projection(T: Tensor, camera: Camera | None) -> EgoMotion:
     R, t = T[:, :3, :3], T[:, :3, 3]
+    # (an empty batch too, with or without a camera: relative_pose and plane_from_pose refuse it)
+    resolve_batch({"cam1_T_cam0": T.shape[0], **({} if camera is None else {"camera": camera.batch_size})})
     if camera is not None:
-        resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
         Rc = camera.to(device=T.device, dtype=T.dtype).mounting()  # (the camera follows the pose)
     else:
         Rc = torch.eye(3, dtype=T.dtype, device=T.device).expand(1, 3, 3)
