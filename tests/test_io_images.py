@@ -102,6 +102,20 @@ class TestExceptions:
         with pytest.raises(TypeError, match="torch.bool"):
             write_image(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.bool))
 
+    def test_write_refuses_a_0_1_float_image(self, tmp_path):
+        """A float image on 0..1 was rounded to 0 and 1 and written near black, without a word."""
+        image = torch.linspace(0.0, 1.0, 3 * 4 * 5).reshape(3, 4, 5)
+        for x in (image, image.double(), image.half(), image.numpy(), image * 0.5):
+            with pytest.raises(ValueError, match=r"^image: values in \[0, (1|0\.5)\] look like a 0\.\.1 image, expected "
+                                                 r"the 0\.\.255 scale: scale it by 255"):
+                write_image(tmp_path / "a.png", x)
+        assert not (tmp_path / "a.png").exists()
+        # black frames, frames of grey levels 0 and 1, uint8 images and 0..255 floats are written as they are
+        for x in (torch.zeros(3, 4, 5), torch.ones(3, 4, 5), (image > 0.5).float(), (image * 255).round().to(torch.uint8),
+                  image * 255, torch.ones(4, 5, dtype=torch.uint8)):
+            write_image(tmp_path / "b.png", x)
+            assert torch.equal(read_image(tmp_path / "b.png"), x.expand(3, 4, 5).float().round())
+
     @pytest.mark.parametrize("name", ["x.xyz", "noext", "x.pgm", "x.pbm", "x.jp2", "x.hdr", "x.pfm"])
     def test_unknown_image_suffix(self, tmp_path, name):
         """write_image("x.xyz") once raised a cv2.error; .pgm, .pbm and .jp2 (OpenCV writers that
