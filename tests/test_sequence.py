@@ -325,6 +325,10 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(None, road, cam)
     with pytest.raises(TypeError, match="mask: expected a sequence of tensors"):
         fit_sequence(frames[:3], None, cam)
+    # a NumPy mask was read as a sequence of masks (its rows): "expected one mask or 2, got 1"
+    with pytest.raises(TypeError, match=r"^mask: expected a bool tensor \(1, H, W\) or a sequence of them, got "
+                                        rf"ndarray of shape \(1, {H}, {W}\)$"):
+        fit_sequence(frames[:3], road.numpy(), cam)
     with pytest.raises(ValueError, match=r"frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) \(an image\), "
                                           r"got \(2, 3, "):
         fit_sequence([torch.stack([f, f]) for f in frames[:3]], road, cam)

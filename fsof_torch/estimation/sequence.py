@@ -41,6 +41,7 @@ import numbers
 from dataclasses import dataclass, replace
 from typing import Any, Sequence
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -270,6 +271,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         if not (isinstance(value, Tensor) or hasattr(value, "__len__") and hasattr(value, "__getitem__")):
             raise TypeError(f"{name}: expected a sequence of tensors (a list, or an object with len() and "
                             f"indexing), got {type(value).__name__}")
+    if isinstance(mask, np.ndarray):  # (not a sequence of N masks: one array read row by row)
+        raise TypeError(f"mask: expected a bool tensor (1, H, W) or a sequence of them, got ndarray of shape "
+                        f"{mask.shape}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
     if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes not in (1, 2):
