@@ -445,3 +445,18 @@ def test_frames_of_one_row_or_column_give_the_image_fit_nothing(scene, rows, col
     assert held.refined.tolist() == [True] and held.fit is None and torch.equal(held.flow, alone.flow)
     assert estimated.refined.tolist() == [False] and torch.equal(estimated.flow, pred)
     assert gated.refined.tolist() == [False] and torch.equal(gated.flow, pred)  # (no evidence in such frames)
+
+
+@pytest.mark.parametrize("dtypes", [(torch.float32, torch.float64), (torch.float64, torch.float32),
+                                    (torch.float32, torch.float16)])
+def test_frames_of_two_dtypes_are_refined_as_they_came(scene, dtypes):
+    """Where image 1 shared the flow's precision and image 2 did not, the refiner's one grey
+    conversion wrote image 2 into a tensor of image 1's dtype: a TypeError naming ``out``, an
+    argument of no public function. Frames of two dtypes reach the estimator as they came."""
+    i1, i2 = scene["image1"][None], scene["image2"][None]
+    args = (scene["pred"].to(dtypes[0]), scene["road"][None], scene["camera"])
+    out = _quiet(FreespaceRefiner(), *args, images=(i1.to(dtypes[0]), i2.to(dtypes[1])))
+    ref = _quiet(FreespaceRefiner(), *args, images=(i1.to(dtypes[0]), i2.to(dtypes[1]).to(dtypes[0])))
+    assert bool(out.refined.all()) and out.flow.dtype == dtypes[0]
+    # (image 2 in another precision, the same road motion: within a half precision image's rounding)
+    torch.testing.assert_close(out.flow, ref.flow, rtol=0, atol=0.05 if torch.float16 in dtypes else 1e-4)

@@ -255,7 +255,7 @@ def _grey_once(images: tuple[Tensor, Tensor] | None, estimator: Any, flow: Tenso
     the graph may round otherwise) as they came. The two greys are the channels of one
     (B, 2, H, W) tensor, which the image fit takes as its pair of frames without a copy."""
     if images is None or tracing() or type(estimator) is not ImageMotionEstimator or not (
-            images[0].dtype == flow.dtype in (torch.float32, torch.float64)):
+            images[0].dtype == images[1].dtype == flow.dtype in (torch.float32, torch.float64)):
         return images
     B, _, H, W = images[0].shape
     pair = torch.empty((B, 2, H, W), dtype=flow.dtype, device=flow.device)
