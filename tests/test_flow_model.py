@@ -845,3 +845,23 @@ def test_flow_from_map_reads_nothing_from_the_host():
         flow_from_map(M, horizon, (60, 200))
     reads = [e.name for e in prof.events() if e.name in ("aten::_local_scalar_dense", "aten::nonzero", "aten::item")]
     assert reads == []
+
+
+@pytest.mark.parametrize("cast", ["half", "bfloat16", "float16"])
+def test_velocity_flow_module_cast_to_half_keeps_its_wheelbase(cast):
+    """A VelocityFlow with a tensor wheelbase cast to half precision (a network's ``.half()``)
+    rounded the wheelbase too, 2.7 m to 2.6992 (bfloat16: 2.7031): its flow moved by up to
+    0.27 px/s at KITTI's size, where the geometry runs in at least float32."""
+    cam = Camera(torch.tensor([[721.5, 0.0, 609.5], [0.0, 721.5, 172.8], [0.0, 0.0, 1.0]]), 1.65)
+    for wheelbase in (torch.tensor([2.7]), torch.tensor([2.7, 3.1], dtype=torch.float64)):
+        module = VelocityFlow((375, 1242), wheelbase=wheelbase)
+        ref = module(cam, 10.0, 0.05)
+        cast_module = module.to(torch.float16) if cast == "float16" else getattr(module, cast)()
+        assert cast_module.wheelbase.dtype == wheelbase.dtype and torch.equal(cast_module.wheelbase, wheelbase)
+        out = cast_module(cam, 10.0, 0.05)
+        assert torch.equal(out[0], ref[0]) and torch.equal(out[1], ref[1])
+        assert "wheelbase" not in cast_module.state_dict()
+    # a wider cast and a move still apply
+    module = VelocityFlow((4, 6), wheelbase=torch.tensor([2.7])).double()
+    assert module.wheelbase.dtype == torch.float64
+    assert VelocityFlow((4, 6), wheelbase=torch.tensor([2.7])).to("meta").wheelbase.device.type == "meta"

@@ -394,7 +394,9 @@ class VelocityFlow(nn.Module):
     """``nn.Module`` twin of :func:`velocity_flow` for a fixed output size and wheelbase.
 
     ``wheelbase`` (metres, finite, > 0) as :func:`velocity_flow` takes it: a float, or a (B,)
-    tensor (then a buffer that moves with the module, not saved in its state dict)."""
+    tensor (then a buffer that moves with the module, not saved in its state dict). A cast of the
+    module to half precision (``.half()``, ``.bfloat16()``, ``.to(dtype)``) leaves the wheelbase
+    in its precision, as the geometry runs in at least float32 (``.double()`` widens it)."""
 
     def __init__(self, size: tuple[int, int], wheelbase: Tensor | float = 2.7) -> None:
         super().__init__()
@@ -405,6 +407,15 @@ class VelocityFlow(nn.Module):
             self.register_buffer("wheelbase", wheelbase, persistent=False)
         else:
             self.wheelbase = check_number(wheelbase, "wheelbase", positive=True)
+
+    def _apply(self, fn, recurse=True):  # (nn.Module's casts and moves go through here)
+        before = self.wheelbase
+        super()._apply(fn, recurse)
+        after = self.wheelbase
+        if isinstance(before, Tensor) and after.dtype in (torch.float16, torch.bfloat16) and after is not before:
+            # (rounded to half precision, 2.7 m is 2.6992 or 2.7031: the flow off by up to 1e-3)
+            self.wheelbase = before.to(device=after.device, dtype=result_dtype(before))
+        return self
 
     def forward(self, camera: Camera, speed: Tensor | float,
                 steering: Tensor | float) -> tuple[Tensor, Tensor]:
