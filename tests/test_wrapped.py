@@ -194,6 +194,20 @@ def test_images_of_another_channel_count_are_named_before_the_net():
     assert net.calls == 0
 
 
+@pytest.mark.parametrize("pad", [None, InputPadder(8)])
+@pytest.mark.parametrize("index", [0, 2, 3])
+def test_images_without_samples_or_pixels_are_named_before_the_net(pad, index):
+    """An empty batch ran the net, then the refiner named its flow (flow[0], at the padded size);
+    an image without rows or columns was named size, by the padder."""
+    s = scene((53, 94))
+    net = Net(s["pred"])
+    image1, image2, road = (x.narrow(index, 0, 0) for x in (s["image1"], s["image2"], s["road"]))
+    shape = re.escape(str(tuple(image1.shape)))
+    with pytest.raises(ValueError, match=rf"^image1: expected shape \(B, C, H, W\) with {'BCHW'[index]} >= 1, got {shape}$"):
+        FreespaceRefined(net, pad=pad)(image1, image2, camera=s["camera"], mask=road)
+    assert net.calls == 0
+
+
 def test_reflect_padding_larger_than_the_image_is_named_before_the_net():
     """torch's own RuntimeError came from F.pad."""
     s = scene((53, 94))

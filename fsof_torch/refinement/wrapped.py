@@ -12,7 +12,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor, nn
 
-from .._check import batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, skip_values
+from .._check import (batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, check_shape,
+                      skip_values)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
@@ -114,8 +115,7 @@ class FreespaceRefined(nn.Module):
             image1, image2 = inputs
             for name, im in (("image1", image1), ("image2", image2)):
                 check_float_tensor(im, name)
-                if im.dim() != 4:
-                    raise ValueError(f"{name}: expected shape (B, C, H, W), got {tuple(im.shape)}")
+                check_shape(im, name, ("B", "C", "H", "W"), nonempty=("B", "H", "W"))  # (as ptlflow's dict)
                 if im.shape[1] not in (1, 3):  # (the refiner's estimator and gate read grey or RGB)
                     raise ValueError(f"{name}: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(im.shape)}")
             if image2.shape != image1.shape:
