@@ -756,6 +756,17 @@ def test_vflow_curve_computes_half_precision_rows_in_float32():
             vflow_curve(v, bad, 1.65, 150.0, 40.0)
 
 
+def test_vflow_curve_names_arguments_that_do_not_broadcast():
+    """Rows and a batch of z_d that do not broadcast raised torch's RuntimeError from inside."""
+    with pytest.raises(ValueError, match=r"^v, z_d, height, fy, cy: expected shapes that broadcast together, got "
+                                         r"v \(5,\), z_d \(3,\), height \(\), fy \(\), cy \(\)$"):
+        vflow_curve(torch.arange(5.0), torch.ones(3), 1.65, 500.0, 100.0)
+    with pytest.raises(ValueError, match=r"got v \(2, 3\), z_d \(2,\), "):
+        vflow_curve(torch.arange(6.0).reshape(2, 3), torch.ones(2), 1.65, 500.0, 100.0)
+    # (rows (N, 1) against a batch (B,) broadcast to (N, B), as documented)
+    assert vflow_curve(torch.arange(5.0)[:, None], torch.ones(3), 1.65, 500.0, 100.0).shape == (5, 3)
+
+
 def test_velocity_flow_module_checks_its_wheelbase_when_built():
     """VelocityFlow takes the wheelbase velocity_flow takes (a float or a (B,) tensor) and checks
     it when built, naming it (a tensor of two once failed in float(), True was taken as 1 m, inf

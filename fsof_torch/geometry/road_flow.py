@@ -533,8 +533,8 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
     the geometry (the default dtype when none is a float tensor), on their device: a half
     precision row index computed in its own precision overflows (z_d (v-v_0)² beyond 65504).
 
-    Every value must be finite, ``height`` and ``fy`` positive: else a ValueError naming the
-    argument (a NaN row or a negative height would read as "no road flow" there; the values are
+    Shapes that do not broadcast together are a ValueError quoting them. Every value must be
+    finite, ``height`` and ``fy`` positive: else a ValueError naming the argument (a NaN row or a negative height would read as "no road flow" there; the values are
     not checked while tracing).
     """
     named = {"v": v, "z_d": z_d, "height": height, "fy": fy, "cy": cy}
@@ -554,6 +554,11 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
     check_all_finite(args)
     check_positive(args["height"], "height")
     check_positive(args["fy"], "fy")
+    try:
+        torch.broadcast_shapes(*(t.shape for t in args.values()))
+    except RuntimeError:  # (torch's own error names no argument)
+        shapes = ", ".join(f"{n} {tuple(t.shape)}" for n, t in args.items())
+        raise ValueError(f"v, z_d, height, fy, cy: expected shapes that broadcast together, got {shapes}") from None
     dv = args["v"] - args["cy"]
     den = args["height"] * args["fy"] - args["z_d"] * dv
     ok = (dv > 0) & (den > 0)
