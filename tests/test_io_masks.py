@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import cv2
 import numpy as np
@@ -149,6 +150,11 @@ class TestExceptions:
     def test_writer_errors(self, tmp_path):
         with pytest.raises(TypeError, match="bool tensor"):
             write_road_mask(tmp_path / "m.png", torch.zeros(1, 2, 2))
+        # a (1, H, W) mask without pixels is quoted as it came, not as (H, W)
+        for shape in ((1, 0, 8), (1, 6, 0), (0, 8), (2, 6, 8)):
+            with pytest.raises(ValueError, match=rf"^mask: expected shape \(1, H, W\) or \(H, W\) with H, W >= 1, "
+                                                 rf"got {re.escape(str(shape))}$"):
+                write_road_mask(tmp_path / "m.png", torch.zeros(shape, dtype=torch.bool))
         with pytest.raises(ValueError, match="0..65535"):
             write_label_map(tmp_path / "l.png", torch.tensor([[-1, 2]]))
         with pytest.raises(ValueError, match="single-channel"):

@@ -295,10 +295,11 @@ def write_road_mask(path: str | os.PathLike, mask: Tensor) -> Path:
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
         raise TypeError(f"mask: expected a bool tensor of shape (1, H, W), got "
                         f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
+    given = tuple(mask.shape)  # (quoted as it came, not as squeezed)
     if mask.dim() == 3 and mask.shape[0] == 1:
         mask = mask[0]
     if mask.dim() != 2 or min(mask.shape) < 1:
-        raise ValueError(f"mask: expected shape (1, H, W) or (H, W) with H, W >= 1, got {tuple(mask.shape)}")
+        raise ValueError(f"mask: expected shape (1, H, W) or (H, W) with H, W >= 1, got {given}")
     check_has_values(mask, "mask")
     return write_image_array(path, mask.detach().cpu().numpy().astype(np.uint8) * 255)
 
