@@ -102,6 +102,12 @@ class TestExceptions:
         with pytest.raises(TypeError, match="torch.bool"):
             write_image(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.bool))
 
+    def test_write_quotes_an_image_without_pixels_as_it_came(self, tmp_path):
+        """A grey (H, W) image without rows was quoted unsqueezed, as (1, 0, 5)."""
+        for shape in ((0, 5), (4, 0), (3, 0, 5), (1, 4, 0)):
+            with pytest.raises(ValueError, match=rf"^image: expected H, W >= 1, got shape {re.escape(str(shape))}$"):
+                write_image(tmp_path / "a.png", torch.zeros(shape))
+
     def test_write_refuses_a_0_1_float_image(self, tmp_path):
         """A float image on 0..1 was rounded to 0 and 1 and written near black, without a word."""
         image = torch.linspace(0.0, 1.0, 3 * 4 * 5).reshape(3, 4, 5)

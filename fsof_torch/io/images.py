@@ -247,14 +247,15 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
         image = tensor_from_array(image)
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor of shape (3, H, W), (1, H, W) or (H, W), got {type(image).__name__}")
+    given = tuple(image.shape)  # (quoted as it came, not as unsqueezed)
     if image.dim() == 3 and image.shape[0] in (1, 3):
         pass
     elif image.dim() == 2:
         image = image.unsqueeze(0)
     else:
-        raise ValueError(f"image: expected shape (3, H, W), (1, H, W) or (H, W), got {tuple(image.shape)}")
+        raise ValueError(f"image: expected shape (3, H, W), (1, H, W) or (H, W), got {given}")
     if min(image.shape[-2:]) < 1:
-        raise ValueError(f"image: expected H, W >= 1, got shape {tuple(image.shape)}")
+        raise ValueError(f"image: expected H, W >= 1, got shape {given}")
     check_has_values(image, "image")
     image = image.detach().cpu()
     if image.dtype == torch.uint8:
