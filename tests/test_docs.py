@@ -135,7 +135,12 @@ def _fake_external_packages(monkeypatch):
 
     ptlflow = types.ModuleType("ptlflow")
     ptlflow.get_model = lambda name: standins.ptlflow_raft()
-    weights = types.SimpleNamespace(transforms=lambda: (lambda a, b: (a / 127.5 - 1, b / 127.5 - 1)))
+    def optical_flow_transforms(image1, image2):
+        """torchvision's OpticalFlow preset: convert_image_dtype (uint8 to [0, 1], a float kept
+        as it is), then normalize by mean 0.5, std 0.5."""
+        return tuple((x / 255 if x.dtype == torch.uint8 else x) * 2 - 1 for x in (image1, image2))
+
+    weights = types.SimpleNamespace(transforms=lambda: optical_flow_transforms)
     optical_flow = types.ModuleType("torchvision.models.optical_flow")
     optical_flow.Raft_Large_Weights = types.SimpleNamespace(DEFAULT=weights)
     optical_flow.raft_large = lambda weights=None: standins.torchvision_raft()
