@@ -6,6 +6,7 @@ the options with their defaults, and docs/jobs.md lists exactly the jobs' option
 import argparse
 import ast
 import contextlib
+import functools
 import importlib
 import inspect
 import io
@@ -63,6 +64,16 @@ def test_internal_links_reach_a_file_and_a_heading():
             elif anchor and anchor not in _anchors(file):
                 broken.append(f"{page.name}:{line}: no heading #{anchor} in {file.name}")
     assert not broken, broken
+
+
+def test_the_index_lists_every_page():
+    """docs/README.md links every page of docs/ (and the README's Documentation list does too)."""
+    index = set(re.findall(r"\]\(([\w-]+\.md)\)", (DOCS / "README.md").read_text()))
+    pages = {p.name for p in DOCS.glob("*.md")} - {"README.md"}
+    assert index == pages
+    text = (ROOT / "README.md").read_text()
+    listed = set(re.findall(r"\]\(docs/([\w-]+\.md)[#)]", text[text.index("## Documentation"):]))
+    assert listed == pages | {"README.md"}
 
 
 # -- the Python examples -----------------------------------------------------------------------
@@ -198,18 +209,35 @@ def test_the_python_examples_of_a_page_run(name, tmp_path, monkeypatch):
 
 # -- signatures written out --------------------------------------------------------------------
 
-def _resolve(name: str):
+@functools.cache
+def _library_modules():
+    import pkgutil
+
     import fsof_torch
 
+    return [fsof_torch] + [importlib.import_module(m.name)
+                           for m in pkgutil.walk_packages(fsof_torch.__path__, "fsof_torch.")]
+
+
+def _resolve(name: str):
+    """The callable a page's name stands for: an attribute path from the package or from any of
+    its modules (``fit_image``, ``Camera.padded``, ``camera.scaled`` a Camera's method,
+    ``ImageFolderDataset``), None where no module or several different objects answer to it."""
     parts = name.split(".")
     if parts[0] in ("fs", "fsof_torch"):
         parts = parts[1:]
-    obj = fsof_torch
-    for part in parts:
-        obj = getattr(obj, part, None)
-        if obj is None:
-            return None
-    return obj
+    if parts and parts[0] == "camera" and len(parts) > 1:
+        parts[0] = "Camera"
+    found = []
+    for module in _library_modules():
+        obj = module
+        for part in parts:
+            obj = getattr(obj, part, None)
+            if obj is None:
+                break
+        if obj is not None and callable(obj) and not any(obj is f for f in found):
+            found.append(obj)
+    return found[0] if len(found) == 1 else None
 
 
 def _written_signatures():
@@ -284,6 +312,65 @@ def test_written_signatures_are_the_codes():
             if missing:
                 wrong.append(f"{page}: {name}: the code's {missing} are not written (add them, or '...')")
     assert found >= 10
+    assert not wrong, wrong
+
+
+def _written_calls():
+    """The other ``name(...)`` spans of the pages (inline code, and Python blocks that are not
+    code): a call such as ``ImageGate(require_evidence=False)``, or a signature without a bare
+    ``*`` such as ``Camera.padded(left, top, right=0, bottom=0)``."""
+    for page in PAGES:
+        spans = [code for _, code in _python_blocks(page) if not _runs(code)]
+        spans += re.findall(r"`([^`]+)`", _without_fences(page.read_text()))
+        for span in spans:
+            m = re.fullmatch(r"\s*([A-Za-z_][\w.]*)\((.*)\)\s*", span, re.S)
+            if not m or re.search(r"(^|,)\s*\*\*?\w*\s*(,|$)", m.group(2)):
+                continue  # not a call, or a signature with a bare * (the test above)
+            try:
+                call = ast.parse(span.strip().replace("\\|", "|"), mode="eval").body
+            except SyntaxError:
+                continue  # a sketch: `f(x, y=, ...)`
+            if not isinstance(call, ast.Call) or not isinstance(call.func, (ast.Name, ast.Attribute)):
+                continue  # `f(a)(b)`: the second call is another callable's
+            obj = _resolve(m.group(1))
+            if obj is None:
+                continue
+            try:
+                yield page.name, span.strip(), call, inspect.signature(obj).parameters
+            except (TypeError, ValueError):
+                continue
+
+
+def test_written_calls_name_the_codes_parameters():
+    """Every keyword a page passes exists; where a span reads as the signature (its positional
+    arguments bare names, the first one the code's first parameter) the positional names are the
+    code's, in order, and a written default is the code's."""
+    found, wrong = 0, []
+    for page, span, call, code in _written_calls():
+        found += 1
+        code = {k: v for k, v in code.items() if k != "self"}
+        takes_any = any(p.kind is p.VAR_KEYWORD for p in code.values())
+        for keyword in call.keywords:
+            if keyword.arg is not None and keyword.arg not in code and not takes_any:
+                wrong.append(f"{page}: {span}: no parameter {keyword.arg!r}")
+        positional = [k for k, v in code.items() if v.kind in (v.POSITIONAL_ONLY, v.POSITIONAL_OR_KEYWORD)]
+        names = [a.id for a in call.args if isinstance(a, ast.Name)]
+        if not names or len(names) != len(call.args) or names[:1] != positional[:1]:
+            continue  # a call with values, or a name of the page's own (`refine_flow(DIS, ...)`)
+        if names != positional[:len(names)]:
+            wrong.append(f"{page}: {span}: positional {names}, the code's {positional}")
+        for keyword in call.keywords:
+            if keyword.arg not in code:
+                continue
+            try:
+                value = ast.literal_eval(keyword.value)
+            except ValueError:
+                continue
+            value = tuple(value) if isinstance(value, list) else value
+            if value is not Ellipsis and code[keyword.arg].default != value:
+                wrong.append(f"{page}: {span}: written default {value!r}, the code's "
+                             f"{code[keyword.arg].default!r}")
+    assert found >= 30
     assert not wrong, wrong
 
 
