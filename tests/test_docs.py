@@ -431,3 +431,69 @@ def test_jobs_md_lists_each_eval_subcommands_options(name):
     importlib.import_module(f"eval.{name}").add_arguments(parser)
     assert set(re.findall(r"`(--[\w-]+)", item)) >= _options(parser)
     assert set(re.findall(r"`(--[\w-]+)", item)) <= _options(parser) | {"--kitti15"}
+
+
+# -- the commands --------------------------------------------------------------------------------
+
+def _commands():
+    """(page, line, words after `python`) of every command the pages give: the lines of bash and
+    plain blocks (continuations joined, comments dropped) and inline spans `python ...`."""
+    for page in PAGES:
+        text = page.read_text()
+        for m in FENCE.finditer(text):
+            if m.group(2) not in ("bash", ""):
+                continue
+            start = text[:m.start()].count("\n") + 2
+            for k, line in enumerate(m.group(3).replace("\\\n", " ").splitlines()):
+                for part in re.split(r"&&|;", line.split("  #")[0]):
+                    yield page.name, start + k, part.split()
+        plain = _without_fences(text)
+        for m in re.finditer(r"`((?:\w+=\S+ )*(?:python|torchrun) [^`]+)`", plain):
+            yield page.name, plain[:m.start()].count("\n") + 1, m.group(1).split()
+
+
+def _script_options(path: Path) -> set[str]:
+    """The options a benchmark script's parser adds: the `--` strings of its add_argument calls."""
+    tree = ast.parse(path.read_text())
+    return {a.value for node in ast.walk(tree) if isinstance(node, ast.Call)
+            and getattr(node.func, "attr", None) == "add_argument"
+            for a in node.args if isinstance(a, ast.Constant) and str(a.value).startswith("--")} | {"--help"}
+
+
+def test_the_commands_of_the_docs_name_existing_scripts_and_options():
+    """Every `python -m refine`, `python -m eval NAME` and `python benchmarks/x.py` command of the
+    pages names a script that exists and only options its parser has."""
+    from eval.__main__ import SUBCOMMANDS
+    from refine.__main__ import build_parser
+
+    def eval_options(name):
+        parser = argparse.ArgumentParser()
+        importlib.import_module(SUBCOMMANDS[name][0]).add_arguments(parser)
+        return _options(parser) | {"--help"}
+
+    checked, wrong = 0, []
+    for page, line, words in _commands():
+        launcher = next((i for i, w in enumerate(words) if w in ("python", "torchrun")), None)
+        if launcher is None:
+            continue
+        words = words[launcher + 1:]
+        if words[:1] != ["-m"] and words[:1] != [] and not words[0].endswith(".py"):
+            words = words[words.index("-m"):] if "-m" in words else []  # torchrun's own options
+        if words[:2] == ["-m", "refine"]:
+            options = _options(build_parser()) | {"--help"}
+        elif words[:2] == ["-m", "eval"] and len(words) > 2 and words[2] in SUBCOMMANDS:
+            options = eval_options(words[2])
+        elif words[:1] and words[0].endswith(".py"):
+            script = ROOT / words[0]
+            if not script.is_file():
+                wrong.append(f"{page}:{line}: no script {words[0]}")
+                continue
+            options = _script_options(script)
+        else:
+            continue  # python -c, -m pytest, -m venv, -m cProfile ..., python -m eval alone
+        checked += 1
+        used = {re.sub(r"[^\w-].*", "", w.lstrip("[")) for w in words if w.lstrip("[").startswith("--")}
+        if used - options:
+            wrong.append(f"{page}:{line}: {' '.join(words[:2])}: no option {sorted(used - options)}")
+    assert checked >= 100
+    assert not wrong, wrong
