@@ -315,6 +315,26 @@ def test_written_signatures_are_the_codes():
     assert not wrong, wrong
 
 
+def test_the_dotted_names_of_the_pages_exist():
+    """Every `fsof_torch.a.b` and `fs.a.b` a page names is a module or an attribute the package has."""
+    missing = []
+    for page in PAGES:
+        for m in re.finditer(r"(?<![\w./])(?:fsof_torch|fs)((?:\.\w+)+)", page.read_text()):
+            parts = ["fsof_torch", *m.group(1).strip(".").split(".")]
+            for i in range(len(parts), 0, -1):
+                try:
+                    obj = importlib.import_module(".".join(parts[:i]))
+                    break
+                except ImportError:
+                    continue
+            for part in parts[i:]:
+                obj = getattr(obj, part, None)
+                if obj is None:
+                    missing.append(f"{page.name}: {m.group(0)}")
+                    break
+    assert not missing, missing
+
+
 def _written_calls():
     """The other ``name(...)`` spans of the pages (inline code, and Python blocks that are not
     code): a call such as ``ImageGate(require_evidence=False)``, or a signature without a bare
