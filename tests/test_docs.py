@@ -194,6 +194,8 @@ def test_the_python_examples_of_a_page_run(name, tmp_path, monkeypatch):
     namespace = {"__name__": "__main__"}
     namespace["SIZE"] = PAGE_SIZE.get(name, (96, 320))
     exec(PRELUDE + PAGE_PRELUDE.get(name, ""), namespace)
+    for module in ("torch", "fsof_torch", "fs"):  # the user's data, not the prelude's imports:
+        del namespace[module]                      # a page imports what its examples use
     ran = 0
     for index, (line, code) in enumerate(_python_blocks(DOCS / name)):
         if (name, index) in SKIP or not _runs(code):
