@@ -1,7 +1,9 @@
 """The documentation tells the truth to a user who copies from it: every internal link reaches a
-file and a heading, every Python example of docs/*.md runs (fragments with the inputs their page
-says the user has), the signatures the pages write out are the code's, the options tables name
-the options with their defaults, and docs/jobs.md lists exactly the jobs' options."""
+file and a heading, the indexes list every page, every Python example of docs/*.md runs
+(fragments with the inputs their page says the user has, and the imports the page itself gives),
+the signatures and calls the pages write out are the code's, every `fsof_torch.x` they name
+exists, the options tables name the options with their defaults, docs/jobs.md lists exactly the
+jobs' options, and every command the pages give names a script and options that exist."""
 
 import argparse
 import ast
