@@ -240,6 +240,52 @@ def test_outliers_within_twice_the_clean_error(model):
     assert clean_err / 4 < 0.05 * sigma  # and the clean error is far below the noise
 
 
+# -- physical bounds: a fit the data cannot place within them has failed ---------------------------
+
+def test_an_attitude_beyond_the_physical_bounds_is_a_failed_fit():
+    """Road flow of a camera rolled by 15° (beyond the 10° of ``physical_bounds`` about the
+    calibration), fitted with the calibrated level camera and the roll free: the fit finds the
+    roll (the flow is exact), but a camera's attitude 15° off its calibration is no physical
+    answer (DESIGN.md §10: a fit that returns 45° of roll has failed): ``success`` is False, and
+    True without bounds. On the real KITTI pair, DIS's flow (wrong on the road) got 33° of roll
+    with ``success`` True."""
+    roll = math.radians(15.0)
+    flow, valid = road_flow(kitti_camera(roll), dict(z_d=1.2, yaw=0.01), SIZE)
+    mask = road_mask(valid, top=70)
+    fit = fit_displacement(flow, mask, kitti_camera(), fit_roll=True)
+    assert abs(float(fit.roll) - roll) < 1e-6  # found, and flagged
+    assert not bool(fit.success)
+    assert bool(fit_displacement(flow, mask, kitti_camera(), fit_roll=True, bounds=None).success)
+    inside, _ = road_flow(kitti_camera(math.radians(5.0)), dict(z_d=1.2, yaw=0.01), SIZE)
+    assert bool(fit_displacement(inside, mask, kitti_camera(), fit_roll=True).success)
+
+
+@pytest.mark.parametrize("model", ["paper", "plane", "velocity"])
+def test_the_attitude_of_a_vehicle_at_rest_is_not_a_success(model):
+    """At rest the road flow is 0 whatever the camera's roll and pitch (docs/fitting.md: a fit with
+    them free is flagged). With noise the fit explains it by a few tenths of a millimetre of
+    motion and an attitude degrees off, whose standard deviation (about 0.3 rad) spans the
+    physical bounds: ``success`` is False (it was True: only an exactly zero flow was flagged).
+    Moving, the same noise leaves the attitude determined and the fit a success."""
+    cam = kitti_camera(0.02, -0.01)
+    sigma, options = (2.0, dict(scale=10.0)) if model == "velocity" else (0.2, {})
+    noise = sigma * torch.randn(1, 2, *SIZE, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    moving = dict(speed=12.0, yaw_rate=0.1) if model == "velocity" else dict(z_d=1.2, yaw=0.01)
+    for motion, expected in (({}, False), (moving, True)):
+        flow, valid = road_flow(cam, motion, SIZE, model=model)
+        fit = fit_road(flow + noise, road_mask(valid), cam, model=model, fixed=(), **options)
+        assert bool(fit.success) == expected, (motion, {k: float(v) for k, v in fit.params.items()})
+    rest = fit_road(flow * 0 + noise, road_mask(valid), cam, model=model, fixed=(), bounds=None, **options)
+    assert bool(rest.success)  # (without bounds: the well-posedness test alone passes it)
+
+
+@pytest.mark.parametrize("bounds, error", [("loose", ValueError), (1.0, TypeError), (True, TypeError)])
+def test_bounds_option_is_checked(bounds, error):
+    flow, valid = road_flow(kitti_camera(), dict(z_d=1.2), SIZE)
+    with pytest.raises(error, match="bounds: expected 'physical' or None"):
+        fit_road(flow, road_mask(valid), kitti_camera(), bounds=bounds)
+
+
 # -- the renderer's vehicle body motion and road grade --------------------------------------------
 
 RENDER_SIZE = (188, 621)

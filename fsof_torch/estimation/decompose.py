@@ -138,7 +138,7 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         return flow, valid & inside & (sine >= margin)
 
     def fit_grid(flow: Tensor, grid: Tensor, init: object) -> RoadFit:
-        return fit_road(flow, grid, small, model="plane", fixed=(), init=init, robust="l2", polish=False,
+        return fit_road(flow, grid, small, model="plane", fixed=(), init=init, robust="l2", polish=False, bounds=None,
                         max_points=4096, min_inlier_fraction=0.0, tol=1e-12)
 
     flow, grid = road_grid(small.roll, small.pitch)

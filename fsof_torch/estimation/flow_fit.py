@@ -32,10 +32,11 @@ from .._check import (autocast_off, batch_choices, check_batch, check_bool, chec
                       result_dtype, to_device)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
-from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values,
+from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values, pack_params,
                                     plane_from_homography)
 from .confidence import spread_out
 from .initial import homography_dlt, planar_motion
+from .priors import within_bounds
 from .robust import ROBUST_KERNELS, check_kernel, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, positive_definite, solve
@@ -64,9 +65,9 @@ class RoadFit:
         residual: (B,) mean residual over the inliers (0 when none).
         success: (B,) bool; where False the parameters are finite but not to be trusted. Flow
             fits: converged (a polish that does not converge returns the robust stage's
-            parameters, covariance and cost), on enough well-spread inliers making up at least
-            the minimum share of the mask, with a well-conditioned problem. Image fits: finite,
-            well posed and passing ``fit_image``'s image tests (``extras["converged"]`` tells).
+            parameters, covariance and cost), on enough well-spread inliers making up at least the
+            minimum share of the mask, well conditioned, within ``bounds`` (:func:`fit_road`). Image
+            fits: finite, well posed and passing ``fit_image``'s tests (``extras["converged"]``).
         camera: a copy of the input camera with the fit's roll and pitch (fitted or held).
         iterations: (B,) int64 solver iterations.
         covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
@@ -464,7 +465,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
              robust: str = "cauchy", scale: float = 1.0, max_iter: int = 50, tol: float = 1e-6,
              max_points: int | None = 8192, inlier_threshold: float | None = None,
              min_points: int = 30, min_inlier_fraction: float = 0.25, polish: bool = True,
-             check_every: int | tuple[int, int] | str | None = "auto") -> RoadFit:
+             check_every: int | tuple[int, int] | str | None = "auto", bounds: str | None = "physical") -> RoadFit:
     """Fit a road-motion model to a flow field inside a road mask.
 
     Args:
@@ -500,6 +501,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             two iterations, the polish, which starts at the robust answer, after one. The checks
             change no result (converged samples stop moving): they only end the loops. None:
             run the fixed budgets (no host read inside the loops).
+        bounds: ``"physical"``: a frame has failed whose free parameters leave ``physical_bounds``
+            (:mod:`~fsof_torch.estimation.priors`) or are not determined to half their width (1 σ).
 
     Returns:
         :class:`RoadFit`; parameters in float64 for float64 flow, else the camera's dtype
@@ -522,6 +525,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
     model = get_road_model(model)
     check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
     check_bool(polish, "polish")
+    if bounds not in ("physical", None):
+        raise (ValueError if isinstance(bounds, str) else TypeError)(f"bounds: expected 'physical' or None, got {bounds!r}")
     fixed, prior = check_names(fixed, "fixed"), check_mapping(prior, "prior")
     if init is not None and not isinstance(init, (Mapping, RoadFit)):
         raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
@@ -553,7 +558,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         pts = pixel_coordinates(pix, W)
         obs = gather_pixels(flow.detach(), pix).to(torch.float64)
         obs = torch.where(sel.unsqueeze(1), obs, 0.0)
-        _, default = _pack_default(model, cam64)
+        _, default = pack_params(model, cam64, None)
         start, given = start_values(model, init, cam64, default)
         coarse = _robust_points(pts, obs, sel, count if max_points is None else None)
         if not all(given):
@@ -594,14 +599,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         model_flow, model_valid = flow_from_map(M.to(out_dtype), horizon.to(out_dtype), (H, W), velocity=model.velocity)
         inliers, residual, spread, fraction, n_in = agreement(flow.detach(), model_flow, model_valid, points, thr)
     success = finite & converged & spread & well_posed & (n_in >= min_points) & (fraction >= min_inlier_fraction)
+    success = success if bounds is None else success & within_bounds(model, cam64, params, covariance, free)
     return _result(model, camera, params, M, model_flow, model_valid, inliers, residual, success, iterations,
                    covariance, cost, out_dtype)
-
-
-def _pack_default(model: RoadModel, camera: Camera) -> tuple[Camera, Tensor]:
-    from ..geometry.road_models import pack_params
-
-    return pack_params(model, camera, None)
 
 
 def _well_posed(sol: Any, free: Tensor) -> Tensor:

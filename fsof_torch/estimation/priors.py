@@ -1,7 +1,8 @@
-"""The image fit's priors and bounds from the calibration and the physics of a car (DESIGN.md §10):
+"""The fits' priors and bounds from the calibration and the physics of a car (DESIGN.md §10):
 :func:`calibration_prior` (Gaussian priors on the camera's attitude over the road and the body's
 motion between frames), :func:`physical_bounds` (beyond which an estimate has failed whatever the
-images say) and :func:`prior_arrays` (priors as the solver takes them)."""
+images say), :func:`within_bounds` (the flow fits' test of them) and :func:`prior_arrays` (priors
+as the solver takes them)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from .._check import check_number
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 
-__all__ = ["calibration_prior", "physical_bounds", "prior_arrays", "DEG"]
+__all__ = ["calibration_prior", "physical_bounds", "within_bounds", "prior_arrays", "DEG"]
 
 DEG = math.pi / 180.0
 
@@ -67,6 +68,20 @@ def physical_bounds(model: str | RoadModel, camera: Camera) -> tuple[Tensor, Ten
         elif name in limits:
             lo[:, i], hi[:, i] = -limits[name], limits[name]
     return lo, hi
+
+
+def within_bounds(model: str | RoadModel, camera: Camera, params: Tensor, covariance: Tensor,
+                  free: Tensor) -> Tensor:
+    """(B,) bool: every free parameter of ``params`` (B, P) lies within :func:`physical_bounds` and
+    is determined by the data to better than half their width (its standard deviation from
+    ``covariance`` (B, P, P)): a fit outside them, or one that cannot place a parameter inside
+    them (the camera's attitude of a vehicle at rest: the flow is about 0 whatever it is), has
+    failed. ``free`` (P,) bool; parameters without bounds pass."""
+    lo, hi = (b.to(params.device, torch.float64) for b in physical_bounds(model, camera))
+    p = params.to(torch.float64)
+    sd = covariance.to(torch.float64).diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    ok = (p >= lo) & (p <= hi) & (sd <= 0.5 * (hi - lo))
+    return (ok | ~free.to(params.device)).all(-1)
 
 
 def prior_arrays(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
