@@ -292,8 +292,12 @@ def test_road_motion_forms_and_errors():
         road_motion({"z_d": 1.0})
     with pytest.raises(ValueError, match="unknown parameters"):
         road_motion({"model": "plane", "speed": 1.0})
-    with pytest.raises(ValueError, match="model: expected one of"):
+    # (the error names the motion's entry, not a ``model`` argument of the caller's: the refiner's
+    # and the loss's odometry come with options of their own)
+    with pytest.raises(ValueError, match=r"odometry\['model'\]: expected one of .*got 'bicycle'"):
         road_motion({"model": "bicycle"})
+    with pytest.raises(ValueError, match=r"motion\['model'\]: expected one of .*got None"):
+        road_motion({"model": None}, "motion")
     with pytest.raises(TypeError, match="odometry: expected a dict"):
         road_motion(3.0)
     # a batch of 1 allows one shape, and the message says so (once "(1,) or (1,)")

@@ -405,12 +405,12 @@ ROAD_MODELS: dict[str, RoadModel] = {
 }
 
 
-def get_road_model(model: str | RoadModel) -> RoadModel:
-    """The :class:`RoadModel` of a name in :data:`ROAD_MODELS` (or the model itself)."""
+def get_road_model(model: str | RoadModel, name: str = "model") -> RoadModel:
+    """The :class:`RoadModel` of a name in :data:`ROAD_MODELS` (or the model itself); the error names ``name``."""
     if isinstance(model, RoadModel):
         return model
     if not isinstance(model, str) or model not in ROAD_MODELS:
-        raise ValueError(f"model: expected one of {tuple(ROAD_MODELS)}, got {model!r}")
+        raise ValueError(f"{name}: expected one of {tuple(ROAD_MODELS)}, got {model!r}")
     return ROAD_MODELS[model]
 
 
@@ -496,7 +496,7 @@ def road_motion(odometry: object, name: str = "odometry", *,
     """
     if isinstance(odometry, Mapping):
         if "model" in odometry:
-            model = get_road_model(odometry["model"])
+            model = get_road_model(odometry["model"], f"{name}['model']")
             params = {k: v for k, v in odometry.items() if k != "model"}
         else:
             model = ROAD_MODELS["paper"]
@@ -506,7 +506,7 @@ def road_motion(odometry: object, name: str = "odometry", *,
                                  f"(radians), or a 'model' key and that model's parameters; got keys {sorted(odometry)}")
             params = dict(odometry)
     elif hasattr(odometry, "model") and hasattr(odometry, "params"):
-        model, params = get_road_model(odometry.model), dict(odometry.params)
+        model, params = get_road_model(odometry.model, f"{name}.model"), dict(odometry.params)
     elif all(hasattr(odometry, k) for k in ("x_d", "z_d", "yaw")):
         model = ROAD_MODELS["paper"]
         params = {k: getattr(odometry, k) for k in ("x_d", "z_d", "yaw")}
