@@ -197,6 +197,49 @@ def test_ackermann_exact_integration(speed, steering, dt):
     assert e.y_d.tolist() == [0.0] and e.rotation_residual.abs().max() == 0
 
 
+@pytest.mark.parametrize("offset", [1.5, -0.8])
+@pytest.mark.parametrize("speed, steering, dt", [(10.0, 0.1, 0.1), (-5.0, -0.5, 1.0)])
+def test_ackermann_camera_ahead_of_the_rear_axle(speed, steering, dt, offset):
+    """The displacement model's d is the camera's (the vehicle frame's origin is the camera
+    centre); the Ackermann arc is the rear axle's. Independent reference: the axle's pose from
+    the numerical integration, the camera ``offset`` metres ahead of it along the heading, and a
+    road point's coordinates in the camera frame of t+1 by rigid transforms, against the
+    displacement model's ``R_φ (p - d)``. Before ``camera_offset`` the axle's arc was returned for
+    every camera: a camera 1.5 m ahead, turning 2° a frame, lies 5 cm further to the side."""
+    e = ego_motion_from_ackermann(torch.tensor([speed], dtype=torch.float64), steering, 2.7, dt,
+                                  camera_offset=offset)
+    yaw, x, z = _integrate(speed, steering, 2.7, dt, steps=2000)
+    forward, right = np.array([math.sin(yaw), 0.0, math.cos(yaw)]), np.array([math.cos(yaw), 0.0, -math.sin(yaw)])
+    camera1 = np.array([0.0, 0.0, -offset]) + np.array([x, 0.0, z]) + offset * forward  # in camera-t coordinates
+    assert e.yaw.item() == pytest.approx(yaw, abs=1e-12)
+    assert [e.x_d.item(), e.z_d.item()] == pytest.approx([camera1[0], camera1[2]], abs=1e-9)
+    point = np.array([2.0, 1.65, 9.0])
+    seen = np.array([right @ (point - camera1), point[1] - camera1[1], forward @ (point - camera1)])
+    c, s_ = math.cos(e.yaw.item()), math.sin(e.yaw.item())
+    d = np.array([e.x_d.item(), 0.0, e.z_d.item()])
+    model = np.array([[c, 0.0, -s_], [0.0, 1.0, 0.0], [s_, 0.0, c]]) @ (point - d)
+    np.testing.assert_allclose(model, seen, atol=1e-9)
+    axle = ego_motion_from_ackermann(torch.tensor([speed], dtype=torch.float64), steering, 2.7, dt)
+    assert abs(e.x_d.item() - axle.x_d.item()) > 0.01  # (the offset matters at these turns)
+
+
+def test_ackermann_camera_offset_batch_gradient_and_default():
+    v = torch.tensor([12.0, 12.0], dtype=torch.float64)
+    e = ego_motion_from_ackermann(v, 0.05, 2.7, 0.1, camera_offset=torch.tensor([0.0, 1.5], dtype=torch.float64))
+    base = ego_motion_from_ackermann(v, 0.05, 2.7, 0.1)
+    assert e.x_d[0] == base.x_d[0] and e.z_d[0] == base.z_d[0] and e.x_d[1] > base.x_d[1]
+    assert torch.equal(e.yaw, base.yaw)
+    for steering in (0.0, 0.2):  # smooth through straight motion
+        torch.autograd.gradcheck(
+            lambda s, a: torch.cat(ego_motion_from_ackermann(12.0, s, 2.7, 0.1, camera_offset=a)[:3]),
+            (torch.tensor([steering], dtype=torch.float64, requires_grad=True),
+             torch.tensor([1.5], dtype=torch.float64, requires_grad=True)))
+    with pytest.raises(ValueError, match="camera_offset: expected finite values"):
+        ego_motion_from_ackermann(10.0, 0.0, 2.7, 0.1, camera_offset=float("inf"))
+    with pytest.raises(ValueError, match="mismatched batch sizes"):
+        ego_motion_from_ackermann(torch.ones(2), 0.0, 2.7, 0.1, camera_offset=torch.ones(3))
+
+
 def test_ackermann_straight_limit():
     e = ego_motion_from_ackermann(torch.tensor([12.0], dtype=torch.float64), 0.0, 2.7, 0.1)
     assert e.x_d.item() == 0.0 and e.yaw.item() == 0.0 and e.z_d.item() == pytest.approx(1.2, abs=1e-15)

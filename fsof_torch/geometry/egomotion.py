@@ -166,14 +166,21 @@ def _planar_projection(T: Tensor, camera: Camera | None) -> EgoMotion:
 
 
 def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
-                              wheelbase: Tensor | float, dt: Tensor | float) -> EgoMotion:
+                              wheelbase: Tensor | float, dt: Tensor | float, *,
+                              camera_offset: Tensor | float = 0.0) -> EgoMotion:
     """Exact integration of the Ackermann model (no side slip) over ``dt`` seconds.
 
     With curvature κ = tan δ_f / l and arc length s = v_r Δt the vehicle turns by φ = κ s and
-    moves along the arc to ``x_d = (1 - cos φ) / κ``, ``z_d = sin φ / κ``, written with ``sinc``
-    so that straight motion (κ = 0) is exact and gradients stay finite.
+    its rear axle moves along the arc by ``(1 - cos φ) / κ`` to the side and ``sin φ / κ``
+    forward, written with ``sinc`` so that straight motion (κ = 0) is exact and gradients stay
+    finite. The displacement model's d is the camera's (the vehicle frame's origin is the camera
+    centre, DESIGN.md §2): a camera ``camera_offset`` metres ahead of the rear axle (negative:
+    behind) swings out of a turn, ``x_d = (1 - cos φ) / κ + a sin φ``, ``z_d = sin φ / κ -
+    a (1 - cos φ)``. The default 0 is the paper's velocity model (lateral rate 0), exact for a
+    camera above the rear axle; a windscreen camera 1.5 m ahead turning by 3° a frame moves
+    8 cm further to the side than the axle.
     """
-    named = {"speed": speed, "steering": steering, "wheelbase": wheelbase, "dt": dt}
+    named = {"speed": speed, "steering": steering, "wheelbase": wheelbase, "dt": dt, "camera_offset": camera_offset}
     given = [as_batch_param(v, n) for n, v in named.items() if isinstance(v, Tensor)]
     dtype = result_dtype(*given) if given else torch.get_default_dtype()
     device = given[0].device if given else None  # Python numbers follow the tensors' device
@@ -186,7 +193,10 @@ def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
     arc = p["speed"] * p["dt"]
     yaw = arc * torch.tan(p["steering"]) / p["wheelbase"]
     # (1 - cos φ) / φ = (φ / 2) sinc²(φ / 2π); sin φ / φ = sinc(φ / π) (torch.sinc is normalised)
-    x_d = arc * (yaw / 2) * torch.sinc(yaw / (2 * torch.pi)) ** 2
-    z_d = arc * torch.sinc(yaw / torch.pi)
+    versine, sine = (yaw / 2) * torch.sinc(yaw / (2 * torch.pi)) ** 2, torch.sinc(yaw / torch.pi)
+    # the rear axle's arc (s times those), and the camera's offset a turned by φ: (a sin φ, -a (1 - cos φ))
+    a = p["camera_offset"]
+    x_d = arc * versine + a * yaw * sine
+    z_d = arc * sine - a * yaw * versine
     zero = torch.zeros_like(yaw)
     return EgoMotion(x_d, z_d, yaw, zero, torch.zeros(*yaw.shape, 3, dtype=yaw.dtype, device=yaw.device))
