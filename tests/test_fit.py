@@ -488,6 +488,30 @@ def test_fit_velocity_init_steering_is_named(steering, error, match):
         fit_velocity(flow, valid, cam, 2.7, init={"steering": steering, "speed": 12.0})
 
 
+def test_fit_velocity_takes_an_earlier_fits_velocity_as_its_start(monkeypatch):
+    """``fit.velocity()`` (speed, steering, wheelbase) is a start for the next fit (it raised
+    ``init: unknown parameters ['wheelbase']``); its steering becomes the start's yaw rate with its
+    own wheelbase, not the new fit's; the caller's dict is left as it was."""
+    import fsof_torch.estimation.flow_fit as flow_fit
+
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5)
+    flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, (48, 160))
+    first = fit_velocity(flow, valid, cam, 2.7)
+    start = first.velocity()
+    again = fit_velocity(flow, valid, cam, 2.7, init=start)
+    assert bool(again.success) and float(again.steering) == pytest.approx(0.05, abs=1e-9)
+    assert set(start) == {"speed", "steering", "wheelbase"}
+    seen = []
+    fit_road = flow_fit.fit_road
+    monkeypatch.setattr(flow_fit, "fit_road", lambda *a, init=None, **k: seen.append(init) or fit_road(*a, init=init, **k))
+    fit_velocity(flow, valid, cam, 3.5, init=start)  # (another car's wheelbase for this fit's steering)
+    assert float(seen[0]["yaw_rate"]) == pytest.approx(float(first.yaw_rate), rel=1e-12)
+    assert "wheelbase" not in seen[0] and "steering" not in seen[0]
+    with pytest.raises(ValueError, match=r"^init\['wheelbase'\]: expected values > 0"):
+        fit_velocity(flow, valid, cam, 2.7, init={**start, "wheelbase": -1.0})
+
+
 def test_a_prior_on_a_held_parameter_is_refused():
     """A prior on a parameter the fit holds (the pitch by default, or one in ``fixed``) would be
     ignored: a ValueError that says so (it was silently dropped, success True); freed, it acts."""

@@ -218,8 +218,7 @@ def _moment_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
 
 # -- input handling ------------------------------------------------------------------------------
 
-def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera,
-                      valid: Tensor | None) -> tuple[dict, Camera, Tensor]:
+def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera, valid: Tensor | None) -> tuple[dict, Camera, Tensor]:
     """Validate a flow fit's inputs; return dims, the camera (batch B, on the flow's device) and
     the mask (batch B, ANDed with ``valid``)."""
     check_float_tensor(flow, "flow")
@@ -363,11 +362,9 @@ def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: Mas
     place on the fresh gathers); only the sums are float64 (python benchmarks/bench_fit.py: a
     float64 copy of the gathered flows cost more than the rest). A batch reads where each
     frame's pixels start once (bench_fit.py, batch 8: gathering the whole batch through
-    channel-first copies of both flows cost more than the rest of the fit).
-    """
+    channel-first copies of both flows cost more than the rest of the fit)."""
     B, _, H, W = flow.shape
-    HW = H * W
-    every = points.every
+    HW, every = H * W, points.every
     bounds = [0, every.numel()] if B == 1 else points.bounds.tolist()
     inliers = torch.zeros(B, HW, dtype=torch.bool, device=flow.device)
     n_in, n_use, epe_in = [], [], []
@@ -659,9 +656,13 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
     :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the wheelbase l
     (metres, > 0, float or (B,)) only converts the yaw rate into a steering angle δ_f = atan(φ̇ l / v_r)
     (0 at rest), reported as ``fit.steering`` beside ``fit.wheelbase``. ``init`` may give a steering
-    angle instead of a yaw rate. ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
+    angle instead of a yaw rate, and the wheelbase it refers to (``fit.velocity()``; default ``wheelbase``);
+    ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
     check_fit_flags("fit_velocity", fit_roll, fit_pitch, options)
-    wb = _wheelbase(wheelbase, flow)
+    wb = init_wb = _wheelbase(wheelbase, flow)
+    if isinstance(init, Mapping) and "wheelbase" in init:  # (an earlier fit's velocity(): its steering's)
+        init_wb, init = _wheelbase(init["wheelbase"], flow, "init['wheelbase']"), {k: v for k, v in init.items()
+                                                                                   if k != "wheelbase"}
     if isinstance(init, Mapping) and init.get("steering") is not None and init.get("yaw_rate") is None:
         init = dict(init)
         given = {"steering": init.pop("steering"), "speed": init.get("speed", 0.0)}
@@ -674,27 +675,26 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
             check_batch(t.numel(), f"init[{key!r}]", B)
         if not bool(torch.isfinite(steer).all()) or not bool((steer.abs() < math.pi / 2).all()):
             raise ValueError(f"init: expected a finite steering with |δ_f| < π/2 rad, got {steer.tolist()}")
-        init["yaw_rate"] = speed * torch.tan(steer) / wb.to(torch.float64).cpu()
+        init["yaw_rate"] = speed * torch.tan(steer) / init_wb.to(torch.float64).cpu()
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     fit = fit_road(flow, mask, camera, model="velocity", fixed=fixed, init=init, scale=scale, **options)
-    speed, yaw_rate = fit.params["speed"], fit.params["yaw_rate"]
+    speed, yaw_rate, moving = fit.params["speed"], fit.params["yaw_rate"], fit.params["speed"].abs() > 1e-12
     wb = wb.to(speed).expand_as(speed).clone()  # (the fit's own: not the caller's tensor, nor a stride-0 view)
-    moving = speed.abs() > 1e-12
     steering = torch.where(moving, torch.atan(yaw_rate * wb / torch.where(moving, speed, 1.0)), 0.0)
     fit.extras.update(steering=steering, wheelbase=wb)
     return fit
 
 
-def _wheelbase(wheelbase: Tensor | float, flow: Tensor) -> Tensor:
+def _wheelbase(wheelbase: Tensor | float, flow: Tensor, name: str = "wheelbase") -> Tensor:
     if isinstance(wheelbase, Tensor):
-        check_float_tensor(wheelbase, "wheelbase")
+        check_float_tensor(wheelbase, name)
         wb = wheelbase.detach().reshape(-1)
     elif isinstance(wheelbase, numbers.Real) and not isinstance(wheelbase, bool):
         wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
     else:
-        raise TypeError(f"wheelbase: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
+        raise TypeError(f"{name}: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
     if isinstance(flow, Tensor) and flow.dim() == 4:
-        check_batch(wb.numel(), "wheelbase", flow.shape[0])
+        check_batch(wb.numel(), name, flow.shape[0])
     if not bool((torch.isfinite(wb) & (wb > 0)).all()):
-        raise ValueError(f"wheelbase: expected values > 0, got {wb.tolist()}")
+        raise ValueError(f"{name}: expected values > 0, got {wb.tolist()}")
     return wb
