@@ -512,6 +512,22 @@ def test_fit_velocity_takes_an_earlier_fits_velocity_as_its_start(monkeypatch):
         fit_velocity(flow, valid, cam, 2.7, init={**start, "wheelbase": -1.0})
 
 
+def test_fit_velocity_steering_of_a_vehicle_at_rest_is_0():
+    """At rest the yaw rate is about 0 and so is the speed: their ratio, the steering, is noise
+    (one such fit of 0.2 px/s noise gave -3° with ``success`` True: the roll held, nothing else is
+    undetermined). A speed within 3 σ of 0 is rest: steering 0, as the docstring says; moving at
+    1 m/s the same noise leaves the steering within 0.01 rad of the truth."""
+    K = torch.tensor([[300.0, 0, 160], [0, 300, 40], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5, 0.01, -0.01)
+    noise = 0.2 * torch.randn(1, 2, 96, 320, generator=torch.Generator().manual_seed(1), dtype=torch.float64)
+    for speed, expected in ((0.0, 0.0), (1.0, 0.05)):
+        flow, valid = velocity_flow(cam, speed, 0.05, 2.7, (96, 320))
+        valid[..., :50, :] = False
+        fit = fit_velocity(flow + noise, valid, cam, 2.7, fit_roll=False)
+        assert bool(fit.success)
+        assert float(fit.steering) == pytest.approx(expected, abs=0.01 if speed else 0.0), float(fit.speed)
+
+
 def test_a_prior_on_a_held_parameter_is_refused():
     """A prior on a parameter the fit holds (the pitch by default, or one in ``fixed``) would be
     ignored: a ValueError that says so (it was silently dropped, success True); freed, it acts."""

@@ -653,11 +653,10 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
                  scale: float = 10.0, **options: Any) -> RoadFit:
     """Fit the velocity model (paper eq. 21) to a flow field in pixels per second.
 
-    :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the wheelbase l
-    (metres, > 0, float or (B,)) only converts the yaw rate into a steering angle δ_f = atan(φ̇ l / v_r)
-    (0 at rest), reported as ``fit.steering`` beside ``fit.wheelbase``. ``init`` may give a steering
-    angle instead of a yaw rate, and the wheelbase it refers to (``fit.velocity()``; default ``wheelbase``);
-    ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
+    :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the wheelbase l (m, > 0,
+    float or (B,)) only turns the yaw rate into ``fit.steering`` δ_f = atan(φ̇ l / v_r) (0 at rest: a speed within
+    3 σ of 0). ``init`` may give a steering angle instead of a yaw rate, and its wheelbase (``fit.velocity()``;
+    default ``wheelbase``). ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
     check_fit_flags("fit_velocity", fit_roll, fit_pitch, options)
     wb = init_wb = _wheelbase(wheelbase, flow)
     if isinstance(init, Mapping) and "wheelbase" in init:  # (an earlier fit's velocity(): its steering's)
@@ -678,7 +677,8 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
         init["yaw_rate"] = speed * torch.tan(steer) / init_wb.to(torch.float64).cpu()
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     fit = fit_road(flow, mask, camera, model="velocity", fixed=fixed, init=init, scale=scale, **options)
-    speed, yaw_rate, moving = fit.params["speed"], fit.params["yaw_rate"], fit.params["speed"].abs() > 1e-12
+    speed, yaw_rate, sd = fit.params["speed"], fit.params["yaw_rate"], fit.covariance[:, 0, 0].clamp_min(0).sqrt()
+    moving = speed.abs() > (3 * sd).clamp_min(1e-12)  # (a speed told from rest: beyond 3 σ, else no steering)
     wb = wb.to(speed).expand_as(speed).clone()  # (the fit's own: not the caller's tensor, nor a stride-0 view)
     steering = torch.where(moving, torch.atan(yaw_rate * wb / torch.where(moving, speed, 1.0)), 0.0)
     fit.extras.update(steering=steering, wheelbase=wb)
