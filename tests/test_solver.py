@@ -65,6 +65,13 @@ def test_gaussian_prior_gives_the_posterior_mean():
     J = torch.stack([x[0], torch.ones_like(x[0])], dim=1)
     ref = torch.linalg.solve(J.T @ J + torch.diag(lam[0]), J.T @ y[0] + lam[0] * mu[0])
     torch.testing.assert_close(sol.params[0], ref, rtol=0, atol=1e-7)
+    # from the data's own least-squares answer the prior's pull raises the data's cost: only a cost
+    # that counts the prior accepts that step; and the reported cost is E / n with the prior's term
+    ls = torch.linalg.solve(J.T @ J, J.T @ y[0])
+    sol = solve(problem, ls.unsqueeze(0), kernel="l2", prior_mean=mu, prior_precision=lam, max_iter=10)
+    torch.testing.assert_close(sol.params[0], ref, rtol=0, atol=1e-7)
+    energy = (J @ ref - y[0]).square().sum() + (lam[0] * (ref - mu[0]).square()).sum()
+    torch.testing.assert_close(sol.cost[0], energy / x.shape[1], rtol=1e-9, atol=0)
 
 
 def test_bounds_fixed_parameters_and_per_sample_convergence():
@@ -308,6 +315,20 @@ def test_robust_kernels_match_scipy_losses():
     with pytest.raises(ValueError, match="kind: expected one of"):  # (the kernels' argument)
         robust_weight(r2, c, "bisquare")
     assert set(ROBUST_KERNELS) == {"cauchy", "huber", "soft_l1", "tukey", "l2"}
+
+
+@pytest.mark.parametrize("kind", ROBUST_KERNELS)
+def test_robust_weight_is_the_derivative_of_the_cost(kind):
+    """w = dρ/d(r²), checked by central differences of ``robust_cost`` for every kernel (SciPy has
+    no Tukey kernel: its cost is also checked against the module's formula, written here)."""
+    c = 1.5
+    r2 = torch.tensor([0.3, 1.0, 1.9, 3.1, 5.0, 9.0], dtype=torch.float64)  # (off huber's and tukey's cut, c² = 2.25)
+    h = 1e-6
+    numeric = (robust_cost(r2 + h, c, kind) - robust_cost(r2 - h, c, kind)) / (2 * h)
+    torch.testing.assert_close(robust_weight(r2, c, kind), numeric, rtol=1e-6, atol=1e-9)
+    if kind == "tukey":
+        ref = torch.where(r2 < c * c, c * c / 3 * (1 - (1 - r2 / c**2) ** 3), torch.full_like(r2, c * c / 3))
+        torch.testing.assert_close(robust_cost(r2, c, kind), ref)
 
 
 def test_sample_mask_even_stride_and_padding():
