@@ -542,6 +542,56 @@ def test_a_prior_on_a_held_parameter_is_refused():
     assert bool(fit.success) and float(fit.z_d) == pytest.approx(1.0, abs=1e-6)
 
 
+def test_road_points_behind_the_camera_at_t1_do_not_count():
+    """The fit's residuals count only the points whose road point is in front of the camera at t+1:
+    a level camera sees the road at row v at depth Z = h f_y / (v − c_y), which a forward step z_d
+    takes behind the camera where Z < z_d (the homography's projection there is meaningless)."""
+    cam = small_camera()
+    H, W = SIZE
+    v = torch.arange(20, H, dtype=torch.float64)
+    pts = torch.stack([torch.full_like(v, 80.0), v, torch.ones_like(v)]).unsqueeze(0)  # (1, 3, N)
+    depth = 1.65 * 130.0 / (v - 16.0)
+    z_d = 8.0
+    assert (depth < z_d).any() and (depth > z_d).any() and bool(((depth - z_d).abs() > 0.05).all())
+    from fsof_torch.geometry.road_models import get_road_model
+
+    model = get_road_model("paper")
+    problem = fit_module.FlowProblem(model, cam, pts, torch.zeros(1, 2, v.numel(), dtype=torch.float64),
+                                     torch.ones(1, v.numel(), dtype=torch.bool))
+    ev = problem.evaluate(torch.tensor([[0.0, z_d, 0.0, 0.0, 0.0]], dtype=torch.float64))
+    assert torch.equal(ev.use[0], depth > z_d)
+
+
+def test_a_prior_weighs_against_the_flow_at_the_kernels_scale():
+    """A prior (μ, σ) is weighed against the residuals at the kernel's scale c: with the l2 kernel
+    the fit minimises Σ |r|² + (c / σ)² (z_d − μ)². The minimiser is found here by a golden-section
+    search over that energy, evaluated with displacement_flow; for two scales with the same c / σ
+    (the same answer, halfway between the flow's z_d and the prior's mean)."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    mask = road_mask(valid)
+    f_step, _ = displacement_flow(cam, 0.0, 1.001, 0.0, SIZE)
+    curvature = float(((f_step - flow) / 0.001).square().sum(1, keepdim=True)[mask].sum())  # Σ |dr/dz_d|²
+    lam = curvature  # the prior's precision in residual² per m²: as strong as the flow's
+
+    def energy(z):
+        f, _ = displacement_flow(cam, 0.0, z, 0.0, SIZE)
+        return float((f - flow).square().sum(1, keepdim=True)[mask].sum()) + lam * (z - 1.5) ** 2
+
+    lo, hi, g = 1.0, 1.5, (math.sqrt(5) - 1) / 2
+    for _ in range(40):
+        m1, m2 = hi - g * (hi - lo), lo + g * (hi - lo)
+        lo, hi = (lo, m2) if energy(m1) < energy(m2) else (m1, hi)
+    z_ref = (lo + hi) / 2
+    assert 1.2 < z_ref < 1.3
+    for scale in (0.5, 2.0):
+        fit = fit_road(flow, mask, cam, robust="l2", scale=scale, fixed=("x_d", "yaw", "roll", "pitch"),
+                       max_points=None, prior={"z_d": (1.5, scale / math.sqrt(lam))})
+        assert bool(fit.success)
+        # (to the fit's resolution: it stops when a step moves the residuals by 1 % of their RMS)
+        assert float(fit.z_d) == pytest.approx(z_ref, abs=3e-3), scale
+
+
 def test_detect_freespace_keeps_a_roll_prior_for_the_hypothesis_that_fits_the_roll():
     """detect_freespace's second hypothesis holds the camera's roll and pitch: a caller's prior on
     them belongs to the first, which fits them (passing it to both would be refused)."""
