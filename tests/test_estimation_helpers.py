@@ -586,6 +586,28 @@ def test_pyramid_levels_rule_and_min_size():
         P.pyramid_levels(64, 64, None, 16.0)
 
 
+@pytest.mark.parametrize("level", [1, 2])
+def test_level_camera_projects_where_the_pyramid_samples(level):
+    """Pixel i of level l is pixel 2^l i of level 0: a linear ramp's pyramid (the binomial blur
+    leaves a ramp alone away from the borders) holds at level l, pixel (i, j), the ramp at
+    (2^l i, 2^l j); and a point that level 0's camera projects to pixel p, level_camera projects to
+    p / 2^l (both written here; not camera.scaled's convention of pixel centres)."""
+    s = 2 ** level
+    H, W = 48, 64
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    ramp = (3.0 * u + 5.0 * v).reshape(1, 1, H, W)
+    coarse = P.image_pyramid(ramp, level + 1, 0.0)[level][0, 0]
+    i = torch.arange(2, coarse.shape[1] - 2, dtype=torch.float64)  # (away from the reflected borders)
+    j = torch.arange(2, coarse.shape[0] - 2, dtype=torch.float64).unsqueeze(1)
+    torch.testing.assert_close(coarse[2:-2, 2:-2], 3.0 * s * i + 5.0 * s * j)
+    K = torch.tensor([[100.0, 0.4, 31.3], [0.0, 90.0, 22.7], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam = Camera(K, 1.5)
+    X = torch.tensor([[0.7, -0.3, 1.0], [-2.0, 1.1, 1.0]], dtype=torch.float64).T  # (3, 2): rays, z = 1
+    p0 = (K @ X)[:2]
+    p = (P.level_camera(cam, level).K[0] @ X)[:2]
+    torch.testing.assert_close(p, p0 / s)
+
+
 def test_image_pyramid_gradients_on_the_cpu():
     """As its docstring says: on the CPU only an unsmoothed level 0 (``images`` itself) carries a
     gradient; OpenCV's filters do not, level 0 smoothed included."""
