@@ -124,6 +124,21 @@ def test_robust_mean_of_an_even_count_is_not_the_lower_value():
     assert _robust_mean(x, ok) == pytest.approx(0.0115, abs=1e-12)
 
 
+def test_robust_mean_cuts_at_three_normal_consistent_deviations():
+    """The cut is 3 σ̂ with σ̂ = 1.4826 MAD (the normal distribution's σ), written here with NumPy:
+    a value 4 MADs out (2.7 σ̂) is kept, one 4.7 MADs out (3.2 σ̂) is left out."""
+    from fsof_torch.estimation.sequence import _robust_mean
+
+    for far, kept in ((8.5, True), (9.5, False)):
+        x = np.array([0.0, 1.0, 2.0, 3.0, 4.0, far])
+        med = np.median(x)
+        sigma = 1.4826 * np.median(np.abs(x - med))
+        ref = x[np.abs(x - med) <= 3 * sigma].mean()
+        assert (len(x[np.abs(x - med) <= 3 * sigma]) == 6) == kept
+        got = _robust_mean(torch.from_numpy(x), torch.ones(6, dtype=torch.bool))
+        assert got == pytest.approx(ref, abs=1e-12), far
+
+
 def test_robust_mean_of_fewer_than_five_is_their_median():
     """Of 3 or 4 values the median absolute deviation is set by the nearer outer value: pitches of
     1.00, 1.05 and 1.30 degrees (a spread the body's pitching gives) calibrated at the mean of the
