@@ -205,6 +205,27 @@ def test_images_without_evidence_leave_the_prediction():
     assert bool(loose.model_used.all()) and bool(loose.use_model.all())
 
 
+def test_a_better_prediction_that_does_not_explain_the_images_does_not_keep_a_sample():
+    """Over a sample's mask the prediction is kept only where it is significantly better AND
+    explains the images itself (mean distance at most ``occlusion``): under heavy noise the right
+    shift is far better than the zero model, yet its distance, about 0.46, is above 0.35; without
+    ``require_evidence`` (which would hide the test: such a sample is not informative) the model's
+    geometry stands. With ``occlusion`` above that distance the prediction is kept."""
+    g = torch.Generator().manual_seed(0)
+    H, W = 64, 96
+    image1 = torch.rand(1, 1, H, W, generator=g) * 255
+    image2 = (torch.roll(image1, 3, dims=-1) + 200.0 * torch.randn(1, 1, H, W, generator=g)).clamp(0, 255)
+    pred, model = torch.zeros(1, 2, H, W), torch.zeros(1, 2, H, W)
+    pred[:, 0] = 3.0
+    mask = torch.zeros(1, 1, H, W, dtype=torch.bool)
+    mask[..., 8:-8, 8:-8] = True
+    out = ImageGate(objects=False, require_evidence=False)(image1, image2, pred, model, mask)
+    assert 0.4 < float(out.cost_prediction[0]) < float(out.cost_model[0]) - 0.08
+    assert bool(out.model_used[0]) and int(out.use_model.sum()) > 0.9 * int(mask.sum())
+    loose = ImageGate(objects=False, require_evidence=False, occlusion=0.6)(image1, image2, pred, model, mask)
+    assert not bool(loose.model_used[0]) and not bool(loose.use_model.any())
+
+
 def test_a_handful_of_points_is_no_evidence():
     """A mask of a few points (fewer than ``min_points`` count) is not informative: a wrong model
     does not replace a right prediction there (was: with two or three points their standard
