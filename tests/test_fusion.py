@@ -322,6 +322,21 @@ def test_a_prediction_not_finite_anywhere_in_the_mask_is_replaced_given_odometry
     assert torch.equal(out.flow[~inside], pred[~inside])
 
 
+def test_confidence_scale_of_a_coarse_level_is_in_its_pixels():
+    """A coarse level's Cauchy scale is the finest's times the level's linear size ratio (its flow is
+    proportionally smaller): at half size c / 2, written out here with the level's model flow
+    (displacement_flow with the scaled camera)."""
+    pred, mask, cam, _ = make_case(dtype=torch.float64)
+    size = (H // 2, W // 2)
+    model, valid = displacement_flow(cam.scaled(0.5), ODO["x_d"], ODO["z_d"], ODO["yaw"], size)
+    low = model + torch.tensor([0.6, -0.8], dtype=torch.float64).reshape(1, 2, 1, 1)  # r = 1 px everywhere
+    out = FreespaceRefiner(mode="confidence", scale=2.0)([low, pred], mask, cam, ODO)
+    m = (resize_mask(mask, size) & valid).expand(1, 2, *size)
+    assert m.any()
+    w = 1.0 / (1.0 + 1.0 / (2.0 * 0.5) ** 2)  # r = c: 1/2
+    torch.testing.assert_close(out.flow[0][m], (w * model + (1 - w) * low)[m])
+
+
 def test_nan_in_another_level_than_the_finest():
     """The finest flow's finiteness decides the fast path only for that level: a NaN in a
     coarser level of a list still gets the model inside the mask in confidence mode."""

@@ -460,3 +460,20 @@ def test_frames_of_two_dtypes_are_refined_as_they_came(scene, dtypes):
     assert bool(out.refined.all()) and out.flow.dtype == dtypes[0]
     # (image 2 in another precision, the same road motion: within a half precision image's rounding)
     torch.testing.assert_close(out.flow, ref.flow, rtol=0, atol=0.05 if torch.float16 in dtypes else 1e-4)
+
+
+def test_confidence_weight_adds_the_gates_evidence(scene):
+    """In confidence mode the model's weight is the Cauchy weight of the two flows' disagreement
+    raised by the images' evidence for the model: w = w_c + (1 − w_c) e, with w_c = 1 / (1 + r² / c²)
+    and e the gate's per-cell evidence (written out here)."""
+    pred, road = scene["pred"], scene["road"][None]
+    motion = {"model": "plane", **{k: v for k, v in scene["plane"].items() if k != "height"}}
+    scale = 2.0
+    out = _quiet(FreespaceRefiner(mode="confidence", scale=scale), pred, road, scene["camera"], motion,
+                 images=(scene["image1"][None], scene["image2"][None]))
+    m = out.mask[0, 0]
+    evidence = out.gate.evidence[0, 0][m]
+    assert m.sum() > 100 and bool(((evidence > 0.05) & (evidence < 0.95)).any())
+    r2 = (pred - out.flow_model).square().sum(1)[0][m]
+    w_c = 1.0 / (1.0 + r2 / scale**2)
+    torch.testing.assert_close(out.weight[0, 0][m], w_c + (1.0 - w_c) * evidence, rtol=1e-5, atol=1e-6)
