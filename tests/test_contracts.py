@@ -164,6 +164,19 @@ class TestPadding:
         assert InputPadder(8, mode="kitti").padding(SIZE) == Padding(1, 1, 0, 3)
         assert InputPadder(8).padding((48, 64)).is_zero
 
+    def test_padded_camera_sees_the_road_where_the_padding_moved_it(self):
+        """Padding.camera is the camera of the padded grid, where pixel (u, v) is (u + left, v + top):
+        the road flow there, cropped back, is the input grid's flow (left, top and the other two
+        sides all different, as RAFT's KITTI padder's (3, 3, 0, 1))."""
+        cam = Camera(torch.tensor([[90.0, 0.0, 61.0], [0.0, 88.0, 12.0], [0.0, 0.0, 1.0]], dtype=torch.float64),
+                     1.65, 0.01, -0.02)
+        size = (40, 120)
+        flow, valid = displacement_flow(cam, 0.1, 1.1, 0.02, size)
+        for p in (Padding(3, 1, 0, 2), Padding(0, 2, 5, 1), Padding(4, 0, 1, 3)):
+            padded, padded_valid = displacement_flow(p.camera(cam), 0.1, 1.1, 0.02, p.padded_size(size))
+            assert torch.equal(p.unpad(padded_valid), valid) and bool(valid.any())
+            torch.testing.assert_close(p.unpad(padded), flow)
+
     def test_pad_unpad_any_leading_dims(self):
         x = torch.arange(2 * 2 * 3 * 5 * 7, dtype=torch.float32).reshape(2, 2, 3, 5, 7)
         p = Padding(1, 2, 3, 0)
