@@ -463,8 +463,13 @@ def test_a_prediction_that_cannot_be_judged_loses_to_a_model_that_explains_the_i
     mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
     mask[..., 8:-8, 8:-8] = True
     plain = ImageGate()(g1, g2, true, true.clone(), mask)
+    # (also just past the last pixel centre, half a pixel beyond column W - 1 or row H - 1: outside
+    # the image's samples, which span the pixel centres 0..W - 1 and 0..H - 1)
+    u, v = torch.arange(192.0).expand(96, 192), torch.arange(96.0).unsqueeze(1).expand(96, 192)
+    just_right = torch.stack([191.5 - u, torch.zeros_like(u)]).unsqueeze(0)
+    just_below = torch.stack([torch.zeros_like(v), 95.5 - v]).unsqueeze(0)
     for bad in (torch.full_like(true, float("nan")), true + torch.tensor([5000.0, 0.0]).reshape(1, 2, 1, 1),
-                true - torch.tensor([0.0, 200.0]).reshape(1, 2, 1, 1)):
+                true - torch.tensor([0.0, 200.0]).reshape(1, 2, 1, 1), just_right, just_below):
         prediction = torch.where(mask, bad, true)
         out = ImageGate()(g1, g2, prediction, true.clone(), mask)
         assert int(out.points) == int(plain.points) > 0
