@@ -126,6 +126,9 @@ def test_outlier_rule():
     assert float(outlier_rate(_vec(2.9, 0), _vec(0, 0))) == 0.0
     # zero true flow, e_E = 3.1: outlier (no division by the zero magnitude)
     assert float(outlier_rate(_vec(3.1, 0), _vec(0, 0))) == 1.0
+    # the 5% are of the true flow, not of the estimate: e_E = 4.9 against 5% of 100 (5) and of 95.1 (4.755)
+    assert float(outlier_rate(_vec(95.1, 0), _vec(100, 0))) == 0.0
+    assert float(outlier_rate(_vec(100, 0), _vec(95.1, 0))) == 1.0
 
 
 def test_against_numpy_reference(dtype):
