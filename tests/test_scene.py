@@ -268,6 +268,8 @@ CROSS_CHECK = [
     ("default", {"x_d": 1.2 * math.tan(0.01), "z_d": 1.2, "yaw": 0.02}),  # the chord of an arc: x_d = z_d tan(yaw / 2)
     ("cvc-complex", {"x_d": -0.7 * math.tan(-0.005), "z_d": -0.7, "yaw": -0.01}),  # reversing
     ("default", {"speed": 0.0}),
+    # a skewed K (the renderer's rays and its ground truth take K's skew as the road model does)
+    ("carla-turning", {"K": ((721.5377, 60.0, 609.5593), (0.0, 721.5377, 172.854), (0.0, 0.0, 1.0))}),
 ]
 
 
