@@ -201,3 +201,35 @@ def test_the_fits_flow_is_returned_as_it_was_made(monkeypatch):
     with torch.inference_mode():
         inside = real(*args)
     assert torch.equal(inside[0], fit.flow) and torch.equal(inside[1], fit.valid)
+
+
+def test_image_residuals_count_only_points_below_the_horizon():
+    """The photometric residuals count a point only where its ray meets the road in front of the
+    camera: the ray K⁻¹ p̃ turned into the vehicle frame (R_c = R_roll R_pitch, written here) points
+    down (y > 0). With no motion every point maps onto itself, inside image 2: only the horizon
+    decides."""
+    from fsof_torch.estimation.image_fit import ImageProblem
+
+    roll, pitch = 0.05, -0.03
+    K = torch.tensor([[100.0, 0.0, 40.0], [0.0, 100.0, 20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam = Camera(K, 1.5, roll, pitch)
+    H, W = 40, 80
+    v, u = torch.meshgrid(torch.arange(0.0, H, 3, dtype=torch.float64), torch.arange(0.0, W, 7, dtype=torch.float64),
+                          indexing="ij")
+    pts = torch.stack([u.flatten(), v.flatten(), torch.ones(u.numel(), dtype=torch.float64)]).unsqueeze(0)
+    c, s = math.cos(roll), math.sin(roll)
+    R_roll = torch.tensor([[c, s, 0.0], [-s, c, 0.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    c, s = math.cos(pitch), math.sin(pitch)
+    R_pitch = torch.tensor([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]], dtype=torch.float64)
+    down = ((R_roll @ R_pitch).T @ torch.linalg.inv(K) @ pts[0])[1] > 0
+    assert down.any() and (~down).any()
+    image = torch.rand(1, 1, H, W, generator=torch.Generator().manual_seed(0), dtype=torch.float64) * 255
+    N = pts.shape[-1]
+    model = get_road_model("plane")
+    problem = ImageProblem(model, cam, pts, torch.zeros(1, N, dtype=torch.float64),
+                           torch.zeros(1, 2, N, dtype=torch.float64), _with_gradient(image),
+                           torch.ones(1, N, dtype=torch.bool))
+    params = torch.zeros(1, len(model.params) + 2, dtype=torch.float64)
+    params[0, model.params.index("roll")], params[0, model.params.index("pitch")] = roll, pitch
+    params[0, len(model.params)] = 1.0  # (the gain)
+    assert torch.equal(problem.evaluate(params).use[0], down)
