@@ -66,6 +66,18 @@ class TestFeature:
         assert raw[0, 0].tolist() == [1, int(-0.5 * 64 + 2**15), int(1.5 * 64 + 2**15)]
         assert raw[0, 1, 0] == 0
 
+    def test_decoding_of_raw_channels(self, tmp_path):
+        """The reader on a PNG written here channel by channel: u = (R - 2^15) / 64, v = (G - 2^15) / 64,
+        valid where B is non-zero (the devkit's min(B, 1): any non-zero value), flow 0 elsewhere."""
+        raw = np.zeros((1, 3, 3), np.uint16)
+        raw[0, 0] = [1, 2**15 + 96, 2**15 - 32]   # u = -0.5, v = 1.5
+        raw[0, 1] = [7, 2**15 - 6400, 65535]      # u = 511.984375, v = -100
+        raw[0, 2] = [0, 2**15 + 64, 2**15 + 64]   # not valid
+        cv2.imwrite(str(tmp_path / "f.png"), raw)
+        flow, valid = read_kitti_flow(tmp_path / "f.png")
+        assert valid.tolist() == [[[True, True, False]]]
+        assert flow[0, 0].tolist() == [-0.5, 511.984375, 0.0] and flow[1, 0].tolist() == [1.5, -100.0, 0.0]
+
     @settings(max_examples=15, deadline=None)
     @given(h=st.integers(1, 9), w=st.integers(1, 9), seed=st.integers(0, 10_000))
     def test_round_trip_any(self, tmp_path_factory, h, w, seed):
