@@ -116,6 +116,23 @@ def test_unsupervised_symmetric_with_backward():
     assert value.shape == (2,) and (value < 1e-6).all()
 
 
+def test_unsupervised_smoothness_follows_the_edges_of_the_frame_each_flow_starts_from():
+    """The smoothness term of a forward flow is weighted by image 1's edges, of a backward flow by
+    image 2's: with the photometric terms off the loss is smoothness_loss (tested against ARFlow's
+    formula) of each flow on its own first frame, the two directions averaged."""
+    image1, _, _ = _shifted_pair(2)
+    image2 = image1.flip(-1).flip(-2)  # (other edges)
+    g = torch.Generator().manual_seed(4)
+    fw = torch.randn(2, 2, *image1.shape[-2:], generator=g, dtype=image1.dtype)
+    bw = torch.randn(fw.shape, generator=g, dtype=image1.dtype)
+    off = dict(l1_weight=0.0, ssim_weight=0.0, smooth_weight=1.0, occlusion=False, reduction="none")
+    ref1, ref2 = smoothness_loss(fw, image1, reduction="none"), smoothness_loss(bw, image2, reduction="none")
+    assert float((ref1 - smoothness_loss(fw, image2, reduction="none")).abs().min()) > 1e-3
+    torch.testing.assert_close(unsupervised_flow_loss([fw], image1, image2, **off), ref1)
+    torch.testing.assert_close(unsupervised_flow_loss([fw], image1, image2, flows_backward=[bw], **off),
+                               (ref1 + ref2) / 2)
+
+
 def test_freespace_zero_at_model_flow_positive_elsewhere():
     cam = _camera()
     model, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (H, W))
