@@ -513,6 +513,24 @@ def test_census_distance_of_wide_windows(radius):
     np.testing.assert_allclose(err[0, 0].numpy()[v], ref[v])
 
 
+def test_census_bits_are_strict_at_ties():
+    """A census bit is I(q) > I(p), strictly (the census distance's docstring): on a flat image every
+    bit is 0, so a single brighter pixel in image 2 flips one bit of each of the 48 pixels whose
+    7 x 7 window holds it (1/48 there) and none of its own (its neighbours are all darker: 0 in
+    both). A bit of I(q) >= I(p) would make the flat image all ones, and the bright pixel would
+    flip nothing."""
+    i1 = torch.full((1, 1, 15, 17), 80.0, dtype=torch.float64)
+    i2 = i1.clone()
+    i2[..., 7, 8] = 120.0
+    err, valid = photometric_error_map(i1, i2, torch.zeros(1, 2, 15, 17, dtype=torch.float64), kind="census")
+    ref = torch.zeros(15, 17, dtype=torch.float64)
+    ref[4:11, 5:12] = 1 / 48
+    ref[7, 8] = 0.0
+    v = valid[0, 0]
+    assert bool(v[4:11, 5:12].all())
+    torch.testing.assert_close(err[0, 0][v], ref[v])
+
+
 def test_census_distance_beyond_the_int16_count():
     """Radius 91 has 183² - 1 = 33488 neighbours, more than int16 holds (radius 90: 32760): a
     pixel whose every neighbour bit flips has the distance 1.0, not a wrapped-around negative
