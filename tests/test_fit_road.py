@@ -260,6 +260,23 @@ def test_an_attitude_beyond_the_physical_bounds_is_a_failed_fit():
     assert bool(fit_displacement(inside, mask, kitti_camera(), fit_roll=True).success)
 
 
+@pytest.mark.parametrize("degrees", [10.0, -10.0])
+def test_an_attitude_on_the_physical_bound_is_within_it(degrees):
+    """The paper's CARLA-like experiments roll the camera by ±10°, the bound itself: an exact fit
+    lands a rounding error on either side of it (``eval tables`` reported 0 of 3 fits ok), and
+    passes as inside."""
+    roll = math.radians(degrees)
+    flow, valid = road_flow(kitti_camera(roll), dict(z_d=1.2, yaw=0.01), SIZE)
+    mask = road_mask(valid, top=70)
+    fit = fit_displacement(flow, mask, kitti_camera(), fit_roll=True)
+    assert abs(float(fit.roll) - roll) < 1e-9 and bool(fit.success)
+    nudged = {"x_d": fit.params["x_d"], "z_d": fit.params["z_d"], "yaw": fit.params["yaw"]}
+    for offset, expected in ((1e-12, True), (1e-6, False)):  # (rounding; beyond it)
+        cam = kitti_camera(roll + math.copysign(offset, degrees))
+        shifted, _ = road_flow(cam, nudged, SIZE)
+        assert bool(fit_displacement(shifted, mask, kitti_camera(), fit_roll=True).success) == expected, offset
+
+
 @pytest.mark.parametrize("model", ["paper", "plane", "velocity"])
 def test_the_attitude_of_a_vehicle_at_rest_is_not_a_success(model):
     """At rest the road flow is 0 whatever the camera's roll and pitch (docs/fitting.md: a fit with

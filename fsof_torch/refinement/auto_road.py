@@ -414,8 +414,8 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     v = options["slow_max_height_m"]
     if v is not None and (not is_number(v) or not (v < math.inf) or not v >= options["max_height_m"]):
         raise option_error(v, f"slow_max_height_m: expected None or a finite number >= max_height_m "
-                              f"({options['max_height_m']!r}), got {v!r} (a max_height_m above "
-                              f"the default {_SLOW_MAX_HEIGHT_M} needs slow_max_height_m as large, or None)")
+                              f"({options['max_height_m']!r}; a max_height_m above the default {_SLOW_MAX_HEIGHT_M} "
+                              f"needs slow_max_height_m as large, or None), got {v!r}")
     v = options["min_coverage"]
     if not is_number(v) or not (0 <= v < 1):
         raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
