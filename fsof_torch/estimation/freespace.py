@@ -45,8 +45,9 @@ class FreespaceDetection:
         fit: the ``FitResult`` of :func:`fsof_torch.fit.fit_displacement` behind ``agreement``:
             the fit on the seed where ``refits=0``, else the last refit, on the pixels that agreed
             with the fit before it (on the seed where fewer than 3 did); per frame, of the
-            hypothesis kept (attitude fitted or the camera's).
-        success: (B,) bool, frames where both fits succeeded (the others get an empty freespace).
+            hypothesis kept (attitude fitted or the camera's; on the seed or on its rest).
+        success: (B,) bool, frames where both fits succeeded and the freespace holds a pixel (the
+            others get an empty freespace).
     """
 
     freespace: Tensor
@@ -77,9 +78,12 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     3. Agreement: ``‖F - F_model‖ <= max(threshold, relative_threshold·‖F_model‖)`` where the
        model is defined; then ``refits`` times: refit on the agreeing pixels (started from the
        previous fit) and test again. With roll or pitch fitted, steps 2 and 3 run a second time
-       with the camera's attitude held, and each frame keeps the hypothesis more pixels agree
-       with: the seed also holds planes parallel to the road (pavements), and a plane tilted
-       between road and pavement fits both while agreeing with neither whole.
+       with the camera's attitude held: the seed also holds planes parallel to the road
+       (pavements), and a plane tilted between road and pavement fits both while agreeing with
+       neither whole. Then both run again on the rest of the seed, the seed less the pixels that
+       agree with the hypothesis kept so far: where a pavement holds more of the seed than the
+       road, the first fits lock onto it and the road is the rest. Each frame keeps the
+       hypothesis whose agreement holds the most pixels connected to the bottom (step 4).
     4. Connectivity: keep the 8-connected components of the agreement that touch the lowest
        ``bottom_rows`` rows holding a usable pixel (ground-truth validity often drops the last
        rows, whose flow leaves the image) (OpenCV ``cv2.connectedComponents`` on the CPU: exact and fast,
@@ -88,9 +92,11 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
        and filling of enclosed holes smaller than ``max_hole_fraction`` of the image (neither
        claims a pixel outside ``mask``, of non-finite flow, or where the model is undefined).
 
-    Not differentiable (a segmentation). Frames whose fits fail get an empty freespace.
-    Limitation: the V-flow seed takes the dominant plane of each row; where a parallel plane
-    (pavement) covers more of the rows than the road does, the fit locks onto it.
+    Not differentiable (a segmentation). Frames whose fits fail, or whose freespace would be empty
+    (no agreeing pixel connected to the bottom), fail (``success`` False) with an empty freespace.
+    Limitation: from flow alone a plane parallel to the road (a pavement) is as good a road plane;
+    where one holds more of the agreeing pixels connected to the bottom than the road does, the
+    fit takes it.
 
     Args:
         flow: (B, 2, H, W) displacement flow in pixels (frame t to t+1).
@@ -114,8 +120,8 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         fit_options: extra keyword arguments for ``fit_displacement`` (``fit_road``'s, e.g.
             ``scale``, ``max_points``, ``prior``; not ``model``, ``fixed``, ``fit_roll`` or
             ``fit_pitch``, which are this function's). An ``init`` starts each hypothesis' fit on
-            the seed (without its roll and pitch where the camera's attitude is held); the
-            refits start from the fit before them.
+            the seed (without its roll and pitch where the camera's attitude is held; the fits of
+            the seed's rest start afresh); the refits start from the fit before them.
         return_details: return a :class:`FreespaceDetection` instead of the mask alone.
 
     Returns:
@@ -161,32 +167,44 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     fit_kw.update(fit_options)
     init = fit_kw.pop("init", None)  # (the start of the fit on the seed; each refit starts from the fit before)
 
-    def fitted(options: dict, init: object):
-        fit = fit_displacement(flow_safe, seed, camera, init=init, **options)
+    def fitted(options: dict, init: object, start: Tensor):
+        fit = fit_displacement(flow_safe, start, camera, init=init, **options)
         agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         for _ in range(refits):
             # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
             # tell them from road; refitting on the agreeing pixels removes their pull.
             enough = agreement.flatten(1).sum(-1) >= 3
-            retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, seed)
+            retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, start)
             fit = fit_displacement(flow_safe, retry, camera, init=fit, **options)
             agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         return fit, agreement, success
 
-    fit, agreement, success = fitted(fit_kw, init)
+    # The seed also holds planes parallel to the road beside it (pavements, parking strips), and
+    # with the attitude free a plane tilted between road and pavement can fit both while agreeing
+    # with neither whole: the camera's own attitude is a second hypothesis. (A caller's prior on
+    # the roll or pitch, and its start of them, are for the first hypothesis, which fits them.)
+    options = [(fit_kw, init)]
     if fit_roll or fit_pitch:
-        # The seed also holds planes parallel to the road beside it (pavements, parking strips),
-        # and with the attitude free a plane tilted between road and pavement can fit both while
-        # agreeing with neither whole. The camera's own attitude is the second hypothesis; per
-        # frame, the one more pixels agree with is kept (the larger consensus).
-        # (a caller's prior on the roll or pitch, and its start of them, are for the first
-        # hypothesis, which fits them)
         held_kw = {**fit_kw, "fit_roll": False, "fit_pitch": False, "prior": _without_attitude(fit_kw.get("prior"))}
-        held = fitted(held_kw, _without_attitude(init.params if isinstance(init, RoadFit) else init))
-        take = held[1].flatten(1).sum(-1) > agreement.flatten(1).sum(-1)
-        fit = where_motion(take, held[0], fit)
-        agreement = torch.where(take.reshape(B, 1, 1, 1), held[1], agreement)
-        success = torch.where(take, held[2], success)
+        options.append((held_kw, _without_attitude(init.params if isinstance(init, RoadFit) else init)))
+    best = None
+    for rest in (False, True):
+        # Round 2 fits the seed less the plane kept in round 1: where a parallel plane (a pavement
+        # beyond the kerb) holds more of the seed than the road, round 1 locks onto it, and the
+        # road is what is left. Per frame, the hypothesis kept is the one whose agreement keeps the
+        # most pixels connected to the bottom of the image, as the freespace does (a plane that
+        # agrees with many pixels none of which reach the vehicle is not the road under it).
+        start = seed & ~best[1] if rest else seed
+        for kw, first in options:
+            fit, agreement, success = fitted(kw, None if rest else first, start)
+            kept = _keep_bottom_connected(agreement, use, bottom_rows).flatten(1).sum(-1)
+            if best is None:
+                best = (fit, agreement, success, kept)
+                continue
+            take = kept > best[3]
+            best = (where_motion(take, fit, best[0]), torch.where(take.reshape(B, 1, 1, 1), agreement, best[1]),
+                    torch.where(take, success, best[2]), torch.where(take, kept, best[3]))
+    fit, agreement, success = best[:3]
 
     freespace = _keep_bottom_connected(agreement, use, bottom_rows)
     if close_kernel > 1:
@@ -201,6 +219,9 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     # Neither closing nor hole filling may claim masked-out or NaN-flow pixels, nor pixels where
     # the model is not defined.
     freespace = freespace & use & fit.valid & success.reshape(B, 1, 1, 1)
+    # A model that agrees with no pixel connected to the bottom of the image found no freespace:
+    # the frame fails rather than succeeding with an empty result.
+    success = success & freespace.flatten(1).any(-1)
     if return_details:
         return FreespaceDetection(freespace=freespace, agreement=agreement, seed=seed,
                                   curve=curve, fit=fit, success=success)
