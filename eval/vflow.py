@@ -317,10 +317,12 @@ def run(args: argparse.Namespace) -> int:
     files = {"vflow_map": args.out / "vflow_map.png", "fv_observed": args.out / "fv_observed.png",
              "fv_fitted": args.out / "fv_fitted.png", "fv_error": args.out / "fv_error.png"}
     if "freespace" in steps:
-        free = detect_freespace(flow, camera, mask=valid, threshold=0.05, relative_threshold=0.02)
+        found = detect_freespace(flow, camera, mask=valid, threshold=0.05, relative_threshold=0.02, return_details=True)
+        free = found.freespace
         truth = road & valid
         inter, union = float((free & truth).sum()), float((free | truth).sum())
-        info["freespace"] = {"iou": inter / max(union, 1.0), "pixels": int(free.sum()), "road_pixels": int(truth.sum()),
+        info["freespace"] = {"success": bool(found.success[0]), "iou": inter / max(union, 1.0), "pixels": int(free.sum()),
+                             "road_pixels": int(truth.sum()), "z_d_m": float(found.fit.params["z_d"][0]),
                              "threshold_px": 0.05, "relative_threshold": 0.02}
         files["freespace"] = args.out / "freespace.png"
         bar.update(1)
@@ -355,7 +357,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"  mean |F_v - fitted| over the flow's valid pixels where the curve is defined (no road mask): "
               f"{c['mean_abs_fv_error_mask']:.4f} {unit}")
     if "freespace" in info:
-        print(f"  freespace IoU with the road: {info['freespace']['iou']:.4f}")
+        fs_info = info["freespace"]
+        print(f"  freespace IoU with the road: {fs_info['iou']:.4f}, its road model's z_d {fs_info['z_d_m']:.4f} m"
+              + ("" if fs_info["success"] else " (the detection failed: no freespace)"))
     info["files"] = {k: str(v) for k, v in files.items()}
     json_path = args.json if args.json is not None else args.out / "vflow.json"
     write_json(make_parent(json_path), info)

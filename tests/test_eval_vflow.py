@@ -18,9 +18,23 @@ def test_vflow_preset(tmp_path, capsys):
     assert {"source", "curve", "freespace", "files"} <= set(data)
     assert data["curve"]["success"] and abs(data["curve"]["z_d_m"] - data["curve"]["z_d_m_true"]) < 0.05
     assert data["freespace"]["iou"] >= 0.9  # (0.966 measured)
+    assert data["freespace"]["success"] and abs(data["freespace"]["z_d_m"] - data["curve"]["z_d_m_true"]) < 0.01
     for name in ("vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"):
         assert (out / name).stat().st_size > 1000
     assert "V-flow curve" in capsys.readouterr().out
+
+
+def test_vflow_freespace_of_cvc_simple(tmp_path, capsys):
+    """cvc-simple's pavements cover more of the upper rows than the road: the freespace's road
+    model is the road's (z_d 0.5 m), not the pavements' (0.543), and the json says whether the
+    detection succeeded (an empty freespace is a failure)."""
+    out = tmp_path / "v"
+    rc = main(["vflow", "--preset", "cvc-simple", "--size", "128", "416", "--out", str(out), "--no-progress"])
+    assert rc == 0
+    found = json.loads((out / "vflow.json").read_text())["freespace"]
+    assert found["success"] and found["pixels"] > 0 and found["iou"] >= 0.7
+    assert found["z_d_m"] == pytest.approx(0.5, abs=0.005)
+    assert "freespace IoU with the road" in capsys.readouterr().out
 
 
 def test_vflow_velocity(tmp_path):
