@@ -17,7 +17,7 @@ Prints five tables, single thread (the first two from the synthetic presets):
    and min over the pairs, the number of empty and of flagged masks; the same with ``edges=False``
    (the windows' own boundary, for the refit and the result). Beside it, for reference,
    the flow-based detection of earlier versions (fsof_torch.detect_freespace on OpenCV DIS flow,
-   as the refine job called it).
+   as the refine job called it; flagged where its success is false).
 3. Time per pair at 1242 x 375 (the shared KITTI pair): the detection with its own motion
    estimates (on the seed at half size, again on the road), the detection judging a motion it is
    given (what it adds to a refiner that estimated the motion anyway; also with ``edges=False``:
@@ -292,9 +292,10 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
             plain = detect_road(im1, im2, cam, flow=flow, edges=False)
             # the flow-based detection (detect_freespace on DIS's flow), for comparison
             old = detect_freespace(flow.to(cam.dtype), cam, bottom_rows=max(1, im1.shape[-2] // 8), threshold=1.0,
-                                   relative_threshold=0.1)
+                                   relative_threshold=0.1, return_details=True)
         for method, m, flag in (("auto road (images)", det.mask, det.flag[0]),
-                                ("edges=False", plain.mask, plain.flag[0]), ("flow-based (DIS)", old, "")):
+                                ("edges=False", plain.mask, plain.flag[0]),
+                                ("flow-based (DIS)", old.freespace, "" if bool(old.success[0]) else "failed")):
             r = rows.setdefault(group, {}).setdefault(method, {"inside": [], "cover": [], "empty": 0, "flagged": 0})
             n = int(m.sum())
             r["inside"].append(float((m & poly).sum()) / max(n, 1))
@@ -312,7 +313,7 @@ def real_table(root: Path, turn: tuple[float, float, float] = (0.0, 0.0, 0.0), *
         for method, r in methods.items():
             print(f"{group:>15} {method:>19} {len(r['inside']):5d} {statistics.mean(r['inside']):11.3f} "
                   f"{min(r['inside']):10.3f} {statistics.mean(r['cover']):10.3f} {min(r['cover']):9.3f} "
-                  f"{r['empty']:5d} {'-' if method.startswith('flow') else r['flagged']:>7}")
+                  f"{r['empty']:5d} {r['flagged']:7d}")
     if kitti15:
         print(f"kitti15 pair: the polygon holds {pixels[0]} pixels of the frame; the auto road has {pixels[1]} outside it")
 

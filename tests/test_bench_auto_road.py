@@ -193,3 +193,25 @@ def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, c
         assert exit_.value.code == 2
         assert message in capsys.readouterr().err
     assert bench.unreadable(_real_data(tmp_path / "readable"), True, True) is None
+
+
+def test_a_flow_based_detection_that_finds_nothing_is_flagged(bench, monkeypatch, capsys):
+    """The real-data table's flow-based rows count the frames whose detect_freespace failed (an
+    empty freespace is a failure; the column printed '-' and the empty results passed unflagged)."""
+    from types import SimpleNamespace
+
+    import fsof_torch
+    from fsof_torch import Camera
+
+    K = torch.tensor([[200.0, 0, 80.0], [0, 200.0, 18.0], [0, 0, 1]], dtype=torch.float64)
+    size = (64, 160)
+    image = torch.zeros(1, 3, *size)
+    poly = torch.zeros(1, 1, *size, dtype=torch.bool)
+    poly[..., 40:, 40:120] = True
+    monkeypatch.setattr(bench, "real_pairs", lambda root, *a, **k: iter(
+        [(f"straight clip {i:02d}", image, image, Camera(K, 1.5), poly) for i in range(2)]))
+    monkeypatch.setattr(bench, "dis", lambda im1, im2: torch.zeros(1, 2, *size))   # a standing car: no road model
+    monkeypatch.setattr(fsof_torch, "detect_road", lambda *a, **k: SimpleNamespace(mask=poly, flag=["ok"]))
+    bench.real_table(Path("."), kitti15=False)
+    row = next(line for line in capsys.readouterr().out.splitlines() if "flow-based" in line)
+    assert row.split()[-2:] == ["2", "2"]   # empty 2, flagged 2
