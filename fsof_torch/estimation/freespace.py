@@ -197,16 +197,16 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
         start = seed & ~best[1] if rest else seed
         for kw, first in options:
             fit, agreement, success = fitted(kw, None if rest else first, start)
-            kept = _keep_bottom_connected(agreement, use, bottom_rows).flatten(1).sum(-1)
+            kept = _keep_bottom_connected(agreement, use, bottom_rows)
             if best is None:
                 best = (fit, agreement, success, kept)
                 continue
-            take = kept > best[3]
-            best = (where_motion(take, fit, best[0]), torch.where(take.reshape(B, 1, 1, 1), agreement, best[1]),
-                    torch.where(take, success, best[2]), torch.where(take, kept, best[3]))
-    fit, agreement, success = best[:3]
+            take = kept.flatten(1).sum(-1) > best[3].flatten(1).sum(-1)
+            per_pixel = take.reshape(B, 1, 1, 1)
+            best = (where_motion(take, fit, best[0]), torch.where(per_pixel, agreement, best[1]),
+                    torch.where(take, success, best[2]), torch.where(per_pixel, kept, best[3]))
+    fit, agreement, success, freespace = best  # (the freespace: the kept agreement's bottom-connected part)
 
-    freespace = _keep_bottom_connected(agreement, use, bottom_rows)
     if close_kernel > 1:
         import kornia
 

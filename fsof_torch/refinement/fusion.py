@@ -25,6 +25,7 @@ them, with ptlflow's and torchvision's input conventions and RAFT-style padding.
 
 from __future__ import annotations
 
+import itertools
 import math
 import warnings
 from typing import Any, Mapping, NamedTuple
@@ -524,13 +525,12 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     # the finest flow's place among the flows map_flows visits (collect_flows' order, a stack's
     # predictions one by one; a stack's last is a new view, not the object finest_flow gave): its
     # fusion is the one the gate decided and the one whose weight is reported
-    ends = torch.tensor([f.shape[1] if f.dim() == 5 else 1 for _, f in flows]).cumsum(0).tolist()
+    ends = list(itertools.accumulate(f.shape[1] if f.dim() == 5 else 1 for _, f in flows))
     finest_visit = ends[[name for name, _ in flows].index(finest_name)] - 1
-    visits = [0]
+    visits = itertools.count()
 
     def refine_one(f: Tensor) -> Tensor:
-        is_finest = visits[0] == finest_visit
-        visits[0] += 1
+        is_finest = next(visits) == finest_visit
         size = (f.shape[-2], f.shape[-1])
         f_model, valid = model_flow(size)
         if size not in masks:
