@@ -264,3 +264,23 @@ def test_freespace_never_fills_masked_out_or_nan_pixels(scene):
     free = detect_freespace(nan, scene["camera"], mask=valid, threshold=0.05, relative_threshold=0.02)
     assert int((free & torch.isnan(nan[:, :1])).sum()) == 0
     assert bool(free[0, 0, 69, 100:120].all()) and bool(free[0, 0, 72, 100:120].all())
+
+
+def test_the_covariance_keeps_the_priors_own_weight():
+    """A parameter the data leave to its prior is reported as known to the prior's σ. A vehicle at
+    rest shows nothing of the camera's attitude in its flow: its pitch's standard deviation is the
+    prior's 1° (it was about 1° × σ / scale, the prior's share scaled with the residuals' variance:
+    0.02° here); at 1 mm a frame the flow already halves it, at 1 m a frame it fixes it far
+    better than the prior."""
+    cam = Camera(torch.tensor([[700.0, 0, 320], [0, 700, 90], [0, 0, 1]], dtype=torch.float64), 1.65)
+    from fsof_torch.geometry.road_flow import road_flow
+    deg = math.pi / 180
+    prior = {"roll": (0.0, deg), "pitch": (0.0, deg)}
+    sd = {}
+    for z_d in (0.0, 0.001, 1.0):
+        flow, valid = road_flow(cam, {"z_d": z_d}, (192, 640), model="plane")
+        noise = 0.05 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+        fit = fit_road(flow + noise, valid, cam, model="plane", fixed=(), prior=prior)
+        i = list(fit.params).index("pitch")
+        sd[z_d] = float(fit.covariance[0, i, i].sqrt()) / deg
+    assert 0.99 < sd[0.0] <= 1.0 and 0.3 < sd[0.001] < 0.7 and sd[1.0] < 0.01, sd

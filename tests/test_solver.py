@@ -303,6 +303,46 @@ def test_covariance_of_fixed_and_of_singular_problems():
     assert cov[1].diagonal().tolist() == [float("inf"), float("inf")] and float(cov[1, 0, 1]) == 0.0
 
 
+def test_covariance_with_the_priors_noise_is_the_posterior():
+    """With ``prior_noise`` ν the prior λ = ν² / σ_p² keeps its own weight: the covariance is
+    (JᵀJ / σ² + 1 / σ_p²)⁻¹, written out here, whatever the residuals' variance σ² (without it,
+    σ² (JᵀJ + λ)⁻¹: the prior's share scaled by σ² / ν²). A parameter the data barely see (the
+    slope of points all near x = 0) is then known to about σ_p, not to σ_p σ / ν."""
+    for spread, noise in ((1.0, 0.05), (1e-3, 0.05), (1.0, 0.5)):
+        problem, truth, x, y = line_problem(B=1, N=40, noise=noise, seed=5)
+        xs = spread * x
+        y = y + truth[:, :1] * (xs - x)  # (the line y = 2 xs - 1, plus the noise)
+        J = torch.stack([xs, torch.ones_like(xs)], dim=1).unsqueeze(2)
+        use = torch.ones(1, 40, dtype=torch.bool)
+
+        def residual(p, xs=xs, J=J, y=y, use=use):
+            return ((p[:, :1] * xs + p[:, 1:]) - y).unsqueeze(1), J, use
+
+        nu, sigma_p = 0.3, torch.tensor([[2.0, 5.0]], dtype=torch.float64)
+        lam = nu ** 2 / sigma_p.square()
+        sol = solve(ResidualProblem(residual, use.sum(1)), torch.zeros(1, 2, dtype=torch.float64), kernel="l2",
+                    prior_mean=torch.zeros(1, 2, dtype=torch.float64), prior_precision=lam, max_iter=20)
+        Jm = torch.stack([xs[0], torch.ones_like(xs[0])], dim=1)
+        r = Jm @ sol.params[0] - y[0]
+        sigma2 = (r @ r) / (40 - 2)
+        posterior = torch.linalg.inv(Jm.T @ Jm / sigma2 + torch.diag(1 / sigma_p[0].square()))
+        torch.testing.assert_close(sol.covariance(nu)[0], posterior, rtol=1e-8, atol=1e-15)
+        torch.testing.assert_close(sol.covariance(torch.tensor([nu], dtype=torch.float64))[0], posterior,
+                                   rtol=1e-8, atol=1e-15)
+        torch.testing.assert_close(sol.covariance()[0], sigma2 * torch.linalg.inv(Jm.T @ Jm + torch.diag(lam[0])),
+                                   rtol=1e-8, atol=1e-15)
+        if spread < 1:  # (the slope left to the prior: its standard deviation about σ_p = 2)
+            assert float(sol.covariance(nu)[0, 0, 0].sqrt()) == pytest.approx(2.0, rel=0.05)
+            assert float(sol.covariance()[0, 0, 0].sqrt()) < 0.5  # (σ_p σ / ν = 2 · 0.05 / 0.3)
+    # a held parameter keeps 0 rows and columns; no prior: ``prior_noise`` changes nothing
+    sol = solve(problem, truth.clone(), kernel="l2", max_iter=10, free=torch.tensor([True, False]),
+                prior_mean=torch.zeros(1, 2, dtype=torch.float64), prior_precision=lam)
+    cov = sol.covariance(nu)
+    assert bool((cov[:, 1, :] == 0).all()) and bool((cov[:, :, 1] == 0).all()) and float(cov[0, 0, 0]) > 0
+    plain = solve(problem, truth.clone(), kernel="l2", max_iter=10)
+    torch.testing.assert_close(plain.covariance(nu), plain.covariance(), rtol=0, atol=0)
+
+
 def test_robust_kernels_match_scipy_losses():
     scipy_ls = importlib.import_module("scipy.optimize._lsq.least_squares")  # the module, not the function
     r2 = torch.linspace(0, 9, 50, dtype=torch.float64)

@@ -70,7 +70,7 @@ class RoadFit:
             fits: finite, well posed and passing ``fit_image``'s tests (``extras["converged"]``).
         camera: a copy of the input camera with the fit's roll and pitch (fitted or held).
         iterations: (B,) int64 solver iterations.
-        covariance: (B, P, P) the parameters' covariance (model order; 0 for fixed ones; where
+        covariance: (B, P, P) the posterior covariance, any prior at its own weight (model order; 0 for fixed ones; where
             the fit is singular, as on an empty or one-pixel mask, +inf on the free parameters'
             diagonal and 0 elsewhere, never NaN).
         cost: (B,) the robust cost per point at the end.
@@ -577,7 +577,7 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,
                         tol=tol if last else max(tol, 1e-4), resolution=resolution,
                         check_every=first_check, predict=True)
-            well_posed, covariance, cost = _well_posed(sol, free), sol.covariance(), sol.cost
+            well_posed, covariance, cost = _well_posed(sol, free), sol.covariance(sol.scale), sol.cost
             if i == 0:
                 params, converged, first = sol.params, sol.converged, (well_posed, covariance, cost)
             else:

@@ -493,7 +493,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
                        & (fraction >= min_inlier_fraction) & (correlation >= min_correlation))
             return {"values": values, "gain": gain, "offset": offset, "M": M, "flow": flow, "valid": valid,
                     "inliers": inliers, "residual": residual, "fraction": fraction, "correlation": correlation,
-                    "success": success, "iterations": iterations, "covariance": sol.covariance()[:, :P, :P],
+                    "success": success, "iterations": iterations, "covariance": sol.covariance(sol.scale)[:, :P, :P],
                     "cost": sol.cost, "converged": sol.converged}
 
         coarse = n_levels - 1

@@ -119,6 +119,7 @@ class Solution:
         normal: (B, P, P) JᵀWJ + prior at the estimate (fixed parameters: identity rows).
         scale: (B,) the kernel's final scale.
         free: (B, P) bool, the parameters estimated (None: all of them).
+        prior: (B, P) the prior's precision λ in ``normal`` (None: no prior).
     """
 
     params: Tensor
@@ -130,6 +131,7 @@ class Solution:
     normal: Tensor
     scale: Tensor
     free: Tensor | None = None
+    prior: Tensor | None = None
 
     def conditioning(self) -> Tensor:
         """The smallest eigenvalue of the normal matrix scaled to a unit diagonal (B,): near 0
@@ -140,10 +142,19 @@ class Solution:
         """(B,) bool: :meth:`conditioning` exceeds ``margin`` (decided without a host read)."""
         return positive_definite(_unit_diagonal(self.normal), margin)
 
-    def covariance(self) -> Tensor:
+    def covariance(self, prior_noise: Tensor | float | None = None) -> Tensor:
         """(B, P, P) parameter covariance: the inverse normal matrix times the weighted residual
-        variance per degree of freedom (the points' weights minus the free parameters); 0 rows
-        and columns for fixed parameters. Where the
+        variance σ² per degree of freedom (the points' weights minus the free parameters); 0 rows
+        and columns for fixed parameters.
+
+        With ``prior_noise`` ν ((B,) or a number: the residuals' standard deviation that the
+        prior's precision λ was set against, λ = ν² / σ_p² for a prior of standard deviation σ_p),
+        the posterior covariance (JᵀWJ / σ² + λ / ν²)⁻¹ instead: the prior keeps its own weight
+        where the residuals' variance differs from ν² (without it, the prior's share is scaled
+        with the data's, and a parameter that the data leave to the prior is reported as known
+        to σ_p σ / ν).
+
+        Where the
         problem is singular (an empty mask, one pixel, one row: the normal matrix's Cholesky
         fails, or its unit-diagonal form has no eigenvalue above 1e4 × the dtype's epsilon,
         about 2e-12 in float64, below which its inverse is rounding noise), or where no degree of
@@ -161,15 +172,23 @@ class Solution:
         dof = dof.clamp_min(1.0)
         sigma2 = (w * ev.r2).sum(1) / dof
         eye = torch.eye(P, dtype=self.normal.dtype, device=self.normal.device)
-        cov = spd_solve(self.normal, eye.expand_as(self.normal)) * sigma2.reshape(-1, 1, 1)
+        A = self.normal
+        if prior_noise is not None and self.prior is not None:
+            # σ² (JᵀWJ + λ σ² / ν²)⁻¹ = (JᵀWJ / σ² + λ / ν²)⁻¹ (the fixed rows stay the identity's)
+            nu2 = torch.as_tensor(prior_noise, dtype=A.dtype, device=A.device).square().expand(B)
+            lam = self.prior.to(A.dtype) * (sigma2 / nu2 - 1.0).unsqueeze(-1)
+            if self.free is not None:
+                lam = torch.where(self.free.expand(B, P), lam, 0.0)
+            A = A + torch.diag_embed(lam)
+        cov = spd_solve(A, eye.expand_as(A)) * sigma2.reshape(-1, 1, 1)
         free = torch.ones(B, P, dtype=torch.bool, device=cov.device) if self.free is None else self.free.expand(B, P)
         both = free.unsqueeze(-1) & free.unsqueeze(-2)
         cov = torch.where(both, cov, 0.0)
         # a Cholesky that fails leaves finite garbage in the solve: its status and the
         # unit-diagonal matrix's smallest eigenvalue decide, not the finiteness of the result
-        margin = 1e4 * torch.finfo(self.normal.dtype).eps
-        singular = (~torch.isfinite(cov).flatten(1).all(1) | ~positive_definite(self.normal)
-                    | ~positive_definite(_unit_diagonal(self.normal), margin) | exact)
+        margin = 1e4 * torch.finfo(A.dtype).eps
+        singular = (~torch.isfinite(cov).flatten(1).all(1) | ~positive_definite(A)
+                    | ~positive_definite(_unit_diagonal(A), margin) | exact)
         unknown = torch.diag_embed(torch.where(free, math.inf, 0.0).to(cov.dtype))
         return torch.where(singular.reshape(B, 1, 1), unknown, cov)
 
@@ -625,7 +644,8 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     if pending is not None and not bool(pending):  # (the loop made no host read)
         _raise_bad_value(values)
     # (the problem's state is not kept: the normal equations built from it are)
-    return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s, ~fixed if has_fixed else None)
+    return Solution(params, c, done, iters, Evaluation(r2, mask > 0, residual), w, A, s, ~fixed if has_fixed else None,
+                    lam_p if has_prior else None)
 
 
 def _damped_step(A: Tensor, g: Tensor, lam: Tensor) -> Tensor:
