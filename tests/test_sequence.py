@@ -503,6 +503,28 @@ def test_fit_sequence_pairs_that_do_not_move_calibrate_no_attitude(body_motion_c
     assert len(sigmas) == 2
 
 
+def test_fit_sequence_pairs_that_creep_calibrate_no_attitude():
+    """A vehicle creeping by about 4 mm a frame moves (its fits succeed, their translations well
+    above the 1 mm of a stop), but its images fix the camera's attitude less well than the prior
+    does: each fit's roll and pitch lie between the prior's and the truth, and once calibrated the
+    mounting as if measured. Such pairs count neither for the mounting nor as attitudes in the
+    track: the input camera's mounting stays."""
+    pairs = render_sequence("body-motion", 2, seed=0, speed=0.04)
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    cam = pairs[0]["camera"]
+    seq = fit_sequence(frames, pairs[0]["road"], cam, passes=1, max_points=1000)
+    steps = torch.stack([seq.first_pass[n] for n in ("x_d", "y_d", "z_d")], -1).norm(dim=-1)
+    assert bool(seq.success.all()) and bool((steps > 0.003).all()), steps
+    deg = math.pi / 180
+    for fit in seq.fits:  # (the prior's 1°: the images add less than it)
+        for name in ("roll", "pitch"):
+            i = list(fit.params).index(name)
+            assert float(fit.covariance[0, i, i]) > 0.5 * deg ** 2
+    assert float((seq.first_pass["pitch"] - float(cam.pitch[0])).abs().max()) > 0.05 * deg
+    assert seq.calibrated_from == 0
+    assert seq.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
+
+
 def test_fit_sequence_holds_fixed_attitude_parameters_in_both_passes(body_motion_clip):
     """``fixed`` (a fit_image option) holds parameters at the start. The second pass started the
     attitude at the smoothed track, so it held them there: a held roll changed from pair to pair,

@@ -12,8 +12,11 @@ motion, straight ahead). Then:
    (metric translations), the camera height follows as well (only d / h is observable from
    images), and the translations returned are in metres at that height. Failed fits calibrate
    nothing, nor do pairs that do not move (a stop: without a translation the road's normal does
-   not enter the homography, and the fit's attitude is its prior's): where no pair's fit succeeds
-   and moves, the input camera's mounting stays and the second pass,
+   not enter the homography, and the fit's attitude is its prior's), nor pairs whose images fix
+   the attitude less well than the prior does (a posterior variance above half the prior's: a
+   vehicle creeping by centimetres, whose fit's attitude lies between the prior's and the
+   truth): where no pair's fit succeeds and shows the attitude, the input camera's mounting
+   stays and the second pass,
    which would only repeat the first, is skipped (with ``keep_fits`` the first runs again to keep
    its fits).
 2. **Smoothing.** The camera's attitude over the road at frame k+1 is its attitude at frame k
@@ -72,10 +75,11 @@ class SequenceFit:
         first_pass: ``{name: (N,)}`` the per-pair parameters before calibration (fitted with the
             input camera: translations at its height), for reference.
         success: (N,) bool, whether each pair's fit succeeded (of the same pass as ``params``).
-        calibrated_from: how many first-pass fits the mounting comes from (those that succeeded
-            and move: a fitted translation above 1 mm at the input camera's height); 0 where
-            there are none: the mounting is then the input camera's, and the second pass is
-            skipped.
+        calibrated_from: how many first-pass fits the mounting comes from (those that succeeded,
+            move, a fitted translation above 1 mm at the input camera's height, and whose images
+            fixed the roll and pitch at least as well as the prior: a posterior variance at most
+            half the prior's); 0 where there are none: the mounting is then the input camera's,
+            and the second pass is skipped.
     """
 
     fits: list[RoadFit]
@@ -194,10 +198,27 @@ def _robust_mean(x: Tensor, ok: Tensor) -> float:
 
 @dataclass
 class _PairRecord:
-    """What a pass keeps of a pair's fit: its parameters ({name: (1,)}) and whether it succeeded."""
+    """What a pass keeps of a pair's fit: its parameters ({name: (1,)}), whether it succeeded, and
+    whether its images fixed the attitude (roll and pitch) at least as well as its prior did."""
 
     params: dict[str, Tensor]
     success: bool
+    attitude_seen: bool = True
+
+
+def _attitude_seen(fit: RoadFit, prior: dict[str, tuple[Any, Any]]) -> bool:
+    """Whether the images fixed the fit's roll and pitch at least as well as their prior did: a
+    posterior variance at most half the prior's (the images' information at least the prior's).
+    A held angle, or one without a prior, passes."""
+    cov = fit.covariance
+    if cov is None:
+        return True
+    for i, name in enumerate(get_road_model(fit.model).params):  # (the covariance's order)
+        if name in ("roll", "pitch") and name in prior:
+            sigma = float(torch.as_tensor(prior[name][1]).reshape(-1)[0])
+            if not bool((cov[:, i, i] <= 0.5 * sigma * sigma).all()):
+                return False
+    return True
 
 
 def _stack(records: Sequence[_PairRecord]) -> dict[str, Tensor]:
@@ -370,7 +391,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             prior = {n: v for n, v in prior.items() if n not in held}  # (held: no prior, fit_image refuses it)
             fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
                             **options)
-            records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all())))
+            records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all()),
+                                       _attitude_seen(fit, prior)))
             if keep:
                 fits.append(fit)
             del image1, road, fit  # none outlives its pair: freed before the next pair is read
@@ -381,8 +403,10 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     ok = torch.tensor([r.success for r in first])
     image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
     # a pair that does not move measures no attitude: with t = 0 the road's homography K R K⁻¹ holds no
-    # normal, and its fit's roll and pitch are where its prior put them (the input camera's)
-    attitude_ok = ok & (image_steps > _STILL_M)
+    # normal, and its fit's roll and pitch are where its prior put them (the input camera's); one
+    # that creeps measures it little, its fit's attitude drawn towards the prior's
+    moving = ok & (image_steps > _STILL_M)
+    attitude_ok = moving & torch.tensor([r.attitude_seen for r in first])
     calibrated_from = int(attitude_ok.sum())
     if calibrated_from:
         roll0, pitch0 = _robust_mean(raw["roll"], attitude_ok), _robust_mean(raw["pitch"], attitude_ok)
@@ -393,7 +417,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if poses is not None:
         P = torch.as_tensor(poses, dtype=torch.float64)
         steps = (P[1:N + 1, :3, 3] - P[:N, :3, 3]).norm(dim=-1)
-        use = attitude_ok  # (the pairs that succeeded and move)
+        use = moving  # (the pairs that succeeded and move: a creeping one's translation gives a scale too)
         if bool(use.any()):
             # metric step = (d / h) h: h = h_nominal · median(metric / image-derived); where the
             # poses stand still in half the pairs whose images move, they give no scale
