@@ -477,3 +477,22 @@ def test_confidence_weight_adds_the_gates_evidence(scene):
     r2 = (pred - out.flow_model).square().sum(1)[0][m]
     w_c = 1.0 / (1.0 + r2 / scale**2)
     torch.testing.assert_close(out.weight[0, 0][m], w_c + (1.0 - w_c) * evidence, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("case", ["images", "planar odometry and images", "flow fit"])
+def test_a_samples_model_flow_does_not_depend_on_the_others_estimates(scene, case):
+    """A sample refined beside one that is not estimated (an empty mask) or whose estimate fails
+    (a black frame) gets the model flow it gets alone: the fit's own flow, not a second evaluation
+    in the prediction's dtype, which differed from it by up to 1e-4 px and so moved the gate's
+    points at the border of image 2."""
+    pred, road, i1, i2 = _two(scene, black_second=case == "planar odometry and images")
+    if case != "planar odometry and images":
+        road[1] = False
+    odometry = _planar(scene, 2) if case == "planar odometry and images" else None
+    images = None if case == "flow fit" else (i1, i2)
+    both = _quiet(FreespaceRefiner(), pred, road, scene["camera"], odometry, images=images)
+    alone = _quiet(FreespaceRefiner(), pred[:1], road[:1], scene["camera"], None if odometry is None else
+                   _planar(scene, 1), images=None if images is None else (i1[:1], i2[:1]))
+    assert both.refined.tolist() == [True, False] and alone.refined.tolist() == [True]
+    torch.testing.assert_close(both.flow_model[:1], alone.flow_model, rtol=0, atol=1e-6)
+    torch.testing.assert_close(both.flow[:1], alone.flow, rtol=0, atol=1e-6)

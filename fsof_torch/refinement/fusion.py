@@ -419,7 +419,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     pixels: dict = {}  # (the masks' pixels the estimate found: see the gate)
     cam_model = camera
     motion_model, odo = "paper", None
-    reuse_fit_flow = True
+    fit_index, fit_used = None, None  # (the samples the fit's rows hold; (B,) those whose model it is)
     if odometry is not None:
         given, odo = road_motion_batch(odometry, B, geo_dtype, device)
         motion_model = given.name
@@ -430,7 +430,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         est = None if flat else _estimate(chosen, finest, fit_mask, camera, refined, images=images, odometry=odometry,
                                           starts=starts, all_finite=all_finite, warn=warn, pixels=pixels)
         if est is not None:
-            fit_result, ok, values, est_model, est_camera = est
+            fit_result, ok, values, est_model, est_camera, fit_index = est
             if odometry is None:
                 motion_model, odo, cam_model = est_model, values, est_camera
                 refined = refined & ok
@@ -445,7 +445,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                     motion_model, odo = est_model, where_motion(ok, values, _planar_as(est_model, odo, camera))
                     cam_model = Camera._checked(camera.K, camera.height, torch.where(ok, est_camera.roll, camera.roll),
                                                 torch.where(ok, est_camera.pitch, camera.pitch))
-                    reuse_fit_flow = False
+                    fit_used = ok
                 else:  # the odometry alone
                     fit_result = None
         elif odometry is None:
@@ -458,14 +458,20 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
     # (a RoadFit's flow is its model flow; another result's "flow" may be anything: the input's)
     fit_flow, fit_valid = (fit_result.flow, fit_result.valid) if isinstance(fit_result, RoadFit) else (None, None)
-    if (reuse_fit_flow and isinstance(fit_flow, Tensor) and tuple(fit_flow.shape) == (B, 2, H, W)
-            and isinstance(fit_valid, Tensor) and tuple(fit_valid.shape) == (B, 1, H, W)
+    n_fit = -1 if fit_index is None else fit_index.numel()
+    if (isinstance(fit_flow, Tensor) and tuple(fit_flow.shape) == (n_fit, 2, H, W)
+            and isinstance(fit_valid, Tensor) and tuple(fit_valid.shape) == (n_fit, 1, H, W)
             and not _needs_grad(cam_model) and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
-        # The estimate evaluated this very model flow at the finest size (same parameters): reuse
-        # it instead of a second full-size evaluation. Not when the camera or the odometry carries
-        # a graph: then the model flow must be differentiable with respect to it.
-        # (a custom estimator's result need not be a RoadFit, nor its flow of this size: then it is computed)
-        cache[(H, W)] = (fit_flow.to(device=device, dtype=geo_dtype), fit_valid.to(device))
+        # The estimate evaluated this very model flow at the finest size (same parameters): reuse it
+        # (not when the camera or the odometry carries a graph: the model flow must then be
+        # differentiable in it). Samples it lacks, or given the odometry alone, are evaluated, so a
+        # sample's model flow is the same whatever the others' (a custom result's: computed).
+        f_fit, v_fit = fit_flow.to(device=device, dtype=geo_dtype), fit_valid.to(device)
+        if n_fit < B or fit_used is not None:
+            use = (torch.zeros_like(refined).index_fill(0, fit_index, True) if fit_used is None else fit_used)
+            f_fit, v_fit = (torch.where(use.reshape(B, 1, 1, 1), a.index_copy(0, fit_index, b), a) for a, b in
+                            zip(road_flow(cam_model, odo, (H, W), model=motion_model), (f_fit, v_fit)))
+        cache[(H, W)] = (f_fit, v_fit)
 
     def model_flow(size: tuple[int, int]) -> tuple[Tensor, Tensor]:
         if size not in cache:
@@ -580,8 +586,8 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
     """Estimate the road's motion (detached) for the samples with enough mask pixels.
 
     Returns None when no sample can be estimated, else ``(fit, success (B,), params {name: (B,)},
-    model name, camera with the estimated roll and pitch)``; samples not estimated get zero
-    motion and success False, as do those estimated with non-finite parameters (``finite_estimate``).
+    model name, camera with the estimated roll and pitch, index (n,): the fit's samples)``; those
+    not estimated get zero motion and success False, as do those with non-finite parameters.
     ``pixels``: a dict that keeps the pixels of the masks the estimator searched
     (:func:`~fsof_torch.estimation.sampling.reused_mask_pixels`).
     """
@@ -623,7 +629,7 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
     # the estimated attitude (a failed sample's as fitted) on the caller's K and height (their graph kept)
     cam_model = camera if torch.equal(roll, camera.roll) and torch.equal(pitch, camera.pitch) else \
         Camera._checked(camera.K, camera.height, roll, pitch)
-    return result, success, params, result.model, cam_model
+    return result, success, params, result.model, cam_model, index
 
 
 class FreespaceRefiner(nn.Module):
