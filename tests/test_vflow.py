@@ -206,6 +206,20 @@ class TestFitVFlowCurve:
         ours = vflow_curve_model(v, torch.tensor(z_d / (h * fy), dtype=torch.float64), torch.tensor(cy, dtype=torch.float64))
         torch.testing.assert_close(ours, ref, atol=1e-12, rtol=0)
 
+    @pytest.mark.parametrize("statistic", ["peak", "median"])
+    def test_the_fit_is_detached(self, statistic):
+        """A fit is not differentiable (docs/fitting.md): given a flow that requires grad, its
+        results are plain detached tensors. They once carried a graph through the robust fit that
+        failed on backward (a tensor of it changed in place)."""
+        _, flow, valid = _straight()
+        flow = (flow + 0.01 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0),
+                                          dtype=flow.dtype)).requires_grad_()
+        curve = fit_vflow_curve(flow, valid, statistic=statistic)
+        assert bool(curve.success.all())
+        tensors = [v for v in vars(curve).values() if isinstance(v, torch.Tensor)]
+        assert tensors and not any(t.requires_grad or t.is_inference() for t in tensors)
+        assert not flow.grad_fn and flow.grad is None
+
     @pytest.mark.parametrize("model", ["displacement", "velocity"])
     def test_curve_gradcheck(self, model):
         v = torch.linspace(20.0, 60.0, 9, dtype=torch.float64)

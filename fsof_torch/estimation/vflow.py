@@ -28,8 +28,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import (check_float_tensor, check_has_values, check_int, check_same_device, check_shape, is_number,
-                      option_error, result_dtype)
+from .._check import (check_float_tensor, check_has_values, check_int, check_same_device, check_shape, inference,
+                      is_number, option_error, result_dtype)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -278,6 +278,7 @@ class VFlowCurve:
         return self.a * (camera.height * camera.fy).to(self.a)
 
 
+@inference
 def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "displacement",
                     statistic: str = "peak", bins: int = 256, max_flow: float | None = None,
                     min_row_pixels: int = 3, inlier_threshold: float = 0.5,
@@ -315,7 +316,8 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
 
     Returns:
         :class:`VFlowCurve`; frames that could not be fitted, or whose rows draw no curve (see
-        ``success``), have ``success`` False and a = v0 = 0.
+        ``success``), have ``success`` False and a = v0 = 0. Detached: a fit is not
+        differentiable (its rows, samples and weights are decisions).
 
     Example:
         >>> from fsof_torch.flow_model import displacement_flow
