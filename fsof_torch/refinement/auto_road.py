@@ -52,8 +52,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_shape, check_size,
-                      host_path, inference, is_number, option_error, skip_values)
+from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_has_values,
+                      check_shape, check_size, host_path, inference, is_number, option_error, skip_values)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -507,6 +507,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
                    min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
+    for name, t in (("image1", image1), ("image2", image2)):  # (the road is found in their values)
+        check_has_values(t, name, "to find the road in (the detection reads the images, also with a motion given)")
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
      z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
     edges, refit, warn = check_bool(edges, "edges"), check_bool(refit, "refit"), check_bool(warn, "warn")
