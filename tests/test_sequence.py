@@ -541,3 +541,16 @@ def test_fit_sequence_holds_fixed_attitude_parameters_in_both_passes(body_motion
         assert torch.equal(got["pitch_change"], torch.zeros(3, dtype=torch.float64))
     # the free attitude was fitted again, at the smoothed track
     assert not torch.equal(seq.params["pitch"], seq.first_pass["pitch"])
+
+
+def test_fit_sequence_refuses_poses_whose_height_is_not_in_metres(body_motion_clip):
+    """Poses in millimetres (or kilometres) gave a camera height of 1650 m (1.65 mm) and translations
+    in those units, reported as calibrated: a height more than 10 times the camera's either way is
+    no metric scale, and stops the fit naming ``poses``."""
+    pairs, frames, poses = body_motion_clip
+    for scale, shown in ((1000.0, r"16\d\d\.\d+ m, 1e\+03 times"), (1e-3, r"0\.0016\d+ m, 0\.001 times")):
+        wrong = poses[:3].clone()
+        wrong[:, :3, 3] *= scale
+        with pytest.raises(ValueError, match=rf"^poses: their translations give a camera height of {shown} the "
+                                             r"camera's 1\.65 m \(more than 10 times either way\)"):
+            fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=wrong, passes=1, max_points=500)

@@ -181,6 +181,12 @@ _STILL_M = 1e-3
 #: cannot move either; from 5 on, the inner values can set the deviation.
 _MIN_REJECT = 5
 
+#: the most the camera height from poses may differ from the input camera's, as a factor either way.
+#: The images give d / h, so poses in other units than metres scale the height by the unit: by 10
+#: (dm) or more (cm, mm; km the other way). A calibrated height is never off by that much, nor are
+#: two road vehicles' cameras (about 0.5 m to 4 m over the road).
+_MAX_HEIGHT_FACTOR = 10.0
+
 
 def _robust_mean(x: Tensor, ok: Tensor) -> float:
     """The mean of the values within 3 median absolute deviations of their median; below
@@ -266,8 +272,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
-        poses: optional (N + 1, 4, 4) camera-to-world poses: their translations give the metric
-            scale, hence the camera height (the images give d / h only).
+        poses: optional (N + 1, 4, 4) camera-to-world poses: their translations (metres) give the
+            metric scale, hence the camera height (the images give d / h only); a height more than
+            10 times the camera's, or under a tenth of it, is a ValueError (poses in other units).
         flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar
             motion (a sequence read like ``frames``).
         passes: 1 (per-pair fits only; with poses, their translations and cameras rescaled to the
@@ -426,6 +433,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             if not (math.isfinite(height) and height > 0) or 2 * int((ratios > 0).sum()) <= ratios.numel():
                 raise ValueError(f"poses: their translations give no scale (camera height {height:g} m): the "
                                  "poses do not move where the images do")
+            nominal = float(camera.height[0])
+            if not 1 / _MAX_HEIGHT_FACTOR <= height / nominal <= _MAX_HEIGHT_FACTOR:
+                raise ValueError(f"poses: their translations give a camera height of {height:g} m, "
+                                 f"{height / nominal:.3g} times the camera's {nominal:g} m (more than "
+                                 f"{_MAX_HEIGHT_FACTOR:g} times either way): expected camera-to-world poses of "
+                                 f"these frames in metres (not millimetres or centimetres)")
             mounting["height"] = height
             cam = cam.replace(height=height)
     records = first
