@@ -355,6 +355,10 @@ def test_fit_sequence_errors(body_motion_clip):
         fit_sequence(frames[:3], [road.float(), road.float()], cam)
     with pytest.raises(ValueError, match=rf"flows\[0\]: expected shape \(2, {H}, {W}\)"):
         fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, H - 8, W), torch.zeros(2, H, W)])
+    for dtype in (torch.int64, torch.bool):  # (taken as pixels once, truncated)
+        with pytest.raises(TypeError, match=rf"^flows\[1\]: expected a floating-point tensor, got dtype {dtype}$"):
+            fit_sequence(frames[:3], road, cam, flows=[torch.zeros(2, H, W), torch.zeros(2, H, W, dtype=dtype)],
+                         passes=1, max_points=500)
     for name in ("image1", "image2"):  # fit_image's arguments the clip sets itself
         with pytest.raises(TypeError, match=rf"options: options \['{name}'\] of \w+ are set by the function that forwards"):
             fit_sequence(frames[:3], road, cam, **{name: frames[0]})

@@ -381,7 +381,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             image2 = _frame(frames[k + 1], f"frames[{k + 1}]", data_range, (image1.shape[1],), size)
             road = mask_of(k, size)
             if flows is not None:
-                flow = _item(flows[k], f"flows[{k}]", "a flow of the frames' size", (2,), size)
+                given = flows[k]  # (an integer or bool flow was taken as pixels, truncated)
+                given = check_float_tensor(given, f"flows[{k}]") if isinstance(given, Tensor) else given
+                flow = _item(given, f"flows[{k}]", "a flow of the frames' size", (2,), size)
                 starts.append(planar_start(flow.to(torch.float64), road, cam))
             init = None
             if track is not None:  # the attitude and its change: start at the smoothed track, tied to it
