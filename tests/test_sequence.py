@@ -558,3 +558,18 @@ def test_fit_sequence_refuses_poses_whose_height_is_not_in_metres(body_motion_cl
         with pytest.raises(ValueError, match=rf"^poses: their translations give a camera height of {shown} the "
                                              r"camera's 1\.65 m \(more than 10 times either way\)"):
             fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=wrong, passes=1, max_points=500)
+
+
+def test_fit_sequence_carries_no_motion_prior_out_of_a_pair_that_did_not_move(body_motion_clip):
+    """A frame repeated (a recording's glitch) stands still for one pair; the next pair then steps
+    two frames. The previous motion, carried as a prior (0 ± 5 cm after the still pair), held that
+    step at about 0 (frames 1, 1, 3: z_d -0.016 m for 2.4 m, reported as a success) and, through
+    the next prior, bent the pair after it too (frames 0, 0, 2, 3: 0.06 m, then 0.92 m at -4.8° of
+    pitch for 1.2 m). After a still pair no motion prior is carried: each step is fitted as alone."""
+    pairs, frames, poses = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    for order in ([0, 1, 1, 3], [0, 0, 2, 3]):
+        seq = fit_sequence([frames[i] for i in order], road, cam, passes=1, keep_fits=False, max_points=1000)
+        assert bool(seq.success.all())
+        steps = (poses[order[1:], :3, 3] - poses[order[:-1], :3, 3]).norm(dim=-1)  # (metres: about 1.2 a frame)
+        torch.testing.assert_close(seq.params["z_d"], steps, rtol=0.05, atol=1e-3)

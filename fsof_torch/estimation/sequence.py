@@ -26,7 +26,8 @@ motion, straight ahead). Then:
    move measures its change (a rotation) but not its attitude.
 3. **Second pass.** Every pair is fitted again, started at the smoothed track and tied to it by a
    prior of the track's own uncertainty (its attitude and attitude change); its translation and
-   yaw are started from (and loosely tied to) the previous pair's motion.
+   yaw are started from (and, where that pair succeeded and moved, loosely tied to) the previous
+   pair's motion.
 
 Frames are (B=1 per frame) images (3 or 1, H, W) on 0..``data_range`` (255 unless given, as
 fit_image's option); masks (1, H, W) bool (one for the clip, or one per pair). Not differentiable.
@@ -371,7 +372,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                 starts.append(prev)
                 if len(records) > 1:  # constant velocity: the motion changes as it did
                     starts.append({n: 2 * records[-1].params[n] - records[-2].params[n] for n in motion})
-                if records[-1].success:  # the previous motion, loosely: a car changes speed gently
+                step = torch.stack([prev[n] for n in ("x_d", "y_d", "z_d")]).norm()
+                # the previous motion, loosely: a car changes speed gently. Not after a pair that did not
+                # move: a frame repeated (a recording's glitch) stands still for one pair and not the
+                # next, whose step a prior at 0 ± 5 cm made fail (or biased) where it fits alone
+                if records[-1].success and float(step) > _STILL_M:
                     z = prev["z_d"].abs()
                     prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
                                  yaw=(prev["yaw"], 1.0 * DEG))
