@@ -4,7 +4,9 @@ carried from pair to pair, and the attitude track smoothed.
 A clip of N + 1 frames gives N pairs. Each pair's road motion is fitted to its two images
 (:func:`~fsof_torch.estimation.image_fit.fit_image`, the ``"plane"`` model), started from the
 previous pair's motion and a constant-velocity prediction besides fit_image's own starts (zero
-motion, straight ahead). Then:
+motion, straight ahead), and tied to the previous pair's motion by a loose prior where that pair
+succeeded and moved (a fit that fails under it, or lies more than 3 σ from it, is fitted again
+without it: a dropped frame, a repeated one). Then:
 
 1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
    the per-pair attitudes (of fewer than five, their median): the body's pitching and rolling
@@ -376,10 +378,14 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                 # the previous motion, loosely: a car changes speed gently. Not after a pair that did not
                 # move: a frame repeated (a recording's glitch) stands still for one pair and not the
                 # next, whose step a prior at 0 ± 5 cm made fail (or biased) where it fits alone
+                carried = {}
                 if records[-1].success and float(step) > _STILL_M:
                     z = prev["z_d"].abs()
-                    prior.update(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
-                                 yaw=(prev["yaw"], 1.0 * DEG))
+                    carried = dict(x_d=(prev["x_d"], 0.05 + 0.1 * z), z_d=(prev["z_d"], 0.05 + 0.1 * z),
+                                   yaw=(prev["yaw"], 1.0 * DEG))
+                    prior.update(carried)
+            else:
+                carried = {}
             # each frame is read once per pass, in order: the last pair's second frame is this one's first
             image1 = image2 if image2 is not None else _frame(frames[k], f"frames[{k}]", data_range, (1, 3))
             size = tuple(image1.shape[-2:])
@@ -405,6 +411,14 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             prior = {n: v for n, v in prior.items() if n not in held}  # (held: no prior, fit_image refuses it)
             fit = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts, prior=prior,
                             **options)
+            carried = {n: v for n, v in carried.items() if n in prior}
+            if carried and _contradicted(fit, carried):
+                # the images disagree with the carried motion (a dropped frame, a hard brake at a low
+                # frame rate) or the fit failed under it: the pair fitted without it, where that succeeds
+                alone = fit_image(image1, image2, road, cam, model=model, init=init, starts=starts,
+                                  prior={n: v for n, v in prior.items() if n not in carried}, **options)
+                if bool(alone.success.all()):
+                    fit = alone
             records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all()),
                                        _attitude_seen(fit, prior)))
             if keep:
@@ -462,6 +476,19 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     # (a detached copy: results are detached, and not the caller's camera's storage)
     cam = Camera._checked(*(t.detach().clone() for t in (cam.K, cam.height, cam.roll, cam.pitch)))
     return SequenceFit(fits, _stack(records), mounting, cam, raw, success, calibrated_from)
+
+
+def _contradicted(fit: RoadFit, carried: dict[str, tuple[Tensor, Any]]) -> bool:
+    """Whether ``fit`` failed, or lies more than 3 standard deviations from the motion ``carried`` from
+    the previous pair as a prior ({name: (mean, σ)}) in any of its parameters: a prior pulls the fit
+    towards itself, so a fit that still lies that far is one the images contradict it in."""
+    if not bool(fit.success.all()):
+        return True
+    for name, (mean, sigma) in carried.items():
+        off = (fit.params[name].double().reshape(-1) - torch.as_tensor(mean).double().reshape(-1)).abs()
+        if bool((off > 3 * torch.as_tensor(sigma).double().reshape(-1)).any()):
+            return True
+    return False
 
 
 def _metric(params: dict[str, Tensor], model: RoadModel, ratio: float) -> dict[str, Tensor]:
