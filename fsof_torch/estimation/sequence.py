@@ -185,9 +185,10 @@ _STILL_M = 1e-3
 _MIN_REJECT = 5
 
 #: the most the camera height from poses may differ from the input camera's, as a factor either way.
-#: The images give d / h, so poses in other units than metres scale the height by the unit: by 10
-#: (dm) or more (cm, mm; km the other way). A calibrated height is never off by that much, nor are
-#: two road vehicles' cameras (about 0.5 m to 4 m over the road).
+#: The images give d / h, so poses in other units than metres scale the height by the unit: 100 (cm),
+#: 1000 (mm), 1 / 1000 (km). A calibrated height is never off by a factor of 10, nor is a guessed one
+#: (road vehicles carry their cameras about 0.5 m to 4 m over the road); a tighter one, 5, would
+#: refuse a low robot's camera (0.3 m) left at a car's nominal 1.65 m.
 _MAX_HEIGHT_FACTOR = 10.0
 
 
