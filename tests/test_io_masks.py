@@ -66,6 +66,33 @@ class TestSmoke:
         assert cv2.imread(str(tmp_path / "l.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
 
 
+class TestNumPy:
+    """The mask and label writers take NumPy arrays, as the image and flow writers do."""
+
+    def test_road_mask_from_array(self, tmp_path):
+        mask = np.zeros((5, 8), bool)
+        mask[2:, 3:6] = True
+        write_road_mask(tmp_path / "m.png", mask)
+        assert torch.equal(read_road_mask(tmp_path / "m.png")[0], torch.from_numpy(mask))
+        write_road_mask(tmp_path / "f.png", mask[None, ::-1])  # negative strides: copied, values kept
+        assert torch.equal(read_road_mask(tmp_path / "f.png")[0], torch.from_numpy(mask[::-1].copy()))
+
+    @pytest.mark.parametrize("dtype", [np.uint8, np.uint16, np.uint32, np.int64, ">i4"])
+    def test_label_map_from_array(self, tmp_path, dtype):
+        labels = (np.arange(12).reshape(3, 4) * (20 if dtype == np.uint8 else 1000)).astype(dtype)
+        write_label_map(tmp_path / "l.png", labels)
+        assert torch.equal(read_label_map(tmp_path / "l.png"), torch.from_numpy(labels.astype(np.int64)))
+
+    def test_label_map_from_uint16_tensor(self, tmp_path):
+        labels = torch.arange(12).reshape(3, 4) * 1000  # (torch reduces no uint16 tensor: min/max in NumPy)
+        write_label_map(tmp_path / "l.png", labels.to(torch.uint16))
+        assert torch.equal(read_label_map(tmp_path / "l.png"), labels)
+
+    def test_label_map_wide_values_quoted(self, tmp_path):
+        with pytest.raises(ValueError, match=r"0\.\.65535, got the range \[0, 18446744073709551615\]$"):
+            write_label_map(tmp_path / "l.png", np.array([[0, 2**64 - 1]], np.uint64))
+
+
 class TestFeature:
     def test_polygon_rectangle_matches_pixel_centres(self, tmp_path):
         """A rectangle with vertices on pixel centres fills exactly the pixels from corner to corner."""
@@ -150,6 +177,14 @@ class TestExceptions:
     def test_writer_errors(self, tmp_path):
         with pytest.raises(TypeError, match="bool tensor"):
             write_road_mask(tmp_path / "m.png", torch.zeros(1, 2, 2))
+        # a uint8 array may be a grey image as well as a 0/255 mask: the caller thresholds it
+        with pytest.raises(TypeError, match=r"^mask: expected a bool tensor or array .* got dtype torch.uint8; "
+                                            r"threshold it yourself, e.g. mask > 0$"):
+            write_road_mask(tmp_path / "m.png", np.full((2, 2), 255, np.uint8))
+        for labels in (np.zeros((2, 2), np.float32), np.zeros((2, 2), bool), torch.zeros(2, 2)):
+            with pytest.raises(TypeError, match=r"^labels: expected an integer tensor or array of shape \(H, W\)"):
+                write_label_map(tmp_path / "l.png", labels)
+        assert list(tmp_path.iterdir()) == []
         # a (1, H, W) mask without pixels is quoted as it came, not as (H, W)
         for shape in ((1, 0, 8), (1, 6, 0), (0, 8), (2, 6, 8)):
             with pytest.raises(ValueError, match=rf"^mask: expected shape \(1, H, W\) or \(H, W\) with H, W >= 1, "

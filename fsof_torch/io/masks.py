@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, check_has_values
+from .._check import as_path, check_has_values, tensor_from_array
 from .images import check_image_suffix, existing_file, read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
@@ -286,15 +286,22 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
     return torch.from_numpy(np.ascontiguousarray(mask)).unsqueeze(0)
 
 
-def write_road_mask(path: str | os.PathLike, mask: Tensor) -> Path:
-    """Write a (1, H, W) or (H, W) bool mask as an 8-bit PNG (road = 255), atomically.
+def write_road_mask(path: str | os.PathLike, mask: Tensor | np.ndarray) -> Path:
+    """Write a (1, H, W) or (H, W) bool mask (a tensor or a NumPy array) as an 8-bit PNG (road =
+    255), atomically.
 
-    ``path`` must end in .png (a JPEG would blur the mask's edges into road).
+    ``path`` must end in .png (a JPEG would blur the mask's edges into road). A mask of another
+    dtype (uint8 0/1 or 0/255, float) is a TypeError, as for the ``valid`` masks of the flow
+    writers: an integer or float array may as well be a grey image or a probability map, which
+    no one threshold turns into a mask; pass ``mask > 0`` (or your threshold).
     """
     path = check_image_suffix(path, (".png",), "road mask")
+    if isinstance(mask, np.ndarray):
+        mask = tensor_from_array(mask)
     if not isinstance(mask, Tensor) or mask.dtype != torch.bool:
-        raise TypeError(f"mask: expected a bool tensor of shape (1, H, W), got "
-                        f"{mask.dtype if isinstance(mask, Tensor) else type(mask).__name__}")
+        got = f"dtype {mask.dtype}" if isinstance(mask, Tensor) else type(mask).__name__
+        raise TypeError(f"mask: expected a bool tensor or array of shape (1, H, W) or (H, W), got {got}; "
+                        f"threshold it yourself, e.g. mask > 0")
     given = tuple(mask.shape)  # (quoted as it came, not as squeezed)
     if mask.dim() == 3 and mask.shape[0] == 1:
         mask = mask[0]
@@ -348,22 +355,28 @@ def read_label_map(path: str | os.PathLike) -> Tensor:
     return torch.from_numpy(array.astype(np.int64))
 
 
-def write_label_map(path: str | os.PathLike, labels: Tensor) -> Path:
-    """Write (H, W) integer labels as a PNG atomically: 8-bit when all labels fit, else 16-bit.
+def write_label_map(path: str | os.PathLike, labels: Tensor | np.ndarray) -> Path:
+    """Write (H, W) integer labels (a tensor or a NumPy array) as a PNG atomically: 8-bit when
+    all labels fit, else 16-bit.
 
     ``path`` must end in .png (other formats are lossy or 8-bit only: label 300 would read back as 255).
     """
     path = check_image_suffix(path, (".png",), "label map")
-    if not isinstance(labels, Tensor) or labels.is_floating_point() or labels.dtype == torch.bool:
-        raise TypeError(f"labels: expected an integer tensor of shape (H, W), got "
-                        f"{labels.dtype if isinstance(labels, Tensor) else type(labels).__name__}")
-    if labels.dim() == 3 and labels.shape[0] == 1:
+    integer = (labels.dtype.kind in "iu" if isinstance(labels, np.ndarray) else isinstance(labels, Tensor)
+               and not (labels.is_floating_point() or labels.is_complex() or labels.dtype == torch.bool))
+    if not integer:
+        got = f"dtype {labels.dtype}" if isinstance(labels, (Tensor, np.ndarray)) else type(labels).__name__
+        raise TypeError(f"labels: expected an integer tensor or array of shape (H, W), got {got}")
+    given = tuple(labels.shape)
+    if labels.ndim == 3 and labels.shape[0] == 1:
         labels = labels[0]
-    if labels.dim() != 2 or min(labels.shape) < 1:
-        raise ValueError(f"labels: expected shape (H, W) with H, W >= 1, got {tuple(labels.shape)}")
+    if labels.ndim != 2 or min(labels.shape) < 1:
+        raise ValueError(f"labels: expected shape (H, W) with H, W >= 1, got {given}")
     check_has_values(labels, "labels")
-    lo, hi = int(labels.min()), int(labels.max())
+    if isinstance(labels, Tensor):
+        labels = labels.detach().cpu().numpy()
+    lo, hi = int(labels.min()), int(labels.max())  # (in NumPy: exact for every integer type)
     if lo < 0 or hi > 65535:
         raise ValueError(f"labels: expected values in 0..65535, got the range [{lo}, {hi}]")
     dtype = np.uint8 if hi <= 255 else np.uint16
-    return write_image_array(path, labels.detach().cpu().numpy().astype(dtype))
+    return write_image_array(path, labels.astype(dtype))
