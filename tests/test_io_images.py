@@ -109,16 +109,20 @@ class TestExceptions:
                 write_image(tmp_path / "a.png", torch.zeros(shape))
 
     def test_write_refuses_a_0_1_float_image(self, tmp_path):
-        """A float image on 0..1 was rounded to 0 and 1 and written near black, without a word."""
+        """A float image on 0..1 was rounded to 0 and 1 and written near black, without a word;
+        so was a float 0/1 mask (levels 0 and 1), as the library's image checks refuse it."""
         image = torch.linspace(0.0, 1.0, 3 * 4 * 5).reshape(3, 4, 5)
-        for x in (image, image.double(), image.half(), image.numpy(), image * 0.5):
-            with pytest.raises(ValueError, match=r"^image: values in \[0, (1|0\.5)\] look like a 0\.\.1 image, expected "
-                                                 r"the 0\.\.255 scale: scale it by 255"):
+        mask = (image > 0.5).float()
+        for x in (image, image.double(), image.half(), image.numpy(), image * 0.5, mask, mask[2], mask.numpy(),
+                  torch.ones(3, 4, 5)):
+            with pytest.raises(ValueError, match=r"^image: values in \[0?1?, (1|0\.5)\] look like a 0\.\.1 image or a 0/1 "
+                                                 r"mask, expected the 0\.\.255 scale: scale it by 255 .*write a mask "
+                                                 r"with write_road_mask, real grey levels 0 and 1 as uint8$"):
                 write_image(tmp_path / "a.png", x)
         assert not (tmp_path / "a.png").exists()
-        # black frames, frames of grey levels 0 and 1, uint8 images and 0..255 floats are written as they are
-        for x in (torch.zeros(3, 4, 5), torch.ones(3, 4, 5), (image > 0.5).float(), (image * 255).round().to(torch.uint8),
-                  image * 255, torch.ones(4, 5, dtype=torch.uint8)):
+        # black frames, uint8 images (grey levels 0 and 1 too) and 0..255 floats are written as they are
+        for x in (torch.zeros(3, 4, 5), mask.to(torch.uint8), (image * 255).round().to(torch.uint8),
+                  image * 255, mask * 255, torch.ones(4, 5, dtype=torch.uint8), torch.full((3, 4, 5), 2.0)):
             write_image(tmp_path / "b.png", x)
             assert torch.equal(read_image(tmp_path / "b.png"), x.expand(3, 4, 5).float().round())
 

@@ -239,9 +239,11 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
         image: (3, H, W) RGB, or (1, H, W) / (H, W) grey (written as three equal channels to
             .webp, which stores no grey), float on the 0..255 scale (rounded to the nearest
             integer) or uint8; a tensor or a NumPy array (any strides and byte order). Values may
-            exceed 0..255 by at most 0.5 (rounding). A float image of fractions up to 1 is a 0..1
-            image (rounded to 0 and 1, it would be written near black): a ValueError naming
-            ``image``; whole grey levels 0 and 1 are written as they are.
+            exceed 0..255 by at most 0.5 (rounding). A float image whose brightest value is in
+            (0, 1] is a ValueError naming ``image``, as in the library's image checks: it is a 0..1
+            image or a 0/1 float mask, which would be written near black (levels 0 and 1); scale
+            it by 255, write a mask with :func:`~fsof_torch.io.write_road_mask`, or pass uint8 for
+            an image of real grey levels 0 and 1. An all-zero float image is written black.
     """
     if isinstance(image, np.ndarray):
         image = tensor_from_array(image)
@@ -269,12 +271,12 @@ def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
         lo, hi = float(values.min()), float(values.max())
         if lo < -0.5 or hi > 255.5:
             raise ValueError(f"image: expected values on the 0..255 scale, got the range [{lo:.4g}, {hi:.4g}]")
-        rounded = values.round()
-        if 0.0 < hi <= 1.0 and not torch.equal(rounded, values):
-            # (grey levels 0 and 1 are an image on 0..255; fractions up to 1 are a 0..1 one, near black written)
-            raise ValueError(f"image: values in [{lo:.4g}, {hi:.4g}] look like a 0..1 image, expected the 0..255 "
-                             f"scale: scale it by 255 (rounded, its values would be 0 and 1)")
-        array = rounded.clamp(0, 255).to(torch.uint8).numpy()
+        if 0.0 < hi <= 1.0:
+            # (a float 0/1 mask too: far likelier than a float image of grey levels 0 and 1, which uint8 writes)
+            raise ValueError(f"image: values in [{lo:.4g}, {hi:.4g}] look like a 0..1 image or a 0/1 mask, expected "
+                             f"the 0..255 scale: scale it by 255 (rounded, its values would be 0 and 1: near "
+                             f"black); write a mask with write_road_mask, real grey levels 0 and 1 as uint8")
+        array = values.round().clamp(0, 255).to(torch.uint8).numpy()
     array = array.transpose(1, 2, 0)
     if array.shape[2] == 1 and 1 not in WRITABLE_CHANNELS.get(as_path(path).suffix.lower(), (1,)):
         array = np.repeat(array, 3, axis=2)  # .webp stores no grey; read_image repeats grey to 3 channels anyway
