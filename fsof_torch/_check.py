@@ -272,14 +272,23 @@ def _quote(x: object) -> str:
     return r if len(r) <= 60 else f"{r[:20]}...{r[-8:]} ({len(r)} characters)"
 
 
+def scalar(x: object, name: str) -> object:
+    """A 0-d real tensor (not bool, not complex) read as the Python number it holds (float, or
+    int for an integer dtype), so that every scalar parameter takes one wherever it takes a
+    Python number; anything else returned as it came, for the caller's check to quote. A 0-d
+    tensor on the meta device is a ValueError naming ``name`` (it holds no number)."""
+    if isinstance(x, Tensor) and x.dim() == 0 and x.dtype != torch.bool and not x.is_complex():
+        if skip_values(x):
+            raise ValueError(f"{name}: expected a Python number, got a tensor on the meta device")
+        return x.item()
+    return x
+
+
 def check_number(x: object, name: str, *, positive: bool = False, nonnegative: bool = False,
                  finite: bool = True) -> float:
     """A Python real (not a bool; a 0-d tensor is read) checked for finiteness and sign -> float.
     A number beyond float's range is a ValueError, also with ``finite=False``."""
-    if isinstance(x, Tensor) and x.dim() == 0 and x.dtype != torch.bool:
-        if skip_values(x):
-            raise ValueError(f"{name}: expected a Python number, got a tensor on the meta device")
-        x = x.item()
+    x = scalar(x, name)
     if isinstance(x, bool) or not isinstance(x, numbers.Real):
         raise TypeError(f"{name}: expected a number, got {type(x).__name__} {x!r}")
     value = _float(x, name)

@@ -470,6 +470,9 @@ def _option_call(function: str, **option):
         "solve": lambda: solve(ResidualProblem(lambda p: p[:, :, None], torch.ones(1)), torch.zeros(1, 2), **option),
         "pyramid_levels": lambda: pyramid_levels(32, 48, min_size=4, **option),
         "normalize_coordinates": lambda: normalize_coordinates(torch.zeros(3), align_corners=True, **option),
+        "fuse_flow": lambda: fs.fuse_flow(flow, flow + 1, valid, mode="confidence", **option),
+        "Camera.scaled": lambda: cam.scaled(**option),
+        "FreespaceRefined": lambda: fs.FreespaceRefined(lambda a, b: a, **option).image_range,
     }
     return calls[function]()
 
@@ -520,3 +523,44 @@ def test_devices_are_checked_and_moved_with_the_argument_named():
     assert to_device(x, "x", "meta").device.type == "meta" and to_device(x, "x", x.device) is x
     with pytest.raises(ValueError, match=r"^z_d: a tensor on the meta device has no values to move to cpu"):
         as_batch_param(m, "z_d", torch.float64, torch.device("cpu"))
+
+
+# (function, option, a value taken, one out of range): a 0-d tensor wherever a Python number goes
+@pytest.mark.parametrize("function, option, good, wrong_value", [
+    ("fit_road", "scale", 2.0, -1.0),
+    ("fit_road", "tol", 1e-4, float("nan")),
+    ("fit_road", "inlier_threshold", 2.0, 0.0),
+    ("fit_road", "min_inlier_fraction", 0.5, 1.5),
+    ("fit_image", "gradient_fraction", 0.25, 1.5),
+    ("fit_image", "min_correlation", 0.2, 2.0),
+    ("detect_road", "z", 3.0, -2.0),
+    ("detect_road", "seed_width_m", 3.0, float("inf")),
+    ("detect_road", "min_coverage", 0.1, 1.0),
+    ("road_seed", "width_m", 3.0, float("inf")),
+    ("road_seed", "depth_m", 10.0, 0.0),
+    ("vflow_map", "max_flow", 3.0, float("inf")),
+    ("fit_vflow_curve", "inlier_threshold", 0.25, -1.0),
+    ("fit_vflow_curve", "max_false_alarms", 2.0, 0.0),
+    ("fit_sequence", "attitude_deg", 2.0, 0.0),
+    ("fuse_flow", "scale", 3.0, -1.0),
+    ("Camera.scaled", "sx", 0.5, 0.0),
+])
+def test_scalar_options_take_a_0d_tensor_as_its_number(function, option, good, wrong_value):
+    """Camera.scaled, fuse_flow, the fits' and the road detection's real options refused a 0-d
+    tensor (TypeError) that refine_flow(scale=...) and the losses took; fit_image passed the
+    check and then failed in round()."""
+    with pytest.raises(ValueError, match=f"^{option}: expected .*, got {re.escape(repr(wrong_value))}"):
+        _option_call(function, **{option: torch.tensor(wrong_value, dtype=torch.float64)})
+    if function == "fit_sequence":
+        return  # (a clip fit: its check is the point; the fits themselves are fit_image's)
+    as_tensor, as_number = (_option_call(function, **{option: v}) for v in (torch.tensor(good), good))
+    pairs = [(a, b) for a, b in zip(*(dataclasses.astuple(r) if dataclasses.is_dataclass(r) else (r.K,) if hasattr(r, "K")
+                                      else r if isinstance(r, tuple) else (r,) for r in (as_tensor, as_number)))
+             if isinstance(a, torch.Tensor)]
+    assert pairs and all(torch.equal(a, b) for a, b in pairs)
+
+
+def test_image_range_takes_0d_tensors():
+    assert _option_call("FreespaceRefined", image_range=(torch.tensor(0.0), torch.tensor(1.0))) == (0.0, 1.0)
+    with pytest.raises(ValueError, match=r"^image_range: expected finite \(low, high\) with high > low"):
+        _option_call("FreespaceRefined", image_range=(torch.tensor(1.0), torch.tensor(0.0)))

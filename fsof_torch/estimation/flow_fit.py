@@ -28,8 +28,7 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
-                      check_has_values, check_mapping, check_names, check_shape, inference, is_number, option_error,
-                      result_dtype, to_device)
+                      check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, to_device)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values, pack_params,
@@ -37,7 +36,7 @@ from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homo
 from .confidence import spread_out
 from .initial import homography_dlt, planar_motion
 from .priors import within_bounds
-from .robust import ROBUST_KERNELS, check_kernel, robust_weight
+from .robust import ROBUST_KERNELS, check_fit_options, robust_weight
 from .sampling import MaskPoints, gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, positive_definite, solve
 
@@ -250,30 +249,6 @@ def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera, valid: Tensor 
             raise ValueError(f"flow: expected finite values inside mask, got {n} NaN/inf values there "
                              f"(exclude them with valid=)")
     return dims, camera, mask
-
-
-def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_points: int | None,
-                      inlier_threshold: float | None = None, min_points: int = 1,
-                      min_inlier_fraction: float = 0.0) -> None:
-    check_kernel(robust)
-
-    def positive(name: str, value: object, integer: bool = False, low: float = 0.0) -> None:
-        if not is_number(value, integer=integer) or not math.isfinite(value) or not value > low:
-            kind = "an int" if integer else "a finite number"
-            raise option_error(value, f"{name}: expected {kind} > {low:g}, got {value!r}", integer=integer)
-
-    positive("scale", scale)
-    positive("max_iter", max_iter, integer=True)
-    positive("tol", tol)
-    if max_points is not None:
-        positive("max_points", max_points, integer=True, low=15)
-    if inlier_threshold is not None:
-        positive("inlier_threshold", inlier_threshold)
-    if not is_number(min_points, integer=True) or min_points < 1:
-        raise option_error(min_points, f"min_points: expected an int >= 1, got {min_points!r}", integer=True)
-    if not (is_number(min_inlier_fraction) and 0.0 <= min_inlier_fraction <= 1.0):
-        raise option_error(min_inlier_fraction,
-                           f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
 
 
 def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor,
@@ -520,7 +495,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         (1.0, 0.003)
     """
     model = get_road_model(model)
-    check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
+    scale, tol, inlier_threshold, min_inlier_fraction = check_fit_options(
+        robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
     check_bool(polish, "polish")
     if bounds not in ("physical", None):
         raise (ValueError if isinstance(bounds, str) else TypeError)(f"bounds: expected 'physical' or None, got {bounds!r}")

@@ -43,7 +43,8 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_data_range, check_fit_flags, check_has_values,
-                      check_image_pair, check_image_range, check_keywords, check_shape, inference, result_dtype)
+                      check_image_pair, check_image_range, check_keywords, check_shape, inference, result_dtype,
+                      scalar)
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
@@ -360,6 +361,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         full-resolution level converged (``success`` does not ask it: a fit that ran out of
         iterations is still judged by the image tests).
     """
+    # (a 0-d tensor as its number: the levels' loops and the point budgets need Python numbers)
+    tol, resolution, smooth_sigma, highpass, scale, gradient_fraction, inlier_threshold, min_inlier_fraction, \
+        min_correlation = (scalar(v, n) for n, v in dict(
+            tol=tol, resolution=resolution, smooth_sigma=smooth_sigma, highpass=highpass, scale=scale,
+            gradient_fraction=gradient_fraction, inlier_threshold=inlier_threshold,
+            min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation).items())
     model, steps, turns, reverse, fixed, prior = checked_options(
         model=model, fixed=fixed, init=init, starts=starts, prior=prior, levels=levels,
         min_size=min_size, max_iter=max_iter, tol=tol, resolution=resolution, smooth_sigma=smooth_sigma,

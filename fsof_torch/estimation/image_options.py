@@ -14,8 +14,8 @@ from typing import Any, Mapping, NamedTuple
 
 from .._check import check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
 from ..geometry.road_models import RoadModel, get_road_model
-from .flow_fit import RoadFit, check_fit_options
-from .robust import check_kernel
+from .flow_fit import RoadFit
+from .robust import check_fit_options, check_kernel
 from .starts import check_steps
 
 __all__ = ["ImageOptions", "checked_options", "check_bounds"]

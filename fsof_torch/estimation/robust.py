@@ -14,13 +14,15 @@ w = dρ/d(r²) is the weight of iteratively reweighted least squares.
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_number, result_dtype, skip_values
+from .._check import check_float_tensor, check_number, is_number, option_error, result_dtype, scalar, skip_values
 
 __all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel",
-           "check_scale"]
+           "check_scale", "check_fit_options"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
@@ -31,6 +33,39 @@ def check_kernel(kind: object, name: str = "robust") -> str:
     if kind not in ROBUST_KERNELS:
         raise ValueError(f"{name}: expected one of {ROBUST_KERNELS}, got {kind!r}")
     return kind
+
+
+def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_points: int | None,
+                      inlier_threshold: float | None = None, min_points: int = 1,
+                      min_inlier_fraction: float = 0.0) -> tuple[float, float, float | None, float]:
+    """A robust fit's options (:func:`~fsof_torch.estimation.flow_fit.fit_road`'s, and the image
+    fit's) checked: a TypeError or ValueError naming the first bad one. Returns ``scale``,
+    ``tol``, ``inlier_threshold`` and ``min_inlier_fraction`` as Python numbers (a 0-d tensor
+    read), for the fit to use."""
+    check_kernel(robust)
+    scale, tol, inlier_threshold, min_inlier_fraction = (
+        scalar(v, n) for n, v in (("scale", scale), ("tol", tol), ("inlier_threshold", inlier_threshold),
+                                  ("min_inlier_fraction", min_inlier_fraction)))
+
+    def positive(name: str, value: object, integer: bool = False, low: float = 0.0) -> None:
+        if not is_number(value, integer=integer) or not math.isfinite(value) or not value > low:
+            kind = "an int" if integer else "a finite number"
+            raise option_error(value, f"{name}: expected {kind} > {low:g}, got {value!r}", integer=integer)
+
+    positive("scale", scale)
+    positive("max_iter", max_iter, integer=True)
+    positive("tol", tol)
+    if max_points is not None:
+        positive("max_points", max_points, integer=True, low=15)
+    if inlier_threshold is not None:
+        positive("inlier_threshold", inlier_threshold)
+    if not is_number(min_points, integer=True) or min_points < 1:
+        raise option_error(min_points, f"min_points: expected an int >= 1, got {min_points!r}", integer=True)
+    if not (is_number(min_inlier_fraction) and 0.0 <= min_inlier_fraction <= 1.0):
+        raise option_error(min_inlier_fraction,
+                           f"min_inlier_fraction: expected a number in [0, 1], got {min_inlier_fraction!r}")
+    return (float(scale), float(tol), None if inlier_threshold is None else float(inlier_threshold),
+            float(min_inlier_fraction))
 
 
 def check_scale(scale: object) -> None:

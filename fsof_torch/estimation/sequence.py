@@ -51,7 +51,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_bool, check_data_range, check_float_tensor, check_image_range, check_names, option_error
+from .._check import (check_bool, check_data_range, check_float_tensor, check_image_range, check_names, option_error,
+                      scalar)
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
@@ -312,6 +313,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         raise option_error(passes, f"passes: expected 1 or 2, got {passes!r}", integer=True)
     passes = int(passes)
     keep_fits, progress = check_bool(keep_fits, "keep_fits"), check_bool(progress, "progress")
+    attitude_deg, body_rotation_deg = scalar(attitude_deg, "attitude_deg"), scalar(body_rotation_deg, "body_rotation_deg")
     for name, value in (("attitude_deg", attitude_deg), ("body_rotation_deg", body_rotation_deg)):
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value < math.inf):
             raise option_error(value, f"{name}: expected a finite number of degrees > 0 (a standard deviation), "

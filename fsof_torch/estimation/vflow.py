@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from .._check import (check_float_tensor, check_has_values, check_int, check_same_device, check_shape, inference,
-                      is_number, option_error, result_dtype)
+                      is_number, option_error, result_dtype, scalar)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -135,6 +135,7 @@ def _bin_index(fv: Tensor, edges: Tensor) -> Tensor:
 def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
                      max_flow: float | None) -> tuple[Tensor, Tensor]:
     """(lo, hi) as 0-d tensors; defaults from the data in the mask."""
+    min_flow, max_flow = scalar(min_flow, "min_flow"), scalar(max_flow, "max_flow")
     for name, value in (("min_flow", min_flow), ("max_flow", max_flow)):
         if value is not None and not (is_number(value) and abs(float(value)) < float("inf")):
             raise option_error(value, f"{name}: expected a finite number or None, got {value!r}")
@@ -333,6 +334,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
                              ("min_row_pixels", min_row_pixels, 1), ("min_inlier_rows", min_inlier_rows, 3)):
         if not is_number(value, integer=True) or value < low:
             raise option_error(value, f"{name}: expected an integer >= {low}, got {value!r}", integer=True)
+    inlier_threshold, relative_threshold = scalar(inlier_threshold, "inlier_threshold"), scalar(relative_threshold,
+                                                                                                 "relative_threshold")
+    max_false_alarms = scalar(max_false_alarms, "max_false_alarms")
     for name, value in (("inlier_threshold", inlier_threshold), ("relative_threshold", relative_threshold)):
         if not (is_number(value) and 0 <= float(value) < float("inf")):
             raise option_error(value, f"{name}: expected a finite number >= 0, got {value!r}")

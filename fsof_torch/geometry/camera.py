@@ -22,6 +22,7 @@ import torch
 from torch import Tensor
 
 from .._check import (
+    scalar,
     as_batch_param,
     autocast_off,
     existing_file,
@@ -346,7 +347,8 @@ class Camera:
         ``F.interpolate(..., align_corners=False)`` and ``cv2.resize``), so
         ``f_x' = sx f_x`` and ``c_x' = sx (c_x + 0.5) - 0.5``; likewise for y.
         """
-        sy = sx if sy is None else sy
+        sx = scalar(sx, "sx")
+        sy = sx if sy is None else scalar(sy, "sy")
         for name, s in (("sx", sx), ("sy", sy)):
             if isinstance(s, bool) or not isinstance(s, numbers.Real):
                 raise TypeError(f"{name}: expected a number (the resize factor), got {type(s).__name__} {s!r}")

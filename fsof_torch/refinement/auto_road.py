@@ -53,7 +53,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_has_values,
-                      check_shape, check_size, host_path, inference, is_number, option_error, skip_values)
+                      check_shape, check_size, host_path, inference, is_number, option_error, scalar, skip_values)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -180,6 +180,7 @@ def road_seed(camera: Camera, size: tuple[int, int], *, width_m: float = 4.0, de
     """
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    width_m, depth_m = scalar(width_m, "width_m"), scalar(depth_m, "depth_m")
     for name, value in (("width_m", width_m), ("depth_m", depth_m)):
         if not is_number(value) or not (0 < value < math.inf):
             raise option_error(value, f"{name}: expected a finite number of metres > 0, got {value!r}")
@@ -365,11 +366,15 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
 
 # -- the detection ------------------------------------------------------------------------------
 
+_INT_OPTIONS = ("level", "seed_level", "window", "height_window")
+
+
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any], estimated: bool) -> dict[str, int]:
     from .._check import check_data_range, check_image_pair, check_image_range
 
     dims = check_image_pair(image1, image2)
+    options.update({k: scalar(v, k) for k, v in options.items() if k not in _INT_OPTIONS})  # (ints stay ints)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
@@ -419,8 +424,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     v = options["min_coverage"]
     if not is_number(v) or not (0 <= v < 1):
         raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
-    ints = ("level", "seed_level", "window", "height_window")
-    options.update({k: int(v) if k in ints else float(v) for k, v in options.items() if v is not None})
+    options.update({k: int(v) if k in _INT_OPTIONS else float(v) for k, v in options.items() if v is not None})
     return dims
 
 

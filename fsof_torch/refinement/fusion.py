@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
-                      check_size, is_number, known_finite, known_images, option_error, result_dtype, skip_values,
+                      check_size, is_number, known_finite, scalar, known_images, option_error, result_dtype, skip_values,
                       to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.flow_fit import RoadFit
@@ -155,6 +155,7 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    scale = scalar(scale, "scale")
     if not is_number(scale) or not (0 < float(scale) < math.inf):
         raise option_error(scale, f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
     scale = float(scale)  # (a NumPy scalar too, as the refiner takes it)

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, check_shape,
-                      skip_values)
+                      scalar, skip_values)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
@@ -86,9 +86,12 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"road: expected None or 'auto', got {road!r}")
         if pad is not None and not isinstance(pad, InputPadder):
             raise TypeError(f"pad: expected an InputPadder or None, got {type(pad).__name__}")
-        if (not isinstance(image_range, (tuple, list)) or len(image_range) != 2
+        given = image_range
+        if isinstance(image_range, (tuple, list)):
+            image_range = tuple(scalar(v, "image_range") for v in image_range)
+        if (not isinstance(image_range, tuple) or len(image_range) != 2
                 or any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in image_range)):
-            raise TypeError(f"image_range: expected (low, high), two numbers, got {image_range!r}")
+            raise TypeError(f"image_range: expected (low, high), two numbers, got {given!r}")
         lo, hi = (float(v) for v in image_range)
         if not (math.isfinite(lo) and math.isfinite(hi) and hi > lo):
             raise ValueError(f"image_range: expected finite (low, high) with high > low, got {image_range!r}")
