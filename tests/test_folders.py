@@ -140,8 +140,8 @@ def test_one_road_file_for_every_pair(clip, tmp_path):
 
 def test_kitti_flow_pairs_pair_by_name(tmp_path):
     for name in ("000004", "000002"):
-        for t, v in (("10", 1.0), ("11", 2.0)):
-            write_image(tmp_path / f"{name}_{t}.png", torch.full((3, *SIZE), v))
+        for t, v in (("10", 1), ("11", 2)):
+            write_image(tmp_path / f"{name}_{t}.png", torch.full((3, *SIZE), v, dtype=torch.uint8))
     files = sorted(tmp_path.iterdir())
     assert kitti_flow_layout(files)
     assert frame_pairs(files) == [("000002", 0, 1), ("000004", 2, 3)]
@@ -179,7 +179,7 @@ def test_a_clip_with_a_frame_named_like_kitti_stays_a_clip(tmp_path):
     """frame_00 ... frame_10: one name ends in _10, but no pair is complete and not every name is
     a KITTI pair's: a clip of 10 pairs, as it always was."""
     for n in range(11):
-        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), float(n)))
+        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
     images = sorted(tmp_path.iterdir())
     assert not kitti_flow_layout(images)
     ds = ImageFolderDataset(tmp_path)
@@ -208,7 +208,7 @@ def test_a_clip_of_one_name_through_10_and_11_stays_a_clip(tmp_path, frames):
     every frame shares one name: a clip of frames - 1 pairs, not KITTI flow pairs whose other
     frames are refused as orphans."""
     for n in range(frames):
-        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), float(n)))
+        write_image(tmp_path / f"frame_{n:02d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
     images = sorted(tmp_path.iterdir())
     assert not kitti_flow_layout(images)
     ds = ImageFolderDataset(tmp_path)
@@ -229,7 +229,7 @@ def test_frames_numbered_without_padding_pair_by_number(tmp_path):
     from fsof_torch.data.folders import list_images
 
     for n in (0, 5, 10, 15, 20):
-        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), float(n)))
+        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
     assert [p.stem for p in list_images(tmp_path)] == ["0", "5", "10", "15", "20"]
     ds = ImageFolderDataset(tmp_path)
     assert [p.name for p in ds.pairs] == ["0", "5", "10", "15"]
@@ -246,7 +246,7 @@ def test_frames_named_one_text_around_a_number_pair_by_number(tmp_path):
     from fsof_torch.data.folders import list_images
 
     for n in range(12):
-        write_image(tmp_path / f"frame_{n}.png", torch.full((3, *SIZE), float(n)))
+        write_image(tmp_path / f"frame_{n}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
     assert [p.stem for p in list_images(tmp_path)] == [f"frame_{n}" for n in range(12)]
     ds = ImageFolderDataset(tmp_path)
     assert [p.name for p in ds.pairs] == [f"frame_{n}" for n in range(11)]
@@ -271,7 +271,7 @@ def test_frames_of_every_suffix_write_image_writes_are_frames(tmp_path):
     from fsof_torch.io.images import WRITABLE_DTYPES
 
     for k, suffix in enumerate(sorted(WRITABLE_DTYPES)):
-        write_image(tmp_path / f"{k}{suffix}", torch.full((3, *SIZE), float(k)))
+        write_image(tmp_path / f"{k}{suffix}", torch.full((3, *SIZE), k, dtype=torch.uint8))
     assert [p.name for p in list_images(tmp_path)] == [f"{k}{s}" for k, s in enumerate(sorted(WRITABLE_DTYPES))]
     ds = ImageFolderDataset(tmp_path)
     assert [p.name for p in ds.pairs] == [str(k) for k in range(len(WRITABLE_DTYPES) - 1)]
@@ -286,7 +286,7 @@ def test_hidden_files_are_no_frames(tmp_path):
     from fsof_torch.data.folders import list_images
 
     for n in (0, 5, 10):
-        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), float(n)))
+        write_image(tmp_path / f"{n}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
     (tmp_path / "._5.png").write_bytes(b"\x00\x05")
     assert [p.name for p in list_images(tmp_path)] == ["0.png", "5.png", "10.png"]
     assert [p.name for p in ImageFolderDataset(tmp_path).pairs] == ["0", "5"]
@@ -540,7 +540,7 @@ def test_frames_named_by_decimal_timestamps_pair_in_time_order(tmp_path):
 
     times = ["9.900", "9.933", "9.967", "10.000", "10.033"]
     for k, t in enumerate(times):
-        write_image(tmp_path / f"{t}.png", torch.full((3, *SIZE), float(k)))
+        write_image(tmp_path / f"{t}.png", torch.full((3, *SIZE), k, dtype=torch.uint8))
     assert [p.stem for p in list_images(tmp_path)] == times
     ds = ImageFolderDataset(tmp_path)
     assert [p.name for p in ds.pairs] == times[:-1]
