@@ -426,9 +426,12 @@ def test_scaled_needs_numbers():
 
 def test_kitti_calibration_bad_camera_index_and_binary_file(tmp_path):
     (tmp_path / "a.txt").write_text(CAM_TO_CAM)
-    for cam in ("x", 2.0, True, -1):
-        with pytest.raises(ValueError, match=rf"cam: expected 0..3, got {cam!r}"):
+    # Camera.from_kitti(cam=2.0) raised a ValueError: a float, str or bool index is a TypeError
+    for cam, error in (("x", TypeError), (2.0, TypeError), (True, TypeError), (-1, ValueError)):
+        with pytest.raises(error, match=rf"cam: expected 0..3, got {cam!r}"):
             read_kitti_calibration(tmp_path / "a.txt", cam)
+        with pytest.raises(error, match=rf"cam: expected 0..3, got {cam!r}"):
+            Camera.from_kitti(tmp_path / "a.txt", cam=cam)
     (tmp_path / "b.txt").write_bytes(bytes(range(256)))
     with pytest.raises(ValueError, match=r"path: '.*b.txt' is not a text calibration file"):
         read_kitti_calibration(tmp_path / "b.txt")

@@ -94,6 +94,8 @@ def test_step_frame_list_poses_tensor_and_no_calibration(clip):
     frames = sorted((root / "images").iterdir())
     ds = ImageFolderDataset(frames, poses=poses, step=2)
     assert [(p.name, p.frame1, p.frame2) for p in ds.pairs] == [("000000", 0, 2), ("000001", 1, 3)]
+    with pytest.raises(TypeError, match=r"^poses: expected an \(N, 4, 4\) float tensor, got dtype torch.int64$"):
+        ImageFolderDataset(frames, poses=poses.round().long(), step=2)
     item = ds[1]
     assert item["camera"] is None and item["road"] is None and item["flow"] is None
     torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[3]) @ poses[1], rtol=0, atol=1e-12)

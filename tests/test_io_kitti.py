@@ -272,8 +272,9 @@ class TestExceptions:
             read_kitti_calibration(tmp_path / "c.txt")
 
     def test_calibration_writer_camera_index(self, tmp_path):
-        for cam in ("x", 4, 1.0):
-            with pytest.raises(ValueError, match=rf"cam: expected 0..3, got {cam!r}"):
+        # (a wrong type, "x" or 1.0, is a TypeError; a wrong index a ValueError)
+        for cam, error in (("x", TypeError), (4, ValueError), (1.0, TypeError)):
+            with pytest.raises(error, match=rf"cam: expected 0..3, got {cam!r}"):
                 write_kitti_calibration(tmp_path / "c.txt", torch.eye(3), cam=cam)
 
 

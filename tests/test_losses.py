@@ -399,6 +399,12 @@ def test_errors_name_the_argument():
         FreespaceFlowLoss()(flow, road, cam)
     with pytest.raises(ValueError, match="smooth_order: expected 1 or 2"):
         UnsupervisedFlowLoss(smooth_order=3)
+    # a float or bool order is a wrong type (1.0 was taken, True raised a ValueError)
+    for bad in (1.0, True, "2"):
+        with pytest.raises(TypeError, match=f"^smooth_order: expected an int, got {type(bad).__name__} {bad!r}$"):
+            UnsupervisedFlowLoss(smooth_order=bad)
+        with pytest.raises(TypeError, match=f"^order: expected an int, got {type(bad).__name__} {bad!r}$"):
+            smoothness_loss(flow, torch.zeros(1, 3, *flow.shape[-2:]), order=bad)
     # a truthy string or number is no flag: "False" would switch the occlusion mask on
     with pytest.raises(TypeError, match="occlusion: expected True or False, got str 'False'"):
         UnsupervisedFlowLoss(occlusion="False")

@@ -10,6 +10,7 @@ Independent references, written here in NumPy float64:
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -300,7 +301,7 @@ def test_road_motion_forms_and_errors():
     # and the loss's odometry come with options of their own)
     with pytest.raises(ValueError, match=r"odometry\['model'\]: expected one of .*got 'bicycle'"):
         road_motion({"model": "bicycle"})
-    with pytest.raises(ValueError, match=r"motion\['model'\]: expected one of .*got None"):
+    with pytest.raises(TypeError, match=r"motion\['model'\]: expected one of .*got None"):
         road_motion({"model": None}, "motion")
     with pytest.raises(TypeError, match="odometry: expected a dict"):
         road_motion(3.0)
@@ -548,3 +549,15 @@ def test_mirrored_camera_and_motion_give_the_mirrored_road_flow(p, height, model
     assert torch.equal(got_valid, valid.flip(-1))
     expected = flow.flip(-1) * torch.tensor([-1.0, 1.0], dtype=flow.dtype).reshape(1, 2, 1, 1)
     assert torch.allclose(got[got_valid.expand_as(got)], expected[got_valid.expand_as(got)], atol=1e-9, rtol=1e-9)
+
+
+def test_get_road_model_tells_a_wrong_type_from_a_wrong_name():
+    """A model that is no string (3, None) raised the ValueError of an unknown name."""
+    from fsof_torch.geometry.road_models import get_road_model
+
+    for bad in (3, None, ["plane"]):
+        with pytest.raises(TypeError, match=rf"^model: expected one of \('paper', 'plane', .*\), got {re.escape(repr(bad))}$"):
+            get_road_model(bad)
+    with pytest.raises(ValueError, match=r"^model: expected one of .*, got 'planar'$"):
+        get_road_model("planar")
+    assert get_road_model("plane") is get_road_model(get_road_model("plane"))

@@ -330,6 +330,10 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(ValueError, match=r"poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got torch.float32 \(2, 4, 4\)"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4).expand(2, 4, 4))
+    # integer poses (a wrong dtype) raised a ValueError
+    with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
+                                        r"got dtype torch.int64$"):
+        fit_sequence(frames[:3], road, cam, poses=torch.eye(4, dtype=torch.int64).expand(3, 4, 4))
     # (torch's own message, naming nothing, for poses it could not convert)
     with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got list"):

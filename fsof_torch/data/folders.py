@@ -387,7 +387,9 @@ class ImageFolderDataset(Dataset):
 
     def _read_poses(self, poses: str | os.PathLike | Tensor, need: int) -> Tensor:
         if isinstance(poses, Tensor):
-            if poses.dim() != 3 or poses.shape[-2:] != (4, 4) or not poses.is_floating_point():
+            if not poses.is_floating_point():
+                raise TypeError(f"poses: expected an (N, 4, 4) float tensor, got dtype {poses.dtype}")
+            if poses.dim() != 3 or poses.shape[-2:] != (4, 4):
                 raise ValueError(f"poses: expected an (N, 4, 4) float tensor, got {tuple(poses.shape)} {poses.dtype}")
             check_has_values(poses, "poses", "to pair frames")
             # a copy in float64, checked as a poses file is: finite, last row 0 0 0 1, rotation blocks

@@ -344,7 +344,10 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                             f"{type(poses).__name__} ({err})") from None
-        if poses.shape != (N + 1, 4, 4) or not poses.is_floating_point():
+        if not poses.is_floating_point():
+            raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got dtype "
+                            f"{poses.dtype}")
+        if poses.shape != (N + 1, 4, 4):
             raise ValueError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                              f"{poses.dtype} {tuple(poses.shape)}")
         if not bool(torch.isfinite(poses).all()):

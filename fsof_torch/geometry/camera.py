@@ -22,7 +22,6 @@ import torch
 from torch import Tensor
 
 from .._check import (
-    scalar,
     as_batch_param,
     autocast_off,
     existing_file,
@@ -32,7 +31,9 @@ from .._check import (
     check_same_device,
     check_positive,
     resolve_batch,
+    option_error,
     result_dtype,
+    scalar,
     skip_values,
 )
 
@@ -535,7 +536,7 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
 def check_camera_index(cam: object, name: str = "cam") -> int:
     """A KITTI camera index: an int 0..3 (0/1 grey, 2/3 colour)."""
     if isinstance(cam, bool) or not isinstance(cam, numbers.Integral) or not 0 <= int(cam) <= 3:
-        raise ValueError(f"{name}: expected 0..3, got {cam!r} (the KITTI camera index)")
+        raise option_error(cam, f"{name}: expected 0..3, got {cam!r} (the KITTI camera index)", integer=True)
     return int(cam)
 
 

@@ -59,20 +59,9 @@ from .._check import (autocast_off, as_batch_param, check_all_finite, check_floa
 from .camera import Camera, check_camera
 from .egomotion import as_pose_4x4
 
-__all__ = [
-    "RoadModel",
-    "ROAD_MODELS",
-    "get_road_model",
-    "road_homography",
-    "road_motion",
-    "is_planar_odometry",
-    "homography_values",
-    "pack_params",
-    "unpack_params",
-    "rotation_angles",
-    "plane_from_pose",
-    "plane_from_homography",
-]
+__all__ = ["RoadModel", "ROAD_MODELS", "get_road_model", "road_homography", "road_motion", "is_planar_odometry",
+           "homography_values", "pack_params", "unpack_params", "rotation_angles", "plane_from_pose",
+           "plane_from_homography"]
 
 
 # -- rotations about the vehicle's axes, as constant bases -------------------------------------
@@ -410,7 +399,8 @@ def get_road_model(model: str | RoadModel, name: str = "model") -> RoadModel:
     if isinstance(model, RoadModel):
         return model
     if not isinstance(model, str) or model not in ROAD_MODELS:
-        raise ValueError(f"{name}: expected one of {tuple(ROAD_MODELS)}, got {model!r}")
+        raise (ValueError if isinstance(model, str) else TypeError)(
+            f"{name}: expected one of {tuple(ROAD_MODELS)}, got {model!r}")
     return ROAD_MODELS[model]
 
 

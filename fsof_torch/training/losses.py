@@ -339,7 +339,7 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
         naming ``flow``.
     """
     _check_reduction(reduction)
-    if order not in (1, 2) or isinstance(order, bool):
+    if check_int(order, "order") not in (1, 2):  # (a TypeError for 1.0 or True)
         raise ValueError(f"order: expected 1 or 2, got {order!r}")
     _check_weights(edge_weight=edge_weight)
     data_range = check_data_range(data_range)
@@ -404,7 +404,7 @@ def unsupervised_flow_loss(flows: Tensor | Sequence[Tensor], image1: Tensor, ima
         freespace term does.
     """
     _check_reduction(reduction)
-    if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
+    if check_int(smooth_order, "smooth_order") not in (1, 2):
         raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
     _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
                    smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
@@ -637,7 +637,7 @@ class UnsupervisedFlowLoss(nn.Module):
         super().__init__()
         _check_reduction(reduction)
         gamma = _check_gamma(gamma)
-        if smooth_order not in (1, 2) or isinstance(smooth_order, bool):
+        if check_int(smooth_order, "smooth_order") not in (1, 2):
             raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
         _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
                        smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
