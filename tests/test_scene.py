@@ -248,6 +248,20 @@ def test_collate(batch):
     assert out["index"] == list(range(batch))
 
 
+def test_collate_errors_name_its_argument_pairs():
+    """fs.collate's errors named ``samples``, the argument of the items' collate it calls; a
+    string or number was a ValueError."""
+    a, b = render_sequence("cvc-simple", 2, size=(48, 80))
+    with pytest.raises(ValueError, match=r"^pairs: item 1 has different keys from item 0 \(differing: \['depth'\]\)$"):
+        collate([a, {k: v for k, v in b.items() if k != "depth"}])
+    with pytest.raises(ValueError, match=r"^pairs: 'image1' has different shapes"):
+        collate([a, {**b, "image1": b["image1"][:, :24]}])
+    with pytest.raises(TypeError, match=r"^pairs: expected a non-empty list of dicts, got str$"):
+        collate("pairs")
+    with pytest.raises(TypeError, match=r"^pairs: item 1 is a int, expected a dict$"):
+        collate([a, 3])
+
+
 def test_size_scales_intrinsics():
     pair = render_pair("cvc-simple", 0, size=(75, 414))
     ref = Camera(torch.tensor(KITTI_K, dtype=torch.float64), 1.5).scaled(414 / KITTI_SIZE[1], 75 / KITTI_SIZE[0])

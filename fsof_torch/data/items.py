@@ -225,22 +225,22 @@ def _holds_numbers(d: Mapping[str, Any]) -> bool:
     return all(isinstance(x, numbers.Real) for x in d.values())
 
 
-def _check_samples(samples: object) -> list[str]:
+def _check_samples(samples: object, name: str) -> list[str]:
     """``samples`` a non-empty list or tuple of dicts with the same keys, each key of the same kind
     (a dict of numbers in every item or in none, with the same keys) in every item where it is not
     None, every Camera of batch 1: the keys."""
     if not isinstance(samples, (list, tuple)):
-        raise TypeError(f"samples: expected a non-empty list of dicts, got {type(samples).__name__}")
+        raise TypeError(f"{name}: expected a non-empty list of dicts, got {type(samples).__name__}")
     if not samples:
-        raise ValueError("samples: expected a non-empty list of dicts, got an empty one")
+        raise ValueError(f"{name}: expected a non-empty list of dicts, got an empty one")
     for i, s in enumerate(samples):
         if not isinstance(s, Mapping):
-            raise TypeError(f"samples: item {i} is a {type(s).__name__}, expected a dict")
+            raise TypeError(f"{name}: item {i} is a {type(s).__name__}, expected a dict")
     keys = list(samples[0].keys())
     for i, s in enumerate(samples[1:], 1):
         if set(s.keys()) != set(keys):
             diff = sorted(set(s.keys()) ^ set(keys))
-            raise ValueError(f"samples: item {i} has different keys from item 0 (differing: {diff})")
+            raise ValueError(f"{name}: item {i} has different keys from item 0 (differing: {diff})")
     for key in keys:
         given = [(i, s[key]) for i, s in enumerate(samples) if s[key] is not None]
         if not given:
@@ -248,27 +248,27 @@ def _check_samples(samples: object) -> list[str]:
         i0, first = given[0]
         for i, v in given:
             if isinstance(v, Camera) and v.batch_size != 1:
-                raise ValueError(f"samples: {key!r} of item {i} is a Camera of batch {v.batch_size}; expected batch 1 "
+                raise ValueError(f"{name}: {key!r} of item {i} is a Camera of batch {v.batch_size}; expected batch 1 "
                                  f"(an item holds one pair)")
         for i, v in given[1:]:
             if isinstance(v, Mapping) and isinstance(first, Mapping):
                 if set(v) != set(first):
-                    raise ValueError(f"samples: {key!r} of item {i} has keys {sorted(v)}, but {sorted(first)} "
+                    raise ValueError(f"{name}: {key!r} of item {i} has keys {sorted(v)}, but {sorted(first)} "
                                      f"in item {i0}")
                 if _holds_numbers(v) != _holds_numbers(first):
                     # each item's dict is judged alike: item 0 alone must not decide how the others batch
                     (j, other), (k, _) = ((i, v), (i0, first)) if _holds_numbers(first) else ((i0, first), (i, v))
                     bad = {name: x for name, x in other.items() if not isinstance(x, numbers.Real)}
-                    raise TypeError(f"samples: {key!r} of item {j} has values that are not numbers {bad!r}, but "
+                    raise TypeError(f"{name}: {key!r} of item {j} has values that are not numbers {bad!r}, but "
                                     f"numbers only in item {k} (a dict of numbers in every item becomes (B,) "
                                     f"tensors, another dict in every item a list)")
             elif _kind(v) != _kind(first):
-                raise TypeError(f"samples: {key!r} of item {i} is a {type(v).__name__}, but a {type(first).__name__} "
+                raise TypeError(f"{name}: {key!r} of item {i} is a {type(v).__name__}, but a {type(first).__name__} "
                                 f"in item {i0} (a key holds tensors, Cameras, dicts or other values in every item)")
     return keys
 
 
-def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
+def collate(samples: Sequence[Mapping[str, Any]], *, name: str = "samples") -> dict[str, Any]:
     """Batch a list of dataset items (for ``DataLoader(..., collate_fn=collate)``).
 
     Tensors -> stacked (B, ...); Camera -> one Camera of batch B (dtype promoted, as
@@ -279,9 +279,10 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
     the same keys; a key None in one item must be None in all, and a key must hold the same kind of
     value in every item: tensors of one shape, dtype and device (no promotion), Cameras of batch 1,
     dicts with the same keys that hold only numbers in every item or in none, or other values (a
-    ValueError or TypeError naming the key and the item otherwise).
+    ValueError or TypeError naming the key and the item otherwise). The errors start with ``name``,
+    the argument's name where a wrapper takes the items (:func:`fsof_torch.scene.collate`: ``pairs``).
     """
-    keys = _check_samples(samples)
+    keys = _check_samples(samples, name)
     cams = [s[k] for s in samples for k in keys if isinstance(s[k], Camera)]
     float_dtype = functools.reduce(torch.promote_types, [c.dtype for c in cams]) if cams else torch.float64
     batch: dict[str, Any] = {}
@@ -292,19 +293,19 @@ def collate(samples: Sequence[Mapping[str, Any]]) -> dict[str, Any]:
             batch[key] = None
             continue
         if any(absent):
-            raise ValueError(f"samples: {key!r} is None in item {absent.index(True)} but not in item "
+            raise ValueError(f"{name}: {key!r} is None in item {absent.index(True)} but not in item "
                              f"{absent.index(False)}; batch items that have the same data")
         first = values[0]
         if isinstance(first, Tensor):
             shapes = {tuple(v.shape) for v in values}
             if len(shapes) > 1:
-                raise ValueError(f"samples: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
+                raise ValueError(f"{name}: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
                                  f"or images of one size")
             # torch.stack would promote dtypes (a bool mask beside a uint8 one becomes uint8) without a word
             for what in ("dtype", "device"):
                 odd = next((i for i, v in enumerate(values) if getattr(v, what) != getattr(first, what)), None)
                 if odd is not None:
-                    raise ValueError(f"samples: {key!r} has {what} {getattr(first, what)} in item 0 but "
+                    raise ValueError(f"{name}: {key!r} has {what} {getattr(first, what)} in item 0 but "
                                      f"{getattr(values[odd], what)} in item {odd}; batch items of one {what}")
             batch[key] = torch.stack(values)
         elif isinstance(first, Camera):

@@ -276,8 +276,6 @@ def collate(pairs: list[dict[str, Any]]) -> dict[str, Any]:
     The rules of :func:`fsof_torch.datasets.collate`, so rendered pairs and pairs read from disk
     batch alike.
     """
-    if not isinstance(pairs, (list, tuple)) or not pairs:
-        raise ValueError(f"pairs: expected a non-empty list of rendered pairs, got {type(pairs).__name__}")
     from ..items import collate as collate_items
 
-    return collate_items(pairs)
+    return collate_items(pairs, name="pairs")  # (its errors name this argument)
