@@ -414,6 +414,27 @@ def test_feature_velocity_noise_free_recovery():
     assert set(fit.velocity()) == {"speed", "steering", "wheelbase"}
 
 
+def test_velocity_steering_reads_the_speed_variance_by_name(monkeypatch):
+    """fit_velocity told a moving car from one at rest by the covariance at [0, 0], the speed's
+    only while the velocity model lists speed first: it reads the speed's entry by its name."""
+    import dataclasses
+
+    from fsof_torch.geometry.road_models import ROAD_MODELS
+
+    cam = small_camera()
+    flow, valid = velocity_flow(cam, 12.0, 0.05, 2.7, SIZE)
+    real = fit_velocity(flow, road_mask(valid), cam, 2.7)
+    # the same fit as a model listing yaw_rate first would give it: a yaw rate known to ±1000 rad/s,
+    # the speed exactly (a speed told from rest, so a steering angle)
+    swapped = dataclasses.replace(ROAD_MODELS["velocity"], params=("yaw_rate", "speed", "roll", "pitch"))
+    cov = torch.zeros(1, 4, 4, dtype=torch.float64)
+    cov[0, 0, 0] = 1e6
+    monkeypatch.setitem(ROAD_MODELS, "velocity", swapped)
+    monkeypatch.setattr(fit_module, "fit_road", lambda *a, **k: dataclasses.replace(real, covariance=cov, extras={}))
+    fit = fit_velocity(flow, road_mask(valid), cam, 2.7)
+    assert abs(float(fit.steering) - 0.05) <= 1e-6
+
+
 def test_feature_velocity_batch_and_outliers():
     cam = small_camera()
     speed = torch.tensor([8.0, 15.0, 3.0], dtype=torch.float64)
