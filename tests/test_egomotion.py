@@ -9,7 +9,8 @@ import pytest
 import torch
 
 from fsof_torch.geometry.camera import Camera
-from fsof_torch.geometry.egomotion import EgoMotion, ego_motion_from_ackermann, ego_motion_from_pose, relative_pose
+from fsof_torch.geometry.egomotion import (EgoMotion, check_pose_steps, ego_motion_from_ackermann, ego_motion_from_pose,
+                                          relative_pose)
 from fsof_torch.geometry.road_flow import displacement_flow
 
 
@@ -374,3 +375,30 @@ def test_kitti_text_poses_pass_the_rigid_check(shared_data):
         rel = relative_pose(Pd[:-1], Pd[1:])
         ego = ego_motion_from_pose(rel)
         assert torch.isfinite(ego.z_d).all() and (ego.z_d > 0.5).all()
+
+
+def _poses_along_z(steps_m) -> torch.Tensor:
+    P = torch.eye(4, dtype=torch.float64).repeat(len(steps_m) + 1, 1, 1)
+    P[1:, 2, 3] = torch.tensor(steps_m, dtype=torch.float64).cumsum(0)
+    return P
+
+
+def test_pose_steps_beyond_a_road_vehicle_are_named(shared_data):
+    """Poses in millimetres gave motions of a kilometre a frame, which the refiner left unchanged
+    with its generic warning: a step beyond 100 m (100 m/s for 1 s) names the poses and the frames."""
+    from fsof_torch.io import read_kitti_poses
+
+    P = read_kitti_poses(shared_data / "kitti_odometry_straight" / "poses.txt")
+    check_pose_steps(P)  # metres: about 1.2 m a frame
+    mm = P.clone()
+    mm[:, :3, 3] *= 1000
+    with pytest.raises(ValueError, match=r"^poses: pose 0 and pose 1 lie 1199 m apart, farther than a road vehicle "
+                                         r"travels between them \(100 m: 100 m/s for 1 s.*millimetres"):
+        check_pose_steps(mm)
+    check_pose_steps(_poses_along_z([1.0, 99.0, 2.0]))  # (fast, but a road vehicle's)
+    with pytest.raises(ValueError, match=r"^clip: b and c lie 150 m apart"):
+        check_pose_steps(_poses_along_z([1.0, 150.0]), "clip", labels=["a", "b", "c"])
+    # frames missing between two poses: as many frames' travel
+    check_pose_steps(_poses_along_z([1.0, 150.0]), frames_apart=[1, 2])
+    with pytest.raises(ValueError, match=r"^poses: pose 1 and pose 2 lie 250 m apart, .* \(200 m: 100 m/s for 2 s"):
+        check_pose_steps(_poses_along_z([1.0, 250.0]), frames_apart=[1, 2])

@@ -96,6 +96,19 @@ def test_step_frame_list_poses_tensor_and_no_calibration(clip):
     assert [(p.name, p.frame1, p.frame2) for p in ds.pairs] == [("000000", 0, 2), ("000001", 1, 3)]
     with pytest.raises(TypeError, match=r"^poses: expected an \(N, 4, 4\) float tensor, got dtype torch.int64$"):
         ImageFolderDataset(frames, poses=poses.round().long(), step=2)
+    # poses in millimetres: named with the two frames, not left to the refiner's generic warning
+    mm = poses.clone()
+    mm[:, :3, 3] *= 1000
+    with pytest.raises(ValueError, match=r"^poses: the pose of 000000.png and the pose of 000001.png lie 1000 m apart, "
+                                         r"farther than a road vehicle travels .*millimetres"):
+        ImageFolderDataset(frames, poses=mm)
+    write_kitti_poses(root / "poses_mm.txt", mm)
+    with pytest.raises(ValueError, match=r"^poses: the pose of 000000.png and the pose of 000001.png lie 1000 m"):
+        ImageFolderDataset(root / "images", poses=root / "poses_mm.txt")
+    # frames 0 and 3 (1 and 2 missing): 270 m is within a road vehicle's travel over three frames (300 m)
+    far = poses[[0, 3]].clone()
+    far[1, :3, 3] *= 90
+    assert ImageFolderDataset([frames[0], frames[3]], poses=far).poses.shape == (2, 4, 4)
     item = ds[1]
     assert item["camera"] is None and item["road"] is None and item["flow"] is None
     torch.testing.assert_close(item["relative_pose"], torch.linalg.inv(poses[3]) @ poses[1], rtol=0, atol=1e-12)

@@ -334,6 +334,12 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                         r"got dtype torch.int64$"):
         fit_sequence(frames[:3], road, cam, poses=torch.eye(4, dtype=torch.int64).expand(3, 4, 4))
+    # poses in millimetres (1.2 m a frame read as 1200 m), named before any fit
+    mm = torch.eye(4).repeat(3, 1, 1)
+    mm[:, 2, 3] = torch.tensor([0.0, 1200.0, 2400.0])
+    with pytest.raises(ValueError, match=r"^poses: the pose of frames\[0\] and the pose of frames\[1\] lie 1200 m "
+                                         r"apart, farther than a road vehicle travels .*millimetres"):
+        fit_sequence(frames[:3], road, cam, poses=mm)
     # (torch's own message, naming nothing, for poses it could not convert)
     with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got list"):

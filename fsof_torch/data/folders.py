@@ -43,9 +43,9 @@ from torch.utils.data import Dataset
 
 from .._check import check_has_values, check_int, check_number, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
-from ..geometry.egomotion import ego_motion_from_pose, relative_pose
+from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import check_frame_names, in_frame_order, read_image
+from ..io.images import check_frame_names, frame_numbers, in_frame_order, read_image
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
@@ -298,7 +298,10 @@ class ImageFolderDataset(Dataset):
         poses: camera-to-world poses, one per frame in order: a KITTI poses file of exactly one line
             per frame (line i for frame i in sorted order), or an (N, 4, 4) float tensor (N at least
             the frames; copied, and checked as a file is: finite, last row 0 0 0 1, each 3×3 block a
-            rotation, else a ValueError naming ``poses`` and the pose). Items then carry
+            rotation, else a ValueError naming ``poses`` and the pose), in metres: two consecutive
+            frames' poses farther apart than a road vehicle travels between them (100 m a frame,
+            :func:`~fsof_torch.geometry.egomotion.check_pose_steps`; poses in millimetres) are a
+            ValueError naming ``poses`` and the frames. Items then carry
             ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
             mounting (``roll``, ``pitch``; with ``calib=None`` too) and ``pose_residual``.
         road: a folder of masks matched by name, or one mask file for every pair: a PNG of the
@@ -412,6 +415,10 @@ class ImageFolderDataset(Dataset):
             raise ValueError(f"poses: {where} has {P.shape[0]} poses for {len(self.frames)} images: one line "
                              f"per image, line i for image i in sorted order, so a poses file of a longer "
                              f"sequence (KITTI: line n for frame n) must be cut to these frames")
+        n = min(P.shape[0], len(self.frames))
+        numbers = frame_numbers(f.stem for f in self.frames[:n])  # (frames missing between two: a longer step)
+        check_pose_steps(P[:n], "poses", labels=[f"the pose of {f.name}" for f in self.frames[:n]],
+                         frames_apart=None if numbers is None else [b - a for a, b in zip(numbers, numbers[1:])])
         return P
 
     def _check_calibrated_size(self, image: Path) -> None:

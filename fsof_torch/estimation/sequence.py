@@ -54,6 +54,7 @@ from torch import Tensor
 from .._check import (check_bool, check_data_range, check_float_tensor, check_image_range, check_names, option_error,
                       scalar)
 from ..geometry.camera import Camera
+from ..geometry.egomotion import check_pose_steps
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
 from .image_fit import DEG, calibration_prior, check_image_fit_options, fit_image
@@ -277,9 +278,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
-        poses: optional (N + 1, 4, 4) camera-to-world poses: their translations (metres) give the
-            metric scale, hence the camera height (the images give d / h only); a height more than
-            10 times the camera's, or under a tenth of it, is a ValueError (poses in other units).
+        poses: optional (N + 1, 4, 4) camera-to-world poses in metres: their translations give the
+            metric scale, hence the camera height (the images give d / h only). Consecutive poses
+            farther apart than a road vehicle travels between two frames (100 m; poses in
+            millimetres) are a ValueError naming ``poses`` and the frames, and so is a height more
+            than 10 times the camera's, or under a tenth of it (poses in other units).
         flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar
             motion (a sequence read like ``frames``).
         passes: 1 (per-pair fits only; with poses, their translations and cameras rescaled to the
@@ -352,6 +355,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                              f"{poses.dtype} {tuple(poses.shape)}")
         if not bool(torch.isfinite(poses).all()):
             raise ValueError("poses: expected finite values, got NaN or inf")
+        check_pose_steps(poses, "poses", labels=[f"the pose of frames[{k}]" for k in range(N + 1)])
     if flows is not None and len(flows) != N:
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
     # (the values too, before any frame is read)

@@ -17,7 +17,13 @@ from .._check import (as_batch_param, autocast_off, check_finite, check_positive
                       result_dtype, skip_values, tracing)
 from .camera import Camera
 
-__all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4"]
+__all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4",
+           "check_pose_steps", "MAX_ROAD_SPEED", "MAX_FRAME_INTERVAL"]
+
+#: the fastest a road vehicle moves, m/s (360 km/h: beyond any road car's top speed)
+MAX_ROAD_SPEED = 100.0
+#: the longest time between two consecutive frames of a video, s (one frame a second)
+MAX_FRAME_INTERVAL = 1.0
 
 
 class EgoMotion(NamedTuple):
@@ -200,3 +206,30 @@ def ego_motion_from_ackermann(speed: Tensor | float, steering: Tensor | float,
     z_d = arc * sine - a * yaw * versine
     zero = torch.zeros_like(yaw)
     return EgoMotion(x_d, z_d, yaw, zero, torch.zeros(*yaw.shape, 3, dtype=yaw.dtype, device=yaw.device))
+
+
+def check_pose_steps(poses: Tensor, name: str = "poses", *, labels: list[str] | None = None,
+                     frames_apart: list[int] | None = None) -> None:
+    """Raise a ValueError naming ``name`` where two consecutive camera-to-world poses (N, 4, 4)
+    lie farther apart than a road vehicle travels between two frames of a video
+    (:data:`MAX_ROAD_SPEED` for :data:`MAX_FRAME_INTERVAL`: 100 m; ``frames_apart[i]`` times that
+    between poses i and i + 1 where frames are missing between them).
+
+    Such poses are in other units than metres, most likely millimetres (a car at 10 m/s and 10 Hz
+    then moves 1000 "metres" a frame), or hold a jump; such a motion leaves the road's flow
+    undefined in most of the image, so the refiner would leave the pairs unchanged with no word of why.
+    ``labels[i]`` names pose i in the message (default ``"pose i"``)."""
+    if poses.shape[0] < 2:
+        return
+    t = poses.detach().to("cpu", torch.float64)[:, :3, 3]
+    steps = (t[1:] - t[:-1]).norm(dim=-1)
+    apart = torch.ones_like(steps) if frames_apart is None else torch.tensor(frames_apart, dtype=torch.float64)
+    far = (steps > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL * apart.clamp_min(1)).nonzero().flatten()
+    if far.numel():
+        i = int(far[0])
+        a, b = (labels[k] if labels is not None else f"pose {k}" for k in (i, i + 1))
+        seconds = MAX_FRAME_INTERVAL * max(float(apart[i]), 1.0)
+        raise ValueError(f"{name}: {a} and {b} lie {float(steps[i]):.4g} m apart, farther than a road vehicle "
+                         f"travels between them ({MAX_ROAD_SPEED * seconds:g} m: {MAX_ROAD_SPEED:g} m/s for "
+                         f"{seconds:g} s, video at one frame a second or more); are the poses in millimetres? "
+                         f"Poses are in metres (as KITTI's)")
