@@ -417,11 +417,11 @@ def test_poses_that_give_the_clip_no_scale_stop_under_poses(tmp_path, user_folde
     write_kitti_poses(tmp_path / "half.txt", P[[0, 0, 2]])  # the first pair stands still: the median step is 0
     err = _err(capsys, [*args, "--poses", str(tmp_path / "half.txt"), "--odometry", "sequence"])
     assert err.startswith("error: --poses: their translations give no scale"), err
-    mm = P.clone()  # poses in millimetres: a camera 1000 times as high
-    mm[:, :3, 3] *= 1000
-    write_kitti_poses(tmp_path / "mm.txt", mm)
-    err = _err(capsys, [*args, "--poses", str(tmp_path / "mm.txt"), "--odometry", "sequence"])
-    assert re.match(r"error: --poses: their translations give a camera height of \d+(\.\d+)? m, 1(\.\d+)?e\+03 times "
+    far = P.clone()  # poses in other units: a camera 30 times as high (millimetres stop at the steps)
+    far[:, :3, 3] *= 30
+    write_kitti_poses(tmp_path / "far.txt", far)
+    err = _err(capsys, [*args, "--poses", str(tmp_path / "far.txt"), "--odometry", "sequence"])
+    assert re.match(r"error: --poses: their translations give a camera height of \d+(\.\d+)? m, \d+(\.\d+)? times "
                     r"the camera's 1\.65 m", err), err
     assert main([*args, "--poses", str(user_folder / "poses.txt"), "--odometry", "sequence"]) == 0
     assert "height_m" in json.loads((out / "report.json").read_text())["calibrated_mounting"]

@@ -562,12 +562,17 @@ def test_fit_sequence_refuses_poses_whose_height_is_not_in_metres(body_motion_cl
     in those units, reported as calibrated: a height more than 10 times the camera's either way is
     no metric scale, and stops the fit naming ``poses``."""
     pairs, frames, poses = body_motion_clip
-    for scale, shown in ((1000.0, r"16\d\d\.\d+ m, 1e\+03 times"), (1e-3, r"0\.0016\d+ m, 0\.001 times")):
+    # (in millimetres the steps stop it first: more than a vehicle travels between two frames)
+    for scale, shown in ((30.0, r"\d+\.\d+ m, \d+(\.\d+)? times"), (1e-3, r"0\.0016\d+ m, 0\.001 times")):
         wrong = poses[:3].clone()
         wrong[:, :3, 3] *= scale
         with pytest.raises(ValueError, match=rf"^poses: their translations give a camera height of {shown} the "
                                              r"camera's 1\.65 m \(more than 10 times either way\)"):
             fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=wrong, passes=1, max_points=500)
+    wrong = poses[:3].clone()
+    wrong[:, :3, 3] *= 1000.0
+    with pytest.raises(ValueError, match=r"^poses: the pose of frames\[0\] and the pose of frames\[1\] lie .*millimetres"):
+        fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=wrong, passes=1, max_points=500)
 
 
 def test_fit_sequence_carries_no_motion_prior_out_of_a_pair_that_did_not_move(body_motion_clip):

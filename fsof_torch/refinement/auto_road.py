@@ -52,8 +52,9 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_float_tensor, check_has_values,
-                      check_shape, check_size, host_path, inference, is_number, option_error, scalar, skip_values)
+from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_data_range, check_float_tensor,
+                      check_has_values, check_image_pair, check_image_range, check_shape, check_size, host_path,
+                      inference, is_number, option_error, scalar, skip_values)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -371,8 +372,6 @@ _INT_OPTIONS = ("level", "seed_level", "window", "height_window")
 
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any], estimated: bool) -> dict[str, int]:
-    from .._check import check_data_range, check_image_pair, check_image_range
-
     dims = check_image_pair(image1, image2)
     options.update({k: scalar(v, k) for k, v in options.items() if k not in _INT_OPTIONS})  # (ints stay ints)
     if not isinstance(camera, Camera):
@@ -383,8 +382,9 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         check_float_tensor(flow, "flow")
         check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
     data_range = check_data_range(data_range)
-    check_image_range(image1, "image1", data_range)
-    check_image_range(image2, "image2", data_range)
+    for name, t in (("image1", image1), ("image2", image2)):  # (the road is found in their values)
+        check_has_values(t, name, "to find the road in (the detection reads the images, also with a motion given)")
+        check_image_range(t, name, data_range)
     if min(dims["H"], dims["W"]) < 16:
         raise ValueError(f"image1: expected images of at least 16x16 pixels (the evidence's windows), got shape "
                          f"{tuple(image1.shape)}")
@@ -511,8 +511,6 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
                    min_coverage=min_coverage)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
-    for name, t in (("image1", image1), ("image2", image2)):  # (the road is found in their values)
-        check_has_values(t, name, "to find the road in (the detection reads the images, also with a motion given)")
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
      z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
     edges, refit, warn = check_bool(edges, "edges"), check_bool(refit, "refit"), check_bool(warn, "warn")

@@ -463,10 +463,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if (isinstance(fit_flow, Tensor) and tuple(fit_flow.shape) == (n_fit, 2, H, W)
             and isinstance(fit_valid, Tensor) and tuple(fit_valid.shape) == (n_fit, 1, H, W)
             and not _needs_grad(cam_model) and not (torch.is_grad_enabled() and any(v.requires_grad for v in odo.values()))):
-        # The estimate evaluated this very model flow at the finest size (same parameters): reuse it
-        # (not when the camera or the odometry carries a graph: the model flow must then be
-        # differentiable in it). Samples it lacks, or given the odometry alone, are evaluated, so a
-        # sample's model flow is the same whatever the others' (a custom result's: computed).
+        # The estimate evaluated this very model flow at the finest size: reuse it (not where the camera or
+        # odometry carries a graph, which the model flow must then keep). Samples it lacks, or given the odometry
+        # alone, are evaluated: a sample's model flow is the same whatever the others' (a custom result's: computed).
         f_fit, v_fit = fit_flow.to(device=device, dtype=geo_dtype), fit_valid.to(device)
         if n_fit < B or fit_used is not None:
             use = (torch.zeros_like(refined).index_fill(0, fit_index, True) if fit_used is None else fit_used)
