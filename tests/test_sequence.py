@@ -139,6 +139,25 @@ def test_robust_mean_cuts_at_three_normal_consistent_deviations():
         assert got == pytest.approx(ref, abs=1e-12), far
 
 
+def test_robust_mean_weighs_the_kept_values_by_their_inverse_variance():
+    """With variances, the kept values' mean is Σ x / v / Σ 1 / v (written out here); the cut is
+    the same as without them. A variance of 0 (a held angle) or inf weighs them alike."""
+    from fsof_torch.estimation.sequence import _robust_mean
+
+    x = torch.tensor([0.10, 0.11, 0.12, 0.13, 0.14, 5.0], dtype=torch.float64)
+    var = torch.tensor([1.0, 4.0, 0.25, 1.0, 2.0, 1e-6], dtype=torch.float64)
+    ok = torch.ones(6, dtype=torch.bool)
+    kept, w = x[:5].numpy(), 1 / var[:5].numpy()
+    assert _robust_mean(x, ok, var) == pytest.approx(float((w * kept).sum() / w.sum()), abs=1e-15)
+    for bad in (0.0, math.inf):
+        held = var.clone()
+        held[2] = bad
+        assert _robust_mean(x, ok, held) == pytest.approx(float(kept.mean()), abs=1e-15)
+    ok[0] = False  # (a failed value leaves its variance out too)
+    kept, w = x[1:5].numpy(), 1 / var[1:5].numpy()
+    assert _robust_mean(x, ok, var) == pytest.approx(float((w * kept).sum() / w.sum()), abs=1e-15)
+
+
 def test_robust_mean_of_fewer_than_five_is_their_median():
     """Of 3 or 4 values the median absolute deviation is set by the nearer outer value: pitches of
     1.00, 1.05 and 1.30 degrees (a spread the body's pitching gives) calibrated at the mean of the
@@ -537,6 +556,26 @@ def test_fit_sequence_pairs_that_creep_calibrate_no_attitude():
     assert float((seq.first_pass["pitch"] - float(cam.pitch[0])).abs().max()) > 0.05 * deg
     assert seq.calibrated_from == 0
     assert seq.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
+
+
+def test_fit_sequence_weighs_each_pairs_attitude_by_its_precision():
+    """A clip that drives at 12 m/s, then creeps at 0.3 m/s (3 cm a frame: it moves, and its fits'
+    attitudes are known to a few tenths of a degree rather than a few hundredths). Averaged alike,
+    the creeping pairs drew the mounting 0.3° towards the nominal; weighted by their precision
+    (the inverse of their posterior variance) it is the moving pairs' attitude."""
+    from fsof_torch.estimation.sequence import _robust_mean
+
+    fast = render_sequence("body-motion", 4, seed=0, speed=12.0)
+    slow = render_sequence("body-motion", 4, seed=0, speed=0.3)
+    frames = [p["image1"] for p in fast] + [fast[-1]["image2"]] + [p["image1"] for p in slow] + [slow[-1]["image2"]]
+    cam = fast[0]["camera"]
+    seq = fit_sequence(frames, fast[0]["road"], cam, passes=1, max_points=2000)
+    deg = math.pi / 180
+    truth = float(np.mean([p["plane"]["pitch"] for p in fast]))
+    assert bool(seq.success.all()) and seq.calibrated_from == 9
+    assert abs(_robust_mean(seq.first_pass["pitch"], seq.success) - truth) > 0.2 * deg  # (averaged alike)
+    assert abs(seq.mounting["pitch"] - truth) < 0.1 * deg
+    assert abs(float(cam.pitch[0]) - truth) > 0.8 * deg  # (the nominal: what the creeping pairs lean to)
 
 
 def test_fit_sequence_holds_fixed_attitude_parameters_in_both_passes(body_motion_clip):

@@ -9,8 +9,9 @@ succeeded and moved (a fit that fails under it, or lies more than 3 σ from it, 
 without it: a dropped frame, a repeated one). Then:
 
 1. **Calibration.** The camera's mounting (its roll and pitch over the road) is the robust mean of
-   the per-pair attitudes (of fewer than five, their median): the body's pitching and rolling
-   averages out over a clip. With poses
+   the per-pair attitudes, each weighted by its precision (the inverse of its posterior variance:
+   a pair that moves little shows the attitude less; of fewer than five, their median): the
+   body's pitching and rolling averages out over a clip. With poses
    (metric translations), the camera height follows as well (only d / h is observable from
    images), and the translations returned are in metres at that height. Failed fits calibrate
    nothing, nor do pairs that do not move (a stop: without a translation the road's normal does
@@ -194,9 +195,10 @@ _MIN_REJECT = 5
 _MAX_HEIGHT_FACTOR = 10.0
 
 
-def _robust_mean(x: Tensor, ok: Tensor) -> float:
-    """The mean of the values within 3 median absolute deviations of their median; below
-    ``_MIN_REJECT`` values their median (success only: ``ok`` has at least one)."""
+def _robust_mean(x: Tensor, ok: Tensor, variance: Tensor | None = None) -> float:
+    """The mean of the values within 3 median absolute deviations of their median, weighted by
+    their inverse ``variance`` where given (positive and finite for all of them; else equally);
+    below ``_MIN_REJECT`` values their median (success only: ``ok`` has at least one)."""
     v = x[ok]
     if v.numel() < _MIN_REJECT:
         return float(v.quantile(0.5))
@@ -205,32 +207,34 @@ def _robust_mean(x: Tensor, ok: Tensor) -> float:
     med = v.quantile(0.5)
     mad = (v - med).abs().quantile(0.5).clamp_min(1e-9)
     keep = (v - med).abs() <= 3 * 1.4826 * mad
-    return float(v[keep].mean())
+    var = None if variance is None else variance[ok][keep].double()
+    if var is None or not bool(((var > 0) & torch.isfinite(var)).all()):  # (a held angle: variance 0)
+        return float(v[keep].mean())
+    w = 1.0 / var
+    return float((w * v[keep]).sum() / w.sum())
 
 
 @dataclass
 class _PairRecord:
-    """What a pass keeps of a pair's fit: its parameters ({name: (1,)}), whether it succeeded, and
-    whether its images fixed the attitude (roll and pitch) at least as well as its prior did."""
+    """What a pass keeps of a pair's fit: its parameters ({name: (1,)}), whether it succeeded, the
+    posterior variances of its roll and pitch ({name: float}), and whether its images fixed them
+    at least as well as its prior did."""
 
     params: dict[str, Tensor]
     success: bool
+    variance: dict[str, float] | None = None
     attitude_seen: bool = True
 
 
-def _attitude_seen(fit: RoadFit, prior: dict[str, tuple[Any, Any]]) -> bool:
-    """Whether the images fixed the fit's roll and pitch at least as well as their prior did: a
-    posterior variance at most half the prior's (the images' information at least the prior's).
-    A held angle, or one without a prior, passes."""
-    cov = fit.covariance
-    if cov is None:
-        return True
-    for i, name in enumerate(get_road_model(fit.model).params):  # (the covariance's order)
-        if name in ("roll", "pitch") and name in prior:
-            sigma = float(torch.as_tensor(prior[name][1]).reshape(-1)[0])
-            if not bool((cov[:, i, i] <= 0.5 * sigma * sigma).all()):
-                return False
-    return True
+def _attitude(fit: RoadFit, prior: dict[str, tuple[Any, Any]]) -> tuple[dict[str, float], bool]:
+    """The posterior variances of the fit's roll and pitch (0 where held), and whether the images
+    fixed them at least as well as their prior did: a variance at most half the prior's (the
+    images' information at least the prior's; a held angle, or one without a prior, passes)."""
+    names = get_road_model(fit.model).params  # (the covariance's order)
+    variance = {n: float(fit.covariance[0, names.index(n), names.index(n)]) for n in ("roll", "pitch")}
+    seen = all(variance[n] <= 0.5 * float(torch.as_tensor(prior[n][1]).reshape(-1)[0]) ** 2
+               for n in ("roll", "pitch") if n in prior)
+    return variance, seen
 
 
 def _stack(records: Sequence[_PairRecord]) -> dict[str, Tensor]:
@@ -430,7 +434,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                 if bool(alone.success.all()):
                     fit = alone
             records.append(_PairRecord({n: v.detach() for n, v in fit.params.items()}, bool(fit.success.all()),
-                                       _attitude_seen(fit, prior)))
+                                       *_attitude(fit, prior)))
             if keep:
                 fits.append(fit)
             del image1, road, fit  # none outlives its pair: freed before the next pair is read
@@ -447,7 +451,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     attitude_ok = moving & torch.tensor([r.attitude_seen for r in first])
     calibrated_from = int(attitude_ok.sum())
     if calibrated_from:
-        roll0, pitch0 = _robust_mean(raw["roll"], attitude_ok), _robust_mean(raw["pitch"], attitude_ok)
+        # (weighted by each pair's precision: a pair that moves little shows the attitude less)
+        roll0, pitch0 = (_robust_mean(raw[n], attitude_ok, torch.tensor([r.variance[n] for r in first]))
+                         for n in ("roll", "pitch"))
     else:  # failed or still fits calibrate nothing: the input camera's mounting stays
         roll0, pitch0 = float(camera.roll[0]), float(camera.pitch[0])
     mounting = {"roll": roll0, "pitch": pitch0}
