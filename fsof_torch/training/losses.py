@@ -463,9 +463,12 @@ def _check_no_overflow(total: Tensor, flows: Mapping[str, Sequence[Tensor]], wha
 # -- the freespace term -------------------------------------------------------------------------
 
 def _charbonnier(r: Tensor) -> Tensor:
-    """sqrt(r² + 1) - 1 (kornia's ``charbonnier_loss``), as hypot(r, 1) - 1: r² is never formed,
-    so a residual of 1e20 px in float32 gives a penalty of 1e20 and a gradient of ±1, not inf/NaN."""
-    return torch.hypot(r, torch.ones_like(r)) - 1.0
+    """sqrt(r² + 1) - 1 (kornia's ``charbonnier_loss``) without forming r² (r = 1e20 px in float32:
+    a penalty of 1e20, a gradient of ±1). The value is r (r / (hypot(r, 1) + 1)): hypot(r, 1) - 1
+    cancels (float32: 0 below r = 3e-4 px, 0.6 % off at 1e-3); the gradient is r / hypot(r, 1)."""
+    h = torch.hypot(r, torch.ones_like(r))
+    plain = h - 1.0
+    return plain + (r * (r / (h + 1.0)) - plain).detach()
 
 
 # Below this |r| the Cauchy penalty is log1p(r²/2) (r² fits any float dtype; precise near 0);
@@ -482,11 +485,7 @@ def _cauchy(r: Tensor) -> Tensor:
                        2.0 * torch.log(torch.hypot(r_large * math.sqrt(0.5), torch.ones_like(r))))
 
 
-def _l1(r: Tensor) -> Tensor:
-    return r.abs()
-
-
-_PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": _l1}
+_PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": torch.abs}
 
 
 def _check_scale(scale: object) -> float:
