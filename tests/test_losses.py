@@ -684,6 +684,37 @@ def test_cauchy_penalty_is_continuous_at_its_switch():
 
 # -- the failures of bad arguments, each named -------------------------------------------------------
 
+def test_a_stack_of_estimates_is_refused_saying_what_to_give():
+    """ptlflow's outputs["flows"] (B, N, 2, H, W) once got "expected shape (B, 2, H, W)" alone; the
+    message says it is a stack. docs/training.md: its [:, -1] with the images flipped to RGB on
+    0..1 is what TinyRAFT's own call gives the terms."""
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    net = PtlflowRAFTStandIn(seed=0, iters=2).eval()
+    image1, image2, _ = _shifted_pair(2, dtype=torch.float32)
+    images = torch.stack([image1, image2], dim=1).flip(2) / 255  # ptlflow's input: BGR on 0..1
+    with torch.no_grad():
+        out = net({"images": images})
+        own = net.net(image1, image2)[-1]
+    stack = out["flows"]
+    assert stack.shape == (2, 1, 2, H, W)
+    cam, odo = _camera(torch.float32), _odometry(2)
+    road = torch.ones(2, 1, H, W, dtype=torch.bool)
+    match = r"flows\[0\]: expected shape \(B, 2, H, W\), got \(2, 1, 2, 48, 80\), a stack .* give flows\[:, -1\]"
+    for call in (lambda f: freespace_flow_loss(f, road, cam, odo), lambda f: unsupervised_flow_loss(f, image1, image2),
+                 lambda f: UnsupervisedFlowLoss()([f], image1, image2)):
+        with pytest.raises(ValueError, match=match):
+            call(stack)
+    with pytest.raises(ValueError, match=r"^flow: expected shape .* a stack"):
+        photometric_loss(image1, image2, stack)
+    i1, i2 = images[:, 0].flip(1), images[:, 1].flip(1)
+    for census in (0.0, 1.0):
+        got = unsupervised_flow_loss(stack[:, -1], i1, i2, census_weight=census, data_range=1.0)
+        want = unsupervised_flow_loss(own, image1, image2, census_weight=census)
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=0)
+    torch.testing.assert_close(freespace_flow_loss(stack[:, -1], road, cam, odo), freespace_flow_loss(own, road, cam, odo))
+
+
 def test_freespace_batch_mismatches_name_the_argument():
     """Once a RuntimeError 'expanded size ...' from inside the model flow."""
     flow = torch.zeros(2, 2, H, W, dtype=torch.float64)

@@ -25,11 +25,11 @@ Non-finite values. Images must be finite everywhere and within [-0.01, 1.01] × 
 (0..``data_range`` with 1% either side for rounding; ValueError naming the image otherwise);
 flows given to the unsupervised loss must be finite (ValueError naming ``flows[i]``), and a loss
 that overflows the working dtype (flows near its largest value) is a ValueError naming the flows
-in either term, never inf. In the
-freespace term, a NaN or inf predicted pixel outside the road mask does not count and gets a zero
-gradient; one inside the mask is left out as well, with a ``RuntimeWarning`` that counts them (a
-network's prediction may diverge at a few pixels; the term must not turn every gradient of the
-batch into NaN). Large finite values give large finite penalties, never squaring the residual.
+in either term, never inf. In the freespace term, a NaN or inf predicted pixel outside the road
+mask does not count and gets a zero gradient; one inside the mask is left out as well, with a
+``RuntimeWarning`` that counts them (a network's prediction may diverge at a few pixels; the term
+must not turn every gradient of the batch into NaN). Large finite values give large finite
+penalties, never squaring the residual.
 
 Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared on 0..1; flow
 (B, 2, H, W) in pixels, channel 0 = u, forward from ``image1`` to ``image2``; backward flow from
@@ -70,17 +70,8 @@ from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 from .composite import CompositeLoss  # (defined there; a name of this module's contract)
 
-__all__ = [
-    "sequence_weights",
-    "forward_backward_mask",
-    "photometric_loss",
-    "smoothness_loss",
-    "unsupervised_flow_loss",
-    "freespace_flow_loss",
-    "UnsupervisedFlowLoss",
-    "FreespaceFlowLoss",
-    "CompositeLoss",
-]
+__all__ = ["sequence_weights", "forward_backward_mask", "photometric_loss", "smoothness_loss", "unsupervised_flow_loss",
+           "freespace_flow_loss", "UnsupervisedFlowLoss", "FreespaceFlowLoss", "CompositeLoss"]
 
 _REDUCTIONS = ("mean", "sum", "none")
 _PENALTIES = ("charbonnier", "cauchy", "l1")
@@ -127,6 +118,9 @@ def _check_fit_options(fit_options: Mapping[str, object] | None) -> dict[str, ob
 
 def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
     check_float_tensor(flow, name)
+    if flow.dim() == 5 and flow.shape[2] == 2:  # (its own message: not a list of estimates)
+        raise ValueError(f"{name}: expected shape (B, 2, H, W), got {tuple(flow.shape)}, a stack (B, N, 2, H, W) as "
+                         f"ptlflow's outputs['flows']: give flows[:, -1], or a list of the N estimates")
     check_shape(flow, name, ("B", 2, "H", "W"), dims, nonempty=("B", "H", "W"))
 
 
