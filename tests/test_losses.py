@@ -360,6 +360,22 @@ def test_composite_bad_inputs_are_named():
         loss(flows, {"flows": 1})
 
 
+def test_composite_refuses_a_term_that_is_not_a_scalar():
+    """A term of reduction="none" gave a (B,) total silently: the scalar terms broadcast to every
+    sample, so a sum of it counted them B times (and backward() raised, naming no term)."""
+    image1, image2, flow = _shifted_pair(3)
+    road = torch.ones(3, 1, H, W, dtype=torch.bool)
+    batch = {"image1": image1, "image2": image2, "road": road, "camera": _camera(), "odometry": _odometry(3)}
+    loss = CompositeLoss({"u": (1.0, UnsupervisedFlowLoss()), "f": (0.1, FreespaceFlowLoss(reduction="none"))})
+    with pytest.raises(ValueError, match=r"^terms\['f'\]: expected a scalar loss, got shape \(3,\) .*reduction='none'"):
+        loss(flow, batch)
+    # one value in a tensor of shape (1,) is a scalar loss, as are sums
+    loss = CompositeLoss({"u": (1.0, lambda flows: flows.sum().reshape(1)),
+                          "f": (0.1, FreespaceFlowLoss(reduction="sum"))})
+    total, values = loss(flow, batch)
+    assert total.numel() == 1 and values["u"].shape == (1,)
+
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_errors_name_the_argument():

@@ -39,7 +39,8 @@ class CompositeLoss(nn.Module):
     term carries a gradient, such as terms that return Python numbers, the total is one that
     ``backward()`` accepts, and no gradient reaches the flows). A TypeError from a
     term's call (an input it needs and was not given, one it does not take) is raised again
-    naming ``terms[name]``.
+    naming ``terms[name]``; a term whose value is not a scalar (one of ``reduction="none"``) is a
+    ValueError naming it.
 
     Example:
         >>> from fsof_torch.training.losses import FreespaceFlowLoss, UnsupervisedFlowLoss
@@ -100,6 +101,9 @@ class CompositeLoss(nn.Module):
             except TypeError as exc:
                 raise TypeError(f"terms[{name!r}]: {exc} (inputs given: {sorted(map(str, given))})") from exc
             value = torch.as_tensor(value)
+            if value.numel() != 1:  # ((B,) would broadcast against the scalar terms: each added B times by a sum)
+                raise ValueError(f"terms[{name!r}]: expected a scalar loss, got shape {tuple(value.shape)} (a term "
+                                 f"built with reduction='none'? CompositeLoss adds scalars: 'mean' or 'sum')")
             values[name] = value.detach()
             if weight:  # a weight-0 term is only reported: 0 * inf would make the total NaN
                 total = total + weight * value
