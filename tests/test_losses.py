@@ -731,6 +731,52 @@ def test_a_stack_of_estimates_is_refused_saying_what_to_give():
     torch.testing.assert_close(freespace_flow_loss(stack[:, -1], road, cam, odo), freespace_flow_loss(own, road, cam, odo))
 
 
+def test_freespace_mean_gives_each_sample_the_weight_one_over_b():
+    """docs/training.md: a sample without road counts 0 in the mean, and the others' terms and
+    gradients are those of each sample alone, divided by B."""
+    cam, odo, model, road = _road_case()
+    g = torch.Generator().manual_seed(3)
+    flows = [(model + torch.randn(3, *model.shape[1:], generator=g)).requires_grad_(True) for _ in range(2)]
+    masks = road.expand(3, -1, -1, -1).clone()
+    masks[1] = False
+    masks[2, ..., : W // 2] = False
+    mean = freespace_flow_loss(flows, masks, cam, odo)
+    grads = torch.autograd.grad(mean, flows)
+    for b in range(3):
+        alone = freespace_flow_loss([f[b:b + 1] for f in flows], masks[b:b + 1], cam, odo)
+        want = torch.autograd.grad(alone, flows, allow_unused=True) if b != 1 else None
+        if b == 1:
+            assert alone.item() == 0.0 and all(gr[1].abs().max() == 0 for gr in grads)
+            continue
+        for got, w in zip(grads, want):
+            torch.testing.assert_close(got[b], w[b] / 3)
+    per_sample = freespace_flow_loss(flows, masks, cam, odo, reduction="none")
+    assert per_sample[1].item() == 0.0
+    torch.testing.assert_close(mean, per_sample.sum() / 3)
+    torch.testing.assert_close(freespace_flow_loss(flows, masks, cam, odo, reduction="sum"), per_sample.sum())
+
+
+def test_freespace_term_at_ptlflows_flow_small_takes_the_padded_camera_scaled():
+    """docs/training.md: flow at 1/8 of the padded grid (the model flow averaged over 8x8 blocks)
+    is the road flow of camera.padded(...).scaled(1/8) to averaging's curvature error; the camera
+    scaled by the unpadded size ratio misses it by ten times that (0.0056 and 0.059 px here)."""
+    from fsof_torch.refinement.contracts import InputPadder
+
+    K = torch.tensor([[180.4, 0.0, 152.4], [0.0, 180.4, 43.2], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cam, (h, w) = Camera(K, 1.65), (94, 310)  # KITTI's camera at a quarter of its size
+    pad = InputPadder(8, mode="sintel").padding((h, w))
+    hp, wp = pad.padded_size((h, w))
+    padded = cam.padded(pad.left, pad.top, pad.right, pad.bottom)
+    full, valid = displacement_flow(padded, 0.0, 1.2, 0.01, (hp, wp))
+    small = torch.nn.functional.avg_pool2d(full, 8) / 8
+    road = valid & (torch.arange(hp)[:, None] > 60)
+    road_small = ~torch.nn.functional.max_pool2d((~road).double(), 8).bool()
+    odo = {"x_d": 0.0, "z_d": 1.2, "yaw": 0.01}
+    right = freespace_flow_loss(small, road_small, padded.scaled(1 / 8), odo, penalty="l1")
+    naive = freespace_flow_loss(small, road_small, cam.scaled(wp / 8 / w, hp / 8 / h), odo, penalty="l1")
+    assert right.item() < 0.01 and naive.item() > 5 * right.item()
+
+
 def test_freespace_batch_mismatches_name_the_argument():
     """Once a RuntimeError 'expanded size ...' from inside the model flow."""
     flow = torch.zeros(2, 2, H, W, dtype=torch.float64)
