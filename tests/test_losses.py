@@ -328,6 +328,20 @@ def test_composite_zero_weight_terms_are_reported_not_summed():
     assert flow.grad is None
 
 
+def test_composite_total_of_zero_weights_needs_no_gradient_where_grad_is_off():
+    """Every weight 0 gave a total with requires_grad=True also under no_grad and inference_mode,
+    unlike any other total there."""
+    flow = torch.ones(1, 2, 4, 4)
+    for weight in (0.0, 1.0):
+        loss = CompositeLoss({"a": (weight, lambda flows: flows.sum())})
+        for off in (torch.no_grad, torch.inference_mode):
+            with off():
+                total, _ = loss(flow)
+            assert not total.requires_grad, (weight, off)
+        assert loss(flow.requires_grad_(True))[0].requires_grad
+        flow = flow.detach()
+
+
 def test_composite_terms_may_return_python_numbers():
     """A float result crashed on .detach()."""
     total, values = CompositeLoss({"a": (2.0, lambda flows: 0.5), "b": (1.0, lambda flows: flows.sum())})(

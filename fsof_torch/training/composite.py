@@ -37,7 +37,7 @@ class CompositeLoss(nn.Module):
     ``inputs``. A term of weight 0 is evaluated and reported but not added, so a diagnostic term
     that returns inf or NaN leaves the total as it is (where every weight is 0, or no weighted
     term carries a gradient, such as terms that return Python numbers, the total is one that
-    ``backward()`` accepts, and no gradient reaches the flows). A TypeError from a
+    ``backward()`` accepts where gradients are on, and no gradient reaches the flows). A TypeError from a
     term's call (an input it needs and was not given, one it does not take) is raised again
     naming ``terms[name]``; a term whose value is not a scalar (one of ``reduction="none"``) is a
     ValueError naming it.
@@ -109,7 +109,7 @@ class CompositeLoss(nn.Module):
                 total = total + weight * value
         if not isinstance(total, Tensor):  # every weight 0: nothing reaches the flows
             dtype = value.dtype if value.is_floating_point() else torch.get_default_dtype()
-            total = torch.zeros((), dtype=dtype, device=value.device, requires_grad=True)
+            total = torch.zeros((), dtype=dtype, device=value.device, requires_grad=torch.is_grad_enabled())
         elif torch.is_grad_enabled() and not total.requires_grad:
             # the weighted terms carry no gradient (Python numbers): a total that backward() still
             # accepts, as with every weight 0
