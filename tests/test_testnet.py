@@ -166,6 +166,31 @@ def test_state_dict_round_trip(tmp_path):
         torch.testing.assert_close(a(image1, image2)[-1], b(image1, image2)[-1], atol=0, rtol=0)
 
 
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16], ids=["bf16", "f16"])
+def test_a_net_held_in_half_precision_looks_up_at_float32_positions(monkeypatch, dtype):
+    """A net held in bfloat16 built its coordinates and accumulated its flow in bfloat16: past 128
+    feature pixels (1024 px) every lookup position was a whole feature pixel (8 px). They are
+    float32, as RAFT's coordinates (and as under autocast); the flows come back in the net's dtype."""
+    import fsof_torch.training.testnet as testnet
+
+    seen = []
+    lookup = testnet._lookup
+
+    def spy(pyramid, coords, radius):
+        far = coords[:, 0, :, 130:]
+        seen.append((coords.dtype, pyramid[0].dtype, float((far - far.round()).abs().amax())))
+        return lookup(pyramid, coords, radius)
+
+    monkeypatch.setattr(testnet, "_lookup", spy)
+    net = TinyRAFT(seed=0, iters=2).to(dtype)
+    image1, image2 = _pair(1, 16, 1088)
+    with torch.no_grad():
+        flows = net(image1.to(dtype), image2.to(dtype))
+    assert [dtypes for *dtypes, _ in seen] == [[torch.float32, torch.float32]] * 2
+    assert seen[1][2] > 0.01  # the second lookup's positions keep the first update's fractions
+    assert [f.dtype for f in flows] == [dtype, dtype]
+
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_rejects_bad_inputs():

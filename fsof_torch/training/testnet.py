@@ -279,13 +279,20 @@ class TinyRAFT(nn.Module):
         x = F.pad(x, pad, mode="replicate")
 
         fmap1, fmap2 = self.fnet(x).chunk(2, dim=0)
+        # Positions and the flow in at least float32, as RAFT's coordinates, also in a net held in
+        # half precision (bfloat16 rounds a position past 128 feature pixels to a whole one, 8 px):
+        # the volume sampled in that dtype (as autocast's grid_sample does), the update block fed
+        # and the flows returned in x's.
+        geo = torch.promote_types(x.dtype, torch.float32)
         pyramid = _correlation_pyramid(fmap1, fmap2, self.corr_levels)
+        if x.dtype != geo:
+            pyramid = [level.to(geo) for level in pyramid]
         hidden, context = self.cnet(x[:B]).split([self.hidden_dim, self.context_dim], dim=1)
         hidden, context = torch.tanh(hidden), F.relu(context)
 
         h, w = fmap1.shape[-2:]
-        ys, xs = torch.meshgrid(torch.arange(h, dtype=x.dtype, device=x.device),
-                                torch.arange(w, dtype=x.dtype, device=x.device), indexing="ij")
+        ys, xs = torch.meshgrid(torch.arange(h, dtype=geo, device=x.device),
+                                torch.arange(w, dtype=geo, device=x.device), indexing="ij")
         coords0 = torch.stack([xs, ys]).expand(B, 2, h, w)
         flow = torch.zeros_like(coords0)
         flows = []
@@ -293,10 +300,10 @@ class TinyRAFT(nn.Module):
             # As RAFT: each iteration learns its own increment; no gradient through the lookup position.
             flow = flow.detach()
             corr = _lookup(pyramid, coords0 + flow, self.corr_radius)
-            hidden, delta = self.update(hidden, context, corr, flow)
+            hidden, delta = self.update(hidden, context, corr.to(x.dtype), flow.to(x.dtype))
             flow = flow + delta
             if final_only and i < iters - 1:
                 continue
             up = _convex_upsample(flow, self.update.mask(hidden))
-            flows.append(up[:, :, pad[2]:pad[2] + H, pad[0]:pad[0] + W])
+            flows.append(up[:, :, pad[2]:pad[2] + H, pad[0]:pad[0] + W].to(x.dtype))
         return flows
