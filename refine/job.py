@@ -301,9 +301,12 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
     flow = out.flow[0].detach()
     after = flow_maps(pair, flow, reference=before)
     m_before, m_after = compare(before, after, road)
+    refined = bool(out.refined[0])
     record: dict[str, Any] = {
-        "road_pixels": int(road.sum()), "refined": bool(out.refined[0]),
-        "odometry": {k: float(v[0]) for k, v in out.odometry.items()},
+        "road_pixels": int(road.sum()), "refined": refined,
+        # a pair left unrefined used no road motion: null, not the refiner's placeholder zeros
+        # (which the report's z_d error and the clip summary would take for an estimate)
+        "odometry": {k: float(v[0]) if refined else None for k, v in out.odometry.items()},
         "model": out.model, "roll": float(out.camera.roll[0]), "pitch": float(out.camera.pitch[0]),
         "before": m_before, "after": m_after,
     }

@@ -54,7 +54,8 @@ def pair_table(records: list[dict], names: list[str], cfg: JobConfig) -> tuple[t
                     metrics[i, j, k, s, 1] = n
         extra[i, j, _REFINED] = float(r["refined"])
         extra[i, j, _PROCESSED] = 1.0
-        if r["variant"] in ("fit", "photometric", "sequence") and "odometry_given" in r:
+        if r["variant"] in ("fit", "photometric", "sequence") and "odometry_given" in r and r["refined"] \
+                and isinstance(r["odometry"].get("z_d"), (int, float)):  # (no motion where left unrefined)
             extra[i, j, _ZD_ERR] = abs(r["odometry"]["z_d"] - r["odometry_given"]["z_d"])
             extra[i, j, _ZD_N] = 1.0
     return metrics, extra
@@ -116,6 +117,7 @@ def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) 
         shown = ", ".join(empty[:8]) + (", ..." if len(empty) > 8 else "")
         notes.append(f"Warning: road mask empty: {shown} ({len(empty)} of {total} pair(s)): left unrefined, "
                      f"nothing measured inside the road there.")
+    notes += unrefined_notes(records)
     if any(k.endswith("_before") and v is None for r in rows for k, v in r.items()):
         notes.append("'–': measured over no pixel (none where both the prediction and the refined flow are "
                      "finite and defined, inside the road mask for a road column; e.g. the source gave no "
@@ -126,6 +128,38 @@ def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) 
                      "truth itself), so there is no relative change (`null` in report.json); compare the "
                      "values.")
     return notes
+
+
+def unrefined_notes(records: list[dict]) -> list[str]:
+    """One note per flow source and variant that left pairs unrefined for a reason the other notes
+    do not give (a flagged auto road, an empty road mask, a flow with no finite pixel): which pairs,
+    and why (a failed fit, the clip's fit, the images' gate keeping the prediction)."""
+    unexplained: dict[tuple[str, str], list[str]] = {}
+    for r in records:
+        if r["refined"] or r.get("road_pixels") == 0 or r.get("prediction_finite") == 0.0 \
+                or r.get("road_flag", "ok") != "ok":
+            continue
+        unexplained.setdefault((r["source"], r["variant"]), []).append(f'{r["pair"]} ({_unrefined_reason(r)})')
+    notes = []
+    for (source, variant), pairs in unexplained.items():
+        total = sum(1 for r in records if (r["source"], r["variant"]) == (source, variant))
+        shown = "; ".join(pairs[:8]) + ("; ..." if len(pairs) > 8 else "")
+        notes.append(f"Left unrefined (the prediction kept): {source} / {variant}: {len(pairs)} of {total} "
+                     f"pair(s): {shown}.")
+    return notes
+
+
+def _unrefined_reason(r: dict) -> str:
+    if r.get("clip_fit_success") is False:
+        return "the clip's fit failed for this pair"
+    if r.get("fit_success") is False:
+        if "fit_residual_px" in r:
+            return f'the ego-motion fit to the flow failed, residual {r["fit_residual_px"]:.3g} px'
+        return "the road motion from the images failed"
+    gate = r.get("gate")
+    if isinstance(gate, dict) and not gate.get("model_used", True):
+        return "the images judged the prediction better (gate)"
+    return "too few usable road pixels to fit, or the road model defined on none of them"
 
 
 def _no_relative_change(before: Any, after: Any) -> bool:

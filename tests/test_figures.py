@@ -611,3 +611,39 @@ def test_pair_figure_draws_sparse_ground_truth_reduced_not_hidden():
         assert rgb[1, 10].tolist() == flow_to_color(mean, 4.0)[0, :, 0, 0].tolist()
     finally:
         plt.close(fig)
+
+
+def test_clip_summary_leaves_out_the_motion_of_pairs_left_unrefined():
+    """A pair left unrefined used no road motion: its record's ``odometry`` is null (the job), or
+    ``refined`` is False beside the refiner's placeholder zeros; neither is drawn as an estimate
+    (a forward motion of 0 m) nor as the mounting the refinement used. The motion fields keep the
+    records' order where the first record's are null."""
+    import matplotlib.pyplot as plt
+
+    recs = []
+    for i in range(3):
+        ok = i != 1
+        recs.append({"pair": f"{i:06d}", "variant": "fit", "refined": ok,
+                     "before": {"census_road": 0.3}, "after": {"census_road": 0.2 if ok else 0.3},
+                     "odometry": {k: (v if ok else None) for k, v in (("x_d", 0.01), ("z_d", 1.2), ("yaw", 0.01),
+                                                                      ("roll", 0.01), ("pitch", -0.01))},
+                     "roll": 0.01 if ok else 0.0, "pitch": -0.01 if ok else 0.0})  # (the fit's own attitude)
+    recs.insert(0, {**recs.pop(1)})  # the unrefined record first
+    recs.append({"pair": "000003", "variant": "fit", "refined": False, "before": {"census_road": 0.3},
+                 "after": {"census_road": 0.3}, "odometry": {"x_d": 0.0, "z_d": 0.0, "yaw": 0.0, "roll": 0.0,
+                                                              "pitch": 0.0},
+                 "roll": 0.0, "pitch": 0.0})
+    fig = clip_summary_figure(recs, errors={"census_road": "census distance (0-1), road"}, title="clip")
+    try:
+        titles = [ax.get_title() for ax in fig.axes if ax.get_visible()]
+        assert titles[1:4] == ["estimated motion: lateral motion x_d", "estimated motion: forward motion z_d",
+                               "estimated motion: yaw"]
+        assert not any("mounting" in t for t in titles)
+        z_d = next(ax for ax in fig.axes if ax.get_title() == "estimated motion: forward motion z_d")
+        (line,) = z_d.get_lines()
+        assert list(line.get_ydata()) == pytest.approx([1.2, 1.2])
+        census = next(ax for ax in fig.axes if ax.get_title().startswith("census"))
+        (after,) = [ln for ln in census.get_lines() if ln.get_label() == "after, fit"]
+        assert len(after.get_ydata()) == 4  # its errors are still drawn
+    finally:
+        plt.close(fig)

@@ -923,6 +923,29 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
 
 
 
+def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, scene_pairs, capsys):
+    """A pair whose fit fails is left unrefined: its record's motion is null, not the refiner's
+    placeholder zeros (which counted as a forward motion of 0 m in the report's z_d error, 1.2 m
+    off the poses, and were drawn as an estimate), and the report's notes name it and say why."""
+    from fsof_torch.io import write_flow
+
+    noise = 40 * torch.randn(2, *SIZE, generator=torch.Generator().manual_seed(0))
+    write_flow(user_folder / "flows" / "000001.npy", noise)  # no road plane in it: the fit fails
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--poses", str(user_folder / "poses.txt"),
+                 "--flows", str(user_folder / "flows"), "--odometry", "fit", *_mounting(scene_pairs))
+    assert main(args) == 0
+    recs = [json.loads((out / "files" / "fit" / "pairs" / f"{i:06d}.json").read_text()) for i in range(2)]
+    assert recs[0]["refined"] and not recs[1]["refined"] and recs[1]["fit_success"] is False
+    assert set(recs[1]["odometry"]) == set(recs[0]["odometry"]) and all(v is None for v in recs[1]["odometry"].values())
+    row = _rows(out / "report.json")[("files", "fit")]
+    assert row["refined"] == 1
+    assert row["z_d_abs_error_m"] == pytest.approx(abs(recs[0]["odometry"]["z_d"] - recs[0]["odometry_given"]["z_d"]))
+    note = ("- Left unrefined (the prediction kept): files / fit: 1 of 2 pair(s): 000001 (the ego-motion fit to "
+            f'the flow failed, residual {recs[1]["fit_residual_px"]:.3g} px).')
+    assert note in capsys.readouterr().out and note in (out / "report.md").read_text()
+
+
 def test_pairs_whose_road_mask_is_empty_are_named(tmp_path, user_folder, scene_pairs, capsys):
     """One empty mask in the road folder: the run goes on, leaves that pair unrefined and names it
     in the report's notes and on the console. Every mask empty: it stops under --road before any

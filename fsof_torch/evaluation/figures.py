@@ -468,12 +468,13 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     in the variant's colour (each variant measures the prediction on its own pixels), and every
     estimated field of the records' ``odometry`` (angles in degrees; the given odometry as a
     reference line), and the records' own ``roll``, ``pitch`` (the camera the refinement used)
-    where they are not the estimated attitude itself.
+    where they are not the estimated attitude itself. A record with ``refined`` False (a pair
+    left unrefined, which used no motion) has no point on the motion and mounting panels.
 
     Args:
         records: the job's per-pair records of one flow source (``pair``, ``variant``,
-            ``before``/``after`` metrics, ``odometry`` dict, ``roll``, ``pitch``, optionally
-            ``odometry_given``), in time order: the pairs go along the x axis in the order they
+            ``before``/``after`` metrics, ``odometry`` dict (a null field: no value), ``roll``,
+            ``pitch``, optionally ``refined`` and ``odometry_given``), in time order: the pairs go along the x axis in the order they
             first appear (their names are not sorted: '10' would come before '5'), named under
             the lowest panel of each column (each pair up to 12, else about 12 of them). Fields are
             read as they come: a field new to the records shows up as a panel of its own.
@@ -487,10 +488,11 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     pairs = list(dict.fromkeys(r["pair"] for r in records))
     index = {p: i for i, p in enumerate(pairs)}
     variants = list(dict.fromkeys(r["variant"] for r in records))
-    fields = list(dict.fromkeys(k for r in records for k in r.get("odometry", {})
-                                if isinstance(r["odometry"][k], (int, float))))
+    # (in the records' key order; a field only null, as in the records of pairs left unrefined, has no panel)
+    fields = [k for k in dict.fromkeys(k for r in records for k in r.get("odometry", {}))
+              if any(isinstance(r.get("odometry", {}).get(k), (int, float)) for r in records)]
     # the mounting the refinement used, where it is not the estimated attitude itself
-    mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float))
+    mounting = [k for k in ("roll", "pitch") if any(isinstance(r.get(k), (int, float)) and r.get("refined") is not False
                                                     and r.get(k) != r.get("odometry", {}).get(k) for r in records)]
     error_keys = [k for k in errors if any(k in r.get("before", {}) for r in records)]
     panels = [*error_keys, *fields, *(("mounting", k) for k in mounting)]
@@ -529,7 +531,10 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
                 name = _MOUNTING[key]
 
             def value(r: Mapping[str, Any]) -> Any:
-                # (the mounting panel: only where the camera used is not the variant's own estimate)
+                # (the mounting panel: only where the camera used is not the variant's own estimate;
+                # a pair left unrefined, ``refined`` False, used neither)
+                if r.get("refined") is False:
+                    return None
                 estimate = r.get("odometry", {}).get(key)
                 return (r.get(key) if r.get(key) != estimate else None) if own else estimate
 
