@@ -158,7 +158,7 @@ def _unrefined_reason(r: dict) -> str:
         return "the road motion from the images failed"
     gate = r.get("gate")
     if isinstance(gate, dict) and not gate.get("model_used", True):
-        return "the images judged the prediction better (gate)"
+        return "the images' gate kept the prediction"
     return "too few usable road pixels to fit, or the road model defined on none of them"
 
 
