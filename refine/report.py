@@ -132,30 +132,32 @@ def unmeasured_notes(rows: list[dict], records: list[dict], sources: list[str]) 
 
 def unrefined_notes(records: list[dict]) -> list[str]:
     """One note per flow source and variant that left pairs unrefined for a reason the other notes
-    do not give (a flagged auto road, an empty road mask, a flow with no finite pixel): which pairs,
-    and why (a failed fit, the clip's fit, the images' gate keeping the prediction)."""
-    unexplained: dict[tuple[str, str], list[str]] = {}
+    do not give (a flagged auto road, an empty road mask, a flow with no finite pixel): how many,
+    why (a failed fit, the clip's fit, the images' gate keeping the prediction) and which pairs."""
+    unexplained: dict[tuple[str, str], dict[str, list[str]]] = {}
     for r in records:
         if r["refined"] or r.get("road_pixels") == 0 or r.get("prediction_finite") == 0.0 \
                 or r.get("road_flag", "ok") != "ok":
             continue
-        unexplained.setdefault((r["source"], r["variant"]), []).append(f'{r["pair"]} ({_unrefined_reason(r)})')
+        why = unexplained.setdefault((r["source"], r["variant"]), {})
+        why.setdefault(_unrefined_reason(r), []).append(r["pair"])
     notes = []
-    for (source, variant), pairs in unexplained.items():
+    for (source, variant), why in unexplained.items():
         total = sum(1 for r in records if (r["source"], r["variant"]) == (source, variant))
-        shown = "; ".join(pairs[:8]) + ("; ..." if len(pairs) > 8 else "")
-        notes.append(f"Left unrefined (the prediction kept): {source} / {variant}: {len(pairs)} of {total} "
-                     f"pair(s): {shown}.")
+        count = sum(len(pairs) for pairs in why.values())
+        shown = "; ".join(f"{reason}: " + ", ".join(pairs[:8]) + (", ..." if len(pairs) > 8 else "")
+                          for reason, pairs in why.items())
+        notes.append(f"Left unrefined (the prediction kept): {source} / {variant}: {count} of {total} pair(s): "
+                     f"{shown} (the records hold each fit's residual and the gate's decision).")
     return notes
 
 
 def _unrefined_reason(r: dict) -> str:
     if r.get("clip_fit_success") is False:
-        return "the clip's fit failed for this pair"
+        return "the clip's fit failed for the pair"
     if r.get("fit_success") is False:
-        if "fit_residual_px" in r:
-            return f'the ego-motion fit to the flow failed, residual {r["fit_residual_px"]:.3g} px'
-        return "the road motion from the images failed"
+        return "the ego-motion fit to the flow failed" if "fit_residual_px" in r else \
+            "the road motion from the images failed"
     gate = r.get("gate")
     if isinstance(gate, dict) and not gate.get("model_used", True):
         return "the images' gate kept the prediction"
