@@ -142,7 +142,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--out", type=Path, default=None,
                    help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
     g.add_argument("--json", type=Path, metavar="PATH",
-                   help="also write the report JSON here (not an input, nor inside --out but OUT/report.json)")
+                   help="also write the report JSON here (not an input, nor inside --out but OUT/report.json, "
+                        "nor inside another run's output folder)")
     g.add_argument("--overwrite", action="store_true",
                    help="redo every pair; replace the results of another run in --out")
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")

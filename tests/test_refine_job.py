@@ -1698,6 +1698,26 @@ def test_json_inside_out_is_refused_but_its_report_json(tmp_path, capsys, name):
         resume.check_json_path(out / "sub" / ".." / "report.md", out)
 
 
+@pytest.mark.parametrize("name", ["report.json", "run.json", "dis/given/pairs/000000.json", "dis/new.json"])
+def test_json_inside_another_runs_out_is_refused(tmp_path, capsys, name):
+    """--json inside the output folder of another refine run replaced that run's report.json (its
+    report.md then described one run, its report.json another), its manifest (the folder could no
+    longer be resumed nor overwritten) or a record. Refused before any work, that run's files kept."""
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", *TINY]
+    first = tmp_path / "first"
+    assert main([*base, "--out", str(first)]) == 0
+    before = {p: p.read_bytes() for p in first.rglob("*") if p.is_file()}
+    target = first / name
+    err = _err(capsys, [*base, "--odometry", "fit", "--out", str(tmp_path / "second"), "--json", str(target)])
+    assert err.startswith(f"error: --json: {str(target)!r} is inside {str(first.resolve())!r}, the output folder of another "
+                          f"refine run"), err
+    assert {p: p.read_bytes() for p in first.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "second").exists()
+    # a path beside it, or this run's own report.json, is taken
+    assert main([*base, "--out", str(first), "--json", str(first / "report.json")]) == 0
+    assert main([*base, "--out", str(tmp_path / "second"), "--json", str(tmp_path / "second.json")]) == 0
+
+
 @pytest.mark.parametrize("argv, option", [
     (["--kitti-odometry", "{odo}", "--num-pairs", "4"], "--num-pairs"),  # (4: the synthetic default)
     (["--kitti-odometry", "{odo}", "--size", "375x1242"], "--size"),
