@@ -61,7 +61,20 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
         if output.resolve() == target:
             return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "
                     f"give another path")
-    return None
+    return refine_run_above(path)
+
+
+def refine_run_above(path: Path) -> str | None:
+    """``--json`` (``path``) lies in no output folder of a refine run (:func:`refine.resume.holds_run`):
+    the JSON, removed at the start and written last, would replace that run's report.json, its
+    manifest or a record."""
+    from refine.resume import holds_run
+
+    other = next((p for p in path.resolve().parents if holds_run(p)), None)
+    if other is None:
+        return None
+    return (f"--json: {str(path)!r} is inside {str(other)!r}, the output folder of a refine run (its run.json), "
+            f"whose report, manifest or records it would replace; give a path outside it")
 
 
 def bad_out_inputs(out: Path, names: Iterable[str], inputs: dict[str, Path | None]) -> str | None:

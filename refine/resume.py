@@ -87,14 +87,14 @@ def check_json_path(path: Path | None, out: Path, inputs: dict[str, Path | None]
         # the manifest, the report, the records: the JSON would replace one of them, or they it
         raise JobError(f"--json: {str(path)!r} is inside --out {str(out)!r}, which the job fills; give a path "
                        f"outside it (the report is written to {str(out / REPORTS[1])!r} anyway)")
-    other = next((p for p in target.parents if p != folder and _holds_run(p)), None)
+    other = next((p for p in target.parents if p != folder and holds_run(p)), None)
     if other is not None:  # this run's report in place of that run's report, manifest or a record
         raise JobError(f"--json: {str(path)!r} is inside {str(other)!r}, the output folder of another refine run "
                        f"(its {MANIFEST}), whose report, manifest or records it would replace; give a path outside it")
     _creatable(path, "--json")
 
 
-def _holds_run(folder: Path) -> bool:
+def holds_run(folder: Path) -> bool:
     """Whether ``folder`` is a refine run's output folder: it holds the lock a run takes, or a
     manifest (a JSON object with the run's fingerprint and identity)."""
     if (folder / LOCK).is_file():

@@ -1,0 +1,38 @@
+"""``python -m eval``'s ``--json`` never lands inside a refine run's output folder: the JSON (an
+earlier one removed at the start, written last) replaced that run's report.json, its manifest or a
+record. Every subcommand refuses it before any work, exit 2 naming ``--json``."""
+
+from __future__ import annotations
+
+import pytest
+
+from eval.__main__ import main as eval_main
+from refine.__main__ import main as refine_main
+
+
+@pytest.fixture(scope="module")
+def refine_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("refine") / "run"
+    assert refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
+                        "--no-figures", "--no-progress", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("argv", [
+    ["vflow", "--no-progress"],
+    ["synth", "--pairs", "1", "--size", "48", "160", "--no-progress"],
+    ["noise", "--quick", "--no-progress"],
+    ["tables", "--quick", "--no-kitti", "--no-progress"],
+    ["train", "--steps", "1", "--no-progress"],
+])
+@pytest.mark.parametrize("name", ["report.json", "run.json", "dis/given/pairs/000000.json"])
+def test_json_inside_a_refine_run_is_refused(tmp_path, capsys, refine_run, argv, name):
+    before = {p: p.read_bytes() for p in refine_run.rglob("*") if p.is_file()}
+    target = refine_run / name
+    out = ["--out", str(tmp_path / "out")] if argv[0] != "train" else []
+    assert eval_main([*argv, *out, "--json", str(target)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --json: {str(target)!r} is inside {str(refine_run.resolve())!r}, the output folder of a refine " \
+           f"run" in err, err
+    assert {p: p.read_bytes() for p in refine_run.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "out").exists()
