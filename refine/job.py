@@ -196,7 +196,7 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                 # the figure of the records about to be replaced must not outlive them (with
                 # --no-figures, or should the run stop before drawing it): drawn again below
                 figure_path(cfg, source, spec.name).unlink(missing_ok=True)
-                flows, maps = {}, {}
+                flows, maps, unrefined = {}, {}, set()
                 for variant in cfg.variants:
                     show_text(bar, f"{spec.name}: refining {source} with odometry '{variant}'")
                     record, flow, after = _refine_one(cfg, refiners[variant], pair, pred, road,
@@ -211,9 +211,11 @@ def run_pairs(specs: list[PairSpec], cfg: JobConfig, sources: dict, *, rank: int
                     write_json(p["record"], record)
                     records.append({**record, "resumed": False})
                     flows[variant], maps[variant] = flow, after
+                    if not record["refined"]:
+                        unrefined.add(variant)
                 if cfg.figures:
                     show_text(bar, f"{spec.name}: drawing the figure ({source})")
-                    _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps, figures)
+                    _figure(cfg, source, spec.name, pair, pred, road, before, flows, maps, figures, unrefined)
     finally:  # the bar ends its line before any error is printed; the figures kept open for redrawing
         bar.close()
         for figure in figures.values():
@@ -333,14 +335,17 @@ def _refine_one(cfg: JobConfig, refiner: FreespaceRefiner, pair: dict, pred: Ten
 
 
 def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, road: Tensor,
-            before: dict, flows: dict[str, Tensor], maps: dict[str, dict], figures: dict[tuple, Any]) -> None:
+            before: dict, flows: dict[str, Tensor], maps: dict[str, dict], figures: dict[tuple, Any],
+            unrefined: set[str] = frozenset()) -> None:
     """Write the pair's figure, redrawing the PairFigure of its layout in ``figures`` (built on
-    first use): building a figure costs matplotlib more than redrawing it."""
+    first use): building a figure costs matplotlib more than redrawing it. The columns of the
+    variants in ``unrefined`` (which left the pair as predicted) say so in their titles."""
     from fsof_torch.evaluation.figures import PairFigure, save_figure
 
     gt = pair.get("flow") is not None
     columns = {f"before ({source})": (pred, before)}
-    columns.update({f"after, odometry '{v}'": (flows[v], maps[v]) for v in flows})
+    columns.update({f"after, odometry '{v}'" + (" (left unrefined)" if v in unrefined else ""): (flows[v], maps[v])
+                    for v in flows})
     cpu = lambda t: t.detach().cpu()  # noqa: E731
     panels = {k: error_panel(m) for k, (_, m) in columns.items()}
     label = next(iter(panels.values()))[2]

@@ -923,18 +923,31 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
 
 
 
-def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, scene_pairs, capsys):
+def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, scene_pairs, capsys, monkeypatch):
     """A pair whose fit fails is left unrefined: its record's motion is null, not the refiner's
     placeholder zeros (which counted as a forward motion of 0 m in the report's z_d error, 1.2 m
-    off the poses, and were drawn as an estimate), and the report's notes name it and say why."""
+    off the poses, and were drawn as an estimate), the report's notes name it and say why, and
+    its figure's 'after' columns say it was left unrefined (they repeat the prediction)."""
+    from fsof_torch.evaluation.figures import PairFigure
     from fsof_torch.io import write_flow
+
+    titles = {}
+    update = PairFigure.update
+
+    def spy(self, **kwargs):
+        titles[kwargs["title"].split(",")[0]] = list(kwargs["flows"])
+        return update(self, **kwargs)
+
+    monkeypatch.setattr(PairFigure, "update", spy)
 
     noise = 40 * torch.randn(2, *SIZE, generator=torch.Generator().manual_seed(0))
     write_flow(user_folder / "flows" / "000001.npy", noise)  # no road plane in it: the fit fails
     out = tmp_path / "out"
     args = _user(user_folder, out, "--road", str(user_folder / "road"), "--poses", str(user_folder / "poses.txt"),
                  "--flows", str(user_folder / "flows"), "--odometry", "fit", *_mounting(scene_pairs))
-    assert main(args) == 0
+    assert main([a for a in args if a != "--no-figures"]) == 0
+    assert titles == {"pair 000000": ["before (files)", "after, odometry 'fit'"],
+                      "pair 000001": ["before (files)", "after, odometry 'fit' (left unrefined)"]}
     recs = [json.loads((out / "files" / "fit" / "pairs" / f"{i:06d}.json").read_text()) for i in range(2)]
     assert recs[0]["refined"] and not recs[1]["refined"] and recs[1]["fit_success"] is False
     assert set(recs[1]["odometry"]) == set(recs[0]["odometry"]) and all(v is None for v in recs[1]["odometry"].values())
