@@ -206,17 +206,22 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
                                f"--{real.replace('_', '-')}")
     if real == "images":
         return
-    what = "the synthetic scenes have their own camera" if real is None else \
-        f"--{real.replace('_', '-')} has its own calibration{' and poses' if real == 'kitti_odometry' else ''}"
+    sample = f"--{(real or '').replace('_', '-')}"
+    what = "the synthetic scenes have their own camera" if real is None else f"{sample} has its own calibration"
     own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg is not None,
            "--height": real is None and args.height is not None,
            "--pitch-deg": real != "kitti_odometry" and args.pitch_deg is not None}
     if real is not None:
         own.update({"--calib": args.calib is not None, "--calib-size": args.calib_size is not None,
                     "--poses": args.poses is not None, "--gt": args.gt is not None})
+    # (the poses and ground truth of a sample are its own, or it has none: say which)
+    why = {"--poses": f"{sample} has its own poses.txt" if real == "kitti_odometry" else
+           "the KITTI 2015 pair has no poses",
+           "--gt": "the KITTI 2015 pair has its own flow_noc_10.png" if real == "kitti15" else
+           "the KITTI odometry clip has no ground-truth flow"}
     for option, given in own.items():
         if given:
-            raise JobError(f"{option}: applies to --images ({what})")
+            raise JobError(f"{option}: applies to --images ({why.get(option, what)})")
     if real is not None and args.road not in (None, "auto"):
         raise JobError(f"--road: --{real.replace('_', '-')} uses its own road.json, or 'auto'")
     given = [v for v in args.odometry or () if v.startswith("given")]

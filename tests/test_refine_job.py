@@ -1457,7 +1457,14 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
                          ([*odometry, "--roll-deg", "1"], "--roll-deg"),
                          ([*odometry, "--poses", str(user_folder / "poses.txt")], "--poses"),
                          ([*odometry, "--gt", str(user_folder / "gt")], "--gt")):
-        assert f"{option}: applies to --images (--" in _err(capsys, argv)
+        assert f"{option}: applies to --images (--" in _err(capsys, argv) or option in ("--poses", "--gt")
+    # the reason fits the option: a sample's poses and ground truth are its own, or it has none
+    for argv, reason in ((odometry, "--poses: applies to --images (--kitti-odometry has its own poses.txt)"),
+                         (kitti15, "--poses: applies to --images (the KITTI 2015 pair has no poses)")):
+        assert reason in _err(capsys, [*argv, "--poses", str(user_folder / "poses.txt")])
+    for argv, reason in ((kitti15, "--gt: applies to --images (the KITTI 2015 pair has its own flow_noc_10.png)"),
+                         (odometry, "--gt: applies to --images (the KITTI odometry clip has no ground-truth flow)")):
+        assert reason in _err(capsys, [*argv, "--gt", str(user_folder / "gt")])
     assert "--road: --kitti15 uses its own road.json" in _err(capsys, [*kitti15, "--road", str(user_folder / "road")])
     assert "--odometry given: the KITTI 2015 pair has no poses" in _err(capsys, [*kitti15, "--odometry", "fit,given"])
     # a bad mounting value is named by its own option, not by the sample's
