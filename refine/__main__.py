@@ -157,9 +157,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def default_out(args: argparse.Namespace) -> Path:
-    """``refine_out/<input name>``: one folder per input, so runs on other inputs do not meet."""
+    """``refine_out/<input name>``: one folder per input, so runs on other inputs do not meet. A
+    folder of images is named with the folder it is in (``my_clip/images`` -> ``my_clip-images``):
+    the layout of the docs gives every clip an ``images`` folder."""
     if args.images is not None:
-        name = args.images.resolve().name or "images"
+        images = args.images.resolve()
+        name = "-".join(n for n in (images.parent.name, images.name) if n) or "images"
     elif args.kitti15 is not None:
         name = args.kitti15.resolve().name
     elif args.kitti_odometry is not None:

@@ -156,7 +156,10 @@ def test_default_out_is_named_after_the_input(tmp_path, monkeypatch, user_folder
     parse = build_parser().parse_args
     assert default_out(parse([])) == Path("refine_out/synthetic-default")
     assert default_out(parse(["--seed", "3", "--size", "48x160"])) == Path("refine_out/synthetic-default-seed3-48x160")
-    assert default_out(parse(["--images", str(user_folder / "images")])) == Path("refine_out/images")
+    assert default_out(parse(["--images", str(user_folder / "images")])) == Path("refine_out/data-images")
+    # two clips in the documented layout (CLIP/images) do not meet in one folder
+    assert default_out(parse(["--images", str(tmp_path / "clip_a" / "images")])) == Path("refine_out/clip_a-images")
+    assert default_out(parse(["--images", "/images"])) == Path("refine_out/images")
     monkeypatch.chdir(tmp_path)
     assert main(["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", *TINY]) == 0
     assert (tmp_path / "refine_out" / "synthetic-default-48x160" / "report.json").is_file()
