@@ -307,6 +307,26 @@ def test_hidden_files_are_no_frames(tmp_path):
     assert [p.name for p in ImageFolderDataset(tmp_path).pairs] == ["0", "5"]
 
 
+@pytest.mark.skipif(not hasattr(__import__("os"), "symlink"), reason="no symbolic links here")
+def test_a_broken_link_is_no_missing_file(clip):
+    """A frame, flow, road or ground-truth file that is a link to nothing (storage not mounted, a
+    moved target) was left out silently: the clip one frame shorter, or paired across the gap. It
+    is an error naming the argument, the link and its target."""
+    root, _ = clip
+    (root / "images" / "000004.png").symlink_to(root / "gone" / "000004.png")
+    with pytest.raises(FileNotFoundError, match=r"^images: '.*000004\.png' is a link to '.*gone.*', which does not exist"):
+        ImageFolderDataset(root / "images")
+    (root / "images" / "000004.png").unlink()
+    (root / "gt" / "000001.flo").unlink()
+    (root / "gt" / "000001.flo").symlink_to(root / "gone.flo")
+    with pytest.raises(FileNotFoundError, match=r"^gt: '.*000001\.flo' is a link to '.*gone\.flo', which does not exist"):
+        ImageFolderDataset(root / "images", gt=root / "gt")
+    (root / "road" / "000002.png").unlink()
+    (root / "road" / "000002.png").symlink_to("nowhere.png")
+    with pytest.raises(FileNotFoundError, match=r"^road: '.*000002\.png' is a link to 'nowhere\.png'"):
+        ImageFolderDataset(root / "images", road=root / "road")
+
+
 def test_files_match_by_name_never_by_position(clip):
     root, _ = clip
     (root / "gt" / "000001.flo").rename(root / "gt" / "000007.flo")

@@ -111,11 +111,21 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
     # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
-    images = in_frame_order((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
-                             and not p.name.startswith(".")), name)
+    entries = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
+    _no_broken_link(entries, name)
+    images = in_frame_order((p for p in entries if p.is_file()), name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
+
+
+def _no_broken_link(paths: Sequence[Path], name: str) -> None:
+    """A FileNotFoundError naming ``name`` for a link among ``paths`` whose target is missing: a
+    frame or file that is there by name but cannot be read (storage not mounted, a moved target)
+    was left out silently (the clip shorter, a pair across the gap)."""
+    for p in paths:
+        if p.is_symlink() and not p.exists():
+            raise FileNotFoundError(f"{name}: {str(p)!r} is a link to {os.readlink(p)!r}, which does not exist")
 
 
 def _kitti_partner(stem: str) -> str | None:
@@ -179,8 +189,10 @@ def match_files(folder: str | os.PathLike, names: Sequence[str], *, what: str,
     if not folder.is_dir():
         raise FileNotFoundError(f"{what}: no folder at {str(folder)!r}")
     by_stem: dict[str, list[Path]] = {}
-    for p in sorted(folder.iterdir()):
-        if p.is_file() and p.suffix.lower() in suffixes:
+    entries = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in suffixes]
+    _no_broken_link(entries, what)
+    for p in entries:
+        if p.is_file():
             by_stem.setdefault(p.stem, []).append(p)
     out: dict[str, Path] = {}
     for name in names:
