@@ -136,8 +136,8 @@ def unrefined_notes(records: list[dict]) -> list[str]:
     why (a failed fit, the clip's fit, the images' gate keeping the prediction) and which pairs."""
     unexplained: dict[tuple[str, str], dict[str, list[str]]] = {}
     for r in records:
-        if r["refined"] or r.get("road_pixels") == 0 or r.get("prediction_finite") == 0.0 \
-                or r.get("road_flag", "ok") != "ok":
+        if r["refined"] or (r.get("road_pixels") == 0 and r.get("road") == "given") \
+                or r.get("prediction_finite") == 0.0 or r.get("road_flag", "ok") != "ok":
             continue
         why = unexplained.setdefault((r["source"], r["variant"]), {})
         why.setdefault(_unrefined_reason(r), []).append(r["pair"])
@@ -153,6 +153,8 @@ def unrefined_notes(records: list[dict]) -> list[str]:
 
 
 def _unrefined_reason(r: dict) -> str:
+    if r.get("road_pixels") == 0:  # (an auto road found but empty; a given one has its own note)
+        return "the road mask is empty"
     if r.get("clip_fit_success") is False:
         return "the clip's fit failed for the pair"
     if r.get("fit_success") is False:

@@ -962,6 +962,23 @@ def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, 
     assert note in capsys.readouterr().out and note in (out / "report.md").read_text()
 
 
+def test_unrefined_notes_explain_each_pair_once():
+    """Each unrefined pair is explained once: a given empty road and a flagged auto road by their own
+    notes, an auto road found 'ok' but empty (which no other note names) here, grouped by reason."""
+    from refine.report import unrefined_notes
+
+    base = {"source": "dis", "variant": "fit", "refined": False, "prediction_finite": 1.0, "road_pixels": 10}
+    records = [{**base, "pair": "a", "road": "given", "road_pixels": 0},
+               {**base, "pair": "b", "road": "auto", "road_flag": "implausible"},
+               {**base, "pair": "c", "road": "auto", "road_flag": "ok", "road_pixels": 0},
+               {**base, "pair": "d", "road": "auto", "road_flag": "ok", "fit_success": False, "fit_residual_px": 3.0},
+               {**base, "pair": "e", "road": "auto", "road_flag": "ok", "fit_success": False, "fit_residual_px": 2.0},
+               {**base, "pair": "f", "road": "auto", "road_flag": "ok", "refined": True}]
+    assert unrefined_notes(records) == [
+        "Left unrefined (the prediction kept): dis / fit: 3 of 6 pair(s): the road mask is empty: c; the ego-motion "
+        "fit to the flow failed: d, e (the records hold each fit's residual and the gate's decision)."]
+
+
 def test_pairs_whose_road_mask_is_empty_are_named(tmp_path, user_folder, scene_pairs, capsys):
     """One empty mask in the road folder: the run goes on, leaves that pair unrefined and names it
     in the report's notes and on the console. Every mask empty: it stops under --road before any
