@@ -492,6 +492,7 @@ def test_clip_summary_shows_each_angle_once_in_degrees():
         assert "camera pitch (the refinement's mounting)" not in titles  # the same as the estimate
         mount = next(ax for ax in fig.axes if ax.get_title() == "camera roll (the refinement's mounting)")
         assert [ln.get_label() for ln in mount.get_lines()] == ["sequence"]  # photometric's is its estimate
+        assert mount.get_ylabel() == "camera roll (the refinement's mounting, deg)"  # (one pair of brackets)
         change = next(ax for ax in fig.axes if ax.get_title() == "estimated motion: pitch change")
         assert change.get_ylabel() == "pitch change (deg)"
         assert change.get_lines()[0].get_ydata()[0] == pytest.approx(0.001 * 180 / 3.141592653589793)

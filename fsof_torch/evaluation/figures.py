@@ -550,7 +550,9 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
                 xs = sorted(given, key=index.get)
                 ax.plot([index[p] for p in xs], [scale * given[p] for p in xs], color="black", linestyle="--",
                         marker="x", ms=4, label="given (odometry / poses)")
-            ax.set_ylabel(f"{name} ({unit})" if unit else name, fontsize=8)
+            # (the mounting's name has its own brackets: the unit goes into them, not a second pair)
+            label = f"{name[:-1]}, {unit})" if unit and name.endswith(")") else f"{name} ({unit})" if unit else name
+            ax.set_ylabel(label, fontsize=8)
             ax.set_title(("" if own else "estimated motion: ") + name, fontsize=9)
         ax.grid(alpha=0.3)
         ax.tick_params(labelsize=7)
