@@ -179,24 +179,57 @@ class TestWriteImageArray:
             write_image_array(tmp_path / "a.png", torch.zeros(4, 4, dtype=torch.uint8))
 
     def test_encoder_failing_midway_leaves_no_file(self, tmp_path, monkeypatch):
+        """A failing encoder, or a write that fails halfway (a full disk), leaves the old file or none."""
         write_image(tmp_path / "ref.png", _ramp())
         good = (tmp_path / "ref.png").read_bytes()
-
-        def half_then_crash(filename, array, *args):
-            with open(filename, "wb") as f:
-                f.write(good[: len(good) // 2])
-            raise RuntimeError("encoder crashed")
-
         write_image(tmp_path / "old.png", torch.zeros(3, 24, 40))
         before = (tmp_path / "old.png").read_bytes()
-        monkeypatch.setattr(cv2, "imwrite", half_then_crash)
-        with pytest.raises(RuntimeError, match="encoder crashed"):
-            write_image(tmp_path / "new.png", _ramp())
-        with pytest.raises(RuntimeError, match="encoder crashed"):
-            write_image(tmp_path / "old.png", _ramp())
-        assert not (tmp_path / "new.png").exists()
-        assert (tmp_path / "old.png").read_bytes() == before
-        assert sorted(p.name for p in tmp_path.iterdir()) == ["old.png", "ref.png"]
+
+        def crash(*args):
+            raise RuntimeError("encoder crashed")
+
+        def half_then_crash(self, data):
+            with open(self, "wb") as f:
+                f.write(good[: len(good) // 2])
+            raise OSError(28, "No space left on device")
+
+        for patch, error in ((lambda: monkeypatch.setattr(cv2, "imencode", crash), RuntimeError),
+                             (lambda: monkeypatch.setattr(Path, "write_bytes", half_then_crash), OSError)):
+            patch()
+            with pytest.raises(error):
+                write_image(tmp_path / "new.png", _ramp())
+            with pytest.raises(error):
+                write_image(tmp_path / "old.png", _ramp())
+            monkeypatch.undo()
+            assert not (tmp_path / "new.png").exists()
+            assert (tmp_path / "old.png").read_bytes() == before
+            assert sorted(p.name for p in tmp_path.iterdir()) == ["old.png", "ref.png"]
+
+    def test_path_that_is_not_utf8(self, tmp_path):
+        """A file name that is not valid UTF-8 (a folder named in Latin-1, as Python lists it) is
+        written and read back: OpenCV, given such a path, crashed the interpreter (a segmentation
+        fault), so the writers give it the encoded bytes only (run in a child process, which a
+        crash would kill instead of the test run)."""
+        import subprocess
+        import sys
+
+        script = (
+            "import os, sys, torch\n"
+            "from fsof_torch.io import read_image, write_image, write_kitti_flow, read_kitti_flow\n"
+            "folder = os.path.join(os.fsdecode(sys.argv[1].encode()), os.fsdecode(b'stra\\xdfe'))\n"
+            "os.mkdir(folder)\n"
+            "image = torch.arange(60.0).reshape(3, 4, 5)\n"
+            "write_image(os.path.join(folder, os.fsdecode(b'\\xe9t\\xe9.png')), image)\n"
+            "assert torch.equal(read_image(os.path.join(folder, os.fsdecode(b'\\xe9t\\xe9.png'))), image)\n"
+            "flow = torch.full((2, 3, 4), -1.5)\n"
+            "write_kitti_flow(os.path.join(folder, os.fsdecode(b'\\xff.png')), flow)\n"
+            "assert torch.equal(read_kitti_flow(os.path.join(folder, os.fsdecode(b'\\xff.png')))[0], flow)\n"
+            "print(sorted(os.listdir(os.fsencode(folder))))\n"
+        )
+        done = subprocess.run([sys.executable, "-c", script, str(tmp_path)], capture_output=True, text=True,
+                              cwd=Path(__file__).resolve().parents[1], timeout=120)
+        assert done.returncode == 0, f"exit {done.returncode}: {done.stderr[-2000:]}"
+        assert done.stdout.strip() == "[b'\\xe9t\\xe9.png', b'\\xff.png']"
 
 
 class TestChannels:

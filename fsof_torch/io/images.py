@@ -182,7 +182,9 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
 
     path = as_path(path)
     suffix = path.suffix.lower()
-    if suffix not in WRITABLE_DTYPES or not cv2.haveImageWriter(str(path)):
+    # OpenCV is given the suffix and the encoded bytes, never the path: it crashes the interpreter
+    # (a segmentation fault) on a path that is not valid UTF-8, such as a folder named in Latin-1
+    if suffix not in WRITABLE_DTYPES or not cv2.haveImageWriter("x" + suffix):
         known = ", ".join(s for s in WRITABLE_DTYPES if cv2.haveImageWriter("x" + s))
         raise ValueError(f"path: no image writer for the suffix {path.suffix!r} of {str(path)!r} "
                          f"(the formats written and read back here: {known})")
@@ -202,9 +204,11 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
         raise ValueError(f"array: a {suffix} file keeps only {allowed} channels (others read back changed), "
                          f"got {channels} (shape {array.shape}) for {str(path)!r}; any of 1, 3, 4 goes to "
                          f".png, .tif or .bmp")
+    ok, encoded = cv2.imencode(suffix, array)
+    if not ok:
+        raise OSError(f"path: OpenCV could not encode {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), array):
-            raise OSError(f"path: OpenCV could not write {str(path)!r} (dtype {array.dtype}, shape {array.shape})")
+        tmp.write_bytes(encoded.tobytes())
     return path
 
 
