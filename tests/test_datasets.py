@@ -546,6 +546,17 @@ def test_kitti_hidden_files_are_no_pairs(kitti_root):
         assert item["name"] == name and item["flow"] is not None
 
 
+@pytest.mark.parametrize("frame", ["000001_10.png", "000001_11.png"])
+def test_kitti_frame_linked_to_a_missing_file_is_an_error(kitti_root, frame):
+    """A frame linked to a missing file (a drive not mounted) left its pair out of the dataset silently."""
+    root, _ = kitti_root
+    (root / "image_2" / frame).unlink()
+    (root / "image_2" / frame).symlink_to(root / "gone.png")
+    with pytest.raises(FileNotFoundError, match=rf"root: '.*{frame}' is a symbolic link to '.*gone\.png', which "
+                                                r"does not exist"):
+        KittiFlowDataset(root)
+
+
 def test_kitti_pair_missing_its_flow_file_is_an_error(kitti_root):
     """A flow folder without one pair's file (deleted, not copied) raises naming it when the pair
     loads: that pair's item had flow None, silently, beside pairs with ground truth."""

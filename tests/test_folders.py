@@ -309,22 +309,37 @@ def test_hidden_files_are_no_frames(tmp_path):
 
 @pytest.mark.skipif(not hasattr(__import__("os"), "symlink"), reason="no symbolic links here")
 def test_a_broken_link_is_no_missing_file(clip):
-    """A frame, flow, road or ground-truth file that is a link to nothing (storage not mounted, a
+    """A frame, flow, road or ground-truth file that is a symbolic link to nothing (storage not mounted, a
     moved target) was left out silently: the clip one frame shorter, or paired across the gap. It
     is an error naming the argument, the link and its target."""
     root, _ = clip
     (root / "images" / "000004.png").symlink_to(root / "gone" / "000004.png")
-    with pytest.raises(FileNotFoundError, match=r"^images: '.*000004\.png' is a link to '.*gone.*', which does not exist"):
+    with pytest.raises(FileNotFoundError, match=r"^images: '.*000004\.png' is a symbolic link to '.*gone.*', which does not exist"):
         ImageFolderDataset(root / "images")
     (root / "images" / "000004.png").unlink()
     (root / "gt" / "000001.flo").unlink()
     (root / "gt" / "000001.flo").symlink_to(root / "gone.flo")
-    with pytest.raises(FileNotFoundError, match=r"^gt: '.*000001\.flo' is a link to '.*gone\.flo', which does not exist"):
+    with pytest.raises(FileNotFoundError, match=r"^gt: '.*000001\.flo' is a symbolic link to '.*gone\.flo', which does not exist"):
         ImageFolderDataset(root / "images", gt=root / "gt")
     (root / "road" / "000002.png").unlink()
     (root / "road" / "000002.png").symlink_to("nowhere.png")
-    with pytest.raises(FileNotFoundError, match=r"^road: '.*000002\.png' is a link to 'nowhere\.png'"):
+    with pytest.raises(FileNotFoundError, match=r"^road: '.*000002\.png' is a symbolic link to 'nowhere\.png'"):
         ImageFolderDataset(root / "images", road=root / "road")
+
+
+def test_frame_linked_to_a_missing_file_is_an_error(tmp_path):
+    """A frame that is a symbolic link to a missing file (data on a drive not mounted) was left out
+    silently: its neighbours made a pair two frames apart, named as one frame apart."""
+    for n in (0, 1, 3):
+        write_image(tmp_path / f"{n:06d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
+    write_image(tmp_path / "elsewhere.png", torch.zeros(3, *SIZE, dtype=torch.uint8))
+    (tmp_path / "000002.png").symlink_to(tmp_path / "elsewhere.png")  # a link that works is a frame
+    assert [(p.image1.name, p.image2.name) for p in ImageFolderDataset(tmp_path).pairs][1:3] == [
+        ("000001.png", "000002.png"), ("000002.png", "000003.png")]
+    (tmp_path / "elsewhere.png").unlink()
+    with pytest.raises(FileNotFoundError, match=r"images: '.*000002\.png' is a symbolic link to '.*elsewhere\.png', "
+                                                r"which does not exist"):
+        ImageFolderDataset(tmp_path)
 
 
 def test_files_match_by_name_never_by_position(clip):

@@ -183,6 +183,16 @@ class TestLayoutLimits:
         cv2.imwrite(str(tmp_path / "rgb" / "a.png"), np.zeros((2, 3, 3), np.uint8))
         assert CarlaRun(tmp_path).frames == ["100", "5", "98", "99", "a"]
 
+    def test_run_frame_linked_to_a_missing_file_is_an_error(self, tmp_path):
+        """A frame linked to a missing file was left out: frames 98 and 100 made a pair."""
+        (tmp_path / "rgb").mkdir()
+        for k in (98, 100):
+            cv2.imwrite(str(tmp_path / "rgb" / f"{k}.png"), np.zeros((2, 3, 3), np.uint8))
+        (tmp_path / "rgb" / "99.png").symlink_to(tmp_path / "gone.png")
+        with pytest.raises(FileNotFoundError, match=r"root: '.*99\.png' is a symbolic link to '.*gone\.png', which "
+                                                    r"does not exist"):
+            CarlaRun(tmp_path)
+
     def test_run_frames_skip_hidden_files_and_folders(self, tmp_path):
         """A macOS '._99.png', an atomic writer's temporary or a folder named like a frame was once
         a frame: the order fell back to names (100, 5, 98, 99) and frames were paired wrongly."""

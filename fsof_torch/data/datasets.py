@@ -40,7 +40,7 @@ from torch.utils.data import Dataset
 from .._check import as_path, check_bool, check_int, check_size
 from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
-from ..io.images import read_image
+from ..io.images import check_no_broken_links, read_image
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
@@ -227,8 +227,9 @@ class KittiFlowDataset(Dataset):
             raise FileNotFoundError(f"root: {str(self.root)!r} has no {image_dir}/ folder")
         # regular, visible files only: a hidden one (macOS's ``._000000_10.png`` beside each frame,
         # a writer's temporary) is no frame, as in ImageFolderDataset and CarlaRun
-        self.names = sorted(p.name[:-len("_10.png")] for p in images.glob("*_10.png")
-                            if not p.name.startswith(".") and p.is_file()
+        visible = [p for p in images.glob("*_1[01].png") if not p.name.startswith(".")]
+        check_no_broken_links(visible, "root")  # (never a pair left out: a missing mount is an error)
+        self.names = sorted(p.name[:-len("_10.png")] for p in visible if p.name.endswith("_10.png") and p.is_file()
                             and (images / (p.name[:-len("_10.png")] + "_11.png")).is_file())
         if not self.names:
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")

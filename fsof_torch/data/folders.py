@@ -45,7 +45,7 @@ from .._check import check_has_values, check_int, check_number, check_size
 from ..geometry.camera import Camera, read_kitti_calibration
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import check_frame_names, frame_numbers, in_frame_order, read_image
+from ..io.images import check_frame_names, check_no_broken_links, frame_numbers, in_frame_order, read_image
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
@@ -106,26 +106,19 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     number (``frame_9.png`` before ``frame_10.png``: :func:`fsof_torch.io.images.frame_numbers`),
     by value where every name is a decimal number (timestamps ``9.967.png`` before ``10.000.png``),
     else by name (:func:`fsof_torch.io.images.in_frame_order`). Two files of one frame name
-    (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``."""
+    (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``; a frame that is a
+    symbolic link to a missing file a FileNotFoundError naming ``name`` (never a frame left out,
+    which would pair its neighbours)."""
     folder = Path(folder)
     if not folder.is_dir():
         raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
     # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
     entries = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
-    _no_broken_link(entries, name)
+    check_no_broken_links(entries, name)
     images = in_frame_order((p for p in entries if p.is_file()), name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
     return images
-
-
-def _no_broken_link(paths: Sequence[Path], name: str) -> None:
-    """A FileNotFoundError naming ``name`` for a link among ``paths`` whose target is missing: a
-    frame or file that is there by name but cannot be read (storage not mounted, a moved target)
-    was left out silently (the clip shorter, a pair across the gap)."""
-    for p in paths:
-        if p.is_symlink() and not p.exists():
-            raise FileNotFoundError(f"{name}: {str(p)!r} is a link to {os.readlink(p)!r}, which does not exist")
 
 
 def _kitti_partner(stem: str) -> str | None:
@@ -190,7 +183,7 @@ def match_files(folder: str | os.PathLike, names: Sequence[str], *, what: str,
         raise FileNotFoundError(f"{what}: no folder at {str(folder)!r}")
     by_stem: dict[str, list[Path]] = {}
     entries = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in suffixes]
-    _no_broken_link(entries, what)
+    check_no_broken_links(entries, what)
     for p in entries:
         if p.is_file():
             by_stem.setdefault(p.stem, []).append(p)

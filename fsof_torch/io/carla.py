@@ -39,7 +39,7 @@ from torch import Tensor
 
 from ..geometry.camera import Camera
 from .._check import as_chw_flow, as_path
-from .images import in_frame_order, read_image, read_image_array, write_image_array
+from .images import check_no_broken_links, in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
 
 __all__ = [
@@ -163,7 +163,8 @@ class CarlaRun:
     number (``98``, ``99``, ``100``, unpadded), one text around a number (``f98``, ``f100``) or
     a decimal number (``9.967`` before ``10.000``),
     else by name. Only regular files count, and not
-    hidden ones (a name starting with ``.``, such as macOS's ``._99.png``).
+    hidden ones (a name starting with ``.``, such as macOS's ``._99.png``); a frame that is a
+    symbolic link to a missing file is a FileNotFoundError naming ``root``.
 
     Example:
         >>> run = CarlaRun("data/CARLA/t10_s0_r-5")           # doctest: +SKIP
@@ -178,8 +179,9 @@ class CarlaRun:
             raise FileNotFoundError(f"root: {str(self.root)!r} has no rgb/ folder (expected the paper's CARLA layout)")
         # only regular, visible files: a hidden one (macOS ._NNN.png, an atomic writer's temporary)
         # would change the frame order and so the pairs
-        frames = (p for p in (self.root / "rgb").glob("*.png") if p.is_file() and not p.name.startswith("."))
-        self.frames = [p.stem for p in in_frame_order(frames)]
+        visible = [p for p in (self.root / "rgb").glob("*.png") if not p.name.startswith(".")]
+        check_no_broken_links(visible, "root")  # (a frame left out would pair its neighbours)
+        self.frames = [p.stem for p in in_frame_order(p for p in visible if p.is_file())]
         if not self.frames:
             raise ValueError(f"root: {str(self.root / 'rgb')!r} holds no PNG frames")
         self.params = parse_carla_run_name(self.root.name)

@@ -48,6 +48,17 @@ def check_frame_names(paths: Iterable[str | os.PathLike], name: str = "images") 
         seen[p.stem] = p
 
 
+def check_no_broken_links(paths: Iterable[str | os.PathLike], name: str) -> None:
+    """Raise a FileNotFoundError naming ``name`` where one of ``paths`` is a symbolic link whose
+    target is missing (a data set linked from a drive that is not mounted): the listers of frames
+    keep regular files only, so such a frame would be left out silently and its neighbours paired
+    with each other, a pair two frames apart under a name that says one."""
+    for p in map(Path, paths):
+        if p.is_symlink() and not p.exists():
+            raise FileNotFoundError(f"{name}: {str(p)!r} is a symbolic link to {os.readlink(p)!r}, which does not "
+                                    f"exist; mount or copy the data it points to, or remove the link")
+
+
 def frame_numbers(stems: Iterable[str]) -> list[int] | None:
     """The frame numbers of frame names (stems) that are one text around a number: every name a
     number (``0``, ``5``, ``10``), or the same text and the same other numbers around one number
