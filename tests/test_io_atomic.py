@@ -152,6 +152,8 @@ class TestPermissions:
 
     @pytest.mark.parametrize("mode", [0o600, 0o640, 0o444])
     def test_file_written_over_keeps_its_mode(self, tmp_path, mode):
+        if mode == 0o444 and os.geteuid() != 0:
+            pytest.skip("a read-only file is written over by root only (test_read_only_file_is_not_written_over)")
         """open() keeps the mode of a file it writes over; a private 0o600 file once became 0o644."""
         import stat
 
@@ -195,6 +197,47 @@ class TestTargets:
             assert tmp.suffix == (tmp_path / name).suffix or len(tmp_path.joinpath(name).suffix) > 200
             tmp.write_bytes(b"1")
         assert (tmp_path / name).read_bytes() == b"1" and _leftovers(tmp_path) == []
+
+    def test_read_only_file_is_not_written_over(self, tmp_path, monkeypatch):
+        """A file the process may not write (chmod a-w to keep it: ground truth) was replaced by the
+        rename all the same, where open() refuses it. Root writes into any file: the test takes the
+        view of another user through os.access, which decides for the writer as for open()."""
+        import fsof_torch.io.atomic as atomic
+
+        path = tmp_path / "flow_gt.txt"
+        path.write_text("precious")
+        os.chmod(path, 0o444)
+        if os.geteuid() == 0:
+            real = os.access
+            monkeypatch.setattr(atomic.os, "access", lambda p, mode: not (mode & os.W_OK) and real(p, mode))
+        with pytest.raises(PermissionError, match=r"^path: '.*flow_gt\.txt' is read-only \(mode 0o444\); make it "
+                                                  r"writable to write over it"):
+            write_text(path, "overwritten")
+        assert path.read_text() == "precious" and _leftovers(tmp_path) == []
+        assert atomic.creation_error(path, "--json") == f"--json: {str(path)!r} is read-only, so it cannot be written over"
+
+    def test_folder_not_writable_names_the_target(self, tmp_path, monkeypatch):
+        """A folder the process may not write into: the error quoted the hidden temporary's name."""
+        import errno
+
+        import fsof_torch.io.atomic as atomic
+
+        real_open = os.open
+
+        def refuse(file, flags, mode=0o777):  # what a non-root user meets in a read-only folder
+            raise PermissionError(errno.EACCES, "Permission denied", str(file))
+
+        os.chmod(tmp_path, 0o555)
+        try:
+            if os.geteuid() == 0:
+                monkeypatch.setattr(atomic.os, "open", refuse)
+            with pytest.raises(PermissionError, match=rf"path: cannot write '.*out\.png': the folder "
+                                                      rf"'{tmp_path}' is not writable \(Permission denied\)"):
+                write_bytes(tmp_path / "out.png", b"1")
+        finally:
+            monkeypatch.setattr(atomic.os, "open", real_open)
+            os.chmod(tmp_path, 0o755)
+        assert list(tmp_path.iterdir()) == []
 
     def test_folder_at_the_target(self, tmp_path):
         """A folder where the file goes once failed in os.replace, quoting the temporary's name."""

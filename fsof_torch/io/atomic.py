@@ -11,7 +11,9 @@ leaves it behind; :func:`remove_stale_temporaries` removes such leftovers from a
 job writes there again.
 
 Permissions follow ``open()``: a new file gets mode ``0o666`` less the process's umask, a file
-written over keeps its permission bits (a private ``0o600`` file stays private). The temporary is
+written over keeps its permission bits (a private ``0o600`` file stays private), and a file the
+process may not write (read-only to it: ``os.access``) is a PermissionError naming it, not
+replaced; a folder it may not write into is a PermissionError naming the target. The temporary is
 the owner's to write (``0o600``) while it is written and gets that mode just before the rename, so
 a umask that takes the owner's write bit (``0o222``) gives read-only files, as ``open()`` does,
 rather than a temporary nobody can write into. A target that is a symbolic link is written through
@@ -55,7 +57,8 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     writers of raw bytes and text, where an empty file is data.
 
     As with ``open()``, a file written over keeps its permission bits (a new one gets ``0o666``
-    less the umask) and a symbolic link is written through: the file it points to is replaced.
+    less the umask), a file the process may not write is a PermissionError naming it (never
+    replaced), and a symbolic link is written through: the file it points to is replaced.
     A folder at ``path`` is an IsADirectoryError naming it, raised before anything is written.
 
     Example:
@@ -70,6 +73,11 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     folder = path.parent
     if not folder.is_dir():
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
+    if path.exists() and not os.access(path, os.W_OK):
+        # open() refuses to write into it; a rename would replace it all the same (a file made
+        # read-only to keep it, such as ground truth, was written over)
+        raise PermissionError(f"path: {str(path)!r} is read-only (mode {oct(stat.S_IMODE(path.stat().st_mode))}); "
+                              f"make it writable to write over it, or write elsewhere")
     tmp, mode = _create_temporary(folder, path)
     try:
         yield tmp
@@ -118,6 +126,9 @@ def _create_temporary(folder: Path, path: Path) -> tuple[Path, int]:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:  # pragma: no cover - 64 random bits
             continue
+        except PermissionError as err:  # (naming the target, not the hidden temporary)
+            raise PermissionError(err.errno, f"path: cannot write {str(path)!r}: the folder {str(folder)!r} is "
+                                             f"not writable ({err.strerror})") from None
         try:
             mode = stat.S_IMODE(os.fstat(fd).st_mode)
             os.fchmod(fd, 0o600)
@@ -220,6 +231,8 @@ def creation_error(path: str | os.PathLike, option: str) -> str | None:
     cannot be written into), as a message naming ``option``; None where it can. The jobs check
     their outputs with it before any work."""
     path = Path(path)
+    if path.is_file() and not os.access(path, os.W_OK):
+        return f"{option}: {str(path)!r} is read-only, so it cannot be written over"
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
