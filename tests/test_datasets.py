@@ -557,6 +557,20 @@ def test_kitti_frame_linked_to_a_missing_file_is_an_error(kitti_root, frame):
         KittiFlowDataset(root)
 
 
+def test_kitti_semantic_class_ids_are_no_hand_labels(kitti_root):
+    """KITTI's semantic segmentation ground truth (single-channel class IDs, road = 7) has the flow
+    data set's names and folder (training/semantic/NAME_10.png): unzipped beside the flow, it was
+    read as the paper's red hand labels, a road mask empty without a word."""
+    root, _ = kitti_root
+    ids = np.full(SIZE, 21, np.uint8)  # vegetation
+    ids[15:] = 7  # road
+    cv2.imwrite(str(root / "semantic" / "000001_10.png"), ids)
+    assert KittiFlowDataset(root)[0]["road"].any()  # the hand labels of the other pair still read
+    with pytest.raises(ValueError, match=r"root: '.*semantic/000001_10\.png' is a single-channel uint8 image \(class "
+                                         r"IDs, such as KITTI's semantic segmentation ground truth"):
+        KittiFlowDataset(root)[1]
+
+
 def test_kitti_pair_missing_its_flow_file_is_an_error(kitti_root):
     """A flow folder without one pair's file (deleted, not copied) raises naming it when the pair
     loads: that pair's item had flow None, silently, beside pairs with ground truth."""

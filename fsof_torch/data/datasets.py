@@ -40,7 +40,7 @@ from torch.utils.data import Dataset
 from .._check import as_path, check_bool, check_int, check_size
 from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
-from ..io.images import check_no_broken_links, read_image
+from ..io.images import check_no_broken_links, read_image, read_image_array
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
@@ -82,6 +82,21 @@ def _fits(x: Tensor, path: Path, size: tuple[int, int], image: Path, root: str) 
         raise ValueError(f"{root}: {str(path)!r} is {x.shape[-2]}x{x.shape[-1]}, but the pair's image "
                          f"{image.name} is {size[0]}x{size[1]}; every file of a pair needs its images' size")
     return x
+
+
+def _hand_labelled_road(path: Path, size: tuple[int, int], image: Path) -> Tensor:
+    """The road of the paper's hand labels ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0)).
+    A single-channel PNG holds class IDs, such as KITTI's own semantic segmentation ground truth,
+    whose ``semantic/`` folder has the same names: it has no red, and read as colours it was an
+    empty road; a ValueError naming ``root`` and the file."""
+    array = read_image_array(path, what="semantic PNG (the paper's hand labels, road painted red)")
+    if array.ndim == 2 or array.shape[2] == 1:
+        raise ValueError(f"root: {str(path)!r} is a single-channel {array.dtype} image (class IDs, such as KITTI's "
+                         f"semantic segmentation ground truth, whose semantic/ folder has these names); semantic/ "
+                         f"is read as the paper's hand labels, road painted RGB {KITTI_ROAD_COLOR}: move the class "
+                         f"IDs elsewhere, or give road masks in road/")
+    colors = _fits(read_image(path), path, size, image, "root")
+    return mask_from_colors(colors, [KITTI_ROAD_COLOR])
 
 
 def _images_and_camera(sample: dict[str, Any]) -> dict[str, Any]:
@@ -192,7 +207,8 @@ class KittiFlowDataset(Dataset):
     the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
     ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
-    ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0)). No odometry (KITTI flow has none).
+    ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0); a single-channel PNG there, such as
+    KITTI's semantic segmentation ground truth of class IDs, is a ValueError naming ``root``). No odometry (KITTI flow has none).
     Every file of a pair (second image, flow, road) must have the size of its ``NAME_10.png``: one
     of another size is a ValueError naming ``root`` and the file, never resized.
 
@@ -290,8 +306,7 @@ class KittiFlowDataset(Dataset):
             if road.is_file():
                 truth["road"] = _fits(read_road_mask(road), road, size, first, "root")
             elif semantic.is_file():
-                colors = _fits(read_image(semantic), semantic, size, first, "root")
-                truth["road"] = mask_from_colors(colors, [KITTI_ROAD_COLOR])
+                truth["road"] = _hand_labelled_road(semantic, size, first)
         return make_item(image1, image2, index=i, name=name, camera=self.camera(name), **truth)
 
 
