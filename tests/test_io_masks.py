@@ -48,6 +48,24 @@ class TestSmoke:
         mask = read_road_mask(tmp_path / "rgba.png")
         assert mask[0, 2:].all() and not mask[0, :2].any()
 
+    def test_kitti_road_ground_truth(self, tmp_path):
+        """KITTI's road benchmark ground truth paints road magenta and the rest of the valid area
+        red (its devkit: road where the blue channel is set); any channel nonzero read the red
+        non-road as road too (here: the whole image). Red alone on black stays a mask."""
+        rgb = np.zeros((4, 6, 3), np.uint8)
+        rgb[1:] = (255, 0, 0)  # valid, not road
+        rgb[2:, 1:5] = (255, 0, 255)  # road
+        cv2.imwrite(str(tmp_path / "um_road_000000.png"), rgb[..., ::-1])
+        road = torch.zeros(1, 4, 6, dtype=torch.bool)
+        road[0, 2:, 1:5] = True
+        assert torch.equal(read_road_mask(tmp_path / "um_road_000000.png"), road)
+        cv2.imwrite(str(tmp_path / "rgba.png"), np.concatenate([rgb[..., ::-1], np.full((4, 6, 1), 255, np.uint8)], 2))
+        assert torch.equal(read_road_mask(tmp_path / "rgba.png"), road)
+        red = np.where(rgb == 255, rgb, 0)
+        red[..., 2] = 0  # red only: the paper's way of painting road
+        cv2.imwrite(str(tmp_path / "red.png"), red[..., ::-1])
+        assert torch.equal(read_road_mask(tmp_path / "red.png")[0], torch.from_numpy(red[..., 0] > 0))
+
     def test_png_resized_nearest(self, tmp_path):
         mask = torch.zeros(1, 4, 6, dtype=torch.bool)
         mask[0, 2:] = True

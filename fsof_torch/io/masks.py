@@ -222,8 +222,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
     """A road mask as (1, H, W) bool.
 
     Args:
-        path: a PNG (any colour channel nonzero = road; an alpha channel is ignored) or a polygon
-            JSON (the formats in the module docstring).
+        path: a PNG (any colour channel nonzero = road; an alpha channel is ignored; a KITTI
+            road benchmark ground truth, road magenta and the rest of the valid area red, reads
+            the magenta) or a polygon JSON (the formats in the module docstring).
         size: (H, W) wanted. A PNG of another size is resized with nearest-neighbour sampling. A
             JSON's polygon is drawn at its own ``"size"`` scaled to ``size`` (pixel centres map as
             ``u' + 0.5 = s (u + 0.5)``); a JSON without ``"size"`` needs ``size``.
@@ -279,11 +280,27 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         # the alpha channel (grey + alpha, BGRA) is opacity, not road: an opaque mask would be all road
         if array.shape[2] in (2, 4):
             array = array[:, :, :-1]
-        array = array.max(axis=2)
+        road = _kitti_road_ground_truth(array)
+        array = array.max(axis=2) if road is None else road
     mask = array > 0
     if size is not None and mask.shape != size:
         mask = cv2.resize(mask.astype(np.uint8), (size[1], size[0]), interpolation=cv2.INTER_NEAREST) > 0
     return torch.from_numpy(np.ascontiguousarray(mask)).unsqueeze(0)
+
+
+def _kitti_road_ground_truth(bgr: np.ndarray) -> np.ndarray | None:
+    """The road of a KITTI road benchmark ground truth (``gt_image_2/*_road_*.png``), where a
+    colour PNG is one: every coloured pixel red (R = max, G = 0), road magenta (B > 0: the
+    devkit's road area), the rest of the valid area red (B = 0). Read as any channel nonzero,
+    the red non-road would be road. None for any other image."""
+    if bgr.shape[2] != 3 or bgr[:, :, 1].any():
+        return None
+    blue, red = bgr[:, :, 0], bgr[:, :, 2]
+    top = np.iinfo(bgr.dtype).max
+    coloured = (blue > 0) | (red > 0)
+    if not ((red[coloured] == top).all() and (coloured & (blue == 0)).any() and (blue > 0).any()):
+        return None
+    return blue
 
 
 def write_road_mask(path: str | os.PathLike, mask: Tensor | np.ndarray) -> Path:
