@@ -159,6 +159,13 @@ class TestFeature:
         back, valid = read_depth_png(tmp_path / "d.png")
         assert valid.tolist() == [[[False, True, False, False]]] and float(back[0, 0, 1]) == 1.5
 
+    @pytest.mark.parametrize("name", ["d.jpg", "d.bmp", "d.tif"])
+    def test_depth_png_only(self, tmp_path, name):
+        """.jpg/.bmp raised naming `array`, no argument of the writer's; .tif wrote another format."""
+        with pytest.raises(ValueError, match=r"^path: a depth map is written as \.png"):
+            write_depth_png(tmp_path / name, torch.ones(1, 3, 4))
+        assert list(tmp_path.iterdir()) == []
+
 
 class TestExceptions:
     def test_missing_keys(self, tmp_path):

@@ -114,6 +114,14 @@ class TestExceptions:
         with pytest.raises(ValueError, match="encoding holds"):
             write_vkitti2_flow(tmp_path / "big.png", torch.full((2, 3, 3), 10.0))
 
+    @pytest.mark.parametrize("name", ["f.jpg", "f.bmp", "f.tif", "f"])
+    def test_writer_takes_png_only(self, tmp_path, name):
+        """A VKITTI2 flow is a 16-bit PNG: .jpg/.bmp raised naming `array`, no argument of the
+        writer's, and .tif wrote a file of another format."""
+        with pytest.raises(ValueError, match=r"^path: a Virtual KITTI 2 flow is written as \.png"):
+            write_vkitti2_flow(tmp_path / name, torch.zeros(2, 3, 4))
+        assert list(tmp_path.iterdir()) == []
+
     def test_table_checks(self, tmp_path):
         (tmp_path / "intrinsic.txt").write_text("frame cameraID K[0,0] K[1,1] K[0,2] K[1,2]\n0 0 1 1 1\n")
         with pytest.raises(ValueError, match="5 columns"):

@@ -64,7 +64,7 @@ from .._check import check_has_values
 from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
-from .images import read_image, read_image_array, write_image, write_image_array
+from .images import check_image_suffix, read_image, read_image_array, write_image, write_image_array
 from .kitti import check_rigid_poses, read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
 from .masks import read_label_map, read_road_mask, write_label_map, write_road_mask
 
@@ -156,7 +156,12 @@ def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: flo
 
 
 def write_depth_png(path: str | os.PathLike, depth: Tensor) -> Path:
-    """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none)."""
+    """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none).
+
+    Depth that is not finite, not positive, under 1/512 m (it rounds to 0) or beyond 65535/256 =
+    255.996 m is written as none (sky). ``path`` must end in .png (another suffix: a ValueError
+    naming it)."""
+    path = check_image_suffix(path, (".png",), "depth map")
     if not isinstance(depth, Tensor) or not depth.is_floating_point():
         raise TypeError("depth: expected a float tensor of shape (1, H, W)")
     if depth.dim() not in (2, 3) or (depth.dim() == 3 and depth.shape[0] != 1) or min(depth.shape[-2:]) < 1:

@@ -27,7 +27,7 @@ import torch
 from torch import Tensor
 
 from .._check import as_path, as_chw_flow, result_dtype, skip_values
-from .images import read_image_array, write_image_array
+from .images import check_image_suffix, read_image_array, write_image_array
 from .kitti import check_rigid_poses, flow_valid_pixels
 
 __all__ = [
@@ -72,8 +72,9 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
     pixels (invalid pixels are written as 0 flow, whatever they held). Valid flow must lie within
     ±(W - 1) horizontally and ±(H - 1) vertically, the range of the encoding: an image 1 pixel
     wide (high) stores u = 0 (v = 0) only, since the reader scales by W - 1 = 0 (H - 1); else a
-    ValueError naming ``flow``.
+    ValueError naming ``flow``. ``path`` must end in .png (another suffix: a ValueError naming it).
     """
+    path = check_image_suffix(path, (".png",), "Virtual KITTI 2 flow")
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     _, height, width = flow.shape
     valid_hw = flow_valid_pixels(flow, valid)
