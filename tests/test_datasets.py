@@ -4,6 +4,7 @@ CARLA runs; collate with DataLoader."""
 from __future__ import annotations
 
 import math
+import shutil
 
 import cv2
 import numpy as np
@@ -518,6 +519,31 @@ class TestPairChecks:
         with pytest.raises(ValueError, match=rf"^run: '.*{bad}' is 14x16, but the pair's image 00000000\.png "
                                              rf"is 12x16"):
             CarlaRunDataset(run)[0]
+
+    @pytest.mark.parametrize("missing", ["optical_flow/00000001.tif", "semantic/00000001.png"])
+    def test_carla_pair_missing_its_ground_truth_is_an_error(self, tmp_path, missing):
+        """A run's optical_flow/ or semantic/ without one pair's file (not copied) gave that item
+        no flow_velocity or road, without a word, as KITTI's flow folder once did."""
+        run = tmp_path / "t10_s0_r0"
+        for sub in ("rgb", "optical_flow", "semantic"):
+            (run / sub).mkdir(parents=True)
+        for k in range(3):
+            write_image(run / "rgb" / f"{k:08d}.png", torch.zeros(3, 12, 16))
+            write_carla_flow(run / "optical_flow" / f"{k:08d}.tif", torch.zeros(2, 12, 16))
+            cv2.imwrite(str(run / "semantic" / f"{k:08d}.png"), np.zeros((12, 16, 3), np.uint8))
+        (run / missing).unlink()
+        ds = CarlaRunDataset(run)
+        assert ds[0]["flow_velocity"] is not None and ds[0]["road"] is not None
+        folder, name = missing.split("/")
+        with pytest.raises(FileNotFoundError, match=rf"^run: '.*t10_s0_r0' has {folder}/ but no {name} there for "
+                                                    rf"the pair 00000001"):
+            ds[1]
+        ds.ground_truth = False
+        check_item(ds[1])
+        shutil.rmtree(run / folder)  # a run without the folder has no such ground truth
+        ds.ground_truth = True
+        item = ds[1]
+        assert ("flow_velocity" not in item) if folder == "optical_flow" else item["road"] is None
 
     def test_carla_frames_numbered_without_padding_pair_in_order(self, tmp_path):
         """Frames 98, 99, 100: pairs (98, 99) and (99, 100), not the names' order 100, 98, 99."""

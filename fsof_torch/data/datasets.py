@@ -398,7 +398,9 @@ class CarlaRunDataset(Dataset):
     semantic PNG; ``camera`` from :func:`fsof_torch.io.carla_camera` with the roll of the run name
     (``r`` in degrees). Pairs are named after frame k. Every file of a pair (frame k + 1, flow,
     semantic PNG) must have the size of frame k: one of another size is a ValueError naming ``run``
-    and the file. ``camera_height`` (metres, default 2.4) must be a positive number within the
+    and the file; a run with an ``optical_flow/`` or ``semantic/`` folder that lacks a pair's file is
+    a FileNotFoundError naming ``run`` and the file when the pair loads (never an item without that
+    ground truth). ``camera_height`` (metres, default 2.4) must be a positive number within the
     camera's bounds (checked here, not at the first item). The run's name is that of the folder itself (``.`` or ``run/rgb/..``
     is made absolute first); a run of fewer than two frames is a ValueError naming ``run``.
     """
@@ -427,11 +429,21 @@ class CarlaRunDataset(Dataset):
                               dtype=self.camera_dtype)
         truth: dict[str, Any] = {}
         if self.ground_truth:
-            path = self.run.path("optical_flow", a)
-            if path.is_file():
+            path = self._truth_file("optical_flow", a)
+            if path is not None:
                 flow, valid = read_carla_flow(path)
                 truth["flow_velocity"], truth["valid"] = _fits(flow, path, size, first, "run").to(self.dtype), valid
-            path = self.run.path("semantic", a)
-            if path.is_file():
+            path = self._truth_file("semantic", a)
+            if path is not None:
                 truth["road"] = _fits(read_carla_road(path), path, size, first, "run")
         return make_item(image1, image2, index=i, name=a, camera=camera, **truth)
+
+    def _truth_file(self, kind: str, frame: str) -> Path | None:
+        """The frame's file of ``kind`` (``optical_flow``, ``semantic``); None where the run has no
+        such folder. A folder without the frame's file is a FileNotFoundError naming ``run`` and the
+        file, never an item without that ground truth."""
+        path = self.run.path(kind, frame)
+        if path.is_file() or not path.parent.is_dir():
+            return path if path.is_file() else None
+        raise FileNotFoundError(f"run: {str(self.run.root)!r} has {kind}/ but no {path.name} there for the pair "
+                                f"{frame}; every pair of a run with ground truth needs its file")
