@@ -597,6 +597,28 @@ def test_kitti_semantic_class_ids_are_no_hand_labels(kitti_root):
         KittiFlowDataset(root)[1]
 
 
+@pytest.mark.parametrize("missing", ["calib_cam_to_cam/000001.txt", "semantic/000001_10.png"])
+def test_kitti_pair_missing_its_calibration_or_road_is_an_error(kitti_root, missing):
+    """A calibration or road folder without one pair's file (not copied) gave that item no camera
+    or no road, without a word; K= still fills a missing calibration, and a folder without files
+    (or none) is no calibration."""
+    root, K = kitti_root
+    (root / missing).unlink()
+    ds = KittiFlowDataset(root)
+    assert ds[0]["camera"] is not None and ds[0]["road"] is not None
+    folder, name = missing.split("/")
+    with pytest.raises(FileNotFoundError, match=rf"^root: '.*kitti' has {folder}/ but no {name} there"):
+        ds[1]
+    if folder == "calib_cam_to_cam":
+        torch.testing.assert_close(KittiFlowDataset(root, K=K)[1]["camera"].K[0], K.float())
+    else:
+        from fsof_torch.io import write_road_mask
+
+        (root / "road").mkdir()
+        write_road_mask(root / "road" / "000001_10.png", torch.ones(1, *SIZE, dtype=torch.bool))
+        assert KittiFlowDataset(root)[1]["road"].all()  # road/ has it: the pair has its mask
+
+
 def test_kitti_pair_missing_its_flow_file_is_an_error(kitti_root):
     """A flow folder without one pair's file (deleted, not copied) raises naming it when the pair
     loads: that pair's item had flow None, silently, beside pairs with ground truth."""

@@ -205,10 +205,14 @@ class KittiFlowDataset(Dataset):
     non-occluded ones; a pair without its file in the folder a FileNotFoundError naming ``root``
     and the file, not a pair without ground truth);
     the camera from ``calib_cam_to_cam/NAME.txt`` (``P_rect_0{cam}``, KITTI 2015) or
-    ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None;
+    ``calib/NAME.txt`` (``P{cam}`` or ``P_rect_0{cam}``), else from ``K`` if given, else None
+    (where one of those folders holds other pairs' files but no ``NAME.txt``, a
+    FileNotFoundError naming ``root`` and the file when the pair loads);
     the road from ``road/NAME_10.png`` (nonzero = road) or the paper's hand labels
     ``semantic/NAME_10.png`` (road painted RGB (255, 0, 0); a single-channel PNG there, such as
-    KITTI's semantic segmentation ground truth of class IDs, is a ValueError naming ``root``). No odometry (KITTI flow has none).
+    KITTI's semantic segmentation ground truth of class IDs, is a ValueError naming ``root``; a
+    pair with neither file where one of the folders is there, a FileNotFoundError naming ``root``
+    and the file when the pair loads). No odometry (KITTI flow has none).
     Every file of a pair (second image, flow, road) must have the size of its ``NAME_10.png``: one
     of another size is a ValueError naming ``root`` and the file, never resized.
 
@@ -271,13 +275,19 @@ class KittiFlowDataset(Dataset):
 
     def camera(self, name: str) -> Camera | None:
         """The Camera (batch 1) of pair ``name``, or None when neither a file nor ``K`` gives one."""
-        for folder in ("calib_cam_to_cam", "calib"):
+        folders = ("calib_cam_to_cam", "calib")
+        for folder in folders:
             path = self.root / folder / f"{name}.txt"
             if path.is_file():
                 P = read_kitti_calibration(path, self.cam)
                 return Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
         if self.K is not None:  # each item its own K: editing one changes no other, nor the caller's
             return Camera(self.K.to(self.camera_dtype, copy=True), self.camera_height)
+        # a folder of other pairs' calibrations without this pair's: not a pair without a camera
+        present = [f for f in folders if (self.root / f).is_dir() and any((self.root / f).glob("*.txt"))]
+        if present:
+            raise FileNotFoundError(f"root: {str(self.root)!r} has {present[0]}/ but no {name}.txt there for the "
+                                    f"pair {name}; give every pair its calibration, or K= for those without")
         return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:
@@ -307,6 +317,10 @@ class KittiFlowDataset(Dataset):
                 truth["road"] = _fits(read_road_mask(road), road, size, first, "root")
             elif semantic.is_file():
                 truth["road"] = _hand_labelled_road(semantic, size, first)
+            elif road.parent.is_dir() or semantic.parent.is_dir():  # (not a pair without road)
+                raise FileNotFoundError(f"root: {str(self.root)!r} has {'road' if road.parent.is_dir() else 'semantic'}/"
+                                        f" but no {road.name} there (nor in the other of road/, semantic/) for the "
+                                        f"pair {name}; every pair of a folder with road masks needs its mask")
         return make_item(image1, image2, index=i, name=name, camera=self.camera(name), **truth)
 
 
