@@ -212,6 +212,40 @@ def test_kitti_exceptions(tmp_path):
         Camera.from_projection(torch.zeros(3, 3), 1.65)
 
 
+# KITTI tracking's calib/NNNN.txt: P rows keyed with a colon, the others with a space
+TRACKING = (
+    "P0: 7.215377e+02 0 6.095593e+02 0 0 7.215377e+02 1.72854e+02 0 0 0 1 0\n"
+    "P1: 7.215377e+02 0 6.095593e+02 -3.875744e+02 0 7.215377e+02 1.72854e+02 0 0 0 1 0\n"
+    "P2: 7.215377e+02 0 6.095593e+02 4.485728e+01 0 7.215377e+02 1.72854e+02 2.163791e-01 0 0 1 2.745884e-03\n"
+    "P3: 7.215377e+02 0 6.095593e+02 -3.395242e+02 0 7.215377e+02 1.72854e+02 2.199936e+00 0 0 1 2.729905e-03\n"
+    "R_rect 9.999239e-01 9.837760e-03 -7.445048e-03 -9.869795e-03 9.999421e-01 -4.278459e-03 7.402527e-03 "
+    "4.351614e-03 9.999631e-01\n"
+    "Tr_velo_cam\t7.533745e-03 -9.999714e-01 -6.166020e-04 -4.069766e-03 1.480249e-02 7.280733e-04 -9.998902e-01 "
+    "-7.631618e-02 9.998621e-01 7.523790e-03 1.480755e-02 -2.717806e-01\n"
+)
+
+
+def test_kitti_tracking_calibration(tmp_path):
+    """KITTI tracking keys its R_rect and Tr_velo_cam rows with a space, not a colon: the reader
+    took them for unlabelled rows of numbers and refused the file ('R_rect' is no number), so no
+    KITTI tracking sequence could be read. The dataset picks camera 2 there, as for a labelled file."""
+    (tmp_path / "0000.txt").write_text(TRACKING)
+    P = read_kitti_calibration(tmp_path / "0000.txt", 2)
+    assert P[0, 3] == pytest.approx(44.85728) and P[2, 3] == pytest.approx(2.745884e-3)
+    assert read_kitti_calibration(tmp_path / "0000.txt", 1)[0, 3] == pytest.approx(-387.5744)
+    from fsof_torch.data.folders import ImageFolderDataset
+    from fsof_torch.io import write_image
+
+    (tmp_path / "frames").mkdir()
+    for k in range(2):
+        write_image(tmp_path / "frames" / f"{k:06d}.png", torch.zeros(3, 375, 1242))
+    camera = ImageFolderDataset(tmp_path / "frames", tmp_path / "0000.txt").camera
+    assert float(camera.cx[0]) == pytest.approx(609.5593)
+    # a row of numbers keyed by a name without a colon is still a key, not an unlabelled row
+    (tmp_path / "spaced.txt").write_text("P0 1 0 2 0 0 1 3 0 0 0 1 0\n")
+    assert read_kitti_calibration(tmp_path / "spaced.txt", 0)[1, 2] == 3.0
+
+
 @pytest.mark.parametrize("text, cam, message", [
     (CAM_TO_CAM + CAM_TO_CAM.splitlines()[5] + "\n", 2, r"line 7 of '.*' repeats the key 'P_rect_02' of line 6"),
     (ODOMETRY_LABELLED + "P2: 1 0 1 0 0 1 1 0 0 0 1 0\n", 2, r"line 5 of '.*' repeats the key 'P2' of line 3"),

@@ -42,7 +42,7 @@ from torch import Tensor
 from torch.utils.data import Dataset
 
 from .._check import check_has_values, check_int, check_number, check_size
-from ..geometry.camera import Camera, read_kitti_calibration
+from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
 from ..io.images import check_frame_names, check_no_broken_links, frame_numbers, in_frame_order, read_image
@@ -238,9 +238,9 @@ def _has_camera_row(calib: Path, cam: int) -> bool:
         return True  # the calibration reader reports the file
     keys, unlabelled = set(), 0
     for line in filter(None, map(str.strip, text.splitlines())):
-        key, sep, _ = line.partition(":")
-        if sep:
-            keys.add(key.strip())
+        key, _ = split_calibration_line(line)
+        if key is not None:
+            keys.add(key)
         else:
             unlabelled += 1
     labelled = any(re.fullmatch(r"P(_rect_)?[0-9]+", k) for k in keys)

@@ -38,7 +38,7 @@ from .._check import (
 )
 
 __all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration",
-           "camera_value_bounds", "check_camera_index"]
+           "camera_value_bounds", "check_camera_index", "split_calibration_line"]
 
 
 def roll_matrix(roll: Tensor) -> Tensor:
@@ -466,14 +466,36 @@ def _pixel_amounts(method: str, **amounts: object) -> dict[str, int]:
     return out
 
 
+_CALIBRATION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+
+
+def split_calibration_line(line: str) -> tuple[str | None, str]:
+    """``(key, values)`` of a KITTI calibration line, or ``(None, line)`` for an unlabelled row.
+
+    Keys end in a colon (``P2: ...``, ``P_rect_02: ...``, ``calib_time: 09-Jan-2012 ...``), or,
+    in KITTI tracking's ``calib/NNNN.txt``, a space (``R_rect 9.99e-01 ...``, ``Tr_velo_cam ...``):
+    a first word that is a name, not a number. The line is stripped."""
+    line = line.strip()
+    key, sep, rest = line.partition(":")
+    if sep:
+        return key.strip(), rest
+    first, *rest = line.split(None, 1)
+    if _CALIBRATION_KEY.fullmatch(first) and first.lower() not in ("nan", "inf", "infinity"):
+        return first, rest[0] if rest else ""
+    return None, line
+
+
 def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tensor":
     """The 3×4 rectified projection matrix of camera ``cam`` from a KITTI calibration file.
 
     Reads ``calib_cam_to_cam.txt`` (key ``P_rect_0{cam}``) or the odometry ``calib.txt``
-    (key ``P{cam}``, or, in a file without labelled ``P`` rows, unlabelled rows in order). A
-    UTF-8 byte-order mark is skipped. Raises ValueError naming the path (and the row) for a
-    missing or malformed row, one holding NaN or inf, a key given twice, or both ``P_rect_0{cam}``
-    and ``P{cam}`` with different values (naming both lines).
+    (key ``P{cam}``, or, in a file without labelled ``P`` rows, unlabelled rows in order), and
+    KITTI tracking's and object detection's ``calib`` files (``P{cam}:``; their other rows,
+    ``R_rect`` / ``Tr_velo_cam`` keyed by a space rather than a colon, are not read:
+    :func:`split_calibration_line`). A UTF-8 byte-order mark is skipped. Raises ValueError
+    naming the path (and the row) for a missing or malformed row, one holding NaN or inf, a key
+    given twice, or both ``P_rect_0{cam}`` and ``P{cam}`` with different values (naming both
+    lines).
     """
     path = existing_file(path, "calibration file")
     cam = check_camera_index(cam)
@@ -489,8 +511,8 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
         line = line.strip()
         if not line:
             continue
-        key, sep, rest = line.partition(":")
-        key = key.strip()
+        key, rest = split_calibration_line(line)
+        sep = key is not None
         if sep and key in key_lines:  # which of the two rows would be the calibration?
             raise ValueError(f"path: line {n} of {str(path)!r} repeats the key {key!r} of line {key_lines[key]}; "
                              f"expected each key once")
