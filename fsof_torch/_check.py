@@ -475,10 +475,14 @@ def check_all_finite(named: dict[str, Tensor]) -> None:
 
 
 def as_path(path: object, name: str = "path") -> Path:
-    """``path`` as a ``pathlib.Path``: a str or an os.PathLike, else a TypeError naming it."""
+    """``path`` as a ``pathlib.Path``: a str or an os.PathLike, else a TypeError naming it (a
+    ValueError for one holding a NUL character, which no file system takes)."""
     if isinstance(path, bool) or not isinstance(path, (str, os.PathLike)):
         raise TypeError(f"{name}: expected a file path (str or os.PathLike), got {type(path).__name__} {path!r:.60}")
-    return Path(path)
+    path = Path(path)
+    if "\x00" in str(path):  # (the system refuses it: os.open's "embedded null byte" named nothing)
+        raise ValueError(f"{name}: a file path holds no NUL character, got {str(path)!r}")
+    return path
 
 
 def existing_file(path: object, what: str = "file") -> Path:

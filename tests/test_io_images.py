@@ -94,6 +94,20 @@ class TestExceptions:
         with pytest.raises(TypeError, match="path: expected a file path .str or os.PathLike., got NoneType"):
             fs.write_flow(None, torch.zeros(2, 4, 4))  # the writers, through atomic_path
 
+    def test_a_path_holding_a_nul_character_is_named(self, tmp_path):
+        """The writers raised the system's bare "embedded null byte", naming no argument."""
+        import fsof_torch as fs
+        from fsof_torch.io import write_json, write_kitti_poses
+
+        bad = str(tmp_path / "a\x00b.png")
+        for write in (lambda: fs.write_image(bad, torch.zeros(3, 2, 2)), lambda: fs.write_flow(bad, torch.zeros(2, 2, 2)),
+                      lambda: write_json(bad, {}), lambda: write_kitti_poses(bad, torch.eye(4)[None])):
+            with pytest.raises(ValueError, match=r"^path: a file path holds no NUL character, got '.*a\\x00b\.png'$"):
+                write()
+        with pytest.raises(ValueError, match=r"^path: a file path holds no NUL character"):
+            fs.read_image(bad)
+        assert list(tmp_path.iterdir()) == []
+
     def test_write_checks(self, tmp_path):
         with pytest.raises(ValueError, match=r"0\.\.255 scale"):
             write_image(tmp_path / "a.png", torch.full((3, 4, 4), 300.0))
