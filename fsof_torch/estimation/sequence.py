@@ -17,7 +17,7 @@ without it: a dropped frame, a repeated one). Then:
    nothing, nor do pairs that do not move (a stop: without a translation the road's normal does
    not enter the homography, and the fit's attitude is its prior's), nor pairs whose images fix
    the attitude less well than the prior does (a posterior variance above half the prior's: a
-   vehicle creeping by centimetres, whose fit's attitude lies between the prior's and the
+   vehicle creeping by millimetres, whose fit's attitude lies between the prior's and the
    truth): where no pair's fit succeeds and shows the attitude, the input camera's mounting
    stays and the second pass,
    which would only repeat the first, is skipped (with ``keep_fits`` the first runs again to keep
