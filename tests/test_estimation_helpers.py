@@ -106,6 +106,79 @@ def test_decompose_homography_is_exact_for_a_road_tilted_from_the_camera(droll, 
         assert float(fit.params[k]) == pytest.approx(v, abs=1e-8), k
 
 
+@pytest.mark.parametrize("roll, pitch, motion", [
+    (0.0, -0.015, {"z_d": -8.0}),                           # reversing: pixel (0, 0)'s road point behind at t
+    (0.0, 0.2, {"z_d": -4.0}),                              # looking up
+    (0.3, 0.0, {"z_d": -3.5, "yaw": 0.05, "x_d": -0.3}),    # rolled
+])
+@pytest.mark.parametrize("sign", [1.0, -2.0])
+def test_decompose_homography_where_h33_is_negative(roll, pitch, motion, sign):
+    """H[2, 2] is q_z at pixel (0, 0): negative at H's physical scale when that pixel's road point
+    (above the horizon: the plane behind the camera) comes in front of the camera at t+1. Dividing
+    H by it flipped the sign of q_z everywhere: the grid (pixels with q_z > 0) was empty, and the
+    closed form came back unrefined with success False and a residual of 0 over no pixel."""
+    K = np.array(K_KITTI)
+    p = {"pitch_change": 0.0, "yaw": 0.0, "roll_change": 0.0, "x_d": 0.0, "y_d": 0.0, "z_d": 0.0,
+         "roll": roll, "pitch": pitch, **motion}
+    H = _plane_homography(K, 1.65, p)
+    assert H[2, 2] < 0
+    cam = Camera(torch.from_numpy(K), 1.65, roll=roll, pitch=pitch)
+    fit = decompose_homography(sign * torch.from_numpy(H)[None], cam)
+    assert bool(fit.success) and float(fit.residual) < 1e-10 and int(fit.valid.sum()) > 500
+    for k, v in p.items():
+        assert float(fit.params[k]) == pytest.approx(v, abs=1e-8), k
+
+
+def test_decompose_homography_takes_a_road_homography_with_h33_zero():
+    """H[2, 2] = 0 (pixel (0, 0) on the line the road maps to infinity) is an invertible road
+    homography like any other; it was refused (the decomposition divided by H[2, 2]). Reversing,
+    that line lies above the horizon (the plane behind the camera): a camera padded at the top."""
+    K = np.array(K_KITTI)
+    p = {"pitch_change": 0.002, "yaw": 0.01, "roll_change": 0.0, "x_d": 0.05, "y_d": 0.0, "z_d": -4.0,
+         "roll": 0.01, "pitch": -0.015}
+    H = _plane_homography(K, 1.65, p)
+    # the same road seen by a camera whose pixel (0, 0) lies on the line H[2] · p̃ = 0
+    u0 = 0.0
+    v0 = -(H[2, 0] * u0 + H[2, 2]) / H[2, 1]
+    T = np.array([[1.0, 0.0, u0], [0.0, 1.0, v0], [0.0, 0.0, 1.0]])
+    H0 = np.linalg.inv(T) @ H @ T
+    assert abs(H0[2, 2]) < 1e-12
+    H0[2, 2] = 0.0
+    K0 = np.linalg.inv(T) @ K
+    cam = Camera(torch.from_numpy(K0), 1.65, roll=0.01, pitch=-0.015)
+    fit = decompose_homography(torch.from_numpy(H0)[None], cam)
+    assert bool(fit.success) and float(fit.residual) < 1e-9
+    for k, v in p.items():
+        assert float(fit.params[k]) == pytest.approx(v, abs=1e-7), k
+
+
+def test_decompose_homography_agrees_with_opencv_where_opencv_has_an_answer():
+    """OpenCV's closed form (cv2.decomposeHomographyMat) on the same homographies: of its four
+    solutions the physical one has the road's normal pointing down in the camera (n_y > 0) and
+    is the one nearest the camera's attitude; its R, t h and n are the decomposition's."""
+    cv2 = pytest.importorskip("cv2")
+    K = np.array(K_KITTI)
+    cases = [{"pitch_change": 0.02, "yaw": 0.3, "roll_change": -0.03, "x_d": 0.4, "y_d": 0.05, "z_d": 2.0,
+              "roll": 0.02, "pitch": -0.03},
+             {"pitch_change": 0.0, "yaw": -0.2, "roll_change": 0.0, "x_d": -0.5, "y_d": 0.0, "z_d": 0.8,
+              "roll": 0.0, "pitch": -0.02}]
+    for p in cases:
+        H = _plane_homography(K, 1.65, p)
+        _, Rs, ts, ns = cv2.decomposeHomographyMat(H, K)
+        Rc = _rotation(2, p["roll"]) @ _rotation(0, p["pitch"])
+        candidates = [(R, t[:, 0] * 1.65, n[:, 0]) for R, t, n in zip(Rs, ts, ns) if n[1, 0] > 0]
+        R_cv, t_cv, n_cv = min(candidates, key=lambda c: np.abs(c[2] - Rc[:, 1]).max())
+        assert np.isfinite(R_cv).all()
+        fit = decompose_homography(torch.from_numpy(H)[None], Camera(torch.from_numpy(K), 1.65))
+        q = {k: float(v) for k, v in fit.params.items()}
+        Rc_fit = _rotation(2, q["roll"]) @ _rotation(0, q["pitch"])
+        Rv = _rotation(2, q["roll_change"]) @ _rotation(0, q["pitch_change"]) @ _rotation(1, q["yaw"])
+        d = np.array([q["x_d"], q["y_d"], q["z_d"]])
+        np.testing.assert_allclose(Rc_fit @ Rv @ Rc_fit.T, R_cv, atol=1e-9)
+        np.testing.assert_allclose(-Rc_fit @ Rv @ d, t_cv, atol=1e-8)
+        np.testing.assert_allclose(Rc_fit[:, 1], n_cv, atol=1e-9)
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float16, torch.bfloat16, torch.float64])
 def test_decompose_homography_returns_the_inputs_dtype(dtype):
     """Values in H's dtype promoted with the camera's, float32 for half precision (the fit runs in

@@ -201,7 +201,7 @@ def test_exceptions_decompose_homography():
     with pytest.raises(ValueError, match=r"H: expected shape \(B, 3, 3\), got \(3, 3\)"):
         decompose_homography(Hm[0], cam)
     for bad in (torch.zeros(1, 3, 3), torch.full((1, 3, 3), NAN)):  # once a LinAlgError from the SVD
-        with pytest.raises(ValueError, match=r"H: expected finite, invertible homographies with H\[2, 2\] != 0"):
+        with pytest.raises(ValueError, match=r"H: expected finite, invertible homographies, got samples"):
             decompose_homography(bad.double(), cam)
     with pytest.raises(ValueError, match="size: expected an int >= 8, got 0"):
         decompose_homography(Hm, cam, size=0)

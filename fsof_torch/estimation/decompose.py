@@ -52,7 +52,8 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     rotation.
 
     Args:
-        H: (B, 3, 3) road homographies (any scale), for the camera's K.
+        H: (B, 3, 3) road homographies for the camera's K: finite and invertible, of any scale and
+            sign (the sign is read from the determinant, positive at the physical scale).
         camera: K, height, and the roll and pitch to start from (batch 1 or B).
         size: the grid's longer side in pixels (each sample's camera is scaled to it: its grid
             is a virtual image around its own principal point, whatever its batch-mates'; for a
@@ -83,10 +84,10 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     if B == 0:
         raise ValueError("H: expected a non-empty batch, got shape (0, 3, 3)")
     H64 = H.detach().to(torch.float64)
-    usable = torch.isfinite(H64).all((1, 2)) & (H64[:, 2, 2] != 0) & (torch.linalg.det(H64).abs() > 0)
+    usable = torch.isfinite(H64).all((1, 2)) & (torch.linalg.det(H64).abs() > 0)
     if not bool(usable.all()):
         bad = (~usable).nonzero().flatten().tolist()
-        raise ValueError(f"H: expected finite, invertible homographies with H[2, 2] != 0, got samples {bad} "
+        raise ValueError(f"H: expected finite, invertible homographies, got samples {bad} "
                          f"that are not: {H64[bad[0]].tolist()}")
     cam = camera.to(torch.float64).expand(B).to(device=H.device)
     # each sample's own virtual image around its principal point, scaled so that its longer side
@@ -114,7 +115,13 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     small = cam.replace(K=resize @ K_top)
     S = small.K @ cam.K_inv()
     Hs = S @ H.to(torch.float64) @ torch.linalg.inv(S)
-    Hs = Hs / Hs[:, 2:3, 2:3]
+    # H's scale, and its sign from the determinant: at its physical scale K⁻¹ H K = R + t nᵀ / h has
+    # det = h' / h > 0 (h' the camera's height over the road at t+1), and the grid's test q_z > 0 (the
+    # road point in front of the camera at t+1) holds only at a positive scale. (H[2, 2] is q_z at
+    # pixel (0, 0), whose road point can lie behind either camera: dividing by it emptied the grid of
+    # such a homography, and it can be 0.)
+    scale = torch.sign(torch.linalg.det(Hs)) / Hs.abs().amax(dim=(1, 2))
+    Hs = Hs * scale.reshape(B, 1, 1)
     # one canvas for the batch, each sample's points only in its own grid at its top left (the
     # mask's raster order, and so the fit's sample of points, is then the sample's own)
     canvas = (max(g[0] for g in grids), max(g[1] for g in grids))
