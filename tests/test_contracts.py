@@ -164,6 +164,24 @@ class TestPadding:
         assert InputPadder(8, mode="kitti").padding(SIZE) == Padding(1, 1, 0, 3)
         assert InputPadder(8).padding((48, 64)).is_zero
 
+    def test_padding_is_raft_and_ptlflow_rule_for_every_size(self):
+        """RAFT's InputPadder (core/utils/utils.py), written out: pad_ht = (((ht // s) + 1) * s - ht)
+        % s; 'sintel' [pad_wd // 2, pad_wd - pad_wd // 2, pad_ht // 2, pad_ht - pad_ht // 2], else
+        [pad_wd // 2, pad_wd - pad_wd // 2, 0, pad_ht] (ptlflow's with two_side_pad True / False)."""
+        def raft(ht, wd, s, mode):
+            pad_ht, pad_wd = (((ht // s) + 1) * s - ht) % s, (((wd // s) + 1) * s - wd) % s
+            if mode == "sintel":
+                return [pad_wd // 2, pad_wd - pad_wd // 2, pad_ht // 2, pad_ht - pad_ht // 2]
+            return [pad_wd // 2, pad_wd - pad_wd // 2, 0, pad_ht]
+
+        for stride in (1, 2, 7, 8, 32, 64):
+            for mode in ("sintel", "kitti"):
+                padder = InputPadder(stride, mode=mode)
+                for ht in range(1, 70):
+                    for wd in (1, 7, 8, 9, 63, 65, 1242):
+                        p = padder.padding((ht, wd))
+                        assert [p.left, p.right, p.top, p.bottom] == raft(ht, wd, stride, mode), (stride, mode, ht, wd)
+
     def test_padded_camera_sees_the_road_where_the_padding_moved_it(self):
         """Padding.camera is the camera of the padded grid, where pixel (u, v) is (u + left, v + top):
         the road flow there, cropped back, is the input grid's flow (left, top and the other two

@@ -1,0 +1,136 @@
+"""The camera's conventions against references written without the library: OpenCV's and torch's
+resizing (where a blob's centre lands), cropping and padding, KITTI's projection matrices, and the
+road's flow from kornia's projection of the moved road point."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+
+from fsof_torch import Camera, read_kitti_calibration, road_flow
+
+# a camera with skew and non-square pixels, its principal point off the image centre
+K_ODD = [[300.0, 2.0, 161.3], [0.0, 280.0, 97.7], [0.0, 0.0, 1.0]]
+
+
+def _project(K: torch.Tensor, X: torch.Tensor) -> np.ndarray:
+    x = K @ X
+    return (x[:2] / x[2]).numpy()
+
+
+def _centroid(image: np.ndarray) -> np.ndarray:
+    v, u = np.mgrid[0:image.shape[0], 0:image.shape[1]]
+    return np.array([(image * u).sum(), (image * v).sum()]) / image.sum()
+
+
+@pytest.mark.parametrize("size", [(100, 160), (50, 80), (100, 320), (300, 480)])
+def test_scaled_puts_a_point_where_resizing_moves_it(size):
+    """A Gaussian blob drawn where a 3-D point projects, resized by OpenCV (INTER_AREA down,
+    INTER_LINEAR up) and by torch (bilinear, align_corners=False, antialias): its centre lands
+    where the scaled camera projects the point (the box filter keeps a blob's centroid under the
+    pixel-centre map u' + 0.5 = s (u + 0.5))."""
+    cv2 = pytest.importorskip("cv2")
+    H, W = 200, 320
+    K = torch.tensor(K_ODD, dtype=torch.float64)
+    X = torch.tensor([0.3, 0.2, 5.0], dtype=torch.float64)
+    u0, v0 = _project(K, X)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    image = np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / (2 * 6.0 ** 2))
+    h, w = size
+    cam = Camera(K, 1.5).scaled(w / W, h / H)
+    expected = _project(cam.K[0], X)
+    inter = cv2.INTER_AREA if w < W else cv2.INTER_LINEAR
+    np.testing.assert_allclose(_centroid(cv2.resize(image, (w, h), interpolation=inter)), expected, atol=2e-3)
+    resized = F.interpolate(torch.from_numpy(image)[None, None], size=(h, w), mode="bilinear", align_corners=False,
+                            antialias=True)[0, 0].numpy()
+    np.testing.assert_allclose(_centroid(resized), expected, atol=2e-3)
+
+
+def test_crop_pad_and_scale_move_the_principal_point_as_the_pixels_move():
+    """Cropping by (l, t) moves every pixel by (-l, -t), padding by (+l, +t); cropping then
+    scaling by s is scaling then cropping by (s l, s t) when those are whole pixels (an image of
+    2x2 blocks averaged, cropped at even offsets); several cameras at once."""
+    K = torch.tensor(K_ODD, dtype=torch.float64)
+    cams = Camera(torch.stack([K, K * torch.tensor([[2.0, 2.0, 2.0], [1.0, 2.0, 2.0], [1.0, 1.0, 1.0]])]),
+                  torch.tensor([1.5, 1.2], dtype=torch.float64))
+    X = torch.tensor([-0.4, 0.3, 7.0], dtype=torch.float64)
+    for b in range(2):
+        p = _project(cams.K[b], X)
+        np.testing.assert_allclose(_project(cams.cropped(10, 7, 3, 2).K[b], X), p - [10, 7], atol=1e-12)
+        np.testing.assert_allclose(_project(cams.padded(3, 1, 3, 1).K[b], X), p + [3, 1], atol=1e-12)
+    for s, (left, top) in ((0.5, (20, 10)), (0.25, (40, 16)), (2.0, (3, 5))):
+        a = cams.cropped(left, top).scaled(s)
+        b = cams.scaled(s).cropped(int(s * left), int(s * top))
+        torch.testing.assert_close(a.K, b.K, rtol=0, atol=1e-12)
+    # non-square: sx and sy each act on their own axis
+    a = cams.cropped(20, 9).scaled(0.5, 1 / 3)
+    b = cams.scaled(0.5, 1 / 3).cropped(10, 3)
+    torch.testing.assert_close(a.K, b.K, rtol=0, atol=1e-12)
+
+
+def test_K_inv_with_skew_is_the_inverse():
+    K = torch.tensor(K_ODD, dtype=torch.float64)
+    K2 = torch.tensor([[510.0, -3.0, 20.0], [0.0, 640.0, -15.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    cams = Camera(torch.stack([K, K2]), 1.6)
+    torch.testing.assert_close(cams.K_inv(), torch.linalg.inv(cams.K), rtol=0, atol=1e-15)
+
+
+def test_kitti_projection_matrix_gives_K_and_the_camera_offset(shared_data):
+    """P_rect_02 = K [I | t]: K its first three columns, and camera 2's centre -K⁻¹ P[:, 3] lies
+    6 cm to the left of camera 0 (KITTI's rig), camera 3's 48 cm to the right of it."""
+    path = shared_data / "kitti15_000000" / "calib_cam_to_cam.txt"
+    for cam, centre_x in ((2, -0.0598), (3, 0.4729)):
+        P = read_kitti_calibration(path, cam)
+        camera = Camera.from_kitti(path, cam=cam)
+        torch.testing.assert_close(camera.K[0], P[:, :3], rtol=0, atol=0)
+        centre = -torch.linalg.solve(P[:, :3], P[:, 3])
+        assert float(centre[0]) == pytest.approx(centre_x, abs=1e-4)
+        assert float(centre[1:].abs().max()) < 5e-3
+
+
+def _rotation(axis: int, a: float) -> torch.Tensor:
+    c, s = math.cos(a), math.sin(a)
+    R = {2: [[c, s, 0], [-s, c, 0], [0, 0, 1]], 0: [[1, 0, 0], [0, c, s], [0, -s, c]],
+         1: [[c, 0, -s], [0, 1, 0], [s, 0, c]]}[axis]
+    return torch.tensor(R, dtype=torch.float64)
+
+
+@pytest.mark.parametrize("motion", [
+    {"pitch_change": 0.02, "yaw": 0.3, "roll_change": -0.03, "x_d": 0.4, "y_d": 0.05, "z_d": 2.0},
+    {"yaw": -0.6, "x_d": -1.0, "z_d": 0.5},
+    {"pitch_change": -0.1, "roll_change": 0.1, "y_d": -0.2, "z_d": -1.5},
+])
+def test_road_flow_is_kornias_projection_of_the_moved_road_point(motion):
+    """Each pixel's ray (kornia's unprojection) meets the road y = h of the vehicle frame (camera =
+    R_roll R_pitch vehicle); the point moves as p' = R_v (p - d) and kornia projects it: the flow
+    is that displacement, and valid exactly where the point is in front of both cameras. (kornia's
+    projection reads f_x, f_y, c_x, c_y and ignores a skew: the camera here has none.)"""
+    kornia_camera = pytest.importorskip("kornia.geometry.camera")
+    K = torch.tensor([[300.0, 0.0, 161.3], [0.0, 280.0, 97.7], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    h, roll, pitch = 1.4, 0.05, -0.08
+    cam = Camera(K, h, roll, pitch)
+    H, W = 190, 330
+    flow, valid = road_flow(cam, motion, (H, W), model="plane")
+    Rc = _rotation(2, roll) @ _rotation(0, pitch)
+    Rv = _rotation(2, motion.get("roll_change", 0.0)) @ _rotation(0, motion.get("pitch_change", 0.0)) @ _rotation(
+        1, motion.get("yaw", 0.0))
+    d = torch.tensor([motion.get(k, 0.0) for k in ("x_d", "y_d", "z_d")], dtype=torch.float64)
+    v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64), indexing="ij")
+    pixels = torch.stack([u, v], dim=-1).reshape(-1, 2)
+    rays = kornia_camera.unproject_points(pixels, torch.ones(len(pixels), 1, dtype=torch.float64), K)  # z = 1
+    rays_v = rays @ Rc  # (Rcᵀ r)ᵀ = rᵀ Rc
+    below = rays_v[:, 1] > 0
+    points = rays_v * (h / torch.where(below, rays_v[:, 1], 1.0)).unsqueeze(-1)
+    moved = ((points - d) @ Rv.T) @ Rc.T
+    front = below & (moved[:, 2] > 0)
+    projected = kornia_camera.project_points(torch.where(front.unsqueeze(-1), moved, 1.0), K)
+    expected = (projected - pixels).T.reshape(2, H, W)
+    assert torch.equal(valid[0, 0], front.reshape(H, W))
+    assert int(front.sum()) > 1000
+    ok = valid[0, 0]
+    torch.testing.assert_close(flow[0][:, ok], expected[:, ok], rtol=1e-9, atol=1e-7)
+    assert float(flow[0][:, ~ok].abs().max()) == 0.0
