@@ -483,6 +483,53 @@ def test_a_prediction_that_cannot_be_judged_loses_to_a_model_that_explains_the_i
     assert bool(out.use_model[mask].all())
 
 
+def test_a_non_finite_prediction_never_wins_its_points_on_images_the_exact_flow_explains_poorly():
+    """Dim, noisy frames (texture and noise of 20 grey levels): even the exact flow's census
+    distance is above ``occlusion``, as on real road (the shared KITTI pair's ground truth: 0.43).
+    Half the prediction NaN, the rest 1 px off, the model exact: a NaN point took the distance
+    ``occlusion``, below the exact model's, so the NaN half spoke for the prediction and the model
+    was refused over the whole sample (the refiner then returned the NaN inside the road). A
+    non-finite prediction never explains a point better than the model: the model is used."""
+    H, W = 96, 192
+    g = torch.Generator().manual_seed(6)
+    big = _texture(H, W + 4, seed=5) * (20 / 255)
+    image1 = big[..., 2:W + 2] + torch.randn(1, 1, H, W, generator=g) * 20
+    image2 = big[..., :W] + torch.randn(1, 1, H, W, generator=g) * 20
+    model = torch.zeros(1, 2, H, W)
+    model[:, 0] = 2.0  # exact: image 1's x is image 2's x + 2
+    prediction = model.clone()
+    prediction[:, 0] += 1.0
+    prediction[..., : W // 2] = float("nan")
+    mask = torch.ones(1, 1, H, W, dtype=torch.bool)
+    out = ImageGate()(image1, image2, prediction, model, mask)
+    assert float(out.cost_model) > 0.4  # (the exact flow does not explain these images by the threshold)
+    assert float(out.cost_prediction) > float(out.cost_model)
+    assert bool(out.model_used.all()) and bool(out.confirmed.all())
+    assert bool(out.use_model[..., : W // 2].all())
+
+
+def test_a_prediction_nan_in_part_on_the_real_pair_is_refined_not_returned(shared_data, kitti15_ground_truth):
+    """The shared KITTI pair, the ground truth as the prediction with a block of the road (rows
+    250 on, columns 400 to 700: two fifths of the mask) NaN, as a network's invalid region: the
+    road's census distance there is above ``occlusion`` for any flow (0.47 for the model), so
+    the NaN block, taken at ``occlusion``, spoke for the prediction; the sample was left
+    unchanged with the NaN inside the road. The model now replaces it."""
+    import warnings
+
+    from fsof_torch import refine_flow
+    from fsof_torch.io import read_image
+
+    camera, flow, _, road = kitti15_ground_truth
+    images = tuple(read_image(shared_data / "kitti15_000000" / n)[None] for n in ("image_10.png", "image_11.png"))
+    prediction = flow.float()
+    prediction[..., 250:, 400:700] = float("nan")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine_flow(prediction, road, camera, images=images)
+    assert bool(out.refined.all()) and bool(out.gate.model_used.all())
+    assert bool(torch.isfinite(out.flow)[road.expand(-1, 2, -1, -1)].all())
+
+
 def test_a_right_prediction_leaving_the_frame_is_not_overruled_by_a_wrong_model_inside():
     """Near the border a right flow leaves image 2 while a wrong model stays inside and explains
     nothing there: the unjudgeable prediction counts as just explaining its points (the

@@ -18,7 +18,9 @@ and the model's geometry is the better guess); so does every cell of a sample wh
 over the whole mask. Cells with too few points follow their sample's decision. A prediction that
 is not finite at a point, or whose end point leaves image 2, cannot be judged there: where the
 model can be judged the point counts, the prediction's distance taken as ``occlusion`` (a flow
-that just explains the point), so the model wins it only where it explains it. Over a sample's
+that just explains the point), so the model wins it only where it explains it; a non-finite
+prediction's as the model's where that is larger (it explains nothing, so it never wins a point:
+on real road even the exact flow's distance can exceed ``occlusion``). Over a sample's
 whole mask the standard error is the larger of the points' own and one from the sums of 16 x 16
 pixel blocks of points (neighbouring points' rings overlap and image content is correlated: they
 are not independent evidence); the cells and object regions take their points' own, which errs
@@ -76,7 +78,8 @@ class GateResult(NamedTuple):
         evidence: (B, 1, H, W) float in [0, 1], the image evidence for the model over the
             prediction per cell (0.5: no preference), for confidence fusion; 0 outside the mask.
         cost_model, cost_prediction: (B,) mean census distances over the points that count
-            (the prediction's ``occlusion`` where it is not finite or leaves image 2).
+            (the prediction's ``occlusion`` where it leaves image 2, and where it is not finite
+            the larger of ``occlusion`` and the model's).
         points: (B,) the number of points that count: textured points the model can be judged
             at, where the prediction can be judged too or is lost (not finite, or leaving image 2).
         cells, cells_kept: (B,) cells of the (coarse) grid with enough points, and of those the
@@ -235,7 +238,10 @@ class ImageGate:
         lost = leaves(fp)
         fp = torch.where(finite.unsqueeze(1), fp, fm)
         (d_pred, n_clear, ok_pred), (d_model, _, ok_model) = census_ring_distances(g1, g2, x, y, (fp, fm), self.contrast)
-        d_pred = torch.where(lost, self.occlusion, d_pred)
+        # (a non-finite prediction was judged with the model's flow: its distance there is the
+        # model's, at least ``occlusion``: it never wins a point, also where real images leave
+        # even the exact flow above ``occlusion``)
+        d_pred = torch.where(lost, torch.where(finite, self.occlusion, d_pred.clamp_min(self.occlusion)), d_pred)
         # points that count: real, textured, judged by the model and judged by the prediction or
         # lost by it
         judged = pts.sel & ok_model & ((ok_pred & finite) | lost)
