@@ -248,6 +248,18 @@ def test_small_images_with_a_motion_given(scene_pair):
 
 # -- flags ----------------------------------------------------------------------------------------
 
+def test_a_crawling_vehicle_is_flagged_static_and_the_reason_says_so():
+    """The default scene at 188 x 621 moving 0.12 m between the frames (1.2 m/s at 10 Hz): no
+    step up to slow_max_height_m shows, and the sample is flagged static; the reason names too
+    little motion for the frames' resolution, not only a stopped vehicle or identical frames."""
+    import fsof_torch as fs
+
+    p = fs.render_pair("default", 0, size=(188, 621), speed_factor=0.1)
+    det = detect_road(p["image1"][None], p["image2"][None], p["camera"], flow=p["flow"][None])
+    assert det.flag == ["static"] and not bool(det.ok.any())
+    assert "moving too little between the frames" in det.reason[0]
+
+
 def test_identical_frames_are_flagged_static(scene_pair):
     """A stopped vehicle: no parallax anywhere, so the road cannot be told from obstacles."""
     im = scene_pair["image1"][None]

@@ -674,8 +674,8 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
                                   "apart for the seed, a wrong motion, or windows larger than the seed's view): "
                                   "nothing to judge the road ahead by; check the motion, or a deeper seed_depth_m")
         elif int(n_test[b]) == 0 and int(n_moved[b]) == 0:
-            flag, why = "static", ("no parallax anywhere (a stopped vehicle or identical frames, or a camera whose "
-                                   "pitch or height is far off): the road cannot be told from what stands on it")
+            flag, why = "static", ("no parallax anywhere (a stopped vehicle, or one moving too little between the frames "
+                                   "for their resolution; identical frames; or a camera whose pitch or height is far off)")
         elif float(evidence_share[b]) < _MIN_EVIDENCE:
             flag, why = "textureless", (f"only {100 * float(evidence_share[b]):.1f} % of the road ahead carries "
                                         f"evidence (dark or textureless frames)")
