@@ -338,7 +338,7 @@ def run(args: argparse.Namespace) -> int:
     if args.json is not None:  # (and its JSON elsewhere: a run that stops would leave it as its own)
         remove_outputs(args.json.parent, [args.json.name])
     rolls = (0, 5, -5) if args.quick else (0, 5, -5, 10, -10)
-    total = (8 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
+    total = (4 * pairs if "cvc12" in tables else 0) + (2 * len(rolls) * pairs if "carla" in tables else 0) \
         + (2 if "kitti" in tables else 0)
 
     settings = {"size": list(size), "pairs": pairs, "seed": seed, "quick": bool(args.quick), "rolls_deg": list(rolls)}

@@ -336,3 +336,23 @@ def test_tables_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     interrupted(tables, "cvc12_table", lambda: main(["tables", "--only", "cvc12", "--quick", "--out", str(tmp_path / "t"),
                                                     "--json", str(path), "--no-progress"]))
     assert not path.exists()
+
+
+@pytest.mark.parametrize("only", [["--only", "cvc12"], ["--only", "carla"], ["--no-kitti"]])
+def test_tables_progress_bar_counts_every_fit_once(tmp_path, monkeypatch, only):
+    """The bar's total is the number of fits the tables make, so that it ends at 100 % (it
+    counted each CVC12-like fit twice: a run ended at 44/56)."""
+    import fsof_torch.io.progress as progress
+
+    bars = []
+    real = progress.progress_bar
+
+    def recording(*args, **kwargs):
+        bar = real(*args, **kwargs)
+        bars.append(bar)
+        return bar
+
+    monkeypatch.setattr(progress, "progress_bar", recording)
+    assert main(["tables", "--quick", "--size", "48", "160", "--pairs", "2", *only, "--out", str(tmp_path / "o")]) == 0
+    assert len(bars) == 1 and bars[0].total > 0
+    assert bars[0].n == bars[0].total
