@@ -2,7 +2,7 @@
 
 Single thread, warm-up then repeats, median milliseconds of wall-clock and of process CPU time. The reference rows, measured in the same
 run, are the closed-form road flow (``displacement_flow``) at the same size and OpenCV DIS
-(PRESET_MEDIUM) on the rendered pair.
+(PRESET_MEDIUM) on the rendered pair; ``x DIS`` is each row's CPU time over DIS's.
 
     python benchmarks/bench_scene.py [--repeats 5] [--size 375 1242]
 """
@@ -93,9 +93,10 @@ def main(argv: list[str] | None = None) -> int:
 
     width = max(len(r[0]) for r in rows)
     print(f"scene renderer, {size[0]}x{size[1]}, 1 thread, median of {args.repeats} (torch {torch.__version__})")
-    print(f"{'case'.ljust(width)}  wall ms   cpu ms")
+    dis_cpu = max(rows[-1][1][1], 1e-6)  # (DIS's CPU ms, the last row)
+    print(f"{'case'.ljust(width)}  wall ms   cpu ms    x DIS")
     for name, (wall, cpu) in rows:
-        print(f"{name.ljust(width)}  {wall:7.1f}  {cpu:7.1f}")
+        print(f"{name.ljust(width)}  {wall:7.1f}  {cpu:7.1f}  {cpu / dis_cpu:7.2f}")
     print(f"\ndefault pair 0 (seed 0): road pixels valid {int(mask.sum())}, mean |GT flow| on them "
           f"{float(pair['flow'].norm(dim=0)[mask].mean()):.2f} px")
     print(f"  mean |I1 - warp(I2, GT flow)| on valid road pixels: {mae:.3f} (no warp: {mae_id:.3f}); "

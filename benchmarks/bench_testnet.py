@@ -6,7 +6,8 @@ Prints the parameter count and, per image size, the median forward time (no grad
 ``--repeats`` runs after one warm-up: wall-clock and CPU time of this process (on a shared,
 loaded machine the CPU time is the steadier figure), and the CPU time with ``final_only=True``
 (only the last iteration upsampled, as the refine job runs it). Reference in the same run: one
-3x3 convolution 3 -> 64 channels at full resolution (a fixed unit of work to compare machines by).
+3x3 convolution 3 -> 64 channels at full resolution (a fixed unit of work to compare machines by),
+and the forward pass's wall time in units of it (``x ref conv``).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
     print(f"TinyRAFT: {count_parameters(net)} parameters, {args.iters} iterations, torch {torch.__version__}, "
           f"1 thread")
     print(f"{'input':<16} {'forward wall ms':>16} {'forward CPU ms':>15} {'final_only CPU ms':>18} "
-          f"{'ref conv wall ms':>17}")
+          f"{'ref conv wall ms':>17} {'x ref conv':>11}")
     g = torch.Generator().manual_seed(0)
     for H, W in SIZES:
         image1 = torch.rand(1, 3, H, W, generator=g) * 255
@@ -55,7 +56,7 @@ def main(argv: list[str] | None = None) -> int:
             wall, cpu = _median_times(lambda: net(image1, image2), args.repeats)
             _, cpu_final = _median_times(lambda: net(image1, image2, final_only=True), args.repeats)
             ref, _ = _median_times(lambda: conv(image1), args.repeats)
-        print(f"1x3x{H}x{W:<8} {wall:>16.1f} {cpu:>15.1f} {cpu_final:>18.1f} {ref:>17.1f}")
+        print(f"1x3x{H}x{W:<8} {wall:>16.1f} {cpu:>15.1f} {cpu_final:>18.1f} {ref:>17.1f} {wall / ref:>11.1f}")
     return 0
 
 
