@@ -311,6 +311,27 @@ def readable_pair(parser: argparse.ArgumentParser, folder: Path, option: str = "
         parser.error(f"{option}: {err}")
 
 
+def readable_clip(parser: argparse.ArgumentParser, folder: Path, option: str = "--data", poses: bool = False) -> None:
+    """The KITTI odometry clip in ``folder`` (``kitti_odometry_straight``'s layout) read as the
+    library's ``ImageFolderDataset`` reads it, before any work: the calibration's camera, every
+    frame against the first, road.json at the frames' size and, with ``poses``, poses.txt. What it
+    cannot read is ``parser.error`` (exit 2) naming ``option`` and the library's message, not a
+    traceback after the parts that come before the clip's."""
+    from fsof_torch import read_kitti_poses
+    from fsof_torch.datasets import ImageFolderDataset
+    from fsof_torch.io import read_road_mask
+
+    try:
+        frames = ImageFolderDataset(folder / "image_l", folder / "calib.txt", cam=0, ground_truth=False)
+        for i in range(len(frames)):
+            size = tuple(frames[i]["image1"].shape[-2:])
+        read_road_mask(folder / "road.json", size)
+        if poses:
+            read_kitti_poses(folder / "poses.txt")
+    except (ValueError, FileNotFoundError) as err:
+        parser.error(f"{option}: {err}")
+
+
 def present(folder: Path, need: tuple[str, ...], what: str) -> bool:
     """Whether ``folder`` holds every one of ``need``; if not, prints ``<what> absent: skipped``
     and what is missing."""

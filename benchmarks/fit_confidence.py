@@ -109,7 +109,7 @@ def bands(name: str, image1: torch.Tensor, image2: torch.Tensor, road: torch.Ten
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, present, readable_pair
+    from cli import data_folder, description, present, readable_clip, readable_pair
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--data", type=Path, default=None, metavar="DIR",
@@ -119,6 +119,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     data = data_folder(parser, args.data, DEFAULT, CLIP)
     kitti = data_folder(parser, args.kitti, KITTI, PAIR, option="--kitti")  # (its errors named --data)
+    if args.data is not None:  # (a file it cannot read raised a traceback from part 1)
+        readable_clip(parser, data)
     if args.kitti is not None:  # (a file it cannot read raised a traceback in part 3, after the clip's parts)
         readable_pair(parser, kitti, "--kitti")
     import fsof_torch as fs

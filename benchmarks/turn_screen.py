@@ -159,7 +159,7 @@ def table(title: str, rows: list[tuple[str, int, dict[str, list[int]]]]) -> None
 
 
 def main(argv: list[str] | None = None) -> int:
-    from cli import data_folder, description, reads_data
+    from cli import data_folder, description, readable_clip, reads_data
 
     parser = argparse.ArgumentParser(description=description(__doc__))
     parser.add_argument("--no-real", action="store_true", help="leave out the shared KITTI clip")
@@ -169,6 +169,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     reads = reads_data(parser, args.data, args.no_real, "--no-real")
     data = data_folder(parser, args.data, DATA, tuple(f"kitti_odometry_straight/{n}" for n in CLIP)) if reads else None
+    if args.data is not None:  # (a file it cannot read raised a traceback after the synthetic part)
+        readable_clip(parser, data / "kitti_odometry_straight", poses=True)
     import cv2
     import real_road as rr
 

@@ -86,6 +86,7 @@ BAD = [
     ("fit_confidence", ["--kitti", ABSENT], "--kitti"),  # (was named --data)
     ("fit_confidence", ["--kitti", f"{TMP}/empty"], "--kitti"),
     ("fit_confidence", ["--kitti", f"{TMP}/badpair"], "--kitti"),  # (read in part 3: a traceback)
+    ("fit_confidence", ["--data", f"{TMP}/badclip/kitti_odometry_straight"], "--data"),  # (read in part 1)
     ("fit_kitti", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
@@ -133,6 +134,7 @@ BAD = [
     ("image_fit_settings", ['{"inlier_threshold": -1}'], "SETTING: inlier_threshold"),
     ("turn_screen", ["--data", ABSENT], "--data"),
     ("turn_screen", ["--data", f"{TMP}/empty"], "--data"),
+    ("turn_screen", ["--data", f"{TMP}/badclip"], "--data"),  # (read after the synthetic part)
     ("turn_screen", ["--data", f"{TMP}/empty", "--no-real"], "is not read with --no-real"),
 ]
 # a failing run of the job: exits 1 naming the run (the single option passed as documented)
@@ -193,6 +195,10 @@ def runs(tmp_path_factory) -> dict[tuple[str, tuple[str, ...]], dict]:
     (folder / "badpair").mkdir()  # (a KITTI 2015 pair's files, none of them readable)
     for name in ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json"):
         (folder / "badpair" / name).write_bytes(b"garbage")
+    clip = folder / "badclip" / "kitti_odometry_straight"  # (a clip's files, none of them readable)
+    (clip / "image_l").mkdir(parents=True)
+    for name in ("image_l/000000.png", "image_l/000001.png", "calib.txt", "road.json", "poses.txt"):
+        (clip / name).write_bytes(b"garbage")
     cases = [(script, args) for script, args, _ in BAD] + [QUICKSTART_FAILS]
     given = [(script, [a.replace(TMP, str(folder)) for a in args]) for script, args in cases]
     (tmp / "cases.json").write_text(json.dumps(given))
