@@ -4,7 +4,7 @@ For B = 2 rendered pairs (the "default" scene at 64 x 192, as tests/test_fusion_
 the first compiled call (tracing and code generation included), a later compiled call, the eager
 call, their ratio, the largest difference from eager in pixels, and how many graphs dynamo
 captured (estimation runs eagerly outside them: it is iterative and data dependent). Single
-thread; eager and later calls are the median of repeats, milliseconds.
+thread (torch and OpenCV); eager and later calls are the median of repeats, milliseconds.
 
 Run: python benchmarks/bench_compile.py [--backend inductor|aot_eager|eager] [--cold]
 (--cold: an empty inductor cache, as on a first run; otherwise kernels cached by earlier runs are
@@ -40,7 +40,10 @@ def main(argv: list[str] | None = None) -> int:
     from fsof_torch.data.scene import render_pair
     from fsof_torch.refinement.fusion import FreespaceRefiner
 
+    import cv2
+
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)  # (the image estimator's blur and pyramids run in OpenCV)
     warnings.simplefilter("ignore")
     pairs = [render_pair("default", i, size=(64, 192), noise=0.0) for i in range(2)]
     gt = torch.stack([p["flow"] for p in pairs])

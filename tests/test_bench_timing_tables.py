@@ -56,3 +56,20 @@ def test_scene_rows_give_their_ratio_to_dis(load_benchmark, monkeypatch, capsys,
     assert " ".join(dis[:5]) == "reference: OpenCV DIS medium on" and float(dis[-1]) == 1.0
     for row in rows:
         assert float(row[-1]) > 0
+
+
+def test_compile_bench_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, capsys, threads):
+    """The refiner with images runs OpenCV (blur, pyramids): the script's "single thread" holds
+    for it too, not for torch alone."""
+    import cv2
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    bench = load_benchmark("bench_compile")
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        assert bench.main(["--backend", "eager", "--repeats", "1"]) == 0
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
+    assert "odometry+images" in capsys.readouterr().out
