@@ -55,6 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     import cv2
 
     torch.set_num_threads(1)
+    cv2.setNumThreads(1)  # (DIS and the photometric fit's image operations: the ms column is one thread's)
     cam, gt, valid, road, (image1, image2), (g1, g2) = load(args.data)
     use = (road & valid)[:, 0]
 

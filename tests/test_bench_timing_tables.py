@@ -73,3 +73,21 @@ def test_compile_bench_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch
     finally:
         cv2.setNumThreads(before)
     assert "odometry+images" in capsys.readouterr().out
+
+
+def test_fit_kitti_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, capsys, threads, shared_data, tmp_path):
+    """Its ms column (DIS, the photometric fits) is documented as single-thread: OpenCV's too."""
+    import cv2
+
+    if not (shared_data / "kitti15_000000").is_dir():
+        pytest.skip("kitti15_000000 is absent")
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    bench = load_benchmark("fit_kitti")
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        assert bench.main(["--data", str(shared_data / "kitti15_000000"), "--json", str(tmp_path / "k.json")]) == 0
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
+    assert "OpenCV DIS" in capsys.readouterr().out
