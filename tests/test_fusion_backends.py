@@ -229,3 +229,22 @@ def test_other_devices_paths_on_the_kitti_pair(shared_data):
         host, other = _both_paths(lambda: refine_flow(flow, mask, cam, images=images))
         assert bool(host.refined.any())
         _same_refinement(host, other, atol=1e-3)
+
+
+@pytest.mark.filterwarnings("ignore::UserWarning")
+def test_compiled_refiner_with_images_compiles_once():
+    """The gate's memo of mask pixels, keyed by a mask's address, stays out of the trace: read
+    there, its keys were guarded, and every call recompiled (6-7 times the eager time in
+    ``benchmarks/bench_compile.py``; a backend that only traces shows it)."""
+    from torch._dynamo.utils import counters
+
+    pred, road, cam, images, _ = scene()
+    torch._dynamo.reset()
+    counters.clear()
+    compiled = torch.compile(FreespaceRefiner(), backend="eager")
+    run(compiled, pred, road, cam, images=images)
+    first = counters["stats"]["unique_graphs"]
+    for _ in range(2):
+        run(compiled, pred, road, cam, images=images)
+    assert counters["stats"]["unique_graphs"] == first
+    torch._dynamo.reset()

@@ -491,10 +491,10 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         # (where the estimate's mask holds the very pixels the gate judges, the gate gets that mask,
         # whose pixels the estimate found: one pass to compare them instead of a second search)
         judged = fuse_mask
-        if pixels and not tracing() and fit_mask.is_contiguous() and not bool(
-                (fuse_mask ^ fit_mask).view(torch.uint8).amax()):
+        memo = None if tracing() else pixels  # (traced, a guard on its keys, masks' addresses, recompiled each call)
+        if memo and fit_mask.is_contiguous() and not bool((fuse_mask ^ fit_mask).view(torch.uint8).amax()):
             judged = fit_mask
-        with reused_mask_pixels(pixels):
+        with reused_mask_pixels(memo):
             gate_result = the_gate(images[0], images[1], finest, f_model_finest, judged)
         region = usable(fuse_mask, gate_result.model_used)
         fuse_mask = gate_result.use_model
