@@ -7,14 +7,15 @@ captured (estimation runs eagerly outside them: it is iterative and data depende
 thread (torch and OpenCV); eager and later calls are the median of repeats, milliseconds.
 
 Run: python benchmarks/bench_compile.py [--backend inductor|aot_eager|eager] [--cold]
-(--cold: an empty inductor cache, as on a first run; otherwise kernels cached by earlier runs are
-reused and the first call is faster).
+(--cold: an empty inductor cache, as on a first run, removed when the run ends; otherwise kernels
+cached by earlier runs are reused and the first call is faster).
 """
 
 from __future__ import annotations
 
 import argparse
 import os
+import shutil
 import statistics
 import tempfile
 import time
@@ -31,9 +32,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=positive_int, default=5,
                         help="timed calls for the eager and later compiled medians (default 5)")
     args = parser.parse_args(argv)
-    if args.cold:  # (before torch reads its configuration)
-        os.environ["TORCHINDUCTOR_CACHE_DIR"] = tempfile.mkdtemp(prefix="fsof_inductor_")
+    if not args.cold:
+        return run(args)
+    cache = tempfile.mkdtemp(prefix="fsof_inductor_")
+    os.environ["TORCHINDUCTOR_CACHE_DIR"] = cache  # (before torch reads its configuration)
+    try:
+        return run(args)
+    finally:
+        shutil.rmtree(cache, ignore_errors=True)  # (tens of MB of kernels, of no use to a later cold run)
 
+
+def run(args: argparse.Namespace) -> int:
     import torch
     from torch._dynamo.utils import counters
 

@@ -91,3 +91,17 @@ def test_fit_kitti_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, ca
     finally:
         cv2.setNumThreads(before)
     assert "OpenCV DIS" in capsys.readouterr().out
+
+
+def test_compile_bench_cold_removes_its_cache(load_benchmark, monkeypatch, tmp_path, capsys, threads):
+    """--cold compiles into a fresh cache folder, removed when the run ends (each run left one of
+    tens of MB in the temporary folder)."""
+    import tempfile
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
+    bench = load_benchmark("bench_compile")
+    assert bench.main(["--cold", "--backend", "eager", "--repeats", "1"]) == 0
+    assert "cold cache" in capsys.readouterr().out
+    assert list(tmp_path.glob("fsof_inductor_*")) == []
