@@ -87,6 +87,10 @@ BAD = [
     ("fit_confidence", ["--kitti", f"{TMP}/empty"], "--kitti"),
     ("fit_confidence", ["--kitti", f"{TMP}/badpair"], "--kitti"),  # (read in part 3: a traceback)
     ("fit_confidence", ["--data", f"{TMP}/badclip/kitti_odometry_straight"], "--data"),  # (read in part 1)
+    ("fit_covariance", ["--data", ABSENT], "--data"),
+    ("fit_covariance", ["--data", f"{TMP}/empty"], "--data"),
+    ("fit_covariance", ["--data", f"{TMP}/badclip/kitti_odometry_straight"], "--data"),  # (read in part 2)
+    ("fit_covariance", ["--pairs", "-1"], "--pairs"),
     ("fit_kitti", ["--data", ABSENT], "--data"),
     ("fit_kitti", ["--data", f"{TMP}/empty"], "--data"),
     ("fit_road_models", ["--data", ABSENT], "--data"),
