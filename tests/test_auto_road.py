@@ -471,17 +471,22 @@ def test_a_seed_that_leaves_image_2_or_disagrees_is_not_static(scene_pair):
 
 
 def test_default_level_fits_tall_narrow_images(scene_pair):
-    """The default working level keeps 16 pixels either way: a 620 x 40 strip is judged at level 1
-    (its rows alone would ask for 2, and 40 >> 2 is too narrow), 375 x 1242 at level 1."""
+    """The default working level keeps 16 pixels either way and room for the height window seen
+    whole (15 pixels, 4 from either border: 23): a 620 x 60 strip is judged at level 1 (its rows
+    alone would ask for 2, and 60 >> 2 is too narrow), a 620 x 40 strip at level 0, where its
+    height windows are tested (at level 1, 20 pixels wide, none was: kerbs went untested, the
+    sample unflagged), and 375 x 1242 at level 1."""
     import torch.nn.functional as F
 
     p = scene_pair
-    strip = [F.interpolate(p[k][None][..., 590:630], size=(620, 40), mode="bilinear").clamp(0, 255)
-             for k in ("image1", "image2")]
-    cam = p["camera"].cropped(590, 0, 1242 - 630, 0).scaled(1.0, 620 / 375)
     motion, _ = _exact(p)
-    det = detect_road(*strip, cam.replace(height=p["plane"]["height"]), motion=motion)
-    assert det.level == 1 and det.mask.shape == (1, 1, 620, 40) and det.flag[0] in FLAGS + ("ok",)
+    for width, level in ((60, 1), (40, 0)):
+        strip = [F.interpolate(p[k][None][..., 590:590 + width], size=(620, width), mode="bilinear").clamp(0, 255)
+                 for k in ("image1", "image2")]
+        cam = p["camera"].cropped(590, 0, 1242 - 590 - width, 0).scaled(1.0, 620 / 375)
+        det = detect_road(*strip, cam.replace(height=p["plane"]["height"]), motion=motion)
+        assert det.level == level and det.mask.shape == (1, 1, 620, width) and det.flag[0] in FLAGS + ("ok",)
+        assert bool((det.height != 0).any())  # (the height tested somewhere)
     assert detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=motion).level == 1
 
 
@@ -805,11 +810,16 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(level=6), "level: 6 leaves fewer than 16 pixels"),
     (dict(window=4), "window: expected an odd int >= 3"),
     (dict(height_window=1), "height_window: expected an odd int >= 3"),
-    # a window at least the working image's side is never seen whole: the height test would be off
-    (dict(height_window=65), r"^height_window: expected less than the working image's side \(64 pixels: the "
-                             r"64x200 images at level 0\), got 65$"),
-    (dict(level=1, height_window=33), r"^height_window: expected less than the working image's side \(32 pixels: "
-                                      r"the 64x200 images at level 1\), got 33$"),
+    # a window wider than the working image's side less 4 pixels at either border is never seen
+    # whole: its test would be off everywhere (the height's: kerbs untested, the sample unflagged)
+    (dict(height_window=65), r"^height_window: expected at most 56 \(the working image's side, 64 px: the "
+                             r"64x200 images at level 0, less 4 at either border, where image 2's smoothing sees "
+                             r"its padding\), got 65$"),
+    (dict(height_window=57), r"^height_window: expected at most 56 \(the working image's side, 64 px"),
+    (dict(level=1, height_window=25), r"^height_window: expected at most 24 \(the working image's side, 32 px: "
+                                      r"the 64x200 images at level 1, "),
+    (dict(window=59), r"^window: expected at most 56 \(the working image's side, 64 px: the 64x200 images at "
+                      r"level 0, .*got 59$"),
     (dict(min_height_m=0.0), "min_height_m: expected a finite number > 0"),
     (dict(max_height_m=0.05), r"max_height_m: expected >= min_height_m \(0.1\)"),
     (dict(slow_max_height_m=0.2), r"slow_max_height_m: expected None or a finite number >= max_height_m \(0.3"),

@@ -396,15 +396,16 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
         if min(dims["H"], dims["W"]) >> v < 16 and (name == "level" or estimated):
             raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
                              f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
+    side = min(dims["H"], dims["W"]) >> options["level"]
     for name in ("window", "height_window"):
         v = options[name]
         if not is_number(v, integer=True) or v < 3 or v % 2 == 0:
             raise option_error(v, f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}",
                                integer=True)
-    side = min(dims["H"], dims["W"]) >> options["level"]
-    if options["height_window"] >= side:  # (never seen whole: the height test would be off everywhere)
-        raise ValueError(f"height_window: expected less than the working image's side ({side} pixels: the "
-                         f"{dims['H']}x{dims['W']} images at level {options['level']}), got {options['height_window']!r}")
+        if v > side - 2 * _BORDER:  # (never seen whole: its test would be off everywhere)
+            raise ValueError(f"{name}: expected at most {side - 2 * _BORDER} (the working image's side, {side} px: "
+                             f"the {dims['H']}x{dims['W']} images at level {options['level']}, less {_BORDER} at "
+                             f"either border, where image 2's smoothing sees its padding), got {v!r}")
     for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
         v = options[name]
         if not is_number(v) or not (0 < v < math.inf):
@@ -466,9 +467,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             from the first; with ``edges``, its boundary on the edges) and detect again. Only where
             the motion was estimated here.
         level: the evidence is judged on images averaged over 2**level pixels; default: the
-            coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows) and 16 pixels
-            wide and high (0 for images narrower than 32 pixels). The windows and the smoothing are
-            in pixels of that level.
+            coarsest level at least ``_WORK_ROWS`` rows high (1 for KITTI's 375 rows) and 16 and
+            ``height_window + 8`` pixels (23) either way. The windows are in pixels of that level.
         seed_level: the first estimate, on the seed, runs on images averaged over 2**seed_level
             pixels (the motion's parameters do not depend on the resolution).
         seed_width_m, seed_depth_m: the seed (:func:`road_seed`).
@@ -486,8 +486,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             to: a fitted road motion is not more accurate than about half a pixel on real images
             (DESIGN.md §5), even where the seed, which it was fitted to, says less.
         window, height_window: window sides at the working resolution for the misalignment and
-            the height tests (the height needs more pixels); ``height_window`` below the working
-            image's side (a ValueError otherwise: a window never seen whole tests no height).
+            the height tests (the height needs more pixels); at most the working image's side less
+            8 (a ValueError otherwise: a window never seen whole, 4 pixels from either border, tests nothing).
         min_coverage: a road smaller than this share of the image below the horizon is flagged
             ``"small"``.
         edges: within half a height window of the boundary the windows found (in pixels of the
@@ -503,9 +503,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     Raises:
         TypeError, ValueError: bad input, naming the argument.
     """
-    if level is None and isinstance(image1, Tensor) and image1.dim() == 4:  # (16 pixels either way at least)
-        rows, side = image1.shape[-2], min(image1.shape[-2:])
-        level = max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / 16))))
+    if level is None and isinstance(image1, Tensor) and image1.dim() == 4:
+        rows, side = image1.shape[-2], min(image1.shape[-2:])  # (16 pixels either way, room for the windows)
+        least = max([16] + [k + 2 * _BORDER for k in (window, height_window) if is_number(k, integer=True)])
+        level = max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / least))))
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
@@ -519,8 +520,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
         raise TypeError(f"starts: expected a sequence of start candidates, got {type(starts).__name__} {starts!r:.60}")
     starts = tuple(starts)  # (read once: an iterator would leave the refit none)
-    B, H, W = dims["B"], dims["H"], dims["W"]
-    device = image1.device
+    B, H, W, device = dims["B"], dims["H"], dims["W"], image1.device
     if motion is not None:
         check_motion(motion, B, device, "motion")
         unused = [n for n, v in (("flow", flow), ("estimator", estimator), ("odometry", odometry)) if v is not None]
