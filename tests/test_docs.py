@@ -445,6 +445,23 @@ def test_jobs_md_lists_the_refine_jobs_options():
     assert written == _options(build_parser())
 
 
+def test_jobs_md_names_what_a_record_holds_about_an_auto_road():
+    """docs/jobs.md's record (``pairs/<pair>.json``) names every field ``--road auto`` adds to it
+    (the detection's flag, reason, coverage, pixels and step), and the road pixels used."""
+    import types
+
+    from fsof_torch import render_pair
+    from refine.job import road_mask
+
+    p = render_pair("default", 1, size=(96, 320))
+    _, _, info = road_mask({"image1": p["image1"], "image2": p["image2"]}, p["flow"], p["camera"],
+                           types.SimpleNamespace(road_auto=True))
+    text = (DOCS / "jobs.md").read_text()
+    record = text[text.index("**A record**"):text.index("**What the metrics cost.**")]
+    assert set(info) >= {"road_flag", "road_reason", "road_coverage", "road_auto_pixels", "road_max_height_m"}
+    assert {k for k in [*info, "road_pixels"] if f"`{k}`" not in record} == set()
+
+
 @pytest.mark.parametrize("name", ["synth", "train", "tables", "noise", "vflow"])
 def test_jobs_md_lists_each_eval_subcommands_options(name):
     text = (DOCS / "jobs.md").read_text()
