@@ -266,8 +266,10 @@ def auto_road_lines(summary: dict) -> list[str]:
     line = (f"- Auto road (found in the images): {len(found) - len(flagged)} of {len(found)} pairs ok"
             + (f", covering {100 * sum(ok) / len(ok):.1f} % (min {100 * min(ok):.1f} %) of the image below the "
                f"horizon" if ok else ""))
-    steps = [r["road_max_height_m"] for r in found.values() if "road_max_height_m" in r]
-    if steps:  # the step the evidence had to show: larger where the vehicle drove slowly
+    # the step the evidence had to show, larger where the vehicle drove slowly (of the pairs ok: a
+    # flagged pair's is no step its evidence showed, e.g. the largest tried of a static pair)
+    steps = [r["road_max_height_m"] for r in found.values() if "road_max_height_m" in r and r["road_flag"] == "ok"]
+    if steps:
         line += "; the step the evidence could show: " + ", ".join(
             f"{h:g} m ({steps.count(h)} pair{'s' if steps.count(h) != 1 else ''})" for h in sorted(set(steps)))
     return [line] + [f"  - flagged, left unrefined: {p}: {why}" for p, why in sorted(flagged.items())]

@@ -835,8 +835,27 @@ def test_synthetic_road_auto(tmp_path, size, capsys):
         assert rec["after"]["epe_road"] < 0.6 * rec["before"]["epe_road"]
     report = (out / "report.md").read_text()
     assert "Auto road (found in the images):" in report
-    assert f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pair)" in report
+    # (the step of the pairs ok: a flagged pair's evidence showed none)
+    assert (f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pair)" in report) \
+        == (rec["road_flag"] == "ok")
     assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
+
+
+def test_auto_road_lines_give_the_steps_of_the_pairs_ok():
+    """The report's steps are those the evidence of the pairs ok could show: a static pair (every
+    step tried, none showed) or one without motion (the first step, no evidence) adds none (was:
+    "1.2 m (1 pair)" beside "0 of 2 pairs ok")."""
+    from refine.report import auto_road_lines
+
+    def rec(pair, flag, step):
+        return {"pair": pair, "road_flag": flag, "road_reason": "" if flag == "ok" else "why", "road_coverage": 0.3,
+                "road_max_height_m": step}
+
+    lines = auto_road_lines({"pairs": [rec("a", "static", 1.2), rec("b", "no_motion", 0.3)]})
+    assert lines[0] == "- Auto road (found in the images): 0 of 2 pairs ok"
+    lines = auto_road_lines({"pairs": [rec("a", "static", 1.2), rec("b", "ok", 0.6), rec("c", "ok", 0.3)]})
+    assert lines[0].endswith("; the step the evidence could show: 0.3 m (1 pair), 0.6 m (1 pair)")
+    assert lines[1:] == ["  - flagged, left unrefined: a: static (why)"]
 
 
 def test_road_auto_is_detected_once_per_pair_from_dis_for_every_source(tmp_path, monkeypatch):
