@@ -63,7 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog="python -m refine", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-        epilog="Exit status: 0 done, 2 bad or missing input (with a message naming the option). An "
+        epilog="Exit status: 0 done, 2 bad or missing input (with a message naming the option), 130 "
+               "interrupted (Ctrl-C). An "
                "interrupted run resumes: pairs finished by a run of the same inputs and options are "
                "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
                "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
@@ -645,8 +646,22 @@ def _fit_clip(specs, camera, cfg, built: dict, device, *, needed_by: str, poses_
                     **cfg.fit_options)
 
 
+#: the exit status of a run stopped by Ctrl-C (KeyboardInterrupt): 128 + SIGINT, as a shell reports it
+INTERRUPTED = 130
+
+
 def main(argv: list[str] | None = None) -> int:
-    """The job's entry point; returns the exit status (0 done, 2 bad input)."""
+    """The job's entry point; returns the exit status (0 done, 2 bad input, 130 interrupted)."""
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        # (after the run's ExitStack closed: the --out lock released, the process group finished)
+        print("refine: interrupted; the pairs finished so far are kept: run the command again "
+              "(without --overwrite) to resume", file=sys.stderr)
+        return INTERRUPTED
+
+
+def _main(argv: list[str] | None) -> int:
     parser = build_parser()
     try:
         args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))

@@ -133,6 +133,26 @@ def raises():
 
 def returns_dict():
     return ReturnsDict()
+
+
+INTERRUPTS = [2]  # the call (1-based) on which Interrupts raises, once
+
+
+class Interrupts(Zeros):
+    """Ctrl-C while the network runs on the second pair."""
+
+    calls = 0
+
+    def forward(self, image1, image2):
+        Interrupts.calls += 1
+        if INTERRUPTS and Interrupts.calls == INTERRUPTS[0]:
+            INTERRUPTS.clear()
+            raise KeyboardInterrupt
+        return super().forward(image1, image2)
+
+
+def interrupts():
+    return Interrupts()
 '''
 
 
@@ -363,6 +383,21 @@ def test_a_network_whose_flow_is_inf_goes_on(tmp_path, user_module, pair):
     assert record["prediction_finite"] == 0.0 and record["before"]["epe_all"] is None
     report = (tmp_path / "all" / "out" / "report.md").read_text()
     assert "flow source 'net' gave no finite flow (NaN or inf at every pixel) on 1 of 1 pair(s)" in report
+
+
+def test_ctrl_c_prints_one_line_exits_130_and_the_run_resumes(tmp_path, user_module, capsys):
+    """A KeyboardInterrupt (Ctrl-C) while the network runs on the second pair: no traceback, one
+    line on stderr and exit status 130; the --out lock is released and the finished pair kept,
+    so the same command resumes."""
+    args = ["--num-pairs", "2", "--odometry", "given", "--no-figures", "--no-progress", "--size",
+            f"{SIZE[0]}x{SIZE[1]}", "--out", str(tmp_path / "out"), "--net", f"{user_module}:interrupts"]
+    assert main(args) == 130
+    err = capsys.readouterr().err
+    assert err.startswith("refine: interrupted;") and err.count("\n") == 1 and "Traceback" not in err, err
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert [r["pair"] for r in summary["pairs"]] == ["000000", "000001"]
+    assert (summary["records_resumed"], summary["records_computed"]) == (1, 1)
 
 
 # -- torchrun -------------------------------------------------------------------------------------
