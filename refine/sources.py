@@ -258,8 +258,8 @@ def net_module_file(factory: str) -> Path | None:
     (a built-in or namespace module) or cannot be found."""
     try:
         found = importlib.util.find_spec(factory.partition(":")[0])
-    except (ImportError, ValueError):
-        return None
+    except Exception:  # (finding a submodule imports its package, whose code may raise anything:
+        return None    # build_user_net imports it again and names the error under --net)
     if found is not None and found.origin and Path(found.origin).is_file():
         return Path(found.origin)
     return None

@@ -255,6 +255,13 @@ def test_network_errors(tmp_path, user_module, capsys):
         return capsys.readouterr().err
 
     assert "--net: cannot import module 'no_such_module_xyz'" in err("--net", "no_such_module_xyz:make")
+    # a package whose __init__ raises, named through a submodule (finding the submodule runs it)
+    (tmp_path / f"{user_module}_broken").mkdir()
+    (tmp_path / f"{user_module}_broken" / "__init__.py").write_text("raise RuntimeError('broken package')\n")
+    (tmp_path / f"{user_module}_broken" / "nets.py").write_text("def make():\n    pass\n")
+    text = err("--net", f"{user_module}_broken.nets:make")
+    assert text.startswith(f"error: --net: importing '{user_module}_broken.nets' failed: RuntimeError: broken "
+                           f"package"), text
     assert f"--net: module '{user_module}' has no attribute 'missing'" in err("--net", f"{user_module}:missing")
     assert "--net: expected module:callable" in err("--net", user_module)
     assert "returned a str; expected a torch.nn.Module" in err("--net", f"{user_module}:not_a_module")
