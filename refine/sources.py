@@ -194,8 +194,11 @@ def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Ten
                     im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0
                 output = net(padding.pad(im1), padding.pad(im2))
         except Exception as err:  # the user's code: any type
+            padded = "" if contract == "ptlflow" or padding.is_zero else (
+                f"; the job padded the images from {size[0]}x{size[1]} to "
+                f"{'x'.join(map(str, padding.padded_size(size)))}, a multiple of 8")
             raise JobError(f"{option}: the network raised {type(err).__name__}: "
-                           f"{str(err).splitlines()[0] if str(err) else ''} (contract {contract})") from None
+                           f"{str(err).splitlines()[0] if str(err) else ''} (contract {contract}{padded})") from None
         try:
             if contract != "ptlflow":
                 output = padding.unpad_output(output, padding.padded_size(size))
@@ -208,6 +211,12 @@ def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Ten
     _, flow = finest_flow(flows)
     if tuple(flow.shape[-2:]) != size:
         raise JobError(f"{option}: the network's finest flow is {tuple(flow.shape[-2:])}, the images {size}")
+    if flow.shape[0] != 1:  # (the job gives one pair at a time: which flow is the pair's is unknown)
+        raise JobError(f"{option}: the network's finest flow has batch {flow.shape[0]} (shape {tuple(flow.shape)}), "
+                       f"the images 1 (one pair)")
+    if flow.device.type == "meta":  # (no values to refine: every later step would fail on it)
+        raise JobError(f"{option}: the network returned its flow on the device 'meta' (shapes only, no values), "
+                       f"the images on {str(image1.device)!r}")
     return flow[0].to(torch.float32)
 
 

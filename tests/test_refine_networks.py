@@ -135,6 +135,37 @@ def returns_dict():
     return ReturnsDict()
 
 
+class TwoFlows(Zeros):
+    """A flow of batch 2 for the job's one pair."""
+
+    def forward(self, image1, image2):
+        return [torch.zeros(2, 2, *image1.shape[-2:])]
+
+
+class Meta(Zeros):
+    def forward(self, image1, image2):
+        return [torch.zeros(1, 2, *image1.shape[-2:], device="meta")]
+
+
+class Needs32(Zeros):
+    def forward(self, image1, image2):
+        if image1.shape[-1] % 32 or image1.shape[-2] % 32:
+            raise ValueError(f"H and W must be divisible by 32, got {tuple(image1.shape[-2:])}")
+        return super().forward(image1, image2)
+
+
+def two_flows():
+    return TwoFlows()
+
+
+def meta():
+    return Meta()
+
+
+def needs32():
+    return Needs32()
+
+
 INTERRUPTS = [2]  # the call (1-based) on which Interrupts raises, once
 
 
@@ -352,8 +383,15 @@ def test_a_float64_network_gets_float64_images(tmp_path, user_module):
 
 
 def test_a_network_that_fails_on_a_pair_exits_2_naming_net(tmp_path, user_module, capsys):
-    for name, message in (("raises", "--net: the network raised RuntimeError: boom inside forward"),
-                          ("returns_dict", "--net: its output holds no flow")):
+    for name, message in (("raises", "--net: the network raised RuntimeError: boom inside forward (contract raft; "
+                                     "the job padded the images from 45x150 to 48x152, a multiple of 8)"),
+                          ("needs32", "--net: the network raised ValueError: H and W must be divisible by 32, got "
+                                      "(48, 152) (contract raft; the job padded the images from 45x150 to 48x152"),
+                          ("returns_dict", "--net: its output holds no flow"),
+                          ("two_flows", "--net: the network's finest flow has batch 2 (shape (2, 2, 45, 150)), the "
+                                        "images 1 (one pair)"),
+                          ("meta", "--net: the network returned its flow on the device 'meta' (shapes only, no "
+                                   "values), the images on 'cpu'")):
         assert main(["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
                      "--out", str(tmp_path / name), "--net", f"{user_module}:{name}"]) == 2
         assert message in capsys.readouterr().err
