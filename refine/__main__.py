@@ -478,6 +478,9 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
                      f"(--fit-options).")
     net_spec = NetSpec(args.net, args.net_contract or "auto", args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
+    # again: --net's module may set its own counts when imported (research code often does)
+    torch.set_num_threads(args.threads)
+    cv2.setNumThreads(args.threads)
 
     # replace uses no scale: the default's in the identity, as for a confidence run without --scale
     scale = DEFAULT_SCALE if args.scale is None else args.scale

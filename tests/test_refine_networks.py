@@ -430,6 +430,42 @@ def test_a_network_whose_flow_is_inf_goes_on(tmp_path, user_module, pair):
     assert "flow source 'net' gave no finite flow (NaN or inf at every pixel) on 1 of 1 pair(s)" in report
 
 
+def test_threads_holds_for_a_network_whose_module_sets_its_own(tmp_path, user_module, monkeypatch):
+    """A module that sets torch's and OpenCV's thread counts when imported (as some research code
+    does) runs under --threads all the same: the job sets them again once the networks are built."""
+    import cv2
+
+    name = f"{user_module}_threads"
+    (tmp_path / f"{name}.py").write_text(textwrap.dedent(f'''
+        import cv2
+        import torch
+        from {user_module} import Zeros
+
+        torch.set_num_threads(2)
+        cv2.setNumThreads(2)
+        SEEN = []
+
+
+        class Counts(Zeros):
+            def forward(self, image1, image2):
+                SEEN.append((torch.get_num_threads(), cv2.getNumThreads()))
+                return super().forward(image1, image2)
+
+
+        def make():
+            return Counts()
+        '''))
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)  # (--threads is bounded by the machine's CPUs)
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    try:
+        _run(tmp_path, "--net", f"{name}:make", "--threads", "1")
+        assert sys.modules[name].SEEN == [(1, 1)]
+    finally:
+        torch.set_num_threads(before[0])
+        cv2.setNumThreads(before[1])
+        sys.modules.pop(name, None)
+
+
 def test_ctrl_c_prints_one_line_exits_130_and_the_run_resumes(tmp_path, user_module, capsys):
     """A KeyboardInterrupt (Ctrl-C) while the network runs on the second pair: no traceback, one
     line on stderr and exit status 130; the --out lock is released and the finished pair kept,
