@@ -58,6 +58,10 @@ class NetSpec:
     checkpoint: Path | None = None
 
 
+#: keys under which a training checkpoint keeps the network's state_dict (:func:`load_state_dict`)
+WRAPPER_KEYS = ("state_dict", "model", "model_state_dict")
+
+
 def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
     """Load a local state_dict (``torch.load(weights_only=True)``: tensors only, no code) into
     ``net``; every problem is a JobError naming ``option`` and the file."""
@@ -67,8 +71,12 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
         state = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as err:  # torch.load raises many types on foreign bytes (pickle, zip, EOF)
         raise JobError(_load_failure(err, path, option)) from None
-    if isinstance(state, dict) and isinstance(state.get("state_dict"), dict):
-        state = state["state_dict"]  # a Lightning / ptlflow checkpoint keeps the weights here
+    # a training checkpoint keeps the weights under one key beside others (the optimiser's state,
+    # the step): Lightning's and ptlflow's "state_dict", "model" (GMFlow, FlowFormer, ...),
+    # "model_state_dict" (PyTorch's tutorial). A state_dict's own values are tensors, never dicts.
+    wrapper = next((k for k in WRAPPER_KEYS if isinstance(state, dict) and isinstance(state.get(k), dict)), None)
+    if wrapper is not None:
+        state = state[wrapper]
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
         raise JobError(f"{option}: {str(path)!r} holds a {type(state).__name__}, not a state_dict "
                        f"(a dict of parameter names to tensors)")

@@ -257,11 +257,19 @@ def test_a_dataparallel_checkpoint_is_loaded_without_its_module_prefix(tmp_path,
     runs = [_run(tmp_path / name, "--net", f"{user_module}:ptlflow_raft", "--checkpoint", str(tmp_path / f"{name}.pt"))
             for name in ("plain", "parallel")]
     assert runs[1]["pairs"][0]["before"] == runs[0]["pairs"][0]["before"]
+    from refine.sources import load_state_dict
+
+    # a training checkpoint: the weights under "model" (or "model_state_dict") beside the
+    # optimiser's state and the step, with or without DataParallel's prefix
+    optimiser = torch.optim.Adam(other.parameters()).state_dict()
+    for key, state in (("model", other.state_dict()), ("model_state_dict", torch.nn.DataParallel(other).state_dict())):
+        torch.save({key: state, "optimizer": optimiser, "step": 5}, tmp_path / f"{key}.pt")
+        net = PtlflowRAFTStandIn(seed=0, iters=2)
+        load_state_dict(net, tmp_path / f"{key}.pt", "--checkpoint")
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), other.state_dict().values()))
     wrapped = torch.nn.Sequential()
     wrapped.add_module("module", torch.nn.Linear(2, 2))
     state = wrapped.state_dict()
-    from refine.sources import load_state_dict
-
     torch.save(state, tmp_path / "own.pt")
     load_state_dict(wrapped, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
     assert all(torch.equal(a, b) for a, b in zip(wrapped.state_dict().values(), state.values()))
