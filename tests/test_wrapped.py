@@ -311,3 +311,37 @@ def test_a_bad_odometry_is_named_before_the_network_runs(wide, odometry, message
     with pytest.raises(ValueError, match=message):
         model(wide["image1"], wide["image2"], camera=wide["camera"], mask=wide["road"], odometry=odometry)
     assert net.calls == 0
+
+
+class EitherCall(Net):
+    """Net, called with two images or with ptlflow's dict (its flow all the same)."""
+
+    def forward(self, *images):
+        return super().forward(*(images[0]["images"].unbind(1) if len(images) == 1 else images))
+
+
+class InPlace(EitherCall):
+    """Changes its inputs in place, as some RAFT ports normalise theirs (RGB 0..255 -> [-1, 1])."""
+
+    def forward(self, *images):
+        for im in ([images[0]["images"]] if len(images) == 1 else images):
+            im.div_(127.5).sub_(1.0)
+        return super().forward(*images)
+
+
+@pytest.mark.parametrize("ptlflow", [False, True])
+@pytest.mark.parametrize("pad", [None, InputPadder(8)])
+def test_a_net_that_changes_its_inputs_in_place_leaves_the_callers_images(wide, pad, ptlflow):
+    """The net gets tensors of its own (also where the padding is zero, 120 x 400 with
+    InputPadder(8)): the caller's images stay as they were, and the refiner reads them, not the
+    net's normalised copies, so the output is the one of a net that leaves its inputs alone."""
+    s = wide
+    inputs = ((ptlflow_inputs(s["image1"], s["image2"]),) if ptlflow else
+              (s["image1"].clone(), s["image2"].clone()))
+    callers = [inputs[0]["images"]] if ptlflow else list(inputs)
+    kept = [x.clone() for x in callers]
+    call = dict(mask=s["road"], camera=s["camera"], odometry=s["odometry"])
+    got = FreespaceRefined(InPlace(s["pred"]), pad=pad)(*inputs, **call)
+    assert all(torch.equal(a, b) for a, b in zip(callers, kept))
+    want = FreespaceRefined(EitherCall(s["pred"]), pad=pad)(*inputs, **call)
+    assert all(torch.equal(a, b) for a, b in zip(got, want))

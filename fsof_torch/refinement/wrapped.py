@@ -37,7 +37,9 @@ class FreespaceRefined(nn.Module):
             image2], 1))`` on 0..1, needs a two-image adapter: docs/contracts.md). It may return any structure :func:`refine_flow` accepts whose finest flow has the
             (padded) input's size and batch: a net that returns only a coarser flow (PWC-Net's 1/4),
             or another batch than the images', raises a ValueError naming ``net`` after it ran;
-            upsample its flow to the input's size first.
+            upsample its flow to the input's size first. It gets images of its own (copies, or
+            the padded images): one that changes its inputs in place leaves the caller's images,
+            which the refiner reads, as they were.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
         road: None (the caller passes ``mask``) or ``"auto"`` (no mask: the road found in the two
             images, as ``refine_flow(flow, "auto", ...)`` finds it with the refiner's options: its
@@ -148,16 +150,19 @@ class FreespaceRefined(nn.Module):
             road_motion_batch(odometry, B, torch.float64, image1.device, batch_of="the images' batch",
                               displacement=True)
         padding = self.pad.padding(size) if self.pad is not None else None
+
+        def own(x: Tensor) -> Tensor:
+            """The net's own tensor: a net that normalises its inputs in place (some RAFT ports do)
+            leaves the caller's images, which the refiner reads after it, as they were. (A padded
+            image is new already; a zero padding returns the image itself.)"""
+            y = padding.pad(x, mode=self.pad.pad_mode) if padding is not None else x
+            return y.clone() if y is x else y
+
         if ptlflow:
-            if padding is not None:
-                net_inputs["images"] = padding.pad(net_inputs["images"], mode=self.pad.pad_mode)
+            net_inputs["images"] = own(net_inputs["images"])
             output = self.net(net_inputs, **kw)
         else:
-            if padding is not None:
-                output = self.net(padding.pad(image1, mode=self.pad.pad_mode),
-                                  padding.pad(image2, mode=self.pad.pad_mode), **kw)
-            else:
-                output = self.net(image1, image2, **kw)
+            output = self.net(own(image1), own(image2), **kw)
             lo, hi = self.image_range
             if (lo, hi) != (0.0, 255.0):
                 image1, image2 = ((im - lo) * (255.0 / (hi - lo)) for im in (image1, image2))
