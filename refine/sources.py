@@ -159,6 +159,9 @@ def _contract(net: nn.Module, spec: NetSpec) -> str:
     declared = getattr(net, "flow_contract", None)
     if declared in CONTRACTS[1:]:
         return declared
+    if declared is not None:  # (a misspelt contract would otherwise be guessed from the forward)
+        raise JobError(f"--net-contract: {type(net).__name__}.flow_contract is {declared!r}; expected one of "
+                       f"{', '.join(CONTRACTS[1:])} (or give --net-contract)")
     package = type(net).__module__.split(".")[0]
     if package in ("ptlflow", "torchvision"):
         return package

@@ -154,6 +154,14 @@ class Needs32(Zeros):
         return super().forward(image1, image2)
 
 
+class Misspelt(TwoFlows):
+    flow_contract = "RAFT"
+
+
+def misspelt():
+    return Misspelt()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -305,6 +313,8 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert "--net: expected module:callable" in err("--net", user_module)
     assert "returned a str; expected a torch.nn.Module" in err("--net", f"{user_module}:not_a_module")
     assert "--net-contract: cannot tell how to call TwoImages" in err("--net", f"{user_module}:two_images")
+    assert ("--net-contract: Misspelt.flow_contract is 'RAFT'; expected one of ptlflow, torchvision, raft (or give "
+            "--net-contract)") in err("--net", f"{user_module}:misspelt")
     torch.save({"fnet.weight": torch.zeros(2)}, tmp_path / "wrong.pt")
     text = err("--net", f"{user_module}:ptlflow_raft", "--checkpoint", str(tmp_path / "wrong.pt"))
     assert "--checkpoint:" in text and "wrong.pt" in text and "does not fit PtlflowRAFTStandIn" in text
