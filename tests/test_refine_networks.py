@@ -372,6 +372,17 @@ def test_json_naming_the_network_source_is_refused_and_the_source_kept(tmp_path,
     sys.modules.pop(f"{user_module}_pkg", None)
 
 
+def test_the_test_net_is_a_raft_contract_network(tmp_path, pair):
+    """--net fsof_torch:TinyRAFT (e.g. with weights from eval train as --checkpoint) is called as
+    RAFT: RGB on 0..255, padded by the job; its flow is the test net source's."""
+    from fsof_torch import TinyRAFT
+
+    torch.save(TinyRAFT(seed=3).state_dict(), tmp_path / "tiny.pt")
+    net = _run(tmp_path / "net", "--net", "fsof_torch:TinyRAFT", "--checkpoint", str(tmp_path / "tiny.pt"))
+    testnet = _run(tmp_path / "testnet", "--source", "testnet", "--testnet-weights", str(tmp_path / "tiny.pt"))
+    assert net["pairs"][0]["before"] == testnet["pairs"][0]["before"]
+
+
 def test_explicit_contract(tmp_path, user_module):
     """A two-image network with --net-contract raft runs (its flows are zero: refinement fixes the road)."""
     summary = _run(tmp_path, "--net", f"{user_module}:two_images", "--net-contract", "raft")

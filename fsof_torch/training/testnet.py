@@ -203,6 +203,8 @@ class TinyRAFT(nn.Module):
         (4, torch.Size([1, 2, 64, 100]))
     """
 
+    flow_contract = "raft"  # RGB on 0..255, a list of flows: read by the refine job's --net (docs/jobs.md)
+
     def __init__(self, *, seed: int = 0, iters: int = 6, feature_dim: int = 64, hidden_dim: int = 48,
                  context_dim: int = 32, corr_levels: int = 3, corr_radius: int = 3) -> None:
         super().__init__()
