@@ -87,7 +87,9 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
 
         consume_prefix_in_state_dict_if_present(state, "module.")  # (in place, on the dict just loaded)
     try:
-        result = net.load_state_dict(state, strict=True)
+        # a network built on the meta device (shapes only, to be filled from a checkpoint) takes
+        # the file's tensors themselves: copying into its meta tensors would keep no value
+        result = net.load_state_dict(state, strict=True, assign=bool(_meta_tensors(net)))
     except RuntimeError as err:
         own = set(net.state_dict())
         missing = sorted(own - set(state))[:4]
@@ -96,6 +98,11 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
                   else str(err).splitlines()[-1].strip())
         raise JobError(f"{option}: {str(path)!r} does not fit {type(net).__name__}: {detail}") from None
     del result
+
+
+def _meta_tensors(net: nn.Module) -> list[str]:
+    """The names of ``net``'s parameters and buffers on the meta device (shapes, no values)."""
+    return [name for name, t in (*net.named_parameters(), *net.named_buffers()) if t.is_meta]
 
 
 def _load_failure(err: Exception, path: Path, option: str) -> str:
@@ -147,6 +154,12 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
         raise JobError(f"--net: {spec.factory}() returned a {type(net).__name__}; expected a torch.nn.Module")
     if spec.checkpoint is not None:
         load_state_dict(net, spec.checkpoint, "--checkpoint")
+    meta = _meta_tensors(net)
+    if meta:  # (moving it to --device would fail on them, and a forward give no values)
+        more = f" and {len(meta) - 1} more" if len(meta) > 1 else ""
+        raise JobError(f"--net: {spec.factory}() returned a network whose {meta[0]!r}{more} on the device 'meta' "
+                       f"hold no values (shapes only); " + ("give them in --checkpoint" if spec.checkpoint is None
+                                                             else "--checkpoint does not give them"))
     net.eval()
     return net, _contract(net, spec)
 

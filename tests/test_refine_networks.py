@@ -162,6 +162,18 @@ def misspelt():
     return Misspelt()
 
 
+class OnMeta(Double):
+    """Built on the meta device (shapes only), to be filled from a checkpoint."""
+
+    def __init__(self):
+        super().__init__()
+        self.to("meta")
+
+
+def on_meta():
+    return OnMeta()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -381,6 +393,26 @@ def test_the_test_net_is_a_raft_contract_network(tmp_path, pair):
     net = _run(tmp_path / "net", "--net", "fsof_torch:TinyRAFT", "--checkpoint", str(tmp_path / "tiny.pt"))
     testnet = _run(tmp_path / "testnet", "--source", "testnet", "--testnet-weights", str(tmp_path / "tiny.pt"))
     assert net["pairs"][0]["before"] == testnet["pairs"][0]["before"]
+
+
+def test_a_network_built_on_the_meta_device_takes_the_checkpoints_tensors(tmp_path, user_module, capsys):
+    """A network whose weights are on the meta device (shapes only) takes them from --checkpoint
+    (load_state_dict(assign=True)) and runs as the same network built with values; without a
+    checkpoint it exits 2 naming --net and the first such weight."""
+    import importlib
+
+    module = importlib.import_module(user_module)
+    weights = module.Double().state_dict()
+    weights["conv.weight"].normal_(generator=torch.Generator().manual_seed(0))
+    torch.save(weights, tmp_path / "double.pt")
+    built = [_run(tmp_path / name, "--net", f"{user_module}:{name}", "--checkpoint", str(tmp_path / "double.pt"))
+             for name in ("double", "on_meta")]
+    assert built[0]["pairs"][0]["before"] == built[1]["pairs"][0]["before"]
+    assert main(["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
+                 "--out", str(tmp_path / "o"), "--net", f"{user_module}:on_meta"]) == 2
+    assert capsys.readouterr().err == (f"error: --net: {user_module}:on_meta() returned a network whose 'conv.weight' "
+                                       f"and 1 more on the device 'meta' hold no values (shapes only); give them in "
+                                       f"--checkpoint\n")
 
 
 def test_explicit_contract(tmp_path, user_module):
