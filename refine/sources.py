@@ -189,15 +189,23 @@ def _contract(net: nn.Module, spec: NetSpec) -> str:
                    f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
 
 
+def _guessed(net: nn.Module, spec: NetSpec) -> bool:
+    """Whether :func:`_contract` took ptlflow's contract from the network's one-argument forward
+    alone (no option, no ``flow_contract``, not a ptlflow network)."""
+    return (spec.contract == "auto" and getattr(net, "flow_contract", None) is None
+            and type(net).__module__.split(".")[0] not in ("ptlflow", "torchvision"))
+
+
 def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor, *,
-             option: str = "--net") -> Tensor:
+             option: str = "--net", hint: str = "") -> Tensor:
     """Run a network of the given contract on one pair ((3, H, W) RGB 0..255) and return its
     final full-size flow (2, H, W) float32. Sizes are padded as RAFT does when the contract
     needs it (torchvision, raft: to a multiple of 8) and the output cropped back.
 
     The network gets copies of the images (one that normalises its inputs in place leaves the
     pair as it was), in the dtype of its first floating parameter where it has one. A forward that
-    raises, and an output that holds no flow, are JobErrors naming ``option``.
+    raises (its message ends with ``hint``), and an output that holds no flow, are JobErrors
+    naming ``option``.
     """
     from fsof_torch.refinement.contracts import (DEFAULT_FLOW_KEYS, InputPadder, collect_flows, finest_flow,
                                                  ptlflow_inputs)
@@ -222,7 +230,8 @@ def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Ten
                 f"; the job padded the images from {size[0]}x{size[1]} to "
                 f"{'x'.join(map(str, padding.padded_size(size)))}, a multiple of 8")
             raise JobError(f"{option}: the network raised {type(err).__name__}: "
-                           f"{str(err).splitlines()[0] if str(err) else ''} (contract {contract}{padded})") from None
+                           f"{str(err).splitlines()[0] if str(err) else ''} (contract {contract}{padded}){hint}") \
+                from None
         try:
             if contract != "ptlflow":
                 output = padding.unpad_output(output, padding.padded_size(size))
@@ -266,7 +275,10 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
             raise JobError("--source net needs --net module:callable")
         model, contract = build_user_net(net)
         model.to(device)
-        return lambda pair, _file: net_flow(model, contract, pair["image1"], pair["image2"])
+        hint = ("; the contract was guessed from its one-argument forward: give --net-contract, or call "
+                "a network of another input (ARFlow's pair concatenated) through an adapter (docs/contracts.md)"
+                if _guessed(model, net) else "")
+        return lambda pair, _file: net_flow(model, contract, pair["image1"], pair["image2"], hint=hint)
     if name == "files":
         from fsof_torch import read_flow
 

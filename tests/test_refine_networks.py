@@ -174,6 +174,17 @@ def on_meta():
     return OnMeta()
 
 
+class Concatenated(torch.nn.Module):
+    """ARFlow's call: the pair concatenated, (B, 6, H, W); no declared contract."""
+
+    def forward(self, x):
+        return [torch.zeros(x.shape[0], 2, *x.shape[-2:])]
+
+
+def concatenated():
+    return Concatenated()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -449,6 +460,9 @@ def test_a_network_that_fails_on_a_pair_exits_2_naming_net(tmp_path, user_module
                           ("needs32", "--net: the network raised ValueError: H and W must be divisible by 32, got "
                                       "(48, 152) (contract raft; the job padded the images from 45x150 to 48x152"),
                           ("returns_dict", "--net: its output holds no flow"),
+                          ("concatenated", "(contract ptlflow); the contract was guessed from its one-argument "
+                                           "forward: give --net-contract, or call a network of another input "
+                                           "(ARFlow's pair concatenated) through an adapter (docs/contracts.md)"),
                           ("two_flows", "--net: the network's finest flow has batch 2 (shape (2, 2, 45, 150)), the "
                                         "images 1 (one pair)"),
                           ("meta", "--net: the network returned its flow on the device 'meta' (shapes only, no "
