@@ -153,6 +153,21 @@ def test_a_net_that_returns_another_batch_is_named(mask_batch):
         FreespaceRefined(OneFlowNet())(image1, image2, camera=s["camera"], mask=mask, odometry=s["odometry"])
 
 
+def test_a_net_that_returns_its_flow_on_another_device_is_named():
+    """A flow on another device than the images' (here 'meta', on a machine with only a CPU): the
+    error names the net and both devices (it blamed the caller's images[0])."""
+    s = scene((48, 96))
+
+    class MetaNet(nn.Module):
+        def forward(self, a, b):
+            return [torch.zeros(a.shape[0], 2, *a.shape[-2:], device="meta")]
+
+    with pytest.raises(ValueError, match=r"^net: its finest flow is on meta, the input images on cpu: return the "
+                                         r"flow on the images' device"):
+        FreespaceRefined(MetaNet())(s["image1"], s["image2"], camera=s["camera"], mask=s["road"],
+                                    odometry=s["odometry"])
+
+
 # -- the images' range, before the net runs ------------------------------------------------------------------
 
 @pytest.mark.parametrize("image_range, scale, message", [

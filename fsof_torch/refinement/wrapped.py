@@ -35,8 +35,9 @@ class FreespaceRefined(nn.Module):
             torchvision's RAFT, TinyRAFT) or ``net(inputs, **kw)`` with ptlflow's input dict
             (ARFlow's PWC-Lite, which takes the pair concatenated, ``net(torch.cat([image1,
             image2], 1))`` on 0..1, needs a two-image adapter: docs/contracts.md). It may return any structure :func:`refine_flow` accepts whose finest flow has the
-            (padded) input's size and batch: a net that returns only a coarser flow (PWC-Net's 1/4),
-            or another batch than the images', raises a ValueError naming ``net`` after it ran;
+            (padded) input's size, batch and device: a net that returns only a coarser flow
+            (PWC-Net's 1/4), another batch than the images' or another device, raises a ValueError
+            naming ``net`` after it ran;
             upsample its flow to the input's size first. It gets images of its own (copies, or
             the padded images): one that changes its inputs in place leaves the caller's images,
             which the refiner reads, as they were.
@@ -176,6 +177,9 @@ class FreespaceRefined(nn.Module):
         if finest.shape[0] != B:  # (before the refiner, which would blame the caller's mask or images)
             raise ValueError(f"net: its finest flow has batch {finest.shape[0]} (shape {tuple(finest.shape)}), the "
                              f"input images batch {B}: the wrapper needs one flow per image pair")
+        if finest.device != image1.device:  # (the refiner would blame the caller's images)
+            raise ValueError(f"net: its finest flow is on {finest.device}, the input images on {image1.device}: "
+                             f"return the flow on the images' device")
         if tuple(finest.shape[-2:]) != padded_size:
             given = f"{size[0]} x {size[1]}" + ("" if padded_size == size else
                                                f" (padded to {padded_size[0]} x {padded_size[1]})")
