@@ -144,6 +144,10 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
         if not hasattr(factory, part):
             raise JobError(f"--net: module {module_name!r} has no attribute {attr!r}")
         factory = getattr(factory, part)
+    if isinstance(factory, nn.Module):
+        # the network itself (calling it would run its forward without images): named as its class
+        raise JobError(f"--net: {spec.factory!r} is a network (a {type(factory).__name__}), not a factory; name a "
+                       f"function or class that returns it, e.g. {module_name}:{type(factory).__name__}")
     if not callable(factory):
         raise JobError(f"--net: {spec.factory!r} is a {type(factory).__name__}, not a callable")
     try:

@@ -185,6 +185,9 @@ def concatenated():
     return Concatenated()
 
 
+instance = Zeros()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -335,6 +338,8 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert f"--net: module '{user_module}' has no attribute 'missing'" in err("--net", f"{user_module}:missing")
     assert "--net: expected module:callable" in err("--net", user_module)
     assert "returned a str; expected a torch.nn.Module" in err("--net", f"{user_module}:not_a_module")
+    assert (f"--net: '{user_module}:instance' is a network (a Zeros), not a factory; name a function or class that "
+            f"returns it, e.g. {user_module}:Zeros") in err("--net", f"{user_module}:instance")
     assert "--net-contract: cannot tell how to call TwoImages" in err("--net", f"{user_module}:two_images")
     assert ("--net-contract: Misspelt.flow_contract is 'RAFT'; expected one of ptlflow, torchvision, raft (or give "
             "--net-contract)") in err("--net", f"{user_module}:misspelt")
