@@ -139,6 +139,9 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
         raise JobError(f"--net: cannot import module {module_name!r} ({err}); is it installed, or on PYTHONPATH?") from None
     except Exception as err:  # the user's module failed while importing
         raise JobError(f"--net: importing {module_name!r} failed: {type(err).__name__}: {err}") from None
+    except SystemExit as err:  # (research code that parses the command line, or exits, when imported)
+        raise JobError(f"--net: importing {module_name!r} exited (SystemExit: {err.code!r}); the job imports the "
+                       f"module and calls its factory: it may not parse the command line or exit") from None
     factory: Any = module
     for part in attr.split("."):
         if not hasattr(factory, part):
@@ -154,6 +157,8 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
         net = factory()
     except Exception as err:
         raise JobError(f"--net: calling {spec.factory}() failed: {type(err).__name__}: {err}") from None
+    except SystemExit as err:
+        raise JobError(f"--net: calling {spec.factory}() exited (SystemExit: {err.code!r})") from None
     if not isinstance(net, nn.Module):
         raise JobError(f"--net: {spec.factory}() returned a {type(net).__name__}; expected a torch.nn.Module")
     if spec.checkpoint is not None:
@@ -307,8 +312,8 @@ def net_module_file(factory: str) -> Path | None:
     (a built-in or namespace module) or cannot be found."""
     try:
         found = importlib.util.find_spec(factory.partition(":")[0])
-    except Exception:  # (finding a submodule imports its package, whose code may raise anything:
-        return None    # build_user_net imports it again and names the error under --net)
+    except (Exception, SystemExit):  # (finding a submodule imports its package, whose code may raise
+        return None                  # anything or exit: build_user_net imports it again, names it)
     if found is not None and found.origin and Path(found.origin).is_file():
         return Path(found.origin)
     return None

@@ -188,6 +188,10 @@ def concatenated():
 instance = Zeros()
 
 
+def exits():
+    raise SystemExit("no GPU")
+
+
 def two_flows():
     return TwoFlows()
 
@@ -338,6 +342,16 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert f"--net: module '{user_module}' has no attribute 'missing'" in err("--net", f"{user_module}:missing")
     assert "--net: expected module:callable" in err("--net", user_module)
     assert "returned a str; expected a torch.nn.Module" in err("--net", f"{user_module}:not_a_module")
+    # research code that parses the command line when imported, or exits in its factory
+    (tmp_path / f"{user_module}_argv.py").write_text("import argparse\nargparse.ArgumentParser().parse_args()\n")
+    assert (f"--net: importing '{user_module}_argv' exited (SystemExit: 2); the job imports the module and calls its "
+            f"factory: it may not parse the command line or exit") in err("--net", f"{user_module}_argv:make")
+    sys.modules.pop(f"{user_module}_argv", None)
+    (tmp_path / f"{user_module}_argv_pkg").mkdir()
+    (tmp_path / f"{user_module}_argv_pkg" / "__init__.py").write_text("raise SystemExit(3)\n")
+    assert f"--net: importing '{user_module}_argv_pkg.nets' exited (SystemExit: 3)" in err(
+        "--net", f"{user_module}_argv_pkg.nets:make")
+    assert f"--net: calling {user_module}:exits() exited (SystemExit: 'no GPU')" in err("--net", f"{user_module}:exits")
     assert (f"--net: '{user_module}:instance' is a network (a Zeros), not a factory; name a function or class that "
             f"returns it, e.g. {user_module}:Zeros") in err("--net", f"{user_module}:instance")
     assert "--net-contract: cannot tell how to call TwoImages" in err("--net", f"{user_module}:two_images")
