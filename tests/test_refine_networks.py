@@ -192,6 +192,22 @@ def exits():
     raise SystemExit("no GPU")
 
 
+class DisLike(torch.nn.Module):
+    """OpenCV DIS through ptlflow's contract: exactly the job's DIS flow on integer images."""
+
+    flow_contract = "ptlflow"
+
+    def forward(self, inputs):
+        from refine.sources import dis_flow
+
+        rgb = (inputs["images"][0].flip(1) * 255.0).round()  # BGR [0, 1] -> the file's RGB 0..255
+        return {"flows": dis_flow(rgb[0], rgb[1])[None, None]}
+
+
+def dis_like():
+    return DisLike()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -443,6 +459,33 @@ def test_a_network_built_on_the_meta_device_takes_the_checkpoints_tensors(tmp_pa
     assert capsys.readouterr().err == (f"error: --net: {user_module}:on_meta() returned a network whose 'conv.weight' "
                                        f"and 1 more on the device 'meta' hold no values (shapes only); give them in "
                                        f"--checkpoint\n")
+
+
+def test_a_network_and_its_flows_saved_as_files_give_the_same_records(tmp_path, user_module, pair):
+    """--source net with a network returning DIS's flow, and --flows with that flow saved: the
+    same measures, refined flows and fits (the sources differ only in name and input files)."""
+    from fsof_torch.io import read_image, write_flow, write_image, write_kitti_calibration, write_road_mask
+    from refine.sources import dis_flow
+
+    root = tmp_path / "data"
+    for d in ("images", "road", "flows"):
+        (root / d).mkdir(parents=True)
+    write_image(root / "images" / "000000.png", pair["image1"])
+    write_image(root / "images" / "000001.png", pair["image2"])
+    write_kitti_calibration(root / "calib.txt", pair["camera"].K[0], cam=0, style="odometry")
+    write_road_mask(root / "road" / "000000.png", pair["road"])
+    images = [read_image(root / "images" / f"00000{i}.png") for i in (0, 1)]
+    write_flow(root / "flows" / "000000.npy", dis_flow(*images))
+    base = ["--images", str(root / "images"), "--calib", str(root / "calib.txt"), "--road", str(root / "road"),
+            "--odometry", "fit,photometric", "--no-figures", "--no-progress"]
+    runs = {}
+    for name, source in (("net", ["--net", f"{user_module}:dis_like"]), ("files", ["--flows", str(root / "flows")])):
+        assert main([*base, *source, "--out", str(tmp_path / name)]) == 0
+        runs[name] = json.loads((tmp_path / name / "report.json").read_text())["pairs"]
+    keep = ("before", "after", "odometry", "refined", "fit_success", "fit_residual_px", "flow_digest", "gate")
+    assert [r["source"] for r in runs["net"]] == ["net", "net"] and [r["source"] for r in runs["files"]] == ["files"] * 2
+    assert [{k: r.get(k) for k in keep} for r in runs["net"]] == [{k: r.get(k) for k in keep} for r in runs["files"]]
+    assert any(r["refined"] for r in runs["net"])
 
 
 def test_explicit_contract(tmp_path, user_module):
