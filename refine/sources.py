@@ -234,7 +234,7 @@ def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Ten
                 if contract == "torchvision":
                     im1, im2 = im1 / 127.5 - 1.0, im2 / 127.5 - 1.0
                 output = net(padding.pad(im1), padding.pad(im2))
-        except Exception as err:  # the user's code: any type
+        except (Exception, SystemExit) as err:  # the user's code: any type, or sys.exit()
             padded = "" if contract == "ptlflow" or padding.is_zero else (
                 f"; the job padded the images from {size[0]}x{size[1]} to "
                 f"{'x'.join(map(str, padding.padded_size(size)))}, a multiple of 8")

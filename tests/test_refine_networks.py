@@ -208,6 +208,15 @@ def dis_like():
     return DisLike()
 
 
+class ExitsInForward(Zeros):
+    def forward(self, image1, image2):
+        raise SystemExit("out of memory")
+
+
+def exits_in_forward():
+    return ExitsInForward()
+
+
 def two_flows():
     return TwoFlows()
 
@@ -522,6 +531,7 @@ def test_a_network_that_fails_on_a_pair_exits_2_naming_net(tmp_path, user_module
                           ("needs32", "--net: the network raised ValueError: H and W must be divisible by 32, got "
                                       "(48, 152) (contract raft; the job padded the images from 45x150 to 48x152"),
                           ("returns_dict", "--net: its output holds no flow"),
+                          ("exits_in_forward", "--net: the network raised SystemExit: out of memory (contract raft"),
                           ("concatenated", "(contract ptlflow); the contract was guessed from its one-argument "
                                            "forward: give --net-contract, or call a network of another input "
                                            "(ARFlow's pair concatenated) through an adapter (docs/contracts.md)"),
