@@ -34,6 +34,10 @@ BAD = [
     ("auto_road", ["--data", f"{TMP}/empty", "--no-synthetic", "--no-slow"], "--data"),
     ("auto_road", ["--data", f"{TMP}/empty", "--no-real"], "is not read with --no-real"),  # (dropped in silence)
     ("bench_compile", ["--repeats", "0"], "--repeats"),
+    ("camera_setups", ["--pairs", "-1"], "--pairs"),
+    ("camera_setups", ["--setups", "no-such-camera"], "--setups"),
+    ("camera_setups", ["--noise", "-1"], "--noise"),
+    ("camera_setups", ["--seed", "-1"], "--seed"),
     ("bench_fit", ["--repeats", "0"], "--repeats"),
     ("bench_fit", ["--baseline", "no-such-revision"], "--baseline"),
     ("bench_image_fit", ["--repeats", "0"], "--repeats"),
