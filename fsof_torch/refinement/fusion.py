@@ -51,15 +51,8 @@ from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, collect_flows, finest_flow, map_flows, refiner_images
 
-__all__ = [
-    "DEFAULT_FLOW_KEYS",
-    "RefineOutput",
-    "FreespaceRefiner",
-    "cauchy_weight",
-    "fuse_flow",
-    "refine_flow",
-    "resize_mask",
-]
+__all__ = ["DEFAULT_FLOW_KEYS", "RefineOutput", "FreespaceRefiner", "cauchy_weight", "fuse_flow", "refine_flow",
+           "resize_mask"]
 
 _MODES, _FITS = MODES, FITS
 
@@ -653,10 +646,13 @@ class FreespaceRefiner(nn.Module):
     Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None, starts=()) -> RefineOutput``.
 
     Example:
+        >>> import fsof_torch as fs; p = fs.render_pair("default", 0, size=(64, 224))
+        >>> image1, image2, road, camera = p["image1"][None], p["image2"][None], p["road"][None], p["camera"]
+        >>> flows = fs.TinyRAFT(iters=2)(image1, image2)      # a RAFT-style list of (B, 2, H, W)
         >>> refiner = FreespaceRefiner()
-        >>> flows = raft(image1, image2)                       # list of (B, 2, H, W)
         >>> out = refiner(flows, road, camera, images=(image1, image2))
-        >>> flow = out.flow[-1]                                # same structure as ``flows``
+        >>> [tuple(f.shape) for f in out.flow], out.refined   # the same structure as ``flows``
+        ([(1, 2, 64, 224), (1, 2, 64, 224)], tensor([True]))
     """
 
     def __init__(self, *, estimator: Any = None, gate: Any = "auto", mode: str = "replace", scale: float = 2.0,
