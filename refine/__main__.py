@@ -223,9 +223,11 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
            "the KITTI 2015 pair has no poses",
            "--gt": "the KITTI 2015 pair has its own flow_noc_10.png" if real == "kitti15" else
            "the KITTI odometry clip has no ground-truth flow"}
+    # the inputs each option applies to (the KITTI samples take --height, the clip --pitch-deg)
+    where = {"--height": "--images, --kitti15 and --kitti-odometry", "--pitch-deg": "--images and --kitti-odometry"}
     for option, given in own.items():
         if given:
-            raise JobError(f"{option}: applies to --images ({why.get(option, what)})")
+            raise JobError(f"{option}: applies to {where.get(option, '--images')} ({why.get(option, what)})")
     if real is not None and args.road not in (None, "auto"):
         raise JobError(f"--road: --{real.replace('_', '-')} uses its own road.json, or 'auto'")
     given = [v for v in args.odometry or () if v.startswith("given")]

@@ -1486,9 +1486,12 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
                           (["--seed", "3"], "--seed"), (["--scene-noise", "1"], "--scene-noise"),
                           (TINY[:2], "--size")):
         assert f"{option}: applies to the synthetic scenes, not to --images" in _err(capsys, [*user, *extra])
-    for extra, option in ((["--cam", "2"], "--cam"), (["--roll-deg", "1"], "--roll-deg"),
-                          (["--height", "1.5"], "--height"), (["--pitch-deg", "1"], "--pitch-deg")):
-        assert f"{option}: applies to --images (the synthetic scenes have their own camera)" in _err(
+    # the message says every input the option applies to: the KITTI samples take --height, the
+    # odometry clip --pitch-deg (it said "applies to --images" alone)
+    for extra, where in ((["--cam", "2"], "--images"), (["--roll-deg", "1"], "--images"),
+                         (["--height", "1.5"], "--images, --kitti15 and --kitti-odometry"),
+                         (["--pitch-deg", "1"], "--images and --kitti-odometry")):
+        assert f"{extra[0]}: applies to {where} (the synthetic scenes have their own camera)" in _err(
             capsys, [*out, *TINY, *extra])
     kitti15, odometry = ["--kitti15", str(tmp_path / "k15"), *out], ["--kitti-odometry", str(tmp_path / "odo"), *out]
     for argv, option in (([*kitti15, "--calib", str(user_folder / "calib.txt")], "--calib"),
@@ -1496,7 +1499,8 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
                          ([*odometry, "--roll-deg", "1"], "--roll-deg"),
                          ([*odometry, "--poses", str(user_folder / "poses.txt")], "--poses"),
                          ([*odometry, "--gt", str(user_folder / "gt")], "--gt")):
-        assert f"{option}: applies to --images (--" in _err(capsys, argv) or option in ("--poses", "--gt")
+        where = "--images and --kitti-odometry" if option == "--pitch-deg" else "--images"
+        assert f"{option}: applies to {where} (--" in _err(capsys, argv) or option in ("--poses", "--gt")
     # the reason fits the option: a sample's poses and ground truth are its own, or it has none
     for argv, reason in ((odometry, "--poses: applies to --images (--kitti-odometry has its own poses.txt)"),
                          (kitti15, "--poses: applies to --images (the KITTI 2015 pair has no poses)")):
