@@ -195,10 +195,13 @@ def load_kitti(folder: Path) -> dict:
     from ``flow_noc_10.png``, ``road.json`` and ``calib_cam_to_cam.txt``. Raises ValueError (or
     FileNotFoundError) naming the file, ValueError when the flow's size is not the one the
     calibration states for camera 2 (``S_rect_02``, where it has that row: a cropped or resized
-    flow was fitted with another image's principal point), and when the road holds no valid pixel."""
+    flow was fitted with another image's principal point), when ``road.json`` states another size than
+    the flow's (a polygon drawn for another image), and when the road holds no valid pixel."""
     from fsof_torch.data.folders import calibration_size
     from fsof_torch.geometry.camera import Camera
     from fsof_torch.io import read_kitti_flow, read_road_mask
+
+    from .paths import bad_polygon_size
 
     flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
     H, W = flow.shape[-2:]
@@ -212,6 +215,10 @@ def load_kitti(folder: Path) -> dict:
         raise ValueError(f"{str(folder / 'flow_noc_10.png')!r} is {H}x{W}, but "
                          f"{str(folder / 'calib_cam_to_cam.txt')!r} is for {calibrated[0]}x{calibrated[1]} images "
                          f"(S_rect_02); expected a flow of the calibrated size")
+    # (a polygon drawn for another image size would be stretched over this flow)
+    bad = bad_polygon_size(folder / "road.json", (H, W), "road", folder / "flow_noc_10.png")
+    if bad is not None:
+        raise ValueError(bad.removeprefix("road: "))
     if not bool((road & valid).any()):
         raise ValueError(f"{str(folder / 'road.json')!r} covers no pixel with valid ground truth in "
                          f"{str(folder / 'flow_noc_10.png')!r}")

@@ -123,6 +123,22 @@ def test_tables_kitti_flow_of_another_size_than_the_calibration_exits_2(tmp_path
     assert not (tmp_path / "o").exists()
 
 
+def test_tables_kitti_road_drawn_for_another_size_exits_2(tmp_path, shared_data, capsys):
+    """A road.json whose 'size' is not the flow's was stretched over it: with a polygon drawn for
+    750x2484 the table printed e_E 8.76 px and a roll of -36.6 degrees with exit 0. Exit 2 naming
+    --kitti, road.json and both sizes."""
+    import json as json_module
+
+    folder = _kitti_copy(tmp_path, shared_data)
+    road = json_module.loads((folder / "road.json").read_text())
+    (folder / "road.json").write_text(json_module.dumps({**road, "size": [750, 2484]}))
+    rc = main(["tables", "--only", "kitti", "--kitti", str(folder), "--out", str(tmp_path / "o"), "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and (f"error: --kitti: {str(folder / 'road.json')!r} is a polygon drawn for 750x2484 images "
+                        f"(its 'size'), but {str(folder / 'flow_noc_10.png')!r} is 375x1242") in err, err
+    assert not (tmp_path / "o").exists()
+
+
 def test_tables_output_paths_checked_first(tmp_path, capsys):
     (tmp_path / "afile").write_text("")
     assert main(["tables", "--quick", "--no-kitti", "--out", str(tmp_path / "afile"), "--no-progress"]) == 2

@@ -130,7 +130,7 @@ def test_vflow_mask_that_is_a_folder_exits_2(tmp_path, capsys):
 
 def test_vflow_png_mask_of_another_size_exits_2(tmp_path, capsys):
     """A PNG mask must have the flow's size (was: stretched to it, like another pair's mask would
-    be); a polygon JSON is drawn at the flow's size."""
+    be); a polygon JSON is drawn at the flow's size (test_vflow_polygon_drawn_for_another_size_exits_2)."""
     from fsof_torch.io import write_image
 
     flow = _small_flow(tmp_path)
@@ -142,6 +142,27 @@ def test_vflow_png_mask_of_another_size_exits_2(tmp_path, capsys):
     write_image(tmp_path / "m.png", torch.full((1, 32, 48), 255, dtype=torch.uint8))
     assert main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.png"), "--out", str(tmp_path / "o"),
                  "--no-progress"]) == 0
+
+
+def test_vflow_polygon_drawn_for_another_size_exits_2(tmp_path, capsys):
+    """A polygon JSON whose 'size' is not the flow's was drawn for another image (KITTI frames are
+    375x1242, 370x1226, 374x1238, ...) and was stretched over the flow (exit 0, the road shifted by
+    up to 16 px at the right edge): exit 2 naming --mask and both sizes. Without a size it is
+    drawn at the flow's size."""
+    flow = _small_flow(tmp_path)
+    polygon = '"road_polygon": [[0, 20], [47, 20], [47, 31], [0, 31]]'
+    (tmp_path / "m.json").write_text('{"size": [30, 46], ' + polygon + '}')
+    rc = main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.json"), "--out", str(tmp_path / "o"),
+               "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and (f"error: --mask: {str(tmp_path / 'm.json')!r} is a polygon drawn for 30x46 images (its "
+                        f"'size'), but {str(flow)!r} is 32x48") in err, err
+    assert not (tmp_path / "o").exists()
+    for own in ('{"size": [32, 48], ', "{"):
+        (tmp_path / "m.json").write_text(own + polygon + '}')
+        assert main(["vflow", "--flow", str(flow), "--mask", str(tmp_path / "m.json"), "--out", str(tmp_path / "o"),
+                     "--no-progress"]) in (0, 1)
+        assert json.loads((tmp_path / "o" / "vflow.json").read_text())["source"]["mask"] == str(tmp_path / "m.json")
 
 
 def test_vflow_flow_without_valid_pixels_exits_2(tmp_path, capsys):
