@@ -110,6 +110,18 @@ def _colour_range(values: torch.Tensor) -> tuple[float, float]:
     return -bound, bound
 
 
+def error_vmax(errors: torch.Tensor) -> float:
+    """The top of the error map's colour bar: the larger of 1 and the 95th percentile of
+    ``errors`` (1 where there is none). NumPy's percentile (linear, as torch's): ``torch.quantile``
+    refuses more than 2**24 values, a flow of 17 megapixels below the horizon (a traceback after
+    every other figure was drawn, and no vflow.json)."""
+    import numpy as np
+
+    if errors.numel() == 0:
+        return 1.0
+    return max(1.0, float(np.quantile(errors.detach().cpu().double().numpy(), 0.95)))
+
+
 def _extend(values: torch.Tensor, vmin: float, vmax: float) -> str:
     """The colour bar's ``extend``: an arrow at each end where ``values`` are clipped."""
     below, above = bool((values < vmin).any()), bool((values > vmax).any())
@@ -341,7 +353,7 @@ def run(args: argparse.Namespace) -> int:
     _plot_image(curve.fitted[0, 0], curve.fitted_valid[0, 0], files["fv_fitted"], f"fitted F_v ({unit})",
                 "RdBu_r", lo, hi, f"F_v ({unit})")
     _plot_image(err[0, 0], in_fit[0, 0], files["fv_error"], f"|observed - fitted F_v| ({unit})", "inferno", 0.0,
-                max(1.0, float(err[in_fit].quantile(0.95))) if in_fit.any() else 1.0, f"|F_v error| ({unit})")
+                error_vmax(err[in_fit]), f"|F_v error| ({unit})")
     if "freespace" in steps:
         _plot_freespace(pair["image1"], free[0], truth[0], files["freespace"], info["freespace"]["iou"])
     bar.update(1)

@@ -466,3 +466,17 @@ def test_vflow_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     interrupted(fsof_torch, "fit_vflow_curve", lambda: main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o"),
                                                            "--json", str(path), "--no-progress"]))
     assert not path.exists()
+
+
+def test_vflow_error_colour_range_of_a_large_flow():
+    """The error map's colour bar tops at max(1, 95th percentile): torch.quantile refused more than
+    2**24 values (a 6000x4000 flow ended in a traceback, without vflow.json); the same value as
+    torch's for fewer."""
+    from eval.vflow import error_vmax
+
+    small = torch.linspace(0.0, 4.0, 1001, dtype=torch.float64)
+    assert error_vmax(small) == pytest.approx(float(small.quantile(0.95)), rel=1e-12)
+    assert error_vmax(small / 100) == 1.0 and error_vmax(small[:0]) == 1.0
+    large = torch.zeros(2**24 + 1)
+    large[-(2**20):] = 3.0  # the top 6.25 %: the 95th percentile is 3
+    assert error_vmax(large) == 3.0
