@@ -74,18 +74,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 # -- helpers shared by the analysis subcommands ---------------------------------------------------
 
-def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
-    """A plain-text table: ``columns`` are (key, header, format) with format like ``.3f`` or ``s``."""
-    cells = [[h for _, h, _ in columns]]
+def _cell(row: dict, column: tuple) -> str:
+    """A row's value in ``column`` (key, header, format[, factor]): formatted, times the factor
+    where one is given (a fraction printed in percent), or '-' where it is None or NaN."""
+    key, _, fmt, *factor = column
+    value = row.get(key)
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return format(value * factor[0] if factor else value, fmt)
+
+
+def format_table(rows: list[dict], columns: list[tuple]) -> str:
+    """A plain-text table: ``columns`` are (key, header, format) with format like ``.3f`` or ``s``,
+    or (key, header, format, factor) for a value printed times ``factor`` (100: percent)."""
+    cells = [[c[1] for c in columns]]
     for r in rows:
-        line = []
-        for key, _, fmt in columns:
-            value = r.get(key)
-            if value is None or (isinstance(value, float) and math.isnan(value)):
-                line.append("-")
-            else:
-                line.append(format(value, fmt))
-        cells.append(line)
+        cells.append([_cell(r, c) for c in columns])
     widths = [max(len(c[i]) for c in cells) for i in range(len(columns))]
     out = ["  ".join(c.rjust(w) for c, w in zip(cells[0], widths)),
            "  ".join("-" * w for w in widths)]
@@ -93,17 +97,11 @@ def format_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
     return "\n".join(out)
 
 
-def markdown_table(rows: list[dict], columns: list[tuple[str, str, str]]) -> str:
+def markdown_table(rows: list[dict], columns: list[tuple]) -> str:
     """The same table as Markdown."""
-    head = "| " + " | ".join(h for _, h, _ in columns) + " |"
+    head = "| " + " | ".join(c[1] for c in columns) + " |"
     sep = "| " + " | ".join("---" for _ in columns) + " |"
-    body = []
-    for r in rows:
-        vals = []
-        for key, _, fmt in columns:
-            value = r.get(key)
-            vals.append("-" if value is None or (isinstance(value, float) and math.isnan(value)) else format(value, fmt))
-        body.append("| " + " | ".join(vals) + " |")
+    body = ["| " + " | ".join(_cell(r, c) for c in columns) + " |" for r in rows]
     return "\n".join([head, sep, *body])
 
 
@@ -252,12 +250,14 @@ CVC_COLUMNS = [("scenario", "scenario", "s"), ("speed", "speed", "s"), ("e_A", "
                ("paper_e_A", "paper e_A", ".3f"), ("e_E", "e_E px", ".2e"), ("paper_e_E", "paper e_E", ".3f"),
                ("e_U", "e_U px", ".2e"), ("e_V", "e_V px", ".2e"), ("z_d_abs_error_m", "z_d abs err m", ".2e"),
                ("n_pixels", "pixels", "d"), ("fits_ok", "fits ok", "s")]
-CARLA_COLUMNS = [("direction", "direction", "s"), ("roll_deg", "roll deg", "d"), ("e_A", "e_A", ".2e"),
+CARLA_COLUMNS = [("direction", "direction", "s"), ("roll_deg", "roll deg", "d"), ("e_A", "e_A rad", ".2e"),
                  ("paper_e_A", "paper e_A", ".3f"), ("e_E", "e_E px/s", ".2e"), ("paper_e_E", "paper e_E", ".3f"),
                  ("roll_abs_error_deg", "roll abs err deg", ".2e"), ("n_pixels", "pixels", "d"),
                  ("fits_ok", "fits ok", "s")]
 KITTI_COLUMNS = [("model", "model", "s"), ("e_A", "e_A rad", ".4f"), ("e_E", "e_E px", ".4f"),
-                 ("e_U", "e_U px", ".4f"), ("e_V", "e_V px", ".4f"), ("Fl", "Fl", ".4f"),
+                 ("e_U", "e_U px", ".4f"), ("e_V", "e_V px", ".4f"),
+                 # (KITTI's Fl-all in percent, as KITTI and the train job print it; a fraction in the JSON)
+                 ("Fl", "Fl %", ".3f", 100),
                  ("roll_deg", "roll deg", ".3f"), ("pitch_deg", "pitch deg", ".3f"), ("z_d", "z_d m", ".3f"),
                  ("n_pixels", "pixels", "d")]
 KITTI_PAPER_NOTE = ("paper (its KITTI frames): straight e_A 0.036, e_E 0.921, e_U 0.255, e_V 0.465; "

@@ -43,6 +43,30 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
     assert {"e_A", "e_U", "e_V", "n_pixels", "paper_straight"} <= set(paper)
 
 
+def test_tables_kitti_fl_printed_in_percent(tmp_path, shared_data, capsys):
+    """The KITTI table printed Fl, KITTI's headline figure, as a fraction to 4 decimals: 0.0005 and
+    0.0008, one significant digit. Printed in percent (as KITTI and the train job print it) with
+    its unit in the header, table and Markdown alike; the JSON keeps flow_metrics' fraction.
+    Every e_A header has its unit."""
+    rc = main(["tables", "--only", "kitti", "--kitti", str(shared_data / "kitti15_000000"),
+               "--out", str(tmp_path / "o"), "--no-progress"])
+    out = capsys.readouterr().out
+    assert rc == 0
+    rows = json.loads((tmp_path / "o" / "tables.json").read_text())["kitti"]
+    md = (tmp_path / "o" / "tables.md").read_text()
+    header = next(line for line in out.splitlines() if line.strip().startswith("model"))
+    assert "Fl %" in header and "| Fl % |" in md
+    for row in rows:
+        assert 0 < row["Fl"] < 0.01
+        cell = f"{100 * row['Fl']:.3f}"
+        assert len(cell.lstrip("0.")) >= 2  # two significant digits at least
+        line = next(line for line in out.splitlines() if line.strip().startswith(row["model"]))
+        assert cell in line.split() and f"| {cell} |" in md
+    from eval.tables import CARLA_COLUMNS, CVC_COLUMNS, KITTI_COLUMNS
+
+    assert all(h == "e_A rad" for cols in (CVC_COLUMNS, CARLA_COLUMNS, KITTI_COLUMNS) for k, h, *_ in cols if k == "e_A")
+
+
 def test_tables_pairs_end_at_the_renderers_last_frame(tmp_path, capsys, monkeypatch):
     """--pairs past the renderer's frames (MAX_FRAME) exits 2 before any table is made (it used to
     end in a traceback from the renderer after 100 000 pairs of work)."""
