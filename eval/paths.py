@@ -1,7 +1,8 @@
 """The evaluation job's output paths and image sizes, checked before any work, as the refine job
 checks its own: a folder option names a folder or a path that can be created; a file option names
 no folder and a path whose missing folders can be created (the job creates them when it writes);
-``--json`` names none of the job's other outputs; a size has no side above :data:`MAX_SIDE`. Each
+``--json`` names none of the job's other outputs nor a file in another run's output folder that is read
+back (a refine run's, a rendered sequence's); a size has no side above :data:`MAX_SIDE`. Each
 check returns the error message, naming the option, or None. Once the checks pass, a job removes
 the files an earlier run left in its folder (:func:`remove_outputs`), so that the folder never
 mixes two runs."""
@@ -62,7 +63,31 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
         if output.resolve() == target:
             return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "
                     f"give another path")
-    return refine_run_above(path)
+    return other_run_above(path)
+
+
+def other_run_above(path: Path) -> str | None:
+    """``--json`` (``path``) lies in no output folder of another run that is read back: a refine
+    run's (:func:`refine_run_above`) or a sequence that ``eval synth`` wrote
+    (:func:`sequence_above`)."""
+    return first_bad(refine_run_above(path), sequence_above(path))
+
+
+def sequence_above(path: Path) -> str | None:
+    """``--json`` (``path``) lies in no folder of a rendered sequence (a ``meta.json`` of the
+    synthetic layout, :data:`fsof_torch.io.layout.SYNTHETIC_FORMAT`): the JSON would replace the
+    sequence's meta.json or a pair's params, and the sequence would no longer read back."""
+    from fsof_torch.io.layout import SYNTHETIC_FORMAT
+
+    for folder in path.resolve().parents:
+        try:
+            meta = json.loads((folder / "meta.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if isinstance(meta, dict) and meta.get("format") == SYNTHETIC_FORMAT:
+            return (f"--json: {str(path)!r} is inside {str(folder)!r}, a rendered sequence (its meta.json), "
+                    f"whose files it would replace; give a path outside it")
+    return None
 
 
 def refine_run_above(path: Path) -> str | None:

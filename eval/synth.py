@@ -55,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
     from fsof_torch.data.scene import PRESETS, render_pair
 
-    from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent, refine_run_above, remove_outputs
+    from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent, other_run_above, remove_outputs
 
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
@@ -70,7 +70,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: --size: expected positive H W, got {args.size}", file=sys.stderr)
         return 2
     bad = first_bad(bad_size(size, "--size"), bad_folder(args.out, "--out"), bad_file(args.json, "--json", args.out),
-                    refine_run_above(args.json) if args.json is not None else None)
+                    other_run_above(args.json) if args.json is not None else None)
     if bad is None and args.json is not None and args.json.resolve().is_relative_to(args.out.resolve()):
         # the layout's files (poses.txt, meta.json, ...) would replace it, or it one of them
         bad = f"--json: {str(args.json)!r} is inside --out {str(args.out)!r}, which the job fills; give a path outside it"

@@ -1,6 +1,7 @@
-"""``python -m eval``'s ``--json`` never lands inside a refine run's output folder: the JSON (an
-earlier one removed at the start, written last) replaced that run's report.json, its manifest or a
-record. Every subcommand refuses it before any work, exit 2 naming ``--json``."""
+"""``python -m eval``'s ``--json`` never lands inside a refine run's output folder, nor inside a
+sequence that ``eval synth`` rendered: the JSON (an earlier one removed at the start, written last)
+replaced that run's report.json, its manifest or a record, or the sequence's meta.json (which then
+no longer read back). Every subcommand refuses it before any work, exit 2 naming ``--json``."""
 
 from __future__ import annotations
 
@@ -18,13 +19,16 @@ def refine_run(tmp_path_factory):
     return out
 
 
-@pytest.mark.parametrize("argv", [
+ARGVS = [
     ["vflow", "--no-progress"],
     ["synth", "--pairs", "1", "--size", "48", "160", "--no-progress"],
     ["noise", "--quick", "--no-progress"],
     ["tables", "--quick", "--no-kitti", "--no-progress"],
     ["train", "--steps", "1", "--no-progress"],
-])
+]
+
+
+@pytest.mark.parametrize("argv", ARGVS)
 @pytest.mark.parametrize("name", ["report.json", "run.json", "dis/given/pairs/000000.json"])
 def test_json_inside_a_refine_run_is_refused(tmp_path, capsys, refine_run, argv, name):
     before = {p: p.read_bytes() for p in refine_run.rglob("*") if p.is_file()}
@@ -36,3 +40,36 @@ def test_json_inside_a_refine_run_is_refused(tmp_path, capsys, refine_run, argv,
            f"run" in err, err
     assert {p: p.read_bytes() for p in refine_run.rglob("*") if p.is_file()} == before
     assert not (tmp_path / "out").exists()
+
+
+@pytest.fixture(scope="module")
+def sequence(tmp_path_factory):
+    out = tmp_path_factory.mktemp("synth") / "seq"
+    assert eval_main(["synth", "--pairs", "1", "--size", "16", "24", "--no-progress", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.mark.parametrize("argv", ARGVS)
+@pytest.mark.parametrize("name", ["meta.json", "params/000000.json", "v.json"])
+def test_json_inside_a_rendered_sequence_is_refused(tmp_path, capsys, sequence, argv, name):
+    """(vflow --json SEQ/meta.json wrote its report there, exit 0, and SyntheticFlowDataset(SEQ)
+    then raised 'has no num_pairs entry')."""
+    from fsof_torch.data.datasets import SyntheticFlowDataset
+
+    before = {p: p.read_bytes() for p in sequence.rglob("*") if p.is_file()}
+    target = sequence / name
+    out = ["--out", str(tmp_path / "out")] if argv[0] != "train" else []
+    assert eval_main([*argv, *out, "--json", str(target)]) == 2
+    err = capsys.readouterr().err
+    assert f"error: --json: {str(target)!r} is inside {str(sequence.resolve())!r}, a rendered sequence" in err, err
+    assert {p: p.read_bytes() for p in sequence.rglob("*") if p.is_file()} == before
+    assert not (tmp_path / "out").exists()
+    assert len(SyntheticFlowDataset(sequence)) == 1
+
+
+def test_json_beside_a_rendered_sequence_is_written(tmp_path, sequence):
+    """A --json beside the sequence's folder (not inside it) is a path like any other."""
+    target = sequence.parent / "tables.json"
+    assert eval_main(["tables", "--only", "cvc12", "--size", "16", "24", "--pairs", "1", "--no-progress",
+                      "--out", str(tmp_path / "out"), "--json", str(target)]) == 0
+    assert target.is_file()
