@@ -177,7 +177,9 @@ def test_a_homography_given_by_its_parameters(small_pair):
         out = refine_flow(p["flow"], "auto", p["camera"], as_dict, images=images)
     assert out.road.flag == ["ok"] and torch.equal(out.road.mask, det.mask)
     batch_3 = {"model": "paper", "x_d": torch.zeros(3), "z_d": torch.ones(3), "yaw": torch.zeros(3)}
-    with pytest.raises(ValueError, match=r"^odometry: expected parameters of batch 1 .the images' B."):
+    # (named as with a mask tensor, before the detection: the refiner reads the odometry's values first)
+    with pytest.raises(ValueError, match=r"^odometry\['x_d'\]: expected a float or a tensor of shape \(1,\) \(the "
+                                         r"flow's batch\), got shape \(3,\)"):
         refine_flow(p["flow"], "auto", p["camera"], batch_3, images=images)
 
 
@@ -833,6 +835,9 @@ def test_inputs_are_not_modified(scene_pair):
     (dict(refit="no"), "refit: expected True or False, got str 'no'"),
     (dict(refit=None), "refit: expected True or False, got NoneType None"),
     (dict(motion={"model": "velocity", "speed": 1.0}), "motion: expected a displacement model"),
+    # a step beyond a road vehicle's between two frames: in millimetres, named (was: no road found)
+    (dict(motion={"model": "plane", "z_d": 1200.0}), r"^motion: sample 0 moves 1200 m in a frame .*in millimetres\?"),
+    (dict(odometry={"x_d": 0.0, "z_d": 1200.0, "yaw": 0.0}), r"^odometry: sample 0 moves 1200 m in a frame"),
     # an estimate's inputs beside a motion to judge with would be ignored
     *[(dict(motion={"model": "paper", "z_d": 1.0}, **{name: value}),
        rf"^{name}: not used with motion given \(the motion is judged, not estimated\)")

@@ -211,23 +211,42 @@ def test_freespace_model_undefined_everywhere_is_zero():
 
 
 def test_freespace_loss_warns_when_road_pixels_count_nothing():
-    """Road pixels that the model defines nowhere add 0 to the loss: odometry in millimetres (a
-    kilometre forward takes every visible road point behind the camera) and a fit that fails say
-    so; an empty mask and a sample whose road counts stay silent."""
+    """Road pixels that the model defines nowhere add 0 to the loss: a step beyond the visible road
+    (20 m a frame takes every road point of this camera, 16.5 m ahead at most, behind it) and a
+    fit that fails say so; an empty mask and a sample whose road counts stay silent."""
     cam = _camera()
     road = torch.zeros(2, 1, H, W, dtype=torch.bool)
     road[..., H // 2:, :] = True
     flow = torch.zeros(2, 2, H, W, dtype=torch.float64)
-    millimetres = {"x_d": torch.tensor([0.0, 0.0]), "z_d": torch.tensor([1.0, 1000.0]), "yaw": 0.0}
+    beyond = {"x_d": torch.tensor([0.0, 0.0]), "z_d": torch.tensor([1.0, 20.0]), "yaw": 0.0}
     with pytest.warns(RuntimeWarning, match="not in metres and radians") as caught:
-        value = freespace_flow_loss(flow, road, cam, millimetres, reduction="none")
+        value = freespace_flow_loss(flow, road, cam, beyond, reduction="none")
     assert len(caught) == 1 and value[0] > 0 and value[1] == 0
     with pytest.warns(RuntimeWarning, match="a fit that failed"):
         assert freespace_flow_loss(torch.full_like(flow, 1e4), road, cam, "fit").item() == 0.0
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        freespace_flow_loss(flow, torch.zeros_like(road), cam, millimetres)
+        freespace_flow_loss(flow, torch.zeros_like(road), cam, beyond)
         freespace_flow_loss(flow, road, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0})
+
+
+def test_freespace_loss_refuses_odometry_in_millimetres_by_name():
+    """Odometry in millimetres (a kilometre a frame) added 0 with only the generic warning above: a
+    step beyond what a road vehicle travels between two frames (100 m) names the odometry and the
+    sample, as the refiner and the poses' check do, with or without an empty road mask."""
+    cam = _camera()
+    road = torch.zeros(2, 1, H, W, dtype=torch.bool)
+    road[..., H // 2:, :] = True
+    flow = torch.zeros(2, 2, H, W, dtype=torch.float64)
+    millimetres = {"x_d": torch.tensor([0.0, 0.0]), "z_d": torch.tensor([1.0, 1000.0]), "yaw": 0.0}
+    message = r"^odometry: sample 1 moves 1000 m in a frame \(x_d 0, z_d 1000\), farther than a road vehicle"
+    for mask in (road, torch.zeros_like(road)):
+        with pytest.raises(ValueError, match=message):
+            freespace_flow_loss(flow, mask, cam, millimetres)
+        with pytest.raises(ValueError, match=message):
+            FreespaceFlowLoss()(flow, mask, cam, millimetres)
+    with pytest.raises(ValueError, match=r"^odometry: sample 0 moves 101 m in a frame \(.*y_d 101"):
+        freespace_flow_loss(flow, road, cam, {"model": "plane", "y_d": 101.0})
 
 
 # -- gradcheck -----------------------------------------------------------------------------------

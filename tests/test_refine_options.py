@@ -14,6 +14,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from fsof_torch.geometry.camera import Camera
+from fsof_torch.geometry.egomotion import EgoMotion
 from fsof_torch.geometry.road_flow import displacement_flow
 from fsof_torch.refinement.contracts import (
     InputPadder,
@@ -377,4 +378,35 @@ def test_velocity_odometry_is_refused_by_name(mask_kind):
             FreespaceRefiner()(pred, road, cam, odo, images=pair if mask_kind == "auto" else None)
     # the same motion over the frame interval, as a displacement model, is taken
     out = refine_flow(pred, mask, cam, {"model": "paper", **ODO}, gate=None, warn=False)
+    assert bool(out.refined.all())
+
+
+# -- odometry beyond a road vehicle's step is named ----------------------------------------------------
+
+@pytest.mark.parametrize("mask_kind", ["tensor", "auto"])
+def test_odometry_in_millimetres_is_refused_by_name(mask_kind):
+    """Odometry a kilometre a frame (millimetres for metres) once left every sample unchanged
+    with only the generic "left unchanged" warning; a step beyond 100 m (100 m/s for 1 s, as the
+    poses' check) names the odometry and the sample, in every form, with or without images (with
+    mask="auto" before the road is detected); a long step within it is taken."""
+    pred, mask, cam, pair = make_case(B=2)
+    road = mask if mask_kind == "tensor" else "auto"
+    z_d = torch.tensor([1.0, 1200.0])
+    forms = [{"x_d": 0.0, "z_d": z_d, "yaw": 0.0}, EgoMotion(torch.zeros(2), z_d, torch.zeros(2)),
+             {"model": "paper", "z_d": z_d}, {"model": "plane", "z_d": z_d}]
+    message = (r"^odometry: sample 1 moves 1200 m in a frame \(.*z_d 1200\), farther than a road vehicle travels "
+               r"between two frames \(100 m: 100 m/s for 1 s\); in millimetres\?")
+    for odo in forms:
+        for images in (None, pair):
+            with pytest.raises(ValueError, match=message):
+                refine_flow(pred, road, cam, odo, images=images if mask_kind == "tensor" else pair)
+        with pytest.raises(ValueError, match=message):
+            FreespaceRefiner()(pred, road, cam, odo, images=pair)
+    with pytest.raises(ValueError, match=r"^odometry: sample 0 moves 150 m in a frame \(x_d 90, y_d 0, z_d 120\)"):
+        refine_flow(pred, road, cam, {"model": "plane", "x_d": 90.0, "y_d": 0.0, "z_d": 120.0}, images=pair)
+    # 60 m a frame (600 m/s at 10 Hz) is absurd for a car, but within the bound: taken, as before
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        refine_flow(pred, mask, cam, {"x_d": 0.0, "z_d": 60.0, "yaw": 0.0}, gate=None)
+    out = refine_flow(pred, mask, cam, ODO, gate=None, warn=False)
     assert bool(out.refined.all())

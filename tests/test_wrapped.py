@@ -314,6 +314,7 @@ def test_arflows_call_needs_the_two_frame_adapter_the_docs_give(wide):
 @pytest.mark.parametrize("odometry, message", [
     ({"model": "velocity", "speed": 12.0}, "odometry: the 'velocity' model gives flow in px/s"),
     ({"x_d": 0.0, "z_d": 1.2}, r"odometry: missing keys \['yaw'\]"),
+    ({"x_d": 0.0, "z_d": 1200.0, "yaw": 0.0}, r"odometry: sample 0 moves 1200 m in a frame .*in millimetres\?"),
     ({"x_d": 0.0, "z_d": float("nan"), "yaw": 0.0}, r"odometry\['z_d'\]: expected finite"),
     ({"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}, r"odometry\['z_d'\]: expected a float or a tensor of shape .*"
                                                      r"\(the images' batch\), got shape \(3,\)"),

@@ -18,7 +18,7 @@ from .._check import (as_batch_param, autocast_off, check_finite, check_positive
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4",
-           "check_pose_steps", "MAX_ROAD_SPEED", "MAX_FRAME_INTERVAL"]
+           "check_pose_steps", "check_motion_step", "MAX_ROAD_SPEED", "MAX_FRAME_INTERVAL"]
 
 #: the fastest a road vehicle moves, m/s (360 km/h: beyond any road car's top speed)
 MAX_ROAD_SPEED = 100.0
@@ -233,3 +233,28 @@ def check_pose_steps(poses: Tensor, name: str = "poses", *, labels: list[str] | 
                          f"travels between them ({MAX_ROAD_SPEED * seconds:g} m: {MAX_ROAD_SPEED:g} m/s for "
                          f"{seconds:g} s, video at one frame a second or more); are the poses in millimetres? "
                          f"Poses are in metres (as KITTI's)")
+
+
+def check_motion_step(params: dict[str, Tensor], name: str = "odometry") -> None:
+    """Raise a ValueError naming ``name`` where a motion's translation in one frame (the norm of
+    its ``x_d``, ``y_d``, ``z_d`` among ``params``, (B,) tensors; metres) is longer than a road
+    vehicle travels between two frames of a video (100 m, as :func:`check_pose_steps`): odometry
+    in millimetres, or a speed in m/s given as a step at 10 Hz in mm, would leave the road's flow
+    undefined in most of the image and the refiner's samples unchanged with only a generic
+    warning. Not read while tracing or on the meta device; a motion without a translation in
+    metres (a homography) passes."""
+    steps = [params[k] for k in ("x_d", "y_d", "z_d") if k in params]
+    if not steps or skip_values(*steps):
+        return
+    with torch.no_grad():
+        norm = torch.stack(torch.broadcast_tensors(*steps)).to(torch.float64).norm(dim=0).reshape(-1)
+        far = norm > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL
+        if not bool(far.any()):
+            return
+        i = int(far.nonzero()[0])
+    given = ", ".join(f"{k} {float(params[k].reshape(-1)[i if params[k].numel() > 1 else 0]):.4g}"
+                      for k in ("x_d", "y_d", "z_d") if k in params)
+    raise ValueError(f"{name}: sample {i} moves {float(norm[i]):.4g} m in a frame ({given}), farther than a road "
+                     f"vehicle travels between two frames ({MAX_ROAD_SPEED * MAX_FRAME_INTERVAL:g} m: "
+                     f"{MAX_ROAD_SPEED:g} m/s for {MAX_FRAME_INTERVAL:g} s); in millimetres? {name} is the motion "
+                     f"over the frame interval in metres")

@@ -57,7 +57,7 @@ from torch import Tensor
 from .._check import (autocast_off, as_batch_param, check_all_finite, check_float_tensor, check_shape, resolve_batch,
                       result_dtype, skip_values, tracing)
 from .camera import Camera, check_camera
-from .egomotion import as_pose_4x4
+from .egomotion import as_pose_4x4, check_motion_step
 
 __all__ = ["RoadModel", "ROAD_MODELS", "get_road_model", "road_homography", "road_motion", "is_planar_odometry",
            "homography_values", "pack_params", "unpack_params", "rotation_angles", "plane_from_pose",
@@ -528,7 +528,9 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
                       displacement: bool = False) -> tuple[RoadModel, dict[str, Tensor]]:
     """:func:`road_motion`'s ``(model, params)`` with every parameter a tensor of shape
     (``batch``,) of ``dtype`` on ``device`` (a float or a batch of 1 broadcast); ``batch_of`` names
-    the batch in the error a wrong batch size raises; ``displacement`` as in :func:`road_motion`."""
+    the batch in the error a wrong batch size raises; ``displacement`` as in :func:`road_motion`,
+    and a translation longer than 100 m a frame (odometry in millimetres) a ValueError naming ``name``
+    (:func:`~fsof_torch.geometry.egomotion.check_motion_step`)."""
     model, params = road_motion(odometry, name, displacement=displacement)
     out = {}
     for key, value in params.items():
@@ -540,6 +542,8 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
         out[key] = t.expand(batch)
     # one finiteness check for all (in the dtype they are used in: a value it cannot hold fails)
     check_all_finite({f"{name}[{key!r}]": t for key, t in out.items()})
+    if displacement:  # (a step in mm, not metres: refused by name, not left to a generic warning)
+        check_motion_step(out, name)
     return model, out
 
 

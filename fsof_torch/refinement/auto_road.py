@@ -437,7 +437,7 @@ def check_motion(motion: Any, B: int, device: torch.device, name: str) -> None:
     shapes = {k: tuple(getattr(v, "shape", ())) for k, v in params.items()}
     if any(math.prod(shape) not in (1, B) for shape in shapes.values()):
         raise ValueError(f"{name}: expected parameters of batch {batch_choices(B)} (the images' B), got shapes {shapes}")
-    road_motion_batch(motion, B, torch.float64, device, name=name, batch_of="the images' B")
+    road_motion_batch(motion, B, torch.float64, device, name=name, batch_of="the images' B", displacement=True)
 
 
 @inference

@@ -32,6 +32,7 @@ from ..estimation.image_fit import calibration_prior, check_image_fit_options, f
 from ..estimation.initial import planar_start
 from ..estimation.sampling import reused_mask_pixels
 from ..geometry.camera import Camera
+from ..geometry.egomotion import check_motion_step
 from ..geometry.road_models import get_road_model, road_motion
 
 __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "finite_estimate", "planar_odometry", "planar_start"]
@@ -281,13 +282,17 @@ class ImageMotionEstimator:
 
 def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:
     """``values`` (an odometry's parameters), checked finite and of 1 or ``B`` values (the
-    frames'): a ValueError names the odometry's key (the fit would name its ``init``)."""
+    frames'): a ValueError names the odometry's key (the fit would name its ``init``); and a step
+    beyond a road vehicle's between two frames (100 m: odometry in millimetres) names the odometry."""
+    steps = {}
     for k, v in values.items():
         t = torch.as_tensor(v)
         check_has_values(t, f"odometry[{k!r}]", "to fit (a fit is iterative and data dependent)")
         if not all_finite(t):
             raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
         check_batch(t.numel(), f"odometry[{k!r}]", B)
+        steps[k] = t.reshape(-1)
+    check_motion_step(steps, "odometry")
     return values
 
 

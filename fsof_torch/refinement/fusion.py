@@ -277,11 +277,12 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             :func:`~fsof_torch.geometry.road_models.road_motion` takes: a dict ``x_d, z_d, yaw``
             (metres, radians; floats or (B,) tensors), an :class:`EgoMotion`, a dict with a
             ``"model"`` key and that model's parameters, or a fit result, of a displacement model
-            (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError). A
-            complete model's motion (with ``"model"``, or a fit) is used as it is; the planar
-            odometry of the paper's model, with images, fixes the planar motion while the images
-            estimate the body's pitch and roll changes, its vertical motion and the camera's
-            attitude (the plain planar model where that estimate fails). Nothing is estimated,
+            (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError; so is a
+            step beyond 100 m a frame, odometry in millimetres). A complete model's motion (with
+            ``"model"``, or a fit) is used as it is; the planar odometry of the paper's model, with
+            images, fixes the planar motion while the images estimate the body's pitch and roll
+            changes, its vertical motion and the camera's attitude (the plain planar model where
+            that estimate fails). Nothing is estimated,
             and the estimator and its options (``fit_roll``, ``fit_pitch``, ``fit_options``,
             ``photometric_options``) go unused, with a complete motion, with planar odometry
             and no images, and with planar odometry and ``fit=`` set; they are still checked,
@@ -348,9 +349,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     for name, f in flows:
         if f.shape[0] != B:
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
-    # (before the road detection of mask="auto": a motion no refinement takes raises first)
-    if odometry is not None:
-        road_motion(odometry, displacement=True)
+    if odometry is not None:  # (a motion no refinement takes raises first, by name; its values before mask="auto"'s detection)
+        road_motion_batch(odometry, B, result_dtype(finest), finest.device, displacement=True) if isinstance(mask, str) \
+            else road_motion(odometry, displacement=True)
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = refiner_images(images, finest)
         if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
@@ -415,7 +416,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     motion_model, odo = "paper", None
     fit_index, fit_used = None, None  # (the samples the fit's rows hold; (B,) those whose model it is)
     if odometry is not None:
-        given, odo = road_motion_batch(odometry, B, geo_dtype, device)
+        given, odo = road_motion_batch(odometry, B, geo_dtype, device, displacement=True)
         motion_model = given.name
     if estimating:
         # frames of one row or one column hold nothing the image fit can use (its pyramid and image
@@ -446,8 +447,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             refined = torch.zeros_like(refined)
             odo = {k: torch.zeros(B, dtype=geo_dtype, device=device) for k in ("x_d", "z_d", "yaw")}
 
-    # (a broadcast & over the whole mask is slow on CPU: only when some sample is left out)
-    def usable(m: Tensor, ok: Tensor) -> Tensor:
+    def usable(m: Tensor, ok: Tensor) -> Tensor:  # (a broadcast & over the whole mask is slow on CPU: only where needed)
         return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
     cache: dict[tuple[int, int], tuple[Tensor, Tensor]] = {}
     # (a RoadFit's flow is its model flow; another result's "flow" may be anything: the input's)
