@@ -1085,6 +1085,12 @@ def test_freespace_rejects_a_velocity_motion_as_the_target():
 @pytest.mark.parametrize("fit_options, error, match", [
     ({"bogus": 1}, TypeError, r"fit_options: unknown options \['bogus'\]"),
     (42, TypeError, "fit_options: expected None or a dict"),
+    # the fit's model names its key; the "velocity" model (px/s) is no per-frame target (was: taken, and
+    # the fit mode's target was the linearised flow of a rate fitted to pixels per frame)
+    ({"model": "velocity"}, ValueError, r"^fit_options\['model'\]: the 'velocity' model gives flow in px/s, not the "
+                                        r"pixels per frame the loss compares; fit a displacement model"),
+    ({"model": "bogus"}, ValueError, r"^fit_options\['model'\]: expected one of \('paper', "),
+    ({"model": 3}, TypeError, r"^fit_options\['model'\]: expected one of"),
 ])
 def test_freespace_checks_fit_options_with_a_given_odometry_as_its_module_does(fit_options, error, match):
     cam = _camera()
@@ -1093,6 +1099,12 @@ def test_freespace_checks_fit_options_with_a_given_odometry_as_its_module_does(f
         freespace_flow_loss(model, valid, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}, fit_options=fit_options)
     with pytest.raises(error, match=match):
         FreespaceFlowLoss(fit_options=fit_options)
+    with pytest.raises(error, match=match):
+        FreespaceFlowLoss(odometry="fit", fit_options=fit_options)
+    with pytest.raises(error, match=match):
+        freespace_flow_loss(model, valid, cam, "fit", fit_options=fit_options)
     # valid options that only odometry="fit" uses are accepted (unused) with a given odometry
     assert freespace_flow_loss(model, valid, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0},
                                fit_options={"fit_roll": True}) == pytest.approx(0.0, abs=1e-12)
+    for road_model in ("paper", "plane", "homography"):  # (the displacement models, fitted)
+        assert freespace_flow_loss(model, valid, cam, "fit", fit_options={"model": road_model}) < 1e-6

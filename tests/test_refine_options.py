@@ -381,6 +381,25 @@ def test_velocity_odometry_is_refused_by_name(mask_kind):
     assert bool(out.refined.all())
 
 
+def test_a_velocity_estimator_is_refused_by_name():
+    """A flow estimator of the "velocity" model refined with a rate's flow, in px/s (taken, as
+    odometry of that model is not): refused when made, as the image estimator refuses it."""
+    with pytest.raises(ValueError, match=r"^model: the flow estimator needs a displacement model \('paper', 'plane' "
+                                         r"or 'homography'\), not 'velocity'"):
+        FlowMotionEstimator(model="velocity")
+    with pytest.raises(ValueError, match=r"^model: the image estimator needs a displacement model"):
+        ImageMotionEstimator(model="velocity")
+    pred, mask, cam, _ = make_case()
+    # every displacement model with the default fixed (the homography's: nothing; it has no attitude
+    # to hold, and raised "fixed: unknown parameters ['pitch', 'roll']" at the first call)
+    for model in ("paper", "plane", "homography"):
+        out = refine_flow(pred, mask, cam, estimator=FlowMotionEstimator(model=model), gate=None, warn=False)
+        assert out.model == model and bool(out.refined.all())
+    assert FlowMotionEstimator(model="homography").fixed == () and FlowMotionEstimator().fixed == ("roll", "pitch")
+    with pytest.raises(ValueError, match=r"^fixed: unknown parameters \['roll'\] of model 'homography'"):
+        FlowMotionEstimator(model="homography", fixed=("roll",))  # (when made, not at the first call)
+
+
 # -- odometry beyond a road vehicle's step is named ----------------------------------------------------
 
 @pytest.mark.parametrize("mask_kind", ["tensor", "auto"])

@@ -38,6 +38,7 @@ from ..geometry.road_models import get_road_model, road_motion
 __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "finite_estimate", "planar_odometry", "planar_start"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
+_MOUNTING = ("roll", "pitch")  # (FlowMotionEstimator's default ``fixed``, this very object)
 
 
 def planar_odometry(odometry: object) -> dict[str, Any] | None:
@@ -102,7 +103,9 @@ class FlowMotionEstimator:
     Args (keyword-only):
         model: the road model (default the paper's).
         fixed: parameters held at the camera's / start values (default: the camera's roll and
-            pitch, which a network's flow pins poorly).
+            pitch, which a network's flow pins poorly; none for the ``"homography"``, which has
+            no attitude); None: ``fit_road``'s default for the model. Names the model lacks
+            raise a ValueError when the estimator is made.
         **options: further keyword arguments of :func:`~fsof_torch.fit_road` (not its inputs
             ``flow``, ``mask``, ``camera``, nor ``model``, ``fixed``, ``init``, which the
             estimator passes itself: a TypeError names them).
@@ -117,10 +120,18 @@ class FlowMotionEstimator:
     odometry's, or the planar motion of the back-projected mask pixels).
     """
 
-    def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = ("roll", "pitch"),
+    def __init__(self, *, model: str = "paper", fixed: Sequence[str] | None = _MOUNTING,
                  **options: Any) -> None:
-        self.model = get_road_model(model).name
+        road_model = get_road_model(model)
+        self.model = road_model.name
+        if road_model.velocity:  # (its flow is in px/s: no model for a flow in pixels per frame)
+            raise ValueError("model: the flow estimator needs a displacement model ('paper', 'plane' or "
+                             "'homography'), not 'velocity' (its flow is in px/s)")
+        # (the default holds the attitude the model has: the homography's none, not an error at the first call)
+        fixed = tuple(n for n in _MOUNTING if n in road_model.params) if fixed is _MOUNTING else fixed
         self.fixed = check_names(fixed, "fixed")
+        if self.fixed is not None:
+            fixed_parameters(road_model, self.fixed)
         # (the options' values are checked by fit_road at the first call; their names now)
         # (the inputs too: passed by the call, they would clash there as "multiple values")
         check_keywords(options, "options", fit_road, reserved=("flow", "mask", "camera", "model", "fixed", "init"))

@@ -65,7 +65,7 @@ from .._check import (
 )
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import road_motion_batch
+from ..geometry.road_models import get_road_model, road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 from .composite import CompositeLoss  # (defined there; a name of this module's contract)
@@ -104,11 +104,15 @@ def _as_flow_list(flows: Tensor | Sequence[Tensor], name: str = "flows") -> list
 def _check_fit_options(fit_options: Mapping[str, object] | None) -> dict[str, object]:
     """``fit_options`` for ``odometry="fit"``: ``fit_road``'s keyword arguments (with a
     ``"model"``), or ``fit_displacement``'s (``fit_road``'s with ``fit_roll`` / ``fit_pitch`` in
-    place of ``model`` / ``fixed``); unknown names raise now, named, not at the fit."""
+    place of ``model`` / ``fixed``); unknown names raise now, named, not at the fit, and so does
+    the ``"velocity"`` model (its flow is in px/s: no target for a flow in pixels per frame)."""
     from ..estimation.flow_fit import fit_road
 
     options = dict(check_mapping(fit_options, "fit_options") or {})
     if "model" in options:
+        if get_road_model(options["model"], "fit_options['model']").velocity:
+            raise ValueError(f"fit_options['model']: the {options['model']!r} model gives flow in px/s, not the pixels "
+                             f"per frame the loss compares; fit a displacement model ('paper', 'plane' or 'homography')")
         check_keywords(options, "fit_options", fit_road, reserved=("flow", "mask", "camera"))
     else:
         check_keywords({k: v for k, v in options.items() if k not in ("fit_roll", "fit_pitch")}, "fit_options",
