@@ -311,9 +311,11 @@ def check_bool(x: object, name: str) -> bool:
 
 
 def check_int(x: object, name: str, *, minimum: int | None = None, optional: bool = False) -> int | None:
-    """An integer option (not a bool or a float), at least ``minimum``; None where ``optional``."""
+    """An integer option (not a bool or a float), at least ``minimum``; None where ``optional``.
+    A 0-d integer tensor is read as its int, as real options read a 0-d tensor (:func:`scalar`)."""
     if x is None and optional:
         return None
+    x = scalar(x, name)
     if isinstance(x, bool) or not isinstance(x, numbers.Integral):
         what = "None or an int" if optional else "an int"
         raise TypeError(f"{name}: expected {what}, got {type(x).__name__} {x!r}")

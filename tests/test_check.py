@@ -473,6 +473,9 @@ def _option_call(function: str, **option):
         "fuse_flow": lambda: fs.fuse_flow(flow, flow + 1, valid, mode="confidence", **option),
         "Camera.scaled": lambda: cam.scaled(**option),
         "FreespaceRefined": lambda: fs.FreespaceRefined(lambda a, b: a, **option).image_range,
+        "refine_flow": lambda: fs.refine_flow(flow, valid, cam, gate=None, warn=False, **option).flow,
+        "FreespaceRefiner": lambda: fs.FreespaceRefiner(gate=None, warn=False, **option).min_pixels,
+        "Camera.padded": lambda: cam.padded(**{"top": 0, **option}),
     }
     return calls[function]()
 
@@ -564,3 +567,48 @@ def test_image_range_takes_0d_tensors():
     assert _option_call("FreespaceRefined", image_range=(torch.tensor(0.0), torch.tensor(1.0))) == (0.0, 1.0)
     with pytest.raises(ValueError, match=r"^image_range: expected finite \(low, high\) with high > low"):
         _option_call("FreespaceRefined", image_range=(torch.tensor(1.0), torch.tensor(0.0)))
+
+
+# (function, option, a value taken, one out of range): a 0-d integer tensor wherever an int goes
+@pytest.mark.parametrize("function, option, good, wrong_value", [
+    ("fit_road", "max_iter", 5, 0),
+    ("fit_road", "max_points", 200, 10),
+    ("fit_road", "min_points", 3, 0),
+    ("fit_image", "max_iter", 3, 0),
+    ("fit_image", "levels", 2, 0),
+    ("fit_image", "min_size", 8, 1),
+    ("fit_image", "fine_points", 300, 0),
+    ("fit_image", "band_levels", 0, -1),
+    ("fit_image", "retry_starts", 0, -1),
+    ("detect_road", "level", 0, -1),
+    ("detect_road", "window", 5, 4),
+    ("vflow_map", "bins", 8, 1),
+    ("fit_vflow_curve", "hypotheses", 8, 0),
+    ("fit_vflow_curve", "iterations", 2, -1),
+    ("fit_sequence", "passes", 1, 3),
+    ("refine_flow", "min_pixels", 10, 0),
+    ("FreespaceRefiner", "min_pixels", 10, 0),
+    ("solve", "max_iter", 3, -1),
+    ("pyramid_levels", "levels", 2, 0),
+    ("normalize_coordinates", "size", 5, 0),
+    ("Camera.padded", "left", 2, -1),
+])
+def test_whole_number_options_take_a_0d_integer_tensor_as_its_int(function, option, good, wrong_value):
+    """Whole-number options refused a 0-d integer tensor (TypeError) where the real options took a
+    0-d tensor as its number: now both read it (an int dtype as an int; a float or bool 0-d tensor
+    stays refused, as 2.0 and True are)."""
+    with pytest.raises(ValueError, match=f"^{option}: expected .*, got {re.escape(repr(wrong_value))}"):
+        _option_call(function, **{option: torch.tensor(wrong_value)})
+    for wrong_type in (torch.tensor(float(good)), torch.tensor(True)):
+        with pytest.raises(TypeError, match=f"^{option}: expected"):
+            _option_call(function, **{option: wrong_type})
+    if function in ("fit_sequence", "solve"):
+        return  # (a clip fit, a solver without a problem here: the check is the point)
+    as_tensor, as_number = (_option_call(function, **{option: v}) for v in (torch.tensor(good), good))
+    if isinstance(as_tensor, (int, list)):
+        assert as_tensor == as_number and type(as_tensor) is type(as_number)
+        return
+    pairs = [(a, b) for a, b in zip(*(dataclasses.astuple(r) if dataclasses.is_dataclass(r) else (r.K,) if hasattr(r, "K")
+                                      else r if isinstance(r, tuple) else (r,) for r in (as_tensor, as_number)))
+             if isinstance(a, torch.Tensor)]
+    assert pairs and all(torch.equal(a, b) for a, b in pairs)

@@ -78,7 +78,7 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     B = H.shape[0]
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (H's B), got {camera.batch_size}")
-    check_int(size, "size", minimum=8)
+    size = check_int(size, "size", minimum=8)
     check_has_values(H, "H", "to decompose (the decomposition is a fit)")
     check_has_values(camera.K, "camera", "to decompose a homography (the decomposition is a fit)")
     if B == 0:

@@ -28,7 +28,8 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
-                      check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, to_device)
+                      check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, scalar,
+                      to_device)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values, pack_params,
@@ -495,6 +496,11 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         (1.0, 0.003)
     """
     model = get_road_model(model)
+    # (a 0-d integer tensor as its int, as the real options' 0-d tensors are read as their numbers)
+    max_iter, max_points, min_points = (scalar(v, n) for n, v in (("max_iter", max_iter), ("max_points", max_points),
+                                                                  ("min_points", min_points)))
+    check_every = tuple(scalar(k, "check_every") for k in check_every) if isinstance(check_every, tuple) else \
+        scalar(check_every, "check_every")
     scale, tol, inlier_threshold, min_inlier_fraction = check_fit_options(
         robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
     check_bool(polish, "polish")

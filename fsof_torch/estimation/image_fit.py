@@ -363,10 +363,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     """
     # (a 0-d tensor as its number: the levels' loops and the point budgets need Python numbers)
     (tol, resolution, smooth_sigma, highpass, scale, gradient_fraction, inlier_threshold, min_inlier_fraction,
-     min_correlation) = (scalar(v, n) for n, v in dict(
+     min_correlation, max_iter, max_points, min_points, levels, min_size, fine_points, band_levels, retry_starts,
+     check_every) = (scalar(v, n) for n, v in dict(
         tol=tol, resolution=resolution, smooth_sigma=smooth_sigma, highpass=highpass, scale=scale,
         gradient_fraction=gradient_fraction, inlier_threshold=inlier_threshold,
-        min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation).items())
+        min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation, max_iter=max_iter,
+        max_points=max_points, min_points=min_points, levels=levels, min_size=min_size, fine_points=fine_points,
+        band_levels=band_levels, retry_starts=retry_starts, check_every=check_every).items())
     model, steps, turns, reverse, fixed, prior = checked_options(
         model=model, fixed=fixed, init=init, starts=starts, prior=prior, levels=levels,
         min_size=min_size, max_iter=max_iter, tol=tol, resolution=resolution, smooth_sigma=smooth_sigma,

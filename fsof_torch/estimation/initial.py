@@ -176,7 +176,7 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's B), got {camera.batch_size}")
-    check_int(points, "points", minimum=1)
+    points = check_int(points, "points", minimum=1)
     check_has_values(flow, "flow", "to start a fit (the start is a fit)")
     if B == 0:
         raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")

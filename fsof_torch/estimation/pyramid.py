@@ -10,7 +10,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import check_float_tensor, check_int, check_number, check_shape, host_path, is_number, option_error
+from .._check import check_float_tensor, check_int, check_number, check_shape, host_path, is_number, option_error, scalar
 from ..geometry.camera import Camera
 
 __all__ = ["pyramid_levels", "image_pyramid", "mask_pyramid", "level_camera", "band", "gaussian_blur"]
@@ -23,6 +23,7 @@ def pyramid_levels(H: int, W: int, levels: int | None, min_size: int) -> int:
     level can be a pixel or so larger than that, and a side just short of a power of two times
     ``min_size`` gets one level less than the rounded sides would allow (63 px with ``min_size``
     16: 2 levels, 63 and 32 px, though a third of 16 px would still reach it)."""
+    min_size, levels = scalar(min_size, "min_size"), scalar(levels, "levels")  # (0-d integer tensors as their ints)
     if not is_number(min_size, integer=True):
         raise TypeError(f"min_size: expected an int >= 1, got {type(min_size).__name__} {min_size!r}")
     if min_size < 1:

@@ -43,9 +43,10 @@ def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_
     ``tol``, ``inlier_threshold`` and ``min_inlier_fraction`` as Python numbers (a 0-d tensor
     read), for the fit to use."""
     check_kernel(robust)
-    scale, tol, inlier_threshold, min_inlier_fraction = (
+    scale, tol, inlier_threshold, min_inlier_fraction, max_iter, max_points, min_points = (
         scalar(v, n) for n, v in (("scale", scale), ("tol", tol), ("inlier_threshold", inlier_threshold),
-                                  ("min_inlier_fraction", min_inlier_fraction)))
+                                  ("min_inlier_fraction", min_inlier_fraction), ("max_iter", max_iter),
+                                  ("max_points", max_points), ("min_points", min_points)))
 
     def positive(name: str, value: object, integer: bool = False, low: float = 0.0) -> None:
         if not is_number(value, integer=integer) or not math.isfinite(value) or not value > low:

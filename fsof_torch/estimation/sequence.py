@@ -316,6 +316,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
                         f"{mask.shape}")
     if len(frames) < 2:
         raise ValueError(f"frames: expected at least 2 frames, got {len(frames)}")
+    passes = scalar(passes, "passes")  # (a 0-d integer tensor as its int)
     if isinstance(passes, bool) or not isinstance(passes, numbers.Integral) or passes not in (1, 2):
         raise option_error(passes, f"passes: expected 1 or 2, got {passes!r}", integer=True)
     passes = int(passes)

@@ -44,7 +44,7 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, check_float_tensor, check_int, check_number, check_shape, option_error,
-                      result_dtype, skip_values)
+                      result_dtype, scalar, skip_values)
 from .robust import check_kernel, check_scale, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
@@ -309,6 +309,7 @@ def _check_schedule(check_every: int | Sequence[int] | None, max_iter: int) -> l
     """The iterations after which :func:`solve` asks whether all samples converged: an int k gives
     k, then 1, 1, 2, 4, ... more (a stage that has not converged when expected usually needs one or
     two more iterations: each of those is checked, and then the gaps double)."""
+    check_every = scalar(check_every, "check_every")  # (a 0-d integer tensor as its int)
     if check_every is None:
         return []
     if isinstance(check_every, numbers.Integral) and not isinstance(check_every, bool):

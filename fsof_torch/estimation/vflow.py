@@ -103,6 +103,7 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
         [0, 1, 2, 3]
     """
     dims, use = check_flow_mask(flow, mask)
+    bins = scalar(bins, "bins")  # (a 0-d integer tensor as its int)
     if not is_number(bins, integer=True) or bins < 2:
         raise option_error(bins, f"bins: expected an integer >= 2, got {bins!r}", integer=True)
     bins = int(bins)  # (a NumPy integer too)
@@ -330,6 +331,9 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
     """
     if model not in _MODELS:
         raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
+    hypotheses, iterations, min_row_pixels, min_inlier_rows = (scalar(v, n) for n, v in (
+        ("hypotheses", hypotheses), ("iterations", iterations), ("min_row_pixels", min_row_pixels),
+        ("min_inlier_rows", min_inlier_rows)))  # (0-d integer tensors as their ints)
     for name, value, low in (("hypotheses", hypotheses, 1), ("iterations", iterations, 0),
                              ("min_row_pixels", min_row_pixels, 1), ("min_inlier_rows", min_inlier_rows, 3)):
         if not is_number(value, integer=True) or value < low:

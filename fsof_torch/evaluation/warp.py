@@ -32,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from .._check import (autocast_off, check_bool, check_finite, check_float_tensor, check_same_device, check_shape,
-                      is_number, option_error, result_dtype)
+                      is_number, option_error, result_dtype, scalar)
 
 __all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
 
@@ -52,6 +52,7 @@ def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> 
     coordinate stays NaN.
     """
     check_float_tensor(coords, "coords")
+    size = scalar(size, "size")  # (a 0-d integer tensor as its int)
     if not is_number(size, integer=True) or size < 1:
         raise option_error(size, f"size: expected a positive int (pixels along the axis), got {size!r}", integer=True)
     size = int(size)

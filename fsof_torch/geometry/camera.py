@@ -456,6 +456,7 @@ def _pixel_amounts(method: str, **amounts: object) -> dict[str, int]:
     """Padding or cropping amounts as non-negative ints (a whole number of pixels)."""
     out = {}
     for name, value in amounts.items():
+        value = scalar(value, name)  # (a 0-d integer tensor as its int, as Camera.scaled reads a 0-d tensor)
         if isinstance(value, bool) or not isinstance(value, numbers.Integral):
             raise TypeError(f"{name}: expected a whole number of pixels (int) for Camera.{method}, "
                             f"got {type(value).__name__} {value!r}")

@@ -373,7 +373,7 @@ _INT_OPTIONS = ("level", "seed_level", "window", "height_window")
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any], estimated: bool) -> dict[str, int]:
     dims = check_image_pair(image1, image2)
-    options.update({k: scalar(v, k) for k, v in options.items() if k not in _INT_OPTIONS})  # (ints stay ints)
+    options.update({k: scalar(v, k) for k, v in options.items()})  # (a 0-d tensor as its number: int or float)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):

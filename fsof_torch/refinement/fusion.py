@@ -334,7 +334,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     undefined, and outside the mask they are returned as they came. The warning counts the
     pixels inside the mask replaced and left.
     """
-    flow_keys = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
+    flow_keys, min_pixels = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale, min_pixels=min_pixels,
                                      flow_keys=flow_keys, warn=warn, fit=fit, fit_roll=fit_roll, fit_pitch=fit_pitch,
                                      fit_options=fit_options, photometric_options=photometric_options, starts=starts)
     road_options = check_mapping(road_options, "road_options")
@@ -661,7 +661,7 @@ class FreespaceRefiner(nn.Module):
                  fit_options: Mapping[str, Any] | None = None,
                  photometric_options: Mapping[str, Any] | None = None) -> None:
         super().__init__()
-        flow_keys = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale,
+        flow_keys, min_pixels = check_refine_options(estimator=estimator, gate=gate, mode=mode, scale=scale,
                                          min_pixels=min_pixels, flow_keys=flow_keys, warn=warn, fit=fit,
                                          fit_roll=fit_roll, fit_pitch=fit_pitch, fit_options=fit_options,
                                          photometric_options=photometric_options)

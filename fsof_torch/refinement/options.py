@@ -29,14 +29,15 @@ PHOTOMETRIC_RESERVED = ("image1", "image2", "mask", "camera", "model", "fixed", 
 
 def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: object, min_pixels: object,
                          flow_keys: object, warn: object, fit: object, fit_roll: object, fit_pitch: object,
-                         fit_options: object, photometric_options: object, starts: object = ()) -> tuple[str, ...]:
+                         fit_options: object, photometric_options: object, starts: object = ()) -> tuple[tuple[str, ...], int]:
     """The options of :func:`refine_flow` and :class:`FreespaceRefiner` (named errors, quoting
     what came), checked before any work. Returns ``flow_keys`` as a tuple (read once: pass this on,
-    not the caller's iterable, which may be a generator)."""
+    not the caller's iterable, which may be a generator) and ``min_pixels`` as an int (a 0-d
+    integer tensor read)."""
     if mode not in MODES:
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
     check_number(scale, "scale", positive=True)
-    check_int(min_pixels, "min_pixels", minimum=1)
+    min_pixels = check_int(min_pixels, "min_pixels", minimum=1)
     flow_keys = check_flow_keys(flow_keys)
     check_bool(warn, "warn")
     check_bool(fit_roll, "fit_roll")
@@ -57,7 +58,7 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road, reserved=FIT_RESERVED)
     check_keywords(check_mapping(photometric_options, "photometric_options"), "photometric_options", fit_image,
                    reserved=PHOTOMETRIC_RESERVED)
-    return flow_keys
+    return flow_keys, min_pixels
 
 
 def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,

@@ -221,7 +221,7 @@ def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: 
         of the rigid motion t -> t+1 over that plane (:func:`.ground_truth.road_motion`, DESIGN.md
         §10); ``index`` int.
     """
-    check_int(index, "index", minimum=0)  # checked here, so that the error names this function's argument
+    index = check_int(index, "index", minimum=0)  # checked here, so that the error names this function's argument
     if index >= MAX_FRAME:
         raise ValueError(f"index: expected at most {MAX_FRAME - 1}, got {index}")
     check_overrides(overrides)  # render_sequence's own keywords are not overrides either
