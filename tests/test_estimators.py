@@ -458,6 +458,39 @@ def test_an_odometry_on_the_meta_device_is_named(estimator):
                   odometry=odometry)
 
 
+def test_starts_and_priors_on_the_meta_device_are_named():
+    """A start or a prior on the meta device with real data: a ValueError naming its key (was a
+    TypeError "expected a number or a tensor", a tensor it was, or torch's "Cannot copy out of
+    meta tensor"), in the fits and through the refiner."""
+    from fsof_torch import fit_image, fit_road, refine_flow
+
+    p = render_pair("default", 0, size=(24, 80))
+    flow, road, cam = p["flow"][None], p["road"][None], p["camera"]
+    images = (p["image1"][None], p["image2"][None])
+    meta = torch.tensor([1.0], device="meta")
+    start = r"a tensor on the meta device has shapes but no values to start a fit from; move it to a real device"
+    prior = r"^prior\['z_d'\]: a tensor on the meta device has shapes but no values for a prior"
+    with pytest.raises(ValueError, match=rf"^init\['z_d'\]: {start}"):
+        fit_road(flow, road, cam, init={"z_d": meta})
+    with pytest.raises(ValueError, match=rf"^init\['z_d'\]: {start}"):
+        fit_image(*images, road, cam, init={"z_d": meta})
+    with pytest.raises(ValueError, match=rf"^starts\[0\]\['z_d'\]: {start}"):
+        fit_image(*images, road, cam, starts=[{"z_d": meta}])
+    with pytest.raises(ValueError, match=rf"^starts\[0\]\['z_d'\]: {start}"):
+        refine_flow(flow, road, cam, images=images, starts=[{"z_d": meta}])
+    for spec in ((meta, 1.0), (1.0, meta)):
+        with pytest.raises(ValueError, match=prior):
+            fit_road(flow, road, cam, prior={"z_d": spec})
+        with pytest.raises(ValueError, match=prior):
+            fit_image(*images, road, cam, prior={"z_d": spec})
+    with pytest.raises(TypeError, match=r"^init: expected a number or a tensor for z_d, got str 'a'"):
+        fit_road(flow, road, cam, init={"z_d": "a"})  # (what the message is for)
+    from fsof_torch.estimation.sequence import smooth_attitude
+
+    with pytest.raises(ValueError, match=r"^change_sigma: a tensor on the meta device has shapes but no values"):
+        smooth_attitude(torch.zeros(3, dtype=torch.float64), torch.zeros(3, dtype=torch.float64), 0.01, meta)
+
+
 def _tensors(obj, prefix="out"):
     """Every tensor in a refiner's output (its fit's and gate's too), by name."""
     import dataclasses

@@ -278,6 +278,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
         value = values.get(name)
         if value is None:
             continue
+        check_has_values(value, f"{what}[{name!r}]", "to start a fit from")  # (was: "expected a number or a tensor")
         try:
             t = torch.as_tensor(value, dtype=torch.float64, device=default.device).detach().reshape(-1)
         except (TypeError, ValueError, RuntimeError):
@@ -309,6 +310,8 @@ def prior_terms(model: RoadModel, prior: Mapping[str, tuple[float, float]] | Non
     for name, spec in (prior or {}).items():
         if name not in model.params:
             raise ValueError(f"prior: unknown parameter {name!r} of model {model.name!r}")
+        for v in spec if isinstance(spec, (tuple, list)) else ():  # (was: torch's "Cannot copy out of meta tensor")
+            check_has_values(v, f"prior[{name!r}]", "for a prior")
         try:
             mu, sigma = spec
             sigma = torch.as_tensor(sigma, dtype=dtype, device=device).reshape(-1)

@@ -12,7 +12,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import check_number
+from .._check import check_has_values, check_number
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 
@@ -103,6 +103,8 @@ def prior_arrays(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B
             mu, sigma = value
         except (TypeError, ValueError):
             raise ValueError(f"prior[{name!r}]: expected (mean, sigma), got {value!r}") from None
+        for v in (mu, sigma):  # (was: "expected numbers or tensors (mean, sigma)")
+            check_has_values(v, f"prior[{name!r}]", "for a prior")
         try:
             mu = torch.as_tensor(mu, dtype=torch.float64, device=device).reshape(-1)
             sigma = torch.as_tensor(sigma, dtype=torch.float64, device=device).reshape(-1)

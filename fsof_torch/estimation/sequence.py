@@ -52,8 +52,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import (check_bool, check_data_range, check_float_tensor, check_image_range, check_names, option_error,
-                      scalar)
+from .._check import (check_bool, check_data_range, check_float_tensor, check_has_values, check_image_range, check_names,
+                      option_error, scalar)
 from ..geometry.camera import Camera
 from ..geometry.egomotion import check_pose_steps
 from ..geometry.road_models import RoadModel, get_road_model
@@ -124,6 +124,7 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     for name, given in (("attitude_sigma", attitude_sigma), ("change_sigma", change_sigma)):
         if isinstance(given, bool) or not isinstance(given, (Tensor, numbers.Real)):
             raise TypeError(f"{name}: expected a number or a tensor of {N} values, got {type(given).__name__}")
+        check_has_values(given, name, "for the track's weights")
         sigma = torch.as_tensor(given, dtype=dt)
         if sigma.dim() > 1 or sigma.numel() not in (1, N):
             raise ValueError(f"{name}: expected a number or a tensor of {N} values, got shape {tuple(sigma.shape)}")
