@@ -247,6 +247,8 @@ def test_freespace_loss_refuses_odometry_in_millimetres_by_name():
             FreespaceFlowLoss()(flow, mask, cam, millimetres)
     with pytest.raises(ValueError, match=r"^odometry: sample 0 moves 101 m in a frame \(.*y_d 101"):
         freespace_flow_loss(flow, road, cam, {"model": "plane", "y_d": 101.0})
+    with pytest.raises(ValueError, match=r"^odometry: sample 0 turns by 5 rad in a frame.*in degrees\?"):
+        freespace_flow_loss(flow, road, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 5.0})  # (degrees for radians)
 
 
 # -- gradcheck -----------------------------------------------------------------------------------

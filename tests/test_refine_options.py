@@ -6,6 +6,7 @@ ptlflow's input range."""
 from __future__ import annotations
 
 import collections
+import math
 import warnings
 
 import pytest
@@ -429,3 +430,24 @@ def test_odometry_in_millimetres_is_refused_by_name(mask_kind):
         refine_flow(pred, mask, cam, {"x_d": 0.0, "z_d": 60.0, "yaw": 0.0}, gate=None)
     out = refine_flow(pred, mask, cam, ODO, gate=None, warn=False)
     assert bool(out.refined.all())
+
+
+def test_a_yaw_of_half_a_turn_and_a_rate_are_named():
+    """A yaw in degrees (30 "rad" a frame, taken and refined with a wrapped turn) and wheel
+    odometry given as a rate (speed, yaw_rate; named only as missing keys) say what they are."""
+    pred, mask, cam, pair = make_case(B=2)
+    message = r"^odometry: sample 1 turns by -30 rad in a frame, half a turn or more \(\|yaw\| >= π\); in degrees\?"
+    for odo in ({"x_d": 0.0, "z_d": 1.0, "yaw": torch.tensor([0.01, -30.0])},
+                {"model": "plane", "z_d": 1.0, "yaw": torch.tensor([0.01, -30.0])}):
+        for images in (None, pair):
+            with pytest.raises(ValueError, match=message):
+                refine_flow(pred, mask, cam, odo, images=images)
+    with pytest.raises(ValueError, match=r"^odometry: sample 0 turns by 3.142 rad"):
+        refine_flow(pred, mask, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": math.pi})
+    with warnings.catch_warnings():  # (a sharp turn, but less than half a turn: taken)
+        warnings.simplefilter("ignore")
+        refine_flow(pred, mask, cam, {"x_d": 0.0, "z_d": 1.0, "yaw": 3.0}, gate=None)
+    with pytest.raises(ValueError, match=r"^odometry: missing keys \['x_d', 'z_d', 'yaw'\]; .*got keys \['speed', "
+                                         r"'yaw_rate'\]; a speed and a yaw rate are a rate: integrate them over the "
+                                         r"frame interval \(fs.ego_motion_from_ackermann\)"):
+        refine_flow(pred, mask, cam, {"speed": 10.0, "yaw_rate": 0.1})

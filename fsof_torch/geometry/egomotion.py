@@ -236,22 +236,30 @@ def check_pose_steps(poses: Tensor, name: str = "poses", *, labels: list[str] | 
 
 
 def check_motion_step(params: dict[str, Tensor], name: str = "odometry") -> None:
-    """Raise a ValueError naming ``name`` where a motion's translation in one frame (the norm of
-    its ``x_d``, ``y_d``, ``z_d`` among ``params``, (B,) tensors; metres) is longer than a road
-    vehicle travels between two frames of a video (100 m, as :func:`check_pose_steps`): odometry
-    in millimetres, or a speed in m/s given as a step at 10 Hz in mm, would leave the road's flow
-    undefined in most of the image and the refiner's samples unchanged with only a generic
-    warning. Not read while tracing or on the meta device; a motion without a translation in
-    metres (a homography) passes."""
+    """Raise a ValueError naming ``name`` and the sample where a motion of one frame is no road
+    vehicle's: a translation (the norm of its ``x_d``, ``y_d``, ``z_d`` among ``params``, (B,)
+    tensors, metres) longer than a road vehicle travels between two frames of a video (100 m, as
+    :func:`check_pose_steps`: odometry in millimetres), or a ``yaw`` of half a turn or more
+    (|yaw| >= π: no turn between two frames, which the yaw of a pose, an angle in (−π, π], cannot
+    tell apart from a smaller one; most likely degrees). Either would leave the road's flow
+    undefined in most of the image, or wrong, with at most a generic warning. Not read while
+    tracing or on the meta device; a motion without a translation or yaw (a homography) passes."""
     steps = [params[k] for k in ("x_d", "y_d", "z_d") if k in params]
-    if not steps or skip_values(*steps):
+    yaw = params.get("yaw")
+    if not (steps or yaw is not None) or skip_values(*steps, yaw):
         return
     with torch.no_grad():
-        norm = torch.stack(torch.broadcast_tensors(*steps)).to(torch.float64).norm(dim=0).reshape(-1)
-        far = norm > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL
-        if not bool(far.any()):
+        norm = torch.stack(torch.broadcast_tensors(*steps)).to(torch.float64).norm(dim=0).reshape(-1) if steps else \
+            torch.zeros(1, dtype=torch.float64)
+        turn = torch.zeros(1, dtype=torch.float64) if yaw is None else yaw.detach().to(torch.float64).abs().reshape(-1)
+        far, wraps = norm > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL, ~(turn < torch.pi)  # (NaN: checked before)
+        if not bool(far.any() | wraps.any()):
             return
-        i = int(far.nonzero()[0])
+    if not bool(far.any()):
+        i = int(wraps.nonzero()[0])
+        raise ValueError(f"{name}: sample {i} turns by {float(yaw.reshape(-1)[i if yaw.numel() > 1 else 0]):.4g} rad "
+                         f"in a frame, half a turn or more (|yaw| >= π); in degrees? The yaw is in radians")
+    i = int(far.nonzero()[0])
     given = ", ".join(f"{k} {float(params[k].reshape(-1)[i if params[k].numel() > 1 else 0]):.4g}"
                       for k in ("x_d", "y_d", "z_d") if k in params)
     raise ValueError(f"{name}: sample {i} moves {float(norm[i]):.4g} m in a frame ({given}), farther than a road "

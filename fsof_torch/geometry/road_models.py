@@ -492,8 +492,10 @@ def road_motion(odometry: object, name: str = "odometry", *,
             model = ROAD_MODELS["paper"]
             missing = [k for k in ("x_d", "z_d", "yaw") if k not in odometry]
             if missing:
+                rate = "; a speed and a yaw rate are a rate: integrate them over the frame interval " \
+                    "(fs.ego_motion_from_ackermann)" if set(odometry) & {"speed", "yaw_rate", "steering"} else ""
                 raise ValueError(f"{name}: missing keys {missing}; expected a dict with x_d, z_d (metres) and yaw "
-                                 f"(radians), or a 'model' key and that model's parameters; got keys {sorted(odometry)}")
+                                 f"(radians), or a 'model' key and that model's parameters; got keys {sorted(odometry)}{rate}")
             params = dict(odometry)
     elif hasattr(odometry, "model") and hasattr(odometry, "params"):
         model, params = get_road_model(odometry.model, f"{name}.model"), dict(odometry.params)
@@ -529,8 +531,8 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
     """:func:`road_motion`'s ``(model, params)`` with every parameter a tensor of shape
     (``batch``,) of ``dtype`` on ``device`` (a float or a batch of 1 broadcast); ``batch_of`` names
     the batch in the error a wrong batch size raises; ``displacement`` as in :func:`road_motion`,
-    and a translation longer than 100 m a frame (odometry in millimetres) a ValueError naming ``name``
-    (:func:`~fsof_torch.geometry.egomotion.check_motion_step`)."""
+    and a translation longer than 100 m a frame (odometry in millimetres) or a yaw of half a turn
+    (degrees) a ValueError naming ``name`` (:func:`~fsof_torch.geometry.egomotion.check_motion_step`)."""
     model, params = road_motion(odometry, name, displacement=displacement)
     out = {}
     for key, value in params.items():

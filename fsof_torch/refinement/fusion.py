@@ -278,7 +278,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             (metres, radians; floats or (B,) tensors), an :class:`EgoMotion`, a dict with a
             ``"model"`` key and that model's parameters, or a fit result, of a displacement model
             (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError; so is a
-            step beyond 100 m a frame, odometry in millimetres). A complete model's motion (with
+            step beyond 100 m or a yaw of half a turn a frame, mm or degrees). A complete model's motion (with
             ``"model"``, or a fit) is used as it is; the planar odometry of the paper's model, with
             images, fixes the planar motion while the images estimate the body's pitch and roll
             changes, its vertical motion and the camera's attitude (the plain planar model where

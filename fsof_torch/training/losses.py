@@ -518,7 +518,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             key and a displacement model's parameters; a fit result; or ``"fit"`` (see
             :func:`~fsof_torch.geometry.road_models.road_motion`). The ``"velocity"`` model (flow
             in px/s, not pixels per frame) raises a ValueError, as does a step beyond 100 m a
-            frame (odometry in millimetres).
+            frame (odometry in millimetres) or a yaw of half a turn (degrees).
         penalty: ``"charbonnier"`` (sqrt(r² + 1) - 1, as kornia's), ``"cauchy"`` (log(1 + r²/2),
             as kornia's) or ``"l1"``, on each component of the residual r = (F - F_model) / scale;
             evaluated without forming r² where it could overflow.
