@@ -148,6 +148,34 @@ def test_fit_options_naming_the_fits_inputs_are_refused(name):
         FlowMotionEstimator(**{name: None})
 
 
+@pytest.mark.parametrize("options, error, match", [
+    ({"max_iter": -1}, ValueError, r"^max_iter: expected an int > 0, got -1"),
+    ({"robust": "bogus"}, ValueError, r"^robust: expected one of"),
+    ({"scale": 0.0}, ValueError, r"^scale: expected a finite number > 0, got 0.0"),
+    ({"polish": "yes"}, TypeError, r"^polish: expected True or False, got str 'yes'"),
+    ({"bounds": "x"}, ValueError, r"^bounds: expected 'physical' or None, got 'x'"),
+    ({"check_every": 0}, ValueError, r"^check_every: expected 'auto', an int >= 1"),
+    ({"prior": {"bogus": (0.0, 1.0)}}, ValueError, r"^prior: unknown parameter 'bogus' of model 'paper'"),
+    ({"prior": {"roll": (0.0, 0.01)}}, ValueError, r"^prior: 'roll' is held at its start"),
+])
+def test_fit_options_values_are_checked_when_made(options, error, match):
+    """The flow fit's option values were checked only by the first fit: a refiner (or flow estimator)
+    with a bad one ran on without a word while odometry was given, and failed at the first call
+    without it. Now when made, and at every call, with odometry too (as the image estimator's)."""
+    pred, mask, cam, _ = make_case()
+    with pytest.raises(error, match=match):
+        FlowMotionEstimator(**options)
+    with pytest.raises(error, match=match):
+        FreespaceRefiner(fit="flow", fit_options=options)
+    with pytest.raises(error, match=match):
+        refine_flow(pred, mask, cam, ODO, fit="flow", fit_options=options)
+    if set(options) <= {"max_iter", "robust", "scale"}:  # (options the image fit shares, checked alike)
+        with pytest.raises(error, match=match):
+            FreespaceRefiner(fit="photometric", photometric_options=options)
+    # a prior on a parameter the flags free is taken
+    FreespaceRefiner(fit="flow", fit_roll=True, fit_options={"prior": {"roll": (0.0, 0.01)}})
+
+
 @pytest.mark.parametrize("name", ["image1", "image2", "mask", "camera"])
 def test_photometric_options_naming_the_fits_inputs_are_refused(name):
     pred, mask, cam, pair = make_case()

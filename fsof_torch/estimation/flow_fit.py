@@ -434,6 +434,38 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
     return homography_values(H, camera.K, K_inv)
 
 
+def check_road_fit_options(model: RoadModel, fixed: object, prior: object, robust: object, scale: object,
+                           max_iter: object, tol: object, max_points: object, inlier_threshold: object,
+                           min_points: object, min_inlier_fraction: object, polish: object, check_every: object,
+                           bounds: object) -> tuple:
+    """:func:`fit_road`'s options checked without a flow (named errors, 0-d tensors read), as the
+    estimator and the refiner that forward them check them when made. Returns the fixed names,
+    the prior, ``scale``, ``tol``, ``inlier_threshold``, ``min_inlier_fraction``, ``max_iter``,
+    ``max_points``, ``min_points`` and the two stages' ``check_every``."""
+    max_iter, max_points, min_points = (scalar(v, n) for n, v in (("max_iter", max_iter), ("max_points", max_points),
+                                                                  ("min_points", min_points)))
+    check_every = tuple(scalar(k, "check_every") for k in check_every) if isinstance(check_every, tuple) else \
+        scalar(check_every, "check_every")
+    numbers_ = check_fit_options(robust, scale, max_iter, tol, max_points, inlier_threshold, min_points,
+                                 min_inlier_fraction)
+    check_bool(polish, "polish")
+    if bounds not in ("physical", None):
+        raise (ValueError if isinstance(bounds, str) else TypeError)(f"bounds: expected 'physical' or None, got {bounds!r}")
+    fixed_names, prior = fixed_parameters(model, check_names(fixed, "fixed")), check_mapping(prior, "prior")
+    if unknown := sorted(str(n) for n in (prior or {}) if n not in model.params):
+        raise ValueError(f"prior: unknown parameter {unknown[0]!r} of model {model.name!r}")
+    if held := [n for n in model.params if n in fixed_names and n in (prior or {})]:
+        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={fixed_names!r}), so its prior would "
+                         f"be ignored; free it (fixed= without it, or fit_roll= / fit_pitch=True) or drop its prior")
+    checks = (2, 1) if check_every == "auto" else check_every if isinstance(check_every, tuple) else (check_every,) * 2
+    expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"
+    if len(checks) != 2 or any(isinstance(k, bool) or not isinstance(k, (numbers.Integral, type(None))) for k in checks):
+        raise TypeError(f"check_every: expected {expected}, got {type(check_every).__name__} {check_every!r}")
+    if any(k is not None and k < 1 for k in checks):
+        raise ValueError(f"check_every: expected {expected}, got {check_every!r}")
+    return (fixed_names, prior, *numbers_, max_iter, max_points, min_points, checks)
+
+
 @inference
 def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadModel = "paper",
              fixed: object = None, init: object = None,
@@ -499,39 +531,19 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         (1.0, 0.003)
     """
     model = get_road_model(model)
-    # (a 0-d integer tensor as its int, as the real options' 0-d tensors are read as their numbers)
-    max_iter, max_points, min_points = (scalar(v, n) for n, v in (("max_iter", max_iter), ("max_points", max_points),
-                                                                  ("min_points", min_points)))
-    check_every = tuple(scalar(k, "check_every") for k in check_every) if isinstance(check_every, tuple) else \
-        scalar(check_every, "check_every")
-    scale, tol, inlier_threshold, min_inlier_fraction = check_fit_options(
-        robust, scale, max_iter, tol, max_points, inlier_threshold, min_points, min_inlier_fraction)
-    check_bool(polish, "polish")
-    if bounds not in ("physical", None):
-        raise (ValueError if isinstance(bounds, str) else TypeError)(f"bounds: expected 'physical' or None, got {bounds!r}")
-    fixed, prior = check_names(fixed, "fixed"), check_mapping(prior, "prior")
+    (fixed_names, prior, scale, tol, inlier_threshold, min_inlier_fraction, max_iter, max_points, min_points,
+     checks) = check_road_fit_options(model, fixed, prior, robust, scale, max_iter, tol, max_points, inlier_threshold,
+                                      min_points, min_inlier_fraction, polish, check_every, bounds)
     if init is not None and not isinstance(init, (Mapping, RoadFit)):
         raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
-    if check_every == "auto":
-        check_every = (2, 1)
-    checks = check_every if isinstance(check_every, tuple) else (check_every, check_every)
-    expected = "'auto', an int >= 1, a pair of them (robust stage, polish) or None"
-    if len(checks) != 2 or any(isinstance(k, bool) or not isinstance(k, (numbers.Integral, type(None))) for k in checks):
-        raise TypeError(f"check_every: expected {expected}, got {type(check_every).__name__} {check_every!r}")
-    if any(k is not None and k < 1 for k in checks):
-        raise ValueError(f"check_every: expected {expected}, got {check_every!r}")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)
     B, H, W = dims["B"], dims["H"], dims["W"]
     out_dtype = result_dtype(flow, camera.K)
     cam64 = camera.to(torch.float64)
     K_inv = cam64.K_inv()
     thr = 3.0 * scale if inlier_threshold is None else float(inlier_threshold)
-    fixed_names = fixed_parameters(model, fixed)
-    if held := [n for n in model.params if n in fixed_names and n in (prior or {})]:
-        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={fixed_names!r}), so its prior would "
-                         f"be ignored; free it (fixed= without it, or fit_roll= / fit_pitch=True) or drop its prior")
     free = torch.tensor([n not in fixed_names for n in model.params], device=flow.device)
 
     with autocast_off(flow):

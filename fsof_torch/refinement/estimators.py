@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import warnings
 from typing import Any, Mapping, Sequence
 
@@ -27,7 +28,7 @@ from torch import Tensor
 from .._check import (all_finite, batch_choices, check_batch, check_bool, check_float_tensor, check_has_values,
                       check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number, check_shape,
                       inference, skip_values)
-from ..estimation.flow_fit import RoadFit, fit_road, fixed_parameters
+from ..estimation.flow_fit import RoadFit, check_road_fit_options, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
 from ..estimation.sampling import reused_mask_pixels
@@ -39,6 +40,8 @@ __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "finite_estimate", "pl
 
 _PLANAR = ("x_d", "z_d", "yaw")
 _MOUNTING = ("roll", "pitch")  # (FlowMotionEstimator's default ``fixed``, this very object)
+_FIT_ROAD_DEFAULTS = {n: p.default for n, p in inspect.signature(fit_road).parameters.items()
+                      if p.default is not inspect.Parameter.empty}
 
 
 def planar_odometry(odometry: object) -> dict[str, Any] | None:
@@ -108,7 +111,8 @@ class FlowMotionEstimator:
             raise a ValueError when the estimator is made.
         **options: further keyword arguments of :func:`~fsof_torch.fit_road` (not its inputs
             ``flow``, ``mask``, ``camera``, nor ``model``, ``fixed``, ``init``, which the
-            estimator passes itself: a TypeError names them).
+            estimator passes itself: a TypeError names them). Their values are checked here, as
+            fit_road checks them: a bad one is an error when the estimator is made.
 
     Given the vehicle's planar odometry (x_d, z_d, yaw), that is held fixed at the odometry's values
     (the fit's start, and ``fixed`` extended by them; the model must have them: ``"paper"`` or
@@ -130,11 +134,13 @@ class FlowMotionEstimator:
         # (the default holds the attitude the model has: the homography's none, not an error at the first call)
         fixed = tuple(n for n in _MOUNTING if n in road_model.params) if fixed is _MOUNTING else fixed
         self.fixed = check_names(fixed, "fixed")
-        if self.fixed is not None:
-            fixed_parameters(road_model, self.fixed)
-        # (the options' values are checked by fit_road at the first call; their names now)
         # (the inputs too: passed by the call, they would clash there as "multiple values")
         check_keywords(options, "options", fit_road, reserved=("flow", "mask", "camera", "model", "fixed", "init"))
+        # (and their values, as fit_road checks them: a bad one is an error now, not at the first call
+        # without odometry; the fixed names with them: a prior on a held parameter)
+        given = {**_FIT_ROAD_DEFAULTS, **options, "fixed": self.fixed}
+        check_road_fit_options(road_model, *(given[n] for n in inspect.signature(check_road_fit_options).parameters
+                                             if n != "model"))
         self.options = dict(options)
 
     def __call__(self, flow: Tensor, mask: Tensor, camera: Camera, *, images: Any = None,

@@ -14,7 +14,8 @@ from .contracts import check_flow_keys
 from .estimators import FlowMotionEstimator, ImageMotionEstimator
 from .gate import ImageGate
 
-__all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "check_refine_options", "select_estimator"]
+__all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "PHOTOMETRIC_DEFAULTS", "check_refine_options",
+           "select_estimator"]
 
 #: How the model flow and the prediction are fused.
 MODES = ("replace", "confidence")
@@ -25,6 +26,9 @@ FITS = ("flow", "photometric")
 #: would raise "got multiple values for argument" at the first call.
 FIT_RESERVED = ("flow", "mask", "camera", "model", "fixed", "init")
 PHOTOMETRIC_RESERVED = ("image1", "image2", "mask", "camera", "model", "fixed", "starts")
+#: ``fit="photometric"``'s options of ``fit_image`` (``photometric_options`` update them).
+PHOTOMETRIC_DEFAULTS = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
+                        "max_iter": 20, "highpass": None}
 
 
 def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: object, min_pixels: object,
@@ -58,6 +62,13 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     check_keywords(check_mapping(fit_options, "fit_options"), "fit_options", fit_road, reserved=FIT_RESERVED)
     check_keywords(check_mapping(photometric_options, "photometric_options"), "photometric_options", fit_image,
                    reserved=PHOTOMETRIC_RESERVED)
+    # and their values, as the estimators they build check them when made (a bad value was an error
+    # only at the first call that estimated: a refiner given odometry ran on without a word)
+    fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
+    if fit_options:
+        FlowMotionEstimator(model="paper", fixed=fixed, **fit_options)
+    if photometric_options:
+        ImageMotionEstimator(model="paper", fixed=fixed, **{**PHOTOMETRIC_DEFAULTS, **photometric_options})
     return flow_keys, min_pixels
 
 
@@ -93,7 +104,5 @@ def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: boo
     if fit == "flow" or (fit is None and images is None):
         return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
     if fit == "photometric":  # the paper's model fitted to the images, started from the flow fit
-        options = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
-                   "max_iter": 20, "highpass": None, **dict(photometric_options or {})}
-        return ImageMotionEstimator(model="paper", fixed=fixed, **options)
+        return ImageMotionEstimator(model="paper", fixed=fixed, **{**PHOTOMETRIC_DEFAULTS, **dict(photometric_options or {})})
     return ImageMotionEstimator()
