@@ -458,6 +458,23 @@ def test_an_odometry_on_the_meta_device_is_named(estimator):
                   odometry=odometry)
 
 
+@pytest.mark.parametrize("estimator", [FlowMotionEstimator(), ImageMotionEstimator()], ids=["flow", "image"])
+def test_a_velocity_odometry_is_named_not_left_aside(estimator):
+    """A "velocity" motion (a rate, px/s) as the estimators' odometry was left aside without a word
+    (neither planar odometry to hold nor a start of their model): the estimate ran as if no odometry
+    had come, also through detect_road(odometry=). Named now, as the refiner names it."""
+    from fsof_torch import detect_road
+
+    p = render_pair("default", 0, size=(48, 120))
+    flow, road, images = p["flow"][None], p["road"][None], (p["image1"][None], p["image2"][None])
+    message = r"^odometry: the 'velocity' model gives flow in px/s, not the pixels per frame this needs"
+    for odometry in ({"model": "velocity", "speed": 10.0}, {"model": "velocity", "speed": 10.0, "yaw_rate": 0.1}):
+        with pytest.raises(ValueError, match=message):
+            estimator(flow, road, p["camera"], images=images, odometry=odometry)
+        with pytest.raises(ValueError, match=message):
+            detect_road(*images, p["camera"], flow=flow, estimator=estimator, odometry=odometry)
+
+
 def test_starts_and_priors_on_the_meta_device_are_named():
     """A start or a prior on the meta device with real data: a ValueError naming its key (was a
     TypeError "expected a number or a tensor", a tensor it was, or torch's "Cannot copy out of

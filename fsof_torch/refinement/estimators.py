@@ -149,7 +149,7 @@ class FlowMotionEstimator:
             raise ValueError("flow: FlowMotionEstimator needs the predicted flow, got None")
         fixed, init = self.fixed, None
         if odometry is not None:
-            model, params = road_motion(odometry)
+            model, params = road_motion(odometry, displacement=True)  # (a rate, px/s: named, not left aside)
             init = params if model.name == self.model else None
             planar = planar_odometry(odometry)
             if planar is not None:
@@ -253,7 +253,7 @@ class ImageMotionEstimator:
         init = options.pop("init", None)
         planar = None
         if odometry is not None:
-            odometry_model, odometry_params = road_motion(odometry)
+            odometry_model, odometry_params = road_motion(odometry, displacement=True)  # (a rate: named)
             planar = planar_odometry(odometry)
             if planar is None and odometry_model.name == self.model:
                 # a general motion of the estimator's own model (a homography): nothing to hold,
