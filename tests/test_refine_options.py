@@ -452,6 +452,18 @@ def test_odometry_in_millimetres_is_refused_by_name(mask_kind):
             FreespaceRefiner()(pred, road, cam, odo, images=pair)
     with pytest.raises(ValueError, match=r"^odometry: sample 0 moves 150 m in a frame \(x_d 90, y_d 0, z_d 120\)"):
         refine_flow(pred, road, cam, {"model": "plane", "x_d": 90.0, "y_d": 0.0, "z_d": 120.0}, images=pair)
+    # a fit result is an estimate, judged by its success, not a measurement in other units: a diverged
+    # sample of it is refined as before (left unchanged where its model is undefined), not refused
+    import dataclasses
+
+    from fsof_torch import fit_road
+
+    fit = fit_road(pred, mask, cam, model="plane")
+    diverged = dataclasses.replace(fit, params={**fit.params, "z_d": torch.tensor([1.0, 1200.0])},
+                                   success=torch.tensor([True, False]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert refine_flow(pred, mask, cam, diverged, gate=None).refined.tolist() == [True, False]
     # 60 m a frame (600 m/s at 10 Hz) is absurd for a car, but within the bound: taken, as before
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -532,7 +532,8 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
     (``batch``,) of ``dtype`` on ``device`` (a float or a batch of 1 broadcast); ``batch_of`` names
     the batch in the error a wrong batch size raises; ``displacement`` as in :func:`road_motion`,
     and a translation longer than 100 m a frame (odometry in millimetres) or a yaw of half a turn
-    (degrees) a ValueError naming ``name`` (:func:`~fsof_torch.geometry.egomotion.check_motion_step`)."""
+    (degrees) a ValueError naming ``name`` (:func:`~fsof_torch.geometry.egomotion.check_motion_step`),
+    except in a fit result (an estimate, whose ``success`` judges it, not a measurement in other units)."""
     model, params = road_motion(odometry, name, displacement=displacement)
     out = {}
     for key, value in params.items():
@@ -544,7 +545,7 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
         out[key] = t.expand(batch)
     # one finiteness check for all (in the dtype they are used in: a value it cannot hold fails)
     check_all_finite({f"{name}[{key!r}]": t for key, t in out.items()})
-    if displacement:  # (a step in mm, not metres: refused by name, not left to a generic warning)
+    if displacement and not hasattr(odometry, "params"):  # (a measurement in mm or degrees, not a fit's estimate)
         check_motion_step(out, name)
     return model, out
 
