@@ -258,6 +258,20 @@ class TestFitVFlowCurve:
         torch.testing.assert_close(curve.scale(cam), torch.tensor([12.0], dtype=torch.float64), atol=0, rtol=1e-6)
         torch.testing.assert_close(curve.v0, cam.cy, atol=0, rtol=1e-6)
 
+    @pytest.mark.parametrize("pitch_deg", [-8.0, 5.0])
+    def test_scale_of_a_pitched_camera(self, pitch_deg):
+        # a pitched camera's road still draws the curve exactly, around its horizon row, with
+        # a = z_d cos²β / (h f_y): scale() gives z_d (v_r), not z_d cos²β
+        cam = _camera(pitch=float(np.radians(pitch_deg)))
+        flow, valid = displacement_flow(cam, 0.0, 1.2, 0.0, SIZE)
+        curve = fit_vflow_curve(flow, valid)
+        assert bool(curve.success) and float(curve.residual) < 1e-9
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([1.2], dtype=torch.float64), atol=0, rtol=1e-9)
+        torch.testing.assert_close(curve.v0, cam.horizon_row(), atol=1e-9, rtol=0)
+        flow, valid = velocity_flow(cam, 12.0, 0.0, 2.7, SIZE)
+        curve = fit_vflow_curve(flow, valid, model="velocity")
+        torch.testing.assert_close(curve.scale(cam), torch.tensor([12.0], dtype=torch.float64), atol=0, rtol=1e-9)
+
     def test_numpy_numbers_are_options_like_python_numbers(self):
         import numpy as np
 

@@ -242,7 +242,8 @@ class VFlowCurve:
     Attributes:
         model: ``"displacement"`` or ``"velocity"``.
         a: (B,) curvature parameter: z_d / (h f_y) in 1/px (displacement) or v_r / (h f_y) in
-            1/(px·s) (velocity).
+            1/(px·s) (velocity), for a level camera; z_d cos²β / (h f_y) for a camera pitched by β
+            (:meth:`scale` converts it).
         v0: (B,) the row of the horizon in pixels (the curve's zero).
         row_value: (B, H) the dominant vertical flow of each row that was fitted.
         row_support: (B, H) the pixel count behind each row value (0: the row was unused).
@@ -274,10 +275,16 @@ class VFlowCurve:
     success: Tensor
 
     def scale(self, camera: Camera) -> Tensor:
-        """z_d in metres (displacement) or v_r in m/s (velocity) under the camera's h and f_y: a·h·f_y, (B,)."""
+        """z_d in metres (displacement) or v_r in m/s (velocity) under the camera's h, f_y and
+        pitch β: a·h·f_y / cos²β, (B,).
+
+        A pitched camera still sees the road draw the curve exactly, around its horizon row, with
+        a = z_d cos²β / (h f_y) (resp. v_r cos²β / (h f_y)): a road point at depth z_c along the
+        optical axis lies d = h f_y / (z_c cos β) below the horizon, and moving by z_d shortens
+        z_c by z_d cos β. (The camera's roll spreads a row's flow instead: docs/vflow.md.)"""
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-        return self.a * (camera.height * camera.fy).to(self.a)
+        return self.a * (camera.height * camera.fy / torch.cos(camera.pitch).square()).to(self.a)
 
 
 @inference
