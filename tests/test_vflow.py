@@ -196,6 +196,23 @@ class TestRowDominant:
             row_dominant_flow(torch.zeros(1, 2, 4, 4), statistic="mean")
 
 
+    @pytest.mark.parametrize("options, error, message", [
+        (dict(bins=0), ValueError, "bins: expected an integer >= 2, got 0"),
+        (dict(bins=2.5), TypeError, "bins: expected an integer >= 2, got 2.5"),
+        (dict(max_flow=float("nan")), ValueError, "max_flow: expected a finite number or None, got nan"),
+        (dict(min_flow="1"), TypeError, "min_flow: expected a finite number or None, got '1'"),
+        (dict(min_flow=2.0, max_flow=1.0), ValueError, "max_flow: expected > min_flow"),
+    ])
+    def test_histogram_options_are_checked_with_the_median_too(self, options, error, message):
+        # the median reads no histogram, but a bad option is an error there too (not ignored)
+        flow = torch.zeros(1, 2, 4, 4)
+        with pytest.raises(error, match=message):
+            row_dominant_flow(flow, statistic="median", **options)
+        if "min_flow" not in options:
+            with pytest.raises(error, match=message):
+                fit_vflow_curve(flow, statistic="median", **options)
+
+
 # -- curve fit -------------------------------------------------------------------------------------
 
 class TestFitVFlowCurve:

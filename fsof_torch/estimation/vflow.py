@@ -103,10 +103,7 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
         [0, 1, 2, 3]
     """
     dims, use = check_flow_mask(flow, mask)
-    bins = scalar(bins, "bins")  # (a 0-d integer tensor as its int)
-    if not is_number(bins, integer=True) or bins < 2:
-        raise option_error(bins, f"bins: expected an integer >= 2, got {bins!r}", integer=True)
-    bins = int(bins)  # (a NumPy integer too)
+    bins, min_flow, max_flow = _histogram_options(bins, min_flow, max_flow)
     B, H = dims["B"], dims["H"]
     dtype = result_dtype(flow)
     fv = flow[:, 1].to(dtype)
@@ -133,13 +130,26 @@ def _bin_index(fv: Tensor, edges: Tensor) -> Tensor:
     return torch.where(fv == edges[-1], bins - 1, k)
 
 
-def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
-                     max_flow: float | None) -> tuple[Tensor, Tensor]:
-    """(lo, hi) as 0-d tensors; defaults from the data in the mask."""
+def _histogram_options(bins: object, min_flow: object, max_flow: object) -> tuple[int, object, object]:
+    """The V-flow histogram's options checked: ``bins`` an integer >= 2, ``min_flow`` and
+    ``max_flow`` finite numbers or None (0-d tensors read), ``max_flow > min_flow`` where both
+    are given; returned as (int, number or None, number or None)."""
+    bins = scalar(bins, "bins")  # (a 0-d integer tensor as its int)
+    if not is_number(bins, integer=True) or bins < 2:
+        raise option_error(bins, f"bins: expected an integer >= 2, got {bins!r}", integer=True)
     min_flow, max_flow = scalar(min_flow, "min_flow"), scalar(max_flow, "max_flow")
     for name, value in (("min_flow", min_flow), ("max_flow", max_flow)):
         if value is not None and not (is_number(value) and abs(float(value)) < float("inf")):
             raise option_error(value, f"{name}: expected a finite number or None, got {value!r}")
+    if min_flow is not None and max_flow is not None and not float(max_flow) > float(min_flow):
+        raise ValueError(f"max_flow: expected > min_flow, got max_flow={max_flow!r}, min_flow={min_flow!r}")
+    return int(bins), min_flow, max_flow  # (a NumPy integer too)
+
+
+def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
+                     max_flow: float | None) -> tuple[Tensor, Tensor]:
+    """(lo, hi) as 0-d tensors; defaults from the data in the mask (the options checked by
+    :func:`_histogram_options`)."""
     zero = fv.new_zeros(())
     if max_flow is None:
         hi = torch.where(use, fv, torch.full_like(fv, -float("inf"))).amax() if fv.numel() else zero
@@ -151,8 +161,6 @@ def _histogram_range(fv: Tensor, use: Tensor, min_flow: float | None,
         lo = torch.minimum(torch.where(torch.isfinite(lo), lo, zero), zero)
     else:
         lo = fv.new_tensor(float(min_flow))
-    if min_flow is not None and max_flow is not None and not float(max_flow) > float(min_flow):
-        raise ValueError(f"max_flow: expected > min_flow, got max_flow={max_flow!r}, min_flow={min_flow!r}")
     # An empty or constant map, or a given bound that the data's default for the other does not
     # leave a range with, still needs a non-empty range: the given bound stays, the other moves
     if max_flow is not None and min_flow is None:
@@ -181,6 +189,8 @@ def row_dominant_flow(flow: Tensor, mask: Tensor | None = None, *, statistic: st
     if statistic not in ("peak", "median"):
         raise ValueError(f"statistic: expected 'peak' or 'median', got {statistic!r}")
     dims, use = check_flow_mask(flow, mask)
+    # (checked whatever the statistic: the median reads no histogram, but a bad option is an error)
+    bins, min_flow, max_flow = _histogram_options(bins, min_flow, max_flow)
     if statistic == "peak" and dims["B"] > 1 and (min_flow is None or max_flow is None):
         parts = [row_dominant_flow(flow[b:b + 1], use[b:b + 1], statistic="peak", bins=bins, max_flow=max_flow,
                                    min_flow=min_flow) for b in range(dims["B"])]
@@ -309,7 +319,8 @@ def fit_vflow_curve(flow: Tensor, mask: Tensor | None = None, *, model: str = "d
         mask: (B, 1, H, W) bool, the pixels to use (default all; non-finite flow is skipped).
         model: ``"displacement"`` (rational curve) or ``"velocity"`` (quadratic).
         statistic: ``"peak"`` or ``"median"`` (see :func:`row_dominant_flow`).
-        bins, max_flow: V-flow histogram options for ``statistic="peak"``.
+        bins, max_flow: V-flow histogram options for ``statistic="peak"`` (checked with
+            ``"median"`` too).
         min_row_pixels: rows with less support are not used.
         inlier_threshold, relative_threshold: a row is an inlier when its residual is below
             ``max(inlier_threshold, relative_threshold·|F|)`` (flow unit).
