@@ -144,6 +144,17 @@ class TestVFlowMap:
         hist, edges = vflow_map(flow, bins=4, max_flow=2.5)  # a bound within the data, as before
         assert float(edges[0]) == 0.0 and float(edges[-1]) == 2.5 and float(hist.sum()) == 10.0
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_a_range_wider_than_the_dtype_has_finite_edges(self, dtype):
+        # hi - lo overflows; the edges must still be finite, increasing and span [lo, hi]
+        big = float(torch.tensor(torch.finfo(dtype).max * 0.9, dtype=dtype))
+        flow = torch.zeros(1, 2, 2, 3, dtype=dtype)
+        flow[0, 1, 0] = torch.tensor([-big, 0.0, big], dtype=dtype)
+        hist, edges = vflow_map(flow, bins=4)
+        assert torch.isfinite(edges).all() and bool((edges.diff() > 0).all())
+        assert float(edges[0]) == -big and float(edges[-1]) == big
+        assert hist[0].tolist() == [[1, 0, 1, 1], [0, 0, 3, 0]]
+
     @pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
     def test_half_precision_is_counted_in_float32(self, half):
         _, flow, valid = _straight(torch.float32)

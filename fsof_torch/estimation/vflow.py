@@ -110,7 +110,11 @@ def vflow_map(flow: Tensor, mask: Tensor | None = None, *, bins: int = 128,
     use = use[:, 0]
     lo, hi = _histogram_range(fv, use, min_flow, max_flow)
     steps = torch.arange(bins, dtype=dtype, device=flow.device) / bins
-    edges = torch.cat([lo + (hi - lo) * steps, hi.reshape(1)])
+    # (a range wider than the dtype's largest number, as between flows of ±3e38 in float32, is
+    # stepped through in halves: hi - lo overflows to inf, and inf · 0 gave a NaN first edge)
+    half = hi / 2 - lo / 2
+    inner = torch.where(torch.isfinite(hi - lo), lo + (hi - lo) * steps, lo + half * steps + half * steps)
+    edges = torch.cat([inner, hi.reshape(1)])
     inside = use & (fv >= lo) & (fv <= hi)
     idx = _bin_index(torch.where(inside, fv, lo), edges)
     rows = torch.arange(B * H, device=flow.device).reshape(B, H, 1)
