@@ -470,6 +470,24 @@ def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a & b).sum()) / max(1.0, float((a | b).sum()))
 
 
+def test_a_rolled_camera_spreads_the_rows():
+    """docs/vflow.md's figures for a camera rolled 1° (KITTI geometry, exact flow): the rows'
+    flow spreads, the peak's curve drifts, the median's stays near, the freespace fits the roll."""
+    K = torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.65, roll=float(np.radians(1.0)))
+    flow, valid = displacement_flow(cam, 0.0, 1.2, 0.0, (375, 1242))
+    bottom = flow[0, 1, -1][valid[0, 0, -1]]
+    assert float(bottom.max() - bottom.min()) == pytest.approx(6.9, abs=0.05)
+    peak = fit_vflow_curve(flow, valid)
+    assert float(peak.scale(cam)) == pytest.approx(1.169, abs=5e-4) and float(peak.v0) == pytest.approx(175.85, abs=0.005)
+    median = fit_vflow_curve(flow, valid, statistic="median")
+    assert float(median.scale(cam)) == pytest.approx(1.1999, abs=5e-5)
+    assert float(median.v0) == pytest.approx(172.8, abs=0.05)
+    found = detect_freespace(flow, cam, mask=valid, return_details=True)
+    assert bool(found.success) and bool((found.freespace == valid).all())
+    torch.testing.assert_close(found.fit.params["z_d"], torch.tensor([1.2], dtype=torch.float64), atol=1e-4, rtol=0)
+
+
 class TestDetectFreespace:
     def test_a_pavement_nearly_as_wide_as_the_road(self):
         """docs/vflow.md's limitation: a pavement 12 cm higher (8 % more flow) enters the default
