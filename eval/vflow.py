@@ -76,6 +76,7 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     import matplotlib.pyplot as plt
 
     H = hist.shape[0]
+    a_unit = "1/px" if unit == "px" else "1/(px s)"
     fig, ax = plt.subplots(figsize=(6, 5))
     lo, hi = float(edges[0]), float(edges[-1])
     shown = ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
@@ -91,12 +92,14 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     fitted = curve.fitted[0, 0, :, 0].double()
     defined = curve.fitted_valid[0, 0, :, 0]
     ax.plot(fitted[defined].numpy(), v[defined].numpy(), color="white", linewidth=1.5,
-            label=f"eq. 24 fit: a={float(curve.a[0]):.3e}, v0={float(curve.v0[0]):.2f}")
+            label=f"eq. 24 fit: a={float(curve.a[0]):.3e} {a_unit}, v0={float(curve.v0[0]):.2f} px")
     ax.set_xlim(lo, hi)
     ax.set_xlabel(f"vertical flow F_v ({unit})")
     ax.set_ylabel("image row v (px)")
     ax.set_title("V-flow map (log count per row and bin)")
-    ax.legend(loc="lower right", fontsize=7)
+    # (where the legend hides the fewest points: the curve runs into the lower right corner of a
+    # forward motion's map, the lower left of a reversing one's)
+    ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
     with atomic_path(path) as tmp:  # (never half a figure)
         fig.savefig(tmp, dpi=110)
@@ -157,18 +160,24 @@ def _plot_freespace(image: torch.Tensor, free: torch.Tensor, road: torch.Tensor,
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.patches import Patch
+
     rgb = (image.permute(1, 2, 0) / 255.0).clamp(0, 1).double()
     overlay = rgb.clone()
-    green = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
-    red = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
-    f = free[0].unsqueeze(-1)
-    missed = (road[0] & ~free[0]).unsqueeze(-1)
-    overlay = torch.where(f, 0.5 * overlay + 0.5 * green, overlay)
-    overlay = torch.where(missed, 0.5 * overlay + 0.5 * red, overlay)
+    # freespace on the road, road missed, freespace off the road (each its own colour: a
+    # freespace that spills onto a pavement must not read as road found)
+    classes = [(free[0] & road[0], (0.0, 1.0, 0.0), "freespace on the road"),
+               (road[0] & ~free[0], (1.0, 0.0, 0.0), "road missed"),
+               (free[0] & ~road[0], (1.0, 0.0, 1.0), "freespace off the road")]
+    for where, colour, _ in classes:
+        tint = torch.tensor(colour, dtype=torch.float64)
+        overlay = torch.where(where.unsqueeze(-1), 0.5 * overlay + 0.5 * tint, overlay)
     H, W = free.shape[-2:]
     fig, ax = plt.subplots(figsize=(10, 10 * H / W + 0.6))
     ax.imshow(overlay.numpy())
-    ax.set_title(f"freespace from flow (green; red: road missed), IoU with the road {iou:.3f}")
+    ax.set_title(f"freespace detected from the flow, IoU with the road {iou:.3f}")
+    ax.legend(handles=[Patch(facecolor=colour, alpha=0.5, label=f"{label} ({int(where.sum())} px)")
+                       for where, colour, label in classes], loc="upper right", fontsize=8)
     ax.set_axis_off()
     fig.tight_layout()
     with atomic_path(path) as tmp:  # (never half a figure)

@@ -480,3 +480,50 @@ def test_vflow_error_colour_range_of_a_large_flow():
     large = torch.zeros(2**24 + 1)
     large[-(2**20):] = 3.0  # the top 6.25 %: the 95th percentile is 3
     assert error_vmax(large) == 3.0
+
+
+@pytest.mark.parametrize("reverse", [False, True])
+def test_vflow_figures_have_legends_that_hide_no_curve(tmp_path, monkeypatch, reverse):
+    """freespace.png tells freespace on the road, road missed and freespace off the road apart in
+    a legend (green alone drew freespace off the road as road found); the map's legend gives the
+    fit's units and covers none of the curve, which runs into the lower right corner of a forward
+    motion's map (lower left reversing), where the legend was."""
+    import matplotlib.figure
+    import numpy as np
+
+    import eval.vflow as vflow
+
+    figures = {}
+    save = matplotlib.figure.Figure.savefig
+
+    def record(fig, path, *args, **kwargs):
+        figures[len(figures)] = fig
+        return save(fig, path, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", record)
+    if not reverse:
+        assert main(["vflow", "--preset", "cvc-complex", "--size", "64", "200", "--out", str(tmp_path),
+                     "--no-progress"]) == 0
+        labels = [t.get_text() for t in figures[4].axes[0].get_legend().get_texts()]
+        assert [label.split(" (")[0] for label in labels] == [
+            "freespace on the road", "road missed", "freespace off the road"]
+    else:
+        from fsof_torch import Camera, displacement_flow
+
+        cam = Camera(torch.tensor([[150.0, 0, 100], [0, 150, 10], [0, 0, 1]], dtype=torch.float64), 1.5)
+        flow, valid = displacement_flow(cam, 0.0, -1.5, 0.0, (64, 200))
+        path = tmp_path / "reverse.npy"
+        np.save(path, torch.where(valid, flow, torch.nan)[0].permute(1, 2, 0).numpy())
+        assert main(["vflow", "--flow", str(path), "--out", str(tmp_path / "o"), "--no-progress"]) == 0
+    fig = figures[0]
+    ax = fig.axes[0]
+    fig.canvas.draw()
+    legend = ax.get_legend()
+    assert any("1/px" in t.get_text() and "v0=" in t.get_text() and t.get_text().endswith(" px")
+               for t in legend.get_texts())
+    box = legend.get_window_extent()
+    curve = [line for line in ax.get_lines() if line.get_label().startswith("eq. 24 fit")][0]
+    points = ax.transData.transform(np.column_stack(curve.get_data()))
+    assert len(points) > 10
+    inside = (points[:, 0] >= box.x0) & (points[:, 0] <= box.x1) & (points[:, 1] >= box.y0) & (points[:, 1] <= box.y1)
+    assert not inside.any()
