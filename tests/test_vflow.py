@@ -234,6 +234,24 @@ class TestFitVFlowCurve:
         ours = vflow_curve_model(v, torch.tensor(z_d / (h * fy), dtype=torch.float64), torch.tensor(cy, dtype=torch.float64))
         torch.testing.assert_close(ours, ref, atol=1e-12, rtol=0)
 
+    def test_curve_model_checks_its_arguments_as_vflow_curve(self):
+        """A NaN or inf a or v0 read as "no road flow" (0 on every row) or gave inf; numbers,
+        mismatched shapes and half precision went to torch's errors or overflowed in float16."""
+        v = torch.arange(6, dtype=torch.float64)
+        for name, bad in (("a", dict(a=float("nan"))), ("v0", dict(v0=float("inf"))), ("v", dict(v=[1.0, float("nan")]))):
+            args = dict(v=v, a=torch.tensor(0.01, dtype=torch.float64), v0=1.0) | bad
+            for model in ("displacement", "velocity"):
+                with pytest.raises(ValueError, match=f"^{name}: expected finite values"):
+                    vflow_curve_model(**args, model=model)
+        with pytest.raises(ValueError, match=r"v, a, v0: expected shapes that broadcast together, got v \(3,\), a \(4,\)"):
+            vflow_curve_model(torch.zeros(3), torch.zeros(4), 0.0)
+        with pytest.raises(TypeError, match="a: expected a tensor or a number, got bool True"):
+            vflow_curve_model(v, True, 1.0)
+        assert float(vflow_curve_model(3.0, 0.01, 1.0)) == pytest.approx(0.04 / 0.98)
+        half = vflow_curve_model(torch.arange(300.0, dtype=torch.float16), torch.tensor(2.0, dtype=torch.float16), 0.0,
+                                 model="velocity")
+        assert half.dtype == torch.float32 and float(half[-1]) == 2.0 * 299**2
+
     @pytest.mark.parametrize("statistic", ["peak", "median"])
     def test_the_fit_is_detached(self, statistic):
         """A fit is not differentiable (docs/fitting.md): given a flow that requires grad, its

@@ -28,8 +28,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import (check_float_tensor, check_has_values, check_int, check_same_device, check_shape, inference,
-                      is_number, option_error, result_dtype, scalar)
+from .._check import (check_all_finite, check_float_tensor, check_has_values, check_int, check_same_device,
+                      check_shape, inference, is_number, option_error, result_dtype, scalar)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -225,11 +225,38 @@ def vflow_curve_model(v: Tensor, a: Tensor, v0: Tensor, model: str = "displaceme
 
     ``displacement``: F_v = a d² / (1 - a d); ``velocity``: F_v = a d², with d = v - v0.
     Where the curve is undefined (d <= 0: at or above the horizon; 1 - a d <= 0: the road point
-    passes behind the camera) the value is 0.
+    passes behind the camera) the value is 0. Differentiable in ``a`` and ``v0`` (0 where
+    undefined).
+
+    Each argument is a tensor or a number (or a sequence of numbers); the result is in their
+    promoted float dtype with half precision lifted to float32 (the default dtype where none is
+    a float tensor), as :func:`fsof_torch.vflow_curve`'s. A NaN or inf value is a ValueError
+    naming the argument (it would read as "no road flow" there); shapes that do not broadcast
+    together a ValueError quoting them (values are not checked while tracing).
     """
     if model not in _MODELS:
         raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
-    return _curve(v, a, v0, model)[0]
+    named = {"v": v, "a": a, "v0": v0}
+    floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
+    dtype = result_dtype(*floats) if floats else torch.get_default_dtype()
+    device = next((x.device for x in named.values() if isinstance(x, Tensor)), None)
+    args = {}
+    for name, x in named.items():
+        if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):
+            raise TypeError(f"{name}: expected a real tensor or number, got dtype {x.dtype}")
+        if isinstance(x, (bool, str, bytes)) or x is None:
+            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}")
+        try:
+            args[name] = torch.as_tensor(x, dtype=dtype, device=x.device if isinstance(x, Tensor) else device)
+        except (TypeError, ValueError, RuntimeError):
+            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
+    check_all_finite(args)
+    try:
+        torch.broadcast_shapes(*(t.shape for t in args.values()))
+    except RuntimeError:  # (torch's own error names no argument)
+        shapes = ", ".join(f"{n} {tuple(t.shape)}" for n, t in args.items())
+        raise ValueError(f"v, a, v0: expected shapes that broadcast together, got {shapes}") from None
+    return _curve(args["v"], args["a"], args["v0"], model)[0]
 
 
 def _curve(v: Tensor, a: Tensor, v0: Tensor, model: str) -> tuple[Tensor, Tensor, Tensor, Tensor]:
