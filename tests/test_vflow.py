@@ -488,6 +488,7 @@ def _iou(a: torch.Tensor, b: torch.Tensor) -> float:
     return float((a & b).sum()) / max(1.0, float((a | b).sum()))
 
 
+@pytest.mark.slow
 def test_a_rolled_camera_spreads_the_rows():
     """docs/vflow.md's figures for a camera rolled 1° (KITTI geometry, exact flow): the rows'
     flow spreads, the peak's curve drifts, the median's stays near, the freespace fits the roll."""
@@ -504,6 +505,26 @@ def test_a_rolled_camera_spreads_the_rows():
     found = detect_freespace(flow, cam, mask=valid, return_details=True)
     assert bool(found.success) and bool((found.freespace == valid).all())
     torch.testing.assert_close(found.fit.params["z_d"], torch.tensor([1.2], dtype=torch.float64), atol=1e-4, rtol=0)
+
+
+@pytest.mark.slow
+def test_a_pitch_held_wrong_loses_the_freespace():
+    """docs/vflow.md's figures: a camera given level for a scene pitched by -0.5° or -1° (KITTI
+    geometry, exact flow) holds the wrong pitch by default; fit_pitch=True finds the road; the
+    curve's v0 is the true horizon row."""
+    K = torch.tensor([[721.5, 0, 609.6], [0, 721.5, 172.9], [0, 0, 1]], dtype=torch.float64)
+    level = Camera(K, 1.65)
+    for pitch_deg in (-0.5, -1.0):
+        cam = Camera(K, 1.65, pitch=float(np.radians(pitch_deg)))
+        flow, valid = displacement_flow(cam, 0.0, 1.2, 0.0, (375, 1242))
+        held = detect_freespace(flow, level, mask=valid, return_details=True)
+        assert not bool(held.success) and not bool(held.freespace.any())
+        torch.testing.assert_close(held.curve.v0, cam.horizon_row(), atol=1e-6, rtol=0)
+        coarse = detect_freespace(flow, level, mask=valid, threshold=1.0, return_details=True)
+        share = float((coarse.freespace & valid).sum() / valid.sum())
+        assert share == (pytest.approx(0.684, abs=0.005) if pitch_deg == -0.5 else 0.0)
+        for threshold in (0.25, 1.0):
+            assert bool((detect_freespace(flow, level, mask=valid, threshold=threshold, fit_pitch=True) == valid).all())
 
 
 class TestDetectFreespace:

@@ -110,7 +110,10 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
             while an estimated flow needs thresholds of its own error (0.5–1 px). ``threshold``
             is also the robust scale of the model fit unless ``fit_options`` sets ``scale``.
         seed_threshold, seed_relative_threshold: the seed test of step 1.
-        fit_roll, fit_pitch: passed to ``fit_displacement``.
+        fit_roll, fit_pitch: passed to ``fit_displacement``. An attitude not fitted is the
+            camera's, held: a camera given level for a scene pitched by 0.5° (KITTI geometry)
+            finds no freespace with ``fit_pitch=False`` (docs/vflow.md); the V-flow curve's
+            ``v0`` is the horizon row, which tells the pitch.
         bottom_rows: the number of lowest usable rows a component must touch to be kept.
         close_kernel: side of the closing's structuring element in pixels.
         max_hole_fraction: enclosed holes up to this fraction of H·W are filled.
