@@ -318,6 +318,13 @@ class TestFitVFlowCurve:
         curve = fit_vflow_curve(flow, valid, model="velocity")
         torch.testing.assert_close(curve.scale(cam), torch.tensor([12.0], dtype=torch.float64), atol=0, rtol=1e-9)
 
+    def test_scale_names_a_camera_of_another_batch(self):
+        cam, flow, valid = _straight(B=2)
+        curve = fit_vflow_curve(flow, valid)
+        assert curve.scale(cam).shape == (2,) and curve.scale(cam.expand(2)).shape == (2,)
+        with pytest.raises(ValueError, match=r"camera: expected batch 1 or 2 \(from the curve\), got 3"):
+            curve.scale(cam.expand(3))
+
     def test_numpy_numbers_are_options_like_python_numbers(self):
         import numpy as np
 

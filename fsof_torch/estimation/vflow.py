@@ -28,7 +28,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import (check_all_finite, check_float_tensor, check_has_values, check_int, check_same_device,
+from .._check import (batch_choices, check_all_finite, check_float_tensor, check_has_values, check_int, check_same_device,
                       check_shape, inference, is_number, option_error, result_dtype, scalar)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
@@ -325,6 +325,9 @@ class VFlowCurve:
         z_c by z_d cos β. (The camera's roll spreads a row's flow instead: docs/vflow.md.)"""
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+        B = self.a.shape[0]
+        if camera.batch_size not in (1, B):
+            raise ValueError(f"camera: expected batch {batch_choices(B)} (from the curve), got {camera.batch_size}")
         return self.a * (camera.height * camera.fy / torch.cos(camera.pitch).square()).to(self.a)
 
 
