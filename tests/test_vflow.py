@@ -534,6 +534,22 @@ def test_a_pitch_held_wrong_loses_the_freespace():
             assert bool((detect_freespace(flow, level, mask=valid, threshold=threshold, fit_pitch=True) == valid).all())
 
 
+def test_a_wall_passes_the_curve_not_the_freespace():
+    """docs/vflow.md: the a-contrario test is against chance, not other structure: a wall facing
+    the camera 30 m ahead, approached by 1 m (flow (p - p_0) / 29), passes as a curve; the freespace
+    detection finds none."""
+    cam = Camera(torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64), 1.5)
+    v, u = torch.meshgrid(torch.arange(64.0, dtype=torch.float64), torch.arange(160.0, dtype=torch.float64),
+                          indexing="ij")
+    wall = torch.stack([u - 80, v - 20])[None] / 29.0
+    assert float(wall[:, 1].abs().max()) < 1.5
+    curve = fit_vflow_curve(wall)
+    assert bool(curve.success) and float(curve.nfa) < 1e-10
+    assert float(curve.scale(cam)) == pytest.approx(0.21, abs=0.005)
+    found = detect_freespace(wall, cam, return_details=True)
+    assert not bool(found.success) and not bool(found.freespace.any())
+
+
 class TestDetectFreespace:
     def test_a_pavement_nearly_as_wide_as_the_road(self):
         """docs/vflow.md's limitation: a pavement 12 cm higher (8 % more flow) enters the default
