@@ -149,7 +149,7 @@ def test_collate_keeps_keys_absent_in_every_item_and_refuses_a_mix():
     assert batch["image1"].shape == (2, 3, H, W) and batch["camera"].batch_size == 2
     assert batch["index"] == [0, 1] and batch["name"] == ["a", "b"]
     b["road"] = torch.ones(1, H, W, dtype=torch.bool)
-    with pytest.raises(ValueError, match=r"samples: 'road' is None in item 0 but not in item 1"):
+    with pytest.raises(ValueError, match=r"samples: 'road' is None in item 0 \(pair 'a'\) but not in item 1 \(pair 'b'\)"):
         collate([a, b])
 
 
@@ -170,11 +170,33 @@ def test_collate_refuses_a_camera_of_another_batch_than_1():
             collate(items_)
 
 
+def test_collate_errors_name_the_pairs_of_the_items():
+    """A batch of a DataLoader is items 0 .. B-1 of shuffled pairs: an error naming the item's
+    position alone did not say which pair had another size or lacked ground truth."""
+    a = _item(index=3, name="000003", flow=torch.zeros(2, H, W), valid=torch.ones(1, H, W, dtype=torch.bool))
+    b = {**_item(index=8, name="000008"), "flow": torch.zeros(2, H, W + 1), "valid": torch.ones(1, H, W + 1, dtype=torch.bool)}
+    with pytest.raises(ValueError, match=rf"^samples: 'flow' has different shapes: \(2, {H}, {W}\) in item 0 "
+                                         rf"\(pair '000003'\) but \(2, {H}, {W + 1}\) in item 1 \(pair '000008'\); "
+                                         r"use batch_size=1"):
+        collate([a, b])
+    c = {**_item(index=5, name="000005"), "image1": torch.zeros(3, H + 2, W)}
+    with pytest.raises(ValueError, match=r"'image1' has different shapes: .* in item 0 \(pair '000003'\) but "
+                                         rf"\(3, {H + 2}, {W}\) in item 2 \(pair '000005'\)"):
+        collate([a, {**a, "index": 4, "name": "000004"}, c])
+    d = _item(index=9, name="000009")  # no ground truth
+    with pytest.raises(ValueError, match=r"'flow' is None in item 1 \(pair '000009'\) but not in item 0 "
+                                         r"\(pair '000003'\)"):
+        collate([a, d])
+    e = {**a, "name": 7}  # (a name that is not a str: the position alone)
+    with pytest.raises(ValueError, match=r"'flow' is None in item 0 but not in item 1;"):
+        collate([{**d, "name": 7}, e])
+
+
 @pytest.mark.parametrize("key, cast, match", [
-    ("valid", lambda v: v.to(torch.uint8), r"samples: 'valid' has dtype torch.bool in item 0 but torch.uint8 in item 1"),
-    ("flow", lambda v: v.to(torch.int64), r"samples: 'flow' has dtype torch.float32 in item 0 but torch.int64 in item 1"),
-    ("image1", lambda v: v.double(), r"samples: 'image1' has dtype torch.float32 in item 0 but torch.float64 in item 1"),
-    ("flow", lambda v: v.to("meta"), r"samples: 'flow' has device cpu in item 0 but meta in item 1"),
+    ("valid", lambda v: v.to(torch.uint8), r"samples: 'valid' has dtype torch.bool in item 0 .* but torch.uint8 in item 1"),
+    ("flow", lambda v: v.to(torch.int64), r"samples: 'flow' has dtype torch.float32 in item 0 .* but torch.int64 in item 1"),
+    ("image1", lambda v: v.double(), r"samples: 'image1' has dtype torch.float32 in item 0 .* but torch.float64 in item 1"),
+    ("flow", lambda v: v.to("meta"), r"samples: 'flow' has device cpu in item 0 .* but meta in item 1"),
 ])
 def test_collate_refuses_tensors_of_different_dtypes_or_devices(key, cast, match):
     # torch.stack promoted the dtypes without a word (a bool and a uint8 mask gave a uint8 one)

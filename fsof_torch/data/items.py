@@ -225,6 +225,13 @@ def _holds_numbers(d: Mapping[str, Any]) -> bool:
     return all(isinstance(x, numbers.Real) for x in d.values())
 
 
+def _which(samples: Sequence[Mapping[str, Any]], i: int) -> str:
+    """``item i``, with the pair's name where the item holds one (``item 1 (pair '000007')``): the
+    position in a DataLoader's batch alone does not say which pair of the dataset it was."""
+    pair = samples[i].get("name")
+    return f"item {i}" + (f" (pair {pair!r})" if isinstance(pair, str) else "")
+
+
 def _check_samples(samples: object, name: str) -> list[str]:
     """``samples`` a non-empty list or tuple of dicts with the same keys, each key of the same kind
     (a dict of numbers in every item or in none, with the same keys) in every item where it is not
@@ -279,7 +286,8 @@ def collate(samples: Sequence[Mapping[str, Any]], *, name: str = "samples") -> d
     the same keys; a key None in one item must be None in all, and a key must hold the same kind of
     value in every item: tensors of one shape, dtype and device (no promotion), Cameras of batch 1,
     dicts with the same keys that hold only numbers in every item or in none, or other values (a
-    ValueError or TypeError naming the key and the item otherwise). The errors start with ``name``,
+    ValueError or TypeError naming the key and the item otherwise: its position and, where it has
+    a str ``name``, its pair's name). The errors start with ``name``,
     the argument's name where a wrapper takes the items (:func:`fsof_torch.scene.collate`: ``pairs``).
     """
     keys = _check_samples(samples, name)
@@ -293,20 +301,22 @@ def collate(samples: Sequence[Mapping[str, Any]], *, name: str = "samples") -> d
             batch[key] = None
             continue
         if any(absent):
-            raise ValueError(f"{name}: {key!r} is None in item {absent.index(True)} but not in item "
-                             f"{absent.index(False)}; batch items that have the same data")
+            raise ValueError(f"{name}: {key!r} is None in {_which(samples, absent.index(True))} but not in "
+                             f"{_which(samples, absent.index(False))}; batch items that have the same data")
         first = values[0]
         if isinstance(first, Tensor):
-            shapes = {tuple(v.shape) for v in values}
-            if len(shapes) > 1:
-                raise ValueError(f"{name}: {key!r} has different shapes {sorted(shapes)}; use batch_size=1 "
-                                 f"or images of one size")
+            odd = next((i for i, v in enumerate(values) if v.shape != first.shape), None)
+            if odd is not None:  # (naming the pairs: which file of the dataset has another size)
+                raise ValueError(f"{name}: {key!r} has different shapes: {tuple(first.shape)} in "
+                                 f"{_which(samples, 0)} but {tuple(values[odd].shape)} in {_which(samples, odd)}; "
+                                 f"use batch_size=1 or images of one size")
             # torch.stack would promote dtypes (a bool mask beside a uint8 one becomes uint8) without a word
             for what in ("dtype", "device"):
                 odd = next((i for i, v in enumerate(values) if getattr(v, what) != getattr(first, what)), None)
                 if odd is not None:
-                    raise ValueError(f"{name}: {key!r} has {what} {getattr(first, what)} in item 0 but "
-                                     f"{getattr(values[odd], what)} in item {odd}; batch items of one {what}")
+                    raise ValueError(f"{name}: {key!r} has {what} {getattr(first, what)} in {_which(samples, 0)} "
+                                     f"but {getattr(values[odd], what)} in {_which(samples, odd)}; batch items of "
+                                     f"one {what}")
             batch[key] = torch.stack(values)
         elif isinstance(first, Camera):
             batch[key] = concat_cameras(values)
