@@ -255,6 +255,45 @@ class TestStalePairs:
         (tmp_path / "meta.json").unlink()  # without it, every params file counts
         assert synthetic_pair_indices(tmp_path) == [0, 1, 2]
 
+    def test_a_pair_without_its_params_file_is_an_error_not_left_out(self, tmp_path):
+        """params/000001.json lost from a sequence of three: the dataset had two pairs, its item 1
+        the pair 000002."""
+        from fsof_torch.data.datasets import SyntheticFlowDataset
+
+        write_synthetic_sequence(tmp_path, [_pair(i) for i in range(3)])
+        (tmp_path / "params" / "000001.json").unlink()
+        match = r"^root: '.*' has meta\.json for 3 pairs but params/ lacks 1 of them \(000001\.json\)"
+        with pytest.raises(FileNotFoundError, match=match):
+            synthetic_pair_indices(tmp_path)
+        with pytest.raises(FileNotFoundError, match=match):
+            SyntheticFlowDataset(tmp_path)
+        (tmp_path / "meta.json").unlink()  # without it, the params files there are the pairs
+        assert synthetic_pair_indices(tmp_path) == [0, 2]
+
+    @pytest.mark.parametrize("file, key", [("flow_velocity/000001_10.flo", "flow_velocity"),
+                                           ("road/000001_10.png", "road"), ("semantic/000001_10.png", "labels"),
+                                           ("depth/000001_10.png", "depth")])
+    def test_a_lost_optional_file_is_an_error_not_a_pair_without_it(self, tmp_path, file, key):
+        """A pair's road mask lost from a sequence written with road masks read as a pair without
+        road (None), its depth as an item without the key."""
+        write_synthetic_sequence(tmp_path, [_pair(i) for i in range(3)])
+        (tmp_path / file).unlink()
+        assert read_synthetic_pair(tmp_path, 0)[key] is not None
+        with pytest.raises(FileNotFoundError, match=rf"^root: '.*' has no {file} for the pair 000001, but its "
+                                                    r"meta\.json says every pair was written with one"):
+            read_synthetic_pair(tmp_path, 1)
+        assert read_synthetic_pair(tmp_path, 1, ground_truth=False)["name"] == "000001"
+
+    def test_pairs_written_without_a_part_read_without_it(self, tmp_path):
+        """Pairs written with and without an optional part (write_synthetic_sequence takes them)
+        read back as written."""
+        pairs = [_pair(i) for i in range(3)]
+        del pairs[1]["depth"], pairs[2]["flow_velocity"]
+        write_synthetic_sequence(tmp_path, pairs)
+        back = [read_synthetic_pair(tmp_path, i) for i in range(3)]
+        assert "depth" not in back[1] and "flow_velocity" not in back[2]
+        assert "depth" in back[0] and "depth" in back[2] and "flow_velocity" in back[1]
+
     def test_a_folder_that_holds_files_is_refused(self, tmp_path):
         """Another run's optional files (road, depth, ...) or meta.json would be read as this run's."""
         write_synthetic_sequence(tmp_path / "seq", [_pair(i) for i in range(3)])

@@ -352,8 +352,10 @@ def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
     A file counts where its name is the one :func:`pair_name` gives (``000001.json``; not
     ``1.json`` nor ``0000001.json``, which the readers would not open: each pair counts once).
     Where ``meta.json`` exists, only the pairs ``0 .. num_pairs - 1`` it lists count: files of
-    pairs beyond them (left by an older, longer run) are not pairs of this sequence. A folder
-    named ``meta.json`` is an IsADirectoryError.
+    pairs beyond them (left by an older, longer run) are not pairs of this sequence, and a pair
+    among them without its params file is a FileNotFoundError naming ``root`` and the file (never
+    a pair left out, which would shift the later pairs' indices). A folder named ``meta.json`` is
+    an IsADirectoryError.
     """
     root = Path(root)
     if not (root / "params").is_dir():
@@ -369,7 +371,27 @@ def synthetic_pair_indices(root: str | os.PathLike) -> list[int]:
         if isinstance(count, bool) or not isinstance(count, int) or count < 0:
             raise ValueError(f"path: {str(meta)!r} has no 'num_pairs' entry holding a whole number >= 0, got {count!r}")
         indices = [i for i in indices if i < count]
+        missing = sorted(set(range(count)) - set(indices))
+        if missing:  # (a pair left out would shift every later pair's index)
+            shown = ", ".join(f"{pair_name(i)}.json" for i in missing[:4]) + (", ..." if len(missing) > 4 else "")
+            raise FileNotFoundError(f"root: {str(root)!r} has meta.json for {count} pairs but params/ lacks "
+                                    f"{len(missing)} of them ({shown}); copy the folder again")
     return indices
+
+
+def _complete_parts(root: Path, index: int) -> set[str]:
+    """The folders that ``meta.json`` lists with a file for each of its ``num_pairs`` pairs (none
+    without meta.json, which :func:`synthetic_pair_indices` checks, nor for a pair ``index``
+    beyond them)."""
+    meta = root / "meta.json"
+    if not meta.is_file():
+        return set()
+    obj = _read_json_file(meta)
+    count, files = obj.get("num_pairs"), obj.get("files")
+    if isinstance(count, bool) or not isinstance(count, int) or not isinstance(files, dict) or index >= count:
+        return set()
+    return {folder for folder, n in files.items()
+            if isinstance(n, int) and not isinstance(n, bool) and n >= count > 0}
 
 
 def _read_json_file(path: Path) -> dict:
@@ -452,7 +474,9 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     ``ground_truth=False`` reads only the images and the camera. A params entry that is not
     finite numbers, or a ``pose1``/``pose2`` that is not a rigid pose (checked as
     :func:`~fsof_torch.io.kitti.read_kitti_poses` checks a file's), is a ValueError naming the
-    path and the entry.
+    path and the entry. An optional part (``flow_velocity/``, ``road/``, ``semantic/``,
+    ``depth/``) the pair lacks although ``meta.json`` says every pair was written with it is a
+    FileNotFoundError naming ``root`` and the file (a lost file, never a pair without that part).
     """
     root = Path(root)
     name = pair_name(index)
@@ -485,18 +509,32 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     path = root / "flow_occ" / f"{name}_10.png"
     flow, valid = read_kitti_flow(path)
     sample["flow"], sample["valid"] = same_size(flow, path).to(dtype), valid
-    path = root / "flow_velocity" / f"{name}_10.flo"
-    if path.exists():  # (a folder there is an error, not a missing part)
+    complete = _complete_parts(root, int(index))
+
+    def part(folder: str, file: str) -> Path | None:
+        """The pair's file of an optional part, or None where the pair has none; an error where
+        meta.json says every pair was written with that part (a file lost since, which would
+        make a pair without ground truth it has)."""
+        path = root / folder / file
+        if path.exists():  # (a folder there is an error of the reader, not a missing part)
+            return path
+        if folder in complete:
+            raise FileNotFoundError(f"root: {str(root)!r} has no {folder}/{file} for the pair {name}, but its "
+                                    f"meta.json says every pair was written with one; copy the folder again")
+        return None
+
+    path = part("flow_velocity", f"{name}_10.flo")
+    if path is not None:
         fv = same_size(read_flo(path), path)
         sample["flow_velocity"] = torch.nan_to_num(fv, nan=0.0).to(dtype)
-    path = root / "road" / f"{name}_10.png"
-    if path.exists():
+    path = part("road", f"{name}_10.png")
+    if path is not None:
         sample["road"] = same_size(read_road_mask(path), path)
-    path = root / "semantic" / f"{name}_10.png"
-    if path.exists():
+    path = part("semantic", f"{name}_10.png")
+    if path is not None:
         sample["labels"] = same_size(read_label_map(path), path)
-    path = root / "depth" / f"{name}_10.png"
-    if path.exists():
+    path = part("depth", f"{name}_10.png")
+    if path is not None:
         sample["depth"] = same_size(read_depth_png(path)[0], path).to(dtype)
     sample["odometry"] = {k: float(params["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
     for key in ("velocity", "road_pose", "plane"):
