@@ -206,7 +206,8 @@ def check_rigid_poses(poses: Tensor, describe: Callable[[int], str]) -> None:
 
 def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Path:
     """Write (N, 4, 4) or (N, 3, 4) camera-to-world poses in the KITTI odometry format, atomically
-    (12 numbers a row, ``%.12e``, so float64 values survive to about 1e-12 relative).
+    (12 numbers a row, each with Python's ``repr``: the shortest text that reads back as the same
+    float64, so a round trip is exact, as :func:`write_kitti_calibration`'s).
 
     The poses must be what :func:`read_kitti_poses` reads back: finite, a rotation block, and for
     (N, 4, 4) the last row 0 0 0 1 (the format does not store it); else a ValueError naming
@@ -228,7 +229,7 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
         full = torch.cat([full, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(full), 1, 4)], dim=1)
     check_rigid_poses(full, lambda i: f"poses: pose {i}")
     rows = full[:, :3, :].reshape(-1, 12).tolist()
-    text = "".join(" ".join(f"{x:.12e}" for x in row) + "\n" for row in rows)
+    text = "".join(" ".join(repr(float(x)) for x in row) + "\n" for row in rows)
     return write_text(path, text)
 
 
