@@ -84,14 +84,21 @@ def run(args: argparse.Namespace) -> int:
         return 2
     if args.json is not None:  # an earlier run's JSON there goes: a run that stops would leave it as its own
         remove_outputs(args.json.parent, [args.json.name])
+    from fsof_torch.data.scene import scene_config
+    from fsof_torch.data.scene.world import Scene
+
     dtype = torch.float64 if args.float64 else torch.float32
     rows: list[dict] = []
+    # the scene's float64 camera, which a float32 render rounds: the files keep its digits (a
+    # float32 reader rounds them as the render did), as SceneDataset(camera_dtype=torch.float64) gives it
+    camera64 = Scene(scene_config(args.preset, **({} if size is None else {"size": size})), args.seed,
+                     torch.float64).camera64
 
     def rendered():
         for index in range(args.pairs):
             pair = render_pair(args.preset, index, seed=args.seed, size=size, dtype=dtype)
             rows.append({"index": index, **_stats(pair)})
-            yield pair
+            yield {**pair, "camera": camera64.to(torch.float64, copy=True)}
 
     meta = {"preset": args.preset, "seed": args.seed, "requested_size": list(size) if size else None,
             "dtype": str(dtype).replace("torch.", ""), "command": "python -m eval synth"}

@@ -55,6 +55,39 @@ def test_dataset_reads_back_the_render(written):
     assert batch["flow"].shape == (2, 2, 48, 160) and batch["camera"].batch_size == 2
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_reads_back_bit_for_bit_where_the_format_allows(written, dtype):
+    """The files hold what their formats can hold exactly: the float64 camera (the params held the
+    float32 render's camera, 4e-6 px off in K from SceneDataset(camera_dtype=torch.float64)),
+    masks, labels, motion and poses (poses.txt was 5e-14 off); flow to 1/64 px, images to 8 bits."""
+    from fsof_torch.data.datasets import KittiFlowDataset, SceneDataset
+
+    _, out, _ = written
+    ds = SyntheticFlowDataset(out, dtype=dtype, camera_dtype=torch.float64)
+    # (written from a float32 render: its ground truth is the float32 render's, read as dtype)
+    truth = SceneDataset("default", 2, seed=3, size=(48, 160), camera_dtype=torch.float64)
+    rendered = SceneDataset("default", 2, seed=3, size=(48, 160), dtype=dtype)  # (the camera in dtype)
+    poses = read_kitti_poses(out / "poses.txt")
+    for i in range(2):
+        item, want = ds[i], truth[i]
+        for field in ("K", "height", "roll", "pitch"):
+            assert torch.equal(getattr(item["camera"], field), getattr(want["camera"], field)), field
+            got = getattr(SyntheticFlowDataset(out, dtype=dtype)[i]["camera"], field)
+            assert torch.equal(got, getattr(rendered[i]["camera"], field)), field
+        assert torch.equal(KittiFlowDataset(out, flow="occ", camera_dtype=torch.float64)[i]["camera"].K,
+                           want["camera"].K)
+        for key in ("valid", "road", "labels", "pose1", "pose2"):
+            assert torch.equal(item[key], want[key]), key
+        for key in ("odometry", "velocity", "road_pose", "plane"):
+            assert item[key] == want[key], key
+        assert torch.equal(poses[i], want["pose1"]) and torch.equal(poses[i + 1], want["pose2"])
+        m = want["valid"].expand(2, -1, -1)
+        assert float((item["flow"] - want["flow"].to(dtype))[m].abs().max()) <= 1 / 128
+        assert torch.equal(item["flow_velocity"][m], want["flow_velocity"].to(dtype)[m])
+        for key in ("image1", "image2"):
+            assert torch.equal(item[key], want[key].round().to(dtype)), key
+
+
 def test_collate_keeps_each_item_with_its_own_values(written, tmp_path):
     """Items of two sequences (other cameras, other odometry): sample b of the batch is item b."""
     _, out, _ = written
