@@ -605,3 +605,19 @@ def test_frames_named_by_decimal_timestamps_pair_in_time_order(tmp_path):
 
     stamps = ["1541234567.15", "1541234567.2", "1541234568.05"]
     assert [p.stem for p in in_frame_order(f"{s}.png" for s in reversed(stamps))] == stamps
+
+
+def test_a_frame_list_with_a_missing_file_or_a_folder_is_refused_when_made(clip):
+    """A list of frames was read only when a pair loaded: a missing third frame raised at item 1 of
+    a DataLoader run, a folder in the list an IsADirectoryError that named no argument."""
+    root, _ = clip
+    frames = sorted((root / "images").iterdir())
+    with pytest.raises(FileNotFoundError, match=r"^images: no file at '.*nope\.png'$"):
+        ImageFolderDataset([*frames[:2], root / "images" / "nope.png"])
+    with pytest.raises(IsADirectoryError, match=r"^images: '.*images' is a folder; expected an image file$"):
+        ImageFolderDataset([*frames[:2], root / "images"])
+    ds = ImageFolderDataset(frames)
+    frames[2].unlink()
+    frames[2].mkdir()  # (replaced by a folder since the dataset was made)
+    with pytest.raises(IsADirectoryError, match=r"^images: path: '.*000002\.png' is a folder"):
+        ds[1]

@@ -295,7 +295,7 @@ class ImageFolderDataset(Dataset):
     items follow the contract of :mod:`fsof_torch.data.items`.
 
     Args:
-        images: a folder of frames, or the frames' files in order.
+        images: a folder of frames, or the frames' files in order (each checked to be a file here).
         calib: a KITTI ``calib_cam_to_cam.txt`` (``P_rect_0N``) or odometry ``calib.txt`` (``PN``);
             None: items without a camera.
         cam: camera index in ``calib`` (default: 2 where the file has it, else 0).
@@ -338,6 +338,11 @@ class ImageFolderDataset(Dataset):
             self.frames = [Path(p) for p in images]
             if len(self.frames) < 2:
                 raise ValueError(f"images: {len(self.frames)} image(s) given; a pair needs at least 2")
+            for frame in self.frames:  # (checked here, as a folder's frames are, not when a pair loads)
+                if frame.is_dir():
+                    raise IsADirectoryError(f"images: {str(frame)!r} is a folder; expected an image file")
+                if not frame.is_file():
+                    raise FileNotFoundError(f"images: no file at {str(frame)!r}")
         pairs = frame_pairs(self.frames, step)
         if not pairs:
             raise ValueError(f"images: {len(self.frames)} frames make no pair (i, i + step) with step {step}")
@@ -449,6 +454,8 @@ class ImageFolderDataset(Dataset):
             return read_image(path)
         except FileNotFoundError as err:
             raise FileNotFoundError(f"images: {err}") from None
+        except IsADirectoryError as err:  # (a file replaced by a folder since the dataset was made)
+            raise IsADirectoryError(f"images: {err}") from None
         except ValueError as err:
             raise ValueError(f"images: {err}") from None
 
