@@ -489,11 +489,15 @@ def as_path(path: object, name: str = "path") -> Path:
 
 def existing_file(path: object, what: str = "file") -> Path:
     """``path`` as a Path where a file is there: a FileNotFoundError where nothing is ("no
-    {what} at"), an IsADirectoryError where a folder is, each naming ``path``."""
+    {what} at"; a symbolic link to a missing file says so), an IsADirectoryError where a folder
+    is, each naming ``path``."""
     path = as_path(path)
     if path.is_dir():
         raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a {what}")
     if not path.is_file():
+        if path.is_symlink():  # (a drive not mounted: "no file" would send the user to the wrong place)
+            raise FileNotFoundError(f"path: {str(path)!r} is a symbolic link to {os.readlink(path)!r}, which does "
+                                    f"not exist; mount or copy the data it points to, or remove the link")
         raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
     return path
 

@@ -630,3 +630,19 @@ def test_kitti_pair_missing_its_flow_file_is_an_error(kitti_root):
                                                 r"for the pair 000001"):
         ds[1]
     assert KittiFlowDataset(root, ground_truth=False)[1]["flow"] is None  # no ground truth asked for
+
+
+@pytest.mark.parametrize("file", ["calib_cam_to_cam/000001.txt", "semantic/000001_10.png", "flow_noc/000001_10.png",
+                                  "road/000001_10.png"])
+def test_kitti_pair_file_linked_to_a_missing_file_says_so(kitti_root, tmp_path, file):
+    """A pair's calibration, flow or road linked from a drive that is not mounted read as a file
+    missing from its folder ('has flow_noc/ but no 000001_10.png there'); a broken road/ link fell
+    back to semantic/'s hand labels without a word."""
+    root, _ = kitti_root
+    (root / file).parent.mkdir(exist_ok=True)
+    (root / file).unlink(missing_ok=True)
+    (root / file).symlink_to(tmp_path / "unmounted" / "x")
+    ds = KittiFlowDataset(root)
+    with pytest.raises(FileNotFoundError, match=rf"^root: '.*kitti/{file}' is a symbolic link to '.*unmounted/x', "
+                                                r"which does not exist"):
+        ds[1]

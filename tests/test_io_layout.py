@@ -487,3 +487,16 @@ class TestReaderChecks:
         (tmp_path / "b" / "meta.json").mkdir()
         with pytest.raises(IsADirectoryError, match=r"^path: '.*meta\.json' is a folder"):
             synthetic_pair_indices(tmp_path / "b")
+
+
+@pytest.mark.parametrize("file", ["image_2/000001_11.png", "flow_occ/000001_10.png", "road/000001_10.png",
+                                  "depth/000001_10.png", "params/000001.json"])
+def test_a_link_to_a_missing_file_says_so(tmp_path, file):
+    """A pair's file linked from a drive that is not mounted read as 'no file at' (or, for an
+    optional part, as a file lost in a copy), sending the user to look for a file that is there."""
+    write_synthetic_sequence(tmp_path / "seq", [_pair(i) for i in range(2)])
+    (tmp_path / "seq" / file).unlink()
+    (tmp_path / "seq" / file).symlink_to(tmp_path / "unmounted" / "x")
+    with pytest.raises(FileNotFoundError, match=rf"^path: '.*seq/{file}' is a symbolic link to '.*unmounted/x', "
+                                                r"which does not exist; mount or copy the data"):
+        read_synthetic_pair(tmp_path / "seq", 1)

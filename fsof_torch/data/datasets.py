@@ -276,6 +276,7 @@ class KittiFlowDataset(Dataset):
     def camera(self, name: str) -> Camera | None:
         """The Camera (batch 1) of pair ``name``, or None when neither a file nor ``K`` gives one."""
         folders = ("calib_cam_to_cam", "calib")
+        check_no_broken_links([self.root / f / f"{name}.txt" for f in folders], "root")  # (not "no file there")
         for folder in folders:
             path = self.root / folder / f"{name}.txt"
             if path.is_file():
@@ -302,6 +303,9 @@ class KittiFlowDataset(Dataset):
         truth: dict[str, Any] = {}
         if self.ground_truth:
             path = self.root / self.flow_dir / f"{name}_10.png"
+            road = self.root / "road" / f"{name}_10.png"
+            semantic = self.root / "semantic" / f"{name}_10.png"
+            check_no_broken_links([path, road, semantic], "root")  # (a drive not mounted, not a missing file)
             if path.is_file() or (self.root / self.flow_dir).is_dir():
                 # (a flow folder without the pair's file is an error, not a pair without ground truth)
                 try:
@@ -311,8 +315,6 @@ class KittiFlowDataset(Dataset):
                                             f"for the pair {name}; every pair of a folder with ground truth needs "
                                             f"its flow") from None
                 truth["flow"], truth["valid"] = _fits(flow, path, size, first, "root").to(self.dtype), valid
-            road = self.root / "road" / f"{name}_10.png"
-            semantic = self.root / "semantic" / f"{name}_10.png"
             if road.is_file():
                 truth["road"] = _fits(read_road_mask(road), road, size, first, "root")
             elif semantic.is_file():

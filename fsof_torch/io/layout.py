@@ -64,7 +64,8 @@ from .._check import check_has_values
 from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
-from .images import check_image_suffix, read_image, read_image_array, write_image, write_image_array
+from .images import (check_image_suffix, check_no_broken_links, read_image, read_image_array, write_image,
+                     write_image_array)
 from .kitti import check_rigid_poses, read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
 from .masks import read_label_map, read_road_mask, write_label_map, write_road_mask
 
@@ -445,6 +446,7 @@ def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
     path = Path(root) / "params" / f"{pair_name(index)}.json"
     if path.is_dir():
         raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected the params JSON of pair {index}")
+    check_no_broken_links([path], "path")  # (a drive not mounted, not a pair without params)
     if not path.is_file():
         raise FileNotFoundError(f"index: no params file {str(path)!r}")
     params = _read_json_file(path)
@@ -516,7 +518,7 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
         meta.json says every pair was written with that part (a file lost since, which would
         make a pair without ground truth it has)."""
         path = root / folder / file
-        if path.exists():  # (a folder there is an error of the reader, not a missing part)
+        if path.exists() or path.is_symlink():  # (a folder or a broken link there: the reader's error)
             return path
         if folder in complete:
             raise FileNotFoundError(f"root: {str(root)!r} has no {folder}/{file} for the pair {name}, but its "
