@@ -538,6 +538,11 @@ class TestPairChecks:
         with pytest.raises(FileNotFoundError, match=rf"^run: '.*t10_s0_r0' has {folder}/ but no {name} there for "
                                                     rf"the pair 00000001"):
             ds[1]
+        (run / missing).symlink_to(tmp_path / "unmounted" / "x")  # (it said the same of a broken link)
+        with pytest.raises(FileNotFoundError, match=rf"^run: '.*t10_s0_r0/{missing}' is a symbolic link to "
+                                                    r"'.*unmounted/x', which does not exist"):
+            ds[1]
+        (run / missing).unlink()
         ds.ground_truth = False
         check_item(ds[1])
         shutil.rmtree(run / folder)  # a run without the folder has no such ground truth

@@ -459,6 +459,7 @@ class CarlaRunDataset(Dataset):
         such folder. A folder without the frame's file is a FileNotFoundError naming ``run`` and the
         file, never an item without that ground truth."""
         path = self.run.path(kind, frame)
+        check_no_broken_links([path], "run")  # (a drive not mounted, not a file missing from the folder)
         if path.is_file() or not path.parent.is_dir():
             return path if path.is_file() else None
         raise FileNotFoundError(f"run: {str(self.run.root)!r} has {kind}/ but no {path.name} there for the pair "
