@@ -360,6 +360,36 @@ class TestShared:
         assert item["road"].shape == (1, 375, 1242) and 0.15 < float(item["road"].float().mean()) < 0.25
         assert item["odometry"] is None and item["relative_pose"] is None and item["name"] == "kitti15_000000"
 
+    @pytest.mark.parametrize("file", ["calib_cam_to_cam.txt", "flow_noc_10.png", "road.json", "image_11.png"])
+    def test_kitti_sample_file_linked_to_a_missing_file_is_an_error(self, shared_data, tmp_path, file):
+        """A link to a missing calibration, flow or road.json read as a folder without it: the pair
+        lost its camera, ground truth or road without a word (a missing image as 'has no')."""
+        folder = tmp_path / "kitti15_000000"
+        folder.mkdir()
+        for name in ("image_10.png", "image_11.png", "calib_cam_to_cam.txt", "flow_noc_10.png", "road.json"):
+            (folder / name).symlink_to(shared_data / "kitti15_000000" / name)
+        assert KittiSampleDataset(folder)[0]["flow"] is not None
+        (folder / file).unlink()
+        (folder / file).symlink_to(tmp_path / "unmounted" / file)
+        with pytest.raises(FileNotFoundError, match=rf"^folder: '.*kitti15_000000/{file}' is a symbolic link to "
+                                                    r"'.*unmounted/.*', which does not exist"):
+            KittiSampleDataset(folder)
+
+    @pytest.mark.parametrize("file", ["calib.txt", "poses.txt", "road.json"])
+    def test_kitti_odometry_file_linked_to_a_missing_file_is_an_error(self, shared_data, tmp_path, file):
+        """A link to a missing road.json read as a clip without road, without a word; a missing
+        calibration or poses file as 'no file at'."""
+        folder = tmp_path / "clip"
+        folder.mkdir()
+        for name in ("image_l", "calib.txt", "poses.txt", "road.json"):
+            (folder / name).symlink_to(shared_data / "kitti_odometry_straight" / name)
+        assert KittiOdometryDataset(folder, step=49)[0]["road"] is not None
+        (folder / file).unlink()
+        (folder / file).symlink_to(tmp_path / "unmounted" / file)
+        with pytest.raises(FileNotFoundError, match=rf"^folder: '.*clip/{file}' is a symbolic link to "
+                                                    r"'.*unmounted/.*', which does not exist"):
+            KittiOdometryDataset(folder, step=49)
+
     def test_kitti_odometry_clip(self, shared_data):
         ds = KittiOdometryDataset(shared_data / "kitti_odometry_straight")
         assert len(ds) == 50

@@ -342,6 +342,9 @@ class KittiSampleDataset(ImageFolderDataset):
         check_item_options(dtype, camera_dtype, ground_truth)  # before the files, as every dataset does
         road_json = check_bool(road_json, "road_json")
         self.folder = f = _folder(folder, "folder")
+        # (a link to a missing file is no absent part: read as one, the pair lost its camera, flow or road)
+        check_no_broken_links([f / name for name in ("image_10.png", "image_11.png", "calib_cam_to_cam.txt",
+                                                     "flow_noc_10.png", "road.json")], "folder")
         for file in ("image_10.png", "image_11.png"):
             if not (f / file).is_file():
                 raise FileNotFoundError(f"folder: {str(f)!r} has no {file}")
@@ -377,6 +380,8 @@ class KittiOdometryDataset(ImageFolderDataset):
         check_item_options(dtype, camera_dtype, ground_truth)  # ground_truth decides below whether poses are needed
         road_json = check_bool(road_json, "road_json")
         self.folder = _folder(folder, "folder")
+        # (a link to a missing file is no absent part: read as one, the clip lost its road)
+        check_no_broken_links([self.folder / name for name in ("calib.txt", "poses.txt", "road.json")], "folder")
         step = check_int(step, "step", minimum=1)
         images = self.folder / image_dir
         if not images.is_dir():
