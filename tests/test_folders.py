@@ -621,3 +621,14 @@ def test_a_frame_list_with_a_missing_file_or_a_folder_is_refused_when_made(clip)
     frames[2].mkdir()  # (replaced by a folder since the dataset was made)
     with pytest.raises(IsADirectoryError, match=r"^images: path: '.*000002\.png' is a folder"):
         ds[1]
+
+
+@pytest.mark.parametrize("what, file", [("calib", "calib.txt"), ("poses", "poses.txt"), ("road", "road.json")])
+def test_a_file_argument_linked_to_a_missing_file_says_so(clip, tmp_path, what, file):
+    """calib=, poses= or road= a link to a missing file (a drive not mounted) read as 'no file at'."""
+    root, _ = clip
+    link = tmp_path / file
+    link.symlink_to(tmp_path / "unmounted" / file)
+    with pytest.raises(FileNotFoundError, match=rf"^{what}: '.*{file}' is a symbolic link to '.*unmounted/{file}', "
+                                                r"which does not exist"):
+        ImageFolderDataset(root / "images", **{what: link})

@@ -351,6 +351,10 @@ class ImageFolderDataset(Dataset):
         self.dtype, self.ground_truth = dtype, ground_truth
         camera_height, roll, pitch = check_mounting(camera_height, roll, pitch, camera_dtype)
         self.calib = Path(calib) if calib is not None else None
+        # a file argument that links to a missing file (a drive not mounted) says so, not "no file at"
+        for what, given in (("calib", calib), ("road", road), ("poses", poses), ("gt", gt)):
+            if isinstance(given, (str, os.PathLike)):
+                check_no_broken_links([given], what)
         self.camera: Camera | None = None
         self.calib_size = check_size(calib_size, "calib_size") if calib_size is not None else None
         if self.calib is not None:
