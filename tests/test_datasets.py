@@ -681,3 +681,9 @@ def test_kitti_pair_file_linked_to_a_missing_file_says_so(kitti_root, tmp_path, 
     with pytest.raises(FileNotFoundError, match=rf"^root: '.*kitti/{file}' is a symbolic link to '.*unmounted/x', "
                                                 r"which does not exist"):
         ds[1]
+    if file.startswith("semantic/"):  # a pair whose road/ has its mask needs no semantic/ file
+        from fsof_torch.io import write_road_mask
+
+        (root / "road").mkdir()
+        write_road_mask(root / "road" / "000001_10.png", torch.ones(1, *SIZE, dtype=torch.bool))
+        assert ds[1]["road"].all()

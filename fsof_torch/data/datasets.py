@@ -305,7 +305,8 @@ class KittiFlowDataset(Dataset):
             path = self.root / self.flow_dir / f"{name}_10.png"
             road = self.root / "road" / f"{name}_10.png"
             semantic = self.root / "semantic" / f"{name}_10.png"
-            check_no_broken_links([path, road, semantic], "root")  # (a drive not mounted, not a missing file)
+            # (a drive not mounted, not a missing file; semantic/ where road/ has no file for the pair)
+            check_no_broken_links([path, road] + ([] if road.is_file() else [semantic]), "root")
             if path.is_file() or (self.root / self.flow_dir).is_dir():
                 # (a flow folder without the pair's file is an error, not a pair without ground truth)
                 try:
