@@ -344,8 +344,8 @@ class KittiSampleDataset(ImageFolderDataset):
         road_json = check_bool(road_json, "road_json")
         self.folder = f = _folder(folder, "folder")
         # (a link to a missing file is no absent part: read as one, the pair lost its camera, flow or road)
-        check_no_broken_links([f / name for name in ("image_10.png", "image_11.png", "calib_cam_to_cam.txt",
-                                                     "flow_noc_10.png", "road.json")], "folder")
+        read = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt"] + ["flow_noc_10.png"] * ground_truth
+        check_no_broken_links([f / name for name in read + ["road.json"] * road_json], "folder")
         for file in ("image_10.png", "image_11.png"):
             if not (f / file).is_file():
                 raise FileNotFoundError(f"folder: {str(f)!r} has no {file}")
@@ -382,7 +382,8 @@ class KittiOdometryDataset(ImageFolderDataset):
         road_json = check_bool(road_json, "road_json")
         self.folder = _folder(folder, "folder")
         # (a link to a missing file is no absent part: read as one, the clip lost its road)
-        check_no_broken_links([self.folder / name for name in ("calib.txt", "poses.txt", "road.json")], "folder")
+        read = ["calib.txt"] + ["poses.txt"] * ground_truth + ["road.json"] * road_json
+        check_no_broken_links([self.folder / name for name in read], "folder")
         step = check_int(step, "step", minimum=1)
         images = self.folder / image_dir
         if not images.is_dir():
