@@ -27,10 +27,25 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: the exit status of a run stopped by Ctrl-C (KeyboardInterrupt): 128 + SIGINT, as a shell reports it
+INTERRUPTED = 130
+
+
 def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
-    says so), also for ``--help`` and for the errors argparse reports, rather than exiting."""
+    says so, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
+    than exiting."""
     argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        # (each output file is written whole or not at all, through a temporary file)
+        name = f"eval {argv[0]}" if argv and argv[0] in SUBCOMMANDS else "eval"
+        print(f"{name}: interrupted; the files written so far are kept, each one whole", file=sys.stderr)
+        return INTERRUPTED
+
+
+def _main(argv: list[str]) -> int:
     try:
         if not argv or argv[0] not in SUBCOMMANDS:
             parser = build_parser()

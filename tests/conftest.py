@@ -58,14 +58,21 @@ def one_thread():
 @pytest.fixture
 def interrupted(monkeypatch) -> Callable[[object, str, Callable[[], object]], None]:
     """``interrupted(owner, name, run)``: ``owner.name`` replaced by a function that raises
-    KeyboardInterrupt (a run interrupted there), then ``run()``, which must stop with it."""
+    KeyboardInterrupt (a run interrupted there), then ``run()``, which must stop with it: raise
+    it, or, a job's ``main``, return the exit status 130 of an interrupted run."""
+    calls = []
+
     def interrupt(*args, **kwargs):
+        calls.append(1)
         raise KeyboardInterrupt
 
     def run_interrupted(owner: object, name: str, run: Callable[[], object]) -> None:
         monkeypatch.setattr(owner, name, interrupt)
-        with pytest.raises(KeyboardInterrupt):
-            run()
+        try:
+            status = run()
+        except KeyboardInterrupt:
+            return
+        assert calls and status == 130, f"expected the run interrupted in {name} (exit status 130), got {status!r}"
 
     return run_interrupted
 

@@ -300,6 +300,49 @@ def test_main_returns_the_exit_status(capsys, argv, code, stream, message):
         assert captured.err.startswith("usage: python -m eval")
 
 
+@pytest.mark.parametrize("command", ["synth", "train", "tables", "noise", "vflow"])
+def test_ctrl_c_prints_one_line_and_exits_130(capsys, monkeypatch, command):
+    """A KeyboardInterrupt (Ctrl-C) in any subcommand: one line on stderr naming it, no traceback,
+    exit status 130 (as refine's; it raised through main with a traceback)."""
+    import importlib
+
+    from eval.__main__ import SUBCOMMANDS
+
+    module = importlib.import_module(SUBCOMMANDS[command][0])
+
+    def interrupted(args):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(module, "run", interrupted)
+    argv = {"synth": ["--out", "o"], "vflow": ["--out", "o"]}.get(command, [])
+    assert main([command, *argv]) == 130
+    err = capsys.readouterr().err
+    assert err == f"eval {command}: interrupted; the files written so far are kept, each one whole\n", err
+
+
+def test_ctrl_c_while_synth_renders_keeps_the_pairs_written(tmp_path, capsys, monkeypatch):
+    """Ctrl-C while the second pair renders: exit 130 and one line; the first pair's files are
+    whole and no temporary file is left."""
+    import fsof_torch.data.scene as scene
+
+    render = scene.render_pair
+    calls = []
+
+    def interrupts(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return render(*args, **kwargs)
+
+    monkeypatch.setattr(scene, "render_pair", interrupts)
+    out = tmp_path / "o"
+    assert main(["synth", "--out", str(out), "--pairs", "3", "--size", "32", "64", "--no-progress"]) == 130
+    err = capsys.readouterr().err
+    assert err == "eval synth: interrupted; the files written so far are kept, each one whole\n", err
+    files = sorted(p for p in out.rglob("*") if p.is_file())
+    assert files and all(".tmp" not in p.name and p.stat().st_size > 0 for p in files), files
+
+
 @pytest.mark.parametrize("name", ["road.json", "flow_noc_10.png", "calib_cam_to_cam.txt"])
 def test_tables_json_naming_a_kitti_file_exits_2(tmp_path, shared_data, capsys, name):
     """--json naming a file of the --kitti sample that the KITTI table reads is refused before any
