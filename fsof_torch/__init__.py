@@ -93,6 +93,8 @@ from .estimation.vflow import fit_vflow_curve, vflow_map
 from .evaluation.visualize import flow_to_color, save_error_png, save_flow_png, save_overlay_png
 from .evaluation.warp import WarpBackward, warp_backward
 
+from ._check import trust_image_range
+
 __version__ = "0.1.0"
 
 # The flat module paths of earlier versions (``fsof_torch.metrics``, ``fsof_torch.camera``, ...)
@@ -149,6 +151,7 @@ __all__ = [
     "flow_metrics_per_sample",
     "flow_to_color",
     "fuse_flow",
+    "trust_image_range",
     "io",
     "metrics",
     "mounting_matrix",

@@ -33,6 +33,7 @@ __all__ = [
     "all_finite",
     "known_finite",
     "known_images",
+    "trust_image_range",
     "host_path",
     "device_paths",
     "check_finite",
@@ -174,10 +175,11 @@ def all_finite(x: Tensor) -> bool:
 
 _KNOWN_FINITE: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_finite", default=())
 _KNOWN_IMAGES: contextvars.ContextVar[tuple[Tensor, ...]] = contextvars.ContextVar("known_images", default=())
+_TRUST_IMAGE_RANGE: contextvars.ContextVar[tuple[bool, ...]] = contextvars.ContextVar("trust_image_range", default=())
 
 
 @contextlib.contextmanager
-def _known(var: contextvars.ContextVar, tensors: tuple[Tensor, ...]):
+def _known(var: contextvars.ContextVar, tensors: tuple):
     """``tensors`` added to the promises of ``var`` for the block (and the thread or task)."""
     token = var.set(var.get() + tensors)
     try:
@@ -202,6 +204,18 @@ def known_images(*images: Tensor):
     the "0..1" guess, which judges a frame by its brightest value, would take a dim frame's grey
     for a 0..1 image that its colours were not). Scoped to the block (and to the thread or task)."""
     return _known(_KNOWN_IMAGES, images)
+
+
+def trust_image_range():
+    """Within the block, images are taken to be on the range the caller states (``data_range``, ``image_range``,
+    0..255 for the refiner) however dark: for a caller that knows it (8-bit files). Outside it, an image on 0..255
+    whose values all lie in [0, 1] raises as a likely 0..1 image (each sample of a batch judged alone); a real
+    frame can be that dark (a lens cap, a tunnel). Values out of range or not finite raise all the same."""
+    return _known(_TRUST_IMAGE_RANGE, (True,))
+
+
+def trusted_image_range() -> bool:
+    return bool(_TRUST_IMAGE_RANGE.get())  # (within trust_image_range)
 
 
 def host_path(x: Tensor) -> bool:
@@ -414,19 +428,27 @@ def check_data_range(data_range: object, name: str = "data_range") -> float:
     return float(data_range)
 
 
+def sample_extremes(x: Tensor) -> tuple[list[float], list[float]]:
+    """Each sample's minimum and maximum (x (B, ...); another rank: one sample), one pass, one host read
+    (per sample: on the CPU, torch.aminmax(x.flatten(1), dim=1) takes 20 times as long as over all)."""
+    values = torch.stack([torch.stack(torch.aminmax(s)) for s in (x.unbind(0) if x.dim() == 4 else (x,))]).T.tolist()
+    return values[0], values[1]  # (NaN propagates into both)
+
+
 def check_image_range(image: Tensor, name: str, data_range: float) -> None:
     """Finite values in [0, data_range] up to 1% (catches 0-255 images passed as 0-1, 0-1 images
     passed as 0-255, and NaN pixels).
 
     A NaN pixel would spread through bilinear taps and filter windows into its neighbours' values,
-    so an image must be finite everywhere, not only where it is evaluated."""
+    so an image must be finite everywhere, not only where it is evaluated. The "0..1 image" guess
+    judges each sample of a batch (B, C, H, W) alone, and is off within :func:`trust_image_range`."""
     if skip_values(image) or image.numel() == 0:
         return
     if data_range == 255.0 and any(image is t for t in _KNOWN_IMAGES.get()):
         return  # (see known_images)
-    d = image.detach()
-    lo, hi = torch.stack(torch.aminmax(d)).tolist()  # one pass, one host read; NaN propagates through both
-    if not (math.isfinite(lo) and math.isfinite(hi)):
+    los, his = sample_extremes(d := image.detach())
+    lo, hi = min(los), max(his)
+    if not all(map(math.isfinite, los + his)):
         bad = d[~torch.isfinite(d)].flatten()[:3].tolist()
         raise ValueError(f"{name}: expected finite pixel values, got {bad} (NaN or inf); "
                          f"replace or mask them before warping or filtering")
@@ -434,11 +456,12 @@ def check_image_range(image: Tensor, name: str, data_range: float) -> None:
         raise ValueError(
             f"{name}: expected values in [0, data_range={data_range:g}], got values in "
             f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
-    if data_range > 1.5 and 0.0 < hi <= 1.0:
-        # (a 0..255 frame whose brightest pixel is at most 1 grey level is no image to judge)
-        raise ValueError(f"{name}: values in [{lo:g}, {hi:g}] look like 0..1 images, expected 0..{data_range:g}: "
-                         f"scale them by {data_range:g}, or pass data_range=1.0 where the function takes it "
-                         f"(the refiner and its gate take 0..255 images)")
+    dim = [] if data_range <= 1.5 or trusted_image_range() else [b for b, h in enumerate(his) if 0.0 < h <= 1.0]
+    if dim:  # (a 0..255 frame whose brightest pixel is at most 1 grey level is no image to judge)
+        where, (a, b) = (name, (lo, hi)) if len(dim) == len(his) else (f"{name}[{dim[0]}]", (los[dim[0]], his[dim[0]]))
+        raise ValueError(f"{where}: values in [{a:g}, {b:g}] look like 0..1 images, expected 0..{data_range:g}: scale "
+                         f"them by {data_range:g}, or pass data_range=1.0 where the function takes it (the refiner "
+                         f"and its gate take 0..255 images); frames this dark (a lens cap): fsof_torch.trust_image_range()")
 
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,

@@ -672,9 +672,14 @@ def _main(argv: list[str] | None) -> int:
         args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exit_:  # argparse exits on --help and on bad options
         return int(exit_.code or 0)
+    from fsof_torch import trust_image_range
+
     from .inputs import JobError
 
-    with contextlib.ExitStack() as stack:
+    # the job reads its frames from 8- and 16-bit files (or renders them) on 0..255 and vouches
+    # for that range: a frame dark enough to pass for a 0..1 image (a lens cap, a tunnel) is
+    # judged like any frame, its pair refined or flagged, rather than stopping the job
+    with contextlib.ExitStack() as stack, trust_image_range():
         try:
             return _run(args, stack)
         except (JobError, FileNotFoundError, ValueError) as err:

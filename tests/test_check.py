@@ -15,6 +15,7 @@ from fsof_torch._check import (
     all_finite,
     known_finite,
     known_images,
+    trust_image_range,
     as_batch_param,
     as_chw_flow,
     autocast_off,
@@ -115,6 +116,46 @@ def test_known_images_pass_the_range_check_within_the_block_on_0_255_only():
             check_image_range(dim.clone(), "image1", 255.0)
         with pytest.raises(ValueError, match=r"expected values in \[0, data_range=0.5\]"):
             check_image_range(dim, "image1", 0.5)
+    with pytest.raises(ValueError, match="look like 0..1 images"):
+        check_image_range(dim, "image1", 255.0)
+
+
+def test_the_0_1_guess_judges_each_sample_alone():
+    """A dim frame (brightest value 1 grey level) raises alone and raises in a batch beside a bright
+    frame, naming its sample: its outcome does not depend on its batch (in a batch it passed, as
+    the bright frame lifted the batch's maximum). A batch that is all 0..1 is named as a whole."""
+    bright, dim = torch.full((1, 3, 4, 5), 200.0), torch.full((1, 3, 4, 5), 1.0)
+    dim[..., 0, 0] = 0.0
+    with pytest.raises(ValueError, match=r"^images\[0\]: values in \[0, 1\] look like 0..1 images"):
+        check_image_range(dim, "images[0]", 255.0)
+    with pytest.raises(ValueError, match=r"^images\[0\]\[1\]: values in \[0, 1\] look like 0..1 images, expected "
+                                         r"0..255: .* fsof_torch.trust_image_range\(\)$"):
+        check_image_range(torch.cat([bright, dim, bright]), "images[0]", 255.0)
+    with pytest.raises(ValueError, match=r"^images\[0\]: values in \[0, 1\] look like 0..1 images"):
+        check_image_range(torch.cat([dim, dim]), "images[0]", 255.0)
+    check_image_range(torch.cat([bright, torch.zeros_like(dim)]), "images[0]", 255.0)  # (black is no 0..1 image)
+    nan = bright.clone()
+    nan[..., 1, 1] = float("nan")
+    with pytest.raises(ValueError, match="expected finite pixel values"):  # (in any sample, not the first only)
+        check_image_range(torch.cat([bright, nan]), "images[0]", 255.0)
+    check_image_range(torch.cat([dim, bright]) / 255, "images[0]", 1.0)  # (on 0..1 there is nothing to guess)
+
+
+def test_trust_image_range_turns_the_0_1_guess_off_within_the_block_only():
+    """Within ``trust_image_range()`` a caller that knows its range (8-bit files) has a dim frame
+    taken as it is, alone or batched; values out of range or not finite still raise; outside the
+    block the guess is back."""
+    import fsof_torch
+
+    assert fsof_torch.trust_image_range is trust_image_range and "trust_image_range" in fsof_torch.__all__
+    dim = torch.full((2, 1, 4, 4), 0.9)
+    with trust_image_range():
+        check_image_range(dim, "image1", 255.0)
+        check_image_range(dim[:1], "image1", 255.0)
+        with pytest.raises(ValueError, match=r"expected values in \[0, data_range=255\]"):
+            check_image_range(dim * 300, "image1", 255.0)
+        with pytest.raises(ValueError, match="expected finite pixel values"):
+            check_image_range(dim.clone().fill_(float("nan")), "image1", 255.0)
     with pytest.raises(ValueError, match="look like 0..1 images"):
         check_image_range(dim, "image1", 255.0)
 

@@ -981,6 +981,31 @@ def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, 
     assert note in capsys.readouterr().out and note in (out / "report.md").read_text()
 
 
+@pytest.mark.parametrize("road", ["road", "auto"])
+def test_a_frame_dark_enough_to_pass_for_a_0_1_image_is_flagged_not_the_job_stopped(tmp_path, user_folder,
+                                                                                      scene_pairs, road, capsys):
+    """A clip's frame whose brightest pixel is 1 grey level (a lens cap, a tunnel): the job reads
+    8-bit files and knows their range, so the library's guess that such values are a 0..1 image
+    does not stop the job (it exited 2, 'values in [0, 1] look like 0..1 images'); the two pairs
+    that hold the frame are reported, their prediction kept, with the reason."""
+    from fsof_torch.io import write_image
+
+    dim = (scene_pairs[0]["image2"] > 128).to(torch.uint8)  # grey levels 0 and 1
+    write_image(user_folder / "images" / "000001.png", dim)
+    out = tmp_path / "out"
+    road_arg = str(user_folder / "road") if road == "road" else "auto"
+    args = _user(user_folder, out, "--road", road_arg, "--source", "dis", "--odometry", "sequence,photometric",
+                 *_mounting(scene_pairs))
+    assert main([a for a in args if a != "--no-figures"]) == 0
+    printed = capsys.readouterr().out
+    for variant in ("sequence", "photometric"):
+        for name in ("000000", "000001"):
+            rec = json.loads((out / "dis" / variant / "pairs" / f"{name}.json").read_text())
+            assert rec["refined"] is False
+            assert rec["after"] == rec["before"]  # (the prediction kept)
+            assert any(name in line and "unrefined" in line for line in printed.splitlines())  # (the reason)
+
+
 def test_unrefined_notes_explain_each_pair_once():
     """Each unrefined pair is explained once: a given empty road and a flagged auto road by their own
     notes, an auto road found 'ok' but empty (which no other note names) here, grouped by reason."""

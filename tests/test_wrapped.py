@@ -198,6 +198,29 @@ def test_images_checked_against_image_range_before_the_net(image_range, scale, m
     assert net.calls == 1
 
 
+def test_a_dim_sample_is_named_in_any_batch_and_taken_within_trust_image_range():
+    """A frame whose brightest value is 1 grey level of 255 is refused as a likely 0..1 image alone
+    and beside a bright frame alike (in a batch it ran, as the bright frame lifted the batch's
+    maximum); a caller that knows its range (8-bit files) has it taken within trust_image_range(),
+    where the refiner leaves that sample unrefined and refines the other."""
+    import fsof_torch
+
+    s = scene((53, 94))
+    dim1, dim2 = ((s[k] > 128).float() for k in ("image1", "image2"))
+    i1, i2 = torch.cat([s["image1"], dim1]), torch.cat([s["image2"], dim2])
+    net = Net(torch.cat([s["pred"], s["pred"]]))
+    for a, b in ((dim1, dim2), (i1, i2)):
+        with pytest.raises(ValueError, match=r"^image1(\[1\])?: values in \[0, 1\] fill at most 1/255 of "
+                                             r"image_range=\(0, 255\) .* fsof_torch.trust_image_range\(\)$"):
+            FreespaceRefined(net)(a, b, camera=s["camera"], mask=s["road"])
+    assert net.calls == 0
+    with fsof_torch.trust_image_range(), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        out = FreespaceRefined(net)(i1, i2, camera=s["camera"], mask=torch.cat([s["road"], s["road"]]),
+                                    return_info=True)
+    assert out[1].refined.tolist() == [True, False]
+
+
 def test_images_of_another_channel_count_are_named_before_the_net():
     """RGBA frames ran the net, then the refiner named them images[0] ('as images[0] has')."""
     s = scene((53, 94))

@@ -13,7 +13,7 @@ import torch
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, check_shape,
-                      scalar, skip_values)
+                      sample_extremes, scalar, skip_values, trusted_image_range)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
@@ -242,12 +242,14 @@ class FreespaceRefined(nn.Module):
 
 def _check_image_range(image: Tensor, name: str, image_range: tuple[float, float]) -> None:
     """The caller's image against ``image_range``, before the network runs: the refiner's test of
-    its 0..255 images (:func:`~fsof_torch._check.check_image_range`) in the caller's units."""
+    its 0..255 images (:func:`~fsof_torch._check.check_image_range`) in the caller's units, its
+    "0..1 images" guess per sample and off within :func:`~fsof_torch.trust_image_range`."""
     if skip_values(image) or image.numel() == 0:
         return
     d = image.detach()
-    a, b = torch.stack(torch.aminmax(d)).tolist()  # (NaN propagates through both)
-    if not (math.isfinite(a) and math.isfinite(b)):
+    los, his = sample_extremes(d)
+    a, b = min(los), max(his)
+    if not all(map(math.isfinite, los + his)):
         raise ValueError(f"{name}: expected finite pixel values, got {d[~torch.isfinite(d)].flatten()[:3].tolist()} "
                          f"(NaN or inf)")
     lo, hi = image_range
@@ -256,9 +258,13 @@ def _check_image_range(image: Tensor, name: str, image_range: tuple[float, float
         raise ValueError(f"{name}: expected values in image_range=({lo:g}, {hi:g}), got values in [{a:g}, {b:g}]; "
                          f"pass image_range=(low, high) of the images (the net's convention: (0, 255) for RAFT, "
                          f"(-1, 1) for torchvision's transforms)")
-    if lo < b <= lo + span / 255.0:
-        raise ValueError(f"{name}: values in [{a:g}, {b:g}] fill at most 1/255 of image_range=({lo:g}, {hi:g}) (0..1 "
-                         f"images given for 0..255?): pass image_range=(0, 1) for 0..1 images, or scale them")
+    dim = [k for k, h in enumerate(his) if lo < h <= lo + span / 255.0]
+    if dim and not trusted_image_range():
+        where, (a, b) = (name, (a, b)) if len(dim) == len(his) else (f"{name}[{dim[0]}]", (los[dim[0]], his[dim[0]]))
+        raise ValueError(f"{where}: values in [{a:g}, {b:g}] fill at most 1/255 of image_range=({lo:g}, {hi:g}) "
+                         f"(0..1 images given for 0..255?): pass image_range=(0, 1) for 0..1 images, or scale "
+                         f"them; for frames this dark (a lens cap, a tunnel), call within "
+                         f"fsof_torch.trust_image_range()")
 
 
 def _unpadded_fit(fit: Any, padding: Padding) -> Any:
