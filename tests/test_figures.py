@@ -648,3 +648,45 @@ def test_clip_summary_leaves_out_the_motion_of_pairs_left_unrefined():
         assert len(after.get_ydata()) == 4  # its errors are still drawn
     finally:
         plt.close(fig)
+
+
+_BACKEND_DRIVER = r"""
+import sys
+import matplotlib
+if sys.argv[1] != "auto":
+    matplotlib.use(sys.argv[1])
+    import matplotlib.pyplot as plt
+    mine = plt.figure()
+import torch
+from fsof_torch.evaluation.figures import clip_summary_figure, pair_figure, save_figure
+H, W = 12, 20
+road = torch.zeros(1, H, W, dtype=torch.bool)
+road[0, 6:] = True
+fig = pair_figure(flows={"a": torch.ones(2, H, W)}, errors={}, road=road, max_flow=2.0, error_vmax=1.0,
+                  error_label="e (px)", title="t")
+save_figure(fig, sys.argv[2] + "/pair.png")
+rec = {"pair": "0", "variant": "v", "before": {"e": 1.0}, "after": {"e": 0.5}, "odometry": {}}
+save_figure(clip_summary_figure([rec], errors={"e": "e (px)"}, title="t"), sys.argv[2] + "/clip.png")
+import matplotlib.pyplot as plt
+print(matplotlib.get_backend().lower(), sys.argv[1] == "auto" or plt.fignum_exists(mine.number))
+"""
+
+
+@pytest.mark.parametrize("chosen, want", [("svg", "svg"), ("pdf", "pdf"), ("auto", "agg")])
+def test_figures_keep_the_callers_backend(tmp_path, chosen, want):
+    """The figures selected Agg with matplotlib.use, which switched a backend the caller had
+    chosen (a notebook's inline backend, a GUI one: later plots no longer showed). Now they take
+    Agg only where nobody chose a backend, and leave the caller's figures open."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {k: v for k, v in os.environ.items() if k != "MPLBACKEND"}
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    done = subprocess.run([sys.executable, "-c", _BACKEND_DRIVER, chosen, str(tmp_path)], capture_output=True,
+                          text=True, env=env, cwd=root, timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == [want, "True"]
+    assert (tmp_path / "pair.png").stat().st_size > 0 and (tmp_path / "clip.png").stat().st_size > 0

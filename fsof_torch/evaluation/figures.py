@@ -13,8 +13,9 @@ every estimated motion and mounting field the job's records hold.
 
 Builders return a ``matplotlib.figure.Figure`` (so tests and notebooks can inspect or show it);
 :func:`save_figure` writes one as PNG atomically and closes it. matplotlib is imported inside the
-functions, with the non-interactive Agg backend. Colour coding itself (Middlebury flow colours,
-colour maps) is :mod:`fsof_torch.evaluation.visualize`.
+functions; where no backend has been chosen they select the non-interactive Agg backend
+(headless-safe), and they never switch a backend the caller chose or pyplot runs. Colour coding
+itself (Middlebury flow colours, colour maps) is :mod:`fsof_torch.evaluation.visualize`.
 """
 
 from __future__ import annotations
@@ -61,12 +62,26 @@ _MOUNTING = {"roll": "camera roll (the refinement's mounting)", "pitch": "camera
 
 
 def _pyplot():
+    """pyplot, with the non-interactive Agg backend where nobody chose one: a backend the caller
+    selected (``matplotlib.use``, ``MPLBACKEND``, a matplotlibrc, a notebook's inline backend) or
+    that pyplot already runs is left as it is, and so are the caller's open figures."""
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg", force=False)
+    if "matplotlib.pyplot" not in sys.modules and _backend_unchosen(matplotlib):
+        matplotlib.use("Agg")  # (headless-safe: no window, no display needed)
     import matplotlib.pyplot as plt
 
     return plt
+
+
+def _backend_unchosen(matplotlib: Any) -> bool:
+    """Whether matplotlib's backend is still its automatic choice (no one has selected one)."""
+    from matplotlib import rcsetup
+
+    sentinel = getattr(rcsetup, "_auto_backend_sentinel", None)
+    return sentinel is not None and dict.__getitem__(matplotlib.rcParams, "backend") is sentinel
 
 
 def _reduce(x: Tensor, factor: int, mode: str = "area") -> Tensor:
