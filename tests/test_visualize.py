@@ -375,3 +375,38 @@ def test_colormap_and_shape_errors_name_what_came():
     with pytest.raises(ValueError, match=r"^flow: expected shape \(2, H, W\) or \(B, 2, H, W\), got \(3, 4, 4\)$"):
         flow_to_color(torch.rand(3, 4, 4))
     assert flow_to_color(torch.rand(2, 4, 4)).shape == (1, 3, 4, 4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("m", [1e-2, 1e-4, 1e-6, 1e-30])
+def test_max_flow_is_full_saturation_for_small_flows(m, dtype):
+    """The scale had RAFT's absolute 1e-5 px added, so a small max_flow was not full saturation:
+    a flow of max_flow = 1e-4 px to the right was drawn (255, 23, 23), of 1e-5 px half saturated.
+    Now max_flow (and, with None, each sample's largest magnitude) is exactly full saturation,
+    as in Middlebury's flowToColor (maxrad + MATLAB's eps 2.2e-16); zero flow stays white."""
+    flow = torch.zeros(2, 2, 1, 2, dtype=dtype)
+    flow[:, 0, 0, 0] = m
+    flow[1, 0, 0, 1] = m / 2
+    for max_flow in (m, None):
+        rgb = flow_to_color(flow, max_flow)
+        assert rgb[0, :, 0, 0].tolist() == [255, 0, 0]          # full saturation, right: red
+        assert rgb[0, :, 0, 1].tolist() == [255, 255, 255]      # no motion: white
+    assert flow_to_color(flow, m)[1, :, 0, 1].tolist() == [255, 127, 127]  # half of max_flow
+    assert flow_to_color(flow * 0, None).eq(255).all()          # all zero, max_flow None: white
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_flow_inside_max_flow_keeps_a_full_channel(dtype):
+    """Every colour of the wheel, and every mix of two neighbours, has a channel at 255, which the
+    desaturation towards white keeps: inside max_flow each pixel has a channel at 255. Without
+    RAFT's 1e-5 (the test above), colours computed in 0..1 as RAFT does are floored one level low
+    where the exact value is an integer: flow straight up at full saturation was (87, 0, 255),
+    not the 88 of the wheel (RAFT's flow_viz itself draws 254 for about 1.5 % of the channels at
+    255: (1 - f) * 1 + f * 1 falls below 1). In levels 0..255 the wheel's integers stay exact."""
+    g = torch.Generator().manual_seed(3)
+    flow = (torch.randn(2, 2, 60, 80, generator=g, dtype=torch.float64) * 4).to(dtype)
+    for max_flow in (None, float(torch.linalg.vector_norm(flow, dim=1).max()) * 1.01):
+        rgb = flow_to_color(flow, max_flow)
+        assert rgb.amax(dim=1).eq(255).all()
+    up = torch.tensor([0.0, -1.0], dtype=dtype).view(2, 1, 1)
+    assert flow_to_color(up, 1.0)[0, :, 0, 0].tolist() == [88, 0, 255]

@@ -91,9 +91,11 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     Args:
         flow: (B, 2, H, W) or (2, H, W), pixels, channel 0 = u; any finite magnitude (the
             radius is formed without overflow, also above 1.8e19 px in float32).
-        max_flow: the magnitude shown at full saturation (finite, > 0): a float, a tensor of one or
-            B values, or None for each sample's largest valid magnitude. Longer vectors are drawn darker (×0.75), as in
-            the reference code.
+        max_flow: the magnitude shown at full saturation (finite, > 0; exactly, also for small
+            values: no absolute epsilon is added, unlike RAFT's ``flow_viz``, which adds 1e-5 px):
+            a float, a tensor of one or B values, or None for each sample's own largest valid
+            magnitude (per sample; torchvision's ``flow_to_image`` takes one maximum over the whole
+            batch). Longer vectors are drawn darker (×0.75), as in the reference code.
         valid: optional (B, 1, H, W) bool; invalid (and non-finite) pixels are black.
 
     Returns:
@@ -133,11 +135,18 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     else:
         scale = torch.full((B,), check_number(max_flow, "max_flow", positive=True), dtype=work,
                            device=flow.device)
-    # Same epsilon as the reference code, so that a zero flow is white, not NaN.
-    scale = (scale + 1e-5).view(B, 1, 1, 1)
+    # max_flow exactly, as Middlebury's flowToColor (maxrad + MATLAB's eps, 2.2e-16): RAFT's and
+    # flow_vis' absolute 1e-5 px drew a max_flow of 1e-4 px at 0.91 of full saturation. A sample
+    # without motion (largest magnitude 0) is white whatever it is divided by; the smallest
+    # normal number keeps a max_flow below the work dtype's range from dividing by 0.
+    scale = torch.where(scale > 0, scale, torch.ones_like(scale))
+    scale = scale.clamp(min=torch.finfo(work).tiny).view(B, 1, 1, 1)
     u, v, rad = u / scale, v / scale, rad / scale
 
-    wheel = make_colorwheel(dtype=work, device=flow.device) / 255.0
+    # (in levels 0..255, not RAFT's 0..1: the wheel's integers stay exact, so a colour on the
+    # wheel, such as the 88 of flow straight up at full saturation, is not floored to 87 by the
+    # rounding of a division by 255 and a multiplication back)
+    wheel = make_colorwheel(dtype=work, device=flow.device)
     n = wheel.shape[0]
     angle = torch.atan2(-v, -u) / torch.pi                     # (-1, 1]
     fk = (angle + 1.0) / 2.0 * (n - 1)
@@ -147,8 +156,8 @@ def flow_to_color(flow: Tensor, max_flow: float | Tensor | None = None, *,
     col0 = wheel[k0.squeeze(1)].permute(0, 3, 1, 2)             # (B, 3, H, W)
     col1 = wheel[k1.squeeze(1)].permute(0, 3, 1, 2)
     col = (1 - frac) * col0 + frac * col1
-    col = torch.where(rad <= 1, 1 - rad * (1 - col), col * 0.75)
-    rgb = torch.floor(255.0 * col).clamp(0, 255).to(torch.uint8)
+    col = torch.where(rad <= 1, 255.0 - rad * (255.0 - col), col * 0.75)
+    rgb = torch.floor(col).clamp(0, 255).to(torch.uint8)
     return torch.where(ok, rgb, torch.zeros_like(rgb))
 
 
