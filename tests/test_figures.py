@@ -690,3 +690,13 @@ def test_figures_keep_the_callers_backend(tmp_path, chosen, want):
     assert done.returncode == 0, done.stderr
     assert done.stdout.split() == [want, "True"]
     assert (tmp_path / "pair.png").stat().st_size > 0 and (tmp_path / "clip.png").stat().st_size > 0
+
+
+@pytest.mark.parametrize("max_flow", [3.7, 104.0, 0.37])
+def test_colour_wheel_rim_is_not_drawn_beyond_max_flow(max_flow):
+    """The legend drew the flow (u, v) * max_flow, whose magnitude at the rim came out a rounding
+    error above max_flow for some max_flow (3.7: 8 pixels), drawn darker as flow beyond the
+    scale. Inside the disc every colour is one of the wheel's (a channel at 255)."""
+    wheel = colour_wheel(max_flow).int()
+    assert wheel.amax(dim=-1).eq(255).all()
+    assert torch.equal(wheel, colour_wheel(1.0).int())  # the colours do not depend on the scale

@@ -164,11 +164,14 @@ def _outline_effects():
 def colour_wheel(max_flow: float, size: int = 101) -> Tensor:
     """The Middlebury colour coding of the disc of flows up to ``max_flow`` px: (size, size, 3)
     uint8 RGB, u to the right, v down (outside the disc white)."""
+    check_number(max_flow, "max_flow", positive=True)
     r = torch.linspace(-1.0, 1.0, size, dtype=torch.float64)
     v, u = torch.meshgrid(r, r, indexing="ij")
-    flow = torch.stack([u, v]) * max_flow
     inside = (u * u + v * v) <= 1.0
-    rgb = flow_to_color(flow, max_flow)[0]
+    # the colours of flow / max_flow, which is the disc itself: drawn from it directly, as the
+    # flow (u, v) * max_flow could come out a rounding error beyond max_flow at the rim and be
+    # drawn darker there
+    rgb = flow_to_color(torch.stack([u, v]), 1.0)[0]
     rgb = torch.where(inside[None], rgb, torch.full_like(rgb, 255))
     return rgb.permute(1, 2, 0)
 
