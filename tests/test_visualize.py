@@ -401,7 +401,7 @@ def test_flow_inside_max_flow_keeps_a_full_channel(dtype):
     desaturation towards white keeps: inside max_flow each pixel has a channel at 255. Without
     RAFT's 1e-5 (the test above), colours computed in 0..1 as RAFT does are floored one level low
     where the exact value is an integer: flow straight up at full saturation was (87, 0, 255),
-    not the 88 of the wheel (RAFT's flow_viz itself draws 254 for about 1.5 % of the channels at
+    not the 88 of the wheel (RAFT's flow_viz itself draws 254 for a few per cent of the channels at
     255: (1 - f) * 1 + f * 1 falls below 1). In levels 0..255 the wheel's integers stay exact."""
     g = torch.Generator().manual_seed(3)
     flow = (torch.randn(2, 2, 60, 80, generator=g, dtype=torch.float64) * 4).to(dtype)
