@@ -134,18 +134,23 @@ def _extend(values: torch.Tensor, vmin: float, vmax: float) -> str:
 def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, cmap: str,
                 vmin: float, vmax: float, label: str) -> None:
     """``img`` where ``valid``, coloured on [vmin, vmax]; the colour bar (labelled ``label``, with
-    its unit) has an arrow at each end where the shown values are clipped."""
+    its unit) has an arrow at each end where the shown values are clipped. Pixels without a value
+    are mid grey (``NO_VALUE_RGB``, named under the bar): left transparent, they were the figure's
+    white, the diverging F_v map's colour of 0."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
+    from fsof_torch.evaluation.visualize import NO_VALUE_RGB
+
     data = np.ma.masked_array(img.double().numpy(), mask=~valid.numpy())
     H, W = img.shape
     fig, ax = plt.subplots(figsize=(min(12.0, 2 + 8 * W / max(H, W)), min(8.0, 1.5 + 8 * H / max(H, W))))
-    im = ax.imshow(data, cmap=cmap, vmin=vmin, vmax=vmax, interpolation="nearest")
-    fig.colorbar(im, ax=ax, fraction=0.03, label=label, extend=_extend(img[valid], vmin, vmax))
+    colours = matplotlib.colormaps[cmap].with_extremes(bad=tuple(c / 255.0 for c in NO_VALUE_RGB))
+    im = ax.imshow(data, cmap=colours, vmin=vmin, vmax=vmax, interpolation="nearest")
+    fig.colorbar(im, ax=ax, fraction=0.03, label=f"{label}\ngrey: no value", extend=_extend(img[valid], vmin, vmax))
     ax.set_title(title)
     ax.set_axis_off()
     fig.tight_layout()

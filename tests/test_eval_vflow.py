@@ -527,3 +527,30 @@ def test_vflow_figures_have_legends_that_hide_no_curve(tmp_path, monkeypatch, re
     assert len(points) > 10
     inside = (points[:, 0] >= box.x0) & (points[:, 0] <= box.x1) & (points[:, 1] >= box.y0) & (points[:, 1] <= box.y1)
     assert not inside.any()
+
+
+@pytest.mark.parametrize("cmap", ["RdBu_r", "inferno"])
+def test_vflow_maps_draw_no_value_grey_not_as_a_value(tmp_path, cmap):
+    """fv_observed / fv_fitted / fv_error left pixels outside the mask transparent: the figure's
+    white, which on the diverging F_v map is the colour of F_v = 0 (a road mask's surroundings,
+    the rows above the fitted horizon read as zero flow). They are mid grey (NO_VALUE_RGB, as in
+    the job's pair figures), a colour neither map holds, and the colour bar names it."""
+    import numpy as np
+    from PIL import Image
+
+    from eval.vflow import _plot_image
+    from fsof_torch.evaluation.visualize import NO_VALUE_RGB
+
+    img = torch.zeros(40, 60)  # every value 0: RdBu_r's near-white
+    valid = torch.zeros(40, 60, dtype=torch.bool)
+    valid[:, 30:] = True
+    _plot_image(img, valid, tmp_path / "fv.png", "t", cmap, -1.0, 1.0, "F_v (px)")
+    rgb = np.asarray(Image.open(tmp_path / "fv.png").convert("RGB")).reshape(-1, 3).astype(int)
+    colours, counts = np.unique(rgb, axis=0, return_counts=True)
+    # the two halves of the picture: the masked one grey, the other the map's colour of 0
+    top = {tuple(c) for c in colours[np.argsort(counts)[::-1][:3]]}
+    assert tuple(NO_VALUE_RGB) in top
+    import matplotlib
+
+    zero = tuple(int(round(255 * x)) for x in matplotlib.colormaps[cmap](0.5)[:3])
+    assert any(max(abs(a - b) for a, b in zip(c, zero)) <= 2 for c in top)
