@@ -410,3 +410,80 @@ def test_flow_inside_max_flow_keeps_a_full_channel(dtype):
         assert rgb.amax(dim=1).eq(255).all()
     up = torch.tensor([0.0, -1.0], dtype=dtype).view(2, 1, 1)
     assert flow_to_color(up, 1.0)[0, :, 0, 0].tolist() == [88, 0, 255]
+
+
+_DEVKIT_LC = [(0, 0.0625, 49, 54, 149), (0.0625, 0.125, 69, 117, 180), (0.125, 0.25, 116, 173, 209),
+              (0.25, 0.5, 171, 217, 233), (0.5, 1, 224, 243, 248), (1, 2, 254, 224, 144), (2, 4, 253, 174, 97),
+              (4, 8, 244, 109, 67), (8, 16, 215, 48, 39), (16, 1e9, 165, 0, 38)]
+
+
+def _devkit_error_image(est, gt, occ, noc):
+    """The KITTI devkit's FlowImage::errorImage(F_noc, F_occ, log_colors=true), pixel by pixel
+    (without its 3 x 3 blocks): est, gt (H, W, 2), occ, noc (H, W) bool; RGB (H, W, 3) uint8."""
+    H, W = occ.shape
+    out = np.zeros((H, W, 3), np.uint8)
+    for y in range(H):
+        for x in range(W):
+            if not occ[y, x]:
+                continue
+            dfu, dfv = est[y, x] - gt[y, x]
+            f_err = np.sqrt(dfu * dfu + dfv * dfv)
+            f_mag = np.sqrt(gt[y, x, 0] ** 2 + gt[y, x, 1] ** 2)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                rel = 20.0 * f_err / f_mag
+            n_err = f_err / 3.0 if not rel < f_err / 3.0 else rel  # std::min(a, b): b < a ? b : a
+            val = [0, 0, 0]
+            for lo, hi, r, g, b in _DEVKIT_LC:
+                if lo <= n_err < hi:
+                    val = [r, g, b]
+            if not noc[y, x]:
+                val = [int(c * 0.5) for c in val]
+            out[y, x] = val
+    return out
+
+
+def test_kitti_error_to_color_matches_the_devkit():
+    from fsof_torch.evaluation.visualize import kitti_error_to_color
+
+    g = torch.Generator().manual_seed(5)
+    H, W = 24, 40
+    gt = torch.randn(2, H, W, generator=g, dtype=torch.float64) * 20
+    gt[:, 0, :5] = 0.0  # zero ground truth: n = e / 3
+    # errors from 0.01 px to 100 px, log-uniform, in random directions
+    e = 10 ** (torch.rand(1, H, W, generator=g, dtype=torch.float64) * 4 - 2)
+    angle = torch.rand(1, H, W, generator=g, dtype=torch.float64) * 2 * torch.pi
+    est = gt + e * torch.cat([torch.cos(angle), torch.sin(angle)])
+    est[:, 1, 0] = gt[:, 1, 0] + torch.tensor([3.0, 0.0], dtype=torch.float64)  # e = 3 px: n = 1 where |F| >= 60
+    occ = torch.rand(1, H, W, generator=g) > 0.2
+    noc = occ & (torch.rand(1, H, W, generator=g) > 0.3)
+    got = kitti_error_to_color(est, gt, occ, valid_noc=noc)[0].permute(1, 2, 0).numpy()
+    want = _devkit_error_image(est.permute(1, 2, 0).numpy(), gt.permute(1, 2, 0).numpy(), occ[0].numpy(), noc[0].numpy())
+    np.testing.assert_array_equal(got, want)
+    assert len({tuple(c) for c in got.reshape(-1, 3)}) >= 15  # the test reaches most colours, halved or not
+    # without valid_noc no colour is halved; a (2, H, W) input gets a batch dimension
+    full = kitti_error_to_color(est, gt, occ)
+    want_full = _devkit_error_image(est.permute(1, 2, 0).numpy(), gt.permute(1, 2, 0).numpy(), occ[0].numpy(),
+                                    occ[0].numpy())
+    assert full.shape == (1, 3, H, W) and full.dtype == torch.uint8
+    np.testing.assert_array_equal(full[0].permute(1, 2, 0).numpy(), want_full)
+
+
+def test_kitti_error_to_color_draws_a_non_finite_estimate_as_the_worst_error():
+    """The devkit's NaN error matches no colour and stays black, as an invalid pixel: here a
+    non-finite estimate at a valid pixel is an infinite error, the last colour; huge errors too."""
+    from fsof_torch.evaluation.visualize import KITTI_LOG_COLORS, kitti_error_to_color
+
+    gt = torch.ones(1, 2, 1, 4)
+    est = torch.tensor([float("nan"), float("inf"), 1e30, 1.0]).view(1, 1, 1, 4).expand(1, 2, 1, 4).clone()
+    valid = torch.ones(1, 1, 1, 4, dtype=torch.bool)
+    rgb = kitti_error_to_color(est, gt, valid)[0, :, 0].T.tolist()
+    worst, best = list(KITTI_LOG_COLORS[-1][2:]), list(KITTI_LOG_COLORS[0][2:])
+    assert rgb == [worst, worst, worst, best]
+    valid[..., 0] = False
+    assert kitti_error_to_color(est, gt, valid)[0, :, 0, 0].tolist() == [0, 0, 0]  # invalid: black
+    with pytest.raises(ValueError, match="flow_gt"):
+        kitti_error_to_color(est, torch.full_like(gt, float("nan")), valid)
+    with pytest.raises(TypeError, match="valid_noc"):
+        kitti_error_to_color(est, gt, valid, valid_noc=valid.float())
+    with pytest.raises(ValueError, match="flow_gt"):
+        kitti_error_to_color(est, gt[..., :3], valid)

@@ -8,6 +8,8 @@
 - :func:`error_to_color`: a scalar map (e.g. end-point or photometric error) through an OpenCV
   colour map, from 0 to ``vmax``; pixels without a value in mid grey (:data:`NO_VALUE_RGB`), a
   colour the default map lacks (black would read as inferno's 0).
+- :func:`kitti_error_to_color`: the KITTI devkit's logarithmic flow error colours
+  (``FlowImage::errorImage`` with ``log_colors``): blue below 3 px and 5 %, orange to red above.
 - :func:`overlay_mask`: a mask blended in colour onto an image.
 
 The ``save_*_png`` functions write single images atomically (a temporary file in the same folder,
@@ -31,6 +33,8 @@ __all__ = [
     "make_colorwheel",
     "flow_to_color",
     "error_to_color",
+    "KITTI_LOG_COLORS",
+    "kitti_error_to_color",
     "overlay_mask",
     "save_flow_png",
     "save_error_png",
@@ -212,6 +216,73 @@ def error_to_color(error: Tensor, vmax: float, *, valid: Tensor | None = None,
     rgb = lut[index.squeeze(1)].permute(0, 3, 1, 2)
     no_value = torch.tensor(NO_VALUE_RGB, dtype=torch.uint8, device=error.device).view(1, 3, 1, 1)
     return torch.where(ok, rgb, no_value)
+
+
+#: the KITTI devkit's error colours (``LC`` in its C++ code): (lower, upper, R, G, B) for the
+#: normalised error min(e / 3 px, 20 e / |F_gt|) in [lower, upper); 1 is Fl's outlier threshold
+#: (3 px and 5 %), below it blues, above it oranges and reds
+KITTI_LOG_COLORS = ((0.0, 0.0625, 49, 54, 149), (0.0625, 0.125, 69, 117, 180), (0.125, 0.25, 116, 173, 209),
+                    (0.25, 0.5, 171, 217, 233), (0.5, 1.0, 224, 243, 248), (1.0, 2.0, 254, 224, 144),
+                    (2.0, 4.0, 253, 174, 97), (4.0, 8.0, 244, 109, 67), (8.0, 16.0, 215, 48, 39),
+                    (16.0, float("inf"), 165, 0, 38))
+
+
+def kitti_error_to_color(flow_est: Tensor, flow_gt: Tensor, valid: Tensor, *,
+                         valid_noc: Tensor | None = None) -> Tensor:
+    """The KITTI devkit's error map of a flow in log colours (its ``errorImage`` with
+    ``log_colors``, as on the KITTI flow benchmark's pages).
+
+    Each valid pixel is coloured by n = min(e / 3, 20 e / |F_gt|), e its end-point error in px,
+    through :data:`KITTI_LOG_COLORS` (n below 1, blue: within both of Fl's thresholds, 3 px and
+    5 %); with ``valid_noc``, pixels valid in ``valid`` but not in it (occluded) have their colour
+    halved, as the devkit does with its noc and occ ground truths. A zero ground-truth flow gives
+    n = e / 3 (the devkit's min with 0 / 0 gives the same). Unlike the devkit, each pixel keeps
+    its own colour (it draws each as a 3 x 3 block, the border rows and columns black), an n of
+    1e9 and above is the last colour (the devkit leaves it black), and an estimate that is not
+    finite at a valid pixel is the last colour (an infinite error; the devkit's NaN matched no
+    colour and left it black, a good result's look). Invalid pixels are black, as in the devkit.
+
+    Args:
+        flow_est, flow_gt: (B, 2, H, W) or (2, H, W) px; ``flow_gt`` finite where ``valid``.
+        valid: (B, 1, H, W) or (1, H, W) bool, the ground truth's valid pixels (KITTI's occ).
+        valid_noc: optional, the same shape: the non-occluded ground truth's valid pixels.
+
+    Returns:
+        (B, 3, H, W) uint8 RGB.
+    """
+    check_float_tensor(flow_est, "flow_est")
+    check_float_tensor(flow_gt, "flow_gt")
+    est, gt = _as_batch(flow_est, "flow_est", 2), _as_batch(flow_gt, "flow_gt", 2)
+    dims = check_shape(est, "flow_est", ("B", 2, "H", "W"))
+    check_shape(gt, "flow_gt", ("B", 2, "H", "W"), dims)
+    masks = {}
+    for name, m in (("valid", valid), ("valid_noc", valid_noc)):
+        if m is None:
+            continue
+        if not isinstance(m, Tensor) or m.dtype != torch.bool:
+            raise TypeError(f"{name}: expected a bool tensor, got {getattr(m, 'dtype', type(m).__name__)}")
+        masks[name] = _as_batch(m, name, 1)
+        check_shape(masks[name], name, ("B", 1, "H", "W"), dims)
+    check_same_device({"flow_est": est, "flow_gt": gt, **masks})
+    ok = masks["valid"]
+    zero = torch.zeros((), dtype=torch.float64, device=est.device)
+    g = torch.where(ok, gt.detach().to(torch.float64), zero)
+    check_finite(g, "flow_gt")  # (at its valid pixels: g is 0 elsewhere)
+    e_vec = est.detach().to(torch.float64) - g
+    finite = torch.isfinite(e_vec).all(dim=1, keepdim=True)
+    e_vec = torch.where(finite, e_vec, zero)
+    t = pow2_scale(e_vec[:, :1], e_vec[:, 1:], at_least_one=False)
+    e = torch.linalg.vector_norm(e_vec / t, dim=1, keepdim=True) * t
+    mag = torch.linalg.vector_norm(g, dim=1, keepdim=True)
+    n = torch.where(mag > 0, torch.minimum(e / 3.0, 20.0 * e / torch.where(mag > 0, mag, 1.0)), e / 3.0)
+    n = torch.where(finite, n, torch.full_like(n, float("inf")))
+    lower = torch.tensor([c[0] for c in KITTI_LOG_COLORS], dtype=torch.float64, device=est.device)
+    table = torch.tensor([c[2:] for c in KITTI_LOG_COLORS], dtype=torch.uint8, device=est.device)
+    index = (torch.bucketize(n, lower, right=True) - 1).clamp(0, len(KITTI_LOG_COLORS) - 1)
+    rgb = table[index.squeeze(1)].permute(0, 3, 1, 2)
+    if "valid_noc" in masks:
+        rgb = torch.where(masks["valid_noc"], rgb, rgb // 2)  # (the devkit: uint8 *= 0.5, truncated)
+    return torch.where(ok, rgb, torch.zeros_like(rgb))
 
 
 def overlay_mask(image: Tensor, mask: Tensor, *, color: tuple[int, int, int] = (0, 255, 0),
