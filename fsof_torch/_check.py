@@ -33,7 +33,7 @@ __all__ = [
     "check_mapping", "check_keywords", "check_fit_flags", "check_data_range", "check_image_range",
     "as_batch_param", "resolve_batch", "tracing", "skip_values", "result_dtype", "as_path", "autocast_off",
     "batch_choices", "check_has_values", "check_same_device", "to_device", "as_chw_flow", "inference",
-    "ordinary", "same_mapping",
+    "ordinary", "same_mapping", "summary_repr",
 ]
 
 
@@ -672,3 +672,21 @@ def inference(fn: _F) -> _F:
         return ordinary(out)
 
     return wrapper  # type: ignore[return-value]
+
+
+def summary_repr(obj: Any) -> str:
+    """A dataclass's or NamedTuple's repr on one line, tensors of more than 9 values (or on meta) as
+    their shape and dtype, lists cut at 4 items: torch's repr of a result's flows runs to pages."""
+    items = obj._asdict() if isinstance(obj, tuple) else {f.name: getattr(obj, f.name) for f in dataclasses.fields(obj) if f.repr}
+    return f"{type(obj).__name__}(" + ", ".join(f"{k}={_short(v)}" for k, v in items.items()) + ")"
+
+
+def _short(v: Any) -> str:
+    if isinstance(v, Tensor) and (v.numel() > 9 or v.device.type == "meta"):
+        return f"tensor(shape={tuple(v.shape)}, dtype={v.dtype}" + ("" if v.is_cpu else f", device='{v.device}'") + ")"
+    if isinstance(v, Mapping):
+        return "{" + ", ".join(f"{k!r}: {_short(x)}" for k, x in v.items()) + "}"
+    if type(v) in (list, tuple):
+        inner = ", ".join([_short(x) for x in v[:4]] + ([f"... ({len(v)} items)"] if len(v) > 4 else []))
+        return f"({inner}{',' * (len(v) == 1)})" if type(v) is tuple else f"[{inner}]"
+    return " ".join(repr(v.detach() if isinstance(v, Tensor) else v).split())

@@ -72,3 +72,76 @@ def test_the_flat_module_paths_are_modules_as_the_docstring_lists():
         assert sys.modules[f"fsof_torch.{name}"] is module and getattr(fsof_torch, name) is module, name
     for sub in re.findall(r"``(\w+)``", doc.split("Subpackages:")[1].split(".")[0]):
         assert importlib.import_module(f"fsof_torch.{sub}") is getattr(fsof_torch, sub), sub
+
+
+# -- result objects: repr, equality ----------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def results():
+    """One of each result object, from a batch of 2 rendered pairs at KITTI's width."""
+    import warnings
+
+    import torch
+
+    torch.set_num_threads(1)
+    batch = fsof_torch.collate([fsof_torch.render_pair("default", k, size=(128, 1242)) for k in (1, 2)])
+    flow, road, camera = batch["flow"], batch["road"], batch["camera"]
+    images = (batch["image1"], batch["image2"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = fsof_torch.refine_flow(flow + 0.5, road, camera, images=images)
+        auto = fsof_torch.refine_flow(flow, "auto", camera, images=images)
+        return {
+            "Camera": camera,
+            "RoadFit": fsof_torch.fit_road(flow, road, camera, model="plane"),
+            "RefineOutput": out,
+            "GateResult": out.gate,
+            "RoadDetection": auto.road,
+            "FreespaceDetection": fsof_torch.detect_freespace(flow, camera, mask=road, return_details=True),
+            "VFlowCurve": fsof_torch.fit_vflow_curve(flow, road),
+        }
+
+
+RESULTS = ["Camera", "RoadFit", "RefineOutput", "GateResult", "RoadDetection", "FreespaceDetection", "VFlowCurve"]
+
+
+@pytest.mark.parametrize("name", RESULTS)
+def test_result_reprs_are_short_and_name_their_fields(results, name):
+    """A result's repr lists its fields with the tensors of more than a few values as their shape
+    and dtype (torch's repr of the flows and masks ran to 100-230 lines, 5-15 kB)."""
+    import dataclasses
+
+    obj = results[name]
+    assert type(obj).__name__ == name
+    text = repr(obj)
+    fields = obj._fields if isinstance(obj, tuple) else [f.name for f in dataclasses.fields(obj) if f.repr]
+    assert text.startswith(f"{name}(") and all(f"{k}=" in text for k in fields), text
+    assert len(text) < 2500 and text.count("\n") == 0, text
+    if name == "RoadFit":
+        assert "flow=tensor(shape=(2, 2, 128, 1242), dtype=torch.float32)" in text
+        assert "model='plane'" in text and "success=tensor([True, True])" in text
+
+
+@pytest.mark.parametrize("name", ["RoadFit", "RoadDetection", "FreespaceDetection", "VFlowCurve"])
+def test_result_dataclasses_compare_by_identity_as_cameras_do(results, name):
+    """``==`` on a result holding tensors raised torch's 'Boolean value of Tensor with more than one
+    value is ambiguous', and the results were unhashable; like a Camera they compare by identity."""
+    import copy
+
+    obj = results[name]
+    assert obj == obj and obj != copy.copy(obj) and {obj: 1}[obj] == 1
+
+
+def test_a_sequence_fit_compares_by_identity_and_prints_short(results):
+    import copy
+
+    import torch
+
+    from fsof_torch.estimation.sequence import SequenceFit
+
+    fit = SequenceFit(fits=[results["RoadFit"]] * 6, params={"z_d": torch.ones(6)}, mounting={"roll": 0.0},
+                      camera=results["Camera"], first_pass={}, success=torch.ones(6, dtype=torch.bool),
+                      calibrated_from=6)
+    assert fit == fit and fit != copy.copy(fit) and {fit: 1}[fit] == 1
+    text = repr(fit)
+    assert text.count("RoadFit(") == 4 and "... (6 items)" in text and len(text) < 6000, text

@@ -29,7 +29,7 @@ from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
                       check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, scalar,
-                      to_device)
+                      summary_repr, to_device)
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values, pack_params,
@@ -49,9 +49,9 @@ __all__ = ["RoadFit", "FitResult", "VelocityFitResult", "FlowProblem", "fit_road
 DEFAULT_FIXED = {"paper": ("pitch",), "plane": (), "homography": (), "velocity": ("pitch",)}
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class RoadFit:
-    """A road-motion model fitted to B frames.
+    """A road-motion model fitted to B frames (compared by identity, as a :class:`Camera` is).
 
     Attributes:
         model: the model's name.
@@ -90,6 +90,7 @@ class RoadFit:
     covariance: Tensor | None = None
     cost: Tensor | None = None
     extras: dict[str, Tensor] = field(default_factory=dict)
+    __repr__ = summary_repr
 
     def __getattr__(self, name: str) -> Tensor:
         for store in ("params", "extras"):

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from .._check import (batch_choices, check_bool, check_has_values, check_int, check_keywords, check_mapping,
-                      check_number, result_dtype)
+                      check_number, result_dtype, summary_repr)
 from ..geometry.camera import Camera
 from .combine import where_motion
 from .flow_fit import RoadFit, fit_displacement, fit_road
@@ -32,9 +32,11 @@ CURVE_RESERVED = ("flow", "mask", "model")
 FIT_RESERVED = ("flow", "mask", "camera", "model", "fixed")
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class FreespaceDetection:
     """Everything :func:`detect_freespace` computed on the way (``return_details=True``).
+
+    Compared by identity, as a :class:`Camera` is.
 
     Attributes:
         freespace: (B, 1, H, W) bool, the result.
@@ -56,6 +58,7 @@ class FreespaceDetection:
     curve: VFlowCurve
     fit: object
     success: Tensor
+    __repr__ = summary_repr
 
 
 def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None,

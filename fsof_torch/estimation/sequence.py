@@ -53,7 +53,7 @@ import torch
 from torch import Tensor
 
 from .._check import (check_bool, check_data_range, check_float_tensor, check_has_values, check_image_range, check_names,
-                      option_error, scalar)
+                      option_error, scalar, summary_repr)
 from ..geometry.camera import Camera
 from ..geometry.egomotion import check_pose_steps
 from ..geometry.road_models import RoadModel, get_road_model
@@ -64,9 +64,9 @@ from .initial import planar_start
 __all__ = ["SequenceFit", "fit_sequence", "smooth_attitude"]
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class SequenceFit:
-    """The road motion of a clip.
+    """The road motion of a clip (compared by identity, as a :class:`Camera` is).
 
     Attributes:
         fits: one :class:`~fsof_torch.estimation.flow_fit.RoadFit` per pair (the second pass,
@@ -95,6 +95,7 @@ class SequenceFit:
     first_pass: dict[str, Tensor]
     success: Tensor
     calibrated_from: int
+    __repr__ = summary_repr
 
 
 def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | float,

@@ -29,7 +29,7 @@ import torch
 from torch import Tensor
 
 from .._check import (batch_choices, check_all_finite, check_float_tensor, check_has_values, check_int, check_same_device,
-                      check_shape, inference, is_number, option_error, result_dtype, scalar)
+                      check_shape, inference, is_number, option_error, result_dtype, scalar, summary_repr)
 from ..geometry.camera import Camera
 from .solver import ResidualProblem, solve
 
@@ -276,9 +276,9 @@ def _curve(v: Tensor, a: Tensor, v0: Tensor, model: str) -> tuple[Tensor, Tensor
     return torch.where(ok, f, z), torch.where(ok, da, z), torch.where(ok, dv0, z), ok
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class VFlowCurve:
-    """The fitted eq. 24 curve of a batch of flows.
+    """The fitted eq. 24 curve of a batch of flows (compared by identity, as a :class:`Camera` is).
 
     Attributes:
         model: ``"displacement"`` or ``"velocity"``.
@@ -314,6 +314,7 @@ class VFlowCurve:
     residual: Tensor
     nfa: Tensor
     success: Tensor
+    __repr__ = summary_repr
 
     def scale(self, camera: Camera) -> Tensor:
         """z_d in metres (displacement) or v_r in m/s (velocity) under the camera's h, f_y and

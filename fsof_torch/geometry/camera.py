@@ -35,6 +35,7 @@ from .._check import (
     result_dtype,
     scalar,
     skip_values,
+    summary_repr,
 )
 
 __all__ = ["Camera", "check_camera", "roll_matrix", "pitch_matrix", "mounting_matrix", "read_kitti_calibration",
@@ -131,7 +132,7 @@ def _check_angles(roll: Tensor, pitch: Tensor) -> None:
                              f"{bad[:3].tolist()}")
 
 
-@dataclass(eq=False)
+@dataclass(eq=False, repr=False)
 class Camera:
     """Intrinsics and mounting of a road-facing camera, for B frames.
 
@@ -162,6 +163,7 @@ class Camera:
     height: Tensor | float
     roll: Tensor | float = 0.0
     pitch: Tensor | float = 0.0
+    __repr__ = summary_repr  # (one line: K of a large batch as its shape)
 
     def __post_init__(self) -> None:
         K = self.K

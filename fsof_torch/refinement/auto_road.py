@@ -2,8 +2,7 @@
 
 The road's motion between two frames is a plane-induced homography (DESIGN.md §10). Warped by
 it, image 2 lines up with image 1 on the road and only there: a kerb, a pavement or a grass
-verge a few centimetres higher moves by a little more, a car or a wall by much more. The
-detection:
+verge a few centimetres higher moves by a little more, a car or a wall by much more. The detection:
 
 1. **Seed.** A conservative band of road in front of the vehicle, from the geometry alone: the
    ground points within ``seed_width_m / 2`` of the camera's axis and nearer than
@@ -54,7 +53,7 @@ from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_data_range, check_float_tensor,
                       check_has_values, check_image_pair, check_image_range, check_shape, check_size, host_path,
-                      inference, is_number, option_error, scalar, skip_values)
+                      inference, is_number, option_error, scalar, skip_values, summary_repr)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -111,9 +110,9 @@ _NOISE_GRADIENT = _noise_gradient(_SIGMA)
 _BORDER = 4
 
 
-@dataclass
+@dataclass(eq=False, repr=False)
 class RoadDetection:
-    """What :func:`detect_road` found, per sample.
+    """What :func:`detect_road` found, per sample (compared by identity, as a :class:`Camera` is).
 
     Attributes:
         mask: (B, 1, H, W) bool, the road. Flagged samples keep the mask found (possibly empty)
@@ -147,6 +146,7 @@ class RoadDetection:
     height: Tensor
     level: int
     stats: dict[str, Tensor] = field(default_factory=dict)
+    __repr__ = summary_repr
 
     @property
     def usable_mask(self) -> Tensor:

@@ -36,7 +36,7 @@ from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
                       check_size, is_number, known_finite, scalar, known_images, option_error, result_dtype, skip_values,
-                      to_device, tracing)
+                      summary_repr, to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.flow_fit import RoadFit
 from ..estimation.robust import check_scale
@@ -100,6 +100,7 @@ class RefineOutput(NamedTuple):
     model: str = "paper"
     gate: Any = None
     road: Any = None
+    __repr__ = summary_repr  # (one line, tensors as their shapes)
 
 
 # -- plain functions --------------------------------------------------------------------------

@@ -56,7 +56,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (check_float_tensor, check_has_values, check_image_pair, check_int, check_mask, check_number,
-                      check_shape, inference)
+                      check_shape, inference, summary_repr)
 from ..estimation.sampling import MaskPoints, sample_mask
 from ..evaluation.census import CONTRAST, RING, census_ring_distance, census_ring_distances
 from ..evaluation.photometric import to_grey
@@ -104,6 +104,7 @@ class GateResult(NamedTuple):
     confirmed: Tensor
     informative: Tensor
     textured: Tensor
+    __repr__ = summary_repr  # (one line, tensors as their shapes)
 
 
 def _sum_by(index: Tensor, v: Tensor, n: int) -> Tensor:
