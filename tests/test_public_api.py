@@ -145,3 +145,8 @@ def test_a_sequence_fit_compares_by_identity_and_prints_short(results):
     assert fit == fit and fit != copy.copy(fit) and {fit: 1}[fit] == 1
     text = repr(fit)
     assert text.count("RoadFit(") == 4 and "... (6 items)" in text and len(text) < 6000, text
+
+def test_road_model_repr_leaves_out_its_private_map():
+    assert repr(fsof_torch.ROAD_MODELS["paper"]) == (
+        "RoadModel(name='paper', params=('x_d', 'z_d', 'yaw', 'roll', 'pitch'), units=('m', 'm', 'rad', 'rad', 'rad'), "
+        "mounting=('roll', 'pitch'), velocity=False)")

@@ -48,7 +48,7 @@ Example:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
 import torch
@@ -332,7 +332,7 @@ class RoadModel:
     units: tuple[str, ...]
     mounting: tuple[str, ...]
     velocity: bool
-    _fn: object
+    _fn: object = field(repr=False)
 
     def matrix(self, camera: Camera, values: Tensor) -> Tensor:
         """The map (B, 3, 3) for values (B, P) (columns in ``params`` order; camera and values of
