@@ -150,3 +150,10 @@ def test_road_model_repr_leaves_out_its_private_map():
     assert repr(fsof_torch.ROAD_MODELS["paper"]) == (
         "RoadModel(name='paper', params=('x_d', 'z_d', 'yaw', 'roll', 'pitch'), units=('m', 'm', 'rad', 'rad', 'rad'), "
         "mounting=('roll', 'pitch'), velocity=False)")
+
+def test_module_reprs_show_their_options():
+    """CompositeLoss showed no weights (nor its function terms), TinyRAFT not its iterations."""
+    loss = fsof_torch.CompositeLoss({"u": (1.0, fsof_torch.UnsupervisedFlowLoss()), "x": (0.5, len),
+                                     "f": (0.1, fsof_torch.FreespaceFlowLoss())})
+    assert repr(loss).splitlines()[1] == "  weights={'u': 1.0, 'x': 0.5, 'f': 0.1}, functions={'x': len}"
+    assert repr(fsof_torch.TinyRAFT(iters=2, corr_radius=2)).splitlines()[1] == "  iters=2, corr_levels=3, corr_radius=2"

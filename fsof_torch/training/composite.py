@@ -82,6 +82,11 @@ class CompositeLoss(nn.Module):
             modules[key] = term
         self.terms = nn.ModuleDict(modules)
 
+    def extra_repr(self) -> str:
+        # (the weights, and the terms that are functions, not submodules: else not shown)
+        functions = ", ".join(f"{k!r}: {getattr(f, '__qualname__', f)!s}" for k, f in self._functions.items())
+        return f"weights={self.weights!r}" + (f", functions={{{functions}}}" if functions else "")
+
     def _term(self, name: str):
         return self.terms[self._keys[name]] if name in self._keys else self._functions[name]
 

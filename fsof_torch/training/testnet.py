@@ -240,6 +240,9 @@ class TinyRAFT(nn.Module):
         if device.type != "cpu":
             self.to(device)
 
+    def extra_repr(self) -> str:
+        return f"iters={self.iters}, corr_levels={self.corr_levels}, corr_radius={self.corr_radius}"
+
     def forward(self, image1: Tensor, image2: Tensor, iters: int | None = None, *,
                 final_only: bool = False) -> list[Tensor]:
         """Flow from ``image1`` to ``image2``.
