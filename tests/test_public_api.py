@@ -146,10 +146,32 @@ def test_a_sequence_fit_compares_by_identity_and_prints_short(results):
     text = repr(fit)
     assert text.count("RoadFit(") == 4 and "... (6 items)" in text and len(text) < 6000, text
 
+
 def test_road_model_repr_leaves_out_its_private_map():
     assert repr(fsof_torch.ROAD_MODELS["paper"]) == (
         "RoadModel(name='paper', params=('x_d', 'z_d', 'yaw', 'roll', 'pitch'), units=('m', 'm', 'rad', 'rad', 'rad'), "
         "mounting=('roll', 'pitch'), velocity=False)")
+
+
+def test_public_classes_document_their_methods_and_properties():
+    """``help(fs.Camera.fx)``, ``help(fs.FreespaceRefiner.forward)`` and the like rendered no
+    text: the properties of Camera, the modules' ``forward`` and the accumulator's counters had none."""
+    import inspect
+    import pydoc
+
+    missing = []
+    for name in fsof_torch.__all__:
+        obj = getattr(fsof_torch, name)
+        if not inspect.isclass(obj):
+            continue
+        for attr, value in vars(obj).items():
+            if attr.startswith("_") or attr == "extra_repr" or not (callable(value) or isinstance(value, property)):
+                continue
+            if not (getattr(value, "__doc__", None) or "").strip():
+                missing.append(f"{name}.{attr}")
+        assert obj.__name__ in pydoc.render_doc(obj, renderer=pydoc.plaintext), name
+    assert missing == []
+
 
 def test_module_reprs_show_their_options():
     """CompositeLoss showed no weights (nor its function terms), TinyRAFT not its iterations."""

@@ -361,13 +361,16 @@ class FlowMetricAccumulator:
 
     @property
     def n_pixels(self) -> int:
+        """Pixels counted so far (what ``compute("pixels")`` averages over)."""
         return int(self.state[len(_MAPS)])
 
     @property
     def n_images(self) -> int:
+        """Images with at least one counted pixel so far (what ``compute("images")`` averages over)."""
         return int(self.state[-1])
 
     def reset(self) -> None:
+        """Forget every update (the sums back to 0, on the same device)."""
         self.state = torch.zeros_like(self.state)
 
     def update(self, flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = None,
@@ -431,6 +434,7 @@ class FlowMetricAccumulator:
         return out
 
     def state_dict(self) -> dict[str, Tensor]:
+        """``{"state": tensor}``, a copy of the running sums, for :meth:`load_state_dict`."""
         return {"state": self.state.clone()}
 
     def load_state_dict(self, state: dict[str, Tensor]) -> None:

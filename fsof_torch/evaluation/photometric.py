@@ -442,6 +442,7 @@ class PhotometricError(nn.Module):
 
     def forward(self, image1: Tensor, image2: Tensor, flow: Tensor, mask: Tensor | None = None,
                 *, return_count: bool = False) -> Tensor | tuple[Tensor, Tensor]:
+        """(B,) mean error of image 2 warped by ``flow`` (B, 2, H, W) px against image 1 (B, C, H, W): :func:`photometric_error`."""
         return photometric_error(image1, image2, flow, mask, kind=self.kind,
                                  data_range=self.data_range, window=self.window,
                                  census_radius=self.census_radius, align_corners=self.align_corners,

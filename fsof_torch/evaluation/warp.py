@@ -219,6 +219,7 @@ class WarpBackward(nn.Module):
         self.padding_mode = padding_mode
 
     def forward(self, image: Tensor, flow: Tensor) -> tuple[Tensor, Tensor]:
+        """``image`` (B, C, H, W) sampled at p + ``flow`` (B, 2, H, W) px: ``(warped, in_bounds)``, :func:`warp_backward`."""
         return warp_backward(image, flow, align_corners=self.align_corners, mode=self.mode,
                              padding_mode=self.padding_mode)
 

@@ -207,30 +207,37 @@ class Camera:
     # -- derived quantities -------------------------------------------------------------
     @property
     def batch_size(self) -> int:
+        """B, the number of frames."""
         return self.K.shape[0]
 
     @property
     def dtype(self) -> torch.dtype:
+        """The float dtype of all four fields."""
         return self.K.dtype
 
     @property
     def device(self) -> torch.device:
+        """The device of all four fields."""
         return self.K.device
 
     @property
     def fx(self) -> Tensor:
+        """(B,) the horizontal focal length f_x, pixels."""
         return self.K[:, 0, 0]
 
     @property
     def fy(self) -> Tensor:
+        """(B,) the vertical focal length f_y, pixels."""
         return self.K[:, 1, 1]
 
     @property
     def cx(self) -> Tensor:
+        """(B,) the principal point's column c_x, pixels."""
         return self.K[:, 0, 2]
 
     @property
     def cy(self) -> Tensor:
+        """(B,) the principal point's row c_y, pixels."""
         return self.K[:, 1, 2]
 
     def K_inv(self) -> Tensor:

@@ -363,6 +363,7 @@ class RoadFlow(nn.Module):
         self.model = get_road_model(model).name
 
     def forward(self, camera: Camera, params: Mapping[str, Tensor | float] | None = None) -> tuple[Tensor, Tensor]:
+        """``(flow (B, 2, H, W), valid (B, 1, H, W) bool)`` of the model for ``params``: :func:`road_flow`."""
         return road_flow(camera, params, self.size, model=self.model)
 
     def extra_repr(self) -> str:
@@ -384,6 +385,7 @@ class DisplacementFlow(nn.Module):
 
     def forward(self, camera: Camera, x_d: Tensor | float, z_d: Tensor | float,
                 yaw: Tensor | float) -> tuple[Tensor, Tensor]:
+        """``(flow (B, 2, H, W) px, valid (B, 1, H, W) bool)`` for x_d, z_d (m) and yaw (rad): :func:`displacement_flow`."""
         return displacement_flow(camera, x_d, z_d, yaw, self.size)
 
     def extra_repr(self) -> str:
@@ -419,6 +421,7 @@ class VelocityFlow(nn.Module):
 
     def forward(self, camera: Camera, speed: Tensor | float,
                 steering: Tensor | float) -> tuple[Tensor, Tensor]:
+        """``(flow (B, 2, H, W) px/s, valid (B, 1, H, W) bool)`` for speed (m/s), steering (rad): :func:`velocity_flow`."""
         return velocity_flow(camera, speed, steering, self.wheelbase, self.size)
 
     def extra_repr(self) -> str:

@@ -379,6 +379,7 @@ class RoadModel:
             return n.transpose(-1, -2) @ camera.K_inv().to(values)
 
     def index(self, name: str) -> int:
+        """The column of parameter ``name`` in a (B, P) value tensor (ValueError for another name)."""
         return self.params.index(name)
 
 

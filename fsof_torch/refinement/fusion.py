@@ -681,6 +681,7 @@ class FreespaceRefiner(nn.Module):
 
     def forward(self, flow: Any, mask: Tensor | str, camera: Camera, odometry: object = None, *,
                 images: tuple[Tensor, Tensor] | None = None, starts: tuple = ()) -> RefineOutput:
+        """Refine ``flow`` ((B, 2, H, W) px, or a network's output) inside ``mask`` (B, 1, H, W) bool: :func:`refine_flow`."""
         return refine_flow(flow, mask, camera, odometry, images=images, starts=starts, **self.refine_options())
 
     def refine_options(self) -> dict[str, Any]:

@@ -113,6 +113,7 @@ class FreespaceRefined(nn.Module):
 
     def forward(self, *inputs: Any, camera: Camera, mask: Tensor | None = None, odometry: object = None,
                 return_info: bool = False, **kw: Any):
+        """The network's output for ``image1, image2`` (B, 3, H, W), its forward flows refined (see the class)."""
         ptlflow = len(inputs) == 1 and is_ptlflow_inputs(inputs[0])
         if ptlflow:
             net_inputs = dict(inputs[0])

@@ -92,6 +92,7 @@ class CompositeLoss(nn.Module):
 
     def forward(self, flows: Tensor | Sequence[Tensor], inputs: Mapping[str, object] | None = None,
                 **more: object) -> tuple[Tensor, dict[str, Tensor]]:
+        """``(total, {name: value})`` of the terms on ``flows`` and the named inputs (see the class)."""
         if inputs is not None and not isinstance(inputs, Mapping):
             raise TypeError(f"inputs: expected None or a mapping of named inputs (a batch dict), "
                             f"got {type(inputs).__name__}")

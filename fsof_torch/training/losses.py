@@ -648,6 +648,7 @@ class UnsupervisedFlowLoss(nn.Module):
 
     def forward(self, flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor,
                 flows_backward: Tensor | Sequence[Tensor] | None = None) -> Tensor:
+        """The loss of ``flows`` ((B, 2, H, W) px, or a list) on ``image1, image2`` (B, C, H, W): :func:`unsupervised_flow_loss`."""
         return unsupervised_flow_loss(flows, image1, image2, flows_backward=flows_backward, **self.options)
 
     def extra_repr(self) -> str:
@@ -687,6 +688,7 @@ class FreespaceFlowLoss(nn.Module):
 
     def forward(self, flows: Tensor | Sequence[Tensor], road: Tensor, camera: Camera,
                 odometry: Mapping[str, object] | None = None) -> Tensor:
+        """The loss of ``flows`` ((B, 2, H, W) px, or a list) against the road model in ``road`` (B, 1, H, W) bool."""
         if self.mode == "fit":
             odometry = "fit"
         elif odometry is None:
