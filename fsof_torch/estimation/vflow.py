@@ -28,9 +28,10 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from .._check import (batch_choices, check_all_finite, check_float_tensor, check_has_values, check_int, check_same_device,
+from .._check import (batch_choices, check_float_tensor, check_has_values, check_int, check_same_device,
                       check_shape, inference, is_number, option_error, result_dtype, scalar, summary_repr)
 from ..geometry.camera import Camera
+from ..geometry.road_flow import curve_arguments
 from .solver import ResidualProblem, solve
 
 __all__ = [
@@ -236,26 +237,7 @@ def vflow_curve_model(v: Tensor, a: Tensor, v0: Tensor, model: str = "displaceme
     """
     if model not in _MODELS:
         raise ValueError(f"model: expected one of {_MODELS}, got {model!r}")
-    named = {"v": v, "a": a, "v0": v0}
-    floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
-    dtype = result_dtype(*floats) if floats else torch.get_default_dtype()
-    device = next((x.device for x in named.values() if isinstance(x, Tensor)), None)
-    args = {}
-    for name, x in named.items():
-        if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):
-            raise TypeError(f"{name}: expected a real tensor or number, got dtype {x.dtype}")
-        if isinstance(x, (bool, str, bytes)) or x is None:
-            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}")
-        try:
-            args[name] = torch.as_tensor(x, dtype=dtype, device=x.device if isinstance(x, Tensor) else device)
-        except (TypeError, ValueError, RuntimeError):
-            raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
-    check_all_finite(args)
-    try:
-        torch.broadcast_shapes(*(t.shape for t in args.values()))
-    except RuntimeError:  # (torch's own error names no argument)
-        shapes = ", ".join(f"{n} {tuple(t.shape)}" for n, t in args.items())
-        raise ValueError(f"v, a, v0: expected shapes that broadcast together, got {shapes}") from None
+    args = curve_arguments({"v": v, "a": a, "v0": v0})
     return _curve(args["v"], args["a"], args["v0"], model)[0]
 
 

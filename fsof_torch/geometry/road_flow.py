@@ -55,6 +55,7 @@ __all__ = [
     "velocity_flow_straight",
     "velocity_flow_straight_level",
     "vflow_curve",
+    "curve_arguments",
     "pixel_grid",
 ]
 
@@ -540,7 +541,22 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
     finite, ``height`` and ``fy`` positive: else a ValueError naming the argument (a NaN row or a negative height would read as "no road flow" there; the values are
     not checked while tracing).
     """
-    named = {"v": v, "z_d": z_d, "height": height, "fy": fy, "cy": cy}
+    args = curve_arguments({"v": v, "z_d": z_d, "height": height, "fy": fy, "cy": cy})
+    check_positive(args["height"], "height")
+    check_positive(args["fy"], "fy")
+    dv = args["v"] - args["cy"]
+    den = args["height"] * args["fy"] - args["z_d"] * dv
+    ok = (dv > 0) & (den > 0)
+    out = args["z_d"] * dv * dv / torch.where(ok, den, torch.ones_like(den))
+    return torch.where(ok, out, torch.zeros_like(out))
+
+
+def curve_arguments(named: dict[str, object]) -> dict[str, Tensor]:
+    """The arguments of a curve of the row (name -> a tensor, a number or a sequence of numbers) as
+    tensors of their promoted float dtype, half precision lifted to float32 (the default dtype
+    where none is a float tensor), each on its own device (numbers on the first tensor's). A bool,
+    complex, string or None argument is a TypeError naming it; a NaN or inf value, or shapes that
+    do not broadcast together, a ValueError (values not checked while tracing)."""
     floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
     dtype = result_dtype(*floats) if floats else torch.get_default_dtype()
     device = next((x.device for x in named.values() if isinstance(x, Tensor)), None)
@@ -548,22 +564,16 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
     for name, x in named.items():
         if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):
             raise TypeError(f"{name}: expected a real tensor or number, got dtype {x.dtype}")
-        if isinstance(x, bool) or isinstance(x, (str, bytes)) or x is None:
+        if isinstance(x, (bool, str, bytes)) or x is None:
             raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}")
         try:
-            args[name] = torch.as_tensor(x, dtype=dtype, device=device if not isinstance(x, Tensor) else x.device)
+            args[name] = torch.as_tensor(x, dtype=dtype, device=x.device if isinstance(x, Tensor) else device)
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"{name}: expected a tensor or a number, got {type(x).__name__} {x!r:.60}") from None
     check_all_finite(args)
-    check_positive(args["height"], "height")
-    check_positive(args["fy"], "fy")
     try:
         torch.broadcast_shapes(*(t.shape for t in args.values()))
     except RuntimeError:  # (torch's own error names no argument)
         shapes = ", ".join(f"{n} {tuple(t.shape)}" for n, t in args.items())
-        raise ValueError(f"v, z_d, height, fy, cy: expected shapes that broadcast together, got {shapes}") from None
-    dv = args["v"] - args["cy"]
-    den = args["height"] * args["fy"] - args["z_d"] * dv
-    ok = (dv > 0) & (den > 0)
-    out = args["z_d"] * dv * dv / torch.where(ok, den, torch.ones_like(den))
-    return torch.where(ok, out, torch.zeros_like(out))
+        raise ValueError(f"{', '.join(named)}: expected shapes that broadcast together, got {shapes}") from None
+    return args
