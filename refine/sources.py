@@ -127,9 +127,10 @@ def _load_failure(err: Exception, path: Path, option: str) -> str:
             f"({type(err).__name__}: {detail})")
 
 
-def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
+def build_user_net(spec: NetSpec) -> tuple[nn.Module, str, bool]:
     """Import ``module:callable``, call it, check what it returns; load the checkpoint. Returns
-    the network in eval mode and the contract it follows."""
+    the network in eval mode, the contract it follows, and whether that contract was guessed
+    from its one-argument forward alone (:func:`_contract`)."""
     module_name, sep, attr = spec.factory.partition(":")
     if not sep or not module_name or not attr:
         raise JobError(f"--net: expected module:callable such as mypkg.models:make_raft, got {spec.factory!r}")
@@ -170,39 +171,33 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str]:
                        f"hold no values (shapes only); " + ("give them in --checkpoint" if spec.checkpoint is None
                                                              else "--checkpoint does not give them"))
     net.eval()
-    return net, _contract(net, spec)
+    return (net, *_contract(net, spec))
 
 
-def _contract(net: nn.Module, spec: NetSpec) -> str:
+def _contract(net: nn.Module, spec: NetSpec) -> tuple[str, bool]:
     """The contract a network follows: the option's, else the class's ``flow_contract``
-    attribute, else its package (ptlflow, torchvision), else a one-argument forward (ptlflow's)."""
+    attribute, else its package (ptlflow, torchvision), else a one-argument forward (ptlflow's);
+    and whether it was guessed from that forward alone."""
     if spec.contract != "auto":
-        return spec.contract
+        return spec.contract, False
     declared = getattr(net, "flow_contract", None)
     if declared in CONTRACTS[1:]:
-        return declared
+        return declared, False
     if declared is not None:  # (a misspelt contract would otherwise be guessed from the forward)
         raise JobError(f"--net-contract: {type(net).__name__}.flow_contract is {declared!r}; expected one of "
                        f"{', '.join(CONTRACTS[1:])} (or give --net-contract)")
     package = type(net).__module__.split(".")[0]
     if package in ("ptlflow", "torchvision"):
-        return package
+        return package, False
     try:
         params = [p for p in inspect.signature(net.forward).parameters.values()
                   if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty]
     except (TypeError, ValueError):
         params = []
     if len(params) == 1:
-        return "ptlflow"
+        return "ptlflow", True
     raise JobError(f"--net-contract: cannot tell how to call {type(net).__name__} (forward takes "
                    f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
-
-
-def _guessed(net: nn.Module, spec: NetSpec) -> bool:
-    """Whether :func:`_contract` took ptlflow's contract from the network's one-argument forward
-    alone (no option, no ``flow_contract``, not a ptlflow network)."""
-    return (spec.contract == "auto" and getattr(net, "flow_contract", None) is None
-            and type(net).__module__.split(".")[0] not in ("ptlflow", "torchvision"))
 
 
 def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor, *,
@@ -282,11 +277,11 @@ def make_source(name: str, *, weights: Path | None = None, net: NetSpec | None =
     if name == "net":
         if net is None:
             raise JobError("--source net needs --net module:callable")
-        model, contract = build_user_net(net)
+        model, contract, guessed = build_user_net(net)
         model.to(device)
         hint = ("; the contract was guessed from its one-argument forward: give --net-contract, or call "
                 "a network of another input (ARFlow's pair concatenated) through an adapter (docs/contracts.md)"
-                if _guessed(model, net) else "")
+                if guessed else "")
         return lambda pair, _file: net_flow(model, contract, pair["image1"], pair["image2"], hint=hint)
     if name == "files":
         from fsof_torch import read_flow

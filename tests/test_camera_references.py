@@ -33,7 +33,7 @@ def test_scaled_puts_a_point_where_resizing_moves_it(size):
     INTER_LINEAR up) and by torch (bilinear, align_corners=False, antialias): its centre lands
     where the scaled camera projects the point (the box filter keeps a blob's centroid under the
     pixel-centre map u' + 0.5 = s (u + 0.5))."""
-    cv2 = pytest.importorskip("cv2")
+    import cv2
     H, W = 200, 320
     K = torch.tensor(K_ODD, dtype=torch.float64)
     X = torch.tensor([0.3, 0.2, 5.0], dtype=torch.float64)
@@ -109,7 +109,7 @@ def test_road_flow_is_kornias_projection_of_the_moved_road_point(motion):
     R_roll R_pitch vehicle); the point moves as p' = R_v (p - d) and kornia projects it: the flow
     is that displacement, and valid exactly where the point is in front of both cameras. (kornia's
     projection reads f_x, f_y, c_x, c_y and ignores a skew: the camera here has none.)"""
-    kornia_camera = pytest.importorskip("kornia.geometry.camera")
+    import kornia.geometry.camera as kornia_camera
     K = torch.tensor([[300.0, 0.0, 161.3], [0.0, 280.0, 97.7], [0.0, 0.0, 1.0]], dtype=torch.float64)
     h, roll, pitch = 1.4, 0.05, -0.08
     cam = Camera(K, h, roll, pitch)

@@ -350,9 +350,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     for name, f in flows:
         if f.shape[0] != B:
             raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
-    if odometry is not None:  # (a motion no refinement takes raises first, by name; its values before mask="auto"'s detection)
-        road_motion_batch(odometry, B, result_dtype(finest), finest.device, displacement=True) if isinstance(mask, str) \
-            else road_motion(odometry, displacement=True)
+    if odometry is not None and isinstance(mask, str):
+        # (a motion no refinement takes, or absurd values, raise before mask="auto"'s detection)
+        road_motion_batch(odometry, B, result_dtype(finest), finest.device, displacement=True)
+    elif odometry is not None:  # (its kind first, by name; its values where the batch is made below)
+        road_motion(odometry, displacement=True)
     if isinstance(mask, str):  # "auto": the road found in the images (the detection's motion reused)
         images = refiner_images(images, finest)
         if mask == "auto":  # (the detection reads the flow and the images: no shape inference on meta)
