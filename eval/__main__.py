@@ -29,11 +29,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 #: the exit status of a run stopped by Ctrl-C (KeyboardInterrupt): 128 + SIGINT, as a shell reports it
 INTERRUPTED = 130
+#: the exit status of a run whose stdout's reader went away (``| head``): Python's own on EPIPE
+STDOUT_CLOSED = 1
 
 
 def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
-    says so, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
+    says so or stdout was closed by its reader, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
     than exiting."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
@@ -43,6 +45,15 @@ def main(argv: list[str] | None = None) -> int:
         name = f"eval {argv[0]}" if argv and argv[0] in SUBCOMMANDS else "eval"
         print(f"{name}: interrupted; the files written so far are kept, each one whole", file=sys.stderr)
         return INTERRUPTED
+    except BrokenPipeError:
+        # (each subcommand prints its results after writing its files)
+        from fsof_torch.io.progress import silence_stdout
+
+        silence_stdout()
+        name = f"eval {argv[0]}" if argv and argv[0] in SUBCOMMANDS else "eval"
+        print(f"{name}: stdout was closed by its reader (a broken pipe); the files written so far are kept, "
+              f"each one whole", file=sys.stderr)
+        return STDOUT_CLOSED
 
 
 def _main(argv: list[str]) -> int:

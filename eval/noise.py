@@ -227,18 +227,7 @@ def run(args: argparse.Namespace) -> int:
     pose = pose_estimation_experiment(pose_sigmas, trials=trials, size=pose_size, seed=args.seed,
                                       progress=not args.no_progress)
 
-    print("\nFit of the displacement model to noisy ground-truth flow (errors vs the clean GT)")
-    print(format_table(robust_rows, [("scenario", "scenario", "s"), ("speed", "speed", "s"), ("sigma", "σ px", ".4f"),
-                                     ("e_E", "e_E px", ".2e"), ("e_A", "e_A rad", ".2e"),
-                                     ("e_E_vs_noisy", "e_E vs noisy", ".3f"), ("z_d_abs_error_m", "|z_d err| m", ".2e"),
-                                     ("n_pixels", "pixels", "d")]))
     pose_rows = pose.rows()
-    print(f"\nPose from noisy flow ({trials} random poses per σ, {int(pose.num_pixels)} road pixels, "
-          f"{pose_size[0]}x{pose_size[1]}); the paper (PSO): < 0.07 m, < 0.3°")
-    print(format_table(pose_rows, [("sigma", "σ px", ".2f"), ("translation_error_m", "‖d err‖ m", ".2e"),
-                                   ("x_error_m", "|x_d err| m", ".2e"), ("z_error_m", "|z_d err| m", ".2e"),
-                                   ("yaw_error_deg", "|yaw err| deg", ".2e"), ("success_rate", "success", ".2f")]))
-
     args.out.mkdir(parents=True, exist_ok=True)
     files = {}
     if not args.no_plots:
@@ -255,5 +244,17 @@ def run(args: argparse.Namespace) -> int:
               "files": {k: str(v) for k, v in files.items()}}
     json_path = args.json if args.json is not None else args.out / "noise.json"
     write_json(make_parent(json_path), result)
+    # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
+    print("\nFit of the displacement model to noisy ground-truth flow (errors vs the clean GT)")
+    print(format_table(robust_rows, [("scenario", "scenario", "s"), ("speed", "speed", "s"), ("sigma", "σ px", ".4f"),
+                                     ("e_E", "e_E px", ".2e"), ("e_A", "e_A rad", ".2e"),
+                                     ("e_E_vs_noisy", "e_E vs noisy", ".3f"), ("z_d_abs_error_m", "|z_d err| m", ".2e"),
+                                     ("n_pixels", "pixels", "d")]))
+    print(f"\nPose from noisy flow ({trials} random poses per σ, {int(pose.num_pixels)} road pixels, "
+          f"{pose_size[0]}x{pose_size[1]}); the paper (PSO): < 0.07 m, < 0.3°")
+    print(format_table(pose_rows, [("sigma", "σ px", ".2f"), ("translation_error_m", "‖d err‖ m", ".2e"),
+                                   ("x_error_m", "|x_d err| m", ".2e"), ("z_error_m", "|z_d err| m", ".2e"),
+                                   ("yaw_error_deg", "|yaw err| deg", ".2e"), ("success_rate", "success", ".2f")]))
+
     print(f"\nwrote {json_path}" + "".join(f", {p}" for p in files.values()))
     return 0

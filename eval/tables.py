@@ -363,17 +363,19 @@ def run(args: argparse.Namespace) -> int:
     sections = [("cvc12", "CVC12-like (displacement model, e_A rad, e_E px)", CVC_COLUMNS),
                 ("carla", "CARLA-like (velocity model, flow in px/s)", CARLA_COLUMNS),
                 ("kitti", f"Real KITTI ({kitti_folder.name}, GT inside road.json)", KITTI_COLUMNS)]
-    for key, title, columns in sections:
-        if key not in result:
-            continue
-        print(f"\n{title}\n" + format_table(result[key], columns))
+    shown = [(key, title, columns) for key, title, columns in sections if key in result]
+    for key, title, columns in shown:
         md += [f"## {title}", "", markdown_table(result[key], columns), ""]
         if key == "kitti":
-            print(KITTI_PAPER_NOTE)
             md += [KITTI_PAPER_NOTE, ""]
     args.out.mkdir(parents=True, exist_ok=True)
     json_path = args.json if args.json is not None else args.out / "tables.json"
     write_json(make_parent(json_path), result)
     write_text(args.out / "tables.md", "\n".join(md))
+    # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
+    for key, title, columns in shown:
+        print(f"\n{title}\n" + format_table(result[key], columns))
+        if key == "kitti":
+            print(KITTI_PAPER_NOTE)
     print(f"\nwrote {json_path} and {args.out / 'tables.md'}")
     return 0

@@ -491,23 +491,6 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     change = {region: None if None in (base[region]["e_E"], free[region]["e_E"])
               else (free[region]["e_E"] - base[region]["e_E"]) / max(base[region]["e_E"], 1e-12)
               for region in ("road", "non_road", "all")}
-    print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
-          f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
-          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + HELD_OUT})"
-          + (f"; {ranks.world_size} processes (DDP)" if ranks.distributed else ""))
-    print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
-    for name, m in results.items():
-        print(_row(name, m))
-    percent = {region: _cell(value, spec, 100) + ("%" if value is not None else " ")
-               for (region, value), spec in zip(change.items(), (">+8.1f", ">+12.1f", ">+7.1f"))}
-    print(f"{'change with freespace':<22} {percent['road']} {percent['non_road']} {percent['all']}")
-    print("photometric error of image 1 against image 2 warped by the estimate (census distance, "
-          "SSIM dissimilarity, L1 on 0-255; lower is better; L1 alone rewards a flow bent to match brightness):")
-    print(f"{'run':<22} {'road census':>11} {'road SSIM':>9} {'road L1':>8} {'all census':>11} {'all SSIM':>9} {'all L1':>8}")
-    for name, m in results.items():
-        print(_photometric_row(name, m))
-    print(f"render {render_s:.1f} s; training " + ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in logs.items()))
-
     report = {
         "options": {k: (list(v) if isinstance(v, tuple) else str(v) if isinstance(v, Path) else v)
                     for k, v in vars(args).items()},
@@ -525,6 +508,23 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
         for name, net in nets.items():
             with atomic_path(args.out / _net_file(name)) as tmp:
                 torch.save(net.state_dict(), tmp)
+    # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
+    print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
+          f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "
+          f"{size[0]}x{size[1]}; held-out: {args.test_pairs} pairs (seed {args.seed + HELD_OUT})"
+          + (f"; {ranks.world_size} processes (DDP)" if ranks.distributed else ""))
+    print(f"{'run':<22} {'road EPE':>9} {'non-road EPE':>13} {'all EPE':>8} {'road Fl%':>9} {'non-road Fl%':>13}")
+    for name, m in results.items():
+        print(_row(name, m))
+    percent = {region: _cell(value, spec, 100) + ("%" if value is not None else " ")
+               for (region, value), spec in zip(change.items(), (">+8.1f", ">+12.1f", ">+7.1f"))}
+    print(f"{'change with freespace':<22} {percent['road']} {percent['non_road']} {percent['all']}")
+    print("photometric error of image 1 against image 2 warped by the estimate (census distance, "
+          "SSIM dissimilarity, L1 on 0-255; lower is better; L1 alone rewards a flow bent to match brightness):")
+    print(f"{'run':<22} {'road census':>11} {'road SSIM':>9} {'road L1':>8} {'all census':>11} {'all SSIM':>9} {'all L1':>8}")
+    for name, m in results.items():
+        print(_photometric_row(name, m))
+    print(f"render {render_s:.1f} s; training " + ", ".join(f"{k} {v['seconds']:.1f} s" for k, v in logs.items()))
     return 0
 
 

@@ -63,8 +63,8 @@ def build_parser() -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog="python -m refine", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-        epilog="Exit status: 0 done, 2 bad or missing input (with a message naming the option), 130 "
-               "interrupted (Ctrl-C). An "
+        epilog="Exit status: 0 done, 1 stdout closed by its reader (| head: the report is written), 2 bad "
+               "or missing input (with a message naming the option), 130 interrupted (Ctrl-C). An "
                "interrupted run resumes: pairs finished by a run of the same inputs and options are "
                "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
                "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
@@ -655,8 +655,13 @@ def _fit_clip(specs, camera, cfg, built: dict, device, *, needed_by: str, poses_
 INTERRUPTED = 130
 
 
+#: the exit status of a run whose stdout's reader went away (``| head``): Python's own on EPIPE
+STDOUT_CLOSED = 1
+
+
 def main(argv: list[str] | None = None) -> int:
-    """The job's entry point; returns the exit status (0 done, 2 bad input, 130 interrupted)."""
+    """The job's entry point; returns the exit status (0 done, 1 stdout closed by its reader, 2 bad
+    input, 130 interrupted)."""
     try:
         return _main(argv)
     except KeyboardInterrupt:
@@ -664,6 +669,14 @@ def main(argv: list[str] | None = None) -> int:
         print("refine: interrupted; the pairs finished so far are kept: run the command again "
               "(without --overwrite) to resume", file=sys.stderr)
         return INTERRUPTED
+    except BrokenPipeError:
+        # (the summary printed last, after report.md and report.json were written)
+        from fsof_torch.io.progress import silence_stdout
+
+        silence_stdout()
+        print("refine: stdout was closed by its reader (a broken pipe); the pairs finished and the "
+              "report written so far are kept", file=sys.stderr)
+        return STDOUT_CLOSED
 
 
 def _main(argv: list[str] | None) -> int:

@@ -1,14 +1,16 @@
 """Progress bars of the library's long loops and of the jobs: tqdm on stderr, redrawn as tqdm
 redraws on a terminal (or as a notebook's widget), and in a log (stderr a file or a pipe, as under
 CI) at most every :data:`LOG_INTERVAL` seconds, with the text shown after the bar updated at those
-redraws only, so that a log holds a few lines of progress rather than one per step."""
+redraws only, so that a log holds a few lines of progress rather than one per step. And the jobs'
+way out where their stdout's reader went away (:func:`silence_stdout`)."""
 
 from __future__ import annotations
 
+import os
 import sys
 from typing import Any, Iterable
 
-__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values"]
+__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values", "silence_stdout"]
 
 #: seconds between two redraws of a bar whose stderr is not a terminal
 LOG_INTERVAL = 10.0
@@ -44,3 +46,20 @@ def show_values(bar, values: dict[str, str]) -> None:
     """Show ``values`` (e.g. the loss terms) after the bar: at once on a terminal, at the bar's
     next redraw in a log."""
     bar.set_postfix(values, refresh=on_terminal())
+
+
+def silence_stdout() -> None:
+    """Point stdout at the null device, after writing to it raised BrokenPipeError: its reader went
+    away (``python -m refine ... | head``). What the job prints later, and Python's own flush of
+    stdout at exit, then go nowhere instead of raising again (Python's documented remedy for
+    EPIPE, "Note on SIGPIPE" in the ``signal`` module's documentation). A stdout that is no file
+    (a test's capture) is left as it is."""
+    try:
+        fd = sys.stdout.fileno()
+    except (AttributeError, ValueError, OSError):
+        return
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, fd)
+    finally:
+        os.close(devnull)
