@@ -13,9 +13,14 @@ defaults (the band of detail, 3000 points) and with plain intensities and 20 000
   5 cm) switched off. The renderer band-limits the texture per pixel footprint, so as the road
   comes nearer those octaves fade in: image 2 near the car shows detail image 1 did not;
 - ``no cars``: the pair rendered without parked or moving cars (nothing occludes the road or
-  moves over it).
+  moves over it);
+- ``matched``: image 2 as rendered, blurred where the true road motion magnifies the road
+  (:func:`matched`): at each of its pixels by the Gaussian that takes its pixel footprint to
+  image 1's footprint mapped there, σ² = s² (J Jᵀ − I) along each axis (J the true homography's
+  Jacobian from image 1 to image 2, s = ``--matched-sigma``, 1 px by default). A bound on what
+  comparing the frames at matched scale could bring: it knows the true motion.
 
-    python benchmarks/image_formation.py [--pairs 4] [--from-truth]
+    python benchmarks/image_formation.py [--pairs 4] [--matched-sigma 1.0] [--from-truth]
 
 With ``--from-truth``, instead: where the cost's minimum lies. On the same ``body-motion`` pairs
 each fit starts at the true motion and is solved at full resolution only (``levels=1``; no prior,
@@ -60,6 +65,56 @@ def warped(pair: dict) -> torch.Tensor:
     dst = cv2.warpPerspective(src, true_homography(pair), (W, H), flags=cv2.INTER_CUBIC,
                               borderMode=cv2.BORDER_REPLICATE)
     return torch.from_numpy(dst).permute(2, 0, 1).clamp(0, 255)
+
+
+def magnification_blur(M: np.ndarray, size: tuple[int, int], s: float) -> np.ndarray:
+    """Per pixel of image 2 (``size`` (H, W)), the standard deviations (2, H, W) (px, along x and
+    y) of the blur that widens its pixel footprint, a Gaussian of ``s`` px, to image 1's mapped
+    there by the road homography ``M`` (image 1 -> image 2): the diagonal of s² (J Jᵀ − I), J the
+    map's Jacobian at the pixel's preimage, clipped at 0 (where image 2 shrinks the road, and
+    behind the camera's horizon)."""
+    H, W = size
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    x1 = np.linalg.inv(M) @ np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
+    ahead = x1[2] > 0
+    x1 = x1 / np.where(ahead, x1[2], 1.0)
+    w = M[2] @ x1
+    x2 = (M[:2] @ x1) / w
+    J = (M[:2, :2, None] - x2[:, None, :] * M[2, :2][None, :, None]) / w  # (2, 2, N): ∂x2_i / ∂x1_j
+    widen = np.where(ahead, np.clip((J ** 2).sum(1) - 1.0, 0.0, None), 0.0)
+    return (s * np.sqrt(widen)).reshape(2, H, W)
+
+
+#: the blurs (px) computed once per axis for :func:`matched`, between which each pixel interpolates
+BLUR_STEPS = (0.0, 0.25, 0.5, 0.75, 1.0, 1.5, 2.0, 3.0, 4.0, 6.0)
+
+
+def blur_along(image: np.ndarray, sigma: np.ndarray, axis: int) -> np.ndarray:
+    """``image`` (H, W, C) float32 blurred along ``axis`` (0: x, 1: y) by a Gaussian of a
+    standard deviation per pixel (``sigma`` (H, W), px, at most 6): linearly between OpenCV's
+    blurs at :data:`BLUR_STEPS`."""
+    import cv2
+
+    steps = np.array(BLUR_STEPS)
+    stack = [image]
+    for s in steps[1:]:
+        k = 2 * math.ceil(3 * s) + 1
+        stack.append(cv2.GaussianBlur(image, (k, 1) if axis == 0 else (1, k), s if axis == 0 else 0,
+                                      sigmaY=s if axis == 1 else 1e-9))
+    sigma = np.clip(sigma, 0.0, steps[-1])
+    i = np.clip(np.searchsorted(steps, sigma, side="right") - 1, 0, len(steps) - 2)
+    t = ((sigma - steps[i]) / (steps[i + 1] - steps[i]))[..., None]
+    rows, cols = np.indices(sigma.shape)
+    stack = np.stack(stack)
+    return (stack[i, rows, cols] * (1 - t) + stack[i + 1, rows, cols] * t).astype(np.float32)
+
+
+def matched(pair: dict, s: float) -> torch.Tensor:
+    """Image 2 (3, H, W) blurred by its magnification under the true road motion
+    (:func:`magnification_blur`), along x, then along y."""
+    image = pair["image2"].permute(1, 2, 0).numpy().astype(np.float32)
+    sx, sy = magnification_blur(true_homography(pair), image.shape[:2], s)
+    return torch.from_numpy(blur_along(blur_along(image, sx, 0), sy, 1)).permute(2, 0, 1)
 
 
 def epe(fit, pair: dict) -> float:
@@ -121,7 +176,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--from-truth", action="store_true",
                         help="instead, fits of the body-motion pairs started at the true motion, at full resolution, "
                              "by the points they use")
+    parser.add_argument("--matched-sigma", type=float, default=1.0, metavar="S",
+                        help="the pixel footprint (px, a Gaussian's σ) of the matched rows' blur, in (0, 4] "
+                             "(default 1)")
     args = parser.parse_args(argv)
+    if not 0 < args.matched_sigma <= 4:
+        parser.error(f"--matched-sigma: expected a footprint in (0, 4] px, got {args.matched_sigma}")
     torch.set_num_threads(1)
     import cv2
 
@@ -148,7 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         variants = {"rendered": [(p, p["image2"]) for p in rendered],
                     "warped": [(p, warped(p)) for p in rendered],
                     "coarse asphalt": [(p, p["image2"]) for p in render(asphalt=coarse)],
-                    "no cars": [(p, p["image2"]) for p in render(parked_cars=0.0, moving_cars=0.0)]}
+                    "no cars": [(p, p["image2"]) for p in render(parked_cars=0.0, moving_cars=0.0)],
+                    "matched": [(p, matched(p, args.matched_sigma)) for p in rendered]}
         for variant, items in variants.items():
             cells = []
             for options in FITS.values():

@@ -1,6 +1,7 @@
 """``benchmarks/image_formation.py``'s warped frames on a tiny synthetic pair: image 2 made from
 image 1 by the pair's true road motion (its exported ``plane`` values) is the rendered road's
-ground truth, so the benchmark's "warped" rows isolate the geometry."""
+ground truth, so the benchmark's "warped" rows isolate the geometry; and its "matched" frames'
+blur by the road's magnification."""
 
 from __future__ import annotations
 
@@ -104,3 +105,61 @@ def test_off_kerb_leaves_out_the_road_beside_kerb_and_pavement_only(bench):
     for v, u in raised.tolist():
         near[max(v - r, 0):v + r + 1, max(u - r, 0):u + r + 1] = True
     assert torch.equal(mask[0], road & ~near)
+
+
+def test_magnification_blur_of_a_zoom_and_of_no_motion(bench):
+    """A zoom by m about any point widens image 1's footprint by m along both axes: σ = s √(m² − 1)
+    at every pixel; no motion, or a shrinking zoom, needs no blur."""
+    m, s, c = 1.3, 0.8, (70.0, 20.0)
+    zoom = lambda m: np.array([[m, 0.0, (1 - m) * c[0]], [0.0, m, (1 - m) * c[1]], [0.0, 0.0, 1.0]])
+    sigma = bench.magnification_blur(zoom(m), (40, 90), s)
+    assert sigma.shape == (2, 40, 90)
+    np.testing.assert_allclose(sigma, s * np.sqrt(m * m - 1), rtol=1e-12)
+    assert not bench.magnification_blur(np.eye(3), (40, 90), s).any()
+    assert not bench.magnification_blur(zoom(0.8), (40, 90), s).any()
+
+
+def test_magnification_blur_against_finite_differences_of_the_road_homography(bench):
+    """On a pair's true road homography (a magnifying, shearing map), σ² / s² + 1 along each axis
+    is the squared length of the Jacobian's row, the Jacobian by central differences of the map at
+    each pixel's preimage (written out here)."""
+    from fsof_torch.data.scene import render_pair
+
+    pair = render_pair("body-motion", 3, size=SIZE)
+    M = bench.true_homography(pair)
+    s = 1.0
+    sigma = bench.magnification_blur(M, SIZE, s)
+
+    def apply(H, x):  # (2, N) pixels through H
+        q = H @ np.vstack([x, np.ones(x.shape[1])])
+        return q[:2] / q[2]
+
+    rng = np.random.default_rng(0)
+    v = rng.integers(SIZE[0] // 2 + 5, SIZE[0], 200)  # (below the horizon: road in both frames)
+    u = rng.integers(0, SIZE[1], 200)
+    x1 = apply(np.linalg.inv(M), np.stack([u, v]).astype(np.float64))
+    h = 1e-4
+    J = np.stack([(apply(M, x1 + h * e[:, None]) - apply(M, x1 - h * e[:, None])) / (2 * h)
+                  for e in np.eye(2)], axis=1)  # (2, 2, N): ∂x2_i / ∂x1_j
+    expected = s * np.sqrt(np.clip((J ** 2).sum(1) - 1, 0, None))
+    np.testing.assert_allclose(sigma[:, v, u], expected, atol=1e-6)
+    assert (expected > 0.3).mean() > 0.5  # (the near road is magnified)
+
+
+def test_blur_along_matches_opencv_at_its_steps_and_lies_between_them(bench):
+    """A constant σ that is one of the steps gives OpenCV's Gaussian blur along that axis; σ
+    halfway between two steps gives the mean of the two; σ = 0 leaves the image."""
+    import cv2
+
+    rng = np.random.default_rng(1)
+    image = rng.uniform(0, 255, (30, 50, 3)).astype(np.float32)
+    ones = np.ones((30, 50))
+    for axis, ksize in ((0, (7, 1)), (1, (1, 7))):
+        out = bench.blur_along(image, ones, axis)
+        ref = cv2.GaussianBlur(image, ksize, 1.0 if axis == 0 else 0, sigmaY=1.0 if axis == 1 else 1e-9)
+        np.testing.assert_allclose(out, ref, atol=1e-4)
+        half = bench.blur_along(image, 1.25 * ones, axis)
+        wide = cv2.GaussianBlur(image, (11, 1) if axis == 0 else (1, 11), 1.5 if axis == 0 else 0,
+                                sigmaY=1.5 if axis == 1 else 1e-9)
+        np.testing.assert_allclose(half, 0.5 * (ref + wide), atol=1e-4)
+    np.testing.assert_array_equal(bench.blur_along(image, 0 * ones, 0), image)
