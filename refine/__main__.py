@@ -581,15 +581,15 @@ def _earlier_road_spelling(out: Path, identity: dict) -> dict:
 
 def _mounting_note(clip, calibrate: bool, pairs: int) -> str:
     """The report's note on the clip's calibrated mounting, or on its absence where no pair's fit
-    over the clip succeeded, or none of those that did moves (the nominal mounting is kept,
+    over the clip succeeded, or none of those that did moves enough to show it (the nominal mounting is kept,
     ``refine.calibrate.fit_clip``)."""
     m = clip.mounting
     users = "every variant" if calibrate else "variants sequence / given_pitch"
     if not clip.fitted:
         succeeded = sum(bool(s) for s in clip.success.values())
         why = (f"no pair's fit over the clip succeeded (0 of {pairs})" if not succeeded else
-               f"the {succeeded} of {pairs} pairs whose fits succeeded do not move (still frames measure no "
-               f"mounting)")
+               f"the {succeeded} of {pairs} pairs whose fits succeeded do not move, or too little for their "
+               f"images to show it (still frames, or a vehicle creeping by millimetres, measure no mounting)")
         return (f"Mounting not calibrated: {why}; {users} "
                 f"use{'s' if calibrate else ''} the nominal mounting (pitch {m['pitch_deg']:.2f}°, roll "
                 f"{m['roll_deg']:.2f}°)" + (", so --calibrate-pitch changed nothing." if calibrate else "."))

@@ -72,9 +72,11 @@ class ClipFit:
     """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
     ``camera`` the calibrated camera, ``mounting`` {"roll_deg", "pitch_deg", "height_m" with
     poses}, ``success[name]`` whether the pair's fit succeeded, ``fitted`` how many pairs' first fits
-    the mounting was calibrated from (those that succeeded and move); and the road masks the fit
-    used (packed), with what ``road_for`` reported about each (:meth:`road`). Where no pair's first
-    fit succeeded on a pair that moves (``fitted`` 0) nothing is calibrated: ``camera`` and ``mounting`` are the nominal ones."""
+    the mounting was calibrated from (those that succeeded, move and show the attitude:
+    :attr:`fsof_torch.SequenceFit.calibrated_from`); and the road masks the fit used (packed), with
+    what ``road_for`` reported about each (:meth:`road`). Where there are none (``fitted`` 0) nothing
+    is calibrated: ``camera`` and ``mounting`` are the nominal ones, and ``motion`` the one fitted
+    with that camera (translations at its height, also with poses)."""
 
     motion: dict[str, dict[str, Any]]
     camera: Camera
@@ -190,11 +192,15 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     cam = camera.to(torch.float64)
     with options_of({"poses": poses_option}):  # e.g. poses that move where the images do not
         seq = fit_sequence(ClipFrames(specs), masks, cam, poses=poses, keep_fits=False, progress=progress, **options)
-    motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in seq.params.items()}}
+    fitted = seq.calibrated_from
+    # where nothing is calibrated the nominal camera stays, and the motion is the one fitted with it:
+    # the first pass's (the only one run), not its translations rescaled to the poses' height, which
+    # with the nominal height would scale the road's flow by the ratio of the two heights
+    params = seq.params if fitted else seq.first_pass
+    motion = {spec.name: {"model": "plane", **{k: float(v[i]) for k, v in params.items()}}
               for i, spec in enumerate(specs)}
     success = {spec.name: bool(seq.success[i]) for i, spec in enumerate(specs)}
-    fitted = seq.calibrated_from
-    if not fitted:  # failed or still fits calibrate nothing: the nominal camera stays
+    if not fitted:  # failed, still or creeping fits calibrate nothing: the nominal camera stays
         mounting = {"roll_deg": math.degrees(float(cam.roll[0])), "pitch_deg": math.degrees(float(cam.pitch[0]))}
         return ClipFit(motion, cam, mounting, success, masks, road_info, 0)
     mounting = {"roll_deg": math.degrees(seq.mounting["roll"]), "pitch_deg": math.degrees(seq.mounting["pitch"])}

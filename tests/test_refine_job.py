@@ -567,6 +567,44 @@ def test_fit_clip_loads_each_pair_three_times_and_fits_like_a_list(user_folder, 
                              "pitch_deg": math.degrees(seq.mounting["pitch"]), "height_m": seq.mounting["height"]}
 
 
+def test_fit_clip_that_calibrates_nothing_gives_the_motion_fitted_with_the_nominal_camera():
+    """A vehicle creeping by 4 mm a frame, with poses: its fits succeed and move, but their images show
+    the attitude less than the prior does, so nothing is calibrated and the nominal camera (2 m high
+    here) stays. fit_sequence's translations were still those at the poses' height (1.59 m), and the
+    clip's motion paired them with the nominal camera: the road's flow scaled by 1.59 / 2. The motion
+    is the one fitted with the nominal camera, as without poses."""
+    from fsof_torch import fit_sequence
+    from fsof_torch.data.scene import render_sequence
+    from refine.calibrate import fit_clip
+    from refine.inputs import PairSpec
+
+    pairs = render_sequence("body-motion", 2, seed=0, speed=0.04)
+    camera = pairs[0]["camera"].to(torch.float64).replace(height=2.0)
+
+    def specs(poses: bool) -> list:
+        items = [{"image1": p["image1"], "image2": p["image2"], "road": p["road"], "camera": p["camera"],
+                  "relative_pose": torch.linalg.inv(p["pose2"].double()) @ p["pose1"].double() if poses else None}
+                 for p in pairs]
+        return [PairSpec(f"{k:06d}", lambda item=item: item) for k, item in enumerate(items)]
+
+    clip = fit_clip(specs(True), camera, lambda pair: (pair["road"], {}), progress=False)
+    assert clip.fitted == 0 and all(clip.success.values())
+    assert float(clip.camera.height[0]) == 2.0 and "height_m" not in clip.mounting
+    # the reference: the frames fitted with the nominal camera, no poses (nothing calibrated: one pass)
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    roads = [p["road"] for p in pairs]
+    alone = fit_sequence(frames, roads, camera, keep_fits=False)
+    assert alone.calibrated_from == 0
+    for k, name in enumerate(clip.motion):
+        assert clip.motion[name] == {"model": "plane", **{n: float(v[k]) for n, v in alone.params.items()}}
+    assert clip.motion == fit_clip(specs(False), camera, lambda pair: (pair["road"], {}), progress=False).motion
+    # (the poses did give fit_sequence another height, and its translations at it)
+    poses = torch.stack([p["pose1"] for p in pairs] + [pairs[-1]["pose2"]]).double()
+    metric = fit_sequence(frames, roads, camera, poses=poses, keep_fits=False)
+    assert metric.calibrated_from == 0 and metric.mounting["height"] < 1.8
+    assert float(metric.params["z_d"][0]) < 0.9 * clip.motion["000000"]["z_d"]
+
+
 def test_clip_frames_and_packed_masks():
     """ClipFrames: frame k < N is pair k's first image, frame N the last pair's second, one pair
     cached; PackedMasks give back the masks bit for bit (sizes not a multiple of 8)."""
@@ -701,8 +739,9 @@ def test_the_mounting_note_of_a_clip_that_does_not_move_says_why():
     mounting = {"pitch_deg": 0.0, "roll_deg": 0.0}
     still = SimpleNamespace(mounting=mounting, fitted=0, success={"000000": True, "000001": True})
     assert _mounting_note(still, True, 2).startswith(
-        "Mounting not calibrated: the 2 of 2 pairs whose fits succeeded do not move (still frames measure no "
-        "mounting); every variant uses the nominal mounting (pitch 0.00°, roll 0.00°)")
+        "Mounting not calibrated: the 2 of 2 pairs whose fits succeeded do not move, or too little for their "
+        "images to show it (still frames, or a vehicle creeping by millimetres, measure no mounting); every "
+        "variant uses the nominal mounting (pitch 0.00°, roll 0.00°)")
     failed = SimpleNamespace(mounting=mounting, fitted=0, success={"000000": False, "000001": False})
     assert _mounting_note(failed, False, 2).startswith(
         "Mounting not calibrated: no pair's fit over the clip succeeded (0 of 2); variants sequence / given_pitch")
