@@ -363,6 +363,10 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
                                          r"got list"):
         fit_sequence(frames[:3], road, cam, poses=[[["a"] * 4] * 4] * 3)
+    # a list of poses of other shapes (a KITTI row 3 x 4 among them) raised torch.stack's RuntimeError
+    with pytest.raises(TypeError, match=r"^poses: expected a float tensor of shape \(3, 4, 4\) \(one per frame\), "
+                                        r"got list \(stack expects each tensor to be equal size"):
+        fit_sequence(frames[:3], road, cam, poses=[torch.eye(4), torch.eye(4)[:3], torch.eye(4)])
     # each item is checked as it is read (named by its index), before any fit
     H, W = frames[0].shape[-2:]
     with pytest.raises(TypeError, match="frames: expected a sequence of tensors"):

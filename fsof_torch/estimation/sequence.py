@@ -347,9 +347,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         return m
 
     if poses is not None:
-        if isinstance(poses, (list, tuple)) and all(isinstance(p, Tensor) for p in poses):
-            poses = torch.stack(poses) if poses else torch.empty(0)
-        try:
+        try:  # (a list of tensors of other shapes: torch.stack's RuntimeError, naming nothing)
+            if isinstance(poses, (list, tuple)) and all(isinstance(p, Tensor) for p in poses):
+                poses = torch.stack(poses) if poses else torch.empty(0)
             poses = torch.as_tensor(poses)
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
