@@ -332,6 +332,19 @@ def test_composite_weights_accept_zero_ints_and_0d_tensors():
     assert total.item() == pytest.approx(3.5) and values["a"].item() == 1.0
 
 
+def test_composite_refuses_a_learnable_weight():
+    """A weight that requires grad (an nn.Parameter, for learned loss weights) was read as a float:
+    the total carried no gradient to it, so it never changed, silently."""
+    term = lambda flows: flows[-1].abs().mean()  # noqa: E731
+    for weight in (torch.nn.Parameter(torch.tensor(0.5)), torch.tensor(2.0, requires_grad=True)):
+        with pytest.raises(TypeError, match=r"^terms\['b'\] weight: expected a fixed number, got a tensor that "
+                                            r"requires grad"):
+            CompositeLoss({"a": (1.0, term), "b": (weight, term)})
+    # the same values without gradient are weights
+    loss = CompositeLoss({"a": (1.0, term), "b": (torch.nn.Parameter(torch.tensor(0.5)).detach(), term)})
+    assert loss.weights == {"a": 1.0, "b": 0.5}
+
+
 def test_composite_zero_weight_terms_are_reported_not_summed():
     """0 * inf is NaN: a zero-weight diagnostic term returning inf made the total NaN."""
     flow = torch.ones(1, 2, 4, 4, requires_grad=True)

@@ -25,7 +25,9 @@ class CompositeLoss(nn.Module):
             receives, from the inputs given to ``forward``, those whose names are parameters of
             its ``forward`` (or of the function itself), so one batch dict can feed all terms.
             Each weight is a finite number >= 0: a bool, a string or any other non-number raises
-            TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``.
+            TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``. A 0-d
+            tensor is read as its number, but one that requires grad (a learnable weight, whose
+            gradient would be lost) raises TypeError.
             Any name works; the ``nn.Module`` terms are submodules under ``terms.<name>``, except
             where the name cannot be a submodule's (empty, containing ``"."``, not a string, or an
             attribute of ``nn.ModuleDict`` such as ``"values"``): then under ``terms._term<i>``,
@@ -62,6 +64,10 @@ class CompositeLoss(nn.Module):
             if not (isinstance(entry, (tuple, list)) and len(entry) == 2 and callable(entry[1])):
                 raise TypeError(f"terms[{name!r}]: expected (weight, callable term), got {entry!r}")
             weight, term = entry
+            if isinstance(weight, Tensor) and weight.requires_grad:  # (read as a float: its gradient lost)
+                raise TypeError(f"terms[{name!r}] weight: expected a fixed number, got a tensor that requires grad "
+                                f"(the weights are constants, and the values reported are detached: to learn a "
+                                f"weight, call the terms yourself and weight their values)")
             self.weights[name] = check_number(weight, f"terms[{name!r}] weight", nonnegative=True)
             self._names[name] = _accepted_names(term)
             entries.append((name, term))
