@@ -408,6 +408,24 @@ def test_composite_bad_inputs_are_named():
         loss(flows, {"flows": 1})
 
 
+def test_composite_feeds_a_compiled_term_the_inputs_its_forward_names():
+    """torch.compile(term) is a module whose forward takes (*args, **kwargs): it was fed every
+    input of the batch and raised "unexpected keyword argument 'image1'", naming the term."""
+    image1, image2, flow = _shifted_pair(2)
+    flow = flow + 0.5
+    batch = {"image1": image1, "image2": image2, "road": torch.ones(2, 1, H, W, dtype=torch.bool),
+             "camera": _camera(), "odometry": _odometry(2)}
+    eager = CompositeLoss({"u": (1.0, UnsupervisedFlowLoss()), "f": (0.1, FreespaceFlowLoss())})
+    compiled = CompositeLoss({"u": (1.0, UnsupervisedFlowLoss()),
+                              "f": (0.1, torch.compile(FreespaceFlowLoss(), backend="eager"))})
+    total, values = compiled(flow, batch)
+    expected_total, expected = eager(flow, batch)
+    torch.testing.assert_close(values["f"], freespace_flow_loss(flow, batch["road"], batch["camera"],
+                                                                batch["odometry"]))
+    torch.testing.assert_close(total, expected_total)
+    assert values["f"] > 0
+
+
 def test_composite_refuses_a_term_that_is_not_a_scalar():
     """A term of reduction="none" gave a (B,) total silently: the scalar terms broadcast to every
     sample, so a sum of it counted them B times (and backward() raised, naming no term)."""

@@ -23,7 +23,8 @@ class CompositeLoss(nn.Module):
     Args:
         terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
             receives, from the inputs given to ``forward``, those whose names are parameters of
-            its ``forward`` (or of the function itself), so one batch dict can feed all terms.
+            its ``forward`` (or of the function itself; of the compiled module's ``forward`` for
+            ``torch.compile(module)``), so one batch dict can feed all terms.
             Each weight is a finite number >= 0: a bool, a string or any other non-number raises
             TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``. A 0-d
             tensor is read as its number, but one that requires grad (a learnable weight, whose
@@ -136,6 +137,10 @@ def _module_key(name: object, probe: nn.ModuleDict) -> bool:
 
 def _accepted_names(term: object) -> tuple[set[str], bool]:
     """Keyword names ``term`` accepts after ``flows``, and whether it takes ``**kwargs``."""
+    # torch.compile(module) wraps it in a module whose forward takes (*args, **kwargs): read the
+    # compiled module's own forward, or the term would be fed every input and refuse the others
+    while isinstance(term, nn.Module) and isinstance(getattr(term, "_orig_mod", None), nn.Module):
+        term = term._orig_mod
     fn = term.forward if isinstance(term, nn.Module) else term
     params = list(inspect.signature(fn).parameters.values())[1:]
     takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
