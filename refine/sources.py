@@ -314,14 +314,69 @@ def net_module_file(factory: str) -> Path | None:
     return None
 
 
+def user_code_files(factory: str) -> dict[str, Path]:
+    """The files of the user's code that importing ``factory``'s module and calling it loaded, by
+    module name: every module in ``sys.modules`` (nothing is imported here) whose file lies in the
+    folder of the factory's top-level package (each folder of a namespace package) or, for a
+    top-level module, in the folder that holds it. Files in the standard library, in a
+    site-packages or dist-packages folder, in an interpreter's prefix inside that folder (a
+    virtual environment in the project) or in the job's own packages (fsof_torch, refine) are
+    left out, and so is every file of a top-level package or module that lies in one of those
+    (an installed package: the environment's, not the user's project). The factory's own module
+    (:func:`net_module_file`) and the script that runs the job (``__main__``) are left out too."""
+    import os
+    import site
+    import sys
+    import sysconfig
+
+    import fsof_torch
+
+    module_name = factory.partition(":")[0]
+    top = sys.modules.get(module_name.split(".")[0])
+    spec = getattr(top, "__spec__", None)
+    folders = list(getattr(spec, "submodule_search_locations", None) or [])  # a package's folder(s)
+    if not folders and isinstance(getattr(top, "__file__", None), str):
+        folders = [os.path.dirname(top.__file__)]  # a top-level module: the folder beside it
+    library = {sysconfig.get_paths()[k] for k in ("stdlib", "platstdlib", "purelib", "platlib")}
+    library |= {*site.getsitepackages(), site.getusersitepackages()}
+    job = {os.path.dirname(fsof_torch.__file__), os.path.dirname(__file__)}
+    prefixes = {sys.prefix, sys.base_prefix, sys.exec_prefix, sys.base_exec_prefix}
+
+    def under(path: str, folder: str) -> bool:
+        return any(Path(f(path)).is_relative_to(f(folder)) for f in (os.path.abspath, os.path.realpath))
+
+    def environment(path: str) -> bool:
+        return (any(under(path, d) for d in library | job)
+                or bool({"site-packages", "dist-packages"} & set(Path(os.path.abspath(path)).parts)))
+
+    roots = [r for r in map(os.path.abspath, folders) if not environment(r)]
+    inner = [p for p in prefixes if any(under(p, r) and not under(r, p) for r in roots)]
+    found = {}
+    for name, module in list(sys.modules.items()):
+        file = getattr(module, "__file__", None)
+        if (name in (module_name, "__main__", "__mp_main__") or not isinstance(file, str)
+                or not os.path.isfile(file)):
+            continue
+        if any(under(file, r) for r in roots) and not environment(file) and not any(under(file, p) for p in inner):
+            found[name] = Path(file)
+    return found
+
+
 def net_identity(spec: NetSpec | None) -> dict[str, Any] | None:
     """What identifies a user's network for resuming: the factory, the contract, the checkpoint's
-    contents and the source file of the factory's module."""
+    contents, the source file of the factory's module and, under ``code`` (only where there are
+    any), the contents of the other files of the user's code its import and call loaded
+    (:func:`user_code_files`), by module name. Call it after :func:`build_user_net`."""
     if spec is None:
         return None
     from .inputs import file_digest
 
     source = net_module_file(spec.factory)
     module_file = file_digest(source) if source is not None else None
-    return {"factory": spec.factory, "contract": spec.contract, "module_file": module_file,
-            "checkpoint": file_digest(spec.checkpoint) if spec.checkpoint is not None and spec.checkpoint.is_file() else None}
+    identity = {"factory": spec.factory, "contract": spec.contract, "module_file": module_file,
+                "checkpoint": file_digest(spec.checkpoint) if spec.checkpoint is not None and spec.checkpoint.is_file()
+                else None}
+    code = {name: file_digest(path) for name, path in sorted(user_code_files(spec.factory).items())}
+    if code:  # (a network in one module keeps the identity it had)
+        identity["code"] = code
+    return identity
