@@ -65,6 +65,8 @@ WRAPPER_KEYS = ("state_dict", "model", "model_state_dict")
 def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
     """Load a local state_dict (``torch.load(weights_only=True)``: tensors only, no code) into
     ``net``; every problem is a JobError naming ``option`` and the file."""
+    if path.is_dir():
+        raise JobError(f"{option}: {str(path)!r} is a folder; expected a file (a state_dict saved by torch.save)")
     if not path.is_file():
         raise JobError(f"{option}: no file at {str(path)!r}")
     try:

@@ -15,7 +15,7 @@ import pytest
 import torch
 
 from refine.__main__ import main
-from refine.inputs import file_digest
+from refine.inputs import JobError, file_digest
 from refine.sources import NetSpec, build_user_net, net_identity
 
 SIZE = (45, 150)
@@ -167,7 +167,8 @@ def test_a_network_in_one_module_keeps_its_identity(project):
 
 
 def test_the_checkpoint_counts_by_its_contents_wherever_it_lies(tmp_path):
-    """A copy under another path and a symlink to it are the same checkpoint."""
+    """A copy under another path and a symlink to it are the same checkpoint; a folder is named
+    as a folder (it was 'no file at', as if nothing were there)."""
     from fsof_torch import TinyRAFT
 
     torch.save(TinyRAFT(seed=3).state_dict(), tmp_path / "a.pt")
@@ -179,6 +180,8 @@ def test_the_checkpoint_counts_by_its_contents_wherever_it_lies(tmp_path):
     assert ids["a.pt"] == ids["copy/b.pt"] == ids["link.pt"]
     assert ids["a.pt"]["checkpoint"] == file_digest(tmp_path / "a.pt")
     assert _identity("fsof_torch:TinyRAFT", tmp_path / "other.pt")["checkpoint"] != ids["a.pt"]["checkpoint"]
+    with pytest.raises(JobError, match=r"^--checkpoint: '.*copy' is a folder; expected a file"):
+        _identity("fsof_torch:TinyRAFT", tmp_path / "copy")
 
 
 def test_the_users_module_is_imported_once_by_a_run(project, tmp_path):
