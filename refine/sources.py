@@ -139,9 +139,11 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str, bool]:
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
-        raise JobError(f"--net: cannot import module {module_name!r} ({err}); is it installed, or on PYTHONPATH?") from None
-    except Exception as err:  # the user's module failed while importing
-        raise JobError(f"--net: importing {module_name!r} failed: {type(err).__name__}: {err}") from None
+        raise JobError(_file_path_name(module_name, attr) or f"--net: cannot import module {module_name!r} ({err}); "
+                       f"is it installed, or on PYTHONPATH?") from None
+    except Exception as err:  # the user's module failed while importing (or ./nets.py: a relative name)
+        relative = _file_path_name(module_name, attr) if module_name.startswith(".") else None
+        raise JobError(relative or f"--net: importing {module_name!r} failed: {type(err).__name__}: {err}") from None
     except SystemExit as err:  # (research code that parses the command line, or exits, when imported)
         raise JobError(f"--net: importing {module_name!r} exited (SystemExit: {err.code!r}); the job imports the "
                        f"module and calls its factory: it may not parse the command line or exit") from None
@@ -174,6 +176,18 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str, bool]:
                                                              else "--checkpoint does not give them"))
     net.eval()
     return (net, *_contract(net, spec))
+
+
+def _file_path_name(module_name: str, attr: str) -> str | None:
+    """The message for ``--net``'s module given as a file path (``nets/raft.py``), which no import
+    finds: the dotted name to give instead and the folder to put on PYTHONPATH; None for a name."""
+    if not any(c in module_name for c in "/\\") and not module_name.endswith(".py"):
+        return None
+    path = Path(module_name.replace("\\", "/").removesuffix(".py"))
+    dotted, folder = ((path.name, str(path.parent)) if path.is_absolute() or ".." in path.parts
+                      else (".".join(path.parts), "."))
+    return (f"--net: {module_name!r} is a file path, not a module name; give the module's dotted name with the "
+            f"folder it is found from on PYTHONPATH, e.g. --net {dotted}:{attr} with PYTHONPATH={folder}")
 
 
 def _contract(net: nn.Module, spec: NetSpec) -> tuple[str, bool]:

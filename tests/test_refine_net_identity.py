@@ -196,3 +196,15 @@ def test_the_users_module_is_imported_once_by_a_run(project, tmp_path):
     assert log.read_text().split() == ["layers", "net"]
     identity = json.loads((tmp_path / "out" / "report.json").read_text())["identity"]["net"]
     assert identity["code"] == {f"{name}_layers": file_digest(root / f"{name}_layers.py")}
+
+
+@pytest.mark.parametrize("given, dotted, folder", [("nets/raft.py", "nets.raft", "."),
+                                                   ("./nets/raft.py", "nets.raft", "."),
+                                                   ("nets.raft.py", "nets.raft", "."),
+                                                   ("/abs/nets/raft.py", "raft", "/abs/nets")])
+def test_a_module_given_as_a_file_path_is_named_with_its_dotted_name(given, dotted, folder):
+    with pytest.raises(JobError) as caught:
+        build_user_net(NetSpec(f"{given}:build"))
+    assert str(caught.value) == (f"--net: {given!r} is a file path, not a module name; give the module's dotted "
+                                 f"name with the folder it is found from on PYTHONPATH, e.g. --net {dotted}:build "
+                                 f"with PYTHONPATH={folder}")
