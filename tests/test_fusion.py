@@ -486,6 +486,19 @@ def test_images_on_another_device_than_the_flow_are_named():
             refine_flow(pred, mask, cam, ODO, images=images)
 
 
+@pytest.mark.parametrize("coarse_on_meta", [True, False])
+def test_levels_on_another_device_than_the_finest_are_named(coarse_on_meta):
+    """A network output whose levels lie on two devices (meta standing in for another one) is
+    named before any work, not torch's device error from inside the fusion."""
+    pred, mask, cam, _ = make_case()
+    coarse = pred[..., ::2, ::2] / 2
+    levels = [coarse.to("meta"), pred] if coarse_on_meta else [coarse, pred.to("meta")]
+    other, finest = ("meta", "cpu") if coarse_on_meta else ("cpu", "meta")
+    with pytest.raises(ValueError, match=rf"^flow\[0\]: expected the device of the finest flow flow\[1\] "
+                                         rf"\({finest}\), got {other}$"):
+        refine_flow(levels, mask, cam, ODO)
+
+
 def test_odometry_wrong_batch_size():
     pred, mask, cam, _ = make_case(B=2)
     odo = {"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0}

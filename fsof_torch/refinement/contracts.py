@@ -51,6 +51,7 @@ __all__ = [
     "PAD_MODES",
     "Padding",
     "check_flow_keys",
+    "check_levels",
     "collect_flows",
     "finest_flow",
     "images_from_ptlflow",
@@ -175,6 +176,18 @@ def finest_flow(flows: list[tuple[str, Tensor]]) -> tuple[str, Tensor]:
     if best is None:
         raise ValueError("flow: expected at least one flow, got none")
     return best[1], best[2]
+
+
+def check_levels(flows: list[tuple[str, Tensor]], finest_name: str, finest: Tensor) -> None:
+    """Every flow of :func:`collect_flows`'s pairs against the finest (:func:`finest_flow`'s
+    ``finest_name, finest``): its batch and its device, as each level is refined with the finest's
+    road motion, on its device. A ValueError names the level that differs."""
+    for name, f in flows:
+        if f.shape[0] != finest.shape[0]:
+            raise ValueError(f"{name}: expected batch {finest.shape[0]} (as the finest flow), got shape {tuple(f.shape)}")
+        if f.device != finest.device:
+            raise ValueError(f"{name}: expected the device of the finest flow {finest_name} ({finest.device}), "
+                             f"got {f.device}")
 
 
 def _map_tensors(obj: Any, fn: Callable[[Tensor], Tensor]) -> Any:

@@ -49,7 +49,7 @@ from .auto_refine import refine_with_auto_road
 from .estimators import ImageMotionEstimator, finite_estimate
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
-from .contracts import DEFAULT_FLOW_KEYS, collect_flows, finest_flow, map_flows, refiner_images
+from .contracts import DEFAULT_FLOW_KEYS, check_levels, collect_flows, finest_flow, map_flows, refiner_images
 
 __all__ = ["DEFAULT_FLOW_KEYS", "RefineOutput", "FreespaceRefiner", "cauchy_weight", "fuse_flow", "refine_flow",
            "resize_mask"]
@@ -347,9 +347,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                          f"one of the keys {flow_keys} (set flow_keys)")
     finest_name, finest = finest_flow(flows)
     B, _, H, W = finest.shape
-    for name, f in flows:
-        if f.shape[0] != B:
-            raise ValueError(f"{name}: expected batch {B} (as the finest flow), got shape {tuple(f.shape)}")
+    check_levels(flows, finest_name, finest)
     if odometry is not None and isinstance(mask, str):
         # (a motion no refinement takes, or absurd values, raise before mask="auto"'s detection)
         road_motion_batch(odometry, B, result_dtype(finest), finest.device, displacement=True)
