@@ -91,3 +91,28 @@ def test_ptlflow_range_error_quotes_the_range_that_came(fill, got):
     images[0, 1, 2, 5, 5] = fill
     with pytest.raises(ValueError, match=rf"^inputs\['images'\]: expected BGR values in \[0, 1\], got {got}$"):
         net({"images": images})
+
+
+def test_on_the_meta_device_both_contracts_give_their_shapes_through_the_wrapper():
+    """A meta tensor has no values to check the range of: the stand-ins skip that check there, as
+    the package's value checks do, so FreespaceRefined infers shapes on meta around them with a
+    model's full motion and gate=None (docs/reliability.md); their range check read a meta value."""
+    import fsof_torch as fs
+    from fsof_torch.refinement.contracts import ptlflow_inputs
+
+    cam = fs.Camera(torch.tensor([[20.0, 0, 11.5], [0, 20.0, 4.0], [0, 0, 1]]), 1.65).to("meta")
+    road = torch.ones(1, 1, 13, 21, dtype=torch.bool, device="meta")
+    motion = {"model": "plane", "x_d": 0.0, "z_d": 1.0, "yaw": 0.0}
+    refiner = fs.FreespaceRefiner(gate=None)
+    rgb = torch.rand(1, 3, 13, 21, generator=torch.Generator().manual_seed(0)) * 255
+    tv = fs.FreespaceRefined(TorchvisionRAFTStandIn(), refiner, pad=fs.InputPadder(8), image_range=(-1, 1)).to("meta")
+    image = (rgb / 127.5 - 1).to("meta")
+    with torch.no_grad():
+        flows = tv(image, image, camera=cam, mask=road, odometry=motion, num_flow_updates=2)
+    assert [(f.device.type, tuple(f.shape)) for f in flows] == [("meta", (1, 2, 13, 21))] * 2
+    pl = fs.FreespaceRefined(PtlflowRAFTStandIn(iters=2), refiner, pad=fs.InputPadder(8)).to("meta")
+    inputs = {"images": ptlflow_inputs(rgb, rgb)["images"].to("meta")}
+    with torch.no_grad():
+        out = pl(inputs, camera=cam, mask=road, odometry=motion)
+    assert {k: (v.device.type, tuple(v.shape)) for k, v in out.items()} == {
+        "flows": ("meta", (1, 1, 2, 13, 21)), "flow_small": ("meta", (1, 2, 2, 3))}

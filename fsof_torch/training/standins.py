@@ -18,7 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_int, check_shape, tracing
+from .._check import check_float_tensor, check_int, check_shape, skip_values
 from ..refinement.contracts import InputPadder
 from .testnet import TinyRAFT
 
@@ -29,7 +29,8 @@ class PtlflowRAFTStandIn(nn.Module):
     """ptlflow's RAFT contract (in eval mode).
 
     ``forward(inputs)`` with ``inputs["images"]`` (B, 2, 3, H, W), BGR in [0, 1], any B, H and
-    W >= 1 (an empty batch or side raises ValueError naming ``inputs['images']``).
+    W >= 1 (an empty batch or side raises ValueError naming ``inputs['images']``; the range is not
+    read on the meta device, which has no values).
     Like ptlflow's RAFT it pads the images to a multiple of 8 (replicating the border, split
     between both sides), converts BGR to RGB and returns
 
@@ -55,7 +56,7 @@ class PtlflowRAFTStandIn(nn.Module):
         images = inputs["images"]
         check_float_tensor(images, "inputs['images']")
         check_shape(images, "inputs['images']", ("B", 2, 3, "H", "W"), nonempty=("B", "H", "W"))
-        if not tracing():
+        if not skip_values(images):  # (no values while tracing, nor on the meta device)
             lo, hi = _value_range(images)
             if not (lo >= 0.0 and hi <= 1.0):  # (false for NaN, which the range then shows)
                 raise ValueError(f"inputs['images']: expected BGR values in [0, 1], got [{lo:.4g}, {hi:.4g}]")
@@ -75,9 +76,9 @@ class TorchvisionRAFTStandIn(nn.Module):
     ValueError, as torchvision raises for sides not divisible by 8); returns a list of
     ``num_flow_updates`` flows (B, 2, H, W), the last the estimate (``num_flow_updates``: an int
     >= 1, checked under its own name; values outside [-1, 1] or NaN raise ValueError quoting the
-    range that came). The default of 4 updates is not torchvision's (``RAFT.forward`` defaults to
-    ``num_flow_updates=12``): it keeps the tests quick; pass 12 explicitly for torchvision's list
-    length.
+    range that came; not read on the meta device). The default of 4 updates is not torchvision's
+    (``RAFT.forward`` defaults to ``num_flow_updates=12``): it keeps the tests quick; pass 12
+    explicitly for torchvision's list length.
     """
 
     flow_contract = "torchvision"  # read by the refine job's --net (see docs/jobs.md)
@@ -97,7 +98,7 @@ class TorchvisionRAFTStandIn(nn.Module):
         if h % 8 or w % 8:
             raise ValueError(f"input image H and W should be divisible by 8, instead got {h} (h) and {w} (w)")
         num_flow_updates = check_int(num_flow_updates, "num_flow_updates", minimum=1)
-        if not tracing():
+        if not skip_values(image1, image2):
             lo, hi = _value_range(image1, image2)
             if not (lo >= -1.0 and hi <= 1.0):  # (false for NaN, which the range then shows)
                 raise ValueError(f"image1, image2: expected RGB values in [-1, 1], got [{lo:.4g}, {hi:.4g}]")
