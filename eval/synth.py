@@ -31,6 +31,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 
+class _Unstorable(Exception):
+    """A rendered pair whose ground truth the layout's files cannot hold (the message says why)."""
+
+
 def _stats(pair: dict) -> dict:
     flow, valid = pair["flow"], pair["valid"]
     road = pair.get("road")
@@ -53,6 +57,7 @@ def _fmt(value: float | None) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_synthetic_sequence
+    from fsof_torch.io.kitti import check_kitti_flow_range
     from fsof_torch.data.scene import PRESETS, render_pair
 
     from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent, other_run_above, remove_outputs
@@ -97,12 +102,24 @@ def run(args: argparse.Namespace) -> int:
     def rendered():
         for index in range(args.pairs):
             pair = render_pair(args.preset, index, seed=args.seed, size=size, dtype=dtype)
+            try:  # (larger images, larger flow: a large --size can exceed what flow_occ/ holds)
+                check_kitti_flow_range(pair["flow"], pair["valid"][0], "flow")
+            except ValueError as err:
+                kept = "nothing was written" if index == 0 else (
+                    f"pairs 0 to {index - 1} are written to {str(args.out)!r} without meta.json (an incomplete "
+                    f"sequence): give a new or empty --out")
+                raise _Unstorable(f"--size: pair {index}'s ground-truth {err}; give a smaller --size ({kept})") from None
             rows.append({"index": index, **_stats(pair)})
             yield {**pair, "camera": camera64.to(torch.float64, copy=True)}
 
     meta = {"preset": args.preset, "seed": args.seed, "requested_size": list(size) if size else None,
             "dtype": str(dtype).replace("torch.", ""), "command": "python -m eval synth"}
-    summary = write_synthetic_sequence(args.out, rendered(), meta=meta, progress=not args.no_progress, total=args.pairs)
+    try:
+        summary = write_synthetic_sequence(args.out, rendered(), meta=meta, progress=not args.no_progress,
+                                           total=args.pairs)
+    except _Unstorable as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
 
     height, width = summary["size"]
     print(f"wrote {summary['num_pairs']} pairs of preset {args.preset!r} (seed {args.seed}, {height}x{width}) "

@@ -10,7 +10,7 @@ import torch
 from eval.__main__ import main
 from fsof_torch.data.datasets import SyntheticFlowDataset, collate
 from fsof_torch.geometry.egomotion import ego_motion_from_pose
-from fsof_torch.io import read_kitti_poses
+from fsof_torch.io import read_kitti_poses, read_synthetic_pair
 
 import fsof_torch.data.scene as scene
 
@@ -156,6 +156,26 @@ def test_bad_arguments(tmp_path, capsys):
     assert main(["synth", "--pairs", "1", "--out", str(tmp_path / "j" / "out"), "--json", str(tmp_path / "j")]) == 2
     assert f"error: --json: {str(tmp_path / 'j')!r} is --out" in capsys.readouterr().err
     assert not (tmp_path / "x").exists() and not (tmp_path / "j").exists()
+
+
+def test_a_flow_beyond_the_flow_png_stops_with_a_message(tmp_path, capsys):
+    """A --size the renderer takes, whose flow a KITTI flow PNG cannot hold (the default preset at 4000
+    px wide: 501 px at pair 0, 622 px at pair 1): was a traceback after pair 1's images were written;
+    now exit 2 naming --size, pair 0 whole, nothing of pair 1."""
+    out = tmp_path / "wide"
+    rc = main(["synth", "--pairs", "3", "--out", str(out), "--size", "16", "4000", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and err.startswith("error: --size: pair 1's ground-truth flow: a KITTI flow PNG holds "
+                                      "[-512.0, 511.984375] px, got the range [")
+    assert "give a smaller --size (pairs 0 to 0 are written to" in err and "without meta.json" in err
+    assert sorted(p.name for p in (out / "image_2").iterdir()) == ["000000_10.png", "000000_11.png"]
+    assert not (out / "meta.json").exists() and sorted(p.name for p in (out / "params").iterdir()) == ["000000.json"]
+    pair = read_synthetic_pair(out, 0)
+    assert float(pair["flow"][pair["valid"].expand(2, -1, -1)].abs().max()) <= 511.984375
+    rc = main(["synth", "--pairs", "1", "--out", str(tmp_path / "first"), "--size", "16", "5000", "--no-progress"])
+    err = capsys.readouterr().err
+    assert rc == 2 and "pair 0's ground-truth flow" in err and err.endswith("give a smaller --size (nothing was written)\n")
+    assert not any((tmp_path / "first").rglob("*.*"))
 
 
 def test_refuses_a_folder_holding_files(written, capsys):

@@ -346,6 +346,25 @@ def test_writer_refuses_poses_its_reader_refuses(tmp_path, key, pose, match):
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize("value", [600.0, -512.5])
+def test_writer_refuses_a_flow_beyond_the_png_range_before_writing(tmp_path, value):
+    """A valid flow beyond what flow_occ/'s KITTI PNG holds raised only after the pair's images were
+    written (a half-written pair, no params); now nothing is written. Beyond it but invalid: kept."""
+    pair = _pair()
+    pair["flow"] = pair["flow"].clone()
+    pair["flow"][1, 5, 7] = value
+    pair["valid"] = pair["valid"].clone()
+    pair["valid"][0, 5, 7] = True
+    with pytest.raises(ValueError, match=r"^pair\['flow'\]: a KITTI flow PNG holds \[-512\.0, 511\.984375\] px, got "
+                                         r"the range \[.*\] at valid pixels") as err:
+        write_synthetic_pair(tmp_path / "out", 0, pair)
+    assert repr(value) in str(err.value)
+    assert not (tmp_path / "out").exists()
+    pair["valid"][0, 5, 7] = False
+    write_synthetic_pair(tmp_path / "out", 0, pair)
+    assert not bool(read_synthetic_pair(tmp_path / "out", 0)["valid"][0, 5, 7])
+
+
 class TestWriterChecks:
     """write_synthetic_pair once wrote what its readers cannot use, and meta= replaced the layout's
     own entries of meta.json."""

@@ -32,6 +32,7 @@ __all__ = [
     "read_kitti_poses",
     "write_kitti_poses",
     "check_rigid_poses",
+    "check_kitti_flow_range",
     "read_kitti_calibration",
     "write_kitti_calibration",
     "KITTI_FLOW_SCALE",
@@ -80,15 +81,23 @@ def write_kitti_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: 
     path = check_image_suffix(path, (".png",), "KITTI flow")
     flow = as_chw_flow(flow, "flow").detach().cpu().double()
     valid_hw = flow_valid_pixels(flow, valid)
+    check_kitti_flow_range(flow, valid_hw)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
-    if bool(valid_hw.any()):
-        lo, hi = float(stored.min()), float(stored.max())
-        if lo < KITTI_FLOW_MIN or hi > KITTI_FLOW_MAX:
-            raise ValueError(f"flow: a KITTI flow PNG holds [{KITTI_FLOW_MIN}, {KITTI_FLOW_MAX}] px, got the range "
-                             f"[{lo!r}, {hi!r}] at valid pixels")
     coded = (stored * KITTI_FLOW_SCALE + _OFFSET).round().clamp(0, 65535).to(torch.int32).numpy().astype(np.uint16)
     bgr = np.stack([valid_hw.numpy().astype(np.uint16), coded[1], coded[0]], axis=2)
     return write_image_array(path, bgr)
+
+
+def check_kitti_flow_range(flow: Tensor, valid: Tensor, name: str = "flow") -> None:
+    """ValueError naming ``name`` (and the range) unless ``flow`` (2, H, W) lies within
+    [:data:`KITTI_FLOW_MIN`, :data:`KITTI_FLOW_MAX`] px, what a KITTI flow PNG holds, at every
+    ``valid`` pixel ((H, W) bool, on the flow's device)."""
+    held = flow[:, valid]
+    if held.numel():
+        lo, hi = float(held.min()), float(held.max())
+        if lo < KITTI_FLOW_MIN or hi > KITTI_FLOW_MAX:
+            raise ValueError(f"{name}: a KITTI flow PNG holds [{KITTI_FLOW_MIN}, {KITTI_FLOW_MAX}] px, got the range "
+                             f"[{lo!r}, {hi!r}] at valid pixels")
 
 
 def flow_valid_pixels(flow: Tensor, valid: Tensor | np.ndarray | None) -> Tensor:

@@ -60,13 +60,14 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import check_has_values
+from .._check import as_chw_flow, check_has_values
 from ..geometry.camera import Camera
 from .atomic import write_json
 from .flo import read_flo, write_flo
 from .images import (check_image_suffix, check_no_broken_links, read_image, read_image_array, write_image,
                      write_image_array)
-from .kitti import check_rigid_poses, read_kitti_flow, write_kitti_calibration, write_kitti_flow, write_kitti_poses
+from .kitti import (check_kitti_flow_range, check_rigid_poses, flow_valid_pixels, read_kitti_flow, write_kitti_calibration,
+                    write_kitti_flow, write_kitti_poses)
 from .masks import read_label_map, read_road_mask, write_label_map, write_road_mask
 
 __all__ = [
@@ -196,6 +197,7 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     Checked before anything is written, as :func:`read_synthetic_pair` and
     :func:`synthetic_pair_indices` require: ``index`` is an int >= 0 (TypeError, ValueError naming
     it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
+    the flow at the valid pixels lies within the KITTI flow PNG's [-512, 511.98] px;
     ``pose1`` and ``pose2`` are rigid poses; ``extra`` holds none of the params' own keys (each
     a ValueError naming the argument).
     """
@@ -216,6 +218,9 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     clash = sorted(set(extra or {}) & set(_PARAMS_KEYS))
     if clash:
         raise ValueError(f"extra: {clash} are keys the params JSON holds itself; give other names")
+    # the flow PNG's range, before the images are written: a pair half written is no pair
+    flow = as_chw_flow(pair["flow"], "pair['flow']").detach().cpu().double()
+    check_kitti_flow_range(flow, flow_valid_pixels(flow, pair["valid"]), "pair['flow']")
     for key in ("pose1", "pose2"):  # checked before any file is written, as the reader checks them
         if pair.get(key) is not None:
             pose = torch.as_tensor(pair[key]).detach().to("cpu", torch.float64)
