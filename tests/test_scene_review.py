@@ -375,3 +375,18 @@ def test_the_presets_lane_cars_are_kept():
         cfg = scene_config(name, moving_cars=3.0)
         scene = Scene(cfg, 0, torch.float64)
         assert any(o.vs > 0 and o.e > 0 for b in range(1, 8) for o in scene.blocks(b)), name
+
+
+def test_a_configurations_own_size_is_bounded_as_the_size_argument():
+    """A SceneConfig's size (or scene_config's size override) went round MAX_SIDE: render_pair and
+    SceneDataset rendered a (16385, 1) frame (a (20000, 20000) one would fill 100 GB); now the same
+    ValueError as the size argument's, before any rendering."""
+    from fsof_torch.data.datasets import SceneDataset
+
+    message = r"^size: expected sides of at most 16384 pixels, got \(16385, 1\)$"
+    tall = replace(PRESETS["cvc-simple"], size=(16385, 1))
+    for call in (lambda: render_pair(tall, 0), lambda: SceneDataset(tall, 1),
+                 lambda: scene_config("cvc-simple", size=(16385, 1))):
+        with pytest.raises(ValueError, match=message):
+            call()
+    assert render_pair(replace(tall, size=(16384, 1)), 0)["image1"].shape == (3, 16384, 1)

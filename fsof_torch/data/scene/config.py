@@ -18,8 +18,8 @@ from ...geometry.camera import Camera
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
            "scene_config", "ASPHALT_CELLS", "MAX_TRAVEL", "MAX_SEED", "MIN_TURN_RADIUS", "MAX_BODY_HZ",
-           "MAX_GRADE_START", "MAX_CARS", "MAX_CONTRAST", "MAX_CRAB", "MAX_SUPERSAMPLE", "check_seed",
-           "check_overrides", "arc_length", "path_curvature", "traffic_speed", "ego_speed"]
+           "MAX_GRADE_START", "MAX_CARS", "MAX_CONTRAST", "MAX_CRAB", "MAX_SUPERSAMPLE", "MAX_SIDE", "check_seed",
+           "check_sides", "check_overrides", "arc_length", "path_curvature", "traffic_speed", "ego_speed"]
 
 #: Semantic label ids of ``labels``.
 LABELS: dict[str, int] = {"sky": 0, "road": 1, "marking": 2, "kerb": 3, "pavement": 4,
@@ -79,6 +79,10 @@ MAX_BODY_HZ = 1000.0
 #: frames at :data:`MAX_TRAVEL`; the closed-form ray casting squares distances to it.
 MAX_GRADE_START = 1e5
 
+#: Pixels a side of ``size`` (and of the jobs' size options): beyond any camera's frame, a larger
+#: render only fills memory.
+MAX_SIDE = 16_384
+
 #: Scene seeds are ints in [0, MAX_SEED): the generators are seeded with 2·seed + 1 and
 #: seed·1 000 003 mod 2**63, so a larger or a negative seed would overflow or alias a valid one.
 MAX_SEED = 2 ** 62
@@ -90,6 +94,12 @@ def check_seed(seed: object) -> int:
     if not 0 <= seed < MAX_SEED:
         raise ValueError(f"seed: expected an int in [0, 2**62), got {seed!r}")
     return seed
+
+
+def check_sides(size: tuple[int, int]) -> None:
+    """ValueError naming ``size`` (H, W, ints) where a side exceeds :data:`MAX_SIDE`."""
+    if max(size) > MAX_SIDE:
+        raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {tuple(size)}")
 
 
 def check_overrides(overrides: Any) -> None:
@@ -164,7 +174,7 @@ class SceneConfig:
     atan(l / 8 m), about 0.325 rad at l = 2.7 m).
 
     Camera: ``height`` (m), ``roll``, ``pitch`` (rad), ``K`` (3×3 at ``base_size``), ``size``
-    (rendered (H, W); K is scaled to it); K, height, roll and pitch make a valid
+    (rendered (H, W), each side at most :data:`MAX_SIDE` = 16 384; K is scaled to it); K, height, roll and pitch make a valid
     :class:`~fsof_torch.geometry.camera.Camera` (float64) at both sizes. Anti-aliasing:
     ``supersample`` (ss × ss rays per pixel, 1 <= ss <= :data:`MAX_SUPERSAMPLE` = 16) at geometric
     edges only when ``adaptive`` (textures and markings are band-limited analytically, so pixel
@@ -396,7 +406,7 @@ def _validate(cfg: SceneConfig) -> None:
     for name in ("adaptive", "buildings"):
         check_bool(getattr(cfg, name), name)  # a truthy string such as "False" would pass as True
     if cfg.size is not None:
-        check_size(cfg.size)
+        check_sides(check_size(cfg.size))  # (a SceneConfig's own size as well as the size argument)
     check_size(cfg.base_size, "base_size")
     _validate_camera(cfg)
     _validate_road_motion(cfg, real)

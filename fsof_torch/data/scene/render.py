@@ -11,7 +11,8 @@ import torch
 from torch import Tensor
 
 from ..._check import autocast_off, check_bool, check_int, check_size
-from .config import MARKING, ROAD, SKY, SceneConfig, check_overrides, check_seed, scene_config
+from .config import MAX_SIDE  # noqa: F401 (the jobs' size options take the renderer's bound from here)
+from .config import MARKING, ROAD, SKY, SceneConfig, check_overrides, check_seed, check_sides, scene_config
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
 from .shading import sensor_noise, shade
@@ -168,9 +169,6 @@ def _check_dtype(dtype: torch.dtype) -> None:
 #: frames beyond this are refused: a frame's poses and objects are built from frame 0 on (time and
 #: memory grow with the index), and float32 geometry loses precision with the distance driven
 MAX_FRAME = 100_000
-#: pixels a side of ``size`` (and of the jobs' size options): beyond any camera's frame, a larger
-#: render only fills memory
-MAX_SIDE = 16_384
 
 
 def check_extent(num_pairs: int, start: int = 0, size: tuple[int, int] | None = None) -> None:
@@ -180,8 +178,8 @@ def check_extent(num_pairs: int, start: int = 0, size: tuple[int, int] | None = 
     if start + num_pairs > MAX_FRAME:
         raise ValueError(f"num_pairs: expected start + num_pairs (the last frame) at most {MAX_FRAME}, got "
                          f"{start} + {num_pairs}")
-    if size is not None and max(size) > MAX_SIDE:
-        raise ValueError(f"size: expected sides of at most {MAX_SIDE} pixels, got {tuple(size)}")
+    if size is not None:
+        check_sides(size)
 
 
 def render_pair(preset: str | SceneConfig = "default", index: int = 0, *, seed: int = 0,
