@@ -193,6 +193,11 @@ def test_scene_config_overrides():
     # (a frame's poses and objects are built from frame 0 on: an index of 10**9 filled memory)
     (dict(index=100_000), ValueError, "index: expected at most 99999, got 100000"),
     (dict(size=(16, 16385)), ValueError, r"size: expected sides of at most 16384 pixels, got \(16, 16385\)"),
+    # an int beyond float's range was an OverflowError from math.isfinite (a traceback, no option named)
+    (dict(speed=10**400), ValueError, r"^speed: expected a finite number, got 1000.*\(401 characters\)$"),
+    (dict(x_d=10**400, z_d=1.0, yaw=0.0), ValueError, r"^x_d: expected a finite number"),
+    (dict(grade_start=-10**400), ValueError, r"^grade_start: expected a finite number"),
+    (dict(K=((10**400, 0, 600), (0, 700, 170), (0, 0, 1))), ValueError, r"^K: expected a 3×3 matrix of finite numbers"),
 ])
 def test_render_pair_errors(kwargs, error, match):
     kwargs = {"preset": "default", "size": TINY, **kwargs}

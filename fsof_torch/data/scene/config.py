@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from ..._check import check_bool, check_int, check_size, is_number, option_error
+from ..._check import check_bool, check_int, check_number, check_size, is_number
 from ...geometry.camera import Camera
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
@@ -334,11 +334,20 @@ def _as_K(K: Any) -> tuple:
     except (TypeError, ValueError, RuntimeError, NotImplementedError):
         rows = None
     if (rows is None or len(rows) != 3 or any(len(r) != 3 for r in rows)
-            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and math.isfinite(v)
+            or not all(isinstance(v, numbers.Real) and not isinstance(v, bool) and _finite(v)
                        for r in rows for v in r)):
         raise ValueError(f"K: expected a 3×3 matrix of finite numbers (nested sequences, a tensor or an array), "
                          f"got {K!r}")
     return tuple(tuple(float(v) for v in r) for r in rows)
+
+
+def _finite(value: numbers.Real) -> bool:
+    """Whether a real number is finite as a float (an int beyond float's range, 10**400, is not:
+    math.isfinite raises OverflowError on it)."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
 
 
 def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
@@ -360,9 +369,9 @@ def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
 def _validate(cfg: SceneConfig) -> None:
     def real(name: str) -> float:
         value = getattr(cfg, name)
-        if not is_number(value) or not math.isfinite(value):
-            raise option_error(value, f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
-        return float(value)
+        if not is_number(value):
+            raise TypeError(f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
+        return check_number(value, name)  # finite, also an int beyond float's range (ValueErrors naming it)
 
     for name in ("speed", "steering", "roll", "pitch", "speed_factor", "texture", "noise", "parked_cars",
                  "moving_cars", "lane_width", "parking_width", "pavement_width", "kerb_height"):
