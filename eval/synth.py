@@ -10,6 +10,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 from pathlib import Path
 
@@ -42,7 +43,7 @@ def _stats(pair: dict) -> dict:
     magnitude = flow.norm(dim=0, keepdim=True)[valid]
     pose = pair.get("road_pose")
     return {
-        "x_d": float(odo["x_d"]), "z_d": float(odo["z_d"]), "yaw_deg": float(torch.rad2deg(torch.tensor(float(odo["yaw"])))),
+        "x_d": float(odo["x_d"]), "z_d": float(odo["z_d"]), "yaw_deg": math.degrees(float(odo["yaw"])),
         "valid_pct": 100.0 * float(valid.float().mean()),
         "road_pct": 100.0 * float(road.float().mean()) if road is not None else None,
         "max_flow_px": float(magnitude.max()) if magnitude.numel() else 0.0,

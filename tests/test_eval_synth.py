@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import pytest
 import torch
@@ -35,6 +36,9 @@ def test_writes_the_layout(written, capsys):
     summary = json.loads(report.read_text())
     assert summary["num_pairs"] == 2 and len(summary["pairs"]) == 2 and summary["bytes"] > 0
     assert set(summary["pairs"][0]["road_pose"]) == {"pitch", "roll", "height"}
+    for row in summary["pairs"]:  # (yaw_deg was converted in float32: 0.5093637704849243 for 0.5093637348698544)
+        odometry = json.loads((out / "params" / f"{row['index']:06d}.json").read_text())["odometry"]
+        assert row["yaw_deg"] == math.degrees(odometry["yaw"]) and row["z_d"] == odometry["z_d"]
 
 
 def test_dataset_reads_back_the_render(written):
