@@ -131,7 +131,8 @@ class _Renderer:
 # puts its own last frame back at its end. That frame's tensors were never handed to a caller (a
 # pair's image2 is a copy), and the call that takes it hands them to its caller and keeps none, so
 # no caller's tensor aliases a kept one; each call builds its own Scene, and each pair gets its own
-# copy of the camera. Holds one frame (about 39 MB at 375x1242) until a call on another scene replaces it.
+# copy of the camera. Holds one frame (about 39 MB at 375x1242 in float32, 60 MB in float64) until a call on
+# another scene replaces it.
 _KEPT: dict[str, Any] = {}
 _KEPT_LOCK = threading.Lock()
 
@@ -233,8 +234,8 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
 
     Consecutive pairs share frames (frame t+1 of pair i is frame t of pair i+1); each pair equals
     ``render_pair(preset, start + i, ...)``. So do consecutive calls: the last frame of a call is
-    kept (one frame of one scene, about 39 MB at 375×1242, for any thread) and is the first frame
-    of a call on the same scene that starts there, so rendering pair 0, then pair 1, ... one call
+    kept (one frame of one scene, about 39 MB at 375×1242 in float32, 60 MB in float64, for any
+    thread) and is the first frame of a call on the same scene that starts there, so rendering pair 0, then pair 1, ... one call
     at a time renders each frame once (a frame kept under ``torch.inference_mode()`` serves only calls
     under it, and one kept outside only calls outside). No returned tensor is shared with another
     call's. Any grad mode renders the same pixels and ground truth.
