@@ -35,7 +35,8 @@ Ground truth per pair (frames t = index, t+1):
   projected; flow = projection − pixel. Sky pixels get the flow of a direction at infinity
   (rotation only) and are not valid.
 * ``valid``: a 3D point exists, lies in front of the camera at t+1, projects inside
-  [0, W−1] × [0, H−1] and is not occluded there: its inverse depth is compared with the inverse
+  [0, W−1] × [0, H−1] (or within 1e-3 px of its own pixel, :data:`.ground_truth.STILL`: a border
+  pixel of a camera standing still stays valid whatever the rounding) and is not occluded there: its inverse depth is compared with the inverse
   depth render of frame t+1 interpolated bilinearly at the projected position (bilinear
   interpolation of inverse depth is exact on planes; at depth edges it errs toward "occluded").
 * ``flow_velocity`` (px/s): the analytic time derivative of each point's projection under the
