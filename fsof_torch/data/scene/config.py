@@ -13,7 +13,7 @@ from typing import Any
 
 import torch
 
-from ..._check import check_bool, check_int, check_number, check_size, is_number
+from ..._check import check_bool, check_int, check_number, check_size, is_number, option_error
 from ...geometry.camera import Camera
 
 __all__ = ["LABELS", "LABEL_COLORS", "KITTI_K", "KITTI_SIZE", "SENSOR_NOISE", "PRESETS", "SceneConfig",
@@ -369,9 +369,14 @@ def _python_numbers(cfg: SceneConfig) -> dict[str, Any]:
 def _validate(cfg: SceneConfig) -> None:
     def real(name: str) -> float:
         value = getattr(cfg, name)
-        if not is_number(value):
-            raise TypeError(f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
-        return check_number(value, name)  # finite, also an int beyond float's range (ValueErrors naming it)
+        try:
+            finite = is_number(value) and math.isfinite(value)
+        except OverflowError:  # an int beyond float's range (10**400): check_number's ValueError, shortened
+            check_number(value, name)
+            raise
+        if not finite:
+            raise option_error(value, f"{name}: expected a finite number, got {type(value).__name__} {value!r}")
+        return float(value)
 
     for name in ("speed", "steering", "roll", "pitch", "speed_factor", "texture", "noise", "parked_cars",
                  "moving_cars", "lane_width", "parking_width", "pavement_width", "kerb_height"):
