@@ -544,6 +544,40 @@ def test_a_right_prediction_leaving_the_frame_is_not_overruled_by_a_wrong_model_
     assert not bool(out.use_model.any())
 
 
+@pytest.mark.parametrize("judge, options, strips", [
+    ("cell", dict(objects=False), [(185, 19)]),
+    ("region", dict(min_points=10 ** 6, require_evidence=False), [(168, 40), (175, 60), (180, 80), (185, 30)]),
+    ("sample", dict(min_points=10 ** 6, require_evidence=False, objects=False),
+     [(175, 20), (180, 30), (185, 56), (185, 65)])])
+def test_a_prediction_leaving_the_frame_everywhere_just_explains_its_points_whatever_their_number(judge, options,
+                                                                                                  strips):
+    """A right prediction whose end points all leave image 2 (each point's distance taken as
+    ``occlusion``) in a strip at the right edge (columns from the first number to 190, rows 8 to
+    the second), a model wrong by 24 px inside it: whether the prediction explains a cell, an
+    object region or the sample's mask is its mean distance at most ``occlusion``, and the mean
+    of n equal distances rounds above that value for some n in float32 (44 points: 0.35000002).
+    These strips took the wrong model: the cell's (one cell over the mask), the region's (beside
+    a block where the model is right and the prediction 2 px off, which the sample and its cell
+    take; ``min_points`` beyond reach leaves the cell to follow the sample), the sample's (the
+    strip alone, no cells). The prediction's distances are now compared as their summed excess
+    over ``occlusion``, 0 exactly where it is lost."""
+    g1, g2, true = _pair(shift=24)
+    model, prediction = torch.zeros_like(true), true.clone()
+    block = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    if judge == "region":
+        model[..., :150] = true[..., :150]
+        prediction[:, 0, :, :100] += 2.0
+        block[..., 8:88, 8:100] = True
+    for left, bottom in strips:
+        strip = torch.zeros_like(block)
+        strip[..., 8:bottom, left:191] = True  # every true end point leaves image 2
+        out = ImageGate(grid=(1, 1), **options)(g1, g2, prediction, model, block | strip)
+        assert int((strip & ~block).sum()) >= 44 and float(out.cost_model[0]) > 0
+        assert not bool(out.use_model[strip].any()), (left, bottom)
+        assert bool(out.model_used[0]) == (judge != "sample") and int(out.cells_kept[0]) == (judge == "cell")
+        assert bool(out.use_model[block].all())
+
+
 def test_a_cell_whose_model_leaves_image_2_keeps_the_prediction_only_where_it_explains_it():
     """The right cell's true end points mostly leave image 2 (a frame cut at its edge), and the
     prediction there is wrong (no motion) but inside. On the few points whose model end point

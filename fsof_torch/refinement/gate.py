@@ -251,6 +251,10 @@ class ImageGate:
         delta = d_model - d_pred  # > 0: the prediction explains the point better
         n_all = w.sum(1)
         cost_pred = (d_pred * w).sum(1) / n_all.clamp_min(1)
+        # whether the prediction explains points (mean distance at most ``occlusion``) is judged
+        # by the sum of its excess over ``occlusion``: 0 exactly where it is lost, where the mean
+        # of n equal distances ``occlusion`` can round above it (n = 44 in float32)
+        excess = d_pred - self.occlusion
         cost_model = (d_model * w).sum(1) / n_all.clamp_min(1)
         # the mean difference's standard error also from blocks of points (neighbouring points
         # are not independent evidence)
@@ -261,12 +265,13 @@ class ImageGate:
         # the prediction is kept only where it explains the images itself: where neither flow
         # does (occluded in image 2, new content), the model's geometry is the better guess
         # (no textured point at all is no evidence against the model either)
-        model_used = ~((mean_all > self.margin + self.z * se_all) & (cost_pred <= self.occlusion))
+        explains = (excess * w).sum(1) <= 0
+        model_used = ~((mean_all > self.margin + self.z * se_all) & explains)
         # confirmed: the model better by z standard errors (no margin: the images decide)
         confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
         # (fewer points than a cell needs are too few to judge a sample by: a handful of census
         # distances can favour either flow by chance, and no standard error would show it)
-        informative = (n_all >= self.min_points) & (torch.minimum(cost_model, cost_pred) <= self.occlusion)
+        informative = (n_all >= self.min_points) & ((cost_model <= self.occlusion) | explains)
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
         (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
@@ -278,8 +283,8 @@ class ImageGate:
         model_lost = leaves(fm) & torch.isfinite(fm).all(1)
         w_pred = (count | (pts.sel & model_lost & ok_pred & finite & (n_clear >= self.min_neighbours))).to(work)
         # what the cells and the object regions sum over their points: the weights, the weighted
-        # differences and their squares, the prediction's weighted distances and their weights
-        terms = torch.stack([w, delta * w, delta.square() * w, d_pred * w_pred, w_pred], dim=1)  # (B, 5, N)
+        # differences and their squares, and the prediction's excess over ``occlusion`` weighted
+        terms = torch.stack([w, delta * w, delta.square() * w, excess * w_pred], dim=1)  # (B, 4, N)
         cell_model, evidence, enough, kept = self._cells(cell, terms, model_used, (H, W))
         use_model = mask & cell_model  # (a sample whose model is not used has no cell that uses it)
         kept = (enough & kept).sum(1)
@@ -308,8 +313,8 @@ class ImageGate:
         cells), less each region's part in a cell (``cell`` (B, N), each point's) whose own points,
         ``min_points`` or more, significantly favour the model: a region's average does not
         overrule its parts' evidence. None where no region keeps the prediction. Whether the
-        prediction explains a region: its distance over the points of weight w_pred (as the
-        cells'); ``terms``: the sums' terms at the points (see :meth:`_cells`)."""
+        prediction explains a region: its excess over ``occlusion`` summed over the points of weight
+        w_pred (as the cells'); ``terms``: the sums' terms at the points (see :meth:`_cells`)."""
         import cv2
         import numpy as np
 
@@ -350,11 +355,11 @@ class ImageGate:
             # each point's region (0: the flows agree), read frame by frame (no stacked copy of the labels)
             at = np.stack([labels.reshape(-1)[p] for (_, labels), p in zip(found, pix_np)]).astype(np.int64)
             at = torch.from_numpy(at).to(pts.pix.device)
-            n, s, s2, s_pred, n_pred = _sum_by(at, terms, L).unbind(1)
+            n, s, s2, s_pred = _sum_by(at, terms, L).unbind(1)
             diff = s / n.clamp_min(1)
             var = (s2 / n.clamp_min(1) - diff.square()).clamp_min(0)
             keep = ((n >= self.min_points_fine) & (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt())
-                    & (s_pred / n_pred.clamp_min(1) <= self.occlusion))
+                    & (s_pred <= 0))
             keep[:, 0] = False
             if not bool(keep.any()):
                 continue
@@ -380,18 +385,19 @@ class ImageGate:
         """The decision on one grid of cells (``cell`` (B, N), each point's): where the model is
         used (B, 1, H, W) bool, the evidence for it (B, 1, H, W; 0 in a sample whose model is not
         used), and per cell (B, rows * columns) bool whether it has enough points and whether it
-        keeps the prediction. ``terms`` (B, 5, N): at each point its weight w, w times the
+        keeps the prediction. ``terms`` (B, 4, N): at each point its weight w, w times the
         difference ``delta`` of the distances, w times its square, and the prediction's distance
-        times its weight ``w_pred`` and w_pred: the difference is judged over the points of weight
-        w; whether the prediction explains a cell, its distance over those of w_pred (also where
-        only the prediction can be judged)."""
+        less ``occlusion`` times its weight ``w_pred``: the difference is judged over the points of
+        weight w; the prediction explains a cell where its mean distance over those of w_pred (also
+        where only the prediction can be judged) is at most ``occlusion``: its summed excess at
+        most 0."""
         (H, W), (rows, cols), B, min_points = size, self.grid, terms.shape[0], self.min_points
         ch, cw = math.ceil(H / rows), math.ceil(W / cols)
-        n, s, s2, s_pred, n_pred = _sum_by(cell, terms, rows * cols).unbind(1)
+        n, s, s2, s_pred = _sum_by(cell, terms, rows * cols).unbind(1)
         diff = s / n.clamp_min(1)  # > 0: the prediction explains the cell better
         var = (s2 / n.clamp_min(1) - diff.square()).clamp_min(0)
         worse = (diff > self.margin + self.z * (var / n.clamp_min(1)).sqrt()) \
-            & (s_pred / n_pred.clamp_min(1) <= self.occlusion)
+            & (s_pred <= 0)
         enough = n >= min_points
         cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
         evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
