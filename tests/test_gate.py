@@ -244,6 +244,32 @@ def test_a_handful_of_points_is_no_evidence():
     assert int(ImageGate(points=11)(g1, g2, true, model, mask).points[0]) == 11
 
 
+def test_a_handful_of_points_does_not_confirm_the_model():
+    """Image 2 unrelated to image 1 (no flow explains it) and a mask of two pixels: the model's
+    census distance fell below the prediction's at both by chance in 14 of 40 draws, their
+    standard error (two points) did not show it, and the images "confirmed" the model, which
+    replaced the prediction. Fewer than ``min_points`` points confirm nothing, as they inform
+    nothing; with enough points that confirm it, the model is confirmed (and used)."""
+    g1, _, true = _pair()
+    model = torch.zeros_like(true)
+    for s in range(40):
+        mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+        mask[..., 10 + s, 20 + 3 * s:22 + 3 * s] = True
+        out = ImageGate()(g1, _texture(seed=100 + s), true, model, mask)
+        assert int(out.points[0]) == 2, s
+        assert not bool(out.confirmed[0]) and not bool(out.informative[0]), s
+        assert not bool(out.model_used[0]) and not bool(out.use_model.any()), s
+    # the images of a rigid shift: 12 points that confirm a right model over a wrong prediction
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 40, 20:180] = True
+    wrong = true + torch.tensor([4.0, -3.0]).reshape(1, 2, 1, 1)
+    for points, confirmed in ((11, False), (12, True)):
+        out = ImageGate(points=points)(g1, g2, wrong, true, mask)
+        assert int(out.points[0]) == points and float(out.cost_model[0]) == 0.0
+        assert bool(out.confirmed[0]) == confirmed and bool(out.model_used[0]) == confirmed, points
+
+
 def test_a_model_as_good_as_the_prediction_is_used():
     g1, g2, true = _pair()
     mask = torch.ones(1, 1, 96, 192, dtype=torch.bool)
@@ -618,7 +644,7 @@ def test_an_object_region_whose_model_leaves_image_2_keeps_the_prediction_only_w
     prediction[:, 0, :, 96:148] = 40.0  # ... right from the middle to where the model leaves
     strip = columns >= 141
     model[:, 0, :, strip] += 1.5
-    out = ImageGate(grid=(1, 2), min_points=10 ** 6)(g1, g2, prediction, model, mask)
+    out = ImageGate(grid=(48, 96))(g1, g2, prediction, model, mask)
     assert bool(out.confirmed.all()) and bool(out.model_used.all()) and int(out.cells) == 0
     assert bool(out.use_model[mask & (columns < 96)].all())
     assert bool(out.use_model[mask & strip].all())

@@ -32,9 +32,10 @@ differ by more than ``object_px`` (2 and 4 times that too) on their own: a regio
 prediction explains the images significantly better keeps it, except in its part inside a cell
 whose own points significantly favour the model (a region's average does not overrule its parts).
 
-A sample is *confirmed* when over its whole mask the model explains the images better than the
-prediction by more than ``z`` standard errors, and *informative* when at least ``min_points``
-of its points count and one of the two flows explains them (its mean distance at most
+A sample is *confirmed* when at least ``min_points`` of its points count and over its whole
+mask the model explains the images better than the prediction by more than ``z`` standard
+errors, and *informative* when at least ``min_points`` of its points count and one of the two
+flows explains them (its mean distance at most
 ``occlusion``; where the prediction cannot be judged anywhere, the model alone decides). With
 ``require_evidence`` (the default) a sample whose images are not informative and do not confirm
 the model keeps its prediction everywhere: on dark, noisy or textureless frames the census is
@@ -86,8 +87,8 @@ class GateResult(NamedTuple):
             cells where the model is used at none of their pixels (after the object test).
         model_used: (B,) bool, False where the model is worse over the whole mask, or (with
             ``require_evidence``) where the images neither inform nor confirm.
-        confirmed: (B,) bool, the model explains the images significantly better than the
-            prediction over the whole mask.
+        confirmed: (B,) bool, at least ``min_points`` points count and the model explains the
+            images significantly better than the prediction over the whole mask.
         informative: (B,) bool, at least ``min_points`` points count and one of the two flows
             explains the images (mean census distance at most ``occlusion``).
         textured: (B,) the share of the judged points with enough clear texture to count.
@@ -150,7 +151,7 @@ class ImageGate:
             there (``min_points`` or more) favour the model by ``z`` standard errors.
         points: mask pixels per sample that are judged (an even subsample).
         min_points: a cell with fewer points follows its sample's decision; a sample with fewer is
-            not informative (``require_evidence``).
+            neither informative nor confirmed (``require_evidence``).
         margin, z: the model may be worse than the prediction by ``margin`` census distance plus
             ``z`` standard errors of the difference and still be used (over a sample's mask, the
             errors from blocks of points where larger: see the module).
@@ -267,11 +268,13 @@ class ImageGate:
         # (no textured point at all is no evidence against the model either)
         explains = (excess * w).sum(1) <= 0
         model_used = ~((mean_all > self.margin + self.z * se_all) & explains)
-        # confirmed: the model better by z standard errors (no margin: the images decide)
-        confirmed = (n_all > 0) & (-mean_all > self.z * se_all)
         # (fewer points than a cell needs are too few to judge a sample by: a handful of census
-        # distances can favour either flow by chance, and no standard error would show it)
-        informative = (n_all >= self.min_points) & ((cost_model <= self.occlusion) | explains)
+        # distances can favour either flow by chance, and no standard error would show it; they
+        # neither confirm the model nor inform)
+        enough_points = n_all >= self.min_points
+        # confirmed: the model better by z standard errors (no margin: the images decide)
+        confirmed = enough_points & (-mean_all > self.z * se_all)
+        informative = enough_points & ((cost_model <= self.occlusion) | explains)
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
         (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
