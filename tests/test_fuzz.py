@@ -701,6 +701,25 @@ def test_readers_on_corrupt_files(reader, tmp_path_factory):
     run()
 
 
+@pytest.mark.parametrize("reader", [r for r in READERS if r != "read_synthetic_params"])  # (test_io_layout)
+def test_readers_on_a_folder_or_a_broken_link(reader, tmp_path):
+    """A folder where the file should be is an IsADirectoryError naming it, and a symbolic link to
+    a missing file a FileNotFoundError that says so (data on a drive not mounted), for every
+    reader: the Virtual KITTI 2 text readers said "no intrinsic.txt at" for both."""
+    (tmp_path / "valid").mkdir()
+    fn, path = _valid_files(tmp_path / "valid")[reader]
+    folder = tmp_path / "bad" / path.name
+    folder.mkdir(parents=True)
+    with pytest.raises(IsADirectoryError, match=rf"^path: '.*/bad/{re.escape(path.name)}' is a folder; expected "):
+        fn(folder)
+    link = tmp_path / "link" / path.name
+    link.parent.mkdir()
+    link.symlink_to(tmp_path / "unmounted" / path.name)
+    with pytest.raises(FileNotFoundError, match=rf"^path: '.*/link/{re.escape(path.name)}' is a symbolic link to "
+                                                r"'.*/unmounted/.*', which does not exist"):
+        fn(link)
+
+
 # -- the meta device: shape inference through every table entry ---------------------------------------
 
 # Entries that need values, with the documented error (they return Python numbers, go through

@@ -129,7 +129,7 @@ class TestExceptions:
         (tmp_path / "i2.txt").write_text("0 1 1 1 1 1\n")
         with pytest.raises(ValueError, match="no rows for camera 0"):
             read_vkitti2_intrinsics(tmp_path / "i2.txt", camera=0)
-        with pytest.raises(FileNotFoundError, match=r"path: no extrinsic\.txt at '.*none\.txt'"):
+        with pytest.raises(FileNotFoundError, match=r"path: no VKITTI2 extrinsic\.txt at '.*none\.txt'"):
             read_vkitti2_extrinsics(tmp_path / "none.txt")
 
     @pytest.mark.parametrize("camera", ["0", 0.0, True, None])

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, as_chw_flow, result_dtype, skip_values
+from .._check import as_path, as_chw_flow, existing_file, result_dtype, skip_values
 from .images import check_image_suffix, read_image_array, write_image_array
 from .kitti import check_rigid_poses, flow_valid_pixels
 
@@ -96,9 +96,7 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
 def _read_table(path: str | os.PathLike, columns: int, what: str) -> tuple[np.ndarray, np.ndarray]:
     """A VKITTI2 table's rows (float64, one a row) and their line numbers. Each row starts with a
     frame number and a cameraID, whole numbers >= 0, and no (frame, cameraID) pair comes twice."""
-    path = as_path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no {what} at {str(path)!r}")
+    path = existing_file(path, f"VKITTI2 {what}")  # (a folder: IsADirectoryError; a broken link says so)
     rows = []
     lines = []
     seen: dict[tuple[float, float], int] = {}
@@ -209,9 +207,7 @@ def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
 def read_vkitti2_colors(path: str | os.PathLike) -> dict[str, tuple[int, int, int]]:
     """``colors.txt`` → ``{class name: (r, g, b)}`` in file order; components are integers in
     0..255 and each class comes once (else a ValueError naming the file and the line)."""
-    path = as_path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"path: no colors.txt at {str(path)!r}")
+    path = existing_file(path, "VKITTI2 colors.txt")
     colors: dict[str, tuple[int, int, int]] = {}
     lines: dict[str, int] = {}
     for n, line in enumerate(_read_text(path, "colors.txt").splitlines(), 1):
