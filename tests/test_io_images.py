@@ -356,3 +356,34 @@ def test_frame_order_refuses_two_files_of_one_frame_name():
         in_frame_order(["000001.png", "000000.png", "000000.jpg"])
     with pytest.raises(ValueError, match=r"^frames: 'a/5\.png' and 'b/5\.png' share the frame name 5"):
         in_frame_order(["b/5.png", "a/5.png"], name="frames")
+
+
+def _exif_orientation(value: int) -> bytes:
+    """A big-endian TIFF block (the payload of a PNG eXIf chunk and of a JPEG's APP1 Exif
+    segment) holding one entry: the orientation tag 0x0112, a SHORT."""
+    return b"MM\x00*" + struct.pack(">IHHHIHHI", 8, 1, 0x0112, 3, 1, value, 0, 0)
+
+
+@pytest.mark.parametrize("suffix", [".png", ".jpg"])
+def test_exif_orientation_is_not_applied(tmp_path, suffix):
+    """An EXIF orientation tag (a phone's 'rotate 90°') leaves the pixels as stored, the grid a
+    calibration of the stored frames describes, as PIL and torchvision read them (OpenCV's
+    default imread would turn the image to 6×4)."""
+    bgr = np.arange(4 * 6 * 3, dtype=np.uint8).reshape(4, 6, 3) * 3
+    data = cv2.imencode(suffix, bgr, [cv2.IMWRITE_JPEG_QUALITY, 100] if suffix == ".jpg" else [])[1].tobytes()
+    exif = _exif_orientation(6)
+    if suffix == ".png":  # an eXIf chunk after IHDR (8-byte signature, 25-byte IHDR chunk)
+        chunk = b"eXIf" + exif
+        data = data[:33] + struct.pack(">I", len(exif)) + chunk + struct.pack(">I", zlib.crc32(chunk)) + data[33:]
+    else:  # an APP1 Exif segment after SOI
+        data = data[:2] + b"\xff\xe1" + struct.pack(">H", 2 + 6 + len(exif)) + b"Exif\x00\x00" + exif + data[2:]
+    path = tmp_path / f"turned{suffix}"
+    path.write_bytes(data)
+    assert cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR).shape == (6, 4, 3)  # the tag is read
+    stored = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    assert stored.shape == (4, 6, 3)
+    image = read_image(path)
+    assert image.shape == (3, 4, 6)
+    assert torch.equal(image, torch.from_numpy(stored[:, :, ::-1].transpose(2, 0, 1).astype(np.float32)))
+    if suffix == ".png":  # lossless: the very values written
+        assert torch.equal(image, torch.from_numpy(bgr[:, :, ::-1].transpose(2, 0, 1).astype(np.float32)))

@@ -227,7 +227,9 @@ def read_image(path: str | os.PathLike) -> Tensor:
     """An image file as a (3, H, W) float32 RGB tensor on the 0..255 scale.
 
     Grey images are repeated to three channels, an alpha channel is dropped, 16-bit images are
-    divided by 257 (65535 -> 255).
+    divided by 257 (65535 -> 255). An EXIF orientation tag is not applied: the pixels come as
+    stored (as PIL and torchvision read them; ``cv2.imread``'s default would turn the image), the
+    grid that a calibration of the stored frames describes.
     """
     array = read_image_array(path, what="image")
     if array.dtype == np.uint16:
