@@ -84,6 +84,31 @@ class TestSmoke:
         assert cv2.imread(str(tmp_path / "l.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
 
 
+    @pytest.mark.parametrize("depth", [1, 2, 4])
+    def test_label_map_of_fewer_than_8_bits(self, tmp_path, depth):
+        """A grey PNG of 1, 2 or 4 bits (an optimiser's or a PIL ``bits=`` output) read as OpenCV
+        expands it: labels 1, 2, 3 came as 255 (85, 170, 255 at 2 bits; 17, 34, 51 at 4)."""
+        import struct
+        import zlib
+
+        height, width = 3, 11  # rows that end mid-byte
+        labels = (np.arange(height * width).reshape(height, width) * 7 % 2 ** depth).astype(np.uint8)
+        rows = b""
+        for row in labels:  # filter 0, then the samples packed from the high bit down
+            bits = "".join(format(int(v), f"0{depth}b") for v in row)
+            bits += "0" * (-len(bits) % 8)
+            rows += b"\x00" + int(bits, 2).to_bytes(len(bits) // 8, "big")
+
+        def chunk(kind: bytes, data: bytes) -> bytes:
+            return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+        png = (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, depth, 0, 0, 0, 0))
+               + chunk(b"IDAT", zlib.compress(rows)) + chunk(b"IEND", b""))
+        (tmp_path / "l.png").write_bytes(png)
+        assert torch.equal(read_label_map(tmp_path / "l.png"), torch.from_numpy(labels.astype(np.int64)))
+        assert labels.max() == 2 ** depth - 1  # every label value was there
+
+
 class TestNumPy:
     """The mask and label writers take NumPy arrays, as the image and flow writers do."""
 

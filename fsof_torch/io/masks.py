@@ -364,11 +364,17 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
 
 
 def read_label_map(path: str | os.PathLike) -> Tensor:
-    """A single-channel 8- or 16-bit label PNG as an (H, W) int64 tensor."""
+    """A single-channel 8- or 16-bit label PNG as an (H, W) int64 tensor. A grey PNG of 1, 2 or
+    4 bits gives its stored values too (labels 0..1, 0..3, 0..15), not the 8-bit intensities
+    OpenCV expands them to (1 -> 255, 85, 17)."""
     array = read_image_array(path, what="label map (single-channel 8/16-bit PNG)")
     if array.ndim != 2 or array.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"path: {str(path)!r} is {array.dtype} with shape {array.shape}; expected a "
                          f"single-channel 8- or 16-bit label map")
+    with open(path, "rb") as f:  # the PNG signature, then IHDR: length, type, W, H, bit depth, colour type
+        head = f.read(26)
+    if head[12:16] == b"IHDR" and head[25] == 0 and head[24] in (1, 2, 4):  # grey under 8 bits
+        array = array // (255 // (2 ** head[24] - 1))  # (OpenCV repeats the bits: v -> v * 255 / (2^n - 1))
     return torch.from_numpy(array.astype(np.int64))
 
 
