@@ -387,3 +387,31 @@ def test_exif_orientation_is_not_applied(tmp_path, suffix):
     assert torch.equal(image, torch.from_numpy(stored[:, :, ::-1].transpose(2, 0, 1).astype(np.float32)))
     if suffix == ".png":  # lossless: the very values written
         assert torch.equal(image, torch.from_numpy(bgr[:, :, ::-1].transpose(2, 0, 1).astype(np.float32)))
+
+
+@pytest.mark.parametrize("magic, maxval", [("P5", 1023), ("P5", 4095), ("P5", 100), ("P6", 1023), ("P6", 15),
+                                           ("P2", 1023), ("P3", 4095), ("P2", 100), ("P5", 255), ("P6", 65535)])
+def test_pgm_and_ppm_scaled_by_their_maxval(tmp_path, magic, maxval):
+    """A PGM/PPM states the value of white (maxval): 10-bit data (maxval 1023) read as 0..3.98, a
+    near black image, since OpenCV gives binary files' values as stored (and 16-bit ones were
+    divided by 257). Now white is 255 whatever the maxval; the expected values are the samples
+    scaled by 255 / maxval (OpenCV itself scales plain-text files of maxval < 256, to whole
+    levels)."""
+    colour = magic in ("P3", "P6")
+    shape = (3, 5, 3) if colour else (3, 5)
+    samples = np.random.default_rng(maxval).integers(0, maxval + 1, shape)
+    samples.flat[0], samples.flat[1] = 0, maxval  # black and white are there
+    header = f"{magic}\n# 10-bit sensor\n5 3\n{maxval}\n".encode()
+    if magic in ("P2", "P3"):
+        body = " ".join(map(str, samples.ravel())).encode() + b"\n"
+    else:
+        body = samples.astype(">u2" if maxval > 255 else np.uint8).tobytes()
+    (tmp_path / "a.pnm").write_bytes(header + body)
+    rgb = samples.transpose(2, 0, 1) if colour else np.repeat(samples[None], 3, axis=0)
+    expected = rgb * 255.0 / maxval
+    if magic in ("P2", "P3") and maxval < 256:
+        expected = np.floor(expected)  # (OpenCV's own scaling, to whole levels)
+    image = read_image(tmp_path / "a.pnm")
+    assert image.dtype == torch.float32 and image.shape == (3, 3, 5)
+    np.testing.assert_allclose(image.numpy(), expected, rtol=0, atol=1e-4)
+    assert float(image.max()) == 255.0

@@ -229,10 +229,14 @@ def read_image(path: str | os.PathLike) -> Tensor:
     Grey images are repeated to three channels, an alpha channel is dropped, 16-bit images are
     divided by 257 (65535 -> 255). An EXIF orientation tag is not applied: the pixels come as
     stored (as PIL and torchvision read them; ``cv2.imread``'s default would turn the image), the
-    grid that a calibration of the stored frames describes.
+    grid that a calibration of the stored frames describes. A PGM or PPM file states its white
+    (maxval): its values are scaled by 255 / maxval (10-bit data, maxval 1023, to 0..255).
     """
     array = read_image_array(path, what="image")
-    if array.dtype == np.uint16:
+    maxval = _netpbm_maxval(path)  # (OpenCV gives most PGM/PPM values as stored, whatever their white)
+    if maxval is not None and maxval not in (255, 65535) and array.dtype in (np.uint8, np.uint16):
+        array = (array.astype(np.float64) * (255.0 / maxval)).astype(np.float32)
+    elif array.dtype == np.uint16:
         array = array.astype(np.float32) / 257.0
     elif array.dtype == np.uint8:
         array = array.astype(np.float32)
@@ -246,6 +250,21 @@ def read_image(path: str | os.PathLike) -> Tensor:
         raise ValueError(f"path: {str(path)!r} has {array.shape[2]} channels; expected 1, 3 or 4")
     rgb = np.ascontiguousarray(array[:, :, ::-1].transpose(2, 0, 1))
     return torch.from_numpy(rgb)
+
+
+def _netpbm_maxval(path: str | os.PathLike) -> int | None:
+    """The value of white in OpenCV's decoding of a PGM or PPM file (``P2``, ``P3``, ``P5``,
+    ``P6``: the magic, then width, height and maxval, with ``#`` comments between): its maxval,
+    or 255 for a plain-text (``P2``, ``P3``) file of maxval < 256, whose values OpenCV scales
+    itself; None for another file."""
+    with open(path, "rb") as f:
+        head = f.read(4096)
+    if head[:2] not in (b"P2", b"P3", b"P5", b"P6"):
+        return None
+    tokens = re.sub(rb"#[^\n\r]*", b" ", head[2:]).split()  # (past maxval the data may hold anything)
+    if len(tokens) < 3 or not tokens[2].isdigit() or not 1 <= int(tokens[2][:6]) <= 65535:
+        return None
+    return 255 if head[:2] in (b"P2", b"P3") and int(tokens[2]) < 256 else int(tokens[2])
 
 
 def write_image(path: str | os.PathLike, image: Tensor | np.ndarray) -> Path:
