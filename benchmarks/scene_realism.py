@@ -69,8 +69,9 @@ def _median(results: list[dict]) -> dict:
 
 def _polygon(path: Path, shape: tuple) -> np.ndarray:
     """A road.json's mask (H, W) bool at the frame's ``shape``, as the library reads it (any of its
-    polygon formats, drawn at its ``size``; the same pixels as the samples' own polygons filled by
-    ``cv2.fillPoly``); a file it cannot read is a ValueError naming it."""
+    polygon formats, drawn for the frame's size; the same pixels as the samples' own polygons filled
+    by ``cv2.fillPoly``); a file it cannot read, or one drawn for another size, is a ValueError
+    naming it."""
     from fsof_torch.io import read_road_mask
 
     return read_road_mask(path, size=tuple(shape))[0].numpy()

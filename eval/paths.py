@@ -117,24 +117,6 @@ def bad_out_inputs(out: Path, names: Iterable[str], inputs: dict[str, Path | Non
     return None
 
 
-def bad_polygon_size(path: Path, size: tuple[int, int], option: str, flow: Path) -> str | None:
-    """A polygon JSON mask (``path``) that states a ``"size"`` other than ``size``, the (H, W) of the
-    flow it is paired with (``flow``, named in the message): the polygon was drawn for another
-    image (a KITTI frame of 370x1226 is not one of 375x1242), which :func:`~fsof_torch.io.read_road_mask`
-    would stretch over this one, as a PNG mask of another size is refused. None for a file without
-    a size (drawn at the flow's size), and for one that cannot be read: the reader names that."""
-    if path.suffix.lower() != ".json":
-        return None
-    try:
-        own = json.loads(path.read_bytes().decode("utf-8")).get("size")
-    except (OSError, ValueError, AttributeError, RecursionError):  # (a bare list: no size)
-        return None
-    if not isinstance(own, list) or len(own) != 2 or list(own) == list(size):
-        return None
-    return (f"{option}: {str(path)!r} is a polygon drawn for {own[0]}x{own[1]} images (its 'size'), but "
-            f"{str(flow)!r} is {size[0]}x{size[1]}; expected a polygon drawn for the flow's size")
-
-
 def bad_size(size: Iterable[int] | None, option: str) -> str | None:
     """``size`` (H, W; None: not given) has no side above :data:`MAX_SIDE`."""
     if size is None or max(size) <= MAX_SIDE:

@@ -199,24 +199,18 @@ def load_kitti(folder: Path) -> dict:
     from fsof_torch.geometry.camera import Camera
     from fsof_torch.io import read_kitti_flow, read_road_mask
 
-    from .paths import bad_polygon_size
-
     flow, valid = read_kitti_flow(folder / "flow_noc_10.png")
     H, W = flow.shape[-2:]
-    try:
-        road = read_road_mask(folder / "road.json", size=(H, W))
-    except TypeError as err:  # a malformed polygon
-        raise ValueError(str(err)) from None
     camera = Camera.from_kitti(folder / "calib_cam_to_cam.txt", cam=2, height=1.65)
     calibrated = calibration_size(folder / "calib_cam_to_cam.txt", 2)  # (the file read: it is one)
     if calibrated is not None and calibrated != (H, W):
         raise ValueError(f"{str(folder / 'flow_noc_10.png')!r} is {H}x{W}, but "
                          f"{str(folder / 'calib_cam_to_cam.txt')!r} is for {calibrated[0]}x{calibrated[1]} images "
                          f"(S_rect_02); expected a flow of the calibrated size")
-    # (a polygon drawn for another image size would be stretched over this flow)
-    bad = bad_polygon_size(folder / "road.json", (H, W), "road", folder / "flow_noc_10.png")
-    if bad is not None:
-        raise ValueError(bad.removeprefix("road: "))
+    try:  # (a polygon drawn for another image size is the library's ValueError, not stretched)
+        road = read_road_mask(folder / "road.json", size=(H, W))
+    except TypeError as err:  # a malformed polygon
+        raise ValueError(str(err)) from None
     if not bool((road & valid).any()):
         raise ValueError(f"{str(folder / 'road.json')!r} covers no pixel with valid ground truth in "
                          f"{str(folder / 'flow_noc_10.png')!r}")

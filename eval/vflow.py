@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
-    from .paths import (bad_file, bad_folder, bad_json_target, bad_out_inputs, bad_polygon_size, bad_size, first_bad,
+    from .paths import (bad_file, bad_folder, bad_json_target, bad_out_inputs, bad_size, first_bad,
                         make_parent, remove_outputs)
     from fsof_torch.io.progress import progress_bar
 
@@ -283,18 +283,9 @@ def run(args: argparse.Namespace) -> int:
         if args.mask is not None:
             size = tuple(flow.shape[-2:])
             try:
-                # a PNG mask of another size is more likely another pair's than one to stretch (a
-                # polygon JSON is drawn at the flow's size)
-                own = read_road_mask(args.mask) if args.mask.suffix.lower() != ".json" else None
-                if own is not None and tuple(own.shape[-2:]) != size:
-                    print(f"error: --mask: {str(args.mask)!r} is {tuple(own.shape[-2:])}, the flow {size}", file=sys.stderr)
-                    return 2
-                mask = valid & (own if own is not None else read_road_mask(args.mask, size=size))[None]
-                # (a polygon drawn for another image size would be stretched over this one)
-                bad = bad_polygon_size(args.mask, size, "--mask", args.flow)
-                if bad is not None:
-                    print(f"error: {bad}", file=sys.stderr)
-                    return 2
+                # a mask of another size (a PNG, or a polygon whose 'size' is another) is another
+                # image's road, more likely another pair's than one to stretch: the reader refuses it
+                mask = valid & read_road_mask(args.mask, size=size)[None]
             except (ValueError, TypeError, FileNotFoundError, IsADirectoryError) as err:  # (a folder: a traceback)
                 print(f"error: --mask: {str(err).removeprefix('path: ')}", file=sys.stderr)
                 return 2

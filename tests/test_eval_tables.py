@@ -159,7 +159,7 @@ def test_tables_kitti_road_drawn_for_another_size_exits_2(tmp_path, shared_data,
     rc = main(["tables", "--only", "kitti", "--kitti", str(folder), "--out", str(tmp_path / "o"), "--no-progress"])
     err = capsys.readouterr().err
     assert rc == 2 and (f"error: --kitti: {str(folder / 'road.json')!r} is a polygon drawn for 750x2484 images "
-                        f"(its 'size'), but {str(folder / 'flow_noc_10.png')!r} is 375x1242") in err, err
+                        f"(its 'size'), but size is 375x1242") in err, err
     assert not (tmp_path / "o").exists()
 
 

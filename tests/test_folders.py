@@ -140,8 +140,8 @@ def test_a_poses_file_has_exactly_one_line_per_image(clip, tmp_path):
 
 def test_one_road_file_for_every_pair(clip, tmp_path):
     root, _ = clip
-    (tmp_path / "road.json").write_text(json.dumps({"size": [2 * SIZE[0], 2 * SIZE[1]],
-                                                    "road_polygon": [[0, 47], [0, 24], [79, 24], [79, 47]]}))
+    (tmp_path / "road.json").write_text(json.dumps({"size": list(SIZE),
+                                                    "road_polygon": [[0, 23], [0, 12], [39, 12], [39, 23]]}))
     ds = ImageFolderDataset(root / "images", road=tmp_path / "road.json")
     a, b = ds[0]["road"], ds[2]["road"]
     assert torch.equal(a, b) and a.shape == (1, *SIZE) and a[:, 12:].all() and not a[:, :12].any()
@@ -438,7 +438,13 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
     with pytest.raises(ValueError, match=r"^poses: .*line 3 .*not a rigid pose"):
         ImageFolderDataset(root / "images", poses=short)
     (tmp_path / "road.json").write_text("5")
-    with pytest.raises(ValueError, match=r"^road: .*road\.json' is not a usable road mask"):
+    with pytest.raises(ValueError, match=r"^road: '.*road\.json': expected a JSON object .* got int 5$"):
+        ImageFolderDataset(root / "images", road=tmp_path / "road.json")
+    # a polygon drawn for other images (twice the size) was stretched over these: now refused
+    (tmp_path / "road.json").write_text(json.dumps({"size": [2 * SIZE[0], 2 * SIZE[1]],
+                                                    "road_polygon": [[0, 47], [0, 24], [79, 24], [79, 47]]}))
+    with pytest.raises(ValueError, match=r"^road: '.*road\.json' is a polygon drawn for 48x80 images \(its 'size'\), "
+                                         r"but size is 24x40; "):
         ImageFolderDataset(root / "images", road=tmp_path / "road.json")
     write_road_mask(root / "road" / "000001.png", torch.ones(1, 10, 10, dtype=torch.bool))
     with pytest.raises(ValueError, match=r"^road: 000001\.png is \(10, 10\), the images \(24, 40\)"):

@@ -13,6 +13,7 @@ import torch
 from fsof_torch.io import (
     mask_from_colors,
     rasterize_polygons,
+    read_image,
     read_label_map,
     read_road_mask,
     write_label_map,
@@ -70,8 +71,17 @@ class TestSmoke:
         mask = torch.zeros(1, 4, 6, dtype=torch.bool)
         mask[0, 2:] = True
         write_road_mask(tmp_path / "m.png", mask)
-        big = read_road_mask(tmp_path / "m.png", size=(8, 12))
+        big = read_road_mask(tmp_path / "m.png", size=(8, 12), resize=True)
         assert big.shape == (1, 8, 12) and big[0, 4:].all() and not big[0, :4].any()
+        assert torch.equal(read_road_mask(tmp_path / "m.png", size=(4, 6)), mask)
+
+    def test_png_of_another_size_refused_without_resize(self, tmp_path):
+        """A PNG of another size than size= is another image's mask: it was resized silently."""
+        write_road_mask(tmp_path / "m.png", torch.ones(1, 4, 6, dtype=torch.bool))
+        with pytest.raises(ValueError, match=r"^path: '.*m\.png' is a 4x6 mask, but size is 8x12; .*resize=True"):
+            read_road_mask(tmp_path / "m.png", size=(8, 12))
+        with pytest.raises(TypeError, match=r"^resize: expected True or False, got int 1"):
+            read_road_mask(tmp_path / "m.png", size=(8, 12), resize=1)
 
     def test_label_map_round_trip_8_and_16_bit(self, tmp_path):
         small = torch.arange(12).reshape(3, 4)
@@ -156,11 +166,26 @@ class TestFeature:
     def test_polygon_scaled_to_size(self, tmp_path):
         path = _write_json(tmp_path / "r.json", {"size": [20, 40], "road_polygon": [[0, 10], [39, 10], [39, 19], [0, 19]]})
         full = read_road_mask(path)
-        half = read_road_mask(path, size=(10, 20))
+        assert torch.equal(read_road_mask(path, size=(20, 40)), full)
+        half = read_road_mask(path, size=(10, 20), resize=True)
         assert half.shape == (1, 10, 20)
         # the lower half of 20 rows (10..19) is the lower half of 10 rows (5..9)
         assert full[0, 10:].all() and not full[0, :10].any()
         assert half[0, 5:].all() and not half[0, :5].any()
+
+    def test_polygon_drawn_for_another_size_refused_without_resize(self, tmp_path, shared_data):
+        """A polygon drawn for 375x1242 (the KITTI 2015 frame) read for a 370x1226 frame (an
+        odometry one: another crop, not a resized copy) was stretched silently; now a ValueError
+        naming the file and both sizes; the shared samples' polygons read at their frames' sizes."""
+        path = shared_data / "kitti15_000000" / "road.json"
+        with pytest.raises(ValueError, match=r"^path: '.*kitti15_000000/road\.json' is a polygon drawn for 375x1242 "
+                                             r"images \(its 'size'\), but size is 370x1226; .*resize=True"):
+            read_road_mask(path, size=(370, 1226))
+        assert read_road_mask(path, size=(370, 1226), resize=True).shape == (1, 370, 1226)
+        for folder, frame in (("kitti15_000000", "image_10.png"), ("kitti_odometry_straight", "image_l/000000.png")):
+            size = tuple(read_image(shared_data / folder / frame).shape[-2:])
+            own = read_road_mask(shared_data / folder / "road.json")
+            assert own.shape[-2:] == size and torch.equal(read_road_mask(shared_data / folder / "road.json", size), own)
 
     def test_several_polygons_and_size_argument(self, tmp_path):
         path = _write_json(tmp_path / "p.json", {"polygons": [[[0, 0], [2, 0], [2, 2]], [[5, 5], [7, 5], [7, 7]]]})
@@ -363,7 +388,7 @@ class TestPolygonJson:
         with pytest.raises(ValueError, match=r"path: '.*road\.json'\['road_polygon'\]\[0\]: coordinates beyond "
                                              r"±1e\+15 px are not pixels, got \[-1e\+15, -1e\+15\] scaled from "
                                              r"size \[1, 1\] to \[65536, 2\]"):
-            read_road_mask(path, size=(65536, 2))
+            read_road_mask(path, size=(65536, 2), resize=True)
         assert read_road_mask(path).all()  # at its own size the polygon is fine
 
     @pytest.mark.parametrize("case", list(_MALFORMED))

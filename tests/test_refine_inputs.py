@@ -595,9 +595,9 @@ def test_with_road_auto_the_samples_road_json_is_not_read(kitti15_folder, odomet
 
     for folder in (kitti15_folder, odometry_folder):
         (folder / "road.json").write_text("{bad")
-    with pytest.raises(JobError, match=r"^--kitti15: road: '.*road\.json' is not a usable road mask"):
+    with pytest.raises(JobError, match=r"^--kitti15: road: '.*road\.json' is not valid JSON"):
         kitti15_pairs(kitti15_folder, height=1.65)
-    with pytest.raises(JobError, match=r"^--kitti-odometry: road: '.*road\.json' is not a usable road mask"):
+    with pytest.raises(JobError, match=r"^--kitti-odometry: road: '.*road\.json' is not valid JSON"):
         kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0)
     for specs in (kitti15_pairs(kitti15_folder, height=1.65, road_auto=True)[0],
                   kitti_odometry_pairs(odometry_folder, height=1.65, pitch_deg=0.0, road_auto=True)[0]):
@@ -638,3 +638,19 @@ def test_a_given_road_without_a_road_pixel_stops_under_road(user_folder, tmp_pat
                                        r"masks of all 3 pairs are empty\), so no pair could be refined"):
         user_pairs(**args, road=str(user_folder / "road"))
     assert len(user_pairs(**args, road="auto")[0]) == 3
+
+
+def test_a_polygon_drawn_for_another_size_stops_under_road(user_folder, tmp_path):
+    """A polygon JSON whose 'size' is not the images' was stretched over them (a wrong road given
+    silently): the job stops before any work naming --road, the file and both sizes."""
+    from refine.inputs import JobError, user_pairs
+
+    args = dict(images=user_folder / "images", calib=user_folder / "calib.txt", cam=None, height=1.65,
+                roll_deg=0.0, pitch_deg=0.0, poses=None, flows=None, gt=None)
+    polygon = [[0, 47], [40, 36], [120, 36], [159, 47]]
+    (tmp_path / "other.json").write_text(json.dumps({"size": [2 * SIZE[0], 2 * SIZE[1]], "road_polygon": polygon}))
+    with pytest.raises(JobError, match=r"^--road: '.*other\.json' is a polygon drawn for 96x320 images \(its "
+                                       r"'size'\), but size is 48x160; "):
+        user_pairs(**args, road=str(tmp_path / "other.json"))
+    (tmp_path / "own.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": polygon}))
+    assert len(user_pairs(**args, road=str(tmp_path / "own.json"))[0]) == 3

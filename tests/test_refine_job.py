@@ -984,6 +984,21 @@ def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
 
 
 
+def test_user_data_polygon_drawn_for_another_size_exits_2(tmp_path, user_folder, scene_pairs, capsys):
+    """--road FILE with a polygon drawn for twice the images' size was stretched over them and the
+    job ran on that road (exit 0): exit 2 naming --road, the file and both sizes, before any work."""
+    poly = {"size": [2 * SIZE[0], 2 * SIZE[1]], "road_polygon": [[0, 95], [80, 72], [240, 72], [319, 95]]}
+    (user_folder / "road.json").write_text(json.dumps(poly))
+    out = tmp_path / "out"
+    rc = main(_user(user_folder, out, "--road", str(user_folder / "road.json"), "--source", "dis",
+                    *_mounting(scene_pairs)))
+    err = capsys.readouterr().err
+    assert rc == 2 and (f"error: --road: {str(user_folder / 'road.json')!r} is a polygon drawn for "
+                        f"{2 * SIZE[0]}x{2 * SIZE[1]} images (its 'size'), but size is {SIZE[0]}x{SIZE[1]}; ") in err, err
+    assert not (out / "run.json").exists()
+
+
+
 def test_a_pair_left_unrefined_reports_no_motion_and_why(tmp_path, user_folder, scene_pairs, capsys, monkeypatch):
     """A pair whose fit fails is left unrefined: its record's motion is null, not the refiner's
     placeholder zeros (which counted as a forward motion of 0 m in the report's z_d error, 1.2 m

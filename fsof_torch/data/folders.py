@@ -267,12 +267,17 @@ def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch
 
 
 def _read_road(path: Path, size: tuple[int, int] | None) -> Tensor:
-    """A road mask file; whatever the reader rejects names ``road`` and the file."""
+    """A road mask file; whatever the reader rejects names ``road`` and the file: the reader's own
+    message (which names ``path`` and the file) under ``road``, or anything else wrapped. A
+    polygon drawn for another size than ``size`` is the reader's error (never stretched)."""
     try:
         return read_road_mask(path, size)
     except FileNotFoundError:
         raise FileNotFoundError(f"road: no file at {str(path)!r}") from None
     except _MASK_ERRORS as err:
+        named, sep, rest = str(err).partition(f"path: {str(path)!r}")
+        if sep and not named:
+            raise ValueError(f"road: {str(path)!r}{rest}") from None
         raise ValueError(f"road: {str(path)!r} is not a usable road mask ({type(err).__name__}: {err})") from None
 
 
@@ -310,7 +315,8 @@ class ImageFolderDataset(Dataset):
             ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
             mounting (``roll``, ``pitch``; with ``calib=None`` too) and ``pose_residual``.
         road: a folder of masks matched by name, or one mask file for every pair: a PNG of the
-            images' size (never resized), or a polygon JSON drawn at the images' size.
+            images' size (never resized), or a polygon JSON drawn for the images' size (one drawn
+            for another size is a ValueError, never stretched).
         gt: a folder of ground-truth flows matched by name (KITTI PNG, ``.flo``, ``.npy``).
         calib_size: ``(H, W)`` the calibration is for (default: the file's ``S_rect`` row; one that
             differs from the file's row is a ValueError naming ``calib_size``).
@@ -398,7 +404,7 @@ class ImageFolderDataset(Dataset):
         self._check_calibrated_size(first)
         self._road_mask: Tensor | None = None
         if self.road_file is not None and self.road_file.suffix.lower() == ".json":
-            self._road_mask = _read_road(self.road_file, self.size)  # a polygon, drawn at the images' size
+            self._road_mask = _read_road(self.road_file, self.size)  # a polygon drawn for the images' size
         elif self.road_file is not None:  # a mask, never resized: it must have the images' size
             self._road_mask = self._checked("road", self.road_file, _read_road(self.road_file, None))
 

@@ -25,7 +25,9 @@ they are clipped to the image (Sutherland–Hodgman, in float64) before they are
 instead of overflowing OpenCV's 32-bit fixed-point vertices. OpenCV's scan conversion decides the
 pixels near the outline to about 0.5 px inside and 1.3 px outside it (:func:`rasterize_polygons`).
 Coordinates beyond ±1e15 px (where float64 no longer resolves a pixel) are rejected, in the file
-and after :func:`read_road_mask` scales them to its ``size``.
+and after :func:`read_road_mask` scales them to its ``size`` (``resize=True``). A polygon is drawn
+for the image size its ``"size"`` states: read at another size it is an error unless the caller
+asks to scale it (``resize=True``).
 """
 
 from __future__ import annotations
@@ -41,7 +43,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, check_has_values, tensor_from_array
+from .._check import as_path, check_bool, check_has_values, tensor_from_array
 from .images import check_image_suffix, existing_file, read_image_array, write_image_array
 
 __all__ = ["read_road_mask", "write_road_mask", "rasterize_polygons", "mask_from_colors",
@@ -218,29 +220,39 @@ def _polygons_from_json(obj: Any, where: str) -> list[tuple[str, Any]]:
     return named
 
 
-def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None) -> Tensor:
+def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None, *,
+                   resize: bool = False) -> Tensor:
     """A road mask as (1, H, W) bool.
 
     Args:
         path: a PNG (any colour channel nonzero = road; an alpha channel is ignored; a KITTI
             road benchmark ground truth, road magenta and the rest of the valid area red, reads
             the magenta) or a polygon JSON (the formats in the module docstring).
-        size: (H, W) wanted. A PNG of another size is resized with nearest-neighbour sampling. A
-            JSON's polygon is drawn at its own ``"size"`` scaled to ``size`` (pixel centres map as
-            ``u' + 0.5 = s (u + 0.5)``); a JSON without ``"size"`` needs ``size``.
+        size: (H, W) of the images the mask is for. A PNG must have it, and a JSON's polygon
+            must have been drawn for it (its ``"size"``): a mask of another size is another
+            image's road, and a ValueError naming the file and both sizes unless ``resize``. A
+            JSON without ``"size"`` is drawn at ``size`` (it needs ``size``). None: the mask at
+            its own size.
+        resize: with ``size``, resample a mask of another size to it: a PNG with
+            nearest-neighbour sampling, a polygon scaled from its ``"size"`` (pixel centres map
+            as ``u' + 0.5 = s (u + 0.5)``). Only right where the images are the mask's own
+            images resized (KITTI's 375x1242 and 370x1226 frames are different crops, not
+            resized copies).
 
     Raises:
         ValueError / TypeError naming ``path`` (and the entry) for a file that is not valid
         UTF-8 JSON, a key given twice in one object, a missing or malformed size (or one of
         over 2**28 pixels, as for ``size``), a malformed polygon, two polygon entries or no
-        polygon, a vertex beyond ±1e15 px once scaled to ``size``; FileNotFoundError for a
-        missing file, IsADirectoryError for a folder.
+        polygon, a vertex beyond ±1e15 px once scaled to ``size``, a mask or polygon of another
+        size than ``size`` without ``resize``; FileNotFoundError for a missing file,
+        IsADirectoryError for a folder.
     """
     import cv2
 
     path = as_path(path)
     if size is not None:
         size = _check_size(list(size) if isinstance(size, (tuple, torch.Size)) else size, "size")
+    resize = check_bool(resize, "resize")
     if path.suffix.lower() == ".json":
         existing_file(path)
         where = f"path: {str(path)!r}"
@@ -261,6 +273,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
             raise ValueError(f"{where} has no 'size' entry; pass size=(H, W)")
         own = _check_size(own, f"{where}['size']") if own is not None else size
         target = size or own
+        if target != own and not resize:
+            raise ValueError(_other_size(where, "a polygon drawn for {}x{} images (its 'size')", own, target))
         sy, sx = target[0] / own[0], target[1] / own[1]
         polygons = []
         for name, poly in named:
@@ -284,8 +298,18 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None)
         array = array.max(axis=2) if road is None else road
     mask = array > 0
     if size is not None and mask.shape != size:
+        if not resize:
+            raise ValueError(_other_size(f"path: {str(path)!r}", "a {}x{} mask", mask.shape, size))
         mask = cv2.resize(mask.astype(np.uint8), (size[1], size[0]), interpolation=cv2.INTER_NEAREST) > 0
     return torch.from_numpy(np.ascontiguousarray(mask)).unsqueeze(0)
+
+
+def _other_size(where: str, what: str, own: tuple[int, int], size: tuple[int, int]) -> str:
+    """The message for a mask of another size than ``size``: ``what`` with its size (``own``)."""
+    h, w = size
+    return (f"{where} is {what.format(*own)}, but size is {h}x{w}; stretched over {h}x{w} images it would be "
+            f"another image's road: give a mask of their size, or pass resize=True to read_road_mask where they "
+            f"are its own images resized")
 
 
 def _kitti_road_ground_truth(bgr: np.ndarray) -> np.ndarray | None:
