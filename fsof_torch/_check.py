@@ -403,33 +403,41 @@ def sample_extremes(x: Tensor) -> tuple[list[float], list[float]]:
     return values[0], values[1]  # (NaN propagates into both)
 
 
-def check_image_range(image: Tensor, name: str, data_range: float) -> None:
+def check_image_range(image: Tensor, name: str, data_range: float | tuple[float, float]) -> None:
     """Finite values in [0, data_range] up to 1% (catches 0-255 images passed as 0-1, 0-1 images
-    passed as 0-255, and NaN pixels).
+    passed as 0-255, and NaN pixels); ``data_range`` (low, high): images in the caller's range that
+    the caller maps onto 0..255 (``FreespaceRefined``'s ``image_range``), judged as on 0..255.
 
     A NaN pixel would spread through bilinear taps and filter windows into its neighbours' values,
     so an image must be finite everywhere, not only where it is evaluated. The "0..1 image" guess
-    judges each sample of a batch (B, C, H, W) alone, and is off within :func:`trust_image_range`."""
+    (all values above 0 and within 1, or within the lowest 1/255 of (low, high)) judges each sample
+    of a batch (B, C, H, W) alone, and is off on 0..1 and within :func:`trust_image_range`."""
     if skip_values(image) or image.numel() == 0:
         return
     if data_range == 255.0 and any(image is t for t in _KNOWN_IMAGES.get()):
         return  # (see known_images)
+    pair = isinstance(data_range, tuple)
+    low, high = data_range if pair else (0.0, data_range)
+    span, given = high - low, f"image_range=({low:g}, {high:g})" if pair else f"[0, data_range={high:g}]"
     los, his = sample_extremes(d := image.detach())
     lo, hi = min(los), max(his)
     if not all(map(math.isfinite, los + his)):
         bad = d[~torch.isfinite(d)].flatten()[:3].tolist()
         raise ValueError(f"{name}: expected finite pixel values, got {bad} (NaN or inf); "
                          f"replace or mask them before warping or filtering")
-    if hi > data_range * 1.01 or lo < -0.01 * data_range:
-        raise ValueError(
-            f"{name}: expected values in [0, data_range={data_range:g}], got values in "
-            f"[{lo:g}, {hi:g}] (pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)")
-    dim = [] if data_range <= 1.5 or trusted_image_range() else [b for b, h in enumerate(his) if 0.0 < h <= 1.0]
+    if hi > high + 0.01 * span or lo < low - 0.01 * span:
+        raise ValueError(f"{name}: expected values in {given}, got values in [{lo:g}, {hi:g}] " + (
+            "(pass image_range=(low, high) of the images: the net's convention, (0, 255) for RAFT, (-1, 1) for "
+            "torchvision's transforms)" if pair else "(pass data_range=255.0 for 0-255 images, 1.0 for 0-1 images)"))
+    top = low + span / 255.0 if pair else 1.0
+    dim = [] if (span <= 1.5 and not pair) or trusted_image_range() else [b for b, h in enumerate(his) if low < h <= top]
     if dim:  # (a 0..255 frame whose brightest pixel is at most 1 grey level is no image to judge)
         where, (a, b) = (name, (lo, hi)) if len(dim) == len(his) else (f"{name}[{dim[0]}]", (los[dim[0]], his[dim[0]]))
-        raise ValueError(f"{where}: values in [{a:g}, {b:g}] look like 0..1 images, expected 0..{data_range:g}: scale "
-                         f"them by {data_range:g}, or pass data_range=1.0 where the function takes it (the refiner "
-                         f"and its gate take 0..255 images); frames this dark (a lens cap): fsof_torch.trust_image_range()")
+        raise ValueError(f"{where}: values in [{a:g}, {b:g}] " + (
+            f"fill at most 1/255 of {given} (0..1 images given for 0..255?): pass image_range=(0, 1) for 0..1 "
+            f"images, or scale them" if pair else f"look like 0..1 images, expected 0..{high:g}: scale them by "
+            f"{high:g}, or pass data_range=1.0 where the function takes it (the refiner and its gate take 0..255 "
+            f"images)") + "; frames this dark (a lens cap): fsof_torch.trust_image_range()")
 
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,

@@ -312,6 +312,28 @@ def test_check_image_range():
         check_image_range(torch.tensor([-float("inf"), 3.0]), "image", 255.0)
 
 
+def test_check_image_range_on_a_range_low_high():
+    """(low, high): images the caller maps onto 0..255 (FreespaceRefined's image_range), judged as
+    on 0..255 in the caller's units: within 1 % of the width, and not all within its lowest 1/255."""
+    grey = torch.tensor([[0.0, 40.0, 200.0]]).reshape(1, 1, 1, 3)
+    for low, high in ((0.0, 255.0), (-1.0, 1.0), (0.0, 1.0)):
+        scaled = low + grey * ((high - low) / 255.0)
+        check_image_range(scaled, "image1", (low, high))
+        check_image_range(low + (high - low) * 1.009 * torch.ones(1, 1, 1, 1), "image1", (low, high))
+        with pytest.raises(ValueError, match=rf"^image1: expected values in image_range=\({low:g}, {high:g}\), got "):
+            check_image_range(scaled + 0.25 * (high - low), "image1", (low, high))
+        with pytest.raises(ValueError, match=rf"^image1: values in .* fill at most 1/255 of image_range=\({low:g}, "
+                                             rf"{high:g}\) .* fsof_torch.trust_image_range\(\)$"):
+            check_image_range(low + (scaled - low) / 255.0, "image1", (low, high))
+        with trust_image_range():
+            check_image_range(low + (scaled - low) / 255.0, "image1", (low, high))
+    # on (0, 255) it is the 0..255 check's verdict
+    dim = grey / 255.0
+    for rng in (255.0, (0.0, 255.0)):
+        with pytest.raises(ValueError, match=r"^image1: values in \[0, 0\.78\d*\] "):
+            check_image_range(dim, "image1", rng)
+
+
 def test_autocast_off_restores_float32_arithmetic():
     a = torch.randn(4, 4, generator=torch.Generator().manual_seed(0))
     with torch.autocast("cpu", dtype=torch.bfloat16):

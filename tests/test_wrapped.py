@@ -173,7 +173,7 @@ def test_a_net_that_returns_its_flow_on_another_device_is_named():
 @pytest.mark.parametrize("image_range, scale, message", [
     ((0, 255), 1 / 255, r"^image1: values in \[0\.05\d*, 0\.9\d*\] fill at most 1/255 of image_range=\(0, 255\) "
                         r"\(0\.\.1 images given for 0\.\.255\?\): pass image_range=\(0, 1\)"),
-    ((0, 1), 1.0, r"^image1: expected values in image_range=\(0, 1\), got values in \[13\.\d*, 232\.\d*\]; pass "
+    ((0, 1), 1.0, r"^image1: expected values in image_range=\(0, 1\), got values in \[13\.\d*, 232\.\d*\] \(pass "
                   r"image_range=\(low, high\) of the images"),
 ])
 def test_images_checked_against_image_range_before_the_net(image_range, scale, message):
@@ -187,7 +187,7 @@ def test_images_checked_against_image_range_before_the_net(image_range, scale, m
     bad = s["image2"].clone()
     bad[..., 3, 4] = float("nan")
     with pytest.raises(ValueError, match=r"^image2: expected finite pixel values, got \[nan, nan, nan\] "
-                                         r"\(NaN or inf\)$"):
+                                         r"\(NaN or inf\); replace or mask them"):
         FreespaceRefined(net)(s["image1"], bad, camera=s["camera"], mask=s["road"])
     assert net.calls == 0
     # images on the range stated run, as before

@@ -12,8 +12,8 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_keywords, check_mapping, check_mask, check_shape,
-                      sample_extremes, scalar, skip_values, trusted_image_range)
+from .._check import (batch_choices, check_float_tensor, check_image_range, check_keywords, check_mapping,
+                      check_mask, check_shape, scalar)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
@@ -147,7 +147,7 @@ class FreespaceRefined(nn.Module):
                                  f"batch 1 is broadcast), got {tuple(mask.shape)}")
         if not ptlflow:  # (ptlflow's dict was checked above: BGR in [0, 1])
             for name, im in (("image1", image1), ("image2", image2)):
-                _check_image_range(im, name, self.image_range)
+                check_image_range(im, name, self.image_range)  # (in the caller's units)
         if odometry is not None:  # (its form, batch and values, as the refiner will check them)
             road_motion_batch(odometry, B, torch.float64, image1.device, batch_of="the images' batch",
                               displacement=True)
@@ -239,33 +239,6 @@ class FreespaceRefined(nn.Module):
                                           r.photometric_options)
         return refine_with_auto_road(refine_padded, padding.unpad(finest), "auto", camera, odometry, images=images,
                                      road_estimator=road_estimator, road_options=self.road_options, **options)
-
-
-def _check_image_range(image: Tensor, name: str, image_range: tuple[float, float]) -> None:
-    """The caller's image against ``image_range``, before the network runs: the refiner's test of
-    its 0..255 images (:func:`~fsof_torch._check.check_image_range`) in the caller's units, its
-    "0..1 images" guess per sample and off within :func:`~fsof_torch.trust_image_range`."""
-    if skip_values(image) or image.numel() == 0:
-        return
-    d = image.detach()
-    los, his = sample_extremes(d)
-    a, b = min(los), max(his)
-    if not all(map(math.isfinite, los + his)):
-        raise ValueError(f"{name}: expected finite pixel values, got {d[~torch.isfinite(d)].flatten()[:3].tolist()} "
-                         f"(NaN or inf)")
-    lo, hi = image_range
-    span = hi - lo
-    if b > hi + 0.01 * span or a < lo - 0.01 * span:
-        raise ValueError(f"{name}: expected values in image_range=({lo:g}, {hi:g}), got values in [{a:g}, {b:g}]; "
-                         f"pass image_range=(low, high) of the images (the net's convention: (0, 255) for RAFT, "
-                         f"(-1, 1) for torchvision's transforms)")
-    dim = [k for k, h in enumerate(his) if lo < h <= lo + span / 255.0]
-    if dim and not trusted_image_range():
-        where, (a, b) = (name, (a, b)) if len(dim) == len(his) else (f"{name}[{dim[0]}]", (los[dim[0]], his[dim[0]]))
-        raise ValueError(f"{where}: values in [{a:g}, {b:g}] fill at most 1/255 of image_range=({lo:g}, {hi:g}) "
-                         f"(0..1 images given for 0..255?): pass image_range=(0, 1) for 0..1 images, or scale "
-                         f"them; for frames this dark (a lens cap, a tunnel), call within "
-                         f"fsof_torch.trust_image_range()")
 
 
 def _unpadded_fit(fit: Any, padding: Padding) -> Any:
