@@ -455,6 +455,92 @@ class TestPolygonJson:
             read_road_mask(_write_json(tmp_path / "bare.json", [a]))
 
 
+    def test_an_outline_that_crosses_itself_is_refused(self, tmp_path):
+        """A quadrilateral with two vertices swapped is a bow tie: it was filled as two triangles
+        (half the road, and the pixels between them not road) without a word. Now a ValueError
+        naming the entry and the two edges; the outline in order fills the square."""
+        square = [[2, 2], [17, 2], [17, 17], [2, 17]]
+        bow_tie = [square[0], square[2], square[1], square[3]]
+        path = _write_json(tmp_path / "r.json", {"size": [20, 20], "road_polygon": bow_tie})
+        with pytest.raises(ValueError, match=r"^path: '.*r\.json'\['road_polygon'\]: crosses itself \(its edges 0 "
+                                             r"\(\[2\.0, 2\.0\] to \[17\.0, 17\.0\]\) and 2 \(\[17\.0, 2\.0\] to "
+                                             r"\[2\.0, 17\.0\]\)\)"):
+            read_road_mask(path)
+        _write_json(path, {"size": [20, 20], "polygons": {"ok": square, "crossed": bow_tie}})
+        with pytest.raises(ValueError, match=r"\['polygons'\]\['crossed'\]: crosses itself"):
+            read_road_mask(path)
+        _write_json(path, {"size": [20, 20], "road_polygon": square})
+        assert int(read_road_mask(path).sum()) == 16 * 16
+        # rasterize_polygons, the primitive, fills it as drawn: the left and right triangles only
+        got = rasterize_polygons([bow_tie], (20, 20))[0]
+        assert bool(got[9, 4]) and bool(got[9, 15]) and not bool(got[4, 9]) and not bool(got[15, 9])
+
+    def test_crossings_found_as_an_exhaustive_test_finds_them(self, tmp_path):
+        """Random outlines (integer vertices: ties, collinear edges, touching vertices) are refused
+        exactly where a test of every pair of edges finds two that cross inside both."""
+        def side(p, q, r):
+            return np.sign((q[0] - p[0]) * (r[1] - p[1]) - (q[1] - p[1]) * (r[0] - p[0]))
+
+        def crosses(poly):
+            n = len(poly)
+            edges = [(poly[k], poly[(k + 1) % n]) for k in range(n)]
+            return any(side(a, b, c) * side(a, b, d) < 0 and side(c, d, a) * side(c, d, b) < 0
+                       for k, (a, b) in enumerate(edges) for (c, d) in edges[k + 1:])
+
+        g = np.random.default_rng(3)
+        refused = 0
+        for trial in range(300):
+            poly = g.integers(0, 12, size=(int(g.integers(3, 10)), 2)).tolist()
+            path = _write_json(tmp_path / "r.json", {"size": [12, 12], "road_polygon": poly})
+            try:
+                read_road_mask(path)
+                taken = True
+            except ValueError as err:
+                taken = False
+                if "encloses no area" in str(err):
+                    continue
+                assert "crosses itself" in str(err)
+            assert taken == (not crosses(poly)), poly
+            refused += not taken
+        assert 50 < refused < 250  # (both kinds were met)
+
+    def test_outlines_that_touch_themselves_are_taken(self, tmp_path):
+        """Edges that only touch are no crossing: a closing vertex repeated (LabelMe's, GeoJSON's
+        habit), a vertex on another edge, an outline that runs out along a cut and back (around
+        a hole in the road) fill as drawn."""
+        square = [[2, 2], [17, 2], [17, 17], [2, 17]]
+        closed = _write_json(tmp_path / "closed.json", {"size": [20, 20], "road_polygon": square + [square[0]]})
+        assert int(read_road_mask(closed).sum()) == 16 * 16
+        # the square with a 4x4 hole reached by a cut along row 2..9 at u = 9 (there and back)
+        keyhole = [[2, 2], [9, 2], [9, 8], [8, 8], [8, 11], [11, 11], [11, 8], [9, 8], [9, 2], [17, 2], [17, 17],
+                   [2, 17]]
+        mask = read_road_mask(_write_json(tmp_path / "k.json", {"size": [20, 20], "road_polygon": keyhole}))
+        assert mask[0, 2:18, 2:18].sum() > 16 * 16 - 4 * 4 - 8 and not bool(mask[0, 9:11, 9:11].any())
+
+    @pytest.mark.parametrize("points", [[[0, 10], [50, 10], [100, 10]], [[0, 0], [10, 10], [20, 20], [5, 5]],
+                                        [[3, 3], [3, 3], [3, 3]]])
+    def test_an_outline_without_area_is_refused(self, tmp_path, points):
+        """Points on one line enclose nothing: filled, they drew the road as a line of pixels."""
+        path = _write_json(tmp_path / "r.json", {"size": [20, 20], "road_polygon": points})
+        assert rasterize_polygons([points], (20, 20)).any()  # (what it was)
+        with pytest.raises(ValueError, match=r"^path: '.*r\.json'\['road_polygon'\]: encloses no area \(its points "
+                                             r"lie on one line\)"):
+            read_road_mask(path)
+
+    def test_a_labelme_file_is_named_as_one(self, tmp_path):
+        """A LabelMe file (its shapes, imageHeight, imageWidth) was read as named polygons: 'has no
+        size entry; pass size=(H, W)', then with size 'version: expected a list of points'."""
+        labelme = {"version": "5.4.1", "flags": {}, "imagePath": "a.png", "imageData": None,
+                   "imageHeight": 20, "imageWidth": 30,
+                   "shapes": [{"label": "road", "points": [[0, 19], [15, 10], [29, 19]], "group_id": None,
+                               "shape_type": "polygon", "flags": {}}]}
+        path = _write_json(tmp_path / "l.json", labelme)
+        for size in (None, (20, 30)):
+            with pytest.raises(ValueError, match=r"^path: '.*l\.json' looks like a LabelMe file \('shapes'\).* put the "
+                                                 r"road shapes' points under 'polygons' and \[imageHeight, imageWidth\]"):
+                read_road_mask(path, size)
+
+
 class TestClipping:
     def test_polygon_enclosing_the_image_far_outside(self, tmp_path):
         """±2e8 px once overflowed OpenCV's int32 fixed-point vertices and gave an empty mask."""

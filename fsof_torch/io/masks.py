@@ -3,7 +3,11 @@
 Polygon JSON. Coordinates are pixels (u right, v down, origin at the centre of the top-left
 pixel); a polygon is a list of at least three ``[u, v]`` points (finite numbers). A file holds
 exactly one of these, with at least one polygon (several polygons are filled as a union; two of
-the keys below, or none of their polygons, is a ValueError):
+the keys below, or none of their polygons, is a ValueError). A polygon is an outline: one whose
+edges cross (a bow tie of swapped vertices) is a ValueError naming the two edges (there are no
+holes: a car on the road is left out by giving the road around it as several polygons). A
+LabelMe file (``"shapes"``) is a ValueError saying so, not a guess at which labels are road.
+The layouts:
 
 1. ``{"size": [H, W], "road_polygon": [[u, v], ...]}`` (or ``"polygon"``): one polygon. Other
    keys (``"image"``, ``"note"``, ...) are ignored. This is the format of ``shared/data/*/road.json``.
@@ -91,6 +95,59 @@ def _as_polygon(poly: object, where: str) -> np.ndarray:
     return np.asarray(points, dtype=np.float64).reshape(-1, 2)
 
 
+def _check_simple(poly: np.ndarray, where: str) -> None:
+    """A road outline that crosses itself is a mistake (two vertices swapped make a bow tie of a
+    quadrilateral), which filling would turn into another road: a ValueError naming ``where`` and
+    the two edges."""
+    d = poly - poly[0]
+    u = d[np.argmax(np.hypot(d[:, 0], d[:, 1]))]  # (to the vertex farthest from the first)
+    if np.abs(d[:, 0] * u[1] - d[:, 1] * u[0]).max() <= 1e-12 * float(u @ u):  # (0 <= 0: one point)
+        raise ValueError(f"{where}: encloses no area (its points lie on one line), so it would fill only the "
+                         f"pixels along that line; expected the outline of the road, got {poly.tolist()!r:.80}")
+    crossing = _crossing(poly)
+    if crossing is not None:
+        edge = [f"{k} ({poly[k].tolist()} to {poly[(k + 1) % len(poly)].tolist()})" for k in crossing]
+        raise ValueError(f"{where}: crosses itself (its edges {edge[0]} and {edge[1]}), so its parts would be "
+                         f"filled by turns (two vertices swapped make a bow tie of an outline); give the outline "
+                         f"in order, or its parts as separate polygons")
+
+
+def _crossing(poly: np.ndarray) -> tuple[int, int] | None:
+    """Two edges (i < j, the first such i; edge k runs from vertex k to k + 1) of a polygon (N, 2)
+    that cross at a point inside both, or None. Edges that only touch (a vertex on another edge,
+    adjacent edges, collinear overlaps, a closing vertex repeated) do not count. Only edges whose
+    extents in u overlap are compared (found by sorting): a few per edge for an outline."""
+    a = poly
+    b = np.roll(poly, -1, axis=0)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    # cross products within rounding of exactly collinear count as 0 (the polygon's extent squared)
+    tol = 1e-12 * float(np.ptp(poly, axis=0).max()) ** 2
+
+    def side(o: np.ndarray, p: np.ndarray, q: np.ndarray) -> np.ndarray:
+        """which side of the line o -> p the point q lies on: 1, -1, or 0 (on it)"""
+        c = (p[:, 0] - o[:, 0]) * (q[:, 1] - o[:, 1]) - (p[:, 1] - o[:, 1]) * (q[:, 0] - o[:, 0])
+        return np.where(np.abs(c) <= tol, 0.0, np.sign(c))
+
+    order = np.argsort(lo[:, 0], kind="stable")
+    starts = lo[order, 0]
+    # in u order, edge p overlaps the edges p + 1 .. end[p] - 1 (those starting before it ends)
+    end = np.searchsorted(starts, hi[order, 0], side="right")
+    counts = np.maximum(end - np.arange(len(poly)) - 1, 0)
+    found = []
+    for first in range(0, len(poly), 4096):  # (bounded memory for long edges, which overlap many)
+        rows = np.arange(first, min(len(poly), first + 4096))
+        c = counts[rows]
+        pos = np.repeat(rows, c)
+        nxt = pos + 1 + np.arange(int(c.sum())) - np.repeat(np.cumsum(c) - c, c)
+        i, j = order[pos], order[nxt]
+        keep = (lo[i, 1] <= hi[j, 1]) & (lo[j, 1] <= hi[i, 1])
+        i, j = i[keep], j[keep]
+        proper = ((side(a[i], b[i], a[j]) * side(a[i], b[i], b[j]) < 0)
+                  & (side(a[j], b[j], a[i]) * side(a[j], b[j], b[i]) < 0))
+        found += sorted(zip(np.minimum(i, j)[proper].tolist(), np.maximum(i, j)[proper].tolist()))[:1]
+    return min(found) if found else None
+
+
 def _clip(poly: np.ndarray, lo: tuple[float, float], hi: tuple[float, float]) -> np.ndarray:
     """Sutherland–Hodgman clipping of a polygon (N, 2) to the box [lo, hi] (u, v), in float64.
 
@@ -129,7 +186,9 @@ def rasterize_polygons(polygons: Iterable[Sequence[Sequence[float]]], size: tupl
     random triangles (distance of the pixel centre from the outline): at most 0.33 px inside and
     1.13 px outside for triangles within the image, 0.52 px and 1.33 px for triangles reaching
     beyond it. Polygons are clipped to the image first, so any finite coordinates up to ±1e15 px
-    work. ``size`` (H, W) is at most 65536 a side and 2**28 pixels in all.
+    work. A polygon that crosses itself is filled by the even-odd rule (a pentagram's centre stays
+    empty); :func:`read_road_mask` refuses such a road outline. ``size`` (H, W) is at most 65536
+    a side and 2**28 pixels in all.
     """
     import cv2
 
@@ -195,6 +254,10 @@ def _polygons_from_json(obj: Any, where: str) -> list[tuple[str, Any]]:
         raise TypeError(f"{where}: expected a JSON object {{'size': [H, W], 'road_polygon': [...]}} or a "
                         f"list of polygons, got {type(obj).__name__} {obj!r:.60}")
     keys = [key for key in _ONE + _MANY if key in obj]
+    if not keys and "shapes" in obj:  # (its other keys would be read as named polygons, its size missed)
+        raise ValueError(f"{where} looks like a LabelMe file ('shapes'), which holds labelled shapes; expected "
+                         f"{{'size': [H, W], 'road_polygon': [[u, v], ...]}}: put the road shapes' points under "
+                         f"'polygons' and [imageHeight, imageWidth] as 'size'")
     if len(keys) > 1:
         # which one was meant is a guess: filling one and dropping the other would hide the mistake
         raise ValueError(f"{where}: has both {keys[0]!r} and {keys[1]!r} entries; expected one of "
@@ -279,6 +342,7 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
         polygons = []
         for name, poly in named:
             arr = _as_polygon(poly, name)
+            _check_simple(arr, name)
             # pixel centres map as u' + 0.5 = s (u + 0.5)
             scaled = np.stack([sx * (arr[:, 0] + 0.5) - 0.5, sy * (arr[:, 1] + 0.5) - 0.5], axis=1)
             far = np.flatnonzero((np.abs(scaled) > _MAX_COORD).any(axis=1))
