@@ -75,6 +75,26 @@ class TestSmoke:
         assert big.shape == (1, 8, 12) and big[0, 4:].all() and not big[0, :4].any()
         assert torch.equal(read_road_mask(tmp_path / "m.png", size=(4, 6)), mask)
 
+    def test_float_tiff_masks(self, tmp_path):
+        """A float TIFF of 0 and 1 (grey, or colour) is a mask; a probability map was read as road
+        wherever above 0 (all of it at 0.01), and a colour float TIFF raised NumPy's 'Invalid
+        integer data type'. Now the map is a ValueError naming the file and its values."""
+        road = np.zeros((4, 6), np.float32)
+        road[2:] = 1.0
+        cv2.imwrite(str(tmp_path / "grey.tif"), road)
+        cv2.imwrite(str(tmp_path / "colour.tif"), np.stack([np.zeros_like(road), np.zeros_like(road), road], axis=2))
+        for name in ("grey.tif", "colour.tif"):
+            assert torch.equal(read_road_mask(tmp_path / name)[0], torch.from_numpy(road > 0))
+        prob = np.where(road > 0, 0.9, 0.01).astype(np.float32)
+        cv2.imwrite(str(tmp_path / "prob.tif"), prob)
+        with pytest.raises(ValueError, match=r"^path: '.*prob\.tif' is a float32 image with the values 0\.01, 0\.9, "
+                                             r"not a mask .* prob > 0\.5"):
+            read_road_mask(tmp_path / "prob.tif")
+        road[0, 0] = float("nan")
+        cv2.imwrite(str(tmp_path / "nan.tif"), road)
+        with pytest.raises(ValueError, match=r"nan\.tif' is a float32 image with the values 0, 1, nan, not a mask"):
+            read_road_mask(tmp_path / "nan.tif")
+
     def test_png_of_another_size_refused_without_resize(self, tmp_path):
         """A PNG of another size than size= is another image's mask: it was resized silently."""
         write_road_mask(tmp_path / "m.png", torch.ones(1, 4, 6, dtype=torch.bool))

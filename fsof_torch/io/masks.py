@@ -290,7 +290,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
     Args:
         path: a PNG (any colour channel nonzero = road; an alpha channel is ignored; a KITTI
             road benchmark ground truth, road magenta and the rest of the valid area red, reads
-            the magenta) or a polygon JSON (the formats in the module docstring).
+            the magenta; a float image, such as a TIFF, only where it holds 0 and one road value:
+            a probability map is a ValueError) or a polygon JSON (the formats in the module
+            docstring).
         size: (H, W) of the images the mask is for. A PNG must have it, and a JSON's polygon
             must have been drawn for it (its ``"size"``): a mask of another size is another
             image's road, and a ValueError naming the file and both sizes unless ``resize``. A
@@ -354,6 +356,13 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
             polygons.append(scaled)
         return rasterize_polygons(polygons, target)
     array = read_image_array(path, what="road mask image")
+    if array.dtype.kind == "f":  # (a float TIFF: a mask only where it holds 0 and one other value)
+        values = np.unique(array)
+        if not (np.isfinite(values).all() and values.min() >= 0 and np.count_nonzero(values) <= 1):
+            shown = ", ".join(f"{v:g}" for v in values[:4]) + (", ..." if len(values) > 4 else "")
+            raise ValueError(f"path: {str(path)!r} is a {array.dtype} image with the values {shown}, not a mask "
+                             f"(0 and one road value): a probability map or a depth, which no one threshold "
+                             f"turns into road; threshold it yourself (write_road_mask(path, prob > 0.5))")
     if array.ndim == 3:
         # the alpha channel (grey + alpha, BGRA) is opacity, not road: an opaque mask would be all road
         if array.shape[2] in (2, 4):
@@ -381,7 +390,7 @@ def _kitti_road_ground_truth(bgr: np.ndarray) -> np.ndarray | None:
     colour PNG is one: every coloured pixel red (R = max, G = 0), road magenta (B > 0: the
     devkit's road area), the rest of the valid area red (B = 0). Read as any channel nonzero,
     the red non-road would be road. None for any other image."""
-    if bgr.shape[2] != 3 or bgr[:, :, 1].any():
+    if bgr.shape[2] != 3 or bgr.dtype.kind != "u" or bgr[:, :, 1].any():  # (its PNGs are 8-bit)
         return None
     blue, red = bgr[:, :, 0], bgr[:, :, 2]
     top = np.iinfo(bgr.dtype).max
