@@ -538,9 +538,9 @@ def test_a_wall_passes_the_curve_not_the_freespace():
     """docs/vflow.md: the a-contrario test is against chance, not other structure: a wall facing
     the camera 30 m ahead, approached by 1 m (flow (p - p_0) / 29, measured to 0.01 px), passes as a
     curve; the freespace detection finds none. Its exact flow, F_v linear in the row, is no curve:
-    three collinear rows solve to a ≈ 0 (a rounding's worth) with the horizon ~1e15 px away, a
-    curve defined at none of them; such hypotheses are refused (before, one of them, undefined in
-    the whole image, won by scoring the rows of small flow as inliers of its zero, or lost, by the
+    three collinear rows solve to a ≈ 0 (a rounding's worth) with the horizon ~1e15 px away; a
+    curve defined on no row of the image is refused (before, one such, below the image, won by
+    scoring the rows of small flow as inliers of its zero, and the fit failed or passed by the
     machine's rounding)."""
     cam = Camera(torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64), 1.5)
     v, u = torch.meshgrid(torch.arange(64.0, dtype=torch.float64), torch.arange(160.0, dtype=torch.float64),
@@ -548,7 +548,7 @@ def test_a_wall_passes_the_curve_not_the_freespace():
     wall = torch.stack([u - 80, v - 20])[None] / 29.0
     assert float(wall[:, 1].abs().max()) < 1.5
     exact = fit_vflow_curve(wall)
-    assert not bool(exact.success) and not bool(exact.row_inliers.any())
+    assert not bool(exact.success) and int(exact.row_inliers.sum()) < 29
     for seed in range(3):
         measured = wall + 0.01 * torch.randn(wall.shape, generator=torch.Generator().manual_seed(seed),
                                              dtype=torch.float64)

@@ -492,12 +492,11 @@ def _ransac_rows(v: Tensor, y: Tensor, n: Tensor, usable: Tensor, thr: Tensor, m
     a = p[..., 0]
     a_safe = torch.where(a != 0, a, torch.ones_like(a))
     v0 = -p[..., 1] / (2 * a_safe) if model == "velocity" else p[..., 1] / a_safe
-    # a curve drawn through three rows is defined at them (below its horizon): a nearly collinear
-    # sample (a wall's flow) can solve to a ≈ 0 with the horizon ~1e15 px away, a curve defined
-    # nowhere in the image, which would score every row of small flow as an inlier of its zero
-    defined = _curve(vs, a.unsqueeze(-1), v0.unsqueeze(-1), model)[3].all(-1)
-    good = (info == 0) & torch.isfinite(a) & torch.isfinite(v0) & (a != 0) & defined
-    f = _curve(v.unsqueeze(1), a.unsqueeze(-1), v0.unsqueeze(-1), model)[0]  # (B, S, H)
+    f, _, _, defined = _curve(v.unsqueeze(1), a.unsqueeze(-1), v0.unsqueeze(-1), model)  # (B, S, H)
+    # a curve is defined on some row of the image (below its horizon): a nearly collinear sample (a
+    # wall's flow) can solve to a ≈ 0 with the horizon ~1e15 px below the image, a curve defined
+    # nowhere, whose zero would score every row of small flow as an inlier
+    good = (info == 0) & torch.isfinite(a) & torch.isfinite(v0) & (a != 0) & defined.any(-1)
     inl = usable.unsqueeze(1) & ((y.unsqueeze(1) - f).abs() <= thr.unsqueeze(1))
     score = torch.where(inl, n.unsqueeze(1), torch.zeros_like(f)).sum(-1)
     score = torch.where(good, score, torch.full_like(score, -1.0))
