@@ -695,9 +695,10 @@ def _main(argv: list[str] | None) -> int:
     with contextlib.ExitStack() as stack, trust_image_range():
         try:
             return _run(args, stack)
-        except (JobError, FileNotFoundError, ValueError) as err:
-            # JobError: an option or input file the job rejected; FileNotFoundError / ValueError:
-            # a reader or the library rejected an input file or value (their messages name it)
+        except (JobError, FileNotFoundError, IsADirectoryError, ValueError) as err:
+            # JobError: an option or input file the job rejected; FileNotFoundError /
+            # IsADirectoryError / ValueError: a reader or the library rejected an input file or
+            # value (their messages name it)
             print(f"error: {err}", file=sys.stderr)
             return 2
 

@@ -86,7 +86,7 @@ def options_of(options: dict[str, str] | str) -> Iterator[None]:
     the argument: ``options`` maps arguments to options, or is one option for every argument."""
     try:
         yield
-    except (ValueError, TypeError, FileNotFoundError) as err:
+    except (ValueError, TypeError, FileNotFoundError, IsADirectoryError) as err:
         argument, sep, rest = str(err).partition(": ")
         if not (sep and re.fullmatch(r"[a-z_0-9]+", argument)):
             raise  # not a message about an argument: raised as it came (the job's main reports

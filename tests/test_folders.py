@@ -421,6 +421,13 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
         ImageFolderDataset(root / "images", calib_size=(12, 40))
     with pytest.raises(FileNotFoundError, match=r"^calib: no calibration file at"):
         ImageFolderDataset(root / "images", tmp_path / "calib.txt")
+    # a folder, or a link to a missing file (a drive not mounted), is named as such, not as missing
+    (tmp_path / "calib_dir.txt").mkdir()
+    with pytest.raises(IsADirectoryError, match=r"^calib: '.*calib_dir\.txt' is a folder; expected a calibration file"):
+        ImageFolderDataset(root / "images", tmp_path / "calib_dir.txt")
+    (tmp_path / "calib_link.txt").symlink_to(tmp_path / "unmounted" / "calib.txt")
+    with pytest.raises(FileNotFoundError, match=r"^calib: '.*calib_link\.txt' is a symbolic link to .*unmounted"):
+        ImageFolderDataset(root / "images", tmp_path / "calib_link.txt")
     (tmp_path / "calib.bin").write_bytes(bytes(range(256)))
     with pytest.raises(ValueError, match=r"^calib: .*calib\.bin"):
         ImageFolderDataset(root / "images", tmp_path / "calib.bin")

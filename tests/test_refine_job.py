@@ -1108,6 +1108,9 @@ def test_missing_and_mismatched_inputs(tmp_path, user_folder, capsys):
     assert "--road: user data needs road masks" in _err(capsys, [*base, *calib])
     assert "--images: no folder" in _err(capsys, ["--images", str(tmp_path / "nope"), *calib, "--road", "auto"])
     assert "--calib: no calibration file" in _err(capsys, [*base, "--calib", str(tmp_path / "x.txt"), "--road", "auto"])
+    (tmp_path / "calib_dir").mkdir()  # (a folder: exit 2 naming it as a folder, not a traceback)
+    assert "--calib: '" + str(tmp_path / "calib_dir") + "' is a folder; expected a calibration file" in _err(
+        capsys, [*base, "--calib", str(tmp_path / "calib_dir"), "--road", "auto"])
     (user_folder / "flows" / "000001.npy").unlink()
     err = _err(capsys, [*base, *calib, "--road", "auto", "--flows", str(user_folder / "flows")])
     assert "--flows: no file for pair 000001" in err

@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_has_values, check_int, check_number, check_size
+from .._check import check_has_values, check_int, check_number, check_size, existing_file
 from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
@@ -251,8 +251,10 @@ def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch
     """A float64 camera from a KITTI calibration file and the camera index used: ``cam``, or
     without it camera 2 (the left colour camera) where the file has a row for it, else camera 0.
     A camera-2 row that is there but malformed (11 numbers, NaN) raises, never falls back."""
-    if not calib.is_file():
-        raise FileNotFoundError(f"calib: no calibration file at {str(calib)!r}")
+    try:  # (a folder, or a link to a missing file, is named as such: not "no file")
+        existing_file(calib, "calibration file")
+    except OSError as err:
+        raise type(err)(f"calib: {str(err).removeprefix('path: ')}") from None
     if cam is not None and not 0 <= cam <= 3:
         raise ValueError(f"cam: expected 0..3, got {cam}")
     c = cam if cam is not None else (2 if _has_camera_row(calib, 2) else 0)
