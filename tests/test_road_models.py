@@ -272,6 +272,37 @@ def test_rotation_angles_invert_the_composition(p):
     np.testing.assert_allclose(a.numpy(), [p["pitch_change"], p["yaw"], p["roll_change"]], atol=1e-12)
 
 
+
+def test_rotation_angles_and_homography_values_check_their_inputs():
+    """An integer R once raised torch's "hypot_cpu not implemented for 'Long'", an R of shape
+    (3, 2) an IndexError, and a 4×4 one gave angles silently; homography_values of an unbatched
+    H raised an IndexError and of an integer H gave values. Each now names the argument."""
+    R = torch.from_numpy(_rz(0.01) @ _rx(0.02) @ _ry(0.3))
+    np.testing.assert_allclose(rotation_angles(R.expand(2, 3, 3)).numpy(), [[0.02, 0.3, 0.01]] * 2, atol=1e-12)
+    with pytest.raises(TypeError, match=r"^R: expected a floating-point tensor, got dtype torch.int64"):
+        rotation_angles(torch.eye(3, dtype=torch.int64))
+    with pytest.raises(TypeError, match=r"^R: expected a torch.Tensor, got ndarray"):
+        rotation_angles(R.numpy())
+    for shape in ((3, 2), (4, 4), (3,)):
+        with pytest.raises(ValueError, match=rf"^R: expected rotation matrices of shape \(\.\.\., 3, 3\), got "
+                                             rf"{re.escape(str(shape))}"):
+            rotation_angles(torch.zeros(shape, dtype=torch.float64))
+    cam = camera()
+    H = road_homography(cam, {"z_d": 1.2, "yaw": 0.02}, model="plane")
+    # reference: K⁻¹ H K by NumPy, scaled to a last entry of 1, minus I
+    G = np.linalg.inv(cam.K[0].numpy()) @ H[0].numpy() @ cam.K[0].numpy()
+    want = (G / G[2, 2] - np.eye(3)).reshape(9)[:8]
+    np.testing.assert_allclose(homography_values(H, cam.K, cam.K_inv())[0].numpy(), want, atol=1e-12)
+    np.testing.assert_allclose(homography_values(H, cam.K.expand(3, 3, 3), cam.K_inv()).numpy(), [want] * 3, atol=1e-12)
+    for args, error, message in (
+            ((H[0], cam.K, cam.K_inv()), ValueError, r"^H: expected shape \(B, 3, 3\), got \(3, 3\)"),
+            ((H, cam.K[0], cam.K_inv()), ValueError, r"^K: expected shape \(B, 3, 3\), got \(3, 3\)"),
+            ((H, cam.K, cam.K_inv()[:, :2]), ValueError, r"^K_inv: expected shape \(B, 3, 3\), got \(1, 2, 3\)"),
+            ((H.long(), cam.K, cam.K_inv()), TypeError, r"^H: expected a floating-point tensor, got dtype torch.int64"),
+            ((H.expand(2, 3, 3), cam.K.expand(3, 3, 3), cam.K_inv()), ValueError, r"mismatched batch sizes: H=2, K=3")):
+        with pytest.raises(error, match=message):
+            homography_values(*args)
+
 @settings(max_examples=20, deadline=None)
 @given(p=plane_params)
 def test_plane_from_pose_and_decomposition_recover_the_parameters(p):

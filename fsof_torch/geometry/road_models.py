@@ -552,11 +552,12 @@ def road_motion_batch(odometry: object, batch: int, dtype: torch.dtype, device: 
 
 
 def rotation_angles(R: Tensor) -> Tensor:
-    """(pitch_change α, yaw φ, roll_change γ) (B, 3) of rotations R = R_roll(γ) R_pitch(α) R_yaw(φ).
-
-    The row z of that product is (cos α sin φ, -sin α, cos α cos φ) and its column y is
-    (sin γ cos α, cos γ cos α, -sin α): the angles follow with atan2 (|α| < π/2).
-    """
+    """(pitch_change α, yaw φ, roll_change γ) (..., 3), in R's dtype, of rotations R (..., 3, 3),
+    float (else a TypeError or ValueError names ``R``), R = R_roll(γ) R_pitch(α) R_yaw(φ). The row
+    z of that product is (cos α sin φ, -sin α, cos α cos φ) and its column y is (sin γ cos α,
+    cos γ cos α, -sin α): the angles follow with atan2 (|α| < π/2)."""
+    if check_float_tensor(R, "R").dim() < 2 or R.shape[-2:] != (3, 3):
+        raise ValueError(f"R: expected rotation matrices of shape (..., 3, 3), got {tuple(R.shape)}")
     alpha = torch.atan2(-R[..., 2, 1], torch.hypot(R[..., 2, 0], R[..., 2, 2]))
     phi = torch.atan2(R[..., 2, 0], R[..., 2, 2])
     gamma = torch.atan2(R[..., 0, 1], R[..., 1, 1])
@@ -576,8 +577,7 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
         ``{"pitch_change", "yaw", "roll_change", "x_d", "y_d", "z_d", "roll", "pitch"}`` of (B,):
         R_v = R_cᵀ R R_c and d = -R_vᵀ R_cᵀ t (DESIGN.md §10).
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    check_camera(camera)
     T = as_pose_4x4(cam1_T_cam0, "cam1_T_cam0")
     B = resolve_batch({"cam1_T_cam0": T.shape[0], "camera": camera.batch_size})
     with autocast_off(T):  # (geometry in at least float32, also under autocast)
@@ -596,7 +596,10 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
 def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
     """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
     the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity (in the promoted dtype
-    of the three, half precision lifted to float32, also under ``torch.autocast``)."""
+    of the three, half precision lifted to float32, also under ``torch.autocast``). H, K, K⁻¹ are
+    float (B, 3, 3), batch 1 or B each (else a TypeError or ValueError names the argument)."""
+    resolve_batch({n: check_shape(check_float_tensor(M, n), n, ("B", 3, 3))["B"]
+                   for n, M in (("H", H), ("K", K), ("K_inv", K_inv))})
     dtype = result_dtype(H, K, K_inv)
     with autocast_off(H):
         G = K_inv.to(dtype) @ H.to(dtype) @ K.to(dtype)
@@ -617,8 +620,7 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
     are not, or are too close to singular for the dtype). The result is differentiable in H and in the camera's tensors, and on H's device
     (the camera's tensors are moved there).
     """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
+    check_camera(camera)
     if not isinstance(H, Tensor) or not H.is_floating_point() or H.dim() != 3 or tuple(H.shape[1:]) != (3, 3):
         got = f"{H.dtype} {tuple(H.shape)}" if isinstance(H, Tensor) else type(H).__name__
         raise ValueError(f"H: expected a float tensor of shape (B, 3, 3), got {got}")
