@@ -122,6 +122,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
+    if args.json is not None:
+        write_json(make_parent(args.json), {**summary, **meta, "pairs": rows})
+    # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
     height, width = summary["size"]
     print(f"wrote {summary['num_pairs']} pairs of preset {args.preset!r} (seed {args.seed}, {height}x{width}) "
           f"to {summary['root']} ({summary['bytes'] / 1e6:.2f} MB)")
@@ -130,6 +133,4 @@ def run(args: argparse.Namespace) -> int:
         print(f"{r['index']:>6d} {r['x_d']:>8.4f} {r['z_d']:>8.4f} {r['yaw_deg']:>8.4f} {r['valid_pct']:>8.2f} "
               f"{_fmt(r['road_pct']):>8} {r['max_flow_px']:>10.2f}")
     print("files: " + ", ".join(f"{k}/ {v}" for k, v in summary["files"].items()) + ", poses.txt, meta.json")
-    if args.json is not None:
-        write_json(make_parent(args.json), {**summary, **meta, "pairs": rows})
     return 0

@@ -364,6 +364,10 @@ def run(args: argparse.Namespace) -> int:
     bar.update(1)
     bar.close()
 
+    info["files"] = {k: str(v) for k, v in files.items()}
+    json_path = args.json if args.json is not None else args.out / "vflow.json"
+    write_json(make_parent(json_path), info)
+    # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
     c = info["curve"]
     print(f"\nV-flow curve ({args.model}): a = {c['a']:.6e} 1/{'px' if args.model == 'displacement' else '(px s)'}, "
           f"v0 = {c['v0']:.3f} px, success {c['success']}, inlier rows {c['inlier_rows']}/{c['used_rows']}, "
@@ -382,9 +386,6 @@ def run(args: argparse.Namespace) -> int:
         fs_info = info["freespace"]
         print(f"  freespace IoU with the road: {fs_info['iou']:.4f}, its road model's z_d {fs_info['z_d_m']:.4f} m"
               + ("" if fs_info["success"] else " (the detection failed: no freespace)"))
-    info["files"] = {k: str(v) for k, v in files.items()}
-    json_path = args.json if args.json is not None else args.out / "vflow.json"
-    write_json(make_parent(json_path), info)
     print(f"wrote {json_path}" + "".join(f", {p}" for p in files.values()))
     if not (c["success"] and math.isfinite(c["a"])):
         print("the V-flow curve could not be fitted (success false: too few inlier rows, no more than chance "

@@ -1,7 +1,8 @@
 """The jobs when the reader of their stdout goes away (``python -m refine ... | head``): every
 file is written before anything is printed, and the job ends with one line on stderr and exit
-status 1, not a traceback. Before, ``eval tables``, ``eval noise`` and ``eval train`` printed their
-tables before writing their files (the trained nets too), and lost them to the BrokenPipeError;
+status 1, not a traceback. Before, ``eval tables``, ``eval noise``, ``eval train``, ``eval vflow``
+and ``eval synth --json`` printed their tables before writing their files (the trained nets too),
+and lost them to the BrokenPipeError;
 ``refine`` wrote its report first but ended with a traceback."""
 
 from __future__ import annotations
@@ -83,6 +84,27 @@ def test_eval_train_writes_its_nets_before_printing(tmp_path, capsys, keep_threa
     assert set(report["metrics"]) == {"untrained", "unsupervised", "unsupervised+freespace"}
     nets = sorted(p.name for p in out.iterdir())
     assert len(nets) == 2 and all(torch.load(out / n, weights_only=True) for n in nets), nets
+
+
+def test_eval_synth_writes_its_json_before_printing(tmp_path, capsys):
+    """``synth --json`` wrote its summary after printing the pairs' table, and lost it."""
+    out, summary = tmp_path / "synth", tmp_path / "synth.json"
+    rc = closed(eval_main, ["synth", "--pairs", "1", "--size", "32", "64", "--out", str(out), "--json", str(summary),
+                            "--no-progress"])
+    assert rc == 1
+    _one_line(capsys.readouterr().err, "eval synth", "the files written so far are kept, each one whole")
+    data = json.loads(summary.read_text())
+    assert data["num_pairs"] == 1 and [r["index"] for r in data["pairs"]] == [0]
+
+
+def test_eval_vflow_writes_its_json_before_printing(tmp_path, capsys):
+    """``vflow`` printed the fitted curve before writing vflow.json, and lost it."""
+    out = tmp_path / "vflow"
+    rc = closed(eval_main, ["vflow", "--size", "48", "96", "--out", str(out), "--no-progress"])
+    assert rc == 1
+    _one_line(capsys.readouterr().err, "eval vflow", "the files written so far are kept, each one whole")
+    data = json.loads((out / "vflow.json").read_text())
+    assert data["curve"]["success"] is True and (out / "vflow_map.png").is_file()
 
 
 def test_refine_ends_with_one_line_and_its_report_written(tmp_path, capsys):
