@@ -381,8 +381,8 @@ def _other_size(where: str, what: str, own: tuple[int, int], size: tuple[int, in
     """The message for a mask of another size than ``size``: ``what`` with its size (``own``)."""
     h, w = size
     return (f"{where} is {what.format(*own)}, but size is {h}x{w}; stretched over {h}x{w} images it would be "
-            f"another image's road: give a mask of their size, or pass resize=True to read_road_mask where they "
-            f"are its own images resized")
+            f"another image's road: give a mask drawn for images of that size (read_road_mask(..., resize=True) "
+            f"resamples one where the images are its own images resized)")
 
 
 def _kitti_road_ground_truth(bgr: np.ndarray) -> np.ndarray | None:
