@@ -284,6 +284,27 @@ def test_kitti_calibration_with_a_byte_order_mark(tmp_path):
     assert read_kitti_calibration(tmp_path / "unlabelled.txt", 0)[0, 0] == pytest.approx(707.0912)
 
 
+def test_kitti_calibration_skips_every_row_that_is_no_projection(tmp_path):
+    """Rows other than P_rect_0N / PN are not read: a note keyed 'Program' once failed the file
+    ('is not a calibration row': a key starting with P was parsed as numbers), and KITTI raw's
+    calib_cam_to_cam.txt and calib_velo_to_cam.txt concatenated failed on the second calib_time
+    ('repeats the key'). Windows line endings and trailing blanks read the same."""
+    P2 = [721.5377, 0.0, 609.5593, 44.85728, 0.0, 721.5377, 172.854, 0.2163791, 0.0, 0.0, 1.0, 0.002745884]
+    velo_to_cam = "calib_time: 15-Mar-2012 11:37:16\nR: 1 0 0 0 1 0 0 0 1\nT: -0.004 -0.076 -0.27\n"
+    text = ("Program: stereo calibrator v1.2\r\nPose_source: GPS/IMU\t \r\n" + CAM_TO_CAM.replace("\n", "  \r\n")
+            + velo_to_cam)
+    (tmp_path / "calib.txt").write_bytes(text.encode())
+    assert read_kitti_calibration(tmp_path / "calib.txt", 2).flatten().tolist() == P2
+    assert Camera.from_kitti(tmp_path / "calib.txt", cam=0).fx.tolist() == [700.0]
+    # a projection row is still read as one: malformed or given twice, it raises
+    (tmp_path / "bad.txt").write_text(CAM_TO_CAM.replace("P_rect_00: 7", "P_rect_00: x"))
+    with pytest.raises(ValueError, match=r"line \d+ of '.*' is not a calibration row: 'P_rect_00: x"):
+        read_kitti_calibration(tmp_path / "bad.txt", 2)
+    (tmp_path / "twice.txt").write_text(CAM_TO_CAM + "P_rect_00: 1 0 1 0 0 1 1 0 0 0 1 0\n")
+    with pytest.raises(ValueError, match="repeats the key 'P_rect_00' of line 5"):
+        read_kitti_calibration(tmp_path / "twice.txt", 2)
+
+
 # --- scaled: rendering geometry ----------------------------------------------------------------------
 
 @pytest.mark.parametrize("sx, sy", [(3, 3), (3, 5), (5, 3)])

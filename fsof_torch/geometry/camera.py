@@ -477,6 +477,7 @@ def _pixel_amounts(method: str, **amounts: object) -> dict[str, int]:
 
 
 _CALIBRATION_KEY = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
+_PROJECTION_KEY = re.compile(r"P(_rect_)?[0-9]+")  # the rows read_kitti_calibration reads
 
 
 def split_calibration_line(line: str) -> tuple[str | None, str]:
@@ -502,10 +503,12 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     (key ``P{cam}``, or, in a file without labelled ``P`` rows, unlabelled rows in order), and
     KITTI tracking's and object detection's ``calib`` files (``P{cam}:``; their other rows,
     ``R_rect`` / ``Tr_velo_cam`` keyed by a space rather than a colon, are not read:
-    :func:`split_calibration_line`). A UTF-8 byte-order mark is skipped. Raises ValueError
-    naming the path (and the row) for a missing or malformed row, one holding NaN or inf, a key
-    given twice, or both ``P_rect_0{cam}`` and ``P{cam}`` with different values (naming both
-    lines).
+    :func:`split_calibration_line`). Only the projection rows (``P_rect_0N``, ``PN``) are read:
+    any other keyed row (``calib_time``, ``S_rect_02``, ``Tr``, a note of your own) is skipped,
+    whatever it holds and however often it comes. A UTF-8 byte-order mark is skipped. Raises
+    ValueError naming the path (and the row) for a missing or malformed projection row, one
+    holding NaN or inf, one given twice, or both ``P_rect_0{cam}`` and ``P{cam}`` with different
+    values (naming both lines).
     """
     path = existing_file(path, "calibration file")
     cam = check_camera_index(cam)
@@ -514,7 +517,7 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
     except UnicodeDecodeError as err:
         raise ValueError(f"path: {str(path)!r} is not a text calibration file (undecodable byte at "
                          f"offset {err.start})") from None
-    rows: dict[str, list[float]] = {}
+    rows: dict[str, list[float]] = {}  # the projection rows, P_rect_0N or PN
     key_lines: dict[str, int] = {}
     unlabelled: list[list[float]] = []
     for n, line in enumerate(text.splitlines(), 1):
@@ -522,23 +525,20 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
         if not line:
             continue
         key, rest = split_calibration_line(line)
-        sep = key is not None
-        if sep and key in key_lines:  # which of the two rows would be the calibration?
+        if key is not None and not _PROJECTION_KEY.fullmatch(key):
+            continue  # another row (calib_time, R_rect_02, Tr, a note): not read, however often it comes
+        if key in key_lines:  # which of the two rows would be the calibration?
             raise ValueError(f"path: line {n} of {str(path)!r} repeats the key {key!r} of line {key_lines[key]}; "
-                             f"expected each key once")
+                             f"expected each projection row once")
         try:
-            if sep:
+            if key is not None:
                 key_lines[key] = n
-                try:
-                    rows[key] = [float(x) for x in rest.split()]
-                except ValueError:
-                    if key.startswith("P"):
-                        raise
+                rows[key] = [float(x) for x in rest.split()]
             else:
                 unlabelled.append([float(x) for x in line.split()])
         except ValueError as err:
             raise ValueError(f"path: line {n} of {str(path)!r} is not a calibration row: {line[:60]!r}") from err
-    labelled = any(re.fullmatch(r"P(_rect_)?[0-9]+", key) for key in rows)
+    labelled = bool(rows)
     rect, plain = f"P_rect_0{cam}", f"P{cam}"
     if rect in rows and plain in rows and rows[rect] != rows[plain]:  # which is the calibration?
         raise ValueError(f"path: {str(path)!r} gives camera {cam} twice, {rect} (line {key_lines[rect]}) and "
