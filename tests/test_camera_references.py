@@ -134,3 +134,64 @@ def test_road_flow_is_kornias_projection_of_the_moved_road_point(motion):
     ok = valid[0, 0]
     torch.testing.assert_close(flow[0][:, ok], expected[:, ok], rtol=1e-9, atol=1e-7)
     assert float(flow[0][:, ~ok].abs().max()) == 0.0
+
+
+# KITTI's P_rect_02 and P_rect_03 (drive 2011_09_26): P_N = K [I | t_N] maps camera 0's rectified
+# coordinates to camera N's pixels
+KITTI_P = {
+    2: [[721.5377, 0.0, 609.5593, 44.85728], [0.0, 721.5377, 172.854, 0.2163791], [0.0, 0.0, 1.0, 0.002745884]],
+    3: [[721.5377, 0.0, 609.5593, -339.5242], [0.0, 721.5377, 172.854, 2.199936], [0.0, 0.0, 1.0, 0.002729905]],
+}
+
+
+@pytest.mark.parametrize("cam", [2, 3])
+def test_kitti_camera_n_poses_give_the_flow_its_projection_matrix_sees(cam):
+    """KITTI's poses are camera 0's (camera-to-world). The reference: each pixel of camera N at t,
+    back-projected through P_N (its centre is P_N's null vector), meets the world's road y = 1.35;
+    P_N projects that point from camera 0's pose at t+1. The library's recipe
+    (docs/data-formats.md): camera N's poses are pose @ [[I, c], [0, 1]], c = -K⁻¹ P_N[:, 3]; the
+    camera's height and attitude over the road at t from its pose; plane_from_pose of the relative
+    pose, road_flow of the plane model. They agree to rounding; camera 0's poses as they are miss
+    camera 3's road by pixels (its 47 cm offset turned by the yaw)."""
+    from fsof_torch import plane_from_pose, relative_pose
+
+    P = np.array(KITTI_P[cam])
+    K = P[:, :3]
+    centre = np.append(-np.linalg.solve(K, P[:, 3]), 1.0)  # P @ centre = 0
+    assert float(centre[0]) == pytest.approx(-0.0598 if cam == 2 else 0.4729, abs=1e-4)
+    pose0 = np.eye(4)
+    pose0[:3, :3] = (_rotation(2, 0.02) @ _rotation(0, -0.015)).numpy().T  # camera 0 rolled and pitched
+    pose0[:3, 3] = [1.0, -0.3, 5.0]
+    step = np.eye(4)
+    step[:3, :3] = (_rotation(1, 0.06).T @ _rotation(0, 0.004)).numpy()  # a turn and a body pitch
+    step[:3, 3] = [0.1, 0.01, 1.3]
+    pose1 = pose0 @ step
+    road_y = 1.35
+    H, W = 375, 1242
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    pixels = np.stack([u.ravel(), v.ravel(), np.ones(H * W)])
+    # reference: rays of P_N in the world, the road point, projected by P_N from camera 0's pose at t+1
+    origin = (pose0 @ centre)[:3]
+    rays = pose0[:3, :3] @ np.linalg.solve(K, pixels)
+    front = rays[1] > 0
+    world = origin[:, None] + rays * ((road_y - origin[1]) / np.where(front, rays[1], 1.0))
+    q = P @ (np.linalg.inv(pose1) @ np.vstack([world, np.ones(H * W)]))
+    front &= q[2] > 0
+    expected = (q[:2] / np.where(front, q[2], 1.0) - pixels[:2]).reshape(2, H, W)
+    # the library's recipe
+    offset = np.eye(4)
+    offset[:3, 3] = centre[:3]
+    own0, own1 = pose0 @ offset, pose1 @ offset
+    normal = own0[:3, :3].T @ np.array([0.0, 1.0, 0.0])  # the road's normal in camera N's frame, R_c e_y
+    camera = Camera(torch.from_numpy(K.copy()), road_y - own0[1, 3], math.atan2(normal[0], normal[1]),
+                    -math.asin(normal[2]))
+    for poses, exact in (((own0, own1), True), ((pose0, pose1), False)):
+        T = relative_pose(*(torch.from_numpy(p)[None] for p in poses))
+        flow, valid = road_flow(camera, plane_from_pose(T, camera), (H, W), model="plane")
+        ok = valid[0, 0].numpy()
+        error = np.abs(flow[0].numpy()[:, ok] - expected[:, ok]).max()
+        if exact:
+            assert (ok == front.reshape(H, W)).all() and ok.sum() > 0.4 * H * W
+            assert error < 1e-9
+        else:
+            assert error > (0.3 if cam == 2 else 3.0)
