@@ -50,6 +50,29 @@ def test_scaled_puts_a_point_where_resizing_moves_it(size):
     np.testing.assert_allclose(_centroid(resized), expected, atol=2e-3)
 
 
+@pytest.mark.parametrize("k", [2, 3, 4])
+def test_nearest_resizing_is_off_the_scaled_cameras_map_as_documented(k):
+    """Camera.scaled's docstring: cv2.INTER_NEAREST and F.interpolate(mode="nearest") take source
+    pixel floor(u' / sx), (k - 1) / 2 source pixels short of the centre map u = (u' + 0.5) k - 0.5
+    when shrunk by k; INTER_NEAREST_EXACT and "nearest-exact" round that map. An image whose
+    value is its source column shows which pixel each one took."""
+    import cv2
+    W = 12 * k
+    image = np.tile(np.arange(W, dtype=np.float32), (3, 1))
+    cam = Camera(torch.tensor(K_ODD, dtype=torch.float64), 1.5).scaled(1 / k)
+    # the scaled camera's map: u' = f_x' x + ..., so u = (u' - c_x') / s + c_x with the same ray
+    target = np.arange(W // k, dtype=np.float64)
+    centre = (target - float(cam.cx[0])) * k + K_ODD[0][2]
+    np.testing.assert_allclose(centre, (target + 0.5) * k - 0.5, atol=1e-12)
+    torch_image = torch.from_numpy(image)[None, None]
+    floor = cv2.resize(image, (W // k, 3), interpolation=cv2.INTER_NEAREST)[0]
+    np.testing.assert_array_equal(floor, F.interpolate(torch_image, size=(3, W // k), mode="nearest")[0, 0, 0])
+    np.testing.assert_allclose(centre - floor, (k - 1) / 2, atol=1e-12)
+    for exact in (cv2.resize(image, (W // k, 3), interpolation=cv2.INTER_NEAREST_EXACT)[0],
+                  F.interpolate(torch_image, size=(3, W // k), mode="nearest-exact")[0, 0, 0].numpy()):
+        assert np.abs(centre - exact).max() <= 0.5
+
+
 def test_crop_pad_and_scale_move_the_principal_point_as_the_pixels_move():
     """Cropping by (l, t) moves every pixel by (-l, -t), padding by (+l, +t); cropping then
     scaling by s is scaling then cropping by (s l, s t) when those are whole pixels (an image of

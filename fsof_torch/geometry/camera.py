@@ -355,7 +355,11 @@ class Camera:
 
         Pixel centres map as ``u' + 0.5 = sx (u + 0.5)`` (the convention of
         ``F.interpolate(..., align_corners=False)`` and ``cv2.resize``), so
-        ``f_x' = sx f_x`` and ``c_x' = sx (c_x + 0.5) - 0.5``; likewise for y.
+        ``f_x' = sx f_x`` and ``c_x' = sx (c_x + 0.5) - 0.5``; likewise for y. Nearest-neighbour
+        resizing does not follow it: ``cv2.INTER_NEAREST`` and ``F.interpolate(mode="nearest")``
+        take source pixel ``floor(u' / sx)``: shrunk by a whole factor k (``sx = 1 / k``), that is
+        (k - 1) / 2 source pixels short of the centre map (0.5 at half size);
+        ``cv2.INTER_NEAREST_EXACT`` and ``"nearest-exact"`` round the centre map instead.
         """
         sx = scalar(sx, "sx")
         sy = sx if sy is None else scalar(sy, "sy")
