@@ -32,7 +32,12 @@ rotation is a homography), the real street's texture in a turn of known motion;
 ``--pitch-change-deg`` and ``--roll-change-deg`` likewise rotate it about the car's lateral and
 forward axes, as the body pitches (braking, a bump) and rolls. With ``--exposure-gain G`` image 2
 of every pair is G times as bright (:func:`exposed`: clipped to 0..255 and rounded), as where
-the camera's exposure changes between the frames (a shadow, a tunnel's mouth). With
+the camera's exposure changes between the frames (a shadow, a tunnel's mouth). With ``--slalom
+AMPLITUDE_DEG PERIOD`` the clip is seen by a camera that yaws back and forth (:func:`slalomed`):
+frame k turned to AMPLITUDE_DEG sin(2π k / PERIOD) degrees about the road's normal, every frame
+cut to one window; each frame is turned once, whichever pair it is in, so the clip stays a clip
+and ``fit_sequence`` runs on a turn that changes from pair to pair (the KITTI pair is left as
+given). With
 ``--odometry-error SCALE YAW_DEG`` the poses' odometry is made wrong as wheel odometry is: its
 translation SCALE times as long, its yaw YAW_DEG degrees a frame off. With ``--resize FACTOR``
 every pair is first seen at FACTOR times the resolution (:func:`resized`), as where a network runs
@@ -443,6 +448,7 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
             pair = dataset[i]
             known = a is not None and b is not None and max(a, b) < len(poses)
             pair["relative_pose"] = torch.linalg.inv(poses[b]) @ poses[a] if known else None
+            pair["positions"] = (i, i + step)  # (the frames' places in the clip)
             return pair
         return with_pose
 
@@ -459,26 +465,11 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
     window in which the turned image 2 is defined, the camera cropped with them, and the
     ground-truth flow and relative pose composed with the turn. ``window``: (r0, r1, c0, c1) to
     crop to instead, inside the defined region."""
-    import cv2
-    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-
-    from fsof_torch.geometry.camera import mounting_matrix
-
-    cam = pair["camera"].to(torch.float64)
-    K = cam.K.reshape(-1, 3, 3)[0]
-    # the car's axes in the camera: lateral, down (the road's normal) and forward
-    axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
-    angles = torch.tensor([pitch_deg, yaw_deg, roll_deg], dtype=torch.float64).deg2rad()
-    Rs = axis_angle_to_rotation_matrix(axes * angles.unsqueeze(-1))
-    R = Rs[1] @ Rs[0] @ Rs[2]
-    H = K @ R.T @ torch.linalg.inv(K)  # image 2's pixels -> the turned camera's
+    H, R = turn_homography(pair["camera"], yaw_deg, pitch_deg, roll_deg)  # image 2's pixels -> the turned camera's
     rows, cols = pair["image2"].shape[-2:]
     v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),
                           indexing="ij")
-    source = torch.einsum("ij,jhw->ihw", torch.linalg.inv(H), torch.stack([u, v, torch.ones_like(u)]))
-    x, y = source[0] / source[2], source[1] / source[2]
-    eps = 1e-6  # (the rounding of H)
-    defined = (source[2] > 0) & (x >= -eps) & (x <= cols - 1 + eps) & (y >= -eps) & (y <= rows - 1 + eps)
+    defined = defined_under(H, rows, cols)
     # the largest window, with up to a fifth of the rows cut at the top and at the bottom, in
     # which every pixel of the turned image 2 is defined (a turn tilts the image's edges)
     r0, r1, c0, c1 = defined_window(defined) if window is None else window
@@ -486,15 +477,9 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
         raise ValueError(f"the turn ({yaw_deg}°, {pitch_deg}°, {roll_deg}°) leaves no window of image 2 defined")
     if not bool(defined[r0:r1, c0:c1].all()) or min(r0, c0) < 0:
         raise ValueError(f"window: {window} reaches beyond where the turned image 2 is defined")
-    image2 = pair["image2"].to(torch.float32).permute(1, 2, 0).contiguous().numpy()
-    # Lanczos (8 × 8 taps), clipped to 0..255 (its overshoot): bilinear weights would blur image 2
-    # against image 1 by up to half its finest detail, and that blur, not the turn, would show in
-    # the census and in the auto road
-    warped = cv2.warpPerspective(image2, H.numpy(), (cols, rows), flags=cv2.INTER_LANCZOS4).clip(0, 255)
-    warped = warped.reshape(rows, cols, -1)  # (OpenCV drops a single channel's axis)
     out = {**pair, "camera": pair["camera"].cropped(c0, r0, cols - c1, rows - r1)}
     out["image1"] = pair["image1"][..., r0:r1, c0:c1].contiguous()
-    out["image2"] = torch.from_numpy(warped[r0:r1, c0:c1]).permute(2, 0, 1).to(pair["image2"].dtype).contiguous()
+    out["image2"] = warped_frame(pair["image2"], H, (r0, r1, c0, c1))
     for key in ("road", "valid"):
         if pair.get(key) is not None:
             out[key] = pair[key][..., r0:r1, c0:c1].contiguous()
@@ -506,6 +491,94 @@ def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float =
         turn = torch.eye(4, dtype=torch.float64)
         turn[:3, :3] = R.T
         out["relative_pose"] = turn @ pair["relative_pose"].to(torch.float64)
+    return out
+
+
+def turn_homography(camera: Any, yaw_deg: float, pitch_deg: float = 0.0,
+                    roll_deg: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
+    """The homography K Rᵀ K⁻¹ (float64) that maps a frame's pixels to those of the camera turned by
+    ``yaw_deg`` about the road's normal, then by ``pitch_deg`` and ``roll_deg`` about the car's
+    lateral and forward axes (``camera``'s mounting gives the axes), and the rotation R."""
+    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+    from fsof_torch.geometry.camera import mounting_matrix
+
+    cam = camera.to(torch.float64)
+    K = cam.K.reshape(-1, 3, 3)[0]
+    # the car's axes in the camera: lateral, down (the road's normal) and forward
+    axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
+    angles = torch.tensor([pitch_deg, yaw_deg, roll_deg], dtype=torch.float64).deg2rad()
+    Rs = axis_angle_to_rotation_matrix(axes * angles.unsqueeze(-1))
+    R = Rs[1] @ Rs[0] @ Rs[2]
+    return K @ R.T @ torch.linalg.inv(K), R
+
+
+def defined_under(H: torch.Tensor, rows: int, cols: int) -> torch.Tensor:
+    """(rows, cols) bool: the pixels of a frame warped by ``H`` that come from inside the frame."""
+    v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),
+                          indexing="ij")
+    source = torch.einsum("ij,jhw->ihw", torch.linalg.inv(H), torch.stack([u, v, torch.ones_like(u)]))
+    x, y = source[0] / source[2], source[1] / source[2]
+    eps = 1e-6  # (the rounding of H)
+    return (source[2] > 0) & (x >= -eps) & (x <= cols - 1 + eps) & (y >= -eps) & (y <= rows - 1 + eps)
+
+
+def warped_frame(image: torch.Tensor, H: torch.Tensor, window: tuple[int, int, int, int]) -> torch.Tensor:
+    """``image`` (C, H, W) warped by the homography ``H`` and cut to ``window`` (r0, r1, c0, c1), in its
+    dtype: Lanczos (8 × 8 taps), clipped to 0..255 (its overshoot): bilinear weights would blur the
+    frame by up to half its finest detail, and that blur, not the motion, would show in the census
+    and in the auto road."""
+    import cv2
+
+    rows, cols = image.shape[-2:]
+    r0, r1, c0, c1 = window
+    frame = image.to(torch.float32).permute(1, 2, 0).contiguous().numpy()
+    warped = cv2.warpPerspective(frame, H.numpy(), (cols, rows), flags=cv2.INTER_LANCZOS4).clip(0, 255)
+    warped = warped.reshape(rows, cols, -1)  # (OpenCV drops a single channel's axis)
+    return torch.from_numpy(warped[r0:r1, c0:c1]).permute(2, 0, 1).to(image.dtype).contiguous()
+
+
+def slalom_yaw(position: int, amplitude: float, period: float) -> float:
+    """The heading (degrees) of the camera at frame ``position`` of a clip that yaws back and forth:
+    ``amplitude`` sin(2π ``position`` / ``period``)."""
+    return amplitude * math.sin(2 * math.pi * position / period)
+
+
+def slalom_window(camera: Any, size: tuple[int, int], frames: int, amplitude: float,
+                  period: float) -> tuple[int, int, int, int]:
+    """The largest window (r0, r1, c0, c1) of :func:`defined_window` in which every one of the clip's
+    ``frames`` frames (``size`` (rows, cols)), turned to its :func:`slalom_yaw`, is defined."""
+    defined = torch.ones(size, dtype=torch.bool)
+    for position in range(frames):
+        defined &= defined_under(turn_homography(camera, slalom_yaw(position, amplitude, period))[0], *size)
+    window = defined_window(defined)
+    if window[1] - window[0] < 32 or window[3] - window[2] < 32:
+        raise UnfitOption(f"--slalom: turns of up to {amplitude:g}° leave no window of 32 × 32 pixels or more in "
+                          f"which every frame is defined")
+    return window
+
+
+def slalomed(pair: dict, amplitude: float, period: float, window: tuple[int, int, int, int]) -> dict:
+    """A clip's pair seen by a camera that also yaws back and forth about the road's normal: frame
+    k turned to :func:`slalom_yaw` (k its position in the clip, ``pair["positions"]`` for the
+    pair's two frames), both frames, the road and the camera cut to ``window`` (one for the whole
+    clip, :func:`slalom_window`), the relative pose composed with the two headings. Each frame is
+    turned by its own heading, whichever pair it is in: image 2 of a pair is image 1 of the next,
+    a clip to fit (fit_sequence), whose turn a frame changes from pair to pair."""
+    import cv2
+
+    r0, r1, c0, c1 = window
+    (H1, R1), (H2, R2) = (turn_homography(pair["camera"], slalom_yaw(k, amplitude, period)) for k in pair["positions"])
+    rows, cols = pair["image1"].shape[-2:]
+    out = {**pair, "camera": pair["camera"].cropped(c0, r0, cols - c1, rows - r1), "flow": None, "valid": None}
+    out["image1"], out["image2"] = warped_frame(pair["image1"], H1, window), warped_frame(pair["image2"], H2, window)
+    road = cv2.warpPerspective(pair["road"][0].to(torch.uint8).numpy(), H1.numpy(), (cols, rows),
+                               flags=cv2.INTER_NEAREST)
+    out["road"] = torch.from_numpy(road[r0:r1, c0:c1].copy()).bool().unsqueeze(0)
+    if pair.get("relative_pose") is not None:
+        turn1, turn2 = torch.eye(4, dtype=torch.float64), torch.eye(4, dtype=torch.float64)
+        turn1[:3, :3], turn2[:3, :3] = R1, R2.T
+        out["relative_pose"] = turn2 @ pair["relative_pose"].to(torch.float64) @ turn1
     return out
 
 
@@ -746,6 +819,10 @@ def main(argv: list[str] | None = None) -> int:
                              "less one (default 1; 3: about 130 km/h at 10 Hz instead of 43)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
                         help="turn every pair by this many degrees of yaw (image 2 resampled; default 0)")
+    parser.add_argument("--slalom", type=float, nargs=2, default=None, metavar=("AMPLITUDE_DEG", "PERIOD"),
+                        help="the clip seen by a camera that also yaws back and forth: frame k turned to "
+                             "AMPLITUDE_DEG sin(2 pi k / PERIOD) degrees about the road's normal, every frame cut "
+                             "to one window (a clip still: fit_sequence runs; the KITTI pair as given)")
     parser.add_argument("--pitch-change-deg", type=float, default=0.0,
                         help="pitch every pair's camera by this many degrees between the frames (default 0)")
     parser.add_argument("--roll-change-deg", type=float, default=0.0,
@@ -824,6 +901,12 @@ def main(argv: list[str] | None = None) -> int:
     for name, value in zip(("--yaw-deg", "--pitch-change-deg", "--roll-change-deg"), turn):
         if not math.isfinite(value) or abs(value) >= 45:
             parser.error(f"{name}: expected a number of degrees within (-45, 45), got {value}")
+    if args.slalom is not None:
+        amplitude, period = args.slalom
+        if not (math.isfinite(amplitude) and 0 < amplitude <= 20):
+            parser.error(f"--slalom: expected an amplitude within (0, 20] degrees, got {amplitude}")
+        if not (math.isfinite(period) and period >= 2):
+            parser.error(f"--slalom: expected a period of at least 2 frames, got {period}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
     if args.jpeg is not None and not 1 <= args.jpeg <= 100:
@@ -869,10 +952,15 @@ def main(argv: list[str] | None = None) -> int:
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
                               "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow,
                               "mirror": args.mirror, "crop": list(args.crop), "jpeg": args.jpeg,
-                              "odometry_error": [scale, yaw_error],
+                              "odometry_error": [scale, yaw_error], "slalom": args.slalom,
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
-    def transformed(data: list[tuple[str, Callable[[], dict]]]) -> list[tuple[str, Callable[[], dict]]]:
+    def transformed(data: list[tuple[str, Callable[[], dict]]], clip: bool) -> list[tuple[str, Callable[[], dict]]]:
         """The data set's pairs as the options change them (each loaded when called)."""
+        if args.slalom is not None and clip:  # (first: each frame by its place in the clip)
+            first = data[0][1]()
+            window = slalom_window(first["camera"], tuple(first["image1"].shape[-2:]), clip_frames(folders["clip"]),
+                                   *args.slalom)
+            data = [(name, lambda load=load: slalomed(load(), *args.slalom, window)) for name, load in data]
         if args.reverse:  # (last to first: image 2 of a pair is image 1 of the next, a clip to fit)
             data = [(name, lambda load=load: reversed_pair(load())) for name, load in data[::-1]]
         if args.mirror:
@@ -898,7 +986,8 @@ def main(argv: list[str] | None = None) -> int:
                                                    args.roll_deg)[:args.pairs]))
     try:  # (a folder the library cannot read, or an option its frames cannot take, is refused before any
         # work, by one pair of each data set: a clip's later frames are read as it runs)
-        datasets = {key: transformed(checked_data(option_of[key], lambda root=folders[key], read=pairs: read(root)))
+        datasets = {key: transformed(checked_data(option_of[key], lambda root=folders[key], read=pairs: read(root)),
+                                     key == "clip")
                     for key, pairs in loaders if folders.get(key) is not None and folders[key].is_dir()}
         for data in datasets.values():
             data[0][1]()
@@ -947,6 +1036,8 @@ def main(argv: list[str] | None = None) -> int:
             step += f", stored as JPEG at quality {args.jpeg}"
         if any(args.crop):
             step += ", cut by {} / {} / {} / {} px at the top / bottom / left / right".format(*args.crop)
+        if args.slalom is not None and key == "clip":
+            step += ", the camera yawing back and forth by {:g}° over {:g} frames".format(*args.slalom)
         turns = ", ".join(f"{v:g}° of {n}" for v, n in zip(turn, ("yaw", "pitch", "roll")) if v)
         gain = f", image 2 {args.exposure_gain:g} times as bright" if args.exposure_gain != 1.0 else ""
         if args.resize != 1.0:

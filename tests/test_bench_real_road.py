@@ -426,6 +426,49 @@ def test_turned_pair_is_the_scene_seen_by_a_camera_turned_about_the_road_normal(
     assert float((same["image2"] - pair["image2"]).abs().max()) < 1e-3
 
 
+def test_slalom_turns_each_frame_once_by_its_place_in_the_clip(rr, pair):
+    """``slalomed``: frame k turned to A sin(2π k / P) about the road's normal, both frames of a pair
+    cut to one window. A frame at a heading 0 is the frame itself, cut; a turned one is what
+    ``turned`` makes of it; the frame two pairs share is the same in both (a clip still); the pose
+    turns by the difference of the two headings, keeping the step's length and the other motion."""
+    from fsof_torch import plane_from_pose
+
+    A, P = 6.0, 8.0
+    window = rr.slalom_window(pair["camera"], SIZE, 3, A, P)
+    r0, r1, c0, c1 = window
+    assert 0 < r1 - r0 <= SIZE[0] and 32 <= c1 - c0 < SIZE[1]
+    first = rr.slalomed({**pair, "positions": (0, 1)}, A, P, window)
+    assert math.isclose(rr.slalom_yaw(1, A, P), A * math.sin(math.pi / 4)) and rr.slalom_yaw(0, A, P) == 0.0
+    assert float((first["image1"] - pair["image1"][..., r0:r1, c0:c1]).abs().max()) < 1e-3
+    assert torch.equal(first["road"], pair["road"][..., r0:r1, c0:c1])
+    by_turned = rr.turned(pair, rr.slalom_yaw(1, A, P), window=window)
+    assert torch.equal(first["image2"], by_turned["image2"]) and first["camera"].K.tolist() == by_turned["camera"].K.tolist()
+    torch.testing.assert_close(first["relative_pose"], by_turned["relative_pose"], rtol=0, atol=1e-12)
+    assert first["flow"] is None and first["valid"] is None  # (no ground truth is composed)
+    # the next pair starts with the frame the first ended with, turned alike
+    second = rr.slalomed({**pair, "image1": pair["image2"], "image2": pair["image1"], "positions": (1, 2)}, A, P, window)
+    assert torch.equal(second["image1"], first["image2"])
+    # its pose: turned by the headings' difference; the step's length, y_d and the attitude changes kept
+    cam = pair["camera"].to(torch.float64)
+    before = plane_from_pose(pair["relative_pose"][None].double(), cam)
+    after = plane_from_pose(second["relative_pose"][None].double(), second["camera"].to(torch.float64))
+    turn = math.radians(rr.slalom_yaw(2, A, P) - rr.slalom_yaw(1, A, P))
+    assert float(after["yaw"] - before["yaw"]) == pytest.approx(turn, abs=1e-9)
+    assert float(after["x_d"].hypot(after["z_d"])) == pytest.approx(float(before["x_d"].hypot(before["z_d"])), abs=1e-9)
+    for k in ("y_d", "pitch_change", "roll_change"):
+        assert float(after[k]) == pytest.approx(float(before[k]), abs=1e-9)
+    # turns that leave no window: named
+    with pytest.raises(rr.UnfitOption, match="--slalom"):
+        rr.slalom_window(pair["camera"], (96, 64), 9, 20.0, 8.0)
+
+
+def test_main_slalom_keeps_the_clip_fit(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--slalom", "4", "6")
+    assert "2 pair(s), the camera yawing back and forth by 4° over 6 frames" in printed
+    assert report["slalom"] == [4.0, 6.0]
+    assert "refiner, clip motion (fit_sequence)" in {r["method"] for r in report["clip"]["rows"]}
+
+
 def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--yaw-deg", "4", "--no-turn-screen")
     assert "2 pair(s), turned by 4° of yaw" in printed

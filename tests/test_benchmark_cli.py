@@ -124,6 +124,10 @@ BAD = [
     ("presets_refiner", ["--odometry-error", "1", "90"], "--odometry-error"),
     ("presets_refiner", ["--seed", "-1"], "--seed"),
     ("real_road", ["--pairs", "0"], "--pairs"),
+    ("real_road", ["--slalom", "0", "10"], "--slalom"),
+    ("real_road", ["--slalom", "25", "10"], "--slalom"),
+    ("real_road", ["--slalom", "6", "1"], "--slalom"),
+    ("real_road", ["--slalom", "nan", "10"], "--slalom"),
     ("real_road", ["--height", "0"], "--height"),
     ("scene_realism", ["--data", ABSENT], "--data"),
     ("scene_realism", ["--data", f"{TMP}/empty"], "--data"),  # (a folder named must hold a sample)
