@@ -129,6 +129,16 @@ for k, p in enumerate(fs.render_sequence("default", 2, size=(96, 320))):
 paths.append("000002.png")
 fs.write_image(paths[-1], p["image2"])
 """,
+    # a KITTI flow 2015 training folder of one pair (the synthetic pair), for the loop over a data set
+    "refinement.md": """
+import os
+for sub in ("image_2", "flow_noc", "calib_cam_to_cam"):
+    os.makedirs(f"data_scene_flow/training/{sub}")
+fs.write_image("data_scene_flow/training/image_2/000000_10.png", pair["image1"])
+fs.write_image("data_scene_flow/training/image_2/000000_11.png", pair["image2"])
+fs.write_flow("data_scene_flow/training/flow_noc/000000_10.png", pair["flow"], pair["valid"])
+fs.io.write_kitti_calibration("data_scene_flow/training/calib_cam_to_cam/000000.txt", camera.K[0])
+""",
     "training.md": """
 from eval.__main__ import main as eval_main
 assert eval_main(["synth", "--preset", "default", "--pairs", "4", "--out", "runs/synth", "--size", "64", "224",
