@@ -252,6 +252,8 @@ def test_kitti_tracking_calibration(tmp_path):
     (ODOMETRY_LABELLED + "P2: 1 0 1 0 0 1 1 0 0 0 1 0\n", 0, r"line 5 of '.*' repeats the key 'P2' of line 3"),
     ("".join(ODOMETRY_LABELLED.splitlines(True)[:2]) + ODOMETRY_UNLABELLED * 2, 2,
      r"'.*' has no P_rect_02 or P2 row \(its unlabelled rows are not counted: the file labels its P rows\)"),
+    ("".join(ODOMETRY_UNLABELLED.splitlines(True)[:2]), 2,
+     r"'.*' has no P_rect_02 or P2 row \(its 2 unlabelled row\(s\) are cameras 0 to 1, in order\)$"),
     (CAM_TO_CAM + ODOMETRY_LABELLED, 2, r"'.*' gives camera 2 twice, P_rect_02 \(line 6\) and P2 \(line 9\), with "
                                         r"different values; expected one of them, or both the same$"),
 ])

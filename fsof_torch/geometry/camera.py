@@ -559,9 +559,12 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
             values = unlabelled[cam]
             row = f"unlabelled row {cam + 1}"
         else:
+            count = len(unlabelled)
             raise ValueError(f"path: {str(path)!r} has no P_rect_0{cam} or P{cam} row"
                              + (" (its unlabelled rows are not counted: the file labels its P rows)"
-                                if labelled and unlabelled else ""))
+                                if labelled and unlabelled else
+                                f" (its {count} unlabelled row(s) are cameras 0 to {count - 1}, in order)"
+                                if unlabelled else ""))
     if len(values) != 12:
         raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
     if not all(math.isfinite(x) for x in values):
