@@ -485,5 +485,7 @@ def test_kitti_error_to_color_draws_a_non_finite_estimate_as_the_worst_error():
         kitti_error_to_color(est, torch.full_like(gt, float("nan")), valid)
     with pytest.raises(TypeError, match="valid_noc"):
         kitti_error_to_color(est, gt, valid, valid_noc=valid.float())
+    with pytest.raises(TypeError, match="valid: expected a bool tensor, got NoneType"):
+        kitti_error_to_color(est, gt, None)  # (required: it was a KeyError 'valid')
     with pytest.raises(ValueError, match="flow_gt"):
         kitti_error_to_color(est, gt[..., :3], valid)

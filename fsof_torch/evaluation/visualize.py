@@ -257,7 +257,7 @@ def kitti_error_to_color(flow_est: Tensor, flow_gt: Tensor, valid: Tensor, *,
     check_shape(gt, "flow_gt", ("B", 2, "H", "W"), dims)
     masks = {}
     for name, m in (("valid", valid), ("valid_noc", valid_noc)):
-        if m is None:
+        if m is None and name == "valid_noc":  # (valid is required: a None is named below)
             continue
         if not isinstance(m, Tensor) or m.dtype != torch.bool:
             raise TypeError(f"{name}: expected a bool tensor, got {getattr(m, 'dtype', type(m).__name__)}")
