@@ -516,6 +516,11 @@ def _bad_pair_cases():
          r"errors\['before'\]\[1\]: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
         ({"errors": {"before": (err, small.bool()), "after": (err, valid)}}, ValueError, r"errors\['before'\]\[1\]: expected shape"),
         ({"errors": {"other": (err, valid)}}, ValueError, r"errors\['other'\]: no flow column of that name"),
+        # no column at all divided by zero in the layout; a list of columns raised AttributeError
+        ({"flows": {}, "errors": {}}, ValueError, "flows: expected at least one flow column, got an empty dict"),
+        ({"flows": [flow, flow]}, TypeError, "flows: expected a dict of column title -> flow, got list"),
+        ({"errors": [(err, valid)]}, TypeError, r"errors: expected a dict of column title -> \(error map, valid\), got list"),
+        ({"errors": {"before": (err, valid, valid)}}, TypeError, r"errors\['before'\]: expected \(error map, valid\), got tuple of 3"),
         ({"valid": torch.ones(1, H // 2, W // 2, dtype=torch.bool)}, ValueError, r"valid: expected shape \(1, H, W\) with H=30"),
         ({"valid": valid.float()}, TypeError, r"valid: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
         ({"road": road.float()}, TypeError, r"road: expected a bool tensor \(1, H, W\), got dtype torch.float32"),
@@ -553,6 +558,24 @@ def test_pair_figure_checks_every_map_against_the_road(case):
             figure.update(**content, max_flow=5.0, title="t")
     finally:
         figure.close()
+
+
+def test_pair_figure_checks_error_label_and_the_layout_before_a_figure_is_opened():
+    """An error_label that is no str failed while drawing ('NoneType' object has no attribute
+    'split', a figure left open); a PairFigure of no flow column divided by zero."""
+    import matplotlib.pyplot as plt
+
+    flow, road, _, err, valid = _pair()
+    open_before = plt.get_fignums()
+    with pytest.raises(TypeError, match="error_label: expected a str such as 'end-point error \\(px\\)', got NoneType"):
+        pair_figure(flows={"before": flow}, errors={"before": (err, valid)}, road=road, max_flow=2.0,
+                    error_vmax=1.0, error_label=None, title="t")
+    with pytest.raises(TypeError, match="error_label: expected a str"):
+        PairFigure.layout_of(flows={"before": flow}, errors={}, road=road, images=None, error_vmax=1.0,
+                             error_label=b"epe")
+    with pytest.raises(ValueError, match=r"with_errors: expected one entry per flow column \(at least one\), got \(\)"):
+        PairFigure((H, W), (), True, 1.0, "epe (px)")
+    assert plt.get_fignums() == open_before
 
 
 @pytest.mark.parametrize("max_flow, error, match", [

@@ -232,8 +232,8 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
     """Flows and error maps of one pair, before and after refinement side by side.
 
     Args:
-        flows: column title -> flow (2, H, W) px (e.g. ``{"before": ..., "after": ...}``); one
-            column each, in order. Non-finite pixels have no value (mid grey).
+        flows: a dict of column title -> flow (2, H, W) px (e.g. ``{"before": ..., "after": ...}``);
+            one column each, in order, at least one. Non-finite pixels have no value (mid grey).
         errors: column title -> ``(error map (1, H, W), valid (1, H, W) bool)`` for the second row
             (a title of ``flows`` missing here leaves that panel empty); invalid pixels, and
             valid ones whose error is not finite, have no value (mid grey).
@@ -243,7 +243,8 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
         max_flow: flow magnitude at full colour saturation, px (one scale for all columns).
         error_vmax: error at the top of the colour bar, a finite number > 0 (ValueError naming
             it otherwise); larger errors saturate (the bar's arrow, drawn white in the maps).
-        error_label: the error's name and unit for the colour bar, e.g. "end-point error (px)".
+        error_label: the error's name and unit for the colour bar, a str such as
+            "end-point error (px)" (the error panels' titles are its name before " (").
         title: the figure's title.
         images: optional ``(image1, image2)`` (3, H, W) RGB 0..255, shown as a first column.
         valid: optional (1, H, W) bool for the flow row (e.g. a flow file's valid pixels).
@@ -291,7 +292,9 @@ class PairFigure:
         import numpy as np
 
         plt = _pyplot()
-        error_vmax = _check_vmax(error_vmax)
+        error_vmax = _check_vmax(error_vmax, error_label)
+        if not with_errors:
+            raise ValueError(f"with_errors: expected one entry per flow column (at least one), got {with_errors!r}")
         self.layout = (tuple(size), tuple(with_errors), bool(images), error_vmax, error_label)
         H, W = size
         ncol = len(with_errors) + bool(images)
@@ -347,7 +350,7 @@ class PairFigure:
         The maps and images are checked as :func:`pair_figure` checks them."""
         _check_pair(flows, errors, road, images, None)
         return (tuple(road.shape[-2:]), tuple(name in errors for name in flows), images is not None,
-                _check_vmax(error_vmax), error_label)
+                _check_vmax(error_vmax, error_label), error_label)
 
     def update(self, *, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, Tensor]], road: Tensor,
                max_flow: float, title: str, images: tuple[Tensor, Tensor] | None = None,
@@ -416,7 +419,14 @@ def _check_pair(flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, 
                 images: tuple[Tensor, Tensor] | None, valid: Tensor | None) -> None:
     """Every map and image of a pair figure at the road's (H, W), with its dtype and values: a
     flow of another size was stretched over the panel silently, a valid map of another size or
-    dtype failed deep inside torch, a meta tensor in a NotImplementedError from the outline."""
+    dtype failed deep inside torch, a meta tensor in a NotImplementedError from the outline; no
+    flow column at all divided by zero in the layout."""
+    for name, value in (("flows", flows), ("errors", errors)):
+        if not isinstance(value, Mapping):
+            raise TypeError(f"{name}: expected a dict of column title -> "
+                            f"{'flow' if name == 'flows' else '(error map, valid)'}, got {type(value).__name__}")
+    if not flows:
+        raise ValueError("flows: expected at least one flow column, got an empty dict")
     _check_bool(road, "road")
     dims = check_shape(road, "road", (1, "H", "W"))
     for name, flow in flows.items():
@@ -426,7 +436,8 @@ def _check_pair(flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tensor, 
         if name not in flows:
             raise ValueError(f"errors[{name!r}]: no flow column of that name; flows has {list(flows)}")
         if not isinstance(entry, (tuple, list)) or len(entry) != 2:
-            raise TypeError(f"errors[{name!r}]: expected (error map, valid), got {type(entry).__name__}")
+            got = f"{type(entry).__name__} of {len(entry)}" if isinstance(entry, (tuple, list)) else type(entry).__name__
+            raise TypeError(f"errors[{name!r}]: expected (error map, valid), got {got}")
         check_float_tensor(entry[0], f"errors[{name!r}][0]")
         check_shape(entry[0], f"errors[{name!r}][0]", (1, "H", "W"), dims)
         _check_bool(entry[1], f"errors[{name!r}][1]")
@@ -456,9 +467,13 @@ def _check_bool(mask: object, name: str) -> None:
         raise TypeError(f"{name}: expected a bool tensor (1, H, W), got {got} (threshold a soft map first)")
 
 
-def _check_vmax(error_vmax: object) -> float:
+def _check_vmax(error_vmax: object, error_label: object) -> float:
     """The error maps' saturation value: a finite number > 0 (NaN drew a bar "saturates at nan"
-    over a made-up scale, 0 or a negative value maps saturated white everywhere)."""
+    over a made-up scale, 0 or a negative value maps saturated white everywhere); and their
+    label, a str (the panels' titles are cut from it)."""
+    if not isinstance(error_label, str):
+        raise TypeError(f"error_label: expected a str such as 'end-point error (px)', got "
+                        f"{type(error_label).__name__} {error_label!r}")
     return check_number(error_vmax, "error_vmax", positive=True)
 
 
