@@ -173,6 +173,11 @@ def test_colour_wheel_is_the_flow_coding():
     down = flow_to_color(torch.tensor([[[0.0]], [[4.0]]], dtype=torch.float64), 4.0)[0, :, 0, 0].tolist()
     assert wheel[20, 10].tolist() == down and down[0] == 255 and down[2] == 0
     assert wheel[0, 0].tolist() == [255, 255, 255]  # outside the disc
+    # its size is checked by name (0 was an error naming 'flow', 2.5 a TypeError from linspace)
+    with pytest.raises(ValueError, match="size: expected an int >= 1, got 0"):
+        colour_wheel(4.0, size=0)
+    with pytest.raises(TypeError, match="size: expected an int, got float 2.5"):
+        colour_wheel(4.0, size=2.5)
 
 
 def _records():

@@ -30,7 +30,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_float_tensor, check_has_values, check_image_range, check_number, check_shape
+from .._check import check_float_tensor, check_has_values, check_image_range, check_int, check_number, check_shape
 from .visualize import NO_VALUE_RGB, flow_to_color
 
 __all__ = [
@@ -163,8 +163,9 @@ def _outline_effects():
 
 def colour_wheel(max_flow: float, size: int = 101) -> Tensor:
     """The Middlebury colour coding of the disc of flows up to ``max_flow`` px: (size, size, 3)
-    uint8 RGB, u to the right, v down (outside the disc white)."""
+    uint8 RGB, u to the right, v down (outside the disc white); ``size`` an int >= 1."""
     check_number(max_flow, "max_flow", positive=True)
+    size = check_int(size, "size", minimum=1)  # (0 was named 'flow', 2.5 a TypeError from linspace)
     r = torch.linspace(-1.0, 1.0, size, dtype=torch.float64)
     v, u = torch.meshgrid(r, r, indexing="ij")
     inside = (u * u + v * v) <= 1.0
