@@ -12,6 +12,7 @@ each component is the only input of the estimator, which recovers (x_d, z_d, φ)
 from __future__ import annotations
 
 import math
+import numbers
 from dataclasses import dataclass, field
 
 import torch
@@ -73,9 +74,15 @@ class PoseEstimationResult:
                                             self.z_error, self.yaw_error_deg, self.success_rate)]
 
 
+def _is_int(value: object) -> bool:
+    """A Python or NumPy integer, not a bool."""
+    return not isinstance(value, bool) and isinstance(value, numbers.Integral)
+
+
 def _check_range(value: object, name: str) -> tuple[float, float]:
-    if not isinstance(value, (tuple, list)) or len(value) != 2:
-        raise TypeError(f"{name}: expected (low, high), got {value!r}")
+    if (not isinstance(value, (tuple, list)) or len(value) != 2
+            or any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in value)):
+        raise TypeError(f"{name}: expected (low, high), two numbers, got {value!r}")
     lo, hi = (float(v) for v in value)
     if not (math.isfinite(lo) and math.isfinite(hi) and lo <= hi):
         raise ValueError(f"{name}: expected finite low <= high, got {tuple(value)!r}")
@@ -108,7 +115,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         z_range, x_range: uniform ranges of the forward and lateral displacement in metres.
         yaw_range_deg: uniform range of the yaw change in degrees.
         fit_roll: also fit the roll (the paper's experiment knows the camera; default False).
-        seed: seeds the poses and the noise.
+        seed: an int; seeds the poses and the noise.
         chunk: trials fitted per batch (bounds memory).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
         progress: show a progress bar over σ and the trials (:func:`fsof_torch.io.progress.progress_bar`).
@@ -136,8 +143,11 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         raise ValueError(f"size: expected H, W >= 2, got {tuple(size)!r}")
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
-    for name, value in (("trials", trials), ("chunk", chunk)):
-        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+    for name, value in (("trials", trials), ("chunk", chunk), ("seed", seed)):
+        if not _is_int(value):  # (a float seed was truncated, a string one failed inside int())
+            raise TypeError(f"{name}: expected an integer{' >= 1' if name != 'seed' else ''}, got "
+                            f"{type(value).__name__} {value!r}")
+        if name != "seed" and value < 1:
             raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
     z_lo, z_hi = _check_range(z_range, "z_range")
     x_lo, x_hi = _check_range(x_range, "x_range")
@@ -154,6 +164,9 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         horizon = float(camera.horizon_row().max())
         top = max(0, int(math.ceil(horizon + 0.15 * (H - horizon))))
         box = (top, H, int(0.15 * W), int(math.ceil(0.85 * W)))
+    if not isinstance(box, (tuple, list)) or len(box) != 4 or not all(_is_int(b) for b in box):
+        # (three numbers failed to unpack, a float was truncated, a string failed inside int())
+        raise TypeError(f"box: expected (top, bottom, left, right), four ints, got {box!r}")
     top, bottom, left, right = (int(b) for b in box)
     if not (0 <= top < bottom <= H and 0 <= left < right <= W):
         raise ValueError(f"box: expected 0 <= top < bottom <= {H} and 0 <= left < right <= {W}, got {tuple(box)!r}")

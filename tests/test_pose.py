@@ -100,6 +100,17 @@ def test_errors():
     # a σ whose noise overflows float32 (1e39) or leaves no flow to fit
     ({"sigmas": [0.0, 1e39]}, ValueError, r"sigmas: expected a non-empty list of values in \[0, 10000\] px"),
     ({"dtype": torch.int32}, TypeError, r"dtype: expected a floating-point torch.dtype, got torch.int32"),
+    # three box sides failed to unpack, a string one inside int(), a float one was truncated
+    ({"box": (30, 40, 0)}, TypeError, r"box: expected \(top, bottom, left, right\), four ints, got \(30, 40, 0\)"),
+    ({"box": (30.5, 40, 0, 10)}, TypeError, r"box: expected \(top, bottom, left, right\), four ints"),
+    ({"box": "abcd"}, TypeError, r"box: expected \(top, bottom, left, right\), four ints, got 'abcd'"),
+    # a range of strings failed inside float(), unnamed
+    ({"z_range": ("a", "b")}, TypeError, r"z_range: expected \(low, high\), two numbers, got \('a', 'b'\)"),
+    ({"yaw_range_deg": (None, 1.0)}, TypeError, r"yaw_range_deg: expected \(low, high\), two numbers"),
+    # a float seed was truncated (1.5 ran seed 1), a string one failed inside int()
+    ({"seed": 1.5}, TypeError, "seed: expected an integer, got float 1.5"),
+    ({"seed": "x"}, TypeError, "seed: expected an integer, got str 'x'"),
+    ({"chunk": 2.0}, TypeError, "chunk: expected an integer >= 1, got float 2.0"),
 ])
 def test_bad_size_sigmas_and_dtype_are_named(kwargs, error, match):
     kwargs = {"sigmas": [0.0], "size": (40, 120), **kwargs}
