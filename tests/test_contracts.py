@@ -147,6 +147,23 @@ class TestPtlflowInputs:
                                             r"\(keys \['imgs'\]\)$"):
             images_from_ptlflow({"imgs": torch.zeros(1, 2, 3, 5, 7)})
 
+    def test_an_overshoot_the_check_accepts_gives_a_dict_the_refiner_accepts(self, scene):
+        """Images up to 1 % beyond 0..255 (a bicubic resize's overshoot) passed ptlflow_inputs'
+        check and became BGR values up to 1.01, which the wrapper, the refiner's images= and the
+        stand-in then refused ("expected BGR values in [0, 1]"): the dict is clipped to [0, 1]."""
+        im1, im2 = scene["image1"].clone(), scene["image2"].clone()
+        im1[0, 0, 3, 4], im2[0, 2, 5, 6] = 257.0, -2.0
+        images = ptlflow_inputs(im1, im2)["images"]
+        assert float(images.min()) == 0.0 and float(images.max()) == 1.0
+        back1, back2 = images_from_ptlflow({"images": images})
+        torch.testing.assert_close(back1, im1.clamp(0, 255))
+        torch.testing.assert_close(back2, im2.clamp(0, 255))
+        model = FreespaceRefined(PtlflowRAFTStandIn(seed=0, iters=1).eval(), FreespaceRefiner(gate=None),
+                                 pad=InputPadder(8))
+        with torch.no_grad():
+            out = model({"images": images}, camera=scene["camera"], mask=scene["road"], odometry=scene["odometry"])
+        assert out["flows"].shape == (1, 1, 2, *SIZE) and bool(torch.isfinite(out["flows"]).all())
+
     @pytest.mark.parametrize("shape, letter", [((0, 3, 5, 6), "B"), ((1, 3, 0, 6), "H"), ((1, 3, 5, 0), "W")])
     def test_empty_images_are_refused(self, shape, letter):
         """An empty batch or side gave an empty ptlflow dict."""

@@ -237,7 +237,9 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     Args:
         image1, image2: (B, 3, H, W) RGB on 0..``data_range``, B, H and W at least 1 (finite;
             checked as the refiner checks its images: 0..1 images with the default
-            ``data_range=255.0`` are an error, not near-black input).
+            ``data_range=255.0`` are an error, not near-black input). Values the check lets
+            through beyond the range (up to 1 % of it, a resize's overshoot) are clipped to
+            [0, 1], ptlflow's range, which :func:`images_from_ptlflow` and the refiner check.
         data_range: the images' maximum, 255.0 for 0..255 images, 1.0 for 0..1.
     """
     data_range = check_data_range(data_range)
@@ -248,7 +250,7 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
         raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
     for name, im in (("image1", image1), ("image2", image2)):
         check_image_range(im, name, data_range)
-    pair = torch.stack([image1, image2], dim=1) / float(data_range)
+    pair = (torch.stack([image1, image2], dim=1) / float(data_range)).clamp(0.0, 1.0)
     return {"images": pair.flip(2)}  # RGB -> BGR along the channel axis
 
 
