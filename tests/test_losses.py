@@ -77,6 +77,27 @@ def test_photometric_l1_matches_hand_computation():
     torch.testing.assert_close(got, want)
 
 
+def test_images_of_another_channel_count_are_named_and_grey_is_its_three_channel_copy():
+    """An RGBA (or CARLA's BGRA) frame was taken: its alpha averaged into the L1 and SSIM terms
+    (the photometric term a quarter lower), the census grey and the smoothness's edge weights;
+    the refiner and FreespaceRefined refuse it. Grey frames are the losses of their RGB copy."""
+    image1, image2, flow = _shifted_pair(2)
+    flow = flow + 0.4
+    alpha = torch.full_like(image1[:, :1], 255.0)
+    rgba1, rgba2 = torch.cat([image1, alpha], 1), torch.cat([image2, alpha], 1)
+    for name, call in (("image1", lambda: photometric_loss(rgba1, image2, flow)),
+                       ("image1", lambda: unsupervised_flow_loss(flow, rgba1, rgba2)),
+                       ("image", lambda: smoothness_loss(flow, rgba1)),
+                       ("image1", lambda: UnsupervisedFlowLoss(census_weight=1.0)(flow, rgba1[:, :2], rgba2[:, :2]))):
+        with pytest.raises(ValueError, match=rf"^{name}: expected 1 \(grey\) or 3 \(RGB\) channels, got shape "
+                                             rf"\(2, [24], {H}, {W}\)$"):
+            call()
+    grey1, grey2 = image1[:, :1], image2[:, :1]
+    torch.testing.assert_close(unsupervised_flow_loss(flow, grey1, grey2, census_weight=1.0),
+                               unsupervised_flow_loss(flow, grey1.expand(-1, 3, -1, -1), grey2.expand(-1, 3, -1, -1),
+                                                      census_weight=1.0))
+
+
 def test_smoothness_zero_for_affine_flow_second_order():
     v, u = torch.meshgrid(torch.arange(H, dtype=torch.float64), torch.arange(W, dtype=torch.float64),
                           indexing="ij")

@@ -31,7 +31,8 @@ mask does not count and gets a zero gradient; one inside the mask is left out as
 must not turn every gradient of the batch into NaN). Large finite values give large finite
 penalties, never squaring the residual.
 
-Convention: images (B, 3, H, W) on 0..``data_range`` (255 by default), compared on 0..1; flow
+Convention: images (B, 3, H, W) RGB or (B, 1, H, W) grey (another channel count, such as an RGBA
+frame's, is a ValueError naming the image) on 0..``data_range`` (255 by default), compared on 0..1; flow
 (B, 2, H, W) in pixels, channel 0 = u, forward from ``image1`` to ``image2``; backward flow from
 ``image2`` to ``image1``; masks (B, 1, H, W) bool.
 """
@@ -57,6 +58,7 @@ from .._check import (
     check_int,
     check_keywords,
     check_mapping,
+    check_mask,
     check_number,
     check_same_device,
     check_shape,
@@ -129,20 +131,18 @@ def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
 
 
 def _check_mask(mask: Tensor | None, name: str, dims: dict[str, int]) -> None:
-    if mask is None:
-        return
-    if not isinstance(mask, Tensor):
-        raise TypeError(f"{name}: expected a bool tensor (B, 1, H, W), got {type(mask).__name__}")
-    if mask.dtype != torch.bool:
-        raise TypeError(f"{name}: expected a bool tensor (B, 1, H, W), got dtype {mask.dtype}")
-    check_shape(mask, name, ("B", 1, "H", "W"), dims)
+    if mask is not None:
+        check_shape(check_mask(mask, name), name, ("B", 1, "H", "W"), dims)
 
 
 def _check_images(images: dict[str, Tensor], dims: dict[str, int], data_range: float) -> None:
-    """Float (B, C, H, W) images with one shape, finite and within [-0.01, 1.01] × data_range."""
+    """Float (B, C, H, W) images, C = 1 (grey) or 3 (RGB), with one shape, finite and within
+    [-0.01, 1.01] × data_range."""
     for name, img in images.items():
         check_float_tensor(img, name)
         check_shape(img, name, ("B", "C", "H", "W"), dims)
+        if img.shape[1] not in (1, 3):  # (as the refiner's: an RGBA frame's alpha would count as colour)
+            raise ValueError(f"{name}: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(img.shape)}")
     for name, img in images.items():
         check_image_range(img, name, data_range)
 
@@ -321,8 +321,8 @@ def smoothness_loss(flow: Tensor, image: Tensor, *, order: int = 2, edge_weight:
 
     Args:
         flow: (B, 2, H, W) pixels, finite.
-        image: (B, C, H, W) on 0..``data_range`` (finite, range checked), the frame the flow
-            starts from.
+        image: (B, 3, H, W) RGB or (B, 1, H, W) grey on 0..``data_range`` (finite, range checked),
+            the frame the flow starts from.
         order: 1 (first differences) or 2 (second differences; the one of columns i, i+1, i+2
             weighted by the image gradient between i+1 and i+2, as ARFlow's ``smooth_grad_2nd``;
             likewise for rows).
