@@ -255,6 +255,10 @@ def run(args: argparse.Namespace) -> int:
     print(format_table(pose_rows, [("sigma", "σ px", ".2f"), ("translation_error_m", "‖d err‖ m", ".2e"),
                                    ("x_error_m", "|x_d err| m", ".2e"), ("z_error_m", "|z_d err| m", ".2e"),
                                    ("yaw_error_deg", "|yaw err| deg", ".2e"), ("success_rate", "success", ".2f")]))
+    if any(r["success_rate"] < 1 for r in pose_rows):  # (a flag of the stated noise, not of the errors above)
+        print("success: the share of fits flagged successful; these fits keep fit_displacement's default kernel "
+              "scale, 1 px (inlier cut 3 px), which flags flow noisier than about 4 px whatever its motion "
+              "(docs/fitting.md: pass a scale of about twice the noise)")
 
     print(f"\nwrote {json_path}" + "".join(f", {p}" for p in files.values()))
     return 0

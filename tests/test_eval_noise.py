@@ -179,3 +179,19 @@ def test_noise_a_run_that_stops_leaves_no_earlier_json(tmp_path, interrupted):
     interrupted(noise, "noise_robustness", lambda: main(["noise", "--quick", "--trials", "1", "--out", str(tmp_path / "o"),
                                                          "--json", str(path), "--no-progress"]))
     assert not path.exists()
+
+
+def test_noise_explains_a_pose_success_rate_below_one(tmp_path, capsys):
+    """σ = 4 px at the default kernel scale: the pose fits are flagged (fewer than a quarter of the
+    pixels within 3 px) while their errors stay small; the job says why under the table, and only
+    where a rate is below 1."""
+    args = ["noise", "--sigmas", "0", "--size", "48", "160", "--pose-size", "120", "400", "--trials", "3",
+            "--no-plots", "--no-progress", "--out", str(tmp_path / "noise")]
+    assert main(args + ["--pose-sigmas", "0", "4"]) == 0
+    out = capsys.readouterr().out
+    pose = json.loads((tmp_path / "noise" / "noise.json").read_text())["pose"]
+    assert [r["success_rate"] for r in pose] == [1.0, 0.0]
+    assert pose[1]["translation_error_m"] < 0.05
+    assert "flags flow noisier than about 4 px whatever its motion" in out
+    assert main(args + ["--pose-sigmas", "0", "1"]) == 0
+    assert "whatever its motion" not in capsys.readouterr().out
