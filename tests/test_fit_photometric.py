@@ -95,6 +95,7 @@ OPTION_ERRORS = [
     # once accepted silently, or failing far from the option (ZeroDivisionError, math domain error,
     # OpenCV's assertion, 'int' object is not iterable)
     (dict(inlier_threshold=float("nan")), ValueError, "inlier_threshold: expected a finite number > 0, got nan"),
+    (dict(inlier_threshold=None), TypeError, r"^inlier_threshold: expected a finite number > 0 \(grey levels\), got None$"),
     (dict(min_points=-5), ValueError, "min_points: expected an int >= 1, got -5"),
     (dict(init="zero"), TypeError, "init: expected a RoadFit or a dict of .* got str 'zero'"),
     (dict(min_size=0), ValueError, "min_size: expected an int >= 2, got 0"),

@@ -47,6 +47,8 @@ def checked_options(*, model: Any, fixed: Any, init: Any, starts: Any, prior: An
         raise ValueError("model: the image fit estimates a motion between two frames; the 'velocity' model "
                          "is a rate (fit its flow with fit_velocity instead)")
     check_kernel(robust)
+    if inlier_threshold is None:  # (fit_road's None, 3 × the kernel's scale, has no meaning here: div_'s TypeError)
+        raise TypeError("inlier_threshold: expected a finite number > 0 (grey levels), got None")
     check_fit_options(robust, 1.0 if scale is None else scale, max_iter, tol, max_points, inlier_threshold,
                       min_points, min_inlier_fraction)
     if not -1.0 <= check_number(min_correlation, "min_correlation") <= 1.0:
