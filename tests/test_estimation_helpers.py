@@ -652,6 +652,20 @@ def test_pyramid_levels_rule_and_min_size():
         assert P.pyramid_levels(side, 2 * side, None, ms) == n, (side, ms)
         assert P.pyramid_levels(2 * side, side, None, ms) == n, (side, ms)
     assert P.pyramid_levels(375, 1242, 3, 16) == 3
+    # at most the level at which both sides, rounded up at each halving, reach 1 pixel: 375 x 1242
+    # halves to 1 x 1 at its 12th level; beyond it every level repeats that pixel (10**20 of them
+    # were built until memory ran out)
+    sizes = [(375, 1242)]
+    while sizes[-1] != (1, 1):
+        sizes.append(tuple((s + 1) // 2 for s in sizes[-1]))
+    assert len(sizes) == 12 and P.pyramid_levels(375, 1242, 12, 16) == 12
+    for side, most in [(1, 1), (2, 2), (3, 3), (4, 3), (5, 4), (256, 9), (257, 10)]:
+        assert P.pyramid_levels(1, side, most, 1) == most
+        with pytest.raises(ValueError, match=rf"^levels: expected at most {most} for 1x{side} images .*got {most + 1}$"):
+            P.pyramid_levels(1, side, most + 1, 1)
+    with pytest.raises(ValueError, match=r"^levels: expected at most 12 for 375x1242 images \(the level at which both "
+                                         r"sides reach 1 pixel; more would repeat it\), got 100000000000000000000$"):
+        P.pyramid_levels(375, 1242, 10**20, 16)
     for bad in (0, -4):
         with pytest.raises(ValueError, match=f"min_size: expected an int >= 1, got {bad}"):
             P.pyramid_levels(64, 64, None, bad)

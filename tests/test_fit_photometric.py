@@ -131,7 +131,11 @@ OPTION_ERRORS = [
 ]
 
 
-@pytest.mark.parametrize("options, error, message", OPTION_ERRORS)
+@pytest.mark.parametrize("options, error, message", OPTION_ERRORS + [
+    # (checked against the images' size: at 96 x 256 the 9th level is 1 x 1 pixel; 10**20 levels
+    # were built until memory ran out)
+    (dict(levels=10**20), ValueError, r"^levels: expected at most 9 for 96x256 images"),
+])
 def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
     from fsof_torch import fit_image
 

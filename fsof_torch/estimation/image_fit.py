@@ -303,7 +303,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
             ``min_size``; fewer leave the coarsest level too fine for a start to reach a motion
             of tens of pixels there, and the fit can land far off: on the shared clip with two,
-            40 px and more, its successes weak, ``python benchmarks/fit_confidence.py``);
+            40 px and more, its successes weak, ``python benchmarks/fit_confidence.py``; more than
+            1 + ⌈log2 max(H, W)⌉, past a level of 1 × 1 pixel, is a ValueError);
             ``max_iter``, ``tol``: the solver's budget and tolerance per level;
             ``resolution``: a level also ends when a step moves the residuals by less than this
             fraction of their robust RMS (see :func:`~fsof_torch.estimation.solver.solve`); the

@@ -22,7 +22,11 @@ def pyramid_levels(H: int, W: int, levels: int | None, min_size: int) -> int:
     least ``min_size`` (an int >= 1). OpenCV's ``pyrDown`` rounds a side up ((s + 1) // 2), so a
     level can be a pixel or so larger than that, and a side just short of a power of two times
     ``min_size`` gets one level less than the rounded sides would allow (63 px with ``min_size``
-    16: 2 levels, 63 and 32 px, though a third of 16 px would still reach it)."""
+    16: 2 levels, 63 and 32 px, though a third of 16 px would still reach it).
+
+    A ``levels`` beyond the level at which both sides reach one pixel (1 + ⌈log2 max(H, W)⌉) is a
+    ValueError: the levels past it would repeat that pixel, and a count such as 10**20 would build
+    them until memory ran out."""
     min_size, levels = scalar(min_size, "min_size"), scalar(levels, "levels")  # (0-d integer tensors as their ints)
     if not is_number(min_size, integer=True):
         raise TypeError(f"min_size: expected an int >= 1, got {type(min_size).__name__} {min_size!r}")
@@ -32,6 +36,10 @@ def pyramid_levels(H: int, W: int, levels: int | None, min_size: int) -> int:
         levels = max(1, int(math.floor(math.log2(max(min(H, W), 1) / min_size))) + 1)
     if not is_number(levels, integer=True) or levels < 1:
         raise option_error(levels, f"levels: expected None or an int >= 1, got {levels!r}", integer=True)
+    most = 1 + (max(H, W, 1) - 1).bit_length()  # (1 + ⌈log2 of the longer side⌉: each level rounds its sides up)
+    if levels > most:
+        raise ValueError(f"levels: expected at most {most} for {H}x{W} images (the level at which both sides reach "
+                         f"1 pixel; more would repeat it), got {levels!r}")
     return int(levels)
 
 
