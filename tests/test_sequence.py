@@ -645,3 +645,47 @@ def test_fit_sequence_fits_a_pair_alone_where_its_images_contradict_the_carried_
         assert bool(seq.success.all())
         steps = (poses[order[1:], :3, 3] - poses[order[:-1], :3, 3]).norm(dim=-1)
         torch.testing.assert_close(seq.params["z_d"], steps, rtol=0.05, atol=1e-3)
+
+
+def test_fit_sequence_makes_its_tensors_on_the_frames_device():
+    """With the frames on a GPU, the pairs' bookkeeping made on the CPU (torch's default device)
+    met the fits' tensors: torch's "Expected all tensors to be on the same device" after the first
+    pass (``ok & (image_steps > ...)``, the poses' steps, a carried prior's float sigma). Emulated
+    here: every tensor that sequence.py makes without naming a device lands on the meta device (as
+    on a GPU it would land on the CPU), where mixing it with the frames' tensors, or reading it, is
+    an error. The results are the same as without the emulation."""
+    import sys
+
+    from torch.overrides import TorchFunctionMode
+
+    from fsof_torch.estimation import sequence
+
+    constructors = {torch.tensor, torch.as_tensor, torch.zeros, torch.ones, torch.empty, torch.full, torch.arange,
+                    torch.linspace, torch.eye, torch.rand, torch.randn, torch.randint}
+
+    class DefaultDeviceElsewhere(TorchFunctionMode):
+        def __init__(self):
+            super().__init__()
+            self.made = []
+
+        def __torch_function__(self, func, types, args=(), kwargs=None):
+            kwargs = dict(kwargs or {})
+            if func in constructors and kwargs.get("device") is None:
+                caller = sys._getframe(1)
+                if caller.f_code.co_filename == sequence.__file__:
+                    self.made.append(caller.f_lineno)
+                    kwargs["device"] = "meta"
+            return func(*args, **kwargs)
+
+    pairs = render_sequence("body-motion", 3, seed=0, size=(94, 310))
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    poses = torch.stack([p["pose1"] for p in pairs] + [pairs[-1]["pose2"]])
+    roads, cam = [p["road"] for p in pairs], pairs[0]["camera"]
+    plain = fit_sequence(frames, roads, cam, poses=poses)
+    assert plain.calibrated_from == 3 and "height" in plain.mounting  # (both passes and the poses' scale ran)
+    with DefaultDeviceElsewhere() as mode:
+        seq = fit_sequence(frames, roads, cam, poses=poses)
+    assert mode.made == []
+    assert seq.mounting == plain.mounting and torch.equal(seq.success, plain.success)
+    assert all(torch.equal(seq.params[n], plain.params[n]) for n in plain.params)
+    assert {t.device.type for t in (*seq.params.values(), *seq.first_pass.values(), seq.success)} == {"cpu"}

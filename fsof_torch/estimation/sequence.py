@@ -34,6 +34,8 @@ without it: a dropped frame, a repeated one). Then:
 
 Frames are (B=1 per frame) images (3 or 1, H, W) on 0..``data_range`` (255 unless given, as
 fit_image's option); masks (1, H, W) bool (one for the clip, or one per pair). Not differentiable.
+The results (the fits, the parameters, ``success``) are on the frames' device, any poses given
+elsewhere included.
 
 **Memory.** The frames and masks are read in order, one pair at a time, and each frame once per
 pass, so a lazy sequence that loads frame k on ``frames[k]`` keeps a clip of any length in the
@@ -126,12 +128,12 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
         if isinstance(given, bool) or not isinstance(given, (Tensor, numbers.Real)):
             raise TypeError(f"{name}: expected a number or a tensor of {N} values, got {type(given).__name__}")
         check_has_values(given, name, "for the track's weights")
-        sigma = torch.as_tensor(given, dtype=dt)
+        sigma = torch.as_tensor(given, dtype=dt, device="cpu")  # (the track is solved on the host)
         if sigma.dim() > 1 or sigma.numel() not in (1, N):
             raise ValueError(f"{name}: expected a number or a tensor of {N} values, got shape {tuple(sigma.shape)}")
         if not bool((sigma > 0).all()):  # (NaN fails too; inf is allowed: that measurement does not count)
             raise ValueError(f"{name}: expected values > 0 (inf: the measurement does not count), got {sigma!r}")
-        sigmas.append(sigma.expand(N).cpu())
+        sigmas.append(sigma.expand(N))
     wa, wc = (1.0 / s.square() for s in sigmas)
     for w, sigma, name in ((wa, sigmas[0], "attitude_sigma"), (wc, sigmas[1], "change_sigma")):
         if not bool(torch.isfinite(w).all()):  # (1 / σ² beyond float64's range: the track came back NaN)
@@ -150,12 +152,12 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     # the matrix: diagonal `diag` (N + 1,), off-diagonal −wc (N,); (a_{k+1} − a_k − c_k)² wc adds
     # the 2 × 2 block [[1, −1], [−1, 1]] wc. A tiny ridge keeps a frame no measurement reaches
     # (all its σ infinite) solvable.
-    diag = torch.zeros(N + 1, dtype=dt)
+    diag = torch.zeros(N + 1, dtype=dt, device="cpu")
     diag[:N] += wa
     diag[:N] += wc
     diag[1:] += wc
     diag += 1e-12
-    b = torch.zeros(N + 1, dtype=dt)
+    b = torch.zeros(N + 1, dtype=dt, device="cpu")
     b[:N] += wa * att
     b[:N] -= wc * chg
     b[1:] += wc * chg
@@ -234,7 +236,7 @@ def _attitude(fit: RoadFit, prior: dict[str, tuple[Any, Any]]) -> tuple[dict[str
     images' information at least the prior's; a held angle, or one without a prior, passes)."""
     names = get_road_model(fit.model).params  # (the covariance's order)
     variance = {n: float(fit.covariance[0, names.index(n), names.index(n)]) for n in ("roll", "pitch")}
-    seen = all(variance[n] <= 0.5 * float(torch.as_tensor(prior[n][1]).reshape(-1)[0]) ** 2
+    seen = all(variance[n] <= 0.5 * float(torch.as_tensor(prior[n][1], device="cpu").reshape(-1)[0]) ** 2
                for n in ("roll", "pitch") if n in prior)
     return variance, seen
 
@@ -350,7 +352,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         try:  # (a list of tensors of other shapes: torch.stack's RuntimeError, naming nothing)
             if isinstance(poses, (list, tuple)) and all(isinstance(p, Tensor) for p in poses):
                 poses = torch.stack(poses) if poses else torch.empty(0)
-            poses = torch.as_tensor(poses)
+            poses = poses if isinstance(poses, Tensor) else torch.as_tensor(poses)
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                             f"{type(poses).__name__} ({err})") from None
@@ -445,24 +447,27 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
 
     first, fits = run(camera, "first pass", keep=keep_fits and passes == 1)
     raw = _stack(first)
-    ok = torch.tensor([r.success for r in first])
+    # (the pairs' bookkeeping on the fits' device, the frames': a CPU tensor beside them was torch's
+    # "Expected all tensors to be on the same device" with the frames on a GPU)
+    dev = raw["z_d"].device
+    ok = torch.tensor([r.success for r in first], device=dev)
     image_steps = torch.stack([raw["x_d"], raw["y_d"], raw["z_d"]], -1).norm(dim=-1)  # at the nominal height
     # a pair that does not move measures no attitude: with t = 0 the road's homography K R K⁻¹ holds no
     # normal, and its fit's roll and pitch are where its prior put them (the input camera's); one
     # that creeps measures it little, its fit's attitude drawn towards the prior's
     moving = ok & (image_steps > _STILL_M)
-    attitude_ok = moving & torch.tensor([r.attitude_seen for r in first])
+    attitude_ok = moving & torch.tensor([r.attitude_seen for r in first], device=dev)
     calibrated_from = int(attitude_ok.sum())
     if calibrated_from:
         # (weighted by each pair's precision: a pair that moves little shows the attitude less)
-        roll0, pitch0 = (_robust_mean(raw[n], attitude_ok, torch.tensor([r.variance[n] for r in first]))
+        roll0, pitch0 = (_robust_mean(raw[n], attitude_ok, torch.tensor([r.variance[n] for r in first], device=dev))
                          for n in ("roll", "pitch"))
     else:  # failed or still fits calibrate nothing: the input camera's mounting stays
         roll0, pitch0 = float(camera.roll[0]), float(camera.pitch[0])
     mounting = {"roll": roll0, "pitch": pitch0}
     cam = camera.replace(roll=roll0, pitch=pitch0)
     if poses is not None:
-        P = torch.as_tensor(poses, dtype=torch.float64)
+        P = torch.as_tensor(poses, dtype=torch.float64, device=dev)
         steps = (P[1:N + 1, :3, 3] - P[:N, :3, 3]).norm(dim=-1)
         use = moving  # (the pairs that succeeded and move: a creeping one's translation gives a scale too)
         if bool(use.any()):
@@ -491,7 +496,7 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         ratio = mounting["height"] / float(camera.height[0])
         records = [_PairRecord(_metric(r.params, model, ratio), r.success) for r in first]
         fits = [_metric_fit(fit, model, ratio, cam.height) for fit in fits]
-    success = torch.tensor([r.success for r in records])
+    success = torch.tensor([r.success for r in records], device=dev)
     # (a detached copy: results are detached, and not the caller's camera's storage)
     cam = Camera._checked(*(t.detach().clone() for t in (cam.K, cam.height, cam.roll, cam.pitch)))
     return SequenceFit(fits, _stack(records), mounting, cam, raw, success, calibrated_from)
@@ -504,8 +509,9 @@ def _contradicted(fit: RoadFit, carried: dict[str, tuple[Tensor, Any]]) -> bool:
     if not bool(fit.success.all()):
         return True
     for name, (mean, sigma) in carried.items():
-        off = (fit.params[name].double().reshape(-1) - torch.as_tensor(mean).double().reshape(-1)).abs()
-        if bool((off > 3 * torch.as_tensor(sigma).double().reshape(-1)).any()):
+        value = fit.params[name].double().reshape(-1)
+        off = (value - torch.as_tensor(mean, dtype=torch.float64, device=value.device).reshape(-1)).abs()
+        if bool((off > 3 * torch.as_tensor(sigma, dtype=torch.float64, device=value.device).reshape(-1)).any()):
             return True
     return False
 
