@@ -345,11 +345,13 @@ def summarize(per_pair: list[dict[str, dict]]) -> list[dict[str, Any]]:
 
 def images_against_poses(per_pair: list[dict[str, dict]]) -> str | None:
     """Where the images and the poses disagree: over the pairs that both the refiner without
-    odometry and the one with the poses' planar motion held refined, the images' forward step
-    over the poses' (at the nominal camera height) and the images' yaw minus the poses'."""
+    odometry and the one with the poses' planar motion held refined, and whose poses move by more
+    than a millimetre (not a frame repeated), the images' forward step over the poses' (at the nominal camera height) and
+    the images' yaw minus the poses'."""
     images, poses = "refiner (no odometry)", "refiner, poses (paper's planar)"
     both = [(r[images]["motion"], r[poses]["motion"]) for r in per_pair
-            if images in r and poses in r and r[images]["refined"] and r[poses]["refined"]]
+            if images in r and poses in r and r[images]["refined"] and r[poses]["refined"]
+            and abs(r[poses]["motion"]["z_d"]) > 1e-3]  # (a frame repeated: its poses' step rounds to ~1e-17 m)
     if not both:
         return None
     ratio = np.array([a["z_d"] / b["z_d"] for a, b in both])
@@ -414,14 +416,17 @@ def clip_frames(root: Path | None) -> int | None:
 
 
 def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
-                  roll_deg: float = 0.0) -> list[tuple[str, Callable[[], dict]]]:
+                  roll_deg: float = 0.0, steps: list[int] | None = None) -> list[tuple[str, Callable[[], dict]]]:
     """The straight clip: pairs of images ``step`` frames apart, (0, step), (step, 2 step), ...
     (every ``step``-th frame: the clip driven ``step`` times as fast, or recorded at 1 / ``step``
     of its rate), with the relative pose inverse(P_b) @ P_a of its frames a and b where poses.txt
     has both (line n for frame NNNNNN = n, by the file names, not by position; none without
     poses.txt: the methods that need poses are left out; a poses.txt with no line for any frame
     is a ValueError naming ``poses``). The camera: ``height`` m over the road,
-    pitched by ``pitch_deg`` and rolled by ``roll_deg``."""
+    pitched by ``pitch_deg`` and rolled by ``roll_deg``. ``steps`` (instead of ``step``): the
+    pairs' frames are these many apart in turn, from frame 0 (a car speeding up and braking; 0: a
+    frame repeated, the car stopped), each pair named by its place and its two frames; the
+    positions must lie in the clip (a ValueError naming ``steps``)."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
 
@@ -441,6 +446,16 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
                          f"none for the clip's frames {dataset.frames[0].name} to {dataset.frames[-1].name}: "
                          f"give the sequence's poses from its first frame on, or number the frames as the lines")
 
+    if steps is not None:
+        positions = [0]
+        for k in steps:
+            positions.append(positions[-1] + k)
+        if positions[-1] >= len(dataset.frames):
+            raise ValueError(f"steps: frames {positions[-1]} frames apart in all, beyond the clip's "
+                             f"{len(dataset.frames)} frames")
+        return [(f"{k}:{dataset.frames[a].stem}-{dataset.frames[b].stem}", stepped_loader(dataset, poses, a, b))
+                for k, (a, b) in enumerate(zip(positions, positions[1:]))]
+
     def loader(i: int) -> Callable[[], dict]:
         a, b = frame(dataset.pairs[i].image1), frame(dataset.pairs[i].image2)
 
@@ -453,6 +468,31 @@ def odometry_clip(root: Path, height: float, pitch_deg: float, step: int = 1,
         return with_pose
 
     return [(p.name, loader(i)) for i, p in enumerate(dataset.pairs) if i % step == 0]
+
+
+def stepped_loader(dataset: Any, poses: Tensor, a: int, b: int) -> Callable[[], dict]:
+    """The pair of the clip's frames at places ``a`` and ``b`` (``a`` <= ``b``; equal: a frame
+    repeated) of ``dataset`` (consecutive pairs), with its relative pose as :func:`odometry_clip`
+    gives it and its places (``positions``)."""
+
+    def frame_at(position: int) -> Tensor:
+        if position < len(dataset.pairs):
+            return dataset[position]["image1"]
+        return dataset[position - 1]["image2"]
+
+    def number(position: int) -> int | None:
+        stem = dataset.frames[position].stem
+        return int(stem) if stem.isdigit() else None
+
+    def load() -> dict:
+        pair = dataset[min(a, len(dataset.pairs) - 1)]
+        pair["image1"], pair["image2"] = frame_at(a), frame_at(b)
+        n_a, n_b = number(a), number(b)
+        known = n_a is not None and n_b is not None and max(n_a, n_b) < len(poses)
+        pair["relative_pose"] = torch.linalg.inv(poses[n_b]) @ poses[n_a] if known else None
+        pair["positions"] = (a, b)
+        return pair
+    return load
 
 
 def turned(pair: dict, yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0,
@@ -791,6 +831,17 @@ def measure(name: str, pairs: list[tuple[str, Callable[[], dict]]], methods: dic
     return {"rows": summarize(results), "pairs": per_pair}
 
 
+def step_list(text: str) -> list[int]:
+    """``--steps``: comma-separated whole numbers >= 0, at least one (argparse's type)."""
+    try:
+        steps = [int(k) for k in text.split(",")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected whole numbers >= 0 separated by commas, got {text!r}") from None
+    if any(k < 0 for k in steps) or not any(steps):
+        raise argparse.ArgumentTypeError(f"expected whole numbers >= 0, not all 0, got {text!r}")
+    return steps
+
+
 def main(argv: list[str] | None = None) -> int:
     from cli import json_object
 
@@ -817,6 +868,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--step", type=int, default=1,
                         help="clip pairs this many frames apart, every step-th frame, at most the clip's frames "
                              "less one (default 1; 3: about 130 km/h at 10 Hz instead of 43)")
+    parser.add_argument("--steps", type=step_list, default=None, metavar="K,K,...",
+                        help="instead of --step: clip pairs whose frames are these many apart in turn, from "
+                             "frame 0 (e.g. 1,1,2,2,3: a car speeding up; 0: a frame repeated, a stop)")
     parser.add_argument("--yaw-deg", type=float, default=0.0,
                         help="turn every pair by this many degrees of yaw (image 2 resampled; default 0)")
     parser.add_argument("--slalom", type=float, nargs=2, default=None, metavar=("AMPLITUDE_DEG", "PERIOD"),
@@ -871,6 +925,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"--pairs: expected >= 1, got {args.pairs}")
     if args.step < 1:
         parser.error(f"--step: expected >= 1, got {args.step}")
+    if args.steps is not None and args.step != 1:
+        parser.error("--steps: give --step or --steps, not both")
     if not (math.isfinite(args.height) and args.height > 0):
         parser.error(f"--height: expected a positive height in m, got {args.height}")
     if not (math.isfinite(args.pitch_deg) and abs(args.pitch_deg) < 45):
@@ -939,6 +995,9 @@ def main(argv: list[str] | None = None) -> int:
                   f"polygon of road.json)", file=sys.stderr)
             return 2
     frames = clip_frames(folders.get("clip"))
+    if frames is not None and args.steps is not None and sum(args.steps) >= frames:
+        parser.error(f"--steps: expected frames at most {frames - 1} apart in all (the clip {str(folders['clip'])!r} "
+                     f"has {frames} frames), got {sum(args.steps)}")
     if frames is not None and args.step >= frames:
         parser.error(f"--step: expected at most {frames - 1} (the clip {str(folders['clip'])!r} has {frames} "
                      f"frames), got {args.step}")
@@ -952,7 +1011,7 @@ def main(argv: list[str] | None = None) -> int:
                               "roll_change_deg": args.roll_change_deg, "exposure_gain": args.exposure_gain,
                               "resize": args.resize, "reverse": args.reverse, "mask_grow": args.mask_grow,
                               "mirror": args.mirror, "crop": list(args.crop), "jpeg": args.jpeg,
-                              "odometry_error": [scale, yaw_error], "slalom": args.slalom,
+                              "odometry_error": [scale, yaw_error], "slalom": args.slalom, "steps": args.steps,
                               "options": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()}}
     def transformed(data: list[tuple[str, Callable[[], dict]]], clip: bool) -> list[tuple[str, Callable[[], dict]]]:
         """The data set's pairs as the options change them (each loaded when called)."""
@@ -983,7 +1042,7 @@ def main(argv: list[str] | None = None) -> int:
 
     loaders = (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
                ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
-                                                   args.roll_deg)[:args.pairs]))
+                                                   args.roll_deg, args.steps)[:args.pairs]))
     try:  # (a folder the library cannot read, or an option its frames cannot take, is refused before any
         # work, by one pair of each data set: a clip's later frames are read as it runs)
         datasets = {key: transformed(checked_data(option_of[key], lambda root=folders[key], read=pairs: read(root)),
@@ -1025,6 +1084,8 @@ def main(argv: list[str] | None = None) -> int:
             result["mounting"] = mounting  # (fit_sequence's calibration, as printed)
         report[key] = result
         step = f", frames {args.step} apart" if key == "clip" and args.step > 1 else ""
+        if key == "clip" and args.steps is not None:
+            step += f", frames {','.join(map(str, args.steps))} apart in turn"
         if args.reverse:
             step += ", frames swapped (the backward flow)"
         if args.mask_grow:

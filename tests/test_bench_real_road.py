@@ -462,6 +462,43 @@ def test_slalom_turns_each_frame_once_by_its_place_in_the_clip(rr, pair):
         rr.slalom_window(pair["camera"], (96, 64), 9, 20.0, 8.0)
 
 
+def test_clip_steps_take_the_frames_these_many_apart_in_turn(rr, scenes, tmp_path):
+    """``steps``: pairs (0, 1), (1, 1) (a frame repeated: a stop) and (1, 2) of the tiny clip, its
+    frames as written, each pair's poses by its frames (identity where it repeats one), and its
+    places in the clip; frames beyond the clip are refused, naming ``steps``."""
+    from fsof_torch import read_image
+
+    _tiny_clip(scenes, tmp_path)
+    clip = tmp_path / "data" / "kitti_odometry_straight"
+    frames = [read_image(clip / "image_l" / f"{i:06d}.png") for i in range(3)]
+    pairs = rr.odometry_clip(clip, 1.65, 0.0, steps=[1, 0, 1])
+    assert [name for name, _ in pairs] == ["0:000000-000001", "1:000001-000001", "2:000001-000002"]
+    p0, p1 = scenes
+    for (_, load), (a, b) in zip(pairs, ((0, 1), (1, 1), (1, 2))):
+        pair = load()
+        assert torch.equal(pair["image1"], frames[a]) and torch.equal(pair["image2"], frames[b])
+        assert pair["positions"] == (a, b)
+        if b < 2:  # (frame 2 has no pose)
+            poses = (p0["pose1"], p0["pose2"])
+            expected = torch.linalg.inv(poses[b]) @ poses[a]
+            torch.testing.assert_close(pair["relative_pose"].double(), expected.double(), rtol=0, atol=1e-9)
+        else:
+            assert pair["relative_pose"] is None
+    with pytest.raises(ValueError, match="steps"):
+        rr.odometry_clip(clip, 1.65, 0.0, steps=[1, 2])
+
+
+def test_main_steps_names_them_and_fits_the_clip(rr, scenes, tmp_path, capsys):
+    printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--steps", "1,0,1")
+    assert "3 pair(s), frames 1,0,1 apart in turn" in printed
+    assert report["steps"] == [1, 0, 1]
+    assert "refiner, clip motion (fit_sequence)" in {r["method"] for r in report["clip"]["rows"]}
+    assert [p["pair"] for p in report["clip"]["pairs"]] == ["0:000000-000001", "1:000001-000001", "2:000001-000002"]
+    with pytest.raises(SystemExit) as exit_:  # (frames beyond the clip's three)
+        rr.main(["--data", str(tmp_path / "data"), "--steps", "2,1", "--no-progress"])
+    assert exit_.value.code == 2 and "--steps: expected frames at most 2 apart" in capsys.readouterr().err
+
+
 def test_main_slalom_keeps_the_clip_fit(rr, scenes, tmp_path, capsys):
     printed, report = _main_on_tiny_clip(rr, scenes, tmp_path, capsys, "--slalom", "4", "6")
     assert "2 pair(s), the camera yawing back and forth by 4° over 6 frames" in printed
