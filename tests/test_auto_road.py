@@ -720,6 +720,34 @@ def test_refiner_auto_non_finite_pixel_stays_in_its_sample():
         assert torch.equal(getattr(out.camera, name), estimated) and not torch.equal(estimated, getattr(cam, name).expand(2))
 
 
+def test_refiner_auto_warns_of_non_finite_predicted_pixels_in_the_road():
+    """mask="auto": the refinement's count of non-finite predicted pixels inside the road (replaced
+    by the model flow) is warned about, as with a mask tensor (was: silenced with the refinement's
+    other warnings); a flagged sample is named once, with its reason, not a second time as a sample
+    left unchanged; warn=False says nothing."""
+    from fsof_torch.data.scene import render_pair
+
+    p, q = render_pair("default", 10, size=(96, 320)), render_pair("default", 20, size=(96, 320))
+    im1, im2 = torch.stack([p["image1"], q["image1"]]), torch.stack([p["image2"], q["image1"].clone()])
+    pred = torch.stack([p["flow"], torch.zeros_like(q["flow"])])
+    pred[0, :, 80:90, 150:170] = math.nan  # (on the road ahead)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = refine_flow(pred, "auto", p["camera"], images=(im1, im2))
+    said = [str(w.message) for w in caught]
+    assert out.road.flag == ["ok", "static"] and out.refined.tolist() == [True, False]
+    nan = ~torch.isfinite(pred).all(1, keepdim=True)
+    n = int((out.road.usable_mask & nan).sum())
+    assert n == 200 and bool(torch.isfinite(out.flow).all())
+    assert said[0].startswith("mask: the road was not found in samples [1] (left unrefined): {1: 'static: ")
+    assert said[1:] == [f"flow: {n} non-finite predicted pixels inside the mask, left out of the estimation; "
+                        f"{n} replaced by the model flow"]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        quiet = refine_flow(pred, "auto", p["camera"], images=(im1, im2), warn=False)
+    assert caught == [] and torch.equal(quiet.flow, out.flow)
+
+
 def test_auto_estimators_get_no_non_finite_pixel_in_their_masks():
     """mask="auto" with a NaN in the prediction: a caller's estimator sees a finite flow inside
     every mask it gets (the NaN pixel left out, as with a mask tensor); a meta camera and images

@@ -5,6 +5,7 @@ inside it, with the motion the detection settled on."""
 from __future__ import annotations
 
 import warnings
+from contextvars import ContextVar
 from dataclasses import replace
 from typing import Any
 
@@ -19,6 +20,10 @@ from .auto_road import ROAD_RESERVED, check_motion, detect_road
 from .contracts import collect_flows, finest_flow
 
 __all__ = ["refine_with_auto_road"]
+
+#: True while :func:`refine_with_auto_road` refines inside the road it found: the refinement leaves
+#: the warning that names its samples left unchanged to it, which names them with the reason
+UNCHANGED_NAMED: ContextVar[bool] = ContextVar("UNCHANGED_NAMED", default=False)
 
 
 def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odometry: object, *, images: Any,
@@ -36,7 +41,9 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
     ``warn=False`` silences the detection's warnings too (an estimate's non-finite parameters,
     :func:`~fsof_torch.refinement.estimators.finite_estimate`), as the refinement's own with a mask
-    tensor; the estimator's own warnings pass, as they do there.
+    tensor; the estimator's own warnings pass, as they do there, and so do the refinement's (the
+    non-finite predicted pixels inside the road, replaced or left), but for its samples left
+    unchanged: those are named here, with the reason.
     ``images``: as ``refine_flow`` checked them (a pair, detached, at the flow's batch, on 0..255), or None.
     """
     if mask != "auto":
@@ -68,13 +75,16 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
         warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
                       RuntimeWarning, stacklevel=3)
-    # (the refinement's own warning would name the flagged samples a second time)
     motion = det.motion
     if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
         _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
         motion = replace(motion, params={k: torch.where(v == odo[k].to(v).detach(), odo[k].to(v), v) if k in odo else v
                                          for k, v in motion.params.items()})
-    out = refine(flow, det.usable_mask, camera, motion, images=(image1, image2), warn=False, **kw)
+    token = UNCHANGED_NAMED.set(True)  # (the refinement's other warnings pass: its non-finite pixels replaced)
+    try:
+        out = refine(flow, det.usable_mask, camera, motion, images=(image1, image2), warn=warn, **kw)
+    finally:
+        UNCHANGED_NAMED.reset(token)
     if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
         kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
         warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "

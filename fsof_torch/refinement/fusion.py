@@ -45,7 +45,7 @@ from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
-from .auto_refine import refine_with_auto_road
+from .auto_refine import UNCHANGED_NAMED, refine_with_auto_road
 from .estimators import ImageMotionEstimator, finite_estimate
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
@@ -511,7 +511,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     refined = refined & (fuse_mask.view(torch.uint8).flatten(1).amax(1) > 0)  # (bytes: a bool any() is slower)
     if gate_result is not None:
         region = usable(region, refined)
-    if warn and not tracing() and not bool(refined.all()):
+    if warn and not tracing() and not bool(refined.all()) and not UNCHANGED_NAMED.get():
         bad = (~refined).nonzero().flatten().tolist()
         warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined, a "
                       f"failed estimate, images without evidence for the model, or a gate that keeps the prediction "
