@@ -256,7 +256,7 @@ def test_the_refiners_flow_start_is_the_public_one(small_pair, monkeypatch):
         seen.clear()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            with pytest.raises(AttributeError):  # (the spy returns no fit)
+            with pytest.raises(TypeError, match="^estimator: expected a result"):  # (the spy returns no fit)
                 FreespaceRefiner()(f, road, p["camera"], images=images)
         assert seen == [(True, True)]
         (start,) = calls[-1]["starts"]

@@ -491,3 +491,80 @@ def test_a_yaw_of_half_a_turn_and_a_rate_are_named():
                                          r"'yaw_rate'\]; a speed and a yaw rate are a rate: integrate them over the "
                                          r"frame interval \(fs.ego_motion_from_ackermann\)"):
         refine_flow(pred, mask, cam, {"speed": 10.0, "yaw_rate": 0.1})
+
+
+# -- an estimator class given for an estimator, and what an estimator returns -------------------------
+
+@pytest.mark.parametrize("cls", [FlowMotionEstimator, ImageMotionEstimator])
+def test_an_estimator_class_is_refused_by_name(cls):
+    """``estimator=ImageMotionEstimator`` (the class, callable) passed the check: given odometry and
+    no images the refiner ran on, and at a call that estimates, the class was called with the flow
+    ("__init__() takes 1 positional argument but 4 were given"). Refused when the refiner is made,
+    as by refine_flow and detect_road."""
+    from fsof_torch.refinement.auto_road import detect_road
+
+    pred, mask, cam, images = make_case()
+    message = rf"^estimator: expected a road-motion estimator object, got the class {cls.__name__}; make one: " \
+              rf"estimator={cls.__name__}\(\)$"
+    with pytest.raises(TypeError, match=message):
+        FreespaceRefiner(estimator=cls)
+    for odometry in (None, ODO):
+        with pytest.raises(TypeError, match=message):
+            refine_flow(pred, mask, cam, odometry, estimator=cls)
+    with pytest.raises(TypeError, match=message):
+        detect_road(*images, cam, estimator=cls)
+    assert bool(refine_flow(pred, mask, cam, estimator=FlowMotionEstimator(), gate=None, warn=False).refined.all())
+
+
+def _returning(**fields):
+    """An estimator whose result is the flow fit's with ``fields`` replaced (a field None: left out)."""
+    from types import SimpleNamespace
+
+    def estimator(flow, mask, camera, **kw):
+        fit = FlowMotionEstimator()(flow, mask, camera, **kw)
+        given = {k: getattr(fit, k) for k in ("model", "params", "success", "camera")}
+        return SimpleNamespace(**{k: v for k, v in {**given, **fields}.items() if v is not None})
+    return estimator
+
+
+def test_an_estimators_result_is_checked_by_name():
+    """A custom estimator's result is model, params ((n,) tensors), success ((n,)) and camera (batch
+    n). A "velocity" motion (flow in px/s, refused as odometry) was used as pixels per frame: the
+    flow came back refined with a rate's flow; a result without success, params of one motion for
+    the batch or a camera of batch 1 raised AttributeError or IndexError from inside the refiner."""
+    pred, mask, cam, _ = make_case(B=2)
+    ok = refine_flow(pred, mask, cam, estimator=_returning(), gate=None, warn=False)
+    assert bool(ok.refined.all())
+    one = {k: v[:1] for k, v in FlowMotionEstimator()(pred, mask, cam).params.items()}
+    cases = [
+        (_returning(model="velocity", params={}), ValueError,
+         r"^estimator: returned a 'velocity' motion, whose flow is in px/s; the refiner needs the motion over the "
+         r"frame interval, a displacement model \('paper', 'plane' or 'homography'\)$"),
+        (_returning(model="paper", success=None), TypeError,
+         r"^estimator: expected a result with model, params, success and camera \(a RoadFit\), got SimpleNamespace "
+         r"without success$"),
+        (lambda *a, **k: None, TypeError, r"^estimator: expected a result .* got NoneType without model, params, "
+                                          r"success, camera$"),
+        (_returning(params=one), ValueError, r"^estimator: expected result.params\['x_d'\] a tensor of shape \(2,\) "
+                                             r"\(the samples it was given\), got shape \(1,\)$"),
+        (_returning(params=dict(ODO)), TypeError, r"^estimator: expected result.params\['x_d'\] a tensor of shape "
+                                                  r"\(2,\) \(the samples it was given\), got float$"),
+        (_returning(success=True), TypeError, r"^estimator: expected result.success a tensor of shape \(2,\)"),
+        (_returning(params={"x_d": torch.zeros(2), "speed": torch.zeros(2)}), ValueError,
+         r"^estimator: result.params has unknown parameters \['speed'\] of model 'paper'"),
+        (_returning(camera=Camera(cam.K[:1], 1.65)), ValueError, r"^estimator: expected result.camera of batch 2 \(the samples it "
+                                                 r"was given\), got batch 1$"),
+        (_returning(camera=cam.K), TypeError, r"^estimator: expected result.camera a fsof_torch.Camera, got Tensor$"),
+    ]
+    for estimator, error, message in cases:
+        with pytest.raises(error, match=message):
+            refine_flow(pred, mask, cam, estimator=estimator, gate=None, warn=False)
+    # with images and planar odometry (the estimate completes it), and for a subset of the batch: n = 1
+    few = mask.clone()
+    few[1] = False
+    with pytest.raises(ValueError, match=r"^estimator: returned a 'velocity' motion"):
+        refine_flow(pred, mask, cam, ODO, estimator=_returning(model="velocity", params={}), gate=None,
+                    images=make_case(B=2)[3], warn=False)
+    with pytest.raises(ValueError, match=r"^estimator: expected result.camera of batch 1 \(the samples it was given\), "
+                                         r"got batch 2$"):
+        refine_flow(pred, few, cam, estimator=_returning(camera=cam), gate=None, warn=False)

@@ -61,7 +61,7 @@ from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
-from .estimators import ImageMotionEstimator, finite_estimate
+from .estimators import ImageMotionEstimator, check_estimator, finite_estimate
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
@@ -515,8 +515,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
      z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
     edges, refit, warn = check_bool(edges, "edges"), check_bool(refit, "refit"), check_bool(warn, "warn")
-    if estimator is not None and not callable(estimator):
-        raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    check_estimator(estimator)
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
         raise TypeError(f"starts: expected a sequence of start candidates, got {type(starts).__name__} {starts!r:.60}")
     starts = tuple(starts)  # (read once: an iterator would leave the refit none)

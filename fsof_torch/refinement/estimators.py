@@ -36,7 +36,8 @@ from ..geometry.camera import Camera
 from ..geometry.egomotion import check_motion_step
 from ..geometry.road_models import get_road_model, road_motion
 
-__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "finite_estimate", "planar_odometry", "planar_start"]
+__all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "check_estimate", "check_estimator", "finite_estimate",
+           "planar_odometry", "planar_start"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
 _MOUNTING = ("roll", "pitch")  # (FlowMotionEstimator's default ``fixed``, this very object)
@@ -52,6 +53,51 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     if not all(k in model.params for k in _PLANAR):
         return None
     return {k: params.get(k, 0.0) for k in _PLANAR}
+
+
+def check_estimator(estimator: object, name: str = "estimator") -> Any:
+    """``estimator`` checked (None, or a callable estimator object) and returned: a TypeError names
+    ``name``, also for an estimator class given where an instance is due (it is callable, but a call
+    with a flow would make an estimator, not estimate)."""
+    if isinstance(estimator, type):
+        raise TypeError(f"{name}: expected a road-motion estimator object, got the class {estimator.__name__}; "
+                        f"make one: {name}={estimator.__name__}()")
+    if estimator is not None and not callable(estimator):
+        raise TypeError(f"{name}: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    return estimator
+
+
+def check_estimate(result: Any, batch: int, name: str = "estimator") -> Any:
+    """``result``, an estimator's answer for ``batch`` samples, checked and returned: it has
+    ``model`` (a displacement model), ``params`` (a dict of that model's parameters, (batch,)
+    tensors), ``success`` ((batch,) tensor) and ``camera`` (a :class:`Camera` of batch ``batch``);
+    else a TypeError or ValueError names ``name`` and quotes what came (a motion in px/s, the
+    ``"velocity"`` model's, would otherwise refine a flow in pixels per frame)."""
+    missing = [a for a in ("model", "params", "success", "camera") if not hasattr(result, a)]
+    if missing:
+        raise TypeError(f"{name}: expected a result with model, params, success and camera (a RoadFit), got "
+                        f"{type(result).__name__} without {', '.join(missing)}")
+    model = get_road_model(result.model, f"{name}: result.model")
+    if model.velocity:
+        raise ValueError(f"{name}: returned a {model.name!r} motion, whose flow is in px/s; the refiner needs the "
+                         f"motion over the frame interval, a displacement model ('paper', 'plane' or 'homography')")
+    if not isinstance(result.params, Mapping):
+        raise TypeError(f"{name}: expected result.params a dict of (B,) tensors, got {type(result.params).__name__}")
+    if unknown := sorted(set(result.params) - set(model.params)):
+        raise ValueError(f"{name}: result.params has unknown parameters {unknown} of model {model.name!r}; expected "
+                         f"some of {model.params}")
+    for key, value in [*((f"params[{k!r}]", v) for k, v in result.params.items()), ("success", result.success)]:
+        if not isinstance(value, Tensor) or value.shape != (batch,):
+            error = ValueError if isinstance(value, Tensor) else TypeError
+            got = f"shape {tuple(value.shape)}" if isinstance(value, Tensor) else type(value).__name__
+            raise error(f"{name}: expected result.{key} a tensor of shape ({batch},) (the samples it was given), "
+                        f"got {got}")
+    if not isinstance(result.camera, Camera):
+        raise TypeError(f"{name}: expected result.camera a fsof_torch.Camera, got {type(result.camera).__name__}")
+    if result.camera.batch_size != batch:
+        raise ValueError(f"{name}: expected result.camera of batch {batch} (the samples it was given), got batch "
+                         f"{result.camera.batch_size}")
+    return result
 
 
 def finite_estimate(result: Any, camera: Camera, *, samples: Sequence[int] | None = None, warn: bool = True) -> Any:

@@ -46,7 +46,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_refine import UNCHANGED_NAMED, refine_with_auto_road
-from .estimators import ImageMotionEstimator, finite_estimate
+from .estimators import ImageMotionEstimator, check_estimate, finite_estimate
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, check_levels, collect_flows, finest_flow, map_flows, refiner_images
@@ -614,7 +614,7 @@ def _estimate_eager(estimator: Any, finest: Tensor, fit_mask: Tensor, camera: Ca
         # grey for a 0..1 image; the masks' pixels it finds are kept in ``pixels``)
         with known_finite(f), known_images(*(ims or ())), reused_mask_pixels(pixels):
             estimate = estimator(f, m, cam_d, images=ims, odometry=odo, starts=starts)
-        result = finite_estimate(estimate, cam_d, samples=index.tolist(), warn=warn)
+        result = finite_estimate(check_estimate(estimate, index.numel()), cam_d, samples=index.tolist(), warn=warn)
     ok = result.success.to(device=device, dtype=torch.bool)
     params = {k: _scatter(v.detach().to(device=device, dtype=dtype), index, B) for k, v in result.params.items()}
     success = torch.zeros(B, dtype=torch.bool, device=device).index_copy(0, index, ok)

@@ -11,7 +11,7 @@ from .._check import check_bool, check_int, check_keywords, check_mapping, check
 from ..estimation.flow_fit import fit_road
 from ..estimation.image_fit import fit_image
 from .contracts import check_flow_keys
-from .estimators import FlowMotionEstimator, ImageMotionEstimator
+from .estimators import FlowMotionEstimator, ImageMotionEstimator, check_estimator
 from .gate import ImageGate
 
 __all__ = ["MODES", "FITS", "FIT_RESERVED", "PHOTOMETRIC_RESERVED", "PHOTOMETRIC_DEFAULTS", "check_refine_options",
@@ -50,8 +50,7 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
         raise ValueError(f"fit: expected one of {FITS} or None, got {fit!r}")
     if estimator is not None and fit is not None:
         raise ValueError("fit: give an estimator or fit=, not both")
-    if estimator is not None and not callable(estimator):
-        raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    check_estimator(estimator)
     if not isinstance(starts, (list, tuple)):
         raise TypeError(f"starts: expected a list of start candidates (dicts or fits), got {type(starts).__name__}")
     if isinstance(gate, str) and gate != "auto":
@@ -97,9 +96,7 @@ def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: boo
     if estimator is not None:
         if fit is not None:
             raise ValueError("fit: give an estimator or fit=, not both")
-        if not callable(estimator):
-            raise TypeError(f"estimator: expected a callable road-motion estimator, got {type(estimator).__name__}")
-        return estimator
+        return check_estimator(estimator)
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     if fit == "flow" or (fit is None and images is None):
         return FlowMotionEstimator(model="paper", fixed=fixed, **dict(fit_options or {}))
