@@ -238,6 +238,28 @@ def test_a_complete_paper_motion_is_used_as_it_is_with_images(scene):
     assert _quiet(FreespaceRefiner(gate=None), pred, road, cam, planar, images=images).model == "plane"
 
 
+def test_the_papers_dict_with_its_roll_or_pitch_is_a_complete_motion_with_images(scene):
+    """{x_d, z_d, yaw, roll} (no "model" key) is the paper's motion at that roll: without images the
+    refiner used the roll given, with images it was taken for planar odometry and the image estimate
+    replaced the roll and pitch given, silently (and the flow estimator held them: the estimators
+    disagreed). It is now used as it is, as with "model": "paper", also with images."""
+    pred, road, cam = scene["pred"], scene["road"][None], scene["camera"]
+    images = (scene["image1"][None], scene["image2"][None])
+    planar = {k: float(scene["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+    for extra in ({"roll": 0.03}, {"pitch": -0.03}, {"roll": 0.0, "pitch": 0.0}):
+        given = {**planar, **extra}
+        reference = _quiet(FreespaceRefiner(gate=None), pred, road, cam, {"model": "paper", **given}, images=images)
+        for these in (images, None):
+            out = _quiet(FreespaceRefiner(gate=None), pred, road, cam, given, images=these)
+            assert out.model == "paper" and out.fit is None
+            for k, v in extra.items():
+                assert float(out.odometry[k]) == pytest.approx(v)
+            torch.testing.assert_close(out.flow, reference.flow, rtol=0, atol=0)
+    # the planar odometry alone is completed from the images
+    out = _quiet(FreespaceRefiner(gate=None), pred, road, cam, planar, images=images)
+    assert out.model == "plane" and out.fit is not None
+
+
 def test_an_estimator_result_without_a_flow_of_this_size(scene):
     """The docs ask an estimator's result for model, params, success and camera: one without a
     ``flow`` raised AttributeError, one with a flow of another size a size mismatch; the model

@@ -517,12 +517,12 @@ def road_motion(odometry: object, name: str = "odometry", *,
 
 
 def is_planar_odometry(odometry: object) -> bool:
-    """Whether ``odometry`` is planar odometry, the paper's ``x_d``, ``z_d`` and ``yaw`` alone (a
-    dict without a ``"model"`` key, or an :class:`~fsof_torch.geometry.egomotion.EgoMotion`),
-    which the refiner with images completes from them, rather than a complete road model's
-    motion (a dict with ``"model"``, also ``"paper"``, or a fit result), which it uses as it is."""
+    """Whether ``odometry`` is planar odometry, the paper's ``x_d``, ``z_d`` and ``yaw`` alone (a dict
+    of those keys, or an :class:`~fsof_torch.geometry.egomotion.EgoMotion`), which the refiner with
+    images completes from them, rather than a complete road model's motion (a dict with ``"model"``,
+    also ``"paper"``; the paper's dict with its ``roll`` or ``pitch``; a fit result), used as it is."""
     if isinstance(odometry, Mapping):
-        return "model" not in odometry
+        return "model" not in odometry and not {"roll", "pitch"} & set(odometry)
     return not (hasattr(odometry, "model") and hasattr(odometry, "params"))
 
 

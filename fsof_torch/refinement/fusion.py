@@ -280,7 +280,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             ``"model"`` key and that model's parameters, or a fit result, of a displacement model
             (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError; so is a
             step beyond 100 m or a yaw of half a turn a frame, mm or degrees). A complete model's motion (with
-            ``"model"``, or a fit) is used as it is; the planar odometry of the paper's model, with
+            ``"model"``, a roll or pitch, or a fit) is used as it is; the planar odometry of the paper's model, with
             images, fixes the planar motion while the images estimate the body's pitch and roll
             changes, its vertical motion and the camera's attitude (the plain planar model where
             that estimate fails). Nothing is estimated,
@@ -402,7 +402,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         finite = torch.isfinite(finest).all(dim=1, keepdim=True)
         fit_mask = mask & finite
     # planar odometry (the paper's x_d, z_d, yaw alone) leaves the rest of the road's motion to the
-    # images; a complete motion ("model" key, a fit result), also the paper model's, is used as it is
+    # images; a complete motion ("model" key, roll or pitch, a fit result), also the paper's, is used as it is
     estimating = odometry is None or (images is not None and is_planar_odometry(odometry) and fit is None)
     # min_pixels guards estimation, which uses the finite predicted pixels; with odometry given
     # any mask pixel can be refined, also one whose prediction is not finite (the model flow
