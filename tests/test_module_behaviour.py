@@ -55,6 +55,23 @@ def test_refiner_repr_shows_the_options_that_are_not_the_defaults():
                     "warn=False, fit_pitch=True, fit_options={'max_iter': 5})")
 
 
+def test_component_reprs_show_their_options():
+    """The estimators' and the gate's reprs left their further options out: a refiner with
+    ImageMotionEstimator(fine_points=20000) or ImageGate(z=3.0) printed as the default one."""
+    assert repr(fs.FlowMotionEstimator(model="plane", max_iter=5)) == (
+        "FlowMotionEstimator(model='plane', fixed=('roll', 'pitch'), max_iter=5)")
+    assert repr(fs.ImageMotionEstimator(fine_points=20000, smooth_sigma=1.0, odometry_sigma={"z_d": 0.1})) == (
+        "ImageMotionEstimator(model='plane', flow_start=True, odometry_sigma={'z_d': 0.1}, fine_points=20000, "
+        "smooth_sigma=1.0)")
+    assert repr(ImageGate(z=3.0, contrast=5.0)) == ("ImageGate(grid=(8, 16), objects=True, points=6000, margin=0.0, "
+                                                   "occlusion=0.35, require_evidence=True, z=3.0, contrast=5.0)")
+    assert repr(ImageGate()) == ("ImageGate(grid=(8, 16), objects=True, points=6000, margin=0.0, occlusion=0.35, "
+                                 "require_evidence=True)")
+    text = repr(fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(fine_points=20000)))
+    assert text == ("FreespaceRefiner(mode='replace', estimator=ImageMotionEstimator(model='plane', flow_start=True, "
+                    "fine_points=20000), gate='auto')")
+
+
 def test_wrapper_repr_shows_its_own_options():
     net = fs.TinyRAFT(seed=0, iters=1)
     first = repr(fs.FreespaceRefined(net)).splitlines()[:2]

@@ -218,7 +218,7 @@ class FlowMotionEstimator:
         return fit_road(flow, mask, camera, model=self.model, fixed=fixed, init=init, **self.options)
 
     def __repr__(self) -> str:
-        return f"FlowMotionEstimator(model={self.model!r}, fixed={self.fixed!r})"
+        return f"FlowMotionEstimator(model={self.model!r}, fixed={self.fixed!r}{_options_repr(self.options)})"
 
 
 class ImageMotionEstimator:
@@ -340,7 +340,13 @@ class ImageMotionEstimator:
 
     def __repr__(self) -> str:
         sigma = f", odometry_sigma={self.odometry_sigma!r}" if self.odometry_sigma else ""
-        return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start}{sigma})"
+        options = _options_repr(self.options)
+        return f"ImageMotionEstimator(model={self.model!r}, flow_start={self.flow_start}{sigma}{options})"
+
+
+def _options_repr(options: Mapping[str, Any]) -> str:
+    """An estimator's further options as they end its repr, each on one line: ``", max_iter=5"``."""
+    return "".join(f", {k}={' '.join(repr(v).split())}" for k, v in options.items())
 
 
 def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:

@@ -413,6 +413,8 @@ class ImageGate:
 
         return to_pixels(cell_model), to_pixels(evidence), enough, ~cell_model.reshape(B, -1)
 
-    def __repr__(self) -> str:
-        return (f"ImageGate(grid={self.grid}, objects={self.objects}, points={self.points}, margin={self.margin}, "
-                f"occlusion={self.occlusion}, require_evidence={self.require_evidence})")
+    def __repr__(self) -> str:  # (these options, then the others where they are not the defaults)
+        shown = ("grid", "objects", "points", "margin", "occlusion", "require_evidence")
+        default = ImageGate.__init__.__kwdefaults__
+        rest = [f"{k}={getattr(self, k)!r}" for k in default if k not in shown and getattr(self, k) != default[k]]
+        return f"ImageGate({', '.join([f'{k}={getattr(self, k)}' for k in shown] + rest)})"
