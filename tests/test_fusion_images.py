@@ -238,6 +238,33 @@ def test_a_complete_paper_motion_is_used_as_it_is_with_images(scene):
     assert _quiet(FreespaceRefiner(gate=None), pred, road, cam, planar, images=images).model == "plane"
 
 
+def test_a_fit_result_given_is_used_where_it_succeeded(scene):
+    """A fit result given as odometry is an estimate (the docs: judged by its success, so not checked
+    for steps in mm): its failed samples were refined with the failed motion all the same (a mask
+    tensor; mask="auto" flags them no_motion). They now come back unchanged, refined False, as the
+    refiner's own failed estimates; the others as they would alone."""
+    import dataclasses
+
+    from fsof_torch.estimation.flow_fit import fit_road
+
+    pred, road, cam = scene["pred"].expand(2, -1, -1, -1), scene["road"][None].expand(2, -1, -1, -1), scene["camera"]
+    images = tuple(scene[k][None].expand(2, -1, -1, -1) for k in ("image1", "image2"))
+    fit = fit_road(scene["flow"][None], road[:1] & scene["valid"][None], cam, model="paper")
+    assert fit.success.tolist() == [True]
+    half = dataclasses.replace(fit, params={k: v.expand(2) for k, v in fit.params.items()},
+                               success=torch.tensor([True, False]))
+    for these, gate in ((None, None), (images, None), (images, "auto")):
+        out = _quiet(FreespaceRefiner(gate=gate), pred, road, cam, half, images=these)
+        alone = _quiet(FreespaceRefiner(gate=gate), pred[:1], road[:1], cam, fit, images=None if these is None else
+                       tuple(i[:1] for i in these))
+        assert out.refined.tolist() == [True, False] and bool(alone.refined[0])
+        assert torch.equal(out.flow[1], pred[1]) and torch.equal(out.flow[0], alone.flow[0])
+        assert float(out.odometry["z_d"][1]) == 0.0 and not bool(out.mask[1].any())
+    # a fit of batch 1 serves the batch, its success too
+    out = _quiet(FreespaceRefiner(gate=None), pred, road, cam, dataclasses.replace(fit, success=torch.tensor([False])))
+    assert out.refined.tolist() == [False, False] and torch.equal(out.flow, pred)
+
+
 def test_the_papers_dict_with_its_roll_or_pitch_is_a_complete_motion_with_images(scene):
     """{x_d, z_d, yaw, roll} (no "model" key) is the paper's motion at that roll: without images the
     refiner used the roll given, with images it was taken for planar odometry and the image estimate

@@ -37,7 +37,7 @@ from ..geometry.egomotion import check_motion_step
 from ..geometry.road_models import get_road_model, road_motion
 
 __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "check_estimate", "check_estimator", "finite_estimate",
-           "planar_odometry", "planar_start"]
+           "given_success", "planar_odometry", "planar_start"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
 _MOUNTING = ("roll", "pitch")  # (FlowMotionEstimator's default ``fixed``, this very object)
@@ -53,6 +53,19 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     if not all(k in model.params for k in _PLANAR):
         return None
     return {k: params.get(k, 0.0) for k in _PLANAR}
+
+
+def given_success(odometry: object, batch: int, device: torch.device | str) -> Tensor:
+    """(batch,) bool: per sample, whether a given motion may be used. A fit result given as odometry
+    is an estimate: its samples whose ``success`` is False are not refined with it, as the
+    refiner's own failed estimates are not (and ``mask="auto"`` flags them ``no_motion``); a
+    motion without ``success`` (a measurement: a dict, an EgoMotion) is used in every sample."""
+    success = getattr(odometry, "success", None)
+    if success is None:
+        return torch.ones(batch, dtype=torch.bool, device=device)
+    success = torch.as_tensor(success).reshape(-1)
+    check_batch(success.numel(), "odometry.success", batch)
+    return success.to(device=device, dtype=torch.bool).expand(batch)
 
 
 def check_estimator(estimator: object, name: str = "estimator") -> Any:

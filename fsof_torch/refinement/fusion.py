@@ -46,7 +46,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_refine import UNCHANGED_NAMED, refine_with_auto_road
-from .estimators import ImageMotionEstimator, check_estimate, finite_estimate
+from .estimators import ImageMotionEstimator, check_estimate, finite_estimate, given_success
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, check_levels, collect_flows, finest_flow, map_flows, refiner_images
@@ -279,11 +279,11 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             (metres, radians; floats or (B,) tensors), an :class:`EgoMotion`, a dict with a
             ``"model"`` key and that model's parameters, or a fit result, of a displacement model
             (the ``"velocity"`` model's flow is in px/s, not pixels per frame: a ValueError; so is a
-            step beyond 100 m or a yaw of half a turn a frame, mm or degrees). A complete model's motion (with
-            ``"model"``, a roll or pitch, or a fit) is used as it is; the planar odometry of the paper's model, with
-            images, fixes the planar motion while the images estimate the body's pitch and roll
-            changes, its vertical motion and the camera's attitude (the plain planar model where
-            that estimate fails). Nothing is estimated,
+            step beyond 100 m or a yaw of half a turn a frame, mm or degrees). A complete model's motion
+            (with ``"model"``, a roll or pitch, or a fit: its samples of ``success`` False left unchanged)
+            is used as it is; the planar odometry of the paper's model, with images, fixes the planar
+            motion while the images estimate the body's pitch and roll changes, its vertical motion
+            and the camera's attitude (the plain planar model where that estimate fails). Nothing is estimated,
             and the estimator and its options (``fit_roll``, ``fit_pitch``, ``fit_options``,
             ``photometric_options``) go unused, with a complete motion, with planar odometry
             and no images, and with planar odometry and ``fit=`` set; they are still checked,
@@ -418,7 +418,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     fit_index, fit_used = None, None  # (the samples the fit's rows hold; (B,) those whose model it is)
     if odometry is not None:
         given, odo = road_motion_batch(odometry, B, geo_dtype, device, displacement=True)
-        motion_model = given.name
+        motion_model, refined = given.name, refined & given_success(odometry, B, device)  # (a failed fit given)
     if estimating:
         # frames of one row or one column hold nothing the image fit can use (its pyramid and image
         # gradients need 2 x 2 pixels): its estimate fails there, as on an empty mask
