@@ -84,6 +84,28 @@ def test_inconsistent_estimator_options_raise_also_with_odometry(odometry, image
         FreespaceRefiner(**options)(pred, mask, cam, odo, images=pair if images else None)
 
 
+@pytest.mark.parametrize("options, message", [
+    (dict(estimator=FlowMotionEstimator(), fit_roll=True),
+     "fit_roll: applies with fit='flow' or 'photometric'; here an estimator is given"),
+    (dict(estimator=FlowMotionEstimator(), fit_options={"max_iter": 3}), "fit_options: applies with fit='flow'; here an "
+                                                                          "estimator is given"),
+    (dict(fit="flow", photometric_options={"max_iter": 3}), "photometric_options: applies with fit='photometric'; "
+                                                            "here fit='flow'"),
+    (dict(fit="photometric", fit_options={"max_iter": 3}), "fit_options: applies with fit='flow'; here "
+                                                           "fit='photometric'"),
+])
+def test_options_that_fit_no_call_are_refused_when_the_refiner_is_made(options, message):
+    """Where the estimator does not depend on the call's images (one given, or fit= set), a
+    combination that raises on every call was taken when the refiner was made: a training script
+    learnt of it at its first batch. Those the images decide (fit=None) are judged at the call."""
+    with pytest.raises(ValueError, match=f"^{message}"):
+        FreespaceRefiner(**options)
+    pred, mask, cam, _ = make_case()
+    refiner = FreespaceRefiner(fit_roll=True, fit_options={"max_iter": 3}, gate=None, warn=False)
+    assert bool(refiner(pred, mask, cam).refined.all())  # (no images: the flow fit takes them)
+    FreespaceRefiner(fit="photometric", fit_pitch=True, photometric_options={"max_iter": 3})
+
+
 def test_an_estimator_with_odometry_is_left_unused_not_refused():
     """A refiner configured with an estimator may be given odometry on some batches: then the
     estimator is not called, and nothing raises."""

@@ -641,8 +641,8 @@ class FreespaceRefiner(nn.Module):
         flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`; one key
             or a sequence of keys, not None).
         fit, fit_roll, fit_pitch, fit_options, photometric_options: the older way to choose the
-            estimator (see :func:`refine_flow`). They are checked against the estimator at every
-            call, also one whose odometry leaves nothing to estimate (the estimator then unused).
+            estimator (see :func:`refine_flow`). Checked against the estimator here (one given, or fit=)
+            and at every call, also one whose odometry leaves nothing to estimate (the estimator unused).
 
     Forward: ``refiner(flow, mask, camera, odometry=None, *, images=None, starts=()) -> RefineOutput``.
 

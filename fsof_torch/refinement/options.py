@@ -68,6 +68,10 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
         FlowMotionEstimator(model="paper", fixed=fixed, **fit_options)
     if photometric_options:
         ImageMotionEstimator(model="paper", fixed=fixed, **{**PHOTOMETRIC_DEFAULTS, **photometric_options})
+    # and against the estimator they would go to, where the call's images do not choose it (one given,
+    # or fit= set): a combination that does not fit raises when a refiner is made, not at its first call
+    if estimator is not None or fit is not None:
+        select_estimator(estimator, fit, None, fit_roll, fit_pitch, fit_options, photometric_options)
     return flow_keys, min_pixels
 
 
