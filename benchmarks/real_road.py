@@ -1042,7 +1042,7 @@ def main(argv: list[str] | None = None) -> int:
 
     loaders = (("kitti15", lambda root: kitti15(root, args.height, args.roll_deg)),
                ("clip", lambda root: odometry_clip(root, args.height, args.pitch_deg, args.step,
-                                                   args.roll_deg, args.steps)[:args.pairs]))
+                                                   args.roll_deg, steps=args.steps)[:args.pairs]))
     try:  # (a folder the library cannot read, or an option its frames cannot take, is refused before any
         # work, by one pair of each data set: a clip's later frames are read as it runs)
         datasets = {key: transformed(checked_data(option_of[key], lambda root=folders[key], read=pairs: read(root)),
