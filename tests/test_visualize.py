@@ -304,6 +304,23 @@ def test_save_pngs_roundtrip(tmp_path):
     assert sorted(os.listdir(tmp_path)) == ["err.png", "flow.png", "ov.png"]
 
 
+@pytest.mark.parametrize("name", ["flow.jpg", "flow", "flow.png.tmp"])
+def test_save_to_a_path_that_is_no_png_is_named_and_writes_nothing(tmp_path, name):
+    """The save_*_png functions write PNG bytes: a path of another suffix (a PNG named .jpg, which
+    tools that go by the suffix take for a broken JPEG) is a ValueError naming path, before
+    anything is written; an upper-case .PNG is a PNG."""
+    flow = _flow()
+    calls = (lambda p: save_flow_png(p, flow[0]), lambda p: save_error_png(p, flow[0, 0].abs(), 5.0),
+             lambda p: save_overlay_png(p, torch.full((3, 20, 30), 100.0), flow[0, :1] > 0))
+    for call in calls:
+        with pytest.raises(ValueError, match=r"path: expected a \.png file .*write_image"):
+            call(tmp_path / name)
+    assert os.listdir(tmp_path) == []
+    assert save_flow_png(tmp_path / "FLOW.PNG", flow[0]).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(TypeError, match="path: expected a str or os.PathLike, got int"):
+        save_flow_png(3, flow[0])
+
+
 def test_save_into_missing_folder_fails_cleanly(tmp_path):
     """A missing folder is named and not created; nothing is written."""
     with pytest.raises(FileNotFoundError, match=r"path: the folder of '.*missing/flow\.png' does not exist"):

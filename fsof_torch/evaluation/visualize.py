@@ -339,11 +339,18 @@ def _check_color(color: object) -> tuple[float, float, float]:
 
 def _write_png(path: str | os.PathLike, rgb: Tensor, name: str) -> Path:
     """Write one (1, 3, H, W) or (3, H, W) uint8 RGB image as PNG, atomically; ``name`` is the
-    argument the image came from (for the error of a batch above 1)."""
+    argument the image came from (for the error of a batch above 1). A ``path`` whose suffix is not
+    ``.png`` is a ValueError (PNG bytes in a file named ``.jpg``: tools that go by the suffix take
+    it for a broken JPEG)."""
     import cv2
 
     from ..io.atomic import write_bytes
 
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or os.PathLike, got {type(path).__name__}")
+    if Path(path).suffix.lower() != ".png":
+        raise ValueError(f"path: expected a .png file (this writes PNG), got {str(path)!r}; for another format "
+                         f"write the colours with fsof_torch.write_image (e.g. write_image(path, flow_to_color(flow)[0]))")
     check_has_values(rgb, name, "to write")  # (the colours of a meta tensor are shapes only)
     if rgb.dim() == 4:
         if rgb.shape[0] != 1:
