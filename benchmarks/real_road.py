@@ -475,18 +475,19 @@ def stepped_loader(dataset: Any, poses: Tensor, a: int, b: int) -> Callable[[], 
     repeated) of ``dataset`` (consecutive pairs), with its relative pose as :func:`odometry_clip`
     gives it and its places (``positions``)."""
 
-    def frame_at(position: int) -> Tensor:
-        if position < len(dataset.pairs):
-            return dataset[position]["image1"]
-        return dataset[position - 1]["image2"]
+    def holding(position: int) -> tuple[dict, str]:
+        """The dataset's item that holds the frame at ``position``, and its key there."""
+        return (dataset[position], "image1") if position < len(dataset.pairs) else (dataset[position - 1], "image2")
 
     def number(position: int) -> int | None:
         stem = dataset.frames[position].stem
         return int(stem) if stem.isdigit() else None
 
     def load() -> dict:
-        pair = dataset[min(a, len(dataset.pairs) - 1)]
-        pair["image1"], pair["image2"] = frame_at(a), frame_at(b)
+        pair, key = holding(a)  # (its camera and road too)
+        # (consecutive frames: the item itself, read once)
+        other, other_key = (pair, "image2") if key == "image1" and b == a + 1 else holding(b)
+        pair["image1"], pair["image2"] = pair[key], other[other_key]
         n_a, n_b = number(a), number(b)
         known = n_a is not None and n_b is not None and max(n_a, n_b) < len(poses)
         pair["relative_pose"] = torch.linalg.inv(poses[n_b]) @ poses[n_a] if known else None
