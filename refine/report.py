@@ -160,6 +160,10 @@ def _unrefined_reason(r: dict) -> str:
     if r.get("fit_success") is False:
         return "the ego-motion fit to the flow failed" if "fit_residual_px" in r else \
             "the road motion from the images failed"
+    if r.get("variant") in ("fit", "photometric") and "fit_success" not in r:
+        # (these variants estimate the motion, and nothing was estimated: fewer finite predicted road
+        # pixels than the refiner's min_pixels; the gate, handed none of them, judged nothing)
+        return "too few usable road pixels to fit"
     gate = r.get("gate")
     if isinstance(gate, dict) and not gate.get("model_used", True):
         return "the images' gate kept the prediction"

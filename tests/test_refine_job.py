@@ -1077,6 +1077,29 @@ def test_unrefined_notes_explain_each_pair_once():
         "fit to the flow failed: d, e (the records hold each fit's residual and the gate's decision)."]
 
 
+def test_a_road_too_small_to_fit_is_not_blamed_on_the_gate(tmp_path, user_folder, scene_pairs, capsys):
+    """A road mask of 50 pixels (fewer than the refiner's min_pixels, 100): the photometric variant
+    estimates nothing there and leaves the pair unrefined. Its note says so; it said the images'
+    gate kept the prediction, though the gate, handed no pixel, judged nothing (no cell, no point)."""
+    from fsof_torch.io import write_road_mask
+
+    road = scene_pairs[1]["road"]
+    small = torch.zeros_like(road)
+    small[:, 35:40, 70:80] = True
+    assert bool(road[small].all())  # (road pixels: the model is defined there)
+    write_road_mask(user_folder / "road" / "000001.png", small)
+    out = tmp_path / "out"
+    args = _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis", "--odometry",
+                 "photometric", *_mounting(scene_pairs))
+    assert main(args) == 0
+    rec = json.loads((out / "dis" / "photometric" / "pairs" / "000001.json").read_text())
+    assert rec["road_pixels"] == 50 and not rec["refined"] and "fit_success" not in rec
+    assert rec["gate"]["cells"] == 0
+    note = ("- Left unrefined (the prediction kept): dis / photometric: 1 of 2 pair(s): too few usable road pixels "
+            "to fit: 000001 (the records hold each fit's residual and the gate's decision).")
+    assert note in capsys.readouterr().out and note in (out / "report.md").read_text()
+
+
 def test_pairs_whose_road_mask_is_empty_are_named(tmp_path, user_folder, scene_pairs, capsys):
     """One empty mask in the road folder: the run goes on, leaves that pair unrefined and names it
     in the report's notes and on the console. Every mask empty: it stops under --road before any
