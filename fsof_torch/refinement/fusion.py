@@ -84,8 +84,8 @@ class RefineOutput(NamedTuple):
         camera: the camera the model flow was computed with (with fitted roll/pitch if fitted).
         flow_model: (B, 2, H, W) the model flow at the finest resolution (0 where undefined).
         model: the road model's name (``"paper"``, ``"plane"``, ...) of ``odometry``.
-        gate: the :class:`~fsof_torch.refinement.gate.GateResult` where the images were judged,
-            else None.
+        gate: the :class:`~fsof_torch.refinement.gate.GateResult` where the images were judged, else None; a
+            sample left unchanged before the gate (a failed estimate, too few pixels) is judged on none (``points`` 0).
         road: the :class:`~fsof_torch.refinement.auto_road.RoadDetection` of ``mask="auto"`` with images.
     """
 
