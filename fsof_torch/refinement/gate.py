@@ -156,8 +156,8 @@ class ImageGate:
             ``z`` standard errors of the difference and still be used (over a sample's mask, the
             errors from blocks of points where larger: see the module).
         occlusion: the prediction's mean distance above which it does not explain a cell either.
-        temperature: the census difference over which the confidence evidence goes from 0.27 to
-            0.73 (a logistic of (prediction − model) / temperature).
+        temperature: the census difference (prediction − model) at which the confidence evidence
+            is 0.73, and 0.27 at minus that (a logistic of (prediction − model) / temperature).
         contrast: grey levels above which a neighbour's order in image 1 is clear.
         min_neighbours: points with fewer clear neighbours (weak texture) do not count.
         require_evidence: a sample whose images are not informative keeps its prediction unless
