@@ -278,6 +278,24 @@ def test_all_false_mask_returns_prediction_with_warning(odometry):
     assert not bool(out.refined.any()) and not bool(out.mask.any())
 
 
+def test_a_mask_of_too_few_pixels_to_estimate_from_is_named_in_the_warning():
+    """Without odometry a sample with fewer usable mask pixels than min_pixels (50 of 100) is left
+    unchanged: the warning gives that reason (it listed an empty mask, an undefined model, a failed
+    estimate and the gate, none of which applied). With odometry such a mask is refined."""
+    pred, mask, cam, _ = make_case(B=2)
+    small = mask.clone()
+    small[1] = False
+    small[1, :, 40:45, 50:60] = True
+    assert int(small[1].sum()) == 50 and bool(mask[1, :, 40:45, 50:60].all())
+    with pytest.warns(RuntimeWarning, match=r"samples \[1\] left unchanged \(an empty mask or one where the model is "
+                      r"undefined, too few mask pixels \(min_pixels\), a failed estimate"):
+        out = FreespaceRefiner(gate=None)(pred, small, cam)
+    assert out.refined.tolist() == [True, False] and torch.equal(out.flow[1], pred[1])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert FreespaceRefiner(gate=None)(pred, small, cam, ODO).refined.tolist() == [True, True]
+
+
 @pytest.mark.parametrize("images", [False, True])
 def test_a_mask_where_the_model_is_undefined_leaves_the_sample_unrefined_given_odometry(images):
     """Once refined True with no warning: with odometry and no gate only a mask pixel was asked for."""

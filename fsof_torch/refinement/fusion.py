@@ -512,8 +512,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
     if gate_result is not None:
         region = usable(region, refined)
     if warn and not tracing() and not bool(refined.all()) and not UNCHANGED_NAMED.get():
-        bad = (~refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined, a "
+        bad, few = (~refined).nonzero().flatten().tolist(), "" if odometry is not None else ", too few mask pixels (min_pixels)"
+        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined{few}, a "
                       f"failed estimate, images without evidence for the model, or a gate that keeps the prediction "
                       f"everywhere: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
 
