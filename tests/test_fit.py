@@ -20,7 +20,7 @@ from fsof_torch.estimation.flow_fit import (
     robust_weight,
 )
 from fsof_torch.estimation.sampling import sample_mask
-from fsof_torch.geometry.road_flow import displacement_flow, velocity_flow
+from fsof_torch.geometry.road_flow import displacement_flow, road_flow, velocity_flow
 from fsof_torch.geometry.road_models import road_homography
 
 SIZE = (64, 160)
@@ -731,7 +731,35 @@ def test_held_roll_and_pitch_start_at_init_else_at_the_camera():
         assert (float(fit.roll), float(fit.pitch)) == (0.005, -0.01), model
     doc = " ".join(fit_road.__doc__.split())
     assert "held at their start (``init``'s value where it gives one, else the default start: the camera's " \
-           "roll / pitch)" in doc
+           "roll / pitch, and 0 for a motion parameter" in doc
     text = " ".join((Path(__file__).resolve().parents[1] / "docs" / "fitting.md").read_text().split())
     assert "held at their start: `init`'s value where `init` gives one, else the default start (for the roll " \
-           "and pitch, the camera's)" in text
+           "and pitch, the camera's; for a motion parameter 0, no motion" in text
+
+
+def test_held_motion_parameters_are_held_at_no_motion_not_at_the_start_guess():
+    """A motion parameter in ``fixed`` without a value in ``init`` is held at the default start, no
+    motion (0), as the roll and pitch are held at the camera's: it was held at the data-driven start
+    (the planar motion or the DLT's decomposition) instead, a value from the flow itself, so that
+    holding it changed nothing (a held y_d came back as the flow's own 0.02 m)."""
+    cam = small_camera(roll=0.01, pitch=-0.015)
+    truth = {"z_d": 1.0, "x_d": 0.03, "yaw": 0.01, "pitch_change": 0.003, "y_d": 0.02}
+    flow, valid = road_flow(cam, truth, SIZE, model="plane")
+    mask = road_mask(valid)
+    cases = [("plane", ("y_d",)), ("plane", ("pitch_change", "roll_change", "y_d")), ("paper", ("yaw", "pitch")),
+             ("paper", ("x_d", "pitch")), ("homography", ("h31", "h32"))]
+    for model, fixed in cases:
+        fit = fit_road(flow, mask, cam, model=model, fixed=fixed)
+        for name in fixed:
+            expected = {"roll": 0.01, "pitch": -0.015}.get(name, 0.0)
+            assert float(fit.params[name]) == expected, (model, name)
+    # the others are fitted with the held value: the plane's flow without vertical motion, exactly
+    flat = {**truth, "y_d": 0.0}
+    flow, valid = road_flow(cam, flat, SIZE, model="plane")
+    fit = fit_road(flow, road_mask(valid), cam, model="plane", fixed=("y_d",))
+    assert bool(fit.success) and float(fit.y_d) == 0.0
+    for name, value in flat.items():
+        assert abs(float(fit.params[name]) - value) < 1e-8, name
+    # a value given in init is held there, as before
+    fit = fit_road(flow, road_mask(valid), cam, model="plane", fixed=("y_d",), init={"y_d": 0.005})
+    assert float(fit.y_d) == 0.005

@@ -485,8 +485,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         model: ``"paper"``, ``"plane"``, ``"homography"`` or ``"velocity"``
             (:data:`~fsof_torch.geometry.road_models.ROAD_MODELS`).
         fixed: names held at their start (``init``'s value where it gives one, else the default
-            start: the camera's roll / pitch); default :data:`DEFAULT_FIXED` (the pitch of
-            the paper's and the velocity model).
+            start: the camera's roll / pitch, and 0 for a motion parameter, not the data's guess);
+            default :data:`DEFAULT_FIXED` (the pitch of the paper's and the velocity model).
         init: a start: a :class:`RoadFit` of the same model or a dict of any of its parameters;
             default: the planar motion of back-projected points (the velocity model: rest).
         prior: ``{name: (mean, sigma)}`` Gaussian priors (the parameters' units), weighed
@@ -556,9 +556,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         _, default = pack_params(model, cam64, None)
         start, given = start_values(model, init, cam64, default)
         coarse = _robust_points(pts, obs, sel, count if max_points is None else None)
-        if not all(given):
+        if not all(kept := [g or n in fixed_names for g, n in zip(given, model.params)]):  # (held: init's or default)
             guess = _initial(model, cam64, K_inv, start, *coarse)
-            start = torch.where(torch.tensor(given, device=flow.device), start, guess)
+            start = torch.where(torch.tensor(kept, device=flow.device), start, guess)
         mean, precision = prior_terms(model, prior, scale, B, torch.float64, flow.device) if prior else (None, None)
         stages = [(robust, float(scale), init is None, _RESOLUTION, checks[0])]
         if polish and robust not in ("tukey", "l2"):
