@@ -440,6 +440,30 @@ def test_pose_conversions_follow_the_inputs_device():
         plane_from_homography(torch.eye(3, dtype=torch.float64)[None], meta_cam)
 
 
+
+def test_pose_conversions_return_the_attitude_as_their_own_tensors():
+    """plane_from_pose and plane_from_homography returned the camera's own roll and pitch tensors
+    (or, for a camera of batch 1 beside a batch, a stride-0 expansion of them): a result edited
+    in place changed the caller's camera, or raised torch's 'more than one element of the
+    written-to tensor refers to a single memory location'. They are copies now, still
+    differentiable in the camera."""
+    for B, cam_batch in ((1, 1), (2, 2), (2, 1)):
+        roll = torch.full((cam_batch,), 0.01, dtype=torch.float64, requires_grad=True)
+        cam = Camera(torch.tensor(K_SMALL, dtype=torch.float64), 1.65, roll, torch.full((cam_batch,), -0.015,
+                                                                                          dtype=torch.float64))
+        T = torch.eye(4, dtype=torch.float64).repeat(B, 1, 1)
+        T[:, 2, 3] = -1.2
+        H = road_homography(cam.expand(B), {"z_d": 1.2}, model="plane").detach()
+        for out in (plane_from_pose(T, cam), plane_from_homography(H, cam)):
+            assert out["roll"].shape == out["pitch"].shape == (B,)
+            sum(out[n].sum() for n in ("roll", "pitch", "z_d")).backward()
+            assert torch.isfinite(roll.grad).all() and float(roll.grad.abs().min()) > 0
+            roll.grad = None
+            with torch.no_grad():
+                out["roll"].add_(0.5)
+                out["pitch"].mul_(2.0)
+            assert cam.roll.tolist() == [0.01] * cam_batch and cam.pitch.tolist() == [-0.015] * cam_batch
+
 # -- plane_from_homography: singular homographies, gradients ------------------------------------------
 
 def test_plane_from_homography_rejects_singular_homographies():

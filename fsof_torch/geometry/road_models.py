@@ -585,12 +585,16 @@ def plane_from_pose(cam1_T_cam0: Tensor, camera: Camera) -> dict[str, Tensor]:
         cam = camera.to(device=T.device, dtype=T.dtype).expand(B)  # (the camera follows the pose)
         Rc = _rotations(torch.stack([cam.roll, cam.pitch], dim=-1), (_ROLL, _PITCH))
         Rc = Rc[:, 0] @ Rc[:, 1]
-        R, t = T[:, :3, :3], T[:, :3, 3:]
-        Rv = Rc.transpose(-1, -2) @ R @ Rc
-        d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
-        a = rotation_angles(Rv)
-    return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
-            "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}
+        return _plane_params(T[:, :3, :3], T[:, :3, 3:], Rc, cam)
+
+
+def _plane_params(R: Tensor, t: Tensor, Rc: Tensor, cam: Camera) -> dict[str, Tensor]:
+    """``"plane"`` parameters of X' = R X + t (B, 3, 3), (B, 3, 1) seen from ``cam``'s attitude R_c
+    (R_v = R_cᵀ R R_c, d = -R_vᵀ R_cᵀ t); its roll and pitch copied, not the caller's tensors."""
+    Rv = Rc.transpose(-1, -2) @ R @ Rc
+    a, d = rotation_angles(Rv), -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
+    return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0], "y_d": d[:, 1],
+            "z_d": d[:, 2], "roll": cam.roll.clone(), "pitch": cam.pitch.clone()}
 
 
 def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
@@ -693,8 +697,4 @@ def _plane_from_homography(H: Tensor, camera: Camera, B: int) -> dict[str, Tenso
     target = torch.cat([r1, torch.linalg.cross(r2, r1, dim=1), r2], dim=2)
     R = _nearest_rotation(target @ Rc.transpose(-1, -2))
     t = cam.height.reshape(B, 1, 1) * ((G @ n) / lam.unsqueeze(-1) - R @ n)
-    Rv = Rc.transpose(-1, -2) @ R @ Rc
-    d = -(Rv.transpose(-1, -2) @ Rc.transpose(-1, -2) @ t).squeeze(-1)
-    a = rotation_angles(Rv)
-    return {"pitch_change": a[:, 0], "yaw": a[:, 1], "roll_change": a[:, 2], "x_d": d[:, 0],
-            "y_d": d[:, 1], "z_d": d[:, 2], "roll": cam.roll, "pitch": cam.pitch}
+    return _plane_params(R, t, Rc, cam)
