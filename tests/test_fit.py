@@ -244,6 +244,21 @@ def test_no_motion_is_fine_with_the_mounting_fixed():
     assert float(fit.z_d.abs()) < 1e-9 and float(fit.residual) < 1e-9
 
 
+def test_no_motion_with_a_prior_on_the_attitude_leaves_it_to_the_prior():
+    """At rest the flow says nothing of the roll: with a prior on it the fit reports it known to
+    the prior's sigma and succeeds, on exact flow as on noisy flow. On exact flow (a flow of 0) it
+    reported +inf variances and failed: the prior's weight in the normal matrix, rounded, swamped
+    the data's, and the posterior's matrix came out indefinite."""
+    cam = small_camera(roll=0.01)
+    flow, valid = displacement_flow(cam, 0.0, 0.0, 0.0, SIZE)
+    noise = 0.3 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+    i = fit_module.ROAD_MODELS["paper"].index("roll")
+    for f in (flow, flow + noise):
+        fit = fit_displacement(f, road_mask(valid), cam, prior={"roll": (0.01, 0.001)})
+        assert bool(fit.success)
+        assert float(fit.covariance[0, i, i].sqrt()) == pytest.approx(0.001, rel=1e-3)
+
+
 # -- cardinality -------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("B", [1, 3])

@@ -696,3 +696,41 @@ def test_16_bit_images_are_sampled_on_a_float32_grid(dtype):
     grid, _ = points_grid(xy, (H, W), dtype)
     assert grid.dtype == torch.float32
     torch.testing.assert_close((grid[0, 0, :, 0].double() + 1) * (W - 1) / 2, xy[0, 0], rtol=0, atol=1e-3)
+
+
+def test_posterior_covariance_of_exact_data_and_the_prior_noise_checked():
+    """Exact data of a line whose slope the points do not see (all within 1e-12 of x = 0): with the
+    prior noise ν the slope's posterior is its prior's σ_p, as with noisy data. With exact data
+    the prior's weight λ in the normal matrix, rounded, swamped the data's JᵀJ of the slope, and
+    the posterior came back +inf on every parameter; it is σ_p now, the intercept known to about
+    1.5e-6 ν at most (σ² is taken at least 1e4 ε ν²). ``prior_noise`` is checked: 0 or NaN gave +inf, a wrong shape or type
+    torch's own errors."""
+    N = 40
+    x = torch.linspace(-1, 1, N, dtype=torch.float64)[None] * 1e-12
+    y = 2.0 * x - 1.0  # (exact)
+    J = torch.stack([x, torch.ones_like(x)], dim=1).unsqueeze(2)
+    use = torch.ones(1, N, dtype=torch.bool)
+
+    def residual(p):
+        return ((p[:, :1] * x + p[:, 1:]) - y).unsqueeze(1), J, use
+
+    nu, sigma_p = 0.3, torch.tensor([[2.0, 5.0]], dtype=torch.float64)
+    sol = solve(ResidualProblem(residual, use.sum(1)), torch.tensor([[2.0, -1.0]], dtype=torch.float64), kernel="l2",
+                prior_mean=torch.tensor([2.0, -1.0], dtype=torch.float64), prior_precision=nu ** 2 / sigma_p.square(),
+                max_iter=5)
+    cov = sol.covariance(nu)[0]
+    assert float(cov[0, 0].sqrt()) == pytest.approx(2.0, rel=1e-3)
+    assert 0 < float(cov[1, 1].sqrt()) <= 1.6e-6 * nu / math.sqrt(N)
+    # ν as a number or a tensor of shape (), (1,) or (B,): the same; anything else is named
+    for same in (torch.tensor(nu, dtype=torch.float64), torch.tensor([nu]), torch.tensor([nu], dtype=torch.float16)):
+        torch.testing.assert_close(sol.covariance(same)[0], cov, rtol=1e-3, atol=0)
+    for bad, error, message in ((0.0, ValueError, r"^prior_noise: expected a positive number \(> 0\), got 0.0"),
+                                (float("nan"), ValueError, r"^prior_noise: expected a finite number, got nan"),
+                                (-0.3, ValueError, r"^prior_noise: expected a positive number"),
+                                ("0.3", TypeError, r"^prior_noise: expected a number, got str '0.3'"),
+                                (torch.tensor([0.3, 0.3]), ValueError,
+                                 r"^prior_noise: expected a number or a tensor of shape \(\), \(1,\) or \(1,\), got "
+                                 r"shape \(2,\)"),
+                                (torch.tensor([True]), TypeError, r"^prior_noise: expected a number or a real tensor")):
+        with pytest.raises(error, match=message):
+            sol.covariance(bad)

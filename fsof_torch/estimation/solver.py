@@ -152,7 +152,12 @@ class Solution:
         the posterior covariance (JᵀWJ / σ² + λ / ν²)⁻¹ instead: the prior keeps its own weight
         where the residuals' variance differs from ν² (without it, the prior's share is scaled
         with the data's, and a parameter that the data leave to the prior is reported as known
-        to σ_p σ / ν).
+        to σ_p σ / ν). ν: a finite number > 0, or a real tensor of shape (), (1,) or (B,) (its
+        values not read: no host read); else a TypeError or ValueError names ``prior_noise``. σ²
+        is taken at least 1e4 ε ν² (ε the dtype's epsilon; σ / ν about 1.5e-6 in float64): with
+        exact data a parameter that the data leave to its prior is still reported as known to
+        σ_p (the prior's weight in the normal matrix, rounded, would otherwise swamp the data's
+        and report +inf), and the others as known to about that fraction of ν.
 
         Where the
         problem is singular (an empty mask, one pixel, one row: the normal matrix's Cholesky
@@ -175,7 +180,10 @@ class Solution:
         A = self.normal
         if prior_noise is not None and self.prior is not None:
             # σ² (JᵀWJ + λ σ² / ν²)⁻¹ = (JᵀWJ / σ² + λ / ν²)⁻¹ (the fixed rows stay the identity's)
-            nu2 = torch.as_tensor(prior_noise, dtype=A.dtype, device=A.device).square().expand(B)
+            nu2 = _checked_noise(prior_noise, B, A).square()
+            # (A's prior rows hold JᵀWJ + λ, λ's rounding beyond JᵀWJ's share where the data barely see
+            # the parameter: λ σ² / ν² must stay above it, or A is indefinite and the result +inf)
+            sigma2 = torch.maximum(sigma2, nu2 * (1e4 * torch.finfo(A.dtype).eps))
             lam = self.prior.to(A.dtype) * (sigma2 / nu2 - 1.0).unsqueeze(-1)
             if self.free is not None:
                 lam = torch.where(self.free.expand(B, P), lam, 0.0)
@@ -191,6 +199,19 @@ class Solution:
                     | ~positive_definite(_unit_diagonal(A), margin) | exact)
         unknown = torch.diag_embed(torch.where(free, math.inf, 0.0).to(cov.dtype))
         return torch.where(singular.reshape(B, 1, 1), unknown, cov)
+
+
+def _checked_noise(noise: object, B: int, like: Tensor) -> Tensor:
+    """:meth:`Solution.covariance`'s ``prior_noise`` as (B,) in ``like``'s dtype and device: a
+    finite number > 0 (checked), or a real tensor of shape (), (1,) or (B,) (its values not read)."""
+    if not isinstance(noise, Tensor):
+        return torch.full((B,), check_number(noise, "prior_noise", positive=True), dtype=like.dtype, device=like.device)
+    if noise.dtype == torch.bool or noise.is_complex():
+        raise TypeError(f"prior_noise: expected a number or a real tensor, got dtype {noise.dtype}")
+    if noise.dim() > 1 or noise.numel() not in (1, B):
+        raise ValueError(f"prior_noise: expected a number or a tensor of shape (), (1,) or ({B},), got shape "
+                         f"{tuple(noise.shape)}")
+    return noise.to(dtype=like.dtype, device=like.device).reshape(-1).expand(B)
 
 
 # Small symmetric positive definite systems by Cholesky and two triangular solves: on the CPU,
