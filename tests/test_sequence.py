@@ -562,6 +562,30 @@ def test_fit_sequence_pairs_that_creep_calibrate_no_attitude():
     assert seq.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
 
 
+def test_fit_sequence_keeping_the_fits_of_an_uncalibrated_clip_with_poses_changes_no_parameter():
+    """A creeping clip with poses: nothing calibrates the attitude (so pass 1 stands), the poses
+    give the height. keep_fits runs pass 1 again for its fits; it ran at the poses' height, where
+    the priors in metres (the vertical motion's 2 cm, the carried motion's 5 cm) weigh otherwise:
+    its z_d differed from keep_fits=False's by up to 0.3 % and its pitch by 1e-5 rad. Now both are
+    pass 1's parameters with the translations rescaled to that height, and the fits hold them."""
+    pairs = render_sequence("body-motion", 2, seed=0, speed=0.04, size=(188, 621))
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    poses = torch.stack([p["pose1"] for p in pairs] + [pairs[-1]["pose2"]])
+    cam = pairs[0]["camera"]
+    kept, lean = (fit_sequence(frames, pairs[0]["road"], cam, poses=poses, max_points=1000, keep_fits=keep)
+                  for keep in (True, False))
+    assert kept.calibrated_from == lean.calibrated_from == 0 and bool(kept.success.all())
+    ratio = kept.mounting["height"] / float(cam.height[0])
+    assert kept.mounting == lean.mounting and abs(ratio - 1) > 0.01
+    for name, first in kept.first_pass.items():
+        metric = first * ratio if name in ("x_d", "y_d", "z_d") else first
+        assert torch.equal(kept.params[name], lean.params[name]), name
+        torch.testing.assert_close(kept.params[name], metric, rtol=1e-6, atol=0)  # (scaled in float32)
+        torch.testing.assert_close(kept.params[name], torch.cat([f.params[name] for f in kept.fits]).double(),
+                                   rtol=1e-6, atol=1e-9)
+    assert all(float(f.camera.height[0]) == pytest.approx(kept.mounting["height"]) for f in kept.fits)
+
+
 def test_fit_sequence_weighs_each_pairs_attitude_by_its_precision():
     """A clip that drives at 12 m/s, then creeps at 0.3 m/s (3 cm a frame: it moves, and its fits'
     attitudes are known to a few tenths of a degree rather than a few hundredths). Averaged alike,

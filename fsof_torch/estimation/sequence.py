@@ -490,12 +490,15 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if passes == 2 and calibrated_from:
         track = _track(raw, ok, attitude_ok, attitude_deg, body_rotation_deg)
         records, fits = run(cam, "smoothed attitude", track, keep=keep_fits)
-    elif passes == 2 and keep_fits:  # nothing calibrated: the first pass again, for its fits
-        records, fits = run(cam, "first pass, kept", keep=True)
-    elif "height" in mounting:  # the first pass's translations, in the metric height's units
-        ratio = mounting["height"] / float(camera.height[0])
-        records = [_PairRecord(_metric(r.params, model, ratio), r.success) for r in first]
-        fits = [_metric_fit(fit, model, ratio, cam.height) for fit in fits]
+    else:
+        if passes == 2 and keep_fits:  # nothing calibrated: the first pass again, for its fits
+            # (with the input camera, as the first pass: at the poses' height the priors in metres
+            # weighed otherwise, and the parameters differed from those of keep_fits=False)
+            records, fits = run(camera, "first pass, kept", keep=True)
+        if "height" in mounting:  # the first pass's translations, in the metric height's units
+            ratio = mounting["height"] / float(camera.height[0])
+            records = [_PairRecord(_metric(r.params, model, ratio), r.success) for r in records]
+            fits = [_metric_fit(fit, model, ratio, cam.height) for fit in fits]
     success = torch.tensor([r.success for r in records], device=dev)
     # (a detached copy: results are detached, and not the caller's camera's storage)
     cam = Camera._checked(*(t.detach().clone() for t in (cam.K, cam.height, cam.roll, cam.pitch)))
