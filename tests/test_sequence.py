@@ -3,6 +3,7 @@ attitude track; a lazy clip read a pair at a time, with the results of a list of
 smooth_attitude against an independent least-squares solution and a dense solve."""
 
 import math
+import re
 import weakref
 
 import numpy as np
@@ -377,9 +378,15 @@ def test_fit_sequence_errors(body_motion_clip):
     with pytest.raises(TypeError, match=r"^mask: expected a bool tensor \(1, H, W\) or a sequence of them, got "
                                         rf"ndarray of shape \(1, {H}, {W}\)$"):
         fit_sequence(frames[:3], road.numpy(), cam)
-    with pytest.raises(ValueError, match=r"frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) \(an image\), "
-                                          r"got \(2, 3, "):
+    with pytest.raises(ValueError, match=r"frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) with C 1 or 3 "
+                                          r"\(an image\), got \(2, 3, "):
         fit_sequence([torch.stack([f, f]) for f in frames[:3]], road, cam)
+    # an RGBA frame (or one (H, W, 3)) has the shape (C, H, W): the message said no more
+    rgba, hwc = [torch.cat([f, torch.full_like(f[:1], 255)]) for f in frames[:3]], [f.permute(1, 2, 0) for f in frames[:3]]
+    for bad in (rgba, hwc):
+        with pytest.raises(ValueError, match=r"^frames\[0\]: expected shape \(C, H, W\) or \(1, C, H, W\) with C 1 "
+                                             rf"or 3 \(an image\), got {re.escape(str(tuple(bad[0].shape)))}$"):
+            fit_sequence(bad, road, cam)
     with pytest.raises(ValueError, match=rf"frames\[1\]: expected shape \(3, {H}, {W}\)"):
         fit_sequence([frames[0], frames[1][..., :-8], frames[2]], road, cam)
     with pytest.raises(ValueError, match=rf"mask: expected shape \(1, {H}, {W}\) or \(1, 1, {H}, {W}\)"):

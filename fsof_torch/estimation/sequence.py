@@ -255,7 +255,9 @@ def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tupl
             or (size is not None and tuple(y.shape[-2:]) != size)):
         c = "C" if len(channels) > 1 else str(channels[0])
         hw = "H, W" if size is None else f"{size[0]}, {size[1]}"
-        raise ValueError(f"{name}: expected shape ({c}, {hw}) or (1, {c}, {hw}) ({what}), got {tuple(x.shape)}")
+        # (the channels a C stands for: a 4-channel RGBA frame, or an (H, W, 3) one, has the shape (C, H, W))
+        among = f" with C {' or '.join(map(str, channels))}" if len(channels) > 1 else ""
+        raise ValueError(f"{name}: expected shape ({c}, {hw}) or (1, {c}, {hw}){among} ({what}), got {tuple(x.shape)}")
     return y
 
 
