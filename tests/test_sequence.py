@@ -288,6 +288,9 @@ def test_fit_sequence_second_pass_starts_at_the_smoothed_track(body_motion_clip,
             mean, std = prior[name]
             assert float(mean) == pytest.approx(float(track[k]), abs=1e-12)
             assert float(std) == pytest.approx(float(sigma[k]), rel=1e-6)
+            mean, std = prior[name + "_change"]  # (the change: not the track's σ, the smoothing's)
+            assert float(mean) == pytest.approx(float(track[k + 1] - track[k]), abs=1e-12)
+            assert float(std) == pytest.approx(0.1 * 0.3 * deg, rel=1e-12)
             assert float(seq.params[name][k]) == pytest.approx(float(params[name][0]), abs=1e-12)
         assert not torch.equal(seq.params[name], seq.first_pass[name])
 

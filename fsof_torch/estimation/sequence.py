@@ -28,7 +28,8 @@ without it: a dropped frame, a repeated one). Then:
    changes (well measured) tying the noisy absolute attitudes together. A pair that does not
    move measures its change (a rotation) but not its attitude.
 3. **Second pass.** Every pair is fitted again, started at the smoothed track and tied to it by a
-   prior of the track's own uncertainty (its attitude and attitude change); its translation and
+   prior: its attitude by the track's own uncertainty there, its attitude change by a tenth of
+   ``body_rotation_deg`` (the changes' uncertainty in the smoothing); its translation and
    yaw are started from (and, where that pair succeeded and moved, loosely tied to) the previous
    pair's motion.
 
