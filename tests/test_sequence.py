@@ -96,6 +96,8 @@ def test_smooth_attitude_ignores_infinite_sigma():
     ((torch.zeros(3), torch.zeros(3), torch.ones(2), 1.0), ValueError, r"^attitude_sigma: expected a number or a ten"),
     ((torch.zeros(3), torch.zeros(3), True, 1.0), TypeError, r"^attitude_sigma: expected a number"),
     ((torch.tensor([0.0, math.nan, 0.0]), torch.zeros(3), 1.0, 1.0), ValueError, r"^attitude: expected finite values"),
+    # no pair: a track of one frame that nothing measures (it came back 0 ± 1e6 rad)
+    ((torch.zeros(0), torch.zeros(0), 1.0, 1.0), ValueError, r"^attitude: expected at least one value \(one per pair\)"),
 ])
 def test_smooth_attitude_refuses_bad_input(args, error, match):
     with pytest.raises(error, match=match):

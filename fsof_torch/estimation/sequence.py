@@ -121,6 +121,8 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
         if x.dim() != 1:
             raise ValueError(f"{name}: expected a 1-D tensor (one value per pair), got shape {tuple(x.shape)}")
     N = attitude.shape[0]
+    if N == 0:  # (the track of one frame that nothing measures: it came back 0 ± 1e6 rad)
+        raise ValueError("attitude: expected at least one value (one per pair), got none")
     if change.shape[0] != N:
         raise ValueError(f"change: expected {N} values (attitude's), got {change.shape[0]}")
     dt = torch.float64
@@ -140,7 +142,7 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
         if not bool(torch.isfinite(w).all()):  # (1 / σ² beyond float64's range: the track came back NaN)
             raise ValueError(f"{name}: expected values whose 1 / σ² is finite in float64 (about 1.3e-154 and "
                              f"above), got {sigma.min().item()!r}")
-    if N and not bool((wa > 0).any()):  # (the changes alone fix the track up to a constant: singular)
+    if not bool((wa > 0).any()):  # (the changes alone fix the track up to a constant: singular)
         raise ValueError(f"attitude_sigma: expected at least one value whose 1 / σ² is > 0 in float64 (an attitude "
                          f"that counts: the changes alone fix the track only up to a constant), got smallest "
                          f"{sigmas[0].min().item()!r}")
