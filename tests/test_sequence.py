@@ -71,6 +71,54 @@ def test_smooth_attitude_matches_a_dense_solve(seed):
     torch.testing.assert_close(sigma, std, rtol=1e-10, atol=0)
 
 
+def _exact_smooth(att, chg, sa, sc):
+    """smooth_attitude's least squares (with its 1e-12 ridge) solved in exact rational arithmetic
+    (Gauss–Jordan on the normal equations with the identity beside them): the track and the square
+    roots of the inverse's diagonal, rounded to float once at the end."""
+    from fractions import Fraction
+
+    N = len(att)
+    n = N + 1
+    wa, wc = [1 / Fraction(s) ** 2 for s in sa], [1 / Fraction(s) ** 2 for s in sc]
+    A = [[Fraction(0)] * n for _ in range(n)]
+    b = [Fraction(0)] * n
+    for k in range(N):
+        A[k][k] += wa[k]
+        b[k] += wa[k] * Fraction(att[k])
+        for i, j, sign in ((k, k, 1), (k + 1, k + 1, 1), (k, k + 1, -1), (k + 1, k, -1)):
+            A[i][j] += sign * wc[k]
+        b[k] -= wc[k] * Fraction(chg[k])
+        b[k + 1] += wc[k] * Fraction(chg[k])
+    M = [A[i] + [b[i]] + [Fraction(int(i == j)) for j in range(n)] for i in range(n)]
+    for i in range(n):
+        M[i][i] += Fraction(1e-12)
+    for i in range(n):
+        M[i] = [v / M[i][i] for v in M[i]]
+        for j in range(n):
+            if j != i and M[j][i]:
+                M[j] = [v - M[j][i] * w for v, w in zip(M[j], M[i])]
+    return (torch.tensor([float(M[i][n]) for i in range(n)], dtype=torch.float64),
+            torch.tensor([float(M[i][n + 1 + i]) for i in range(n)], dtype=torch.float64).sqrt())
+
+
+@pytest.mark.parametrize("change_sigma", [1e-3, 1e-6, 1e-8, 1e-10, 1e-13])
+def test_smooth_attitude_is_exact_however_much_the_changes_outweigh_the_attitudes(change_sigma):
+    """Attitudes within 1° and changes known to ``change_sigma`` rad: the textbook LDLᵀ recurrence
+    cancelled, its pivot the difference of two numbers of the changes' weight. At 1e-8 rad the track
+    was 1e-6 rad off the exact solution (its σ 3e-4 relatively), at 1e-10 rad the last pivot came out
+    0, a ZeroDivisionError. Against the exact rational solve, to float64's rounding."""
+    rng = np.random.default_rng(3)
+    N = 8
+    att, chg = rng.normal(0, 0.01, N), rng.normal(0, 0.001, N)
+    sa, sc = [math.radians(1.0)] * N, [change_sigma] * N
+    want, want_sigma = _exact_smooth(att, chg, sa, sc)
+    f64 = dict(dtype=torch.float64)
+    track, sigma = smooth_attitude(torch.tensor(att, **f64), torch.tensor(chg, **f64), torch.tensor(sa, **f64),
+                                   torch.tensor(sc, **f64))
+    torch.testing.assert_close(track, want, rtol=0, atol=1e-15)
+    torch.testing.assert_close(sigma, want_sigma, rtol=1e-13, atol=0)
+
+
 def test_smooth_attitude_ignores_infinite_sigma():
     att = torch.tensor([0.0, 5.0, 0.0], dtype=torch.float64)  # the middle one is an outlier
     chg = torch.zeros(3, dtype=torch.float64)
@@ -550,6 +598,35 @@ def test_fit_sequence_pairs_that_do_not_move_calibrate_no_attitude(body_motion_c
     assert bool(still.success.all()) and still.calibrated_from == 0
     assert still.mounting == {"roll": float(cam.roll[0]), "pitch": float(cam.pitch[0])}
     assert len(sigmas) == 2
+
+
+def test_fit_sequence_takes_changes_known_far_better_than_the_attitudes(monkeypatch):
+    """body_rotation_deg=1e-9 (the body's pitch and roll change held all but rigid) stopped the clip
+    after its first pass with a ZeroDivisionError in the track's solve, and attitude_deg=1e100 with
+    torch's RuntimeError "value cannot be converted to type float without overflow" (its σ made a
+    float32 tensor first). The track now follows the measured changes, and the σ are float64's."""
+    import fsof_torch.estimation.sequence as sequence
+
+    pairs = render_sequence("body-motion", 3, seed=0, size=(94, 310))
+    frames = [p["image1"] for p in pairs] + [pairs[-1]["image2"]]
+    calls = []
+
+    def spy(attitude, change, attitude_sigma, change_sigma):
+        out = smooth_attitude(attitude, change, attitude_sigma, change_sigma)
+        calls.append((change, attitude_sigma, change_sigma, out[0]))
+        return out
+
+    monkeypatch.setattr(sequence, "smooth_attitude", spy)
+    for options in (dict(attitude_deg=1e100), dict(body_rotation_deg=1e-9)):
+        calls.clear()
+        seq = fit_sequence(frames, pairs[0]["road"], pairs[0]["camera"], keep_fits=False, max_points=800, **options)
+        assert seq.calibrated_from == 3 and bool(seq.success.all()) and len(calls) == 2
+        for change, attitude_sigma, change_sigma, track in calls:
+            assert attitude_sigma.dtype == change_sigma.dtype == torch.float64
+            assert float(attitude_sigma[0]) == math.radians(options.get("attitude_deg", 1.0))
+            assert float(change_sigma[0]) == 0.1 * options.get("body_rotation_deg", 0.3) * (math.pi / 180)
+            if "body_rotation_deg" in options:  # (σ_c 1.7e-12 rad: the track steps by the changes)
+                torch.testing.assert_close(track.diff(), change, rtol=0, atol=1e-11)
 
 
 def test_fit_sequence_pairs_that_creep_calibrate_no_attitude():

@@ -113,7 +113,10 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     The normal equations are tridiagonal (each term ties at most two neighbouring frames), so the
     track and the diagonal of its covariance take O(N) time and memory: an LDLᵀ factorisation,
     forward and back substitution, and the covariance's diagonal by the backward recursion
-    Σ_kk = 1 / D_k + l_k² Σ_{k+1,k+1} (a sum of positive terms: no cancellation).
+    Σ_kk = 1 / D_k + l_k² Σ_{k+1,k+1}. None of them cancels, however much more the changes weigh
+    than the attitudes: the pivots D_k are sums of positive terms, and the track is solved as the
+    changes' running sum plus a smooth part (whose right-hand side holds the attitudes' residuals
+    from that sum, not 1 / σ_c² · change).
 
     Returns the track (N + 1,) and its standard deviations (N + 1,) (float64)."""
     for name, x in (("attitude", attitude), ("change", change)):
@@ -152,30 +155,36 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
         if not bool(torch.isfinite(x[w > 0]).all()):
             raise ValueError(f"{name}: expected finite values where the sigma is finite, got {x.tolist()}")
     att, chg = torch.where(wa > 0, att, 0.0), torch.where(wc > 0, chg, 0.0)
-    # the matrix: diagonal `diag` (N + 1,), off-diagonal −wc (N,); (a_{k+1} − a_k − c_k)² wc adds
-    # the 2 × 2 block [[1, −1], [−1, 1]] wc. A tiny ridge keeps a frame no measurement reaches
-    # (all its σ infinite) solvable.
-    diag = torch.zeros(N + 1, dtype=dt, device="cpu")
-    diag[:N] += wa
-    diag[:N] += wc
-    diag[1:] += wc
-    diag += 1e-12
-    b = torch.zeros(N + 1, dtype=dt, device="cpu")
-    b[:N] += wa * att
-    b[:N] -= wc * chg
-    b[1:] += wc * chg
-    a, e, rhs = diag.tolist(), (-wc).tolist(), b.tolist()
-    # A = L D Lᵀ, L unit lower bidiagonal with L[k+1, k] = l_k; forward substitution alongside
-    D, l, y = [a[0]], [], [rhs[0]]
+    # the track as the changes' sum p (p_0 = 0, p_{k+1} = p_k + c_k) plus a smooth part z, a = p + z: z
+    # minimises Σ wa_k (z_k + p_k − attitude_k)² + Σ wc_k (z_{k+1} − z_k)² (+ a tiny ridge on a, which keeps
+    # a frame no measurement reaches, all its σ infinite, solvable). Its matrix: the diagonal wa (none at
+    # the last frame) and the ridge, plus the changes' Laplacian (each wc_k adds the 2 × 2 block
+    # [[1, −1], [−1, 1]] wc_k), the off-diagonal −wc (N,); its right-hand side holds no wc · c term.
+    ridge = 1e-12
+    w_a, w_c, measured = wa.tolist() + [0.0], wc.tolist(), att.tolist() + [0.0]
+    p = [0.0]
+    for c in chg.tolist():
+        p.append(p[-1] + c)
+    rhs = [w_a[k] * (measured[k] - p[k]) - ridge * p[k] for k in range(N + 1)]
+    # A = L D Lᵀ, L unit lower bidiagonal with L[k+1, k] = l_k = −wc_k / D_k; forward substitution
+    # alongside. D_k = wc_k + s_k, s_k (what frame k holds beyond its tie to the next) a sum of positive
+    # terms: s_{k+1} = wa_{k+1} + ridge + wc_k s_k / (wc_k + s_k). (The textbook D_{k+1} = A_{k+1,k+1} −
+    # wc_k² / D_k, and a right-hand side of wc · c terms, cancel: with σ_a 1° and σ_c 1e-8 rad the track
+    # was about 1e-6 rad off, with σ_c 1e-10 rad D came out 0, a ZeroDivisionError.)
+    s = w_a[0] + ridge
+    D, l, y = [], [], [rhs[0]]
     for k in range(N):
-        l.append(e[k] / D[k])
-        D.append(a[k + 1] - l[k] * e[k])
+        D.append(w_c[k] + s)
+        l.append(-w_c[k] / D[k])
         y.append(rhs[k + 1] - l[k] * y[k])
-    x, var = [0.0] * (N + 1), [0.0] * (N + 1)
-    x[N], var[N] = y[N] / D[N], 1.0 / D[N]
+        s = w_a[k + 1] + ridge + (s / (1.0 + s / w_c[k]) if w_c[k] > 0 else 0.0)
+    D.append(s)
+    z, var = [0.0] * (N + 1), [0.0] * (N + 1)
+    z[N], var[N] = y[N] / D[N], 1.0 / D[N]
     for k in range(N - 1, -1, -1):
-        x[k] = y[k] / D[k] - l[k] * x[k + 1]
+        z[k] = y[k] / D[k] - l[k] * z[k + 1]
         var[k] = 1.0 / D[k] + l[k] * l[k] * var[k + 1]
+    x = [p_k + z_k for p_k, z_k in zip(p, z)]
     device = attitude.device
     return torch.tensor(x, dtype=dt, device=device), torch.tensor(var, dtype=dt, device=device).sqrt()
 
@@ -547,7 +556,10 @@ def _track(params: dict[str, Tensor], ok: Tensor, attitude_ok: Tensor, attitude_
     """Smoothed roll and pitch tracks (N + 1,) with their standard deviations; failed pairs do
     not count, and the attitudes only of the pairs in ``attitude_ok`` (those that move; a still
     pair's rotation, its attitude change, is measured all the same)."""
-    sa = torch.where(attitude_ok, attitude_deg * DEG, math.inf).double()
+    # (in float64 from the start: a number made a float32 tensor first, and a σ beyond float32's range
+    # was torch's RuntimeError "value cannot be converted to type float without overflow")
+    f64 = dict(dtype=torch.float64, device=ok.device)
+    sa = torch.where(attitude_ok, torch.tensor(attitude_deg * DEG, **f64), math.inf)
     # the changes are measured far better than the attitudes; a failed pair's change says nothing
-    sc = torch.where(ok, 0.1 * body_rotation_deg * DEG, 10 * body_rotation_deg * DEG).double()
+    sc = torch.where(ok, torch.tensor(0.1 * body_rotation_deg * DEG, **f64), 10 * body_rotation_deg * DEG)
     return {n: smooth_attitude(params[n], params[n + "_change"], sa, sc) for n in ("roll", "pitch")}
