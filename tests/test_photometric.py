@@ -71,27 +71,45 @@ def test_public_names():
 
 
 
-def test_to_grey_is_kornias_luma_for_rgb_and_the_image_itself_for_one_channel():
+def _luma_reference(rgb: torch.Tensor) -> torch.Tensor:
+    """ITU-R 601 luma written out: r w_r, then + g w_g, then + b w_b, each weight rounded to the
+    image's dtype (kornia 0.9's order of rounding)."""
+    w = [torch.tensor(v, dtype=rgb.dtype) for v in (0.299, 0.587, 0.114)]
+    r, g, b = rgb[:, 0:1], rgb[:, 1:2], rgb[:, 2:3]
+    return torch.addcmul(torch.addcmul(r * w[0], g, w[1]), b, w[2])
+
+
+def _kornia_rounds_as_written() -> bool:
+    """kornia >= 0.9 rounds r w_r + g w_g + b w_b as the reference does (0.8 adds three products)."""
+    import kornia
+
+    return tuple(int(p) for p in kornia.__version__.split(".")[:2]) >= (0, 9)
+
+
+def test_to_grey_is_the_luma_for_rgb_and_the_image_itself_for_one_channel():
     from kornia.color import rgb_to_grayscale
 
     rgb = torch.rand(2, 3, 5, 7, generator=torch.Generator().manual_seed(0)) * 255
-    assert torch.equal(to_grey(rgb), rgb_to_grayscale(rgb))
+    assert torch.equal(to_grey(rgb), _luma_reference(rgb))
     weights = torch.tensor([0.299, 0.587, 0.114]).reshape(1, 3, 1, 1)
     assert torch.allclose(to_grey(rgb), (rgb * weights).sum(1, keepdim=True), atol=1e-4)
+    # kornia's: bit for bit where it rounds in the same order, else to float32's rounding
+    if _kornia_rounds_as_written():
+        assert torch.equal(to_grey(rgb), rgb_to_grayscale(rgb))
+    torch.testing.assert_close(to_grey(rgb), rgb_to_grayscale(rgb), rtol=1e-6, atol=1e-4)
     grey = rgb[:, :1]
     assert to_grey(grey) is grey
     assert torch.equal(to_grey(rgb[:, :2]), rgb[:, :2].mean(1, keepdim=True))
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16, torch.float16])
-def test_to_grey_in_place_is_kornias_bit_for_bit(dtype):
-    """The in-place conversion (no autograd) gives kornia's values exactly, in every floating
-    dtype and memory layout, and writes into ``out`` (one channel of a pair's tensor) without
-    touching the rest; with autograd it is kornia's own, with its graph."""
-    from kornia.color import rgb_to_grayscale
-
+def test_to_grey_in_place_and_with_autograd_round_the_same(dtype):
+    """The in-place conversion (no autograd) and the one with autograd give the written luma
+    exactly, in every floating dtype and memory layout (whichever kornia is installed: kornia 0.8
+    rounds otherwise, and refuses bfloat16), and ``out`` (one channel of a pair's tensor) is
+    written without touching the rest."""
     rgb = (torch.rand(2, 3, 9, 13, generator=torch.Generator().manual_seed(1)) * 255).to(dtype)
-    expected = rgb_to_grayscale(rgb)
+    expected = _luma_reference(rgb)
     assert torch.equal(to_grey(rgb), expected)
     assert torch.equal(to_grey(rgb.to(memory_format=torch.channels_last)), expected)
     pair = torch.full((2, 2, 9, 13), 7.0, dtype=dtype)
@@ -99,11 +117,40 @@ def test_to_grey_in_place_is_kornias_bit_for_bit(dtype):
     assert to_grey(rgb, out=pair[:, 1:]).data_ptr() == pair[:, 1:].data_ptr()
     assert torch.equal(pair[:, 1:], expected) and bool((pair[:, 0] == 7).all())
     assert torch.equal(rgb, before)
-    with_grad = rgb.float().requires_grad_()
+    with_grad = rgb.clone().requires_grad_()
     grey = to_grey(with_grad)
-    assert grey.requires_grad and torch.equal(grey, rgb_to_grayscale(with_grad))
+    assert grey.requires_grad and grey.dtype == dtype and torch.equal(grey.detach(), expected)
+    grey.sum().backward()  # d grey / d channel: the weights, as rounded
+    w = torch.tensor([0.299, 0.587, 0.114], dtype=dtype).reshape(1, 3, 1, 1)
+    assert torch.equal(with_grad.grad, w.expand_as(rgb))
     with pytest.raises(ValueError, match="out: not supported"):
-        to_grey(with_grad, out=torch.empty(2, 1, 9, 13))
+        to_grey(with_grad, out=torch.empty(2, 1, 9, 13, dtype=dtype))
+    if _kornia_rounds_as_written():
+        from kornia.color import rgb_to_grayscale
+
+        assert torch.equal(expected, rgb_to_grayscale(rgb))
+
+
+def test_to_grey_of_uint8_rgb_is_opencvs_bit_for_bit():
+    """A uint8 RGB image: cv2.cvtColor's COLOR_RGB2GRAY exactly (kornia 0.8 multiplied in uint8,
+    which wraps: white came back as 1), also into ``out``; other integer images are refused."""
+    import cv2
+
+    gen = torch.Generator().manual_seed(2)
+    rgb = torch.randint(0, 256, (2, 3, 11, 17), generator=gen, dtype=torch.uint8)
+    rgb[0, :, 0, :8] = torch.tensor([[255, 0, 0, 0, 255, 128, 1, 254], [255, 255, 0, 0, 0, 128, 1, 254],
+                                     [255, 0, 255, 0, 0, 128, 1, 254]], dtype=torch.uint8)
+    expected = torch.stack([torch.from_numpy(cv2.cvtColor(np.ascontiguousarray(im.permute(1, 2, 0).numpy()),
+                                                          cv2.COLOR_RGB2GRAY)) for im in rgb]).unsqueeze(1)
+    grey = to_grey(rgb)
+    assert grey.dtype == torch.uint8 and torch.equal(grey, expected)
+    assert grey[0, 0, 0, :8].tolist() == [255, 150, 29, 0, 76, 128, 1, 254]  # white, green, blue, black, red
+    out = torch.zeros(2, 1, 11, 17, dtype=torch.uint8)
+    assert to_grey(rgb, out=out) is out and torch.equal(out, expected)
+    assert to_grey(rgb[:, :1]) is not None and torch.equal(to_grey(rgb[:, :1]), rgb[:, :1])
+    for bad in (rgb.to(torch.int16), rgb[:, :2], torch.zeros(1, 3, 4, 4, dtype=torch.bool)):
+        with pytest.raises(TypeError, match=r"^image: expected a floating-point image, or a uint8 one of 1 or 3"):
+            to_grey(bad)
 
 
 def test_module_twin():

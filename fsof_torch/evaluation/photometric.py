@@ -63,21 +63,28 @@ __all__ = ["REPORTED_KINDS", "photometric_error", "photometric_error_map", "phot
 _KINDS = ("l1", "ssim", "census", "soft_census")
 #: the kinds to report side by side (DESIGN.md §6): L1 alone ranks wrong flows first on real images
 REPORTED_KINDS = ("l1", "ssim", "census")
-#: ITU-R BT.601 luma weights (R, G, B), kornia's ``rgb_to_grayscale``
+#: ITU-R BT.601 luma weights (R, G, B), kornia's ``rgb_to_grayscale``'s and OpenCV's
 _LUMA = (0.299, 0.587, 0.114)
 
 
 def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
-    """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB, kornia's
-    ``rgb_to_grayscale``), the image itself for C = 1 (not a copy), the mean otherwise.
+    """(B, C, H, W) -> (B, 1, H, W): ITU-R 601 luma for C = 3 (taken as RGB), the image itself
+    for C = 1 (not a copy), the mean otherwise.
+
+    A floating RGB image: ``r w_r + g w_g + b w_b``, rounded in that order (a product, then two
+    ``addcmul``), as kornia's ``rgb_to_grayscale`` does since kornia 0.9: the same values bit for
+    bit, with or without autograd, whichever kornia is installed (kornia 0.8 adds three products,
+    which rounds differently, and refuses bfloat16). A uint8 RGB image: OpenCV's fixed-point
+    ``COLOR_RGB2GRAY`` (the weights × 2¹⁵, rounded), as ``cv2.cvtColor`` and kornia 0.9 give it.
+    Other integer images: a TypeError, but for one channel.
 
     ``out``: a (B, 1, H, W) tensor of the image's dtype to write the grey image into (such as
     one channel of a pair's tensor), returned; not with autograd.
 
-    A floating RGB image without autograd is converted with kornia's operations in place, into
-    one tensor (kornia's three each allocate a full-size one): the same values bit for bit. Both
-    frames of a KITTI-size pair, written into one tensor: 0.8–1.1 ms against 1.5–1.6 ms for
-    kornia's and a concatenation (``python benchmarks/bench_image_fit.py``).
+    Without autograd the floating conversion runs in place, into one tensor (kornia's three
+    steps each allocate a full-size one). Both frames of a KITTI-size pair, written into one
+    tensor: 0.8–1.1 ms against 1.5–1.6 ms for kornia's and a concatenation
+    (``python benchmarks/bench_image_fit.py``).
     """
     if not isinstance(image, Tensor):
         raise TypeError(f"image: expected a tensor, got {type(image).__name__}")
@@ -90,23 +97,29 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
         check_shape(out, "out", ("B", 1, "H", "W"), dims)
         if out.dtype != image.dtype:
             raise TypeError(f"out: expected the image's dtype {image.dtype}, got {out.dtype}")
-    if image.shape[1] == 3 and image.is_floating_point() and not grad:
-        # kornia's weights (rounded to the image's dtype, as 0-dim tensors: usable with an image
-        # on any device) and its order: r w_r, then + g w_g and + b w_b (addcmul), so the same
-        # rounding
+    C = image.shape[1]
+    if C == 1:
+        grey = image
+    elif C == 3 and image.dtype == torch.uint8:
+        # OpenCV's fixed point: 0.299, 0.587 and 0.114 times 2**15, summing to 2**15 (a flat grey
+        # maps to itself), accumulated in int32 and rounded back
+        r, g, b = image.to(torch.int32).unbind(dim=1)
+        grey = ((r * 9798 + g * 19235 + b * 3735 + 16384) >> 15).to(torch.uint8).unsqueeze(1)
+    elif not image.is_floating_point():
+        raise TypeError(f"image: expected a floating-point image, or a uint8 one of 1 or 3 channels, got dtype "
+                        f"{image.dtype} with {C} channels")
+    elif C == 3:
+        # the weights rounded to the image's dtype (0-dim tensors: usable with an image on any
+        # device), and one order of rounding: r w_r, then + g w_g and + b w_b (addcmul)
         w_r, w_g, w_b = torch.tensor(_LUMA, dtype=image.dtype).unbind()
         r, g, b = image.unbind(dim=1)
+        if grad:
+            return (r * w_r).addcmul(g, w_g).addcmul(b, w_b).unsqueeze(1)
         grey = torch.empty_like(r).unsqueeze(1) if out is None else out
         plane = grey[:, 0]
         torch.mul(r, w_r, out=plane)
         plane.addcmul_(g, w_g).addcmul_(b, w_b)
         return grey
-    if image.shape[1] == 3:
-        from kornia.color import rgb_to_grayscale
-
-        grey = rgb_to_grayscale(image)
-    elif image.shape[1] == 1:
-        grey = image
     else:
         grey = image.mean(dim=1, keepdim=True)
     if out is None:
