@@ -539,8 +539,10 @@ def turn_homography(camera: Any, yaw_deg: float, pitch_deg: float = 0.0,
                     roll_deg: float = 0.0) -> tuple[torch.Tensor, torch.Tensor]:
     """The homography K Rᵀ K⁻¹ (float64) that maps a frame's pixels to those of the camera turned by
     ``yaw_deg`` about the road's normal, then by ``pitch_deg`` and ``roll_deg`` about the car's
-    lateral and forward axes (``camera``'s mounting gives the axes), and the rotation R."""
-    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+    lateral and forward axes (``camera``'s mounting gives the axes), and the rotation R. Each
+    turn is the exponential of its axis-angle's skew matrix (exact to float64's rounding: kornia
+    0.8's axis_angle_to_rotation_matrix divides by the angle plus 1e-6, a rotation 1e-5 off)."""
+    from kornia.geometry.conversions import vector_to_skew_symmetric_matrix
 
     from fsof_torch.geometry.camera import mounting_matrix
 
@@ -549,7 +551,7 @@ def turn_homography(camera: Any, yaw_deg: float, pitch_deg: float = 0.0,
     # the car's axes in the camera: lateral, down (the road's normal) and forward
     axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
     angles = torch.tensor([pitch_deg, yaw_deg, roll_deg], dtype=torch.float64).deg2rad()
-    Rs = axis_angle_to_rotation_matrix(axes * angles.unsqueeze(-1))
+    Rs = torch.linalg.matrix_exp(vector_to_skew_symmetric_matrix(axes * angles.unsqueeze(-1)))
     R = Rs[1] @ Rs[0] @ Rs[2]
     return K @ R.T @ torch.linalg.inv(K), R
 

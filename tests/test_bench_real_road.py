@@ -920,15 +920,19 @@ def _brute_window(defined):
 def test_turned_window_is_the_largest_defined_one_cut_row_by_row(rr, pair, turn):
     """A turn bends the top and bottom rows by fractions of a pixel: the window cuts the rows that
     need it, one by one (a turn of 0.001° costs a row at each end, not a twentieth of the frame)."""
-    from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-
     from fsof_torch.geometry.camera import mounting_matrix
 
     cam = pair["camera"].to(torch.float64)
     K = cam.K.reshape(-1, 3, 3)[0]
     axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
-    Rs = axis_angle_to_rotation_matrix(axes * torch.tensor([turn[1], turn[0], turn[2]], dtype=torch.float64)
-                                       .deg2rad().unsqueeze(-1))
+
+    def rodrigues(axis: torch.Tensor, degrees: float) -> torch.Tensor:  # about a unit axis
+        N = torch.tensor([[0.0, -axis[2], axis[1]], [axis[2], 0.0, -axis[0]], [-axis[1], axis[0], 0.0]],
+                         dtype=torch.float64)
+        a = math.radians(degrees)
+        return torch.eye(3, dtype=torch.float64) + math.sin(a) * N + (1 - math.cos(a)) * N @ N
+
+    Rs = [rodrigues(axes[i], turn[j]) for i, j in ((0, 1), (1, 0), (2, 2))]
     H = K @ (Rs[1] @ Rs[0] @ Rs[2]).T @ torch.linalg.inv(K)
     rows, cols = SIZE
     v, u = torch.meshgrid(torch.arange(rows, dtype=torch.float64), torch.arange(cols, dtype=torch.float64),

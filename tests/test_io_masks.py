@@ -437,7 +437,8 @@ class TestPolygonJson:
             rasterize_polygons([[[0, 0], [9, 0], [-(10 ** 400), 9]]], (10, 10))
         digits = "1" * 5000
         (tmp_path / "r.json").write_text('{"size": [10, 10], "road_polygon": [[0, 0], [9, 0], [' + digits + ', 9]]}')
-        with pytest.raises(ValueError, match=r"^path: '.*r\.json' is not valid JSON: .*4300 digits"):
+        with pytest.raises(ValueError, match=r"^path: '.*r\.json' is not valid JSON: .*\(4300( digits)?\)"):
+            # (Python 3.10 words it "the limit (4300)", 3.11 "the limit (4300 digits)")
             read_road_mask(tmp_path / "r.json")
 
     def test_folder_in_place_of_the_file(self, tmp_path):
