@@ -348,6 +348,12 @@ class TestOdometryFrames:
             ("000000.png", "000001.png"), ("000001.png", "000002.png"), ("000002.png", "000003.png")]
         assert [ds[i]["odometry"]["z_d"] for i in range(3)] == pytest.approx([1.0, 1.0, 1.0])
 
+    def test_image_dir_that_is_no_path_is_named(self, tmp_path):
+        """image_dir=5 raised Python's "unsupported operand type(s) for /: 'PosixPath' and 'int'"."""
+        root = _odometry_clip(tmp_path / "odo", ["000000", "000001"])
+        with pytest.raises(TypeError, match=r"^image_dir: expected a file path \(str or os.PathLike\), got int 5$"):
+            KittiOdometryDataset(root, image_dir=5)
+
 
 class TestShared:
     def test_kitti15_sample(self, shared_data):

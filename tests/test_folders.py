@@ -645,3 +645,42 @@ def test_a_file_argument_linked_to_a_missing_file_says_so(clip, tmp_path, what, 
     with pytest.raises(FileNotFoundError, match=rf"^{what}: '.*{file}' is a symbolic link to '.*unmounted/{file}', "
                                                 r"which does not exist"):
         ImageFolderDataset(root / "images", **{what: link})
+
+
+@pytest.mark.parametrize("kwargs, error", [
+    ({"images": None}, r"^images: expected a folder or a list of image files, got NoneType None$"),
+    ({"images": 7}, r"^images: expected a folder or a list of image files, got int 7$"),
+    ({"images": b"clip/images"}, r"^images: expected a folder or a list of image files, got bytes b'clip/images'$"),
+    ({"images": [0, 1]}, r"^images: expected a file path \(str or os.PathLike\), got int 0$"),
+    ({"calib": 3}, r"^calib: expected a file path \(str or os.PathLike\), got int 3$"),
+    ({"road": ["a.png"]}, r"^road: expected a file path \(str or os.PathLike\), got list \['a.png'\]$"),
+    ({"gt": 1.5}, r"^gt: expected a file path \(str or os.PathLike\), got float 1.5$"),
+    ({"poses": [[1.0] * 12]}, r"^poses: expected a poses file or an \(N, 4, 4\) float tensor, got list "),
+    ({"poses": True}, r"^poses: expected a poses file or an \(N, 4, 4\) float tensor, got bool True$"),
+])
+def test_arguments_that_are_no_paths_are_named(clip, kwargs, error):
+    """An argument of another type than documented raised Python's own TypeError from Path() or
+    iteration ("'NoneType' object is not iterable", "expected str, bytes or os.PathLike object,
+    not int"), naming no argument."""
+    root, _ = clip
+    kwargs = {"images": root / "images", **kwargs}
+    with pytest.raises(TypeError, match=error):
+        ImageFolderDataset(**kwargs)
+
+
+def test_poses_as_a_numpy_array(clip):
+    """(N, 4, 4) poses as a NumPy array (np.loadtxt(...).reshape) raised a bare TypeError from
+    Path(); they read as the same poses as a tensor, copied."""
+    root, poses = clip
+    array = poses.numpy().copy()
+    ds = ImageFolderDataset(root / "images", poses=array)
+    reference = ImageFolderDataset(root / "images", poses=poses)
+    for i in range(len(ds)):
+        assert torch.equal(ds[i]["relative_pose"], reference[i]["relative_pose"])
+        assert ds[i]["odometry"] == reference[i]["odometry"]
+    # the expected relative pose of pair 1, by hand: inverse(P_2) @ P_1 = inverse(M_2)
+    torch.testing.assert_close(ds[1]["relative_pose"], torch.linalg.inv(_motion(0.02)), rtol=0, atol=1e-12)
+    array[:, 0, 3] += 5.0  # the dataset holds its own copy
+    assert torch.equal(ds[1]["relative_pose"], reference[1]["relative_pose"])
+    with pytest.raises(TypeError, match=r"^poses: expected an \(N, 4, 4\) float tensor, got dtype torch.int64$"):
+        ImageFolderDataset(root / "images", poses=np.round(array).astype(np.int64))

@@ -385,7 +385,7 @@ class KittiOdometryDataset(ImageFolderDataset):
         read = ["calib.txt"] + ["poses.txt"] * ground_truth + ["road.json"] * road_json
         check_no_broken_links([self.folder / name for name in read], "folder")
         step = check_int(step, "step", minimum=1)
-        images = self.folder / image_dir
+        images = self.folder / as_path(image_dir, "image_dir")
         if not images.is_dir():
             raise FileNotFoundError(f"folder: {str(self.folder)!r} has no {image_dir}/ folder")
         # ASCII digits only: str.isdigit takes '²', which int() refuses

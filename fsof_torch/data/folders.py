@@ -41,7 +41,7 @@ import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import check_has_values, check_int, check_number, check_size, existing_file
+from .._check import as_path, check_has_values, check_int, check_number, check_size, existing_file, tensor_from_array
 from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
@@ -308,10 +308,10 @@ class ImageFolderDataset(Dataset):
         cam: camera index in ``calib`` (default: 2 where the file has it, else 0).
         camera_height: metres above the road; ``roll``, ``pitch``: the mounting in radians.
         poses: camera-to-world poses, one per frame in order: a KITTI poses file of exactly one line
-            per frame (line i for frame i in sorted order), or an (N, 4, 4) float tensor (N at least
-            the frames; copied, and checked as a file is: finite, last row 0 0 0 1, each 3×3 block a
-            rotation, else a ValueError naming ``poses`` and the pose), in metres: two consecutive
-            frames' poses farther apart than a road vehicle travels between them (100 m a frame,
+            per frame (line i for frame i in sorted order), or an (N, 4, 4) float tensor or NumPy
+            array (N at least the frames; copied, and checked as a file is: finite, last row 0 0 0 1,
+            each 3×3 block a rotation, else a ValueError naming ``poses`` and the pose), in metres:
+            two consecutive frames' poses farther apart than a road vehicle travels between them (100 m a frame,
             :func:`~fsof_torch.geometry.egomotion.check_pose_steps`; poses in millimetres) are a
             ValueError naming ``poses`` and the frames. Items then carry
             ``relative_pose`` (``inverse(P_j) @ P_i``), its planar ``odometry`` under the camera's
@@ -328,22 +328,35 @@ class ImageFolderDataset(Dataset):
 
     Errors name the argument (``images``, ``calib``, ``cam``, ``poses``, ``road``, ``gt``) and the
     file: a ``FileNotFoundError`` for a missing file or folder, a ``ValueError`` for one that does
-    not fit. ``camera_height``, ``roll`` and ``pitch`` are checked first, as the camera takes them
-    (:func:`check_mounting`; with ``calib=None`` too), with errors naming them.
+    not fit, a ``TypeError`` for an argument that is no path (nor, for ``images``, a list of
+    paths; for ``poses``, a tensor or array). ``camera_height``, ``roll`` and ``pitch`` are
+    checked first, as the camera takes them (:func:`check_mounting`; with ``calib=None`` too),
+    with errors naming them.
     """
 
     def __init__(self, images: str | os.PathLike | Sequence[str | os.PathLike],
                  calib: str | os.PathLike | None = None, *, cam: int | None = None,
                  camera_height: float = KITTI_HEIGHT, roll: float = 0.0, pitch: float = 0.0,
-                 poses: str | os.PathLike | Tensor | None = None, road: str | os.PathLike | None = None,
+                 poses: str | os.PathLike | Tensor | np.ndarray | None = None, road: str | os.PathLike | None = None,
                  gt: str | os.PathLike | None = None, calib_size: tuple[int, int] | None = None, step: int = 1,
                  dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
                  ground_truth: bool = True):
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
+        for what, given in (("calib", calib), ("road", road), ("gt", gt)):  # (not a bare TypeError of Path())
+            if given is not None:
+                as_path(given, what)
+        if isinstance(poses, np.ndarray):  # as a tensor (copied and checked in _read_poses)
+            poses = tensor_from_array(poses)
+        elif poses is not None and (isinstance(poses, bool) or not isinstance(poses, (str, os.PathLike, Tensor))):
+            raise TypeError(f"poses: expected a poses file or an (N, 4, 4) float tensor, got {type(poses).__name__} "
+                            f"{poses!r:.60}")
         if isinstance(images, (str, os.PathLike)):
             self.frames = list_images(images)
         else:
-            self.frames = [Path(p) for p in images]
+            if isinstance(images, (bytes, bytearray)) or not isinstance(images, Iterable):
+                raise TypeError(f"images: expected a folder or a list of image files, got {type(images).__name__} "
+                                f"{images!r:.60}")
+            self.frames = [as_path(p, "images") for p in images]
             if len(self.frames) < 2:
                 raise ValueError(f"images: {len(self.frames)} image(s) given; a pair needs at least 2")
             for frame in self.frames:  # (checked here, as a folder's frames are, not when a pair loads)
