@@ -16,6 +16,7 @@ from fsof_torch.io import (
     read_image,
     read_label_map,
     read_road_mask,
+    write_image,
     write_label_map,
     write_road_mask,
 )
@@ -635,3 +636,60 @@ def test_rasterisation_tolerance_as_documented():
             worst_filled = max(worst_filled, float(dist[~inside & mask].max()))
     assert 0.0625 < worst_missed <= 0.55  # the old claim (1/16 px) was false, the new bound holds
     assert worst_filled <= 1.35
+
+
+class TestLossyFiles:
+    """A JPEG road mask was read as any value nonzero: the compression's small values beside the
+    road's edges became road (a 0/255 mask saved at quality 95 read with hundreds of extra road
+    pixels); a JPEG label map read its changed labels. Both are now a ValueError naming the file."""
+
+    @staticmethod
+    def _mask() -> np.ndarray:
+        m = np.zeros((40, 60), np.uint8)
+        cv2.fillPoly(m, [np.array([[5, 39], [25, 12], [35, 12], [55, 39]])], 255)
+        return m
+
+    @pytest.mark.parametrize("name, params", [("m.jpg", [cv2.IMWRITE_JPEG_QUALITY, 95]), ("m.JPEG", []),
+                                              ("m.webp", [cv2.IMWRITE_WEBP_QUALITY, 90])])
+    def test_lossy_road_mask_is_refused(self, tmp_path, name, params):
+        m = self._mask()
+        ok, data = cv2.imencode(".jpg" if "jp" in name.lower() else ".webp", m, params)
+        (tmp_path / name).write_bytes(data.tobytes())
+        decoded = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+        if decoded.ndim == 3:
+            decoded = decoded.max(axis=2)
+        assert ((decoded > 0) & (m == 0)).sum() > 20  # what "nonzero = road" read: road beside the road
+        kind = "a JPEG" if "jp" in name.lower() else r"a WebP in its lossy coding \(VP8\)"
+        with pytest.raises(ValueError, match=rf"^path: '.*{re.escape(name)}' is {kind}, whose compression is lossy: "
+                                             r"it leaves small nonzero values beside the road's edges"):
+            read_road_mask(tmp_path / name)
+
+    def test_lossy_label_map_is_refused(self, tmp_path):
+        labels = np.where(self._mask() > 0, 7, 21).astype(np.uint8)
+        ok, data = cv2.imencode(".jpg", labels, [cv2.IMWRITE_JPEG_QUALITY, 90])
+        (tmp_path / "l.jpg").write_bytes(data.tobytes())
+        assert not set(np.unique(cv2.imdecode(data, cv2.IMREAD_UNCHANGED))) <= {7, 21}  # labels changed
+        with pytest.raises(ValueError, match=r"^path: '.*l\.jpg' is a JPEG, whose compression is lossy: it changes "
+                                             r"labels"):
+            read_label_map(tmp_path / "l.jpg")
+
+    def test_lossless_files_still_read(self, tmp_path):
+        """A lossless WebP (OpenCV's default coding) and a PNG read back the mask exactly."""
+        m = self._mask()
+        cv2.imwrite(str(tmp_path / "m.webp"), cv2.cvtColor(m, cv2.COLOR_GRAY2BGR))
+        cv2.imwrite(str(tmp_path / "m.png"), m)
+        for name in ("m.webp", "m.png"):
+            assert np.array_equal(read_road_mask(tmp_path / name)[0].numpy(), m > 0)
+        assert np.array_equal(read_label_map(tmp_path / "m.png").numpy(), m.astype(np.int64))
+
+    def test_jpeg_masks_in_an_image_folder_name_road(self, tmp_path):
+        from fsof_torch.datasets import ImageFolderDataset
+
+        for d in ("images", "road"):
+            (tmp_path / d).mkdir()
+        for i in range(2):
+            write_image(tmp_path / "images" / f"{i:06d}.png", torch.zeros(3, 40, 60))
+            cv2.imwrite(str(tmp_path / "road" / f"{i:06d}.jpg"), self._mask())
+        ds = ImageFolderDataset(tmp_path / "images", road=tmp_path / "road")
+        with pytest.raises(ValueError, match=r"^road: '.*road/000000\.jpg' is a JPEG, whose compression is lossy"):
+            ds[0]

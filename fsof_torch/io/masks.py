@@ -291,8 +291,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
         path: a PNG (any colour channel nonzero = road; an alpha channel is ignored; a KITTI
             road benchmark ground truth, road magenta and the rest of the valid area red, reads
             the magenta; a float image, such as a TIFF, only where it holds 0 and one road value:
-            a probability map is a ValueError) or a polygon JSON (the formats in the module
-            docstring).
+            a probability map is a ValueError; a JPEG or lossy WebP is a ValueError too: its
+            compression leaves small nonzero values beside the road's edges, which would read as
+            road) or a polygon JSON (the formats in the module docstring).
         size: (H, W) of the images the mask is for. A PNG must have it, and a JSON's polygon
             must have been drawn for it (its ``"size"``): a mask of another size is another
             image's road, and a ValueError naming the file and both sizes unless ``resize``. A
@@ -356,6 +357,8 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
             polygons.append(scaled)
         return rasterize_polygons(polygons, target)
     array = read_image_array(path, what="road mask image")
+    _refuse_lossy(path, "it leaves small nonzero values beside the road's edges, which a mask reads as road (any "
+                  "nonzero value is road); save road masks as PNG (write_road_mask)")
     if array.dtype.kind == "f":  # (a float TIFF: a mask only where it holds 0 and one other value)
         values = np.unique(array)
         if not (np.isfinite(values).all() and values.min() >= 0 and np.count_nonzero(values) <= 1):
@@ -375,6 +378,21 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
             raise ValueError(_other_size(f"path: {str(path)!r}", "a {}x{} mask", mask.shape, size))
         mask = cv2.resize(mask.astype(np.uint8), (size[1], size[0]), interpolation=cv2.INTER_NEAREST) > 0
     return torch.from_numpy(np.ascontiguousarray(mask)).unsqueeze(0)
+
+
+def _refuse_lossy(path: Path, why: str) -> None:
+    """A ValueError naming ``path`` where the file is a JPEG or a WebP in its lossy coding (by its
+    bytes, whatever its suffix): their compression changes the values of data images (``why``
+    says how)."""
+    with open(path, "rb") as f:
+        head = f.read(16)
+    if head[:3] == b"\xff\xd8\xff":
+        kind = "a JPEG"
+    elif head[:4] == b"RIFF" and head[8:16] == b"WEBPVP8 ":  # (VP8L is WebP's lossless coding)
+        kind = "a WebP in its lossy coding (VP8)"
+    else:
+        return
+    raise ValueError(f"path: {str(path)!r} is {kind}, whose compression is lossy: {why}")
 
 
 def _other_size(where: str, what: str, own: tuple[int, int], size: tuple[int, int]) -> str:
@@ -463,8 +481,11 @@ def mask_from_colors(rgb: Tensor | np.ndarray, colors: Iterable[Sequence[int]]) 
 def read_label_map(path: str | os.PathLike) -> Tensor:
     """A single-channel 8- or 16-bit label PNG as an (H, W) int64 tensor. A grey PNG of 1, 2 or
     4 bits gives its stored values too (labels 0..1, 0..3, 0..15), not the 8-bit intensities
-    OpenCV expands them to (1 -> 255, 85, 17)."""
+    OpenCV expands them to (1 -> 255, 85, 17). A JPEG or lossy WebP is a ValueError naming the
+    path: its compression changes labels."""
     array = read_image_array(path, what="label map (single-channel 8/16-bit PNG)")
+    _refuse_lossy(path, "it changes labels, most of all beside the edges of regions; save label maps as PNG "
+                  "(write_label_map)")
     if array.ndim != 2 or array.dtype not in (np.uint8, np.uint16):
         raise ValueError(f"path: {str(path)!r} is {array.dtype} with shape {array.shape}; expected a "
                          f"single-channel 8- or 16-bit label map")
