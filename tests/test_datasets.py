@@ -502,6 +502,20 @@ class TestPairChecks:
     """KITTI and CARLA items: each holds its own camera, and every file of a pair has the size of
     its first image (a file of another size was once returned as it was, breaking the contract)."""
 
+    @pytest.mark.parametrize("view", ["big-endian", "reversed"])
+    def test_kitti_K_as_any_numpy_array(self, kitti_root, view):
+        """A (3, 3) K array in big-endian byte order, or a reversed view, which torch.as_tensor
+        refuses, was a TypeError saying "expected a (3, 3) tensor or array of numbers": untrue."""
+        root, _ = kitti_root
+        K = np.array([[30.0, 0.0, 19.5], [0.0, 31.0, 11.5], [0.0, 0.0, 1.0]])
+        given = K.astype(">f8") if view == "big-endian" else np.ascontiguousarray(K[::-1])[::-1]
+        for f in (root / "calib_cam_to_cam").iterdir():  # the pairs without a calibration take K
+            f.unlink()
+        ds = KittiFlowDataset(root, K=given, camera_dtype=torch.float64)
+        assert torch.equal(ds[0]["camera"].K[0], torch.from_numpy(K))
+        with pytest.raises(TypeError, match=r"^K: expected a \(3, 3\) tensor or array of numbers, got ndarray"):
+            KittiFlowDataset(root, K=np.array([["a"] * 3] * 3))
+
     def test_kitti_items_do_not_share_the_given_K(self, kitti_root):
         root, _ = kitti_root
         for p in (root / "calib_cam_to_cam").iterdir():

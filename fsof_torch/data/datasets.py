@@ -33,11 +33,12 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.utils.data import Dataset
 
-from .._check import as_path, check_bool, check_int, check_size
+from .._check import as_path, check_bool, check_int, check_size, tensor_from_array
 from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
 from ..io.images import check_no_broken_links, read_image, read_image_array
@@ -261,7 +262,8 @@ class KittiFlowDataset(Dataset):
             raise ValueError(f"flow: {str(self.root)!r} has flow_{other}/ but no flow_{flow}/; pass flow={other!r}")
         if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
             try:
-                K = torch.as_tensor(K)
+                # (an array torch takes as it is, or copied first: a big-endian or reversed view)
+                K = tensor_from_array(K) if isinstance(K, np.ndarray) else torch.as_tensor(K)
             except (TypeError, ValueError, RuntimeError):  # a str, a ragged list: as Camera.from_projection
                 raise TypeError(f"K: expected a (3, 3) tensor or array of numbers, got "
                                 f"{type(K).__name__} {K!r:.60}") from None
