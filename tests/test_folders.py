@@ -594,30 +594,49 @@ def test_odometry_without_a_calibration_takes_the_given_mounting(clip):
     assert abs(without["pose_residual"]["y_d"]) == pytest.approx(math.sin(0.1), rel=0.05)
 
 
-def test_frames_named_by_decimal_timestamps_pair_in_time_order(tmp_path):
-    """Frames named by their time in seconds (``9.967.png``, ``10.000.png``): by name 10.000 came
-    before 9.900, so the clip paired 10.033 -> 9.900 (backwards in time, across the whole clip)."""
+def _pairs_in_time_order(tmp_path, names):
+    """Frames ``names`` (in time order; frame k holds the value k) in a folder and a CARLA run:
+    both list them in that order, and the folder's pairs are (k, k + 1)."""
     from fsof_torch.data.folders import list_images
     from fsof_torch.io.carla import CarlaRun
 
-    times = ["9.900", "9.933", "9.967", "10.000", "10.033"]
-    for k, t in enumerate(times):
-        write_image(tmp_path / f"{t}.png", torch.full((3, *SIZE), k, dtype=torch.uint8))
-    assert [p.stem for p in list_images(tmp_path)] == times
+    for k, name in enumerate(names):
+        write_image(tmp_path / f"{name}.png", torch.full((3, *SIZE), k, dtype=torch.uint8))
+    assert [p.stem for p in list_images(tmp_path)] == names
     ds = ImageFolderDataset(tmp_path)
-    assert [p.name for p in ds.pairs] == times[:-1]
-    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in range(4)] == [
-        (0.0, 1.0), (1.0, 2.0), (2.0, 3.0), (3.0, 4.0)]
+    assert [p.name for p in ds.pairs] == names[:-1]
+    assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in range(len(ds))] == [
+        (float(k), float(k + 1)) for k in range(len(names) - 1)]
     run = tmp_path / "run"
     (run / "rgb").mkdir(parents=True)
-    for t in times:
-        write_image(run / "rgb" / f"{t}.png", torch.zeros(3, 4, 4))
-    assert CarlaRun(run).frames == times
+    for name in names:
+        write_image(run / "rgb" / f"{name}.png", torch.zeros(3, 4, 4))
+    assert CarlaRun(run).frames == names
+
+
+def test_frames_named_by_decimal_timestamps_pair_in_time_order(tmp_path):
+    """Frames named by their time in seconds (``9.967.png``, ``10.000.png``): by name 10.000 came
+    before 9.900, so the clip paired 10.033 -> 9.900 (backwards in time, across the whole clip)."""
+    _pairs_in_time_order(tmp_path, ["9.900", "9.933", "9.967", "10.000", "10.033"])
     # timestamps of one width keep the names' order, which is their time order
     from fsof_torch.io.images import in_frame_order
 
     stamps = ["1541234567.15", "1541234567.2", "1541234568.05"]
     assert [p.stem for p in in_frame_order(f"{s}.png" for s in reversed(stamps))] == stamps
+
+
+@pytest.mark.parametrize("pattern", ["left_{}", "{}_cam0", "cam0_{}_rect", "t{}"])
+def test_frames_named_by_timestamps_within_a_text_pair_in_time_order(tmp_path, pattern):
+    """Timestamps with a text around them (``left_9.967.png``, ``9.967_cam0.png``) sorted by name:
+    left_10.000 came before left_9.900, so the clip paired left_10.033 -> left_9.900 (backwards in
+    time, across the whole clip), as bare timestamps once did."""
+    from fsof_torch.io.images import decimal_times
+
+    _pairs_in_time_order(tmp_path, [pattern.format(t) for t in ["9.900", "9.933", "9.967", "10.000", "10.033"]])
+    # the text is the same in every name: digits it shares with the numbers are the numbers'
+    assert decimal_times(["t_10.0", "t_10.25", "t_9.5"]) == [10.0, 10.25, 9.5]
+    assert decimal_times(["left_9.5", "right_10.0"]) is None  # other texts: by name
+    assert decimal_times(["a_1.5_b", "a_2.5_c"]) is None
 
 
 def test_a_frame_list_with_a_missing_file_or_a_folder_is_refused_when_made(clip):

@@ -4,8 +4,8 @@ ground-truth flows matched to the pairs by name: the layout of your own recordin
 
 Pairs: consecutive frames (i, i + step) of the folder sorted by name (by number where every name
 is a number, or one text around a number: ``5.png`` before ``10.png``, ``frame_9.png`` before
-``frame_10.png``; by value where every name is a decimal number, ``9.967.png`` before
-``10.000.png``), each named after its first frame; or KITTI flow pairs
+``frame_10.png``; by value where every name is a decimal number or one text around one,
+``9.967.png`` before ``10.000.png``, ``left_9.967.png`` before ``left_10.000.png``), each named after its first frame; or KITTI flow pairs
 (``NAME_10`` / ``NAME_11``) by name, named ``NAME``, where every image's name ends in ``_10`` or
 ``_11``, or where complete pairs stand under at least two different names
 (:func:`kitti_flow_layout`): every image of such a folder must then be in a complete pair (an
@@ -104,7 +104,8 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     out; ``name`` is the argument the errors name): by number where every file's name is a number
     (``0.png``, ``5.png``, ``10.png``: frames numbered without zero padding) or one text around a
     number (``frame_9.png`` before ``frame_10.png``: :func:`fsof_torch.io.images.frame_numbers`),
-    by value where every name is a decimal number (timestamps ``9.967.png`` before ``10.000.png``),
+    by value where every name is a decimal number or one text around one (timestamps ``9.967.png``
+    before ``10.000.png``, ``left_9.967.png`` before ``left_10.000.png``),
     else by name (:func:`fsof_torch.io.images.in_frame_order`). Two files of one frame name
     (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``; a frame that is a
     symbolic link to a missing file a FileNotFoundError naming ``name`` (never a frame left out,

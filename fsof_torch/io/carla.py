@@ -161,7 +161,8 @@ class CarlaRun:
 
     ``frames`` are the stems of ``rgb/*.png`` in frame order: by number where every stem is a
     number (``98``, ``99``, ``100``, unpadded), one text around a number (``f98``, ``f100``) or
-    a decimal number (``9.967`` before ``10.000``),
+    a decimal number or one text around one (``9.967`` before ``10.000``, ``f9.967`` before
+    ``f10.000``),
     else by name. Only regular files count, and not
     hidden ones (a name starting with ``.``, such as macOS's ``._99.png``); a frame that is a
     symbolic link to a missing file is a FileNotFoundError naming ``root``.

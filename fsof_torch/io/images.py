@@ -84,19 +84,38 @@ def frame_numbers(stems: Iterable[str]) -> list[int] | None:
 _DECIMAL = re.compile(r"[0-9]+(\.[0-9]+)?")  # a frame's time as its name: 9.967, 1541234567.15
 
 
+def decimal_times(stems: Iterable[str]) -> list[Decimal] | None:
+    """The times of frame names (stems) that are decimal numbers (``9.967``, ``10.000``), or one
+    text around one, the same text for every name (``left_9.967``, ``left_10.000``;
+    ``9.967_cam0``), as exact Decimals (1541234567.15 and 1541234567.150 are one time); None
+    where the names are not."""
+    stems = list(stems)
+    if not stems:
+        return None
+    digits = "0123456789."
+    # the text common to every name, up to the number (a digit or point it ends in is the number's)
+    before = os.path.commonprefix(stems).rstrip(digits)
+    after = os.path.commonprefix([s[::-1] for s in stems])[::-1].lstrip(digits)
+    middles = [s[len(before):len(s) - len(after)] for s in stems]
+    if not all(_DECIMAL.fullmatch(m) for m in middles):
+        return None
+    return [Decimal(m) for m in middles]
+
+
 def in_frame_order(paths: Iterable[str | os.PathLike], name: str = "images") -> list[Path]:
     """Frame files in frame order: by number where every file's stem is one text around a number
     (:func:`frame_numbers`: ``0.png``, ``5.png``, ``10.png``, ``100.png``, or ``frame_9.png``
     before ``frame_10.png``: frames numbered without zero padding), or by value where every stem
-    is a decimal number (timestamps ``9.967.png`` before ``10.000.png``; by name they came after
+    is a decimal number or one text around one (:func:`decimal_times`: timestamps ``9.967.png``
+    before ``10.000.png``, ``left_9.967.png`` before ``left_10.000.png``; by name they came after
     it), else by name. Equal numbers (``5`` and ``05``) stay in the order of their names. Two
     files of one frame name (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``
     (:func:`check_frame_names`)."""
     paths = sorted(Path(p) for p in paths)
     check_frame_names(paths, name)
     numbers: list[Any] | None = frame_numbers(p.stem for p in paths)
-    if numbers is None and paths and all(_DECIMAL.fullmatch(p.stem) for p in paths):
-        numbers = [Decimal(p.stem) for p in paths]  # (exact: 1541234567.15 and .150 are one time)
+    if numbers is None:
+        numbers = decimal_times(p.stem for p in paths)
     if numbers is not None:
         order = sorted(range(len(paths)), key=numbers.__getitem__)  # (stable: equal numbers by name)
         paths = [paths[i] for i in order]
