@@ -1940,6 +1940,26 @@ def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
     assert sys.stderr.getvalue() == ""
 
 
+def test_a_run_without_stderr_runs_without_its_bars(tmp_path, monkeypatch, capsys):
+    """A process started with its stderr closed (``2>&-``, a service, ``pythonw``) has
+    ``sys.stderr`` None: the bars were drawn there all the same and the run died at its first
+    step (exit 1, nothing on stdout, only run.json written); now it runs without them and writes
+    its report."""
+    import sys
+
+    from fsof_torch.io.progress import progress_bar
+
+    monkeypatch.setattr(sys, "stderr", None)
+    assert list(progress_bar(range(3), desc="refine")) == [0, 1, 2]
+    out = tmp_path / "out"
+    argv = ["--num-pairs", "1", "--size", f"{SIZE[0]}x{SIZE[1]}", "--source", "dis", "--odometry", "given",
+            "--no-figures", "--out", str(out)]
+    assert main(argv) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [(r["pairs"], r["refined"]) for r in report["rows"]] == [(1, 1)]
+    assert "report:" in capsys.readouterr().out
+
+
 def test_a_run_logs_a_few_lines_of_progress_and_its_error_on_a_line_of_its_own(tmp_path, user_folder, scene_pairs,
                                                                                 capsys):
     """A run with its bar on, stderr captured (not a terminal): a few redraws, not one per step;

@@ -26,13 +26,15 @@ def on_terminal() -> bool:
 
 def progress_bar(iterable: Iterable | None = None, *, enabled: bool = True, **options: Any):
     """A tqdm bar (``enabled``: shown at all; ``options``: tqdm's): a notebook's widget in a
-    notebook, else on stderr, rate-limited in a log."""
+    notebook, else on stderr, rate-limited in a log; none where the process has no stderr
+    (``sys.stderr`` None: started with its stderr closed, ``2>&-``, or by ``pythonw``), where
+    drawing one would raise at its first step."""
     from tqdm import notebook
     from tqdm.auto import tqdm
 
     if issubclass(tqdm, notebook.tqdm):  # (a notebook's widget: no log to flood)
         return tqdm(iterable, disable=not enabled, **options)
-    return tqdm(iterable, disable=not enabled, file=sys.stderr,
+    return tqdm(iterable, disable=not enabled or sys.stderr is None, file=sys.stderr,
                 mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
 
 
