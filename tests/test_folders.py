@@ -326,6 +326,31 @@ def test_a_broken_link_is_no_missing_file(clip):
         ImageFolderDataset(root / "images", road=root / "road")
 
 
+def test_a_folder_argument_that_is_a_file_or_a_broken_link_says_so(clip, tmp_path):
+    """A folder argument given a file, or a symbolic link to a folder that is not there (a drive
+    not mounted), said "no folder at" the path, which is there: the message now says what is."""
+    from fsof_torch.datasets import SyntheticFlowDataset
+
+    root, _ = clip
+    frame = root / "images" / "000000.png"
+    with pytest.raises(FileNotFoundError, match=r"^images: '.*000000\.png' is a file; expected a folder$"):
+        ImageFolderDataset(frame)
+    for what in ("gt", "road"):
+        with pytest.raises(FileNotFoundError, match=rf"^{what}: '.*000000\.png' is a file; expected a folder$"):
+            match_files(frame, ["000000"], what=what)
+    link = tmp_path / "mounted"
+    link.symlink_to(tmp_path / "drive" / "clip")
+    with pytest.raises(FileNotFoundError, match=r"^images: '.*mounted' is a symbolic link to '.*drive/clip', "
+                                                r"which does not exist"):
+        ImageFolderDataset(link)
+    with pytest.raises(FileNotFoundError, match=r"^gt: '.*mounted' is a symbolic link"):
+        ImageFolderDataset(root / "images", gt=link)
+    with pytest.raises(FileNotFoundError, match=r"^root: '.*000000\.png' is a file; expected a folder$"):
+        SyntheticFlowDataset(frame)
+    with pytest.raises(FileNotFoundError, match=r"^images: no folder at '.*nothing'$"):  # (nothing there)
+        ImageFolderDataset(tmp_path / "nothing")
+
+
 def test_frame_linked_to_a_missing_file_is_an_error(tmp_path):
     """A frame that is a symbolic link to a missing file (data on a drive not mounted) was left out
     silently: its neighbours made a pair two frames apart, named as one frame apart."""

@@ -1940,6 +1940,25 @@ def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
     assert sys.stderr.getvalue() == ""
 
 
+def test_a_folder_option_given_a_file_or_a_broken_link_says_so(tmp_path, user_folder, capsys):
+    """--images, --flows, --gt given a file, or a link to a folder not mounted, exited 2 with "no
+    folder at" the path, which is there; the message now says what is there."""
+    frame = user_folder / "images" / "000000.png"
+    link = tmp_path / "mounted"
+    link.symlink_to("/nonexistent-drive/clip")
+    base = ["--calib", str(user_folder / "calib.txt"), "--road", str(user_folder / "road"), "--no-progress",
+            "--no-figures", "--out", str(tmp_path / "out")]
+    images = ["--images", str(user_folder / "images")]
+    for argv, option in ((["--images", str(frame)], "--images"), ([*images, "--flows", str(frame)], "--flows"),
+                         ([*images, "--gt", str(frame)], "--gt")):
+        err = _err(capsys, [*base, *argv]).strip()
+        assert err == f"error: {option}: {str(frame)!r} is a file; expected a folder", err
+    err = _err(capsys, [*base, "--images", str(link)])
+    assert err.startswith(f"error: --images: {str(link)!r} is a symbolic link to '/nonexistent-drive/clip', "
+                          f"which does not exist"), err
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_run_without_stderr_runs_without_its_bars(tmp_path, monkeypatch, capsys):
     """A process started with its stderr closed (``2>&-``, a service, ``pythonw``) has
     ``sys.stderr`` None: the bars were drawn there all the same and the run died at its first

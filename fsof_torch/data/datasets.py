@@ -41,7 +41,7 @@ from torch.utils.data import Dataset
 from .._check import as_path, check_bool, check_int, check_size, tensor_from_array
 from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from ..io.carla import CarlaRun, carla_camera, read_carla_flow, read_carla_road
-from ..io.images import check_no_broken_links, read_image, read_image_array
+from ..io.images import check_no_broken_links, existing_folder, read_image, read_image_array
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
@@ -70,10 +70,7 @@ KITTI_ROAD_COLOR = (255, 0, 0)
 
 
 def _folder(root: str | os.PathLike, name: str = "root") -> Path:
-    root = as_path(root, name)
-    if not root.is_dir():
-        raise FileNotFoundError(f"{name}: no folder at {str(root)!r}")
-    return root
+    return existing_folder(as_path(root, name), name)
 
 
 def _fits(x: Tensor, path: Path, size: tuple[int, int], image: Path, root: str) -> Tensor:

@@ -45,7 +45,8 @@ from .._check import as_path, check_has_values, check_int, check_number, check_s
 from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import check_frame_names, check_no_broken_links, frame_numbers, in_frame_order, read_image
+from ..io.images import (check_frame_names, check_no_broken_links, existing_folder, frame_numbers, in_frame_order,
+                         read_image)
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
@@ -110,9 +111,7 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``; a frame that is a
     symbolic link to a missing file a FileNotFoundError naming ``name`` (never a frame left out,
     which would pair its neighbours)."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
+    folder = existing_folder(folder, name)
     # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
     entries = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
     check_no_broken_links(entries, name)
@@ -179,9 +178,7 @@ def match_files(folder: str | os.PathLike, names: Sequence[str], *, what: str,
     first image's), with any of ``suffixes``. A pair without such a file, or with two
     (``0001.png`` and ``0001.flo``), raises an error that starts with ``what`` (the argument) and
     names the pair and the folder: files are never paired by position."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise FileNotFoundError(f"{what}: no folder at {str(folder)!r}")
+    folder = existing_folder(folder, what)
     by_stem: dict[str, list[Path]] = {}
     entries = [p for p in sorted(folder.iterdir()) if p.suffix.lower() in suffixes]
     check_no_broken_links(entries, what)

@@ -59,6 +59,19 @@ def check_no_broken_links(paths: Iterable[str | os.PathLike], name: str) -> None
                                     f"exist; mount or copy the data it points to, or remove the link")
 
 
+def existing_folder(folder: str | os.PathLike, name: str) -> Path:
+    """``folder`` as a Path where a folder is there; else a FileNotFoundError (no folder found)
+    naming ``name`` and the path, and what is there: a file ("is a file; expected a folder"), a
+    symbolic link to a missing folder (a drive not mounted), or nothing ("no folder at")."""
+    folder = Path(folder)
+    if folder.is_dir():
+        return folder
+    check_no_broken_links([folder], name)
+    if folder.exists():
+        raise FileNotFoundError(f"{name}: {str(folder)!r} is a file; expected a folder")
+    raise FileNotFoundError(f"{name}: no folder at {str(folder)!r}")
+
+
 def frame_numbers(stems: Iterable[str]) -> list[int] | None:
     """The frame numbers of frame names (stems) that are one text around a number: every name a
     number (``0``, ``5``, ``10``), or the same text and the same other numbers around one number
