@@ -21,7 +21,7 @@ import torch
 from torch import Tensor
 
 from fsof_torch import Camera, fit_sequence
-from fsof_torch.io.images import frame_numbers
+from fsof_torch.io.images import frame_counts
 
 from .inputs import JobError, PairSpec, options_of
 
@@ -46,14 +46,14 @@ def check_clip(specs: Sequence[PairSpec], *, needed_by: str = "--odometry sequen
                poses_option: str = "--poses") -> None:
     """What the clip's fit needs that is known without loading a pair, checked before any work:
     at least 2 pairs; where every frame is named by a number (or one text around a number,
-    ``frame_9``, ``frame_10``: :func:`fsof_torch.io.images.frame_numbers`), no gap in the numbers
+    ``frame_9``, ``frame_10``; not a timestamp: :func:`fsof_torch.io.images.frame_counts`), no gap in the numbers
     (the fit carries each pair's motion to the next as a prior, so a dropped frame would be fitted
     as one step); where the pairs have poses, poses that move (they give the clip's scale). Errors name
     ``needed_by`` (the options that need the clip) or ``poses_option`` (where the poses come from)."""
     if len(specs) < 2:
         raise JobError(f"{needed_by}: the clip's fit needs a clip of at least 2 pairs (3 frames), got {len(specs)}")
     frames = [s.frames for s in specs]
-    numbers = frame_numbers(n for f in frames for n in f) if all(f is not None for f in frames) else None
+    numbers = frame_counts(n for f in frames for n in f) if all(f is not None for f in frames) else None
     if numbers is not None:  # (frames named by a number: 000001, or one text around it: frame_1)
         for spec, (a, b), (i, j) in zip(specs, frames, zip(numbers[::2], numbers[1::2])):
             if j != i + 1:

@@ -482,6 +482,39 @@ def test_the_clip_of_frames_named_around_a_number_is_in_number_order_and_refuses
     check_clip(specs)
 
 
+def test_frames_named_by_timestamps_are_one_clip_and_their_poses_steps_are_one_frame(tmp_path, user_folder):
+    """Frames named by the time they were taken (ns, as ROS exports them; µs after a text, as
+    nuScenes' CAM_FRONT__1532402927612460.jpg): their numbers were taken for frame numbers, so
+    the clip's fit (the default variant sequence) refused every such clip as "a gap in the frame
+    numbers", and a pose step was allowed 100 m per nanosecond between them (poses in
+    millimetres passed the check). A timestamp (from 1e9 up) now counts one frame a step."""
+    from fsof_torch.io import read_kitti_poses, write_kitti_poses
+    from fsof_torch.io.images import frame_counts
+    from refine.calibrate import check_clip
+    from refine.inputs import JobError, user_pairs
+
+    assert frame_counts(["000000", "000001", "000003"]) == [0, 1, 3]
+    assert frame_counts(["cam_999999999", "cam_1000000000"]) is None
+    images = user_folder / "images"
+    for n, f in enumerate(sorted(images.iterdir())):
+        f.rename(images / f"{1541234567150000000 + n * 100_000_000}.png")
+    args = dict(images=images, calib=user_folder / "calib.txt", cam=None, height=1.65, roll_deg=0.0,
+                pitch_deg=0.0, poses=user_folder / "poses.txt", flows=None, road="auto", gt=None)
+    specs, _ = user_pairs(**args)
+    assert [s.frames[1] for s in specs] == ["1541234567250000000", "1541234567350000000", "1541234567450000000"]
+    check_clip(specs)  # (was: pair 1541234567150000000 goes from frame ... not to the next frame)
+    for n, f in enumerate(sorted(images.iterdir())):
+        f.rename(images / f"n015-2018-07-24-11-22-45+0800__CAM_FRONT__{1532402927612460 + n * 100_000}.png")
+    check_clip(user_pairs(**args)[0])
+    poses = read_kitti_poses(user_folder / "poses.txt")
+    poses[:, :3, 3] *= 1000  # millimetres
+    write_kitti_poses(tmp_path / "poses_mm.txt", poses)
+    with pytest.raises(JobError, match=r"^--poses: the pose of .*__1532402927612460\.png and the pose of "
+                                       r".*__1532402927712460\.png lie \d+ m apart, farther than a road vehicle "
+                                       r"travels between them \(100 m: .* in millimetres"):
+        user_pairs(**{**args, "poses": tmp_path / "poses_mm.txt"})
+
+
 def test_an_error_in_the_clips_fit_names_its_option_and_leaves_the_folder_for_the_corrected_run(
         tmp_path, user_folder, scene, capsys):
     """KITTI flow pairs with --calibrate-pitch: the clip's fit finds they are not one clip and names

@@ -45,7 +45,7 @@ from .._check import as_path, check_has_values, check_int, check_number, check_s
 from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import (check_frame_names, check_no_broken_links, existing_folder, frame_numbers, in_frame_order,
+from ..io.images import (check_frame_names, check_no_broken_links, existing_folder, frame_counts, in_frame_order,
                          read_image)
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
@@ -449,7 +449,7 @@ class ImageFolderDataset(Dataset):
                              f"per image, line i for image i in sorted order, so a poses file of a longer "
                              f"sequence (KITTI: line n for frame n) must be cut to these frames")
         n = min(P.shape[0], len(self.frames))
-        numbers = frame_numbers(f.stem for f in self.frames[:n])  # (frames missing between two: a longer step)
+        numbers = frame_counts(f.stem for f in self.frames[:n])  # (frames missing between two: a longer step)
         check_pose_steps(P[:n], "poses", labels=[f"the pose of {f.name}" for f in self.frames[:n]],
                          frames_apart=None if numbers is None else [b - a for a, b in zip(numbers, numbers[1:])])
         return P

@@ -94,6 +94,20 @@ def frame_numbers(stems: Iterable[str]) -> list[int] | None:
     return [int(p[k]) for p in parts]
 
 
+#: a frame name's number from here up is a timestamp (Unix time in seconds since 2001, or in ms,
+#: µs, ns: ``1541234567150000000.png``), not a frame counter: its steps count no frames
+TIMESTAMP_MIN = 10**9
+
+
+def frame_counts(stems: Iterable[str]) -> list[int] | None:
+    """The frame numbers of frame names (:func:`frame_numbers`) where they count frames, so that
+    frames i and j lie j − i frames apart; None where the names have no frame numbers, or where
+    their numbers are timestamps (one from :data:`TIMESTAMP_MIN` up: a camera's frames named by
+    the time they were taken, 100 ms or 100 000 000 ns apart, are consecutive frames)."""
+    numbers = frame_numbers(stems)
+    return None if numbers is None or max(numbers) >= TIMESTAMP_MIN else numbers
+
+
 _DECIMAL = re.compile(r"[0-9]+(\.[0-9]+)?")  # a frame's time as its name: 9.967, 1541234567.15
 
 
