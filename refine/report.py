@@ -54,7 +54,10 @@ def pair_table(records: list[dict], names: list[str], cfg: JobConfig) -> tuple[t
                     metrics[i, j, k, s, 1] = n
         extra[i, j, _REFINED] = float(r["refined"])
         extra[i, j, _PROCESSED] = 1.0
-        if r["variant"] in ("fit", "photometric", "sequence") and "odometry_given" in r and r["refined"] \
+        # the variants that estimate the motion (given_images where --odometry-sigma lets the images move it)
+        estimated = r["variant"] in ("fit", "photometric", "sequence") or (
+            r["variant"] == "given_images" and cfg.odometry_sigma is not None)
+        if estimated and "odometry_given" in r and r["refined"] \
                 and isinstance(r["odometry"].get("z_d"), (int, float)):  # (no motion where left unrefined)
             extra[i, j, _ZD_ERR] = abs(r["odometry"]["z_d"] - r["odometry_given"]["z_d"])
             extra[i, j, _ZD_N] = 1.0

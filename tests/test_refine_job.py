@@ -1480,6 +1480,10 @@ def test_odometry_sigma_lets_the_images_move_the_odometry(tmp_path, capsys):
     assert main([*base, *sigma, "--out", str(tmp_path / "moved")]) == 0
     motion, given = used(tmp_path / "moved")
     assert abs(motion["z_d"] - given["z_d"]) > 1e-3
+    # the report's z_d error covers it, as the other variants that estimate the motion (it left it out)
+    assert _rows(tmp_path / "moved" / "report.json")[("dis", "given_images")]["z_d_abs_error_m"] == pytest.approx(
+        abs(motion["z_d"] - given["z_d"]), rel=1e-12)
+    assert "z_d_abs_error_m" not in _rows(tmp_path / "held" / "report.json")[("dis", "given_images")]
     assert "within 0.05 m sideways, 0.05 m forward and 0.2° of yaw" in (tmp_path / "moved" / "report.md").read_text()
     err = _err(capsys, [*base, "--odometry-sigma", "0.05", "0.05", "0.5", "--out", str(tmp_path / "moved")])
     assert "another run" in err and "odometry_sigma" in err
