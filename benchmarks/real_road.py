@@ -542,8 +542,6 @@ def turn_homography(camera: Any, yaw_deg: float, pitch_deg: float = 0.0,
     lateral and forward axes (``camera``'s mounting gives the axes), and the rotation R. Each
     turn is the exponential of its axis-angle's skew matrix (exact to float64's rounding: kornia
     0.8's axis_angle_to_rotation_matrix divides by the angle plus 1e-6, a rotation 1e-5 off)."""
-    from kornia.geometry.conversions import vector_to_skew_symmetric_matrix
-
     from fsof_torch.geometry.camera import mounting_matrix
 
     cam = camera.to(torch.float64)
@@ -551,7 +549,10 @@ def turn_homography(camera: Any, yaw_deg: float, pitch_deg: float = 0.0,
     # the car's axes in the camera: lateral, down (the road's normal) and forward
     axes = mounting_matrix(cam.roll.reshape(-1)[:1], cam.pitch.reshape(-1)[:1])[0].T
     angles = torch.tensor([pitch_deg, yaw_deg, roll_deg], dtype=torch.float64).deg2rad()
-    Rs = torch.linalg.matrix_exp(vector_to_skew_symmetric_matrix(axes * angles.unsqueeze(-1)))
+    wx, wy, wz = (axes * angles.unsqueeze(-1)).unbind(-1)
+    zero = torch.zeros_like(wx)
+    skew = torch.stack([zero, -wz, wy, wz, zero, -wx, -wy, wx, zero], -1).reshape(3, 3, 3)
+    Rs = torch.linalg.matrix_exp(skew)
     R = Rs[1] @ Rs[0] @ Rs[2]
     return K @ R.T @ torch.linalg.inv(K), R
 
