@@ -36,6 +36,9 @@ MAX_INDEX = 10_000
 # The largest --bins: finer than any flow's range needs; the map holds H × bins counts, and far
 # more bins only fill memory.
 MAX_BINS = 65_536
+#: the fewest mask pixels of a row that the curve fit uses (fit_vflow_curve's min_row_pixels, its
+#: default): a row with fewer has a support above 0 but is neither used nor an outlier
+MIN_ROW_PIXELS = 3
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -82,7 +85,7 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     shown = ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
                       extent=(lo, hi, H - 0.5, -0.5), interpolation="nearest")
     fig.colorbar(shown, ax=ax, label="log(1 + pixels in the row's bin)")
-    rows = curve.row_support[0] > 0
+    rows = curve.row_support[0] >= MIN_ROW_PIXELS  # (the rows the fit used)
     v = torch.arange(H, dtype=torch.float64)
     inl = curve.row_inliers[0]
     ax.scatter(curve.row_value[0][rows & ~inl].double().numpy(), v[rows & ~inl].numpy(), s=6, c="cyan",
@@ -313,7 +316,8 @@ def run(args: argparse.Namespace) -> int:
     hist, edges = vflow_map(flow, mask, bins=args.bins)
     bar.update(1)
     curve = fit_vflow_curve(flow, mask, model=args.model, statistic=args.statistic, bins=args.bins,
-                            inlier_threshold=args.inlier_threshold, relative_threshold=args.relative_threshold)
+                            min_row_pixels=MIN_ROW_PIXELS, inlier_threshold=args.inlier_threshold,
+                            relative_threshold=args.relative_threshold)
     bar.update(1)
 
     fv = flow[:, 1:2]
@@ -323,7 +327,8 @@ def run(args: argparse.Namespace) -> int:
     on_road = in_fit & road if road is not None else in_fit if args.mask is not None else None
     info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
                      "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
-                     "inlier_rows": int(curve.row_inliers[0].sum()), "used_rows": int((curve.row_support[0] > 0).sum()),
+                     "inlier_rows": int(curve.row_inliers[0].sum()),
+                     "used_rows": int((curve.row_support[0] >= MIN_ROW_PIXELS).sum()),
                      "nfa": float(curve.nfa[0]),
                      "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
                      "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,

@@ -67,6 +67,28 @@ def test_vflow_flow_file(tmp_path):
     assert abs(data["curve"]["a"] * 1.5 * 150.0 - 1.0) < 1e-3
 
 
+def test_vflow_rows_too_sparse_to_fit_are_not_counted_as_used(tmp_path):
+    """Rows with fewer mask pixels than the fit uses (3) are neither used nor outliers: the
+    exact curve's rows are all inliers of the used ones (the sparse rows counted as used read
+    as "inlier rows 24/32" on an exact flow)."""
+    from fsof_torch.geometry.camera import Camera
+    from fsof_torch.geometry.road_flow import displacement_flow
+    from fsof_torch.io import write_flow
+
+    cam = Camera(torch.tensor([[150.0, 0, 80], [0, 150.0, 15], [0, 0, 1]]), 1.5)
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (48, 160))
+    valid = valid[0].clone()
+    valid[0, 40:, 2:] = False  # the last 8 rows keep 2 pixels each
+    write_flow(tmp_path / "f.npy", flow[0], valid)
+    out = tmp_path / "v"
+    assert main(["vflow", "--flow", str(tmp_path / "f.npy"), "--out", str(out), "--no-progress"]) == 0
+    curve = json.loads((out / "vflow.json").read_text())["curve"]
+    counts = valid[0].sum(-1)
+    assert int((counts >= 3).sum()) == 24 and int(((counts > 0) & (counts < 3)).sum()) == 8
+    assert curve["used_rows"] == curve["inlier_rows"] == 24
+    assert abs(curve["v0"] - 15.0) < 1e-3
+
+
 def test_vflow_bad_arguments(tmp_path, capsys):
     assert main(["vflow", "--flow", str(tmp_path / "missing.flo"), "--out", str(tmp_path)]) == 2
     assert "--flow" in capsys.readouterr().err

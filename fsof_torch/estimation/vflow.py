@@ -269,7 +269,8 @@ class VFlowCurve:
             (:meth:`scale` converts it).
         v0: (B,) the row of the horizon in pixels (the curve's zero).
         row_value: (B, H) the dominant vertical flow of each row that was fitted.
-        row_support: (B, H) the pixel count behind each row value (0: the row was unused).
+        row_support: (B, H) the pixel count behind each row value (0: no pixel); a row with
+            fewer than ``min_row_pixels`` is not used by the fit (neither inlier nor outlier).
         row_inliers: (B, H) bool, rows that agree with the curve.
         fitted: (B, 1, H, W) the fitted F_v map (the curve evaluated on every row; 0 where
             undefined).
