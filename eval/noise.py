@@ -105,7 +105,9 @@ def _plot_robustness(rows: list[dict], path: Path) -> None:
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
     keys = sorted({(r["scenario"], r["speed"]) for r in rows})
     for scenario, speed in keys:
-        sel = [r for r in rows if r["scenario"] == scenario and r["speed"] == speed]
+        # (in σ order: --sigmas given unsorted drew a curve that doubles back on itself)
+        sel = sorted((r for r in rows if r["scenario"] == scenario and r["speed"] == speed),
+                     key=lambda r: r["sigma"])
         s = [r["sigma"] for r in sel]
         for ax, key in zip(axes, ("e_E", "e_A")):  # (a row over no pixel: a gap in the curve)
             ax.plot(s, [math.nan if r[key] is None else r[key] for r in sel], marker="o", label=f"{scenario} {speed}")
@@ -129,13 +131,18 @@ def _plot_pose(res, errors_path: Path, scatter_path: Path) -> None:
     import matplotlib.pyplot as plt
 
     s = res.sigmas.tolist()
+    order = sorted(range(len(s)), key=s.__getitem__)  # (the curves in σ order, as given or not)
+
+    def curve(values: torch.Tensor) -> tuple[list[float], list[float]]:
+        return [s[k] for k in order], [float(values[k]) for k in order]
+
     fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-    axes[0].plot(s, res.translation_error.tolist(), marker="o", label="‖d error‖")
-    axes[0].plot(s, res.x_error.tolist(), marker=".", label="|x_d error|")
-    axes[0].plot(s, res.z_error.tolist(), marker=".", label="|z_d error|")
+    axes[0].plot(*curve(res.translation_error), marker="o", label="‖d error‖")
+    axes[0].plot(*curve(res.x_error), marker=".", label="|x_d error|")
+    axes[0].plot(*curve(res.z_error), marker=".", label="|z_d error|")
     axes[0].axhline(0.07, color="grey", linestyle="--", label="paper bound 0.07 m")
     axes[0].set_ylabel("mean absolute error (m)")
-    axes[1].plot(s, res.yaw_error_deg.tolist(), marker="o", label="|yaw error|")
+    axes[1].plot(*curve(res.yaw_error_deg), marker="o", label="|yaw error|")
     axes[1].axhline(0.3, color="grey", linestyle="--", label="paper bound 0.3°")
     axes[1].set_ylabel("mean absolute error (deg)")
     for ax in axes:

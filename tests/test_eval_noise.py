@@ -195,3 +195,39 @@ def test_noise_explains_a_pose_success_rate_below_one(tmp_path, capsys):
     assert "flags flow noisier than about 4 px whatever its motion" in out
     assert main(args + ["--pose-sigmas", "0", "1"]) == 0
     assert "whatever its motion" not in capsys.readouterr().out
+
+
+def test_noise_curves_are_drawn_in_sigma_order(tmp_path, monkeypatch):
+    """--sigmas / --pose-sigmas given unsorted: each curve runs through its points in σ order
+    (in the order given it doubled back on itself), each σ still with its own value."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import torch
+    from matplotlib.axes import Axes
+
+    import eval.noise as noise
+    from eval.pose import PoseEstimationResult
+
+    drawn = []
+    plot = Axes.plot
+
+    def record(self, *args, **kwargs):
+        if len(args) >= 2:
+            drawn.append((kwargs.get("label"), list(args[0]), list(args[1])))
+        return plot(self, *args, **kwargs)
+
+    monkeypatch.setattr(Axes, "plot", record)
+    sigmas = [2.0, 0.0, 0.5]
+    rows = [{"scenario": "complex", "speed": "x1", "sigma": s, "e_E": 1.0 + s, "e_A": 2.0 + s} for s in sigmas]
+    noise._plot_robustness(rows, tmp_path / "r.png")
+    assert [d[1:] for d in drawn] == [([0.0, 0.5, 2.0], [1.0, 1.5, 3.0]), ([0.0, 0.5, 2.0], [2.0, 2.5, 4.0])]
+    drawn.clear()
+    t = torch.tensor(sigmas, dtype=torch.float64)
+    res = PoseEstimationResult(sigmas=t, translation_error=t + 1, x_error=t + 2, z_error=t + 3,
+                               yaw_error_deg=t + 4, success_rate=torch.ones(3), true_pose=torch.ones(2, 3),
+                               estimated_pose=torch.full((3, 2, 3), 1.5), num_pixels=10.0, settings={"trials": 2})
+    noise._plot_pose(res, tmp_path / "e.png", tmp_path / "s.png")
+    assert [d for d in drawn if d[0] != "paper bound"] == [
+        ("‖d error‖", [0.0, 0.5, 2.0], [1.0, 1.5, 3.0]), ("|x_d error|", [0.0, 0.5, 2.0], [2.0, 2.5, 4.0]),
+        ("|z_d error|", [0.0, 0.5, 2.0], [3.0, 3.5, 5.0]), ("|yaw error|", [0.0, 0.5, 2.0], [4.0, 4.5, 6.0])]
