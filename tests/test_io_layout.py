@@ -365,6 +365,31 @@ def test_writer_refuses_a_flow_beyond_the_png_range_before_writing(tmp_path, val
     assert not bool(read_synthetic_pair(tmp_path / "out", 0)["valid"][0, 5, 7])
 
 
+@pytest.mark.parametrize("key, bad, err", [
+    ("image2", lambda t: t / 255, ValueError),            # a 0..1 image: refused by write_image
+    ("road", lambda t: t.to(torch.uint8), TypeError),     # a 0/1 uint8 mask: refused by write_road_mask
+    ("labels", lambda t: t.float(), TypeError),           # float labels: refused by write_label_map
+])
+def test_a_pair_is_written_all_or_none(tmp_path, key, bad, err):
+    """A value refused by its file's writer (the pair's second image, road mask, labels) raised
+    after the files before it were written: a new folder kept image_2/, flow_occ/, ... without
+    params/, and pair 0 written over an earlier pair 0 mixed the new images and flow with the old
+    road, labels, depth and params, which read_synthetic_pair then read as one pair. Now nothing
+    is written, and the earlier pair reads back as it was, file for file."""
+    pair = dict(_pair(), **{key: bad(_pair()[key])})
+    with pytest.raises(err):
+        write_synthetic_pair(tmp_path / "new", 0, pair)
+    assert not (tmp_path / "new").exists()
+
+    root = tmp_path / "old"
+    write_synthetic_pair(root, 0, _pair(index=3))
+    before = {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+    with pytest.raises(err):
+        write_synthetic_pair(root, 0, pair)
+    assert {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()} == before
+    assert read_synthetic_pair(root, 0)["odometry"]["x_d"] == pytest.approx(0.08)   # pair 3's x_d
+
+
 class TestWriterChecks:
     """write_synthetic_pair once wrote what its readers cannot use, and meta= replaced the layout's
     own entries of meta.json."""

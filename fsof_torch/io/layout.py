@@ -48,13 +48,14 @@ written before road_pose and plane existed read as before). Every file is writte
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import numbers
 import os
 import re
 from pathlib import Path
-from typing import Any, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 import torch
@@ -62,7 +63,7 @@ from torch import Tensor
 
 from .._check import as_chw_flow, check_has_values
 from ..geometry.camera import Camera
-from .atomic import write_json
+from .atomic import atomic_path, write_json
 from .flo import read_flo, write_flo
 from .images import (check_image_suffix, check_no_broken_links, read_image, read_image_array, write_image,
                      write_image_array)
@@ -199,7 +200,9 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
     the flow at the valid pixels lies within the KITTI flow PNG's [-512, 511.98] px;
     ``pose1`` and ``pose2`` are rigid poses; ``extra`` holds none of the params' own keys (each
-    a ValueError naming the argument).
+    a ValueError naming the argument). The files are written all or none: one that fails (a road
+    mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair written over keeps
+    its old files, rather than a mix of old and new.
     """
     root = Path(root)
     if isinstance(index, bool) or not isinstance(index, numbers.Integral):
@@ -228,27 +231,7 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
                 raise ValueError(f"pair[{key!r}]: expected a 4×4 pose, got shape {tuple(pose.shape)}")
             check_rigid_poses(pose.reshape(1, 4, 4), lambda _: f"pair[{key!r}]")
     name = pair_name(index)
-    out: dict[str, Path] = {}
-
-    def target(folder: str, file: str) -> Path:
-        (root / folder).mkdir(parents=True, exist_ok=True)
-        return root / folder / file
-
-    out["image1"] = write_image(target("image_2", f"{name}_10.png"), pair["image1"])
-    out["image2"] = write_image(target("image_2", f"{name}_11.png"), pair["image2"])
-    out["flow"] = write_kitti_flow(target("flow_occ", f"{name}_10.png"), pair["flow"], pair["valid"])
-    if pair.get("flow_velocity") is not None:
-        out["flow_velocity"] = write_flo(target("flow_velocity", f"{name}_10.flo"),
-                                         torch.where(pair["valid"].cpu(), pair["flow_velocity"].detach().cpu().float(),
-                                                     torch.tensor(float("nan"))))
-    if pair.get("road") is not None:
-        out["road"] = write_road_mask(target("road", f"{name}_10.png"), pair["road"])
-    if pair.get("labels") is not None:
-        out["labels"] = write_label_map(target("semantic", f"{name}_10.png"), pair["labels"])
-    if pair.get("depth") is not None:
-        out["depth"] = write_depth_png(target("depth", f"{name}_10.png"), pair["depth"])
     camera: Camera = pair["camera"]
-    out["calib"] = write_kitti_calibration(target("calib", f"{name}.txt"), camera.K[0].detach().cpu().double())
     params = {  # keys: _PARAMS_KEYS
         "index": int(index),
         "name": name,
@@ -264,8 +247,51 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
             params[key] = pair[key].detach().cpu().double().reshape(4, 4).tolist()
     if extra:
         params.update(dict(extra))
-    out["params"] = write_json(target("params", f"{name}.json"), params)
-    return out
+    # (kind, folder, file, writer of a path): written all or none (_write_all), params last
+    jobs: list[tuple[str, str, str, Callable[[Path], Path]]] = [
+        ("image1", "image_2", f"{name}_10.png", lambda p: write_image(p, pair["image1"])),
+        ("image2", "image_2", f"{name}_11.png", lambda p: write_image(p, pair["image2"])),
+        ("flow", "flow_occ", f"{name}_10.png", lambda p: write_kitti_flow(p, pair["flow"], pair["valid"])),
+    ]
+    if pair.get("flow_velocity") is not None:
+        jobs.append(("flow_velocity", "flow_velocity", f"{name}_10.flo", lambda p: write_flo(p, torch.where(
+            pair["valid"].cpu(), pair["flow_velocity"].detach().cpu().float(), torch.tensor(float("nan"))))))
+    if pair.get("road") is not None:
+        jobs.append(("road", "road", f"{name}_10.png", lambda p: write_road_mask(p, pair["road"])))
+    if pair.get("labels") is not None:
+        jobs.append(("labels", "semantic", f"{name}_10.png", lambda p: write_label_map(p, pair["labels"])))
+    if pair.get("depth") is not None:
+        jobs.append(("depth", "depth", f"{name}_10.png", lambda p: write_depth_png(p, pair["depth"])))
+    jobs.append(("calib", "calib", f"{name}.txt",
+                 lambda p: write_kitti_calibration(p, camera.K[0].detach().cpu().double())))
+    jobs.append(("params", "params", f"{name}.json", lambda p: write_json(p, params)))
+    return _write_all(root, jobs)
+
+
+def _write_all(root: Path, jobs: list[tuple[str, str, str, Callable[[Path], Path]]]) -> dict[str, Path]:
+    """Write the files of ``jobs`` ((kind, folder, file, writer of a path)) under ``root``, all or
+    none: each writer writes a temporary beside its target (:func:`atomic_path`), and only once
+    every one has been written are they renamed onto their targets, in order. A writer that
+    raises (a road mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair
+    written over keeps its old files rather than a mix of old and new; the folders this call
+    created are removed again. Returns the targets by kind."""
+    targets = [root / folder / file for _, folder, file, _ in jobs]
+    created = sorted({p for t in targets for p in (t.parent, *t.parent.parents) if not p.exists()},
+                     key=lambda p: len(p.parts), reverse=True)
+    try:
+        for folder in reversed(created):
+            folder.mkdir(exist_ok=True)
+        with contextlib.ExitStack() as stack:
+            # entered last to first, so that they leave (rename) first to last: params/ last
+            temporaries = [stack.enter_context(atomic_path(t)) for t in reversed(targets)][::-1]
+            for (*_, write), tmp in zip(jobs, temporaries):
+                write(tmp)
+    except BaseException:
+        for folder in created:
+            with contextlib.suppress(OSError):  # (only where empty)
+                folder.rmdir()
+        raise
+    return {kind: target for (kind, *_), target in zip(jobs, targets)}
 
 
 def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[str, Any]], *,
