@@ -247,6 +247,22 @@ def test_save_figure_writes_png_and_closes(tmp_path, figure):
     assert not plt.fignum_exists(figure.number)
 
 
+@pytest.mark.parametrize("name", ["f.pdf", "f.svg", "f.jpg", "f"])
+def test_save_figure_refuses_a_path_that_is_not_png(tmp_path, figure, name):
+    """save_figure(fig, "f.pdf") wrote PNG bytes under the .pdf name (viewers took it for a broken
+    PDF) and closed the figure; now it is a ValueError naming path, nothing written, the figure
+    still open to save under a .png name."""
+    import matplotlib.pyplot as plt
+
+    with pytest.raises(ValueError, match=r"^path: save_figure writes PNG, so expected a \.png path, got '.*f"):
+        save_figure(figure, tmp_path / name)
+    assert list(tmp_path.iterdir()) == []
+    assert plt.fignum_exists(figure.number)
+    assert save_figure(figure, tmp_path / "F.PNG").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(TypeError, match=r"^fig: expected a matplotlib Figure, got NoneType"):
+        save_figure(None, tmp_path / "g.png")
+
+
 def _pixels(fig):
     import numpy as np
 

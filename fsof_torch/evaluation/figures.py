@@ -614,9 +614,21 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
 
 def save_figure(fig: Any, path: str | os.PathLike, *, close: bool = True) -> Path:
     """Write a Figure as PNG atomically (:func:`fsof_torch.io.write_bytes`) and close it
-    (``close=False`` keeps it open, e.g. a :class:`PairFigure` to redraw)."""
+    (``close=False`` keeps it open, e.g. a :class:`PairFigure` to redraw).
+
+    ``path`` must end in ``.png`` (any case): another suffix (``.pdf``, ``.svg``, ``.jpg``) is a
+    ValueError naming ``path``, and ``fig`` without a ``savefig`` method a TypeError naming ``fig``,
+    both before anything is written or closed. (For another format call ``fig.savefig`` itself.)"""
     from ..io.atomic import write_bytes
 
+    if not callable(getattr(fig, "savefig", None)):
+        raise TypeError(f"fig: expected a matplotlib Figure, got {type(fig).__name__}")
+    if not isinstance(path, (str, os.PathLike)):
+        raise TypeError(f"path: expected a str or os.PathLike, got {type(path).__name__}")
+    if Path(path).suffix.lower() != ".png":
+        # (PNG bytes under a .pdf or .jpg name: viewers that go by the suffix take the file for a broken one)
+        raise ValueError(f"path: save_figure writes PNG, so expected a .png path, got {str(path)!r}; for "
+                         f"another format call fig.savefig(path) itself")
     plt = _pyplot()
     buf = io.BytesIO()
     try:
