@@ -334,6 +334,28 @@ class TestExactAndChecked:
             write_kitti_calibration(tmp_path / "e.txt", torch.tensor([[1.0, 0, float("nan")], [0, 1, 0], [0, 0, 1]]))
         assert not (tmp_path / "e.txt").exists()
 
+    @pytest.mark.parametrize("style", ["cam_to_cam", "odometry"])
+    @pytest.mark.parametrize("make, match", [
+        (lambda K: K.t(), r"^K: expected an upper-triangular intrinsic matrix with K\[2, 2\] = 1, got .*609\.5593, "
+                          r"172\.854, 1\.0"),
+        (lambda K: K * torch.tensor([[1.0], [1.0], [2.0]], dtype=K.dtype), r"^K: expected an upper-triangular"),
+        (lambda K: K * torch.tensor([[-1.0], [1.0], [1.0]], dtype=K.dtype), r"^K: expected focal lengths f_x, f_y > 0"),
+        (lambda K: torch.cat([K.t(), torch.zeros(3, 1, dtype=K.dtype)], dim=1), r"^K: expected an upper-triangular"),
+    ])
+    def test_calibration_writer_refuses_a_K_no_camera_reads_back(self, tmp_path, style, make, match):
+        """A transposed K (principal point in the last row, as a column-major copy gives it), a
+        K[2, 2] of 2 or a negative focal length was written without a word; Camera.from_kitti and
+        the datasets then refused the file (naming P and the file, not the call that wrote it). Now
+        the writer refuses it, naming K, before anything is written; a valid K reads back as a
+        camera with that K."""
+        K = torch.tensor([[721.5377, 0, 609.5593], [0, 721.5377, 172.854], [0, 0, 1]], dtype=torch.float64)
+        with pytest.raises(ValueError, match=match) as err:
+            write_kitti_calibration(tmp_path / "c.txt", make(K), style=style)
+        assert "would not read back as a camera" in str(err.value)
+        assert not (tmp_path / "c.txt").exists()
+        write_kitti_calibration(tmp_path / "c.txt", K, style=style)
+        assert torch.equal(Camera.from_kitti(tmp_path / "c.txt", 2).K[0], K)
+
     @pytest.mark.parametrize("edit, message", [
         (lambda P: P[1, :3, :3].mul_(2.0), r"poses: pose 1 is not a rigid pose: its 3×3 block is not a rotation"),
         (lambda P: P.__setitem__((1, 3, 0), 5.0), r"poses: pose 1 is not a rigid pose: its last row is 5 0 0 1"),

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from .._check import all_finite, as_chw_flow, check_has_values, existing_file, tensor_from_array
-from ..geometry.camera import check_camera_index, read_kitti_calibration
+from ..geometry.camera import Camera, check_camera_index, read_kitti_calibration
 from .atomic import write_text
 from .images import check_image_suffix, read_image_array, write_image_array
 
@@ -253,6 +253,11 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
             ``"odometry"`` (``calib.txt`` rows ``PN:``; rows P0..P{cam} are all written with this
             projection, so files stay readable by tools that count rows).
 
+    ``K`` (the first three columns of a 3×4) must be what :meth:`fsof_torch.camera.Camera.from_kitti`
+    reads back as a camera: finite, focal lengths > 0, upper-triangular with ``K[2, 2] = 1`` (a
+    transposed K, principal point in the last row, is not), else a ValueError naming ``K``, before
+    anything is written.
+
     Numbers are written with Python's ``repr`` (the shortest text that reads back as the same
     float64, e.g. ``721.5377``, ``240.51256666666666``), so
     :func:`fsof_torch.camera.read_kitti_calibration` (and any reader of whitespace-separated
@@ -274,6 +279,10 @@ def write_kitti_calibration(path: str | os.PathLike, K: Tensor | np.ndarray, *, 
         raise ValueError(f"K: expected shape (3, 3) or (3, 4), got {tuple(K.shape)}")
     if not bool(torch.isfinite(P).all()):  # the reader refuses a row holding NaN or inf
         raise ValueError(f"K: expected finite values, got {P[:, :3].tolist() if K.shape[1] == 3 else P.tolist()}")
+    try:  # the constructor's checks of K, which Camera.from_kitti and the datasets apply to the file
+        Camera(P[:, :3], 1.0)
+    except ValueError as err:
+        raise ValueError(f"{err}; a file of it would not read back as a camera (Camera.from_kitti)") from None
     cam = check_camera_index(cam)
     row = " ".join(repr(x) for x in P.detach().cpu().reshape(-1).tolist())
     if style == "cam_to_cam":
