@@ -84,6 +84,25 @@ class TestExceptions:
         with pytest.raises(FileNotFoundError, match="does not exist"):
             write_text(tmp_path / "no" / "x.txt", "a")
 
+    @pytest.mark.parametrize("below", [("x.flo",), ("sub", "x.flo")])
+    def test_a_file_where_a_folder_should_be_is_named(self, tmp_path, below):
+        """write_flow('out.png/x.flo') with out.png a file said "the folder of ... does not exist",
+        though out.png was there (a file); now the FileNotFoundError names the file in the way.
+        Nothing is written, and a missing folder still says it does not exist."""
+        import torch
+
+        from fsof_torch.io import write_flow
+
+        (tmp_path / "out.png").write_bytes(b"png")
+        target = tmp_path.joinpath("out.png", *below)
+        with pytest.raises(FileNotFoundError, match=rf"^path: '.*out\.png' is a file, not a folder, so "
+                                                     rf"'.*x\.flo' cannot be written$"):
+            write_flow(target, torch.zeros(2, 3, 4))
+        assert [p.name for p in tmp_path.iterdir()] == ["out.png"]
+        assert (tmp_path / "out.png").read_bytes() == b"png"
+        with pytest.raises(FileNotFoundError, match=r"^path: the folder of '.*no/sub/x\.flo' does not exist$"):
+            write_flow(tmp_path / "no" / "sub" / "x.flo", torch.zeros(2, 3, 4))
+
     def test_json_rejects_unknown_objects(self, tmp_path):
         with pytest.raises(TypeError, match="cannot write a object"):
             to_jsonable(object())

@@ -59,7 +59,9 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     As with ``open()``, a file written over keeps its permission bits (a new one gets ``0o666``
     less the umask), a file the process may not write is a PermissionError naming it (never
     replaced), and a symbolic link is written through: the file it points to is replaced.
-    A folder at ``path`` is an IsADirectoryError naming it, raised before anything is written.
+    A folder at ``path`` is an IsADirectoryError naming it, a missing folder a FileNotFoundError
+    naming ``path`` (or, where a file stands in the place of one of its folders, naming that file),
+    each raised before anything is written.
 
     Example:
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
@@ -72,6 +74,10 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a file path")
     folder = path.parent
     if not folder.is_dir():
+        blocker = next((p for p in (folder, *folder.parents) if p.exists()), None)
+        if blocker is not None and not blocker.is_dir():  # (not "does not exist": the file is there)
+            raise FileNotFoundError(f"path: {str(blocker)!r} is a file, not a folder, so {str(path)!r} cannot be "
+                                    f"written")
         raise FileNotFoundError(f"path: the folder of {str(path)!r} does not exist")
     if path.exists() and not os.access(path, os.W_OK):
         # open() refuses to write into it; a rename would replace it all the same (a file made
