@@ -147,13 +147,15 @@ def matched_gain(I1: Tensor, I2: Tensor, ok: Tensor, points: MaskPoints, thresho
     term = torch.empty_like(usable, dtype=torch.promote_types(torch.promote_types(I1.dtype, I2.dtype), usable.dtype))
     weights = torch.empty_like(term)
     gain = offset = None
-    for _ in range(iterations + 1):
+    for i in range(iterations + 1):
         n = points.per_frame(w).clamp_min(1e-12)
         m1, m2 = points.per_frame(torch.mul(w, I1, out=term)) / n, points.per_frame(torch.mul(w, I2, out=term)) / n
         s1 = points.per_frame(torch.sub(I1, points.per_pixel(m1), out=term).abs_().mul_(w)) / n  # Σ w |I1 - m1|
         s2 = points.per_frame(torch.sub(I2, points.per_pixel(m2), out=term).abs_().mul_(w)) / n
         gain = torch.where(s2 > 0, s1 / s2.clamp_min(1e-12), 1.0)
         offset = m1 - gain * m2
+        if i == iterations:  # (the last pass: its weights would weigh nothing more)
+            break
         # r = (gain I2 + offset - I1) / threshold, w = usable / (1 + r²)
         r = torch.mul(I2, points.per_pixel(gain), out=term).add_(points.per_pixel(offset)).sub_(I1).div_(threshold)
         w = torch.div(usable, r.square_().add_(1.0), out=weights)
