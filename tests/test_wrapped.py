@@ -136,6 +136,22 @@ def test_a_net_with_only_a_coarse_flow_is_named(road, pad, given):
         FreespaceRefined(QuarterNet(), road=road, pad=pad)(s["image1"], s["image2"], camera=s["camera"], mask=mask)
 
 
+@pytest.mark.parametrize("pad, given", [(None, "53 x 94"), (InputPadder(8), "53 x 94 (padded to 56 x 96)")])
+def test_a_net_that_leaves_its_own_padding_on_is_told_to_crop_it(pad, given):
+    """A net that pads to a multiple of 32 itself and returns the padded flow (RAFT's code without
+    ``padder.unpad``): the flow is larger than the input, and the error said to upsample it."""
+    s = scene((53, 94))
+
+    class PadsItself(nn.Module):
+        def forward(self, a, b):
+            return [torch.zeros(a.shape[0], 2, -(-a.shape[-2] // 32) * 32, -(-a.shape[-1] // 32) * 32)]
+
+    message = (rf"^net: its finest flow is 64 x 96, the input {re.escape(given)}: the wrapper needs full-size output; "
+               r"crop off the padding the net added \(RAFT's padder.unpad\), or give pad=InputPadder\(stride\)")
+    with pytest.raises(ValueError, match=message):
+        FreespaceRefined(PadsItself(), pad=pad)(s["image1"], s["image2"], camera=s["camera"], mask=s["road"])
+
+
 @pytest.mark.parametrize("mask_batch", [1, 2])
 def test_a_net_that_returns_another_batch_is_named(mask_batch):
     """A net that returns batch 1 for a batch of 2: the error names the net's output and quotes

@@ -36,9 +36,9 @@ class FreespaceRefined(nn.Module):
             (ARFlow's PWC-Lite, which takes the pair concatenated, ``net(torch.cat([image1,
             image2], 1))`` on 0..1, needs a two-image adapter: docs/contracts.md). It may return any structure :func:`refine_flow` accepts whose finest flow has the
             (padded) input's size, batch and device: a net that returns only a coarser flow
-            (PWC-Net's 1/4), another batch than the images' or another device, raises a ValueError
-            naming ``net`` after it ran;
-            upsample its flow to the input's size first. It gets images of its own (copies, or
+            (PWC-Net's 1/4) or a larger one (its own padding left on), another batch than the
+            images' or another device, raises a ValueError naming ``net`` after it ran;
+            upsample its flow to the input's size first (crop a padded one, or give ``pad``). It gets images of its own (copies, or
             the padded images): one that changes its inputs in place leaves the caller's images,
             which the refiner reads, as they were.
         refiner: a :class:`FreespaceRefiner` (default: ``FreespaceRefiner()``).
@@ -184,9 +184,12 @@ class FreespaceRefined(nn.Module):
         if tuple(finest.shape[-2:]) != padded_size:
             given = f"{size[0]} x {size[1]}" + ("" if padded_size == size else
                                                f" (padded to {padded_size[0]} x {padded_size[1]})")
+            larger = finest.shape[-2] > padded_size[0] or finest.shape[-1] > padded_size[1]
+            fix = ("; crop off the padding the net added (RAFT's padder.unpad), or give pad=InputPadder(stride) so "
+                   "that it gets sizes it need not pad" if larger else
+                   "; upsample it (a PWC-style net's 1/4 flow: its size and its values by 4)")
             raise ValueError(f"net: its finest flow is {finest.shape[-2]} x {finest.shape[-1]}, the input "
-                             f"{given}: the wrapper needs full-size output; upsample it (a PWC-style net's "
-                             f"1/4 flow: its size and its values by 4)")
+                             f"{given}: the wrapper needs full-size output{fix}")
         if padding is not None and padding.is_zero:
             padding = None
         if mask is None:
