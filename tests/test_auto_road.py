@@ -101,6 +101,19 @@ def test_synthetic_road_found(scene_pair, scene_detection):
     assert 0 < float(det.coverage[0]) < 1 and float(det.seed_agreement[0]) > 0.5
 
 
+def test_every_tensor_of_the_detection_is_on_the_images_device(scene_pair, scene_detection):
+    """coverage, seed_agreement and stats were built on the host while mask, ok and evidence
+    followed the images' device. (On a CPU, as here, every device is the CPU and this cannot fail:
+    it states the contract a GPU run keeps.)"""
+    det, device = scene_detection, scene_pair["image1"].device
+    tensors = {"mask": det.mask, "ok": det.ok, "seed": det.seed, "coverage": det.coverage,
+               "seed_agreement": det.seed_agreement, "evidence": det.evidence, "height": det.height,
+               **{f"stats[{k!r}]": v for k, v in det.stats.items()}}
+    assert sorted(det.stats) == ["height_bias_m", "max_height_m", "noise", "seed_evidence", "tau_px"]
+    assert {name: t.device for name, t in tensors.items()} == {name: device for name in tensors}
+    assert det.coverage.shape == det.seed_agreement.shape == det.ok.shape == (1,)
+
+
 def test_synthetic_road_with_the_true_motion_given(scene_pair, monkeypatch):
     """With the scene's own motion given nothing is estimated (the default estimator fails if
     called; an estimator given beside the motion is refused)."""

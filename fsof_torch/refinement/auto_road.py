@@ -692,8 +692,8 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
         reasons.append(why)
     evidence = torch.where(ev.good, 1, torch.where(ev.bad, 0, -1)).to(torch.int8)
     ok = torch.tensor([f == "ok" for f in flags], dtype=torch.bool, device=mask.device)
+    on = mask.device  # (the per-sample numbers, read above on the host, follow the masks' device, as ok does)
     return RoadDetection(mask=mask, flag=flags, reason=reasons, ok=ok, motion=motion, seed=seed,
-                         coverage=coverage, seed_agreement=agreement, evidence=evidence, height=ev.height,
-                         level=level, stats={"tau_px": ev.tau.cpu(), "noise": ev.noise.cpu(),
-                                             "height_bias_m": ev.bias.cpu(), "seed_evidence": evidence_share,
-                                             "max_height_m": ev.max_height})
+                         coverage=coverage.to(on), seed_agreement=agreement.to(on), evidence=evidence, height=ev.height,
+                         level=level, stats={"tau_px": ev.tau.to(on), "noise": ev.noise.to(on), "height_bias_m": ev.bias.to(on),
+                                             "seed_evidence": evidence_share.to(on), "max_height_m": ev.max_height.to(on)})
