@@ -152,6 +152,31 @@ def test_a_net_that_leaves_its_own_padding_on_is_told_to_crop_it(pad, given):
         FreespaceRefined(PadsItself(), pad=pad)(s["image1"], s["image2"], camera=s["camera"], mask=s["road"])
 
 
+def test_a_class_given_for_the_net_refiner_or_pad_is_named_when_built():
+    """A network class given for the network (FreespaceRefined(RAFT)) passed the callable check: the
+    first call built one from the two images (a TypeError from its __init__, or a module taken as
+    the flow); a FreespaceRefiner or InputPadder class was 'got type'."""
+    s = scene((48, 96))
+
+    class TwoArgs(nn.Module):  # (its class called with the two images builds a module)
+        def __init__(self, a=None, b=None):
+            super().__init__()
+
+        def forward(self, a, b):
+            return [torch.zeros(a.shape[0], 2, *a.shape[-2:])]
+
+    for kw, name, cls in ((dict(net=TwoArgs), "net", "TwoArgs"),
+                          (dict(net=PtlflowRAFTStandIn), "net", "PtlflowRAFTStandIn"),
+                          (dict(net=TwoArgs(), refiner=FreespaceRefiner), "refiner", "FreespaceRefiner"),
+                          (dict(net=TwoArgs(), pad=InputPadder), "pad", "InputPadder")):
+        with pytest.raises(TypeError, match=rf"^{name}: expected an instance, got the class {cls}; make one: "
+                                            rf"{name}={cls}\(\.\.\.\)$"):
+            FreespaceRefined(**kw)
+    out = FreespaceRefined(TwoArgs())(s["image1"], s["image2"], camera=s["camera"], mask=s["road"],
+                                      odometry=s["odometry"])
+    assert isinstance(out, list) and out[0].shape == (1, 2, 48, 96)
+
+
 @pytest.mark.parametrize("mask_batch", [1, 2])
 def test_a_net_that_returns_another_batch_is_named(mask_batch):
     """A net that returns batch 1 for a batch of 2: the error names the net's output and quotes

@@ -81,6 +81,10 @@ class FreespaceRefined(nn.Module):
                  road: str | None = None, road_options: Mapping[str, Any] | None = None,
                  pad: InputPadder | None = None, image_range: tuple[float, float] = (0.0, 255.0)) -> None:
         super().__init__()
+        for name, given in (("net", net), ("refiner", refiner), ("pad", pad)):
+            if isinstance(given, type):  # (a class is callable: the first call would build one from the images)
+                raise TypeError(f"{name}: expected an instance, got the class {given.__name__}; make one: "
+                                f"{name}={given.__name__}(...)")
         if not callable(net):
             raise TypeError(f"net: expected a callable flow network, got {type(net).__name__}")
         if refiner is not None and not isinstance(refiner, FreespaceRefiner):
