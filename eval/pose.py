@@ -116,7 +116,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         yaw_range_deg: uniform range of the yaw change in degrees.
         fit_roll: also fit the roll (the paper's experiment knows the camera; default False).
         seed: an int; seeds the poses and the noise.
-        chunk: trials fitted per batch (bounds memory).
+        chunk: trials fitted per batch (bounds memory; the results do not depend on it).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
         progress: show a progress bar over σ and the trials (:func:`fsof_torch.io.progress.progress_bar`).
         **fit_options: passed to :func:`fsof_torch.estimation.flow_fit.fit_displacement`.
@@ -198,8 +198,12 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
                         raise ValueError(f"box: {(top, bottom, left, right)!r} holds no pixel where the model flow "
                                          f"is defined (below the horizon) for trial {trial}; expected a box on the road")
                     pixels.extend(counts.tolist())
-                # Drawn on the CPU generator so that results do not depend on the device.
-                noise = torch.randn(flow.shape, generator=gen, dtype=torch.float64).to(dtype=dtype, device=flow.device)
+                # Drawn on the CPU generator so that results do not depend on the device, and one
+                # trial at a time so that they do not depend on ``chunk`` either (torch draws the
+                # normal values of one call in blocks of 16: a call for a whole chunk gives other
+                # values than a call per trial, where a trial's count is no multiple of 16)
+                noise = torch.stack([torch.randn(flow.shape[1:], generator=gen, dtype=torch.float64)
+                                     for _ in range(n)]).to(dtype=dtype, device=flow.device)
                 noisy = torch.where(mask, flow + s * noise, torch.zeros_like(flow))
                 fit = fit_displacement(noisy, mask, cam, fit_roll=fit_roll, fit_pitch=False, **fit_options)
                 estimated[k, start:start + n] = torch.stack([fit.x_d, fit.z_d, fit.yaw], dim=-1).double().cpu()
