@@ -133,6 +133,10 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
 
     from fsof_torch.io.progress import progress_bar
 
+    if isinstance(sigmas, (tuple, list)) and any(isinstance(s, bool) or not isinstance(s, numbers.Real)
+                                                 for s in sigmas):
+        # (a string, None or a nested list failed inside float(), unnamed; "0.5" was taken)
+        raise TypeError(f"sigmas: expected a list of numbers (noise levels in px), got {sigmas!r}")
     sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
     if not sig or not all(math.isfinite(s) and 0 <= s <= MAX_SIGMA for s in sig):
         raise ValueError(f"sigmas: expected a non-empty list of values in [0, {MAX_SIGMA:g}] px, got {sigmas!r}")

@@ -109,6 +109,12 @@ def test_errors():
     ({"size": (40, 120, 3)}, TypeError, r"size: expected \(H, W\)"),
     # a σ whose noise overflows float32 (1e39) or leaves no flow to fit
     ({"sigmas": [0.0, 1e39]}, ValueError, r"sigmas: expected a non-empty list of values in \[0, 10000\] px"),
+    # a σ that is no number failed inside float(), unnamed (a string of one was taken)
+    ({"sigmas": ["a"]}, TypeError, r"sigmas: expected a list of numbers \(noise levels in px\), got \['a'\]"),
+    ({"sigmas": [None]}, TypeError, r"sigmas: expected a list of numbers"),
+    ({"sigmas": [[1.0]]}, TypeError, r"sigmas: expected a list of numbers"),
+    ({"sigmas": ["0.5"]}, TypeError, r"sigmas: expected a list of numbers"),
+    ({"sigmas": [True]}, TypeError, r"sigmas: expected a list of numbers"),
     ({"dtype": torch.int32}, TypeError, r"dtype: expected a floating-point torch.dtype, got torch.int32"),
     # three box sides failed to unpack, a string one inside int(), a float one was truncated
     ({"box": (30, 40, 0)}, TypeError, r"box: expected \(top, bottom, left, right\), four ints, got \(30, 40, 0\)"),
