@@ -617,7 +617,7 @@ def test_pair_figure_checks_max_flow_before_a_figure_is_opened(max_flow, error, 
 
 
 def test_pair_figure_draws_sparse_ground_truth_reduced_not_hidden():
-    """A wide frame is drawn reduced (a KITTI frame by 3): a drawn pixel had no value when any
+    """A wide frame is drawn reduced (this one by 3, a KITTI frame by 4): a drawn pixel had no value when any
     pixel it covers had none, so sparse ground truth (KITTI's laser lines: 39 % of a road's pixels
     valid, under 3 % of its 3 x 3 blocks entirely) came out almost all grey. A drawn pixel now
     shows the mean of the valid pixels it covers, in the error row and in the flow row (a valid
@@ -654,6 +654,36 @@ def test_pair_figure_draws_sparse_ground_truth_reduced_not_hidden():
         assert grey[:, 200:].all() and grey[1, 1] and not grey[1, 0] and not grey[:, 2:200].any()
         mean = flow[:, 3:6, 30:33][:, 0].double().mean(dim=1).view(2, 1, 1)
         assert rgb[1, 10].tolist() == flow_to_color(mean, 4.0)[0, :, 0, 0].tolist()
+    finally:
+        plt.close(fig)
+
+
+@pytest.mark.parametrize("size, columns, factor", [
+    ((375, 1242), 1, 4), ((375, 1242), 3, 4), ((370, 1226), 2, 4), ((600, 600), 1, 3), ((200, 640), 1, 2),
+    ((40, 120), 2, 1),
+])
+def test_pair_figure_draws_its_pictures_no_larger_than_their_panels(size, columns, factor):
+    """matplotlib draws a picture larger than its panel with its nearest-neighbour drawing, which
+    drops whole rows and columns: the reduction was the width over about 320 px rounded down, so a
+    KITTI frame (by 3: 414 columns into a 324-pixel panel) lost a quarter of its drawn rows and
+    columns, sparse ground truth's lines with them (24 of 31 lines one row in 12 apart were drawn),
+    and a square 600 px frame (not reduced, into a 253-pixel panel) more than half. The reduction
+    now fits the picture into the panel's box, both sides."""
+    import matplotlib.pyplot as plt
+
+    H, W = size
+    flows = {f"c{k}": torch.zeros(2, H, W) for k in range(columns)}
+    errors = {name: (torch.ones(1, H, W), torch.ones(1, H, W, dtype=torch.bool)) for name in flows}
+    fig = pair_figure(flows=flows, errors=errors, road=torch.zeros(1, H, W, dtype=torch.bool), max_flow=1.0,
+                      error_vmax=1.0, error_label="epe (px)", title="t")
+    try:
+        fig.canvas.draw()
+        for ax in _image_axes(fig):
+            picture = ax.get_images()[0]
+            h, w = picture.get_array().shape[:2]
+            assert (h, w) == (-(-H // factor), -(-W // factor))
+            box = picture.get_window_extent()
+            assert h <= box.height + 1e-6 and w <= box.width + 1e-6
     finally:
         plt.close(fig)
 

@@ -4,7 +4,7 @@ Each figure has a title; flow images carry a colour-wheel legend with the magnit
 saturation; error maps carry a colour bar with the unit and the value where the colours saturate;
 pixels without a value are mid grey in flows and error maps alike (a colour neither the flow
 wheel nor the error colour map holds: black would read as an error of 0), named in the legend;
-a frame wider than its panel is drawn reduced (a KITTI frame by 3), each drawn pixel the mean of
+a frame larger than its panel is drawn reduced (a KITTI frame by 4), each drawn pixel the mean of
 the pixels with a value it covers, so sparse ground truth stays visible;
 image panels have pixel axes; the road mask is drawn as a black-and-white dashed outline (no
 fill, so nothing under it changes colour and it cannot be taken for an object); before and after
@@ -111,10 +111,14 @@ def _reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Te
     return mean, (share > 0) & ~_reduce(bad, factor)
 
 
-def _factor(width: int, panel_pixels: float) -> int:
-    """The integer reduction that brings an image of ``width`` to about the panel's pixel width
-    (never below it: matplotlib then only enlarges a little, which is cheap)."""
-    return max(1, int(width // max(panel_pixels, 1.0)))
+def _factor(size: tuple[int, int], panel: tuple[float, float]) -> int:
+    """The least integer reduction that fits an image of ``size`` (H, W) into a panel of ``panel``
+    (h, w) pixels, so that matplotlib enlarges the picture a little and never shrinks it: shrunk
+    by its nearest-neighbour drawing, it drops whole rows and columns (a reduction of a KITTI
+    frame by 3, 414 columns into a 316-pixel panel, lost a quarter of them, and sparse ground
+    truth's lines with them)."""
+    scale = max(size[0] / max(panel[0], 1.0), size[1] / max(panel[1], 1.0))
+    return max(1, math.ceil(scale - 1e-9))
 
 
 def road_outline(mask: Tensor) -> list[Any]:
@@ -250,7 +254,7 @@ def pair_figure(*, flows: Mapping[str, Tensor], errors: Mapping[str, tuple[Tenso
         images: optional ``(image1, image2)`` (3, H, W) RGB 0..255, shown as a first column.
         valid: optional (1, H, W) bool for the flow row (e.g. a flow file's valid pixels).
 
-        A frame wider than its panel is drawn reduced by an integer factor (3 for a KITTI
+        A frame larger than its panel is drawn reduced by an integer factor (4 for a KITTI
         frame): each drawn pixel shows the mean of the pixels with a value it covers, and has
         none where no pixel it covers is valid, or where a valid one is not finite.
 
@@ -301,15 +305,17 @@ class PairFigure:
         ncol = len(with_errors) + bool(images)
         panel_w = 4.2
         panel_h = panel_w * H / W
-        self.factor = _factor(W, 0.95 * panel_w * FIGURE_DPI)
         extent = (-0.5, W - 0.5, H - 0.5, -0.5)  # axes in pixels of the full image
-        fig = self.figure = plt.figure(figsize=(panel_w * ncol + 1.8, 2 * panel_h + 1.5), dpi=FIGURE_DPI)
+        fig_w, fig_h = panel_w * ncol + 1.8, 2 * panel_h + 1.5
+        fig = self.figure = plt.figure(figsize=(fig_w, fig_h), dpi=FIGURE_DPI)
         self.title = fig.suptitle("", fontsize=10)
         right = 1.0 - 1.5 / (panel_w * ncol + 1.8)
         left, bottom, top = 0.45 / (panel_w * ncol + 1.8), 0.09, 0.84
         gap = 0.35 / (panel_w * ncol + 1.8)
         col_w = (right - left - gap * (ncol - 1)) / ncol
         row_h = (top - bottom - 0.11) / 2
+        # (the picture, its aspect kept, is drawn at most as large as the panel's box)
+        self.factor = _factor((H, W), (row_h * fig_h * FIGURE_DPI, col_w * fig_w * FIGURE_DPI))
         rows = (bottom + row_h + 0.11, bottom)
         h, w = -(-H // self.factor), -(-W // self.factor)  # the reduced pictures' size
         blank_rgb, blank_error = np.zeros((h, w, 3), dtype=np.uint8), np.full((h, w), np.nan)
