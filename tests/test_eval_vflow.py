@@ -325,6 +325,45 @@ def test_vflow_observed_map_shows_negative_flow(tmp_path, monkeypatch):
     assert vflow._extend(torch.tensor([-2.0, 3.0]), -1.0, 1.0) == "both"
 
 
+@pytest.mark.parametrize("size", [(375, 1242), (370, 1226), (188, 621)])
+def test_vflow_map_figures_draw_sparse_flow_no_larger_than_their_panel(tmp_path, monkeypatch, size):
+    """An F_v map larger than its panel was shrunk by matplotlib's nearest-neighbour drawing, which
+    drops whole rows and columns: of a KITTI-sized map of sparse flow, one row in 12 valid (laser
+    lines), 22 of 31 lines were drawn. The picture is now reduced to fit its panel, each drawn
+    pixel the mean of the valid pixels it covers (no value where none is)."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import eval.vflow as vflow
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # (kept open to look at)
+    H, W = size
+    img = torch.arange(H * W, dtype=torch.float64).reshape(H, W) / (H * W)
+    valid = torch.zeros(H, W, dtype=torch.bool)
+    valid[6::12] = True
+    vflow._plot_image(img, valid, tmp_path / "map.png", "t", "inferno", 0.0, 1.0, "F_v (px)")
+    fig = figures[0]
+    try:
+        ax = next(a for a in fig.axes if a.get_images())
+        picture = ax.get_images()[0]
+        shown = np.ma.filled(picture.get_array().astype(np.float64), np.nan)
+        fig.canvas.draw()
+        box = picture.get_window_extent()
+        assert shown.shape[0] <= box.height and shown.shape[1] <= box.width
+        k = -(-H // shown.shape[0])  # the reduction
+        assert shown.shape == (-(-H // k), -(-W // k))
+        rows = sorted({r // k for r in range(6, H, 12)})
+        has = ~np.isnan(shown)
+        assert has[rows].all() and not np.delete(has, rows, axis=0).any()  # every line, and nothing else
+        r = rows[1]
+        block = img[r * k:(r + 1) * k, :k]
+        assert shown[r, 0] == pytest.approx(float(block[valid[r * k:(r + 1) * k, :k]].mean()), rel=1e-12)
+    finally:
+        monkeypatch.undo()
+        plt.close(fig)
+
+
 def test_vflow_road_figure_needs_a_road(tmp_path, capsys):
     """--flow without --mask has no road: the road figure is null in the JSON and not printed as
     "on the road" (it was the figure over every valid pixel); the figure over the fit's pixels is

@@ -38,7 +38,9 @@ __all__ = [
     "PairFigure",
     "clip_summary_figure",
     "colour_wheel",
+    "drawing_factor",
     "pair_figure",
+    "reduce_values",
     "road_outline",
     "save_figure",
 ]
@@ -96,13 +98,14 @@ def _reduce(x: Tensor, factor: int, mode: str = "area") -> Tensor:
     return F.avg_pool2d(x[None].to(dtype), factor, ceil_mode=True, count_include_pad=False)[0]
 
 
-def _reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Tensor, Tensor]:
+def reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Tensor, Tensor]:
     """A map (C, H, W) reduced by an integer factor for drawing: each drawn pixel the mean over
     its pixels with a value (``has``, (1, H, W) bool), so that sparse ground truth (KITTI's laser
     lines: 39 % of a road's pixels, under 3 % of its 3 x 3 blocks entirely) stays visible; and
     whether it has a value: some pixel has one, and none is ``bad`` (a value that should be there
     but is not finite, shown as no value rather than hidden by its neighbours). Returns the
-    reduced map (float64, 0 where no value) and that flag (1, h, w)."""
+    reduced map (float64, 0 where no value) and that flag (1, h, w). ``factor``: an int >= 1, such
+    as :func:`drawing_factor` gives for the panel."""
     x = torch.where(has, x.to(torch.float64), torch.zeros((), dtype=torch.float64))
     if factor <= 1:
         return x, has & ~bad
@@ -111,7 +114,7 @@ def _reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Te
     return mean, (share > 0) & ~_reduce(bad, factor)
 
 
-def _factor(size: tuple[int, int], panel: tuple[float, float]) -> int:
+def drawing_factor(size: tuple[int, int], panel: tuple[float, float]) -> int:
     """The least integer reduction that fits an image of ``size`` (H, W) into a panel of ``panel``
     (h, w) pixels, so that matplotlib enlarges the picture a little and never shrinks it: shrunk
     by its nearest-neighbour drawing, it drops whole rows and columns (a reduction of a KITTI
@@ -315,7 +318,7 @@ class PairFigure:
         col_w = (right - left - gap * (ncol - 1)) / ncol
         row_h = (top - bottom - 0.11) / 2
         # (the picture, its aspect kept, is drawn at most as large as the panel's box)
-        self.factor = _factor((H, W), (row_h * fig_h * FIGURE_DPI, col_w * fig_w * FIGURE_DPI))
+        self.factor = drawing_factor((H, W), (row_h * fig_h * FIGURE_DPI, col_w * fig_w * FIGURE_DPI))
         rows = (bottom + row_h + 0.11, bottom)
         h, w = -(-H // self.factor), -(-W // self.factor)  # the reduced pictures' size
         blank_rgb, blank_error = np.zeros((h, w, 3), dtype=np.uint8), np.full((h, w), np.nan)
@@ -394,7 +397,7 @@ class PairFigure:
             has = finite if valid is None else finite & valid
             # a drawn pixel shows the mean of its pixels with a value (a sparse valid map stays
             # visible); no value where none has one, or where a valid pixel's flow is not finite
-            mean, ok_r = _reduce_values(f, has, ~finite if valid is None else valid & ~finite, factor)
+            mean, ok_r = reduce_values(f, has, ~finite if valid is None else valid & ~finite, factor)
             rgb = flow_to_color(mean, max_flow, valid=ok_r)[0]
             rgb = torch.where(ok_r, rgb, torch.tensor(NO_VALUE_RGB, dtype=torch.uint8).view(3, 1, 1))
             shown.set_data(rgb.permute(1, 2, 0).numpy())
@@ -405,7 +408,7 @@ class PairFigure:
             # the mean of the valid pixels a drawn pixel covers (sparse ground truth stays
             # visible); a valid pixel whose error is not finite gives it no value (not an error of 0)
             finite = torch.isfinite(err)
-            e, ok_r = _reduce_values(err, ok_e & finite, ok_e & ~finite, factor)
+            e, ok_r = reduce_values(err, ok_e & finite, ok_e & ~finite, factor)
             e, ok_r = e[0].numpy(), ok_r[0].numpy()
             # NaN where there is no value: drawn in the colour map's "bad" colour, as a masked
             # array would be (matplotlib masks NaN itself)
