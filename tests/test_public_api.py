@@ -147,6 +147,24 @@ def test_a_sequence_fit_compares_by_identity_and_prints_short(results):
     assert text.count("RoadFit(") == 4 and "... (6 items)" in text and len(text) < 6000, text
 
 
+def test_the_named_tuple_results_of_many_frames_print_on_one_line():
+    """docs/conventions.md: an ``EgoMotion`` and a ``VFlowMap`` print on one line like the other
+    results; torch's repr of 20 frames' motion or of a V-flow histogram ran to 20-40 lines."""
+    import torch
+
+    motion = fsof_torch.ego_motion_from_ackermann(torch.linspace(5.0, 15.0, 20), torch.zeros(20), 2.7, 0.1)
+    text = repr(motion)
+    assert text.count("\n") == 0 and text.startswith("EgoMotion(x_d=tensor(shape=(20,), dtype=torch.float32)"), text
+    assert "rotation_residual=tensor(shape=(20, 3), dtype=torch.float32)" in text
+    assert repr(motion._replace(x_d=torch.tensor([0.5]))).count("tensor([0.5000])") == 1  # few values: as torch prints them
+    flow = torch.zeros(1, 2, 48, 160)
+    hist = fsof_torch.vflow_map(flow, bins=16)
+    assert repr(hist) == ("VFlowMap(histogram=tensor(shape=(1, 48, 16), dtype=torch.float32), "
+                          "edges=tensor(shape=(17,), dtype=torch.float32))")
+    histogram, edges = hist  # still a tuple
+    assert histogram.shape == (1, 48, 16) and edges.shape == (17,)
+
+
 def test_road_model_repr_leaves_out_its_private_map():
     assert repr(fsof_torch.ROAD_MODELS["paper"]) == (
         "RoadModel(name='paper', params=('x_d', 'z_d', 'yaw', 'roll', 'pitch'), units=('m', 'm', 'rad', 'rad', 'rad'), "

@@ -56,6 +56,8 @@ class VFlowMap(NamedTuple):
     histogram: Tensor
     edges: Tensor
 
+    __repr__ = summary_repr  # (one line: the histogram as its shape)
+
 
 def check_flow_mask(flow: Tensor, mask: Tensor | None) -> tuple[dict[str, int], Tensor]:
     """Validate ``flow`` (B,2,H,W) and ``mask`` (B,1,H,W) or None; return the usable pixels:

@@ -14,7 +14,7 @@ import torch
 from torch import Tensor
 
 from .._check import (as_batch_param, autocast_off, check_finite, check_positive, check_same_device, resolve_batch,
-                      result_dtype, skip_values, tracing)
+                      result_dtype, skip_values, summary_repr, tracing)
 from .camera import Camera
 
 __all__ = ["EgoMotion", "ego_motion_from_pose", "ego_motion_from_ackermann", "relative_pose", "as_pose_4x4",
@@ -40,6 +40,8 @@ class EgoMotion(NamedTuple):
     yaw: Tensor
     y_d: Tensor | None = None
     rotation_residual: Tensor | None = None
+
+    __repr__ = summary_repr  # (one line: a batch of many frames as its shapes)
 
 
 def relative_pose(pose0: Tensor, pose1: Tensor) -> Tensor:
