@@ -4,9 +4,9 @@ The road's optical flow in closed form from the camera (intrinsics, height, roll
 ego-motion, as differentiable batched modules; fitting it to flow or images; refining a flow
 network's prediction with it; photometric and ground-truth evaluation; a training loss term.
 Subpackages: ``geometry``, ``estimation``, ``refinement``, ``evaluation``, ``training``, ``data``,
-``io``. The flat module paths of earlier versions stay: ``camera``, ``flow_model``, ``egomotion``,
+``io``. Short module paths are aliases of their modules: ``camera``, ``flow_model``, ``egomotion``,
 ``fit``, ``vflow``, ``warp``, ``photometric``, ``metrics``, ``fusion``, ``losses``, ``testnet``,
-``scene``, ``datasets``, ``visualize`` (below).
+``scene``, ``datasets``, ``visualize``.
 """
 
 import sys as _sys
@@ -97,8 +97,8 @@ from ._check import trust_image_range
 
 __version__ = "0.1.0"
 
-# The flat module paths of earlier versions (``fsof_torch.metrics``, ``fsof_torch.camera``, ...)
-# stay importable: each is an alias of the module that now holds it, in sys.modules and as an
+# The short module paths (``fsof_torch.metrics``, ``fsof_torch.camera``, ...) are importable:
+# each is an alias of the module that holds it, in sys.modules and as an
 # attribute (``import fsof_torch.fit`` finds the module in sys.modules and sets no attribute).
 # ``fsof_torch.fit_photometric`` is the function; its module path stays in sys.modules only
 # (``from fsof_torch.fit_photometric import fit_image`` works; the attribute is the function).

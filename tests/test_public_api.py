@@ -65,7 +65,7 @@ def test_the_flat_module_paths_are_modules_as_the_docstring_lists():
     assert fit_image is fsof_torch.fit_image
     doc = " ".join(fsof_torch.__doc__.split())
     assert "``pose``" not in doc
-    listed = re.findall(r"``(\w+)``", doc.partition("The flat module paths of earlier versions stay:")[2])
+    listed = re.findall(r"``(\w+)``", doc.partition("Short module paths are aliases of their modules:")[2])
     assert {"fit", "flow_model", "camera", "metrics"} <= set(listed)
     for name in listed:
         module = importlib.import_module(f"fsof_torch.{name}")
