@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
 import warnings
 
@@ -445,6 +446,32 @@ def test_composite_feeds_a_compiled_term_the_inputs_its_forward_names():
                                                                 batch["odometry"]))
     torch.testing.assert_close(total, expected_total)
     assert values["f"] > 0
+
+
+def test_composite_leaves_a_partials_bound_keywords_to_it():
+    """partial(freespace_flow_loss, odometry="fit") was fed the batch's odometry, whose keyword
+    overrides the bound one: the term silently used the given odometry, not the fit."""
+    image1, image2, flow = _shifted_pair(2)
+    road = torch.zeros(2, 1, H, W, dtype=torch.bool)
+    road[:, :, H // 2:] = True
+    cam, odo = _camera(), _odometry(2)
+    g = torch.Generator().manual_seed(0)
+    # the road flow of another motion than the batch's, plus noise: a fit follows it, the batch's odometry does not
+    target, _ = road_flow(cam, {"x_d": 0.05, "z_d": 0.6, "yaw": 0.01}, (H, W))
+    flow = target.expand(2, 2, H, W) + 0.3 * torch.randn(2, 2, H, W, generator=g, dtype=torch.float64)
+    batch = {"image1": image1, "image2": image2, "road": road, "camera": cam, "odometry": odo}
+    fitted = freespace_flow_loss(flow, road, cam, "fit")
+    given = freespace_flow_loss(flow, road, cam, odo)
+    assert given > 10 * fitted  # (the two targets differ: the test tells them apart)
+    _, values = CompositeLoss({"f": (1.0, functools.partial(freespace_flow_loss, odometry="fit"))})(flow, batch)
+    torch.testing.assert_close(values["f"], fitted)
+    # a bound image too; a term taking **kwargs is not fed its bound keywords either
+    _, values = CompositeLoss({"u": (1.0, functools.partial(unsupervised_flow_loss, image2=image1))})(flow, batch)
+    torch.testing.assert_close(values["u"], unsupervised_flow_loss(flow, image1, image1))
+    seen = {}
+    term = functools.partial(lambda flows, **kw: seen.update(kw) or 0.0, camera="mine")
+    CompositeLoss({"k": (1.0, term)})(flow, batch)
+    assert seen["camera"] == "mine" and seen["road"] is road
 
 
 def test_composite_refuses_a_term_that_is_not_a_scalar():

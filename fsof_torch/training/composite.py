@@ -6,6 +6,7 @@ returning a scalar; each is fed, from one batch dict, the inputs its ``forward``
 
 from __future__ import annotations
 
+import functools
 import inspect
 from collections.abc import Mapping, Sequence
 
@@ -24,7 +25,9 @@ class CompositeLoss(nn.Module):
         terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
             receives, from the inputs given to ``forward``, those whose names are parameters of
             its ``forward`` (or of the function itself; of the compiled module's ``forward`` for
-            ``torch.compile(module)``), so one batch dict can feed all terms.
+            ``torch.compile(module)``), so one batch dict can feed all terms. The keywords a
+            ``functools.partial`` term binds are its own: an input of that name is not passed
+            (``partial(freespace_flow_loss, odometry="fit")`` fits, whatever odometry the batch holds).
             Each weight is a finite number >= 0: a bool, a string or any other non-number raises
             TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``. A 0-d
             tensor is read as its number, but one that requires grad (a learnable weight, whose
@@ -57,7 +60,7 @@ class CompositeLoss(nn.Module):
         if not isinstance(terms, Mapping) or not terms:
             raise TypeError(f"terms: expected a non-empty dict {{name: (weight, term)}}, got {terms!r}")
         self.weights: dict[str, float] = {}
-        self._names: dict[str, tuple[set[str], bool]] = {}
+        self._names: dict[str, tuple[set[str], bool, frozenset[str]]] = {}
         self._functions: dict[str, object] = {}   # the terms that are not modules
         self._keys: dict[str, str] = {}           # term name -> its key in self.terms
         entries = []
@@ -107,8 +110,9 @@ class CompositeLoss(nn.Module):
         total = 0.0
         values: dict[str, Tensor] = {}
         for name, weight in self.weights.items():
-            accepted, takes_all = self._names[name]
-            kwargs = given if takes_all else {k: v for k, v in given.items() if k in accepted}
+            accepted, takes_all, bound = self._names[name]
+            kwargs = ({k: v for k, v in given.items() if k not in bound} if takes_all else
+                      {k: v for k, v in given.items() if k in accepted})
             try:
                 value = self._term(name)(flows, **kwargs)
             except TypeError as exc:
@@ -135,8 +139,9 @@ def _module_key(name: object, probe: nn.ModuleDict) -> bool:
     return isinstance(name, str) and name != "" and "." not in name and not hasattr(probe, name)
 
 
-def _accepted_names(term: object) -> tuple[set[str], bool]:
-    """Keyword names ``term`` accepts after ``flows``, and whether it takes ``**kwargs``."""
+def _accepted_names(term: object) -> tuple[set[str], bool, frozenset[str]]:
+    """Keyword names ``term`` accepts after ``flows``, whether it takes ``**kwargs``, and the
+    keywords a ``functools.partial`` binds (never fed: a call's keyword would override them)."""
     # torch.compile(module) wraps it in a module whose forward takes (*args, **kwargs): read the
     # compiled module's own forward, or the term would be fed every input and refuse the others
     while isinstance(term, nn.Module) and isinstance(getattr(term, "_orig_mod", None), nn.Module):
@@ -144,6 +149,8 @@ def _accepted_names(term: object) -> tuple[set[str], bool]:
     fn = term.forward if isinstance(term, nn.Module) else term
     params = list(inspect.signature(fn).parameters.values())[1:]
     takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
+    # (the signature of a partial lists its bound keywords as parameters with those defaults)
+    bound = frozenset(term.keywords) if isinstance(term, functools.partial) else frozenset()
     names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
-                                                   inspect.Parameter.KEYWORD_ONLY)}
-    return names, takes_all
+                                                   inspect.Parameter.KEYWORD_ONLY)} - bound
+    return names, takes_all, bound
