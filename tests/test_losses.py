@@ -468,6 +468,11 @@ def test_composite_leaves_a_partials_bound_keywords_to_it():
     # a bound image too; a term taking **kwargs is not fed its bound keywords either
     _, values = CompositeLoss({"u": (1.0, functools.partial(unsupervised_flow_loss, image2=image1))})(flow, batch)
     torch.testing.assert_close(values["u"], unsupervised_flow_loss(flow, image1, image1))
+    # a partial of a module term: fed its forward's inputs but the bound one (was: every input, and
+    # "unexpected keyword argument 'image1'")
+    other = {"x_d": 0.05, "z_d": 0.6, "yaw": 0.01}
+    _, values = CompositeLoss({"f": (1.0, functools.partial(FreespaceFlowLoss(), odometry=other))})(flow, batch)
+    torch.testing.assert_close(values["f"], freespace_flow_loss(flow, road, cam, other))
     seen = {}
     term = functools.partial(lambda flows, **kw: seen.update(kw) or 0.0, camera="mine")
     CompositeLoss({"k": (1.0, term)})(flow, batch)

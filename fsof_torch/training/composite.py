@@ -27,7 +27,8 @@ class CompositeLoss(nn.Module):
             its ``forward`` (or of the function itself; of the compiled module's ``forward`` for
             ``torch.compile(module)``), so one batch dict can feed all terms. The keywords a
             ``functools.partial`` term binds are its own: an input of that name is not passed
-            (``partial(freespace_flow_loss, odometry="fit")`` fits, whatever odometry the batch holds).
+            (``partial(freespace_flow_loss, odometry="fit")`` fits, whatever odometry the batch
+            holds); a partial of a module is fed the other inputs its ``forward`` names.
             Each weight is a finite number >= 0: a bool, a string or any other non-number raises
             TypeError, NaN, inf or a negative weight ValueError, naming ``terms[name]``. A 0-d
             tensor is read as its number, but one that requires grad (a learnable weight, whose
@@ -142,15 +143,26 @@ def _module_key(name: object, probe: nn.ModuleDict) -> bool:
 def _accepted_names(term: object) -> tuple[set[str], bool, frozenset[str]]:
     """Keyword names ``term`` accepts after ``flows``, whether it takes ``**kwargs``, and the
     keywords a ``functools.partial`` binds (never fed: a call's keyword would override them)."""
-    # torch.compile(module) wraps it in a module whose forward takes (*args, **kwargs): read the
-    # compiled module's own forward, or the term would be fed every input and refuse the others
-    while isinstance(term, nn.Module) and isinstance(getattr(term, "_orig_mod", None), nn.Module):
-        term = term._orig_mod
-    fn = term.forward if isinstance(term, nn.Module) else term
+    bound = frozenset()
+    if isinstance(term, functools.partial):
+        # (the signature of a partial lists its bound keywords as parameters with those defaults;
+        # a partial of a module: its forward's, with what the partial binds)
+        bound = frozenset(term.keywords)
+        inner = _compiled_module(term.func)
+        fn = functools.partial(inner.forward, *term.args, **term.keywords) if isinstance(inner, nn.Module) else term
+    else:
+        term = _compiled_module(term)
+        fn = term.forward if isinstance(term, nn.Module) else term
     params = list(inspect.signature(fn).parameters.values())[1:]
     takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
-    # (the signature of a partial lists its bound keywords as parameters with those defaults)
-    bound = frozenset(term.keywords) if isinstance(term, functools.partial) else frozenset()
     names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
                                                    inspect.Parameter.KEYWORD_ONLY)} - bound
     return names, takes_all, bound
+
+
+def _compiled_module(term: object) -> object:
+    """The module a ``torch.compile(module)`` wraps (its wrapper's forward takes (*args, **kwargs):
+    reading it, the term would be fed every input and refuse the others); ``term`` otherwise."""
+    while isinstance(term, nn.Module) and isinstance(getattr(term, "_orig_mod", None), nn.Module):
+        term = term._orig_mod
+    return term
