@@ -415,3 +415,21 @@ def test_the_kept_frame_is_the_size_the_docs_state(dtype, megabytes):
     render_pair("default", 0, dtype=dtype)  # (at the default 375 x 1242)
     frame = render_module._KEPT["frame"]
     assert stored(frame, set()) / 1e6 == pytest.approx(megabytes, abs=0.5)
+
+
+def test_base_size_is_bounded_where_it_is_the_rendered_size():
+    """Without a size the images are rendered at base_size, which went round MAX_SIDE: a
+    base_size of (16385, 1) rendered a (16385, 1) frame (and (20000, 20000) would fill 100 GB); now
+    a ValueError naming base_size, before any rendering. With a size, base_size only sets the frame
+    of K and may be larger."""
+    from fsof_torch.data.datasets import SceneDataset
+
+    message = r"^base_size: expected sides of at most 16384 pixels where no size is given .*got \(16385, 1\)"
+    for call in (lambda: render_pair("cvc-simple", 0, base_size=(16385, 1)),
+                 lambda: SceneDataset("cvc-simple", 1, base_size=(16385, 1)),
+                 lambda: scene_config("cvc-simple", base_size=(16385, 1))):
+        with pytest.raises(ValueError, match=message):
+            call()
+    pair = render_pair("cvc-simple", 0, base_size=(16385, 1), size=(8, 1))
+    assert pair["image1"].shape == (3, 8, 1)
+    assert render_pair("cvc-simple", 0, base_size=(16384, 1))["image1"].shape == (3, 16384, 1)

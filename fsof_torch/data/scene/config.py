@@ -174,7 +174,8 @@ class SceneConfig:
     atan(l / 8 m), about 0.325 rad at l = 2.7 m).
 
     Camera: ``height`` (m), ``roll``, ``pitch`` (rad), ``K`` (3×3 at ``base_size``), ``size``
-    (rendered (H, W), each side at most :data:`MAX_SIDE` = 16 384; K is scaled to it); K, height, roll and pitch make a valid
+    (rendered (H, W), each side at most :data:`MAX_SIDE` = 16 384; K is scaled to it; None renders at
+    ``base_size``, then bounded alike); K, height, roll and pitch make a valid
     :class:`~fsof_torch.geometry.camera.Camera` (float64) at both sizes. Anti-aliasing:
     ``supersample`` (ss × ss rays per pixel, 1 <= ss <= :data:`MAX_SUPERSAMPLE` = 16) at geometric
     edges only when ``adaptive`` (textures and markings are band-limited analytically, so pixel
@@ -421,7 +422,10 @@ def _validate(cfg: SceneConfig) -> None:
         check_bool(getattr(cfg, name), name)  # a truthy string such as "False" would pass as True
     if cfg.size is not None:
         check_sides(check_size(cfg.size))  # (a SceneConfig's own size as well as the size argument)
-    check_size(cfg.base_size, "base_size")
+    base_size = check_size(cfg.base_size, "base_size")
+    if cfg.size is None and max(base_size) > MAX_SIDE:  # without a size, the images are base_size's
+        raise ValueError(f"base_size: expected sides of at most {MAX_SIDE} pixels where no size is given (the "
+                         f"images are rendered at base_size), got {base_size}; give a size")
     _validate_camera(cfg)
     _validate_road_motion(cfg, real)
 
