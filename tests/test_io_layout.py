@@ -390,6 +390,69 @@ def test_a_pair_is_written_all_or_none(tmp_path, key, bad, err):
     assert read_synthetic_pair(root, 0)["odometry"]["x_d"] == pytest.approx(0.08)   # pair 3's x_d
 
 
+def _files(root):
+    return {p.relative_to(root): p.read_bytes() for p in root.rglob("*") if p.is_file()}
+
+
+def test_ctrl_c_while_a_pair_is_put_in_place_leaves_the_whole_pair(tmp_path, monkeypatch):
+    """A Ctrl-C (SIGINT) that came while the written files were renamed onto their targets stopped
+    the renames: eval synth left a pair's images and flow without its params/ file, and a pair
+    written over read back as the new images and flow with the old params (odometry, poses,
+    camera). Now the interrupt is held until every file is in place and raised after: the new
+    pair reads back whole."""
+    import os
+    import signal
+
+    from fsof_torch.io import atomic
+
+    real_replace = os.replace
+
+    def replace_then_interrupt(src, dst):
+        real_replace(src, dst)
+        if str(dst).endswith(os.path.join("image_2", "000000_10.png")):  # the first target of the pair
+            signal.raise_signal(signal.SIGINT)
+
+    root = tmp_path / "old"
+    write_synthetic_pair(root, 0, _pair(index=3))
+    monkeypatch.setattr(atomic.os, "replace", replace_then_interrupt)
+    with pytest.raises(KeyboardInterrupt):
+        write_synthetic_pair(root, 0, _pair(index=1))
+    with pytest.raises(KeyboardInterrupt):
+        write_synthetic_pair(tmp_path / "new", 0, _pair(index=1))
+    monkeypatch.undo()
+    write_synthetic_pair(tmp_path / "reference", 0, _pair(index=1))
+    assert _files(root) == _files(tmp_path / "new") == _files(tmp_path / "reference")
+
+
+def test_a_pair_whose_files_fail_to_be_put_in_place_is_not_read_as_a_mix(tmp_path, monkeypatch):
+    """A rename (or its fsync) that failed after the first files of a pair were in place left them
+    there: new images and flow beside the old params/ file, read back as one pair. Now none of
+    the pair's files stay, and the error propagates."""
+    import os
+
+    from fsof_torch.io import atomic
+
+    real_replace = os.replace
+
+    def replace_but_params(src, dst):
+        if str(dst).endswith(os.path.join("params", "000000.json")):
+            raise OSError(28, "No space left on device")
+        real_replace(src, dst)
+
+    root = tmp_path / "old"
+    write_synthetic_pair(root, 0, _pair(index=3))
+    write_synthetic_pair(root, 1, _pair(index=2))
+    monkeypatch.setattr(atomic.os, "replace", replace_but_params)
+    for folder in (root, tmp_path / "new"):
+        with pytest.raises(OSError, match="No space left"):
+            write_synthetic_pair(folder, 0, _pair(index=1))
+    monkeypatch.undo()
+    assert not (tmp_path / "new").exists()
+    assert not [p for p in root.rglob("*") if p.is_file() and p.name.startswith("000000")]
+    assert synthetic_pair_indices(root) == [1]
+    assert read_synthetic_pair(root, 1)["odometry"]["x_d"] == pytest.approx(0.06)   # pair 1 untouched
+
+
 class TestWriterChecks:
     """write_synthetic_pair once wrote what its readers cannot use, and meta= replaced the layout's
     own entries of meta.json."""

@@ -54,6 +54,8 @@ import math
 import numbers
 import os
 import re
+import signal
+import threading
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
@@ -202,7 +204,8 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     ``pose1`` and ``pose2`` are rigid poses; ``extra`` holds none of the params' own keys (each
     a ValueError naming the argument). The files are written all or none: one that fails (a road
     mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair written over keeps
-    its old files, rather than a mix of old and new.
+    its old files, rather than a mix of old and new. A Ctrl-C while the files are put in place is
+    held until the pair is whole (then raised); a rename that fails there leaves no file of the pair.
     """
     root = Path(root)
     if isinstance(index, bool) or not isinstance(index, numbers.Integral):
@@ -274,10 +277,13 @@ def _write_all(root: Path, jobs: list[tuple[str, str, str, Callable[[Path], Path
     every one has been written are they renamed onto their targets, in order. A writer that
     raises (a road mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair
     written over keeps its old files rather than a mix of old and new; the folders this call
-    created are removed again. Returns the targets by kind."""
+    created are removed again. SIGINT is held while the files are renamed (:func:`_interrupt_deferred`),
+    and a rename or fsync that fails there removes every target: no pair rather than a mix.
+    Returns the targets by kind."""
     targets = [root / folder / file for _, folder, file, _ in jobs]
     created = sorted({p for t in targets for p in (t.parent, *t.parent.parents) if not p.exists()},
                      key=lambda p: len(p.parts), reverse=True)
+    placing = False
     try:
         for folder in reversed(created):
             folder.mkdir(exist_ok=True)
@@ -286,12 +292,42 @@ def _write_all(root: Path, jobs: list[tuple[str, str, str, Callable[[Path], Path
             temporaries = [stack.enter_context(atomic_path(t)) for t in reversed(targets)][::-1]
             for (*_, write), tmp in zip(jobs, temporaries):
                 write(tmp)
+            renames = stack.pop_all()
+        # every file is written: put them in place with Ctrl-C held until all are, so that an
+        # interrupt leaves the whole pair, never some new files beside the old params/ file
+        placing = True
+        with _interrupt_deferred():  # (delivered on leaving it, once the pair is whole)
+            with renames:
+                pass
+            placing = False
     except BaseException:
+        if placing:  # (a rename or fsync that failed): no pair at all rather than a mix
+            for target in targets:
+                with contextlib.suppress(OSError):
+                    target.unlink()
         for folder in created:
             with contextlib.suppress(OSError):  # (only where empty)
                 folder.rmdir()
         raise
     return {kind: target for (kind, *_), target in zip(jobs, targets)}
+
+
+@contextlib.contextmanager
+def _interrupt_deferred():
+    """Hold SIGINT (Ctrl-C) while the body runs and deliver it after (main thread only: elsewhere
+    the signal reaches the main thread, not this one)."""
+    previous = signal.getsignal(signal.SIGINT)
+    if threading.current_thread() is not threading.main_thread() or previous is None:
+        yield
+        return
+    caught: list[int] = []
+    signal.signal(signal.SIGINT, lambda signum, frame: caught.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if caught:
+            signal.raise_signal(signal.SIGINT)
 
 
 def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[str, Any]], *,
