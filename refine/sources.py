@@ -60,6 +60,10 @@ class NetSpec:
 
 #: keys under which a training checkpoint keeps the network's state_dict (:func:`load_state_dict`)
 WRAPPER_KEYS = ("state_dict", "model", "model_state_dict")
+#: prefixes that wrappers add to every name of a network's state_dict, removed by
+#: :func:`load_state_dict` where the network's own names lack them: ``nn.DataParallel`` and
+#: ``DistributedDataParallel``'s, and that of a ``torch.compile``'d network
+WRAPPER_PREFIXES = ("module.", "_orig_mod.")
 
 
 def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
@@ -82,12 +86,17 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
     if not isinstance(state, dict) or not all(isinstance(k, str) for k in state):
         raise JobError(f"{option}: {str(path)!r} holds a {type(state).__name__}, not a state_dict "
                        f"(a dict of parameter names to tensors)")
-    if state and set(state) != set(net.state_dict()) and all(k.startswith("module.") for k in state):
-        # the weights of a network saved inside nn.DataParallel (RAFT's released checkpoints):
-        # every name starts with "module.", which the bare network's names lack
+    own = set(net.state_dict())
+    while state and set(state) != own:
+        # the weights of a network saved inside a wrapper, whose name starts every name and which
+        # the bare network's names lack: nn.DataParallel's (RAFT's released checkpoints) or
+        # DistributedDataParallel's "module.", torch.compile's "_orig_mod." (either inside the other)
+        prefix = next((p for p in WRAPPER_PREFIXES if all(k.startswith(p) for k in state)), None)
+        if prefix is None:
+            break
         from torch.nn.modules.utils import consume_prefix_in_state_dict_if_present
 
-        consume_prefix_in_state_dict_if_present(state, "module.")  # (in place, on the dict just loaded)
+        consume_prefix_in_state_dict_if_present(state, prefix)  # (in place, on the dict just loaded)
     try:
         # a network built on the meta device (shapes only, to be filled from a checkpoint) takes
         # the file's tensors themselves: copying into its meta tensors would keep no value

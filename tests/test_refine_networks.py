@@ -337,6 +337,31 @@ def test_a_dataparallel_checkpoint_is_loaded_without_its_module_prefix(tmp_path,
     load_state_dict(wrapped, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
     assert all(torch.equal(a, b) for a, b in zip(wrapped.state_dict().values(), state.values()))
 
+def test_a_compiled_networks_checkpoint_is_loaded_without_its_orig_mod_prefix(tmp_path):
+    """The state_dict of a torch.compile'd network (every name starts with "_orig_mod."), also
+    saved inside nn.DataParallel ("module._orig_mod."), loads into the bare network as the same
+    weights; a network whose own names start with "_orig_mod." keeps them."""
+    from refine.sources import load_state_dict
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    other = PtlflowRAFTStandIn(seed=1, iters=2).eval()
+    compiled = torch.compile(other)  # (lazy: nothing is compiled until it is called)
+    for name, state in (("compiled", compiled.state_dict()),
+                        ("parallel", torch.nn.DataParallel(compiled).state_dict())):
+        assert all(k.startswith("_orig_mod." if name == "compiled" else "module._orig_mod.") for k in state)
+        torch.save(state, tmp_path / f"{name}.pt")
+        net = PtlflowRAFTStandIn(seed=0, iters=2)
+        load_state_dict(net, tmp_path / f"{name}.pt", "--checkpoint")
+        assert net.state_dict().keys() == other.state_dict().keys()
+        assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), other.state_dict().values()))
+    wrapped = torch.nn.Module()
+    wrapped.add_module("_orig_mod", torch.nn.Linear(2, 2))
+    state = {k: v + 1 for k, v in wrapped.state_dict().items()}
+    torch.save(state, tmp_path / "own.pt")
+    load_state_dict(wrapped, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
+    assert all(torch.equal(a, b) for a, b in zip(wrapped.state_dict().values(), state.values()))
+
+
 def test_torchvision_network_is_padded(tmp_path, user_module, pair):
     from fsof_torch.training.standins import TorchvisionRAFTStandIn
 
