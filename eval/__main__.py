@@ -7,6 +7,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from pathlib import Path
 
 SUBCOMMANDS: dict[str, tuple[str, str]] = {
     # name: (module, one-line help)
@@ -18,8 +19,15 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m eval", description="the evaluation job: the paper's "
+def command_name() -> str:
+    """The command the job was started by, as its usages name it: ``fsof-eval`` (the console
+    script pyproject installs; its wrapper leaves that name in ``sys.argv[0]``) or ``python -m eval``."""
+    return "fsof-eval" if sys.argv and Path(sys.argv[0] or ".").name == "fsof-eval" else "python -m eval"
+
+
+def build_parser(prog: str = "python -m eval") -> argparse.ArgumentParser:
+    """The job's subcommands; ``prog`` names the command in its usage and errors (:func:`command_name`)."""
+    parser = argparse.ArgumentParser(prog=prog, description="the evaluation job: the paper's "
                                      "experiments and the test net's training, one subcommand each")
     sub = parser.add_subparsers(dest="command", metavar="SUBCOMMAND")
     for name, (_, help_text) in SUBCOMMANDS.items():
@@ -59,7 +67,7 @@ def main(argv: list[str] | None = None) -> int:
 def _main(argv: list[str]) -> int:
     try:
         if not argv or argv[0] not in SUBCOMMANDS:
-            parser = build_parser()
+            parser = build_parser(command_name())
             if not argv:
                 parser.error(f"missing SUBCOMMAND; choose from {', '.join(SUBCOMMANDS)}")
             if argv[0] not in ("-h", "--help"):
@@ -68,7 +76,7 @@ def _main(argv: list[str]) -> int:
             return 0
         name = argv[0]
         module = importlib.import_module(SUBCOMMANDS[name][0])
-        parser = argparse.ArgumentParser(prog=f"python -m eval {name}", description=SUBCOMMANDS[name][1])
+        parser = argparse.ArgumentParser(prog=f"{command_name()} {name}", description=SUBCOMMANDS[name][1])
         module.add_arguments(parser)
         args = parser.parse_args(argv[1:])
     except SystemExit as exit_:  # argparse exits on --help and on bad options

@@ -55,14 +55,21 @@ def _list(choices: tuple[str, ...]):
     return parse
 
 
-def build_parser() -> argparse.ArgumentParser:
+def command_name() -> str:
+    """The command the job was started by, as its usage names it: ``fsof-refine`` (the console
+    script pyproject installs; its wrapper leaves that name in ``sys.argv[0]``) or ``python -m refine``."""
+    return "fsof-refine" if sys.argv and Path(sys.argv[0] or ".").name == "fsof-refine" else "python -m refine"
+
+
+def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
+    """The job's options; ``prog`` names the command in its usage and errors (:func:`command_name`)."""
     from fsof_torch.data.scene.render import MAX_SIDE
 
     from .job import VARIANTS
     from .sources import CONTRACTS, SOURCES
 
     p = argparse.ArgumentParser(
-        prog="python -m refine", description=__doc__.split("\n\n")[0].split(": ", 1)[1],
+        prog=prog, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
         epilog="Exit status: 0 done, 1 stdout closed by its reader (| head: the report is written), 2 bad "
                "or missing input (with a message naming the option), 130 interrupted (Ctrl-C). An "
                "interrupted run resumes: pairs finished by a run of the same inputs and options are "
@@ -680,7 +687,7 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _main(argv: list[str] | None) -> int:
-    parser = build_parser()
+    parser = build_parser(command_name())
     try:
         args = parser.parse_args(sys.argv[1:] if argv is None else list(argv))
     except SystemExit as exit_:  # argparse exits on --help and on bad options

@@ -79,6 +79,37 @@ def test_help_exits_zero(capsys):
     assert "--kitti15" in out and "--net" in out and "--checkpoint" in out
 
 
+@pytest.mark.parametrize("script, module, argv", [
+    ("fsof-refine", "refine", ["--bogus"]),
+    ("fsof-eval", "eval", ["--bogus"]),
+    ("fsof-eval", "eval", ["synth", "--out", "o", "--bogus"]),
+])
+def test_the_console_scripts_usage_names_the_script(tmp_path, script, module, argv):
+    """The console scripts pyproject installs (fsof-refine, fsof-eval) name themselves in their
+    usage and errors, as the same job run with python -m names the module (they printed `usage:
+    python -m refine`, a command the user had not typed)."""
+    import subprocess
+    import sys
+    import tomllib
+
+    root = Path(__file__).resolve().parents[1]
+    entry = tomllib.loads((root / "pyproject.toml").read_text())["project"]["scripts"][script]
+    target, function = entry.split(":")
+    # the wrapper pip writes for a [project.scripts] entry
+    wrapper = tmp_path / script
+    wrapper.write_text(f"import re\nimport sys\nfrom {target} import {function}\n"
+                       f"if __name__ == '__main__':\n"
+                       f"    sys.argv[0] = re.sub(r'(-script\\.pyw|\\.exe)?$', '', sys.argv[0])\n"
+                       f"    sys.exit({function}())\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(root), os.environ.get("PYTHONPATH", "")])}
+    sub = " synth" if argv[0] == "synth" else ""
+    for command, name in (([sys.executable, str(wrapper)], script), ([sys.executable, "-m", module], f"python -m {module}")):
+        done = subprocess.run([*command, *argv], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=120)
+        assert done.returncode == 2, done.stderr
+        assert done.stderr.startswith(f"usage: {name}{sub} [-h]"), done.stderr
+        assert f"\n{name}{sub}: error: " in done.stderr and "--bogus" in done.stderr
+
+
 def test_help_states_the_size_bound_of_the_constant(capsys, monkeypatch):
     """--size and --calib-size say the bound they check, the renderer's MAX_SIDE (the help held
     the literal 16384 beside the imported constant)."""
