@@ -536,7 +536,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
         cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
         cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
-        notes.append(_mounting_note(cfg.clip, calibrate, len(specs)))
+        notes.append(_mounting_note(cfg.clip, calibrate, len(specs), variants))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
     records = _run_shard(specs, cfg, built, world)
@@ -586,24 +586,31 @@ def _earlier_road_spelling(out: Path, identity: dict) -> dict:
     return identity
 
 
-def _mounting_note(clip, calibrate: bool, pairs: int) -> str:
+def _mounting_note(clip, calibrate: bool, pairs: int, variants=("sequence", "given_pitch")) -> str:
     """The report's note on the clip's calibrated mounting, or on its absence where no pair's fit
     over the clip succeeded, or none of those that did moves enough to show it (the nominal mounting is kept,
-    ``refine.calibrate.fit_clip``)."""
+    ``refine.calibrate.fit_clip``). A calibrated mounting comes from the clip's first fits (with the
+    nominal mounting); the note also says on how many pairs the fit redone with it succeeded (the
+    records' ``clip_fit_success``). ``variants``: those of the run."""
     m = clip.mounting
-    users = "every variant" if calibrate else "variants sequence / given_pitch"
+    uses = [v for v in ("sequence", "given_pitch") if v in variants]
+    users = "every variant" if calibrate else f"variant{'s' if len(uses) > 1 else ''} {' / '.join(uses)}"
     if not clip.fitted:
         succeeded = sum(bool(s) for s in clip.success.values())
         why = (f"no pair's fit over the clip succeeded (0 of {pairs})" if not succeeded else
                f"the {succeeded} of {pairs} pairs whose fits succeeded do not move, or too little for their "
                f"images to show it (still frames, or a vehicle creeping by millimetres, measure no mounting)")
         return (f"Mounting not calibrated: {why}; {users} "
-                f"use{'s' if calibrate else ''} the nominal mounting (pitch {m['pitch_deg']:.2f}°, roll "
+                f"use{'s' if calibrate or len(uses) == 1 else ''} the nominal mounting (pitch {m['pitch_deg']:.2f}°, roll "
                 f"{m['roll_deg']:.2f}°)" + (", so --calibrate-pitch changed nothing." if calibrate else "."))
+    confirmed = sum(bool(s) for s in clip.success.values())  # (the second pass's)
     return (f"Mounting calibrated over the clip from its images (the fits of {clip.fitted} of {pairs} pairs): pitch "
             f"{m['pitch_deg']:.2f}°, roll {m['roll_deg']:.2f}°"
             + (f", height {m['height_m']:.3f} m (scale from the poses)" if "height_m" in m else "")
-            + f"; {users} use{'s' if calibrate else ''} it.")
+            + f"; {users} use{'s' if calibrate or len(uses) == 1 else ''} it. The clip's fit, redone with it, "
+            f"succeeded on {confirmed} of {pairs} pairs"
+            + (": no pair confirms the mounting (a road mask that holds more than the road, such as one covering "
+               "the whole image, misleads the fit)." if not confirmed else "."))
 
 
 def _run_shard(specs, cfg, built: dict, world) -> list[dict] | None:

@@ -778,6 +778,62 @@ def test_the_mounting_note_of_a_clip_that_does_not_move_says_why():
         "Mounting not calibrated: no pair's fit over the clip succeeded (0 of 2); variants sequence / given_pitch")
 
 
+def test_the_mounting_note_says_how_many_pairs_the_fit_redone_with_it_confirms():
+    """A mounting calibrated from the clip's first fits is followed by the fit redone with it, whose
+    success the sequence records hold: the note gives both counts, so that a calibration from 1 of 3
+    pairs beside three records reading "the clip's fit failed" is not a contradiction; it names
+    the variants the run has."""
+    from types import SimpleNamespace
+
+    from refine.__main__ import _mounting_note
+
+    mounting = {"pitch_deg": -2.96, "roll_deg": 2.73}
+    failed = SimpleNamespace(mounting=mounting, fitted=1, success={"000000": False, "000001": False, "000002": False})
+    assert _mounting_note(failed, False, 3, ["sequence"]) == (
+        "Mounting calibrated over the clip from its images (the fits of 1 of 3 pairs): pitch -2.96°, roll 2.73°; "
+        "variant sequence uses it. The clip's fit, redone with it, succeeded on 0 of 3 pairs: no pair confirms "
+        "the mounting (a road mask that holds more than the road, such as one covering the whole image, misleads "
+        "the fit).")
+    ok = SimpleNamespace(mounting=mounting, fitted=3, success={"000000": True, "000001": False, "000002": True})
+    assert _mounting_note(ok, True, 3, ["photometric"]).endswith(
+        "; every variant uses it. The clip's fit, redone with it, succeeded on 2 of 3 pairs.")
+    assert "; variants sequence / given_pitch use it. " in _mounting_note(ok, False, 3, ["sequence", "given_pitch"])
+
+
+@pytest.mark.slow
+def test_a_whole_image_road_on_a_kitti_clip_gives_a_report_that_agrees_with_its_records(shared_data, tmp_path):
+    """Road masks covering the whole image on frames 9-12 of the shared KITTI clip: the first fits
+    calibrate a mounting from 1 of 3 pairs, and the fit redone with it fails on all three; the
+    note says so, as the records' clip_fit_success do (it said 'from 1 of 3 pairs' and nothing
+    of the three failures)."""
+    import shutil
+
+    from fsof_torch.io import write_road_mask
+
+    clip = shared_data / "kitti_odometry_straight"
+    if not clip.is_dir():
+        pytest.skip("kitti_odometry_straight absent")
+    (tmp_path / "images").mkdir()
+    (tmp_path / "road").mkdir()
+    for i in range(9, 13):
+        shutil.copy(clip / "image_l" / f"{i:06d}.png", tmp_path / "images")
+        if i < 12:
+            write_road_mask(tmp_path / "road" / f"{i:06d}.png", torch.ones(1, 370, 1226, dtype=torch.bool))
+    (tmp_path / "poses.txt").write_text("".join(clip.joinpath("poses.txt").read_text().splitlines(True)[9:13]))
+    out = tmp_path / "out"
+    assert main(["--images", str(tmp_path / "images"), "--calib", str(clip / "calib.txt"), "--road",
+                 str(tmp_path / "road"), "--poses", str(tmp_path / "poses.txt"), "--odometry", "sequence",
+                 "--out", str(out), "--no-progress", "--no-figures"]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    success = [r["clip_fit_success"] for r in summary["pairs"]]
+    (note,) = [n for n in summary["notes"] if n.startswith("Mounting")]
+    assert summary["calibrated_mounting"] is not None
+    assert note.startswith("Mounting calibrated over the clip from its images (the fits of 1 of 3 pairs)")
+    assert success == [False] * 3
+    assert "The clip's fit, redone with it, succeeded on 0 of 3 pairs: no pair confirms the mounting" in note
+    assert note in (out / "report.md").read_text()
+
+
 def test_stale_temporaries_are_removed(tmp_path):
     """A SIGKILL mid-write leaves hidden temporaries; the next run into the folder removes them."""
     out = tmp_path / "out"
