@@ -71,7 +71,8 @@ def check_clip(specs: Sequence[PairSpec], *, needed_by: str = "--odometry sequen
 class ClipFit:
     """The clip's road motion: ``motion[name]`` a ``"plane"`` motion dict per pair (floats),
     ``camera`` the calibrated camera, ``mounting`` {"roll_deg", "pitch_deg", "height_m" with
-    poses}, ``success[name]`` whether the pair's fit succeeded, ``fitted`` how many pairs' first fits
+    poses}, ``success[name]`` whether the pair's fit succeeded (the fit redone with the calibrated
+    mounting; the first, with the nominal one, where nothing is calibrated), ``fitted`` how many pairs' first fits
     the mounting was calibrated from (those that succeeded, move and show the attitude:
     :attr:`fsof_torch.SequenceFit.calibrated_from`); and the road masks the fit used (packed), with
     what ``road_for`` reported about each (:meth:`road`). Where there are none (``fitted`` 0) nothing
