@@ -22,7 +22,7 @@ SUBCOMMANDS: dict[str, tuple[str, str]] = {
 def command_name() -> str:
     """The command the job was started by, as its usages name it: ``fsof-eval`` (the console
     script pyproject installs; its wrapper leaves that name in ``sys.argv[0]``) or ``python -m eval``."""
-    return "fsof-eval" if sys.argv and Path(sys.argv[0] or ".").name == "fsof-eval" else "python -m eval"
+    return "fsof-eval" if sys.argv and Path(sys.argv[0] or ".").stem == "fsof-eval" else "python -m eval"
 
 
 def build_parser(prog: str = "python -m eval") -> argparse.ArgumentParser:

@@ -58,7 +58,7 @@ def _list(choices: tuple[str, ...]):
 def command_name() -> str:
     """The command the job was started by, as its usage names it: ``fsof-refine`` (the console
     script pyproject installs; its wrapper leaves that name in ``sys.argv[0]``) or ``python -m refine``."""
-    return "fsof-refine" if sys.argv and Path(sys.argv[0] or ".").name == "fsof-refine" else "python -m refine"
+    return "fsof-refine" if sys.argv and Path(sys.argv[0] or ".").stem == "fsof-refine" else "python -m refine"
 
 
 def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
