@@ -9,6 +9,9 @@ every pixel of the road mask that stays in view.
   one (``python benchmarks/fit_confidence.py``);
 - :func:`backward_correlation`: the same judged from image 2's side, for a road that recedes
   between the frames (image 2 sees it farther away and smaller).
+
+And the flow fits' (:func:`~fsof_torch.estimation.flow_fit.fit_road`'s): :func:`agreement`, the
+mask pixels within the inlier threshold of the model flow, their mean end-point error and share.
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ from torch import Tensor
 from .sampling import MaskPoints, pixel_coordinates, points_grid, sample_at_grid, sample_mask
 
 __all__ = ["warped_samples", "photometric_inliers", "detail_correlation", "backward_correlation", "matched_gain",
-           "spread_out"]
+           "spread_out", "agreement"]
 
 
 def warped_samples(images1: Sequence[Tensor], images2: Sequence[Tensor], flow: Tensor, valid: Tensor,
@@ -168,3 +171,43 @@ def spread_out(inliers: Tensor, least: int = 3) -> Tensor:
     under many motions)."""
     in8 = inliers.view(torch.uint8)  # (max over uint8: a bool any() along a dimension is slower)
     return (in8.amax(3).flatten(1).sum(1) >= least) & (in8.amax(2).flatten(1).sum(1) >= least)
+
+
+def agreement(flow: Tensor, model_flow: Tensor, model_valid: Tensor, points: MaskPoints,
+              threshold: float) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Inliers (B, 1, H, W) — mask pixels within ``threshold`` px of the model flow where it is
+    defined — their mean end-point error (B,), whether they spread over at least 3 rows and
+    columns (B,), their share of the mask pixels where the model is defined (B,), and their
+    number (B,) float64.
+
+    Works on the mask's pixels only (``points.every``), frame by frame: a road mask is a
+    fraction of the image, and full-size differences, norms and sums cost more than gathering
+    them from each frame's own contiguous flow. The end-point errors stay in the flow's dtype (in
+    place on the fresh gathers); only the sums are float64 (python benchmarks/bench_fit.py: a
+    float64 copy of the gathered flows cost more than the rest). A batch reads where each
+    frame's pixels start once (bench_fit.py, batch 8: gathering the whole batch through
+    channel-first copies of both flows cost more than the rest of the fit)."""
+    B, _, H, W = flow.shape
+    HW, every = H * W, points.every
+    bounds = [0, every.numel()] if B == 1 else points.bounds.tolist()
+    inliers = torch.zeros(B, HW, dtype=torch.bool, device=flow.device)
+    n_in, n_use, epe_in = [], [], []
+    for b in range(B):
+        idx = every[bounds[b]:bounds[b + 1]]
+        idx = idx - b * HW if b else idx
+        at = idx.expand(2, -1)
+        diff = model_flow[b].reshape(2, HW).gather(1, at).sub_(flow[b].reshape(2, HW).gather(1, at).to(model_flow.dtype))
+        # (|d|² then its root: hypot's overflow guard is not needed for a flow's differences)
+        epe = torch.mul(diff[0], diff[0], out=diff[0]).addcmul_(diff[1], diff[1]).sqrt_()
+        use = model_valid[b].reshape(HW).gather(0, idx)
+        inl = torch.le(epe, threshold).logical_and_(use)
+        inliers[b].scatter_(0, idx, inl)
+        # (count_nonzero and masked_fill_: a bool sum or product first converts the flags)
+        n_in.append(torch.count_nonzero(inl))
+        n_use.append(torch.count_nonzero(use))
+        epe_in.append(epe.masked_fill_(inl.logical_not(), 0.0).sum(dtype=torch.float64))
+    n_in = torch.stack(n_in).to(torch.float64)
+    residual = torch.stack(epe_in) / n_in.clamp_min(1)
+    fraction = n_in / torch.stack(n_use).clamp_min(1)
+    inliers = inliers.reshape(B, 1, H, W)
+    return inliers, residual.to(model_flow.dtype), spread_out(inliers), fraction, n_in
