@@ -778,3 +778,19 @@ def test_held_motion_parameters_are_held_at_no_motion_not_at_the_start_guess():
     # a value given in init is held there, as before
     fit = fit_road(flow, road_mask(valid), cam, model="plane", fixed=("y_d",), init={"y_d": 0.005})
     assert float(fit.y_d) == 0.005
+
+
+def test_fit_velocity_init_with_a_steering_and_a_yaw_rate_is_refused_by_name():
+    """A start giving both a steering angle and a yaw rate (``{**fit.params, **fit.extras}``) is a
+    ValueError naming both, not ``init: unknown parameters ['steering']`` (steering alone is
+    accepted); a steering of None is not given, as any other entry of None."""
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5)
+    flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, (48, 160))
+    fit = fit_velocity(flow, valid, cam, 2.7)
+    for init in ({"speed": 10.0, "steering": 0.05, "yaw_rate": 0.2}, {**fit.params, **fit.extras}):
+        with pytest.raises(ValueError, match=r"^init: expected a steering angle or a yaw rate, not both .*"
+                                             r"got steering=.* and yaw_rate=.*; drop one$"):
+            fit_velocity(flow, valid, cam, 2.7, init=init)
+    again = fit_velocity(flow, valid, cam, 2.7, init={"speed": 10.0, "steering": None, "yaw_rate": 0.2})
+    assert bool(again.success) and float(again.yaw_rate) == pytest.approx(10.0 * math.tan(0.05) / 2.7, rel=1e-9)

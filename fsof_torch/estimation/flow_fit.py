@@ -613,16 +613,21 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
 
     :func:`fit_road` with ``model="velocity"`` (speed m/s, yaw_rate rad/s, roll, pitch); the wheelbase l (m, > 0,
     float or (B,)) only turns the yaw rate into ``fit.steering`` δ_f = atan(φ̇ l / v_r) (0 at rest: a speed within
-    3 σ of 0). ``init`` may give a steering angle instead of a yaw rate, and its wheelbase (``fit.velocity()``;
-    default ``wheelbase``). ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
+    3 σ of 0). ``init`` may give a steering angle instead of a yaw rate (not both: ValueError), and its wheelbase
+    (``fit.velocity()``; default ``wheelbase``). ``scale``: the kernel's scale in px/s (default 10 px/s: 1 px at 10 Hz)."""
     check_fit_flags("fit_velocity", fit_roll, fit_pitch, options)
     wb = init_wb = _wheelbase(wheelbase, flow)
     if isinstance(init, Mapping) and "wheelbase" in init:  # (an earlier fit's velocity(): its steering's)
         init_wb, init = _wheelbase(init["wheelbase"], flow, "init['wheelbase']"), {k: v for k, v in init.items()
                                                                                    if k != "wheelbase"}
-    if isinstance(init, Mapping) and init.get("steering") is not None and init.get("yaw_rate") is None:
+    given = {}
+    if isinstance(init, Mapping) and "steering" in init:  # (a steering of None is not given, as any init entry)
         init = dict(init)
         given = {"steering": init.pop("steering"), "speed": init.get("speed", 0.0)}
+    if given.get("steering") is not None:
+        if init.get("yaw_rate") is not None:  # (it raised "init: unknown parameters ['steering']")
+            raise ValueError(f"init: expected a steering angle or a yaw rate, not both (either gives the start's yaw rate), got "
+                             f"steering={given['steering']!r} and yaw_rate={init['yaw_rate']!r}; drop one")
         try:
             steer, speed = (torch.as_tensor(v, dtype=torch.float64).cpu().reshape(-1) for v in given.values())
         except (TypeError, ValueError, RuntimeError):
