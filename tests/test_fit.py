@@ -794,3 +794,17 @@ def test_fit_velocity_init_with_a_steering_and_a_yaw_rate_is_refused_by_name():
             fit_velocity(flow, valid, cam, 2.7, init=init)
     again = fit_velocity(flow, valid, cam, 2.7, init={"speed": 10.0, "steering": None, "yaw_rate": 0.2})
     assert bool(again.success) and float(again.yaw_rate) == pytest.approx(10.0 * math.tan(0.05) / 2.7, rel=1e-9)
+
+
+@pytest.mark.parametrize("robust", ["l2", "tukey"])
+def test_robust_l2_and_tukey_run_no_polish(robust):
+    """As the docstring says: ``robust="l2"`` and ``"tukey"`` run one stage, ``polish`` ignored
+    (the same fit bit for bit); another kernel's polish changes it."""
+    cam = small_camera()
+    flow, valid = road_flow(cam, {"x_d": 0.05, "z_d": 1.1, "yaw": 0.01}, (48, 160), model="paper")
+    noisy = flow + 0.5 * torch.randn(flow.shape, generator=torch.Generator().manual_seed(0), dtype=flow.dtype)
+    mask = road_mask(valid)
+    on, off = (fit_road(noisy, mask, cam, robust=robust, polish=p) for p in (True, False))
+    assert all(torch.equal(on.params[k], off.params[k]) for k in on.params) and torch.equal(on.iterations, off.iterations)
+    cauchy = [fit_road(noisy, mask, cam, polish=p) for p in (True, False)]
+    assert not torch.equal(cauchy[0].params["z_d"], cauchy[1].params["z_d"])

@@ -461,7 +461,11 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns), or an inlier share of the mask below the fraction, mark the frame as failed.
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold
-            (where it does not converge: the robust fit's parameters, ``success=False``).
+            (where it does not converge: the robust fit's parameters, ``success=False``). Not
+            after ``robust="l2"`` (least squares asked for) or ``"tukey"`` (its one stage is
+            Tukey's, cut at ``scale``): ignored there. Without the polish, or with ``"l2"``, a mask
+            that reaches the model's horizon with the roll or pitch free can end the fit at the
+            horizon's edge, short of its minimum, with ``success`` (docs/fitting.md).
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             1, 2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both.
             ``"auto"``: (2, 1). A stage ends where the next step, predicted from the normal
