@@ -808,3 +808,20 @@ def test_robust_l2_and_tukey_run_no_polish(robust):
     assert all(torch.equal(on.params[k], off.params[k]) for k in on.params) and torch.equal(on.iterations, off.iterations)
     cauchy = [fit_road(noisy, mask, cam, polish=p) for p in (True, False)]
     assert not torch.equal(cauchy[0].params["z_d"], cauchy[1].params["z_d"])
+
+
+def test_velocity_of_a_fit_without_a_steering_is_a_named_error():
+    """``fit.velocity()`` of a fit without a steering angle (``fit_road(model="velocity")``, which
+    has no wheelbase, or another model's fit) is a ValueError saying so, as ``odometry()`` of a fit
+    without x_d, z_d, yaw (it raised AttributeError "... has no 'steering'")."""
+    K = torch.tensor([[300.0, 0, 80], [0, 300, 20], [0, 0, 1]], dtype=torch.float64)
+    cam = Camera(K, 1.5)
+    flow, valid = velocity_flow(cam, 10.0, 0.05, 2.7, (48, 160))
+    fit = fit_road(flow, valid, cam, model="velocity")
+    with pytest.raises(ValueError, match=r"^velocity: a 'velocity' fit has no steering and wheelbase: fit_velocity"):
+        fit.velocity()
+    paper = fit_road(*displacement_flow(cam, 0.0, 1.0, 0.0, (48, 160)), cam)
+    with pytest.raises(ValueError, match=r"^velocity: a 'paper' fit has no steering and wheelbase"):
+        paper.velocity()
+    steered = fit_velocity(flow, valid, cam, 2.7).velocity()
+    assert float(steered["steering"]) == pytest.approx(0.05, abs=1e-9) and float(steered["wheelbase"]) == 2.7

@@ -106,7 +106,10 @@ class RoadFit:
         return {k: self.params[k] for k in ("x_d", "z_d", "yaw")}
 
     def velocity(self) -> dict[str, Tensor]:
-        """``dict(speed=, steering=, wheelbase=)`` of (B,) tensors (the velocity model)."""
+        """``dict(speed=, steering=, wheelbase=)`` of (B,) tensors (a :func:`fit_velocity` result; else ValueError)."""
+        if not all(k in self.extras for k in ("steering", "wheelbase")):  # (was: AttributeError "... no 'steering'")
+            raise ValueError(f"velocity: a {self.model!r} fit has no steering and wheelbase: fit_velocity (given the "
+                             f"wheelbase) turns the velocity model's yaw rate into a steering angle, fit_road does not")
         return {k: getattr(self, k) for k in ("speed", "steering", "wheelbase")}
 
     def motion(self) -> dict[str, Any]:
