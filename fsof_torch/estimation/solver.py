@@ -45,6 +45,7 @@ from torch import Tensor
 
 from .._check import (autocast_off, check_float_tensor, check_int, check_number, check_shape, option_error,
                       result_dtype, scalar, skip_values)
+from .linalg import positive_definite, spd_solve
 from .robust import check_kernel, check_scale, far_outlier_cost, robust_terms
 
 __all__ = ["Evaluation", "Problem", "ResidualProblem", "Solution", "solve", "spd_solve", "positive_definite"]
@@ -212,28 +213,6 @@ def _checked_noise(noise: object, B: int, like: Tensor) -> Tensor:
         raise ValueError(f"prior_noise: expected a number or a tensor of shape (), (1,) or ({B},), got shape "
                          f"{tuple(noise.shape)}")
     return noise.to(dtype=like.dtype, device=like.device).reshape(-1).expand(B)
-
-
-# Small symmetric positive definite systems by Cholesky and two triangular solves: on the CPU,
-# torch's LU, Cholesky-solve, inverse and eigenvalue routines read a value back to the host inside
-# (a workspace or error query), which the triangular solves and cholesky_ex do not.
-
-def spd_solve(A: Tensor, b: Tensor) -> Tensor:
-    """x with A x = b for symmetric positive definite A (B, P, P) and b (B, P, K).
-
-    Where A is not positive definite the result is meaningless: NaN, inf or finite values
-    (``cholesky_ex`` reports the failure in its status, which is not read here, and its factor is
-    then not meaningful); tell such systems apart with :func:`positive_definite`, not by the
-    result's finiteness."""
-    L, _ = torch.linalg.cholesky_ex(A)
-    return torch.linalg.solve_triangular(L.mT, torch.linalg.solve_triangular(L, b, upper=False), upper=True)
-
-
-def positive_definite(A: Tensor, margin: float | Tensor = 0.0) -> Tensor:
-    """(B,) bool: the smallest eigenvalue of symmetric A (B, P, P) exceeds ``margin``."""
-    eye = torch.eye(A.shape[-1], dtype=A.dtype, device=A.device)
-    _, info = torch.linalg.cholesky_ex(A - margin * eye)
-    return info == 0
 
 
 def _checked_scale(scale: object, B: int, dt: torch.dtype, dev: torch.device, computed: bool) -> Tensor:
