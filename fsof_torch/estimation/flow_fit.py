@@ -147,6 +147,7 @@ class FlowProblem:
         self.moments = torch.stack([u * u, u * v, v * v, u, v, one], dim=-1)
         # the points below the horizon, for a model without mounting parameters: once
         self._below = None
+        self.domain = None  # (the parameters that move the horizon, where the solver is to slide along it)
         if not model.mounting:
             self._below = sel & (torch.bmm(model.horizon_row(camera, torch.zeros_like(camera.height)[:, None]), pts)[:, 0] > 0)
 
@@ -466,9 +467,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         polish: after the robust fit, iterate with Tukey's biweight cut at the inlier threshold
             (where it does not converge: the robust fit's parameters, ``success=False``). Not
             after ``robust="l2"`` (least squares asked for) or ``"tukey"`` (its one stage is
-            Tukey's, cut at ``scale``): ignored there. Without the polish, or with ``"l2"``, a mask
-            that reaches the model's horizon with the roll or pitch free can end the fit at the
-            horizon's edge, short of its minimum, with ``success`` (docs/fitting.md).
+            Tukey's, cut at ``scale``): ignored there. Without it a mask up to the horizon is fitted
+            along the horizon's edge with ``bounds``; Huber's and soft-L1's can still end there
+            short of their minimum (docs/fitting.md, step 4).
         check_every: each solver stage's first early-stop check (one host read; then after 1,
             1, 2, 4, ... more iterations): ``(robust stage, polish)`` or one number for both.
             ``"auto"``: (2, 1). A stage ends where the next step, predicted from the normal
@@ -537,6 +538,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             last = i + 1 == len(stages)
             points_used = (pts, obs, sel) if last else coarse
             problem = FlowProblem(model, cam64, *(x.contiguous() for x in points_used), K_inv)
+            if last and kernel != "tukey" and bounds is not None and model.mounting:  # (docs/fitting.md, step 4)
+                problem.domain = torch.tensor([n in model.mounting for n in model.params], device=flow.device)
             sol = solve(problem, params, free=free, prior_mean=mean,
                         prior_precision=None if precision is None else precision * (s / scale) ** 2,
                         kernel=kernel, scale=s, anneal=anneal, max_iter=max_iter,

@@ -15,7 +15,8 @@ a bound that the step would push out of it (a simple active set: its row and col
 its gradient 0), clamps the candidate to the bounds and keeps it per sample where E went down;
 else it damps more and retries the rejected step at half its length (E, which the step raised, is
 least within its first half, where more damping alone barely shortens a step while the damping is
-still small). Each
+still small), or, a fresh step that moved points out of the problem's ``domain``, with the
+parameters that move it held (:class:`Problem`). Each
 candidate is evaluated once: its cost, its weights and its normal equations; a sample whose step
 was rejected keeps those of its current point.
 
@@ -75,6 +76,11 @@ class Problem(Protocol):
     ``evaluate(params (B, P)) -> Evaluation``; ``normal_equations(evaluation, weights (B, N)) ->
     (JᵀWJ (B, P, P), JᵀWr (B, P))`` with r the residual whose squared norm is ``r2`` and J its
     derivative by the parameters; ``count``: (B,) the number of points that could count.
+    Optionally ``domain``: (P,) bool, the parameters that move the points' domain (a flow fit's
+    roll and pitch, which move the horizon), or None: with ``missing="outlier"`` a fresh step
+    rejected because it moved points out of the domain is retried with those held, along its
+    edge, the next such rejection at half its length (shortened along its own direction, the step
+    lost the same points: a fit of a mask up to the horizon stalled there, short of its minimum).
     """
 
     count: Tensor
@@ -428,10 +434,12 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         fixed_rc = fixed.unsqueeze(-1) | fixed.unsqueeze(-2)
         eye_fixed = torch.eye(P, dtype=dt, device=dev) * fixed.unsqueeze(-1)
     has_bounds = lower is not None or upper is not None
+    off_diagonal = ~torch.eye(P, dtype=torch.bool, device=dev)
+    # the parameters that move the points' domain, held in some retries (see the loop)
+    domain = getattr(problem, "domain", None) if missing == "outlier" else None
     if has_bounds:
         lo = _expand(lower, "lower", B, P, params, -float("inf"))
         hi = _expand(upper, "upper", B, P, params, float("inf"))
-        off_diagonal = ~torch.eye(P, dtype=torch.bool, device=dev)
     has_prior = prior_precision is not None
     mu = None if prior_mean is None else _expand(prior_mean, "prior_mean", B, P, params, 0.0)
     lam_given = (None if prior_precision is None or callable(prior_precision)
@@ -494,13 +502,15 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
             A, g = torch.where(fixed_rc, eye_fixed, A), torch.where(fixed, zero, g)
         return A, g
 
-    def damped_step(A: Tensor, g: Tensor, lam: Tensor, p: Tensor) -> Tensor:
+    def damped_step(A: Tensor, g: Tensor, lam: Tensor, p: Tensor, held: Tensor | None = None) -> Tensor:
         """The step from p; a parameter at a bound that the descent direction -g points out of
         is held there (its row and column decoupled, its diagonal kept for the damping's scale,
         its gradient 0), so that the step is the other parameters' constrained one, not an
-        unconstrained one that the clamp then cuts short."""
+        unconstrained one that the clamp then cuts short; so are the parameters ``held``."""
+        hold = held
         if has_bounds:
-            hold = ((p <= lo) & (g > zero)) | ((p >= hi) & (g < zero))
+            hold = ((p <= lo) & (g > zero)) | ((p >= hi) & (g < zero)) | (False if held is None else held)
+        if hold is not None:
             A = torch.where((hold.unsqueeze(-1) | hold.unsqueeze(-2)) & off_diagonal, zero, A)
             g = torch.where(hold, zero, g)
         return _damped_step(A, g, lam)
@@ -552,6 +562,8 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     iters = torch.zeros(B, dtype=torch.long, device=dev)
     step = damped_step(A, g, lam, params)
+    if domain is not None:  # (per sample: the step is a fresh one, not a retry; one along the domain's edge)
+        fresh, edge = torch.ones(B, dtype=torch.bool, device=dev), torch.zeros(B, dtype=torch.bool, device=dev)
     for it in range(max_iter):
         active = ~done
         # no step for finished samples, and none from a singular system
@@ -609,11 +621,25 @@ def _solve(problem: Problem, params: Tensor, free: Tensor | None, prior_mean: Te
         if resolution > 0:
             bar = torch.where(ok, resolved(wr2_c, w_c, used_c), bar)
         c = torch.where(ok, c_next if anneal else c1, c)
+        if domain is not None:
+            lost = rejected & active & (used_c < used)
+            used = torch.where(ok, used_c, used)
         iters += active
         lam = torch.where(ok, (lam / 3.0).clamp_min(1e-12), lam * eight)
         # the next step: a rejected one retried at half its length (see the module docstring),
         # else the damped step from the normal equations at the (new) point
         step = torch.where(rejected.unsqueeze(-1), half * delta, damped_step(A, g, lam, params))
+        if domain is not None:
+            # a step that moved points out of the domain (each then costs a far outlier: a flow
+            # fit's horizon lifted over the mask's topmost pixels), shortened along its own
+            # direction, loses the same points, and the fit ended at the domain's edge short of its
+            # minimum: a fresh step's rejection is retried along the edge, the parameters that move
+            # the domain held; the next such rejection at half its length (a wall worth crossing
+            # is still crossed)
+            along = lost & fresh
+            step = torch.where(along.unsqueeze(-1), damped_step(A, g, lam, params, domain), step)
+            fresh = torch.where(ok, ~edge, fresh & ~lost)
+            edge = torch.where(ok, False, along)
         if predict:
             # the step predicted there: δᵀ A δ is what it would move the weighted squared
             # residuals by (to first order); below resolution² of their weighted sum it is not
