@@ -749,6 +749,20 @@ def checked_data(option: str, read: Callable[[], list[tuple[str, Callable[[], di
     return [(name, lambda inner=inner: load(inner)) for name, inner in pairs]
 
 
+def turned_by_options(pair: dict, turn: tuple[float, float, float]) -> dict:
+    """:func:`turned` by ``turn`` (``--yaw-deg``, ``--pitch-change-deg``, ``--roll-change-deg``); a
+    turn that leaves no window of the frame defined (:func:`defined_window` cuts at most a fifth of
+    the rows at the top and at the bottom: a pitch change of about 6 degrees on KITTI's frames) is
+    an :class:`UnfitOption` naming the options."""
+    try:
+        return turned(pair, *turn)
+    except UnfitOption:
+        raise
+    except ValueError as err:
+        raise UnfitOption(f"--yaw-deg, --pitch-change-deg, --roll-change-deg: {err} (the turned frames may lose "
+                          f"at most a fifth of their rows at the top and at the bottom): turn less") from None
+
+
 def exposed(pair: dict, gain: float) -> dict:
     """``pair`` with image 2 ``gain`` times as bright: clipped to 0..255 and rounded, as an 8-bit
     camera records a change of exposure between the frames."""
@@ -779,12 +793,16 @@ def cropped(pair: dict, top: int, bottom: int, left: int, right: int) -> dict:
     """``pair`` cut to its window without ``top``, ``bottom``, ``left`` and ``right`` pixels at
     those sides (the sky, the bonnet, a network's input crop): the frames, the road, the
     ground-truth flow and its valid pixels sliced, the camera's principal point moved
-    (:meth:`Camera.cropped`); the motion is the same."""
+    (:meth:`Camera.cropped`); the motion is the same. A window that leaves nothing of the frame,
+    or none of the road polygon, is an :class:`UnfitOption` naming ``--crop``."""
     rows, cols = pair["image1"].shape[-2:]
     if top + bottom >= rows or left + right >= cols:
         raise UnfitOption(f"--crop: {top} + {bottom} rows or {left} + {right} columns leave nothing of a "
                           f"{rows} x {cols} frame")
     window = (..., slice(top, rows - bottom), slice(left, cols - right))
+    if not bool(pair["road"][window].any()):  # (the figures are over the road: each would read 0 over no pixel)
+        raise UnfitOption(f"--crop: the window of rows {top} to {rows - bottom - 1} and columns {left} to "
+                          f"{cols - right - 1} of a {rows} x {cols} frame holds none of the road polygon")
     out = {**pair, "camera": pair["camera"].cropped(left, top, right, bottom)}
     for key in ("image1", "image2", "road", "valid", "flow"):
         if pair.get(key) is not None:
@@ -965,8 +983,9 @@ def main(argv: list[str] | None = None) -> int:
         amplitude, period = args.slalom
         if not (math.isfinite(amplitude) and 0 < amplitude <= 20):
             parser.error(f"--slalom: expected an amplitude within (0, 20] degrees, got {amplitude}")
-        if not (math.isfinite(period) and period >= 2):
-            parser.error(f"--slalom: expected a period of at least 2 frames, got {period}")
+        if not (math.isfinite(period) and period > 2):
+            # (a period of 2 frames samples the sine at its zeros: no frame would turn)
+            parser.error(f"--slalom: expected a period of more than 2 frames (2 turns no frame), got {period}")
     if not (math.isfinite(args.exposure_gain) and 0.1 <= args.exposure_gain <= 10):
         parser.error(f"--exposure-gain: expected a factor within [0.1, 10], got {args.exposure_gain}")
     if args.jpeg is not None and not 1 <= args.jpeg <= 100:
@@ -1033,7 +1052,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.resize != 1.0:
             data = [(name, lambda load=load: resized(load(), args.resize)) for name, load in data]
         if any(turn):
-            data = [(name, lambda load=load: turned(load(), *turn)) for name, load in data]
+            data = [(name, lambda load=load: turned_by_options(load(), turn)) for name, load in data]
         if args.exposure_gain != 1.0:
             data = [(name, lambda load=load: exposed(load(), args.exposure_gain)) for name, load in data]
         if args.jpeg is not None:  # (after the frames are formed: what a camera stores)

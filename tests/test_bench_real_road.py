@@ -519,6 +519,12 @@ def test_main_turned_with_and_without_the_screen_of_turns(rr, scenes, tmp_path, 
     printed = capsys.readouterr().out
     assert "1 pair(s), turned by 1° of pitch, -0.5° of roll" in printed
     assert "| refiner, retry_without_prior=False | 1 |" in printed
+    # a pitch change that leaves no window of image 2 defined (at most a fifth of the rows cut at the
+    # top and at the bottom; 4 degrees leave one at this camera): exit 2 before any work, no traceback
+    assert rr.main(["--data", str(tmp_path / "data"), "--pitch-change-deg", "6", "--no-ecc", "--no-progress"]) == 2
+    said = capsys.readouterr()
+    assert "error: --yaw-deg, --pitch-change-deg, --roll-change-deg: the turn (0.0°, 6.0°, 0.0°) leaves no window " \
+           "of image 2 defined" in said.err and "| DIS |" not in said.out
     for flag, value in (("--yaw-deg", "50"), ("--pitch-change-deg", "nan"), ("--roll-change-deg", "-45")):
         with pytest.raises(SystemExit) as exit_:
             rr.main(["--data", str(tmp_path / "data"), flag, value])
@@ -674,6 +680,11 @@ def test_cropped_pair_is_the_same_motion_seen_through_a_window(rr, pair):
     assert float((flow[0] - out["flow"]).norm(dim=0)[on].mean()) < 0.05
     with pytest.raises(rr.UnfitOption, match=r"^--crop: 50 \+ 46 rows or 0 \+ 0 columns leave nothing"):
         rr.cropped(pair, 50, 46, 0, 0)
+    # a window beside the polygon (columns 60 to 205): every figure over the road would read 0
+    with pytest.raises(rr.UnfitOption, match=r"^--crop: the window of rows 0 to 95 and columns 210 to 319 of a "
+                                             r"96 x 320 frame holds none of the road polygon"):
+        rr.cropped(pair, 0, 0, 210, 0)
+    assert bool(rr.cropped(pair, 0, 0, 200, 0)["road"].any())  # (the polygon's last columns kept)
 
 
 def test_main_with_a_crop_says_so_and_refuses_one_leaving_nothing(rr, scenes, tmp_path, capsys):
@@ -684,6 +695,10 @@ def test_main_with_a_crop_says_so_and_refuses_one_leaving_nothing(rr, scenes, tm
     said = capsys.readouterr()
     assert "error: --crop: 60 + 40 rows or 0 + 0 columns leave nothing of a 96 x 320 frame" in said.err
     assert "| DIS |" not in said.out
+    assert rr.main(["--data", str(tmp_path / "data"), "--crop", "0", "0", "210", "0", "--no-ecc", "--no-progress"]) == 2
+    said = capsys.readouterr()
+    assert "error: --crop: the window of rows 0 to 95 and columns 210 to 319 of a 96 x 320 frame holds none of " \
+           "the road polygon" in said.err and "| DIS |" not in said.out
     with pytest.raises(SystemExit) as exit_:
         rr.main(["--data", str(tmp_path / "data"), "--crop", "0", "-1", "0", "0"])
     assert exit_.value.code == 2 and "--crop: expected pixels >= 0 at each side, got 0 -1 0 0" in \

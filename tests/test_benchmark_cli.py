@@ -131,6 +131,7 @@ BAD = [
     ("real_road", ["--steps", "1", "--step", "2"], "--steps"),
     ("real_road", ["--slalom", "25", "10"], "--slalom"),
     ("real_road", ["--slalom", "6", "1"], "--slalom"),
+    ("real_road", ["--slalom", "6", "2"], "--slalom"),  # (sin(2 pi k / 2) = 0: no frame turned)
     ("real_road", ["--slalom", "nan", "10"], "--slalom"),
     ("real_road", ["--height", "0"], "--height"),
     ("scene_realism", ["--data", ABSENT], "--data"),
