@@ -389,6 +389,12 @@ def main(argv=None) -> int:
         problem = unreadable(data, kitti15, clip)
         if problem is not None:
             parser.error(f"--data: {problem}")
+        for sample in (("kitti15",) if kitti15 else ()) + (("clip",) if clip else ()):
+            try:  # (each sample's first pair turned: a turn that leaves no window of it defined)
+                next(real_pairs(data, turn, kitti15=sample == "kitti15", clip=sample == "clip"))
+            except ValueError as err:
+                parser.error(f"--yaw-deg, --pitch-change-deg, --roll-change-deg: {err} (the turned frames may lose "
+                             f"at most a fifth of their rows at the top and at the bottom): turn less")
     if not args.no_synthetic:
         synthetic_table(tuple(args.pairs))
     if data is not None:

@@ -195,6 +195,29 @@ def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, c
     assert bench.unreadable(_real_data(tmp_path / "readable"), True, True) is None
 
 
+def test_a_turn_that_leaves_no_window_exits_2_before_any_work(bench, tmp_path, capsys, monkeypatch):
+    """A turn within ±30° that leaves no window of image 2 defined (a pitch change of 6° at this
+    camera: at most a fifth of the rows may be cut at the top and at the bottom; 4° leave one)
+    exits 2 naming the turn options before the synthetic table, not with a traceback after it; on
+    the clip alone too."""
+    def no_work(*args, **kwargs):
+        raise AssertionError("the synthetic table ran")
+
+    monkeypatch.setattr(bench, "synthetic_table", no_work)
+    root = _real_data(tmp_path / "data")
+    for only_clip in (False, True):
+        if only_clip:
+            for f in (root / "kitti15_000000").iterdir():
+                f.unlink()
+            (root / "kitti15_000000").rmdir()
+        with pytest.raises(SystemExit) as exit_:
+            bench.main(["--data", str(root), "--no-slow", "--pitch-change-deg", "6"])
+        assert exit_.value.code == 2
+        assert "--yaw-deg, --pitch-change-deg, --roll-change-deg: the turn (0.0°, 6.0°, 0.0°) leaves no window of " \
+               "image 2 defined" in capsys.readouterr().err
+    assert next(bench.real_pairs(root, (0.0, 4.0, 0.0), kitti15=False))[1].shape[-2] < 96  # (4°: a window)
+
+
 def test_a_flow_based_detection_that_finds_nothing_is_flagged(bench, monkeypatch, capsys):
     """The real-data table's flow-based rows count the frames whose detect_freespace failed (an
     empty freespace is a failure; the column printed '-' and the empty results passed unflagged)."""
