@@ -730,8 +730,8 @@ class UnfitData(UnfitOption):
 def checked_data(option: str, read: Callable[[], list[tuple[str, Callable[[], dict]]]]
                  ) -> list[tuple[str, Callable[[], dict]]]:
     """``read()``'s pairs, the errors of reading the folder and of loading each pair (the
-    library's ``ValueError`` and ``FileNotFoundError``, which name the file) as :class:`UnfitData`
-    naming ``option``."""
+    library's ``ValueError`` and ``FileNotFoundError``, which name the file), and a road polygon
+    that covers no pixel of the frames, as :class:`UnfitData` naming ``option``."""
     def unfit(err: Exception) -> UnfitData:
         return UnfitData(f"{option}: {err}")
 
@@ -742,9 +742,13 @@ def checked_data(option: str, read: Callable[[], list[tuple[str, Callable[[], di
 
     def load(inner: Callable[[], dict]) -> dict:
         try:
-            return inner()
+            pair = inner()
         except (ValueError, FileNotFoundError) as err:
             raise unfit(err) from None
+        if not bool(pair["road"].any()):  # (the figures are over the polygon: each would read 0 over no pixel)
+            rows, cols = pair["image1"].shape[-2:]
+            raise unfit(f"road.json: its road polygon covers no pixel of the {rows} x {cols} frames")
+        return pair
 
     return [(name, lambda inner=inner: load(inner)) for name, inner in pairs]
 

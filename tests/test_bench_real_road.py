@@ -1000,7 +1000,8 @@ def test_main_refuses_folders_the_library_cannot_read(rr, scenes, tmp_path, caps
     """A folder the library cannot read exits 2 with the option that named it and the library's
     message, never a traceback: a clip's calibration without P0, a pair's frames of another size
     than its calibration's S_rect, a clip whose later frame has another size (found as it runs),
-    a poses.txt with no line for any of the clip's frames."""
+    a poses.txt with no line for any of the clip's frames, a road polygon that covers no pixel of
+    the frames."""
     from fsof_torch.io import write_image, write_kitti_calibration
 
     _tiny_clip(scenes, tmp_path)
@@ -1027,6 +1028,14 @@ def test_main_refuses_folders_the_library_cannot_read(rr, scenes, tmp_path, caps
     printed = capsys.readouterr()
     assert f"error: --clip: images: 000002.png is {SIZE[0] - 8}x{SIZE[1]} but 000000.png" in printed.err
     assert "Traceback" not in printed.err and "| DIS |" not in printed.out
+    # a road polygon that covers no pixel of the frames (drawn for other frames): every figure over
+    # the road would read 0 (census 0.0000, EPE 0.00 px, over no pixel)
+    write_image(clip / "image_l" / "000002.png", scenes[1]["image2"])
+    (clip / "road.json").write_text(json.dumps({"size": list(SIZE), "road_polygon": [[400, 10], [450, 10], [450, 60]]}))
+    assert rr.main(["--clip", str(clip), *run]) == 2
+    printed = capsys.readouterr()
+    assert f"error: --clip: road.json: its road polygon covers no pixel of the {SIZE[0]} x {SIZE[1]} frames" in \
+        printed.err and "| DIS |" not in printed.out
 
 
 def test_main_refuses_poses_that_have_no_line_for_the_clips_frames(rr, scenes, tmp_path, capsys):
