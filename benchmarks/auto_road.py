@@ -258,22 +258,27 @@ def unreadable(root: Path, kitti15: bool, clip: bool) -> str | None:
     """What of the real samples in ``root`` (those asked for) the library cannot read, as its
     datasets read them: the pair's frames against each other and the calibration's ``S_rect``, the
     clip's frames against each other (every one of them), each calibration's camera, each
-    road.json; None where all can be. Checked before any work: the tables read them later."""
+    road.json (and a polygon that covers no pixel of its frames); None where all can be. Checked
+    before any work: the tables read them later."""
     from fsof_torch.datasets import ImageFolderDataset, KittiSampleDataset
     from fsof_torch.io import read_road_mask
 
+    roads = []
     try:
         if kitti15:
             pair = KittiSampleDataset(root / KITTI15[0], camera_height=1.65, ground_truth=False, road_json=False)[0]
-            read_road_mask(root / KITTI15[0] / "road.json", tuple(pair["image1"].shape[-2:]))
+            roads.append(read_road_mask(root / KITTI15[0] / "road.json", tuple(pair["image1"].shape[-2:])))
         if clip:
             folder = root / CLIP[0]
             frames = ImageFolderDataset(folder / "image_l", folder / "calib.txt", cam=0, ground_truth=False)
             for i in range(len(frames)):
                 size = tuple(frames[i]["image1"].shape[-2:])
-            read_road_mask(folder / "road.json", size)
+            roads.append(read_road_mask(folder / "road.json", size))
     except (ValueError, FileNotFoundError) as err:
         return str(err)
+    for road in roads:  # (the tables' shares are of the polygon's pixels)
+        if not bool(road.any()):
+            return f"road.json: its road polygon covers no pixel of the {road.shape[-2]} x {road.shape[-1]} frames"
     return None
 
 

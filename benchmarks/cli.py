@@ -300,23 +300,26 @@ def readable_pair(parser: argparse.ArgumentParser, folder: Path, option: str = "
     """The KITTI 2015 pair in ``folder`` (``kitti15_000000``'s layout) read as the library's
     ``KittiSampleDataset`` reads it, before any work: the frames against each other and against
     the calibration's ``S_rect`` (camera 2), road.json, flow_noc_10.png against the frames (each
-    where the folder has it). What it cannot read is ``parser.error`` (exit 2) naming ``option``
-    and the library's message, not a traceback or a silent run on frames the calibration is not
-    for."""
+    where the folder has it). What it cannot read, and a road polygon that covers no pixel of the
+    frames, is ``parser.error`` (exit 2) naming ``option`` and the library's message, not a
+    traceback or a silent run on frames the calibration is not for."""
     from fsof_torch.datasets import KittiSampleDataset
 
     try:
-        KittiSampleDataset(folder)[0]
+        item = KittiSampleDataset(folder)[0]
     except (ValueError, FileNotFoundError) as err:
         parser.error(f"{option}: {err}")
+    if item.get("road") is not None:
+        road_covers(parser, item["road"], option)
 
 
 def readable_clip(parser: argparse.ArgumentParser, folder: Path, option: str = "--data", poses: bool = False) -> None:
     """The KITTI odometry clip in ``folder`` (``kitti_odometry_straight``'s layout) read as the
     library's ``ImageFolderDataset`` reads it, before any work: the calibration's camera, every
-    frame against the first, road.json at the frames' size and, with ``poses``, poses.txt. What it
-    cannot read is ``parser.error`` (exit 2) naming ``option`` and the library's message, not a
-    traceback after the parts that come before the clip's."""
+    frame against the first, road.json at the frames' size (a polygon that covers some of them)
+    and, with ``poses``, poses.txt. What it cannot read is ``parser.error`` (exit 2) naming
+    ``option`` and the library's message, not a traceback after the parts that come before the
+    clip's."""
     from fsof_torch import read_kitti_poses
     from fsof_torch.datasets import ImageFolderDataset
     from fsof_torch.io import read_road_mask
@@ -325,11 +328,21 @@ def readable_clip(parser: argparse.ArgumentParser, folder: Path, option: str = "
         frames = ImageFolderDataset(folder / "image_l", folder / "calib.txt", cam=0, ground_truth=False)
         for i in range(len(frames)):
             size = tuple(frames[i]["image1"].shape[-2:])
-        read_road_mask(folder / "road.json", size)
+        road = read_road_mask(folder / "road.json", size)
         if poses:
             read_kitti_poses(folder / "poses.txt")
     except (ValueError, FileNotFoundError) as err:
         parser.error(f"{option}: {err}")
+    road_covers(parser, road, option)
+
+
+def road_covers(parser: argparse.ArgumentParser, road: Any, option: str) -> None:
+    """A road mask (..., H, W) from road.json that covers no pixel of its frames (a polygon drawn
+    for other frames) is ``parser.error`` naming ``option``: the figures over the road would be
+    means over no pixel."""
+    if not bool(road.any()):
+        rows, cols = road.shape[-2:]
+        parser.error(f"{option}: road.json: its road polygon covers no pixel of the {rows} x {cols} frames")
 
 
 def present(folder: Path, need: tuple[str, ...], what: str) -> bool:

@@ -192,7 +192,13 @@ def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, c
             bench.main(["--data", str(root), "--no-slow"])
         assert exit_.value.code == 2
         assert message in capsys.readouterr().err
-    assert bench.unreadable(_real_data(tmp_path / "readable"), True, True) is None
+    readable = _real_data(tmp_path / "readable")
+    assert bench.unreadable(readable, True, True) is None
+    # a polygon beside the frames: the tables' shares of the polygon would be of no pixel
+    (readable / "kitti_odometry_straight" / "road.json").write_text('{"size": [96, 320], "road_polygon": '
+                                                                   '[[400, 10], [450, 10], [450, 60]]}')
+    assert bench.unreadable(readable, True, False) is None
+    assert bench.unreadable(readable, True, True) == "road.json: its road polygon covers no pixel of the 96 x 320 frames"
 
 
 def test_a_turn_that_leaves_no_window_exits_2_before_any_work(bench, tmp_path, capsys, monkeypatch):

@@ -17,6 +17,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import torch
 
 BENCHMARKS = Path(__file__).resolve().parents[1] / "benchmarks"
 SHARED_MODULES = {"baseline", "cli"}  # imported by the scripts, not scripts themselves
@@ -402,6 +403,30 @@ def test_data_folder_given_must_exist_and_hold_the_files(cli, tmp_path, capsys):
     assert not cli.present(tmp_path / "pair", ("calib.txt",), "the pair")
     assert "the pair absent: skipped" in capsys.readouterr().out
     assert cli.present(tmp_path / "pair", ("road.json",), "the pair")
+
+
+def test_a_clip_whose_road_polygon_covers_no_pixel_exits_2(cli, tmp_path, capsys):
+    """``readable_clip``: a road.json polygon beside the frames (drawn for other frames) is refused
+    naming the option, as the figures over the road would be means over no pixel; one on the
+    frames passes."""
+    from fsof_torch.io import write_image, write_kitti_calibration
+
+    parser = argparse.ArgumentParser(prog="bench")
+    clip = tmp_path / "clip"
+    (clip / "image_l").mkdir(parents=True)
+    for i in range(2):
+        write_image(clip / "image_l" / f"{i:06d}.png", torch.full((1, 40, 64), 100.0 + i))
+    K = torch.tensor([[50.0, 0.0, 32.0], [0.0, 50.0, 20.0], [0.0, 0.0, 1.0]])
+    write_kitti_calibration(clip / "calib.txt", K, cam=0, style="odometry")
+    for polygon, refused in (([[100, 5], [120, 5], [120, 30]], True), ([[5, 39], [30, 25], [60, 39]], False)):
+        (clip / "road.json").write_text(json.dumps({"size": [40, 64], "road_polygon": polygon}))
+        if refused:
+            with pytest.raises(SystemExit) as exit_:
+                cli.readable_clip(parser, clip, "--clip")
+            assert exit_.value.code == 2
+            assert "--clip: road.json: its road polygon covers no pixel of the 40 x 64 frames" in capsys.readouterr().err
+        else:
+            cli.readable_clip(parser, clip, "--clip")
 
 
 def test_baseline_revision(cli, tmp_path, capsys, monkeypatch):
