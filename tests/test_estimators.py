@@ -92,6 +92,7 @@ def test_fit_image_options_checked_when_the_estimator_is_made():
     assert ImageMotionEstimator(fine_points=20000, smooth_sigma=1.0).options == {"fine_points": 20000,
                                                                                  "smooth_sigma": 1.0}
 
+
 def test_odometry_sigma_checked():
     with pytest.raises(ValueError, match=r"odometry_sigma: expected some of \('x_d', 'z_d', 'yaw'\) \(the planar "
                                          r"odometry\), got 'pitch'"):
@@ -270,7 +271,9 @@ def test_the_refiners_flow_start_is_the_public_one(small_pair, monkeypatch):
 def test_homography_odometry_is_a_start_and_keeps_the_flow_start(small_pair, monkeypatch):
     """An odometry without planar motion (a homography) holds nothing: for a homography estimator
     it is one more start; the flow's start stays, as without odometry."""
-    from fsof_torch.geometry.road_models import get_road_model
+    from fsof_torch import road_homography
+    from fsof_torch.geometry.road_models import get_road_model, homography_values
+    from fsof_torch.refinement.estimators import planar_start
 
     p, images, road = small_pair
     flow = p["flow"][None].float()
@@ -284,7 +287,34 @@ def test_homography_odometry_is_a_start_and_keeps_the_flow_start(small_pair, mon
         assert len(starts) == (2 if model == "homography" else 1)
         if model == "homography":
             assert starts[0] == {k: v for k, v in odometry.items() if k != "model"}
-        assert float(starts[-1]["z_d"][0]) == pytest.approx(p["odometry"]["z_d"], rel=0.05)  # the flow's
+            # the flow's start as the homography's parameters: the map of its planar motion
+            planar = planar_start(flow, road, p["camera"])
+            H = road_homography(p["camera"], planar, model="plane").to(torch.float64)
+            K = p["camera"].K.to(torch.float64)
+            values = homography_values(H, K, torch.linalg.inv(K))[0]
+            assert sorted(starts[-1]) == sorted(get_road_model("homography").params)
+            torch.testing.assert_close(torch.stack([starts[-1][n][0] for n in get_road_model("homography").params]),
+                                       values, rtol=0, atol=1e-9)
+        else:
+            assert float(starts[-1]["z_d"][0]) == pytest.approx(p["odometry"]["z_d"], rel=0.05)  # the flow's
+
+
+def test_flow_start_of_a_homography_estimator_is_used():
+    """flow_start with model="homography": the flow's planar start was passed to the fit as x_d,
+    z_d and yaw, names the homography lacks, and the fit left it aside (at three times the default
+    speed it started from zero motion alone and landed 15 px off, as without the flow). Now it
+    starts from that motion's homography, and the flow finds the motion as it does for the plane."""
+    p = render_pair("default", 0, size=(96, 320), speed_factor=3)
+    images, road, flow = (p["image1"][None], p["image2"][None]), p["road"][None], p["flow"][None]
+    few = dict(forward_starts=(), turn_starts=(), reverse_starts=(), retry_starts=0, retry_without_prior=False)
+    errors = {}
+    for model in ("plane", "homography"):
+        for flow_start in (True, False):
+            fit = ImageMotionEstimator(model=model, flow_start=flow_start, **few)(flow, road, p["camera"],
+                                                                                  images=images)
+            errors[model, flow_start] = float(endpoint_error(fit.flow, p["flow"][None], road, p["valid"][None])[0])
+    assert errors["plane", True] < 2.0 and errors["homography", True] < 2.0
+    assert errors["plane", False] > 10.0 and errors["homography", False] > 10.0
 
 
 # -- FlowMotionEstimator with planar odometry; detached results ------------------------------------------

@@ -29,7 +29,7 @@ from .flow_fit import start_values
 from .robust import robust_terms
 from .sampling import gather_pixels, pixel_coordinates, sample_mask, sample_points
 
-__all__ = ["start_list", "check_steps", "starts_ahead", "turn_moves", "reverse_moves", "screened_start", "two_way_cost",
+__all__ = ["start_list", "check_steps", "starts_ahead", "planar_homography", "turn_moves", "reverse_moves", "screened_start", "two_way_cost",
            "better_fit", "TURN_STARTS", "REVERSE_STARTS"]
 
 #: The turns (degrees of yaw per frame) screened for a start where every other start failed
@@ -75,13 +75,17 @@ def starts_ahead(model: RoadModel, camera: Camera, steps: Sequence[float], fixed
         return [{"z_d": k * camera.height} for k in steps]
     if model.name != "homography":
         return []
+    return [planar_homography(camera, {"z_d": k * camera.height}) for k in steps]
+
+
+def planar_homography(camera: Camera, planar: dict[str, Any]) -> dict[str, Tensor]:
+    """The ``"homography"`` model's parameters {name: (B,)} of a planar motion ``planar`` (some
+    of x_d, z_d, yaw; floats or (B,) tensors) at the camera's roll and pitch: the same start for a
+    homography fit, whose parameters share no name with it."""
     plane = get_road_model("plane")
-    out = []
-    for k in steps:
-        _, values = pack_params(plane, camera, {"z_d": k * camera.height})
-        H = plane.matrix(camera, values)
-        out.append(dict(zip(model.params, homography_values(H, camera.K, camera.K_inv()).unbind(1))))
-    return out
+    camera, values = pack_params(plane, camera, planar)
+    H = plane.matrix(camera, values)
+    return dict(zip(get_road_model("homography").params, homography_values(H, camera.K, camera.K_inv()).unbind(1)))
 
 
 def turn_moves(turns: Sequence[float], fixed: tuple[str, ...]) -> list[tuple[float, float]]:

@@ -32,6 +32,7 @@ from ..estimation.flow_fit import RoadFit, check_road_fit_options, fit_road, fix
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
 from ..estimation.sampling import reused_mask_pixels
+from ..estimation.starts import planar_homography
 from ..geometry.camera import Camera
 from ..geometry.egomotion import check_motion_step
 from ..geometry.road_models import get_road_model, road_motion
@@ -243,8 +244,8 @@ class ImageMotionEstimator:
         model: ``"plane"`` (default: the 6-DOF motion over the road and the camera's attitude
             over it), ``"paper"`` or ``"homography"``.
         flow_start: also start from the planar motion of the predicted flow (when one is given,
-            :func:`planar_start`); the start with the lowest robust image cost wins at the
-            coarsest level.
+            :func:`planar_start`; for ``"homography"``, that motion's map at the camera's roll and
+            pitch); the start with the lowest robust image cost wins at the coarsest level.
         odometry_sigma: how far the images may move a given planar odometry. None (default):
             not at all, x_d, z_d and yaw are held at the odometry. A dict of standard deviations
             for some of ``"x_d"``, ``"z_d"`` (metres a frame) and ``"yaw"`` (radians a frame):
@@ -344,7 +345,10 @@ class ImageMotionEstimator:
             if planar is None and self.flow_start and flow is not None:
                 # (planar_start leaves a frame's non-finite pixels out: each frame's start is its own;
                 # in inference mode, as the fit that takes it runs: a start is no result of the call)
-                starts.append(inference(planar_start)(flow, mask, camera))
+                start = inference(planar_start)(flow, mask, camera)
+                if self.model == "homography":  # (x_d, z_d, yaw are no parameters of it: their map's are)
+                    start = inference(planar_homography)(camera, start)
+                starts.append(start)
             # (on the camera's values: fit_image's result keeps its K and height, and results are detached)
             camera = Camera._checked(camera.K.detach(), camera.height.detach(), camera.roll.detach(),
                                      camera.pitch.detach())
