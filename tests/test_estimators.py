@@ -93,6 +93,28 @@ def test_fit_image_options_checked_when_the_estimator_is_made():
                                                                                  "smooth_sigma": 1.0}
 
 
+@pytest.mark.parametrize("model, options, error, message", [
+    ("homography", {"fixed": ["pitch"]}, ValueError, r"^fixed: unknown parameters \['pitch'\] of model 'homography'"),
+    ("plane", {"prior": {"pich": (0.0, 0.01)}}, ValueError, r"^prior: unknown parameter 'pich' of model 'plane'"),
+    ("paper", {"prior": {"pitch": (0.0, 0.01)}}, ValueError, r"^prior: 'pitch' is held at its start \(fixed=\('pitch',\)\)"),
+    ("plane", {"prior": {"pitch": (0.0,)}}, ValueError, r"^prior\['pitch'\]: expected \(mean, sigma\), got \(0.0,\)"),
+    ("plane", {"prior": {"pitch": (0.0, -0.01)}}, ValueError, r"^prior\['pitch'\]: expected a finite mean and sigma > 0"),
+    ("plane", {"prior": {"yaw": (float("nan"), 0.01)}}, ValueError, r"^prior\['yaw'\]: expected a finite mean and sigma"),
+])
+def test_model_names_and_priors_checked_when_the_estimator_is_made(model, options, error, message):
+    """A fixed name or a prior the model refuses was an error at every call of the estimator (the
+    first refinement), though its options are checked when it is made."""
+    with pytest.raises(error, match=message):
+        ImageMotionEstimator(model=model, **options)
+
+
+def test_priors_of_several_values_are_left_to_the_call():
+    """A prior of one value per frame is checked at the call, which knows the batch; the model's
+    own free parameters take priors."""
+    estimator = ImageMotionEstimator(prior={"pitch": (torch.zeros(3), torch.full((3,), 0.01))})
+    assert set(estimator.options["prior"]) == {"pitch"}
+    ImageMotionEstimator(model="paper", fixed=(), prior={"pitch": (torch.tensor(0.0), 0.01)})
+
 def test_odometry_sigma_checked():
     with pytest.raises(ValueError, match=r"odometry_sigma: expected some of \('x_d', 'z_d', 'yaw'\) \(the planar "
                                          r"odometry\), got 'pitch'"):

@@ -49,12 +49,12 @@ from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, pack_params
-from .flow_fit import RoadFit, fixed_parameters
+from .flow_fit import RoadFit
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import backward_correlation, detail_correlation, photometric_inliers, spread_out, warped_samples
 from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
-from .image_options import check_bounds, checked_options
+from .image_options import check_bounds, check_prior_values, checked_options, held_parameters
 from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, reverse_moves, screened_start, start_list, starts_ahead,
                      turn_moves, two_way_cost)
 from .solver import Evaluation, Solution, positive_definite, solve
@@ -389,10 +389,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     camera = camera.expand(B).to(device=dev)
     cam64 = camera.to(torch.float64)
     n_levels = pyramid_levels(H, W, levels, min_size)
-    fixed_names = fixed_parameters(model, fixed)
-    if held := [n for n in fixed_names if isinstance(prior, Mapping) and n in prior]:
-        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={fixed_names!r}), so its prior would "
-                         f"be ignored; free it (fixed= without it) or drop its prior")
+    fixed_names = held_parameters(model, fixed, prior)
     P = len(model.params)
     # (None where every parameter is free: the solver then skips the fixed parameters' masking)
     free = (None if not fixed_names and affine else
@@ -602,13 +599,19 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 def check_image_fit_options(options: Mapping[str, Any], name: str = "options", reserved: Sequence[str] = ()) -> None:
     """Keyword arguments for :func:`fit_image` (its options, not the images, mask or camera),
     checked as it checks them, before any fit: a name it does not take, or one of ``reserved`` (set
-    by the caller), is a TypeError naming ``name``; a bad value the TypeError or ValueError that
-    fit_image would raise (the bounds' batch size aside). For estimators and clip fits that forward
+    by the caller), is a TypeError naming ``name``; a bad value (a ``fixed`` or ``prior`` name the
+    model lacks and a prior on a held parameter among them) the TypeError or ValueError that
+    fit_image would raise (the bounds' batch size, the values of ``init`` and a prior's of one value
+    per frame aside: they need the batch). For estimators and clip fits that forward
     options to it."""
     check_keywords(options, name, fit_image, ("image1", "image2", "mask", "camera", *reserved))
     given = {**_fit_image_defaults(), **options}
     bounds = given.pop("bounds")
-    check_bounds(bounds, checked_options(**given).model)
+    checked = checked_options(**given)
+    check_bounds(bounds, checked.model)
+    # (the names and priors that only the model tells apart: as the fit checks them)
+    held_parameters(checked.model, checked.fixed, checked.prior)
+    check_prior_values(checked.model, checked.prior)
 
 
 def _fit_image_defaults() -> dict[str, Any]:

@@ -12,13 +12,16 @@ from __future__ import annotations
 
 from typing import Any, Mapping, NamedTuple
 
+import torch
+
 from .._check import check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
 from ..geometry.road_models import RoadModel, get_road_model
-from .flow_fit import RoadFit
+from .flow_fit import RoadFit, fixed_parameters
+from .priors import prior_arrays
 from .robust import check_fit_options, check_kernel
 from .starts import check_steps
 
-__all__ = ["ImageOptions", "checked_options", "check_bounds"]
+__all__ = ["ImageOptions", "checked_options", "check_bounds", "held_parameters", "check_prior_values"]
 
 
 class ImageOptions(NamedTuple):
@@ -106,3 +109,30 @@ def check_bounds(bounds: object, model: RoadModel, B: int | None = None) -> None
                          f"{tuple(bounds[1].shape)}")
     if not bool((bounds[0] <= bounds[1]).all()):
         raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
+
+
+def held_parameters(model: RoadModel, fixed: Any, prior: Any) -> tuple[str, ...]:
+    """The names ``fixed`` holds (None: the model's default; a name the model lacks is a ValueError),
+    checked against a ``prior`` dict: a prior on a held parameter would be ignored (a ValueError)."""
+    names = fixed_parameters(model, fixed)
+    if held := [n for n in names if isinstance(prior, Mapping) and n in prior]:
+        raise ValueError(f"prior: {held[0]!r} is held at its start (fixed={names!r}), so its prior would "
+                         f"be ignored; free it (fixed= without it) or drop its prior")
+    return names
+
+
+def check_prior_values(model: RoadModel, prior: Any) -> None:
+    """A ``prior`` dict's names (the model's) and its entries of one value each (numbers: a finite
+    mean, a sigma > 0), checked as the fit checks them; entries of several values (one per frame)
+    are left to the fit, which knows the batch."""
+    if not isinstance(prior, Mapping):
+        return
+    single = {}
+    for name, value in prior.items():
+        try:
+            one = all(torch.as_tensor(v).numel() == 1 for v in value)
+        except Exception:  # (not a pair of numbers: prior_arrays names it)
+            one = True
+        if one or name not in model.params:
+            single[name] = value
+    prior_arrays(model, single, 1, torch.device("cpu"))

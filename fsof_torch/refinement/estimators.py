@@ -259,7 +259,8 @@ class ImageMotionEstimator:
             ``max_points``, ``levels``, ...; not its inputs ``image1``, ``image2``, ``mask``,
             ``camera``, nor ``model``, ``starts``, which the estimator passes itself: a
             TypeError names them). Their values are checked here, as fit_image checks them
-            (the bounds' batch size aside): a bad one is an error when the estimator is made.
+            (the bounds' batch size, ``init``'s values and a prior's of one value per frame
+            aside): a bad one is an error when the estimator is made.
 
     Given the vehicle's planar odometry (x_d, z_d, yaw from poses or wheel odometry), that is held
     fixed (or, with ``odometry_sigma``, a prior) and the images estimate the rest of the model's
