@@ -599,3 +599,26 @@ def test_start_names_and_values_are_checked():
     paper = fit_displacement(flow, road, cam)
     held = fit_image(im1, im2, road, cam, init=paper, fixed=("x_d", "z_d", "yaw"), forward_starts=())
     assert all(torch.equal(held.params[n], paper.params[n]) for n in ("x_d", "z_d", "yaw"))
+
+
+def test_a_dict_sharing_no_parameter_with_the_model_is_refused():
+    """A plain dict of another model's parameters (no "model" key) as init or start: the planar
+    x_d, z_d and yaw given to a homography fit were left aside whole, and the fit started from zero
+    motion as if no start had been given (the same fit, bit for bit). It is an error naming it now,
+    as a fit or a motion sharing no parameter is; an empty dict is still the default start."""
+    from fsof_torch import fit_road
+
+    p = render_pair("default", 0, size=(48, 160))
+    im1, im2, flow, road, cam = p["image1"][None], p["image2"][None], p["flow"][None].float(), p["road"][None], p["camera"]
+    message = r"{}: a motion of \['x_d', 'yaw', 'z_d'\] shares no parameter with the 'homography' model's \('h11'"
+    planar = {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}
+    with pytest.raises(ValueError, match=message.format("init")):
+        fit_image(im1, im2, road, cam, model="homography", init=planar)
+    with pytest.raises(ValueError, match=message.format(r"starts\[0\]")):
+        fit_image(im1, im2, road, cam, model="homography", starts=[planar])
+    with pytest.raises(ValueError, match=message.format("init")):
+        fit_road(flow, road, cam, model="homography", init=planar)
+    with pytest.raises(ValueError, match=r"init: a motion of \['h13'\] shares no parameter with the 'plane' model's"):
+        fit_image(im1, im2, road, cam, init={"h13": 0.1})
+    assert torch.equal(fit_road(flow, road, cam, model="homography", init={}).homography,
+                       fit_road(flow, road, cam, model="homography").homography)

@@ -262,7 +262,7 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     """Start values (B, P) float64: ``init``'s (a :class:`RoadFit` or a dict of any of the model's
     parameters) over ``default``; and (P,) flags of the names given. Another road model's
     parameters (a fit of another model as a start) are left aside; a name of no road model (a
-    typo), or a fit or a motion naming its model that shares no parameter, is an error naming ``what``."""
+    typo), or a fit, motion or dict that shares no parameter, is an error naming ``what``."""
     B, P = default.shape
     given = [False] * P
     if init is None:
@@ -271,13 +271,14 @@ def start_values(model: RoadModel, init: object, camera: Camera, default: Tensor
     if not isinstance(values, Mapping):
         raise TypeError(f"{what}: expected a RoadFit or a dict of {model.params}, got {type(init).__name__}")
     kind, named = ("fit", init.model) if isinstance(init, RoadFit) else ("motion", values.get("model"))  # (motion())
-    if named not in (None, model.name) and not set(values) & set(model.params):  # (else ignored: a silent default)
-        raise ValueError(f"{what}: a {named!r} {kind} shares no parameter with the {model.name!r} model's {model.params}")
     known = {"model"} | {n for m in ROAD_MODELS.values() for n in m.params}  # (a road motion's own form)
     unknown = sorted(str(n) for n in values if n not in known)
     if unknown:
         raise ValueError(f"{what}: unknown parameters {unknown}; expected some of the {model.name!r} model's "
                          f"{model.params}")
+    if values and named != model.name and not set(values) & set(model.params):  # (else ignored: a silent default)
+        kind = f"{named!r} {kind}" if named else f"{kind} of {sorted(map(str, values))}"  # (a dict: its names)
+        raise ValueError(f"{what}: a {kind} shares no parameter with the {model.name!r} model's {model.params}")
     out = default.clone()
     for i, name in enumerate(model.params):
         value = values.get(name)

@@ -237,8 +237,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         fixed: parameter names held at ``init``'s values (default: none for ``"plane"`` and
             ``"homography"``, the pitch for ``"paper"``), in every start, and not bounded.
         init: the first start (a dict of any of the model's parameters, or a :class:`RoadFit`:
-            another model's gives the parameters they share, and one sharing none is a
-            ValueError; the others at zero motion and the camera's roll and pitch); fixed
+            another model's fit or dict gives the parameters they share, and one sharing none is
+            a ValueError; the others at zero motion and the camera's roll and pitch); fixed
             parameters stay at it.
         starts: further start candidates, each a dict or fit whose parameters override ``init``'s,
             except the fixed ones (e.g. a fit to a network's flow, the previous frame's motion, a
