@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from fsof_torch.geometry.camera import Camera
-from fsof_torch import FitResult, fit_displacement, fit_photometric
+from fsof_torch import FitResult, fit_displacement, fit_image, fit_photometric
 from fsof_torch.geometry.road_flow import displacement_flow
 from fsof_torch.evaluation.warp import warp_backward
 
@@ -55,6 +55,25 @@ def test_smoke_result_type_and_shapes():
     assert isinstance(fit, FitResult)
     assert fit.flow.shape == (1, 2, *SIZE) and fit.inliers.shape == (1, 1, *SIZE)
     assert fit.z_d.shape == (1,) and fit.flow.dtype == torch.float32
+
+
+def test_thresholds_and_results_are_grey_levels_on_0_255_for_any_data_range():
+    """With data_range=1.0 the fit rescales the images to 0..255: the same inlier_threshold and
+    scale give the fit on 0..255 images (its residual and offset in grey levels on 0..255 too),
+    and thresholds rescaled to 0..1 are 255 times tighter (the docstring said only "grey levels")."""
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.1, 0.8, 0.01)
+    image2 = image2 * 0.9 + 12  # (an exposure change: a nonzero offset)
+    options = dict(inlier_threshold=5.0, scale=3.0)
+    grey = fit_image(image1, image2, mask, cam, **options)
+    unit = fit_image(image1 / 255, image2 / 255, mask, cam, data_range=1.0, **options)
+    assert bool(grey.success[0]) and bool(unit.success[0])
+    for a, b in ((grey.params["z_d"], unit.params["z_d"]), (grey.residual, unit.residual),
+                 (grey.extras["offset"], unit.extras["offset"])):
+        torch.testing.assert_close(a, b, rtol=1e-5, atol=1e-5)
+    tight = fit_image(image1 / 255, image2 / 255, mask, cam, data_range=1.0, inlier_threshold=5.0 / 255,
+                      scale=3.0 / 255)
+    assert float(tight.extras["inlier_fraction"][0]) < 0.5 * float(grey.extras["inlier_fraction"][0])
 
 
 def test_result_camera_is_a_copy_of_the_callers():

@@ -319,8 +319,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             intensities themselves; coarser levels always do, for a wide basin). A narrow band
             keeps the blur's mismatch under magnification small; docs/image-fit.md compares
             widths on real and synthetic frames.
-        robust, scale: the kernel and its scale in grey levels (default: 1.4826 × the median
-            absolute residual at each level's start, at least 2).
+        robust, scale: the kernel and its scale in grey levels on 0..255, whatever ``data_range``
+            (default: 1.4826 × the median absolute residual at each level's start, at least 2).
         max_points, gradient_fraction: the points per frame and level that enter the
             iterations: the ``max_points`` road pixels with the strongest gradient among up to
             ``max_points / gradient_fraction`` evenly spread over the mask (on a level of fewer
@@ -335,8 +335,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             nearer the truth, and more points there cost less time than more at every level
             (docs/image-fit.md, "Points spread evenly"). None: as the coarser levels.
         affine: also fit a gain and an offset between the frames' brightness.
-        inlier_threshold: |photometric residual| (grey levels) of an inlier at full resolution,
-            image 2's intensities matched to image 1's by their own gain and offset.
+        inlier_threshold: |photometric residual| (grey levels on 0..255, as ``scale``) of an inlier
+            at full resolution, image 2's intensities matched to image 1's by their own gain and offset.
         min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
             columns: a band that thin matches under many motions), or a smaller share of the
             mask's points that the model keeps inside image 2 (the others cannot be judged: at
@@ -348,7 +348,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             match within ``inlier_threshold`` under almost any motion; its detail does not, unless
             it slides along itself (lane markings, a thin band of road: docs/image-fit.md). At
             0.5 the aligned images share as much of their detail's variance as they differ by.
-        data_range: the images' range (255.0 or 1.0).
+        data_range: the images' range (255.0 or 1.0); the fit works on 0..255 either way.
         check_every: each level asks whether all samples converged (one host read) after this
             many iterations and then after every further one, so that no level runs on after
             its samples converged; the checks change no result. None: every level runs
