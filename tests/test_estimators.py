@@ -115,6 +115,29 @@ def test_priors_of_several_values_are_left_to_the_call():
     assert set(estimator.options["prior"]) == {"pitch"}
     ImageMotionEstimator(model="paper", fixed=(), prior={"pitch": (torch.tensor(0.0), 0.01)})
 
+def test_an_image_estimator_for_0_1_images_is_refused_where_it_gets_0_255():
+    """The refiner and detect_road hand their estimator images on 0..255 (detect_road rescales
+    the caller's): ImageMotionEstimator(data_range=1.0) was taken, and every call failed in the
+    fit with "image1: expected values in [0, data_range=1]", which told a caller of detect_road
+    with 0..1 images (data_range=1.0) to pass 255. It is refused where it is given, naming the
+    estimator; called directly on 0..1 images it fits them."""
+    from fsof_torch import detect_road
+
+    p = render_pair("default", 0, size=(48, 160))
+    images, road, cam = (p["image1"][None], p["image2"][None]), p["road"][None], p["camera"]
+    message = r"^estimator: ImageMotionEstimator\(data_range=1.0\) is given images on 0..255 here"
+    with pytest.raises(ValueError, match=message):
+        FreespaceRefiner(estimator=ImageMotionEstimator(data_range=1.0))
+    with pytest.raises(ValueError, match=message):
+        detect_road(images[0] / 255, images[1] / 255, cam, estimator=ImageMotionEstimator(data_range=1.0),
+                    data_range=1.0)
+    with pytest.raises(TypeError, match=r"^photometric_options: options \['data_range'\] of fit_image are set by"):
+        FreespaceRefiner(fit="photometric", photometric_options={"data_range": 1.0})
+    FreespaceRefiner(estimator=ImageMotionEstimator(data_range=255.0))
+    unit = ImageMotionEstimator(data_range=1.0)(None, road, cam, images=(images[0] / 255, images[1] / 255))
+    grey = ImageMotionEstimator()(None, road, cam, images=images)
+    torch.testing.assert_close(unit.params["z_d"], grey.params["z_d"], rtol=1e-5, atol=1e-6)
+
 def test_odometry_sigma_checked():
     with pytest.raises(ValueError, match=r"odometry_sigma: expected some of \('x_d', 'z_d', 'yaw'\) \(the planar "
                                          r"odometry\), got 'pitch'"):

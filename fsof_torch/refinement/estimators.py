@@ -72,12 +72,20 @@ def given_success(odometry: object, batch: int, device: torch.device | str) -> T
 def check_estimator(estimator: object, name: str = "estimator") -> Any:
     """``estimator`` checked (None, or a callable estimator object) and returned: a TypeError names
     ``name``, also for an estimator class given where an instance is due (it is callable, but a call
-    with a flow would make an estimator, not estimate)."""
+    with a flow would make an estimator, not estimate); an :class:`ImageMotionEstimator` with a
+    ``data_range`` other than 255 is a ValueError (the refiner and detect_road, which check their
+    estimator with this, give it images on 0..255)."""
     if isinstance(estimator, type):
         raise TypeError(f"{name}: expected a road-motion estimator object, got the class {estimator.__name__}; "
                         f"make one: {name}={estimator.__name__}()")
     if estimator is not None and not callable(estimator):
         raise TypeError(f"{name}: expected a callable road-motion estimator, got {type(estimator).__name__}")
+    # (the refiner and detect_road hand their estimator images on 0..255, whatever the caller's range)
+    given = estimator.options.get("data_range", 255.0) if isinstance(estimator, ImageMotionEstimator) else 255.0
+    if float(given) != 255.0:
+        raise ValueError(f"{name}: ImageMotionEstimator(data_range={given!r}) is given images on 0..255 here (the "
+                         f"refiner takes them so, and detect_road rescales its images to them); leave data_range out "
+                         f"of its options (detect_road takes the images' data_range itself)")
     return estimator
 
 

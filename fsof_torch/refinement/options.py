@@ -22,10 +22,11 @@ MODES = ("replace", "confidence")
 #: The older way to choose the estimator (``fit=``).
 FITS = ("flow", "photometric")
 #: What the refiner passes ``fit_road`` / ``fit_image`` itself (their positional inputs and the
-#: model it chose): refused in ``fit_options`` / ``photometric_options`` by name, where Python
-#: would raise "got multiple values for argument" at the first call.
+#: model it chose; the images' range: they are on 0..255): refused in ``fit_options`` /
+#: ``photometric_options`` by name, where Python would raise "got multiple values for argument"
+#: (or fit_image would refuse the refiner's images) at the first call.
 FIT_RESERVED = ("flow", "mask", "camera", "model", "fixed", "init")
-PHOTOMETRIC_RESERVED = ("image1", "image2", "mask", "camera", "model", "fixed", "starts")
+PHOTOMETRIC_RESERVED = ("image1", "image2", "mask", "camera", "model", "fixed", "starts", "data_range")
 #: ``fit="photometric"``'s options of ``fit_image`` (``photometric_options`` update them).
 PHOTOMETRIC_DEFAULTS = {"prior": None, "bounds": None, "max_points": 40000, "gradient_fraction": 1.0, "min_size": 24,
                         "max_iter": 20, "highpass": None}
