@@ -165,12 +165,12 @@ def test_exceptions_fit_image_options_named_and_quoted(options, error, message):
 
 
 @pytest.mark.parametrize("options, error, message", [case for case in OPTION_ERRORS if not any(
-    word in case[2] for word in ("bounds", "prior\\[", "held"))])
+    word in case[2] for word in ("bounds", "of batch"))])
 def test_check_image_fit_options_raises_what_fit_image_raises(options, error, message):
     """The options alone, checked as fit_image checks them (what ImageMotionEstimator and
-    fit_sequence do when given options): the same error, before any image is seen. The checks
-    that need the batch (the bounds' shape, a prior's batch) and the held parameters come with
-    the images."""
+    fit_sequence do when given options): the same error, before any image is seen, also for a
+    prior's names and values and a prior on a held parameter. The checks that need the batch (the
+    bounds' shape, a prior's batch) come with the images."""
     from fsof_torch.estimation.image_fit import check_image_fit_options
 
     with pytest.raises(error, match=message):
