@@ -715,3 +715,22 @@ def test_kitti_pair_file_linked_to_a_missing_file_says_so(kitti_root, tmp_path, 
         (root / "road").mkdir()
         write_road_mask(root / "road" / "000001_10.png", torch.ones(1, *SIZE, dtype=torch.bool))
         assert ds[1]["road"].all()
+
+
+def test_kitti_calibration_of_another_image_size_is_an_error(kitti_root):
+    """A calibration file whose S_rect_02 states another size than the pair's images (the file of
+    another sequence or camera) gave that size's K silently: a ValueError naming root, the file
+    and both sizes. The file's own size, or no S_rect row, reads the K as written."""
+    root, K = kitti_root
+    calib = root / "calib_cam_to_cam" / "000001.txt"
+    text = calib.read_text()
+    calib.write_text(text + "S_rect_02: 1.242000e+03 3.750000e+02\n")
+    ds = KittiFlowDataset(root)
+    with pytest.raises(ValueError, match=r"^root: .*000001\.txt' states S_rect_02: 375x1242 .* image "
+                                         r"000001_10\.png is 24x40"):
+        ds[1]
+    torch.testing.assert_close(ds[0]["camera"].K[0].double(), K)  # no S_rect row: read as it is
+    calib.write_text(text + f"S_rect_02: {SIZE[1]:.6e} {SIZE[0]:.6e}\n")  # its own size
+    torch.testing.assert_close(ds[1]["camera"].K[0].double(), K)
+    calib.write_text(text + "S_rect_03: 1.242000e+03 3.750000e+02\n")  # another camera's row
+    torch.testing.assert_close(ds[1]["camera"].K[0].double(), K)

@@ -45,7 +45,7 @@ from ..io.images import check_no_broken_links, existing_folder, read_image, read
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
-from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, check_index, check_mounting
+from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, calibration_size, check_index, check_mounting
 from .items import ITEM_KEYS, as_item, check_item, check_item_options, collate, concat_cameras, make_item
 
 __all__ = [
@@ -212,7 +212,8 @@ class KittiFlowDataset(Dataset):
     pair with neither file where one of the folders is there, a FileNotFoundError naming ``root``
     and the file when the pair loads). No odometry (KITTI flow has none).
     Every file of a pair (second image, flow, road) must have the size of its ``NAME_10.png``: one
-    of another size is a ValueError naming ``root`` and the file, never resized.
+    of another size is a ValueError naming ``root`` and the file, never resized; so is a
+    calibration file whose ``S_rect_0{cam}`` row states another size (a file without it is read).
 
     Args:
         root: the folder (holding ``image_dir``).
@@ -272,14 +273,22 @@ class KittiFlowDataset(Dataset):
     def __len__(self) -> int:
         return len(self.names)
 
-    def camera(self, name: str) -> Camera | None:
-        """The Camera (batch 1) of pair ``name``, or None when neither a file nor ``K`` gives one."""
+    def camera(self, name: str, size: tuple[int, int] | None = None) -> Camera | None:
+        """The Camera (batch 1) of pair ``name``, or None when neither a file nor ``K`` gives one.
+        ``size``: the pair's image size (H, W); a calibration file whose ``S_rect_0{cam}`` row
+        states another size (the calibration of another sequence or camera) is a ValueError
+        naming ``root``, the file and both sizes. A file without that row is taken as it is."""
         folders = ("calib_cam_to_cam", "calib")
         check_no_broken_links([self.root / f / f"{name}.txt" for f in folders], "root")  # (not "no file there")
         for folder in folders:
             path = self.root / folder / f"{name}.txt"
             if path.is_file():
                 P = read_kitti_calibration(path, self.cam)
+                stated = calibration_size(path, self.cam)
+                if size is not None and stated is not None and stated != tuple(size):
+                    raise ValueError(f"root: {str(path)!r} states S_rect_0{self.cam}: {stated[0]}x{stated[1]} (H x W), "
+                                     f"but the pair's image {name}_10.png is {size[0]}x{size[1]}; its K is for "
+                                     f"another image size (the calibration of another sequence or camera?)")
                 return Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
         if self.K is not None:  # each item its own K: editing one changes no other, nor the caller's
             return Camera(self.K.to(self.camera_dtype, copy=True), self.camera_height)
@@ -323,7 +332,7 @@ class KittiFlowDataset(Dataset):
                 raise FileNotFoundError(f"root: {str(self.root)!r} has {'road' if road.parent.is_dir() else 'semantic'}/"
                                         f" but no {road.name} there (nor in the other of road/, semantic/) for the "
                                         f"pair {name}; every pair of a folder with road masks needs its mask")
-        return make_item(image1, image2, index=i, name=name, camera=self.camera(name), **truth)
+        return make_item(image1, image2, index=i, name=name, camera=self.camera(name, size), **truth)
 
 
 class KittiSampleDataset(ImageFolderDataset):
