@@ -30,6 +30,7 @@ from fsof_torch.geometry.road_models import (
     road_motion,
     road_motion_batch,
     rotation_angles,
+    unpack_params,
 )
 
 SIZE = (48, 120)
@@ -302,6 +303,20 @@ def test_rotation_angles_and_homography_values_check_their_inputs():
             ((H.expand(2, 3, 3), cam.K.expand(3, 3, 3), cam.K_inv()), ValueError, r"mismatched batch sizes: H=2, K=3")):
         with pytest.raises(error, match=message):
             homography_values(*args)
+
+
+def test_unpack_params_refuses_values_of_another_width():
+    """values with more columns than the model's parameters lost the extra ones silently, and
+    fewer raised an IndexError: a ValueError naming values, with both counts."""
+    values = torch.tensor([[0.1, 1.2, 0.01, 0.02, 0.03]], dtype=torch.float64)
+    got = unpack_params("paper", values)
+    assert list(got) == ["x_d", "z_d", "yaw", "roll", "pitch"]
+    assert [float(v) for v in got.values()] == [0.1, 1.2, 0.01, 0.02, 0.03]
+    for width in (3, 7, 8):
+        with pytest.raises(ValueError, match=rf"^values: expected shape \(B, 5\), got \(1, {width}\)"):
+            unpack_params("paper", torch.zeros(1, width))
+    with pytest.raises(TypeError, match=r"^values: expected a \(B, 8\) tensor, got list"):
+        unpack_params("plane", [[0.0] * 8])
 
 @settings(max_examples=20, deadline=None)
 @given(p=plane_params)

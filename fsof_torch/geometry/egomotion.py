@@ -118,6 +118,22 @@ def _check_rigid(T: Tensor, name: str, tol: float) -> None:
                      f"and a bottom row 0 0 0 1), got sample {i}: {what}; {T[i].tolist()}")
 
 
+def check_invertible(M: Tensor, name: str) -> None:
+    """A ValueError naming ``name`` and the samples of the finite (B, n, n) matrices ``M`` that are
+    singular: a determinant of exactly 0, in float64 with each column scaled to a largest entry of
+    1 (so that no scale, as pixels against unitless entries, underflows or overflows it). Skipped
+    where values cannot be read (:func:`~fsof_torch._check.skip_values`)."""
+    if skip_values(M):
+        return
+    M64 = M.detach().to(torch.float64)
+    scaled = M64 / M64.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
+    singular = torch.linalg.det(scaled) == 0
+    if bool(singular.any()):
+        bad = singular.nonzero().flatten().tolist()
+        raise ValueError(f"{name}: expected invertible matrices, got samples {bad} that are singular, "
+                         f"e.g. {M64[bad[0]].tolist()}")
+
+
 def _axis_angle(R: Tensor) -> Tensor:
     """Axis-angle vectors (B, 3) of rotation matrices (B, 3, 3) (angles below π)."""
     w = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)

@@ -57,7 +57,7 @@ from torch import Tensor
 from .._check import (autocast_off, as_batch_param, check_all_finite, check_float_tensor, check_shape, resolve_batch,
                       result_dtype, skip_values, tracing)
 from .camera import Camera, check_camera
-from .egomotion import as_pose_4x4, check_motion_step
+from .egomotion import as_pose_4x4, check_invertible, check_motion_step
 
 __all__ = ["RoadModel", "ROAD_MODELS", "get_road_model", "road_homography", "road_motion", "is_planar_odometry",
            "homography_values", "pack_params", "unpack_params", "rotation_angles", "plane_from_pose",
@@ -443,8 +443,11 @@ def pack_params(model: str | RoadModel, camera: Camera, params: Mapping[str, Ten
 
 
 def unpack_params(model: str | RoadModel, values: Tensor) -> dict[str, Tensor]:
-    """Values (B, P) -> ``{name: (B,)}``."""
+    """Values (B, P) -> ``{name: (B,)}``; values of another P are a ValueError naming ``values``."""
     model = get_road_model(model)
+    if not isinstance(values, Tensor):
+        raise TypeError(f"values: expected a (B, {len(model.params)}) tensor, got {type(values).__name__}")
+    check_shape(values, "values", ("B", len(model.params)))  # (not a column dropped or an IndexError)
     return {n: values[:, i] for i, n in enumerate(model.params)}
 
 
@@ -630,7 +633,7 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
         raise ValueError(f"H: expected a float tensor of shape (B, 3, 3), got {got}")
     check_all_finite({"H": H})
     B = resolve_batch({"H": H.shape[0], "camera": camera.batch_size})
-    _check_invertible(H, "H")
+    check_invertible(H, "H")
     with autocast_off(H):  # (geometry in at least float32, also under autocast; det has no bfloat16)
         out = _plane_from_homography(H.to(result_dtype(H)), camera, B)
     if not skip_values(H):
@@ -640,22 +643,6 @@ def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
             raise ValueError(f"H: samples {bad} are too close to singular to decompose in {out['z_d'].dtype}, "
                              f"e.g. {H[bad[0]].tolist()}")
     return out
-
-
-def _check_invertible(M: Tensor, name: str) -> None:
-    """A ValueError naming ``name`` and the samples of the finite (B, n, n) matrices ``M`` that are
-    singular: a determinant of exactly 0, in float64 with each column scaled to a largest entry of
-    1 (so that no scale, as pixels against unitless entries, underflows or overflows it). Skipped
-    where values cannot be read (:func:`~fsof_torch._check.skip_values`)."""
-    if skip_values(M):
-        return
-    M64 = M.detach().to(torch.float64)
-    scaled = M64 / M64.abs().amax(dim=-2, keepdim=True).clamp_min(torch.finfo(torch.float64).tiny)
-    singular = torch.linalg.det(scaled) == 0
-    if bool(singular.any()):
-        bad = singular.nonzero().flatten().tolist()
-        raise ValueError(f"{name}: expected invertible matrices, got samples {bad} that are singular, "
-                         f"e.g. {M64[bad[0]].tolist()}")
 
 
 def _nearest_rotation(M: Tensor) -> Tensor:
