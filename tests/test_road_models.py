@@ -305,6 +305,26 @@ def test_rotation_angles_and_homography_values_check_their_inputs():
             homography_values(*args)
 
 
+def test_homography_values_of_a_map_the_model_cannot_express_is_an_error():
+    """A map whose K⁻¹ H K has a last entry of 0 (the model holds it at 1) gave inf and NaN values
+    silently: a ValueError naming H and the sample. A tiny last entry that scales finitely is kept
+    (values against NumPy), and NaN in H still gives NaN out."""
+    cam = camera()
+    K = cam.K[0].numpy()
+    G = np.array([[1.0, 0.01, 0.02], [0.0, 1.0, 0.03], [0.001, 0.002, 0.0]])  # K G K⁻¹ and back: 0 up to rounding
+    good = road_homography(cam, {"z_d": 1.2}, model="plane")
+    H = torch.cat([good, torch.from_numpy(K @ G @ np.linalg.inv(K)).unsqueeze(0)])
+    with pytest.raises(ValueError, match=r"^H: samples \[1\] have K⁻¹ H K with a last entry of .*cannot express"):
+        homography_values(H, cam.K, cam.K_inv())
+    with pytest.raises(ValueError, match=r"^H: samples \[0\] have K⁻¹ H K with a last entry of 0, "):
+        homography_values(torch.diag(torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))[None], cam.K, cam.K_inv())
+    G[2, 2] = 1e-6
+    H = torch.from_numpy(K @ G @ np.linalg.inv(K)).unsqueeze(0)
+    want = (G / G[2, 2] - np.eye(3)).reshape(9)[:8]
+    np.testing.assert_allclose(homography_values(H, cam.K, cam.K_inv())[0].numpy(), want, rtol=1e-6)
+    assert homography_values(torch.full((1, 3, 3), float("nan"), dtype=torch.float64), cam.K, cam.K_inv()).isnan().all()
+
+
 def test_unpack_params_refuses_values_of_another_width():
     """values with more columns than the model's parameters lost the extra ones silently, and
     fewer raised an IndexError: a ValueError naming values, with both counts."""

@@ -604,14 +604,25 @@ def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
     """The ``"homography"`` model's values (B, 8) of road maps H (B, 3, 3), the inverse of its map:
     the entries of K⁻¹ H K, scaled to a last entry of 1, minus the identity (in the promoted dtype
     of the three, half precision lifted to float32, also under ``torch.autocast``). H, K, K⁻¹ are
-    float (B, 3, 3), batch 1 or B each (else a TypeError or ValueError names the argument)."""
+    float (B, 3, 3), batch 1 or B each (else a TypeError or ValueError names the argument). A
+    finite map whose K⁻¹ H K has a last entry of 0 (up to rounding, or too small to scale to 1 in
+    the dtype), which the model cannot express, is a ValueError naming ``H`` (one host read)."""
     resolve_batch({n: check_shape(check_float_tensor(M, n), n, ("B", 3, 3))["B"]
                    for n, M in (("H", H), ("K", K), ("K_inv", K_inv))})
     dtype = result_dtype(H, K, K_inv)
     with autocast_off(H):
         G = K_inv.to(dtype) @ H.to(dtype) @ K.to(dtype)
-        G = G / G[:, 2:3, 2:3]
-        return (G - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
+        out = (G / G[:, 2:3, 2:3] - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
+    if not skip_values(out):
+        # (0 up to the rounding of the product: 16 ulps of its largest entry; NaN in: NaN out, as before)
+        zero = G[:, 2, 2].abs() <= 16 * torch.finfo(G.dtype).eps * G.abs().flatten(1).amax(1)
+        bad = torch.isfinite(G).flatten(1).all(1) & (zero | ~torch.isfinite(out).all(1))
+        if bool(bad.any()):
+            i = bad.nonzero().flatten().tolist()
+            raise ValueError(f"H: samples {i} have K⁻¹ H K with a last entry of {float(G[i[0], 2, 2]):.3g}, "
+                             f"which the 'homography' model (that entry scaled to 1) cannot express; "
+                             f"K⁻¹ H K = {G[i[0]].tolist()}")
+    return out
 
 
 def plane_from_homography(H: Tensor, camera: Camera) -> dict[str, Tensor]:
