@@ -91,6 +91,21 @@ class TestExceptions:
         write_carla_flow(tmp_path / "w.TIFF", _flow())
         assert torch.allclose(read_carla_flow(tmp_path / "w.TIFF")[0], _flow(), atol=1e-5)
 
+    def test_writer_refuses_values_beyond_float32(self, tmp_path):
+        """A finite float64 value beyond float32's range was written as inf and read back as an
+        invalid pixel, silently: a ValueError naming flow, nothing written. The largest float32
+        value and NaN / inf (invalid pixels) are written as before."""
+        flow = _flow().double()
+        flow[0, 2, 3] = 1e39
+        with pytest.raises(ValueError, match=r"^flow: a CARLA flow TIFF stores float32, which cannot hold 1e\+39"):
+            write_carla_flow(tmp_path / "f.tif", flow)
+        assert list(tmp_path.iterdir()) == []
+        big = torch.finfo(torch.float32).max
+        flow[0, 2, 3], flow[1, 0, 0] = big, float("nan")
+        back, valid = read_carla_flow(write_carla_flow(tmp_path / "f.tif", flow))
+        assert float(back[0, 2, 3]) == pytest.approx(big, rel=1e-6) and valid[0, 2, 3]
+        assert not valid[0, 0, 0] and int(valid.sum()) == flow[0].numel() - 1
+
     def test_run_checks(self, tmp_path):
         with pytest.raises(FileNotFoundError, match="no rgb/"):
             CarlaRun(tmp_path)

@@ -38,7 +38,8 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Camera
-from .._check import as_chw_flow, as_path
+from .._check import as_path
+from .flo import float32_flow
 from .images import check_no_broken_links, in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
 
@@ -91,12 +92,14 @@ def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
     interleaved, ``x = u / W``, ``y = -v / H``), atomically. For tests and synthetic runs.
 
     ``path`` must end in ``.tif`` or ``.tiff`` (the only format here that stores float32); another
-    suffix is a ValueError naming ``path``, before anything is written."""
+    suffix is a ValueError naming ``path``, and a finite value beyond float32's range (which the
+    cast would make inf, read back as an invalid pixel) one naming ``flow``, before anything is
+    written. NaN and inf are written as they are (read back as invalid)."""
     path = as_path(path)
     if path.suffix.lower() not in (".tif", ".tiff"):
         raise ValueError(f"path: a CARLA flow file is a float32 TIFF; expected a .tif or .tiff path, got "
                          f"{str(path)!r}")
-    flow = as_chw_flow(flow, "flow").detach().cpu().to(torch.float32)
+    flow = float32_flow(flow, "a CARLA flow TIFF")
     _, height, width = flow.shape
     xy = torch.stack([flow[0] / width, -flow[1] / height], dim=-1).numpy()
     return write_image_array(path, np.ascontiguousarray(xy.reshape(height, 2 * width)))

@@ -49,6 +49,19 @@ def read_flo(path: str | os.PathLike) -> Tensor:
     return torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1)).astype(np.float32))
 
 
+def float32_flow(flow: Tensor | np.ndarray, what: str) -> Tensor:
+    """A (2, H, W) flow as a float32 CPU tensor for a file of float32 (``what``: "a .flo file"):
+    a finite value beyond float32's range (about 3.4e38), which the cast would turn into inf, is a
+    ValueError naming ``flow``; NaN and inf stay as they are."""
+    flow = as_chw_flow(flow, "flow").detach().cpu()
+    cast = flow.to(torch.float32)
+    overflow = torch.isfinite(flow) & ~torch.isfinite(cast)
+    if bool(overflow.any()):
+        raise ValueError(f"flow: {what} stores float32, which cannot hold {float(flow[overflow][0]):.4g} "
+                         f"(finite values up to {torch.finfo(torch.float32).max:.4g})")
+    return cast
+
+
 def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
     """Write a (2, H, W) flow in pixels to a Middlebury ``.flo`` file atomically.
 
@@ -59,13 +72,8 @@ def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
     finite value beyond float32's range (about 3.4e38), which the cast would turn into inf, is a
     ValueError naming ``flow``, before anything is written.
     """
-    flow = as_chw_flow(flow, "flow").detach().cpu()
-    _, height, width = flow.shape
-    cast = flow.to(torch.float32)
-    overflow = torch.isfinite(flow) & ~torch.isfinite(cast)
-    if bool(overflow.any()):
-        raise ValueError(f"flow: a .flo file stores float32, which cannot hold {float(flow[overflow][0]):.4g} "
-                         f"(finite values up to {torch.finfo(torch.float32).max:.4g})")
+    cast = float32_flow(flow, "a .flo file")
+    _, height, width = cast.shape
     array = cast.numpy().transpose(1, 2, 0)
     header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
     path = as_path(path)
