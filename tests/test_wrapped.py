@@ -12,10 +12,11 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fsof_torch import render_pair
+from fsof_torch import detect_road, render_pair
 from fsof_torch.refinement.contracts import InputPadder, ptlflow_inputs
 from fsof_torch.refinement.estimators import ImageMotionEstimator
 from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
+from fsof_torch.refinement.road_options import ROAD_VALUE_OPTIONS
 from fsof_torch.refinement.wrapped import FreespaceRefined
 from fsof_torch.training.standins import PtlflowRAFTStandIn
 
@@ -175,6 +176,32 @@ def test_a_class_given_for_the_net_refiner_or_pad_is_named_when_built():
     out = FreespaceRefined(TwoArgs())(s["image1"], s["image2"], camera=s["camera"], mask=s["road"],
                                       odometry=s["odometry"])
     assert isinstance(out, list) and out[0].shape == (1, 2, 48, 96)
+
+
+@pytest.mark.parametrize("options", [
+    {"window": 8}, {"height_window": 1}, {"window": "7"}, {"level": -1}, {"seed_level": 1.5}, {"z": -1.0},
+    {"min_misfit_px": float("nan")}, {"seed_width_m": float("inf")}, {"min_height_m": 0.0},
+    {"max_height_m": 0.05}, {"max_height_m": 2.0}, {"slow_max_height_m": 0.2}, {"slow_max_height_m": True},
+    {"min_coverage": 1.5}, {"min_coverage": None}, {"window": torch.tensor(4)}])
+def test_road_option_values_are_checked_when_built_with_detect_roads_errors(wide, options):
+    """A bad value of road="auto"'s road_options raised only at the first call, from detect_road,
+    after the network had run (only the names were checked when made); now when made, with the
+    error detect_road gives for it (its defaults for the options not given)."""
+    with pytest.raises((TypeError, ValueError)) as expected:
+        detect_road(wide["image1"], wide["image2"], wide["camera"], **options)
+    net = Net(wide["pred"])
+    with pytest.raises(expected.type) as made:
+        FreespaceRefined(net, road="auto", road_options=options)
+    assert str(made.value) == str(expected.value) and str(made.value).split(":")[0] in ROAD_VALUE_OPTIONS
+    assert net.calls == 0
+
+
+def test_good_road_option_values_build_and_are_kept_as_given(wide):
+    """Values detect_road takes build (a 0-d tensor, a max_height_m above the slow default with
+    slow_max_height_m None, a level chosen from the images), and are passed on as given."""
+    options = {"window": torch.tensor(5), "max_height_m": 2.0, "slow_max_height_m": None, "level": None}
+    model = FreespaceRefined(Net(wide["pred"]), road="auto", road_options=options)
+    assert model.road_options == options and model.road_options["window"] is options["window"]
 
 
 @pytest.mark.parametrize("mask_batch", [1, 2])

@@ -62,6 +62,7 @@ from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator, check_estimator, finite_estimate
+from .road_options import SLOW_MAX_HEIGHT_M, check_road_values
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
@@ -79,8 +80,6 @@ FLAGS = ("no_motion", "static", "textureless", "implausible", "empty", "small")
 _CORRELATION = 4.0
 # a residual motion of more than this many times the seed's typical one is never the road's
 _MISFIT = 3.0
-# detect_road's default slow_max_height_m (metres), named in its option error
-_SLOW_MAX_HEIGHT_M = 1.2
 # below this share of the seed's windows with evidence, the seed cannot be judged (flag "textureless")
 _MIN_EVIDENCE = 0.1
 # the working resolution: the coarsest level of at least this many rows (the windows, the smoothing
@@ -367,13 +366,9 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
 
 # -- the detection ------------------------------------------------------------------------------
 
-_INT_OPTIONS = ("level", "seed_level", "window", "height_window")
-
-
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any], estimated: bool) -> dict[str, int]:
     dims = check_image_pair(image1, image2)
-    options.update({k: scalar(v, k) for k, v in options.items()})  # (a 0-d tensor as its number: int or float)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     if camera.batch_size not in (1, dims["B"]):
@@ -388,44 +383,23 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     if min(dims["H"], dims["W"]) < 16:
         raise ValueError(f"image1: expected images of at least 16x16 pixels (the evidence's windows), got shape "
                          f"{tuple(image1.shape)}")
+    options.update(check_road_values(options))  # (their values, as int / float; then what the images allow)
     for name in ("level", "seed_level"):
         v = options[name]
-        if not is_number(v, integer=True) or v < 0:
-            raise option_error(v, f"{name}: expected an int >= 0 (images averaged over 2**{name} pixels), got {v!r}",
-                               integer=True)
         if min(dims["H"], dims["W"]) >> v < 16 and (name == "level" or estimated):
             raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
                              f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
     side = min(dims["H"], dims["W"]) >> options["level"]
     for name in ("window", "height_window"):
         v = options[name]
-        if not is_number(v, integer=True) or v < 3 or v % 2 == 0:
-            raise option_error(v, f"{name}: expected an odd int >= 3 (pixels at the working resolution), got {v!r}",
-                               integer=True)
         if v > side - 2 * _BORDER:  # (never seen whole: its test would be off everywhere)
             raise ValueError(f"{name}: expected at most {side - 2 * _BORDER} (the working image's side, {side} px: "
                              f"the {dims['H']}x{dims['W']} images at level {options['level']}, less {_BORDER} at "
                              f"either border, where image 2's smoothing sees its padding), got {v!r}")
-    for name in ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m", "z", "min_misfit_px"):
-        v = options[name]
-        if not is_number(v) or not (0 < v < math.inf):
-            raise option_error(v, f"{name}: expected a finite number > 0, got {v!r}")
     if not skip_values(camera.height) and not bool((camera.height > options["min_height_m"]).all()):
         # (the raised surface tested lies below the camera)
         raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
                          f"got {options['min_height_m']!r}")
-    if options["max_height_m"] < options["min_height_m"]:
-        raise ValueError(f"max_height_m: expected >= min_height_m ({options['min_height_m']!r}), "
-                         f"got {options['max_height_m']!r}")
-    v = options["slow_max_height_m"]
-    if v is not None and (not is_number(v) or not (v < math.inf) or not v >= options["max_height_m"]):
-        raise option_error(v, f"slow_max_height_m: expected None or a finite number >= max_height_m "
-                              f"({options['max_height_m']!r}; a max_height_m above the default {_SLOW_MAX_HEIGHT_M} "
-                              f"needs slow_max_height_m as large, or None), got {v!r}")
-    v = options["min_coverage"]
-    if not is_number(v) or not (0 <= v < 1):
-        raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
-    options.update({k: int(v) if k in _INT_OPTIONS else float(v) for k, v in options.items() if v is not None})
     return dims
 
 
@@ -445,7 +419,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 motion: Any = None, estimator: Any = None, odometry: object = None, starts: Sequence[Any] = (),
                 refit: bool = True, data_range: float = 255.0, level: int | None = None, seed_level: int = 1,
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
-                max_height_m: float = 0.3, slow_max_height_m: float | None = _SLOW_MAX_HEIGHT_M, z: float = 2.0, window: int = 7,
+                max_height_m: float = 0.3, slow_max_height_m: float | None = SLOW_MAX_HEIGHT_M, z: float = 2.0, window: int = 7,
                 height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01,
                 edges: bool = True, warn: bool = True) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like

@@ -4,6 +4,7 @@ contracts; see :mod:`fsof_torch.refinement.contracts`)."""
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from dataclasses import replace
@@ -21,6 +22,7 @@ from .auto_refine import refine_with_auto_road
 from .auto_road import ROAD_RESERVED, detect_road
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow
+from .road_options import ROAD_VALUE_OPTIONS, check_road_values
 from .options import select_estimator
 
 __all__ = ["FreespaceRefined"]
@@ -47,7 +49,10 @@ class FreespaceRefined(nn.Module):
             estimator, and the call's ``odometry``).
         road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`
             (a mapping with string keys, or None), as ``refine_flow``'s ``road_options``, with
-            ``road="auto"`` only: given with ``road=None`` they raise a ValueError. A call that
+            ``road="auto"`` only: given with ``road=None`` they raise a ValueError. Their names and
+            values are checked when the wrapper is made, with ``detect_road``'s errors (what needs
+            the images, the sizes the levels and windows leave, and the camera, ``min_height_m``
+            below it, at the call, where the detection runs, after the network). A call that
             passes ``mask=`` detects nothing, and leaves them unused.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
@@ -108,6 +113,9 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
         check_keywords(road_options, "road_options", detect_road, reserved=ROAD_RESERVED)
+        if road_options:  # (their values too, as detect_road checks them, detect_road's defaults for the rest)
+            defaults = inspect.signature(detect_road).parameters
+            check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
