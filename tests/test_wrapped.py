@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from fsof_torch import detect_road, render_pair
+from fsof_torch import Camera, detect_road, render_pair
 from fsof_torch.refinement.contracts import InputPadder, ptlflow_inputs
 from fsof_torch.refinement.estimators import ImageMotionEstimator
 from fsof_torch.refinement.fusion import FreespaceRefiner, refine_flow
@@ -193,6 +193,23 @@ def test_road_option_values_are_checked_when_built_with_detect_roads_errors(wide
     with pytest.raises(expected.type) as made:
         FreespaceRefined(net, road="auto", road_options=options)
     assert str(made.value) == str(expected.value) and str(made.value).split(":")[0] in ROAD_VALUE_OPTIONS
+    assert net.calls == 0
+
+
+@pytest.mark.parametrize("options, height", [
+    ({"level": 4}, None), ({"height_window": 115}, None), ({"window": 25, "level": 2}, None),
+    ({"min_height_m": 2.0, "max_height_m": 2.0, "slow_max_height_m": None}, None), ({}, 0.05)])
+def test_road_options_against_the_images_and_camera_before_the_net(wide, options, height):
+    """What only the images' size or the camera's height rules out (a level or window too large for
+    them, a min_height_m above the camera) raised after the network had run; now before it, with
+    detect_road's error."""
+    camera = wide["camera"] if height is None else Camera(wide["camera"].K, height)
+    with pytest.raises(ValueError) as expected:
+        detect_road(wide["image1"], wide["image2"], camera, **options)
+    net = Net(wide["pred"])
+    with pytest.raises(ValueError) as called:
+        FreespaceRefined(net, road="auto", road_options=options)(wide["image1"], wide["image2"], camera=camera)
+    assert str(called.value) == str(expected.value) and str(called.value).split(":")[0] in ROAD_VALUE_OPTIONS
     assert net.calls == 0
 
 

@@ -65,7 +65,7 @@ from .estimators import ImageMotionEstimator, check_estimator, finite_estimate
 from .road_options import SLOW_MAX_HEIGHT_M, check_road_values
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
-__all__ = ["RoadDetection", "detect_road", "road_seed", "FLAGS", "ROAD_RESERVED"]
+__all__ = ["RoadDetection", "detect_road", "road_seed", "road_level", "check_road_size", "FLAGS", "ROAD_RESERVED"]
 
 #: detect_road's arguments the refiner sets itself: refused in ``road_options``, by name
 ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range",
@@ -366,6 +366,41 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
 
 # -- the detection ------------------------------------------------------------------------------
 
+def road_level(size: tuple[int, int], window: object, height_window: object) -> int:
+    """``detect_road``'s default ``level`` for images of ``size`` (H, W): the coarsest at least
+    ``_WORK_ROWS`` rows high and 16 and ``window + 8``, ``height_window + 8`` pixels either way."""
+    rows, side = size[0], min(size)  # (16 pixels either way, room for the windows)
+    least = max([16] + [k + 2 * _BORDER for k in (window, height_window) if is_number(k, integer=True)])
+    return max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / least))))
+
+
+def check_road_size(shape: tuple[int, ...], camera: Camera, options: dict[str, Any], estimated: bool) -> None:
+    """``detect_road``'s checks of its options (their values checked,
+    :func:`~fsof_torch.refinement.road_options.check_road_values`, and ``level`` chosen) against
+    images of ``shape`` (B, C, H, W) and ``camera``'s height, with its errors; ``seed_level``'s
+    only where the motion is ``estimated``."""
+    H, W = shape[-2:]
+    if min(H, W) < 16:
+        raise ValueError(f"image1: expected images of at least 16x16 pixels (the evidence's windows), got shape "
+                         f"{shape}")
+    for name in ("level", "seed_level"):
+        v = options[name]
+        if min(H, W) >> v < 16 and (name == "level" or estimated):
+            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {H}x{W} images "
+                             f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
+    side = min(H, W) >> options["level"]
+    for name in ("window", "height_window"):
+        v = options[name]
+        if v > side - 2 * _BORDER:  # (never seen whole: its test would be off everywhere)
+            raise ValueError(f"{name}: expected at most {side - 2 * _BORDER} (the working image's side, {side} px: "
+                             f"the {H}x{W} images at level {options['level']}, less {_BORDER} at "
+                             f"either border, where image 2's smoothing sees its padding), got {v!r}")
+    if not skip_values(camera.height) and not bool((camera.height > options["min_height_m"]).all()):
+        # (the raised surface tested lies below the camera)
+        raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
+                         f"got {options['min_height_m']!r}")
+
+
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,
                   options: dict[str, Any], estimated: bool) -> dict[str, int]:
     dims = check_image_pair(image1, image2)
@@ -380,26 +415,8 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     for name, t in (("image1", image1), ("image2", image2)):  # (the road is found in their values)
         check_has_values(t, name, "to find the road in (the detection reads the images, also with a motion given)")
         check_image_range(t, name, data_range)
-    if min(dims["H"], dims["W"]) < 16:
-        raise ValueError(f"image1: expected images of at least 16x16 pixels (the evidence's windows), got shape "
-                         f"{tuple(image1.shape)}")
     options.update(check_road_values(options))  # (their values, as int / float; then what the images allow)
-    for name in ("level", "seed_level"):
-        v = options[name]
-        if min(dims["H"], dims["W"]) >> v < 16 and (name == "level" or estimated):
-            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {dims['H']}x{dims['W']} images "
-                             f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
-    side = min(dims["H"], dims["W"]) >> options["level"]
-    for name in ("window", "height_window"):
-        v = options[name]
-        if v > side - 2 * _BORDER:  # (never seen whole: its test would be off everywhere)
-            raise ValueError(f"{name}: expected at most {side - 2 * _BORDER} (the working image's side, {side} px: "
-                             f"the {dims['H']}x{dims['W']} images at level {options['level']}, less {_BORDER} at "
-                             f"either border, where image 2's smoothing sees its padding), got {v!r}")
-    if not skip_values(camera.height) and not bool((camera.height > options["min_height_m"]).all()):
-        # (the raised surface tested lies below the camera)
-        raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
-                         f"got {options['min_height_m']!r}")
+    check_road_size(tuple(image1.shape), camera, options, estimated)
     return dims
 
 
@@ -478,9 +495,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         TypeError, ValueError: bad input, naming the argument.
     """
     if level is None and isinstance(image1, Tensor) and image1.dim() == 4:
-        rows, side = image1.shape[-2], min(image1.shape[-2:])  # (16 pixels either way, room for the windows)
-        least = max([16] + [k + 2 * _BORDER for k in (window, height_window) if is_number(k, integer=True)])
-        level = max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / least))))
+        level = road_level(tuple(image1.shape[-2:]), window, height_window)
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,

@@ -19,13 +19,30 @@ from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
 from .auto_refine import refine_with_auto_road
-from .auto_road import ROAD_RESERVED, detect_road
+from .auto_road import ROAD_RESERVED, check_road_size, detect_road, road_level
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow
 from .road_options import ROAD_VALUE_OPTIONS, check_road_values
 from .options import select_estimator
 
 __all__ = ["FreespaceRefined"]
+
+
+def _road_values(road_options: Mapping[str, Any]) -> dict[str, Any]:
+    """The values of ``road_options`` checked as :func:`detect_road` checks them, its defaults
+    for the rest (:func:`~fsof_torch.refinement.road_options.check_road_values`)."""
+    defaults = inspect.signature(detect_road).parameters
+    return check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
+
+
+def _check_road_against(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera) -> None:
+    """``road_options`` against images of ``shape`` and ``camera`` as :func:`detect_road` checks them
+    (:func:`~fsof_torch.refinement.auto_road.check_road_size`; ``seed_level``'s, which applies
+    only where the motion is estimated, at the detection)."""
+    options = _road_values(road_options)
+    if options["level"] is None:
+        options["level"] = road_level(shape[-2:], options["window"], options["height_window"])
+    check_road_size(shape, camera, options, estimated=False)
 
 
 class FreespaceRefined(nn.Module):
@@ -50,9 +67,9 @@ class FreespaceRefined(nn.Module):
         road_options: keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`
             (a mapping with string keys, or None), as ``refine_flow``'s ``road_options``, with
             ``road="auto"`` only: given with ``road=None`` they raise a ValueError. Their names and
-            values are checked when the wrapper is made, with ``detect_road``'s errors (what needs
-            the images, the sizes the levels and windows leave, and the camera, ``min_height_m``
-            below it, at the call, where the detection runs, after the network). A call that
+            values are checked when the wrapper is made, with ``detect_road``'s errors, and
+            against the images' size and the camera's height at a call, before the network runs
+            (``seed_level``'s size where the detection estimates the motion). A call that
             passes ``mask=`` detects nothing, and leaves them unused.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
@@ -113,9 +130,8 @@ class FreespaceRefined(nn.Module):
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
         check_keywords(road_options, "road_options", detect_road, reserved=ROAD_RESERVED)
-        if road_options:  # (their values too, as detect_road checks them, detect_road's defaults for the rest)
-            defaults = inspect.signature(detect_road).parameters
-            check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
+        if road_options:  # (their values too, as detect_road checks them)
+            _road_values(road_options)
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
@@ -163,6 +179,8 @@ class FreespaceRefined(nn.Module):
         if odometry is not None:  # (its form, batch and values, as the refiner will check them)
             road_motion_batch(odometry, B, torch.float64, image1.device, batch_of="the images' batch",
                               displacement=True)
+        if mask is None:  # road="auto": its options against these images and the camera, as the detection will
+            _check_road_against(self.road_options or {}, tuple(image1.shape), camera)
         padding = self.pad.padding(size) if self.pad is not None else None
 
         def own(x: Tensor) -> Tensor:
