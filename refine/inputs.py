@@ -15,6 +15,7 @@ before any work (the datasets check it when they are made).
 from __future__ import annotations
 
 import hashlib
+import inspect
 import math
 import re
 from contextlib import contextmanager
@@ -26,6 +27,7 @@ import torch
 from torch import Tensor
 
 from fsof_torch import Camera
+from fsof_torch.refinement.auto_road import detect_road
 from fsof_torch.datasets import ImageFolderDataset
 from fsof_torch.data.folders import kitti_flow_layout, list_images  # noqa: F401 (the job's clip test)
 
@@ -209,8 +211,9 @@ def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, 
 
 # -- user data -----------------------------------------------------------------------------------
 
-def check_mounting(height: float, roll_deg: float = 0.0, pitch_deg: float = 0.0) -> None:
-    """``--height`` (m, > 0), ``--roll-deg`` and ``--pitch-deg``: finite, the angles within ±90°
+def check_mounting(height: float, roll_deg: float = 0.0, pitch_deg: float = 0.0, road_auto: bool = False) -> None:
+    """``--height`` (m, > 0; with ``road_auto``, above the kerb ``detect_road`` tests for, its
+    ``min_height_m``), ``--roll-deg`` and ``--pitch-deg``: finite, the angles within ±90°
     (as the camera takes them: upright and facing the road), checked before any dataset is built
     (so that a bad value is named by its own option, in its own unit)."""
     for name, value in (("--height", height), ("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
@@ -218,6 +221,10 @@ def check_mounting(height: float, roll_deg: float = 0.0, pitch_deg: float = 0.0)
             raise JobError(f"{name}: expected a finite number, got {value}")
     if not height > 0:
         raise JobError(f"--height: expected > 0 m, got {height}")
+    kerb = inspect.signature(detect_road).parameters["min_height_m"].default
+    if road_auto and not height > kerb:  # (the detection raised on the first pair, naming its min_height_m)
+        raise JobError(f"--height: --road auto tests for kerbs {kerb} m high, below the camera: expected a camera "
+                       f"higher than {kerb} m above the road, got {height}")
     for name, value in (("--roll-deg", roll_deg), ("--pitch-deg", pitch_deg)):
         if not abs(value) < 90:
             raise JobError(f"{name}: expected an angle between -90 and 90 degrees (a camera upright and facing "
@@ -233,7 +240,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
     load)."""
     from fsof_torch.data.folders import match_files
 
-    check_mounting(height, roll_deg, pitch_deg)
+    check_mounting(height, roll_deg, pitch_deg, road_auto=road == "auto")
     if road is None:
         raise JobError("--road: user data needs road masks: a folder of PNGs, a polygon JSON, or 'auto'")
     with options_of(USER_OPTIONS):
@@ -264,7 +271,7 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
     from fsof_torch.datasets import KittiSampleDataset
 
     need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt"] + ([] if road_auto else ["road.json"])
-    check_mounting(height)
+    check_mounting(height, road_auto=road_auto)
     folders = [n for n in need if (root / n).is_dir()]
     if folders:
         raise JobError(f"--kitti15: {str(root / folders[0])!r} is a folder; expected a file")
@@ -288,7 +295,7 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
     pose."""
     from fsof_torch.datasets import KittiOdometryDataset
 
-    check_mounting(height, pitch_deg=pitch_deg)
+    check_mounting(height, pitch_deg=pitch_deg, road_auto=road_auto)
     for n in ("image_l", "calib.txt", "poses.txt") + (() if road_auto else ("road.json",)):
         path, folder = root / n, n == "image_l"
         if path.exists() and not (path.is_dir() if folder else path.is_file()):

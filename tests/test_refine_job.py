@@ -1708,6 +1708,12 @@ def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsy
     assert "--odometry given: the KITTI 2015 pair has no poses" in _err(capsys, [*kitti15, "--odometry", "fit,given"])
     # a bad mounting value is named by its own option, not by the sample's
     assert "--height: expected > 0 m" in _err(capsys, [*kitti15, "--height", "-1"])
+    # --road auto tests for kerbs of detect_road's min_height_m (0.1 m), below the camera: a camera as low
+    # was named by that option, which the job does not have, after the first pair's flow had run
+    for argv in ([*kitti15, "--road", "auto"], [*odometry, "--road", "auto"], user):
+        assert _err(capsys, [*argv, "--height", "0.1"]).startswith(
+            "error: --height: --road auto tests for kerbs 0.1 m high, below the camera: expected a camera higher "
+            "than 0.1 m above the road, got 0.1\n")
     assert "--pitch-deg: expected a finite number" in _err(capsys, [*odometry, "--pitch-deg", "nan"])
     # an angle the camera cannot take is named by its option, in degrees (it was 'pitch: ... rad, got [1.658]')
     for argv, option, value in (([*odometry, "--pitch-deg", "90"], "--pitch-deg", "90"),
