@@ -415,13 +415,22 @@ def test_ctrl_c_while_a_pair_is_put_in_place_leaves_the_whole_pair(tmp_path, mon
     root = tmp_path / "old"
     write_synthetic_pair(root, 0, _pair(index=3))
     monkeypatch.setattr(atomic.os, "replace", replace_then_interrupt)
-    with pytest.raises(KeyboardInterrupt):
-        write_synthetic_pair(root, 0, _pair(index=1))
-    with pytest.raises(KeyboardInterrupt):
-        write_synthetic_pair(tmp_path / "new", 0, _pair(index=1))
+    # Python's own Ctrl-C handler, whatever this process inherited (a shell's background job
+    # starts with SIGINT ignored); and ignored, as such a process must go on ignoring it
+    inherited = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            write_synthetic_pair(root, 0, _pair(index=1))
+        with pytest.raises(KeyboardInterrupt):
+            write_synthetic_pair(tmp_path / "new", 0, _pair(index=1))
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        write_synthetic_pair(tmp_path / "ignored", 0, _pair(index=1))
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, inherited)
     monkeypatch.undo()
     write_synthetic_pair(tmp_path / "reference", 0, _pair(index=1))
-    assert _files(root) == _files(tmp_path / "new") == _files(tmp_path / "reference")
+    assert _files(root) == _files(tmp_path / "new") == _files(tmp_path / "ignored") == _files(tmp_path / "reference")
 
 
 def test_a_pair_whose_files_fail_to_be_put_in_place_is_not_read_as_a_mix(tmp_path, monkeypatch):
