@@ -4,6 +4,7 @@ CARLA runs; collate with DataLoader."""
 from __future__ import annotations
 
 import math
+import re
 import shutil
 
 import cv2
@@ -92,8 +93,6 @@ def kitti_root(tmp_path):
         sem = np.zeros((*SIZE, 3), np.uint8)
         sem[15:, :, 2] = 255  # red in BGR
         cv2.imwrite(str(root / "semantic" / f"{name}_10.png"), sem)
-    # an image without its partner is not a pair
-    write_image(root / "image_2" / "000009_10.png", torch.zeros(3, *SIZE))
     return root, K
 
 
@@ -482,10 +481,9 @@ class TestContract:
             write_image(run / "rgb" / f"{k:08d}.png", torch.full((3, 12, 16), 5.0 * k))
             write_carla_flow(run / "optical_flow" / f"{k:08d}.tif", torch.full((2, 12, 16), 3.0))
             cv2.imwrite(str(run / "semantic" / f"{k:08d}.png"), np.zeros((12, 16, 3), np.uint8))
-        # (the folder's unpaired 000009_10 is an error for ImageFolderDataset: its complete pairs here)
-        paired = sorted(p for p in (kitti_root[0] / "image_2").iterdir() if p.stem != "000009_10")
         datasets = [SceneDataset("default", 1, size=SIZE), SyntheticFlowDataset(synthetic_root[0]),
-                    KittiFlowDataset(kitti_root[0]), CarlaRunDataset(run), ImageFolderDataset(paired)]
+                    KittiFlowDataset(kitti_root[0]), CarlaRunDataset(run),
+                    ImageFolderDataset(kitti_root[0] / "image_2")]
         for ds in datasets:
             for ground_truth in (True, False):
                 ds.ground_truth = ground_truth
@@ -734,3 +732,24 @@ def test_kitti_calibration_of_another_image_size_is_an_error(kitti_root):
     torch.testing.assert_close(ds[1]["camera"].K[0].double(), K)
     calib.write_text(text + "S_rect_03: 1.242000e+03 3.750000e+02\n")  # another camera's row
     torch.testing.assert_close(ds[1]["camera"].K[0].double(), K)
+
+
+@pytest.mark.parametrize("add, remove, shown", [
+    (["000009_10"], [], "000009_10.png"),  # a NAME_10 without its NAME_11
+    (["000009_11"], [], "000009_11.png"),  # a NAME_11 without its NAME_10
+    (["000009_10"], ["000001_11"], "000001_10.png, 000009_10.png"),  # a file lost in a copy, and another
+])
+def test_kitti_image_without_its_partner_is_an_error(kitti_root, add, remove, shown):
+    """A NAME_10 without its NAME_11 (or the reverse: a file lost in a copy) left its pair out of
+    the data set without a word, one pair fewer in every evaluation over it; as ImageFolderDataset
+    does, a ValueError naming root, the folder and every such image, when the dataset is made."""
+    root, _ = kitti_root
+    for stem in add:
+        write_image(root / "image_2" / f"{stem}.png", torch.zeros(3, *SIZE))
+    for stem in remove:
+        (root / "image_2" / f"{stem}.png").unlink()
+    count = len(shown.split(", "))
+    with pytest.raises(ValueError, match=rf"^root: '{re.escape(str(root / 'image_2'))}' holds KITTI flow pairs "
+                                         rf"\(NAME_10 / NAME_11, paired by name\), but {count} image\(s\) have no "
+                                         rf"partner: {re.escape(shown)}; give each NAME_10 its NAME_11$"):
+        KittiFlowDataset(root)

@@ -45,7 +45,8 @@ from ..io.images import check_no_broken_links, existing_folder, read_image, read
 from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
-from .folders import KITTI_HEIGHT, FramePair, ImageFolderDataset, calibration_size, check_index, check_mounting
+from .folders import (KITTI_HEIGHT, FramePair, ImageFolderDataset, calibration_size, check_index, check_mounting,
+                      kitti_flow_layout)
 from .items import ITEM_KEYS, as_item, check_item, check_item_options, collate, concat_cameras, make_item
 
 __all__ = [
@@ -197,7 +198,9 @@ class KittiFlowDataset(Dataset):
     evaluation folder, or a synthetic layout folder read as KITTI.
 
     Reads, for each ``image_dir/NAME_10.png`` with a ``NAME_11.png`` beside it (named ``NAME``;
-    hidden files, named ``.*`` such as macOS's ``._NAME_10.png``, are no frames):
+    hidden files, named ``.*`` such as macOS's ``._NAME_10.png``, are no frames; an image without
+    its partner, a ``NAME_10.png`` without its ``NAME_11.png`` or the reverse, is a ValueError
+    naming ``root``, the folder and the images when the dataset is made, never a pair left out):
     flow from ``flow_noc/`` or ``flow_occ/`` (``flow="noc"`` / ``"occ"``; both absent -> None, the
     other one alone a ValueError: a synthetic layout holds ``flow_occ/`` only, its valid pixels the
     non-occluded ones; a pair without its file in the folder a FileNotFoundError naming ``root``
@@ -248,8 +251,11 @@ class KittiFlowDataset(Dataset):
         # a writer's temporary) is no frame, as in ImageFolderDataset and CarlaRun
         visible = [p for p in images.glob("*_1[01].png") if not p.name.startswith(".")]
         check_no_broken_links(visible, "root")  # (never a pair left out: a missing mount is an error)
-        self.names = sorted(p.name[:-len("_10.png")] for p in visible if p.name.endswith("_10.png") and p.is_file()
-                            and (images / (p.name[:-len("_10.png")] + "_11.png")).is_file())
+        frames = sorted(p for p in visible if p.is_file())
+        # every NAME_10 with its NAME_11 and back: an image without its partner (a file lost in a
+        # copy) left its pair out of the data set without a word
+        kitti_flow_layout(frames, "root")
+        self.names = sorted(p.name[:-len("_10.png")] for p in frames if p.name.endswith("_10.png"))
         if not self.names:
             raise ValueError(f"root: {str(images)!r} holds no NAME_10.png / NAME_11.png pairs")
         self.image_dir, self.flow_dir = image_dir, f"flow_{flow}"

@@ -130,15 +130,15 @@ def _kitti_partner(stem: str) -> str | None:
     return None
 
 
-def kitti_flow_layout(images: Iterable[Path]) -> bool:
+def kitti_flow_layout(images: Iterable[Path], name: str = "images") -> bool:
     """Whether the images are KITTI flow pairs (``NAME_10`` / ``NAME_11``, paired by name), not one
     clip: every image's name ends in ``_10`` or ``_11``, or complete pairs stand under at least two
     different names ``NAME`` (KITTI's multiview folders: ``000000_00`` ... ``000000_20``,
     ``000001_00`` ...). Every image of such a layout must be in a complete pair: one without its
     partner (a ``NAME_10`` without ``NAME_11``, or another image beside the pairs, such as the
-    other frames of KITTI's multiview folders) raises a ValueError naming ``images``, the folder
-    and the images. A clip, whose complete pairs (if any) share one ``NAME`` (``frame_00`` to
-    ``frame_11``, ``NAME_00`` to ``NAME_50``), stays a clip."""
+    other frames of KITTI's multiview folders) raises a ValueError naming ``name`` (the argument
+    the images came from), the folder and the images. A clip, whose complete pairs (if any) share
+    one ``NAME`` (``frame_00`` to ``frame_11``, ``NAME_00`` to ``NAME_50``), stays a clip."""
     paths = [Path(p) for p in images]
     stems = {p.stem for p in paths}
     paired_names = {s[:-3] for s in stems if s.endswith("_10") and _kitti_partner(s) in stems}
@@ -149,9 +149,11 @@ def kitti_flow_layout(images: Iterable[Path]) -> bool:
         folders = sorted({str(p.parent) for p in paths})
         where = repr(folders[0]) if len(folders) == 1 else f"{len(paths)} images"
         shown = ", ".join(p.name for p in orphans[:5]) + (", ..." if len(orphans) > 5 else "")
-        raise ValueError(f"images: {where} holds KITTI flow pairs (NAME_10 / NAME_11, paired by name), but "
-                         f"{len(orphans)} image(s) have no partner: {shown}; give each NAME_10 its NAME_11 and "
-                         f"move other images out (frames of a clip: names that do not end in _10 or _11)")
+        others = ("" if all(_kitti_partner(p.stem) for p in orphans)
+                  else " and move other images out (frames of a clip: names that do not end in _10 or _11)")
+        raise ValueError(f"{name}: {where} holds KITTI flow pairs (NAME_10 / NAME_11, paired by name), but "
+                         f"{len(orphans)} image(s) have no partner: {shown}; give each NAME_10 its NAME_11"
+                         f"{others}")
     return True
 
 
