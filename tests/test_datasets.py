@@ -163,7 +163,7 @@ class TestKittiLayout:
         root, _ = kitti_root
         for p in (root / "calib_cam_to_cam").iterdir():
             p.unlink()
-        K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
+        K = torch.tensor([[30.0, 0, 18.0], [0, 30.0, 10.0], [0, 0, 1]])  # (the centre of these 24x40 images)
         # flow_noc/ alone, flow_occ/ asked for: named (a synthetic layout holds flow_occ/ alone, and
         # flow="noc" read no flow from it, silently)
         with pytest.raises(ValueError, match=r"^flow: .* has flow_noc/ but no flow_occ/; pass flow='noc'"):
@@ -518,7 +518,7 @@ class TestPairChecks:
         root, _ = kitti_root
         for p in (root / "calib_cam_to_cam").iterdir():
             p.unlink()
-        K = torch.tensor([[30.0, 0, 10.0], [0, 30.0, 5.0], [0, 0, 1]])
+        K = torch.tensor([[30.0, 0, 18.0], [0, 30.0, 10.0], [0, 0, 1]])  # (the centre of these 24x40 images)
         ds = KittiFlowDataset(root, K=K)
         ds[0]["camera"].K[0, 0, 0] += 100.0  # editing one item's camera changes no other, nor K
         assert float(ds[1]["camera"].K[0, 0, 0]) == 30.0 and float(K[0, 0]) == 30.0
@@ -753,3 +753,31 @@ def test_kitti_image_without_its_partner_is_an_error(kitti_root, add, remove, sh
                                          rf"\(NAME_10 / NAME_11, paired by name\), but {count} image\(s\) have no "
                                          rf"partner: {re.escape(shown)}; give each NAME_10 its NAME_11$"):
         KittiFlowDataset(root)
+
+
+def test_kitti_calibration_of_resized_images_is_an_error(kitti_root):
+    """A calibration without a stated size (KITTI 2012's calib/NAME.txt, rows P0..P3) or a K= made
+    for images twice as large gave the pair that K silently: its principal point (40, 16) in the
+    corner of these 24x40 images. As ImageFolderDataset does, a principal point outside the
+    images' middle third is a ValueError naming the file (or K) and the pair; the file's own
+    S_rect row states a size where the point is right, and K's true size passes."""
+    root, K = kitti_root
+    shutil.rmtree(root / "calib_cam_to_cam")
+    (root / "calib").mkdir()
+    K2 = K.clone()
+    K2[:2] *= 2  # the calibration of 48x80 images
+    for name in ("000000", "000001"):
+        write_kitti_calibration(root / "calib" / f"{name}.txt", K2 if name == "000001" else K, style="odometry")
+    ds = KittiFlowDataset(root)
+    torch.testing.assert_close(ds[0]["camera"].K[0].double(), K)
+    with pytest.raises(ValueError, match=r"^root: '.*calib/000001\.txt' has the principal point \(40\.0, 16\.0\), "
+                                         r"outside the middle third of the pair's image 000001_10\.png \(24x40\)"):
+        ds[1]
+    calib = root / "calib" / "000001.txt"
+    calib.write_text(calib.read_text() + f"S_rect_02: {SIZE[1]} {SIZE[0]}\n")  # stated: taken as it is
+    torch.testing.assert_close(ds[1]["camera"].K[0].double(), K2)
+    shutil.rmtree(root / "calib")
+    with pytest.raises(ValueError, match=r"^K: the given K has the principal point \(40\.0, 16\.0\), outside the "
+                                         r"middle third of the pair's image 000000_10\.png \(24x40\)"):
+        KittiFlowDataset(root, K=K2)[0]
+    torch.testing.assert_close(KittiFlowDataset(root, K=K)[0]["camera"].K[0].double(), K)

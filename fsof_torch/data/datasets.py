@@ -46,7 +46,7 @@ from ..io.kitti import read_kitti_flow, read_kitti_poses
 from ..io.layout import camera_from_params, read_synthetic_pair, read_synthetic_params, synthetic_pair_indices
 from ..io.masks import mask_from_colors, read_road_mask
 from .folders import (KITTI_HEIGHT, FramePair, ImageFolderDataset, calibration_size, check_index, check_mounting,
-                      kitti_flow_layout)
+                      kitti_flow_layout, principal_point_off_centre)
 from .items import ITEM_KEYS, as_item, check_item, check_item_options, collate, concat_cameras, make_item
 
 __all__ = [
@@ -216,7 +216,11 @@ class KittiFlowDataset(Dataset):
     and the file when the pair loads). No odometry (KITTI flow has none).
     Every file of a pair (second image, flow, road) must have the size of its ``NAME_10.png``: one
     of another size is a ValueError naming ``root`` and the file, never resized; so is a
-    calibration file whose ``S_rect_0{cam}`` row states another size (a file without it is read).
+    calibration file whose ``S_rect_0{cam}`` row states another size, and one without that row
+    (``calib/NAME.txt`` of KITTI 2012) or a ``K`` whose principal point lies outside the middle
+    third of the pair's images (a calibration of images twice or half as large, as
+    :class:`ImageFolderDataset` checks; a ValueError naming ``root`` and the file, or ``K``). A
+    synthetic layout's ``calib/`` (``meta.json`` beside it: the renderer's cameras) is read as it is.
 
     Args:
         root: the folder (holding ``image_dir``).
@@ -295,15 +299,38 @@ class KittiFlowDataset(Dataset):
                     raise ValueError(f"root: {str(path)!r} states S_rect_0{self.cam}: {stated[0]}x{stated[1]} (H x W), "
                                      f"but the pair's image {name}_10.png is {size[0]}x{size[1]}; its K is for "
                                      f"another image size (the calibration of another sequence or camera?)")
-                return Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
+                camera = Camera.from_projection(P.to(self.camera_dtype), self.camera_height)
+                # (a size stated in the file is checked above; a synthetic layout's calib/ holds the
+                # renderer's camera of these very images, meta.json says so)
+                if size is not None and stated is None and not (self.root / "meta.json").is_file():
+                    self._check_principal_point(camera, size, name, f"root: {str(path)!r}",
+                                                f"give images of the calibrated size, or, where the principal point "
+                                                f"is right for these, add their size to the file as a row "
+                                                f"'S_rect_0{self.cam}: W H'")
+                return camera
         if self.K is not None:  # each item its own K: editing one changes no other, nor the caller's
-            return Camera(self.K.to(self.camera_dtype, copy=True), self.camera_height)
+            camera = Camera(self.K.to(self.camera_dtype, copy=True), self.camera_height)
+            if size is not None:
+                self._check_principal_point(camera, size, name, "K: the given K",
+                                            "give the K of these images (Camera.scaled scales one)")
+            return camera
         # a folder of other pairs' calibrations without this pair's: not a pair without a camera
         present = [f for f in folders if (self.root / f).is_dir() and any((self.root / f).glob("*.txt"))]
         if present:
             raise FileNotFoundError(f"root: {str(self.root)!r} has {present[0]}/ but no {name}.txt there for the "
                                     f"pair {name}; give every pair its calibration, or K= for those without")
         return None
+
+    @staticmethod
+    def _check_principal_point(camera: Camera, size: tuple[int, int], name: str, source: str, remedy: str) -> None:
+        """A ValueError starting with ``source`` where the camera's principal point lies outside the
+        middle third of the pair's images (:func:`~fsof_torch.data.folders.principal_point_off_centre`),
+        as for :class:`ImageFolderDataset`: a calibration of images twice or half as large."""
+        off = principal_point_off_centre(camera, size)
+        if off is not None:
+            raise ValueError(f"{source} has the principal point ({off[0]:.1f}, {off[1]:.1f}), outside the middle "
+                             f"third of the pair's image {name}_10.png ({size[0]}x{size[1]}): a calibration of "
+                             f"another image size (images resized since?); {remedy}")
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         i = check_index(index, len(self))

@@ -52,7 +52,8 @@ from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
 
 __all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
-           "check_index", "check_mounting", "frame_pairs", "kitti_flow_layout", "list_images", "match_files"]
+           "check_index", "check_mounting", "frame_pairs", "kitti_flow_layout", "list_images", "match_files",
+           "principal_point_off_centre"]
 
 # every suffix write_image writes (.webp too: its frames were left out of a folder) and the PNM ones
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -225,6 +226,19 @@ def calibration_size(calib: str | os.PathLike, cam: int) -> tuple[int, int] | No
                 raise ValueError(f"calib: {str(calib)!r} has an S_rect_0{cam} row that is not 'W H' "
                                  f"(two sizes of at least one pixel): {line.strip()[:60]!r}") from None
             return int(round(h)), int(round(w))
+    return None
+
+
+def principal_point_off_centre(camera: Camera, size: tuple[int, int]) -> tuple[float, float] | None:
+    """The principal point ``(c_x, c_y)`` of ``camera`` (batch 1) where it lies outside the middle
+    third of an image of ``size`` (H, W): |c_x − (W−1)/2| > W/6 or |c_y − (H−1)/2| > H/6; None
+    where it lies inside. A calibration made for images twice or half as large puts it there (a
+    quarter or a half of the image off centre); a camera's own offset (KITTI: 11 px of 1242) does
+    not. The datasets' test of a calibration that states no image size."""
+    H, W = size
+    cx, cy = float(camera.cx[0]), float(camera.cy[0])
+    if abs(cx - (W - 1) / 2) > W / 6 or abs(cy - (H - 1) / 2) > H / 6:
+        return cx, cy
     return None
 
 
@@ -467,8 +481,9 @@ class ImageFolderDataset(Dataset):
             return
         if self.camera is None:
             return
-        cx, cy = float(self._camera64.cx[0]), float(self._camera64.cy[0])
-        if abs(cx - (W - 1) / 2) > W / 6 or abs(cy - (H - 1) / 2) > H / 6:
+        off = principal_point_off_centre(self._camera64, self.size)
+        if off is not None:
+            cx, cy = off
             raise ValueError(f"images: {image.name} is {H}x{W}, but the principal point of {str(self.calib)!r} "
                              f"({cx:.1f}, {cy:.1f}) lies outside the middle third of such an image: the "
                              f"calibration belongs to another image size (give images of the calibrated size, "
