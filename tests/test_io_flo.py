@@ -103,3 +103,28 @@ class TestExceptions:
         back = read_flo(tmp_path / "x.flo")
         assert torch.isnan(back[0, 0, 0]) and torch.isinf(back[0, 0, 1]) and back[1, 0, 0] == np.float32(2e9)
         assert back[1, 0, 1] == np.float32(0.1)  # rounded to float32
+
+
+_HEADER_3X2 = np.array([FLO_MAGIC], "<f4").tobytes() + np.array([3, 2], "<i4").tobytes()
+
+
+@pytest.mark.parametrize("header", [b"\x00" * 12, _HEADER_3X2], ids=["no-flo", "flo-header-of-3x2"])
+def test_another_file_is_refused_without_reading_it(tmp_path, header):
+    """A large file under a .flo name (a video, or a .flo whose header does not match its length)
+    was read into memory whole before its 12-byte header was checked: the ValueError comes from the
+    header and the file's length, with the data left unread."""
+    import tracemalloc
+
+    path = tmp_path / "big.flo"
+    with open(path, "wb") as f:
+        f.write(header)
+        f.truncate(64 * 2**20)  # 64 MiB, sparse
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match=r"^path: '.*big\.flo' has (the magic number 0\.0|67108864 bytes, but its "
+                                             r"header declares 3x2 flow \(60 bytes\))"):
+            read_flo(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2**20, peak

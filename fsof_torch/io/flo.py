@@ -2,7 +2,8 @@
 
 Layout: the 4-byte magic ``202021.25`` (bytes ``PIEH``), the width and the height as int32, then
 H·W·2 float32 values, row by row, u and v interleaved. The reader checks the magic and that the
-file length is exactly 12 + 8·W·H bytes.
+file length is exactly 12 + 8·W·H bytes, before it reads the data (another file under a .flo name
+is refused without being read into memory).
 """
 
 from __future__ import annotations
@@ -31,21 +32,28 @@ def read_flo(path: str | os.PathLike) -> Tensor:
     path for a wrong magic number, a non-positive size or a file whose length does not match the
     size in its header.
     """
-    data = existing_file(path).read_bytes()
-    if len(data) < _HEADER:
-        raise ValueError(f"path: {str(path)!r} is too short for a .flo file ({len(data)} bytes, header needs 12)")
-    magic = np.frombuffer(data, dtype="<f4", count=1)[0]
-    if magic != np.float32(FLO_MAGIC):
-        raise ValueError(f"path: {str(path)!r} has the magic number {float(magic)!r} ({data[:4]!r}); "
-                         f"expected {FLO_MAGIC} (b'PIEH') for a .flo file")
-    width, height = (int(x) for x in np.frombuffer(data, dtype="<i4", count=2, offset=4))
-    if width <= 0 or height <= 0:
-        raise ValueError(f"path: {str(path)!r} declares a size of {width}x{height}; expected positive sides")
-    expected = _HEADER + 8 * width * height
-    if len(data) != expected:
-        raise ValueError(f"path: {str(path)!r} has {len(data)} bytes, but its header declares {width}x{height} "
-                         f"flow ({expected} bytes): truncated or not a .flo file")
-    flow = np.frombuffer(data, dtype="<f4", offset=_HEADER).reshape(height, width, 2)
+    # the header is checked against the file's length before the data is read: another file
+    # under a .flo name (a video of gigabytes) is refused without reading it into memory
+    with open(existing_file(path), "rb") as f:
+        header = f.read(_HEADER)
+        length = os.fstat(f.fileno()).st_size
+        if len(header) < _HEADER:
+            raise ValueError(f"path: {str(path)!r} is too short for a .flo file ({len(header)} bytes, header needs 12)")
+        magic = np.frombuffer(header, dtype="<f4", count=1)[0]
+        if magic != np.float32(FLO_MAGIC):
+            raise ValueError(f"path: {str(path)!r} has the magic number {float(magic)!r} ({header[:4]!r}); "
+                             f"expected {FLO_MAGIC} (b'PIEH') for a .flo file")
+        width, height = (int(x) for x in np.frombuffer(header, dtype="<i4", count=2, offset=4))
+        if width <= 0 or height <= 0:
+            raise ValueError(f"path: {str(path)!r} declares a size of {width}x{height}; expected positive sides")
+        expected = _HEADER + 8 * width * height
+        if length == expected:
+            data = f.read(expected - _HEADER + 1)  # (+1: a file that grew since is read as too long)
+            length = _HEADER + len(data)
+        if length != expected:
+            raise ValueError(f"path: {str(path)!r} has {length} bytes, but its header declares {width}x{height} "
+                             f"flow ({expected} bytes): truncated or not a .flo file")
+    flow = np.frombuffer(data, dtype="<f4").reshape(height, width, 2)
     return torch.from_numpy(np.ascontiguousarray(flow.transpose(2, 0, 1)).astype(np.float32))
 
 
