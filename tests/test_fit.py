@@ -287,6 +287,26 @@ def test_cardinality_batch_is_per_frame():
     assert abs(float(fit.z_d[0]) - 1.0) < 1e-9
 
 
+def test_cardinality_valid_of_batch_1_broadcasts_like_the_mask():
+    """``valid`` of batch 1 for a batch of 3 serves every frame, as a mask of batch 1 does (it
+    was a ValueError naming valid while the mask broadcast)."""
+    cam = small_camera()
+    z_d = torch.tensor([0.9, 1.3, 0.5], dtype=torch.float64)
+    zero = torch.zeros(3, dtype=torch.float64)
+    flow, valid = displacement_flow(cam, zero, z_d, zero, SIZE)
+    flow = flow.clone()
+    flow[:, :, 40:, :30] = float("nan")  # (a hole in the ground truth: valid excludes it)
+    valid1 = torch.ones(1, 1, *SIZE, dtype=torch.bool)
+    valid1[:, :, 40:, :30] = False
+    mask = road_mask(valid)
+    fit = fit_road(flow, mask, cam, model="plane", valid=valid1)
+    torch.testing.assert_close(fit.z_d, z_d, atol=1e-8, rtol=0)
+    per_frame = fit_road(flow, mask, cam, model="plane", valid=valid1.expand(3, -1, -1, -1))
+    assert torch.equal(fit.z_d, per_frame.z_d) and torch.equal(fit.inliers, per_frame.inliers)
+    with pytest.raises(ValueError, match=r"^valid: expected shape \(B, 1, H, W\) with B=3"):
+        fit_road(flow, mask, cam, model="plane", valid=valid1.expand(2, -1, -1, -1))
+
+
 # -- feature -----------------------------------------------------------------------------------
 
 @pytest.mark.parametrize("params", [

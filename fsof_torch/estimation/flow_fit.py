@@ -239,7 +239,8 @@ def check_flow_inputs(flow: Tensor, mask: Tensor, camera: Camera, valid: Tensor 
         if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
             raise TypeError(f"valid: expected a bool tensor of shape (B, 1, H, W), got "
                             f"{valid.dtype if isinstance(valid, Tensor) else type(valid).__name__}")
-        check_shape(valid, "valid", ("B", 1, "H", "W"), dims)
+        one = valid.dim() == 4 and valid.shape[0] == 1  # (batch 1 broadcasts, as the mask's does)
+        check_shape(valid, "valid", ("B", 1, "H", "W"), {**dims, "B": 1} if one else dims)
         mask = mask & to_device(valid, "valid", mask.device)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
@@ -456,7 +457,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
             default: the planar motion of back-projected points (the velocity model: rest).
         prior: ``{name: (mean, sigma)}`` Gaussian priors (the parameters' units), weighed
             against the residuals at the kernel's scale; on fitted parameters only (ValueError).
-        valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's); ANDed with mask.
+        valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's; batch 1
+            broadcasts); ANDed with mask.
         robust: the kernel (:data:`ROBUST_KERNELS`); ``scale``: its scale in pixels (px/s).
         max_iter, tol: the solver's budget and tolerance per stage.
         max_points: mask pixels per frame that enter the iterations (an even stride over the
