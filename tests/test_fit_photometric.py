@@ -386,6 +386,31 @@ def test_feature_fixed_parameters_stay_at_init_in_every_start_and_beyond_the_bou
     assert not bool(held.success)
 
 
+def test_feature_bounds_of_batch_1_hold_every_frame():
+    """Bounds of batch 1 (what ``physical_bounds`` gives for a camera of batch 1) hold every frame
+    of a batch, as a prior of one value does (they were a ValueError asking for (2, 8)): a bound on
+    z_d below the true 0.3 m holds both frames at it, as the same bounds given per frame do."""
+    from fsof_torch import fit_image
+    from fsof_torch.estimation.image_fit import physical_bounds
+    from fsof_torch.geometry.road_models import get_road_model
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    image1, image2, mask = (t.expand(2, -1, -1, -1) for t in (image1, image2, mask))
+    model = get_road_model("plane")
+    lo, hi = physical_bounds(model, cam)
+    assert lo.shape == (1, 8)
+    hi = hi.clone()
+    hi[0, model.params.index("z_d")] = 0.2
+    fit = fit_image(image1, image2, mask, cam, bounds=(lo, hi))
+    assert fit.params["z_d"].tolist() == [0.2, 0.2]
+    per_frame = fit_image(image1, image2, mask, cam, bounds=(lo.expand(2, -1), hi.expand(2, -1)))
+    for name in model.params:
+        assert torch.equal(fit.params[name], per_frame.params[name]), name
+    with pytest.raises(ValueError, match=r"^bounds \(lower\): expected shape \(1 or 2, 8\)"):
+        fit_image(image1, image2, mask, cam, bounds=(lo.expand(3, -1), hi.expand(3, -1)))
+
+
 def test_feature_all_road_pixels_a_frames_fit_is_its_own():
     """With max_points=None (every road pixel a candidate) a frame's fit is the same alone as
     next to a frame with a larger road."""

@@ -298,8 +298,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             plausible, so it stays. Costs nothing where the fit succeeds clearly.
         prior: ``"calibration"`` (:func:`calibration_prior`, on the free parameters), None, or
             ``{name: (mean, sigma)}`` (a prior on a held parameter is a ValueError: it would be ignored).
-        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P); they
-            hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
+        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P) or (1, P);
+            they hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
             ``min_size``; fewer leave the coarsest level too fine for a start to reach a motion
             of tens of pixels there, and the fit can land far off: on the shared clip with two,
@@ -426,8 +426,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         # the bounds hold the free parameters: fixed ones (and the gain and offset) are not clamped
         unbounded = torch.cat([held, torch.ones(2, dtype=torch.bool, device=dev)])
         pad = torch.zeros(B, 2, dtype=torch.float64, device=dev)  # (the gain and offset: replaced)
-        bound_lo = None if lo is None else torch.where(unbounded, -math.inf, torch.cat([lo.to(dev, torch.float64), pad], 1))
-        bound_hi = None if hi is None else torch.where(unbounded, math.inf, torch.cat([hi.to(dev, torch.float64), pad], 1))
+        bound_lo = None if lo is None else torch.where(unbounded, -math.inf, torch.cat([lo.to(dev, torch.float64).expand(B, P), pad], 1))
+        bound_hi = None if hi is None else torch.where(unbounded, math.inf, torch.cat([hi.to(dev, torch.float64).expand(B, P), pad], 1))
 
         checks = None if check_every is None else range(check_every, max_iter)
         # the mask's pixels (the tests at full resolution judge them all; the finest level's

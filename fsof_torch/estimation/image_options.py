@@ -14,7 +14,7 @@ from typing import Any, Mapping, NamedTuple
 
 import torch
 
-from .._check import check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
+from .._check import batch_choices, check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
 from .priors import prior_arrays
@@ -90,18 +90,18 @@ def checked_options(*, model: Any, fixed: Any, init: Any, starts: Any, prior: An
 
 
 def check_bounds(bounds: object, model: RoadModel, B: int | None = None) -> None:
-    """``"physical"``, None, or ``(lower, upper)`` float tensors (B, P) in the model's order (any
-    B where ``B`` is None)."""
+    """``"physical"``, None, or ``(lower, upper)`` float tensors (B, P) in the model's order, batch
+    1 broadcasting as a prior's one value does (any B where ``B`` is None)."""
     if bounds is None or (isinstance(bounds, str) and bounds == "physical"):
         return
     P = len(model.params)
-    rows = "B" if B is None else B
+    rows = "B" if B is None else batch_choices(B)
     if not isinstance(bounds, (tuple, list)) or len(bounds) != 2:
         raise TypeError(f"bounds: expected 'physical', None or (lower, upper) tensors of shape ({rows}, {P}), "
                         f"got {bounds!r}")
     for name, t in zip(("lower", "upper"), bounds):
         check_float_tensor(t, f"bounds ({name})")
-        if t.dim() != 2 or t.shape[1] != P or (B is not None and t.shape[0] != B):
+        if t.dim() != 2 or t.shape[1] != P or (B is not None and t.shape[0] not in (1, B)):
             raise ValueError(f"bounds ({name}): expected shape ({rows}, {P}) (batch, the {model.name!r} model's "
                              f"parameters {model.params}), got {tuple(t.shape)}")
     if bounds[0].shape != bounds[1].shape:
