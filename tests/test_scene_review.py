@@ -204,6 +204,21 @@ def test_a_car_density_beyond_the_bound_is_refused(name):
     assert bool(torch.isfinite(pair["image1"]).all()) and bool((pair["labels"] == 6).any())
 
 
+def test_parked_cars_without_a_parking_strip_are_refused():
+    """Parked cars stand on the parking strip: asked for with parking_width=0 they were silently
+    left out (a scene without them); now a ValueError names both. Without cars, or with a strip,
+    the scene renders (its parked cars in view)."""
+    message = ("parked_cars, parking_width: parked cars need a parking strip, got parked_cars=2.0 with "
+               "parking_width=0.0; give parking_width > 0 or parked_cars=0")
+    with pytest.raises(ValueError, match=re.escape(message)):
+        scene_config("cvc-simple", parked_cars=2.0)
+    with pytest.raises(ValueError, match=r"^parked_cars, parking_width: parked cars need a parking strip"):
+        render_pair("default", 0, size=TINY, parking_width=0.0)  # (the preset's 2.5 parked cars)
+    assert scene_config("default", parking_width=0.0, parked_cars=0.0).parking_width == 0.0
+    pair = render_pair("cvc-simple", 0, size=(48, 160), parking_width=2.3, parked_cars=100.0)
+    assert bool((pair["labels"] == 6).any())  # (a car: the scene has no moving cars)
+
+
 @pytest.mark.parametrize("overrides, message", [
     (dict(texture=1e38), "texture: expected a contrast multiplier <= 10000, got 1e+38"),
     (dict(texture=10000.5), "texture: expected a contrast multiplier <= 10000, got 10000.5"),
@@ -294,7 +309,7 @@ def _building_footprints(scene: Scene, blocks: range):
 @pytest.mark.parametrize("preset, overrides", [
     ("carla-turning", {}), ("default", dict(steering=0.25)), ("default", dict(steering=-0.3)),
     ("default", dict(steering=math.atan(2.7 / MIN_TURN_RADIUS) - 1e-6, pavement_width=10.0)),
-    ("default", dict(steering=0.2, pavement_width=0.0, parking_width=0.0)),
+    ("default", dict(steering=0.2, pavement_width=0.0, parking_width=0.0, parked_cars=0.0)),
 ])
 def test_buildings_stay_behind_the_kerb_on_a_bend(preset, overrides):
     """Straight blocks up to 22 m long reached from inside a bend into the road, and a block whose

@@ -187,7 +187,8 @@ class SceneConfig:
     Scene: ``lane_width``, ``parking_width`` (a parking strip on each side, 0 for none),
     ``pavement_width``, ``kerb_height`` (m; the kerb top stays below the camera: kerb_height <
     height - body_height on a level road, times (1 - G²) / sqrt(1 + G²) on a grade whose steepest
-    grade is G); ``buildings`` (bool); ``parked_cars`` (mean number per 40 m and side);
+    grade is G); ``buildings`` (bool); ``parked_cars`` (mean number per 40 m and side, parked on
+    the parking strip: 0 where ``parking_width`` is 0);
     ``moving_cars`` (mean number per 40 m, half oncoming), each at most :data:`MAX_CARS` = 100;
     ``texture`` (contrast multiplier of the procedural textures); ``asphalt`` (grey-level amplitude
     of each of the seven asphalt noise octaves, cells 2 cm, 5 cm, 12 cm, 30 cm, 75 cm, 2 m, 5 m; a
@@ -389,6 +390,9 @@ def _validate(cfg: SceneConfig) -> None:
                  "kerb_height", "texture", "noise"):
         if real(name) < 0:
             raise ValueError(f"{name}: expected >= 0, got {getattr(cfg, name)!r}")
+    if cfg.parked_cars > 0 and cfg.parking_width == 0:  # (the cars park on the strip: none would appear)
+        raise ValueError(f"parked_cars, parking_width: parked cars need a parking strip, got parked_cars="
+                         f"{cfg.parked_cars!r} with parking_width={cfg.parking_width!r}; give parking_width > 0 or parked_cars=0")
     for name in ("parked_cars", "moving_cars"):
         if not real(name) <= MAX_CARS:
             raise ValueError(f"{name}: expected a mean number of cars per 40 m <= {MAX_CARS:g}, "
