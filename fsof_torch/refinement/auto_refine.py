@@ -4,7 +4,6 @@ inside it, with the motion the detection settled on."""
 
 from __future__ import annotations
 
-import warnings
 from contextvars import ContextVar
 from dataclasses import replace
 from typing import Any
@@ -18,6 +17,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_models import is_planar_odometry, road_motion_batch
 from .auto_road import ROAD_RESERVED, check_motion, detect_road
 from .contracts import collect_flows, finest_flow
+from ..warn import warn_user
 
 __all__ = ["refine_with_auto_road"]
 
@@ -73,8 +73,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
                       warn=warn, **estimate, **options)
     if warn and not all(det.ok.tolist()):
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
-        warnings.warn(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}",
-                      RuntimeWarning, stacklevel=3)
+        warn_user(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}")
     motion = det.motion
     if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
         _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
@@ -87,9 +86,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         UNCHANGED_NAMED.reset(token)
     if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
         kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
-        warnings.warn(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
-                      f"images gave no evidence for the model (see RefineOutput.refined and .gate)",
-                      RuntimeWarning, stacklevel=3)
+        warn_user(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
+                  f"images gave no evidence for the model (see RefineOutput.refined and .gate)")
     cam = out.camera
     if not complete and isinstance(det.motion, RoadFit) and {"roll", "pitch"} <= set(det.motion.params):
         # the attitude the detection estimated (in the samples whose road it found), as the refiner

@@ -19,7 +19,6 @@ from __future__ import annotations
 import copy
 import dataclasses
 import inspect
-import warnings
 from typing import Any, Mapping, Sequence
 
 import torch
@@ -36,6 +35,7 @@ from ..estimation.starts import planar_homography
 from ..geometry.camera import Camera
 from ..geometry.egomotion import check_motion_step
 from ..geometry.road_models import get_road_model, road_motion
+from ..warn import warn_user
 
 __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "check_estimate", "check_estimator", "finite_estimate",
            "given_success", "planar_odometry", "planar_start"]
@@ -144,8 +144,8 @@ def finite_estimate(result: Any, camera: Camera, *, samples: Sequence[int] | Non
         return result
     if warn:
         bad = [samples[i] if samples is not None else i for i in (~finite).nonzero().flatten().tolist()]
-        warnings.warn(f"estimator: samples {bad} came back with non-finite parameters (NaN or inf; success "
-                      f"{success[~finite].tolist()}): taken as failed estimates", RuntimeWarning, stacklevel=3)
+        warn_user(f"estimator: samples {bad} came back with non-finite parameters (NaN or inf; success "
+                  f"{success[~finite].tolist()}): taken as failed estimates")
 
     def keep(t: Tensor, fill: Any) -> Tensor:  # (the sample's own values where finite, else fill)
         ok = finite.to(t.device).reshape(-1, *[1] * (t.dim() - 1))

@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import itertools
 import math
-import warnings
 from typing import Any, Mapping, NamedTuple
 
 import torch
@@ -50,6 +49,7 @@ from .estimators import ImageMotionEstimator, check_estimate, finite_estimate, g
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, check_levels, collect_flows, finest_flow, map_flows, refiner_images
+from ..warn import warn_user
 
 __all__ = ["DEFAULT_FLOW_KEYS", "RefineOutput", "FreespaceRefiner", "cauchy_weight", "fuse_flow", "refine_flow",
            "resize_mask"]
@@ -503,9 +503,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             if n_bad:
                 left = "" if n_replaced == n_bad else (f"; {n_bad - n_replaced} left as they came (in samples left "
                                                        f"unchanged, or where the model flow is undefined)")
-                warnings.warn(f"flow: {n_bad} non-finite predicted pixels inside the mask, left out of the "
-                              f"estimation; {n_replaced} replaced by the model flow{left}", RuntimeWarning,
-                              stacklevel=3)
+                warn_user(f"flow: {n_bad} non-finite predicted pixels inside the mask, left out of the "
+                          f"estimation; {n_replaced} replaced by the model flow{left}")
     # a sample where the model applies nowhere (no mask pixel where it is defined, a gate that keeps
     # the prediction everywhere; no NaN replaced) comes back unchanged, as odometry given or not
     refined = refined & (fuse_mask.view(torch.uint8).flatten(1).amax(1) > 0)  # (bytes: a bool any() is slower)
@@ -513,9 +512,9 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         region = usable(region, refined)
     if warn and not tracing() and not bool(refined.all()) and not UNCHANGED_NAMED.get():
         bad, few = (~refined).nonzero().flatten().tolist(), "" if odometry is not None else ", too few mask pixels (min_pixels)"
-        warnings.warn(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined{few}, a "
-                      f"failed estimate, images without evidence for the model, or a gate that keeps the prediction "
-                      f"everywhere: see RefineOutput.refined and .gate)", RuntimeWarning, stacklevel=3)
+        warn_user(f"mask: samples {bad} left unchanged (an empty mask or one where the model is undefined{few}, a "
+                  f"failed estimate, images without evidence for the model, or a gate that keeps the prediction "
+                  f"everywhere: see RefineOutput.refined and .gate)")
 
     masks: dict[tuple[int, int], Tensor] = {(H, W): gated}
     regions: dict[tuple[int, int], Tensor] = {(H, W): region}

@@ -40,7 +40,6 @@ frame's, is a ValueError naming the image) on 0..``data_range`` (255 by default)
 from __future__ import annotations
 
 import math
-import warnings
 from collections.abc import Mapping, Sequence
 
 import torch
@@ -71,6 +70,7 @@ from ..geometry.road_models import get_road_model, road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 from .composite import CompositeLoss  # (defined there; a name of this module's contract)
+from ..warn import warn_user
 
 __all__ = ["sequence_weights", "forward_backward_mask", "photometric_loss", "smoothness_loss", "unsupervised_flow_loss",
            "freespace_flow_loss", "UnsupervisedFlowLoss", "FreespaceFlowLoss", "CompositeLoss"]
@@ -602,13 +602,13 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         undefined = (road.flatten(1).any(1) & ~counted_model.flatten(1).any(1)).sum()
         *bad, n_undefined, finite_total = torch.stack([*n_bad, undefined, torch.isfinite(total).all()]).tolist()
         if n_undefined:
-            warnings.warn("road: the road model is defined at none of the road pixels of a sample, which adds 0 to "
-                          "the freespace loss (odometry not in metres and radians, a camera that puts the road "
-                          "above the horizon, or with odometry='fit' a fit that failed)", RuntimeWarning, stacklevel=2)
+            warn_user("road: the road model is defined at none of the road pixels of a sample, which adds 0 to "
+                      "the freespace loss (odometry not in metres and radians, a camera that puts the road "
+                      "above the horizon, or with odometry='fit' a fit that failed)")
         if any(bad):
             listing = ", ".join(f"flows[{i}]: {n}" for i, n in enumerate(bad) if n)
-            warnings.warn(f"flows: non-finite predicted pixels inside the road mask are left out of the "
-                          f"freespace loss ({listing})", RuntimeWarning, stacklevel=2)
+            warn_user(f"flows: non-finite predicted pixels inside the road mask are left out of the "
+                      f"freespace loss ({listing})")
         if not finite_total:
             largest = max(float(torch.where(ok, f.detach(), 0).abs().amax()) for f, ok in zip(fw, finite))
             raise ValueError(f"flows: the {penalty} penalty overflows {work} (largest |flow| {largest:.3g} px at "
