@@ -213,6 +213,29 @@ def test_road_options_against_the_images_and_camera_before_the_net(wide, options
     assert net.calls == 0
 
 
+def test_a_seed_level_too_deep_for_the_images_is_named_before_the_net(wide):
+    """seed_level 3 leaves 15 rows of 120: where the detection estimates the motion (no odometry,
+    or planar odometry alone) that raised detect_road's error only after the network had run; now
+    before it. A complete motion (planar odometry with the refiner's fit, a model's dict) estimates
+    nothing, and the option is unused: the call runs, as detect_road's does."""
+    options = {"seed_level": 3}
+    with pytest.raises(ValueError, match=r"^seed_level: 3 leaves fewer than 16 pixels of the 120x400 images") as expected:
+        detect_road(wide["image1"], wide["image2"], wide["camera"], **options)
+    for odometry in (None, wide["odometry"]):
+        net = Net(wide["pred"])
+        with pytest.raises(ValueError) as called:
+            FreespaceRefined(net, road="auto", road_options=options)(wide["image1"], wide["image2"],
+                                                                     camera=wide["camera"], odometry=odometry)
+        assert str(called.value) == str(expected.value) and net.calls == 0
+    net = Net(wide["pred"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # (the road's verdicts: not what this test is about)
+        model = FreespaceRefined(net, FreespaceRefiner(fit="flow"), road="auto", road_options=options)
+        _, info = model(wide["image1"], wide["image2"], camera=wide["camera"], odometry=wide["odometry"],
+                        return_info=True)
+    assert net.calls == 1 and info.road is not None
+
+
 def test_good_road_option_values_build_and_are_kept_as_given(wide):
     """Values detect_road takes build (a 0-d tensor, a max_height_m above the slow default with
     slow_max_height_m None, a level chosen from the images), and are passed on as given."""

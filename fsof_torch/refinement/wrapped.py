@@ -17,7 +17,7 @@ from .._check import (batch_choices, check_float_tensor, check_image_range, chec
                       check_mask, check_shape, scalar)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
-from ..geometry.road_models import road_motion_batch
+from ..geometry.road_models import is_planar_odometry, road_motion_batch
 from .auto_refine import refine_with_auto_road
 from .auto_road import ROAD_RESERVED, check_road_size, detect_road, road_level
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
@@ -35,14 +35,15 @@ def _road_values(road_options: Mapping[str, Any]) -> dict[str, Any]:
     return check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
 
 
-def _check_road_against(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera) -> None:
+def _check_road_against(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera,
+                        estimated: bool) -> None:
     """``road_options`` against images of ``shape`` and ``camera`` as :func:`detect_road` checks them
-    (:func:`~fsof_torch.refinement.auto_road.check_road_size`; ``seed_level``'s, which applies
-    only where the motion is estimated, at the detection)."""
+    (:func:`~fsof_torch.refinement.auto_road.check_road_size`; ``seed_level``'s where the detection
+    will estimate the motion)."""
     options = _road_values(road_options)
     if options["level"] is None:
         options["level"] = road_level(shape[-2:], options["window"], options["height_window"])
-    check_road_size(shape, camera, options, estimated=False)
+    check_road_size(shape, camera, options, estimated=estimated)
 
 
 class FreespaceRefined(nn.Module):
@@ -69,7 +70,7 @@ class FreespaceRefined(nn.Module):
             ``road="auto"`` only: given with ``road=None`` they raise a ValueError. Their names and
             values are checked when the wrapper is made, with ``detect_road``'s errors, and
             against the images' size and the camera's height at a call, before the network runs
-            (``seed_level``'s size where the detection estimates the motion). A call that
+            (``seed_level``'s too where the detection will estimate the motion). A call that
             passes ``mask=`` detects nothing, and leaves them unused.
         pad: an :class:`~fsof_torch.refinement.contracts.InputPadder` for networks that need
             sizes divisible by a stride (torchvision's RAFT: ``InputPadder(8)``; ptlflow's RAFT,
@@ -180,7 +181,9 @@ class FreespaceRefined(nn.Module):
             road_motion_batch(odometry, B, torch.float64, image1.device, batch_of="the images' batch",
                               displacement=True)
         if mask is None:  # road="auto": its options against these images and the camera, as the detection will
-            _check_road_against(self.road_options or {}, tuple(image1.shape), camera)
+            # (it estimates the motion unless given a complete one: as refine_flow's mask="auto" decides)
+            complete = odometry is not None and (not is_planar_odometry(odometry) or self.refiner.fit is not None)
+            _check_road_against(self.road_options or {}, tuple(image1.shape), camera, estimated=not complete)
         padding = self.pad.padding(size) if self.pad is not None else None
 
         def own(x: Tensor) -> Tensor:
