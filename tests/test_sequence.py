@@ -802,3 +802,32 @@ def test_fit_sequence_makes_its_tensors_on_the_frames_device():
     assert seq.mounting == plain.mounting and torch.equal(seq.success, plain.success)
     assert all(torch.equal(seq.params[n], plain.params[n]) for n in plain.params)
     assert {t.device.type for t in (*seq.params.values(), *seq.first_pass.values(), seq.success)} == {"cpu"}
+
+
+def test_fit_sequence_names_a_frame_mask_flow_or_poses_without_values_by_its_index(body_motion_clip):
+    """A frame, mask or flow on the meta device (or on another device than ``frames[0]``) was named
+    by fit_image's argument it went into: ``image2`` for frames[2] (the second pair's second frame),
+    ``mask`` for mask[1], ``flow`` for flows[1]; poses on the meta device were torch's RuntimeError
+    "Tensor.item() cannot be called on meta tensors". Each is now named as the clip's item, before
+    any fit."""
+    from fsof_torch.estimation.sequence import _item
+
+    pairs, frames, poses = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    meta = torch.device("meta")
+    no_values = "a tensor on the meta device has shapes but no values"
+    for k in (0, 1, 2):
+        clip = [f.to(meta) if i == k else f for i, f in enumerate(frames[:3])]
+        with pytest.raises(ValueError, match=rf"^frames\[{k}\]: {no_values} to fit"):
+            fit_sequence(clip, road, cam, max_points=500)
+    with pytest.raises(ValueError, match=rf"^mask\[1\]: {no_values} to fit"):
+        fit_sequence(frames[:3], [road, road.to(meta)], cam, max_points=500)
+    with pytest.raises(ValueError, match=rf"^mask: {no_values} to fit"):
+        fit_sequence(frames[:3], road.to(meta), cam, max_points=500)
+    with pytest.raises(ValueError, match=rf"^flows\[1\]: {no_values} to fit"):
+        fit_sequence(frames[:3], road, cam, flows=[pairs[0]["flow"], pairs[1]["flow"].to(meta)], max_points=500)
+    with pytest.raises(ValueError, match=rf"^poses: {no_values} to give the clip's translations their scale"):
+        fit_sequence(frames[:3], road, cam, poses=poses[:3].to(meta))
+    # an item on another device than frames[0] (a GPU's frame beside CPU ones; emulated: the clip on meta)
+    with pytest.raises(ValueError, match=r"^frames\[1\]: expected the device of frames\[0\] \(meta\), got cpu$"):
+        _item(frames[1], "frames[1]", "an image", (3,), tuple(frames[1].shape[-2:]), meta)

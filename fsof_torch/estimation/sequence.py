@@ -257,9 +257,11 @@ def _stack(records: Sequence[_PairRecord]) -> dict[str, Tensor]:
     return {k: torch.cat([r.params[k].double().reshape(-1) for r in records]) for k in records[0].params}
 
 
-def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tuple[int, int] | None = None) -> Tensor:
+def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tuple[int, int] | None = None,
+          device: torch.device | None = None) -> Tensor:
     """One frame, mask or flow of a clip as (1, C, H, W), checked: C in ``channels``, (H, W) the
-    clip's ``size`` where known (items are read lazily, one by one)."""
+    clip's ``size`` and on ``device`` (``frames[0]``'s) where known (items are read lazily, one by
+    one), with values (not on the meta device)."""
     if not isinstance(x, Tensor):
         raise TypeError(f"{name}: expected a tensor ({what}), got {type(x).__name__}")
     y = x.unsqueeze(0) if x.dim() == 3 else x
@@ -270,15 +272,19 @@ def _item(x: object, name: str, what: str, channels: tuple[int, ...], size: tupl
         # (the channels a C stands for: a 4-channel RGBA frame, or an (H, W, 3) one, has the shape (C, H, W))
         among = f" with C {' or '.join(map(str, channels))}" if len(channels) > 1 else ""
         raise ValueError(f"{name}: expected shape ({c}, {hw}) or (1, {c}, {hw}){among} ({what}), got {tuple(x.shape)}")
+    # (named here by its index: fit_image named it image1, image2, mask or flow, whichever pair it came in)
+    check_has_values(y, name, "to fit (a fit is iterative and data dependent)")
+    if device is not None and y.device != device:
+        raise ValueError(f"{name}: expected the device of frames[0] ({device}), got {y.device}")
     return y
 
 
 def _frame(x: object, name: str, data_range: float, channels: tuple[int, ...],
-           size: tuple[int, int] | None = None) -> Tensor:
+           size: tuple[int, int] | None = None, device: torch.device | None = None) -> Tensor:
     """One frame of a clip (:func:`_item`): a float image on 0..``data_range``, of the clip's
     channels and size, named by its index where it is not."""
     what = "an image" if size is None else f"an image of the clip's {channels[0]} channel(s) and size"
-    y = _item(check_float_tensor(x, name) if isinstance(x, Tensor) else x, name, what, channels, size)
+    y = _item(check_float_tensor(x, name) if isinstance(x, Tensor) else x, name, what, channels, size, device)
     check_image_range(y, name, data_range)
     return y
 
@@ -296,7 +302,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             of fit_image, 255 unless given): any sequence with ``len()`` and indexing, e.g. a
             list or a lazy object that loads frame k on ``frames[k]``. Each pass reads every
             frame once, in order (``frames[0]``, ``frames[1]``, ...), and holds at most the two
-            frames of the pair it is fitting.
+            frames of the pair it is fitting. The masks and flows on ``frames[0]``'s device, as every
+            frame (else a ValueError names the item, ``frames[k]``, ``mask[k]`` or ``flows[k]``).
         mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
@@ -352,12 +359,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if not isinstance(mask, Tensor) and len(mask) != N:
         raise ValueError(f"mask: expected one mask or {N} (one per pair), got {len(mask)}")
 
-    def mask_of(k: int, size: tuple[int, int]) -> Tensor:
+    def mask_of(k: int, size: tuple[int, int], device: torch.device) -> Tensor:
         name = "mask" if isinstance(mask, Tensor) else f"mask[{k}]"
         m = mask if isinstance(mask, Tensor) else mask[k]
         if isinstance(m, Tensor) and m.dim() == 2:
             m = m.unsqueeze(0)
-        m = _item(m, name, "the road of the pair's first frame", (1,), size)
+        m = _item(m, name, "the road of the pair's first frame", (1,), size, device)
         if m.dtype != torch.bool:
             raise TypeError(f"{name}: expected a bool tensor, got dtype {m.dtype}")
         return m
@@ -376,6 +383,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         if poses.shape != (N + 1, 4, 4):
             raise ValueError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                              f"{poses.dtype} {tuple(poses.shape)}")
+        # (on the meta device the finiteness test was torch's RuntimeError "Tensor.item() cannot be called
+        # on meta tensors")
+        check_has_values(poses, "poses", "to give the clip's translations their scale")
         if not bool(torch.isfinite(poses).all()):
             raise ValueError("poses: expected finite values, got NaN or inf")
         check_pose_steps(poses, "poses", labels=[f"the pose of frames[{k}]" for k in range(N + 1)])
@@ -422,12 +432,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             # each frame is read once per pass, in order: the last pair's second frame is this one's first
             image1 = image2 if image2 is not None else _frame(frames[k], f"frames[{k}]", data_range, (1, 3))
             size = tuple(image1.shape[-2:])
-            image2 = _frame(frames[k + 1], f"frames[{k + 1}]", data_range, (image1.shape[1],), size)
-            road = mask_of(k, size)
+            image2 = _frame(frames[k + 1], f"frames[{k + 1}]", data_range, (image1.shape[1],), size, image1.device)
+            road = mask_of(k, size, image1.device)
             if flows is not None:
                 given = flows[k]  # (an integer or bool flow was taken as pixels, truncated)
                 given = check_float_tensor(given, f"flows[{k}]") if isinstance(given, Tensor) else given
-                flow = _item(given, f"flows[{k}]", "a flow of the frames' size", (2,), size)
+                flow = _item(given, f"flows[{k}]", "a flow of the frames' size", (2,), size, image1.device)
                 starts.append(planar_start(flow.to(torch.float64), road, cam))
             init = None
             if track is not None:  # the attitude and its change: start at the smoothed track, tied to it
