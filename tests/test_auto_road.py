@@ -854,6 +854,36 @@ def test_refiner_auto_without_images_uses_the_flow(kitti_K):
     assert float((out.mask & road).sum() / (out.mask | road).sum()) > 0.95
 
 
+def test_refiner_auto_without_images_warns_of_the_non_finite_pixels_it_leaves(kitti_K):
+    """Without images the road is found on the prediction, which never includes a pixel whose flow
+    is not finite: a NaN block in the middle of the road came back NaN without a word (the
+    refinement's warning counts those inside the mask, here never any), where a mask tensor, or
+    images, have the model replace it. Now a warning counts them; warn=False silences it."""
+    from fsof_torch import displacement_flow
+
+    cam = Camera(kitti_K, 1.65).scaled(320 / 1242, 96 / 375)
+    flow = displacement_flow(cam, 0.0, 1.0, 0.0, (96, 320))[0].float()
+    bad = flow.clone()
+    bad[..., 70:73, 150:154] = float("nan")
+    bad[..., 80, 100] = float("inf")
+    odometry = {"x_d": 0.0, "z_d": 1.0, "yaw": 0.0}
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = refine_flow(bad, "auto", cam, odometry, gate=None)
+    said = [str(w.message) for w in caught]
+    assert said == ["flow: 13 non-finite predicted pixels left as they came: mask='auto' without images finds the "
+                    "road on the prediction, which has no flow there (with images= the road is found in the "
+                    "images, and inside it the model replaces them; or give a mask)"], said
+    assert {w.filename for w in caught} == {__file__}
+    assert bool(out.refined.all()) and not bool(out.mask[..., 70:73, 150:154].any())
+    assert int((~torch.isfinite(out.flow).all(1)).sum()) == 13  # (the road around them refined)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        quiet = refine_flow(bad, "auto", cam, odometry, gate=None, warn=False)
+        refine_flow(flow, "auto", cam, odometry, gate=None)  # (a finite prediction: nothing to say)
+    assert torch.equal(quiet.flow.nan_to_num(7.0, 7.0), out.flow.nan_to_num(7.0, 7.0))
+
+
 # -- inputs ---------------------------------------------------------------------------------------
 
 def test_inputs_are_not_modified(scene_pair):

@@ -10,7 +10,7 @@ from typing import Any
 
 import torch
 
-from .._check import check_keywords
+from .._check import check_keywords, skip_values
 from ..estimation.flow_fit import RoadFit
 from ..estimation.freespace import detect_freespace
 from ..geometry.camera import Camera
@@ -38,7 +38,9 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     a gradient reaches them). Flagged samples are left unrefined, with a warning that gives the
     reason (one also names samples whose road was found but that the refinement left unchanged: a
     failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
-    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`).
+    Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`),
+    which never holds a pixel whose predicted flow is not finite: a warning counts such pixels,
+    which come back as they were.
     ``warn=False`` silences the detection's warnings too (an estimate's non-finite parameters,
     :func:`~fsof_torch.refinement.estimators.finite_estimate`), as the refinement's own with a mask
     tensor; the estimator's own warnings pass, as they do there, and so do the refinement's (the
@@ -58,6 +60,14 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     if images is None:
         with torch.no_grad():
             road = detect_freespace(finest.detach().to(camera.dtype), camera.to(device=finest.device), **options)
+        # the road found on the prediction holds none of its non-finite pixels (no flow to judge them by),
+        # so the refinement's own warning, which counts those inside the mask, cannot name them
+        if warn and not skip_values(finest) and not bool(torch.isfinite(finest.detach().sum())):
+            n_bad = int((~torch.isfinite(finest.detach()).all(1)).sum())
+            if n_bad:
+                warn_user(f"flow: {n_bad} non-finite predicted pixels left as they came: mask='auto' without "
+                            f"images finds the road on the prediction, which has no flow there (with images= the road "
+                            f"is found in the images, and inside it the model replaces them; or give a mask)")
         return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
     image1, image2 = images
     B = finest.shape[0]
