@@ -77,7 +77,9 @@ class GateResult(NamedTuple):
     Attributes:
         use_model: (B, 1, H, W) bool, mask pixels where the model flow is used.
         evidence: (B, 1, H, W) float in [0, 1], the image evidence for the model over the
-            prediction per cell (0.5: no preference), for confidence fusion; 0 outside the mask.
+            prediction per cell (0.5: no preference, also in a cell with too few points), for
+            confidence fusion; 0 outside the mask, and in a sample whose model is not used
+            (``model_used`` False: also one whose images give no evidence either way).
         cost_model, cost_prediction: (B,) mean census distances over the points that count
             (the prediction's ``occlusion`` where it leaves image 2, and where it is not finite
             the larger of ``occlusion`` and the model's).
