@@ -152,6 +152,29 @@ def test_smooth_attitude_refuses_bad_input(args, error, match):
         smooth_attitude(*args)
 
 
+def test_smooth_attitude_names_where_a_long_tracks_bad_value_is():
+    """A NaN attitude of a 10 000-pair track was quoted with all 10 000 values (a 50 kB message),
+    and a σ of 0 at [3] as a tensor repr that elides the middle ("tensor([1., 1., 1., ..., 1.])"),
+    naming neither the value nor its place. The message now gives the first three with their
+    indices."""
+    n = 10_000
+    attitude = torch.zeros(n, dtype=torch.float64)
+    attitude[5000] = math.nan
+    with pytest.raises(ValueError, match=r"^attitude: expected finite values where the sigma is finite, got nan at "
+                                         r"\[5000\]$"):
+        smooth_attitude(attitude, torch.zeros(n), 1.0, 1.0)
+    sigma = torch.ones(n).index_fill(0, torch.tensor([3, 7, 9, 11]), 0.0)
+    with pytest.raises(ValueError, match=r"^attitude_sigma: expected values > 0 \(inf: the measurement does not count\), "
+                                         r"got 0.0 at \[3\], 0.0 at \[7\], 0.0 at \[9\] and 1 more$"):
+        smooth_attitude(torch.zeros(n), torch.zeros(n), sigma, 1.0)
+    with pytest.raises(ValueError, match=r"^change_sigma: expected values > 0 .*, got nan$"):
+        smooth_attitude(torch.zeros(3), torch.zeros(3), 1.0, torch.tensor(math.nan))
+    with pytest.raises(ValueError, match=r"^change: expected finite values where the sigma is finite, got inf at "
+                                         r"\[1\]$"):  # (an inf at [2], whose σ is inf, does not count)
+        smooth_attitude(torch.zeros(3), torch.tensor([0.0, math.inf, math.inf]), 1.0,
+                        torch.tensor([1.0, 1.0, math.inf]))
+
+
 def test_smooth_attitude_takes_numpy_numbers_and_refuses_sigmas_too_small_to_weigh():
     att, chg = torch.tensor([0.01, 0.02]), torch.tensor([0.01, 0.0])
     track, sigma = smooth_attitude(att, chg, np.float64(0.01), np.float32(0.001))

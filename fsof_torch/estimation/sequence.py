@@ -138,7 +138,8 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
         if sigma.dim() > 1 or sigma.numel() not in (1, N):
             raise ValueError(f"{name}: expected a number or a tensor of {N} values, got shape {tuple(sigma.shape)}")
         if not bool((sigma > 0).all()):  # (NaN fails too; inf is allowed: that measurement does not count)
-            raise ValueError(f"{name}: expected values > 0 (inf: the measurement does not count), got {sigma!r}")
+            got = _where_bad(sigma, ~(sigma > 0)) if sigma.dim() else repr(sigma.item())
+            raise ValueError(f"{name}: expected values > 0 (inf: the measurement does not count), got {got}")
         sigmas.append(sigma.expand(N))
     wa, wc = (1.0 / s.square() for s in sigmas)
     for w, sigma, name in ((wa, sigmas[0], "attitude_sigma"), (wc, sigmas[1], "change_sigma")):
@@ -153,7 +154,8 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     # a measurement that does not count contributes nothing, whatever its value (also NaN)
     for w, x, name in ((wa, att, "attitude"), (wc, chg, "change")):
         if not bool(torch.isfinite(x[w > 0]).all()):
-            raise ValueError(f"{name}: expected finite values where the sigma is finite, got {x.tolist()}")
+            raise ValueError(f"{name}: expected finite values where the sigma is finite, got "
+                             f"{_where_bad(x, ~torch.isfinite(x) & (w > 0))}")
     att, chg = torch.where(wa > 0, att, 0.0), torch.where(wc > 0, chg, 0.0)
     # the track as the changes' sum p (p_0 = 0, p_{k+1} = p_k + c_k) plus a smooth part z, a = p + z: z
     # minimises Σ wa_k (z_k + p_k − attitude_k)² + Σ wc_k (z_{k+1} − z_k)² (+ a tiny ridge on a, which keeps
@@ -187,6 +189,15 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     x = [p_k + z_k for p_k, z_k in zip(p, z)]
     device = attitude.device
     return torch.tensor(x, dtype=dt, device=device), torch.tensor(var, dtype=dt, device=device).sqrt()
+
+
+def _where_bad(x: Tensor, bad: Tensor) -> str:
+    """The values of ``x`` (1-D) where ``bad``, with their indices, the first three of them: a
+    message that quotes a clip's every value runs to megabytes, and a tensor's repr elides the
+    middle, where the bad one may be."""
+    index = bad.nonzero().flatten().tolist()
+    more = f" and {len(index) - 3} more" if len(index) > 3 else ""
+    return ", ".join(f"{x[i].item()!r} at [{i}]" for i in index[:3]) + more
 
 
 #: a pair whose fitted translation (at the input camera's height) is at most this, in metres, does
