@@ -854,3 +854,30 @@ def test_fit_sequence_names_a_frame_mask_flow_or_poses_without_values_by_its_ind
     # an item on another device than frames[0] (a GPU's frame beside CPU ones; emulated: the clip on meta)
     with pytest.raises(ValueError, match=r"^frames\[1\]: expected the device of frames\[0\] \(meta\), got cpu$"):
         _item(frames[1], "frames[1]", "an image", (3,), tuple(frames[1].shape[-2:]), meta)
+
+
+def test_a_failed_pairs_fitted_change_does_not_move_the_attitude_track():
+    """A failed fit's attitude change is no measurement: its value may be anything within the bounds
+    (5°). It entered the track loosely (10 × body_rotation_deg) but at its value: in a clip of 6
+    pairs whose attitudes all read 0.5° and whose other changes 0, a failed pair's 5° split the
+    track into 0.33° before it and 0.75° after, and pass 2 was tied to that. Now it counts as no
+    change (still loosely, linking the frames on either side): the track is 0.5° throughout."""
+    from fsof_torch.estimation.sequence import _track
+
+    deg = math.pi / 180
+    N = 6
+    params = {n: torch.full((N,), 0.5 * deg, dtype=torch.float64) for n in ("roll", "pitch")}
+    params.update({n: torch.zeros(N, dtype=torch.float64) for n in ("roll_change", "pitch_change")})
+    params["pitch_change"][3] = 5 * deg
+    params["roll_change"][3] = -5 * deg
+    ok = torch.ones(N, dtype=torch.bool)
+    ok[3] = False
+    track = _track(params, ok, ok, 1.0, 0.3)
+    for name in ("roll", "pitch"):
+        value, sigma = track[name]
+        torch.testing.assert_close(value, torch.full((N + 1,), 0.5 * deg, dtype=torch.float64), rtol=0, atol=1e-12)
+        assert bool((sigma > 0).all()) and bool((sigma < 1 * deg).all())
+    # (a pair that succeeded measures its change, as before: the track steps by it)
+    ok[3] = True
+    stepped = _track(params, ok, ok, 1.0, 0.3)["pitch"][0]
+    assert float(stepped[4] - stepped[3]) == pytest.approx(5 * deg, rel=0.01)
