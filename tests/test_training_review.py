@@ -224,8 +224,8 @@ def test_conventions_state_which_batch_1_inputs_broadcast():
     text = " ".join((Path(__file__).resolve().parents[1] / "docs" / "conventions.md").read_text().split())
     assert "a batch of 1 broadcasts against B." not in text
     assert "Per-frame scalars and cameras of batch 1 broadcast against B; image, flow and mask tensors must share B" in text
-    assert ("the road mask of the road fits (`fit_road`, `fit_image` and their wrappers), of the refiner and of "
-            "`fuse_flow` (its `mask` and `flow_model`)") in text
+    assert ("the road mask of the road fits (`fit_road`, `fit_image` and their wrappers; `fit_road`'s `valid` too), "
+            "of the refiner and of `fuse_flow` (its `mask` and `flow_model`)") in text
 
     cam = Camera(torch.tensor([[60.0, 0.0, 40.0], [0.0, 60.0, 18.0], [0.0, 0.0, 1.0]], dtype=torch.float64), 1.65)
     flow1, road1 = road_flow(cam, {"z_d": 1.0}, (24, 80))  # a camera and a mask of batch 1
