@@ -774,3 +774,47 @@ def test_colour_wheel_rim_is_not_drawn_beyond_max_flow(max_flow):
     wheel = colour_wheel(max_flow).int()
     assert wheel.amax(dim=-1).eq(255).all()
     assert torch.equal(wheel, colour_wheel(1.0).int())  # the colours do not depend on the scale
+
+
+@pytest.mark.parametrize("size", [(375, 1242), (373, 1241), (90, 330)])
+def test_pair_figure_draws_each_reduced_pixel_over_the_pixels_it_averages(size):
+    """A frame drawn reduced by f (a KITTI frame by 4) was stretched over the full image, its
+    ceil(W / f) drawn columns over W pixels: drawn column j stood at j W / ceil(W / f) instead
+    of j f, so the picture drifted from the road outline (drawn in the image's pixels) towards the
+    right and bottom edges, a flow edge at column 1236 of a KITTI frame drawn 2 px left of it.
+    Drawn pixel j now covers the pixels j f .. j f + f - 1 it is the mean of, and the axes show the
+    image's pixels, -0.5 .. W - 0.5 (the last block, cut by the image's edge, ends beyond them)."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    Hs, Ws = size
+    step = Ws - 6  # a flow edge near the right edge, on a block boundary of the reduction
+    u = torch.arange(Ws, dtype=torch.float32).expand(Hs, Ws)
+    flow = torch.stack([torch.where(u >= step - step % 4, 5.0, 0.0), torch.zeros(Hs, Ws)])
+    road = torch.zeros(1, Hs, Ws, dtype=torch.bool)
+    road[0, Hs // 2:, :] = True
+    fig = pair_figure(flows={"f": flow}, errors={}, road=road, max_flow=5.0, error_vmax=1.0,
+                      error_label="epe (px)", title="t")
+    try:
+        ax = next(a for a in _image_axes(fig) if a.get_title() == "flow, f")
+        picture = ax.get_images()[0]
+        rgb = picture.get_array()
+        h, w = rgb.shape[:2]
+        f = -(-Ws // w)
+        assert f > 1 and h == -(-Hs // f)
+        left, right, bottom, top = picture.get_extent()
+        # drawn column j spans [left + j (right - left) / w, ...] in image pixels: j f - 0.5
+        for j in (0, 1, w // 2, w - 1):
+            assert left + j * (right - left) / w == pytest.approx(j * f - 0.5, abs=1e-9)
+        for i in (0, h // 2, h - 1):
+            assert top + i * (bottom - top) / h == pytest.approx(i * f - 0.5, abs=1e-9)
+        # the flow edge is drawn where it is in the image (the first column of a block)
+        first = next(j for j in range(w) if (rgb[0, j] != rgb[0, 0]).any())
+        edge = step - step % 4
+        assert edge % f == 0 and left + first * (right - left) / w == pytest.approx(edge - 0.5, abs=1e-9)
+        # the axes are the image's pixels, where the road outline is drawn
+        assert tuple(ax.get_xlim()) == (-0.5, Ws - 0.5) and tuple(ax.get_ylim()) == (Hs - 0.5, -0.5)
+        outline = np.concatenate(ax.collections[0].get_segments())
+        assert outline[:, 0].max() == Ws - 1 and outline[:, 1].min() == Hs // 2
+    finally:
+        plt.close(fig)

@@ -308,7 +308,6 @@ class PairFigure:
         ncol = len(with_errors) + bool(images)
         panel_w = 4.2
         panel_h = panel_w * H / W
-        extent = (-0.5, W - 0.5, H - 0.5, -0.5)  # axes in pixels of the full image
         fig_w, fig_h = panel_w * ncol + 1.8, 2 * panel_h + 1.5
         fig = self.figure = plt.figure(figsize=(fig_w, fig_h), dpi=FIGURE_DPI)
         self.title = fig.suptitle("", fontsize=10)
@@ -322,6 +321,11 @@ class PairFigure:
         rows = (bottom + row_h + 0.11, bottom)
         h, w = -(-H // self.factor), -(-W // self.factor)  # the reduced pictures' size
         blank_rgb, blank_error = np.zeros((h, w, 3), dtype=np.uint8), np.full((h, w), np.nan)
+        # axes in pixels of the full image; drawn pixel j covers the pixels j f .. j f + f - 1 it
+        # is the mean of, so the picture spans w f columns (the last block, cut by the image's
+        # edge, beyond the axes): stretched over W, it drifted from the road outline, by 2 px at
+        # a KITTI frame's right edge
+        extent = (-0.5, w * self.factor - 0.5, h * self.factor - 0.5, -0.5)
         # axis labels on the panels that exist: the lowest of each column, the left-most of each row
         lower = [True] * bool(images) + [bool(e) for e in with_errors]  # a column's second-row panel
         first_lower = lower.index(True) if any(lower) else None
@@ -329,6 +333,8 @@ class PairFigure:
         def panel(j: int, r: int, blank: Any, **kw: Any) -> tuple[Any, Any]:
             ax = fig.add_axes((left + j * (col_w + gap), rows[r], col_w, row_h))
             shown = ax.imshow(blank, interpolation="nearest", extent=extent, **kw)
+            ax.set_xlim(-0.5, W - 0.5)
+            ax.set_ylim(H - 0.5, -0.5)
             _draw_outline(ax, [])
             _image_axes(ax, "", (H, W), xlabel=r == 1 or not lower[j], ylabel=j == (0 if r == 0 else first_lower))
             return ax, shown
