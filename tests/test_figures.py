@@ -818,3 +818,51 @@ def test_pair_figure_draws_each_reduced_pixel_over_the_pixels_it_averages(size):
         assert outline[:, 0].max() == Ws - 1 and outline[:, 1].min() == Hs // 2
     finally:
         plt.close(fig)
+
+
+def _without(record, key):
+    return {k: v for k, v in record.items() if k != key}
+
+
+@pytest.mark.parametrize("records, errors, error, match", [
+    # a record without its variant or pair was a bare KeyError('variant')
+    ([_without(_records()[0], "variant")], None, ValueError, r"records\[0\]: missing \['variant'\]"),
+    ([_records()[0], _without(_records()[1], "pair")], None, ValueError, r"records\[1\]: missing \['pair'\]"),
+    # one record rather than a list of them: "string indices must be integers"
+    (_records()[0], None, TypeError, "records: expected a list of per-pair record dicts, got dict"),
+    ([("000000", "given")], None, TypeError, r"records\[0\]: expected a dict, got tuple"),
+    ([{**_records()[0], "before": [2.0]}], None, TypeError, r"records\[0\]\['before'\]: expected a dict"),
+    # a metric written as text was drawn as a panel of text categories, without a word
+    ([{**_records()[0], "after": {"epe_road": "0.5"}}], None, TypeError,
+     r"records\[0\]\['after'\]\['epe_road'\]: expected a number or None, got str '0.5'"),
+    # the errors as a list of keys: "list indices must be integers or slices, not str"
+    (_records(), ["epe_road"], TypeError, r"errors: expected a dict of record key -> name and unit"),
+    (_records(), {"epe_road": None}, TypeError, r"errors: expected a dict of record key -> name and unit"),
+])
+def test_clip_summary_refuses_records_it_cannot_draw_naming_them(records, errors, error, match):
+    import matplotlib.pyplot as plt
+
+    open_before = plt.get_fignums()
+    with pytest.raises(error, match=match):
+        clip_summary_figure(records, errors=errors or {"epe_road": "end-point error (px), road"}, title="t")
+    assert plt.get_fignums() == open_before  # (checked before a figure is opened)
+
+
+def test_clip_summary_draws_metrics_of_any_real_number_type_and_none():
+    """NumPy and 0-d tensor metrics are numbers too (and None, a metric over no pixel, a gap)."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    records = _records()[:4]
+    records[0]["after"]["epe_road"] = np.float32(0.25)
+    records[1]["after"]["epe_road"] = torch.tensor(0.5)
+    records[2]["after"]["epe_road"] = None
+    fig = clip_summary_figure(records, errors={"epe_road": "end-point error (px), road"}, title="t")
+    try:
+        lines = {ln.get_label(): ln for ln in fig.axes[0].get_lines()}
+        # records 0 and 2 are pairs 0 and 1 of "given", 1 and 3 of "fit"
+        given = [np.nan if y is None else float(y) for y in lines["after, given"].get_ydata()]
+        assert given[0] == 0.25 and np.isnan(given[1])
+        assert [float(y) for y in lines["after, fit"].get_ydata()] == pytest.approx([0.5, 0.11])
+    finally:
+        plt.close(fig)

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import io
 import math
+import numbers
 import os
 import re
 from pathlib import Path
@@ -531,7 +532,11 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
             ``{"epe_road": "end-point error (px), road", "census_road": "census distance, road"}``
             (a key no record holds gets no panel).
         title: the figure's title.
+
+    Records that are not so (a record without ``pair`` or ``variant``, a metric that is not a number
+    or None) raise a TypeError or ValueError naming the record, before a figure is opened.
     """
+    _check_records(records, errors)
     plt = _pyplot()
     # the records' order, the job's time order (sorted names would put '10' before '5')
     pairs = list(dict.fromkeys(r["pair"] for r in records))
@@ -625,6 +630,32 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
             ax.tick_params(axis="x", labelrotation=30, labelsize=6)
         ax.tick_params(labelbottom=True)
     return fig
+
+
+def _check_records(records: object, errors: object) -> None:
+    """The records and errors of :func:`clip_summary_figure` (a record without a variant was a
+    KeyError, a metric given as text a panel of text categories)."""
+    if not isinstance(errors, Mapping) or not all(isinstance(v, str) for v in errors.values()):
+        raise TypeError(f"errors: expected a dict of record key -> name and unit (str), got {errors!r:.80}")
+    if isinstance(records, (str, bytes, Mapping)) or not isinstance(records, Sequence):
+        raise TypeError(f"records: expected a list of per-pair record dicts, got {type(records).__name__}")
+    for i, r in enumerate(records):
+        if not isinstance(r, Mapping):
+            raise TypeError(f"records[{i}]: expected a dict, got {type(r).__name__}")
+        missing = [k for k in ("pair", "variant") if k not in r]
+        if missing:
+            raise ValueError(f"records[{i}]: missing {missing}; expected a record with 'pair' and 'variant', "
+                             f"got keys {sorted(map(str, r))}")
+        for part in ("before", "after", "odometry", "odometry_given"):
+            if part in r and not isinstance(r[part], Mapping):
+                raise TypeError(f"records[{i}][{part!r}]: expected a dict, got {type(r[part]).__name__}")
+        for part in ("before", "after"):
+            for k in errors:
+                v = r.get(part, {}).get(k)
+                number = isinstance(v, numbers.Real) or (isinstance(v, Tensor) and v.numel() == 1)
+                if v is not None and (isinstance(v, bool) or not number):
+                    raise TypeError(f"records[{i}][{part!r}][{k!r}]: expected a number or None, got "
+                                    f"{type(v).__name__} {v!r:.40}")
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, close: bool = True) -> Path:
