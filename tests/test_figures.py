@@ -866,3 +866,26 @@ def test_clip_summary_draws_metrics_of_any_real_number_type_and_none():
         assert [float(y) for y in lines["after, fit"].get_ydata()] == pytest.approx([0.5, 0.11])
     finally:
         plt.close(fig)
+
+
+def test_clip_summary_draws_motion_fields_given_as_numpy_or_tensor_values():
+    """A field of NumPy float32 or one-element tensor values (a fit's parameters put in the records
+    as they come) was no int or float to the summary: it had no panel at all, without a word."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    records = [{"pair": str(i), "variant": "fit", "before": {"epe_road": 1.0}, "after": {"epe_road": 0.5},
+                "odometry": {"x_d": 0.1, "z_d": np.float32(1.25), "yaw": torch.tensor([0.01 * i])},
+                "roll": np.float32(0.02), "pitch": -0.02,
+                "odometry_given": {"z_d": torch.tensor(1.2, dtype=torch.float64)}} for i in range(3)]
+    fig = clip_summary_figure(records, errors={"epe_road": "end-point error (px), road"}, title="t")
+    try:
+        panels = {ax.get_title(): ax for ax in fig.axes if ax.get_visible()}
+        z_d = {ln.get_label(): list(ln.get_ydata()) for ln in panels["estimated motion: forward motion z_d"].get_lines()}
+        assert z_d == {"fit": [1.25] * 3, "given (odometry / poses)": pytest.approx([1.2] * 3)}
+        (yaw,) = panels["estimated motion: yaw"].get_lines()
+        assert list(yaw.get_ydata()) == pytest.approx([0.0, 0.01 * 180 / np.pi, 0.02 * 180 / np.pi])
+        (roll,) = panels["camera roll (the refinement's mounting)"].get_lines()
+        assert list(roll.get_ydata()) == pytest.approx([float(np.float32(0.02)) * 180 / np.pi] * 3)
+    finally:
+        plt.close(fig)

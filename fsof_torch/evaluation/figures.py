@@ -533,10 +533,15 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
             (a key no record holds gets no panel).
         title: the figure's title.
 
-    Records that are not so (a record without ``pair`` or ``variant``, a metric that is not a number
-    or None) raise a TypeError or ValueError naming the record, before a figure is opened.
+    Values are numbers (Python, NumPy or one-element tensors) or None. Records that are not so (no
+    ``pair`` or ``variant``, a metric that is not a number or None) raise a TypeError or ValueError
+    naming the record, before a figure is opened.
     """
     _check_records(records, errors)
+    # (NumPy and one-element tensor values as Python floats: a field of them had no panel at all)
+    records = [{**r, **{k: _as_float(r[k]) for k in ("roll", "pitch") if k in r},
+                **{p: {k: _as_float(v) for k, v in r[p].items()}
+                   for p in ("before", "after", "odometry", "odometry_given") if p in r}} for r in records]
     plt = _pyplot()
     # the records' order, the job's time order (sorted names would put '10' before '5')
     pairs = list(dict.fromkeys(r["pair"] for r in records))
@@ -656,6 +661,13 @@ def _check_records(records: object, errors: object) -> None:
                 if v is not None and (isinstance(v, bool) or not number):
                     raise TypeError(f"records[{i}][{part!r}][{k!r}]: expected a number or None, got "
                                     f"{type(v).__name__} {v!r:.40}")
+
+
+def _as_float(v: object) -> object:
+    """A NumPy real or a one-element real tensor as a Python float; anything else as it is."""
+    if isinstance(v, Tensor) and v.numel() == 1 and v.dtype != torch.bool and not v.is_complex():
+        return float(v)
+    return float(v) if isinstance(v, numbers.Real) and not isinstance(v, (bool, int, float)) else v
 
 
 def save_figure(fig: Any, path: str | os.PathLike, *, close: bool = True) -> Path:
