@@ -654,13 +654,11 @@ def _check_records(records: object, errors: object) -> None:
         for part in ("before", "after", "odometry", "odometry_given"):
             if part in r and not isinstance(r[part], Mapping):
                 raise TypeError(f"records[{i}][{part!r}]: expected a dict, got {type(r[part]).__name__}")
-        for part in ("before", "after"):
-            for k in errors:
-                v = r.get(part, {}).get(k)
-                number = isinstance(v, numbers.Real) or (isinstance(v, Tensor) and v.numel() == 1)
-                if v is not None and (isinstance(v, bool) or not number):
-                    raise TypeError(f"records[{i}][{part!r}][{k!r}]: expected a number or None, got "
-                                    f"{type(v).__name__} {v!r:.40}")
+        for part, k in ((part, k) for part in ("before", "after") for k in errors):
+            v = r.get(part, {}).get(k)
+            if v is not None and (isinstance(v, bool) or not isinstance(_as_float(v), (int, float))):
+                raise TypeError(f"records[{i}][{part!r}][{k!r}]: expected a number or None, got "
+                                f"{type(v).__name__} {v!r:.40}")
 
 
 def _as_float(v: object) -> object:
