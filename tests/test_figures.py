@@ -889,3 +889,20 @@ def test_clip_summary_draws_motion_fields_given_as_numpy_or_tensor_values():
         assert list(roll.get_ydata()) == pytest.approx([float(np.float32(0.02)) * 180 / np.pi] * 3)
     finally:
         plt.close(fig)
+
+
+@pytest.mark.parametrize("factor, error, match", [
+    (2.5, TypeError, "factor: expected an int, got float 2.5"),  # was avg_pool2d's "kernel_size" error
+    (0, ValueError, "factor: expected an int >= 1, got 0"),      # was read as 1
+    (-3, ValueError, "factor: expected an int >= 1, got -3"),
+])
+def test_reduce_values_takes_a_whole_factor_of_at_least_one(factor, error, match):
+    import numpy as np
+
+    from fsof_torch.evaluation.figures import reduce_values
+
+    x, has = torch.ones(2, 6, 6), torch.ones(1, 6, 6, dtype=torch.bool)
+    with pytest.raises(error, match=match):
+        reduce_values(x, has, ~has, factor)
+    mean, ok = reduce_values(x, has, ~has, np.int64(3))  # (a NumPy int is a whole number)
+    assert mean.shape == (2, 2, 2) and bool(ok.all())

@@ -107,6 +107,7 @@ def reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Ten
     but is not finite, shown as no value rather than hidden by its neighbours). Returns the
     reduced map (float64, 0 where no value) and that flag (1, h, w). ``factor``: an int >= 1, such
     as :func:`drawing_factor` gives for the panel."""
+    factor = check_int(factor, "factor", minimum=1)  # (2.5 was avg_pool2d's kernel_size error, 0 read as 1)
     x = torch.where(has, x.to(torch.float64), torch.zeros((), dtype=torch.float64))
     if factor <= 1:
         return x, has & ~bad
