@@ -686,6 +686,32 @@ def test_export_modules():
     assert torch.equal(got_valid, want_valid)
 
 
+def test_graphs_give_a_refused_motion_no_flow_and_no_validity():
+    """docs/conventions.md: a graph checks no values, and a motion the eager call refuses gives a
+    graph's flow of 0 with ``valid`` all False. The velocity model's validity depends on the
+    horizon alone: exported or compiled, a NaN or inf speed gave a NaN flow marked valid on every
+    road pixel (and the paper model's z_d = -1e38, an overflow the eager call names, NaN flow
+    marked valid). Each frame of a batch is judged alone."""
+    H, W = 6, 9
+    cam = _kitti_scaled(H, W, roll=0.02, pitch=-0.01, dtype=torch.float32)
+    vel = VelocityFlow((H, W))
+    ep = torch.export.export(vel, (cam, torch.tensor([9.0, 5.0]), torch.tensor([0.05, 0.0])))
+    compiled = torch.compile(DisplacementFlow((H, W)), fullgraph=True, backend="aot_eager")
+    for bad in (math.nan, math.inf, -1e38):
+        got, got_valid = ep.module()(cam, torch.tensor([bad, 9.0]), torch.tensor([0.05, 0.05]))
+        want, want_valid = velocity_flow(cam, 9.0, 0.05, 2.7, (H, W))
+        assert not got_valid[0].any() and torch.equal(got[0], torch.zeros(2, H, W))
+        torch.testing.assert_close(got[1:], want, rtol=1e-6, atol=1e-4)
+        assert torch.equal(got_valid[1:], want_valid) and want_valid.any()
+        got, got_valid = compiled(cam, torch.zeros(2), torch.tensor([1.0, bad]), torch.tensor([0.01, 0.01]))
+        want, want_valid = displacement_flow(cam, 0.0, 1.0, 0.01, (H, W))
+        assert not got_valid[1].any() and torch.equal(got[1], torch.zeros(2, H, W))
+        torch.testing.assert_close(got[:1], want, rtol=1e-5, atol=1e-5)
+        assert torch.equal(got_valid[:1], want_valid)
+    with pytest.raises(ValueError, match="overflows"):
+        displacement_flow(cam, 0.0, -1e38, 0.0, (H, W))
+
+
 @pytest.mark.parametrize("velocity", [False, True])
 def test_autograd_and_inference_paths_agree(velocity):
     """Without autograd the evaluation works in place; with it, functionally: same numbers."""

@@ -105,18 +105,29 @@ def road_flow(camera: Camera, params: Mapping[str, Tensor | float] | None, size:
         _check_map(M, size, model, values)
         if horizon is None:
             horizon = model.horizon_row(camera, values)
+        if tracing():
+            # A graph reads no values: a frame whose map the eager call refuses (NaN, inf, or
+            # overflowing at this size) gets the horizon row 0, nowhere below it, so its flow is 0
+            # with ``valid`` all False; the velocity model's validity depends on the horizon
+            # alone, and its graph gave a NaN flow marked valid.
+            ok = (M.abs() <= _map_bound(M, size)).flatten(1).all(1)
+            horizon = torch.where(ok.reshape(-1, 1, 1), horizon, 0.0)
         return flow_from_map(M, horizon, size, velocity=model.velocity)
 
 
-def _check_map(M: Tensor, size: tuple[int, int], model: RoadModel, values: Tensor) -> None:
-    """Reject parameters whose map overflows the dtype at this image size (NaN flow otherwise).
+def _map_bound(M: Tensor, size: tuple[int, int]) -> float:
+    """The largest map entry whose flow cannot overflow M's dtype at this image size: per pixel
+    the flow multiplies entries by coordinates up to H + W and adds a few such products, so
+    entries up to finfo.max / (16 (1 + H + W)²)."""
+    return torch.finfo(M.dtype).max / (16.0 * (1.0 + size[0] + size[1]) ** 2)
 
-    Per pixel the flow multiplies map entries by coordinates up to H + W and adds a few such
-    products: entries up to finfo.max / (16 (1 + H + W)²) cannot overflow.
-    """
+
+def _check_map(M: Tensor, size: tuple[int, int], model: RoadModel, values: Tensor) -> None:
+    """Reject parameters whose map overflows the dtype at this image size (NaN flow otherwise;
+    :func:`_map_bound`). Not while tracing (see :func:`road_flow`) nor on the meta device."""
     if tracing() or M.device.type == "meta":
         return
-    bound = torch.finfo(M.dtype).max / (16.0 * (1.0 + size[0] + size[1]) ** 2)
+    bound = _map_bound(M, size)
     if not bool((M.abs() <= bound).all()):  # False for NaN as well
         bad = {n: values[:, i].tolist() for i, n in enumerate(model.params)}
         raise ValueError(f"{', '.join(model.params)}: the {model.name!r} road map overflows {M.dtype} at "
