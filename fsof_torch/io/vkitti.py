@@ -180,7 +180,7 @@ def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
     """``extrinsic.txt`` of one camera → ``(frames (N,) int64, camera_T_world (N, 4, 4) float64)``;
     ``camera`` and the frame checks as in :func:`read_vkitti2_intrinsics`. Each matrix must be
     rigid as :func:`fsof_torch.io.read_kitti_poses` requires of a pose (last row 0 0 0 1, a
-    rotation block: :func:`fsof_torch.io.check_rigid_poses`), else a ValueError naming the file
+    rotation block: :func:`fsof_torch.io.kitti.check_rigid_poses`), else a ValueError naming the file
     and the line."""
     rows, lines = _select_camera(_read_table(path, 18, "extrinsic.txt"), camera, path)
     T = rows[:, 2:].reshape(-1, 4, 4)
@@ -191,7 +191,7 @@ def read_vkitti2_extrinsics(path: str | os.PathLike, camera: int = 0) -> tuple[T
 def vkitti2_camera_poses(camera_T_world: Tensor) -> Tensor:
     """Camera-to-world poses (N, 4, 4) (KITTI convention) from VKITTI2 world-to-camera extrinsics
     (N, 4, 4), in at least float32. Each must be a rigid pose (finite, last row 0 0 0 1, a rotation
-    block: :func:`fsof_torch.io.check_rigid_poses`, as :func:`read_vkitti2_extrinsics` checks a
+    block: :func:`fsof_torch.io.kitti.check_rigid_poses`, as :func:`read_vkitti2_extrinsics` checks a
     file's), else a ValueError naming the first that is not."""
     if not isinstance(camera_T_world, Tensor) or not camera_T_world.is_floating_point():
         got = camera_T_world.dtype if isinstance(camera_T_world, Tensor) else type(camera_T_world).__name__
