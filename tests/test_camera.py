@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 import pytest
 import torch
@@ -488,6 +489,15 @@ def test_kitti_calibration_bad_camera_index_and_binary_file(tmp_path):
         with pytest.raises(error, match=rf"cam: expected 0..3, got {cam!r}"):
             read_kitti_calibration(tmp_path / "a.txt", cam)
         with pytest.raises(error, match=rf"cam: expected 0..3, got {cam!r}"):
+            Camera.from_kitti(tmp_path / "a.txt", cam=cam)
+    # a 0-d integer tensor is its int, as for every whole-number option (docs/reliability.md;
+    # it was a TypeError "got tensor(2)"); a 0-d float or bool tensor stays a TypeError
+    assert torch.equal(read_kitti_calibration(tmp_path / "a.txt", torch.tensor(2)),
+                       read_kitti_calibration(tmp_path / "a.txt", 2))
+    assert Camera.from_kitti(tmp_path / "a.txt", cam=torch.tensor(0)).fx.tolist() == [700.0]
+    for cam, error, quoted in ((torch.tensor(5), ValueError, "5"), (torch.tensor(2.0), TypeError, "2.0"),
+                               (torch.tensor(True), TypeError, "tensor(True)")):
+        with pytest.raises(error, match=rf"cam: expected 0..3, got {re.escape(quoted)}"):
             Camera.from_kitti(tmp_path / "a.txt", cam=cam)
     (tmp_path / "b.txt").write_bytes(bytes(range(256)))
     with pytest.raises(ValueError, match=r"path: '.*b.txt' is not a text calibration file"):

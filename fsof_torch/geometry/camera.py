@@ -573,7 +573,9 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
 
 
 def check_camera_index(cam: object, name: str = "cam") -> int:
-    """A KITTI camera index: an int 0..3 (0/1 grey, 2/3 colour)."""
+    """A KITTI camera index: an int 0..3 (0/1 grey, 2/3 colour); a 0-d integer tensor is read as
+    its int, as every whole-number option reads one (docs/reliability.md)."""
+    cam = scalar(cam, name)
     if isinstance(cam, bool) or not isinstance(cam, numbers.Integral) or not 0 <= int(cam) <= 3:
         raise option_error(cam, f"{name}: expected 0..3, got {cam!r} (the KITTI camera index)", integer=True)
     return int(cam)
