@@ -383,6 +383,17 @@ def test_accumulator_merge_state_and_errors():
         one.update(bad, batches[0][1])
 
 
+def test_accumulator_device_is_checked_and_named():
+    """``device="gpu"`` (a typo for "cuda") raised torch's RuntimeError 'Expected one of cpu, cuda,
+    ... device type at start of device string: gpu', naming no argument."""
+    for device in ("cpu", torch.device("cpu"), None):
+        assert FlowMetricAccumulator(device=device).state.device == torch.device("cpu")
+    with pytest.raises(ValueError, match=r"device: expected None, a torch.device or a device string .*got 'gpu'"):
+        FlowMetricAccumulator(device="gpu")
+    with pytest.raises(TypeError, match=r"device: expected .*got 1.5"):
+        FlowMetricAccumulator(device=1.5)
+
+
 def test_accumulator_returns_what_flow_metrics_per_sample_returns():
     """Per-image values of update() are flow_metrics_per_sample's, dtype included: the working
     dtype, at least float32 (bfloat16 flows gave bfloat16 from update(), float32 from the other)."""

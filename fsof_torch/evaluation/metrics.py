@@ -355,6 +355,16 @@ class FlowMetricAccumulator:
     """
 
     def __init__(self, *, device: torch.device | str | None = None) -> None:
+        """``device``: where the sums are held (None: the default device), a ``torch.device``, a
+        device string such as ``"cuda:0"`` or a device index; anything else a ValueError (an
+        unknown string such as ``"gpu"``) or a TypeError naming ``device``."""
+        if device is not None and not isinstance(device, torch.device):
+            try:  # (torch's RuntimeError for "gpu" named no argument)
+                device = torch.device(device)
+            except (RuntimeError, TypeError):
+                error = ValueError if isinstance(device, str) else TypeError
+                raise error(f"device: expected None, a torch.device or a device string such as 'cpu' or "
+                            f"'cuda:0', got {device!r}") from None
         n = len(_MAPS)
         # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
         self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
