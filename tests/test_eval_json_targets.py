@@ -73,3 +73,26 @@ def test_json_beside_a_rendered_sequence_is_written(tmp_path, sequence):
     assert eval_main(["tables", "--only", "cvc12", "--size", "16", "24", "--pairs", "1", "--no-progress",
                       "--out", str(tmp_path / "out"), "--json", str(target)]) == 0
     assert target.is_file()
+
+
+@pytest.mark.parametrize("argv", [["refine"], *ARGVS])
+def test_json_on_a_fifo_is_refused(tmp_path, capsys, argv):
+    """``--json`` naming a FIFO (or, run as root, a device such as /dev/null) was removed at the
+    start and replaced by the JSON, a regular file: exit 0 and the FIFO gone. Now exit 2 naming
+    ``--json``, before any work."""
+    import os
+    import stat
+
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    if argv == ["refine"]:
+        status = refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
+                              "--no-figures", "--no-progress", "--out", str(tmp_path / "out"), "--json", str(fifo)])
+    else:
+        out = ["--out", str(tmp_path / "out")] if argv[0] != "train" else []
+        status = eval_main([*argv, *out, "--json", str(fifo)])
+    assert status == 2
+    err = capsys.readouterr().err
+    assert f"error: --json: {str(fifo)!r} is a FIFO, not a regular file, which the job would replace" in err, err
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
+    assert not (tmp_path / "out").exists()

@@ -310,3 +310,31 @@ def test_creation_error_names_the_option(tmp_path, monkeypatch):
     monkeypatch.setattr(atomic.os, "access", lambda path, mode: False)
     assert creation_error(tmp_path / "a", "--out") == (
         f"--out: the folder {str(tmp_path)!r} is not writable, so {str(tmp_path / 'a')!r} cannot be created")
+
+
+def test_a_fifo_or_device_is_not_replaced(tmp_path):
+    """The rename put a regular file in the place of a FIFO, and (run as root) of a device: a job's
+    ``--json /dev/null`` deleted the device node. Now a ValueError naming it, nothing written; the
+    jobs' check (creation_error) says so before any work. /dev/null is only stat'ed here."""
+    import stat
+
+    from fsof_torch.io.atomic import creation_error, special_file
+
+    fifo = tmp_path / "pipe.json"
+    os.mkfifo(fifo)
+    link = tmp_path / "link.json"
+    link.symlink_to(fifo)
+    for target in (fifo, link):
+        with pytest.raises(ValueError, match=rf"^path: '{fifo}' is a FIFO, not a regular file; writing it would "
+                                             rf"replace it"):
+            write_json(target, {"a": 1})
+        assert creation_error(target, "--json") == (
+            f"--json: {str(target)!r} is a FIFO, not a regular file, which the job would replace with its file; "
+            f"give a file path")
+    assert stat.S_ISFIFO(os.lstat(fifo).st_mode) and link.is_symlink() and _leftovers(tmp_path) == []
+    if os.path.exists("/dev/null"):
+        assert special_file("/dev/null") == "a character device"
+        assert creation_error("/dev/null", "--json").startswith("--json: '/dev/null' is a character device")
+    assert special_file(tmp_path) is None and special_file(tmp_path / "none") is None
+    (tmp_path / "f.json").write_text("{}")
+    assert special_file(tmp_path / "f.json") is None and creation_error(tmp_path / "f.json", "--json") is None

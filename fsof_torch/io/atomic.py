@@ -61,6 +61,8 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     replaced), and a symbolic link is written through: the file it points to is replaced.
     A folder at ``path`` is an IsADirectoryError naming it, a missing folder a FileNotFoundError
     naming ``path`` (or, where a file stands in the place of one of its folders, naming that file),
+    and a FIFO, device or socket at ``path`` (``/dev/null``, or a link to one such as
+    ``/dev/stdout``) a ValueError naming it, which the rename would replace with a regular file;
     each raised before anything is written.
 
     Example:
@@ -72,6 +74,10 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         path = Path(os.path.realpath(path))
     if path.is_dir():
         raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected a file path")
+    special = special_file(path)
+    if special is not None:  # (the rename would put a regular file in its place: /dev/null, a FIFO)
+        raise ValueError(f"path: {str(path)!r} is {special}, not a regular file; writing it would replace it with "
+                         f"one (the file is written beside it and renamed onto it); give a file path")
     folder = path.parent
     if not folder.is_dir():
         blocker = next((p for p in (folder, *folder.parents) if p.exists()), None)
@@ -232,6 +238,19 @@ def write_json(path: str | os.PathLike, obj: Any, *, indent: int = 2) -> Path:
     return write_text(path, text + "\n")
 
 
+def special_file(path: str | os.PathLike) -> str | None:
+    """What ``path`` is where it exists (through links) and is neither a regular file nor a folder
+    (``"a character device"``, ``"a block device"``, ``"a FIFO"``, ``"a socket"``); None otherwise.
+    A file written atomically is renamed onto its path, which would replace such a file."""
+    try:
+        mode = os.stat(path).st_mode
+    except (OSError, ValueError):
+        return None
+    kinds = ((stat.S_ISCHR, "a character device"), (stat.S_ISBLK, "a block device"), (stat.S_ISFIFO, "a FIFO"),
+             (stat.S_ISSOCK, "a socket"))
+    return next((name for test, name in kinds if test(mode)), None)
+
+
 def creation_error(path: str | os.PathLike, option: str) -> str | None:
     """Why ``path`` cannot be created (its nearest existing parent is a file, or a folder that
     cannot be written into), as a message naming ``option``; None where it can. The jobs check
@@ -239,6 +258,10 @@ def creation_error(path: str | os.PathLike, option: str) -> str | None:
     path = Path(path)
     if path.is_file() and not os.access(path, os.W_OK):
         return f"{option}: {str(path)!r} is read-only, so it cannot be written over"
+    special = special_file(path)
+    if special is not None:  # (a job removes its earlier output first, then writes a file there)
+        return (f"{option}: {str(path)!r} is {special}, not a regular file, which the job would replace with "
+                f"its file; give a file path")
     for parent in path.parents:
         if parent.exists():
             if not parent.is_dir():
