@@ -10,6 +10,7 @@ mixes two runs."""
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Iterable
 
@@ -132,10 +133,13 @@ def first_bad(*messages: str | None) -> str | None:
 def remove_outputs(folder: Path, names: Iterable[str]) -> None:
     """Remove the files ``names`` from ``folder``, every file the job can write there, before the
     job writes any: an earlier run's, which this run may not write again (a plot it skips, a JSON
-    it writes elsewhere), would stay beside the new ones and read as this run's."""
+    it writes elsewhere), would stay beside the new ones and read as this run's. For a symbolic
+    link that is the file it points to, which the job writes through it: the link stays."""
     for name in names:
         path = folder / name
-        if path.is_file() or path.is_symlink():  # (a folder of that name is not the job's: left)
+        if path.is_symlink():  # the job writes through a link (fsof_torch.io.atomic): its file is the output
+            path = Path(os.path.realpath(path))
+        if path.is_file():  # (a folder of that name is not the job's: left)
             path.unlink()
 
 

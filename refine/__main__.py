@@ -514,8 +514,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
             stack.enter_context(resume.locked(out))
             identity = _earlier_road_spelling(out, identity)
             resume.prepare(out, identity, overwrite=args.overwrite)
-            if args.json is not None:  # (as the report in --out: an earlier run's, written again last)
-                args.json.unlink(missing_ok=True)
+            if args.json is not None:  # (an earlier run's, written again last; through a link, as written)
+                Path(os.path.realpath(args.json)).unlink(missing_ok=True)
         except JobError as err:
             error = str(err)
     error, identity = distributed.broadcast_object((error, identity), world)

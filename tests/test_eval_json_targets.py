@@ -96,3 +96,29 @@ def test_json_on_a_fifo_is_refused(tmp_path, capsys, argv):
     assert f"error: --json: {str(fifo)!r} is a FIFO, not a regular file, which the job would replace" in err, err
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("argv", [["refine"], ["vflow", "--size", "48", "160", "--no-progress"],
+                                  ["tables", "--only", "cvc12", "--size", "16", "24", "--pairs", "1", "--no-progress"]])
+def test_json_through_a_link_keeps_the_link(tmp_path, argv):
+    """A ``--json`` that is a symbolic link is written through it, as fsof_torch.io.atomic writes
+    (and open()): the jobs removed the link itself at the start, then wrote a regular file in its
+    place, leaving the file it pointed to with the earlier run's JSON."""
+    import json
+
+    (tmp_path / "runs").mkdir()
+    real = tmp_path / "runs" / "first.json"
+    real.write_text('{"stale": true}\n')
+    link = tmp_path / "latest.json"
+    link.symlink_to(real)
+    if argv == ["refine"]:
+        status = refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
+                              "--no-figures", "--no-progress", "--out", str(tmp_path / "out"), "--json", str(link)])
+    else:
+        status = eval_main([argv[0], "--out", str(tmp_path / "out"), "--json", str(link), *argv[1:]])
+    assert status == 0
+    assert link.is_symlink() and link.resolve() == real.resolve()
+    written = json.loads(real.read_text())
+    assert "stale" not in written and written != {}
+    if argv == ["refine"]:
+        assert written == json.loads((tmp_path / "out" / "report.json").read_text())
