@@ -39,11 +39,13 @@ def build_parser(prog: str = "python -m eval") -> argparse.ArgumentParser:
 INTERRUPTED = 130
 #: the exit status of a run whose stdout's reader went away (``| head``): Python's own on EPIPE
 STDOUT_CLOSED = 1
+#: the exit status of a run that met a full disk (or a spent quota) writing its outputs
+WRITE_FAILED = 1
 
 
 def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
-    says so or stdout was closed by its reader, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
+    says so, stdout was closed by its reader or the disk is full, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
     than exiting."""
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
@@ -62,6 +64,15 @@ def main(argv: list[str] | None = None) -> int:
         print(f"{name}: stdout was closed by its reader (a broken pipe); the files written so far are kept, "
               f"each one whole", file=sys.stderr)
         return STDOUT_CLOSED
+    except OSError as err:
+        from fsof_torch.io.atomic import NO_SPACE
+
+        if err.errno not in NO_SPACE:
+            raise
+        name = f"eval {argv[0]}" if argv and argv[0] in SUBCOMMANDS else "eval"
+        print(f"{name}: {err.strerror.removeprefix('path: ')}; the files written so far are kept, each one whole",
+              file=sys.stderr)
+        return WRITE_FAILED
 
 
 def _main(argv: list[str]) -> int:

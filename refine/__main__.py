@@ -70,7 +70,8 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
 
     p = argparse.ArgumentParser(
         prog=prog, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-        epilog="Exit status: 0 done, 1 stdout closed by its reader (| head: the report is written), 2 bad "
+        epilog="Exit status: 0 done, 1 stdout closed by its reader (| head: the report is written) or the disk "
+               "full (the pairs finished are kept), 2 bad "
                "or missing input (with a message naming the option), 130 interrupted (Ctrl-C). An "
                "interrupted run resumes: pairs finished by a run of the same inputs and options are "
                "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
@@ -671,11 +672,13 @@ INTERRUPTED = 130
 
 #: the exit status of a run whose stdout's reader went away (``| head``): Python's own on EPIPE
 STDOUT_CLOSED = 1
+#: the exit status of a run that met a full disk (or a spent quota) writing its outputs
+WRITE_FAILED = 1
 
 
 def main(argv: list[str] | None = None) -> int:
-    """The job's entry point; returns the exit status (0 done, 1 stdout closed by its reader, 2 bad
-    input, 130 interrupted)."""
+    """The job's entry point; returns the exit status (0 done, 1 stdout closed by its reader or the
+    disk full, 2 bad input, 130 interrupted)."""
     try:
         return _main(argv)
     except KeyboardInterrupt:
@@ -691,6 +694,15 @@ def main(argv: list[str] | None = None) -> int:
         print("refine: stdout was closed by its reader (a broken pipe); the pairs finished and the "
               "report written so far are kept", file=sys.stderr)
         return STDOUT_CLOSED
+    except OSError as err:
+        from fsof_torch.io.atomic import NO_SPACE
+
+        if err.errno not in NO_SPACE:
+            raise
+        # (each file is written whole or not at all: the one that did not fit is not there)
+        print(f"refine: {err.strerror.removeprefix('path: ')}; the pairs finished so far are kept: make room and "
+              f"run the command again (without --overwrite) to resume", file=sys.stderr)
+        return WRITE_FAILED
 
 
 def _main(argv: list[str] | None) -> int:

@@ -25,6 +25,7 @@ only: its other names keep the old content.
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import numbers
@@ -43,6 +44,8 @@ __all__ = ["atomic_path", "write_bytes", "write_text", "write_json", "to_jsonabl
 #: the names :func:`atomic_path` gives its temporary files (:func:`_temporary_name`)
 TEMPORARY_NAME = re.compile(r"^\..+\.[0-9a-f]{16}\.tmp(\.[^.]*)?$")
 _NAME_MAX = 255  # bytes in a file name: ext4, XFS, Btrfs, APFS
+#: the errors of a full disk (or a user's quota spent): a write that meets one names its target
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
 
 
 @contextlib.contextmanager
@@ -63,7 +66,8 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     naming ``path`` (or, where a file stands in the place of one of its folders, naming that file),
     and a FIFO, device or socket at ``path`` (``/dev/null``, or a link to one such as
     ``/dev/stdout``) a ValueError naming it, which the rename would replace with a regular file;
-    each raised before anything is written.
+    each raised before anything is written. A full disk (ENOSPC, or a quota: EDQUOT) met while the
+    file is written is an OSError of that errno naming ``path`` (the writer's own names no file).
 
     Example:
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
@@ -104,9 +108,12 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
             mode = stat.S_IMODE(path.stat().st_mode) & 0o777
         os.chmod(tmp, mode)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
+        if isinstance(err, OSError) and err.errno in NO_SPACE and err.filename is None:
+            # (the writer's "[Errno 28] No space left on device" names no file)
+            raise OSError(err.errno, f"path: cannot write {str(path)!r}: {err.strerror}") from err
         raise
 
 
