@@ -45,6 +45,24 @@ def test_a_full_disk_names_the_file(tmp_path, monkeypatch, code):
     assert json.loads((tmp_path / "r.json").read_text()) == {"old": 1}
 
 
+def test_nested_writes_name_the_file_that_did_not_fit(tmp_path, monkeypatch):
+    """A writer that itself writes through atomic_path (a pair of synth, written whole: every
+    file to its temporary, then all renamed) names the outer target, not its hidden temporary, and
+    not each of the other files whose writes unwound after it (eval synth named all ten, nested)."""
+    import contextlib
+
+    from fsof_torch.io import atomic_path, write_bytes
+
+    fill_the_disk(monkeypatch, after=1)  # (the first file fits, the second does not)
+    with pytest.raises(OSError) as info:
+        with contextlib.ExitStack() as stack:
+            tmps = [stack.enter_context(atomic_path(tmp_path / name)) for name in ("c.png", "b.png", "a.png")]
+            for tmp in tmps[::-1]:
+                write_bytes(tmp, b"1")
+    assert info.value.strerror == f"path: cannot write {str(tmp_path / 'b.png')!r}: No space left on device"
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_other_errors_are_not_renamed(tmp_path, monkeypatch):
     fill_the_disk(monkeypatch, code=errno.EIO)
     with pytest.raises(OSError) as info:

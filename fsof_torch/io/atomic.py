@@ -111,9 +111,13 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     except BaseException as err:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()
-        if isinstance(err, OSError) and err.errno in NO_SPACE and err.filename is None:
-            # (the writer's "[Errno 28] No space left on device" names no file)
-            raise OSError(err.errno, f"path: cannot write {str(path)!r}: {err.strerror}") from err
+        ours = err.target == tmp if hasattr(err, "target") else getattr(err, "filename", None) in (None, str(tmp))
+        if isinstance(err, OSError) and err.errno in NO_SPACE and ours:
+            # (the writer's "[Errno 28] No space left on device" names no file, or this one's
+            # temporary: a writer that writes through atomic_path itself names that temporary)
+            full = OSError(err.errno, f"path: cannot write {str(path)!r}: {os.strerror(err.errno)}")
+            full.target = path
+            raise full from err
         raise
 
 
