@@ -47,9 +47,12 @@ def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
     says so, stdout was closed by its reader or the disk is full, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
     than exiting."""
+    from fsof_torch.io.progress import tolerant_stdout
+
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        return _main(argv)
+        with tolerant_stdout():  # (the tables' σ, Δ and ° where stdout writes cp1252 or ASCII)
+            return _main(argv)
     except KeyboardInterrupt:
         # (each output file is written whole or not at all, through a temporary file)
         name = f"eval {argv[0]}" if argv and argv[0] in SUBCOMMANDS else "eval"

@@ -679,8 +679,11 @@ WRITE_FAILED = 1
 def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 1 stdout closed by its reader or the
     disk full, 2 bad input, 130 interrupted)."""
+    from fsof_torch.io.progress import tolerant_stdout
+
     try:
-        return _main(argv)
+        with tolerant_stdout():  # (the tables' Δ and ° where stdout writes cp1252 or ASCII)
+            return _main(argv)
     except KeyboardInterrupt:
         # (after the run's ExitStack closed: the --out lock released, the process group finished)
         print("refine: interrupted; the pairs finished so far are kept: run the command again "

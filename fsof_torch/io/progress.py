@@ -2,15 +2,18 @@
 redraws on a terminal (or as a notebook's widget), and in a log (stderr a file or a pipe, as under
 CI) at most every :data:`LOG_INTERVAL` seconds, with the text shown after the bar updated at those
 redraws only, so that a log holds a few lines of progress rather than one per step. And the jobs'
-way out where their stdout's reader went away (:func:`silence_stdout`)."""
+way out where their stdout's reader went away (:func:`silence_stdout`), and their stdout where its
+encoding lacks a character they print (:func:`tolerant_stdout`)."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import sys
-from typing import Any, Iterable
+from typing import Any, Iterable, Iterator
 
-__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values", "silence_stdout"]
+__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values", "silence_stdout",
+           "tolerant_stdout"]
 
 #: seconds between two redraws of a bar whose stderr is not a terminal
 LOG_INTERVAL = 10.0
@@ -65,3 +68,26 @@ def silence_stdout() -> None:
         os.dup2(devnull, fd)
     finally:
         os.close(devnull)
+
+
+@contextlib.contextmanager
+def tolerant_stdout() -> Iterator[None]:
+    """Within it, a character that stdout's encoding lacks is printed as its escape (``\\u0394``
+    for the tables' Δ, ``\\u03c3`` for σ), as Python prints to stderr, rather than raising
+    UnicodeEncodeError once the job's files are written: a stdout redirected to a file on Windows
+    writes cp1252, which has neither, and ``PYTHONIOENCODING=ascii`` neither. Its own error
+    handler comes back after. A stdout that cannot be reconfigured (a notebook's, a test's
+    capture) is left as it is."""
+    stream = sys.stdout
+    errors = getattr(stream, "errors", None)
+    try:
+        stream.reconfigure(errors="backslashreplace")
+        changed = True
+    except (AttributeError, ValueError, OSError):
+        changed = False
+    try:
+        yield
+    finally:
+        if changed:
+            with contextlib.suppress(ValueError, OSError):  # (a closed pipe: its flush)
+                stream.reconfigure(errors=errors)
