@@ -75,6 +75,15 @@ def test_json_beside_a_rendered_sequence_is_written(tmp_path, sequence):
     assert target.is_file()
 
 
+def run_job(argv: list[str], out, json_path) -> int:
+    """``refine`` (a one-pair run) where ``argv`` is ``["refine"]``, else ``eval`` with ``argv``,
+    into ``out`` (not for ``train``, which has no output folder by default), with ``--json``."""
+    if argv == ["refine"]:
+        return refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
+                            "--no-figures", "--no-progress", "--out", str(out), "--json", str(json_path)])
+    return eval_main([*argv, *(["--out", str(out)] if argv[0] != "train" else []), "--json", str(json_path)])
+
+
 @pytest.mark.parametrize("argv", [["refine"], *ARGVS])
 def test_json_on_a_fifo_is_refused(tmp_path, capsys, argv):
     """``--json`` naming a FIFO (or, run as root, a device such as /dev/null) was removed at the
@@ -85,13 +94,7 @@ def test_json_on_a_fifo_is_refused(tmp_path, capsys, argv):
 
     fifo = tmp_path / "pipe.json"
     os.mkfifo(fifo)
-    if argv == ["refine"]:
-        status = refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
-                              "--no-figures", "--no-progress", "--out", str(tmp_path / "out"), "--json", str(fifo)])
-    else:
-        out = ["--out", str(tmp_path / "out")] if argv[0] != "train" else []
-        status = eval_main([*argv, *out, "--json", str(fifo)])
-    assert status == 2
+    assert run_job(argv, tmp_path / "out", fifo) == 2
     err = capsys.readouterr().err
     assert f"error: --json: {str(fifo)!r} is a FIFO, not a regular file, which the job would replace" in err, err
     assert stat.S_ISFIFO(os.lstat(fifo).st_mode)
@@ -111,12 +114,7 @@ def test_json_through_a_link_keeps_the_link(tmp_path, argv):
     real.write_text('{"stale": true}\n')
     link = tmp_path / "latest.json"
     link.symlink_to(real)
-    if argv == ["refine"]:
-        status = refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
-                              "--no-figures", "--no-progress", "--out", str(tmp_path / "out"), "--json", str(link)])
-    else:
-        status = eval_main([argv[0], "--out", str(tmp_path / "out"), "--json", str(link), *argv[1:]])
-    assert status == 0
+    assert run_job(argv, tmp_path / "out", link) == 0
     assert link.is_symlink() and link.resolve() == real.resolve()
     written = json.loads(real.read_text())
     assert "stale" not in written and written != {}
