@@ -38,7 +38,7 @@ def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str
         return None
     if path.exists() and not path.is_dir():
         return f"{option}: {str(path)!r} is a file; expected a folder (it is created if missing)"
-    bad = creation_error(path, option)
+    bad = creation_error(path, option, folder=True)
     if bad is not None:
         return bad
     for name in files:

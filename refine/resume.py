@@ -49,9 +49,9 @@ def fingerprint(identity: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def _creatable(path: Path, option: str) -> None:
+def _creatable(path: Path, option: str, *, folder: bool = False) -> None:
     """``path`` can be created (:func:`fsof_torch.io.atomic.creation_error`), else a JobError."""
-    bad = creation_error(path, option)
+    bad = creation_error(path, option, folder=folder)
     if bad is not None:
         raise JobError(bad)
 
@@ -60,7 +60,7 @@ def check_out_path(out: Path) -> None:
     """``--out`` must be a folder or not exist yet (checked before any work)."""
     if out.exists() and not out.is_dir():
         raise JobError(f"--out: {str(out)!r} is a file; expected a folder (it is created if missing)")
-    _creatable(out, "--out")
+    _creatable(out, "--out", folder=True)
 
 
 def check_json_path(path: Path | None, out: Path, inputs: dict[str, Path | None] | None = None) -> None:

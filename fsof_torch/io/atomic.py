@@ -262,11 +262,21 @@ def special_file(path: str | os.PathLike) -> str | None:
     return next((name for test, name in kinds if test(mode)), None)
 
 
-def creation_error(path: str | os.PathLike, option: str) -> str | None:
+def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False) -> str | None:
     """Why ``path`` cannot be created (its nearest existing parent is a file, or a folder that
-    cannot be written into), as a message naming ``option``; None where it can. The jobs check
-    their outputs with it before any work."""
+    cannot be written into, or a symbolic link to nothing stands on the way: a drive not mounted),
+    as a message naming ``option``; None where it can. ``folder``: ``path`` is to be a folder, which
+    a link to nothing at ``path`` cannot become (a file is written through it where its target's
+    folder exists, as :func:`atomic_path` writes). The jobs check their outputs with it before any
+    work."""
     path = Path(path)
+    if path.is_symlink() and not path.exists():
+        target = Path(os.path.realpath(path))
+        if folder or not target.parent.is_dir():
+            return (f"{option}: {str(path)!r} is a symbolic link to {str(target)!r}, "
+                    + ("which does not exist" if folder else "whose folder does not exist")
+                    + "; mount or create it, or give another path")
+        path = target
     if path.is_file() and not os.access(path, os.W_OK):
         return f"{option}: {str(path)!r} is read-only, so it cannot be written over"
     special = special_file(path)
@@ -274,6 +284,9 @@ def creation_error(path: str | os.PathLike, option: str) -> str | None:
         return (f"{option}: {str(path)!r} is {special}, not a regular file, which the job would replace with "
                 f"its file; give a file path")
     for parent in path.parents:
+        if parent.is_symlink() and not parent.exists():
+            return (f"{option}: {str(parent)!r} is a symbolic link to {os.path.realpath(parent)!r}, which does not "
+                    f"exist, so {str(path)!r} cannot be created; mount or create it, or give another path")
         if parent.exists():
             if not parent.is_dir():
                 return f"{option}: {str(parent)!r} is a file, so {str(path)!r} cannot be created"
