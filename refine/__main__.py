@@ -395,7 +395,8 @@ def _configure(args: argparse.Namespace):
             raise JobError("--road: synthetic scenes use their own road mask, or 'auto'")
         specs = synthetic_pairs(args.preset, args.num_pairs, seed=args.seed, size=args.size, road=args.road,
                                 noise=args.scene_noise)
-        title = f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pairs, {args.size[0]}x{args.size[1]}"
+        title = (f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pair{'' if args.num_pairs == 1 else 's'}, "
+                 f"{args.size[0]}x{args.size[1]}")
         sources = args.source or default_sources or ["dis", "testnet"]
         variants = args.odometry or ["given", "fit", "photometric"]
         notes.append("Synthetic scene: odometry and flow ground truth are the scene's (exact); road mask: "

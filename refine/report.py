@@ -187,6 +187,12 @@ def _ordered_sum(values: torch.Tensor) -> float:
     return total
 
 
+def _fmt_change(pct: Any) -> str:
+    """A Δ% cell, one decimal: a change that rounds to zero prints 0.0, never -0.0."""
+    text = _fmt(pct, 1)
+    return "0.0" if text == "-0.0" else text
+
+
 def _fmt(x: Any, digits: int = 3) -> str:
     if x is None:
         return "–"
@@ -217,7 +223,7 @@ def table_markdown(summary: dict) -> str:
                 cells.append(name)
                 for key in (road, every):
                     before, after = r.get(f"{key}_before"), r.get(f"{key}_after")
-                    change = "n/a" if _no_relative_change(before, after) else _fmt(r.get(f"{key}_change_pct"), 1)
+                    change = "n/a" if _no_relative_change(before, after) else _fmt_change(r.get(f"{key}_change_pct"))
                     cells += [_fmt(before, digits), _fmt(after, digits), change]
                 lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)

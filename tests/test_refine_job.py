@@ -1062,6 +1062,29 @@ def test_a_change_from_zero_prints_n_a_not_the_mark_of_no_pixel(tmp_path, user_f
     assert "'–': measured over no pixel" not in report  # every metric was measured
 
 
+def test_a_change_that_rounds_to_zero_prints_0_0_not_minus_0_0():
+    """A Δ% between -0.05 and 0 (an error that barely moved) rounds to zero: the table prints 0.0,
+    as for no change at all, not '-0.0'; the JSON keeps the exact change."""
+    from refine.report import table_markdown
+
+    row = {"source": "dis", "variant": "given", "refined": 1, "pairs": 1,
+           "epe_road_before": 2.0, "epe_road_after": 1.9992, "epe_road_change_pct": 100.0 * (1.9992 - 2.0) / 2.0,
+           "epe_all_before": 3.0, "epe_all_after": 2.97, "epe_all_change_pct": 100.0 * (2.97 - 3.0) / 3.0}
+    (line,) = [ln for ln in table_markdown({"rows": [row]}).splitlines() if "end-point error" in ln]
+    cells = [c.strip() for c in line.strip("|").split("|")]
+    assert cells[4:10] == ["2.000", "1.999", "0.0", "3.000", "2.970", "-1.0"]
+
+
+def test_the_title_of_a_one_pair_run_says_pair(tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out),
+                 *TINY]) == 0
+    title = f"refine: synthetic 'default' sequence, 1 pair, {SIZE[0]}x{SIZE[1]}"
+    assert (out / "report.md").read_text().splitlines()[0] == f"# {title}"
+    assert f"\n{title}\n" in capsys.readouterr().out
+    assert json.loads((out / "report.json").read_text())["title"] == title
+
+
 def test_user_data_polygon_json_road(tmp_path, user_folder, scene_pairs):
     poly = {"size": list(SIZE), "road_polygon": [[0, 47], [40, 36], [120, 36], [159, 47]]}
     (user_folder / "road.json").write_text(json.dumps(poly))
