@@ -235,9 +235,9 @@ def run(args: argparse.Namespace) -> int:
                                       progress=not args.no_progress)
 
     pose_rows = pose.rows()
-    args.out.mkdir(parents=True, exist_ok=True)
     files = {}
-    if not args.no_plots:
+    if not args.no_plots:  # (--out is created where the job writes into it: not with --no-plots and --json elsewhere)
+        args.out.mkdir(parents=True, exist_ok=True)
         files["noise_robustness"] = args.out / "noise_robustness.png"
         files["pose_errors"] = args.out / "pose_errors.png"
         files["pose_scatter"] = args.out / "pose_scatter.png"
