@@ -486,6 +486,20 @@ def test_jobs_md_lists_each_eval_subcommands_options(name):
     assert set(re.findall(r"`(--[\w-]+)", item)) <= _options(parser) | {"--kitti15"}
 
 
+@pytest.mark.parametrize("name", ["tables", "noise", "vflow"])
+def test_jobs_md_says_where_an_eval_json_goes_as_the_help_does(name):
+    """``--json PATH`` of these subcommands replaces ``DIR/<name>.json`` (their --help says so): the
+    option list says so too, not that the JSON is written there as well."""
+    text = (DOCS / "jobs.md").read_text()
+    start = text.index(f"- `{name}`: ", text.index("Options:\n\n- `synth`"))
+    parser = argparse.ArgumentParser()
+    importlib.import_module(f"eval.{name}").add_arguments(parser)
+    (json_help,) = [a.help for a in parser._actions if "--json" in a.option_strings]
+    assert json_help == f"write the JSON here instead of DIR/{name}.json"
+    item = text[start:text.index("\n\n", start)]
+    assert f"`--json PATH` (the JSON is written there instead of `DIR/{name}.json`)" in item
+
+
 # -- the commands --------------------------------------------------------------------------------
 
 def _commands():
