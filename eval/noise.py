@@ -28,7 +28,7 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
-from .paths import MAX_SIDE
+from .paths import MAX_SIDE, file_path
 
 DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
 DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -40,7 +40,7 @@ MAX_TRIALS = 100_000
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/noise"), metavar="DIR",
                         help="output folder for the PNGs and noise.json (default runs/noise)")
-    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+    parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/noise.json")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help=f"render size of the CVC12-like scenes, each side 16 to {MAX_SIDE} "

@@ -16,6 +16,7 @@ from typing import Iterable
 
 from fsof_torch.data.scene.render import MAX_SIDE  # noqa: F401 (the largest side of a size option, the renderer's)
 from fsof_torch.io.atomic import creation_error
+from refine.resume import file_path  # noqa: F401 (the type of a file option: a path ending in '/' is refused)
 
 
 def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:

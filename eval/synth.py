@@ -16,7 +16,7 @@ from pathlib import Path
 
 import torch
 
-from .paths import MAX_SIDE
+from .paths import MAX_SIDE, file_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -28,7 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help=f"image size, each side at most {MAX_SIDE} (default: the preset's)")
     parser.add_argument("--seed", type=int, default=0, help="random seed of the scene (default 0)")
     parser.add_argument("--float64", action="store_true", help="render in float64 (slower; flow is stored to 1/64 px anyway)")
-    parser.add_argument("--json", type=Path, default=None, metavar="PATH", help="also write the summary as JSON")
+    parser.add_argument("--json", type=file_path, default=None, metavar="PATH", help="also write the summary as JSON")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from .paths import MAX_SIDE
+from .paths import MAX_SIDE, file_path
 
 #: The paper's published figures (freespace-optical-flow.tex, Tables "CVC12", "CARLA", "KITTI").
 PAPER_CVC12 = {("simple", 1): (0.003, 0.609), ("simple", 4): (0.003, 0.704),
@@ -50,7 +50,7 @@ KITTI_FILES = ("flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, default=Path("runs/tables"), metavar="DIR",
                         help="output folder for tables.json and tables.md (default runs/tables)")
-    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+    parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/tables.json")
     # (the synthetic tables' options default to None: not given, so that one given to a run of
     # the KITTI table alone is refused, even at its default)

@@ -28,7 +28,7 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
-from .paths import MAX_SIDE
+from .paths import MAX_SIDE, file_path
 
 # The largest --index: 10 000 pairs are over 15 minutes of driving at 10 Hz, and the scene is laid
 # out up to the pair asked for, so time and memory grow with the index.
@@ -69,7 +69,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="relative row threshold: max(PX, FRAC·|F_v|) (default 0.05)")
     parser.add_argument("--out", type=Path, default=Path("runs/vflow"), metavar="DIR",
                         help="output folder (default runs/vflow)")
-    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+    parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/vflow.json")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
 

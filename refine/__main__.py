@@ -66,6 +66,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     from fsof_torch.data.scene.render import MAX_SIDE
 
     from .job import VARIANTS
+    from .resume import file_path
     from .sources import CONTRACTS, SOURCES
 
     p = argparse.ArgumentParser(
@@ -150,7 +151,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     g = p.add_argument_group("output")
     g.add_argument("--out", type=Path, default=None,
                    help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
-    g.add_argument("--json", type=Path, metavar="PATH",
+    g.add_argument("--json", type=file_path, metavar="PATH",
                    help="also write the report JSON here (not an input, nor inside --out but OUT/report.json, "
                         "nor inside another run's output folder)")
     g.add_argument("--overwrite", action="store_true",

@@ -63,6 +63,18 @@ def check_out_path(out: Path) -> None:
     _creatable(out, "--out", folder=True)
 
 
+def file_path(text: str) -> Path:
+    """The ``type`` of an option that names a file the job writes (``--json``, ``eval train``'s
+    ``--dump-first-step``): a path whose last part is no file name (``DIR/``, ``DIR/.``, ``..``,
+    which ``Path`` would read as ``DIR``, writing a file of that name) names a folder: argparse
+    exits 2 naming the option."""
+    import argparse
+
+    if text.endswith((os.sep, os.altsep or os.sep)) or os.path.basename(text) in ("", ".", ".."):
+        raise argparse.ArgumentTypeError(f"expected a file path, got {text!r}, which names a folder")
+    return Path(text)
+
+
 def check_json_path(path: Path | None, out: Path, inputs: dict[str, Path | None] | None = None) -> None:
     """``--json`` must name a file that can be written, none of the run's inputs (``inputs``: the
     files and folders the options name, by option; None where not given; a path inside an input

@@ -5,6 +5,9 @@ no longer read back). Every subcommand refuses it before any work, exit 2 naming
 
 from __future__ import annotations
 
+import argparse
+from pathlib import Path
+
 import pytest
 
 from eval.__main__ import main as eval_main
@@ -120,3 +123,33 @@ def test_json_through_a_link_keeps_the_link(tmp_path, argv):
     assert "stale" not in written and written != {}
     if argv == ["refine"]:
         assert written == json.loads((tmp_path / "out" / "report.json").read_text())
+
+
+@pytest.mark.parametrize("argv", [["refine"], *ARGVS])
+@pytest.mark.parametrize("suffix", ["/", "/.", "//"])
+def test_json_ending_in_a_slash_is_refused(tmp_path, capsys, argv, suffix):
+    """``--json DIR/`` names a folder; ``Path`` dropped the slash, and the job wrote a file named
+    ``DIR``. Now exit 2 naming ``--json``, before any work: nothing is written."""
+    given = f"{tmp_path / 'report'}{suffix}"
+    assert run_job(argv, tmp_path / "out", given) == 2
+    err = capsys.readouterr().err
+    assert f"error: argument --json: expected a file path, got {given!r}, which names a folder" in err, err
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_dump_first_step_ending_in_a_slash_is_refused(tmp_path, capsys):
+    given = f"{tmp_path / 'dump'}/"
+    assert eval_main(["train", "--steps", "1", "--no-progress", "--dump-first-step", given]) == 2
+    err = capsys.readouterr().err
+    assert f"error: argument --dump-first-step: expected a file path, got {given!r}, which names a folder" in err, err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_file_path_names_a_file():
+    from refine.resume import file_path
+
+    assert file_path("a/b.json") == Path("a/b.json") and file_path("b") == Path("b")
+    assert file_path("./x.json") == Path("x.json") and file_path("a/.b") == Path("a/.b")
+    for text in ("", ".", "..", "a/", "a/.", "a/..", "/"):
+        with pytest.raises(argparse.ArgumentTypeError, match="expected a file path"):
+            file_path(text)
