@@ -550,6 +550,28 @@ def test_a_velocity_odometry_is_named_not_left_aside(estimator):
             detect_road(*images, p["camera"], flow=flow, estimator=estimator, odometry=odometry)
 
 
+def test_the_image_fit_names_a_frame_mask_or_flow_on_another_device():
+    """fit_image and ImageMotionEstimator named no argument on another device than image1: a
+    CUDA mask or frame with CPU ones came to torch's own error from inside the fit (a tensor on
+    meta, the one device a CPU test has besides the CPU, was named only for having no values).
+    Now, as the rest of the library: "<name>: expected the device of image1 (cpu), got meta"."""
+    from fsof_torch import fit_image
+
+    p = render_pair("default", 0, size=(24, 80))
+    flow, road, cam = p["flow"][None], p["road"][None], p["camera"]
+    args = {"image1": p["image1"][None], "image2": p["image2"][None], "mask": road}
+    for name in ("image2", "mask"):
+        mixed = dict(args, **{name: args[name].to("meta")})
+        with pytest.raises(ValueError, match=rf"^{name}: expected the device of image1 \(cpu\), got meta$"):
+            fit_image(mixed["image1"], mixed["image2"], mixed["mask"], cam)
+        with pytest.raises(ValueError, match=rf"^{name}: expected the device of image1 \(cpu\), got meta$"):
+            ImageMotionEstimator()(flow, mixed["mask"], cam, images=(mixed["image1"], mixed["image2"]))
+    with pytest.raises(ValueError, match=r"^flow: expected the device of image1 \(cpu\), got meta$"):
+        ImageMotionEstimator()(flow.to("meta"), road, cam, images=(args["image1"], args["image2"]))
+    with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(meta\), got cpu$"):
+        fit_image(args["image1"].to("meta"), args["image2"], road, cam)
+
+
 def test_starts_and_priors_on_the_meta_device_are_named():
     """A start or a prior on the meta device with real data: a ValueError naming its key (was a
     TypeError "expected a number or a tensor", a tensor it was, or torch's "Cannot copy out of

@@ -43,8 +43,8 @@ import torch
 from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_data_range, check_fit_flags, check_has_values,
-                      check_image_pair, check_image_range, check_keywords, check_shape, inference, result_dtype,
-                      scalar)
+                      check_image_pair, check_image_range, check_keywords, check_same_device, check_shape, inference,
+                      result_dtype, scalar)
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
@@ -379,6 +379,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         min_points=min_points, min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation,
         data_range=data_range, check_every=check_every, forward_starts=forward_starts, turn_starts=turn_starts,
         reverse_starts=reverse_starts, retry_starts=retry_starts, retry_without_prior=retry_without_prior)
+    # (the frames and the mask on one device, named before torch's error from inside would come;
+    # the camera and the starts follow image1's)
+    check_same_device({n: t for n, t in (("image1", image1), ("image2", image2), ("mask", mask)) if isinstance(t, Tensor)})
     for name, t in (("image1", image1), ("image2", image2), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, mask = _check_images(image1, image2, mask, camera, data_range)

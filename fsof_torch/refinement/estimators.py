@@ -25,8 +25,8 @@ import torch
 from torch import Tensor
 
 from .._check import (all_finite, batch_choices, check_batch, check_bool, check_float_tensor, check_has_values,
-                      check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number, check_shape,
-                      inference, skip_values)
+                      check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number,
+                      check_same_device, check_shape, inference, skip_values)
 from ..estimation.flow_fit import RoadFit, check_road_fit_options, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
@@ -301,6 +301,9 @@ class ImageMotionEstimator:
         image1, image2 = images
         # (the images first: a flow of another size is named, not the frames)
         dims = check_image_pair(image1, image2)
+        # (the frames, the mask and the flow on one device: named before torch's error from inside)
+        check_same_device({n: t for n, t in (("image1", image1), ("image2", image2), ("mask", mask), ("flow", flow))
+                           if isinstance(t, Tensor)})
         check_has_values(image1, "image1", "to fit (a fit is iterative and data dependent)")
         if not isinstance(camera, Camera):
             raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
