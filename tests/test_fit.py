@@ -236,6 +236,31 @@ def test_exceptions_degenerate_inputs_flagged(case):
     assert bool(torch.isfinite(fit.flow).all())
 
 
+def test_a_homography_fit_of_a_flow_beyond_its_model_fails_instead_of_naming_h():
+    """fit_road(model="homography") turned its DLT start into values with homography_values, which
+    raised "H: ... a last entry of 1, which the 'homography' model cannot express" for a finite
+    flow of ~1e15 px and more (its K⁻¹ H K too large for the last entry to count): an argument
+    the caller never gave. Now that frame starts from its default, as the plane's degenerate DLT
+    does, and fails (success False, finite parameters); a good frame beside it fits as alone
+    (up to the batch's rounding)."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.02, 1.0, 0.01, SIZE)
+    mask = road_mask(valid)
+    H, W = SIZE
+    x = torch.arange(W, dtype=flow.dtype).expand(H, W)
+    huge = torch.stack([x * 1e15, torch.zeros_like(x)])[None]  # (finite: the flow check lets it in)
+    for bad in (huge, flow * 1e18):
+        fit = fit_road(torch.cat([flow, bad]), mask.expand(2, -1, -1, -1), cam, model="homography")
+        assert fit.success.tolist() == [True, False]
+        assert all(bool(torch.isfinite(v).all()) for v in fit.params.values())
+        alone = fit_road(flow, mask, cam, model="homography")
+        for name, v in alone.params.items():
+            torch.testing.assert_close(fit.params[name][:1], v, rtol=0, atol=1e-9)
+        truth = road_homography(cam, {"x_d": 0.02, "z_d": 1.0, "yaw": 0.01})
+        torch.testing.assert_close(fit.homography[0] / fit.homography[0, 2, 2], truth[0] / truth[0, 2, 2],
+                                   rtol=0, atol=1e-3)
+
+
 def test_no_motion_is_fine_with_the_mounting_fixed():
     cam = small_camera()
     flow, valid = displacement_flow(cam, 0.0, 0.0, 0.0, SIZE)
