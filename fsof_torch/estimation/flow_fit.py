@@ -31,6 +31,7 @@ from .._check import (autocast_off, batch_choices, check_batch, check_bool, chec
                       check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, scalar,
                       summary_repr, to_device)
 from ..geometry.camera import Camera
+from ..geometry.egomotion import scalable_map
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import (ROAD_MODELS, RoadModel, get_road_model, homography_values, pack_params,
                                     plane_from_homography)
@@ -398,12 +399,9 @@ def _initial(model: RoadModel, camera: Camera, K_inv: Tensor, values: Tensor, pt
         plane = plane_from_homography(torch.where(usable.reshape(-1, 1, 1), H, eye), cam)
         out = torch.stack([plane[n] for n in model.params], dim=-1)
         return torch.where(torch.isfinite(out) & usable.unsqueeze(-1), out, values)
-    # a frame whose DLT the model cannot express (K⁻¹ H K's last entry 0 up to rounding, as
-    # homography_values judges it: a flow of 1e15 px or more) keeps its start, as the plane's does
-    G = K_inv @ H @ camera.K
-    G22 = G[:, 2:3, 2:3]
-    usable = (G22.abs() > 16 * torch.finfo(G.dtype).eps * G.abs().amax((-2, -1), keepdim=True)).reshape(-1)
-    usable &= torch.isfinite(G / G22).flatten(1).all(1)
+    # a frame whose DLT the model cannot express (K⁻¹ H K's last entry 0 up to rounding, which
+    # homography_values refuses: a flow of 1e15 px or more) keeps its start, as the plane's does
+    usable = scalable_map(K_inv @ H @ camera.K)
     eye = torch.eye(3, dtype=H.dtype, device=H.device)
     out = homography_values(torch.where(usable.reshape(-1, 1, 1), H, eye), camera.K, K_inv)
     return torch.where(usable.unsqueeze(-1), out, values)

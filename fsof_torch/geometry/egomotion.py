@@ -134,6 +134,14 @@ def check_invertible(M: Tensor, name: str) -> None:
                          f"e.g. {M64[bad[0]].tolist()}")
 
 
+def scalable_map(G: Tensor) -> Tensor:
+    """(B,) whether the maps G (B, 3, 3) scale to a last entry of 1: that entry is not 0 up to the
+    rounding of a product of such maps (16 ulps of G's largest entry), and G scaled by it is
+    finite (False for a map holding NaN). The ``"homography"`` road model expresses K⁻¹ H K so."""
+    zero = G[:, 2, 2].abs() <= 16 * torch.finfo(G.dtype).eps * G.abs().flatten(1).amax(1)
+    return ~zero & torch.isfinite(G / G[:, 2:3, 2:3]).flatten(1).all(1)
+
+
 def _axis_angle(R: Tensor) -> Tensor:
     """Axis-angle vectors (B, 3) of rotation matrices (B, 3, 3) (angles below π)."""
     w = torch.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], dim=-1)

@@ -57,7 +57,7 @@ from torch import Tensor
 from .._check import (autocast_off, as_batch_param, check_all_finite, check_float_tensor, check_shape, resolve_batch,
                       result_dtype, skip_values, tracing)
 from .camera import Camera, check_camera
-from .egomotion import as_pose_4x4, check_invertible, check_motion_step
+from .egomotion import as_pose_4x4, check_invertible, check_motion_step, scalable_map
 
 __all__ = ["RoadModel", "ROAD_MODELS", "get_road_model", "road_homography", "road_motion", "is_planar_odometry",
            "homography_values", "pack_params", "unpack_params", "rotation_angles", "plane_from_pose",
@@ -614,9 +614,7 @@ def homography_values(H: Tensor, K: Tensor, K_inv: Tensor) -> Tensor:
         G = K_inv.to(dtype) @ H.to(dtype) @ K.to(dtype)
         out = (G / G[:, 2:3, 2:3] - torch.eye(3, dtype=G.dtype, device=G.device)).reshape(-1, 9)[:, :8]
     if not skip_values(out):
-        # (0 up to the rounding of the product: 16 ulps of its largest entry; NaN in: NaN out, as before)
-        zero = G[:, 2, 2].abs() <= 16 * torch.finfo(G.dtype).eps * G.abs().flatten(1).amax(1)
-        bad = torch.isfinite(G).flatten(1).all(1) & (zero | ~torch.isfinite(out).all(1))
+        bad = torch.isfinite(G).flatten(1).all(1) & ~scalable_map(G)  # (NaN in: NaN out, as before)
         if bool(bad.any()):
             i = bad.nonzero().flatten().tolist()
             raise ValueError(f"H: samples {i} have K⁻¹ H K with a last entry of {float(G[i[0], 2, 2]):.3g}, "
