@@ -19,11 +19,18 @@ from .auto_road import ROAD_RESERVED, check_motion, detect_road
 from .contracts import collect_flows, finest_flow
 from ..warn import warn_user
 
-__all__ = ["refine_with_auto_road"]
+__all__ = ["refine_with_auto_road", "motion_complete"]
 
 #: True while :func:`refine_with_auto_road` refines inside the road it found: the refinement leaves
 #: the warning that names its samples left unchanged to it, which names them with the reason
 UNCHANGED_NAMED: ContextVar[bool] = ContextVar("UNCHANGED_NAMED", default=False)
+
+
+def motion_complete(odometry: object, fit: object) -> bool:
+    """Whether ``odometry`` gives the road's whole motion, so that ``mask="auto"``'s detection
+    estimates none: a road model's full motion, or a planar one that the refiner's ``fit``
+    completes."""
+    return odometry is not None and (not is_planar_odometry(odometry) or fit is not None)
 
 
 def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odometry: object, *, images: Any,
@@ -66,12 +73,12 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
             n_bad = int((~torch.isfinite(finest.detach()).all(1)).sum())
             if n_bad:
                 warn_user(f"flow: {n_bad} non-finite predicted pixels left as they came: mask='auto' without "
-                            f"images finds the road on the prediction, which has no flow there (with images= the road "
-                            f"is found in the images, and inside it the model replaces them; or give a mask)")
+                          f"images finds the road on the prediction, which has no flow there (with images= the road "
+                          f"is found in the images, and inside it the model replaces them; or give a mask)")
         return refine(flow, road, camera, odometry, images=None, warn=warn, **kw)
     image1, image2 = images
     B = finest.shape[0]
-    complete = odometry is not None and (not is_planar_odometry(odometry) or kw.get("fit") is not None)
+    complete = motion_complete(odometry, kw.get("fit"))
     if complete:  # (checked here: detect_road's errors would name its `motion`)
         check_motion(odometry, B, finest.device, "odometry")
     starts = kw.pop("starts", ())

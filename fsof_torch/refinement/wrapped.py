@@ -17,8 +17,8 @@ from .._check import (batch_choices, check_float_tensor, check_image_range, chec
                       check_mask, check_shape, scalar)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
-from ..geometry.road_models import is_planar_odometry, road_motion_batch
-from .auto_refine import refine_with_auto_road
+from ..geometry.road_models import road_motion_batch
+from .auto_refine import motion_complete, refine_with_auto_road
 from .auto_road import ROAD_RESERVED, check_road_size, detect_road, road_level
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow
@@ -182,8 +182,8 @@ class FreespaceRefined(nn.Module):
                               displacement=True)
         if mask is None:  # road="auto": its options against these images and the camera, as the detection will
             # (it estimates the motion unless given a complete one: as refine_flow's mask="auto" decides)
-            complete = odometry is not None and (not is_planar_odometry(odometry) or self.refiner.fit is not None)
-            _check_road_against(self.road_options or {}, tuple(image1.shape), camera, estimated=not complete)
+            estimated = not motion_complete(odometry, self.refiner.fit)
+            _check_road_against(self.road_options or {}, tuple(image1.shape), camera, estimated=estimated)
         padding = self.pad.padding(size) if self.pad is not None else None
 
         def own(x: Tensor) -> Tensor:
