@@ -182,11 +182,13 @@ def test_a_class_given_for_the_net_refiner_or_pad_is_named_when_built():
     {"window": 8}, {"height_window": 1}, {"window": "7"}, {"level": -1}, {"seed_level": 1.5}, {"z": -1.0},
     {"min_misfit_px": float("nan")}, {"seed_width_m": float("inf")}, {"min_height_m": 0.0},
     {"max_height_m": 0.05}, {"max_height_m": 2.0}, {"slow_max_height_m": 0.2}, {"slow_max_height_m": True},
-    {"min_coverage": 1.5}, {"min_coverage": None}, {"window": torch.tensor(4)}])
+    {"min_coverage": 1.5}, {"min_coverage": None}, {"window": torch.tensor(4)},
+    {"edges": "yes"}, {"refit": 1}, {"edges": torch.tensor(True)}, {"refit": None}])
 def test_road_option_values_are_checked_when_built_with_detect_roads_errors(wide, options):
     """A bad value of road="auto"'s road_options raised only at the first call, from detect_road,
     after the network had run (only the names were checked when made); now when made, with the
-    error detect_road gives for it (its defaults for the options not given)."""
+    error detect_road gives for it (its defaults for the options not given). The flags (edges,
+    refit) too: they were left to the first call after the others were checked when made."""
     with pytest.raises((TypeError, ValueError)) as expected:
         detect_road(wide["image1"], wide["image2"], wide["camera"], **options)
     net = Net(wide["pred"])

@@ -499,11 +499,11 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
-                   min_coverage=min_coverage)
+                   min_coverage=min_coverage, refit=refit, edges=edges)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
-     z, min_misfit_px, min_coverage) = options.values()  # (as int / float)
-    edges, refit, warn = check_bool(edges, "edges"), check_bool(refit, "refit"), check_bool(warn, "warn")
+     z, min_misfit_px, min_coverage, refit, edges) = options.values()  # (as int / float / bool)
+    warn = check_bool(warn, "warn")
     check_estimator(estimator)
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
         raise TypeError(f"starts: expected a sequence of start candidates, got {type(starts).__name__} {starts!r:.60}")

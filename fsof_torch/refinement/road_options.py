@@ -9,16 +9,17 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
-from .._check import is_number, option_error, scalar
+from .._check import check_bool, is_number, option_error, scalar
 
 __all__ = ["SLOW_MAX_HEIGHT_M", "ROAD_VALUE_OPTIONS", "check_road_values"]
 
 #: detect_road's default ``slow_max_height_m`` (metres), named in its error
 SLOW_MAX_HEIGHT_M = 1.2
 _INT_OPTIONS = ("level", "seed_level", "window", "height_window")
+_FLAG_OPTIONS = ("refit", "edges")
 #: detect_road's options whose values :func:`check_road_values` checks
 ROAD_VALUE_OPTIONS = _INT_OPTIONS + ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m",
-                                     "slow_max_height_m", "z", "min_misfit_px", "min_coverage")
+                                     "slow_max_height_m", "z", "min_misfit_px", "min_coverage") + _FLAG_OPTIONS
 
 
 def check_road_values(options: Mapping[str, Any]) -> dict[str, Any]:
@@ -26,8 +27,10 @@ def check_road_values(options: Mapping[str, Any]) -> dict[str, Any]:
     takes them) checked, with ``detect_road``'s errors: a ``TypeError`` for a value of the wrong
     type, a ``ValueError`` for one out of range, naming the option and quoting the value. A
     ``level`` of None (chosen from the images' size) is not checked. Returns them, in the same
-    order, as ints (the levels and windows) and floats, a 0-d tensor read as its number and None
-    kept."""
+    order, as ints (the levels and windows), floats and bools (the flags: True or False, nothing
+    else), a 0-d tensor read as its number and None kept."""
+    for name in _FLAG_OPTIONS:  # (before a 0-d tensor is read as its number: no flag, as detect_road takes them)
+        check_bool(options[name], name)
     options = {k: scalar(v, k) for k, v in options.items()}  # (a 0-d tensor as its number: int or float)
     for name in ("level", "seed_level"):
         v = options[name]
@@ -54,4 +57,5 @@ def check_road_values(options: Mapping[str, Any]) -> dict[str, Any]:
     v = options["min_coverage"]
     if not is_number(v) or not (0 <= v < 1):
         raise option_error(v, f"min_coverage: expected a fraction in [0, 1), got {v!r}")
-    return {k: None if v is None else int(v) if k in _INT_OPTIONS else float(v) for k, v in options.items()}
+    return {k: None if v is None else v if k in _FLAG_OPTIONS else int(v) if k in _INT_OPTIONS else float(v)
+            for k, v in options.items()}
