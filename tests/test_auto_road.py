@@ -984,6 +984,39 @@ def test_bad_inputs_are_named(kitti_K):
         refine_flow(flow, "auto", cam, images=(torch.cat([im, im]), torch.cat([im, im])))
 
 
+
+def _first_sample_only(flow, mask, camera, **kw):
+    """An estimator that answers a batch with the default estimate of its first sample alone."""
+    import dataclasses
+
+    from fsof_torch import ImageMotionEstimator
+
+    fit = ImageMotionEstimator()(flow, mask, camera, **kw)
+    return dataclasses.replace(fit, params={k: v[:1] for k, v in fit.params.items()})
+
+
+@pytest.mark.parametrize("returns, error, match", [
+    (None, TypeError, r"^estimator: expected a dict of x_d, z_d, yaw \(or with a 'model' key\), a fit result or an "
+                      r"EgoMotion, got NoneType$"),
+    ({"model": "velocity", "speed": 1.0}, ValueError, r"^estimator: expected a displacement model"),
+    ({"model": "plane", "z_d": 1200.0}, ValueError, r"^estimator: sample 0 moves 1200 m in a frame"),
+    (_first_sample_only, ValueError, r"^estimator: expected result.params\['\w+'\] a tensor of shape \(2,\) \(the "
+                                     r"samples it was given\), got shape \(1,\)$"),
+])
+def test_an_estimators_bad_result_is_named_as_the_refiner_names_it(kitti_K, returns, error, match):
+    """detect_road's estimator's results are checked, naming the estimator: a fit as the refiner
+    checks it, a motion in another form (a dict) as a given motion. They went unchecked: what is no
+    motion raised an error naming `motion`, which the caller had not given, and a fit of one sample
+    for two judged both."""
+    g = torch.Generator().manual_seed(0)
+    im1, im2 = (torch.rand(2, 3, 64, 200, generator=g) * 255 for _ in range(2))
+    cam = Camera(kitti_K, 1.65).scaled(200 / 1242, 64 / 375)
+    estimator = returns if callable(returns) else (lambda *args, **kw: returns)
+    with pytest.raises(error, match=match):
+        detect_road(im1, im2, cam, estimator=estimator)
+    with pytest.raises(error, match=match):  # (mask="auto" hands its estimator to the detection)
+        refine_flow(torch.zeros(2, 2, 64, 200), "auto", cam, images=(im1, im2), estimator=estimator)
+
 # -- real data ------------------------------------------------------------------------------------
 
 def _polygon(path, size):

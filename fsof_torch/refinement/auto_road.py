@@ -61,7 +61,7 @@ from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
-from .estimators import ImageMotionEstimator, check_estimator, finite_estimate
+from .estimators import ImageMotionEstimator, check_estimate, check_estimator, finite_estimate
 from .road_options import SLOW_MAX_HEIGHT_M, check_road_values
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
@@ -454,6 +454,9 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         estimator: the road-motion estimator (the refiner's protocol, default
             :class:`~fsof_torch.refinement.estimators.ImageMotionEstimator`); ``odometry`` and
             ``starts`` (a sequence of start candidates: fit results or dicts of parameters) go to it.
+            Its results are checked, errors naming ``estimator``: a fit result as the refiner checks
+            it (of the samples it was given: :func:`~fsof_torch.refinement.estimators.check_estimate`),
+            a motion in another form (a dict of parameters) as ``motion`` is.
         refit: after the first detection, estimate the motion again on the detected road (started
             from the first; with ``edges``, its boundary on the edges) and detect again. Only where
             the motion was estimated here.
@@ -523,7 +526,12 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     estimator = estimator if estimator is not None else ImageMotionEstimator()
 
     def estimate(f: Tensor | None, m: Tensor, cam: Camera, **kw: Any) -> Any:  # (non-finite parameters: failed)
-        return finite_estimate(estimator(f, m, cam, **kw), cam, warn=warn)
+        result = estimator(f, m, cam, **kw)
+        if hasattr(result, "success"):  # (a fit result, as the refiner checks it; else a motion, as a given one)
+            check_estimate(result, B)
+        else:
+            check_motion(result, B, device, "estimator")
+        return finite_estimate(result, cam, warn=warn)
     # the geometry at the working resolution (the seed and the region live there)
     cam_l = _level_camera(camera, level)
     h, w = H >> level, W >> level
