@@ -959,6 +959,11 @@ def test_bad_inputs_are_named(kitti_K):
         detect_road(torch.cat([im, im]), torch.cat([im, im]), Camera(kitti_K.expand(3, 3, 3), 1.65))
     with pytest.raises(ValueError, match="flow: expected shape"):
         detect_road(im, im, cam, flow=torch.zeros(1, 3, 64, 200))
+    # a flow or an image on another device than image1's is named (was: torch's error from inside)
+    with pytest.raises(ValueError, match=r"^flow: expected the device of image1 \(cpu\), got meta$"):
+        detect_road(im, im, cam, flow=torch.zeros(1, 2, 64, 200, device="meta"))
+    with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(cpu\), got meta$"):
+        detect_road(im, im.to("meta"), cam)
     with pytest.raises(ValueError, match=r"motion: expected parameters of batch 1 .the images' B., got shapes "
                                          r"\{'x_d': \(\), 'z_d': \(3,\), 'yaw': \(\)\}"):
         detect_road(im, im, cam, motion={"x_d": 0.0, "z_d": torch.ones(3), "yaw": 0.0})

@@ -52,8 +52,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_data_range, check_float_tensor,
-                      check_has_values, check_image_pair, check_image_range, check_shape, check_size, host_path,
-                      inference, is_number, option_error, scalar, skip_values, summary_repr)
+                      check_has_values, check_image_pair, check_image_range, check_same_device, check_shape, check_size,
+                      host_path, inference, is_number, option_error, scalar, skip_values, summary_repr)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -411,6 +411,7 @@ def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor |
     if flow is not None:
         check_float_tensor(flow, "flow")
         check_shape(flow, "flow", ("B", 2, "H", "W"), dims)
+    check_same_device({"image1": image1, "image2": image2, "flow": flow})  # (torch's error would name neither)
     data_range = check_data_range(data_range)
     for name, t in (("image1", image1), ("image2", image2)):  # (the road is found in their values)
         check_has_values(t, name, "to find the road in (the detection reads the images, also with a motion given)")
