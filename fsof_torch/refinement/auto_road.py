@@ -386,8 +386,9 @@ def check_road_size(shape: tuple[int, ...], camera: Camera, options: dict[str, A
     for name in ("level", "seed_level"):
         v = options[name]
         if min(H, W) >> v < 16 and (name == "level" or estimated):
-            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {H}x{W} images "
-                             f"(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)")
+            raise ValueError(f"{name}: {v} leaves fewer than 16 pixels of the {H}x{W} images " + (
+                f"(at most {(min(H, W) // 16).bit_length() - 1} here)" if name == "level" else
+                "(with the default seed_level=1, an estimate needs images of at least 32x32 pixels)"))
     side = min(H, W) >> options["level"]
     for name in ("window", "height_window"):
         v = options[name]
