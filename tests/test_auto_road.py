@@ -524,6 +524,19 @@ def test_default_level_fits_tall_narrow_images(scene_pair):
     assert detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=motion).level == 1
 
 
+
+@pytest.mark.parametrize("height_window", [201, torch.tensor(201), np.int64(201)])
+def test_default_level_reads_a_window_given_as_a_tensor(kitti_K, height_window):
+    """A 0-d tensor window is its number here too: 600 x 600 images with a height window of 201
+    are judged at level 1 (300 px, 201 + 8 fits; level 2 would leave 150). Given as a tensor, the
+    default level ignored it, chose 2, and the window was refused as too large for it (after
+    FreespaceRefined, which reads it as its number, had let the network run)."""
+    g = torch.Generator().manual_seed(0)
+    im1, im2 = (torch.rand(1, 3, 600, 600, generator=g) * 255 for _ in range(2))
+    cam = Camera(kitti_K, 1.65).cropped(300, 0, 342, 0).scaled(1.0, 600 / 375)
+    det = detect_road(im1, im2, cam, motion={"model": "paper", "z_d": 1.0}, height_window=height_window, edges=False)
+    assert det.level == 1 and det.mask.shape == (1, 1, 600, 600)
+
 def test_starts_are_read_once_and_checked(scene_pair):
     """``starts`` is read once: an iterator gives the seed's fit and the refit the same starts
     (the refit the seed's fit first); what is not a sequence is named."""

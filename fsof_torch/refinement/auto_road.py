@@ -370,7 +370,8 @@ def road_level(size: tuple[int, int], window: object, height_window: object) -> 
     """``detect_road``'s default ``level`` for images of ``size`` (H, W): the coarsest at least
     ``_WORK_ROWS`` rows high and 16 and ``window + 8``, ``height_window + 8`` pixels either way."""
     rows, side = size[0], min(size)  # (16 pixels either way, room for the windows)
-    least = max([16] + [k + 2 * _BORDER for k in (window, height_window) if is_number(k, integer=True)])
+    least = max([16] + [k + 2 * _BORDER for k in (scalar(window, "window"), scalar(height_window, "height_window"))
+                        if is_number(k, integer=True)])  # (a 0-d tensor as its number, as the options take it)
     return max(0, min(math.floor(math.log2(max(rows, 1) / _WORK_ROWS)), math.floor(math.log2(max(side, 1) / least))))
 
 
