@@ -148,7 +148,7 @@ def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, 
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from fsof_torch.evaluation.figures import drawing_factor, reduce_values
+    from fsof_torch.evaluation.figures import drawing_factor, place_reduced, reduce_values
     from fsof_torch.evaluation.visualize import NO_VALUE_RGB
 
     data = np.ma.masked_array(img.double().numpy(), mask=~valid.numpy())
@@ -163,12 +163,13 @@ def _plot_image(img: torch.Tensor, valid: torch.Tensor, path: Path, title: str, 
     fig.tight_layout()
     # A picture larger than its panel is shrunk by dropping whole rows and columns (a KITTI frame:
     # 22 of 31 sparse ground-truth lines were drawn): drawn reduced instead, each drawn pixel the
-    # mean of the pixels with a value it covers.
+    # mean of the pixels with a value it covers, and placed over them.
     box = ax.get_window_extent()
     factor = drawing_factor((H, W), (box.height, box.width))
     if factor > 1:
         mean, has = reduce_values(img[None], valid[None], valid[None] & ~torch.isfinite(img[None]), factor)
         im.set_data(np.ma.masked_array(mean[0].numpy(), mask=~has[0].numpy()))
+        place_reduced(im, (H, W), factor)
     with atomic_path(path) as tmp:  # (never half a figure)
         fig.savefig(tmp, dpi=DPI)
     plt.close(fig)

@@ -364,6 +364,44 @@ def test_vflow_map_figures_draw_sparse_flow_no_larger_than_their_panel(tmp_path,
         plt.close(fig)
 
 
+@pytest.mark.parametrize("size", [(373, 1241), (375, 1242), (1201, 601)])
+def test_vflow_map_figures_place_each_reduced_pixel_over_the_pixels_it_averages(tmp_path, monkeypatch, size):
+    """An F_v map drawn reduced by f was stretched over the full image, its ceil(W / f) drawn
+    columns over W pixels: drawn column j stood at j W / ceil(W / f) instead of j f, so a map of
+    373 x 1241 px (reduced by 2) drew an edge at column 1232 at 1231.0. Drawn pixel j now covers
+    the pixels j f .. j f + f - 1 it is the mean of, on axes of the image's pixels."""
+    import matplotlib.pyplot as plt
+
+    import eval.vflow as vflow
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # (kept open to look at)
+    H, W = size
+    img = torch.zeros(H, W, dtype=torch.float64)
+    col, row = W - 5 - (W - 5) % 4, H - 5 - (H - 5) % 4  # edges near the far sides, on block boundaries
+    img[:, col:] += 1.0
+    img[row:, :] += 2.0
+    vflow._plot_image(img, torch.ones(H, W, dtype=torch.bool), tmp_path / "map.png", "t", "inferno", 0.0, 3.0, "F_v (px)")
+    fig = figures[0]
+    try:
+        ax = next(a for a in fig.axes if a.get_images())
+        picture = ax.get_images()[0]
+        shown = picture.get_array()
+        h, w = shown.shape
+        f = -(-W // w)
+        assert f > 1 and (h, w) == (-(-H // f), -(-W // f))
+        left, right, bottom, top = picture.get_extent()
+        assert (left, right, bottom, top) == (-0.5, w * f - 0.5, h * f - 0.5, -0.5)
+        first_col = next(j for j in range(w) if shown[0, j] != shown[0, 0])
+        first_row = next(i for i in range(h) if shown[i, 0] != shown[0, 0])
+        assert left + first_col * (right - left) / w == col - 0.5  # drawn where it is in the image
+        assert top + first_row * (bottom - top) / h == row - 0.5
+        assert tuple(ax.get_xlim()) == (-0.5, W - 0.5) and tuple(ax.get_ylim()) == (H - 0.5, -0.5)
+    finally:
+        monkeypatch.undo()
+        plt.close(fig)
+
+
 def test_vflow_road_figure_needs_a_road(tmp_path, capsys):
     """--flow without --mask has no road: the road figure is null in the JSON and not printed as
     "on the road" (it was the figure over every valid pixel); the figure over the fit's pixels is

@@ -41,6 +41,7 @@ __all__ = [
     "colour_wheel",
     "drawing_factor",
     "pair_figure",
+    "place_reduced",
     "reduce_values",
     "road_outline",
     "save_figure",
@@ -126,6 +127,17 @@ def drawing_factor(size: tuple[int, int], panel: tuple[float, float]) -> int:
     return max(1, math.ceil(scale - 1e-9))
 
 
+def place_reduced(shown: Any, size: tuple[int, int], factor: int) -> None:
+    """Place a picture (an ``AxesImage``) reduced by ``factor`` from an image of ``size`` (H, W)
+    on axes set to the image's pixels: drawn pixel j over the pixels j f .. j f + f - 1 it is the
+    mean of (:func:`reduce_values`; the last block, cut by the image's edge, reaches beyond the
+    axes). Stretched over the image, ceil(W / f) drawn columns over W pixels drifted from it."""
+    (H, W), f = size, check_int(factor, "factor", minimum=1)
+    shown.set_extent((-0.5, -(-W // f) * f - 0.5, -(-H // f) * f - 0.5, -0.5))
+    shown.axes.set_xlim(-0.5, W - 0.5)
+    shown.axes.set_ylim(H - 0.5, -0.5)
+
+
 def road_outline(mask: Tensor) -> list[Any]:
     """The outline of a bool road mask ((H, W), (1, H, W) or (1, 1, H, W)) as closed polygons of
     (u, v) pixel coordinates (NumPy (N, 2) arrays), from ``cv2.findContours``.
@@ -158,16 +170,11 @@ def _draw_outline(ax, polygons: list[Any]) -> None:
 
 
 def _outline_handle():
+    import matplotlib.patheffects as pe
     from matplotlib.lines import Line2D
 
     return Line2D([], [], **_OUTLINE[1], label="road mask (outline)",
-                  path_effects=_outline_effects())
-
-
-def _outline_effects():
-    import matplotlib.patheffects as pe
-
-    return [pe.Stroke(linewidth=2.0, foreground="black"), pe.Normal()]
+                  path_effects=[pe.Stroke(linewidth=2.0, foreground="black"), pe.Normal()])
 
 
 def colour_wheel(max_flow: float, size: int = 101) -> Tensor:
@@ -323,20 +330,14 @@ class PairFigure:
         rows = (bottom + row_h + 0.11, bottom)
         h, w = -(-H // self.factor), -(-W // self.factor)  # the reduced pictures' size
         blank_rgb, blank_error = np.zeros((h, w, 3), dtype=np.uint8), np.full((h, w), np.nan)
-        # axes in pixels of the full image; drawn pixel j covers the pixels j f .. j f + f - 1 it
-        # is the mean of, so the picture spans w f columns (the last block, cut by the image's
-        # edge, beyond the axes): stretched over W, it drifted from the road outline, by 2 px at
-        # a KITTI frame's right edge
-        extent = (-0.5, w * self.factor - 0.5, h * self.factor - 0.5, -0.5)
         # axis labels on the panels that exist: the lowest of each column, the left-most of each row
         lower = [True] * bool(images) + [bool(e) for e in with_errors]  # a column's second-row panel
         first_lower = lower.index(True) if any(lower) else None
 
         def panel(j: int, r: int, blank: Any, **kw: Any) -> tuple[Any, Any]:
             ax = fig.add_axes((left + j * (col_w + gap), rows[r], col_w, row_h))
-            shown = ax.imshow(blank, interpolation="nearest", extent=extent, **kw)
-            ax.set_xlim(-0.5, W - 0.5)
-            ax.set_ylim(H - 0.5, -0.5)
+            shown = ax.imshow(blank, interpolation="nearest", **kw)
+            place_reduced(shown, (H, W), self.factor)  # (axes in pixels of the full image)
             _draw_outline(ax, [])
             _image_axes(ax, "", (H, W), xlabel=r == 1 or not lower[j], ylabel=j == (0 if r == 0 else first_lower))
             return ax, shown
