@@ -82,7 +82,7 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
 
     H = hist.shape[0]
     a_unit = "1/px" if unit == "px" else "1/(px s)"
-    fig, ax = plt.subplots(figsize=(6, 5))
+    fig, ax = plt.subplots(figsize=(6, 5), dpi=DPI)
     lo, hi = float(edges[0]), float(edges[-1])
     shown = ax.imshow(torch.log1p(hist).numpy(), aspect="auto", cmap="magma", origin="upper",
                       extent=(lo, hi, H - 0.5, -0.5), interpolation="nearest")
@@ -106,9 +106,32 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     # forward motion's map, the lower left of a reversing one's)
     ax.legend(loc="best", fontsize=7)
     fig.tight_layout()
+    _reduce_map(shown, hist, lo, hi)
     with atomic_path(path) as tmp:  # (never half a figure)
         fig.savefig(tmp, dpi=DPI)
     plt.close(fig)
+
+
+def _reduce_map(shown, hist: torch.Tensor, lo: float, hi: float) -> None:
+    """A V-flow map of more rows or bins than its panel has pixels drawn reduced, each drawn pixel
+    the largest count of the rows and bins it covers, placed over them: shrunk by matplotlib's
+    nearest-neighbour drawing, it dropped whole rows and bins (of a map of one count per row, 12
+    of 100 rows' counts were drawn at 4096 bins, 153 of 375 at 1024, 410 of 1200 at 256)."""
+    import torch.nn.functional as F
+
+    from fsof_torch.evaluation.figures import drawing_factor
+
+    (H, bins), box = hist.shape, shown.axes.get_window_extent()
+    fr, fc = drawing_factor((H, 1), (box.height, 1.0)), drawing_factor((1, bins), (1.0, box.width))
+    if fr == fc == 1:
+        return
+    most = F.max_pool2d(hist[None, None].double(), (fr, fc), ceil_mode=True)[0, 0]
+    shown.set_data(torch.log1p(most).numpy())
+    # (the last block, cut by the map's edge, reaches beyond the axes, which stay the map's)
+    shown.set_extent((lo, lo + most.shape[1] * fc * (hi - lo) / bins, most.shape[0] * fr - 0.5, -0.5))
+    shown.axes.set_xlim(lo, hi)
+    shown.axes.set_ylim(H - 0.5, -0.5)
+    shown.colorbar.set_label("log(1 + pixels in the row's bin),\nthe most of those a drawn pixel covers")
 
 
 def _colour_range(values: torch.Tensor) -> tuple[float, float]:

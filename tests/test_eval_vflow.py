@@ -402,6 +402,58 @@ def test_vflow_map_figures_place_each_reduced_pixel_over_the_pixels_it_averages(
         plt.close(fig)
 
 
+@pytest.mark.parametrize("rows, bins", [(100, 4096), (1200, 256), (375, 1024)])
+def test_vflow_map_figure_draws_every_row_and_bin(tmp_path, monkeypatch, rows, bins):
+    """A V-flow map of more rows or bins than its panel has pixels was shrunk by matplotlib's
+    nearest-neighbour drawing, which drops whole rows and columns: of a map with one count per
+    row, 12 of 100 rows' counts were drawn at 4096 bins, 410 of 1200 at 256 bins. It is now drawn
+    reduced, each drawn pixel the largest count it covers, placed over the rows and bins it covers."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import eval.vflow as vflow
+    from fsof_torch import fit_vflow_curve, vflow_map
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # (kept open to look at)
+    col = (torch.arange(rows) * 37) % bins  # each row's one bin
+    flow = torch.zeros(1, 2, rows, 3, dtype=torch.float64)
+    flow[0, 1] = (10.0 * (col + 0.5) / bins).reshape(rows, 1)
+    hist, edges = vflow_map(flow, bins=bins, min_flow=0.0, max_flow=10.0)
+    assert torch.equal(hist[0].argmax(-1), col)
+    curve = fit_vflow_curve(flow, bins=bins)
+    vflow._plot_map(hist[0], edges, curve, tmp_path / "map.png", "px")
+    fig = figures[0]
+    try:
+        ax = fig.axes[0]
+        picture = ax.get_images()[0]
+        shown = np.asarray(picture.get_array())
+        box = ax.get_window_extent()
+        assert shown.shape[0] <= box.height and shown.shape[1] <= box.width
+        fr, fc = -(-rows // shown.shape[0]), -(-bins // shown.shape[1])
+        assert fr * fc > 1 and shown.shape == (-(-rows // fr), -(-bins // fc))
+        counts = hist[0].numpy()
+        for i, j in [(0, 0), (shown.shape[0] // 2, shown.shape[1] // 3), (shown.shape[0] - 1, shown.shape[1] - 1)]:
+            assert shown[i, j] == np.log1p(counts[i * fr:(i + 1) * fr, j * fc:(j + 1) * fc].max())
+        left, right, bottom, top = picture.get_extent()
+        assert (left, top, bottom) == (0.0, -0.5, shown.shape[0] * fr - 0.5)
+        assert right == pytest.approx(shown.shape[1] * fc * 10.0 / bins, rel=1e-12)
+        assert tuple(ax.get_xlim()) == (0.0, 10.0) and tuple(ax.get_ylim()) == (rows - 0.5, -0.5)
+        # every row's count is drawn where it is: lit at its bin's centre
+        ax.get_legend().remove()
+        for points in ax.collections:
+            points.remove()
+        fig.canvas.draw()
+        rgb = np.asarray(fig.canvas.buffer_rgba())[:, :, :3].astype(int)
+        x, y = ax.transData.transform(np.stack([(col.numpy() + 0.5) * 10.0 / bins, np.arange(rows)], 1)).T
+        x, y = x.astype(int), (rgb.shape[0] - y).astype(int)
+        lit = [(rgb[b - 1:b + 2, a - 1:a + 2].sum(-1) > 60).any() for a, b in zip(x, y)]
+        assert all(lit)
+    finally:
+        monkeypatch.undo()
+        plt.close(fig)
+
+
 def test_vflow_road_figure_needs_a_road(tmp_path, capsys):
     """--flow without --mask has no road: the road figure is null in the JSON and not printed as
     "on the road" (it was the figure over every valid pixel); the figure over the fit's pixels is
