@@ -90,14 +90,18 @@ def _plot_map(hist: torch.Tensor, edges: torch.Tensor, curve, path: Path, unit: 
     rows = curve.row_support[0] >= MIN_ROW_PIXELS  # (the rows the fit used)
     v = torch.arange(H, dtype=torch.float64)
     inl = curve.row_inliers[0]
+    # a failed fit has no curve (a = v0 = 0, nothing drawn); its rows are those of the curve it
+    # rejected, not the inliers of an "eq. 24 fit: a=0.000e+00" that the legend named
+    ok = bool(curve.success[0])
     ax.scatter(curve.row_value[0][rows & ~inl].double().numpy(), v[rows & ~inl].numpy(), s=6, c="cyan",
-               label="dominant F_v, outlier rows")
+               label="dominant F_v, " + ("outlier rows" if ok else "other rows"))
     ax.scatter(curve.row_value[0][inl].double().numpy(), v[inl].numpy(), s=6, c="lime",
-               label="dominant F_v, inlier rows")
+               label="dominant F_v, " + ("inlier rows" if ok else "rows near the rejected curve"))
     fitted = curve.fitted[0, 0, :, 0].double()
     defined = curve.fitted_valid[0, 0, :, 0]
     ax.plot(fitted[defined].numpy(), v[defined].numpy(), color="white", linewidth=1.5,
-            label=f"eq. 24 fit: a={float(curve.a[0]):.3e} {a_unit}, v0={float(curve.v0[0]):.2f} px")
+            label=f"eq. 24 fit: a={float(curve.a[0]):.3e} {a_unit}, v0={float(curve.v0[0]):.2f} px" if ok else
+            f"eq. 24 fit failed ({float(curve.nfa[0]):.2g} false alarms): no curve")
     ax.set_xlim(lo, hi)
     ax.set_xlabel(f"vertical flow F_v ({unit})")
     ax.set_ylabel("image row v (px)")
@@ -411,12 +415,16 @@ def run(args: argparse.Namespace) -> int:
     # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
     c = info["curve"]
     print(f"\nV-flow curve ({args.model}): a = {c['a']:.6e} 1/{'px' if args.model == 'displacement' else '(px s)'}, "
-          f"v0 = {c['v0']:.3f} px, success {c['success']}, inlier rows {c['inlier_rows']}/{c['used_rows']}, "
+          f"v0 = {c['v0']:.3f} px, success {c['success']}, "
+          f"{'inlier rows' if c['success'] else 'rows near the rejected curve'} {c['inlier_rows']}/{c['used_rows']}, "
           f"false alarms {c['nfa']:.2g}")
     if camera is not None:
         name = "z_d_m" if args.model == "displacement" else "speed_mps"
-        print(f"  {name}: fitted {c[name]:.4f}, true {c[name + '_true']:.4f}; horizon row: fitted {c['v0']:.3f}, "
-              f"true {c['horizon_row_true']:.3f}")
+        if c["success"]:
+            print(f"  {name}: fitted {c[name]:.4f}, true {c[name + '_true']:.4f}; horizon row: fitted {c['v0']:.3f}, "
+                  f"true {c['horizon_row_true']:.3f}")
+        else:  # (its 0 is no fitted value)
+            print(f"  {name}: not fitted, true {c[name + '_true']:.4f}; horizon row: true {c['horizon_row_true']:.3f}")
     if c["mean_abs_fv_error_road"] is not None:
         print(f"  mean |F_v - fitted| on the road: {c['mean_abs_fv_error_road']:.4f} {unit}"
               f" (all mask pixels: {c['mean_abs_fv_error_mask']:.4f})")
@@ -425,8 +433,8 @@ def run(args: argparse.Namespace) -> int:
               f"{c['mean_abs_fv_error_mask']:.4f} {unit}")
     if "freespace" in info:
         fs_info = info["freespace"]
-        print(f"  freespace IoU with the road: {fs_info['iou']:.4f}, its road model's z_d {fs_info['z_d_m']:.4f} m"
-              + ("" if fs_info["success"] else " (the detection failed: no freespace)"))
+        print(f"  freespace IoU with the road: {fs_info['iou']:.4f}, " + (f"its road model's z_d {fs_info['z_d_m']:.4f} m"
+              if fs_info["success"] else "the detection failed: no freespace"))
     print(f"wrote {json_path}" + "".join(f", {p}" for p in files.values()))
     if not (c["success"] and math.isfinite(c["a"])):
         print("the V-flow curve could not be fitted (success false: too few inlier rows, no more than chance "

@@ -218,6 +218,35 @@ def test_vflow_failed_fit_exits_1(tmp_path, capsys):
     assert "could not be fitted" in capsys.readouterr().err
 
 
+def test_vflow_failed_fit_is_not_reported_as_a_fit_of_zero(tmp_path, capsys, monkeypatch):
+    """A failed fit has no curve (a = v0 = 0 by the library's contract). The job printed
+    "z_d_m: fitted 0.0000 ...; horizon row: fitted 0.000" and "its road model's z_d 0.0000 m", and
+    the map's legend named an "eq. 24 fit: a=0.000e+00" and its "inlier rows" (those of the curve
+    the chance test rejected). It now says that nothing was fitted, and names those rows as the
+    rejected curve's."""
+    import matplotlib.pyplot as plt
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # (kept open to look at)
+    rc = main(["vflow", "--preset", "carla-turning", "--size", "16", "48", "--out", str(tmp_path), "--no-progress"])
+    data = json.loads((tmp_path / "vflow.json").read_text())
+    out = capsys.readouterr().out
+    assert rc == 1 and data["curve"]["success"] is False and data["freespace"]["success"] is False
+    assert data["curve"]["inlier_rows"] > 0  # (rows near the curve the chance test rejected)
+    assert f"  z_d_m: not fitted, true 0.3000; horizon row: true {data['curve']['horizon_row_true']:.3f}\n" in out
+    assert f"rows near the rejected curve {data['curve']['inlier_rows']}/{data['curve']['used_rows']}" in out
+    assert "fitted 0.0" not in out and "z_d 0.0" not in out and "inlier rows" not in out
+    assert "freespace IoU with the road: 0.0000, the detection failed: no freespace\n" in out
+    try:
+        labels = [t.get_text() for t in figures[0].axes[0].get_legend().get_texts()]
+        assert labels == ["dominant F_v, other rows", "dominant F_v, rows near the rejected curve",
+                          f"eq. 24 fit failed ({data['curve']['nfa']:.2g} false alarms): no curve"]
+    finally:
+        monkeypatch.undo()
+        for fig in figures:
+            plt.close(fig)
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--inlier-threshold", "inf"], "--inlier-threshold: expected a finite number >= 0, got inf"),
     (["--inlier-threshold", "nan"], "--inlier-threshold: expected a finite number >= 0, got nan"),
