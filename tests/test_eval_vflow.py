@@ -483,6 +483,56 @@ def test_vflow_map_figure_draws_every_row_and_bin(tmp_path, monkeypatch, rows, b
         plt.close(fig)
 
 
+def test_vflow_freespace_figure_draws_every_strip_of_a_class(tmp_path, monkeypatch):
+    """The freespace figure of a 375 x 1242 frame, larger than its panel, was shrunk by dropping
+    whole rows and columns: of strips of freespace off the road one pixel wide, 92 of 138 were
+    drawn, of road missed 63 of 95. It is now drawn reduced, each drawn pixel tinted by the class
+    of any pixel it covers (a miss over a find), placed over the pixels it covers."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import eval.vflow as vflow
+
+    figures = []
+    monkeypatch.setattr(plt, "close", figures.append)  # (kept open to look at)
+    H, W = 375, 1242
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 200:] = True
+    free = road.clone()
+    off, missed = list(range(3, W - 3, 9)), list(range(5, W - 5, 13))
+    free[0, 250:300, off] = True
+    road[0, 250:300, off] = False
+    free[0, 320:, missed] = False
+    vflow._plot_freespace(torch.full((3, H, W), 128.0), free, road, tmp_path / "free.png", 0.9)
+    fig = figures[0]
+    try:
+        ax = fig.axes[0]
+        picture = ax.get_images()[0]
+        shown = picture.get_array()
+        box = ax.get_window_extent()
+        f = -(-W // shown.shape[1])
+        assert f > 1 and shown.shape[:2] == (-(-H // f), -(-W // f)) and shown.shape[1] <= box.width
+        assert picture.get_extent() == [-0.5, shown.shape[1] * f - 0.5, shown.shape[0] * f - 0.5, -0.5]
+        assert tuple(ax.get_xlim()) == (-0.5, W - 0.5) and tuple(ax.get_ylim()) == (H - 0.5, -0.5)
+        grey = 128 / 255
+        magenta, red, green = (0.5 * grey + 0.5 * np.array(c) for c in ((1, 0, 1), (1, 0, 0), (0, 1, 0)))
+        np.testing.assert_allclose(shown[275 // f, [c // f for c in off]], np.broadcast_to(magenta, (len(off), 3)))
+        np.testing.assert_allclose(shown[340 // f, [c // f for c in missed]], np.broadcast_to(red, (len(missed), 3)))
+        np.testing.assert_allclose(shown[340 // f, 9 // f], green)  # (a block of freespace on the road only)
+        np.testing.assert_allclose(shown[100 // f, 100 // f], [grey] * 3)
+        # and as written: every strip drawn in its colour, at the middle of its block
+        fig.canvas.draw()
+        rgb = np.asarray(fig.canvas.buffer_rgba())[:, :, :3].astype(int)
+        for columns, row, colour in ((off, 275, magenta), (missed, 340, red)):
+            middle = [c // f * f + (f - 1) / 2 for c in columns]
+            x, y = ax.transData.transform(np.column_stack([middle, [row // f * f + (f - 1) / 2] * len(columns)])).T
+            drawn = rgb[(rgb.shape[0] - y).astype(int), x.astype(int)]
+            assert (np.abs(drawn - 255 * colour).max(-1) <= 2).all()
+    finally:
+        monkeypatch.undo()
+        plt.close(fig)
+
+
 def test_vflow_road_figure_needs_a_road(tmp_path, capsys):
     """--flow without --mask has no road: the road figure is null in the JSON and not printed as
     "on the road" (it was the figure over every valid pixel); the figure over the fit's pixels is
