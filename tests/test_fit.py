@@ -193,6 +193,39 @@ def test_exceptions_meta_device_fits_need_values():
         fit_displacement(flow, valid, meta_cam)
 
 
+def test_a_mask_on_another_device_than_the_flow_is_named():
+    """fit_road checked no device of the mask: a CUDA mask with a CPU flow went on to torch's own
+    device error from inside the sampling (a tensor on meta, the one device a CPU test has besides
+    the CPU, was named only for having no values). Now "mask: expected the device of flow (cpu),
+    got meta" before any value is read, through every fit on it; ``valid``, the camera and the
+    starts still follow the flow's device (a CPU ``valid`` with a CPU flow and mask fits as ever)."""
+    from fsof_torch import FlowMotionEstimator
+
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    fits = (lambda f, m: fit_road(f, m, cam, model="plane"), lambda f, m: fit_displacement(f, m, cam),
+            lambda f, m: fit_velocity(f, m, cam, 2.7), lambda f, m: FlowMotionEstimator()(f, m, cam))
+    for call in fits:
+        with pytest.raises(ValueError, match=r"^mask: expected the device of flow \(cpu\), got meta$"):
+            call(flow, valid.to("meta"))
+        with pytest.raises(ValueError, match=r"^mask: expected the device of flow \(meta\), got cpu$"):
+            call(flow.to("meta"), valid)
+    fit = fit_road(flow, valid, cam, model="plane", valid=valid.clone())
+    assert bool(fit.success.all()) and abs(float(fit.z_d) - 1.0) < 1e-6
+
+
+def test_a_wheelbase_on_the_meta_device_is_named():
+    """fit_velocity read a wheelbase tensor's values (> 0) with no check of its device: one on meta
+    raised torch's "Tensor.item() cannot be called on meta tensors". Now a ValueError names it."""
+    cam = small_camera()
+    flow, valid = displacement_flow(cam, 0.0, 1.0, 0.0, SIZE)
+    wheelbase = torch.tensor([2.7], device="meta")
+    with pytest.raises(ValueError, match=r"^wheelbase: a tensor on the meta device has shapes but no values"):
+        fit_velocity(flow, valid, cam, wheelbase)
+    with pytest.raises(ValueError, match=r"^init\['wheelbase'\]: a tensor on the meta device has shapes but no"):
+        fit_velocity(flow, valid, cam, 2.7, init={"steering": 0.1, "speed": 10.0, "wheelbase": wheelbase})
+
+
 def test_exceptions_decompose_homography():
     cam = small_camera()
     Hm = road_homography(cam, {"z_d": 1.0})

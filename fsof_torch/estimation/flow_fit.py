@@ -29,7 +29,7 @@ from torch import Tensor
 
 from .._check import (autocast_off, batch_choices, check_batch, check_bool, check_fit_flags, check_float_tensor,
                       check_has_values, check_mapping, check_names, check_shape, inference, result_dtype, scalar,
-                      summary_repr, to_device)
+                      check_same_device, summary_repr, to_device)
 from ..geometry.camera import Camera
 from ..geometry.egomotion import scalable_map
 from ..geometry.road_flow import flow_from_map
@@ -514,6 +514,9 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
                                       min_points, min_inlier_fraction, polish, check_every, bounds)
     if init is not None and not isinstance(init, (Mapping, RoadFit)):
         raise TypeError(f"init: expected a RoadFit or a dict of {model.params}, got {type(init).__name__} {init!r}")
+    # (the flow and the mask on one device, named before torch's error from inside would come;
+    # valid, the camera, the starts and the priors follow the flow's)
+    check_same_device({n: t for n, t in (("flow", flow), ("mask", mask)) if isinstance(t, Tensor)})
     for name, t in (("flow", flow), ("mask", mask), ("camera", getattr(camera, "K", None))):
         check_has_values(t, name, "to fit (a fit is iterative and data dependent)")
     dims, camera, mask = check_flow_inputs(flow, mask, camera, valid)
@@ -671,6 +674,7 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
 def _wheelbase(wheelbase: Tensor | float, flow: Tensor, name: str = "wheelbase") -> Tensor:
     if isinstance(wheelbase, Tensor):
         check_float_tensor(wheelbase, name)
+        check_has_values(wheelbase, name, "to turn the yaw rate into a steering angle")
         wb = wheelbase.detach().reshape(-1)
     elif isinstance(wheelbase, numbers.Real) and not isinstance(wheelbase, bool):
         wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
