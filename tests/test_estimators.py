@@ -572,6 +572,28 @@ def test_the_image_fit_names_a_frame_mask_or_flow_on_another_device():
         fit_image(args["image1"].to("meta"), args["image2"], road, cam)
 
 
+def test_planar_start_takes_the_camera_to_the_flows_device_and_names_a_mask_on_another():
+    """planar_start (ImageMotionEstimator's start from a flow) used the camera where it came: a CPU
+    camera (as read from a calibration file) with a CUDA flow and images met torch's own device
+    error from inside (a meta camera with a CPU flow: "Tensor on device meta is not on the
+    expected device cpu!"), and a mask on another device than the flow torch's error from its
+    sampling (meta: nonzero's NotImplementedError). Now the camera follows the flow's device, as
+    in the fits, and a mask elsewhere is named; a CPU call gives the same start as ever."""
+    from fsof_torch.refinement.estimators import planar_start
+
+    p = render_pair("default", 0, size=(96, 320))
+    flow, road, cam = p["flow"][None], p["road"][None], p["camera"]
+    start = planar_start(flow, road, cam)
+    for k in ("x_d", "z_d", "yaw"):  # (the scene's own motion, from its rendered flow)
+        assert abs(float(start[k]) - p["plane"][k]) < 1e-3, (k, float(start[k]), p["plane"][k])
+    with pytest.raises(ValueError, match=r"^camera: a camera on the meta device has shapes but no values to move"):
+        planar_start(flow, road, cam.to("meta"))
+    with pytest.raises(ValueError, match=r"^mask: expected the device of flow \(cpu\), got meta$"):
+        planar_start(flow, road.to("meta"), cam)
+    with pytest.raises(ValueError, match=r"^mask: expected the device of flow \(meta\), got cpu$"):
+        planar_start(flow.to("meta"), road, cam)
+
+
 def test_starts_and_priors_on_the_meta_device_are_named():
     """A start or a prior on the meta device with real data: a ValueError naming its key (was a
     TypeError "expected a number or a tensor", a tensor it was, or torch's "Cannot copy out of

@@ -21,7 +21,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._check import all_finite, batch_choices, check_float_tensor, check_has_values, check_int, check_mask, check_shape
+from .._check import (all_finite, batch_choices, check_float_tensor, check_has_values, check_int, check_mask,
+                      check_same_device, check_shape)
 from ..geometry.camera import Camera, mounting_matrix
 from .sampling import gather_pixels, pixel_coordinates, sample_mask
 from .solver import Evaluation, Solution, solve, spd_solve
@@ -159,7 +160,8 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
         flow: (B, 2, H, W) float, forward flow in pixels; pixels where it is NaN or inf are left
             out of the mask.
         mask: (B, 1, H, W) bool road pixels (batch 1 is broadcast).
-        camera: the flow's camera (batch 1 or B).
+        camera: the flow's camera (batch 1 or B), taken to the flow's device (the mask must be on
+            it: else a ValueError names the mask).
         points: how many of each frame's mask pixels to sample (evenly).
 
     Returns:
@@ -177,6 +179,7 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
     if camera.batch_size not in (1, B):
         raise ValueError(f"camera: expected batch {batch_choices(B)} (the flow's B), got {camera.batch_size}")
     points = check_int(points, "points", minimum=1)
+    check_same_device({"flow": flow, "mask": mask})  # (named before torch's error from inside would come)
     check_has_values(flow, "flow", "to start a fit (the start is a fit)")
     if B == 0:
         raise ValueError(f"flow: expected a non-empty batch, got shape {tuple(flow.shape)}")
@@ -191,7 +194,7 @@ def planar_start(flow: Tensor, mask: Tensor, camera: Camera, points: int = 2048)
     pts = sample_mask(mask, points)
     xy = pixel_coordinates(pts.pix, W)
     f = torch.where(pts.sel.unsqueeze(1), gather_pixels(flow, pts.pix).to(torch.float64), 0.0)
-    cam = camera.to(torch.float64).expand(B)
+    cam = camera.to(device=flow.device, dtype=torch.float64).expand(B)  # (the camera follows the flow's device)
     lin, _ = planar_motion(cam.K, cam.K_inv(), cam.roll, cam.pitch, xy, f, pts.sel)
     h = cam.height
     return {"x_d": lin[:, 0] * h, "z_d": lin[:, 1] * h, "yaw": lin[:, 2]}
