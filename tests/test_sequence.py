@@ -32,6 +32,18 @@ def test_smooth_attitude_matches_numpy_least_squares():
     np.testing.assert_allclose(sigma.numpy(), std, rtol=1e-6)
 
 
+def test_smooth_attitude_names_a_measurement_on_the_meta_device():
+    """The track is solved on the host: an attitude or change on the meta device (no values to
+    bring there) raised torch's NotImplementedError "Cannot copy out of meta tensor; no data!",
+    naming neither. Now a ValueError names it, as its sigmas were named."""
+    att, chg = torch.tensor([0.01, 0.02, 0.0]), torch.tensor([0.001, -0.002, 0.0])
+    for name, args in (("attitude", (att.to("meta"), chg)), ("change", (att, chg.to("meta")))):
+        with pytest.raises(ValueError, match=rf"^{name}: a tensor on the meta device has shapes but no values"):
+            smooth_attitude(*args, 0.01, 0.001)
+    track, sigma = smooth_attitude(att, chg, 0.01, 0.001)
+    assert track.device.type == "cpu" and track.shape == (4,) and bool(torch.isfinite(sigma).all())
+
+
 def _dense_smooth(att, chg, sa, sc):
     """The normal equations of smooth_attitude's least squares, dense (N + 1) × (N + 1), solved
     and inverted by torch.linalg (with the same 1e-12 ridge)."""

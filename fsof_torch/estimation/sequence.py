@@ -122,6 +122,7 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     Returns the track (N + 1,) and its standard deviations (N + 1,) (float64)."""
     for name, x in (("attitude", attitude), ("change", change)):
         check_float_tensor(x, name)
+        check_has_values(x, name, "for the track (it is solved on the host)")
         if x.dim() != 1:
             raise ValueError(f"{name}: expected a 1-D tensor (one value per pair), got shape {tuple(x.shape)}")
     N = attitude.shape[0]
