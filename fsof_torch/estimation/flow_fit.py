@@ -464,7 +464,8 @@ def fit_road(flow: Tensor, mask: Tensor, camera: Camera, *, model: str | RoadMod
         prior: ``{name: (mean, sigma)}`` Gaussian priors (the parameters' units), weighed
             against the residuals at the kernel's scale; on fitted parameters only (ValueError).
         valid: optional (B, 1, H, W) bool validity of the flow (e.g. KITTI's; batch 1
-            broadcasts); ANDed with mask.
+            broadcasts; moved to the flow's device); ANDed with mask (which must be on the flow's
+            device: else a ValueError names it).
         robust: the kernel (:data:`ROBUST_KERNELS`); ``scale``: its scale in pixels (px/s).
         max_iter, tol: the solver's budget and tolerance per stage.
         max_points: mask pixels per frame that enter the iterations (an even stride over the
