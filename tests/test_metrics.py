@@ -394,6 +394,20 @@ def test_accumulator_device_is_checked_and_named():
         FlowMetricAccumulator(device=1.5)
 
 
+def test_accumulator_on_the_meta_device_is_refused():
+    """FlowMetricAccumulator(device="meta") was built: update() then added every batch's sums to a
+    state without values (lost, silently), and compute() and repr() raised torch's own errors
+    ("Cannot copy out of meta tensor; no data!", "Tensor.item() cannot be called on meta
+    tensors"). Now the constructor names ``device``, as update() names a meta flow."""
+    for device in ("meta", torch.device("meta")):
+        with pytest.raises(ValueError, match=r"^device: an accumulator sums values, which the meta device does not "
+                                             r"hold; got meta$"):
+            FlowMetricAccumulator(device=device)
+    with torch.device("meta"):  # (the default device: None's)
+        with pytest.raises(ValueError, match=r"^device: an accumulator sums values"):
+            FlowMetricAccumulator()
+
+
 def test_accumulator_returns_what_flow_metrics_per_sample_returns():
     """Per-image values of update() are flow_metrics_per_sample's, dtype included: the working
     dtype, at least float32 (bfloat16 flows gave bfloat16 from update(), float32 from the other)."""

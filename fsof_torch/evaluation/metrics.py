@@ -357,7 +357,8 @@ class FlowMetricAccumulator:
     def __init__(self, *, device: torch.device | str | None = None) -> None:
         """``device``: where the sums are held (None: the default device), a ``torch.device``, a
         device string such as ``"cuda:0"`` or a device index; anything else a ValueError (an
-        unknown string such as ``"gpu"``) or a TypeError naming ``device``."""
+        unknown string such as ``"gpu"``, or the meta device, which holds no sums) or a TypeError
+        naming ``device``."""
         if device is not None and not isinstance(device, torch.device):
             try:  # (torch's RuntimeError for "gpu" named no argument)
                 device = torch.device(device)
@@ -368,6 +369,9 @@ class FlowMetricAccumulator:
         n = len(_MAPS)
         # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
         self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
+        if self.state.device.type == "meta":  # (its sums were lost there; compute() raised torch's error)
+            raise ValueError(f"device: an accumulator sums values, which the meta device does not hold; got "
+                             f"{self.state.device}")
 
     @property
     def n_pixels(self) -> int:
