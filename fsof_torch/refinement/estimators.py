@@ -233,6 +233,8 @@ class FlowMotionEstimator:
                 fixed = fixed_parameters(road_model, fixed)
                 fixed = fixed + tuple(k for k in _PLANAR if k not in fixed)
         check_float_tensor(flow, "flow")
+        if isinstance(mask, Tensor):  # (named before the mask meets the flow below: torch's error from inside)
+            check_same_device({"flow": flow, "mask": mask})
         if isinstance(mask, Tensor) and mask.dtype == torch.bool and not skip_values(flow) and not all_finite(flow):
             # a non-finite predicted pixel is no data: left out of the mask, as the refiner leaves it
             # out of the estimation (fit_road refuses one inside the mask)
