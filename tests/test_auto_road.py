@@ -824,6 +824,26 @@ def test_auto_estimators_get_no_non_finite_pixel_in_their_masks():
         detect_road(meta, meta, camera, motion={"model": "paper", "z_d": 1.0})
 
 
+def test_a_frame_or_flow_on_another_device_than_image1_is_named():
+    """detect_road checked no device of image2 or the flow against image1: a meta flow with CPU
+    frames raised torch's "Tensor.item() cannot be called on meta tensors", and a CUDA image2 with
+    a motion given (nothing estimated: no estimator to name it) came to torch's own device error
+    from inside the evidence. Now, before any value is read, as the rest of the library: "<name>:
+    expected the device of image1 (cpu), got meta"."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(48, 160))
+    image1, image2, flow = p["image1"][None], p["image2"][None], p["flow"][None]
+    motion = {"model": "plane", "z_d": 1.0}
+    with pytest.raises(ValueError, match=r"^flow: expected the device of image1 \(cpu\), got meta$"):
+        detect_road(image1, image2, p["camera"], flow=flow.to("meta"))
+    for kw in ({}, {"motion": motion}):
+        with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(cpu\), got meta$"):
+            detect_road(image1, image2.to("meta"), p["camera"], **kw)
+        with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(meta\), got cpu$"):
+            detect_road(image1.to("meta"), image2, p["camera"], **kw)
+
+
 def test_refiner_auto_gradient_reaches_planar_odometry(small_pair):
     """mask="auto" with planar odometry and images: the planar motion held is the caller's own
     tensors, so a gradient reaches them, as with a mask tensor (was: none); the values are the
