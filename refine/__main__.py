@@ -63,7 +63,7 @@ def command_name() -> str:
 
 def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     """The job's options; ``prog`` names the command in its usage and errors (:func:`command_name`)."""
-    from fsof_torch.data.scene.render import MAX_SIDE
+    from fsof_torch.data.scene.render import MAX_FRAME, MAX_SIDE
 
     from .job import VARIANTS
     from .resume import file_path
@@ -79,7 +79,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
     g = p.add_argument_group("synthetic data (the default)")
     g.add_argument("--preset", help=f"scene preset (default: {DEFAULTS['preset']})")
-    g.add_argument("--num-pairs", type=int, help=f"pairs to render (default: {DEFAULT_PAIRS})")
+    g.add_argument("--num-pairs", type=int, help=f"pairs to render, 1 to {MAX_FRAME} (default: {DEFAULT_PAIRS})")
     g.add_argument("--size", type=_size, metavar="HxW", help=f"image size, each side 16 to {MAX_SIDE} (default: 375x1242, KITTI's)")
     g.add_argument("--seed", type=int, help="scene seed (default: 0)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",

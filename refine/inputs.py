@@ -196,8 +196,10 @@ def synthetic_pairs(preset: str, num_pairs: int, *, seed: int, size: tuple[int, 
 
     if preset not in scene.PRESETS:
         raise JobError(f"--preset: unknown preset {preset!r}; choose from {', '.join(sorted(scene.PRESETS))}")
-    if num_pairs < 1:
-        raise JobError(f"--num-pairs: expected >= 1, got {num_pairs}")
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    if not 1 <= num_pairs <= MAX_FRAME:  # (the scenes' frames end at MAX_FRAME)
+        raise JobError(f"--num-pairs: expected 1 to {MAX_FRAME}, got {num_pairs}")
     if noise is not None and not noise >= 0:
         raise JobError(f"--scene-noise: expected >= 0 grey levels, got {noise}")
     if road == "auto" and size is not None:

@@ -1576,6 +1576,15 @@ def test_scene_noise_option(tmp_path, capsys):
     assert "--scene-noise: expected >= 0" in _err(capsys, ["--scene-noise", "-1", "--out", str(tmp_path / "o")])
 
 
+def test_num_pairs_beyond_the_scenes_last_frame_names_the_option(tmp_path, capsys):
+    """--num-pairs beyond the scenes' last frame (MAX_FRAME = 100 000) is exit 2 naming --num-pairs,
+    not the renderer's argument num_pairs, and nothing is written."""
+    err = _err(capsys, ["--num-pairs", "100001", "--out", str(tmp_path / "o")])
+    assert err.startswith("error: --num-pairs: expected 1 to 100000, got 100001")
+    assert "--num-pairs: expected 1 to 100000, got 0" in _err(capsys, ["--num-pairs", "0", "--out", str(tmp_path / "o")])
+    assert not (tmp_path / "o").exists()
+
+
 def test_odometry_sigma_lets_the_images_move_the_odometry(tmp_path, capsys):
     """given_images holds the odometry's planar motion; with --odometry-sigma the images move it,
     the report says so, and a rerun with other widths is another run."""
