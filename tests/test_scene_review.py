@@ -8,10 +8,11 @@ import math
 import re
 from dataclasses import replace
 
+import numpy as np
 import pytest
 import torch
 
-from fsof_torch.data.scene import PRESETS, render_pair, scene_config
+from fsof_torch.data.scene import PRESETS, SceneConfig, render_pair, scene_config
 from fsof_torch.data.scene.config import MAX_BODY_HZ, MAX_GRADE_START, MIN_TURN_RADIUS, path_curvature
 from fsof_torch.data.scene.objects import BUILDING_BOX, CAR_BODY
 from fsof_torch.data.scene.world import Scene
@@ -191,6 +192,41 @@ def test_an_asphalt_list_changed_between_calls_does_not_reuse_the_old_frame():
     render_pair("cvc-simple", 0, size=TINY)  # another scene: nothing kept for the next call
     fresh = render_pair("default", 1, size=TINY, asphalt=[80.0] * 7)
     assert torch.equal(pair["image1"], fresh["image1"]) and torch.equal(pair["image2"], fresh["image2"])
+
+
+def test_size_and_base_size_are_held_as_tuples_of_ints():
+    """A list (or NumPy ints) for ``size`` or ``base_size`` is held as a tuple of ints: the
+    configuration is hashable, equals the one given tuples, and the caller's list changed after
+    the call changes nothing."""
+    size, base = [np.int64(40), 120], [375, 1242]
+    cfg = scene_config("default", size=size, base_size=base)
+    assert cfg.size == (40, 120) and cfg.base_size == (375, 1242)
+    assert all(type(v) is int for v in (*cfg.size, *cfg.base_size))
+    assert cfg == scene_config("default", size=(40, 120)) and hash(cfg) == hash(scene_config("default", size=(40, 120)))
+    size[0], base[0] = 80, 300
+    assert cfg.size == (40, 120) and cfg.base_size == (375, 1242)
+
+
+def test_a_base_size_list_changed_between_calls_does_not_reuse_the_old_frame():
+    """The kept frame was keyed by a configuration holding the caller's list: changed in place
+    between two calls, the second call took the frame rendered with the old intrinsics (pair 1's
+    image1 seen by another camera than its flow)."""
+    base = [375, 1242]
+    render_pair("default", 0, size=TINY, base_size=base)  # keeps frame 1, K scaled from 375x1242
+    base[:] = [300, 1000]
+    pair = render_pair("default", 1, size=TINY, base_size=base)
+    render_pair("cvc-simple", 0, size=TINY)  # another scene: nothing kept for the next call
+    fresh = render_pair("default", 1, size=TINY, base_size=(300, 1000))
+    assert torch.equal(pair["image1"], fresh["image1"]) and torch.equal(pair["flow"], fresh["flow"])
+
+
+def test_a_configurations_size_list_changed_between_calls_renders_the_new_size():
+    size = [16, 48]
+    cfg = SceneConfig(size=size, supersample=1)
+    render_pair(cfg, 0)
+    size[:] = [8, 24]  # used to crash: the kept 16x48 frame read as an 8x24 one
+    pair = render_pair(cfg, 1)
+    assert pair["image1"].shape == pair["image2"].shape == (3, 8, 24) and pair["flow"].shape == (2, 8, 24)
 
 
 # -- car densities and texture contrast within physical ranges -----------------------------------

@@ -175,7 +175,7 @@ class SceneConfig:
 
     Camera: ``height`` (m), ``roll``, ``pitch`` (rad), ``K`` (3×3 at ``base_size``), ``size``
     (rendered (H, W), each side at most :data:`MAX_SIDE` = 16 384; K is scaled to it; None renders at
-    ``base_size``, then bounded alike); K, height, roll and pitch make a valid
+    ``base_size``, then bounded alike; both held as tuples of ints); K, height, roll and pitch make a valid
     :class:`~fsof_torch.geometry.camera.Camera` (float64) at both sizes. Anti-aliasing:
     ``supersample`` (ss × ss rays per pixel, 1 <= ss <= :data:`MAX_SUPERSAMPLE` = 16) at geometric
     edges only when ``adaptive`` (textures and markings are band-limited analytically, so pixel
@@ -322,11 +322,12 @@ def scene_config(preset: str | SceneConfig = "default", **overrides: Any) -> Sce
     # K as nested float tuples: a tensor or an array would not compare in the frame cache's key
     cfg = replace(cfg, K=_as_K(cfg.K), **_python_numbers(cfg))
     _validate(cfg)
+    # tuples, not the caller's lists: a list changed after the call would change the configuration
+    # that keyed the kept frame (render.py) and the SceneDataset's items
     if cfg.asphalt is not None:
-        # a tuple, not the caller's list: a list changed after the call would change the
-        # configuration that keyed the kept frame (render.py) and the SceneDataset's items
         cfg = replace(cfg, asphalt=tuple(float(a) for a in cfg.asphalt))
-    return cfg
+    return replace(cfg, base_size=check_size(cfg.base_size, "base_size"),
+                   size=None if cfg.size is None else check_size(cfg.size))
 
 
 def _as_K(K: Any) -> tuple:
