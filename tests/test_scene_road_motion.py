@@ -252,6 +252,32 @@ def test_ground_lies_on_the_graded_surfaces(preset):
     assert not bool((below_road | (on_pavement_side & below_pavement)).any())
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("grades", [(-0.02, -0.08), (-0.05, -0.06), (0.03, 0.06)])
+def test_rays_that_never_meet_a_steepening_road_are_sky(grades, dtype):
+    """A downhill road that steepens falls away below the rays that descend less steeply, and an
+    uphill one that steepens rises under no ray that climbs more steeply: those rays never meet the
+    ground. They were labelled kerb with an infinite depth and NaN grey levels (the kerb test took
+    the infinite crossing of a ray that never reaches the pavement's level); now they are sky, every
+    output is finite, and every kerb pixel lies on a kerb face."""
+    cfg = scene_config("crest", grade_before=grades[0], grade_after=grades[1])
+    pair = render_pair(cfg, 0, size=(96, 320), dtype=dtype)
+    for key in ("image1", "image2", "depth", "flow", "flow_velocity"):
+        assert bool(torch.isfinite(pair[key]).all()), key
+    labels = pair["labels"]
+    if grades[1] < 0:  # sky below the level horizon: rays that descend (world y down), less steeply than the road
+        ray = _world_points({**pair, "depth": torch.ones_like(pair["depth"])}) - pair["pose1"][:3, 3].reshape(3, 1, 1)
+        assert int(((labels == LABELS["sky"]) & (ray[1] > 0)).sum()) > 20
+    P = _world_points(pair)
+    kerb = labels == LABELS["kerb"]
+    assert int(kerb.sum()) > 10
+    e = P[0][kerb] + cfg.lane_width / 2
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    torch.testing.assert_close(e.abs(), torch.full_like(e, cfg.lane_width + cfg.parking_width), atol=tol, rtol=0)
+    road_y = cfg.height - _elevation(cfg, P[2][kerb])
+    assert bool(((P[1][kerb] <= road_y + tol) & (P[1][kerb] >= road_y - cfg.kerb_height - tol)).all())
+
+
 def test_crest_road_is_the_tangent_plane_before_the_curve_and_not_after():
     cfg = scene_config("crest")
     pair = render_pair("crest", 0, size=(120, 400), dtype=torch.float64)

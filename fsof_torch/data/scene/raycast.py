@@ -99,7 +99,9 @@ def _ground_on_grade(scene: Scene, origin: list[float], dx: Tensor, dy: Tensor, 
     t_kerb = (torch.sign(dx) * w_road - road.e0 - ox) / torch.where(moving, dx, 1.0)
     t_kerb = torch.where(moving & torch.isfinite(t_pave), t_kerb, math.inf)
     below_pave = oy + t_kerb * dy >= h - kh - grade.elevation(oz + t_kerb * dz)
-    kerb = ~on_pave & ~on_road & (t_kerb >= t_pave) & (t_kerb <= t_road) & below_pave
+    # (t_kerb = inf: a ray that never reaches the pavement's level, such as one over a road that falls
+    # away faster than it descends, or one along the kerb line, meets no kerb face)
+    kerb = torch.isfinite(t_kerb) & ~on_pave & ~on_road & (t_kerb >= t_pave) & (t_kerb <= t_road) & below_pave
     t = torch.where(on_pave, t_pave, torch.where(on_road, t_road, torch.where(kerb, t_kerb, math.inf)))
     label = torch.where(on_road, ROAD, torch.where(on_pave, PAVEMENT, torch.where(kerb, KERB, SKY)))
     return t.to(dtype), label
