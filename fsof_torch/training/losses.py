@@ -55,8 +55,6 @@ from .._check import (
     check_float_tensor,
     check_image_range,
     check_int,
-    check_keywords,
-    check_mapping,
     check_mask,
     check_number,
     check_same_device,
@@ -66,10 +64,11 @@ from .._check import (
 )
 from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import get_road_model, road_motion_batch
+from ..geometry.road_models import road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
 from .composite import CompositeLoss  # (defined there; a name of this module's contract)
+from .fitted_target import check_fit_options, fitted_target
 from ..warn import warn_user
 
 __all__ = ["sequence_weights", "forward_backward_mask", "photometric_loss", "smoothness_loss", "unsupervised_flow_loss",
@@ -101,25 +100,6 @@ def _as_flow_list(flows: Tensor | Sequence[Tensor], name: str = "flows") -> list
         raise TypeError(f"{name}: expected a tensor (B, 2, H, W) or a non-empty list of them, got "
                         f"{type(flows).__name__}" + (" of length 0" if isinstance(flows, (list, tuple)) else ""))
     return list(flows)
-
-
-def _check_fit_options(fit_options: Mapping[str, object] | None) -> dict[str, object]:
-    """``fit_options`` for ``odometry="fit"``: ``fit_road``'s keyword arguments (with a
-    ``"model"``), or ``fit_displacement``'s (``fit_road``'s with ``fit_roll`` / ``fit_pitch`` in
-    place of ``model`` / ``fixed``); unknown names raise now, named, not at the fit, and so does
-    the ``"velocity"`` model (its flow is in px/s: no target for a flow in pixels per frame)."""
-    from ..estimation.flow_fit import fit_road
-
-    options = dict(check_mapping(fit_options, "fit_options") or {})
-    if "model" in options:
-        if get_road_model(options["model"], "fit_options['model']").velocity:
-            raise ValueError(f"fit_options['model']: the {options['model']!r} model gives flow in px/s, not the pixels "
-                             f"per frame the loss compares; fit a displacement model ('paper', 'plane' or 'homography')")
-        check_keywords(options, "fit_options", fit_road, reserved=("flow", "mask", "camera"))
-    else:
-        check_keywords({k: v for k, v in options.items() if k not in ("fit_roll", "fit_pitch")}, "fit_options",
-                       fit_road, reserved=("flow", "mask", "camera", "fixed"))
-    return options
 
 
 def _check_flow(flow: Tensor, name: str, dims: dict[str, int]) -> None:
@@ -525,8 +505,9 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         scale: residual scale in pixels, finite and > 0; the penalty is quadratic below about
             ``scale``.
         fit_options: keyword arguments for ``fit_road`` (with a ``"model"``) or
-            ``fit_displacement`` (without), used with ``odometry="fit"`` only; checked always
-            (a wrong name or type raises also with a given odometry, as in the module twin).
+            ``fit_displacement`` (without), used with ``odometry="fit"`` only; checked always,
+            names and values (a wrong one raises, naming ``fit_options``, also with a given
+            odometry, as in the module twin when it is made).
 
     Returns:
         Per-pixel penalty summed over u and v, averaged over the counted pixels: a scalar, or (B,)
@@ -545,7 +526,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         raise ValueError(f"penalty: expected one of {_PENALTIES}, got {penalty!r}")
     scale = _check_scale(scale)
     # (checked with a given odometry too, as FreespaceFlowLoss checks them: unused, but not wrong)
-    options = _check_fit_options(fit_options)
+    options = check_fit_options(fit_options)
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
     fw = _as_flow_list(flows, "flows")
@@ -568,15 +549,7 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         if isinstance(odometry, str):
             if odometry != "fit":
                 raise ValueError(f"odometry: expected a dict of x_d, z_d, yaw or 'fit', got {odometry!r}")
-            from ..estimation.flow_fit import fit_displacement, fit_road
-
-            fit = fit_road if "model" in options else fit_displacement  # (the paper's by default)
-            with torch.no_grad():
-                fit_mask = road & finite[-1]
-                observed = torch.where(fit_mask, last.detach(), torch.zeros((), dtype=last.dtype, device=device))
-                fitted = fit(observed.to(work), fit_mask, camera, **options)
-            target = fitted.flow.detach()
-            model_valid = fitted.valid & fitted.success.reshape(-1, 1, 1, 1)
+            target, model_valid = fitted_target(last, road & finite[-1], camera, options, work)
         else:
             geo = torch.promote_types(work, camera.dtype)
             model, values = road_motion_batch(odometry, B, geo, device, batch_of="the flows' batch",
@@ -681,7 +654,7 @@ class FreespaceFlowLoss(nn.Module):
         scale = _check_scale(scale)
         _check_reduction(reduction)
         gamma = _check_gamma(gamma)
-        _check_fit_options(fit_options)
+        check_fit_options(fit_options)
         self.mode = odometry
         self.options = dict(penalty=penalty, scale=scale, gamma=gamma,
                             fit_options=dict(fit_options or {}), reduction=reduction)
