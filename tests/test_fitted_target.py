@@ -89,3 +89,15 @@ def test_valid_fit_options_give_fit_roads_target(fit_options):
     assert freespace_flow_loss(flow, road, cam, GIVEN, fit_options=fit_options) == freespace_flow_loss(
         flow, road, cam, GIVEN)
 
+
+def test_fit_mode_does_not_use_an_odometry_passed_to_it():
+    """As documented: FreespaceFlowLoss(odometry="fit") fits the prediction whatever odometry it is
+    given, so one batch dict with an odometry feeds it through CompositeLoss."""
+    flow, road, cam = _bumped()
+    term = FreespaceFlowLoss(odometry="fit")
+    fitted = term(flow, road, cam)
+    assert term(flow, road, cam, GIVEN) == fitted
+    given = FreespaceFlowLoss()(flow, road, cam, GIVEN)
+    assert given > 5 * fitted  # (the two targets differ: the test tells them apart)
+    _, values = CompositeLoss({"f": (1.0, term)})(flow, {"road": road, "camera": cam, "odometry": GIVEN})
+    assert values["f"] == fitted

@@ -632,11 +632,14 @@ class FreespaceFlowLoss(nn.Module):
     """``nn.Module`` twin of :func:`freespace_flow_loss`.
 
     Args:
-        odometry: ``"given"`` (pass the odometry to ``forward``) or ``"fit"`` (fit the
-            displacement model to the detached prediction at every call).
+        odometry: ``"given"`` (pass the odometry to ``forward``) or ``"fit"`` (fit the road
+            model, ``fit_options["model"]`` or the paper's, to the detached prediction at every
+            call).
         penalty, scale, gamma, fit_options, reduction: as in :func:`freespace_flow_loss`.
 
-    ``forward(flows, road, camera, odometry=None)`` -> scalar (or (B,)).
+    ``forward(flows, road, camera, odometry=None)`` -> scalar (or (B,)). With ``odometry="fit"``
+    an odometry passed to ``forward`` is not used: the target is the fit, so one batch dict that
+    holds an odometry feeds either mode (as ``python -m eval train --odometry fit`` does).
 
     Example:
         >>> term = FreespaceFlowLoss(penalty="charbonnier", scale=1.0)
