@@ -1194,3 +1194,41 @@ def test_freespace_checks_fit_options_with_a_given_odometry_as_its_module_does(f
                                fit_options={"fit_roll": True}) == pytest.approx(0.0, abs=1e-12)
     for road_model in ("paper", "plane", "homography"):  # (the displacement models, fitted)
         assert freespace_flow_loss(model, valid, cam, "fit", fit_options={"model": road_model}) < 1e-6
+
+
+def test_gamma_and_scale_that_require_grad_are_refused():
+    """gamma and scale are read as numbers: a tensor that requires grad (a learnable residual
+    scale, say) was taken, its gradient lost in silence (scale.grad stayed None after backward),
+    so it never changed; the weights of the unsupervised terms, used as given, do get theirs."""
+    cam = _camera()
+    model, valid = displacement_flow(cam, 0.0, 1.0, 0.0, (H, W))
+    flow = (model + 0.5).requires_grad_(True)
+    image1, image2, _ = _shifted_pair(2)
+    learnable = torch.nn.Parameter(torch.tensor(0.9, dtype=torch.float64))
+    match = r"^{}: expected a fixed number, got a tensor that requires grad"
+    with pytest.raises(TypeError, match=match.format("scale")):
+        freespace_flow_loss(flow, valid, cam, _odometry(1), scale=learnable)
+    with pytest.raises(TypeError, match=match.format("scale")):
+        FreespaceFlowLoss(scale=learnable)
+    with pytest.raises(TypeError, match=match.format("gamma")):
+        freespace_flow_loss([flow, flow], valid, cam, _odometry(1), gamma=learnable)
+    with pytest.raises(TypeError, match=match.format("gamma")):
+        FreespaceFlowLoss(gamma=learnable)
+    with pytest.raises(TypeError, match=match.format("gamma")):
+        unsupervised_flow_loss(torch.zeros(2, 2, H, W), image1, image2, gamma=learnable)
+    with pytest.raises(TypeError, match=match.format("gamma")):
+        UnsupervisedFlowLoss(gamma=learnable)
+    with pytest.raises(TypeError, match=match.format("gamma")):
+        sequence_weights(3, learnable)
+    # a fixed 0-d tensor is read as its number, as before
+    fixed = learnable.detach()
+    assert freespace_flow_loss(flow, valid, cam, _odometry(1), scale=fixed) == freespace_flow_loss(
+        flow, valid, cam, _odometry(1), scale=0.9)
+    assert sequence_weights(3, fixed) == sequence_weights(3, 0.9)
+    # (a weight of the unsupervised loss enters its arithmetic as given: its gradient is kept)
+    weight = torch.nn.Parameter(torch.tensor(2.0, dtype=torch.float64))
+    flows = torch.zeros(2, 2, H, W, dtype=torch.float64)
+    flows[:, 0, :, W // 2:] = 1.0
+    unsupervised_flow_loss(flows, image1, image2, smooth_weight=weight).backward()
+    expected = smoothness_loss(flows, image1)
+    assert weight.grad is not None and weight.grad.item() == pytest.approx(expected.item(), rel=1e-9)

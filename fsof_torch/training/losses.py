@@ -141,8 +141,17 @@ def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     return total / weight.flatten(1).sum(dim=1).clamp_min(1.0)
 
 
+def _check_fixed(value: object, name: str) -> None:
+    """A number read as a float (``gamma``, ``scale``) may not be a tensor that requires grad: its
+    gradient would be lost, so a learnable one would silently never change (as CompositeLoss's weights)."""
+    if isinstance(value, Tensor) and value.requires_grad:
+        raise TypeError(f"{name}: expected a fixed number, got a tensor that requires grad (read as a number, its "
+                        f"gradient would be lost: a learnable {name} would never change)")
+
+
 def _check_gamma(gamma: object) -> float:
     """RAFT's decay γ: a real number (a numpy or 0-d tensor one too) with 0 < γ <= 1 -> float."""
+    _check_fixed(gamma, "gamma")
     value = check_number(gamma, "gamma", finite=False)
     if not 0.0 < value <= 1.0:  # (false for NaN)
         raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
@@ -468,6 +477,7 @@ _PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": torch.abs}
 
 def _check_scale(scale: object) -> float:
     """The residual scale: a real number (a numpy or 0-d tensor one too), finite and > 0 -> float."""
+    _check_fixed(scale, "scale")
     value = check_number(scale, "scale", finite=False)
     if not 0 < value < math.inf:  # (false for NaN)
         raise ValueError(f"scale: expected a finite residual scale > 0 px, got {scale!r}")
@@ -502,8 +512,9 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
         penalty: ``"charbonnier"`` (sqrt(r² + 1) - 1, as kornia's), ``"cauchy"`` (log(1 + r²/2),
             as kornia's) or ``"l1"``, on each component of the residual r = (F - F_model) / scale;
             evaluated without forming r² where it could overflow.
-        scale: residual scale in pixels, finite and > 0; the penalty is quadratic below about
-            ``scale``.
+        scale: residual scale in pixels, finite and > 0, a fixed number (a tensor that requires
+            grad raises TypeError: its gradient would be lost); the penalty is quadratic below
+            about ``scale``.
         fit_options: keyword arguments for ``fit_road`` (with a ``"model"``) or
             ``fit_displacement`` (without), used with ``odometry="fit"`` only; checked always,
             names and values (a wrong one raises, naming ``fit_options``, also with a given
