@@ -414,6 +414,26 @@ def test_composite_terms_may_return_python_numbers():
         assert not CompositeLoss({"a": (2.0, lambda flows: 0.25)})([flow])[0].requires_grad
 
 
+def test_composite_takes_a_builtin_term_without_a_readable_signature():
+    """torch.mean or torch.Tensor.abs as a term (a regulariser, a diagnostic of weight 0): CompositeLoss
+    raised inspect's 'no signature found for builtin' when made, naming no term; such a term is fed
+    the flows alone."""
+    g = torch.Generator().manual_seed(0)
+    flow = torch.randn(2, 2, 4, 5, generator=g, dtype=torch.float64).requires_grad_(True)
+    batch = {"road": torch.ones(2, 1, 4, 5, dtype=torch.bool), "odometry": _odometry(2)}
+    loss = CompositeLoss({"mean": (0.5, torch.mean), "sum": (0.0, torch.sum),
+                          "l1": (2.0, functools.partial(torch.nn.functional.l1_loss, target=torch.zeros_like(flow)))})
+    total, values = loss(flow, batch)
+    assert values["mean"].item() == pytest.approx(flow.mean().item(), rel=1e-12)
+    assert values["sum"].item() == pytest.approx(flow.sum().item(), rel=1e-12)
+    assert total.item() == pytest.approx(0.5 * flow.mean().item() + 2.0 * flow.abs().mean().item(), rel=1e-12)
+    total.backward()
+    torch.testing.assert_close(flow.grad, 0.5 / flow.numel() + 2.0 * flow.detach().sign() / flow.numel())
+    # a builtin that needs more than the flows fails at its call, named
+    with pytest.raises(TypeError, match=r"^terms\['d'\]: "):
+        CompositeLoss({"d": (1.0, torch.dist)})(flow, batch)
+
+
 def test_composite_bad_inputs_are_named():
     """A list as inputs gave dict()'s 'dictionary update sequence' error, a missing input Python's
     'missing 2 required positional arguments' without the term's name."""

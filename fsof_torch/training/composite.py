@@ -25,7 +25,8 @@ class CompositeLoss(nn.Module):
         terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
             receives, from the inputs given to ``forward``, those whose names are parameters of
             its ``forward`` (or of the function itself; of the compiled module's ``forward`` for
-            ``torch.compile(module)``), so one batch dict can feed all terms. The keywords a
+            ``torch.compile(module)``; none for a builtin whose signature cannot be read, such as
+            ``torch.mean``: it is called with the flows alone), so one batch dict can feed all terms. The keywords a
             ``functools.partial`` term binds are its own: an input of that name is not passed
             (``partial(freespace_flow_loss, odometry="fit")`` fits, whatever odometry the batch
             holds); a partial of a module is fed the other inputs its ``forward`` names.
@@ -153,7 +154,10 @@ def _accepted_names(term: object) -> tuple[set[str], bool, frozenset[str]]:
     else:
         term = _compiled_module(term)
         fn = term.forward if isinstance(term, nn.Module) else term
-    params = list(inspect.signature(fn).parameters.values())[1:]
+    try:
+        params = list(inspect.signature(fn).parameters.values())[1:]
+    except ValueError:  # a builtin without a signature Python can read (torch.mean): it is fed the flows alone
+        params = []
     takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
     names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
                                                    inspect.Parameter.KEYWORD_ONLY)} - bound
