@@ -434,6 +434,27 @@ def test_composite_takes_a_builtin_term_without_a_readable_signature():
         CompositeLoss({"d": (1.0, torch.dist)})(flow, batch)
 
 
+@pytest.mark.filterwarnings("ignore:`torch.jit.trace:DeprecationWarning")
+def test_composite_feeds_a_traced_term_the_inputs_its_schema_names():
+    """A torch.jit.trace'd module's forward has no Python signature: CompositeLoss raised 'no
+    signature found' when made; it reads the TorchScript schema's argument names instead."""
+
+    class Term(torch.nn.Module):
+        def forward(self, flows, image1, road):
+            return flows.abs().mean() + 0.01 * (image1 * road).mean()
+
+    image1, _, flow = _shifted_pair(1)
+    road = torch.zeros(1, 1, H, W, dtype=torch.float64)
+    road[..., H // 2:, :] = 1.0
+    traced = torch.jit.trace(Term(), (flow, image1, road))
+    g = torch.Generator().manual_seed(1)
+    probe = torch.randn(flow.shape, generator=g, dtype=flow.dtype)
+    total, values = CompositeLoss({"traced": (2.0, traced)})(probe, {"image1": image1, "road": road, "camera": None})
+    expected = probe.abs().mean() + 0.01 * (image1 * road).mean()
+    assert values["traced"].item() == pytest.approx(expected.item(), rel=1e-12)
+    assert total.item() == pytest.approx(2.0 * expected.item(), rel=1e-12)
+
+
 def test_composite_bad_inputs_are_named():
     """A list as inputs gave dict()'s 'dictionary update sequence' error, a missing input Python's
     'missing 2 required positional arguments' without the term's name."""

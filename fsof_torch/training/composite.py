@@ -25,8 +25,9 @@ class CompositeLoss(nn.Module):
         terms: ``{name: (weight, term)}``; ``term(flows, **inputs)`` returns a scalar. Each term
             receives, from the inputs given to ``forward``, those whose names are parameters of
             its ``forward`` (or of the function itself; of the compiled module's ``forward`` for
-            ``torch.compile(module)``; none for a builtin whose signature cannot be read, such as
-            ``torch.mean``: it is called with the flows alone), so one batch dict can feed all terms. The keywords a
+            ``torch.compile(module)``; of its TorchScript schema for ``torch.jit.trace(module)``;
+            none for a builtin whose signature cannot be read, such as ``torch.mean``: it is called
+            with the flows alone), so one batch dict can feed all terms. The keywords a
             ``functools.partial`` term binds are its own: an input of that name is not passed
             (``partial(freespace_flow_loss, odometry="fit")`` fits, whatever odometry the batch
             holds); a partial of a module is fed the other inputs its ``forward`` names.
@@ -156,8 +157,11 @@ def _accepted_names(term: object) -> tuple[set[str], bool, frozenset[str]]:
         fn = term.forward if isinstance(term, nn.Module) else term
     try:
         params = list(inspect.signature(fn).parameters.values())[1:]
-    except ValueError:  # a builtin without a signature Python can read (torch.mean): it is fed the flows alone
-        params = []
+    except ValueError:  # no signature Python can read
+        schema = getattr(fn, "schema", None)
+        if schema is not None:  # a torch.jit.trace'd module's forward: its TorchScript schema (self, flows, ...)
+            return {a.name for a in schema.arguments[2:]} - bound, False, bound
+        params = []  # a builtin (torch.mean): it is fed the flows alone
     takes_all = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params)
     names = {p.name for p in params if p.kind in (inspect.Parameter.POSITIONAL_OR_KEYWORD,
                                                    inspect.Parameter.KEYWORD_ONLY)} - bound
