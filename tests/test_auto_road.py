@@ -89,7 +89,7 @@ def test_synthetic_road_found(scene_pair, scene_detection):
     det, true = scene_detection, scene_pair["road"][None].bool()
     assert isinstance(det, RoadDetection) and det.flag == ["ok"] and bool(det.ok.all())
     assert det.mask.shape == true.shape and det.mask.dtype == torch.bool
-    assert iou(det.mask, true) >= 0.8  # measured 0.89 (docs/auto-road.md)
+    assert iou(det.mask, true) >= 0.8  # measured 0.84
     precision = float((det.mask & true).sum() / det.mask.sum())
     assert precision >= 0.9
     # cars are not road
@@ -1266,8 +1266,8 @@ def test_follow_edges_keeps_what_it_cannot_judge():
 def test_detect_road_edges_option(scene_pair, scene_detection):
     """``edges=False``: the windows' boundary, blocks of the working resolution; the default moves
     it onto the edges: fewer pixels off the road on this pair (cars, kerbs), and a better mean IoU
-    over the benchmark's pairs of the default scene (benchmarks/auto_road.py: 0.832 against 0.729;
-    on this pair alone 0.887 against 0.875)."""
+    over the benchmark's pairs of the default scene (benchmarks/auto_road.py: 0.821 against 0.725;
+    on this pair alone 0.842 against 0.880)."""
     from fsof_torch.data.scene import render_pair
 
     p = scene_pair
