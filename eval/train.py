@@ -422,9 +422,16 @@ def run(args: argparse.Namespace) -> int:
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2
-    if args.threads:
-        torch.set_num_threads(args.threads)
-    device = torch.device(args.device)
+    threads = torch.get_num_threads()  # (a main() called in-process gives its caller's count back)
+    try:
+        if args.threads:
+            torch.set_num_threads(args.threads)
+        return _train_in_group(args, torch.device(args.device))
+    finally:
+        torch.set_num_threads(threads)
+
+
+def _train_in_group(args: argparse.Namespace, device: torch.device) -> int:
     ranks = _join_process_group(device)
     try:
         status = _train_and_report(args, device, ranks)

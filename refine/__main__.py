@@ -445,9 +445,12 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         raise JobError(f"--threads: expected >= 1, got {args.threads}")
     if args.threads > (os.cpu_count() or 1):  # (a huge count crashes torch's thread pool)
         raise JobError(f"--threads: expected at most this machine's {os.cpu_count() or 1} CPUs, got {args.threads}")
-    torch.set_num_threads(args.threads)
     import cv2
 
+    # (a main() called in-process gives its caller's thread counts back when it returns)
+    stack.callback(torch.set_num_threads, torch.get_num_threads())
+    stack.callback(cv2.setNumThreads, cv2.getNumThreads())
+    torch.set_num_threads(args.threads)
     cv2.setNumThreads(args.threads)
     try:
         device = torch.device(args.device)

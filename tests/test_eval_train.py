@@ -22,11 +22,14 @@ def keep_threads():
 
 
 def test_train_job_smoke(tmp_path, capsys, keep_threads):
+    torch.set_num_threads(2)
+    threads = torch.get_num_threads()
     out = tmp_path / "nets"
     rc = train.main(["--steps", "2", "--size", "32", "64", "--batch", "2", "--iters", "1",
                      "--train-pairs", "2", "--test-pairs", "1", "--threads", "1", "--no-progress",
                      "--json", str(tmp_path / "train.json"), "--out", str(out)])
     assert rc == 0
+    assert torch.get_num_threads() == threads  # (the caller's count, given back; --threads 1 was set for the run)
     printed = capsys.readouterr().out
     assert "road EPE" in printed and "change with freespace" in printed
     report = json.loads((tmp_path / "train.json").read_text())

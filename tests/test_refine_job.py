@@ -2127,3 +2127,26 @@ def test_a_run_logs_a_few_lines_of_progress_and_its_error_on_a_line_of_its_own(t
     assert main([*argv, "--overwrite"]) == 0
     err = capsys.readouterr().err
     assert "2/2" in err and err.count("\r") <= 3, err
+
+
+def test_an_in_process_run_gives_the_callers_thread_counts_back(tmp_path):
+    """refine's main() set torch's and OpenCV's thread counts for the process to --threads and left
+    them so: a caller in Python (a notebook, a test) went on single-threaded after a run. The
+    counts it had are restored when main() returns, also from a run that fails."""
+    import cv2
+
+    torch_threads, cv2_threads = torch.get_num_threads(), cv2.getNumThreads()
+    try:
+        torch.set_num_threads(2)
+        cv2.setNumThreads(3)
+        out = tmp_path / "out"
+        assert main(["--num-pairs", "1", "--source", "dis", "--no-figures", "--threads", "1", "--out", str(out),
+                     *TINY]) == 0
+        assert (torch.get_num_threads(), cv2.getNumThreads()) == (2, 3)
+        # a run refused after the counts were set (its --out holds another run's results)
+        assert main(["--num-pairs", "1", "--source", "dis", "--no-figures", "--threads", "1", "--out", str(out),
+                     "--seed", "5", *TINY]) == 2
+        assert (torch.get_num_threads(), cv2.getNumThreads()) == (2, 3)
+    finally:
+        torch.set_num_threads(torch_threads)
+        cv2.setNumThreads(cv2_threads)
