@@ -394,6 +394,18 @@ def test_accumulator_device_is_checked_and_named():
         FlowMetricAccumulator(device=1.5)
 
 
+@pytest.mark.parametrize("return_count", ["no", "False", 1, 0, None])
+def test_per_sample_functions_take_return_count_as_true_or_false(return_count):
+    """return_count was read by its truth: "no" or "False" gave a (mean, count) tuple, 0 or None the
+    mean alone, where the photometric functions refuse anything but True or False."""
+    est, gt = _random(), _random(seed=1)
+    for fn in PER_SAMPLE.values():
+        with pytest.raises(TypeError, match=rf"^return_count: expected True or False, got {type(return_count).__name__} "):
+            fn(est, gt, return_count=return_count)
+        mean, count = fn(est, gt, return_count=True)
+        assert torch.equal(fn(est, gt, return_count=False), mean) and count.tolist() == [54, 54]
+
+
 def test_accumulator_on_the_meta_device_is_refused():
     """FlowMetricAccumulator(device="meta") was built: update() then added every batch's sums to a
     state without values (lost, silently), and compute() and repr() raised torch's own errors

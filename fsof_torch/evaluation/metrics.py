@@ -47,7 +47,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._check import all_finite, check_float_tensor, check_shape, result_dtype, skip_values, to_device
+from .._check import all_finite, check_bool, check_float_tensor, check_shape, result_dtype, skip_values, to_device
 
 __all__ = [
     "flow_error_maps",
@@ -239,6 +239,8 @@ def _with_aliases(values: dict) -> dict:
 
 def _per_sample(name: str, flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None,
                 valid: Tensor | None, return_count: bool) -> _Result:
+    # (True or False: a truthy string such as "no" returned a tuple, 0 or None the mean alone)
+    check_bool(return_count, "return_count")
     maps, sel = flow_error_maps(flow_est, flow_gt, mask, valid)
     means, count = _means({name: maps[name]}, sel)
     return (means[name], count) if return_count else means[name]
