@@ -725,6 +725,13 @@ def test_to_grey_and_census_check_their_arguments():
         to_grey(image, out=torch.zeros(1, 1, 8, 8, dtype=torch.float64))
     into = torch.zeros(1, 2, 8, 8)
     assert to_grey(image, out=into[:, :1]).data_ptr() == into.data_ptr()
+    # a list failed in an AttributeError, a tensor on another device in torch's error of the
+    # product (three channels) or was copied into without a word (one channel)
+    with pytest.raises(TypeError, match=r"^out: expected a tensor \(B, 1, H, W\) or None, got list$"):
+        to_grey(image, out=[0.0])
+    for source in (image, image[:, :1]):
+        with pytest.raises(ValueError, match=r"^out: expected the image's device \(cpu\), got meta$"):
+            to_grey(source, out=torch.empty(1, 1, 8, 8, device="meta"))
     for radius, error in ((2.0, TypeError), (True, TypeError), (0, ValueError)):
         with pytest.raises(error, match="^radius: expected an int"):
             census_transform(image, radius=radius)

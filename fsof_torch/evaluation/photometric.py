@@ -93,6 +93,12 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
     if out is not None and grad:
         raise ValueError("out: not supported for an image that requires grad")
     if out is not None:
+        # (a list failed in an AttributeError, a tensor on another device in torch's error of the
+        # product written into it: neither named out)
+        if not isinstance(out, Tensor):
+            raise TypeError(f"out: expected a tensor (B, 1, H, W) or None, got {type(out).__name__}")
+        if out.device != image.device:
+            raise ValueError(f"out: expected the image's device ({image.device}), got {out.device}")
         # (written into, never resized: a caller's tensor of another shape would be reallocated)
         check_shape(out, "out", ("B", 1, "H", "W"), dims)
         if out.dtype != image.dtype:
