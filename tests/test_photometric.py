@@ -158,6 +158,9 @@ def test_module_twin():
     m = PhotometricError(kind="census")
     assert torch.equal(m(i1, i2, flow), photometric_error(i1, i2, flow, kind="census"))
     assert "census" in repr(m)
+    # every option that changes the result is shown (window and census_radius were not)
+    assert repr(PhotometricError(kind="ssim", data_range=1.0, window=11, census_radius=2)) == (
+        "PhotometricError(kind='ssim', data_range=1, window=11, census_radius=2)")
 
 
 # --- exceptions --------------------------------------------------------------------------------

@@ -468,4 +468,7 @@ class PhotometricError(nn.Module):
                                  return_count=return_count)
 
     def extra_repr(self) -> str:
-        return f"kind={self.kind!r}, data_range={self.data_range:g}"
+        # (every option that changes the result: the window and the census radius were left out,
+        # so a module with window=11 printed as one with the default 7)
+        return (f"kind={self.kind!r}, data_range={self.data_range:g}, window={self.window}, "
+                f"census_radius={self.census_radius}")
