@@ -369,7 +369,8 @@ def test_accumulator_merge_state_and_errors():
     restored.load_state_dict(one.state_dict())
     assert restored.compute("images") == one.compute("images")
     assert one.all_reduce().compute() == one.compute()  # no process group: a copy
-    empty = FlowMetricAccumulator().compute()
+    with pytest.warns(RuntimeWarning, match=r"compute\('pixels'\): nothing was counted"):
+        empty = FlowMetricAccumulator().compute()
     assert empty["n_pixels"] == 0 and empty["epe"] == 0.0
     with pytest.raises(ValueError, match="reduction: expected 'pixels' or 'images'"):
         one.compute("frames")
@@ -392,6 +393,26 @@ def test_accumulator_device_is_checked_and_named():
         FlowMetricAccumulator(device="gpu")
     with pytest.raises(TypeError, match=r"device: expected .*got 1.5"):
         FlowMetricAccumulator(device=1.5)
+
+
+def test_accumulator_compute_over_nothing_counted_warns():
+    """compute() over no counted pixel returned e_E 0.0, a perfect score, without a word: the
+    count was the only flag (a data set whose valid masks all came out False)."""
+    import warnings
+
+    est, gt = _random(), _random(seed=1)
+    acc = FlowMetricAccumulator()
+    acc.update(est, gt, valid=torch.zeros(2, 1, 6, 9, dtype=torch.bool))
+    for reduction in ("pixels", "images"):
+        with pytest.warns(RuntimeWarning, match=rf"^FlowMetricAccumulator.compute\('{reduction}'\): nothing was "
+                                                r"counted \(n_pixels 0, n_images 0\); every metric is 0.0") as record:
+            out = acc.compute(reduction)
+        assert record[0].filename == __file__  # (the caller's line)
+        assert out["epe"] == 0.0 and out["n_pixels"] == 0 and out["n_images"] == 0
+    acc.update(est, gt)  # something counted: no warning
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert acc.compute()["n_pixels"] == 108 and acc.compute("images")["n_images"] == 2
 
 
 @pytest.mark.parametrize("return_count", ["no", "False", 1, 0, None])
@@ -481,7 +502,7 @@ def test_accumulator_built_under_inference_mode_works_outside_it():
     merged = FlowMetricAccumulator().merge(other)  # a plain one takes an inference one, and back
     assert other.merge(merged).n_pixels == 2 * merged.n_pixels
     acc.reset()
-    assert acc.compute()["n_pixels"] == 0 and not acc.state.any()
+    assert acc.n_pixels == 0 and not acc.state.any()
     with torch.inference_mode():  # and a plain accumulator updated under it keeps working outside
         plain.update(*batches[0][:2], valid=batches[0][2])
     plain.update(*batches[0][:2], valid=batches[0][2])

@@ -38,6 +38,7 @@ Reductions:
 
 Empty selections: a mean over zero pixels is reported as 0.0 with a count of 0, never NaN; the
 count (``return_count=True``, or ``n_pixels``) is the flag to check.
+:meth:`FlowMetricAccumulator.compute` over nothing counted warns as well (``RuntimeWarning``).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ import torch
 from torch import Tensor
 
 from .._check import all_finite, check_bool, check_float_tensor, check_shape, result_dtype, skip_values, to_device
+from ..warn import warn_user
 
 __all__ = [
     "flow_error_maps",
@@ -432,7 +434,8 @@ class FlowMetricAccumulator:
 
     def compute(self, reduction: str = "pixels") -> dict[str, float | int]:
         """The metrics as numbers: ``{"e_A", "e_E", "e_U", "e_V", "Fl", "px1", "px3", "px5",
-        "epe", "fl", "flall", "n_pixels", "n_images"}``; 0.0 (not NaN) when nothing was counted.
+        "epe", "fl", "flall", "n_pixels", "n_images"}``; 0.0 (not NaN) when nothing was counted,
+        with a ``RuntimeWarning`` saying so (an end-point error of 0.0 reads as a perfect result).
 
         Args:
             reduction: ``"pixels"`` (pooled over all counted pixels, KITTI) or ``"images"`` (the
@@ -443,6 +446,12 @@ class FlowMetricAccumulator:
         n = len(_MAPS)
         values = self.state.tolist()
         sums, count = (values[:n], values[n]) if reduction == "pixels" else (values[n + 1:-1], values[-1])
+        if count == 0:
+            # (the 0.0 that stands for "nothing counted" was returned without a word: a data set whose
+            # valid masks all came out False, e.g. inverted, evaluated to a perfect end-point error)
+            warn_user(f"FlowMetricAccumulator.compute({reduction!r}): nothing was counted (n_pixels "
+                      f"{int(values[n])}, n_images {int(values[-1])}); every metric is 0.0, which is no "
+                      f"result: check the mask and valid passed to update()")
         out: dict[str, float | int] = {k: s / max(count, 1.0) for k, s in zip(_MAPS, sums)}
         out = _with_aliases(out)
         out["n_pixels"] = int(values[n])
