@@ -693,3 +693,16 @@ class TestLossyFiles:
         ds = ImageFolderDataset(tmp_path / "images", road=tmp_path / "road")
         with pytest.raises(ValueError, match=r"^road: '.*road/000000\.jpg' is a JPEG, whose compression is lossy"):
             ds[0]
+
+
+def test_polygon_json_with_a_byte_order_mark_reads_as_without(tmp_path):
+    """A road.json saved with a UTF-8 byte-order mark (Windows editors, PowerShell's UTF8 encoding)
+    was refused ('Unexpected UTF-8 BOM'), though the calibration and poses readers skip one: it
+    reads as the same file without the mark, here against the pixels the polygon encloses."""
+    text = json.dumps({"size": [6, 8], "road_polygon": [[1, 1], [6, 1], [6, 4], [1, 4]]})
+    (tmp_path / "plain.json").write_text(text, encoding="utf-8")
+    (tmp_path / "bom.json").write_bytes(b"\xef\xbb\xbf" + text.encode("utf-8"))
+    expected = torch.zeros(1, 6, 8, dtype=torch.bool)
+    expected[0, 1:5, 1:7] = True  # rows 1..4, columns 1..6: the rectangle's pixels, edges included
+    assert torch.equal(read_road_mask(tmp_path / "plain.json"), expected)
+    assert torch.equal(read_road_mask(tmp_path / "bom.json"), expected)

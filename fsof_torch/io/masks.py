@@ -7,7 +7,7 @@ the keys below, or none of their polygons, is a ValueError). A polygon is an out
 edges cross (a bow tie of swapped vertices) is a ValueError naming the two edges (there are no
 holes: a car on the road is left out by giving the road around it as several polygons). A
 LabelMe file (``"shapes"``) is a ValueError saying so, not a guess at which labels are road.
-The layouts:
+The file is UTF-8 text; a byte-order mark is skipped. The layouts:
 
 1. ``{"size": [H, W], "road_polygon": [[u, v], ...]}`` (or ``"polygon"``): one polygon. Other
    keys (``"image"``, ``"note"``, ...) are ignored. This is the format of ``shared/data/*/road.json``.
@@ -323,7 +323,9 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
         existing_file(path)
         where = f"path: {str(path)!r}"
         try:
-            obj = json.loads(path.read_bytes().decode("utf-8"), object_pairs_hook=_unique_keys)
+            # (a byte-order mark, as Windows editors write one, is skipped, as the calibration and
+            # poses readers skip it: json refused the file)
+            obj = json.loads(path.read_bytes().decode("utf-8-sig"), object_pairs_hook=_unique_keys)
         except _RepeatedKey as err:
             raise ValueError(f"{where} has the key {err.args[0]!r} twice in one object; keep one") from None
         except UnicodeDecodeError as err:
