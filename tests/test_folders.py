@@ -251,7 +251,11 @@ def test_frames_numbered_without_padding_pair_by_number(tmp_path):
     assert [(float(ds[i]["image1"][0, 0, 0]), float(ds[i]["image2"][0, 0, 0])) for i in range(4)] == [
         (0.0, 5.0), (5.0, 10.0), (10.0, 15.0), (15.0, 20.0)]
     write_image(tmp_path / "a.png", torch.zeros(3, *SIZE))
-    assert [p.stem for p in list_images(tmp_path)] == ["0", "10", "15", "20", "5", "a"]
+    from fsof_torch.io.images import in_frame_order
+    assert [p.stem for p in in_frame_order(tmp_path.iterdir())] == ["0", "10", "15", "20", "5", "a"]
+    # (a folder so named would pair 20 with 5 and 5 with a: test_clip_beside_other_images_is_refused)
+    with pytest.raises(ValueError, match="named by a number beside images named otherwise"):
+        list_images(tmp_path)
 
 
 def test_frames_named_one_text_around_a_number_pair_by_number(tmp_path):
@@ -354,16 +358,19 @@ def test_a_folder_argument_that_is_a_file_or_a_broken_link_says_so(clip, tmp_pat
 def test_frame_linked_to_a_missing_file_is_an_error(tmp_path):
     """A frame that is a symbolic link to a missing file (data on a drive not mounted) was left out
     silently: its neighbours made a pair two frames apart, named as one frame apart."""
+    clip, store = tmp_path / "clip", tmp_path / "store"
+    clip.mkdir()
+    store.mkdir()
     for n in (0, 1, 3):
-        write_image(tmp_path / f"{n:06d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
-    write_image(tmp_path / "elsewhere.png", torch.zeros(3, *SIZE, dtype=torch.uint8))
-    (tmp_path / "000002.png").symlink_to(tmp_path / "elsewhere.png")  # a link that works is a frame
-    assert [(p.image1.name, p.image2.name) for p in ImageFolderDataset(tmp_path).pairs][1:3] == [
-        ("000001.png", "000002.png"), ("000002.png", "000003.png")]
-    (tmp_path / "elsewhere.png").unlink()
+        write_image(clip / f"{n:06d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
+    write_image(store / "elsewhere.png", torch.zeros(3, *SIZE, dtype=torch.uint8))
+    (clip / "000002.png").symlink_to(store / "elsewhere.png")  # a link that works is a frame
+    assert [(p.image1.name, p.image2.name) for p in ImageFolderDataset(clip).pairs] == [
+        ("000000.png", "000001.png"), ("000001.png", "000002.png"), ("000002.png", "000003.png")]
+    (store / "elsewhere.png").unlink()
     with pytest.raises(FileNotFoundError, match=r"images: '.*000002\.png' is a symbolic link to '.*elsewhere\.png', "
                                                 r"which does not exist"):
-        ImageFolderDataset(tmp_path)
+        ImageFolderDataset(clip)
 
 
 def test_files_match_by_name_never_by_position(clip):
@@ -728,3 +735,45 @@ def test_poses_as_a_numpy_array(clip):
     assert torch.equal(ds[1]["relative_pose"], reference[1]["relative_pose"])
     with pytest.raises(TypeError, match=r"^poses: expected an \(N, 4, 4\) float tensor, got dtype torch.int64$"):
         ImageFolderDataset(root / "images", poses=np.round(array).astype(np.int64))
+
+
+def test_clip_beside_other_images_is_refused(tmp_path):
+    """A clip named by numbers beside an image named otherwise (a preview.png), or two cameras'
+    clips in one folder (left_*, right_*), sorted by name paired the clip's last frame with the
+    other image (000002 -> preview, left_000002 -> right_000000): a ValueError naming `images`,
+    the folder and the names. One clip, names without numbers and KITTI pairs keep working."""
+    from fsof_torch.data.folders import list_images
+
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for n in range(3):
+        write_image(clip / f"{n:06d}.png", torch.full((3, *SIZE), n, dtype=torch.uint8))
+    assert [p.name for p in ImageFolderDataset(clip).pairs] == ["000000", "000001"]
+    write_image(clip / "preview.png", torch.zeros(3, *SIZE))
+    message = (rf"^images: '{re.escape(str(clip))}' holds frames named by a number beside images named otherwise "
+               rf"\(000000.png ... 000002.png \(3\); preview.png\);")
+    with pytest.raises(ValueError, match=message):
+        ImageFolderDataset(clip)
+    with pytest.raises(ValueError, match=message):
+        list_images(clip)
+
+    cams = tmp_path / "cams"
+    cams.mkdir()
+    for side in ("left", "right"):
+        for n in range(3):
+            write_image(cams / f"{side}_{n:06d}.png", torch.zeros(3, *SIZE))
+    with pytest.raises(ValueError, match=r"\(left_000000.png ... left_000002.png \(3\); right_000000.png ... "
+                                         r"right_000002.png \(3\)\)"):
+        ImageFolderDataset(cams)
+
+    plain = tmp_path / "plain"  # no numbers: the names' order, as before
+    plain.mkdir()
+    for stem in ("a", "b", "c"):
+        write_image(plain / f"{stem}.png", torch.zeros(3, *SIZE))
+    assert [p.name for p in ImageFolderDataset(plain).pairs] == ["a", "b"]
+    pairs = tmp_path / "pairs"  # KITTI road's names: pairs by name under two texts
+    pairs.mkdir()
+    for stem in ("um_000000", "uu_000003"):
+        for t in ("10", "11"):
+            write_image(pairs / f"{stem}_{t}.png", torch.zeros(3, *SIZE))
+    assert [p.name for p in ImageFolderDataset(pairs).pairs] == ["um_000000", "uu_000003"]

@@ -10,7 +10,9 @@ is a number, or one text around a number: ``5.png`` before ``10.png``, ``frame_9
 ``_11``, or where complete pairs stand under at least two different names
 (:func:`kitti_flow_layout`): every image of such a folder must then be in a complete pair (an
 image without its partner is an error naming it, never paired with another scene's frame nor
-dropped). A clip whose frames share one ``NAME`` (``frame_00`` ... ``frame_50``) is a clip.
+dropped). A clip whose frames share one ``NAME`` (``frame_00`` ... ``frame_50``) is a clip. A
+folder of frames named by a number beside images named otherwise (``preview.png``, a second
+camera's ``right_*``) is an error naming them (:func:`check_one_naming`).
 
 Files are matched to pairs by name only, never by position (:func:`match_files`): the pair ``NAME``
 takes ``NAME.<ext>`` (or its first image's stem) from a folder; a pair without such a file, or
@@ -45,15 +47,15 @@ from .._check import as_path, check_has_values, check_int, check_number, check_s
 from ..geometry.camera import Camera, read_kitti_calibration, split_calibration_line
 from ..geometry.egomotion import check_pose_steps, ego_motion_from_pose, relative_pose
 from ..io.flow import read_flow
-from ..io.images import (check_frame_names, check_no_broken_links, existing_folder, frame_counts, in_frame_order,
-                         read_image)
+from ..io.images import (check_frame_names, check_no_broken_links, decimal_times, existing_folder, frame_counts,
+                         frame_numbers, in_frame_order, read_image)
 from ..io.kitti import check_rigid_poses, read_kitti_poses
 from ..io.masks import read_road_mask
 from .items import check_item_options, make_item
 
 __all__ = ["IMAGE_SUFFIXES", "FLOW_SUFFIXES", "FramePair", "ImageFolderDataset", "calibration_size",
-           "check_index", "check_mounting", "frame_pairs", "kitti_flow_layout", "list_images", "match_files",
-           "principal_point_off_centre"]
+           "check_index", "check_mounting", "check_one_naming", "frame_pairs", "kitti_flow_layout", "list_images",
+           "match_files", "principal_point_off_centre"]
 
 # every suffix write_image writes (.webp too: its frames were left out of a folder) and the PNM ones
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".webp", ".ppm", ".pgm", ".tif", ".tiff")
@@ -111,7 +113,10 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     else by name (:func:`fsof_torch.io.images.in_frame_order`). Two files of one frame name
     (``000000.png`` and ``000000.jpg``) are a ValueError naming ``name``; a frame that is a
     symbolic link to a missing file a FileNotFoundError naming ``name`` (never a frame left out,
-    which would pair its neighbours)."""
+    which would pair its neighbours). Frames of a clip named by a number beside images named
+    otherwise (``preview.png`` beside ``000000.png`` ..., or ``left_000001.png`` ... beside
+    ``right_000001.png`` ...) are a ValueError naming ``name`` and the others
+    (:func:`check_one_naming`): sorted by name, the last frame would be paired with them."""
     folder = existing_folder(folder, name)
     # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
     entries = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith(".")]
@@ -119,7 +124,36 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     images = in_frame_order((p for p in entries if p.is_file()), name)
     if len(images) < 2:
         raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
+    check_one_naming(images, name)
     return images
+
+
+def check_one_naming(images: Sequence[Path], name: str = "images") -> None:
+    """A folder's frames in name order must not be a clip named by a number beside images named
+    otherwise: where the names are not all one text around a number, nor decimal times (which
+    :func:`fsof_torch.io.images.in_frame_order` sorts by their numbers), but two or more share one
+    text around their numbers (``000000`` ..., ``frame_1`` ...) and others do not (``preview``, a
+    second camera's ``right_000001`` ... beside ``left_000001`` ...), a ValueError names ``name``,
+    the folder and the names: sorted by name, the clip's last frame would be paired with another
+    image, or one camera's last frame with another camera's first. KITTI flow pairs
+    (:func:`kitti_flow_layout`), which pair by name, and names without a number are not checked."""
+    stems = [p.stem for p in images]
+    if frame_numbers(stems) is not None or decimal_times(stems) is not None or kitti_flow_layout(images, name):
+        return
+    namings: dict[tuple[str, ...], list[Path]] = {}
+    for p in images:
+        texts = tuple(re.split(r"[0-9]+", p.stem))
+        namings.setdefault(texts if len(texts) > 1 else (p.stem,), []).append(p)
+    clips = [v for k, v in namings.items() if len(k) > 1 and len(v) >= 2]
+    if not clips or (len(clips) == 1 and len(clips[0]) == len(images)):
+        return
+    folder = repr(str(images[0].parent))
+    shown = [f"{v[0].name} ... {v[-1].name} ({len(v)})" if len(v) > 1 else v[0].name
+             for v in sorted(namings.values(), key=len, reverse=True)]
+    listed = "; ".join(shown[:5]) + ("; ..." if len(shown) > 5 else "")
+    raise ValueError(f"{name}: {folder} holds frames named by a number beside images named otherwise ({listed}); "
+                     f"sorted by name, one clip's last frame would be paired with another image: keep one clip "
+                     f"of one camera in the folder, its frames named alike (000000.png, 000001.png, ...)")
 
 
 def _kitti_partner(stem: str) -> str | None:
