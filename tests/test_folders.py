@@ -777,3 +777,32 @@ def test_clip_beside_other_images_is_refused(tmp_path):
         for t in ("10", "11"):
             write_image(pairs / f"{stem}_{t}.png", torch.zeros(3, *SIZE))
     assert [p.name for p in ImageFolderDataset(pairs).pairs] == ["um_000000", "uu_000003"]
+
+
+def test_folder_of_camera_folders_names_where_the_frames_are(tmp_path):
+    """A KITTI raw camera folder (image_02/, its frames in data/) or an odometry sequence
+    (sequences/00/, frames in image_0/ and image_2/) given for the frames: 'holds 0 image(s)'
+    said nothing of where they are; the error now names the sub-folders that hold images."""
+    from fsof_torch.data.folders import list_images
+
+    camera = tmp_path / "image_02"
+    (camera / "data").mkdir(parents=True)
+    (camera / "timestamps.txt").write_text("2011-09-26 13:02:25.964389445\n")
+    for n in range(3):
+        write_image(camera / "data" / f"{n:010d}.png", torch.zeros(3, *SIZE))
+    data = re.escape(repr(str(camera / "data")))
+    with pytest.raises(ValueError, match=rf"^images: .* holds 0 image\(s\); a pair needs at least 2; its sub-folder "
+                                         rf"{data} \(3 images\) holds images: give the folder of one camera's frames$"):
+        ImageFolderDataset(camera)
+    assert [p.name for p in ImageFolderDataset(camera / "data").pairs] == ["0000000000", "0000000001"]
+    sequence = tmp_path / "00"
+    for sub, count in (("image_0", 2), ("image_2", 1)):
+        (sequence / sub).mkdir(parents=True)
+        for n in range(count):
+            write_image(sequence / sub / f"{n:06d}.png", torch.zeros(3, *SIZE))
+    (sequence / "empty").mkdir()
+    with pytest.raises(ValueError, match=r"its sub-folders '.*image_0' \(2 images\), '.*image_2' \(1 image\) hold "
+                                         r"images: give"):
+        list_images(sequence)
+    with pytest.raises(ValueError, match=r"holds 0 image\(s\); a pair needs at least 2$"):  # (nothing below)
+        list_images(sequence / "empty")

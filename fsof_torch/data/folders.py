@@ -123,9 +123,26 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     check_no_broken_links(entries, name)
     images = in_frame_order((p for p in entries if p.is_file()), name)
     if len(images) < 2:
-        raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2")
+        raise ValueError(f"{name}: {str(folder)!r} holds {len(images)} image(s); a pair needs at least 2"
+                         + _frames_below(folder))
     check_one_naming(images, name)
     return images
+
+
+def _frames_below(folder: Path) -> str:
+    """Where ``folder``'s sub-folders hold images (a KITTI raw camera folder, ``image_02/``, holds
+    its frames in ``data/``; an odometry sequence, ``sequences/00/``, in ``image_0/`` ...), the
+    text that names them for an error; "" where none does."""
+    held = []
+    for sub in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        count = sum(1 for p in sub.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and not p.name.startswith("."))
+        if count:
+            held.append(f"{str(sub)!r} ({count} image{'s' if count > 1 else ''})")
+    if not held:
+        return ""
+    several = len(held) > 1
+    return (f"; its sub-folder{'s' if several else ''} {', '.join(held[:4])}{', ...' if len(held) > 4 else ''} "
+            f"{'hold' if several else 'holds'} images: give the folder of one camera's frames")
 
 
 def check_one_naming(images: Sequence[Path], name: str = "images") -> None:
