@@ -806,3 +806,27 @@ def test_folder_of_camera_folders_names_where_the_frames_are(tmp_path):
         list_images(sequence)
     with pytest.raises(ValueError, match=r"holds 0 image\(s\); a pair needs at least 2$"):  # (nothing below)
         list_images(sequence / "empty")
+
+
+def test_road_or_gt_given_the_images_is_an_error(tmp_path):
+    """road= pointed at the images' folder (a slip of the shell's completion) or at one of the
+    frames read each pair's own colour image as its mask: every nonzero pixel road, here all of
+    them, silently. A ValueError names road (or gt) and the frame; real masks still read."""
+    images = tmp_path / "images"
+    images.mkdir()
+    for n in range(3):
+        write_image(images / f"{n:06d}.png", (_frame(n) + 1).to(torch.uint8))
+    with pytest.raises(ValueError, match=r"^road: '.*000000\.png' is one of the images \(the frame 000000\.png\), "
+                                         r"not a road mask"):
+        ImageFolderDataset(images, road=images)
+    with pytest.raises(ValueError, match=r"^road: '.*000002\.png' is one of the images"):
+        ImageFolderDataset(images, road=images / ".." / "images" / "000002.png")
+    with pytest.raises(ValueError, match=r"^gt: '.*000000\.png' is one of the images .*, not a flow"):
+        ImageFolderDataset(images, gt=images)
+    masks = tmp_path / "road"
+    masks.mkdir()
+    mask = torch.zeros(1, *SIZE, dtype=torch.bool)
+    mask[:, SIZE[0] // 2:] = True
+    for n in range(2):
+        write_road_mask(masks / f"{n:06d}.png", mask)
+    assert torch.equal(ImageFolderDataset(images, road=masks)[1]["road"], mask)

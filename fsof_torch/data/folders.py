@@ -333,6 +333,19 @@ def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch
         raise ValueError(f"calib: {str(calib)!r} camera {c}: {err}") from None
 
 
+def _check_not_frames(frames: Sequence[Path], given: dict[str, Iterable[Path | None]]) -> None:
+    """A ValueError naming the argument where a file it gives is one of the frames: ``road`` (or
+    ``gt``) pointed at the images' folder, or at a frame, read each pair's own image as its mask,
+    every nonzero pixel road (or a 16-bit frame as a flow), silently."""
+    own = {p.resolve() for p in frames}
+    for what, files in given.items():
+        for f in files:
+            if f is not None and f.resolve() in own:
+                raise ValueError(f"{what}: {str(f)!r} is one of the images (the frame {f.name}), not a "
+                                 f"{'road mask' if what == 'road' else 'flow'}: give the folder or file of the "
+                                 f"{'masks' if what == 'road' else 'ground-truth flows'}, not the images'")
+
+
 def _read_road(path: Path, size: tuple[int, int] | None) -> Tensor:
     """A road mask file; whatever the reader rejects names ``road`` and the file: the reader's own
     message (which names ``path`` and the file) under ``road``, or anything else wrapped. A
@@ -475,6 +488,7 @@ class ImageFolderDataset(Dataset):
             else:
                 road_files = match_files(rp, names, what="road", suffixes=IMAGE_SUFFIXES, stems=stems)
         gt_files = match_files(gt, names, what="gt", stems=stems) if gt is not None else {}
+        _check_not_frames(self.frames, {"road": [*road_files.values(), self.road_file], "gt": gt_files.values()})
         self.pairs = [FramePair(n, self.frames[i], self.frames[j], i, j, road_files.get(n), gt_files.get(n))
                       for n, i, j in pairs]
 
