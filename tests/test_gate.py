@@ -509,6 +509,29 @@ def test_a_prediction_that_cannot_be_judged_loses_to_a_model_that_explains_the_i
     assert bool(out.use_model[mask].all())
 
 
+def test_a_prediction_lost_everywhere_leaves_it_to_the_model_whether_the_images_inform():
+    """A finite prediction whose end points leave image 2 at every point (5000 px off) counts each
+    point at ``occlusion`` exactly, so it "explained" the images by construction: on image 2
+    unrelated to image 1 (no flow explains them) the sample was reported informative, and with a
+    margin that keeps the model from being shown worse the model replaced the prediction on its own
+    word. Where the prediction is lost everywhere, the model alone says whether the images inform:
+    here they do not, and the prediction stays; beside a model that explains them, they do."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:-8] = True
+    lost = true + torch.tensor([5000.0, 0.0]).reshape(1, 2, 1, 1)
+    unrelated = _texture(seed=7)
+    out = ImageGate(margin=0.3)(g1, unrelated, lost, true.clone(), mask)
+    assert int(out.points) > 1000 and float(out.cost_prediction) == pytest.approx(0.35)
+    assert float(out.cost_model) > 0.45  # (the model explains nothing either)
+    assert not bool(out.informative.any()) and not bool(out.confirmed.any())
+    assert not bool(out.model_used.any()) and not bool(out.use_model.any())
+    # the same prediction beside a model that explains the images: informative, and the model is used
+    out = ImageGate(margin=0.3)(g1, g2, lost, true.clone(), mask)
+    assert float(out.cost_model) == 0.0
+    assert bool(out.informative.all()) and bool(out.model_used.all()) and bool(out.use_model[mask].all())
+
+
 def test_a_non_finite_prediction_never_wins_its_points_on_images_the_exact_flow_explains_poorly():
     """Dim, noisy frames (texture and noise of 20 grey levels): even the exact flow's census
     distance is above ``occlusion``, as on real road (the shared KITTI pair's ground truth: 0.43).
@@ -571,7 +594,9 @@ def test_a_right_prediction_leaving_the_frame_is_not_overruled_by_a_wrong_model_
 
 
 @pytest.mark.parametrize("judge, options, strips", [
-    ("cell", dict(objects=False), [(185, 19)]),
+    # (the strip alone: the prediction lost everywhere, the model explaining nothing, the images do
+    # not inform; without require_evidence the cell decides)
+    ("cell", dict(objects=False, require_evidence=False), [(185, 19)]),
     ("region", dict(min_points=10 ** 6, require_evidence=False), [(168, 40), (175, 60), (180, 80), (185, 30)]),
     ("sample", dict(min_points=10 ** 6, require_evidence=False, objects=False),
      [(175, 20), (180, 30), (185, 56), (185, 65)])])

@@ -276,7 +276,9 @@ class ImageGate:
         enough_points = n_all >= self.min_points
         # confirmed: the model better by z standard errors (no margin: the images decide)
         confirmed = enough_points & (-mean_all > self.z * se_all)
-        informative = enough_points & ((cost_model <= self.occlusion) | explains)
+        # (a prediction lost at every point that counts "explains" them by construction, each at
+        # ``occlusion`` exactly: whether such images inform is the model's alone to say)
+        informative = enough_points & ((cost_model <= self.occlusion) | (explains & (count & ~lost).any(1)))
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
         (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
