@@ -675,6 +675,26 @@ def test_an_object_region_whose_model_leaves_image_2_keeps_the_prediction_only_w
     assert bool(out.use_model[mask & strip].all())
 
 
+@pytest.mark.parametrize("require_evidence", [True, False])
+def test_a_sample_with_an_empty_mask_does_not_use_the_model(require_evidence):
+    """A batch whose second mask is empty (as the refiner hands a sample left unchanged before the
+    gate): with ``require_evidence=False`` that sample reported ``model_used`` True, though the
+    model is used at none of its pixels (and the docs say False). It is False either way; the
+    other sample is judged as alone."""
+    g1, g2, true = _pair()
+    mask = torch.zeros(2, 1, 96, 192, dtype=torch.bool)
+    mask[0, :, 8:-8, 8:-8] = True
+    images = (g1.expand(2, -1, -1, -1), g2.expand(2, -1, -1, -1))
+    prediction = (true + _smooth_noise(2.0)).expand(2, -1, -1, -1)
+    gate = ImageGate(require_evidence=require_evidence)
+    out = gate(*images, prediction, true.expand(2, -1, -1, -1).clone(), mask)
+    alone = gate(g1, g2, prediction[:1], true.clone(), mask[:1])
+    assert out.points.tolist() == [int(alone.points), 0] and out.cells.tolist() == [int(alone.cells), 0]
+    assert out.model_used.tolist() == [True, False] and bool(alone.model_used.all())
+    assert not bool(out.use_model[1].any()) and not bool(out.evidence[1].any())
+    assert torch.equal(out.use_model[:1], alone.use_model)
+
+
 def test_the_gate_leaves_its_inputs_alone():
     g1, g2, true = _pair()
     args = [g1, g2, true, true + 1.0, torch.ones(1, 1, 96, 192, dtype=torch.bool)]

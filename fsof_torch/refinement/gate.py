@@ -87,8 +87,8 @@ class GateResult(NamedTuple):
             at, where the prediction can be judged too or is lost (not finite, or leaving image 2).
         cells, cells_kept: (B,) cells of the (coarse) grid with enough points, and of those the
             cells where the model is used at none of their pixels (after the object test).
-        model_used: (B,) bool, False where the model is worse over the whole mask, or (with
-            ``require_evidence``) where the images neither inform nor confirm.
+        model_used: (B,) bool, False where the model is worse over the whole mask, where the mask
+            is empty, or (with ``require_evidence``) where the images neither inform nor confirm.
         confirmed: (B,) bool, at least ``min_points`` points count and the model explains the
             images significantly better than the prediction over the whole mask.
         informative: (B,) bool, at least ``min_points`` points count and one of the two flows
@@ -281,6 +281,7 @@ class ImageGate:
         informative = enough_points & ((cost_model <= self.occlusion) | (explains & (count & ~lost).any(1)))
         if self.require_evidence:
             model_used = model_used & (confirmed | informative)
+        model_used = model_used & (pts.count > 0)  # (no mask pixel: the model is used nowhere)
         (rows, cols), ch, cw = self.grid, math.ceil(H / self.grid[0]), math.ceil(W / self.grid[1])
         cell = (torch.div(y, ch, rounding_mode="floor") * cols + torch.div(x, cw, rounding_mode="floor")).long()
         # whether the prediction explains a cell (or an object region) itself: its mean distance
