@@ -203,8 +203,9 @@ class ImageGate:
                  mask: Tensor) -> GateResult:
         """Judge ``prediction`` against ``model`` (each (B, 2, H, W) px) by ``image1`` and ``image2``
         (B, 1 or 3, H, W) on 0..255 inside ``mask`` (B, 1, H, W) bool. Values are not checked (no
-        host read for them): a point where an image or a flow is not finite gives no evidence
-        either way. All five on one device (else a ValueError naming the argument). The gate
+        host read for them): a point where an image or the model is not finite gives no evidence
+        either way; one where the prediction is not finite counts for the model (a prediction that
+        cannot be judged never wins a point: see the module). All five on one device (else a ValueError naming the argument). The gate
         samples the mask's pixels (data dependent): on the meta device it raises a ValueError."""
         # (the images first: a flow or mask of another size is named, not the frames)
         dims = check_image_pair(image1, image2)
