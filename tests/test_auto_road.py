@@ -793,6 +793,29 @@ def test_refiner_auto_warns_of_non_finite_predicted_pixels_in_the_road():
     assert caught == [] and torch.equal(quiet.flow, out.flow)
 
 
+def test_refiner_auto_names_a_gate_that_keeps_the_prediction_when_it_warns():
+    """mask="auto" with a road motion given whose yaw is 0.005 rad off and the exact flow as the
+    prediction: the road is found, the images show the model worse and the gate keeps the
+    prediction everywhere. The warning said the estimate failed (none ran) or the images gave no
+    evidence for the model (they gave evidence against it); it names the gate too."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(96, 320))
+    odometry = {"model": "paper", **{k: torch.tensor([p["odometry"][k]]) for k in ("x_d", "z_d", "yaw")}}
+    odometry["yaw"] = odometry["yaw"] + 0.005
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        out = refine_flow(p["flow"][None], "auto", p["camera"], odometry, images=(p["image1"][None], p["image2"][None]))
+    assert out.road.flag == ["ok"] and out.refined.tolist() == [False] and out.fit is None
+    assert out.gate.informative.tolist() == [True] and out.gate.model_used.tolist() == [False]
+    assert float(out.gate.cost_model[0]) > float(out.gate.cost_prediction[0])
+    assert torch.equal(out.flow, p["flow"][None])
+    assert [str(w.message) for w in caught] == [
+        "mask: samples [0] left unchanged: the road was found, but the estimate failed, the images gave no evidence "
+        "for the model, or the gate kept the prediction everywhere (the images favour it: see RefineOutput.refined "
+        "and .gate)"]
+
+
 def test_auto_estimators_get_no_non_finite_pixel_in_their_masks():
     """mask="auto" with a NaN in the prediction: a caller's estimator sees a finite flow inside
     every mask it gets (the NaN pixel left out, as with a mask tensor); a meta camera and images

@@ -44,7 +44,8 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     on is the refinement's (no second estimate; a held planar odometry as the caller's tensors, so
     a gradient reaches them). Flagged samples are left unrefined, with a warning that gives the
     reason (one also names samples whose road was found but that the refinement left unchanged: a
-    failed estimate, a gate without evidence); the detection comes back as ``RefineOutput.road``.
+    failed estimate, a gate without evidence or one that keeps the prediction everywhere); the
+    detection comes back as ``RefineOutput.road``.
     Without images, the road is detected on the prediction (:func:`fsof_torch.detect_freespace`),
     which never holds a pixel whose predicted flow is not finite: a warning counts such pixels,
     which come back as they were.
@@ -103,8 +104,9 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
         UNCHANGED_NAMED.reset(token)
     if warn and not bool((out.refined | ~det.ok.to(out.refined.device)).all()):
         kept = (det.ok.to(out.refined.device) & ~out.refined).nonzero().flatten().tolist()
-        warn_user(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed or the "
-                  f"images gave no evidence for the model (see RefineOutput.refined and .gate)")
+        warn_user(f"mask: samples {kept} left unchanged: the road was found, but the estimate failed, the images "
+                  f"gave no evidence for the model, or the gate kept the prediction everywhere (the images favour "
+                  f"it: see RefineOutput.refined and .gate)")
     cam = out.camera
     if not complete and isinstance(det.motion, RoadFit) and {"roll", "pitch"} <= set(det.motion.params):
         # the attitude the detection estimated (in the samples whose road it found), as the refiner
