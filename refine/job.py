@@ -356,8 +356,16 @@ def _figure(cfg: JobConfig, source: str, name: str, pair: dict, pred: Tensor, ro
     if layout not in figures:
         figures[layout] = PairFigure(*layout)
     fig = figures[layout].update(**content, max_flow=max_flow(pair, pred, road),
-                                 title=f"pair {name}, flow source '{source}': flow and error before and after "
-                                       f"refinement (mode '{cfg.mode}'); error: "
-                                       + ("|flow − ground truth|" if gt else
-                                          "census distance of I1 and I2 warped by the flow, 0–1"))
+                                 title=figure_text(f"pair {name}, flow source '{source}': flow and error before "
+                                                   f"and after refinement (mode '{cfg.mode}'); error: "
+                                                   + ("|flow − ground truth|" if gt else
+                                                      "census distance of I1 and I2 warped by the flow, 0–1")))
     save_figure(fig, figure_path(cfg, source, name), close=False)
+
+
+def figure_text(text: str) -> str:
+    """``text`` (a title holding a path or a frame's name) as matplotlib is to draw it, character
+    for character: each ``$`` escaped, which would otherwise open mathtext, so that a folder
+    ``run$1$`` was titled ``run1`` and one holding ``$$`` (or ``$5_to_$``) failed the figure, and
+    with it the run after its last pair, before its report."""
+    return text.replace("$", r"\$")

@@ -16,7 +16,7 @@ from typing import Any
 
 import torch
 
-from .job import VARIANT_HELP, JobConfig
+from .job import VARIANT_HELP, JobConfig, figure_text
 from .measure import PHOTO
 from .resume import SUMMARY
 
@@ -297,14 +297,16 @@ def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:
     written = []
     nan = lambda m: {k: float("nan") if v is None else v for k, v in m.items()}  # noqa: E731  (unmeasured)
     for source in cfg.sources:
-        records = [{**r, "before": nan(r["before"]), "after": nan(r["after"])}
+        # (the pairs name the x axis: as their names are, see figure_text)
+        records = [{**r, "pair": figure_text(r["pair"]), "before": nan(r["before"]), "after": nan(r["after"])}
                    for r in summary["pairs"] if r["source"] == source]
         if not records:
             continue
         errors = {f"{prefix}_road": f"{label}, road" for prefix, _, label in PHOTO}
         if any("epe_road" in r["before"] for r in records):
             errors = {"epe_road": "end-point error (px), road", **errors}
-        fig = clip_summary_figure(records, errors=errors, title=f"{cfg.title}: flow source '{source}' over the pairs")
+        fig = clip_summary_figure(records, errors=errors,
+                                  title=figure_text(f"{cfg.title}: flow source '{source}' over the pairs"))
         path = cfg.out / source / SUMMARY
         save_figure(fig, path)
         written.append(path)

@@ -287,6 +287,42 @@ def test_a_redone_pairs_figure_never_shows_its_old_records(tmp_path, user_folder
     assert fig1.is_file() and summary.is_file() and fig0.stat().st_mtime_ns == stamp0
 
 
+def test_dollar_signs_in_the_folder_and_frame_names_are_drawn_as_they_are(tmp_path, user_folder, scene_pairs,
+                                                                          monkeypatch):
+    """A folder ``run$$1`` and frames ``f$_$0.png`` ...: matplotlib read the text between two ``$``
+    as mathtext, so the run failed drawing its clip summary after its last pair (exit 2 with
+    matplotlib's ParseException, no report), and a folder ``d$1$2`` was titled ``d12``. The
+    titles and the pair names on the axis are now drawn character for character."""
+    import shutil
+
+    from fsof_torch.evaluation import figures
+
+    root = tmp_path / "run$$1"
+    for d in ("images", "road", "flows"):
+        shutil.copytree(user_folder / d, root / d)
+        for f in sorted((root / d).iterdir()):
+            f.rename(f.with_name(f"f$_${int(f.stem)}{f.suffix}"))
+    texts = []
+    saved = figures.save_figure
+
+    def save(fig, path, **kw):  # the texts as matplotlib draws them: (what is drawn, whether as math)
+        texts.extend(t._preprocess_math(t.get_text()) for t in fig.findobj(lambda o: hasattr(o, "get_text"))
+                     if "$" in t.get_text())
+        return saved(fig, path, **kw)
+
+    monkeypatch.setattr(figures, "save_figure", save)
+    out = tmp_path / "out"
+    assert main(["--images", str(root / "images"), "--calib", str(user_folder / "calib.txt"), "--road",
+                 str(root / "road"), "--flows", str(root / "flows"), "--odometry", "fit", "--out", str(out),
+                 "--no-progress", *_mounting(scene_pairs)]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert [r["pair"] for r in report["pairs"]] == ["f$_$0", "f$_$1"]
+    assert (out / "files" / "summary.png").is_file() and (out / "files" / "figures" / "f$_$1.png").is_file()
+    drawn = [text for text, math in texts if not math]
+    assert len(drawn) == len(texts) and any(f"refine: {root / 'images'}: flow source" in t for t in drawn)
+    assert any(t.startswith("pair f$_$1, flow source 'files'") for t in drawn) and "f$_$0" in drawn
+
+
 def test_a_rerun_that_fails_leaves_no_report_of_the_run_before(tmp_path, user_folder, scene_pairs, capsys):
     """The rerun redoes pair 0 (its flow replaced) and stops on pair 1's broken flow file: the
     earlier report (in --out and at --json), which no longer matches pair 0's record, is gone, not
