@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 
 import pytest
 import torch
@@ -195,6 +196,26 @@ def test_check_image_fit_options_names_and_bounds_of_any_batch():
         check_image_fit_options({"bounds": (torch.ones(1, 8), torch.zeros(1, 8))})
     with pytest.raises(ValueError, match=r"^model: the image fit estimates a motion between two frames"):
         check_image_fit_options({"model": "velocity"})
+
+
+def test_bounds_of_infinite_lower_or_negative_infinite_upper_are_named():
+    """A lower bound of +inf (or an upper one of -inf) passed the checks and reached the solver,
+    whose ValueError named its own "lower" / "upper" and quoted the gain's and offset's columns
+    too; now the options' check names ``bounds`` and the parameter, also where an estimator is made."""
+    from fsof_torch import ImageMotionEstimator
+    from fsof_torch.estimation.image_fit import check_image_fit_options
+
+    lo, hi = torch.full((1, 8), -math.inf), torch.full((1, 8), math.inf)
+    z = 5  # the plane model's z_d
+    bad_lo = lo.clone()
+    bad_lo[0, z] = math.inf
+    bad_hi = hi.clone()
+    bad_hi[0, z] = -math.inf
+    with pytest.raises(ValueError, match=r"^bounds \(lower\): expected values below \+inf .* got inf for \['z_d'\]"):
+        check_image_fit_options({"bounds": (bad_lo, hi)})
+    with pytest.raises(ValueError, match=r"^bounds \(upper\): expected values above -inf .* got -inf for \['z_d'\]"):
+        ImageMotionEstimator(bounds=(lo, bad_hi))
+    check_image_fit_options({"bounds": (lo, hi)})  # (±inf on their own sides: no bounds)
 
 def test_the_calibration_prior_leaves_held_parameters_out():
     """The calibration prior of the paper model (pitch held) and of a plane with its roll held: the

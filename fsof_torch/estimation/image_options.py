@@ -10,6 +10,7 @@ an error at once, not at the first fit of a clip.
 
 from __future__ import annotations
 
+import math
 from typing import Any, Mapping, NamedTuple
 
 import torch
@@ -109,6 +110,13 @@ def check_bounds(bounds: object, model: RoadModel, B: int | None = None) -> None
                          f"{tuple(bounds[1].shape)}")
     if not bool((bounds[0] <= bounds[1]).all()):
         raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
+    # (a lower bound of +inf, or an upper one of -inf, holds a parameter nowhere: the solver's
+    # error named its own "lower" and "upper", and quoted the gain's and offset's columns)
+    for name, t, wrong in (("lower", bounds[0], math.inf), ("upper", bounds[1], -math.inf)):
+        if bool((t == wrong).any()):
+            at = [model.params[i] for i in sorted(set((t == wrong).nonzero()[:, 1].tolist()))]
+            raise ValueError(f"bounds ({name}): expected values {'below +inf' if wrong > 0 else 'above -inf'} "
+                             f"({-wrong}: no {name} bound), got {wrong} for {at}")
 
 
 def held_parameters(model: RoadModel, fixed: Any, prior: Any) -> tuple[str, ...]:
