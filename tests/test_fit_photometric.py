@@ -432,6 +432,39 @@ def test_feature_bounds_of_batch_1_hold_every_frame():
         fit_image(image1, image2, mask, cam, bounds=(lo.expand(3, -1), hi.expand(3, -1)))
 
 
+def test_a_fit_held_by_a_bound_fails():
+    """The solver clamps the parameters into the bounds, so a motion beyond one ended on it and
+    was reported a success: a bound on z_d at 0.2 m or 0.29 m (true: 0.3 m) gave z_d exactly at it
+    with success True. Now a free parameter within its standard deviation of a bound fails the fit;
+    a bound the fit stays clear of changes nothing."""
+    from fsof_torch.estimation.priors import clear_of_bounds, physical_bounds
+    from fsof_torch.geometry.road_models import get_road_model
+
+    cam = small_camera()
+    image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
+    model = get_road_model("plane")
+    lo, hi = physical_bounds(model, cam)
+    z = model.params.index("z_d")
+    free = fit_image(image1, image2, mask, cam)
+    assert bool(free.success) and abs(float(free.z_d) - 0.3) < 0.005
+    for bound in (0.2, 0.29):
+        held = hi.clone()
+        held[0, z] = bound
+        fit = fit_image(image1, image2, mask, cam, bounds=(lo, held))
+        assert float(fit.z_d) == pytest.approx(bound, abs=1e-9) and not bool(fit.success), bound
+    clear = hi.clone()
+    clear[0, z] = 0.4
+    fit = fit_image(image1, image2, mask, cam, bounds=(lo, clear))
+    assert bool(fit.success) and float(fit.z_d) == float(free.z_d)
+    # the test itself, against the values: a parameter clear by more than its sd, by less, or beyond
+    params = torch.tensor([[0.0, 1.0], [0.0, 1.95], [0.0, 2.5]], dtype=torch.float64)
+    cov = torch.diag_embed(torch.tensor([[1.0, 0.01], [1.0, 0.01], [1.0, 0.01]], dtype=torch.float64))
+    lower = torch.tensor([[-math.inf, 0.5]], dtype=torch.float64)
+    upper = torch.tensor([[math.inf, 2.0]], dtype=torch.float64)
+    assert clear_of_bounds(params, cov, lower, upper).tolist() == [True, False, False]
+    assert clear_of_bounds(params, cov, None, None).tolist() == [True, True, True]
+
+
 def test_feature_all_road_pixels_a_frames_fit_is_its_own():
     """With max_points=None (every road pixel a candidate) a frame's fit is the same alone as
     next to a frame with a larger road."""

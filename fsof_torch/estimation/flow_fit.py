@@ -68,7 +68,9 @@ class RoadFit:
             fits: converged (a polish that does not converge returns the robust stage's
             parameters, covariance and cost), on enough well-spread inliers making up at least the
             minimum share of the mask, well conditioned, within ``bounds`` (:func:`fit_road`). Image
-            fits: finite, well posed and passing ``fit_image``'s tests (``extras["converged"]``).
+            fits: finite, well posed, each free parameter more than its standard deviation inside
+            ``bounds`` (which hold it), and passing ``fit_image``'s image tests (not convergence:
+            ``extras["converged"]``).
         camera: a copy of the input camera with the fit's roll and pitch (fitted or held).
         iterations: (B,) int64 solver iterations.
         covariance: (B, P, P) the posterior covariance, any prior at its own weight (model order; 0 for fixed ones; where

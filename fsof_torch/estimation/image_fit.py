@@ -52,7 +52,7 @@ from ..geometry.road_models import RoadModel, pack_params
 from .flow_fit import RoadFit
 from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
 from .confidence import backward_correlation, detail_correlation, photometric_inliers, spread_out, warped_samples
-from .priors import DEG, calibration_prior, physical_bounds, prior_arrays
+from .priors import DEG, calibration_prior, clear_of_bounds, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .image_options import check_bounds, check_prior_values, checked_options, held_parameters
 from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, reverse_moves, screened_start, start_list, starts_ahead,
@@ -298,8 +298,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             plausible, so it stays. Costs nothing where the fit succeeds clearly.
         prior: ``"calibration"`` (:func:`calibration_prior`, on the free parameters), None, or
             ``{name: (mean, sigma)}`` (a prior on a held parameter is a ValueError: it would be ignored).
-        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P) or (1, P);
-            they hold the free parameters (a fixed one stays at ``init``'s value, even outside them).
+        bounds: ``"physical"`` (:func:`physical_bounds`), None, or ``(lower, upper)`` (B, P) or (1, P):
+            they hold the free parameters (a fixed one stays at ``init``'s value, even outside them); a fit
+            with a free parameter within its standard deviation of a bound fails (the bound placed it).
         levels, min_size: pyramid levels (default: halve until the shorter side would drop below
             ``min_size``; fewer leave the coarsest level too fine for a start to reach a motion
             of tens of pixels there, and the fit can land far off: on the shared clip with two,
@@ -337,11 +338,10 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
         affine: also fit a gain and an offset between the frames' brightness.
         inlier_threshold: |photometric residual| (grey levels on 0..255, as ``scale``) of an inlier
             at full resolution, image 2's intensities matched to image 1's by their own gain and offset.
-        min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or
-            columns: a band that thin matches under many motions), or a smaller share of the
-            mask's points that the model keeps inside image 2 (the others cannot be judged: at
-            speed the road near the car leaves the frame), mark the frame as failed (as does a
-            diverged or ill-conditioned fit).
+        min_points, min_inlier_fraction: fewer inliers (or inliers on fewer than 3 rows or columns: a band that
+            thin matches under many motions), or a smaller share of the mask's points that the model keeps
+            inside image 2 (the others cannot be judged: at speed the road near the car leaves the frame), mark
+            the frame as failed (as does a diverged or ill-conditioned fit, or one held by a bound).
         min_correlation: the frame also fails where the fitted motion aligns the images' detail
             (the finest level's band, or the intensities where ``highpass`` is None) with a
             correlation below this over the mask's points in view. A plain road's intensities
@@ -498,13 +498,13 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             A = sol.normal[:, :P, :P]
             d = A.diagonal(dim1=-2, dim2=-1).clamp_min(1e-300).sqrt()
             well_posed = positive_definite(A / (d.unsqueeze(-1) * d.unsqueeze(-2)), 1e-9)
-            # (a fit that ran out of iterations at full resolution is still a fit: the refiner's
-            # gate judges its flow; ``extras["converged"]`` tells)
-            success = (finite & well_posed & (n_in >= min_points) & spread_out(inliers)
-                       & (fraction >= min_inlier_fraction) & (correlation >= min_correlation))
+            cov = sol.covariance(sol.scale)[:, :P, :P]
+            # (one that ran out of iterations is still a fit: the refiner's gate judges it; extras["converged"] tells)
+            success = (finite & well_posed & clear_of_bounds(values, cov, bound_lo, bound_hi) & (n_in >= min_points)
+                       & spread_out(inliers) & (fraction >= min_inlier_fraction) & (correlation >= min_correlation))
             return {"values": values, "gain": gain, "offset": offset, "M": M, "flow": flow, "valid": valid,
                     "inliers": inliers, "residual": residual, "fraction": fraction, "correlation": correlation,
-                    "success": success, "iterations": iterations, "covariance": sol.covariance(sol.scale)[:, :P, :P],
+                    "success": success, "iterations": iterations, "covariance": cov,
                     "cost": sol.cost, "converged": sol.converged}
 
         coarse = n_levels - 1

@@ -16,7 +16,7 @@ from .._check import check_has_values, check_number
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 
-__all__ = ["calibration_prior", "physical_bounds", "within_bounds", "prior_arrays", "DEG"]
+__all__ = ["calibration_prior", "physical_bounds", "within_bounds", "clear_of_bounds", "prior_arrays", "DEG"]
 
 DEG = math.pi / 180.0
 
@@ -85,6 +85,24 @@ def within_bounds(model: str | RoadModel, camera: Camera, params: Tensor, covari
     slack = 1e-9 * (hi - lo)
     ok = (p >= lo - slack) & (p <= hi + slack) & (sd <= 0.5 * (hi - lo))
     return (ok | ~free.to(params.device)).all(-1)
+
+
+def clear_of_bounds(params: Tensor, covariance: Tensor, lower: Tensor | None, upper: Tensor | None) -> Tensor:
+    """(B,) bool: every parameter of ``params`` (B, P) lies more than its standard deviation (from
+    ``covariance`` (B, P, P)) inside its bounds ``lower`` and ``upper`` ((B, P) or more columns,
+    the first P read; ±inf: none; None: no bounds). The image fit's test of its bounds: its solver
+    clamps the parameters into them, so a fit that the images (and the prior) would take beyond
+    one ends on it, or as near it as its last step leaves it; the bound, not the images, placed
+    such a parameter."""
+    P = params.shape[-1]
+    p = params.to(torch.float64)
+    sd = covariance.to(torch.float64).diagonal(dim1=-2, dim2=-1).clamp_min(0).sqrt()
+    ok = torch.ones(params.shape[:-1], dtype=torch.bool, device=params.device)
+    for bound, side in ((lower, 1.0), (upper, -1.0)):
+        if bound is not None:
+            bound = bound[..., :P].to(p)
+            ok = ok & (torch.isinf(bound) | (side * (p - bound) > sd)).all(-1)
+    return ok
 
 
 def prior_arrays(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B: int,
