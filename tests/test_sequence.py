@@ -147,6 +147,25 @@ def test_smooth_attitude_ignores_infinite_sigma():
         smooth_attitude(att, chg, math.inf, math.radians(0.03))
 
 
+def test_smooth_attitude_frames_no_counting_measurement_reaches_are_not_placed():
+    """As its docstring says: the last frame, its change not counting, comes back 0 ± 1e6 rad; four
+    frames tied to each other by their changes but to no counting attitude come back with their
+    changes' differences, their mean 0, each ± 1e6 / √4 rad; the frames that count are as alone."""
+    f64 = dict(dtype=torch.float64)
+    track, sd = smooth_attitude(torch.tensor([0.5, 0.2], **f64), torch.tensor([0.1, 0.1], **f64), 1.0,
+                                torch.tensor([0.1, math.inf], **f64))
+    alone, alone_sd = smooth_attitude(torch.tensor([0.5, 0.2], **f64), torch.tensor([0.1, 0.1], **f64), 1.0, 0.1)
+    assert track[2].item() == 0.0 and sd[2].item() == pytest.approx(1e6, rel=1e-9)
+    assert torch.allclose(track[:2], alone[:2], atol=1e-9) and torch.allclose(sd[:2], alone_sd[:2], atol=1e-9)
+    att, chg = torch.tensor([0.5, 0.2, 0.3, 0.4], **f64), torch.tensor([0.1, 0.1, 0.2, 0.3], **f64)
+    track, sd = smooth_attitude(att, chg, torch.tensor([1.0, math.inf, math.inf, math.inf], **f64),
+                                torch.tensor([math.inf, 0.1, 0.1, 0.1], **f64))
+    assert track[0].item() == pytest.approx(0.5, abs=1e-9) and sd[0].item() == pytest.approx(1.0, rel=1e-9)
+    assert torch.allclose(track[2:] - track[1:-1], chg[1:], atol=1e-9)
+    assert abs(track[1:].mean().item()) < 1e-9
+    assert torch.allclose(sd[1:], torch.full((4,), 5e5, **f64), rtol=1e-6)
+
+
 @pytest.mark.parametrize("args, error, match", [
     ((torch.zeros(3), torch.zeros(4), 1.0, 1.0), ValueError, r"^change: expected 3 values \(attitude's\), got 4"),
     ((torch.zeros(2, 3), torch.zeros(2, 3), 1.0, 1.0), ValueError, r"^attitude: expected a 1-D tensor"),

@@ -109,7 +109,10 @@ def smooth_attitude(attitude: Tensor, change: Tensor, attitude_sigma: Tensor | f
     minimise Σ ((a_k − attitude_k) / σ_a)² + Σ ((a_{k+1} − a_k − change_k) / σ_c)². The last
     frame's attitude rests on the changes alone. Measurements with infinite σ do not count (at least
     one attitude must, its 1 / σ² above 0 in float64: else a ValueError, the track being fixed only
-    up to a constant).
+    up to a constant). Frames that no chain of counting changes ties to a counting attitude (the
+    last one where the last change's σ is infinite) are not placed: a tiny ridge keeps the system
+    solvable, and their standard deviations come back about 1e6 rad (1e6 / √n for n such frames
+    that changes tie together, their mean 0; a lone frame is 0), whatever their measurements say.
 
     The normal equations are tridiagonal (each term ties at most two neighbouring frames), so the
     track and the diagonal of its covariance take O(N) time and memory: an LDLᵀ factorisation,
