@@ -141,9 +141,11 @@ OPTION_ERRORS = [
     (dict(min_correlation=1.5), ValueError, r"min_correlation: expected a number in \[-1, 1\], got 1.5"),
     (dict(min_correlation="high"), TypeError, "min_correlation: expected a number, got str 'high'"),
     (dict(retry_starts=-1), ValueError, "retry_starts: expected an int >= 0, got -1"),
-    # a prior's mean and sigma: numbers, of batch 1 or B (a raw torch error before)
+    # a prior's mean and sigma: numbers, of batch 1 or B (a raw torch error before; of one frame the
+    # message said "batch 1 or 1")
     (dict(prior={"roll": ("a", 0.1)}), TypeError, r"prior\['roll'\]: expected numbers or tensors \(mean, sigma\)"),
-    (dict(prior={"roll": (torch.zeros(3), 0.1)}), ValueError, r"prior\['roll'\]: expected a mean and a sigma of batch"),
+    (dict(prior={"roll": (torch.zeros(3), 0.1)}), ValueError,
+     r"prior\['roll'\]: expected a mean and a sigma of batch 1, got 3 and 1 values$"),
     (dict(prior={"roll": (0.0, 0.1), "pitch": (0.0, 0.0)}), ValueError,
      r"prior\['pitch'\]: expected a finite mean and sigma > 0, got \(0.0, 0.0\)"),
     # a prior on a held parameter was silently ignored (fit_road refuses it too)

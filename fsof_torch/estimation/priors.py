@@ -12,7 +12,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from .._check import check_has_values, check_number
+from .._check import batch_choices, check_has_values, check_number
 from ..geometry.camera import Camera
 from ..geometry.road_models import RoadModel, get_road_model
 
@@ -129,7 +129,7 @@ def prior_arrays(model: RoadModel, spec: Mapping[str, tuple[Any, Any]] | None, B
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"prior[{name!r}]: expected numbers or tensors (mean, sigma), got {value!r}") from None
         if mu.numel() not in (1, B) or sigma.numel() not in (1, B):
-            raise ValueError(f"prior[{name!r}]: expected a mean and a sigma of batch 1 or {B}, got "
+            raise ValueError(f"prior[{name!r}]: expected a mean and a sigma of batch {batch_choices(B)}, got "
                              f"{mu.numel()} and {sigma.numel()} values")
         good.append(torch.isfinite(mu).all() & (sigma > 0).all())
         i = model.params.index(name)
