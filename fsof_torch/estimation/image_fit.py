@@ -251,7 +251,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             (z_d = k h; the other parameters as ``init``): from zero motion or a poor flow the fit
             can land on a wrong motion when the car moves a few heights a frame; these find fast
             driving (at 10 Hz and a 1.65 m high camera, 2 and 4 heights are 119 and 238 km/h).
-            Not used where z_d is fixed; ``()``: none.
+            Not used where z_d (the homography: any parameter) is fixed; ``()``: none.
         turn_starts: where the fit from every start (and runner-up) fails or succeeds only weakly
             (below), the turn among these (degrees of yaw per frame, at one camera height ahead)
             whose motion best aligns the coarsest level's images (a screen: one batched cost, no
@@ -259,7 +259,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             or its images correlate better, a weak success where it succeeds and correlates
             better. A sharp turn moves the whole image sideways, beyond the basin of the starts
             straight ahead, and often beyond what a network's flow finds. Costs nothing where
-            the fit succeeds clearly; not used where the yaw is fixed; ``()``: none.
+            the fit succeeds clearly; not used where the yaw (the homography: any parameter) is fixed; ``()``: none.
         reverse_starts: the last resort, where the fit still fails or succeeds only weakly after the
             turns and the retry without the prior (below): the steps straight backwards among these
             (camera heights per frame: z_d = -k h, no yaw) that best align the coarsest level's
@@ -276,7 +276,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             apart from the turns, and last: on real turning frames a step backwards could outrank the
             right turn, and on fast forward frames its fit, descending forwards, could pass a wrong
             motion as a success before the retry without the prior finds the right one. Costs nothing
-            where the fit succeeds clearly; not used where z_d is fixed; ``()``: none.
+            where the fit succeeds clearly; not used where z_d (the homography: any parameter) is fixed; ``()``: none.
         retry_starts: where the winning start's fit fails (below), or succeeds only weakly (its
             detail correlating below halfway from ``min_correlation`` to 1), up to this many
             runners-up, in the order of their two-way cost, are carried down the pyramid in
