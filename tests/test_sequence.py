@@ -419,7 +419,11 @@ def test_fit_sequence_checks_fit_image_options_before_reading_a_frame(body_motio
     clip = LazySequence(frames)
     for options, error, match in (({"smooth_sigma": -1.0}, ValueError, "^smooth_sigma: expected a number >= 0"),
                                   ({"fine_points": 2.5}, TypeError, "^fine_points: expected None or an int"),
-                                  ({"prior": None}, TypeError, r"^options: options \['prior'\] of fit_image are set")):
+                                  ({"prior": None}, TypeError, r"^options: options \['prior'\] of fit_image are set"),
+                                  # (bounds of another batch than a pair's 1: after the first pair's two
+                                  # frames were read, at its fit)
+                                  ({"bounds": (torch.zeros(3, 8), torch.ones(3, 8))}, ValueError,
+                                   r"^bounds \(lower\): expected shape \(1, 8\)")):
         with pytest.raises(error, match=match):
             fit_sequence(clip, pairs[0]["road"], pairs[0]["camera"], **options)
     assert clip.reads == [0] * len(frames)

@@ -63,6 +63,7 @@ from ..geometry.egomotion import check_pose_steps
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
 from .image_fit import DEG, calibration_prior, check_image_fit_options, fit_image
+from .image_options import check_bounds
 from .initial import planar_start
 
 __all__ = ["SequenceFit", "fit_sequence", "smooth_attitude"]
@@ -413,6 +414,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     data_range = check_data_range(options.get("data_range", 255.0))
     if model.name != "plane":
         raise ValueError("model: a clip is fitted with the 'plane' model (its attitude is tracked)")
+    # (each pair is a fit of one frame: bounds of batch 1, named before a frame is read, not at the first fit)
+    check_bounds(options.get("bounds"), model, 1)
     motion = [n for n in model.params if n not in model.mounting]
     held = fixed_parameters(model, check_names(options.get("fixed"), "fixed"))
 
