@@ -203,7 +203,8 @@ def test_check_image_fit_options_names_and_bounds_of_any_batch():
 def test_bounds_of_infinite_lower_or_negative_infinite_upper_are_named():
     """A lower bound of +inf (or an upper one of -inf) passed the checks and reached the solver,
     whose ValueError named its own "lower" / "upper" and quoted the gain's and offset's columns
-    too; now the options' check names ``bounds`` and the parameter, also where an estimator is made."""
+    too; now the options' check names ``bounds`` and the parameter, also where an estimator is made.
+    Bounds on the meta device are named too."""
     from fsof_torch import ImageMotionEstimator
     from fsof_torch.estimation.image_fit import check_image_fit_options
 
@@ -218,6 +219,12 @@ def test_bounds_of_infinite_lower_or_negative_infinite_upper_are_named():
     with pytest.raises(ValueError, match=r"^bounds \(upper\): expected values above -inf .* got -inf for \['z_d'\]"):
         ImageMotionEstimator(bounds=(lo, bad_hi))
     check_image_fit_options({"bounds": (lo, hi)})  # (±inf on their own sides: no bounds)
+    # bounds on the meta device (shapes, no values): torch's RuntimeError "Tensor.item() cannot be
+    # called on meta tensors" from the check of lower <= upper
+    for meta in ((lo.to("meta"), hi), (lo, hi.to("meta"))):
+        with pytest.raises(ValueError, match=r"^bounds \((lower|upper)\): a tensor on the meta device has shapes but no "
+                                             r"values to bound a fit"):
+            check_image_fit_options({"bounds": meta})
 
 def test_the_calibration_prior_leaves_held_parameters_out():
     """The calibration prior of the paper model (pitch held) and of a plane with its roll held: the

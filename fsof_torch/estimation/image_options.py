@@ -15,7 +15,8 @@ from typing import Any, Mapping, NamedTuple
 
 import torch
 
-from .._check import batch_choices, check_bool, check_data_range, check_float_tensor, check_int, check_mapping, check_names, check_number
+from .._check import (batch_choices, check_bool, check_data_range, check_float_tensor, check_has_values, check_int,
+                      check_mapping, check_names, check_number)
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
 from .priors import prior_arrays
@@ -102,13 +103,15 @@ def check_bounds(bounds: object, model: RoadModel, B: int | None = None) -> None
                         f"got {bounds!r}")
     for name, t in zip(("lower", "upper"), bounds):
         check_float_tensor(t, f"bounds ({name})")
+        check_has_values(t, f"bounds ({name})", "to bound a fit")  # (torch's "item() cannot be called on meta tensors")
         if t.dim() != 2 or t.shape[1] != P or (B is not None and t.shape[0] not in (1, B)):
             raise ValueError(f"bounds ({name}): expected shape ({rows}, {P}) (batch, the {model.name!r} model's "
                              f"parameters {model.params}), got {tuple(t.shape)}")
     if bounds[0].shape != bounds[1].shape:
         raise ValueError(f"bounds: expected lower and upper of one shape, got {tuple(bounds[0].shape)} and "
                          f"{tuple(bounds[1].shape)}")
-    if not bool((bounds[0] <= bounds[1]).all()):
+    # (each is moved to the images' device by the fit: lower and upper may lie on different ones)
+    if not bool((bounds[0] <= bounds[1].to(bounds[0].device)).all()):
         raise ValueError("bounds: expected lower <= upper everywhere (NaN is not a bound; use ±inf for none)")
     # (a lower bound of +inf, or an upper one of -inf, holds a parameter nowhere: the solver's
     # error named its own "lower" and "upper", and quoted the gain's and offset's columns)
