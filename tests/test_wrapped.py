@@ -494,3 +494,18 @@ def test_a_net_that_changes_its_inputs_in_place_leaves_the_callers_images(wide, 
     assert all(torch.equal(a, b) for a, b in zip(callers, kept))
     want = FreespaceRefined(EitherCall(s["pred"]), pad=pad)(*inputs, **call)
     assert all(torch.equal(a, b) for a, b in zip(got, want))
+
+
+@pytest.mark.parametrize("change, error, message", [
+    (lambda im: im.double(), TypeError, r"^image2: expected the dtype of image1 \(torch.float32\), got torch.float64$"),
+    (lambda im: im.to("meta"), ValueError, r"^image2: expected the device of image1 \(cpu\), got meta$"),
+])
+def test_images_of_another_dtype_or_device_are_named_before_the_net(change, error, message):
+    """A float64 image2 beside a float32 image1 reached the net (torch's 'Input type (double) and bias
+    type (float) should be the same' from its first layer); one on another device was named
+    images[1], the refiner's name, after the net had run."""
+    s = scene((53, 94))
+    net = Net(s["pred"])
+    with pytest.raises(error, match=message):
+        FreespaceRefined(net)(s["image1"], change(s["image2"]), camera=s["camera"], mask=s["road"])
+    assert net.calls == 0

@@ -92,7 +92,8 @@ class FreespaceRefined(nn.Module):
     forward flows refined (same structure), or ``(output, RefineOutput)`` with
     ``return_info=True``. The mask (B, 1, H, W) bool (batch 1 broadcasts) and the camera refer to
     the input images' size; both are checked against the images as they came, before the network
-    runs (errors quote the caller's shapes, not the padded ones), as is ``odometry``. With ``pad`` the RefineOutput's
+    runs (errors quote the caller's shapes, not the padded ones), as are ``odometry`` and
+    ``image2``'s shape, dtype and device (``image1``'s). With ``pad`` the RefineOutput's
     maps (also the gate's and the found road's masks) are cropped to the input size and its camera
     is the input's (the padding undone); so is a :class:`~fsof_torch.estimation.flow_fit.RoadFit`
     in ``fit``: its maps (``flow``, ``valid``, ``inliers``) cropped, its camera the input's, its
@@ -156,6 +157,11 @@ class FreespaceRefined(nn.Module):
                     raise ValueError(f"{name}: expected 1 (grey) or 3 (RGB) channels, got shape {tuple(im.shape)}")
             if image2.shape != image1.shape:
                 raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
+            # (one pair for the net: torch's own error from its first layer, or the refiner's after it ran)
+            if image2.dtype != image1.dtype:
+                raise TypeError(f"image2: expected the dtype of image1 ({image1.dtype}), got {image2.dtype}")
+            if image2.device != image1.device:
+                raise ValueError(f"image2: expected the device of image1 ({image1.device}), got {image2.device}")
         else:
             raise TypeError(f"inputs: expected (image1, image2) or one ptlflow dict {{'images': ...}}, "
                             f"got {len(inputs)} positional argument(s)")
