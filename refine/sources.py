@@ -175,8 +175,8 @@ def build_user_net(spec: NetSpec) -> tuple[nn.Module, str, bool]:
         raise JobError(f"--net: calling {spec.factory}() exited (SystemExit: {err.code!r})") from None
     if not isinstance(net, nn.Module):
         raise JobError(f"--net: {spec.factory}() returned a {type(net).__name__}; expected a torch.nn.Module")
-    if spec.checkpoint is not None:
-        load_state_dict(net, spec.checkpoint, "--checkpoint")
+    if spec.checkpoint is not None:  # (into the network a wrapper holds: a checkpoint of the bare network fits)
+        load_state_dict(_wrapped_network(net), spec.checkpoint, "--checkpoint")
     meta = _meta_tensors(net)
     if meta:  # (moving it to --device would fail on them, and a forward give no values)
         more = f" and {len(meta) - 1} more" if len(meta) > 1 else ""
@@ -205,6 +205,7 @@ def _contract(net: nn.Module, spec: NetSpec) -> tuple[str, bool]:
     and whether it was guessed from that forward alone."""
     if spec.contract != "auto":
         return spec.contract, False
+    net = _wrapped_network(net)  # (a wrapper's forward takes *args: the contract is its network's)
     declared = getattr(net, "flow_contract", None)
     if declared in CONTRACTS[1:]:
         return declared, False
@@ -223,6 +224,19 @@ def _contract(net: nn.Module, spec: NetSpec) -> tuple[str, bool]:
         return "ptlflow", True
     raise JobError(f"--net-contract: cannot tell how to call {type(net).__name__} (forward takes "
                    f"{len(params)} image arguments); give ptlflow, torchvision (RGB in [-1, 1]) or raft (RGB 0..255)")
+
+
+def _wrapped_network(net: nn.Module) -> nn.Module:
+    """The network inside the wrappers a factory may return (RAFT's demo builds
+    ``nn.DataParallel(RAFT(args))``): ``nn.DataParallel``'s and ``DistributedDataParallel``'s
+    ``module``, a ``torch.compile``'d network's ``_orig_mod``; ``net`` itself otherwise."""
+    while True:
+        if isinstance(net, (nn.DataParallel, nn.parallel.DistributedDataParallel)):
+            net = net.module
+        elif type(net).__name__ == "OptimizedModule" and type(net).__module__.startswith("torch."):
+            net = net._orig_mod
+        else:
+            return net
 
 
 def net_flow(net: Callable[..., Any], contract: str, image1: Tensor, image2: Tensor, *,

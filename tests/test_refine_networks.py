@@ -247,6 +247,19 @@ class Interrupts(Zeros):
 
 def interrupts():
     return Interrupts()
+
+
+def data_parallel_raft():
+    """RAFT's demo builds its network as nn.DataParallel(RAFT(args))."""
+    from fsof_torch import TinyRAFT
+
+    return torch.nn.DataParallel(TinyRAFT(seed=0))
+
+
+def compiled_raft():
+    from fsof_torch import TinyRAFT
+
+    return torch.compile(TinyRAFT(seed=0))  # (lazy: nothing is compiled until it is called)
 '''
 
 
@@ -473,6 +486,31 @@ def test_the_test_net_is_a_raft_contract_network(tmp_path, pair):
     net = _run(tmp_path / "net", "--net", "fsof_torch:TinyRAFT", "--checkpoint", str(tmp_path / "tiny.pt"))
     testnet = _run(tmp_path / "testnet", "--source", "testnet", "--testnet-weights", str(tmp_path / "tiny.pt"))
     assert net["pairs"][0]["before"] == testnet["pairs"][0]["before"]
+
+
+def test_a_network_returned_wrapped_is_called_and_loaded_as_the_network_it_wraps(tmp_path, user_module, pair):
+    """A factory that returns nn.DataParallel(net) (RAFT's demo) or torch.compile(net): its forward
+    takes *args, so the contract could not be told ('forward takes 0 image arguments'), and a
+    checkpoint of the bare network (or one saved from another wrapper) did not fit its
+    'module.' or '_orig_mod.' names; both are now the wrapped network's."""
+    from fsof_torch import TinyRAFT
+    from refine.sources import NetSpec, build_user_net
+
+    weights = TinyRAFT(seed=3).state_dict()
+    torch.save(weights, tmp_path / "plain.pt")
+    torch.save(torch.nn.DataParallel(TinyRAFT(seed=3)).state_dict(), tmp_path / "parallel.pt")
+    reference = _run(tmp_path / "net", "--net", "fsof_torch:TinyRAFT", "--checkpoint", str(tmp_path / "plain.pt"))
+    for name in ("plain", "parallel"):
+        run = _run(tmp_path / name, "--net", f"{user_module}:data_parallel_raft", "--checkpoint",
+                   str(tmp_path / f"{name}.pt"))
+        assert run["pairs"][0]["before"] == reference["pairs"][0]["before"]
+        for factory in ("data_parallel_raft", "compiled_raft"):
+            net, contract, guessed = build_user_net(NetSpec(f"{user_module}:{factory}", "auto",
+                                                            tmp_path / f"{name}.pt"))
+            assert (contract, guessed) == ("raft", False)
+            inner = net.module if factory == "data_parallel_raft" else net._orig_mod
+            assert inner.state_dict().keys() == weights.keys()
+            assert all(torch.equal(a, b) for a, b in zip(inner.state_dict().values(), weights.values()))
 
 
 def test_a_network_built_on_the_meta_device_takes_the_checkpoints_tensors(tmp_path, user_module, capsys):
