@@ -103,12 +103,18 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
         result = net.load_state_dict(state, strict=True, assign=bool(_meta_tensors(net)))
     except RuntimeError as err:
         own = set(net.state_dict())
-        missing = sorted(own - set(state))[:4]
-        unexpected = sorted(set(state) - own)[:4]
-        detail = (f"missing keys {missing}, unexpected keys {unexpected}" if missing or unexpected
-                  else str(err).splitlines()[-1].strip())
+        missing, unexpected = sorted(own - set(state)), sorted(set(state) - own)
+        detail = (f"missing keys {_first_keys(missing)}, unexpected keys {_first_keys(unexpected)}"
+                  if missing or unexpected else str(err).splitlines()[-1].strip())
         raise JobError(f"{option}: {str(path)!r} does not fit {type(net).__name__}: {detail}") from None
     del result
+
+
+def _first_keys(keys: list[str], shown: int = 4) -> str:
+    """The first ``shown`` of ``keys`` and how many more there are (a checkpoint of another
+    architecture misses hundreds: four shown alone read as four)."""
+    more = f" and {len(keys) - shown} more" if len(keys) > shown else ""
+    return f"{keys[:shown]}{more}"
 
 
 def _meta_tensors(net: nn.Module) -> list[str]:

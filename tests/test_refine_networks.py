@@ -423,6 +423,12 @@ def test_network_errors(tmp_path, user_module, capsys):
     torch.save({"fnet.weight": torch.zeros(2)}, tmp_path / "wrong.pt")
     text = err("--net", f"{user_module}:ptlflow_raft", "--checkpoint", str(tmp_path / "wrong.pt"))
     assert "--checkpoint:" in text and "wrong.pt" in text and "does not fit PtlflowRAFTStandIn" in text
+    # (the first four missing names, and how many more: four alone read as all of them)
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    names = sorted(PtlflowRAFTStandIn(seed=0, iters=2).state_dict())
+    assert len(names) > 4
+    assert f"missing keys {names[:4]} and {len(names) - 4} more, unexpected keys ['fnet.weight']" in text, text
     assert "--checkpoint needs --net" in err("--checkpoint", str(tmp_path / "wrong.pt"))
     assert not (tmp_path / "o" / "run.json").exists()  # every check came before any work
 
