@@ -73,6 +73,33 @@ def test_nearest_resizing_is_off_the_scaled_cameras_map_as_documented(k):
         assert np.abs(centre - exact).max() <= 0.5
 
 
+@pytest.mark.parametrize("s", [0.5, 1 / 3])
+def test_scaled_by_the_factor_of_a_resize_by_a_factor(s):
+    """Camera.scaled's docstring: a resize by a factor (F.interpolate(scale_factor=s),
+    cv2.resize(fx=s)) maps coordinates by s itself while its output size is rounded down, so on
+    an image whose size is no multiple of 1 / s the blob lands where ``scaled(s)`` projects the
+    point, not where the ratio of the sizes would put it."""
+    import cv2
+    H, W = 201, 322
+    K = torch.tensor(K_ODD, dtype=torch.float64)
+    X = torch.tensor([0.3, 0.9, 5.0], dtype=torch.float64)
+    u0, v0 = _project(K, X)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    image = np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / (2 * 6.0 ** 2))
+    resized = F.interpolate(torch.from_numpy(image)[None, None], scale_factor=s, mode="bilinear",
+                            align_corners=False, antialias=True)[0, 0].numpy()
+    h, w = resized.shape
+    assert (h, w) == (int(H * s), int(W * s)) and (h / H, w / W) != (s, s)  # (the sizes were rounded)
+    expected = _project(Camera(K, 1.5).scaled(s).K[0], X)
+    np.testing.assert_allclose(_centroid(resized), expected, atol=2e-3)
+    by_cv2 = cv2.resize(image, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
+    assert by_cv2.shape == (h, w)
+    np.testing.assert_allclose(_centroid(by_cv2), expected, atol=2e-3)
+    # the ratio of the sizes is another camera, off by more than the tolerance
+    by_ratio = _project(Camera(K, 1.5).scaled(w / W, h / H).K[0], X)
+    assert np.abs(by_ratio - expected).max() > 0.05
+
+
 def test_crop_pad_and_scale_move_the_principal_point_as_the_pixels_move():
     """Cropping by (l, t) moves every pixel by (-l, -t), padding by (+l, +t); cropping then
     scaling by s is scaling then cropping by (s l, s t) when those are whole pixels (an image of
