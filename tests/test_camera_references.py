@@ -27,6 +27,13 @@ def _centroid(image: np.ndarray) -> np.ndarray:
     return np.array([(image * u).sum(), (image * v).sum()]) / image.sum()
 
 
+def _blob(K: torch.Tensor, X: torch.Tensor, H: int, W: int) -> np.ndarray:
+    """An (H, W) image of a Gaussian blob (σ 6 px) drawn where K projects the point X."""
+    u0, v0 = _project(K, X)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    return np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / (2 * 6.0 ** 2))
+
+
 @pytest.mark.parametrize("size", [(100, 160), (50, 80), (100, 320), (300, 480)])
 def test_scaled_puts_a_point_where_resizing_moves_it(size):
     """A Gaussian blob drawn where a 3-D point projects, resized by OpenCV (INTER_AREA down,
@@ -37,9 +44,7 @@ def test_scaled_puts_a_point_where_resizing_moves_it(size):
     H, W = 200, 320
     K = torch.tensor(K_ODD, dtype=torch.float64)
     X = torch.tensor([0.3, 0.2, 5.0], dtype=torch.float64)
-    u0, v0 = _project(K, X)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    image = np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / (2 * 6.0 ** 2))
+    image = _blob(K, X, H, W)
     h, w = size
     cam = Camera(K, 1.5).scaled(w / W, h / H)
     expected = _project(cam.K[0], X)
@@ -83,9 +88,7 @@ def test_scaled_by_the_factor_of_a_resize_by_a_factor(s):
     H, W = 201, 322
     K = torch.tensor(K_ODD, dtype=torch.float64)
     X = torch.tensor([0.3, 0.9, 5.0], dtype=torch.float64)
-    u0, v0 = _project(K, X)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    image = np.exp(-((u - u0) ** 2 + (v - v0) ** 2) / (2 * 6.0 ** 2))
+    image = _blob(K, X, H, W)
     resized = F.interpolate(torch.from_numpy(image)[None, None], scale_factor=s, mode="bilinear",
                             align_corners=False, antialias=True)[0, 0].numpy()
     h, w = resized.shape
