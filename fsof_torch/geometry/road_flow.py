@@ -63,10 +63,14 @@ __all__ = [
 def pixel_grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device | None = None) -> Tensor:
     """Homogeneous pixel coordinates (3, H*W): rows u, v, 1, row-major over the image.
 
-    ``size``: ``(H, W)`` positive ints; ``dtype``: a floating-point dtype."""
+    ``size``: ``(H, W)`` positive ints; ``dtype``: a floating-point dtype, half precision lifted
+    to float32 as in the rest of the geometry (bfloat16 holds whole numbers exactly only up to
+    256, float16 up to 2048: a bfloat16 grid of a KITTI frame put columns 1237 to 1241 all at 1240)."""
     H, W = check_size(size)
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
+    if dtype in (torch.float16, torch.bfloat16):
+        dtype = torch.float32
     u = torch.arange(W, dtype=dtype, device=device).expand(H, W)
     v = torch.arange(H, dtype=dtype, device=device).unsqueeze(1).expand(H, W)
     return torch.stack([u, v, torch.ones_like(u)]).reshape(3, H * W)
