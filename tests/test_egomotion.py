@@ -100,6 +100,27 @@ def test_pose_remainder_nonzero_out_of_plane():
     assert e_wrong.y_d.abs().item() > 0.05
 
 
+def test_rotation_residual_is_the_axis_angle_of_the_coordinate_map():
+    """EgoMotion's docstring: a body pitching up by α and rolling by γ (the "plane" model's
+    pitch_change and roll_change, R_v = R_roll(γ) R_pitch(α) R_yaw(φ)) leaves about (−α, 0, −γ)."""
+    from fsof_torch.geometry.camera import pitch_matrix, roll_matrix
+
+    def angle(x: float) -> torch.Tensor:
+        return torch.tensor([x], dtype=torch.float64)
+
+    cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.01, -0.02)
+    alpha, gamma, yaw = 0.01, 0.005, 0.03
+    c, s = math.cos(yaw), math.sin(yaw)
+    R_yaw = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
+    Rv = (roll_matrix(angle(gamma)) @ pitch_matrix(angle(alpha)))[0] @ R_yaw
+    Rc = cam.mounting()[0]
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = Rc @ Rv @ Rc.T
+    T[:3, 3] = -Rc @ Rv @ torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    e = ego_motion_from_pose(T[None], cam)
+    np.testing.assert_allclose(e.rotation_residual[0].numpy(), [-alpha, 0.0, -gamma], atol=2e-4)
+
+
 def test_pose_batch():
     Ts = torch.stack([_synthetic_cam1_T_cam0(0.1 * i, 1.0 + i, 0.01 * i, 0.02, 0.0) for i in range(3)])
     cam = Camera(torch.eye(3, dtype=torch.float64), 1.65, 0.02)

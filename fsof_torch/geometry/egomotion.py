@@ -32,7 +32,10 @@ class EgoMotion(NamedTuple):
     ``x_d``, ``z_d`` in metres, ``yaw`` in radians. ``y_d`` (metres, positive down) and
     ``rotation_residual`` ((B, 3) axis-angle in radians, in the vehicle frame) are the
     out-of-plane part of the pose that the model cannot represent: a bump, a pitch or roll of
-    the car body. Small values mean the model fits the pose.
+    the car body. Small values mean the model fits the pose. The residual is the axis-angle
+    vector of the matrix R_v R_φᵀ that maps vehicle coordinates (the pose's rotation in the
+    vehicle frame, its yaw taken out), so the body's pitch and roll changes α and γ of the
+    ``"plane"`` model (positive α: pitching up) give about (−α, 0, −γ).
     """
 
     x_d: Tensor
