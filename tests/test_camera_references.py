@@ -81,26 +81,26 @@ def test_nearest_resizing_is_off_the_scaled_cameras_map_as_documented(k):
 @pytest.mark.parametrize("s", [0.5, 1 / 3])
 def test_scaled_by_the_factor_of_a_resize_by_a_factor(s):
     """Camera.scaled's docstring: a resize by a factor (F.interpolate(scale_factor=s),
-    cv2.resize(fx=s)) maps coordinates by s itself while its output size is rounded down, so on
-    an image whose size is no multiple of 1 / s the blob lands where ``scaled(s)`` projects the
-    point, not where the ratio of the sizes would put it."""
+    cv2.resize(fx=s)) maps coordinates by s itself while its output size is rounded (torch down,
+    OpenCV to the nearest), so on an image whose size is no multiple of 1 / s the blob lands where
+    ``scaled(s)`` projects the point, not where the ratio of the sizes would put it."""
     import cv2
-    H, W = 201, 322
+    H, W = 377, 322  # (377 / 3 = 125.7: 125 rows by torch, 126 by OpenCV)
     K = torch.tensor(K_ODD, dtype=torch.float64)
     X = torch.tensor([0.3, 0.9, 5.0], dtype=torch.float64)
     image = _blob(K, X, H, W)
-    resized = F.interpolate(torch.from_numpy(image)[None, None], scale_factor=s, mode="bilinear",
-                            align_corners=False, antialias=True)[0, 0].numpy()
-    h, w = resized.shape
-    assert (h, w) == (int(H * s), int(W * s)) and (h / H, w / W) != (s, s)  # (the sizes were rounded)
     expected = _project(Camera(K, 1.5).scaled(s).K[0], X)
-    np.testing.assert_allclose(_centroid(resized), expected, atol=2e-3)
+    by_torch = F.interpolate(torch.from_numpy(image)[None, None], scale_factor=s, mode="bilinear",
+                             align_corners=False, antialias=True)[0, 0].numpy()
     by_cv2 = cv2.resize(image, None, fx=s, fy=s, interpolation=cv2.INTER_AREA)
-    assert by_cv2.shape == (h, w)
-    np.testing.assert_allclose(_centroid(by_cv2), expected, atol=2e-3)
-    # the ratio of the sizes is another camera, off by more than the tolerance
-    by_ratio = _project(Camera(K, 1.5).scaled(w / W, h / H).K[0], X)
-    assert np.abs(by_ratio - expected).max() > 0.05
+    assert by_torch.shape == (math.floor(H * s), math.floor(W * s))
+    assert by_cv2.shape == (round(H * s), round(W * s))
+    for resized in (by_torch, by_cv2):
+        h, w = resized.shape
+        np.testing.assert_allclose(_centroid(resized), expected, atol=2e-3)
+        # the ratio of the sizes (not s: they were rounded) is another camera, off by more than that
+        by_ratio = _project(Camera(K, 1.5).scaled(w / W, h / H).K[0], X)
+        assert np.abs(by_ratio - expected).max() > 0.05
 
 
 def test_crop_pad_and_scale_move_the_principal_point_as_the_pixels_move():
