@@ -187,15 +187,32 @@ def test_fit_options_values_are_checked_when_made(options, error, match):
     pred, mask, cam, _ = make_case()
     with pytest.raises(error, match=match):
         FlowMotionEstimator(**options)
-    with pytest.raises(error, match=match):
+    # the refiner's errors name the option as a key of the mapping it came in, not a refiner argument
+    (key,) = options
+    keyed = match.replace(f"^{key}:", f"^fit_options\\['{key}'\\]:")
+    with pytest.raises(error, match=keyed):
         FreespaceRefiner(fit="flow", fit_options=options)
-    with pytest.raises(error, match=match):
+    with pytest.raises(error, match=keyed):
         refine_flow(pred, mask, cam, ODO, fit="flow", fit_options=options)
     if set(options) <= {"max_iter", "robust", "scale"}:  # (options the image fit shares, checked alike)
-        with pytest.raises(error, match=match):
+        with pytest.raises(error, match=keyed.replace("fit_options", "photometric_options")):
             FreespaceRefiner(fit="photometric", photometric_options=options)
     # a prior on a parameter the flags free is taken
     FreespaceRefiner(fit="flow", fit_roll=True, fit_options={"prior": {"roll": (0.0, 0.01)}})
+
+
+def test_a_forwarded_option_is_not_named_as_the_refiners_own_argument():
+    """``fit_options={"scale": -1.0}`` beside the refiner's own ``scale=2.0`` raised "scale: expected a
+    finite number > 0, got -1.0", naming the refiner's own argument, which was valid. The message
+    names the mapping and its key, for ``photometric_options`` too."""
+    pred, mask, cam, pair = make_case()
+    with pytest.raises(ValueError, match=r"^fit_options\['scale'\]: expected a finite number > 0, got -1.0$"):
+        FreespaceRefiner(mode="confidence", scale=2.0, fit="flow", fit_options={"scale": -1.0})
+    with pytest.raises(ValueError, match=r"^photometric_options\['levels'\]: expected an int >= 1, got -1$"):
+        refine_flow(pred, mask, cam, images=pair, fit="photometric", photometric_options={"levels": -1})
+    # the refiner's own scale keeps its name
+    with pytest.raises(ValueError, match=r"^scale: expected a positive number \(> 0\), got -1.0$"):
+        FreespaceRefiner(mode="confidence", scale=-1.0, fit="flow", fit_options={"scale": 2.0})
 
 
 @pytest.mark.parametrize("name", ["image1", "image2", "mask", "camera"])
