@@ -803,6 +803,24 @@ class TestDetectFreespace:
             with pytest.raises(TypeError, match=match):
                 freespace.detect_freespace(flow, cam, **options)
 
+    def test_a_bad_value_in_the_fits_options_is_named_as_their_key(self):
+        """``curve_options={"relative_threshold": -1.0}`` raised "relative_threshold: expected a finite
+        number >= 0, got -1.0", which names detect_freespace's own (valid) relative_threshold; a bad
+        fit_options value was named as fit_road takes it. Both now name the mapping and the key."""
+        cam, flow, valid, road = self._scene()
+        with pytest.raises(ValueError, match=r"^curve_options\['relative_threshold'\]: expected a finite number >= 0, "
+                                             r"got -1.0$"):
+            detect_freespace(flow, cam, relative_threshold=0.03, curve_options={"relative_threshold": -1.0})
+        with pytest.raises(ValueError, match=r"^curve_options\['bins'\]: expected an integer >= 2, got 1$"):
+            detect_freespace(flow, cam, curve_options={"bins": 1})
+        with pytest.raises(ValueError, match=r"^fit_options\['scale'\]: expected a finite number > 0, got -1.0$"):
+            detect_freespace(flow, cam, fit_options={"scale": -1.0})
+        with pytest.raises(ValueError, match=r"^fit_options\['prior'\]: unknown parameter 'bogus' of model 'paper'$"):
+            detect_freespace(flow, cam, fit_options={"prior": {"bogus": (0.0, 1.0)}})
+        # the function's own argument keeps its name
+        with pytest.raises(ValueError, match=r"^relative_threshold: "):
+            detect_freespace(flow, cam, relative_threshold=-1.0, curve_options={"relative_threshold": 0.05})
+
     def test_fit_options_init_starts_the_fits_on_the_seed(self, monkeypatch):
         """A caller's init starts each hypothesis' fit on the seed (without its roll where the
         camera's attitude is held), not the fits of the rest of the seed; each refit starts from the fit before it (with refits=1, the

@@ -20,6 +20,7 @@ from .._check import (batch_choices, check_bool, check_has_values, check_int, ch
 from ..geometry.camera import Camera
 from .combine import where_motion
 from .flow_fit import RoadFit, fit_displacement, fit_road
+from .forwarded import keyed_errors
 from .vflow import VFlowCurve, check_flow_mask, fit_vflow_curve
 
 __all__ = ["FreespaceDetection", "detect_freespace"]
@@ -162,7 +163,8 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     use = use & torch.isfinite(flow).all(dim=1, keepdim=True)
     flow_safe = torch.where(use, flow, torch.zeros_like(flow))
 
-    curve = fit_vflow_curve(flow_safe, use, model="displacement", **curve_options)
+    with keyed_errors(curve_options, "curve_options"):  # (its relative_threshold is not this function's)
+        curve = fit_vflow_curve(flow_safe, use, model="displacement", **curve_options)
     fv = flow_safe[:, 1:2].to(curve.fitted.dtype)
     seed_tol = torch.clamp(seed_relative_threshold * curve.fitted.abs(), min=float(seed_threshold))
     seed = use & curve.fitted_valid & ((fv - curve.fitted).abs() <= seed_tol)
@@ -174,14 +176,16 @@ def detect_freespace(flow: Tensor, camera: Camera, *, mask: Tensor | None = None
     init = fit_kw.pop("init", None)  # (the start of the fit on the seed; each refit starts from the fit before)
 
     def fitted(options: dict, init: object, start: Tensor):
-        fit = fit_displacement(flow_safe, start, camera, init=init, **options)
+        with keyed_errors(fit_options, "fit_options"):  # (a value the fits refuse, named as given)
+            fit = fit_displacement(flow_safe, start, camera, init=init, **options)
         agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         for _ in range(refits):
             # The seed holds obstacle pixels near their contact rows, where the V-flow curve cannot
             # tell them from road; refitting on the agreeing pixels removes their pull.
             enough = agreement.flatten(1).sum(-1) >= 3
             retry = torch.where(enough.reshape(B, 1, 1, 1), agreement, start)
-            fit = fit_displacement(flow_safe, retry, camera, init=fit, **options)
+            with keyed_errors(fit_options, "fit_options"):
+                fit = fit_displacement(flow_safe, retry, camera, init=fit, **options)
             agreement, success = _agreement(flow_safe, use, fit, curve.success, threshold, relative_threshold)
         return fit, agreement, success
 

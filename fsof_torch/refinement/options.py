@@ -9,6 +9,7 @@ from typing import Any, Mapping
 
 from .._check import check_bool, check_int, check_keywords, check_mapping, check_number
 from ..estimation.flow_fit import fit_road
+from ..estimation.forwarded import keyed_errors
 from ..estimation.image_fit import fit_image
 from .contracts import check_flow_keys
 from .estimators import FlowMotionEstimator, ImageMotionEstimator, check_estimator
@@ -66,28 +67,16 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     # only at the first call that estimated: a refiner given odometry ran on without a word)
     fixed = tuple(n for n, on in (("roll", fit_roll), ("pitch", fit_pitch)) if not on)
     if fit_options:
-        _keyed(fit_options, "fit_options", lambda: FlowMotionEstimator(model="paper", fixed=fixed, **fit_options))
+        with keyed_errors(fit_options, "fit_options"):  # (named as the caller gave them: not the refiner's scale)
+            FlowMotionEstimator(model="paper", fixed=fixed, **fit_options)
     if photometric_options:
-        _keyed(photometric_options, "photometric_options", lambda: ImageMotionEstimator(
-            model="paper", fixed=fixed, **{**PHOTOMETRIC_DEFAULTS, **photometric_options}))
+        with keyed_errors(photometric_options, "photometric_options"):
+            ImageMotionEstimator(model="paper", fixed=fixed, **{**PHOTOMETRIC_DEFAULTS, **photometric_options})
     # and against the estimator they would go to, where the call's images do not choose it (one given,
     # or fit= set): a combination that does not fit raises when a refiner is made, not at its first call
     if estimator is not None or fit is not None:
         select_estimator(estimator, fit, None, fit_roll, fit_pitch, fit_options, photometric_options)
     return flow_keys, min_pixels
-
-
-def _keyed(options: Mapping[str, Any], name: str, build: Any) -> None:
-    """``build()``, whose errors name an option as the estimator takes it (``scale: ...``), named as
-    the caller gave it: a key of ``name`` (``fit_options['scale']: ...``), not the refiner's own
-    argument of that name (its ``scale``, ``min_pixels``)."""
-    try:
-        build()
-    except (TypeError, ValueError) as err:
-        key, _, rest = str(err).partition(": ")
-        if key not in options:
-            raise
-        raise type(err)(f"{name}[{key!r}]: {rest}") from err
 
 
 def select_estimator(estimator: Any, fit: str | None, images: Any, fit_roll: bool, fit_pitch: bool,
