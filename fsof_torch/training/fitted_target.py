@@ -15,6 +15,7 @@ import torch
 from torch import Tensor
 
 from .._check import check_bool, check_keywords, check_mapping
+from ..estimation.forwarded import keyed_errors
 from ..geometry.camera import Camera
 from ..geometry.road_models import get_road_model
 
@@ -55,12 +56,9 @@ def check_fit_options(fit_options: Mapping[str, object] | None) -> dict[str, obj
     defaults = {n: p.default for n, p in inspect.signature(fit_road).parameters.items()
                 if p.default is not inspect.Parameter.empty}
     given = {**defaults, **given}
-    try:
+    with keyed_errors(given, "fit_options"):  # (named as fit_road names them: the option, as a key of fit_options)
         check_road_fit_options(model, *(given[n] for n in inspect.signature(check_road_fit_options).parameters
                                          if n != "model"))
-    except (TypeError, ValueError) as err:  # (named as fit_road names them: the option, as a key of fit_options)
-        name, _, rest = str(err).partition(": ")
-        raise type(err)(f"fit_options[{name!r}]: {rest}" if name in given else f"fit_options: {err}") from err
     return options
 
 
