@@ -102,6 +102,21 @@ def test_to_grey_is_the_luma_for_rgb_and_the_image_itself_for_one_channel():
     assert torch.equal(to_grey(rgb[:, :2]), rgb[:, :2].mean(1, keepdim=True))
 
 
+@pytest.mark.parametrize("channel", [0, 1, 2])
+def test_to_grey_into_one_of_the_images_own_channels_reads_the_image_as_it_was(channel):
+    """``out`` one of the image's own channels: the luma of the image as given (writing in place
+    read the green or blue plane after overwriting it when writing into it), the other channels
+    untouched."""
+    rgb = torch.rand(2, 3, 9, 13, generator=torch.Generator().manual_seed(3))
+    expected = _luma_reference(rgb)
+    image = rgb.clone()
+    grey = to_grey(image, out=image[:, channel:channel + 1])
+    assert grey.data_ptr() == image[:, channel].data_ptr()
+    assert torch.equal(grey, expected)
+    others = [c for c in range(3) if c != channel]
+    assert torch.equal(image[:, others], rgb[:, others])
+
+
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64, torch.bfloat16, torch.float16])
 def test_to_grey_in_place_and_with_autograd_round_the_same(dtype):
     """The in-place conversion (no autograd) and the one with autograd give the written luma

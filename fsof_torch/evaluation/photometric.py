@@ -79,7 +79,9 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
     Other integer images: a TypeError, but for one channel.
 
     ``out``: a (B, 1, H, W) tensor of the image's dtype to write the grey image into (such as
-    one channel of a pair's tensor), returned; not with autograd.
+    one channel of a pair's tensor), returned; not with autograd. An ``out`` that shares the
+    image's memory (one of its own channels) gets the grey image computed from the image as it
+    was, then written.
 
     Without autograd the floating conversion runs in place, into one tensor (kornia's three
     steps each allocate a full-size one). Both frames of a KITTI-size pair, written into one
@@ -114,6 +116,9 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
     elif not image.is_floating_point():
         raise TypeError(f"image: expected a floating-point image, or a uint8 one of 1 or 3 channels, got dtype "
                         f"{image.dtype} with {C} channels")
+    elif C == 3 and out is not None and out.untyped_storage().data_ptr() == image.untyped_storage().data_ptr():
+        # (written in place, out=image[:, 1:2] or [:, 2:3] was read after being overwritten)
+        grey = to_grey(image)
     elif C == 3:
         # the weights rounded to the image's dtype (0-dim tensors: usable with an image on any
         # device), and one order of rounding: r w_r, then + g w_g and + b w_b (addcmul)
