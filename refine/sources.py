@@ -97,6 +97,7 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
         from torch.nn.modules.utils import consume_prefix_in_state_dict_if_present
 
         consume_prefix_in_state_dict_if_present(state, prefix)  # (in place, on the dict just loaded)
+    state = _attribute_stripped(state, own)
     try:
         # a network built on the meta device (shapes only, to be filled from a checkpoint) takes
         # the file's tensors themselves: copying into its meta tensors would keep no value
@@ -108,6 +109,19 @@ def load_state_dict(net: nn.Module, path: Path, option: str) -> None:
                   if missing or unexpected else str(err).splitlines()[-1].strip())
         raise JobError(f"{option}: {str(path)!r} does not fit {type(net).__name__}: {detail}") from None
     del result
+
+
+def _attribute_stripped(state: dict, own: set[str]) -> dict:
+    """``state`` with the attribute name that starts every one of its names removed, where the
+    names left are exactly the network's own: the weights of a network kept as an attribute of
+    the module that trained it (a Lightning module's ``self.model``, ``self.net``: ``model.fnet.``
+    ...). Otherwise ``state`` as it came (a name of its own is never guessed away)."""
+    firsts = {k.partition(".")[0] for k in state}
+    if not state or set(state) == own or len(firsts) != 1 or not all("." in k for k in state):
+        return state
+    prefix = f"{firsts.pop()}."
+    stripped = {k[len(prefix):]: v for k, v in state.items()}
+    return stripped if set(stripped) == own else state
 
 
 def _first_keys(keys: list[str], shown: int = 4) -> str:

@@ -350,6 +350,44 @@ def test_a_dataparallel_checkpoint_is_loaded_without_its_module_prefix(tmp_path,
     load_state_dict(wrapped, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
     assert all(torch.equal(a, b) for a, b in zip(wrapped.state_dict().values(), state.values()))
 
+def test_a_checkpoint_of_a_module_holding_the_network_loads_without_its_attribute_name(tmp_path, user_module, pair):
+    """The state_dict of a module that kept the network as an attribute (a Lightning module's
+    ``self.model``: every name starts with "model.") loads into the bare network as the same
+    weights, through the job too; a file with a second network beside it, or whose names without
+    the attribute are not the network's, is refused naming its keys, and a network whose own
+    names all start with one attribute keeps them."""
+    from refine.sources import JobError, load_state_dict
+    from fsof_torch.training.standins import PtlflowRAFTStandIn
+
+    other = PtlflowRAFTStandIn(seed=1, iters=2).eval()
+    trainer = torch.nn.Module()
+    trainer.model = other
+    trainer.loss = torch.nn.L1Loss()  # (no weights: nothing in the state_dict)
+    assert all(k.startswith("model.") for k in trainer.state_dict())
+    torch.save({"state_dict": trainer.state_dict(), "epoch": 3}, tmp_path / "lightning.pt")
+    torch.save(other.state_dict(), tmp_path / "plain.pt")
+    runs = [_run(tmp_path / name, "--net", f"{user_module}:ptlflow_raft", "--checkpoint", str(tmp_path / f"{name}.pt"))
+            for name in ("plain", "lightning")]
+    assert runs[1]["pairs"][0]["before"] == runs[0]["pairs"][0]["before"]
+    net = PtlflowRAFTStandIn(seed=0, iters=2)
+    load_state_dict(net, tmp_path / "lightning.pt", "--checkpoint")
+    assert net.state_dict().keys() == other.state_dict().keys()
+    assert all(torch.equal(a, b) for a, b in zip(net.state_dict().values(), other.state_dict().values()))
+    trainer.teacher = torch.nn.Linear(2, 2)  # (two attributes: which one is the network is not guessed)
+    torch.save(trainer.state_dict(), tmp_path / "two.pt")
+    with pytest.raises(JobError, match=r"--checkpoint: .*two\.pt.* does not fit PtlflowRAFTStandIn: missing keys"):
+        load_state_dict(PtlflowRAFTStandIn(seed=0, iters=2), tmp_path / "two.pt", "--checkpoint")
+    torch.save({f"model.{k}": v for k, v in torch.nn.Linear(2, 2).state_dict().items()}, tmp_path / "linear.pt")
+    with pytest.raises(JobError, match="does not fit PtlflowRAFTStandIn"):
+        load_state_dict(PtlflowRAFTStandIn(seed=0, iters=2), tmp_path / "linear.pt", "--checkpoint")
+    holder = torch.nn.Module()
+    holder.model = torch.nn.Linear(2, 2)
+    state = {k: v + 1 for k, v in holder.state_dict().items()}
+    torch.save(state, tmp_path / "own.pt")
+    load_state_dict(holder, tmp_path / "own.pt", "--checkpoint")  # (its own names, kept)
+    assert all(torch.equal(a, b) for a, b in zip(holder.state_dict().values(), state.values()))
+
+
 def test_a_compiled_networks_checkpoint_is_loaded_without_its_orig_mod_prefix(tmp_path):
     """The state_dict of a torch.compile'd network (every name starts with "_orig_mod."), also
     saved inside nn.DataParallel ("module._orig_mod."), loads into the bare network as the same
