@@ -779,6 +779,41 @@ def test_clip_beside_other_images_is_refused(tmp_path):
     assert [p.name for p in ImageFolderDataset(pairs).pairs] == ["um_000000", "uu_000003"]
 
 
+def test_series_told_apart_by_one_number_are_refused(tmp_path):
+    """Two cameras' frames named alike but for a number (cam0_000000 ..., cam1_000000 ...), or a
+    stereo rig's (000000_0, 000000_1, ...), were sorted by name into one clip: cam0's last frame
+    paired with cam1's first, or each left frame with its right one. A ValueError naming
+    `images`, the folder and the series. A frame counter beside a timestamp (both numbers vary,
+    each unique) stays one clip."""
+    from fsof_torch.data.folders import list_images
+
+    cams = tmp_path / "cams"
+    cams.mkdir()
+    for cam in (0, 1):
+        for n in range(3):
+            write_image(cams / f"cam{cam}_{n:06d}.png", torch.zeros(3, *SIZE))
+    folder = re.escape(repr(str(cams)))
+    with pytest.raises(ValueError, match=rf"^images: {folder} holds 2 series of frames named alike but for one number "
+                                         r"\(cam0_000000.png ... cam0_000002.png \(3\); cam1_000000.png ... "
+                                         r"cam1_000002.png \(3\)\)"):
+        list_images(cams)
+    with pytest.raises(ValueError, match="holds 2 series"):
+        ImageFolderDataset(cams)
+    stereo = tmp_path / "stereo"
+    stereo.mkdir()
+    for n in range(3):
+        for side in (0, 1):
+            write_image(stereo / f"{n:06d}_{side}.png", torch.zeros(3, *SIZE))
+    with pytest.raises(ValueError, match=r"holds 2 series .*\(000000_0.png ... 000002_0.png \(3\); "
+                                         r"000000_1.png ... 000002_1.png \(3\)\)"):
+        list_images(stereo)
+    timed = tmp_path / "timed"
+    timed.mkdir()
+    for n, t in enumerate((1000, 1100, 1205)):
+        write_image(timed / f"{n:06d}_{t}.png", torch.zeros(3, *SIZE))
+    assert [p.name for p in list_images(timed)] == ["000000_1000.png", "000001_1100.png", "000002_1205.png"]
+
+
 def test_folder_of_camera_folders_names_where_the_frames_are(tmp_path):
     """A KITTI raw camera folder (image_02/, its frames in data/) or an odometry sequence
     (sequences/00/, frames in image_0/ and image_2/) given for the frames: 'holds 0 image(s)'

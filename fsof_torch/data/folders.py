@@ -115,7 +115,8 @@ def list_images(folder: str | os.PathLike, name: str = "images") -> list[Path]:
     symbolic link to a missing file a FileNotFoundError naming ``name`` (never a frame left out,
     which would pair its neighbours). Frames of a clip named by a number beside images named
     otherwise (``preview.png`` beside ``000000.png`` ..., or ``left_000001.png`` ... beside
-    ``right_000001.png`` ...) are a ValueError naming ``name`` and the others
+    ``right_000001.png`` ...), or series named alike but for one number (``cam0_000001.png`` ...
+    beside ``cam1_000001.png`` ...), are a ValueError naming ``name`` and the others
     (:func:`check_one_naming`): sorted by name, the last frame would be paired with them."""
     folder = existing_folder(folder, name)
     # (hidden files are no frames: macOS's ``._000001.png`` beside each frame, a writer's temporary)
@@ -150,7 +151,8 @@ def check_one_naming(images: Sequence[Path], name: str = "images") -> None:
     otherwise: where the names are not all one text around a number, nor decimal times (which
     :func:`fsof_torch.io.images.in_frame_order` sorts by their numbers), but two or more share one
     text around their numbers (``000000`` ..., ``frame_1`` ...) and others do not (``preview``, a
-    second camera's ``right_000001`` ... beside ``left_000001`` ...), a ValueError names ``name``,
+    second camera's ``right_000001`` ... beside ``left_000001`` ...), or where one number tells
+    series of one naming apart (``cam0_000001`` ..., ``cam1_000001`` ...), a ValueError names ``name``,
     the folder and the names: sorted by name, the clip's last frame would be paired with another
     image, or one camera's last frame with another camera's first. KITTI flow pairs
     (:func:`kitti_flow_layout`), which pair by name, and names without a number are not checked."""
@@ -162,15 +164,43 @@ def check_one_naming(images: Sequence[Path], name: str = "images") -> None:
         texts = tuple(re.split(r"[0-9]+", p.stem))
         namings.setdefault(texts if len(texts) > 1 else (p.stem,), []).append(p)
     clips = [v for k, v in namings.items() if len(k) > 1 and len(v) >= 2]
+    folder = repr(str(images[0].parent))
+    for clip in clips:
+        if series := _numbered_series(clip):
+            shown = "; ".join(f"{v[0].name} ... {v[-1].name} ({len(v)})" if len(v) > 1 else v[0].name
+                              for v in series[:4]) + ("; ..." if len(series) > 4 else "")
+            raise ValueError(f"{name}: {folder} holds {len(series)} series of frames named alike but for one number "
+                             f"({shown}), such as two cameras' (cam0_000001, cam1_000001): sorted by name, one "
+                             f"series' last frame would be paired with the next one's first: keep one clip of one "
+                             f"camera in the folder")
     if not clips or (len(clips) == 1 and len(clips[0]) == len(images)):
         return
-    folder = repr(str(images[0].parent))
     shown = [f"{v[0].name} ... {v[-1].name} ({len(v)})" if len(v) > 1 else v[0].name
              for v in sorted(namings.values(), key=len, reverse=True)]
     listed = "; ".join(shown[:5]) + ("; ..." if len(shown) > 5 else "")
     raise ValueError(f"{name}: {folder} holds frames named by a number beside images named otherwise ({listed}); "
                      f"sorted by name, one clip's last frame would be paired with another image: keep one clip "
                      f"of one camera in the folder, its frames named alike (000000.png, 000001.png, ...)")
+
+
+def _numbered_series(images: Sequence[Path]) -> list[list[Path]]:
+    """The series in name order among ``images``, frames named alike around numbers, where one
+    number tells series apart: without it, two frames would share every other number (two
+    cameras' ``cam0_000001``, ``cam1_000001``; a stereo pair's ``000001_0``, ``000001_1``). Empty
+    where no number does (a frame counter beside a timestamp: each unique)."""
+    numbers = [tuple(int(n) for n in re.findall(r"[0-9]+", p.stem)) for p in images]
+    varying = [k for k in range(len(numbers[0])) if len({n[k] for n in numbers}) > 1]
+    if len(varying) < 2:
+        return []
+    # (the number that tells series apart takes the fewest values: two cameras, many frames)
+    for k in sorted(varying, key=lambda k: len({n[k] for n in numbers})):
+        rest = [tuple(n[j] for j in varying if j != k) for n in numbers]
+        if len(set(rest)) < len(rest):
+            series: dict[int, list[Path]] = {}
+            for n, p in zip(numbers, images):
+                series.setdefault(n[k], []).append(p)
+            return list(series.values())
+    return []
 
 
 def _kitti_partner(stem: str) -> str | None:
