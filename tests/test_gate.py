@@ -134,6 +134,21 @@ def test_census_ring_end_points_of_integer_points_and_a_half_precision_flow_in_f
         assert torch.equal(a.float(), b.float())
 
 
+def test_census_ring_of_an_empty_batch_is_empty():
+    """No samples (B = 0) gives empty results, as the warp and the photometric errors do (it was a
+    RuntimeError from a reshape that could not infer a size); each sample of a batch is as alone."""
+    g1, g2 = _texture(seed=1), _texture(seed=2)
+    x, y = torch.tensor([[10.0, 50.0, 90.0]]), torch.tensor([[20.0, 40.0, 60.0]])
+    flow = torch.tensor([[[1.25, -2.5, 0.0], [0.5, 3.0, -1.0]]])
+    for got in census_ring_distance(g1[:0], g2[:0], x[:0], y[:0], flow[:0]):
+        assert got.shape == (0, 3)
+    both = census_ring_distance(torch.cat([g1, g2]), torch.cat([g2, g1]), x.repeat(2, 1), y.repeat(2, 1),
+                                flow.repeat(2, 1, 1))
+    for b, (one_image_1, one_image_2) in enumerate(((g1, g2), (g2, g1))):
+        for got, want in zip(both, census_ring_distance(one_image_1, one_image_2, x, y, flow)):
+            assert torch.equal(got[b:b + 1], want)
+
+
 def test_census_ring_reads_image_1_at_whole_pixels():
     g1, g2 = _texture(seed=1), _texture(seed=2)
     x, y = torch.tensor([[10.0, 50.0]]), torch.tensor([[20.0, 40.0]])

@@ -94,7 +94,8 @@ def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, fl
     x1, y1 = x.trunc(), y.trunc()
     centre = y1.clamp(r, H - 1 - r).long() * W + x1.clamp(r, W - 1 - r).long()
     flat = (centre.unsqueeze(1) + (dy * W + dx).unsqueeze(-1)).clamp_(0, H * W - 1)
-    v1 = grey1.reshape(B, -1).gather(1, flat.reshape(B, -1))
+    # (sizes spelled out, not -1: an empty batch has no size to infer)
+    v1 = grey1.reshape(B, H * W).gather(1, flat.reshape(B, (R + 1) * N))
     d1 = v1.reshape(B, R + 1, N)[:, 1:] - v1.reshape(B, R + 1, N)[:, :1]
     clear = d1.abs() > threshold
     # each clear neighbour's order (±1), 0 where not clear: a neighbour keeps its order in image 2
@@ -125,7 +126,7 @@ def census_ring_distances(grey1: Tensor, grey2: Tensor, x: Tensor, y: Tensor, fl
         at = x2.new_empty((B, R + 1, N, 2), dtype=sample)
         for k, (c, s) in enumerate(((x2, sx), (y2, sy))):
             torch.add((c.to(sample) * s - 1.0).unsqueeze(1), ring[..., k], out=at[..., k])
-        v2 = F.grid_sample(g2, at.reshape(B, 1, -1, 2), mode="bilinear", padding_mode="border",
+        v2 = F.grid_sample(g2, at.reshape(B, 1, (R + 1) * N, 2), mode="bilinear", padding_mode="border",
                            align_corners=True).reshape(B, R + 1, N).to(grey2.dtype)
         # (in image 2's dtype, as its own differences are compared with the threshold: ±1 and 0
         # are exact in any dtype, and so is the product)
