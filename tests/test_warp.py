@@ -293,6 +293,13 @@ def test_normalize_coordinates():
                                torch.tensor([-0.9, -0.1, 0.9]))
 
 
+@pytest.mark.parametrize("flag", ["False", "True", 0, 1, None])
+def test_normalize_coordinates_refuses_a_flag_that_is_not_a_bool(flag):
+    # (a truthy string "False" gave the corner-aligned coordinates, 0.1 off those asked for here)
+    with pytest.raises(TypeError, match=f"align_corners: expected True or False, got {type(flag).__name__}"):
+        normalize_coordinates(torch.tensor([0.0, 4.0, 9.0]), 10, align_corners=flag)
+
+
 def test_nearest_mode():
     image, flow = _image(), _flow()
     warped, in_bounds = warp_backward(image, flow, mode="nearest")

@@ -49,9 +49,11 @@ def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> 
     ``align_corners=False``: -1 and 1 are the outer edges of those pixels. Pass the same flag to
     the sampler. A singleton axis maps its only pixel to 0 (the corner-aligned scale is
     undefined there, and grid_sample then ignores the coordinate anyway). Elementwise: a NaN
-    coordinate stays NaN.
+    coordinate stays NaN. ``align_corners`` is True or False (TypeError otherwise: a string
+    "False" would otherwise be taken as True).
     """
     check_float_tensor(coords, "coords")
+    check_bool(align_corners, "align_corners")
     size = scalar(size, "size")  # (a 0-d integer tensor as its int)
     if not is_number(size, integer=True) or size < 1:
         raise option_error(size, f"size: expected a positive int (pixels along the axis), got {size!r}", integer=True)
