@@ -32,8 +32,8 @@ _KITTI_SIZE = (375, 1242)
 
 
 def default_pose_camera(size: tuple[int, int] = _KITTI_SIZE, dtype: torch.dtype = torch.float64) -> Camera:
-    """The KITTI colour camera (h = 1.65 m, level) resampled to ``size = (H, W)``."""
-    H, W = size
+    """The KITTI colour camera (h = 1.65 m, level) resampled to ``size = (H, W)``, two ints >= 2."""
+    H, W = _check_size(size)  # (a side of 0 was named as the camera's scale factor sx or sy)
     cam = Camera(torch.tensor(_KITTI_K, dtype=dtype), 1.65)
     if (H, W) == _KITTI_SIZE:
         return cam
@@ -79,6 +79,16 @@ def _is_int(value: object) -> bool:
     return not isinstance(value, bool) and isinstance(value, numbers.Integral)
 
 
+def _check_size(size: object) -> tuple[int, int]:
+    """``size`` as (H, W): two ints (Python or NumPy, as ``box`` takes them) >= 2."""
+    if not isinstance(size, (tuple, list)) or len(size) != 2 or not all(_is_int(n) for n in size):
+        raise TypeError(f"size: expected (H, W), two ints, got {size!r}")
+    H, W = (int(n) for n in size)
+    if min(H, W) < 2:
+        raise ValueError(f"size: expected H, W >= 2, got {tuple(size)!r}")
+    return H, W
+
+
 def _check_range(value: object, name: str) -> tuple[float, float]:
     if (not isinstance(value, (tuple, list)) or len(value) != 2
             or any(isinstance(v, bool) or not isinstance(v, numbers.Real) for v in value)):
@@ -103,7 +113,8 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
 
     Args:
         sigmas: noise levels σ in pixels (standard deviation of the Gaussian noise added to each
-            flow component), each in [0, ``MAX_SIGMA``] (1e4).
+            flow component), each in [0, ``MAX_SIGMA``] (1e4): a list or tuple, or a 1-D NumPy
+            array or tensor.
         trials: number of random poses (the same poses are used for every σ).
         camera: the camera (batch 1) at ``size``; default :func:`default_pose_camera`.
         size: ``(H, W)`` of the virtual image, two ints >= 2.
@@ -115,7 +126,7 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
         z_range, x_range: uniform ranges of the forward and lateral displacement in metres.
         yaw_range_deg: uniform range of the yaw change in degrees.
         fit_roll: also fit the roll (the paper's experiment knows the camera; default False).
-        seed: an int; seeds the poses and the noise.
+        seed: an int in [-2**63, 2**64) (a ``torch.Generator``'s seeds); seeds the poses and the noise.
         chunk: trials fitted per batch (bounds memory; the results do not depend on it).
         dtype: dtype of the synthetic flow (the fit's normal equations are float64 anyway).
         progress: show a progress bar over σ and the trials (:func:`fsof_torch.io.progress.progress_bar`).
@@ -133,18 +144,17 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
 
     from fsof_torch.io.progress import progress_bar
 
-    if isinstance(sigmas, (tuple, list)) and any(isinstance(s, bool) or not isinstance(s, numbers.Real)
-                                                 for s in sigmas):
+    # a 1-D NumPy array or tensor (np.linspace, torch.logspace) is a list of σ (it was refused as
+    # values outside [0, MAX_SIGMA], whatever they were)
+    values = sigmas.tolist() if hasattr(sigmas, "tolist") and getattr(sigmas, "ndim", None) == 1 else sigmas
+    if not isinstance(values, (tuple, list)) or any(isinstance(s, bool) or not isinstance(s, numbers.Real)
+                                                    for s in values):
         # (a string, None or a nested list failed inside float(), unnamed; "0.5" was taken)
         raise TypeError(f"sigmas: expected a list of numbers (noise levels in px), got {sigmas!r}")
-    sig = [float(s) for s in sigmas] if isinstance(sigmas, (tuple, list)) else None
+    sig = [float(s) for s in values]
     if not sig or not all(math.isfinite(s) and 0 <= s <= MAX_SIGMA for s in sig):
         raise ValueError(f"sigmas: expected a non-empty list of values in [0, {MAX_SIGMA:g}] px, got {sigmas!r}")
-    if (not isinstance(size, (tuple, list)) or len(size) != 2
-            or any(isinstance(n, bool) or not isinstance(n, int) for n in size)):
-        raise TypeError(f"size: expected (H, W), two ints, got {size!r}")
-    if min(size) < 2:
-        raise ValueError(f"size: expected H, W >= 2, got {tuple(size)!r}")
+    H, W = _check_size(size)
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
     for name, value in (("trials", trials), ("chunk", chunk), ("seed", seed)):
@@ -153,10 +163,11 @@ def pose_estimation_experiment(sigmas: tuple[float, ...] | list[float] = (0.0, 0
                             f"{type(value).__name__} {value!r}")
         if name != "seed" and value < 1:
             raise ValueError(f"{name}: expected an integer >= 1, got {value!r}")
+    if not -2**63 <= seed < 2**64:  # (torch.Generator's range: beyond it an unnamed 'Overflow when unpacking')
+        raise ValueError(f"seed: expected an integer in [-2**63, 2**64), got {seed!r}")
     z_lo, z_hi = _check_range(z_range, "z_range")
     x_lo, x_hi = _check_range(x_range, "x_range")
     y_lo, y_hi = _check_range(yaw_range_deg, "yaw_range_deg")
-    H, W = size
     if camera is None:
         camera = default_pose_camera((H, W), torch.float64)
     if not isinstance(camera, Camera):

@@ -138,3 +138,47 @@ def test_smallest_size_and_largest_sigma_run():
     res = pose_estimation_experiment([0.0, 1e4], trials=1, size=(2, 8))
     assert res.num_pixels > 0 and float(res.translation_error[0]) < 1e-5
     assert math.isfinite(float(res.translation_error[1]))
+
+
+def test_sigmas_as_a_numpy_array_or_tensor_are_the_list():
+    """A 1-D NumPy array or tensor of σ (np.linspace, torch.logspace) is taken as the list it
+    holds (it was refused as values outside [0, 1e4] px, which they were not); a scalar or a 2-D
+    array is a TypeError naming sigmas."""
+    import numpy as np
+
+    listed = pose_estimation_experiment([0.0, 1.0], trials=2, size=(40, 120))
+    for given in (np.array([0.0, 1.0]), torch.tensor([0.0, 1.0], dtype=torch.float64)):
+        res = pose_estimation_experiment(given, trials=2, size=(40, 120))
+        assert res.sigmas.tolist() == [0.0, 1.0]
+        assert torch.equal(res.estimated_pose, listed.estimated_pose)
+    for given in (1.0, np.zeros((2, 2)), torch.tensor(1.0), torch.tensor([True])):
+        with pytest.raises(TypeError, match="sigmas: expected a list of numbers"):
+            pose_estimation_experiment(given, trials=1, size=(40, 120))
+    with pytest.raises(ValueError, match=r"sigmas: expected a non-empty list of values in \[0, 10000\] px"):
+        pose_estimation_experiment(np.array([-1.0]), trials=1, size=(40, 120))
+
+
+def test_numpy_int_size_and_the_seed_range():
+    """NumPy int sides are taken as box's are (the same run as Python ints); a seed beyond
+    torch.Generator's range is named (it failed as 'Overflow when unpacking long long')."""
+    import numpy as np
+
+    res = pose_estimation_experiment([0.5], trials=2, size=(np.int64(40), np.int64(120)))
+    assert torch.equal(res.estimated_pose, pose_estimation_experiment([0.5], trials=2, size=(40, 120)).estimated_pose)
+    assert res.settings["size"] == [40, 120] and all(type(n) is int for n in res.settings["size"])
+    for seed in (2**64, -2**63 - 1):
+        with pytest.raises(ValueError, match=rf"seed: expected an integer in \[-2\*\*63, 2\*\*64\), got {seed}"):
+            pose_estimation_experiment([0.0], trials=1, size=(40, 120), seed=seed)
+    assert pose_estimation_experiment([0.0], trials=1, size=(40, 120), seed=2**64 - 1).settings["seed"] == 2**64 - 1
+
+
+@pytest.mark.parametrize("size, error, match", [
+    # a side of 0 or below was named as the camera's scale factor sx or sy; an int failed to unpack
+    ((0, 10), ValueError, r"size: expected H, W >= 2, got \(0, 10\)"),
+    ((10, -4), ValueError, r"size: expected H, W >= 2, got \(10, -4\)"),
+    (48, TypeError, r"size: expected \(H, W\), two ints, got 48"),
+    ((188.5, 621), TypeError, r"size: expected \(H, W\), two ints"),
+])
+def test_default_pose_camera_names_a_bad_size(size, error, match):
+    with pytest.raises(error, match=match):
+        default_pose_camera(size)
