@@ -232,3 +232,23 @@ def test_noise_curves_are_drawn_in_sigma_order(tmp_path, monkeypatch):
     assert [d for d in drawn if d[0] != "paper bound"] == [
         ("‖d error‖", [0.0, 0.5, 2.0], [1.0, 1.5, 3.0]), ("|x_d error|", [0.0, 0.5, 2.0], [2.0, 2.5, 4.0]),
         ("|z_d error|", [0.0, 0.5, 2.0], [3.0, 3.5, 5.0]), ("|yaw error|", [0.0, 0.5, 2.0], [4.0, 4.5, 6.0])]
+
+
+def test_noise_tables_print_each_sigma_as_given(tmp_path, capsys):
+    """The σ column names the noise of its row: 0.005 printed 0.01 and 0.001 printed 0.00, the label
+    of a noise-free row, and 1e-5 printed 0.0000; the noisy flow's distance, 1.2e-05 px at σ = 1e-5,
+    printed 0.000."""
+    sigmas, pose_sigmas = ["0", "1e-05", "0.125"], ["0", "0.001", "0.005", "0.125"]
+    assert main(["noise", "--quick", "--size", "32", "96", "--pose-size", "40", "120", "--trials", "1",
+                 "--sigmas", *sigmas, "--pose-sigmas", *pose_sigmas, "--no-plots", "--no-progress",
+                 "--out", str(tmp_path / "noise")]) == 0
+    out = capsys.readouterr().out
+    data = json.loads((tmp_path / "noise" / "noise.json").read_text())
+    robust, pose = out.split("Pose from noisy flow")
+    robust_rows = [line.split() for line in robust.splitlines() if line.startswith(" complex")]
+    pose_rows = [line.split() for line in pose.splitlines()[3:3 + len(pose_sigmas)]]
+    assert [float(r[2]) for r in robust_rows] == [float(s) for s in sigmas]
+    assert [float(r[0]) for r in pose_rows] == [float(s) for s in pose_sigmas]
+    noisy = [r["e_E_vs_noisy"] for r in data["noise_robustness"]]
+    assert noisy[1] > 1e-6  # (the noise itself: about 1.25 σ)
+    assert [float(r[5]) for r in robust_rows] == pytest.approx(noisy, rel=5e-3)
