@@ -19,12 +19,41 @@ from fsof_torch.io.atomic import creation_error
 from refine.resume import file_path  # noqa: F401 (the type of a file option: a path ending in '/' is refused)
 
 
-def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:
-    """``path`` (None: not asked for) can be written as a file, and is neither ``out`` (the job's
-    ``--out`` folder, None: none) nor a folder above it (``--out`` would be created as a folder
-    there)."""
+def bad_name(path: Path | None, option: str) -> str | None:
+    """``path`` (None: not given) has no name longer than its file system takes (``NAME_MAX``
+    bytes, 255 on most; 85 characters of CJK text) and is not longer in all than ``PATH_MAX``: the
+    system refuses to look such a path up ('File name too long'), which ended the job in a
+    traceback, or, for a name below a folder still to be created, once the work was done."""
     if path is None:
         return None
+    absolute = Path(os.path.abspath(path))
+    name_max, path_max = 255, 4096
+    for folder in absolute.parents:  # (the limits of the nearest folder that exists)
+        try:
+            if folder.is_dir():
+                name_max, path_max = os.pathconf(folder, "PC_NAME_MAX"), os.pathconf(folder, "PC_PATH_MAX")
+                break
+        except (OSError, ValueError, AttributeError):  # (a name too long itself; no pathconf on Windows)
+            continue
+    long = next((part for part in absolute.parts if len(os.fsencode(part)) > name_max), None)
+    if long is not None:
+        return (f"{option}: {str(path)!r} holds a name of {len(os.fsencode(long))} bytes, {long[:24]!r}..., longer "
+                f"than the {name_max} its file system takes; give a shorter one")
+    if len(os.fsencode(str(absolute))) >= path_max:
+        return (f"{option}: {str(path)!r} is {len(os.fsencode(str(absolute)))} bytes long as an absolute path, more "
+                f"than the {path_max - 1} its file system takes; give a shorter one")
+    return None
+
+
+def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:
+    """``path`` (None: not asked for) can be written as a file (:func:`bad_name`), and is neither
+    ``out`` (the job's ``--out`` folder, None: none) nor a folder above it (``--out`` would be
+    created as a folder there)."""
+    if path is None:
+        return None
+    bad = bad_name(path, option)
+    if bad is not None:
+        return bad
     if path.is_dir():
         return f"{option}: {str(path)!r} is a folder; expected a file path"
     if out is not None and out.resolve().is_relative_to(path.resolve()):
@@ -33,10 +62,13 @@ def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | N
 
 
 def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str | None:
-    """``path`` (None: not asked for) is a folder or can be created, and none of the ``files`` the
-    job writes into it is a folder."""
+    """``path`` (None: not asked for) is a folder or can be created (:func:`bad_name`), and none
+    of the ``files`` the job writes into it is a folder."""
     if path is None:
         return None
+    bad = bad_name(path, option)
+    if bad is not None:
+        return bad
     if path.exists() and not path.is_dir():
         return f"{option}: {str(path)!r} is a file; expected a folder (it is created if missing)"
     bad = creation_error(path, option, folder=True)
@@ -71,7 +103,9 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
 def other_run_above(path: Path) -> str | None:
     """``--json`` (``path``) lies in no output folder of another run that is read back: a refine
     run's (:func:`refine_run_above`) or a sequence that ``eval synth`` wrote
-    (:func:`sequence_above`)."""
+    (:func:`sequence_above`). (A path the system cannot look up is :func:`bad_name`'s to name.)"""
+    if bad_name(path, "--json") is not None:
+        return None
     return first_bad(refine_run_above(path), sequence_above(path))
 
 

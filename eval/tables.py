@@ -282,7 +282,8 @@ def _unused_option(args: argparse.Namespace) -> str | None:
 def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_text
 
-    from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
+    from .paths import (bad_file, bad_folder, bad_json_target, bad_name, bad_size, first_bad, make_parent,
+                        remove_outputs)
     from fsof_torch.io.progress import progress_bar
 
     bad = _unused_option(args)
@@ -308,6 +309,10 @@ def run(args: argparse.Namespace) -> int:
     if args.no_kitti:
         tables.discard("kitti")
     kitti_folder = DEFAULT_KITTI if args.kitti is None else args.kitti
+    bad = bad_name(args.kitti, "--kitti") if "kitti" in tables else None
+    if bad is not None:
+        print(f"error: {bad}", file=sys.stderr)
+        return 2
     if "kitti" in tables and not (kitti_folder / "flow_noc_10.png").is_file():
         if args.kitti is not None or "kitti" in (args.only or ()):
             # asked for: an error, not an empty table

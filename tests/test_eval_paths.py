@@ -1,0 +1,61 @@
+"""``python -m eval``'s output and input paths with a name the file system cannot hold: exit 2
+naming the option before any work (the system's 'File name too long' was a traceback, or, under a
+folder still to be created, came once the work was done)."""
+
+from __future__ import annotations
+
+import os
+
+import pytest
+
+from eval.__main__ import main
+from eval.paths import bad_name
+
+FAST = {"synth": ["--pairs", "1", "--size", "20", "40"], "tables": ["--quick", "--only", "cvc12"],
+        "noise": ["--quick", "--no-plots"], "train": ["--steps", "1"], "vflow": []}
+
+
+def _long(tmp_path, ascii_: bool) -> str:
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    # (90 CJK characters are 270 bytes: a name of ordinary length in characters)
+    return "a" * (limit + 45) if ascii_ else "道" * (limit // 3 + 5)
+
+
+@pytest.mark.parametrize("job, option", [("synth", "--out"), ("synth", "--json"), ("tables", "--out"),
+                                         ("tables", "--json"), ("noise", "--out"), ("noise", "--json"),
+                                         ("train", "--out"), ("train", "--json"), ("train", "--dump-first-step"),
+                                         ("vflow", "--out"), ("vflow", "--json")])
+@pytest.mark.parametrize("ascii_", [True, False])
+def test_a_name_too_long_is_named(tmp_path, capsys, job, option, ascii_):
+    name = _long(tmp_path, ascii_)
+    given = tmp_path / "new" / name / "x"  # (below a folder still to be created: found only on writing)
+    argv = [job, *FAST[job], "--no-progress", option, str(given)]
+    if option != "--out":
+        argv += ["--out", str(tmp_path / "out")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {option}: {str(given)!r} holds a name of {len(os.fsencode(name))} bytes")
+    assert f"longer than the {os.pathconf(tmp_path, 'PC_NAME_MAX')} its file system takes" in err
+    assert list(tmp_path.iterdir()) == []  # nothing written, no folder made
+
+
+def test_a_kitti_folder_with_a_name_too_long_is_named(tmp_path, capsys):
+    given = tmp_path / _long(tmp_path, True)
+    assert main(["tables", "--only", "kitti", "--kitti", str(given), "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err.startswith(f"error: --kitti: {str(given)!r} holds a name of")
+
+
+def test_a_path_too_long_in_all_is_named(tmp_path, capsys):
+    given = tmp_path.joinpath(*["b"] * (os.pathconf(tmp_path, "PC_PATH_MAX") // 2 + 1))
+    assert main(["noise", "--quick", "--no-plots", "--no-progress", "--out", str(given)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --out: {str(given)!r} is {len(os.fsencode(str(given)))} bytes long as an absolute")
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bad_name_takes_a_name_at_the_limit(tmp_path):
+    limit = os.pathconf(tmp_path, "PC_NAME_MAX")
+    assert bad_name(tmp_path / ("a" * limit), "--out") is None
+    assert bad_name(tmp_path / ("a" * (limit + 1)), "--out").startswith("--out: ")
+    assert bad_name(None, "--out") is None
+    (tmp_path / ("a" * limit)).mkdir()  # (the system takes it)
