@@ -9,6 +9,7 @@ mixes two runs."""
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from pathlib import Path
@@ -19,11 +20,12 @@ from fsof_torch.io.atomic import creation_error
 from refine.resume import file_path  # noqa: F401 (the type of a file option: a path ending in '/' is refused)
 
 
-def bad_name(path: Path | None, option: str) -> str | None:
-    """``path`` (None: not given) has no name longer than its file system takes (``NAME_MAX``
-    bytes, 255 on most; 85 characters of CJK text) and is not longer in all than ``PATH_MAX``: the
-    system refuses to look such a path up ('File name too long'), which ended the job in a
-    traceback, or, for a name below a folder still to be created, once the work was done."""
+def bad_lookup(path: Path | None, option: str) -> str | None:
+    """``path`` (None: not given) is one the system can look up: it has no name longer than its
+    file system takes (``NAME_MAX`` bytes, 255 on most; 85 characters of CJK text), is not longer
+    in all than ``PATH_MAX`` and leads through no loop of symbolic links. Such a path ('File name
+    too long', 'Too many levels of symbolic links') ended the job in a traceback, or, for a name
+    below a folder still to be created, once the work was done."""
     if path is None:
         return None
     absolute = Path(os.path.abspath(path))
@@ -42,31 +44,38 @@ def bad_name(path: Path | None, option: str) -> str | None:
     if len(os.fsencode(str(absolute))) >= path_max:
         return (f"{option}: {str(path)!r} is {len(os.fsencode(str(absolute)))} bytes long as an absolute path, more "
                 f"than the {path_max - 1} its file system takes; give a shorter one")
+    try:
+        os.stat(absolute)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return f"{option}: {str(path)!r} leads through a loop of symbolic links; give another path"
+    except ValueError:  # (a NUL byte: no path; the checks that follow name it)
+        pass
     return None
 
 
 def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:
-    """``path`` (None: not asked for) can be written as a file (:func:`bad_name`), and is neither
+    """``path`` (None: not asked for) can be written as a file (:func:`bad_lookup`), and is neither
     ``out`` (the job's ``--out`` folder, None: none) nor a folder above it (``--out`` would be
     created as a folder there)."""
     if path is None:
         return None
-    bad = bad_name(path, option)
+    bad = bad_lookup(path, option)
     if bad is not None:
         return bad
     if path.is_dir():
         return f"{option}: {str(path)!r} is a folder; expected a file path"
-    if out is not None and out.resolve().is_relative_to(path.resolve()):
+    if out is not None and bad_lookup(out, "--out") is None and out.resolve().is_relative_to(path.resolve()):
         return f"{option}: {str(path)!r} is --out {str(out)!r} or a folder above it; expected a file path outside it"
     return creation_error(path, option)
 
 
 def bad_folder(path: Path | None, option: str, files: Iterable[str] = ()) -> str | None:
-    """``path`` (None: not asked for) is a folder or can be created (:func:`bad_name`), and none
+    """``path`` (None: not asked for) is a folder or can be created (:func:`bad_lookup`), and none
     of the ``files`` the job writes into it is a folder."""
     if path is None:
         return None
-    bad = bad_name(path, option)
+    bad = bad_lookup(path, option)
     if bad is not None:
         return bad
     if path.exists() and not path.is_dir():
@@ -84,17 +93,21 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
                     inputs: dict[str, Path | None] | None = None) -> str | None:
     """``--json`` (``path``, None: not asked for) names none of the files the job writes
     (``outputs``) or reads (``inputs``, by option; None where not given), nor a path inside an
-    input folder (a sample's other files): the JSON, written last, would replace it."""
-    if path is None:
+    input folder (a sample's other files): the JSON, written last, would replace it. (A path the
+    system cannot look up is not compared: :func:`bad_lookup` names it, in :func:`bad_file` or
+    :func:`bad_folder`.)"""
+    if path is None or bad_lookup(path, "--json") is not None:
         return None
     target = path.resolve()
     for option, given in (inputs or {}).items():
-        if given is not None and given.resolve() == target:
+        if given is None or bad_lookup(given, option) is not None:
+            continue
+        if given.resolve() == target:
             return f"--json: {str(path)!r} is the input {option}; give another path"
-        if given is not None and given.is_dir() and target.is_relative_to(given.resolve()):
+        if given.is_dir() and target.is_relative_to(given.resolve()):
             return f"--json: {str(path)!r} is inside the input {option} {str(given)!r}; give another path"
     for output in outputs:
-        if output.resolve() == target:
+        if bad_lookup(output, "--out") is None and output.resolve() == target:
             return (f"--json: {str(path)!r} names {output.name}, a file the job writes into {str(output.parent)!r}; "
                     f"give another path")
     return other_run_above(path)
@@ -103,8 +116,8 @@ def bad_json_target(path: Path | None, outputs: Iterable[Path],
 def other_run_above(path: Path) -> str | None:
     """``--json`` (``path``) lies in no output folder of another run that is read back: a refine
     run's (:func:`refine_run_above`) or a sequence that ``eval synth`` wrote
-    (:func:`sequence_above`). (A path the system cannot look up is :func:`bad_name`'s to name.)"""
-    if bad_name(path, "--json") is not None:
+    (:func:`sequence_above`). (A path the system cannot look up is :func:`bad_lookup`'s to name.)"""
+    if bad_lookup(path, "--json") is not None:
         return None
     return first_bad(refine_run_above(path), sequence_above(path))
 

@@ -282,7 +282,7 @@ def _unused_option(args: argparse.Namespace) -> str | None:
 def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json, write_text
 
-    from .paths import (bad_file, bad_folder, bad_json_target, bad_name, bad_size, first_bad, make_parent,
+    from .paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_size, first_bad, make_parent,
                         remove_outputs)
     from fsof_torch.io.progress import progress_bar
 
@@ -309,7 +309,7 @@ def run(args: argparse.Namespace) -> int:
     if args.no_kitti:
         tables.discard("kitti")
     kitti_folder = DEFAULT_KITTI if args.kitti is None else args.kitti
-    bad = bad_name(args.kitti, "--kitti") if "kitti" in tables else None
+    bad = bad_lookup(args.kitti, "--kitti") if "kitti" in tables else None
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

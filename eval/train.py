@@ -43,7 +43,8 @@ from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.data.scene.config import MAX_SEED
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
-from eval.paths import bad_file, bad_folder, bad_json_target, bad_size, file_path, first_bad, make_parent, remove_outputs
+from eval.paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_size, file_path, first_bad, make_parent,
+                        remove_outputs)
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr",
            "TrainingDiverged"]
@@ -380,8 +381,12 @@ def _bad_input(args: argparse.Namespace) -> str | None:
         return bad
     # the outputs, before the rendering and the training: none may be another (the last written
     # would replace the others)
-    nets = [args.out / _net_file(name) for name in RUNS] if args.out is not None else []
     dump = args.dump_first_step
+    # (paths the system cannot look up first: the comparisons below resolve them)
+    bad = first_bad(bad_lookup(args.out, "--out"), bad_lookup(args.json, "--json"), bad_lookup(dump, "--dump-first-step"))
+    if bad is not None:
+        return bad
+    nets = [args.out / _net_file(name) for name in RUNS] if args.out is not None else []
     if dump is not None and any(dump.resolve() == net.resolve() for net in nets):
         return f"--dump-first-step: {str(dump)!r} is a state_dict the job writes into --out; give another path"
     if dump is not None and args.json is not None and args.json.resolve() != dump.resolve():

@@ -1,6 +1,7 @@
-"""``python -m eval``'s output and input paths with a name the file system cannot hold: exit 2
-naming the option before any work (the system's 'File name too long' was a traceback, or, under a
-folder still to be created, came once the work was done)."""
+"""``python -m eval``'s output and input paths that the system cannot look up (a name the file
+system cannot hold, a loop of symbolic links): exit 2 naming the option before any work (the
+system's 'File name too long' was a traceback, or, under a folder still to be created, came once
+the work was done; a loop was Path.resolve's RuntimeError)."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import os
 import pytest
 
 from eval.__main__ import main
-from eval.paths import bad_name
+from eval.paths import bad_lookup
 
 FAST = {"synth": ["--pairs", "1", "--size", "20", "40"], "tables": ["--quick", "--only", "cvc12"],
         "noise": ["--quick", "--no-plots"], "train": ["--steps", "1"], "vflow": []}
@@ -53,9 +54,35 @@ def test_a_path_too_long_in_all_is_named(tmp_path, capsys):
     assert list(tmp_path.iterdir()) == []
 
 
-def test_bad_name_takes_a_name_at_the_limit(tmp_path):
+def test_bad_lookup_takes_a_name_at_the_limit(tmp_path):
     limit = os.pathconf(tmp_path, "PC_NAME_MAX")
-    assert bad_name(tmp_path / ("a" * limit), "--out") is None
-    assert bad_name(tmp_path / ("a" * (limit + 1)), "--out").startswith("--out: ")
-    assert bad_name(None, "--out") is None
+    assert bad_lookup(tmp_path / ("a" * limit), "--out") is None
+    assert bad_lookup(tmp_path / ("a" * (limit + 1)), "--out").startswith("--out: ")
+    assert bad_lookup(None, "--out") is None
     (tmp_path / ("a" * limit)).mkdir()  # (the system takes it)
+
+
+OUTPUTS = {"synth": ["--out", "--json"], "tables": ["--out", "--json"], "noise": ["--out", "--json"],
+           "train": ["--out", "--json", "--dump-first-step"], "vflow": ["--out", "--json"]}
+
+
+@pytest.mark.parametrize("job, option, other", [(job, option, other) for job, options in OUTPUTS.items()
+                                                for option in options for other in options if other != option])
+@pytest.mark.parametrize("through", ["self", "l1/x"])
+def test_a_loop_of_symbolic_links_is_named(tmp_path, capsys, job, option, other, through):
+    (tmp_path / "self").symlink_to("self")
+    (tmp_path / "l1").symlink_to("l2")
+    (tmp_path / "l2").symlink_to("l1")
+    given = tmp_path / through
+    argv = [job, *FAST[job], "--no-progress", option, str(given), other, str(tmp_path / "new" / "x")]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == (f"error: {option}: {str(given)!r} leads through a loop of symbolic links; "
+                                       f"give another path\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["l1", "l2", "self"]
+
+
+def test_a_kitti_folder_through_a_loop_is_named(tmp_path, capsys):
+    (tmp_path / "self").symlink_to("self")
+    assert main(["tables", "--only", "kitti", "--kitti", str(tmp_path / "self"), "--out", str(tmp_path / "o")]) == 2
+    assert capsys.readouterr().err == (f"error: --kitti: {str(tmp_path / 'self')!r} leads through a loop of "
+                                       f"symbolic links; give another path\n")
