@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import errno
 import json
+import math
 import os
 from pathlib import Path
 from typing import Iterable
@@ -33,7 +34,9 @@ def bad_lookup(path: Path | None, option: str) -> str | None:
     for folder in absolute.parents:  # (the limits of the nearest folder that exists)
         try:
             if folder.is_dir():
-                name_max, path_max = os.pathconf(folder, "PC_NAME_MAX"), os.pathconf(folder, "PC_PATH_MAX")
+                # (-1: the file system states no limit)
+                name_max, path_max = (n if n > 0 else math.inf for n in (os.pathconf(folder, "PC_NAME_MAX"),
+                                                                          os.pathconf(folder, "PC_PATH_MAX")))
                 break
         except (OSError, ValueError, AttributeError):  # (a name too long itself; no pathconf on Windows)
             continue

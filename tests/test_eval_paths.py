@@ -86,3 +86,11 @@ def test_a_kitti_folder_through_a_loop_is_named(tmp_path, capsys):
     assert main(["tables", "--only", "kitti", "--kitti", str(tmp_path / "self"), "--out", str(tmp_path / "o")]) == 2
     assert capsys.readouterr().err == (f"error: --kitti: {str(tmp_path / 'self')!r} leads through a loop of "
                                        f"symbolic links; give another path\n")
+
+
+def test_bad_lookup_where_the_file_system_states_no_limit(tmp_path, monkeypatch):
+    """os.pathconf gives -1 where a file system states no limit: no name is refused for its length
+    (every name was, as longer than -1 bytes)."""
+    monkeypatch.setattr(os, "pathconf", lambda path, name: -1)
+    assert bad_lookup(tmp_path / "a", "--out") is None
+    assert bad_lookup(tmp_path / ("a" * 300), "--out") is None
