@@ -158,9 +158,12 @@ def refine_run_above(path: Path) -> str | None:
 def bad_out_inputs(out: Path, names: Iterable[str], inputs: dict[str, Path | None]) -> str | None:
     """None of the files ``names`` that the job writes into ``out``, or removes there before it
     writes (:func:`remove_outputs`), is an input (``inputs``, by option; None where not given):
-    a flow file named like a figure, given with its folder as ``--out``, was deleted and replaced."""
+    a flow file named like a figure, given with its folder as ``--out``, was deleted and replaced.
+    (A path the system cannot look up is not compared: :func:`bad_lookup` names it.)"""
+    if bad_lookup(out, "--out") is not None:
+        return None
     for option, given in inputs.items():
-        if given is None:
+        if given is None or bad_lookup(given, option) is not None:
             continue
         for name in names:
             if (out / name).resolve() == given.resolve():

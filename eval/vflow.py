@@ -262,7 +262,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
-    from .paths import (bad_file, bad_folder, bad_json_target, bad_out_inputs, bad_size, first_bad,
+    from .paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_out_inputs, bad_size, first_bad,
                         make_parent, remove_outputs)
     from fsof_torch.io.progress import progress_bar
 
@@ -298,7 +298,8 @@ def run(args: argparse.Namespace) -> int:
         steps.insert(3, "freespace")
     figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
     written = [args.out / f for f in figures if f != "freespace.png" or "freespace" in steps]
-    bad = first_bad(bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
+    bad = first_bad(bad_lookup(args.flow, "--flow"), bad_lookup(args.mask, "--mask"),
+                    bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
                     bad_out_inputs(args.out, figures + ["vflow.json"], {"--flow": args.flow, "--mask": args.mask}),
                     bad_file(args.json, "--json", args.out),
                     bad_json_target(args.json, written, {"--flow": args.flow, "--mask": args.mask}))

@@ -94,3 +94,20 @@ def test_bad_lookup_where_the_file_system_states_no_limit(tmp_path, monkeypatch)
     monkeypatch.setattr(os, "pathconf", lambda path, name: -1)
     assert bad_lookup(tmp_path / "a", "--out") is None
     assert bad_lookup(tmp_path / ("a" * 300), "--out") is None
+
+
+@pytest.mark.parametrize("option", ["--flow", "--mask"])
+@pytest.mark.parametrize("kind", ["long", "loop"])
+def test_vflow_inputs_the_system_cannot_look_up_are_named(tmp_path, capsys, option, kind):
+    """vflow's --flow and --mask, compared with its outputs before any work, were the same
+    tracebacks."""
+    (tmp_path / "self").symlink_to("self")
+    given = tmp_path / (_long(tmp_path, True) + ".png" if kind == "long" else "self")
+    flow = tmp_path / "flow.png"  # (not read: the paths are checked first)
+    argv = ["vflow", "--no-progress", "--out", str(tmp_path / "out"), "--json", str(tmp_path / "v.json")]
+    argv += ["--flow", str(given)] if option == "--flow" else ["--flow", str(flow), "--mask", str(given)]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: {option}: {str(given)!r} ")
+    assert ("holds a name of" if kind == "long" else "leads through a loop of symbolic links") in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["self"]
