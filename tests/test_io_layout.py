@@ -488,6 +488,30 @@ class TestWriterChecks:
             write_synthetic_pair(tmp_path / "out", 0, pair)
         assert not (tmp_path / "out").exists()
 
+    @pytest.mark.parametrize("key, entry, value, err, match", [
+        ("odometry", "x_d", float("nan"), ValueError, r"^pair\['odometry'\]\['x_d'\]: expected a finite number, got nan"),
+        ("odometry", "yaw", float("inf"), ValueError, r"^pair\['odometry'\]\['yaw'\]: expected a finite number, got inf"),
+        ("odometry", "z_d", None, ValueError, r"^pair\['odometry'\]: missing the entries \['z_d'\]"),
+        ("odometry", "x_d", "abc", TypeError, r"^pair\['odometry'\]\['x_d'\]: expected a number, got str 'abc'"),
+        ("velocity", "speed", float("nan"), ValueError, r"^pair\['velocity'\]\['speed'\]: expected a finite number"),
+        ("velocity", "dt", torch.tensor(float("inf")), ValueError, r"^pair\['velocity'\]\['dt'\]: expected a finite"),
+    ])
+    def test_the_params_numbers_are_finite(self, tmp_path, key, entry, value, err, match):
+        """A NaN odometry or velocity was written as JSON null: the pair was written whole, and
+        read_synthetic_pair then refused its params file ('is not a finite number: None')."""
+        pair = _pair()
+        pair[key] = dict(pair[key])
+        if value is None:
+            del pair[key][entry]
+        else:
+            pair[key][entry] = value
+        with pytest.raises(err, match=match):
+            write_synthetic_pair(tmp_path / "out", 0, pair)
+        assert not (tmp_path / "out").exists()
+        pair[key][entry] = torch.tensor(0.25, dtype=torch.float64)  # (a 0-d tensor is a number)
+        write_synthetic_pair(tmp_path / "ok", 0, pair)
+        assert read_synthetic_pair(tmp_path / "ok", 0)[key][entry] == 0.25
+
     def test_extra_cannot_replace_the_params(self, tmp_path):
         with pytest.raises(ValueError, match=r"^extra: \['camera', 'size'\] are keys the params JSON holds itself"):
             write_synthetic_pair(tmp_path / "out", 0, _pair(), extra={"size": [1, 1], "camera": None, "preset": "x"})
@@ -589,6 +613,33 @@ class TestReaderChecks:
         path.write_text('{"camera": {"height": ' + "1" * 5000 + "}}")
         with pytest.raises(ValueError, match=r"^path: '.*000000\.json' is not valid JSON"):
             read_synthetic_params(tmp_path, 0)
+
+    @pytest.mark.parametrize("kwargs, err, match", [
+        ({"index": 0.5}, TypeError, r"^index: expected an int, got float 0\.5"),
+        ({"index": -1}, ValueError, r"^index: expected an int >= 0, got -1"),
+        ({"index": True}, TypeError, r"^index: expected an int, got bool True"),
+        ({"dtype": torch.int64}, TypeError, r"^dtype: expected a floating-point torch dtype .*got torch\.int64"),
+        ({"dtype": "float32"}, TypeError, r"^dtype: expected a floating-point torch dtype .*got 'float32'"),
+        ({"ground_truth": "no"}, TypeError, r"^ground_truth: expected True or False, got str 'no'"),
+    ])
+    def test_arguments_are_checked(self, tmp_path, kwargs, err, match):
+        """index=0.5 read pair 0, ground_truth='no' read the ground truth, and dtype=torch.int64 or
+        'float32' was blamed on the file ("path: '.../000000.json' holds a camera that is not valid")."""
+        from fsof_torch.io import camera_from_params, read_synthetic_params
+
+        write_synthetic_sequence(tmp_path, [_pair(0)])
+        call = {"index": 0, **kwargs}
+        index = call.pop("index")
+        with pytest.raises(err, match=match):
+            read_synthetic_pair(tmp_path, index, **call)
+        if "index" in kwargs:
+            with pytest.raises(err, match=match):
+                read_synthetic_params(tmp_path, index)
+        if "dtype" in kwargs:
+            with pytest.raises(err, match=match):
+                camera_from_params(read_synthetic_params(tmp_path, 0), kwargs["dtype"])
+        back = read_synthetic_pair(tmp_path, torch.tensor(0), dtype=torch.float64, ground_truth=False)
+        assert back["index"] == 0 and back["image1"].dtype == torch.float64 and "flow" not in back
 
     def test_folders_in_place_of_files(self, tmp_path):
         """A folder was 'no params file', or skipped as a missing optional part."""

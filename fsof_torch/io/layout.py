@@ -63,7 +63,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_chw_flow, check_has_values
+from .._check import as_chw_flow, check_bool, check_has_values, check_int
 from ..geometry.camera import Camera
 from .atomic import atomic_path, write_json
 from .flo import read_flo, write_flo
@@ -128,6 +128,28 @@ def _float(x: Any) -> float:
     return float(x)
 
 
+def _finite_entries(entries: Any, key: str, required: tuple[str, ...] = ()) -> dict[str, float]:
+    """``pair[key]`` (a dict of numbers: the odometry, velocity, ...) as a dict of floats, each finite
+    (else a ValueError naming ``pair[key][entry]``: JSON would hold a NaN as null, which
+    :func:`read_synthetic_pair` refuses); where ``required`` is given, its entries only, each there."""
+    if not isinstance(entries, Mapping):
+        raise TypeError(f"pair[{key!r}]: expected a dict of numbers, got {type(entries).__name__}")
+    missing = [k for k in required if k not in entries]
+    if missing:
+        raise ValueError(f"pair[{key!r}]: missing the entries {missing}; expected {list(required)}")
+    out = {}
+    for k in required or entries:
+        v = entries[k]
+        try:
+            out[k] = _float(v)
+        except (TypeError, ValueError):
+            raise TypeError(f"pair[{key!r}][{k!r}]: expected a number, got {type(v).__name__} {v!r:.60}") from None
+        if not math.isfinite(out[k]):
+            raise ValueError(f"pair[{key!r}][{k!r}]: expected a finite number, got {out[k]!r} (the params JSON "
+                             f"would hold null, which read_synthetic_pair refuses)")
+    return out
+
+
 def _camera_dict(camera: Camera) -> dict:
     if camera.batch_size != 1:
         raise ValueError(f"camera: expected a camera of batch 1 for one pair, got batch {camera.batch_size}")
@@ -136,10 +158,18 @@ def _camera_dict(camera: Camera) -> dict:
 
 
 def camera_from_params(params: Mapping, dtype: torch.dtype = torch.float64) -> Camera:
-    """The Camera (batch 1) of a pair's ``params`` JSON (or its ``"camera"`` entry)."""
+    """The Camera (batch 1) of a pair's ``params`` JSON (or its ``"camera"`` entry); ``dtype`` a
+    floating-point torch dtype (else a TypeError naming it)."""
+    _check_float_dtype(dtype)
     cam = params.get("camera", params)
     return Camera(torch.tensor(cam["K"], dtype=dtype), float(cam["height"]), float(cam.get("roll", 0.0)),
                   float(cam.get("pitch", 0.0)))
+
+
+def _check_float_dtype(dtype: object) -> None:
+    """A TypeError naming ``dtype`` unless it is a floating-point torch dtype."""
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype: expected a floating-point torch dtype (torch.float32, torch.float64), got {dtype!r}")
 
 
 def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: float) -> Tensor:
@@ -201,8 +231,10 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     :func:`synthetic_pair_indices` require: ``index`` is an int >= 0 (TypeError, ValueError naming
     it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
     the flow at the valid pixels lies within the KITTI flow PNG's [-512, 511.98] px;
-    ``pose1`` and ``pose2`` are rigid poses; ``extra`` holds none of the params' own keys (each
-    a ValueError naming the argument). The files are written all or none: one that fails (a road
+    ``pose1`` and ``pose2`` are rigid poses; ``odometry`` holds ``x_d``, ``z_d``, ``yaw`` and it,
+    ``velocity``, ``road_pose`` and ``plane`` hold finite numbers (a NaN would be written as JSON
+    null, which the reader refuses); ``extra`` holds none of the params' own keys (each a
+    ValueError or TypeError naming the argument and the entry). The files are written all or none: one that fails (a road
     mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair written over keeps
     its old files, rather than a mix of old and new. A Ctrl-C while the files are put in place is
     held until the pair is whole (then raised); a rename that fails there leaves no file of the pair.
@@ -240,11 +272,11 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
         "name": name,
         "size": list(pair["flow"].shape[-2:]),
         "camera": _camera_dict(camera),
-        "odometry": {k: _float(pair["odometry"][k]) for k in ("x_d", "z_d", "yaw")},
+        "odometry": _finite_entries(pair["odometry"], "odometry", ("x_d", "z_d", "yaw")),
     }
     for key in ("velocity", "road_pose", "plane"):
         if pair.get(key) is not None:
-            params[key] = {k: _float(v) for k, v in pair[key].items()}
+            params[key] = _finite_entries(pair[key], key)
     for key in ("pose1", "pose2"):
         if pair.get(key) is not None:
             params[key] = pair[key].detach().cpu().double().reshape(4, 4).tolist()
@@ -508,8 +540,10 @@ def read_synthetic_params(root: str | os.PathLike, index: int) -> dict:
     every pair has (``camera``: ``K`` 3×3 and ``height``; ``odometry``: ``x_d``, ``z_d``, ``yaw``),
     or holds there (or in ``camera``'s ``roll``, ``pitch``) something other than finite numbers
     (an integer beyond float64's range included); FileNotFoundError for a missing file,
-    IsADirectoryError for a folder in its place.
+    IsADirectoryError for a folder in its place. ``index`` must be an int >= 0 (a TypeError or
+    ValueError naming it: 1.7 is no pair, rather than pair 1).
     """
+    index = check_int(index, "index", minimum=0)
     path = Path(root) / "params" / f"{pair_name(index)}.json"
     if path.is_dir():
         raise IsADirectoryError(f"path: {str(path)!r} is a folder; expected the params JSON of pair {index}")
@@ -546,7 +580,13 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     path and the entry. An optional part (``flow_velocity/``, ``road/``, ``semantic/``,
     ``depth/``) the pair lacks although ``meta.json`` says every pair was written with it is a
     FileNotFoundError naming ``root`` and the file (a lost file, never a pair without that part).
+    ``index`` (an int >= 0), ``dtype`` (a floating-point torch dtype) and ``ground_truth`` (a
+    bool: a truthy string such as ``"no"`` is not False) are checked first, a TypeError or
+    ValueError naming the argument.
     """
+    index = check_int(index, "index", minimum=0)
+    _check_float_dtype(dtype)
+    ground_truth = check_bool(ground_truth, "ground_truth")
     root = Path(root)
     name = pair_name(index)
     params = read_synthetic_params(root, index)
