@@ -134,6 +134,28 @@ class TestExceptions:
             parse_carla_run_name("t10_s0_r-5_r5")
         assert parse_carla_run_name("rain2_t1_r2.5") == {"rain": 2.0, "t": 1.0, "r": 2.5, "roll": math.radians(2.5)}
 
+    @pytest.mark.parametrize("kwargs, err, match", [
+        ({"fov_deg": 0}, ValueError, r"^fov_deg: expected a field of view in \(0, 180\) degrees, got 0$"),
+        ({"fov_deg": 180.0}, ValueError, r"^fov_deg: expected a field of view in \(0, 180\) degrees, got 180\.0"),
+        ({"fov_deg": 200}, ValueError, r"^fov_deg: expected a field of view in \(0, 180\) degrees"),
+        ({"fov_deg": float("nan")}, ValueError, r"^fov_deg: expected a finite number"),
+        ({"fov_deg": "90"}, TypeError, r"^fov_deg: expected a number, got str '90'"),
+        ({"size": (0, 640)}, ValueError, r"^size: expected an int >= 1, got 0"),
+        ({"size": (480.5, 640)}, TypeError, r"^size: expected an int, got float 480\.5"),
+        ({"size": 640}, TypeError, r"^size: expected \(H, W\), two ints, got int 640"),
+        ({"size": (1, 480, 640)}, TypeError, r"^size: expected \(H, W\), two ints, got tuple"),
+        ({"dtype": torch.int64}, TypeError, r"^dtype: expected a floating-point torch dtype, got torch\.int64"),
+    ])
+    def test_camera_arguments(self, kwargs, err, match):
+        """fov_deg=0 raised ZeroDivisionError, 180 gave a camera of focal length 2e-14 px, a size of
+        (480.5, 640) was truncated, and a zero side or an integer dtype was blamed on K."""
+        call = {"size": (480, 640), **kwargs}
+        with pytest.raises(err, match=match):
+            carla_camera(call.pop("size"), **call)
+        cam = carla_camera(np.array([480, 640]), fov_deg=torch.tensor(60.0))
+        assert float(cam.fx) == pytest.approx(320.0 / math.tan(math.radians(30.0)))
+        assert (float(cam.cx), float(cam.cy)) == (320.0, 240.0)
+
     def test_grey_semantic_png(self, tmp_path):
         """A single-channel PNG (CARLA's raw class IDs, road = 7) once gave an empty road mask."""
         ids = np.full((3, 4), 7, np.uint8)

@@ -38,7 +38,7 @@ import torch
 from torch import Tensor
 
 from ..geometry.camera import Camera
-from .._check import as_path
+from .._check import as_path, check_int, check_number
 from .flo import float32_flow
 from .images import check_no_broken_links, in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
@@ -123,9 +123,25 @@ def read_carla_road(path: str | os.PathLike) -> Tensor:
 def carla_camera(size: tuple[int, int], *, height: float = CARLA_CAMERA_HEIGHT, roll: float = 0.0,
                  pitch: float = 0.0, fov_deg: float = 90.0, dtype: torch.dtype = torch.float64) -> Camera:
     """The camera of the paper's CARLA runs for an image of ``size = (H, W)``: f = W / (2 tan(FOV/2)),
-    principal point (W/2, H/2) (as in the official code), height 2.4 m; roll in radians."""
-    h, w = int(size[0]), int(size[1])
-    f = w / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+    principal point (W/2, H/2) (as in the official code), height 2.4 m; roll in radians.
+
+    ``size`` is two ints >= 1 (a float side such as 480.5 is an error, not truncated) and
+    ``fov_deg`` the horizontal field of view in degrees, a number in (0, 180): else a TypeError or
+    ValueError naming the argument (0° divided by zero, 180° gave a focal length of 2e-14 px), as
+    is a ``dtype`` that is not a floating-point torch dtype."""
+    try:
+        sides = None if isinstance(size, (str, bytes, set, dict)) else list(size)
+    except TypeError:  # (not iterable)
+        sides = None
+    if sides is None or len(sides) != 2:
+        raise TypeError(f"size: expected (H, W), two ints, got {type(size).__name__} {size!r:.60}")
+    h, w = (check_int(s, "size", minimum=1) for s in sides)
+    fov = check_number(fov_deg, "fov_deg")
+    if not 0.0 < fov < 180.0:
+        raise ValueError(f"fov_deg: expected a field of view in (0, 180) degrees, got {fov_deg!r}")
+    if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
+        raise TypeError(f"dtype: expected a floating-point torch dtype, got {dtype!r}")
+    f = w / (2.0 * math.tan(math.radians(fov) / 2.0))
     K = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]], dtype=dtype)
     return Camera(K, height, roll, pitch)
 
