@@ -159,6 +159,28 @@ class TestFeature:
         back, valid = read_depth_png(tmp_path / "d.png")
         assert valid.tolist() == [[[False, True, False, False]]] and float(back[0, 0, 1]) == 1.5
 
+    def test_depth_png_codes_and_a_numpy_array(self, tmp_path):
+        """A NumPy depth map was a TypeError saying 'expected a float tensor of shape (1, H, W)',
+        which it was, save for being an array (every other writer here takes one)."""
+        import cv2
+        import numpy as np
+
+        # (reversed: any strides and byte order) 10 m, at and just beyond 65535.5 / 256 m, just below
+        # it, 0.003 m (code 0.77 -> 1), 1/512 m (code 0.5 -> 0), 1 m
+        depth = np.array([[1.0, 1 / 512, 0.003, 255.998, 255.9981, 65535.5 / 256, 10.0]], dtype=">f8")[:, ::-1]
+        write_depth_png(tmp_path / "d.png", depth)
+        codes = cv2.imread(str(tmp_path / "d.png"), cv2.IMREAD_UNCHANGED)
+        assert codes.dtype == np.uint16 and codes.tolist() == [[2560, 0, 0, 65535, 1, 0, 256]]  # round(d * 256)
+        back, valid = read_depth_png(tmp_path / "d.png")
+        assert back.dtype == torch.float32 and back[0].tolist() == [[10.0, 0.0, 0.0, 65535 / 256, 1 / 256, 0.0, 1.0]]
+        assert valid[0].tolist() == [[True, False, False, True, True, False, True]]
+        with pytest.raises(TypeError, match=r"^depth: expected a float tensor or array of shape \(1, H, W\), got "
+                                             r"dtype torch\.int64"):
+            write_depth_png(tmp_path / "e.png", np.ones((1, 2, 2), dtype=np.int64))
+        with pytest.raises(TypeError, match=r"^depth: expected a float tensor or array .*got list"):
+            write_depth_png(tmp_path / "e.png", [[1.0]])
+        assert not (tmp_path / "e.png").exists()
+
     @pytest.mark.parametrize("name", ["d.jpg", "d.bmp", "d.tif"])
     def test_depth_png_only(self, tmp_path, name):
         """.jpg/.bmp raised naming `array`, no argument of the writer's; .tif wrote another format."""

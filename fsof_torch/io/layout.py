@@ -63,7 +63,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_chw_flow, check_bool, check_has_values, check_int
+from .._check import as_chw_flow, check_bool, check_has_values, check_int, tensor_from_array
 from ..geometry.camera import Camera
 from .atomic import atomic_path, write_json
 from .flo import read_flo, write_flo
@@ -190,15 +190,19 @@ def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: flo
     return T
 
 
-def write_depth_png(path: str | os.PathLike, depth: Tensor) -> Path:
-    """Write (1, H, W) or (H, W) depth in metres as a KITTI depth PNG (uint16 = m · 256, 0 = none).
+def write_depth_png(path: str | os.PathLike, depth: Tensor | np.ndarray) -> Path:
+    """Write (1, H, W) or (H, W) float depth in metres (a tensor or a NumPy array) as a KITTI depth
+    PNG (uint16 = m · 256, rounded; 0 = none).
 
-    Depth that is not finite, not positive, under 1/512 m (it rounds to 0) or beyond 65535/256 =
-    255.996 m is written as none (sky). ``path`` must end in .png (another suffix: a ValueError
-    naming it)."""
+    Depth that is not finite, not positive, at most 1/512 m (it rounds to 0) or at least
+    65535.5/256 = 255.998 m (it rounds beyond the largest code, 65535 = 255.996 m) is written as
+    none (sky). ``path`` must end in .png (another suffix: a ValueError naming it)."""
     path = check_image_suffix(path, (".png",), "depth map")
+    if isinstance(depth, np.ndarray):
+        depth = tensor_from_array(depth)
     if not isinstance(depth, Tensor) or not depth.is_floating_point():
-        raise TypeError("depth: expected a float tensor of shape (1, H, W)")
+        got = f"dtype {depth.dtype}" if isinstance(depth, Tensor) else type(depth).__name__
+        raise TypeError(f"depth: expected a float tensor or array of shape (1, H, W), got {got}")
     if depth.dim() not in (2, 3) or (depth.dim() == 3 and depth.shape[0] != 1) or min(depth.shape[-2:]) < 1:
         raise ValueError(f"depth: expected shape (1, H, W) or (H, W), got {tuple(depth.shape)}")
     check_has_values(depth, "depth")
