@@ -534,6 +534,37 @@ class TestWriterChecks:
         write_synthetic_pair(tmp_path / "ok", 0, pair)
         assert read_synthetic_pair(tmp_path / "ok", 0)[key][entry] == 0.25
 
+    @pytest.mark.parametrize("value", [float("nan"), float("inf"), 1e39])
+    def test_flow_velocity_is_finite_at_the_valid_pixels(self, tmp_path, value):
+        """A NaN velocity at a valid pixel was written as NaN and read back as 0 at a pixel that
+        read_synthetic_pair calls valid; 1e39 px/s (float64) was cast to inf, read back as 3.4e38."""
+        pair = _pair()
+        ys, xs = pair["valid"][0].nonzero()[0].tolist()
+        pair["flow_velocity"] = pair["flow_velocity"].double()
+        pair["flow_velocity"][1, ys, xs] = value
+        with pytest.raises(ValueError, match=r"^pair\['flow_velocity'\]: expected finite values within float32's "
+                                             r"range at the valid pixels \(pair\['valid'\]\)"):
+            write_synthetic_pair(tmp_path / "out", 0, pair)
+        assert not (tmp_path / "out").exists()
+        pair["flow_velocity"][1, ys, xs] = 2.5
+        off = (~pair["valid"][0]).nonzero()[0].tolist()  # (not stored off the valid pixels: any value goes)
+        pair["flow_velocity"][:, off[0], off[1]] = float("inf")
+        write_synthetic_pair(tmp_path / "ok", 0, pair)
+        back = read_synthetic_pair(tmp_path / "ok", 0)
+        assert float(back["flow_velocity"][1, ys, xs]) == 2.5 and back["flow_velocity"][:, off[0], off[1]].tolist() == [0, 0]
+
+    def test_numpy_arrays_in_a_pair(self, tmp_path):
+        """The checks took NumPy arrays for valid, flow_velocity and the poses, and writing them
+        then failed with AttributeError ('numpy.ndarray' object has no attribute 'cpu' / 'detach')."""
+        pair = _pair()
+        pose = torch.eye(4, dtype=torch.float64)
+        pair.update(pose1=pose, pose2=pose)
+        arrays = dict(pair, **{k: pair[k].numpy() for k in ("valid", "flow_velocity", "pose1", "pose2")})
+        write_synthetic_pair(tmp_path / "a", 0, pair)
+        write_synthetic_pair(tmp_path / "b", 0, arrays)
+        for part in ("flow_velocity/000000_10.flo", "flow_occ/000000_10.png", "params/000000.json"):
+            assert (tmp_path / "a" / part).read_bytes() == (tmp_path / "b" / part).read_bytes(), part
+
     def test_extra_cannot_replace_the_params(self, tmp_path):
         with pytest.raises(ValueError, match=r"^extra: \['camera', 'size'\] are keys the params JSON holds itself"):
             write_synthetic_pair(tmp_path / "out", 0, _pair(), extra={"size": [1, 1], "camera": None, "preset": "x"})

@@ -235,6 +235,8 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     :func:`synthetic_pair_indices` require: ``index`` is an int >= 0 (TypeError, ValueError naming
     it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
     the flow at the valid pixels lies within the KITTI flow PNG's [-512, 511.98] px;
+    ``flow_velocity`` is finite (within float32) at the valid pixels, where it is stored (NaN
+    elsewhere: a NaN there would read back as 0 at a valid pixel);
     ``pose1`` and ``pose2`` are rigid poses; ``odometry`` holds ``x_d``, ``z_d``, ``yaw`` and it,
     ``velocity``, ``road_pose`` and ``plane`` hold finite numbers (a NaN would be written as JSON
     null, which the reader refuses); ``extra`` holds none of the params' own keys (each a
@@ -262,13 +264,23 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
         raise ValueError(f"extra: {clash} are keys the params JSON holds itself; give other names")
     # the flow PNG's range, before the images are written: a pair half written is no pair
     flow = as_chw_flow(pair["flow"], "pair['flow']").detach().cpu().double()
-    check_kitti_flow_range(flow, flow_valid_pixels(flow, pair["valid"]), "pair['flow']")
+    held = flow_valid_pixels(flow, pair["valid"])  # (H, W) bool
+    check_kitti_flow_range(flow, held, "pair['flow']")
+    velocity = None
+    if pair.get("flow_velocity") is not None:  # NaN off the valid pixels; read back as 0 there
+        given = as_chw_flow(pair["flow_velocity"], "pair['flow_velocity']").detach().cpu()
+        velocity = torch.where(held, given.float(), torch.tensor(float("nan")))
+        if not bool(torch.isfinite(velocity[:, held]).all()):  # (a NaN would read back as 0 at a valid pixel)
+            raise ValueError("pair['flow_velocity']: expected finite values within float32's range at the valid "
+                             "pixels (pair['valid']), got NaN, inf or a value beyond 3.4e38")
+    poses = {}
     for key in ("pose1", "pose2"):  # checked before any file is written, as the reader checks them
         if pair.get(key) is not None:
             pose = torch.as_tensor(pair[key]).detach().to("cpu", torch.float64)
             if pose.numel() != 16:
                 raise ValueError(f"pair[{key!r}]: expected a 4×4 pose, got shape {tuple(pose.shape)}")
             check_rigid_poses(pose.reshape(1, 4, 4), lambda _: f"pair[{key!r}]")
+            poses[key] = pose.reshape(4, 4).tolist()
     name = pair_name(index)
     camera: Camera = pair["camera"]
     params = {  # keys: _PARAMS_KEYS
@@ -281,9 +293,7 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     for key in ("velocity", "road_pose", "plane"):
         if pair.get(key) is not None:
             params[key] = _finite_entries(pair[key], key)
-    for key in ("pose1", "pose2"):
-        if pair.get(key) is not None:
-            params[key] = pair[key].detach().cpu().double().reshape(4, 4).tolist()
+    params.update(poses)
     if extra:
         params.update(dict(extra))
     # (kind, folder, file, writer of a path): written all or none (_write_all), params last
@@ -292,9 +302,8 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
         ("image2", "image_2", f"{name}_11.png", lambda p: write_image(p, pair["image2"])),
         ("flow", "flow_occ", f"{name}_10.png", lambda p: write_kitti_flow(p, pair["flow"], pair["valid"])),
     ]
-    if pair.get("flow_velocity") is not None:
-        jobs.append(("flow_velocity", "flow_velocity", f"{name}_10.flo", lambda p: write_flo(p, torch.where(
-            pair["valid"].cpu(), pair["flow_velocity"].detach().cpu().float(), torch.tensor(float("nan"))))))
+    if velocity is not None:
+        jobs.append(("flow_velocity", "flow_velocity", f"{name}_10.flo", lambda p: write_flo(p, velocity)))
     if pair.get("road") is not None:
         jobs.append(("road", "road", f"{name}_10.png", lambda p: write_road_mask(p, pair["road"])))
     if pair.get("labels") is not None:
