@@ -236,13 +236,13 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     it); every image, flow, mask, label and depth tensor has the size (H, W) of ``image1``;
     the flow at the valid pixels lies within the KITTI flow PNG's [-512, 511.98] px;
     ``flow_velocity`` is finite (within float32) at the valid pixels, where it is stored (NaN
-    elsewhere: a NaN there would read back as 0 at a valid pixel);
-    ``pose1`` and ``pose2`` are rigid poses; ``odometry`` holds ``x_d``, ``z_d``, ``yaw`` and it,
-    ``velocity``, ``road_pose`` and ``plane`` hold finite numbers (a NaN would be written as JSON
-    null, which the reader refuses); ``extra`` holds none of the params' own keys (each a
-    ValueError or TypeError naming the argument and the entry). The files are written all or none: one that fails (a road
-    mask that is not bool, a 0..1 image) leaves no file of the pair, and a pair written over keeps
-    its old files, rather than a mix of old and new. A Ctrl-C while the files are put in place is
+    elsewhere: a NaN there would read back as 0 at a valid pixel); ``pose1`` and ``pose2`` are
+    rigid poses; ``odometry`` holds ``x_d``, ``z_d``, ``yaw`` and it, ``velocity``, ``road_pose``
+    and ``plane`` hold finite numbers (a NaN would be written as JSON null, which the reader
+    refuses); ``extra`` holds none of the params' own keys (each a ValueError or TypeError naming
+    the argument and the entry). The files are written all or none: one that fails (a road mask
+    that is not bool, a 0..1 image) leaves no file of the pair, and a pair written over keeps its
+    old files, rather than a mix of old and new. A Ctrl-C while the files are put in place is
     held until the pair is whole (then raised); a rename that fails there leaves no file of the pair.
     """
     root = Path(root)
