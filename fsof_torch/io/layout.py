@@ -17,7 +17,7 @@ One folder per sequence of N frame pairs; pair ``i`` is named ``{i:06d}`` and it
         road/000000_10.png         road (freespace) mask of frame t, 8-bit, 255 = road
         semantic/000000_10.png     label map of frame t, 8-bit (16-bit if a label exceeds 255)
         depth/000000_10.png        depth of frame t, KITTI depth PNG: uint16 = metres · 256,
-                                   0 = no depth (sky, or beyond 255.99 m)
+                                   0 = no depth (sky, or from 255.998 m)
         calib/000000.txt           ``P_rect_02: K | 0`` (KITTI raw calibration style), the true
                                    intrinsics of the pair
         params/000000.json         the true camera (K, height, roll, pitch, in metres/radians) and
