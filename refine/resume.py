@@ -178,11 +178,25 @@ def _differences(old: Any, new: Any, prefix: str = "") -> list[str]:
             out += _differences(old.get(k), new.get(k), f"{prefix}{k}" if not prefix else f"{prefix}.{k}")
         return out
     if old != new:
-        def short(x: Any) -> str:
-            text = json.dumps(x, sort_keys=True, default=str)
-            return text if len(text) <= 40 else text[:37] + "..."
-        return [f"{prefix or 'identity'}: {short(old)} -> {short(new)}"]
+        a, b = (json.dumps(x, sort_keys=True, default=str) for x in (old, new))
+        return [f"{prefix or 'identity'}: {_excerpt(a, b)} -> {_excerpt(b, a)}"]
     return []
+
+
+def _excerpt(text: str, other: str, width: int = 40) -> str:
+    """``text`` in at most ``width`` characters, showing where it first differs from ``other``:
+    its start where the difference lies in it, else ``...`` and the part from a few characters
+    before the difference (two long paths that differ only in a later folder, such as KITTI's
+    ``.../2011_09_26_drive_0001_sync/image_02/data`` and ``..._0002_sync/...``, cut to their
+    common start alone read as the same path)."""
+    if len(text) <= width:
+        return text
+    first = next((k for k, (x, y) in enumerate(zip(text, other)) if x != y), min(len(text), len(other)))
+    context = 10  # characters shown before the first difference, and at least as many after it
+    start = 0 if first + context <= width - 3 else first - context
+    head = "..." if start else ""
+    body = text[start:]
+    return head + (body if len(head) + len(body) <= width else body[:width - len(head) - 3] + "...")
 
 
 def _outputs(old: dict) -> list[str]:

@@ -388,6 +388,41 @@ def test_rerun_with_other_inputs_is_refused(tmp_path, capsys, user_folder, scene
     assert (out / "report.json").read_text() == before
 
 
+def test_a_refusal_shows_where_two_long_paths_differ(tmp_path, capsys, user_folder, scene_pairs):
+    """Two drives in KITTI's raw layout (``<drive>/image_00/data``) differ in a folder deep in
+    their paths, and share the default --out (``image_00-data``): the refusal showed both paths cut
+    to their common start, ``"/.../kitti_raw/... -> "/.../kitti_raw/...``, the same text twice;
+    it shows the part where they differ."""
+    import shutil
+
+    root = tmp_path / "datasets" / "kitti_raw"
+    drives = [root / f"2011_09_26_drive_000{i}_sync" / "image_00" / "data" for i in (1, 2)]
+    for d in drives:
+        shutil.copytree(user_folder / "images", d)
+    out = tmp_path / "out"
+    args = ["--calib", str(user_folder / "calib.txt"), "--road", str(user_folder / "road"), "--source", "dis",
+            "--odometry", "given", "--poses", str(user_folder / "poses.txt"), "--out", str(out), "--no-progress",
+            "--no-figures", *_mounting(scene_pairs)]
+    assert main(["--images", str(drives[0]), *args]) == 0
+    err = _err(capsys, ["--images", str(drives[1]), *args])
+    old, new = re.search(r"input\.images: (.*?) -> (.*?)\); give another --out", err).groups()
+    assert old != new, err
+    assert "drive_0001_sync/image_00/data" in old and "drive_0002_sync/image_00/data" in new, err
+    assert len(old) <= 40 and len(new) <= 40
+
+
+def test_a_difference_is_shown_in_at_most_40_characters_around_where_it_starts():
+    from refine.resume import _differences
+
+    x = "x" * 50
+    assert _differences({"mode": "replace"}, {"mode": "confidence"}) == ['mode: "replace" -> "confidence"']
+    assert _differences({"a": "1" + x}, {"a": "2" + x}) == [f'a: "1{x[:35]}... -> "2{x[:35]}...']
+    assert _differences({"a": x + "1"}, {"a": x + "2"}) == [f'a: ...{x[:10]}1" -> ...{x[:10]}2"']
+    long = [_differences({"a": x + str(i) + x}, {"a": x + "-" + x})[0] for i in range(3)]
+    assert long[0] == f'a: ...{x[:10]}0{x[:23]}... -> ...{x[:10]}-{x[:23]}...'
+    assert len({line.split(" -> ")[0] for line in long}) == 3
+
+
 def test_the_same_road_folder_spelled_otherwise_is_the_same_run(tmp_path, user_folder, scene_pairs, monkeypatch):
     """--road d/road, ./d/road and its absolute path name one folder (the input identity pins its
     resolved path and contents): the rerun reuses every record. Another road folder is refused."""
