@@ -148,14 +148,24 @@ def check_inputs_outside(out: Path, outputs: list[str], inputs: dict[str, Path |
 @contextlib.contextmanager
 def locked(out: Path) -> Iterator[None]:
     """Hold an exclusive lock on ``out`` for the run (released when the process ends, even by
-    SIGKILL). A second run into the same folder stops with a message."""
+    SIGKILL). A second run into the same folder stops with a message.
+
+    A run that created the lock file and leaves the folder without a manifest (it was refused
+    before writing one: a folder of other files, say) removes the lock file again, still holding
+    the lock: left there, it made the folder pass for a refine run's (:func:`holds_run`), so that
+    ``--json`` into it was refused as another run's output folder."""
     out.mkdir(parents=True, exist_ok=True)
     try:
         import fcntl
     except ImportError:  # pragma: no cover - not on POSIX: no lock, as before
         yield
         return
-    fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT, 0o666)
+    path = out / LOCK
+    try:
+        fd, created = os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o666), True
+    except FileExistsError:
+        fd, created = os.open(path, os.O_RDWR | os.O_CREAT, 0o666), False
+    held = False
     try:
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
@@ -163,10 +173,14 @@ def locked(out: Path) -> Iterator[None]:
             other = os.read(fd, 32).decode(errors="replace").strip() or "?"
             raise JobError(f"--out: another refine run (pid {other}) is writing into {str(out)!r}; "
                            f"wait for it, or give another --out") from None
+        held = True
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
         yield
     finally:
+        if held and created and not (out / MANIFEST).exists():
+            with contextlib.suppress(OSError):
+                path.unlink()
         os.close(fd)
 
 

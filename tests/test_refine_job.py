@@ -931,6 +931,30 @@ def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
     assert "another refine run" in err and str(os.getpid()) in err
 
 
+def test_a_refused_run_leaves_no_lock_in_a_folder_of_other_files(tmp_path, capsys):
+    """--out naming a folder of the user's files is refused; the refused run left its lock file
+    there, which made the folder pass for a refine run's output folder: a later --json into it
+    was refused as 'the output folder of another refine run (its run.json)', which it never was."""
+    from refine.resume import LOCK, holds_run
+
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", *TINY]
+    err = _err(capsys, [*base, "--out", str(mine)])
+    assert "already holds files (notes.txt) but no refine run" in err
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"] and not holds_run(mine)
+    assert main([*base, "--out", str(tmp_path / "out"), "--json", str(mine / "report.json")]) == 0
+    assert json.loads((mine / "report.json").read_text())["rows"]
+    # a run's folder keeps its lock (a run refused there keeps it too), and so does one taken with --overwrite
+    assert (tmp_path / "out" / LOCK).is_file()
+    assert _err(capsys, [*base, "--mode", "confidence", "--out", str(tmp_path / "out")])
+    assert (tmp_path / "out" / LOCK).is_file() and holds_run(tmp_path / "out")
+    (mine / "report.json").unlink()
+    assert main([*base, "--out", str(mine), "--overwrite"]) == 0
+    assert (mine / LOCK).is_file() and holds_run(mine)
+
+
 def test_outputs_under_a_folder_that_cannot_be_written_are_refused_first(tmp_path, capsys, monkeypatch):
     """--out and --json under a folder the process cannot write into: exit 2 naming the option,
     before any work (as the eval job checks its own; the test runs as any user, so the folder's
