@@ -8,6 +8,8 @@ gathered to rank 0, which writes the one report. The sums are reduced per pair, 
 order, so the report equals the single-process one digit for digit.
 
 Without torchrun (no ``WORLD_SIZE`` or ``WORLD_SIZE=1``) nothing here starts a process group.
+Variables that are no whole number in their range, or a ``WORLD_SIZE`` above 1 without ``RANK``
+(left in the shell, not set by torchrun), stop the job with a message naming the variable.
 """
 
 from __future__ import annotations
@@ -47,12 +49,12 @@ WAIT_FOR_OTHERS = datetime.timedelta(days=7)
 def init(device: str = "cpu") -> World:
     """Join the process group torchrun set up (gloo for ``device="cpu"``, nccl for CUDA), or
     return the single-process world."""
-    world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    if world_size <= 1:
+    world_size = _environment("WORLD_SIZE", 1, minimum=1)
+    if world_size == 1:
         return World()
     import torch.distributed as dist
 
-    rank, local_rank = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    rank, local_rank = _environment("RANK", None, below=world_size), _environment("LOCAL_RANK", 0, below=world_size)
     backend = "nccl" if device.startswith("cuda") else "gloo"
     if backend == "nccl":
         torch.cuda.set_device(local_rank)
@@ -62,6 +64,31 @@ def init(device: str = "cpu") -> World:
         # ends the run through torchrun, so no process waits on a dead one).
         dist.init_process_group(backend=backend, timeout=WAIT_FOR_OTHERS)
     return World(rank=rank, world_size=world_size, local_rank=local_rank, backend=backend)
+
+
+def _environment(name: str, default: int | None, *, minimum: int = 0, below: int | None = None) -> int:
+    """The whole number in the environment variable ``name`` (``default`` where it is unset; None:
+    it must be set), from ``minimum`` up and under ``below``; else a JobError naming the variable:
+    a ``WORLD_SIZE`` left in the shell without torchrun's ``RANK`` stopped the job with a
+    ``KeyError: 'RANK'`` traceback, a ``WORLD_SIZE`` that is no number with int()'s message alone."""
+    from .inputs import JobError
+
+    text = os.environ.get(name)
+    if text is None and default is not None:
+        return default
+    started = "torchrun sets it for each process it starts"
+    if text is None:
+        raise JobError(f"environment variable {name}: not set, while WORLD_SIZE is {os.environ['WORLD_SIZE']} "
+                       f"({started}); start the job with torchrun --nproc-per-node N -m refine ..., or unset "
+                       f"WORLD_SIZE to run it in one process")
+    try:
+        value = int(text)
+    except ValueError:
+        value = None
+    if value is None or value < minimum or (below is not None and value >= below):
+        bound = f"from {minimum} up" if below is None else f"from {minimum} to {below - 1}"
+        raise JobError(f"environment variable {name}: expected a whole number {bound} ({started}), got {text!r}")
+    return value
 
 
 def shard(items: Sequence[T], world: World) -> list[T]:
