@@ -226,26 +226,48 @@ def _no_results(out: Path, old: dict) -> bool:
     output folders (a run that stopped before its first record, e.g. on an error in the clip's fit)."""
     outputs = _outputs(old)
     for p in out.iterdir():
-        if p.name in (LOCK, MANIFEST):
+        if p.name in (LOCK, MANIFEST) or _temporary(p):
             continue
-        if p.name in outputs and p.is_dir() and not any(q.is_file() for q in p.rglob("*")):
+        if p.name in outputs and p.is_dir() and not any(q.is_file() and not _temporary(q) for q in p.rglob("*")):
             continue
         return False
     return True
 
 
+def _temporary(path: Path) -> bool:
+    """Whether ``path`` is named like the temporary of an atomic write (a killed run's, or one being
+    written: :func:`fsof_torch.io.atomic.remove_stale_temporaries`), which is no result of a run."""
+    from fsof_torch.io.atomic import TEMPORARY_NAME
+
+    return bool(TEMPORARY_NAME.match(path.name))
+
+
+def remove_temporaries(out: Path, outputs: list[str]) -> None:
+    """Remove the temporaries a killed run left where the job writes: beside the manifest and
+    reports in ``out`` and, at any depth, in the output folders ``outputs`` (one per flow source;
+    not through a link). Other folders in ``out`` are left alone: another job may be writing
+    into one of them (a temporary removed under it fails its write)."""
+    from fsof_torch.io import remove_stale_temporaries
+
+    remove_stale_temporaries(out, recursive=False)
+    for sub in dict.fromkeys(outputs):
+        target = out / sub
+        if target.is_dir() and not target.is_symlink() and target.resolve().parent == out.resolve():
+            remove_stale_temporaries(target)
+
+
 def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
-    """Make ``out`` ready for the run of ``identity``: remove stale temporaries; refuse (or with
-    ``overwrite`` clear) a folder that holds the results of another run, replace the manifest of
-    one that left none; refuse, even with ``overwrite``, one whose manifest names no outputs (it
-    cannot be read) beside other files; remove the earlier report and clip summaries (:func:`remove_reports`),
-    also those in a folder without a manifest that ``overwrite`` writes into;
-    write the manifest. Call under :func:`locked`, before any record is written. Returns the
-    manifest (with ``fingerprint``)."""
-    from fsof_torch.io import remove_stale_temporaries, write_json
+    """Make ``out`` ready for the run of ``identity``: refuse (or with ``overwrite`` clear) a
+    folder that holds the results of another run, replace the manifest of one that left none
+    (a killed write's temporaries count as no result); refuse, even with ``overwrite``, one whose
+    manifest names no outputs (it cannot be read) beside other files; then, the folder taken,
+    remove the stale temporaries where the job writes (:func:`remove_temporaries`: a refused run
+    touches nothing), the earlier report and clip summaries (:func:`remove_reports`), also those
+    in a folder without a manifest that ``overwrite`` writes into; write the manifest. Call under
+    :func:`locked`, before any record is written. Returns the manifest (with ``fingerprint``)."""
+    from fsof_torch.io import write_json
 
     out.mkdir(parents=True, exist_ok=True)
-    remove_stale_temporaries(out)
     fp = fingerprint(identity)
     manifest_path = out / MANIFEST
     old = None
@@ -275,12 +297,14 @@ def prepare(out: Path, identity: dict, *, overwrite: bool) -> dict[str, Any]:
             if target.parent == out.resolve() and target.is_dir():
                 shutil.rmtree(target)
     elif old is None:
-        leftovers = [p.name for p in out.iterdir() if p.name != LOCK]
+        leftovers = [p.name for p in out.iterdir() if p.name != LOCK and not _temporary(p)]
         if leftovers and not overwrite:
             raise JobError(f"--out: {str(out)!r} already holds files ({', '.join(sorted(leftovers)[:4])}) "
                            f"but no refine run ({MANIFEST}); give a new or empty folder, or --overwrite "
                            f"to write into it anyway")
     outputs = identity.get("outputs", [])
+    # (only now, the folder taken: a run refused here leaves it as it was)
+    remove_temporaries(out, [*outputs, *(_outputs(old) if old is not None else [])])
     # the earlier run's report would outlive the records this run rewrites; so would that of a
     # folder without a manifest that --overwrite writes into (and, with --no-figures, its clip
     # summaries for good)

@@ -922,6 +922,40 @@ def test_stale_temporaries_are_removed(tmp_path):
     assert not list(out.rglob("*.tmp*"))
 
 
+def test_only_the_jobs_own_temporaries_are_removed_and_none_by_a_refused_run(tmp_path, capsys):
+    """The cleaning of a killed run's temporaries went through every folder under --out, before
+    the folder was even taken: --out naming a folder that holds another job's output (an eval
+    run writing into results/eval) deleted that job's temporary under it, the write in flight
+    (its rename then fails), and the run was refused anyway. Now a refused run touches nothing,
+    and a run removes temporaries only beside its manifest and in its output folders."""
+    base = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", *TINY]
+    results = tmp_path / "results"
+    (results / "eval").mkdir(parents=True)
+    (results / "notes.txt").write_text("mine")
+    theirs = results / "eval" / ".metrics.json.0123456789abcdef.tmp.json"
+    theirs.write_text("being written")
+    assert "but no refine run" in _err(capsys, [*base, "--out", str(results)])
+    assert theirs.read_text() == "being written"
+    assert main([*base, "--out", str(results), "--overwrite"]) == 0  # written into: its own folders only
+    assert theirs.read_text() == "being written"
+    # a run killed while writing its manifest left the lock and the manifest's temporary: taken, cleaned
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / ".refine.lock").write_text("123")
+    (killed / ".run.json.00000000000000ab.tmp.json").write_text("{")
+    assert main([*base, "--out", str(killed)]) == 0
+    assert not list(killed.rglob("*.tmp*"))
+    # one killed while writing its first flow left no result: a run of other options replaces it
+    first = killed / "dis" / "given" / "flow" / ".000000.png.00000000000000cd.tmp.png"
+    for p in killed.rglob("*"):
+        if p.is_file() and p.name not in ("run.json", ".refine.lock"):
+            p.unlink()
+    first.write_bytes(b"half a file")
+    assert main([*base, "--out", str(killed), "--mode", "confidence"]) == 0
+    assert not first.exists()
+    assert json.loads((killed / "report.json").read_text())["mode"] == "confidence"
+
+
 def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
     from refine.resume import locked
 
