@@ -527,6 +527,23 @@ class TestPairChecks:
         with pytest.raises(ValueError, match=r"^K: "):  # checked when the dataset is made
             KittiFlowDataset(root, K=torch.eye(4))
 
+    @pytest.mark.parametrize("count", [2, 3])
+    def test_kitti_K_of_several_cameras_is_refused(self, kitti_root, count):
+        """A (B, 3, 3) K gave every item a Camera of batch B (the contract's is 1): collate then
+        refused the items, naming 'camera', not K."""
+        root, _ = kitti_root
+        for p in (root / "calib_cam_to_cam").iterdir():
+            p.unlink()
+        K = torch.tensor([[30.0, 0, 18.0], [0, 30.0, 10.0], [0, 0, 1]])
+        with pytest.raises(ValueError, match=rf"^K: expected one \(3, 3\) K .*got {count} of them "
+                                             rf"\(shape \({count}, 3, 3\)\)"):
+            KittiFlowDataset(root, K=K.expand(count, 3, 3))
+        with pytest.raises(ValueError, match=rf"^K: expected one \(3, 3\) K"):
+            KittiFlowDataset(root, K=K.expand(count, 3, 3).numpy().tolist())
+        item = KittiFlowDataset(root, K=K[None])[0]  # (1, 3, 3): one camera, as Camera takes it
+        check_item(item)
+        assert item["camera"].batch_size == 1 and torch.equal(item["camera"].K[0], K)
+
     @pytest.mark.parametrize("folder, file", [("image_2", "000001_11.png"), ("flow_noc", "000001_10.png"),
                                               ("semantic", "000001_10.png"), ("road", "000001_10.png")])
     def test_kitti_files_of_another_size_are_refused(self, kitti_root, folder, file):

@@ -229,7 +229,7 @@ class KittiFlowDataset(Dataset):
         cam: camera index of the calibration row.
         camera_height: metres (not in KITTI's files; nominal 1.65).
         K: (3, 3) intrinsics used where no calibration file is found (copied: each item's camera
-            holds its own K).
+            holds its own K; a (B, 3, 3) K of several cameras is a ValueError naming ``K``).
         dtype: float dtype of images and flow; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> no flow, valid, road.
 
@@ -277,6 +277,9 @@ class KittiFlowDataset(Dataset):
                                 f"{type(K).__name__} {K!r:.60}") from None
             K = K.detach().to("cpu", copy=True)
             Camera(K.to(camera_dtype), camera_height)
+            if K.dim() == 3 and K.shape[0] != 1:  # (a camera of batch B: every item's camera B cameras)
+                raise ValueError(f"K: expected one (3, 3) K for the pairs without a calibration file, got "
+                                 f"{K.shape[0]} of them (shape {tuple(K.shape)})")
         self.cam, self.camera_height, self.K = cam, camera_height, K
         self.dtype, self.camera_dtype, self.ground_truth = dtype, camera_dtype, ground_truth
 
