@@ -301,6 +301,28 @@ class TestExceptions:
         with pytest.raises(ValueError, match=r"^run: '.*t10_s0_r0' holds no pairs \(1 frame in rgb/\)"):
             CarlaRunDataset(run)  # was an empty dataset
 
+    def test_a_bad_carla_run_names_run(self, tmp_path):
+        """The errors of a run that is no run named 'root' (or 'name'), an argument CarlaRunDataset
+        does not have; a missing folder said it had no rgb/ folder."""
+        (tmp_path / "file.txt").write_text("x")
+        (tmp_path / "empty").mkdir()
+        (tmp_path / "nopng" / "rgb").mkdir(parents=True)
+        bad_roll = tmp_path / "t10_r+5"
+        (bad_roll / "rgb").mkdir(parents=True)
+        for k in range(2):
+            write_image(bad_roll / "rgb" / f"{k}.png", _colour_image(0, 0, 0, (12, 16)))
+        (tmp_path / "linked").symlink_to(tmp_path / "unmounted")
+        for given, error, message in [
+                (tmp_path / "missing", FileNotFoundError, rf"^run: no folder at '{re.escape(str(tmp_path))}/missing'$"),
+                (tmp_path / "file.txt", FileNotFoundError, r"^run: '.*file\.txt' is a file; expected a folder$"),
+                (tmp_path / "linked", FileNotFoundError, r"^run: '.*linked' is a symbolic link to '.*unmounted', "
+                                                         r"which does not exist"),
+                (tmp_path / "empty", FileNotFoundError, r"^run: '.*empty' has no rgb/ folder"),
+                (tmp_path / "nopng", ValueError, r"^run: '.*nopng/rgb' holds no PNG frames$"),
+                (bad_roll, ValueError, r"^run: the run 't10_r\+5' has the part 'r\+5'; expected the roll as 'r'")]:
+            with pytest.raises(error, match=message):
+                CarlaRunDataset(given)
+
     @pytest.mark.parametrize("kwargs, message", [
         ({"roll": 1.6}, r"^roll: expected \|θ\| < π/2 rad"),
         ({"pitch": -1.6}, r"^pitch: expected \|β\| < π/2 rad"),

@@ -469,7 +469,9 @@ class CarlaRunDataset(Dataset):
     a FileNotFoundError naming ``run`` and the file when the pair loads (never an item without that
     ground truth). ``camera_height`` (metres, default 2.4) must be a positive number within the
     camera's bounds (checked here, not at the first item). The run's name is that of the folder itself (``.`` or ``run/rgb/..``
-    is made absolute first); a run of fewer than two frames is a ValueError naming ``run``.
+    is made absolute first); a run of fewer than two frames, or a roll part of its name that does
+    not read as one, is a ValueError naming ``run``; a ``run`` that is no folder, or has no
+    ``rgb/``, a FileNotFoundError naming ``run``.
     """
 
     def __init__(self, run: str | os.PathLike, *, camera_height: float = 2.4, dtype: torch.dtype = torch.float32,
@@ -477,7 +479,15 @@ class CarlaRunDataset(Dataset):
         self.camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
         self.camera_height = check_mounting(camera_height, 0.0, 0.0, self.camera_dtype)[0]
         # absolute, '..' collapsed, symbolic links kept: the roll comes from the folder's own name
-        self.run = CarlaRun(Path(os.path.abspath(as_path(run, "run"))))
+        path = existing_folder(Path(os.path.abspath(as_path(run, "run"))), "run")
+        try:
+            self.run = CarlaRun(path)
+        except (FileNotFoundError, ValueError) as err:  # (CarlaRun's errors name its own argument, root)
+            message = str(err)
+            prefix = next((p for p in ("root: ", "name: ") if message.startswith(p)), None)
+            if prefix is None:
+                raise
+            raise type(err)("run: " + message[len(prefix):]) from None
         if len(self.run) < 2:
             raise ValueError(f"run: {str(self.run.root)!r} holds no pairs ({len(self.run)} frame in rgb/)")
         self.dtype, self.ground_truth = dtype, ground_truth
