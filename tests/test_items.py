@@ -99,6 +99,35 @@ def test_as_item_fills_the_absent_keys_and_keeps_extras():
     assert all(bare[k] is None for k in ITEM_KEYS if k not in ("image1", "image2", "index", "name"))
 
 
+def test_as_item_names_what_the_sample_lacks():
+    """A rendered pair, which the docstring offers as a sample, holds no name: as_item raised
+    KeyError: 'name'; a sample that is no dict a TypeError of the ** unpacking."""
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(24, 80))
+    with pytest.raises(ValueError, match=r"^sample: has no 'name'; give it in the dict or as keyword arguments"):
+        as_item(p)
+    with pytest.raises(ValueError, match=r"^sample: has no 'image2', 'index', 'name'; give them"):
+        as_item({"image1": p["image1"]})
+    with pytest.raises(TypeError, match=r"^sample: expected a dict, got list"):
+        as_item([p])
+    assert as_item(p, name="000000")["name"] == "000000"  # (given as a change)
+
+
+@pytest.mark.parametrize("given, error, message", [
+    (lambda cam: cam, TypeError, r"^cameras: expected a list of Cameras, got Camera$"),
+    (lambda cam: [cam, None], TypeError, r"^cameras: item 1 is a NoneType, expected a Camera$"),
+    (lambda cam: (cam.K, cam), TypeError, r"^cameras: item 0 is a Tensor, expected a Camera$"),
+    (lambda cam: [], ValueError, r"^cameras: expected at least one Camera$"),
+])
+def test_concat_cameras_names_what_is_no_camera(given, error, message):
+    """A Camera itself, a None or a K among them were a bare TypeError or AttributeError."""
+    cam = Camera(torch.eye(3), 1.5)
+    with pytest.raises(error, match=message):
+        items.concat_cameras(given(cam))
+    assert items.concat_cameras((cam, cam)).batch_size == 2
+
+
 @pytest.mark.parametrize("change, error, match", [
     ({"flow": torch.zeros(2, H, W + 1), "valid": torch.ones(1, H, W, dtype=torch.bool)}, ValueError,
      r"item\['flow'\]: expected shape \(2, 6, 10\), got \(2, 6, 11\)"),

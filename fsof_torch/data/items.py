@@ -121,8 +121,18 @@ def _odometry_floats(odometry: object) -> dict[str, float]:
 def as_item(sample: Mapping[str, Any], **changes: Any) -> dict[str, Any]:
     """An item of the contract from a dict that holds its keys where present (the output of
     :func:`fsof_torch.scene.render_pair` or :func:`fsof_torch.io.read_synthetic_pair`), with
-    ``changes`` applied: absent keys of the contract become None, the others stay as extras."""
+    ``changes`` applied: absent keys of the contract become None, the others stay as extras.
+    ``image1``, ``image2``, ``index`` and ``name`` must be given, in ``sample`` or ``changes``
+    (a rendered pair holds no ``name``: ``as_item(pair, name="000000")``); a ValueError names
+    the missing ones, and a ``sample`` that is no dict is a TypeError."""
+    if not isinstance(sample, Mapping):
+        raise TypeError(f"sample: expected a dict, got {type(sample).__name__} {sample!r:.60}")
     d = {**sample, **changes}
+    missing = [k for k in ("image1", "image2", "index", "name") if k not in d]
+    if missing:
+        raise ValueError(f"sample: has no {', '.join(map(repr, missing))}; give "
+                         f"{'them' if len(missing) > 1 else 'it'} in the dict or as keyword arguments "
+                         f"(as_item(pair, name='000000'))")
     images = d.pop("image1"), d.pop("image2")
     index, name = d.pop("index"), d.pop("name")
     core = {k: d.pop(k, None) for k in ITEM_KEYS if k not in ("image1", "image2", "index", "name")}
@@ -197,9 +207,16 @@ def check_item(item: Mapping[str, Any]) -> None:
 
 
 def concat_cameras(cameras: Sequence[Camera]) -> Camera:
-    """One Camera of batch sum(B_i) from several (dtype promoted, device of the first)."""
+    """One Camera of batch sum(B_i) from several (dtype promoted, device of the first).
+    ``cameras`` must be a non-empty list or tuple of Cameras (a TypeError naming ``cameras`` and
+    the odd one otherwise, such as a Camera itself or a None among them)."""
+    if not isinstance(cameras, (list, tuple)):
+        raise TypeError(f"cameras: expected a list of Cameras, got {type(cameras).__name__}")
     if not cameras:
         raise ValueError("cameras: expected at least one Camera")
+    odd = next((i for i, c in enumerate(cameras) if not isinstance(c, Camera)), None)
+    if odd is not None:
+        raise TypeError(f"cameras: item {odd} is a {type(cameras[odd]).__name__}, expected a Camera")
     dtype = cameras[0].dtype
     for cam in cameras[1:]:
         dtype = torch.promote_types(dtype, cam.dtype)
