@@ -131,6 +131,22 @@ class TestSynthetic:
                 assert torch.equal(getattr(batch["camera"], field)[b], getattr(it["camera"], field)[0]), (b, field)
         assert batch["camera"].height.unique().numel() == 3
 
+    @pytest.mark.parametrize("ground_truth", [True, False])
+    def test_a_pair_file_lost_names_root(self, synthetic_root, ground_truth):
+        """The reader's own argument, 'path', named a file of the folder the dataset was given as
+        root ('path: no file at ...')."""
+        root, _ = synthetic_root
+        (root / "image_2" / "000001_11.png").unlink()
+        (root / "params" / "000002.json").write_text("{")
+        ds = SyntheticFlowDataset(root, ground_truth=ground_truth)
+        assert ds[0]["index"] == 0
+        with pytest.raises(FileNotFoundError, match=r"^root: no file at '.*000001_11\.png'$"):
+            ds[1]
+        with pytest.raises(ValueError, match=r"^root: '.*params/000002\.json' is not valid JSON"):
+            ds[2]
+        with pytest.raises(ValueError, match=r"^root: '.*params/000002\.json' is not valid JSON"):
+            SyntheticFlowDataset(root, camera_dtype=torch.float64, ground_truth=ground_truth)[2]
+
     def test_float64_and_no_ground_truth(self, synthetic_root):
         root, _ = synthetic_root
         item = SyntheticFlowDataset(root, dtype=torch.float64, ground_truth=False)[0]

@@ -170,6 +170,9 @@ class SyntheticFlowDataset(Dataset):
         root: the folder.
         dtype: float dtype of images, flows and depth; ``camera_dtype`` of the camera (default ``dtype``).
         ground_truth: False -> images, camera, index and name only.
+
+    A pair whose file is missing or unreadable (an image, a flow, a params entry that is not
+    valid) is an error naming ``root`` and the file when the pair loads.
     """
 
     def __init__(self, root: str | os.PathLike, *, dtype: torch.dtype = torch.float32,
@@ -187,9 +190,16 @@ class SyntheticFlowDataset(Dataset):
     def __getitem__(self, index: int) -> dict[str, Any]:
         i = check_index(index, len(self))
         pair = self.indices[i]
-        sample = read_synthetic_pair(self.root, pair, dtype=self.dtype, ground_truth=self.ground_truth)
-        if self.camera_dtype not in (None, self.dtype):  # from the file's digits, not a rounded copy
-            sample["camera"] = camera_from_params(read_synthetic_params(self.root, pair), self.camera_dtype)
+        try:
+            sample = read_synthetic_pair(self.root, pair, dtype=self.dtype, ground_truth=self.ground_truth)
+            if self.camera_dtype not in (None, self.dtype):  # from the file's digits, not a rounded copy
+                sample["camera"] = camera_from_params(read_synthetic_params(self.root, pair), self.camera_dtype)
+        except (FileNotFoundError, IsADirectoryError, ValueError) as err:
+            # the reader names its own argument (path) for a file of the folder: this dataset's is root
+            message = str(err)
+            if not message.startswith("path: "):
+                raise
+            raise type(err)("root: " + message.removeprefix("path: ")) from None
         return as_item(sample, index=i)
 
 
