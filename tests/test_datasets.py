@@ -489,8 +489,14 @@ class TestScene:
     def test_errors(self):
         with pytest.raises(ValueError, match="preset: expected one of"):
             SceneDataset("nope")
-        with pytest.raises(TypeError, match="unknown overrides"):
-            SceneDataset("default", 1, wobble=3)
+        # (named render_pair, which the caller did not call; a misspelt argument of SceneDataset too)
+        for given in (dict(wobble=3), dict(sed=1, wobble=3)):
+            with pytest.raises(TypeError, match=re.escape(f"SceneDataset: unknown overrides {sorted(given)}; expected "
+                                                          f"some of ['K', ")):
+                SceneDataset("default", 1, **given)
+        with pytest.raises(TypeError, match=r"\(or SceneDataset's own: preset, num_pairs, seed, size, dtype, "
+                                            r"camera_dtype, ground_truth\)$"):
+            SceneDataset("default", 1, camera_type=torch.float64)
         with pytest.raises(ValueError, match="num_pairs: expected an int >= 1"):
             SceneDataset("default", 0)
         with pytest.raises(IndexError, match="out of range"):

@@ -130,11 +130,16 @@ class SceneDataset(Dataset):
                  size: tuple[int, int] | None = None, dtype: torch.dtype = torch.float32,
                  camera_dtype: torch.dtype | None = None, ground_truth: bool = True, **overrides: Any):
         from .scene import scene_config
-        from .scene.config import check_seed
+        from .scene.config import check_overrides, check_seed
         from .scene.world import Scene
 
         from .scene.render import check_extent
 
+        try:  # (a keyword neither SceneDataset's nor a SceneConfig field: named after render_pair there)
+            check_overrides(overrides)
+        except TypeError as err:
+            raise TypeError(f"SceneDataset: {str(err).removeprefix('render_pair: ')} (or SceneDataset's own: "
+                            f"preset, num_pairs, seed, size, dtype, camera_dtype, ground_truth)") from None
         self.num_pairs = check_int(num_pairs, "num_pairs", minimum=1)
         self.seed = check_seed(seed)
         size = None if size is None else check_size(size)
