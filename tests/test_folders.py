@@ -465,6 +465,12 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
         ImageFolderDataset(root / "images", tmp_path / "calib.bin")
     with pytest.raises(ValueError, match=r"^cam: expected 0\.\.3, got 4"):
         ImageFolderDataset(root / "images", root / "calib.txt", cam=4)
+    # without calib too: a bad cam was taken without a word, where the same call with calib refused it
+    with pytest.raises(ValueError, match=r"^cam: expected 0\.\.3, got 4"):
+        ImageFolderDataset(root / "images", cam=4)
+    with pytest.raises(TypeError, match=r"^cam: expected None or an int, got str '2'"):
+        ImageFolderDataset(root / "images", cam="2")
+    assert ImageFolderDataset(root / "images", cam=2)[0]["camera"] is None
     with pytest.raises(ValueError, match=r"^camera_height: expected a positive number"):
         ImageFolderDataset(root / "images", root / "calib.txt", camera_height=0.0)
     short = tmp_path / "poses.txt"

@@ -450,6 +450,9 @@ class ImageFolderDataset(Dataset):
                  dtype: torch.dtype = torch.float32, camera_dtype: torch.dtype | None = None,
                  ground_truth: bool = True):
         camera_dtype = check_item_options(dtype, camera_dtype, ground_truth)
+        cam = check_int(cam, "cam", optional=True)  # (with calib=None too: cam=7 or "2" was taken silently)
+        if cam is not None and not 0 <= cam <= 3:
+            raise ValueError(f"cam: expected 0..3, got {cam}")
         for what, given in (("calib", calib), ("road", road), ("gt", gt)):  # (not a bare TypeError of Path())
             if given is not None:
                 as_path(given, what)
@@ -487,8 +490,7 @@ class ImageFolderDataset(Dataset):
         self.camera: Camera | None = None
         self.calib_size = check_size(calib_size, "calib_size") if calib_size is not None else None
         if self.calib is not None:
-            camera64, used = _read_camera(self.calib, check_int(cam, "cam", optional=True), camera_height,
-                                          roll, pitch)
+            camera64, used = _read_camera(self.calib, cam, camera_height, roll, pitch)
             self._camera64 = camera64
             self.camera = camera64.to(camera_dtype)
             stated = calibration_size(self.calib, used)
