@@ -391,6 +391,29 @@ class TestOdometryFrames:
         with pytest.raises(TypeError, match=r"^image_dir: expected a file path \(str or os.PathLike\), got int 5$"):
             KittiOdometryDataset(root, image_dir=5)
 
+    @pytest.mark.parametrize("names, others", [(["frame_000000", "frame_000001"], "frame_000000.png, frame_000001.png"),
+                                               (["000000"], None), ([], None)])
+    @pytest.mark.parametrize("ground_truth", [True, False])
+    def test_a_clip_without_frames_says_so(self, tmp_path, names, others, ground_truth):
+        """Frames not named by a number, JPEGs, one frame or none: 'has no frame pairs with poses',
+        also with ground_truth=False (no poses read), sent the caller to poses.txt."""
+        root = _odometry_clip(tmp_path / "odo", names)
+        if not names:
+            write_image(root / "image_l" / "000000.jpg", _colour_image(0, 0, 0, (6, 8)))
+            others = "000000.jpg"
+        shown = "" if others is None else rf"; other files there: {re.escape(others)}"
+        with pytest.raises(ValueError, match=rf"^folder: '.*odo/image_l' holds {len(names) * (others is None)} "
+                                             rf"frame\(s\), PNG files named by a number \(000000\.png, \.\.\.\), and a "
+                                             rf"pair \(i, i \+ 1\) needs 2{shown}$"):
+            KittiOdometryDataset(root, ground_truth=ground_truth)
+
+    def test_frames_beyond_the_poses_name_the_poses(self, tmp_path):
+        root = _odometry_clip(tmp_path / "odo", ["000003", "000004", "000005"])  # (4 poses: frames 0 .. 3)
+        with pytest.raises(ValueError, match=r"^folder: '.*odo' has no frame pairs with poses \(step 1\): poses\.txt "
+                                             r"holds 4 poses \(line n for frame n\), 1 of the frames 000003\.png \.\.\. "
+                                             r"000005\.png have one$"):
+            KittiOdometryDataset(root)
+
 
 class TestShared:
     def test_kitti15_sample(self, shared_data):

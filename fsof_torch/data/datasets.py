@@ -454,6 +454,12 @@ class KittiOdometryDataset(ImageFolderDataset):
             if int(a.stem) == int(b.stem):  # 2.png and 000002.png: which one is frame 2 is a guess
                 raise ValueError(f"folder: {str(images)!r} has two files of frame {int(a.stem)}, {a.name} and "
                                  f"{b.name}; keep one")
+        if len(frames) <= step:  # (not "no pairs with poses": the frames are not there, or not named so)
+            others = sorted(p.name for p in images.iterdir() if p.is_file() and not p.name.startswith(".")
+                            and p not in frames)
+            shown = f"; other files there: {', '.join(others[:3])}{', ...' if len(others) > 3 else ''}" if others else ""
+            raise ValueError(f"folder: {str(images)!r} holds {len(frames)} frame(s), PNG files named by a number "
+                             f"(000000.png, ...), and a pair (i, i + {step}) needs {step + 1}{shown}")
         path, poses = self.folder / "poses.txt", None
         if ground_truth or path.is_file():
             try:
@@ -462,10 +468,12 @@ class KittiOdometryDataset(ImageFolderDataset):
                 raise FileNotFoundError(f"poses: no file at {str(path)!r}") from None
             except ValueError as err:
                 raise ValueError(f"poses: {err}") from None
-            frames = [p for p in frames if int(p.stem) < len(P)]
-            poses = P[[int(p.stem) for p in frames]]
-        if len(frames) <= step:
-            raise ValueError(f"folder: {str(self.folder)!r} has no frame pairs with poses (step {step})")
+            with_pose = [p for p in frames if int(p.stem) < len(P)]
+            if len(with_pose) <= step:
+                raise ValueError(f"folder: {str(self.folder)!r} has no frame pairs with poses (step {step}): "
+                                 f"{path.name} holds {len(P)} poses (line n for frame n), {len(with_pose)} of the "
+                                 f"frames {frames[0].name} ... {frames[-1].name} have one")
+            frames, poses = with_pose, P[[int(p.stem) for p in with_pose]]
         road = self.folder / "road.json"
         super().__init__(frames, self.folder / "calib.txt", cam=cam, camera_height=camera_height, roll=roll,
                          pitch=pitch, poses=poses, road=road if road_json and road.is_file() else None, step=step,
