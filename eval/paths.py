@@ -9,52 +9,15 @@ mixes two runs."""
 
 from __future__ import annotations
 
-import errno
 import json
-import math
 import os
 from pathlib import Path
 from typing import Iterable
 
 from fsof_torch.data.scene.render import MAX_SIDE  # noqa: F401 (the largest side of a size option, the renderer's)
 from fsof_torch.io.atomic import creation_error
+from fsof_torch.io.atomic import lookup_error as bad_lookup  # (the refine job's check too)
 from refine.resume import file_path  # noqa: F401 (the type of a file option: a path ending in '/' is refused)
-
-
-def bad_lookup(path: Path | None, option: str) -> str | None:
-    """``path`` (None: not given) is one the system can look up: it has no name longer than its
-    file system takes (``NAME_MAX`` bytes, 255 on most; 85 characters of CJK text), is not longer
-    in all than ``PATH_MAX`` and leads through no loop of symbolic links. Such a path ('File name
-    too long', 'Too many levels of symbolic links') ended the job in a traceback, or, for a name
-    below a folder still to be created, once the work was done."""
-    if path is None:
-        return None
-    absolute = Path(os.path.abspath(path))
-    name_max, path_max = 255, 4096
-    for folder in absolute.parents:  # (the limits of the nearest folder that exists)
-        try:
-            if folder.is_dir():
-                # (-1: the file system states no limit)
-                name_max, path_max = (n if n > 0 else math.inf for n in (os.pathconf(folder, "PC_NAME_MAX"),
-                                                                          os.pathconf(folder, "PC_PATH_MAX")))
-                break
-        except (OSError, ValueError, AttributeError):  # (a name too long itself; no pathconf on Windows)
-            continue
-    long = next((part for part in absolute.parts if len(os.fsencode(part)) > name_max), None)
-    if long is not None:
-        return (f"{option}: {str(path)!r} holds a name of {len(os.fsencode(long))} bytes, {long[:24]!r}..., longer "
-                f"than the {name_max} its file system takes; give a shorter one")
-    if len(os.fsencode(str(absolute))) >= path_max:
-        return (f"{option}: {str(path)!r} is {len(os.fsencode(str(absolute)))} bytes long as an absolute path, more "
-                f"than the {path_max - 1} its file system takes; give a shorter one")
-    try:
-        os.stat(absolute)
-    except OSError as err:
-        if err.errno == errno.ELOOP:
-            return f"{option}: {str(path)!r} leads through a loop of symbolic links; give another path"
-    except ValueError:  # (a NUL byte: no path; the checks that follow name it)
-        pass
-    return None
 
 
 def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:

@@ -435,6 +435,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     from fsof_torch import __version__
 
     from . import distributed, resume
+    from fsof_torch.io.atomic import lookup_error
+
     from .inputs import JobError, file_digest
     from .job import JobConfig
     from .measure import PHOTO
@@ -472,6 +474,9 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", world.local_rank)
 
+    for option, path in (*_input_paths(args).items(), ("--out", args.out), ("--json", args.json)):
+        if option != "--net" and (bad := lookup_error(path, option)) is not None:
+            raise JobError(bad)  # (Python's own look-ups of such a path raise: before any of them)
     out = args.out if args.out is not None else default_out(args)
     resume.check_out_path(out)
     resume.check_json_path(args.json, out, _input_paths(args))

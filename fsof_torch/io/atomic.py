@@ -262,6 +262,43 @@ def special_file(path: str | os.PathLike) -> str | None:
     return next((name for test, name in kinds if test(mode)), None)
 
 
+def lookup_error(path: str | os.PathLike | None, option: str) -> str | None:
+    """Why the system cannot look ``path`` up, as a message naming ``option``; None where it can
+    (or where ``path`` is None: not given): a name longer than its file system takes
+    (``NAME_MAX`` bytes, 255 on most; 85 characters of CJK text), a path longer in all than
+    ``PATH_MAX``, or a loop of symbolic links on the way. Python's own look-ups of such a path
+    raise ('File name too long', 'Symlink loop'), so the jobs check every path option with it
+    before any other check of the path."""
+    if path is None:
+        return None
+    absolute = Path(os.path.abspath(path))
+    name_max, path_max = 255, 4096
+    for folder in absolute.parents:  # (the limits of the nearest folder that exists)
+        try:
+            if folder.is_dir():
+                # (-1: the file system states no limit)
+                name_max, path_max = (n if n > 0 else math.inf for n in (os.pathconf(folder, "PC_NAME_MAX"),
+                                                                          os.pathconf(folder, "PC_PATH_MAX")))
+                break
+        except (OSError, ValueError, AttributeError):  # (a name too long itself; no pathconf on Windows)
+            continue
+    long = next((part for part in absolute.parts if len(os.fsencode(part)) > name_max), None)
+    if long is not None:
+        return (f"{option}: {str(path)!r} holds a name of {len(os.fsencode(long))} bytes, {long[:24]!r}..., longer "
+                f"than the {name_max} its file system takes; give a shorter one")
+    if len(os.fsencode(str(absolute))) >= path_max:
+        return (f"{option}: {str(path)!r} is {len(os.fsencode(str(absolute)))} bytes long as an absolute path, more "
+                f"than the {path_max - 1} its file system takes; give a shorter one")
+    try:
+        os.stat(absolute)
+    except OSError as err:
+        if err.errno == errno.ELOOP:
+            return f"{option}: {str(path)!r} leads through a loop of symbolic links; give another path"
+    except ValueError:  # (a NUL byte: no path; the checks that follow name it)
+        pass
+    return None
+
+
 def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False) -> str | None:
     """Why ``path`` cannot be created (its nearest existing parent is a file, or a folder that
     cannot be written into, or a symbolic link to nothing stands on the way: a drive not mounted),
