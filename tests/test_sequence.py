@@ -789,6 +789,28 @@ def test_fit_sequence_refuses_poses_whose_height_is_not_in_metres(body_motion_cl
         fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=wrong, passes=1, max_points=500)
 
 
+def test_fit_sequence_refuses_poses_that_are_not_rigid_before_reading_a_frame(body_motion_clip, monkeypatch):
+    """Only the poses' translations are used, and poses that were no rigid transforms passed: transposed
+    poses (their translations in the bottom row, the last column 0 0 0 1) fitted the whole first pass
+    and then said "their translations give no scale (camera height 0 m)", and a rotation block scaled
+    by 2 was taken as a pose. Now either is a ValueError naming ``poses`` and the pose, before a fit."""
+    pairs, frames, poses = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    import fsof_torch.estimation.sequence as S
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a pair was fitted")
+
+    monkeypatch.setattr(S, "fit_image", no_fit)
+    scaled = poses[:3].clone()
+    scaled[1, :3, :3] *= 2.0
+    cases = ((poses[:3].transpose(1, 2), r"sample 0: its bottom row is \[.*\], not 0 0 0 1 \(a transposed pose"),
+             (scaled, r"sample 1: its 3×3 block is not a rotation: \|RᵀR − I\| up to 3, det R = 8"))
+    for wrong, what in cases:
+        with pytest.raises(ValueError, match=rf"^poses: expected rigid transforms .*got {what}"):
+            fit_sequence(frames[:3], road, cam, poses=wrong, max_points=500)
+
+
 def test_fit_sequence_carries_no_motion_prior_out_of_a_pair_that_did_not_move(body_motion_clip):
     """A frame repeated (a recording's glitch) stands still for one pair; the next pair then steps
     two frames. The previous motion, carried as a prior (0 ± 5 cm after the still pair), held that

@@ -59,7 +59,7 @@ from torch import Tensor
 from .._check import (check_bool, check_data_range, check_float_tensor, check_has_values, check_image_range, check_names,
                       option_error, scalar, summary_repr)
 from ..geometry.camera import Camera
-from ..geometry.egomotion import check_pose_steps
+from ..geometry.egomotion import as_pose_4x4, check_pose_steps
 from ..geometry.road_models import RoadModel, get_road_model
 from .flow_fit import RoadFit, fixed_parameters
 from .image_fit import DEG, calibration_prior, check_image_fit_options, fit_image
@@ -325,10 +325,12 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
         poses: optional (N + 1, 4, 4) camera-to-world poses in metres: their translations give the
-            metric scale, hence the camera height (the images give d / h only). Consecutive poses
-            farther apart than a road vehicle travels between two frames (100 m; poses in
-            millimetres) are a ValueError naming ``poses`` and the frames, and so is a height more
-            than 10 times the camera's, or under a tenth of it (poses in other units).
+            metric scale, hence the camera height (the images give d / h only). Poses that are not
+            rigid transforms (a rotation block, the bottom row 0 0 0 1: a transposed pose has its
+            translation there) are a ValueError naming ``poses``. Consecutive poses farther apart
+            than a road vehicle travels between two frames (100 m; poses in millimetres) are a
+            ValueError naming ``poses`` and the frames, and so is a height more than 10 times the
+            camera's, or under a tenth of it (poses in other units).
         flows: optional N predicted flows (2, H, W) or (1, 2, H, W): starts from their planar
             motion (a sequence read like ``frames``).
         passes: 1 (per-pair fits only; with poses, their translations and cameras rescaled to the
@@ -405,6 +407,10 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         check_has_values(poses, "poses", "to give the clip's translations their scale")
         if not bool(torch.isfinite(poses).all()):
             raise ValueError("poses: expected finite values, got NaN or inf")
+        # (only the translations are used, but a pose that is no rigid transform is no pose: a transposed
+        # one, its translation in the bottom row, was "their translations give no scale" after a whole pass,
+        # and a scaled or sheared rotation block passed unremarked)
+        as_pose_4x4(poses, "poses")
         check_pose_steps(poses, "poses", labels=[f"the pose of frames[{k}]" for k in range(N + 1)])
     if flows is not None and len(flows) != N:
         raise ValueError(f"flows: expected {N} flows (one per pair), got {len(flows)}")
