@@ -72,6 +72,10 @@ def test_gaussian_prior_gives_the_posterior_mean():
     torch.testing.assert_close(sol.params[0], ref, rtol=0, atol=1e-7)
     energy = (J @ ref - y[0]).square().sum() + (lam[0] * (ref - mu[0]).square()).sum()
     torch.testing.assert_close(sol.cost[0], energy / x.shape[1], rtol=1e-9, atol=0)
+    # a precision alone is a prior at 0: (JᵀJ + Λ)⁻¹ Jᵀy
+    sol = solve(problem, torch.zeros(1, 2, dtype=torch.float64), kernel="l2", prior_precision=lam, max_iter=10)
+    torch.testing.assert_close(sol.params[0], torch.linalg.solve(J.T @ J + torch.diag(lam[0]), J.T @ y[0]), rtol=0,
+                               atol=1e-7)
 
 
 def test_bounds_fixed_parameters_and_per_sample_convergence():
@@ -531,6 +535,9 @@ NAN, INF = float("nan"), float("inf")
     (dict(prior_mean=torch.zeros(3), prior_precision=torch.ones(2)), ValueError, r"prior_mean: expected .* got \(3,\)"),
     (dict(prior_precision=torch.ones(2, 3)), ValueError, r"prior_precision: expected .* got \(2, 3\)"),
     (dict(prior_precision="1"), TypeError, "prior_precision: expected a number or a tensor"),
+    # a mean without a precision was dropped unsaid: no prior, the fit as without it
+    (dict(prior_mean=torch.tensor([5.0, 5.0])), ValueError,
+     r"^prior_mean: given without prior_precision, it would weigh nothing: give the prior's precision too"),
     (dict(damping=-1.0), ValueError, r"damping: expected a positive number \(> 0\), got -1.0"),
     (dict(max_iter=-1), ValueError, "max_iter: expected an int >= 0, got -1"),
     (dict(max_iter=2.0), TypeError, "max_iter: expected an int, got float 2.0"),

@@ -353,9 +353,10 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
             (in the problem's, where its residuals come in a wider dtype).
         free: (P,) or (B, P) bool, the parameters to estimate (default all); the others stay.
         prior_mean, prior_precision: (P,) or (B, P): a Gaussian prior λ (p - μ)² per parameter
-            (precision 0: none); the mean finite, the precision finite and >= 0; the precision
-            may be a function of the scale (B,) returning it (a prior whose weight follows the
-            residuals' noise; its result is not read).
+            (precision 0: none); the mean finite (0 where not given), the precision finite and >= 0;
+            the precision may be a function of the scale (B,) returning it (a prior whose weight
+            follows the residuals' noise; its result is not read). A mean without a precision is a
+            ValueError (it would weigh nothing).
         lower, upper: (P,) or (B, P) bounds (±inf: none; lower <= upper, no NaN); the start is
             clamped into them. A parameter at a bound that the step would push out of it is held
             there for that step (a simple active set), so that the others still reach the
@@ -409,6 +410,9 @@ def solve(problem: Problem, params: Tensor, *, free: Tensor | None = None,
     checks = _check_schedule(check_every, max_iter)
     check_float_tensor(params, "params")
     check_shape(params, "params", ("B", "P"), nonempty=("B", "P"))
+    if prior_mean is not None and prior_precision is None:  # (the prior is its precision's: it was left out unsaid)
+        raise ValueError("prior_mean: given without prior_precision, it would weigh nothing: give the prior's "
+                         "precision too (0 for a parameter without a prior)")
     if isinstance(scale, bool) or (isinstance(scale, (int, float)) and not (math.isfinite(scale) and scale > 0)):
         raise option_error(scale, f"scale: expected a finite number > 0, got {scale!r}")
     # (the problem's linear algebra too: autocast would build the normal equations in 16 bits)
