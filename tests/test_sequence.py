@@ -811,6 +811,31 @@ def test_fit_sequence_refuses_poses_that_are_not_rigid_before_reading_a_frame(bo
             fit_sequence(frames[:3], road, cam, poses=wrong, max_points=500)
 
 
+def test_fit_sequence_names_an_attitude_deg_too_large_for_the_track_before_a_fit(body_motion_clip, monkeypatch):
+    """attitude_deg is the smoothed track's attitude σ too, weighed by 1 / σ² in float64: at 1e200 degrees
+    that weight is 0, and after a whole first pass smooth_attitude stopped the clip naming its own
+    attitude_sigma, an argument the caller never gave. Now a ValueError names attitude_deg before any
+    fit; with one pass, which makes no track, the value stands (a prior that weighs nothing)."""
+    pairs, frames, _ = body_motion_clip
+    cam, road = pairs[0]["camera"], pairs[0]["road"]
+    import fsof_torch.estimation.sequence as S
+
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a pair was fitted")
+
+    with monkeypatch.context() as m:
+        m.setattr(S, "fit_image", no_fit)
+        for value in (1e156, 1e200, 1.5e308):
+            with pytest.raises(ValueError, match=rf"^attitude_deg: expected a standard deviation whose weight 1 / σ² "
+                                                 rf"in radians is above 0 in float64 .*got {re.escape(repr(value))}$"):
+                fit_sequence(frames[:3], road, cam, attitude_deg=value, max_points=500)
+    seq = fit_sequence(frames[:3], road, cam, attitude_deg=1e200, passes=1, max_points=500)
+    assert seq.params["z_d"].shape == (2,) and bool(torch.isfinite(seq.params["z_d"]).all())
+    # the largest that weighs: the track is made
+    seq = fit_sequence(frames[:3], road, cam, attitude_deg=7e155, max_points=500)
+    assert seq.calibrated_from > 0 and bool(torch.isfinite(seq.params["pitch"]).all())
+
+
 def test_fit_sequence_carries_no_motion_prior_out_of_a_pair_that_did_not_move(body_motion_clip):
     """A frame repeated (a recording's glitch) stands still for one pair; the next pair then steps
     two frames. The previous motion, carried as a prior (0 ± 5 cm after the still pair), held that

@@ -336,7 +336,9 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         passes: 1 (per-pair fits only; with poses, their translations and cameras rescaled to the
             calibrated height) or 2 (fitted again with the calibrated attitude and height).
         attitude_deg: the prior's standard deviation of the per-frame attitude around the
-            calibrated mounting (the body's pitching and rolling), degrees.
+            calibrated mounting (the body's pitching and rolling), degrees; with two passes at most
+            about 7.7e155 (the smoothed track weighs each attitude by 1 / σ² in float64: a
+            ValueError names it where that is 0).
         body_rotation_deg: the standard deviation of the body's pitch and roll change per frame.
         keep_fits: keep the final pass's :class:`~fsof_torch.estimation.flow_fit.RoadFit` of every
             pair in ``SequenceFit.fits`` (False: ``fits`` is empty and no full-size map outlives
@@ -370,6 +372,13 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (0 < value < math.inf):
             raise option_error(value, f"{name}: expected a finite number of degrees > 0 (a standard deviation), "
                                       f"got {value!r}")
+    # (the second pass's smoothed track weighs the attitudes by 1 / σ² in float64, 0 where σ² overflows:
+    # smooth_attitude refused that after a whole first pass, naming its own attitude_sigma)
+    sigma = attitude_deg * DEG
+    if passes == 2 and 1.0 / (sigma * sigma) == 0.0:
+        raise ValueError(f"attitude_deg: expected a standard deviation whose weight 1 / σ² in radians is above 0 in "
+                         f"float64 (below about 7.7e155 degrees: the second pass's attitude track needs attitudes "
+                         f"that count), got {attitude_deg!r}")
     if not isinstance(camera, Camera):
         raise TypeError(f"camera: expected a fsof_torch.Camera of batch 1, got {type(camera).__name__}")
     if camera.batch_size != 1:
