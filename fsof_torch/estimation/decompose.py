@@ -31,6 +31,13 @@ _MARGIN = math.radians(3.0)
 #: attitude beyond the margin is approached by the first fit and found by the next (tested up to 5°
 #: of roll and pitch from the camera's, tests/test_estimation_helpers.py).
 _MAX_FITS = 3
+#: The grid also holds only the pixels whose road point the homography takes to within this many times
+#: the grid's own width and height beyond its edges at t+1 (seen in an image three times the grid's
+#: size): the road just ahead of the camera at t+1 has an arbitrarily large flow, which dominated the
+#: normal equations of a long step (a forward step of 8 m with a KITTI camera at 1.65 m: exact, and
+#: reported as failed). Within the grid itself (0) a tilted road's grid lost the pixels that lead the
+#: fits to it (tests/test_estimation_helpers.py).
+_SEEN = 1.0
 
 
 def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadFit:
@@ -43,9 +50,12 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     (:func:`~fsof_torch.geometry.road_models.plane_from_homography`); :func:`fit_road` then frees
     the normal too, on the homography's own flow over the grid pixels whose rays lie a margin
     (3°) below the camera's horizon, then, while that grid changes (at most twice more), below
-    the previous fit's own horizon. It is exact (residual about 1e-13 px) for a road homography
-    whose road attitude is within a few degrees of the camera's and seen by the grid (tested to
-    5° of roll and pitch on a KITTI camera). Every invertible homography is the motion of some
+    the previous fit's own horizon; of those, the pixels that H takes to within the grid's own
+    size beyond its edges (the road just ahead of the camera at t+1 has an unbounded flow). It
+    is exact (residual about 1e-13 px) for a road homography whose road attitude is within a few
+    degrees of the camera's and seen by the grid (tested to 5° of roll and pitch on a KITTI
+    camera, and forward steps to 15 m, 9 camera heights, with ``success``). A homography without
+    a translation holds no road normal: its roll and pitch are the start's, without ``success``. Every invertible homography is the motion of some
     plane; where that plane lies far from the camera's attitude or out of the grid's view, the fit
     may not reach it, and the residual says so. OpenCV's closed-form
     ``decomposeHomographyMat`` returns NaN for the commonest road motion, a translation without
@@ -132,6 +142,7 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
     v, u = torch.meshgrid(torch.arange(canvas[0], dtype=torch.float64, device=H.device),
                           torch.arange(canvas[1], dtype=torch.float64, device=H.device), indexing="ij")
     pix = torch.stack([u, v, torch.ones_like(u)]).reshape(3, -1)
+    extent = torch.stack([cols, rows], dim=-1).to(torch.float64).reshape(B, 2, 1, 1)  # (each sample's grid: w, h)
     ray_norm = (small.K_inv() @ pix).norm(dim=1)  # (B, h·w): |K⁻¹ p̃|
 
     def road_grid(roll: Tensor, pitch: Tensor) -> tuple[Tensor, Tensor]:
@@ -142,7 +153,12 @@ def decompose_homography(H: Tensor, camera: Camera, *, size: int = 192) -> RoadF
         sine = ((horizon @ pix)[:, 0] / ray_norm).reshape(B, 1, *canvas)  # a · p̃ = n · K⁻¹ p̃
         deepest = torch.where(inside, sine, -1.0).flatten(1).amax(1)
         margin = torch.clamp(0.5 * deepest, max=math.sin(_MARGIN)).reshape(B, 1, 1, 1)
-        return flow, valid & inside & (sine >= margin)
+        # and whose road point H takes to at most the grid's own size beyond its edges (_SEEN): a point just
+        # ahead of the camera at t+1 has an unbounded flow, and such pixels left an exact fit of a long step
+        # ill-conditioned, reported as failed (from about 4 camera heights forward on a KITTI camera)
+        ends = pix[:2].reshape(1, 2, *canvas) + flow
+        seen = ((ends >= -_SEEN * extent) & (ends <= (1.0 + _SEEN) * extent)).all(1, keepdim=True)
+        return flow, valid & inside & (sine >= margin) & seen
 
     def fit_grid(flow: Tensor, grid: Tensor, init: object) -> RoadFit:
         return fit_road(flow, grid, small, model="plane", fixed=(), init=init, robust="l2", polish=False, bounds=None,
