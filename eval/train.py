@@ -98,6 +98,23 @@ class Ranks:
         return self.world_size > 1
 
 
+def _bad_environment() -> str | None:
+    """torchrun's variables, as the refine job checks them: a ``WORLD_SIZE`` left in the shell
+    without ``RANK`` failed in torch's rendezvous with a traceback, one that is no number in
+    int()'s."""
+    from refine.distributed import environment_number
+    from refine.inputs import JobError
+
+    try:
+        world_size = environment_number("WORLD_SIZE", 1, minimum=1, job="eval train")
+        if world_size > 1:
+            for name, default in (("RANK", None), ("LOCAL_RANK", 0)):
+                environment_number(name, default, below=world_size, job="eval train")
+    except JobError as err:
+        return str(err)
+    return None
+
+
 def _join_process_group(device: torch.device) -> Ranks:
     """Join the process group torchrun set up (gloo on CPU, nccl on CUDA), if it set one up."""
     world_size = int(os.environ.get("WORLD_SIZE", "1"))
@@ -423,7 +440,7 @@ def _bad_device(text: str) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    bad = _bad_input(args)
+    bad = first_bad(_bad_input(args), _bad_environment())
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

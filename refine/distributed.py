@@ -49,12 +49,13 @@ WAIT_FOR_OTHERS = datetime.timedelta(days=7)
 def init(device: str = "cpu") -> World:
     """Join the process group torchrun set up (gloo for ``device="cpu"``, nccl for CUDA), or
     return the single-process world."""
-    world_size = _environment("WORLD_SIZE", 1, minimum=1)
+    world_size = environment_number("WORLD_SIZE", 1, minimum=1)
     if world_size == 1:
         return World()
     import torch.distributed as dist
 
-    rank, local_rank = _environment("RANK", None, below=world_size), _environment("LOCAL_RANK", 0, below=world_size)
+    rank, local_rank = (environment_number("RANK", None, below=world_size),
+                        environment_number("LOCAL_RANK", 0, below=world_size))
     backend = "nccl" if device.startswith("cuda") else "gloo"
     if backend == "nccl":
         torch.cuda.set_device(local_rank)
@@ -66,11 +67,13 @@ def init(device: str = "cpu") -> World:
     return World(rank=rank, world_size=world_size, local_rank=local_rank, backend=backend)
 
 
-def _environment(name: str, default: int | None, *, minimum: int = 0, below: int | None = None) -> int:
+def environment_number(name: str, default: int | None, *, minimum: int = 0, below: int | None = None,
+                       job: str = "refine") -> int:
     """The whole number in the environment variable ``name`` (``default`` where it is unset; None:
-    it must be set), from ``minimum`` up and under ``below``; else a JobError naming the variable:
-    a ``WORLD_SIZE`` left in the shell without torchrun's ``RANK`` stopped the job with a
-    ``KeyError: 'RANK'`` traceback, a ``WORLD_SIZE`` that is no number with int()'s message alone."""
+    it must be set), from ``minimum`` up and under ``below``; else a JobError naming the variable
+    (and how to start ``python -m JOB`` with torchrun): a ``WORLD_SIZE`` left in the shell without
+    torchrun's ``RANK`` stopped the job with a ``KeyError: 'RANK'`` traceback, a ``WORLD_SIZE``
+    that is no number with int()'s message alone."""
     from .inputs import JobError
 
     text = os.environ.get(name)
@@ -79,7 +82,7 @@ def _environment(name: str, default: int | None, *, minimum: int = 0, below: int
     started = "torchrun sets it for each process it starts"
     if text is None:
         raise JobError(f"environment variable {name}: not set, while WORLD_SIZE is {os.environ['WORLD_SIZE']} "
-                       f"({started}); start the job with torchrun --nproc-per-node N -m refine ..., or unset "
+                       f"({started}); start the job with torchrun --nproc-per-node N -m {job} ..., or unset "
                        f"WORLD_SIZE to run it in one process")
     try:
         value = int(text)
