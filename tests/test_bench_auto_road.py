@@ -181,7 +181,7 @@ def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, c
     (clip / "calib.txt").write_text("P_rect_02: 101.0 1.0 1.0 0.0 1.0 101.0 1.0 0.0 1.0 1.0 101.0 0.0\n")  # no camera's K
     cut = torch.zeros(1, 90, 320)
     for wrong, message in (("pair", "--data: images: image_10.png is 96x320 but the calibration"),
-                           ("calib", "--data: calib: path: "),
+                           ("calib", "--data: calib: "),
                            ("frame", "--data: images: 000002.png is 90x320 but 000000.png is 96x320")):
         if wrong == "calib":
             (pair / "calib_cam_to_cam.txt").write_text(calib)

@@ -1010,7 +1010,7 @@ def test_main_refuses_folders_the_library_cannot_read(rr, scenes, tmp_path, caps
     calib = (clip / "calib.txt").read_text()
     write_kitti_calibration(clip / "calib.txt", scenes[0]["camera"].K[0], cam=2, style="cam_to_cam")
     assert rr.main(["--clip", str(clip), *run]) == 2
-    assert f"error: --clip: calib: path: {str(clip / 'calib.txt')!r} has no P_rect_00 or P0 row" in capsys.readouterr().err
+    assert f"error: --clip: calib: {str(clip / 'calib.txt')!r} has no P_rect_00 or P0 row" in capsys.readouterr().err
     (clip / "calib.txt").write_text(calib)
     pair = tmp_path / "pair"
     pair.mkdir()

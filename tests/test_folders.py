@@ -497,7 +497,7 @@ def test_errors_name_the_argument_and_the_file(clip, tmp_path):
     # files removed after the dataset was made: named with the argument when the pair loads
     ds = ImageFolderDataset(root / "images", gt=root / "gt")
     (root / "gt" / "000002.flo").unlink()
-    with pytest.raises(FileNotFoundError, match=r"^gt: path: no file at '.*000002\.flo'"):
+    with pytest.raises(FileNotFoundError, match=r"^gt: no file at '.*000002\.flo'"):
         ds[2]
 
 
@@ -689,7 +689,7 @@ def test_a_frame_list_with_a_missing_file_or_a_folder_is_refused_when_made(clip)
     ds = ImageFolderDataset(frames)
     frames[2].unlink()
     frames[2].mkdir()  # (replaced by a folder since the dataset was made)
-    with pytest.raises(IsADirectoryError, match=r"^images: path: '.*000002\.png' is a folder"):
+    with pytest.raises(IsADirectoryError, match=r"^images: '.*000002\.png' is a folder"):
         ds[1]
 
 
@@ -871,3 +871,19 @@ def test_road_or_gt_given_the_images_is_an_error(tmp_path):
     for n in range(2):
         write_road_mask(masks / f"{n:06d}.png", mask)
     assert torch.equal(ImageFolderDataset(images, road=masks)[1]["road"], mask)
+
+
+def test_errors_of_the_files_read_name_the_datasets_argument_alone(tmp_path):
+    """A poses or calibration file the reader refuses was named twice, as the dataset's argument
+    and the reader's ('poses: path: line 1 of ...'): the dataset's argument alone now."""
+    clip = tmp_path / "clip"
+    clip.mkdir()
+    for n in range(2):
+        write_image(clip / f"{n:06d}.png", torch.zeros(3, *SIZE))
+    (tmp_path / "poses.txt").write_text("1 2 3\n")
+    (tmp_path / "calib.txt").write_text("P0: 1 2\n")
+    with pytest.raises(ValueError, match=rf"^poses: line 1 of {re.escape(repr(str(tmp_path / 'poses.txt')))} has 3 "
+                                         r"numbers; expected 12"):
+        ImageFolderDataset(clip, poses=tmp_path / "poses.txt")
+    with pytest.raises(ValueError, match=r"^calib: the projection row of camera 0 in .*calib\.txt' has 2 numbers"):
+        ImageFolderDataset(clip, calib=tmp_path / "calib.txt")

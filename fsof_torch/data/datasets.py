@@ -467,7 +467,7 @@ class KittiOdometryDataset(ImageFolderDataset):
             except FileNotFoundError:
                 raise FileNotFoundError(f"poses: no file at {str(path)!r}") from None
             except ValueError as err:
-                raise ValueError(f"poses: {err}") from None
+                raise ValueError(f"poses: {str(err).removeprefix('path: ')}") from None
             with_pose = [p for p in frames if int(p.stem) < len(P)]
             if len(with_pose) <= step:
                 raise ValueError(f"folder: {str(self.folder)!r} has no frame pairs with poses (step {step}): "

@@ -356,7 +356,7 @@ def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch
     try:
         P = read_kitti_calibration(calib, c)
     except ValueError as err:
-        raise ValueError(f"calib: {err}") from None
+        raise ValueError(f"calib: {str(err).removeprefix('path: ')}") from None
     try:
         return Camera.from_projection(P, height, roll, pitch), c
     except ValueError as err:
@@ -551,7 +551,7 @@ class ImageFolderDataset(Dataset):
             try:
                 P = read_kitti_poses(path)
             except ValueError as err:
-                raise ValueError(f"poses: {err}") from None
+                raise ValueError(f"poses: {str(err).removeprefix('path: ')}") from None
             where = repr(str(path))
         if isinstance(poses, Tensor):
             if P.shape[0] < need:
@@ -590,11 +590,11 @@ class ImageFolderDataset(Dataset):
         try:
             return read_image(path)
         except FileNotFoundError as err:
-            raise FileNotFoundError(f"images: {err}") from None
+            raise FileNotFoundError(f"images: {str(err).removeprefix('path: ')}") from None
         except IsADirectoryError as err:  # (a file replaced by a folder since the dataset was made)
-            raise IsADirectoryError(f"images: {err}") from None
+            raise IsADirectoryError(f"images: {str(err).removeprefix('path: ')}") from None
         except ValueError as err:
-            raise ValueError(f"images: {err}") from None
+            raise ValueError(f"images: {str(err).removeprefix('path: ')}") from None
 
     def _checked(self, what: str, path: Path, x: Tensor) -> Tensor:
         """``x`` if it has the images' size, else an error naming ``what`` and the file."""
@@ -622,9 +622,9 @@ class ImageFolderDataset(Dataset):
                 try:
                     flow, valid = read_flow(pair.gt)
                 except FileNotFoundError as err:  # (removed since the dataset was made)
-                    raise FileNotFoundError(f"gt: {err}") from None
+                    raise FileNotFoundError(f"gt: {str(err).removeprefix('path: ')}") from None
                 except ValueError as err:
-                    raise ValueError(f"gt: {err}") from None
+                    raise ValueError(f"gt: {str(err).removeprefix('path: ')}") from None
                 truth["flow"], truth["valid"] = self._checked("gt", pair.gt, flow).to(self.dtype), valid
             if self.poses is not None:
                 truth.update(self._motion(pair))
