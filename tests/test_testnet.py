@@ -221,6 +221,25 @@ def test_rejects_bad_inputs():
         TinyRAFT(seed="a")
 
 
+def test_a_0_to_1_image_is_refused_as_the_library_refuses_one():
+    """Images on 0..1 (torchvision's ``ToTensor``) ran through the net as near-black frames and
+    gave a flow without a word, where every other image-taking call of the library refuses a
+    sample whose values all lie in [0, 1] (docs/conventions.md); each sample is judged alone,
+    and ``trust_image_range`` lets a frame that dark through."""
+    import fsof_torch
+
+    net = TinyRAFT(iters=1).eval()
+    image1, image2 = _pair(2, 16, 16)
+    with pytest.raises(ValueError, match=r"^image1: values in \[.*\] look like 0\.\.1 images, expected 0\.\.255"):
+        net(image1 / 255, image2 / 255)
+    dim = torch.cat([image2[:1], image2[1:] / 255])
+    with pytest.raises(ValueError, match=r"^image2\[1\]: values in \[.*\] look like 0\.\.1 images"):
+        net(image1, dim)
+    with torch.no_grad(), fsof_torch.trust_image_range():
+        flows = net(image1, dim)
+    assert len(flows) == 1 and flows[0].shape == (2, 2, 16, 16) and bool(flows[0].isfinite().all())
+
+
 def test_correlation_volume_is_rafts():
     """All-pairs correlation <f1(p), f2(q)> / sqrt(D), written out per pixel pair, and the
     average-pooled levels of the pyramid."""

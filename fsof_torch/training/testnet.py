@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_int, check_same_device, check_shape, skip_values
+from .._check import check_float_tensor, check_image_range, check_int, check_same_device, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -250,6 +250,9 @@ class TinyRAFT(nn.Module):
         Args:
             image1, image2: (B, 3, H, W) RGB on 0..255, B >= 1, any H and W >= 1 (images of at
                 most 8 x 8 pixels are padded to 8 x 16 inside, as instance norm needs two feature pixels).
+                Values outside 0..255 or not finite are a ValueError naming the image, and so is a
+                sample whose values all lie in [0, 1], a likely 0..1 image (unless within
+                :func:`fsof_torch.trust_image_range`).
             iters: refinement iterations (default: the constructor's).
             final_only: upsample only the last iteration's flow (RAFT's ``test_mode``): the same
                 estimate, without the upsampling weights and full-size flows of the iterations
@@ -273,6 +276,9 @@ class TinyRAFT(nn.Module):
             for name, lo, hi in (("image1", lo1, hi1), ("image2", lo2, hi2)):
                 if not (0 <= lo and hi <= 255):  # NaN fails both comparisons
                     raise ValueError(f"{name}: expected values on 0..255 (finite), got the range [{lo:.4g}, {hi:.4g}]")
+            # (a sample all within [0, 1], a 0..1 image, ran on as a near-black frame: a flow of nothing, silently)
+            for name, image in (("image1", image1), ("image2", image2)):
+                check_image_range(image, name, 255.0)
         B, H, W = dims["B"], dims["H"], dims["W"]
         weight = self.fnet.out.weight
         x = torch.cat([image1, image2], dim=0).to(weight.dtype) / 127.5 - 1.0
