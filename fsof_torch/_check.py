@@ -224,12 +224,12 @@ def check_positive(x: Tensor, name: str) -> None:
 
 
 def check_size(size: object, name: str = "size") -> tuple[int, int]:
-    """``size = (H, W)`` with positive integer sides."""
+    """``size = (H, W)`` with positive integer sides (a 0-d integer tensor read as its int, as by :func:`check_int`)."""
     if isinstance(size, torch.Size):
         size = tuple(size)
     if not isinstance(size, (tuple, list)) or len(size) != 2:
         raise TypeError(f"{name}: expected (H, W), got {size!r}")
-    out = []
+    out, size = [], tuple(scalar(s, name) for s in size)  # (a 0-d tensor side was refused as not an integer)
     for s in size:
         if isinstance(s, bool) or not isinstance(s, numbers.Integral):
             raise TypeError(f"{name}: expected integer sides (H, W), got {size!r}")

@@ -188,9 +188,34 @@ def test_check_finite_and_positive():
         check_positive(torch.tensor([float("nan")]), "h")
 
 
-@pytest.mark.parametrize("size, want", [((3, 4), (3, 4)), ([5, 6], (5, 6)), (torch.Size([7, 8]), (7, 8))])
+@pytest.mark.parametrize("size, want", [((3, 4), (3, 4)), ([5, 6], (5, 6)), (torch.Size([7, 8]), (7, 8)),
+                                        ((torch.tensor(3), np.int64(4)), (3, 4))])
 def test_check_size(size, want):
-    assert check_size(size) == want
+    got = check_size(size)
+    assert got == want and all(type(s) is int for s in got)
+
+
+def test_a_size_of_0_d_integer_tensors_is_read_as_ints_as_whole_number_options_are():
+    """docs/reliability.md: a whole-number option takes a 0-d integer tensor as its int (the refiner's
+    min_pixels, Camera.padded, ImageGate's grid); a size (H, W) of two, as ``tuple(sizes[i])`` of a
+    batch's (B, 2) sizes gives it, was refused as 'expected integer sides' by every function."""
+    import fsof_torch as fs
+
+    H, W = torch.tensor(12), torch.tensor(40)
+    camera = fs.Camera(torch.tensor([[50.0, 0.0, 20.0], [0.0, 50.0, 4.0], [0.0, 0.0, 1.0]]), 1.65)
+    flow, valid = fs.displacement_flow(camera, 0.0, 1.0, 0.0, (H, W))
+    want = fs.displacement_flow(camera, 0.0, 1.0, 0.0, (12, 40))
+    assert torch.equal(flow, want[0]) and torch.equal(valid, want[1]) and flow.shape == (1, 2, 12, 40)
+    assert fs.DisplacementFlow((H, W)).size == (12, 40) and repr(fs.RoadFlow((H, W))) == "RoadFlow(size=(12, 40), model='paper')"
+    assert torch.equal(fs.road_seed(camera, (H, W)), fs.road_seed(camera, (12, 40)))
+    assert fs.InputPadder(8).padding((torch.tensor(375), torch.tensor(1242))) == fs.InputPadder(8).padding((375, 1242))
+    for bad, err, msg in (((torch.tensor(3.0), 4), TypeError, r"expected integer sides \(H, W\), got \(3.0, 4\)"),
+                          ((torch.tensor(True), 4), TypeError, "expected integer sides"),
+                          ((torch.tensor([3]), 4), TypeError, "expected integer sides"),
+                          ((torch.tensor(0), 4), ValueError, r"expected positive sides \(H, W\), got \(0, 4\)"),
+                          ((torch.tensor(3, device="meta"), 4), ValueError, "size: expected a Python number, got a tensor on the meta")):
+        with pytest.raises(err, match=msg):
+            check_size(bad)
 
 
 @pytest.mark.parametrize("size, err, msg", [
