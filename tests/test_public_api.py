@@ -197,3 +197,21 @@ def test_module_reprs_show_their_options():
                                      "f": (0.1, fsof_torch.FreespaceFlowLoss())})
     assert repr(loss).splitlines()[1] == "  weights={'u': 1.0, 'x': 0.5, 'f': 0.1}, functions={'x': len}"
     assert repr(fsof_torch.TinyRAFT(iters=2, corr_radius=2)).splitlines()[1] == "  iters=2, corr_levels=3, corr_radius=2"
+
+
+def test_the_refiner_module_takes_every_option_of_refine_flow_but_road_options():
+    """docs/refinement.md: ``FreespaceRefiner(**options)`` is ``refine_flow``'s twin, with all its
+    options but ``road_options`` (which the page said nothing of: ``FreespaceRefiner(road_options=...)``
+    is a TypeError; ``refine_flow`` and ``FreespaceRefined`` take them)."""
+    import inspect
+    import re
+    from pathlib import Path
+
+    calls = {"flow", "mask", "camera", "odometry", "images", "starts"}
+    function = set(inspect.signature(fsof_torch.refine_flow).parameters) - calls
+    module = set(inspect.signature(fsof_torch.FreespaceRefiner).parameters)
+    assert function - module == {"road_options"} and module - function == set()
+    assert set(fsof_torch.FreespaceRefiner().refine_options()) == module
+    assert "road_options" in inspect.signature(fsof_torch.FreespaceRefined).parameters
+    page = " ".join((Path(__file__).parents[1] / "docs" / "refinement.md").read_text().split())
+    assert re.search(r"Its options are all of `refine_flow`'s but `road_options`", page)
