@@ -389,10 +389,28 @@ def test_accumulator_device_is_checked_and_named():
     ... device type at start of device string: gpu', naming no argument."""
     for device in ("cpu", torch.device("cpu"), None):
         assert FlowMetricAccumulator(device=device).state.device == torch.device("cpu")
-    with pytest.raises(ValueError, match=r"device: expected None, a torch.device or a device string .*got 'gpu'"):
+    with pytest.raises(ValueError, match=r"device: expected None, a torch.device, a device string .*got 'gpu'"):
         FlowMetricAccumulator(device="gpu")
     with pytest.raises(TypeError, match=r"device: expected .*got 1.5"):
         FlowMetricAccumulator(device=1.5)
+
+
+def test_accumulator_device_index_is_named_as_one():
+    """The docstring takes a device index: where torch has no accelerator for it, the index was a
+    TypeError whose message listed the types it takes without an index, as if an int were the wrong
+    type; it is a ValueError that says why. A bool, which torch reads as index 1, is a TypeError."""
+    if torch.accelerator.is_available():
+        assert FlowMetricAccumulator(device=0).state.device == torch.device(0)
+    else:
+        for index in (0, np.int64(1)):
+            with pytest.raises(ValueError, match=r"^device: expected None, a torch.device, a device string such as "
+                                                 r"'cpu' or 'cuda:0' or a device index, got (0|np\.int64\(1\)) \(.+\)$"):
+                FlowMetricAccumulator(device=index)
+    with pytest.raises(ValueError, match=r"got -1 \(.*negative"):
+        FlowMetricAccumulator(device=-1)
+    for flag in (True, False):
+        with pytest.raises(TypeError, match=rf"^device: expected .* or a device index, got {flag}$"):
+            FlowMetricAccumulator(device=flag)
 
 
 def test_accumulator_compute_over_nothing_counted_warns():

@@ -48,7 +48,8 @@ import math
 import torch
 from torch import Tensor
 
-from .._check import all_finite, check_bool, check_float_tensor, check_shape, result_dtype, skip_values, to_device
+from .._check import (all_finite, check_bool, check_float_tensor, check_shape, is_number, result_dtype, skip_values,
+                      to_device)
 from ..warn import warn_user
 
 __all__ = [
@@ -361,15 +362,19 @@ class FlowMetricAccumulator:
     def __init__(self, *, device: torch.device | str | None = None) -> None:
         """``device``: where the sums are held (None: the default device), a ``torch.device``, a
         device string such as ``"cuda:0"`` or a device index; anything else a ValueError (an
-        unknown string such as ``"gpu"``, or the meta device, which holds no sums) or a TypeError
-        naming ``device``."""
+        unknown string such as ``"gpu"``, an index without an accelerator, or the meta device,
+        which holds no sums) or a TypeError (a bool, a float) naming ``device``."""
         if device is not None and not isinstance(device, torch.device):
-            try:  # (torch's RuntimeError for "gpu" named no argument)
+            try:  # (torch's RuntimeError for "gpu" named no argument; True would be torch's index 1)
+                if isinstance(device, bool):
+                    raise TypeError("a bool")
                 device = torch.device(device)
-            except (RuntimeError, TypeError):
-                error = ValueError if isinstance(device, str) else TypeError
-                raise error(f"device: expected None, a torch.device or a device string such as 'cpu' or "
-                            f"'cuda:0', got {device!r}") from None
+            except (RuntimeError, TypeError) as exc:
+                # (an index, which torch takes as the accelerator's, was called the wrong type where there is none)
+                index = is_number(device, integer=True)
+                error = ValueError if isinstance(device, str) or index else TypeError
+                raise error(f"device: expected None, a torch.device, a device string such as 'cpu' or 'cuda:0' or "
+                            f"a device index, got {device!r}" + (f" ({exc})" if index else "")) from None
         n = len(_MAPS)
         # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
         self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
