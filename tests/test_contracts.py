@@ -164,6 +164,35 @@ class TestPtlflowInputs:
             out = model({"images": images}, camera=scene["camera"], mask=scene["road"], odometry=scene["odometry"])
         assert out["flows"].shape == (1, 1, 2, *SIZE) and bool(torch.isfinite(out["flows"]).all())
 
+    def test_a_multi_frame_input_is_refused_not_read_as_its_first_two_frames(self, scene):
+        """ptlflow's VideoFlow takes 3 frames (B, 3, 3, H, W) and returns the flow of the middle
+        frame to the last; the dict's first two frames were taken as the flow's pair, so the
+        refiner fitted and gated that flow with the wrong images (here the road found in two
+        identical frames: "static", left unrefined). Only a pair is taken now."""
+        im1, im2 = scene["image1"], scene["image2"]
+        pair = ptlflow_inputs(im1, im2)["images"]
+        three = {"images": torch.cat([pair[:, :1], pair], 1)}  # frames (1, 1, 2): its flow is 1 -> 2
+
+        class VideoFlowLike(torch.nn.Module):
+            calls = 0
+
+            def forward(self, inputs):
+                VideoFlowLike.calls += 1
+                return {"flows": torch.zeros(1, 1, 2, *inputs["images"].shape[-2:])}
+
+        msg = r"^{}\['images'\]: expected shape \(B, 2, 3, H, W\) .*got \(1, 3, 3, 53, 94\): the pair of a 3-frame input"
+        with pytest.raises(ValueError, match=msg.format("inputs")):
+            FreespaceRefined(VideoFlowLike(), road="auto")(three, camera=scene["camera"])
+        assert VideoFlowLike.calls == 0  # (refused before the network runs)
+        with pytest.raises(ValueError, match=msg.format("images")):
+            refine_flow(torch.zeros(1, 2, *SIZE), scene["road"], scene["camera"], images=three)
+        with pytest.raises(ValueError, match=msg.format("inputs")):
+            images_from_ptlflow(three)
+        # the pair itself is read as it was
+        back1, back2 = images_from_ptlflow({"images": pair})
+        torch.testing.assert_close(back1, im1, atol=1e-4, rtol=0)
+        torch.testing.assert_close(back2, im2, atol=1e-4, rtol=0)
+
     @pytest.mark.parametrize("shape, letter", [((0, 3, 5, 6), "B"), ((1, 3, 0, 6), "H"), ((1, 3, 5, 0), "W")])
     def test_empty_images_are_refused(self, shape, letter):
         """An empty batch or side gave an empty ptlflow dict."""

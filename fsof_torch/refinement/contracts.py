@@ -17,7 +17,8 @@ resolution, and comes back in the same containers:
   order) in [0, 1]; it returns ``{"flows": (B, 1, 2, H, W), ...}`` at the input size. Its RAFT
   models pad the images internally to a multiple of 8 (replicating the border, on both sides)
   and add ``"flow_small"`` (B, 2, Hp/8, Wp/8): the flow at 1/8 of the *padded* size, in pixels
-  of that grid. :func:`ptlflow_inputs` and :func:`images_from_ptlflow` convert.
+  of that grid. :func:`ptlflow_inputs` and :func:`images_from_ptlflow` convert (one pair: the
+  flows of a multi-frame input, N > 2, are of the pair its model picks, so it is refused).
 - *torchvision*: ``raft_large()(image1, image2)`` with (B, 3, H, W) RGB in [-1, 1] and H, W
   divisible by 8; it returns a list of (B, 2, H, W), one per update, the last the estimate.
 - *RAFT* (the authors' code) and :class:`fsof_torch.TinyRAFT`: (B, 3, H, W) RGB on 0..255; a
@@ -218,9 +219,15 @@ def _ptlflow_images(inputs: Mapping[str, Any], name: str = "inputs") -> Tensor:
                         f"{type(inputs).__name__} without 'images' (keys {list(inputs)!r})")
     images = inputs["images"]
     check_float_tensor(images, f"{name}['images']")
-    if images.dim() != 5 or images.shape[1] < 2 or images.shape[2] != 3:
+    if images.dim() != 5 or images.shape[1] != 2 or images.shape[2] != 3:
+        # (a multi-frame input's flows are of the pair its model picks: ptlflow's VideoFlow takes 3
+        # frames and returns the flow of the middle one to the last, not of the first two)
+        several = images.dim() == 5 and images.shape[1] > 2 and images.shape[2] == 3
         raise ValueError(f"{name}['images']: expected shape (B, 2, 3, H, W) (two BGR images in [0, 1]), "
-                         f"got {tuple(images.shape)}")
+                         f"got {tuple(images.shape)}" + (
+                             f": the pair of a {images.shape[1]}-frame input is the model's choice (VideoFlow's "
+                             f"flows are of its middle frame to the next); refine its output with "
+                             f"refine_flow(..., images=(image1, image2)), the two frames of its flow" if several else ""))
     if images.shape[0] == 0 or images.shape[-1] == 0 or images.shape[-2] == 0:
         raise ValueError(f"{name}['images']: expected B, H and W of at least 1, got {tuple(images.shape)}")
     if not tracing() and images.device.type != "meta":
@@ -255,7 +262,7 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
 
 
 def images_from_ptlflow(inputs: Mapping[str, Any], name: str = "inputs") -> tuple[Tensor, Tensor]:
-    """The first two images of a ptlflow input dict as (B, 3, H, W) RGB on 0..255 (the range
+    """The two images of a ptlflow input dict as (B, 3, H, W) RGB on 0..255 (the range
     the refiner's photometric fit and freespace detection read); ``name``: the argument the
     errors name."""
     images = _ptlflow_images(inputs, name)
