@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
 from fsof_torch.training.standins import PtlflowRAFTStandIn, TorchvisionRAFTStandIn
 
@@ -110,9 +111,36 @@ def test_on_the_meta_device_both_contracts_give_their_shapes_through_the_wrapper
     with torch.no_grad():
         flows = tv(image, image, camera=cam, mask=road, odometry=motion, num_flow_updates=2)
     assert [(f.device.type, tuple(f.shape)) for f in flows] == [("meta", (1, 2, 13, 21))] * 2
-    pl = fs.FreespaceRefined(PtlflowRAFTStandIn(iters=2), refiner, pad=fs.InputPadder(8)).to("meta")
+    pl = fs.FreespaceRefined(PtlflowRAFTStandIn(iters=2).eval(), refiner, pad=fs.InputPadder(8)).to("meta")
     inputs = {"images": ptlflow_inputs(rgb, rgb)["images"].to("meta")}
     with torch.no_grad():
         out = pl(inputs, camera=cam, mask=road, odometry=motion)
     assert {k: (v.device.type, tuple(v.shape)) for k, v in out.items()} == {
         "flows": ("meta", (1, 1, 2, 13, 21)), "flow_small": ("meta", (1, 2, 2, 3))}
+
+
+def test_ptlflow_training_mode_returns_flow_preds_as_ptlflows_raft():
+    """ptlflow's RAFT returns {"flows", "flow_preds"} in training mode (every iteration's flow at
+    the input size; "flow_small" only in eval mode): the stand-in returned its eval dict in both
+    modes, so code tested with it that read "flow_small" in training, or "flow_preds", would
+    fail on ptlflow's network."""
+    from fsof_torch import TinyRAFT
+
+    g = torch.Generator().manual_seed(3)
+    images = torch.rand(1, 2, 3, 13, 21, generator=g)
+    net = PtlflowRAFTStandIn(seed=0, iters=3)
+    assert net.training
+    with torch.no_grad():
+        out = net({"images": images})
+        # by hand: 13 x 21 padded to 16 x 24 as (left, right, top, bottom) = (1, 2, 1, 2), BGR -> RGB 0..255
+        rgb = F.pad(images[0].flip(1) * 255.0, (1, 2, 1, 2), mode="replicate")
+        expected = [f[..., 1:14, 1:22] for f in TinyRAFT(seed=0, iters=3).train()(rgb[:1], rgb[1:])]
+        evaluated = net.eval()({"images": images})
+    assert sorted(out) == ["flow_preds", "flows"]
+    assert len(out["flow_preds"]) == 3 and all(f.shape == (1, 2, 13, 21) for f in out["flow_preds"])
+    for got, want in zip(out["flow_preds"], expected):
+        torch.testing.assert_close(got, want, atol=1e-5, rtol=0)
+    assert torch.equal(out["flows"], out["flow_preds"][-1][:, None])
+    # eval mode: the same estimate, with flow_small on the padded 1/8 grid (2 x 3) in its pixels
+    assert sorted(evaluated) == ["flow_small", "flows"] and evaluated["flow_small"].shape == (1, 2, 2, 3)
+    torch.testing.assert_close(evaluated["flows"], out["flows"], atol=1e-5, rtol=0)

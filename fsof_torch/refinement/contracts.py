@@ -17,7 +17,8 @@ resolution, and comes back in the same containers:
   order) in [0, 1]; it returns ``{"flows": (B, 1, 2, H, W), ...}`` at the input size. Its RAFT
   models pad the images internally to a multiple of 8 (replicating the border, on both sides)
   and add ``"flow_small"`` (B, 2, Hp/8, Wp/8): the flow at 1/8 of the *padded* size, in pixels
-  of that grid. :func:`ptlflow_inputs` and :func:`images_from_ptlflow` convert (one pair: the
+  of that grid (in eval mode; in training mode ``"flow_preds"`` instead, every iteration's flow
+  at the input size). :func:`ptlflow_inputs` and :func:`images_from_ptlflow` convert (one pair: the
   flows of a multi-frame input, N > 2, are of the pair its model picks, so it is refused).
 - *torchvision*: ``raft_large()(image1, image2)`` with (B, 3, H, W) RGB in [-1, 1] and H, W
   divisible by 8; it returns a list of (B, 2, H, W), one per update, the last the estimate.

@@ -1,8 +1,10 @@
 """Stand-ins for the flow networks users bring: the I/O contracts of ptlflow's RAFT and of
 torchvision's RAFT, reproduced exactly (shapes, colour order, value range, padding), around the
-test net :class:`~fsof_torch.training.testnet.TinyRAFT`. One default differs: the torchvision
-stand-in's ``num_flow_updates`` is 4, torchvision's ``RAFT.forward`` 12 (kept small so the
-tests and jobs that run it stay quick); pass ``num_flow_updates=12`` for torchvision's count.
+test net :class:`~fsof_torch.training.testnet.TinyRAFT`, in eval and in training mode. Two
+defaults differ: the torchvision stand-in's ``num_flow_updates`` is 4, torchvision's
+``RAFT.forward`` 12 (kept small so the tests and jobs that run it stay quick); pass
+``num_flow_updates=12`` for torchvision's count; likewise the ptlflow stand-in's ``iters`` is 4,
+ptlflow's RAFT runs 12 (the length of its ``"flow_preds"`` in training mode).
 
 They exist to test code that wraps such networks (:class:`fsof_torch.FreespaceRefined`, the
 refine job's ``--net``) without installing ptlflow or torchvision or downloading weights. Their
@@ -26,7 +28,7 @@ __all__ = ["PtlflowRAFTStandIn", "TorchvisionRAFTStandIn", "ptlflow_raft", "torc
 
 
 class PtlflowRAFTStandIn(nn.Module):
-    """ptlflow's RAFT contract (in eval mode).
+    """ptlflow's RAFT contract, in eval and in training mode.
 
     ``forward(inputs)`` with ``inputs["images"]`` (B, 2, 3, H, W), BGR in [0, 1], any B, H and
     W >= 1 (an empty batch or side raises ValueError naming ``inputs['images']``; the range is not
@@ -35,8 +37,12 @@ class PtlflowRAFTStandIn(nn.Module):
     between both sides), converts BGR to RGB and returns
 
     - ``"flows"``: (B, 1, 2, H, W), the estimate at the input size (the padding cropped off);
-    - ``"flow_small"``: (B, 2, Hp/8, Wp/8), the estimate at 1/8 of the *padded* size, in pixels of
-      that grid (here: the full-resolution estimate averaged over 8×8 blocks, divided by 8).
+    - in eval mode ``"flow_small"``: (B, 2, Hp/8, Wp/8), the estimate at 1/8 of the *padded*
+      size, in pixels of that grid (here: the full-resolution estimate averaged over 8×8 blocks,
+      divided by 8);
+    - in training mode, instead of ``"flow_small"``, ``"flow_preds"``: a list of every
+      iteration's flow (B, 2, H, W) at the input size, the last the estimate (``iters`` of them;
+      ptlflow's RAFT runs 12).
 
     Args:
         net: the TinyRAFT inside (default: ``TinyRAFT(seed=seed, iters=iters)``).
@@ -63,6 +69,9 @@ class PtlflowRAFTStandIn(nn.Module):
         H, W = images.shape[-2:]
         padding = self.padder.padding((H, W))
         rgb = padding.pad(images).flip(2) * 255.0      # BGR [0, 1] -> RGB 0..255, padded
+        if self.training:  # (ptlflow's RAFT: every iteration's flow, cropped, and no flow_small)
+            preds = [padding.unpad(f) for f in self.net(rgb[:, 0], rgb[:, 1])]
+            return {"flows": preds[-1][:, None], "flow_preds": preds}
         up = self.net(rgb[:, 0], rgb[:, 1])[-1]        # (B, 2, Hp, Wp): divisible, TinyRAFT pads nothing
         small = F.avg_pool2d(up, self.output_stride) / self.output_stride
         return {"flows": padding.unpad(up)[:, None], "flow_small": small}
