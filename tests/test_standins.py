@@ -144,3 +144,29 @@ def test_ptlflow_training_mode_returns_flow_preds_as_ptlflows_raft():
     # eval mode: the same estimate, with flow_small on the padded 1/8 grid (2 x 3) in its pixels
     assert sorted(evaluated) == ["flow_small", "flows"] and evaluated["flow_small"].shape == (1, 2, 2, 3)
     torch.testing.assert_close(evaluated["flows"], out["flows"], atol=1e-5, rtol=0)
+
+
+def test_torchvision_overshoot_the_wrapper_lets_through_runs():
+    """FreespaceRefined(image_range=(-1, 1)) lets values up to 1 % of the range's width beyond it
+    through (a resize's overshoot), and torchvision's RAFT runs on them, but the stand-in raised
+    "expected RGB values in [-1, 1]": it takes them now (clipped for TinyRAFT), and still refuses
+    values beyond that."""
+    import fsof_torch as fs
+    from fsof_torch.data.scene import render_pair
+
+    p = render_pair("default", 0, size=(16, 24))
+    im1, im2 = (p[k][None] / 127.5 - 1 for k in ("image1", "image2"))
+    over = im1.clone()
+    over[0, 0, 3, 4], over[0, 2, 5, 6] = 1.015, -1.02
+    net = TorchvisionRAFTStandIn().eval()
+    with torch.no_grad():
+        flows = net(over, im2, num_flow_updates=2)
+        expected = net(over.clamp(-1, 1), im2, num_flow_updates=2)
+        assert torch.equal(flows[-1], expected[-1])
+        model = fs.FreespaceRefined(net, fs.FreespaceRefiner(gate=None), image_range=(-1, 1))
+        odo = {k: float(p["odometry"][k]) for k in ("x_d", "z_d", "yaw")}
+        out = model(over, im2, camera=p["camera"].to(torch.float32), mask=p["road"][None], odometry=odo)
+    assert len(out) == 4 and bool(torch.isfinite(out[-1]).all())
+    over[0, 1, 7, 8] = 1.03
+    with pytest.raises(ValueError, match=r"^image1, image2: expected RGB values in \[-1, 1\], got \[-1\.02, 1\.03\]$"):
+        net(over, im2)
