@@ -139,6 +139,15 @@ class TestPtlflowInputs:
         with pytest.raises(ValueError, match="image2: expected the shape of image1"):
             ptlflow_inputs(torch.zeros(1, 3, 5, 7), torch.zeros(1, 3, 5, 8))
 
+    def test_images_on_two_devices_name_image2(self):
+        """torch.stack raised its own RuntimeError ("Tensor on device meta is not on the expected
+        device cpu!"), naming neither image; the meta device stands for another GPU or the CPU."""
+        im = torch.full((1, 3, 5, 7), 128.0)
+        with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(cpu\), got meta$"):
+            ptlflow_inputs(im, im.to("meta"))
+        with pytest.raises(ValueError, match=r"^image2: expected the device of image1 \(meta\), got cpu$"):
+            ptlflow_inputs(im.to("meta"), im)
+
     def test_structure_errors_name_inputs(self):
         """A tensor gave an IndexError, a dict without 'images' a bare KeyError."""
         with pytest.raises(TypeError, match=r"^inputs: expected ptlflow's dict \{'images': .*\}, got Tensor$"):

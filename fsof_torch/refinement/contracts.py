@@ -43,8 +43,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (batch_choices, check_data_range, check_float_tensor, check_image_range, check_int, check_shape,
-                      check_size, same_mapping, tracing)
+from .._check import (batch_choices, check_data_range, check_float_tensor, check_image_range, check_int,
+                      check_same_device, check_shape, check_size, same_mapping, tracing)
 from ..geometry.camera import Camera
 
 __all__ = [
@@ -243,7 +243,8 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     """ptlflow's input dict from two RGB images: ``{"images": (B, 2, 3, H, W)}``, BGR in [0, 1].
 
     Args:
-        image1, image2: (B, 3, H, W) RGB on 0..``data_range``, B, H and W at least 1 (finite;
+        image1, image2: (B, 3, H, W) RGB on 0..``data_range``, of one shape and on one device
+            (else a ValueError naming ``image2``), B, H and W at least 1 (finite;
             checked as the refiner checks its images: 0..1 images with the default
             ``data_range=255.0`` are an error, not near-black input). Values the check lets
             through beyond the range (up to 1 % of it, a resize's overshoot) are clipped to
@@ -256,6 +257,7 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
         check_shape(im, name, ("B", 3, "H", "W"), nonempty=("B", "H", "W"))
     if image1.shape != image2.shape:
         raise ValueError(f"image2: expected the shape of image1 {tuple(image1.shape)}, got {tuple(image2.shape)}")
+    check_same_device({"image1": image1, "image2": image2})  # (torch.stack's error names neither)
     for name, im in (("image1", image1), ("image2", image2)):
         check_image_range(im, name, data_range)
     pair = (torch.stack([image1, image2], dim=1) / float(data_range)).clamp(0.0, 1.0)
