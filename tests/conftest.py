@@ -76,6 +76,30 @@ def interrupted(monkeypatch) -> Callable[[object, str, Callable[[], object]], No
 
     return run_interrupted
 
+@pytest.fixture(params=[
+    ({"WORLD_SIZE": "2"}, "environment variable RANK: not set, while WORLD_SIZE is 2"),
+    ({"WORLD_SIZE": "two"}, "environment variable WORLD_SIZE: expected a whole number from 1 up"),
+    ({"WORLD_SIZE": "0"}, "environment variable WORLD_SIZE: expected a whole number from 1 up"),
+    ({"WORLD_SIZE": "2", "RANK": "2"}, "environment variable RANK: expected a whole number from 0 to 1"),
+    ({"WORLD_SIZE": "2", "RANK": "0", "LOCAL_RANK": "x"}, "environment variable LOCAL_RANK: expected"),
+], ids=["no-rank", "size-two", "size-0", "rank-2", "local-rank-x"])
+def torchrun_environment(request, monkeypatch) -> tuple[dict[str, str], str, str]:
+    """torchrun's variables as torchrun never sets them (a WORLD_SIZE left in the shell, values
+    that are no whole number in their range), with joining a process group a test failure:
+    (the variables, the start of the job's message, what the message quotes: the value, or for
+    a missing RANK the advice to start with torchrun)."""
+    import torch.distributed as dist
+
+    env, message = request.param
+    for name in ("WORLD_SIZE", "RANK", "LOCAL_RANK"):
+        monkeypatch.delenv(name, raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    monkeypatch.setattr(dist, "init_process_group", lambda **kwargs: pytest.fail("joined a process group"))
+    variable = message.split()[2].rstrip(":")
+    return env, message, f"got {env[variable]!r}" if variable in env else "start the job with torchrun"
+
+
 @pytest.fixture
 def shared_data() -> Path:
     """The folder of real KITTI samples beside the project; tests using it skip when absent."""
