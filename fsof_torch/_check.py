@@ -399,8 +399,8 @@ def check_data_range(data_range: object, name: str = "data_range") -> float:
 def sample_extremes(x: Tensor) -> tuple[list[float], list[float]]:
     """Each sample's minimum and maximum (x (B, ...); another rank: one sample), one pass, one host read
     (per sample: on the CPU, torch.aminmax(x.flatten(1), dim=1) takes 20 times as long as over all)."""
-    values = torch.stack([torch.stack(torch.aminmax(s)) for s in (x.unbind(0) if x.dim() == 4 else (x,))]).T.tolist()
-    return values[0], values[1]  # (NaN propagates into both)
+    with autocast_off(x):  # (autocast's stack refuses a half dtype other than its own; NaN propagates into both)
+        return tuple(torch.stack([torch.stack(torch.aminmax(s)) for s in (x.unbind(0) if x.dim() == 4 else (x,))]).T.tolist())
 
 
 def check_image_range(image: Tensor, name: str, data_range: float | tuple[float, float]) -> None:

@@ -120,6 +120,23 @@ def test_half_precision_prediction_keeps_its_dtype(amp, case):
     assert torch.equal(got.flow[outside], half[outside])
 
 
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-under-bf16", "bf16-under-f16"])
+def test_half_images_under_autocast_of_the_other_half_dtype(half, amp):
+    """Frames held in float16 under bfloat16 autocast (or the reverse) stopped the refiner with
+    torch's RuntimeError "Unexpected floating ScalarType in at::autocast::prioritize" (the
+    images' range check stacked their extremes, and autocast's stack refuses the half dtype it
+    does not cast to): the refinement is the one without autocast."""
+    pred, road, cam, images, odo = scene(B=2)
+    images = tuple(image.to(half) for image in images)
+    reference = run(FreespaceRefiner(), pred, road, cam, images=images)
+    assert bool(reference.refined.all())
+    with torch.autocast("cpu", dtype=amp):
+        got = run(FreespaceRefiner(), pred, road, cam, images=images)
+    assert got.flow.dtype == torch.float32
+    assert torch.equal(got.flow, reference.flow) and torch.equal(got.refined, reference.refined)
+
+
 # -- the meta device ----------------------------------------------------------------------------------
 
 def _meta_camera(cam: Camera) -> Camera:

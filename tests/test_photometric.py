@@ -437,6 +437,23 @@ def test_autocast_bfloat16():
     torch.testing.assert_close(got, ref)
 
 
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-under-bf16", "bf16-under-f16"])
+def test_half_images_under_autocast_of_the_other_half_dtype(half, amp):
+    """float16 images under bfloat16 autocast (or the reverse) raised torch's RuntimeError
+    "Unexpected floating ScalarType in at::autocast::prioritize" from the images' range check
+    (autocast's stack refuses the half dtype it does not cast to). Each kind now gives the error
+    of the images lifted to float32, as without autocast."""
+    i1, i2, flow = _shifted_pair()
+    i1, i2 = i1.to(half), i2.to(half)
+    for kind in ("l1", "ssim", "census"):
+        ref = photometric_error(i1.float(), i2.float(), flow * 0.5, kind=kind)
+        with torch.autocast(device_type="cpu", dtype=amp):
+            got = photometric_error(i1, i2, flow * 0.5, kind=kind)
+        assert got.dtype == torch.float32
+        torch.testing.assert_close(got, ref, rtol=0, atol=0)
+
+
 # --- real data (KITTI 2015 pair 000000) --------------------------------------------------------
 
 def _read_kitti(shared_data):
