@@ -191,6 +191,24 @@ def test_a_net_held_in_half_precision_looks_up_at_float32_positions(monkeypatch,
     assert [f.dtype for f in flows] == [dtype, dtype]
 
 
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-under-bf16", "bf16-under-f16"])
+def test_half_images_under_autocast_of_the_other_half_dtype(half, amp):
+    """float16 frames into a float32 net under bfloat16 autocast (or the reverse) raised torch's
+    RuntimeError "Unexpected floating ScalarType in at::autocast::prioritize" (autocast's stack
+    and cat refuse the half dtype they do not cast to): the flows are those of the frames lifted
+    to float32 under the same autocast."""
+    net = TinyRAFT(seed=0, iters=2)
+    image1, image2 = _pair(1, 24, 40)
+    image1, image2 = image1.to(half), image2.to(half)
+    with torch.no_grad(), torch.autocast("cpu", dtype=amp):
+        got = net(image1, image2)
+        ref = net(image1.float(), image2.float())
+    assert [f.dtype for f in got] == [torch.float32] * 2
+    for g, r in zip(got, ref):
+        torch.testing.assert_close(g, r, rtol=0, atol=0)
+
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_rejects_bad_inputs():

@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from .._check import check_float_tensor, check_image_range, check_int, check_same_device, check_shape, skip_values
+from .._check import autocast_off, check_float_tensor, check_image_range, check_int, check_same_device, check_shape, skip_values
 
 __all__ = ["TinyRAFT", "count_parameters"]
 
@@ -271,8 +271,9 @@ class TinyRAFT(nn.Module):
         if not isinstance(final_only, bool):
             raise TypeError(f"final_only: expected a bool, got {type(final_only).__name__}")
         if not skip_values(image1, image2):
-            lo1, hi1, lo2, hi2 = torch.stack([image1.detach().amin(), image1.detach().amax(),
-                                              image2.detach().amin(), image2.detach().amax()]).tolist()
+            with autocast_off(image1):  # (autocast's stack and cat refuse a half dtype other than its own)
+                lo1, hi1, lo2, hi2 = torch.stack([image1.detach().amin(), image1.detach().amax(),
+                                                  image2.detach().amin(), image2.detach().amax()]).tolist()
             for name, lo, hi in (("image1", lo1, hi1), ("image2", lo2, hi2)):
                 if not (0 <= lo and hi <= 255):  # NaN fails both comparisons
                     raise ValueError(f"{name}: expected values on 0..255 (finite), got the range [{lo:.4g}, {hi:.4g}]")
@@ -281,7 +282,7 @@ class TinyRAFT(nn.Module):
                 check_image_range(image, name, 255.0)
         B, H, W = dims["B"], dims["H"], dims["W"]
         weight = self.fnet.out.weight
-        x = torch.cat([image1, image2], dim=0).to(weight.dtype) / 127.5 - 1.0
+        x = torch.cat([image1.to(weight.dtype), image2.to(weight.dtype)], dim=0) / 127.5 - 1.0
         # Pad symmetrically to a multiple of the stride; replicate so the border carries no edge.
         ph, pw = (-H) % STRIDE, (-W) % STRIDE
         if H + ph == STRIDE and W + pw == STRIDE:
