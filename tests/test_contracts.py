@@ -114,6 +114,25 @@ class TestStructures:
                                              r"\(B, N, 2, H, W\) stack, got N = 0 \(shape \(1, 0, 2, 53, 94\)\)$"):
             refine_flow({"flows": torch.zeros(1, 0, 2, *SIZE)}, scene["road"], scene["camera"], scene["odometry"])
 
+    @pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                             ids=["f16-under-bf16", "bf16-under-f16"])
+    def test_half_ptlflow_stack_under_autocast_of_the_other_half_dtype(self, scene, half, amp):
+        """A (B, N, 2, H, W) stack held in float16 refined under bfloat16 autocast (or the
+        reverse) raised torch's RuntimeError "Unexpected floating ScalarType in
+        at::autocast::prioritize" when the refined predictions were stacked again (autocast's
+        stack refuses the half dtype it does not cast to): it is the stack refined without
+        autocast, in its own dtype, each prediction refined as alone."""
+        flow, _ = displacement_flow(scene["camera"], scene["odometry"]["x_d"], scene["odometry"]["z_d"],
+                                    scene["odometry"]["yaw"], SIZE)
+        stack = torch.stack([flow * 0.6, flow * 0.8], dim=1).to(half)
+        args = scene["road"], scene["camera"], scene["odometry"]
+        reference = refine_flow({"flows": stack}, *args).flow["flows"]
+        with torch.autocast("cpu", dtype=amp):
+            got = refine_flow({"flows": stack}, *args).flow["flows"]
+        assert got.dtype == half and torch.equal(got, reference)
+        for n in range(2):
+            assert torch.equal(got[:, n], refine_flow(stack[:, n], *args).flow)
+
 
 # -- ptlflow inputs --------------------------------------------------------------------------------
 
@@ -201,6 +220,20 @@ class TestPtlflowInputs:
         back1, back2 = images_from_ptlflow({"images": pair})
         torch.testing.assert_close(back1, im1, atol=1e-4, rtol=0)
         torch.testing.assert_close(back2, im2, atol=1e-4, rtol=0)
+
+    @pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                             ids=["f16-under-bf16", "bf16-under-f16"])
+    def test_half_images_under_autocast_of_the_other_half_dtype(self, half, amp):
+        """float16 images under bfloat16 autocast (or the reverse) raised torch's RuntimeError
+        "Unexpected floating ScalarType in at::autocast::prioritize" from the pair's stack: the
+        dict is the one without autocast, in the images' dtype."""
+        g = torch.Generator().manual_seed(0)
+        im1, im2 = ((torch.rand(2, 3, 5, 7, generator=g) * 255).to(half) for _ in range(2))
+        with torch.autocast("cpu", dtype=amp):
+            images = ptlflow_inputs(im1, im2)["images"]
+        assert images.dtype == half
+        assert torch.equal(images, ptlflow_inputs(im1, im2)["images"])
+        assert torch.equal(images[:, 0, 0], (im1[:, 2] / 255).clamp(0, 1))
 
     @pytest.mark.parametrize("shape, letter", [((0, 3, 5, 6), "B"), ((1, 3, 0, 6), "H"), ((1, 3, 5, 0), "W")])
     def test_empty_images_are_refused(self, shape, letter):

@@ -43,7 +43,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from .._check import (batch_choices, check_data_range, check_float_tensor, check_image_range, check_int,
+from .._check import (autocast_off, batch_choices, check_data_range, check_float_tensor, check_image_range, check_int,
                       check_same_device, check_shape, check_size, same_mapping, tracing)
 from ..geometry.camera import Camera
 
@@ -145,7 +145,9 @@ def map_flows(output: Any, fn: Callable[[Tensor], Tensor],
 def _map_flows(output: Any, fn: Callable[[Tensor], Tensor], flow_keys: tuple[str, ...], name: str) -> Any:
     if isinstance(output, Tensor):
         if output.dim() == 5:  # ptlflow stack (B, N, 2, H, W): each prediction on its own
-            return torch.stack([fn(output[:, n]) for n in range(output.shape[1])], dim=1)
+            flows = [fn(output[:, n]) for n in range(output.shape[1])]
+            with autocast_off(output):  # (autocast's stack refuses a half dtype other than its own)
+                return torch.stack(flows, dim=1)
         return fn(output)
     if isinstance(output, tuple) and hasattr(output, "_fields"):  # a NamedTuple
         return type(output)(*(_map_flows(v, fn, flow_keys, f"{name}[{i}]") for i, v in enumerate(output)))
@@ -260,7 +262,8 @@ def ptlflow_inputs(image1: Tensor, image2: Tensor, *, data_range: float = 255.0)
     check_same_device({"image1": image1, "image2": image2})  # (torch.stack's error names neither)
     for name, im in (("image1", image1), ("image2", image2)):
         check_image_range(im, name, data_range)
-    pair = (torch.stack([image1, image2], dim=1) / float(data_range)).clamp(0.0, 1.0)
+    with autocast_off(image1):  # (autocast's stack refuses a half dtype other than its own)
+        pair = (torch.stack([image1, image2], dim=1) / float(data_range)).clamp(0.0, 1.0)
     return {"images": pair.flip(2)}  # RGB -> BGR along the channel axis
 
 
