@@ -235,6 +235,21 @@ def test_collate_refuses_tensors_of_different_dtypes_or_devices(key, cast, match
         collate([a, b])
 
 
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-under-bf16", "bf16-under-f16"])
+def test_collate_stacks_half_tensors_under_autocast_of_the_other_half_dtype(half, amp):
+    """Items holding float16 tensors collated under bfloat16 autocast (or the reverse) raised
+    torch's RuntimeError "Unexpected floating ScalarType in at::autocast::prioritize" (autocast's
+    stack refuses the half dtype it does not cast to): they are stacked in their own dtype."""
+    g = torch.Generator().manual_seed(0)
+    a, b = (_item(flow=torch.randn(2, H, W, generator=g).to(half), valid=torch.ones(1, H, W, dtype=torch.bool))
+            for _ in range(2))
+    with torch.autocast("cpu", dtype=amp):
+        batch = collate([a, b])
+    assert batch["flow"].dtype == half and torch.equal(batch["flow"], torch.stack([a["flow"], b["flow"]]))
+    assert batch["image1"].dtype == a["image1"].dtype
+
+
 def test_collate_judges_every_items_dict_alike():
     odo = {"x_d": 0.1, "z_d": 1.0, "yaw": 0.0}
     tensors = {k: torch.tensor(v) for k, v in odo.items()}

@@ -52,7 +52,7 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import check_bool
+from .._check import autocast_off, check_bool
 from ..geometry.camera import Camera
 
 __all__ = ["ITEM_KEYS", "ODOMETRY_KEYS", "as_item", "make_item", "check_item", "check_item_options", "collate",
@@ -334,7 +334,8 @@ def collate(samples: Sequence[Mapping[str, Any]], *, name: str = "samples") -> d
                     raise ValueError(f"{name}: {key!r} has {what} {getattr(first, what)} in {_which(samples, 0)} "
                                      f"but {getattr(values[odd], what)} in {_which(samples, odd)}; batch items of "
                                      f"one {what}")
-            batch[key] = torch.stack(values)
+            with autocast_off(first):  # (autocast's stack refuses a half dtype other than its own)
+                batch[key] = torch.stack(values)
         elif isinstance(first, Camera):
             batch[key] = concat_cameras(values)
         elif isinstance(first, Mapping) and _holds_numbers(first):  # then in every item (_check_samples)
