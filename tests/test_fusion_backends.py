@@ -137,6 +137,27 @@ def test_half_images_under_autocast_of_the_other_half_dtype(half, amp):
     assert torch.equal(got.flow, reference.flow) and torch.equal(got.refined, reference.refined)
 
 
+
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-under-bf16", "bf16-under-f16"])
+def test_half_odometry_with_images_under_autocast_of_the_other_half_dtype(half, amp):
+    """Planar odometry held in float16 beside images, under bfloat16 autocast (or the reverse),
+    raised torch's RuntimeError "Unexpected floating ScalarType in at::autocast::prioritize"
+    from the check of the step's length (a stack of the odometry's translations): the
+    refinement is the one without autocast, and odometry in millimetres is still the
+    ValueError naming it."""
+    pred, road, cam, images, odo = scene(B=2)
+    odo = {k: v.to(half) for k, v in odo.items()}
+    reference = run(FreespaceRefiner(), pred, road, cam, odometry=odo, images=images)
+    assert bool(reference.refined.all())
+    with torch.autocast("cpu", dtype=amp):
+        got = run(FreespaceRefiner(), pred, road, cam, odometry=odo, images=images)
+        assert torch.equal(got.flow, reference.flow) and torch.equal(got.refined, reference.refined)
+        millimetres = {**odo, "z_d": odo["z_d"] * 1000}
+        with pytest.raises(ValueError, match=r"^odometry: sample 0 moves 1\d{3}(\.\d+)? m in a frame"):
+            run(FreespaceRefiner(), pred, road, cam, odometry=millimetres, images=images)
+
+
 # -- the meta device ----------------------------------------------------------------------------------
 
 def _meta_camera(cam: Camera) -> Camera:

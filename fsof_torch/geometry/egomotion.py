@@ -278,8 +278,9 @@ def check_motion_step(params: dict[str, Tensor], name: str = "odometry") -> None
     if not (steps or yaw is not None) or skip_values(*steps, yaw):
         return
     with torch.no_grad():
-        norm = torch.stack(torch.broadcast_tensors(*steps)).to(torch.float64).norm(dim=0).reshape(-1) if steps else \
-            torch.zeros(1, dtype=torch.float64)
+        # (float64 before the stack: autocast's stack refuses a half dtype other than its own)
+        norm = torch.stack([s.to(torch.float64) for s in torch.broadcast_tensors(*steps)]).norm(dim=0).reshape(-1) \
+            if steps else torch.zeros(1, dtype=torch.float64)
         turn = torch.zeros(1, dtype=torch.float64) if yaw is None else yaw.detach().to(torch.float64).abs().reshape(-1)
         far, wraps = norm > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL, ~(turn < torch.pi)  # (NaN: checked before)
         if not bool(far.any() | wraps.any()):
