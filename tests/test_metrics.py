@@ -398,13 +398,17 @@ def test_accumulator_device_is_checked_and_named():
 def test_accumulator_device_index_is_named_as_one():
     """The docstring takes a device index: where torch has no accelerator for it, the index was a
     TypeError whose message listed the types it takes without an index, as if an int were the wrong
-    type; it is a ValueError that says why. A bool, which torch reads as index 1, is a TypeError."""
+    type; it is a ValueError that says why, on a CPU build of torch (which refuses the index) and
+    on a CUDA build without a driver (which names cuda:0, then cannot reach it: torch's
+    RuntimeError, or for "cuda" on a CPU build its AssertionError). A bool, which torch reads as
+    index 1, is a TypeError."""
     if torch.accelerator.is_available():
         assert FlowMetricAccumulator(device=0).state.device == torch.device(0)
     else:
-        for index in (0, np.int64(1)):
+        for index in (0, np.int64(1), "cuda", torch.device("cuda", 0)):
             with pytest.raises(ValueError, match=r"^device: expected None, a torch.device, a device string such as "
-                                                 r"'cpu' or 'cuda:0' or a device index, got (0|np\.int64\(1\)) \(.+\)$"):
+                                                 r"'cpu' or 'cuda:0' or a device index.*, got (0|np\.int64\(1\)|'cuda'|"
+                                                 r"device\(type='cuda', index=0\)) \(.+\)$"):
                 FlowMetricAccumulator(device=index)
     with pytest.raises(ValueError, match=r"got -1 \(.*negative"):
         FlowMetricAccumulator(device=-1)

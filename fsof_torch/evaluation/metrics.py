@@ -364,6 +364,8 @@ class FlowMetricAccumulator:
         device string such as ``"cuda:0"`` or a device index; anything else a ValueError (an
         unknown string such as ``"gpu"``, an index without an accelerator, or the meta device,
         which holds no sums) or a TypeError (a bool, a float) naming ``device``."""
+        expected = "device: expected None, a torch.device, a device string such as 'cpu' or 'cuda:0' or a device index"
+        given = device
         if device is not None and not isinstance(device, torch.device):
             try:  # (torch's RuntimeError for "gpu" named no argument; True would be torch's index 1)
                 if isinstance(device, bool):
@@ -373,11 +375,15 @@ class FlowMetricAccumulator:
                 # (an index, which torch takes as the accelerator's, was called the wrong type where there is none)
                 index = is_number(device, integer=True)
                 error = ValueError if isinstance(device, str) or index else TypeError
-                raise error(f"device: expected None, a torch.device, a device string such as 'cpu' or 'cuda:0' or "
-                            f"a device index, got {device!r}" + (f" ({exc})" if index else "")) from None
+                raise error(f"{expected}, got {device!r}" + (f" ({exc})" if index else "")) from None
         n = len(_MAPS)
-        # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
-        self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
+        try:
+            # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
+            self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
+        except (RuntimeError, AssertionError) as exc:
+            # (a CUDA device that torch names but cannot reach: a CUDA build without a driver, a CPU build)
+            raise ValueError(f"{expected} torch can place tensors on, got {given!r} "
+                             f"({str(exc).strip().splitlines()[0]})") from None
         if self.state.device.type == "meta":  # (its sums were lost there; compute() raised torch's error)
             raise ValueError(f"device: an accumulator sums values, which the meta device does not hold; got "
                              f"{self.state.device}")
