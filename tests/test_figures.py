@@ -4,6 +4,7 @@ as an outline that leaves the pixels under it as they are."""
 
 from __future__ import annotations
 
+import math
 import re
 
 import pytest
@@ -716,10 +717,36 @@ def test_clip_summary_leaves_out_the_motion_of_pairs_left_unrefined():
         assert not any("mounting" in t for t in titles)
         z_d = next(ax for ax in fig.axes if ax.get_title() == "estimated motion: forward motion z_d")
         (line,) = z_d.get_lines()
-        assert list(line.get_ydata()) == pytest.approx([1.2, 1.2])
+        # the pairs in the records' order (000001 first): those left unrefined are gaps, not points
+        assert list(line.get_xdata()) == [0, 1, 2, 3]
+        assert list(line.get_ydata()) == pytest.approx([math.nan, 1.2, 1.2, math.nan], nan_ok=True)
         census = next(ax for ax in fig.axes if ax.get_title().startswith("census"))
         (after,) = [ln for ln in census.get_lines() if ln.get_label() == "after, fit"]
         assert len(after.get_ydata()) == 4  # its errors are still drawn
+    finally:
+        plt.close(fig)
+
+
+def test_clip_summary_leaves_a_gap_where_a_pair_between_others_has_no_motion():
+    """A pair left unrefined between two refined ones breaks the motion's line there: a line
+    drawn straight from the pair before to the pair after showed a motion for a pair that had none
+    (as the job's KITTI clip drew given_images over the pairs its gate kept as predicted)."""
+    import matplotlib.pyplot as plt
+
+    recs = [{"pair": f"{i:06d}", "variant": "photometric", "refined": i != 2, "before": {"census_road": 0.3},
+             "after": {"census_road": 0.2}, "odometry": {"z_d": 1.0 + i if i != 2 else None},
+             "roll": 0.0, "pitch": 0.0} for i in range(5)]
+    fig = clip_summary_figure(recs, errors={"census_road": "census distance (0-1), road"}, title="clip")
+    try:
+        z_d = next(ax for ax in fig.axes if ax.get_title() == "estimated motion: forward motion z_d")
+        (line,) = z_d.get_lines()
+        assert list(line.get_xdata()) == [0, 1, 2, 3, 4]
+        assert list(line.get_ydata()) == pytest.approx([1.0, 2.0, math.nan, 4.0, 5.0], nan_ok=True)
+        # no segment of the drawn path spans pair 2: matplotlib draws none across a NaN
+        path = line.get_path()
+        segments = [v for v, code in path.iter_segments(simplify=False)]
+        assert [float(v[0]) for v in segments] == [0.0, 1.0, 3.0, 4.0]
+        assert [code for _v, code in path.iter_segments(simplify=False)] == [1, 2, 1, 2]  # MOVETO, LINETO
     finally:
         plt.close(fig)
 

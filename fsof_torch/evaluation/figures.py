@@ -521,7 +521,7 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
     estimated field of the records' ``odometry`` (angles in degrees; the given odometry as a
     reference line), and the records' own ``roll``, ``pitch`` (the camera the refinement used)
     where they are not the estimated attitude itself. A record with ``refined`` False (a pair
-    left unrefined, which used no motion) has no point on the motion and mounting panels.
+    left unrefined, which used no motion) is a gap in the lines of the motion and mounting panels.
 
     Args:
         records: the job's per-pair records of one flow source (``pair``, ``variant``,
@@ -601,10 +601,10 @@ def clip_summary_figure(records: Sequence[Mapping[str, Any]], *, errors: Mapping
 
             for c, v in enumerate(variants):
                 rs = sorted((r for r in records if r["variant"] == v), key=lambda r: index[r["pair"]])
-                rs = [r for r in rs if isinstance(value(r), (int, float))]
-                if rs:  # (the colour stays the variant's on every panel)
-                    ax.plot(x_of(rs), [scale * value(r) for r in rs], color=colours[c % len(colours)],
-                            marker="o", ms=3, label=v)
+                # (a pair without a value is a gap in the line, not bridged as if it had one between)
+                ys = [scale * value(r) if isinstance(value(r), (int, float)) else math.nan for r in rs]
+                if not all(map(math.isnan, ys)):  # (the colour stays the variant's on every panel)
+                    ax.plot(x_of(rs), ys, color=colours[c % len(colours)], marker="o", ms=3, label=v)
             given = {r["pair"]: r["odometry_given"][key] for r in records
                      if not own and isinstance(r.get("odometry_given"), Mapping) and key in r["odometry_given"]}
             if given:
