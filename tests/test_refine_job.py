@@ -2200,6 +2200,35 @@ def test_progress_bars_in_a_log_are_rate_limited(monkeypatch):
     assert sys.stderr.getvalue() == ""
 
 
+def test_a_bar_in_a_log_whose_steps_slow_down_is_redrawn_at_the_interval_with_its_count(monkeypatch):
+    """In a log, tqdm learnt from the fast first steps to read the clock only every so many steps:
+    when the steps then slowed (a clip's pairs after its cached ones), the log fell silent for
+    several intervals, and tqdm's monitor thread redrew the bar with the count of its previous
+    redraw beside the text of the step it was on (``8/50 ..., 000011: loading the pair``). Now
+    every step past the interval redraws it, with the steps done so far."""
+    import io
+    import re
+    import sys
+    import time
+
+    from fsof_torch.io import progress
+    from fsof_torch.io.progress import progress_bar, show_text
+
+    monkeypatch.setattr(progress, "LOG_INTERVAL", 0.1)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # (not a terminal)
+    bar = progress_bar(range(26), desc="refine", unit="pair")
+    for i in bar:
+        show_text(bar, f"{i:06d}: working")
+        time.sleep(0.005 if i < 20 else 0.15)  # each of the last six steps longer than the interval
+    bar.close()
+    lines = [ln for ln in sys.stderr.getvalue().split("\r") if ln.strip()]
+    shown = [(int(m[1]), int(m[2])) for m in (re.search(r"(\d+)/26 .*, (\d+): working", ln) for ln in lines) if m]
+    # every redraw after the first step shows the steps done: the text is that of the last of them
+    assert all(n == step + 1 for n, step in shown), lines
+    # a redraw after each slow step (past the interval), not only at the end
+    assert {n for n, _ in shown} >= {21, 22, 23, 24, 25, 26}, lines
+
+
 def test_a_folder_option_given_a_file_or_a_broken_link_says_so(tmp_path, user_folder, capsys):
     """--images, --flows, --gt given a file, or a link to a folder not mounted, exited 2 with "no
     folder at" the path, which is there; the message now says what is there."""

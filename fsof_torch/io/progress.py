@@ -37,6 +37,11 @@ def progress_bar(iterable: Iterable | None = None, *, enabled: bool = True, **op
 
     if issubclass(tqdm, notebook.tqdm):  # (a notebook's widget: no log to flood)
         return tqdm(iterable, disable=not enabled, **options)
+    if not on_terminal():
+        # the clock read at every step: tqdm's own step count between reads, learnt while the steps
+        # were fast, left a log silent for several intervals once they slowed, then its monitor
+        # thread redrew the bar with the count of its last redraw beside the text of the step now
+        options = {"miniters": 1, **options}
     return tqdm(iterable, disable=not enabled or sys.stderr is None, file=sys.stderr,
                 mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
 
