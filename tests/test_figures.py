@@ -319,6 +319,36 @@ def test_pair_figure_redrawn_equals_a_fresh_one(tmp_path):
 
 
 
+@pytest.mark.parametrize("variants", [1, 2, 4])
+def test_pair_figure_title_stays_clear_of_the_legend(variants):
+    """The job's title of a pair without ground truth (the census error's, the longer one), with one
+    odometry variant (the job's default for a KITTI *_10/*_11 pair of --images): centred over the
+    figure, it ran under the legend in the top-right corner. Now it stays left of the legend, in the
+    figure, at 10 pt where it fits; a short title keeps 10 pt."""
+    import matplotlib.pyplot as plt
+
+    H, W = 375, 1242
+    road = torch.zeros(1, H, W, dtype=torch.bool)
+    road[0, 250:] = True
+    names = ["before (files)"] + [f"after, odometry 'variant{k}' (left unrefined)" for k in range(variants)]
+    flow, error = torch.ones(2, H, W), (torch.rand(1, H, W), torch.ones(1, H, W, dtype=torch.bool))
+    long = ("pair 000000, flow source 'files': flow and error before and after refinement (mode 'replace'); "
+            "error: census distance of I1 and I2 warped by the flow, 0–1")
+    for title in (long, "pair 000000", long + "; " + long[:70]):
+        fig = pair_figure(flows={n: flow for n in names}, errors={n: error for n in names}, road=road,
+                          max_flow=1.0, error_vmax=0.5, error_label="census distance (0-1)", title=title,
+                          images=(torch.zeros(3, H, W), torch.zeros(3, H, W)))
+        try:
+            (legend,) = fig.legends
+            text, box = fig.get_suptitle(), fig._suptitle.get_window_extent()
+            assert text == title
+            assert box.x1 < legend.get_window_extent().x0 and box.x0 > 0, (box, legend.get_window_extent())
+            if title != long + "; " + long[:70]:
+                assert fig._suptitle.get_fontsize() == 10
+        finally:
+            plt.close(fig)
+
+
 def test_pair_figure_draws_maps_that_carry_autograd():
     """A network's flow in training, its error map and images that carry autograd are drawn as
     their values: the pixels of the same figure drawn from detached copies (they raised

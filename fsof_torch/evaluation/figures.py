@@ -34,18 +34,8 @@ from torch import Tensor
 from .._check import check_float_tensor, check_has_values, check_image_range, check_int, check_number, check_shape
 from .visualize import NO_VALUE_RGB, flow_to_color
 
-__all__ = [
-    "FIGURE_DPI",
-    "PairFigure",
-    "clip_summary_figure",
-    "colour_wheel",
-    "drawing_factor",
-    "pair_figure",
-    "place_reduced",
-    "reduce_values",
-    "road_outline",
-    "save_figure",
-]
+__all__ = ["FIGURE_DPI", "PairFigure", "clip_summary_figure", "colour_wheel", "drawing_factor", "pair_figure",
+           "place_reduced", "reduce_values", "road_outline", "save_figure"]
 
 #: resolution of the written PNGs
 FIGURE_DPI = 80
@@ -359,8 +349,17 @@ class PairFigure:
             bar = fig.colorbar(shown, cax=cax, extend="max")
             bar.set_label(f"{error_label}\nsaturates at {error_vmax:g}", fontsize=7)
             bar.ax.tick_params(labelsize=6)
-        fig.legend(handles=[_outline_handle(), _invalid_handle()], loc="upper right", fontsize=7,
-                   framealpha=0.9, bbox_to_anchor=(0.995, 0.995))
+        self.legend = fig.legend(handles=[_outline_handle(), _invalid_handle()], loc="upper right", fontsize=7,
+                                 framealpha=0.9, bbox_to_anchor=(0.995, 0.995))
+
+    def _fit_title(self) -> None:
+        """The title centred in the width left of the legend, its font (10 pt) made smaller where
+        the title is wider than that: a long one (a census error's, a long pair name) ran under it."""
+        room = self.legend.get_window_extent().x0 - 8  # (px: the legend's left edge, less a margin; any backend)
+        self.title.set(fontsize=10, x=room / 2 / self.figure.bbox.width)
+        width = self.title.get_window_extent().width
+        if width > room:
+            self.title.set_fontsize(max(9.7 * room / width, 5))  # (a margin: widths do not scale exactly)
 
     @staticmethod
     def layout_of(*, flows: Mapping[str, Tensor], errors: Mapping[str, Any], road: Tensor,
@@ -397,6 +396,7 @@ class PairFigure:
         factor = self.factor
         outline = road_outline(road)
         self.title.set_text(title)
+        self._fit_title()
         for (_, shown), im in zip(self.image_panels, images or ()):
             rgb = _reduce(im.float(), factor).clamp(0, 255).round().to(torch.uint8)
             shown.set_data(rgb.permute(1, 2, 0).numpy())
