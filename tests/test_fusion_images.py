@@ -174,6 +174,27 @@ def test_odometry_of_samples_left_unrefined_is_zero(scene):
     assert float(out.odometry["z_d"][0]) > 0.5
 
 
+
+@pytest.mark.parametrize("images", [True, False])
+def test_a_sample_not_estimated_reports_the_same_motion_alone_as_in_a_batch(scene, images):
+    """A sample with an empty mask reported the image estimator's "plane" model (eight zeros) or the
+    flow fit's paper model with its roll and pitch (five) beside an estimated sample, but alone, or
+    in a batch where no sample was estimated, the paper's x_d, z_d and yaw alone, under model
+    "paper": out.odometry["y_d"] raised a KeyError on such a frame only. Alone it is now what the
+    batch says of it, the same model, keys and zeros, and its model flow 0 as there."""
+    pred, road, i1, i2 = _two(scene, black_second=False)
+    road[1] = False
+    kw = {"images": (i1, i2)} if images else {}
+    both = _quiet(FreespaceRefiner(), pred, road, scene["camera"], **kw)
+    alone = _quiet(FreespaceRefiner(), pred[1:], road[1:], scene["camera"],
+                   **({"images": (i1[1:], i2[1:])} if images else {}))
+    assert both.refined.tolist() == [True, False] and alone.refined.tolist() == [False]
+    assert alone.model == both.model == ("plane" if images else "paper")
+    assert list(alone.odometry) == list(both.odometry)
+    assert all(float(v[1]) == 0.0 and float(alone.odometry[k]) == 0.0 for k, v in both.odometry.items())
+    assert torch.equal(alone.flow_model, both.flow_model[1:]) and not bool(alone.flow_model.any())
+    assert torch.equal(alone.flow, pred[1:])
+
 def test_the_fit_covers_the_estimated_samples_not_the_refined_ones(scene):
     """RefineOutput.fit holds every estimated sample, a failed one too (the docstring once said
     that ``refined`` tells which samples it covers)."""

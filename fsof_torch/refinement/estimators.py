@@ -38,7 +38,7 @@ from ..geometry.road_models import get_road_model, road_motion
 from ..warn import warn_user
 
 __all__ = ["FlowMotionEstimator", "ImageMotionEstimator", "check_estimate", "check_estimator", "finite_estimate",
-           "given_success", "planar_odometry", "planar_start"]
+           "given_success", "planar_odometry", "planar_start", "unestimated_motion"]
 
 _PLANAR = ("x_d", "z_d", "yaw")
 _MOUNTING = ("roll", "pitch")  # (FlowMotionEstimator's default ``fixed``, this very object)
@@ -67,6 +67,19 @@ def given_success(odometry: object, batch: int, device: torch.device | str) -> T
     success = torch.as_tensor(success).reshape(-1)
     check_batch(success.numel(), "odometry.success", batch)
     return success.to(device=device, dtype=torch.bool).expand(batch)
+
+
+def unestimated_motion(estimator: Any, batch: int, dtype: torch.dtype,
+                       device: torch.device | str) -> tuple[str, dict[str, Tensor]]:
+    """``(model name, {parameter: (batch,) zeros})``: the motion the refiner reports for samples
+    it did not estimate (too few mask pixels), every one of them. The same model and keys a batch
+    reports for such a sample beside estimated ones: zeros of every parameter of the estimator's
+    model (this module's estimators); the paper's ``x_d, z_d, yaw`` for another estimator, whose
+    model is known only from its results."""
+    if isinstance(estimator, (FlowMotionEstimator, ImageMotionEstimator)):
+        model = get_road_model(estimator.model)
+        return model.name, {k: torch.zeros(batch, dtype=dtype, device=device) for k in model.params}
+    return "paper", {k: torch.zeros(batch, dtype=dtype, device=device) for k in _PLANAR}
 
 
 def check_estimator(estimator: object, name: str = "estimator") -> Any:

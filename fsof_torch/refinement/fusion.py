@@ -45,7 +45,7 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import get_road_model, is_planar_odometry, pack_params, road_motion, road_motion_batch
 from .auto_refine import UNCHANGED_NAMED, refine_with_auto_road
-from .estimators import ImageMotionEstimator, check_estimate, finite_estimate, given_success
+from .estimators import ImageMotionEstimator, check_estimate, finite_estimate, given_success, unestimated_motion
 from .gate import ImageGate
 from .options import FITS, MODES, check_refine_options, select_estimator
 from .contracts import DEFAULT_FLOW_KEYS, check_levels, collect_flows, finest_flow, map_flows, refiner_images
@@ -445,8 +445,8 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
                 else:  # the odometry alone
                     fit_result = None
         elif odometry is None:
-            refined = torch.zeros_like(refined)
-            odo = {k: torch.zeros(B, dtype=geo_dtype, device=device) for k in ("x_d", "z_d", "yaw")}
+            refined = torch.zeros_like(refined)  # (the model and keys of a sample not estimated beside others)
+            motion_model, odo = unestimated_motion(chosen, B, geo_dtype, device)
 
     def usable(m: Tensor, ok: Tensor) -> Tensor:  # (a broadcast & over the whole mask is slow on CPU: only where needed)
         return m if not no_values and bool(ok.all()) else m & ok.reshape(B, 1, 1, 1)
