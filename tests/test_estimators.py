@@ -518,6 +518,32 @@ def test_refiner_takes_non_finite_estimated_parameters_as_a_failed_estimate(nois
     assert bool(torch.isfinite(out.flow_model).all()) and not bool(out.mask[0].any())
 
 
+@pytest.mark.parametrize("value, error, message", [
+    ("1.2", TypeError, r"expected a float, or a tensor of shape \(B,\), got str"),
+    (True, TypeError, r"expected a float, or a tensor of shape \(B,\), got bool"),
+    ([1.2], TypeError, r"expected a float, or a tensor of shape \(B,\), got list"),
+    (torch.tensor([1]), TypeError, r"expected a float tensor or a Python number, got dtype torch.int64"),
+    (torch.ones(1, 1), ValueError, r"expected a scalar or shape \(B,\), got \(1, 1\)")], ids=["str", "bool", "list", "int", "2d"])
+def test_an_odometry_value_of_another_type_is_named_as_the_refiner_names_it(value, error, message):
+    """The estimators and detect_road took an odometry's value as torch.as_tensor takes it: a str
+    raised torch's 'new(): invalid data type' naming nothing, and True, a list, an int tensor or a
+    (B, 1) tensor were taken as a step (True as 1 m) where refine_flow refuses them. They are now
+    refused as refine_flow refuses them, naming the odometry's key."""
+    from fsof_torch import detect_road, refine_flow
+
+    p = render_pair("default", 0, size=(48, 160))
+    flow, road, camera = p["flow"][None].nan_to_num(), p["road"][None], p["camera"]
+    images = (p["image1"][None], p["image2"][None])
+    odometry = {"x_d": 0.0, "z_d": value, "yaw": 0.0}
+    calls = {"refine_flow": lambda: refine_flow(flow, road, camera, odometry, images=images),
+             "FlowMotionEstimator": lambda: FlowMotionEstimator()(flow, road, camera, odometry=odometry),
+             "ImageMotionEstimator": lambda: ImageMotionEstimator()(flow, road, camera, images=images, odometry=odometry),
+             "detect_road": lambda: detect_road(*images, camera, odometry=odometry)}
+    for name, call in calls.items():
+        with pytest.raises(error, match=r"^odometry\['z_d'\]: " + message):
+            call()
+
+
 @pytest.mark.parametrize("estimator", [FlowMotionEstimator(), ImageMotionEstimator()], ids=["flow", "image"])
 def test_an_odometry_on_the_meta_device_is_named(estimator):
     """A meta odometry with real flow and images: a ValueError naming its key (was torch's

@@ -24,9 +24,9 @@ from typing import Any, Mapping, Sequence
 import torch
 from torch import Tensor
 
-from .._check import (all_finite, batch_choices, check_batch, check_bool, check_float_tensor, check_has_values,
-                      check_image_pair, check_keywords, check_mapping, check_mask, check_names, check_number,
-                      check_same_device, check_shape, inference, skip_values)
+from .._check import (all_finite, as_batch_param, batch_choices, check_batch, check_bool, check_float_tensor,
+                      check_has_values, check_image_pair, check_keywords, check_mapping, check_mask, check_names,
+                      check_number, check_same_device, check_shape, inference, skip_values)
 from ..estimation.flow_fit import RoadFit, check_road_fit_options, fit_road, fixed_parameters
 from ..estimation.image_fit import calibration_prior, check_image_fit_options, fit_image
 from ..estimation.initial import planar_start
@@ -399,7 +399,8 @@ def _finite_odometry(values: Mapping[str, Any], B: int) -> Mapping[str, Any]:
     beyond a road vehicle's between two frames (100 m: odometry in millimetres) names the odometry."""
     steps = {}
     for k, v in values.items():
-        t = torch.as_tensor(v)
+        # (a float or a (B,) float tensor, as the refiner takes it: a str, a bool, a list or an int tensor named here)
+        t = as_batch_param(v, f"odometry[{k!r}]", finite=False)
         check_has_values(t, f"odometry[{k!r}]", "to fit (a fit is iterative and data dependent)")
         if not all_finite(t):
             raise ValueError(f"odometry[{k!r}]: expected finite values, got {v!r}")
