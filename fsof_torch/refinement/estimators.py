@@ -72,10 +72,10 @@ def given_success(odometry: object, batch: int, device: torch.device | str) -> T
 def unestimated_motion(estimator: Any, batch: int, dtype: torch.dtype,
                        device: torch.device | str) -> tuple[str, dict[str, Tensor]]:
     """``(model name, {parameter: (batch,) zeros})``: the motion the refiner reports for samples
-    it did not estimate (too few mask pixels), every one of them. The same model and keys a batch
-    reports for such a sample beside estimated ones: zeros of every parameter of the estimator's
-    model (this module's estimators); the paper's ``x_d, z_d, yaw`` for another estimator, whose
-    model is known only from its results."""
+    it did not estimate (too few mask pixels; frames of one row or column for the image estimator),
+    every one of them. The same model and keys a batch reports for such a sample beside estimated
+    ones: zeros of every parameter of the estimator's model (this module's estimators); the paper's
+    ``x_d, z_d, yaw`` for another estimator, whose model is known only from its results."""
     if isinstance(estimator, (FlowMotionEstimator, ImageMotionEstimator)):
         model = get_road_model(estimator.model)
         return model.name, {k: torch.zeros(batch, dtype=dtype, device=device) for k in model.params}
