@@ -235,7 +235,7 @@ def test_freespace_model_undefined_everywhere_is_zero():
 def test_freespace_loss_warns_when_road_pixels_count_nothing():
     """Road pixels that the model defines nowhere add 0 to the loss: a step beyond the visible road
     (20 m a frame takes every road point of this camera, 16.5 m ahead at most, behind it) and a
-    fit that fails say so; an empty mask and a sample whose road counts stay silent."""
+    fit that fails say so, naming the samples; an empty mask and a sample whose road counts stay silent."""
     cam = _camera()
     road = torch.zeros(2, 1, H, W, dtype=torch.bool)
     road[..., H // 2:, :] = True
@@ -244,6 +244,8 @@ def test_freespace_loss_warns_when_road_pixels_count_nothing():
     with pytest.warns(RuntimeWarning, match="not in metres and radians") as caught:
         value = freespace_flow_loss(flow, road, cam, beyond, reduction="none")
     assert len(caught) == 1 and value[0] > 0 and value[1] == 0
+    # the sample is named (the warning said "of a sample": in a batch, which one was left to guess)
+    assert "road pixels of samples [1], which adds 0" in str(caught[0].message)
     with pytest.warns(RuntimeWarning, match="a fit that failed"):
         assert freespace_flow_loss(torch.full_like(flow, 1e4), road, cam, "fit").item() == 0.0
     with warnings.catch_warnings():

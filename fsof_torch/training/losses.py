@@ -583,12 +583,14 @@ def freespace_flow_loss(flows: Tensor | Sequence[Tensor], road: Tensor, camera: 
             total = total + w * _masked_mean(per_pixel, counted.to(work))
     if not skip_values(total, last):
         # samples with road pixels of which the model defines none
-        undefined = (road.flatten(1).any(1) & ~counted_model.flatten(1).any(1)).sum()
-        *bad, n_undefined, finite_total = torch.stack([*n_bad, undefined, torch.isfinite(total).all()]).tolist()
-        if n_undefined:
-            warn_user("road: the road model is defined at none of the road pixels of a sample, which adds 0 to "
-                      "the freespace loss (odometry not in metres and radians, a camera that puts the road "
-                      "above the horizon, or with odometry='fit' a fit that failed)")
+        undefined = road.flatten(1).any(1) & ~counted_model.flatten(1).any(1)  # (B,) (one host read for all)
+        read = torch.cat([torch.stack([*n_bad, torch.isfinite(total).all()]), undefined]).tolist()
+        bad, finite_total, undefined = read[:len(n_bad)], read[len(n_bad)], read[len(n_bad) + 1:]
+        if any(undefined):
+            warn_user(f"road: the road model is defined at none of the road pixels of samples "
+                      f"{[b for b, u in enumerate(undefined) if u]}, which adds 0 to the freespace loss (odometry not "
+                      f"in metres and radians, a camera that puts the road above the horizon, or with odometry='fit' "
+                      f"a fit that failed)")
         if any(bad):
             listing = ", ".join(f"flows[{i}]: {n}" for i, n in enumerate(bad) if n)
             warn_user(f"flows: non-finite predicted pixels inside the road mask are left out of the "
