@@ -433,10 +433,9 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     import torch
 
     from fsof_torch import __version__
-
-    from . import distributed, resume
     from fsof_torch.io.atomic import lookup_error
 
+    from . import distributed, resume
     from .inputs import JobError, file_digest
     from .job import JobConfig
     from .measure import PHOTO
