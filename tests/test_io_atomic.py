@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 import os
 
 import numpy as np
@@ -338,3 +339,25 @@ def test_a_fifo_or_device_is_not_replaced(tmp_path):
     assert special_file(tmp_path) is None and special_file(tmp_path / "none") is None
     (tmp_path / "f.json").write_text("{}")
     assert special_file(tmp_path / "f.json") is None and creation_error(tmp_path / "f.json", "--json") is None
+
+
+@pytest.mark.parametrize("given", ["out/", "out/.", "sub/.."])
+def test_every_writer_refuses_a_path_that_names_a_folder(tmp_path, monkeypatch, given):
+    """``write_flow("out/")`` wrote a file named ``out`` (``Path`` drops the slash), where a
+    folder was meant: every writer now raises IsADirectoryError naming ``path``, writing
+    nothing."""
+    import fsof_torch.io as fio
+
+    monkeypatch.chdir(tmp_path)
+    flow, image = torch.zeros(2, 4, 4), torch.zeros(3, 4, 4)
+    calls = {"write_flo": (flow,), "write_flow": (flow,), "write_kitti_flow": (flow,), "write_image": (image,),
+             "write_image_array": (np.zeros((4, 4, 3), np.uint8),), "write_road_mask": (torch.ones(1, 4, 4) > 0,),
+             "write_label_map": (torch.zeros(4, 4, dtype=torch.uint8),), "write_depth_png": (torch.ones(1, 4, 4),),
+             "write_carla_flow": (flow,), "write_vkitti2_flow": (flow,), "write_kitti_poses": (torch.eye(4)[None],),
+             "write_kitti_calibration": (torch.eye(3),), "write_json": ({"a": 1},), "write_text": ("x",),
+             "write_bytes": (b"x",)}
+    for name, args in calls.items():
+        with pytest.raises(IsADirectoryError, match=rf"^path: {re.escape(repr(given))} names a folder; expected a "
+                                                    r"file path$"):
+            getattr(fio, name)(given, *args)
+    assert list(tmp_path.iterdir()) == []

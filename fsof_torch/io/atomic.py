@@ -62,7 +62,8 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
     As with ``open()``, a file written over keeps its permission bits (a new one gets ``0o666``
     less the umask), a file the process may not write is a PermissionError naming it (never
     replaced), and a symbolic link is written through: the file it points to is replaced.
-    A folder at ``path`` is an IsADirectoryError naming it, a missing folder a FileNotFoundError
+    A folder at ``path``, or a path that names one (``out/``: :func:`file_target`), is an
+    IsADirectoryError naming it, a missing folder a FileNotFoundError
     naming ``path`` (or, where a file stands in the place of one of its folders, naming that file),
     and a FIFO, device or socket at ``path`` (``/dev/null``, or a link to one such as
     ``/dev/stdout``) a ValueError naming it, which the rename would replace with a regular file;
@@ -73,7 +74,7 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
         >>> with atomic_path("out.txt") as tmp:          # doctest: +SKIP
         ...     tmp.write_text("hello")
     """
-    path = as_path(path)
+    path = file_target(path)
     if path.is_symlink():  # write through the link, as open() does, rather than replace the link
         path = Path(os.path.realpath(path))
     if path.is_dir():
@@ -119,6 +120,19 @@ def atomic_path(path: str | os.PathLike, *, allow_empty: bool = False) -> Iterat
             full.target = path
             raise full from err
         raise
+
+
+def file_target(path: object) -> Path:
+    """``path``, a file to write, as a ``Path`` (:func:`~fsof_torch._check.as_path`'s checks); a
+    text whose last part names a folder (``out/``, ``out/.``, ``..``) is an IsADirectoryError
+    naming it: ``Path("out/")`` drops the slash, and a file named ``out`` was written. Every
+    writer of :mod:`fsof_torch.io` takes its path through it."""
+    target = as_path(path)
+    text = os.fspath(path)
+    if isinstance(text, str) and (text.endswith((os.sep, os.altsep or os.sep)) or
+                                  os.path.basename(text) in (".", "..")):
+        raise IsADirectoryError(f"path: {text!r} names a folder; expected a file path")
+    return target
 
 
 def _temporary_name(name: str, suffix: str) -> str:

@@ -39,6 +39,7 @@ from torch import Tensor
 
 from ..geometry.camera import Camera
 from .._check import as_path, check_int, check_number
+from .atomic import file_target
 from .flo import float32_flow
 from .images import check_no_broken_links, in_frame_order, read_image, read_image_array, write_image_array
 from .masks import mask_from_colors
@@ -95,7 +96,7 @@ def write_carla_flow(path: str | os.PathLike, flow: Tensor) -> Path:
     suffix is a ValueError naming ``path``, and a finite value beyond float32's range (which the
     cast would make inf, read back as an invalid pixel) one naming ``flow``, before anything is
     written. NaN and inf are written as they are (read back as invalid)."""
-    path = as_path(path)
+    path = file_target(path)
     if path.suffix.lower() not in (".tif", ".tiff"):
         raise ValueError(f"path: a CARLA flow file is a float32 TIFF; expected a .tif or .tiff path, got "
                          f"{str(path)!r}")

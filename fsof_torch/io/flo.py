@@ -15,8 +15,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._check import as_path, as_chw_flow, existing_file
-from .atomic import atomic_path
+from .._check import as_chw_flow, existing_file
+from .atomic import atomic_path, file_target
 
 __all__ = ["read_flo", "write_flo", "FLO_MAGIC"]
 
@@ -84,7 +84,7 @@ def write_flo(path: str | os.PathLike, flow: Tensor | np.ndarray) -> Path:
     _, height, width = cast.shape
     array = cast.numpy().transpose(1, 2, 0)
     header = np.array([FLO_MAGIC], dtype="<f4").tobytes() + np.array([width, height], dtype="<i4").tobytes()
-    path = as_path(path)
+    path = file_target(path)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         f.write(header)
         f.write(np.ascontiguousarray(array, dtype="<f4").tobytes())

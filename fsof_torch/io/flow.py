@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .atomic import write_bytes
+from .atomic import file_target, write_bytes
 from .._check import as_path, as_chw_flow, existing_file
 from .flo import read_flo, write_flo
 from .kitti import flow_valid_pixels, read_kitti_flow, write_kitti_flow
@@ -68,7 +68,7 @@ def write_flow(path: str | os.PathLike, flow: Tensor | np.ndarray, valid: Tensor
     the float32 cast (else ValueError naming ``flow``, before anything is written):
     :func:`read_flow` would read it as not valid.
     """
-    path = as_path(path)
+    path = file_target(path)
     suffix = path.suffix.lower()
     if suffix == ".png":
         return write_kitti_flow(path, flow, valid)

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from .._check import as_path, check_has_values, existing_file, tensor_from_array
-from .atomic import atomic_path
+from .atomic import atomic_path, file_target
 
 __all__ = ["read_image", "write_image", "read_image_array", "write_image_array"]
 
@@ -215,7 +215,7 @@ def check_image_suffix(path: str | os.PathLike, suffixes: tuple[str, ...], what:
     """``path`` as a Path if its suffix (any case) is one of ``suffixes``, else a ValueError naming
     it; ``what`` says what the file holds ("label map", ...). Shared by the writers of data
     images (masks, labels, flow), which must not go to a lossy or 8-bit-only format."""
-    path = as_path(path)
+    path = file_target(path)
     if path.suffix.lower() not in suffixes:
         raise ValueError(f"path: {_a(what)} is written as {' or '.join(suffixes)}; got the suffix "
                          f"{path.suffix!r} of {str(path)!r}")
@@ -237,7 +237,7 @@ def write_image_array(path: str | os.PathLike, array: np.ndarray) -> Path:
     """
     import cv2
 
-    path = as_path(path)
+    path = file_target(path)
     suffix = path.suffix.lower()
     # OpenCV is given the suffix and the encoded bytes, never the path: it crashes the interpreter
     # (a segmentation fault) on a path that is not valid UTF-8, such as a folder named in Latin-1
