@@ -473,19 +473,20 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     if device.type == "cuda" and device.index is None:
         device = torch.device("cuda", world.local_rank)
 
-    for option, path in (*_input_paths(args).items(), ("--out", args.out), ("--json", args.json)):
+    inputs = _input_paths(args)  # (the files and folders the run reads, by option: checked three ways below)
+    for option, path in (*inputs.items(), ("--out", args.out), ("--json", args.json)):
         if option != "--net" and (bad := lookup_error(path, option)) is not None:
             raise JobError(bad)  # (Python's own look-ups of such a path raise: before any of them)
     out = args.out if args.out is not None else default_out(args)
     resume.check_out_path(out)
-    resume.check_json_path(args.json, out, _input_paths(args))
+    resume.check_json_path(args.json, out, inputs)
     if not args.no_figures:
         import importlib.util
 
         if importlib.util.find_spec("matplotlib") is None:
             raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
     specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
-    resume.check_inputs_outside(out, sources, _input_paths(args))
+    resume.check_inputs_outside(out, sources, inputs)
     odometry_sigma = _odometry_sigma(args.odometry_sigma, variants)
     if odometry_sigma is not None:
         x, z, yaw = args.odometry_sigma
