@@ -48,8 +48,9 @@ class CompositeLoss(nn.Module):
     term carries a gradient, such as terms that return Python numbers, the total is one that
     ``backward()`` accepts where gradients are on, and no gradient reaches the flows). A TypeError from a
     term's call (an input it needs and was not given, one it does not take) is raised again
-    naming ``terms[name]``; a term whose value is not a scalar (one of ``reduction="none"``) is a
-    ValueError naming it.
+    naming ``terms[name]``; a term whose value is not one number (one of
+    ``reduction="none"`` on a batch of more than one) is a ValueError naming it; a value of
+    shape (1,) counts as a scalar, and the total then has that shape.
 
     Example:
         >>> from fsof_torch.training.losses import FreespaceFlowLoss, UnsupervisedFlowLoss
