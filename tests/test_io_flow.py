@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import re
+import warnings
 
 import numpy as np
 import pytest
@@ -43,6 +44,20 @@ class TestSmoke:
         np.save(tmp_path / "hwc.npy", flow.numpy().transpose(1, 2, 0))
         back, _ = read_flow(tmp_path / "hwc.npy")
         assert torch.equal(back, flow)
+
+    def test_npy_float64_beyond_float32_is_invalid_without_a_numpy_warning(self, tmp_path):
+        """A float64 .npy value beyond float32's range is flow 'above 1e9' (not valid), as
+        documented; its cast to float32 let NumPy's 'overflow encountered in cast'
+        RuntimeWarning through, an error under -W error."""
+        flow, _ = _flow(3, 4)
+        array = flow.double().numpy()
+        array[:, 1, 2] = (1e300, -1e39)
+        np.save(tmp_path / "big.npy", array)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            back, valid = read_flow(tmp_path / "big.npy")
+        assert not bool(valid[0, 1, 2]) and int(valid.sum()) == 11 and back[:, 1, 2].eq(0).all()
+        assert torch.equal(back[:, valid[0]], flow[:, valid[0]])
 
     def test_middlebury_unknown_marker(self, tmp_path):
         """A Middlebury file's 1e10 reads as unknown flow; write_flow stores unknown flow through

@@ -51,7 +51,8 @@ def read_flow(path: str | os.PathLike) -> tuple[Tensor, Tensor]:
             raise ValueError(f"path: {str(path)!r} holds an empty flow of shape {array.shape}; expected H, W >= 1")
         if array.shape[0] != 2:
             array = array.transpose(2, 0, 1)
-        flow = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
+        with np.errstate(over="ignore"):  # (a float64 value beyond float32's range: inf, not valid below)
+            flow = torch.from_numpy(np.ascontiguousarray(array, dtype=np.float32))
     else:
         raise ValueError(f"path: unknown flow file suffix {path.suffix!r} in {str(path)!r}; expected .png, .flo or .npy")
     valid = (torch.isfinite(flow) & (flow.abs() < _UNKNOWN)).all(dim=0, keepdim=True)
