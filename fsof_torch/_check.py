@@ -6,7 +6,8 @@ followed by ``check_shape(mask, "mask", ("B", 1, "H", "W"), dims)`` requires the
 Value checks (finite, positive, in range) look at tensor values and are skipped while
 ``torch.compile`` or ``torch.export`` traces, where a data-dependent branch would break the graph,
 and for tensors on the ``meta`` device, which have shapes but no values (torch's own value checks
-skip them too, so shape inference runs through the library).
+skip them too, so shape inference runs through the library). The device checks
+(:mod:`fsof_torch.devices`) are imported here, with the rest.
 """
 
 from __future__ import annotations
@@ -26,13 +27,15 @@ from typing import Any, Callable, ContextManager, Sequence, TypeVar
 import torch
 from torch import Tensor
 
+from .devices import check_device, check_has_values, check_same_device, to_device
+
 __all__ = [
     "check_shape", "check_float_tensor", "check_mask", "all_finite", "known_finite", "known_images",
     "trust_image_range", "host_path", "device_paths", "check_finite", "check_all_finite", "check_positive",
     "check_size", "check_number", "check_bool", "check_int", "is_number", "option_error", "check_names",
     "check_mapping", "check_keywords", "check_fit_flags", "check_data_range", "check_image_range",
     "as_batch_param", "resolve_batch", "tracing", "skip_values", "result_dtype", "as_path", "autocast_off",
-    "batch_choices", "check_has_values", "check_same_device", "to_device", "as_chw_flow", "inference",
+    "batch_choices", "check_device", "check_has_values", "check_same_device", "to_device", "as_chw_flow", "inference",
     "ordinary", "same_mapping", "summary_repr",
 ]
 
@@ -45,32 +48,6 @@ def tracing() -> bool:
 def skip_values(*tensors: object) -> bool:
     """True where value checks cannot run: while tracing, or when a tensor is on the meta device."""
     return tracing() or any(isinstance(t, Tensor) and t.device.type == "meta" for t in tensors)
-
-
-def check_has_values(x: object, name: str, purpose: str = "to write or convert") -> None:
-    """Writers, readers and data-dependent estimators need values: a tensor on the meta device
-    (shapes only) raises a ValueError that says what needs them (``purpose``)."""
-    if isinstance(x, Tensor) and x.device.type == "meta":
-        raise ValueError(f"{name}: a tensor on the meta device has shapes but no values {purpose}; "
-                         f"move it to a real device first")
-
-
-def check_same_device(named: Mapping[str, Tensor | None]) -> None:
-    """The tensors of ``named`` (None left out) on the first one's device: a ValueError names the
-    first that is not (torch's own error would come from inside, naming neither)."""
-    items = [(name, t) for name, t in named.items() if t is not None]
-    for name, t in items[1:]:
-        if t.device != items[0][1].device:
-            raise ValueError(f"{name}: expected the device of {items[0][0]} ({items[0][1].device}), got {t.device}")
-
-
-def to_device(x: Tensor, name: str, device: torch.device | str) -> Tensor:
-    """``x`` moved to ``device``, the computation's (where a function takes an argument from
-    another device); a ValueError naming it where it has no values to move (the meta device)."""
-    if x.device.type == "meta" and torch.device(device).type != "meta":
-        raise ValueError(f"{name}: a tensor on the meta device has no values to move to {device} (the "
-                         f"computation's device); give it on {device}")
-    return x.to(device)
 
 
 def _fmt_shape(shape: Sequence[object]) -> str:

@@ -48,7 +48,7 @@ import math
 import torch
 from torch import Tensor
 
-from .._check import (all_finite, check_bool, check_float_tensor, check_shape, is_number, result_dtype, skip_values,
+from .._check import (all_finite, check_bool, check_device, check_float_tensor, check_shape, result_dtype, skip_values,
                       to_device)
 from ..warn import warn_user
 
@@ -364,26 +364,10 @@ class FlowMetricAccumulator:
         device string such as ``"cuda:0"`` or a device index; anything else a ValueError (an
         unknown string such as ``"gpu"``, an index without an accelerator, or the meta device,
         which holds no sums) or a TypeError (a bool, a float) naming ``device``."""
-        expected = "device: expected None, a torch.device, a device string such as 'cpu' or 'cuda:0' or a device index"
-        given = device
-        if device is not None and not isinstance(device, torch.device):
-            try:  # (torch's RuntimeError for "gpu" named no argument; True would be torch's index 1)
-                if isinstance(device, bool):
-                    raise TypeError("a bool")
-                device = torch.device(device)
-            except (RuntimeError, TypeError) as exc:
-                # (an index, which torch takes as the accelerator's, was called the wrong type where there is none)
-                index = is_number(device, integer=True)
-                error = ValueError if isinstance(device, str) or index else TypeError
-                raise error(f"{expected}, got {device!r}" + (f" ({exc})" if index else "")) from None
+        device = check_device(device)  # (torch's RuntimeError for "gpu" named no argument; True would be index 1)
         n = len(_MAPS)
-        try:
-            # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
-            self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
-        except (RuntimeError, AssertionError) as exc:
-            # (a CUDA device that torch names but cannot reach: a CUDA build without a driver, a CPU build)
-            raise ValueError(f"{expected} torch can place tensors on, got {given!r} "
-                             f"({str(exc).strip().splitlines()[0]})") from None
+        # [pixel sums (n), n_pixels, per-image-mean sums (n), n_images]: one tensor, one reduction
+        self.state = torch.zeros(2 * n + 2, dtype=torch.float64, device=device)
         if self.state.device.type == "meta":  # (its sums were lost there; compute() raised torch's error)
             raise ValueError(f"device: an accumulator sums values, which the meta device does not hold; got "
                              f"{self.state.device}")

@@ -24,7 +24,7 @@ from pathlib import Path
 import torch
 from torch import Tensor
 
-from .._check import (batch_choices, check_data_range, check_finite, check_float_tensor, check_has_values,
+from .._check import (batch_choices, check_data_range, check_device, check_finite, check_float_tensor, check_has_values,
                       check_image_range, check_number, check_positive, check_same_device, check_shape, to_device)
 from .metrics import pow2_scale
 
@@ -53,7 +53,9 @@ NO_VALUE_RGB = (128, 128, 128)
 
 
 def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> Tensor:
-    """The Middlebury colour wheel: (55, 3) RGB in 0..255."""
+    """The Middlebury colour wheel: (55, 3) RGB in 0..255, in ``dtype`` on ``device`` (None: the
+    default device; else a device torch can place tensors on, or a ValueError or TypeError names it)."""
+    device = check_device(device)
     ry, yg, gc, cb, bm, mr = _WHEEL
 
     def ramp(n: int) -> Tensor:

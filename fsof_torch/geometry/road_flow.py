@@ -28,6 +28,7 @@ from .._check import (
     batch_choices,
     check_all_finite,
     check_bool,
+    check_device,
     check_float_tensor,
     check_number,
     check_positive,
@@ -65,10 +66,13 @@ def pixel_grid(size: tuple[int, int], dtype: torch.dtype, device: torch.device |
 
     ``size``: ``(H, W)`` positive ints; ``dtype``: a floating-point dtype, half precision lifted
     to float32 as in the rest of the geometry (bfloat16 holds whole numbers exactly only up to
-    256, float16 up to 2048: a bfloat16 grid of a KITTI frame put columns 1237 to 1241 all at 1240)."""
+    256, float16 up to 2048: a bfloat16 grid of a KITTI frame put columns 1237 to 1241 all at 1240);
+    ``device``: None (the default device), a ``torch.device``, a device string or index torch can
+    place tensors on (else a ValueError or TypeError naming it: :func:`~fsof_torch.devices.check_device`)."""
     H, W = check_size(size)
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype: expected a floating-point torch.dtype, got {dtype!r}")
+    device = check_device(device)
     if dtype in (torch.float16, torch.bfloat16):
         dtype = torch.float32
     u = torch.arange(W, dtype=dtype, device=device).expand(H, W)
