@@ -994,3 +994,33 @@ def test_census_ring_distance_under_exposure_changes_on_a_real_road(shared_data,
     # the threshold to it now and then, 1e-4 of the neighbours)
     assert max(distance(grey), distance(grey + 30.0), distance(grey * 1.3)) < 1e-3
     assert 0.1 <= distance(grey * 0.8) <= 0.2 and distance(grey * 0.5) >= 0.33
+
+
+@pytest.mark.parametrize("objects", [True, False])
+@pytest.mark.parametrize("bad", [float("nan"), float("inf")])
+def test_a_model_flow_not_finite_inside_the_mask_is_never_used(bad, objects):
+    """The model NaN or inf in a patch of the mask, exact elsewhere: the patch's points give no
+    evidence, and its pixels keep the prediction (they were marked as using the model, a mask
+    that fuse_flow then refused: "flow_model: expected finite values inside the mask"). The rest
+    of the mask is decided as before; fuse_flow takes the gate's use_model as its mask."""
+    from fsof_torch import fuse_flow
+
+    g1, g2, true = _pair()
+    mask = torch.zeros(1, 1, 96, 192, dtype=torch.bool)
+    mask[..., 8:-8, 8:-8] = True
+    prediction = true + _smooth_noise(2.0)
+    gate = ImageGate(grid=(4, 8), objects=objects)
+    clean = gate(g1, g2, prediction, true.clone(), mask)
+    model = true.clone()
+    model[:, 1, 24:48, 48:96] = bad  # (the v channel only: either channel makes the pixel unusable)
+    patch = torch.zeros_like(mask)
+    patch[..., 24:48, 48:96] = True  # (cells of 24 x 24 pixels: two whole ones)
+    out = gate(g1, g2, prediction, model, mask)
+    assert bool(out.model_used.all()) and bool(out.confirmed.all())
+    assert not bool(out.use_model[patch].any())
+    assert torch.equal(out.use_model[~patch], clean.use_model[~patch]) and bool(out.use_model[mask & ~patch].all())
+    # (the two cells the patch covers whole have no point that counts: too few to be counted)
+    assert int(out.cells) == int(clean.cells) - 2 and int(out.cells_kept) == int(clean.cells_kept)
+    fused, weight = fuse_flow(prediction, model, out.use_model)
+    assert torch.equal(fused[patch.expand_as(fused)], prediction[patch.expand_as(fused)])
+    assert torch.equal(fused[(mask & ~patch).expand_as(fused)], true[(mask & ~patch).expand_as(fused)])
