@@ -1360,3 +1360,37 @@ def test_the_edges_reach_one_smoothing_radius_beyond_half_a_window(scene_pair):
     assert iou(det.mask[0, 0], true) > iou(band, true) + 0.005
     added = det.mask[0, 0] & ~band
     assert float((added & true).sum() / added.sum()) > 0.7  # (0.80 on this pair)
+
+
+def test_a_motion_of_batch_1_comes_back_per_sample(small_pair):
+    """A fit of batch 1 given for images of batch 3 came back as ``det.motion`` as it was (its
+    parameters (1,), its flow (1, 2, H, W)), though the docs give a detection per sample: it holds
+    the motion per sample, each the fit's; a dict's tensors of batch 1 too, a float (one for all)
+    stays a float. At batch 1 the motion is the caller's object. The refiner's mask="auto"
+    reports the detection's, and refines with the caller's own tensors (a gradient reaches them)."""
+    p = small_pair
+    fit = detect_road(p["image1"], p["image2"], p["camera"], level=0, refit=False).motion
+    assert detect_road(p["image1"], p["image2"], p["camera"], motion=fit, level=0).motion is fit
+    images = (torch.cat([p["image1"]] * 3), torch.cat([p["image2"]] * 3))
+    det = detect_road(*images, p["camera"], motion=fit, level=0)
+    motion = det.motion
+    assert type(motion) is type(fit) and motion.model == fit.model
+    for name, value in fit.params.items():
+        assert torch.equal(motion.params[name], value.expand(3)), name
+    for name in ("homography", "flow", "valid", "inliers", "residual", "success", "iterations", "covariance", "cost"):
+        assert torch.equal(getattr(motion, name), getattr(fit, name).expand(3, *getattr(fit, name).shape[1:])), name
+    assert torch.equal(motion.extras["gain"], fit.extras["gain"].expand(3))
+    assert torch.equal(motion.camera.K, fit.camera.K.expand(3, 3, 3))
+    assert tuple(fit.params["z_d"].shape) == (1,)  # (the caller's fit as it was)
+    given = {"model": "plane", "z_d": fit.params["z_d"], "x_d": float(fit.params["x_d"]),
+             **{k: v for k, v in fit.params.items() if k not in ("z_d", "x_d")}}
+    as_dict = detect_road(*images, p["camera"], motion=given, level=0).motion
+    assert torch.equal(as_dict["z_d"], fit.params["z_d"].expand(3)) and as_dict["x_d"] == given["x_d"]
+    odometry = {"model": "plane", **{k: v.detach().clone().requires_grad_() for k, v in fit.params.items()}}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out = refine_flow(torch.cat([p["flow"]] * 3) + 0.5, "auto", p["camera"], odometry, images=images, gate=None)
+    assert out.road.flag == ["ok"] * 3 and bool(out.refined.all()) and out.fit is None
+    assert tuple(out.road.motion["z_d"].shape) == (3,)
+    out.flow.sum().backward()
+    assert all(float(v.grad.abs().sum()) > 0 for k, v in odometry.items() if k != "model")

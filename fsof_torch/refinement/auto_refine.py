@@ -92,7 +92,7 @@ def refine_with_auto_road(refine: Any, flow: Any, mask: str, camera: Camera, odo
     if warn and not all(det.ok.tolist()):
         bad = {i: f"{det.flag[i]}: {det.reason[i]}" for i in range(B) if not bool(det.ok[i])}
         warn_user(f"mask: the road was not found in samples {sorted(bad)} (left unrefined): {bad}")
-    motion = det.motion
+    motion = odometry if complete else det.motion  # (the caller's own: det.motion holds a batch of 1 per sample)
     if odometry is not None and not complete and isinstance(motion, RoadFit):  # (the caller's planar tensors, graph and all)
         _, odo = road_motion_batch(odometry, B, torch.float64, finest.device)
         motion = replace(motion, params={k: torch.where(v == odo[k].to(v).detach(), odo[k].to(v), v) if k in odo else v

@@ -58,7 +58,7 @@ from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera
-from ..estimation.combine import fit_at_size, where_motion
+from ..estimation.combine import fit_at_size, select_samples, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator, check_estimate, check_estimator, finite_estimate
@@ -120,7 +120,8 @@ class RoadDetection:
         reason: per sample, a sentence saying why it was flagged (``""`` when ok).
         ok: (B,) bool, ``flag == "ok"``.
         motion: the road motion the mask was judged with (a fit result of any road model; one
-            estimated here comes at the images' size, whichever fit each sample kept).
+            estimated here comes at the images' size, whichever fit each sample kept; a given one
+            as it came, but for its tensors of batch 1, repeated for each sample of a larger batch).
         seed: (B, 1, H, W) bool, the geometric seed.
         coverage: (B,) the mask's share of the image below the horizon.
         seed_agreement: (B,) of the seed's windows with evidence, the share that is road evidence.
@@ -306,10 +307,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
     left = (Eh - C * C / Vg).clamp_min(0)             # residual energy the shift leaves
     height = min_height * shift / P.clamp_min(1e-9)
 
-    good = torch.zeros_like(ok)
-    bad = torch.zeros_like(ok)
-    misaligned = torch.zeros_like(ok)
-    testable = torch.zeros_like(ok)
+    good, bad, misaligned, testable = (torch.zeros_like(ok) for _ in range(4))
     taus, noises, biases, heights = [], [], [], []
     n_k, n_kh = k * k / _CORRELATION, kh * kh / _CORRELATION
     for b in range(B):
@@ -521,6 +519,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         if unused or starts:  # (what only an estimate takes: given with the motion, it would be ignored)
             raise ValueError(f"{(unused or ['starts'])[0]}: not used with motion given (the motion is judged, not "
                              f"estimated); give one or the other")
+        if B > 1:  # (det.motion per sample, as an estimated one: a fit of batch 1 came back as it was)
+            motion = select_samples(motion, torch.zeros(B, dtype=torch.long), 1)
     work = torch.float64 if image1.dtype == torch.float64 else torch.float32
     camera = camera.to(device=device).expand(B)
     # images on 0..255 (the estimators' scale), detached copies: the caller's tensors stay as they are
