@@ -24,6 +24,7 @@ holds ``--batch / N`` of them). Rank 0 evaluates, prints and writes the outputs.
 from __future__ import annotations
 
 import argparse
+import io
 import math
 import os
 import sys
@@ -35,7 +36,7 @@ import torch
 
 from fsof_torch.geometry.camera import Camera
 from fsof_torch.io import write_json
-from fsof_torch.io.atomic import atomic_path
+from fsof_torch.io.atomic import write_bytes
 from fsof_torch.training.losses import CompositeLoss, FreespaceFlowLoss, UnsupervisedFlowLoss
 from fsof_torch.evaluation.metrics import flow_metrics
 from fsof_torch.evaluation.photometric import photometric_error_maps
@@ -353,6 +354,15 @@ def _photometric_row(name: str, m: dict) -> str:
 RUNS = ("unsupervised", "unsupervised+freespace")
 
 
+def _save(obj: object, path: Path) -> None:
+    """``torch.save(obj)`` written to ``path`` atomically. Saved to memory first: ``torch.save`` to
+    a path names the records of its archive after that file, here the atomic write's temporary,
+    whose name is random, so that two runs with the same options wrote files of other bytes."""
+    buffer = io.BytesIO()
+    torch.save(obj, buffer)
+    write_bytes(path, buffer.getvalue())
+
+
 def _net_file(run: str) -> str:
     """The file name of a run's state_dict in ``--out``."""
     return f"tinyraft_{run.replace('+', '_')}.pt"
@@ -509,8 +519,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     if ranks.rank != 0:
         return 0
     if args.dump_first_step is not None:
-        with atomic_path(make_parent(args.dump_first_step)) as tmp:
-            torch.save({"world_size": ranks.world_size, **first_steps}, tmp)
+        _save({"world_size": ranks.world_size, **first_steps}, make_parent(args.dump_first_step))
     results: dict[str, dict] = {"untrained": evaluate_net(TinyRAFT(seed=args.seed, iters=args.iters).eval(), test)}
     for name, net in nets.items():
         results[name] = evaluate_net(net, test)
@@ -535,8 +544,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         for name, net in nets.items():
-            with atomic_path(args.out / _net_file(name)) as tmp:
-                torch.save(net.state_dict(), tmp)
+            _save(net.state_dict(), args.out / _net_file(name))
     # (printed after the files are written: a reader of stdout that goes away (| head) loses none)
     print(f"TinyRAFT ({count_parameters(nets['unsupervised'])} parameters, {args.iters} iterations), "
           f"{args.steps} steps of batch {args.batch} on {args.train_pairs} '{args.preset}' pairs of "

@@ -46,6 +46,23 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     net.load_state_dict(torch.load(out / "tinyraft_unsupervised_freespace.pt"))
 
 
+def test_train_job_same_seed_writes_the_same_bytes(tmp_path, capsys, keep_threads):
+    """Two runs with the same options write byte-identical state_dicts and first-step dumps (their
+    archives named after the temporary file they were written to, a random name, they differed)."""
+    files = []
+    for run in ("a", "b"):
+        argv = ["--steps", "1", "--size", "32", "64", "--batch", "2", "--iters", "1", "--train-pairs", "2",
+                "--test-pairs", "1", "--threads", "1", "--no-progress", "--out", str(tmp_path / run / "nets"),
+                "--dump-first-step", str(tmp_path / run / "first.pt")]
+        assert train.main(argv) == 0
+        files.append({p.relative_to(tmp_path / run): p.read_bytes() for p in sorted((tmp_path / run).rglob("*.pt"))})
+    capsys.readouterr()
+    assert len(files[0]) == 3 and files[0] == files[1]
+    net = TinyRAFT(iters=1)
+    net.load_state_dict(torch.load(tmp_path / "a" / "nets" / "tinyraft_unsupervised.pt"))
+    assert torch.load(tmp_path / "a" / "first.pt")["world_size"] == 1
+
+
 @pytest.mark.parametrize("argv, message", [
     (["--freespace-weight", "0"], "--freespace-weight: expected a finite number > 0, got 0.0"),
     (["--steps", "0"], "--steps: expected at least 1, got 0"),
