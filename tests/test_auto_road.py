@@ -263,6 +263,33 @@ def test_small_images_with_a_motion_given(scene_pair):
 
 # -- flags ----------------------------------------------------------------------------------------
 
+def test_shares_are_exact_float64_quotients_whatever_the_default_dtype():
+    """coverage, seed_agreement and the seed's evidence share are quotients of pixel counts, in
+    float64: exact (pixels / pixels below the horizon), the same under torch's default dtype
+    float32 or float64, and a road covering exactly min_coverage is not flagged small (it is not
+    smaller). Divided in the default dtype, coverage was rounded to float32 and that road was
+    flagged "small"."""
+    import fsof_torch as fs
+
+    p = fs.render_pair("default", 0, size=(64, 224))
+    args = (p["image1"][None], p["image2"][None], p["camera"])
+    det = detect_road(*args)
+    default = torch.get_default_dtype()
+    try:
+        torch.set_default_dtype(torch.float64)
+        det64 = detect_road(*args)
+    finally:
+        torch.set_default_dtype(default)
+    assert det.flag == det64.flag == ["ok"]
+    for a, b in ((det.coverage, det64.coverage), (det.seed_agreement, det64.seed_agreement),
+                 (det.stats["seed_evidence"], det64.stats["seed_evidence"])):
+        assert a.dtype == torch.float64 and torch.equal(a, b)
+    pixels, coverage = int(det.mask.sum()), float(det.coverage[0])
+    below = round(pixels / coverage)  # (the pixels below the horizon: the quotient's denominator)
+    assert 0 < pixels < below <= 64 * 224 and pixels / below == coverage
+    assert detect_road(*args, min_coverage=coverage).flag == ["ok"]
+
+
 def test_a_crawling_vehicle_is_flagged_static_and_the_reason_says_so():
     """The default scene at 188 x 621 moving 0.12 m between the frames (1.2 m/s at 10 Hz): no
     step up to slow_max_height_m shows, and the sample is flagged static; the reason names too

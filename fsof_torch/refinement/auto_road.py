@@ -340,7 +340,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
         unexplained = (texture[b] > 4 * noise) & (Eh[b] > texture[b])
         misaligned[b] = ok[b] & off_plane | ok_h[b] & unexplained
         bad[b] = misaligned[b] | ok_h[b] & raised
-        n_seed = s.sum().clamp_min(1)
+        n_seed = max(int(s.sum()), 1)  # (the share below in float64, on the host: exact, whatever the device)
         for max_height in (max_heights if trusted[b] else max_heights[:1]):
             # testable: a surface max_height high would show (its parallax at least the floor); evidence
             # where, also, the residual energy its step would add (½ TA step²) is significant (flat: none)
@@ -350,7 +350,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
             signal = (TA[b] - _NOISE_GRADIENT * noise * (1 + z * math.sqrt(2 / n_k))).clamp_min(0)
             shows = 0.5 * signal * step ** 2 > z * noise.clamp_min(noise_floor) * math.sqrt(2 / n_k)
             good[b] = ok[b] & explained & test_b & shows & ~bad[b]
-            if (s & test_b).any() and ((s & (good[b] | bad[b])).sum() / n_seed) >= _MIN_EVIDENCE:
+            if (s & test_b).any() and int((s & (good[b] | bad[b])).sum()) / n_seed >= _MIN_EVIDENCE:
                 break
         taus.append(tau)
         noises.append(noise)
@@ -650,7 +650,7 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
     B = mask.shape[0]
     success = _succeeded(motion, B)
     pixels = mask.flatten(1).sum(1).cpu()
-    coverage = (pixels / below.flatten(1).sum(1).cpu().clamp_min(1)).to(torch.float64)
+    coverage = pixels.double() / below.flatten(1).sum(1).cpu().clamp_min(1)  # (counts: float64, not torch's default dtype)
     s = seed_l & ev.ok
     n_judged = s.flatten(1).sum(1).cpu()
     n_seed = n_judged.clamp_min(1)
@@ -658,8 +658,8 @@ def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidenc
     n_bad = (s & ev.bad).flatten(1).sum(1).cpu()
     n_test = (s & ev.testable).flatten(1).sum(1).cpu()
     n_moved = (s & ev.misaligned).flatten(1).sum(1).cpu()
-    agreement = (n_good / (n_good + n_bad).clamp_min(1)).to(torch.float64)
-    evidence_share = ((n_good + n_bad) / n_seed).to(torch.float64)
+    agreement = n_good.double() / (n_good + n_bad).clamp_min(1)
+    evidence_share = (n_good + n_bad).double() / n_seed
     flags, reasons = [], []
     in_view = seed_l.flatten(1).any(1).cpu()
     for b in range(B):
