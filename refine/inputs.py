@@ -116,16 +116,28 @@ def _spec(name: str, dataset, i: int, options: dict[str, str] | str, identity: C
     return PairSpec(name, load, flow_files or {}, identity, frames, poses)
 
 
-def _file_identity(dataset: ImageFolderDataset, i: int, flow: Path | None = None) -> Callable[[], dict[str, Any]]:
+def _dataset_digests(dataset: ImageFolderDataset) -> dict[str, str]:
+    """The contents of the files ``dataset`` read when it was built, and holds since: its
+    calibration and the clip's one road file (a polygon or a mask), by role. Taken right after it
+    is built, for :func:`_file_identity`: taken when each pair was checked, later in the run, a
+    file edited meanwhile gave the records of later pairs its new digest over results of the
+    contents the dataset had read, and a rerun reused them as results of the new file."""
+    files = {"road": dataset.road_file, "calib": dataset.calib}
+    return {k: file_digest(f) for k, f in files.items() if f is not None}
+
+
+def _file_identity(dataset: ImageFolderDataset, i: int, read: dict[str, str],
+                   flow: Path | None = None) -> Callable[[], dict[str, Any]]:
     """The pair's identity for resuming: the contents of its images, flow, ground-truth, road
-    (its own mask or the dataset's one polygon) and calibration files, and its two poses (a
+    (its own mask, read with the pair, or the dataset's one polygon) and calibration files (those
+    the dataset read when it was built: ``read``, :func:`_dataset_digests`), and its two poses (a
     changed file or pose redoes the pair)."""
     def describe() -> dict[str, Any]:
         p = dataset.pairs[i]
-        files = {"image1": p.image1, "image2": p.image2, "flow": flow, "gt": p.gt,
-                 "road": p.road if p.road is not None else dataset.road_file, "calib": dataset.calib}
+        files = {"image1": p.image1, "image2": p.image2, "flow": flow, "gt": p.gt, "road": p.road}
+        digests = {**read, **{k: file_digest(f) for k, f in files.items() if f is not None}}
         P = dataset.poses
-        return {"files": {k: file_digest(f) for k, f in files.items() if f is not None},
+        return {"files": digests,
                 "poses": torch.cat([P[p.frame1].flatten(), P[p.frame2].flatten()]).tolist() if P is not None else None}
     return describe
 
@@ -250,6 +262,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
                                      pitch=math.radians(pitch_deg), poses=poses,
                                      road=None if road == "auto" else road, gt=gt, calib_size=calib_size,
                                      camera_dtype=torch.float64)
+    read = _dataset_digests(dataset)
     check_image_size(dataset, "--images", road_auto=road == "auto")
     if road != "auto":
         check_road_has_pixels(dataset, road)
@@ -257,7 +270,7 @@ def user_pairs(*, images: Path, calib: Path, cam: int | None, height: float, rol
     stems = {p.name: [p.image1.stem] for p in dataset.pairs}
     with options_of({"flows": "--flows"}):
         flow_files = match_files(flows, names, what="flows", stems=stems) if flows is not None else {}
-    specs = [_spec(p.name, dataset, i, USER_OPTIONS, _file_identity(dataset, i, flow_files.get(p.name)),
+    specs = [_spec(p.name, dataset, i, USER_OPTIONS, _file_identity(dataset, i, read, flow_files.get(p.name)),
                    {"files": flow_files[p.name]} if p.name in flow_files else {})
              for i, p in enumerate(dataset.pairs)]
     return specs, dataset.camera
@@ -284,9 +297,10 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
     with options_of("--kitti15"):
         dataset = KittiSampleDataset(root, cam=2, camera_height=height, camera_dtype=torch.float64,
                                      road_json=not road_auto)
+    read = _dataset_digests(dataset)
     check_image_size(dataset, "--kitti15", road_auto)
     name = dataset.pairs[0].name
-    return [_spec(name, dataset, 0, "--kitti15", _file_identity(dataset, 0))], dataset.camera
+    return [_spec(name, dataset, 0, "--kitti15", _file_identity(dataset, 0, read))], dataset.camera
 
 
 def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
@@ -310,7 +324,8 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
     with options_of("--kitti-odometry"):
         dataset = KittiOdometryDataset(root, cam=0, camera_height=height, pitch=math.radians(pitch_deg),
                                        camera_dtype=torch.float64, road_json=not road_auto)
+    read = _dataset_digests(dataset)
     check_image_size(dataset, "--kitti-odometry", road_auto)
-    specs = [_spec(p.name, dataset, i, "--kitti-odometry", _file_identity(dataset, i))
+    specs = [_spec(p.name, dataset, i, "--kitti-odometry", _file_identity(dataset, i, read))
              for i, p in enumerate(dataset.pairs)]
     return specs, dataset.camera

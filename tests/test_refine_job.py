@@ -1837,6 +1837,50 @@ def test_kitti_odometry_clip_without_road_json_takes_road_auto(tmp_path, user_fo
     assert "Road mask: found in the images of each pair (--road auto)" in report
 
 
+def test_a_road_json_edited_during_a_run_does_not_mark_old_results_as_its_own(tmp_path, user_folder, monkeypatch):
+    """A clip's one road.json (and its calibration) is read when the run starts; saved anew while
+    the run goes on, the pairs refined after that with the polygon read at the start carried the
+    new file's digest, so that the rerun reused them as results of the new polygon (its report
+    mixed both). Now each pair's record holds the digest of what was read: the rerun redoes every
+    pair, and its records equal a fresh run's."""
+    import shutil
+
+    import fsof_torch.io
+
+    clip = tmp_path / "clip"
+    shutil.copytree(user_folder / "images", clip / "image_l")
+    for name in ("calib.txt", "poses.txt"):
+        shutil.copy(user_folder / name, clip / name)
+    H, W = SIZE
+
+    def polygon(width: int) -> str:
+        return json.dumps({"size": [H, W], "road_polygon": [[W // 2 - width, H], [W // 2, H // 2],
+                                                            [W // 2 + width, H]]})
+
+    (clip / "road.json").write_text(polygon(70))
+    write_json = fsof_torch.io.write_json
+
+    def save_then_edit(path, obj, *args, **kw):  # the user saves another polygon after the first record
+        out = write_json(path, obj, *args, **kw)
+        if path.parent.name == "pairs":
+            (clip / "road.json").write_text(polygon(20))
+        return out
+
+    monkeypatch.setattr(fsof_torch.io, "write_json", save_then_edit)
+    argv = ["--kitti-odometry", str(clip), "--odometry", "given", "--no-progress", "--no-figures"]
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0
+    monkeypatch.setattr(fsof_torch.io, "write_json", write_json)
+    assert main([*argv, "--out", str(tmp_path / "out")]) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["records_resumed"] == 0 and report["records_computed"] == 2
+    assert main([*argv, "--out", str(tmp_path / "fresh")]) == 0
+    for pair in ("000000", "000001"):
+        rerun, fresh = (json.loads((tmp_path / o / "dis" / "given" / "pairs" / f"{pair}.json").read_text())
+                        for o in ("out", "fresh"))
+        assert rerun["road_pixels"] == fresh["road_pixels"] > 0
+        assert rerun["input_fingerprint"] == fresh["input_fingerprint"]
+
+
 def test_options_the_input_does_not_use_are_refused(tmp_path, user_folder, capsys):
     """An option the chosen input would ignore exits 2 naming it, before any work."""
     out = ["--out", str(tmp_path / "o"), "--no-progress"]
