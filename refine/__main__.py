@@ -545,8 +545,9 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     if needed_by:
         from .job import input_fingerprint
 
-        cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
+        # (digested before the fit reads them: a frame saved anew meanwhile leaves its old digest, redone)
         cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
+        cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
         notes.append(_mounting_note(cfg.clip, calibrate, len(specs), variants))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")

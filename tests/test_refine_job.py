@@ -570,6 +570,36 @@ def test_a_clip_uses_the_sequence_and_a_changed_frame_redoes_the_clip(tmp_path, 
     assert all(r.stat().st_mtime_ns != t for r, t in zip(recs, stamps))
 
 
+def test_a_frame_saved_anew_during_the_clips_fit_redoes_the_clip(tmp_path, user_folder, scene_pairs, monkeypatch):
+    """A frame saved anew once the clip's fit has read it (the run goes on with the motion fitted to
+    the old frame): the records must not carry the new frame's digest, or the rerun, fitting the new
+    frame, reused them as its results. Now the clip's inputs are digested before the fit: the rerun
+    redoes every pair, and its records equal a fresh run's."""
+    import refine.__main__ as job
+    from fsof_torch.io import write_image
+
+    fit_clip = job._fit_clip
+
+    def fit_then_save(*args, **kw):
+        fitted = fit_clip(*args, **kw)
+        write_image(user_folder / "images" / "000002.png", scene_pairs[1]["image2"].flip(-1))
+        return fitted
+
+    monkeypatch.setattr(job, "_fit_clip", fit_then_save)
+    run = lambda out: _user(user_folder, out, "--road", str(user_folder / "road"), "--source", "dis",  # noqa: E731
+                            "--odometry", "sequence", *_mounting(scene_pairs))
+    assert main(run(tmp_path / "out")) == 0
+    monkeypatch.setattr(job, "_fit_clip", fit_clip)
+    assert main(run(tmp_path / "out")) == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["records_resumed"] == 0 and report["records_computed"] == 2
+    assert main(run(tmp_path / "fresh")) == 0
+    for pair in ("000000", "000001"):
+        rerun, fresh = (json.loads((tmp_path / o / "dis" / "sequence" / "pairs" / f"{pair}.json").read_text())
+                        for o in ("out", "fresh"))
+        assert rerun["odometry"] == fresh["odometry"] and rerun["input_fingerprint"] == fresh["input_fingerprint"]
+
+
 def _mounting_values(scene_pairs) -> dict[str, float]:
     """The values of the job's mounting options, as the job parses them."""
     m = _mounting(scene_pairs)
