@@ -217,6 +217,35 @@ def test_corner_taps_equal_indexing_reference(dtype, padding_mode, align_corners
 
 
 @pytest.mark.parametrize("padding_mode", ["zeros", "border"])
+@pytest.mark.parametrize("B, C, H, W", [(1, 3, 700, 1000), (3, 1, 257, 999)])
+def test_large_warp_without_autograd_is_sampled_in_bands(monkeypatch, padding_mode, B, C, H, W):
+    """Without autograd, a warp of more sample points than ``_BAND_POINTS`` samples a band of rows
+    at a time (the corners' grid and taps of the whole frame, some 100 bytes a pixel of an RGB
+    image, were held at once: about 1 GB for a 2160x3840 frame), with the values of the one-pass
+    warp that autograd takes and of the indexing reference, bit for bit."""
+    import fsof_torch.evaluation.warp as warp
+
+    points = []
+    sample = warp._sample_corners
+
+    def spy(image, x0, y0, **kwargs):
+        points.append(x0.numel())
+        return sample(image, x0, y0, **kwargs)
+
+    monkeypatch.setattr(warp, "_sample_corners", spy)
+    image, flow = _image(B=B, C=C, H=H, W=W), _flow(B=B, H=H, W=W, scale=40.0)
+    flow[:, 0, 5] = torch.arange(W - 1, -1, -1, dtype=flow.dtype)  # row 5: onto the last column exactly
+    with torch.no_grad():
+        banded, in_bounds = warp_backward(image, flow, padding_mode=padding_mode)
+    assert len(points) > 1 and max(points) <= warp._BAND_POINTS and sum(points) == B * H * W
+    points.clear()
+    whole, whole_in_bounds = warp_backward(image, flow.clone().requires_grad_(), padding_mode=padding_mode)
+    assert points == [B * H * W]
+    assert torch.equal(banded, whole.detach()) and torch.equal(in_bounds, whole_in_bounds)
+    assert torch.equal(banded, _taps_reference(image, flow, padding_mode))
+
+
+@pytest.mark.parametrize("padding_mode", ["zeros", "border"])
 @pytest.mark.parametrize("align_corners", [True, False])
 @pytest.mark.parametrize("size", [(24, 40), (1, 9), (7, 1), (375, 1242)])
 def test_corner_taps_equal_four_pixel_maps(dtype, padding_mode, align_corners, size):

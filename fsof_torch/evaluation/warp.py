@@ -23,7 +23,9 @@ that rounding) weighted by the fractional parts, which are exact: the identity f
 image bit for bit, whole-pixel shifts equal ``torch.roll`` on the interior, and the result does
 not depend on ``align_corners`` at all, on any image size. The price: about 2-3x the time of a single bilinear
 kornia ``remap`` for forward + backward, more for a forward pass alone (one CPU thread;
-``python benchmarks/bench_warp.py`` prints the table).
+``python benchmarks/bench_warp.py`` prints the table), and the memory of the four corners' grid
+and taps (80 bytes a pixel of a float32 RGB image): without autograd, a frame of more than
+``_BAND_POINTS`` sample points is warped a band of rows at a time.
 """
 
 from __future__ import annotations
@@ -40,6 +42,9 @@ _MODES = ("bilinear", "nearest")
 # The sampler's convention, whatever the caller's align_corners (see the module docstring).
 _SAMPLE_ALIGN_CORNERS = False
 _PADDING = ("zeros", "border")
+# Sample points per band of a bilinear warp without autograd (warp_backward): a KITTI frame
+# (375 x 1242 = 465 750 pixels) is one band
+_BAND_POINTS = 1 << 19
 
 
 def normalize_coordinates(coords: Tensor, size: int, *, align_corners: bool) -> Tensor:
@@ -79,8 +84,8 @@ def _sample_nearest(image: Tensor, x: Tensor, y: Tensor, *, align_corners: bool,
 def _sample_corners(image: Tensor, x0: Tensor, y0: Tensor, *, align_corners: bool,
                     padding_mode: str) -> Tensor:
     """image (B, C, H, W) at the four integer corners (x0, y0), (x0+1, y0), (x0, y0+1),
-    (x0+1, y0+1) of every pixel (x0, y0 (B, H, W), integer-valued) -> (B, C, 4H, W), the corners
-    stacked along rows in that order.
+    (x0+1, y0+1) of every sample point (x0, y0 (B, h, w), integer-valued) -> (B, C, 4h, w), the
+    corners stacked along rows in that order.
 
     One nearest-neighbour ``grid_sample`` call over a grid built by normalising the first corner
     once and adding a pixel's step for the others: a quarter of the normalising and stacking that
@@ -88,8 +93,9 @@ def _sample_corners(image: Tensor, x0: Tensor, y0: Tensor, *, align_corners: boo
     far less than the half pixel that would change its nearest tap, so the taps are the same
     (tests/test_warp.py checks them against indexing)."""
     B, _, H, W = image.shape
+    h, w = x0.shape[-2:]  # (the sample points: the image's size, or a band of its rows)
     base = torch.stack([normalize_coordinates(x0, W, align_corners=align_corners),
-                        normalize_coordinates(y0, H, align_corners=align_corners)], dim=-1)  # (B, H, W, 2)
+                        normalize_coordinates(y0, H, align_corners=align_corners)], dim=-1)  # (B, h, w, 2)
     one = torch.ones((), dtype=base.dtype, device=base.device)
     zero = torch.zeros((), dtype=base.dtype, device=base.device)
     step_x = (normalize_coordinates(one, W, align_corners=align_corners)
@@ -98,7 +104,7 @@ def _sample_corners(image: Tensor, x0: Tensor, y0: Tensor, *, align_corners: boo
               - normalize_coordinates(zero, H, align_corners=align_corners))
     steps = torch.stack([torch.stack([zero, zero]), torch.stack([step_x, zero]),
                          torch.stack([zero, step_y]), torch.stack([step_x, step_y])])  # (4, 2)
-    grid = (base.unsqueeze(1) + steps.view(1, 4, 1, 1, 2)).reshape(B, 4 * H, W, 2)
+    grid = (base.unsqueeze(1) + steps.view(1, 4, 1, 1, 2)).reshape(B, 4 * h, w, 2)
     return torch.nn.functional.grid_sample(image, grid, mode="nearest", padding_mode=padding_mode,
                                            align_corners=align_corners)
 
@@ -191,18 +197,37 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
         if mode == "nearest":
             warped = _sample_nearest(img, torch.round(x).detach(), torch.round(y).detach(),
                                      align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
+        elif torch.is_grad_enabled() and (image.requires_grad or flow.requires_grad):
+            warped = _bilinear(img, x, y, padding_mode)
         else:
-            x0, fx = _corner_and_weight(x, W)
-            y0, fy = _corner_and_weight(y, H)
-            fx, fy = fx.unsqueeze(1), fy.unsqueeze(1)
-            # The four corners stacked along rows: one sampler call instead of four.
-            taps = _sample_corners(img, x0, y0, align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
-            t00, t10, t01, t11 = taps.split(H, dim=2)
-            # lerp returns its start exactly at weight 0 and its end at weight 1.
-            top = torch.lerp(t00, t10, fx)
-            bottom = torch.lerp(t01, t11, fx)
-            warped = torch.lerp(top, bottom, fy)
+            # Without autograd, in bands of rows: the corners' grid and taps, some 100 bytes a
+            # pixel of an RGB image, then exist for one band at a time (each pixel's value is
+            # computed alone, so the bands give the same values bit for bit)
+            rows = max(1, _BAND_POINTS // (x.shape[0] * W))
+            if rows >= H:
+                warped = _bilinear(img, x, y, padding_mode)
+            else:
+                warped = img.new_empty(img.shape)
+                for top in range(0, H, rows):
+                    band = slice(top, top + rows)
+                    warped[:, :, band] = _bilinear(img, x[:, band], y[:, band], padding_mode)
     return warped.to(out_dtype), in_bounds
+
+
+def _bilinear(img: Tensor, x: Tensor, y: Tensor, padding_mode: str) -> Tensor:
+    """``img`` (B, C, H, W) bilinearly sampled at the pixel coordinates x, y (B, h, w) of some of
+    its pixels (all, or a band of rows) -> (B, C, h, w)."""
+    H, W = img.shape[-2:]
+    x0, fx = _corner_and_weight(x, W)
+    y0, fy = _corner_and_weight(y, H)
+    fx, fy = fx.unsqueeze(1), fy.unsqueeze(1)
+    # The four corners stacked along rows: one sampler call instead of four.
+    taps = _sample_corners(img, x0, y0, align_corners=_SAMPLE_ALIGN_CORNERS, padding_mode=padding_mode)
+    t00, t10, t01, t11 = taps.split(x.shape[-2], dim=2)
+    # lerp returns its start exactly at weight 0 and its end at weight 1.
+    top = torch.lerp(t00, t10, fx)
+    bottom = torch.lerp(t01, t11, fx)
+    return torch.lerp(top, bottom, fy)
 
 
 class WarpBackward(nn.Module):
