@@ -277,6 +277,36 @@ def test_correlation_volume_is_rafts():
                                ref.reshape(2, 4, 6, 2, 2, 3, 2).mean(dim=(4, 6)))
 
 
+def _volume_values(H, W):
+    """n (n + n1 + n2): the documented size of the volume and its two pooled levels (docs/training.md)."""
+    h, w = -(-H // 8), -(-W // 8)
+    return h * w * (h * w + (h // 2) * (w // 2) + (h // 4) * (w // 4))
+
+
+@pytest.mark.parametrize("H, W", [(100, 130), (61, 203)])
+def test_correlation_memory_is_as_documented(monkeypatch, H, W):
+    """The volume the net builds holds the values docs/training.md counts (its memory grows with
+    the square of the pixel count), and the figures given there follow: 0.28 GB at 375x1242, 5.5
+    GB at 1080x1920, 88 GB at 2160x3840 in float32."""
+    import fsof_torch.training.testnet as testnet
+
+    built = []
+    pyramid = testnet._correlation_pyramid
+
+    def spy(f1, f2, levels):
+        out = pyramid(f1, f2, levels)
+        built.append(sum(level.numel() for level in out))
+        return out
+
+    monkeypatch.setattr(testnet, "_correlation_pyramid", spy)
+    g = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        TinyRAFT(iters=1)(torch.rand(2, 3, H, W, generator=g) * 255, torch.rand(2, 3, H, W, generator=g) * 255)
+    assert built == [2 * _volume_values(H, W)]
+    assert [round(4 * _volume_values(H, W) / 1e9, 2) for H, W in ((375, 1242), (1080, 1920), (2160, 3840))] == \
+        [0.28, 5.5, 88.15]
+
+
 def test_numpy_integers_are_accepted_as_ints():
     """np.int64 (from np.arange, a config array) was refused for iters and the sizes; the value
     passed on is a Python int and the net is the one the same ints give."""
