@@ -599,3 +599,56 @@ def test_float32_angular_error_of_huge_flows_matches_float64():
     ref = flow_error_maps(est.double(), gt.double())[0]["e_A"]
     assert ref.min() > 0.01
     torch.testing.assert_close(got.double(), ref, rtol=1e-5, atol=0)
+
+
+@pytest.mark.parametrize("B, H, W, dtype", [(1, 700, 1000, torch.float32), (3, 375, 1242, torch.float64),
+                                            (2, 555, 777, torch.float32)])
+def test_large_maps_without_autograd_are_computed_in_bands(monkeypatch, B, H, W, dtype):
+    """Without autograd, error maps of more than ``_BAND_PIXELS`` pixels are computed a band of
+    rows at a time (the formulas' temporaries of the whole frame, some 100 bytes a pixel, were
+    held at once: about 1.1 GB more peak for one 2160x3840 update of an accumulator), with the
+    one-pass values bit for bit in one thread (torch's atan2 rounds a run's last elements in
+    scalar code: the bands hold whole 64-element blocks of every plane), and so the same sums."""
+    from fsof_torch.evaluation.warp import band_rows
+
+    assert band_rows(1, 375, 1242, metrics_module._BAND_PIXELS) >= 375  # a KITTI frame: one band
+    assert band_rows(1, 2160, 3840, 1 << 19) == 136 and band_rows(3, 555, 777, 1000) == 64
+    g = torch.Generator().manual_seed(0)
+    gt = (torch.randn(B, 2, H, W, generator=g, dtype=torch.float64) * 20).to(dtype)
+    est = gt + (torch.randn(B, 2, H, W, generator=g, dtype=torch.float64) * 3).to(dtype)
+    gt[:, :, :3] = float("nan")  # invalid ground truth; a flow of 1e30 px and NaN estimates where not counted
+    est[:, 0, 10, :5], est[:, :, 20:22], gt[:, :, 20:22] = 1e30, float("nan"), float("inf")
+    valid = torch.rand(B, 1, H, W, generator=g) > 0.2
+    bands = []
+    maps_of = metrics_module._maps
+
+    def spy(est, gt):
+        bands.append(est.shape[-2])
+        return maps_of(est, gt)
+
+    monkeypatch.setattr(metrics_module, "_maps", spy)
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with torch.no_grad():
+            banded, counted = flow_error_maps(est, gt, valid=valid)
+            acc = FlowMetricAccumulator()
+            acc.update(est, gt, valid=valid)
+        assert len(bands) == 2 * math.ceil(H / band_rows(B, H, W, metrics_module._BAND_PIXELS)) > 2
+        bands.clear()
+        whole, whole_counted = flow_error_maps(est.clone().requires_grad_(), gt, valid=valid)
+        assert bands == [H]
+        one = FlowMetricAccumulator()
+        one.update(est.clone().requires_grad_(), gt, valid=valid)
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(counted, whole_counted)
+    for name in whole:
+        assert torch.equal(banded[name], whole[name].detach()), name
+    assert torch.equal(acc.state, one.state)
+    # and the values are the metrics' own: e_E and the angle from their formulas, in float64
+    e, t = est.double(), gt.double()
+    keep = counted[:, 0] & (e.abs() < 1e20).all(1)
+    torch.testing.assert_close(banded["e_E"][:, 0][keep].double(), (e - t).norm(dim=1)[keep], rtol=1e-5, atol=1e-4)
+    cos = ((e * t).sum(1) + 1) / ((e.square().sum(1) + 1) * (t.square().sum(1) + 1)).sqrt()
+    torch.testing.assert_close(banded["e_A"][:, 0][keep].double(), cos.clamp(-1, 1).acos()[keep], rtol=1e-3, atol=1e-3)

@@ -51,6 +51,7 @@ from torch import Tensor
 from .._check import (all_finite, check_bool, check_device, check_float_tensor, check_shape, result_dtype, skip_values,
                       to_device)
 from ..warn import warn_user
+from .warp import band_rows
 
 __all__ = [
     "flow_error_maps",
@@ -78,6 +79,9 @@ _MAPS = METRIC_NAMES + tuple(f"px{int(t)}" for t in PX_THRESHOLDS)
 
 # A per-sample mean (B,), or (mean, count (B,) int64) with return_count=True.
 _Result = Tensor | tuple[Tensor, Tensor]
+
+# Pixels (B H W) per band of rows of flow_error_maps without autograd: a KITTI frame is one band
+_BAND_PIXELS = 1 << 19
 
 # KITTI 2015 outlier thresholds (devkit: ABS_THRESH = 3 px, REL_THRESH = 5%).
 _FL_ABS_PX = 3.0
@@ -211,10 +215,22 @@ def flow_error_maps(flow_est: Tensor, flow_gt: Tensor, mask: Tensor | None = Non
         ValueError: naming ``flow_est`` for a NaN or inf estimate at a counted pixel.
     """
     est, gt, sel = _selection(flow_est, flow_gt, mask, valid)
-    maps = _maps(est, gt)
-    _check_counted(flow_est, maps["e_E"], sel)
     zero = torch.zeros((), dtype=est.dtype, device=est.device)
-    return {k: torch.where(sel, m, zero) for k, m in maps.items()}, sel
+    B, _, H, W = est.shape
+    rows = band_rows(B, H, W, _BAND_PIXELS)
+    if rows >= H or (torch.is_grad_enabled() and (est.requires_grad or gt.requires_grad)):
+        maps = {k: torch.where(sel, m, zero) for k, m in _maps(est, gt).items()}
+    else:
+        # without autograd, a band of rows at a time: the formulas' temporaries (some 100 bytes a
+        # pixel) exist for one band only, and each value is the one-pass value (band_rows)
+        maps = {k: est.new_empty(sel.shape) for k in _MAPS}
+        for top in range(0, H, rows):
+            band = (slice(None), slice(None), slice(top, top + rows))
+            for k, m in _maps(est[band], gt[band]).items():
+                torch.where(sel[band], m, zero, out=maps[k][band])
+    # (e_E outside the counted pixels is 0 here: only counted ones are checked)
+    _check_counted(flow_est, maps["e_E"], sel)
+    return maps, sel
 
 
 def _sum_dtype(device: torch.device) -> torch.dtype:

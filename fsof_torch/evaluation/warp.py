@@ -30,13 +30,15 @@ and taps (80 bytes a pixel of a float32 RGB image): without autograd, a frame of
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import Tensor, nn
 
 from .._check import (autocast_off, check_bool, check_finite, check_float_tensor, check_same_device, check_shape,
                       is_number, option_error, result_dtype, scalar)
 
-__all__ = ["normalize_coordinates", "warp_backward", "WarpBackward"]
+__all__ = ["normalize_coordinates", "warp_backward", "WarpBackward", "band_rows"]
 
 _MODES = ("bilinear", "nearest")
 # The sampler's convention, whatever the caller's align_corners (see the module docstring).
@@ -203,7 +205,7 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
             # Without autograd, in bands of rows: the corners' grid and taps, some 100 bytes a
             # pixel of an RGB image, then exist for one band at a time (each pixel's value is
             # computed alone, so the bands give the same values bit for bit)
-            rows = max(1, _BAND_POINTS // (x.shape[0] * W))
+            rows = band_rows(x.shape[0], H, W, _BAND_POINTS)
             if rows >= H:
                 warped = _bilinear(img, x, y, padding_mode)
             else:
@@ -212,6 +214,17 @@ def warp_backward(image: Tensor, flow: Tensor, *, align_corners: bool = True,
                     band = slice(top, top + rows)
                     warped[:, :, band] = _bilinear(img, x[:, band], y[:, band], padding_mode)
     return warped.to(out_dtype), in_bounds
+
+
+def band_rows(B: int, H: int, W: int, points: int) -> int:
+    """Rows per band of an elementwise computation over (B, ., H, W) maps done a band of rows at a
+    time, about ``points`` pixels a band (``H`` or more: one band). A multiple of
+    64 / gcd(W, 64) rows, so that a band holds whole 64-element blocks of every sample's plane:
+    torch's CPU kernels compute a run's last elements that fill no SIMD vector with scalar code
+    (whose transcendental functions may round otherwise), and the bands then leave the same
+    elements to it as the whole maps do (in one thread)."""
+    step = 64 // math.gcd(max(W, 1), 64)
+    return max(step, points // max(B * W, 1) // step * step)
 
 
 def _bilinear(img: Tensor, x: Tensor, y: Tensor, padding_mode: str) -> Tensor:
