@@ -500,6 +500,11 @@ def test_fit_sequence_errors(body_motion_clip):
             fit_sequence(bad, road, cam)
     with pytest.raises(ValueError, match=rf"frames\[1\]: expected shape \(3, {H}, {W}\)"):
         fit_sequence([frames[0], frames[1][..., :-8], frames[2]], road, cam)
+    # frames of one row or column: named by their index (fit_image named its image1)
+    for cut in ((slice(None), slice(0, 1)), (slice(None), slice(None), slice(0, 1))):
+        with pytest.raises(ValueError, match=r"^frames\[0\]: expected an image of at least 2x2 pixels \(the image "
+                                             rf"fit's\), got shape {re.escape(str(tuple(frames[0][cut].shape)))}$"):
+            fit_sequence([f[cut] for f in frames[:3]], road[cut], cam)
     with pytest.raises(ValueError, match=rf"mask: expected shape \(1, {H}, {W}\) or \(1, 1, {H}, {W}\)"):
         fit_sequence(frames[:3], road[None].expand(2, -1, -1, -1), cam)
     with pytest.raises(TypeError, match=r"mask\[0\]: expected a bool tensor, got dtype torch.float32"):

@@ -302,6 +302,9 @@ def _frame(x: object, name: str, data_range: float, channels: tuple[int, ...],
     channels and size, named by its index where it is not."""
     what = "an image" if size is None else f"an image of the clip's {channels[0]} channel(s) and size"
     y = _item(check_float_tensor(x, name) if isinstance(x, Tensor) else x, name, what, channels, size, device)
+    if min(y.shape[-2:]) < 2:  # (fit_image's least, which it named image1: the first frame, named here)
+        raise ValueError(f"{name}: expected an image of at least 2x2 pixels (the image fit's), got shape "
+                         f"{tuple(x.shape)}")
     check_image_range(y, name, data_range)
     return y
 
@@ -315,12 +318,13 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     over the road without poses (see the module docstring).
 
     Args:
-        frames: N + 1 images, each (C, H, W) or (1, C, H, W), on 0..``data_range`` (an option
-            of fit_image, 255 unless given): any sequence with ``len()`` and indexing, e.g. a
-            list or a lazy object that loads frame k on ``frames[k]``. Each pass reads every
-            frame once, in order (``frames[0]``, ``frames[1]``, ...), and holds at most the two
-            frames of the pair it is fitting. The masks and flows on ``frames[0]``'s device, as every
-            frame (else a ValueError names the item, ``frames[k]``, ``mask[k]`` or ``flows[k]``).
+        frames: N + 1 images, each (C, H, W) or (1, C, H, W) of at least 2x2 pixels, on
+            0..``data_range`` (an option of fit_image, 255 unless given): any sequence with
+            ``len()`` and indexing, e.g. a list or a lazy object that loads frame k on ``frames[k]``.
+            Each pass reads every frame once, in order (``frames[0]``, ``frames[1]``, ...), and
+            holds at most the two frames of the pair it is fitting. The masks and flows on
+            ``frames[0]``'s device, as every frame (else a ValueError names the item,
+            ``frames[k]``, ``mask[k]`` or ``flows[k]``).
         mask: the road pixels of every first frame: one (1, H, W) / (1, 1, H, W) bool tensor for the
             clip, or a sequence of N (read like ``frames``: ``mask[k]`` when pair k is fitted).
         camera: intrinsics, height and the nominal roll and pitch (batch 1).
