@@ -934,3 +934,23 @@ def test_cauchy_weight_and_resize_mask_check_their_arguments():
         resize_mask(mask, (0, 3))
     with pytest.raises(TypeError, match="size: expected"):
         resize_mask(mask, None)
+
+
+def test_a_confidence_scale_that_requires_grad_is_refused_not_detached():
+    """The Cauchy scale is read as a number: a tensor that requires grad (an ``nn.Parameter``, to
+    learn the scale) was taken and its gradient lost in silence (``scale.grad`` stayed None after
+    backward, as torch.autograd.gradcheck shows), so it never changed. A TypeError names it, as the
+    losses' ``scale`` and ``gamma`` do; a plain 0-d tensor is still read as its number."""
+    pred, road, cam, model = make_case(B=2, dtype=torch.float64)
+    learnable = nn.Parameter(torch.tensor(2.0, dtype=torch.float64))
+    match = r"^scale: expected a fixed number, got a tensor that requires grad"
+    with pytest.raises(TypeError, match=match):
+        fuse_flow(pred, model, road, mode="confidence", scale=learnable)
+    with pytest.raises(TypeError, match=match):
+        refine_flow(pred, road, cam, ODO, mode="confidence", scale=learnable, gate=None)
+    with pytest.raises(TypeError, match=match):
+        FreespaceRefiner(mode="confidence", scale=learnable)
+    fused, weight = fuse_flow(pred, model, road, mode="confidence", scale=torch.tensor(2.0))
+    expected = 1.0 / (1.0 + ((pred - model) ** 2).sum(1, keepdim=True) / 4.0)
+    torch.testing.assert_close(weight, torch.where(road, expected, torch.zeros_like(expected)))
+    torch.testing.assert_close(fused, torch.where(road, expected * model + (1 - expected) * pred, pred))

@@ -22,7 +22,7 @@ from torch import Tensor
 from .._check import check_float_tensor, check_number, is_number, option_error, result_dtype, scalar, skip_values
 
 __all__ = ["ROBUST_KERNELS", "robust_weight", "robust_cost", "robust_terms", "far_outlier_cost", "check_kernel",
-           "check_scale", "check_fit_options"]
+           "check_scale", "check_fixed", "check_fit_options"]
 
 ROBUST_KERNELS = ("cauchy", "huber", "soft_l1", "tukey", "l2")
 
@@ -33,6 +33,14 @@ def check_kernel(kind: object, name: str = "robust") -> str:
     if kind not in ROBUST_KERNELS:
         raise ValueError(f"{name}: expected one of {ROBUST_KERNELS}, got {kind!r}")
     return kind
+
+
+def check_fixed(value: object, name: str) -> None:
+    """A number read as a float (a kernel's ``scale``, the losses' ``gamma``) may not be a tensor
+    that requires grad: its gradient would be lost, so a learnable one would silently never change."""
+    if isinstance(value, Tensor) and value.requires_grad:
+        raise TypeError(f"{name}: expected a fixed number, got a tensor that requires grad (read as a number, its "
+                        f"gradient would be lost: a learnable {name} would never change)")
 
 
 def check_fit_options(robust: str, scale: float, max_iter: int, tol: float, max_points: int | None,

@@ -38,7 +38,7 @@ from .._check import (batch_choices, check_float_tensor, check_has_values, check
                       summary_repr, to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.flow_fit import RoadFit
-from ..estimation.robust import check_scale
+from ..estimation.robust import check_fixed, check_scale
 from ..estimation.sampling import reused_mask_pixels
 from ..evaluation.photometric import to_grey
 from ..geometry.camera import Camera
@@ -141,14 +141,16 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
         flow (weight 1); outside the mask they stay as they are.
 
     Raises:
-        TypeError: a mask that is not bool (threshold a probability or 0/1 map first), or flows
-            that are not float tensors.
+        TypeError: a mask that is not bool (threshold a probability or 0/1 map first), flows
+            that are not float tensors, or a scale that requires grad (read as a number, its
+            gradient would be lost).
         ValueError: shapes that differ (batch 1 of ``flow_model`` or ``mask`` is broadcast), a
             scale that is not a finite number > 0, or a non-finite model flow inside the mask
             (the model flow is the reference there: it must be finite).
     """
     if mode not in _MODES:
         raise ValueError(f"mode: expected one of {_MODES}, got {mode!r}")
+    check_fixed(scale, "scale")  # (read as a number: a learnable scale's gradient would be lost)
     scale = scalar(scale, "scale")
     if not is_number(scale) or not (0 < float(scale) < math.inf):
         raise option_error(scale, f"scale: expected a finite Cauchy scale > 0 pixels, got {scale!r}")
@@ -299,7 +301,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
             there are images), or None (no gate: the model replaces the whole mask).
         mode: ``"replace"`` or ``"confidence"`` (see :func:`fuse_flow`; with the gate, the images'
             evidence per region decides where the flows disagree); ``scale`` the Cauchy scale in
-            pixels of the finest level (coarser levels scale it with their size).
+            pixels of the finest level (coarser levels scale it with their size), a fixed number.
         images: ``(image1, image2)`` (B, C, H, W) on 0..255 at the finest size, on the flow's
             device (batch 1 serves every sample: B predictions of one pair), or ptlflow's input
             dict ``{"images": (B, 2, 3, H, W)}`` (BGR in [0, 1]).
@@ -635,7 +637,7 @@ class FreespaceRefiner(nn.Module):
             where there are images) or None.
         mode: ``"replace"`` (the paper: inside the road mask the flow becomes the model flow) or
             ``"confidence"`` (a blend by the flows' disagreement and the images' evidence).
-        scale: Cauchy scale in pixels (finest level) for ``confidence``.
+        scale: Cauchy scale in pixels (finest level) for ``confidence``, a fixed number.
         min_pixels: without odometry, fewer usable mask pixels leave the sample unchanged.
         flow_keys: dict keys of forward flows to refine (default :data:`DEFAULT_FLOW_KEYS`; one key
             or a sequence of keys, not None).

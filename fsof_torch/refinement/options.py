@@ -11,6 +11,7 @@ from .._check import check_bool, check_int, check_keywords, check_mapping, check
 from ..estimation.flow_fit import fit_road
 from ..estimation.forwarded import keyed_errors
 from ..estimation.image_fit import fit_image
+from ..estimation.robust import check_fixed
 from .contracts import check_flow_keys
 from .estimators import FlowMotionEstimator, ImageMotionEstimator, check_estimator
 from .gate import ImageGate
@@ -42,6 +43,7 @@ def check_refine_options(*, estimator: Any, gate: Any, mode: object, scale: obje
     integer tensor read)."""
     if mode not in MODES:
         raise ValueError(f"mode: expected one of {MODES}, got {mode!r}")
+    check_fixed(scale, "scale")  # (the refiner keeps it as a float)
     check_number(scale, "scale", positive=True)
     min_pixels = check_int(min_pixels, "min_pixels", minimum=1)
     flow_keys = check_flow_keys(flow_keys)

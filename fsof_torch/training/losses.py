@@ -67,6 +67,7 @@ from ..geometry.road_flow import road_flow
 from ..geometry.road_models import road_motion_batch
 from ..evaluation.photometric import census_transform
 from ..evaluation.warp import warp_backward
+from ..estimation.robust import check_fixed
 from .composite import CompositeLoss  # (defined there; a name of this module's contract)
 from .fitted_target import check_fit_options, fitted_target
 from ..warn import warn_user
@@ -141,17 +142,9 @@ def _masked_mean(value: Tensor, weight: Tensor) -> Tensor:
     return total / weight.flatten(1).sum(dim=1).clamp_min(1.0)
 
 
-def _check_fixed(value: object, name: str) -> None:
-    """A number read as a float (``gamma``, ``scale``) may not be a tensor that requires grad: its
-    gradient would be lost, so a learnable one would silently never change (as CompositeLoss's weights)."""
-    if isinstance(value, Tensor) and value.requires_grad:
-        raise TypeError(f"{name}: expected a fixed number, got a tensor that requires grad (read as a number, its "
-                        f"gradient would be lost: a learnable {name} would never change)")
-
-
 def _check_gamma(gamma: object) -> float:
     """RAFT's decay γ: a real number (a numpy or 0-d tensor one too) with 0 < γ <= 1 -> float."""
-    _check_fixed(gamma, "gamma")
+    check_fixed(gamma, "gamma")
     value = check_number(gamma, "gamma", finite=False)
     if not 0.0 < value <= 1.0:  # (false for NaN)
         raise ValueError(f"gamma: expected 0 < gamma <= 1, got {gamma!r}")
@@ -477,7 +470,7 @@ _PENALTY_FNS = {"charbonnier": _charbonnier, "cauchy": _cauchy, "l1": torch.abs}
 
 def _check_scale(scale: object) -> float:
     """The residual scale: a real number (a numpy or 0-d tensor one too), finite and > 0 -> float."""
-    _check_fixed(scale, "scale")
+    check_fixed(scale, "scale")
     value = check_number(scale, "scale", finite=False)
     if not 0 < value < math.inf:  # (false for NaN)
         raise ValueError(f"scale: expected a finite residual scale > 0 px, got {scale!r}")
