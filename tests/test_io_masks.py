@@ -76,6 +76,27 @@ class TestSmoke:
         assert big.shape == (1, 8, 12) and big[0, 4:].all() and not big[0, :4].any()
         assert torch.equal(read_road_mask(tmp_path / "m.png", size=(4, 6)), mask)
 
+    def test_png_resized_by_its_pixel_centres(self, tmp_path):
+        """A resized PNG mask follows the pixel-centre map ``u' + 0.5 = s (u + 0.5)`` (as its polygons,
+        ``Camera.scaled`` and images resized by ``cv2.resize`` or ``F.interpolate`` do): each pixel
+        of the new size takes the source pixel nearest its centre. OpenCV's ``INTER_NEAREST`` took
+        the top-left pixel of each k x k block, (k - 1) / 2 source pixels short: a 9-row mask whose
+        road starts at row 1 lost its first road row at a third of the size, though row 1 is the
+        centre of that row's block and two of its three rows are road."""
+        rng = np.random.default_rng(0)
+        for k, (H, W) in ((3, (9, 12)), (5, (10, 15)), (3, (12, 6))):
+            mask = torch.from_numpy(rng.random((1, H, W)) > 0.5)
+            write_road_mask(tmp_path / "m.png", mask)
+            small = read_road_mask(tmp_path / "m.png", size=(H // k, W // k), resize=True)
+            centre = (k - 1) // 2  # the source pixel at the centre of each k x k block
+            assert torch.equal(small, mask[:, centre::k, centre::k])
+            big = read_road_mask(tmp_path / "m.png", size=(H * k, W * k), resize=True)
+            assert torch.equal(big, mask.repeat_interleave(k, 1).repeat_interleave(k, 2))
+        road = torch.zeros(1, 9, 9, dtype=torch.bool)
+        road[0, 1:] = True
+        write_road_mask(tmp_path / "road.png", road)
+        assert read_road_mask(tmp_path / "road.png", size=(3, 3), resize=True).all()
+
     def test_float_tiff_masks(self, tmp_path):
         """A float TIFF of 0 and 1 (grey, or colour) is a mask; a probability map was read as road
         wherever above 0 (all of it at 0.01), and a colour float TIFF raised NumPy's 'Invalid

@@ -299,9 +299,10 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
             image's road, and a ValueError naming the file and both sizes unless ``resize``. A
             JSON without ``"size"`` is drawn at ``size`` (it needs ``size``). None: the mask at
             its own size.
-        resize: with ``size``, resample a mask of another size to it: a PNG with
-            nearest-neighbour sampling, a polygon scaled from its ``"size"`` (pixel centres map
-            as ``u' + 0.5 = s (u + 0.5)``). Only right where the images are the mask's own
+        resize: with ``size``, resample a mask of another size to it, pixel centres mapping as
+            ``u' + 0.5 = s (u + 0.5)`` (as :meth:`~fsof_torch.Camera.scaled`): a PNG by the source
+            pixel nearest each new pixel's centre (as ``F.interpolate``'s ``"nearest-exact"``), a polygon
+            scaled from its ``"size"``. Only right where the images are the mask's own
             images resized (KITTI's 375x1242 and 370x1226 frames are different crops, not
             resized copies).
 
@@ -313,8 +314,6 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
         size than ``size`` without ``resize``; FileNotFoundError for a missing file,
         IsADirectoryError for a folder.
     """
-    import cv2
-
     path = as_path(path)
     if size is not None:
         size = _check_size(list(size) if isinstance(size, (tuple, torch.Size)) else size, "size")
@@ -378,7 +377,10 @@ def read_road_mask(path: str | os.PathLike, size: tuple[int, int] | None = None,
     if size is not None and mask.shape != size:
         if not resize:
             raise ValueError(_other_size(f"path: {str(path)!r}", "a {}x{} mask", mask.shape, size))
-        mask = cv2.resize(mask.astype(np.uint8), (size[1], size[0]), interpolation=cv2.INTER_NEAREST) > 0
+        # each new pixel u' takes the source pixel nearest its centre (u' + 0.5) N / n - 0.5, in integers:
+        # floor((2 u' + 1) N / 2n) (OpenCV's INTER_NEAREST took a k x k block's top-left, (k - 1) / 2 px short)
+        rows, cols = ((2 * np.arange(n, dtype=np.int64) + 1) * N // (2 * n) for n, N in zip(size, mask.shape))
+        mask = mask[np.ix_(rows, cols)]
     return torch.from_numpy(np.ascontiguousarray(mask)).unsqueeze(0)
 
 
