@@ -419,9 +419,9 @@ def check_image_range(image: Tensor, name: str, data_range: float | tuple[float,
 
 def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
                    device: torch.device | None = None, *, finite: bool = True) -> Tensor:
-    """A per-frame scalar as a 1-D tensor: a Python number -> (1,), a 0-d or (B,) tensor kept.
-
-    ``finite=False`` leaves the finiteness check to the caller (see :func:`check_all_finite`)."""
+    """A per-frame scalar as a 1-D tensor: a Python number -> (1,) on ``device`` (else the CPU, not
+    the default device), a 0-d or (B,) tensor kept. ``finite=False`` leaves the finiteness check to
+    the caller (see :func:`check_all_finite`)."""
     if isinstance(x, Tensor):
         if not x.is_floating_point():
             raise TypeError(f"{name}: expected a float tensor or a Python number, got dtype {x.dtype}")
@@ -432,7 +432,7 @@ def as_batch_param(x: object, name: str, dtype: torch.dtype | None = None,
         if dtype is not None or device is not None:
             x = to_device(x, name, device or x.device).to(dtype or x.dtype)
     elif isinstance(x, numbers.Real) and not isinstance(x, bool):
-        x = torch.tensor([_float(x, name)], dtype=dtype or torch.get_default_dtype(), device=device)
+        x = torch.tensor([_float(x, name)], dtype=dtype or torch.get_default_dtype(), device=device or "cpu")
     else:
         raise TypeError(f"{name}: expected a float, or a tensor of shape (B,), got {type(x).__name__}")
     if finite:

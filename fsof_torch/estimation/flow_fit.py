@@ -215,7 +215,7 @@ def _moment_basis(dtype: torch.dtype, device: torch.device) -> Tensor:
         blocks = {(0, 0): (0, 1.0), (1, 1): (0, 1.0), (0, 2): (1, -1.0), (2, 0): (1, -1.0),
                   (1, 2): (2, -1.0), (2, 1): (2, -1.0), (2, 2): (3, 1.0)}
         with torch.inference_mode(False):  # (the fits run in inference mode; a cached constant must not)
-            ah = torch.zeros(24, 81, dtype=dtype)
+            ah = torch.zeros(24, 81, dtype=dtype, device="cpu")  # (filled on the host, whatever the default device)
             for (bi, bj), (k, sign) in blocks.items():
                 for i in range(3):
                     for j in range(3):
@@ -654,7 +654,7 @@ def fit_velocity(flow: Tensor, mask: Tensor, camera: Camera, wheelbase: Tensor |
             raise ValueError(f"init: expected a steering angle or a yaw rate, not both (either gives the start's yaw rate), got "
                              f"steering={given['steering']!r} and yaw_rate={init['yaw_rate']!r}; drop one")
         try:
-            steer, speed = (torch.as_tensor(v, dtype=torch.float64).cpu().reshape(-1) for v in given.values())
+            steer, speed = (torch.as_tensor(v, dtype=torch.float64, device="cpu").reshape(-1) for v in given.values())
         except (TypeError, ValueError, RuntimeError):
             raise TypeError(f"init: expected numbers or tensors for steering and speed, got {given!r}") from None
         B = flow.shape[0] if isinstance(flow, Tensor) and flow.dim() == 4 else max(steer.numel(), speed.numel())
@@ -680,7 +680,7 @@ def _wheelbase(wheelbase: Tensor | float, flow: Tensor, name: str = "wheelbase")
         check_has_values(wheelbase, name, "to turn the yaw rate into a steering angle")
         wb = wheelbase.detach().reshape(-1)
     elif isinstance(wheelbase, numbers.Real) and not isinstance(wheelbase, bool):
-        wb = torch.tensor([float(wheelbase)], dtype=torch.float64)
+        wb = torch.tensor([float(wheelbase)], dtype=torch.float64, device="cpu")
     else:
         raise TypeError(f"{name}: expected a float or a (B,) tensor, got {type(wheelbase).__name__}")
     if isinstance(flow, Tensor) and flow.dim() == 4:

@@ -191,7 +191,7 @@ def _gaussian_blur_cv2(images: Tensor, sigma: float) -> Tensor:
 
     k = _kernel_size(sigma)
     planes = _cv2_planes(images)
-    out = torch.empty(planes.shape, dtype=planes.dtype)  # (C-contiguous, whatever the input's layout)
+    out = torch.empty(planes.shape, dtype=planes.dtype, device="cpu")  # (C-contiguous, whatever the input's layout)
     for x, y in zip(planes.numpy(), out.numpy()):  # (each plane written in place, no stacking)
         cv2.GaussianBlur(x, (k, k), sigma, dst=y, borderType=cv2.BORDER_REFLECT_101)
     return out.reshape(images.shape).to(images.dtype)

@@ -198,7 +198,7 @@ def _unit_kernel(z: Tensor, kind: str, cost: bool = True, weight: bool = True,
 
 
 # ρ₁(10⁴) per kernel, computed once at import (no host read inside a fit)
-_FAR = {kind: float(robust_cost(torch.tensor(1e4, dtype=torch.float64), 1.0, kind)) for kind in ROBUST_KERNELS}
+_FAR = {kind: float(robust_cost(torch.tensor(1e4, dtype=torch.float64, device="cpu"), 1.0, kind)) for kind in ROBUST_KERNELS}
 
 
 def far_outlier_cost(kind: str) -> float:

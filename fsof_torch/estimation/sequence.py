@@ -404,8 +404,8 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
     if poses is not None:
         try:  # (a list of tensors of other shapes: torch.stack's RuntimeError, naming nothing)
             if isinstance(poses, (list, tuple)) and all(isinstance(p, Tensor) for p in poses):
-                poses = torch.stack(poses) if poses else torch.empty(0)
-            poses = poses if isinstance(poses, Tensor) else torch.as_tensor(poses)
+                poses = torch.stack(poses) if poses else torch.empty(0, device="cpu")
+            poses = poses if isinstance(poses, Tensor) else torch.as_tensor(poses, device="cpu")
         except (TypeError, ValueError, RuntimeError) as err:
             raise TypeError(f"poses: expected a float tensor of shape ({N + 1}, 4, 4) (one per frame), got "
                             f"{type(poses).__name__} ({err})") from None

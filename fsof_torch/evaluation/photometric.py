@@ -120,9 +120,10 @@ def to_grey(image: Tensor, *, out: Tensor | None = None) -> Tensor:
         # (written in place, out=image[:, 1:2] or [:, 2:3] was read after being overwritten)
         grey = to_grey(image)
     elif C == 3:
-        # the weights rounded to the image's dtype (0-dim tensors: usable with an image on any
-        # device), and one order of rounding: r w_r, then + g w_g and + b w_b (addcmul)
-        w_r, w_g, w_b = torch.tensor(_LUMA, dtype=image.dtype).unbind()
+        # the weights rounded to the image's dtype (0-dim CPU tensors, whatever the default device:
+        # usable with an image on any device), and one order of rounding: r w_r, then + g w_g and
+        # + b w_b (addcmul)
+        w_r, w_g, w_b = torch.tensor(_LUMA, dtype=image.dtype, device="cpu").unbind()
         r, g, b = image.unbind(dim=1)
         if grad:
             return (r * w_r).addcmul(g, w_g).addcmul(b, w_b).unsqueeze(1)

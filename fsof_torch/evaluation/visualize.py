@@ -59,13 +59,13 @@ def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device 
     ry, yg, gc, cb, bm, mr = _WHEEL
 
     def ramp(n: int) -> Tensor:
-        return torch.floor(255.0 * torch.arange(n, dtype=torch.float64) / n)
+        return torch.floor(255.0 * torch.arange(n, dtype=torch.float64, device=device) / n)
 
     def full(n: int) -> Tensor:
-        return torch.full((n,), 255.0, dtype=torch.float64)
+        return torch.full((n,), 255.0, dtype=torch.float64, device=device)
 
     def zero(n: int) -> Tensor:
-        return torch.zeros(n, dtype=torch.float64)
+        return torch.zeros(n, dtype=torch.float64, device=device)
 
     segments = [
         (full(ry), ramp(ry), zero(ry)),            # red -> yellow

@@ -252,7 +252,7 @@ def check_pose_steps(poses: Tensor, name: str = "poses", *, labels: list[str] | 
         return
     t = poses.detach().to("cpu", torch.float64)[:, :3, 3]
     steps = (t[1:] - t[:-1]).norm(dim=-1)
-    apart = torch.ones_like(steps) if frames_apart is None else torch.tensor(frames_apart, dtype=torch.float64)
+    apart = torch.ones_like(steps) if frames_apart is None else torch.tensor(frames_apart, dtype=torch.float64, device="cpu")
     far = (steps > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL * apart.clamp_min(1)).nonzero().flatten()
     if far.numel():
         i = int(far[0])
@@ -280,8 +280,8 @@ def check_motion_step(params: dict[str, Tensor], name: str = "odometry") -> None
     with torch.no_grad():
         # (float64 before the stack: autocast's stack refuses a half dtype other than its own)
         norm = torch.stack([s.to(torch.float64) for s in torch.broadcast_tensors(*steps)]).norm(dim=0).reshape(-1) \
-            if steps else torch.zeros(1, dtype=torch.float64)
-        turn = torch.zeros(1, dtype=torch.float64) if yaw is None else yaw.detach().to(torch.float64).abs().reshape(-1)
+            if steps else torch.zeros(1, dtype=torch.float64, device=yaw.device)
+        turn = torch.zeros(1, dtype=torch.float64, device=steps[0].device) if yaw is None else yaw.detach().to(torch.float64).abs().reshape(-1)
         far, wraps = norm > MAX_ROAD_SPEED * MAX_FRAME_INTERVAL, ~(turn < torch.pi)  # (NaN: checked before)
         if not bool(far.any() | wraps.any()):
             return

@@ -573,12 +573,13 @@ def vflow_curve(v: Tensor | float, z_d: Tensor | float, height: Tensor | float, 
 def curve_arguments(named: dict[str, object]) -> dict[str, Tensor]:
     """The arguments of a curve of the row (name -> a tensor, a number or a sequence of numbers) as
     tensors of their promoted float dtype, half precision lifted to float32 (the default dtype
-    where none is a float tensor), each on its own device (numbers on the first tensor's). A bool,
-    complex, string or None argument is a TypeError naming it; a NaN or inf value, or shapes that
-    do not broadcast together, a ValueError (values not checked while tracing)."""
+    where none is a float tensor), each on its own device (numbers on the first tensor's, else on
+    the CPU, not the default device). A bool, complex, string or None argument is a TypeError
+    naming it; a NaN or inf value, or shapes that do not broadcast together, a ValueError (values
+    not checked while tracing)."""
     floats = [x for x in named.values() if isinstance(x, Tensor) and x.is_floating_point()]
     dtype = result_dtype(*floats) if floats else torch.get_default_dtype()
-    device = next((x.device for x in named.values() if isinstance(x, Tensor)), None)
+    device = next((x.device for x in named.values() if isinstance(x, Tensor)), torch.device("cpu"))
     args = {}
     for name, x in named.items():
         if isinstance(x, Tensor) and (x.dtype == torch.bool or x.is_complex()):

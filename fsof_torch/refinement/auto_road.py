@@ -97,7 +97,7 @@ def _noise_gradient(sigma: float) -> float:
     ``sigma`` and the central differences: Σ (g'_k)² / (2 Σ g_k²) of the 1-D kernel g (the blur's:
     sampled, normalised, ±3 σ), g' its central difference (0.158 at σ = 1)."""
     r = math.ceil(3 * sigma)
-    g = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64).square() / (2 * sigma ** 2))
+    g = torch.exp(-torch.arange(-r, r + 1, dtype=torch.float64, device="cpu").square() / (2 * sigma ** 2))
     g = g / g.sum()
     dg = 0.5 * (F.pad(g, (0, 2)) - F.pad(g, (2, 0)))  # (zero beyond the taps)
     return float(dg.square().sum() / (2 * g.square().sum()))
@@ -359,7 +359,7 @@ def _evidence(grey1: Tensor, grey2: Tensor, flow: Tensor, valid: Tensor, paralla
     # (none where the height window leaves image 2, or has no gradient along the parallax)
     height = torch.where(ok_h & (Vg > 1e-12), height - torch.stack(biases).reshape(B, 1, 1, 1), 0.0)
     return _Evidence(good, bad, misaligned, ok, testable, height, torch.stack(taus), torch.stack(noises),
-                     torch.stack(biases), torch.tensor(heights, dtype=torch.float64))
+                     torch.stack(biases), torch.tensor(heights, dtype=torch.float64, device=height.device))
 
 
 # -- the detection ------------------------------------------------------------------------------
@@ -557,13 +557,13 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
         usable = (lambda m: m if finite_s is None else m & finite_s)  # noqa: E731
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
         motion = estimate(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
-        failed = ~torch.tensor(_succeeded(motion, B))
+        failed = ~torch.tensor(_succeeded(motion, B), device="cpu")
         if bool(failed.any()):
             # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
             # per sample where the first failed and this one succeeds (the others keep their own)
             deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
             again = estimate(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
-            take = failed & torch.tensor(_succeeded(again, B))
+            take = failed & torch.tensor(_succeeded(again, B), device="cpu")
             if bool(take.any()):
                 motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
         # the fit at the images' size (its homography, flow and camera; its parameters are the same)
@@ -628,7 +628,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                           odometry=odometry, starts=(motion, *starts))
         # per sample: a road found and fitted again (a sample without road keeps its seed fit,
         # as it would alone)
-        ok_again = torch.tensor(_succeeded(again, B)) & road_l.flatten(1).any(1).cpu()
+        ok_again = torch.tensor(_succeeded(again, B), device="cpu") & road_l.flatten(1).any(1).cpu()
         if bool(ok_again.any()):
             motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
             ev, road_l = judge(motion)
@@ -641,7 +641,7 @@ def _succeeded(motion: Any, B: int) -> list[bool]:
     success = getattr(motion, "success", None)
     if success is None:
         return [True] * B
-    return torch.as_tensor(success).reshape(-1).expand(B).tolist()
+    return torch.as_tensor(success, device="cpu").reshape(-1).expand(B).tolist()
 
 
 def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidence, seed_l: Tensor,

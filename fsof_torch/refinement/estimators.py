@@ -56,6 +56,12 @@ def planar_odometry(odometry: object) -> dict[str, Any] | None:
     return {k: params.get(k, 0.0) for k in _PLANAR}
 
 
+def _held(value: Any) -> Tensor:
+    """``value`` as a tensor: a tensor where it is, anything else (bools, floats) on the CPU,
+    whatever the default device (torch.as_tensor would move a tensor to that)."""
+    return value if isinstance(value, Tensor) else torch.as_tensor(value, device="cpu")
+
+
 def given_success(odometry: object, batch: int, device: torch.device | str) -> Tensor:
     """(batch,) bool: per sample, whether a given motion may be used. A fit result given as odometry
     is an estimate: its samples whose ``success`` is False are not refined with it, as the
@@ -64,7 +70,7 @@ def given_success(odometry: object, batch: int, device: torch.device | str) -> T
     success = getattr(odometry, "success", None)
     if success is None:
         return torch.ones(batch, dtype=torch.bool, device=device)
-    success = torch.as_tensor(success).reshape(-1)
+    success = torch.as_tensor(success, device=device).reshape(-1)
     check_batch(success.numel(), "odometry.success", batch)
     return success.to(device=device, dtype=torch.bool).expand(batch)
 
@@ -148,11 +154,11 @@ def finite_estimate(result: Any, camera: Camera, *, samples: Sequence[int] | Non
     """
     if not all(hasattr(result, name) for name in ("success", "params", "camera")):
         return result
-    success = torch.as_tensor(result.success).to(torch.bool).reshape(-1)
+    success = _held(result.success).to(torch.bool).reshape(-1)
     values = [*result.params.values(), result.camera.roll, result.camera.pitch]
     finite = torch.ones_like(success)
     for v in values:
-        finite = finite & torch.isfinite(torch.as_tensor(v).detach()).reshape(-1).to(finite.device)
+        finite = finite & torch.isfinite(_held(v).detach()).reshape(-1).to(finite.device)
     if bool(finite.all()):
         return result
     if warn:
@@ -166,7 +172,7 @@ def finite_estimate(result: Any, camera: Camera, *, samples: Sequence[int] | Non
 
     cam = result.camera
     changes: dict[str, Any] = {
-        "success": success & finite, "params": {k: keep(torch.as_tensor(v), 0.0) for k, v in result.params.items()},
+        "success": success & finite, "params": {k: keep(_held(v), 0.0) for k, v in result.params.items()},
         "camera": cam.replace(roll=keep(cam.roll, camera.roll.to(cam.roll)),
                               pitch=keep(cam.pitch, camera.pitch.to(cam.pitch)))}
     for name, fill in (("flow", 0.0), ("valid", False), ("homography", None)):

@@ -121,7 +121,7 @@ class CompositeLoss(nn.Module):
                 value = self._term(name)(flows, **kwargs)
             except TypeError as exc:
                 raise TypeError(f"terms[{name!r}]: {exc} (inputs given: {sorted(map(str, given))})") from exc
-            value = torch.as_tensor(value)
+            value = value if isinstance(value, Tensor) else torch.as_tensor(value, device="cpu")
             if value.numel() != 1:  # ((B,) would broadcast against the scalar terms: each added B times by a sum)
                 raise ValueError(f"terms[{name!r}]: expected a scalar loss, got shape {tuple(value.shape)} (a term "
                                  f"built with reduction='none'? CompositeLoss adds scalars: 'mean' or 'sum')")

@@ -120,8 +120,8 @@ class TorchvisionRAFTStandIn(nn.Module):
 def _value_range(*images: Tensor) -> tuple[float, float]:
     """The smallest and largest value of the images, NaN where any value is NaN (Python's min and
     max would drop a NaN depending on the order of their arguments)."""
-    lo = torch.tensor([float(im.detach().amin()) for im in images], dtype=torch.float64).amin()
-    hi = torch.tensor([float(im.detach().amax()) for im in images], dtype=torch.float64).amax()
+    lo = torch.tensor([float(im.detach().amin()) for im in images], dtype=torch.float64, device="cpu").amin()
+    hi = torch.tensor([float(im.detach().amax()) for im in images], dtype=torch.float64, device="cpu").amax()
     return float(lo), float(hi)
 
 
