@@ -86,6 +86,8 @@ def pair():
 
 
 CALLS = {
+    "render_pair": lambda p: fs.render_pair("default", 1, size=SIZE),
+    "SceneDataset": lambda p: fs.datasets.SceneDataset("default", 2, size=SIZE)[1],
     "refiner_odometry": lambda p: fs.FreespaceRefiner()(p["prediction"], p["road"], p["camera"], p["odometry"]),
     "refiner_flow": lambda p: fs.FreespaceRefiner()(p["prediction"], p["road"], p["camera"]),
     "refiner_images": lambda p: fs.FreespaceRefiner()(p["prediction"], p["road"], p["camera"],
@@ -108,6 +110,7 @@ CALLS = {
                                                           kinds=("l1", "census", "ssim")),
     "flow_to_color": lambda p: fs.flow_to_color(p["prediction"]),
     "vflow_curve_numbers": lambda p: fs.vflow_curve(30.0, 1.0, 1.65, 100.0, 20.0),
+    "collate": lambda p: fs.collate([p["rendered"], p["rendered"]]),
 }
 
 
@@ -120,7 +123,7 @@ def test_default_device_not_used(pair, name):
     assert_same(on_meta(lambda: call(pair)), expected)
 
 
-@pytest.mark.parametrize("name", ["refiner_images", "fit_velocity"])
+@pytest.mark.parametrize("name", ["refiner_images", "fit_velocity", "render_pair"])
 def test_device_context_not_used(pair, name):
     call = CALLS[name]
     expected = call(pair)

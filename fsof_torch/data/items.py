@@ -339,7 +339,8 @@ def collate(samples: Sequence[Mapping[str, Any]], *, name: str = "samples") -> d
         elif isinstance(first, Camera):
             batch[key] = concat_cameras(values)
         elif isinstance(first, Mapping) and _holds_numbers(first):  # then in every item (_check_samples)
-            batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype) for k in first}
+            # (on the CPU, as the numbers were, not on torch's default device)
+            batch[key] = {k: torch.tensor([float(v[k]) for v in values], dtype=float_dtype, device="cpu") for k in first}
         else:
             batch[key] = list(values)
     return batch

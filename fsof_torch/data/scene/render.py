@@ -16,7 +16,7 @@ from .config import MARKING, ROAD, SKY, SceneConfig, check_overrides, check_seed
 from .ground_truth import ground_truth, road_motion
 from .raycast import Hits, cast_rays, sample_grid
 from .shading import sensor_noise, shade
-from .world import Scene
+from .world import Scene, on_host
 
 __all__ = ["render_pair", "render_sequence", "collate"]
 
@@ -261,7 +261,8 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
     if progress:
         from ...io.progress import progress_bar
         indices = progress_bar(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
-    with autocast_off(torch.empty(0)):  # (the ground truth's products in the render dtype, not autocast's)
+    # (the ground truth's products in the render dtype, not autocast's; on the CPU, whatever the default device)
+    with autocast_off(torch.empty(0, device="cpu")), on_host():
         pairs = [renderer.pair(k) for k in indices]
         last = start + num_pairs
         _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work

@@ -15,6 +15,7 @@ H = h + body height offset its height over that plane. On a level road α = 0 an
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 
@@ -27,6 +28,13 @@ from .config import SceneConfig, traffic_speed
 from .motion import BodyMotion, ego_poses, motion_from_config, rot_y
 from .objects import BLOCK, SceneObject, block_objects
 from .road import Grade, Road
+
+
+def on_host() -> contextlib.AbstractContextManager:
+    """Where the renderer creates its tensors: on the CPU, whatever torch's default device
+    (``torch.set_default_device`` or a ``with torch.device(...)`` block); a no-op where that is
+    the CPU already."""
+    return contextlib.nullcontext() if torch.empty(0).device.type == "cpu" else torch.device("cpu")
 
 
 @dataclass(frozen=True)
@@ -47,31 +55,32 @@ class Scene:
     """A configured scene: road, ego poses, objects, texture tables; renders frames."""
 
     def __init__(self, cfg: SceneConfig, seed: int, dtype: torch.dtype) -> None:
-        self.cfg, self.seed, self.dtype = cfg, int(seed), dtype
-        self.motion = motion_from_config(cfg)
-        self.road = Road(cfg)
-        self.grade = Grade(cfg)
-        self.body = BodyMotion(cfg, self.seed)
-        # the camera's attitude, centre or height change beyond the planar motion
-        self.rides = cfg.has_grade or cfg.has_body_motion
-        self.h = float(cfg.height)
-        base = Camera(torch.tensor(cfg.K, dtype=torch.float64), cfg.height, cfg.roll, cfg.pitch)
-        size = tuple(cfg.size) if cfg.size is not None else tuple(cfg.base_size)
-        if size != tuple(cfg.base_size):
-            base = base.scaled(size[1] / cfg.base_size[1], size[0] / cfg.base_size[0])
-        self.size = size
-        self.camera64 = base
-        # the mounting as the Camera holds it ((1,) float64), for the poses
-        self.roll, self.pitch = base.roll.clone(), base.pitch.clone()
-        self.K = base.K[0].tolist()
-        self.K_inv = base.K_inv()[0].tolist()
-        g = torch.Generator().manual_seed(self.seed * 2 + 1)
-        # value-noise lattices: 12 periodic 128 x 128 tables (one per octave and texture)
-        lattice = torch.rand(12, 1, 128, 128, generator=g, dtype=torch.float64) * 2 - 1
-        self.noise = F.pad(lattice, (0, 1, 0, 1), mode="circular").to(dtype)
-        self._poses = ego_poses(self.motion, 1)
-        self._camera_poses: dict[int, CameraPose] = {}
-        self._blocks: dict[int, list[SceneObject]] = {}
+        with on_host():  # (the renderer works on the CPU: its generators are CPU generators)
+            self.cfg, self.seed, self.dtype = cfg, int(seed), dtype
+            self.motion = motion_from_config(cfg)
+            self.road = Road(cfg)
+            self.grade = Grade(cfg)
+            self.body = BodyMotion(cfg, self.seed)
+            # the camera's attitude, centre or height change beyond the planar motion
+            self.rides = cfg.has_grade or cfg.has_body_motion
+            self.h = float(cfg.height)
+            base = Camera(torch.tensor(cfg.K, dtype=torch.float64), cfg.height, cfg.roll, cfg.pitch)
+            size = tuple(cfg.size) if cfg.size is not None else tuple(cfg.base_size)
+            if size != tuple(cfg.base_size):
+                base = base.scaled(size[1] / cfg.base_size[1], size[0] / cfg.base_size[0])
+            self.size = size
+            self.camera64 = base
+            # the mounting as the Camera holds it ((1,) float64), for the poses
+            self.roll, self.pitch = base.roll.clone(), base.pitch.clone()
+            self.K = base.K[0].tolist()
+            self.K_inv = base.K_inv()[0].tolist()
+            g = torch.Generator().manual_seed(self.seed * 2 + 1)
+            # value-noise lattices: 12 periodic 128 x 128 tables (one per octave and texture)
+            lattice = torch.rand(12, 1, 128, 128, generator=g, dtype=torch.float64) * 2 - 1
+            self.noise = F.pad(lattice, (0, 1, 0, 1), mode="circular").to(dtype)
+            self._poses = ego_poses(self.motion, 1)
+            self._camera_poses: dict[int, CameraPose] = {}
+            self._blocks: dict[int, list[SceneObject]] = {}
 
     # -- poses and objects --------------------------------------------------------------------
     def ego_pose(self, k: int) -> tuple[float, float, float]:
