@@ -137,6 +137,20 @@ def test_flow_fit_constant_built_on_the_host(pair, monkeypatch):
     assert_same(got, fs.fit_displacement(pair["flow"], pair["road"], pair["camera"], valid=pair["valid"]))
 
 
+def test_readers_return_cpu_tensors(pair, tmp_path):
+    K = torch.tensor([[700.0, 0.0, 60.0], [0.0, 700.0, 20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    calib = fs.io.kitti.write_kitti_calibration(tmp_path / "calib.txt", K)
+    poses_file = fs.write_kitti_poses(tmp_path / "poses.txt", pair["poses"][:2])
+    fs.io.layout.write_synthetic_sequence(tmp_path / "clip", [pair["rendered"]])
+    read = {"calibration": lambda: fs.read_kitti_calibration(calib, 2),
+            "camera": lambda: fs.Camera.from_kitti(calib, height=1.65),
+            "poses": lambda: fs.read_kitti_poses(poses_file),
+            "carla_camera": lambda: fs.io.carla.carla_camera((60, 80)),
+            "synthetic_item": lambda: fs.datasets.SyntheticFlowDataset(tmp_path / "clip")[0]}
+    for name, fn in read.items():
+        assert_same(on_meta(fn), fn())
+
+
 def test_import_under_another_default_device():
     # the constants computed at import
     code = "import torch; torch.set_default_device('meta'); import fsof_torch; print('imported')"

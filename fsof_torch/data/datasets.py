@@ -286,7 +286,7 @@ class KittiFlowDataset(Dataset):
         if K is not None:  # a copy, checked here: the caller's tensor is not shared with any item
             try:
                 # (an array torch takes as it is, or copied first: a big-endian or reversed view)
-                K = tensor_from_array(K) if isinstance(K, np.ndarray) else torch.as_tensor(K)
+                K = tensor_from_array(K) if isinstance(K, np.ndarray) else torch.as_tensor(K, device="cpu")
             except (TypeError, ValueError, RuntimeError):  # a str, a ragged list: as Camera.from_projection
                 raise TypeError(f"K: expected a (3, 3) tensor or array of numbers, got "
                                 f"{type(K).__name__} {K!r:.60}") from None

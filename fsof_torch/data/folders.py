@@ -96,7 +96,7 @@ def check_mounting(camera_height: object, roll: object, pitch: object,
     camera_height = check_number(camera_height, "camera_height", positive=True)
     roll, pitch = check_number(roll, "roll"), check_number(pitch, "pitch")
     try:
-        Camera(torch.eye(3, dtype=torch.float64), camera_height, roll, pitch).to(dtype)  # (dtype's bounds)
+        Camera(torch.eye(3, dtype=torch.float64, device="cpu"), camera_height, roll, pitch).to(dtype)  # (dtype's bounds)
     except ValueError as err:
         message = str(err)
         raise ValueError("camera_" + message if message.startswith("height:") else message) from None
@@ -505,7 +505,7 @@ class ImageFolderDataset(Dataset):
         # the mounting the odometry is projected under: the calibrated camera's, or without a
         # calibration the given roll and pitch (not a level camera whatever was given)
         self._mounting64 = self._camera64 if self._camera64 is not None else Camera(
-            torch.eye(3, dtype=torch.float64), camera_height, roll, pitch)
+            torch.eye(3, dtype=torch.float64, device="cpu"), camera_height, roll, pitch)
         self.poses = self._read_poses(poses, max(j for _, _, j in pairs) + 1) if poses is not None else None
 
         road_files: dict[str, Path] = {}

@@ -434,7 +434,7 @@ class Camera:
         A P whose first three columns are no valid K raises the constructor's error naming ``P``."""
         if not isinstance(P, Tensor):
             try:
-                P = torch.as_tensor(P, dtype=torch.float64)
+                P = torch.as_tensor(P, dtype=torch.float64, device="cpu")  # (as a file's: not on the default device)
             except (TypeError, ValueError, RuntimeError):
                 raise TypeError(f"P: expected a (3, 4) or (B, 3, 4) tensor or array of numbers, got "
                                 f"{type(P).__name__} {P!r:.60}") from None
@@ -462,7 +462,7 @@ class Camera:
         P = read_kitti_calibration(path, cam)
         if dtype in (torch.float16, torch.bfloat16):
             dtype = torch.float32
-        return cls.from_projection(torch.as_tensor(P, dtype=dtype), height, roll, pitch)
+        return cls.from_projection(P if dtype is None else P.to(dtype), height, roll, pitch)
 
 
 def check_camera(camera: object, name: str = "camera") -> "Camera":
@@ -576,7 +576,7 @@ def read_kitti_calibration(path: str | os.PathLike, cam: int = 2) -> "torch.Tens
         raise ValueError(f"path: the projection row of camera {cam} in {str(path)!r} has {len(values)} numbers, expected 12")
     if not all(math.isfinite(x) for x in values):
         raise ValueError(f"path: the {row} row of {str(path)!r} holds NaN or inf: {values}")
-    return torch.tensor(values, dtype=torch.float64).reshape(3, 4)
+    return torch.tensor(values, dtype=torch.float64, device="cpu").reshape(3, 4)
 
 
 def check_camera_index(cam: object, name: str = "cam") -> int:

@@ -143,7 +143,7 @@ def carla_camera(size: tuple[int, int], *, height: float = CARLA_CAMERA_HEIGHT, 
     if not isinstance(dtype, torch.dtype) or not dtype.is_floating_point:
         raise TypeError(f"dtype: expected a floating-point torch dtype, got {dtype!r}")
     f = w / (2.0 * math.tan(math.radians(fov) / 2.0))
-    K = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]], dtype=dtype)
+    K = torch.tensor([[f, 0.0, w / 2.0], [0.0, f, h / 2.0], [0.0, 0.0, 1.0]], dtype=dtype, device="cpu")
     return Camera(K, height, roll, pitch)
 
 

@@ -178,7 +178,7 @@ def read_kitti_poses(path: str | os.PathLike) -> Tensor:
         lines.append(n)
     if not rows:
         raise ValueError(f"path: {str(path)!r} holds no poses")
-    poses = torch.tensor(rows, dtype=torch.float64).reshape(-1, 4, 4)
+    poses = torch.tensor(rows, dtype=torch.float64, device="cpu").reshape(-1, 4, 4)
     check_rigid_poses(poses, lambda i: f"path: line {lines[i]} of {str(path)!r}")
     return poses
 
@@ -191,14 +191,14 @@ def check_rigid_poses(poses: Tensor, describe: Callable[[int], str]) -> None:
     Shared by the poses reader and writer and by the datasets that take poses."""
     poses = poses.detach().to("cpu", torch.float64)
     finite = torch.isfinite(poses).flatten(1).all(dim=1)
-    values = torch.where(finite.view(-1, 1, 1), poses, torch.eye(4, dtype=torch.float64))  # (NaN compares False)
-    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64)
+    values = torch.where(finite.view(-1, 1, 1), poses, torch.eye(4, dtype=torch.float64, device="cpu"))  # (NaN compares False)
+    bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device="cpu")
     rigid_row = torch.isclose(values[:, 3], bottom.expand(len(values), 4), rtol=1e-5, atol=1e-9).all(dim=1)
     # The 3×3 block must be a rotation: an all-zero or scaled block is singular or not rigid, and
     # relative poses (its inverse) would be inf or wrong. KITTI's rows, printed to 7 digits, are
     # orthonormal to 2e-7; the tolerance leaves room for other writers' rounding.
     R = values[:, :3, :3]
-    error = (R.transpose(1, 2) @ R - torch.eye(3, dtype=R.dtype)).abs().flatten(1).amax(dim=1)
+    error = (R.transpose(1, 2) @ R - torch.eye(3, dtype=R.dtype, device="cpu")).abs().flatten(1).amax(dim=1)
     det = torch.linalg.det(R)
     bad = (~(finite & rigid_row & (error <= _ROTATION_TOL) & (det > 0))).nonzero().flatten()
     if not bad.numel():
@@ -235,7 +235,7 @@ def write_kitti_poses(path: str | os.PathLike, poses: Tensor | np.ndarray) -> Pa
     check_has_values(poses, "poses")
     full = poses.detach().cpu().double()
     if full.shape[1] == 3:  # the last row the format leaves out
-        full = torch.cat([full, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64).expand(len(full), 1, 4)], dim=1)
+        full = torch.cat([full, torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=torch.float64, device="cpu").expand(len(full), 1, 4)], dim=1)
     check_rigid_poses(full, lambda i: f"poses: pose {i}")
     rows = full[:, :3, :].reshape(-1, 12).tolist()
     text = "".join(" ".join(repr(float(x)) for x in row) + "\n" for row in rows)

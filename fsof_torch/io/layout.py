@@ -162,7 +162,7 @@ def camera_from_params(params: Mapping, dtype: torch.dtype = torch.float64) -> C
     floating-point torch dtype (else a TypeError naming it)."""
     _check_float_dtype(dtype)
     cam = params.get("camera", params)
-    return Camera(torch.tensor(cam["K"], dtype=dtype), float(cam["height"]), float(cam.get("roll", 0.0)),
+    return Camera(torch.tensor(cam["K"], dtype=dtype, device="cpu"), float(cam["height"]), float(cam.get("roll", 0.0)),
                   float(cam.get("pitch", 0.0)))
 
 
@@ -182,9 +182,9 @@ def relative_pose_from_odometry(camera: Camera, x_d: float, z_d: float, yaw: flo
     check_has_values(camera.K, "camera")
     Rc = camera.to(device="cpu", dtype=torch.float64).mounting()[0].detach()
     c, s = math.cos(yaw), math.sin(yaw)
-    R_phi = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64)
-    d = torch.tensor([x_d, 0.0, z_d], dtype=torch.float64)
-    T = torch.eye(4, dtype=torch.float64)
+    R_phi = torch.tensor([[c, 0.0, -s], [0.0, 1.0, 0.0], [s, 0.0, c]], dtype=torch.float64, device="cpu")
+    d = torch.tensor([x_d, 0.0, z_d], dtype=torch.float64, device="cpu")
+    T = torch.eye(4, dtype=torch.float64, device="cpu")
     T[:3, :3] = Rc @ R_phi @ Rc.T
     T[:3, 3] = -(Rc @ R_phi @ d)
     return T
@@ -269,14 +269,14 @@ def write_synthetic_pair(root: str | os.PathLike, index: int, pair: Mapping[str,
     velocity = None
     if pair.get("flow_velocity") is not None:  # NaN off the valid pixels; read back as 0 there
         given = as_chw_flow(pair["flow_velocity"], "pair['flow_velocity']").detach().cpu()
-        velocity = torch.where(held, given.float(), torch.tensor(float("nan")))
+        velocity = torch.where(held, given.float(), torch.tensor(float("nan"), device="cpu"))
         if not bool(torch.isfinite(velocity[:, held]).all()):  # (a NaN would read back as 0 at a valid pixel)
             raise ValueError("pair['flow_velocity']: expected finite values within float32's range at the valid "
                              "pixels (pair['valid']), got NaN, inf or a value beyond 3.4e38")
     poses = {}
     for key in ("pose1", "pose2"):  # checked before any file is written, as the reader checks them
         if pair.get(key) is not None:
-            pose = torch.as_tensor(pair[key]).detach().to("cpu", torch.float64)
+            pose = torch.as_tensor(pair[key], device="cpu").detach().to(torch.float64)
             if pose.numel() != 16:
                 raise ValueError(f"pair[{key!r}]: expected a 4×4 pose, got shape {tuple(pose.shape)}")
             check_rigid_poses(pose.reshape(1, 4, 4), lambda _: f"pair[{key!r}]")
@@ -409,7 +409,7 @@ def write_synthetic_sequence(root: str | os.PathLike, pairs: Iterable[Mapping[st
         raise ValueError(f"root: {str(root)!r} already holds files ({listed}); give a new or empty folder")
     root.mkdir(parents=True, exist_ok=True)
     extra = dict(meta or {})
-    chained = [torch.eye(4, dtype=torch.float64)]
+    chained = [torch.eye(4, dtype=torch.float64, device="cpu")]
     rendered: list[tuple[Tensor, Tensor] | None] = []
     size = None
     count = 0
@@ -667,7 +667,7 @@ def read_synthetic_pair(root: str | os.PathLike, index: int, *, dtype: torch.dty
     for key in ("pose1", "pose2"):
         if key in params:
             try:
-                sample[key] = torch.tensor(params[key], dtype=torch.float64).reshape(4, 4)
+                sample[key] = torch.tensor(params[key], dtype=torch.float64, device="cpu").reshape(4, 4)
             except (ValueError, TypeError, RuntimeError, OverflowError):
                 raise ValueError(f"path: {str(params_path)!r}[{key!r}] is not a 4×4 list of numbers") from None
             check_rigid_poses(sample[key].unsqueeze(0), lambda _: f"path: {str(params_path)!r}[{key!r}]")

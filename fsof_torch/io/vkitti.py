@@ -79,7 +79,7 @@ def write_vkitti2_flow(path: str | os.PathLike, flow: Tensor, valid: Tensor | No
     _, height, width = flow.shape
     valid_hw = flow_valid_pixels(flow, valid)
     stored = torch.where(valid_hw, flow, torch.zeros_like(flow))
-    limit = torch.tensor([width - 1, height - 1], dtype=torch.float64).view(2, 1, 1)
+    limit = torch.tensor([width - 1, height - 1], dtype=torch.float64, device="cpu").view(2, 1, 1)
     beyond = stored.abs() > limit
     if bool(beyond.any()):
         channel = 0 if bool(beyond[0].any()) else 1
