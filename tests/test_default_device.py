@@ -1,7 +1,7 @@
 """The library under a default device that is not its inputs' (``torch.set_default_device("cuda")``
 or ``with torch.device("cuda"):`` and tensors read from files on the CPU): what it creates goes to
 its inputs' device, or to the CPU where it reads a file or takes numbers, never to the default
-device.
+device; and a default dtype of float64 leaves float32 results float32.
 
 No GPU is needed: the meta device stands in for the default device. A tensor created there has no
 values, so a creation that follows the default device fails or returns meta tensors; the results
@@ -156,3 +156,14 @@ def test_import_under_another_default_device():
     code = "import torch; torch.set_default_device('meta'); import fsof_torch; print('imported')"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0 and "imported" in out.stdout, out.stderr[-2000:]
+
+
+def test_gate_evidence_keeps_the_images_dtype(pair):
+    expected = fs.ImageGate()(pair["image1"], pair["image2"], pair["prediction"], pair["flow"], pair["road"])
+    torch.set_default_dtype(torch.float64)
+    try:
+        got = fs.ImageGate()(pair["image1"], pair["image2"], pair["prediction"], pair["flow"], pair["road"])
+    finally:
+        torch.set_default_dtype(torch.float32)
+    assert expected.evidence.dtype == torch.float32
+    assert_same(got, expected)

@@ -420,7 +420,7 @@ class ImageGate:
         enough = n >= min_points
         cell_model = torch.where(enough, ~worse, model_used.unsqueeze(1)) & model_used.unsqueeze(1)
         evidence = torch.where(enough, torch.sigmoid(-diff / self.temperature),
-                               torch.where(model_used, 0.5, 0.0).unsqueeze(1)) * model_used.unsqueeze(1)
+                               (0.5 * model_used.to(diff.dtype)).unsqueeze(1)) * model_used.unsqueeze(1)
 
         def to_pixels(c: Tensor) -> Tensor:
             # each cell's value over its ch x cw pixels (one copy: a broadcast view, reshaped)
