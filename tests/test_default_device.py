@@ -167,3 +167,30 @@ def test_gate_evidence_keeps_the_images_dtype(pair):
         torch.set_default_dtype(torch.float32)
     assert expected.evidence.dtype == torch.float32
     assert_same(got, expected)
+
+
+def test_pair_figure_draws_under_another_default_device(pair, tmp_path):
+    # the refine job's figure of a pair (its images, flows and errors on the CPU)
+    import matplotlib.pyplot as plt
+
+    from fsof_torch.evaluation import figures
+
+    error = (pair["prediction"] - pair["flow"])[0].norm(dim=0, keepdim=True)
+    valid = pair["valid"][0]
+
+    def draw():
+        fig = figures.pair_figure(flows={"truth": pair["flow"][0], "prediction": pair["prediction"][0]},
+                                  errors={"prediction": (error, valid)}, road=pair["road"][0], max_flow=5.0,
+                                  error_vmax=2.0, error_label="EPE (px)", title="pair",
+                                  images=(pair["image1"][0], pair["image2"][0]), valid=valid)
+        try:
+            return [im.get_array().copy() for ax in fig.axes for im in ax.get_images()]
+        finally:
+            plt.close(fig)
+
+    expected = draw()
+    got = on_meta(draw)
+    assert len(got) == len(expected) > 0
+    for g, e in zip(got, expected):
+        assert (g == e).all()
+    assert (on_meta(lambda: figures.colour_wheel(5.0, 21)) == figures.colour_wheel(5.0, 21)).all()

@@ -99,7 +99,7 @@ def reduce_values(x: Tensor, has: Tensor, bad: Tensor, factor: int) -> tuple[Ten
     reduced map (float64, 0 where no value) and that flag (1, h, w). ``factor``: an int >= 1, such
     as :func:`drawing_factor` gives for the panel."""
     factor = check_int(factor, "factor", minimum=1)  # (2.5 was avg_pool2d's kernel_size error, 0 read as 1)
-    x = torch.where(has, x.to(torch.float64), torch.zeros((), dtype=torch.float64))
+    x = torch.where(has, x.to(torch.float64), torch.zeros((), dtype=torch.float64, device=x.device))
     if factor <= 1:
         return x, has & ~bad
     share = _reduce(has.to(torch.float64), factor)  # 0, or at least 1 / factor² (averaged alike)
@@ -172,7 +172,7 @@ def colour_wheel(max_flow: float, size: int = 101) -> Tensor:
     uint8 RGB, u to the right, v down (outside the disc white); ``size`` an int >= 1."""
     check_number(max_flow, "max_flow", positive=True)
     size = check_int(size, "size", minimum=1)  # (0 was named 'flow', 2.5 a TypeError from linspace)
-    r = torch.linspace(-1.0, 1.0, size, dtype=torch.float64)
+    r = torch.linspace(-1.0, 1.0, size, dtype=torch.float64, device="cpu")  # (drawn by matplotlib)
     v, u = torch.meshgrid(r, r, indexing="ij")
     inside = (u * u + v * v) <= 1.0
     # the colours of flow / max_flow, which is the disc itself: drawn from it directly, as the
@@ -408,7 +408,7 @@ class PairFigure:
             # visible); no value where none has one, or where a valid pixel's flow is not finite
             mean, ok_r = reduce_values(f, has, ~finite if valid is None else valid & ~finite, factor)
             rgb = flow_to_color(mean, max_flow, valid=ok_r)[0]
-            rgb = torch.where(ok_r, rgb, torch.tensor(NO_VALUE_RGB, dtype=torch.uint8).view(3, 1, 1))
+            rgb = torch.where(ok_r, rgb, torch.tensor(NO_VALUE_RGB, dtype=torch.uint8, device=rgb.device).view(3, 1, 1))
             shown.set_data(rgb.permute(1, 2, 0).numpy())
             ax.set_title(f"flow, {name}", fontsize=9)
             if error_panel is None:
