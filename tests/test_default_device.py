@@ -35,7 +35,9 @@ def on_meta(fn, *, context: bool = False):
     try:
         return fn()
     finally:
-        torch.set_default_device(before)
+        # (None, not "cpu", where none was set: set to the CPU, torch keeps a device mode that sees
+        # every later call of the process)
+        torch.set_default_device(None if before.type == "cpu" else before)
 
 
 def tensors(x, name: str = "out") -> dict:
