@@ -4,7 +4,8 @@ two runs from writing into one folder, and the cleaning of temporaries a killed 
 A run's *identity* is everything that decides its results: the input (a synthetic scene's preset,
 seed, size and noise; a folder's path, calibration and poses contents, camera options), the flow
 sources (test-net weights and user networks by their contents), the odometry variants and the
-refinement options, and the library's version. Its fingerprint is a hash of that identity.
+refinement options, and the library's version and code (:func:`code_digest`). Its fingerprint is a
+hash of that identity.
 Each pair's record also stores the fingerprint of the pair's own inputs (the contents of its
 images and flow, road and ground-truth files, its poses).
 
@@ -24,6 +25,7 @@ not part of the identity: a longer run of the same inputs reuses the pairs it sh
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import json
 import os
@@ -47,6 +49,24 @@ def fingerprint(identity: Any) -> str:
 
     text = json.dumps(to_jsonable(identity), sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+@functools.lru_cache(maxsize=None)
+def code_digest() -> str:
+    """BLAKE2b (hex, 32 characters) of the code that computes a run's results: the relative path
+    and bytes of every ``.py`` file of the installed ``fsof_torch`` package and of the job's own
+    package (``refine``), read once per process. The library's version alone stays the same across
+    the edits of a source checkout: a run resumed after its algorithms changed would reuse the
+    records of the old code."""
+    import fsof_torch
+
+    h = hashlib.blake2b(digest_size=16)
+    for package in (Path(fsof_torch.__file__).parent, Path(__file__).parent):
+        for path in sorted(package.rglob("*.py"), key=lambda p: p.relative_to(package).as_posix()):
+            h.update(f"{package.name}/{path.relative_to(package).as_posix()}\0".encode())
+            h.update(path.read_bytes())
+            h.update(b"\0")
+    return h.hexdigest()
 
 
 def _creatable(path: Path, option: str, *, folder: bool = False) -> None:

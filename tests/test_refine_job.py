@@ -220,6 +220,51 @@ def test_resume_skips_finished_pairs(tmp_path):
     assert rec0.stat().st_mtime_ns != stamp0
 
 
+def test_a_changed_library_is_another_run(tmp_path, monkeypatch, capsys):
+    """The library's version is the same across the edits of a source checkout: a run resumed
+    after the code that computes its results changed reused the old code's records. The code's
+    digest is in the identity: the rerun is refused, naming it; --overwrite redoes the pairs."""
+    from refine import resume
+
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(args) == 0
+    manifest = json.loads((out / "run.json").read_text())
+    assert manifest["identity"]["library_code"] == resume.code_digest()
+    assert re.fullmatch(r"[0-9a-f]{32}", resume.code_digest())
+    monkeypatch.setattr(resume, "code_digest", lambda: "0" * 32)  # as after an edit of fsof_torch
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"error: --out: {str(out)!r} holds the results of another run (library_code: "), err
+    assert main([*args, "--overwrite"]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 0 and summary["records_computed"] == 1
+    assert summary["identity"]["library_code"] == "0" * 32
+
+
+def test_the_code_digest_covers_the_library_and_the_job(tmp_path, monkeypatch):
+    """code_digest hashes the path and bytes of every .py file of fsof_torch and of refine."""
+    import hashlib
+    import shutil
+
+    import fsof_torch
+    from refine import resume
+
+    copy = tmp_path / "copy"
+    for package in (Path(fsof_torch.__file__).parent, Path(resume.__file__).parent):
+        shutil.copytree(package, copy / package.name, ignore=shutil.ignore_patterns("__pycache__"))
+
+    def digest(root: Path) -> str:  # (the same recipe, written out)
+        h = hashlib.blake2b(digest_size=16)
+        for name in ("fsof_torch", "refine"):
+            for path in sorted((root / name).rglob("*.py"), key=lambda p: p.relative_to(root / name).as_posix()):
+                h.update(f"{name}/{path.relative_to(root / name).as_posix()}\0".encode() + path.read_bytes() + b"\0")
+        return h.hexdigest()
+
+    assert resume.code_digest() == digest(copy)
+
+
 def test_a_record_whose_flow_file_was_truncated_or_replaced_is_redone(tmp_path):
     """The records are finished, but one flow file beside them was truncated and another replaced
     by a flow of another run (here another variant's): those pairs are redone and their flows
