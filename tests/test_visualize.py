@@ -188,6 +188,19 @@ def test_colorwheel_matches_reference():
     np.testing.assert_array_equal(make_colorwheel(dtype=torch.float64).numpy(), _reference_wheel())
 
 
+def test_colorwheel_dtype_holds_its_values_or_is_refused_naming_dtype():
+    """An integer dtype that holds 0..255 gives the reference wheel exactly; dtype=torch.bool gave
+    a wheel of True and False, torch.int8 wrapped 255 to -1, and a dtype's name ("float32") raised
+    torch's TypeError about to(): each is a TypeError naming dtype now."""
+    for dtype in (torch.uint8, torch.int16, torch.int64, torch.float32):
+        wheel = make_colorwheel(dtype=dtype)
+        assert wheel.dtype == dtype
+        np.testing.assert_array_equal(wheel.numpy().astype(np.float64), _reference_wheel())
+    for bad in (torch.bool, torch.int8, torch.complex64, "float32", np.float32, None):
+        with pytest.raises(TypeError, match=r"^dtype: expected a floating-point torch\.dtype .* got "):
+            make_colorwheel(dtype=bad)
+
+
 def test_flow_to_color_matches_reference():
     flow = _flow(H=40, W=50, dtype=torch.float64)
     got = flow_to_color(flow)[0].permute(1, 2, 0).numpy().astype(int)

@@ -53,8 +53,15 @@ NO_VALUE_RGB = (128, 128, 128)
 
 
 def make_colorwheel(*, dtype: torch.dtype = torch.float32, device: torch.device | None = None) -> Tensor:
-    """The Middlebury colour wheel: (55, 3) RGB in 0..255, in ``dtype`` on ``device`` (None: the
-    default device; else a device torch can place tensors on, or a ValueError or TypeError names it)."""
+    """The Middlebury colour wheel: (55, 3) RGB in 0..255, in ``dtype`` (a floating-point dtype, or
+    an integer one that holds 0..255 such as ``torch.uint8``; else a TypeError names it) on
+    ``device`` (None: the default device; else a device torch can place tensors on, or a
+    ValueError or TypeError names it)."""
+    if not isinstance(dtype, torch.dtype) or not (dtype.is_floating_point or (
+            not dtype.is_complex and dtype != torch.bool and torch.iinfo(dtype).max >= 255)):
+        # (torch.bool made a wheel of True and False, torch.int8 wrapped 255 to -1)
+        raise TypeError(f"dtype: expected a floating-point torch.dtype or an integer one that holds 0..255 "
+                        f"(torch.uint8), got {dtype!r}")
     device = check_device(device)
     ry, yg, gc, cb, bm, mr = _WHEEL
 
