@@ -543,6 +543,8 @@ def as_chw_flow(flow: object, name: str) -> Tensor:
     import numpy as np
 
     if isinstance(flow, np.ndarray):
+        if flow.dtype.kind != "f" or flow.dtype.itemsize > 8:  # (object, str, longdouble: torch's own TypeError)
+            raise TypeError(f"{name}: expected a floating-point array (float16/32/64), got dtype {flow.dtype}")
         flow = tensor_from_array(flow)
     if not isinstance(flow, Tensor):
         raise TypeError(f"{name}: expected a tensor of shape (2, H, W), got {type(flow).__name__}")

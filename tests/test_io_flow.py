@@ -92,6 +92,27 @@ class TestSmoke:
 
 
 class TestExceptions:
+    @pytest.mark.parametrize("suffix", [".flo", ".npy", ".png"])
+    def test_an_array_torch_cannot_take_is_a_type_error_naming_flow_or_valid(self, tmp_path, suffix):
+        """An object, string or long-double array as the flow (or an object array as valid) raised
+        torch's TypeError ("can't convert np.ndarray of type numpy.object_"), naming neither;
+        nothing is written."""
+        from fsof_torch.io import write_flo
+
+        good = np.zeros((2, 4, 5), dtype=np.float32)
+        writers = [write_flow] + ([write_flo] if suffix == ".flo" else [])
+        for writer in writers:
+            for dtype in (object, "U3", np.longdouble):
+                with pytest.raises(TypeError, match=rf"^flow: expected a floating-point array \(float16/32/64\), "
+                                                    rf"got dtype {re.escape(str(np.dtype(dtype)))}$"):
+                    writer(tmp_path / f"f{suffix}", good.astype(dtype))
+        with pytest.raises(TypeError, match=r"^valid: expected a bool tensor of shape \(1, H, W\), got a NumPy "
+                                            r"array of dtype object$"):
+            write_flow(tmp_path / f"f{suffix}", good, np.ones((4, 5), dtype=object))
+        assert not any(tmp_path.iterdir())
+        write_flow(tmp_path / f"f{suffix}", good, np.ones((4, 5), dtype=bool))  # (a bool array is taken)
+        assert torch.equal(read_flow(tmp_path / f"f{suffix}")[0], torch.zeros(2, 4, 5))
+
     def test_unknown_suffix(self, tmp_path):
         with pytest.raises(ValueError, match=r"suffix '\.txt'"):
             read_flow(tmp_path / "f.txt")

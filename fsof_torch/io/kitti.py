@@ -113,6 +113,8 @@ def flow_valid_pixels(flow: Tensor, valid: Tensor | np.ndarray | None) -> Tensor
     _, height, width = flow.shape
     if valid is None:
         return torch.isfinite(flow).all(dim=0)
+    if isinstance(valid, np.ndarray) and valid.dtype != np.bool_:  # (an object array: torch's own TypeError)
+        raise TypeError(f"valid: expected a bool tensor of shape (1, H, W), got a NumPy array of dtype {valid.dtype}")
     if isinstance(valid, np.ndarray):
         valid = tensor_from_array(valid)
     if not isinstance(valid, Tensor) or valid.dtype != torch.bool:
