@@ -159,12 +159,14 @@ def _load_failure(err: Exception, path: Path, option: str) -> str:
 
 
 def build_user_net(spec: NetSpec) -> tuple[nn.Module, str, bool]:
-    """Import ``module:callable``, call it, check what it returns; load the checkpoint. Returns
-    the network in eval mode, the contract it follows, and whether that contract was guessed
-    from its one-argument forward alone (:func:`_contract`)."""
+    """Import ``module:callable`` (its files as they are now: :func:`forget_user_code`), call it,
+    check what it returns; load the checkpoint. Returns the network in eval mode, the contract it
+    follows, and whether that contract was guessed from its one-argument forward alone
+    (:func:`_contract`)."""
     module_name, sep, attr = spec.factory.partition(":")
     if not sep or not module_name or not attr:
         raise JobError(f"--net: expected module:callable such as mypkg.models:make_raft, got {spec.factory!r}")
+    forget_user_code(spec.factory)
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as err:
@@ -373,7 +375,19 @@ def net_module_file(factory: str) -> Path | None:
     return None
 
 
-def user_code_files(factory: str) -> dict[str, Path]:
+def forget_user_code(factory: str) -> None:
+    """Drop the modules of the user's code that an earlier import of ``factory``'s module loaded
+    (its module and :func:`user_code_files`) from ``sys.modules``, so that importing it again reads
+    their files as they are now: ``main()`` called again in one process ran the network of the
+    first call's files while the identity held the digests of the files as edited since."""
+    import sys
+
+    for name in user_code_files(factory, own=True):
+        sys.modules.pop(name, None)
+    importlib.invalidate_caches()
+
+
+def user_code_files(factory: str, *, own: bool = False) -> dict[str, Path]:
     """The files of the user's code that importing ``factory``'s module and calling it loaded, by
     module name: every module in ``sys.modules`` (nothing is imported here) whose file lies in the
     folder of the factory's top-level package (each folder of a namespace package) or, for a
@@ -382,7 +396,8 @@ def user_code_files(factory: str) -> dict[str, Path]:
     virtual environment in the project) or in the job's own packages (fsof_torch, refine) are
     left out, and so is every file of a top-level package or module that lies in one of those
     (an installed package: the environment's, not the user's project). The factory's own module
-    (:func:`net_module_file`) and the script that runs the job (``__main__``) are left out too."""
+    (:func:`net_module_file`; kept with ``own``) and the script that runs the job (``__main__``)
+    are left out too."""
     import os
     import site
     import sys
@@ -413,7 +428,7 @@ def user_code_files(factory: str) -> dict[str, Path]:
     found = {}
     for name, module in list(sys.modules.items()):
         file = getattr(module, "__file__", None)
-        if (name in (module_name, "__main__", "__mp_main__") or not isinstance(file, str)
+        if (name in ("__main__", "__mp_main__") or (name == module_name and not own) or not isinstance(file, str)
                 or not os.path.isfile(file)):
             continue
         if any(under(file, r) for r in roots) and not environment(file) and not any(under(file, p) for p in inner):

@@ -198,6 +198,41 @@ def test_the_users_module_is_imported_once_by_a_run(project, tmp_path):
     assert identity["code"] == {f"{name}_layers": file_digest(root / f"{name}_layers.py")}
 
 
+def test_main_called_again_in_one_process_runs_the_networks_files_as_they_are_now(project, tmp_path):
+    """main() called twice in one process, layers.py and the factory's module edited in between
+    (no forget() here): the second call ran the network the first call had imported, under an
+    identity that held the digests of the edited files. Now it imports them anew: its flow is the
+    edited network's, as a new process's, and the module imported by each call runs once."""
+    from fsof_torch.data.scene import render_pair
+
+    root, name, _ = project
+    log = tmp_path / "imports.log"
+    pair = render_pair("default", 0, size=SIZE)
+    road = (pair["road"] & pair["valid"])[0]
+
+    def epe_road(scale: float) -> float:  # the road's mean end-point error of the flow (scale, 0)
+        flow = torch.zeros_like(pair["flow"])
+        flow[0] = scale
+        return float(torch.sqrt(((flow - pair["flow"]) ** 2).sum(0))[road].double().mean())
+
+    def write(scale: float, offset: float) -> None:
+        _write(root / f"{name}_layers.py", NETWORK + f"\nSCALE = {scale}\n")
+        _write(root / f"{name}.py", f"import {name}_layers\nopen({str(log)!r}, 'a').write('net\\n')\n\n\n"
+                                    f"def build():\n    return {name}_layers.Constant({name}_layers.SCALE + {offset})\n")
+
+    results = []
+    for k, (scale, offset) in enumerate([(1.0, 0.0), (4.0, 0.0), (4.0, 3.0)]):
+        write(scale, offset)
+        out = tmp_path / f"out{k}"
+        assert _run(out, f"{name}:build") == 0
+        report = json.loads((out / "report.json").read_text())
+        assert report["identity"]["net"]["module_file"] == file_digest(root / f"{name}.py")
+        assert report["identity"]["net"]["code"] == {f"{name}_layers": file_digest(root / f"{name}_layers.py")}
+        results.append(report["pairs"][0]["before"]["epe_road"])
+    assert results == pytest.approx([epe_road(1.0), epe_road(4.0), epe_road(7.0)], rel=1e-5)
+    assert log.read_text().split() == ["net"] * 3
+
+
 @pytest.mark.parametrize("given, dotted, folder", [("nets/raft.py", "nets.raft", "."),
                                                    ("./nets/raft.py", "nets.raft", "."),
                                                    ("nets.raft.py", "nets.raft", "."),
