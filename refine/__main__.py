@@ -504,7 +504,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
     # replace uses no scale: the default's in the identity, as for a confidence run without --scale
     scale = DEFAULT_SCALE if args.scale is None else args.scale
-    identity = {"version": __version__, "library_code": resume.code_digest(), "input": input_identity,
+    identity = {"version": __version__, "library_code": resume.code_digest(),
+                "dependencies": dict(resume.dependency_versions()), "input": input_identity,
                 "sources": sources, "variants": variants,
                 "mode": args.mode, "scale": scale, "fit_roll": args.fit_roll, "fit_pitch": args.fit_pitch,
                 # a road folder or file by its resolved path and contents in "input", however spelled

@@ -4,8 +4,8 @@ two runs from writing into one folder, and the cleaning of temporaries a killed 
 A run's *identity* is everything that decides its results: the input (a synthetic scene's preset,
 seed, size and noise; a folder's path, calibration and poses contents, camera options), the flow
 sources (test-net weights and user networks by their contents), the odometry variants and the
-refinement options, and the library's version and code (:func:`code_digest`). Its fingerprint is a
-hash of that identity.
+refinement options, the library's version and code (:func:`code_digest`) and the versions of the
+libraries it computes with (:func:`dependency_versions`). Its fingerprint is a hash of that identity.
 Each pair's record also stores the fingerprint of the pair's own inputs (the contents of its
 images and flow, road and ground-truth files, its poses).
 
@@ -67,6 +67,24 @@ def code_digest() -> str:
             h.update(path.read_bytes())
             h.update(b"\0")
     return h.hexdigest()
+
+
+@functools.lru_cache(maxsize=None)
+def dependency_versions() -> dict[str, str]:
+    """The versions of what computes a run's results beside the library's code, read once per
+    process: Python's ``major.minor``, torch (with its build suffix, e.g. ``2.5.1+cu121``: a CUDA
+    or CPU build), OpenCV (DIS flows, blurs, pyramids), kornia and NumPy. DIS's flows move with the
+    OpenCV build: a run resumed after an upgrade would mix the old build's records with the new's."""
+    import platform
+
+    import cv2
+    import kornia
+    import numpy
+    import torch
+
+    major, minor, _ = platform.python_version_tuple()
+    return {"python": f"{major}.{minor}", "torch": str(torch.__version__), "opencv": cv2.__version__,
+            "kornia": kornia.__version__, "numpy": numpy.__version__}
 
 
 def _creatable(path: Path, option: str, *, folder: bool = False) -> None:

@@ -3,6 +3,7 @@ outputs, resuming by fingerprint, and every bad input exiting 2 with a message n
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -241,6 +242,45 @@ def test_a_changed_library_is_another_run(tmp_path, monkeypatch, capsys):
     summary = json.loads((out / "report.json").read_text())
     assert summary["records_resumed"] == 0 and summary["records_computed"] == 1
     assert summary["identity"]["library_code"] == "0" * 32
+
+
+def test_other_dependency_versions_are_another_run(tmp_path, monkeypatch, capsys):
+    """DIS's flows move with the OpenCV build: a run resumed after an upgrade of OpenCV (or of
+    torch, kornia, NumPy, Python) reused the old build's records beside the new one's. The
+    versions are in the identity: the rerun is refused, naming the one that differs; --overwrite
+    redoes the pairs."""
+    import platform
+
+    import cv2
+    import kornia
+    import numpy
+
+    from refine import resume
+
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--out", str(out), *TINY]
+    assert main(args) == 0
+    manifest = json.loads((out / "run.json").read_text())
+    python = ".".join(platform.python_version_tuple()[:2])
+    assert manifest["identity"]["dependencies"] == {"python": python, "torch": torch.__version__,
+                                                    "opencv": cv2.__version__, "kornia": kornia.__version__,
+                                                    "numpy": numpy.__version__}
+    built = cv2.__version__
+    monkeypatch.setattr(cv2, "__version__", "0.0.1-other")  # as after an upgrade of OpenCV
+    # (read once per process: a fresh cache here, the process's own one back after the test)
+    monkeypatch.setattr(resume, "dependency_versions", functools.lru_cache(resume.dependency_versions.__wrapped__))
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert err == (f"error: --out: {str(out)!r} holds the results of another run (dependencies.opencv: "
+                   f'"{built}" -> "0.0.1-other"); '
+                   f"give another --out, or --overwrite to replace them\n"), err
+    assert main([*args, "--overwrite"]) == 0
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["records_resumed"] == 0 and summary["records_computed"] == 1
+    assert summary["identity"]["dependencies"]["opencv"] == "0.0.1-other"
+    assert main(args) == 0  # the same versions again: resumed
+    assert json.loads((out / "report.json").read_text())["records_resumed"] == 1
 
 
 def test_the_code_digest_covers_the_library_and_the_job(tmp_path, monkeypatch):
