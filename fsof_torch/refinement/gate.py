@@ -302,8 +302,9 @@ class ImageGate:
         # not finite cannot be judged and is no flow to use: it keeps the prediction, as
         # fuse_flow, which takes use_model as its mask, requires the model finite there)
         use_model = mask & cell_model
-        # (on the CPU, where a read costs no wait, one pass settles the common case: a bool per
-        # value took 2.3 ms of the gate's 10 to 14 on a KITTI frame, one thread)
+        # (on the CPU, where a read costs no wait, one min/max pass settles the common case: a bool
+        # per value costs about 2 ms on a KITTI frame, one thread, 0.2 ms the pass (all_finite),
+        # beside the gate's 5 ms in python benchmarks/bench_image_fit.py --kitti15)
         if model.device.type != "cpu" or tracing() or not all_finite(model):
             use_model = use_model & torch.isfinite(model).all(1, keepdim=True)
         kept = (enough & kept).sum(1)
