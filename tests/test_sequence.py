@@ -605,6 +605,29 @@ def test_fit_sequence_poses_still_in_half_the_moving_pairs_give_no_scale(body_mo
         fit_sequence(frames[:3], pairs[0]["road"], pairs[0]["camera"], poses=half, passes=1, max_points=500)
 
 
+def test_fit_sequence_poses_that_wait_at_a_stop_still_give_the_scale(one_thread):
+    """A clip that drives two pairs, then waits four with its poses still: the waiting frames differ
+    only by sensor noise, and their fits move a few millimetres, above the 1 mm of a still pair.
+    Their ratios of pose to image step, 0, were half the median's values: "no scale", though the
+    poses are right. Now a pair whose poses stand still gives no scale, and the poses are refused
+    only where such pairs move in the images at least half as far as the others: the height is the
+    driving pairs'."""
+    pairs = render_sequence("default", 2, size=(188, 621))
+    cam = pairs[0]["camera"]
+    g = torch.Generator().manual_seed(0)
+    still = [pairs[-1]["image2"] + 1.9 * torch.randn(pairs[-1]["image2"].shape, generator=g) for _ in range(4)]
+    frames = [p["image1"] for p in pairs] + [f.clamp(0, 255).round() for f in [pairs[-1]["image2"], *still]]
+    poses = torch.stack([pairs[0]["pose1"], pairs[1]["pose1"], *[pairs[1]["pose2"]] * 5])
+    options = dict(passes=1, keep_fits=False, max_points=1000)
+    drive = fit_sequence(frames[:3], pairs[0]["road"], cam, poses=poses[:3], **options)
+    seq = fit_sequence(frames, pairs[0]["road"], cam, poses=poses, **options)
+    steps = torch.stack([seq.first_pass[n] for n in ("x_d", "y_d", "z_d")], -1).norm(dim=-1)
+    assert bool(seq.success.all()) and int((steps[2:] > 1e-3).sum()) >= 2, steps  # (the noise "moves")
+    assert bool((steps[2:] < 0.01).all()) and bool((steps[:2] > 1.0).all()), steps
+    assert seq.mounting["height"] == pytest.approx(drive.mounting["height"], rel=1e-9)
+    assert seq.mounting["height"] == pytest.approx(float(cam.height[0]), rel=0.1)
+
+
 def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
     """Noise frames: no pair's fit succeeds, so nothing is calibrated: the input camera's roll and
     pitch stay (not a mean of failed fits), and with keep_fits the fits are still there."""

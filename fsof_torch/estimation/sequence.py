@@ -533,13 +533,24 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         steps = (P[1:N + 1, :3, 3] - P[:N, :3, 3]).norm(dim=-1)
         use = moving  # (the pairs that succeeded and move: a creeping one's translation gives a scale too)
         if bool(use.any()):
-            # metric step = (d / h) h: h = h_nominal · median(metric / image-derived); where the
-            # poses stand still in half the pairs whose images move, they give no scale
-            ratios = steps[use] / image_steps[use]
-            height = float(camera.height[0]) * float(ratios.quantile(0.5))
-            if not (math.isfinite(height) and height > 0) or 2 * int((ratios > 0).sum()) <= ratios.numel():
+            # metric step = (d / h) h: h = h_nominal · median(metric / image-derived) over the pairs whose
+            # poses move. Where the poses stand still (at most _STILL_M, as a still pair's fit) the images
+            # should too: such a pair gives no scale, and it contradicts the poses by as much as its images
+            # move. Still frames with sensor noise fit a few mm (0.4 to 6 mm: synthetic ones with KITTI's
+            # noise), above _STILL_M: counted as ratios 0, a clip that waited longer than it drove had a
+            # median of 0 ("no scale"), and a shorter wait drew the height to the lowest ratio. Where the
+            # pairs whose poses stand still move in the images at least half as far as the others (a third
+            # of the images' motion contradicts the poses; poses still in one of two pairs that move alike,
+            # as the count of them refused before, are refused whichever moves more), no scale.
+            still = steps[use] <= _STILL_M
+            ratios = steps[use][~still] / image_steps[use][~still]
+            height = float(camera.height[0]) * float(ratios.quantile(0.5)) if bool((~still).any()) else 0.0
+            against, along = (float(image_steps[use][s].sum()) for s in (still, ~still))
+            if not (math.isfinite(height) and height > 0) or along <= 2 * against:
                 raise ValueError(f"poses: their translations give no scale (camera height {height:g} m): the "
-                                 "poses do not move where the images do")
+                                 f"poses do not move where the images do (they stand still in {int(still.sum())} "
+                                 f"of the {int(still.numel())} pairs whose images move, which move {against:.3g} "
+                                 f"m in the images at the camera's height, the others {along:.3g} m)")
             nominal = float(camera.height[0])
             if not 1 / _MAX_HEIGHT_FACTOR <= height / nominal <= _MAX_HEIGHT_FACTOR:
                 raise ValueError(f"poses: their translations give a camera height of {height:g} m, "
