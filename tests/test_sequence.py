@@ -609,7 +609,7 @@ def test_fit_sequence_poses_that_wait_at_a_stop_still_give_the_scale(one_thread)
     """A clip that drives two pairs, then waits four with its poses still: the waiting frames differ
     only by sensor noise, and their fits move a few millimetres, above the 1 mm of a still pair.
     Their ratios of pose to image step, 0, were half the median's values: "no scale", though the
-    poses are right. Now a pair whose poses stand still gives no scale, and the poses are refused
+    poses are right (and poses still to rounding, ratios of 1e-14, a height "not in metres"). Now a pair whose poses stand still gives no scale, and the poses are refused
     only where such pairs move in the images at least half as far as the others: the height is the
     driving pairs'."""
     pairs = render_sequence("default", 2, size=(188, 621))
@@ -626,6 +626,12 @@ def test_fit_sequence_poses_that_wait_at_a_stop_still_give_the_scale(one_thread)
     assert bool((steps[2:] < 0.01).all()) and bool((steps[:2] > 1.0).all()), steps
     assert seq.mounting["height"] == pytest.approx(drive.mounting["height"], rel=1e-9)
     assert seq.mounting["height"] == pytest.approx(float(cam.height[0]), rel=0.1)
+    # poses chained from a KITTI file's relative ones stand still only to rounding (steps of 4e-17 m):
+    # their tiny ratios made the height 3e-14 m, refused as poses "not in metres"
+    rounded = poses.clone()
+    rounded[3:, 0, 3] += 4e-17 * torch.arange(1, 5, dtype=poses.dtype)
+    seq = fit_sequence(frames, pairs[0]["road"], cam, poses=rounded, **options)
+    assert seq.mounting["height"] == pytest.approx(drive.mounting["height"], rel=1e-9)
 
 
 def test_fit_sequence_whose_fits_all_fail_keeps_the_input_mounting(one_thread):
