@@ -624,6 +624,7 @@ def test_fit_sequence_poses_that_wait_at_a_stop_still_give_the_scale(one_thread)
     steps = torch.stack([seq.first_pass[n] for n in ("x_d", "y_d", "z_d")], -1).norm(dim=-1)
     assert bool(seq.success.all()) and int((steps[2:] > 1e-3).sum()) >= 2, steps  # (the noise "moves")
     assert bool((steps[2:] < 0.01).all()) and bool((steps[:2] > 1.0).all()), steps
+    assert seq.calibrated_from == 2  # (the waiting pairs "move", but their images show no attitude)
     assert seq.mounting["height"] == pytest.approx(drive.mounting["height"], rel=1e-9)
     assert seq.mounting["height"] == pytest.approx(float(cam.height[0]), rel=0.1)
     # poses chained from a KITTI file's relative ones stand still only to rounding (steps of 4e-17 m):
