@@ -534,14 +534,11 @@ def fit_sequence(frames: Sequence[Tensor], mask: Tensor | Sequence[Tensor], came
         use = moving  # (the pairs that succeeded and move: a creeping one's translation gives a scale too)
         if bool(use.any()):
             # metric step = (d / h) h: h = h_nominal · median(metric / image-derived) over the pairs whose
-            # poses move. Where the poses stand still (at most _STILL_M, as a still pair's fit) the images
-            # should too: such a pair gives no scale, and it contradicts the poses by as much as its images
-            # move. Still frames with sensor noise fit a few mm (0.4 to 6 mm: synthetic ones with KITTI's
-            # noise), above _STILL_M: counted as ratios 0, a clip that waited longer than it drove had a
-            # median of 0 ("no scale"), and a shorter wait drew the height to the lowest ratio. Where the
-            # pairs whose poses stand still move in the images at least half as far as the others (a third
-            # of the images' motion contradicts the poses; poses still in one of two pairs that move alike,
-            # as the count of them refused before, are refused whichever moves more), no scale.
+            # poses move. A pair whose poses stand still (at most _STILL_M) gives no scale: a stop's frames
+            # with sensor noise fit a few mm (0.4 to 11 mm on synthetic stops with KITTI's noise), above
+            # _STILL_M, and counted as ratios 0 they took the median to 0 or drew it down. The poses are
+            # refused where the pairs in which they stand still move in the images at least half as far
+            # as the others (poses still in one of two pairs that move alike are refused either way).
             still = steps[use] <= _STILL_M
             ratios = steps[use][~still] / image_steps[use][~still]
             height = float(camera.height[0]) * float(ratios.quantile(0.5)) if bool((~still).any()) else 0.0
