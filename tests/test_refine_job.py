@@ -1278,6 +1278,24 @@ def test_user_data_flow_files_poses_and_gt(tmp_path, user_folder, scene_pairs):
         assert rec["odometry"][k] == pytest.approx(scene_pairs[0]["odometry"][k], abs=1e-6)
 
 
+def test_the_poses_odometry_at_a_height_not_given_is_noted(tmp_path, user_folder, scene_pairs):
+    """The road flow of odometry from poses scales with 1 / height; where --height is not given,
+    the report notes the 1.65 m assumed (KITTI's camera). Here the scene's camera is 1.65 m high:
+    the note is there, and the given odometry's flow is the scene's road flow; --height given, none."""
+    note = ("Camera height not given (--height): 1.65 m, KITTI's camera, is assumed; the road flow of the odometry "
+            "from --poses (variant given) scales with 1 / height: give the camera's height above the road, or "
+            "--calibrate-pitch (with poses it calibrates the height over the clip).")
+    for extra, noted in (((), True), (("--height", "1.65"), False)):
+        out = tmp_path / f"out{len(extra)}"
+        assert main(_user(user_folder, out, "--poses", str(user_folder / "poses.txt"), "--road",
+                          str(user_folder / "road"), "--gt", str(user_folder / "gt"), "--odometry", "given",
+                          *_mounting(scene_pairs)[:4], *extra)) == 0
+        summary = json.loads((out / "report.json").read_text())
+        assert [n for n in summary["notes"] if n.startswith("Camera height")] == ([note] if noted else [])
+        assert (note in (out / "report.md").read_text()) == noted
+    assert _rows(tmp_path / "out0" / "report.json")[("dis", "given")]["epe_road_after"] < 0.1
+
+
 def test_a_change_from_zero_prints_n_a_not_the_mark_of_no_pixel(tmp_path, user_folder, scene_pairs):
     """A source that is the ground truth itself has end-point error 0 before refinement: no
     percentage of 0 (``null`` in the JSON), printed 'n/a' with a note, not the '–' of a metric
