@@ -414,6 +414,18 @@ def test_sizes_against_the_first_pair_and_the_calibration(clip, tmp_path):
                             cam=0, style="odometry")
     with pytest.raises(ValueError, match=r"^images: 000000\.png is 24x40, but the principal point .*middle third"):
         ImageFolderDataset(root / "images", tmp_path / "double.txt")
+    # frames cropped after calibration (the top rows cut away, the crop's K): a camera's own principal
+    # point that far off centre; the message says how such a camera passes, and it does
+    crop = K.clone()
+    crop[1, 2] = 17.0  # (more than H / 6 = 4 px below the middle row of 24, 11.5)
+    write_kitti_calibration(tmp_path / "crop.txt", crop, cam=0, style="odometry")
+    with pytest.raises(ValueError, match=r"middle third of such an image, as a calibration of another image size puts "
+                                         r"it \(give images of the calibrated size\); a camera whose principal point "
+                                         r"lies that far off centre \(frames cropped after calibration, the crop's K\) "
+                                         r"states the size with calib_size=\(H, W\)$"):
+        ImageFolderDataset(root / "images", tmp_path / "crop.txt")
+    cropped = ImageFolderDataset(root / "images", tmp_path / "crop.txt", calib_size=SIZE)
+    assert torch.equal(cropped[0]["camera"].K[0].to(torch.float64), crop.to(torch.float64))
 
 
 @pytest.mark.parametrize("row", ["nan 48", "80 inf", "-80 48", "0 48", "80 0.2"])

@@ -24,7 +24,7 @@ size. Without either, every image must have the size of the first pair, and the 
 must lie in the middle third of that image (|c_x − (W−1)/2| ≤ W/6, likewise for y): a calibration
 made for images twice as large or half as large fails this test (its principal point lies a
 quarter or a half of the image away from the centre), a camera's own offset (KITTI: 11 px of
-1242) passes it. Everything that can be checked without reading every pair is checked when the
+1242) passes it, and one farther off (frames cropped after calibration) passes with ``calib_size``. Everything that can be checked without reading every pair is checked when the
 dataset is made; the other pairs' sizes when they load.
 """
 
@@ -582,9 +582,10 @@ class ImageFolderDataset(Dataset):
         if off is not None:
             cx, cy = off
             raise ValueError(f"images: {image.name} is {H}x{W}, but the principal point of {str(self.calib)!r} "
-                             f"({cx:.1f}, {cy:.1f}) lies outside the middle third of such an image: the "
-                             f"calibration belongs to another image size (give images of the calibrated size, "
-                             f"or state the size with calib_size=(H, W))")
+                             f"({cx:.1f}, {cy:.1f}) lies outside the middle third of such an image, as a "
+                             f"calibration of another image size puts it (give images of the calibrated size); a "
+                             f"camera whose principal point lies that far off centre (frames cropped after "
+                             f"calibration, the crop's K) states the size with calib_size=(H, W)")
 
     def _read_image(self, path: Path) -> Tensor:
         try:
