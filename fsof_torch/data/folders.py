@@ -24,7 +24,8 @@ size. Without either, every image must have the size of the first pair, and the 
 must lie in the middle third of that image (|c_x − (W−1)/2| ≤ W/6, likewise for y): a calibration
 made for images twice as large or half as large fails this test (its principal point lies a
 quarter or a half of the image away from the centre), a camera's own offset (KITTI: 11 px of
-1242) passes it, and one farther off (frames cropped after calibration) passes with ``calib_size``. Everything that can be checked without reading every pair is checked when the
+1242) passes it, and one farther off (frames cropped after calibration) passes with
+``calib_size``. Everything that can be checked without reading every pair is checked when the
 dataset is made; the other pairs' sizes when they load.
 """
 
