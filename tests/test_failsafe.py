@@ -70,3 +70,23 @@ def test_dark_low_texture_frames_with_the_road_found_in_them_keep_the_prediction
         out = fs.FreespaceRefiner()(prediction, "auto", scene["camera"], images=(dark[0][None], dark[1][None]))
     assert not bool(out.refined.any())
     assert torch.equal(out.flow, prediction)
+
+
+@pytest.mark.parametrize("sigma, refined", [(0.0, True), (1.0, False)])
+def test_a_plain_road_fools_the_gate_only_without_noise(sigma, refined):
+    # (docs/image-fit.md, "Failing safe"): asphalt at a tenth of its contrast, driving 0.6 m a frame:
+    # the image fit settles at zero motion; noise-free the gate takes that still model over a good
+    # prediction (the documented limit), with a grey level of noise it keeps the prediction
+    p = render_pair("default", 0, seed=0, texture=0.1, x_d=0.0, z_d=0.6, yaw=0.0)
+    g = torch.Generator().manual_seed(0)
+    i1, i2 = ((p[k] + sigma * torch.randn(p[k].shape, generator=g)).clamp(0, 255)[None] for k in ("image1", "image2"))
+    prediction = 1.05 * p["flow"][None]
+    out = fs.FreespaceRefiner(warn=False)(prediction, p["road"][None], p["camera"], images=(i1, i2))
+    assert abs(float(out.fit.z_d[0])) < 0.01  # the true motion is 0.6 m forward
+    assert bool(out.refined[0]) is refined
+    road = p["road"][0] & p["valid"][0]
+    before, after = ((f[0] - p["flow"]).norm(dim=0)[road].mean() for f in (prediction, out.flow))
+    if refined:
+        assert float(after) > 10 * float(before)
+    else:
+        assert torch.equal(out.flow, prediction)
