@@ -122,14 +122,24 @@ class ClipFrames:
 class PackedMasks:
     """Road masks kept 8 pixels a byte (``numpy.packbits``): a 375×1242 mask takes 58 kB instead of
     466 kB as a bool tensor, so the masks of a clip of thousands of pairs fit in memory; each is
-    unpacked to (1, H, W) bool when indexed (0.02 ms at that size)."""
+    unpacked to (1, H, W) bool when indexed (0.02 ms at that size). A mask equal to the one
+    appended before it (one road polygon or mask file for every pair) shares its packed bytes:
+    such a clip keeps one mask, whatever its length (:attr:`nbytes`)."""
 
     def __init__(self) -> None:
         self._packed: list[tuple[np.ndarray, tuple[int, ...]]] = []
 
     def append(self, mask: Tensor) -> None:
         m = mask.detach().to("cpu", torch.bool)
-        self._packed.append((np.packbits(m.numpy().reshape(-1)), tuple(m.shape)))
+        bits, shape = np.packbits(m.numpy().reshape(-1)), tuple(m.shape)
+        if self._packed and self._packed[-1][1] == shape and np.array_equal(self._packed[-1][0], bits):
+            bits = self._packed[-1][0]  # (the previous mask's bytes, not a copy of them)
+        self._packed.append((bits, shape))
+
+    @property
+    def nbytes(self) -> int:
+        """The bytes of packed masks held (a mask shared by consecutive pairs counted once)."""
+        return sum(bits.nbytes for bits in {id(bits): bits for bits, _ in self._packed}.values())
 
     def __len__(self) -> int:
         return len(self._packed)

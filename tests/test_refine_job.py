@@ -854,6 +854,39 @@ def test_clip_frames_and_packed_masks():
     assert all(masks[k].dtype == torch.bool and torch.equal(masks[k], originals[k]) for k in range(3))
 
 
+def test_packed_masks_keep_a_repeated_mask_once():
+    """One road polygon or mask file for every pair gives every pair the same mask: the clip keeps
+    its packed bytes once, not once a pair (58 kB a pair at 375×1242: 260 MB over a KITTI odometry
+    sequence of 4541 frames), and each pair still gets its mask back, a tensor of its own."""
+    from refine.calibrate import PackedMasks
+
+    road = torch.zeros(1, 375, 1242, dtype=torch.bool)
+    road[:, 200:, 300:900] = True
+    other = road.clone()
+    other[:, 374, 0] = True
+    import tracemalloc
+
+    masks = PackedMasks()
+    one = math.ceil(375 * 1242 / 8)  # (58 219 bytes: 465 750 pixels, 8 a byte)
+    tracemalloc.start()  # (NumPy reports its arrays' data to it)
+    try:
+        for _ in range(500):
+            masks.append(road.clone())
+        held, _ = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert len(masks) == 500 and masks.nbytes == one
+    assert held < 4 * one  # (not 500 masks' 29 MB)
+    for mask in (other, other, road):  # a change is kept; a mask equal to an earlier but not the last one too
+        masks.append(mask)
+    assert len(masks) == 503 and masks.nbytes == 3 * one
+    expected = [road] * 500 + [other, other, road]
+    assert all(torch.equal(masks[k], expected[k]) for k in (0, 1, 499, 500, 501, 502))
+    first = masks[0]
+    first.fill_(False)  # (a caller's edit of one pair's mask reaches no other pair's)
+    assert torch.equal(masks[1], road) and torch.equal(masks[0], road)
+
+
 def test_calibrate_pitch_without_poses(tmp_path, user_folder, scene_pairs):
     """--calibrate-pitch from the images alone: every variant refines with the calibrated camera."""
     out = tmp_path / "out"
