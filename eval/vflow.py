@@ -361,65 +361,67 @@ def run(args: argparse.Namespace) -> int:
     remove_outputs(args.out, figures + ["vflow.json"])
     if args.json is not None:  # (and its JSON elsewhere: a run that stops would leave it as its own)
         remove_outputs(args.json.parent, [args.json.name])
-    # (opened after the input checks, so that an error line never prints inside the bar's line)
-    bar = progress_bar(total=len(steps), enabled=not args.no_progress, desc="vflow", unit="step")
-    bar.update(1)
-    unit = "px" if args.model == "displacement" else "px/s"
-    hist, edges = vflow_map(flow, mask, bins=args.bins)
-    bar.update(1)
-    curve = fit_vflow_curve(flow, mask, model=args.model, statistic=args.statistic, bins=args.bins,
-                            min_row_pixels=MIN_ROW_PIXELS, inlier_threshold=args.inlier_threshold,
-                            relative_threshold=args.relative_threshold)
-    bar.update(1)
-
-    fv = flow[:, 1:2]
-    in_fit = mask & curve.fitted_valid
-    err = (fv - curve.fitted).abs()
-    # the road: the preset's, or --mask (a road mask); without one (--flow alone) no road figure
-    on_road = in_fit & road if road is not None else in_fit if args.mask is not None else None
-    info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
-                     "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
-                     "inlier_rows": int(curve.row_inliers[0].sum()),
-                     "used_rows": int((curve.row_support[0] >= MIN_ROW_PIXELS).sum()),
-                     "nfa": float(curve.nfa[0]),
-                     "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
-                     "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,
-                     "mean_abs_fv_error_road": float(err[on_road].mean())
-                     if on_road is not None and on_road.any() else None,
-                     "unit": unit}
-    if camera is not None:
-        name = "z_d_m" if args.model == "displacement" else "speed_mps"
-        truth = pair["odometry"]["z_d"] if args.model == "displacement" else pair["velocity"]["speed"]
-        info["curve"][name] = float(curve.scale(camera)[0])
-        info["curve"][name + "_true"] = float(truth)
-        info["curve"]["horizon_row_true"] = float(camera.horizon_row()[0])
-    files = {"vflow_map": args.out / "vflow_map.png", "fv_observed": args.out / "fv_observed.png",
-             "fv_fitted": args.out / "fv_fitted.png", "fv_error": args.out / "fv_error.png"}
-    if "freespace" in steps:
-        found = detect_freespace(flow, camera, mask=valid, threshold=0.05, relative_threshold=0.02, return_details=True)
-        free = found.freespace
-        truth = road & valid
-        inter, union = float((free & truth).sum()), float((free | truth).sum())
-        info["freespace"] = {"success": bool(found.success[0]), "iou": inter / max(union, 1.0), "pixels": int(free.sum()),
-                             "road_pixels": int(truth.sum()), "z_d_m": float(found.fit.params["z_d"][0]),
-                             "threshold_px": 0.05, "relative_threshold": 0.02}
-        files["freespace"] = args.out / "freespace.png"
+    # (opened after the input checks, so that an error line never prints inside the bar's line; closed by its
+    # with, so that an interruption's line, or a full disk's, starts on a line of its own)
+    with progress_bar(total=len(steps), enabled=not args.no_progress, desc="vflow", unit="step") as bar:
+        bar.update(1)
+        unit = "px" if args.model == "displacement" else "px/s"
+        hist, edges = vflow_map(flow, mask, bins=args.bins)
+        bar.update(1)
+        curve = fit_vflow_curve(flow, mask, model=args.model, statistic=args.statistic, bins=args.bins,
+                                min_row_pixels=MIN_ROW_PIXELS, inlier_threshold=args.inlier_threshold,
+                                relative_threshold=args.relative_threshold)
         bar.update(1)
 
-    args.out.mkdir(parents=True, exist_ok=True)
-    _plot_map(hist[0], edges, curve, files["vflow_map"], unit)
-    # Observed and fitted on one scale, the observed values' (the mask holds a pixel: checked above).
-    lo, hi = _colour_range(fv[mask])
-    _plot_image(fv[0, 0], mask[0, 0], files["fv_observed"], f"observed F_v ({unit}) in the mask", "RdBu_r", lo, hi,
-                f"F_v ({unit}; < 0 above the horizon)")
-    _plot_image(curve.fitted[0, 0], curve.fitted_valid[0, 0], files["fv_fitted"], f"fitted F_v ({unit})",
-                "RdBu_r", lo, hi, f"F_v ({unit})")
-    _plot_image(err[0, 0], in_fit[0, 0], files["fv_error"], f"|observed - fitted F_v| ({unit})", "inferno", 0.0,
-                error_vmax(err[in_fit]), f"|F_v error| ({unit})")
-    if "freespace" in steps:
-        _plot_freespace(pair["image1"], free[0], truth[0], files["freespace"], info["freespace"]["iou"])
-    bar.update(1)
-    bar.close()
+        fv = flow[:, 1:2]
+        in_fit = mask & curve.fitted_valid
+        err = (fv - curve.fitted).abs()
+        # the road: the preset's, or --mask (a road mask); without one (--flow alone) no road figure
+        on_road = in_fit & road if road is not None else in_fit if args.mask is not None else None
+        info["curve"] = {"model": args.model, "a": float(curve.a[0]), "v0": float(curve.v0[0]),
+                         "success": bool(curve.success[0]), "row_residual": float(curve.residual[0]),
+                         "inlier_rows": int(curve.row_inliers[0].sum()),
+                         "used_rows": int((curve.row_support[0] >= MIN_ROW_PIXELS).sum()),
+                         "nfa": float(curve.nfa[0]),
+                         "inlier_threshold": args.inlier_threshold, "relative_threshold": args.relative_threshold,
+                         "mean_abs_fv_error_mask": float(err[in_fit].mean()) if in_fit.any() else None,
+                         "mean_abs_fv_error_road": float(err[on_road].mean())
+                         if on_road is not None and on_road.any() else None,
+                         "unit": unit}
+        if camera is not None:
+            name = "z_d_m" if args.model == "displacement" else "speed_mps"
+            truth = pair["odometry"]["z_d"] if args.model == "displacement" else pair["velocity"]["speed"]
+            info["curve"][name] = float(curve.scale(camera)[0])
+            info["curve"][name + "_true"] = float(truth)
+            info["curve"]["horizon_row_true"] = float(camera.horizon_row()[0])
+        files = {"vflow_map": args.out / "vflow_map.png", "fv_observed": args.out / "fv_observed.png",
+                 "fv_fitted": args.out / "fv_fitted.png", "fv_error": args.out / "fv_error.png"}
+        if "freespace" in steps:
+            found = detect_freespace(flow, camera, mask=valid, threshold=0.05, relative_threshold=0.02,
+                                     return_details=True)
+            free = found.freespace
+            truth = road & valid
+            inter, union = float((free & truth).sum()), float((free | truth).sum())
+            info["freespace"] = {"success": bool(found.success[0]), "iou": inter / max(union, 1.0),
+                                 "pixels": int(free.sum()),
+                                 "road_pixels": int(truth.sum()), "z_d_m": float(found.fit.params["z_d"][0]),
+                                 "threshold_px": 0.05, "relative_threshold": 0.02}
+            files["freespace"] = args.out / "freespace.png"
+            bar.update(1)
+
+        args.out.mkdir(parents=True, exist_ok=True)
+        _plot_map(hist[0], edges, curve, files["vflow_map"], unit)
+        # Observed and fitted on one scale, the observed values' (the mask holds a pixel: checked above).
+        lo, hi = _colour_range(fv[mask])
+        _plot_image(fv[0, 0], mask[0, 0], files["fv_observed"], f"observed F_v ({unit}) in the mask", "RdBu_r", lo,
+                    hi, f"F_v ({unit}; < 0 above the horizon)")
+        _plot_image(curve.fitted[0, 0], curve.fitted_valid[0, 0], files["fv_fitted"], f"fitted F_v ({unit})",
+                    "RdBu_r", lo, hi, f"F_v ({unit})")
+        _plot_image(err[0, 0], in_fit[0, 0], files["fv_error"], f"|observed - fitted F_v| ({unit})", "inferno", 0.0,
+                    error_vmax(err[in_fit]), f"|F_v error| ({unit})")
+        if "freespace" in steps:
+            _plot_freespace(pair["image1"], free[0], truth[0], files["freespace"], info["freespace"]["iou"])
+        bar.update(1)
 
     info["files"] = {k: str(v) for k, v in files.items()}
     json_path = args.json if args.json is not None else args.out / "vflow.json"

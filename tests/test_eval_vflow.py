@@ -796,3 +796,20 @@ def test_vflow_maps_draw_no_value_grey_not_as_a_value(tmp_path, cmap):
 
     zero = tuple(int(round(255 * x)) for x in matplotlib.colormaps[cmap](0.5)[:3])
     assert any(max(abs(a - b) for a, b in zip(c, zero)) <= 2 for c in top)
+
+
+def test_vflow_interrupted_ends_the_bars_line_before_its_own(tmp_path, interrupted, capsys):
+    """Ctrl-C during the curve fit: the job's line "interrupted" followed the bar on the bar's line,
+    and the bar was drawn once more after it, as the last line of the log, when the process let go
+    of the bar. Now the bar ends its line first and nothing follows the job's line."""
+    import gc
+
+    import fsof_torch
+
+    flow = _small_flow(tmp_path)
+    interrupted(fsof_torch, "fit_vflow_curve", lambda: main(["vflow", "--flow", str(flow), "--out", str(tmp_path / "o")]))
+    gc.collect()
+    err = capsys.readouterr().err
+    bar, line, rest = err.partition("eval vflow: interrupted; the files written so far are kept, each one whole\n")
+    assert line and rest == "", err
+    assert bar.startswith("\rvflow:") and bar.endswith("/s]\n") and " 2/4 " in bar.rsplit("\r", 1)[1], err

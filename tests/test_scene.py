@@ -72,6 +72,34 @@ def test_sequence_shares_frames_and_equals_pairs():
         torch.testing.assert_close(single[key], seq[2][key], atol=0, rtol=0)
 
 
+def test_sequence_bar_ends_its_line_before_an_error(monkeypatch):
+    """An error (or Ctrl-C) while a pair renders: its traceback began on the bar's line, after the
+    bar's text, and the bar was drawn once more after the traceback when the process let go of
+    it. Now the bar ends its line, at the pairs done, before the error leaves render_sequence."""
+    import gc
+    import io
+    import sys
+
+    from fsof_torch.data.scene import render
+
+    real = render._Renderer.pair
+
+    def pair(self, k):
+        if k == 2:
+            raise KeyboardInterrupt
+        return real(self, k)
+
+    monkeypatch.setattr(render._Renderer, "pair", pair)
+    monkeypatch.setattr(sys, "stderr", io.StringIO())  # (a log: not a terminal)
+    try:
+        render_sequence("cvc-complex", 4, size=TINY, progress=True)
+    except KeyboardInterrupt:
+        shown = sys.stderr.getvalue()  # (what the traceback follows)
+    gc.collect()
+    assert shown.endswith("]\n") and " 2/4 " in shown.rsplit("\r", 1)[1], shown
+    assert sys.stderr.getvalue() == shown
+
+
 _PIXEL_KEYS = ("image1", "image2", "flow", "valid", "flow_velocity", "road", "labels", "depth", "moving")
 
 

@@ -262,8 +262,12 @@ def render_sequence(preset: str | SceneConfig = "default", num_pairs: int = 1, *
         from ...io.progress import progress_bar
         indices = progress_bar(indices, desc=f"render {preset if isinstance(preset, str) else 'scene'}", unit="pair")
     # (the ground truth's products in the render dtype, not autocast's; on the CPU, whatever the default device)
+    pairs = []
     with autocast_off(torch.empty(0, device="cpu")), on_host():
-        pairs = [renderer.pair(k) for k in indices]
+        # a loop, not a list comprehension, whose frame an error's traceback (Ctrl-C's) holds, and the bar's
+        # iterator with it: the bar ends its line, at the pairs done, before the traceback, not after it at exit
+        for k in indices:
+            pairs.append(renderer.pair(k))
         last = start + num_pairs
         _keep(key, last, renderer.frame(last))  # rendered by the last pair: no new work
     return pairs
