@@ -47,11 +47,13 @@ def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 2 bad input, 1 where a subcommand
     says so, stdout was closed by its reader or the disk is full, 130 interrupted), also for ``--help`` and for the errors argparse reports, rather
     than exiting."""
-    from fsof_torch.io.progress import tolerant_stdout
+    from fsof_torch.io.progress import tolerant_stdout, warnings_above_bars
 
     argv = sys.argv[1:] if argv is None else list(argv)
     try:
-        with tolerant_stdout():  # (the tables' σ, Δ and ° where stdout writes cp1252 or ASCII)
+        # (the tables' σ, Δ and ° where stdout writes cp1252 or ASCII; a warning during training, such as
+        # the freespace loss's, on lines of its own rather than on the bar's)
+        with tolerant_stdout(), warnings_above_bars():
             return _main(argv)
     except KeyboardInterrupt:
         # (each output file is written whole or not at all, through a temporary file)

@@ -67,6 +67,7 @@ def noise_robustness(size, sigmas, scenarios, seed: int, bar=None) -> list[dict]
     from fsof_torch.estimation.flow_fit import fit_displacement
     from fsof_torch.evaluation.metrics import flow_metrics
     from fsof_torch.data.scene import render_pair
+    from fsof_torch.io.progress import print_above_bars
 
     rows = []
     gen = torch.Generator().manual_seed(seed)
@@ -85,8 +86,8 @@ def noise_robustness(size, sigmas, scenarios, seed: int, bar=None) -> list[dict]
             errors = {"e_E": clean["e_E"], "e_A": clean["e_A"], "e_E_vs_noisy": observed["e_E"],
                       "e_A_vs_noisy": observed["e_A"]}
             if not clean["n_pixels"]:  # over no pixel: None (printed '-'), not a 0 that reads as perfect
-                print(f"warning: {scenario} x{speed}, sigma {sigma:g}: the fitted model covers no road pixel; "
-                      "its errors are '-'", file=sys.stderr)
+                print_above_bars(f"warning: {scenario} x{speed}, sigma {sigma:g}: the fitted model covers no road "
+                                 "pixel; its errors are '-'")
                 errors = dict.fromkeys(errors)
             rows.append({"scenario": scenario, "speed": f"x{speed}", "sigma": float(sigma), **errors,
                          "z_d_abs_error_m": abs(float(fit.z_d[0]) - pair["odometry"]["z_d"]),

@@ -124,8 +124,9 @@ def _finish(acc: dict, what: str) -> dict:
 
 
 def _no_pixels(what: str) -> dict:
-    print(f"warning: {what}: no road pixel with valid ground truth and model flow; its metrics are '-'",
-          file=sys.stderr)
+    from fsof_torch.io.progress import print_above_bars
+
+    print_above_bars(f"warning: {what}: no road pixel with valid ground truth and model flow; its metrics are '-'")
     return {k: None for k in METRICS} | {"n_pixels": 0}
 
 

@@ -706,10 +706,11 @@ WRITE_FAILED = 1
 def main(argv: list[str] | None = None) -> int:
     """The job's entry point; returns the exit status (0 done, 1 stdout closed by its reader or the
     disk full, 2 bad input, 130 interrupted)."""
-    from fsof_torch.io.progress import tolerant_stdout
+    from fsof_torch.io.progress import tolerant_stdout, warnings_above_bars
 
     try:
-        with tolerant_stdout():  # (the tables' Δ and ° where stdout writes cp1252 or ASCII)
+        # (the tables' Δ and ° where stdout writes cp1252 or ASCII; a warning on lines of its own, not the bar's)
+        with tolerant_stdout(), warnings_above_bars():
             return _main(argv)
     except KeyboardInterrupt:
         # (after the run's ExitStack closed: the --out lock released, the process group finished)

@@ -252,3 +252,21 @@ def test_noise_tables_print_each_sigma_as_given(tmp_path, capsys):
     noisy = [r["e_E_vs_noisy"] for r in data["noise_robustness"]]
     assert noisy[1] > 1e-6  # (the noise itself: about 1.25 σ)
     assert [float(r[5]) for r in robust_rows] == pytest.approx(noisy, rel=5e-3)
+
+
+def test_noise_warning_during_the_bar_starts_a_line_of_its_own(capsys):
+    """The warning of a row over no pixel followed the bar's text on the bar's line (``noise
+    robustness:   0%|... 0/2 [00:00<?, ?fit/s]warning: complex x1, ...``); now the bar is cleared,
+    the warning printed from the start of a line, and the bar drawn again below it."""
+    import re
+
+    from eval.noise import noise_robustness
+    from fsof_torch.io.progress import progress_bar
+
+    with progress_bar(total=2, desc="noise robustness", unit="fit") as bar:
+        noise_robustness((48, 160), [0.0, 1e4], [("complex", 1)], 0, bar=bar)
+    err = capsys.readouterr().err
+    warning = "warning: complex x1, sigma 10000: the fitted model covers no road pixel; its errors are '-'\n"
+    before, found, after = err.partition(warning)
+    assert found and before.endswith("\r") and "noise robustness:" not in re.split("[\r\n]", before)[-1], err
+    assert after.startswith("\rnoise robustness:") and "2/2" in after, err

@@ -2,18 +2,20 @@
 redraws on a terminal (or as a notebook's widget), and in a log (stderr a file or a pipe, as under
 CI) at most every :data:`LOG_INTERVAL` seconds, with the text shown after the bar updated at those
 redraws only, so that a log holds a few lines of progress rather than one per step. And the jobs'
-way out where their stdout's reader went away (:func:`silence_stdout`), and their stdout where its
-encoding lacks a character they print (:func:`tolerant_stdout`)."""
+way out where their stdout's reader went away (:func:`silence_stdout`), their stdout where its
+encoding lacks a character they print (:func:`tolerant_stdout`), and their warnings while a bar is
+drawn (:func:`warnings_above_bars`, :func:`print_above_bars`)."""
 
 from __future__ import annotations
 
 import contextlib
 import os
 import sys
+import warnings
 from typing import Any, Iterable, Iterator
 
-__all__ = ["LOG_INTERVAL", "on_terminal", "progress_bar", "show_text", "show_values", "silence_stdout",
-           "tolerant_stdout"]
+__all__ = ["LOG_INTERVAL", "on_terminal", "print_above_bars", "progress_bar", "show_text", "show_values", "silence_stdout",
+           "tolerant_stdout", "warnings_above_bars"]
 
 #: seconds between two redraws of a bar whose stderr is not a terminal
 LOG_INTERVAL = 10.0
@@ -44,6 +46,18 @@ def progress_bar(iterable: Iterable | None = None, *, enabled: bool = True, **op
         options = {"miniters": 1, **options}
     return tqdm(iterable, disable=not enabled or sys.stderr is None, file=sys.stderr,
                 mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
+
+
+def print_above_bars(text: str) -> None:
+    """Print ``text`` (a job's warning) on stderr on lines of its own: a bar being drawn there is
+    cleared and drawn again below it (tqdm's ``tqdm.write``), rather than ``text`` following the
+    bar's text on the bar's line. Nothing where the process has no stderr (``print`` would write it
+    to stdout, among the results)."""
+    if sys.stderr is None:
+        return
+    from tqdm import tqdm
+
+    tqdm.write(text, file=sys.stderr)
 
 
 def show_text(bar, text: str) -> None:
@@ -96,3 +110,28 @@ def tolerant_stdout() -> Iterator[None]:
         if changed:
             with contextlib.suppress(ValueError, OSError):  # (a closed pipe: its flush)
                 stream.reconfigure(errors=errors)
+
+
+@contextlib.contextmanager
+def warnings_above_bars() -> Iterator[None]:
+    """Within it, a warning shown while a bar is drawn on stderr is written on lines of its own: the
+    bar is cleared, the warning written from the start of the line, and the bar drawn again below it
+    (tqdm's ``tqdm.write``), on a terminal and in a log alike. Without it, the warning followed the
+    bar's text on the bar's line (``unsupervised+freespace:  50%|... freespace=0.015]/path/train.py:239:
+    RuntimeWarning: ...``). Warnings are shown as before otherwise (``warnings.showwarning`` in place
+    when it was entered: a filter, ``-W error`` and a recorder such as ``pytest.warns`` act as
+    before); it is put back after."""
+    from tqdm import tqdm
+
+    shown = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        with tqdm.external_write_mode(file=sys.stderr if file is None else file):
+            shown(message, category, filename, lineno, file, line)
+
+    warnings.showwarning = show
+    try:
+        yield
+    finally:
+        if warnings.showwarning is show:  # (unless replaced within: that one stays, as it would without)
+            warnings.showwarning = shown
