@@ -94,6 +94,7 @@ from .evaluation.visualize import flow_to_color, save_error_png, save_flow_png, 
 from .evaluation.warp import WarpBackward, warp_backward
 
 from ._check import trust_image_range
+from .warn import FreespaceWarning
 
 __version__ = "0.1.0"
 
@@ -122,6 +123,7 @@ __all__ = [
     "FreespaceFlowLoss",
     "FreespaceRefined",
     "FreespaceRefiner",
+    "FreespaceWarning",
     "InputPadder",
     "PRESETS",
     "PhotometricError",

@@ -14,13 +14,22 @@ import warnings
 
 import torch
 
-__all__ = ["warn_user"]
+__all__ = ["FreespaceWarning", "warn_user"]
 
 # (the paths as the modules were loaded: code objects carry the same prefix as __file__)
 _LIBRARY = (os.path.dirname(__file__) + os.sep, os.path.dirname(torch.__file__) + os.sep)
 
 
-def warn_user(message: str, category: type[Warning] = RuntimeWarning) -> None:
+class FreespaceWarning(RuntimeWarning):
+    """The category of fsof_torch's own warnings (a sample left unrefined, non-finite predicted
+    pixels left out, metrics over nothing counted). A ``RuntimeWarning``, which filters on that
+    category still catch; and one a filter can name alone,
+    ``warnings.filterwarnings("ignore", category=fsof_torch.FreespaceWarning)``, without silencing
+    NumPy's or torch's. A filter on the module (``module="fsof_torch"``) catches none: each warning is
+    attributed to the caller's line."""
+
+
+def warn_user(message: str, category: type[Warning] = FreespaceWarning) -> None:
     """``warnings.warn(message, category)`` attributed to the first frame outside fsof_torch and
     torch (the filename and line a warning filter and the printed warning show): the caller's
     line, however the library was reached."""

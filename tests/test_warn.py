@@ -88,3 +88,36 @@ def test_the_road_detections_warnings_name_the_callers_line():
         got = caught(lambda: refine(pred, "auto", p["camera"], images=(im1, im2)))
         assert [(f, n) for f, n, _ in got] == [(__file__, line)] * 2, got
         assert got[0][2].startswith("mask: the road was not found in samples [1]")
+
+
+def test_the_librarys_warnings_are_a_category_of_their_own(pair):
+    """The library's warnings were plain RuntimeWarnings attributed to the caller's line: a filter
+    on the module (``module="fsof_torch"``) silenced none of them, and one on the category silenced
+    NumPy's and torch's as well. They are now FreespaceWarning, a RuntimeWarning that a filter can
+    name alone."""
+    import numpy as np
+
+    import fsof_torch
+    from fsof_torch import FlowMetricAccumulator, FreespaceWarning
+
+    assert issubclass(FreespaceWarning, RuntimeWarning) and "FreespaceWarning" in fsof_torch.__all__
+    cam, odo, flow, road = pair
+    empty = road.clone()
+    empty[1] = False
+    calls = {"refine_flow": lambda: refine_flow(flow, empty, cam, odo),
+             "FreespaceRefiner": lambda: FreespaceRefiner()(flow, empty, cam, odo),
+             "freespace_flow_loss": lambda: freespace_flow_loss(flow, road, cam, odo),
+             "FlowMetricAccumulator.compute": lambda: FlowMetricAccumulator().compute()}
+    counts = {"refine_flow": 2, "FreespaceRefiner": 2, "freespace_flow_loss": 1, "FlowMetricAccumulator.compute": 1}
+    for name, call in calls.items():
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            call()
+        assert [w.category for w in got] == [FreespaceWarning] * counts[name], (name, got)
+        with warnings.catch_warnings(record=True) as got:
+            warnings.simplefilter("always")
+            warnings.filterwarnings("ignore", category=FreespaceWarning)
+            call()
+            np.float64(1.0) / np.float64(0.0)  # (NumPy's RuntimeWarning: still shown)
+        assert [(w.category, str(w.message)) for w in got] == [(RuntimeWarning, "divide by zero encountered in "
+                                                                "scalar divide")], (name, got)
