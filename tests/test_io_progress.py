@@ -125,3 +125,30 @@ def test_print_above_bars_writes_a_line_of_its_own(monkeypatch):
     monkeypatch.setattr(sys, "stdout", io.StringIO())
     print_above_bars("warning: nowhere")
     assert sys.stdout.getvalue() == ""
+
+
+@pytest.mark.parametrize("setting, shown", [("1", False), ("", True), (None, True)])
+def test_tqdms_environment_variable_turns_the_bars_off(tmp_path, setting, shown):
+    """``TQDM_DISABLE=1``, tqdm's switch for every bar of a process (CI logs), turned off plain tqdm
+    bars but not these: the ``disable`` they passed replaced it. Now it turns them off too, the
+    library's and the jobs'; unset or empty, they are shown."""
+    import os
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("TQDM_")}
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(root), env.get("PYTHONPATH")]))
+    if setting is not None:
+        env["TQDM_DISABLE"] = setting
+    script = ("from fsof_torch.io.progress import progress_bar\n"
+              "assert list(progress_bar(range(3), desc='loop')) == [0, 1, 2]\n"
+              "from fsof_torch import render_sequence\n"
+              "render_sequence('default', 1, size=(16, 32), progress=True)\n")
+    done = subprocess.run([sys.executable, "-c", script], env=env, cwd=tmp_path, capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    if shown:
+        assert "loop: 100%" in done.stderr and "render default: 100%" in done.stderr, done.stderr
+    else:
+        assert done.stderr == ""

@@ -33,19 +33,22 @@ def progress_bar(iterable: Iterable | None = None, *, enabled: bool = True, **op
     """A tqdm bar (``enabled``: shown at all; ``options``: tqdm's): a notebook's widget in a
     notebook, else on stderr, rate-limited in a log; none where the process has no stderr
     (``sys.stderr`` None: started with its stderr closed, ``2>&-``, or by ``pythonw``), where
-    drawing one would raise at its first step."""
+    drawing one would raise at its first step. Otherwise shown unless tqdm's environment variable
+    ``TQDM_DISABLE`` turns off every tqdm bar of the process (a ``disable`` passed to tqdm
+    replaced it: the bars stayed on)."""
     from tqdm import notebook
     from tqdm.auto import tqdm
 
+    if not enabled or sys.stderr is None:
+        options = {**options, "disable": True}
     if issubclass(tqdm, notebook.tqdm):  # (a notebook's widget: no log to flood)
-        return tqdm(iterable, disable=not enabled, **options)
+        return tqdm(iterable, **options)
     if not on_terminal():
         # the clock read at every step: tqdm's own step count between reads, learnt while the steps
         # were fast, left a log silent for several intervals once they slowed, then its monitor
         # thread redrew the bar with the count of its last redraw beside the text of the step now
         options = {"miniters": 1, **options}
-    return tqdm(iterable, disable=not enabled or sys.stderr is None, file=sys.stderr,
-                mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
+    return tqdm(iterable, file=sys.stderr, mininterval=0.1 if on_terminal() else LOG_INTERVAL, **options)
 
 
 def print_above_bars(text: str) -> None:
