@@ -14,8 +14,8 @@ import sys
 import warnings
 from typing import Any, Iterable, Iterator
 
-__all__ = ["LOG_INTERVAL", "on_terminal", "print_above_bars", "progress_bar", "show_text", "show_values", "silence_stdout",
-           "tolerant_stdout", "warnings_above_bars"]
+__all__ = ["LOG_INTERVAL", "on_terminal", "print_above_bars", "progress_bar", "show_text", "show_values",
+           "silence_stdout", "tolerant_stdout", "warnings_above_bars"]
 
 #: seconds between two redraws of a bar whose stderr is not a terminal
 LOG_INTERVAL = 10.0
