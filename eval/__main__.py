@@ -106,7 +106,15 @@ def _main(argv: list[str]) -> int:
         except ValueError as err:
             print(f"error: --{err}", file=sys.stderr)
             return 2
-    return int(module.run(args) or 0)
+    try:
+        return int(module.run(args) or 0)
+    except PermissionError as err:  # an input the process may not read, an output it may not write
+        from refine.inputs import permission_message
+
+        paths = {f"--{k.replace('_', '-')}": v for k, v in vars(args).items() if isinstance(v, Path)}
+        outputs = tuple(o for o in paths if o in ("--out", "--json", "--dump-first-step"))
+        print(f"error: {permission_message(err, paths, outputs)}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

@@ -188,14 +188,15 @@ def default_out(args: argparse.Namespace) -> Path:
     return DEFAULT_OUT / name
 
 
-def _input_paths(args: argparse.Namespace) -> dict[str, Path | None]:
+def _input_paths(args: argparse.Namespace, net: bool = True) -> dict[str, Path | None]:
     """The files and folders the run reads, by option (None where not given): --json may name
-    none of them, nor a file inside one of the folders."""
+    none of them, nor a file inside one of the folders (``net``: with --net's module, which finding
+    may import its package)."""
     road = Path(args.road) if args.road not in (None, "auto") else None
     return {"--images": args.images, "--calib": args.calib, "--poses": args.poses, "--flows": args.flows,
             "--road": road, "--gt": args.gt, "--kitti15": args.kitti15, "--kitti-odometry": args.kitti_odometry,
             "--testnet-weights": args.testnet_weights, "--checkpoint": args.checkpoint,
-            "--net": _net_source(args.net)}
+            "--net": _net_source(args.net) if net else None}
 
 
 def _net_source(factory: str | None) -> Path | None:
@@ -757,6 +758,13 @@ def _main(argv: list[str] | None) -> int:
             # IsADirectoryError / ValueError: a reader or the library rejected an input file or
             # value (their messages name it)
             print(f"error: {err}", file=sys.stderr)
+            return 2
+        except PermissionError as err:  # an input the process may not read, an output it may not write
+            from .inputs import permission_message
+
+            out = args.out if args.out is not None else default_out(args)
+            paths = {**_input_paths(args, net=False), "--out": out, "--json": args.json}
+            print(f"error: {permission_message(err, paths, outputs=('--out', '--json'))}", file=sys.stderr)
             return 2
 
 

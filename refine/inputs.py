@@ -17,6 +17,7 @@ from __future__ import annotations
 import hashlib
 import inspect
 import math
+import os
 import re
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -34,6 +35,25 @@ from fsof_torch.data.folders import kitti_flow_layout, list_images  # noqa: F401
 
 class JobError(Exception):
     """A problem with the job's inputs or options: reported as ``error: ...`` with exit code 2."""
+
+
+def permission_message(err: PermissionError, paths: dict[str, Path | None], outputs: tuple[str, ...] = ()) -> str:
+    """The one-line message of a job (exit 2) for a file or folder the process may not read or
+    write (``err``, as ``open()``, ``os.listdir`` or a look-up raise it), naming the option whose
+    path it is or lies in: ``paths`` maps the job's path options to their paths (None: not given),
+    ``outputs`` names those of them that are written (the others are read). Where ``err`` names
+    no file (a writer's own message, naming its target), its message as it is."""
+    if err.filename is None:
+        return (err.strerror if err.errno is not None and err.strerror else str(err)).removeprefix("path: ")
+    name = os.fsdecode(err.filename)
+    target = Path(os.path.abspath(name))
+    holders = [(option, Path(os.path.abspath(path))) for option, path in paths.items() if path is not None]
+    holders = [(option, path) for option, path in holders if target == path or target.is_relative_to(path)]
+    if not holders:
+        return f"{name!r}: permission denied"
+    option = max(holders, key=lambda held: len(held[1].parts))[0]  # (the deepest: a file of --flows inside --images' folder)
+    done = "written" if option in outputs else "read"
+    return f"{option}: {name!r} cannot be {done}: permission denied; give the process access to it, or give another path"
 
 
 @dataclass
