@@ -28,7 +28,7 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
-from .paths import MAX_SIDE, file_path
+from .paths import MAX_SIDE, file_path, given_path
 
 DEFAULT_SIGMAS = (0.0, 1 / 64, 1 / 32, 1 / 16, 1 / 8, 1 / 4, 1 / 2, 1.0, 2.0, 4.0)
 DEFAULT_POSE_SIGMAS = (0.0, 0.25, 0.5, 1.0, 2.0, 4.0, 8.0)
@@ -38,7 +38,7 @@ MAX_TRIALS = 100_000
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("runs/noise"), metavar="DIR",
+    parser.add_argument("--out", type=given_path, default=Path("runs/noise"), metavar="DIR",
                         help="output folder for the PNGs and noise.json (default runs/noise)")
     parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/noise.json")

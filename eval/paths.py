@@ -17,7 +17,8 @@ from typing import Iterable
 from fsof_torch.data.scene.render import MAX_SIDE  # noqa: F401 (the largest side of a size option, the renderer's)
 from fsof_torch.io.atomic import creation_error
 from fsof_torch.io.atomic import lookup_error as bad_lookup  # (the refine job's check too)
-from refine.resume import file_path  # noqa: F401 (the type of a file option: a path ending in '/' is refused)
+# (the types of path options: an empty path is refused, and for a file one ending in '/')
+from refine.resume import file_path, given_path  # noqa: F401
 
 
 def bad_file(path: Path | None, option: str, out: Path | None = None) -> str | None:

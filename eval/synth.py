@@ -16,13 +16,13 @@ from pathlib import Path
 
 import torch
 
-from .paths import MAX_SIDE, file_path
+from .paths import MAX_SIDE, file_path, given_path
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.data.scene.PRESETS); default: default")
     parser.add_argument("--pairs", type=int, default=4, metavar="N", help="number of frame pairs (default 4)")
-    parser.add_argument("--out", required=True, type=Path, metavar="DIR",
+    parser.add_argument("--out", required=True, type=given_path, metavar="DIR",
                         help="output folder: a new or empty one (created); a folder holding files is refused")
     parser.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,
                         help=f"image size, each side at most {MAX_SIDE} (default: the preset's)")

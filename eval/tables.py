@@ -29,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-from .paths import MAX_SIDE, file_path
+from .paths import MAX_SIDE, file_path, given_path
 
 #: The paper's published figures (freespace-optical-flow.tex, Tables "CVC12", "CARLA", "KITTI").
 PAPER_CVC12 = {("simple", 1): (0.003, 0.609), ("simple", 4): (0.003, 0.704),
@@ -48,7 +48,7 @@ KITTI_FILES = ("flow_noc_10.png", "road.json", "calib_cam_to_cam.txt")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", type=Path, default=Path("runs/tables"), metavar="DIR",
+    parser.add_argument("--out", type=given_path, default=Path("runs/tables"), metavar="DIR",
                         help="output folder for tables.json and tables.md (default runs/tables)")
     parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/tables.json")
@@ -61,7 +61,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frame pairs per synthetic scenario (default 3; --quick: 1)")
     parser.add_argument("--seed", type=int, default=None, help="scene seed of the synthetic scenes (default 0)")
     # (None: not given; the shared sample then, skipped with a note where it is absent)
-    parser.add_argument("--kitti", type=Path, default=None, metavar="DIR",
+    parser.add_argument("--kitti", type=given_path, default=None, metavar="DIR",
                         help=f"KITTI flow sample folder (default {DEFAULT_KITTI})")
     parser.add_argument("--no-kitti", action="store_true", help="skip the real-KITTI table")
     parser.add_argument("--only", choices=("cvc12", "carla", "kitti"), action="append", default=None,

@@ -44,8 +44,8 @@ from fsof_torch.data.scene import collate, render_sequence
 from fsof_torch.data.scene.config import MAX_SEED
 from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
-from eval.paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_size, file_path, first_bad, make_parent,
-                        remove_outputs)
+from eval.paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_size, file_path, first_bad, given_path,
+                        make_parent, remove_outputs)
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr",
            "TrainingDiverged"]
@@ -75,7 +75,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--test-pairs", type=int, default=6, help="held-out pairs rendered (default 6)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
     parser.add_argument("--json", type=file_path, default=None, help="write the results as JSON here")
-    parser.add_argument("--out", type=Path, default=None, help="save both nets' state_dicts in this folder")
+    parser.add_argument("--out", type=given_path, default=None, help="save both nets' state_dicts in this folder")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda: the process's GPU)")
     parser.add_argument("--dump-first-step", type=file_path, default=None, metavar="PATH",

@@ -28,7 +28,7 @@ import torch
 
 from fsof_torch.io.atomic import atomic_path
 
-from .paths import MAX_SIDE, file_path
+from .paths import MAX_SIDE, file_path, given_path
 
 # The largest --index: 10 000 pairs are over 15 minutes of driving at 10 Hz, and the scene is laid
 # out up to the pair asked for, so time and memory grow with the index.
@@ -46,8 +46,8 @@ DPI = 110
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     src = parser.add_mutually_exclusive_group()
     src.add_argument("--preset", default=None, help="render this scene preset (default cvc-complex)")
-    src.add_argument("--flow", type=Path, default=None, metavar="FILE", help="a flow file (.png KITTI, .flo, .npy)")
-    parser.add_argument("--mask", type=Path, default=None, metavar="FILE",
+    src.add_argument("--flow", type=given_path, default=None, metavar="FILE", help="a flow file (.png KITTI, .flo, .npy)")
+    parser.add_argument("--mask", type=given_path, default=None, metavar="FILE",
                         help="road mask for --flow (PNG or polygon JSON); default: the flow's valid pixels")
     # (None: not given, so that a preset-only option given with --flow is refused, even at its default)
     parser.add_argument("--index", type=int, default=None,
@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="row residual below which a row is an inlier of the curve (default 0.5)")
     parser.add_argument("--relative-threshold", type=float, default=0.05, metavar="FRAC",
                         help="relative row threshold: max(PX, FRAC·|F_v|) (default 0.05)")
-    parser.add_argument("--out", type=Path, default=Path("runs/vflow"), metavar="DIR",
+    parser.add_argument("--out", type=given_path, default=Path("runs/vflow"), metavar="DIR",
                         help="output folder (default runs/vflow)")
     parser.add_argument("--json", type=file_path, default=None, metavar="PATH",
                         help="write the JSON here instead of DIR/vflow.json")

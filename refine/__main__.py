@@ -45,6 +45,14 @@ def _size(text: str) -> tuple[int, int]:
     return h, w
 
 
+def _road(text: str) -> str:
+    """``--road``: a folder, a file or ``auto``; not an empty path (:func:`refine.resume.given_path`)."""
+    from .resume import given_path
+
+    given_path(text)
+    return text
+
+
 def _list(choices: tuple[str, ...]):
     def parse(text: str) -> list[str]:
         items = [t.strip() for t in text.split(",") if t.strip()]
@@ -66,7 +74,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     from fsof_torch.data.scene.render import MAX_FRAME, MAX_SIDE
 
     from .job import VARIANTS
-    from .resume import file_path
+    from .resume import file_path, given_path
     from .sources import CONTRACTS, SOURCES
 
     p = argparse.ArgumentParser(
@@ -86,8 +94,8 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
 
     g = p.add_argument_group("user data")
-    g.add_argument("--images", type=Path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
-    g.add_argument("--calib", type=Path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
+    g.add_argument("--images", type=given_path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
+    g.add_argument("--calib", type=given_path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
                    help=f"image size the calibration is for, each side 16 to {MAX_SIDE} (default: the file's S_rect row, "
                         "else checked loosely)")
@@ -95,19 +103,19 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     g.add_argument("--height", type=float, help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
     g.add_argument("--roll-deg", type=float, help="camera roll, degrees (default: 0)")
     g.add_argument("--pitch-deg", type=float, help="camera pitch, degrees (default: 0)")
-    g.add_argument("--poses", type=Path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
-    g.add_argument("--flows", type=Path, metavar="DIR", help="predicted flows of any network, one per pair, "
+    g.add_argument("--poses", type=given_path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
+    g.add_argument("--flows", type=given_path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
-    g.add_argument("--road", metavar="DIR|FILE|auto", help="road masks: PNG folder (named like the pairs), "
+    g.add_argument("--road", type=_road, metavar="DIR|FILE|auto", help="road masks: PNG folder (named like the pairs), "
                    "one PNG of the images' size or a polygon JSON for every pair, or auto (found in the images: docs/auto-road.md); required with --images; "
                    "synthetic scenes and the KITTI samples have their own, or take auto")
-    g.add_argument("--gt", type=Path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
+    g.add_argument("--gt", type=given_path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
     g = p.add_argument_group("KITTI folders in the shared samples' layouts")
-    g.add_argument("--kitti15", type=Path, metavar="PATH",
+    g.add_argument("--kitti15", type=given_path, metavar="PATH",
                    help="a folder like kitti15_000000 (a KITTI 2015 pair): DIS refined with ego-motion fitted to "
                         "the flow and to the images, against its ground truth where present")
-    g.add_argument("--kitti-odometry", type=Path, metavar="PATH",
+    g.add_argument("--kitti-odometry", type=given_path, metavar="PATH",
                    help="a folder like kitti_odometry_straight (a KITTI odometry clip with poses): DIS refined with "
                         "the poses, with the clip's fit and with the images; road.json optional with --road auto")
 
@@ -115,13 +123,13 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     g.add_argument("--source", type=_list(SOURCES), default=None,
                    help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet on "
                         "synthetic data, dis on real data; with --net: net; with --flows: the files)")
-    g.add_argument("--testnet-weights", type=Path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
+    g.add_argument("--testnet-weights", type=given_path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
     g.add_argument("--net", metavar="MODULE:CALLABLE",
                    help="your flow network: a factory returning an nn.Module (e.g. mypkg.models:make_raft)")
     g.add_argument("--net-contract", choices=CONTRACTS,
                    help="how --net is called: ptlflow (dict, BGR [0,1]), torchvision (RGB [-1,1], list), "
                         "raft (RGB 0..255, list); default: from the network (see docs/contracts.md)")
-    g.add_argument("--checkpoint", type=Path, metavar="FILE",
+    g.add_argument("--checkpoint", type=given_path, metavar="FILE",
                    help="a local state_dict for --net (loaded with torch.load(weights_only=True))")
 
     g = p.add_argument_group("refinement")
@@ -149,7 +157,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                         "--poses or the odometry sample's, also its height) and refine every variant with it")
 
     g = p.add_argument_group("output")
-    g.add_argument("--out", type=Path, default=None,
+    g.add_argument("--out", type=given_path, default=None,
                    help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
     g.add_argument("--json", type=file_path, metavar="PATH",
                    help="also write the report JSON here (not an input, nor inside --out but OUT/report.json, "

@@ -101,6 +101,17 @@ def check_out_path(out: Path) -> None:
     _creatable(out, "--out", folder=True)
 
 
+def given_path(text: str) -> Path:
+    """The ``type`` of an option that names a file or folder: an empty path (``--out "$OUT"`` with
+    ``OUT`` unset), which ``Path`` reads as the current folder, where the job would then write its
+    outputs or look for its inputs, names none: argparse exits 2 naming the option."""
+    import argparse
+
+    if not text:
+        raise argparse.ArgumentTypeError("expected a path, got an empty one ('', which would be the current folder)")
+    return Path(text)
+
+
 def file_path(text: str) -> Path:
     """The ``type`` of an option that names a file the job writes (``--json``, ``eval train``'s
     ``--dump-first-step``): a path whose last part is no file name (``DIR/``, ``DIR/.``, ``..``,

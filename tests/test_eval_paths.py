@@ -111,3 +111,24 @@ def test_vflow_inputs_the_system_cannot_look_up_are_named(tmp_path, capsys, opti
     assert err.startswith(f"error: {option}: {str(given)!r} ")
     assert ("holds a name of" if kind == "long" else "leads through a loop of symbolic links") in err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["self"]
+
+
+@pytest.mark.parametrize("job, option", [("synth", "--out"), ("tables", "--out"), ("tables", "--kitti"),
+                                         ("noise", "--out"), ("train", "--out"), ("vflow", "--out"),
+                                         ("vflow", "--flow"), ("vflow", "--mask")])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, capsys, monkeypatch, job, option):
+    """``--out "$OUT"`` with OUT unset: ``Path('')`` is the current folder, into which synth rendered
+    its sequence, tables, noise and vflow wrote their files (removing an earlier run's there) and train
+    its state_dicts; now argparse's exit 2 naming the option, before anything is written."""
+    monkeypatch.chdir(tmp_path)
+    # (the other options keep a run that took the path short)
+    small = {"synth": ["--pairs", "1", "--size", "16", "48"], "tables": ["--only", "cvc12", "--quick"],
+             "noise": ["--quick", "--no-plots"], "train": ["--steps", "1", "--size", "16", "48", "--train-pairs", "1",
+                                                            "--test-pairs", "1", "--batch", "1"],
+             "vflow": ["--size", "32", "96"] if option == "--out" else []}
+    argv = [job, option, "", "--no-progress", *small[job]]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f"error: argument {option}: expected a path, got an empty one ('', which would be the current "
+                        f"folder)\n")
+    assert list(tmp_path.iterdir()) == []

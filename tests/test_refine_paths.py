@@ -35,3 +35,19 @@ def test_a_path_the_system_cannot_look_up_is_named(tmp_path, capsys, option, kin
     else:
         assert err == f"error: {option}: {given!r} leads through a loop of symbolic links; give another path\n"
     assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written, no folder made
+
+
+@pytest.mark.parametrize("option", ["--out", "--images", "--calib", "--road", "--poses", "--flows", "--gt", "--kitti15",
+                                    "--kitti-odometry", "--testnet-weights", "--checkpoint"])
+def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, capsys, monkeypatch, option):
+    """``--out "$OUT"`` with OUT unset: ``Path('')`` is the current folder, where the run wrote its
+    manifest, records and reports (and the inputs were looked for: "no file at '.'"); now argparse's
+    exit 2 naming the option, before anything is written."""
+    monkeypatch.chdir(tmp_path)
+    argv = ["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given", "--no-figures",
+            "--no-progress", option, ""]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.endswith(f"error: argument {option}: expected a path, got an empty one ('', which would be the current "
+                        f"folder)\n")
+    assert list(tmp_path.iterdir()) == []
