@@ -74,8 +74,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--train-pairs", type=int, default=24, help="training pairs rendered (default 24)")
     parser.add_argument("--test-pairs", type=int, default=6, help="held-out pairs rendered (default 6)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
-    parser.add_argument("--json", type=file_path, default=None, help="write the results as JSON here")
-    parser.add_argument("--out", type=given_path, default=None, help="save both nets' state_dicts in this folder")
+    parser.add_argument("--json", type=file_path, default=None, metavar="PATH", help="write the results as JSON here")
+    parser.add_argument("--out", type=given_path, default=None, metavar="DIR",
+                        help="save both nets' state_dicts in this folder")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     parser.add_argument("--device", default="cpu", help="torch device (default cpu; cuda: the process's GPU)")
     parser.add_argument("--dump-first-step", type=file_path, default=None, metavar="PATH",

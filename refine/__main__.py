@@ -86,10 +86,11 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
                "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
     g = p.add_argument_group("synthetic data (the default)")
-    g.add_argument("--preset", help=f"scene preset (default: {DEFAULTS['preset']})")
-    g.add_argument("--num-pairs", type=int, help=f"pairs to render, 1 to {MAX_FRAME} (default: {DEFAULT_PAIRS})")
+    g.add_argument("--preset", metavar="NAME", help=f"scene preset (default: {DEFAULTS['preset']})")
+    g.add_argument("--num-pairs", type=int, metavar="N",
+                   help=f"pairs to render, 1 to {MAX_FRAME} (default: {DEFAULT_PAIRS})")
     g.add_argument("--size", type=_size, metavar="HxW", help=f"image size, each side 16 to {MAX_SIDE} (default: 375x1242, KITTI's)")
-    g.add_argument("--seed", type=int, help="scene seed (default: 0)")
+    g.add_argument("--seed", type=int, metavar="N", help="scene seed (default: 0)")
     g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
                    help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
 
@@ -99,10 +100,12 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
                    help=f"image size the calibration is for, each side 16 to {MAX_SIDE} (default: the file's S_rect row, "
                         "else checked loosely)")
-    g.add_argument("--cam", type=int, default=None, help="camera index in --calib (default: 2 if present, else 0)")
-    g.add_argument("--height", type=float, help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
-    g.add_argument("--roll-deg", type=float, help="camera roll, degrees (default: 0)")
-    g.add_argument("--pitch-deg", type=float, help="camera pitch, degrees (default: 0)")
+    g.add_argument("--cam", type=int, default=None, metavar="N",
+                   help="camera index in --calib (default: 2 if present, else 0)")
+    g.add_argument("--height", type=float, metavar="M",
+                   help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
+    g.add_argument("--roll-deg", type=float, metavar="D", help="camera roll, degrees (default: 0)")
+    g.add_argument("--pitch-deg", type=float, metavar="D", help="camera pitch, degrees (default: 0)")
     g.add_argument("--poses", type=given_path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
     g.add_argument("--flows", type=given_path, metavar="DIR", help="predicted flows of any network, one per pair, "
                    "named like the pair (KITTI .png, .flo, .npy)")
@@ -112,15 +115,15 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
     g.add_argument("--gt", type=given_path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
 
     g = p.add_argument_group("KITTI folders in the shared samples' layouts")
-    g.add_argument("--kitti15", type=given_path, metavar="PATH",
+    g.add_argument("--kitti15", type=given_path, metavar="DIR",
                    help="a folder like kitti15_000000 (a KITTI 2015 pair): DIS refined with ego-motion fitted to "
                         "the flow and to the images, against its ground truth where present")
-    g.add_argument("--kitti-odometry", type=given_path, metavar="PATH",
+    g.add_argument("--kitti-odometry", type=given_path, metavar="DIR",
                    help="a folder like kitti_odometry_straight (a KITTI odometry clip with poses): DIS refined with "
                         "the poses, with the clip's fit and with the images; road.json optional with --road auto")
 
     g = p.add_argument_group("flow networks")
-    g.add_argument("--source", type=_list(SOURCES), default=None,
+    g.add_argument("--source", type=_list(SOURCES), default=None, metavar="LIST",
                    help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet on "
                         "synthetic data, dis on real data; with --net: net; with --flows: the files)")
     g.add_argument("--testnet-weights", type=given_path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
@@ -133,7 +136,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                    help="a local state_dict for --net (loaded with torch.load(weights_only=True))")
 
     g = p.add_argument_group("refinement")
-    g.add_argument("--odometry", type=_list(VARIANTS), default=None,
+    g.add_argument("--odometry", type=_list(VARIANTS), default=None, metavar="LIST",
                    help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: synthetic "
                         "data: given,fit,photometric; --images: sequence for a clip, photometric for "
                         "KITTI *_10/*_11 pairs or a single pair, plus given_images with --poses; "
@@ -148,7 +151,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                         "object, e.g. '{\"fine_points\": 20000, \"smooth_sigma\": 1.0}' (docs/real-roads.md, "
                         "\"Settings for a real camera\"); default: the library's")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
-    g.add_argument("--scale", type=float, default=None,
+    g.add_argument("--scale", type=float, default=None, metavar="PX",
                    help=f"Cauchy scale in px, for --mode confidence only (default: {DEFAULT_SCALE:g})")
     g.add_argument("--fit-roll", action="store_true", help="variant fit: also fit the camera roll")
     g.add_argument("--fit-pitch", action="store_true", help="variant fit: also fit the camera pitch")
@@ -157,7 +160,7 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                         "--poses or the odometry sample's, also its height) and refine every variant with it")
 
     g = p.add_argument_group("output")
-    g.add_argument("--out", type=given_path, default=None,
+    g.add_argument("--out", type=given_path, default=None, metavar="DIR",
                    help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
     g.add_argument("--json", type=file_path, metavar="PATH",
                    help="also write the report JSON here (not an input, nor inside --out but OUT/report.json, "
@@ -166,10 +169,10 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                    help="redo every pair; replace the results of another run in --out")
     g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("--threads", type=int, default=1,
+    g.add_argument("--threads", type=int, default=1, metavar="N",
                    help="intra-op threads per process for torch and OpenCV (default: 1; more helps only "
                         "on idle cores)")
-    g.add_argument("--device", default="cpu", help="torch device for the networks and the refiner "
+    g.add_argument("--device", default="cpu", metavar="DEV", help="torch device for the networks and the refiner "
                    "(default: cpu; cuda uses the process's GPU)")
     return p
 

@@ -457,6 +457,24 @@ def test_jobs_md_lists_the_refine_jobs_options():
     assert written == _options(build_parser())
 
 
+def test_jobs_md_writes_the_refine_options_values_as_the_help_does():
+    """The options table writes each option's value as ``--help`` does (``--height M``, ``--out
+    DIR``): the help once wrote ``--out OUT``, ``--kitti15 PATH``, ``--scale SCALE`` for the
+    table's ``DIR``, ``DIR``, ``PX``. (Options with choices: the table lists them in words.)"""
+    from refine.__main__ import build_parser
+
+    text = (DOCS / "jobs.md").read_text()
+    table = text[text.index("### Options"):text.index("The odometry variants:")]
+    first = [re.split(r"(?<!\\)\|", row)[1] for row in table.splitlines() if row.startswith("| `--")]
+    written = {m[0]: m[1] for cell in first for m in re.findall(r"`(--[\w-]+)(?: ([^`]+))?`", cell)}
+    parser = build_parser()
+    formatter = parser._get_formatter()
+    shown = {option: formatter._format_args(action, action.dest.upper()) if action.nargs != 0 else ""
+             for action in parser._actions if action.choices is None for option in action.option_strings
+             if option in written}
+    assert {o: written[o].replace("\\|", "|") for o in shown} == shown
+
+
 def test_jobs_md_names_what_a_record_holds_about_an_auto_road():
     """docs/jobs.md's record (``pairs/<pair>.json``) names every field ``--road auto`` adds to it
     (the detection's flag, reason, coverage, pixels and step), and the road pixels used."""
