@@ -568,7 +568,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
         notes.append(_mounting_note(cfg.clip, calibrate, len(specs), variants))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
-    records = _run_shard(specs, cfg, built, world)
+    records = _run_shard(specs, cfg, built, world, paths={**inputs, "--out": out, "--json": args.json})
     if records is None:
         return 2  # another process stopped on its pairs' input, and rank 0 reports it
     names = [s.name for s in specs]
@@ -653,22 +653,26 @@ def _mounting_note(clip, calibrate: bool, pairs: int, variants=("sequence", "giv
                "the whole image, misleads the fit)." if not confirmed else "."))
 
 
-def _run_shard(specs, cfg, built: dict, world) -> list[dict] | None:
+def _run_shard(specs, cfg, built: dict, world, paths: dict[str, Path | None] | None = None) -> list[dict] | None:
     """Run this process's share of the pairs (``refine.job.run_pairs``). Under torchrun, an input
-    error on one process's pairs (a corrupt file, say) stops every process before the collectives
-    the others would otherwise wait in: the processes exchange their errors, the one that failed
-    raises its own (a JobError), rank 0 the first one (naming its rank), the others return None."""
+    error on one process's pairs (a corrupt file, a file it may not read, say) stops every process
+    before the collectives the others would otherwise wait in: the processes exchange their
+    errors, the one that failed raises its own (a JobError), rank 0 the first one (naming its
+    rank), the others return None. ``paths``: the run's path options, which a file the process
+    may not read or write is named under (:func:`refine.inputs.permission_message`)."""
     from . import distributed
-    from .inputs import JobError
+    from .inputs import JobError, permission_message
     from .job import run_pairs
 
     error = None
     try:
         records = run_pairs(distributed.shard(specs, world), cfg, built, rank=world.rank)
-    except (JobError, FileNotFoundError, ValueError) as err:
+    except (JobError, FileNotFoundError, IsADirectoryError, ValueError, PermissionError) as err:
         if not world.distributed:
             raise
-        error, records = str(err), None
+        error = permission_message(err, paths or {}, ("--out", "--json")) if isinstance(err, PermissionError) \
+            else str(err)
+        records = None
     if world.distributed:
         failed = [(rank, e) for rank, e in enumerate(distributed.gather_objects(error, world)) if e is not None]
         if error is not None:

@@ -2260,6 +2260,44 @@ def test_an_input_error_on_another_process_stops_this_one_with_its_message(tmp_p
     assert calls == [message]
 
 
+@pytest.mark.parametrize("error", [PermissionError, IsADirectoryError])
+def test_a_file_a_process_may_not_read_is_exchanged_under_torchrun(tmp_path, capsys, monkeypatch, error):
+    """Under torchrun a pair's file that its process may not read (a PermissionError), or finds a
+    folder, was not among the errors the processes exchange: that process ended in a traceback
+    and the others waited in their collectives for good. Now it is exchanged as the others are:
+    the process that met it reports it (exit 2), named as without torchrun, and so does rank 0."""
+    import errno
+
+    from refine import distributed, inputs
+
+    calls = []
+
+    def gather(obj, world):  # (this process is rank 1 of 2; rank 0's pairs went well)
+        calls.append(obj)
+        return [None, obj]
+
+    monkeypatch.setattr(distributed, "gather_objects", gather)
+    monkeypatch.setattr(distributed, "broadcast_object", lambda obj, world: obj)
+    monkeypatch.setattr(distributed, "init", lambda device: distributed.World(1, 2, 1, "gloo"))
+    synthetic_pairs = inputs.synthetic_pairs
+    denied = str(tmp_path / "frames" / "000001.png")
+
+    def broken():
+        raise error(errno.EACCES if error is PermissionError else errno.EISDIR, "simulated", denied)
+
+    def pairs(*args, **kwargs):
+        specs = synthetic_pairs(*args, **kwargs)
+        specs[1].load = broken
+        return specs
+
+    monkeypatch.setattr(inputs, "synthetic_pairs", pairs)
+    argv = ["--num-pairs", "2", "--source", "dis", "--odometry", "given", "--no-figures", "--out",
+            str(tmp_path / "out"), *TINY]
+    message = f"{denied!r}: permission denied" if error is PermissionError else f"[Errno 21] simulated: {denied!r}"
+    assert _err(capsys, argv) == f"error: {message}\n"
+    assert calls == [message]
+
+
 def test_json_naming_an_input_is_refused_and_the_input_kept(tmp_path, user_folder, capsys):
     """--json naming a file the run reads (or a file inside a folder it reads) is refused before
     any work, naming --json and the option: the job removes the --json file at its start, which
