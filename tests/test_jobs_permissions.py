@@ -138,3 +138,62 @@ def test_permission_message_names_the_deepest_option_and_keeps_a_writers_message
                                                    f"is not writable")
     assert permission_message(PermissionError("path: 'a' is read-only (mode 0o444)"), paths) == \
         "'a' is read-only (mode 0o444)"
+
+
+def deny_writes_into(folder: Path, monkeypatch) -> None:
+    """The atomic writer's temporaries in ``folder`` refused as for a folder the process may not
+    write into (its mode does not stop root)."""
+    import fsof_torch.io.atomic as atomic
+
+    real = atomic.os.open
+
+    def guarded(path, *args, **kwargs):
+        if Path(path).parent == folder:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), os.fspath(path))
+        return real(path, *args, **kwargs)
+
+    monkeypatch.setattr(atomic.os, "open", guarded)
+
+
+def test_a_folder_inside_out_that_cannot_be_written_exits_2(tmp_path, monkeypatch, capsys):
+    """A folder of an earlier run's outputs that the process may not write into (another user's
+    run, resumed): a PermissionError traceback, exit 1; now the writer's message and exit 2."""
+    out = tmp_path / "out"
+    pairs = out / "dis" / "given" / "pairs"
+    deny_writes_into(pairs, monkeypatch)
+    assert refine_main(["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given",
+                        "--no-figures", "--no-progress", "--out", str(out)]) == 2
+    assert _one_line(capsys) == (f"error: cannot write {str(pairs / '000000.json')!r}: the folder {str(pairs)!r} is "
+                                 f"not writable (Permission denied)\n")
+
+
+def test_eval_names_an_output_it_cannot_write(tmp_path, monkeypatch, capsys):
+    out = tmp_path / "v"
+    out.mkdir()
+    deny_writes_into(out, monkeypatch)
+    assert eval_main(["vflow", "--size", "32", "96", "--out", str(out), "--no-progress"]) == 2
+    assert _one_line(capsys) == (f"error: cannot write {str(out / 'vflow_map.png')!r}: the folder {str(out)!r} is "
+                                 f"not writable (Permission denied)\n")
+
+
+@pytest.mark.parametrize("job", ["refine", "synth", "train", "tables", "noise", "vflow"])
+def test_an_existing_out_folder_that_cannot_be_written_is_refused_before_any_work(tmp_path, monkeypatch, capsys, job):
+    """--out, a folder that exists but that the process may not write into (chmod a-w, another
+    user's), passed the checks, which looked at the folder above it: train trained, vflow fitted,
+    refine took its lock, then a traceback (now: the writer's PermissionError, exit 2, after the
+    work). Now exit 2 naming --out before any work. (The test runs as any user: the folder's
+    permission is what os.access reports.)"""
+    import fsof_torch.io.atomic as atomic
+
+    out = tmp_path / "out"
+    out.mkdir()
+    monkeypatch.setattr(atomic.os, "access", lambda path, mode: Path(path) != out)
+    small = {"refine": ["--num-pairs", "1", "--size", "48x160", "--source", "dis", "--odometry", "given", "--no-figures"],
+             "synth": ["--pairs", "1", "--size", "16", "48"], "tables": ["--only", "cvc12", "--quick"],
+             "noise": ["--quick", "--no-plots"], "vflow": ["--size", "32", "96"],
+             "train": ["--steps", "1", "--size", "16", "48", "--train-pairs", "1", "--test-pairs", "1", "--batch", "1"]}
+    argv = [*small[job], "--out", str(out), "--no-progress"]
+    assert (refine_main(argv) if job == "refine" else eval_main([job, *argv])) == 2
+    assert _one_line(capsys) == (f"error: --out: the folder {str(out)!r} is not writable, so the job cannot write its "
+                                 f"files into it\n")
+    assert list(out.iterdir()) == []

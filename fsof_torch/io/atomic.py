@@ -318,8 +318,8 @@ def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False
     cannot be written into, or a symbolic link to nothing stands on the way: a drive not mounted),
     as a message naming ``option``; None where it can. ``folder``: ``path`` is to be a folder, which
     a link to nothing at ``path`` cannot become (a file is written through it where its target's
-    folder exists, as :func:`atomic_path` writes). The jobs check their outputs with it before any
-    work."""
+    folder exists, as :func:`atomic_path` writes), and which, where it exists, the process must be
+    able to write into. The jobs check their outputs with it before any work."""
     path = Path(path)
     if path.is_symlink() and not path.exists():
         target = Path(os.path.realpath(path))
@@ -328,6 +328,8 @@ def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False
                     + ("which does not exist" if folder else "whose folder does not exist")
                     + "; mount or create it, or give another path")
         path = target
+    if folder and path.is_dir() and not os.access(path, os.W_OK | os.X_OK):
+        return f"{option}: the folder {str(path)!r} is not writable, so the job cannot write its files into it"
     if path.is_file() and not os.access(path, os.W_OK):
         return f"{option}: {str(path)!r} is read-only, so it cannot be written over"
     special = special_file(path)
