@@ -21,7 +21,10 @@ from .paths import MAX_SIDE, file_path, given_path
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", default="default", help="scene preset (fsof_torch.data.scene.PRESETS); default: default")
-    parser.add_argument("--pairs", type=int, default=4, metavar="N", help="number of frame pairs (default 4)")
+    from fsof_torch.data.scene.render import MAX_FRAME
+
+    parser.add_argument("--pairs", type=int, default=4, metavar="N",
+                        help=f"number of frame pairs, 1 to {MAX_FRAME} (default 4)")
     parser.add_argument("--out", required=True, type=given_path, metavar="DIR",
                         help="output folder: a new or empty one (created); a folder holding files is refused")
     parser.add_argument("--size", type=int, nargs=2, metavar=("H", "W"), default=None,

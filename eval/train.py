@@ -58,22 +58,27 @@ MAX_LR = 1e37
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from fsof_torch.data.scene.render import MAX_FRAME, MAX_SIDE
+
     parser.add_argument("--steps", type=int, default=150, help="optimiser steps per run (default 150)")
     parser.add_argument("--seed", type=int, default=0,
                         help="seed of the net, the batches and the training scenes (held-out: seed + 1000; default 0)")
     parser.add_argument("--preset", default="default", help="synthetic scene preset (fsof_torch.data.scene.PRESETS; default: default)")
     parser.add_argument("--size", type=int, nargs=2, default=(64, 224), metavar=("H", "W"),
-                        help="image size of the rendered pairs (default 64 224)")
-    parser.add_argument("--batch", type=int, default=4, help="pairs per step (default 4)")
+                        help=f"image size of the rendered pairs, each side 16 to {MAX_SIDE} (default 64 224)")
+    parser.add_argument("--batch", type=int, default=4, help="pairs per step, at most --train-pairs (default 4)")
     parser.add_argument("--lr", type=float, default=1e-3, help="AdamW learning rate (default 1e-3)")
     parser.add_argument("--freespace-weight", type=float, default=0.1,
                         help="weight of the freespace term in the second run (default 0.1)")
     parser.add_argument("--odometry", choices=("given", "fit"), default="given",
                         help="freespace term from the pairs' odometry, or fitted to the prediction (default: given)")
     parser.add_argument("--iters", type=int, default=4, help="GRU iterations of the test net (default 4)")
-    parser.add_argument("--train-pairs", type=int, default=24, help="training pairs rendered (default 24)")
-    parser.add_argument("--test-pairs", type=int, default=6, help="held-out pairs rendered (default 6)")
-    parser.add_argument("--threads", type=int, default=0, help="torch threads (0: leave torch's default)")
+    parser.add_argument("--train-pairs", type=int, default=24,
+                        help=f"training pairs rendered, 1 to {MAX_FRAME} (default 24)")
+    parser.add_argument("--test-pairs", type=int, default=6,
+                        help=f"held-out pairs rendered, 1 to {MAX_FRAME} (default 6)")
+    parser.add_argument("--threads", type=int, default=0,
+                        help="torch threads, at most the machine's CPUs (0: leave torch's default)")
     parser.add_argument("--json", type=file_path, default=None, metavar="PATH", help="write the results as JSON here")
     parser.add_argument("--out", type=given_path, default=None, metavar="DIR",
                         help="save both nets' state_dicts in this folder")

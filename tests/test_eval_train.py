@@ -383,3 +383,19 @@ def test_train_in_a_distributed_environment_torchrun_did_not_set_exits_2(tmp_pat
     if "RANK: not set" in message:
         assert "torchrun --nproc-per-node N -m eval train" in err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("option, value, stated, refused", [
+    ("--size", ["8", "48"], "image size of the rendered pairs, each side 16 to 16384 (default 64 224)",
+     "--size: expected H, W >= 16, got [8, 48]"),
+    ("--train-pairs", ["100001"], "training pairs rendered, 1 to 100000 (default 24)",
+     "--train-pairs: expected at most 100000, got 100001"),
+    ("--batch", ["25"], "pairs per step, at most --train-pairs (default 4)",
+     "--batch: expected at most --train-pairs (24), got 25"),
+])
+def test_train_help_states_the_ranges_it_checks(capsys, option, value, stated, refused):
+    """--help gave no range for these, which the job refuses beyond (exit 2): it states them now."""
+    assert eval_main(["train", "--help"]) == 0
+    assert stated in " ".join(capsys.readouterr().out.split())
+    assert eval_main(["train", option, *value, "--no-progress"]) == 2
+    assert capsys.readouterr().err == f"error: {refused}\n"
