@@ -12,6 +12,7 @@ import errno
 import io
 import json
 import os
+import pathlib
 from pathlib import Path
 
 import pytest
@@ -40,6 +41,8 @@ def take_permissions(path: Path, monkeypatch) -> None:
 
     monkeypatch.setattr(builtins, "open", guarded)
     monkeypatch.setattr(io, "open", guarded)
+    if hasattr(pathlib, "_NormalAccessor"):  # (Python 3.10: Path.open calls the io.open its accessor took at import)
+        monkeypatch.setattr(pathlib._NormalAccessor, "open", staticmethod(guarded))
 
 
 @pytest.fixture
