@@ -96,7 +96,9 @@ from .evaluation.warp import WarpBackward, warp_backward
 from ._check import trust_image_range
 from .warn import FreespaceWarning
 
-__version__ = "0.1.0"
+from . import version as _version
+
+__version__ = _version.__version__
 
 # The short module paths (``fsof_torch.metrics``, ``fsof_torch.camera``, ...) are importable:
 # each is an alias of the module that holds it, in sys.modules and as an

@@ -25,7 +25,6 @@ not part of the identity: a longer run of the same inputs reuses the pairs it sh
 from __future__ import annotations
 
 import contextlib
-import functools
 import hashlib
 import json
 import os
@@ -33,6 +32,8 @@ import shutil
 from pathlib import Path
 from typing import Any, Iterator
 
+from fsof_torch.io import code_digest as library_code_digest
+from fsof_torch.io import dependency_versions as library_dependency_versions
 from fsof_torch.io.atomic import creation_error
 
 from .inputs import JobError
@@ -51,40 +52,18 @@ def fingerprint(identity: Any) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-@functools.lru_cache(maxsize=None)
 def code_digest() -> str:
-    """BLAKE2b (hex, 32 characters) of the code that computes a run's results: the relative path
-    and bytes of every ``.py`` file of the installed ``fsof_torch`` package and of the job's own
-    package (``refine``), read once per process. The library's version alone stays the same across
-    the edits of a source checkout: a run resumed after its algorithms changed would reuse the
-    records of the old code."""
-    import fsof_torch
-
-    h = hashlib.blake2b(digest_size=16)
-    for package in (Path(fsof_torch.__file__).parent, Path(__file__).parent):
-        for path in sorted(package.rglob("*.py"), key=lambda p: p.relative_to(package).as_posix()):
-            h.update(f"{package.name}/{path.relative_to(package).as_posix()}\0".encode())
-            h.update(path.read_bytes())
-            h.update(b"\0")
-    return h.hexdigest()
+    """:func:`fsof_torch.io.code_digest` of the library and the job's own package (``refine``):
+    BLAKE2b (hex, 32 characters) of the relative path and bytes of every ``.py`` file of both, read
+    once per process. The library's version alone stays the same across the edits of a source
+    checkout: a run resumed after its algorithms changed would reuse the records of the old code."""
+    return library_code_digest(Path(__file__).parent)
 
 
-@functools.lru_cache(maxsize=None)
-def dependency_versions() -> dict[str, str]:
-    """The versions of what computes a run's results beside the library's code, read once per
-    process: Python's ``major.minor``, torch (with its build suffix, e.g. ``2.5.1+cu121``: a CUDA
-    or CPU build), OpenCV (DIS flows, blurs, pyramids), kornia and NumPy. DIS's flows move with the
-    OpenCV build: a run resumed after an upgrade would mix the old build's records with the new's."""
-    import platform
-
-    import cv2
-    import kornia
-    import numpy
-    import torch
-
-    major, minor, _ = platform.python_version_tuple()
-    return {"python": f"{major}.{minor}", "torch": str(torch.__version__), "opencv": cv2.__version__,
-            "kornia": kornia.__version__, "numpy": numpy.__version__}
+# (:func:`fsof_torch.io.dependency_versions`, read once per process: Python's major.minor, torch
+# with its build suffix, OpenCV, kornia, NumPy. DIS's flows move with the OpenCV build: a run
+# resumed after an upgrade would mix the old build's records with the new's.)
+dependency_versions = library_dependency_versions
 
 
 def _creatable(path: Path, option: str, *, folder: bool = False) -> None:

@@ -1,5 +1,6 @@
 """Data formats: flow files (KITTI PNG, Middlebury .flo, .npy, Virtual KITTI 2, CARLA), images,
-road masks, KITTI poses and calibration, the synthetic KITTI-like layout; atomic writing.
+road masks, KITTI poses and calibration, the synthetic KITTI-like layout; atomic writing; what
+produced a result file (:func:`environment`, the ``environment`` block of the jobs' JSON outputs).
 
 Every reader checks what it reads and raises a ValueError naming the path (truncated PNG, wrong
 bit depth or channel count, wrong ``.flo`` magic or size); every writer writes a temporary file
@@ -55,6 +56,7 @@ from .masks import (
     write_label_map,
     write_road_mask,
 )
+from .provenance import code_digest, cpu_name, dependency_versions, environment
 from .vkitti import (
     read_vkitti2_classes,
     read_vkitti2_colors,
@@ -78,6 +80,10 @@ __all__ = [
     "atomic_path",
     "camera_from_params",
     "carla_camera",
+    "code_digest",
+    "cpu_name",
+    "dependency_versions",
+    "environment",
     "mask_from_colors",
     "pair_name",
     "parse_carla_run_name",
