@@ -191,6 +191,7 @@ def run(args: argparse.Namespace) -> int:
     from eval.pose import MAX_SIGMA, pose_estimation_experiment
 
     from .paths import bad_file, bad_folder, bad_json_target, bad_size, first_bad, make_parent, remove_outputs
+    from .provenance import environment
     from fsof_torch.io.progress import progress_bar
     from .tables import format_table
 
@@ -249,7 +250,8 @@ def run(args: argparse.Namespace) -> int:
                            "pose": pose.settings},
               "noise_robustness": robust_rows, "pose": pose_rows,
               "pose_trials": {"true": pose.true_pose, "estimated": pose.estimated_pose},
-              "files": {k: str(v) for k, v in files.items()}}
+              "files": {k: str(v) for k, v in files.items()},
+              "environment": environment("noise", args, seed=args.seed)}
     json_path = args.json if args.json is not None else args.out / "noise.json"
     write_json(make_parent(json_path), result)
     # (printed after the files are written: a reader of stdout that goes away (| head) loses none)

@@ -12,7 +12,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-from pathlib import Path
 
 import torch
 
@@ -65,6 +64,7 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.data.scene import PRESETS, render_pair
 
     from .paths import bad_file, bad_folder, bad_size, first_bad, make_parent, other_run_above, remove_outputs
+    from .provenance import environment
 
     if args.preset not in PRESETS:
         print(f"error: --preset: unknown preset {args.preset!r}; choose from {', '.join(sorted(PRESETS))}", file=sys.stderr)
@@ -117,7 +117,9 @@ def run(args: argparse.Namespace) -> int:
             yield {**pair, "camera": camera64.to(torch.float64, copy=True)}
 
     meta = {"preset": args.preset, "seed": args.seed, "requested_size": list(size) if size else None,
-            "dtype": str(dtype).replace("torch.", ""), "command": "python -m eval synth"}
+            "dtype": str(dtype).replace("torch.", ""), "command": "python -m eval synth",
+            # (what rendered the folder: in meta.json and in --json alike)
+            "environment": environment("synth", args, seed=args.seed)}
     try:
         summary = write_synthetic_sequence(args.out, rendered(), meta=meta, progress=not args.no_progress,
                                            total=args.pairs)

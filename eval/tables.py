@@ -287,6 +287,8 @@ def run(args: argparse.Namespace) -> int:
                         remove_outputs)
     from fsof_torch.io.progress import progress_bar
 
+    from .provenance import environment
+
     bad = _unused_option(args)
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
@@ -370,6 +372,8 @@ def run(args: argparse.Namespace) -> int:
             md += [KITTI_PAPER_NOTE, ""]
     args.out.mkdir(parents=True, exist_ok=True)
     json_path = args.json if args.json is not None else args.out / "tables.json"
+    # (the seed where a synthetic table drew scenes with it)
+    result["environment"] = environment("tables", args, seed=seed if {"cvc12", "carla"} & set(result) else None)
     write_json(make_parent(json_path), result)
     write_text(args.out / "tables.md", "\n".join(md))
     # (printed after the files are written: a reader of stdout that goes away (| head) loses none)

@@ -46,6 +46,7 @@ from fsof_torch.training.testnet import TinyRAFT, count_parameters
 
 from eval.paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_size, file_path, first_bad, given_path,
                         make_parent, remove_outputs)
+from eval.provenance import environment
 
 __all__ = ["add_arguments", "run", "main", "render_pairs", "train_net", "evaluate_net", "one_cycle_lr",
            "TrainingDiverged"]
@@ -544,6 +545,7 @@ def _train_and_report(args: argparse.Namespace, device: torch.device, ranks: Ran
         "relative_change_with_freespace": change,
         "training": logs,
         "render_seconds": render_s,
+        "environment": environment("train", args, seed=args.seed, device=device),
     }
     if args.json is not None:
         write_json(make_parent(args.json), report)

@@ -264,6 +264,7 @@ def run(args: argparse.Namespace) -> int:
 
     from .paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_out_inputs, bad_size, first_bad,
                         make_parent, remove_outputs)
+    from .provenance import environment
     from fsof_torch.io.progress import progress_bar
 
     if not 2 <= args.bins <= MAX_BINS:
@@ -424,6 +425,8 @@ def run(args: argparse.Namespace) -> int:
         bar.update(1)
 
     info["files"] = {k: str(v) for k, v in files.items()}
+    # (a given --flow drew no scene: no seed)
+    info["environment"] = environment("vflow", args, seed=info["source"].get("seed"))
     json_path = args.json if args.json is not None else args.out / "vflow.json"
     write_json(make_parent(json_path), info)
     # (printed after the files are written: a reader of stdout that goes away (| head) loses none)

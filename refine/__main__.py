@@ -448,6 +448,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     import torch
 
     from fsof_torch import __version__
+    from fsof_torch.io import environment
     from fsof_torch.io.atomic import lookup_error
 
     from . import distributed, resume
@@ -583,6 +584,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     summary = summarize(metrics, extra, records, cfg, world_size=world.world_size, identity=identity)
     if cfg.clip is not None:  # (None where no pair's fit succeeded: the nominal mounting was kept)
         summary["calibrated_mounting"] = cfg.clip.mounting if cfg.clip.fitted else None
+    # what produced the report (the same library_code and dependencies as the identity; beside them
+    # the command's options, the CPU, GPU and thread counts, which the identity leaves out)
+    summary["environment"] = environment(command=command_name(), options=vars(args), seed=input_identity.get("seed"),
+                                         device=device, packages=(Path(resume.__file__).parent,))
     if cfg.figures:
         write_clip_summaries(summary, cfg)
     table = write_report(summary, cfg, args.json)

@@ -129,3 +129,35 @@ def kitti15_ground_truth(shared_data):
 def kitti_K() -> torch.Tensor:
     return torch.tensor([[721.5377, 0.0, 609.5593], [0.0, 721.5377, 172.854], [0.0, 0.0, 1.0]],
                         dtype=torch.float64)
+
+
+@pytest.fixture
+def check_environment() -> Callable[..., None]:
+    """``check_environment(env, job=..., command=..., seed=..., device="cpu")``: asserts that a JSON
+    output's ``environment`` block (docs/jobs.md) names what produced it in this process: the
+    command, the seed, the library's version and the digest of the library's and the job's code,
+    the versions of Python, torch, OpenCV, kornia and NumPy, this machine's CPU count, the device."""
+    def check(env: dict, *, job: str, command: str, seed: int | None, device: str = "cpu") -> None:
+        import os
+        import platform
+
+        import cv2
+        import kornia
+        import numpy
+
+        import fsof_torch
+        from fsof_torch.io import code_digest, cpu_name
+
+        job_folder = Path(__file__).resolve().parents[1] / job
+        assert env["command"] == command and env["seed"] == seed
+        assert isinstance(env["options"], dict)
+        assert env["version"] == fsof_torch.__version__
+        assert env["library_code"] == code_digest(job_folder) and env["code_packages"] == ["fsof_torch", job]
+        assert env["dependencies"] == {"python": ".".join(platform.python_version_tuple()[:2]),
+                                       "torch": torch.__version__, "opencv": cv2.__version__,
+                                       "kornia": kornia.__version__, "numpy": numpy.__version__}
+        assert env["python"] == platform.python_version() and env["platform"] == platform.platform()
+        assert env["cpu"] == cpu_name() and env["cpu_count"] == os.cpu_count()
+        assert set(env["threads"]) == {"torch", "opencv"} and env["threads"]["torch"] >= 1
+        assert env["device"] == device and env["gpu"] is None and env["cuda"] == torch.version.cuda
+    return check

@@ -10,13 +10,14 @@ import pytest
 from eval.__main__ import main
 
 
-def test_noise_quick(tmp_path, capsys):
+def test_noise_quick(tmp_path, capsys, check_environment):
     out = tmp_path / "noise"
     rc = main(["noise", "--quick", "--size", "48", "160", "--pose-size", "60", "200", "--sigmas", "0", "0.5",
                "--pose-sigmas", "0", "1", "--trials", "2", "--out", str(out), "--no-progress"])
     assert rc == 0
     data = json.loads((out / "noise.json").read_text())
     assert {"settings", "noise_robustness", "pose", "pose_trials", "files"} <= set(data)
+    check_environment(data["environment"], job="eval", command="python -m eval noise", seed=0)
     assert [r["sigma"] for r in data["noise_robustness"]] == [0.0, 0.5]
     assert data["noise_robustness"][0]["e_E"] < 1e-6
     assert {"sigma", "translation_error_m", "yaw_error_deg"} <= set(data["pose"][0])

@@ -25,7 +25,7 @@ def written(tmp_path_factory):
     return rc, out, report
 
 
-def test_writes_the_layout(written, capsys):
+def test_writes_the_layout(written, capsys, check_environment):
     rc, out, report = written
     assert rc == 0
     for rel in ("image_2/000000_10.png", "image_2/000001_11.png", "flow_occ/000001_10.png", "road/000000_10.png",
@@ -33,7 +33,10 @@ def test_writes_the_layout(written, capsys):
         assert (out / rel).is_file(), rel
     meta = json.loads((out / "meta.json").read_text())
     assert meta["preset"] == "default" and meta["seed"] == 3 and meta["num_pairs"] == 2 and meta["size"] == [48, 160]
+    check_environment(meta["environment"], job="eval", command="python -m eval synth", seed=3)
     summary = json.loads(report.read_text())
+    assert summary["environment"] == meta["environment"]
+    assert "environment" not in json.loads((out / "params" / "000000.json").read_text())
     assert summary["num_pairs"] == 2 and len(summary["pairs"]) == 2 and summary["bytes"] > 0
     assert set(summary["pairs"][0]["road_pose"]) == {"pitch", "roll", "height"}
     for row in summary["pairs"]:  # (yaw_deg was converted in float32: 0.5093637704849243 for 0.5093637348698544)

@@ -10,13 +10,15 @@ from eval.__main__ import main
 from eval.tables import PAPER_CARLA, PAPER_CVC12, format_table, markdown_table
 
 
-def test_tables_quick(tmp_path, capsys):
+def test_tables_quick(tmp_path, capsys, check_environment):
     out = tmp_path / "tables"
     rc = main(["tables", "--quick", "--size", "48", "160", "--pairs", "1", "--no-kitti", "--out", str(out),
                "--no-progress"])
     assert rc == 0
     data = json.loads((out / "tables.json").read_text())
-    assert set(data) == {"settings", "cvc12", "carla"}
+    assert set(data) == {"settings", "cvc12", "carla", "environment"}
+    check_environment(data["environment"], job="eval", command="python -m eval tables", seed=0)
+    assert data["environment"]["options"]["pairs"] == 1 and data["environment"]["options"]["size"] == [48, 160]
     assert len(data["cvc12"]) == 4 and len(data["carla"]) == 6
     for row in data["cvc12"]:
         assert {"scenario", "speed", "e_A", "e_E", "e_U", "e_V", "n_pixels", "paper_e_A", "paper_e_E"} <= set(row)
@@ -29,7 +31,7 @@ def test_tables_quick(tmp_path, capsys):
     assert "paper e_E" in text and "CVC12-like" in text and "CARLA-like" in text
 
 
-def test_tables_kitti_json_path(tmp_path, shared_data):
+def test_tables_kitti_json_path(tmp_path, shared_data, check_environment):
     path = tmp_path / "k.json"
     rc = main(["tables", "--only", "kitti", "--kitti", str(shared_data / "kitti15_000000"),
                "--out", str(tmp_path / "o"), "--json", str(path), "--no-progress"])
@@ -37,6 +39,7 @@ def test_tables_kitti_json_path(tmp_path, shared_data):
     data = json.loads(path.read_text())
     # no synthetic table: no synthetic settings recorded
     assert data["settings"] == {"kitti": str(shared_data / "kitti15_000000")}
+    check_environment(data["environment"], job="eval", command="python -m eval tables", seed=None)
     assert [r["model"] for r in data["kitti"]] == ["paper model", "with pitch"]
     paper, pitch = data["kitti"]
     assert paper["e_E"] <= 0.40 and pitch["e_E"] <= paper["e_E"] + 1e-9

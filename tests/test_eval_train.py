@@ -21,7 +21,7 @@ def keep_threads():
     torch.set_num_threads(threads)
 
 
-def test_train_job_smoke(tmp_path, capsys, keep_threads):
+def test_train_job_smoke(tmp_path, capsys, keep_threads, check_environment):
     torch.set_num_threads(2)
     threads = torch.get_num_threads()
     out = tmp_path / "nets"
@@ -34,6 +34,8 @@ def test_train_job_smoke(tmp_path, capsys, keep_threads):
     assert "road EPE" in printed and "change with freespace" in printed
     report = json.loads((tmp_path / "train.json").read_text())
     assert set(report["metrics"]) == {"untrained", "unsupervised", "unsupervised+freespace"}
+    check_environment(report["environment"], job="eval", command="python -m eval train", seed=0)
+    assert report["environment"]["threads"]["torch"] == 1  # (the run's --threads, not the caller's 2)
     assert "road census" in printed and "road SSIM" in printed and "road L1" in printed
     for run in report["metrics"].values():
         for region in ("road", "non_road", "all"):

@@ -10,12 +10,13 @@ import torch
 from eval.__main__ import main
 
 
-def test_vflow_preset(tmp_path, capsys):
+def test_vflow_preset(tmp_path, capsys, check_environment):
     out = tmp_path / "v"
     rc = main(["vflow", "--preset", "cvc-complex", "--size", "64", "208", "--out", str(out), "--no-progress"])
     assert rc == 0
     data = json.loads((out / "vflow.json").read_text())
     assert {"source", "curve", "freespace", "files"} <= set(data)
+    check_environment(data["environment"], job="eval", command="python -m eval vflow", seed=0)
     assert data["curve"]["success"] and abs(data["curve"]["z_d_m"] - data["curve"]["z_d_m_true"]) < 0.05
     assert data["freespace"]["iou"] >= 0.9  # (0.966 measured)
     assert data["freespace"]["success"] and abs(data["freespace"]["z_d_m"] - data["curve"]["z_d_m_true"]) < 0.01

@@ -305,6 +305,44 @@ def test_the_code_digest_covers_the_library_and_the_job(tmp_path, monkeypatch):
     assert resume.code_digest() == digest(copy)
 
 
+def test_the_report_says_what_produced_it_and_the_identity_stays(tmp_path, check_environment):
+    """report.json (and --json) carry an environment block: the command and its options, the seed,
+    the code digest and versions the identity holds, and beside them the CPU, the thread counts and
+    the device, which the identity leaves out. The identity keeps its keys and values (an earlier
+    run of the same inputs and code resumes): the code digest by its recipe
+    (test_the_code_digest_covers_the_library_and_the_job), the rest as written here."""
+    import platform
+
+    import cv2
+    import kornia
+    import numpy
+
+    from refine import resume
+
+    out = tmp_path / "out"
+    args = ["--num-pairs", "1", "--source", "dis", "--odometry", "given", "--no-figures", "--threads", "1",
+            "--out", str(out), "--json", str(tmp_path / "r.json"), *TINY]
+    assert main(args) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert json.loads((tmp_path / "r.json").read_text()) == report
+    env = report["environment"]
+    check_environment(env, job="refine", command="python -m refine", seed=0)
+    assert env["options"]["num_pairs"] == 1 and env["options"]["size"] == list(SIZE) and env["threads"]["torch"] == 1
+    identity = json.loads((out / "run.json").read_text())["identity"]
+    assert report["identity"] == identity
+    assert identity == {
+        "version": "0.1.0", "library_code": resume.code_digest(),
+        "dependencies": {"python": ".".join(platform.python_version_tuple()[:2]), "torch": torch.__version__,
+                         "opencv": cv2.__version__, "kornia": kornia.__version__, "numpy": numpy.__version__},
+        "input": {"kind": "synthetic", "preset": "default", "seed": 0, "size": list(SIZE), "noise": None},
+        "sources": ["dis"], "variants": ["given"], "mode": "replace", "scale": 2.0, "fit_roll": False,
+        "fit_pitch": False, "road": None, "calibrate_pitch": False, "odometry_sigma": None, "testnet_weights": None,
+        "net": None, "outputs": ["dis"], "photometric": ["census", "ssim", "l1"]}
+    assert env["library_code"] == identity["library_code"] and env["dependencies"] == identity["dependencies"]
+    assert main(args) == 0  # the same run again: resumed, whatever the environment block holds
+    assert json.loads((out / "report.json").read_text())["records_resumed"] == 1
+
+
 def test_a_record_whose_flow_file_was_truncated_or_replaced_is_redone(tmp_path):
     """The records are finished, but one flow file beside them was truncated and another replaced
     by a flow of another run (here another variant's): those pairs are redone and their flows
