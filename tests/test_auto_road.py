@@ -1421,3 +1421,27 @@ def test_a_motion_of_batch_1_comes_back_per_sample(small_pair):
     assert tuple(out.road.motion["z_d"].shape) == (3,)
     out.flow.sum().backward()
     assert all(float(v.grad.abs().sum()) > 0 for k, v in odometry.items() if k != "model")
+
+
+def test_road_option_values_check_names_and_values_as_detect_road_does():
+    """road_option_values: for a caller that passes options on to detect_road (the wrapper, the
+    refine job's --road-options), a name detect_road does not take or one the caller sets is a
+    TypeError naming the caller's name for them, a bad value detect_road's own error; the values
+    come back with detect_road's defaults for the rest."""
+    import inspect
+
+    from fsof_torch.refinement.auto_road import ROAD_RESERVED, road_option_values
+    from fsof_torch.refinement.road_options import ROAD_VALUE_OPTIONS
+
+    with pytest.raises(TypeError, match=r"^opts: unknown options \['seed_dept_m'\] of detect_road; expected some of "
+                                        r"\['edges', 'height_window', 'level', "):
+        road_option_values({"seed_dept_m": 40}, "opts")
+    for name in ROAD_RESERVED:
+        with pytest.raises(TypeError, match=rf"^opts: options \['{name}'\] of detect_road are set by"):
+            road_option_values({name: None}, "opts")
+    with pytest.raises(ValueError, match=r"^seed_depth_m: expected a finite number > 0, got -1$"):
+        road_option_values({"seed_depth_m": -1})
+    values = road_option_values({"seed_depth_m": 40, "window": 5})
+    defaults = inspect.signature(detect_road).parameters
+    assert list(values) == list(ROAD_VALUE_OPTIONS) and values["seed_depth_m"] == 40.0 and values["window"] == 5
+    assert all(values[n] == defaults[n].default for n in ROAD_VALUE_OPTIONS if n not in ("seed_depth_m", "window"))

@@ -4,7 +4,6 @@ contracts; see :mod:`fsof_torch.refinement.contracts`)."""
 
 from __future__ import annotations
 
-import inspect
 import math
 import numbers
 from dataclasses import replace
@@ -13,37 +12,18 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_image_range, check_keywords, check_mapping,
+from .._check import (batch_choices, check_float_tensor, check_image_range, check_mapping,
                       check_mask, check_shape, scalar)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
 from .auto_refine import motion_complete, refine_with_auto_road
-from .auto_road import ROAD_RESERVED, check_road_size, detect_road, road_level
+from .auto_road import check_road_options, road_option_values
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow
-from .road_options import ROAD_VALUE_OPTIONS, check_road_values
 from .options import select_estimator
 
 __all__ = ["FreespaceRefined"]
-
-
-def _road_values(road_options: Mapping[str, Any]) -> dict[str, Any]:
-    """The values of ``road_options`` checked as :func:`detect_road` checks them, its defaults
-    for the rest (:func:`~fsof_torch.refinement.road_options.check_road_values`)."""
-    defaults = inspect.signature(detect_road).parameters
-    return check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
-
-
-def _check_road_against(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera,
-                        estimated: bool) -> None:
-    """``road_options`` against images of ``shape`` and ``camera`` as :func:`detect_road` checks them
-    (:func:`~fsof_torch.refinement.auto_road.check_road_size`; ``seed_level``'s where the detection
-    will estimate the motion)."""
-    options = _road_values(road_options)
-    if options["level"] is None:
-        options["level"] = road_level(shape[-2:], options["window"], options["height_window"])
-    check_road_size(shape, camera, options, estimated=estimated)
 
 
 class FreespaceRefined(nn.Module):
@@ -131,9 +111,8 @@ class FreespaceRefined(nn.Module):
         if road_options and road != "auto":
             raise ValueError(f"road_options: apply to the road detection of road='auto'; with road={road!r} "
                              f"nothing is detected, got road_options={road_options!r}")
-        check_keywords(road_options, "road_options", detect_road, reserved=ROAD_RESERVED)
-        if road_options:  # (their values too, as detect_road checks them)
-            _road_values(road_options)
+        if road_options:  # (their names and values, as detect_road checks them)
+            road_option_values(road_options)
         self.net = net
         self.refiner = refiner if refiner is not None else FreespaceRefiner()
         self.road = road
@@ -189,7 +168,7 @@ class FreespaceRefined(nn.Module):
         if mask is None:  # road="auto": its options against these images and the camera, as the detection will
             # (it estimates the motion unless given a complete one: as refine_flow's mask="auto" decides)
             estimated = not motion_complete(odometry, self.refiner.fit)
-            _check_road_against(self.road_options or {}, tuple(image1.shape), camera, estimated=estimated)
+            check_road_options(self.road_options or {}, tuple(image1.shape), camera, estimated=estimated)
         padding = self.pad.padding(size) if self.pad is not None else None
 
         def own(x: Tensor) -> Tensor:
