@@ -150,6 +150,10 @@ def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
                         "given_images, and the clip's fit for sequence, given_pitch and --calibrate-pitch), a JSON "
                         "object, e.g. '{\"fine_points\": 20000, \"smooth_sigma\": 1.0}' (docs/real-roads.md, "
                         "\"Settings for a real camera\"); default: the library's")
+    g.add_argument("--road-options", metavar="JSON", default=None,
+                   help="detect_road keyword arguments for --road auto (the road found in the images), a JSON "
+                        "object, e.g. '{\"seed_depth_m\": 40}' (docs/auto-road.md, \"Options\"); default: the "
+                        "library's")
     g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
     g.add_argument("--scale", type=float, default=None, metavar="PX",
                    help=f"Cauchy scale in px, for --mode confidence only (default: {DEFAULT_SCALE:g})")
@@ -229,6 +233,13 @@ def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
             if getattr(args, option) is not None:
                 raise JobError(f"--{option.replace('_', '-')}: applies to the synthetic scenes, not to "
                                f"--{real.replace('_', '-')}")
+    # (the road masks of a run without --road auto: --images's given, the others' own; a --road that
+    # --images lacks or the others may not take is named by the checks of --road)
+    if args.road_options is not None and args.road != "auto" and (args.road is not None) == (real == "images"):
+        masks = (f"--road {args.road}" if real == "images" else "the synthetic scene's own road mask"
+                 if real is None else "the folder's road.json")
+        raise JobError(f"--road-options: applies to the road found in the images (--road auto), which this run "
+                       f"does not use (its road masks: {masks})")
     if real == "images":
         return
     sample = f"--{(real or '').replace('_', '-')}"
@@ -295,22 +306,54 @@ def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict
 
     if text is None:
         return None
-    try:
-        options = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise JobError(f"--fit-options: expected a JSON object of fit_image keyword arguments, got {text!r} ({err})") \
-            from None
-    if not isinstance(options, dict):
-        raise JobError(f"--fit-options: expected a JSON object of fit_image keyword arguments, got {text!r}")
+    options = _json_object(text, "--fit-options", "fit_image")
     if not set(WITH_IMAGES) & set(variants) and not clip_options(calibrate, variants):
         raise JobError(f"--fit-options: applies to the road motion from the images (variants photometric, "
                        f"given_images, sequence, given_pitch, or --calibrate-pitch), which this run does not use "
                        f"(--odometry {','.join(variants)})")
-    try:
+    with _named("--fit-options"):
         check_image_fit_options(options, "--fit-options", reserved=_JOB_FIT_KEYS)
+    return options
+
+
+def _json_object(text: str, option: str, function: str) -> dict:
+    """``option``'s JSON ``text``, keyword arguments of ``function``: a JSON object, else a JobError
+    naming the option and quoting what came."""
+    from .inputs import JobError
+
+    try:
+        options = json.loads(text)
+    except json.JSONDecodeError as err:
+        raise JobError(f"{option}: expected a JSON object of {function} keyword arguments, got {text!r} ({err})") \
+            from None
+    if not isinstance(options, dict):
+        raise JobError(f"{option}: expected a JSON object of {function} keyword arguments, got {text!r}")
+    return options
+
+
+@contextlib.contextmanager
+def _named(option: str):
+    """The library's TypeError or ValueError about an option's keyword arguments as a JobError
+    naming the option."""
+    from .inputs import JobError
+
+    try:
+        yield
     except (TypeError, ValueError) as err:
         message = str(err)
-        raise JobError(message if message.startswith("--fit-options") else f"--fit-options: {message}") from None
+        raise JobError(message if message.startswith(option) else f"{option}: {message}") from None
+
+
+def _road_options(text: str | None) -> dict | None:
+    """``--road-options JSON`` -> detect_road keyword arguments, checked (names and values) before
+    any work; None where not given. (Without ``--road auto`` refused first: :func:`_refuse_unused`.)"""
+    from fsof_torch.refinement.auto_road import road_option_values
+
+    if text is None:
+        return None
+    options = _json_object(text, "--road-options", "detect_road")
+    with _named("--road-options"):
+        road_option_values(options, "--road-options")
     return options
 
 
@@ -512,6 +555,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     if fit_options is not None:
         notes.append(f"The road motion from the images with fit_image's options {json.dumps(fit_options)} "
                      f"(--fit-options).")
+    road_options = _road_options(args.road_options)
+    if road_options is not None:
+        notes.append(f"The road found in the images with detect_road's options {json.dumps(road_options)} "
+                     f"(--road-options).")
     net_spec = NetSpec(args.net, args.net_contract or "auto", args.checkpoint) if args.net is not None else None
     built = {s: make_source(s, weights=args.testnet_weights, net=net_spec, device=device) for s in sources}
     # again: --net's module may set its own counts when imported (research code often does)
@@ -533,6 +580,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
                 "photometric": [kind for _, kind, _ in PHOTO]}
     if fit_options is not None:  # (no key without it: a run without the option has the identity it had)
         identity["fit_options"] = fit_options
+    if road_options is not None:  # (as fit_options)
+        identity["road_options"] = road_options
     if device.type != "cpu":
         # a GPU's kernels round otherwise (and a network's convolutions may run in TF32): its
         # records are not the CPU's. (No key on the CPU: a CPU run's identity is as before.)
@@ -553,7 +602,8 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     fp = resume.fingerprint(identity)
     cfg = JobConfig(out=out, sources=sources, variants=variants, mode=args.mode, scale=scale,
                     fit_roll=args.fit_roll, fit_pitch=args.fit_pitch, road_auto=args.road == "auto", calibrate=calibrate,
-                    odometry_sigma=odometry_sigma, fit_options=fit_options or {}, overwrite=args.overwrite,
+                    odometry_sigma=odometry_sigma, fit_options=fit_options or {},
+                    road_options=road_options or {}, overwrite=args.overwrite,
                     figures=not args.no_figures,
                     progress=not args.no_progress and world.is_main, title=title, notes=notes,
                     fingerprint=fp, device=str(device))

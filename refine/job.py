@@ -65,6 +65,7 @@ class JobConfig:
     calibrate: bool = False
     odometry_sigma: dict | None = None  # given_images: ImageMotionEstimator's (None: the odometry held fixed)
     fit_options: dict = field(default_factory=dict)  # fit_image's, for the road motion from the images
+    road_options: dict = field(default_factory=dict)  # detect_road's, for --road auto
     clip: Any = None  # refine.calibrate.ClipFit: the clip's road motion and calibrated camera
     clip_fingerprint: str = ""  # the inputs of every pair of the clip
     notes: list[str] = field(default_factory=list)
@@ -288,8 +289,15 @@ def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple
         return pair["road"].to(torch.bool), "given", {}
     from fsof_torch import detect_road
 
+    if cfg.road_options:  # (what the images' size and the camera allow, named as the option that gave it)
+        from fsof_torch.refinement.auto_road import check_road_options
+
+        try:
+            check_road_options(cfg.road_options, (1, *pair["image1"].shape), camera, estimated=True)
+        except ValueError as err:
+            raise JobError(f"--road-options: {err}") from None
     with torch.no_grad():
-        det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None])
+        det = detect_road(pair["image1"][None], pair["image2"][None], camera, flow=pred[None], **cfg.road_options)
     info = {"road_flag": det.flag[0], "road_reason": det.reason[0], "road_coverage": float(det.coverage[0]),
             "road_auto_pixels": int(det.mask.sum()), "road_max_height_m": float(det.stats["max_height_m"][0])}
     return det.usable_mask[0], "auto", info

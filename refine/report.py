@@ -10,6 +10,7 @@ single-process report.
 
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 from typing import Any
@@ -268,9 +269,10 @@ def write_report(summary: dict, cfg: JobConfig, json_path: Path | None) -> str:
 
 
 def auto_road_lines(summary: dict) -> list[str]:
-    """With ``--road auto``: how many pairs' roads were flagged (left unrefined), why, the
-    coverage of the others and the steps their evidence could show (each pair's flag, reason,
-    coverage and step are in report.json)."""
+    """With ``--road auto``: how many pairs' roads were flagged (left unrefined), why (the
+    detection's reason, its advice in the job's options: :func:`job_advice`), the coverage of the
+    others and the steps their evidence could show (each pair's flag, reason, coverage and step
+    are in report.json)."""
     found = {r["pair"]: r for r in summary["pairs"] if "road_flag" in r}
     if not found:
         return []
@@ -285,7 +287,31 @@ def auto_road_lines(summary: dict) -> list[str]:
     if steps:
         line += "; the step the evidence could show: " + ", ".join(
             f"{h:g} m ({steps.count(h)} pair{'s' if steps.count(h) != 1 else ''})" for h in sorted(set(steps)))
-    return [line] + [f"  - flagged, left unrefined: {p}: {why}" for p, why in sorted(flagged.items())]
+    options = (summary.get("identity") or {}).get("road_options")  # (--road-options, where given)
+    return [line] + [f"  - flagged, left unrefined: {p}: {job_advice(why, options)}"
+                     for p, why in sorted(flagged.items())]
+
+
+#: detect_road's advice, in a flagged road's reason, that a job user follows through --road-options
+_DEEPER_SEED = "a deeper seed_depth_m"
+
+
+def job_advice(reason: str, road_options: dict | None) -> str:
+    """A flagged auto road's reason (``detect_road``'s, in the terms of its keyword arguments) as
+    the job's user acts on it: its advice of a deeper ``seed_depth_m`` as the ``--road-options``
+    that gives one, twice the depth used and at least twice the default (the run's other road
+    options, ``road_options`` as given, kept beside it). The records keep the library's reason."""
+    if _DEEPER_SEED not in reason:
+        return reason
+    import inspect
+
+    from fsof_torch import detect_road
+
+    default = inspect.signature(detect_road).parameters["seed_depth_m"].default
+    options = dict(road_options or {})
+    deeper = 2 * max(options.get("seed_depth_m", default), default)
+    options["seed_depth_m"] = int(deeper) if float(deeper).is_integer() else deeper
+    return reason.replace(_DEEPER_SEED, f"a deeper seed: --road-options '{json.dumps(options)}'")
 
 
 def write_clip_summaries(summary: dict, cfg: JobConfig) -> list[Path]:

@@ -485,7 +485,7 @@ def test_jobs_md_names_what_a_record_holds_about_an_auto_road():
 
     p = render_pair("default", 1, size=(96, 320))
     _, _, info = road_mask({"image1": p["image1"], "image2": p["image2"]}, p["flow"], p["camera"],
-                           types.SimpleNamespace(road_auto=True))
+                           types.SimpleNamespace(road_auto=True, road_options={}))
     text = (DOCS / "jobs.md").read_text()
     record = text[text.index("**A record**"):text.index("**What the metrics cost.**")]
     assert set(info) >= {"road_flag", "road_reason", "road_coverage", "road_auto_pixels", "road_max_height_m"}

@@ -1243,7 +1243,7 @@ def test_road_auto_starts_from_a_partly_non_finite_flow(monkeypatch):
     seen, detect = [], fsof_torch.detect_road
     monkeypatch.setattr(fsof_torch, "detect_road", lambda *a, **k: seen.append(k.get("flow")) or detect(*a, **k))
     road, road_from, info = road_mask({"image1": p["image1"], "image2": p["image2"], "road": p["road"]}, pred,
-                                      p["camera"], types.SimpleNamespace(road_auto=True))
+                                      p["camera"], types.SimpleNamespace(road_auto=True, road_options={}))
     assert road_from == "auto" and len(seen) == 1 and seen[0] is not None
     torch.testing.assert_close(seen[0][0], pred, rtol=0, atol=0, equal_nan=True)
     direct = detect(p["image1"][None], p["image2"][None], p["camera"], flow=pred[None])
@@ -1282,6 +1282,8 @@ def test_synthetic_road_auto(tmp_path, size, capsys):
     assert (f"the step the evidence could show: {rec['road_max_height_m']:g} m (1 pair)" in report) \
         == (rec["road_flag"] == "ok")
     assert json.loads((out / "report.json").read_text())["pairs"][0]["road_flag"] == rec["road_flag"]
+    # (a run without --road-options has the identity it had: no road_options)
+    assert "road_options" not in json.loads((out / "run.json").read_text())["identity"]
 
 
 def test_auto_road_lines_give_the_steps_of_the_pairs_ok():
@@ -1992,6 +1994,102 @@ def test_fit_options_reach_the_image_estimates_and_make_another_run(tmp_path, ca
     err = _err(capsys, [*TINY, "--num-pairs", "1", "--odometry", "fit", *options, "--out", str(tmp_path / "o")])
     assert "--fit-options: applies to the road motion from the images" in err
     assert not (tmp_path / "o").exists()
+
+
+def test_road_options_reach_the_detection_and_make_another_run(tmp_path, capsys, monkeypatch, scene_pairs):
+    """--road-options JSON: detect_road's options for --road auto, which change the road found (a
+    seed 40 m deep finds 2032 pixels of the 48 x 160 scene where the default 20 m finds none); the
+    report says so, a rerun with the same options resumes, one with others (or none) is another run."""
+    import fsof_torch
+    from refine.sources import dis_flow
+
+    seen, detect = [], fsof_torch.detect_road
+    monkeypatch.setattr(fsof_torch, "detect_road", lambda *a, **k: seen.append(k) or detect(*a, **k))
+    out = tmp_path / "a"
+    base = [*TINY, "--num-pairs", "1", "--source", "dis", "--odometry", "fit", "--road", "auto", "--no-figures"]
+    options = ["--road-options", '{"seed_depth_m": 40}']
+    assert main([*base, *options, "--out", str(out)]) == 0
+    assert len(seen) == 1 and seen[0]["seed_depth_m"] == 40
+    rec = json.loads((out / "dis" / "fit" / "pairs" / "000000.json").read_text())
+    p = scene_pairs[0]  # (the job's pair 000000)
+    args = (p["image1"][None], p["image2"][None], p["camera"].to(torch.float64))
+    flow = dis_flow(p["image1"], p["image2"])[None]
+    deeper, default = detect(*args, flow=flow, seed_depth_m=40), detect(*args, flow=flow)
+    assert rec["road_auto_pixels"] == int(deeper.mask.sum()) != int(default.mask.sum())
+    assert rec["road_flag"] == deeper.flag[0] != default.flag[0]
+    summary = json.loads((out / "report.json").read_text())
+    assert summary["identity"]["road_options"] == {"seed_depth_m": 40}
+    assert "- The road found in the images with detect_road's options {\"seed_depth_m\": 40} (--road-options)." \
+        in (out / "report.md").read_text().splitlines()
+    capsys.readouterr()
+    assert main([*base, *options, "--out", str(out)]) == 0 and len(seen) == 1  # (resumed: nothing detected)
+    assert json.loads((out / "report.json").read_text())["records_resumed"] == 1
+    for other in (["--road-options", '{"seed_depth_m": 30}'], []):
+        err = _err(capsys, [*base, *other, "--out", str(out)])
+        assert "another run" in err and "road_options" in err, err
+
+
+def test_road_options_are_refused_before_any_work(tmp_path, capsys, user_folder):
+    """--road-options: malformed JSON, not an object, a name detect_road does not take (the names
+    it takes listed) or one the job sets, a bad value (detect_road's message), a run without --road
+    auto: exit 2 naming the option and quoting what came, before the output folder is made; what the
+    images' size or the camera's height allow, at the first pair's detection."""
+    o = tmp_path / "o"
+    base = [*TINY, "--num-pairs", "1", "--source", "dis", "--odometry", "fit", "--road", "auto", "--no-figures",
+            "--out", str(o)]
+    names = ("['edges', 'height_window', 'level', 'max_height_m', 'min_coverage', 'min_height_m', 'min_misfit_px', "
+             "'refit', 'seed_depth_m', 'seed_level', 'seed_width_m', 'slow_max_height_m', 'window', 'z']")
+    for bad, says in (('{"seed_depth_m": 40', "expected a JSON object of detect_road keyword arguments, got "
+                                              "'{\"seed_depth_m\": 40' (Expecting ',' delimiter"),
+                      ("[40]", "expected a JSON object of detect_road keyword arguments, got '[40]'"),
+                      ('{"seed_dept_m": 40}', f"unknown options ['seed_dept_m'] of detect_road; expected some of {names}"),
+                      ('{"camera": 1}', "options ['camera'] of detect_road are set by"),
+                      ('{"seed_depth_m": -1}', "seed_depth_m: expected a finite number > 0, got -1"),
+                      ('{"window": 4}', "window: expected an odd int >= 3 (pixels at the working resolution), got 4"),
+                      ('{"refit": 1}', "refit: expected True or False, got int 1")):
+        err = _err(capsys, [*base, "--road-options", bad])
+        assert err.startswith(f"error: --road-options: {says}"), (bad, err)
+    assert not o.exists()
+    # no road found in the images to pass them to: refused, as every option the run would ignore
+    given = [a for a in base if a not in ("--road", "auto")]
+    for argv, masks in ((given, "the synthetic scene's own road mask"),
+                        (_user(user_folder, o, "--road", str(user_folder / "road")), f"--road {user_folder / 'road'}"),
+                        (["--kitti15", str(tmp_path / "k15"), "--out", str(o)], "the folder's road.json")):
+        assert _err(capsys, [*argv, "--road-options", '{"z": 3}']).startswith(
+            "error: --road-options: applies to the road found in the images (--road auto), which this run does "
+            f"not use (its road masks: {masks})\n")
+    assert not o.exists()
+    # a kerb above the camera (1.65 m here) needs the camera: named as the option that gave it
+    high = '{"min_height_m": 2, "max_height_m": 3, "slow_max_height_m": null}'
+    assert _err(capsys, [*base, "--road-options", high]) == ("error: --road-options: min_height_m: expected below "
+                                                             "the camera's height [1.65] m, got 2.0\n")
+    assert not list(o.rglob("pairs/*.json"))  # (no pair finished)
+
+
+def test_a_flagged_auto_road_advises_the_road_options_that_act_on_it(scene_pairs):
+    """The detection's reason for an empty seed advises a deeper seed_depth_m, a keyword argument
+    of detect_road: the job's report gives the --road-options that does it (twice the depth used,
+    at least 40 m, the run's other road options kept), while the record keeps the library's reason."""
+    from fsof_torch import detect_road
+    from refine.report import auto_road_lines, job_advice
+
+    p = scene_pairs[0]
+    motion = {"model": "paper", **{k: torch.tensor([v]) for k, v in p["odometry"].items()}}  # (the scene's)
+    det = detect_road(p["image1"][None], p["image2"][None], p["camera"], motion=motion, seed_depth_m=1.0)
+    reason = det.reason[0]
+    assert det.flag[0] == "empty" and reason.endswith("or a deeper seed_depth_m") and "--road" not in reason
+    advice = reason.removesuffix("seed_depth_m")
+    assert job_advice(reason, None) == advice + "seed: --road-options '{\"seed_depth_m\": 40}'"
+    assert job_advice(reason, {"seed_depth_m": 1, "z": 3}) == advice + \
+        "seed: --road-options '{\"seed_depth_m\": 40, \"z\": 3}'"
+    assert job_advice(reason, {"seed_depth_m": 30.5}) == advice + "seed: --road-options '{\"seed_depth_m\": 61}'"
+    assert job_advice("only 2.4 % of the road ahead carries evidence", {"z": 3}) == \
+        "only 2.4 % of the road ahead carries evidence"
+    rec = {"pair": "000000", "road_flag": "empty", "road_reason": reason, "road_coverage": 0.0}
+    lines = auto_road_lines({"pairs": [rec], "identity": {"road_options": {"seed_depth_m": 1}}})
+    assert lines[1] == f"  - flagged, left unrefined: 000000: empty ({advice}seed: --road-options " \
+                       "'{\"seed_depth_m\": 40}')"
+
 
 def test_flow_beyond_the_png_range_is_marked_not_lost(tmp_path, user_folder, scene_pairs):
     """A predicted flow of 600 px on a band outside the road (a KITTI flow PNG holds ±512 px):
