@@ -411,6 +411,28 @@ def test_gradient_through_camera():
     assert fx.grad.item() == pytest.approx(0.5) and h.grad.tolist() == [1.0]
 
 
+def test_a_camera_of_learnable_values_is_deep_copied():
+    """A camera built from leaf tensors that require grad (a learnable height, as a training
+    model holds one) kept views of them, which copy.deepcopy refuses: deep-copying the model or
+    batch that held it raised a RuntimeError."""
+    import copy
+
+    class Model(torch.nn.Module):
+        def __init__(self):
+            super().__init__()
+            self.height = torch.nn.Parameter(torch.tensor([1.6, 1.7], dtype=torch.float64))
+            self.camera = Camera(_K().expand(2, 3, 3), self.height, torch.zeros(2, dtype=torch.float64))
+
+    model = Model()
+    assert model.camera.height is model.height
+    copied = copy.deepcopy(model)
+    assert copied.camera.height is copied.height and copied.height is not model.height
+    assert copied.camera.height.requires_grad and torch.equal(copied.camera.height, model.height)
+    assert torch.equal(copied.camera.K, model.camera.K) and copied.camera.batch_size == 2
+    # a field broadcast to the batch is a view of what was given (of which torch keeps the graph)
+    assert Camera(_K(), torch.tensor([1.6], requires_grad=True), torch.zeros(3)).height.shape == (3,)
+
+
 # --- values whose geometry overflows or underflows in the camera's dtype ---------------------------
 
 from fsof_torch.geometry.camera import camera_value_bounds  # noqa: E402

@@ -148,7 +148,9 @@ class Camera:
 
     All four are stored as tensors of one float dtype and device (the promoted dtype of the
     tensors given; Python floats follow it): ``K`` (B, 3, 3), the others (B,), with B the common
-    batch size (arguments of batch 1 are broadcast).
+    batch size (arguments of batch 1 are broadcast). A tensor given at its field's shape, dtype
+    and device is stored as it is, the same object (so a camera of learnable leaf tensors can be
+    deep-copied, as ``copy.deepcopy`` copies only graph leaves).
 
     Cameras are compared by identity, as ``nn.Module`` s are (``a == b`` only for the same
     object; hashable, so usable as a dict key): compare values with ``torch.equal`` on the fields.
@@ -199,10 +201,10 @@ class Camera:
             if not bool((lower == 0).all()) or not bool((K[:, 2, 2] == 1).all()):
                 raise ValueError(f"K: expected an upper-triangular intrinsic matrix with K[2, 2] = 1, got {K.tolist()}")
         _check_camera_values(K, height)
-        self.K = K.expand(B, 3, 3)
-        self.height = height.expand(B)
-        self.roll = roll.expand(B)
-        self.pitch = pitch.expand(B)
+        # (a field already of batch B kept as given: a view of a leaf that requires grad is no
+        # leaf, and copy.deepcopy refuses those)
+        self.K = K if K.shape[0] == B else K.expand(B, 3, 3)
+        self.height, self.roll, self.pitch = (t if t.shape[0] == B else t.expand(B) for t in (height, roll, pitch))
 
     # -- derived quantities -------------------------------------------------------------
     @property
