@@ -315,6 +315,37 @@ def test_modules_match_functions():
                                freespace_flow_loss(flows, road, cam, odo, penalty="cauchy"))
 
 
+
+def test_unsupervised_module_registers_a_parameter_weight_and_keeps_no_other_tensor():
+    """A weight given as a tensor was kept as given in the options dict: an nn.Parameter (a learned
+    weight, which the function's arithmetic trains) was no parameter of the module (absent from
+    parameters() and state_dict(), not moved or cast by .to()), and a fixed tensor stayed where
+    .to() does not reach it, printed as tensor(...) (a NumPy number as np.float64(...))."""
+    import copy
+
+    image1, image2, flow = _shifted_pair(1)
+    flows = [flow * 0.5, flow.clone()]
+    flows[1][:, 0, :, W // 2:] += 1.0   # (a step: a smoothness term that is not 0)
+    weight = torch.nn.Parameter(torch.tensor(3.0, dtype=torch.float64))
+    loss = UnsupervisedFlowLoss(smooth_weight=weight, l1_weight=torch.tensor(0.25), alpha1=np.float64(0.02))
+    assert list(loss.named_parameters()) == [("smooth_weight", weight)] and list(loss.state_dict()) == ["smooth_weight"]
+    assert all(not isinstance(v, torch.Tensor) for v in loss.options.values())
+    assert repr(loss) == repr(UnsupervisedFlowLoss(smooth_weight=3.0, l1_weight=0.25, alpha1=0.02)).replace(
+        "smooth_weight=3.0", "smooth_weight=Parameter(3)")
+    value = loss(flows, image1, image2, flows)
+    assert torch.equal(value, unsupervised_flow_loss(flows, image1, image2, flows_backward=flows, smooth_weight=3.0,
+                                                     l1_weight=0.25, alpha1=0.02))
+    value.backward()
+    assert weight.grad is not None and weight.grad.item() > 0
+    twin = UnsupervisedFlowLoss(smooth_weight=torch.nn.Parameter(torch.tensor(1.0, dtype=torch.float64)),
+                                l1_weight=0.25, alpha1=0.02)
+    twin.load_state_dict(copy.deepcopy(loss).state_dict())
+    assert torch.equal(twin(flows, image1, image2, flows), value.detach())
+    assert loss.float().smooth_weight.dtype == torch.float32 and loss.smooth_weight is weight
+    with pytest.raises(TypeError, match=r"^edge_weight: expected a number or an nn.Parameter, got a tensor that "
+                                        r"requires grad"):
+        UnsupervisedFlowLoss(edge_weight=torch.tensor(10.0, requires_grad=True))
+
 def test_composite_reports_each_term_and_weighted_total():
     image1, image2, flow = _shifted_pair(2)
     flow = (flow + 0.5).requires_grad_(True)

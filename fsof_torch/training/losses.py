@@ -602,6 +602,11 @@ class UnsupervisedFlowLoss(nn.Module):
 
     ``forward(flows, image1, image2, flows_backward=None)`` -> scalar (or (B,)).
 
+    A weight (``l1_weight`` ... ``alpha2``) given as an ``nn.Parameter`` (0-d) is a parameter of
+    the module, under its own name: learned through the loss as the function's weights are, and
+    moved, cast and saved with the module; another tensor is read as its number, as ``gamma``
+    (one that requires grad, whose gradient would be lost, is a TypeError).
+
     Example:
         >>> loss = UnsupervisedFlowLoss(smooth_weight=2.0)
         >>> value = loss(net(i1, i2), i1, i2, flows_backward=net(i2, i1))  # doctest: +SKIP
@@ -616,22 +621,37 @@ class UnsupervisedFlowLoss(nn.Module):
         gamma = _check_gamma(gamma)
         if check_int(smooth_order, "smooth_order") not in (1, 2):
             raise ValueError(f"smooth_order: expected 1 or 2, got {smooth_order!r}")
-        _check_weights(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
+        weights = dict(l1_weight=l1_weight, ssim_weight=ssim_weight, census_weight=census_weight,
                        smooth_weight=smooth_weight, edge_weight=edge_weight, alpha1=alpha1, alpha2=alpha2)
+        _check_weights(**weights)
         check_bool(occlusion, "occlusion")
         data_range = check_data_range(data_range)
-        self.options = dict(gamma=gamma, l1_weight=l1_weight, ssim_weight=ssim_weight,
-                            census_weight=census_weight, smooth_weight=smooth_weight,
-                            smooth_order=smooth_order, edge_weight=edge_weight, occlusion=occlusion,
-                            alpha1=alpha1, alpha2=alpha2, data_range=data_range, reduction=reduction)
+        for name, value in weights.items():
+            if isinstance(value, nn.Parameter):  # (registered: parameters(), .to(), state_dict(), deepcopy)
+                self.register_parameter(name, value)
+            else:  # (a float: a tensor is not kept where .to() does not reach it)
+                if isinstance(value, Tensor) and value.requires_grad:
+                    raise TypeError(f"{name}: expected a number or an nn.Parameter, got a tensor that requires "
+                                    f"grad (read as a number, its gradient would be lost; to learn {name}, give "
+                                    f"an nn.Parameter, which the module registers)")
+                weights[name] = check_number(value, name)
+        options = dict(gamma=gamma, smooth_order=int(smooth_order), occlusion=occlusion, data_range=data_range,
+                       reduction=reduction, **weights)
+        self.options = {k: options[k] for k in _UNSUPERVISED_OPTIONS if k not in self._parameters}
 
     def forward(self, flows: Tensor | Sequence[Tensor], image1: Tensor, image2: Tensor,
                 flows_backward: Tensor | Sequence[Tensor] | None = None) -> Tensor:
         """The loss of ``flows`` ((B, 2, H, W) px, or a list) on ``image1, image2`` (B, C, H, W): :func:`unsupervised_flow_loss`."""
-        return unsupervised_flow_loss(flows, image1, image2, flows_backward=flows_backward, **self.options)
+        return unsupervised_flow_loss(flows, image1, image2, flows_backward=flows_backward, **self.options,
+                                      **dict(self.named_parameters(recurse=False)))
 
     def extra_repr(self) -> str:
-        return ", ".join(f"{k}={v!r}" for k, v in self.options.items())
+        return ", ".join(f"{k}=Parameter({self._parameters[k].item():g})" if k in self._parameters
+                         else f"{k}={self.options[k]!r}" for k in _UNSUPERVISED_OPTIONS)
+
+
+_UNSUPERVISED_OPTIONS = ("gamma", "l1_weight", "ssim_weight", "census_weight", "smooth_weight", "smooth_order",
+                         "edge_weight", "occlusion", "alpha1", "alpha2", "data_range", "reduction")
 
 
 class FreespaceFlowLoss(nn.Module):
