@@ -209,6 +209,27 @@ def test_half_images_under_autocast_of_the_other_half_dtype(half, amp):
         torch.testing.assert_close(g, r, rtol=0, atol=0)
 
 
+
+@pytest.mark.parametrize("half, amp", [(torch.float16, torch.bfloat16), (torch.bfloat16, torch.float16)],
+                         ids=["f16-net-under-bf16", "bf16-net-under-f16"])
+def test_a_net_held_in_half_precision_under_autocast_of_the_other_half_dtype(half, amp):
+    """A net held in float16 under bfloat16 autocast (or the reverse) raised torch's RuntimeError
+    "Unexpected floating ScalarType in at::autocast::prioritize" from the concatenation of the two
+    frames cast to the net's dtype, whatever the frames' dtype: it runs, and its flows are those of
+    the same weights held in float32 under the same autocast (autocast casts both to its dtype)
+    up to the frames' rounding to the net's dtype before the first convolution."""
+    image1, image2 = _pair(1, 24, 40)
+    net = TinyRAFT(seed=0, iters=2).to(half)
+    wide = TinyRAFT(seed=0, iters=2).to(half).float()
+    with torch.no_grad(), torch.autocast("cpu", dtype=amp):
+        for frames in ((image1, image2), (image1.to(half), image2.to(half))):
+            got = net(*frames)
+            ref = wide(image1, image2)
+            assert [f.dtype for f in got] == [torch.float32] * 2  # (autocast's replicate padding is float32)
+            for g, r in zip(got, ref):
+                assert bool(torch.isfinite(g).all())
+                torch.testing.assert_close(g, r, rtol=0, atol=1e-2)
+
 # -- exceptions ----------------------------------------------------------------------------------
 
 def test_rejects_bad_inputs():

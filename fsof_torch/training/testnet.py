@@ -284,7 +284,8 @@ class TinyRAFT(nn.Module):
                 check_image_range(image, name, 255.0)
         B, H, W = dims["B"], dims["H"], dims["W"]
         weight = self.fnet.out.weight
-        x = torch.cat([image1.to(weight.dtype), image2.to(weight.dtype)], dim=0) / 127.5 - 1.0
+        with autocast_off(image1):  # (likewise for a net held in float16 under bfloat16 autocast, or the reverse)
+            x = torch.cat([image1.to(weight.dtype), image2.to(weight.dtype)], dim=0) / 127.5 - 1.0
         # Pad symmetrically to a multiple of the stride; replicate so the border carries no edge.
         ph, pw = (-H) % STRIDE, (-W) % STRIDE
         if H + ph == STRIDE and W + pw == STRIDE:
