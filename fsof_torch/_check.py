@@ -34,7 +34,7 @@ __all__ = [
     "trust_image_range", "host_path", "device_paths", "check_finite", "check_all_finite", "check_positive",
     "check_size", "check_number", "check_bool", "check_int", "is_number", "option_error", "check_names",
     "check_mapping", "check_keywords", "check_fit_flags", "check_data_range", "check_image_range",
-    "as_batch_param", "resolve_batch", "tracing", "skip_values", "result_dtype", "as_path", "autocast_off",
+    "as_batch_param", "resolve_batch", "tracing", "skip_values", "result_dtype", "held_by", "as_path", "autocast_off",
     "batch_choices", "check_device", "check_has_values", "check_same_device", "to_device", "as_chw_flow", "inference",
     "ordinary", "same_mapping", "summary_repr",
 ]
@@ -512,6 +512,15 @@ def result_dtype(*tensors: Tensor) -> torch.dtype:
     if dt in (torch.float16, torch.bfloat16):
         dt = torch.float32
     return dt
+
+
+def held_by(mask: Tensor, flow: Tensor, dtype: torch.dtype) -> Tensor:
+    """``mask`` (B, 1, H, W) where ``flow`` (B, 2, H, W) is finite in ``dtype``: for float16, whose
+    largest value is 65 504 (a road model's flow near the horizon or under a fast camera exceeds
+    it, and cast to float16 would be inf); ``mask`` itself for the dtypes of float32's range."""
+    if dtype != torch.float16:
+        return mask
+    return mask & torch.isfinite(flow.to(dtype)).all(dim=1, keepdim=True)
 
 
 def autocast_off(x: Tensor) -> ContextManager:

@@ -477,6 +477,59 @@ def test_a_bfloat16_prediction_is_the_float32_result_rounded():
     assert torch.equal(fused, plain.bfloat16()) and torch.equal(weight, plain_weight.bfloat16())
 
 
+
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32], ids=["f16", "bf16", "f32"])
+def test_a_model_flow_beyond_the_predictions_dtype_keeps_the_prediction(dtype):
+    """A float16 prediction came back inf where the model flow exceeds float16's 65 504 px (road
+    points the camera nearly reaches within the frame gap: a fast camera, a long gap). There the
+    model is undefined for that prediction, which keeps its own flow, out of the mask; elsewhere
+    the flow is the float32 result rounded. bfloat16 holds float32's range: nothing is left out.
+    Another level is judged in its own dtype likewise."""
+    camera, full = make_camera(), torch.ones(1, 1, H, W, dtype=torch.bool)
+    odo = {**ODO, "z_d": 4.5}
+    model, valid = displacement_flow(make_camera(torch.float32), odo["x_d"], odo["z_d"], odo["yaw"], (H, W))
+    far = valid & (model.abs().amax(dim=1, keepdim=True) > torch.finfo(torch.float16).max)
+    assert int(far.sum()) == 4  # (the case)
+    kept = far if dtype == torch.float16 else torch.zeros_like(far)
+    pred = (0.5 * torch.randn(1, 2, H, W, generator=torch.Generator().manual_seed(0))).to(dtype)
+    for mode in ("replace", "confidence"):
+        out = refine_flow(pred, full, camera, odo, mode=mode)
+        ref = refine_flow(pred.float(), full, camera, odo, mode=mode)
+        assert out.flow.dtype == dtype and bool(torch.isfinite(out.flow).all()), mode
+        assert torch.equal(out.mask, ref.mask & ~kept), mode
+        assert torch.equal(out.flow[kept.expand_as(pred)], pred[kept.expand_as(pred)]), mode
+        assert torch.equal(out.flow[~kept.expand_as(pred)], ref.flow.to(dtype)[~kept.expand_as(pred)]), mode
+    # another level in this dtype beside a float32 finest one (a list's last), whose mask holds them
+    out, ref = refine_flow([pred, pred.float()], full, camera, odo), refine_flow(pred.float(), full, camera, odo)
+    assert torch.equal(out.mask, ref.mask) and torch.equal(out.flow[1], ref.flow)
+    assert torch.equal(out.flow[0][kept.expand_as(pred)], pred[kept.expand_as(pred)])
+    assert torch.equal(out.flow[0][~kept.expand_as(pred)], ref.flow.to(dtype)[~kept.expand_as(pred)])
+
+
+def test_fuse_flow_keeps_a_float16_prediction_where_it_cannot_hold_the_model_flow():
+    """fuse_flow of a float16 prediction returned inf where the model flow inside the mask exceeds
+    65 504 px ("replace" mode): the prediction keeps its own flow there (weight 0), in either mode;
+    every other pixel is the float32 fusion rounded. bfloat16 holds float32's range."""
+    pred, mask, _, gt = make_case()
+    big = gt.float().clone()
+    big[..., -1, :] = 1e5
+    beyond = torch.zeros_like(mask)
+    beyond[..., -1, :] = True
+    beyond &= mask
+    assert int(beyond.sum()) > 0
+    for mode in ("replace", "confidence"):
+        for dtype in (torch.float16, torch.bfloat16):
+            half = pred.to(dtype)
+            fused, weight = fuse_flow(half, big, mask, mode=mode)
+            plain, plain_weight = fuse_flow(half.float(), big, mask, mode=mode)
+            kept = beyond if dtype == torch.float16 else torch.zeros_like(beyond)
+            both = kept.expand_as(half)
+            assert bool(torch.isfinite(fused).all()), (mode, dtype)
+            assert torch.equal(fused[both], half[both]) and not bool(weight[kept].any()), (mode, dtype)
+            assert torch.equal(fused[~both], plain.to(dtype)[~both]), (mode, dtype)
+            assert torch.equal(weight[~kept], plain_weight.to(dtype)[~kept]), (mode, dtype)
+
+
 def test_float_odometry_is_taken_at_the_flows_dtype():
     """A float64 prediction with the odometry as Python floats: the model flow is the float64 one
     (once off by up to 2.5e-6 px: the floats were rounded to float32 first)."""

@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from .._check import (batch_choices, check_float_tensor, check_has_values, check_mapping, check_mask, check_shape,
-                      check_size, is_number, known_finite, scalar, known_images, option_error, result_dtype, skip_values,
-                      summary_repr, to_device, tracing)
+                      check_size, held_by, is_number, known_finite, scalar, known_images, option_error, result_dtype,
+                      skip_values, summary_repr, to_device, tracing)
 from ..estimation.combine import select_samples, where_motion
 from ..estimation.flow_fit import RoadFit
 from ..estimation.robust import check_fixed, check_scale
@@ -77,7 +77,7 @@ class RefineOutput(NamedTuple):
             with ``mode="confidence"`` the blend's weight in [0, 1].
         mask: (B, 1, H, W) bool, where the model was applied at the finest resolution (road mask
             ∩ model defined, in refined samples, where the gate uses the model or the prediction
-            is not finite).
+            is not finite; for a float16 prediction, only where float16 holds the model flow).
         refined: (B,) bool, False for samples left unchanged (an empty mask, one where the model is
             undefined, a failed fit, a model the images give no evidence for, a gate that keeps the
             prediction everywhere: see ``gate``).
@@ -134,11 +134,11 @@ def fuse_flow(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, *, mode: str 
             disagree by c the two get equal weight.
 
     Returns:
-        ``(flow, weight)``: the fused flow (B, 2, H, W) in flow_pred's dtype and the model's
-        weight (B, 1, H, W) (0 outside the mask). The fusion runs in flow_pred's dtype, half
-        precision in float32 (the result rounded once: a bfloat16 prediction gets the float32
-        result rounded to bfloat16). Non-finite predicted pixels inside the mask get the model
-        flow (weight 1); outside the mask they stay as they are.
+        ``(flow, weight)``: the fused flow (B, 2, H, W) in flow_pred's dtype and the model's weight
+        (B, 1, H, W) (0 outside the mask). The fusion runs in flow_pred's dtype, half precision in float32 (the
+        result rounded once: a bfloat16 prediction gets the float32 result rounded to bfloat16). Non-finite
+        predicted pixels inside the mask get the model flow (weight 1); outside the mask they stay as they are,
+        and so does a float16 prediction where float16 cannot hold the model flow (beyond 65 504 px; weight 0).
 
     Raises:
         TypeError: a mask that is not bool (threshold a probability or 0/1 map first), flows
@@ -183,6 +183,7 @@ def _fuse(flow_pred: Tensor, flow_model: Tensor, mask: Tensor, mode: str, scale:
     ``evidence`` (B, 1, H, W): the images' evidence for the model in [0, 1] (confidence mode):
     where the two flows disagree, it decides, w = w_flow + (1 − w_flow) · evidence."""
     dtype = flow_pred.dtype
+    mask = held_by(mask, flow_model, dtype)  # (a model flow the prediction's dtype cannot hold is undefined for it)
     if mode == "replace":
         # (B, 1, H, W) also where the mask is one for the batch; converted from bytes: torch
         # converts bool to float several times slower
@@ -477,7 +478,7 @@ def refine_flow(flow: Any, mask: Tensor | str, camera: Camera, odometry: object 
         return cache[size]
 
     f_model_finest, valid_finest = model_flow((H, W))
-    fuse_mask = usable(mask & valid_finest, refined)
+    fuse_mask = usable(held_by(mask & valid_finest, f_model_finest, finest.dtype), refined)
     region = fuse_mask  # where the model flow applies in the samples it refines
     gate_result = None
     the_gate = ImageGate() if gate == "auto" and images is not None else (None if gate in ("auto", None) else gate)
