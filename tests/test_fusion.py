@@ -478,6 +478,24 @@ def test_a_bfloat16_prediction_is_the_float32_result_rounded():
 
 
 
+
+@pytest.mark.parametrize("camera_dtype", [torch.float32, torch.float64], ids=["cam32", "cam64"])
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32, torch.float64],
+                         ids=["f16", "bf16", "f32", "f64"])
+def test_the_outputs_dtypes(dtype, camera_dtype):
+    """contracts.md's dtypes: each level in its own dtype, the weight in the finest's; the model
+    flow, the motion, the camera and the fit in the finest flow's dtype lifted to float32 (the
+    camera is cast to it), whatever the camera's."""
+    pred, mask, _, _ = make_case()
+    pred, camera = pred.to(dtype), make_camera(camera_dtype)
+    work = torch.promote_types(dtype, torch.float32)
+    for odometry in (ODO, None) if camera_dtype == torch.float64 else (ODO,):  # (None: a fit, the slow part)
+        out = refine_flow([pred[..., ::2, ::2].float(), pred], mask, camera, odometry)
+        assert [f.dtype for f in out.flow] == [torch.float32, dtype] and out.weight.dtype == dtype
+        assert out.flow_model.dtype == work and out.camera.K.dtype == work
+        assert {v.dtype for v in out.odometry.values()} == {work}
+        assert odometry is not None or out.fit.flow.dtype == work
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.float32], ids=["f16", "bf16", "f32"])
 def test_a_model_flow_beyond_the_predictions_dtype_keeps_the_prediction(dtype):
     """A float16 prediction came back inf where the model flow exceeds float16's 65 504 px (road
