@@ -58,7 +58,7 @@ def test_eval_tables_writes_its_files_before_printing(tmp_path, capsys):
     assert rc == 1
     _one_line(capsys.readouterr().err, "eval tables", "the files written so far are kept, each one whole")
     tables = json.loads((out / "tables.json").read_text())
-    assert set(tables) == {"settings", "cvc12", "carla"}
+    assert set(tables) == {"settings", "cvc12", "carla", "environment"}
     md = (out / "tables.md").read_text()
     assert "## CVC12-like" in md and "## CARLA-like" in md
 
