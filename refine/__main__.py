@@ -611,10 +611,10 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
     needed_by = clip_options(calibrate, variants)
     if needed_by:
-        from .job import input_fingerprint
+        from .job import clip_fingerprint
 
         # (digested before the fit reads them: a frame saved anew meanwhile leaves its old digest, redone)
-        cfg.clip_fingerprint = resume.fingerprint({"clip": [input_fingerprint(s) for s in specs]})
+        cfg.clip_fingerprint = clip_fingerprint(specs, progress=cfg.progress)
         cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
         notes.append(_mounting_note(cfg.clip, calibrate, len(specs), variants))
     if world.distributed:

@@ -178,7 +178,7 @@ def fit_clip(specs: list[PairSpec], camera: Camera, road_for: Callable[[dict], T
     road_info: dict[str, tuple[int, dict[str, Any]]] = {}
     relative_poses: list[Tensor | None] = []
     previous = None  # the previous pair's second image, which must be this pair's first
-    with progress_bar(specs, enabled=progress, desc="clip: load") as bar:  # (closed before an error prints)
+    with progress_bar(specs, enabled=progress, desc="clip: load", unit="pair") as bar:  # (closed before an error prints)
         for k, spec in enumerate(bar):
             pair = spec.load()
             if previous is not None and not torch.equal(previous, pair["image1"]):

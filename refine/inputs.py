@@ -77,8 +77,37 @@ class PairSpec:
     poses: Tensor | None = None
 
 
+#: the digests :func:`file_digest` took within :func:`digests_read_once`, by path; None outside it
+_read_once: dict[str, str] | None = None
+
+
 def file_digest(path: Path) -> str:
-    """BLAKE2b of a file's bytes (hex, 32 characters): the file's identity for resuming."""
+    """BLAKE2b of a file's bytes (hex, 32 characters): the file's identity for resuming. Within
+    :func:`digests_read_once`, a file's digest taken there before is taken again from memory."""
+    if _read_once is None:
+        return _read_digest(path)
+    key = os.fspath(path)
+    if key not in _read_once:
+        _read_once[key] = _read_digest(path)
+    return _read_once[key]
+
+
+@contextmanager
+def digests_read_once() -> Iterator[None]:
+    """Within it, :func:`file_digest` reads each file once: a clip's frame is the second image of
+    one pair and the first of the next, whose identities both digest it (a long clip's frames take
+    seconds to read). The same digests as without it, so the same identities."""
+    global _read_once
+    outer = _read_once
+    _read_once = {} if outer is None else outer
+    try:
+        yield
+    finally:
+        _read_once = outer
+
+
+def _read_digest(path: Path) -> str:
+    """:func:`file_digest`, read from the file."""
     h = hashlib.blake2b(digest_size=16)
     with open(path, "rb") as f:
         for chunk in iter(lambda: f.read(1 << 20), b""):

@@ -259,6 +259,20 @@ def input_fingerprint(spec: PairSpec) -> str:
     return fingerprint({"pair": spec.name, **spec.identity()})
 
 
+def clip_fingerprint(specs: list[PairSpec], *, progress: bool = True) -> str:
+    """The identity of the inputs of every pair of the clip (:func:`input_fingerprint`), which the
+    variants that rest on the clip's fit depend on. Each file is read once
+    (:func:`refine.inputs.digests_read_once`), with a progress bar (``clip: digest``, a step a
+    pair; ``progress``: shown): before the clip's fit, a long clip's frames take seconds."""
+    from fsof_torch.io.progress import progress_bar
+
+    from .inputs import digests_read_once
+    from .resume import fingerprint
+
+    with digests_read_once(), progress_bar(specs, enabled=progress, desc="clip: digest", unit="pair") as bar:
+        return fingerprint({"clip": [input_fingerprint(s) for s in bar]})
+
+
 def _pair_road(pair: dict, camera: Camera, cfg: JobConfig, sources: dict,
                name: str) -> tuple[Tensor, str, dict, Tensor | None]:
     """The pair's road mask, where it came from and what was recorded about it, shared by every
