@@ -132,3 +132,29 @@ def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, capsy
     assert err.endswith(f"error: argument {option}: expected a path, got an empty one ('', which would be the current "
                         f"folder)\n")
     assert list(tmp_path.iterdir()) == []
+
+
+def _kernel_paths() -> list[str]:
+    """Paths on the kernel's /proc and /sys, where this machine mounts them so."""
+    from fsof_torch.io.atomic import kernel_file_system
+
+    return [p for p, root, kind in (("/proc/x", "/proc", "proc"), ("/sys/x/y", "/sys", "sysfs"))
+            if os.path.isdir(root) and kernel_file_system(root) == kind]
+
+
+@pytest.mark.parametrize("job, option", [(job, option) for job, options in OUTPUTS.items() for option in options])
+def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, job, option):
+    """``--out /proc/x`` (or /sys): the checks passed (root may write into /proc, says
+    ``os.access``) and ``eval synth`` stopped with mkdir's traceback, the others after their work
+    at the first write. Exit 2 naming the option, before any work."""
+    paths = _kernel_paths()
+    if not paths:
+        pytest.skip("no /proc or /sys of the kernel's here")
+    for given in paths:
+        argv = [job, *FAST[job], "--no-progress", option, given]
+        if option != "--out":
+            argv += ["--out", str(tmp_path / "out")]
+        assert main(argv) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"error: {option}: {given!r} is on the kernel's ") and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []

@@ -313,6 +313,37 @@ def test_creation_error_names_the_option(tmp_path, monkeypatch):
         f"--out: the folder {str(tmp_path)!r} is not writable, so {str(tmp_path / 'a')!r} cannot be created")
 
 
+def test_the_kernels_file_systems_are_found_in_the_mount_table(tmp_path, monkeypatch):
+    """A path on the kernel's proc or sysfs (or another of its interfaces) cannot be created,
+    whatever ``os.access`` says to root: ``--out /proc/x`` failed at mkdir, after the checks. The
+    mount table's escaped mount points, and a disk mounted below such a file system, are read right."""
+    import io
+
+    import fsof_torch.io.atomic as atomic
+    from fsof_torch.io.atomic import creation_error, kernel_file_system
+
+    spaced = tmp_path / "a b"
+    (spaced / "disk").mkdir(parents=True)
+    escaped = str(spaced).replace(" ", "\\040")
+    table = ("22 1 0:21 / / rw - ext4 /dev/vda rw\n"
+             f"23 22 0:22 / {escaped} rw,relatime - sysfs sysfs rw\n"
+             f"24 23 0:23 / {escaped}/disk rw shared:5 - ext4 /dev/vdb rw\n")
+    real_open = open
+    monkeypatch.setattr(atomic, "open", lambda path, *a, **k: io.StringIO(table) if path == "/proc/self/mountinfo"
+                        else real_open(path, *a, **k), raising=False)
+    assert kernel_file_system(spaced) == "sysfs" and kernel_file_system(tmp_path) is None
+    assert kernel_file_system(spaced / "disk") is None
+    assert creation_error(spaced / "x" / "y.json", "--json") == (
+        f"--json: {str(spaced / 'x' / 'y.json')!r} is on the kernel's sysfs file system, where the job cannot "
+        f"write its files; give a path on a disk")
+    assert creation_error(spaced / "disk" / "x", "--out", folder=True) is None
+    monkeypatch.undo()
+    if os.path.isdir("/proc") and kernel_file_system("/proc") == "proc":
+        assert creation_error("/proc/x", "--out", folder=True).startswith("--out: '/proc/x' is on the kernel's proc")
+        assert creation_error("/proc/self/status", "--json").startswith("--json: '/proc/self/status' is on the")
+    assert creation_error(tmp_path / "x", "--out", folder=True) is None
+
+
 def test_a_fifo_or_device_is_not_replaced(tmp_path):
     """The rename put a regular file in the place of a FIFO, and (run as root) of a device: a job's
     ``--json /dev/null`` deleted the device node. Now a ValueError naming it, nothing written; the

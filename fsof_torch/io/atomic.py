@@ -313,6 +313,38 @@ def lookup_error(path: str | os.PathLike | None, option: str) -> str | None:
     return None
 
 
+#: the types of the kernel's interface file systems (Linux): their files are the kernel's, none is
+#: created or replaced there, whatever ``os.access`` says to root (``/proc/x`` and ``/sys/x`` failed
+#: at the first write, ``mkdir`` with 'No such file or directory')
+KERNEL_FILE_SYSTEMS = frozenset({"proc", "sysfs", "cgroup", "cgroup2", "debugfs", "tracefs", "securityfs",
+                                 "configfs", "bpf", "pstore", "efivarfs", "binfmt_misc", "fusectl"})
+
+
+def kernel_file_system(path: str | os.PathLike) -> str | None:
+    """The type of the kernel's interface file system (:data:`KERNEL_FILE_SYSTEMS`: ``"proc"``,
+    ``"sysfs"``, ...) that the existing ``path`` lies on, from the process's mount table
+    (``/proc/self/mountinfo``); None for another file system, or where there is no such table
+    (not Linux)."""
+    try:
+        with open("/proc/self/mountinfo", encoding="utf-8", errors="surrogateescape") as f:
+            lines = f.read().splitlines()
+    except OSError:
+        return None
+    target = os.path.realpath(path)
+    best, kind = "", None
+    for line in lines:
+        fields, _, rest = line.partition(" - ")
+        parts = fields.split()
+        if len(parts) < 5 or not rest:
+            continue
+        # (a mount point's spaces, tabs, newlines and backslashes are written as octal escapes)
+        point = re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), parts[4])
+        inside = target == point or target.startswith(point.rstrip("/") + "/")
+        if inside and len(point) >= len(best):  # (the last of equal mount points is the one on top)
+            best, kind = point, rest.split()[0]
+    return kind if kind in KERNEL_FILE_SYSTEMS else None
+
+
 def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False) -> str | None:
     """Why ``path`` cannot be created (its nearest existing parent is a file, or a folder that
     cannot be written into, or a symbolic link to nothing stands on the way: a drive not mounted),
@@ -336,6 +368,11 @@ def creation_error(path: str | os.PathLike, option: str, *, folder: bool = False
     if special is not None:  # (a job removes its earlier output first, then writes a file there)
         return (f"{option}: {str(path)!r} is {special}, not a regular file, which the job would replace with "
                 f"its file; give a file path")
+    existing = next((p for p in (path, *path.parents) if p.exists()), None)
+    kernel = kernel_file_system(existing) if existing is not None else None
+    if kernel is not None:
+        return (f"{option}: {str(path)!r} is on the kernel's {kernel} file system, where the job cannot write "
+                f"its files; give a path on a disk")
     for parent in path.parents:
         if parent.is_symlink() and not parent.exists():
             return (f"{option}: {str(parent)!r} is a symbolic link to {os.path.realpath(parent)!r}, which does not "
