@@ -313,6 +313,10 @@ def run(args: argparse.Namespace) -> int:
         tables.discard("kitti")
     kitti_folder = DEFAULT_KITTI if args.kitti is None else args.kitti
     bad = bad_lookup(args.kitti, "--kitti") if "kitti" in tables else None
+    if bad is None and "kitti" in tables:  # (a FIFO: "no KITTI sample at", "no calibration file at")
+        from refine.inputs import special_input
+
+        bad = first_bad(*(special_input(p, "--kitti") for p in (kitti_folder, *(kitti_folder / n for n in KITTI_FILES))))
     if bad is not None:
         print(f"error: {bad}", file=sys.stderr)
         return 2

@@ -262,6 +262,8 @@ def run(args: argparse.Namespace) -> int:
     from fsof_torch.io import write_json
     from fsof_torch import detect_freespace, fit_vflow_curve, vflow_map
 
+    from refine.inputs import special_input
+
     from .paths import (bad_file, bad_folder, bad_json_target, bad_lookup, bad_out_inputs, bad_size, first_bad,
                         make_parent, remove_outputs)
     from .provenance import environment
@@ -300,6 +302,7 @@ def run(args: argparse.Namespace) -> int:
     figures = ["vflow_map.png", "fv_observed.png", "fv_fitted.png", "fv_error.png", "freespace.png"]
     written = [args.out / f for f in figures if f != "freespace.png" or "freespace" in steps]
     bad = first_bad(bad_lookup(args.flow, "--flow"), bad_lookup(args.mask, "--mask"),
+                    special_input(args.flow, "--flow"), special_input(args.mask, "--mask"),
                     bad_folder(args.out, "--out", figures + ([] if args.json else ["vflow.json"])),
                     bad_out_inputs(args.out, figures + ["vflow.json"], {"--flow": args.flow, "--mask": args.mask}),
                     bad_file(args.json, "--json", args.out),

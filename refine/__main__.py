@@ -495,7 +495,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     from fsof_torch.io.atomic import lookup_error
 
     from . import distributed, resume
-    from .inputs import JobError, file_digest
+    from .inputs import JobError, file_digest, special_input
     from .job import JobConfig
     from .measure import PHOTO
     from .report import auto_road_lines, pair_table, summarize, write_clip_summaries, write_report
@@ -536,6 +536,9 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
     for option, path in (*inputs.items(), ("--out", args.out), ("--json", args.json)):
         if option != "--net" and (bad := lookup_error(path, option)) is not None:
             raise JobError(bad)  # (Python's own look-ups of such a path raise: before any of them)
+    for option, path in inputs.items():  # (a FIFO: "no file at", or a read that waits for a writer)
+        if (bad := special_input(path, option)) is not None:
+            raise JobError(bad)
     out = args.out if args.out is not None else default_out(args)
     resume.check_out_path(out)
     resume.check_json_path(args.json, out, inputs)

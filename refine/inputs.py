@@ -81,6 +81,19 @@ class PairSpec:
 _read_once: dict[str, str] | None = None
 
 
+def special_input(path: Path | None, option: str) -> str | None:
+    """Why the input ``path`` (an option's file or folder, or a file of its folder; None: not
+    given) cannot be read: a FIFO, device or socket (:func:`fsof_torch.io.atomic.special_file`),
+    which the job's readers took for a missing file ("no file at"), a folder, or a sample's
+    missing file; the message names ``option``. None where it is a file, a folder or nothing."""
+    from fsof_torch.io.atomic import special_file
+
+    special = special_file(path) if path is not None else None
+    if special is None:
+        return None
+    return f"{option}: {str(path)!r} is {special}, not a regular file; give a file (or folder) the job can read"
+
+
 def file_digest(path: Path) -> str:
     """BLAKE2b of a file's bytes (hex, 32 characters): the file's identity for resuming. Within
     :func:`digests_read_once`, a file's digest taken there before is taken again from memory."""
@@ -336,7 +349,11 @@ def kitti15_pairs(root: Path, *, height: float, road_auto: bool = False) -> tupl
 
     need = ["image_10.png", "image_11.png", "calib_cam_to_cam.txt"] + ([] if road_auto else ["road.json"])
     check_mounting(height, road_auto=road_auto)
-    folders = [n for n in need if (root / n).is_dir()]
+    # (the ground truth is optional: one that is no file was left out, the report saying there is none)
+    for bad in (special_input(root / n, "--kitti15") for n in (*need, "flow_noc_10.png")):
+        if bad is not None:
+            raise JobError(bad)
+    folders = [n for n in (*need, "flow_noc_10.png") if (root / n).is_dir()]
     if folders:
         raise JobError(f"--kitti15: {str(root / folders[0])!r} is a folder; expected a file")
     missing = [n for n in need if not (root / n).is_file()]
@@ -363,6 +380,8 @@ def kitti_odometry_pairs(root: Path, *, height: float, pitch_deg: float,
     check_mounting(height, pitch_deg=pitch_deg, road_auto=road_auto)
     for n in ("image_l", "calib.txt", "poses.txt") + (() if road_auto else ("road.json",)):
         path, folder = root / n, n == "image_l"
+        if (bad := special_input(path, "--kitti-odometry")) is not None:
+            raise JobError(bad)
         if path.exists() and not (path.is_dir() if folder else path.is_file()):
             # (a folder road.json was no road at all: the road was detected, the report said road.json)
             raise JobError(f"--kitti-odometry: {str(path)!r} is {'not a folder' if folder else 'a folder'}; "

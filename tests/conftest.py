@@ -6,7 +6,7 @@ from __future__ import annotations
 import importlib.util
 from pathlib import Path
 from types import ModuleType
-from typing import Callable
+from typing import Callable, Iterator
 
 import pytest
 import torch
@@ -53,6 +53,24 @@ def one_thread():
     yield
     torch.set_num_threads(threads)
 
+
+
+@pytest.fixture
+def no_hang() -> Iterator[None]:
+    """The test fails with a TimeoutError rather than hanging where it waits more than 60 s (a job
+    reading a FIFO that no one writes into): SIGALRM, on POSIX."""
+    import signal
+
+    def stop(signum, frame):
+        raise TimeoutError("the test waited more than 60 s (on a FIFO that no one writes into?)")
+
+    old = signal.signal(signal.SIGALRM, stop)
+    signal.alarm(60)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
 
 
 @pytest.fixture

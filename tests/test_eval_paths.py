@@ -158,3 +158,33 @@ def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, job,
         err = capsys.readouterr().err
         assert err.startswith(f"error: {option}: {given!r} is on the kernel's ") and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("job, option, name", [("vflow", "--flow", None), ("vflow", "--mask", None),
+                                               ("tables", "--kitti", None),
+                                               ("tables", "--kitti", "calib_cam_to_cam.txt"),
+                                               ("tables", "--kitti", "flow_noc_10.png")])
+def test_a_fifo_given_as_an_input_is_named(tmp_path, capsys, no_hang, job, option, name):
+    """A FIFO as ``vflow``'s ``--flow`` or ``--mask``, as ``tables``' ``--kitti`` or one of its
+    files, said 'no file at', 'no KITTI sample at' or 'no calibration file at'. Exit 2 naming the
+    option and what it is, before any read."""
+    fifo = tmp_path / "pipe"
+    argv = [job, "--no-progress", option, str(fifo), "--out", str(tmp_path / "out")]
+    if name is not None:  # (a sample folder holding a FIFO)
+        sample = tmp_path / "kitti15"
+        sample.mkdir()
+        for n in ("flow_noc_10.png", "road.json", "calib_cam_to_cam.txt", "image_10.png", "image_11.png"):
+            (sample / n).write_text("x")
+        fifo = sample / name
+        fifo.unlink()
+        argv[3] = str(sample)
+    if option == "--mask":
+        (tmp_path / "flow.npy").write_text("x")
+        argv += ["--flow", str(tmp_path / "flow.npy")]
+    if job == "tables":
+        argv += ["--only", "kitti"]
+    os.mkfifo(fifo)
+    assert main(argv) == 2
+    assert capsys.readouterr().err == (f"error: {option}: {str(fifo)!r} is a FIFO, not a regular file; give a file "
+                                       f"(or folder) the job can read\n")
+    assert not (tmp_path / "out").exists()

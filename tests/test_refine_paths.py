@@ -71,3 +71,38 @@ def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, opti
         err = capsys.readouterr().err
         assert err.startswith(f"error: {option}: {given!r} is on the kernel's ") and err.count("\n") == 1
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("option", ["--images", "--calib", "--road", "--poses", "--gt", "--flows", "--testnet-weights",
+                                    "--kitti15", "--kitti-odometry"])
+def test_a_fifo_given_as_an_input_is_named(tmp_path, capsys, no_hang, option):
+    """A FIFO as an input: ``--calib FIFO`` said 'no calibration file at', ``--images FIFO`` 'is a
+    file; expected a folder'. Exit 2 naming the option and what it is, before any read."""
+    fifo = tmp_path / "pipe"
+    os.mkfifo(fifo)
+    assert main(["--no-figures", "--no-progress", option, str(fifo), "--out", str(tmp_path / "out")]) == 2
+    assert capsys.readouterr().err == (f"error: {option}: {str(fifo)!r} is a FIFO, not a regular file; give a file "
+                                       f"(or folder) the job can read\n")
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("sample, name", [("--kitti15", n) for n in ("image_10.png", "calib_cam_to_cam.txt", "road.json",
+                                                                      "flow_noc_10.png")]
+                         + [("--kitti-odometry", n) for n in ("calib.txt", "poses.txt", "road.json")])
+@pytest.mark.parametrize("kind", ["fifo", "folder"])
+def test_a_samples_file_that_is_a_fifo_or_a_folder_is_named(tmp_path, capsys, no_hang, sample, name, kind):
+    """A sample's file that is a FIFO was 'lacks [...]' or 'is a folder'; its ground truth
+    (flow_noc_10.png) a FIFO or a folder was left out, the run refined without it (exit 0). Exit 2
+    naming the option and the file, before any read."""
+    root = tmp_path / "sample"
+    files = (["image_10.png", "image_11.png", "calib_cam_to_cam.txt", "road.json", "flow_noc_10.png"]
+             if sample == "--kitti15" else ["calib.txt", "poses.txt", "road.json"])
+    (root / "image_l").mkdir(parents=True)
+    for n in files:
+        (root / n).write_text("x")
+    (root / name).unlink()
+    os.mkfifo(root / name) if kind == "fifo" else (root / name).mkdir()
+    assert main(["--no-figures", "--no-progress", sample, str(root), "--out", str(tmp_path / "out")]) == 2
+    what = ("is a FIFO, not a regular file; give a file (or folder) the job can read" if kind == "fifo" else
+            "is a folder; expected a file")
+    assert capsys.readouterr().err == f"error: {sample}: {str(root / name)!r} {what}\n"
