@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 
 import numpy as np
@@ -876,6 +877,9 @@ def test_road_or_gt_given_the_images_is_an_error(tmp_path):
         ImageFolderDataset(images, road=images / ".." / "images" / "000002.png")
     with pytest.raises(ValueError, match=r"^gt: '.*000000\.png' is one of the images .*, not a flow"):
         ImageFolderDataset(images, gt=images)
+    os.link(images / "000001.png", tmp_path / "road.png")  # (a hard link: the frame's file under another name)
+    with pytest.raises(ValueError, match=r"^road: '.*road\.png' is one of the images \(the frame 000001\.png\)"):
+        ImageFolderDataset(images, road=tmp_path / "road.png")
     masks = tmp_path / "road"
     masks.mkdir()
     mask = torch.zeros(1, *SIZE, dtype=torch.bool)

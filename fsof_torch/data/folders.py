@@ -367,12 +367,23 @@ def _read_camera(calib: Path, cam: int | None, height: float, roll: float, pitch
 def _check_not_frames(frames: Sequence[Path], given: dict[str, Iterable[Path | None]]) -> None:
     """A ValueError naming the argument where a file it gives is one of the frames: ``road`` (or
     ``gt``) pointed at the images' folder, or at a frame, read each pair's own image as its mask,
-    every nonzero pixel road (or a 16-bit frame as a flow), silently."""
-    own = {p.resolve() for p in frames}
+    every nonzero pixel road (or a 16-bit frame as a flow), silently. A file is a frame where it is
+    the same file (``os.stat``'s device and inode: through links, hard links too; one stat a file,
+    cheap for the thousands of frames of a long clip)."""
+    def identity(path: Path) -> tuple[int, int] | None:
+        try:
+            st = os.stat(path)
+        except (OSError, ValueError):  # (a missing file is no frame: its reader names it)
+            return None
+        return st.st_dev, st.st_ino
+
+    own = {identity(p): p for p in frames}
+    own.pop(None, None)
     for what, files in given.items():
         for f in files:
-            if f is not None and f.resolve() in own:
-                raise ValueError(f"{what}: {str(f)!r} is one of the images (the frame {f.name}), not a "
+            frame = own.get(identity(f)) if f is not None else None
+            if frame is not None:
+                raise ValueError(f"{what}: {str(f)!r} is one of the images (the frame {frame.name}), not a "
                                  f"{'road mask' if what == 'road' else 'flow'}: give the folder or file of the "
                                  f"{'masks' if what == 'road' else 'ground-truth flows'}, not the images'")
 
