@@ -74,6 +74,19 @@ def no_hang() -> Iterator[None]:
 
 
 @pytest.fixture
+def kernel_paths() -> list[str]:
+    """Paths on the kernel's /proc and /sys, where this machine mounts them so (the test is
+    skipped where it mounts neither): outputs the jobs cannot create."""
+    from fsof_torch.io.atomic import kernel_file_system
+
+    paths = [path for path, root, kind in (("/proc/x", "/proc", "proc"), ("/sys/x/y", "/sys", "sysfs"))
+             if Path(root).is_dir() and kernel_file_system(root) == kind]
+    if not paths:
+        pytest.skip("no /proc or /sys of the kernel's here")
+    return paths
+
+
+@pytest.fixture
 def interrupted(monkeypatch) -> Callable[[object, str, Callable[[], object]], None]:
     """``interrupted(owner, name, run)``: ``owner.name`` replaced by a function that raises
     KeyboardInterrupt (a run interrupted there), then ``run()``, which must stop with it: raise

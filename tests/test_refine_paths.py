@@ -6,6 +6,7 @@ for an output below a folder still to be created after that folder was made."""
 from __future__ import annotations
 
 import os
+import re
 
 import pytest
 
@@ -54,22 +55,15 @@ def test_an_empty_path_is_refused_not_read_as_the_current_folder(tmp_path, capsy
 
 
 @pytest.mark.parametrize("option", ["--out", "--json"])
-def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, option):
-    """``--out /proc/x`` (or /sys): the checks passed (root may write into /proc, says
-    ``os.access``) and the job failed at its first write. Exit 2 naming the option, before any work."""
-    from fsof_torch.io.atomic import kernel_file_system
-
-    paths = [p for p, root, kind in (("/proc/x", "/proc", "proc"), ("/sys/x/y", "/sys", "sysfs"), ("/proc", "/proc", "proc"))
-             if os.path.isdir(root) and kernel_file_system(root) == kind and (option == "--out" or p != root)]
-    if not paths:
-        pytest.skip("no /proc or /sys of the kernel's here")
-    for given in paths:
-        argv = ["--no-figures", "--no-progress", option, given]
-        if option != "--out":
-            argv += ["--out", str(tmp_path / "out")]
-        assert main(argv) == 2
-        err = capsys.readouterr().err
-        assert err.startswith(f"error: {option}: {given!r} is on the kernel's ") and err.count("\n") == 1
+def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, kernel_paths, option):
+    """``--out /proc/x`` (or /sys, or /proc itself): the checks passed (root may write into /proc,
+    says ``os.access``) and the job failed at its first write. Exit 2 naming the option, before
+    any work."""
+    for given in [*kernel_paths, *(["/proc"] if option == "--out" and "/proc/x" in kernel_paths else [])]:
+        out = [] if option == "--out" else ["--out", str(tmp_path / "out")]
+        assert main(["--no-figures", "--no-progress", option, given, *out]) == 2
+        assert re.fullmatch(rf"error: {option}: {re.escape(repr(given))} is on the kernel's \w+ file system, .*\n",
+                            capsys.readouterr().err)
     assert list(tmp_path.iterdir()) == []
 
 
