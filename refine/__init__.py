@@ -10,6 +10,7 @@ and after.
 
 Modules: ``inputs`` (what a pair is and where pairs come from), ``sources`` (flow sources),
 ``job`` (the loop, outputs), ``measure`` (the maps and metrics of a flow), ``report`` (pooling and
-the report), ``__main__`` (the command line, ``main(argv=None) -> int``). The job imports only the
-library (``fsof_torch``).
+the report), ``options`` (the command line's parser and defaults), ``configure`` (the options
+checked and turned into the run's pairs, camera, sources and variants), ``__main__`` (the run,
+``main(argv=None) -> int``). The job imports only the library (``fsof_torch``).
 """

@@ -14,193 +14,12 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import math
 import os
 import sys
 from pathlib import Path
 
-DEFAULT_PAIRS = 4
-DEFAULT_SIZE = (375, 1242)
-DEFAULT_OUT = Path("refine_out")
-DEFAULT_HEIGHT = 1.65  # m, KITTI's camera over the road
-DEFAULT_SCALE = 2.0  # px, the Cauchy scale of --mode confidence
-#: the defaults of the options that only some inputs use: the parser leaves them None (not given),
-#: so that one given to an input that does not use it is refused even at its default value
-#: (:func:`_refuse_unused`); :func:`_with_defaults` fills them in after that check
-DEFAULTS = {"preset": "default", "num_pairs": DEFAULT_PAIRS, "size": DEFAULT_SIZE, "seed": 0,
-            "height": DEFAULT_HEIGHT, "roll_deg": 0.0, "pitch_deg": 0.0}
-
-
-def _size(text: str) -> tuple[int, int]:
-    from fsof_torch.data.scene.render import MAX_SIDE  # (the renderer's bound, for --calib-size too)
-
-    try:
-        h, w = (int(x) for x in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected HxW such as 375x1242, got {text!r}") from None
-    if h < 16 or w < 16:
-        raise argparse.ArgumentTypeError(f"expected sides of at least 16 pixels, got {text!r}")
-    if max(h, w) > MAX_SIDE:  # (a larger render only fills memory)
-        raise argparse.ArgumentTypeError(f"expected sides of at most {MAX_SIDE} pixels, got {text!r}")
-    return h, w
-
-
-def _road(text: str) -> str:
-    """``--road``: a folder, a file or ``auto``; not an empty path (:func:`refine.resume.given_path`)."""
-    from .resume import given_path
-
-    given_path(text)
-    return text
-
-
-def _list(choices: tuple[str, ...]):
-    def parse(text: str) -> list[str]:
-        items = [t.strip() for t in text.split(",") if t.strip()]
-        bad = [t for t in items if t not in choices]
-        if bad or not items:
-            raise argparse.ArgumentTypeError(f"expected a comma-separated list of {', '.join(choices)}, got {text!r}")
-        return list(dict.fromkeys(items))
-    return parse
-
-
-def command_name() -> str:
-    """The command the job was started by, as its usage names it: ``fsof-refine`` (the console
-    script pyproject installs; its wrapper leaves that name in ``sys.argv[0]``) or ``python -m refine``."""
-    return "fsof-refine" if sys.argv and Path(sys.argv[0] or ".").stem == "fsof-refine" else "python -m refine"
-
-
-def build_parser(prog: str = "python -m refine") -> argparse.ArgumentParser:
-    """The job's options; ``prog`` names the command in its usage and errors (:func:`command_name`)."""
-    from fsof_torch.data.scene.render import MAX_FRAME, MAX_SIDE
-
-    from .job import VARIANTS
-    from .resume import file_path, given_path
-    from .sources import CONTRACTS, SOURCES
-
-    p = argparse.ArgumentParser(
-        prog=prog, description=__doc__.split("\n\n")[0].split(": ", 1)[1],
-        epilog="Exit status: 0 done, 1 stdout closed by its reader (| head: the report is written) or the disk "
-               "full (the pairs finished are kept), 2 bad "
-               "or missing input (with a message naming the option), 130 interrupted (Ctrl-C). An "
-               "interrupted run resumes: pairs finished by a run of the same inputs and options are "
-               "reused; a folder holding a run of other inputs or options is refused unless --overwrite. "
-               "Distributed: torchrun --nproc-per-node N -m refine ... (see docs/jobs.md).")
-    g = p.add_argument_group("synthetic data (the default)")
-    g.add_argument("--preset", metavar="NAME", help=f"scene preset (default: {DEFAULTS['preset']})")
-    g.add_argument("--num-pairs", type=int, metavar="N",
-                   help=f"pairs to render, 1 to {MAX_FRAME} (default: {DEFAULT_PAIRS})")
-    g.add_argument("--size", type=_size, metavar="HxW", help=f"image size, each side 16 to {MAX_SIDE} (default: 375x1242, KITTI's)")
-    g.add_argument("--seed", type=int, metavar="N", help="scene seed (default: 0)")
-    g.add_argument("--scene-noise", type=float, default=None, metavar="GREY",
-                   help="sensor noise of the rendered images, grey levels at 375x1242 (default: the preset's)")
-
-    g = p.add_argument_group("user data")
-    g.add_argument("--images", type=given_path, metavar="DIR", help="folder of images; consecutive pairs (KITTI *_10/*_11 by name)")
-    g.add_argument("--calib", type=given_path, metavar="FILE", help="KITTI calib_cam_to_cam.txt or odometry calib.txt")
-    g.add_argument("--calib-size", type=_size, default=None, metavar="HxW",
-                   help=f"image size the calibration is for, each side 16 to {MAX_SIDE} (default: the file's S_rect row, "
-                        "else checked loosely)")
-    g.add_argument("--cam", type=int, default=None, metavar="N",
-                   help="camera index in --calib (default: 2 if present, else 0)")
-    g.add_argument("--height", type=float, metavar="M",
-                   help=f"camera height above the road, m (default: {DEFAULT_HEIGHT})")
-    g.add_argument("--roll-deg", type=float, metavar="D", help="camera roll, degrees (default: 0)")
-    g.add_argument("--pitch-deg", type=float, metavar="D", help="camera pitch, degrees (default: 0)")
-    g.add_argument("--poses", type=given_path, metavar="FILE", help="KITTI poses (camera-to-world, one row per image)")
-    g.add_argument("--flows", type=given_path, metavar="DIR", help="predicted flows of any network, one per pair, "
-                   "named like the pair (KITTI .png, .flo, .npy)")
-    g.add_argument("--road", type=_road, metavar="DIR|FILE|auto", help="road masks: PNG folder (named like the pairs), "
-                   "one PNG of the images' size or a polygon JSON for every pair, or auto (found in the images: docs/auto-road.md); required with --images; "
-                   "synthetic scenes and the KITTI samples have their own, or take auto")
-    g.add_argument("--gt", type=given_path, metavar="DIR", help="ground-truth flows, named like the pairs (optional)")
-
-    g = p.add_argument_group("KITTI folders in the shared samples' layouts")
-    g.add_argument("--kitti15", type=given_path, metavar="DIR",
-                   help="a folder like kitti15_000000 (a KITTI 2015 pair): DIS refined with ego-motion fitted to "
-                        "the flow and to the images, against its ground truth where present")
-    g.add_argument("--kitti-odometry", type=given_path, metavar="DIR",
-                   help="a folder like kitti_odometry_straight (a KITTI odometry clip with poses): DIS refined with "
-                        "the poses, with the clip's fit and with the images; road.json optional with --road auto")
-
-    g = p.add_argument_group("flow networks")
-    g.add_argument("--source", type=_list(SOURCES), default=None, metavar="LIST",
-                   help="flow sources, comma-separated from dis, testnet, net (default: dis,testnet on "
-                        "synthetic data, dis on real data; with --net: net; with --flows: the files)")
-    g.add_argument("--testnet-weights", type=given_path, metavar="FILE", help="state_dict for the test net (default: random, seed 0)")
-    g.add_argument("--net", metavar="MODULE:CALLABLE",
-                   help="your flow network: a factory returning an nn.Module (e.g. mypkg.models:make_raft)")
-    g.add_argument("--net-contract", choices=CONTRACTS,
-                   help="how --net is called: ptlflow (dict, BGR [0,1]), torchvision (RGB [-1,1], list), "
-                        "raft (RGB 0..255, list); default: from the network (see docs/contracts.md)")
-    g.add_argument("--checkpoint", type=given_path, metavar="FILE",
-                   help="a local state_dict for --net (loaded with torch.load(weights_only=True))")
-
-    g = p.add_argument_group("refinement")
-    g.add_argument("--odometry", type=_list(VARIANTS), default=None, metavar="LIST",
-                   help=f"odometry variants, comma-separated from {', '.join(VARIANTS)} (default: synthetic "
-                        "data: given,fit,photometric; --images: sequence for a clip, photometric for "
-                        "KITTI *_10/*_11 pairs or a single pair, plus given_images with --poses; "
-                        "--kitti15: fit,photometric; --kitti-odometry: given,given_images,sequence,photometric)")
-    g.add_argument("--odometry-sigma", type=float, nargs=3, metavar=("X_M", "Z_M", "YAW_DEG"), default=None,
-                   help="variant given_images: let the images move the odometry's planar motion, within these "
-                        "widths a frame (sideways and forward in metres, yaw in degrees; e.g. 0.05 0.05 0.2 "
-                        "for wheel odometry); default: held fixed")
-    g.add_argument("--fit-options", metavar="JSON", default=None,
-                   help="fit_image keyword arguments for the road motion from the images (variants photometric, "
-                        "given_images, and the clip's fit for sequence, given_pitch and --calibrate-pitch), a JSON "
-                        "object, e.g. '{\"fine_points\": 20000, \"smooth_sigma\": 1.0}' (docs/real-roads.md, "
-                        "\"Settings for a real camera\"); default: the library's")
-    g.add_argument("--road-options", metavar="JSON", default=None,
-                   help="detect_road keyword arguments for --road auto (the road found in the images), a JSON "
-                        "object, e.g. '{\"seed_depth_m\": 40}' (docs/auto-road.md, \"Options\"); default: the "
-                        "library's")
-    g.add_argument("--mode", choices=("replace", "confidence"), default="replace", help="fusion (default: %(default)s)")
-    g.add_argument("--scale", type=float, default=None, metavar="PX",
-                   help=f"Cauchy scale in px, for --mode confidence only (default: {DEFAULT_SCALE:g})")
-    g.add_argument("--fit-roll", action="store_true", help="variant fit: also fit the camera roll")
-    g.add_argument("--fit-pitch", action="store_true", help="variant fit: also fit the camera pitch")
-    g.add_argument("--calibrate-pitch", action="store_true",
-                   help="calibrate the camera's pitch and roll over the road from the clip's images (with poses, "
-                        "--poses or the odometry sample's, also its height) and refine every variant with it")
-
-    g = p.add_argument_group("output")
-    g.add_argument("--out", type=given_path, default=None, metavar="DIR",
-                   help="output folder (default: refine_out/<input name>, e.g. refine_out/synthetic-default)")
-    g.add_argument("--json", type=file_path, metavar="PATH",
-                   help="also write the report JSON here (not an input, nor inside --out but OUT/report.json, "
-                        "nor inside another run's output folder)")
-    g.add_argument("--overwrite", action="store_true",
-                   help="redo every pair; replace the results of another run in --out")
-    g.add_argument("--no-figures", action="store_true", help="skip the PNG figures")
-    g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("--threads", type=int, default=1, metavar="N",
-                   help="intra-op threads per process for torch and OpenCV (default: 1; more helps only "
-                        "on idle cores)")
-    g.add_argument("--device", default="cpu", metavar="DEV", help="torch device for the networks and the refiner "
-                   "(default: cpu; cuda uses the process's GPU)")
-    return p
-
-
-def default_out(args: argparse.Namespace) -> Path:
-    """``refine_out/<input name>``: one folder per input, so runs on other inputs do not meet. A
-    folder of images is named with the folder it is in (``my_clip/images`` -> ``my_clip-images``):
-    the layout of the docs gives every clip an ``images`` folder."""
-    if args.images is not None:
-        images = args.images.resolve()
-        name = "-".join(n for n in (images.parent.name, images.name) if n) or "images"
-    elif args.kitti15 is not None:
-        name = args.kitti15.resolve().name
-    elif args.kitti_odometry is not None:
-        name = args.kitti_odometry.resolve().name
-    else:
-        name = f"synthetic-{args.preset or DEFAULTS['preset']}"
-        if args.seed:
-            name += f"-seed{args.seed}"
-        if args.size is not None and tuple(args.size) != DEFAULT_SIZE:
-            name += f"-{args.size[0]}x{args.size[1]}"
-        if args.scene_noise is not None:
-            name += f"-noise{args.scene_noise:g}"
-    return DEFAULT_OUT / name
+from .configure import configure, parse_fit_options, parse_odometry_sigma, parse_road_options, poses_option
+from .options import DEFAULT_SCALE, build_parser, command_name, default_out
 
 
 def _input_paths(args: argparse.Namespace, net: bool = True) -> dict[str, Path | None]:
@@ -220,271 +39,6 @@ def _net_source(factory: str | None) -> Path | None:
 
     source = net_module_file(factory) if factory is not None else None
     return source.parent if source is not None and source.name == "__init__.py" else source
-
-
-def _refuse_unused(args: argparse.Namespace, real: str | None) -> None:
-    """Options that the chosen input does not use are refused when given, even at their default
-    value, not silently ignored (``real``: the real-data input chosen, None for the synthetic
-    scenes; ``args`` as parsed, before :func:`_with_defaults`)."""
-    from .inputs import JobError
-
-    if real is not None:
-        for option in ("preset", "num_pairs", "size", "seed", "scene_noise"):
-            if getattr(args, option) is not None:
-                raise JobError(f"--{option.replace('_', '-')}: applies to the synthetic scenes, not to "
-                               f"--{real.replace('_', '-')}")
-    # (the road masks of a run without --road auto: --images's given, the others' own; a --road that
-    # --images lacks or the others may not take is named by the checks of --road)
-    if args.road_options is not None and args.road != "auto" and (args.road is not None) == (real == "images"):
-        masks = (f"--road {args.road}" if real == "images" else "the synthetic scene's own road mask"
-                 if real is None else "the folder's road.json")
-        raise JobError(f"--road-options: applies to the road found in the images (--road auto), which this run "
-                       f"does not use (its road masks: {masks})")
-    if real == "images":
-        return
-    sample = f"--{(real or '').replace('_', '-')}"
-    what = "the synthetic scenes have their own camera" if real is None else f"{sample} has its own calibration"
-    own = {"--cam": args.cam is not None, "--roll-deg": args.roll_deg is not None,
-           "--height": real is None and args.height is not None,
-           "--pitch-deg": real != "kitti_odometry" and args.pitch_deg is not None}
-    if real is not None:
-        own.update({"--calib": args.calib is not None, "--calib-size": args.calib_size is not None,
-                    "--poses": args.poses is not None, "--gt": args.gt is not None})
-    # (the poses and ground truth of a sample are its own, or it has none: say which)
-    why = {"--poses": f"{sample} has its own poses.txt" if real == "kitti_odometry" else
-           "the KITTI 2015 pair has no poses",
-           "--gt": "the KITTI 2015 pair has its own flow_noc_10.png" if real == "kitti15" else
-           "the KITTI odometry clip has no ground-truth flow"}
-    # the inputs each option applies to (the KITTI samples take --height, the clip --pitch-deg)
-    where = {"--height": "--images, --kitti15 and --kitti-odometry", "--pitch-deg": "--images and --kitti-odometry"}
-    for option, given in own.items():
-        if given:
-            raise JobError(f"{option}: applies to {where.get(option, '--images')} ({why.get(option, what)})")
-    if real is not None and args.road not in (None, "auto"):
-        raise JobError(f"--road: --{real.replace('_', '-')} uses its own road.json, or 'auto'")
-    given = [v for v in args.odometry or () if v.startswith("given")]
-    if real == "kitti15" and given:
-        raise JobError(f"--odometry {given[0]}: the KITTI 2015 pair has no poses; use fit or photometric")
-
-
-def _with_defaults(args: argparse.Namespace) -> argparse.Namespace:
-    """A copy of ``args`` with the options of :data:`DEFAULTS` not given set to their defaults."""
-    filled = {k: v for k, v in DEFAULTS.items() if getattr(args, k) is None}
-    return argparse.Namespace(**{**vars(args), **filled})
-
-
-def _odometry_sigma(widths: list[float] | None, variants: list[str]) -> dict[str, float] | None:
-    """``--odometry-sigma X_M Z_M YAW_DEG`` -> ``ImageMotionEstimator``'s ``odometry_sigma``
-    (radians for the yaw), checked; None where not given."""
-    from .inputs import JobError
-
-    if widths is None:
-        return None
-    if "given_images" not in variants:
-        raise JobError(f"--odometry-sigma: applies to the variant given_images, which this run does not use "
-                       f"(--odometry {','.join(variants)})")
-    if not all(math.isfinite(w) and w > 0 for w in widths):
-        raise JobError(f"--odometry-sigma: expected three finite widths > 0 (X_M Z_M YAW_DEG), got "
-                       f"{' '.join(f'{w:g}' for w in widths)}")
-    return {"x_d": widths[0], "z_d": widths[1], "yaw": math.radians(widths[2])}
-
-
-#: fit_image options the job sets itself (besides the images, the road and the camera: the model,
-#: the starts, the odometry's held parameters, the priors and the images' range), which
-#: --fit-options may not give
-_JOB_FIT_KEYS = ("model", "init", "starts", "fixed", "prior", "data_range")
-
-
-def _fit_options(text: str | None, variants: list[str], calibrate: bool) -> dict | None:
-    """``--fit-options JSON`` -> fit_image keyword arguments, checked (names and values) before any
-    work; None where not given."""
-    from fsof_torch.estimation.image_fit import check_image_fit_options
-
-    from .calibrate import clip_options
-    from .inputs import JobError
-    from .job import WITH_IMAGES
-
-    if text is None:
-        return None
-    options = _json_object(text, "--fit-options", "fit_image")
-    if not set(WITH_IMAGES) & set(variants) and not clip_options(calibrate, variants):
-        raise JobError(f"--fit-options: applies to the road motion from the images (variants photometric, "
-                       f"given_images, sequence, given_pitch, or --calibrate-pitch), which this run does not use "
-                       f"(--odometry {','.join(variants)})")
-    with _named("--fit-options"):
-        check_image_fit_options(options, "--fit-options", reserved=_JOB_FIT_KEYS)
-    return options
-
-
-def _json_object(text: str, option: str, function: str) -> dict:
-    """``option``'s JSON ``text``, keyword arguments of ``function``: a JSON object, else a JobError
-    naming the option and quoting what came."""
-    from .inputs import JobError
-
-    try:
-        options = json.loads(text)
-    except json.JSONDecodeError as err:
-        raise JobError(f"{option}: expected a JSON object of {function} keyword arguments, got {text!r} ({err})") \
-            from None
-    if not isinstance(options, dict):
-        raise JobError(f"{option}: expected a JSON object of {function} keyword arguments, got {text!r}")
-    return options
-
-
-@contextlib.contextmanager
-def _named(option: str):
-    """The library's TypeError or ValueError about an option's keyword arguments as a JobError
-    naming the option."""
-    from .inputs import JobError
-
-    try:
-        yield
-    except (TypeError, ValueError) as err:
-        message = str(err)
-        raise JobError(message if message.startswith(option) else f"{option}: {message}") from None
-
-
-def _road_options(text: str | None) -> dict | None:
-    """``--road-options JSON`` -> detect_road keyword arguments, checked (names and values) before
-    any work; None where not given. (Without ``--road auto`` refused first: :func:`_refuse_unused`.)"""
-    from fsof_torch.refinement.auto_road import road_option_values
-
-    if text is None:
-        return None
-    options = _json_object(text, "--road-options", "detect_road")
-    with _named("--road-options"):
-        road_option_values(options, "--road-options")
-    return options
-
-
-def _sample_road(road: str | None) -> str:
-    """Where a KITTI sample's road mask comes from, for the report's notes."""
-    return "found in the images of each pair (--road auto)" if road == "auto" else "the folder's hand-drawn road.json"
-
-
-def _poses_option(args: argparse.Namespace) -> str:
-    """The option the pairs' poses come from, which errors about them name."""
-    return "--kitti-odometry" if args.kitti_odometry is not None else "--poses" if args.images is not None \
-        else "--preset"
-
-
-def _configure(args: argparse.Namespace):
-    """Options -> (pair specs, camera, config parts, input identity), checked before any work."""
-    from .inputs import JobError, kitti15_pairs, kitti_odometry_pairs, synthetic_pairs, user_pairs
-
-    chosen = [n for n in ("images", "kitti15", "kitti_odometry") if getattr(args, n) is not None]
-    if len(chosen) > 1:
-        raise JobError(f"choose one input: got --{' and --'.join(c.replace('_', '-') for c in chosen)}")
-    if args.flows is not None and args.images is None:
-        raise JobError("--flows needs --images (the pairs the flows belong to)")
-    if args.scale is not None:
-        if args.mode != "confidence":
-            raise JobError(f"--scale: applies to --mode confidence, not to --mode {args.mode} (which uses no scale)")
-        if not (args.scale > 0 and math.isfinite(args.scale)):
-            raise JobError(f"--scale: expected a finite value > 0 px, got {args.scale}")
-    if args.checkpoint is not None and args.net is None:
-        raise JobError("--checkpoint needs --net (the network the state_dict is for)")
-    if args.net_contract is not None and args.net is None:
-        raise JobError("--net-contract needs --net")
-    if args.net is not None and args.flows is not None:
-        raise JobError("--net and --flows: give one of them (the flows are another network's predictions)")
-    _refuse_unused(args, chosen[0] if chosen else None)
-    height_given = args.height is not None
-    args = _with_defaults(args)
-    notes: list[str] = []
-    camera = None
-    calibrate = args.calibrate_pitch
-    default_sources = ["net"] if args.net is not None else None
-    if args.kitti15 is not None:
-        specs, camera = kitti15_pairs(args.kitti15, height=args.height, road_auto=args.road == "auto")
-        title = f"refine: KITTI 2015 pair {specs[0].name}"
-        sources = args.source or default_sources or ["dis"]
-        variants = args.odometry or ["fit", "photometric"]
-        truth = "flow_noc_10.png (sparse)" if (args.kitti15 / "flow_noc_10.png").is_file() else \
-            "none (no flow_noc_10.png): image errors only"
-        notes.append(f"Road mask: {_sample_road(args.road)}; ground truth: {truth}.")
-        identity = {"kind": "kitti15", "root": str(args.kitti15.resolve()), "height": args.height}
-    elif args.kitti_odometry is not None:
-        specs, camera = kitti_odometry_pairs(args.kitti_odometry, height=args.height, pitch_deg=args.pitch_deg,
-                                             road_auto=args.road == "auto")
-        title = f"refine: KITTI odometry clip {args.kitti_odometry.resolve().name}"
-        sources = args.source or default_sources or ["dis"]
-        variants = args.odometry or ["given", "given_images", "sequence", "photometric"]
-        notes.append(f"Road mask: {_sample_road(args.road)}; no ground-truth flow: image errors only.")
-        identity = {"kind": "kitti_odometry", "root": str(args.kitti_odometry.resolve()), "height": args.height,
-                    "pitch_deg": args.pitch_deg}
-    elif args.images is not None:
-        from .inputs import file_digest
-
-        if args.calib is None:
-            raise JobError("--calib: user data needs a calibration file (KITTI format)")
-        if args.flows is not None and args.source:
-            raise JobError("--source and --flows: give one of them")
-        specs, camera = user_pairs(images=args.images, calib=args.calib, cam=args.cam, height=args.height,
-                                   roll_deg=args.roll_deg, pitch_deg=args.pitch_deg, poses=args.poses,
-                                   flows=args.flows, road=args.road, gt=args.gt, calib_size=args.calib_size)
-        title = f"refine: {args.images}"
-        sources = ["files"] if args.flows is not None else (args.source or default_sources or ["dis"])
-        from .inputs import kitti_flow_layout, list_images
-
-        clip = len(specs) > 1 and not kitti_flow_layout(list_images(args.images))
-        variants = args.odometry or (["sequence" if clip else "photometric"]
-                                     + (["given_images"] if args.poses is not None else []))
-        for v in ("given", "given_images", "given_pitch"):
-            if v in variants and args.poses is None:
-                raise JobError(f"--odometry {v}: user data needs --poses (or use photometric / sequence / fit)")
-        if not height_given and not calibrate and (metric := [v for v in ("given", "given_images") if v in variants]):
-            notes.append(_default_height_note(metric))
-        road = args.road
-        if road not in (None, "auto") and Path(road).is_file():
-            road = {"file": str(Path(road).resolve()), "digest": file_digest(Path(road))}
-        elif road not in (None, "auto"):
-            road = str(Path(road).resolve())
-        identity = {"kind": "images", "images": str(args.images.resolve()), "calib": file_digest(args.calib),
-                    "calib_size": args.calib_size, "cam": args.cam, "height": args.height,
-                    "roll_deg": args.roll_deg, "pitch_deg": args.pitch_deg,
-                    "poses": file_digest(args.poses) if args.poses is not None else None,
-                    "flows": str(args.flows.resolve()) if args.flows is not None else None, "road": road,
-                    "gt": str(args.gt.resolve()) if args.gt is not None else None}
-    else:
-        for opt in ("calib", "poses", "gt", "flows", "calib_size"):
-            if getattr(args, opt) is not None:
-                raise JobError(f"--{opt.replace('_', '-')} needs --images")
-        if args.road not in (None, "auto"):
-            raise JobError("--road: synthetic scenes use their own road mask, or 'auto'")
-        specs = synthetic_pairs(args.preset, args.num_pairs, seed=args.seed, size=args.size, road=args.road,
-                                noise=args.scene_noise)
-        title = (f"refine: synthetic '{args.preset}' sequence, {args.num_pairs} pair{'' if args.num_pairs == 1 else 's'}, "
-                 f"{args.size[0]}x{args.size[1]}")
-        sources = args.source or default_sources or ["dis", "testnet"]
-        variants = args.odometry or ["given", "fit", "photometric"]
-        notes.append("Synthetic scene: odometry and flow ground truth are the scene's (exact); road mask: "
-                     + ("found in the images of each pair (--road auto)." if args.road == "auto" else "the scene's (exact)."))
-        identity = {"kind": "synthetic", "preset": args.preset, "seed": args.seed, "size": list(args.size),
-                    "noise": args.scene_noise}
-    if "net" in sources and args.net is None:
-        raise JobError("--source net needs --net module:callable")
-    if "net" not in sources:  # (--checkpoint and --net-contract without --net are refused above)
-        given = [o for o, v in (("--net", args.net is not None), ("--checkpoint", args.checkpoint is not None),
-                                ("--net-contract", args.net_contract is not None)) if v]
-        if given:
-            raise JobError(f"{' and '.join(given)}: the run has no net source (sources: {','.join(sources)}); "
-                           f"add net to --source")
-    if args.testnet_weights is not None and "testnet" not in sources:
-        raise JobError(f"--testnet-weights: the run has no testnet source (sources: {','.join(sources)})")
-    for flag in ("fit_roll", "fit_pitch"):
-        if getattr(args, flag) and "fit" not in variants:
-            raise JobError(f"--{flag.replace('_', '-')}: applies to the variant fit, which this run does not do "
-                           f"(--odometry {','.join(variants)})")
-    if "testnet" in sources and args.testnet_weights is None:
-        notes.append("testnet: TinyRAFT with random weights (seed 0), not trained: its raw flow is meaningless; "
-                     "it shows the wrapper on a RAFT-style output.")
-    from .calibrate import check_clip, clip_options
-
-    needed_by = clip_options(calibrate, variants)
-    if needed_by:
-        check_clip(specs, needed_by=needed_by, poses_option=_poses_option(args))
-    return specs, camera, title, sources, variants, calibrate, notes, identity
 
 
 def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
@@ -547,18 +101,18 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
         if importlib.util.find_spec("matplotlib") is None:
             raise JobError("figures need matplotlib (pip install matplotlib), or give --no-figures")
-    specs, camera, title, sources, variants, calibrate, notes, input_identity = _configure(args)
+    specs, camera, title, sources, variants, calibrate, notes, input_identity = configure(args)
     resume.check_inputs_outside(out, sources, inputs)
-    odometry_sigma = _odometry_sigma(args.odometry_sigma, variants)
+    odometry_sigma = parse_odometry_sigma(args.odometry_sigma, variants)
     if odometry_sigma is not None:
         x, z, yaw = args.odometry_sigma
         notes.append(f"Variant given_images: the images may move the odometry's planar motion within {x:g} m "
                      f"sideways, {z:g} m forward and {yaw:g}° of yaw a frame (Gaussian priors).")
-    fit_options = _fit_options(args.fit_options, variants, calibrate)
+    fit_options = parse_fit_options(args.fit_options, variants, calibrate)
     if fit_options is not None:
         notes.append(f"The road motion from the images with fit_image's options {json.dumps(fit_options)} "
                      f"(--fit-options).")
-    road_options = _road_options(args.road_options)
+    road_options = parse_road_options(args.road_options)
     if road_options is not None:
         notes.append(f"The road found in the images with detect_road's options {json.dumps(road_options)} "
                      f"(--road-options).")
@@ -618,7 +172,7 @@ def _run(args: argparse.Namespace, stack: contextlib.ExitStack) -> int:
 
         # (digested before the fit reads them: a frame saved anew meanwhile leaves its old digest, redone)
         cfg.clip_fingerprint = clip_fingerprint(specs, progress=cfg.progress)
-        cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=_poses_option(args))
+        cfg.clip = _fit_clip(specs, camera, cfg, built, device, needed_by=needed_by, poses_option=poses_option(args))
         notes.append(_mounting_note(cfg.clip, calibrate, len(specs), variants))
     if world.distributed:
         notes.append(f"Run on {world.world_size} processes ({world.backend}); pairs strided over the ranks.")
@@ -673,15 +227,6 @@ def _earlier_road_spelling(out: Path, identity: dict) -> dict:
     return identity
 
 
-def _default_height_note(variants: list[str]) -> str:
-    """The report's note where user data refines with the poses' odometry (``variants``: of given and
-    given_images) at a height nobody gave: the default, KITTI's camera. The poses' translation is in
-    metres and the road's flow scales with translation / height, so another camera's height scales
-    that flow (a camera 2.8 m high, refined at 1.65 m: 1.7 times its road flow)."""
-    return (f"Camera height not given (--height): {DEFAULT_HEIGHT} m, KITTI's camera, is assumed; the road flow of the "
-            f"odometry from --poses (variant{'s' if len(variants) > 1 else ''} {' / '.join(variants)}) scales with "
-            f"1 / height: give the camera's height above the road, or --calibrate-pitch (with poses it calibrates "
-            f"the height over the clip).")
 
 
 def _mounting_note(clip, calibrate: bool, pairs: int, variants=("sequence", "given_pitch")) -> str:

@@ -448,7 +448,7 @@ def _options(parser: argparse.ArgumentParser) -> set[str]:
 
 
 def test_jobs_md_lists_the_refine_jobs_options():
-    from refine.__main__ import build_parser
+    from refine.options import build_parser
 
     text = (DOCS / "jobs.md").read_text()
     table = text[text.index("### Options"):text.index("The odometry variants:")]
@@ -461,7 +461,7 @@ def test_jobs_md_writes_the_refine_options_values_as_the_help_does():
     """The options table writes each option's value as ``--help`` does (``--height M``, ``--out
     DIR``): the help once wrote ``--out OUT``, ``--kitti15 PATH``, ``--scale SCALE`` for the
     table's ``DIR``, ``DIR``, ``PX``. (Options with choices: the table lists them in words.)"""
-    from refine.__main__ import build_parser
+    from refine.options import build_parser
 
     text = (DOCS / "jobs.md").read_text()
     table = text[text.index("### Options"):text.index("The odometry variants:")]
@@ -549,7 +549,7 @@ def test_the_commands_of_the_docs_name_existing_scripts_and_options():
     """Every `python -m refine`, `python -m eval NAME` and `python benchmarks/x.py` command of the
     pages names a script that exists and only options its parser has."""
     from eval.__main__ import SUBCOMMANDS
-    from refine.__main__ import build_parser
+    from refine.options import build_parser
 
     def eval_options(name):
         parser = argparse.ArgumentParser()

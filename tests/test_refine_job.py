@@ -185,7 +185,7 @@ def test_synthetic_default_pipeline(tmp_path, capsys):
 
 
 def test_default_out_is_named_after_the_input(tmp_path, monkeypatch, user_folder):
-    from refine.__main__ import build_parser, default_out
+    from refine.options import build_parser, default_out
 
     parse = build_parser().parse_args
     assert default_out(parse([])) == Path("refine_out/synthetic-default")
