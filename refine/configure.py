@@ -138,7 +138,7 @@ def _named(option: str):
 def parse_road_options(text: str | None) -> dict | None:
     """``--road-options JSON`` -> detect_road keyword arguments, checked (names and values) before
     any work; None where not given. (Without ``--road auto`` refused first: :func:`_refuse_unused`.)"""
-    from fsof_torch.refinement.auto_road import road_option_values
+    from fsof_torch.refinement.wrapped import road_option_values
 
     if text is None:
         return None

@@ -304,7 +304,7 @@ def road_mask(pair: dict, pred: Tensor, camera: Camera, cfg: JobConfig) -> tuple
     from fsof_torch import detect_road
 
     if cfg.road_options:  # (what the images' size and the camera allow, named as the option that gave it)
-        from fsof_torch.refinement.auto_road import check_road_options
+        from fsof_torch.refinement.wrapped import check_road_options
 
         try:
             check_road_options(cfg.road_options, (1, *pair["image1"].shape), camera, estimated=True)

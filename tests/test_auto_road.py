@@ -1430,7 +1430,8 @@ def test_road_option_values_check_names_and_values_as_detect_road_does():
     come back with detect_road's defaults for the rest."""
     import inspect
 
-    from fsof_torch.refinement.auto_road import ROAD_RESERVED, road_option_values
+    from fsof_torch.refinement.auto_road import ROAD_RESERVED
+    from fsof_torch.refinement.wrapped import road_option_values
     from fsof_torch.refinement.road_options import ROAD_VALUE_OPTIONS
 
     with pytest.raises(TypeError, match=r"^opts: unknown options \['seed_dept_m'\] of detect_road; expected some of "

@@ -42,7 +42,6 @@ Images are (B, 1 or 3, H, W) on 0..``data_range``; masks (B, 1, H, W) bool. Not 
 
 from __future__ import annotations
 
-import inspect
 import math
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -53,9 +52,8 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_data_range, check_float_tensor,
-                      check_has_values, check_image_pair, check_image_range, check_keywords, check_same_device,
-                      check_shape, check_size, host_path, inference, is_number, option_error, scalar, skip_values,
-                      summary_repr)
+                      check_has_values, check_image_pair, check_image_range, check_same_device, check_shape, check_size,
+                      host_path, inference, is_number, option_error, scalar, skip_values, summary_repr)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
@@ -64,11 +62,10 @@ from ..estimation.combine import fit_at_size, select_samples, where_motion
 from ..geometry.road_flow import road_flow
 from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator, check_estimate, check_estimator, finite_estimate
-from .road_options import ROAD_VALUE_OPTIONS, SLOW_MAX_HEIGHT_M, check_road_values
+from .road_options import SLOW_MAX_HEIGHT_M, check_road_values
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
 
-__all__ = ["RoadDetection", "detect_road", "road_seed", "road_level", "check_road_size", "road_option_values",
-           "check_road_options", "FLAGS", "ROAD_RESERVED"]
+__all__ = ["RoadDetection", "detect_road", "road_seed", "road_level", "check_road_size", "FLAGS", "ROAD_RESERVED"]
 
 #: detect_road's arguments the refiner sets itself: refused in ``road_options``, by name
 ROAD_RESERVED = ("image1", "image2", "camera", "flow", "motion", "estimator", "odometry", "starts", "data_range",
@@ -402,31 +399,6 @@ def check_road_size(shape: tuple[int, ...], camera: Camera, options: dict[str, A
         # (the raised surface tested lies below the camera)
         raise ValueError(f"min_height_m: expected below the camera's height {camera.height.tolist()} m, "
                          f"got {options['min_height_m']!r}")
-
-
-def road_option_values(road_options: Mapping[str, Any], name: str = "road_options") -> dict[str, Any]:
-    """``road_options``, keyword arguments for :func:`detect_road`, checked as it checks them,
-    before any detection: a name it does not take, or one the callers that forward options set
-    themselves (:data:`ROAD_RESERVED`), is a TypeError naming ``name``; a bad value the TypeError
-    or ValueError that ``detect_road`` would raise
-    (:func:`~fsof_torch.refinement.road_options.check_road_values`; what needs the images or the
-    camera: :func:`check_road_options`). Returns every option of
-    :data:`~fsof_torch.refinement.road_options.ROAD_VALUE_OPTIONS`, the given ones and
-    ``detect_road``'s defaults for the rest, as ints, floats and bools."""
-    check_keywords(road_options, name, detect_road, reserved=ROAD_RESERVED)
-    defaults = inspect.signature(detect_road).parameters
-    return check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
-
-
-def check_road_options(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera,
-                       estimated: bool) -> None:
-    """``road_options`` (:func:`road_option_values`) against images of ``shape`` and ``camera`` as
-    :func:`detect_road` checks them (:func:`check_road_size`; ``seed_level``'s where the detection
-    will estimate the motion), with its errors."""
-    options = road_option_values(road_options)
-    if options["level"] is None:
-        options["level"] = road_level(shape[-2:], options["window"], options["height_window"])
-    check_road_size(shape, camera, options, estimated=estimated)
 
 
 def _check_inputs(image1: Tensor, image2: Tensor, camera: Camera, flow: Tensor | None, data_range: float,

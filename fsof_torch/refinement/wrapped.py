@@ -4,6 +4,7 @@ contracts; see :mod:`fsof_torch.refinement.contracts`)."""
 
 from __future__ import annotations
 
+import inspect
 import math
 import numbers
 from dataclasses import replace
@@ -12,18 +13,46 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor, nn
 
-from .._check import (batch_choices, check_float_tensor, check_image_range, check_mapping,
+from .._check import (batch_choices, check_float_tensor, check_image_range, check_keywords, check_mapping,
                       check_mask, check_shape, scalar)
 from ..estimation.flow_fit import RoadFit
 from ..geometry.camera import Camera
 from ..geometry.road_models import road_motion_batch
 from .auto_refine import motion_complete, refine_with_auto_road
-from .auto_road import check_road_options, road_option_values
+from .auto_road import ROAD_RESERVED, check_road_size, detect_road, road_level
 from .contracts import InputPadder, Padding, collect_flows, finest_flow, images_from_ptlflow, is_ptlflow_inputs
 from .fusion import FreespaceRefiner, RefineOutput, refine_flow
+from .road_options import ROAD_VALUE_OPTIONS, check_road_values
 from .options import select_estimator
 
-__all__ = ["FreespaceRefined"]
+__all__ = ["FreespaceRefined", "road_option_values", "check_road_options"]
+
+
+def road_option_values(road_options: Mapping[str, Any], name: str = "road_options") -> dict[str, Any]:
+    """``road_options``, keyword arguments for :func:`~fsof_torch.refinement.auto_road.detect_road`
+    that a caller passes on (this wrapper, the refine job), checked as the detection checks them,
+    before any detection: a name it does not take, or one the callers set themselves
+    (:data:`~fsof_torch.refinement.auto_road.ROAD_RESERVED`), is a TypeError naming ``name``; a bad
+    value the TypeError or ValueError that ``detect_road`` would raise
+    (:func:`~fsof_torch.refinement.road_options.check_road_values`; what needs the images or the
+    camera: :func:`check_road_options`). Returns every option of
+    :data:`~fsof_torch.refinement.road_options.ROAD_VALUE_OPTIONS`, the given ones and
+    ``detect_road``'s defaults for the rest, as ints, floats and bools."""
+    check_keywords(road_options, name, detect_road, reserved=ROAD_RESERVED)
+    defaults = inspect.signature(detect_road).parameters
+    return check_road_values({n: road_options.get(n, defaults[n].default) for n in ROAD_VALUE_OPTIONS})
+
+
+def check_road_options(road_options: Mapping[str, Any], shape: tuple[int, ...], camera: Camera,
+                       estimated: bool) -> None:
+    """``road_options`` (:func:`road_option_values`) against images of ``shape`` and ``camera`` as
+    :func:`~fsof_torch.refinement.auto_road.detect_road` checks them
+    (:func:`~fsof_torch.refinement.auto_road.check_road_size`; ``seed_level``'s where the detection
+    will estimate the motion), with its errors."""
+    options = road_option_values(road_options)
+    if options["level"] is None:
+        options["level"] = road_level(shape[-2:], options["window"], options["height_window"])
+    check_road_size(shape, camera, options, estimated=estimated)
 
 
 class FreespaceRefined(nn.Module):

@@ -602,10 +602,9 @@ class UnsupervisedFlowLoss(nn.Module):
 
     ``forward(flows, image1, image2, flows_backward=None)`` -> scalar (or (B,)).
 
-    A weight (``l1_weight`` ... ``alpha2``) given as an ``nn.Parameter`` (0-d) is a parameter of
-    the module, under its own name: learned through the loss as the function's weights are, and
-    moved, cast and saved with the module; another tensor is read as its number, as ``gamma``
-    (one that requires grad, whose gradient would be lost, is a TypeError).
+    A weight (``l1_weight`` ... ``alpha2``) given as a 0-d ``nn.Parameter`` is a parameter of the
+    module under its own name: learned through the loss, moved, cast and saved with the module; another
+    tensor is read as its number, as ``gamma`` (one that requires grad, whose gradient would be lost, is a TypeError).
 
     Example:
         >>> loss = UnsupervisedFlowLoss(smooth_weight=2.0)
@@ -629,11 +628,10 @@ class UnsupervisedFlowLoss(nn.Module):
         for name, value in weights.items():
             if isinstance(value, nn.Parameter):  # (registered: parameters(), .to(), state_dict(), deepcopy)
                 self.register_parameter(name, value)
+            elif isinstance(value, Tensor) and value.requires_grad:  # (read as a number, its gradient would be lost)
+                raise TypeError(f"{name}: expected a number or an nn.Parameter, got a tensor that requires grad "
+                                f"(to learn {name}, give an nn.Parameter, which the module registers)")
             else:  # (a float: a tensor is not kept where .to() does not reach it)
-                if isinstance(value, Tensor) and value.requires_grad:
-                    raise TypeError(f"{name}: expected a number or an nn.Parameter, got a tensor that requires "
-                                    f"grad (read as a number, its gradient would be lost; to learn {name}, give "
-                                    f"an nn.Parameter, which the module registers)")
                 weights[name] = check_number(value, name)
         options = dict(gamma=gamma, smooth_order=int(smooth_order), occlusion=occlusion, data_range=data_range,
                        reduction=reduction, **weights)
