@@ -14,6 +14,7 @@ import torch
 SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 
+
 @pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
 def dtype(request) -> torch.dtype:
     return request.param
@@ -74,16 +75,25 @@ def no_hang() -> Iterator[None]:
 
 
 @pytest.fixture
-def kernel_paths() -> list[str]:
-    """Paths on the kernel's /proc and /sys, where this machine mounts them so (the test is
-    skipped where it mounts neither): outputs the jobs cannot create."""
-    from fsof_torch.io.atomic import kernel_file_system
+def kernel_paths(tmp_path_factory, monkeypatch) -> list[str]:
+    """Paths on the kernel's proc and sysfs file systems, as a made-up mount table places them
+    (two folders outside the test's ``tmp_path``; the same on any machine): outputs the jobs
+    cannot create. The first is the proc file system's root itself, the others lie below one."""
+    import io
 
-    paths = [path for path, root, kind in (("/proc/x", "/proc", "proc"), ("/sys/x/y", "/sys", "sysfs"))
-             if Path(root).is_dir() and kernel_file_system(root) == kind]
-    if not paths:
-        pytest.skip("no /proc or /sys of the kernel's here")
-    return paths
+    import fsof_torch.io.atomic as atomic
+
+    root = tmp_path_factory.mktemp("kernel")
+    proc, sys_ = root / "proc", root / "sys"
+    proc.mkdir()
+    sys_.mkdir()
+    table = ("22 1 0:21 / / rw - ext4 /dev/vda rw\n"
+             f"23 22 0:22 / {proc} rw,nosuid - proc proc rw\n"
+             f"24 22 0:23 / {sys_} rw,nosuid - sysfs sysfs rw\n")
+    real_open = open
+    monkeypatch.setattr(atomic, "open", lambda path, *a, **k: io.StringIO(table) if path == "/proc/self/mountinfo"
+                        else real_open(path, *a, **k), raising=False)
+    return [str(proc), str(proc / "x"), str(sys_ / "x" / "y")]
 
 
 @pytest.fixture

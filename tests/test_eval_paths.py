@@ -140,7 +140,7 @@ def test_an_output_on_the_kernels_file_systems_is_refused(tmp_path, capsys, kern
     """``--out /proc/x`` (or /sys): the checks passed (root may write into /proc, says
     ``os.access``) and ``eval synth`` stopped with mkdir's traceback, the others after their work
     at the first write. Exit 2 naming the option, before any work."""
-    for given in kernel_paths:
+    for given in kernel_paths[1:]:  # (below the file systems' roots)
         out = [] if option == "--out" else ["--out", str(tmp_path / "out")]
         assert main([job, *FAST[job], "--no-progress", option, given, *out]) == 2
         assert re.fullmatch(rf"error: {option}: {re.escape(repr(given))} is on the kernel's \w+ file system, .*\n",
