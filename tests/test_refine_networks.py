@@ -424,7 +424,7 @@ def test_torchvision_network_is_padded(tmp_path, user_module, pair):
     assert summary["pairs"][0]["before"]["epe_road"] == pytest.approx(_epe_road(flow, pair), rel=1e-5)
 
 
-def test_network_errors(tmp_path, user_module, capsys):
+def test_network_errors(tmp_path, user_module, capsys, monkeypatch):
     base = ["--num-pairs", "1", "--no-figures", "--no-progress", "--size", f"{SIZE[0]}x{SIZE[1]}",
             "--out", str(tmp_path / "o")]
 
@@ -445,6 +445,8 @@ def test_network_errors(tmp_path, user_module, capsys):
     assert "returned a str; expected a torch.nn.Module" in err("--net", f"{user_module}:not_a_module")
     # research code that parses the command line when imported, or exits in its factory
     (tmp_path / f"{user_module}_argv.py").write_text("import argparse\nargparse.ArgumentParser().parse_args()\n")
+    # (the command line it parses is the job's, not the test runner's, which may hold no option)
+    monkeypatch.setattr(sys, "argv", ["refine", *base, "--net", f"{user_module}_argv:make"])
     assert (f"--net: importing '{user_module}_argv' exited (SystemExit: 2); the job imports the module and calls its "
             f"factory: it may not parse the command line or exit") in err("--net", f"{user_module}_argv:make")
     sys.modules.pop(f"{user_module}_argv", None)
