@@ -58,23 +58,6 @@ def test_scene_rows_give_their_ratio_to_dis(load_benchmark, monkeypatch, capsys,
         assert float(row[-1]) > 0
 
 
-def test_compile_bench_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, capsys, threads):
-    """The refiner with images runs OpenCV (blur, pyramids): the script's "single thread" holds
-    for it too, not for torch alone."""
-    import cv2
-
-    monkeypatch.syspath_prepend(str(BENCHMARKS))
-    bench = load_benchmark("bench_compile")
-    before = cv2.getNumThreads()
-    cv2.setNumThreads(2)
-    try:
-        assert bench.main(["--backend", "eager", "--repeats", "1"]) == 0
-        assert cv2.getNumThreads() == 1
-    finally:
-        cv2.setNumThreads(before)
-    assert "odometry+images" in capsys.readouterr().out
-
-
 def test_fit_kitti_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, capsys, threads, shared_data, tmp_path):
     """Its ms column (DIS, the photometric fits) is documented as single-thread: OpenCV's too."""
     import cv2
@@ -93,15 +76,27 @@ def test_fit_kitti_runs_opencv_on_one_thread_too(load_benchmark, monkeypatch, ca
     assert "OpenCV DIS" in capsys.readouterr().out
 
 
-def test_compile_bench_cold_removes_its_cache(load_benchmark, monkeypatch, tmp_path, capsys, threads):
-    """--cold compiles into a fresh cache folder, removed when the run ends (each run left one of
-    tens of MB in the temporary folder)."""
+def test_compile_bench_runs_opencv_on_one_thread_and_cold_removes_its_cache(load_benchmark, monkeypatch, tmp_path,
+                                                                           capsys, threads):
+    """The refiner with images runs OpenCV (blur, pyramids): the script's "single thread" holds
+    for it too, not for torch alone. And ``--cold`` compiles into a fresh cache folder, removed
+    when the run ends (each run left one of tens of MB in the temporary folder). One run checks
+    both (the script compiles every case: tens of seconds)."""
     import tempfile
+
+    import cv2
 
     monkeypatch.syspath_prepend(str(BENCHMARKS))
     monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
     monkeypatch.delenv("TORCHINDUCTOR_CACHE_DIR", raising=False)
     bench = load_benchmark("bench_compile")
-    assert bench.main(["--cold", "--backend", "eager", "--repeats", "1"]) == 0
-    assert "cold cache" in capsys.readouterr().out
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(2)
+    try:
+        assert bench.main(["--cold", "--backend", "eager", "--repeats", "1"]) == 0
+        assert cv2.getNumThreads() == 1
+    finally:
+        cv2.setNumThreads(before)
+    out = capsys.readouterr().out
+    assert "odometry+images" in out and "cold cache" in out
     assert list(tmp_path.glob("fsof_inductor_*")) == []
