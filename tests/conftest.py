@@ -85,24 +85,35 @@ def no_hang() -> Iterator[None]:
 
 
 @pytest.fixture
-def kernel_paths(tmp_path_factory, monkeypatch) -> list[str]:
-    """Paths on the kernel's proc and sysfs file systems, as a made-up mount table places them
-    (two folders outside the test's ``tmp_path``; the same on any machine): outputs the jobs
-    cannot create. The first is the proc file system's root itself, the others lie below one."""
+def mount_table(monkeypatch) -> Callable[[str], None]:
+    """``mount_table(text)``: the file system checks of ``fsof_torch.io.atomic`` read ``text`` as
+    the process's mount table (``/proc/self/mountinfo``) for the rest of the test, or until
+    ``monkeypatch.undo()``."""
     import io
 
     import fsof_torch.io.atomic as atomic
 
+    real_open = open
+
+    def use(text: str) -> None:
+        monkeypatch.setattr(atomic, "open", lambda path, *a, **k: io.StringIO(text)
+                            if path == "/proc/self/mountinfo" else real_open(path, *a, **k), raising=False)
+
+    return use
+
+
+@pytest.fixture
+def kernel_paths(tmp_path_factory, mount_table) -> list[str]:
+    """Paths on the kernel's proc and sysfs file systems, as a made-up mount table places them
+    (two folders outside the test's ``tmp_path``; the same on any machine): outputs the jobs
+    cannot create. The first is the proc file system's root itself, the others lie below one."""
     root = tmp_path_factory.mktemp("kernel")
     proc, sys_ = root / "proc", root / "sys"
     proc.mkdir()
     sys_.mkdir()
-    table = ("22 1 0:21 / / rw - ext4 /dev/vda rw\n"
-             f"23 22 0:22 / {proc} rw,nosuid - proc proc rw\n"
-             f"24 22 0:23 / {sys_} rw,nosuid - sysfs sysfs rw\n")
-    real_open = open
-    monkeypatch.setattr(atomic, "open", lambda path, *a, **k: io.StringIO(table) if path == "/proc/self/mountinfo"
-                        else real_open(path, *a, **k), raising=False)
+    mount_table("22 1 0:21 / / rw - ext4 /dev/vda rw\n"
+                f"23 22 0:22 / {proc} rw,nosuid - proc proc rw\n"
+                f"24 22 0:23 / {sys_} rw,nosuid - sysfs sysfs rw\n")
     return [str(proc), str(proc / "x"), str(sys_ / "x" / "y")]
 
 

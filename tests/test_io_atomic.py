@@ -313,13 +313,10 @@ def test_creation_error_names_the_option(tmp_path, monkeypatch):
         f"--out: the folder {str(tmp_path)!r} is not writable, so {str(tmp_path / 'a')!r} cannot be created")
 
 
-def test_the_kernels_file_systems_are_found_in_the_mount_table(tmp_path, monkeypatch):
+def test_the_kernels_file_systems_are_found_in_the_mount_table(tmp_path, monkeypatch, mount_table):
     """A path on the kernel's proc or sysfs (or another of its interfaces) cannot be created,
     whatever ``os.access`` says to root: ``--out /proc/x`` failed at mkdir, after the checks. The
     mount table's escaped mount points, and a disk mounted below such a file system, are read right."""
-    import io
-
-    import fsof_torch.io.atomic as atomic
     from fsof_torch.io.atomic import creation_error, kernel_file_system
 
     spaced = tmp_path / "a b"
@@ -328,9 +325,7 @@ def test_the_kernels_file_systems_are_found_in_the_mount_table(tmp_path, monkeyp
     table = ("22 1 0:21 / / rw - ext4 /dev/vda rw\n"
              f"23 22 0:22 / {escaped} rw,relatime - sysfs sysfs rw\n"
              f"24 23 0:23 / {escaped}/disk rw shared:5 - ext4 /dev/vdb rw\n")
-    real_open = open
-    monkeypatch.setattr(atomic, "open", lambda path, *a, **k: io.StringIO(table) if path == "/proc/self/mountinfo"
-                        else real_open(path, *a, **k), raising=False)
+    mount_table(table)
     assert kernel_file_system(spaced) == "sysfs" and kernel_file_system(tmp_path) is None
     assert kernel_file_system(spaced / "disk") is None
     assert creation_error(spaced / "x" / "y.json", "--json") == (
