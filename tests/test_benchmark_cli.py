@@ -219,7 +219,8 @@ def runs(tmp_path_factory) -> dict[tuple[str, tuple[str, ...]], dict]:
     (clip / "image_l").mkdir(parents=True)
     for name in ("image_l/000000.png", "image_l/000001.png", "calib.txt", "road.json", "poses.txt"):
         (clip / name).write_bytes(b"garbage")
-    cases = [(script, args) for script, args, _ in BAD] + [QUICKSTART_FAILS] + [(script, ["--help"]) for script in SCRIPTS]
+    cases = [(script, args) for script, args, _ in BAD] + [QUICKSTART_FAILS]
+    cases += [(script, ["--help"]) for script in SCRIPTS]
     given = [(script, [a.replace(TMP, str(folder)) for a in args]) for script, args in cases]
     (tmp / "cases.json").write_text(json.dumps(given))
     subprocess.run([sys.executable, "-c", DRIVER, str(BENCHMARKS), str(tmp / "cases.json"), str(tmp / "out.json")],

@@ -106,16 +106,16 @@ def test_code_digest_refuses_what_is_no_folder(tmp_path):
 def test_cpu_name_reads_proc_cpuinfo(monkeypatch):
     """The first ``model name`` of a made-up ``/proc/cpuinfo`` (as x86 Linux writes it; Arm's
     ``Model`` where it has none), whatever machine runs the test."""
-    assert cpu_name() == cpu_name()  # (read once, then cached)
     import io
 
     import fsof_torch.io.provenance as provenance
 
-    for info, name in [("processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: Intel(R) Xeon(R) CPU @ 2.20GHz\n"
-                        "processor\t: 1\nmodel name\t: Intel(R) Xeon(R) CPU @ 2.20GHz\n", "Intel(R) Xeon(R) CPU @ 2.20GHz"),
-                       ("processor\t: 0\nBogoMIPS\t: 108.00\n\nModel\t\t: Raspberry Pi 4 Model B Rev 1.4\n",
-                        "Raspberry Pi 4 Model B Rev 1.4")]:
-        real_open = open
+    assert cpu_name() == cpu_name()  # (read once, then cached)
+    real_open = open
+    xeon, pi = "Intel(R) Xeon(R) CPU @ 2.20GHz", "Raspberry Pi 4 Model B Rev 1.4"
+    for info, name in [(f"processor\t: 0\nvendor_id\t: GenuineIntel\nmodel name\t: {xeon}\n"
+                        f"processor\t: 1\nmodel name\t: {xeon}\n", xeon),
+                       (f"processor\t: 0\nBogoMIPS\t: 108.00\n\nModel\t\t: {pi}\n", pi)]:
         monkeypatch.setattr(provenance, "open", lambda path, *a, info=info, **k: io.StringIO(info)
                             if path == "/proc/cpuinfo" else real_open(path, *a, **k), raising=False)
         assert cpu_name.__wrapped__() == name  # (past the cache of the real machine's name)
