@@ -16,8 +16,8 @@ SHARED_DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 
 def pytest_configure(config) -> None:
     """In each of pytest-xdist's processes, torch's intra-op threads are the process's share of
-    the CPU's cores (one each where there are as many processes as cores): threads of several
-    processes contending for the same cores slow every test down."""
+    the CPU's cores (one each where there are as many processes as cores), so that the
+    processes' threads do not contend for the same cores."""
     import os
 
     workers = os.environ.get("PYTEST_XDIST_WORKER_COUNT")
