@@ -628,13 +628,13 @@ def test_fine_points_take_the_finest_levels_points_evenly_spread(monkeypatch):
     cam = small_camera()
     image1, image2, mask, _ = synthetic_pair(cam, 0.0, 0.3, 0.0)
     built = []
-    level_problem = image_fit._level_problem
+    level_problem = image_fit.level_problem
 
     def spy(model, camera, img, m, fraction, max_points, *rest):
         built.append((img.shape[-2:] == image1.shape[-2:], fraction, max_points))
         return level_problem(model, camera, img, m, fraction, max_points, *rest)
 
-    monkeypatch.setattr(image_fit, "_level_problem", spy)
+    monkeypatch.setattr(image_fit, "level_problem", spy)
     plain = fit_image(image1, image2, mask, cam, max_points=500)
     assert built and {b[1:] for b in built} == {(0.5, 500)}
     built.clear()

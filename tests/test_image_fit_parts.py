@@ -13,7 +13,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from fsof_torch import Camera
-from fsof_torch.estimation.image_fit import _grey_pair, _level_problem, _pixel_gradient, _with_gradient, gaussian_blur
+from fsof_torch.estimation.image_fit import _grey_pair, gaussian_blur
+from fsof_torch.estimation.image_problem import ImageProblem, level_problem, pixel_gradient, with_gradient
 from fsof_torch.estimation.pyramid import mask_pyramid
 from fsof_torch.geometry.road_models import get_road_model
 
@@ -43,13 +44,13 @@ def test_mask_pyramid_is_a_min_pool_at_every_second_pixel(shape, density, seed):
 def test_image_gradient_is_the_central_difference_with_a_replicated_border(shape, seed):
     B, H, W = shape
     image = torch.rand(B, 1, H, W, generator=torch.Generator().manual_seed(seed), dtype=torch.float64) * 255
-    out = _with_gradient(image)
+    out = with_gradient(image)
     p = F.pad(image, (1, 1, 1, 1), mode="replicate")
     assert torch.equal(out[:, :1], image)
     assert torch.equal(out[:, 1:2], 0.5 * (p[..., 1:-1, 2:] - p[..., 1:-1, :-2]))
     assert torch.equal(out[:, 2:3], 0.5 * (p[..., 2:, 1:-1] - p[..., :-2, 1:-1]))
     before = image.clone()
-    _with_gradient(image)
+    with_gradient(image)
     assert torch.equal(image, before)
 
 
@@ -73,8 +74,8 @@ def test_level_points_follow_the_documented_rule_whatever_the_batch(H, W, densit
     full = torch.ones_like(mask)
     cam = Camera(torch.tensor([[50.0, 0, W / 2], [0, 50.0, 1.0], [0, 0, 1]], dtype=torch.float64), 1.65)
     model = get_road_model("plane")
-    alone = _level_problem(model, cam, img[:1], mask, fraction, max_points, 1)
-    both = _level_problem(model, cam.expand(2), img, torch.cat([mask, full]), fraction, max_points, 1)
+    alone = level_problem(model, cam, img[:1], mask, fraction, max_points, 1)
+    both = level_problem(model, cam.expand(2), img, torch.cat([mask, full]), fraction, max_points, 1)
     assert _points(alone, 0) == _points(both, 0)
     count = int(mask.sum())
     if max_points is None:
@@ -87,7 +88,7 @@ def test_level_points_follow_the_documented_rule_whatever_the_batch(H, W, densit
     # are all candidates)
     if count and fraction < 1 and (max_points is None or count <= min(math.ceil(max_points / fraction), H * W)):
         # (the gradient the selection ranks by: central differences, one-sided at the border)
-        grad = _pixel_gradient(img[:1, :1], torch.arange(H * W)[None])[1][0].abs().sum(0).reshape(H, W)
+        grad = pixel_gradient(img[:1, :1], torch.arange(H * W)[None])[1][0].abs().sum(0).reshape(H, W)
         chosen = {(int(u), int(v)) for u, v in _points(alone, 0)}
         inside = [(grad[v, u].item(), (u, v)) for v, u in mask[0, 0].nonzero().tolist()]
         weakest_kept = min(s for s, uv in inside if uv in chosen)
@@ -102,7 +103,7 @@ def test_pixel_gradient_is_the_plain_central_difference(B, H, W):
     0 across a single pixel."""
     img = torch.rand(B, 1, H, W, generator=torch.Generator().manual_seed(0)) * 255
     pix = torch.randint(0, H * W, (B, 40), generator=torch.Generator().manual_seed(1))
-    value, grad = _pixel_gradient(img, pix)
+    value, grad = pixel_gradient(img, pix)
     x = img[:, 0]
     right, left = torch.cat([x[..., 1:], x[..., -1:]], -1), torch.cat([x[..., :1], x[..., :-1]], -1)
     down, up = torch.cat([x[:, 1:], x[:, -1:]], 1), torch.cat([x[:, :1], x[:, :-1]], 1)
@@ -208,7 +209,6 @@ def test_image_residuals_count_only_points_below_the_horizon():
     camera: the ray K⁻¹ p̃ turned into the vehicle frame (R_c = R_roll R_pitch, written here) points
     down (y > 0). With no motion every point maps onto itself, inside image 2: only the horizon
     decides."""
-    from fsof_torch.estimation.image_fit import ImageProblem
 
     roll, pitch = 0.05, -0.03
     K = torch.tensor([[100.0, 0.0, 40.0], [0.0, 100.0, 20.0], [0.0, 0.0, 1.0]], dtype=torch.float64)
@@ -227,7 +227,7 @@ def test_image_residuals_count_only_points_below_the_horizon():
     N = pts.shape[-1]
     model = get_road_model("plane")
     problem = ImageProblem(model, cam, pts, torch.zeros(1, N, dtype=torch.float64),
-                           torch.zeros(1, 2, N, dtype=torch.float64), _with_gradient(image),
+                           torch.zeros(1, 2, N, dtype=torch.float64), with_gradient(image),
                            torch.ones(1, N, dtype=torch.bool))
     params = torch.zeros(1, len(model.params) + 2, dtype=torch.float64)
     params[0, model.params.index("roll")], params[0, model.params.index("pitch")] = roll, pitch

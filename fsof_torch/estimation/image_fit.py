@@ -37,7 +37,7 @@ from __future__ import annotations
 
 import inspect
 import math
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 import torch
 from torch import Tensor
@@ -50,16 +50,17 @@ from ..geometry.camera import Camera
 from ..geometry.road_flow import flow_from_map
 from ..geometry.road_models import RoadModel, pack_params
 from .flow_fit import RoadFit
-from .sampling import MaskPoints, pixel_coordinates, resample_mask, sample_mask, sample_points
+from .sampling import sample_mask
 from .confidence import backward_correlation, detail_correlation, photometric_inliers, spread_out, warped_samples
 from .priors import DEG, calibration_prior, clear_of_bounds, physical_bounds, prior_arrays
 from .pyramid import band, gaussian_blur, image_pyramid, level_camera, mask_pyramid, pyramid_levels
 from .image_options import check_bounds, check_prior_values, checked_options, held_parameters
+from .image_problem import level_problem, level_scale
 from .starts import (REVERSE_STARTS, TURN_STARTS, better_fit, reverse_moves, screened_start, start_list, starts_ahead,
                      turn_moves, two_way_cost)
-from .solver import Evaluation, Solution, positive_definite, solve
+from .solver import Solution, positive_definite, solve
 
-__all__ = ["fit_image", "fit_photometric", "check_image_fit_options", "ImageProblem", "calibration_prior", "physical_bounds",
+__all__ = ["fit_image", "fit_photometric", "check_image_fit_options", "calibration_prior", "physical_bounds",
            "image_pyramid", "gaussian_blur", "DEG"]
 
 # a coarser level ends when a step moves (or the next step is predicted to move) the residuals by
@@ -70,109 +71,6 @@ _COARSE_RESOLUTION = 0.1
 # surely than it does the turns (python benchmarks/turn_screen.py; tests/test_fit_starts.py, fast
 # backward frames whose best-ranked step descends to a wrong motion)
 _REVERSE_TRIES = 2
-
-
-def _with_gradient(image: Tensor) -> Tensor:
-    """``image`` (B, 1, H, W) and its central-difference gradient: (B, 3, H, W) = (I, ∂I/∂x,
-    ∂I/∂y), replicated at the border. Sampling this bilinearly gives the same numbers as central
-    differences of bilinear samples one pixel apart (both are linear in the pixels, and a shift by
-    whole pixels keeps the interpolation weights), for one ``grid_sample`` of three channels
-    instead of five points."""
-    # (written into one tensor, without a padded copy: half the difference of the two neighbours,
-    # the pixel itself standing in for a missing one at the border; 0 across a single pixel)
-    B, _, H, W = image.shape
-    out = image.new_empty(B, 3, H, W)
-    out[:, :1] = image
-    gx, gy = out[:, 1:2], out[:, 2:3]
-    if W > 1:
-        torch.sub(image[..., 2:], image[..., :-2], out=gx[..., 1:-1])
-        torch.sub(image[..., 1:2], image[..., :1], out=gx[..., :1])
-        torch.sub(image[..., -1:], image[..., -2:-1], out=gx[..., -1:])
-    else:
-        gx.zero_()
-    if H > 1:
-        torch.sub(image[..., 2:, :], image[..., :-2, :], out=gy[..., 1:-1, :])
-        torch.sub(image[..., 1:2, :], image[..., :1, :], out=gy[..., :1, :])
-        torch.sub(image[..., -1:, :], image[..., -2:-1, :], out=gy[..., -1:, :])
-    else:
-        gy.zero_()
-    out[:, 1:].mul_(0.5)
-    return out
-
-
-def _pixel_gradient(image: Tensor, pix: Tensor) -> tuple[Tensor, Tensor]:
-    """``image`` (B, 1, H, W) at flat pixel indices (B, N): values (B, N) and central-difference
-    gradients (B, 2, N) (one-sided at the image border), gathered (no gradient image)."""
-    H, W = image.shape[-2:]
-    B, N = pix.shape
-    v = torch.div(pix, W, rounding_mode="floor")
-    u = pix - v * W
-    # the neighbours' columns and rows, clamped into the image (one-sided differences at its
-    # border); the pixel and its four neighbours read in one gather
-    left, right = (u - 1).clamp_min(0), (u + 1).clamp_max(W - 1)
-    up, down = (v - 1).clamp_min(0), (v + 1).clamp_max(H - 1)
-    row = v * W
-    at = image.reshape(B, -1).gather(1, torch.cat([pix, row + right, row + left, down * W + u, up * W + u], dim=1))
-    at = at.reshape(B, 5, N)
-    du, dv = (right - left).to(image.dtype), (down - up).to(image.dtype)
-    g = torch.stack([(at[:, 1] - at[:, 2]) / du.clamp_min(1), (at[:, 3] - at[:, 4]) / dv.clamp_min(1)], dim=1)
-    return at[:, 0].to(torch.float64), g.to(torch.float64)
-
-
-class ImageProblem:
-    """The photometric residuals of a road model at fixed sample points of one pyramid level.
-
-    Parameters (B, P + 2): the model's, then the gain a and the offset b. Residual per point:
-    e = a I_2(x + f(x; p)) + b − I_1(x), grey levels.
-
-    ``pts`` (B, 3, N) homogeneous pixel coordinates of the points, ``I1`` (B, N) and ``grad1``
-    (B, 2, N) image1 there, ``image2`` (B, 3, H, W) image2 with its gradient (I, ∂I/∂x, ∂I/∂y),
-    ``sel`` (B, N) the real points.
-    """
-
-    def __init__(self, model: RoadModel, camera: Camera, pts: Tensor, I1: Tensor, grad1: Tensor,
-                 image2: Tensor, sel: Tensor) -> None:
-        self.model, self.pts, self.I1, self.grad1, self.image2, self.sel = model, pts, I1, grad1, image2, sel
-        self.K, self.K_inv, self.height = camera.K, camera.K_inv(), camera.height
-        self.horizon_camera = camera
-        self.count = sel.sum(1)
-        self.P = len(model.params)
-        # (the iterations' constants, formed once: the points as the rows of the outer products,
-        # and the offset's column of the Jacobian)
-        self._pts_rows = pts.unsqueeze(1)  # (B, 1, 3, N)
-        self._ones = torch.ones_like(I1).unsqueeze(1)  # (B, 1, N)
-
-    def evaluate(self, params: Tensor) -> Evaluation:
-        P = self.P
-        # (the gain and offset as columns (B, 1): broadcast against the points without reshaping)
-        values, gain, offset = params[:, :P], params[:, P:P + 1], params[:, P + 1:P + 2]
-        M, dM, horizon = self.model.evaluate(self.K, self.K_inv, self.height, values, True)
-        if horizon is None:
-            horizon = self.model.horizon_row(self.horizon_camera, values)
-        B = M.shape[0]
-        q = torch.bmm(torch.cat([M, horizon], dim=1), self.pts)  # (B, 4, N): the mapped point, the horizon test
-        qz = q[:, 2]
-        ok = self.sel & (q[:, 3] > 0) & (qz > 1e-9)
-        inv_z = torch.where(ok, qz, 1.0).reciprocal().unsqueeze(1)  # (B, 1, N)
-        proj = q[:, :2] * inv_z
-        sample, inb = sample_points(self.image2, proj)  # (B, 3, N): I_2 and its gradient
-        I2, grad2 = sample[:, 0], sample[:, 1:]
-        use = ok & inb
-        e = gain * I2 + offset - self.I1
-        # efficient second-order minimisation: the mean of both images' gradients
-        grad = 0.5 * (self.grad1 + gain.unsqueeze(-1) * grad2)
-        # ∂e/∂p = g · ∂proj/∂p with ∂proj/∂p = (dq_xy − proj dq_z) / z and dq = dM x:
-        # = Σ_ij dM_ij c_i x_j, c = (g_x, g_y, −g · proj) / z, one (P x 9) @ (9 x N) product
-        c = torch.cat([grad, -(grad * proj).sum(1, keepdim=True)], dim=1) * inv_z
-        outer = (c.unsqueeze(2) * self._pts_rows).reshape(B, 9, -1)
-        J_image = torch.bmm(dM.reshape(B, P, 9), outer)
-        J = torch.cat([J_image, sample[:, :1], self._ones], dim=1)  # (by the gain: I_2; by the offset: 1)
-        return Evaluation(e.square(), use, e.unsqueeze(1), J)
-
-    def normal_equations(self, ev: Evaluation, w: Tensor) -> tuple[Tensor, Tensor]:
-        J = ev.state  # (B, P + 2, N)
-        Jw = J * w.unsqueeze(1)
-        return torch.bmm(Jw, J.transpose(1, 2)), torch.bmm(Jw, ev.residual.transpose(1, 2)).squeeze(-1)
 
 
 def _grey_pair(image1: Tensor, image2: Tensor, dtype: torch.dtype) -> Tensor | None:
@@ -448,7 +346,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
 
         def run(level: int, reps: int, params: Tensor, prior: bool = True) -> Solution:
             fine = level == 0 and fine_points is not None  # (the finest level's own points)
-            problem = _level_problem(model, level_camera(cam64, level), compared(level), masks[level],
+            problem = level_problem(model, level_camera(cam64, level), compared(level), masks[level],
                                      1.0 if fine else gradient_fraction, fine_points if fine else max_points, reps,
                                      points if level == 0 else None)
             rep = (lambda t: None if t is None else t.repeat(reps, 1))
@@ -456,7 +354,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             precision = (lambda s: s.square().unsqueeze(-1) * rep(inverse_variance)) if prior else None
             return solve(problem, params, free=free, prior_mean=rep(prior_mean) if prior else None,
                          prior_precision=precision, lower=rep(bound_lo), upper=rep(bound_hi), kernel=robust,
-                         scale=_level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
+                         scale=level_scale(scale, reps), max_iter=max_iter, tol=tol if level == 0 else max(tol, 1e-4),
                          # a coarse level only has to land in the next one's basin: it also ends
                          # where the next step is predicted not to matter
                          resolution=resolution if level == 0 else max(resolution, _COARSE_RESOLUTION),
@@ -621,66 +519,6 @@ def _fit_image_defaults() -> dict[str, Any]:
     """fit_image's keyword-only arguments and their defaults."""
     params = inspect.signature(fit_image).parameters.values()
     return {p.name: p.default for p in params if p.kind is inspect.Parameter.KEYWORD_ONLY}
-
-
-def _level_problem(model: RoadModel, camera: Camera, img: Tensor, mask: Tensor, gradient_fraction: float,
-                   max_points: int | None, reps: int, pixels: MaskPoints | None = None) -> ImageProblem:
-    """The sample points of one pyramid level (the points that carry the information): the k road
-    pixels of each frame with the strongest gradient among its candidates, where
-
-    - with ``max_points``, the candidates are up to n = min(⌈max_points / gradient_fraction⌉,
-      h w) road pixels evenly spread, and k = round(gradient_fraction n) (``max_points``, or
-      ``gradient_fraction`` of a level smaller than n): a frame whose road has no more than k
-      pixels at the level keeps all of them;
-    - with None, the candidates are all the frame's road pixels and k is round(gradient_fraction
-      × their count), at least 1 (ties in raster order): a frame's points do not depend on its
-      batch-mates.
-
-    ``pixels``: the mask's pixels where already known."""
-    w_l = img.shape[-1]
-    I1, I2 = img[:, :1], img[:, 1:]
-    # (no more candidates than the level has pixels: coarse levels do not carry padding)
-    n_candidates = None if max_points is None else min(int(math.ceil(max_points / gradient_fraction)),
-                                                        img.shape[-2] * w_l)
-    points = sample_mask(mask, n_candidates) if pixels is None else resample_mask(pixels, mask.shape[-2:], n_candidates)
-    I1p, g1p = _pixel_gradient(I1, points.pix)
-    pix, sel = points.pix, points.sel
-    if gradient_fraction < 1.0:
-        # of each frame's candidates, the strongest gradients (padding never wins)
-        keep = max(1, int(round(gradient_fraction * pix.shape[1])))
-        strength = torch.where(sel, g1p.abs().sum(1), -1.0)
-        if max_points is None:
-            # the candidates are padded to the largest count in the batch: each frame keeps its
-            # own share (a stable order: the same points whatever the padding)
-            ranked = strength.sort(dim=1, descending=True, stable=True).indices[:, :keep]
-            own = (gradient_fraction * points.count.to(torch.float64)).round().clamp_min(1)
-            within = torch.arange(keep, device=pix.device) < own.unsqueeze(1)  # (B, keep), rank order
-            sel = sel & torch.zeros_like(sel).scatter_(1, ranked, within)
-        else:
-            ranked = strength.topk(keep, dim=1, sorted=False).indices  # (the same set: raster order below)
-        order = ranked.sort(dim=1).values
-        pix, sel, I1p, g1p = pix.gather(1, order), sel.gather(1, order), I1p.gather(1, order), \
-            g1p.gather(2, order.unsqueeze(1).expand(-1, 2, -1))
-    pts = pixel_coordinates(pix, w_l)
-    # (one start uses the level's tensors themselves, several a copy per start)
-    rep = (lambda t: t) if reps == 1 else (lambda t: t.repeat(reps, *([1] * (t.dim() - 1))))
-    cam = camera if reps == 1 else camera.repeat(reps)
-    return ImageProblem(model, cam, rep(pts), rep(I1p), rep(g1p), rep(_with_gradient(I2)), rep(sel))
-
-
-def _level_scale(scale: float | None, reps: int) -> float | Callable[[Evaluation], Tensor]:
-    """The kernel's scale per sample (grey levels): given, or 1.4826 × the median absolute
-    residual at the level's start (of the first start where several compete, so that their costs
-    compare), at least 2."""
-    if scale is not None:
-        return float(scale)
-
-    def from_start(ev: Evaluation) -> Tensor:
-        mad = torch.nanmedian(torch.where(ev.use, ev.r2.sqrt(), float("nan")), dim=1).values
-        s = (1.4826 * torch.nan_to_num(mad, nan=2.0)).clamp_min(2.0)
-        return s.reshape(reps, -1)[0].repeat(reps)
-
-    return from_start
 
 
 def fit_photometric(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *, init: Any = None,
