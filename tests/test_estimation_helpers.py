@@ -355,6 +355,71 @@ def test_cpu_filters_take_a_tensor_requiring_grad():
     assert torch.equal(xg.grad, torch.ones_like(x))
 
 
+# -- band inside a mask ----------------------------------------------------------------------------
+
+def _masked_band_reference(img: np.ndarray, mask: np.ndarray, sigma: float) -> np.ndarray:
+    """The band inside ``mask`` written out: at each pixel, the image minus the Gaussian-weighted
+    mean of the mask's pixels around it (weights g(dy) g(dx) over ±⌈3σ⌉, reflected at the border
+    without repeating the edge), or minus the plain weighted mean where the mask's share of the
+    weights is below 0.05. ``img`` and ``mask`` (H, W)."""
+    r = math.ceil(3 * sigma)
+    g = np.exp(-np.arange(-r, r + 1) ** 2 / (2 * sigma ** 2))
+    g /= g.sum()
+    im, m = np.pad(img, r, mode="reflect"), np.pad(mask.astype(np.float64), r, mode="reflect")
+    H, W = img.shape
+    out = np.empty_like(img)
+    for y in range(H):
+        for x in range(W):
+            w = np.outer(g, g)
+            wm = w * m[y:y + 2 * r + 1, x:x + 2 * r + 1]
+            patch = im[y:y + 2 * r + 1, x:x + 2 * r + 1]
+            mean = (wm * patch).sum() / wm.sum() if wm.sum() >= 0.05 else (w * patch).sum()
+            out[y, x] = img[y, x] - mean
+    return out
+
+
+@pytest.mark.parametrize("host", [True, False], ids=["opencv", "torch"])
+def test_band_inside_a_mask_is_the_normalised_convolution(monkeypatch, host):
+    """``band(img, sigma, mask)`` against the weighted means written out per pixel, for a mask per
+    channel (two frames, each its own) and one broadcast over the channels and the batch, on
+    OpenCV's path and on torch's."""
+    if not host:
+        monkeypatch.setattr(P, "host_path", lambda t: False)
+    g = torch.Generator().manual_seed(11)
+    img = torch.rand(2, 2, 14, 17, generator=g, dtype=torch.float64) * 255
+    own = torch.rand(2, 2, 14, 17, generator=g) > 0.4
+    own[0, 0, :, 9:] = False  # (pixels more than 1.6 σ from the mask: the plain mean there)
+    shared = own[:1, :1]
+    for mask in (own, shared):
+        got = P.band(img, 1.5, mask)
+        assert got.shape == img.shape and got.dtype == img.dtype
+        if mask is own:
+            torch.testing.assert_close(got[0, 0, :, -1], P.band(img, 1.5)[0, 0, :, -1], rtol=0, atol=1e-9)
+        for b in range(2):
+            for c in range(2):
+                m = mask[min(b, mask.shape[0] - 1), min(c, mask.shape[1] - 1)].numpy()
+                np.testing.assert_allclose(got[b, c].numpy(), _masked_band_reference(img[b, c].numpy(), m, 1.5),
+                                           rtol=0, atol=1e-9)
+
+
+def test_band_inside_a_mask_ignores_what_lies_outside_it():
+    """Whatever lies outside the mask (a kerb, a wall, a car beside the road) leaves the band of
+    the pixels inside as it was; a mask of every pixel gives the plain band; the caller's tensors
+    are not written."""
+    g = torch.Generator().manual_seed(12)
+    img = torch.rand(1, 2, 40, 60, generator=g, dtype=torch.float64) * 255
+    mask = torch.zeros(1, 1, 40, 60, dtype=torch.bool)
+    mask[..., 15:, 10:45] = True
+    other = torch.where(mask, img, torch.rand(img.shape, generator=g, dtype=torch.float64) * 255)
+    before = (img.clone(), mask.clone())
+    a, b = P.band(img, 4.0, mask), P.band(other, 4.0, mask)
+    inside = mask.expand_as(img)
+    torch.testing.assert_close(a[inside], b[inside], rtol=0, atol=1e-9)
+    assert not torch.allclose(P.band(img, 4.0)[inside], P.band(other, 4.0)[inside])  # (the plain band takes it in)
+    torch.testing.assert_close(P.band(img, 4.0, torch.ones_like(mask)), P.band(img, 4.0), rtol=0, atol=1e-9)
+    assert torch.equal(img, before[0]) and torch.equal(mask, before[1])
+
+
 # -- planar_start --------------------------------------------------------------------------------
 
 SIZE = (60, 160)

@@ -141,6 +141,7 @@ OPTION_ERRORS = [
     (dict(min_correlation=1.5), ValueError, r"min_correlation: expected a number in \[-1, 1\], got 1.5"),
     (dict(min_correlation="high"), TypeError, "min_correlation: expected a number, got str 'high'"),
     (dict(retry_starts=-1), ValueError, "retry_starts: expected an int >= 0, got -1"),
+    (dict(masked_band=1), TypeError, "masked_band: expected True or False, got int 1"),
     # a prior's mean and sigma: numbers, of batch 1 or B (a raw torch error before; of one frame the
     # message said "batch 1 or 1")
     (dict(prior={"roll": ("a", 0.1)}), TypeError, r"prior\['roll'\]: expected numbers or tensors \(mean, sigma\)"),
@@ -643,3 +644,39 @@ def test_fine_points_take_the_finest_levels_points_evenly_spread(monkeypatch):
     assert plain.success.all() and fine.success.all()
     same = fit_image(image1, image2, mask, cam, max_points=500, fine_points=None)
     assert all(torch.equal(same.params[k], plain.params[k]) for k in plain.params)
+
+
+def test_masked_band_takes_each_levels_mask(monkeypatch):
+    """``masked_band=True``: every band level's images are filtered inside that level's road mask
+    (the mask pyramid's level, of the images' size), the coarser levels not at all; by default no
+    mask enters. Either way the fit succeeds on a pair whose left side, outside the mask, is a
+    static wall the same in both frames."""
+    from fsof_torch import fit_image
+    from fsof_torch.estimation import image_fit
+    from fsof_torch.estimation.pyramid import mask_pyramid
+
+    cam = small_camera()
+    image1, image2, mask, flow = synthetic_pair(cam, 0.02, 0.3, 0.0)
+    wall = torch.zeros_like(mask)
+    wall[..., :70] = True
+    stripes = torch.rand(1, 1, *SIZE, generator=torch.Generator().manual_seed(5)).expand_as(image1) * 255
+    image1, image2 = (torch.where(wall, stripes, im) for im in (image1, image2))
+    road = mask & ~wall
+    levels = mask_pyramid(road, 2)
+    calls = []
+    band = image_fit.band
+
+    def spy(img, sigma, m=None):
+        calls.append((tuple(img.shape[-2:]), sigma, None if m is None else m.clone()))
+        return band(img, sigma, m)
+
+    monkeypatch.setattr(image_fit, "band", spy)
+    for masked in (False, True):
+        calls.clear()
+        fit = fit_image(image1, image2, road, cam, masked_band=masked)
+        assert bool(fit.success[0])
+        assert float((fit.flow - flow).norm(dim=1)[road[:, 0]].mean()) < 0.05
+        banded = {shape: m for shape, sigma, m in calls if sigma}
+        assert sorted(banded) == [(48, 128), (96, 256)]  # (the two finest levels, once each)
+        for level, shape in enumerate([(96, 256), (48, 128)]):
+            assert torch.equal(banded[shape], levels[level]) if masked else banded[shape] is None

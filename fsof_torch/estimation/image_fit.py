@@ -114,7 +114,7 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
               starts: Sequence[Any] = (), prior: Mapping[str, tuple[Any, Any]] | str | None = "calibration",
               bounds: str | tuple[Tensor, Tensor] | None = "physical", levels: int | None = None,
               min_size: int = 16, max_iter: int = 12, tol: float = 1e-6, resolution: float = 0.02,
-              smooth_sigma: float = 0.0, highpass: float | None = 4.0, band_levels: int = 2,
+              smooth_sigma: float = 0.0, highpass: float | None = 4.0, band_levels: int = 2, masked_band: bool = False,
               robust: str = "cauchy", scale: float | None = None, max_points: int | None = 3000,
               gradient_fraction: float = 0.5, fine_points: int | None = None, affine: bool = True,
               inlier_threshold: float = 10.0,
@@ -218,6 +218,12 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             intensities themselves; coarser levels always do, for a wide basin). A narrow band
             keeps the blur's mismatch under magnification small; docs/image-fit.md compares
             widths on real and synthetic frames.
+        masked_band: each band's blur is the mean over the level's road mask only (normalised
+            convolution, :func:`~fsof_torch.estimation.pyramid.band`), in both frames: a kerb or
+            a verge beside the road does not enter the road's band, where it pulls the pitch and
+            the vertical motion (docs/image-fit.md, "The band inside the mask"). Image 2's band
+            uses image 1's mask, which misses the road that the motion moves out of it. False:
+            the blur of every pixel.
         robust, scale: the kernel and its scale in grey levels on 0..255, whatever ``data_range``
             (default: 1.4826 × the median absolute residual at each level's start, at least 2).
         max_points, gradient_fraction: the points per frame and level that enter the
@@ -272,8 +278,9 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
     model, steps, turns, reverse, fixed, prior = checked_options(
         model=model, fixed=fixed, init=init, starts=starts, prior=prior, levels=levels,
         min_size=min_size, max_iter=max_iter, tol=tol, resolution=resolution, smooth_sigma=smooth_sigma,
-        highpass=highpass, band_levels=band_levels, robust=robust, scale=scale, max_points=max_points,
-        gradient_fraction=gradient_fraction, fine_points=fine_points, affine=affine, inlier_threshold=inlier_threshold,
+        highpass=highpass, band_levels=band_levels, masked_band=masked_band, robust=robust, scale=scale,
+        max_points=max_points, gradient_fraction=gradient_fraction, fine_points=fine_points, affine=affine,
+        inlier_threshold=inlier_threshold,
         min_points=min_points, min_inlier_fraction=min_inlier_fraction, min_correlation=min_correlation,
         data_range=data_range, check_every=check_every, forward_starts=forward_starts, turn_starts=turn_starts,
         reverse_starts=reverse_starts, retry_starts=retry_starts, retry_without_prior=retry_without_prior)
@@ -341,7 +348,8 @@ def fit_image(image1: Tensor, image2: Tensor, mask: Tensor, camera: Camera, *,
             """The level's images as the fit compares them (the band of detail on the
             ``band_levels`` finest), once."""
             if level not in compared_levels:
-                compared_levels[level] = band(pyramid[level], highpass if level < band_levels else None)
+                compared_levels[level] = band(pyramid[level], highpass if level < band_levels else None,
+                                              masks[level] if masked_band else None)
             return compared_levels[level]
 
         def run(level: int, reps: int, params: Tensor, prior: bool = True) -> Solution:

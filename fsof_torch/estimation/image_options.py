@@ -40,10 +40,11 @@ class ImageOptions(NamedTuple):
 
 def checked_options(*, model: Any, fixed: Any, init: Any, starts: Any, prior: Any, levels: Any,
                     min_size: Any, max_iter: Any, tol: Any, resolution: Any, smooth_sigma: Any, highpass: Any,
-                    band_levels: Any, robust: Any, scale: Any, max_points: Any, gradient_fraction: Any,
-                    fine_points: Any, affine: Any, inlier_threshold: Any, min_points: Any, min_inlier_fraction: Any,
-                    min_correlation: Any, data_range: Any, check_every: Any, forward_starts: Any, turn_starts: Any,
-                    reverse_starts: Any, retry_starts: Any, retry_without_prior: Any) -> ImageOptions:
+                    band_levels: Any, masked_band: Any, robust: Any, scale: Any, max_points: Any,
+                    gradient_fraction: Any, fine_points: Any, affine: Any, inlier_threshold: Any, min_points: Any,
+                    min_inlier_fraction: Any, min_correlation: Any, data_range: Any, check_every: Any,
+                    forward_starts: Any, turn_starts: Any, reverse_starts: Any, retry_starts: Any,
+                    retry_without_prior: Any) -> ImageOptions:
     """fit_image's options (all of them but the images, mask, camera and bounds, which
     :func:`check_bounds` checks against the batch) checked: a TypeError or ValueError naming the
     first bad one."""
@@ -72,6 +73,7 @@ def checked_options(*, model: Any, fixed: Any, init: Any, starts: Any, prior: An
     if not 0.0 < check_number(gradient_fraction, "gradient_fraction") <= 1.0:
         raise ValueError(f"gradient_fraction: expected a number in (0, 1], got {gradient_fraction!r}")
     check_bool(affine, "affine")
+    check_bool(masked_band, "masked_band")
     check_data_range(data_range)
     steps = check_steps(forward_starts, "forward_starts", "camera heights per frame")
     turns = check_steps(turn_starts, "turn_starts", "degrees of yaw per frame")

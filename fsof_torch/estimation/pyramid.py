@@ -153,11 +153,28 @@ def level_camera(camera: Camera, level: int) -> Camera:
     return Camera._checked(S @ camera.K, camera.height, camera.roll, camera.pitch)
 
 
-def band(img: Tensor, sigma: float | None) -> Tensor:
+#: :func:`band` inside a mask: below this share of the Gaussian's weight on the mask's pixels, a
+#: pixel's mean would rest on the blur's tail alone, and the plain blur stands instead (1.6 σ or
+#: more outside a straight edge of the mask)
+MIN_MASK_SHARE = 0.05
+
+
+def band(img: Tensor, sigma: float | None, mask: Tensor | None = None) -> Tensor:
     """Each level minus its Gaussian blur of ``sigma`` pixels (of that level): the level's band of
-    detail, indifferent to smooth changes of lighting between the frames; None: the level itself."""
+    detail, indifferent to smooth changes of lighting between the frames; None: the level itself.
+
+    ``mask`` (B or 1, 1 or C, H, W) bool: the blur is the Gaussian-weighted mean over the mask's
+    pixels only (normalised convolution: blur(img · mask) / blur(mask)), so that what lies outside
+    it (a kerb standing above the road, a verge, a car) does not enter the band of the pixels
+    inside; where the mask holds less than :data:`MIN_MASK_SHARE` of the Gaussian's weight, the
+    plain blur."""
     if not sigma:
         return img
+    if mask is not None:
+        weight = mask.to(img.dtype)
+        share = gaussian_blur(weight, sigma)
+        inside = gaussian_blur(img * weight, sigma) / share.clamp_min(MIN_MASK_SHARE)
+        return img - torch.where(share >= MIN_MASK_SHARE, inside, gaussian_blur(img, sigma))
     blurred = gaussian_blur(img, sigma)  # (a new tensor: the difference is written over it)
     if img.requires_grad or blurred.requires_grad:  # (out= does not record gradients)
         return img - blurred
