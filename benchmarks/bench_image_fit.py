@@ -13,7 +13,9 @@ Rows (median and minimum of ``--repeats`` calls each, interleaved call by call):
   and both with ``max_points=10000`` (more points per level, steadier and on synthetic frames
   more accurate, ``image_fit_settings.py``) and with 20 000 points spread evenly
   (``max_points=20000, gradient_fraction=1.0``, the more accurate choice there) and at the finest
-  level only (``fine_points=20000``): their price;
+  level only (``fine_points=20000``): their price; and with each band's blur inside the road
+  mask (``masked_band=True``), alone and in the setting measured for real cameras
+  (``fine_points=20000, smooth_sigma=1.0, masked_band=True``);
 - a Gaussian blur σ = 4 (the band-pass), the pyramid's decimation and the road mask's pyramid
   (a 3 × 3 erosion at every second pixel): OpenCV against kornia / torch (the fast paths
   ``gaussian_blur``, ``image_pyramid`` and the mask pyramid take on the CPU); and both frames
@@ -124,6 +126,9 @@ def main(argv: list[str] | None = None) -> int:
     accurate = {"max_points": 20000, "gradient_fraction": 1.0}
     accurate_refiner = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(**accurate))
     fine_refiner = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(fine_points=20000))
+    masked_refiner = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(masked_band=True))
+    real_camera = {"fine_points": 20000, "smooth_sigma": 1.0, "masked_band": True}
+    real_camera_refiner = fs.FreespaceRefiner(estimator=fs.ImageMotionEstimator(**real_camera))
     out = refiner(flow, M, cam, images=(I1, I2))
     gate = fs.ImageGate()
     grey = torch.cat([I1.mean(1, keepdim=True), I2.mean(1, keepdim=True)], 1)
@@ -153,6 +158,10 @@ def main(argv: list[str] | None = None) -> int:
         "FreespaceRefiner, 20 000 points evenly spread": lambda: accurate_refiner(flow, M, cam, images=(I1, I2)),
         "fit_image, fine_points=20000": lambda: fs.fit_image(I1, I2, M, cam, fine_points=20000),
         "FreespaceRefiner, fine_points=20000": lambda: fine_refiner(flow, M, cam, images=(I1, I2)),
+        "fit_image, masked_band=True": lambda: fs.fit_image(I1, I2, M, cam, masked_band=True),
+        "FreespaceRefiner, masked_band=True": lambda: masked_refiner(flow, M, cam, images=(I1, I2)),
+        "FreespaceRefiner, fine_points=20000, smooth_sigma=1.0, masked_band=True":
+            lambda: real_camera_refiner(flow, M, cam, images=(I1, I2)),
         "ImageGate() alone": lambda: gate(I1, I2, flow, out.flow_model, M),
         "Gaussian blur σ 4, OpenCV": lambda: gaussian_blur(grey, 4.0),
         "Gaussian blur σ 4, kornia": lambda: gaussian_blur2d(grey, (k, k), (4.0, 4.0), border_type="reflect"),

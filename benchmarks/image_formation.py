@@ -20,15 +20,18 @@ defaults (the band of detail, 3000 points) and with plain intensities and 20 000
   Jacobian from image 1 to image 2, s = ``--matched-sigma``, 1 px by default). A bound on what
   comparing the frames at matched scale could bring: it knows the true motion.
 
-    python benchmarks/image_formation.py [--pairs 4] [--matched-sigma 1.0] [--from-truth]
+    python benchmarks/image_formation.py [--pairs 4] [--matched-sigma 1.0] [--from-truth [--warped]]
 
 With ``--from-truth``, instead: where the cost's minimum lies. On the same ``body-motion`` pairs
 each fit starts at the true motion and is solved at full resolution only (``levels=1``; no prior,
 no bounds, no other starts), on the rendered frames, with the points chosen as by default (the
 3000 of strongest gradient among 6000 evenly spread), 3000, 20 000 or every road pixel evenly
 spread (``gradient_fraction=1``), and every road pixel but those within 8 px of the kerb and the
-pavement (which stand 12 cm above the road): per row the mean road EPE (px), the mean |error| of
-the camera's pitch and roll over the road (°), and the mean error of z_d (camera heights).
+pavement (which stand 12 cm above the road); then three of these with each band's blur taken
+inside the road mask (``masked_band=True``): per row the mean road EPE (px), the mean |error| of
+the camera's pitch and roll over the road (°), and the mean error of z_d (camera heights). With
+``--warped`` as well, on the pairs with image 2 replaced by image 1 warped by the true motion
+(``warped`` above): where nothing but the motion changes between the frames.
 
 One thread.
 """
@@ -129,7 +132,12 @@ FROM_TRUTH = {"3000 points, strongest gradient of 6000 (default)": ({}, 0),
               "20 000 points evenly spread": ({"max_points": 20000, "gradient_fraction": 1.0}, 0),
               "every road pixel": ({"max_points": None, "gradient_fraction": 1.0}, 0),
               "every road pixel but those within 8 px of kerb and pavement": ({"max_points": None,
-                                                                              "gradient_fraction": 1.0}, 8)}
+                                                                              "gradient_fraction": 1.0}, 8),
+              "3000, strongest gradient of 6000, band inside the mask": ({"masked_band": True}, 0),
+              "20 000 evenly spread, band inside the mask": ({"max_points": 20000, "gradient_fraction": 1.0,
+                                                              "masked_band": True}, 0),
+              "every road pixel, band inside the mask": ({"max_points": None, "gradient_fraction": 1.0,
+                                                          "masked_band": True}, 0)}
 
 
 def off_kerb(pair: dict, pixels: int) -> torch.Tensor:
@@ -176,12 +184,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--from-truth", action="store_true",
                         help="instead, fits of the body-motion pairs started at the true motion, at full resolution, "
                              "by the points they use")
+    parser.add_argument("--warped", action="store_true",
+                        help="with --from-truth: image 2 replaced by image 1 warped by the true road motion")
     parser.add_argument("--matched-sigma", type=float, default=1.0, metavar="S",
                         help="the pixel footprint (px, a Gaussian's σ) of the matched rows' blur, in (0, 4] "
                              "(default 1)")
     args = parser.parse_args(argv)
     if not 0 < args.matched_sigma <= 4:
         parser.error(f"--matched-sigma: expected a footprint in (0, 4] px, got {args.matched_sigma}")
+    if args.warped and not args.from_truth:
+        parser.error("--warped: only with --from-truth")
     torch.set_num_threads(1)
     import cv2
 
@@ -190,7 +202,8 @@ def main(argv: list[str] | None = None) -> int:
     from fsof_torch.data.scene import render_pair, render_sequence, scene_config
 
     if args.from_truth:
-        from_truth(render_sequence("body-motion", args.pairs, seed=0))
+        pairs = render_sequence("body-motion", args.pairs, seed=0)
+        from_truth([{**p, "image2": warped(p)} for p in pairs] if args.warped else pairs)
         return 0
     scenes = {"body-motion": ("body-motion", {}), "turning": ("default", {"steering": 0.1})}
     print("| scene | frames | " + " | ".join(f"{name}: EPE per pair (px) | mean" for name in FITS) + " |")

@@ -73,8 +73,11 @@ def test_warped_image_2_is_image_1_moved_by_the_road_flow(bench, monkeypatch):
 def test_from_truth_fits_stay_at_the_truth_where_image_2_is_image_1_moved(bench, capsys):
     """``--from-truth``: fits started at the true motion at full resolution, one row per choice of
     points; where image 2 is image 1 moved by the true road motion, every row stays within 0.2 px,
-    0.15° and 0.03 camera heights of the truth at this small size (the last row's mask without
-    the road beside the kerb)."""
+    0.15° and 0.03 camera heights of the truth at this small size (one row's mask without the road
+    beside the kerb). The three rows whose bands are filtered inside the road mask filter image 2
+    inside image 1's mask, which the motion moves off the road it covers: at this size (a blur of
+    4 px spans twice the road it does at full size) that costs up to 0.26° of roll (0.3 allowed);
+    at full size on four pairs they lie as near as the others (docs/image-fit.md)."""
     from fsof_torch.data.scene import render_pair
 
     pair = render_pair("body-motion", 3, size=(188, 621))  # (the attitude needs the rows)
@@ -84,11 +87,11 @@ def test_from_truth_fits_stay_at_the_truth_where_image_2_is_image_1_moved(bench,
     assert [r.split(" | ")[0][2:] for r in rows] == list(bench.FROM_TRUTH)
     for r in rows:
         e, pitch, roll, z = (float(c) for c in r.strip("| ").split(" | ")[1:])
-        assert e < 0.2 and pitch < 0.15 and roll < 0.15 and abs(z) < 0.03, r
+        assert e < 0.2 and pitch < 0.15 and roll < (0.3 if "inside the mask" in r else 0.15) and abs(z) < 0.03, r
 
 
 def test_off_kerb_leaves_out_the_road_beside_kerb_and_pavement_only(bench):
-    """The last ``--from-truth`` row's mask: the road less the pixels within r px (a square
+    """The off-kerb ``--from-truth`` row's mask: the road less the pixels within r px (a square
     window) of the kerb and the pavement, every one of them; the rest of the road stays."""
     from fsof_torch.data.scene import render_pair
     from fsof_torch.data.scene.config import KERB, PAVEMENT

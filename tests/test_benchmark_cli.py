@@ -115,6 +115,7 @@ BAD = [
     ("image_formation", ["--pairs", "0"], "--pairs"),
     ("image_formation", ["--pairs", "50001"], "--pairs"),  # (the turning scene's last pair: 100000)
     ("image_formation", ["--matched-sigma", "0"], "--matched-sigma"),
+    ("image_formation", ["--warped"], "--warped"),
     ("image_formation", ["--matched-sigma", "nan"], "--matched-sigma"),
     ("kitti_photometric", ["--data", ABSENT], "--data"),
     ("presets_refiner", ["--pairs", "-1"], "--pairs"),
