@@ -167,7 +167,7 @@ def test_data_the_library_cannot_read_exits_2_before_any_work(bench, tmp_path, c
     """A --data folder whose samples the library cannot read (a pair's frames of another size than
     its calibration's S_rect, a clip's calibration without P0, a clip frame of another size) exits
     2 naming --data and what is wrong, before the synthetic table; a readable one passes."""
-    from fsof_torch.io import write_image, write_kitti_calibration
+    from fsof_torch.io import write_image
 
     def no_work(*args, **kwargs):
         raise AssertionError("the synthetic table ran")

@@ -6,7 +6,6 @@ trusted is flagged, never applied."""
 import functools
 import warnings
 
-import pytest
 import torch
 import torch.nn.functional as F
 from hypothesis import HealthCheck, given, settings

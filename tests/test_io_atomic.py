@@ -96,8 +96,8 @@ class TestExceptions:
 
         (tmp_path / "out.png").write_bytes(b"png")
         target = tmp_path.joinpath("out.png", *below)
-        with pytest.raises(FileNotFoundError, match=rf"^path: '.*out\.png' is a file, not a folder, so "
-                                                     rf"'.*x\.flo' cannot be written$"):
+        with pytest.raises(FileNotFoundError, match=r"^path: '.*out\.png' is a file, not a folder, so "
+                                                     r"'.*x\.flo' cannot be written$"):
             write_flow(target, torch.zeros(2, 3, 4))
         assert [p.name for p in tmp_path.iterdir()] == ["out.png"]
         assert (tmp_path / "out.png").read_bytes() == b"png"
