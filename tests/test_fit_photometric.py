@@ -475,16 +475,18 @@ def test_a_fit_held_by_a_bound_fails():
     assert clear_of_bounds(params, cov, None, None).tolist() == [True, True, True]
 
 
-def test_feature_all_road_pixels_a_frames_fit_is_its_own():
+@pytest.mark.parametrize("masked_band", [False, True])
+def test_feature_all_road_pixels_a_frames_fit_is_its_own(masked_band):
     """With max_points=None (every road pixel a candidate) a frame's fit is the same alone as
-    next to a frame with a larger road."""
+    next to a frame with a larger road; with the band inside the mask too (each frame's band
+    inside its own mask)."""
     from fsof_torch import fit_image
 
     cam = small_camera()
     image1, image2, mask, _ = synthetic_pair(cam, 0.02, 0.6, 0.01)
     small = mask.clone()
     small[..., :, :128] = False
-    options = dict(model="paper", max_points=None, forward_starts=(), turn_starts=())
+    options = dict(model="paper", max_points=None, forward_starts=(), turn_starts=(), masked_band=masked_band)
     alone = fit_image(image1, image2, small, cam, **options)
     both = fit_image(image1.expand(2, -1, -1, -1), image2.expand(2, -1, -1, -1), torch.cat([mask, small]), cam,
                      **options)
