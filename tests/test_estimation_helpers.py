@@ -368,9 +368,9 @@ def _masked_band_reference(img: np.ndarray, mask: np.ndarray, sigma: float) -> n
     im, m = np.pad(img, r, mode="reflect"), np.pad(mask.astype(np.float64), r, mode="reflect")
     H, W = img.shape
     out = np.empty_like(img)
+    w = np.outer(g, g)
     for y in range(H):
         for x in range(W):
-            w = np.outer(g, g)
             wm = w * m[y:y + 2 * r + 1, x:x + 2 * r + 1]
             patch = im[y:y + 2 * r + 1, x:x + 2 * r + 1]
             mean = (wm * patch).sum() / wm.sum() if wm.sum() >= 0.05 else (w * patch).sum()
