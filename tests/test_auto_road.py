@@ -1435,7 +1435,7 @@ def test_road_option_values_check_names_and_values_as_detect_road_does():
     from fsof_torch.refinement.road_options import ROAD_VALUE_OPTIONS
 
     with pytest.raises(TypeError, match=r"^opts: unknown options \['seed_dept_m'\] of detect_road; expected some of "
-                                        r"\['edges', 'height_window', 'level', "):
+                                        r"\['edges', 'follow_path', 'height_window', 'level', "):
         road_option_values({"seed_dept_m": 40}, "opts")
     for name in ROAD_RESERVED:
         with pytest.raises(TypeError, match=rf"^opts: options \['{name}'\] of detect_road are set by"):

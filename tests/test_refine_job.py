@@ -2079,7 +2079,7 @@ def test_road_options_are_refused_before_any_work(tmp_path, capsys, user_folder)
     o = tmp_path / "o"
     base = [*TINY, "--num-pairs", "1", "--source", "dis", "--odometry", "fit", "--road", "auto", "--no-figures",
             "--out", str(o)]
-    names = ("['edges', 'height_window', 'level', 'max_height_m', 'min_coverage', 'min_height_m', 'min_misfit_px', "
+    names = ("['edges', 'follow_path', 'height_window', 'level', 'max_height_m', 'min_coverage', 'min_height_m', 'min_misfit_px', "
              "'refit', 'seed_depth_m', 'seed_level', 'seed_width_m', 'slow_max_height_m', 'window', 'z']")
     for bad, says in (('{"seed_depth_m": 40', "expected a JSON object of detect_road keyword arguments, got "
                                               "'{\"seed_depth_m\": 40' (Expecting ',' delimiter"),

@@ -6,7 +6,10 @@ verge a few centimetres higher moves by a little more, a car or a wall by much m
 
 1. **Seed.** A conservative band of road in front of the vehicle, from the geometry alone: the
    ground points within ``seed_width_m / 2`` of the camera's axis and nearer than
-   ``seed_depth_m``, seen below the horizon (:func:`road_seed`).
+   ``seed_depth_m``, seen below the horizon (:func:`road_seed`). Turning, where the motion found
+   with it (steps 2 to 5) takes the vehicle's path out of that band within its depth, the
+   detection is made again from the band along the path (:mod:`~fsof_torch.refinement.seed`), and
+   kept per sample where it is ok and its seed agrees more with its motion.
 2. **Motion.** The road's motion fitted to the images in the seed (an image estimator, the
    predicted flow one start; where that fails, on a seed twice as deep), or the caller's. With
    ``refit`` the motion is fitted again on the detected road (its boundary on the edges, step 5)
@@ -52,18 +55,19 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from .._check import (all_finite, autocast_off, batch_choices, check_bool, check_data_range, check_float_tensor,
-                      check_has_values, check_image_pair, check_image_range, check_same_device, check_shape, check_size,
-                      host_path, inference, is_number, option_error, scalar, skip_values, summary_repr)
+                      check_has_values, check_image_pair, check_image_range, check_same_device, check_shape,
+                      host_path, inference, is_number, scalar, skip_values, summary_repr)
 from ..estimation.pyramid import gaussian_blur
 from ..evaluation.photometric import to_grey
 from ..evaluation.warp import warp_backward
 from ..geometry.camera import Camera
 from ..estimation.combine import fit_at_size, select_samples, where_motion
 from ..geometry.road_flow import road_flow
-from ..geometry.road_models import plane_from_homography, road_homography, road_motion, road_motion_batch
+from ..geometry.road_models import road_motion, road_motion_batch
 from .estimators import ImageMotionEstimator, check_estimate, check_estimator, finite_estimate
 from .road_options import SLOW_MAX_HEIGHT_M, check_road_values
 from .road_region import erode_mask, focus_of_expansion, follow_edges, road_region, upsample_mask
+from .seed import ground as _ground, path_curvature, plane_motion as _plane_motion, road_seed, seed_mask
 
 __all__ = ["RoadDetection", "detect_road", "road_seed", "road_level", "check_road_size", "FLAGS", "ROAD_RESERVED"]
 
@@ -154,41 +158,6 @@ class RoadDetection:
         return self.mask & self.ok.reshape(-1, 1, 1, 1)
 
 
-# -- geometry -----------------------------------------------------------------------------------
-
-def _ground(camera: Camera, size: tuple[int, int]) -> tuple[Tensor, Tensor, Tensor]:
-    """Lateral X and forward Z (metres, vehicle frame) of the road point seen by every pixel, and
-    whether the pixel sees the road in front of the camera (below the horizon): (B, 1, H, W) each."""
-    H, W = size
-    cam = camera.to(torch.float64)
-    A = cam.mounting().transpose(-1, -2) @ cam.K_inv()  # pixel -> vehicle-frame ray
-    u = torch.arange(W, dtype=torch.float64, device=cam.device)
-    v = torch.arange(H, dtype=torch.float64, device=cam.device)
-    ray = A[:, :, 0:1, None] * u + A[:, :, 1:2, None] * v[:, None] + A[:, :, 2:3, None]  # (B, 3, H, W)
-    below = ray[:, 1] > 1e-9
-    s = cam.height.reshape(-1, 1, 1) / torch.where(below, ray[:, 1], 1.0)
-    return (s * ray[:, 0]).unsqueeze(1), (s * ray[:, 2]).unsqueeze(1), below.unsqueeze(1)
-
-
-def road_seed(camera: Camera, size: tuple[int, int], *, width_m: float = 4.0, depth_m: float = 20.0) -> Tensor:
-    """The conservative road in front of the vehicle, from the camera's geometry alone.
-
-    The pixels whose viewing ray meets the road plane (the camera's height, roll and pitch) in
-    front of the camera, within ``width_m / 2`` of the vehicle's axis and nearer than ``depth_m``
-    metres: a lane-wide band from the bottom of the image towards the horizon.
-
-    Returns (B, 1, H, W) bool, B the camera's batch.
-    """
-    if not isinstance(camera, Camera):
-        raise TypeError(f"camera: expected a fsof_torch.Camera, got {type(camera).__name__}")
-    width_m, depth_m = scalar(width_m, "width_m"), scalar(depth_m, "depth_m")
-    for name, value in (("width_m", width_m), ("depth_m", depth_m)):
-        if not is_number(value) or not (0 < value < math.inf):
-            raise option_error(value, f"{name}: expected a finite number of metres > 0, got {value!r}")
-    X, Z, below = _ground(camera, check_size(size))
-    return below & (X.abs() <= float(width_m) / 2) & (Z <= float(depth_m))
-
-
 def _level_camera(camera: Camera, level: int) -> Camera:
     """The camera of images averaged over 2**level × 2**level blocks (pixel i there is the
     block of pixels 2**level i .. 2**level (i + 1) - 1)."""
@@ -197,25 +166,6 @@ def _level_camera(camera: Camera, level: int) -> Camera:
 
 def _pool(x: Tensor, level: int) -> Tensor:
     return x if level == 0 else F.avg_pool2d(x, 2 ** level)
-
-
-def _plane_motion(motion: Any, camera: Camera) -> tuple[str, dict[str, Tensor]]:
-    """The motion as a model with metric translation (``"paper"`` or ``"plane"``): a
-    ``"homography"`` is decomposed with the camera's attitude, and with the fit's own camera where
-    it has one (its homography is in the pixels of the images it was fitted to), else ``camera``;
-    one given by its parameters (calibrated: no resolution) is built with ``camera``. (Its plane
-    gives the parallax of raised surfaces; the road is judged with the homography's own flow.)"""
-    model, params = road_motion(motion, "motion")
-    if model.name in ("paper", "plane"):
-        return model.name, params
-    if model.name == "homography":
-        H, own = getattr(motion, "homography", None), getattr(motion, "camera", None)
-        cam = (own if isinstance(own, Camera) and H is not None else camera).to(torch.float64)
-        if H is None:
-            H = road_homography(cam, {k: torch.as_tensor(v, dtype=torch.float64, device=cam.device) for k, v in params.items()},
-                                model="homography")
-        return "plane", plane_from_homography(H.to(torch.float64), cam)
-    raise ValueError(f"motion: expected a displacement model ('paper', 'plane' or 'homography'), got {model.name!r}")
 
 
 # -- image statistics ---------------------------------------------------------------------------
@@ -439,7 +389,7 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
                 seed_width_m: float = 4.0, seed_depth_m: float = 20.0, min_height_m: float = 0.1,
                 max_height_m: float = 0.3, slow_max_height_m: float | None = SLOW_MAX_HEIGHT_M, z: float = 2.0, window: int = 7,
                 height_window: int = 15, min_misfit_px: float = 0.5, min_coverage: float = 0.01,
-                edges: bool = True, warn: bool = True) -> RoadDetection:
+                edges: bool = True, follow_path: bool = True, warn: bool = True) -> RoadDetection:
     """The road in image 1: the region connected to the road in front of the vehicle that moves like
     the road plane (see the module for the method).
 
@@ -466,7 +416,8 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             ``height_window + 8`` pixels (23) either way. The windows are in pixels of that level.
         seed_level: the first estimate, on the seed, runs on images averaged over 2**seed_level
             pixels (the motion's parameters do not depend on the resolution).
-        seed_width_m, seed_depth_m: the seed (:func:`road_seed`).
+        seed_width_m, seed_depth_m: the seed (:func:`road_seed`); in a turn also along the path
+            (the module's step 1).
         min_height_m: the smallest step the road must not take in (a kerb); surfaces more than half
             of it above or below the road plane are off the road.
         max_height_m: evidence counts where a surface this high would show (see the module).
@@ -489,6 +440,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
             images; outward, one pixel of the working resolution more), the boundary follows
             image 1's edges (a marker-controlled watershed,
             :func:`~fsof_torch.refinement.road_region.follow_edges`). False: the windows' boundary.
+        follow_path: turning, where the motion found takes the vehicle's path out of the straight
+            seed within its depth, detect again from the seed along the path and keep that
+            detection where it is ok and its seed agrees more with its motion (the module's step
+            1). False: the seed straight ahead only.
         warn: an estimated motion whose parameters are not all finite is a failed estimate (flagged
             ``"no_motion"``) with a ``RuntimeWarning`` naming the samples; False: without it.
 
@@ -503,10 +458,10 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     options = dict(level=level, seed_level=seed_level, window=window, height_window=height_window,
                    seed_width_m=seed_width_m, seed_depth_m=seed_depth_m, min_height_m=min_height_m,
                    max_height_m=max_height_m, slow_max_height_m=slow_max_height_m, z=z, min_misfit_px=min_misfit_px,
-                   min_coverage=min_coverage, refit=refit, edges=edges)
+                   min_coverage=min_coverage, refit=refit, edges=edges, follow_path=follow_path)
     dims = _check_inputs(image1, image2, camera, flow, data_range, options, estimated=motion is None)
     (level, seed_level, window, height_window, seed_width_m, seed_depth_m, min_height_m, max_height_m, slow_max_height_m,
-     z, min_misfit_px, min_coverage, refit, edges) = options.values()  # (as int / float / bool)
+     z, min_misfit_px, min_coverage, refit, edges, follow_path) = options.values()  # (as int / float / bool)
     warn = check_bool(warn, "warn")
     check_estimator(estimator)
     if isinstance(starts, (str, bytes, Mapping)) or not isinstance(starts, Iterable):
@@ -539,7 +494,6 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     cam_l = _level_camera(camera, level)
     h, w = H >> level, W >> level
     X, Z, below_l = _ground(cam_l, (h, w))
-    seed_l = below_l & (X.abs() <= seed_width_m / 2) & (Z <= seed_depth_m)
 
     estimated = motion is None
     # a non-finite predicted pixel is no data: 0 in the estimator's flow and out of its masks (as
@@ -551,88 +505,116 @@ def detect_road(image1: Tensor, image2: Tensor, camera: Camera, *, flow: Tensor 
     if estimated:
         cam_s = _level_camera(camera, seed_level)
         hs, ws = H >> seed_level, W >> seed_level
-        seed_s = seed_l if seed_level == level else road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m)
         flow_s = None if flow is None else _pool(flow, seed_level)[..., :hs, :ws] / 2 ** seed_level
         finite_s = None if finite is None else _pool(finite.to(work), seed_level)[..., :hs, :ws] == 1
         usable = (lambda m: m if finite_s is None else m & finite_s)  # noqa: E731
         images_s = tuple(_pool(im, seed_level)[..., :hs, :ws] for im in (im1, im2))
-        motion = estimate(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
-        failed = ~torch.tensor(_succeeded(motion, B), device="cpu")
-        if bool(failed.any()):
-            # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
-            # per sample where the first failed and this one succeeds (the others keep their own)
-            deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m)
-            again = estimate(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
-            take = failed & torch.tensor(_succeeded(again, B), device="cpu")
-            if bool(take.any()):
-                motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
-        # the fit at the images' size (its homography, flow and camera; its parameters are the same)
-        motion = fit_at_size(motion, camera, (H, W))
     with autocast_off(im1):  # (the smoothing in the working dtype; the tests' ops keep their inputs' dtype)
         grey = gaussian_blur(_pool(torch.cat([to_grey(im1), to_grey(im2)], dim=1), level)[..., :h, :w], _SIGMA)
     # the steps the evidence must be able to show: max_height_m, doubled up to slow_max_height_m
     heights = [max_height_m]
     while slow_max_height_m is not None and heights[-1] < slow_max_height_m:
         heights.append(min(2 * heights[-1], slow_max_height_m))
-
-    def judge(motion: Any) -> tuple[_Evidence, Tensor]:
-        model, params = _plane_motion(motion, camera)
-        params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in params.items()}
-        f, valid = road_flow(cam_l.to(torch.float64), params, (h, w), model=model)
-        raised, _ = road_flow(cam_l.to(torch.float64).replace(height=cam_l.height.to(torch.float64) - min_height_m),
-                              params, (h, w), model=model)
-        parallax = raised - f
-        own, own_params = road_motion(motion, "motion")
-        if own.name == "homography":  # (its own flow: the plane, with the camera's normal, only approximates it)
-            own_params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in own_params.items()}
-            f, own_valid = road_flow(cam_l.to(torch.float64), own_params, (h, w), model=own)
-            valid = valid & own_valid
-        gain = getattr(motion, "extras", {}).get("gain") if hasattr(motion, "extras") else None
-        gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
-        ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, parallax.to(work), seed_l, gain,
-                       window=window, height_window=height_window, min_height=min_height_m, max_heights=heights,
-                       trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level,
-                       noise_floor=_QUANTISATION / 4 ** level)
-        focus = focus_of_expansion(model, params, cam_l)
-        roads = []
-        for b in range(B):
-            fz = focus[b]
-            fo = (float(fz[0] / fz[2]), float(fz[1] / fz[2])) if abs(float(fz[2])) > 1e-9 * float(fz.abs().max()) else None
-            arrays = [t[b, 0].cpu().numpy() for t in (ev.good, ev.bad, ev.ok, ev.testable, below_l, seed_l)]
-            roads.append(torch.from_numpy(road_region(*arrays, fo, window, max(1, (h * w) // 500))))
-        return ev, torch.stack(roads).unsqueeze(1).to(device)
-
-    seed, below = upsample_mask(seed_l, level, (H, W)), upsample_mask(below_l, level, (H, W))
-    if edges:  # (image 1 as 8-bit RGB, the horizon and the seed on the host, once)
+    below = upsample_mask(below_l, level, (H, W))
+    if edges:  # (image 1 as 8-bit RGB and the horizon on the host, once)
         rgb = (im1.expand(-1, 3, -1, -1) if im1.shape[1] == 1 else im1).clamp(0, 255).round().to(torch.uint8)
         rgb = rgb.permute(0, 2, 3, 1).cpu().numpy()
-        below_np, seed_np = below[:, 0].cpu().numpy(), seed[:, 0].cpu().numpy()
+        below_np = below[:, 0].cpu().numpy()
         radius = (height_window // 2 + 1) * 2 ** level
         # the result's edge may lie one smoothing radius farther out: what the windows see is smoothed
         reach = (height_window // 2 + 1 + math.ceil(_SIGMA)) * 2 ** level
 
-    def full_size(road_l: Tensor, outward: int | None = None) -> Tensor:
-        """The road at the images' size; with ``edges``, its boundary on image 1's edges (up to
-        ``outward`` pixels beyond the windows' boundary, default ``radius``)."""
-        mask = upsample_mask(road_l, level, (H, W))
-        if not edges:
-            return mask
-        m = mask[:, 0].cpu().numpy()
-        return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], below_np[b], seed_np[b], radius, outward))
-                            for b in range(B)]).unsqueeze(1).to(device)
+    def detect(motion: Any, curvature: Tensor | None) -> RoadDetection:
+        """The detection from the seed along a path of ``curvature`` (B,) 1/m (None: straight ahead)."""
+        seed_l = seed_mask(X, Z, below_l, seed_width_m, seed_depth_m, curvature)
+        bend = 0.0 if curvature is None else curvature
+        if estimated:
+            seed_s = (seed_l if seed_level == level else
+                      road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=seed_depth_m, curvature=bend))
+            motion = estimate(flow_s, usable(seed_s), cam_s, images=images_s, odometry=odometry, starts=starts)
+            failed = ~torch.tensor(_succeeded(motion, B), device="cpu")
+            if bool(failed.any()):
+                # driving fast, most of the seed leaves image 2: the motion from a seed twice as deep,
+                # per sample where the first failed and this one succeeds (the others keep their own)
+                deeper = road_seed(cam_s, (hs, ws), width_m=seed_width_m, depth_m=2 * seed_depth_m, curvature=bend)
+                again = estimate(flow_s, usable(deeper), cam_s, images=images_s, odometry=odometry, starts=starts)
+                take = failed & torch.tensor(_succeeded(again, B), device="cpu")
+                if bool(take.any()):
+                    motion = again if bool(take.all()) else where_motion(take.to(device), again, motion)
+            # the fit at the images' size (its homography, flow and camera; its parameters are the same)
+            motion = fit_at_size(motion, camera, (H, W))
 
-    ev, road_l = judge(motion)
-    if estimated and refit and bool(road_l.any()):
-        mask = full_size(road_l)  # (the fit: the road within half a window of the windows' boundary)
-        again = estimate(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
-                          odometry=odometry, starts=(motion, *starts))
-        # per sample: a road found and fitted again (a sample without road keeps its seed fit,
-        # as it would alone)
-        ok_again = torch.tensor(_succeeded(again, B), device="cpu") & road_l.flatten(1).any(1).cpu()
-        if bool(ok_again.any()):
-            motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
-            ev, road_l = judge(motion)
-    return _report(full_size(road_l, reach if edges else None), motion, seed, below, ev, seed_l, level, min_coverage)
+        def judge(motion: Any) -> tuple[_Evidence, Tensor]:
+            model, params = _plane_motion(motion, camera)
+            params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in params.items()}
+            f, valid = road_flow(cam_l.to(torch.float64), params, (h, w), model=model)
+            raised, _ = road_flow(cam_l.to(torch.float64).replace(height=cam_l.height.to(torch.float64) - min_height_m),
+                                  params, (h, w), model=model)
+            parallax = raised - f
+            own, own_params = road_motion(motion, "motion")
+            if own.name == "homography":  # (its own flow: the plane, with the camera's normal, only approximates it)
+                own_params = {k: torch.as_tensor(v, dtype=torch.float64, device=device) for k, v in own_params.items()}
+                f, own_valid = road_flow(cam_l.to(torch.float64), own_params, (h, w), model=own)
+                valid = valid & own_valid
+            gain = getattr(motion, "extras", {}).get("gain") if hasattr(motion, "extras") else None
+            gain = torch.ones(B, dtype=work, device=device) if gain is None else gain.to(device=device, dtype=work)
+            ev = _evidence(grey[:, :1], grey[:, 1:], f.to(work), valid, parallax.to(work), seed_l, gain,
+                           window=window, height_window=height_window, min_height=min_height_m, max_heights=heights,
+                           trusted=_succeeded(motion, B), z=z, min_misfit=min_misfit_px / 2 ** level,
+                           noise_floor=_QUANTISATION / 4 ** level)
+            focus = focus_of_expansion(model, params, cam_l)
+            roads = []
+            for b in range(B):
+                fz = focus[b]
+                fo = (float(fz[0] / fz[2]), float(fz[1] / fz[2])) if abs(float(fz[2])) > 1e-9 * float(fz.abs().max()) else None
+                arrays = [t[b, 0].cpu().numpy() for t in (ev.good, ev.bad, ev.ok, ev.testable, below_l, seed_l)]
+                roads.append(torch.from_numpy(road_region(*arrays, fo, window, max(1, (h * w) // 500))))
+            return ev, torch.stack(roads).unsqueeze(1).to(device)
+
+        seed = upsample_mask(seed_l, level, (H, W))
+        seed_np = seed[:, 0].cpu().numpy() if edges else None
+
+        def full_size(road_l: Tensor, outward: int | None = None) -> Tensor:
+            """The road at the images' size; with ``edges``, its boundary on image 1's edges (up to
+            ``outward`` pixels beyond the windows' boundary, default ``radius``)."""
+            mask = upsample_mask(road_l, level, (H, W))
+            if not edges:
+                return mask
+            m = mask[:, 0].cpu().numpy()
+            return torch.stack([torch.from_numpy(follow_edges(m[b], rgb[b], below_np[b], seed_np[b], radius, outward))
+                                for b in range(B)]).unsqueeze(1).to(device)
+
+        ev, road_l = judge(motion)
+        if estimated and refit and bool(road_l.any()):
+            mask = full_size(road_l)  # (the fit: the road within half a window of the windows' boundary)
+            again = estimate(flow, mask if finite is None else mask & finite, camera, images=(im1, im2),
+                             odometry=odometry, starts=(motion, *starts))
+            # per sample: a road found and fitted again (a sample without road keeps its seed fit,
+            # as it would alone)
+            ok_again = torch.tensor(_succeeded(again, B), device="cpu") & road_l.flatten(1).any(1).cpu()
+            if bool(ok_again.any()):
+                motion = again if bool(ok_again.all()) else where_motion(ok_again.to(device), again, motion)
+                ev, road_l = judge(motion)
+        return _report(full_size(road_l, reach if edges else None), motion, seed, below, ev, seed_l, level,
+                       min_coverage)
+
+    found = detect(motion, None)
+    if not follow_path:
+        return found
+    # turning: where the motion takes the vehicle's path out of the straight seed within its depth
+    # (seed.path_curvature), the seed along that path is judged too, and kept per sample where it is
+    # ok and its evidence agrees more, or the straight seed's detection is flagged
+    _, params = _plane_motion(found.motion, camera)
+    yaw, x_d, z_d = (torch.as_tensor(params.get(n, 0.0), dtype=torch.float64, device=device) for n in ("yaw", "x_d", "z_d"))
+    curvature = path_curvature(yaw, x_d, z_d, seed_width_m, seed_depth_m).expand(B)
+    moved = torch.tensor([f != "no_motion" for f in found.flag], device=curvature.device)
+    curvature = torch.where(moved, curvature, 0.0).to(device)
+    if bool((curvature != 0).any()):
+        bent = detect(motion, curvature)
+        take = ((curvature != 0) & bent.ok & (~found.ok | (bent.seed_agreement > found.seed_agreement))).cpu()
+        if bool(take.any()):
+            found = _per_sample(take, bent, found)
+    return found
 
 
 def _succeeded(motion: Any, B: int) -> list[bool]:
@@ -642,6 +624,25 @@ def _succeeded(motion: Any, B: int) -> list[bool]:
     if success is None:
         return [True] * B
     return torch.as_tensor(success, device="cpu").reshape(-1).expand(B).tolist()
+
+
+def _per_sample(take: Tensor, a: RoadDetection, b: RoadDetection) -> RoadDetection:
+    """``a``'s detection where ``take`` (B,) bool, ``b``'s elsewhere."""
+    if bool(take.all()):
+        return a
+    t = take.to(a.mask.device)
+
+    def pick(x: Tensor, y: Tensor) -> Tensor:
+        return torch.where(t.reshape(-1, *([1] * (x.dim() - 1))), x, y)
+
+    flags = [(a if bool(k) else b).flag[i] for i, k in enumerate(take)]
+    reasons = [(a if bool(k) else b).reason[i] for i, k in enumerate(take)]
+    motion = a.motion if a.motion is b.motion else where_motion(t, a.motion, b.motion)
+    return RoadDetection(mask=pick(a.mask, b.mask), flag=flags, reason=reasons, ok=pick(a.ok, b.ok), motion=motion,
+                         seed=pick(a.seed, b.seed), coverage=pick(a.coverage, b.coverage),
+                         seed_agreement=pick(a.seed_agreement, b.seed_agreement), evidence=pick(a.evidence, b.evidence),
+                         height=pick(a.height, b.height), level=a.level,
+                         stats={k: pick(a.stats[k], b.stats[k]) for k in a.stats})
 
 
 def _report(mask: Tensor, motion: Any, seed: Tensor, below: Tensor, ev: _Evidence, seed_l: Tensor,

@@ -16,7 +16,7 @@ __all__ = ["SLOW_MAX_HEIGHT_M", "ROAD_VALUE_OPTIONS", "check_road_values"]
 #: detect_road's default ``slow_max_height_m`` (metres), named in its error
 SLOW_MAX_HEIGHT_M = 1.2
 _INT_OPTIONS = ("level", "seed_level", "window", "height_window")
-_FLAG_OPTIONS = ("refit", "edges")
+_FLAG_OPTIONS = ("refit", "edges", "follow_path")
 #: detect_road's options whose values :func:`check_road_values` checks
 ROAD_VALUE_OPTIONS = _INT_OPTIONS + ("seed_width_m", "seed_depth_m", "min_height_m", "max_height_m",
                                      "slow_max_height_m", "z", "min_misfit_px", "min_coverage") + _FLAG_OPTIONS
