@@ -1,6 +1,6 @@
 """Auto road (fsof_torch.detect_road): quality on synthetic scenes and the shared real data, and time.
 
-Prints five tables, single thread (the first two from the synthetic presets):
+Prints five tables (six with ``--turns``), single thread (the first two from the synthetic presets):
 
 1. Synthetic presets (default, body-motion, crest, dip; pairs 0, 10, 20, 30 at 375 x 1242): IoU,
    precision and recall against the scene's true road, mean and min per preset, and the flags;
@@ -33,6 +33,11 @@ Prints five tables, single thread (the first two from the synthetic presets):
    ``slow_max_height_m=None`` (the step kept at max_height_m: such pairs are flagged and left
    unrefined).
 
+5. With ``--turns``, sharp turns (synthetic): the default scene driven through turns of radius
+   13 to 54 m, the detection (its seed along the vehicle's path where the motion found turns the
+   path out of the straight seed) against ``follow_path=False`` (the seed straight ahead only):
+   the flags, the IoU with the true road, the seed's agreement and the time.
+
 With ``--yaw-deg D`` (``--pitch-change-deg``, ``--roll-change-deg``) the real pairs of tables 2 and 3
 are seen as by a camera that also turns between the frames (``real_road.turned``: image 2
 resampled through the rotation's homography, both frames and the polygon cropped to where it is
@@ -47,7 +52,7 @@ than each other, a malformed road.json) exit 2 naming ``--data``, before any wor
 
 Run: python benchmarks/auto_road.py [--data ../shared/data] [--repeat 3] [--no-synthetic] [--no-slow] [--no-real]
      [--pairs 0 10 20 30]
-     [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--reverse]
+     [--yaw-deg D] [--pitch-change-deg D] [--roll-change-deg D] [--reverse] [--turns]
 """
 
 from __future__ import annotations
@@ -161,6 +166,40 @@ def synthetic_table(pairs: tuple[int, ...] = PAIRS) -> None:
             recall = f"{found / n:.3f} / {found_exact / n:.3f}" if n else "-"
             cells.append(f"{n / total:26.3f} {recall:>13}")
         print(f"{preset:>12} " + " ".join(cells))
+
+
+#: the sharp turns of docs/auto-road.md's Limits: (steering in rad of the default scene at 12 m/s, pair)
+TURNS = ((-0.2, 10), (-0.1, 10), (-0.1, 30), (-0.05, 25), (0.05, 15), (0.1, 20), (0.2, 10))
+
+
+def turns_table(cases: tuple[tuple[float, int], ...] = TURNS, size: tuple[int, int] | None = None) -> None:
+    """The default scene driven through turns: the detection (its seed along the path where the
+    motion turns the path out of the straight seed) against ``follow_path=False`` (the seed straight
+    ahead only): flag, IoU with the true road, the seed's agreement, and time (median of 3)."""
+    import time
+
+    from fsof_torch import detect_road, render_pair
+
+    print("\nSharp turns: the default scene at 12 m/s, 375 x 1242" if size is None else f"\nSharp turns, {size}")
+    print(f"{'steering, pair':>15} {'flag':>12} {'IoU':>6} {'agreement':>9} {'ms':>7}   "
+          f"{'follow_path=False: flag':>24} {'IoU':>6} {'agreement':>9} {'ms':>7}")
+    ious = {True: [], False: []}
+    for steering, index in cases:
+        p = render_pair("default", index, steering=steering, **({} if size is None else {"size": size}))
+        truth = p["road"][None].bool()
+        cells = []
+        for follow in (True, False):
+            times = []
+            for _ in range(3):
+                t = time.perf_counter()
+                det = detect_road(p["image1"][None], p["image2"][None], p["camera"], follow_path=follow)
+                times.append(time.perf_counter() - t)
+            iou = float((det.mask & truth).sum() / (det.mask | truth).sum())
+            ious[follow].append(iou)
+            cells.append(f"{det.flag[0]:>{24 if not follow else 12}} {iou:6.3f} {float(det.seed_agreement[0]):9.2f} "
+                         f"{1e3 * statistics.median(times):7.1f}")
+        print(f"{steering:+6.2f}, {index:6d} " + "   ".join(cells))
+    print(f"{'mean IoU':>15} {statistics.mean(ious[True]):19.3f} {'':17}   {statistics.mean(ious[False]):31.3f}")
 
 
 SLOW = (("default", 2.0), ("default", 3.0), ("default", 4.0), ("default", 5.0), ("carla-turning", None))
@@ -367,6 +406,8 @@ def main(argv=None) -> int:
     parser.add_argument("--no-synthetic", action="store_true", help="leave out the synthetic presets' table")
     parser.add_argument("--no-slow", action="store_true", help="leave out the table of driving slowly")
     parser.add_argument("--no-real", action="store_true", help="leave out the real-data tables")
+    parser.add_argument("--turns", action="store_true",
+                        help="also the table of sharp turns (the default scene through 7 turns; about a minute)")
     parser.add_argument("--pairs", type=pair_index, nargs="+", default=list(PAIRS),
                         help="the synthetic presets' pairs (default: 0 10 20 30; other pairs check that a "
                              "change helps beyond these)")
@@ -412,6 +453,8 @@ def main(argv=None) -> int:
             print(f"\n{data} is absent: no real-data tables")
     if not args.no_slow:
         slow_table()
+    if args.turns:
+        turns_table()
     return 0
 
 

@@ -244,3 +244,18 @@ def test_a_flow_based_detection_that_finds_nothing_is_flagged(bench, monkeypatch
     bench.real_table(Path("."), kitti15=False)
     row = next(line for line in capsys.readouterr().out.splitlines() if "flow-based" in line)
     assert row.split()[-2:] == ["2", "2"]   # empty 2, flagged 2
+
+
+def test_the_turns_table_prints_both_seeds(bench, capsys):
+    """``--turns``: per turn, the detection and the same with the seed straight ahead only
+    (``follow_path=False``): a flag, an IoU, the seed's agreement and a time each; the mean IoUs."""
+    from fsof_torch.refinement.auto_road import FLAGS
+
+    bench.turns_table(((-0.1, 10),), size=(188, 621))
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert lines[0] == "Sharp turns, (188, 621)" and "follow_path=False" in lines[1]
+    row, mean = lines[2].split(), lines[3].split()
+    assert row[:2] == ["-0.10,", "10"] and len(row) == 10 and len(mean) == 4
+    for flag, iou, agreement, ms in (row[2:6], row[6:10]):
+        assert flag in ("ok", *FLAGS) and 0 <= float(iou) <= 1 and 0 <= float(agreement) <= 1 and float(ms) > 0
+    assert [float(mean[2]), float(mean[3])] == [float(row[3]), float(row[7])]
